@@ -1,0 +1,113 @@
+"""The ``payload`` command line (contract in DESIGN.md).
+
+Every subcommand lives in a ``register(subparsers)`` function; a subcommand's
+handler returns the exit code. Errors print one line on stderr and exit 2 (bad
+input) or 1 (failed check).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import sys
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+from payload.errors import PayloadError
+
+# Modules providing ``register(subparsers)``; each adds its own subcommands.
+COMMAND_MODULES: tuple[str, ...] = ("payload.cli",)
+
+
+class CheckFailed(Exception):
+    """A check ran and failed (exit 1)."""
+
+
+def emit_json(obj: Any) -> None:
+    """Print exactly one JSON object on stdout."""
+    sys.stdout.write(json.dumps(obj, sort_keys=False) + "\n")
+
+
+def _cmd_build(args: argparse.Namespace) -> int:
+    from payload.design import load_design, stale_files, write
+    from payload.design.build import PROJECT_ROOT
+
+    design = load_design(args.design)
+    root = Path(args.root) if args.root else PROJECT_ROOT
+    t0 = time.perf_counter()
+    if args.check:
+        stale = stale_files(design, root)
+        if stale:
+            for rel in stale:
+                print(f"stale: {rel}", file=sys.stderr)
+            raise CheckFailed(
+                f"{len(stale)} generated file(s) do not match {design.source}; run `payload build`"
+            )
+        print(f"generated files match {design.source} ({time.perf_counter() - t0:.2f} s)")
+        return 0
+    result = write(design, root)
+    dt = time.perf_counter() - t0
+    print(f"wrote {len(result.files)} files under {root} in {dt:.2f} s")
+    return 0
+
+
+def _cmd_summary(args: argparse.Namespace) -> int:
+    from payload.design import load_design
+    from payload.design.summary import print_summary, summarize
+
+    design = load_design(args.design)
+    summary = summarize(design)
+    if args.json:
+        emit_json(summary)
+    else:
+        print_summary(summary)
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("build", help="regenerate urdf/ and cad/meshes/ from the design")
+    p.add_argument("--design", help="design TOML (default: cad/design.toml)")
+    p.add_argument("--check", action="store_true", help="exit 1 naming every stale file")
+    p.add_argument("--root", help=argparse.SUPPRESS)
+    p.set_defaults(func=_cmd_build)
+
+    p = sub.add_parser("summary", help="DoF, joint ranges, masses and bounding boxes")
+    p.add_argument("--design", help="design TOML (default: cad/design.toml)")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.set_defaults(func=_cmd_summary)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="payload", description="Four-finger Astrobee payload workbench"
+    )
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for name in COMMAND_MODULES:
+        module = importlib.import_module(name)
+        register_fn: Callable[[argparse._SubParsersAction], None] = module.register
+        register_fn(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``payload`` console script; returns the exit code."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except CheckFailed as exc:
+        print(f"payload: check failed: {exc}", file=sys.stderr)
+        return 1
+    except PayloadError as exc:
+        print(f"payload: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("payload: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

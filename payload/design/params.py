@@ -1,0 +1,383 @@
+"""Typed design parameters loaded from ``cad/design.toml``, with validation.
+
+Every field is SI (m, rad, kg, s, N, A). Loading is strict: an unknown key, a
+missing key, a value of the wrong type or out of range raises
+:class:`~payload.errors.DesignError` naming the dotted parameter path.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import sys
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from payload.errors import DesignError
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+FINGERS: tuple[str, ...] = ("A", "B", "C", "D")
+"""Finger names. A and C are fixed to the stage; B and D ride the rail carriage."""
+
+FINGER_JOINTS: tuple[str, ...] = ("mcp_flex", "mcp_abd", "pip", "dip")
+"""Per-finger joints in LEAP's order (abduction after flexion)."""
+
+SIDE_OF: dict[str, int] = {"A": 1, "B": 1, "C": 2, "D": 2}
+
+
+def _pos(doc: str = "") -> Any:
+    return field(metadata={"positive": True, "doc": doc})
+
+
+def _nonneg(doc: str = "") -> Any:
+    return field(metadata={"nonneg": True, "doc": doc})
+
+
+def _any(doc: str = "") -> Any:
+    return field(metadata={"doc": doc})
+
+
+@dataclass(frozen=True)
+class Range:
+    """A closed interval ``[lower, upper]`` (loaded from a two-element array)."""
+
+    lower: float
+    upper: float
+
+    @property
+    def span(self) -> float:
+        return self.upper - self.lower
+
+    def contains(self, value: float) -> bool:
+        return self.lower <= value <= self.upper
+
+
+@dataclass(frozen=True)
+class FingerLengths:
+    """Distances between consecutive joint origins along the straight finger [m]."""
+
+    knuckle: float = _pos("MCP flexion -> MCP abduction")
+    proximal: float = _pos("MCP abduction -> PIP")
+    middle: float = _pos("PIP -> DIP")
+    distal: float = _pos("DIP -> fingertip point (pad centre)")
+
+
+@dataclass(frozen=True)
+class FingerOffsets:
+    """Offsets of each joint origin toward the closing direction [m] (may be negative)."""
+
+    mcp_abd: float = _any()
+    pip: float = _any()
+    dip: float = _any()
+    tip: float = _any()
+
+
+@dataclass(frozen=True)
+class FingerLimits:
+    """Joint limits [rad], positive flexion closes toward the opposite side."""
+
+    mcp_flex: Range
+    mcp_abd: Range
+    pip: Range
+    dip: Range
+
+
+@dataclass(frozen=True)
+class Section:
+    """Rectangular cross-section of the finger links [m]."""
+
+    width: float = _pos("along the flexion axis (the rail axis)")
+    depth: float = _pos("along the closing direction")
+
+
+@dataclass(frozen=True)
+class Pad:
+    radius: float = _pos("fingertip pad sphere radius [m]")
+    friction: float = _pos("sliding friction coefficient of the pad")
+
+
+@dataclass(frozen=True)
+class Finger:
+    lengths: FingerLengths
+    offsets: FingerOffsets
+    limits: FingerLimits
+    section: Section
+    pad: Pad
+    damping: float = _nonneg("joint viscous damping [N m s/rad]")
+    frictionloss: float = _nonneg("joint dry friction [N m]")
+    armature: float = _nonneg("reflected rotor inertia [kg m^2] (assumption)")
+    kp: float = _pos("position-servo stiffness [N m/rad]")
+
+    def limit(self, joint: str) -> Range:
+        return getattr(self.limits, joint)
+
+
+@dataclass(frozen=True)
+class Array:
+    """Layout of the 2x2 finger array on the stage (payload frame, x = rail axis)."""
+
+    side_gap: float = _pos("y distance between the MCP flexion axes of side 1 and side 2")
+    ac_stagger: float = _any("x offset of finger C from finger A (and D from B)")
+    pair_spacing: float = _pos("x distance from finger A to finger B with the rail at 0")
+    a_x: float = _any("x of finger A's MCP flexion axis")
+    finger_drop: float = _pos("distance from the stage plate underside down to the MCP axes")
+    bracket_thickness: float = _pos("thickness of the finger brackets along y")
+
+
+@dataclass(frozen=True)
+class Rail:
+    travel: float = _pos("carriage travel [m]")
+    length: float = _pos("rail length [m]")
+    width: float = _pos("rail width [m]")
+    height: float = _pos("rail height [m]")
+    carriage_length: float = _pos("carriage length along the rail [m]")
+    carriage_thickness: float = _pos("carriage plate thickness [m]")
+    drive_radius: float = _pos("pinion pitch radius of the rail drive [m]")
+    damping: float = _nonneg("viscous damping [N s/m]")
+    kp: float = _pos("position-servo stiffness [N/m]")
+
+
+@dataclass(frozen=True)
+class Stage:
+    travel: float = _pos("vertical deployment travel [m]")
+    plate_length: float = _pos("stage plate length along x [m]")
+    plate_width: float = _pos("stage plate width along y [m]")
+    plate_thickness: float = _pos("stage plate thickness [m]")
+    guide_radius: float = _pos("radius of the two vertical guide columns [m]")
+    guide_length: float = _pos("length of the guide columns below the mounting plate [m]")
+    guide_x: float = _pos("|x| of the guide columns [m]")
+    stowed_gap: float = _nonneg("gap between mounting plate and stage plate when stowed [m]")
+    drive_radius: float = _pos("pinion pitch radius of the rack drive [m]")
+    damping: float = _nonneg("viscous damping [N s/m]")
+    kp: float = _pos("position-servo stiffness [N/m]")
+
+
+@dataclass(frozen=True)
+class Mounting:
+    plate_length: float = _pos("[m]")
+    plate_width: float = _pos("[m]")
+    plate_thickness: float = _pos("[m]")
+
+
+@dataclass(frozen=True)
+class Servo:
+    """A Dynamixel servo body and its drive limits."""
+
+    model: str = _any()
+    width: float = _pos("body size across the output axis [m]")
+    length: float = _pos("body length [m]")
+    height: float = _pos("body height [m]")
+    mass: float = _pos("[kg]")
+    stall_torque: float = _pos("[N m]")
+    stall_current: float = _pos("[A]")
+    current_limit: float = _pos("current cap used on hardware [A]")
+    no_load_speed: float = _pos("[rad/s]")
+
+    @property
+    def torque_limit(self) -> float:
+        """Torque available at the hardware current cap [N m] (torque ~ current)."""
+        return self.stall_torque * min(1.0, self.current_limit / self.stall_current)
+
+
+@dataclass(frozen=True)
+class Materials:
+    """Densities [kg/m^3]."""
+
+    structure: float = _pos("mounting plate, stage, rail, carriage")
+    finger: float = _pos("printed finger links (effective, with infill)")
+    pad: float = _pos("fingertip pads")
+
+
+@dataclass(frozen=True)
+class Posture:
+    """A payload configuration: the same finger joints for every finger."""
+
+    finger: tuple[float, float, float, float]
+    rail: float = _any()
+    stage: float = _any()
+
+
+@dataclass(frozen=True)
+class Design:
+    """The whole payload design."""
+
+    finger: Finger
+    array: Array
+    rail: Rail
+    stage: Stage
+    mounting: Mounting
+    servo: Servo
+    materials: Materials
+    stowed: Posture
+    home: Posture
+    source: str = field(default="<memory>", compare=False, metadata={"internal": True})
+
+    def validate(self) -> Design:
+        """Cross-field checks; returns self or raises :class:`DesignError`."""
+        f, s, r, st = self.finger, self.servo, self.rail, self.stage
+        for j in FINGER_JOINTS:
+            lim = f.limit(j)
+            if not lim.lower < lim.upper:
+                raise DesignError(
+                    f"finger.limits.{j}",
+                    f"lower limit {lim.lower} is not below upper limit {lim.upper}",
+                )
+        if r.travel + r.carriage_length > r.length:
+            raise DesignError(
+                "rail.travel",
+                f"travel {r.travel} m plus carriage length {r.carriage_length} m is longer "
+                f"than the rail ({r.length} m)",
+            )
+        if s.width > f.section.width:
+            raise DesignError(
+                "servo.width",
+                f"servo {s.model} ({s.width * 1e3:.1f} mm) does not fit the finger link width "
+                f"finger.section.width ({f.section.width * 1e3:.1f} mm)",
+            )
+        if s.height > f.section.depth:
+            raise DesignError(
+                "servo.height",
+                f"servo {s.model} ({s.height * 1e3:.1f} mm) does not fit the finger link depth "
+                f"finger.section.depth ({f.section.depth * 1e3:.1f} mm)",
+            )
+        if s.length > f.lengths.knuckle:
+            raise DesignError(
+                "servo.length",
+                f"the MCP abduction servo ({s.length * 1e3:.1f} mm) does not fit its link "
+                f"finger.lengths.knuckle ({f.lengths.knuckle * 1e3:.1f} mm)",
+            )
+        if st.travel > st.guide_length:
+            raise DesignError(
+                "stage.travel",
+                f"travel {st.travel} m is longer than the guide columns ({st.guide_length} m)",
+            )
+        if st.guide_x + st.guide_radius > self.mounting.plate_length / 2:
+            raise DesignError("stage.guide_x", "guide columns stand outside the mounting plate")
+        if abs(self.array.ac_stagger) < f.section.width:
+            raise DesignError(
+                "array.ac_stagger",
+                f"|{self.array.ac_stagger}| m is less than the finger width "
+                f"{f.section.width} m: opposing fingers would collide when stowed",
+            )
+        for name, posture in (("stowed", self.stowed), ("home", self.home)):
+            for j, v in zip(FINGER_JOINTS, posture.finger):
+                if not f.limit(j).contains(v):
+                    raise DesignError(f"{name}.finger", f"{j} = {v} rad is outside its limits")
+            if not 0.0 <= posture.rail <= r.travel:
+                raise DesignError(f"{name}.rail", f"{posture.rail} m is outside [0, {r.travel}]")
+            if not 0.0 <= posture.stage <= st.travel:
+                raise DesignError(f"{name}.stage", f"{posture.stage} m is outside [0, {st.travel}]")
+        return self
+
+
+def _is_number(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+def _build(cls: type, data: Any, path: str) -> Any:
+    """Build dataclass ``cls`` from a TOML table, strictly."""
+    if not isinstance(data, dict):
+        raise DesignError(path or "<root>", f"expected a table, got {type(data).__name__}")
+    hints = typing.get_type_hints(cls)
+    fields = [f for f in dataclasses.fields(cls) if not f.metadata.get("internal")]
+    known = {f.name for f in fields}
+    for key in data:
+        if key not in known:
+            where = f"{path}.{key}" if path else key
+            raise DesignError(where, f"unknown key (expected one of: {', '.join(sorted(known))})")
+    kwargs: dict[str, Any] = {}
+    for f in fields:
+        where = f"{path}.{f.name}" if path else f.name
+        if f.name not in data:
+            raise DesignError(where, "missing key")
+        kwargs[f.name] = _value(hints[f.name], data[f.name], where, f.metadata)
+    return cls(**kwargs)
+
+
+def _value(tp: Any, v: Any, where: str, meta: Any) -> Any:
+    if dataclasses.is_dataclass(tp) and tp is not Range:
+        return _build(tp, v, where)
+    if tp is Range:
+        if not (isinstance(v, list) and len(v) == 2 and all(_is_number(x) for x in v)):
+            raise DesignError(where, f"expected [lower, upper] numbers, got {v!r}")
+        lo, hi = float(v[0]), float(v[1])
+        if not (math.isfinite(lo) and math.isfinite(hi)):
+            raise DesignError(where, "limits must be finite")
+        return Range(lo, hi)
+    origin = typing.get_origin(tp)
+    if origin is tuple:
+        args = typing.get_args(tp)
+        if not (isinstance(v, list) and len(v) == len(args) and all(_is_number(x) for x in v)):
+            raise DesignError(where, f"expected {len(args)} numbers, got {v!r}")
+        return tuple(float(x) for x in v)
+    if tp is str:
+        if not isinstance(v, str):
+            raise DesignError(where, f"expected a string, got {v!r}")
+        return v
+    if tp is float:
+        if not _is_number(v):
+            raise DesignError(where, f"expected a number, got {v!r}")
+        x = float(v)
+        if not math.isfinite(x):
+            raise DesignError(where, "must be finite")
+        if meta.get("positive") and not x > 0:
+            raise DesignError(where, f"must be positive (got {x})")
+        if meta.get("nonneg") and x < 0:
+            raise DesignError(where, f"must not be negative (got {x})")
+        return x
+    if isinstance(tp, types.UnionType):  # pragma: no cover - not used yet
+        raise DesignError(where, "unsupported union type")
+    raise DesignError(where, f"unsupported parameter type {tp!r}")  # pragma: no cover
+
+
+def design_from_dict(data: dict[str, Any], source: str = "<memory>") -> Design:
+    """Build and validate a :class:`Design` from a parsed TOML document."""
+    design = _build(Design, data, "")
+    return dataclasses.replace(design, source=source).validate()
+
+
+DEFAULT_DESIGN_PATH = Path(__file__).resolve().parents[2] / "cad" / "design.toml"
+
+
+def load_design(path: str | Path | None = None) -> Design:
+    """Load and validate a design file (default: the project's ``cad/design.toml``).
+
+    Raises:
+        DesignError: The file is missing, is not valid TOML, or a parameter is invalid.
+    """
+    p = Path(path) if path is not None else DEFAULT_DESIGN_PATH
+    try:
+        text = p.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise DesignError(str(p), f"cannot read design file ({exc.strerror})") from exc
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise DesignError(str(p), f"not valid TOML: {exc}") from exc
+    return design_from_dict(data, source=str(p))
+
+
+def design_to_dict(design: Design) -> dict[str, Any]:
+    """The design as plain data (the inverse of :func:`design_from_dict`)."""
+
+    def conv(obj: Any) -> Any:
+        if isinstance(obj, Range):
+            return [obj.lower, obj.upper]
+        if dataclasses.is_dataclass(obj):
+            return {
+                f.name: conv(getattr(obj, f.name))
+                for f in dataclasses.fields(obj)
+                if not f.metadata.get("internal")
+            }
+        if isinstance(obj, tuple):
+            return [conv(x) for x in obj]
+        return obj
+
+    return conv(design)

@@ -1,0 +1,110 @@
+"""A design's summary: DoF, joint ranges, masses, stowed and deployed bounding boxes."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from payload.design.params import Design
+from payload.design.solids import to_trimesh
+from payload.design.tree import MANIPULATION_JOINTS, KinematicTree, build_tree
+
+
+def bounding_box(tree: KinematicTree, q: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
+    """Axis-aligned bounds of every link solid posed at ``q`` (payload frame) [m].
+
+    Returns:
+        (lower corner, upper corner), shape (3,) each.
+    """
+    poses = tree.link_poses(q)
+    cache: dict[str, np.ndarray] = {}
+    lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+    for link in tree.links:
+        if link.body is None:
+            continue
+        if link.body.mesh not in cache:
+            cache[link.body.mesh] = np.asarray(to_trimesh(link.body.solid()).vertices)
+        v = cache[link.body.mesh] @ poses[link.name][:3, :3].T + poses[link.name][:3, 3]
+        lo, hi = np.minimum(lo, v.min(axis=0)), np.maximum(hi, v.max(axis=0))
+    return lo, hi
+
+
+def summarize(design: Design, tree: KinematicTree | None = None) -> dict[str, Any]:
+    """Plain-data summary (SI units, plus mm where named so)."""
+    tree = tree or build_tree(design)
+    joints = []
+    for j in tree.actuated:
+        joints.append(
+            {
+                "name": j.name,
+                "type": j.kind,
+                "lower": j.lower,
+                "upper": j.upper,
+                "effort": j.effort,
+                "velocity": j.velocity,
+            }
+        )
+    masses = {link.name: link.mass.mass for link in tree.links if link.mass.mass > 0}
+    groups: dict[str, float] = {}
+    for name, m in masses.items():
+        key = f"finger_{name[0]}" if name[:2] in ("A_", "B_", "C_", "D_") else name
+        groups[key] = groups.get(key, 0.0) + m
+    boxes = {}
+    for posture in ("stowed", "home"):
+        lo, hi = bounding_box(tree, tree.posture(posture))
+        boxes[posture] = {
+            "min_mm": [round(float(v) * 1e3, 2) for v in lo],
+            "max_mm": [round(float(v) * 1e3, 2) for v in hi],
+            "size_mm": [round(float(v) * 1e3, 2) for v in hi - lo],
+        }
+    return {
+        "design": design.source,
+        "dof": {
+            "manipulation": len(MANIPULATION_JOINTS),
+            "deployment": 1,
+            "total": len(tree.actuated),
+        },
+        "joints": joints,
+        "mass_kg": {"total": tree.total_mass(), "groups": groups, "links": masses},
+        "bounding_box": {"stowed": boxes["stowed"], "deployed": boxes["home"]},
+    }
+
+
+def print_summary(summary: dict[str, Any]) -> None:
+    """Print the summary as rich tables."""
+    from rich.console import Console
+    from rich.table import Table
+
+    console = Console()
+    dof = summary["dof"]
+    console.print(
+        f"[bold]Payload design[/bold] {summary['design']}: {dof['manipulation']} manipulation DoF "
+        f"+ {dof['deployment']} deployment DoF"
+    )
+    t = Table(title="Joints")
+    for col in ("joint", "type", "lower", "upper", "effort", "max speed"):
+        t.add_column(col, justify="right" if col != "joint" else "left")
+    for j in summary["joints"]:
+        if j["type"] == "revolute":
+            lo, hi = f"{np.degrees(j['lower']):.1f} deg", f"{np.degrees(j['upper']):.1f} deg"
+            eff, vel = f"{j['effort']:.3f} N m", f"{j['velocity']:.2f} rad/s"
+        else:
+            lo, hi = f"{j['lower'] * 1e3:.1f} mm", f"{j['upper'] * 1e3:.1f} mm"
+            eff, vel = f"{j['effort']:.1f} N", f"{j['velocity'] * 1e3:.1f} mm/s"
+        t.add_row(j["name"], j["type"], lo, hi, eff, vel)
+    console.print(t)
+    t = Table(title="Masses")
+    t.add_column("part")
+    t.add_column("mass", justify="right")
+    for name, m in summary["mass_kg"]["groups"].items():
+        t.add_row(name, f"{m * 1e3:.1f} g")
+    t.add_row("[bold]total[/bold]", f"[bold]{summary['mass_kg']['total'] * 1e3:.1f} g[/bold]")
+    console.print(t)
+    t = Table(title="Bounding boxes (payload frame)")
+    for col in ("posture", "x [mm]", "y [mm]", "z [mm]", "size [mm]"):
+        t.add_column(col)
+    for name, b in summary["bounding_box"].items():
+        rng = [f"{lo:.1f} .. {hi:.1f}" for lo, hi in zip(b["min_mm"], b["max_mm"])]
+        t.add_row(name, *rng, " x ".join(f"{s:.1f}" for s in b["size_mm"]))
+    console.print(t)

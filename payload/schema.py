@@ -1,0 +1,175 @@
+"""The command schema shared by the simulator and the hardware driver.
+
+Plain, typed, immutable data. The 17 manipulation coordinates follow the paper's
+eq. 1 order: fingers A, B, C, D (MCP flexion, MCP abduction, PIP, DIP each),
+then the pair-spacing rail. The deployment coordinate (stage) is separate.
+Vehicle motion is a separate type: Astrobee is not part of the payload.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from enum import IntFlag
+from types import TracebackType
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from payload.design.tree import MANIPULATION_JOINTS
+from payload.errors import PayloadError
+
+N_MANIPULATION = len(MANIPULATION_JOINTS)  # 17
+
+
+class SchemaError(PayloadError):
+    """A command or state does not satisfy the schema."""
+
+
+def _frozen_vector(values: object, n: int, what: str, allow_nan: bool = False) -> np.ndarray:
+    arr = np.array(values, dtype=np.float64).reshape(-1)
+    if arr.shape != (n,):
+        raise SchemaError(f"{what}: expected {n} values, got {arr.size}")
+    if not allow_nan and not np.all(np.isfinite(arr)):
+        bad = [MANIPULATION_JOINTS[i] for i in np.flatnonzero(~np.isfinite(arr))] if n == 17 else []
+        raise SchemaError(f"{what}: non-finite value(s) {bad or arr.tolist()}")
+    arr.setflags(write=False)
+    return arr
+
+
+@dataclass(frozen=True)
+class PayloadCommand:
+    """Position command for the payload.
+
+    Attributes:
+        q: The 17 manipulation coordinates, shape (17,) [rad, rail in m].
+        deploy: The deployment (stage) coordinate [m], 0 = stowed.
+        stamp: Time of the command [s].
+    """
+
+    q: np.ndarray
+    deploy: float
+    stamp: float
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "q", _frozen_vector(self.q, N_MANIPULATION, "PayloadCommand.q"))
+        if not math.isfinite(self.deploy):
+            raise SchemaError("PayloadCommand.deploy: not finite")
+        if not math.isfinite(self.stamp):
+            raise SchemaError("PayloadCommand.stamp: not finite")
+
+    def as_dict(self) -> dict[str, float]:
+        """Joint name -> value, the deployment coordinate under ``stage``."""
+        out = {n: float(v) for n, v in zip(MANIPULATION_JOINTS, self.q)}
+        out["stage"] = float(self.deploy)
+        return out
+
+    @staticmethod
+    def from_dict(values: dict[str, float], stamp: float) -> PayloadCommand:
+        """Build from joint names (missing manipulation joints are an error)."""
+        missing = [n for n in MANIPULATION_JOINTS if n not in values]
+        if missing:
+            raise SchemaError(f"PayloadCommand: missing joints {missing}")
+        return PayloadCommand(
+            np.array([values[n] for n in MANIPULATION_JOINTS]),
+            float(values.get("stage", 0.0)),
+            stamp,
+        )
+
+
+class Health(IntFlag):
+    """Health flags of a :class:`PayloadState` (0 = all good)."""
+
+    OK = 0
+    STALE = 1  # the reading is older than expected
+    MISSING_SERVO = 2  # at least one servo did not answer
+    HARDWARE_ERROR = 4  # a servo reported a hardware error (needs a reboot)
+    OVERLOAD = 8  # a joint is at its effort limit
+    LIMIT = 16  # a joint is at or beyond a position limit
+
+
+@dataclass(frozen=True)
+class PayloadState:
+    """Measured state of the payload.
+
+    Attributes:
+        q: Positions of the 17 manipulation coordinates, shape (17,).
+        deploy: Deployment coordinate [m].
+        stamp: Time of the measurement [s].
+        dq: Velocities, shape (17,), NaN where not measured.
+        effort: Efforts [N m or N], shape (17,), NaN where not measured.
+        health: Health flags.
+    """
+
+    q: np.ndarray
+    deploy: float
+    stamp: float
+    dq: np.ndarray = field(default_factory=lambda: np.full(N_MANIPULATION, np.nan))
+    effort: np.ndarray = field(default_factory=lambda: np.full(N_MANIPULATION, np.nan))
+    health: Health = Health.OK
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "q", _frozen_vector(self.q, N_MANIPULATION, "PayloadState.q"))
+        object.__setattr__(
+            self, "dq", _frozen_vector(self.dq, N_MANIPULATION, "PayloadState.dq", True)
+        )
+        object.__setattr__(
+            self, "effort", _frozen_vector(self.effort, N_MANIPULATION, "PayloadState.effort", True)
+        )
+
+
+@dataclass(frozen=True)
+class VehicleTwist:
+    """Requested Astrobee body twist (REP-103 body frame).
+
+    Attributes:
+        linear: Linear velocity, shape (3,) [m/s].
+        angular: Angular velocity, shape (3,) [rad/s].
+        stamp: [s].
+    """
+
+    linear: np.ndarray
+    angular: np.ndarray
+    stamp: float
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "linear", _frozen_vector(self.linear, 3, "VehicleTwist.linear"))
+        object.__setattr__(self, "angular", _frozen_vector(self.angular, 3, "VehicleTwist.angular"))
+
+    @staticmethod
+    def zero(stamp: float = 0.0) -> VehicleTwist:
+        return VehicleTwist(np.zeros(3), np.zeros(3), stamp)
+
+
+@runtime_checkable
+class PayloadDriver(Protocol):
+    """What the teleoperation loop needs of a payload: the simulator or the hardware."""
+
+    def send(self, command: PayloadCommand) -> None:
+        """Send one position command."""
+
+    def read(self) -> PayloadState:
+        """Read the latest measured state."""
+
+    def close(self) -> None:
+        """Release the driver (idempotent)."""
+
+    def __enter__(self) -> PayloadDriver: ...
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None: ...
+
+
+__all__ = [
+    "N_MANIPULATION",
+    "Health",
+    "PayloadCommand",
+    "PayloadDriver",
+    "PayloadState",
+    "SchemaError",
+    "VehicleTwist",
+]

@@ -1,0 +1,374 @@
+"""The parametric design: validation, solids, tree, URDF/MJCF export, build --check."""
+
+from __future__ import annotations
+
+import copy
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import manifold3d as m3d
+import mujoco
+import numpy as np
+import pinocchio as pin
+import pytest
+import tomli_w
+import trimesh
+import yourdfpy
+from conftest import DESIGN, MJCF, ROOT, SCENE, URDF
+
+from payload.design import (
+    ALL_JOINTS,
+    FINGER_JOINTS,
+    FINGERS,
+    build_tree,
+    design_from_dict,
+    generate,
+    load_design,
+    stale_files,
+    write,
+)
+from payload.design.solids import SEGMENTS
+from payload.errors import DesignError
+
+
+def pin_q(model: pin.Model, values: dict[str, float]) -> np.ndarray:
+    q = pin.neutral(model)
+    for name, v in values.items():
+        q[model.joints[model.getJointId(name)].idx_q] = v
+    return q
+
+
+def mj_values(model: mujoco.MjModel, qpos: np.ndarray) -> dict[str, float]:
+    return {model.joint(j).name: float(qpos[model.jnt_qposadr[j]]) for j in range(model.njnt)}
+
+
+# ---------------------------------------------------------------- models agree
+
+
+def test_fingertip_and_distal_frames_agree_between_pinocchio_and_mujoco():
+    pmodel = pin.buildModelFromUrdf(str(URDF))
+    pdata = pmodel.createData()
+    mmodel = mujoco.MjModel.from_xml_path(str(MJCF))
+    mdata = mujoco.MjData(mmodel)
+    rng = np.random.default_rng(1)
+    lo, hi = mmodel.jnt_range[:, 0], mmodel.jnt_range[:, 1]
+    worst = 0.0
+    for _ in range(250):
+        mdata.qpos[:] = rng.uniform(lo, hi)
+        mujoco.mj_kinematics(mmodel, mdata)
+        pin.framesForwardKinematics(pmodel, pdata, pin_q(pmodel, mj_values(mmodel, mdata.qpos)))
+        for f in FINGERS:
+            for kind in ("tip", "distal"):
+                name = f"{f}_{kind}"
+                a = pdata.oMf[pmodel.getFrameId(name)].translation
+                b = mdata.site(name).xpos
+                worst = max(worst, float(np.abs(a - b).max()))
+    assert worst < 1e-6
+
+
+def test_frames_agree_with_the_trees_own_forward_kinematics(design):
+    tree = build_tree(design)
+    pmodel = pin.buildModelFromUrdf(str(URDF))
+    pdata = pmodel.createData()
+    rng = np.random.default_rng(2)
+    for _ in range(20):
+        q = {j.name: rng.uniform(j.lower, j.upper) for j in tree.actuated}
+        pin.framesForwardKinematics(pmodel, pdata, pin_q(pmodel, q))
+        mine = tree.frame_positions(q)
+        for name, p in mine.items():
+            np.testing.assert_allclose(pdata.oMf[pmodel.getFrameId(name)].translation, p, atol=1e-9)
+
+
+def test_joint_limits_in_urdf_and_mjcf_equal_the_design(design):
+    expected = {}
+    for f in FINGERS:
+        for j in FINGER_JOINTS:
+            lim = design.finger.limit(j)
+            expected[f"{f}_{j}"] = (lim.lower, lim.upper)
+    expected["rail"] = (0.0, design.rail.travel)
+    expected["stage"] = (0.0, design.stage.travel)
+    assert set(expected) == set(ALL_JOINTS)
+
+    robot = yourdfpy.URDF.load(str(URDF), load_meshes=False)
+    pmodel = pin.buildModelFromUrdf(str(URDF))
+    mmodel = mujoco.MjModel.from_xml_path(str(MJCF))
+    for name, (lo, hi) in expected.items():
+        uj = robot.joint_map[name]
+        assert (uj.limit.lower, uj.limit.upper) == pytest.approx((lo, hi), abs=1e-12)
+        idx = pmodel.joints[pmodel.getJointId(name)].idx_q
+        assert pmodel.lowerPositionLimit[idx] == pytest.approx(lo, abs=1e-12)
+        assert pmodel.upperPositionLimit[idx] == pytest.approx(hi, abs=1e-12)
+        assert tuple(mmodel.joint(name).range) == pytest.approx((lo, hi), abs=1e-12)
+        act = mmodel.actuator(name)
+        assert tuple(act.ctrlrange) == pytest.approx((lo, hi), abs=1e-12)
+    assert mmodel.nu == 18
+
+
+def test_mjcf_follows_menagerie_conventions():
+    mmodel = mujoco.MjModel.from_xml_path(str(MJCF))
+    visual = [g for g in range(mmodel.ngeom) if mmodel.geom_group[g] == 2]
+    collision = [g for g in range(mmodel.ngeom) if mmodel.geom_group[g] == 3]
+    assert visual and collision
+    assert all(mmodel.geom_contype[g] == 0 and mmodel.geom_conaffinity[g] == 0 for g in visual)
+    assert mmodel.key("home").id >= 0
+    # every actuator is a position servo on its own joint
+    for a in range(mmodel.nu):
+        assert mmodel.actuator_trntype[a] == mujoco.mjtTrn.mjTRN_JOINT
+        assert mmodel.actuator_biastype[a] == mujoco.mjtBias.mjBIAS_AFFINE
+
+
+# ---------------------------------------------------------------- mass properties
+
+
+def test_masses_and_inertias_are_physical():
+    pmodel = pin.buildModelFromUrdf(str(URDF))
+    for inertia in pmodel.inertias[1:]:
+        assert inertia.mass > 0
+        eig = np.linalg.eigvalsh(inertia.inertia)
+        assert eig.min() > 0
+        a, b, c = sorted(eig)
+        assert a + b >= c * (1 - 1e-9), "triangle inequality on principal moments"
+
+
+def test_total_mass_equals_sum_of_parts(design):
+    """Independent of trimesh: manifold3d's own volumes, densities and the servo count."""
+    tree = build_tree(design)
+    expected = 0.0
+    n_servos = 0
+    for link in tree.links:
+        if link.body is None:
+            continue
+        expected += sum(p.solid.volume() * p.density for p in link.body.parts)
+        n_servos += len(link.body.servos)
+    assert n_servos == 18  # 16 finger joints, the rail and the stage
+    expected += n_servos * design.servo.mass
+    mmodel = mujoco.MjModel.from_xml_path(str(MJCF))
+    robot = yourdfpy.URDF.load(str(URDF), load_meshes=False)
+    urdf_total = sum(link.inertial.mass for link in robot.link_map.values() if link.inertial)
+    assert urdf_total == pytest.approx(expected, rel=1e-9)
+    assert mmodel.body_subtreemass[0] == pytest.approx(expected, rel=1e-9)
+    assert tree.total_mass() == pytest.approx(expected, rel=1e-8)
+
+
+def test_knuckle_mass_matches_closed_form(design):
+    """Box plus the half of the 32-gon cylinder outside it, plus the abduction servo."""
+    tree = build_tree(design)
+    f = design.finger
+    w, d, length = f.section.width, f.section.depth, f.lengths.knuckle
+    r = d / 2
+    polygon_area = SEGMENTS / 2 * r * r * math.sin(2 * math.pi / SEGMENTS)
+    volume = w * d * length + 0.5 * polygon_area * w
+    expected = volume * design.materials.finger + design.servo.mass
+    assert tree.link_map["A_knuckle"].mass.mass == pytest.approx(expected, rel=1e-6)
+
+
+# ---------------------------------------------------------------- meshes
+
+
+def test_committed_meshes_are_watertight():
+    meshes = sorted((ROOT / "cad" / "meshes").glob("*.stl"))
+    assert len(meshes) == 7
+    for path in meshes:
+        mesh = trimesh.load(path, force="mesh")
+        assert mesh.is_watertight, path.name
+        assert mesh.volume > 0, path.name
+        # a second library agrees that it is a valid 2-manifold
+        solid = m3d.Manifold(
+            m3d.Mesh(
+                vert_properties=np.asarray(mesh.vertices, dtype=np.float32),
+                tri_verts=np.asarray(mesh.faces, dtype=np.uint32),
+            )
+        )
+        assert solid.status() == m3d.Error.NoError, path.name
+
+
+def test_urdf_loads_with_meshes_in_yourdfpy():
+    robot = yourdfpy.URDF.load(str(URDF))
+    assert len(robot.actuated_joint_names) == 18
+    assert robot.scene is not None
+    assert len(robot.scene.geometry) >= 7
+
+
+# ---------------------------------------------------------------- simulation
+
+
+def test_scene_compiles_and_steps_with_random_controls_without_warnings():
+    model = mujoco.MjModel.from_xml_path(str(SCENE))
+    data = mujoco.MjData(model)
+    mujoco.mj_resetDataKeyframe(model, data, model.key("home").id)
+    rng = np.random.default_rng(3)
+    lo, hi = model.actuator_ctrlrange[:, 0], model.actuator_ctrlrange[:, 1]
+    steps = round(1.0 / model.opt.timestep)
+    for i in range(steps):
+        if i % 100 == 0:
+            data.ctrl[:] = rng.uniform(lo, hi)
+        mujoco.mj_step(model, data)
+    assert np.all(np.isfinite(data.qpos))
+    assert all(w.number == 0 for w in data.warning), [w.number for w in data.warning]
+
+
+# ---------------------------------------------------------------- parametric change
+
+
+def _regenerate(design_data: dict, tmp_path: Path) -> pin.Model:
+    design = design_from_dict(design_data, source="test")
+    write(design, tmp_path)
+    return pin.buildModelFromUrdf(str(tmp_path / "urdf" / "payload.urdf"))
+
+
+def test_lengthening_the_proximal_link_moves_the_fingertip_by_that_amount(design_dict, tmp_path):
+    delta = 0.007
+    data = copy.deepcopy(design_dict)
+    base = _regenerate(data, tmp_path / "a")
+    data["finger"]["lengths"]["proximal"] += delta
+    longer = _regenerate(data, tmp_path / "b")
+    rng = np.random.default_rng(4)
+    for _ in range(10):
+        values = {"rail": 0.01, "stage": 0.05}
+        for f in FINGERS:
+            for j, v in zip(FINGER_JOINTS, rng.uniform(-0.3, 1.0, size=4)):
+                values[f"{f}_{j}"] = float(v)
+        dbase, dlong = base.createData(), longer.createData()
+        pin.framesForwardKinematics(base, dbase, pin_q(base, values))
+        pin.framesForwardKinematics(longer, dlong, pin_q(longer, values))
+        for f in FINGERS:
+            tip = base.getFrameId(f"{f}_tip")
+            moved = dlong.oMf[tip].translation - dbase.oMf[tip].translation
+            # the proximal link's direction: the proximal frame's -z axis in the payload frame
+            prox = dbase.oMf[base.getFrameId(f"{f}_proximal")].rotation
+            np.testing.assert_allclose(moved, -delta * prox[:, 2], atol=1e-12)
+            assert np.linalg.norm(moved) == pytest.approx(delta, abs=1e-12)
+
+
+def test_straight_finger_length_is_the_sum_of_its_links(design):
+    tree = build_tree(design)
+    q = tree.posture("home")
+    q.update({f"{f}_{j}": 0.0 for f in FINGERS for j in FINGER_JOINTS})
+    pos = tree.link_poses(q)
+    tips = tree.frame_positions(q)
+    L = design.finger.lengths
+    for f in FINGERS:
+        mcp = pos[f"{f}_knuckle"][:3, 3]
+        assert mcp[2] - tips[f"{f}_tip"][2] == pytest.approx(
+            L.knuckle + L.proximal + L.middle + L.distal, abs=1e-12
+        )
+
+
+# ---------------------------------------------------------------- validation
+
+
+def _edit(data: dict, path: str, value) -> dict:
+    out = copy.deepcopy(data)
+    *parents, leaf = path.split(".")
+    node = out
+    for key in parents:
+        node = node[key]
+    if value is _DELETE:
+        del node[leaf]
+    else:
+        node[leaf] = value
+    return out
+
+
+_DELETE = object()
+
+INVALID = [
+    ("finger.lengths.proximal", -0.01, "finger.lengths.proximal", "positive"),
+    ("finger.lengths.distal", 0.0, "finger.lengths.distal", "positive"),
+    ("finger.limits.pip", [1.0, 0.5], "finger.limits.pip", "lower limit"),
+    ("rail.travel", 0.2, "rail.travel", "longer than the rail"),
+    ("finger.section.width", 0.015, "servo.width", "does not fit"),
+    ("finger.section.depth", 0.02, "servo.height", "does not fit"),
+    ("finger.lengths.knuckle", 0.02, "servo.length", "does not fit"),
+    ("finger.lengths.bogus", 0.02, "finger.lengths.bogus", "unknown key"),
+    ("stage.travel", _DELETE, "stage.travel", "missing key"),
+    ("materials.finger", "heavy", "materials.finger", "expected a number"),
+    ("stage.travel", 0.5, "stage.travel", "guide columns"),
+]
+
+
+@pytest.mark.parametrize(("path", "value", "named", "reason"), INVALID)
+def test_invalid_designs_are_rejected_naming_the_parameter(design_dict, path, value, named, reason):
+    with pytest.raises(DesignError) as info:
+        design_from_dict(_edit(design_dict, path, value))
+    assert info.value.parameter == named
+    assert reason in str(info.value)
+
+
+def test_cli_prints_one_line_and_exits_2_on_an_invalid_design(design_dict, tmp_path):
+    bad = tmp_path / "bad.toml"
+    bad.write_text(tomli_w.dumps(_edit(design_dict, "finger.lengths.middle", -0.002)))
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "payload.cli",
+            "build",
+            "--design",
+            str(bad),
+            "--root",
+            str(tmp_path),
+        ],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+    )
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1
+    assert "finger.lengths.middle" in lines[0] and "positive" in lines[0]
+
+
+def test_unreadable_and_malformed_files_are_design_errors(tmp_path):
+    with pytest.raises(DesignError, match="cannot read"):
+        load_design(tmp_path / "missing.toml")
+    broken = tmp_path / "broken.toml"
+    broken.write_text("[finger\nlength = ")
+    with pytest.raises(DesignError, match="not valid TOML"):
+        load_design(broken)
+
+
+# ---------------------------------------------------------------- build
+
+
+def test_generation_is_deterministic(design):
+    _, first = generate(design)
+    _, second = generate(load_design(DESIGN))
+    assert first == second
+
+
+def test_build_check_passes_on_the_committed_files(design):
+    assert stale_files(design, ROOT) == []
+    proc = subprocess.run(
+        [sys.executable, "-m", "payload.cli", "build", "--check"],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+    )
+    assert proc.returncode == 0, proc.stderr
+
+
+def test_build_check_fails_after_a_design_edit(design_dict, tmp_path):
+    edited = tmp_path / "edited.toml"
+    edited.write_text(tomli_w.dumps(_edit(design_dict, "finger.lengths.middle", 0.040)))
+    proc = subprocess.run(
+        [sys.executable, "-m", "payload.cli", "build", "--check", "--design", str(edited)],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+    )
+    assert proc.returncode == 1
+    assert "stale: urdf/payload.urdf" in proc.stderr
+    assert "stale: urdf/payload.xml" in proc.stderr
+    assert "stale: cad/meshes/finger_middle.stl" in proc.stderr
+    assert "finger_distal.stl" not in proc.stderr
+
+
+def test_stale_extra_mesh_is_reported(design, tmp_path):
+    write(design, tmp_path)
+    assert stale_files(design, tmp_path) == []
+    (tmp_path / "cad" / "meshes" / "old_part.stl").write_bytes(b"x")
+    (tmp_path / "urdf" / "payload.urdf").write_text("edited")
+    assert stale_files(design, tmp_path) == ["urdf/payload.urdf", "cad/meshes/old_part.stl"]
