@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import importlib.util
 import json
 import sys
 import time
@@ -18,8 +19,24 @@ from typing import Any
 
 from payload.errors import PayloadError
 
-# Modules providing ``register(subparsers)``; each adds its own subcommands.
-COMMAND_MODULES: tuple[str, ...] = ("payload.cli",)
+# Modules providing ``register(sub, groups)``; each adds its own subcommands to the top
+# level (``sub``) or to a shared group (``groups["bench"]``, ``groups["report"]``,
+# ``groups["export"]``). A module not written yet is skipped.
+COMMAND_MODULES: tuple[str, ...] = (
+    "payload.cli",
+    "payload.retarget.cli",
+    "payload.envelope.cli",
+    "payload.sim.cli",
+    "payload.teleop.cli",
+    "payload.trials.cli",
+    "payload.review.cli",
+    "firmware_interface.cli",
+)
+GROUPS: dict[str, str] = {
+    "bench": "benchmarks: production against reference, same run",
+    "report": "reports written into analyses/",
+    "export": "export recordings",
+}
 
 
 class CheckFailed(Exception):
@@ -67,7 +84,9 @@ def _cmd_summary(args: argparse.Namespace) -> int:
     return 0
 
 
-def register(sub: argparse._SubParsersAction) -> None:
+def register(
+    sub: argparse._SubParsersAction, groups: dict[str, argparse._SubParsersAction]
+) -> None:
     p = sub.add_parser("build", help="regenerate urdf/ and cad/meshes/ from the design")
     p.add_argument("--design", help="design TOML (default: cad/design.toml)")
     p.add_argument("--check", action="store_true", help="exit 1 naming every stale file")
@@ -80,15 +99,35 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_cmd_summary)
 
 
+class _Groups(dict):
+    """Shared subcommand groups (``bench``, ``report``, ``export``), created on first use."""
+
+    def __init__(self, sub: argparse._SubParsersAction) -> None:
+        super().__init__()
+        self._sub = sub
+
+    def __missing__(self, name: str) -> argparse._SubParsersAction:
+        group = self._sub.add_parser(name, help=GROUPS.get(name, name))
+        self[name] = group.add_subparsers(dest=f"{name}_command", required=True, metavar="WHAT")
+        return self[name]
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="payload", description="Four-finger Astrobee payload workbench"
     )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    groups = _Groups(sub)
     for name in COMMAND_MODULES:
+        try:
+            spec = importlib.util.find_spec(name)
+        except ModuleNotFoundError:
+            spec = None
+        if spec is None:
+            continue
         module = importlib.import_module(name)
-        register_fn: Callable[[argparse._SubParsersAction], None] = module.register
-        register_fn(sub)
+        register_fn: Callable[..., None] = module.register
+        register_fn(sub, groups)
     return parser
 
 
