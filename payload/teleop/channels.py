@@ -1,0 +1,238 @@
+"""The rail and base channels of the teleoperation pipeline (they bypass the retargeter).
+
+- Rail: calibrated inter-wrist distance maps directly (and monotonically) to the rail.
+- Base: a virtual sphere centred at the neutral left-wrist position. Outside it the left
+  wrist sets the travel direction, and its displacement beyond the boundary scales the
+  requested speed up to 0.20 m/s. The vehicle turns toward the requested direction while
+  translating. Acceleration and jerk are bounded; with the wrist back inside the sphere
+  the request is zero and the limiter brakes smoothly to rest.
+
+Directions are in the operator frame (workbench axes, X forward), which calibration
+aligns with the vehicle's heading at the start; the channel outputs a body-frame twist.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from payload.errors import PayloadError
+from payload.schema import VehicleTwist
+
+
+class ChannelError(PayloadError):
+    """A channel was given an invalid input (non-finite wrist, bad calibration)."""
+
+
+@dataclass(frozen=True)
+class RailConfig:
+    """Rail channel mapping.
+
+    Attributes:
+        d_min: Inter-wrist distance mapped to rail 0 [m].
+        d_max: Inter-wrist distance mapped to full travel [m].
+        travel: Rail travel [m].
+    """
+
+    d_min: float
+    d_max: float
+    travel: float
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.d_min) and math.isfinite(self.d_max)):
+            raise ChannelError("rail calibration: distances must be finite")
+        if not self.d_max > self.d_min:
+            raise ChannelError(
+                f"rail calibration: open distance {self.d_max:.3f} m must exceed closed "
+                f"distance {self.d_min:.3f} m"
+            )
+        if not self.travel > 0:
+            raise ChannelError("rail travel must be positive")
+
+
+def rail_command(config: RailConfig, left_wrist: np.ndarray, right_wrist: np.ndarray) -> float:
+    """Rail position [m] in [0, travel], non-decreasing in the inter-wrist distance."""
+    d = float(np.linalg.norm(np.asarray(right_wrist) - np.asarray(left_wrist)))
+    if not math.isfinite(d):
+        raise ChannelError("rail channel: wrist position is not finite")
+    s = (d - config.d_min) / (config.d_max - config.d_min)
+    return config.travel * min(1.0, max(0.0, s))
+
+
+@dataclass(frozen=True)
+class BaseConfig:
+    """Base channel settings (defaults: the paper's 0.20 m/s, Astrobee nominal flight mode).
+
+    Attributes:
+        sphere_radius: Radius of the neutral sphere around the neutral left wrist [m].
+        full_speed_offset: Displacement beyond the sphere that requests full speed [m].
+        max_speed: Requested speed cap [m/s] (paper: 0.20).
+        max_accel: Linear acceleration bound [m/s^2] (Astrobee nominal: 0.0175).
+        max_jerk: Linear jerk bound [m/s^3].
+        max_yaw_rate: [rad/s] (Astrobee nominal: 0.1745).
+        max_yaw_accel: [rad/s^2].
+        max_yaw_jerk: [rad/s^3].
+        yaw_gain: Heading error -> yaw rate [1/s].
+        turn_min_speed: Requests slower than this do not turn the vehicle [m/s].
+    """
+
+    sphere_radius: float = 0.05
+    full_speed_offset: float = 0.12
+    max_speed: float = 0.20
+    max_accel: float = 0.0175
+    max_jerk: float = 0.02
+    max_yaw_rate: float = 0.1745
+    max_yaw_accel: float = 0.05
+    max_yaw_jerk: float = 0.1
+    yaw_gain: float = 0.6
+    turn_min_speed: float = 0.02
+
+
+class JerkLimiter:
+    """Tracks a requested vector with bounded magnitude of rate and of rate change.
+
+    Each step moves the internal acceleration toward the landing profile
+    ``a* = e/|e| * min(a_max, sqrt(2 j_max |e|))`` by at most ``j_max dt``, so the output
+    approaches the request without overshoot beyond the discretisation and its first and
+    second differences stay within ``a_max`` and ``j_max``.
+    """
+
+    def __init__(self, dim: int, max_rate: float, max_jerk: float) -> None:
+        self.value = np.zeros(dim)
+        self.rate = np.zeros(dim)
+        self.max_rate = max_rate
+        self.max_jerk = max_jerk
+
+    def reset(self, value: np.ndarray | None = None) -> None:
+        self.value = np.zeros_like(self.value) if value is None else np.array(value, float)
+        self.rate = np.zeros_like(self.rate)
+
+    def step(self, target: np.ndarray, dt: float) -> np.ndarray:
+        target = np.asarray(target, dtype=float)
+        e = target - self.value
+        jdt = self.max_jerk * dt
+        if not np.any(e) and float(np.linalg.norm(self.rate)) <= jdt:
+            self.rate = np.zeros_like(self.rate)  # at rest on the target
+            return self.value.copy()
+        landing = e / dt
+        if (
+            float(np.linalg.norm(landing)) <= jdt
+            and float(np.linalg.norm(landing - self.rate)) <= jdt
+        ):
+            # land exactly this step; the next step's return to zero rate is within jdt too
+            self.rate = landing
+            self.value = target.copy()
+            return self.value.copy()
+        # brake the acceleration already under way: the value still moves by a^2/(2j)
+        lead = self.rate * np.linalg.norm(self.rate) / (2 * self.max_jerk)
+        e_eff = e - lead
+        n = float(np.linalg.norm(e_eff))
+        if n < 1e-15:
+            a_target = np.zeros_like(e)
+        else:
+            a_target = e_eff / n * min(self.max_rate, math.sqrt(2 * self.max_jerk * n))
+        da = a_target - self.rate
+        dn = float(np.linalg.norm(da))
+        if dn > jdt:
+            da *= jdt / dn
+        self.rate = self.rate + da
+        self.value = self.value + self.rate * dt
+        return self.value.copy()
+
+
+@dataclass(frozen=True)
+class BaseCommand:
+    """Output of the base channel at one step.
+
+    Attributes:
+        v_request: Requested velocity before limiting, operator/world frame [m/s].
+        v_world: Limited velocity command, world frame, shape (3,) [m/s].
+        yaw_rate: Limited yaw-rate command [rad/s].
+        twist: The body-frame twist for the vehicle controller.
+        outside: Whether the left wrist is outside the neutral sphere.
+    """
+
+    v_request: np.ndarray
+    v_world: np.ndarray
+    yaw_rate: float
+    twist: VehicleTwist
+    outside: bool
+
+
+def yaw_matrix(yaw: float) -> np.ndarray:
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+class BaseChannel:
+    """Virtual-sphere base channel with a jerk-limited output.
+
+    Args:
+        config: Settings.
+        neutral_left: Neutral left-wrist position from calibration, shape (3,) [m].
+        heading0: World yaw of the operator's forward direction [rad] (the vehicle's
+            heading at calibration).
+        dt: Control period [s].
+    """
+
+    def __init__(
+        self,
+        config: BaseConfig,
+        neutral_left: np.ndarray,
+        heading0: float = 0.0,
+        dt: float = 0.02,
+    ) -> None:
+        neutral = np.asarray(neutral_left, dtype=float)
+        if neutral.shape != (3,) or not np.all(np.isfinite(neutral)):
+            raise ChannelError("base channel: neutral wrist must be 3 finite numbers")
+        self.config = config
+        self.neutral = neutral
+        self.heading0 = heading0
+        self.dt = dt
+        self.linear = JerkLimiter(3, config.max_accel, config.max_jerk)
+        self.yaw = JerkLimiter(1, config.max_yaw_accel, config.max_yaw_jerk)
+
+    def request(self, left_wrist: np.ndarray | None) -> tuple[np.ndarray, bool]:
+        """Requested world velocity for a left-wrist position (``None`` = brake)."""
+        c = self.config
+        if left_wrist is None:
+            return np.zeros(3), False
+        w = np.asarray(left_wrist, dtype=float)
+        if w.shape != (3,) or not np.all(np.isfinite(w)):
+            raise ChannelError("base channel: left wrist is not 3 finite numbers")
+        disp = w - self.neutral
+        dist = float(np.linalg.norm(disp))
+        beyond = dist - c.sphere_radius
+        if beyond <= 0:
+            return np.zeros(3), False
+        # aim a hair below the cap so the limiter's discrete landing never overshoots it
+        cap = c.max_speed - 10.0 * c.max_jerk * self.dt * self.dt
+        speed = cap * min(1.0, beyond / c.full_speed_offset)
+        return yaw_matrix(self.heading0) @ (disp / dist) * speed, True
+
+    def step(
+        self, left_wrist: np.ndarray | None, vehicle_rotation: np.ndarray | None = None
+    ) -> BaseCommand:
+        """One control step.
+
+        Args:
+            left_wrist: Filtered left-wrist position (operator frame) or ``None`` to brake.
+            vehicle_rotation: Vehicle body -> world rotation, shape (3, 3) (identity if None).
+        """
+        c = self.config
+        rot = np.eye(3) if vehicle_rotation is None else np.asarray(vehicle_rotation, float)
+        v_req, outside = self.request(left_wrist)
+        v = self.linear.step(v_req, self.dt)
+        speed_req = float(np.linalg.norm(v_req[:2]))
+        yaw_req = 0.0
+        if speed_req > c.turn_min_speed:
+            heading = math.atan2(rot[1, 0], rot[0, 0])
+            desired = math.atan2(v_req[1], v_req[0])
+            err = (desired - heading + math.pi) % (2 * math.pi) - math.pi
+            cap = c.max_yaw_rate - 10.0 * c.max_yaw_jerk * self.dt * self.dt
+            yaw_req = max(-cap, min(cap, c.yaw_gain * err))
+        yaw_rate = float(self.yaw.step(np.array([yaw_req]), self.dt)[0])
+        twist = VehicleTwist(rot.T @ v, rot.T @ np.array([0.0, 0.0, yaw_rate]), 0.0)
+        return BaseCommand(v_req, v, yaw_rate, twist, outside)

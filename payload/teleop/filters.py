@@ -1,0 +1,68 @@
+"""Keypoint filtering: the One Euro filter (Casiez, Roussel and Vogel, CHI 2012)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class OneEuroConfig:
+    """One Euro filter settings.
+
+    Attributes:
+        min_cutoff: Cutoff frequency at rest [Hz]; lower removes more jitter.
+        beta: Speed coefficient [s/m]: the cutoff rises by ``beta * |speed|`` Hz, so fast
+            motion lags less.
+        d_cutoff: Cutoff of the speed estimate [Hz].
+    """
+
+    min_cutoff: float = 1.0
+    beta: float = 0.1
+    d_cutoff: float = 1.0
+
+
+def _alpha(cutoff: np.ndarray | float, dt: float) -> np.ndarray | float:
+    tau = 1.0 / (2.0 * math.pi * np.asarray(cutoff))
+    return 1.0 / (1.0 + tau / dt)
+
+
+class OneEuroFilter:
+    """One Euro filter over an array of any shape, each element filtered independently.
+
+    The speed driving the adaptive cutoff is the per-row norm for (N, 3) point arrays
+    (so each keypoint adapts to its own 3-D speed), else the element's own magnitude.
+    """
+
+    def __init__(self, config: OneEuroConfig | None = None) -> None:
+        self.config = config or OneEuroConfig()
+        self._x: np.ndarray | None = None
+        self._dx: np.ndarray | None = None
+        self._t: float | None = None
+
+    def reset(self) -> None:
+        """Forget the history: the next sample passes through unfiltered."""
+        self._x = self._dx = self._t = None
+
+    def __call__(self, x: np.ndarray, t: float) -> np.ndarray:
+        """Filter sample ``x`` taken at time ``t`` [s]; returns the filtered sample."""
+        x = np.asarray(x, dtype=np.float64)
+        if self._x is None or self._t is None or t <= self._t or not np.all(np.isfinite(x)):
+            if np.all(np.isfinite(x)):
+                self._x, self._dx, self._t = x.copy(), np.zeros_like(x), t
+            return x.copy()
+        c = self.config
+        dt = t - self._t
+        dx = (x - self._x) / dt
+        a_d = _alpha(c.d_cutoff, dt)
+        dx_hat = a_d * dx + (1 - a_d) * self._dx
+        if x.ndim == 2 and x.shape[1] == 3:
+            speed = np.linalg.norm(dx_hat, axis=1, keepdims=True)
+        else:
+            speed = np.abs(dx_hat)
+        a = _alpha(c.min_cutoff + c.beta * speed, dt)
+        x_hat = a * x + (1 - a) * self._x
+        self._x, self._dx, self._t = x_hat, dx_hat, t
+        return x_hat.copy()

@@ -1,0 +1,181 @@
+"""Tracking supervision: dropouts, NaN or absurd frames, and time going backwards.
+
+A hand whose frames are invalid keeps its last valid frame for up to ``timeout``
+(short dropouts are bridged); past that it is *lost*: the vehicle brakes smoothly, the
+fingers hold their last command, and an event is logged. When valid frames return the
+hand is *recovering* for ``recovery_time`` so the channels blend back in without a jump.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from payload.teleop.hands import Hand, HandFrame
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class SafetyConfig:
+    """Supervisor settings.
+
+    Attributes:
+        timeout: A hand without valid frames for longer than this is lost [s] (issue: 100 ms).
+        max_extent: A joint farther than this from its wrist makes the frame absurd [m].
+        workspace_radius: A wrist farther than this from its calibrated neutral is absurd [m].
+        recovery_time: Blend time after tracking returns [s].
+    """
+
+    timeout: float = 0.1
+    max_extent: float = 0.35
+    workspace_radius: float = 1.5
+    recovery_time: float = 0.5
+
+
+@dataclass(frozen=True)
+class SafetyEvent:
+    """A logged safety event."""
+
+    stamp: float
+    hand: str
+    kind: str  # "invalid", "lost", "regained", "time_backwards"
+    detail: str
+
+
+@dataclass
+class HandStatus:
+    """Supervisor state for one hand."""
+
+    last_valid: Hand | None = None
+    last_valid_stamp: float = -np.inf
+    lost: bool = True  # until the first valid frame
+    lost_since: float | None = None
+    recovering_until: float = -np.inf
+    was_invalid: bool = False
+
+
+@dataclass(frozen=True)
+class Supervised:
+    """What the channels get from the supervisor at one step.
+
+    Attributes:
+        left: The hand to use (last valid while bridging), or None when lost.
+        right: Same for the right hand.
+        blend_left: 0..1 weight of fresh commands for the left hand (1 = normal).
+        blend_right: Same for the right hand.
+        events: Events raised at this step.
+    """
+
+    left: Hand | None
+    right: Hand | None
+    blend_left: float
+    blend_right: float
+    events: tuple[SafetyEvent, ...]
+
+    @property
+    def any_lost(self) -> bool:
+        return self.left is None or self.right is None
+
+
+class TrackingSupervisor:
+    """Judges each incoming frame; see the module docstring."""
+
+    def __init__(
+        self,
+        config: SafetyConfig | None = None,
+        neutral: dict[str, np.ndarray] | None = None,
+    ) -> None:
+        self.config = config or SafetyConfig()
+        self.neutral = neutral or {}
+        self.status = {"left": HandStatus(), "right": HandStatus()}
+        self.last_stamp = -np.inf
+        self.events: list[SafetyEvent] = []
+
+    def _valid(self, side: str, hand: Hand) -> tuple[bool, str]:
+        c = self.config
+        if not hand.tracked:
+            return False, "not tracked"
+        if not np.all(np.isfinite(hand.joints)):
+            return False, "non-finite joint position"
+        extent = float(np.max(np.linalg.norm(hand.joints - hand.wrist, axis=1)))
+        if extent > c.max_extent:
+            return False, f"joint {extent:.2f} m from the wrist"
+        if side in self.neutral:
+            dist = float(np.linalg.norm(hand.wrist - self.neutral[side]))
+            if dist > c.workspace_radius:
+                return False, f"wrist {dist:.2f} m from neutral"
+        return True, ""
+
+    def _event(self, stamp: float, side: str, kind: str, detail: str) -> SafetyEvent:
+        ev = SafetyEvent(stamp, side, kind, detail)
+        self.events.append(ev)
+        log.warning("teleop safety: t=%.3f %s hand %s %s", stamp, side, kind, detail)
+        return ev
+
+    def step(self, frame: HandFrame) -> Supervised:
+        c = self.config
+        events: list[SafetyEvent] = []
+        t = frame.stamp
+        backwards = t < self.last_stamp
+        if backwards:
+            events.append(
+                self._event(t, "both", "time_backwards", f"{t:.3f} s < {self.last_stamp:.3f} s")
+            )
+            t_eval = self.last_stamp  # judge timeouts on the last good clock
+        else:
+            self.last_stamp = t
+            t_eval = t
+        out: dict[str, Hand | None] = {}
+        blend: dict[str, float] = {}
+        for side in ("left", "right"):
+            st = self.status[side]
+            hand = frame.hand(side)
+            ok, why = (False, "time went backwards") if backwards else self._valid(side, hand)
+            if ok:
+                if st.lost:
+                    if st.lost_since is not None:
+                        events.append(self._event(t, side, "regained", "tracking regained"))
+                        st.recovering_until = t + c.recovery_time
+                    st.lost = False
+                    st.lost_since = None
+                st.last_valid, st.last_valid_stamp, st.was_invalid = hand, t, False
+            else:
+                if not st.was_invalid and not st.lost:
+                    events.append(self._event(t_eval, side, "invalid", why))
+                st.was_invalid = True
+                if not st.lost and t_eval - st.last_valid_stamp > c.timeout:
+                    st.lost = True
+                    st.lost_since = t_eval
+                    events.append(
+                        self._event(t_eval, side, "lost", f"no valid frame for > {c.timeout} s")
+                    )
+            if st.lost:
+                out[side], blend[side] = None, 0.0
+            else:
+                out[side] = st.last_valid
+                remaining = st.recovering_until - t_eval
+                blend[side] = 1.0 if remaining <= 0 else 1.0 - remaining / c.recovery_time
+        return Supervised(out["left"], out["right"], blend["left"], blend["right"], tuple(events))
+
+
+@dataclass
+class Blender:
+    """Holds a command while lost and ramps back to fresh commands on recovery."""
+
+    held: np.ndarray | None = None
+    _anchor: np.ndarray | None = field(default=None, repr=False)
+
+    def step(self, fresh: np.ndarray | None, weight: float) -> np.ndarray | None:
+        """Blend: ``weight`` 1 passes ``fresh``; 0 (or no fresh command) holds."""
+        if fresh is None or weight <= 0.0:
+            self._anchor = self.held
+            return self.held
+        if weight >= 1.0 or self._anchor is None:
+            self.held = np.array(fresh, dtype=float)
+            self._anchor = None
+            return self.held
+        self.held = (1.0 - weight) * self._anchor + weight * np.asarray(fresh, float)
+        return self.held

@@ -1,0 +1,335 @@
+"""Teleoperation pipeline pieces: hands, filters, replay, rail and base channels, safety."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from payload.teleop.channels import (
+    BaseChannel,
+    BaseConfig,
+    ChannelError,
+    JerkLimiter,
+    RailConfig,
+    rail_command,
+)
+from payload.teleop.filters import OneEuroConfig, OneEuroFilter
+from payload.teleop.handmodel import HandModel
+from payload.teleop.hands import (
+    WEBXR_TO_WORKBENCH,
+    XR_JOINTS,
+    Hand,
+    HandFrame,
+    HandFrameError,
+    pinch_points,
+    wrist_frame,
+)
+from payload.teleop.replay import HandRecordingWriter, ReplayError, read_hand_recording
+from payload.teleop.safety import Blender, TrackingSupervisor
+
+DT = 0.02
+
+# ---------------------------------------------------------------- hands
+
+
+def test_xr_joint_list_is_the_webxr_25():
+    assert len(XR_JOINTS) == 25
+    assert XR_JOINTS[0] == "wrist" and XR_JOINTS[4] == "thumb-tip"
+    assert XR_JOINTS[-1] == "pinky-finger-tip"
+
+
+def test_webxr_to_workbench_maps_axes():
+    # WebXR: -Z forward, +Y up, +X right; workbench: +X forward, +Z up, +Y left
+    r = WEBXR_TO_WORKBENCH
+    np.testing.assert_allclose(r @ [0, 0, -1], [1, 0, 0])
+    np.testing.assert_allclose(r @ [0, 1, 0], [0, 0, 1])
+    np.testing.assert_allclose(r @ [1, 0, 0], [0, -1, 0])
+    assert np.linalg.det(r) == pytest.approx(1.0)
+    joints = np.random.default_rng(0).normal(size=(25, 3))
+    frame = HandFrame(1.0, Hand(joints), Hand(joints), frame="webxr").to_workbench()
+    np.testing.assert_allclose(frame.left.joints[:, 0], -joints[:, 2])
+    np.testing.assert_allclose(frame.left.joints[:, 2], joints[:, 1])
+
+
+def test_bad_hand_input_is_rejected():
+    with pytest.raises(HandFrameError, match="shape"):
+        Hand(np.zeros((24, 3)))
+    with pytest.raises(HandFrameError, match="not finite"):
+        HandFrame(float("nan"), Hand.untracked(), Hand.untracked())
+
+
+def test_wrist_frame_recovers_a_known_rotation():
+    model = HandModel("right")
+    rng = np.random.default_rng(1)
+    for _ in range(5):
+        q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+        if np.linalg.det(q) < 0:
+            q[:, 0] *= -1
+        wrist = rng.normal(size=3)
+        hand = Hand(model.joints(wrist, q, 0.5))
+        local = Hand(model.local_joints(0.5))
+        frame_world = wrist_frame(hand)
+        frame_local = wrist_frame(local)
+        # the frame is attached to the hand: world frame = q * local frame
+        np.testing.assert_allclose(frame_world[:3, :3], q @ frame_local[:3, :3], atol=1e-12)
+        p_world = pinch_points(hand, frame_world)
+        p_local = pinch_points(local, frame_local)
+        for key in p_world:
+            np.testing.assert_allclose(p_world[key], p_local[key], atol=1e-12)
+
+
+def test_hand_model_pinch_opens_monotonically():
+    for side in ("left", "right"):
+        spans = []
+        for s in np.linspace(0, 1, 11):
+            hand = Hand(HandModel(side).local_joints(s))
+            p = pinch_points(hand)
+            spans.append(np.linalg.norm(p["p2"] - p["p1"]))
+        assert np.all(np.diff(spans) > 0)
+        assert spans[0] < 0.025 and spans[-1] > 0.08
+
+
+# ---------------------------------------------------------------- One Euro filter
+
+
+def test_one_euro_with_zero_beta_is_the_closed_form_low_pass():
+    cfg = OneEuroConfig(min_cutoff=2.0, beta=0.0, d_cutoff=1.0)
+    f = OneEuroFilter(cfg)
+    f(np.zeros(3), 0.0)
+    tau = 1 / (2 * math.pi * 2.0)
+    alpha = 1 / (1 + tau / DT)
+    y = np.zeros(3)
+    for k in range(1, 50):
+        out = f(np.ones(3), k * DT)
+        y = alpha * 1.0 + (1 - alpha) * y
+        np.testing.assert_allclose(out, y, rtol=1e-12)
+    # the step response of the discrete first-order filter: 1 - (1 - alpha)^k
+    assert out[0] == pytest.approx(1 - (1 - alpha) ** 49, rel=1e-12)
+
+
+def test_one_euro_lags_less_when_moving_fast():
+    slow = OneEuroFilter(OneEuroConfig(min_cutoff=1.0, beta=0.0))
+    fast = OneEuroFilter(OneEuroConfig(min_cutoff=1.0, beta=5.0))
+    errs = {"slow": 0.0, "fast": 0.0}
+    for k in range(100):
+        x = np.array([[0.3 * k * DT, 0.0, 0.0]])
+        errs["slow"] = abs(slow(x, k * DT)[0, 0] - x[0, 0])
+        errs["fast"] = abs(fast(x, k * DT)[0, 0] - x[0, 0])
+    assert errs["fast"] < 0.5 * errs["slow"]
+
+
+# ---------------------------------------------------------------- replay
+
+
+def test_replay_round_trips_bit_for_bit(tmp_path):
+    rng = np.random.default_rng(2)
+    frames = []
+    for k in range(30):
+        left = Hand(rng.normal(size=(25, 3))) if k % 7 else Hand.untracked()
+        frames.append(
+            HandFrame(k * DT + rng.uniform(0, 1e-3), left, Hand(rng.normal(size=(25, 3))))
+        )
+    path = tmp_path / "hands.jsonl"
+    with HandRecordingWriter(path, meta={"operator": "test"}) as w:
+        for fr in frames:
+            w.write(fr)
+    header, back = read_hand_recording(path)
+    assert header["meta"] == {"operator": "test"}
+    assert len(back) == len(frames)
+    for a, b in zip(frames, back):
+        assert a.stamp == b.stamp
+        assert a.left.tracked == b.left.tracked
+        np.testing.assert_array_equal(a.right.joints, b.right.joints)
+        if a.left.tracked:
+            np.testing.assert_array_equal(a.left.joints, b.left.joints)
+
+
+def test_replay_names_the_bad_line(tmp_path):
+    path = tmp_path / "bad.jsonl"
+    with HandRecordingWriter(path) as w:
+        w.write(HandFrame(0.0, Hand(np.zeros((25, 3))), Hand(np.zeros((25, 3)))))
+    with path.open("a") as fh:
+        fh.write('{"t": 0.02, "left": {"tracked": true, "joints": [[0, 0, 0]]}, "right": null}\n')
+    with pytest.raises(ReplayError, match=r"bad.jsonl:3"):
+        read_hand_recording(path)
+    with pytest.raises(ReplayError, match="cannot read"):
+        read_hand_recording(tmp_path / "missing.jsonl")
+
+
+# ---------------------------------------------------------------- rail channel
+
+
+@given(st.lists(st.floats(0.0, 1.5), min_size=2, max_size=50))
+def test_rail_stays_in_travel_and_is_monotonic(distances):
+    cfg = RailConfig(d_min=0.25, d_max=0.65, travel=0.05)
+    ds = sorted(distances)
+    rails = [rail_command(cfg, np.zeros(3), np.array([d, 0.0, 0.0])) for d in ds]
+    assert all(0.0 <= r <= 0.05 for r in rails)
+    assert np.all(np.diff(rails) >= 0)
+
+
+def test_rail_calibration_endpoints_map_to_the_travel_ends():
+    cfg = RailConfig(d_min=0.25, d_max=0.65, travel=0.05)
+    assert rail_command(cfg, np.zeros(3), np.array([0.0, 0.25, 0.0])) == 0.0
+    assert rail_command(cfg, np.zeros(3), np.array([0.0, 0.65, 0.0])) == pytest.approx(0.05)
+    assert rail_command(cfg, np.zeros(3), np.array([0.0, 0.45, 0.0])) == pytest.approx(0.025)
+    with pytest.raises(ChannelError, match="must exceed"):
+        RailConfig(d_min=0.5, d_max=0.4, travel=0.05)
+
+
+# ---------------------------------------------------------------- base channel
+
+wrist_paths = st.lists(
+    st.tuples(
+        st.floats(-0.4, 0.4), st.floats(-0.4, 0.4), st.floats(-0.4, 0.4), st.integers(1, 400)
+    ),
+    min_size=1,
+    max_size=12,
+)
+
+
+@settings(max_examples=60, deadline=None)
+@given(wrist_paths, st.floats(-math.pi, math.pi))
+def test_base_channel_respects_speed_acceleration_and_jerk_bounds(path, heading):
+    cfg = BaseConfig()
+    ch = BaseChannel(cfg, np.array([0.3, 0.2, 1.0]), heading0=heading, dt=DT)
+    v, w = [np.zeros(3)], [0.0]
+    yaw = heading
+    for x, y, z, steps in path:
+        for _ in range(steps):
+            rot = np.array(
+                [[math.cos(yaw), -math.sin(yaw), 0], [math.sin(yaw), math.cos(yaw), 0], [0, 0, 1]]
+            )
+            out = ch.step(np.array([0.3 + x, 0.2 + y, 1.0 + z]), rot)
+            yaw += out.yaw_rate * DT
+            v.append(out.v_world)
+            w.append(out.yaw_rate)
+            # the body twist is the world command seen from the vehicle
+            np.testing.assert_allclose(rot @ out.twist.linear, out.v_world, atol=1e-12)
+    v, w = np.array(v), np.array(w)
+    if len(v) < 3:
+        return
+    acc = np.diff(v, axis=0) / DT
+    jerk = np.diff(acc, axis=0) / DT
+    eps = 1e-9
+    assert np.linalg.norm(v, axis=1).max() <= cfg.max_speed + eps
+    assert np.linalg.norm(acc, axis=1).max() <= cfg.max_accel + eps
+    assert np.linalg.norm(jerk, axis=1).max() <= cfg.max_jerk + eps
+    assert np.abs(w).max() <= cfg.max_yaw_rate + eps
+    assert np.abs(np.diff(w) / DT).max() <= cfg.max_yaw_accel + eps
+
+
+@given(st.floats(0.0, 0.0499), st.floats(-math.pi, math.pi), st.floats(-1.5, 1.5))
+def test_inside_the_sphere_the_command_is_zero(radius, az, el):
+    cfg = BaseConfig(sphere_radius=0.05)
+    neutral = np.array([0.1, -0.2, 0.9])
+    ch = BaseChannel(cfg, neutral)
+    direction = np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
+    for _ in range(20):
+        out = ch.step(neutral + radius * direction)
+        assert not out.outside
+        np.testing.assert_array_equal(out.v_world, np.zeros(3))
+        assert out.yaw_rate == 0.0
+
+
+def test_base_reaches_full_speed_in_the_closed_form_time_and_brakes_to_rest():
+    cfg = BaseConfig()
+    ch = BaseChannel(cfg, np.zeros(3))
+    far = np.array([1.0, 0.0, 0.0])  # straight ahead: no turning
+    speeds = [float(np.linalg.norm(ch.step(far).v_world)) for _ in range(1000)]
+    # a jerk-limited ramp cannot be faster than t = v/a + a/j; the limiter lands a little
+    # conservatively (it starts easing off the acceleration early)
+    t_closed = cfg.max_speed / cfg.max_accel + cfg.max_accel / cfg.max_jerk
+    t_reach = (np.argmax(np.array(speeds) > cfg.max_speed * 0.999) + 1) * DT
+    assert t_closed - 0.05 <= t_reach <= t_closed + 0.5
+    for _ in range(1000):
+        out = ch.step(np.zeros(3))
+    np.testing.assert_array_equal(out.v_world, np.zeros(3))
+
+
+def test_vehicle_turns_toward_the_requested_direction():
+    ch = BaseChannel(BaseConfig(), np.zeros(3))
+    yaw = 0.0
+    for _ in range(3000):
+        rot = np.array(
+            [[math.cos(yaw), -math.sin(yaw), 0], [math.sin(yaw), math.cos(yaw), 0], [0, 0, 1]]
+        )
+        out = ch.step(np.array([0.0, 0.5, 0.0]), rot)  # left wrist to the left: travel +y
+        yaw += out.yaw_rate * DT
+    assert yaw == pytest.approx(math.pi / 2, abs=0.02)
+
+
+def test_jerk_limiter_settles_exactly():
+    lim = JerkLimiter(1, 0.1, 0.2)
+    for _ in range(2000):
+        out = lim.step(np.array([0.37]), DT)
+    assert out[0] == 0.37
+
+
+# ---------------------------------------------------------------- safety
+
+
+def _frame(t: float, left: Hand | None = None, right: Hand | None = None) -> HandFrame:
+    h = Hand(HandModel("right").local_joints(0.5))
+    return HandFrame(t, left or h, right or h)
+
+
+def test_dropout_over_100ms_is_lost_and_recovery_blends():
+    sup = TrackingSupervisor()
+    t = 0.0
+    for _ in range(10):
+        out = sup.step(_frame(t))
+        t += DT
+    assert out.left is not None and out.blend_left == 1.0
+    lost_at = None
+    for k in range(8):  # 160 ms of dropout on the left hand
+        out = sup.step(_frame(t, left=Hand.untracked()))
+        if out.left is None and lost_at is None:
+            lost_at = k
+        t += DT
+    assert lost_at is not None and (lost_at + 1) * DT > 0.1 - 1e-9
+    assert out.right is not None
+    kinds = [e.kind for e in sup.events]
+    assert kinds == ["invalid", "lost"]
+    blends = []
+    for _ in range(40):
+        out = sup.step(_frame(t))
+        blends.append(out.blend_left)
+        t += DT
+    assert blends[0] == 0.0 and blends[-1] == 1.0
+    assert np.all(np.diff(blends) >= 0) and np.max(np.diff(blends)) <= DT / 0.5 + 1e-9
+    assert [e.kind for e in sup.events][-1] == "regained"
+
+
+def test_short_dropout_is_bridged_with_the_last_valid_hand():
+    sup = TrackingSupervisor()
+    sup.step(_frame(0.0))
+    out = sup.step(_frame(0.02, left=Hand.untracked()))
+    assert out.left is not None  # 20 ms < 100 ms: still the last valid hand
+
+
+def test_absurd_frames_and_backwards_time_are_rejected():
+    sup = TrackingSupervisor(neutral={"left": np.zeros(3), "right": np.zeros(3)})
+    sup.step(_frame(0.0))
+    far = Hand(HandModel("right").local_joints(0.5) + np.array([5.0, 0.0, 0.0]))
+    sup.step(_frame(0.02, left=far))
+    assert sup.events[-1].kind == "invalid" and "from neutral" in sup.events[-1].detail
+    stretched = HandModel("right").local_joints(0.5)
+    stretched[4] += 2.0
+    sup.step(_frame(0.04, right=Hand(stretched)))
+    assert "from the wrist" in sup.events[-1].detail
+    sup.step(_frame(0.01))
+    assert "time_backwards" in [e.kind for e in sup.events[-3:]]
+
+
+def test_blender_holds_then_ramps():
+    b = Blender()
+    assert np.all(b.step(np.ones(2), 1.0) == 1.0)
+    assert np.all(b.step(None, 0.0) == 1.0)
+    mid = b.step(np.full(2, 3.0), 0.5)
+    np.testing.assert_allclose(mid, [2.0, 2.0])
+    np.testing.assert_allclose(b.step(np.full(2, 3.0), 1.0), [3.0, 3.0])
