@@ -12,6 +12,10 @@ import numpy as np
 class OneEuroConfig:
     """One Euro filter settings.
 
+    The defaults (0.3 Hz at rest, beta 1 s/m) were tuned in the ISS trials: with 1 mm of
+    per-joint tracking noise, a 1 Hz cutoff let the retargeted finger commands jitter by
+    about 0.03 rad, enough to walk the pads off the CTB handle under vehicle acceleration.
+
     Attributes:
         min_cutoff: Cutoff frequency at rest [Hz]; lower removes more jitter.
         beta: Speed coefficient [s/m]: the cutoff rises by ``beta * |speed|`` Hz, so fast
@@ -19,8 +23,8 @@ class OneEuroConfig:
         d_cutoff: Cutoff of the speed estimate [Hz].
     """
 
-    min_cutoff: float = 1.0
-    beta: float = 0.1
+    min_cutoff: float = 0.3
+    beta: float = 1.0
     d_cutoff: float = 1.0
 
 
