@@ -1,0 +1,76 @@
+"""Zero-gravity MuJoCo ISS simulator: Kibo, the hatch vestibule and Node 2, Astrobee with the
+payload attached in its lower bays, a rigid Cargo Transfer Bag, the bounded-wrench vehicle
+controller, the opposing-contact indicator and :class:`SimDriver` (the ``PayloadDriver``
+protocol). Physics at 1 kHz under a 50 Hz control loop."""
+
+from payload.sim.contact import SIDES, Contact, ContactMonitor, opposing
+from payload.sim.driver import SimDriver, WorldState
+from payload.sim.vehicle import (
+    DEFAULT_FLIGHT_MODE,
+    FLIGHT_MODES,
+    FlightMode,
+    JerkLimitedProfile,
+    MassProperties,
+    VehicleController,
+    VehicleError,
+    Wrench,
+    flight_mode,
+    min_time_to_speed,
+)
+from payload.sim.world import (
+    CONTROL_DT,
+    CTB_SIZES,
+    PAYLOAD_PREFIX,
+    PHYSICS_DT,
+    SUBSTEPS,
+    CtbSize,
+    Handle,
+    IssLayout,
+    IssModule,
+    PinchGrasp,
+    SimError,
+    World,
+    WorldConfig,
+    Zone,
+    build_spec,
+    build_world,
+    pinch_grasp,
+    servo_limits,
+)
+
+__all__ = [
+    "CONTROL_DT",
+    "CTB_SIZES",
+    "DEFAULT_FLIGHT_MODE",
+    "FLIGHT_MODES",
+    "PAYLOAD_PREFIX",
+    "PHYSICS_DT",
+    "SIDES",
+    "SUBSTEPS",
+    "Contact",
+    "ContactMonitor",
+    "CtbSize",
+    "FlightMode",
+    "Handle",
+    "IssLayout",
+    "IssModule",
+    "JerkLimitedProfile",
+    "MassProperties",
+    "PinchGrasp",
+    "SimDriver",
+    "SimError",
+    "VehicleController",
+    "VehicleError",
+    "World",
+    "WorldConfig",
+    "WorldState",
+    "Wrench",
+    "Zone",
+    "build_spec",
+    "build_world",
+    "flight_mode",
+    "min_time_to_speed",
+    "opposing",
+    "pinch_grasp",
+    "servo_limits",
+]

@@ -1,0 +1,119 @@
+"""The opposing-contact indicator: the CTB touches fingertips from both sides of the array.
+
+The paper's confirmed contact: the CTB touches fingertips of side 1 {A, B} and of side 2
+{C, D} at the same time. A fingertip is the pad sphere at the end of the distal link
+(``payload/<finger>_distal_pad``); ``links="distal"`` widens it to every collision geom of
+the distal link, for postures whose link edge rather than pad meets the cargo.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from typing import NamedTuple
+
+import mujoco
+import numpy as np
+
+from payload.design import FINGERS, SIDE_OF
+from payload.sim.world import SimError, World
+
+SIDES: dict[int, tuple[str, ...]] = {
+    side: tuple(f for f in FINGERS if SIDE_OF[f] == side) for side in (1, 2)
+}
+"""Fingers of each side of the array: {1: (A, B), 2: (C, D)}."""
+
+
+def opposing(fingers: Iterable[str]) -> bool:
+    """True when ``fingers`` (those touching the cargo) include both sides of the array."""
+    sides = {SIDE_OF[f] for f in fingers}
+    return sides >= {1, 2}
+
+
+class Contact(NamedTuple):
+    """One active contact.
+
+    Attributes:
+        geom1: Name of the first geom.
+        geom2: Name of the second geom.
+        pos: Contact point, world frame, shape (3,) [m].
+        normal_force: Normal force magnitude [N].
+        dist: Signed distance (negative = penetration) [m].
+    """
+
+    geom1: str
+    geom2: str
+    pos: np.ndarray
+    normal_force: float
+    dist: float
+
+
+class ContactMonitor:
+    """Which fingertips touch the CTB, and the opposing-contact indicator.
+
+    Args:
+        world: The compiled world (needs a CTB for the indicator to ever be true).
+        links: ``"pad"`` (fingertip pads only, the default) or ``"distal"`` (every
+            collision geom of the distal links).
+    """
+
+    def __init__(self, world: World, links: str = "pad") -> None:
+        if links not in ("pad", "distal"):
+            raise SimError(f"ContactMonitor.links: {links!r} is not 'pad' or 'distal'")
+        self.world = world
+        model = world.model
+        self._finger_of = np.full(model.ngeom, -1, dtype=np.int64)
+        for k, f in enumerate(FINGERS):
+            geoms = (world.pad_geoms[f],) if links == "pad" else world.distal_geoms[f]
+            self._finger_of[list(geoms)] = k
+        self._is_ctb = np.zeros(model.ngeom, dtype=bool)
+        self._is_ctb[list(world.ctb_geoms)] = True
+        self._force = np.zeros(6)
+
+    def touching(self, data: mujoco.MjData) -> frozenset[str]:
+        """Fingers whose fingertip geoms are in contact with any CTB geom."""
+        n = data.ncon
+        if n == 0:
+            return frozenset()
+        pairs = data.contact.geom[:n]
+        touching = data.contact.dist[:n] <= 0.0
+        g1, g2 = pairs[:, 0], pairs[:, 1]
+        hits = np.concatenate(
+            [
+                self._finger_of[g1][touching & self._is_ctb[g2]],
+                self._finger_of[g2][touching & self._is_ctb[g1]],
+            ]
+        )
+        return frozenset(FINGERS[k] for k in np.unique(hits) if k >= 0)
+
+    def opposing(self, data: mujoco.MjData) -> bool:
+        """The opposing-contact indicator for the current state."""
+        return opposing(self.touching(data))
+
+    def ctb_touched(self, data: mujoco.MjData) -> bool:
+        """True when anything at all touches the CTB."""
+        n = data.ncon
+        if n == 0:
+            return False
+        pairs = data.contact.geom[:n]
+        return bool(np.any(self._is_ctb[pairs[:, 0]] | self._is_ctb[pairs[:, 1]]))
+
+    def contacts(self, data: mujoco.MjData) -> tuple[Contact, ...]:
+        """Every active contact with names, point and normal force."""
+        out = []
+        model = self.world.model
+        for i in range(data.ncon):
+            c = data.contact[i]
+            mujoco.mj_contactForce(model, data, i, self._force)
+            out.append(
+                Contact(
+                    self.world.name(mujoco.mjtObj.mjOBJ_GEOM, int(c.geom[0])),
+                    self.world.name(mujoco.mjtObj.mjOBJ_GEOM, int(c.geom[1])),
+                    np.array(c.pos),
+                    float(abs(self._force[0])),
+                    float(c.dist),
+                )
+            )
+        return tuple(out)
+
+
+__all__ = ["SIDES", "Contact", "ContactMonitor", "opposing"]

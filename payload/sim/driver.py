@@ -1,0 +1,308 @@
+"""``SimDriver``: the simulated payload behind the ``PayloadDriver`` protocol, plus the vehicle.
+
+One control step (:meth:`SimDriver.step`) is 20 physics steps of 1 ms under a 50 Hz loop:
+the vehicle controller computes a bounded body wrench for the commanded twist and holds it
+on Astrobee (``xfrc_applied``), the payload position targets move toward the last
+:class:`~payload.schema.PayloadCommand` no faster than the servos turn (XC330 no-load
+speed), and the actuators push no harder than the servos' current-capped torque.
+
+Typical use by a 50 Hz loop::
+
+    with SimDriver() as sim:
+        for k in range(n):
+            sim.send(command)              # payload joints (paper order) and deployment
+            sim.command_twist(twist)       # vehicle body twist
+            state = sim.step()             # WorldState: poses, twist, CTB, contacts
+            measured = sim.read()          # PayloadState
+"""
+
+from __future__ import annotations
+
+from types import TracebackType
+from typing import NamedTuple
+
+import mujoco
+import numpy as np
+
+from payload.schema import Health, PayloadCommand, PayloadState, VehicleTwist
+from payload.sim.contact import Contact, ContactMonitor, opposing
+from payload.sim.vehicle import (
+    DEFAULT_FLIGHT_MODE,
+    FlightMode,
+    MassProperties,
+    VehicleController,
+    Wrench,
+)
+from payload.sim.world import (
+    CONTROL_DT,
+    SUBSTEPS,
+    IssModule,
+    SimError,
+    World,
+    WorldConfig,
+    build_world,
+)
+
+_AT_LIMIT = 1e-4  # [rad or m] a coordinate this close to a range end is at its limit
+_WARNING_NAMES = tuple(
+    name
+    for name, value in sorted(mujoco.mjtWarning.__members__.items(), key=lambda kv: int(kv[1]))
+    if name != "mjNWARNING"
+)
+
+
+class WorldState(NamedTuple):
+    """What the teleoperation loop and the trials need of the world each control step.
+
+    Attributes:
+        time: Simulation time [s].
+        astrobee_pos: Astrobee centre, world frame, shape (3,) [m].
+        astrobee_quat: Astrobee orientation, quaternion (w, x, y, z), shape (4,).
+        astrobee_linear: Linear velocity in Astrobee's body frame, shape (3,) [m/s].
+        astrobee_angular: Angular velocity in Astrobee's body frame, shape (3,) [rad/s].
+        ctb_pos: CTB centre, world frame, shape (3,) [m]; None without a CTB.
+        ctb_quat: CTB orientation (w, x, y, z), shape (4,); None without a CTB.
+        touching: Fingers whose fingertips touch the CTB.
+        opposing_contact: The CTB touches fingertips of both sides of the array.
+        module: ISS module containing Astrobee's centre (None outside the three).
+        wrench: Body wrench the vehicle controller applies over the next period.
+        contacts: Every active contact.
+    """
+
+    time: float
+    astrobee_pos: np.ndarray
+    astrobee_quat: np.ndarray
+    astrobee_linear: np.ndarray
+    astrobee_angular: np.ndarray
+    ctb_pos: np.ndarray | None
+    ctb_quat: np.ndarray | None
+    touching: frozenset[str]
+    opposing_contact: bool
+    module: IssModule | None
+    wrench: Wrench
+    contacts: tuple[Contact, ...]
+
+    def ctb_in_body(self) -> np.ndarray:
+        """CTB centre in Astrobee's body frame (the paper's eq. 4), shape (3,) [m]."""
+        if self.ctb_pos is None:
+            raise SimError("ctb_in_body: the world has no CTB")
+        rot = np.zeros(9)
+        mujoco.mju_quat2Mat(rot, self.astrobee_quat)
+        return rot.reshape(3, 3).T @ (self.ctb_pos - self.astrobee_pos)
+
+
+class SimDriver:
+    """The MuJoCo ISS world behind the ``PayloadDriver`` protocol.
+
+    Args:
+        world: A built :class:`World`, a :class:`WorldConfig` to build, or None (default
+            world: single CTB below the deployed payload at the start of the route).
+        flight_mode: Astrobee flight mode for the vehicle controller (default nominal).
+        carrying: Whether the vehicle controller plans for the CTB's mass (default: when
+            the world has a CTB; the trials carry it).
+        keyframe: Initial state, ``home`` (deployed) or ``stowed``.
+        contact_links: Fingertip geoms of the indicator, ``pad`` or ``distal``.
+    """
+
+    def __init__(
+        self,
+        world: World | WorldConfig | None = None,
+        *,
+        flight_mode: str | FlightMode = DEFAULT_FLIGHT_MODE,
+        carrying: bool | None = None,
+        keyframe: str = "home",
+        contact_links: str = "pad",
+    ) -> None:
+        self.world = world if isinstance(world, World) else build_world(world)
+        self.model = self.world.model
+        self.data = self.world.make_data(keyframe)
+        self.monitor = ContactMonitor(self.world, contact_links)
+        if carrying is None:
+            carrying = self.world.ctb >= 0
+        if carrying and self.world.ctb < 0:
+            raise SimError("SimDriver: carrying=True but the world has no CTB")
+        self.carrying = carrying
+        self.controller = VehicleController(self.mass_properties(carrying), flight_mode)
+        self._ctrl = self.world.ctrl_all
+        self._ctrl_range = self.model.actuator_ctrlrange[self._ctrl].copy()
+        self._goal = self.data.ctrl[self._ctrl].copy()
+        self._target = self._goal.copy()
+        self._step_max = self.world.slew_rate * CONTROL_DT
+        self._twist: VehicleTwist | None = None
+        self._wrench = Wrench(np.zeros(3), np.zeros(3))
+        self._closed = False
+
+    # -- protocol ----------------------------------------------------------------------------
+    def send(self, command: PayloadCommand) -> None:
+        """Set the payload position targets (17 coordinates in the paper's order + deploy).
+
+        Values beyond a joint's range are clipped to it (as the servos' position limits do).
+        """
+        self._check_open()
+        if not isinstance(command, PayloadCommand):
+            raise SimError(f"send: expected a PayloadCommand, got {type(command).__name__}")
+        goal = np.append(command.q, command.deploy)
+        self._goal = np.clip(goal, self._ctrl_range[:, 0], self._ctrl_range[:, 1])
+
+    def read(self) -> PayloadState:
+        """Measured positions, velocities and actuator efforts of the payload.
+
+        Health: OVERLOAD when an actuator is at its force bound, LIMIT when one of the 17
+        manipulation coordinates is at or beyond an end of its range.
+        """
+        self._check_open()
+        w, d = self.world, self.data
+        effort = d.actuator_force[w.ctrl]
+        health = Health.OK
+        if np.any(np.abs(d.actuator_force[self._ctrl]) >= 0.999 * w.force_limit):
+            health |= Health.OVERLOAD
+        q = d.qpos[w.qpos]
+        lo, hi = self._ctrl_range[:17, 0], self._ctrl_range[:17, 1]
+        if np.any(q <= lo + _AT_LIMIT) or np.any(q >= hi - _AT_LIMIT):
+            health |= Health.LIMIT
+        return PayloadState(
+            q=d.qpos[w.qpos].copy(),
+            deploy=float(d.qpos[w.stage_qpos]),
+            stamp=float(d.time),
+            dq=d.qvel[w.dof].copy(),
+            effort=effort.copy(),
+            health=health,
+        )
+
+    def close(self) -> None:
+        """Release the driver (idempotent)."""
+        self._closed = True
+
+    def __enter__(self) -> SimDriver:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+    # -- vehicle and world ---------------------------------------------------------------------
+    @property
+    def time(self) -> float:
+        """Simulation time [s]."""
+        return float(self.data.time)
+
+    def command_twist(self, twist: VehicleTwist | None) -> None:
+        """Request an Astrobee body twist; None switches the vehicle controller off (drift).
+
+        The reference restarts from the measured twist when the controller comes on.
+        """
+        self._check_open()
+        if twist is not None and not isinstance(twist, VehicleTwist):
+            raise SimError(f"command_twist: expected a VehicleTwist, got {type(twist).__name__}")
+        if twist is not None and self._twist is None:
+            lin, ang = self._body_twist()
+            self.controller.reset(lin, ang)
+        self._twist = twist
+        if twist is None:
+            self._wrench = Wrench(np.zeros(3), np.zeros(3))
+            self.data.xfrc_applied[self.world.astrobee] = 0.0
+
+    def step(self, control_steps: int = 1) -> WorldState:
+        """Advance ``control_steps`` control periods (20 physics steps each)."""
+        self._check_open()
+        if control_steps < 1:
+            raise SimError(f"step: control_steps must be >= 1, got {control_steps}")
+        m, d, w = self.model, self.data, self.world
+        for _ in range(control_steps):
+            if self._twist is not None:
+                lin, ang = self._body_twist()
+                self._wrench = self.controller.update(self._twist, lin, ang, CONTROL_DT)
+                rot = d.xmat[w.astrobee].reshape(3, 3)
+                d.xfrc_applied[w.astrobee, :3] = rot @ self._wrench.force
+                d.xfrc_applied[w.astrobee, 3:] = rot @ self._wrench.torque
+            self._target += np.clip(self._goal - self._target, -self._step_max, self._step_max)
+            d.ctrl[self._ctrl] = self._target
+            mujoco.mj_step(m, d, nstep=SUBSTEPS)
+        return self.world_state()
+
+    def world_state(self) -> WorldState:
+        """Astrobee pose and twist, CTB pose, fingertip contacts, indicator, module."""
+        self._check_open()
+        w, d = self.world, self.data
+        a = w.astrobee_qpos
+        lin, ang = self._body_twist()
+        touching = self.monitor.touching(d)
+        pos = d.qpos[a : a + 3].copy()
+        return WorldState(
+            time=float(d.time),
+            astrobee_pos=pos,
+            astrobee_quat=d.qpos[a + 3 : a + 7].copy(),
+            astrobee_linear=lin,
+            astrobee_angular=ang,
+            ctb_pos=d.qpos[w.ctb_qpos : w.ctb_qpos + 3].copy() if w.ctb >= 0 else None,
+            ctb_quat=d.qpos[w.ctb_qpos + 3 : w.ctb_qpos + 7].copy() if w.ctb >= 0 else None,
+            touching=touching,
+            opposing_contact=opposing(touching),
+            module=w.layout.module_at(pos),
+            wrench=Wrench(self._wrench.force.copy(), self._wrench.torque.copy()),
+            contacts=self.monitor.contacts(d),
+        )
+
+    def module_at(self, point: np.ndarray) -> IssModule | None:
+        """Which ISS module contains ``point`` (3,) [m, world frame], None outside."""
+        return self.world.layout.module_at(point)
+
+    def warnings(self) -> dict[str, int]:
+        """MuJoCo warnings raised so far (name -> count), empty when clean."""
+        return {
+            name: int(self.data.warning[i].number)
+            for i, name in enumerate(_WARNING_NAMES)
+            if self.data.warning[i].number
+        }
+
+    def reset(self, keyframe: str = "home") -> None:
+        """Back to a keyframe, controller off, targets at the keyframe's."""
+        self._check_open()
+        self.data = self.world.make_data(keyframe)
+        self._goal = self.data.ctrl[self._ctrl].copy()
+        self._target = self._goal.copy()
+        self._twist = None
+        self._wrench = Wrench(np.zeros(3), np.zeros(3))
+
+    def mass_properties(self, include_ctb: bool) -> MassProperties:
+        """Mass properties of Astrobee + payload (+ CTB) in the current state, body frame.
+
+        Returns:
+            Mass [kg], centre of mass relative to Astrobee's (3,) [m], inertia about it
+            (3, 3) [kg m^2], all in Astrobee's body frame.
+        """
+        m, d, w = self.model, self.data, self.world
+        bodies = [b for b in range(1, m.nbody) if m.body_rootid[b] == w.astrobee]
+        if include_ctb and w.ctb >= 0:
+            bodies.append(w.ctb)
+        rot = d.xmat[w.astrobee].reshape(3, 3)
+        origin = d.xipos[w.astrobee]
+        masses = m.body_mass[bodies]
+        pts = (d.xipos[bodies] - origin) @ rot  # body-frame positions of each body's CoM
+        total = float(masses.sum())
+        com = (masses[:, None] * pts).sum(axis=0) / total
+        inertia = np.zeros((3, 3))
+        for b, mass, p in zip(bodies, masses, pts):
+            r_b = rot.T @ d.ximat[b].reshape(3, 3)
+            inertia += r_b @ np.diag(m.body_inertia[b]) @ r_b.T
+            r = p - com
+            inertia += mass * (np.dot(r, r) * np.eye(3) - np.outer(r, r))
+        return MassProperties(total, com, inertia)
+
+    # -- internals -----------------------------------------------------------------------------
+    def _body_twist(self) -> tuple[np.ndarray, np.ndarray]:
+        w, d = self.world, self.data
+        v = w.astrobee_dof
+        rot = d.xmat[w.astrobee].reshape(3, 3)
+        return rot.T @ d.qvel[v : v + 3], d.qvel[v + 3 : v + 6].copy()
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise SimError("the SimDriver is closed")
+
+
+__all__ = ["SimDriver", "WorldState"]

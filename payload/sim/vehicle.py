@@ -1,0 +1,381 @@
+"""Astrobee's vehicle controller: a bounded body wrench tracking a commanded body twist.
+
+The commanded twist is shaped into a reference with bounded speed, acceleration and jerk
+(per axis); a feedforward plus velocity-feedback law turns the reference into a body-frame
+force and torque, each clipped per axis to the propulsion limits of the flight mode.
+The controller knows the mass properties of what it carries (Astrobee, payload and, when
+told, the CTB). A force at Astrobee's centre of mass pitches or rolls a stack whose centre
+of mass hangs below it, so the force bound per axis is the smaller of the mode's and what
+the torque bound can balance; the reference acceleration stays within the mode's bound and
+a share of that force bound over the carried mass. Runs at the 50 Hz control rate.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+
+from payload.errors import PayloadError
+from payload.schema import VehicleTwist
+
+
+class VehicleError(PayloadError):
+    """Bad vehicle-controller parameters or commands."""
+
+
+@dataclass(frozen=True)
+class FlightMode:
+    """Astrobee propulsion and motion limits of one flight mode (facts.md).
+
+    Attributes:
+        name: Mode name.
+        force: Maximum body force per axis x, y, z [N].
+        torque: Maximum body torque per axis [N m] (about a tenth of the force figures).
+        speed: Maximum linear speed [m/s].
+        accel: Maximum linear acceleration [m/s^2].
+        omega: Maximum angular rate [rad/s].
+        alpha: Maximum angular acceleration [rad/s^2].
+        impeller_rpm: Impeller speed the force figures belong to.
+    """
+
+    name: str
+    force: tuple[float, float, float]
+    torque: tuple[float, float, float]
+    speed: float
+    accel: float
+    omega: float
+    alpha: float
+    impeller_rpm: int
+
+
+FLIGHT_MODES: dict[str, FlightMode] = {
+    "nominal": FlightMode(
+        "nominal",
+        force=(0.680, 0.332, 0.394),
+        torque=(0.0680, 0.0332, 0.0394),
+        speed=0.20,
+        accel=0.0175,
+        omega=0.1745,
+        alpha=0.1745,
+        impeller_rpm=2500,
+    ),
+    "difficult": FlightMode(
+        "difficult",
+        force=(0.849, 0.406, 0.486),
+        torque=(0.0849, 0.0406, 0.0486),
+        speed=0.40,
+        accel=0.020,
+        omega=0.5236,
+        alpha=0.25,
+        impeller_rpm=2800,
+    ),
+}
+"""Astrobee flight modes (gnc.config figures via facts.md)."""
+
+DEFAULT_FLIGHT_MODE = "nominal"
+"""Default mode. Its 0.20 m/s cap is the paper's base-channel top speed. Carrying a single
+CTB (about 26 kg with vehicle and payload, centre of mass about 0.31 m below Astrobee's)
+the binding bound is the torque that must balance the cargo's moment, in either mode:
+x acceleration 0.0026 m/s^2 nominal against 0.0032 m/s^2 'difficult'. 'Difficult' buys
+about 20 % more acceleration and a 0.40 m/s cap the operator interface never asks for, at
+the price of louder, hungrier 2800 rpm impellers."""
+
+JERK_LINEAR = 0.035
+"""Linear jerk bound [m/s^3]. ASSUMPTION (not published): the nominal acceleration reached
+in 0.5 s."""
+
+JERK_ANGULAR = 0.35
+"""Angular jerk bound [rad/s^3]. ASSUMPTION: the nominal angular acceleration in 0.5 s."""
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Cross product of two 3-vectors (np.cross costs tens of microseconds per call)."""
+    return np.array(
+        [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+    )
+
+
+def flight_mode(mode: str | FlightMode) -> FlightMode:
+    """The :class:`FlightMode` named ``mode`` (or ``mode`` itself)."""
+    if isinstance(mode, FlightMode):
+        return mode
+    try:
+        return FLIGHT_MODES[mode]
+    except KeyError:
+        raise VehicleError(
+            f"unknown flight mode {mode!r} (expected one of {', '.join(FLIGHT_MODES)})"
+        ) from None
+
+
+class MassProperties(NamedTuple):
+    """Rigid mass properties of what the vehicle moves, in the Astrobee body frame.
+
+    Attributes:
+        mass: Total mass [kg].
+        com: Centre of mass relative to Astrobee's centre of mass, shape (3,) [m].
+        inertia: Inertia about that centre of mass, shape (3, 3) [kg m^2].
+    """
+
+    mass: float
+    com: np.ndarray
+    inertia: np.ndarray
+
+
+class Wrench(NamedTuple):
+    """A body-frame wrench applied at Astrobee's centre of mass.
+
+    Attributes:
+        force: Shape (3,) [N].
+        torque: Shape (3,) [N m].
+    """
+
+    force: np.ndarray
+    torque: np.ndarray
+
+
+def min_time_to_speed(speed: float, accel: float, jerk: float) -> float:
+    """Shortest time from rest to ``speed`` under acceleration and jerk bounds [s].
+
+    Closed form: ``v/a + a/j`` when the acceleration bound is reached (``v >= a^2/j``),
+    else ``2 sqrt(v/j)``.
+    """
+    if speed < 0 or accel <= 0 or jerk <= 0:
+        raise VehicleError("min_time_to_speed: speed >= 0, accel > 0 and jerk > 0 required")
+    if speed >= accel * accel / jerk:
+        return speed / accel + accel / jerk
+    return 2.0 * math.sqrt(speed / jerk)
+
+
+class JerkLimitedProfile:
+    """Per-axis velocity reference that moves toward a target with bounded a and j.
+
+    Args:
+        accel: Acceleration bound per axis, shape (n,).
+        jerk: Jerk bound per axis, shape (n,).
+    """
+
+    def __init__(self, accel: np.ndarray, jerk: np.ndarray) -> None:
+        self.accel = np.asarray(accel, dtype=float).copy()
+        self.jerk = np.asarray(jerk, dtype=float).copy()
+        if self.accel.shape != self.jerk.shape or np.any(self.accel <= 0) or np.any(self.jerk <= 0):
+            raise VehicleError("JerkLimitedProfile: positive accel and jerk of equal shape needed")
+        self.velocity = np.zeros_like(self.accel)
+        self.acceleration = np.zeros_like(self.accel)
+
+    def reset(self, velocity: np.ndarray | None = None) -> None:
+        """Restart from ``velocity`` (default zero) with zero acceleration."""
+        self.velocity = np.zeros_like(self.accel) if velocity is None else np.array(velocity, float)
+        self.acceleration = np.zeros_like(self.accel)
+
+    def step(self, target: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
+        """Advance by ``dt`` [s] toward ``target`` (n,); returns (velocity, acceleration).
+
+        Each step picks the acceleration ``x`` (within one jerk step of the current one and
+        within the acceleration bound) from which ramping down at the jerk bound lands
+        exactly on the target: ``x|x|/(2j) + (a + x) dt/2 = |e|`` in the direction of the
+        velocity error ``e``. Far from the target this saturates at the bounds (the
+        closed-form minimum-time profile); near it, it lands without overshoot.
+        """
+        target = np.asarray(target, float)
+        j, a_max = self.jerk, self.accel
+        e = target - self.velocity
+        s = np.where(e >= 0.0, 1.0, -1.0)
+        a = s * self.acceleration  # current acceleration toward the target
+        dist = np.abs(e)
+        quad = 1.0 / (2.0 * j)
+        lin = 0.5 * dt
+        const = a * lin - dist
+        with np.errstate(invalid="ignore"):
+            up = (-lin + np.sqrt(lin * lin - 4.0 * quad * np.minimum(const, 0.0))) / (2.0 * quad)
+            down = (lin - np.sqrt(lin * lin + 4.0 * quad * np.maximum(const, 0.0))) / (2.0 * quad)
+        x = np.where(const <= 0.0, up, down)
+        x = np.clip(x, a - j * dt, a + j * dt)
+        x = np.clip(x, -a_max, a_max)
+        v_new = self.velocity + s * 0.5 * (a + x) * dt
+        a_new = s * x
+        arrived = (np.abs(target - v_new) <= 1e-12 + 1e-9 * np.abs(target)) & (
+            np.abs(a_new) <= j * dt
+        )
+        self.velocity = np.where(arrived, target, v_new)
+        self.acceleration = np.where(arrived, 0.0, a_new)
+        return self.velocity.copy(), self.acceleration.copy()
+
+
+class VehicleController:
+    """Bounded-wrench body-twist tracking for Astrobee.
+
+    Runs at the control rate (50 Hz); the wrench it returns is held over the physics steps
+    of one control period.
+
+    Bounds, per body axis i:
+
+    * force: ``|F_i| <= F_bound_i = min(F_max_i, share * tau_max_j / |(c x e_i)_j|)`` over
+      j, i.e. no larger than what the torque bound can balance (with ``torque_share`` of
+      it) of the moment ``c x F`` the force makes about the carried centre of mass ``c``;
+    * torque: ``|tau_i| <= tau_max_i``;
+    * reference acceleration: ``a_i <= min(a_mode, reference_share * F_bound_i / m)``,
+      leaving the rest of the force for velocity feedback;
+    * reference angular acceleration: ``alpha_i <= min(alpha_mode, share * tau_max_i / I_ii)``;
+    * reference jerk: ``jerk_linear``, ``jerk_angular``;
+    * commanded twist: speed and rate of the mode, and a turn rate whose centripetal
+      acceleration ``omega x v`` stays within ``reference_share`` of the acceleration bound.
+
+    Args:
+        plant: Mass properties of what the wrench moves (vehicle + payload [+ CTB]).
+        mode: Flight mode name or object (default ``nominal``).
+        jerk_linear: Linear jerk bound [m/s^3].
+        jerk_angular: Angular jerk bound [rad/s^3].
+        gain_linear: Velocity feedback gain [1/s].
+        gain_angular: Angular-rate feedback gain [1/s].
+        torque_share: Fraction of the torque bound the cargo moment of the force may use,
+            in (0, 1]; the rest stays for attitude-rate feedback.
+        reference_share: Fraction of the force bound the reference acceleration may use,
+            in (0, 1].
+    """
+
+    def __init__(
+        self,
+        plant: MassProperties,
+        mode: str | FlightMode = DEFAULT_FLIGHT_MODE,
+        *,
+        jerk_linear: float = JERK_LINEAR,
+        jerk_angular: float = JERK_ANGULAR,
+        gain_linear: float = 1.0,
+        gain_angular: float = 2.0,
+        torque_share: float = 0.8,
+        reference_share: float = 0.8,
+    ) -> None:
+        self.mode = flight_mode(mode)
+        inertia = np.asarray(plant.inertia, float)
+        com = np.asarray(plant.com, float)
+        if not (math.isfinite(plant.mass) and plant.mass > 0):
+            raise VehicleError(f"VehicleController: plant mass must be positive, got {plant.mass}")
+        if com.shape != (3,) or inertia.shape != (3, 3) or not np.all(np.isfinite(inertia)):
+            raise VehicleError("VehicleController: plant com must be (3,) and inertia (3, 3)")
+        if np.any(np.diag(inertia) <= 0):
+            raise VehicleError("VehicleController: plant inertia must be positive definite")
+        for name, value in (
+            ("torque_share", torque_share),
+            ("reference_share", reference_share),
+        ):
+            if not 0.0 < value <= 1.0:
+                raise VehicleError(f"VehicleController.{name}: must be in (0, 1], got {value}")
+        for name, value in (
+            ("jerk_linear", jerk_linear),
+            ("jerk_angular", jerk_angular),
+            ("gain_linear", gain_linear),
+            ("gain_angular", gain_angular),
+        ):
+            if not (math.isfinite(value) and value > 0):
+                raise VehicleError(f"VehicleController.{name}: must be positive, got {value}")
+        self.plant = MassProperties(float(plant.mass), com, inertia)
+        self.torque_max = np.array(self.mode.torque)
+        self.gain_linear = gain_linear
+        self.gain_angular = gain_angular
+        self.reference_share = reference_share
+        self.force_max = self._force_bounds(torque_share)
+        self.accel_max = np.minimum(
+            self.mode.accel, reference_share * self.force_max / self.plant.mass
+        )
+        self.alpha_max = np.minimum(
+            self.mode.alpha, torque_share * self.torque_max / np.diag(inertia)
+        )
+        self.jerk = np.concatenate([np.full(3, jerk_linear), np.full(3, jerk_angular)])
+        self.profile = JerkLimitedProfile(
+            np.concatenate([self.accel_max, self.alpha_max]), self.jerk
+        )
+
+    def _force_bounds(self, share: float) -> np.ndarray:
+        bounds = np.array(self.mode.force, dtype=float)
+        c = self.plant.com
+        for i in range(3):
+            e = np.zeros(3)
+            e[i] = 1.0
+            moment = np.abs(np.cross(c, e))  # moment about the carried CoM per newton along i
+            for j in range(3):
+                if moment[j] > 1e-12:
+                    bounds[i] = min(bounds[i], share * self.torque_max[j] / moment[j])
+        return bounds
+
+    @property
+    def limits(self) -> dict[str, list[float]]:
+        """The bounds in force: force, torque, accelerations, jerks, speed, rate."""
+        return {
+            "force": self.force_max.tolist(),
+            "torque": self.torque_max.tolist(),
+            "accel": self.accel_max.tolist(),
+            "alpha": self.alpha_max.tolist(),
+            "jerk": self.jerk.tolist(),
+            "speed": [self.mode.speed],
+            "omega": [self.mode.omega],
+        }
+
+    def reset(self, linear: np.ndarray | None = None, angular: np.ndarray | None = None) -> None:
+        """Restart the reference from the given body twist (default rest)."""
+        lin = np.zeros(3) if linear is None else np.asarray(linear, float)
+        ang = np.zeros(3) if angular is None else np.asarray(angular, float)
+        self.profile.reset(np.concatenate([lin, ang]))
+
+    def clamp(self, twist: VehicleTwist) -> np.ndarray:
+        """The commanded twist within the bounds, shape (6,) (linear, angular).
+
+        Speed and rate are scaled to the mode's; then the rate is scaled down until the
+        centripetal acceleration ``omega x v`` of the commanded motion fits within
+        ``reference_share`` of the acceleration bound on every axis.
+        """
+        lin, ang = np.asarray(twist.linear, float), np.asarray(twist.angular, float)
+        s, w = float(np.linalg.norm(lin)), float(np.linalg.norm(ang))
+        if s > self.mode.speed:
+            lin = lin * (self.mode.speed / s)
+        if w > self.mode.omega:
+            ang = ang * (self.mode.omega / w)
+        centripetal = np.abs(_cross(ang, lin))
+        budget = self.reference_share * self.accel_max
+        over = centripetal > budget
+        if np.any(over):
+            ang = ang * float(np.min(budget[over] / centripetal[over]))
+        return np.concatenate([lin, ang])
+
+    def update(
+        self, command: VehicleTwist, linear: np.ndarray, angular: np.ndarray, dt: float
+    ) -> Wrench:
+        """One control step.
+
+        Args:
+            command: Requested body twist.
+            linear: Measured body-frame linear velocity of Astrobee's centre, (3,) [m/s].
+            angular: Measured body-frame angular velocity, (3,) [rad/s].
+            dt: Control period [s].
+
+        Returns:
+            The body-frame wrench to hold over the next period, within the per-axis bounds.
+        """
+        target = self.clamp(command)
+        ref, acc = self.profile.step(target, dt)
+        v, w = np.asarray(linear, float), np.asarray(angular, float)
+        m, c, inertia = self.plant
+        force = m * (acc[:3] + self.gain_linear * (ref[:3] - v) + _cross(w, v))
+        force = np.clip(force, -self.force_max, self.force_max)
+        alpha = acc[3:] + self.gain_angular * (ref[3:] - w)
+        torque = inertia @ alpha + _cross(w, inertia @ w) + _cross(c, force)
+        torque = np.clip(torque, -self.torque_max, self.torque_max)
+        return Wrench(force, torque)
+
+
+__all__ = [
+    "DEFAULT_FLIGHT_MODE",
+    "FLIGHT_MODES",
+    "JERK_ANGULAR",
+    "JERK_LINEAR",
+    "FlightMode",
+    "JerkLimitedProfile",
+    "MassProperties",
+    "VehicleController",
+    "VehicleError",
+    "Wrench",
+    "flight_mode",
+    "min_time_to_speed",
+]

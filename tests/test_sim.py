@@ -1,0 +1,591 @@
+"""The zero-gravity ISS simulator: world, servo limits, momentum, vehicle controller, grasp."""
+
+from __future__ import annotations
+
+import io
+import itertools
+import json
+import math
+import warnings
+from contextlib import redirect_stderr, redirect_stdout
+
+import mujoco
+import numpy as np
+import pytest
+
+from payload.design import FINGERS, MANIPULATION_JOINTS, design_from_dict
+from payload.schema import Health, PayloadCommand, PayloadDriver, PayloadState, VehicleTwist
+from payload.sim import (
+    PAYLOAD_PREFIX,
+    CtbSize,
+    IssLayout,
+    IssModule,
+    JerkLimitedProfile,
+    MassProperties,
+    SimDriver,
+    SimError,
+    VehicleController,
+    VehicleError,
+    WorldConfig,
+    build_world,
+    min_time_to_speed,
+    opposing,
+)
+from payload.sim.bench import RouteFollower
+
+# Figures from reference/facts.md, typed here independently of the code under test.
+XC330_STALL = 0.93  # [N m] at 5 V
+XC330_STALL_CURRENT = 1.80  # [A]
+CURRENT_CAP = 0.35  # [A]
+NO_LOAD_SPEED = 81 * 2 * math.pi / 60  # [rad/s]
+NOMINAL_FORCE = np.array([0.680, 0.332, 0.394])  # [N]
+NOMINAL_TORQUE = NOMINAL_FORCE / 10  # [N m], "roughly a tenth"
+NOMINAL_ACCEL = 0.0175  # [m/s^2]
+NOMINAL_SPEED = 0.20  # [m/s]
+
+
+@pytest.fixture(scope="module")
+def world():
+    return build_world()
+
+
+@pytest.fixture(scope="module")
+def bare_world():
+    """Astrobee and the payload, no CTB."""
+    return build_world(WorldConfig(ctb=None))
+
+
+def _quat_to_rot(quat) -> np.ndarray:
+    rot = np.zeros(9)
+    mujoco.mju_quat2Mat(rot, np.asarray(quat, float))
+    return rot.reshape(3, 3)
+
+
+def _fingers_touching_by_name(sim: SimDriver) -> set[str]:
+    """Fingertip pads touching the CTB, from geom names (independent of ContactMonitor)."""
+    out = set()
+    for i in range(sim.data.ncon):
+        c = sim.data.contact[i]
+        if c.dist > 0:
+            continue
+        names = [mujoco.mj_id2name(sim.model, mujoco.mjtObj.mjOBJ_GEOM, g) or "" for g in c.geom]
+        for a, b in (names, names[::-1]):
+            if a.startswith("ctb") and b.startswith(PAYLOAD_PREFIX) and b.endswith("_distal_pad"):
+                out.add(b[len(PAYLOAD_PREFIX)])
+    return out
+
+
+# -- world ----------------------------------------------------------------------------------------
+def test_scene_compiles_and_steps_without_warnings(world):
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # MuJoCo's compile-time warnings arrive as UserWarning
+        fresh = build_world()
+    model = fresh.model
+    assert model.opt.timestep == pytest.approx(0.001)
+    assert np.all(model.opt.gravity == 0.0)
+    assert fresh.model.nu == 18
+    # Menagerie-style smoke test: random controls inside the control ranges
+    data = fresh.make_data("home")
+    rng = np.random.default_rng(0)
+    lo, hi = model.actuator_ctrlrange.T
+    for _ in range(100):
+        data.ctrl[:] = rng.uniform(lo, hi)
+        mujoco.mj_step(model, data, nstep=20)
+    assert all(data.warning[i].number == 0 for i in range(len(data.warning)))
+    assert np.all(np.isfinite(data.qpos)) and np.all(np.isfinite(data.qvel))
+    # deployed, nothing touches anything at the start
+    assert fresh.make_data("home").ncon == 0
+    # stowed, the payload touches nothing of the world (its own stowed keyframe has the
+    # curled pads in the finger brackets: a payload-design matter, not the world's)
+    stowed = fresh.make_data("stowed")
+    payload = {b for b in range(model.nbody) if model.body_rootid[b] == fresh.astrobee}
+    payload.discard(fresh.astrobee)
+    for i in range(stowed.ncon):
+        bodies = {int(model.geom_bodyid[g]) for g in stowed.contact[i].geom}
+        assert bodies <= payload
+
+
+def test_names_and_paper_order(world):
+    for i, name in enumerate(MANIPULATION_JOINTS):
+        assert world.name(mujoco.mjtObj.mjOBJ_ACTUATOR, world.ctrl[i]) == PAYLOAD_PREFIX + name
+        jnt = int(np.flatnonzero(world.model.jnt_qposadr == world.qpos[i])[0])
+        assert world.name(mujoco.mjtObj.mjOBJ_JOINT, jnt) == PAYLOAD_PREFIX + name
+    for f in FINGERS:
+        assert mujoco.mj_name2id(world.model, mujoco.mjtObj.mjOBJ_SITE, f"payload/{f}_tip") >= 0
+
+
+def test_astrobee_and_ctb_bodies(world):
+    m = world.model
+    assert m.body_mass[world.astrobee] == pytest.approx(9.5838)
+    assert m.body_inertia[world.astrobee] == pytest.approx([0.15343, 0.14271, 0.16230])
+    box = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, "astrobee_collision")
+    assert 2 * m.geom_size[box] == pytest.approx([0.32, 0.32, 0.32])
+    # single CTB: 50.2 x 42.5 x 24.8 cm, 15.4 kg, solid-box inertia
+    bag = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, "ctb_bag")
+    assert 2 * m.geom_size[bag] == pytest.approx([0.502, 0.425, 0.248])
+    assert m.body_mass[world.ctb] == pytest.approx(15.4)
+    a, b, c = 0.502, 0.425, 0.248
+    expected = 15.4 / 12 * np.array([b * b + c * c, a * a + c * c, a * a + b * b])
+    assert m.body_inertia[world.ctb] == pytest.approx(expected)
+    # friction from the design file on every CTB geom
+    for g in world.ctb_geoms:
+        assert m.geom_friction[g, 0] == pytest.approx(world.design.finger.pad.friction)
+    heavy = build_world(WorldConfig(ctb="double", ctb_mass=20.0))
+    assert heavy.model.body_mass[heavy.ctb] == pytest.approx(20.0)
+
+
+def test_bad_config_is_one_clear_error():
+    with pytest.raises(SimError, match="unknown CTB size 'huge'"):
+        WorldConfig(ctb="huge")
+    with pytest.raises(SimError, match="ctb_mass"):
+        WorldConfig(ctb_mass=-1.0)
+    with pytest.raises(SimError, match=r"IssLayout\.kibo_width"):
+        IssLayout(kibo_width=0.0)
+    with pytest.raises(SimError, match="hatch"):
+        IssLayout(hatch=3.0)
+
+
+def test_iss_volumes_and_route():
+    layout = IssLayout()
+    kibo, vest, _ = layout.zones()
+    assert kibo.size == pytest.approx([1.7, 7.3, 2.0])  # facts.md
+    assert vest.size[[0, 2]] == pytest.approx([1.3, 1.3])  # the common hatch
+    assert layout.route_length() == pytest.approx(9.0, abs=0.5)
+    start, turn, end = layout.route()
+    assert layout.module_at(start) is IssModule.KIBO
+    assert layout.module_at(turn) is IssModule.NODE2
+    assert layout.module_at(end) is IssModule.NODE2
+    assert layout.module_at(vest.centre) is IssModule.VESTIBULE
+    assert layout.module_at((0.0, 0.0, 5.0)) is None
+    assert layout.module_at((layout.hatch_x, kibo.hi[1] + 0.1, 0.0)) is None
+    # the route leaves Kibo forward (Astrobee's x along the first leg) and turns in Node 2
+    first, second = np.diff(layout.route(), axis=0)
+    assert abs(np.dot(first, second)) < 1e-9
+    heading = np.array([math.cos(layout.start_yaw()), math.sin(layout.start_yaw()), 0.0])
+    assert heading @ first == pytest.approx(np.linalg.norm(first))
+
+
+def test_route_clears_the_collision_geometry(world):
+    """Every point of the route has room for the vehicle + payload + CTB stack."""
+    m = world.model
+    data = world.make_data()
+    # the stack's extent around the Astrobee centre, from the compiled model
+    lo = np.array([-0.16, -0.16, 0.0])
+    hi = np.array([0.16, 0.16, 0.16])
+    ctb_lo = data.xpos[world.ctb] - data.xpos[world.astrobee] - m.geom_size[world.ctb_geoms[0]]
+    lo = np.minimum(lo, ctb_lo)
+    half = np.max(np.abs(np.vstack([lo, hi])[:, :2]))  # the vehicle yaws: use a square
+    lo[:2], hi[:2] = -half, half
+    walls = [
+        (data.geom_xpos[g] - m.geom_size[g], data.geom_xpos[g] + m.geom_size[g])
+        for g in world.iss_geoms
+    ]
+    route = world.layout.route()
+    for a, b in itertools.pairwise(route):
+        for t in np.linspace(0.0, 1.0, 60):
+            p = a + t * (b - a)
+            for w_lo, w_hi in walls:
+                overlap = np.all(p + hi > w_lo) and np.all(p + lo < w_hi)
+                assert not overlap, f"route point {p} hits an ISS geom"
+
+
+def test_walls_stop_the_vehicle(bare_world):
+    sim = SimDriver(bare_world)
+    kibo = bare_world.layout.kibo
+    a = bare_world.astrobee_dof
+    sim.data.qvel[a : a + 3] = [0.3, 0.0, 0.0]  # toward Kibo's +x rack face, 0.85 m away
+    mujoco.mj_forward(sim.model, sim.data)
+    hit = False
+    for _ in range(250):
+        sim.step()
+        for i in range(sim.data.ncon):
+            hit |= any(int(g) in bare_world.iss_geoms for g in sim.data.contact[i].geom)
+    assert hit
+    assert sim.data.qvel[a] < 0.1  # stopped or bounced
+    assert sim.data.qpos[bare_world.astrobee_qpos] < kibo.hi[0]
+
+
+# -- servos ---------------------------------------------------------------------------------------
+def test_servo_force_limits_are_the_current_capped_xc330(world):
+    torque = XC330_STALL * CURRENT_CAP / XC330_STALL_CURRENT  # torque ~ current
+    d = world.design
+    expected = [torque] * 16 + [torque / d.rail.drive_radius, torque / d.stage.drive_radius]
+    got = world.model.actuator_forcerange[world.ctrl_all]
+    assert np.all(world.model.actuator_forcelimited[world.ctrl_all])
+    assert got[:, 1] == pytest.approx(expected, rel=1e-6)
+    assert got[:, 0] == pytest.approx(-np.array(expected), rel=1e-6)
+    assert torque == pytest.approx(0.181, abs=5e-4)
+
+
+def test_stale_payload_model_is_refused(design_dict):
+    changed = {**design_dict, "servo": {**design_dict["servo"], "current_limit": 0.5}}
+    with pytest.raises(SimError, match="payload build"):
+        build_world(design=design_from_dict(changed))
+
+
+def test_grip_force_bounded_by_current_capped_servo(world):
+    sim = SimDriver(world)
+    pinch = world.pinch
+    # finger A slams closed as far as it goes (onto the handle), the others stay open
+    q = pinch.command_q(False)
+    sim.send(PayloadCommand(q, pinch.stage, 0.0))
+    sim.step(40)
+    q[0] = world.design.finger.limits.mcp_flex.upper
+    sim.send(PayloadCommand(q, pinch.stage, 0.0))
+    cap = XC330_STALL * CURRENT_CAP / XC330_STALL_CURRENT
+    peak = 0.0
+    for _ in range(50):
+        sim.step()
+        peak = max(peak, abs(sim.data.actuator_force[world.ctrl[0]]))
+        assert peak <= cap * (1 + 1e-9)
+    assert "A" in sim.world_state().touching
+    assert peak == pytest.approx(cap, rel=1e-6)  # it did push as hard as it can
+    state = sim.read()
+    assert state.health & Health.OVERLOAD
+    assert state.effort[0] == pytest.approx(cap, rel=1e-6)
+
+
+def test_servo_speed_bounded_by_no_load_speed(world):
+    sim = SimDriver(world)
+    # finger A swings its abduction through 1 rad in free space
+    q = sim.read().q.copy()
+    q[1] = -1.0
+    sim.send(PayloadCommand(q, world.design.home.stage, 0.0))
+    peak, arrived = 0.0, None
+    for _ in range(50):
+        sim.step()
+        peak = max(peak, abs(sim.read().dq[1]))
+        if arrived is None and abs(sim.read().q[1] + 1.0) < 0.01:
+            arrived = sim.time
+    assert sim.data.ncon == 0
+    assert arrived is not None
+    assert peak <= NO_LOAD_SPEED
+    assert 0.99 / NO_LOAD_SPEED <= arrived <= 0.5
+    # the rail: on average no faster than its pinion at the servo's no-load speed
+    sim.reset()
+    q = sim.read().q.copy()
+    start = q[16]
+    q[16] = 0.0
+    sim.send(PayloadCommand(q, world.design.home.stage, 0.0))
+    travel_time = None
+    for _ in range(100):
+        sim.step()
+        if travel_time is None and sim.read().q[16] <= 1e-3:
+            travel_time = sim.time
+    fastest = (start - 1e-3) / (NO_LOAD_SPEED * world.design.rail.drive_radius)
+    assert travel_time is not None
+    assert fastest <= travel_time <= fastest + 0.3
+
+
+# -- momentum -------------------------------------------------------------------------------------
+def _momentum(model, data) -> tuple[np.ndarray, np.ndarray]:
+    """Linear and angular (about the world origin) momentum, summed body by body."""
+    p, ang = np.zeros(3), np.zeros(3)
+    jp, jr = np.zeros((3, model.nv)), np.zeros((3, model.nv))
+    for b in range(1, model.nbody):
+        mujoco.mj_jacBodyCom(model, data, jp, jr, b)
+        v, w = jp @ data.qvel, jr @ data.qvel
+        rot = data.ximat[b].reshape(3, 3)
+        inertia = rot @ np.diag(model.body_inertia[b]) @ rot.T
+        p += model.body_mass[b] * v
+        ang += model.body_mass[b] * np.cross(data.xipos[b], v) + inertia @ w
+    return p, ang
+
+
+def test_momentum_conserved_in_free_drift(world):
+    sim = SimDriver(world)  # vehicle controller off, payload servos holding home
+    m, d = sim.model, sim.data
+    v = np.array([0.03, -0.02, 0.01])
+    w = np.array([0.01, -0.02, 0.03])
+    a, c = world.astrobee_dof, world.ctb_dof
+    d.qvel[a : a + 3] = v
+    d.qvel[a + 3 : a + 6] = d.xmat[world.astrobee].reshape(3, 3).T @ w
+    r = d.xpos[world.ctb] - d.xpos[world.astrobee]  # the CTB drifts along, rigidly
+    d.qvel[c : c + 3] = v + np.cross(w, r)
+    d.qvel[c + 3 : c + 6] = d.xmat[world.ctb].reshape(3, 3).T @ w
+    mujoco.mj_forward(m, d)
+    p0, l0 = _momentum(m, d)
+    mujoco.mj_subtreeVel(m, d)
+    assert d.subtree_linvel[0] * m.body_subtreemass[0] == pytest.approx(p0, rel=1e-9)
+    worst_p = worst_l = 0.0
+    for _ in range(50):
+        state = sim.step(10)
+        assert not sim.monitor.ctb_touched(d) and not state.touching
+        p, ang = _momentum(m, d)
+        worst_p = max(worst_p, np.linalg.norm(p - p0) / np.linalg.norm(p0))
+        worst_l = max(worst_l, np.linalg.norm(ang - l0) / np.linalg.norm(l0))
+    assert d.time == pytest.approx(10.0)
+    assert worst_p < 1e-6
+    assert worst_l < 1e-6
+    assert sim.warnings() == {}
+
+
+# -- vehicle controller ---------------------------------------------------------------------------
+def test_profile_matches_closed_form_minimum_time():
+    a, j, v = 0.0175, 0.035, 0.2
+    profile = JerkLimitedProfile(np.array([a]), np.array([j]))
+    dt, t = 0.001, 0.0
+    vel, acc = profile.velocity.copy(), profile.acceleration.copy()
+    while vel[0] < v and t < 30:
+        previous = acc.copy()
+        vel, acc = profile.step(np.array([v]), dt)
+        t += dt
+        assert abs(acc[0]) <= a + 1e-12
+        assert abs(acc[0] - previous[0]) <= j * dt * (1 + 1e-9)
+    assert t == pytest.approx(min_time_to_speed(v, a, j), abs=dt)
+    assert min_time_to_speed(v, a, j) == pytest.approx(v / a + a / j)
+    # short move: the acceleration bound is never reached
+    assert min_time_to_speed(1e-3, a, j) == pytest.approx(2 * math.sqrt(1e-3 / j))
+    for _ in range(2000):  # stays at the target without overshoot
+        vel, acc = profile.step(np.array([v]), dt)
+        assert vel[0] == pytest.approx(v, abs=1e-9)
+    # and back down through zero to a negative target, as fast as the bounds allow
+    t = 0.0
+    while vel[0] > -v and t < 60:
+        vel, acc = profile.step(np.array([-v]), dt)
+        t += dt
+    assert t == pytest.approx(min_time_to_speed(2 * v, a, j), abs=dt)
+
+
+def test_force_bounds_follow_the_cargo_moment():
+    h = 0.3
+    plant = MassProperties(26.0, np.array([0.0, 0.0, -h]), np.diag([2.0, 2.0, 0.7]))
+    ctl = VehicleController(plant, "nominal", torque_share=1.0)
+    # F_x makes a pitch moment h F_x, F_y a roll moment h F_y; F_z none
+    expected = np.minimum(NOMINAL_FORCE, [NOMINAL_TORQUE[1] / h, NOMINAL_TORQUE[0] / h, np.inf])
+    assert ctl.force_max == pytest.approx(expected)
+    assert ctl.accel_max == pytest.approx(np.minimum(NOMINAL_ACCEL, 0.8 * expected / 26.0))
+    with pytest.raises(VehicleError, match="unknown flight mode 'warp'"):
+        VehicleController(plant, "warp")
+    with pytest.raises(VehicleError, match="torque_share"):
+        VehicleController(plant, torque_share=0.0)
+
+
+@pytest.mark.parametrize("axis", [0, 1])
+def test_vehicle_reaches_speed_within_bounds(bare_world, axis):
+    sim = SimDriver(bare_world, flight_mode="nominal")
+    d = sim.data
+    if axis == 1:  # face +x so that body y runs along Kibo's length (room to accelerate)
+        d.qpos[bare_world.astrobee_qpos + 3 : bare_world.astrobee_qpos + 7] = [1, 0, 0, 0]
+        mujoco.mj_forward(sim.model, d)
+    mass = float(sim.model.body_subtreemass[bare_world.astrobee])
+    command = np.zeros(3)
+    command[axis] = 0.2
+    sim.command_twist(VehicleTwist(command, np.zeros(3), 0.0))
+    # the bounds: a = min(mode, 80 % of the force bound / mass), jerk 0.035 m/s^3
+    a, j = min(NOMINAL_ACCEL, 0.8 * NOMINAL_FORCE[axis] / mass), 0.035
+    t_bound = min_time_to_speed(0.2, a, j)  # v/a + a/j: arrive with zero acceleration
+    near = 0.995 * 0.2
+    t_fastest = near / a + a / (2 * j)  # pass `near` still at full acceleration
+    reached = None
+    for _ in range(round((t_bound + 5.0) / 0.02)):
+        # the wrench is set in the body frame at the start of the period, held in the world
+        rot = d.xmat[bare_world.astrobee].reshape(3, 3).copy()
+        state = sim.step()
+        force = rot.T @ d.xfrc_applied[bare_world.astrobee, :3]
+        torque = rot.T @ d.xfrc_applied[bare_world.astrobee, 3:]
+        assert np.all(np.abs(force) <= NOMINAL_FORCE * (1 + 1e-9))
+        assert np.all(np.abs(torque) <= NOMINAL_TORQUE * (1 + 1e-9))
+        speed = state.astrobee_linear[axis]
+        assert speed <= NOMINAL_SPEED * 1.005
+        assert state.module is IssModule.KIBO and not state.contacts
+        if reached is None and speed >= near:
+            reached = state.time
+    assert reached is not None
+    # within the time the bounds allow, and no faster than they allow (50 Hz hold: 1 step)
+    assert t_fastest - 0.02 <= reached <= t_bound
+    assert state.astrobee_linear[axis] == pytest.approx(0.2, abs=5e-4)
+    assert np.all(np.abs(np.delete(state.astrobee_linear, axis)) < 5e-4)
+
+
+def test_vehicle_wrench_saturates_at_its_bounds_after_a_kick(bare_world):
+    sim = SimDriver(bare_world, flight_mode="nominal")
+    d = sim.data
+    sim.command_twist(VehicleTwist.zero())  # station keeping
+    sim.step()
+    a = bare_world.astrobee_dof
+    rot = d.xmat[bare_world.astrobee].reshape(3, 3)
+    d.qvel[a : a + 3] = rot @ np.array([0.0, 0.15, 0.05])  # a knock: body y and z
+    d.qvel[a + 3 : a + 6] = [0.0, 0.0, 0.3]  # and a spin about body z
+    mujoco.mj_forward(sim.model, d)
+    peak_f, peak_t = np.zeros(3), np.zeros(3)
+    for _ in range(500):
+        rot = d.xmat[bare_world.astrobee].reshape(3, 3).copy()
+        state = sim.step()
+        force = np.abs(rot.T @ d.xfrc_applied[bare_world.astrobee, :3])
+        torque = np.abs(rot.T @ d.xfrc_applied[bare_world.astrobee, 3:])
+        assert np.all(force <= NOMINAL_FORCE * (1 + 1e-9))
+        assert np.all(torque <= NOMINAL_TORQUE * (1 + 1e-9))
+        peak_f, peak_t = np.maximum(peak_f, force), np.maximum(peak_t, torque)
+    # the feedback asked for more than the bounds, and got exactly the bounds
+    assert peak_f[1] == pytest.approx(NOMINAL_FORCE[1], rel=1e-6)
+    assert peak_t[2] == pytest.approx(NOMINAL_TORQUE[2], rel=1e-6)
+    # and still brought the vehicle to rest (force-bound braking takes about 5 s)
+    assert np.linalg.norm(state.astrobee_linear) < 2e-3
+    assert np.linalg.norm(state.astrobee_angular) < 2e-3
+
+
+# -- contact indicator and grasp ------------------------------------------------------------------
+def test_opposing_indicator_logic():
+    assert opposing({"A", "C"}) and opposing({"B", "D"}) and opposing({"A", "B", "C", "D"})
+    assert not opposing({"A", "B"}) and not opposing({"C", "D"}) and not opposing(set())
+
+
+def test_one_side_touching_is_not_opposing(world):
+    sim = SimDriver(world)
+    pinch = world.pinch
+    sim.send(PayloadCommand(pinch.command_q(False), pinch.stage, 0.0))
+    sim.step(50)
+    q = pinch.command_q(False)
+    for k, f in enumerate(FINGERS):
+        if f in ("A", "B"):
+            q[4 * k] = pinch.closed[0]
+    sim.send(PayloadCommand(q, pinch.stage, 0.0))
+    for _ in range(100):
+        state = sim.step()
+        if state.touching:
+            break
+    assert state.touching and state.touching <= {"A", "B"}
+    assert state.touching == _fingers_touching_by_name(sim)
+    assert not state.opposing_contact
+
+
+def test_ctb_moves_only_through_contact(world):
+    sim = SimDriver(world, carrying=False)
+    q0 = sim.data.qpos[world.ctb_qpos : world.ctb_qpos + 7].copy()
+    # slide sideways: side 2's straight fingers reach the handle after about 14 mm
+    sim.command_twist(VehicleTwist(np.array([0.0, 0.02, 0.0]), np.zeros(3), 0.0))
+    first_touch = None
+    for _ in range(300):
+        sim.step()
+        q = sim.data.qpos[world.ctb_qpos : world.ctb_qpos + 7]
+        if first_touch is None and sim.monitor.ctb_touched(sim.data):
+            first_touch = sim.time
+        if first_touch is None:
+            assert np.array_equal(q, q0), "the CTB moved before anything touched it"
+    assert first_touch is not None
+    moved = np.linalg.norm(sim.data.qpos[world.ctb_qpos : world.ctb_qpos + 3] - q0[:3])
+    assert moved > 1e-3
+
+
+def test_scripted_grasp_then_1m_translation_carries_the_ctb(world):
+    sim = SimDriver(world)
+    pinch = world.pinch
+    ctb0 = sim.world_state().ctb_pos.copy()
+    # pre-shape, then close both pairs on the handle (fixed joint commands)
+    sim.send(PayloadCommand(pinch.command_q(False), pinch.stage, 0.0))
+    for _ in range(50):
+        state = sim.step()
+        assert not state.touching and np.array_equal(state.ctb_pos, ctb0)
+    sim.send(PayloadCommand(pinch.command_q(True), pinch.stage, sim.time))
+    touched = False
+    for _ in range(75):
+        state = sim.step()
+        touched |= sim.monitor.ctb_touched(sim.data)
+        if not touched:
+            assert np.array_equal(state.ctb_pos, ctb0)
+    assert state.opposing_contact
+    assert state.touching == _fingers_touching_by_name(sim) == set(FINGERS)
+    # 1 m of commanded translation along the body x axis, braking to a stop
+    start = state.astrobee_pos.copy()
+    heading = _quat_to_rot(state.astrobee_quat)[:, 0]
+    in_body0 = state.ctb_in_body()
+    ctb_start = state.ctb_pos.copy()
+    follower = RouteFollower(
+        np.array([start, start + heading]),
+        speed=0.2,
+        brake=0.8 * float(sim.controller.accel_max[0]),
+        omega=0.1745,
+    )
+    steps = 0
+    while steps < 4000:
+        twist = follower.twist(state.astrobee_pos, state.astrobee_quat, state.time)
+        sim.command_twist(twist)
+        state = sim.step()
+        steps += 1
+        assert state.opposing_contact, f"lost opposing contact at t = {state.time:.2f} s"
+        assert state.touching == _fingers_touching_by_name(sim)
+        if not np.any(twist.linear) and np.linalg.norm(state.astrobee_linear) < 1e-3:
+            break
+    moved = state.astrobee_pos - start
+    assert moved @ heading == pytest.approx(1.0, abs=0.03)
+    carried = state.ctb_pos - ctb_start
+    assert carried == pytest.approx(moved, abs=0.01)
+    assert np.linalg.norm(state.ctb_in_body() - in_body0) < 0.01
+    assert sim.warnings() == {}
+
+
+# -- driver ---------------------------------------------------------------------------------------
+def test_sim_driver_protocol(world):
+    with SimDriver(world) as sim:
+        assert isinstance(sim, PayloadDriver)
+        state = sim.read()
+        assert isinstance(state, PayloadState)
+        home = world.design.home
+        assert state.q == pytest.approx([*home.finger * 4, home.rail], abs=1e-9)
+        assert state.deploy == pytest.approx(home.stage)
+        with pytest.raises(SimError, match="expected a PayloadCommand"):
+            sim.send(np.zeros(17))  # type: ignore[arg-type]
+        with pytest.raises(SimError, match="expected a VehicleTwist"):
+            sim.command_twist((0.1, 0, 0))  # type: ignore[arg-type]
+        # beyond the range: clipped to it, as the servos' position limits do
+        q = state.q.copy()
+        q[16] = 0.2
+        sim.send(PayloadCommand(q, 0.075, 0.0))
+        sim.step(100)
+        assert sim.read().q[16] == pytest.approx(world.design.rail.travel, abs=2e-3)
+        ws = sim.world_state()
+        assert ws.module is IssModule.KIBO
+        assert ws.astrobee_quat @ ws.astrobee_quat == pytest.approx(1.0)
+        assert sim.module_at(ws.ctb_pos) is IssModule.KIBO
+    with pytest.raises(SimError, match="closed"):
+        sim.read()
+
+
+def test_mass_properties_match_mujoco_com(world):
+    sim = SimDriver(world)
+    props = sim.mass_properties(include_ctb=True)
+    m, d = sim.model, sim.data
+    assert props.mass == pytest.approx(m.body_subtreemass[0])
+    rot = d.xmat[world.astrobee].reshape(3, 3)
+    assert d.xipos[world.astrobee] + rot @ props.com == pytest.approx(d.subtree_com[0])
+    assert np.allclose(props.inertia, props.inertia.T)
+    assert np.all(np.linalg.eigvalsh(props.inertia) > 0)
+
+
+def test_ctb_sizes_are_the_standard_ones():
+    from payload.sim import CTB_SIZES
+
+    assert CTB_SIZES["single"] == CtbSize("single", 0.502, 0.425, 0.248, 15.4)
+    assert CTB_SIZES["half"].mass == 7.3 and CTB_SIZES["double"].mass == 31.0
+
+
+# -- command line ---------------------------------------------------------------------------------
+def test_bench_sim_json():
+    from payload.cli import main
+
+    out, err = io.StringIO(), io.StringIO()
+    with redirect_stdout(out), redirect_stderr(err):
+        code = main(["bench", "sim", "--seconds", "1", "--json", "--no-progress"])
+    assert code == 0
+    lines = out.getvalue().strip().splitlines()
+    assert len(lines) == 1
+    result = json.loads(lines[0])
+    for key in ("sim_seconds", "wall_seconds", "realtime_factor", "physics_hz", "control_hz"):
+        assert key in result
+    assert result["sim_seconds"] == pytest.approx(1.0)
+    assert result["physics_hz"] == 1000 and result["control_hz"] == 50
+    assert result["realtime_factor"] == pytest.approx(
+        result["sim_seconds"] / result["wall_seconds"]
+    )
+
+
+def test_bench_sim_bad_input_exits_2():
+    from payload.cli import main
+
+    err = io.StringIO()
+    with redirect_stderr(err), redirect_stdout(io.StringIO()):
+        code = main(["bench", "sim", "--seconds", "-1", "--no-progress"])
+    assert code == 2
+    lines = err.getvalue().strip().splitlines()
+    assert len(lines) == 1 and "--seconds" in lines[0]
