@@ -316,12 +316,14 @@ def test_absurd_frames_and_backwards_time_are_rejected():
     sup = TrackingSupervisor(neutral={"left": np.zeros(3), "right": np.zeros(3)})
     sup.step(_frame(0.0))
     far = Hand(HandModel("right").local_joints(0.5) + np.array([5.0, 0.0, 0.0]))
-    sup.step(_frame(0.02, left=far))
-    assert sup.events[-1].kind == "invalid" and "from neutral" in sup.events[-1].detail
+    out = sup.step(_frame(0.02, left=far))
+    assert [e.kind for e in out.events] == ["invalid", "lost"]
+    assert "from neutral" in out.events[0].detail and out.left is None
     stretched = HandModel("right").local_joints(0.5)
     stretched[4] += 2.0
-    sup.step(_frame(0.04, right=Hand(stretched)))
-    assert "from the wrist" in sup.events[-1].detail
+    out = sup.step(_frame(0.04, right=Hand(stretched)))
+    right_events = [e for e in out.events if e.hand == "right"]
+    assert "from the wrist" in right_events[0].detail and out.right is None
     sup.step(_frame(0.01))
     assert "time_backwards" in [e.kind for e in sup.events[-3:]]
 

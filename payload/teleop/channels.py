@@ -83,10 +83,10 @@ class BaseConfig:
     max_speed: float = 0.20
     max_accel: float = 0.0175
     max_jerk: float = 0.02
-    max_yaw_rate: float = 0.1745
-    max_yaw_accel: float = 0.05
-    max_yaw_jerk: float = 0.1
-    yaw_gain: float = 0.6
+    max_yaw_rate: float = 0.1
+    max_yaw_accel: float = 0.02
+    max_yaw_jerk: float = 0.02
+    yaw_gain: float = 0.4
     turn_min_speed: float = 0.02
 
 

@@ -1,7 +1,8 @@
 """Tracking supervision: dropouts, NaN or absurd frames, and time going backwards.
 
-A hand whose frames are invalid keeps its last valid frame for up to ``timeout``
-(short dropouts are bridged); past that it is *lost*: the vehicle brakes smoothly, the
+A hand that is not tracked keeps its last valid frame for up to ``timeout`` (short
+dropouts are bridged); past that, or at once for a faulty frame (NaN, joints metres
+away, time going backwards), it is *lost*: the vehicle brakes smoothly, the
 fingers hold their last command, and an event is logged. When valid frames return the
 hand is *recovering* for ``recovery_time`` so the channels blend back in without a jump.
 """
@@ -146,12 +147,12 @@ class TrackingSupervisor:
                 if not st.was_invalid and not st.lost:
                     events.append(self._event(t_eval, side, "invalid", why))
                 st.was_invalid = True
-                if not st.lost and t_eval - st.last_valid_stamp > c.timeout:
+                fault = why != "not tracked"  # NaN, absurd or backwards: no bridging
+                if not st.lost and (fault or t_eval - st.last_valid_stamp > c.timeout):
                     st.lost = True
                     st.lost_since = t_eval
-                    events.append(
-                        self._event(t_eval, side, "lost", f"no valid frame for > {c.timeout} s")
-                    )
+                    detail = why if fault else f"no valid frame for > {c.timeout} s"
+                    events.append(self._event(t_eval, side, "lost", detail))
             if st.lost:
                 out[side], blend[side] = None, 0.0
             else:

@@ -1,0 +1,337 @@
+"""Pinch-to-open calibration: human thumb-index features -> robot pair targets.
+
+Two steps:
+
+1. :func:`pair_range` finds, once per hand and pair, what the robot pair can do:
+   its minimum and maximum fingertip span and a one-parameter family of postures
+   ``q_ref(l)`` (the posture reference) whose span is ``l``:
+
+   * maximum span: ``max l(q)`` over the joint box, with each fingertip kept in front
+     of its finger's first joint along the finger's rest direction (so a finger
+     cannot curl back through the structure), solved by SLSQP with analytic
+     gradients from 16 deterministic starts (the rest posture, the all-lower-limits
+     corner of the box, halfway between the two, and seeded random postures);
+   * minimum span: ``max(2 * tip_radius, min l(q))``: the pads touch before the
+     points can meet (the kinematic minimum is found the same way);
+   * postures: for 65 spans evenly spaced between the two, the posture closest to the
+     rest posture in range-normalised joints with exactly that span (SLSQP,
+     continuation from the rest span outward). ``q_ref(l)`` interpolates linearly.
+
+2. :func:`calibrate` takes the operator's pinch and open features (thumb = finger 1,
+   index = finger 2, in the calibrated wrist frame) and returns a
+   :class:`PairCalibration`: the opening ``alpha = (l_h - l_pinch) / (l_open - l_pinch)``
+   (clipped to [0, 1]) maps to the span ``l_min + alpha (l_max - l_min)``, so the
+   calibrated pinch and open poses give the robot's minimum and maximum span exactly;
+   directions are rotated by the rotation that best aligns the human's direction
+   features at the two poses with the robot's at ``q_ref(l_min)`` and ``q_ref(l_max)``
+   (Wahba's problem, SVD); the centre follows the robot's centre along the same
+   opening plus the human's deviation from the calibrated centre, rotated and scaled.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import minimize
+
+from payload.retarget.errors import RetargetError
+from payload.retarget.features import PairFeatures, PairKinematics, as_feature_vector
+
+__all__ = ["PairCalibration", "PairRange", "calibrate", "pair_range", "wahba_rotation"]
+
+_N_POSTURES = 65
+_N_STARTS = 16
+
+
+@dataclass(frozen=True)
+class PairRange:
+    """What a robot pair can do: its span range and the posture reference family.
+
+    Attributes:
+        pair: Pair name.
+        span_min: Minimum usable span [m]: ``max(2 * tip_radius, span_min_kinematic)``.
+        span_max: Maximum span [m].
+        span_min_kinematic: Smallest fingertip-point distance over the box [m].
+        spans: Spans of the posture table, shape (k,) [m], increasing.
+        postures: Postures of the table, shape (k, n): ``span(postures[i]) = spans[i]``.
+        pinch: Robot features at the minimum-span posture.
+        open: Robot features at the maximum-span posture.
+    """
+
+    pair: str
+    span_min: float
+    span_max: float
+    span_min_kinematic: float
+    spans: np.ndarray
+    postures: np.ndarray
+    pinch: PairFeatures
+    open: PairFeatures
+
+    def posture(self, span: float) -> np.ndarray:
+        """Posture reference ``q_ref`` for a commanded span [m] (clipped to the range), (n,)."""
+        s = float(np.clip(span, self.spans[0], self.spans[-1]))
+        i = int(np.clip(np.searchsorted(self.spans, s) - 1, 0, len(self.spans) - 2))
+        w = (s - self.spans[i]) / (self.spans[i + 1] - self.spans[i])
+        return (1.0 - w) * self.postures[i] + w * self.postures[i + 1]
+
+
+def _front_constraints(pk: PairKinematics) -> tuple[np.ndarray, np.ndarray]:
+    """Origins of each finger's first joint and its unit rest direction, both (2, 3)."""
+    kin, d = pk.kin, pk.desc
+    origins, dirs = [], []
+    pts = pk.points(pk.rest)
+    base = kin.frame_placement(kin.neutral(), d.base)
+    for i in range(2):
+        first = kin.chain(d.base, d.tips[i])[0]
+        world = kin.frame_placement(
+            pk.full_configuration(pk.rest), kin.model.names[first]
+        ).translation
+        o = base.rotation.T @ (world - base.translation)
+        v = pts[i] - o
+        origins.append(o)
+        dirs.append(v / np.linalg.norm(v))
+    return np.array(origins), np.array(dirs)
+
+
+def _starts(pk: PairKinematics, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    fixed = [pk.rest, pk.lower.copy(), np.clip(0.5 * (pk.lower + pk.rest), pk.lower, pk.upper)]
+    rand = pk.lower + rng.random((_N_STARTS - len(fixed), pk.n)) * pk.range
+    return np.vstack([*fixed, rand])
+
+
+@functools.lru_cache(maxsize=16)
+def _pair_range_cached(pk: PairKinematics, seed: int) -> PairRange:
+    bounds = list(zip(pk.lower, pk.upper))
+    origins, dirs = _front_constraints(pk)
+
+    def span_and_grad(q: np.ndarray) -> tuple[float, np.ndarray]:
+        f, jac = pk.features_jacobian(q)
+        return float(f[0]), jac[0]
+
+    def front(q: np.ndarray) -> np.ndarray:
+        p = pk.points(q)
+        return np.einsum("ij,ij->i", p[:2] - origins, dirs)
+
+    def front_jac(q: np.ndarray) -> np.ndarray:
+        _, jac = pk.points_jacobian(q)
+        return np.einsum("ij,ijn->in", dirs, jac[:2])
+
+    front_c = {"type": "ineq", "fun": front, "jac": front_jac}
+    starts = _starts(pk, seed)
+
+    # Maximum span (workspace-constrained), multi-start SLSQP.
+    best_q, best = None, -np.inf
+    for q0 in starts:
+        if np.any(front(q0) < 0):
+            continue
+        res = minimize(
+            lambda q: tuple(-v for v in span_and_grad(q)),
+            q0,
+            jac=True,
+            bounds=bounds,
+            constraints=[front_c],
+            method="SLSQP",
+            options={"maxiter": 200, "ftol": 1e-12},
+        )
+        q = np.clip(res.x, pk.lower, pk.upper)
+        if np.all(front(q) >= -1e-9) and pk.features(q).span > best:
+            best_q, best = q, pk.features(q).span
+    if best_q is None:  # pragma: no cover - the rest posture always satisfies the constraint
+        raise RetargetError(f"pair {pk.name}: no start posture keeps the fingers in front")
+    span_max, q_open = best, best_q
+
+    # Kinematic minimum span: the squared distance is smooth where the span is not.
+    def sq(q: np.ndarray) -> tuple[float, np.ndarray]:
+        p, jac = pk.points_jacobian(q)
+        d = p[1] - p[0]
+        return float(d @ d), 2.0 * d @ (jac[1] - jac[0])
+
+    kin_min = min(
+        float(np.sqrt(max(minimize(sq, q0, jac=True, bounds=bounds, method="L-BFGS-B").fun, 0)))
+        for q0 in starts
+    )
+    span_min = max(kin_min, 2.0 * pk.desc.tip_radius)
+    if span_max <= span_min + 1e-3:
+        raise RetargetError(
+            f"pair {pk.name}: the span range [{span_min:.4f}, {span_max:.4f}] m is too small"
+        )
+
+    # Posture table: closest posture to rest (range-normalised) with each span.
+    inv = 1.0 / pk.range
+    spans = np.linspace(span_min, span_max, _N_POSTURES)
+    postures = np.empty((_N_POSTURES, pk.n))
+    rest_span = pk.features(pk.rest).span
+
+    def solve_at(span: float, q0: np.ndarray) -> np.ndarray:
+        res = minimize(
+            lambda q: (float(np.sum(((q - pk.rest) * inv) ** 2)), 2.0 * (q - pk.rest) * inv**2),
+            q0,
+            jac=True,
+            bounds=bounds,
+            constraints=[
+                {
+                    "type": "eq",
+                    "fun": lambda q: np.array([span_and_grad(q)[0] - span]),
+                    "jac": lambda q: span_and_grad(q)[1][None, :],
+                },
+                front_c,
+            ],
+            method="SLSQP",
+            options={"maxiter": 300, "ftol": 1e-12},
+        )
+        return np.clip(res.x, pk.lower, pk.upper)
+
+    order_up = [i for i in range(_N_POSTURES) if spans[i] >= rest_span]
+    order_down = [i for i in reversed(range(_N_POSTURES)) if spans[i] < rest_span]
+    for order in (order_up, order_down):
+        q_prev = pk.rest
+        for i in order:
+            q_prev = q_open if i == _N_POSTURES - 1 else solve_at(spans[i], q_prev)
+            postures[i] = q_prev
+    errors = np.abs(pk.features_batch(postures)[:, 0] - spans)
+    if errors.max() > 1e-5:
+        bad = int(errors.argmax())
+        raise RetargetError(
+            f"pair {pk.name}: no posture found with span {spans[bad]:.4f} m "
+            f"(off by {errors[bad] * 1e3:.2f} mm)"
+        )
+    return PairRange(
+        pair=pk.name,
+        span_min=float(span_min),
+        span_max=float(span_max),
+        span_min_kinematic=float(kin_min),
+        spans=spans,
+        postures=postures,
+        pinch=pk.features(postures[0]),
+        open=pk.features(postures[-1]),
+    )
+
+
+def pair_range(pk: PairKinematics, seed: int = 0) -> PairRange:
+    """The pair's span range and posture family (computed once per pair object and seed).
+
+    Raises:
+        RetargetError: The optimisation finds no usable range or posture.
+    """
+    return _pair_range_cached(pk, seed)
+
+
+def wahba_rotation(human: np.ndarray, robot: np.ndarray) -> np.ndarray:
+    """Rotation R minimising ``sum |robot_i - R human_i|^2`` over unit vectors, (3, 3).
+
+    Args:
+        human: Vectors in the human wrist frame, shape (k, 3).
+        robot: Matching vectors in the robot pair frame, shape (k, 3).
+    """
+    b = np.asarray(robot).T @ np.asarray(human)
+    u, _, vt = np.linalg.svd(b)
+    s = np.diag([1.0, 1.0, np.sign(np.linalg.det(u) * np.linalg.det(vt))])
+    return u @ s @ vt
+
+
+@dataclass(frozen=True)
+class PairCalibration:
+    """The mapping from human thumb-index features to one robot pair's targets.
+
+    Attributes:
+        range: The robot pair's span range and posture family.
+        human_pinch: The operator's calibrated pinch features (wrist frame).
+        human_open: The operator's calibrated open features (wrist frame).
+        rotation: Rotation from the wrist frame to the pair's base frame, (3, 3).
+        centre_gain: Scale of the operator's centre motion onto the robot [-].
+    """
+
+    range: PairRange
+    human_pinch: PairFeatures
+    human_open: PairFeatures
+    rotation: np.ndarray
+    centre_gain: float
+
+    def opening(self, human_span: float) -> float:
+        """Calibrated opening in [0, 1] of a human span [m] (0 = pinch, 1 = open)."""
+        lo, hi = self.human_pinch.span, self.human_open.span
+        return float(np.clip((human_span - lo) / (hi - lo), 0.0, 1.0))
+
+    def to_targets(self, human: PairFeatures | np.ndarray) -> PairFeatures:
+        """Robot targets ``(l_bar, d_bar, c_bar, u_bar)`` for human features (wrist frame).
+
+        Raises:
+            RetargetError: A NaN or infinite or malformed feature.
+        """
+        h = PairFeatures.from_vector(as_feature_vector(human, "human features"))
+        rg, rot = self.range, self.rotation
+        alpha = self.opening(h.span)
+        span = rg.span_min + alpha * (rg.span_max - rg.span_min)
+        c_robot = (1.0 - alpha) * rg.pinch.centre + alpha * rg.open.centre
+        c_human = (1.0 - alpha) * self.human_pinch.centre + alpha * self.human_open.centre
+        centre = c_robot + self.centre_gain * rot @ (h.centre - c_human)
+        distal = np.concatenate([rot @ h.distal[:3], rot @ h.distal[3:]])
+        return PairFeatures(float(span), rot @ h.direction, centre, distal)
+
+    def posture_reference(self, span: float) -> np.ndarray:
+        """Posture reference ``q_ref`` consistent with a commanded span [m], shape (n,)."""
+        return self.range.posture(span)
+
+    def command(self, human: PairFeatures | np.ndarray) -> tuple[PairFeatures, np.ndarray]:
+        """Targets and the matching posture reference for human features."""
+        targets = self.to_targets(human)
+        return targets, self.posture_reference(targets.span)
+
+
+def calibrate(
+    pinch: PairFeatures | np.ndarray,
+    open_: PairFeatures | np.ndarray,
+    robot: PairRange,
+    rotation: np.ndarray | None = None,
+    centre_gain: float | None = None,
+) -> PairCalibration:
+    """Calibrate one pair from the operator's pinch and open poses.
+
+    Args:
+        pinch: Human thumb-index features at the calibration pinch (wrist frame).
+        open_: Human features at the calibration full opening (wrist frame).
+        robot: The robot pair's range (:func:`pair_range`).
+        rotation: Wrist-to-pair-frame rotation (3, 3); ``None``: the Wahba alignment of
+            the human's direction features (d, u_1, u_2) at the two poses with the
+            robot's at its minimum- and maximum-span postures.
+        centre_gain: Scale of the human centre motion; ``None``: the span ratio
+            ``(l_max - l_min) / (l_open - l_pinch)``.
+
+    Raises:
+        RetargetError: Non-finite features, an open span not larger than the pinch
+            span by 1 mm, or a rotation that is not a rotation matrix.
+    """
+    hp = PairFeatures.from_vector(as_feature_vector(pinch, "pinch features"))
+    ho = PairFeatures.from_vector(as_feature_vector(open_, "open features"))
+    if ho.span < hp.span + 1e-3:
+        raise RetargetError(
+            f"calibration: the open span ({ho.span * 1e3:.1f} mm) must exceed the pinch span "
+            f"({hp.span * 1e3:.1f} mm) by at least 1 mm"
+        )
+    if rotation is None:
+        human = np.vstack(
+            [v.reshape(-1, 3) for v in (hp.direction, hp.distal, ho.direction, ho.distal)]
+        )
+        rb = robot
+        rob = np.vstack(
+            [
+                v.reshape(-1, 3)
+                for v in (rb.pinch.direction, rb.pinch.distal, rb.open.direction, rb.open.distal)
+            ]
+        )
+        rotation = wahba_rotation(human, rob)
+    rotation = np.asarray(rotation, dtype=float)
+    if (
+        rotation.shape != (3, 3)
+        or not np.allclose(rotation.T @ rotation, np.eye(3), atol=1e-6)
+        or np.linalg.det(rotation) < 0
+    ):
+        raise RetargetError("calibration: rotation must be a 3x3 rotation matrix")
+    if centre_gain is None:
+        centre_gain = (robot.span_max - robot.span_min) / (ho.span - hp.span)
+    if not np.isfinite(centre_gain) or centre_gain < 0:
+        raise RetargetError("calibration: centre_gain must be finite and non-negative")
+    return PairCalibration(robot, hp, ho, rotation, float(centre_gain))

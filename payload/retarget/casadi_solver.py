@@ -1,0 +1,435 @@
+"""The production solver: eq. 3 as one compiled CasADi function per pair.
+
+The whole pair solve is one CasADi expression graph: the forward kinematics rebuilt
+from the Pinocchio model (:mod:`payload.retarget.symbolic`), the residuals of eq. 3,
+their Jacobian by algorithmic differentiation, and a capped sequence of guarded
+iterations of a projected Levenberg-Marquardt method on the soft-L1 cost
+``sum(sqrt(1 + r^2) - 1)`` (the same value scipy's ``loss="soft_l1"`` minimises):
+
+* gradient ``g = J^T (r / sqrt(1 + r^2))`` and the IRLS curvature
+  ``H = J^T diag(1 / sqrt(1 + r^2)) J``, whose quadratic model majorises the soft-L1
+  cost (iteratively reweighted least squares), so the steps stay safe far from the
+  solution where the soft-L1 terms are nearly linear;
+* a joint on a bound with the gradient pushing outward is held; the damped system
+  ``(H + mu diag(H)) delta = -g`` is solved by Cholesky for the others; joints the step
+  would push through a bound stop on it and the rest are solved again with that
+  displacement fixed; no joint moves more than 10 % of its range per iteration; the
+  step is projected onto the box, so no iterate ever leaves the bounds;
+* a step is kept only if it lowers the cost (the full evaluation at the new point runs
+  only then); ``mu`` follows the gain ratio (Nielsen's rule) and grows fourfold on a
+  rejection;
+* iterations are nested ``casadi.Function.conditional`` calls: each returns at once
+  when the projected gradient (``config.gtol``) or the relative decrease
+  (``config.ftol``) says converged, and there are at most ``config.max_iterations`` of
+  them: a hard cap.
+
+The graph is generated as C, compiled with the system C compiler into a shared
+library cached under :func:`cache_dir` by the hash of its code, and called directly
+through ``ctypes`` on preallocated buffers: one call per pair solve, a few
+microseconds of Python around it (a ``casadi.Function`` call from Python alone costs
+about 20 us). Without a compiler the same graph runs in CasADi's virtual machine.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import os
+import platform
+import shutil
+import subprocess
+import tempfile
+import warnings
+from pathlib import Path
+
+import casadi as ca
+import numpy as np
+
+from payload.retarget.errors import RetargetError
+from payload.retarget.features import N_FEATURES, PairFeatures, PairKinematics
+from payload.retarget.hand import HandDescription
+from payload.retarget.objective import RetargetConfig
+from payload.retarget.solver import Retargeter, SolveInfo
+from payload.retarget.symbolic import residuals_expr
+
+BACKENDS = ("auto", "compiled", "vm")
+"""``compiled``: generated C through ctypes; ``vm``: CasADi's virtual machine; ``auto``:
+compiled when a C compiler works, else the virtual machine."""
+
+_CFLAGS = ("-O2", "-ffp-contract=off", "-fPIC", "-shared")
+_MU0 = 1e-4
+_MU_MAX = 1e12
+_BOUND_EPS = 1e-12
+_MAX_STEP = 0.1
+
+
+def cache_dir() -> Path:
+    """Directory of compiled solvers: ``$PAYLOAD_CACHE_DIR``, else the user cache dir."""
+    env = os.environ.get("PAYLOAD_CACHE_DIR")
+    if env:
+        return Path(env)
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "astrobee-payload" / "retarget"
+
+
+def _compiler() -> str | None:
+    cc = os.environ.get("CC") or "cc"
+    return shutil.which(cc) or shutil.which("gcc") or shutil.which("clang")
+
+
+def _cholesky_solve(a: ca.SX, b: ca.SX) -> ca.SX:
+    """Solve ``a x = b`` for a symmetric positive definite symbolic matrix (n, n)."""
+    n = a.shape[0]
+    low = [[None] * n for _ in range(n)]
+    for j in range(n):
+        s = a[j, j]
+        for k in range(j):
+            s = s - low[j][k] * low[j][k]
+        low[j][j] = ca.sqrt(s)
+        for i in range(j + 1, n):
+            s = a[i, j]
+            for k in range(j):
+                s = s - low[i][k] * low[j][k]
+            low[i][j] = s / low[j][j]
+    y = [None] * n
+    for i in range(n):
+        s = b[i]
+        for k in range(i):
+            s = s - low[i][k] * y[k]
+        y[i] = s / low[i][i]
+    x = [None] * n
+    for i in reversed(range(n)):
+        s = y[i]
+        for k in range(i + 1, n):
+            s = s - low[k][i] * x[k]
+        x[i] = s / low[i][i]
+    return ca.vertcat(*x)
+
+
+def build_solve_function(
+    pk: PairKinematics, config: RetargetConfig, name: str = "pair_solve"
+) -> ca.Function:
+    """The pair solve as one CasADi function.
+
+    Args:
+        pk: The pair's kinematics (its Pinocchio model supplies the chains).
+        config: Weights, scales, iteration cap and tolerances.
+        name: Function name (the C symbol when generated).
+
+    Returns:
+        ``(q_prev (n), targets (13), q_ref (n)) -> (q (n), info (3))`` with
+        ``info = [cost, iterations, converged]``; ``q_prev`` is projected onto the box
+        and is both the warm start and the temporal term's reference.
+    """
+    n = pk.n
+    lb, ub = pk.lower, pk.upper
+    npar = N_FEATURES + 2 * n
+
+    # Cost, gradient and IRLS curvature of the soft-L1 objective.
+    q = ca.SX.sym("q", n)
+    par = ca.SX.sym("p", npar)
+    t, qr, qp = par[:N_FEATURES], par[N_FEATURES : N_FEATURES + n], par[N_FEATURES + n :]
+    r = residuals_expr(pk, config, q, t, qr, qp)
+    jac = ca.jacobian(r, q)
+    s1 = ca.sqrt(1.0 + r * r)
+    w1 = 1.0 / s1  # rho'(r^2), the IRLS weight
+    cost = ca.sum1(s1 - 1.0)
+    grad = ca.mtimes(jac.T, w1 * r)
+    jw = ca.mtimes(ca.diag(ca.sqrt(w1)), jac)
+    hess = ca.vec(ca.densify(ca.mtimes(jw.T, jw)))
+    evaluate = ca.Function("evaluate", [q, par], [cost, grad, hess], {"cse": True})
+    cost_only = ca.Function("cost", [q, par], [cost], {"cse": True})
+
+    # The state of the iteration: x = [q (n), cost, g (n), H (n*n), mu, done, iterations].
+    nn = n * n
+    nx = 2 * n + nn + 4
+    i_cost, i_g, i_h = n, n + 1, 2 * n + 1
+    i_mu, i_done, i_it = i_h + nn, i_h + nn + 1, i_h + nn + 2
+    lbv, ubv, rng = ca.DM(lb), ca.DM(ub), ca.DM(ub - lb)
+
+    # Propose: the damped step, kept inside the box.
+    x = ca.SX.sym("x", nx)
+    qk, ck, gk, mu = x[:n], x[i_cost], x[i_g : i_g + n], x[i_mu]
+    hk = ca.reshape(x[i_h : i_h + nn], n, n)
+    active = ca.logic_or(
+        ca.logic_and(qk <= lbv + _BOUND_EPS, gk > 0), ca.logic_and(qk >= ubv - _BOUND_EPS, gk < 0)
+    )
+    free = 1.0 - active
+    damping = mu * ca.fmax(ca.diag(hk), 1e-9) + 1e-14
+    # First pass: the damped step over the free joints.
+    delta = -_cholesky_solve(
+        hk * ca.mtimes(free, free.T) + ca.diag(active + free * damping), free * gk
+    )
+    # Second pass: joints the step would push through a bound stop on it, and the others
+    # are solved again with that displacement fixed.
+    hit_lo = free * (qk + delta < lbv)
+    hit_hi = free * (qk + delta > ubv)
+    fixed = ca.fmax(active, hit_lo + hit_hi)
+    free2 = 1.0 - fixed
+    d_fixed = hit_lo * (lbv - qk) + hit_hi * (ubv - qk)
+    rhs = -free2 * (gk + ca.mtimes(hk, d_fixed))
+    delta = d_fixed + free2 * _cholesky_solve(
+        hk * ca.mtimes(free2, free2.T) + ca.diag(fixed + free2 * damping), rhs
+    )
+    # Step cap: no joint moves more than _MAX_STEP of its range per iteration, so one
+    # long step cannot throw the joints onto a far corner of the box.
+    delta = delta / ca.fmax(1.0, ca.mmax(ca.fabs(delta) / rng) / _MAX_STEP)
+    qc = ca.fmin(ca.fmax(qk + delta, lbv), ubv)
+    step = qc - qk
+    predicted = -(ca.dot(gk, step) + 0.5 * ca.dot(step, ca.mtimes(hk, step)))
+    prop = ca.vertcat(qc, predicted, mu, cost_only(qc, par))  # [q_c (n), pred, mu, cost_c]
+    propose = ca.Function("propose", [x, par], [prop], {"cse": True})
+
+    # Accept: evaluate at the candidate, update the damping by the gain ratio (Nielsen),
+    # test convergence (projected gradient, relative decrease).
+    pr = ca.SX.sym("prop", n + 3)
+    qc, predicted, mu_used, cc = pr[:n], pr[n], pr[n + 1], pr[n + 2]
+    _, gc, hc = evaluate(qc, par)
+    gain = (ck - cc) / ca.fmax(predicted, 1e-300)
+    mu_next = ca.fmax(mu_used * ca.fmax(1.0 / 3.0, 1.0 - (2.0 * gain - 1.0) ** 3), 1e-12)
+    pg = qc - ca.fmin(ca.fmax(qc - gc, lbv), ubv)
+    done = ca.logic_or(ca.mmax(ca.fabs(pg)) <= config.gtol, ck - cc <= config.ftol * ck)
+    accepted = ca.Function(
+        "accepted",
+        [x, pr, par],
+        [ca.vertcat(qc, cc, gc, hc, mu_next, done, x[i_it] + 1.0)],
+        {"cse": True},
+    )
+    # Reject (the cost did not decrease, or is NaN): keep the point, damp harder.
+    mu_up = 4.0 * mu
+    rejected = ca.Function(
+        "rejected", [x, pr, par], [ca.vertcat(x[:i_mu], mu_up, mu_up >= _MU_MAX, x[i_it] + 1.0)]
+    )
+    settle = ca.Function.conditional("settle", [accepted], rejected)
+    xs, ps = ca.MX.sym("x", nx), ca.MX.sym("p", npar)
+    proposal = propose(xs, ps)
+    lower_cost = proposal[n + 2] < xs[i_cost]  # False for a NaN cost
+    iterate = ca.Function("iterate", [xs, ps], [settle(ca.logic_not(lower_cost), xs, proposal, ps)])
+    hold = ca.Function("hold", [xs, ps], [xs])
+
+    # The iteration cap as a chain of nested conditionals: level k iterates once and
+    # hands over to level k + 1 unless converged, so a converged solve returns at once.
+    level = None
+    for k in reversed(range(config.max_iterations)):
+        nxt = iterate(xs, ps)
+        out = nxt if level is None else level(nxt[i_done], nxt, ps)
+        level = ca.Function.conditional(
+            f"level_{k}", [ca.Function(f"iterate_{k}", [xs, ps], [out])], hold
+        )
+
+    # The solve: project the warm start onto the box, evaluate there, iterate.
+    q_prev = ca.MX.sym("q_prev", n)
+    targets = ca.MX.sym("targets", N_FEATURES)
+    q_ref = ca.MX.sym("q_ref", n)
+    q0 = ca.fmin(ca.fmax(q_prev, lbv), ubv)
+    p_mx = ca.vertcat(targets, q_ref, q0)
+    c0, g0, h0 = evaluate(q0, p_mx)
+    pg0 = q0 - ca.fmin(ca.fmax(q0 - g0, lbv), ubv)
+    x0 = ca.vertcat(q0, c0, g0, h0, _MU0, ca.mmax(ca.fabs(pg0)) <= config.gtol, 0.0)
+    state = level(x0[i_done], x0, p_mx)
+    info = ca.vertcat(state[i_cost], state[i_it], state[i_done])
+    return ca.Function(
+        name,
+        [q_prev, targets, q_ref],
+        [state[:n], info],
+        ["q_prev", "targets", "q_ref"],
+        ["q", "info"],
+    )
+
+
+class _CompiledSolve:
+    """A generated CasADi function in a shared library, called through ctypes."""
+
+    def __init__(self, fn: ca.Function, compiler: str) -> None:
+        name = fn.name()
+        cg = ca.CodeGenerator(f"{name}.c", {"with_header": False, "casadi_int": "long long int"})
+        cg.add(fn)
+        code = cg.dump()
+        key = hashlib.sha256(
+            "\n".join([code, compiler, *_CFLAGS, platform.machine(), ca.__version__]).encode()
+        ).hexdigest()[:20]
+        directory = cache_dir()
+        lib_path = directory / f"{name}_{key}.so"
+        if not lib_path.is_file():
+            directory.mkdir(parents=True, exist_ok=True)
+            with tempfile.TemporaryDirectory(dir=directory) as tmp:
+                src = Path(tmp) / f"{name}.c"
+                src.write_text(code)
+                out = Path(tmp) / "lib.so"
+                proc = subprocess.run(
+                    [compiler, *_CFLAGS, "-o", str(out), str(src), "-lm"],
+                    capture_output=True,
+                    text=True,
+                    check=False,
+                )
+                if proc.returncode != 0:
+                    raise RetargetError(
+                        f"compiling the retargeting solver failed: {proc.stderr[-500:]}"
+                    )
+                os.replace(out, lib_path)
+            _prune(directory, name)
+        self.path = lib_path
+        self._lib = ctypes.CDLL(str(lib_path))
+        ll = ctypes.c_longlong
+        work = getattr(self._lib, f"{name}_work")
+        work.argtypes = [ctypes.POINTER(ll)] * 4
+        sizes = [ll() for _ in range(4)]
+        if work(*[ctypes.byref(s) for s in sizes]) != 0:
+            raise RetargetError("the compiled retargeting solver did not report its work sizes")
+        sz_arg, sz_res, sz_iw, sz_w = (s.value for s in sizes)
+        sizes_in = [fn.nnz_in(i) for i in range(fn.n_in())]
+        self.input = np.zeros(sum(sizes_in))  # all inputs: one finiteness check covers them
+        ends = np.cumsum(sizes_in)
+        self.inputs = [self.input[e - k : e] for e, k in zip(ends, sizes_in)]
+        self.outputs = [np.zeros(fn.nnz_out(i)) for i in range(fn.n_out())]
+        dp = ctypes.POINTER(ctypes.c_double)
+        self._arg = (dp * max(sz_arg, len(self.inputs)))(
+            *[a.ctypes.data_as(dp) for a in self.inputs]
+        )
+        self._res = (dp * max(sz_res, len(self.outputs)))(
+            *[a.ctypes.data_as(dp) for a in self.outputs]
+        )
+        self._iw = (ll * max(sz_iw, 1))()
+        self._w = (ctypes.c_double * max(sz_w, 1))()
+        self._fn = getattr(self._lib, name)
+        self._fn.argtypes = [
+            ctypes.POINTER(dp),
+            ctypes.POINTER(dp),
+            ctypes.POINTER(ll),
+            ctypes.POINTER(ctypes.c_double),
+            ctypes.c_int,
+        ]
+        self._fn.restype = ctypes.c_int
+        checkout = getattr(self._lib, f"{name}_checkout", None)
+        self._mem = int(checkout()) if checkout is not None else 0
+
+    def __call__(self) -> None:
+        if self._fn(self._arg, self._res, self._iw, self._w, self._mem) != 0:
+            raise RetargetError("the compiled retargeting solver reported an error")
+
+
+class PairRetargeter(Retargeter):
+    """The production pair retargeter: eq. 3 in one compiled CasADi call.
+
+    Args:
+        hand: Hand description (``None``: ours).
+        pair: Pair name (``L`` or ``R`` for ours); ``None``: the pair of ``kinematics``,
+            else the hand's first pair.
+        config: Eq. 3 settings (``None``: the paper's constants).
+        kinematics: An existing :class:`PairKinematics` to share.
+        backend: ``auto``, ``compiled`` or ``vm`` (see :data:`BACKENDS`).
+
+    Attributes:
+        backend: The backend in use (``compiled`` or ``vm``).
+        function: The CasADi function of one pair solve.
+        library: Path of the compiled shared library, or ``None`` in the virtual machine.
+
+    ``solve(targets, q_prev=None, q_ref=None) -> (q, info)``: see
+    :meth:`~payload.retarget.solver.Retargeter.solve`. An instance owns its solver's
+    buffers: use one per thread.
+    """
+
+    def __init__(
+        self,
+        hand: HandDescription | None = None,
+        pair: str | None = None,
+        config: RetargetConfig | None = None,
+        kinematics: PairKinematics | None = None,
+        backend: str = "auto",
+    ) -> None:
+        if backend not in BACKENDS:
+            raise RetargetError(f"backend: expected one of {BACKENDS}, got {backend!r}")
+        super().__init__(hand, pair, config, kinematics)
+        name = f"payload_retarget_{_slug(self.kinematics.hand.name)}_{_slug(self.pair)}"
+        self.function: ca.Function = build_solve_function(self.kinematics, self.config, name)
+        self.library: Path | None = None
+        self._compiled: _CompiledSolve | None = None
+        compiler = _compiler() if backend != "vm" else None
+        if backend == "compiled" and compiler is None:
+            raise RetargetError("backend 'compiled' needs a C compiler (set CC or install gcc)")
+        if compiler is not None:
+            try:
+                self._compiled = _CompiledSolve(self.function, compiler)
+                self.library = self._compiled.path
+            except (RetargetError, OSError) as exc:
+                if backend == "compiled":
+                    raise
+                warnings.warn(
+                    f"retargeting solver not compiled ({exc}); using CasADi's virtual machine",
+                    RuntimeWarning,
+                    stacklevel=2,
+                )
+                self._compiled = None
+        self.backend: str = "compiled" if self._compiled is not None else "vm"
+
+    def solve(
+        self,
+        targets: PairFeatures | np.ndarray,
+        q_prev: np.ndarray | None = None,
+        q_ref: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, SolveInfo]:
+        """Solve eq. 3 for the pair: one call into the compiled solver.
+
+        Same contract as :meth:`Retargeter.solve
+        <payload.retarget.solver.Retargeter.solve>`: a NaN or infinite input raises
+        :class:`RetargetError` and leaves :attr:`command` unchanged. Well-formed numpy
+        inputs take a fast path that writes them straight into the solver's buffers.
+        """
+        c = self._compiled
+        n = self.n
+        if (
+            c is None
+            or not (q_prev is None or (type(q_prev) is np.ndarray and q_prev.shape == (n,)))
+            or not (q_ref is None or (type(q_ref) is np.ndarray and q_ref.shape == (n,)))
+        ):
+            return super().solve(targets, q_prev, q_ref)
+        q_in, t_in, r_in = c.inputs
+        if type(targets) is np.ndarray and targets.shape == (N_FEATURES,):
+            t_in[:] = targets
+        elif isinstance(targets, PairFeatures):
+            try:
+                t_in[:] = targets.as_vector()
+            except (ValueError, TypeError):
+                return super().solve(targets, q_prev, q_ref)
+        else:
+            return super().solve(targets, q_prev, q_ref)
+        q_in[:] = self._command if q_prev is None else q_prev
+        r_in[:] = self.kinematics.rest if q_ref is None else q_ref
+        if not np.isfinite(c.input).all():
+            return super().solve(targets, q_prev, q_ref)  # raises, naming the value
+        c()
+        q = c.outputs[0].copy()
+        self._command = q
+        info = c.outputs[1]
+        return q.copy(), SolveInfo(float(info[0]), int(info[1]), bool(info[2] > 0.5))
+
+    def _solve(
+        self, targets: np.ndarray, q_prev: np.ndarray, q_ref: np.ndarray
+    ) -> tuple[np.ndarray, SolveInfo]:
+        c = self._compiled
+        if c is not None:
+            c.inputs[0][:] = q_prev
+            c.inputs[1][:] = targets
+            c.inputs[2][:] = q_ref
+            c()
+            q = c.outputs[0].copy()
+            info = c.outputs[1]
+        else:
+            out = self.function(q_prev, targets, q_ref)
+            q = np.array(out[0], dtype=float).reshape(-1)
+            info = np.array(out[1], dtype=float).reshape(-1)
+        return q, SolveInfo(float(info[0]), int(info[1]), bool(info[2] > 0.5))
+
+
+def _prune(directory: Path, name: str, keep: int = 8) -> None:
+    """Delete all but the ``keep`` newest libraries of one solver name (older designs)."""
+    libs = sorted(directory.glob(f"{name}_*.so"), key=lambda p: p.stat().st_mtime, reverse=True)
+    for old in libs[keep:]:
+        try:
+            old.unlink()
+        except OSError:  # pragma: no cover - another process may have removed it
+            pass
+
+
+def _slug(s: str) -> str:
+    return "".join(ch if ch.isalnum() else "_" for ch in s)

@@ -1,0 +1,256 @@
+"""Hand description files: which URDF frames and joints each finger pair drives.
+
+A hand description is a small TOML file::
+
+    name = "payload"
+    urdf = "../../../urdf/payload.urdf"   # relative to the TOML file, or absolute
+
+    [pairs.L]
+    base = "stage"                        # frame the pair features are expressed in
+    tips = ["A_tip", "C_tip"]             # p_1, p_2 of eq. 2
+    distals = ["A_distal", "C_distal"]    # a_1, a_2 of eq. 2
+    joints = [["A_mcp_flex", ...], ["C_mcp_flex", ...]]   # per finger, base -> tip
+    tip_radius = 0.011                    # optional, [m]: pads touch at span 2 * tip_radius
+    rest = [0.0, ...]                     # optional, [rad or m] per joint: the rest posture
+
+Ours ships as ``payload/retarget/hands/payload.toml`` (:data:`DEFAULT_HAND`), so the
+retargeter runs on any hand URDF by writing one of these.
+"""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from payload.kinematics import Kinematics, KinematicsError
+from payload.retarget.errors import RetargetError
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+DEFAULT_HAND: Path = Path(__file__).resolve().parent / "hands" / "payload.toml"
+"""Our payload's hand description (pairs L = (A, C) and R = (B, D))."""
+
+
+@dataclass(frozen=True)
+class PairDescription:
+    """One finger pair of a hand description.
+
+    Attributes:
+        name: Pair name (``L`` or ``R`` for ours).
+        base: Frame the pair features are expressed in (an ancestor of both chains).
+        tips: Fingertip frames (p_1, p_2).
+        distals: Distal-joint frames (a_1, a_2).
+        finger_joints: Joint names per finger, from the base outward.
+        tip_radius: Fingertip pad radius [m]; the pads touch at span ``2 * tip_radius``.
+        rest: Rest posture, shape (n,) [rad or m], or ``None`` for zeros clipped to limits.
+    """
+
+    name: str
+    base: str
+    tips: tuple[str, str]
+    distals: tuple[str, str]
+    finger_joints: tuple[tuple[str, ...], tuple[str, ...]]
+    tip_radius: float = 0.0
+    rest: tuple[float, ...] | None = None
+
+    @property
+    def joints(self) -> tuple[str, ...]:
+        """All pair joints: finger 1's, then finger 2's (the optimisation variables)."""
+        return self.finger_joints[0] + self.finger_joints[1]
+
+
+@dataclass(frozen=True)
+class HandDescription:
+    """A hand description: a URDF and its finger pairs.
+
+    Attributes:
+        name: Hand name.
+        urdf: Absolute path of the URDF.
+        pairs: Pair name -> description, in file order.
+        source: The TOML file it was loaded from (``None`` if built in code).
+    """
+
+    name: str
+    urdf: Path
+    pairs: dict[str, PairDescription]
+    source: Path | None = None
+
+    def pair(self, name: str) -> PairDescription:
+        """The pair called ``name``.
+
+        Raises:
+            RetargetError: No such pair.
+        """
+        if name not in self.pairs:
+            raise RetargetError(
+                f"hand {self.name!r} has no pair {name!r} (pairs: {', '.join(self.pairs)})"
+            )
+        return self.pairs[name]
+
+    def kinematics(self) -> Kinematics:
+        """A fresh Pinocchio model of the hand's URDF."""
+        return Kinematics(self.urdf)
+
+
+def _str_list(where: str, value: Any, n: int) -> tuple[str, ...]:
+    if (
+        not isinstance(value, list)
+        or len(value) != n
+        or not all(isinstance(v, str) and v for v in value)
+    ):
+        raise RetargetError(f"{where}: expected a list of {n} frame or joint names, got {value!r}")
+    return tuple(value)
+
+
+def _pair_from_dict(where: str, name: str, raw: Any) -> PairDescription:
+    if not isinstance(raw, dict):
+        raise RetargetError(f"{where}: expected a table")
+    allowed = {"base", "tips", "distals", "joints", "tip_radius", "rest"}
+    unknown = sorted(set(raw) - allowed)
+    if unknown:
+        raise RetargetError(f"{where}.{unknown[0]}: unknown key (allowed: {sorted(allowed)})")
+    for key in ("base", "tips", "distals", "joints"):
+        if key not in raw:
+            raise RetargetError(f"{where}.{key}: missing")
+    if not isinstance(raw["base"], str) or not raw["base"]:
+        raise RetargetError(f"{where}.base: expected a frame name, got {raw['base']!r}")
+    tips = _str_list(f"{where}.tips", raw["tips"], 2)
+    distals = _str_list(f"{where}.distals", raw["distals"], 2)
+    joints = raw["joints"]
+    if not isinstance(joints, list) or len(joints) != 2:
+        raise RetargetError(f"{where}.joints: expected two lists of joint names (one per finger)")
+    fj = tuple(
+        _str_list(f"{where}.joints[{i}]", j, max(1, len(j)) if isinstance(j, list) else 1)
+        for i, j in enumerate(joints)
+    )
+    flat = fj[0] + fj[1]
+    if len(set(flat)) != len(flat):
+        raise RetargetError(f"{where}.joints: a joint is listed twice")
+    radius = raw.get("tip_radius", 0.0)
+    if not isinstance(radius, (int, float)) or isinstance(radius, bool) or radius < 0:
+        raise RetargetError(f"{where}.tip_radius: expected a non-negative number [m]")
+    rest = raw.get("rest")
+    if rest is not None:
+        if (
+            not isinstance(rest, list)
+            or len(rest) != len(flat)
+            or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in rest)
+        ):
+            raise RetargetError(f"{where}.rest: expected {len(flat)} numbers (one per joint)")
+        rest = tuple(float(v) for v in rest)
+    return PairDescription(
+        name=name,
+        base=raw["base"],
+        tips=(tips[0], tips[1]),
+        distals=(distals[0], distals[1]),
+        finger_joints=(fj[0], fj[1]),
+        tip_radius=float(radius),
+        rest=rest,
+    )
+
+
+def hand_from_dict(
+    raw: dict[str, Any], base_dir: Path, source: Path | None = None
+) -> HandDescription:
+    """Build and validate a hand description from parsed TOML.
+
+    Args:
+        raw: The parsed TOML document.
+        base_dir: Directory a relative ``urdf`` path is resolved against.
+        source: File the data came from, for messages.
+
+    Raises:
+        RetargetError: A missing or unknown key, a bad value, a frame or joint that is
+            not in the URDF, or joints that are not exactly the chain from base to tip.
+    """
+    where = str(source) if source else "hand"
+    unknown = sorted(set(raw) - {"name", "urdf", "pairs"})
+    if unknown:
+        raise RetargetError(f"{where}: unknown key {unknown[0]!r} (allowed: name, urdf, pairs)")
+    if not isinstance(raw.get("urdf"), str):
+        raise RetargetError(f"{where}: urdf: missing (path of the hand's URDF)")
+    urdf = Path(raw["urdf"])
+    if not urdf.is_absolute():
+        urdf = (base_dir / urdf).resolve()
+    if not urdf.is_file():
+        raise RetargetError(f"{where}: urdf: file not found: {urdf}")
+    pairs_raw = raw.get("pairs")
+    if not isinstance(pairs_raw, dict) or not pairs_raw:
+        raise RetargetError(f"{where}: pairs: expected at least one [pairs.NAME] table")
+    pairs = {
+        name: _pair_from_dict(f"pairs.{name}", name, value) for name, value in pairs_raw.items()
+    }
+    hand = HandDescription(
+        name=str(raw.get("name", urdf.stem)), urdf=urdf, pairs=pairs, source=source
+    )
+    validate_hand(hand)
+    return hand
+
+
+def validate_hand(hand: HandDescription, kin: Kinematics | None = None) -> None:
+    """Check every pair's frames and joints against the URDF.
+
+    Raises:
+        RetargetError: A frame or joint is missing, a finger's joints are not exactly the
+            moving joints between the base and its tip, a distal frame is not on its
+            finger's chain, or a joint has no finite range.
+    """
+    kin = kin or hand.kinematics()
+    for pair in hand.pairs.values():
+        where = f"pairs.{pair.name}"
+        try:
+            for i in range(2):
+                chain = [kin.model.names[j] for j in kin.chain(pair.base, pair.tips[i])]
+                listed = pair.finger_joints[i]
+                if sorted(chain) != sorted(listed):
+                    raise RetargetError(
+                        f"{where}.joints[{i}]: the joints between {pair.base!r} and "
+                        f"{pair.tips[i]!r} are {chain}, not {list(listed)}"
+                    )
+                dchain = [kin.model.names[j] for j in kin.chain(pair.base, pair.distals[i])]
+                if not set(dchain) <= set(chain):
+                    raise RetargetError(
+                        f"{where}.distals[{i}]: {pair.distals[i]!r} is not on the chain of "
+                        f"{pair.tips[i]!r}"
+                    )
+                for j in listed:
+                    kin.joint_motion(kin.joint_id(j))
+            idx = kin.q_indices(pair.joints)
+        except KinematicsError as exc:
+            raise RetargetError(f"{where}: {exc}") from exc
+        lo, hi = kin.lower[idx], kin.upper[idx]
+        bad = [
+            j
+            for j, a, b in zip(pair.joints, lo, hi)
+            if not (np.isfinite(a) and np.isfinite(b) and b > a)
+        ]
+        if bad:
+            raise RetargetError(f"{where}.joints: {bad[0]!r} has no finite range in the URDF")
+        if pair.rest is not None:
+            rest = np.asarray(pair.rest)
+            out = [j for j, v, a, b in zip(pair.joints, rest, lo, hi) if not a <= v <= b]
+            if out:
+                raise RetargetError(f"{where}.rest: the value for {out[0]!r} is outside its limits")
+
+
+def load_hand(path: str | Path | None = None) -> HandDescription:
+    """Load a hand description TOML (``None``: ours, :data:`DEFAULT_HAND`).
+
+    Raises:
+        RetargetError: The file is missing, not TOML, or invalid (message names the key).
+    """
+    p = Path(path) if path is not None else DEFAULT_HAND
+    if not p.is_file():
+        raise RetargetError(f"hand description not found: {p}")
+    try:
+        raw = tomllib.loads(p.read_text())
+    except tomllib.TOMLDecodeError as exc:
+        raise RetargetError(f"{p}: not valid TOML: {exc}") from exc
+    return hand_from_dict(raw, p.resolve().parent, source=p)

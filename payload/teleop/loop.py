@@ -1,0 +1,232 @@
+"""The fixed-rate teleoperation loop: a hand source, the pipeline, a payload driver, a vehicle.
+
+In simulation the loop steps deterministically (one control step = 20 physics steps of
+the :class:`~payload.sim.driver.SimDriver`); with a live source it paces itself to
+wall-clock time and counts overruns. The first part of every session is the calibration
+procedure; the pipeline starts when it is done.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+
+from payload.schema import PayloadCommand, VehicleTwist
+from payload.teleop.calibration import CalibrationProcedure, Captures
+from payload.teleop.hands import HandFrame
+from payload.teleop.operator import SyntheticOperator, WorldView
+from payload.teleop.pipeline import TeleopPipeline, TeleopStep
+
+log = logging.getLogger(__name__)
+
+CONTROL_DT = 0.02
+
+
+class HandSource(Protocol):
+    """Where hand frames come from (synthetic operator, replay, live headset)."""
+
+    def frame(self, t: float, world: WorldView | None) -> HandFrame | None:
+        """The frame for control time ``t`` (None: the source has ended)."""
+
+    @property
+    def finished(self) -> bool:
+        """Whether the source has nothing more to do."""
+
+
+class SyntheticSource:
+    """The synthetic operator as a hand source."""
+
+    def __init__(self, operator: SyntheticOperator) -> None:
+        self.operator = operator
+
+    def frame(self, t: float, world: WorldView | None) -> HandFrame | None:
+        if world is None:
+            raise ValueError("the synthetic operator needs to see the world")
+        return self.operator.act(world)
+
+    @property
+    def finished(self) -> bool:
+        return self.operator.finished
+
+
+class ReplaySource:
+    """Recorded frames replayed one per control step, in order."""
+
+    def __init__(self, frames: list[HandFrame]) -> None:
+        self.frames = frames
+        self.index = 0
+
+    def frame(self, t: float, world: WorldView | None) -> HandFrame | None:
+        if self.index >= len(self.frames):
+            return None
+        fr = self.frames[self.index]
+        self.index += 1
+        return fr
+
+    @property
+    def finished(self) -> bool:
+        return self.index >= len(self.frames)
+
+
+def rotation_of(quat: np.ndarray) -> np.ndarray:
+    """Rotation matrix of a (w, x, y, z) unit quaternion, shape (3, 3)."""
+    w, x, y, z = np.asarray(quat, dtype=float)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def yaw_of_rotation(rot: np.ndarray) -> float:
+    return math.atan2(rot[1, 0], rot[0, 0])
+
+
+class PhaseTracker:
+    """Labels each control step from what the pipeline does, for any source.
+
+    calibration -> acquisition (until the base first moves) -> translation / turn (moving,
+    turn while the yaw-rate command exceeds ``turn_rate``) -> braking (request zero while
+    still moving) -> arrival (at rest after having moved).
+    """
+
+    def __init__(self, turn_rate: float = 0.03, rest_speed: float = 0.005) -> None:
+        self.turn_rate = turn_rate
+        self.rest_speed = rest_speed
+        self.moved = False
+
+    def label(self, calibrating: bool, step: TeleopStep | None, speed: float) -> str:
+        if calibrating or step is None:
+            return "calibration"
+        requesting = bool(np.any(step.base.v_request))
+        if requesting:
+            self.moved = True
+            return "turn" if abs(step.base.yaw_rate) > self.turn_rate else "translation"
+        if not self.moved:
+            return "acquisition"
+        if speed > self.rest_speed or float(np.linalg.norm(step.base.v_world)) > 1e-4:
+            return "braking"
+        return "arrival"
+
+
+@dataclass
+class LoopStats:
+    """Timing of a session.
+
+    Attributes:
+        steps: Control steps run.
+        pipeline_us: Per-step pipeline time [us].
+        overruns: Steps whose work took longer than the period (live pacing only).
+    """
+
+    steps: int = 0
+    pipeline_us: list[float] = field(default_factory=list)
+    overruns: int = 0
+
+
+@dataclass
+class StepContext:
+    """What the loop hands to its per-step observer (recorder).
+
+    Attributes:
+        t: Control time [s].
+        phase: Phase label.
+        frame: The raw hand frame.
+        step: The pipeline output (None while calibrating).
+        command: The payload command sent.
+        twist: The vehicle twist sent.
+        state: The world state after the step (driver specific).
+        payload: The measured payload state after the step.
+    """
+
+    t: float
+    phase: str
+    frame: HandFrame
+    step: TeleopStep | None
+    command: PayloadCommand
+    twist: VehicleTwist
+    state: object
+    payload: object
+
+
+def run_session(
+    driver: object,
+    source: HandSource,
+    calibration: CalibrationProcedure,
+    make_pipeline: Callable[[Captures, float], TeleopPipeline],
+    *,
+    max_time: float = 300.0,
+    on_step: Callable[[StepContext], None] | None = None,
+    pace: bool = False,
+    world_view: Callable[[object, float], WorldView] | None = None,
+) -> LoopStats:
+    """Run one teleoperation session at 50 Hz until the source finishes or ``max_time``.
+
+    Args:
+        driver: A :class:`~payload.sim.driver.SimDriver` (``send``, ``read``,
+            ``command_twist``, ``step``, ``world_state``).
+        source: Hand frames.
+        calibration: The calibration procedure (run first, on the same frames).
+        make_pipeline: Builds the pipeline from the captures and the vehicle heading.
+        max_time: Session length cap [s].
+        on_step: Observer called after every step (the recorder).
+        pace: Pace to wall-clock time (live sources).
+        world_view: Converts the driver's world state to what the operator sees.
+    """
+    stats = LoopStats()
+    state = driver.world_state()
+    hold = driver.read()
+    command = PayloadCommand(hold.q, hold.deploy, 0.0)
+    twist = VehicleTwist.zero()
+    driver.command_twist(twist)
+    pipeline: TeleopPipeline | None = None
+    phases = PhaseTracker()
+    t0_wall = time.perf_counter()
+    k = 0
+    while True:
+        t = k * CONTROL_DT
+        if t > max_time + 1e-9:
+            break
+        view = world_view(state, t) if world_view is not None else None
+        frame = source.frame(t, view)
+        if frame is None:
+            break
+        step: TeleopStep | None = None
+        calibrating = not calibration.done
+        if calibrating:
+            calibration.step(frame)
+            if calibration.done:
+                heading = yaw_of_rotation(rotation_of(state.astrobee_quat))
+                pipeline = make_pipeline(calibration.captures, heading)
+        if pipeline is not None and not calibrating:
+            a = time.perf_counter()
+            step = pipeline.step(frame, rotation_of(state.astrobee_quat))
+            stats.pipeline_us.append((time.perf_counter() - a) * 1e6)
+            command, twist = step.command, step.twist
+        driver.send(command)
+        driver.command_twist(twist)
+        state = driver.step(1)
+        payload = driver.read()
+        speed = float(np.linalg.norm(state.astrobee_linear))
+        phase = phases.label(calibrating, step, speed)
+        if on_step is not None:
+            on_step(StepContext(t, phase, frame, step, command, twist, state, payload))
+        k += 1
+        stats.steps = k
+        if pace:
+            lag = time.perf_counter() - t0_wall - k * CONTROL_DT
+            if lag > 0:
+                stats.overruns += 1
+            else:
+                time.sleep(-lag)
+        if source.finished:
+            break
+    return stats

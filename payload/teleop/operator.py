@@ -1,0 +1,298 @@
+"""The synthetic operator: a closed-loop virtual person producing hand frames.
+
+It watches the (simulated) vehicle as a real operator watches through the headset, with a
+reaction delay, and acts in phases: it follows the calibration prompts, flexes both
+pinches onto the CTB handle until it sees opposing contact, flies the route with its
+left wrist (both wrists move together so the rail holds), slows into the turn, arrives,
+and returns both wrists to neutral to brake. Seeded human variability: hand size,
+physiological tremor (a few mm at 8 to 12 Hz), reaction delay, speed preference, small
+tracking noise and short tracking dropouts.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from payload.teleop.calibration import CalibrationProcedure
+from payload.teleop.handmodel import HandModel
+from payload.teleop.hands import Hand, HandFrame
+
+
+@dataclass(frozen=True)
+class WorldView:
+    """What the operator sees at one instant (world frame).
+
+    Attributes:
+        t: Time [s].
+        astrobee_pos: Vehicle position, shape (3,) [m].
+        astrobee_rot: Vehicle body -> world rotation, shape (3, 3).
+        astrobee_vel: Vehicle linear velocity (world), shape (3,) [m/s].
+        ctb_pos: CTB position, shape (3,) [m].
+        contact: The opposing-contact indicator.
+    """
+
+    t: float
+    astrobee_pos: np.ndarray
+    astrobee_rot: np.ndarray
+    astrobee_vel: np.ndarray
+    ctb_pos: np.ndarray
+    contact: bool
+
+
+@dataclass(frozen=True)
+class OperatorTraits:
+    """Seeded human variability.
+
+    Attributes:
+        hand_size: Hand scale (1 = medium adult).
+        tremor_amp: Tremor amplitude per axis [m].
+        tremor_freq: Tremor frequency [Hz].
+        reaction: Reaction delay [s].
+        speed_pref: Fraction of full speed the operator likes to fly at.
+        noise: Tracking noise per joint (standard deviation) [m].
+        dropout_rate: Tracking dropouts per second (each 30 to 80 ms).
+        squeeze: How far past the aperture at which it saw contact the operator closes the
+            pinch (aperture units).
+        close_rate: How fast the operator closes its pinch onto the handle [1/s].
+        grip: The most open aperture the operator holds a firm grip at.
+        wrist_lag: Time constant of the operator's arm moving to where it intends [s].
+    """
+
+    hand_size: float = 1.0
+    tremor_amp: float = 0.002
+    tremor_freq: float = 10.0
+    reaction: float = 0.25
+    speed_pref: float = 0.85
+    noise: float = 0.0008
+    dropout_rate: float = 0.05
+    squeeze: float = 0.12
+    close_rate: float = 0.25
+    grip: float = 0.02
+    wrist_lag: float = 0.3
+
+    @staticmethod
+    def sample(rng: np.random.Generator) -> OperatorTraits:
+        return OperatorTraits(
+            hand_size=float(rng.uniform(0.9, 1.1)),
+            tremor_amp=float(rng.uniform(0.001, 0.003)),
+            tremor_freq=float(rng.uniform(8.0, 12.0)),
+            reaction=float(rng.uniform(0.18, 0.35)),
+            speed_pref=float(rng.uniform(0.7, 1.0)),
+            noise=float(rng.uniform(0.0005, 0.0012)),
+            dropout_rate=float(rng.uniform(0.02, 0.08)),
+            squeeze=float(rng.uniform(0.08, 0.16)),
+            close_rate=float(rng.uniform(0.18, 0.32)),
+            grip=float(rng.uniform(0.0, 0.04)),
+            wrist_lag=float(rng.uniform(0.2, 0.4)),
+        )
+
+
+@dataclass(frozen=True)
+class OperatorPlan:
+    """Where the operator works and what the task is.
+
+    Attributes:
+        route: World waypoints the vehicle should pass, shape (K, 3) [m]; the last one is
+            the arrival point.
+        neutral_left: Neutral left-wrist position in the operator frame [m].
+        neutral_right: Neutral right-wrist position [m].
+        sphere_radius: The base channel's neutral sphere radius [m] (the operator knows it
+            from practice).
+        full_speed_offset: Wrist offset beyond the sphere for full speed [m].
+        max_speed: Full speed [m/s].
+        brake_accel: Deceleration the operator plans with [m/s^2].
+        corner_speed: Speed the operator slows to at a turn waypoint [m/s].
+        waypoint_radius: Distance at which a waypoint counts as passed [m].
+        rail_distance: Inter-wrist distance held during the task [m].
+        heading0: World yaw of the operator's forward direction [rad].
+    """
+
+    route: np.ndarray
+    neutral_left: np.ndarray = field(default_factory=lambda: np.array([0.35, 0.17, 1.05]))
+    neutral_right: np.ndarray = field(default_factory=lambda: np.array([0.35, -0.17, 1.05]))
+    sphere_radius: float = 0.05
+    full_speed_offset: float = 0.12
+    max_speed: float = 0.20
+    brake_accel: float = 0.012
+    corner_speed: float = 0.06
+    waypoint_radius: float = 0.35
+    rail_distance: float = 0.34
+    heading0: float = 0.0
+
+
+def _yaw(heading: float) -> np.ndarray:
+    c, s = math.cos(heading), math.sin(heading)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+class SyntheticOperator:
+    """A closed-loop virtual operator (see the module docstring).
+
+    Args:
+        plan: Route and working posture.
+        seed: Seed of every random choice (traits, tremor phases, noise, dropouts).
+        calibration: The calibration procedure whose prompts the operator follows.
+        traits: Override the sampled traits.
+    """
+
+    def __init__(
+        self,
+        plan: OperatorPlan,
+        seed: int,
+        calibration: CalibrationProcedure,
+        traits: OperatorTraits | None = None,
+    ) -> None:
+        self.rng = np.random.default_rng(seed)
+        self.traits = traits or OperatorTraits.sample(self.rng)
+        self.plan = plan
+        self.calibration = calibration
+        tr = self.traits
+        self.models = {
+            "left": HandModel("left", tr.hand_size),
+            "right": HandModel("right", tr.hand_size),
+        }
+        self.phases = {s: self.rng.uniform(0, 2 * math.pi, size=3) for s in ("left", "right")}
+        self.wrist = {"left": plan.neutral_left.copy(), "right": plan.neutral_right.copy()}
+        self.aperture = 0.5
+        self.phase = "calibration"
+        self.waypoint = 0
+        self.grip_aperture: float | None = None
+        self.contact_seen_at: float | None = None
+        self.stopped_since: float | None = None
+        self.finished = False
+        self._seen: deque[WorldView] = deque()
+        self._dropout_until = {"left": -1.0, "right": -1.0}
+        self._last_t: float | None = None
+
+    # ------------------------------------------------------------------ perception
+    def _perceive(self, world: WorldView) -> WorldView:
+        """The world as the operator sees it: ``reaction`` seconds late."""
+        self._seen.append(world)
+        while len(self._seen) > 1 and self._seen[1].t <= world.t - self.traits.reaction:
+            self._seen.popleft()
+        return self._seen[0]
+
+    # ------------------------------------------------------------------ intentions
+    def _calibration_intent(self, t: float) -> tuple[dict[str, np.ndarray], float]:
+        p = self.plan
+        step = self.calibration.step_at(t - self.traits.reaction)
+        name = step.name if step is not None else "release"
+        left, right = p.neutral_left.copy(), p.neutral_right.copy()
+        aperture = 0.5
+        if name == "pinch":
+            aperture = 0.0
+        elif name == "open":
+            aperture = 1.0
+        elif name in ("together", "apart"):
+            centre = 0.5 * (left + right)
+            half = 0.5 * (0.22 if name == "together" else 0.52)
+            offset = np.array([0.0, half, 0.0])
+            left, right = centre + offset, centre - offset
+        return {"left": left, "right": right}, aperture
+
+    def _task_intent(self, t: float, seen: WorldView) -> tuple[dict[str, np.ndarray], float]:
+        p, tr = self.plan, self.traits
+        centre = 0.5 * (p.neutral_left + p.neutral_right)
+        half = np.array([0.0, 0.5 * p.rail_distance, 0.0])
+        offset = np.zeros(3)
+        if self.phase == "acquisition":
+            if seen.contact and self.contact_seen_at is None:
+                # contact seen: squeeze firmly, nearly to a full pinch
+                self.contact_seen_at = t
+                self.grip_aperture = max(0.0, min(self.aperture - tr.squeeze, tr.grip))
+            if self.grip_aperture is None:
+                aperture = max(0.0, self.aperture - tr.close_rate * 0.02)
+            else:
+                aperture = self.grip_aperture
+                if t - self.contact_seen_at > 2.0:
+                    self.phase = "translation"
+            return {"left": centre + half, "right": centre - half}, aperture
+        aperture = self.grip_aperture if self.grip_aperture is not None else self.aperture
+        route = p.route
+        pos = seen.astrobee_pos
+        # advance along the route
+        while self.waypoint < len(route) - 1 and (
+            np.linalg.norm(route[self.waypoint] - pos) < p.waypoint_radius
+        ):
+            self.waypoint += 1
+        target = route[self.waypoint]
+        to_target = target - pos
+        dist = float(np.linalg.norm(to_target))
+        last = self.waypoint == len(route) - 1
+        if self.phase in ("translation", "turn"):
+            remaining = dist + sum(
+                float(np.linalg.norm(route[k + 1] - route[k]))
+                for k in range(self.waypoint, len(route) - 1)
+            )
+            stop_speed = math.sqrt(2 * p.brake_accel * max(0.0, remaining - 0.3))
+            corner = (
+                p.max_speed
+                if last
+                else math.sqrt(
+                    p.corner_speed**2 + 2 * p.brake_accel * max(0.0, dist - p.waypoint_radius)
+                )
+            )
+            speed = min(p.max_speed * tr.speed_pref, stop_speed, corner)
+            heading = math.atan2(seen.astrobee_rot[1, 0], seen.astrobee_rot[0, 0])
+            desired = math.atan2(to_target[1], to_target[0])
+            err = abs((desired - heading + math.pi) % (2 * math.pi) - math.pi)
+            self.phase = "turn" if err > math.radians(12) else "translation"
+            if last and remaining < 0.45:
+                self.phase = "arrival"
+            if dist > 1e-6 and self.phase != "arrival":
+                direction = _yaw(p.heading0).T @ (to_target / dist)
+                reach = p.sphere_radius + 0.01 + p.full_speed_offset * speed / p.max_speed
+                offset = direction * reach
+        if self.phase in ("arrival", "braking"):
+            speed_now = float(np.linalg.norm(seen.astrobee_vel))
+            self.phase = "braking"
+            if speed_now < 0.005:
+                self.stopped_since = self.stopped_since if self.stopped_since else t
+                if t - self.stopped_since > 2.0:
+                    self.finished = True
+            else:
+                self.stopped_since = None
+        return {"left": centre + half + offset, "right": centre - half + offset}, aperture
+
+    # ------------------------------------------------------------------ output
+    def act(self, world: WorldView) -> HandFrame:
+        """The operator's hands at ``world.t``, given what it has seen until then."""
+        t = world.t
+        dt = 0.02 if self._last_t is None else max(1e-3, t - self._last_t)
+        self._last_t = t
+        seen = self._perceive(world)
+        if self.phase == "calibration":
+            intent, aperture = self._calibration_intent(t)
+            if self.calibration.done and t - self.reaction_end() > 0:
+                self.phase = "acquisition"
+        else:
+            intent, aperture = self._task_intent(t, seen)
+        tr = self.traits
+        k = 1.0 - math.exp(-dt / tr.wrist_lag)
+        for side in ("left", "right"):
+            self.wrist[side] = self.wrist[side] + k * (intent[side] - self.wrist[side])
+        self.aperture += (1.0 - math.exp(-dt / 0.15)) * (aperture - self.aperture)
+        hands = {}
+        for side in ("left", "right"):
+            if t < self._dropout_until[side]:
+                hands[side] = Hand.untracked()
+                continue
+            if self.rng.random() < tr.dropout_rate * dt:
+                self._dropout_until[side] = t + self.rng.uniform(0.03, 0.08)
+                hands[side] = Hand.untracked()
+                continue
+            ph = self.phases[side]
+            tremor = tr.tremor_amp * np.sin(2 * math.pi * tr.tremor_freq * t + ph)
+            wrist = self.wrist[side] + tremor
+            joints = self.models[side].joints(wrist, np.eye(3), self.aperture)
+            joints = joints + self.rng.normal(0.0, tr.noise, size=joints.shape)
+            hands[side] = Hand(joints)
+        return HandFrame(t, hands["left"], hands["right"])
+
+    def reaction_end(self) -> float:
+        """Time at which the operator notices the calibration has finished."""
+        return self.calibration.t0 + self.calibration.duration + self.traits.reaction

@@ -1,0 +1,263 @@
+"""The bimanual teleoperation pipeline: hand frames in, three concurrent channels out.
+
+Each 50 Hz step, from one :class:`~payload.teleop.hands.HandFrame`:
+
+- finger channel, per hand: thumb-index features in the wrist frame -> calibrated robot
+  targets -> the production retargeter (warm-started) -> 8 joint commands;
+- rail channel: calibrated inter-wrist distance -> rail position;
+- base channel: left wrist against the virtual sphere -> jerk-limited body twist.
+
+Keypoints are One Euro filtered; the tracking supervisor bridges short dropouts, and a
+hand lost for more than 100 ms (or a NaN or absurd frame) brakes the vehicle while the
+fingers and rail hold; recovery blends back in without a jump.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from payload.design.tree import MANIPULATION_JOINTS
+from payload.errors import PayloadError
+from payload.retarget.calibration import PairCalibration, PairRange, calibrate
+from payload.retarget.casadi_solver import PairRetargeter
+from payload.retarget.errors import RetargetError
+from payload.retarget.features import PairFeatures, features_from_points
+from payload.retarget.solver import SolveInfo
+from payload.schema import PayloadCommand, VehicleTwist
+from payload.teleop.calibration import CalibrationError, Captures
+from payload.teleop.channels import BaseChannel, BaseCommand, BaseConfig, RailConfig, rail_command
+from payload.teleop.filters import OneEuroConfig, OneEuroFilter
+from payload.teleop.hands import Hand, HandFrame, pinch_points, wrist_frame
+from payload.teleop.safety import Blender, SafetyConfig, SafetyEvent, TrackingSupervisor
+
+log = logging.getLogger(__name__)
+
+HAND_OF_PAIR = {"L": "left", "R": "right"}
+
+
+def human_features(hand: Hand) -> PairFeatures:
+    """Eq. 2 features of a hand's thumb (finger 1) and index (finger 2) in its wrist frame.
+
+    Raises:
+        RetargetError: Degenerate or non-finite geometry.
+    """
+    pts = pinch_points(hand, wrist_frame(hand))
+    return features_from_points(pts["p1"], pts["p2"], pts["a1"], pts["a2"])
+
+
+@dataclass(frozen=True)
+class TeleopConfig:
+    """Pipeline settings.
+
+    Attributes:
+        base: Base channel settings.
+        safety: Tracking supervisor settings.
+        filter: One Euro filter settings for the keypoints.
+        filter_enabled: Whether keypoints are filtered.
+        deploy: Deployment coordinate commanded during teleoperation [m].
+        rail_travel: Rail travel [m].
+        dt: Control period [s].
+    """
+
+    base: BaseConfig = field(default_factory=BaseConfig)
+    safety: SafetyConfig = field(default_factory=SafetyConfig)
+    filter: OneEuroConfig = field(default_factory=OneEuroConfig)
+    filter_enabled: bool = True
+    deploy: float = 0.075
+    rail_travel: float = 0.05
+    dt: float = 0.02
+
+
+@dataclass(frozen=True)
+class TeleopCalibration:
+    """Everything the calibration procedure determined.
+
+    Attributes:
+        neutral_left: Neutral left-wrist position (base channel sphere centre) [m].
+        neutral_right: Neutral right-wrist position [m].
+        heading0: World yaw aligned with the operator's forward direction [rad].
+        rail: Inter-wrist distance mapping.
+        pairs: Finger calibration per pair (``L``, ``R``).
+    """
+
+    neutral_left: np.ndarray
+    neutral_right: np.ndarray
+    heading0: float
+    rail: RailConfig
+    pairs: dict[str, PairCalibration]
+
+
+def calibrate_operator(
+    captures: Captures,
+    ranges: dict[str, PairRange],
+    rail_travel: float,
+    heading0: float = 0.0,
+) -> TeleopCalibration:
+    """Turn the procedure's captures into the channels' calibration.
+
+    Raises:
+        CalibrationError: A gesture was not captured or is inconsistent.
+    """
+    neutral = {s: captures.get("neutral", s).wrist.copy() for s in ("left", "right")}
+    d_min = float(
+        np.linalg.norm(
+            captures.get("together", "left").wrist - captures.get("together", "right").wrist
+        )
+    )
+    d_max = float(
+        np.linalg.norm(captures.get("apart", "left").wrist - captures.get("apart", "right").wrist)
+    )
+    try:
+        rail = RailConfig(d_min, d_max, rail_travel)
+    except PayloadError as exc:
+        raise CalibrationError(f"calibration 'together'/'apart': {exc}") from exc
+    pairs = {}
+    for pair, side in HAND_OF_PAIR.items():
+        try:
+            pinch = human_features(captures.get("pinch", side))
+            opened = human_features(captures.get("open", side))
+            pairs[pair] = calibrate(pinch, opened, ranges[pair])
+        except RetargetError as exc:
+            raise CalibrationError(f"calibration of the {side} hand: {exc}") from exc
+    return TeleopCalibration(neutral["left"], neutral["right"], heading0, rail, pairs)
+
+
+@dataclass(frozen=True)
+class TeleopStep:
+    """The three channel commands produced at one step.
+
+    Attributes:
+        stamp: Time of the hand frame [s].
+        q_left: Pair L command (A, C joints in the retargeter's order), shape (8,).
+        q_right: Pair R command (B, D), shape (8,).
+        rail: Rail command [m].
+        base: The base channel's output (``base.twist`` is the vehicle command).
+        command: The payload command (17 coordinates in the paper's order + deploy).
+        events: Safety events raised at this step.
+        solves: Solver info per pair (absent when the pair held).
+    """
+
+    stamp: float
+    q_left: np.ndarray
+    q_right: np.ndarray
+    rail: float
+    base: BaseCommand
+    command: PayloadCommand
+    events: tuple[SafetyEvent, ...]
+    solves: dict[str, SolveInfo]
+
+    @property
+    def twist(self) -> VehicleTwist:
+        return self.base.twist
+
+
+class TeleopPipeline:
+    """The three concurrent channels (see the module docstring).
+
+    Args:
+        calibration: The operator's calibration.
+        retargeters: Production retargeters per pair (``L``, ``R``).
+        config: Pipeline settings.
+        initial: Initial 17-coordinate command (the payload's current posture).
+    """
+
+    def __init__(
+        self,
+        calibration: TeleopCalibration,
+        retargeters: dict[str, PairRetargeter],
+        config: TeleopConfig | None = None,
+        initial: np.ndarray | None = None,
+    ) -> None:
+        self.config = config or TeleopConfig()
+        self.calibration = calibration
+        self.retargeters = retargeters
+        c = self.config
+        self.supervisor = TrackingSupervisor(
+            c.safety, {"left": calibration.neutral_left, "right": calibration.neutral_right}
+        )
+        self.filters = {s: OneEuroFilter(c.filter) for s in ("left", "right")}
+        self.base = BaseChannel(c.base, calibration.neutral_left, calibration.heading0, c.dt)
+        self.index = {
+            pair: np.array([MANIPULATION_JOINTS.index(j) for j in r.joints])
+            for pair, r in retargeters.items()
+        }
+        q0 = np.zeros(len(MANIPULATION_JOINTS)) if initial is None else np.array(initial, float)
+        self.blend = {p: Blender(q0[self.index[p]].copy()) for p in retargeters}
+        for pair, r in retargeters.items():
+            r.reset(q0[self.index[pair]])
+        self.rail_blend = Blender(np.array([q0[-1]]))
+        self.events: list[SafetyEvent] = []
+
+    def _filtered(self, side: str, hand: Hand | None, t: float) -> Hand | None:
+        if hand is None:
+            self.filters[side].reset()
+            return None
+        if not self.config.filter_enabled:
+            return hand
+        return Hand(self.filters[side](hand.joints, t), True)
+
+    def step(self, frame: HandFrame, vehicle_rotation: np.ndarray | None = None) -> TeleopStep:
+        """One 50 Hz step.
+
+        Args:
+            frame: Hand frame (workbench or WebXR convention).
+            vehicle_rotation: Vehicle body -> world rotation (3, 3), for the body twist.
+        """
+        frame = frame.to_workbench()
+        sup = self.supervisor.step(frame)
+        events = list(sup.events)
+        t = frame.stamp if math.isfinite(frame.stamp) else self.supervisor.last_stamp
+        hands = {
+            "left": self._filtered("left", sup.left, t),
+            "right": self._filtered("right", sup.right, t),
+        }
+        weights = {"left": sup.blend_left, "right": sup.blend_right}
+        solves: dict[str, SolveInfo] = {}
+        q_pair: dict[str, np.ndarray] = {}
+        for pair, side in HAND_OF_PAIR.items():
+            hand = hands[side]
+            fresh = None
+            if hand is not None:
+                try:
+                    targets, q_ref = self.calibration.pairs[pair].command(human_features(hand))
+                    fresh, solves[pair] = self.retargeters[pair].solve(targets, q_ref=q_ref)
+                except RetargetError as exc:
+                    events.append(SafetyEvent(t, side, "invalid", f"finger channel: {exc}"))
+                    log.warning("teleop: %s hand finger channel held: %s", side, exc)
+            q = self.blend[pair].step(fresh, weights[side] if fresh is not None else 0.0)
+            q_pair[pair] = q
+            # warm start from what is actually commanded (held or blended)
+            self.retargeters[pair].reset(q)
+        both = hands["left"] is not None and hands["right"] is not None
+        if both:
+            rail_fresh = np.array(
+                [rail_command(self.calibration.rail, hands["left"].wrist, hands["right"].wrist)]
+            )
+            rail = self.rail_blend.step(rail_fresh, min(weights["left"], weights["right"]))
+        else:
+            rail = self.rail_blend.step(None, 0.0)
+        left_wrist = hands["left"].wrist if both else None  # a lost hand brakes the vehicle
+        base = self.base.step(left_wrist, vehicle_rotation)
+        q17 = np.zeros(len(MANIPULATION_JOINTS))
+        for pair, q in q_pair.items():
+            q17[self.index[pair]] = q
+        q17[-1] = float(rail[0])
+        stamp = float(frame.stamp) if math.isfinite(frame.stamp) else t
+        command = PayloadCommand(q17, self.config.deploy, stamp)
+        self.events.extend(events)
+        twist = VehicleTwist(base.twist.linear, base.twist.angular, stamp)
+        base = BaseCommand(base.v_request, base.v_world, base.yaw_rate, twist, base.outside)
+        return TeleopStep(
+            stamp,
+            q_pair["L"].copy(),
+            q_pair["R"].copy(),
+            float(rail[0]),
+            base,
+            command,
+            tuple(events),
+            solves,
+        )
