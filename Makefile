@@ -15,6 +15,9 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(BIN)/payload build
 	$(BIN)/payload summary
+	$(BIN)/payload report envelope
+	$(BIN)/payload report reach --samples 100000
+	$(BIN)/payload trials run --n 10 --seed 0 --out runs/campaign
 
 test: $(STAMP)
 	$(BIN)/ruff check .

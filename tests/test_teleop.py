@@ -192,7 +192,7 @@ wrist_paths = st.lists(
 )
 
 
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=150, deadline=None)
 @given(wrist_paths, st.floats(-math.pi, math.pi))
 def test_base_channel_respects_speed_acceleration_and_jerk_bounds(path, heading):
     cfg = BaseConfig()

@@ -7,6 +7,7 @@ missing key, a value of the wrong type or out of range raises
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 import sys
@@ -217,6 +218,9 @@ class Design:
     materials: Materials
     stowed: Posture
     home: Posture
+    vehicle: dict[str, Any] = field(
+        default_factory=dict, hash=False, metadata={"optional_table": True}
+    )
     source: str = field(default="<memory>", compare=False, metadata={"internal": True})
 
     def validate(self) -> Design:
@@ -266,6 +270,11 @@ class Design:
                 f"|{self.array.ac_stagger}| m is less than the finger width "
                 f"{f.section.width} m: opposing fingers would collide when stowed",
             )
+        if self.vehicle:
+            # Astrobee's body and bays: validated where they are modelled
+            from payload.envelope.vehicle import vehicle_from_dict
+
+            vehicle_from_dict(self.vehicle, source=self.source)
         for name, posture in (("stowed", self.stowed), ("home", self.home)):
             for j, v in zip(FINGER_JOINTS, posture.finger):
                 if not f.limit(j).contains(v):
@@ -295,6 +304,12 @@ def _build(cls: type, data: Any, path: str) -> Any:
     kwargs: dict[str, Any] = {}
     for f in fields:
         where = f"{path}.{f.name}" if path else f.name
+        if f.metadata.get("optional_table"):
+            table = data.get(f.name, {})
+            if not isinstance(table, dict):
+                raise DesignError(where, f"expected a table, got {type(table).__name__}")
+            kwargs[f.name] = copy.deepcopy(table)
+            continue
         if f.name not in data:
             raise DesignError(where, "missing key")
         kwargs[f.name] = _value(hints[f.name], data[f.name], where, f.metadata)
@@ -378,6 +393,8 @@ def design_to_dict(design: Design) -> dict[str, Any]:
             }
         if isinstance(obj, tuple):
             return [conv(x) for x in obj]
+        if isinstance(obj, dict):
+            return copy.deepcopy(obj)
         return obj
 
     return conv(design)

@@ -99,11 +99,14 @@ class JerkLimiter:
     second differences stay within ``a_max`` and ``j_max``.
     """
 
-    def __init__(self, dim: int, max_rate: float, max_jerk: float) -> None:
+    def __init__(
+        self, dim: int, max_rate: float, max_jerk: float, max_value: float | None = None
+    ) -> None:
         self.value = np.zeros(dim)
         self.rate = np.zeros(dim)
         self.max_rate = max_rate
         self.max_jerk = max_jerk
+        self.max_value = max_value
 
     def reset(self, value: np.ndarray | None = None) -> None:
         self.value = np.zeros_like(self.value) if value is None else np.array(value, float)
@@ -111,6 +114,10 @@ class JerkLimiter:
 
     def step(self, target: np.ndarray, dt: float) -> np.ndarray:
         target = np.asarray(target, dtype=float)
+        if self.max_value is not None:
+            tn = float(np.linalg.norm(target))
+            if tn > self.max_value:
+                target = target * (self.max_value / tn)
         e = target - self.value
         jdt = self.max_jerk * dt
         if not np.any(e) and float(np.linalg.norm(self.rate)) <= jdt:
@@ -134,9 +141,29 @@ class JerkLimiter:
         else:
             a_target = e_eff / n * min(self.max_rate, math.sqrt(2 * self.max_jerk * n))
         da = a_target - self.rate
-        dn = float(np.linalg.norm(da))
-        if dn > jdt:
-            da *= jdt / dn
+        vn = float(np.linalg.norm(self.value))
+        if self.max_value is not None and vn > 1e-12:
+            # keep the magnitude below its cap: the outward rate follows a landing profile
+            # onto the cap and gets the jerk budget first, so it is eased off in time
+            u = self.value / vn
+            cap = math.sqrt(2 * self.max_jerk * max(0.0, self.max_value - vn))
+            radial_now = float(self.rate @ u)
+            radial_want = min(float(a_target @ u), cap)
+            dr = float(np.clip(radial_want - radial_now, -jdt, jdt))
+            tangential = da - float(da @ u) * u
+            budget = math.sqrt(max(0.0, jdt * jdt - dr * dr))
+            tn = float(np.linalg.norm(tangential))
+            if tn > budget:
+                tangential *= budget / tn
+            da = dr * u + tangential
+            new = self.rate + da
+            nn = float(np.linalg.norm(new))
+            if nn > self.max_rate:  # projecting onto the ball moves it by at most |da|
+                da = new * (self.max_rate / nn) - self.rate
+        else:
+            dn = float(np.linalg.norm(da))
+            if dn > jdt:
+                da *= jdt / dn
         self.rate = self.rate + da
         self.value = self.value + self.rate * dt
         return self.value.copy()
@@ -191,7 +218,10 @@ class BaseChannel:
         self.neutral = neutral
         self.heading0 = heading0
         self.dt = dt
-        self.linear = JerkLimiter(3, config.max_accel, config.max_jerk)
+        # the limiter aims a hair below the cap so its discrete landing never overshoots it
+        self.linear = JerkLimiter(
+            3, config.max_accel, config.max_jerk, config.max_speed - 20 * config.max_jerk * dt * dt
+        )
         self.yaw = JerkLimiter(1, config.max_yaw_accel, config.max_yaw_jerk)
 
     def request(self, left_wrist: np.ndarray | None) -> tuple[np.ndarray, bool]:
@@ -207,9 +237,7 @@ class BaseChannel:
         beyond = dist - c.sphere_radius
         if beyond <= 0:
             return np.zeros(3), False
-        # aim a hair below the cap so the limiter's discrete landing never overshoots it
-        cap = c.max_speed - 10.0 * c.max_jerk * self.dt * self.dt
-        speed = cap * min(1.0, beyond / c.full_speed_offset)
+        speed = c.max_speed * min(1.0, beyond / c.full_speed_offset)
         return yaw_matrix(self.heading0) @ (disp / dist) * speed, True
 
     def step(

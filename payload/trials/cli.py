@@ -1,0 +1,310 @@
+"""Command line of the trials: ``payload trial``, ``payload trials run|summarize`` and
+``payload export lerobot`` (contract in DESIGN.md)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from payload.errors import PayloadError
+
+
+class TrialsCliError(PayloadError):
+    """Bad arguments to a trials command, or the trial runner is not available."""
+
+
+def _run_trial_fn() -> Any:
+    try:
+        from payload.trials.runner import run_trial
+    except ModuleNotFoundError as exc:
+        if exc.name != "payload.trials.runner":
+            raise
+        raise TrialsCliError(
+            "payload.trials.runner (the teleoperation trial loop, issue 6) is not installed yet"
+        ) from None
+    return run_trial
+
+
+def _parse_operator(values: list[str]) -> tuple[str, Path | None]:
+    if values == ["synthetic"]:
+        return "synthetic", None
+    if len(values) == 2 and values[0] == "replay":
+        replay = Path(values[1])
+        if not replay.is_file():
+            raise TrialsCliError(f"--operator replay: {replay}: no such file")
+        return "replay", replay
+    raise TrialsCliError(
+        f"--operator: expected 'synthetic' or 'replay FILE', got {' '.join(values)!r}"
+    )
+
+
+def _cmd_trial(args: argparse.Namespace) -> int:
+    from payload.cli import emit_json
+
+    if args.seed < 0:
+        raise TrialsCliError(f"--seed must be >= 0, got {args.seed}")
+    operator, replay = _parse_operator(args.operator)
+    out = Path(args.out) if args.out else Path("runs") / f"trial-{args.seed:04d}"
+    run_trial = _run_trial_fn()
+    result = dict(run_trial(seed=args.seed, operator=operator, replay=replay, out_dir=out))
+    result.setdefault("out_dir", str(out))
+    if args.json:
+        emit_json(result)
+        return 0
+    from payload.trials.campaign import METRIC_KEYS, METRIC_LABELS
+
+    print(f"trial seed {args.seed} ({operator}) -> {out}")
+    print(f"  success: {bool(result.get('success'))}")
+    for key in METRIC_KEYS:
+        value = result.get(key)
+        shown = "n/a" if value is None else f"{value:.3f}"
+        print(f"  {METRIC_LABELS[key]}: {shown}")
+    return 0
+
+
+def _cmd_trials_run(args: argparse.Namespace) -> int:
+    from payload.cli import CheckFailed, emit_json
+    from payload.trials.campaign import (
+        default_workers,
+        run_campaign,
+        runner_trial_fn,
+        summary_markdown,
+        write_summary,
+    )
+
+    if args.n < 1:
+        raise TrialsCliError(f"--n must be >= 1, got {args.n}")
+    if args.seed < 0:
+        raise TrialsCliError(f"--seed must be >= 0, got {args.seed}")
+    if args.workers is not None and args.workers < 0:
+        raise TrialsCliError(f"--workers must be >= 0, got {args.workers}")
+    _run_trial_fn()  # fail here, once, if the runner is missing
+    out = Path(args.out)
+    seeds = list(range(args.seed, args.seed + args.n))
+    workers = default_workers(args.n) if args.workers is None else args.workers
+    t0 = time.perf_counter()
+    results = run_campaign(
+        runner_trial_fn("synthetic"),
+        seeds,
+        out,
+        workers=workers,
+        scheduler=args.scheduler,
+        progress=not args.json,
+    )
+    run = {
+        "workers": None if args.scheduler else workers,
+        "scheduler": args.scheduler,
+        "wall_s": time.perf_counter() - t0,
+        "trial_wall_s": float(sum(r.get("wall_s") or 0.0 for r in results)),
+    }
+    title = f"Cargo-transport campaign ({args.n} trials)"
+    summary = write_summary(results, out, title=title, run=run)
+    if args.json:
+        emit_json({**summary, "out_dir": str(out)})
+    else:
+        print(summary_markdown(summary, title))
+        print(f"wrote {out / 'summary.md'} and {out / 'summary.json'}")
+    errors = [r for r in results if r.get("error")]
+    if errors:
+        for r in errors:
+            print(f"trial {r['seed']}: {r['error']}", file=sys.stderr)
+        raise CheckFailed(f"{len(errors)} of {len(results)} trial(s) raised an error")
+    return 0
+
+
+def _cmd_trials_summarize(args: argparse.Namespace) -> int:
+    from payload.cli import emit_json
+    from payload.trials.campaign import load_trial_results, summary_markdown, write_summary
+
+    for name in ("min_contact_s", "max_gap_s"):
+        if getattr(args, name) < 0:
+            raise TrialsCliError(f"--{name.replace('_', '-')} must be >= 0")
+    relaxed = args.min_contact_s > 0 or args.max_gap_s > 0
+    results = load_trial_results(
+        args.dir,
+        recompute=args.recompute or relaxed,
+        min_interval_s=args.min_contact_s,
+        max_gap_s=args.max_gap_s,
+    )
+    previous = Path(args.dir) / "summary.json"
+    run = None
+    if previous.is_file():
+        try:
+            run = json.loads(previous.read_text()).get("run")
+        except (json.JSONDecodeError, AttributeError):
+            run = None
+    summary = write_summary(results, args.dir, run=run)
+    if args.json:
+        emit_json({**summary, "out_dir": str(args.dir)})
+    else:
+        print(summary_markdown(summary))
+    return 0
+
+
+def _cmd_export_lerobot(args: argparse.Namespace) -> int:
+    from payload.cli import emit_json
+    from payload.trials.lerobot import export_lerobot
+
+    info = export_lerobot(
+        [Path(r) for r in args.runs],
+        Path(args.out),
+        task=args.task,
+        overwrite=args.force,
+        progress=not args.json,
+    )
+    if args.json:
+        emit_json(info)
+    else:
+        print(
+            f"wrote LeRobot v3 dataset {info['path']}: {info['episodes']} episode(s), "
+            f"{info['frames']} frames at {info['fps']} Hz ({info['duration_s']:.1f} s)"
+        )
+    return 0
+
+
+def _cmd_bench_recorder(args: argparse.Namespace) -> int:
+    import tempfile
+
+    import numpy as np
+
+    from payload.cli import emit_json
+    from payload.trials.metrics import compute_metrics
+    from payload.trials.recorder import StepRecord, TrialRecorder, read_recording
+
+    if args.seconds <= 0:
+        raise TrialsCliError(f"--seconds must be positive, got {args.seconds}")
+    n = max(2, round(args.seconds * 50))
+    rng = np.random.default_rng(0)
+    steps = [
+        StepRecord(
+            t=k / 50,
+            phase="translation",
+            left_joints=rng.normal(scale=0.05, size=(25, 3)),
+            right_joints=rng.normal(scale=0.05, size=(25, 3)),
+            left_tracked=True,
+            right_tracked=True,
+            q_left=rng.normal(size=8),
+            q_right=rng.normal(size=8),
+            rail_cmd=float(rng.uniform(0, 0.05)),
+            twist_cmd=rng.normal(size=6),
+            q_cmd=rng.normal(size=17),
+            deploy_cmd=0.075,
+            q_meas=rng.normal(size=17),
+            deploy_meas=0.075,
+            astrobee_pos=rng.normal(size=3),
+            astrobee_quat=rng.normal(size=4),
+            astrobee_twist=rng.normal(size=6),
+            ctb_pos=rng.normal(size=3),
+            ctb_quat=rng.normal(size=4),
+            contact=True,
+            ctb_module="kibo",
+        )
+        for k in range(n)
+    ]
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "log.mcap"
+        per_step = np.empty(n)
+        with TrialRecorder(path) as rec:
+            for k, step in enumerate(steps):
+                t0 = time.perf_counter()
+                rec.write(step)
+                per_step[k] = time.perf_counter() - t0
+        size = path.stat().st_size
+        t0 = time.perf_counter()
+        recording = read_recording(path)
+        read_s = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        compute_metrics(recording)
+        metrics_s = time.perf_counter() - t0
+    minutes = n / 50 / 60
+    result = {
+        "steps": n,
+        "recorded_s": n / 50,
+        "write_us_median": float(np.median(per_step) * 1e6),
+        "write_us_p99": float(np.quantile(per_step, 0.99) * 1e6),
+        "write_budget_fraction": float(np.median(per_step) / 0.02),
+        "file_mb_per_min": size / 1e6 / minutes,
+        "read_s_per_min": read_s / minutes,
+        "metrics_s": metrics_s,
+    }
+    if args.json:
+        emit_json(result)
+    else:
+        print(
+            f"recorder, {n} steps ({n / 50:.0f} s at 50 Hz): write {result['write_us_median']:.0f}"
+            f" us/step median ({result['write_us_p99']:.0f} us p99, "
+            f"{100 * result['write_budget_fraction']:.2f} % of the 20 ms step), "
+            f"{result['file_mb_per_min']:.1f} MB per minute, read "
+            f"{result['read_s_per_min']:.2f} s per minute, metrics {1e3 * metrics_s:.1f} ms"
+        )
+    return 0
+
+
+def register(
+    sub: argparse._SubParsersAction, groups: dict[str, argparse._SubParsersAction]
+) -> None:
+    """Add ``trial``, ``trials run|summarize``, ``export lerobot`` and
+    ``bench recorder``."""
+    p = sub.add_parser("trial", help="one ISS cargo-transport trial")
+    p.add_argument("--seed", type=int, default=0, help="trial seed (default 0)")
+    p.add_argument(
+        "--operator",
+        nargs="+",
+        default=["synthetic"],
+        metavar=("synthetic|replay", "F"),
+        help="'synthetic' (default) or 'replay FILE' (a recorded hand stream)",
+    )
+    p.add_argument("--out", help="trial folder (default runs/trial-NNNN)")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.set_defaults(func=_cmd_trial)
+
+    trials = sub.add_parser("trials", help="trial campaigns and their summaries")
+    tsub = trials.add_subparsers(dest="trials_command", required=True, metavar="WHAT")
+    r = tsub.add_parser("run", help="a campaign of N seeded trials on Dask, and its summary")
+    r.add_argument("--n", type=int, required=True, help="number of trials")
+    r.add_argument("--seed", type=int, default=0, help="first seed (default 0)")
+    r.add_argument(
+        "--workers",
+        type=int,
+        default=None,
+        help="local Dask worker processes (default: one per core; 0 or 1: serial)",
+    )
+    r.add_argument("--scheduler", help="existing Dask scheduler, e.g. tcp://host:8786")
+    r.add_argument("--out", required=True, help="campaign folder")
+    r.add_argument("--json", action="store_true", help="print one JSON object")
+    r.set_defaults(func=_cmd_trials_run)
+
+    s = tsub.add_parser("summarize", help="rebuild summary.md/json from the trial folders")
+    s.add_argument("dir", help="campaign folder")
+    s.add_argument("--recompute", action="store_true", help="rescore every trial from its log.mcap")
+    s.add_argument(
+        "--min-contact-s",
+        type=float,
+        default=0.0,
+        help="rescore, skipping contact runs shorter than this [s] (paper: 0)",
+    )
+    s.add_argument(
+        "--max-gap-s",
+        type=float,
+        default=0.0,
+        help="rescore, bridging contact-indicator dropouts up to this long [s] (paper: 0)",
+    )
+    s.add_argument("--json", action="store_true", help="print one JSON object")
+    s.set_defaults(func=_cmd_trials_summarize)
+
+    e = groups["export"].add_parser("lerobot", help="recordings as a LeRobot v3 dataset")
+    e.add_argument("runs", nargs="+", metavar="RUN", help="log.mcap, trial or campaign folder")
+    e.add_argument("--out", required=True, help="dataset folder")
+    e.add_argument("--task", help="task text for every episode")
+    e.add_argument("--force", action="store_true", help="replace an existing dataset")
+    e.add_argument("--json", action="store_true", help="print one JSON object")
+    e.set_defaults(func=_cmd_export_lerobot)
+
+    b = groups["bench"].add_parser("recorder", help="trial recorder cost and file size")
+    b.add_argument("--seconds", type=float, default=60.0, help="recorded seconds (default 60)")
+    b.add_argument("--json", action="store_true", help="print one JSON object")
+    b.set_defaults(func=_cmd_bench_recorder)

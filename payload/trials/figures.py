@@ -1,0 +1,256 @@
+"""Trial figures: the paper's Fig. 3 (CTB in the Astrobee body frame) and a route plot.
+
+Both are drawn with matplotlib's object API on the Agg canvas (no pyplot state), so they
+are safe in Dask workers and threads.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Mapping, Sequence
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+from matplotlib.patches import Patch, Rectangle
+from scipy.spatial.transform import Rotation
+
+from payload.errors import PayloadError
+from payload.trials.metrics import TrialMetrics, compute_metrics, ctb_in_body_frame
+from payload.trials.recorder import PHASES, Recording
+
+PHASE_COLORS: dict[str, str] = {
+    "calibration": "#d9d9d9",
+    "acquisition": "#fdd49e",
+    "translation": "#c6dbef",
+    "turn": "#d9f0a3",
+    "arrival": "#fcc5c0",
+    "braking": "#e5d8f0",
+}
+"""Shading of each phase (Fig. 3 shades acquisition / translation / turn / arrival)."""
+
+
+class FigureError(PayloadError):
+    """A figure cannot be drawn (bad module rectangles, empty recording)."""
+
+
+class ModuleRect(NamedTuple):
+    """An axis-aligned module outline in the world xy plane [m].
+
+    Attributes:
+        name: Label, e.g. ``kibo``.
+        x_min: Lower x bound [m].
+        y_min: Lower y bound [m].
+        x_max: Upper x bound [m].
+        y_max: Upper y bound [m].
+    """
+
+    name: str
+    x_min: float
+    y_min: float
+    x_max: float
+    y_max: float
+
+
+def _as_rect(item: Any) -> ModuleRect:
+    if isinstance(item, ModuleRect):
+        rect = item
+    elif isinstance(item, Mapping):
+        try:
+            rect = ModuleRect(
+                str(item["name"]),
+                float(item["x_min"]),
+                float(item["y_min"]),
+                float(item["x_max"]),
+                float(item["y_max"]),
+            )
+        except KeyError as exc:
+            raise FigureError(f"module rectangle {dict(item)} lacks {exc}") from None
+    else:
+        try:
+            name, *bounds = item
+            rect = ModuleRect(str(name), *(float(b) for b in bounds))
+        except (TypeError, ValueError) as exc:
+            raise FigureError(
+                f"module rectangle {item!r}: expected (name, x_min, y_min, x_max, y_max)"
+            ) from exc
+    if not (rect.x_min < rect.x_max and rect.y_min < rect.y_max):
+        raise FigureError(f"module rectangle {rect.name!r}: min bounds must be below max bounds")
+    return rect
+
+
+def phase_spans(t: np.ndarray, phase: np.ndarray) -> list[tuple[str, float, float]]:
+    """Contiguous phases as ``(phase, t_start, t_end)`` [s]; each span ends where the next
+    begins (the last one at the last sample)."""
+    spans: list[tuple[str, float, float]] = []
+    n = len(t)
+    i = 0
+    while i < n:
+        j = i
+        while j + 1 < n and phase[j + 1] == phase[i]:
+            j += 1
+        end = float(t[j + 1]) if j + 1 < n else float(t[j])
+        spans.append((str(phase[i]), float(t[i]), end))
+        i = j + 1
+    return spans
+
+
+def _shade(ax: Any, spans: Iterable[tuple[str, float, float]]) -> None:
+    for name, a, b in spans:
+        ax.axvspan(a, b, color=PHASE_COLORS.get(name, "#eeeeee"), alpha=0.6, lw=0, zorder=0)
+
+
+def _save(fig: Figure, path: Path, dpi: int) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    FigureCanvasAgg(fig)
+    fig.savefig(path, dpi=dpi)
+    return path
+
+
+def plot_ctb_body_frame(
+    recording: Recording,
+    path: str | Path,
+    metrics: TrialMetrics | None = None,
+    *,
+    dpi: int = 120,
+) -> Path:
+    """Fig. 3 of the paper: CTB centre of mass in the Astrobee body frame over time.
+
+    Four stacked panels: x, y, z of eq. 4 [mm] and the eq. 5 deviation
+    ``||b_p_c(t) - b_p_c(t0)||`` [mm], phases shaded, the first confirmed-contact interval
+    marked, and the RMS and peak deviations annotated.
+
+    Args:
+        recording: The trial recording.
+        path: PNG file to write.
+        metrics: Precomputed metrics (computed here if ``None``).
+        dpi: Resolution [dots per inch].
+
+    Returns:
+        The written path.
+    """
+    if len(recording) == 0:
+        raise FigureError("cannot plot an empty recording")
+    m = metrics if metrics is not None else compute_metrics(recording)
+    t = recording.t
+    bp = 1e3 * ctb_in_body_frame(recording.astrobee_pos, recording.astrobee_quat, recording.ctb_pos)
+    spans = phase_spans(t, recording.phase)
+
+    fig = Figure(figsize=(9.0, 7.5), layout="constrained")
+    axes = fig.subplots(4, 1, sharex=True)
+    labels = ("x", "y", "z")
+    has_contact = math.isfinite(m.t0_s)
+    for k, ax in enumerate(axes[:3]):
+        _shade(ax, spans)
+        ax.plot(t, bp[:, k], color="#08306b", lw=1.2)
+        if has_contact:
+            ax.axhline(1e3 * m.b_p_c_t0_m[k], color="#08306b", lw=0.8, ls="--", alpha=0.7)
+        ax.set_ylabel(f"{labels[k]}$_b$ [mm]")
+        ax.grid(True, alpha=0.3)
+    ax = axes[3]
+    _shade(ax, spans)
+    if has_contact:
+        dev = np.linalg.norm(bp - 1e3 * np.asarray(m.b_p_c_t0_m), axis=1)
+        ax.plot(t, dev, color="#7f7f7f", lw=0.8, label="outside the interval")
+        inside = (t >= m.t0_s) & (t <= m.contact_end_s)
+        ax.plot(t[inside], dev[inside], color="#a50f15", lw=1.3, label="first contact interval")
+        ax.axhline(m.rms_mm, color="#a50f15", ls="--", lw=0.9, label=f"RMS {m.rms_mm:.1f} mm")
+        ax.axhline(m.peak_mm, color="#a50f15", ls=":", lw=0.9, label=f"peak {m.peak_mm:.1f} mm")
+        for a in axes:
+            a.axvline(m.t0_s, color="k", lw=0.8)
+            a.axvline(m.contact_end_s, color="k", lw=0.8, ls="--")
+            if math.isfinite(m.arrival_s):
+                a.axvline(m.arrival_s, color="#a50f15", lw=0.8, ls="-.")
+        ax.legend(loc="best", fontsize=7, ncols=2)
+    else:
+        ax.text(0.5, 0.5, "no confirmed contact", transform=ax.transAxes, ha="center")
+    ax.set_ylabel("deviation [mm]")
+    ax.set_xlabel("time since start of teleoperation [s]")
+    ax.grid(True, alpha=0.3)
+
+    present = [p for p in PHASES if p in set(recording.phase.tolist())]
+    handles = [Patch(color=PHASE_COLORS[p], alpha=0.6, label=p) for p in present]
+    fig.legend(handles=handles, loc="outside lower center", ncols=max(1, len(handles)))
+    verdict = "success" if m.success else "failure"
+    fig.suptitle(
+        f"CTB centre of mass in the Astrobee body frame (eq. 4) -- {verdict}, "
+        f"contact {m.contact_s:.1f} s of {m.duration_s:.1f} s\n"
+        "solid: first confirmed contact (t0); dashed: its end; dash-dot: arrival in "
+        f"{m.destination}",
+        fontsize=10,
+    )
+    return _save(fig, Path(path), dpi)
+
+
+def plot_route(
+    recording: Recording,
+    path: str | Path,
+    modules: Sequence[Any] | None = None,
+    *,
+    dpi: int = 120,
+) -> Path:
+    """Top-down route plot: Astrobee and CTB world xy paths over the module outlines.
+
+    Args:
+        recording: The trial recording.
+        path: PNG file to write.
+        modules: Optional module outlines: :class:`ModuleRect`, mappings with ``name``,
+            ``x_min``, ``y_min``, ``x_max``, ``y_max``, or ``(name, x_min, y_min, x_max,
+            y_max)`` tuples [m].
+        dpi: Resolution [dots per inch].
+
+    Returns:
+        The written path.
+    """
+    if len(recording) == 0:
+        raise FigureError("cannot plot an empty recording")
+    rects = [_as_rect(m) for m in (modules or [])]
+    fig = Figure(figsize=(8.0, 7.0), layout="constrained")
+    ax = fig.subplots()
+    for i, r in enumerate(rects):
+        ax.add_patch(
+            Rectangle(
+                (r.x_min, r.y_min),
+                r.x_max - r.x_min,
+                r.y_max - r.y_min,
+                facecolor=f"C{i % 10}",
+                alpha=0.08,
+                edgecolor=f"C{i % 10}",
+                lw=1.2,
+            )
+        )
+        ax.text(r.x_min, r.y_max, f" {r.name}", va="top", fontsize=9, color=f"C{i % 10}")
+    pb, pc = recording.astrobee_pos, recording.ctb_pos
+    ax.plot(pb[:, 0], pb[:, 1], color="#08306b", lw=1.5, label="Astrobee")
+    ax.plot(pc[:, 0], pc[:, 1], color="#a50f15", lw=1.0, ls="--", label="CTB centre of mass")
+    ax.plot(*pc[0, :2], "o", color="#a50f15", ms=6, label="CTB start")
+    ax.plot(*pc[-1, :2], "s", color="#a50f15", ms=6, label="CTB end")
+    # heading arrows (body x axis) every ~10 % of the route
+    q = recording.astrobee_quat
+    idx = np.unique(np.linspace(0, len(recording) - 1, 11).astype(int))
+    heading = Rotation.from_quat(q[idx][:, [1, 2, 3, 0]]).apply([1.0, 0.0, 0.0])
+    ax.quiver(
+        pb[idx, 0], pb[idx, 1], heading[:, 0], heading[:, 1], color="#08306b", width=0.004,
+        scale=25, alpha=0.7,
+    )  # fmt: skip
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_xlabel("world x [m]")
+    ax.set_ylabel("world y [m]")
+    ax.grid(True, alpha=0.3)
+    ax.legend(loc="best", fontsize=8)
+    net = float(np.linalg.norm(pc[-1] - pc[0]))
+    ax.set_title(f"Route, top view (CTB net displacement {net:.2f} m)", fontsize=10)
+    return _save(fig, Path(path), dpi)
+
+
+__all__ = [
+    "PHASE_COLORS",
+    "FigureError",
+    "ModuleRect",
+    "phase_spans",
+    "plot_ctb_body_frame",
+    "plot_route",
+]

@@ -1,0 +1,308 @@
+"""One ISS cargo-transport trial: simulator + teleoperation pipeline + recorder + metrics.
+
+``run_trial(seed, operator, replay, out_dir)`` builds the default world (Astrobee with
+the deployed payload at the start of the route in Kibo, a single CTB under the fingers),
+lets the operator (synthetic, or a replayed hand recording) calibrate, acquire the CTB
+and fly it to Node 2, records every 50 Hz step into ``log.mcap`` and the raw hand frames
+into ``hands.jsonl`` (so any trial can be replayed bit for bit), then scores it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from payload.design.build import PROJECT_ROOT
+from payload.errors import PayloadError
+from payload.retarget.calibration import PairRange, pair_range
+from payload.retarget.casadi_solver import PairRetargeter
+from payload.teleop.calibration import CalibrationProcedure, Captures
+from payload.teleop.hands import HandFrame
+from payload.teleop.loop import (
+    ReplaySource,
+    StepContext,
+    SyntheticSource,
+    rotation_of,
+    run_session,
+)
+from payload.teleop.operator import OperatorPlan, SyntheticOperator, WorldView
+from payload.teleop.pipeline import TeleopConfig, TeleopPipeline, calibrate_operator
+from payload.teleop.replay import HandRecordingWriter, read_hand_recording
+
+log = logging.getLogger(__name__)
+
+MODULE_NAMES = {"kibo": "kibo", "vestibule": "hatch", "node2": "node2"}
+MAX_TRIAL_S = 240.0
+
+CONFIRM_MIN_S = 0.5
+"""Opposing contact must hold this long to count as *confirmed* [s]: the first touch-down
+of the pads on the handle chatters at 50 Hz for a few tenths of a second."""
+
+CONFIRM_MAX_GAP_S = 0.1
+"""Indicator dropouts this short are bridged inside a confirmed interval [s] (a pad rolling
+on the handle for a few steps, like a tracking dropout the operator never sees)."""
+
+
+class TrialError(PayloadError):
+    """A trial could not be run (bad operator choice, unreadable replay)."""
+
+
+_RETARGETERS: dict[str, PairRetargeter] = {}
+_RANGES: dict[str, PairRange] = {}
+
+
+def retargeting() -> tuple[dict[str, PairRetargeter], dict[str, PairRange]]:
+    """Production retargeters and pair ranges for our hand (built once per process)."""
+    if not _RETARGETERS:
+        for pair in ("L", "R"):
+            _RETARGETERS[pair] = PairRetargeter(pair=pair)
+            _RANGES[pair] = pair_range(_RETARGETERS[pair].kinematics)
+    return _RETARGETERS, _RANGES
+
+
+def design_hash() -> str:
+    """SHA-256 of the design file the models were generated from (first 16 hex digits)."""
+    data = (PROJECT_ROOT / "cad" / "design.toml").read_bytes()
+    return hashlib.sha256(data).hexdigest()[:16]
+
+
+def _module_rects(layout: Any) -> list[dict[str, float | str]]:
+    out = []
+    for zone in layout.zones():
+        out.append(
+            {
+                "name": MODULE_NAMES.get(zone.module.value, zone.module.value),
+                "x_min": float(zone.lo[0]),
+                "y_min": float(zone.lo[1]),
+                "x_max": float(zone.hi[0]),
+                "y_max": float(zone.hi[1]),
+            }
+        )
+    return out
+
+
+def place_ctb_for_teleop(driver: Any, ranges: dict[str, PairRange]) -> None:
+    """Move the CTB so its handle sits where the teleoperated pinch closes on it.
+
+    The pinch the operator commands follows the posture reference of the calibrated pair
+    ranges. For each pair, the span at which the reference posture's pads first reach the
+    handle's side faces is found by bisection; the handle bar is centred on the mean of
+    the four fingertips there. Only the CTB's initial pose changes.
+    """
+    import mujoco
+
+    from payload.design.tree import MANIPULATION_JOINTS
+    from payload.sim.world import PAYLOAD_PREFIX
+
+    w, m = driver.world, driver.model
+    data = mujoco.MjData(m)
+    data.qpos[:] = driver.data.qpos
+    handle = w.config.handle
+    a = w.astrobee_qpos
+    rot = rotation_of(driver.data.qpos[a + 3 : a + 7])
+    pad = float(m.geom_size[w.pad_geoms["A"]][0])
+
+    def tips_at(pair: str, fingers: tuple[str, str], span: float) -> np.ndarray:
+        q = ranges[pair].posture(span)
+        names = [f"{f}_{j}" for f in fingers for j in ("mcp_flex", "mcp_abd", "pip", "dip")]
+        for name, v in zip(names, q):
+            data.qpos[w.qpos[MANIPULATION_JOINTS.index(name)]] = v
+        mujoco.mj_kinematics(m, data)
+        return np.array([data.site(f"{PAYLOAD_PREFIX}{f}_tip").xpos for f in fingers])
+
+    tips = []
+    for pair, fingers in (("L", ("A", "C")), ("R", ("B", "D"))):
+        lo, hi = ranges[pair].span_min, ranges[pair].span_max
+        for _ in range(40):  # across-array gap between the pads = handle width
+            mid = 0.5 * (lo + hi)
+            t = tips_at(pair, fingers, mid)
+            gap = abs(float(rot[:, 1] @ (t[0] - t[1]))) - 2 * pad
+            lo, hi = (mid, hi) if gap < handle.width else (lo, mid)
+        tips.append(tips_at(pair, fingers, 0.5 * (lo + hi)))
+    centre = np.vstack(tips).mean(axis=0)
+    # the bag hangs below its handle bar: bar centre -> bag centre along the body -z axis
+    size = w.config.ctb_size
+    drop = handle.height / 2.0 + handle.standoff + size.height / 2.0
+    c = w.ctb_qpos
+    driver.data.qpos[c : c + 3] = centre - rot[:, 2] * drop
+    mujoco.mj_forward(m, driver.data)
+
+
+def run_trial(
+    seed: int,
+    operator: str = "synthetic",
+    replay: Path | None = None,
+    out_dir: Path | None = None,
+    *,
+    max_time: float = MAX_TRIAL_S,
+    progress: bool = False,
+) -> dict[str, Any]:
+    """Run one trial and write its folder.
+
+    Args:
+        seed: Seed of the synthetic operator (ignored for replays except as a label).
+        operator: ``synthetic`` or ``replay``.
+        replay: The hand recording (``hands.jsonl``) to replay.
+        out_dir: Trial folder (default ``runs/trial-<seed>``).
+        max_time: Cap on the session length [s].
+        progress: Show a progress bar.
+
+    Returns:
+        The metrics (as written to ``metrics.json``).
+    """
+    from payload.sim.driver import SimDriver
+    from payload.trials.campaign import finish_trial
+    from payload.trials.recorder import StepRecord, TrialRecorder
+
+    if operator not in ("synthetic", "replay"):
+        raise TrialError(f"operator must be 'synthetic' or 'replay', got {operator!r}")
+    out = Path(out_dir) if out_dir is not None else Path("runs") / f"trial-{seed:04d}"
+    out.mkdir(parents=True, exist_ok=True)
+    driver = SimDriver()
+    layout = driver.world.layout
+    retargeters, ranges = retargeting()
+    place_ctb_for_teleop(driver, ranges)
+    calibration = CalibrationProcedure()
+    config = TeleopConfig()
+
+    if operator == "synthetic":
+        plan = OperatorPlan(route=layout.route(), heading0=layout.start_yaw())
+        synthetic = SyntheticOperator(plan, seed, calibration)
+        source: Any = SyntheticSource(synthetic)
+        traits = dict(vars(synthetic.traits))
+    else:
+        if replay is None:
+            raise TrialError("operator 'replay' needs a hand recording file")
+        _, frames = read_hand_recording(replay)
+        source = ReplaySource(frames)
+        traits = {"replay": str(replay)}
+
+    q0 = driver.read().q
+
+    def make_pipeline(captures: Captures, heading: float) -> TeleopPipeline:
+        cal = calibrate_operator(captures, ranges, config.rail_travel, heading)
+        return TeleopPipeline(cal, retargeters, config, initial=q0)
+
+    def view(state: Any, t: float) -> WorldView:
+        rot = rotation_of(state.astrobee_quat)
+        return WorldView(
+            t,
+            state.astrobee_pos,
+            rot,
+            rot @ state.astrobee_linear,
+            state.ctb_pos,
+            bool(state.opposing_contact),
+        )
+
+    rec_path = out / "log.mcap"
+    hands_path = out / "hands.jsonl"
+    meta = {
+        "seed": int(seed),
+        "operator": operator,
+        "design_hash": design_hash(),
+        "traits": traits,
+        "route": layout.route().tolist(),
+        "modules": _module_rects(layout),
+    }
+    bar = None
+    if progress:
+        from rich.progress import Progress
+
+        bar = Progress(transient=True)
+        task = bar.add_task(f"trial {seed}", total=max_time)
+        bar.start()
+    try:
+        with (
+            TrialRecorder(rec_path, overwrite=True) as recorder,
+            HandRecordingWriter(hands_path, meta={"seed": int(seed)}) as hands_out,
+        ):
+            recorder.write_meta(meta)
+
+            def on_step(ctx: StepContext) -> None:
+                st, fr = ctx.state, ctx.frame
+                hands_out.write(fr)
+                step = ctx.step
+                q = ctx.command.q
+                twist = np.concatenate([ctx.twist.linear, ctx.twist.angular])
+                rot = rotation_of(st.astrobee_quat)
+                module = st.module
+                ctb_module = driver.module_at(st.ctb_pos)
+                recorder.write(
+                    StepRecord(
+                        t=ctx.t,
+                        phase=ctx.phase,
+                        left_joints=fr.left.joints,
+                        right_joints=fr.right.joints,
+                        left_tracked=bool(fr.left.tracked),
+                        right_tracked=bool(fr.right.tracked),
+                        q_left=step.q_left if step else q[_pair_index("L")],
+                        q_right=step.q_right if step else q[_pair_index("R")],
+                        rail_cmd=float(q[-1]),
+                        twist_cmd=twist,
+                        q_cmd=q,
+                        deploy_cmd=float(ctx.command.deploy),
+                        q_meas=ctx.payload.q,
+                        deploy_meas=float(ctx.payload.deploy),
+                        astrobee_pos=st.astrobee_pos,
+                        astrobee_quat=st.astrobee_quat,
+                        astrobee_twist=np.concatenate(
+                            [rot @ st.astrobee_linear, st.astrobee_angular]
+                        ),
+                        ctb_pos=st.ctb_pos,
+                        ctb_quat=st.ctb_quat,
+                        contact=bool(st.opposing_contact),
+                        ctb_module=MODULE_NAMES.get(ctb_module.value, "outside")
+                        if ctb_module is not None
+                        else "outside",
+                    )
+                )
+                del module
+                if bar is not None:
+                    bar.update(task, completed=ctx.t)
+
+            stats = run_session(
+                driver,
+                source,
+                calibration,
+                make_pipeline,
+                max_time=max_time,
+                on_step=on_step,
+                world_view=view,
+            )
+            recorder.write_meta(
+                {
+                    "steps": stats.steps,
+                    "pipeline_median_us": float(np.median(stats.pipeline_us))
+                    if stats.pipeline_us
+                    else None,
+                    "warnings": driver.warnings(),
+                }
+            )
+    finally:
+        if bar is not None:
+            bar.stop()
+        driver.close()
+    result = finish_trial(
+        out, rec_path, min_interval_s=CONFIRM_MIN_S, max_gap_s=CONFIRM_MAX_GAP_S
+    )
+    result["steps"] = stats.steps
+    (out / "metrics.json").write_text(json.dumps(result, indent=2) + "\n")
+    return result
+
+
+def _pair_index(pair: str) -> np.ndarray:
+    from payload.design.tree import MANIPULATION_JOINTS
+
+    fingers = ("A", "C") if pair == "L" else ("B", "D")
+    names = [f"{f}_{j}" for f in fingers for j in ("mcp_flex", "mcp_abd", "pip", "dip")]
+    return np.array([MANIPULATION_JOINTS.index(n) for n in names])
+
+
+def replay_frames(path: Path) -> list[HandFrame]:
+    """Frames of a trial's ``hands.jsonl``."""
+    return read_hand_recording(path)[1]

@@ -1,0 +1,451 @@
+"""Envelope report: bay model, containment and clearance, self-collision, posture search,
+deployment sweep, CLI. Numbers are checked against closed forms of known geometry."""
+
+from __future__ import annotations
+
+import copy
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import manifold3d as m3d
+import numpy as np
+import pytest
+import tomli_w
+from conftest import DESIGN, ROOT
+
+from payload.design import build_tree, design_from_dict
+from payload.design.solids import SEGMENTS
+from payload.envelope import (
+    PayloadGeometry,
+    Vehicle,
+    VehicleError,
+    analyse_envelope,
+    load_design_and_vehicle,
+    vehicle_from_dict,
+    with_bay_size,
+)
+from payload.envelope.fit import (
+    box_solid,
+    check_stowed,
+    deployment_sweep,
+    envelope_margin,
+    finger_links,
+    fit_solid,
+    search_stowed_posture,
+    self_contacts,
+    with_finger_posture,
+)
+from payload.envelope.vehicle import BAY_ASSUMPTION, VEHICLE_TOML
+
+VEHICLE = Vehicle()
+LO, HI = VEHICLE.bay_lower, VEHICLE.bay_upper
+
+
+def run_cli(*args: str) -> subprocess.CompletedProcess:
+    main = "import sys; from payload.cli import main; sys.exit(main(sys.argv[1:]))"
+    return subprocess.run(
+        [sys.executable, "-c", main, *args],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=300,
+    )
+
+
+def geometry_of(data: dict) -> PayloadGeometry:
+    return PayloadGeometry(build_tree(design_from_dict(data)))
+
+
+CURLED = [1.5708, 0.0, 1.5708, 1.5708]
+"""Every finger joint but the abduction at a right angle (the first default stowed posture)."""
+
+
+@pytest.fixture(scope="module")
+def geom(design) -> PayloadGeometry:
+    """The default design as committed."""
+    return PayloadGeometry(build_tree(design))
+
+
+@pytest.fixture(scope="module")
+def stowed(geom):
+    return check_stowed(geom, VEHICLE, geom.tree.posture("stowed"))
+
+
+@pytest.fixture(scope="module")
+def curled_geom(design_dict) -> PayloadGeometry:
+    """The default design with LEAP's 50.3 mm distal link, stowed curled at right angles."""
+    data = copy.deepcopy(design_dict)
+    data["finger"]["lengths"]["distal"] = 0.0503
+    data["stowed"].update(finger=CURLED, rail=0.0, stage=0.0)
+    return geometry_of(data)
+
+
+@pytest.fixture(scope="module")
+def curled(curled_geom):
+    return check_stowed(curled_geom, VEHICLE, curled_geom.tree.posture("stowed"))
+
+
+# ----------------------------------------------------------------- the bay model
+
+
+def test_default_bays_are_the_facts_assumption_and_are_named_as_one():
+    assert VEHICLE.bay_size == (0.20, 0.10, 0.10)
+    assert np.allclose(LO, [-0.1, -0.05, -0.1]) and np.allclose(HI, [0.1, 0.05, 0.0])
+    assert VEHICLE.bottom_z == pytest.approx(-0.1)
+    assert "not public" in VEHICLE.assumption and "200 x 100 x 100 mm" in VEHICLE.assumption
+
+
+def test_body_boxes_are_the_body_minus_the_open_bays():
+    boxes = VEHICLE.body_boxes()
+    total = sum(float(np.prod(hi - lo)) for lo, hi in boxes)
+    assert total == pytest.approx(0.32**3 - 0.2 * 0.1 * 0.1, rel=1e-12)
+    # disjoint: their union has the summed volume
+    union = box_solid(*boxes[0])
+    for lo, hi in boxes[1:]:
+        union = union + box_solid(lo, hi)
+    assert union.volume() == pytest.approx(total, rel=1e-9)
+    assert VEHICLE.body_solid().volume() == pytest.approx(total, rel=1e-9)
+
+
+def test_vehicle_table_in_the_design_file_replaces_the_assumption(tmp_path, design_dict):
+    data = copy.deepcopy(design_dict)
+    data["vehicle"] = {"bay_size": [0.21, 0.11, 0.12]}
+    path = tmp_path / "design.toml"
+    path.write_bytes(tomli_w.dumps(data).encode())
+    design, vehicle = load_design_and_vehicle(path)
+    assert design.finger.lengths.distal == pytest.approx(design_dict["finger"]["lengths"]["distal"])
+    assert vehicle.bay_size == (0.21, 0.11, 0.12)
+    assert vehicle.bottom_z == pytest.approx(-0.12)
+    assert "210.0 x 110.0 x 120.0 mm" in vehicle.assumption
+    # the proposed table parses and gives the defaults
+    import tomllib
+
+    table = tomllib.loads(VEHICLE_TOML)["vehicle"]
+    assert vehicle_from_dict(table) == Vehicle(source="<memory>")
+    assert vehicle_from_dict(table).assumption == BAY_ASSUMPTION
+
+
+@pytest.mark.parametrize(
+    ("table", "where"),
+    [
+        ({"bay_size": [0.2, 0.1]}, "vehicle.bay_size"),
+        ({"bay_size": [0.2, -0.1, 0.1]}, "vehicle.bay_size"),
+        ({"bay_size": [0.4, 0.1, 0.1]}, "vehicle.bay_size"),
+        ({"body_size": [0.32, 0.32, 0.05]}, "vehicle.bay_size"),
+        ({"body_offset": [0.1, 0.0]}, "vehicle.bay_size"),
+        ({"bay_sise": [0.2, 0.1, 0.1]}, "vehicle.bay_sise"),
+        ({"assumption": 3}, "vehicle.assumption"),
+    ],
+)
+def test_bad_vehicle_tables_name_the_parameter(table, where):
+    with pytest.raises(VehicleError) as err:
+        vehicle_from_dict(table)
+    assert err.value.parameter == where
+
+
+def test_bay_size_override_is_validated_and_named():
+    v = with_bay_size(VEHICLE, [0.3, 0.1, 0.1])
+    assert v.bay_size == (0.3, 0.1, 0.1) and "command line" in v.assumption
+    with pytest.raises(VehicleError, match="--bay-size"):
+        with_bay_size(VEHICLE, [0.3, 0.0, 0.1])
+
+
+# ----------------------------------------------------------------- known boxes
+
+
+def box(lo, hi) -> m3d.Manifold:
+    return box_solid(np.asarray(lo), np.asarray(hi))
+
+
+def test_a_box_inside_has_the_exact_clearance_to_every_wall():
+    lo, hi = np.array([-0.05, -0.02, -0.07]), np.array([0.08, 0.03, -0.01])
+    fit = fit_solid("box", box(lo, hi), VEHICLE)
+    gaps = [
+        lo[0] - LO[0],
+        HI[0] - hi[0],
+        lo[1] - LO[1],
+        HI[1] - hi[1],
+        lo[2] - LO[2],
+        HI[2] - hi[2],
+    ]
+    assert (
+        fit.inside and fit.protrusion == 0.0 and fit.outside_volume == pytest.approx(0, abs=1e-15)
+    )
+    assert np.allclose(fit.wall_clearance, gaps, atol=1e-9)
+    assert fit.clearance == pytest.approx(min(gaps), abs=1e-9)  # 0.01 m to the +z wall
+    assert fit.wall == VEHICLE.walls[int(np.argmin(gaps))]
+
+
+def test_a_box_wholly_outside_reports_its_farthest_point():
+    # below the bays and beyond the +x wall: the far corner is 50 mm down and 30 mm out
+    lo, hi = np.array([0.05, -0.01, -0.15]), np.array([0.13, 0.01, -0.12])
+    fit = fit_solid("box", box(lo, hi), VEHICLE)
+    assert not fit.inside
+    assert fit.protrusion == pytest.approx(math.hypot(0.03, 0.05), abs=1e-9)
+    assert fit.clearance == pytest.approx(-fit.protrusion)
+    assert fit.wall == "-z (bottom face)"
+    assert fit.outside_volume == pytest.approx(np.prod(hi - lo), rel=1e-9)
+
+
+def test_a_box_straddling_a_wall_reports_the_protrusion_and_the_volume_outside():
+    lo, hi = np.array([-0.03, -0.02, -0.12]), np.array([0.01, 0.02, -0.08])
+    fit = fit_solid("box", box(lo, hi), VEHICLE)
+    assert not fit.inside and fit.protrusion == pytest.approx(0.02, abs=1e-9)
+    assert fit.wall == "-z (bottom face)"
+    assert fit.outside_volume == pytest.approx(0.04 * 0.04 * 0.02, rel=1e-9)
+    # one micrometre out is out; touching the wall is in with zero clearance
+    assert not fit_solid("b", box([0, 0, -0.05], [0.05, 0.050001, -0.01]), VEHICLE).inside
+    touching = fit_solid("b", box([0, 0, -0.05], [0.1, 0.05, -0.01]), VEHICLE)
+    assert touching.inside and touching.clearance == pytest.approx(0.0, abs=1e-9)
+
+
+def test_a_mounted_part_measures_clearance_to_the_other_five_walls():
+    fit = fit_solid("plate", box([-0.09, -0.04, -0.004], [0.09, 0.04, 0.0]), VEHICLE, True)
+    assert fit.inside and math.isnan(fit.wall_clearance[5])
+    assert fit.clearance == pytest.approx(0.01, abs=1e-9)
+
+
+# ----------------------------------------------------------------- the default design
+
+
+def test_default_design_fits_the_bays_by_the_closed_form_clearance(design, stowed):
+    a, mnt = design.array, design.mounting
+    # the stage's brackets and the carriage reach side_gap/2 + depth/2 across y
+    y_clear = VEHICLE.bay_size[1] / 2 - (a.side_gap / 2 + design.finger.section.depth / 2)
+    parts = {p.name: p for p in stowed.parts}
+    assert stowed.fits
+    assert parts["stage"].clearance == pytest.approx(y_clear, abs=1e-7)
+    assert parts["carriage"].clearance == pytest.approx(y_clear, abs=1e-7)
+    assert stowed.min_clearance == min(p.clearance for p in stowed.parts) <= y_clear + 1e-7
+    assert parts["base"].mounted and parts["base"].clearance == pytest.approx(
+        (VEHICLE.bay_size[1] - mnt.plate_width) / 2, abs=1e-7
+    )
+
+
+def test_curled_fingers_sit_at_the_closed_form_height_above_the_bottom_face(design, curled):
+    a, st, mnt = design.array, design.stage, design.mounting
+    z_mcp = -(mnt.plate_thickness + st.stowed_gap + st.plate_thickness) - a.finger_drop
+    bottom = z_mcp - design.finger.section.depth / 2  # the curled knuckle's underside
+    parts = {p.name: p for p in curled.parts}
+    # (1.5708 rad is 3.7 urad past a right angle: 0.1 um over a link)
+    assert parts["A_proximal"].wall_clearance[4] == pytest.approx(bottom - LO[2], abs=1e-6)
+    assert curled.fits
+
+
+def test_curled_distal_pads_run_into_their_own_brackets_by_the_closed_form_depth(
+    design, curled_geom, curled
+):
+    assert curled.self_collision
+    pairs = {frozenset((c.a, c.b)) for c in curled.collisions}
+    assert pairs == {
+        frozenset(p)
+        for p in (
+            ("stage", "A_distal"),
+            ("stage", "C_distal"),
+            ("carriage", "B_distal"),
+            ("carriage", "D_distal"),
+        )
+    }
+    tips = curled_geom.tree.frame_positions(curled.q)
+    a = design.array
+    inner_face = a.side_gap / 2 - design.finger.section.depth / 2  # bracket face toward -y
+    depth = tips["A_tip"][1] + design.finger.pad.radius - inner_face
+    for c in curled.collisions:
+        assert -c.distance == pytest.approx(depth, abs=1e-4)  # pad tessellation
+        assert c.overlap_volume > 0
+    assert curled.sweep.vehicle_clear and not curled.sweep.clear
+    assert not curled.passed
+    assert curled.failures()[0].startswith(f"stage and A_distal collide ({depth * 1e3:.1f} mm deep")
+
+
+def test_adjacent_links_are_the_only_pairs_left_out(geom):
+    excluded = {frozenset(p) for p in geom.excluded_pairs()}
+    assert len(excluded) == len(geom.tree.joints) == 18
+    n = len(geom.links)
+    assert len(geom.pairs) == n * (n - 1) // 2 - 18
+    assert not excluded & {frozenset(p) for p in geom.pairs}
+
+
+def test_self_contacts_agree_with_exact_mesh_volumes(curled_geom, curled):
+    """Convex signed distance < 0 exactly where the exact solids share volume."""
+    poses = curled_geom.poses(curled.q)
+    for c in curled.self_contacts[:30]:
+        vol = curled_geom.overlap_volume(c.a, c.b, poses)
+        assert (vol > 1e-12) == (c.distance < -1e-6), (c, vol)
+
+
+def test_a_lengthened_finger_fails_naming_its_links_and_the_protrusion(design_dict, tmp_path):
+    data = copy.deepcopy(design_dict)
+    data["finger"]["lengths"]["distal"] = 0.09
+    g = geometry_of(data)
+    check = check_stowed(g, VEHICLE, g.tree.posture("stowed"))
+    parts = {p.name: p for p in check.parts}
+    tips = g.tree.frame_positions(check.q)
+    r = data["finger"]["pad"]["radius"]
+    for finger, sign in (("A", 1), ("B", 1), ("C", -1), ("D", -1)):
+        p = parts[f"{finger}_distal"]
+        # the curled distal points back across the bay: its pad pole is the farthest point,
+        # less at most the sagitta of the tessellated sphere when no vertex sits at the pole
+        expected = sign * tips[f"{finger}_tip"][1] + r - HI[1]
+        sagitta = r * (1 - math.cos(math.pi / SEGMENTS))
+        assert not p.inside
+        assert expected - sagitta - 1e-9 <= p.protrusion <= expected + 1e-9
+        assert p.wall == ("+y (left)" if sign > 0 else "-y (right)")
+    assert {n for n, p in parts.items() if not p.inside} == {f"{f}_distal" for f in "ABCD"}
+    # the command fails (exit 1) naming the links and the millimetres
+    path = tmp_path / "long.toml"
+    path.write_bytes(tomli_w.dumps(data).encode())
+    res = run_cli(
+        "report",
+        "envelope",
+        "--design",
+        str(path),
+        "--no-search",
+        "--json",
+        "--out",
+        str(tmp_path / "out"),
+    )
+    assert res.returncode == 1
+    mm = f"{parts['A_distal'].protrusion * 1e3:.1f} mm"
+    assert "A_distal protrudes " + mm in res.stderr and len(res.stderr.strip().splitlines()) == 1
+    out = json.loads(res.stdout)
+    assert out["fits"] is False
+    bad = {p["name"]: p for p in out["parts"] if not p["inside"]}
+    assert set(bad) == {"A_distal", "B_distal", "C_distal", "D_distal"}
+    assert bad["C_distal"]["clearance_mm"] == pytest.approx(
+        -parts["C_distal"].protrusion * 1e3, abs=0.01
+    )
+
+
+# ----------------------------------------------------------------- deployment sweep
+
+
+def test_the_sweep_finds_the_first_contact_at_the_closed_form_travel(geom, stowed, design):
+    q = with_finger_posture(stowed.q, [0.0, 0.0, 0.0, 0.0])  # straight fingers, stage free
+    tips = geom.tree.frame_positions(q)
+    lowest = min(tips[f"{f}_tip"][2] for f in "ABCD") - geom.tree.design.finger.pad.radius
+    # a thin plate 31.3 mm below the pads, under finger A only
+    x = geom.tree.joint_map["A_mcp_flex"].xyz[0]
+    top = lowest - 0.0313
+    plate = ("plate", np.array([x - 0.004, 0.03, top - 0.0005]), np.array([x + 0.004, 0.04, top]))
+    sweep = deployment_sweep(geom, VEHICLE, q, contacts=[], extra=[plate])
+    assert not sweep.vehicle_clear and "plate" in sweep.between
+    assert sweep.first_contact == pytest.approx(0.0313, abs=2e-4)  # pad tessellation
+    clear = deployment_sweep(geom, VEHICLE, q, contacts=[])
+    assert clear.vehicle_clear and clear.certified
+    a = design.array  # closest: the straight knuckles and the brackets, across y
+    y_clear = VEHICLE.bay_size[1] / 2 - (a.side_gap / 2 + design.finger.section.depth / 2)
+    assert clear.min_distance == pytest.approx(y_clear, abs=1e-6)
+
+
+def test_narrower_bays_block_the_deployment_at_stage_zero(curled_geom, curled):
+    narrow = with_bay_size(VEHICLE, [0.2, 0.097, 0.1])
+    check = check_stowed(curled_geom, narrow, curled.q)
+    assert not check.fits and not check.sweep.vehicle_clear
+    assert check.sweep.first_contact == pytest.approx(0.0, abs=1e-9)
+    assert -check.min_clearance == pytest.approx(0.0005, abs=1e-7)
+
+
+# ----------------------------------------------------------------- posture search
+
+
+def test_posture_search_beats_random_postures_and_reports_its_own_clearance(curled_geom, curled):
+    geom, stowed = curled_geom, curled
+    result = search_stowed_posture(geom, VEHICLE, stowed.q, grid=4, starts=2)
+    limits = np.array(
+        [
+            [geom.tree.joint_map[f"A_{j}"].lower, geom.tree.joint_map[f"A_{j}"].upper]
+            for j in ("mcp_flex", "mcp_abd", "pip", "dip")
+        ]
+    )
+    assert np.all(limits[:, 0] <= result.finger) and np.all(result.finger <= limits[:, 1])
+    # recompute the objective independently: fingers' wall clearances and pair distances
+    q = with_finger_posture(stowed.q, result.finger)
+    check = check_stowed(geom, VEHICLE, q)
+    fingers = set(finger_links(geom))
+    walls = min(p.clearance for p in check.parts if p.name in fingers)
+    pairs = min(c.distance for c in check.self_contacts if {c.a, c.b} & fingers)
+    assert result.clearance == pytest.approx(min(walls, pairs), abs=1e-6)
+    rng = np.random.default_rng(3)
+    for _ in range(60):
+        x = rng.uniform(limits[:, 0], limits[:, 1])
+        poses = geom.poses(with_finger_posture(stowed.q, x))
+        margin = envelope_margin(geom, poses, VEHICLE, finger_links(geom))[0]
+        d = min(geom.link_distance(a, b, poses) for a, b in geom.pairs if {a, b} & fingers)
+        assert min(margin, d) <= result.clearance + 1e-9
+
+
+def test_a_shorter_distal_link_stows_with_the_searched_posture(design_dict):
+    """The design change proposed in the envelope report: distal 45 mm, posture searched."""
+    data = copy.deepcopy(design_dict)
+    data["finger"]["lengths"]["distal"] = 0.045
+    data["stowed"]["finger"] = [1.66, 0.0, 1.398, 1.805]
+    g = geometry_of(data)
+    check = check_stowed(g, VEHICLE, g.tree.posture("stowed"))
+    assert check.passed, check.failures()
+    assert check.min_clearance == pytest.approx(0.001, abs=1e-6)
+    assert check.min_self_clearance.distance > 0.0005
+
+
+def test_analysis_runs_the_search_only_when_asked_or_when_the_posture_fails(curled_geom):
+    a = analyse_envelope(curled_geom, VEHICLE, search=False)
+    assert a.search is None and not a.passed
+    contacts = self_contacts(curled_geom, curled_geom.poses(a.given.q))
+    assert [(c.a, c.b) for c in contacts[:4]] == [(c.a, c.b) for c in a.given.self_contacts[:4]]
+
+
+# ----------------------------------------------------------------- CLI
+
+
+def test_report_envelope_json_and_files(tmp_path, stowed):
+    out = tmp_path / "analyses"
+    res = run_cli("report", "envelope", "--json", "--out", str(out))
+    obj = json.loads(res.stdout)
+    assert len(res.stdout.strip().splitlines()) == 1
+    for key in (
+        "fits",
+        "min_clearance_mm",
+        "parts",
+        "self_collision",
+        "deploy_path_clear",
+        "assumptions",
+    ):
+        assert key in obj
+    assert {"name", "inside", "clearance_mm"} <= set(obj["parts"][0])
+    assert obj["fits"] is stowed.fits
+    assert obj["min_clearance_mm"] == pytest.approx(stowed.min_clearance * 1e3, abs=0.01)
+    assert obj["self_collision"] is stowed.self_collision
+    assert obj["deploy_path_clear"] is stowed.sweep.clear
+    assert any("ASSUMPTION" in s and "not public" in s for s in obj["assumptions"])
+    # exit 0 when every check passes, else 1 with one line naming the first failure
+    if obj["passed"]:
+        assert res.returncode == 0 and obj["stowed_search"] is None
+    else:
+        assert res.returncode == 1 and len(res.stderr.strip().splitlines()) == 1
+        assert res.stderr.startswith("payload: check failed: stowed payload: " + obj["failures"][0])
+        assert obj["stowed_search"]["finger"] and "passed" in obj["stowed_search"]["check"]
+    for name in ("envelope.md", "envelope.png", "envelope.json"):
+        assert (out / name).stat().st_size > 0
+    md = (out / "envelope.md").read_text()
+    assert "ASSUMPTION (bay size)" in md and f"{stowed.tightest.clearance * 1e3:.1f} mm" in md
+    assert json.loads((out / "envelope.json").read_text())["fits"] is stowed.fits
+
+
+def test_report_envelope_with_a_bay_override_and_bad_input(tmp_path):
+    res = run_cli("report", "envelope", "--bay-size", "0.2", "-0.1", "0.1", "--out", str(tmp_path))
+    assert res.returncode == 2
+    assert res.stderr.strip().splitlines() == [
+        "payload: error: --bay-size: every size must be positive (got -0.1)"
+    ]
+    res = run_cli("report", "envelope", "--design", str(tmp_path / "missing.toml"))
+    assert res.returncode == 2 and "cannot read design file" in res.stderr
+
+
+def test_generated_envelope_report_is_committed_and_names_the_assumption():
+    md = ROOT / "analyses" / "envelope.md"
+    data = json.loads((ROOT / "analyses" / "envelope.json").read_text())
+    assert "ASSUMPTION" in md.read_text()
+    assert data["design"] == "cad/design.toml" and Path(DESIGN).exists()

@@ -1,0 +1,252 @@
+"""LeRobot v3 export: read back with pyarrow (and pandas) and compare with the recordings;
+LeRobot's own loader when it is installed."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from payload.trials.lerobot import (
+    DEFAULT_TASK,
+    LeRobotExportError,
+    action_names,
+    export_lerobot,
+    state_names,
+)
+from payload.trials.recorder import StepRecord, TrialRecorder, read_recording
+
+pa = pytest.importorskip("pyarrow")
+pq = pytest.importorskip("pyarrow.parquet")
+
+DT = 0.02
+
+
+def _write_run(path: Path, seed: int, n: int, n_cal: int, dt: float = DT, task=None) -> Path:
+    """A seeded recording with ``n_cal`` calibration steps then ``n - n_cal`` others."""
+    rng = np.random.default_rng(seed)
+    with TrialRecorder(path) as rec:
+        meta = {"seed": seed}
+        if task:
+            meta["task"] = task
+        rec.write_meta(meta)
+        for k in range(n):
+            q = rng.normal(size=4)
+            rec.write(
+                StepRecord(
+                    t=k * dt,
+                    phase="calibration" if k < n_cal else "translation",
+                    left_joints=rng.normal(size=(25, 3)),
+                    right_joints=rng.normal(size=(25, 3)),
+                    left_tracked=True,
+                    right_tracked=True,
+                    q_left=rng.normal(size=8),
+                    q_right=rng.normal(size=8),
+                    rail_cmd=float(rng.uniform(0, 0.05)),
+                    twist_cmd=rng.normal(size=6),
+                    q_cmd=rng.normal(size=17),
+                    deploy_cmd=0.075,
+                    q_meas=rng.normal(size=17),
+                    deploy_meas=float(rng.uniform(0, 0.075)),
+                    astrobee_pos=rng.normal(size=3),
+                    astrobee_quat=q / np.linalg.norm(q),
+                    astrobee_twist=rng.normal(size=6),
+                    ctb_pos=rng.normal(size=3),
+                    ctb_quat=np.array([1.0, 0.0, 0.0, 0.0]),
+                    contact=bool(k % 2),
+                    ctb_module="kibo",
+                )
+            )
+    return path
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory) -> list[Path]:
+    root = tmp_path_factory.mktemp("runs")
+    # a trial folder, a bare .mcap file, and a campaign folder with one trial
+    (root / "trial-0000").mkdir()
+    a = _write_run(root / "trial-0000" / "log.mcap", seed=0, n=140, n_cal=20)
+    b = _write_run(root / "b.mcap", seed=1, n=75, n_cal=0, task="Hand the CTB over")
+    (root / "camp" / "trial-0002").mkdir(parents=True)
+    c = _write_run(root / "camp" / "trial-0002" / "log.mcap", seed=2, n=60, n_cal=10)
+    return [a, b, c]
+
+
+@pytest.fixture(scope="module")
+def dataset(runs, tmp_path_factory) -> tuple[Path, dict]:
+    out = tmp_path_factory.mktemp("ds") / "astrobee_cargo"
+    info = export_lerobot([runs[0].parent, runs[1], runs[2].parent.parent], out)
+    return out, info
+
+
+def _expected_rows(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """State and action rows built field by field from the documented layout."""
+    rec = read_recording(path)
+    keep = rec.phase != "calibration"
+    state = np.column_stack(
+        [
+            rec.q_meas,
+            rec.deploy_meas,
+            rec.astrobee_pos,
+            rec.astrobee_quat,
+            rec.astrobee_twist,
+            rec.ctb_pos,
+            rec.ctb_quat,
+        ]
+    )[keep]
+    action = np.column_stack([rec.q_cmd, rec.deploy_cmd, rec.twist_cmd])[keep]
+    return state.astype(np.float32), action.astype(np.float32)
+
+
+def test_info_and_layout(dataset) -> None:
+    out, info = dataset
+    meta = json.loads((out / "meta" / "info.json").read_text())
+    assert meta["codebase_version"] == "v3.0" and meta["fps"] == 50
+    assert meta["total_episodes"] == 3 == info["episodes"]
+    assert meta["total_frames"] == 120 + 75 + 50 == info["frames"]
+    assert meta["total_tasks"] == 2
+    assert meta["splits"] == {"train": "0:3"}
+    assert meta["data_path"] == "data/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet"
+    feats = meta["features"]
+    assert feats["observation.state"]["shape"] == [38] and feats["action"]["shape"] == [24]
+    assert feats["observation.state"]["names"][:4] == [
+        "A_mcp_flex",
+        "A_mcp_abd",
+        "A_pip",
+        "A_dip",
+    ]
+    assert feats["observation.state"]["names"][16:18] == ["rail", "stage"]
+    assert len(set(state_names())) == 38 and len(set(action_names())) == 24
+    for key in ("timestamp", "frame_index", "episode_index", "index", "task_index"):
+        assert feats[key]["shape"] == [1]
+    for rel in (
+        "meta/stats.json",
+        "meta/tasks.parquet",
+        "meta/episodes/chunk-000/file-000.parquet",
+        "data/chunk-000/file-000.parquet",
+    ):
+        assert (out / rel).is_file(), rel
+
+
+def test_frames_match_recordings(dataset, runs) -> None:
+    out, _ = dataset
+    table = pq.read_table(out / "data" / "chunk-000" / "file-000.parquet")
+    assert table.schema.field("observation.state").type == pa.list_(pa.float32(), 38)
+    assert table.schema.field("action").type == pa.list_(pa.float32(), 24)
+    assert table.schema.field("timestamp").type == pa.float32()
+    cols = table.to_pydict()
+    state = np.array(cols["observation.state"], dtype=np.float32)
+    action = np.array(cols["action"], dtype=np.float32)
+    ep = np.array(cols["episode_index"])
+    frame = np.array(cols["frame_index"])
+    np.testing.assert_array_equal(np.array(cols["index"]), np.arange(245))
+    np.testing.assert_array_equal(np.bincount(ep), [120, 75, 50])
+    for e, path in enumerate(runs):
+        exp_state, exp_action = _expected_rows(path)
+        sel = ep == e
+        np.testing.assert_array_equal(state[sel], exp_state)
+        np.testing.assert_array_equal(action[sel], exp_action)
+        np.testing.assert_array_equal(frame[sel], np.arange(sel.sum()))
+    np.testing.assert_allclose(np.array(cols["timestamp"]), frame / 50.0, atol=1e-6)
+    assert set(np.array(cols["task_index"])[ep == 1]) == {1}
+    assert set(np.array(cols["task_index"])[ep != 1]) == {0}
+
+
+def test_episodes_tasks_and_stats(dataset, runs) -> None:
+    out, _ = dataset
+    eps = pq.read_table(out / "meta" / "episodes" / "chunk-000" / "file-000.parquet").to_pylist()
+    assert [e["episode_index"] for e in eps] == [0, 1, 2]
+    assert [e["length"] for e in eps] == [120, 75, 50]
+    assert [e["dataset_from_index"] for e in eps] == [0, 120, 195]
+    assert [e["dataset_to_index"] for e in eps] == [120, 195, 245]
+    assert eps[1]["tasks"] == ["Hand the CTB over"] and eps[0]["tasks"] == [DEFAULT_TASK]
+    assert [e["payload/seed"] for e in eps] == [0, 1, 2]
+    assert all(e["data/chunk_index"] == 0 and e["data/file_index"] == 0 for e in eps)
+
+    states = [_expected_rows(p)[0].astype(np.float64) for p in runs]
+    np.testing.assert_allclose(eps[2]["stats/observation.state/mean"], states[2].mean(axis=0))
+    assert eps[2]["stats/observation.state/count"] == [50]
+
+    stats = json.loads((out / "meta" / "stats.json").read_text())
+    allstate = np.concatenate(states)
+    s = stats["observation.state"]
+    np.testing.assert_allclose(s["min"], allstate.min(axis=0))
+    np.testing.assert_allclose(s["max"], allstate.max(axis=0))
+    np.testing.assert_allclose(s["mean"], allstate.mean(axis=0), rtol=1e-12)
+    np.testing.assert_allclose(s["std"], allstate.std(axis=0), rtol=1e-12)
+    np.testing.assert_allclose(s["q50"], np.median(allstate, axis=0))
+    assert s["count"] == [245]
+    allaction = np.concatenate([_expected_rows(p)[1].astype(np.float64) for p in runs])
+    np.testing.assert_allclose(stats["action"]["std"], allaction.std(axis=0), rtol=1e-12)
+    assert stats["frame_index"]["max"] == [119] and stats["episode_index"]["mean"] == [
+        pytest.approx((75 * 1 + 50 * 2) / 245)
+    ]
+    # the global statistics are the count-weighted merge of the per-episode ones
+    counts = np.array([e["stats/action/count"][0] for e in eps], dtype=float)
+    means = np.array([e["stats/action/mean"] for e in eps])
+    np.testing.assert_allclose(stats["action"]["mean"], counts @ means / counts.sum())
+
+    tasks = pq.read_table(out / "meta" / "tasks.parquet").to_pydict()
+    assert tasks == {"task_index": [0, 1], "task": [DEFAULT_TASK, "Hand the CTB over"]}
+
+
+def test_tasks_parquet_reads_as_lerobot_expects(dataset) -> None:
+    """LeRobot reads tasks with pandas and looks a task up by its index label."""
+    pd = pytest.importorskip("pandas", reason="pandas is not installed")
+    out, _ = dataset
+    tasks = pd.read_parquet(out / "meta" / "tasks.parquet")
+    assert tasks.index.name == "task"
+    assert tasks.iloc[1].name == "Hand the CTB over"
+    assert int(tasks.loc[DEFAULT_TASK].task_index) == 0
+
+
+def test_export_errors(runs, tmp_path: Path) -> None:
+    out = tmp_path / "ds"
+    export_lerobot([runs[1]], out)
+    with pytest.raises(LeRobotExportError, match="not empty"):
+        export_lerobot([runs[1]], out)
+    info = export_lerobot([runs[1], runs[1]], out, overwrite=True, task="Task X")
+    assert info["episodes"] == 2 and info["tasks"] == ["Task X"]
+    with pytest.raises(LeRobotExportError, match="no such recording"):
+        export_lerobot([tmp_path / "missing"], tmp_path / "ds2")
+    slow = _write_run(tmp_path / "slow.mcap", seed=3, n=20, n_cal=0, dt=0.1)
+    with pytest.raises(LeRobotExportError, match="not at 50 Hz"):
+        export_lerobot([slow], tmp_path / "ds3")
+    cal_only = _write_run(tmp_path / "cal.mcap", seed=4, n=10, n_cal=10)
+    with pytest.raises(LeRobotExportError, match="no steps after calibration"):
+        export_lerobot([cal_only], tmp_path / "ds4")
+
+
+def test_cli_export(runs, tmp_path: Path, capsys) -> None:
+    from payload.cli import main
+
+    out = tmp_path / "cli_ds"
+    assert main(["export", "lerobot", str(runs[0]), str(runs[2]), "--out", str(out), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["episodes"] == 2 and info["frames"] == 170 and info["fps"] == 50
+    assert main(["export", "lerobot", str(runs[0]), "--out", str(out)]) == 2
+    assert "not empty" in capsys.readouterr().err
+
+
+def test_lerobot_loader_reads_the_export(dataset, runs) -> None:
+    """Optional: LeRobot's own loader (skipped when the ``lerobot`` package is absent)."""
+    pytest.importorskip(
+        "lerobot", reason="the lerobot package is not installed; LeRobot's loader not run"
+    )
+    try:
+        from lerobot.datasets.lerobot_dataset import LeRobotDataset
+    except ImportError:  # older layout
+        from lerobot.common.datasets.lerobot_dataset import LeRobotDataset
+
+    out, _ = dataset
+    ds = LeRobotDataset("local/astrobee_cargo", root=out)
+    assert len(ds) == 245 and ds.meta.fps == 50 and ds.num_episodes == 3
+    item = ds[130]
+    exp_state, _ = _expected_rows(runs[1])
+    np.testing.assert_allclose(item["observation.state"].numpy(), exp_state[10], rtol=1e-6)
+    assert tuple(item["action"].shape) == (24,)
+    assert item["task"] == "Hand the CTB over"
+    assert math.isclose(float(item["timestamp"]), 10 / 50, abs_tol=1e-6)

@@ -1,0 +1,250 @@
+"""The teleoperation pipeline end to end: calibration, finger/rail/base channels, safety,
+replay reproducibility, and a synthetic operator flying the CTB in the simulator."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from payload.retarget.calibration import pair_range
+from payload.retarget.casadi_solver import PairRetargeter
+from payload.teleop.calibration import CalibrationProcedure
+from payload.teleop.hands import Hand, HandFrame
+from payload.teleop.operator import OperatorPlan, OperatorTraits, SyntheticOperator, WorldView
+from payload.teleop.pipeline import (
+    TeleopConfig,
+    TeleopPipeline,
+    calibrate_operator,
+    human_features,
+)
+from payload.teleop.replay import HandRecordingWriter, read_hand_recording
+
+DT = 0.02
+
+
+@pytest.fixture(scope="module")
+def retargeting():
+    rts = {p: PairRetargeter(pair=p) for p in ("L", "R")}
+    ranges = {p: pair_range(rts[p].kinematics) for p in ("L", "R")}
+    return rts, ranges
+
+
+def _static_world(t: float) -> WorldView:
+    return WorldView(t, np.zeros(3), np.eye(3), np.zeros(3), np.zeros(3), False)
+
+
+def _calibrated(seed: int, retargeting, traits: OperatorTraits | None = None):
+    """Run the calibration prompts with a synthetic operator; return pipeline parts."""
+    _rts, ranges = retargeting
+    proc = CalibrationProcedure()
+    plan = OperatorPlan(route=np.array([[0.0, 0.0, 0.0], [5.0, 0.0, 0.0]]))
+    op = SyntheticOperator(plan, seed, proc, traits)
+    frames = []
+    t = 0.0
+    while not proc.done:
+        fr = op.act(_static_world(t))
+        frames.append(fr)
+        proc.step(fr)
+        t += DT
+    cal = calibrate_operator(proc.captures, ranges, 0.05)
+    return op, proc, cal, frames, t
+
+
+def _pipeline(cal, retargeting) -> TeleopPipeline:
+    rts, _ = retargeting
+    for r in rts.values():
+        r.reset()
+    return TeleopPipeline(cal, rts, TeleopConfig())
+
+
+QUIET = OperatorTraits(tremor_amp=0.0, noise=0.0, dropout_rate=0.0, reaction=0.2)
+
+
+def test_calibration_maps_pinch_and_open_to_the_robot_span_range(retargeting):
+    _, proc, cal, _, _ = _calibrated(3, retargeting, QUIET)
+    rts, ranges = retargeting
+    for pair, side in (("L", "left"), ("R", "right")):
+        pc = cal.pairs[pair]
+        for gesture, expected in (
+            ("pinch", ranges[pair].span_min),
+            ("open", ranges[pair].span_max),
+        ):
+            hand = proc.captures.get(gesture, side)
+            targets, q_ref = pc.command(human_features(hand))
+            assert targets.span == pytest.approx(expected, abs=1e-3)
+            # and the retargeter, warm-started over a few control steps, gets the robot there
+            r = rts[pair]
+            r.reset(q_ref)
+            for _ in range(10):
+                q, _ = r.solve(targets, q_ref=q_ref)
+            assert r.features(q).span == pytest.approx(expected, abs=1e-3)
+
+
+def test_rail_calibration_spans_the_travel(retargeting):
+    _, _proc, cal, _, _ = _calibrated(4, retargeting, QUIET)
+    assert cal.rail.d_min == pytest.approx(0.22, abs=0.01)
+    assert cal.rail.d_max == pytest.approx(0.52, abs=0.01)
+
+
+def _wrist_shift(frame: HandFrame, shift: np.ndarray) -> HandFrame:
+    return HandFrame(
+        frame.stamp,
+        Hand(frame.left.joints + shift) if frame.left.tracked else frame.left,
+        Hand(frame.right.joints + shift) if frame.right.tracked else frame.right,
+    )
+
+
+def test_dropout_brakes_holds_fingers_and_recovers_without_a_jump(retargeting):
+    op, _, cal, _, t = _calibrated(5, retargeting, QUIET)
+    pipe = _pipeline(cal, retargeting)
+    push = np.array([0.15, 0.0, 0.0])  # both wrists forward, well outside the sphere
+    outs = []
+    for k in range(700):
+        fr = _wrist_shift(op.act(_static_world(t)), push)
+        if k == 500:
+            op.aperture = 0.95  # the hand opens while the tracker has lost it
+        if 500 <= k < 508:  # 160 ms without the left hand
+            fr = HandFrame(fr.stamp, Hand.untracked(), fr.right)
+        outs.append(pipe.step(fr))
+        t += DT
+    speed = np.array([np.linalg.norm(o.base.v_world) for o in outs])
+    q_left = np.array([o.q_left for o in outs])
+    np.array([o.command.q for o in outs])
+    assert speed[499] > 0.1  # flying before the dropout
+    lost = [k for k, o in enumerate(outs) if any(e.kind == "lost" for e in o.events)]
+    assert lost and 500 + 0.1 / DT <= lost[0] <= 500 + 0.1 / DT + 1
+    k_lost = lost[0]
+    # while lost the request is zero and the jerk-limited command starts braking: the
+    # acceleration falls at every step; the left pair holds its command
+    for o in outs[k_lost:508]:
+        assert np.all(o.base.v_request == 0.0)
+    accel = np.diff(speed) / DT
+    assert np.all(np.diff(accel[k_lost - 1 : 507]) < 0)
+    held = q_left[k_lost:508]
+    assert np.all(held == held[0])
+    # base command stays smooth through loss and recovery: jerk bounded everywhere
+    v = np.array([o.base.v_world for o in outs])
+    jerk = np.diff(v, n=2, axis=0) / DT**2
+    assert np.linalg.norm(jerk, axis=1).max() <= TeleopConfig().base.max_jerk + 1e-9
+    # recovery: the left pair's command moves a long way (the hand opened meanwhile), but
+    # blended over the recovery time instead of in one jump
+    change = np.abs(q_left[560] - q_left[507]).max()
+    biggest_step = np.abs(np.diff(q_left[507:560], axis=0)).max()
+    assert change > 0.05
+    assert biggest_step < 0.2 * change
+    regained = [k for k, o in enumerate(outs) if any(e.kind == "regained" for e in o.events)]
+    assert regained and regained[0] == 508
+
+
+def test_nan_frame_is_rejected_and_nothing_jumps(retargeting):
+    op, _, cal, _, t = _calibrated(6, retargeting, QUIET)
+    pipe = _pipeline(cal, retargeting)
+    last = None
+    for k in range(60):
+        fr = op.act(_static_world(t))
+        if k == 40:
+            bad = fr.left.joints.copy()
+            bad[4, 0] = np.nan
+            fr = HandFrame(fr.stamp, Hand(bad), fr.right)
+        out = pipe.step(fr)
+        if k == 40:
+            assert {"invalid", "lost"} <= {e.kind for e in out.events}
+            np.testing.assert_array_equal(out.q_left, last.q_left)
+            assert np.all(out.base.v_request == 0.0)
+        last = out
+        t += DT
+
+
+def test_replayed_recording_reproduces_the_command_stream_bit_for_bit(retargeting, tmp_path):
+    op, _, _cal, frames, t = _calibrated(7, retargeting)
+    for _ in range(250):
+        frames.append(op.act(_static_world(t)))
+        t += DT
+    path = tmp_path / "hands.jsonl"
+    with HandRecordingWriter(path) as w:
+        for fr in frames:
+            w.write(fr)
+    _, replayed = read_hand_recording(path)
+
+    def stream(source):
+        proc = CalibrationProcedure()
+        pipe = None
+        out = []
+        for fr in source:
+            if not proc.done:
+                proc.step(fr)
+                if proc.done:
+                    _, ranges = retargeting
+                    pipe = _pipeline(calibrate_operator(proc.captures, ranges, 0.05), retargeting)
+                continue
+            s = pipe.step(fr)
+            out.append(np.concatenate([s.command.q, s.twist.linear, s.twist.angular]))
+        return np.array(out)
+
+    live = stream(frames)
+    again = stream(replayed)
+    assert live.shape == again.shape and len(live) > 100
+    assert np.array_equal(live, again)
+
+
+def test_inside_the_sphere_the_vehicle_command_is_zero(retargeting):
+    op, _, cal, _, t = _calibrated(8, retargeting, QUIET)
+    pipe = _pipeline(cal, retargeting)
+    for _ in range(100):
+        out = pipe.step(op.act(_static_world(t)))
+        t += DT
+        assert np.all(out.twist.linear == 0.0) and np.all(out.twist.angular == 0.0)
+        assert 0.0 <= out.rail <= 0.05
+
+
+@pytest.mark.slow
+def test_synthetic_operator_carries_the_ctb_through_a_turn_in_the_simulator():
+    """Calibrate, acquire the CTB, fly >= 2 m with a turn; contact holds through the flight."""
+    from payload.sim.driver import SimDriver
+    from payload.teleop.loop import SyntheticSource, rotation_of, run_session
+    from payload.trials import runner
+
+    driver = SimDriver()
+    rts, ranges = runner.retargeting()
+    runner.place_ctb_for_teleop(driver, ranges)
+    start = driver.world_state().astrobee_pos.copy()
+    heading = driver.world.layout.start_yaw()
+    fwd = np.array([math.cos(heading), math.sin(heading), 0.0])
+    right = np.array([math.sin(heading), -math.cos(heading), 0.0])
+    route = np.array([start, start + 2.0 * fwd, start + 2.6 * fwd + 0.5 * right])
+    proc = CalibrationProcedure()
+    op = SyntheticOperator(OperatorPlan(route=route, heading0=heading), 11, proc)
+    q0 = driver.read().q
+
+    def make(captures, h):
+        return TeleopPipeline(calibrate_operator(captures, ranges, 0.05, h), rts, initial=q0)
+
+    def view(st, t):
+        rot = rotation_of(st.astrobee_quat)
+        return WorldView(
+            t, st.astrobee_pos, rot, rot @ st.astrobee_linear, st.ctb_pos, st.opposing_contact
+        )
+
+    log = []
+
+    def on_step(ctx):
+        rot = rotation_of(ctx.state.astrobee_quat)
+        yaw = math.atan2(rot[1, 0], rot[0, 0])
+        log.append((ctx.phase, ctx.state.opposing_contact, ctx.state.astrobee_pos.copy(), yaw))
+
+    run_session(
+        driver, SyntheticSource(op), proc, make, max_time=150, on_step=on_step, world_view=view
+    )
+    phases = np.array([p for p, *_ in log])
+    contact = np.array([c for _, c, *_ in log])
+    pos = np.array([p for *_, p, _ in log])
+    yaw = np.array([y for *_, y in log])
+    flying = np.isin(phases, ["translation", "turn", "braking"])
+    assert flying.any()
+    first, last = np.flatnonzero(flying)[[0, -1]]
+    assert np.all(contact[first : last + 1]), "opposing contact lost during the flight"
+    assert np.linalg.norm(pos[last] - pos[first]) >= 2.0
+    turned = abs((yaw[last] - yaw[first] + math.pi) % (2 * math.pi) - math.pi)
+    assert turned > math.radians(10)

@@ -1,0 +1,316 @@
+"""Reach report: batched FK, spans, rail spacing, collisions, grasp witnesses, CLI.
+
+Numbers are checked against a second library (Pinocchio on the URDF, python-fcl),
+brute force over a coarse grid, or closed forms of the design."""
+
+from __future__ import annotations
+
+import itertools
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pinocchio as pin
+import pytest
+from conftest import ROOT, URDF
+
+from payload.design import ALL_JOINTS, FINGER_JOINTS, FINGERS, build_tree
+from payload.envelope import PayloadGeometry, Vehicle
+from payload.envelope.geometry import box_geometry, signed_distance
+from payload.envelope.reach import (
+    PAIRS,
+    CollisionModel,
+    GraspFeature,
+    analyse_reach,
+    batch_frames,
+    batch_link_poses,
+    columns,
+    finger_link_names,
+    opposition,
+    rail_spacing,
+    sample_configurations,
+    span_range,
+    workspace,
+)
+
+VEHICLE = Vehicle()
+
+
+def run_cli(*args: str) -> subprocess.CompletedProcess:
+    main = "import sys; from payload.cli import main; sys.exit(main(sys.argv[1:]))"
+    return subprocess.run(
+        [sys.executable, "-c", main, *args], capture_output=True, text=True, cwd=ROOT, timeout=300
+    )
+
+
+@pytest.fixture(scope="module")
+def tree(design):
+    return build_tree(design)
+
+
+@pytest.fixture(scope="module")
+def geom(tree) -> PayloadGeometry:
+    return PayloadGeometry(tree)
+
+
+@pytest.fixture(scope="module")
+def small(geom):
+    """A small analysis (serial collision checks) shared by several tests."""
+    return analyse_reach(geom, VEHICLE, samples=4000, seed=7, workers=1)
+
+
+def pin_q(model: pin.Model, values: dict[str, float]) -> np.ndarray:
+    q = pin.neutral(model)
+    for name, v in values.items():
+        q[model.joints[model.getJointId(name)].idx_q] = v
+    return q
+
+
+# ----------------------------------------------------------------- batched FK
+
+
+def test_batched_fingertips_match_pinocchio_on_the_urdf(tree):
+    model = pin.buildModelFromUrdf(str(URDF))
+    data = model.createData()
+    rng = np.random.default_rng(11)
+    q = sample_configurations(tree, 300, rng, stage=None)
+    q[:, -1] = rng.uniform(0, tree.joint_map["stage"].upper, len(q))
+    frames = [f"{f}_{k}" for f in FINGERS for k in ("tip", "distal")]
+    batch = batch_frames(tree, columns(q), frames)
+    worst = 0.0
+    for i, row in enumerate(q):
+        pin.framesForwardKinematics(model, data, pin_q(model, dict(zip(ALL_JOINTS, row))))
+        for name in frames:
+            ref = data.oMf[model.getFrameId(name)].translation
+            worst = max(worst, float(np.abs(batch[name][i] - ref).max()))
+    assert worst < 1e-9
+
+
+def test_batched_link_rotations_match_the_trees_own_kinematics(tree):
+    rng = np.random.default_rng(12)
+    q = sample_configurations(tree, 5, rng)
+    poses = batch_link_poses(tree, columns(q))
+    for i, row in enumerate(q):
+        ref = tree.link_poses(dict(zip(ALL_JOINTS, row)))
+        for name, (rot, pos) in poses.items():
+            assert np.allclose(rot[i], ref[name][:3, :3], atol=1e-12)
+            assert np.allclose(pos[i], ref[name][:3, 3], atol=1e-12)
+
+
+# ----------------------------------------------------------------- spans
+
+
+def grid(tree, finger: str, n: int) -> np.ndarray:
+    axes = [
+        np.linspace(tree.joint_map[f"{finger}_{j}"].lower, tree.joint_map[f"{finger}_{j}"].upper, n)
+        for j in FINGER_JOINTS
+    ]
+    return np.array(list(itertools.product(*axes)))
+
+
+@pytest.mark.parametrize("pair", ["L", "R"])
+def test_span_range_matches_brute_force_on_a_coarse_grid(tree, pair):
+    f1, f2 = PAIRS[pair]
+    g1, g2 = grid(tree, f1, 4), grid(tree, f2, 4)
+    # brute force: the tree's own (unbatched) kinematics, rail mid-travel, every combination
+    rail = {"rail": 0.03, "stage": 0.05}
+
+    def tips(finger, rows):
+        out = []
+        for row in rows:
+            q = dict(rail, **{f"{finger}_{j}": v for j, v in zip(FINGER_JOINTS, row)})
+            out.append(tree.frame_positions(q)[f"{finger}_tip"])
+        return np.array(out)
+
+    p1, p2 = tips(f1, g1), tips(f2, g2)
+    d = np.linalg.norm(p1[:, None, :] - p2[None, :, :], axis=2)
+    coarse = span_range(tree, pair, g1, g2, refine=False)
+    assert coarse.minimum == pytest.approx(d.min(), abs=1e-12)
+    assert coarse.maximum == pytest.approx(d.max(), abs=1e-12)
+    refined = span_range(tree, pair, g1, g2, refine=True)
+    assert refined.minimum <= d.min() + 1e-12 and refined.maximum >= d.max() - 1e-12
+    # the refined maximum is a true separation of a configuration inside the limits
+    q = dict(rail)
+    q.update(zip([f"{f}_{j}" for f in (f1, f2) for j in FINGER_JOINTS], refined.q_max))
+    tp = tree.frame_positions(q)
+    assert np.linalg.norm(tp[f"{f2}_tip"] - tp[f"{f1}_tip"]) == pytest.approx(refined.maximum)
+    lo = [tree.joint_map[n].lower for n in q if n not in rail]
+    hi = [tree.joint_map[n].upper for n in q if n not in rail]
+    assert np.all(refined.q_max >= lo) and np.all(refined.q_max <= hi)
+    # and no farther than the two finger lengths plus the MCP axes' distance
+    f = tree.design.finger.lengths
+    length = f.knuckle + f.proximal + f.middle + f.distal
+    base = np.linalg.norm(
+        np.subtract(
+            tree.link_poses(q)[f"{f1}_knuckle"][:3, 3], tree.link_poses(q)[f"{f2}_knuckle"][:3, 3]
+        )
+    )
+    assert refined.maximum <= base + 2 * length + 1e-12
+
+
+def test_rail_spacing_is_the_closed_form_range(design, tree):
+    lo, hi = rail_spacing(tree)
+    assert lo == pytest.approx(design.array.pair_spacing, abs=1e-12)
+    assert hi == pytest.approx(design.array.pair_spacing + design.rail.travel, abs=1e-12)
+
+
+def test_workspace_hull_volume_of_a_known_box():
+    rng = np.random.default_rng(0)
+    corners = np.array(list(itertools.product([0.0, 0.02], [0.0, 0.03], [-0.05, 0.0])))
+    pts = np.vstack([corners, rng.uniform([0, 0, -0.05], [0.02, 0.03, 0], (500, 3))])
+    w = workspace("A", pts, bottom_z=-0.01)
+    assert w.hull_volume == pytest.approx(0.02 * 0.03 * 0.05, rel=1e-12)
+    assert w.below_vehicle == pytest.approx(0.04) and np.allclose(w.upper, [0.02, 0.03, 0])
+
+
+# ----------------------------------------------------------------- collisions
+
+
+def test_mujoco_contacts_agree_with_fcl_signed_distances(geom, tree):
+    model = CollisionModel(geom, VEHICLE)
+    rng = np.random.default_rng(5)
+    q = sample_configurations(tree, 120, rng)
+    contacts = model.check(q)
+    names = contacts.body_names
+    found = {
+        (int(i), names[a] if a else "vehicle", names[b])
+        for i, a, b in zip(contacts.index, contacts.body_a, contacts.body_b)
+    }
+    vehicle = [box_geometry(lo, hi) for lo, hi in VEHICLE.body_boxes()]
+    disagreements = 0
+    for i, row in enumerate(q):
+        poses = geom.poses(dict(zip(ALL_JOINTS, row)))
+        for a, b in geom.pairs:
+            d = geom.link_distance(a, b, poses)
+            key = (i, a, b) if names.index(a) < names.index(b) else (i, b, a)
+            if (d < -5e-5 and key not in found) or (d > 5e-5 and key in found):
+                disagreements += 1
+        for link in geom.links:
+            d = min(
+                signed_distance(o, v)
+                for o in geom.piece_objects(link, poses[link])
+                for v in vehicle
+            )
+            if (d < -5e-5) != ((i, "vehicle", link) in found) and abs(d) > 5e-5:
+                disagreements += 1
+    assert disagreements == 0
+    assert contacts.self_collision().any() and contacts.vehicle_contact().any()
+
+
+def test_forked_workers_find_the_same_contacts(geom, tree):
+    model = CollisionModel(geom, VEHICLE)
+    q = sample_configurations(tree, 12_000, np.random.default_rng(9))
+    one, two = model.check(q, workers=1), model.check(q, workers=2)
+    for field in ("index", "body_a", "body_b"):
+        assert np.array_equal(getattr(one, field), getattr(two, field))
+
+
+# ----------------------------------------------------------------- the analysis
+
+
+def test_reach_figures_against_closed_forms(design, small):
+    st, mnt, a = design.stage, design.mounting, design.array
+    L = design.finger.lengths
+    z_mcp = -(mnt.plate_thickness + st.stowed_gap + st.plate_thickness) - st.travel - a.finger_drop
+    length = L.knuckle + L.proximal + L.middle + L.distal
+    straight = VEHICLE.bottom_z - (z_mcp - length)
+    assert small.home_below_vehicle == pytest.approx(straight, abs=1e-12)
+    # deepest: the MCP-to-tip vector (the pad sits off the axis) turned straight down
+    deepest = VEHICLE.bottom_z - (z_mcp - np.hypot(length, design.finger.offsets.tip))
+    assert deepest - 0.01 < small.below_vehicle <= deepest + 1e-12
+    r = design.finger.pad.radius
+    for p in small.pairs:
+        assert p.pad_contact == pytest.approx(2 * r)
+        assert p.span_min == pytest.approx(max(p.span.minimum, 2 * r))
+        assert p.span_min <= p.free_span[0] + 1e-12 and p.free_span[1] <= p.span.maximum + 1e-12
+    assert 0.0 < small.collision_free_fraction < 1.0
+    assert small.contacts.n == small.samples == 4000
+
+
+def test_grasp_witnesses_hold_up_under_an_independent_check(design, tree, geom, small):
+    r = design.finger.pad.radius
+    vehicle = [box_geometry(lo, hi) for lo, hi in VEHICLE.body_boxes()]
+    closed = 0
+    for p in small.pairs:
+        f1, f2 = p.fingers
+        own = finger_link_names(tree, f1) + finger_link_names(tree, f2)
+        for g in p.grasps:
+            if not g.closes:
+                continue
+            closed += 1
+            q = dict(tree.posture("home"))
+            q.update(zip([f"{f}_{j}" for f in (f1, f2) for j in FINGER_JOINTS], g.q))
+            tips = tree.frame_positions(q)
+            p1, p2 = tips[f"{f1}_tip"], tips[f"{f2}_tip"]
+            assert np.linalg.norm(p2 - p1) == pytest.approx(g.feature.thickness + 2 * r, abs=1e-4)
+            side = 1.0 if tree.joint_map[f"{f2}_mcp_flex"].xyz[1] > 0 else -1.0
+            assert opposition(p1[None], p2[None], side)[0] <= np.radians(30) + 1e-9
+            assert max(p1[2], p2[2]) + r <= VEHICLE.bottom_z + 1e-9
+            poses = geom.poses(q)
+            checked = [*own, "base", "stage", "carriage"]
+            for link in own:
+                for other in checked:
+                    if other != link and frozenset((link, other)) not in geom.adjacent:
+                        assert geom.link_distance(link, other, poses) > -5e-5, (link, other)
+                d = min(
+                    signed_distance(o, v)
+                    for o in geom.piece_objects(link, poses[link])
+                    for v in vehicle
+                )
+                assert d > -5e-5
+    assert closed >= 2  # the thin CTB straps close for both pairs
+
+
+def test_bad_sample_counts_and_thicknesses_are_refused(geom):
+    from payload.envelope.reach import ReachError
+
+    with pytest.raises(ReachError, match="at least 1000"):
+        analyse_reach(geom, VEHICLE, samples=10)
+    with pytest.raises(ReachError, match="thickness"):
+        analyse_reach(geom, VEHICLE, samples=1000, features=[GraspFeature("bad", -0.001, "test")])
+
+
+# ----------------------------------------------------------------- CLI
+
+
+def test_report_reach_json_fields_and_files(tmp_path):
+    out = tmp_path / "analyses"
+    res = run_cli(
+        "report", "reach", "--samples", "2000", "--thickness", "0.004", "--json", "--out", str(out)
+    )
+    assert res.returncode == 0, res.stderr
+    assert len(res.stdout.strip().splitlines()) == 1
+    obj = json.loads(res.stdout)
+    assert obj["samples"] == 2000 and obj["seconds"] > 0
+    for pair in ("L", "R"):
+        assert obj["pairs"][pair]["span_min_mm"] <= obj["pairs"][pair]["span_max_mm"]
+    assert obj["rail_spacing_mm"] == {"min": 62.0, "max": 112.0}
+    assert obj["below_vehicle_mm"] > 150 and 0 < obj["collision_free_fraction"] < 1
+    assert any("given thickness 4.0 mm" == g["feature"] for g in obj["pairs"]["L"]["grasp"])
+    assert any("ASSUMPTION" in a for a in obj["assumptions"])
+    for name in ("reach.md", "reach.png", "reach.json"):
+        assert (out / name).stat().st_size > 0
+    assert "ASSUMPTION (bay size)" in (out / "reach.md").read_text()
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--samples", "10"], "payload: error: --samples must be at least 1000 (got 10)"),
+        (["--thickness", "-0.01"], "payload: error: --thickness must be between 0 and 1 m"),
+        (["--bay-size", "0.2", "0.1", "0"], "payload: error: --bay-size: every size must be"),
+    ],
+)
+def test_report_reach_bad_input_is_one_line_exit_2(tmp_path, args, message):
+    res = run_cli("report", "reach", *args, "--out", str(tmp_path))
+    assert res.returncode == 2
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(message)
+
+
+def test_generated_reach_report_is_committed():
+    data = json.loads((ROOT / "analyses" / "reach.json").read_text())
+    assert data["samples"] >= 100_000 and data["design"] == "cad/design.toml"
+    assert (ROOT / "analyses" / "reach.png").exists()
+    assert "ASSUMPTION" in (ROOT / "analyses" / "reach.md").read_text()
