@@ -287,9 +287,7 @@ def run_trial(
         if bar is not None:
             bar.stop()
         driver.close()
-    result = finish_trial(
-        out, rec_path, min_interval_s=CONFIRM_MIN_S, max_gap_s=CONFIRM_MAX_GAP_S
-    )
+    result = finish_trial(out, rec_path, min_interval_s=CONFIRM_MIN_S, max_gap_s=CONFIRM_MAX_GAP_S)
     result["steps"] = stats.steps
     (out / "metrics.json").write_text(json.dumps(result, indent=2) + "\n")
     return result
