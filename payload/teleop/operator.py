@@ -104,7 +104,9 @@ class OperatorPlan:
             from practice).
         full_speed_offset: Wrist offset beyond the sphere for full speed [m].
         max_speed: Full speed [m/s].
-        brake_accel: Deceleration the operator plans with [m/s^2].
+        brake_accel: Deceleration the operator plans with [m/s^2]: what practice teaches
+            about the loaded vehicle (Astrobee's torque bound limits a 26 kg stack with the
+            CTB hanging below it to about 0.0026 m/s^2 fore-aft).
         corner_speed: Speed the operator slows to at a turn waypoint [m/s].
         waypoint_radius: Distance at which a waypoint counts as passed [m].
         rail_distance: Inter-wrist distance held during the task [m].
@@ -117,8 +119,8 @@ class OperatorPlan:
     sphere_radius: float = 0.05
     full_speed_offset: float = 0.12
     max_speed: float = 0.20
-    brake_accel: float = 0.012
-    corner_speed: float = 0.06
+    brake_accel: float = 0.002
+    corner_speed: float = 0.04
     waypoint_radius: float = 0.35
     rail_distance: float = 0.34
     heading0: float = 0.0
