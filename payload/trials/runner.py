@@ -142,6 +142,28 @@ def run_trial(
     max_time: float = MAX_TRIAL_S,
     progress: bool = False,
 ) -> dict[str, Any]:
+    """Run one trial and write its folder (reproducible: see :func:`_run_trial`).
+
+    The numerical libraries run single-threaded during the trial: multi-threaded BLAS
+    sums in a different order, and the contact dynamics amplify the last-bit
+    differences, so the same seed would otherwise give slightly different trials in a
+    campaign worker and in a terminal.
+    """
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=1):
+        return _run_trial(seed, operator, replay, out_dir, max_time=max_time, progress=progress)
+
+
+def _run_trial(
+    seed: int,
+    operator: str = "synthetic",
+    replay: Path | None = None,
+    out_dir: Path | None = None,
+    *,
+    max_time: float = MAX_TRIAL_S,
+    progress: bool = False,
+) -> dict[str, Any]:
     """Run one trial and write its folder.
 
     Args:
