@@ -59,9 +59,13 @@ _RANGES: dict[str, PairRange] = {}
 def retargeting() -> tuple[dict[str, PairRetargeter], dict[str, PairRange]]:
     """Production retargeters and pair ranges for our hand (built once per process)."""
     if not _RETARGETERS:
-        for pair in ("L", "R"):
-            _RETARGETERS[pair] = PairRetargeter(pair=pair)
-            _RANGES[pair] = pair_range(_RETARGETERS[pair].kinematics)
+        from threadpoolctl import threadpool_limits
+
+        # single-threaded like the trials themselves, so every process finds the same ranges
+        with threadpool_limits(limits=1):
+            for pair in ("L", "R"):
+                _RETARGETERS[pair] = PairRetargeter(pair=pair)
+                _RANGES[pair] = pair_range(_RETARGETERS[pair].kinematics)
     return _RETARGETERS, _RANGES
 
 
