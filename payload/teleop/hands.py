@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from payload.errors import PayloadError
+from payload.rotations import matrix_to_quat, quat_to_matrix
 
 XR_JOINTS: tuple[str, ...] = (
     "wrist",
@@ -143,18 +144,8 @@ class HandFrame:
 
 def _rotate_quat(q: np.ndarray) -> np.ndarray:
     """Express a WebXR orientation quaternion (w, x, y, z) in the workbench frame."""
-    w, x, y, z = q
-    r = np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-        ]
-    )
-    m = WEBXR_TO_WORKBENCH @ r @ WEBXR_TO_WORKBENCH.T
-    from payload.design.fmt import quat_from_matrix
-
-    return quat_from_matrix(m)
+    r = quat_to_matrix(q)
+    return matrix_to_quat(WEBXR_TO_WORKBENCH @ r @ WEBXR_TO_WORKBENCH.T)
 
 
 def wrist_frame(hand: Hand) -> np.ndarray:

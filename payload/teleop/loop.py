@@ -9,7 +9,6 @@ procedure; the pipeline starts when it is done.
 from __future__ import annotations
 
 import logging
-import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -17,6 +16,7 @@ from typing import Protocol
 
 import numpy as np
 
+from payload.rotations import quat_to_matrix, yaw_of_matrix
 from payload.schema import PayloadCommand, VehicleTwist
 from payload.teleop.calibration import CalibrationProcedure, Captures
 from payload.teleop.hands import HandFrame
@@ -74,20 +74,8 @@ class ReplaySource:
         return self.index >= len(self.frames)
 
 
-def rotation_of(quat: np.ndarray) -> np.ndarray:
-    """Rotation matrix of a (w, x, y, z) unit quaternion, shape (3, 3)."""
-    w, x, y, z = np.asarray(quat, dtype=float)
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-        ]
-    )
-
-
-def yaw_of_rotation(rot: np.ndarray) -> float:
-    return math.atan2(rot[1, 0], rot[0, 0])
+rotation_of = quat_to_matrix
+"""Rotation matrix of a (w, x, y, z) unit quaternion (kept for callers)."""
 
 
 class PhaseTracker:
@@ -204,7 +192,7 @@ def run_session(
         if calibrating:
             calibration.step(frame)
             if calibration.done:
-                heading = yaw_of_rotation(rotation_of(state.astrobee_quat))
+                heading = yaw_of_matrix(quat_to_matrix(state.astrobee_quat))
                 pipeline = make_pipeline(calibration.captures, heading)
         if pipeline is not None and not calibrating:
             a = time.perf_counter()
