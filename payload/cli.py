@@ -58,10 +58,9 @@ def _cmd_build(args: argparse.Namespace) -> int:
     if args.check:
         stale = stale_files(design, root)
         if stale:
-            for rel in stale:
-                print(f"stale: {rel}", file=sys.stderr)
             raise CheckFailed(
-                f"{len(stale)} generated file(s) do not match {design.source}; run `payload build`"
+                f"stale: {', '.join(stale)} ({len(stale)} generated file(s) do not match "
+                f"{design.source}; run `payload build`)"
             )
         print(f"generated files match {design.source} ({time.perf_counter() - t0:.2f} s)")
         return 0
@@ -149,4 +148,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
+    # run the imported module's main so its exception classes are the ones raised
+    from payload.cli import main as _main
+
+    sys.exit(_main())

@@ -53,10 +53,13 @@ class OneEuroFilter:
     def __call__(self, x: np.ndarray, t: float) -> np.ndarray:
         """Filter sample ``x`` taken at time ``t`` [s]; returns the filtered sample."""
         x = np.asarray(x, dtype=np.float64)
-        if self._x is None or self._t is None or t <= self._t or not np.all(np.isfinite(x)):
-            if np.all(np.isfinite(x)):
-                self._x, self._dx, self._t = x.copy(), np.zeros_like(x), t
+        if not np.all(np.isfinite(x)):
+            raise ValueError("One Euro filter: non-finite sample")
+        if self._x is None or self._t is None:
+            self._x, self._dx, self._t = x.copy(), np.zeros_like(x), t
             return x.copy()
+        if t <= self._t:  # a repeated (or older) stamp: nothing new to filter
+            return self._x.copy()
         c = self.config
         dt = t - self._t
         dx = (x - self._x) / dt

@@ -179,42 +179,48 @@ def run_session(
     phases = PhaseTracker()
     t0_wall = time.perf_counter()
     k = 0
-    while True:
-        t = k * CONTROL_DT
-        if t > max_time + 1e-9:
-            break
-        view = world_view(state, t) if world_view is not None else None
-        frame = source.frame(t, view)
-        if frame is None:
-            break
-        step: TeleopStep | None = None
-        calibrating = not calibration.done
-        if calibrating:
-            calibration.step(frame)
-            if calibration.done:
-                heading = yaw_of_matrix(quat_to_matrix(state.astrobee_quat))
-                pipeline = make_pipeline(calibration.captures, heading)
-        if pipeline is not None and not calibrating:
-            a = time.perf_counter()
-            step = pipeline.step(frame, rotation_of(state.astrobee_quat))
-            stats.pipeline_us.append((time.perf_counter() - a) * 1e6)
-            command, twist = step.command, step.twist
+    try:
+        while True:
+            t = k * CONTROL_DT
+            if t > max_time + 1e-9:
+                break
+            view = world_view(state, t) if world_view is not None else None
+            frame = source.frame(t, view)
+            if frame is None:
+                break
+            step: TeleopStep | None = None
+            calibrating = not calibration.done
+            if calibrating:
+                calibration.step(frame)
+                if calibration.done:
+                    heading = yaw_of_matrix(quat_to_matrix(state.astrobee_quat))
+                    pipeline = make_pipeline(calibration.captures, heading)
+            if pipeline is not None and not calibrating:
+                a = time.perf_counter()
+                step = pipeline.step(frame, rotation_of(state.astrobee_quat))
+                stats.pipeline_us.append((time.perf_counter() - a) * 1e6)
+                command, twist = step.command, step.twist
+            driver.send(command)
+            driver.command_twist(twist)
+            state = driver.step(1)
+            payload = driver.read()
+            speed = float(np.linalg.norm(state.astrobee_linear))
+            phase = phases.label(calibrating, step, speed)
+            if on_step is not None:
+                on_step(StepContext(t, phase, frame, step, command, twist, state, payload))
+            k += 1
+            stats.steps = k
+            if pace:
+                lag = time.perf_counter() - t0_wall - k * CONTROL_DT
+                if lag > 0:
+                    stats.overruns += 1
+                else:
+                    time.sleep(-lag)
+            if source.finished:
+                break
+    finally:
+        # whatever ended the session (source finished, time cap, an exception), leave the
+        # vehicle braking and the payload holding its last command
+        driver.command_twist(VehicleTwist.zero())
         driver.send(command)
-        driver.command_twist(twist)
-        state = driver.step(1)
-        payload = driver.read()
-        speed = float(np.linalg.norm(state.astrobee_linear))
-        phase = phases.label(calibrating, step, speed)
-        if on_step is not None:
-            on_step(StepContext(t, phase, frame, step, command, twist, state, payload))
-        k += 1
-        stats.steps = k
-        if pace:
-            lag = time.perf_counter() - t0_wall - k * CONTROL_DT
-            if lag > 0:
-                stats.overruns += 1
-            else:
-                time.sleep(-lag)
-        if source.finished:
-            break
     return stats

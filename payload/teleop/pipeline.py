@@ -186,6 +186,8 @@ class TeleopPipeline:
             for pair, r in retargeters.items()
         }
         q0 = np.zeros(len(MANIPULATION_JOINTS)) if initial is None else np.array(initial, float)
+        # start from the payload's posture and blend the first commands in (no jump at the
+        # start of control, as after a tracking recovery)
         self.blend = {p: Blender(q0[self.index[p]].copy()) for p in retargeters}
         for pair, r in retargeters.items():
             r.reset(q0[self.index[pair]])
@@ -225,9 +227,10 @@ class TeleopPipeline:
                 try:
                     targets, q_ref = self.calibration.pairs[pair].command(human_features(hand))
                     fresh, solves[pair] = self.retargeters[pair].solve(targets, q_ref=q_ref)
-                except RetargetError as exc:
-                    events.append(SafetyEvent(t, side, "invalid", f"finger channel: {exc}"))
-                    log.warning("teleop: %s hand finger channel held: %s", side, exc)
+                except Exception as exc:  # any solver failure holds the pair, never the loop
+                    what = exc if isinstance(exc, RetargetError) else repr(exc)
+                    events.append(SafetyEvent(t, side, "invalid", f"finger channel: {what}"))
+                    log.warning("teleop: %s hand finger channel held: %s", side, what)
             q = self.blend[pair].step(fresh, weights[side] if fresh is not None else 0.0)
             q_pair[pair] = q
             # warm start from what is actually commanded (held or blended)

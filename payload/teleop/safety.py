@@ -26,13 +26,17 @@ class SafetyConfig:
     Attributes:
         timeout: A hand without valid frames for longer than this is lost [s] (issue: 100 ms).
         max_extent: A joint farther than this from its wrist makes the frame absurd [m].
-        workspace_radius: A wrist farther than this from its calibrated neutral is absurd [m].
+        workspace_radius: A wrist farther than this from its calibrated neutral is absurd [m]
+            (about an arm's reach).
+        max_wrist_speed: A wrist moving faster than this since its last valid frame is a
+            tracking glitch [m/s] (hands rarely exceed 3 m/s).
         recovery_time: Blend time after tracking returns [s].
     """
 
     timeout: float = 0.1
     max_extent: float = 0.35
-    workspace_radius: float = 1.5
+    workspace_radius: float = 0.8
+    max_wrist_speed: float = 5.0
     recovery_time: float = 0.5
 
 
@@ -95,7 +99,7 @@ class TrackingSupervisor:
         self.last_stamp = -np.inf
         self.events: list[SafetyEvent] = []
 
-    def _valid(self, side: str, hand: Hand) -> tuple[bool, str]:
+    def _valid(self, side: str, hand: Hand, t: float) -> tuple[bool, str]:
         c = self.config
         if not hand.tracked:
             return False, "not tracked"
@@ -108,6 +112,11 @@ class TrackingSupervisor:
             dist = float(np.linalg.norm(hand.wrist - self.neutral[side]))
             if dist > c.workspace_radius:
                 return False, f"wrist {dist:.2f} m from neutral"
+        st = self.status[side]
+        if st.last_valid is not None and t > st.last_valid_stamp:
+            jump = float(np.linalg.norm(hand.wrist - st.last_valid.wrist))
+            if jump > c.max_wrist_speed * (t - st.last_valid_stamp):
+                return False, f"wrist jumped {jump:.2f} m in {t - st.last_valid_stamp:.3f} s"
         return True, ""
 
     def _event(self, stamp: float, side: str, kind: str, detail: str) -> SafetyEvent:
@@ -134,12 +143,13 @@ class TrackingSupervisor:
         for side in ("left", "right"):
             st = self.status[side]
             hand = frame.hand(side)
-            ok, why = (False, "time went backwards") if backwards else self._valid(side, hand)
+            ok, why = (False, "time went backwards") if backwards else self._valid(side, hand, t)
             if ok:
                 if st.lost:
-                    if st.lost_since is not None:
-                        events.append(self._event(t, side, "regained", "tracking regained"))
-                        st.recovering_until = t + c.recovery_time
+                    # first acquisition and every recovery blend in over recovery_time
+                    kind = "regained" if st.lost_since is not None else "acquired"
+                    events.append(self._event(t, side, kind, f"tracking {kind}"))
+                    st.recovering_until = t + c.recovery_time
                     st.lost = False
                     st.lost_since = None
                 st.last_valid, st.last_valid_stamp, st.was_invalid = hand, t, False
@@ -148,7 +158,7 @@ class TrackingSupervisor:
                     events.append(self._event(t_eval, side, "invalid", why))
                 st.was_invalid = True
                 fault = why != "not tracked"  # NaN, absurd or backwards: no bridging
-                if not st.lost and (fault or t_eval - st.last_valid_stamp > c.timeout):
+                if not st.lost and (fault or t_eval - st.last_valid_stamp > c.timeout + 1e-9):
                     st.lost = True
                     st.lost_since = t_eval
                     detail = why if fault else f"no valid frame for > {c.timeout} s"
@@ -174,9 +184,11 @@ class Blender:
         if fresh is None or weight <= 0.0:
             self._anchor = self.held
             return self.held
-        if weight >= 1.0 or self._anchor is None:
+        if weight >= 1.0 or self.held is None:
             self.held = np.array(fresh, dtype=float)
             self._anchor = None
             return self.held
+        if self._anchor is None:
+            self._anchor = self.held
         self.held = (1.0 - weight) * self._anchor + weight * np.asarray(fresh, float)
         return self.held

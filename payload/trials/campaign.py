@@ -389,6 +389,7 @@ def summarize(results: Sequence[dict[str, Any]]) -> dict[str, Any]:
             **{k: r.get(k) for k in METRIC_KEYS},
             "final_module": r.get("final_module"),
             "error": r.get("error"),
+            **({"traceback": r["traceback"]} if r.get("traceback") else {}),
             "wall_s": r.get("wall_s"),
         }
         for r in rows

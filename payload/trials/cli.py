@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -110,9 +109,12 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
         print(f"wrote {out / 'summary.md'} and {out / 'summary.json'}")
     errors = [r for r in results if r.get("error")]
     if errors:
-        for r in errors:
-            print(f"trial {r['seed']}: {r['error']}", file=sys.stderr)
-        raise CheckFailed(f"{len(errors)} of {len(results)} trial(s) raised an error")
+        first = errors[0]
+        raise CheckFailed(
+            f"{len(errors)} of {len(results)} trial(s) raised an error (seeds "
+            f"{', '.join(str(r['seed']) for r in errors)}; first: {first['error']}; "
+            "tracebacks in summary.json)"
+        )
     return 0
 
 

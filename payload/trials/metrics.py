@@ -43,6 +43,7 @@ from payload.errors import PayloadError
 from payload.trials.recorder import MODULES, Recording
 
 SUCCESS_CRITERION = (
+    "the recording was not aborted AND "
     "CTB in the destination module at the end of the recording AND the first continuous "
     "confirmed-contact interval starts no later than the CTB's final entry into the "
     "destination and lasts at least until arrival (or to the end); arrival = the later of "
@@ -304,7 +305,8 @@ def compute_metrics(
         ref = (float(bp[0, 0]), float(bp[0, 1]), float(bp[0, 2]))
         to_end = b == n - 1
     success = bool(
-        entry is not None
+        not recording.meta.get("aborted")
+        and entry is not None
         and arrival is not None
         and interval is not None
         and interval[0] <= entry

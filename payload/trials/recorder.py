@@ -348,6 +348,12 @@ class TrialRecorder:
         exc: BaseException | None,
         tb: TracebackType | None,
     ) -> None:
+        if exc_type is not None and self._writer is not None:
+            # the run died: say so in the file, so nobody scores it as a finished trial
+            try:
+                self.write_meta({"aborted": f"{exc_type.__name__}: {exc}"})
+            except RecordingError:
+                pass
         self.close()
 
     # -- writing -----------------------------------------------------------------------
