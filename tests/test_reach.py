@@ -231,6 +231,7 @@ def test_reach_figures_against_closed_forms(design, small):
 def test_grasp_witnesses_hold_up_under_an_independent_check(design, tree, geom, small):
     r = design.finger.pad.radius
     vehicle = [box_geometry(lo, hi) for lo, hi in VEHICLE.body_boxes()]
+    fresh = build_tree(design)  # the unbatched kinematics, built anew
     closed = 0
     for p in small.pairs:
         f1, f2 = p.fingers
@@ -239,14 +240,20 @@ def test_grasp_witnesses_hold_up_under_an_independent_check(design, tree, geom, 
             if not g.closes:
                 continue
             closed += 1
-            q = dict(tree.posture("home"))
+            # the witness as deployed: stage at its full travel, rail at home
+            q = {"rail": design.home.rail, "stage": design.stage.travel}
             q.update(zip([f"{f}_{j}" for f in (f1, f2) for j in FINGER_JOINTS], g.q))
-            tips = tree.frame_positions(q)
+            tips = fresh.frame_positions(q)
             p1, p2 = tips[f"{f1}_tip"], tips[f"{f2}_tip"]
             assert np.linalg.norm(p2 - p1) == pytest.approx(g.feature.thickness + 2 * r, abs=1e-4)
+            assert g.span == pytest.approx(np.linalg.norm(p2 - p1), abs=1e-9)
             side = 1.0 if tree.joint_map[f"{f2}_mcp_flex"].xyz[1] > 0 else -1.0
             assert opposition(p1[None], p2[None], side)[0] <= np.radians(30) + 1e-9
-            assert max(p1[2], p2[2]) + r <= VEHICLE.bottom_z + 1e-9
+            assert g.angle == pytest.approx(opposition(p1[None], p2[None], side)[0], abs=1e-6)
+            # depth: the higher pad's top (tip z plus the pad radius) below the bottom face
+            depth = VEHICLE.bottom_z - (max(p1[2], p2[2]) + r)
+            assert g.depth == pytest.approx(depth, abs=1e-9)
+            assert depth >= -1e-9
             poses = geom.poses(q)
             checked = [*own, "base", "stage", "carriage"]
             for link in own:

@@ -471,12 +471,17 @@ def pair_joints(pair: str) -> list[str]:
     return [f"{f}_{j}" for f in PAIRS[pair] for j in FINGER_JOINTS]
 
 
+def grasp_base(tree: KinematicTree) -> dict[str, float]:
+    """Rail and stage of every grasp witness: rail at home, stage fully deployed [m]."""
+    return {"rail": float(tree.design.home.rail), "stage": float(tree.joint_map["stage"].upper)}
+
+
 def _pair_tips(tree: KinematicTree, pair: str, q8: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Fingertips of a pair for joint rows of shape (n, 8), rail and stage at 0."""
+    """Fingertips of a pair for joint rows of shape (n, 8), at :func:`grasp_base`."""
     names = pair_joints(pair)
-    tips = batch_frames(
-        tree, {j: q8[:, i] for i, j in enumerate(names)}, [f"{f}_tip" for f in PAIRS[pair]]
-    )
+    q = {j: q8[:, i] for i, j in enumerate(names)}
+    q.update({j: np.full(len(q8), v) for j, v in grasp_base(tree).items()})
+    tips = batch_frames(tree, q, [f"{f}_tip" for f in PAIRS[pair]])
     f1, f2 = PAIRS[pair]
     return tips[f"{f1}_tip"], tips[f"{f2}_tip"]
 
@@ -606,7 +611,8 @@ class GraspResult(NamedTuple):
         span: The witness's fingertip separation [m] (NaN when none).
         angle: The witness's pinch-axis angle from the across-array axis [rad].
         depth: How far the witness's higher pad stays below the vehicle's bottom face [m].
-        q: The witness's 8 pair joints [rad] (empty when none).
+        q: The witness's 8 pair joints [rad] (empty when none); the rail and stage are
+            at :func:`grasp_base` (rail at home, stage deployed).
     """
 
     feature: GraspFeature
@@ -674,7 +680,8 @@ def grasp_check(
 
     A pair closes on thickness t when it has a witness: a configuration inside the
     joint limits with its pads opposing (pinch axis within :data:`OPPOSITION_CONE` of
-    the across-array axis), both pads wholly below the vehicle's bottom face, a
+    the across-array axis), both pads wholly below the vehicle's bottom face (rail at
+    home, stage deployed: :func:`grasp_base`), a
     fingertip separation within ``tolerance`` of t plus the two pad radii, and no
     contact of the pair's links (``is_free``). The candidates whose separation lies
     within ``window`` of the target are moved onto it by a bounded least-squares step
@@ -845,6 +852,7 @@ class ReachAnalysis:
             "parent/child links are never checked",
             f"opposing pads: pinch axis within {np.degrees(OPPOSITION_CONE):.0f} deg of the "
             "across-array (y) axis, both pads wholly below the vehicle's bottom face",
+            "grasp witnesses: rail at its home position, stage fully deployed",
             "CTB strap and edge thicknesses marked ASSUMPTION are not measured values",
         ]
 
@@ -1004,6 +1012,8 @@ def analyse_reach(
         top = np.maximum(tips[:, i1, 2], tips[:, i2, 2]) + r
         opp = free & (ang <= OPPOSITION_CONE) & (top <= vehicle.bottom_z)
         base = q[0].copy()
+        for j, v in grasp_base(tree).items():
+            base[ALL_JOINTS.index(j)] = v
         cols = c1 + c2
 
         def pair_free(q8: np.ndarray, own=own, others=others, base=base, cols=cols) -> bool:
@@ -1073,6 +1083,7 @@ __all__ = [
     "columns",
     "finger_link_names",
     "fingertips",
+    "grasp_base",
     "grasp_check",
     "opposition",
     "pair_joints",

@@ -84,8 +84,8 @@ def finish_trial(
     modules: Sequence[Any] | None = None,
     *,
     destination: str = "node2",
-    min_interval_s: float = 0.0,
-    max_gap_s: float = 0.0,
+    min_interval_s: float | None = None,
+    max_gap_s: float | None = None,
 ) -> dict[str, Any]:
     """Score a finished (or cut-short) recording and write the trial's files.
 
@@ -115,6 +115,12 @@ def finish_trial(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     rec = read_recording(recording_path)
+    # the contact definition the trial was recorded with, unless the caller overrides it
+    recorded = rec.meta.get("contact_definition") or {}
+    if min_interval_s is None:
+        min_interval_s = float(recorded.get("min_interval_s", 0.0))
+    if max_gap_s is None:
+        max_gap_s = float(recorded.get("max_gap_s", 0.0))
     metrics = compute_metrics(
         rec, destination=destination, min_interval_s=min_interval_s, max_gap_s=max_gap_s
     )
@@ -511,8 +517,8 @@ def load_trial_results(
     out_dir: str | Path,
     recompute: bool = False,
     *,
-    min_interval_s: float = 0.0,
-    max_gap_s: float = 0.0,
+    min_interval_s: float | None = None,
+    max_gap_s: float | None = None,
 ) -> list[dict[str, Any]]:
     """Per-trial results from a campaign folder's ``trial-*`` folders, ordered by seed.
 
@@ -521,8 +527,9 @@ def load_trial_results(
         recompute: Rescore every trial from its ``log.mcap`` (rewriting ``metrics.json``
             and the figures) instead of reading ``metrics.json``; a trial without
             ``metrics.json`` is always rescored.
-        min_interval_s: Contact-interval relaxation used when rescoring (0 = paper).
-        max_gap_s: Contact-interval relaxation used when rescoring (0 = paper).
+        min_interval_s: Contact-interval definition used when rescoring (0 = paper;
+            None = the one each recording was made with).
+        max_gap_s: Same for the bridged indicator dropouts.
 
     Raises:
         CampaignError: The folder does not exist or holds no trial folders.

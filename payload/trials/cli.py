@@ -123,9 +123,10 @@ def _cmd_trials_summarize(args: argparse.Namespace) -> int:
     from payload.trials.campaign import load_trial_results, summary_markdown, write_summary
 
     for name in ("min_contact_s", "max_gap_s"):
-        if getattr(args, name) < 0:
+        value = getattr(args, name)
+        if value is not None and value < 0:
             raise TrialsCliError(f"--{name.replace('_', '-')} must be >= 0")
-    relaxed = args.min_contact_s > 0 or args.max_gap_s > 0
+    relaxed = args.min_contact_s is not None or args.max_gap_s is not None
     results = load_trial_results(
         args.dir,
         recompute=args.recompute or relaxed,
@@ -286,14 +287,16 @@ def register(
     s.add_argument(
         "--min-contact-s",
         type=float,
-        default=0.0,
-        help="rescore, skipping contact runs shorter than this [s] (paper: 0)",
+        default=None,
+        help="rescore, skipping contact runs shorter than this [s] (paper: 0; default: "
+        "as recorded)",
     )
     s.add_argument(
         "--max-gap-s",
         type=float,
-        default=0.0,
-        help="rescore, bridging contact-indicator dropouts up to this long [s] (paper: 0)",
+        default=None,
+        help="rescore, bridging contact-indicator dropouts up to this long [s] (paper: 0; "
+        "default: as recorded)",
     )
     s.add_argument("--json", action="store_true", help="print one JSON object")
     s.set_defaults(func=_cmd_trials_summarize)

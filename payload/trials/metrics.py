@@ -42,6 +42,13 @@ from scipy.spatial.transform import Rotation
 from payload.errors import PayloadError
 from payload.trials.recorder import MODULES, Recording
 
+CONFIRM_MIN_S = 0.5
+"""The workbench's *confirmed* contact: opposing contact held at least this long [s]. The
+pads chatter for a few tenths of a second when they first land on a handle at 50 Hz."""
+
+CONFIRM_MAX_GAP_S = 0.1
+"""Indicator dropouts at most this long are bridged inside a confirmed interval [s]."""
+
 SUCCESS_CRITERION = (
     "the recording was not aborted AND "
     "CTB in the destination module at the end of the recording AND the first continuous "
@@ -338,6 +345,8 @@ def compute_metrics(
 
 
 __all__ = [
+    "CONFIRM_MAX_GAP_S",
+    "CONFIRM_MIN_S",
     "SUCCESS_CRITERION",
     "MetricsError",
     "TrialMetrics",

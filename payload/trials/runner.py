@@ -39,14 +39,6 @@ log = logging.getLogger(__name__)
 MODULE_NAMES = {"kibo": "kibo", "vestibule": "hatch", "node2": "node2"}
 MAX_TRIAL_S = 240.0
 
-CONFIRM_MIN_S = 0.5
-"""Opposing contact must hold this long to count as *confirmed* [s]: the first touch-down
-of the pads on the handle chatters at 50 Hz for a few tenths of a second."""
-
-CONFIRM_MAX_GAP_S = 0.1
-"""Indicator dropouts this short are bridged inside a confirmed interval [s] (a pad rolling
-on the handle for a few steps, like a tracking dropout the operator never sees)."""
-
 
 class TrialError(PayloadError):
     """A trial could not be run (bad operator choice, unreadable replay)."""
@@ -183,6 +175,7 @@ def _run_trial(
     """
     from payload.sim.driver import SimDriver
     from payload.trials.campaign import finish_trial
+    from payload.trials.metrics import CONFIRM_MAX_GAP_S, CONFIRM_MIN_S
     from payload.trials.recorder import StepRecord, TrialRecorder
 
     if operator not in ("synthetic", "replay"):
@@ -234,6 +227,7 @@ def _run_trial(
         "traits": traits,
         "route": layout.route().tolist(),
         "modules": _module_rects(layout),
+        "contact_definition": {"min_interval_s": CONFIRM_MIN_S, "max_gap_s": CONFIRM_MAX_GAP_S},
     }
     bar = None
     if progress:
