@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import sys
 from pathlib import Path
 from typing import Any
@@ -30,3 +31,15 @@ def design():
     from payload.design import load_design
 
     return load_design(DESIGN)
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _isolated_payload_cache(tmp_path_factory):
+    """Compiled solvers go to a temporary ``PAYLOAD_CACHE_DIR``, not the user's cache."""
+    old = os.environ.get("PAYLOAD_CACHE_DIR")
+    os.environ["PAYLOAD_CACHE_DIR"] = str(tmp_path_factory.mktemp("payload-cache"))
+    yield
+    if old is None:
+        os.environ.pop("PAYLOAD_CACHE_DIR", None)
+    else:
+        os.environ["PAYLOAD_CACHE_DIR"] = old

@@ -263,10 +263,17 @@ class _CompiledSolve:
                     check=False,
                 )
                 if proc.returncode != 0:
+                    log = directory / f"{name}_{key}.log"
+                    log.write_text(
+                        f"$ {' '.join(proc.args)}\nexit {proc.returncode}\n"
+                        f"--- stdout\n{proc.stdout}--- stderr\n{proc.stderr}"
+                    )
                     raise RetargetError(
-                        f"compiling the retargeting solver failed: {proc.stderr[-500:]}"
+                        f"compiling the retargeting solver failed ({Path(compiler).name} "
+                        f"exit {proc.returncode}); log: {log}"
                     )
                 os.replace(out, lib_path)
+            (directory / f"{name}_{key}.log").unlink(missing_ok=True)  # an older failure's
             _prune(directory, name)
         self.path = lib_path
         self._lib = ctypes.CDLL(str(lib_path))
@@ -323,6 +330,8 @@ class PairRetargeter(Retargeter):
         backend: The backend in use (``compiled`` or ``vm``).
         function: The CasADi function of one pair solve.
         library: Path of the compiled shared library, or ``None`` in the virtual machine.
+        backend_reason: Why ``auto`` fell back to the virtual machine (one line, naming
+            the compiler log file when compiling failed), else ``None``.
 
     ``solve(targets, q_prev=None, q_ref=None) -> (q, info)``: see
     :meth:`~payload.retarget.solver.Retargeter.solve`. An instance owns its solver's
@@ -343,6 +352,7 @@ class PairRetargeter(Retargeter):
         name = f"payload_retarget_{_slug(self.kinematics.hand.name)}_{_slug(self.pair)}"
         self.function: ca.Function = build_solve_function(self.kinematics, self.config, name)
         self.library: Path | None = None
+        self.backend_reason: str | None = None
         self._compiled: _CompiledSolve | None = None
         compiler = _compiler() if backend != "vm" else None
         if backend == "compiled" and compiler is None:
@@ -352,14 +362,20 @@ class PairRetargeter(Retargeter):
                 self._compiled = _CompiledSolve(self.function, compiler)
                 self.library = self._compiled.path
             except (RetargetError, OSError) as exc:
+                reason = " ".join(str(exc).split())  # one line, whatever the OS says
                 if backend == "compiled":
-                    raise
+                    if isinstance(exc, RetargetError):
+                        raise
+                    raise RetargetError(f"loading the retargeting solver failed: {reason}") from exc
+                self.backend_reason = reason
                 warnings.warn(
-                    f"retargeting solver not compiled ({exc}); using CasADi's virtual machine",
+                    f"retargeting solver not compiled ({reason}); using CasADi's virtual machine",
                     RuntimeWarning,
                     stacklevel=2,
                 )
                 self._compiled = None
+        elif backend == "auto":
+            self.backend_reason = "no C compiler found (set CC or install gcc)"
         self.backend: str = "compiled" if self._compiled is not None else "vm"
 
     def solve(

@@ -65,6 +65,8 @@ def _print_table(r: dict) -> None:
     )
     console = Console()
     console.print(t)
+    if p.get("backend_reason"):
+        console.print(f"production backend: vm ({p['backend_reason']})", markup=False)
     console.print(
         f"speedup (median) {r['speedup_median']:.1f}x   "
         f"cost not worse {100 * r['cost_not_worse_fraction']:.2f} %   "

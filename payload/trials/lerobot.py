@@ -260,7 +260,6 @@ def export_lerobot(
         raise LeRobotExportError(f"fps must be positive, got {fps}")
     sources = resolve_runs(runs)
     out = Path(out)
-    _prepare_out(out, overwrite)
 
     episodes: list[dict[str, Any]] = []
     tasks: list[str] = []
@@ -282,8 +281,11 @@ def export_lerobot(
         items = track(sources, description="reading runs", console=Console(stderr=True))
         return [(s, read_recording(s)) for s in items]
 
-    for ep, (src, rec) in enumerate(read_all()):
-        state, action = _episode_frames(rec, src, fps)
+    loaded = read_all()
+    # check every recording before touching an existing dataset at ``out``
+    frames = [_episode_frames(rec, src, fps) for src, rec in loaded]
+    _prepare_out(out, overwrite)
+    for ep, ((src, rec), (state, action)) in enumerate(zip(loaded, frames)):
         n = state.shape[0]
         ep_task = task or str(rec.meta.get("task") or DEFAULT_TASK)
         if ep_task not in tasks:
