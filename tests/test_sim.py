@@ -134,6 +134,42 @@ def test_astrobee_and_ctb_bodies(world):
     assert heavy.model.body_mass[heavy.ctb] == pytest.approx(20.0)
 
 
+def test_vehicle_geometry_comes_from_the_design(world):
+    """The payload mount and Astrobee's box follow the design's [vehicle] table."""
+    import dataclasses
+
+    m = world.model
+    base = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, PAYLOAD_PREFIX + "base")
+    box = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, "astrobee_collision")
+    assert m.body_parentid[base] == world.astrobee
+    # cad/design.toml: a 0.32 m cube, bays centred and 0.10 m deep -> (0, 0, -0.16 + 0.10)
+    assert world.vehicle.body_size == pytest.approx(tuple(world.design.vehicle["body_size"]))
+    assert m.body_pos[base] == pytest.approx([0.0, 0.0, -0.06], abs=1e-12)
+    assert world.mount == pytest.approx([0.0, 0.0, -0.06], abs=1e-12)
+    # deeper bays (0.14 m) in a smaller, off-centre body
+    vehicle = {"body_size": [0.34, 0.30, 0.30], "body_offset": [0.03, -0.02]}
+    vehicle["bay_size"] = [0.20, 0.10, 0.14]
+    other = build_world(design=dataclasses.replace(world.design, vehicle=vehicle))
+    m2 = other.model
+    base2 = mujoco.mj_name2id(m2, mujoco.mjtObj.mjOBJ_BODY, PAYLOAD_PREFIX + "base")
+    # payload origin = top centre of the bays = (-0.03, 0.02, -0.30 / 2 + 0.14)
+    expected = np.array([-0.03, 0.02, -0.01])
+    assert m2.body_pos[base2] == pytest.approx(expected, abs=1e-12)
+    assert m2.body_quat[base2] == pytest.approx(m.body_quat[base])
+    assert other.mount == pytest.approx(expected, abs=1e-12)
+    assert 2 * m2.geom_size[box] == pytest.approx([0.34, 0.30, 0.30])
+    assert m2.geom_pos[box] == pytest.approx([0.0, 0.0, 0.0])
+    # the CTB starts under the moved payload: its offset moves with the mount
+    d, d2 = world.make_data(), other.make_data()
+
+    def ctb_in_body(w, data):
+        rot = data.xmat[w.astrobee].reshape(3, 3)
+        return rot.T @ (data.xpos[w.ctb] - data.xpos[w.astrobee])
+
+    moved = ctb_in_body(other, d2) - ctb_in_body(world, d)
+    assert moved == pytest.approx(expected - [0.0, 0.0, -0.06], abs=1e-9)
+
+
 def test_bad_config_is_one_clear_error():
     with pytest.raises(SimError, match="unknown CTB size 'huge'"):
         WorldConfig(ctb="huge")
@@ -542,6 +578,38 @@ def test_sim_driver_protocol(world):
         sim.read()
 
 
+def _quat_mul(a, b) -> np.ndarray:
+    out = np.zeros(4)
+    mujoco.mju_mulQuat(out, np.asarray(a, float), np.asarray(b, float))
+    return out
+
+
+def _inertia_from_model(m, d, bodies, frame_body: int):
+    """Mass, CoM and inertia about the CoM of ``bodies``, from MuJoCo's per-body inertials.
+
+    Each body's principal frame is placed from ``body_ipos``/``body_iquat`` and the body pose
+    (``xpos``/``xquat``); the sum uses the parallel-axis theorem about the combined CoM and is
+    expressed in ``frame_body``'s frame. The CoM is relative to that body's CoM.
+    """
+    masses, centres, tensors = [], [], []
+    for b in bodies:
+        rb = _quat_to_rot(d.xquat[b])
+        centres.append(d.xpos[b] + rb @ m.body_ipos[b])
+        ri = _quat_to_rot(_quat_mul(d.xquat[b], m.body_iquat[b]))
+        tensors.append(ri @ np.diag(m.body_inertia[b]) @ ri.T)
+        masses.append(m.body_mass[b])
+    masses, centres = np.array(masses), np.array(centres)
+    total = masses.sum()
+    com = masses @ centres / total
+    inertia = np.zeros((3, 3))
+    for mass, c, tensor in zip(masses, centres, tensors):
+        r = c - com
+        inertia += tensor + mass * (r @ r * np.eye(3) - np.outer(r, r))
+    rf = _quat_to_rot(d.xquat[frame_body])
+    origin = d.xpos[frame_body] + rf @ m.body_ipos[frame_body]
+    return total, rf.T @ (com - origin), rf.T @ inertia @ rf
+
+
 def test_mass_properties_match_mujoco_com(world):
     sim = SimDriver(world)
     props = sim.mass_properties(include_ctb=True)
@@ -551,6 +619,43 @@ def test_mass_properties_match_mujoco_com(world):
     assert d.xipos[world.astrobee] + rot @ props.com == pytest.approx(d.subtree_com[0])
     assert np.allclose(props.inertia, props.inertia.T)
     assert np.all(np.linalg.eigvalsh(props.inertia) > 0)
+
+
+def test_mass_properties_inertia_matches_mujoco(world):
+    """The inertia tensor against an independent sum of MuJoCo's per-body inertials."""
+    sim = SimDriver(world)
+    m, d = sim.model, sim.data
+    # a general pose: Astrobee turned about a skew axis, fingers and rail off home, CTB turned
+    a = world.astrobee_qpos
+    axis = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
+    d.qpos[a + 3 : a + 7] = np.append(math.cos(0.35), math.sin(0.35) * axis)
+    lo, hi = m.jnt_range[[int(np.flatnonzero(m.jnt_qposadr == q)[0]) for q in world.qpos]].T
+    d.qpos[world.qpos] = lo + np.linspace(0.2, 0.8, len(world.qpos)) * (hi - lo)
+    c = world.ctb_qpos
+    d.qpos[c + 3 : c + 7] = _quat_mul(d.qpos[a + 3 : a + 7], [math.cos(0.2), 0.0, math.sin(0.2), 0])
+    mujoco.mj_forward(m, d)
+
+    def subtree(root: int) -> list[int]:
+        out = []
+        for b in range(1, m.nbody):
+            p = b
+            while p not in (0, root):
+                p = int(m.body_parentid[p])
+            if p == root:
+                out.append(b)
+        return out
+
+    vehicle = subtree(world.astrobee)
+    assert world.astrobee in vehicle and world.ctb not in vehicle
+    assert len(vehicle) > 1 + 4 * 4  # Astrobee, the payload structure, four 4-link fingers
+    for include_ctb, bodies in ((False, vehicle), (True, [*vehicle, world.ctb])):
+        props = sim.mass_properties(include_ctb=include_ctb)
+        mass, com, inertia = _inertia_from_model(m, d, bodies, world.astrobee)
+        assert props.mass == pytest.approx(mass)
+        np.testing.assert_allclose(props.com, com, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(props.inertia, inertia, rtol=1e-9, atol=1e-12)
+    # the payload and the CTB matter: the result is not Astrobee's own inertia
+    assert not np.allclose(props.inertia, np.diag(m.body_inertia[world.astrobee]), rtol=0.05)
 
 
 def test_ctb_sizes_are_the_standard_ones():

@@ -37,6 +37,7 @@ from payload.design import (
     load_design,
 )
 from payload.design.build import PROJECT_ROOT
+from payload.envelope.vehicle import Vehicle, vehicle_from_dict
 from payload.errors import PayloadError
 
 PAYLOAD_MJCF = PROJECT_ROOT / "urdf" / "payload.xml"
@@ -60,12 +61,31 @@ ASTROBEE_MASS = 9.5838
 ASTROBEE_INERTIA = (0.15343, 0.14271, 0.16230)
 """Astrobee principal inertia about its centre of mass [kg m^2] (facts.md)."""
 
-ASTROBEE_SIZE = 0.32
-"""Edge of Astrobee's collision cube [m] (facts.md)."""
 
-PAYLOAD_MOUNT = (0.0, 0.0, -0.06)
-"""Payload frame origin in the Astrobee body frame [m]: the top centre of the two lower bays
-(the bays fill the lower 0.10 m of the 0.32 m cube, so -0.16 + 0.10)."""
+def payload_mount(vehicle: Vehicle) -> np.ndarray:
+    """Payload frame origin in the Astrobee body frame, shape (3,) [m].
+
+    The payload frame's origin is the top centre of the two lower bays, which reach down to
+    the vehicle's bottom face; the Astrobee body frame's origin is the body box's centre. So
+    the mount is ``(-body_offset_x, -body_offset_y, -body_size_z / 2 + bay_size_z)``.
+    """
+    ox, oy = vehicle.body_offset
+    return np.array([0.0 - ox, 0.0 - oy, vehicle.bay_size[2] - vehicle.body_size[2] / 2.0])
+
+
+def design_vehicle(design: Design) -> Vehicle:
+    """Astrobee's body and bays from the design's ``[vehicle]`` table (defaults if absent)."""
+    return vehicle_from_dict(design.vehicle, source=design.source)
+
+
+ASTROBEE_SIZE = float(Vehicle().body_size[0])
+"""Fallback only: edge of the collision cube of the default vehicle (0.32 m, facts.md). The
+world sizes Astrobee's collision box from the design's ``vehicle.body_size``."""
+
+PAYLOAD_MOUNT = tuple(float(v) for v in payload_mount(Vehicle()))
+"""Fallback only: :func:`payload_mount` of the default vehicle, (0, 0, -0.06) [m] (the bays
+fill the lower 0.10 m of the 0.32 m cube, so -0.16 + 0.10). The world places the payload at
+:func:`payload_mount` of the design's ``[vehicle]`` table (:attr:`World.mount`)."""
 
 # Collision bits. The payload MJCF uses contype 1 (fingers) and 2 (structure), conaffinity 1.
 _ISS_CONTYPE, _ISS_CONAFFINITY = 4, 1 | 2
@@ -394,6 +414,7 @@ class World:
         force_limit: Actuator force bound of the 18 payload actuators (17 + stage) [N m, N].
         slew_rate: Servo speed bound of the 18 payload actuators (17 + stage) [rad/s, m/s].
         pinch: The scripted handle pinch for this design and handle.
+        vehicle: Astrobee's body and bays, from the design's ``[vehicle]`` table.
     """
 
     model: mujoco.MjModel
@@ -419,6 +440,12 @@ class World:
     force_limit: np.ndarray
     slew_rate: np.ndarray
     pinch: PinchGrasp
+    vehicle: Vehicle = field(default_factory=Vehicle)
+
+    @property
+    def mount(self) -> np.ndarray:
+        """Payload frame origin in the Astrobee body frame, shape (3,) [m]."""
+        return payload_mount(self.vehicle)
 
     @property
     def layout(self) -> IssLayout:
@@ -599,18 +626,18 @@ def _add_iss(spec: mujoco.MjSpec, layout: IssLayout) -> None:
     world.add_light(pos=[layout.hatch_x, layout.kibo.centre[1], 0.9], dir=[0, 0, -1])
 
 
-def _add_astrobee(spec: mujoco.MjSpec, pos, quat) -> mujoco.MjsBody:
+def _add_astrobee(spec: mujoco.MjSpec, vehicle: Vehicle, pos, quat) -> mujoco.MjsBody:
     body = spec.worldbody.add_body(name="astrobee", pos=list(pos), quat=list(quat))
     body.add_freejoint(name="astrobee")
     body.explicitinertial = True
     body.mass = ASTROBEE_MASS
     body.inertia = list(ASTROBEE_INERTIA)
     body.ipos = [0.0, 0.0, 0.0]
-    half = ASTROBEE_SIZE / 2.0
+    half = [float(v) / 2.0 for v in vehicle.body_size]
     body.add_geom(
         name="astrobee_collision",
         type=mujoco.mjtGeom.mjGEOM_BOX,
-        size=[half, half, half],
+        size=half,
         contype=_ASTROBEE_CONTYPE,
         conaffinity=_ASTROBEE_CONAFFINITY,
         group=3,
@@ -620,7 +647,7 @@ def _add_astrobee(spec: mujoco.MjSpec, pos, quat) -> mujoco.MjsBody:
     body.add_geom(
         name="astrobee_visual",
         type=mujoco.mjtGeom.mjGEOM_BOX,
-        size=[half * 0.98, half * 0.98, half * 0.98],
+        size=[h * 0.98 for h in half],
         contype=0,
         conaffinity=0,
         group=2,
@@ -704,11 +731,12 @@ def ctb_offset(design: Design, config: WorldConfig) -> np.ndarray:
     if size is None:
         raise SimError("ctb_offset: the world has no CTB")
     kin = _PayloadKinematics(config.payload_mjcf)
-    tips = kin.tips(PINCH_OPEN, design.home.rail, design.home.stage) + np.asarray(PAYLOAD_MOUNT)
+    tips = kin.tips(PINCH_OPEN, design.home.rail, design.home.stage)
+    tips = tips + payload_mount(design_vehicle(design))
     centre = tips.mean(axis=0)
     h = config.handle
     drop = h.height / 2.0 + h.standoff + size.height / 2.0
-    return np.array([centre[0], 0.0, centre[2] - drop])
+    return np.array([centre[0], centre[1], centre[2] - drop])
 
 
 def _add_ctb(spec: mujoco.MjSpec, size: CtbSize, handle: Handle, friction: float, pos, quat):
@@ -790,11 +818,12 @@ def build_spec(config: WorldConfig | None = None, design: Design | None = None) 
     _add_iss(spec, layout)
     start = layout.route()[0]
     quat = _yaw_quat(layout.start_yaw())
-    astrobee = _add_astrobee(spec, start, quat)
+    vehicle = design_vehicle(design)
+    astrobee = _add_astrobee(spec, vehicle, start, quat)
 
     child = mujoco.MjSpec.from_file(str(config.payload_mjcf))
     # the parent's options rule; match them so the attach reports no conflict
-    frame = astrobee.add_frame(pos=list(PAYLOAD_MOUNT))
+    frame = astrobee.add_frame(pos=payload_mount(vehicle).tolist())
     frame.attach_body(child.body("base"), PAYLOAD_PREFIX, "")
     for key in list(spec.keys):
         spec.delete(key)
@@ -917,6 +946,7 @@ def build_world(config: WorldConfig | None = None, design: Design | None = None)
         force_limit=force,
         slew_rate=speed,
         pinch=pinch_grasp(design, config),
+        vehicle=design_vehicle(design),
     )
 
 
@@ -946,6 +976,8 @@ __all__ = [
     "build_spec",
     "build_world",
     "ctb_offset",
+    "design_vehicle",
+    "payload_mount",
     "pinch_grasp",
     "servo_limits",
 ]
