@@ -261,7 +261,9 @@ def load_design_and_vehicle(path: str | Path | None = None) -> tuple[Design, Veh
     """
     p = Path(path) if path is not None else DEFAULT_DESIGN_PATH
     design = load_design(p)
-    vehicle = Vehicle() if not design.vehicle else vehicle_from_dict(design.vehicle, str(p))
+    vehicle = (
+        Vehicle() if not design.vehicle else vehicle_from_dict(design.vehicle, display_path(p))
+    )
     return design, vehicle
 
 
