@@ -122,7 +122,16 @@ class TrackingSupervisor:
     def _event(self, stamp: float, side: str, kind: str, detail: str) -> SafetyEvent:
         ev = SafetyEvent(stamp, side, kind, detail)
         self.events.append(ev)
-        log.warning("teleop safety: t=%.3f %s hand %s %s", stamp, side, kind, detail)
+        # a bridged dropout or a (re)acquisition is routine; a loss or a fault is not
+        routine = kind in ("acquired", "regained") or detail == "not tracked"
+        log.log(
+            logging.INFO if routine else logging.WARNING,
+            "teleop safety: t=%.3f %s hand %s %s",
+            stamp,
+            side,
+            kind,
+            detail,
+        )
         return ev
 
     def step(self, frame: HandFrame) -> Supervised:

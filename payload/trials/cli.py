@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -49,7 +50,8 @@ def _cmd_trial(args: argparse.Namespace) -> int:
     operator, replay = _parse_operator(args.operator)
     out = Path(args.out) if args.out else Path("runs") / f"trial-{args.seed:04d}"
     run_trial = _run_trial_fn()
-    result = dict(run_trial(seed=args.seed, operator=operator, replay=replay, out_dir=out))
+    extra = {"progress": True} if not args.json and sys.stderr.isatty() else {}
+    result = dict(run_trial(seed=args.seed, operator=operator, replay=replay, out_dir=out, **extra))
     result.setdefault("out_dir", str(out))
     if args.json:
         emit_json(result)
