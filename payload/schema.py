@@ -21,6 +21,9 @@ from payload.errors import PayloadError
 
 N_MANIPULATION = len(MANIPULATION_JOINTS)  # 17
 
+CONTROL_DT = 0.02
+"""Period of the teleoperation loop and of every command stream [s] (the paper's 50 Hz)."""
+
 
 class SchemaError(PayloadError):
     """A command or state does not satisfy the schema."""
@@ -165,6 +168,7 @@ class PayloadDriver(Protocol):
 
 
 __all__ = [
+    "CONTROL_DT",
     "N_MANIPULATION",
     "Health",
     "PayloadCommand",

@@ -8,8 +8,10 @@ import math
 import numpy as np
 import pytest
 
+from payload.design import load_design
 from payload.retarget.calibration import pair_range
 from payload.retarget.casadi_solver import PairRetargeter
+from payload.schema import CONTROL_DT
 from payload.teleop.calibration import CalibrationProcedure
 from payload.teleop.hands import Hand, HandFrame
 from payload.teleop.operator import OperatorPlan, OperatorTraits, SyntheticOperator, WorldView
@@ -21,7 +23,8 @@ from payload.teleop.pipeline import (
 )
 from payload.teleop.replay import HandRecordingWriter, read_hand_recording
 
-DT = 0.02
+DT = CONTROL_DT
+TRAVEL = load_design().rail.travel
 
 
 @pytest.fixture(scope="module")
@@ -48,7 +51,7 @@ def _calibrated(seed: int, retargeting, traits: OperatorTraits | None = None):
         frames.append(fr)
         proc.step(fr)
         t += DT
-    cal = calibrate_operator(proc.captures, ranges, 0.05)
+    cal = calibrate_operator(proc.captures, ranges, TRAVEL)
     return op, proc, cal, frames, t
 
 
@@ -56,7 +59,7 @@ def _pipeline(cal, retargeting) -> TeleopPipeline:
     rts, _ = retargeting
     for r in rts.values():
         r.reset()
-    return TeleopPipeline(cal, rts, TeleopConfig())
+    return TeleopPipeline(cal, rts, TeleopConfig.from_design())
 
 
 QUIET = OperatorTraits(tremor_amp=0.0, noise=0.0, dropout_rate=0.0, reaction=0.2)
@@ -127,7 +130,7 @@ def test_dropout_brakes_holds_fingers_and_recovers_without_a_jump(retargeting):
     # base command stays smooth through loss and recovery: jerk bounded everywhere
     v = np.array([o.base.v_world for o in outs])
     jerk = np.diff(v, n=2, axis=0) / DT**2
-    assert np.linalg.norm(jerk, axis=1).max() <= TeleopConfig().base.max_jerk + 1e-9
+    assert np.linalg.norm(jerk, axis=1).max() <= TeleopConfig.from_design().base.max_jerk + 1e-9
     # recovery: the left pair's command moves a long way (the hand opened meanwhile), but
     # blended over the recovery time instead of in one jump
     change = np.abs(q_left[560] - q_left[507]).max()
@@ -177,7 +180,7 @@ def test_replayed_recording_reproduces_the_command_stream_bit_for_bit(retargetin
                 proc.step(fr)
                 if proc.done:
                     _, ranges = retargeting
-                    pipe = _pipeline(calibrate_operator(proc.captures, ranges, 0.05), retargeting)
+                    pipe = _pipeline(calibrate_operator(proc.captures, ranges, TRAVEL), retargeting)
                 continue
             s = pipe.step(fr)
             out.append(np.concatenate([s.command.q, s.twist.linear, s.twist.angular]))
@@ -196,19 +199,20 @@ def test_inside_the_sphere_the_vehicle_command_is_zero(retargeting):
         out = pipe.step(op.act(_static_world(t)))
         t += DT
         assert np.all(out.twist.linear == 0.0) and np.all(out.twist.angular == 0.0)
-        assert 0.0 <= out.rail <= 0.05
+        assert 0.0 <= out.rail <= TRAVEL
 
 
 @pytest.mark.slow
 def test_synthetic_operator_carries_the_ctb_through_a_turn_in_the_simulator():
     """Calibrate, acquire the CTB, fly >= 2 m with a turn; contact holds through the flight."""
+    from payload.rotations import quat_to_matrix
     from payload.sim.driver import SimDriver
-    from payload.teleop.loop import SyntheticSource, rotation_of, run_session
+    from payload.teleop.loop import SyntheticSource, run_session
     from payload.trials import runner
 
     driver = SimDriver()
     rts, ranges = runner.retargeting()
-    runner.place_ctb_for_teleop(driver, ranges)
+    runner.place_ctb_for_teleop(driver, rts, ranges)
     start = driver.world_state().astrobee_pos.copy()
     heading = driver.world.layout.start_yaw()
     fwd = np.array([math.cos(heading), math.sin(heading), 0.0])
@@ -219,10 +223,10 @@ def test_synthetic_operator_carries_the_ctb_through_a_turn_in_the_simulator():
     q0 = driver.read().q
 
     def make(captures, h):
-        return TeleopPipeline(calibrate_operator(captures, ranges, 0.05, h), rts, initial=q0)
+        return TeleopPipeline(calibrate_operator(captures, ranges, TRAVEL, h), rts, initial=q0)
 
     def view(st, t):
-        rot = rotation_of(st.astrobee_quat)
+        rot = quat_to_matrix(st.astrobee_quat)
         return WorldView(
             t, st.astrobee_pos, rot, rot @ st.astrobee_linear, st.ctb_pos, st.opposing_contact
         )
@@ -230,7 +234,7 @@ def test_synthetic_operator_carries_the_ctb_through_a_turn_in_the_simulator():
     log = []
 
     def on_step(ctx):
-        rot = rotation_of(ctx.state.astrobee_quat)
+        rot = quat_to_matrix(ctx.state.astrobee_quat)
         yaw = math.atan2(rot[1, 0], rot[0, 0])
         log.append((ctx.phase, ctx.state.opposing_contact, ctx.state.astrobee_pos.copy(), yaw))
 

@@ -39,6 +39,7 @@ from payload.design import (
 from payload.design.build import PROJECT_ROOT
 from payload.envelope.vehicle import Vehicle, vehicle_from_dict
 from payload.errors import PayloadError
+from payload.schema import CONTROL_DT as SCHEMA_CONTROL_DT
 
 PAYLOAD_MJCF = PROJECT_ROOT / "urdf" / "payload.xml"
 """The generated payload model attached under Astrobee."""
@@ -49,7 +50,7 @@ PAYLOAD_PREFIX = "payload/"
 PHYSICS_DT = 0.001
 """Physics time step [s] (1 kHz)."""
 
-CONTROL_DT = 0.02
+CONTROL_DT = SCHEMA_CONTROL_DT
 """Control period [s] (50 Hz)."""
 
 SUBSTEPS = round(CONTROL_DT / PHYSICS_DT)

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from payload.errors import PayloadError
-from payload.schema import VehicleTwist
+from payload.schema import CONTROL_DT, VehicleTwist
 
 
 class ChannelError(PayloadError):
@@ -209,7 +209,7 @@ class BaseChannel:
         config: BaseConfig,
         neutral_left: np.ndarray,
         heading0: float = 0.0,
-        dt: float = 0.02,
+        dt: float = CONTROL_DT,
     ) -> None:
         neutral = np.asarray(neutral_left, dtype=float)
         if neutral.shape != (3,) or not np.all(np.isfinite(neutral)):

@@ -17,15 +17,13 @@ from typing import Protocol
 import numpy as np
 
 from payload.rotations import quat_to_matrix, yaw_of_matrix
-from payload.schema import PayloadCommand, VehicleTwist
+from payload.schema import CONTROL_DT, PayloadCommand, VehicleTwist
 from payload.teleop.calibration import CalibrationProcedure, Captures
 from payload.teleop.hands import HandFrame
 from payload.teleop.operator import SyntheticOperator, WorldView
 from payload.teleop.pipeline import TeleopPipeline, TeleopStep
 
 log = logging.getLogger(__name__)
-
-CONTROL_DT = 0.02
 
 
 class HandSource(Protocol):
@@ -72,10 +70,6 @@ class ReplaySource:
     @property
     def finished(self) -> bool:
         return self.index >= len(self.frames)
-
-
-rotation_of = quat_to_matrix
-"""Rotation matrix of a (w, x, y, z) unit quaternion (kept for callers)."""
 
 
 class PhaseTracker:
@@ -197,7 +191,7 @@ def run_session(
                     pipeline = make_pipeline(calibration.captures, heading)
             if pipeline is not None and not calibrating:
                 a = time.perf_counter()
-                step = pipeline.step(frame, rotation_of(state.astrobee_quat))
+                step = pipeline.step(frame, quat_to_matrix(state.astrobee_quat))
                 stats.pipeline_us.append((time.perf_counter() - a) * 1e6)
                 command, twist = step.command, step.twist
             driver.send(command)

@@ -17,7 +17,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from payload.schema import CONTROL_DT
 from payload.teleop.calibration import CalibrationProcedure
+from payload.teleop.channels import BaseConfig, yaw_matrix
 from payload.teleop.handmodel import HandModel
 from payload.teleop.hands import Hand, HandFrame
 
@@ -100,10 +102,8 @@ class OperatorPlan:
             the arrival point.
         neutral_left: Neutral left-wrist position in the operator frame [m].
         neutral_right: Neutral right-wrist position [m].
-        sphere_radius: The base channel's neutral sphere radius [m] (the operator knows it
-            from practice).
-        full_speed_offset: Wrist offset beyond the sphere for full speed [m].
-        max_speed: Full speed [m/s].
+        base: The base channel's settings (sphere radius, full-speed offset, top speed),
+            which the operator knows from practice.
         brake_accel: Deceleration the operator plans with [m/s^2]: what practice teaches
             about the loaded vehicle (Astrobee's torque bound limits a 26 kg stack with the
             CTB hanging below it to about 0.0026 m/s^2 fore-aft).
@@ -116,19 +116,12 @@ class OperatorPlan:
     route: np.ndarray
     neutral_left: np.ndarray = field(default_factory=lambda: np.array([0.35, 0.17, 1.05]))
     neutral_right: np.ndarray = field(default_factory=lambda: np.array([0.35, -0.17, 1.05]))
-    sphere_radius: float = 0.05
-    full_speed_offset: float = 0.12
-    max_speed: float = 0.20
+    base: BaseConfig = field(default_factory=BaseConfig)
     brake_accel: float = 0.002
     corner_speed: float = 0.04
     waypoint_radius: float = 0.35
     rail_distance: float = 0.34
     heading0: float = 0.0
-
-
-def _yaw(heading: float) -> np.ndarray:
-    c, s = math.cos(heading), math.sin(heading)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
 class SyntheticOperator:
@@ -207,7 +200,7 @@ class SyntheticOperator:
                 self.contact_seen_at = t
                 self.grip_aperture = max(0.0, min(self.aperture - tr.squeeze, tr.grip))
             if self.grip_aperture is None:
-                aperture = max(0.0, self.aperture - tr.close_rate * 0.02)
+                aperture = max(0.0, self.aperture - tr.close_rate * CONTROL_DT)
             else:
                 aperture = self.grip_aperture
                 if t - self.contact_seen_at > 2.0:
@@ -232,13 +225,13 @@ class SyntheticOperator:
             )
             stop_speed = math.sqrt(2 * p.brake_accel * max(0.0, remaining - 0.3))
             corner = (
-                p.max_speed
+                p.base.max_speed
                 if last
                 else math.sqrt(
                     p.corner_speed**2 + 2 * p.brake_accel * max(0.0, dist - p.waypoint_radius)
                 )
             )
-            speed = min(p.max_speed * tr.speed_pref, stop_speed, corner)
+            speed = min(p.base.max_speed * tr.speed_pref, stop_speed, corner)
             heading = math.atan2(seen.astrobee_rot[1, 0], seen.astrobee_rot[0, 0])
             desired = math.atan2(to_target[1], to_target[0])
             err = abs((desired - heading + math.pi) % (2 * math.pi) - math.pi)
@@ -246,8 +239,12 @@ class SyntheticOperator:
             if last and remaining < 0.45:
                 self.phase = "arrival"
             if dist > 1e-6 and self.phase != "arrival":
-                direction = _yaw(p.heading0).T @ (to_target / dist)
-                reach = p.sphere_radius + 0.01 + p.full_speed_offset * speed / p.max_speed
+                direction = yaw_matrix(p.heading0).T @ (to_target / dist)
+                reach = (
+                    p.base.sphere_radius
+                    + 0.01
+                    + p.base.full_speed_offset * speed / p.base.max_speed
+                )
                 offset = direction * reach
         if self.phase in ("arrival", "braking"):
             speed_now = float(np.linalg.norm(seen.astrobee_vel))
@@ -264,7 +261,7 @@ class SyntheticOperator:
     def act(self, world: WorldView) -> HandFrame:
         """The operator's hands at ``world.t``, given what it has seen until then."""
         t = world.t
-        dt = 0.02 if self._last_t is None else max(1e-3, t - self._last_t)
+        dt = CONTROL_DT if self._last_t is None else max(1e-3, t - self._last_t)
         self._last_t = t
         seen = self._perceive(world)
         if self.phase == "calibration":

@@ -17,9 +17,11 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
+from payload.design.params import Design, load_design
 from payload.design.tree import MANIPULATION_JOINTS
 from payload.errors import PayloadError
 from payload.retarget.calibration import PairCalibration, PairRange, calibrate
@@ -27,7 +29,7 @@ from payload.retarget.casadi_solver import PairRetargeter
 from payload.retarget.errors import RetargetError
 from payload.retarget.features import PairFeatures, features_from_points
 from payload.retarget.solver import SolveInfo
-from payload.schema import PayloadCommand, VehicleTwist
+from payload.schema import CONTROL_DT, PayloadCommand, VehicleTwist
 from payload.teleop.calibration import CalibrationError, Captures
 from payload.teleop.channels import BaseChannel, BaseCommand, BaseConfig, RailConfig, rail_command
 from payload.teleop.filters import OneEuroConfig, OneEuroFilter
@@ -58,18 +60,30 @@ class TeleopConfig:
         safety: Tracking supervisor settings.
         filter: One Euro filter settings for the keypoints.
         filter_enabled: Whether keypoints are filtered.
-        deploy: Deployment coordinate commanded during teleoperation [m].
-        rail_travel: Rail travel [m].
+        deploy: Deployment coordinate commanded during teleoperation [m] (the design's
+            stage travel: fully deployed).
+        rail_travel: Rail travel [m] (the design's).
         dt: Control period [s].
     """
 
+    deploy: float
+    rail_travel: float
     base: BaseConfig = field(default_factory=BaseConfig)
     safety: SafetyConfig = field(default_factory=SafetyConfig)
     filter: OneEuroConfig = field(default_factory=OneEuroConfig)
     filter_enabled: bool = True
-    deploy: float = 0.075
-    rail_travel: float = 0.05
-    dt: float = 0.02
+    dt: float = CONTROL_DT
+
+    @staticmethod
+    def from_design(design: Design | None = None, **overrides: Any) -> TeleopConfig:
+        """Settings for a design: deployed stage and rail travel come from it.
+
+        Args:
+            design: The design (``None``: the project's ``cad/design.toml``).
+            overrides: Any other field.
+        """
+        d = design if design is not None else load_design()
+        return TeleopConfig(deploy=d.stage.travel, rail_travel=d.rail.travel, **overrides)
 
 
 @dataclass(frozen=True)
@@ -155,6 +169,11 @@ class TeleopStep:
         return self.base.twist
 
 
+def pair_index(retargeter: PairRetargeter) -> np.ndarray:
+    """Positions of a pair's joints in the 17 manipulation coordinates, shape (8,)."""
+    return np.array([MANIPULATION_JOINTS.index(j) for j in retargeter.joints])
+
+
 class TeleopPipeline:
     """The three concurrent channels (see the module docstring).
 
@@ -172,7 +191,7 @@ class TeleopPipeline:
         config: TeleopConfig | None = None,
         initial: np.ndarray | None = None,
     ) -> None:
-        self.config = config or TeleopConfig()
+        self.config = config or TeleopConfig.from_design()
         self.calibration = calibration
         self.retargeters = retargeters
         c = self.config
@@ -181,10 +200,7 @@ class TeleopPipeline:
         )
         self.filters = {s: OneEuroFilter(c.filter) for s in ("left", "right")}
         self.base = BaseChannel(c.base, calibration.neutral_left, calibration.heading0, c.dt)
-        self.index = {
-            pair: np.array([MANIPULATION_JOINTS.index(j) for j in r.joints])
-            for pair, r in retargeters.items()
-        }
+        self.index = {pair: pair_index(r) for pair, r in retargeters.items()}
         q0 = np.zeros(len(MANIPULATION_JOINTS)) if initial is None else np.array(initial, float)
         # start from the payload's posture and blend the first commands in (no jump at the
         # start of control, as after a tracking recovery)

@@ -18,20 +18,25 @@ from typing import Any
 import numpy as np
 
 from payload.design.build import PROJECT_ROOT
+from payload.design.params import load_design
 from payload.errors import PayloadError
 from payload.retarget.calibration import PairRange, pair_range
 from payload.retarget.casadi_solver import PairRetargeter
+from payload.rotations import quat_to_matrix
 from payload.teleop.calibration import CalibrationProcedure, Captures
-from payload.teleop.hands import HandFrame
 from payload.teleop.loop import (
     ReplaySource,
     StepContext,
     SyntheticSource,
-    rotation_of,
     run_session,
 )
 from payload.teleop.operator import OperatorPlan, SyntheticOperator, WorldView
-from payload.teleop.pipeline import TeleopConfig, TeleopPipeline, calibrate_operator
+from payload.teleop.pipeline import (
+    TeleopConfig,
+    TeleopPipeline,
+    calibrate_operator,
+    pair_index,
+)
 from payload.teleop.replay import HandRecordingWriter, read_hand_recording
 
 log = logging.getLogger(__name__)
@@ -82,7 +87,9 @@ def _module_rects(layout: Any) -> list[dict[str, float | str]]:
     return out
 
 
-def place_ctb_for_teleop(driver: Any, ranges: dict[str, PairRange]) -> None:
+def place_ctb_for_teleop(
+    driver: Any, retargeters: dict[str, PairRetargeter], ranges: dict[str, PairRange]
+) -> None:
     """Move the CTB so its handle sits where the teleoperated pinch closes on it.
 
     The pinch the operator commands follows the posture reference of the calibrated pair
@@ -100,26 +107,26 @@ def place_ctb_for_teleop(driver: Any, ranges: dict[str, PairRange]) -> None:
     data.qpos[:] = driver.data.qpos
     handle = w.config.handle
     a = w.astrobee_qpos
-    rot = rotation_of(driver.data.qpos[a + 3 : a + 7])
-    pad = float(m.geom_size[w.pad_geoms["A"]][0])
+    rot = quat_to_matrix(driver.data.qpos[a + 3 : a + 7])
+    pad = float(m.geom_size[next(iter(w.pad_geoms.values()))][0])
 
-    def tips_at(pair: str, fingers: tuple[str, str], span: float) -> np.ndarray:
-        q = ranges[pair].posture(span)
-        names = [f"{f}_{j}" for f in fingers for j in ("mcp_flex", "mcp_abd", "pip", "dip")]
-        for name, v in zip(names, q):
+    def tips_at(pair: str, span: float) -> np.ndarray:
+        r = retargeters[pair]
+        for name, v in zip(r.joints, ranges[pair].posture(span)):
             data.qpos[w.qpos[MANIPULATION_JOINTS.index(name)]] = v
         mujoco.mj_kinematics(m, data)
-        return np.array([data.site(f"{PAYLOAD_PREFIX}{f}_tip").xpos for f in fingers])
+        sites = r.kinematics.hand.pair(pair).tips
+        return np.array([data.site(f"{PAYLOAD_PREFIX}{s}").xpos for s in sites])
 
     tips = []
-    for pair, fingers in (("L", ("A", "C")), ("R", ("B", "D"))):
+    for pair in retargeters:
         lo, hi = ranges[pair].span_min, ranges[pair].span_max
         for _ in range(40):  # across-array gap between the pads = handle width
             mid = 0.5 * (lo + hi)
-            t = tips_at(pair, fingers, mid)
+            t = tips_at(pair, mid)
             gap = abs(float(rot[:, 1] @ (t[0] - t[1]))) - 2 * pad
             lo, hi = (mid, hi) if gap < handle.width else (lo, mid)
-        tips.append(tips_at(pair, fingers, 0.5 * (lo + hi)))
+        tips.append(tips_at(pair, 0.5 * (lo + hi)))
     centre = np.vstack(tips).mean(axis=0)
     # the bag hangs below its handle bar: bar centre -> bag centre along the body -z axis
     size = w.config.ctb_size
@@ -185,12 +192,12 @@ def _run_trial(
     driver = SimDriver()
     layout = driver.world.layout
     retargeters, ranges = retargeting()
-    place_ctb_for_teleop(driver, ranges)
+    place_ctb_for_teleop(driver, retargeters, ranges)
     calibration = CalibrationProcedure()
-    config = TeleopConfig()
+    config = TeleopConfig.from_design(load_design(driver.world.config.design))
 
     if operator == "synthetic":
-        plan = OperatorPlan(route=layout.route(), heading0=layout.start_yaw())
+        plan = OperatorPlan(route=layout.route(), heading0=layout.start_yaw(), base=config.base)
         synthetic = SyntheticOperator(plan, seed, calibration)
         source: Any = SyntheticSource(synthetic)
         traits = dict(vars(synthetic.traits))
@@ -208,7 +215,7 @@ def _run_trial(
         return TeleopPipeline(cal, retargeters, config, initial=q0)
 
     def view(state: Any, t: float) -> WorldView:
-        rot = rotation_of(state.astrobee_quat)
+        rot = quat_to_matrix(state.astrobee_quat)
         return WorldView(
             t,
             state.astrobee_pos,
@@ -249,8 +256,7 @@ def _run_trial(
                 step = ctx.step
                 q = ctx.command.q
                 twist = np.concatenate([ctx.twist.linear, ctx.twist.angular])
-                rot = rotation_of(st.astrobee_quat)
-                module = st.module
+                rot = quat_to_matrix(st.astrobee_quat)
                 ctb_module = driver.module_at(st.ctb_pos)
                 recorder.write(
                     StepRecord(
@@ -260,8 +266,8 @@ def _run_trial(
                         right_joints=fr.right.joints,
                         left_tracked=bool(fr.left.tracked),
                         right_tracked=bool(fr.right.tracked),
-                        q_left=step.q_left if step else q[_pair_index("L")],
-                        q_right=step.q_right if step else q[_pair_index("R")],
+                        q_left=step.q_left if step else q[pair_index(retargeters["L"])],
+                        q_right=step.q_right if step else q[pair_index(retargeters["R"])],
                         rail_cmd=float(q[-1]),
                         twist_cmd=twist,
                         q_cmd=q,
@@ -281,7 +287,6 @@ def _run_trial(
                         else "outside",
                     )
                 )
-                del module
                 if bar is not None:
                     bar.update(task, completed=ctx.t)
 
@@ -307,20 +312,7 @@ def _run_trial(
         if bar is not None:
             bar.stop()
         driver.close()
-    result = finish_trial(out, rec_path, min_interval_s=CONFIRM_MIN_S, max_gap_s=CONFIRM_MAX_GAP_S)
+    result = finish_trial(out, rec_path)  # scored with the contact definition it recorded
     result["steps"] = stats.steps
     (out / "metrics.json").write_text(json.dumps(result, indent=2) + "\n")
     return result
-
-
-def _pair_index(pair: str) -> np.ndarray:
-    from payload.design.tree import MANIPULATION_JOINTS
-
-    fingers = ("A", "C") if pair == "L" else ("B", "D")
-    names = [f"{f}_{j}" for f in fingers for j in ("mcp_flex", "mcp_abd", "pip", "dip")]
-    return np.array([MANIPULATION_JOINTS.index(n) for n in names])
-
-
-def replay_frames(path: Path) -> list[HandFrame]:
-    """Frames of a trial's ``hands.jsonl``."""
-    return read_hand_recording(path)[1]
