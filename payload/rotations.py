@@ -42,9 +42,20 @@ def matrix_to_quat(r: np.ndarray) -> np.ndarray:
     return q / np.linalg.norm(q)
 
 
+def yaw_matrix(yaw: float) -> np.ndarray:
+    """Rotation about z by ``yaw`` [rad], shape (3, 3)."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def yaw_quat(yaw: float) -> np.ndarray:
+    """Unit quaternion (w, x, y, z) of a rotation about z by ``yaw`` [rad]."""
+    return np.array([math.cos(yaw / 2.0), 0.0, 0.0, math.sin(yaw / 2.0)])
+
+
 def yaw_of_matrix(rot: np.ndarray) -> float:
     """Heading [rad]: the angle of the rotated x axis in the world xy plane."""
     return math.atan2(rot[1, 0], rot[0, 0])
 
 
-__all__ = ["matrix_to_quat", "quat_to_matrix", "yaw_of_matrix"]
+__all__ = ["matrix_to_quat", "quat_to_matrix", "yaw_matrix", "yaw_of_matrix", "yaw_quat"]

@@ -36,6 +36,7 @@ from payload.design.tree import ALL_JOINTS, KinematicTree, rpy_matrix
 from payload.envelope.geometry import PayloadGeometry
 from payload.envelope.vehicle import Vehicle, display_path
 from payload.errors import PayloadError
+from payload.rotations import matrix_to_quat
 
 PAIRS: dict[str, tuple[str, str]] = {"L": ("A", "C"), "R": ("B", "D")}
 """Finger pairs: the left hand drives L = (A, C), the right hand R = (B, D)."""
@@ -389,9 +390,7 @@ def _check_range(bounds: tuple[int, int]) -> np.ndarray:
 
 
 def _quat(r: np.ndarray) -> list[float]:
-    q = np.zeros(4)
-    mujoco.mju_mat2Quat(q, np.ascontiguousarray(r).ravel())
-    return q.tolist()
+    return matrix_to_quat(r).tolist()
 
 
 # ----------------------------------------------------------------- workspace, spans

@@ -17,19 +17,12 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
 
-import mujoco
 import numpy as np
 
+from payload.rotations import quat_to_matrix, yaw_of_matrix
 from payload.schema import PayloadCommand, VehicleTwist
 from payload.sim.driver import SimDriver, WorldState
 from payload.sim.world import CONTROL_DT, PHYSICS_DT, SimError, World, WorldConfig, build_world
-
-
-def yaw_of(quat: np.ndarray) -> float:
-    """Heading [rad] of a (w, x, y, z) quaternion: the angle of its x axis in the xy plane."""
-    rot = np.zeros(9)
-    mujoco.mju_quat2Mat(rot, np.asarray(quat, float))
-    return math.atan2(rot[3], rot[0])
 
 
 class RouteFollower:
@@ -108,10 +101,9 @@ class RouteFollower:
         to_carrot = carrot - pos
         dist = float(np.linalg.norm(to_carrot))
         v_world = to_carrot / dist * min(speed, dist) if dist > 1e-9 else np.zeros(3)
-        rot = np.zeros(9)
-        mujoco.mju_quat2Mat(rot, np.asarray(quat, float))
-        v_body = rot.reshape(3, 3).T @ v_world
-        err = math.atan2(heading[1], heading[0]) - yaw_of(quat)
+        rot = quat_to_matrix(quat)
+        v_body = rot.T @ v_world
+        err = math.atan2(heading[1], heading[0]) - yaw_of_matrix(rot)
         err = (err + math.pi) % (2.0 * math.pi) - math.pi
         wz = float(np.clip(self.yaw_gain * err, -self.omega, self.omega))
         return VehicleTwist(v_body, np.array([0.0, 0.0, wz]), stamp)
@@ -283,4 +275,4 @@ def run_bench(
         )
 
 
-__all__ = ["BenchResult", "RouteFollower", "ScriptedOperator", "run_bench", "yaw_of"]
+__all__ = ["BenchResult", "RouteFollower", "ScriptedOperator", "run_bench"]

@@ -39,6 +39,7 @@ from payload.design import (
 from payload.design.build import PROJECT_ROOT
 from payload.envelope.vehicle import Vehicle, vehicle_from_dict
 from payload.errors import PayloadError
+from payload.rotations import yaw_quat
 from payload.schema import CONTROL_DT as SCHEMA_CONTROL_DT
 
 PAYLOAD_MJCF = PROJECT_ROOT / "urdf" / "payload.xml"
@@ -782,10 +783,6 @@ def _add_ctb(spec: mujoco.MjSpec, size: CtbSize, handle: Handle, friction: float
     return body
 
 
-def _yaw_quat(yaw: float) -> np.ndarray:
-    return np.array([math.cos(yaw / 2.0), 0.0, 0.0, math.sin(yaw / 2.0)])
-
-
 def build_spec(config: WorldConfig | None = None, design: Design | None = None) -> mujoco.MjSpec:
     """The world as an MjSpec (not compiled, no keyframes).
 
@@ -818,7 +815,7 @@ def build_spec(config: WorldConfig | None = None, design: Design | None = None) 
     layout = config.layout
     _add_iss(spec, layout)
     start = layout.route()[0]
-    quat = _yaw_quat(layout.start_yaw())
+    quat = yaw_quat(layout.start_yaw())
     vehicle = design_vehicle(design)
     astrobee = _add_astrobee(spec, vehicle, start, quat)
 

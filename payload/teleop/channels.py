@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from payload.errors import PayloadError
+from payload.rotations import yaw_matrix
 from payload.schema import CONTROL_DT, VehicleTwist
 
 
@@ -186,11 +187,6 @@ class BaseCommand:
     yaw_rate: float
     twist: VehicleTwist
     outside: bool
-
-
-def yaw_matrix(yaw: float) -> np.ndarray:
-    c, s = math.cos(yaw), math.sin(yaw)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
 class BaseChannel:

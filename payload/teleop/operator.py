@@ -17,9 +17,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from payload.rotations import yaw_matrix
 from payload.schema import CONTROL_DT
 from payload.teleop.calibration import CalibrationProcedure
-from payload.teleop.channels import BaseConfig, yaw_matrix
+from payload.teleop.channels import BaseConfig
 from payload.teleop.handmodel import HandModel
 from payload.teleop.hands import Hand, HandFrame
 
