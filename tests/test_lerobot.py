@@ -17,7 +17,7 @@ from payload.trials.lerobot import (
     export_lerobot,
     state_names,
 )
-from payload.trials.recorder import StepRecord, TrialRecorder, read_recording
+from payload.trials.recorder import TrialRecorder, random_step, read_recording
 
 pa = pytest.importorskip("pyarrow")
 pq = pytest.importorskip("pyarrow.parquet")
@@ -34,32 +34,8 @@ def _write_run(path: Path, seed: int, n: int, n_cal: int, dt: float = DT, task=N
             meta["task"] = task
         rec.write_meta(meta)
         for k in range(n):
-            q = rng.normal(size=4)
-            rec.write(
-                StepRecord(
-                    t=k * dt,
-                    phase="calibration" if k < n_cal else "translation",
-                    left_joints=rng.normal(size=(25, 3)),
-                    right_joints=rng.normal(size=(25, 3)),
-                    left_tracked=True,
-                    right_tracked=True,
-                    q_left=rng.normal(size=8),
-                    q_right=rng.normal(size=8),
-                    rail_cmd=float(rng.uniform(0, 0.05)),
-                    twist_cmd=rng.normal(size=6),
-                    q_cmd=rng.normal(size=17),
-                    deploy_cmd=0.075,
-                    q_meas=rng.normal(size=17),
-                    deploy_meas=float(rng.uniform(0, 0.075)),
-                    astrobee_pos=rng.normal(size=3),
-                    astrobee_quat=q / np.linalg.norm(q),
-                    astrobee_twist=rng.normal(size=6),
-                    ctb_pos=rng.normal(size=3),
-                    ctb_quat=np.array([1.0, 0.0, 0.0, 0.0]),
-                    contact=bool(k % 2),
-                    ctb_module="kibo",
-                )
-            )
+            phase = "calibration" if k < n_cal else "translation"
+            rec.write(random_step(rng, k * dt, phase=phase, contact=bool(k % 2)))
     return path
 
 

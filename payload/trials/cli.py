@@ -177,39 +177,15 @@ def _cmd_bench_recorder(args: argparse.Namespace) -> int:
     import numpy as np
 
     from payload.cli import emit_json
+    from payload.schema import CONTROL_DT
     from payload.trials.metrics import compute_metrics
-    from payload.trials.recorder import StepRecord, TrialRecorder, read_recording
+    from payload.trials.recorder import TrialRecorder, random_step, read_recording
 
     if args.seconds <= 0:
         raise TrialsCliError(f"--seconds must be positive, got {args.seconds}")
-    n = max(2, round(args.seconds * 50))
+    n = max(2, round(args.seconds / CONTROL_DT))
     rng = np.random.default_rng(0)
-    steps = [
-        StepRecord(
-            t=k / 50,
-            phase="translation",
-            left_joints=rng.normal(scale=0.05, size=(25, 3)),
-            right_joints=rng.normal(scale=0.05, size=(25, 3)),
-            left_tracked=True,
-            right_tracked=True,
-            q_left=rng.normal(size=8),
-            q_right=rng.normal(size=8),
-            rail_cmd=float(rng.uniform(0, 0.05)),
-            twist_cmd=rng.normal(size=6),
-            q_cmd=rng.normal(size=17),
-            deploy_cmd=0.075,
-            q_meas=rng.normal(size=17),
-            deploy_meas=0.075,
-            astrobee_pos=rng.normal(size=3),
-            astrobee_quat=rng.normal(size=4),
-            astrobee_twist=rng.normal(size=6),
-            ctb_pos=rng.normal(size=3),
-            ctb_quat=rng.normal(size=4),
-            contact=True,
-            ctb_module="kibo",
-        )
-        for k in range(n)
-    ]
+    steps = [random_step(rng, k * CONTROL_DT) for k in range(n)]
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "log.mcap"
         per_step = np.empty(n)

@@ -49,6 +49,7 @@ field              shape      meaning
 
 from __future__ import annotations
 
+import functools
 import io
 import json
 import math
@@ -259,6 +260,48 @@ class StepRecord:
                     value = [[None if v != v else v for v in row] for row in value]
             out[name] = value
         return out
+
+
+@functools.lru_cache(maxsize=1)
+def _default_design() -> Any:
+    from payload.design import load_design
+
+    return load_design()
+
+
+def random_step(rng: np.random.Generator, t: float, **fields: Any) -> StepRecord:
+    """An arbitrary but valid step at time ``t`` (benchmarks and format tests).
+
+    Joint commands and poses are random draws; the rail and stage values lie inside the
+    default design's travel; ``fields`` override any attribute.
+    """
+    d = _default_design()
+    q = rng.normal(size=4)
+    values: dict[str, Any] = {
+        "t": t,
+        "phase": "translation",
+        "left_joints": rng.normal(scale=0.05, size=(25, 3)),
+        "right_joints": rng.normal(scale=0.05, size=(25, 3)),
+        "left_tracked": True,
+        "right_tracked": True,
+        "q_left": rng.normal(size=8),
+        "q_right": rng.normal(size=8),
+        "rail_cmd": float(rng.uniform(0, d.rail.travel)),
+        "twist_cmd": rng.normal(size=6),
+        "q_cmd": rng.normal(size=17),
+        "deploy_cmd": d.stage.travel,
+        "q_meas": rng.normal(size=17),
+        "deploy_meas": float(rng.uniform(0, d.stage.travel)),
+        "astrobee_pos": rng.normal(size=3),
+        "astrobee_quat": q / np.linalg.norm(q),
+        "astrobee_twist": rng.normal(size=6),
+        "ctb_pos": rng.normal(size=3),
+        "ctb_quat": np.array([1.0, 0.0, 0.0, 0.0]),
+        "contact": True,
+        "ctb_module": "kibo",
+    }
+    values.update(fields)
+    return StepRecord(**values)
 
 
 class TrialRecorder:
@@ -633,5 +676,6 @@ __all__ = [
     "RecordingError",
     "StepRecord",
     "TrialRecorder",
+    "random_step",
     "read_recording",
 ]
