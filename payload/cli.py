@@ -112,9 +112,12 @@ class _Groups(dict):
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from payload import __version__
+
     parser = argparse.ArgumentParser(
         prog="payload", description="Four-finger Astrobee payload workbench"
     )
+    parser.add_argument("--version", action="version", version=f"payload {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     groups = _Groups(sub)
     for name in COMMAND_MODULES:
