@@ -73,10 +73,12 @@ def summarize(design: Design, tree: KinematicTree | None = None) -> dict[str, An
 
 def print_summary(summary: dict[str, Any]) -> None:
     """Print the summary as rich tables."""
-    from rich.console import Console
+    from rich.markup import escape
     from rich.table import Table
 
-    console = Console()
+    from payload.console import console as make_console
+
+    console = make_console()
     dof = summary["dof"]
     console.print(
         f"[bold]Payload design[/bold] {summary['design']}: {dof['manipulation']} manipulation DoF "
@@ -103,7 +105,7 @@ def print_summary(summary: dict[str, Any]) -> None:
     console.print(t)
     t = Table(title="Bounding boxes (payload frame)")
     for col in ("posture", "x [mm]", "y [mm]", "z [mm]", "size [mm]"):
-        t.add_column(col)
+        t.add_column(escape(col))
     for name, b in summary["bounding_box"].items():
         rng = [f"{lo:.1f} .. {hi:.1f}" for lo, hi in zip(b["min_mm"], b["max_mm"])]
         t.add_row(name, *rng, " x ".join(f"{s:.1f}" for s in b["size_mm"]))

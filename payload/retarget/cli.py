@@ -34,15 +34,17 @@ def _failures(result: dict) -> list[str]:
 
 
 def _print_table(r: dict) -> None:
-    from rich.console import Console
+    from rich.markup import escape
     from rich.table import Table
+
+    from payload.console import console as make_console
 
     t = Table(
         title=f"retargeting, hand {r['hand']!r}: {r['steps']} steps, {r['pair_solves']} pair solves"
     )
     t.add_column("")
-    t.add_column("median [us]", justify="right")
-    t.add_column("p99 [us]", justify="right")
+    t.add_column(escape("median [us]"), justify="right")
+    t.add_column(escape("p99 [us]"), justify="right")
     t.add_column("iterations", justify="right")
     p, f = r["production"], r["reference"]
     t.add_row(
@@ -63,7 +65,7 @@ def _print_table(r: dict) -> None:
         f"{p['isolated_p99_us']:.1f}",
         "",
     )
-    console = Console()
+    console = make_console()
     console.print(t)
     if p.get("backend_reason"):
         console.print(f"production backend: vm ({p['backend_reason']})", markup=False)
