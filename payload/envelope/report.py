@@ -266,26 +266,34 @@ def _annotate_clearances(ax: Any, check: StowedCheck, vehicle: Vehicle, axis: in
         else:
             continue
         side = w % 2
+        # labels stand just outside their wall, on a white box, so they never cover the
+        # parts (or the hatching of a part that protrudes)
+        box = {"facecolor": "white", "alpha": 0.85, "edgecolor": "none", "pad": 0.6}
+        gap = 1.5  # [mm] between the wall and its label
         if ax_i == h:
-            x = hi[h] if side else lo[h]
+            x = hi[h] + gap if side else lo[h] - gap
             ax.annotate(
                 text,
                 (x, (lo[v] + hi[v]) / 2),
                 fontsize=6.5,
                 color=colour,
                 rotation=90,
-                ha="right" if side else "left",
+                ha="left" if side else "right",
                 va="center",
+                bbox=box,
+                zorder=5,
             )
         else:
-            y = hi[v] if side else lo[v]
+            y = hi[v] + gap if side else lo[v] - gap
             ax.annotate(
                 text,
                 ((lo[h] + hi[h]) / 2, y),
                 fontsize=6.5,
                 color=colour,
                 ha="center",
-                va="top" if side else "bottom",
+                va="bottom" if side else "top",
+                bbox=box,
+                zorder=5,
             )
 
 
@@ -458,8 +466,10 @@ def reach_figure(
             alpha=0.3,
             label=f"pair {p.name}: pair touching nothing",
         )
-        ax.axvline(p.span_min * 1e3, color=colour, ls=":", lw=1)
-        ax.axvline(p.span.maximum * 1e3, color=colour, ls=":", lw=1)
+        # pair L wide and dashed under pair R thin and dotted: equal ranges stay visible
+        style = {"ls": "--", "lw": 2.4} if p.name == "L" else {"ls": ":", "lw": 1.2}
+        ax.axvline(p.span_min * 1e3, color=colour, label=f"pair {p.name}: span range", **style)
+        ax.axvline(p.span.maximum * 1e3, color=colour, **style)
         for g in p.grasps:
             x = (g.feature.thickness + 2 * r) * 1e3
             ax.plot(
@@ -471,13 +481,33 @@ def reach_figure(
                 clip_on=False,
                 zorder=4,
             )
-    ax.set_xlabel("fingertip separation l [mm] (dotted: span range)")
+    ax.plot([], [], ls="none", marker="^", color="green", label="CTB feature: pair closes on it")
+    ax.plot([], [], ls="none", marker="x", color="red", label="CTB feature: no witness")
+    ax.set_xlabel("fingertip separation l [mm] (vertical lines: span range)")
     ax.set_ylabel("samples")
     ax.set_title(
         "pair spans; markers: CTB thicknesses + pad diameter (green: closes, red: no witness)",
         fontsize=9,
     )
     ax.legend(fontsize=8)
+    handles = [
+        Rectangle((0, 0), 1, 1, facecolor=c, label=f"finger {f}: fingertip samples, home shaded")
+        for f, c in FINGER_COLOURS.items()
+    ]
+    handles += [
+        Rectangle((0, 0), 1, 1, facecolor=STRUCTURE_COLOUR, alpha=0.5, label="structure (home)"),
+        Rectangle((0, 0), 1, 1, facecolor="#f2efe6", edgecolor="#6b6b6b", label="Astrobee body"),
+        Rectangle(
+            (0, 0),
+            1,
+            1,
+            facecolor="white",
+            edgecolor="black",
+            ls="--",
+            label="bay envelope (ASSUMED size)",
+        ),
+    ]
+    fig.legend(handles=handles, loc="outside lower center", ncol=4, fontsize=8, frameon=False)
     fig.suptitle(
         f"Reach of the deployed fingers ({a.samples:,} samples; below the bottom face up to "
         f"{a.below_vehicle * 1e3:.0f} mm; self-collision-free {a.collision_free_fraction:.1%})",
