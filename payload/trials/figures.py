@@ -19,7 +19,7 @@ from scipy.spatial.transform import Rotation
 
 from payload.errors import PayloadError
 from payload.trials.metrics import TrialMetrics, compute_metrics, ctb_in_body_frame
-from payload.trials.recorder import PHASES, Recording
+from payload.trials.recorder import Recording
 
 PHASE_COLORS: dict[str, str] = {
     "calibration": "#d9d9d9",
@@ -79,6 +79,11 @@ def _as_rect(item: Any) -> ModuleRect:
     if not (rect.x_min < rect.x_max and rect.y_min < rect.y_max):
         raise FigureError(f"module rectangle {rect.name!r}: min bounds must be below max bounds")
     return rect
+
+
+def phases_in_time_order(phase: np.ndarray) -> list[str]:
+    """The distinct phases of a recording, in the order they first occur."""
+    return list(dict.fromkeys(str(p) for p in phase.tolist()))
 
 
 def phase_spans(t: np.ndarray, phase: np.ndarray) -> list[tuple[str, float, float]]:
@@ -171,7 +176,7 @@ def plot_ctb_body_frame(
     ax.set_xlabel("time since start of teleoperation [s]")
     ax.grid(True, alpha=0.3)
 
-    present = [p for p in PHASES if p in set(recording.phase.tolist())]
+    present = phases_in_time_order(recording.phase)
     handles = [Patch(color=PHASE_COLORS[p], alpha=0.6, label=p) for p in present]
     fig.legend(handles=handles, loc="outside lower center", ncols=max(1, len(handles)))
     verdict = "success" if m.success else "failure"
@@ -251,6 +256,7 @@ __all__ = [
     "FigureError",
     "ModuleRect",
     "phase_spans",
+    "phases_in_time_order",
     "plot_ctb_body_frame",
     "plot_route",
 ]
