@@ -287,7 +287,10 @@ def build_design_review(
     for link in model.links:
         set_track(anim, f"{root}/payload/{link}", frames, [p[link] for p in placements])
     scene.animation = anim
-    scene.notes += [f"design: {Path(files.design)}", f"stowed fit: {'pass' if check.passed else 'FAIL'}"]
+    scene.notes += [
+        f"design: {Path(files.design)}",
+        f"stowed fit: {'pass' if check.passed else 'FAIL'}",
+    ]
     scene.notes += [f"  {line}" for line in check.failures()]
     return DesignReview(scene, check, bad, centre, stowed, deployed)
 

@@ -56,7 +56,9 @@ class PayloadModel:
                     continue
                 mesh = (self.urdf.parent / v.geometry.mesh.filename).resolve()
                 if not mesh.is_file():
-                    raise ReviewError(f"mesh {mesh} of link {link.name} not found; run `payload build`")
+                    raise ReviewError(
+                        f"mesh {mesh} of link {link.name} not found; run `payload build`"
+                    )
                 origin = np.eye(4) if v.origin is None else np.asarray(v.origin, dtype=float)
                 scale = np.ones(3) if v.geometry.mesh.scale is None else v.geometry.mesh.scale
                 out.append(Visual(mesh, origin, np.broadcast_to(np.asarray(scale, float), (3,))))
