@@ -263,7 +263,7 @@ def build_design_review(
 
     verts = []
     for poses in (stowed, deployed):
-        for link, vis in model.visuals.items():
+        for link in model.links:
             if link in geom.solids:
                 v = geom.mesh_vertices[link]
                 verts.append(v @ poses[link][:3, :3].T + poses[link][:3, 3])
