@@ -43,8 +43,10 @@ def build_review(
 
 
 def _cmd_review(args: argparse.Namespace) -> int:
-    from payload.review.serve import close_viewer, open_viewer, static_html
+    from payload.review.serve import check_server, close_viewer, open_viewer, static_html
 
+    if args.zmq_url is not None:
+        check_server(args.zmq_url)
     if args.reach_samples < 0:
         raise ReviewError(f"--reach-samples must be >= 0 (got {args.reach_samples})")
     if args.static is not None and Path(args.static).is_dir():

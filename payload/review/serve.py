@@ -14,7 +14,7 @@ ANSWER_TIMEOUT_MS = 5000
 """How long an existing server has to answer before ``--zmq-url`` gives up [ms]."""
 
 
-def _check_server(zmq_url: str) -> None:
+def check_server(zmq_url: str) -> None:
     """Raise :class:`ReviewError` unless a meshcat server answers at ``zmq_url``."""
     import zmq
 
@@ -43,7 +43,7 @@ def open_viewer(zmq_url: str | None = None, quiet: bool = True) -> Any:
     import meshcat
 
     if zmq_url is not None:
-        _check_server(zmq_url)
+        check_server(zmq_url)
     out = io.StringIO()
     with contextlib.redirect_stdout(out) if quiet else contextlib.nullcontext():
         try:
@@ -73,4 +73,4 @@ def static_html(scene: Scene, zmq_url: str | None = None) -> str:
         close_viewer(vis)
 
 
-__all__ = ["close_viewer", "open_viewer", "static_html"]
+__all__ = ["check_server", "close_viewer", "open_viewer", "static_html"]
