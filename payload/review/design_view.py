@@ -52,7 +52,7 @@ DEPLOY_FPS = 30
 STAGE_SECONDS, FINGER_SECONDS = 2.0, 1.5
 VIEW_DIRECTION = (1.0, -1.25, -0.45)
 """The camera looks at the payload from forward, right and a little below the vehicle."""
-LABEL_SIZE = 0.06
+LABEL_SIZE = 0.08
 """Edge of a label sprite [m]."""
 
 
@@ -201,7 +201,7 @@ def draw_reach(scene: Scene, clouds: Mapping[str, np.ndarray], root: str) -> Non
         colour = np.array([int(FINGER_COLOURS[f][i : i + 2], 16) / 255 for i in (1, 3, 5)])
         cols = np.tile(colour, (len(pts), 1)).T.astype(np.float32)
         geometry = mg.PointsGeometry(pts.T.astype(np.float32), cols)
-        scene.object(f"{root}/{f}", geometry, mg.PointsMaterial(size=0.003))
+        scene.object(f"{root}/{f}", geometry, mg.PointsMaterial(size=0.002))
         scene.prop(f"{root}/{f}", "visible", False)
 
 
