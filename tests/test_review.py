@@ -280,3 +280,51 @@ def test_bad_reach_samples_and_static_folder_exit_2(tmp_path, capsys) -> None:
     assert "is a folder" in _err(capsys)
     assert main(["review", "--zmq-url", "tcp://127.0.0.1:1", "--reach-samples", "0"]) == 2
     assert "no meshcat server" in _err(capsys)
+
+
+def _scene_paths(html: str) -> set[str]:
+    """Paths of the set_object commands embedded in a meshcat static page."""
+    import base64
+    import re
+
+    import umsgpack
+
+    out = set()
+    for blob in re.findall(r"data:application/octet-binary;base64,([A-Za-z0-9+/=]+)", html):
+        cmd = umsgpack.unpackb(base64.b64decode(blob))
+        if cmd.get("type") == "set_object":
+            out.add(cmd["path"])
+    return out
+
+
+def test_review_draws_into_a_running_meshcat_server(capsys) -> None:
+    from meshcat.servers.zmqserver import start_zmq_server_as_subprocess
+
+    from payload.review.serve import close_viewer, open_viewer
+
+    proc, zmq_url, web_url = start_zmq_server_as_subprocess()
+    try:
+        assert main(["review", "--zmq-url", zmq_url, "--reach-samples", "0"]) == 0
+        assert f"meshcat: {web_url}" in capsys.readouterr().out
+        vis = open_viewer(zmq_url)  # clears the review, so read the scene first
+        paths = _scene_paths(vis.window.get_scene())
+        assert paths == set()  # an attached review starts from an empty scene
+        assert main(["review", "--zmq-url", zmq_url, "--reach-samples", "0"]) == 0
+        paths = _scene_paths(vis.window.get_scene())
+        close_viewer(vis)  # attached: leaves the server running
+        assert proc.poll() is None
+    finally:
+        proc.kill()
+        proc.wait()
+    for link, meshes in _urdf_links(URDF).items():
+        for k in range(len(meshes)):
+            assert f"{REVIEW}/payload/{link}/visual{k}" in paths
+    assert f"{REVIEW}/vehicle/bays" in paths
+
+
+def test_stale_generated_models_exit_2(tmp_path, design_dict, capsys) -> None:
+    path = _copy_project(tmp_path, design_dict, [0.20, 0.10, 0.10])
+    data = {**design_dict, "rail": {**design_dict["rail"], "travel": 0.045}}
+    path.write_bytes(tomli_w.dumps(data).encode())
+    assert main(["review", "--design", str(path), "--static", str(tmp_path / "r.html")]) == 2
+    assert "do not match" in _err(capsys) and not (tmp_path / "r.html").exists()

@@ -22,7 +22,7 @@ import meshcat.geometry as mg
 import numpy as np
 from meshcat.animation import Animation, AnimationClip, AnimationTrack
 
-from payload.design import FINGERS, build_tree, load_design
+from payload.design import FINGERS, build_tree, load_design, stale_files
 from payload.envelope.fit import StowedCheck, check_stowed, wall_gaps
 from payload.envelope.geometry import PayloadGeometry
 from payload.envelope.report import FINGER_COLOURS, STRUCTURE_COLOUR
@@ -31,6 +31,7 @@ from payload.review.model import PayloadModel
 from payload.review.project import ProjectFiles
 from payload.review.scene import (
     ROOT,
+    ReviewError,
     Scene,
     box_pose,
     framing,
@@ -251,6 +252,12 @@ def build_design_review(
     """
     files.check()
     design = load_design(files.design)
+    stale = stale_files(design, files.urdf.parent.parent)
+    if stale:
+        raise ReviewError(
+            f"the generated models do not match {files.design} ({', '.join(stale)}); "
+            "run `payload build`"
+        )
     vehicle = vehicle_from_dict(design.vehicle or {}, source=str(files.design))
     tree = build_tree(design)
     geom = PayloadGeometry(tree)
