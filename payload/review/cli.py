@@ -7,8 +7,12 @@ import sys
 import time
 import webbrowser
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from payload.review.scene import ReviewError, Scene
+from payload.review.errors import ReviewError
+
+if TYPE_CHECKING:
+    from payload.review.scene import Scene
 
 DEFAULT_REACH_SAMPLES = 5000
 

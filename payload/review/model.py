@@ -10,7 +10,7 @@ import numpy as np
 import pinocchio as pin
 
 from payload.kinematics import Kinematics, KinematicsError
-from payload.review.scene import ReviewError
+from payload.review.errors import ReviewError
 
 
 @dataclass(frozen=True)

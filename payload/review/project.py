@@ -6,7 +6,7 @@ import hashlib
 from dataclasses import dataclass
 from pathlib import Path
 
-from payload.review.scene import ReviewError
+from payload.review.errors import ReviewError
 
 
 @dataclass(frozen=True)

@@ -22,7 +22,7 @@ from meshcat.animation import Animation
 from meshcat.commands import SetAnimation, SetObject, SetProperty, SetTransform
 from meshcat.path import Path as MeshcatPath
 
-from payload.errors import PayloadError
+from payload.review.errors import ReviewError
 
 ROOT = "/meshcat"
 """Root of everything the review draws (meshcat's own default root)."""
@@ -32,10 +32,6 @@ BACKGROUND = (1.0, 1.0, 1.0)
 
 CAMERA_FOV_DEG = 75.0
 """Vertical field of view of meshcat's default camera [deg]."""
-
-
-class ReviewError(PayloadError):
-    """A review cannot be built: a missing model, an unreadable or foreign recording."""
 
 
 def mpath(path: str) -> MeshcatPath:
