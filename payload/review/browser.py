@@ -35,6 +35,17 @@ CONTROLS_BAR = (250, 24)
 """Size of meshcat's "Open Controls" bar in the top-right corner [px]."""
 
 
+# the static page sends its commands as fetch() calls of data: URLs; count the pending ones
+_COUNT_FETCHES = """
+window.__pending = 0;
+const __fetch = window.fetch.bind(window);
+window.fetch = (...args) => {
+    window.__pending++;
+    return __fetch(...args).finally(() => setTimeout(() => window.__pending--, 0));
+};
+"""
+
+
 def chromium_path() -> str | None:
     """The system Chromium, or ``None`` when it is not installed."""
     for candidate in (os.environ.get("PAYLOAD_CHROMIUM"), CHROMIUM, shutil.which("chromium")):
@@ -84,10 +95,12 @@ def screenshot(
         )
         try:
             page = ctx.new_page()
+            page.add_init_script(_COUNT_FETCHES)
             page.goto(Path(html).resolve().as_uri())
             page.wait_for_function(
-                "() => typeof viewer !== 'undefined' && viewer.animator.actions.length > 0",
-                timeout=60_000,
+                "() => window.__pending === 0 && typeof viewer !== 'undefined'"
+                " && viewer.animator.actions.length > 0",
+                timeout=120_000,
             )
             script = """([hide, show, t]) => {
                 for (const p of hide) viewer.scene_tree.find(p).set_property("visible", false);
@@ -96,7 +109,9 @@ def screenshot(
                 viewer.set_dirty();
             }"""
             page.evaluate(script, [list(map(list, hide)), list(map(list, show)), time_s])
-            page.wait_for_timeout(1500)  # a few frames of the render loop
+            for _ in range(3):  # the viewer renders in its requestAnimationFrame loop
+                page.evaluate("() => new Promise(r => requestAnimationFrame(() => r()))")
+            page.wait_for_timeout(500)
             data = page.screenshot(path=str(png))
         finally:
             ctx.close()

@@ -33,6 +33,7 @@ from payload.review.scene import (
     ROOT,
     ReviewError,
     Scene,
+    StlGeometry,
     box_pose,
     framing,
     hex_colour,
@@ -124,7 +125,7 @@ def draw_links(
         for k, v in enumerate(model.visuals[link]):
             origin = v.origin @ np.diag([*v.scale, 1.0])
             mat = mg.MeshPhongMaterial(color=colours[link], shininess=30)
-            scene.object(f"{path}/visual{k}", mg.StlMeshGeometry.from_file(str(v.mesh)), mat)
+            scene.object(f"{path}/visual{k}", StlGeometry(str(v.mesh)), mat)
             scene.transform(f"{path}/visual{k}", origin)
         scene.transform(path, poses[link])
 

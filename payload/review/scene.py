@@ -46,6 +46,16 @@ def hex_colour(colour: str | int) -> int:
     return colour if isinstance(colour, int) else int(colour.lstrip("#"), 16)
 
 
+class StlGeometry(mg.MeshGeometry):
+    """A binary STL file as meshcat geometry (``_meshfile_geometry``, its current name)."""
+
+    def __init__(self, path: str) -> None:
+        super().__init__(mg.StlMeshGeometry.from_file(path).contents, "stl")
+
+    def lower(self, object_data: Any) -> dict[str, Any]:
+        return {**super().lower(object_data), "type": "_meshfile_geometry"}
+
+
 class TextTexture(mg.Texture):
     """A canvas texture holding one line of text (meshcat's ``_text`` texture)."""
 
@@ -221,6 +231,7 @@ __all__ = [
     "ReviewError",
     "Scene",
     "Sprite",
+    "StlGeometry",
     "TextTexture",
     "box_pose",
     "frame_values",
