@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 import os
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -33,10 +34,20 @@ def _require_browser() -> None:
         if os.environ.get("CI"):
             pytest.fail("CI: playwright is not installed")
         pytest.skip("playwright is not installed")
-    if chromium_path() is None:  # pragma: no cover
+    if chromium_path() is None:
         if os.environ.get("CI"):
             pytest.fail("CI: Chromium is missing (/usr/bin/chromium)")
         pytest.skip("Chromium is not installed")
+
+
+def test_a_missing_browser_fails_under_ci_and_skips_elsewhere(monkeypatch) -> None:
+    monkeypatch.setattr(sys.modules[__name__], "chromium_path", lambda: None)
+    monkeypatch.setenv("CI", "true")
+    with pytest.raises(pytest.fail.Exception, match="Chromium is missing"):
+        _require_browser()
+    monkeypatch.delenv("CI")
+    with pytest.raises(pytest.skip.Exception):
+        _require_browser()
 
 
 def project(points: np.ndarray, camera: np.ndarray, size: tuple[int, int]) -> np.ndarray:
