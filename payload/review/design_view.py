@@ -1,0 +1,319 @@
+"""The design review: the payload on Astrobee, stowed and deployed, envelope and reach.
+
+Everything comes from the design project: Astrobee's body and the bay envelope from the
+design's ``[vehicle]`` table, the payload's generated meshes placed by Pinocchio forward
+kinematics of the generated URDF, the findings from the envelope report's checks
+(:func:`payload.envelope.fit.check_stowed`) and the reach clouds from the reach report's
+sampling and collision model.
+
+Scene tree (under :data:`REVIEW`):
+``vehicle/body/<i>``, ``vehicle/bays``, ``payload/<link>`` (every URDF link; meshes at
+``payload/<link>/visual<k>``), ``findings/clearance/<wall>`` and ``findings/protrusion/<part>``
+(segments and labels), ``reach/<finger>`` (point clouds, hidden until ticked).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+
+import meshcat.geometry as mg
+import numpy as np
+from meshcat.animation import Animation, AnimationClip, AnimationTrack
+
+from payload.design import FINGERS, build_tree, load_design, stale_files
+from payload.envelope.fit import StowedCheck, check_stowed, wall_gaps
+from payload.envelope.geometry import PayloadGeometry
+from payload.envelope.report import FINGER_COLOURS, STRUCTURE_COLOUR
+from payload.envelope.vehicle import Vehicle, vehicle_from_dict
+from payload.review.model import PayloadModel
+from payload.review.project import ProjectFiles
+from payload.review.scene import (
+    ROOT,
+    ReviewError,
+    Scene,
+    StlGeometry,
+    box_pose,
+    framing,
+    hex_colour,
+    label_object,
+    mpath,
+    segment,
+    translation,
+)
+
+REVIEW = f"{ROOT}/review"
+"""Root node of the design review."""
+
+OFFENDING_COLOUR = 0xFF0000
+"""Colour of a part that protrudes from the bays or collides."""
+
+BODY_COLOUR, BAY_COLOUR = 0xB8BCC8, 0x3A7BD5
+DEPLOY_FPS = 30
+STAGE_SECONDS, FINGER_SECONDS = 2.0, 1.5
+VIEW_DIRECTION = (1.0, -1.25, -0.45)
+"""The camera looks at the payload from forward, right and a little below the vehicle."""
+LABEL_SIZE = 0.08
+"""Edge of a label sprite [m]."""
+
+
+def link_colour(name: str) -> int:
+    """A finger link in its finger's colour, structure in grey."""
+    if name[1:2] == "_" and name[0] in FINGER_COLOURS:
+        return hex_colour(FINGER_COLOURS[name[0]])
+    return hex_colour(STRUCTURE_COLOUR)
+
+
+@dataclass
+class DesignReview:
+    """A built design review.
+
+    Attributes:
+        scene: The meshcat scene.
+        check: The envelope checks of the stowed configuration.
+        offending: Links drawn red (protruding, colliding, or hit in the deployment).
+        centre: Payload-frame point placed at the world origin (the camera target) [m].
+        stowed: Link placements in the stowed configuration (payload frame).
+        deployed: Link placements in the home (deployed) configuration.
+    """
+
+    scene: Scene
+    check: StowedCheck
+    offending: frozenset[str]
+    centre: np.ndarray
+    stowed: dict[str, np.ndarray]
+    deployed: dict[str, np.ndarray]
+
+
+def offending_parts(check: StowedCheck) -> frozenset[str]:
+    """Links that protrude from the bays, collide with another link, or hit the vehicle."""
+    out = {p.name for p in check.parts if not p.inside}
+    for c in check.collisions:
+        out |= {c.a, c.b}
+    if not check.sweep.vehicle_clear:
+        out |= {n for n in check.sweep.between if n in {p.name for p in check.parts}}
+    return frozenset(out)
+
+
+def draw_vehicle(scene: Scene, vehicle: Vehicle, root: str) -> None:
+    """Astrobee's body (around the open bays) and the bay envelope, translucent."""
+    for i, (lo, hi) in enumerate(vehicle.body_boxes()):
+        size, pose = box_pose(lo, hi)
+        path = f"{root}/body/{i}"
+        scene.object(path, mg.Box(size), mg.MeshLambertMaterial(color=BODY_COLOUR, opacity=0.3))
+        scene.transform(path, pose)
+    size, pose = box_pose(vehicle.bay_lower, vehicle.bay_upper)
+    scene.object(
+        f"{root}/bays",
+        mg.Box(size),
+        mg.MeshLambertMaterial(color=BAY_COLOUR, opacity=0.15, depthWrite=False),
+    )
+    scene.transform(f"{root}/bays", pose)
+
+
+def draw_links(
+    scene: Scene,
+    model: PayloadModel,
+    root: str,
+    poses: Mapping[str, np.ndarray],
+    colours: Mapping[str, int],
+) -> None:
+    """Every URDF link as a node at its pose, its meshes as children."""
+    for link in model.links:
+        path = f"{root}/{link}"
+        for k, v in enumerate(model.visuals[link]):
+            origin = v.origin @ np.diag([*v.scale, 1.0])
+            mat = mg.MeshPhongMaterial(color=colours[link], shininess=30)
+            scene.object(f"{path}/visual{k}", StlGeometry(str(v.mesh)), mat)
+            scene.transform(f"{path}/visual{k}", origin)
+        scene.transform(path, poses[link])
+
+
+def _label(scene: Scene, path: str, text: str, at: np.ndarray) -> None:
+    scene.object(path, label_object(text))
+    scene.transform(path, translation(at) @ np.diag([LABEL_SIZE, LABEL_SIZE, LABEL_SIZE, 1.0]))
+
+
+def draw_findings(
+    scene: Scene, geom: PayloadGeometry, check: StowedCheck, vehicle: Vehicle, root: str
+) -> list[tuple[str, float, np.ndarray, np.ndarray]]:
+    """The tightest clearance to each bay wall as a labelled segment, and each protrusion.
+
+    Returns:
+        ``(wall, clearance [m], part point, wall point)`` per drawn clearance segment.
+    """
+    lo, hi = vehicle.bay_lower, vehicle.bay_upper
+    poses = geom.poses(check.q)
+    drawn = []
+    for w, wall in enumerate(vehicle.walls):
+        cands = [
+            (p.wall_clearance[w], p.name)
+            for p in check.parts
+            if p.inside and np.isfinite(p.wall_clearance[w])
+        ]
+        if not cands:
+            continue
+        d, name = min(cands)
+        pts = geom.hull_vertices(name, poses[name])
+        k = int(np.argmin(wall_gaps(pts, lo, hi)[:, w]))
+        a = pts[k]
+        b = a.copy()
+        b[w // 2] = lo[w // 2] if w % 2 == 0 else hi[w // 2]
+        key = wall.split()[0].replace("+", "plus_").replace("-", "minus_")
+        scene.object(f"{root}/clearance/{key}/segment", segment(a, b))
+        _label(scene, f"{root}/clearance/{key}/label", f"{d * 1e3:.1f} mm {name}", (a + b) / 2)
+        drawn.append((wall, float(d), a, b))
+    for p in check.parts:
+        if p.inside:
+            continue
+        pts = geom.hull_vertices(p.name, poses[p.name])
+        far = pts[int(np.argmax(np.linalg.norm(pts - np.clip(pts, lo, hi), axis=1)))]
+        text = f"{p.name}: {p.protrusion * 1e3:.1f} mm out"
+        _label(scene, f"{root}/protrusion/{p.name}", text, far)
+    return drawn
+
+
+def reach_clouds(
+    geom: PayloadGeometry, vehicle: Vehicle, samples: int, seed: int
+) -> dict[str, np.ndarray]:
+    """Each finger's collision-free fingertip cloud, as the reach report samples it [m]."""
+    from payload.envelope.reach import (
+        CollisionModel,
+        finger_link_names,
+        fingertips,
+        sample_configurations,
+    )
+
+    tree = geom.tree
+    q = sample_configurations(tree, samples, np.random.default_rng(seed))
+    tips = fingertips(tree, q)
+    contacts = CollisionModel(geom, vehicle).check(q, workers=1)
+    links = {f: finger_link_names(tree, f) for f in FINGERS}
+    out = {}
+    for i, f in enumerate(FINGERS):
+        others = [n for g in FINGERS if g != f for n in links[g]]
+        out[f] = tips[~contacts.involving(links[f], ignore=others), i]
+    return out
+
+
+def draw_reach(scene: Scene, clouds: Mapping[str, np.ndarray], root: str) -> None:
+    """Reach clouds in the fingers' colours, hidden until ticked in the scene tree."""
+    for f, pts in clouds.items():
+        colour = np.array([int(FINGER_COLOURS[f][i : i + 2], 16) / 255 for i in (1, 3, 5)])
+        cols = np.tile(colour, (len(pts), 1)).T.astype(np.float32)
+        geometry = mg.PointsGeometry(pts.T.astype(np.float32), cols)
+        scene.object(f"{root}/{f}", geometry, mg.PointsMaterial(size=0.002))
+        scene.prop(f"{root}/{f}", "visible", False)
+
+
+def set_track(
+    animation: Animation, path: str, frames: list[float], poses: list[np.ndarray]
+) -> None:
+    """Keyframes of a node's pose: one per frame (``frames`` in animation frames)."""
+    import meshcat.transformations as tf
+
+    pos = [list(map(float, p[:3, 3])) for p in poses]
+    quat = []
+    for p in poses:
+        w, x, y, z = tf.quaternion_from_matrix(p)
+        quat.append([float(x), float(y), float(z), float(w)])
+    clip = animation.clips.setdefault(mpath(path), AnimationClip(fps=animation.default_framerate))
+    clip.tracks["position"] = AnimationTrack("position", "vector3", list(frames), pos)
+    clip.tracks["quaternion"] = AnimationTrack("quaternion", "quaternion", list(frames), quat)
+
+
+def deployment_configurations(
+    model: PayloadModel, stowed: Mapping[str, float], home: Mapping[str, float]
+) -> list[np.ndarray]:
+    """Stage down with the fingers stowed, then fingers and rail from stowed to home."""
+    out = []
+    n_stage, n_finger = round(STAGE_SECONDS * DEPLOY_FPS), round(FINGER_SECONDS * DEPLOY_FPS)
+    for s in np.linspace(0.0, 1.0, n_stage + 1):
+        values = dict(stowed)
+        values["stage"] = (1 - s) * stowed["stage"] + s * home["stage"]
+        out.append(model.configuration(values))
+    for s in np.linspace(0.0, 1.0, n_finger + 1)[1:]:
+        values = {j: (1 - s) * stowed[j] + s * home[j] for j in home}
+        values["stage"] = home["stage"]
+        out.append(model.configuration(values))
+    return out
+
+
+def build_design_review(
+    files: ProjectFiles, reach_samples: int = 5000, seed: int = 0, root: str = REVIEW
+) -> DesignReview:
+    """The design review scene of a design project (stowed, with the deployment animation).
+
+    Args:
+        files: The design project's files.
+        reach_samples: Configurations sampled for the reach clouds (0: no clouds).
+        seed: Seed of the reach sampling.
+        root: Scene node to build under.
+    """
+    files.check()
+    design = load_design(files.design)
+    stale = stale_files(design, files.urdf.parent.parent)
+    if stale:
+        raise ReviewError(
+            f"the generated models do not match {files.design} ({', '.join(stale)}); "
+            "run `payload build`"
+        )
+    vehicle = vehicle_from_dict(design.vehicle or {}, source=str(files.design))
+    tree = build_tree(design)
+    geom = PayloadGeometry(tree)
+    model = PayloadModel(files.urdf)
+    stowed_q, home_q = tree.posture("stowed"), tree.posture("home")
+    check = check_stowed(geom, vehicle, stowed_q)
+    bad = offending_parts(check)
+    stowed = model.placements(model.configuration(check.q))
+    deployed = model.placements(model.configuration(home_q))
+
+    verts = []
+    for poses in (stowed, deployed):
+        for link in model.links:
+            if link in geom.solids:
+                v = geom.mesh_vertices[link]
+                verts.append(v @ poses[link][:3, :3].T + poses[link][:3, 3])
+    allv = np.vstack(verts)
+    centre = (allv.min(axis=0) + allv.max(axis=0)) / 2
+
+    scene = Scene()
+    scene.transform(root, translation(-centre))
+    draw_vehicle(scene, vehicle, f"{root}/vehicle")
+    colours = {n: OFFENDING_COLOUR if n in bad else link_colour(n) for n in model.links}
+    draw_links(scene, model, f"{root}/payload", stowed, colours)
+    draw_findings(scene, geom, check, vehicle, f"{root}/findings")
+    if reach_samples:
+        draw_reach(scene, reach_clouds(geom, vehicle, reach_samples, seed), f"{root}/reach")
+    scene.camera = (framing(allv - centre, VIEW_DIRECTION), np.zeros(3))
+
+    anim = Animation(default_framerate=DEPLOY_FPS)
+    configs = deployment_configurations(model, check.q, home_q)
+    frames = list(range(len(configs)))
+    placements = [model.placements(q) for q in configs]
+    for link in model.links:
+        set_track(anim, f"{root}/payload/{link}", frames, [p[link] for p in placements])
+    scene.animation = anim
+    scene.notes += [
+        f"design: {Path(files.design)}",
+        f"stowed fit: {'pass' if check.passed else 'FAIL'}",
+    ]
+    scene.notes += [f"  {line}" for line in check.failures()]
+    return DesignReview(scene, check, bad, centre, stowed, deployed)
+
+
+__all__ = [
+    "OFFENDING_COLOUR",
+    "REVIEW",
+    "DesignReview",
+    "build_design_review",
+    "deployment_configurations",
+    "draw_findings",
+    "draw_links",
+    "draw_vehicle",
+    "link_colour",
+    "offending_parts",
+    "reach_clouds",
+    "set_track",
+]

@@ -1,0 +1,56 @@
+"""Where a review finds its design project: the design file and its generated models."""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass
+from pathlib import Path
+
+from payload.review.errors import ReviewError
+
+
+@dataclass(frozen=True)
+class ProjectFiles:
+    """The files of one design project a review reads.
+
+    Attributes:
+        design: The design file (``cad/design.toml``).
+        urdf: The generated URDF (``urdf/payload.urdf``); its meshes live in ``cad/meshes``.
+        mjcf: The generated MJCF (``urdf/payload.xml``), for the trial world.
+    """
+
+    design: Path
+    urdf: Path
+    mjcf: Path
+
+    def check(self) -> None:
+        """Raise :class:`ReviewError` naming the first missing file."""
+        for what, path in (("design file", self.design), ("generated URDF", self.urdf)):
+            if not path.is_file():
+                hint = "" if what == "design file" else "; run `payload build`"
+                raise ReviewError(f"{what} not found: {path}{hint}")
+
+
+def project_files(design: str | Path | None = None) -> ProjectFiles:
+    """The design project of ``design`` (default: the current project's design file).
+
+    A design file lives at ``<project>/cad/design.toml`` and its models under
+    ``<project>/urdf``. This is the one place the review looks the project up.
+    """
+    if design is None:
+        from payload.design.params import DEFAULT_DESIGN_PATH
+        from payload.kinematics import DEFAULT_URDF
+
+        urdf = DEFAULT_URDF
+        return ProjectFiles(DEFAULT_DESIGN_PATH, urdf, urdf.with_name("payload.xml"))
+    path = Path(design)
+    root = path.resolve().parents[1]
+    return ProjectFiles(path, root / "urdf" / "payload.urdf", root / "urdf" / "payload.xml")
+
+
+def design_hash(path: str | Path) -> str:
+    """SHA-256 of a design file, first 16 hex digits (what a trial recording stores)."""
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()[:16]
+
+
+__all__ = ["ProjectFiles", "design_hash", "project_files"]

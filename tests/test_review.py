@@ -1,0 +1,330 @@
+"""The Meshcat review: scene tree, placements, findings, trial replay and bad input.
+
+Scenes are built as data (no server); placements are checked against the design's own
+kinematic tree (numpy) and against Pinocchio called here directly on the generated URDF.
+"""
+
+from __future__ import annotations
+
+import shutil
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import numpy as np
+import pinocchio as pin
+import pytest
+import tomli_w
+from conftest import DESIGN, ROOT, URDF
+
+from payload.cli import main
+from payload.design import MANIPULATION_JOINTS, build_tree, load_design
+from payload.envelope.geometry import PayloadGeometry
+from payload.review.design_view import OFFENDING_COLOUR, REVIEW, build_design_review, link_colour
+from payload.review.project import design_hash, project_files
+from payload.review.scene import frame_values
+from payload.review.trial_view import (
+    CONTACT_COLOUR,
+    FREE_COLOUR,
+    TRIAL,
+    build_trial_replay,
+    phase_spans,
+)
+from payload.trials.recorder import TrialRecorder, random_step
+
+
+def _quat_matrix(xyzw) -> np.ndarray:
+    x, y, z, w = xyzw
+    return pin.Quaternion(w, x, y, z).toRotationMatrix()
+
+
+def _urdf_links(urdf: Path) -> dict[str, list[str]]:
+    """Link name -> mesh files of its visuals, read with the standard XML parser."""
+    out = {}
+    for link in ET.parse(urdf).getroot().iter("link"):
+        out[link.get("name")] = [m.get("filename") for m in link.findall("visual/geometry/mesh")]
+    return out
+
+
+@pytest.fixture(scope="module")
+def review():
+    return build_design_review(project_files(), reach_samples=1000)
+
+
+def test_scene_tree_holds_every_link_with_its_generated_mesh(review) -> None:
+    objects, transforms = review.scene.objects(), review.scene.transforms()
+    links = _urdf_links(URDF)
+    assert len(links) == 23
+    for link, meshes in links.items():
+        assert f"{REVIEW}/payload/{link}" in transforms, link
+        for k, mesh in enumerate(meshes):
+            obj = objects[f"{REVIEW}/payload/{link}/visual{k}"]
+            data = (URDF.parent / mesh).read_bytes()
+            assert obj.geometry.contents.data == data, f"{link}: not the generated mesh"
+            assert obj.material.color == link_colour(link)
+
+
+def test_stowed_links_sit_where_the_design_tree_puts_them(review, design) -> None:
+    tree = build_tree(design)
+    poses = tree.link_poses(tree.posture("stowed"))
+    transforms = review.scene.transforms()
+    for link, want in poses.items():
+        np.testing.assert_allclose(transforms[f"{REVIEW}/payload/{link}"], want, atol=1e-9)
+    np.testing.assert_allclose(transforms[REVIEW][:3, 3], -review.centre)
+
+
+def test_deployment_animation_goes_from_stowed_to_home(review, design) -> None:
+    tree = build_tree(design)
+    anim = review.scene.animation
+    for posture, index in (("stowed", 0), ("home", -1)):
+        poses = tree.link_poses(tree.posture(posture))
+        for link in ("stage", "A_distal", "carriage"):
+            frames, pos = frame_values(anim, f"{REVIEW}/payload/{link}", "position")
+            _, quat = frame_values(anim, f"{REVIEW}/payload/{link}", "quaternion")
+            np.testing.assert_allclose(pos[index], poses[link][:3, 3], atol=1e-9)
+            np.testing.assert_allclose(_quat_matrix(quat[index]), poses[link][:3, :3], atol=1e-9)
+        _, pos = frame_values(anim, f"{REVIEW}/payload/D_tip", "position")
+        tip = tree.frame_positions(tree.posture(posture))["D_tip"]
+        np.testing.assert_allclose(pos[index], tip, atol=1e-9)
+    assert frames == list(range(len(frames)))
+
+
+def test_clearance_segments_measure_the_envelope_reports_clearances(review) -> None:
+    objects = review.scene.objects()
+    fits = {p.name: p for p in review.check.parts}
+    segments = [p for p in objects if p.startswith(f"{REVIEW}/findings/clearance/")]
+    assert len([p for p in segments if p.endswith("/segment")]) == 6
+    for path in segments:
+        if not path.endswith("/segment"):
+            continue
+        a, b = objects[path].geometry.position.T.astype(float)
+        label = objects[path.replace("/segment", "/label")].material.texture.text
+        mm, _, part = label.partition(" mm ")
+        wall = next(w for w in range(6) if path.split("/")[-2] == _wall_key(w))
+        assert np.linalg.norm(a - b) == pytest.approx(fits[part].wall_clearance[wall], abs=2e-6)
+        assert float(mm) == pytest.approx(fits[part].wall_clearance[wall] * 1e3, abs=0.051)
+    assert not review.offending
+
+
+def _wall_key(w: int) -> str:
+    return ("minus_x", "plus_x", "minus_y", "plus_y", "minus_z", "plus_z")[w]
+
+
+def test_reach_clouds_per_finger_in_its_colour_hidden_until_ticked(review) -> None:
+    from payload.envelope.report import FINGER_COLOURS
+
+    objects, visible = review.scene.objects(), review.scene.properties("visible")
+    for f, colour in FINGER_COLOURS.items():
+        cloud = objects[f"{REVIEW}/reach/{f}"]
+        rgb = [int(colour[i : i + 2], 16) / 255 for i in (1, 3, 5)]
+        np.testing.assert_allclose(cloud.geometry.color[:, 0], rgb, atol=1e-6)
+        assert cloud.geometry.position.shape[1] > 100
+        assert visible[f"{REVIEW}/reach/{f}"] is False
+
+
+def _copy_project(tmp_path: Path, design_dict: dict, bay_size: list[float]) -> Path:
+    root = tmp_path / "project"
+    shutil.copytree(ROOT / "urdf", root / "urdf")
+    shutil.copytree(ROOT / "cad" / "meshes", root / "cad" / "meshes")
+    data = {**design_dict, "vehicle": {**design_dict["vehicle"], "bay_size": bay_size}}
+    (root / "cad" / "design.toml").write_bytes(tomli_w.dumps(data).encode())
+    return root / "cad" / "design.toml"
+
+
+def test_a_design_that_does_not_fit_shows_the_offending_parts_red(tmp_path, design_dict) -> None:
+    path = _copy_project(tmp_path, design_dict, [0.18, 0.10, 0.085])
+    rv = build_design_review(project_files(path), reach_samples=0)
+    # independent: the stowed meshes, posed by the design tree, against the bay box
+    design = load_design(path)
+    tree = build_tree(design)
+    geom = PayloadGeometry(tree)
+    poses = tree.link_poses(tree.posture("stowed"))
+    sx, sy, sz = design.vehicle["bay_size"]
+    lo, hi = np.array([-sx / 2, -sy / 2, -sz]), np.array([sx / 2, sy / 2, 0.0])
+    out = set()
+    for n in geom.links:
+        v = geom.mesh_vertices[n] @ poses[n][:3, :3].T + poses[n][:3, 3]
+        if np.any(v < lo - 1e-6) or np.any(v > hi + 1e-6):
+            out.add(n)
+    assert out and "base" in out and any(n[1:2] == "_" for n in out)
+    assert set(rv.offending) == out
+    objects = rv.scene.objects()
+    for n in geom.links:
+        colour = objects[f"{REVIEW}/payload/{n}/visual0"].material.color
+        assert (colour == OFFENDING_COLOUR) == (n in out), n
+    labels = [p for p in objects if p.startswith(f"{REVIEW}/findings/protrusion/")]
+    assert sorted(p.rsplit("/", 1)[1] for p in labels) == sorted(out)
+
+
+# -- trial replay ------------------------------------------------------------------------
+N_STEPS = 40
+
+
+def _record_trial(folder: Path, design_file: Path = DESIGN) -> Path:
+    """A short recording with moving joints, vehicle and CTB (test fixture)."""
+    rng = np.random.default_rng(3)
+    d = load_design(design_file)
+    with TrialRecorder(folder / "log.mcap") as rec:
+        rec.write_meta({"seed": 3, "design_hash": design_hash(design_file)})
+        for k in range(N_STEPS):
+            t = 0.02 * k
+            q = np.zeros(17)
+            q[:16] = 0.4 * np.sin(t + np.arange(16))
+            q[16] = d.rail.travel * (0.5 + 0.4 * np.sin(3 * t))
+            yaw = 0.3 * t
+            quat = np.array([np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)])
+            rec.write(
+                random_step(
+                    rng,
+                    t,
+                    phase="acquisition" if k < N_STEPS // 2 else "translation",
+                    q_meas=q,
+                    deploy_meas=d.stage.travel * (0.8 + 0.2 * np.cos(t)),
+                    astrobee_pos=np.array([1.5, 5.0 - 0.2 * t, 0.25]),
+                    astrobee_quat=quat,
+                    ctb_pos=np.array([1.5, 5.0 - 0.2 * t, -0.3]),
+                    ctb_quat=quat,
+                    contact=bool(k % 7 < 3),
+                )
+            )
+    return folder
+
+
+@pytest.fixture(scope="module")
+def replay(tmp_path_factory):
+    folder = _record_trial(tmp_path_factory.mktemp("trial"))
+    return build_trial_replay(folder, project_files())
+
+
+def test_one_animation_frame_per_recorded_step_at_the_recorded_rate(replay) -> None:
+    rec, anim = replay.recording, replay.scene.animation
+    assert replay.fps == pytest.approx(50.0)
+    for path in (f"{TRIAL}/astrobee", f"{TRIAL}/ctb", f"{TRIAL}/astrobee/payload/B_distal"):
+        frames, pos = frame_values(anim, path, "position")
+        assert len(frames) == len(pos) == len(rec) == N_STEPS
+        np.testing.assert_allclose(np.array(frames) / replay.fps, rec.t - rec.t[0], atol=1e-12)
+    _, pos = frame_values(anim, f"{TRIAL}/astrobee", "position")
+    np.testing.assert_allclose(pos, rec.astrobee_pos)
+    for link in _urdf_links(URDF):
+        frames, _ = frame_values(anim, f"{TRIAL}/astrobee/payload/{link}", "quaternion")
+        assert len(frames) == N_STEPS
+
+
+def test_a_links_pose_in_a_frame_is_pinocchio_fk_of_the_recorded_joints(replay, design) -> None:
+    model = pin.buildModelFromUrdf(str(URDF))
+    data = model.createData()
+    tree = build_tree(design)
+    rec, anim = replay.recording, replay.scene.animation
+    for k in (0, 17, N_STEPS - 1):
+        q = pin.neutral(model)
+        values = dict(zip(MANIPULATION_JOINTS, rec.q_meas[k]))
+        values["stage"] = rec.deploy_meas[k]
+        for name, v in values.items():
+            q[model.joints[model.getJointId(name)].idx_q] = v
+        pin.framesForwardKinematics(model, data, q)
+        tree_poses = tree.link_poses(values)
+        for link in ("A_distal", "B_middle", "carriage", "stage", "D_knuckle"):
+            want = data.oMf[model.getFrameId(link, pin.FrameType.BODY)]
+            _, pos = frame_values(anim, f"{TRIAL}/astrobee/payload/{link}", "position")
+            _, quat = frame_values(anim, f"{TRIAL}/astrobee/payload/{link}", "quaternion")
+            np.testing.assert_allclose(pos[k], want.translation, atol=1e-12)
+            np.testing.assert_allclose(_quat_matrix(quat[k]), want.rotation, atol=1e-9)
+            np.testing.assert_allclose(pos[k], tree_poses[link][:3, 3], atol=1e-9)
+
+
+def test_pads_show_the_opposing_contact_indicator_and_labels_the_phases(replay) -> None:
+    rec, anim, objects = replay.recording, replay.scene.animation, replay.scene.objects()
+    for f in "ABCD":
+        for state, colour, want in (
+            ("contact", CONTACT_COLOUR, rec.contact),
+            ("free", FREE_COLOUR, ~rec.contact),
+        ):
+            path = f"{TRIAL}/astrobee/payload/{f}_tip/pad_{state}"
+            assert objects[path].material.color == colour
+            frames, values = frame_values(anim, path, "visible")
+            at = np.searchsorted(frames, np.arange(N_STEPS), side="right") - 1
+            np.testing.assert_array_equal(np.array(values)[at], want)
+    assert [s[0] for s in phase_spans(rec)] == ["acquisition", "translation"]
+    frames, values = frame_values(anim, f"{TRIAL}/astrobee/phase/translation", "visible")
+    assert frames == pytest.approx([0.0, N_STEPS // 2]) and values == [False, True]
+
+
+# -- command line and bad input ------------------------------------------------------------
+def _err(capsys) -> str:
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1, err
+    return err
+
+
+def test_trial_folder_without_a_readable_recording_exits_2(tmp_path, capsys) -> None:
+    assert main(["review", "--trial", str(tmp_path / "none")]) == 2
+    assert "not a folder" in _err(capsys)
+    assert main(["review", "--trial", str(tmp_path)]) == 2
+    assert "no readable recording" in _err(capsys)
+    (tmp_path / "log.mcap").write_bytes(b"not an mcap file")
+    assert main(["review", "--trial", str(tmp_path)]) == 2
+    assert "no readable recording" in _err(capsys)
+
+
+def test_recording_of_another_design_exits_2(tmp_path, design_dict, capsys) -> None:
+    other = _copy_project(tmp_path, design_dict, [0.21, 0.10, 0.10])
+    folder = _record_trial(tmp_path / "trial", other)
+    assert main(["review", "--trial", str(folder)]) == 2
+    err = _err(capsys)
+    assert "another design" in err and design_hash(other) in err and design_hash(DESIGN) in err
+
+
+def test_bad_reach_samples_and_static_folder_exit_2(tmp_path, capsys) -> None:
+    assert main(["review", "--reach-samples", "-1"]) == 2
+    assert "--reach-samples" in _err(capsys)
+    assert main(["review", "--static", str(tmp_path)]) == 2
+    assert "is a folder" in _err(capsys)
+    assert main(["review", "--zmq-url", "tcp://127.0.0.1:1", "--reach-samples", "0"]) == 2
+    assert "no meshcat server" in _err(capsys)
+
+
+def _scene_paths(html: str) -> set[str]:
+    """Paths of the set_object commands embedded in a meshcat static page."""
+    import base64
+    import re
+
+    import umsgpack
+
+    out = set()
+    for blob in re.findall(r"data:application/octet-binary;base64,([A-Za-z0-9+/=]+)", html):
+        cmd = umsgpack.unpackb(base64.b64decode(blob))
+        if cmd.get("type") == "set_object":
+            out.add(cmd["path"])
+    return out
+
+
+def test_review_draws_into_a_running_meshcat_server(capsys) -> None:
+    from meshcat.servers.zmqserver import start_zmq_server_as_subprocess
+
+    from payload.review.serve import close_viewer, open_viewer
+
+    proc, zmq_url, web_url = start_zmq_server_as_subprocess()
+    try:
+        assert main(["review", "--zmq-url", zmq_url, "--reach-samples", "0"]) == 0
+        assert f"meshcat: {web_url}" in capsys.readouterr().out
+        vis = open_viewer(zmq_url)  # clears the review, so read the scene first
+        paths = _scene_paths(vis.window.get_scene())
+        assert paths == set()  # an attached review starts from an empty scene
+        assert main(["review", "--zmq-url", zmq_url, "--reach-samples", "0"]) == 0
+        paths = _scene_paths(vis.window.get_scene())
+        close_viewer(vis)  # attached: leaves the server running
+        assert proc.poll() is None
+    finally:
+        proc.kill()
+        proc.wait()
+    for link, meshes in _urdf_links(URDF).items():
+        for k in range(len(meshes)):
+            assert f"{REVIEW}/payload/{link}/visual{k}" in paths
+    assert f"{REVIEW}/vehicle/bays" in paths
+
+
+def test_stale_generated_models_exit_2(tmp_path, design_dict, capsys) -> None:
+    path = _copy_project(tmp_path, design_dict, [0.20, 0.10, 0.10])
+    data = {**design_dict, "rail": {**design_dict["rail"], "travel": 0.045}}
+    path.write_bytes(tomli_w.dumps(data).encode())
+    assert main(["review", "--design", str(path), "--static", str(tmp_path / "r.html")]) == 2
+    assert "do not match" in _err(capsys) and not (tmp_path / "r.html").exists()
