@@ -203,9 +203,7 @@ class Bus:
                 s.heard(now)
                 s.write(addr, body[k + 1 : k + 1 + n])
 
-    def _sync_read(
-        self, prm: bytes, now: float, fast: bool
-    ) -> list[tuple[ServoModel, bytes]]:
+    def _sync_read(self, prm: bytes, now: float, fast: bool) -> list[tuple[ServoModel, bytes]]:
         if len(prm) < 5:
             return []
         addr, n = int.from_bytes(prm[:2], "little"), int.from_bytes(prm[2:4], "little")

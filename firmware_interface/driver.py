@@ -49,7 +49,7 @@ GAINS = {"finger": (600, 0, 200), "abduction": (450, 0, 150), "linear": (600, 0,
 
 @dataclass(frozen=True)
 class ServoHealth:
-    """Periodic health reading of one servo."""
+    """Health reading of one servo (Hardware Error Status, temperature, input voltage)."""
 
     id: int
     joint: str
@@ -57,6 +57,12 @@ class ServoHealth:
     temperature_c: float
     voltage_v: float
     watchdog: int
+    model_number: int = 0
+
+    @property
+    def bits(self) -> list[str]:
+        """Names of the hardware error bits set."""
+        return hw_error_names(self.hardware_error)
 
 
 @dataclass(frozen=True)
@@ -210,6 +216,16 @@ class DynamixelDriver:
             if err:
                 raise HardwareFault(spec.id, spec.joint, hw_error_names(err))
             self._configure(spec)
+        self._arm_watchdog(self.ids)
+
+    def _arm_watchdog(self, ids: list[int]) -> None:
+        """Bus Watchdog on, for all servos at once (after every servo is configured)."""
+        g = GroupSyncWrite(self.port, self.packet, ADDR["bus_watchdog"], 1)
+        for i in ids:
+            g.addParam(i, [self.map.watchdog_ms // 20])
+        result = g.txPacket()
+        if result != COMM_SUCCESS:
+            raise CommError(f"arming the Bus Watchdog: {self.packet.getTxRxResult(result)}")
 
     def _configure(self, spec: ServoSpec) -> None:
         i = spec.id
@@ -225,7 +241,6 @@ class DynamixelDriver:
         present = to_signed(self._read_reg(i, ADDR["present_position"], 4), 4)
         self._write(i, "goal_position", present)
         self._write(i, "torque_enable", 1)
-        self._write(i, "bus_watchdog", self.map.watchdog_ms // 20)
 
     # -- protocol ----------------------------------------------------------------------------
     def send(self, command: PayloadCommand) -> None:
@@ -289,7 +304,9 @@ class DynamixelDriver:
             self.check_health()
         return self._state(pos, vel, cur, stamp)
 
-    def _state(self, pos: np.ndarray, vel: np.ndarray, cur: np.ndarray, stamp: float) -> PayloadState:
+    def _state(
+        self, pos: np.ndarray, vel: np.ndarray, cur: np.ndarray, stamp: float
+    ) -> PayloadState:
         q = self.map.joint_values(pos)
         w = vel * VELOCITY_UNIT_RPM * 2.0 * np.pi / 60.0  # servo shaft [rad/s]
         torque = cur * 1e-3 * self._kt  # [N m]
@@ -321,6 +338,18 @@ class DynamixelDriver:
             if attempt < self.retries:
                 self.retry_count += 1
         raise CommError(f"health read of address {address}: {self.packet.getTxRxResult(result)}")
+
+    def read_health(self, dxl_id: int) -> ServoHealth:
+        """One servo's health, read register by register (works with servos missing)."""
+        return ServoHealth(
+            dxl_id,
+            self.map.joint_of(dxl_id),
+            self._read_reg(dxl_id, ADDR["hardware_error_status"], 1),
+            float(self._read_reg(dxl_id, ADDR["present_temperature"], 1)),
+            self._read_reg(dxl_id, ADDR["present_input_voltage"], 2) * 0.1,
+            self._read_reg(dxl_id, ADDR["bus_watchdog"], 1),
+            self._read_reg(dxl_id, ADDR["model_number"], 2),
+        )
 
     def check_health(self) -> dict[int, ServoHealth]:
         """Read Hardware Error Status, Bus Watchdog, input voltage and temperature.
@@ -400,6 +429,7 @@ class DynamixelDriver:
             if err:
                 raise HardwareFault(i, self.map.joint_of(i), hw_error_names(err))
             self._configure(self.map.by_id(i))
+        self._arm_watchdog(ids)
         if self.on_fault == "torque_off":
             for spec in self.map.servos:
                 if spec.id not in ids:

@@ -20,12 +20,11 @@ from typing import Any
 
 import numpy as np
 
+from firmware_interface.control_table import RAD_PER_TICK
 from payload.design.params import FINGER_JOINTS, Design, load_design
 from payload.design.tree import ALL_JOINTS
 from payload.errors import PayloadError
 from payload.schema import PayloadCommand
-
-from firmware_interface.control_table import RAD_PER_TICK
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -67,7 +66,7 @@ class ServoSpec:
     def to_ticks(self, value: float) -> int:
         """Goal ticks for a joint value, clamped to the limits first."""
         v = min(max(float(value), self.lower), self.upper)
-        return int(round(self.zero + self.direction * v / self.units_per_tick))
+        return round(self.zero + self.direction * v / self.units_per_tick)
 
     def from_ticks(self, ticks: int | float) -> float:
         """Joint value of a present position [rad or m]."""
@@ -219,9 +218,7 @@ def servo_map_from_dict(
     if on_fault not in ON_FAULT:
         raise ServoMapError(f"{source}: on_fault must be 'hold' or 'torque_off'")
     cap = round(design.servo.current_limit * 1000)
-    return ServoMap(
-        tuple(by_joint[j] for j in ALL_JOINTS), baud, delay, wd, on_fault, cap, source
-    )
+    return ServoMap(tuple(by_joint[j] for j in ALL_JOINTS), baud, delay, wd, on_fault, cap, source)
 
 
 def default_map_text() -> str:

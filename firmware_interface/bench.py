@@ -1,0 +1,75 @@
+"""``payload bench hw``: the per-cycle cost of the bus against the wire time it implies."""
+
+from __future__ import annotations
+
+import os
+import time
+from typing import Any
+
+import numpy as np
+
+from firmware_interface import protocol as P
+from firmware_interface.driver import FEEDBACK_LEN
+from payload.schema import PayloadCommand
+
+
+def cycle_wire_time(n_servos: int, baud: int, return_delay_s: float = 0.0) -> float:
+    """Wire time of one cycle [s]: the goal sync write, the fast sync read and its reply."""
+    write = len(P.build(P.BROADCAST_ID, P.SYNC_WRITE, bytes(4 + 5 * n_servos), stuffing=False))
+    read = len(P.build(P.BROADCAST_ID, P.FAST_SYNC_READ, bytes(4 + n_servos), stuffing=False))
+    reply = 8 + (FEEDBACK_LEN + 4) * n_servos
+    return P.wire_time(write + read + reply, baud) + return_delay_s
+
+
+def bench_hw(port: str | None, cycles: int, servos: str | None = None) -> dict[str, Any]:
+    """Time ``cycles`` cycles (send + read) after bring-up.
+
+    Args:
+        port: The bus; None starts an emulator in its own process.
+        cycles: Cycles to time.
+        servos: Servo map file.
+
+    Returns:
+        ``cycles``, ``cycle_mean_us``, ``cycle_p99_us``, ``wire_us``, ``ratio_to_wire``,
+        ``retries``, ``baud``, plus ``cycle_median_us``, ``fallbacks``, ``load_1min``.
+    """
+    from firmware_interface.driver import DynamixelDriver
+    from firmware_interface.emulator import EmulatorProcess
+    from firmware_interface.servo_map import load_servo_map
+
+    smap = load_servo_map(servos)
+    emu = EmulatorProcess(servos) if port is None else None
+    try:
+        with DynamixelDriver(port or emu.port, smap, health_every=cycles + 10) as drv:
+            drv.bring_up()
+            state = drv.read()
+            cmd = PayloadCommand(state.q, state.deploy, 0.0)
+            for _ in range(20):  # warm up
+                drv.send(cmd)
+                drv.read()
+            drv.retry_count = 0
+            times = np.empty(cycles)
+            for k in range(cycles):
+                t0 = time.perf_counter()
+                drv.send(cmd)
+                drv.read()
+                times[k] = time.perf_counter() - t0
+            retries, fallbacks = drv.retry_count, drv.fallbacks
+    finally:
+        if emu is not None:
+            emu.close()
+    wire = cycle_wire_time(len(smap.servos), smap.baud, smap.return_delay * 2e-6)
+    mean = float(times.mean())
+    return {
+        "cycles": cycles,
+        "cycle_mean_us": mean * 1e6,
+        "cycle_p99_us": float(np.percentile(times, 99)) * 1e6,
+        "wire_us": wire * 1e6,
+        "ratio_to_wire": mean / wire,
+        "retries": retries,
+        "baud": smap.baud,
+        "cycle_median_us": float(np.median(times)) * 1e6,
+        "fallbacks": fallbacks,
+        "port": port or "emulator",
+        "load_1min": os.getloadavg()[0],
+    }
