@@ -22,9 +22,9 @@ def _map(args: argparse.Namespace) -> Any:
 
 
 def _cmd_emulate(args: argparse.Namespace) -> int:
-    from firmware_interface.emulator import serve
+    from firmware_interface.emulator import bus_spec, serve
 
-    serve(args.servos, args.fault, seed=args.seed)
+    serve(bus_spec(args.servos), args.fault, seed=args.seed)
     return 0
 
 

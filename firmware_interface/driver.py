@@ -78,6 +78,25 @@ class Recovery:
     seconds: float
 
 
+class _Port(PortHandler):
+    """The SDK's PortHandler with the packet timeout's latency allowance configurable.
+
+    The SDK assumes a USB adapter latency timer of 16 ms (``LATENCY_TIMER``) and waits
+    twice that plus the packet's bytes for a reply; a bus behind another latency (an
+    adapter set to 1 ms, a busy host) sets its own.
+    """
+
+    def __init__(self, port_name: str, latency_timer_ms: float) -> None:
+        super().__init__(port_name)
+        self.latency_timer_ms = latency_timer_ms
+
+    def setPacketTimeout(self, packet_length: int) -> None:  # noqa: N802 (SDK name)
+        self.packet_start_time = self.getCurrentTime()
+        self.packet_timeout = (
+            self.tx_time_per_byte * packet_length + self.latency_timer_ms * 2.0 + 2.0
+        )
+
+
 def _gains(spec: ServoSpec) -> tuple[int, int, int]:
     if spec.joint in LINEAR_JOINTS:
         return GAINS["linear"]
@@ -99,6 +118,7 @@ class DynamixelDriver:
             polls a non-blocking port in a busy loop; a short blocking read returns as
             soon as the bytes it asks for are there, without spinning the CPU (0 keeps
             the SDK's busy polling).
+        latency_timer_ms: Latency allowance of the reply timeout (SDK default 16 ms).
     """
 
     def __init__(
@@ -112,6 +132,7 @@ class DynamixelDriver:
         on_fault: str | None = None,
         fast: bool = True,
         poll_timeout: float = 0.002,
+        latency_timer_ms: float = 16.0,
     ) -> None:
         self.design = design if design is not None else load_design()
         self.map = servo_map if servo_map is not None else load_servo_map(design=self.design)
@@ -119,7 +140,7 @@ class DynamixelDriver:
         self.health_every = max(1, health_every)
         self.on_fault = on_fault or self.map.on_fault
         self.fast = fast
-        self.port = PortHandler(port)
+        self.port = _Port(port, latency_timer_ms)
         self.packet = PacketHandler(2.0)
         self.ids = self.map.ids
         self.retry_count = 0
@@ -131,6 +152,7 @@ class DynamixelDriver:
         self._stopped = False
         self._closed = True
         self._last_ticks: list[int] | None = None
+        self._last_io = time.monotonic()
         self._present = np.zeros(len(self.ids), dtype=np.int64)
         s = self.design.servo
         self._kt = s.stall_torque / s.stall_current  # [N m / A]
@@ -217,6 +239,7 @@ class DynamixelDriver:
                 raise HardwareFault(spec.id, spec.joint, hw_error_names(err))
             self._configure(spec)
         self._arm_watchdog(self.ids)
+        self._last_io = time.monotonic()
 
     def _arm_watchdog(self, ids: list[int]) -> None:
         """Bus Watchdog on, for all servos at once (after every servo is configured)."""
@@ -254,8 +277,21 @@ class DynamixelDriver:
         ticks = self.map.command_ticks(command)
         if self._stopped:
             return
+        if self.map.watchdog_ms and time.monotonic() - self._last_io > self.map.watchdog_ms / 1e3:
+            # silent for longer than the Bus Watchdog: servos that stopped refuse goals
+            # until it is cleared, so re-arm them first
+            self._rearm_watchdog()
         self._sync_write_goals(ticks)
         self._last_ticks = ticks
+        self._last_io = time.monotonic()
+
+    def _rearm_watchdog(self) -> None:
+        wd = self._group_read(ADDR["bus_watchdog"], 1)
+        for i in self.ids:
+            if wd.getData(i, ADDR["bus_watchdog"], 1) == 0xFF:
+                log.warning("%s: Bus Watchdog tripped; re-arming", self._name(i))
+                self._write(i, "bus_watchdog", 0)
+                self._write(i, "bus_watchdog", self.map.watchdog_ms // 20)
 
     def _sync_write_goals(self, ticks: list[int]) -> None:
         for i, t in zip(self.ids, ticks):
@@ -265,11 +301,11 @@ class DynamixelDriver:
             raise CommError(f"sync write of the goal positions: "
                             f"{self.packet.getTxRxResult(result)}")  # fmt: skip
 
-    def _feedback(self) -> None:
-        """One fast sync read (or a sync read) of current, velocity and position."""
+    def _sync_read(self, group: GroupSyncRead, what: str) -> None:
+        """Fast sync read with retries, then a plain sync read; raises CommError."""
         result = -1
         for attempt in range(self.retries + 1):
-            result = self._reader.fastSyncRead() if self.fast else self._reader.txRxPacket()
+            result = group.fastSyncRead() if self.fast else group.txRxPacket()
             if result == COMM_SUCCESS:
                 return
             if attempt < self.retries:
@@ -277,13 +313,18 @@ class DynamixelDriver:
         if self.fast:
             # fall back to a plain sync read: it names the servo that does not answer
             self.fallbacks += 1
-            result = self._reader.txRxPacket()
+            result = group.txRxPacket()
             if result == COMM_SUCCESS:
                 return
-        silent = [i for i in self.ids if not self._reader.isAvailable(i, FEEDBACK_ADDR, 2)]
+        addr = group.start_address
+        silent = [i for i in self.ids if not group.isAvailable(i, addr, group.data_length)]
         who = ", ".join(self._name(i) for i in silent) if silent else "the bus"
-        raise CommError(f"reading feedback after {self.retries + 1} attempt(s): "
+        raise CommError(f"reading {what} after {self.retries + 1} attempt(s): "
                         f"{self.packet.getTxRxResult(result)} ({who})")  # fmt: skip
+
+    def _feedback(self) -> None:
+        """One fast sync read (or a sync read) of current, velocity and position."""
+        self._sync_read(self._reader, "feedback")
 
     def read(self) -> PayloadState:
         """Measured positions [rad, m], velocities and efforts, with health flags.
@@ -293,7 +334,7 @@ class DynamixelDriver:
         """
         self._check_open()
         self._feedback()
-        stamp = time.monotonic()
+        stamp = self._last_io = time.monotonic()
         self.reads += 1
         r = self._reader
         cur = np.array([to_signed(r.getData(i, 126, 2), 2) for i in self.ids], dtype=float)
@@ -331,13 +372,8 @@ class DynamixelDriver:
         g = GroupSyncRead(self.port, self.packet, address, size)
         for i in self.ids:
             g.addParam(i)
-        for attempt in range(self.retries + 1):
-            result = g.txRxPacket()
-            if result == COMM_SUCCESS:
-                return g
-            if attempt < self.retries:
-                self.retry_count += 1
-        raise CommError(f"health read of address {address}: {self.packet.getTxRxResult(result)}")
+        self._sync_read(g, f"address {address}")
+        return g
 
     def read_health(self, dxl_id: int) -> ServoHealth:
         """One servo's health, read register by register (works with servos missing)."""
@@ -371,12 +407,8 @@ class DynamixelDriver:
                 int(wd.getData(i, 98, 1)),
             )
         self.health = out
-        for h in out.values():
-            if h.watchdog == 0xFF and not self._stopped:
-                # the host was silent longer than the watchdog: the servo stopped; re-arm it
-                log.warning("%s: Bus Watchdog tripped; re-arming", self._name(h.id))
-                self._write(h.id, "bus_watchdog", 0)
-                self._write(h.id, "bus_watchdog", self.map.watchdog_ms // 20)
+        if any(h.watchdog == 0xFF for h in out.values()) and not self._stopped:
+            self._rearm_watchdog()
         faulted = [h for h in out.values() if h.hardware_error]
         if faulted and (self.fault is None or not self._stopped):
             self._on_hardware_error(faulted)
@@ -429,7 +461,7 @@ class DynamixelDriver:
             if err:
                 raise HardwareFault(i, self.map.joint_of(i), hw_error_names(err))
             self._configure(self.map.by_id(i))
-        self._arm_watchdog(ids)
+        self._arm_watchdog(self.ids)
         if self.on_fault == "torque_off":
             for spec in self.map.servos:
                 if spec.id not in ids:

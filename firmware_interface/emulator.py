@@ -27,7 +27,6 @@ from typing import Any
 
 from firmware_interface.bus import Bus
 from firmware_interface.faults import parse_fault
-from firmware_interface.servo_map import home_ticks, load_servo_map
 
 TICK_S = 0.002  # dynamics and watchdog update period while idle [s]
 SPIN_S = 0.0  # spin this long before a due reply instead of sleeping [s]
@@ -105,6 +104,8 @@ def control(bus: Bus, req: dict[str, Any]) -> dict[str, Any]:
     bus.advance(time.monotonic())
     if op == "table":
         return {"table": bytes(bus.servos[int(req["id"])].table).hex()}
+    if op == "tables":
+        return {str(i): bytes(s.table).hex() for i, s in bus.servos.items()}
     if op == "servos":
         return {
             str(i): {
@@ -133,23 +134,29 @@ def control(bus: Bus, req: dict[str, Any]) -> dict[str, Any]:
     raise ValueError(f"unknown control op {op!r}")
 
 
-def make_bus(servos: str | None, faults: list[str], seed: int = 0) -> Bus:
-    """A bus with the servos of a map file (default map) at the design's home posture."""
+def bus_spec(servos: str | None) -> dict[str, Any]:
+    """IDs at the design's home posture and the baud rate of a map file (default map)."""
+    from firmware_interface.servo_map import home_ticks, load_servo_map
+
     smap = load_servo_map(servos)
+    return {"positions": home_ticks(smap), "baud": smap.baud}
+
+
+def make_bus(spec: dict[str, Any], faults: list[str], seed: int = 0) -> Bus:
+    """A bus from :func:`bus_spec` with the faults applied."""
     parsed = [parse_fault(f) for f in faults]  # validate before opening anything
-    bus = Bus(home_ticks(smap), smap.baud, seed=seed, now=time.monotonic())
-    for s in bus.servos.values():
-        s.table[9] = 250  # factory Return Delay Time: the driver's bring-up sets it
+    positions = {int(k): int(v) for k, v in spec["positions"].items()}
+    bus = Bus(positions, int(spec["baud"]), seed=seed, now=time.monotonic())
     for f in parsed:
         bus.apply(f)
     return bus
 
 
 def serve(
-    servos: str | None, faults: list[str], control_fd: int | None = None, seed: int = 0
+    spec: dict[str, Any], faults: list[str], control_fd: int | None = None, seed: int = 0
 ) -> None:
     """Build the bus, print the port path (first stdout line) and serve until interrupted."""
-    bus = make_bus(servos, faults, seed)
+    bus = make_bus(spec, faults, seed)
     ctl = socket.socket(fileno=control_fd) if control_fd is not None else None
     server = _Server(bus, ctl)
     sys.stdout.write(server.port + "\n")
@@ -163,10 +170,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--fault", action="append", default=[], help="fault spec (repeatable)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--control-fd", type=int, help=argparse.SUPPRESS)
+    ap.add_argument("--bus", help=argparse.SUPPRESS)  # JSON from bus_spec (saves the imports)
     args = ap.parse_args(argv)
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))
+    spec = json.loads(args.bus) if args.bus else bus_spec(args.servos)
     try:
-        serve(args.servos, args.fault, args.control_fd, args.seed)
+        serve(spec, args.fault, args.control_fd, args.seed)
     except KeyboardInterrupt:
         return 0
     return 0
@@ -184,11 +193,12 @@ class EmulatorProcess:
     def __init__(
         self, servos: str | None = None, faults: list[str] | None = None, seed: int = 0
     ) -> None:
+        spec = bus_spec(servos)
+        for f in faults or []:
+            parse_fault(f)
         ours, theirs = socket.socketpair()
         cmd = [sys.executable, "-m", "firmware_interface.emulator", "--seed", str(seed),
-               "--control-fd", str(theirs.fileno())]  # fmt: skip
-        if servos:
-            cmd += ["--servos", str(servos)]
+               "--control-fd", str(theirs.fileno()), "--bus", json.dumps(spec)]  # fmt: skip
         for f in faults or []:
             cmd += ["--fault", f]
         self.proc = subprocess.Popen(
@@ -215,6 +225,10 @@ class EmulatorProcess:
     def table(self, dxl_id: int) -> bytes:
         """Servo ``dxl_id``'s control table as the emulator holds it."""
         return bytes.fromhex(self.request(op="table", id=dxl_id)["table"])
+
+    def tables(self) -> dict[int, bytes]:
+        """Every servo's control table, read at one instant."""
+        return {int(k): bytes.fromhex(v) for k, v in self.request(op="tables").items()}
 
     def servos(self) -> dict[int, dict[str, Any]]:
         return {int(k): v for k, v in self.request(op="servos").items()}

@@ -193,18 +193,21 @@ class ServoModel:
     # -- dynamics ----------------------------------------------------------------------------
     def advance(self, now: float) -> None:
         """Integrate the output and the watchdog up to ``now``."""
-        dt = now - self.t
-        if dt <= 0.0:
+        if now <= self.t:
             return
-        self.t = now
         wd = self.table[ADDR["bus_watchdog"]]
         if self.torque and 0 < wd < 0x80 and self.watchdog_trip is None:
-            limit = wd * WATCHDOG_UNIT_S
-            if now - max(self.last_rx, self.watchdog_start) > limit:
-                # stop: hold the present position, the register reads -1
-                self.watchdog_trip = max(self.last_rx, self.watchdog_start) + limit
+            trip = max(self.last_rx, self.watchdog_start) + wd * WATCHDOG_UNIT_S
+            if now > trip:
+                # move until the trip, then stop: hold there, the register reads -1
+                if trip > self.t:
+                    self._move(trip - self.t)
+                    self.t = trip
+                self.watchdog_trip = trip
                 self._set("bus_watchdog", -1 & 0xFF)
                 self._set("goal_position", round(self.pos) + self.get("homing_offset"))
+        dt = now - self.t
+        self.t = now
         if self.torque:
             self._move(dt)
         else:
@@ -212,6 +215,8 @@ class ServoModel:
         self._refresh()
 
     def _move(self, dt: float) -> None:
+        if dt <= 0.0:
+            return
         goal = self.get("goal_position") - self.get("homing_offset")
         if self.watchdog_trip is not None:
             goal = self.pos
