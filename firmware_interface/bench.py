@@ -21,13 +21,16 @@ def cycle_wire_time(n_servos: int, baud: int, return_delay_s: float = 0.0) -> fl
     return P.wire_time(write + read + reply, baud) + return_delay_s
 
 
-def bench_hw(port: str | None, cycles: int, servos: str | None = None) -> dict[str, Any]:
+def bench_hw(
+    port: str | None, cycles: int, servos: str | None = None, latency_ms: float = 16.0
+) -> dict[str, Any]:
     """Time ``cycles`` cycles (send + read) after bring-up.
 
     Args:
         port: The bus; None starts an emulator in its own process.
         cycles: Cycles to time.
         servos: Servo map file.
+        latency_ms: Reply timeout allowance (the SDK's LATENCY_TIMER) [ms].
 
     Returns:
         ``cycles``, ``cycle_mean_us``, ``cycle_p99_us``, ``wire_us``, ``ratio_to_wire``,
@@ -40,7 +43,9 @@ def bench_hw(port: str | None, cycles: int, servos: str | None = None) -> dict[s
     smap = load_servo_map(servos)
     emu = EmulatorProcess(servos) if port is None else None
     try:
-        with DynamixelDriver(port or emu.port, smap, health_every=cycles + 10) as drv:
+        with DynamixelDriver(
+            port or emu.port, smap, health_every=cycles + 10, latency_timer_ms=latency_ms
+        ) as drv:
             drv.bring_up()
             state = drv.read()
             cmd = PayloadCommand(state.q, state.deploy, 0.0)

@@ -33,7 +33,7 @@ def _cmd_scan(args: argparse.Namespace) -> int:
     from payload.cli import emit_json
 
     smap = _map(args)
-    with DynamixelDriver(args.port, smap) as drv:
+    with DynamixelDriver(args.port, smap, latency_timer_ms=args.latency_ms) as drv:
         found = drv.scan()
     known = {s.id: s.joint for s in smap.servos}
     servos = [
@@ -52,14 +52,14 @@ def _cmd_scan(args: argparse.Namespace) -> int:
     return 0
 
 
-def check(port: str, smap: Any) -> dict[str, Any]:
+def check(port: str, smap: Any, latency_ms: float = 16.0) -> dict[str, Any]:
     """Bring-up and health of every servo: ``{"ok", "servos", "errors"}``."""
     from firmware_interface.driver import DynamixelDriver
     from firmware_interface.errors import DynamixelError, MissingServoError
 
     errors: list[str] = []
     servos = []
-    with DynamixelDriver(port, smap) as drv:
+    with DynamixelDriver(port, smap, latency_timer_ms=latency_ms) as drv:
         present = list(smap.ids)
         try:
             drv.bring_up()
@@ -85,7 +85,7 @@ def check(port: str, smap: Any) -> dict[str, Any]:
 def _cmd_check(args: argparse.Namespace) -> int:
     from payload.cli import CheckFailed, emit_json
 
-    report = check(args.port, _map(args))
+    report = check(args.port, _map(args), args.latency_ms)
     if args.json:
         emit_json(report)
     else:
@@ -120,7 +120,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     out = Path(args.out) if args.out else Path("runs") / f"hw-{time.strftime('%Y%m%d-%H%M%S')}"
     if (out / "log.mcap").exists():
         raise HwUsageError(f"--out {out}: already holds a recording; choose another folder")
-    with DynamixelDriver(args.port, _map(args)) as drv:
+    with DynamixelDriver(args.port, _map(args), latency_timer_ms=args.latency_ms) as drv:
         drv.bring_up()
         result = run_hardware_trial(drv, replay, out, max_time=args.max_time,
                                     pace=not args.no_pace)  # fmt: skip
@@ -138,7 +138,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
     if args.cycles < 1:
         raise HwUsageError(f"--cycles must be at least 1, got {args.cycles}")
-    result = bench_hw(args.port, args.cycles, args.servos)
+    result = bench_hw(args.port, args.cycles, args.servos, args.latency_ms)
     if args.json:
         emit_json(result)
     else:
@@ -147,6 +147,15 @@ def _cmd_bench(args: argparse.Namespace) -> int:
               f"{result['wire_us']:.0f} us ({result['ratio_to_wire']:.2f}x), "
               f"{result['retries']} retries, load {result['load_1min']:.2f}")  # fmt: skip
     return 0
+
+
+def _latency(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--latency-ms",
+        type=float,
+        default=16.0,
+        help="reply timeout allowance per packet [ms] (the SDK's LATENCY_TIMER)",
+    )
 
 
 def register(
@@ -175,6 +184,7 @@ def register(
         p.add_argument("--port", required=True, help="serial device or emulator pty")
         p.add_argument("--servos", metavar="MAP", help="servo map TOML")
         p.add_argument("--json", action="store_true", help="print one JSON object")
+        _latency(p)
         p.set_defaults(func=fn)
 
     p = hws.add_parser("run", help="the 50 Hz teleoperation loop on the hardware")
@@ -191,6 +201,7 @@ def register(
     p.add_argument("--max-time", type=float, default=240.0, help="session cap [s]")
     p.add_argument("--no-pace", action="store_true", help=argparse.SUPPRESS)
     p.add_argument("--json", action="store_true", help="print one JSON object")
+    _latency(p)
     p.set_defaults(func=_cmd_run)
 
     p = groups["bench"].add_parser("hw", help="sync write + fast sync read cycle vs wire time")
@@ -198,4 +209,5 @@ def register(
     p.add_argument("--cycles", type=int, default=2000)
     p.add_argument("--servos", metavar="MAP", help="servo map TOML")
     p.add_argument("--json", action="store_true", help="print one JSON object")
+    _latency(p)
     p.set_defaults(func=_cmd_bench)

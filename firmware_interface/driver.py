@@ -90,7 +90,7 @@ class _Port(PortHandler):
         super().__init__(port_name)
         self.latency_timer_ms = latency_timer_ms
 
-    def setPacketTimeout(self, packet_length: int) -> None:  # noqa: N802 (SDK name)
+    def setPacketTimeout(self, packet_length: int) -> None:
         self.packet_start_time = self.getCurrentTime()
         self.packet_timeout = (
             self.tx_time_per_byte * packet_length + self.latency_timer_ms * 2.0 + 2.0

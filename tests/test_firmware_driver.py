@@ -26,7 +26,6 @@ from firmware_interface.errors import CommError, HardwareFault, MissingServoErro
 from firmware_interface.servo_map import load_servo_map
 from payload.schema import Health, PayloadCommand
 
-
 LAT = 50.0  # [ms] reply timeout allowance: CI machines are busy; the emulator is honest
 
 
@@ -154,7 +153,10 @@ def test_emulator_status_errors_through_the_sdk(rig):
 
 
 def test_missing_servo_at_bring_up_names_its_id_and_joint(smap):
-    with EmulatorProcess(faults=["missing:7"]) as emu, DynamixelDriver(emu.port, smap, latency_timer_ms=LAT) as drv:
+    with (
+        EmulatorProcess(faults=["missing:7"]) as emu,
+        DynamixelDriver(emu.port, smap, latency_timer_ms=LAT) as drv,
+    ):
         with pytest.raises(MissingServoError, match=r"ID 7 \(B_pip\)") as info:
             drv.bring_up()
         assert info.value.ids == [7]
@@ -202,7 +204,10 @@ def _until_fault(drv, cmd, timeout=4.0):
 
 @pytest.mark.parametrize("mode", ["hold", "torque_off"])
 def test_hardware_error_stops_safely_and_recover_returns_the_servo(smap, mode, caplog):
-    with EmulatorProcess() as emu, DynamixelDriver(emu.port, smap, latency_timer_ms=LAT, on_fault=mode) as drv:
+    with (
+        EmulatorProcess() as emu,
+        DynamixelDriver(emu.port, smap, latency_timer_ms=LAT, on_fault=mode) as drv,
+    ):
         drv.bring_up()
         cmd = PayloadCommand(np.zeros(17), 0.075, 0.0)
         _settle(drv, cmd)
@@ -239,7 +244,10 @@ def test_hardware_error_stops_safely_and_recover_returns_the_servo(smap, mode, c
 
 
 def test_a_blocked_joint_trips_overload_at_the_current_cap(smap):
-    with EmulatorProcess(faults=["block:3"]) as emu, DynamixelDriver(emu.port, smap, latency_timer_ms=LAT) as drv:
+    with (
+        EmulatorProcess(faults=["block:3"]) as emu,
+        DynamixelDriver(emu.port, smap, latency_timer_ms=LAT) as drv,
+    ):
         drv.bring_up()
         q = np.zeros(17)
         q[2] = 1.0  # A_pip, blocked

@@ -180,7 +180,7 @@ def test_a_corrupted_packet_fails_its_crc_and_the_servo_says_so():
     with pytest.raises(P.CrcMismatch):
         P.parse(bytes(raw))
     bus = Bus({1: 0})
-    (_, reply), = bus.feed(bytes(raw), 0.0)
+    ((_, reply),) = bus.feed(bytes(raw), 0.0)
     assert P.parse(reply).error == P.ERR_CRC
     assert bus.stats.crc_errors == 1
 
@@ -189,9 +189,9 @@ def test_wire_time_of_a_reply_delays_it_at_the_baud_rate():
     bus = Bus({1: 0}, baud=1_000_000)
     bus.servos[1].write(9, b"\x00")  # return delay 0
     req = P.build(1, P.READ, bytes([0x84, 0, 4, 0]))
-    (due, reply), = bus.feed(req, 10.0)
+    ((due, reply),) = bus.feed(req, 10.0)
     expected = 10.0 + (len(req) + len(reply)) * 10 / 1_000_000
     assert due == pytest.approx(expected, abs=1e-9)
     bus.servos[1].write(9, b"\x0a")  # 20 us return delay
-    (due2, _), = bus.feed(req, 20.0)
+    ((due2, _),) = bus.feed(req, 20.0)
     assert due2 - 20.0 == pytest.approx(expected - 10.0 + 20e-6, abs=1e-9)
