@@ -314,3 +314,22 @@ def test_killing_the_host_stops_the_servos_within_the_watchdog_time(smap):
             assert reg(emu.table(i), "bus_watchdog") == 0xFF  # reads -1
         goal = smap.servos[17].to_ticks(0.0)
         assert abs(later[18]["pos"] - goal) > 500  # stopped on the way, not at the goal
+
+
+def test_every_hardware_error_bit_is_named_and_recovered(smap):
+    bits = ["input_voltage", "overheating", "encoder", "electrical_shock", "overload"]
+    with (
+        EmulatorProcess() as emu,
+        DynamixelDriver(emu.port, smap, latency_timer_ms=LAT, health_every=2) as drv,
+    ):
+        drv.bring_up()
+        cmd = PayloadCommand(np.zeros(17), 0.075, 0.0)
+        for dxl_id, bit in zip((2, 6, 10, 17, 18), bits):
+            emu.fault(f"error:{dxl_id}:{bit}")
+            fault = _until_fault(drv, cmd)
+            assert fault is not None
+            assert (fault.id, fault.joint, fault.bits) == (dxl_id, smap.joint_of(dxl_id), [bit])
+            assert drv.recover().ids == (dxl_id,)
+        assert [
+            s["reboots"] for i, s in sorted(emu.servos().items()) if i in (2, 6, 10, 17, 18)
+        ] == [1] * 5
