@@ -34,7 +34,10 @@ def bench_hw(
 
     Returns:
         ``cycles``, ``cycle_mean_us``, ``cycle_p99_us``, ``wire_us``, ``ratio_to_wire``,
-        ``retries``, ``baud``, plus ``cycle_median_us``, ``fallbacks``, ``load_1min``.
+        ``retries``, ``baud``, plus ``cycle_median_us``, ``fallbacks``, ``load_1min`` and
+        the CPU time per cycle of the host (``host_cpu_us``) and of the emulator
+        (``emulator_cpu_us``): on a loaded machine the wall-clock cycle mostly waits for
+        the scheduler, and wire + CPU is what an idle machine would see.
     """
     from firmware_interface.driver import DynamixelDriver
     from firmware_interface.emulator import EmulatorProcess
@@ -54,11 +57,15 @@ def bench_hw(
                 drv.read()
             drv.retry_count = 0
             times = np.empty(cycles)
+            cpu0 = time.process_time()
+            emu0 = emu.request(op="cpu")["cpu_s"] if emu is not None else None
             for k in range(cycles):
                 t0 = time.perf_counter()
                 drv.send(cmd)
                 drv.read()
                 times[k] = time.perf_counter() - t0
+            host_cpu = (time.process_time() - cpu0) / cycles
+            emu_cpu = (emu.request(op="cpu")["cpu_s"] - emu0) / cycles if emu is not None else None
             retries, fallbacks = drv.retry_count, drv.fallbacks
     finally:
         if emu is not None:
@@ -76,5 +83,7 @@ def bench_hw(
         "cycle_median_us": float(np.median(times)) * 1e6,
         "fallbacks": fallbacks,
         "port": port or "emulator",
+        "host_cpu_us": host_cpu * 1e6,
+        "emulator_cpu_us": emu_cpu * 1e6 if emu_cpu is not None else None,
         "load_1min": os.getloadavg()[0],
     }

@@ -17,6 +17,8 @@ from firmware_interface.control_table import ADDR, BAUD_RATES, FIRMWARE_VERSION,
 from firmware_interface.faults import Fault
 from firmware_interface.servo_model import ServoModel
 
+ADVANCE_S = 0.0005  # servo state is integrated at least this finely [s]
+
 
 @dataclass
 class BusStats:
@@ -64,6 +66,7 @@ class Bus:
         self.stats = BusStats()
         self.buffer = bytearray()
         self.free_at = now  # when the bus is idle again [s]
+        self._advanced = now
 
     # -- faults ------------------------------------------------------------------------------
     def apply(self, fault: Fault) -> None:
@@ -94,7 +97,11 @@ class Bus:
         return self.servos.get(dxl_id)
 
     # -- time --------------------------------------------------------------------------------
-    def advance(self, now: float) -> None:
+    def advance(self, now: float, *, force: bool = False) -> None:
+        """Integrate every servo to ``now`` (at most every ``ADVANCE_S`` unless forced)."""
+        if not force and now - self._advanced < ADVANCE_S:
+            return
+        self._advanced = now
         for s in self.servos.values():
             s.advance(now)
 
@@ -231,15 +238,18 @@ class Bus:
         length = (n + 4) * len(ids) + 1
         pkt = bytearray(P.HEADER + bytes([P.BROADCAST_ID, length & 0xFF, length >> 8, P.STATUS]))
         first: ServoModel | None = None
+        c = P.crc16(pkt)
         for i in ids:
             s = self.present(i)
             if s is None:
                 break
             first = first or s
             err, data = s.read(addr, n)
-            pkt += bytes([err, i]) + data
-            c = P.crc16(pkt)
-            pkt += bytes([c & 0xFF, c >> 8])
+            part = bytes([err, i]) + data
+            c = P.crc16(part, c)
+            crc = bytes([c & 0xFF, c >> 8])
+            c = P.crc16(crc, c)  # the next servo continues the CRC over these bytes too
+            pkt += part + crc
         if first is None:
             return []
         return [(first, bytes(pkt))]

@@ -43,6 +43,7 @@ log = logging.getLogger(__name__)
 
 FEEDBACK_ADDR = ADDR["present_current"]  # 126: current (2), velocity (4), position (4)
 FEEDBACK_LEN = 10
+_FEEDBACK = np.dtype([("current", "<i2"), ("velocity", "<i4"), ("position", "<i4")])
 GAINS = {"finger": (600, 0, 200), "abduction": (450, 0, 150), "linear": (600, 0, 200)}
 """Position P, I, D per servo kind (LEAP API values; abduction softer)."""
 
@@ -156,6 +157,9 @@ class DynamixelDriver:
         self._present = np.zeros(len(self.ids), dtype=np.int64)
         s = self.design.servo
         self._kt = s.stall_torque / s.stall_current  # [N m / A]
+        self._direction = np.array([sp.direction for sp in self.map.servos], dtype=float)
+        # joint units per servo-shaft radian: 1 for the fingers, radius / gear for the drives
+        self._ratio = np.array([sp.units_per_tick / (2 * np.pi / 4096) for sp in self.map.servos])
         try:
             if not self.port.openPort():
                 raise DynamixelError(f"{port}: cannot open the serial port")
@@ -336,10 +340,13 @@ class DynamixelDriver:
         self._feedback()
         stamp = self._last_io = time.monotonic()
         self.reads += 1
-        r = self._reader
-        cur = np.array([to_signed(r.getData(i, 126, 2), 2) for i in self.ids], dtype=float)
-        vel = np.array([to_signed(r.getData(i, 128, 4), 4) for i in self.ids], dtype=float)
-        pos = np.array([to_signed(r.getData(i, 132, 4), 4) for i in self.ids], dtype=np.int64)
+        # the group's raw bytes per servo: current int16, velocity int32, position int32
+        raw = np.frombuffer(
+            b"".join(bytes(self._reader.data_dict[i]) for i in self.ids), dtype=_FEEDBACK
+        )
+        cur = raw["current"].astype(float)
+        vel = raw["velocity"].astype(float)
+        pos = raw["position"].astype(np.int64)
         self._present = pos
         if self.reads % self.health_every == 0 or self.fault is not None:
             self.check_health()
@@ -351,11 +358,8 @@ class DynamixelDriver:
         q = self.map.joint_values(pos)
         w = vel * VELOCITY_UNIT_RPM * 2.0 * np.pi / 60.0  # servo shaft [rad/s]
         torque = cur * 1e-3 * self._kt  # [N m]
-        dq, effort = np.empty(len(self.ids)), np.empty(len(self.ids))
-        for k, spec in enumerate(self.map.servos):
-            ratio = spec.units_per_tick / (2.0 * np.pi / 4096)  # m per shaft rad (1 for rotary)
-            dq[k] = spec.direction * w[k] * ratio
-            effort[k] = spec.direction * torque[k] / ratio
+        dq = self._direction * w * self._ratio  # [rad/s or m/s]
+        effort = self._direction * torque / self._ratio  # [N m or N]
         health = Health.OK
         if self.fault is not None:
             health |= Health.HARDWARE_ERROR

@@ -28,7 +28,7 @@ from typing import Any
 from firmware_interface.bus import Bus
 from firmware_interface.faults import parse_fault
 
-TICK_S = 0.002  # dynamics and watchdog update period while idle [s]
+TICK_S = 0.005  # dynamics and watchdog update period while idle [s]
 SPIN_S = 0.0  # spin this long before a due reply instead of sleeping [s]
 
 
@@ -101,7 +101,7 @@ class _Server:
 def control(bus: Bus, req: dict[str, Any]) -> dict[str, Any]:
     """Answer one control request (``op``: table, servos, fault, clear, stats)."""
     op = req.get("op")
-    bus.advance(time.monotonic())
+    bus.advance(time.monotonic(), force=True)
     if op == "table":
         return {"table": bytes(bus.servos[int(req["id"])].table).hex()}
     if op == "tables":
@@ -124,6 +124,8 @@ def control(bus: Bus, req: dict[str, Any]) -> dict[str, Any]:
     if op == "fault":
         bus.apply(parse_fault(str(req["spec"])))
         return {"ok": True}
+    if op == "cpu":
+        return {"cpu_s": time.process_time()}
     if op == "clear":
         bus.clear_faults()
         return {"ok": True}

@@ -11,6 +11,7 @@ the overload bit trips, as the servo's overload protection does.
 from __future__ import annotations
 
 import math
+import struct
 
 from firmware_interface import protocol as P
 from firmware_interface.control_table import (
@@ -25,13 +26,17 @@ from firmware_interface.control_table import (
     VELOCITY_UNIT_RPM,
     WATCHDOG_UNIT_S,
     decode,
-    encode,
 )
 
 NO_LOAD_TICKS_S = 81.0 / 60.0 * TICKS_PER_REV  # 81 rpm [ticks/s]
 TAU_REF = 0.02  # [s] time constant at Position P = 600 (ASSUMPTION, typical response)
 CURRENT_PER_TICK = 4.0  # [mA/tick] current demand per tick of error at P = 600 (ASSUMPTION)
 OVERLOAD_S = 1.0  # [s] at the current cap while stalled before the overload bit trips
+_FMT = {
+    r.name: (r.address, struct.Struct("<" + {1: "b", 2: "h", 4: "i"}[r.size]
+                                      if r.signed else "<" + {1: "B", 2: "H", 4: "I"}[r.size]))
+    for r in REGISTERS
+}  # fmt: skip
 _GOAL_REGS = {ADDR["goal_pwm"], ADDR["goal_current"], ADDR["goal_velocity"], ADDR["goal_position"]}
 
 
@@ -63,12 +68,13 @@ class ServoModel:
 
     # -- table access ------------------------------------------------------------------------
     def get(self, name: str) -> int:
-        reg = BY_NAME[name]
-        return decode(reg, bytes(self.table[reg.address : reg.address + reg.size]))
+        """A register's value (signed registers as two's complement)."""
+        addr, fmt = _FMT[name]
+        return fmt.unpack_from(self.table, addr)[0]
 
     def _set(self, name: str, value: int) -> None:
-        reg = BY_NAME[name]
-        self.table[reg.address : reg.address + reg.size] = encode(reg, value)
+        addr, fmt = _FMT[name]
+        fmt.pack_into(self.table, addr, value)
 
     @property
     def id(self) -> int:
