@@ -152,12 +152,16 @@ class DynamixelDriver:
         self.health: dict[int, ServoHealth] = {}
         self._stopped = False
         self._closed = True
-        self._last_ticks: list[int] | None = None
         self._last_io = time.monotonic()
         self._present = np.zeros(len(self.ids), dtype=np.int64)
         s = self.design.servo
         self._kt = s.stall_torque / s.stall_current  # [N m / A]
-        self._direction = np.array([sp.direction for sp in self.map.servos], dtype=float)
+        specs = self.map.servos
+        self._direction = np.array([sp.direction for sp in specs], dtype=float)
+        self._zero = np.array([sp.zero for sp in specs], dtype=float)
+        self._units = np.array([sp.units_per_tick for sp in specs])
+        self._lower = np.array([sp.lower for sp in specs])
+        self._upper = np.array([sp.upper for sp in specs])
         # joint units per servo-shaft radian: 1 for the fingers, radius / gear for the drives
         self._ratio = np.array([sp.units_per_tick / (2 * np.pi / 4096) for sp in self.map.servos])
         try:
@@ -278,7 +282,8 @@ class DynamixelDriver:
         self._check_open()
         if not isinstance(command, PayloadCommand):
             raise DynamixelError(f"send: expected a PayloadCommand, got {type(command).__name__}")
-        ticks = self.map.command_ticks(command)
+        values = np.clip(np.append(command.q, command.deploy), self._lower, self._upper)
+        ticks = np.rint(self._zero + self._direction * values / self._units).astype(np.int64)
         if self._stopped:
             return
         if self.map.watchdog_ms and time.monotonic() - self._last_io > self.map.watchdog_ms / 1e3:
@@ -286,20 +291,26 @@ class DynamixelDriver:
             # until it is cleared, so re-arm them first
             self._rearm_watchdog()
         self._sync_write_goals(ticks)
-        self._last_ticks = ticks
         self._last_io = time.monotonic()
 
     def _rearm_watchdog(self) -> None:
+        """Clear and re-arm the servos whose Bus Watchdog tripped (two sync writes)."""
         wd = self._group_read(ADDR["bus_watchdog"], 1)
-        for i in self.ids:
-            if wd.getData(i, ADDR["bus_watchdog"], 1) == 0xFF:
-                log.warning("%s: Bus Watchdog tripped; re-arming", self._name(i))
-                self._write(i, "bus_watchdog", 0)
-                self._write(i, "bus_watchdog", self.map.watchdog_ms // 20)
+        tripped = [i for i in self.ids if wd.getData(i, ADDR["bus_watchdog"], 1) == 0xFF]
+        if not tripped:
+            return
+        log.warning("Bus Watchdog tripped on %s; re-arming",
+                    ", ".join(self._name(i) for i in tripped))  # fmt: skip
+        clear = GroupSyncWrite(self.port, self.packet, ADDR["bus_watchdog"], 1)
+        for i in tripped:
+            clear.addParam(i, [0])
+        clear.txPacket()
+        self._arm_watchdog(tripped)
 
     def _sync_write_goals(self, ticks: list[int]) -> None:
-        for i, t in zip(self.ids, ticks):
-            self._writer.changeParam(i, list(int(t).to_bytes(4, "little", signed=True)))
+        raw = np.asarray(ticks, dtype="<i4").view(np.uint8).reshape(-1, 4).tolist()
+        for i, b in zip(self.ids, raw):
+            self._writer.changeParam(i, b)
         result = self._writer.txPacket()
         if result != COMM_SUCCESS:
             raise CommError(f"sync write of the goal positions: "
@@ -355,7 +366,7 @@ class DynamixelDriver:
     def _state(
         self, pos: np.ndarray, vel: np.ndarray, cur: np.ndarray, stamp: float
     ) -> PayloadState:
-        q = self.map.joint_values(pos)
+        q = self._direction * (pos - self._zero) * self._units
         w = vel * VELOCITY_UNIT_RPM * 2.0 * np.pi / 60.0  # servo shaft [rad/s]
         torque = cur * 1e-3 * self._kt  # [N m]
         dq = self._direction * w * self._ratio  # [rad/s or m/s]
@@ -365,9 +376,8 @@ class DynamixelDriver:
             health |= Health.HARDWARE_ERROR
         if np.any(np.abs(cur) >= 0.98 * self.map.current_limit_ma):
             health |= Health.OVERLOAD
-        lo = np.array([s.lower for s in self.map.servos])
-        hi = np.array([s.upper for s in self.map.servos])
-        if np.any((q[:-1] <= lo[:-1] + 1e-4) | (q[:-1] >= hi[:-1] - 1e-4)):
+        lo, hi = self._lower[:-1], self._upper[:-1]
+        if np.any((q[:-1] <= lo + 1e-4) | (q[:-1] >= hi - 1e-4)):
             health |= Health.LIMIT
         return PayloadState(q[:-1], float(q[-1]), stamp, dq[:-1], effort[:-1], health)
 
