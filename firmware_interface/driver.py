@@ -16,17 +16,10 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass
 from types import TracebackType
 
 import numpy as np
-from dynamixel_sdk import (
-    COMM_SUCCESS,
-    GroupSyncRead,
-    GroupSyncWrite,
-    PacketHandler,
-    PortHandler,
-)
+from dynamixel_sdk import COMM_SUCCESS, GroupSyncRead, GroupSyncWrite, PacketHandler
 
 from firmware_interface.control_table import ADDR, VELOCITY_UNIT_RPM, hw_error_names, to_signed
 from firmware_interface.errors import (
@@ -35,6 +28,8 @@ from firmware_interface.errors import (
     HardwareFault,
     MissingServoError,
 )
+from firmware_interface.health import Recovery, ServoHealth
+from firmware_interface.port import SdkPort
 from firmware_interface.servo_map import LINEAR_JOINTS, ServoMap, ServoSpec, load_servo_map
 from payload.design.params import Design, load_design
 from payload.schema import Health, PayloadCommand, PayloadState
@@ -46,56 +41,6 @@ FEEDBACK_LEN = 10
 _FEEDBACK = np.dtype([("current", "<i2"), ("velocity", "<i4"), ("position", "<i4")])
 GAINS = {"finger": (600, 0, 200), "abduction": (450, 0, 150), "linear": (600, 0, 200)}
 """Position P, I, D per servo kind (LEAP API values; abduction softer)."""
-
-
-@dataclass(frozen=True)
-class ServoHealth:
-    """Health reading of one servo (Hardware Error Status, temperature, input voltage)."""
-
-    id: int
-    joint: str
-    hardware_error: int
-    temperature_c: float
-    voltage_v: float
-    watchdog: int
-    model_number: int = 0
-
-    @property
-    def bits(self) -> list[str]:
-        """Names of the hardware error bits set."""
-        return hw_error_names(self.hardware_error)
-
-
-@dataclass(frozen=True)
-class Recovery:
-    """What :meth:`DynamixelDriver.recover` did.
-
-    Attributes:
-        ids: Servos rebooted and returned to service.
-        seconds: Time from the REBOOT to back in service [s].
-    """
-
-    ids: tuple[int, ...]
-    seconds: float
-
-
-class _Port(PortHandler):
-    """The SDK's PortHandler with the packet timeout's latency allowance configurable.
-
-    The SDK assumes a USB adapter latency timer of 16 ms (``LATENCY_TIMER``) and waits
-    twice that plus the packet's bytes for a reply; a bus behind another latency (an
-    adapter set to 1 ms, a busy host) sets its own.
-    """
-
-    def __init__(self, port_name: str, latency_timer_ms: float) -> None:
-        super().__init__(port_name)
-        self.latency_timer_ms = latency_timer_ms
-
-    def setPacketTimeout(self, packet_length: int) -> None:
-        self.packet_start_time = self.getCurrentTime()
-        self.packet_timeout = (
-            self.tx_time_per_byte * packet_length + self.latency_timer_ms * 2.0 + 2.0
-        )
 
 
 def _gains(spec: ServoSpec) -> tuple[int, int, int]:
@@ -141,7 +86,7 @@ class DynamixelDriver:
         self.health_every = max(1, health_every)
         self.on_fault = on_fault or self.map.on_fault
         self.fast = fast
-        self.port = _Port(port, latency_timer_ms)
+        self.port = SdkPort(port, latency_timer_ms)
         self.packet = PacketHandler(2.0)
         self.ids = self.map.ids
         self.retry_count = 0

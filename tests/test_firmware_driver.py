@@ -20,9 +20,10 @@ from dynamixel_sdk import PacketHandler
 
 from firmware_interface import protocol as P
 from firmware_interface.control_table import ADDR, BY_NAME, decode
-from firmware_interface.driver import GAINS, DynamixelDriver, _Port
+from firmware_interface.driver import GAINS, DynamixelDriver
 from firmware_interface.emulator import EmulatorProcess
 from firmware_interface.errors import CommError, HardwareFault, MissingServoError
+from firmware_interface.port import SdkPort
 from firmware_interface.servo_map import load_servo_map
 from payload.schema import Health, PayloadCommand
 
@@ -122,7 +123,7 @@ def test_rail_and_stage_ticks_match_the_design_transmission(rig, smap, design):
 
 def test_emulator_status_errors_through_the_sdk(rig):
     emu, _ = rig
-    port = _Port(emu.port, LAT)
+    port = SdkPort(emu.port, LAT)
     ph = PacketHandler(2.0)
     port.openPort()
     port.setBaudRate(4_000_000)
@@ -183,7 +184,7 @@ def test_corrupt_and_dropped_replies_are_retried_within_the_cycle(smap):
 
 def test_latency_delays_every_reply(smap):
     with EmulatorProcess(faults=["latency:8ms"]) as emu:
-        port = _Port(emu.port, LAT)
+        port = SdkPort(emu.port, LAT)
         ph = PacketHandler(2.0)
         port.openPort()
         try:
