@@ -1,0 +1,274 @@
+"""The servo-bus emulator: a :class:`~firmware_interface.bus.Bus` behind a pseudo-terminal.
+
+Run as a process (``python -m firmware_interface.emulator`` or ``payload hw emulate``): it
+opens a pty in raw mode, prints the slave's path as the first line of stdout and serves
+until interrupted. ``dynamixel_sdk``'s PortHandler opens that path like a USB adapter (a
+pty accepts any baud rate; the emulator itself delays every reply by its wire time).
+
+Tests start it with :class:`EmulatorProcess`, which also opens a control channel (JSON
+lines on a socket pair) to read the servos' control tables and state from the emulator's
+side and to inject faults while it runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import select
+import signal
+import socket
+import subprocess
+import sys
+import time
+import tty
+from types import TracebackType
+from typing import Any
+
+from firmware_interface.bus import Bus
+from firmware_interface.faults import parse_fault
+
+TICK_S = 0.005  # dynamics and watchdog update period while idle [s]
+SPIN_S = 0.0  # spin this long before a due reply instead of sleeping [s]
+
+
+class _Server:
+    def __init__(self, bus: Bus, control: socket.socket | None) -> None:
+        self.bus = bus
+        self.control = control
+        self.master, self.slave = os.openpty()
+        tty.setraw(self.slave)
+        tty.setraw(self.master)
+        os.set_blocking(self.master, False)
+        self.port = os.ttyname(self.slave)
+        self.pending: list[tuple[float, bytes]] = []
+        self.ctl_buf = b""
+
+    def serve(self) -> None:
+        fds = [self.master] + ([self.control] if self.control is not None else [])
+        while True:
+            now = time.monotonic()
+            due = self.pending[0][0] if self.pending else now + TICK_S
+            wait = max(0.0, min(due, now + TICK_S) - now - SPIN_S)
+            readable, _, _ = select.select(fds, [], [], wait)
+            now = time.monotonic()
+            if self.master in readable:
+                self._read_bus(now)
+            if self.control is not None and self.control in readable:
+                if not self._read_control():
+                    return
+            self._send_due()
+            self.bus.advance(time.monotonic())
+
+    def _read_bus(self, now: float) -> None:
+        try:
+            data = os.read(self.master, 65536)
+        except BlockingIOError:
+            return
+        except OSError:  # no reader on the slave side: keep serving
+            time.sleep(TICK_S)
+            return
+        self.pending += self.bus.feed(data, now)
+
+    def _send_due(self) -> None:
+        while self.pending:
+            due, raw = self.pending[0]
+            while time.monotonic() < due:
+                if due - time.monotonic() > SPIN_S:
+                    return
+            self.pending.pop(0)
+            try:
+                os.write(self.master, raw)
+            except OSError:
+                pass
+
+    def _read_control(self) -> bool:
+        assert self.control is not None
+        chunk = self.control.recv(65536)
+        if not chunk:
+            return False
+        self.ctl_buf += chunk
+        while b"\n" in self.ctl_buf:
+            line, self.ctl_buf = self.ctl_buf.split(b"\n", 1)
+            try:
+                reply = control(self.bus, json.loads(line))
+            except Exception as exc:  # report to the caller, keep serving
+                reply = {"error": f"{type(exc).__name__}: {exc}"}
+            self.control.sendall(json.dumps(reply).encode() + b"\n")
+        return True
+
+
+def control(bus: Bus, req: dict[str, Any]) -> dict[str, Any]:
+    """Answer one control request (``op``: table, servos, fault, clear, stats)."""
+    op = req.get("op")
+    bus.advance(time.monotonic(), force=True)
+    if op == "table":
+        return {"table": bytes(bus.servos[int(req["id"])].table).hex()}
+    if op == "tables":
+        return {str(i): bytes(s.table).hex() for i, s in bus.servos.items()}
+    if op == "servos":
+        return {
+            str(i): {
+                "pos": s.pos,
+                "vel": s.vel,
+                "current": s.current,
+                "torque": s.torque,
+                "hw_error": s.hw_error,
+                "last_rx": s.last_rx,
+                "watchdog_trip": s.watchdog_trip,
+                "reboots": s.reboots,
+                "blocked": s.blocked,
+            }
+            for i, s in bus.servos.items()
+        }
+    if op == "fault":
+        bus.apply(parse_fault(str(req["spec"])))
+        return {"ok": True}
+    if op == "cpu":
+        return {"cpu_s": time.process_time()}
+    if op == "clear":
+        bus.clear_faults()
+        return {"ok": True}
+    if op == "stats":
+        st = bus.stats
+        return {"packets": st.packets, "crc_errors": st.crc_errors, "dropped": st.dropped,
+                "corrupted": st.corrupted, "replies": st.replies}  # fmt: skip
+    raise ValueError(f"unknown control op {op!r}")
+
+
+def bus_spec(servos: str | None) -> dict[str, Any]:
+    """IDs at the design's home posture and the baud rate of a map file (default map)."""
+    from firmware_interface.servo_map import home_ticks, load_servo_map
+
+    smap = load_servo_map(servos)
+    return {"positions": home_ticks(smap), "baud": smap.baud}
+
+
+def make_bus(spec: dict[str, Any], faults: list[str], seed: int = 0) -> Bus:
+    """A bus from :func:`bus_spec` with the faults applied."""
+    parsed = [parse_fault(f) for f in faults]  # validate before opening anything
+    positions = {int(k): int(v) for k, v in spec["positions"].items()}
+    bus = Bus(positions, int(spec["baud"]), seed=seed, now=time.monotonic())
+    for f in parsed:
+        bus.apply(f)
+    return bus
+
+
+def serve(
+    spec: dict[str, Any], faults: list[str], control_fd: int | None = None, seed: int = 0
+) -> None:
+    """Build the bus, print the port path (first stdout line) and serve until interrupted."""
+    bus = make_bus(spec, faults, seed)
+    ctl = socket.socket(fileno=control_fd) if control_fd is not None else None
+    server = _Server(bus, ctl)
+    sys.stdout.write(server.port + "\n")
+    sys.stdout.flush()
+    server.serve()
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m firmware_interface.emulator")
+    ap.add_argument("--servos", help="servo map TOML (default: the packaged map)")
+    ap.add_argument("--fault", action="append", default=[], help="fault spec (repeatable)")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--control-fd", type=int, help=argparse.SUPPRESS)
+    ap.add_argument("--bus", help=argparse.SUPPRESS)  # JSON from bus_spec (saves the imports)
+    args = ap.parse_args(argv)
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))
+    spec = json.loads(args.bus) if args.bus else bus_spec(args.servos)
+    try:
+        serve(spec, args.fault, args.control_fd, args.seed)
+    except KeyboardInterrupt:
+        return 0
+    return 0
+
+
+class EmulatorProcess:
+    """The emulator in its own process, with a control channel (context manager).
+
+    Args:
+        servos: Servo map file (default map).
+        faults: Fault specs applied from the start.
+        seed: Seed of the fault dice.
+    """
+
+    def __init__(
+        self, servos: str | None = None, faults: list[str] | None = None, seed: int = 0
+    ) -> None:
+        spec = bus_spec(servos)
+        for f in faults or []:
+            parse_fault(f)
+        ours, theirs = socket.socketpair()
+        cmd = [sys.executable, "-m", "firmware_interface.emulator", "--seed", str(seed),
+               "--control-fd", str(theirs.fileno()), "--bus", json.dumps(spec)]  # fmt: skip
+        for f in faults or []:
+            cmd += ["--fault", f]
+        self.proc = subprocess.Popen(
+            cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, pass_fds=(theirs.fileno(),)
+        )
+        theirs.close()
+        self._sock = ours
+        self._file = ours.makefile("rb")
+        assert self.proc.stdout is not None
+        line = self.proc.stdout.readline().decode().strip()
+        if not line:
+            err = self.proc.stderr.read().decode() if self.proc.stderr else ""
+            raise RuntimeError(f"emulator did not start: {err.strip().splitlines()[-1:]}")
+        self.port = line
+
+    def request(self, **req: Any) -> dict[str, Any]:
+        """One control request (see :func:`control`)."""
+        self._sock.sendall(json.dumps(req).encode() + b"\n")
+        reply = json.loads(self._file.readline())
+        if "error" in reply:
+            raise RuntimeError(reply["error"])
+        return reply
+
+    def table(self, dxl_id: int) -> bytes:
+        """Servo ``dxl_id``'s control table as the emulator holds it."""
+        return bytes.fromhex(self.request(op="table", id=dxl_id)["table"])
+
+    def tables(self) -> dict[int, bytes]:
+        """Every servo's control table, read at one instant."""
+        return {int(k): bytes.fromhex(v) for k, v in self.request(op="tables").items()}
+
+    def servos(self) -> dict[int, dict[str, Any]]:
+        return {int(k): v for k, v in self.request(op="servos").items()}
+
+    def fault(self, spec: str) -> None:
+        self.request(op="fault", spec=spec)
+
+    def clear(self) -> None:
+        self.request(op="clear")
+
+    def stats(self) -> dict[str, Any]:
+        return self.request(op="stats")
+
+    def close(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        self._file.close()
+        self._sock.close()
+        for f in (self.proc.stdout, self.proc.stderr):
+            if f is not None:
+                f.close()
+
+    def __enter__(self) -> EmulatorProcess:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,51 @@
+"""Errors of the hardware interface; all are :class:`~payload.errors.PayloadError`."""
+
+from __future__ import annotations
+
+from payload.errors import PayloadError
+
+
+class DynamixelError(PayloadError):
+    """Root of the hardware interface's errors."""
+
+
+class CommError(DynamixelError):
+    """A packet was lost or corrupted (timeout, CRC) after the retries."""
+
+
+class MissingServoError(DynamixelError):
+    """Servos that did not answer at bring-up.
+
+    Attributes:
+        ids: Their IDs.
+        joints: Their joints.
+    """
+
+    def __init__(self, ids: list[int], joints: list[str]) -> None:
+        self.ids = list(ids)
+        self.joints = list(joints)
+        names = ", ".join(f"ID {i} ({j})" for i, j in zip(ids, joints))
+        super().__init__(f"servo(s) not answering: {names}")
+
+
+class HardwareFault(DynamixelError):
+    """A servo latched a hardware error; the payload is stopped until recovered.
+
+    Attributes:
+        id: The servo.
+        joint: Its joint.
+        bits: Names of the Hardware Error Status bits set.
+        others: Other servos with an error at the same time.
+    """
+
+    def __init__(
+        self, dxl_id: int, joint: str, bits: list[str], others: list[int] | None = None
+    ) -> None:
+        self.id = dxl_id
+        self.joint = joint
+        self.bits = list(bits)
+        self.others = list(others or [])
+        more = f" (also IDs {self.others})" if self.others else ""
+        super().__init__(
+            f"servo {dxl_id} ({joint}): hardware error {', '.join(bits) or 'unknown'}{more}"
+        )

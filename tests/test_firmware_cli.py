@@ -1,0 +1,83 @@
+"""``payload hw emulate|scan|check`` and ``payload bench hw`` against the emulator."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+
+from payload.cli import main
+
+LAT = "50"
+
+
+@pytest.fixture(scope="module")
+def emulate():
+    """``payload hw emulate`` in its own process, missing servo 7."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "payload.cli", "hw", "emulate", "--fault", "missing:7"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    port = proc.stdout.readline().strip()
+    yield port
+    proc.terminate()
+    proc.wait(timeout=10)
+    proc.stdout.close()
+    proc.stderr.close()
+
+
+def test_emulate_prints_the_port_path_first(emulate):
+    assert emulate.startswith("/dev/") and os.path.exists(emulate)
+
+
+def test_scan_lists_ids_models_and_firmware(emulate, capsys):
+    assert main(["hw", "scan", "--port", emulate, "--json", "--latency-ms", LAT]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert [s["id"] for s in out["servos"]] == [i for i in range(1, 19) if i != 7]
+    assert {s["model_number"] for s in out["servos"]} == {1240}
+    assert out["missing"] == [{"id": 7, "joint": "B_pip"}]
+
+
+def test_check_fails_naming_the_missing_servo(emulate, capsys):
+    assert main(["hw", "check", "--port", emulate, "--json", "--latency-ms", LAT]) == 1
+    captured = capsys.readouterr()
+    report = json.loads(captured.out)
+    assert report["ok"] is False
+    assert report["errors"] == ["servo 7 (B_pip): not answering"]
+    assert "servo 7 (B_pip)" in captured.err
+    ids = [s["id"] for s in report["servos"]]
+    assert 7 not in ids and len(ids) == 17
+    s = report["servos"][0]
+    assert set(s) == {"id", "joint", "model_number", "hardware_error", "temperature_c",
+                      "voltage_v"}  # fmt: skip
+    assert s["model_number"] == 1240 and s["voltage_v"] == pytest.approx(5.0)
+
+
+def test_a_bad_fault_spec_is_one_line_and_exit_2():
+    r = subprocess.run(
+        [sys.executable, "-m", "payload.cli", "hw", "emulate", "--fault", "drop:7"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert r.returncode == 2 and r.stdout == ""
+    assert r.stderr.strip().count("\n") == 0 and "drop:7" in r.stderr
+
+
+def test_bench_hw_reports_the_cycle_against_the_wire_time(capsys):
+    assert main(["bench", "hw", "--cycles", "40", "--json", "--latency-ms", LAT]) == 0
+    out = json.loads(capsys.readouterr().out)
+    for key in ("cycles", "cycle_mean_us", "cycle_p99_us", "wire_us", "ratio_to_wire",
+                "retries", "baud"):  # fmt: skip
+        assert key in out
+    assert out["cycles"] == 40 and out["baud"] == 4_000_000
+    # 18 servos: sync write 7+1+4+18*5+2, fast sync read 7+1+4+18+2, reply 8+18*(2+10+2)
+    n_bytes = (7 + 1 + 4 + 90 + 2) + (7 + 1 + 4 + 18 + 2) + (8 + 18 * 14)
+    assert out["wire_us"] == pytest.approx(n_bytes * 10 / 4e6 * 1e6)
+    assert out["ratio_to_wire"] == pytest.approx(out["cycle_mean_us"] / out["wire_us"])
+    assert out["cycle_p99_us"] >= out["cycle_mean_us"] * 0.5 > 0

@@ -1,0 +1,336 @@
+"""DynamixelDriver with the real dynamixel_sdk against the emulated bus on a pty.
+
+Every check reads the emulator's own control tables and state through its control
+channel (the emulator's process, not the driver's memory).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+
+import numpy as np
+import pytest
+from dynamixel_sdk import PacketHandler
+
+from firmware_interface import protocol as P
+from firmware_interface.control_table import ADDR, BY_NAME, decode
+from firmware_interface.driver import GAINS, DynamixelDriver
+from firmware_interface.emulator import EmulatorProcess
+from firmware_interface.errors import CommError, HardwareFault, MissingServoError
+from firmware_interface.port import SdkPort
+from firmware_interface.servo_map import load_servo_map
+from payload.schema import Health, PayloadCommand
+
+LAT = 50.0  # [ms] reply timeout allowance: CI machines are busy; the emulator is honest
+
+
+def reg(table: bytes, name: str) -> int:
+    r = BY_NAME[name]
+    return decode(r, table[r.address : r.address + r.size])
+
+
+@pytest.fixture(scope="module")
+def smap():
+    return load_servo_map()
+
+
+@pytest.fixture(scope="module")
+def rig(smap):
+    """One emulator and a brought-up driver shared by the non-destructive tests."""
+    with EmulatorProcess() as emu, DynamixelDriver(emu.port, smap, latency_timer_ms=LAT) as drv:
+        drv.bring_up()
+        yield emu, drv
+
+
+def _settle(drv, cmd, timeout=4.0):
+    """Keep commanding until every joint is within one tick of the command."""
+    tol = np.array([s.units_per_tick for s in drv.map.servos]) * 1.0001
+    t0 = time.monotonic()
+    state = drv.read()
+    while time.monotonic() - t0 < timeout:
+        drv.send(cmd)
+        state = drv.read()
+        if np.all(np.abs(np.append(state.q, state.deploy) - _values(cmd)) <= tol):
+            break
+    return state
+
+
+def _values(cmd):
+    return np.append(cmd.q, cmd.deploy)
+
+
+def _random_command(smap, seed):
+    rng = np.random.default_rng(seed)
+    v = np.array([rng.uniform(s.lower, s.upper) for s in smap.servos])
+    return PayloadCommand(v[:17], float(v[17]), 0.0)
+
+
+def test_bring_up_writes_the_leap_registers(rig, smap, design):
+    emu, _ = rig
+    tables = emu.tables()
+    for spec in smap.servos:
+        t = tables[spec.id]
+        kind = ("linear" if spec.joint in ("rail", "stage")
+                else "abduction" if spec.joint.endswith("abd") else "finger")  # fmt: skip
+        assert reg(t, "model_number") == 1240
+        assert reg(t, "operating_mode") == 5, spec.joint
+        assert reg(t, "return_delay_time") == smap.return_delay
+        p, i, d = GAINS[kind]
+        assert (reg(t, "position_p_gain"), reg(t, "position_i_gain"),
+                reg(t, "position_d_gain")) == (p, i, d)  # fmt: skip
+        assert reg(t, "goal_current") == round(design.servo.current_limit * 1000)
+        assert reg(t, "bus_watchdog") == smap.watchdog_ms // 20
+        assert reg(t, "torque_enable") == 1
+    assert GAINS["finger"] == (600, 0, 200) and GAINS["abduction"] == (450, 0, 150)
+
+
+def test_command_round_trips_to_ticks_and_back_within_one_tick(rig, smap):
+    emu, drv = rig
+    cmd = _random_command(smap, 1)
+    drv.send(cmd)
+    state = _settle(drv, cmd)
+    tables = emu.tables()
+    values = _values(cmd)
+    for k, spec in enumerate(smap.servos):
+        goal = reg(tables[spec.id], "goal_position")
+        # the goal in the emulator's table, converted back by hand: direction and zero
+        back = spec.direction * (goal - spec.zero) * spec.units_per_tick
+        assert abs(back - values[k]) <= 0.5 * spec.units_per_tick + 1e-12, spec.joint
+        measured = np.append(state.q, state.deploy)[k]
+        assert abs(measured - values[k]) <= spec.units_per_tick * 1.0001, spec.joint
+
+
+def test_rail_and_stage_ticks_match_the_design_transmission(rig, smap, design):
+    emu, drv = rig
+    home = _random_command(smap, 2)
+    q = home.q.copy()
+    q[-1] = 0.0123
+    drv.send(PayloadCommand(q, 0.0456, 0.0))
+    drv.read()
+    tables = emu.tables()
+    for spec, x, r in ((smap.servos[16], 0.0123, design.rail.drive_radius),
+                       (smap.servos[17], 0.0456, design.stage.drive_radius)):  # fmt: skip
+        goal = reg(tables[spec.id], "goal_position")
+        shaft_turns = (goal - spec.zero) * spec.direction / 4096
+        assert shaft_turns * 2 * np.pi * r == pytest.approx(x, abs=2 * np.pi * r / 4096)
+
+
+def test_emulator_status_errors_through_the_sdk(rig):
+    emu, _ = rig
+    port = SdkPort(emu.port, LAT)
+    ph = PacketHandler(2.0)
+    port.openPort()
+    port.setBaudRate(4_000_000)
+    try:
+        # EEPROM (Operating Mode) with torque on: access error, nothing written
+        _, err = ph.write1ByteTxRx(port, 1, ADDR["operating_mode"], 3)
+        assert err & 0x7F == P.ERR_ACCESS
+        assert reg(emu.table(1), "operating_mode") == 5
+        # read-only register
+        _, err = ph.write2ByteTxRx(port, 1, ADDR["present_current"], 5)
+        assert err & 0x7F == P.ERR_ACCESS
+        # out of range, above the Current Limit
+        _, err = ph.write1ByteTxRx(port, 1, ADDR["torque_enable"], 7)
+        assert err & 0x7F == P.ERR_DATA_RANGE
+        _, err = ph.write2ByteTxRx(port, 1, ADDR["goal_current"], 1751)
+        assert err & 0x7F in (P.ERR_DATA_RANGE, P.ERR_DATA_LIMIT)
+        # a corrupted instruction gets a CRC error status
+        raw = bytearray(P.build(2, P.READ, bytes([132, 0, 4, 0])))
+        raw[-1] ^= 0xFF
+        port.ser.reset_input_buffer()
+        port.ser.write(bytes(raw))
+        deadline, got = time.monotonic() + 1.0, b""
+        while time.monotonic() < deadline and len(got) < 11:
+            got += port.ser.read(11 - len(got))
+        assert P.parse(got).error & 0x7F == P.ERR_CRC
+    finally:
+        port.closePort()
+
+
+def test_missing_servo_at_bring_up_names_its_id_and_joint(smap):
+    with (
+        EmulatorProcess(faults=["missing:7"]) as emu,
+        DynamixelDriver(emu.port, smap, latency_timer_ms=LAT) as drv,
+    ):
+        with pytest.raises(MissingServoError, match=r"ID 7 \(B_pip\)") as info:
+            drv.bring_up()
+        assert info.value.ids == [7]
+
+
+def test_corrupt_and_dropped_replies_are_retried_within_the_cycle(smap):
+    with (
+        EmulatorProcess(faults=["corrupt:0.05", "drop:0.03"], seed=3) as emu,
+        DynamixelDriver(emu.port, smap, latency_timer_ms=LAT, retries=3) as drv,
+    ):
+        drv.bring_up()
+        start = drv.retry_count
+        for _ in range(60):
+            drv.send(PayloadCommand(np.zeros(17), 0.07, 0.0))
+            drv.read()
+        stats = emu.stats()
+        assert stats["corrupted"] + stats["dropped"] > 0
+        assert drv.retry_count > start
+        # every reply lost: reported after the retries, naming the attempts
+        emu.fault("drop:1.0")
+        with pytest.raises(CommError, match="after 4 attempt"):
+            drv.read()
+
+
+def test_latency_delays_every_reply(smap):
+    with EmulatorProcess(faults=["latency:8ms"]) as emu:
+        port = SdkPort(emu.port, LAT)
+        ph = PacketHandler(2.0)
+        port.openPort()
+        try:
+            t0 = time.perf_counter()
+            _, result, _ = ph.ping(port, 3)
+            assert result == 0 and time.perf_counter() - t0 >= 0.008
+        finally:
+            port.closePort()
+
+
+def _until_fault(drv, cmd, timeout=4.0):
+    t0 = time.monotonic()
+    while drv.fault is None and time.monotonic() - t0 < timeout:
+        drv.send(cmd)
+        drv.read()
+    return drv.fault
+
+
+@pytest.mark.parametrize("mode", ["hold", "torque_off"])
+def test_hardware_error_stops_safely_and_recover_returns_the_servo(smap, mode, caplog):
+    with (
+        EmulatorProcess() as emu,
+        DynamixelDriver(emu.port, smap, latency_timer_ms=LAT, on_fault=mode) as drv,
+    ):
+        drv.bring_up()
+        cmd = PayloadCommand(np.zeros(17), 0.075, 0.0)
+        _settle(drv, cmd)
+        emu.fault("error:12:overload")
+        with caplog.at_level(logging.ERROR, logger="firmware_interface.driver"):
+            fault = _until_fault(drv, cmd)
+        assert isinstance(fault, HardwareFault)
+        assert (fault.id, fault.joint, fault.bits) == (12, "C_dip", ["overload"])
+        assert "servo 12 (C_dip): hardware error overload" in caplog.text
+        assert drv.read().health & Health.HARDWARE_ERROR
+        servos = emu.servos()
+        assert not servos[12]["torque"]  # the servo shut itself down
+        for i, s in servos.items():
+            if i != 12:
+                assert s["torque"] == (mode == "hold")
+        # stopped: a new command does not reach the servos
+        moved = cmd.q.copy()
+        moved[0] = 0.8
+        drv.send(PayloadCommand(moved, 0.075, 0.0))
+        assert reg(emu.table(1), "goal_position") == smap.servos[0].to_ticks(0.0)
+        rec = drv.recover()
+        assert rec.ids == (12,) and rec.seconds > 0
+        servos = emu.servos()
+        assert servos[12]["reboots"] == 1 and servos[12]["hw_error"] == 0
+        assert all(s["torque"] for s in servos.values())
+        t12 = emu.table(12)
+        assert reg(t12, "operating_mode") == 5 and reg(t12, "goal_current") == 350
+        # back in service: the rebooted servo follows commands again
+        q = cmd.q.copy()
+        q[11] = -0.2  # C_dip
+        state = _settle(drv, PayloadCommand(q, 0.075, 0.0))
+        assert state.q[11] == pytest.approx(-0.2, abs=2e-3)
+        assert drv.fault is None
+
+
+def test_a_blocked_joint_trips_overload_at_the_current_cap(smap):
+    with (
+        EmulatorProcess(faults=["block:3"]) as emu,
+        DynamixelDriver(emu.port, smap, latency_timer_ms=LAT) as drv,
+    ):
+        drv.bring_up()
+        q = np.zeros(17)
+        q[2] = 1.0  # A_pip, blocked
+        fault = _until_fault(drv, PayloadCommand(q, 0.075, 0.0))
+        assert fault is not None and (fault.id, fault.bits) == (3, ["overload"])
+        s = emu.servos()[3]
+        assert abs(s["current"]) <= 350
+
+
+def test_close_leaves_every_servo_torque_off_and_is_idempotent(smap):
+    with EmulatorProcess() as emu:
+        drv = DynamixelDriver(emu.port, smap, latency_timer_ms=LAT)
+        drv.bring_up()
+        drv.close()
+        drv.close()
+        assert not any(s["torque"] for s in emu.servos().values())
+
+
+HOST = textwrap.dedent(
+    """
+    import sys, time
+    import numpy as np
+    from firmware_interface.driver import DynamixelDriver
+    from payload.schema import PayloadCommand
+    drv = DynamixelDriver(sys.argv[1], latency_timer_ms=50.0)
+    drv.bring_up()
+    cmd = PayloadCommand(np.zeros(17), 0.0, 0.0)  # retract the stage: a long move
+    drv.send(cmd)
+    print("moving", flush=True)
+    while True:
+        drv.send(cmd)
+        drv.read()
+        time.sleep(0.01)
+    """
+)
+
+
+def test_killing_the_host_stops_the_servos_within_the_watchdog_time(smap):
+    wd = smap.watchdog_ms / 1000
+    with EmulatorProcess() as emu:
+        host = subprocess.Popen([sys.executable, "-c", HOST, emu.port], stdout=subprocess.PIPE)
+        try:
+            assert host.stdout.readline().strip() == b"moving"
+            time.sleep(0.15)
+            before = emu.servos()[18]
+            assert abs(before["vel"]) > 100  # the stage is moving
+            t_kill = time.monotonic()
+            os.kill(host.pid, signal.SIGKILL)
+            host.wait()
+        finally:
+            if host.poll() is None:
+                host.kill()
+        time.sleep(wd + 0.1)
+        first = emu.servos()
+        time.sleep(0.2)
+        later = emu.servos()
+        for i, s in later.items():
+            assert s["watchdog_trip"] is not None, i
+            # the watchdog interval after the last instruction the servo heard, which the
+            # host sent before it died (the emulator may read it a few ms late under load)
+            assert s["watchdog_trip"] == pytest.approx(s["last_rx"] + wd, abs=1e-9)
+            assert s["watchdog_trip"] <= t_kill + wd + 0.05
+            assert s["pos"] == first[i]["pos"] and s["vel"] == 0.0
+            assert reg(emu.table(i), "bus_watchdog") == 0xFF  # reads -1
+        goal = smap.servos[17].to_ticks(0.0)
+        assert abs(later[18]["pos"] - goal) > 500  # stopped on the way, not at the goal
+
+
+def test_every_hardware_error_bit_is_named_and_recovered(smap):
+    bits = ["input_voltage", "overheating", "encoder", "electrical_shock", "overload"]
+    with (
+        EmulatorProcess() as emu,
+        DynamixelDriver(emu.port, smap, latency_timer_ms=LAT, health_every=2) as drv,
+    ):
+        drv.bring_up()
+        cmd = PayloadCommand(np.zeros(17), 0.075, 0.0)
+        for dxl_id, bit in zip((2, 6, 10, 17, 18), bits):
+            emu.fault(f"error:{dxl_id}:{bit}")
+            fault = _until_fault(drv, cmd)
+            assert fault is not None
+            assert (fault.id, fault.joint, fault.bits) == (dxl_id, smap.joint_of(dxl_id), [bit])
+            assert drv.recover().ids == (dxl_id,)
+        assert [
+            s["reboots"] for i, s in sorted(emu.servos().items()) if i in (2, 6, 10, 17, 18)
+        ] == [1] * 5
