@@ -26,10 +26,10 @@ def _port(text: str) -> int:
     return value
 
 
-def status_line(status: dict[str, Any]) -> str:
-    """One line summarising ``/status`` for the terminal."""
+def status_line(status: dict[str, Any], lat: dict[str, float]) -> str:
+    """One line for the terminal: ``/status`` and the XR frame -> command latency."""
     d = status["dropped"]
-    age, lat = status["frame_age_ms"], status["latency_ms"]
+    age = status["frame_age_ms"]
     refused = " ".join(f"{k}={v}" for k, v in d.items() if v)
     return (
         f"{status['state']:<11} clients={status['clients']} frames={status['frames']} "
@@ -41,7 +41,7 @@ def status_line(status: dict[str, Any]) -> str:
 def _status_printer(hub: Any, stop: threading.Event, interval: float) -> None:
     tty = sys.stderr.isatty()
     while not stop.wait(interval):
-        line = status_line(hub.status())
+        line = status_line(hub.status(), hub.latency())
         sys.stderr.write(f"\r{line}\033[K" if tty else line + "\n")
         sys.stderr.flush()
 
@@ -116,7 +116,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         stop_status.set()
         server.stop()
         result = session.close()
-    print("\n" + status_line(hub.status()))
+    print("\n" + status_line(hub.status(), hub.latency()))
     if result is not None:
         print(f"recorded {record} ({result.get('steps')} steps)")
     return 0

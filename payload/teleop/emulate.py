@@ -149,16 +149,18 @@ class EmulatedQuest:
         self._profile = tempfile.mkdtemp(prefix="payload-chromium-")
         self._pw = sync_playwright().start()
         try:
-            self._browser = self._pw.chromium.launch(
+            ctx = self._pw.chromium.launch_persistent_context(
+                self._profile,
                 executable_path=exe,
                 headless=True,
-                args=[*CHROMIUM_FLAGS, f"--user-data-dir={self._profile}"],
+                args=list(CHROMIUM_FLAGS),
+                ignore_https_errors=self.ignore_https_errors,
             )
-            ctx = self._browser.new_context(ignore_https_errors=self.ignore_https_errors)
+            self._browser = ctx
             ctx.add_init_script(path=str(self.iwer_js))
             consts = f"const NEUTRAL = {_js(NEUTRAL)}; const SPEED = {self.speed};"
             ctx.add_init_script(script=consts + _SETUP_JS)
-            self.page = ctx.new_page()
+            self.page = ctx.pages[0] if ctx.pages else ctx.new_page()
             self.page.on("console", lambda m: self.console.append(f"{m.type}: {m.text}"))
             self.page.on("pageerror", lambda e: self.console.append(f"pageerror: {e}"))
             self.page.goto(self.url)

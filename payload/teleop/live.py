@@ -14,6 +14,7 @@ step; frames coming back blend the channels in again (no recalibration).
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 from collections import deque
@@ -122,10 +123,17 @@ class LiveHub:
                 "clients": int(self.clients),
                 "frames": int(self.frames),
                 "dropped": {k: int(v) for k, v in self.dropped.items()},
-                "frame_age_ms": percentiles(self.frame_age_ms),
+                "frame_age_ms": {
+                    k: (v if math.isfinite(v) else None)
+                    for k, v in percentiles(self.frame_age_ms).items()
+                },
                 "loop_overruns": int(self.loop_overruns),
-                "latency_ms": percentiles(self.latency_ms),
             }
+
+    def latency(self) -> dict[str, float]:
+        """XR frame -> command sent to the driver [ms], median and p99."""
+        with self.lock:
+            return percentiles(self.latency_ms)
 
 
 class LiveSource:

@@ -174,7 +174,10 @@ class TeleopServer:
     # -- HTTP ------------------------------------------------------------------------------
     def _authorised(self, request: Request, query: dict[str, list[str]]) -> str | None:
         """None when the request may proceed, else why not."""
-        host = request.headers.get("Host", "")
+        hosts = request.headers.get_all("Host")
+        if len(hosts) != 1 or len(request.headers.get_all("Origin")) > 1:
+            return "Host and Origin must each appear once"
+        host = hosts[0]
         hostname = urlsplit(f"//{host}").hostname or ""
         if self.local and hostname not in LOCAL_HOSTS:
             return f"Host {host!r} is not a loopback name"
@@ -190,6 +193,14 @@ class TeleopServer:
         return origin is not None and origin == f"{self.scheme}://{host}"
 
     def _process_request(self, connection: ServerConnection, request: Request) -> Response | None:
+        try:
+            return self._route(connection, request)
+        except Exception as exc:  # a request we did not foresee never takes the server down
+            self.hub.drop("malformed")
+            log.warning("teleop server: bad request from %s: %r", _peer(connection), exc)
+            return _text(400, "bad request\n")
+
+    def _route(self, connection: ServerConnection, request: Request) -> Response | None:
         parts = urlsplit(request.path)
         path, query = parts.path, parse_qs(parts.query)
         if path == "/ws":

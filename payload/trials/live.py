@@ -26,7 +26,13 @@ import numpy as np
 from payload.design.params import load_design
 from payload.rotations import quat_to_matrix, yaw_of_matrix
 from payload.schema import CONTROL_DT
-from payload.teleop.calibration import CalibrationError, CalibrationProcedure, Captures
+from payload.teleop.calibration import (
+    DEFAULT_STEPS,
+    CalibrationError,
+    CalibrationProcedure,
+    Captures,
+    Step,
+)
 from payload.teleop.live import LiveHub, LiveSource, TimedDriver
 from payload.teleop.loop import StepContext, run_session
 from payload.teleop.pipeline import TeleopConfig, TeleopPipeline, calibrate_operator, pair_index
@@ -71,13 +77,17 @@ class LiveSession:
     Args:
         hub: Shared with the server.
         record: Trial folder to record into (None: no recording).
+        steps: The calibration prompts.
     """
 
-    def __init__(self, hub: LiveHub, record: Path | None = None) -> None:
+    def __init__(
+        self, hub: LiveHub, record: Path | None = None, steps: tuple[Step, ...] = DEFAULT_STEPS
+    ) -> None:
         from payload.sim.driver import SimDriver
 
         self.hub = hub
         self.record = record
+        self.calibration_steps = steps
         self.driver = SimDriver()
         self.retargeters, self.ranges = retargeting()
         place_ctb_for_teleop(self.driver, self.retargeters, self.ranges)
@@ -87,6 +97,7 @@ class LiveSession:
         self.calibrated = False
         self.notice = ""
         self.steps = 0
+        self.source: LiveSource | None = None
         self._pending: list[tuple[StepRecord, Any]] = []
         self._recorder: TrialRecorder | None = None
         self._hands: HandRecordingWriter | None = None
@@ -192,8 +203,9 @@ class LiveSession:
 
     # -- running ---------------------------------------------------------------------------
     def _attempt(self) -> None:
-        calibration = CalibrationProcedure()
+        calibration = CalibrationProcedure(self.calibration_steps)
         source = LiveSource(self.hub, calibration)
+        self.source = source
         driver = TimedDriver(self.driver, source, self.hub)
         t0_wall = time.perf_counter()
 
@@ -209,7 +221,7 @@ class LiveSession:
             k = round(ctx.t / CONTROL_DT) + 1
             lag = time.perf_counter() - t0_wall - k * CONTROL_DT
             with self.hub.lock:
-                if lag > 0:
+                if lag > CONTROL_DT:  # this step ended more than a period late
                     self.hub.loop_overruns += 1
                 if not self.calibrated:
                     self.hub.state = "calibrating"
