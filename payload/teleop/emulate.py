@@ -15,6 +15,7 @@ import os
 import shutil
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -155,6 +156,7 @@ class EmulatedQuest:
                 headless=True,
                 args=list(CHROMIUM_FLAGS),
                 ignore_https_errors=self.ignore_https_errors,
+                viewport={"width": 320, "height": 240},  # software GL: keep the pixels few
             )
             self._browser = ctx
             ctx.add_init_script(path=str(self.iwer_js))
@@ -212,11 +214,17 @@ class EmulatedQuest:
             "connects: d.connects, open: d.open, xr: d.xr, state: d.state}; }"
         )
 
-    def follow_calibration(self, timeout: float = 60.0) -> dict[str, Any]:
+    def follow_calibration(
+        self, timeout: float = 60.0, state: Callable[[], dict[str, Any]] | None = None
+    ) -> dict[str, Any]:
         """Make each gesture the page prompts until the server reports teleoperation.
 
+        Args:
+            timeout: Give up after this long [s].
+            state: Where to read the prompt (default: the page's last state message).
+
         Returns:
-            The page's last state.
+            The last state.
 
         Raises:
             EmulationError: Not calibrated within ``timeout`` [s].
@@ -224,11 +232,11 @@ class EmulatedQuest:
         end = time.monotonic() + timeout
         done = ""
         while time.monotonic() < end:
-            state = self.debug()["state"] or {}
-            if state.get("state") in ("teleop", "safe_stop"):
+            st = (state() if state is not None else self.debug()["state"]) or {}
+            if st.get("state") in ("teleop", "safe_stop"):
                 self.gesture("neutral")
-                return state
-            step = state.get("step") or ""
+                return st
+            step = st.get("step") or ""
             if step and step != done and step in GESTURES:
                 self.gesture(step)
                 done = step

@@ -98,6 +98,7 @@ class LiveSession:
         self.notice = ""
         self.steps = 0
         self.source: LiveSource | None = None
+        self._closed = False
         self._pending: list[tuple[StepRecord, Any]] = []
         self._recorder: TrialRecorder | None = None
         self._hands: HandRecordingWriter | None = None
@@ -265,7 +266,10 @@ class LiveSession:
                 self.hub.state = "stopped"
 
     def close(self) -> dict[str, Any] | None:
-        """Close the recording and score it (None without a recording)."""
+        """Close the recording and score it (None without a recording, or if closed)."""
+        if self._closed:
+            return None
+        self._closed = True
         self.driver.command_twist(None)
         result = None
         if self._recorder is not None:
