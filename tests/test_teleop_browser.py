@@ -105,6 +105,7 @@ def test_emulated_quest_calibrates_and_flies_the_vehicle_forward(tmp_path):
             assert "left hand not tracked" in hub.snapshot["safe_stop"]
             quest.connect("left", True)
             _wait(lambda: hub.state == "teleop", 10, "control to resume")
+            assert not [m for m in quest.console if m.startswith(("pageerror", "error"))]
             page = quest.debug()
             assert page["sent"] >= st["frames"] and page["connects"] == 1
     finally:

@@ -390,3 +390,27 @@ def test_dropped_connection_brakes_and_holds_then_resumes_blended(live):
     assert len(rec) >= steps - 1 and rec.complete
     assert (out / "hands.jsonl").exists()
     assert math.isfinite(hub.status()["frame_age_ms"]["median"] or 0.0)
+
+
+def test_calibration_captures_webxr_frames_in_the_workbench_frame():
+    from payload.teleop.calibration import CalibrationProcedure
+    from payload.teleop.hands import Hand, HandFrame
+
+    steps = (Step("neutral", 0.2, 0.1, "n"), Step("pinch", 0.2, 0.1, "p"))
+    cal = CalibrationProcedure(steps)
+    for k in range(30):
+        left = Hand(xr_hand("left", NEUTRAL_WB["left"], 0.5))
+        right = Hand(xr_hand("right", NEUTRAL_WB["right"], 0.5))
+        cal.step(HandFrame(k * 0.02, left, right, "webxr"))
+    wrist = cal.captures.get("neutral", "left").wrist
+    np.testing.assert_allclose(wrist, NEUTRAL_WB["left"], atol=1e-12)
+
+
+def test_status_line_reads_before_any_frame():
+    from payload.teleop.cli import status_line
+
+    hub = LiveHub()
+    line = status_line(hub.status(), hub.latency())
+    assert line.startswith("waiting") and "age=-/- ms" in line and "dropped: none" in line
+    hub.drop("oversized")
+    assert "oversized=1" in status_line(hub.status(), hub.latency())

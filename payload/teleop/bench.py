@@ -32,7 +32,12 @@ def run_bench(seconds: float = 20.0) -> dict[str, Any]:
     worker.start()
     try:
         with EmulatedQuest(server.url()) as quest:
-            quest.follow_calibration()
+
+            def server_state() -> dict[str, Any]:
+                with hub.lock:
+                    return {**hub.snapshot, "state": hub.state}
+
+            quest.follow_calibration(timeout=180, state=server_state)
             with hub.lock:  # measure teleoperation only
                 hub.frame_age_ms.clear()
                 hub.latency_ms.clear()

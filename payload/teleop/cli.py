@@ -26,6 +26,10 @@ def _port(text: str) -> int:
     return value
 
 
+def _ms(v: float | None) -> str:
+    return "-" if v is None or v != v else f"{v:.1f}"
+
+
 def status_line(status: dict[str, Any], lat: dict[str, float]) -> str:
     """One line for the terminal: ``/status`` and the XR frame -> command latency."""
     d = status["dropped"]
@@ -33,8 +37,9 @@ def status_line(status: dict[str, Any], lat: dict[str, float]) -> str:
     refused = " ".join(f"{k}={v}" for k, v in d.items() if v)
     return (
         f"{status['state']:<11} clients={status['clients']} frames={status['frames']} "
-        f"age={age['median']:.1f}/{age['p99']:.1f} ms latency={lat['median']:.1f}/"
-        f"{lat['p99']:.1f} ms overruns={status['loop_overruns']} dropped: {refused or 'none'}"
+        f"age={_ms(age['median'])}/{_ms(age['p99'])} ms "
+        f"latency={_ms(lat['median'])}/{_ms(lat['p99'])} ms "
+        f"overruns={status['loop_overruns']} dropped: {refused or 'none'}"
     )
 
 
@@ -126,6 +131,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     from payload.cli import emit_json
     from payload.teleop.bench import run_bench
 
+    # the emulated operator's tracking drop-outs are part of the run, not news
+    logging.getLogger("payload.teleop.safety").setLevel(logging.ERROR)
     result = run_bench(seconds=args.seconds)
     if args.json:
         emit_json(result)

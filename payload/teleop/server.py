@@ -88,7 +88,8 @@ def _response(status: int, body: bytes, content_type: str) -> Response:
             ("Referrer-Policy", "no-referrer"),
             (
                 "Content-Security-Policy",
-                "default-src 'self'; connect-src 'self'; frame-ancestors 'none'",
+                "default-src 'self'; connect-src 'self'; img-src 'self' data:; "
+                "frame-ancestors 'none'",
             ),
             ("Connection", "close"),
         ]
