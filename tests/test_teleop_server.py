@@ -174,6 +174,20 @@ def test_every_bad_message_is_dropped_and_counted_and_the_server_keeps_serving(l
         assert hub.latest.message.seq == 8
 
 
+def test_a_huge_message_closes_only_its_connection(local_server):
+    hub, server = local_server
+    origin = f"http://127.0.0.1:{server.port}"
+    with connect(f"ws://127.0.0.1:{server.port}/ws", origin=origin) as ws:
+        ws.recv()
+        ws.send("x" * (2 * 1024 * 1024))  # past the wire limit: the link is closed
+        wait_for(lambda: hub.status()["clients"] == 0)
+    assert hub.status()["dropped"]["oversized"] == 1
+    with connect(f"ws://127.0.0.1:{server.port}/ws", origin=origin) as ws:
+        ws.recv()
+        ws.send(frame_msg(0, 1.0))
+        wait_for(lambda: hub.frames == 1)
+
+
 def test_clock_sync_gives_frame_ages(local_server):
     hub, server = local_server
     origin = f"http://127.0.0.1:{server.port}"
@@ -343,6 +357,7 @@ def live(tmp_path_factory):
 
 
 def test_dropped_connection_brakes_and_holds_then_resumes_blended(live):
+    from payload.teleop.replay import read_hand_recording
     from payload.trials.recorder import read_recording
 
     hub, server, session, out = live
@@ -388,7 +403,9 @@ def test_dropped_connection_brakes_and_holds_then_resumes_blended(live):
     jumps = np.abs(np.diff(q[back - 1 : back + 40], axis=0)).max()
     assert jumps < 0.05, jumps
     assert len(rec) >= steps - 1 and rec.complete
-    assert (out / "hands.jsonl").exists()
+    header, frames = read_hand_recording(out / "hands.jsonl")  # replayable, frame by frame
+    assert header["frame"] == "webxr" and len(frames) == len(rec)
+    np.testing.assert_array_equal(frames[lost - 1].left.joints, rec.left_joints[lost - 1])
     assert math.isfinite(hub.status()["frame_age_ms"]["median"] or 0.0)
 
 

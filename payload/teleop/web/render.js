@@ -204,7 +204,7 @@ export class Renderer {
     }
     // the text panel floats above the vehicle, facing the operator
     gl.useProgram(this.tex);
-    const panel = mul(translation([0, ANCHOR[1] + 0.55, ANCHOR[2] - 0.2]), scaling([0.4, 0.1, 1]));
+    const panel = mul(translation([0, ANCHOR[1] + 0.5, ANCHOR[2] + 0.1]), scaling([0.48, 0.12, 1]));
     gl.uniformMatrix4fv(gl.getUniformLocation(this.tex, 'mvp'), false, mul(vpXr, panel));
     gl.activeTexture(gl.TEXTURE0);
     gl.bindTexture(gl.TEXTURE_2D, this.panelTex);
