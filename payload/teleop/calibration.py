@@ -104,9 +104,14 @@ class CalibrationProcedure:
         return self.steps[i] if i < len(self.steps) else None
 
     def step(self, frame: HandFrame) -> None:
-        """Consume one frame (untracked or non-finite hands are skipped)."""
+        """Consume one frame (untracked or non-finite hands are skipped).
+
+        Captures are kept in the workbench frame, like the pipeline's inputs, whatever the
+        convention of the incoming frame (a WebXR frame is converted).
+        """
         if self.done:
             return
+        frame = frame.to_workbench()
         t = frame.stamp
         while self._index < len(self.steps) and t >= self._ends[self._index]:
             self._finish(self.steps[self._index])

@@ -134,6 +134,16 @@ class TrackingSupervisor:
         )
         return ev
 
+    def force_lost(self, side: str, stamp: float, reason: str) -> None:
+        """Declare a hand lost now, without bridging (the live link dropped, or the headset
+        reports the hand gone): from the next :meth:`step` the vehicle brakes and the
+        fingers hold until valid frames return and blend in."""
+        st = self.status[side]
+        if st.lost:
+            return
+        st.lost, st.lost_since, st.was_invalid = True, stamp, True
+        self._event(stamp, side, "lost", reason)
+
     def step(self, frame: HandFrame) -> Supervised:
         c = self.config
         events: list[SafetyEvent] = []

@@ -1,0 +1,250 @@
+"""An emulated Quest 3 with hands: headless Chromium + Meta's ``iwer``, for tests and the bench.
+
+The product page is loaded unchanged from the server; before it runs, two scripts are
+injected into the browser (never served by the product server): iwer's browser build
+from the project's ``node_modules`` (installed by ``npm ci`` from ``package-lock.json``)
+and a few lines that create ``new XRDevice(metaQuest3)``, install it as
+``navigator.xr`` (``forceInstall``) and switch it to hand input. Hands then move toward
+targets at a human speed (a jump would be rejected by the tracking supervisor as a
+glitch), in WebXR's local-floor space (metres, Y up, -Z forward).
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from payload.errors import PayloadError
+
+CHROMIUM = "/usr/bin/chromium"
+CHROMIUM_FLAGS = (
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--use-angle=swiftshader",
+)
+
+# operator poses in local-floor [m]: wrists at chest height, about 35 cm in front
+NEUTRAL = {"left": (-0.15, 1.1, -0.35), "right": (0.15, 1.1, -0.35)}
+GESTURES: dict[str, dict[str, Any]] = {
+    "neutral": {"offset": (0.0, 0.0, 0.0), "spread": 0.0, "pinch": 0.5},
+    "pinch": {"offset": (0.0, 0.0, 0.0), "spread": 0.0, "pinch": 1.0},
+    "open": {"offset": (0.0, 0.0, 0.0), "spread": 0.0, "pinch": 0.0},
+    "together": {"offset": (0.0, 0.0, 0.0), "spread": -0.1, "pinch": 0.5},
+    "apart": {"offset": (0.0, 0.0, 0.0), "spread": 0.12, "pinch": 0.5},
+    "release": {"offset": (0.0, 0.0, 0.0), "spread": 0.0, "pinch": 0.5},
+}
+
+_SETUP_JS = """
+(() => {
+  const device = new IWER.XRDevice(IWER.metaQuest3);
+  device.installRuntime({ forceInstall: true });
+  device.primaryInputMode = 'hand';
+  const targets = {};
+  const hands = device.hands;
+  for (const side of ['left', 'right']) {
+    const p = NEUTRAL[side];
+    hands[side].position.set(p[0], p[1], p[2]);
+    hands[side].updatePinchValue(0.5);
+    targets[side] = { pos: p.slice(), pinch: 0.5 };
+  }
+  let last = performance.now();
+  function follow(now) {
+    const dt = Math.min(0.1, (now - last) / 1000);
+    last = now;
+    for (const side of ['left', 'right']) {
+      const h = hands[side], t = targets[side];
+      const d = [t.pos[0] - h.position.x, t.pos[1] - h.position.y, t.pos[2] - h.position.z];
+      const n = Math.hypot(...d), step = Math.min(n, SPEED * dt);
+      if (n > 1e-6) {
+        h.position.set(h.position.x + d[0] / n * step, h.position.y + d[1] / n * step,
+          h.position.z + d[2] / n * step);
+      }
+      const dp = t.pinch - h.pinchValue;
+      h.updatePinchValue(h.pinchValue + Math.sign(dp) * Math.min(Math.abs(dp), 2 * dt));
+    }
+    requestAnimationFrame(follow);
+  }
+  requestAnimationFrame(follow);
+  window.__quest = {
+    device,
+    target(side, pos, pinch) { targets[side] = { pos, pinch }; },
+    connect(side, on) { hands[side].connected = on; },
+    wrist(side) { const p = hands[side].position; return [p.x, p.y, p.z]; },
+  };
+})();
+"""
+
+
+class EmulationError(PayloadError):
+    """The emulated headset cannot run (no Chromium, no iwer, the page did not start)."""
+
+
+def find_iwer(start: Path | None = None) -> Path:
+    """iwer's browser build in the nearest ``node_modules`` from ``start`` (cwd) upward.
+
+    Raises:
+        EmulationError: Not installed (run ``npm ci`` at the project root).
+    """
+    here = (start or Path.cwd()).resolve()
+    for d in (here, *here.parents):
+        p = d / "node_modules" / "iwer" / "build" / "iwer.js"
+        if p.is_file():
+            return p
+    raise EmulationError("iwer is not installed: run `npm ci` at the project root")
+
+
+def chromium_path() -> str:
+    """Debian's Chromium.
+
+    Raises:
+        EmulationError: It is not installed.
+    """
+    path = CHROMIUM if os.access(CHROMIUM, os.X_OK) else shutil.which("chromium")
+    if not path:
+        raise EmulationError(f"Chromium is not installed ({CHROMIUM}): apt-get install chromium")
+    return path
+
+
+class EmulatedQuest:
+    """The product page in headless Chromium with an emulated Quest 3 and hands.
+
+    Args:
+        url: The page's address (with its token).
+        iwer_js: iwer's browser build (default: :func:`find_iwer`).
+        speed: How fast the hands move toward their targets [m/s].
+        ignore_https_errors: Accept the server's self-signed certificate.
+    """
+
+    def __init__(
+        self,
+        url: str,
+        iwer_js: Path | None = None,
+        speed: float = 0.4,
+        ignore_https_errors: bool = False,
+    ) -> None:
+        self.url = url
+        self.iwer_js = iwer_js or find_iwer()
+        self.speed = speed
+        self.ignore_https_errors = ignore_https_errors
+        self.console: list[str] = []
+        self._pw: Any = None
+        self._browser: Any = None
+        self._profile: str | None = None
+        self.page: Any = None
+
+    def __enter__(self) -> EmulatedQuest:
+        from playwright.sync_api import sync_playwright
+
+        exe = chromium_path()
+        self._profile = tempfile.mkdtemp(prefix="payload-chromium-")
+        self._pw = sync_playwright().start()
+        try:
+            ctx = self._pw.chromium.launch_persistent_context(
+                self._profile,
+                executable_path=exe,
+                headless=True,
+                args=list(CHROMIUM_FLAGS),
+                ignore_https_errors=self.ignore_https_errors,
+                viewport={"width": 320, "height": 240},  # software GL: keep the pixels few
+            )
+            self._browser = ctx
+            ctx.add_init_script(path=str(self.iwer_js))
+            consts = f"const NEUTRAL = {_js(NEUTRAL)}; const SPEED = {self.speed};"
+            ctx.add_init_script(script=consts + _SETUP_JS)
+            self.page = ctx.pages[0] if ctx.pages else ctx.new_page()
+            self.page.on("console", lambda m: self.console.append(f"{m.type}: {m.text}"))
+            self.page.on("pageerror", lambda e: self.console.append(f"pageerror: {e}"))
+            self.page.goto(self.url)
+            self.page.wait_for_function("!document.getElementById('enter').disabled", timeout=30e3)
+            self.page.click("#enter")
+            self.page.wait_for_function("window.__teleop && window.__teleop.xr", timeout=30e3)
+        except Exception:
+            self.__exit__(None, None, None)
+            raise
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self._browser is not None:
+            self._browser.close()
+        if self._pw is not None:
+            self._pw.stop()
+        if self._profile is not None:
+            shutil.rmtree(self._profile, ignore_errors=True)
+        self._browser = self._pw = self._profile = None
+
+    # -- hands -------------------------------------------------------------------------------
+    def target(self, side: str, pos: tuple[float, float, float], pinch: float) -> None:
+        """Move a hand toward ``pos`` (local-floor [m]) and a pinch value (0 open, 1 pinch)."""
+        self.page.evaluate(
+            "([s, p, v]) => window.__quest.target(s, p, v)", [side, list(pos), pinch]
+        )
+
+    def connect(self, side: str, on: bool) -> None:
+        """Start or stop tracking a hand."""
+        self.page.evaluate("([s, on]) => window.__quest.connect(s, on)", [side, on])
+
+    def wrist(self, side: str) -> list[float]:
+        """The emulated hand's position (local-floor [m])."""
+        return self.page.evaluate("(s) => window.__quest.wrist(s)", side)
+
+    def gesture(self, name: str, forward: float = 0.0) -> None:
+        """Both hands to a calibration gesture (:data:`GESTURES`), left wrist ``forward`` [m]."""
+        g = GESTURES[name]
+        for side, sign in (("left", -1.0), ("right", 1.0)):
+            x, y, z = NEUTRAL[side]
+            ox, oy, oz = g["offset"]
+            pos = (x + sign * g["spread"] + ox, y + oy, z + oz - (forward if side == "left" else 0))
+            self.target(side, pos, g["pinch"])
+
+    def debug(self) -> dict[str, Any]:
+        """The page's ``window.__teleop`` (frames sent, last state, link)."""
+        return self.page.evaluate(
+            "() => { const d = window.__teleop; return {sent: d.sent, received: d.received, "
+            "connects: d.connects, open: d.open, xr: d.xr, state: d.state}; }"
+        )
+
+    def follow_calibration(
+        self, timeout: float = 60.0, state: Callable[[], dict[str, Any]] | None = None
+    ) -> dict[str, Any]:
+        """Make each gesture the page prompts until the server reports teleoperation.
+
+        Args:
+            timeout: Give up after this long [s].
+            state: Where to read the prompt (default: the page's last state message).
+
+        Returns:
+            The last state.
+
+        Raises:
+            EmulationError: Not calibrated within ``timeout`` [s].
+        """
+        end = time.monotonic() + timeout
+        done = ""
+        while time.monotonic() < end:
+            st = (state() if state is not None else self.debug()["state"]) or {}
+            if st.get("state") in ("teleop", "safe_stop"):
+                self.gesture("neutral")
+                return st
+            step = st.get("step") or ""
+            if step and step != done and step in GESTURES:
+                self.gesture(step)
+                done = step
+            time.sleep(0.05)
+        raise EmulationError(f"not calibrated within {timeout:.0f} s; page log: {self.console}")
+
+
+def _js(obj: Any) -> str:
+    import json
+
+    return json.dumps(obj)

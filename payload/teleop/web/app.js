@@ -1,0 +1,188 @@
+// The live teleop page: WebXR hand tracking in, frames out over a WebSocket, state drawn.
+//
+// Each XR frame it reads the 25 XRHand joints of both hands in the local-floor space and
+// sends {"type": "frame", "seq", "t", "hands"} (see payload/teleop/messages.py). It answers
+// the server's clock pings, shows the calibration prompts and the scene, and reconnects by
+// itself when the WebSocket drops (the server brakes the vehicle meanwhile).
+
+import { Renderer, lookAt, perspective, ANCHOR } from './render.js';
+
+export const JOINTS = [
+  'wrist', 'thumb-metacarpal', 'thumb-phalanx-proximal', 'thumb-phalanx-distal', 'thumb-tip',
+  ...['index-finger', 'middle-finger', 'ring-finger', 'pinky-finger'].flatMap((f) =>
+    ['metacarpal', 'phalanx-proximal', 'phalanx-intermediate', 'phalanx-distal', 'tip']
+      .map((p) => `${f}-${p}`)),
+];
+
+const token = new URLSearchParams(location.search).get('token');
+const wsUrl = `${location.protocol === 'https:' ? 'wss' : 'ws'}://${location.host}/ws` +
+  (token ? `?token=${encodeURIComponent(token)}` : '');
+const $ = (id) => document.getElementById(id);
+
+// what the browser test (and a curious developer) can look at
+const debug = { sent: 0, received: 0, connects: 0, state: null, open: false, xr: false };
+window.__teleop = debug;
+
+// ---- the WebSocket, reconnecting -----------------------------------------------------
+class Link {
+  constructor(onMessage) {
+    this.onMessage = onMessage;
+    this.ws = null;
+    this.retry = 250;
+    this.connect();
+  }
+
+  connect() {
+    const ws = new WebSocket(wsUrl);
+    this.ws = ws;
+    ws.onopen = () => {
+      this.retry = 250;
+      debug.open = true;
+      debug.connects += 1;
+      $('link').textContent = 'connected';
+    };
+    ws.onmessage = (ev) => {
+      debug.received += 1;
+      try { this.onMessage(JSON.parse(ev.data)); } catch (e) { console.error(e); }
+    };
+    ws.onclose = () => {
+      debug.open = false;
+      $('link').textContent = `disconnected, retrying in ${(this.retry / 1000).toFixed(1)} s`;
+      setTimeout(() => this.connect(), this.retry);
+      this.retry = Math.min(4000, this.retry * 2);
+    };
+    ws.onerror = () => ws.close();
+  }
+
+  send(obj) {
+    if (this.ws && this.ws.readyState === WebSocket.OPEN) {
+      this.ws.send(JSON.stringify(obj));
+      return true;
+    }
+    return false;
+  }
+}
+
+// ---- drawing ---------------------------------------------------------------------------
+const canvas = $('view');
+const gl = canvas.getContext('webgl', { xrCompatible: true, antialias: true });
+const renderer = new Renderer(gl);
+
+function panelLines(st) {
+  if (!st) return ['connecting to the teleop server…'];
+  const lines = [`${st.state}${st.step ? `: ${st.step}` : ''}`];
+  if (st.prompt) lines.push(`${st.prompt} (${st.remaining.toFixed(1)} s)`);
+  if (st.safe_stop) lines.push(`SAFE STOP: ${st.safe_stop}`);
+  if (st.vehicle) lines.push(`vehicle ${st.vehicle.speed.toFixed(3)} m/s  rail ` +
+    `${(st.rail * 1000).toFixed(0)} mm  ${st.contact ? 'CTB held' : ''}`);
+  if (st.notice && lines.length < 4) lines.push(st.notice);
+  return lines;
+}
+
+function showState(st) {
+  debug.state = st;
+  renderer.state = st;
+  $('state').textContent = `${st.state} (${st.phase || ''})`;
+  $('prompt').textContent = st.prompt ? `${st.prompt} — ${st.remaining.toFixed(1)} s` : st.notice;
+  $('vehicle').textContent = st.vehicle ? `vehicle speed ${st.vehicle.speed.toFixed(3)} m/s` : '';
+  $('safety').textContent = st.safe_stop ? `safe stop: ${st.safe_stop}` : '';
+  renderer.setPanel(panelLines(st), st.safe_stop ? '#f96' : '#7fd');
+}
+
+const link = new Link((msg) => {
+  if (msg.type === 'ping') {
+    link.send({ type: 'pong', id: msg.id, t: performance.now() });
+  } else if (msg.type === 'hello') {
+    renderer.scene = msg.scene;
+  } else if (msg.type === 'state') {
+    showState(msg);
+  }
+});
+
+function drawDesktop() {
+  if (debug.xr) return;
+  const w = canvas.clientWidth, h = canvas.clientHeight;
+  if (canvas.width !== w || canvas.height !== h) { canvas.width = w; canvas.height = h; }
+  gl.bindFramebuffer(gl.FRAMEBUFFER, null);
+  gl.viewport(0, 0, w, h);
+  gl.clearColor(0.04, 0.06, 0.09, 1);
+  gl.clear(gl.COLOR_BUFFER_BIT | gl.DEPTH_BUFFER_BIT);
+  renderer.setPanel(panelLines(debug.state));
+  const eye = [0, 1.6, 0.8];
+  renderer.draw(perspective(1.0, w / Math.max(h, 1), 0.05, 60), lookAt(eye, ANCHOR, [0, 1, 0]));
+  requestAnimationFrame(drawDesktop);
+}
+requestAnimationFrame(drawDesktop);
+
+// ---- WebXR -------------------------------------------------------------------------------
+let seq = 0;
+
+function readHand(frame, source, space) {
+  const joints = [];
+  for (const name of JOINTS) {
+    const jointSpace = source.hand.get(name);
+    const pose = jointSpace && frame.getJointPose(jointSpace, space);
+    if (!pose) return { tracked: false, joints: null };
+    const p = pose.transform.position;
+    joints.push([p.x, p.y, p.z]);
+  }
+  return { tracked: true, joints };
+}
+
+function onXRFrame(t, frame) {
+  const session = frame.session;
+  session.requestAnimationFrame(onXRFrame);
+  const space = debug.space;
+  const hands = { left: null, right: null };
+  for (const source of session.inputSources) {
+    if (source.hand && (source.handedness === 'left' || source.handedness === 'right')) {
+      hands[source.handedness] = readHand(frame, source, space);
+    }
+  }
+  if (link.send({ type: 'frame', seq, t, hands })) debug.sent += 1;
+  seq += 1;
+  const pose = frame.getViewerPose(space);
+  const layer = session.renderState.baseLayer;
+  gl.bindFramebuffer(gl.FRAMEBUFFER, layer.framebuffer);
+  gl.clearColor(0.02, 0.03, 0.05, 1);
+  gl.clear(gl.COLOR_BUFFER_BIT | gl.DEPTH_BUFFER_BIT);
+  if (!pose) return;
+  for (const view of pose.views) {
+    const vp = layer.getViewport(view);
+    gl.viewport(vp.x, vp.y, vp.width, vp.height);
+    renderer.draw(view.projectionMatrix, view.transform.inverse.matrix);
+  }
+}
+
+async function enterXR() {
+  const session = await navigator.xr.requestSession('immersive-vr', {
+    requiredFeatures: ['local-floor', 'hand-tracking'],
+  });
+  await gl.makeXRCompatible();
+  session.updateRenderState({ baseLayer: new XRWebGLLayer(session, gl) });
+  debug.space = await session.requestReferenceSpace('local-floor');
+  debug.xr = true;
+  session.addEventListener('end', () => {
+    debug.xr = false;
+    $('enter').disabled = false;
+    requestAnimationFrame(drawDesktop);
+  });
+  $('enter').disabled = true;
+  session.requestAnimationFrame(onXRFrame);
+}
+
+async function setup() {
+  const button = $('enter');
+  if (!navigator.xr) {
+    button.textContent = 'WebXR unavailable (HTTPS or localhost needed)';
+    return;
+  }
+  const ok = await navigator.xr.isSessionSupported('immersive-vr');
+  button.disabled = !ok;
+  button.textContent = ok ? 'Enter VR' : 'immersive VR not supported here';
+  button.addEventListener('click', () => enterXR().catch((e) => {
+    console.error(e);
+    $('safety').textContent = `could not start VR: ${e.message}`;
+  }));
+}
+setup();

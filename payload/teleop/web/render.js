@@ -1,0 +1,216 @@
+// A small WebGL renderer for the live teleop page: wire boxes, lines and a text panel.
+//
+// The server's world is the workbench frame (REP-103: x forward, y left, z up, metres).
+// WebXR's local-floor space is y up, -z forward. The view follows the vehicle: the world
+// is turned so the operator's calibrated forward (heading0) points along -z and shifted so
+// the vehicle floats in front of the operator at ANCHOR.
+
+export const ANCHOR = [0.0, 1.1, -1.0];
+
+// ---- 4x4 matrices, column-major like WebGL ------------------------------------------
+export function mul(a, b) {
+  const o = new Float32Array(16);
+  for (let c = 0; c < 4; c++) {
+    for (let r = 0; r < 4; r++) {
+      let s = 0;
+      for (let k = 0; k < 4; k++) s += a[k * 4 + r] * b[c * 4 + k];
+      o[c * 4 + r] = s;
+    }
+  }
+  return o;
+}
+
+function fromRows(m) { // 3x3 rows + translation t -> column-major 4x4
+  return (t = [0, 0, 0]) => new Float32Array([
+    m[0][0], m[1][0], m[2][0], 0,
+    m[0][1], m[1][1], m[2][1], 0,
+    m[0][2], m[1][2], m[2][2], 0,
+    t[0], t[1], t[2], 1,
+  ]);
+}
+
+export function translation(t) { return fromRows([[1, 0, 0], [0, 1, 0], [0, 0, 1]])(t); }
+
+export function scaling(s) {
+  return new Float32Array([s[0], 0, 0, 0, 0, s[1], 0, 0, 0, 0, s[2], 0, 0, 0, 0, 1]);
+}
+
+export function quatMatrix(q) { // q = [w, x, y, z]
+  const [w, x, y, z] = q;
+  return fromRows([
+    [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+    [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+    [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+  ])();
+}
+
+export function yawMatrix(a) {
+  const c = Math.cos(a), s = Math.sin(a);
+  return fromRows([[c, -s, 0], [s, c, 0], [0, 0, 1]])();
+}
+
+// workbench (x fwd, y left, z up) -> WebXR (x right, y up, -z fwd)
+export const WORKBENCH_TO_XR = fromRows([[0, -1, 0], [0, 0, 1], [-1, 0, 0]])();
+
+export function perspective(fovy, aspect, near, far) {
+  const f = 1 / Math.tan(fovy / 2), nf = 1 / (near - far);
+  return new Float32Array([f / aspect, 0, 0, 0, 0, f, 0, 0, 0, 0, (far + near) * nf, -1,
+    0, 0, 2 * far * near * nf, 0]);
+}
+
+export function lookAt(eye, target, up) {
+  const sub = (a, b) => [a[0] - b[0], a[1] - b[1], a[2] - b[2]];
+  const norm = (v) => { const n = Math.hypot(...v); return v.map((x) => x / n); };
+  const cross = (a, b) => [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2],
+    a[0] * b[1] - a[1] * b[0]];
+  const dot = (a, b) => a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+  const z = norm(sub(eye, target)), x = norm(cross(up, z)), y = cross(z, x);
+  return new Float32Array([x[0], y[0], z[0], 0, x[1], y[1], z[1], 0, x[2], y[2], z[2], 0,
+    -dot(x, eye), -dot(y, eye), -dot(z, eye), 1]);
+}
+
+// the 12 edges of the cube [-1, 1]^3
+const CUBE = (() => {
+  const v = [];
+  for (let a = 0; a < 3; a++) {
+    const b = (a + 1) % 3, c = (a + 2) % 3;
+    for (const sb of [-1, 1]) {
+      for (const sc of [-1, 1]) {
+        const p = [0, 0, 0], q = [0, 0, 0];
+        p[a] = -1; q[a] = 1; p[b] = q[b] = sb; p[c] = q[c] = sc;
+        v.push(...p, ...q);
+      }
+    }
+  }
+  return new Float32Array(v);
+})();
+
+const LINE_VS = `attribute vec3 p; uniform mat4 mvp; void main() { gl_Position = mvp * vec4(p, 1.0); }`;
+const LINE_FS = `precision mediump float; uniform vec4 color; void main() { gl_FragColor = color; }`;
+const TEX_VS = `attribute vec3 p; varying vec2 uv; uniform mat4 mvp;
+  void main() { uv = vec2(p.x * 0.5 + 0.5, 0.5 - p.y * 0.5); gl_Position = mvp * vec4(p, 1.0); }`;
+const TEX_FS = `precision mediump float; varying vec2 uv; uniform sampler2D tex;
+  void main() { gl_FragColor = texture2D(tex, uv); }`;
+
+function program(gl, vs, fs) {
+  const prog = gl.createProgram();
+  for (const [type, src] of [[gl.VERTEX_SHADER, vs], [gl.FRAGMENT_SHADER, fs]]) {
+    const s = gl.createShader(type);
+    gl.shaderSource(s, src);
+    gl.compileShader(s);
+    if (!gl.getShaderParameter(s, gl.COMPILE_STATUS)) throw new Error(gl.getShaderInfoLog(s));
+    gl.attachShader(prog, s);
+  }
+  gl.bindAttribLocation(prog, 0, 'p');
+  gl.linkProgram(prog);
+  if (!gl.getProgramParameter(prog, gl.LINK_STATUS)) throw new Error(gl.getProgramInfoLog(prog));
+  return prog;
+}
+
+export class Renderer {
+  constructor(gl) {
+    this.gl = gl;
+    this.line = program(gl, LINE_VS, LINE_FS);
+    this.tex = program(gl, TEX_VS, TEX_FS);
+    this.cube = gl.createBuffer();
+    gl.bindBuffer(gl.ARRAY_BUFFER, this.cube);
+    gl.bufferData(gl.ARRAY_BUFFER, CUBE, gl.STATIC_DRAW);
+    this.quad = gl.createBuffer();
+    gl.bindBuffer(gl.ARRAY_BUFFER, this.quad);
+    gl.bufferData(gl.ARRAY_BUFFER, new Float32Array([-1, -1, 0, 1, -1, 0, -1, 1, 0, 1, 1, 0]),
+      gl.STATIC_DRAW);
+    this.dyn = gl.createBuffer();
+    this.panelCanvas = document.createElement('canvas');
+    this.panelCanvas.width = 1024;
+    this.panelCanvas.height = 256;
+    this.panelTex = gl.createTexture();
+    this.panelText = null;
+    this.scene = null;
+    this.state = null;
+  }
+
+  setPanel(lines, color = '#7fd') {
+    const key = lines.join('\n') + color;
+    if (key === this.panelText) return;
+    this.panelText = key;
+    const c = this.panelCanvas.getContext('2d');
+    c.fillStyle = 'rgba(10, 16, 24, 0.85)';
+    c.fillRect(0, 0, 1024, 256);
+    c.fillStyle = color;
+    c.font = '44px sans-serif';
+    lines.slice(0, 4).forEach((l, i) => c.fillText(l, 24, 62 + i * 58, 976));
+    const gl = this.gl;
+    gl.bindTexture(gl.TEXTURE_2D, this.panelTex);
+    gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGBA, gl.RGBA, gl.UNSIGNED_BYTE, this.panelCanvas);
+    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MIN_FILTER, gl.LINEAR);
+    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_WRAP_S, gl.CLAMP_TO_EDGE);
+    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_WRAP_T, gl.CLAMP_TO_EDGE);
+  }
+
+  // workbench world -> XR local-floor
+  worldMatrix() {
+    const st = this.state;
+    const pos = st && st.vehicle ? st.vehicle.pos : [0, 0, 0];
+    const heading = st && typeof st.heading0 === 'number' ? st.heading0 : 0;
+    return mul(translation(ANCHOR), mul(WORKBENCH_TO_XR,
+      mul(yawMatrix(-heading), translation(pos.map((x) => -x)))));
+  }
+
+  box(vp, centre, quat, size, color) {
+    const gl = this.gl;
+    const m = mul(vp, mul(translation(centre), mul(quatMatrix(quat), scaling(size.map((s) => s / 2)))));
+    gl.uniformMatrix4fv(gl.getUniformLocation(this.line, 'mvp'), false, m);
+    gl.uniform4fv(gl.getUniformLocation(this.line, 'color'), color);
+    gl.bindBuffer(gl.ARRAY_BUFFER, this.cube);
+    gl.vertexAttribPointer(0, 3, gl.FLOAT, false, 0, 0);
+    gl.drawArrays(gl.LINES, 0, 24);
+  }
+
+  segments(vp, points, color) {
+    const gl = this.gl;
+    gl.uniformMatrix4fv(gl.getUniformLocation(this.line, 'mvp'), false, vp);
+    gl.uniform4fv(gl.getUniformLocation(this.line, 'color'), color);
+    gl.bindBuffer(gl.ARRAY_BUFFER, this.dyn);
+    gl.bufferData(gl.ARRAY_BUFFER, new Float32Array(points.flat()), gl.DYNAMIC_DRAW);
+    gl.vertexAttribPointer(0, 3, gl.FLOAT, false, 0, 0);
+    gl.drawArrays(gl.LINES, 0, points.length);
+  }
+
+  // draw one view: projection and view matrices from the XR view (or the desktop camera)
+  draw(projection, view) {
+    const gl = this.gl;
+    gl.enable(gl.DEPTH_TEST);
+    const vpXr = mul(projection, view);
+    const vp = mul(vpXr, this.worldMatrix());
+    gl.useProgram(this.line);
+    gl.enableVertexAttribArray(0);
+    const id = [1, 0, 0, 0];
+    for (const m of (this.scene && this.scene.modules) || []) {
+      const c = m.lo.map((lo, i) => (lo + m.hi[i]) / 2), s = m.lo.map((lo, i) => m.hi[i] - lo);
+      this.box(vp, c, id, s, [0.45, 0.55, 0.7, 1]);
+    }
+    const st = this.state;
+    if (st && st.vehicle) {
+      const vs = (this.scene && this.scene.vehicle_size) || 0.32;
+      this.box(vp, st.vehicle.pos, st.vehicle.quat, [vs, vs, vs], [0.95, 0.8, 0.2, 1]);
+      if (st.ctb && st.ctb.pos && this.scene && this.scene.ctb_size) {
+        this.box(vp, st.ctb.pos, st.ctb.quat, this.scene.ctb_size,
+          st.contact ? [0.3, 1, 0.4, 1] : [0.9, 0.9, 0.9, 1]);
+      }
+      const tips = Object.values(st.fingers || {});
+      const base = [st.vehicle.pos[0], st.vehicle.pos[1], st.vehicle.pos[2] - vs / 2];
+      this.segments(vp, tips.flatMap((p) => [base, p]), [1, 0.5, 0.3, 1]);
+      for (const p of tips) this.box(vp, p, id, [0.02, 0.02, 0.02], [1, 0.4, 0.2, 1]);
+    }
+    // the text panel floats above the vehicle, facing the operator
+    gl.useProgram(this.tex);
+    const panel = mul(translation([0, ANCHOR[1] + 0.5, ANCHOR[2] + 0.1]), scaling([0.48, 0.12, 1]));
+    gl.uniformMatrix4fv(gl.getUniformLocation(this.tex, 'mvp'), false, mul(vpXr, panel));
+    gl.activeTexture(gl.TEXTURE0);
+    gl.bindTexture(gl.TEXTURE_2D, this.panelTex);
+    gl.uniform1i(gl.getUniformLocation(this.tex, 'tex'), 0);
+    gl.bindBuffer(gl.ARRAY_BUFFER, this.quad);
+    gl.vertexAttribPointer(0, 3, gl.FLOAT, false, 0, 0);
+    gl.drawArrays(gl.TRIANGLE_STRIP, 0, 4);
+  }
+}

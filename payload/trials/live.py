@@ -1,0 +1,286 @@
+"""A live teleoperation session: the Quest page drives the ISS cargo scene, recorded as a trial.
+
+``LiveSession`` wires the pieces that already exist: the default trial world
+(:class:`~payload.sim.driver.SimDriver` with the CTB placed under the pinch), the
+operator calibration procedure, the production pipeline and the 50 Hz loop
+(:func:`~payload.teleop.loop.run_session`, paced to the wall clock), and, with a record
+folder, the trial recorder (``log.mcap``) and the hand recording (``hands.jsonl``), scored
+at the end by the same code as any trial (``metrics.json``).
+
+A session attempt starts when a page connects; if the page goes away before the
+calibration is done, or the calibration captures are unusable, the attempt is dropped
+and calibration starts again with the next page. Once calibrated, a dropped page brakes
+the vehicle and holds the fingers; the page coming back resumes control, blended in.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from payload.design.params import load_design
+from payload.rotations import quat_to_matrix, yaw_of_matrix
+from payload.schema import CONTROL_DT
+from payload.teleop.calibration import (
+    DEFAULT_STEPS,
+    CalibrationError,
+    CalibrationProcedure,
+    Captures,
+    Step,
+)
+from payload.teleop.live import LiveHub, LiveSource, TimedDriver
+from payload.teleop.loop import StepContext, run_session
+from payload.teleop.pipeline import TeleopConfig, TeleopPipeline, calibrate_operator, pair_index
+from payload.teleop.replay import HandRecordingWriter
+from payload.trials.recorder import StepRecord, TrialRecorder
+from payload.trials.runner import (
+    MODULE_NAMES,
+    _module_rects,
+    design_hash,
+    place_ctb_for_teleop,
+    retargeting,
+)
+
+log = logging.getLogger(__name__)
+
+FINGERS = ("A", "B", "C", "D")
+SESSION_CAP_S = 24 * 3600.0
+
+
+def scene_of(driver: Any) -> dict[str, Any]:
+    """What the page needs to draw the world: module volumes, vehicle and CTB sizes."""
+    w = driver.world
+    size = w.config.ctb_size
+    return {
+        "modules": [
+            {"name": MODULE_NAMES.get(z.module.value, z.module.value), "lo": z.lo, "hi": z.hi}
+            for z in w.layout.zones()
+        ],
+        "vehicle_size": 0.32,
+        "ctb_size": None if size is None else [size.length, size.width, size.height],
+        "route": w.layout.route().tolist(),
+    }
+
+
+def _v(a: Any) -> list[float]:
+    return [round(float(x), 5) for x in np.asarray(a).ravel()]
+
+
+class LiveSession:
+    """The simulator driven by the live page (see the module docstring).
+
+    Args:
+        hub: Shared with the server.
+        record: Trial folder to record into (None: no recording).
+        steps: The calibration prompts.
+    """
+
+    def __init__(
+        self, hub: LiveHub, record: Path | None = None, steps: tuple[Step, ...] = DEFAULT_STEPS
+    ) -> None:
+        from payload.sim.driver import SimDriver
+
+        self.hub = hub
+        self.record = record
+        self.calibration_steps = steps
+        self.driver = SimDriver()
+        self.retargeters, self.ranges = retargeting()
+        place_ctb_for_teleop(self.driver, self.retargeters, self.ranges)
+        self.config = TeleopConfig.from_design(load_design(self.driver.world.config.design))
+        self.q0 = self.driver.read().q
+        self.scene = scene_of(self.driver)
+        self.calibrated = False
+        self.notice = ""
+        self.steps = 0
+        self.source: LiveSource | None = None
+        self._closed = False
+        self._pending: list[tuple[StepRecord, Any]] = []
+        self._recorder: TrialRecorder | None = None
+        self._hands: HandRecordingWriter | None = None
+
+    # -- recording -------------------------------------------------------------------------
+    def _open_recording(self) -> None:
+        if self.record is None:
+            return
+        out = self.record
+        out.mkdir(parents=True, exist_ok=True)
+        self._recorder = TrialRecorder(out / "log.mcap")
+        self._hands = HandRecordingWriter(
+            out / "hands.jsonl", frame="webxr", meta={"operator": "live"}
+        )
+        self._recorder.write_meta(
+            {
+                "seed": 0,
+                "operator": "live",
+                "design_hash": design_hash(),
+                "traits": {"live": True},
+                "route": self.scene["route"],
+                "modules": _module_rects(self.driver.world.layout),
+            }
+        )
+
+    def _record(self, ctx: StepContext) -> None:
+        if self.record is None:
+            return
+        st, fr, step, q = ctx.state, ctx.frame, ctx.step, ctx.command.q
+        rot = quat_to_matrix(st.astrobee_quat)
+        module = self.driver.module_at(st.ctb_pos)
+        rec = StepRecord(
+            t=ctx.t,
+            phase=ctx.phase,
+            left_joints=fr.left.joints,
+            right_joints=fr.right.joints,
+            left_tracked=bool(fr.left.tracked),
+            right_tracked=bool(fr.right.tracked),
+            q_left=step.q_left if step else q[pair_index(self.retargeters["L"])],
+            q_right=step.q_right if step else q[pair_index(self.retargeters["R"])],
+            rail_cmd=float(q[-1]),
+            twist_cmd=np.concatenate([ctx.twist.linear, ctx.twist.angular]),
+            q_cmd=q,
+            deploy_cmd=float(ctx.command.deploy),
+            q_meas=ctx.payload.q,
+            deploy_meas=float(ctx.payload.deploy),
+            astrobee_pos=st.astrobee_pos,
+            astrobee_quat=st.astrobee_quat,
+            astrobee_twist=np.concatenate([rot @ st.astrobee_linear, st.astrobee_angular]),
+            ctb_pos=st.ctb_pos,
+            ctb_quat=st.ctb_quat,
+            contact=bool(st.opposing_contact),
+            ctb_module=MODULE_NAMES.get(module.value, "outside") if module else "outside",
+        )
+        if not self.calibrated:
+            # kept until the calibration succeeds: a dropped attempt is a rehearsal
+            self._pending.append((rec, fr))
+            return
+        if self._recorder is None:
+            self._open_recording()
+        for r, f in [*self._pending, (rec, fr)]:
+            self._recorder.write(r)
+            self._hands.write(f)
+        self._pending.clear()
+
+    # -- state for the page ----------------------------------------------------------------
+    def _snapshot(self, ctx: StepContext, source: LiveSource, calibration: Any) -> dict:
+        st = ctx.state
+        data = self.driver.data
+        tips = {f: _v(data.site(f"payload/{f}_tip").xpos) for f in FINGERS}
+        prompt, step_name, remaining = "", "", 0.0
+        if not calibration.done and calibration.current is not None:
+            step = calibration.current
+            prompt, step_name = step.prompt, step.name
+            i = calibration.steps.index(step)
+            end = calibration.t0 + sum(s.hold for s in calibration.steps[: i + 1])
+            remaining = max(0.0, end - ctx.t)
+        events = [] if ctx.step is None else [e.detail for e in ctx.step.events]
+        if source.pipeline is not None:
+            heading0 = float(source.pipeline.calibration.heading0)
+        else:
+            heading0 = float(yaw_of_matrix(quat_to_matrix(st.astrobee_quat)))
+        return {
+            "t": round(ctx.t, 3),
+            "phase": ctx.phase,
+            "prompt": prompt,
+            "step": step_name,
+            "remaining": round(remaining, 2),
+            "vehicle": {
+                "pos": _v(st.astrobee_pos),
+                "quat": _v(st.astrobee_quat),
+                "speed": round(float(np.linalg.norm(st.astrobee_linear)), 4),
+            },
+            "ctb": {"pos": _v(st.ctb_pos), "quat": _v(st.ctb_quat)},
+            "fingers": tips,
+            "heading0": round(heading0, 5),
+            "rail": round(float(ctx.command.q[-1]), 4),
+            "contact": bool(st.opposing_contact),
+            "safe_stop": source.lost_reason if self.calibrated else None,
+            "events": events,
+            "notice": self.notice,
+        }
+
+    # -- running ---------------------------------------------------------------------------
+    def _attempt(self) -> None:
+        calibration = CalibrationProcedure(self.calibration_steps)
+        source = LiveSource(self.hub, calibration)
+        self.source = source
+        driver = TimedDriver(self.driver, source, self.hub)
+        t0_wall = time.perf_counter()
+
+        def make_pipeline(captures: Captures, heading: float) -> TeleopPipeline:
+            cal = calibrate_operator(captures, self.ranges, self.config.rail_travel, heading)
+            pipeline = TeleopPipeline(cal, self.retargeters, self.config, initial=self.q0)
+            source.pipeline = pipeline
+            self.calibrated = True
+            self.notice = "calibrated: fly with your left wrist"
+            return pipeline
+
+        def on_step(ctx: StepContext) -> None:
+            k = round(ctx.t / CONTROL_DT) + 1
+            lag = time.perf_counter() - t0_wall - k * CONTROL_DT
+            with self.hub.lock:
+                if lag > CONTROL_DT:  # this step ended more than a period late
+                    self.hub.loop_overruns += 1
+                if not self.calibrated:
+                    self.hub.state = "calibrating"
+                else:
+                    self.hub.state = "safe_stop" if source.lost_reason else "teleop"
+            self._record(ctx)
+            self.hub.publish(self._snapshot(ctx, source, calibration))
+            self.steps += 1
+
+        try:
+            run_session(
+                driver,
+                source,
+                calibration,
+                make_pipeline,
+                max_time=SESSION_CAP_S,
+                on_step=on_step,
+                pace=True,
+            )
+        except CalibrationError as exc:
+            self.notice = f"calibration failed ({exc}); starting again"
+            log.warning("teleop: %s", self.notice)
+        if not self.calibrated:
+            self._pending.clear()
+
+    def run(self) -> None:
+        """Serve attempts until ``hub.stop`` is set (Ctrl-C in the terminal)."""
+        try:
+            while not self.hub.stop.is_set():
+                with self.hub.lock:
+                    self.hub.state = "waiting" if not self.calibrated else self.hub.state
+                    connected = self.hub.latest is not None
+                if not connected:
+                    time.sleep(0.05)
+                    continue
+                if not self.calibrated:
+                    self.notice = ""
+                self._attempt()
+        finally:
+            with self.hub.lock:
+                self.hub.state = "stopped"
+
+    def close(self) -> dict[str, Any] | None:
+        """Close the recording and score it (None without a recording, or if closed)."""
+        if self._closed:
+            return None
+        self._closed = True
+        self.driver.command_twist(None)
+        result = None
+        if self._recorder is not None:
+            self._recorder.write_meta({"steps": self.steps, "warnings": self.driver.warnings()})
+            self._recorder.close()
+            self._hands.close()
+            from payload.trials.campaign import finish_trial
+
+            out = self.record
+            result = finish_trial(out, out / "log.mcap")
+            result["steps"] = self.steps
+            (out / "metrics.json").write_text(json.dumps(result, indent=2) + "\n")
+        self.driver.close()
+        return result

@@ -1,0 +1,433 @@
+"""The live Quest server through a real WebSocket client: validation, security, safe stop."""
+
+from __future__ import annotations
+
+import json
+import math
+import socket
+import ssl
+import threading
+import time
+import urllib.request
+
+import numpy as np
+import pytest
+from websockets.exceptions import InvalidStatus
+from websockets.sync.client import connect
+
+from payload.teleop.calibration import Step
+from payload.teleop.handmodel import HandModel
+from payload.teleop.hands import WEBXR_TO_WORKBENCH, XR_JOINTS
+from payload.teleop.live import LiveHub
+from payload.teleop.messages import MAX_MESSAGE_BYTES, MessageError, parse_message
+from payload.teleop.server import TeleopServer, page_files
+from payload.teleop.tls import ensure_certificate, server_context
+
+STATUS_FIELDS = {"state", "clients", "frames", "dropped", "frame_age_ms", "loop_overruns"}
+DROPPED_FIELDS = {"malformed", "oversized", "non_finite", "out_of_order", "unauthorized"}
+NEUTRAL_WB = {"left": np.array([0.35, 0.15, 1.1]), "right": np.array([0.35, -0.15, 1.1])}
+
+
+def xr_hand(side: str, wrist_wb: np.ndarray, aperture: float) -> list[list[float]]:
+    """A hand's 25 joints in WebXR local-floor coordinates (independent of the server)."""
+    joints_wb = HandModel(side).joints(wrist_wb, np.eye(3), aperture)
+    # WebXR from workbench: x_xr = -y_wb, y_xr = z_wb, z_xr = -x_wb
+    xr = np.column_stack([-joints_wb[:, 1], joints_wb[:, 2], -joints_wb[:, 0]])
+    assert np.allclose(xr @ WEBXR_TO_WORKBENCH.T, joints_wb)
+    return xr.tolist()
+
+
+def frame_msg(seq: int, t: float, aperture: float = 0.5, left=None, right=None) -> str:
+    left = NEUTRAL_WB["left"] if left is None else left
+    right = NEUTRAL_WB["right"] if right is None else right
+    hands = {
+        "left": {"tracked": True, "joints": xr_hand("left", left, aperture)},
+        "right": {"tracked": True, "joints": xr_hand("right", right, aperture)},
+    }
+    return json.dumps({"type": "frame", "seq": seq, "t": t, "hands": hands})
+
+
+def get_status(url: str, context: ssl.SSLContext | None = None) -> dict:
+    with urllib.request.urlopen(url, context=context, timeout=10) as r:
+        return json.loads(r.read())
+
+
+def wait_for(predicate, timeout: float = 10.0) -> None:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if predicate():
+            return
+        time.sleep(0.01)
+    raise AssertionError("condition not met in time")
+
+
+# -- messages alone ----------------------------------------------------------------------
+
+
+def test_valid_frame_parses_to_webxr_joints():
+    msg = parse_message(frame_msg(3, 12.5))
+    assert msg.seq == 3 and msg.t == 12.5
+    expected = np.array(xr_hand("left", NEUTRAL_WB["left"], 0.5))
+    np.testing.assert_array_equal(msg.left.joints, expected)
+    assert msg.left.tracked and msg.right.tracked
+    assert len(XR_JOINTS) == 25
+
+
+NULL = '"hands": {"left": null, "right": null}'
+
+
+@pytest.mark.parametrize(
+    ("text", "kind"),
+    [
+        ("{not json", "malformed"),
+        ("[1, 2]", "malformed"),
+        ('{"type": "frame", "seq": "1", "t": 0, ' + NULL + "}", "malformed"),
+        ('{"type": "frame", "seq": true, "t": 0, ' + NULL + "}", "malformed"),
+        ('{"type": "frame", "seq": 1, "t": NaN, ' + NULL + "}", "non_finite"),
+        ('{"type": "frame", "seq": 1, "t": 1e999, ' + NULL + "}", "non_finite"),
+        ('{"type": "frame", "seq": 1, "t": 0, "extra": 1, ' + NULL + "}", "malformed"),
+        ('{"type": "frame", "seq": 1, "t": 0, "hands": {"left": 3, "right": null}}', "malformed"),
+        ('{"type": "hello"}', "malformed"),
+        ("x" * (MAX_MESSAGE_BYTES + 1), "oversized"),
+    ],
+)
+def test_bad_messages_are_refused_with_their_kind(text, kind):
+    with pytest.raises(MessageError) as err:
+        parse_message(text)
+    assert err.value.kind == kind
+
+
+def test_short_or_non_finite_joints_are_refused():
+    good = json.loads(frame_msg(1, 0.0))
+    short = json.loads(json.dumps(good))
+    short["hands"]["left"]["joints"] = short["hands"]["left"]["joints"][:24]
+    with pytest.raises(MessageError, match="25 points"):
+        parse_message(json.dumps(short))
+    nan = json.dumps(good).replace(str(good["hands"]["right"]["joints"][7][1]), "NaN", 1)
+    with pytest.raises(MessageError) as err:
+        parse_message(nan)
+    assert err.value.kind == "non_finite"
+
+
+# -- the server with a hub (no simulator) -------------------------------------------------
+
+
+@pytest.fixture
+def local_server():
+    hub = LiveHub()
+    server = TeleopServer(hub, port=0).start()
+    yield hub, server
+    server.stop()
+
+
+def test_status_has_exactly_the_documented_fields(local_server):
+    _, server = local_server
+    st = get_status(f"http://127.0.0.1:{server.port}/status")
+    assert set(st) == STATUS_FIELDS
+    assert set(st["dropped"]) == DROPPED_FIELDS
+    assert set(st["frame_age_ms"]) == {"median", "p99"}
+    assert st["clients"] == 0 and st["frames"] == 0
+
+
+def test_only_the_page_files_are_served(local_server):
+    _, server = local_server
+    base = f"http://127.0.0.1:{server.port}"
+    with urllib.request.urlopen(base + "/", timeout=10) as r:
+        assert b"app.js" in r.read()
+    assert set(page_files()) >= {"/", "/app.js", "/render.js"}
+    for path in ("/server.py", "/../server.py", "/web/app.js", "/%2e%2e/live.py", "/etc/passwd"):
+        with pytest.raises(urllib.error.HTTPError) as err:
+            urllib.request.urlopen(base + path, timeout=10)
+        assert err.value.code == 404, path
+
+
+def test_every_bad_message_is_dropped_and_counted_and_the_server_keeps_serving(local_server):
+    hub, server = local_server
+    origin = f"http://127.0.0.1:{server.port}"
+    with connect(f"ws://127.0.0.1:{server.port}/ws", origin=origin) as ws:
+        assert json.loads(ws.recv())["type"] == "hello"
+        ws.send(frame_msg(5, 100.0))
+        wait_for(lambda: hub.frames == 1)
+        bad = [
+            "{oops",  # malformed JSON
+            '{"type": "frame", "seq": 6, "t": "soon", "hands": {"left": null, "right": null}}',
+            frame_msg(6, 101.0).replace('"t": 101.0', '"t": NaN'),
+            "[" * 70000,  # oversized (and nested)
+            frame_msg(5, 100.0),  # replayed
+            frame_msg(4, 102.0),  # out of order (older seq)
+            frame_msg(7, 99.0),  # out of order (time going backwards)
+        ]
+        for m in bad:
+            ws.send(m)
+        ws.send(frame_msg(8, 103.0))  # still served: a valid frame is taken
+        wait_for(lambda: hub.frames == 2)
+        st = get_status(f"{origin}/status")
+        assert st["dropped"] == {
+            "malformed": 2,
+            "oversized": 1,
+            "non_finite": 1,
+            "out_of_order": 3,
+            "unauthorized": 0,
+        }
+        assert st["clients"] == 1 and st["frames"] == 2
+        # refused frames never reach the hand source: the newest frame is the valid one
+        assert hub.latest.message.seq == 8
+
+
+def test_a_huge_message_closes_only_its_connection(local_server):
+    hub, server = local_server
+    origin = f"http://127.0.0.1:{server.port}"
+    with connect(f"ws://127.0.0.1:{server.port}/ws", origin=origin) as ws:
+        ws.recv()
+        ws.send("x" * (2 * 1024 * 1024))  # past the wire limit: the link is closed
+        wait_for(lambda: hub.status()["clients"] == 0)
+    assert hub.status()["dropped"]["oversized"] == 1
+    with connect(f"ws://127.0.0.1:{server.port}/ws", origin=origin) as ws:
+        ws.recv()
+        ws.send(frame_msg(0, 1.0))
+        wait_for(lambda: hub.frames == 1)
+
+
+def test_clock_sync_gives_frame_ages(local_server):
+    hub, server = local_server
+    origin = f"http://127.0.0.1:{server.port}"
+    t0 = time.perf_counter()
+    with connect(f"ws://127.0.0.1:{server.port}/ws", origin=origin) as ws:
+        page_clock = lambda: (time.perf_counter() - t0) * 1e3 + 5e6  # noqa: E731
+        ws.recv()
+        pongs = 0
+        while pongs < 3:
+            msg = json.loads(ws.recv())
+            if msg["type"] == "ping":
+                ws.send(json.dumps({"type": "pong", "id": msg["id"], "t": page_clock()}))
+                pongs += 1
+        for k in range(20):
+            # frames stamped 30 ms in the past on the page's clock
+            ws.send(frame_msg(k, page_clock() - 30.0))
+            time.sleep(0.005)
+        wait_for(lambda: hub.frames == 20)
+    age = get_status(f"{origin}/status")["frame_age_ms"]
+    assert 29.0 < age["median"] < 60.0, age
+    assert age["p99"] >= age["median"]
+
+
+def test_foreign_origin_and_rebinding_host_are_refused_on_a_local_bind(local_server):
+    hub, server = local_server
+    url = f"ws://127.0.0.1:{server.port}/ws"
+    with pytest.raises(InvalidStatus):
+        connect(url, origin="https://evil.example")
+    with pytest.raises(InvalidStatus):
+        connect(url)  # no Origin at all
+    with pytest.raises(InvalidStatus):  # DNS rebinding: a foreign name for our address
+        sock = socket.create_connection(("127.0.0.1", server.port))
+        connect("ws://evil.example:1/ws", sock=sock, origin="http://evil.example:1")
+    with pytest.raises(InvalidStatus):  # two Host headers
+        connect(url, origin=f"http://127.0.0.1:{server.port}", additional_headers={"Host": "x"})
+    assert hub.status()["dropped"]["unauthorized"] == 4
+    with connect(url, origin=f"http://127.0.0.1:{server.port}") as ws:
+        assert json.loads(ws.recv())["type"] == "hello"
+
+
+def test_non_local_bind_needs_tls():
+    from payload.teleop.server import ServerError
+
+    with pytest.raises(ServerError, match="TLS"):
+        TeleopServer(LiveHub(), host="127.0.0.2", port=0)
+
+
+def test_non_local_bind_checks_token_and_origin_over_tls(tmp_path):
+    host = "127.0.0.2"  # not a loopback *name*: treated as a network bind
+    cert, key, made = ensure_certificate(host, tmp_path)
+    assert made and oct(key.stat().st_mode & 0o777) == "0o600"
+    assert ensure_certificate(host, tmp_path)[2] is False  # kept for the next run
+    hub = LiveHub()
+    server = TeleopServer(hub, host=host, port=0, ssl_context=server_context(cert, key)).start()
+    try:
+        client = ssl.create_default_context(cafile=str(cert))
+        base = f"{host}:{server.port}"
+        origin = f"https://{base}"
+        token = server.token
+        assert token and len(token) >= 20
+        for url, kwargs in [
+            (f"wss://{base}/ws", {"origin": origin}),  # missing token
+            (f"wss://{base}/ws?token=wrong", {"origin": origin}),  # wrong token
+            (f"wss://{base}/ws?token={token}", {"origin": "https://evil.example"}),
+        ]:
+            with pytest.raises(InvalidStatus) as err:
+                connect(url, ssl=client, **kwargs)
+            assert err.value.response.status_code == 403
+        with pytest.raises(urllib.error.HTTPError):
+            get_status(f"https://{base}/status", client)
+        with pytest.raises(urllib.error.HTTPError):
+            urllib.request.urlopen(f"https://{base}/", context=client, timeout=10)
+        st = get_status(f"https://{base}/status?token={token}", client)
+        assert st["dropped"]["unauthorized"] == 5
+        with connect(f"wss://{base}/ws?token={token}", ssl=client, origin=origin) as ws:
+            assert json.loads(ws.recv())["type"] == "hello"
+            ws.send(frame_msg(0, 1.0))
+            wait_for(lambda: hub.frames == 1)
+        assert server.url().startswith("https://") and f"token={token}" in server.url()
+    finally:
+        server.stop()
+
+
+# -- the whole live session with the simulator --------------------------------------------
+
+QUICK_STEPS = (
+    Step("neutral", 0.8, 0.4, "neutral"),
+    Step("pinch", 0.6, 0.3, "pinch"),
+    Step("open", 0.6, 0.3, "open"),
+    Step("together", 0.6, 0.3, "together"),
+    Step("apart", 0.6, 0.3, "apart"),
+    Step("release", 0.4, 0.2, "release"),
+)
+GESTURE = {  # step -> (aperture, half inter-wrist distance change [m])
+    "neutral": (0.5, 0.0),
+    "pinch": (0.0, 0.0),
+    "open": (1.0, 0.0),
+    "together": (0.5, -0.1),
+    "apart": (0.5, 0.1),
+    "release": (0.5, 0.0),
+}
+
+
+class Page(threading.Thread):
+    """A scripted page: follows the prompts, then flies the left wrist forward."""
+
+    def __init__(self, hub, port, forward: float = 0.0):
+        super().__init__(daemon=True)
+        self.hub, self.port = hub, port
+        self.forward = forward
+        self.seq = 0
+        self.halt = threading.Event()
+        self.left = NEUTRAL_WB["left"].copy()
+        self.right = NEUTRAL_WB["right"].copy()
+        self.aperture = 0.5
+
+    def run(self):
+        with connect(
+            f"ws://127.0.0.1:{self.port}/ws", origin=f"http://127.0.0.1:{self.port}"
+        ) as ws:
+            while not self.halt.is_set():
+                with self.hub.lock:
+                    snap = dict(self.hub.snapshot)
+                    state = self.hub.state
+                step = snap.get("step") or "neutral"
+                if state == "calibrating":
+                    self.aperture, half = GESTURE.get(step, (0.5, 0.0))
+                    target_l = NEUTRAL_WB["left"] + [0, half, 0]
+                    target_r = NEUTRAL_WB["right"] - [0, half, 0]
+                elif state in ("teleop", "safe_stop"):
+                    self.aperture = 0.5
+                    target_l = NEUTRAL_WB["left"] + [self.forward, 0, 0]
+                    target_r = NEUTRAL_WB["right"]
+                else:
+                    target_l, target_r = NEUTRAL_WB["left"], NEUTRAL_WB["right"]
+                # hands move at most 0.5 m/s (a jump would be a tracking glitch)
+                for cur, tgt in ((self.left, target_l), (self.right, target_r)):
+                    d = tgt - cur
+                    n = float(np.linalg.norm(d))
+                    if n > 0:
+                        cur += d * min(1.0, 0.5 * 0.0125 / n)
+                ws.send(frame_msg(self.seq, self.seq * 12.5, self.aperture, self.left, self.right))
+                self.seq += 1
+                try:
+                    while True:
+                        ws.recv(timeout=0)
+                except TimeoutError:
+                    pass
+                time.sleep(0.0125)
+
+
+@pytest.fixture(scope="module")
+def live(tmp_path_factory):
+    from payload.trials.live import LiveSession
+
+    out = tmp_path_factory.mktemp("live") / "session"
+    hub = LiveHub()
+    session = LiveSession(hub, out, steps=QUICK_STEPS)
+    server = TeleopServer(hub, port=0, scene=session.scene).start()
+    worker = threading.Thread(target=session.run, daemon=True)
+    worker.start()
+    yield hub, server, session, out
+    hub.stop.set()
+    worker.join(30)
+    server.stop()
+    session.close()
+
+
+def test_dropped_connection_brakes_and_holds_then_resumes_blended(live):
+    from payload.teleop.replay import read_hand_recording
+    from payload.trials.recorder import read_recording
+
+    hub, server, session, out = live
+    page = Page(hub, server.port, forward=0.12)
+    page.start()
+    wait_for(lambda: hub.state in ("teleop", "safe_stop"), timeout=60)
+    wait_for(lambda: hub.snapshot.get("phase") == "translation", timeout=30)
+    time.sleep(1.0)
+    page.halt.set()  # the page goes away mid-flight
+    page.join(10)
+    wait_for(lambda: hub.state == "safe_stop", timeout=5)
+    assert "disconnected" in hub.snapshot["safe_stop"]
+    time.sleep(1.0)
+    page2 = Page(hub, server.port, forward=0.12)  # it comes back
+    page2.seq = 0
+    page2.left, page2.right = page.left.copy(), page.right.copy()
+    page2.start()
+    wait_for(lambda: hub.state == "teleop", timeout=10)
+    wait_for(lambda: hub.snapshot.get("phase") == "translation", timeout=30)
+    time.sleep(0.8)
+    page2.halt.set()
+    page2.join(10)
+    steps = session.steps
+    hub.stop.set()
+    wait_for(lambda: hub.state == "stopped", timeout=30)
+    session.close()
+    rec = read_recording(out / "log.mcap")
+    phases = [str(p) for p in rec.phase]
+    tracked = np.asarray(rec.left_tracked, bool)
+    q = np.asarray(rec.q_cmd)
+    teleop = phases.index("translation")
+    lost = teleop + int(np.argmax(~tracked[teleop:]))
+    assert not tracked[lost] and tracked[lost - 1]
+    # from the very step the link dropped: braking (no speed request), fingers and rail held
+    assert phases[lost] == "braking"
+    np.testing.assert_array_equal(q[lost], q[lost - 1])
+    back = lost + int(np.argmax(tracked[lost:]))
+    np.testing.assert_array_equal(q[lost:back], np.repeat(q[lost - 1 : lost], back - lost, 0))
+    assert all(p in ("braking", "arrival") for p in phases[lost:back])
+    # reconnect: no recalibration, control resumes, the commands blend in without a jump
+    assert "calibration" not in phases[teleop:]
+    assert "translation" in phases[back:]
+    jumps = np.abs(np.diff(q[back - 1 : back + 40], axis=0)).max()
+    assert jumps < 0.05, jumps
+    assert len(rec) >= steps - 1 and rec.complete
+    header, frames = read_hand_recording(out / "hands.jsonl")  # replayable, frame by frame
+    assert header["frame"] == "webxr" and len(frames) == len(rec)
+    np.testing.assert_array_equal(frames[lost - 1].left.joints, rec.left_joints[lost - 1])
+    assert math.isfinite(hub.status()["frame_age_ms"]["median"] or 0.0)
+
+
+def test_calibration_captures_webxr_frames_in_the_workbench_frame():
+    from payload.teleop.calibration import CalibrationProcedure
+    from payload.teleop.hands import Hand, HandFrame
+
+    steps = (Step("neutral", 0.2, 0.1, "n"), Step("pinch", 0.2, 0.1, "p"))
+    cal = CalibrationProcedure(steps)
+    for k in range(30):
+        left = Hand(xr_hand("left", NEUTRAL_WB["left"], 0.5))
+        right = Hand(xr_hand("right", NEUTRAL_WB["right"], 0.5))
+        cal.step(HandFrame(k * 0.02, left, right, "webxr"))
+    wrist = cal.captures.get("neutral", "left").wrist
+    np.testing.assert_allclose(wrist, NEUTRAL_WB["left"], atol=1e-12)
+
+
+def test_status_line_reads_before_any_frame():
+    from payload.teleop.cli import status_line
+
+    hub = LiveHub()
+    line = status_line(hub.status(), hub.latency())
+    assert line.startswith("waiting") and "age=-/- ms" in line and "dropped: none" in line
+    hub.drop("oversized")
+    assert "oversized=1" in status_line(hub.status(), hub.latency())
