@@ -431,3 +431,21 @@ def test_status_line_reads_before_any_frame():
     assert line.startswith("waiting") and "age=-/- ms" in line and "dropped: none" in line
     hub.drop("oversized")
     assert "oversized=1" in status_line(hub.status(), hub.latency())
+
+
+def test_payload_rig_commands_both_drivers_and_reads_the_payload():
+    from payload.schema import PayloadCommand
+    from payload.sim.driver import SimDriver
+    from payload.trials.live import PayloadRig
+
+    with SimDriver() as sim, SimDriver() as bench:
+        rig = PayloadRig(sim, bench)
+        q = sim.read().q.copy()
+        q[-1] = 0.02  # rail
+        rig.send(PayloadCommand(q, sim.read().deploy, 0.0))
+        for _ in range(25):
+            sim.step(1)
+            bench.step(1)
+        assert rig.read().q[-1] == bench.read().q[-1]
+        assert abs(bench.read().q[-1] - 0.02) < 0.005 and abs(sim.read().q[-1] - 0.02) < 0.005
+        assert rig.world is sim.world  # the vehicle and the world stay the simulator's

@@ -64,16 +64,26 @@ def _check_record(record: Path | None) -> None:
         raise TeleopCliError(f"--record {record}: not a folder")
 
 
+def _hardware_driver(device: str | None) -> Any:
+    """The Dynamixel payload driver (``firmware_interface``), brought up on ``device``."""
+    try:
+        from firmware_interface import DynamixelDriver
+    except ImportError:
+        raise TeleopCliError(
+            "--driver hardware: the Dynamixel driver (firmware_interface.DynamixelDriver) "
+            "is not installed in this build; use --driver sim"
+        ) from None
+    try:
+        return DynamixelDriver(device) if device else DynamixelDriver()
+    except TypeError as exc:
+        raise TeleopCliError(f"--driver hardware: cannot open the driver ({exc})") from None
+
+
 def _cmd_serve(args: argparse.Namespace) -> int:
     from payload.teleop.live import LiveHub
     from payload.teleop.server import TeleopServer, is_local, new_token
     from payload.teleop.tls import ensure_certificate, fingerprint, server_context
 
-    if args.driver == "hardware":
-        raise TeleopCliError(
-            "--driver hardware: the Dynamixel driver (firmware_interface) is not part of this "
-            "build yet; use --driver sim"
-        )
     record = Path(args.record) if args.record else None
     _check_record(record)
     local = is_local(args.host)
@@ -89,8 +99,9 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     from payload.trials.live import LiveSession
 
     hub = LiveHub()
+    payload = _hardware_driver(args.device) if args.driver == "hardware" else None
     print("loading the simulator and the retargeters ...", flush=True)
-    session = LiveSession(hub, record)
+    session = LiveSession(hub, record, payload=payload)
     server = TeleopServer(
         hub, args.host, args.port, ssl_context=ssl_context, token=token, scene=session.scene
     ).start()
@@ -153,6 +164,7 @@ def register(
     tsub = teleop.add_subparsers(dest="teleop_command", required=True, metavar="WHAT")
     p = tsub.add_parser("serve", help="serve the WebXR page, its WebSocket and /status")
     p.add_argument("--driver", choices=("sim", "hardware"), default="sim")
+    p.add_argument("--device", help="serial device of the servo bus (--driver hardware)")
     p.add_argument("--host", default="127.0.0.1", help="bind address (non-local needs TLS)")
     p.add_argument("--port", type=_port, default=8765)
     p.add_argument("--record", help="record the session as a trial into this folder")

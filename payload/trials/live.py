@@ -71,6 +71,36 @@ def _v(a: Any) -> list[float]:
     return [round(float(x), 5) for x in np.asarray(a).ravel()]
 
 
+class PayloadRig:
+    """The simulated scene with another payload driver beside it (``--driver hardware``).
+
+    The operator flies the simulated vehicle and sees the simulated world; every payload
+    command also goes to ``payload`` (the Dynamixel payload on the bench), and the
+    measured payload state is the real one. Anything else (vehicle, world) is the
+    simulator's.
+    """
+
+    def __init__(self, sim: Any, payload: Any) -> None:
+        self._sim = sim
+        self.payload = payload
+
+    def send(self, command: Any) -> None:
+        self._sim.send(command)
+        self.payload.send(command)
+
+    def read(self) -> Any:
+        return self.payload.read()
+
+    def close(self) -> None:
+        try:
+            self.payload.close()
+        finally:
+            self._sim.close()
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._sim, name)
+
+
 class LiveSession:
     """The simulator driven by the live page (see the module docstring).
 
@@ -78,10 +108,16 @@ class LiveSession:
         hub: Shared with the server.
         record: Trial folder to record into (None: no recording).
         steps: The calibration prompts.
+        payload: A payload driver to command besides the simulator (the hardware), or
+            None for the simulator alone.
     """
 
     def __init__(
-        self, hub: LiveHub, record: Path | None = None, steps: tuple[Step, ...] = DEFAULT_STEPS
+        self,
+        hub: LiveHub,
+        record: Path | None = None,
+        steps: tuple[Step, ...] = DEFAULT_STEPS,
+        payload: Any = None,
     ) -> None:
         from payload.sim.driver import SimDriver
 
@@ -92,6 +128,8 @@ class LiveSession:
         self.retargeters, self.ranges = retargeting()
         place_ctb_for_teleop(self.driver, self.retargeters, self.ranges)
         self.config = TeleopConfig.from_design(load_design(self.driver.world.config.design))
+        if payload is not None:
+            self.driver = PayloadRig(self.driver, payload)
         self.q0 = self.driver.read().q
         self.scene = scene_of(self.driver)
         self.calibrated = False
