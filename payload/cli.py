@@ -101,9 +101,11 @@ def command_project(args: argparse.Namespace, design: str | Path | None = None) 
 def _cmd_build(args: argparse.Namespace) -> int:
     from payload.design import load_design, stale_files, write
 
-    project = command_project(args, args.design)
-    design = load_design(args.design or project.design_path)
-    root = Path(args.root) if args.root else project.root
+    if args.root:  # hidden: generate into any folder (tests), no project involved
+        design, root = load_design(args.design), Path(args.root)
+    else:
+        project = command_project(args, args.design)
+        design, root = load_design(args.design or project.design_path), project.root
     t0 = time.perf_counter()
     if args.check:
         stale = stale_files(design, root)

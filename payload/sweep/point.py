@@ -59,7 +59,8 @@ def point_commands(root: Path, samples: int, seed: int, trials: int) -> list[lis
     project = ["--project", str(root)]
     cmds = [
         [*project, "build"],
-        [*project, "report", "envelope", "--json"],
+        # the sweep reports the given posture: the stowed-posture search is not needed
+        [*project, "report", "envelope", "--no-search", "--json"],
         # one process: a Dask worker may not fork (the figures do not depend on it)
         [
             *project,
