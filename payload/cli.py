@@ -63,7 +63,8 @@ def command_project(args: argparse.Namespace, design: str | Path | None = None) 
     """The design project of this command, resolved once per command.
 
     ``design`` (a ``--design F``) selects the project holding F, so a command never
-    writes another project's models; ``--project`` must then agree with it. Prints
+    writes another project's models; ``--project`` must then agree with it. A design
+    file in no project applies to the project found as usual. Prints
     ``project: <root>`` unless the command prints JSON (``args.json``), and exports it
     as ``PAYLOAD_PROJECT`` until :func:`main` returns.
 
@@ -77,11 +78,6 @@ def command_project(args: argparse.Namespace, design: str | Path | None = None) 
     if design is not None:
         owner = project_of(design)
         if owner is None:
-            if explicit is None:
-                raise ProjectError(
-                    f"--design {design}: not inside a design project (no cad/design.toml "
-                    "in its folder or a parent); pass --project DIR to say which one"
-                )
             project = find_project(explicit)
         elif explicit is not None and find_project(explicit).root != owner.root:
             raise ProjectError(

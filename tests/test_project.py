@@ -173,12 +173,13 @@ def test_build_design_f_writes_fs_project(new_project, tmp_path, capsys, checkou
     assert 'upper="0.04"' in p.urdf.read_text() or "0.04" in p.urdf.read_text()
     assert main(["build", "--design", str(p.design_path), "--project", str(ROOT)]) == 2
     assert "belongs to project" in capsys.readouterr().err
+    # a design file in no project is checked against the project found as usual
     loose = tmp_path / "loose.toml"
     loose.write_text(p.design_path.read_text())
-    with pytest.MonkeyPatch.context() as mp:
-        mp.delenv("PAYLOAD_PROJECT")
-        assert main(["build", "--design", str(loose)]) == 2
-    assert "not inside a design project" in capsys.readouterr().err
+    assert main(["build", "--check", "--design", str(loose), "--project", str(p.root)]) == 0
+    capsys.readouterr()
+    assert main(["build", "--check", "--design", str(loose)]) == 1  # this checkout's
+    assert capsys.readouterr().out.splitlines()[0] == f"project: {ROOT}"
     assert _digest(ROOT) == checkout_before
 
 
