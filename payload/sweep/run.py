@@ -74,7 +74,7 @@ def run_points(
                 n_workers=workers,
                 threads_per_worker=1,
                 processes=True,
-                dashboard_address=None,
+                dashboard_address=":0",  # a free port: no clash, no warning
                 silence_logs=logging.ERROR,
             )
             client = Client(cluster)
