@@ -163,20 +163,20 @@ def sweep_plots(data: dict[str, Any], out: Path) -> list[str]:
                 if v is None:
                     continue
                 label = tuple(p["params"][k] for k in others)
-                series.setdefault(label, []).append((p["params"][key], v, bool(p["fits"])))
+                series.setdefault(label, []).append((p["params"][key], v, bool(p.get("passed"))))
             for label, pts in sorted(series.items()):
                 pts.sort()
                 xs, ys = [a for a, _, _ in pts], [b for _, b, _ in pts]
                 text = ", ".join(f"{k}={v:g}" for k, v in zip(others, label)) or None
                 (line,) = ax.plot(xs, ys, "-", label=text)
-                for x, y, fits in pts:
-                    ax.plot(x, y, "o" if fits else "x", color=line.get_color())
+                for x, y, passed in pts:
+                    ax.plot(x, y, "o" if passed else "x", color=line.get_color())
             ax.set_xlabel(key)
             ax.set_ylabel(FIGURES[name])
             ax.grid(True, alpha=0.3)
             if others and series:
                 ax.legend(fontsize=6)
-        fig.suptitle(f"sweep against {key} (o fits, x does not)", fontsize=9)
+        fig.suptitle(f"sweep against {key} (o: envelope check passes, x: fails)", fontsize=9)
         fig.tight_layout()
         name = f"sweep_{key.replace('.', '_')}.png"
         fig.savefig(out / name, dpi=110)
