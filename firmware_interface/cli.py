@@ -83,8 +83,9 @@ def check(port: str, smap: Any, latency_ms: float = 16.0) -> dict[str, Any]:
 
 
 def _cmd_check(args: argparse.Namespace) -> int:
-    from payload.cli import CheckFailed, emit_json
+    from payload.cli import CheckFailed, command_project, emit_json
 
+    command_project(args)  # the servo map is validated against this project's design
     report = check(args.port, _map(args), args.latency_ms)
     if args.json:
         emit_json(report)
@@ -104,8 +105,9 @@ def _cmd_check(args: argparse.Namespace) -> int:
 def _cmd_run(args: argparse.Namespace) -> int:
     from firmware_interface.driver import DynamixelDriver
     from firmware_interface.run import run_hardware_trial
-    from payload.cli import emit_json
+    from payload.cli import command_project, emit_json
 
+    project = command_project(args)
     source = args.source
     if source[0] == "webxr":
         raise HwUsageError(
@@ -117,7 +119,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     replay = Path(source[1])
     if not replay.is_file():
         raise HwUsageError(f"--source replay: {replay} is not a file")
-    out = Path(args.out) if args.out else Path("runs") / f"hw-{time.strftime('%Y%m%d-%H%M%S')}"
+    out = Path(args.out) if args.out else project.runs_dir / f"hw-{time.strftime('%Y%m%d-%H%M%S')}"
     if (out / "log.mcap").exists():
         raise HwUsageError(f"--out {out}: already holds a recording; choose another folder")
     with DynamixelDriver(args.port, _map(args), latency_timer_ms=args.latency_ms) as drv:

@@ -20,11 +20,9 @@ import numpy as np
 import pinocchio as pin
 
 from payload.errors import PayloadError
+from payload.project import current_project
 
-DEFAULT_URDF: Path = Path(__file__).resolve().parents[1] / "urdf" / "payload.urdf"
-"""The payload's generated URDF (``payload build`` writes it)."""
-
-__all__ = ["DEFAULT_URDF", "Kinematics", "KinematicsError"]
+__all__ = ["Kinematics", "KinematicsError"]
 
 
 class KinematicsError(PayloadError):
@@ -35,7 +33,8 @@ class Kinematics:
     """Pinocchio model of a URDF with frame positions and Jacobians.
 
     Args:
-        urdf: Path of the URDF file; ``None`` loads ``urdf/payload.urdf``.
+        urdf: Path of the URDF file; ``None`` loads the current project's
+            ``urdf/payload.urdf`` (:func:`payload.project.current_project`).
 
     Attributes:
         model: The Pinocchio model (kinematics only, no geometry).
@@ -44,7 +43,7 @@ class Kinematics:
     """
 
     def __init__(self, urdf: str | Path | None = None) -> None:
-        path = Path(urdf) if urdf is not None else DEFAULT_URDF
+        path = Path(urdf) if urdf is not None else current_project().urdf
         if not path.is_file():
             raise KinematicsError(f"URDF not found: {path}")
         try:

@@ -34,6 +34,19 @@ def design():
 
 
 @pytest.fixture(scope="session", autouse=True)
+def _checkout_is_the_project():
+    """This checkout is the design project of every test (``PAYLOAD_PROJECT``), wherever
+    pytest runs from; tests of other projects pass ``--project`` or clear the variable."""
+    old = os.environ.get("PAYLOAD_PROJECT")
+    os.environ["PAYLOAD_PROJECT"] = str(ROOT)
+    yield
+    if old is None:
+        os.environ.pop("PAYLOAD_PROJECT", None)
+    else:
+        os.environ["PAYLOAD_PROJECT"] = old
+
+
+@pytest.fixture(scope="session", autouse=True)
 def _isolated_payload_cache(tmp_path_factory):
     """Compiled solvers go to a temporary ``PAYLOAD_CACHE_DIR``, not the user's cache."""
     old = os.environ.get("PAYLOAD_CACHE_DIR")

@@ -6,9 +6,13 @@ these tests quick while exercising every part a full trial uses.
 
 from __future__ import annotations
 
+import hashlib
+import json
+from importlib.metadata import version
 from pathlib import Path
 
 import numpy as np
+from conftest import DESIGN
 
 from payload.trials.campaign import run_campaign, trial_dir
 from payload.trials.recorder import read_recording
@@ -32,6 +36,13 @@ def test_a_replayed_trial_reproduces_the_recorded_trial_bit_for_bit(tmp_path):
     assert len(a.t) == len(b.t) > 0.9 * SHORT / 0.02
     for name in FIELDS:
         assert np.array_equal(np.asarray(getattr(a, name)), np.asarray(getattr(b, name))), name
+    # provenance: the design file the trial's world was built from, in the recording too
+    digest = hashlib.sha256(DESIGN.read_bytes()).hexdigest()
+    metrics = json.loads((first / "metrics.json").read_text())
+    for prov in (a.meta["provenance"], metrics["provenance"]):
+        assert prov["design_sha256"] == digest and prov["design"] == "cad/design.toml"
+        assert prov["package_version"] == version("astrobee-payload")
+    assert a.meta["design_hash"] == digest[:16]
 
 
 def test_a_dask_campaign_of_real_trials_matches_the_serial_run(tmp_path):

@@ -2,7 +2,6 @@
 
 from payload.design.build import generate, stale_files, write
 from payload.design.params import (
-    DEFAULT_DESIGN_PATH,
     FINGER_JOINTS,
     FINGERS,
     SIDE_OF,
@@ -23,7 +22,6 @@ from payload.design.tree import (
 
 __all__ = [
     "ALL_JOINTS",
-    "DEFAULT_DESIGN_PATH",
     "FINGERS",
     "FINGER_JOINTS",
     "MANIPULATION_JOINTS",

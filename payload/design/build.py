@@ -17,7 +17,6 @@ from payload.design.solids import check_solid
 from payload.design.tree import KinematicTree, build_tree
 from payload.design.urdf import to_urdf
 
-PROJECT_ROOT = Path(__file__).resolve().parents[2]
 URDF_DIR = "urdf"
 MESH_DIR = "cad/meshes"
 
@@ -72,8 +71,9 @@ def generate(design: Design) -> tuple[KinematicTree, dict[str, bytes]]:
     return tree, dict(sorted(files.items()))
 
 
-def write(design: Design, root: Path = PROJECT_ROOT) -> BuildResult:
-    """Regenerate the models under ``root``; stale meshes no longer produced are removed."""
+def write(design: Design, root: Path) -> BuildResult:
+    """Regenerate the models under ``root`` (a project folder, e.g. ``Project.root``);
+    stale meshes no longer produced are removed."""
     tree, files = generate(design)
     mesh_dir = root / MESH_DIR
     mesh_dir.mkdir(parents=True, exist_ok=True)
@@ -88,7 +88,7 @@ def write(design: Design, root: Path = PROJECT_ROOT) -> BuildResult:
     return BuildResult(tree, tuple(files))
 
 
-def stale_files(design: Design, root: Path = PROJECT_ROOT) -> list[str]:
+def stale_files(design: Design, root: Path) -> list[str]:
     """Generated files under ``root`` that differ from a fresh build (missing, changed or
     no longer produced), as paths relative to ``root``."""
     with tempfile.TemporaryDirectory(prefix="payload-build-") as tmp:

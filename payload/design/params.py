@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from payload.errors import DesignError
+from payload.project import current_project
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -358,16 +359,20 @@ def design_from_dict(data: dict[str, Any], source: str = "<memory>") -> Design:
     return dataclasses.replace(design, source=source).validate()
 
 
-DEFAULT_DESIGN_PATH = Path(__file__).resolve().parents[2] / "cad" / "design.toml"
-
-
 def load_design(path: str | Path | None = None) -> Design:
-    """Load and validate a design file (default: the project's ``cad/design.toml``).
+    """Load and validate a design file.
+
+    Args:
+        path: The design TOML; ``None``: the current project's ``cad/design.toml``
+            (:func:`payload.project.current_project`).
 
     Raises:
         DesignError: The file is missing, is not valid TOML, or a parameter is invalid.
+        ProjectError: ``path`` is ``None`` and there is no current project.
     """
-    p = Path(path) if path is not None else DEFAULT_DESIGN_PATH
+    if path is None:
+        path = current_project().design_path
+    p = Path(path)
     try:
         text = p.read_text(encoding="utf-8")
     except OSError as exc:

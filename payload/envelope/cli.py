@@ -8,23 +8,45 @@ import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from payload.design.params import Design
     from payload.envelope.fit import EnvelopeAnalysis
     from payload.envelope.geometry import PayloadGeometry
     from payload.envelope.vehicle import Vehicle
+    from payload.project import Project
 
 DEFAULT_SAMPLES = 100_000
 
 
-def _out_dir(args: argparse.Namespace) -> Path:
-    if args.out:
-        return Path(args.out)
-    from payload.design.build import PROJECT_ROOT
+def _project(args: argparse.Namespace) -> Project:
+    from payload.cli import command_project
 
-    return PROJECT_ROOT / "analyses"
+    return command_project(args, args.design)
+
+
+def _design_path(args: argparse.Namespace) -> Path:
+    return Path(args.design) if args.design else _project(args).design_path
+
+
+def _out_dir(args: argparse.Namespace) -> Path:
+    """``--out``, else the project's ``analyses/``."""
+    return Path(args.out) if args.out else _project(args).analyses_dir
+
+
+def _recorder(args: argparse.Namespace) -> Callable[[dict[str, Any]], dict[str, Any]]:
+    """Adds ``provenance`` (what the report was computed from) to a report's JSON. The
+    files inside the project omit the project's absolute path; stdout adds ``project``."""
+    from payload.project import provenance
+
+    prov = provenance(_project(args), _design_path(args))
+    prov.pop("project")
+    return lambda data: {**data, "provenance": prov}
+
+
+def _stdout_json(args: argparse.Namespace, data: dict[str, Any]) -> dict[str, Any]:
+    return {**data, "project": str(_project(args).root)}
 
 
 def _load(args: argparse.Namespace) -> tuple[Design, Vehicle, PayloadGeometry]:
@@ -32,7 +54,7 @@ def _load(args: argparse.Namespace) -> tuple[Design, Vehicle, PayloadGeometry]:
     from payload.envelope.geometry import PayloadGeometry
     from payload.envelope.vehicle import load_design_and_vehicle, with_bay_size
 
-    design, vehicle = load_design_and_vehicle(args.design)
+    design, vehicle = load_design_and_vehicle(_design_path(args))
     if args.bay_size is not None:
         vehicle = with_bay_size(vehicle, args.bay_size)
     return design, vehicle, PayloadGeometry(build_tree(design))
@@ -89,13 +111,15 @@ def _cmd_envelope(args: argparse.Namespace) -> int:
     from payload.envelope.report import envelope_json, write_envelope
 
     t0 = time.perf_counter()
+    _project(args)
     _, vehicle, geom = _load(args)
     with _progress(not args.json and sys.stderr.isatty()) as progress:
         analysis = analyse_envelope(geom, vehicle, search=args.search, progress=progress)
     analysis.seconds = time.perf_counter() - t0
-    paths = write_envelope(geom, analysis, _out_dir(args), _command(args, "envelope"))
+    record = _recorder(args)
+    paths = write_envelope(geom, analysis, _out_dir(args), _command(args, "envelope"), record)
     if args.json:
-        emit_json(envelope_json(analysis))
+        emit_json(_stdout_json(args, record(envelope_json(analysis))))
     else:
         _print_envelope(analysis, paths)
     if not analysis.passed:
@@ -132,6 +156,7 @@ def _cmd_reach(args: argparse.Namespace) -> int:
     from payload.envelope.report import reach_json, write_reach
 
     t0 = time.perf_counter()
+    _project(args)
     if args.samples < 1000:
         raise ReachError(f"--samples must be at least 1000 (got {args.samples})")
     if args.seed < 0:
@@ -154,9 +179,11 @@ def _cmd_reach(args: argparse.Namespace) -> int:
             workers=args.workers,
             progress=progress,
         )
-    paths = write_reach(geom, analysis, _out_dir(args), _command(args, "reach"), t_start=t0)
+    record = _recorder(args)
+    command = _command(args, "reach")
+    paths = write_reach(geom, analysis, _out_dir(args), command, t_start=t0, record=record)
     if args.json:
-        emit_json(reach_json(analysis))
+        emit_json(_stdout_json(args, record(reach_json(analysis))))
     else:
         p = {x.name: x for x in analysis.pairs}
         print(f"assumption: {analysis.vehicle.assumption}")

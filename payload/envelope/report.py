@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -800,9 +800,14 @@ def _rng(r: tuple[float, float]) -> str:
 
 
 def write_envelope(
-    geom: PayloadGeometry, a: EnvelopeAnalysis, out_dir: Path, command: str
+    geom: PayloadGeometry,
+    a: EnvelopeAnalysis,
+    out_dir: Path,
+    command: str,
+    record: Callable[[dict[str, Any]], dict[str, Any]] | None = None,
 ) -> dict[str, Path]:
-    """Write ``envelope.md``, ``envelope.png`` and ``envelope.json`` into ``out_dir``."""
+    """Write ``envelope.md``, ``envelope.png`` and ``envelope.json`` into ``out_dir``;
+    ``record`` adds fields to the JSON (e.g. its provenance)."""
     out_dir.mkdir(parents=True, exist_ok=True)
     a.extra["stage_upper"] = geom.tree.joint_map["stage"].upper
     paths = {
@@ -811,7 +816,8 @@ def write_envelope(
         "json": out_dir / "envelope.json",
     }
     paths["md"].write_text(envelope_markdown(a, command, "envelope.png"), encoding="utf-8")
-    paths["json"].write_text(json.dumps(envelope_json(a), indent=2) + "\n", encoding="utf-8")
+    data = envelope_json(a) if record is None else record(envelope_json(a))
+    paths["json"].write_text(json.dumps(data, indent=2) + "\n", encoding="utf-8")
     return paths
 
 
@@ -821,6 +827,7 @@ def write_reach(
     out_dir: Path,
     command: str,
     t_start: float | None = None,
+    record: Callable[[dict[str, Any]], dict[str, Any]] | None = None,
 ) -> dict[str, Path]:
     """Write ``reach.md``, ``reach.png`` and ``reach.json`` into ``out_dir``.
 
@@ -831,6 +838,7 @@ def write_reach(
         command: The command that reproduces the report.
         t_start: ``time.perf_counter()`` at the command's start: when given, ``a.seconds``
             becomes the wall time up to the drawn figure.
+        record: Adds fields to the JSON (e.g. its provenance).
     """
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = {
@@ -841,7 +849,8 @@ def write_reach(
     if t_start is not None:
         a.seconds = time.perf_counter() - t_start
     paths["md"].write_text(reach_markdown(a, command, "reach.png"), encoding="utf-8")
-    paths["json"].write_text(json.dumps(reach_json(a), indent=2) + "\n", encoding="utf-8")
+    data = reach_json(a) if record is None else record(reach_json(a))
+    paths["json"].write_text(json.dumps(data, indent=2) + "\n", encoding="utf-8")
     return paths
 
 

@@ -24,8 +24,9 @@ from typing import Any
 import manifold3d as m3d
 import numpy as np
 
-from payload.design.params import DEFAULT_DESIGN_PATH, Design, load_design
+from payload.design.params import Design, load_design
 from payload.errors import DesignError
+from payload.project import current_project, project_of
 
 BAY_ASSUMPTION = (
     "Astrobee's payload-bay size is not public: one 1-U bay is assumed to be "
@@ -238,19 +239,17 @@ def _mm(size: tuple[float, ...]) -> str:
 
 
 def display_path(path: str | Path) -> str:
-    """``path`` relative to the project root when it lies inside it (for committed reports)."""
-    root = DEFAULT_DESIGN_PATH.parents[1]
-    try:
-        return Path(path).resolve().relative_to(root).as_posix()
-    except (ValueError, OSError):
-        return str(path)
+    """``path`` relative to the root of the design project holding it (for committed
+    reports), or as given when it lies in no project."""
+    project = project_of(path)
+    return project.relative(path) if project is not None else str(path)
 
 
 def load_design_and_vehicle(path: str | Path | None = None) -> tuple[Design, Vehicle]:
     """Load a design file that may hold a ``[vehicle]`` table.
 
     Args:
-        path: Design TOML (default: the project's ``cad/design.toml``).
+        path: Design TOML (default: the current project's ``cad/design.toml``).
 
     Returns:
         The validated design and the vehicle (defaults where the table is absent).
@@ -259,7 +258,7 @@ def load_design_and_vehicle(path: str | Path | None = None) -> tuple[Design, Veh
         DesignError: The file or a design parameter is invalid.
         VehicleError: The ``[vehicle]`` table is invalid.
     """
-    p = Path(path) if path is not None else DEFAULT_DESIGN_PATH
+    p = Path(path) if path is not None else current_project().design_path
     design = load_design(p)
     vehicle = (
         Vehicle() if not design.vehicle else vehicle_from_dict(design.vehicle, display_path(p))

@@ -78,14 +78,15 @@ def _print_table(r: dict) -> None:
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
-    from payload.cli import CheckFailed, emit_json
+    from payload.cli import CheckFailed, command_project, emit_json
     from payload.retarget.bench import run_bench
     from payload.retarget.hand import load_hand
     from payload.retarget.objective import RetargetConfig
 
     if args.steps < 2:
         raise RetargetError(f"--steps: need at least 2 steps, got {args.steps}")
-    hand = load_hand(args.hand)
+    project = command_project(args)
+    hand = load_hand(args.hand, project=project)
     config = RetargetConfig.from_toml(args.config) if args.config else RetargetConfig()
     result = run_bench(
         hand,
@@ -96,7 +97,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         progress=not args.json,
     )
     if args.json:
-        emit_json(result)
+        emit_json({**result, "project": str(project.root)})
     else:
         _print_table(result)
     if args.check:

@@ -3,7 +3,8 @@
 A hand description is a small TOML file::
 
     name = "payload"
-    urdf = "../../../urdf/payload.urdf"   # relative to the TOML file, or absolute
+    urdf = "{project}/urdf/payload.urdf"  # in the design project, relative to the TOML
+                                          # file, or absolute
 
     [pairs.L]
     base = "stage"                        # frame the pair features are expressed in
@@ -13,7 +14,10 @@ A hand description is a small TOML file::
     tip_radius = 0.011                    # optional, [m]: pads touch at span 2 * tip_radius
     rest = [0.0, ...]                     # optional, [rad or m] per joint: the rest posture
 
-Ours ships as ``payload/retarget/hands/payload.toml`` (:data:`DEFAULT_HAND`), so the
+Ours ships as package data, ``payload/retarget/hands/payload.toml``
+(:data:`DEFAULT_HAND`); its URDF path starts with ``{project}/``, which stands for the
+root of the design project the hand is loaded for (:func:`load_hand`'s ``project``,
+default the current project), so it always drives that project's generated model. The
 retargeter runs on any hand URDF by writing one of these.
 """
 
@@ -21,12 +25,14 @@ from __future__ import annotations
 
 import sys
 from dataclasses import dataclass
+from importlib import resources
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from payload.kinematics import Kinematics, KinematicsError
+from payload.project import Project, current_project
 from payload.retarget.errors import RetargetError
 
 if sys.version_info >= (3, 11):
@@ -34,8 +40,13 @@ if sys.version_info >= (3, 11):
 else:  # pragma: no cover
     import tomli as tomllib
 
-DEFAULT_HAND: Path = Path(__file__).resolve().parent / "hands" / "payload.toml"
-"""Our payload's hand description (pairs L = (A, C) and R = (B, D))."""
+DEFAULT_HAND: Path = Path(
+    str(resources.files("payload.retarget").joinpath("hands", "payload.toml"))
+)
+"""Our payload's hand description (pairs L = (A, C) and R = (B, D)), shipped as package data."""
+
+PROJECT_PLACEHOLDER = "{project}/"
+"""A hand's ``urdf`` starting with this is relative to the design project's root."""
 
 
 @dataclass(frozen=True)
@@ -157,7 +168,10 @@ def _pair_from_dict(where: str, name: str, raw: Any) -> PairDescription:
 
 
 def hand_from_dict(
-    raw: dict[str, Any], base_dir: Path, source: Path | None = None
+    raw: dict[str, Any],
+    base_dir: Path,
+    source: Path | None = None,
+    project: Project | None = None,
 ) -> HandDescription:
     """Build and validate a hand description from parsed TOML.
 
@@ -165,6 +179,8 @@ def hand_from_dict(
         raw: The parsed TOML document.
         base_dir: Directory a relative ``urdf`` path is resolved against.
         source: File the data came from, for messages.
+        project: The design project a ``{project}/...`` URDF path refers to (default:
+            the current project).
 
     Raises:
         RetargetError: A missing or unknown key, a bad value, a frame or joint that is
@@ -176,7 +192,11 @@ def hand_from_dict(
         raise RetargetError(f"{where}: unknown key {unknown[0]!r} (allowed: name, urdf, pairs)")
     if not isinstance(raw.get("urdf"), str):
         raise RetargetError(f"{where}: urdf: missing (path of the hand's URDF)")
-    urdf = Path(raw["urdf"])
+    if raw["urdf"].startswith(PROJECT_PLACEHOLDER):
+        root = (project or current_project()).root
+        urdf = root / raw["urdf"][len(PROJECT_PLACEHOLDER) :]
+    else:
+        urdf = Path(raw["urdf"])
     if not urdf.is_absolute():
         urdf = (base_dir / urdf).resolve()
     if not urdf.is_file():
@@ -240,11 +260,17 @@ def validate_hand(hand: HandDescription, kin: Kinematics | None = None) -> None:
                 raise RetargetError(f"{where}.rest: the value for {out[0]!r} is outside its limits")
 
 
-def load_hand(path: str | Path | None = None) -> HandDescription:
+def load_hand(path: str | Path | None = None, project: Project | None = None) -> HandDescription:
     """Load a hand description TOML (``None``: ours, :data:`DEFAULT_HAND`).
+
+    Args:
+        path: The TOML file.
+        project: The design project whose models a ``{project}/...`` URDF path names
+            (default: the current project, :func:`payload.project.current_project`).
 
     Raises:
         RetargetError: The file is missing, not TOML, or invalid (message names the key).
+        ProjectError: The hand names ``{project}/...`` and there is no current project.
     """
     p = Path(path) if path is not None else DEFAULT_HAND
     if not p.is_file():
@@ -253,4 +279,4 @@ def load_hand(path: str | Path | None = None) -> HandDescription:
         raw = tomllib.loads(p.read_text())
     except tomllib.TOMLDecodeError as exc:
         raise RetargetError(f"{p}: not valid TOML: {exc}") from exc
-    return hand_from_dict(raw, p.resolve().parent, source=p)
+    return hand_from_dict(raw, p.resolve().parent, source=p, project=project)

@@ -38,11 +38,11 @@ def project_files(design: str | Path | None = None) -> ProjectFiles:
     ``<project>/urdf``. This is the one place the review looks the project up.
     """
     if design is None:
-        from payload.design.params import DEFAULT_DESIGN_PATH
-        from payload.kinematics import DEFAULT_URDF
+        from payload.project import current_project
 
-        urdf = DEFAULT_URDF
-        return ProjectFiles(DEFAULT_DESIGN_PATH, urdf, urdf.with_name("payload.xml"))
+        project = current_project()
+        urdf = project.urdf_dir / "payload.urdf"
+        return ProjectFiles(project.design_path, urdf, urdf.with_name("payload.xml"))
     path = Path(design)
     root = path.resolve().parents[1]
     return ProjectFiles(path, root / "urdf" / "payload.urdf", root / "urdf" / "payload.xml")

@@ -11,7 +11,7 @@ def _cmd_bench_sim(args: argparse.Namespace) -> int:
     from rich.console import Console
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from payload.cli import emit_json
+    from payload.cli import command_project, emit_json
     from payload.sim.bench import run_bench
     from payload.sim.world import CTB_SIZES, SimError, WorldConfig
 
@@ -19,7 +19,8 @@ def _cmd_bench_sim(args: argparse.Namespace) -> int:
         raise SimError(
             f"--ctb: unknown size {args.ctb!r} (expected {', '.join(CTB_SIZES)} or none)"
         )
-    config = WorldConfig(ctb=None if args.ctb == "none" else args.ctb)
+    project = command_project(args)
+    config = WorldConfig.for_project(project, ctb=None if args.ctb == "none" else args.ctb)
     console = Console(stderr=True)
     with Progress(
         TextColumn("simulating"),
@@ -39,7 +40,7 @@ def _cmd_bench_sim(args: argparse.Namespace) -> int:
             progress=lambda t: bar.update(task, completed=t),
         )
     if args.json:
-        emit_json(result.as_dict())
+        emit_json({**result.as_dict(), "project": str(project.root)})
         return 0
     print(
         f"{result.sim_seconds:.1f} s simulated in {result.wall_seconds:.2f} s wall: "

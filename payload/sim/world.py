@@ -23,7 +23,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import mujoco
 import numpy as np
@@ -36,14 +36,11 @@ from payload.design import (
     Design,
     load_design,
 )
-from payload.design.build import PROJECT_ROOT
 from payload.envelope.vehicle import Vehicle, vehicle_from_dict
 from payload.errors import PayloadError
+from payload.project import Project, current_project, project_of
 from payload.rotations import yaw_quat
 from payload.schema import CONTROL_DT as SCHEMA_CONTROL_DT
-
-PAYLOAD_MJCF = PROJECT_ROOT / "urdf" / "payload.xml"
-"""The generated payload model attached under Astrobee."""
 
 PAYLOAD_PREFIX = "payload/"
 """Prefix of every payload element name in the world (``payload/A_tip``)."""
@@ -350,7 +347,11 @@ class WorldConfig:
         handle: CTB handle geometry.
         layout: ISS volumes and route.
         payload_mjcf: The payload MJCF to attach (its meshdir is relative to the file).
-        design: The design file the payload was generated from (None: cad/design.toml).
+            ``None``: the ``urdf/payload.xml`` of the project holding ``design``, or of
+            the current project.
+        design: The design file the payload was generated from. ``None``: the design of
+            the project holding ``payload_mjcf``, or of the current project. Both are
+            concrete paths once the config is made; :meth:`for_project` sets both.
         cone: Friction cone, ``elliptic`` or ``pyramidal``.
         impratio: Ratio of frictional to normal impedance (elliptic cones).
     """
@@ -359,12 +360,24 @@ class WorldConfig:
     ctb_mass: float | None = None
     handle: Handle = field(default_factory=Handle)
     layout: IssLayout = field(default_factory=IssLayout)
-    payload_mjcf: Path = PAYLOAD_MJCF
+    payload_mjcf: Path | None = None
     design: Path | None = None
     cone: str = "elliptic"
     impratio: float = 10.0
 
+    @classmethod
+    def for_project(cls, project: Project, **kwargs: Any) -> WorldConfig:
+        """The world of ``project``: its generated MJCF and its design file."""
+        return cls(payload_mjcf=project.mjcf, design=project.design_path, **kwargs)
+
     def __post_init__(self) -> None:
+        if self.payload_mjcf is None or self.design is None:
+            known = self.design if self.design is not None else self.payload_mjcf
+            project = (project_of(known) if known is not None else None) or current_project()
+            if self.payload_mjcf is None:
+                object.__setattr__(self, "payload_mjcf", project.mjcf)
+            if self.design is None:
+                object.__setattr__(self, "design", project.design_path)
         if self.ctb is not None and self.ctb not in CTB_SIZES:
             raise SimError(
                 f"WorldConfig.ctb: unknown CTB size {self.ctb!r} "
@@ -954,7 +967,6 @@ __all__ = [
     "ASTROBEE_SIZE",
     "CONTROL_DT",
     "CTB_SIZES",
-    "PAYLOAD_MJCF",
     "PAYLOAD_MOUNT",
     "PAYLOAD_PREFIX",
     "PHYSICS_DT",

@@ -80,10 +80,12 @@ def _hardware_driver(device: str | None) -> Any:
 
 
 def _cmd_serve(args: argparse.Namespace) -> int:
+    from payload.cli import command_project
     from payload.teleop.live import LiveHub
     from payload.teleop.server import TeleopServer, is_local, new_token
     from payload.teleop.tls import ensure_certificate, fingerprint, server_context
 
+    command_project(args)  # the simulator and the retargeters read this project's models
     record = Path(args.record) if args.record else None
     _check_record(record)
     local = is_local(args.host)

@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 
 from payload.errors import PayloadError
+from payload.project import Project
 
 TrialFn = Callable[[int, Path], dict]
 """``trial_fn(seed, out_dir) -> metrics dict`` (what :func:`finish_trial` returns)."""
@@ -157,7 +158,9 @@ def _call_trial(trial_fn: TrialFn, seed: int, out_dir: str) -> dict[str, Any]:
     }
 
 
-def _runner_trial(seed: int, out_dir: Path, operator: str = "synthetic") -> dict[str, Any]:
+def _runner_trial(
+    seed: int, out_dir: Path, operator: str = "synthetic", project: Path | None = None
+) -> dict[str, Any]:
     try:
         from payload.trials.runner import run_trial
     except ModuleNotFoundError as exc:
@@ -166,13 +169,25 @@ def _runner_trial(seed: int, out_dir: Path, operator: str = "synthetic") -> dict
         raise CampaignError(
             "payload.trials.runner (the teleoperation trial loop, issue 6) is not installed yet"
         ) from None
-    return run_trial(seed=seed, operator=operator, replay=None, out_dir=Path(out_dir))
+    return run_trial(
+        seed=seed,
+        operator=operator,
+        replay=None,
+        out_dir=Path(out_dir),
+        project=Project.at(project) if project is not None else None,
+    )
 
 
-def runner_trial_fn(operator: str = "synthetic") -> TrialFn:
+def runner_trial_fn(operator: str = "synthetic", project: Path | None = None) -> TrialFn:
     """The picklable campaign trial function that calls the teleoperation runner
-    (``payload.trials.runner.run_trial``), imported lazily in whichever process runs it."""
-    return functools.partial(_runner_trial, operator=operator)
+    (``payload.trials.runner.run_trial``), imported lazily in whichever process runs it.
+
+    Args:
+        operator: ``synthetic`` (campaigns replay nothing).
+        project: Root of the design project the trials run on (default: the current
+            project of the process that runs each trial).
+    """
+    return functools.partial(_runner_trial, operator=operator, project=project)
 
 
 def default_workers(n_trials: int) -> int:
@@ -493,6 +508,7 @@ def write_summary(
     out_dir: str | Path,
     title: str | None = None,
     run: dict[str, Any] | None = None,
+    provenance: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Write ``summary.md`` and ``summary.json`` into ``out_dir`` and return the summary.
 
@@ -502,10 +518,14 @@ def write_summary(
         title: Heading of ``summary.md``.
         run: How the campaign ran, stored under ``run`` (e.g. ``workers``, ``scheduler``,
             ``wall_s`` of the whole campaign and ``trial_wall_s``, the sum over trials).
+        provenance: What the trials ran on (:func:`payload.project.provenance`), stored
+            under ``provenance``.
     """
     summary = summarize(results)
     if run is not None:
         summary["run"] = run
+    if provenance is not None:
+        summary["provenance"] = provenance
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     (out / "summary.json").write_text(json.dumps(summary, indent=2, allow_nan=False) + "\n")

@@ -43,18 +43,25 @@ def _parse_operator(values: list[str]) -> tuple[str, Path | None]:
 
 
 def _cmd_trial(args: argparse.Namespace) -> int:
-    from payload.cli import emit_json
+    from payload.cli import command_project, emit_json
 
     if args.seed < 0:
         raise TrialsCliError(f"--seed must be >= 0, got {args.seed}")
+    if args.max_time is not None and not args.max_time > 0:
+        raise TrialsCliError(f"--max-time must be positive, got {args.max_time}")
     operator, replay = _parse_operator(args.operator)
-    out = Path(args.out) if args.out else Path("runs") / f"trial-{args.seed:04d}"
+    project = command_project(args)
+    out = Path(args.out) if args.out else project.runs_dir / f"trial-{args.seed:04d}"
     run_trial = _run_trial_fn()
-    extra = {"progress": True} if not args.json and sys.stderr.isatty() else {}
+    extra: dict[str, Any] = {"project": project}
+    if not args.json and sys.stderr.isatty():
+        extra["progress"] = True
+    if args.max_time is not None:
+        extra["max_time"] = args.max_time
     result = dict(run_trial(seed=args.seed, operator=operator, replay=replay, out_dir=out, **extra))
     result.setdefault("out_dir", str(out))
     if args.json:
-        emit_json(result)
+        emit_json({**result, "project": str(project.root)})
         return 0
     from payload.trials.campaign import METRIC_KEYS, METRIC_LABELS
 
@@ -68,7 +75,8 @@ def _cmd_trial(args: argparse.Namespace) -> int:
 
 
 def _cmd_trials_run(args: argparse.Namespace) -> int:
-    from payload.cli import CheckFailed, emit_json
+    from payload.cli import CheckFailed, command_project, emit_json
+    from payload.project import provenance
     from payload.trials.campaign import (
         default_workers,
         run_campaign,
@@ -84,12 +92,14 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
     if args.workers is not None and args.workers < 0:
         raise TrialsCliError(f"--workers must be >= 0, got {args.workers}")
     _run_trial_fn()  # fail here, once, if the runner is missing
+    project = command_project(args)
+    prov = provenance(project)
     out = Path(args.out)
     seeds = list(range(args.seed, args.seed + args.n))
     workers = default_workers(args.n) if args.workers is None else args.workers
     t0 = time.perf_counter()
     results = run_campaign(
-        runner_trial_fn("synthetic"),
+        runner_trial_fn("synthetic", project.root),
         seeds,
         out,
         workers=workers,
@@ -103,9 +113,9 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
         "trial_wall_s": float(sum(r.get("wall_s") or 0.0 for r in results)),
     }
     title = f"Cargo-transport campaign ({args.n} trials)"
-    summary = write_summary(results, out, title=title, run=run)
+    summary = write_summary(results, out, title=title, run=run, provenance=prov)
     if args.json:
-        emit_json({**summary, "out_dir": str(out)})
+        emit_json({**summary, "out_dir": str(out), "project": str(project.root)})
     else:
         print(summary_markdown(summary, title))
         print(f"wrote {out / 'summary.md'} and {out / 'summary.json'}")
@@ -239,7 +249,13 @@ def register(
         metavar=("synthetic|replay", "F"),
         help="'synthetic' (default) or 'replay FILE' (a recorded hand stream)",
     )
-    p.add_argument("--out", help="trial folder (default runs/trial-NNNN)")
+    p.add_argument("--out", help="trial folder (default: the project's runs/trial-NNNN)")
+    p.add_argument(
+        "--max-time",
+        type=float,
+        default=None,
+        help="cap on the session length [s] (default: the runner's, 240 s)",
+    )
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=_cmd_trial)
 

@@ -1,6 +1,7 @@
 """One ISS cargo-transport trial: simulator + teleoperation pipeline + recorder + metrics.
 
-``run_trial(seed, operator, replay, out_dir)`` builds the default world (Astrobee with
+``run_trial(seed, operator, replay, out_dir, project=...)`` builds the project's world
+(its generated MJCF and design; default the current project: Astrobee with
 the deployed payload at the start of the route in Kibo, a single CTB under the fingers),
 lets the operator (synthetic, or a replayed hand recording) calibrate, acquire the CTB
 and fly it to Node 2, records every 50 Hz step into ``log.mcap`` and the raw hand frames
@@ -9,7 +10,6 @@ into ``hands.jsonl`` (so any trial can be replayed bit for bit), then scores it.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
 from pathlib import Path
@@ -17,11 +17,12 @@ from typing import Any
 
 import numpy as np
 
-from payload.design.build import PROJECT_ROOT
 from payload.design.params import load_design
 from payload.errors import PayloadError
+from payload.project import Project, current_project, provenance
 from payload.retarget.calibration import PairRange, pair_range
 from payload.retarget.casadi_solver import PairRetargeter
+from payload.retarget.hand import load_hand
 from payload.rotations import quat_to_matrix
 from payload.teleop.calibration import CalibrationProcedure, Captures
 from payload.teleop.loop import (
@@ -49,27 +50,35 @@ class TrialError(PayloadError):
     """A trial could not be run (bad operator choice, unreadable replay)."""
 
 
-_RETARGETERS: dict[str, PairRetargeter] = {}
-_RANGES: dict[str, PairRange] = {}
+_RETARGETING: dict[tuple[Path, bytes], tuple[dict[str, PairRetargeter], dict[str, PairRange]]] = {}
 
 
-def retargeting() -> tuple[dict[str, PairRetargeter], dict[str, PairRange]]:
-    """Production retargeters and pair ranges for our hand (built once per process)."""
-    if not _RETARGETERS:
+def retargeting(
+    project: Project | None = None,
+) -> tuple[dict[str, PairRetargeter], dict[str, PairRange]]:
+    """Production retargeters and pair ranges for our hand on ``project``'s URDF
+    (default: the current project), built once per process and URDF content."""
+    project = project or current_project()
+    hand = load_hand(project=project)
+    key = (hand.urdf, hand.urdf.read_bytes())
+    if key not in _RETARGETING:
         from threadpoolctl import threadpool_limits
 
+        retargeters: dict[str, PairRetargeter] = {}
+        ranges: dict[str, PairRange] = {}
         # single-threaded like the trials themselves, so every process finds the same ranges
         with threadpool_limits(limits=1):
             for pair in ("L", "R"):
-                _RETARGETERS[pair] = PairRetargeter(pair=pair)
-                _RANGES[pair] = pair_range(_RETARGETERS[pair].kinematics)
-    return _RETARGETERS, _RANGES
+                retargeters[pair] = PairRetargeter(hand, pair=pair)
+                ranges[pair] = pair_range(retargeters[pair].kinematics)
+        _RETARGETING[key] = (retargeters, ranges)
+    return _RETARGETING[key]
 
 
-def design_hash() -> str:
-    """SHA-256 of the design file the models were generated from (first 16 hex digits)."""
-    data = (PROJECT_ROOT / "cad" / "design.toml").read_bytes()
-    return hashlib.sha256(data).hexdigest()[:16]
+def design_hash(project: Project | None = None) -> str:
+    """SHA-256 of ``project``'s design file (first 16 hex digits; default: the current
+    project). :func:`payload.project.provenance` gives the full record."""
+    return provenance(project or current_project())["design_sha256"][:16]
 
 
 def _module_rects(layout: Any) -> list[dict[str, float | str]]:
@@ -144,6 +153,7 @@ def run_trial(
     *,
     max_time: float = MAX_TRIAL_S,
     progress: bool = False,
+    project: Project | None = None,
 ) -> dict[str, Any]:
     """Run one trial and write its folder (reproducible: see :func:`_run_trial`).
 
@@ -155,7 +165,15 @@ def run_trial(
     from threadpoolctl import threadpool_limits
 
     with threadpool_limits(limits=1):
-        return _run_trial(seed, operator, replay, out_dir, max_time=max_time, progress=progress)
+        return _run_trial(
+            seed,
+            operator,
+            replay,
+            out_dir,
+            max_time=max_time,
+            progress=progress,
+            project=project or current_project(),
+        )
 
 
 def _run_trial(
@@ -166,6 +184,7 @@ def _run_trial(
     *,
     max_time: float = MAX_TRIAL_S,
     progress: bool = False,
+    project: Project,
 ) -> dict[str, Any]:
     """Run one trial and write its folder.
 
@@ -173,9 +192,10 @@ def _run_trial(
         seed: Seed of the synthetic operator (ignored for replays except as a label).
         operator: ``synthetic`` or ``replay``.
         replay: The hand recording (``hands.jsonl``) to replay.
-        out_dir: Trial folder (default ``runs/trial-<seed>``).
+        out_dir: Trial folder (default ``<project>/runs/trial-<seed>``).
         max_time: Cap on the session length [s].
         progress: Show a progress bar.
+        project: The design project whose models and design the trial runs on.
 
     Returns:
         The metrics (as written to ``metrics.json``).
@@ -187,11 +207,13 @@ def _run_trial(
 
     if operator not in ("synthetic", "replay"):
         raise TrialError(f"operator must be 'synthetic' or 'replay', got {operator!r}")
-    out = Path(out_dir) if out_dir is not None else Path("runs") / f"trial-{seed:04d}"
+    out = Path(out_dir) if out_dir is not None else project.runs_dir / f"trial-{seed:04d}"
     out.mkdir(parents=True, exist_ok=True)
-    driver = SimDriver()
+    from payload.sim.world import WorldConfig
+
+    driver = SimDriver(WorldConfig.for_project(project))
     layout = driver.world.layout
-    retargeters, ranges = retargeting()
+    retargeters, ranges = retargeting(project)
     place_ctb_for_teleop(driver, retargeters, ranges)
     calibration = CalibrationProcedure()
     config = TeleopConfig.from_design(load_design(driver.world.config.design))
@@ -225,12 +247,14 @@ def _run_trial(
             bool(state.opposing_contact),
         )
 
+    prov = provenance(project, driver.world.config.design)
     rec_path = out / "log.mcap"
     hands_path = out / "hands.jsonl"
     meta = {
         "seed": int(seed),
         "operator": operator,
-        "design_hash": design_hash(),
+        "design_hash": prov["design_sha256"][:16],
+        "provenance": prov,
         "traits": traits,
         "route": layout.route().tolist(),
         "modules": _module_rects(layout),
@@ -314,5 +338,6 @@ def _run_trial(
         driver.close()
     result = finish_trial(out, rec_path)  # scored with the contact definition it recorded
     result["steps"] = stats.steps
+    result["provenance"] = prov
     (out / "metrics.json").write_text(json.dumps(result, indent=2) + "\n")
     return result

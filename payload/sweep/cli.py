@@ -1,0 +1,136 @@
+"""``payload sweep``: a design sweep on Dask (contract in DESIGN.md and the README)."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shlex
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from payload.sweep.grid import SweepError, parse_set
+from payload.sweep.run import DEFAULT_SAMPLES
+
+
+def _progress(enabled: bool, total: int) -> Any:
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    return Progress(
+        TextColumn("sweep"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TextColumn("{task.fields[note]}"),
+        TimeElapsedColumn(),
+        console=Console(stderr=True),
+        transient=True,
+        disable=not enabled,
+    )
+
+
+def _cmd_sweep(args: argparse.Namespace) -> int:
+    from payload.cli import command_project, emit_json
+    from payload.project import provenance
+    from payload.sweep.report import sweep_json, sweep_markdown, write_sweep
+    from payload.sweep.run import plan, run_points
+
+    axes = [parse_set(s) for s in args.set]
+    if args.trials < 0:
+        raise SweepError(f"--trials must be >= 0, got {args.trials}")
+    if args.samples < 1000:
+        raise SweepError(f"--samples must be at least 1000 (got {args.samples})")
+    if args.seed < 0:
+        raise SweepError(f"--seed must not be negative (got {args.seed})")
+    if args.workers is not None and args.workers < 1:
+        raise SweepError(f"--workers must be at least 1, got {args.workers}")
+    out = Path(args.out).resolve()
+    if (out / "sweep.json").exists():
+        raise SweepError(f"{out / 'sweep.json'} exists; choose a new --out (nothing overwritten)")
+    project = command_project(args)
+    points = plan(project, axes, out)
+    workers = args.workers or max(1, min(len(points), os.cpu_count() or 1))
+    t0 = time.perf_counter()
+    with _progress(not args.json, len(points)) as bar:
+        task = bar.add_task("points", total=len(points), note="")
+        counts = {"fits": 0, "fails": 0, "invalid": 0}
+
+        def advance(result: dict[str, Any]) -> None:
+            kind = "invalid" if not result["valid"] else ("fits" if result["fits"] else "fails")
+            counts[kind] += 1
+            note = ", ".join(f"{v} {k}" for k, v in counts.items() if v)
+            bar.update(task, advance=1, note=note)
+
+        results = run_points(
+            points,
+            samples=args.samples,
+            seed=args.seed,
+            trials=args.trials,
+            workers=workers,
+            scheduler=args.scheduler,
+            on_result=advance,
+        )
+    run = {
+        "workers": None if args.scheduler else workers,
+        "scheduler": args.scheduler,
+        "samples": args.samples,
+        "seed": args.seed,
+        "trials_per_point": args.trials,
+        "wall_s": round(time.perf_counter() - t0, 2),
+    }
+    data = sweep_json([a.key for a in axes], results, provenance=provenance(project), run=run)
+    command = "payload sweep " + " ".join(
+        [*(f"--set {shlex.quote(s)}" for s in args.set)]
+        + ([f"--trials {args.trials}"] if args.trials else [])
+        + ([f"--samples {args.samples}"] if args.samples != DEFAULT_SAMPLES else [])
+        + ([f"--seed {args.seed}"] if args.seed else [])
+        + [f"--out {args.out}"]
+    )
+    paths = write_sweep(data, out, command)
+    if args.json:
+        emit_json({**data, "project": str(project.root), "out_dir": str(out)})
+    else:
+        sys.stdout.write(sweep_markdown(data, command, []))
+        print(f"wrote {paths['md']}, {paths['json']} and {len(paths) - 2} plot(s)")
+    return 0
+
+
+def register(
+    sub: argparse._SubParsersAction, groups: dict[str, argparse._SubParsersAction]
+) -> None:
+    """Add ``payload sweep``."""
+    del groups
+    p = sub.add_parser(
+        "sweep",
+        help="a design sweep on Dask: every combination of --set values, each a project",
+    )
+    p.add_argument(
+        "--set",
+        action="append",
+        required=True,
+        metavar="KEY=V1,V2|A:B:N",
+        help="a dotted design key and its values (list, or N values from A to B); repeat",
+    )
+    p.add_argument("--trials", type=int, default=0, help="trials per point (default 0)")
+    p.add_argument(
+        "--samples",
+        type=int,
+        default=DEFAULT_SAMPLES,
+        help=f"reach samples per point (default {DEFAULT_SAMPLES:,})",
+    )
+    p.add_argument("--seed", type=int, default=0, help="reach and trial seed (default 0)")
+    where = p.add_mutually_exclusive_group()
+    where.add_argument(
+        "--workers",
+        type=int,
+        default=None,
+        help="local Dask worker processes (default: one per core, at most one per point)",
+    )
+    where.add_argument("--scheduler", help="existing Dask scheduler, e.g. tcp://host:8786")
+    p.add_argument("--out", required=True, help="sweep folder (one project per point)")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.set_defaults(func=_cmd_sweep)
+
+
+__all__ = ["register"]

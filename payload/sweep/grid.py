@@ -1,0 +1,203 @@
+"""The grid of a design sweep: ``--set KEY=...`` values and the edited design files.
+
+A sweep key is a dotted design key (``finger.lengths.distal``) naming a number of the
+design. ``KEY=V1,V2,...`` lists values; ``KEY=A:B:N`` gives ``N`` evenly spaced values
+from ``A`` to ``B``. The grid is every combination, in the order the keys were given
+(the last key varies fastest).
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+import re
+import sys
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from payload.design.params import Design, design_from_dict, design_to_dict
+from payload.errors import PayloadError
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+MAX_POINTS = 10_000
+"""Refuse grids larger than this (a typo in ``N`` should not start a week of work)."""
+
+
+class SweepError(PayloadError):
+    """A bad ``--set`` or sweep setting (exit 2)."""
+
+
+@dataclass(frozen=True)
+class Axis:
+    """One swept key and its values.
+
+    Attributes:
+        key: Dotted design key, e.g. ``finger.lengths.distal``.
+        values: The values, in the given order [SI units of the key].
+    """
+
+    key: str
+    values: tuple[float, ...]
+
+
+def _number(key: str, text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise SweepError(f"--set {key}: {text!r} is not a number") from None
+    if not math.isfinite(value):
+        raise SweepError(f"--set {key}: {text!r} is not finite")
+    return value
+
+
+def _tidy(value: float) -> float:
+    """Drop the last-bit noise of ``linspace`` (0.045000000000000005 -> 0.045)."""
+    return float(f"{value:.12g}")
+
+
+def parse_set(text: str) -> Axis:
+    """Parse one ``KEY=V1,V2,...`` or ``KEY=A:B:N``.
+
+    Raises:
+        SweepError: No ``=``, an empty key or value, a non-number, or a bad ``N``.
+    """
+    key, sep, spec = text.partition("=")
+    key, spec = key.strip(), spec.strip()
+    if not sep or not key or not spec:
+        raise SweepError(f"--set {text!r}: expected KEY=V1,V2,... or KEY=A:B:N")
+    if ":" in spec:
+        parts = spec.split(":")
+        if len(parts) != 3:
+            raise SweepError(f"--set {key}: expected A:B:N, got {spec!r}")
+        a, b = _number(key, parts[0]), _number(key, parts[1])
+        try:
+            n = int(parts[2])
+        except ValueError:
+            raise SweepError(f"--set {key}: N must be an integer, got {parts[2]!r}") from None
+        if n < 1:
+            raise SweepError(f"--set {key}: N must be at least 1, got {n}")
+        values = [a] if n == 1 else [_tidy(v) for v in np.linspace(a, b, n)]
+    else:
+        values = [_number(key, v.strip()) for v in spec.split(",")]
+    if len(set(values)) != len(values):
+        raise SweepError(f"--set {key}: a value is listed twice")
+    return Axis(key, tuple(values))
+
+
+def _lookup(data: dict[str, Any], key: str) -> Any:
+    node: Any = data
+    for part in key.split("."):
+        if not isinstance(node, dict) or part not in node:
+            raise KeyError(key)
+        node = node[part]
+    return node
+
+
+def check_axes(axes: list[Axis], base: Design) -> None:
+    """Every key names a number of the design, once.
+
+    Raises:
+        SweepError: No axes, a repeated key, an unknown key, a key that is not a
+            number (a table, a list, a string), or a grid larger than :data:`MAX_POINTS`.
+    """
+    if not axes:
+        raise SweepError("nothing to sweep: give at least one --set KEY=...")
+    plain = design_to_dict(base)
+    seen: set[str] = set()
+    for axis in axes:
+        if axis.key in seen:
+            raise SweepError(f"--set {axis.key}: given twice")
+        seen.add(axis.key)
+        try:
+            value = _lookup(plain, axis.key)
+        except KeyError:
+            raise SweepError(f"--set {axis.key}: not a design key") from None
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise SweepError(f"--set {axis.key}: not a number in the design (it is {value!r})")
+    total = math.prod(len(a.values) for a in axes)
+    if total > MAX_POINTS:
+        raise SweepError(f"the grid has {total:,} points, more than {MAX_POINTS:,}")
+
+
+def grid(axes: list[Axis]) -> list[dict[str, float]]:
+    """Every combination of the axes' values, as ``{key: value}`` (last key fastest)."""
+    keys = [a.key for a in axes]
+    return [dict(zip(keys, combo)) for combo in itertools.product(*(a.values for a in axes))]
+
+
+def _set_in_text(text: str, key: str, value: float) -> str:
+    """``text`` with ``key = value`` in its table, keeping every comment and line."""
+    *table, leaf = key.split(".")
+    lines = text.splitlines(keepends=True)
+    header = re.compile(r"^\s*\[\s*([A-Za-z0-9_.\- ]+?)\s*\]\s*(#.*)?$")
+    assign = re.compile(rf"^(\s*{re.escape(leaf)}\s*=\s*)([^#\n]*?)(\s*(#.*)?)(\r?\n?)$")
+    current: list[str] = []
+    end_of_table = None
+    for i, line in enumerate(lines):
+        m = header.match(line)
+        if m and not line.lstrip().startswith("[["):
+            if current == table and end_of_table is None:
+                end_of_table = i
+            current = [p.strip() for p in m.group(1).split(".")]
+            continue
+        if current == table:
+            a = assign.match(line)
+            if a:
+                lines[i] = f"{a.group(1)}{value!r}{a.group(3)}{a.group(5)}"
+                return "".join(lines)
+    addition = f"{leaf} = {value!r}\n"
+    if current == table and end_of_table is None:  # the table is the last one
+        sep = "" if not lines or lines[-1].endswith("\n") else "\n"
+        return "".join(lines) + sep + addition
+    if end_of_table is not None:
+        lines.insert(end_of_table, addition)
+        return "".join(lines)
+    sep = "" if not lines or lines[-1].endswith("\n") else "\n"
+    return "".join(lines) + sep + f"\n[{'.'.join(table)}]\n" + addition
+
+
+def edit_design(text: str, params: dict[str, float]) -> str:
+    """The design TOML ``text`` with each dotted key of ``params`` set to its value.
+
+    Comments and every other line stay as they are. The result is parsed again and
+    compared with the intended document, so an edit the line editor cannot make
+    (e.g. a key inside an inline table) is an error rather than a wrong design.
+
+    Raises:
+        SweepError: The edit did not give the intended document.
+    """
+    want = tomllib.loads(text)
+    out = text
+    for key, value in params.items():
+        node = want
+        *table, leaf = key.split(".")
+        for part in table:
+            node = node.setdefault(part, {})
+        node[leaf] = value
+        out = _set_in_text(out, key, value)
+    if tomllib.loads(out) != want:
+        raise SweepError(f"cannot write {', '.join(params)} into the design file text")
+    return out
+
+
+def validate_point(text: str) -> Design:
+    """The design of a point's TOML text (raises :class:`DesignError` when invalid)."""
+    return design_from_dict(tomllib.loads(text), source="<sweep point>")
+
+
+__all__ = [
+    "MAX_POINTS",
+    "Axis",
+    "SweepError",
+    "check_axes",
+    "edit_design",
+    "grid",
+    "parse_set",
+    "validate_point",
+]

@@ -1,0 +1,124 @@
+"""Run a design sweep's points on Dask (a local cluster by default, or an existing one)."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from payload.project import Project
+from payload.sweep.grid import Axis, SweepError, check_axes, edit_design, grid
+from payload.sweep.point import run_point
+
+DEFAULT_SAMPLES = 20_000
+"""Reach samples per point (``payload report reach`` uses 100,000; a sweep compares)."""
+
+
+def point_dir(out: Path, index: int) -> Path:
+    """Folder of point ``index`` under the sweep folder."""
+    return out / f"point-{index:03d}"
+
+
+def plan(base: Project, axes: list[Axis], out: Path) -> list[tuple[Path, dict[str, float], str]]:
+    """The points of a sweep: ``(folder, params, design text)`` each.
+
+    Raises:
+        SweepError: Bad axes, or a point folder that already exists and is not empty
+            (a sweep never overwrites earlier results).
+    """
+    from payload.design import load_design
+
+    check_axes(axes, load_design(base.design_path))
+    text = base.design_path.read_text(encoding="utf-8")
+    points = []
+    for i, params in enumerate(grid(axes)):
+        folder = point_dir(out, i)
+        if folder.exists() and any(folder.iterdir()):
+            raise SweepError(f"{folder}: exists and is not empty; choose a new --out")
+        points.append((folder, params, edit_design(text, params)))
+    return points
+
+
+def run_points(
+    points: list[tuple[Path, dict[str, float], str]],
+    *,
+    samples: int,
+    seed: int,
+    trials: int,
+    workers: int,
+    scheduler: str | None,
+    on_result: Callable[[dict[str, Any]], None] = lambda r: None,
+) -> list[dict[str, Any]]:
+    """Run every point on Dask and return the results in point order.
+
+    Args:
+        points: From :func:`plan`.
+        samples: Reach samples per point.
+        seed: Reach and trial seed.
+        trials: Trials per point (0: none).
+        workers: Local worker processes (one thread each); ignored with ``scheduler``.
+        scheduler: Address of an existing Dask scheduler, e.g. ``tcp://host:8786``.
+        on_result: Called with each result as it arrives (the progress bar).
+
+    Raises:
+        SweepError: The scheduler cannot be reached.
+    """
+    from distributed import Client, LocalCluster, as_completed
+
+    cluster = None
+    results: dict[int, dict[str, Any]] = {}
+    try:
+        if scheduler is None:
+            cluster = LocalCluster(
+                n_workers=workers,
+                threads_per_worker=1,
+                processes=True,
+                dashboard_address=":0",  # a free port: no clash, no warning
+                silence_logs=logging.ERROR,
+            )
+            client = Client(cluster)
+        else:
+            try:
+                client = Client(scheduler, timeout=10)
+            except (OSError, TimeoutError) as exc:
+                raise SweepError(f"cannot reach Dask scheduler {scheduler}: {exc}") from None
+        with client:
+            futures = {
+                client.submit(
+                    run_point,
+                    str(folder),
+                    params,
+                    text,
+                    samples=samples,
+                    seed=seed,
+                    trials=trials,
+                    pure=False,
+                    key=f"sweep-point-{i}-{folder.parent.name}",
+                ): i
+                for i, (folder, params, text) in enumerate(points)
+            }
+            for fut in as_completed(list(futures)):
+                i = futures[fut]
+                try:
+                    results[i] = fut.result()
+                except Exception as exc:  # e.g. a worker died
+                    results[i] = {
+                        "params": points[i][1],
+                        "valid": False,
+                        "error": f"{type(exc).__name__}: {exc}",
+                        "fits": False,
+                        "min_clearance_mm": None,
+                        "below_vehicle_mm": None,
+                        "span_max_mm": None,
+                        "trials": None,
+                        "project": str(points[i][0]),
+                    }
+                on_result(results[i])
+    finally:
+        if cluster is not None:
+            cluster.close()
+    return [results[i] for i in range(len(points))]
+
+
+__all__ = ["DEFAULT_SAMPLES", "plan", "point_dir", "run_points"]

@@ -1,0 +1,242 @@
+"""Design projects: finding them, ``payload new``, building and reporting on the project
+in front of the command (never the package's or this checkout's), and provenance."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import tomllib
+from conftest import DESIGN, ROOT
+
+from payload.cli import main
+from payload.project import (
+    Project,
+    ProjectError,
+    default_design_text,
+    find_project,
+    project_of,
+    provenance,
+)
+
+
+def _digest(root: Path) -> dict[str, str]:
+    """SHA-256 of every file of a project's design, models and reports."""
+    files = [root / "cad" / "design.toml", *sorted((root / "urdf").glob("*"))]
+    files += sorted((root / "cad" / "meshes").glob("*.stl"))
+    files += sorted((root / "analyses").glob("*.*"))
+    return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest() for p in files}
+
+
+@pytest.fixture(scope="module")
+def checkout_before() -> dict[str, str]:
+    return _digest(ROOT)
+
+
+@pytest.fixture(scope="module")
+def new_project(tmp_path_factory, checkout_before) -> Path:
+    """A project made by ``payload new`` in a temporary folder (built once per module)."""
+    root = tmp_path_factory.mktemp("proj") / "variant"
+    assert main(["new", str(root)]) == 0
+    return root
+
+
+@pytest.fixture
+def outside(tmp_path, monkeypatch) -> Path:
+    """Stand in a folder that is in no project, with ``PAYLOAD_PROJECT`` unset."""
+    monkeypatch.delenv("PAYLOAD_PROJECT", raising=False)
+    monkeypatch.chdir(tmp_path)
+    return tmp_path
+
+
+def _set(text: str, table: str, key: str, value: float) -> str:
+    """``text`` with ``key = value`` in ``[table]`` (checked by re-parsing)."""
+    pattern = rf"(\[{re.escape(table)}\][^\[]*?\n{key}\s*=\s*)[-0-9.eE]+"
+    out, n = re.subn(pattern, rf"\g<1>{value!r}", text, count=1)
+    assert n == 1
+    node = tomllib.loads(out)
+    for part in table.split("."):
+        node = node[part]
+    assert node[key] == value
+    return out
+
+
+# ------------------------------------------------------------------ finding one
+def test_find_project_order_explicit_env_cwd(tmp_path, monkeypatch):
+    a, b = Project.at(tmp_path / "a"), Project.at(tmp_path / "b")
+    for p in (a, b):
+        p.design_path.parent.mkdir(parents=True)
+        p.design_path.write_text(default_design_text())
+    deep = a.root / "x" / "y"
+    deep.mkdir(parents=True)
+    monkeypatch.delenv("PAYLOAD_PROJECT", raising=False)
+    assert find_project(cwd=deep) == a  # upward from the cwd
+    monkeypatch.setenv("PAYLOAD_PROJECT", str(b.root))
+    assert find_project(cwd=deep) == b  # the variable beats the cwd
+    assert find_project(a.root, cwd=deep) == a  # --project beats both
+    monkeypatch.setenv("PAYLOAD_PROJECT", str(tmp_path))
+    with pytest.raises(ProjectError, match=r"PAYLOAD_PROJECT .*not a design project"):
+        find_project(cwd=deep)
+    assert project_of(b.design_path) == b
+    assert project_of(tmp_path / "loose.toml") is None
+
+
+def test_outside_any_project_commands_say_so_in_one_line(outside, capsys):
+    for argv in (["build", "--check"], ["report", "envelope"], ["summary", "--json"]):
+        assert main(argv) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.count("\n") == 0 and "not inside a design project" in err, err
+    assert main(["--project", str(outside), "build"]) == 2
+    assert "--project" in capsys.readouterr().err
+
+
+def test_packaged_default_design_is_this_checkouts_design():
+    """The wheel's default design and the checkout's cad/design.toml are the same bytes."""
+    assert default_design_text().encode() == DESIGN.read_bytes()
+
+
+# ------------------------------------------------------------------ payload new
+def test_new_project_is_built_and_checks_clean(new_project, capsys):
+    p = Project.at(new_project)
+    assert p.design_path.read_bytes() == DESIGN.read_bytes()
+    assert p.urdf.is_file() and p.mjcf.is_file() and any(p.meshes_dir.glob("*.stl"))
+    # the same design gives the same models as this checkout's committed ones
+    assert p.urdf.read_bytes() == (ROOT / "urdf" / "payload.urdf").read_bytes()
+    assert main(["--project", str(new_project), "build", "--check"]) == 0
+    assert capsys.readouterr().out.splitlines()[0] == f"project: {p.root}"
+
+
+def test_new_refuses_a_non_empty_folder_and_copies_from(tmp_path, new_project, capsys):
+    (tmp_path / "full").mkdir()
+    (tmp_path / "full" / "notes.txt").write_text("mine")
+    assert main(["new", str(tmp_path / "full")]) == 2
+    assert "not an empty folder" in capsys.readouterr().err
+    assert (tmp_path / "full" / "notes.txt").read_text() == "mine"
+    variant = Project.at(new_project)
+    edited = _set(variant.design_path.read_text(), "rail", "travel", 0.045)
+    src = tmp_path / "src"
+    assert main(["new", str(src)]) == 0
+    Project.at(src).design_path.write_text(edited)
+    assert main(["new", str(tmp_path / "copy"), "--from", str(src)]) == 0
+    assert Project.at(tmp_path / "copy").design_path.read_text() == edited
+
+
+# ------------------------------------------------- the project in front of the command
+def test_edited_project_is_stale_and_a_long_proximal_fails(
+    new_project, tmp_path, monkeypatch, capsys, checkout_before
+):
+    p = Project.at(tmp_path / "edit")
+    assert main(["new", str(p.root), "--from", str(new_project)]) == 0
+    capsys.readouterr()
+    monkeypatch.delenv("PAYLOAD_PROJECT", raising=False)
+    monkeypatch.chdir(p.meshes_dir)  # found from a subfolder, like git
+    text = p.design_path.read_text()
+    lengths = tomllib.loads(text)["finger"]["lengths"]
+    p.design_path.write_text(_set(text, "finger.lengths", "proximal", lengths["proximal"] + 0.150))
+    assert main(["build", "--check"]) == 1
+    captured = capsys.readouterr()
+    assert captured.out.splitlines()[0] == f"project: {p.root}"
+    assert "stale: " in captured.err and "urdf/payload.urdf" in captured.err
+    assert main(["build"]) == 0
+    assert main(["build", "--check"]) == 0
+    capsys.readouterr()
+    assert main(["report", "envelope", "--no-search", "--json"]) == 1
+    data = json.loads(capsys.readouterr().out)
+    assert data["project"] == str(p.root)
+    assert data["fits"] is False and data["passed"] is False
+    assert (
+        data["provenance"]["design_sha256"]
+        == hashlib.sha256(p.design_path.read_bytes()).hexdigest()
+    )
+    written = json.loads((p.analyses_dir / "envelope.json").read_text())
+    assert written["fits"] is False
+    assert "project" not in written["provenance"]  # no absolute path in project files
+    # the protruding part is the longer finger: the report measured this project
+    assert any(q["protrusion_mm"] and q["protrusion_mm"] > 100 for q in data["parts"])
+    assert _digest(ROOT) == checkout_before  # the package's own design untouched
+
+
+def test_build_design_f_writes_fs_project(new_project, tmp_path, capsys, checkout_before):
+    p = Project.at(tmp_path / "other")
+    assert main(["new", str(p.root), "--from", str(new_project)]) == 0
+    p.design_path.write_text(_set(p.design_path.read_text(), "rail", "travel", 0.040))
+    before = p.urdf.read_bytes()
+    # standing in this checkout (PAYLOAD_PROJECT = ROOT), naming the other project's design
+    assert main(["build", "--design", str(p.design_path)]) == 0
+    assert capsys.readouterr().out.splitlines()[0] == f"project: {p.root}"
+    assert p.urdf.read_bytes() != before
+    assert 'upper="0.04"' in p.urdf.read_text() or "0.04" in p.urdf.read_text()
+    assert main(["build", "--design", str(p.design_path), "--project", str(ROOT)]) == 2
+    assert "belongs to project" in capsys.readouterr().err
+    # a design file in no project is checked against the project found as usual
+    loose = tmp_path / "loose.toml"
+    loose.write_text(p.design_path.read_text())
+    assert main(["build", "--check", "--design", str(loose), "--project", str(p.root)]) == 0
+    capsys.readouterr()
+    assert main(["build", "--check", "--design", str(loose)]) == 1  # this checkout's
+    assert capsys.readouterr().out.splitlines()[0] == f"project: {ROOT}"
+    assert _digest(ROOT) == checkout_before
+
+
+def test_models_come_from_the_project(new_project, monkeypatch):
+    from payload.kinematics import Kinematics
+    from payload.retarget.hand import load_hand
+    from payload.sim.world import WorldConfig
+
+    p = Project.at(new_project)
+    assert load_hand(project=p).urdf == p.urdf
+    assert WorldConfig.for_project(p).payload_mjcf == p.mjcf
+    monkeypatch.setenv("PAYLOAD_PROJECT", str(p.root))
+    assert load_hand().urdf == p.urdf
+    assert Kinematics().urdf == p.urdf
+    config = WorldConfig()
+    assert (config.payload_mjcf, config.design) == (p.mjcf, p.design_path)
+    # a config naming one project's design takes that project's MJCF
+    assert WorldConfig(design=DESIGN).payload_mjcf == ROOT / "urdf" / "payload.xml"
+
+
+# ------------------------------------------------------------------ provenance
+def test_provenance_of_a_git_checkout_and_of_a_plain_folder(new_project):
+    prov = provenance(find_project(ROOT))
+    assert prov["design_sha256"] == hashlib.sha256(DESIGN.read_bytes()).hexdigest()
+    assert prov["design"] == "cad/design.toml"
+    head = subprocess.run(
+        ["git", "log", "-1", "--format=%H"], cwd=ROOT, capture_output=True, text=True, check=True
+    ).stdout.strip()
+    assert prov["git_commit"] == head
+    changed = subprocess.run(
+        ["git", "diff", "HEAD", "--quiet"], cwd=ROOT, capture_output=True, check=False
+    ).returncode
+    assert prov["git_dirty"] is (changed != 0)
+    from importlib.metadata import version
+
+    assert prov["package_version"] == version("astrobee-payload")
+    plain = provenance(Project.at(new_project))
+    assert (plain["git_commit"], plain["git_dirty"]) == (None, None)
+
+
+def test_summary_names_the_project_first_and_in_json(new_project, capsys):
+    assert main(["--project", str(new_project), "summary"]) == 0
+    assert capsys.readouterr().out.splitlines()[0] == f"project: {Path(new_project).resolve()}"
+    assert main(["summary", "--project", str(new_project), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["project"] == str(Path(new_project).resolve())
+
+
+def test_cli_subprocess_in_a_project_folder(new_project):
+    """The console entry point finds the project from its working directory."""
+    env = {k: v for k, v in __import__("os").environ.items() if k != "PAYLOAD_PROJECT"}
+    out = subprocess.run(
+        [sys.executable, "-m", "payload.cli", "build", "--check"],
+        cwd=Path(new_project) / "cad",
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.splitlines()[0] == f"project: {Path(new_project).resolve()}"

@@ -1,0 +1,125 @@
+"""Design sweeps: the grid, the edited design files, and a two-point sweep on a Dask
+LocalCluster whose figures equal the same commands run by hand in each point."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import tomllib
+from conftest import DESIGN
+
+from payload.cli import main
+from payload.design import load_design
+from payload.sweep import POINT_FIELDS, SweepError, edit_design, grid, parse_set
+from payload.sweep.grid import check_axes
+
+
+def test_parse_set_lists_and_ranges():
+    a = parse_set("finger.lengths.distal=0.040:0.050:3")
+    assert a.key == "finger.lengths.distal"
+    np.testing.assert_allclose(a.values, np.linspace(0.040, 0.050, 3), rtol=0, atol=1e-15)
+    assert a.values[1] == 0.045  # no last-bit noise in the folder's design files
+    assert parse_set("rail.travel=0.04, 0.05").values == (0.04, 0.05)
+    assert parse_set("rail.travel=0.04:0.05:1").values == (0.04,)
+    for bad, why in [
+        ("rail.travel", "KEY=V1"),
+        ("rail.travel=", "KEY=V1"),
+        ("rail.travel=a,b", "not a number"),
+        ("rail.travel=0.1:0.2", "A:B:N"),
+        ("rail.travel=0.1:0.2:x", "integer"),
+        ("rail.travel=0.1:0.2:0", "at least 1"),
+        ("rail.travel=0.1,0.1", "twice"),
+        ("rail.travel=nan", "finite"),
+    ]:
+        with pytest.raises(SweepError, match=why):
+            parse_set(bad)
+
+
+def test_grid_is_every_combination_last_key_fastest(design):
+    axes = [parse_set("rail.travel=0.04,0.05"), parse_set("finger.lengths.distal=1,2,3")]
+    points = grid(axes)
+    assert len(points) == 6
+    assert points[:2] == [
+        {"rail.travel": 0.04, "finger.lengths.distal": 1.0},
+        {"rail.travel": 0.04, "finger.lengths.distal": 2.0},
+    ]
+    check_axes(axes, design)
+    for key, why in [
+        ("finger.lengths.thumb", "not a design key"),
+        ("finger.lengths", "not a number"),
+        ("finger.limits.pip", "not a number"),
+    ]:
+        with pytest.raises(SweepError, match=why):
+            check_axes([parse_set(f"{key}=1,2")], design)
+    with pytest.raises(SweepError, match="given twice"):
+        check_axes([parse_set("rail.travel=1"), parse_set("rail.travel=2")], design)
+
+
+def test_edit_design_changes_only_the_values_and_keeps_comments():
+    text = DESIGN.read_text()
+    out = edit_design(text, {"finger.lengths.distal": 0.04, "rail.travel": 0.041})
+    want = tomllib.loads(text)
+    want["finger"]["lengths"]["distal"] = 0.04
+    want["rail"]["travel"] = 0.041
+    assert tomllib.loads(out) == want
+    changed = [(a, b) for a, b in zip(text.splitlines(), out.splitlines()) if a != b]
+    assert len(changed) == 2 and len(text.splitlines()) == len(out.splitlines())
+    assert all(b.split("#")[1:] == a.split("#")[1:] for a, b in changed)  # comments kept
+
+
+def test_bad_sweep_input_exits_2_and_writes_nothing(tmp_path, capsys):
+    out = tmp_path / "s"
+    assert main(["sweep", "--set", "finger.lengths.thumb=1,2", "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "finger.lengths.thumb: not a design key" in err and "\n" not in err
+    assert not out.exists() or not any(out.iterdir())
+    out.mkdir(exist_ok=True)
+    (out / "sweep.json").write_text("{}")
+    assert main(["sweep", "--set", "rail.travel=0.04", "--out", str(out)]) == 2
+    assert (out / "sweep.json").read_text() == "{}"  # recorded data never overwritten
+
+
+@pytest.mark.slow
+def test_two_point_sweep_equals_the_commands_by_hand(tmp_path, capsys):
+    """One point fits, one (proximal link 150 mm longer) does not; each point's figures
+    are those of `payload report envelope|reach` run by hand in its project."""
+    proximal = load_design(DESIGN).finger.lengths.proximal
+    long = round(proximal + 0.150, 6)
+    out = tmp_path / "sweep"
+    argv = ["sweep", "--set", f"finger.lengths.proximal={proximal},{long}"]
+    argv += ["--samples", "2000", "--workers", "2", "--out", str(out), "--json"]
+    assert main(argv) == 0
+    data = json.loads(capsys.readouterr().out)
+    assert data["keys"] == ["finger.lengths.proximal"]
+    assert [p["params"] for p in data["points"]] == [
+        {"finger.lengths.proximal": proximal},
+        {"finger.lengths.proximal": long},
+    ]
+    assert json.loads((out / "sweep.json").read_text())["points"] == data["points"]
+    for p in data["points"]:
+        assert list(p)[: len(POINT_FIELDS)] == list(POINT_FIELDS)
+        assert p["valid"] is True and p["error"] is None and p["trials"] is None
+    assert [p["fits"] for p in data["points"]] == [True, False]
+    assert (out / "sweep.md").read_text().count("| **no** |") == 1
+    assert (out / "sweep_finger_lengths_proximal.png").stat().st_size > 10_000
+
+    for p in data["points"]:
+        root = Path(p["project"])
+        design = tomllib.loads((root / "cad" / "design.toml").read_text())
+        assert design["finger"]["lengths"]["proximal"] == p["params"]["finger.lengths.proximal"]
+        hand = tmp_path / f"by-hand-{root.name}"
+        assert main(["--project", str(root), "build", "--check"]) == 0
+        capsys.readouterr()
+        by_hand = ["--project", str(root), "--json", "--out", str(hand)]
+        code = main(["report", "envelope", "--no-search", *by_hand])
+        env = json.loads(capsys.readouterr().out)
+        assert code == (0 if p["fits"] else 1)
+        assert main(["report", "reach", "--samples", "2000", *by_hand]) == 0
+        reach = json.loads(capsys.readouterr().out)
+        assert (p["fits"], p["min_clearance_mm"]) == (env["fits"], env["min_clearance_mm"])
+        assert p["below_vehicle_mm"] == reach["below_vehicle_mm"]
+        assert p["span_max_mm"] == {k: reach["pairs"][k]["span_max_mm"] for k in "LR"}
+        assert env["provenance"]["design_sha256"] == reach["provenance"]["design_sha256"]
