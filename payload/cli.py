@@ -17,7 +17,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from payload.errors import PayloadError
+from payload.errors import PayloadError, RunAborted
 
 # Modules providing ``register(sub, groups)``; each adds its own subcommands to the top
 # level (``sub``) or to a shared group (``groups["bench"]``, ``groups["report"]``,
@@ -127,17 +127,34 @@ def build_parser() -> argparse.ArgumentParser:
         module = importlib.import_module(name)
         register_fn: Callable[..., None] = module.register
         register_fn(sub, groups)
+    _strict(parser)
     return parser
+
+
+def _strict(parser: argparse.ArgumentParser) -> None:
+    """No abbreviated options anywhere (``--sample`` is not ``--samples``), and every
+    (sub)command remembers its parser, so a wrong option prints that command's usage."""
+    parser.allow_abbrev = False
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for child in action.choices.values():
+                child.set_defaults(_parser=child)
+                _strict(child)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``payload`` console script; returns the exit code."""
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args, unknown = parser.parse_known_args(argv)
+    if unknown:  # the usage of the subcommand given, not the top level's (exits 2)
+        getattr(args, "_parser", parser).error(f"unrecognized arguments: {' '.join(unknown)}")
     try:
         return int(args.func(args) or 0)
     except CheckFailed as exc:
         print(f"payload: check failed: {exc}", file=sys.stderr)
+        return 1
+    except RunAborted as exc:
+        print(f"payload: aborted: {exc}", file=sys.stderr)
         return 1
     except PayloadError as exc:
         print(f"payload: error: {exc}", file=sys.stderr)

@@ -737,7 +737,8 @@ def test_cli_trial_and_campaign(tmp_path: Path, monkeypatch, capsys) -> None:
     replay = tmp_path / "hands.mcap"
     replay.write_bytes(b"x")
     assert main(["trial", "--operator", "replay", str(replay), "--out", str(tmp_path / "r")]) == 0
-    assert calls[-1] == {"seed": 0, "operator": "replay", "replay": replay}
+    # a replay's seed is left to the runner, which records the source's
+    assert calls[-1] == {"seed": None, "operator": "replay", "replay": replay}
     capsys.readouterr()
 
     camp = tmp_path / "camp"
@@ -760,13 +761,30 @@ def test_cli_trial_and_campaign(tmp_path: Path, monkeypatch, capsys) -> None:
     assert main(["trials", "summarize", str(camp)]) == 0
     text = capsys.readouterr().out
     assert "| task success | 3/3 | 10/10 |" in text and "NOT the paper" not in text
-    # rescoring with a relaxed contact definition is stated in the files it writes
+    # rescoring with a relaxed contact definition writes beside the originals, named by
+    # the definition, and says so; the originals stay byte for byte
+    originals = {p: p.read_bytes() for p in camp.rglob("*") if p.is_file()}
     assert main(["trials", "summarize", str(camp), "--max-gap-s", "0.1", "--json"]) == 0
     relaxed = json.loads(capsys.readouterr().out)
     assert relaxed["contact_definition"] == {"min_interval_s": 0.0, "max_gap_s": 0.1}
     assert relaxed["run"] == summary["run"]  # how the campaign ran is kept
-    assert json.loads((camp / "trial-0002" / "metrics.json").read_text())["max_gap_s"] == 0.1
-    assert "NOT the paper's definition" in (camp / "summary.md").read_text()
+    assert {p: p.read_bytes() for p in originals} == originals
+    tag = "contact-min0s-gap0.1s"
+    rescored = json.loads((camp / "trial-0002" / f"metrics.{tag}.json").read_text())
+    assert rescored["max_gap_s"] == 0.1
+    assert (camp / "trial-0002" / f"fig_route.{tag}.png").is_file()
+    assert "NOT the paper's definition" in (camp / f"summary.{tag}.md").read_text()
+    assert "NOT the paper" not in (camp / "summary.md").read_text()
+    assert json.loads((camp / f"summary.{tag}.json").read_text())["contact_definition"] == {
+        "min_interval_s": 0.0,
+        "max_gap_s": 0.1,
+    }
+    # the same rescoring again changes nothing; a campaign is never run over another
+    assert main(["trials", "summarize", str(camp), "--max-gap-s", "0.1", "--json"]) == 0
+    capsys.readouterr()
+    assert main([*args, "--json"]) == 2
+    assert "already holds a campaign" in capsys.readouterr().err
+    assert {p: p.read_bytes() for p in originals} == originals
 
 
 @pytest.mark.parametrize(
