@@ -54,6 +54,8 @@ def _cmd_build(args: argparse.Namespace) -> int:
 
     design = load_design(args.design)
     root = Path(args.root) if args.root else PROJECT_ROOT
+    if args.design and not args.root and not args.check:
+        root = _project_of(Path(args.design))  # F's own project, never this one's models
     t0 = time.perf_counter()
     if args.check:
         stale = stale_files(design, root)
@@ -68,6 +70,22 @@ def _cmd_build(args: argparse.Namespace) -> int:
     dt = time.perf_counter() - t0
     print(f"wrote {len(result.files)} files under {root} in {dt:.2f} s")
     return 0
+
+
+def _project_of(design: Path) -> Path:
+    """The design project whose ``cad/design.toml`` this is (where its models belong).
+
+    Raises:
+        PayloadError: The file is not a project's ``cad/design.toml``.
+    """
+    p = design.resolve()
+    if p.name == "design.toml" and p.parent.name == "cad":
+        return p.parent.parent
+    raise PayloadError(
+        f"{design}: not a design project's cad/design.toml, so its models have no project "
+        "to go to; nothing written (make one with `payload new DIR`, or compare with "
+        "--check)"
+    )
 
 
 def _cmd_summary(args: argparse.Namespace) -> int:

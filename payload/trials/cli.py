@@ -108,7 +108,7 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
         out,
         workers=workers,
         scheduler=args.scheduler,
-        progress=not args.json,
+        progress=not args.json and sys.stderr.isatty(),
     )
     run = {
         "workers": None if args.scheduler else workers,
@@ -203,7 +203,7 @@ def _cmd_export_lerobot(args: argparse.Namespace) -> int:
         Path(args.out),
         task=args.task,
         overwrite=args.force,
-        progress=not args.json,
+        progress=not args.json and sys.stderr.isatty(),
     )
     if args.json:
         emit_json(info)
