@@ -93,7 +93,9 @@ def _cmd_envelope(args: argparse.Namespace) -> int:
     with _progress(not args.json and sys.stderr.isatty()) as progress:
         analysis = analyse_envelope(geom, vehicle, search=args.search, progress=progress)
     analysis.seconds = time.perf_counter() - t0
-    paths = write_envelope(geom, analysis, _out_dir(args), _command(args, "envelope"))
+    paths = write_envelope(
+        geom, analysis, _out_dir(args), _command(args, "envelope"), force=args.force
+    )
     if args.json:
         emit_json(envelope_json(analysis))
     else:
@@ -123,7 +125,14 @@ def _print_envelope(analysis: EnvelopeAnalysis, paths: dict[str, Path]) -> None:
             f"stowed-posture search: finger [{fing}] rad -> min clearance "
             f"{s.clearance * 1e3:.2f} mm ({s.limited_by}); {'passes' if c.passed else 'fails'}"
         )
-    print("wrote " + ", ".join(str(p) for p in paths.values()))
+    _print_written(paths)
+
+
+def _print_written(paths: dict[str, Path]) -> None:
+    if set(paths) == {"timing"}:
+        print(f"report unchanged (figures as committed); timings in {paths['timing']}")
+    else:
+        print("wrote " + ", ".join(str(p) for p in paths.values()))
 
 
 def _cmd_reach(args: argparse.Namespace) -> int:
@@ -154,7 +163,9 @@ def _cmd_reach(args: argparse.Namespace) -> int:
             workers=args.workers,
             progress=progress,
         )
-    paths = write_reach(geom, analysis, _out_dir(args), _command(args, "reach"), t_start=t0)
+    paths = write_reach(
+        geom, analysis, _out_dir(args), _command(args, "reach"), t_start=t0, force=args.force
+    )
     if args.json:
         emit_json(reach_json(analysis))
     else:
@@ -175,7 +186,7 @@ def _cmd_reach(args: argparse.Namespace) -> int:
             f"rail spacing {analysis.rail_spacing[0] * 1e3:.1f} .. "
             f"{analysis.rail_spacing[1] * 1e3:.1f} mm"
         )
-        print("wrote " + ", ".join(str(x) for x in paths.values()))
+        _print_written(paths)
     return 0
 
 
@@ -204,6 +215,9 @@ def register(
     )
     common.add_argument("--json", action="store_true", help="print one JSON object")
     common.add_argument("--out", help="output directory (default: analyses/)")
+    common.add_argument(
+        "--force", action="store_true", help="replace a report whose figures changed"
+    )
 
     p = groups["report"].add_parser(
         "envelope",
