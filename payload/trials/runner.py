@@ -325,9 +325,9 @@ def _run_trial(
 ) -> dict[str, Any]:
     """Run one trial and write its folder ``out`` (arguments: :func:`run_trial`)."""
     from payload.sim.driver import SimDriver
-    from payload.trials.campaign import finish_trial
     from payload.trials.metrics import CONFIRM_MAX_GAP_S, CONFIRM_MIN_S
     from payload.trials.recorder import TrialRecorder
+    from payload.trials.scoring import finish_trial
 
     driver = SimDriver()
     layout = driver.world.layout
