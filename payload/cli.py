@@ -26,7 +26,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from payload.errors import PayloadError
+from payload.errors import PayloadError, RunAborted
 from payload.project import ENV_VAR, Project, ProjectError, find_project, project_of
 
 # Modules providing ``register(sub, groups)``; each adds its own subcommands to the top
@@ -100,6 +100,8 @@ def _cmd_build(args: argparse.Namespace) -> int:
     if args.root:  # hidden: generate into any folder (tests), no project involved
         design, root = load_design(args.design), Path(args.root)
     else:
+        if args.design and not args.check:
+            _check_own_design(Path(args.design))
         project = command_project(args, args.design)
         design, root = load_design(args.design or project.design_path), project.root
     t0 = time.perf_counter()
@@ -116,6 +118,22 @@ def _cmd_build(args: argparse.Namespace) -> int:
     dt = time.perf_counter() - t0
     print(f"wrote {len(result.files)} files under {root} in {dt:.2f} s")
     return 0
+
+
+def _check_own_design(design: Path) -> None:
+    """Building writes a design's models into its own project, so the design must be a
+    project's ``cad/design.toml``.
+
+    Raises:
+        PayloadError: The file is not a project's ``cad/design.toml``.
+    """
+    owner = project_of(design)
+    if owner is None or owner.design_path != design.expanduser().resolve():
+        raise PayloadError(
+            f"{design}: not a design project's cad/design.toml, so its models have no project "
+            "to go to; nothing written (make one with `payload new DIR`, or compare with "
+            "--check)"
+        )
 
 
 def _cmd_summary(args: argparse.Namespace) -> int:
@@ -256,6 +274,7 @@ def build_parser() -> argparse.ArgumentParser:
         register_fn: Callable[..., None] = module.register
         register_fn(sub, groups)
     _add_project_option(parser)
+    _strict(parser)
     return parser
 
 
@@ -275,15 +294,31 @@ def _add_project_option(parser: argparse.ArgumentParser) -> None:
             _add_project_option(child)
 
 
+def _strict(parser: argparse.ArgumentParser) -> None:
+    """No abbreviated options anywhere (``--sample`` is not ``--samples``), and every
+    (sub)command remembers its parser, so a wrong option prints that command's usage."""
+    parser.allow_abbrev = False
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for child in action.choices.values():
+                child.set_defaults(_parser=child)
+                _strict(child)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``payload`` console script; returns the exit code."""
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args, unknown = parser.parse_known_args(argv)
+    if unknown:  # the usage of the subcommand given, not the top level's (exits 2)
+        getattr(args, "_parser", parser).error(f"unrecognized arguments: {' '.join(unknown)}")
     saved = os.environ.get(ENV_VAR)
     try:
         return int(args.func(args) or 0)
     except CheckFailed as exc:
         print(f"payload: check failed: {exc}", file=sys.stderr)
+        return 1
+    except RunAborted as exc:
+        print(f"payload: aborted: {exc}", file=sys.stderr)
         return 1
     except PayloadError as exc:
         print(f"payload: error: {exc}", file=sys.stderr)

@@ -23,3 +23,10 @@ class DesignError(PayloadError):
 
 class BuildError(PayloadError):
     """Generating the models failed (a solid is not watertight, a file cannot be written)."""
+
+
+class RunAborted(Exception):
+    """A run started and was aborted by an unexpected error (exit 1, not a bad input).
+
+    What it had recorded is kept; the message says where.
+    """

@@ -1,54 +1,84 @@
-"""The command line's entry points: ``payload --version`` and ``python -m payload``."""
+"""The command line as a whole: no abbreviated options, a wrong option prints the
+subcommand's usage, and bad input files give one line and exit 2."""
 
 from __future__ import annotations
 
-import math
-import subprocess
-import sys
-from importlib.metadata import version
+import argparse
+from pathlib import Path
 
-from payload.cli import main
+import pytest
+from conftest import ROOT
 
+from payload.cli import build_parser, main
 
-def test_version_matches_installed_distribution(capsys) -> None:
-    try:
-        main(["--version"])
-    except SystemExit as exc:
-        assert exc.code == 0
-    out = capsys.readouterr().out.strip()
-    assert out == f"payload {version('astrobee-payload')}"
+STL = ROOT / "cad" / "meshes" / "finger_distal.stl"
 
 
-def test_python_dash_m_runs_the_same_cli() -> None:
-    res = subprocess.run(
-        [sys.executable, "-m", "payload", "--version"], capture_output=True, text=True, check=False
-    )
-    assert res.returncode == 0
-    assert res.stdout.strip() == f"payload {version('astrobee-payload')}"
-    bad = subprocess.run(
-        [sys.executable, "-m", "payload", "no-such-command"],
-        capture_output=True,
-        text=True,
-        check=False,
-    )
-    assert bad.returncode == 2
-    assert "invalid choice" in bad.stderr
+def _parsers(parser: argparse.ArgumentParser, path: str = "payload"):
+    yield path, parser
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, child in action.choices.items():
+                yield from _parsers(child, f"{path} {name}")
 
 
-def test_summary_tables_keep_one_line_per_row_and_their_units_when_piped(design_dict) -> None:
-    res = subprocess.run(
-        [sys.executable, "-m", "payload", "summary"], capture_output=True, text=True, check=True
-    )
-    lines = res.stdout.splitlines()
-    lo, hi = design_dict["finger"]["limits"]["mcp_flex"]
-    for finger in "ABCD":
-        row = [ln for ln in lines if f" {finger}_mcp_flex " in ln]
-        assert len(row) == 1, row
-        # the limits stand on the joint's own line, in degrees, from the design file
-        assert f"{math.degrees(lo):.1f} deg" in row[0]
-        assert f"{math.degrees(hi):.1f} deg" in row[0]
-    header = next(ln for ln in lines if "posture" in ln)
-    for col in ("x [mm]", "y [mm]", "z [mm]", "size [mm]"):
-        assert col in header
-    # a wrapped row would leave a continuation line with an empty first cell
-    assert not [ln for ln in lines if ln.startswith("│ ") and ln[2:12].strip() == ""]
+def test_no_parser_accepts_abbreviations() -> None:
+    found = dict(_parsers(build_parser()))
+    assert {"payload trial", "payload trials run", "payload report reach"} <= set(found)
+    assert [path for path, p in found.items() if p.allow_abbrev] == []
+
+
+@pytest.mark.parametrize(
+    ("argv", "usage"),
+    [
+        (["report", "reach", "--sample", "1000"], "usage: payload report reach"),
+        (["trials", "run", "--n", "1", "--out", "x", "--work", "2"], "usage: payload trials run"),
+        (["trial", "--sed", "3"], "usage: payload trial "),
+        (["trials", "summarize", "x", "--recomp"], "usage: payload trials summarize"),
+        (["build", "--chec"], "usage: payload build"),
+    ],
+)
+def test_a_wrong_option_prints_the_subcommands_usage(argv, usage, capsys) -> None:
+    with pytest.raises(SystemExit) as info:
+        main(argv)
+    assert info.value.code == 2
+    err = capsys.readouterr().err
+    assert err.startswith(usage), err
+    assert f"unrecognized arguments: {argv[-2] if argv[-1].isdigit() else argv[-1]}" in err
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["summary", "--design", str(STL)], "not a text (UTF-8 TOML) file"),
+        (["report", "envelope", "--design", str(STL)], "not a text (UTF-8 TOML) file"),
+        (["trial", "--operator", "replay", str(STL)], "not a payload-hands recording"),
+    ],
+)
+def test_binary_input_files_give_one_line_and_exit_2(argv, message, capsys) -> None:
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and message in err[0] and str(STL) in err[0]
+
+
+def test_build_of_a_design_outside_a_project_writes_nothing(tmp_path: Path, capsys) -> None:
+    variant = tmp_path / "variant.toml"
+    variant.write_text((ROOT / "cad" / "design.toml").read_text())
+    committed = {p: p.stat().st_mtime_ns for p in (ROOT / "urdf").iterdir()}
+    assert main(["build", "--design", str(variant)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "not a design project's cad/design.toml" in err[0]
+    assert {p: p.stat().st_mtime_ns for p in (ROOT / "urdf").iterdir()} == committed
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["variant.toml"]
+
+
+def test_build_of_another_projects_design_writes_that_project(tmp_path: Path, capsys) -> None:
+    project = tmp_path / "wide"
+    (project / "cad").mkdir(parents=True)
+    (project / "cad" / "design.toml").write_text((ROOT / "cad" / "design.toml").read_text())
+    committed = {p: p.stat().st_mtime_ns for p in (ROOT / "urdf").iterdir()}
+    assert main(["build", "--design", str(project / "cad" / "design.toml")]) == 0
+    assert (project / "urdf" / "payload.urdf").read_bytes() == (
+        ROOT / "urdf" / "payload.urdf"
+    ).read_bytes()
+    assert {p: p.stat().st_mtime_ns for p in (ROOT / "urdf").iterdir()} == committed

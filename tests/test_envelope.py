@@ -449,3 +449,28 @@ def test_generated_envelope_report_is_committed_and_names_the_assumption():
     data = json.loads((ROOT / "analyses" / "envelope.json").read_text())
     assert "ASSUMPTION" in md.read_text()
     assert data["design"] == "cad/design.toml" and Path(DESIGN).exists()
+
+
+def test_a_report_is_rewritten_only_when_its_figures_change(tmp_path):
+    out = tmp_path / "analyses"
+    assert run_cli("report", "envelope", "--out", str(out)).returncode == 0
+    names = ("envelope.md", "envelope.json", "envelope.png")
+    first = {n: ((out / n).read_bytes(), (out / n).stat().st_mtime_ns) for n in names}
+    committed = json.loads((out / "envelope.json").read_text())
+    assert "seconds" not in committed and "seconds" not in (committed["stowed_search"] or {})
+    assert json.loads((out / "envelope.timing.json").read_text())["seconds"] >= 0
+    # a second run changes only the (uncommitted) timings
+    res = run_cli("report", "envelope", "--out", str(out))
+    assert res.returncode == 0 and "report unchanged" in res.stdout
+    assert {n: ((out / n).read_bytes(), (out / n).stat().st_mtime_ns) for n in names} == first
+    # a report with other figures is not replaced without --force
+    committed["min_clearance_mm"] = -1.0
+    (out / "envelope.json").write_text(json.dumps(committed, indent=2) + "\n")
+    edited = (out / "envelope.json").read_bytes()
+    res = run_cli("report", "envelope", "--out", str(out))
+    assert res.returncode == 2
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and "figures changed" in lines[0] and "--force" in lines[0]
+    assert (out / "envelope.json").read_bytes() == edited
+    assert run_cli("report", "envelope", "--out", str(out), "--force").returncode == 0
+    assert (out / "envelope.json").read_bytes() == first["envelope.json"][0]

@@ -6,15 +6,22 @@ these tests quick while exercising every part a full trial uses.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
+import logging
+import socket
+import subprocess
+import sys
 from importlib.metadata import version
 from pathlib import Path
 
 import numpy as np
+import pytest
 from conftest import DESIGN
 
-from payload.trials.campaign import run_campaign, trial_dir
+from payload.project import Project
+from payload.trials.campaign import run_campaign, runner_trial_fn, trial_dir
 from payload.trials.recorder import read_recording
 from payload.trials.runner import run_trial
 
@@ -55,3 +62,209 @@ def test_a_dask_campaign_of_real_trials_matches_the_serial_run(tmp_path):
         b = read_recording(trial_dir(tmp_path / "dask", seed) / "log.mcap")
         for name in FIELDS:
             assert np.array_equal(np.asarray(getattr(a, name)), np.asarray(getattr(b, name)))
+
+
+# -- thread safety: the same trials on any Dask cluster ------------------------------------
+THREADED = 14.0  # calibration (12 s) and 2 s of retargeting: concurrent solves on one
+# shared retargeter, as before the fix, already change the commands
+THREADED_SEEDS = [3, 4]
+
+
+@pytest.fixture(scope="module")
+def serial_campaign(tmp_path_factory):
+    out = tmp_path_factory.mktemp("serial")
+    fn = runner_trial_fn(max_time=THREADED)
+    results = run_campaign(fn, THREADED_SEEDS, out, workers=0, progress=False)
+    assert [r["error"] for r in results] == [None, None]
+    return out, results
+
+
+def _assert_same_trials(serial, other_dir: Path, other: list[dict]) -> None:
+    serial_dir, serial_results = serial
+    assert [r["error"] for r in other] == [None] * len(THREADED_SEEDS)
+    drop = {"out_dir", "wall_s"}
+    view = [{k: v for k, v in r.items() if k not in drop} for r in other]
+    assert view == [{k: v for k, v in r.items() if k not in drop} for r in serial_results]
+    for seed in THREADED_SEEDS:
+        a = read_recording(trial_dir(serial_dir, seed) / "log.mcap")
+        b = read_recording(trial_dir(other_dir, seed) / "log.mcap")
+        assert len(a) == len(b) > THREADED / 0.02
+        for name in (*FIELDS, "q_left", "q_right"):
+            assert np.array_equal(np.asarray(getattr(a, name)), np.asarray(getattr(b, name)))
+
+
+def test_a_campaign_on_a_local_cluster_with_two_threads_per_worker_matches_serial(
+    serial_campaign, tmp_path
+):
+    from distributed import LocalCluster
+
+    with LocalCluster(
+        n_workers=1,
+        threads_per_worker=2,
+        processes=True,
+        dashboard_address=None,
+        silence_logs=logging.ERROR,
+    ) as cluster:
+        fn = runner_trial_fn(max_time=THREADED)
+        results = run_campaign(
+            fn, THREADED_SEEDS, tmp_path, scheduler=cluster.scheduler_address, progress=False
+        )
+    _assert_same_trials(serial_campaign, tmp_path, results)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def test_a_campaign_on_a_separate_dask_scheduler_and_two_thread_worker_matches_serial(
+    serial_campaign, tmp_path
+):
+    """``dask scheduler`` and ``dask worker --nthreads 2`` as separate processes."""
+    from distributed import Client
+
+    port = _free_port()
+    address = f"tcp://127.0.0.1:{port}"
+    dask = [sys.executable, "-m", "dask"]
+    log_s, log_w = (open(tmp_path / n, "w") for n in ("scheduler.log", "worker.log"))
+    scheduler = subprocess.Popen(
+        [*dask, "scheduler", "--host", "127.0.0.1", "--port", str(port), "--no-dashboard"],
+        stdout=log_s,
+        stderr=subprocess.STDOUT,
+    )
+    worker = None
+    try:
+        options = ["--nthreads", "2", "--nworkers", "1", "--host", "127.0.0.1", "--no-dashboard"]
+        worker = subprocess.Popen(
+            [*dask, "worker", address, *options],
+            stdout=log_w,
+            stderr=subprocess.STDOUT,
+            cwd=tmp_path,
+        )
+        with Client(address, timeout=60) as client:
+            client.wait_for_workers(1, timeout=120)
+            threads = sum(w["nthreads"] for w in client.scheduler_info()["workers"].values())
+        assert threads == 2
+        fn = runner_trial_fn(max_time=THREADED)
+        out = tmp_path / "campaign"
+        results = run_campaign(fn, THREADED_SEEDS, out, scheduler=address, progress=False)
+    finally:
+        for proc in (worker, scheduler):
+            if proc is not None:
+                proc.terminate()
+        for proc in (worker, scheduler):
+            if proc is not None:
+                try:
+                    proc.wait(timeout=30)
+                except subprocess.TimeoutExpired:
+                    proc.kill()
+        log_s.close()
+        log_w.close()
+    _assert_same_trials(serial_campaign, out, results)
+
+
+# -- never overwrite a trial ---------------------------------------------------------------
+def test_a_second_trial_into_an_existing_folder_is_refused_and_force_replaces(tmp_path, capsys):
+    from payload.cli import main
+
+    out = tmp_path / "t"
+    run_trial(1, out_dir=out, max_time=1.0)
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    assert {"log.mcap", "hands.jsonl", "metrics.json"} <= set(before)
+    assert main(["trial", "--seed", "2", "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "already holds a trial" in err[0] and "--force" in err[0]
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+    # --force replaces it, file by file, with nothing left over
+    run_trial(2, out_dir=out, max_time=1.0, force=True)
+    assert sorted(p.name for p in out.iterdir()) == sorted(before)
+    assert read_recording(out / "log.mcap").meta["seed"] == 2
+    assert json.loads((out / "metrics.json").read_text())["seed"] == 2
+
+
+def test_default_trial_folders_are_new(tmp_path):
+    # this checkout's design and models, with its runs/ moved to a temporary folder
+    project = dataclasses.replace(Project.at(DESIGN.parents[1]), runs_dir=tmp_path / "runs")
+    a = run_trial(0, max_time=0.1, project=project)
+    b = run_trial(0, max_time=0.1, project=project)
+    assert Path(a["out_dir"]) == tmp_path / "runs" / "trial-0000"
+    assert Path(b["out_dir"]) == tmp_path / "runs" / "trial-0000-2"
+    assert (tmp_path / "runs" / "trial-0000" / "log.mcap").is_file()
+
+
+# -- a bug is not a safety event -----------------------------------------------------------
+def test_an_exception_in_the_finger_channel_aborts_the_trial_and_keeps_the_recording(
+    tmp_path, monkeypatch, capsys
+):
+    from payload.cli import main
+    from payload.retarget.casadi_solver import PairRetargeter
+    from payload.teleop.replay import read_hand_recording
+
+    real = PairRetargeter.solve
+    calls = []
+
+    def buggy(self, *args, **kwargs):
+        calls.append(self.pair)
+        if len(calls) > 20:
+            raise TypeError("injected bug")
+        return real(self, *args, **kwargs)
+
+    monkeypatch.setattr(PairRetargeter, "solve", buggy)
+    out = tmp_path / "t"
+    assert main(["trial", "--seed", "3", "--out", str(out)]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "aborted" in err[0] and "TypeError: injected bug" in err[0]
+    assert len(calls) == 21  # the trial stopped at the first failing solve
+    rec = read_recording(out / "log.mcap")
+    assert rec.complete and rec.meta["aborted_by"] == "TypeError: injected bug"
+    assert "injected bug" in rec.meta["aborted"]
+    assert rec.meta["aborted_at_s"] == pytest.approx(rec.t[-1])
+    # every step up to the fault is kept, with its hand frame; nothing was scored
+    _, frames = read_hand_recording(out / "hands.jsonl")
+    assert len(frames) == len(rec) > 12.0 / 0.02
+    assert not (out / "metrics.json").exists()
+
+
+# -- replay timing -------------------------------------------------------------------------
+def _session(path: Path, rate: float, seconds: float, seed: int) -> list:
+    from payload.teleop.hands import Hand, HandFrame
+    from payload.teleop.replay import HandRecordingWriter
+
+    rng = np.random.default_rng(seed)
+    base = {s: rng.normal(scale=0.03, size=(25, 3)) for s in ("left", "right")}
+    frames = []
+    with HandRecordingWriter(path, meta={"seed": seed, "rate_hz": rate}) as w:
+        for k in range(round(seconds * rate) + 1):
+            t = k / rate
+            hands = [Hand(base[s] + 0.01 * np.sin(2 * np.pi * 0.5 * t)) for s in base]
+            frames.append(HandFrame(t, hands[0], hands[1]))
+            w.write(frames[-1])
+    return frames
+
+
+@pytest.mark.parametrize("rate", [72.0, 90.0])
+def test_a_replay_honours_recorded_timestamps_and_records_its_source(tmp_path, rate):
+    from payload.teleop.replay import read_hand_recording
+    from payload.trials.runner import TrialError
+
+    src = tmp_path / "session"
+    seconds = 2.0
+    frames = _session(src / "hands.jsonl", rate, seconds, seed=7)
+    with pytest.raises(TrialError, match="folder it reads from"):
+        run_trial(operator="replay", replay=src / "hands.jsonl", out_dir=src)
+    out = tmp_path / "replayed"
+    run_trial(operator="replay", replay=src / "hands.jsonl", out_dir=out)
+    rec = read_recording(out / "log.mcap")
+    # 50 Hz steps over the session's own duration, not one step per recorded frame
+    assert len(rec) == round(seconds / 0.02) + 1
+    assert rec.t[-1] == pytest.approx(seconds)
+    for k in range(len(rec)):  # sample and hold: the latest frame at or before k * 20 ms
+        j = max(i for i, f in enumerate(frames) if f.stamp <= k * 0.02 + 1e-9)
+        assert np.array_equal(rec.left_joints[k], frames[j].left.joints), k
+    assert rec.meta["seed"] == 7 and rec.meta["operator"] == "replay"
+    assert rec.meta["replay"]["file"] == str(src / "hands.jsonl")
+    assert rec.meta["replay"]["seed"] == 7
+    assert rec.meta["replay"]["rate_hz"] == pytest.approx(rate)
+    header, resampled = read_hand_recording(out / "hands.jsonl")
+    assert header["meta"]["seed"] == 7 and len(resampled) == len(rec)

@@ -737,7 +737,8 @@ def test_cli_trial_and_campaign(tmp_path: Path, monkeypatch, capsys) -> None:
     replay = tmp_path / "hands.mcap"
     replay.write_bytes(b"x")
     assert main(["trial", "--operator", "replay", str(replay), "--out", str(tmp_path / "r")]) == 0
-    assert calls[-1] == {"seed": 0, "operator": "replay", "replay": replay}
+    # a replay's seed is left to the runner, which records the source's
+    assert calls[-1] == {"seed": None, "operator": "replay", "replay": replay}
     capsys.readouterr()
 
     camp = tmp_path / "camp"
@@ -760,13 +761,30 @@ def test_cli_trial_and_campaign(tmp_path: Path, monkeypatch, capsys) -> None:
     assert main(["trials", "summarize", str(camp)]) == 0
     text = capsys.readouterr().out
     assert "| task success | 3/3 | 10/10 |" in text and "NOT the paper" not in text
-    # rescoring with a relaxed contact definition is stated in the files it writes
+    # rescoring with a relaxed contact definition writes beside the originals, named by
+    # the definition, and says so; the originals stay byte for byte
+    originals = {p: p.read_bytes() for p in camp.rglob("*") if p.is_file()}
     assert main(["trials", "summarize", str(camp), "--max-gap-s", "0.1", "--json"]) == 0
     relaxed = json.loads(capsys.readouterr().out)
     assert relaxed["contact_definition"] == {"min_interval_s": 0.0, "max_gap_s": 0.1}
     assert relaxed["run"] == summary["run"]  # how the campaign ran is kept
-    assert json.loads((camp / "trial-0002" / "metrics.json").read_text())["max_gap_s"] == 0.1
-    assert "NOT the paper's definition" in (camp / "summary.md").read_text()
+    assert {p: p.read_bytes() for p in originals} == originals
+    tag = "contact-min0s-gap0.1s"
+    rescored = json.loads((camp / "trial-0002" / f"metrics.{tag}.json").read_text())
+    assert rescored["max_gap_s"] == 0.1
+    assert (camp / "trial-0002" / f"fig_route.{tag}.png").is_file()
+    assert "NOT the paper's definition" in (camp / f"summary.{tag}.md").read_text()
+    assert "NOT the paper" not in (camp / "summary.md").read_text()
+    assert json.loads((camp / f"summary.{tag}.json").read_text())["contact_definition"] == {
+        "min_interval_s": 0.0,
+        "max_gap_s": 0.1,
+    }
+    # the same rescoring again changes nothing; a campaign is never run over another
+    assert main(["trials", "summarize", str(camp), "--max-gap-s", "0.1", "--json"]) == 0
+    capsys.readouterr()
+    assert main([*args, "--json"]) == 2
+    assert "already holds a campaign" in capsys.readouterr().err
+    assert {p: p.read_bytes() for p in originals} == originals
 
 
 @pytest.mark.parametrize(
@@ -796,3 +814,73 @@ def test_cli_bench_recorder(capsys) -> None:
     # ~230 numbers per step as JSON: far more than 1 kB, far less than 100 kB per step
     assert 1e3 * 100 / 1e6 < out["file_mb_per_min"] * 2 / 60 < 1e5 * 100 / 1e6
     assert 0 < out["write_us_median"] <= out["write_us_p99"]
+
+
+# -- every step validated --------------------------------------------------------------
+def _bad(msg: dict[str, Any], field: str, value: Any) -> dict[str, Any]:
+    out = dict(msg)
+    if value is _MISSING:
+        del out[field]
+    else:
+        out[field] = value
+    return out
+
+
+_MISSING = object()
+BAD_STEPS = [
+    ("q_cmd", _MISSING, "q_cmd: missing"),
+    ("q_cmd", [0.0] * 16, "q_cmd: expected 17 numbers, got a list of 16"),
+    ("q_cmd", [0.0] * 16 + ["x"], "q_cmd: [16]: expected a number, got str"),
+    ("q_left", [0.0] * 7 + [True], "q_left: [7]: expected a number, got bool"),
+    ("left_joints", [[0.0] * 3] * 24 + [[0.0] * 2], "left_joints: [24]: expected 3 numbers"),
+    ("ctb_pos", [0.0, math.inf, 0.0], "ctb_pos: [1]: expected a finite number, got inf"),
+    ("phase", "flying", "phase: expected one of ['calibration'"),
+    ("contact", 1, "contact: expected true or false, got int 1"),
+    ("t", None, "t: expected a number, got null"),
+]
+
+
+@pytest.mark.parametrize(("field", "value", "message"), BAD_STEPS)
+def test_check_step_names_step_field_and_expectation(field: str, value: Any, message: str) -> None:
+    from payload.trials.stepcheck import StepError, check_step
+
+    good = {"seq": 0, "wall_time": 0.0, **make_step(0.0).to_json_dict()}
+    check_step(good, FIELD_SPECS, 0)
+    with pytest.raises(StepError) as info:
+        check_step(_bad(good, field, value), FIELD_SPECS, 57, "runs/x/log.mcap")
+    assert str(info.value).startswith(f"runs/x/log.mcap: step 57: {message}"), str(info.value)
+
+
+def _recording_with_bad_step(path: Path, field: str, value: Any, at: int = 30) -> None:
+    """A recording whose step ``at`` (of 60) carries a bad field, written as the
+    recorder writes a step."""
+    with TrialRecorder(path) as rec:
+        for k in range(60):
+            step = make_step(k * DT)
+            if k != at:
+                rec.write(step)
+                continue
+            msg = _bad({"seq": k, "wall_time": 0.0, **step.to_json_dict()}, field, value)
+            rec._require_open().add_message(
+                channel_id=rec._channel,
+                log_time=0,
+                publish_time=round(k * DT * 1e9),
+                data=json.dumps(msg).encode(),
+                sequence=k,
+            )
+
+
+@pytest.mark.parametrize(("field", "value", "message"), BAD_STEPS[:3] + BAD_STEPS[5:7])
+def test_a_bad_step_in_the_middle_of_a_recording_gives_one_line_and_exit_2(
+    tmp_path: Path, field: str, value: Any, message: str, capsys
+) -> None:
+    from payload.cli import main
+
+    path = tmp_path / "log.mcap"
+    _recording_with_bad_step(path, field, value)
+    with pytest.raises(RecordingError, match=f"step 30: {field}"):
+        read_recording(path)
+    assert main(["export", "lerobot", str(path), "--out", str(tmp_path / "ds")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"{path}: step 30: {message}" in err[0], err
+    assert not (tmp_path / "ds").exists()

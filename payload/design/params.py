@@ -377,6 +377,11 @@ def load_design(path: str | Path | None = None) -> Design:
         text = p.read_text(encoding="utf-8")
     except OSError as exc:
         raise DesignError(str(p), f"cannot read design file ({exc.strerror})") from exc
+    except UnicodeDecodeError as exc:
+        raise DesignError(
+            str(p),
+            f"not a text (UTF-8 TOML) file: byte {exc.start} is 0x{exc.object[exc.start]:02x}",
+        ) from None
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:

@@ -117,7 +117,9 @@ def _cmd_envelope(args: argparse.Namespace) -> int:
         analysis = analyse_envelope(geom, vehicle, search=args.search, progress=progress)
     analysis.seconds = time.perf_counter() - t0
     record = _recorder(args)
-    paths = write_envelope(geom, analysis, _out_dir(args), _command(args, "envelope"), record)
+    paths = write_envelope(
+        geom, analysis, _out_dir(args), _command(args, "envelope"), record, force=args.force
+    )
     if args.json:
         emit_json(_stdout_json(args, record(envelope_json(analysis))))
     else:
@@ -147,7 +149,14 @@ def _print_envelope(analysis: EnvelopeAnalysis, paths: dict[str, Path]) -> None:
             f"stowed-posture search: finger [{fing}] rad -> min clearance "
             f"{s.clearance * 1e3:.2f} mm ({s.limited_by}); {'passes' if c.passed else 'fails'}"
         )
-    print("wrote " + ", ".join(str(p) for p in paths.values()))
+    _print_written(paths)
+
+
+def _print_written(paths: dict[str, Path]) -> None:
+    if set(paths) == {"timing"}:
+        print(f"report unchanged (figures as committed); timings in {paths['timing']}")
+    else:
+        print("wrote " + ", ".join(str(p) for p in paths.values()))
 
 
 def _cmd_reach(args: argparse.Namespace) -> int:
@@ -181,7 +190,9 @@ def _cmd_reach(args: argparse.Namespace) -> int:
         )
     record = _recorder(args)
     command = _command(args, "reach")
-    paths = write_reach(geom, analysis, _out_dir(args), command, t_start=t0, record=record)
+    paths = write_reach(
+        geom, analysis, _out_dir(args), command, t_start=t0, record=record, force=args.force
+    )
     if args.json:
         emit_json(_stdout_json(args, record(reach_json(analysis))))
     else:
@@ -202,7 +213,7 @@ def _cmd_reach(args: argparse.Namespace) -> int:
             f"rail spacing {analysis.rail_spacing[0] * 1e3:.1f} .. "
             f"{analysis.rail_spacing[1] * 1e3:.1f} mm"
         )
-        print("wrote " + ", ".join(str(x) for x in paths.values()))
+        _print_written(paths)
     return 0
 
 
@@ -231,6 +242,9 @@ def register(
     )
     common.add_argument("--json", action="store_true", help="print one JSON object")
     common.add_argument("--out", help="output directory (default: analyses/)")
+    common.add_argument(
+        "--force", action="store_true", help="replace a report whose figures changed"
+    )
 
     p = groups["report"].add_parser(
         "envelope",

@@ -54,22 +54,39 @@ class SyntheticSource:
 
 
 class ReplaySource:
-    """Recorded frames replayed one per control step, in order."""
+    """Recorded frames resampled to the control rate by their recorded timestamps.
 
-    def __init__(self, frames: list[HandFrame]) -> None:
+    Control time ``t`` is matched to recorded time ``stamp_0 + t``: the source gives the
+    latest frame stamped at or before it (sample and hold). A 72 or 90 Hz session thus
+    replays at its own speed (frames between two control steps are skipped; a slower one
+    repeats frames), and a 50 Hz recording gives back every frame once. Frames are used
+    in file order, so a stamp going backwards still reaches the safety supervisor. The
+    source ends with its last frame.
+
+    Args:
+        frames: The recorded frames, in file order.
+        tolerance: Slack [s] on "at or before", for stamps rounded when recorded.
+    """
+
+    def __init__(self, frames: list[HandFrame], tolerance: float = 1e-6) -> None:
         self.frames = frames
-        self.index = 0
+        self.tolerance = tolerance
+        self.index = -1  # the frame given last
+        self.t0 = float(frames[0].stamp) if frames else 0.0
 
     def frame(self, t: float, world: WorldView | None) -> HandFrame | None:
-        if self.index >= len(self.frames):
+        if not self.frames or self.finished:
             return None
-        fr = self.frames[self.index]
-        self.index += 1
-        return fr
+        target = self.t0 + t + self.tolerance
+        nxt = self.index + 1
+        while nxt < len(self.frames) and (nxt == 0 or self.frames[nxt].stamp <= target):
+            self.index = nxt
+            nxt += 1
+        return self.frames[self.index]
 
     @property
     def finished(self) -> bool:
-        return self.index >= len(self.frames)
+        return self.index >= len(self.frames) - 1
 
 
 class PhaseTracker:

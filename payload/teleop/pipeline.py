@@ -33,12 +33,17 @@ from payload.schema import CONTROL_DT, PayloadCommand, VehicleTwist
 from payload.teleop.calibration import CalibrationError, Captures
 from payload.teleop.channels import BaseChannel, BaseCommand, BaseConfig, RailConfig, rail_command
 from payload.teleop.filters import OneEuroConfig, OneEuroFilter
-from payload.teleop.hands import Hand, HandFrame, pinch_points, wrist_frame
+from payload.teleop.hands import Hand, HandFrame, HandFrameError, pinch_points, wrist_frame
 from payload.teleop.safety import Blender, SafetyConfig, SafetyEvent, TrackingSupervisor
 
 log = logging.getLogger(__name__)
 
 HAND_OF_PAIR = {"L": "left", "R": "right"}
+
+TRACKING_FAULTS: tuple[type[Exception], ...] = (RetargetError, HandFrameError)
+"""What bad hand data raises in the finger channel (degenerate or non-finite geometry, a
+malformed hand, a target or solve the retargeter rejects): the pair holds and a safety
+event is logged. Any other exception is a bug: it propagates and aborts the session."""
 
 
 def human_features(hand: Hand) -> PairFeatures:
@@ -243,10 +248,9 @@ class TeleopPipeline:
                 try:
                     targets, q_ref = self.calibration.pairs[pair].command(human_features(hand))
                     fresh, solves[pair] = self.retargeters[pair].solve(targets, q_ref=q_ref)
-                except Exception as exc:  # any solver failure holds the pair, never the loop
-                    what = exc if isinstance(exc, RetargetError) else repr(exc)
-                    events.append(SafetyEvent(t, side, "invalid", f"finger channel: {what}"))
-                    log.warning("teleop: %s hand finger channel held: %s", side, what)
+                except TRACKING_FAULTS as exc:  # bad hand data holds the pair; a bug aborts
+                    events.append(SafetyEvent(t, side, "invalid", f"finger channel: {exc}"))
+                    log.warning("teleop: %s hand finger channel held: %s", side, exc)
             q = self.blend[pair].step(fresh, weights[side] if fresh is not None else 0.0)
             q_pair[pair] = q
             # warm start from what is actually commanded (held or blended)

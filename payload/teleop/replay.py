@@ -46,12 +46,25 @@ def _hand_json(hand: Hand) -> dict[str, Any]:
 
 
 class HandRecordingWriter:
-    """Append hand frames to a JSON Lines recording (flushed every frame)."""
+    """Append hand frames to a JSON Lines recording (flushed every frame).
 
-    def __init__(self, path: str | Path, frame: str = "workbench", meta: dict | None = None):
+    An existing file is refused unless ``overwrite``.
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        frame: str = "workbench",
+        meta: dict | None = None,
+        *,
+        overwrite: bool = False,
+    ):
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._fh: IO[str] | None = self.path.open("w", encoding="utf-8")
+        try:
+            self._fh: IO[str] | None = self.path.open("w" if overwrite else "x", encoding="utf-8")
+        except FileExistsError:
+            raise ReplayError(f"{self.path}: already exists (not replaced)") from None
         header = {
             "format": FORMAT,
             "version": VERSION,
@@ -92,12 +105,20 @@ class HandRecordingWriter:
 def _parse_hand(obj: Any, where: str) -> Hand:
     if not isinstance(obj, dict) or "tracked" not in obj or "joints" not in obj:
         raise ReplayError(f"{where}: a hand needs 'tracked' and 'joints'")
+    if not isinstance(obj["tracked"], bool):
+        raise ReplayError(f"{where}: 'tracked' must be true or false, got {obj['tracked']!r}")
     if obj["joints"] is None or not obj["tracked"]:
         return Hand.untracked()
-    joints = np.asarray(obj["joints"], dtype=np.float64)
-    if joints.shape != (25, 3):
-        raise ReplayError(f"{where}: joints must be 25 x 3, got {joints.shape}")
-    return Hand(joints, True)
+    rows = obj["joints"]
+    if (
+        not isinstance(rows, list)
+        or len(rows) != 25
+        or not all(isinstance(r, list) and len(r) == 3 for r in rows)
+    ):
+        raise ReplayError(f"{where}: 'joints' must be 25 rows of [x, y, z] or null")
+    if not all(type(v) in (int, float) for r in rows for v in r):
+        raise ReplayError(f"{where}: 'joints' must hold numbers only")
+    return Hand(np.asarray(rows, dtype=np.float64), True)
 
 
 def read_hand_recording(path: str | Path) -> tuple[dict[str, Any], list[HandFrame]]:
@@ -114,6 +135,10 @@ def read_hand_recording(path: str | Path) -> tuple[dict[str, Any], list[HandFram
         lines = p.read_text(encoding="utf-8").splitlines()
     except OSError as exc:
         raise ReplayError(f"{p}: cannot read ({exc.strerror})") from exc
+    except UnicodeDecodeError as exc:
+        raise ReplayError(
+            f"{p}: not a {FORMAT} recording (not UTF-8 text: byte {exc.start})"
+        ) from None
     if not lines:
         raise ReplayError(f"{p}: empty file")
     try:
@@ -127,6 +152,10 @@ def read_hand_recording(path: str | Path) -> tuple[dict[str, Any], list[HandFram
     if list(header.get("joints", [])) != list(XR_JOINTS):
         raise ReplayError(f"{p}:1: joint list differs from the 25 XRHand joints")
     frame_kind = header.get("frame", "workbench")
+    if frame_kind not in ("workbench", "webxr"):
+        raise ReplayError(f"{p}:1: 'frame': expected 'workbench' or 'webxr', got {frame_kind!r}")
+    if not isinstance(header.get("meta", {}), dict):
+        raise ReplayError(f"{p}:1: 'meta': expected an object")
     frames: list[HandFrame] = []
     for n, line in enumerate(lines[1:], start=2):
         if not line.strip():
@@ -137,18 +166,12 @@ def read_hand_recording(path: str | Path) -> tuple[dict[str, Any], list[HandFram
         except json.JSONDecodeError as exc:
             raise ReplayError(f"{where}: not JSON ({exc.msg})") from exc
         if not isinstance(obj, dict) or not isinstance(obj.get("t"), (int, float)):
-            raise ReplayError(f"{where}: a frame needs a numeric 't'")
+            raise ReplayError(f"{where}: 't': expected a number (seconds)")
         t = float(obj["t"])
         if not np.isfinite(t):
             raise ReplayError(f"{where}: time {t} is not finite")
-        frames.append(
-            HandFrame(
-                t,
-                _parse_hand(obj.get("left"), where),
-                _parse_hand(obj.get("right"), where),
-                frame_kind,
-            )
-        )
+        hands = [_parse_hand(obj.get(side), f"{where}: {side!r}") for side in ("left", "right")]
+        frames.append(HandFrame(t, hands[0], hands[1], frame_kind))
     return header, frames
 
 

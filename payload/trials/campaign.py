@@ -29,6 +29,8 @@ import numpy as np
 
 from payload.errors import PayloadError
 from payload.project import Project
+from payload.safeio import OverwriteError, write_unless_changed
+from payload.trials.scoring import contact_tag, finish_trial
 
 TrialFn = Callable[[int, Path], dict]
 """``trial_fn(seed, out_dir) -> metrics dict`` (what :func:`finish_trial` returns)."""
@@ -78,66 +80,6 @@ def trial_dir(out_dir: str | Path, seed: int) -> Path:
     return Path(out_dir) / f"trial-{int(seed):04d}"
 
 
-# -- one trial's files -----------------------------------------------------------------
-def finish_trial(
-    out_dir: str | Path,
-    recording_path: str | Path,
-    modules: Sequence[Any] | None = None,
-    *,
-    destination: str = "node2",
-    min_interval_s: float | None = None,
-    max_gap_s: float | None = None,
-) -> dict[str, Any]:
-    """Score a finished (or cut-short) recording and write the trial's files.
-
-    Writes ``metrics.json``, ``fig_ctb_body_frame.png`` and ``fig_route.png`` into
-    ``out_dir``. The runner calls this after its loop ends.
-
-    Args:
-        out_dir: The trial folder.
-        recording_path: Its ``log.mcap``.
-        modules: Module outlines for the route plot (see
-            :func:`~payload.trials.figures.plot_route`); defaults to the recording's
-            ``modules`` metadata if present.
-        destination: Destination module for the success criterion.
-        min_interval_s: Contact-interval relaxation (see
-            :func:`~payload.trials.metrics.compute_metrics`); 0 = the paper's definition.
-        max_gap_s: Contact-interval relaxation; 0 = the paper's definition.
-
-    Returns:
-        The metrics dict written to ``metrics.json`` (fields of
-        :class:`~payload.trials.metrics.TrialMetrics` plus ``seed``, ``criterion`` and
-        ``recording``).
-    """
-    from payload.trials.figures import plot_ctb_body_frame, plot_route
-    from payload.trials.metrics import compute_metrics
-    from payload.trials.recorder import read_recording
-
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    rec = read_recording(recording_path)
-    # the contact definition the trial was recorded with, unless the caller overrides it
-    recorded = rec.meta.get("contact_definition") or {}
-    if min_interval_s is None:
-        min_interval_s = float(recorded.get("min_interval_s", 0.0))
-    if max_gap_s is None:
-        max_gap_s = float(recorded.get("max_gap_s", 0.0))
-    metrics = compute_metrics(
-        rec, destination=destination, min_interval_s=min_interval_s, max_gap_s=max_gap_s
-    )
-    result = {"seed": rec.meta.get("seed"), **metrics.as_dict()}
-    rec_path = Path(recording_path)
-    result["recording"] = (
-        rec_path.name if rec_path.resolve().parent == out.resolve() else str(rec_path)
-    )
-    (out / "metrics.json").write_text(json.dumps(result, indent=2) + "\n")
-    plot_ctb_body_frame(rec, out / "fig_ctb_body_frame.png", metrics)
-    plot_route(
-        rec, out / "fig_route.png", modules if modules is not None else rec.meta.get("modules")
-    )
-    return result
-
-
 # -- running ---------------------------------------------------------------------------
 def _call_trial(trial_fn: TrialFn, seed: int, out_dir: str) -> dict[str, Any]:
     """Run one trial, timing it and turning an exception into an ``error`` entry."""
@@ -159,7 +101,12 @@ def _call_trial(trial_fn: TrialFn, seed: int, out_dir: str) -> dict[str, Any]:
 
 
 def _runner_trial(
-    seed: int, out_dir: Path, operator: str = "synthetic", project: Path | None = None
+    seed: int,
+    out_dir: Path,
+    operator: str = "synthetic",
+    project: Path | None = None,
+    max_time: float | None = None,
+    force: bool = False,
 ) -> dict[str, Any]:
     try:
         from payload.trials.runner import run_trial
@@ -169,25 +116,39 @@ def _runner_trial(
         raise CampaignError(
             "payload.trials.runner (the teleoperation trial loop, issue 6) is not installed yet"
         ) from None
+    extra: dict[str, Any] = {"force": True} if force else {}
+    if max_time is not None:
+        extra["max_time"] = max_time
     return run_trial(
         seed=seed,
         operator=operator,
         replay=None,
         out_dir=Path(out_dir),
         project=Project.at(project) if project is not None else None,
+        **extra,
     )
 
 
-def runner_trial_fn(operator: str = "synthetic", project: Path | None = None) -> TrialFn:
+def runner_trial_fn(
+    operator: str = "synthetic",
+    project: Path | None = None,
+    *,
+    max_time: float | None = None,
+    force: bool = False,
+) -> TrialFn:
     """The picklable campaign trial function that calls the teleoperation runner
     (``payload.trials.runner.run_trial``), imported lazily in whichever process runs it.
 
     Args:
-        operator: ``synthetic`` (campaigns replay nothing).
+        operator: The operator of every trial.
         project: Root of the design project the trials run on (default: the current
             project of the process that runs each trial).
+        max_time: Session length cap [s] (``None``: the runner's).
+        force: Replace trials already in the campaign folder.
     """
-    return functools.partial(_runner_trial, operator=operator, project=project)
+    return functools.partial(
+        _runner_trial, operator=operator, project=project, max_time=max_time, force=force
+    )
 
 
 def default_workers(n_trials: int) -> int:
@@ -460,13 +421,18 @@ def summary_markdown(summary: dict[str, Any], title: str | None = None) -> str:
     if summary.get("errors"):
         lines += ["", f"{summary['errors']} trial(s) raised an error (counted as failures)."]
     relaxed = summary.get("contact_definition") or {}
-    if relaxed.get("min_interval_s") or relaxed.get("max_gap_s"):
+    if "mixed" in relaxed:
+        pairs = ", ".join(f"{a:g} s / {b:g} s" for a, b in relaxed["mixed"])
+        lines += ["", f"Contact definitions differ between trials (min run / max gap): {pairs}."]
+    elif relaxed.get("min_interval_s") or relaxed.get("max_gap_s"):
         lines += [
             "",
             "Contact interval NOT the paper's definition: indicator dropouts up to "
             f"{relaxed.get('max_gap_s') or 0:.2f} s bridged, runs shorter than "
             f"{relaxed.get('min_interval_s') or 0:.2f} s skipped.",
         ]
+    elif relaxed:
+        lines += ["", "Contact interval: the paper's definition (no dropout bridged)."]
     run = summary.get("run")
     if run and run.get("wall_s"):
         if run.get("scheduler"):
@@ -509,8 +475,15 @@ def write_summary(
     title: str | None = None,
     run: dict[str, Any] | None = None,
     provenance: dict[str, Any] | None = None,
+    *,
+    tag: str | None = None,
+    force: bool = False,
 ) -> dict[str, Any]:
     """Write ``summary.md`` and ``summary.json`` into ``out_dir`` and return the summary.
+
+    With ``tag`` (a rescoring's contact definition) the files are ``summary.<tag>.md``
+    and ``summary.<tag>.json``, beside the originals. Files that exist with other content
+    are replaced only with ``force``; identical ones are left alone.
 
     Args:
         results: Per-trial dicts.
@@ -520,16 +493,30 @@ def write_summary(
             ``wall_s`` of the whole campaign and ``trial_wall_s``, the sum over trials).
         provenance: What the trials ran on (:func:`payload.project.provenance`), stored
             under ``provenance``.
+        tag: Name the files by this tag.
+        force: Replace files that exist with other content.
+
+    Raises:
+        OverwriteError: A summary file exists with other content and ``force`` is false.
     """
     summary = summarize(results)
+    if title is not None:
+        summary["title"] = title
     if run is not None:
         summary["run"] = run
     if provenance is not None:
         summary["provenance"] = provenance
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "summary.json").write_text(json.dumps(summary, indent=2, allow_nan=False) + "\n")
-    (out / "summary.md").write_text(summary_markdown(summary, title))
+    stem = f"summary.{tag}" if tag else "summary"
+    data = json.dumps(summary, indent=2, allow_nan=False) + "\n"
+    text = summary_markdown(summary, title)
+    files = {out / f"{stem}.json": data, out / f"{stem}.md": text}
+    for path, content in files.items():  # check both before writing either
+        if not force and path.exists() and path.read_bytes() != content.encode():
+            raise OverwriteError(f"{path}: exists with different content (pass --force to replace)")
+    write_unless_changed(out / f"{stem}.json", data, force=force)
+    write_unless_changed(out / f"{stem}.md", text, force=force)
     return summary
 
 
@@ -539,20 +526,24 @@ def load_trial_results(
     *,
     min_interval_s: float | None = None,
     max_gap_s: float | None = None,
+    force: bool = False,
 ) -> list[dict[str, Any]]:
     """Per-trial results from a campaign folder's ``trial-*`` folders, ordered by seed.
 
     Args:
         out_dir: The campaign folder.
-        recompute: Rescore every trial from its ``log.mcap`` (rewriting ``metrics.json``
-            and the figures) instead of reading ``metrics.json``; a trial without
-            ``metrics.json`` is always rescored.
+        recompute: Rescore every trial from its ``log.mcap`` instead of reading
+            ``metrics.json``, writing the results beside the originals, named by the
+            contact definition (see :func:`finish_trial`); a trial without
+            ``metrics.json`` is always scored.
         min_interval_s: Contact-interval definition used when rescoring (0 = paper;
             None = the one each recording was made with).
         max_gap_s: Same for the bridged indicator dropouts.
+        force: Replace rescoring files that exist with other content.
 
     Raises:
         CampaignError: The folder does not exist or holds no trial folders.
+        OverwriteError: A rescoring file exists with other content and ``force`` is false.
     """
     root = Path(out_dir)
     if not root.is_dir():
@@ -575,8 +566,15 @@ def load_trial_results(
                 continue
             try:
                 row = finish_trial(
-                    d, d / "log.mcap", min_interval_s=min_interval_s, max_gap_s=max_gap_s
+                    d,
+                    d / "log.mcap",
+                    min_interval_s=min_interval_s,
+                    max_gap_s=max_gap_s,
+                    beside=recompute,
+                    force=force,
                 )
+            except OverwriteError:
+                raise
             except PayloadError as exc:
                 results.append({"seed": seed, "out_dir": str(d), "error": str(exc)})
                 continue
@@ -595,6 +593,7 @@ __all__ = [
     "PAPER_RESULTS",
     "CampaignError",
     "TrialFn",
+    "contact_tag",
     "default_workers",
     "finish_trial",
     "load_trial_results",

@@ -45,27 +45,31 @@ def _parse_operator(values: list[str]) -> tuple[str, Path | None]:
 def _cmd_trial(args: argparse.Namespace) -> int:
     from payload.cli import command_project, emit_json
 
-    if args.seed < 0:
+    if args.seed is not None and args.seed < 0:
         raise TrialsCliError(f"--seed must be >= 0, got {args.seed}")
     if args.max_time is not None and not args.max_time > 0:
         raise TrialsCliError(f"--max-time must be positive, got {args.max_time}")
     operator, replay = _parse_operator(args.operator)
     project = command_project(args)
-    out = Path(args.out) if args.out else project.runs_dir / f"trial-{args.seed:04d}"
+    out = Path(args.out) if args.out else None
     run_trial = _run_trial_fn()
     extra: dict[str, Any] = {"project": project}
     if not args.json and sys.stderr.isatty():
         extra["progress"] = True
     if args.max_time is not None:
         extra["max_time"] = args.max_time
-    result = dict(run_trial(seed=args.seed, operator=operator, replay=replay, out_dir=out, **extra))
-    result.setdefault("out_dir", str(out))
+    if args.force:
+        extra["force"] = True
+    seed = args.seed if args.seed is not None or operator == "replay" else 0
+    result = dict(run_trial(seed=seed, operator=operator, replay=replay, out_dir=out, **extra))
+    out = Path(result.get("out_dir") or out)
+    seed = result.get("seed", seed)
     if args.json:
         emit_json({**result, "project": str(project.root)})
         return 0
     from payload.trials.campaign import METRIC_KEYS, METRIC_LABELS
 
-    print(f"trial seed {args.seed} ({operator}) -> {out}")
+    print(f"trial seed {seed} ({operator}) -> {out}")
     print(f"  success: {bool(result.get('success'))}")
     for key in METRIC_KEYS:
         value = result.get(key)
@@ -82,6 +86,7 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
         run_campaign,
         runner_trial_fn,
         summary_markdown,
+        trial_dir,
         write_summary,
     )
 
@@ -96,15 +101,24 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
     prov = provenance(project)
     out = Path(args.out)
     seeds = list(range(args.seed, args.seed + args.n))
+    if not args.force:
+        taken = [trial_dir(out, s) for s in seeds if any(trial_dir(out, s).glob("*"))]
+        taken += [out / n for n in ("summary.json", "summary.md") if (out / n).exists()]
+        if taken:
+            raise TrialsCliError(
+                f"{out}: already holds a campaign ({', '.join(p.name for p in taken[:4])}"
+                f"{', ...' if len(taken) > 4 else ''}); pass --force to replace it or choose "
+                "another --out"
+            )
     workers = default_workers(args.n) if args.workers is None else args.workers
     t0 = time.perf_counter()
     results = run_campaign(
-        runner_trial_fn("synthetic", project.root),
+        runner_trial_fn("synthetic", project.root, force=args.force),
         seeds,
         out,
         workers=workers,
         scheduler=args.scheduler,
-        progress=not args.json,
+        progress=not args.json and sys.stderr.isatty(),
     )
     run = {
         "workers": None if args.scheduler else workers,
@@ -113,7 +127,7 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
         "trial_wall_s": float(sum(r.get("wall_s") or 0.0 for r in results)),
     }
     title = f"Cargo-transport campaign ({args.n} trials)"
-    summary = write_summary(results, out, title=title, run=run, provenance=prov)
+    summary = write_summary(results, out, title=title, run=run, provenance=prov, force=args.force)
     if args.json:
         emit_json({**summary, "out_dir": str(out), "project": str(project.root)})
     else:
@@ -132,32 +146,62 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
 
 def _cmd_trials_summarize(args: argparse.Namespace) -> int:
     from payload.cli import emit_json
-    from payload.trials.campaign import load_trial_results, summary_markdown, write_summary
+    from payload.trials.campaign import (
+        contact_tag,
+        load_trial_results,
+        summary_markdown,
+        write_summary,
+    )
 
     for name in ("min_contact_s", "max_gap_s"):
         value = getattr(args, name)
         if value is not None and value < 0:
             raise TrialsCliError(f"--{name.replace('_', '-')} must be >= 0")
     relaxed = args.min_contact_s is not None or args.max_gap_s is not None
+    rescore = args.recompute or relaxed
     results = load_trial_results(
         args.dir,
-        recompute=args.recompute or relaxed,
+        recompute=rescore,
         min_interval_s=args.min_contact_s,
         max_gap_s=args.max_gap_s,
+        force=args.force,
     )
-    previous = Path(args.dir) / "summary.json"
-    run = None
-    if previous.is_file():
-        try:
-            run = json.loads(previous.read_text()).get("run")
-        except (json.JSONDecodeError, AttributeError):
-            run = None
-    summary = write_summary(results, args.dir, run=run)
+    previous = _previous_summary(Path(args.dir) / "summary.json")
+    wall = {t.get("seed"): t.get("wall_s") for t in previous.get("trials", [])}
+    for r in results:  # how long each trial took is known only from the campaign run
+        if r.get("wall_s") is None and wall.get(r.get("seed")) is not None:
+            r["wall_s"] = wall[r.get("seed")]
+    tag = None
+    if rescore:  # a rescoring is written beside the originals, named by its definition
+        defs = {
+            (float(r.get("min_interval_s") or 0.0), float(r.get("max_gap_s") or 0.0))
+            for r in results
+            if not r.get("error")
+        }
+        tag = contact_tag(*defs.pop()) if len(defs) == 1 else "contact-mixed"
+    summary = write_summary(
+        results,
+        args.dir,
+        title=previous.get("title"),
+        run=previous.get("run"),
+        tag=tag,
+        force=args.force,
+    )
     if args.json:
         emit_json({**summary, "out_dir": str(args.dir)})
     else:
-        print(summary_markdown(summary))
+        print(summary_markdown(summary, previous.get("title")))
     return 0
+
+
+def _previous_summary(path: Path) -> dict[str, Any]:
+    if not path.is_file():
+        return {}
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError):
+        return {}
+    return data if isinstance(data, dict) else {}
 
 
 def _cmd_export_lerobot(args: argparse.Namespace) -> int:
@@ -169,7 +213,7 @@ def _cmd_export_lerobot(args: argparse.Namespace) -> int:
         Path(args.out),
         task=args.task,
         overwrite=args.force,
-        progress=not args.json,
+        progress=not args.json and sys.stderr.isatty(),
     )
     if args.json:
         emit_json(info)
@@ -241,7 +285,9 @@ def register(
     """Add ``trial``, ``trials run|summarize``, ``export lerobot`` and
     ``bench recorder``."""
     p = sub.add_parser("trial", help="one ISS cargo-transport trial")
-    p.add_argument("--seed", type=int, default=0, help="trial seed (default 0)")
+    p.add_argument(
+        "--seed", type=int, default=None, help="trial seed (default 0; a replay: its source's)"
+    )
     p.add_argument(
         "--operator",
         nargs="+",
@@ -249,13 +295,14 @@ def register(
         metavar=("synthetic|replay", "F"),
         help="'synthetic' (default) or 'replay FILE' (a recorded hand stream)",
     )
-    p.add_argument("--out", help="trial folder (default: the project's runs/trial-NNNN)")
+    p.add_argument("--out", help="trial folder (default: a new runs/trial-NNNN[-k] in the project)")
     p.add_argument(
         "--max-time",
         type=float,
         default=None,
         help="cap on the session length [s] (default: the runner's, 240 s)",
     )
+    p.add_argument("--force", action="store_true", help="replace the trial already in --out")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=_cmd_trial)
 
@@ -272,12 +319,21 @@ def register(
     )
     r.add_argument("--scheduler", help="existing Dask scheduler, e.g. tcp://host:8786")
     r.add_argument("--out", required=True, help="campaign folder")
+    r.add_argument("--force", action="store_true", help="replace a campaign already in --out")
     r.add_argument("--json", action="store_true", help="print one JSON object")
     r.set_defaults(func=_cmd_trials_run)
 
     s = tsub.add_parser("summarize", help="rebuild summary.md/json from the trial folders")
     s.add_argument("dir", help="campaign folder")
-    s.add_argument("--recompute", action="store_true", help="rescore every trial from its log.mcap")
+    s.add_argument(
+        "--recompute",
+        action="store_true",
+        help="rescore every trial from its log.mcap (written beside the originals, named by "
+        "the contact definition)",
+    )
+    s.add_argument(
+        "--force", action="store_true", help="replace summary or rescoring files that differ"
+    )
     s.add_argument(
         "--min-contact-s",
         type=float,

@@ -18,6 +18,7 @@ from matplotlib.patches import Patch, Rectangle
 from scipy.spatial.transform import Rotation
 
 from payload.errors import PayloadError
+from payload.safeio import replacing
 from payload.trials.metrics import TrialMetrics, compute_metrics, ctb_in_body_frame
 from payload.trials.recorder import Recording
 
@@ -111,7 +112,8 @@ def _save(fig: Figure, path: Path, dpi: int) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     FigureCanvasAgg(fig)
-    fig.savefig(path, dpi=dpi)
+    with replacing(path) as tmp:  # a crash never leaves half a figure
+        fig.savefig(tmp, dpi=dpi, format=path.suffix.lstrip(".") or "png")
     return path
 
 

@@ -27,7 +27,9 @@ Frame features (float32 vectors; the names are in ``meta/info.json``):
 from __future__ import annotations
 
 import json
+import os
 import shutil
+import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -213,16 +215,28 @@ def _tasks_table(tasks: list[str]) -> Any:
     )
 
 
-def _prepare_out(out: Path, overwrite: bool) -> None:
+def _prepare_out(out: Path, overwrite: bool) -> Path:
+    """Check ``out`` and return a fresh staging folder beside it to write the dataset in."""
     if out.exists() and not out.is_dir():
         raise LeRobotExportError(f"{out}: exists and is not a folder")
-    if out.exists() and any(out.iterdir()):
-        if not overwrite:
-            raise LeRobotExportError(f"{out}: not empty (pass overwrite / --force to replace)")
-        for sub in ("meta", "data"):
-            if (out / sub).is_dir():
-                shutil.rmtree(out / sub)
+    if out.exists() and any(out.iterdir()) and not overwrite:
+        raise LeRobotExportError(f"{out}: not empty (pass overwrite / --force to replace)")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    return Path(tempfile.mkdtemp(prefix=f".{out.name}.new-", dir=out.parent))
+
+
+def _swap_in(stage: Path, out: Path) -> None:
+    """Move the finished dataset from ``stage`` into ``out``; the dataset it replaces is
+    set aside first and deleted only once the new one is in place."""
     out.mkdir(parents=True, exist_ok=True)
+    old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
+    for sub in ("meta", "data"):
+        if (out / sub).exists():
+            os.replace(out / sub, old / sub)
+    for sub in ("meta", "data"):
+        os.replace(stage / sub, out / sub)
+    shutil.rmtree(old)
+    shutil.rmtree(stage, ignore_errors=True)
 
 
 def export_lerobot(
@@ -284,7 +298,7 @@ def export_lerobot(
     loaded = read_all()
     # check every recording before touching an existing dataset at ``out``
     frames = [_episode_frames(rec, src, fps) for src, rec in loaded]
-    _prepare_out(out, overwrite)
+    final, out = out, _prepare_out(out, overwrite)
     for ep, ((src, rec), (state, action)) in enumerate(zip(loaded, frames)):
         n = state.shape[0]
         ep_task = task or str(rec.meta.get("task") or DEFAULT_TASK)
@@ -389,8 +403,9 @@ def export_lerobot(
         },
     }
     (out / "meta" / "info.json").write_text(json.dumps(info, indent=4) + "\n")
+    _swap_in(out, final)
     return {
-        "path": str(out),
+        "path": str(final),
         "episodes": len(episodes),
         "frames": index,
         "fps": fps,

@@ -67,6 +67,7 @@ from mcap.writer import CompressionType, IndexType, Writer
 
 from payload.errors import PayloadError
 from payload.schema import N_MANIPULATION
+from payload.trials.stepcheck import StepError, check_step
 
 PHASES: tuple[str, ...] = (
     "calibration",
@@ -609,6 +610,16 @@ def _complete_prefix(data: bytes) -> tuple[int, bool]:
     return pos, False
 
 
+def _decode_meta(items: dict[str, str], path: Path) -> dict[str, Any]:
+    out = {}
+    for key, value in items.items():
+        try:
+            out[key] = json.loads(value)
+        except ValueError:
+            raise RecordingError(f"{path}: metadata {key!r}: expected JSON text") from None
+    return out
+
+
 def read_recording(path: str | Path) -> Recording:
     """Read a recording written by :class:`TrialRecorder`, complete or cut short.
 
@@ -653,16 +664,19 @@ def read_recording(path: str | Path) -> Recording:
                 if channel is not None and channel.topic == STEP_TOPIC:
                     rows.append(json.loads(record.data))
             elif isinstance(record, Metadata) and record.name == META_NAME:
-                meta.update({k: json.loads(v) for k, v in record.metadata.items()})
+                meta.update(_decode_meta(record.metadata, path))
     except EndOfFile:
         pass  # the complete prefix of a cut-short file ends exactly here
-    except (McapError, ValueError) as exc:
-        raise RecordingError(f"{path}: corrupt record ({exc})") from exc
+    except (McapError, ValueError) as exc:  # JSON errors are ValueErrors too
+        where = f"step {len(rows)}" if isinstance(exc, json.JSONDecodeError) else "record"
+        raise RecordingError(f"{path}: {where}: corrupt ({exc})") from None
     if complete and not any(c.topic == STEP_TOPIC for c in channels.values()):
         raise RecordingError(f"{path}: no {STEP_TOPIC} channel (not a trial recording)")
-    missing = [n for n in FIELD_SPECS if rows and n not in rows[0]]
-    if missing:
-        raise RecordingError(f"{path}: step messages lack fields {missing}")
+    try:
+        for i, row in enumerate(rows):  # every step, not just the first
+            check_step(row, FIELD_SPECS, i, str(path))
+    except StepError as exc:
+        raise RecordingError(str(exc)) from None
     return Recording.from_dicts(rows, meta, path, complete)
 
 

@@ -1,7 +1,6 @@
 """One ISS cargo-transport trial: simulator + teleoperation pipeline + recorder + metrics.
 
-``run_trial(seed, operator, replay, out_dir, project=...)`` builds the project's world
-(its generated MJCF and design; default the current project: Astrobee with
+``run_trial(seed, operator, replay, out_dir)`` builds the default world (Astrobee with
 the deployed payload at the start of the route in Kibo, a single CTB under the fingers),
 lets the operator (synthetic, or a replayed hand recording) calibrate, acquire the CTB
 and fly it to Node 2, records every 50 Hz step into ``log.mcap`` and the raw hand frames
@@ -10,20 +9,28 @@ into ``hands.jsonl`` (so any trial can be replayed bit for bit), then scores it.
 
 from __future__ import annotations
 
+import contextlib
+import hashlib
 import json
 import logging
+import os
+import shutil
+import tempfile
+import threading
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from payload.design.params import load_design
-from payload.errors import PayloadError
+from payload.errors import PayloadError, RunAborted
 from payload.project import Project, current_project, provenance
 from payload.retarget.calibration import PairRange, pair_range
 from payload.retarget.casadi_solver import PairRetargeter
 from payload.retarget.hand import load_hand
 from payload.rotations import quat_to_matrix
+from payload.safeio import OverwriteError, check_new, new_folder, replace_file
 from payload.teleop.calibration import CalibrationProcedure, Captures
 from payload.teleop.loop import (
     ReplaySource,
@@ -50,29 +57,61 @@ class TrialError(PayloadError):
     """A trial could not be run (bad operator choice, unreadable replay)."""
 
 
-_RETARGETING: dict[tuple[Path, bytes], tuple[dict[str, PairRetargeter], dict[str, PairRange]]] = {}
+_LOCAL = threading.local()
 
 
 def retargeting(
     project: Project | None = None,
 ) -> tuple[dict[str, PairRetargeter], dict[str, PairRange]]:
-    """Production retargeters and pair ranges for our hand on ``project``'s URDF
-    (default: the current project), built once per process and URDF content."""
-    project = project or current_project()
-    hand = load_hand(project=project)
-    key = (hand.urdf, hand.urdf.read_bytes())
-    if key not in _RETARGETING:
-        from threadpoolctl import threadpool_limits
+    """Production retargeters and pair ranges for our hand on ``project``'s URDF (default:
+    the current project), built once per thread and URDF content.
 
-        retargeters: dict[str, PairRetargeter] = {}
-        ranges: dict[str, PairRange] = {}
+    A retargeter holds its solver's buffers and warm start, so concurrent trials (a Dask
+    worker with several threads) each get their own; nothing here is shared between
+    threads.
+    """
+    hand = load_hand(project=project or current_project())
+    key = (hand.urdf, hand.urdf.read_bytes())
+    built: dict[Any, Any] = getattr(_LOCAL, "retargeting", None) or {}
+    _LOCAL.retargeting = built
+    cached = built.get(key)
+    if cached is None:
         # single-threaded like the trials themselves, so every process finds the same ranges
-        with threadpool_limits(limits=1):
-            for pair in ("L", "R"):
-                retargeters[pair] = PairRetargeter(hand, pair=pair)
-                ranges[pair] = pair_range(retargeters[pair].kinematics)
-        _RETARGETING[key] = (retargeters, ranges)
-    return _RETARGETING[key]
+        with single_threaded_numerics():
+            retargeters = {pair: PairRetargeter(hand, pair=pair) for pair in ("L", "R")}
+            ranges = {pair: pair_range(r.kinematics) for pair, r in retargeters.items()}
+        cached = built[key] = (retargeters, ranges)
+    return cached
+
+
+_LIMIT_LOCK = threading.Lock()
+_LIMIT_USERS = 0
+_LIMITER: Any = None
+
+
+@contextlib.contextmanager
+def single_threaded_numerics() -> Iterator[None]:
+    """Limit BLAS and OpenMP to one thread while any trial in this process runs.
+
+    The limit is process-wide, so it is counted: the first trial to enter sets it and
+    the last to leave restores it (a thread leaving early must not lift the limit under
+    a trial still running in another thread).
+    """
+    global _LIMIT_USERS, _LIMITER
+    from threadpoolctl import threadpool_limits
+
+    with _LIMIT_LOCK:
+        if _LIMIT_USERS == 0:
+            _LIMITER = threadpool_limits(limits=1)
+        _LIMIT_USERS += 1
+    try:
+        yield
+    finally:
+        with _LIMIT_LOCK:
+            _LIMIT_USERS -= 1
+            if _LIMIT_USERS == 0:
+                _LIMITER.restore_original_limits()
+                _LIMITER = None
 
 
 def design_hash(project: Project | None = None) -> str:
@@ -145,14 +184,29 @@ def place_ctb_for_teleop(
     mujoco.mj_forward(m, driver.data)
 
 
+TRIAL_FILES: tuple[str, ...] = (
+    "log.mcap",
+    "hands.jsonl",
+    "metrics.json",
+    "fig_ctb_body_frame.png",
+    "fig_route.png",
+)
+"""What a trial writes into its folder."""
+
+
+class TrialAborted(RunAborted):
+    """The trial was aborted by an unexpected error; what it recorded is kept."""
+
+
 def run_trial(
-    seed: int,
+    seed: int | None = None,
     operator: str = "synthetic",
     replay: Path | None = None,
     out_dir: Path | None = None,
     *,
     max_time: float = MAX_TRIAL_S,
     progress: bool = False,
+    force: bool = False,
     project: Project | None = None,
 ) -> dict[str, Any]:
     """Run one trial and write its folder (reproducible: see :func:`_run_trial`).
@@ -161,55 +215,137 @@ def run_trial(
     sums in a different order, and the contact dynamics amplify the last-bit
     differences, so the same seed would otherwise give slightly different trials in a
     campaign worker and in a terminal.
-    """
-    from threadpoolctl import threadpool_limits
 
-    with threadpool_limits(limits=1):
-        return _run_trial(
-            seed,
-            operator,
-            replay,
-            out_dir,
-            max_time=max_time,
-            progress=progress,
-            project=project or current_project(),
-        )
+    Args:
+        seed: Seed of the synthetic operator (default 0). A replay records its source's
+            seed; a seed given with a replay is only a label.
+        operator: ``synthetic`` or ``replay``.
+        replay: The hand recording (``hands.jsonl``) to replay.
+        out_dir: Trial folder (default: a new ``runs/trial-<seed>[-k]``). It must not
+            hold a trial already unless ``force``; a replay never writes into the folder
+            it reads from.
+        max_time: Cap on the session length [s].
+        progress: Show a progress bar.
+        project: The design project whose models and design the trial runs on (default:
+            the current project).
+        force: Replace the trial in ``out_dir`` (each file through a temporary file and a
+            rename, after the new trial has run).
+
+    Returns:
+        The metrics (as written to ``metrics.json``).
+
+    Raises:
+        TrialError: Bad arguments, an unreadable replay, or ``out_dir`` holds a trial.
+        TrialAborted: An unexpected error ended the session; the recording is kept,
+            marked aborted, and not scored.
+    """
+    if operator not in ("synthetic", "replay"):
+        raise TrialError(f"operator must be 'synthetic' or 'replay', got {operator!r}")
+    project = project or current_project()
+    header: dict[str, Any] = {}
+    frames: list[Any] = []
+    if operator == "replay":
+        if replay is None:
+            raise TrialError("operator 'replay' needs a hand recording file")
+        header, frames = read_hand_recording(replay)
+        if seed is None:
+            source_seed = header.get("meta", {}).get("seed")
+            seed = source_seed if isinstance(source_seed, int) and source_seed >= 0 else 0
+    seed = 0 if seed is None else int(seed)
+    stem = f"trial-{seed:04d}" if operator == "synthetic" else f"replay-{seed:04d}"
+    out = Path(out_dir) if out_dir is not None else new_folder(project.runs_dir, stem)
+    if replay is not None and out.resolve() == Path(replay).resolve().parent:
+        raise TrialError(f"{out}: a replay never writes into the folder it reads from")
+    existing = [out / name for name in TRIAL_FILES]
+    try:
+        check_new(existing, force=force, what="trial")
+    except OverwriteError as exc:
+        raise TrialError(str(exc)) from None
+    out.mkdir(parents=True, exist_ok=True)
+    source = _Source(operator, seed, replay, header, frames)
+    with single_threaded_numerics():
+        if not force:
+            result = _run_trial(
+                seed, source, out, max_time=max_time, progress=progress, project=project
+            )
+            return {**result, "out_dir": str(out)}
+        staging = Path(tempfile.mkdtemp(prefix=".trial-", dir=out))
+        try:
+            result = _run_trial(
+                seed, source, staging, max_time=max_time, progress=progress, project=project
+            )
+            return {**result, "out_dir": str(out)}
+        finally:  # the new trial, finished or aborted, replaces the old one file by file
+            for name in TRIAL_FILES:
+                if (staging / name).exists():
+                    os.replace(staging / name, out / name)
+                else:
+                    (out / name).unlink(missing_ok=True)
+            shutil.rmtree(staging, ignore_errors=True)
+
+
+class _Source:
+    """Where a trial's hand frames come from, and what its recording says about it."""
+
+    def __init__(
+        self,
+        operator: str,
+        seed: int,
+        replay: Path | None,
+        header: dict[str, Any],
+        frames: list[Any],
+    ) -> None:
+        self.operator = operator
+        self.seed = seed
+        self.replay = replay
+        self.header = header
+        self.frames = frames
+
+    def make(self, plan: OperatorPlan, calibration: CalibrationProcedure) -> tuple[Any, dict]:
+        """The hand source and the operator traits to record."""
+        if self.operator == "synthetic":
+            synthetic = SyntheticOperator(plan, self.seed, calibration)
+            return SyntheticSource(synthetic), dict(vars(synthetic.traits))
+        return ReplaySource(self.frames), {"replay": str(self.replay)}
+
+    def meta(self) -> dict[str, Any]:
+        """Recording metadata naming a replay's source file and seed."""
+        if self.replay is None:
+            return {}
+        data = Path(self.replay).read_bytes()
+        return {
+            "replay": {
+                "file": str(self.replay),
+                "sha256": hashlib.sha256(data).hexdigest(),
+                "seed": self.header.get("meta", {}).get("seed"),
+                "frames": len(self.frames),
+                "rate_hz": _rate(self.frames),
+            }
+        }
+
+
+def _rate(frames: list[Any]) -> float | None:
+    stamps = np.array([f.stamp for f in frames])
+    steps = np.diff(stamps)
+    steps = steps[steps > 0]
+    return float(1.0 / np.median(steps)) if steps.size else None
 
 
 def _run_trial(
     seed: int,
-    operator: str = "synthetic",
-    replay: Path | None = None,
-    out_dir: Path | None = None,
+    source_spec: _Source,
+    out: Path,
     *,
     max_time: float = MAX_TRIAL_S,
     progress: bool = False,
     project: Project,
 ) -> dict[str, Any]:
-    """Run one trial and write its folder.
-
-    Args:
-        seed: Seed of the synthetic operator (ignored for replays except as a label).
-        operator: ``synthetic`` or ``replay``.
-        replay: The hand recording (``hands.jsonl``) to replay.
-        out_dir: Trial folder (default ``<project>/runs/trial-<seed>``).
-        max_time: Cap on the session length [s].
-        progress: Show a progress bar.
-        project: The design project whose models and design the trial runs on.
-
-    Returns:
-        The metrics (as written to ``metrics.json``).
-    """
+    """Run one trial and write its folder ``out`` (arguments: :func:`run_trial`)."""
     from payload.sim.driver import SimDriver
-    from payload.trials.campaign import finish_trial
-    from payload.trials.metrics import CONFIRM_MAX_GAP_S, CONFIRM_MIN_S
-    from payload.trials.recorder import StepRecord, TrialRecorder
-
-    if operator not in ("synthetic", "replay"):
-        raise TrialError(f"operator must be 'synthetic' or 'replay', got {operator!r}")
-    out = Path(out_dir) if out_dir is not None else project.runs_dir / f"trial-{seed:04d}"
-    out.mkdir(parents=True, exist_ok=True)
     from payload.sim.world import WorldConfig
+    from payload.trials.metrics import CONFIRM_MAX_GAP_S, CONFIRM_MIN_S
+    from payload.trials.recorder import TrialRecorder
+    from payload.trials.scoring import finish_trial
 
     driver = SimDriver(WorldConfig.for_project(project))
     layout = driver.world.layout
@@ -217,19 +353,8 @@ def _run_trial(
     place_ctb_for_teleop(driver, retargeters, ranges)
     calibration = CalibrationProcedure()
     config = TeleopConfig.from_design(load_design(driver.world.config.design))
-
-    if operator == "synthetic":
-        plan = OperatorPlan(route=layout.route(), heading0=layout.start_yaw(), base=config.base)
-        synthetic = SyntheticOperator(plan, seed, calibration)
-        source: Any = SyntheticSource(synthetic)
-        traits = dict(vars(synthetic.traits))
-    else:
-        if replay is None:
-            raise TrialError("operator 'replay' needs a hand recording file")
-        _, frames = read_hand_recording(replay)
-        source = ReplaySource(frames)
-        traits = {"replay": str(replay)}
-
+    plan = OperatorPlan(route=layout.route(), heading0=layout.start_yaw(), base=config.base)
+    source, traits = source_spec.make(plan, calibration)
     q0 = driver.read().q
 
     def make_pipeline(captures: Captures, heading: float) -> TeleopPipeline:
@@ -249,17 +374,18 @@ def _run_trial(
 
     prov = provenance(project, driver.world.config.design)
     rec_path = out / "log.mcap"
-    hands_path = out / "hands.jsonl"
     meta = {
         "seed": int(seed),
-        "operator": operator,
+        "operator": source_spec.operator,
         "design_hash": prov["design_sha256"][:16],
         "provenance": prov,
         "traits": traits,
+        **source_spec.meta(),
         "route": layout.route().tolist(),
         "modules": _module_rects(layout),
         "contact_definition": {"min_interval_s": CONFIRM_MIN_S, "max_gap_s": CONFIRM_MAX_GAP_S},
     }
+    hands_meta = {"seed": int(seed), **source_spec.meta()}
     bar = None
     if progress:
         from rich.progress import Progress
@@ -267,62 +393,39 @@ def _run_trial(
         bar = Progress(transient=True)
         task = bar.add_task(f"trial {seed}", total=max_time)
         bar.start()
+    last_t = [0.0]
     try:
         with (
-            TrialRecorder(rec_path, overwrite=True) as recorder,
-            HandRecordingWriter(hands_path, meta={"seed": int(seed)}) as hands_out,
+            TrialRecorder(rec_path) as recorder,
+            HandRecordingWriter(out / "hands.jsonl", meta=hands_meta) as hands_out,
         ):
             recorder.write_meta(meta)
 
             def on_step(ctx: StepContext) -> None:
-                st, fr = ctx.state, ctx.frame
-                hands_out.write(fr)
-                step = ctx.step
-                q = ctx.command.q
-                twist = np.concatenate([ctx.twist.linear, ctx.twist.angular])
-                rot = quat_to_matrix(st.astrobee_quat)
-                ctb_module = driver.module_at(st.ctb_pos)
-                recorder.write(
-                    StepRecord(
-                        t=ctx.t,
-                        phase=ctx.phase,
-                        left_joints=fr.left.joints,
-                        right_joints=fr.right.joints,
-                        left_tracked=bool(fr.left.tracked),
-                        right_tracked=bool(fr.right.tracked),
-                        q_left=step.q_left if step else q[pair_index(retargeters["L"])],
-                        q_right=step.q_right if step else q[pair_index(retargeters["R"])],
-                        rail_cmd=float(q[-1]),
-                        twist_cmd=twist,
-                        q_cmd=q,
-                        deploy_cmd=float(ctx.command.deploy),
-                        q_meas=ctx.payload.q,
-                        deploy_meas=float(ctx.payload.deploy),
-                        astrobee_pos=st.astrobee_pos,
-                        astrobee_quat=st.astrobee_quat,
-                        astrobee_twist=np.concatenate(
-                            [rot @ st.astrobee_linear, st.astrobee_angular]
-                        ),
-                        ctb_pos=st.ctb_pos,
-                        ctb_quat=st.ctb_quat,
-                        contact=bool(st.opposing_contact),
-                        ctb_module=MODULE_NAMES.get(ctb_module.value, "outside")
-                        if ctb_module is not None
-                        else "outside",
-                    )
-                )
+                hands_out.write(ctx.frame)
+                recorder.write(_step_record(ctx, driver, retargeters))
+                last_t[0] = ctx.t
                 if bar is not None:
                     bar.update(task, completed=ctx.t)
 
-            stats = run_session(
-                driver,
-                source,
-                calibration,
-                make_pipeline,
-                max_time=max_time,
-                on_step=on_step,
-                world_view=view,
-            )
+            try:
+                stats = run_session(
+                    driver,
+                    source,
+                    calibration,
+                    make_pipeline,
+                    max_time=max_time,
+                    on_step=on_step,
+                    world_view=view,
+                )
+            except Exception as exc:
+                what = f"{type(exc).__name__}: {exc}"
+                log.error("trial %s aborted at t = %.2f s", seed, last_t[0], exc_info=True)
+                recorder.write_meta({"aborted_by": what, "aborted_at_s": last_t[0]})
+                raise TrialAborted(
+                    f"trial {seed} aborted at t = {last_t[0]:.2f} s by {what}; recording "
+                    f"kept (marked aborted, not scored): {rec_path}"
+                ) from exc
             recorder.write_meta(
                 {
                     "steps": stats.steps,
@@ -339,5 +442,42 @@ def _run_trial(
     result = finish_trial(out, rec_path)  # scored with the contact definition it recorded
     result["steps"] = stats.steps
     result["provenance"] = prov
-    (out / "metrics.json").write_text(json.dumps(result, indent=2) + "\n")
+    replace_file(out / "metrics.json", json.dumps(result, indent=2) + "\n")
     return result
+
+
+def _step_record(ctx: StepContext, driver: Any, retargeters: dict[str, PairRetargeter]) -> Any:
+    """The recorder's step from what the loop hands its observer."""
+    from payload.trials.recorder import StepRecord
+
+    st, fr = ctx.state, ctx.frame
+    step = ctx.step
+    q = ctx.command.q
+    twist = np.concatenate([ctx.twist.linear, ctx.twist.angular])
+    rot = quat_to_matrix(st.astrobee_quat)
+    ctb_module = driver.module_at(st.ctb_pos)
+    return StepRecord(
+        t=ctx.t,
+        phase=ctx.phase,
+        left_joints=fr.left.joints,
+        right_joints=fr.right.joints,
+        left_tracked=bool(fr.left.tracked),
+        right_tracked=bool(fr.right.tracked),
+        q_left=step.q_left if step else q[pair_index(retargeters["L"])],
+        q_right=step.q_right if step else q[pair_index(retargeters["R"])],
+        rail_cmd=float(q[-1]),
+        twist_cmd=twist,
+        q_cmd=q,
+        deploy_cmd=float(ctx.command.deploy),
+        q_meas=ctx.payload.q,
+        deploy_meas=float(ctx.payload.deploy),
+        astrobee_pos=st.astrobee_pos,
+        astrobee_quat=st.astrobee_quat,
+        astrobee_twist=np.concatenate([rot @ st.astrobee_linear, st.astrobee_angular]),
+        ctb_pos=st.ctb_pos,
+        ctb_quat=st.ctb_quat,
+        contact=bool(st.opposing_contact),
+        ctb_module=MODULE_NAMES.get(ctb_module.value, "outside")
+        if ctb_module is not None
+        else "outside",
+    )

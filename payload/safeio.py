@@ -1,0 +1,108 @@
+"""Writing results without losing or silently replacing any.
+
+- :func:`replace_file` writes through a temporary file beside the target and an atomic
+  rename, so a reader (or a crash) sees either the old file or the new one, never half.
+- :func:`write_unless_changed` refuses to replace a file whose content differs unless
+  asked to (``force``), and leaves an identical file untouched.
+- :func:`new_folder` claims a fresh numbered folder (``runs/trial-0000``,
+  ``runs/trial-0000-2``, ...) atomically, so two runs never share one.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+
+from payload.errors import PayloadError
+
+
+class OverwriteError(PayloadError):
+    """Writing would replace an existing result (pass ``--force`` to allow it)."""
+
+
+@contextlib.contextmanager
+def replacing(path: str | Path) -> Iterator[Path]:
+    """A temporary path beside ``path`` (same suffix); renamed onto ``path`` on success.
+
+    On an exception the temporary file is removed and ``path`` is left as it was.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix, dir=path.parent)
+    os.close(fd)
+    tmp = Path(tmp_name)
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def replace_file(path: str | Path, data: bytes | str) -> None:
+    """Write ``data`` to ``path`` through a temporary file and an atomic rename."""
+    raw = data.encode("utf-8") if isinstance(data, str) else data
+    with replacing(path) as tmp:
+        tmp.write_bytes(raw)
+
+
+def write_unless_changed(path: str | Path, data: bytes | str, *, force: bool = False) -> bool:
+    """Write ``data`` unless ``path`` already holds exactly it.
+
+    Returns:
+        Whether the file was written.
+
+    Raises:
+        OverwriteError: ``path`` holds different content and ``force`` is false.
+    """
+    path = Path(path)
+    raw = data.encode("utf-8") if isinstance(data, str) else data
+    if path.exists():
+        if path.read_bytes() == raw:
+            return False
+        if not force:
+            raise OverwriteError(f"{path}: exists with different content (pass --force to replace)")
+    replace_file(path, raw)
+    return True
+
+
+def check_new(paths: list[Path], *, force: bool = False, what: str = "result") -> None:
+    """Refuse (without ``force``) if any of ``paths`` exists; one line names them.
+
+    Raises:
+        OverwriteError: One of the paths exists and ``force`` is false.
+    """
+    existing = [p for p in paths if p.exists()]
+    if existing and not force:
+        names = ", ".join(p.name for p in existing)
+        raise OverwriteError(
+            f"{existing[0].parent}: already holds a {what} ({names}); pass --force to "
+            "replace it or choose another --out"
+        )
+
+
+def new_folder(parent: str | Path, stem: str) -> Path:
+    """Create and return the first free folder of ``parent/stem``, ``stem-2``, ``stem-3``..."""
+    parent = Path(parent)
+    parent.mkdir(parents=True, exist_ok=True)
+    n = 1
+    while True:
+        candidate = parent / (stem if n == 1 else f"{stem}-{n}")
+        try:
+            candidate.mkdir()
+        except FileExistsError:
+            n += 1
+            continue
+        return candidate
+
+
+__all__ = [
+    "OverwriteError",
+    "check_new",
+    "new_folder",
+    "replace_file",
+    "replacing",
+    "write_unless_changed",
+]

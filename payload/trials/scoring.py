@@ -1,0 +1,97 @@
+"""Scoring one trial: its metrics and figures, written beside its recording.
+
+A trial folder holds ``log.mcap`` and, written by :func:`finish_trial`, ``metrics.json``,
+``fig_ctb_body_frame.png`` and ``fig_route.png``; a rescoring with another contact
+definition writes its own files beside those, named by :func:`contact_tag`.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from payload.safeio import write_unless_changed
+
+
+def finish_trial(
+    out_dir: str | Path,
+    recording_path: str | Path,
+    modules: Sequence[Any] | None = None,
+    *,
+    destination: str = "node2",
+    min_interval_s: float | None = None,
+    max_gap_s: float | None = None,
+    beside: bool = False,
+    force: bool = False,
+) -> dict[str, Any]:
+    """Score a finished (or cut-short) recording and write the trial's files.
+
+    Writes ``metrics.json``, ``fig_ctb_body_frame.png`` and ``fig_route.png`` into
+    ``out_dir``. The runner calls this after its loop ends. A rescoring (``beside``)
+    writes them beside the originals, named by the contact definition
+    (``metrics.contact-min0.5s-gap0.1s.json``, ...), never over them. A file that exists
+    with other content is replaced only with ``force`` (through a temporary file and a
+    rename); an identical one is left alone.
+
+    Args:
+        out_dir: The trial folder.
+        recording_path: Its ``log.mcap``.
+        modules: Module outlines for the route plot (see
+            :func:`~payload.trials.figures.plot_route`); defaults to the recording's
+            ``modules`` metadata if present.
+        destination: Destination module for the success criterion.
+        min_interval_s: Contact-interval relaxation (see
+            :func:`~payload.trials.metrics.compute_metrics`); 0 = the paper's definition.
+        max_gap_s: Contact-interval relaxation; 0 = the paper's definition.
+        beside: Name the files by the contact definition (a rescoring).
+        force: Replace files that exist with other content.
+
+    Returns:
+        The metrics dict written to ``metrics.json`` (fields of
+        :class:`~payload.trials.metrics.TrialMetrics` plus ``seed``, ``criterion`` and
+        ``recording``).
+    """
+    from payload.trials.figures import plot_ctb_body_frame, plot_route
+    from payload.trials.metrics import compute_metrics
+    from payload.trials.recorder import read_recording
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    rec = read_recording(recording_path)
+    # the contact definition the trial was recorded with, unless the caller overrides it
+    recorded = rec.meta.get("contact_definition") or {}
+    if min_interval_s is None:
+        min_interval_s = float(recorded.get("min_interval_s", 0.0))
+    if max_gap_s is None:
+        max_gap_s = float(recorded.get("max_gap_s", 0.0))
+    metrics = compute_metrics(
+        rec, destination=destination, min_interval_s=min_interval_s, max_gap_s=max_gap_s
+    )
+    result = {"seed": rec.meta.get("seed"), **metrics.as_dict()}
+    rec_path = Path(recording_path)
+    result["recording"] = (
+        rec_path.name if rec_path.resolve().parent == out.resolve() else str(rec_path)
+    )
+    tag = f".{contact_tag(min_interval_s, max_gap_s)}" if beside else ""
+    names = {k: f"{k}{tag}.{ext}" for k, ext in _OUTPUTS.items()}
+    changed = write_unless_changed(
+        out / names["metrics"], json.dumps(result, indent=2) + "\n", force=force
+    )
+    figures = [out / names["fig_ctb_body_frame"], out / names["fig_route"]]
+    if changed or not all(f.exists() for f in figures):
+        plot_ctb_body_frame(rec, figures[0], metrics)
+        plot_route(rec, figures[1], modules if modules is not None else rec.meta.get("modules"))
+    return result
+
+
+_OUTPUTS = {"metrics": "json", "fig_ctb_body_frame": "png", "fig_route": "png"}
+
+
+def contact_tag(min_interval_s: float, max_gap_s: float) -> str:
+    """A file-name tag for a contact definition, e.g. ``contact-min0.5s-gap0.1s``."""
+    return f"contact-min{float(min_interval_s):g}s-gap{float(max_gap_s):g}s"
+
+
+__all__ = ["contact_tag", "finish_trial"]
