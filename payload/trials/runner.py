@@ -4,7 +4,10 @@
 the deployed payload at the start of the route in Kibo, a single CTB under the fingers),
 lets the operator (synthetic, or a replayed hand recording) calibrate, acquire the CTB
 and fly it to Node 2, records every 50 Hz step into ``log.mcap`` and the raw hand frames
-into ``hands.jsonl`` (so any trial can be replayed bit for bit), then scores it.
+into its ``/trial/hands`` channel (so any trial can be replayed bit for bit: ``payload
+trial --operator replay log.mcap``), then scores it. The synthetic operator's headset
+reports joint positions on a 10 um grid (:data:`~payload.trials.codec.HAND_GRID_M`), which
+the recorder stores in about two bytes per coordinate.
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ from payload.retarget.calibration import PairRange, pair_range
 from payload.retarget.casadi_solver import PairRetargeter
 from payload.rotations import quat_to_matrix
 from payload.teleop.calibration import CalibrationProcedure, Captures
+from payload.teleop.hands import Hand, HandFrame
 from payload.teleop.loop import (
     ReplaySource,
     StepContext,
@@ -37,7 +41,7 @@ from payload.teleop.pipeline import (
     calibrate_operator,
     pair_index,
 )
-from payload.teleop.replay import HandRecordingWriter, read_hand_recording
+from payload.teleop.replay import read_hand_recording
 
 log = logging.getLogger(__name__)
 
@@ -47,6 +51,47 @@ MAX_TRIAL_S = 240.0
 
 class TrialError(PayloadError):
     """A trial could not be run (bad operator choice, unreadable replay)."""
+
+
+class HeadsetSource:
+    """A hand source whose joint positions are reported on the recorder's grid.
+
+    Args:
+        source: The source (the synthetic operator).
+        grid: Resolution of the reported positions [m].
+    """
+
+    def __init__(self, source: Any, grid: float) -> None:
+        self.source = source
+        self.grid = grid
+
+    def frame(self, t: float, world: WorldView | None) -> HandFrame | None:
+        from payload.trials.codec import quantize_joints
+
+        fr = self.source.frame(t, world)
+        if fr is None:
+            return None
+        hands = [
+            Hand(quantize_joints(h.joints, self.grid), True) if h.tracked else h
+            for h in (fr.left, fr.right)
+        ]
+        return HandFrame(fr.stamp, hands[0], hands[1], fr.frame)
+
+    @property
+    def finished(self) -> bool:
+        return self.source.finished
+
+
+def load_replay(path: Path) -> list[HandFrame]:
+    """Hand frames to replay: a trial's ``log.mcap`` or an older ``hands.jsonl``."""
+    from payload.trials.recorder import RecordingError, read_hand_frames
+
+    if Path(path).suffix == ".mcap":
+        try:
+            return read_hand_frames(path)[1]
+        except RecordingError as exc:
+            raise TrialError(str(exc)) from None
+    return read_hand_recording(path)[1]
 
 
 _RETARGETERS: dict[str, PairRetargeter] = {}
@@ -182,6 +227,8 @@ def _run_trial(
     """
     from payload.sim.driver import SimDriver
     from payload.trials.campaign import finish_trial
+    from payload.trials.codec import HAND_GRID_M
+    from payload.trials.foxglove import FoxgloveScene
     from payload.trials.metrics import CONFIRM_MAX_GAP_S, CONFIRM_MIN_S
     from payload.trials.recorder import StepRecord, TrialRecorder
 
@@ -199,13 +246,12 @@ def _run_trial(
     if operator == "synthetic":
         plan = OperatorPlan(route=layout.route(), heading0=layout.start_yaw(), base=config.base)
         synthetic = SyntheticOperator(plan, seed, calibration)
-        source: Any = SyntheticSource(synthetic)
+        source: Any = HeadsetSource(SyntheticSource(synthetic), HAND_GRID_M)
         traits = dict(vars(synthetic.traits))
     else:
         if replay is None:
             raise TrialError("operator 'replay' needs a hand recording file")
-        _, frames = read_hand_recording(replay)
-        source = ReplaySource(frames)
+        source = ReplaySource(load_replay(replay))
         traits = {"replay": str(replay)}
 
     q0 = driver.read().q
@@ -226,7 +272,6 @@ def _run_trial(
         )
 
     rec_path = out / "log.mcap"
-    hands_path = out / "hands.jsonl"
     meta = {
         "seed": int(seed),
         "operator": operator,
@@ -244,15 +289,13 @@ def _run_trial(
         task = bar.add_task(f"trial {seed}", total=max_time)
         bar.start()
     try:
-        with (
-            TrialRecorder(rec_path, overwrite=True) as recorder,
-            HandRecordingWriter(hands_path, meta={"seed": int(seed)}) as hands_out,
-        ):
+        scene = FoxgloveScene(driver.world, _module_rects(layout))
+        with TrialRecorder(rec_path, overwrite=True, scene=scene) as recorder:
             recorder.write_meta(meta)
 
             def on_step(ctx: StepContext) -> None:
                 st, fr = ctx.state, ctx.frame
-                hands_out.write(fr)
+                recorder.write_hands(fr)
                 step = ctx.step
                 q = ctx.command.q
                 twist = np.concatenate([ctx.twist.linear, ctx.twist.angular])
