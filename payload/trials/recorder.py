@@ -64,6 +64,7 @@ from __future__ import annotations
 import functools
 import io
 import json
+import logging
 import math
 import time
 from dataclasses import dataclass, fields
@@ -82,6 +83,8 @@ from payload.errors import PayloadError
 from payload.schema import N_MANIPULATION
 from payload.teleop.hands import XR_JOINTS
 from payload.trials import codec
+
+log = logging.getLogger(__name__)
 
 PHASES: tuple[str, ...] = (
     "calibration",
@@ -369,6 +372,7 @@ class TrialRecorder:
         self._codec = codec.StepCodec()
         self._scene = scene
         self._t0_ns: int | None = None
+        self._clock = time.time_ns
 
     # -- lifecycle ---------------------------------------------------------------------
     def open(self) -> TrialRecorder:
@@ -467,7 +471,7 @@ class TrialRecorder:
                 f"step t = {step.t} s is not after the previous step (t = {self._last_t} s)"
             )
         writer = self._require_open()
-        wall_ns = time.time_ns()
+        wall_ns = self._clock()
         stamp = max(0, round(step.t * 1e9))
         if self._t0_ns is None:
             self._t0_ns = wall_ns - stamp
@@ -714,6 +718,12 @@ def _read_file(
                     continue
                 if channel.topic == STEP_TOPIC:
                     if channel.message_encoding == "json":  # schema version 1
+                        if not rows:
+                            log.warning(
+                                "%s: schema version 1 (JSON steps), read as it is; "
+                                "`payload trials convert DIR` rewrites it compactly",
+                                path,
+                            )
                         rows.append(json.loads(record.data))
                     else:
                         rows.append(step_codec.decode_step(record.data, hands.get))
@@ -728,6 +738,25 @@ def _read_file(
     except (McapError, ValueError, DecodeError) as exc:
         raise RecordingError(f"{path}: corrupt record ({exc})") from exc
     return channels, meta, rows, samples, complete
+
+
+def recording_version(path: str | Path) -> int:
+    """Schema version of a recording: 1 (JSON steps) or 2 (protobuf steps).
+
+    Raises:
+        RecordingError: Unreadable, or no ``/trial/step`` channel.
+    """
+    path = Path(path)
+    try:
+        with path.open("rb") as fh:
+            head = fh.read(1 << 16)
+    except OSError as exc:
+        raise RecordingError(f"{path}: cannot read ({exc.strerror})") from exc
+    if b"payload.trials.StepRecord" in head:
+        return 1
+    if codec.STEP_MESSAGE.encode() in head:
+        return 2
+    raise RecordingError(f"{path}: no {STEP_TOPIC} channel (not a trial recording)")
 
 
 def read_recording(path: str | Path) -> Recording:
@@ -803,4 +832,5 @@ __all__ = [
     "random_step",
     "read_hand_frames",
     "read_recording",
+    "recording_version",
 ]
