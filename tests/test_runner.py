@@ -16,7 +16,16 @@ from payload.trials.runner import run_trial
 
 SHORT = 20.0
 
-FIELDS = ("q_cmd", "twist_cmd", "q_meas", "astrobee_pos", "ctb_pos", "contact")
+FIELDS = (
+    "q_cmd",
+    "twist_cmd",
+    "q_meas",
+    "astrobee_pos",
+    "ctb_pos",
+    "contact",
+    "left_joints",
+    "right_joints",
+)
 
 
 def _short_trial(seed: int, out_dir: Path) -> dict:
@@ -27,8 +36,11 @@ def test_a_replayed_trial_reproduces_the_recorded_trial_bit_for_bit(tmp_path):
     first = tmp_path / "synthetic"
     run_trial(5, out_dir=first, max_time=SHORT)
     again = tmp_path / "replay"
-    run_trial(5, operator="replay", replay=first / "hands.jsonl", out_dir=again)
+    run_trial(5, operator="replay", replay=first / "log.mcap", out_dir=again)
     a, b = read_recording(first / "log.mcap"), read_recording(again / "log.mcap")
+    # compact: the recording (steps, hand frames, Foxglove channels) under 2 MB a minute
+    size = (first / "log.mcap").stat().st_size
+    assert size / (len(a) * 0.02 / 60) < 2e6
     assert len(a.t) == len(b.t) > 0.9 * SHORT / 0.02
     for name in FIELDS:
         assert np.array_equal(np.asarray(getattr(a, name)), np.asarray(getattr(b, name))), name

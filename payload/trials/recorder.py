@@ -747,15 +747,10 @@ def recording_version(path: str | Path) -> int:
         RecordingError: Unreadable, or no ``/trial/step`` channel.
     """
     path = Path(path)
-    try:
-        with path.open("rb") as fh:
-            head = fh.read(1 << 16)
-    except OSError as exc:
-        raise RecordingError(f"{path}: cannot read ({exc.strerror})") from exc
-    if b"payload.trials.StepRecord" in head:
-        return 1
-    if codec.STEP_MESSAGE.encode() in head:
-        return 2
+    channels = _read_file(path)[0]
+    for c in channels.values():
+        if c.topic == STEP_TOPIC:
+            return 1 if c.message_encoding == "json" else 2
     raise RecordingError(f"{path}: no {STEP_TOPIC} channel (not a trial recording)")
 
 
