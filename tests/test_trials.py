@@ -26,7 +26,6 @@ from payload.trials.metrics import (
 )
 from payload.trials.recorder import (
     FIELD_SPECS,
-    STEP_SCHEMA,
     Recording,
     RecordingError,
     StepRecord,
@@ -380,7 +379,7 @@ def test_recording_is_standard_mcap_with_protobuf_steps(tmp_path: Path) -> None:
         assert reader.get_summary().statistics.message_count == 120
         assert reader.get_summary().chunk_indexes  # zstd chunks, indexed
     assert len(msgs) == 120
-    schema, channel, _, first = msgs[0]
+    schema, channel, _, _ = msgs[0]
     assert schema.encoding == "protobuf" and channel.message_encoding == "protobuf"
     assert schema.name == "payload.trials.Step"
     for k, (_, _, raw, msg) in enumerate(msgs):
