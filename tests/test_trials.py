@@ -788,6 +788,23 @@ def test_cli_bad_input_exits_2(argv: list[str], message: str, capsys) -> None:
     assert len(err) == 1 and message in err[0]
 
 
+def test_cli_bench_trial_accounts_for_its_time(tmp_path: Path, capsys) -> None:
+    """The stages add up to the measured total; sizes are the file's."""
+    from payload.cli import main
+
+    out = tmp_path / "bench"
+    assert main(["bench", "trial", "--seconds", "3", "--out", str(out), "--json"]) == 0
+    r = json.loads(capsys.readouterr().out)
+    assert r["steps"] == 151 and r["sim_seconds"] == pytest.approx(3.02)
+    assert set(r["breakdown"]) >= {"physics", "pipeline", "operator", "recording", "startup"}
+    assert sum(r["breakdown"].values()) == pytest.approx(r["wall_seconds"], rel=1e-6)
+    assert sum(r["breakdown_cpu"].values()) == pytest.approx(r["cpu_seconds"], rel=1e-6)
+    assert all(v >= 0 for v in r["breakdown"].values()) and r["breakdown"]["physics"] > 0
+    assert r["realtime_factor"] == pytest.approx(r["sim_seconds"] / r["wall_seconds"])
+    size = (out / "log.mcap").stat().st_size
+    assert r["log_bytes_per_sim_minute"] == pytest.approx(size / (r["sim_seconds"] / 60))
+
+
 def test_cli_bench_recorder(capsys) -> None:
     from payload.cli import main
 

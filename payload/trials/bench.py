@@ -102,13 +102,20 @@ def _patched(timers: _Timers) -> Iterator[None]:
             setattr(obj, name, fn)
 
 
-def run_trial_bench(seed: int = 0, *, out_dir: Path | None = None, pin: bool = False) -> dict:
+def run_trial_bench(
+    seed: int = 0,
+    *,
+    out_dir: Path | None = None,
+    pin: bool = False,
+    max_time: float | None = None,
+) -> dict:
     """Run one synthetic trial and report its speed, time breakdown and log size.
 
     Args:
         seed: Trial seed.
         out_dir: Where the trial folder goes (default: a temporary folder, removed).
         pin: Restrict the process to one CPU core (Linux).
+        max_time: Cap on the session length [s] (default: the runner's, a whole trial).
 
     Returns:
         ``{"sim_seconds", "wall_seconds", "cpu_seconds", "realtime_factor",
@@ -121,13 +128,13 @@ def run_trial_bench(seed: int = 0, *, out_dir: Path | None = None, pin: bool = F
     try:
         with tempfile.TemporaryDirectory() as tmp:
             out = Path(out_dir) if out_dir is not None else Path(tmp) / "trial"
-            return _bench(seed, out, pinned=before is not None)
+            return _bench(seed, out, pinned=before is not None, max_time=max_time)
     finally:
         if before is not None:
             os.sched_setaffinity(0, before)
 
 
-def _bench(seed: int, out: Path, pinned: bool) -> dict:
+def _bench(seed: int, out: Path, pinned: bool, max_time: float | None) -> dict:
     from payload.schema import CONTROL_DT
 
     timers = _Timers()
@@ -139,7 +146,8 @@ def _bench(seed: int, out: Path, pinned: bool) -> dict:
 
         timers._switch()
         timers._stack[-1] = "other"
-        result = runner.run_trial(seed, out_dir=out)
+        extra = {} if max_time is None else {"max_time": max_time}
+        result = runner.run_trial(seed, out_dir=out, **extra)
     timers._switch()
     wall, cpu = time.perf_counter() - w0, time.process_time() - c0
     sim_seconds = result["steps"] * CONTROL_DT

@@ -232,7 +232,9 @@ def _cmd_bench_trial(args: argparse.Namespace) -> int:
     if args.seed < 0:
         raise TrialsCliError(f"--seed must be >= 0, got {args.seed}")
     out = Path(args.out) if args.out else None
-    result = run_trial_bench(args.seed, out_dir=out, pin=args.pin)
+    if args.seconds is not None and args.seconds <= 0:
+        raise TrialsCliError(f"--seconds must be positive, got {args.seconds}")
+    result = run_trial_bench(args.seed, out_dir=out, pin=args.pin, max_time=args.seconds)
     if args.json:
         emit_json(result)
         return 0
@@ -340,6 +342,9 @@ def register(
     )
     bt.add_argument("--seed", type=int, default=0, help="trial seed (default 0)")
     bt.add_argument("--out", help="keep the trial folder here (default: a temporary one)")
+    bt.add_argument(
+        "--seconds", type=float, default=None, help="cap the trial [s] (default: a whole trial)"
+    )
     bt.add_argument("--pin", action="store_true", help="restrict the run to one CPU core (Linux)")
     bt.add_argument("--json", action="store_true", help="print one JSON object")
     bt.set_defaults(func=_cmd_bench_trial)

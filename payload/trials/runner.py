@@ -217,7 +217,7 @@ def _run_trial(
     Args:
         seed: Seed of the synthetic operator (ignored for replays except as a label).
         operator: ``synthetic`` or ``replay``.
-        replay: The hand recording (``hands.jsonl``) to replay.
+        replay: The recording to replay (a trial's ``log.mcap``, or a ``hands.jsonl``).
         out_dir: Trial folder (default ``runs/trial-<seed>``).
         max_time: Cap on the session length [s].
         progress: Show a progress bar.
