@@ -161,7 +161,7 @@ def test_foxglove_channels_decode_with_the_standard_schemas(foxglove_recording) 
     events = [d.message for _, _, d in by_topic["/trial/events"]]
     assert events[:3] == ["phase: acquisition", "opposing contact: off", "opposing contact: on"]
     js = by_topic["/payload/joints/measured"][1][2]
-    np.testing.assert_array_equal([j.position for j in js.joints][:17], steps[5].q_meas)
+    np.testing.assert_allclose([j.position for j in js.joints][:17], steps[5].q_meas, atol=1e-6)
     # every channel on one timeline: the same log time for a step on every channel
     step_times = [m.log_time for _, m, _ in by_topic["/trial/step"]]
     assert by_topic["/tf"][1][1].log_time == step_times[5]
@@ -213,8 +213,9 @@ def test_foxglove_transforms_compose_to_mujoco_body_poses(foxglove_recording) ->
     mujoco.mj_kinematics(m, d)
     for name in ("astrobee", "payload/A_distal", "payload/D_distal", "ctb"):
         pos, quat = world_pose(name)
-        np.testing.assert_allclose(pos, d.body(name).xpos, atol=1e-9)
-        assert abs(abs(float(quat @ d.body(name).xquat)) - 1.0) < 1e-9
+        # the channel rounds to ~1e-6 (VIEW_RESOLUTION) per link: a few links deep
+        np.testing.assert_allclose(pos, d.body(name).xpos, atol=2e-5)
+        assert abs(abs(float(quat @ d.body(name).xquat)) - 1.0) < 1e-8
 
 
 def _write_v1(path: Path, steps: list) -> None:

@@ -22,6 +22,7 @@ measured``
                                                   the opposing-contact indicator
 ======================== ======================= ============================================
 
+Poses and joint values on these channels are rounded to :data:`VIEW_RESOLUTION`.
 The contact indicator and the phase are also plottable from ``/trial/step`` (fields
 ``contact`` and ``phase``). Link poses come from forward kinematics of the simulator's
 model on the recorded measured joints, so they are exactly what the step records.
@@ -77,12 +78,23 @@ _COLORS = {
 }
 
 
+VIEW_RESOLUTION = 2.0**-20
+"""Resolution of the poses and joint values on these channels (about 1e-6 m or rad): they
+are for viewing (``/trial/step`` holds the exact values), and the rounding leaves the low
+mantissa bytes zero so the chunks compress well."""
+
+
+def _view(x: np.ndarray) -> np.ndarray:
+    return np.round(np.asarray(x, dtype=np.float64) / VIEW_RESOLUTION) * VIEW_RESOLUTION
+
+
 def _timestamp(ns: int) -> Timestamp:
     return Timestamp(seconds=ns // 1_000_000_000, nanos=ns % 1_000_000_000)
 
 
 def _pose(pos: np.ndarray, quat_wxyz: np.ndarray) -> Pose:
-    w, x, y, z = (float(v) for v in quat_wxyz)
+    pos = _view(pos)
+    w, x, y, z = (float(v) for v in _view(quat_wxyz))
     return Pose(
         position=Vector3(x=float(pos[0]), y=float(pos[1]), z=float(pos[2])),
         orientation=Quaternion(x=x, y=y, z=z, w=w),
@@ -206,7 +218,9 @@ class FoxgloveScene:
         """Named joint positions (17 manipulation coordinates and the stage)."""
         return JointStates(
             timestamp=_timestamp(ns),
-            joints=[JointState(name=n, position=float(v)) for n, v in zip(JOINT_NAMES, values)],
+            joints=[
+                JointState(name=n, position=float(v)) for n, v in zip(JOINT_NAMES, _view(values))
+            ],
         )
 
     def scene(self, ns: int) -> SceneUpdate:
