@@ -386,7 +386,8 @@ def test_recording_is_standard_mcap_with_protobuf_steps(tmp_path: Path) -> None:
         assert raw.sequence == msg.seq == k
         np.testing.assert_array_equal(np.array(msg.q_cmd), written[k])
         assert msg.contact == bool(k % 2)
-        assert msg.DESCRIPTOR.enum_types_by_name["Phase"].values[msg.phase].name == "PHASE_TURN"
+        phase = msg.DESCRIPTOR.fields_by_name["phase"].enum_type
+        assert phase.values_by_number[msg.phase].name == "PHASE_TURN"
 
 
 def test_step_record_validation() -> None:
