@@ -22,12 +22,21 @@ from conftest import DESIGN
 
 from payload.project import Project
 from payload.trials.campaign import run_campaign, runner_trial_fn, trial_dir
-from payload.trials.recorder import read_recording
+from payload.trials.recorder import read_hand_frames, read_recording
 from payload.trials.runner import run_trial
 
 SHORT = 20.0
 
-FIELDS = ("q_cmd", "twist_cmd", "q_meas", "astrobee_pos", "ctb_pos", "contact")
+FIELDS = (
+    "q_cmd",
+    "twist_cmd",
+    "q_meas",
+    "astrobee_pos",
+    "ctb_pos",
+    "contact",
+    "left_joints",
+    "right_joints",
+)
 
 
 def _short_trial(seed: int, out_dir: Path) -> dict:
@@ -38,8 +47,11 @@ def test_a_replayed_trial_reproduces_the_recorded_trial_bit_for_bit(tmp_path):
     first = tmp_path / "synthetic"
     run_trial(5, out_dir=first, max_time=SHORT)
     again = tmp_path / "replay"
-    run_trial(5, operator="replay", replay=first / "hands.jsonl", out_dir=again)
+    run_trial(5, operator="replay", replay=first / "log.mcap", out_dir=again)
     a, b = read_recording(first / "log.mcap"), read_recording(again / "log.mcap")
+    # compact: the recording (steps, hand frames, Foxglove channels) under 2 MB a minute
+    size = (first / "log.mcap").stat().st_size
+    assert size / (len(a) * 0.02 / 60) < 2e6
     assert len(a.t) == len(b.t) > 0.9 * SHORT / 0.02
     for name in FIELDS:
         assert np.array_equal(np.asarray(getattr(a, name)), np.asarray(getattr(b, name))), name
@@ -171,7 +183,7 @@ def test_a_second_trial_into_an_existing_folder_is_refused_and_force_replaces(tm
     out = tmp_path / "t"
     run_trial(1, out_dir=out, max_time=1.0)
     before = {p.name: p.read_bytes() for p in out.iterdir()}
-    assert {"log.mcap", "hands.jsonl", "metrics.json"} <= set(before)
+    assert {"log.mcap", "metrics.json"} <= set(before)
     assert main(["trial", "--seed", "2", "--out", str(out)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "already holds a trial" in err[0] and "--force" in err[0]
@@ -199,7 +211,6 @@ def test_an_exception_in_the_finger_channel_aborts_the_trial_and_keeps_the_recor
 ):
     from payload.cli import main
     from payload.retarget.casadi_solver import PairRetargeter
-    from payload.teleop.replay import read_hand_recording
 
     real = PairRetargeter.solve
     calls = []
@@ -221,7 +232,7 @@ def test_an_exception_in_the_finger_channel_aborts_the_trial_and_keeps_the_recor
     assert "injected bug" in rec.meta["aborted"]
     assert rec.meta["aborted_at_s"] == pytest.approx(rec.t[-1])
     # every step up to the fault is kept, with its hand frame; nothing was scored
-    _, frames = read_hand_recording(out / "hands.jsonl")
+    _, frames = read_hand_frames(out / "log.mcap")
     assert len(frames) == len(rec) > 12.0 / 0.02
     assert not (out / "metrics.json").exists()
 
@@ -245,7 +256,6 @@ def _session(path: Path, rate: float, seconds: float, seed: int) -> list:
 
 @pytest.mark.parametrize("rate", [72.0, 90.0])
 def test_a_replay_honours_recorded_timestamps_and_records_its_source(tmp_path, rate):
-    from payload.teleop.replay import read_hand_recording
     from payload.trials.runner import TrialError
 
     src = tmp_path / "session"
@@ -266,5 +276,5 @@ def test_a_replay_honours_recorded_timestamps_and_records_its_source(tmp_path, r
     assert rec.meta["replay"]["file"] == str(src / "hands.jsonl")
     assert rec.meta["replay"]["seed"] == 7
     assert rec.meta["replay"]["rate_hz"] == pytest.approx(rate)
-    header, resampled = read_hand_recording(out / "hands.jsonl")
-    assert header["meta"]["seed"] == 7 and len(resampled) == len(rec)
+    meta, resampled = read_hand_frames(out / "log.mcap")
+    assert meta["seed"] == 7 and len(resampled) == len(rec)

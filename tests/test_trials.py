@@ -26,7 +26,6 @@ from payload.trials.metrics import (
 )
 from payload.trials.recorder import (
     FIELD_SPECS,
-    STEP_SCHEMA,
     Recording,
     RecordingError,
     StepRecord,
@@ -359,33 +358,36 @@ def test_recording_round_trip_and_schema(tmp_path: Path) -> None:
     assert compute_metrics(back) == compute_metrics(mem)
 
 
-def test_recording_is_standard_mcap_with_its_json_schema(tmp_path: Path) -> None:
-    """The mcap package's own reader sees every message, and every message validates
-    against the documented JSON schema (checked with the jsonschema package)."""
-    jsonschema = pytest.importorskip("jsonschema", reason="jsonschema is not installed")
+def test_recording_is_standard_mcap_with_protobuf_steps(tmp_path: Path) -> None:
+    """The mcap package's own reader and mcap_protobuf's decoder (not ours) read every step
+    message from the schema stored in the file; the values are the ones written."""
     from mcap.reader import make_reader
+    from mcap_protobuf.decoder import DecoderFactory
 
     rng = np.random.default_rng(5)
     path = tmp_path / "log.mcap"
+    written = []
     with TrialRecorder(path) as rec:
         for k in range(120):
-            lj = np.full((25, 3), np.nan) if k % 7 == 0 else rng.normal(size=(25, 3))
-            rec.write(make_step(k * DT, left_joints=lj, q_cmd=rng.normal(size=17)))
+            q = rng.normal(size=17)
+            written.append(q)
+            rec.write(make_step(k * DT, q_cmd=q, contact=bool(k % 2), phase="turn"))
 
     with open(path, "rb") as f:
-        reader = make_reader(f)
-        msgs = list(reader.iter_messages(topics=["/trial/step"]))
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        msgs = list(reader.iter_decoded_messages(topics=["/trial/step"]))
         assert reader.get_summary().statistics.message_count == 120
+        assert reader.get_summary().chunk_indexes  # zstd chunks, indexed
     assert len(msgs) == 120
-    schema, channel, _ = msgs[0]
-    assert schema.encoding == "jsonschema" and channel.message_encoding == "json"
-    assert json.loads(schema.data) == STEP_SCHEMA
-    validator = jsonschema.Draft202012Validator(STEP_SCHEMA)
-    for _, _, msg in msgs:
-        validator.validate(json.loads(msg.data))
-    bad = json.loads(msgs[1][2].data)
-    bad["q_cmd"] = bad["q_cmd"][:16]
-    assert not validator.is_valid(bad)
+    schema, channel, _, _ = msgs[0]
+    assert schema.encoding == "protobuf" and channel.message_encoding == "protobuf"
+    assert schema.name == "payload.trials.Step"
+    for k, (_, _, raw, msg) in enumerate(msgs):
+        assert raw.sequence == msg.seq == k
+        np.testing.assert_array_equal(np.array(msg.q_cmd), written[k])
+        assert msg.contact == bool(k % 2)
+        phase = msg.DESCRIPTOR.fields_by_name["phase"].enum_type
+        assert phase.values_by_number[msg.phase].name == "PHASE_TURN"
 
 
 def test_step_record_validation() -> None:
@@ -803,6 +805,23 @@ def test_cli_bad_input_exits_2(argv: list[str], message: str, capsys) -> None:
     assert main(argv) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and message in err[0]
+
+
+def test_cli_bench_trial_accounts_for_its_time(tmp_path: Path, capsys) -> None:
+    """The stages add up to the measured total; sizes are the file's."""
+    from payload.cli import main
+
+    out = tmp_path / "bench"
+    assert main(["bench", "trial", "--seconds", "3", "--out", str(out), "--json"]) == 0
+    r = json.loads(capsys.readouterr().out)
+    assert r["steps"] == 151 and r["sim_seconds"] == pytest.approx(3.02)
+    assert set(r["breakdown"]) >= {"physics", "pipeline", "operator", "recording", "startup"}
+    assert sum(r["breakdown"].values()) == pytest.approx(r["wall_seconds"], rel=1e-6)
+    assert sum(r["breakdown_cpu"].values()) == pytest.approx(r["cpu_seconds"], rel=1e-6)
+    assert all(v >= 0 for v in r["breakdown"].values()) and r["breakdown"]["physics"] > 0
+    assert r["realtime_factor"] == pytest.approx(r["sim_seconds"] / r["wall_seconds"])
+    size = (out / "log.mcap").stat().st_size
+    assert r["log_bytes_per_sim_minute"] == pytest.approx(size / (r["sim_seconds"] / 60))
 
 
 def test_cli_bench_recorder(capsys) -> None:

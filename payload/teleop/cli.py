@@ -66,17 +66,17 @@ def _check_record(record: Path | None) -> None:
 
 def _hardware_driver(device: str | None) -> Any:
     """The Dynamixel payload driver (``firmware_interface``), brought up on ``device``."""
+    from firmware_interface import DynamixelDriver
+
+    if not device:
+        raise TeleopCliError("--driver hardware needs --device PORT (the servo bus's serial port)")
+    driver = DynamixelDriver(device)
     try:
-        from firmware_interface import DynamixelDriver
-    except ImportError:
-        raise TeleopCliError(
-            "--driver hardware: the Dynamixel driver (firmware_interface.DynamixelDriver) "
-            "is not installed in this build; use --driver sim"
-        ) from None
-    try:
-        return DynamixelDriver(device) if device else DynamixelDriver()
-    except TypeError as exc:
-        raise TeleopCliError(f"--driver hardware: cannot open the driver ({exc})") from None
+        driver.bring_up()
+    except BaseException:
+        driver.close()
+        raise
+    return driver
 
 
 def _cmd_serve(args: argparse.Namespace) -> int:

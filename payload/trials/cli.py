@@ -129,7 +129,9 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
     title = f"Cargo-transport campaign ({args.n} trials)"
     summary = write_summary(results, out, title=title, run=run, provenance=prov, force=args.force)
     if args.json:
-        emit_json({**summary, "out_dir": str(out), "project": str(project.root)})
+        emit_json(
+            {**summary, "wall_s": run["wall_s"], "out_dir": str(out), "project": str(project.root)}
+        )
     else:
         print(summary_markdown(summary, title))
         print(f"wrote {out / 'summary.md'} and {out / 'summary.json'}")
@@ -279,11 +281,48 @@ def _cmd_bench_recorder(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_bench_trial(args: argparse.Namespace) -> int:
+    from payload.cli import emit_json
+    from payload.trials.bench import run_trial_bench
+
+    if args.seed < 0:
+        raise TrialsCliError(f"--seed must be >= 0, got {args.seed}")
+    out = Path(args.out) if args.out else None
+    if args.seconds is not None and args.seconds <= 0:
+        raise TrialsCliError(f"--seconds must be positive, got {args.seconds}")
+    result = run_trial_bench(args.seed, out_dir=out, pin=args.pin, max_time=args.seconds)
+    if args.json:
+        emit_json(result)
+        return 0
+    print(
+        f"trial seed {args.seed}: {result['sim_seconds']:.1f} s simulated in "
+        f"{result['wall_seconds']:.1f} s wall ({result['realtime_factor']:.1f}x real time; "
+        f"{result['cpu_seconds']:.1f} CPU s, {result['cpu_realtime_factor']:.1f}x per CPU "
+        f"second), log {result['log_bytes_per_sim_minute'] / 1e6:.2f} MB per simulated minute"
+    )
+    for stage, wall in result["breakdown"].items():
+        print(f"  {stage:10s} {wall:7.2f} s wall {result['breakdown_cpu'][stage]:7.2f} s CPU")
+    return 0
+
+
+def _cmd_trials_convert(args: argparse.Namespace) -> int:
+    from payload.cli import emit_json
+    from payload.trials.convert import convert_dir
+
+    info = convert_dir(Path(args.dir), force=args.force)
+    if args.json:
+        emit_json(info)
+    else:
+        for line in info["messages"]:
+            print(line)
+    return 0
+
+
 def register(
     sub: argparse._SubParsersAction, groups: dict[str, argparse._SubParsersAction]
 ) -> None:
-    """Add ``trial``, ``trials run|summarize``, ``export lerobot`` and
-    ``bench recorder``."""
+    """Add ``trial``, ``trials run|summarize|convert``, ``export lerobot``, ``bench recorder``
+    and ``bench trial``."""
     p = sub.add_parser("trial", help="one ISS cargo-transport trial")
     p.add_argument(
         "--seed", type=int, default=None, help="trial seed (default 0; a replay: its source's)"
@@ -351,6 +390,14 @@ def register(
     s.add_argument("--json", action="store_true", help="print one JSON object")
     s.set_defaults(func=_cmd_trials_summarize)
 
+    c = tsub.add_parser(
+        "convert", help="rewrite schema-1 (JSON) recordings in a folder as schema 2"
+    )
+    c.add_argument("dir", help="trial or campaign folder (every log.mcap below it)")
+    c.add_argument("--force", action="store_true", help="convert even if a backup exists")
+    c.add_argument("--json", action="store_true", help="print one JSON object")
+    c.set_defaults(func=_cmd_trials_convert)
+
     e = groups["export"].add_parser("lerobot", help="recordings as a LeRobot v3 dataset")
     e.add_argument("runs", nargs="+", metavar="RUN", help="log.mcap, trial or campaign folder")
     e.add_argument("--out", required=True, help="dataset folder")
@@ -363,3 +410,15 @@ def register(
     b.add_argument("--seconds", type=float, default=60.0, help="recorded seconds (default 60)")
     b.add_argument("--json", action="store_true", help="print one JSON object")
     b.set_defaults(func=_cmd_bench_recorder)
+
+    bt = groups["bench"].add_parser(
+        "trial", help="a trial's real-time factor, time breakdown and log size"
+    )
+    bt.add_argument("--seed", type=int, default=0, help="trial seed (default 0)")
+    bt.add_argument("--out", help="keep the trial folder here (default: a temporary one)")
+    bt.add_argument(
+        "--seconds", type=float, default=None, help="cap the trial [s] (default: a whole trial)"
+    )
+    bt.add_argument("--pin", action="store_true", help="restrict the run to one CPU core (Linux)")
+    bt.add_argument("--json", action="store_true", help="print one JSON object")
+    bt.set_defaults(func=_cmd_bench_trial)

@@ -1,22 +1,34 @@
-"""Crash-safe trial recording: one MCAP file per trial, one JSON message per 50 Hz step.
+"""Crash-safe, compact trial recording: one MCAP file per trial, one protobuf message per step.
 
-File layout (``log.mcap``)
---------------------------
-* Profile ``""``, library ``payload-workbench``; records are written *unchunked*, so every
-  step is a self-contained MCAP Message record on disk as soon as the file buffer is
-  flushed. The buffer is flushed at least once per ``flush_period_s`` (default 1 s) of
-  wall-clock time *and* of recorded time, so a process killed with SIGKILL loses at most
-  the last second; :func:`read_recording` reads such a file (no footer, possibly a torn
-  last record) up to the last complete record.
-* Channel ``/trial/step``, message encoding ``json``, schema ``payload.trials.StepRecord``
-  (encoding ``jsonschema``, the document :data:`STEP_SCHEMA`). One message per control
-  step. Message ``log_time`` is the wall clock at write [ns since the Unix epoch];
-  ``publish_time`` is the step time ``t`` [ns since the start of teleoperation].
+File layout (``log.mcap``, schema version 2)
+--------------------------------------------
+* Profile ``""``, library ``payload-workbench``. Messages go into zstd-compressed chunks;
+  the chunk in progress is closed and the file flushed at least once per
+  ``flush_period_s`` (default 1 s) of wall-clock time *and* of recorded time, so a process
+  killed with SIGKILL loses at most the last second; :func:`read_recording` reads such a
+  file (no summary or footer, possibly a torn last chunk) up to the last complete record.
+  The summary holds chunk indexes, so indexed readers (Foxglove) seek without a scan.
+* Channel ``/trial/step``, encoding ``protobuf``, schema ``payload.trials.Step`` (declared
+  in :mod:`payload.trials.codec`): one message per control step, every field below,
+  doubles lossless.
+* Channel ``/trial/hands``, schema ``payload.trials.HandSample``: the raw hand frame the
+  pipeline saw at that step (stamp, tracked flags, 25 x 3 joints, lossless), written by
+  :meth:`TrialRecorder.write_hands`; the step then refers to it instead of repeating the
+  joints. ``payload trial --operator replay log.mcap`` replays it bit for bit.
+* The standard Foxglove channels of :mod:`payload.trials.foxglove` when the recorder has
+  a scene (the trial runner's recordings do).
+* Message ``log_time`` is the wall clock at the first step plus the step time, so every
+  channel shares one timeline in simulated time [ns since the Unix epoch];
+  ``publish_time`` is the step time ``t`` [ns since the start of teleoperation]; the
+  wall clock at write is the step's ``wall_time``.
 * Metadata records named ``payload.trial`` (see :meth:`TrialRecorder.write_meta`): each
   value is JSON text (trial seed, design hash, operator parameters, calibration, ...).
+* Schema version 1 recordings (one JSON message per step, ``jsonschema`` schema
+  :data:`STEP_SCHEMA`, ``hands.jsonl`` beside them) still read; ``payload trials convert``
+  rewrites them in version 2.
 
-Step message fields (all SI, workbench frame; arrays as nested JSON lists)
--------------------------------------------------------------------------
+Step message fields (all SI, workbench frame)
+---------------------------------------------
 =================  =========  ============================================================
 field              shape      meaning
 =================  =========  ============================================================
@@ -52,6 +64,7 @@ from __future__ import annotations
 import functools
 import io
 import json
+import logging
 import math
 import time
 from dataclasses import dataclass, fields
@@ -60,14 +73,19 @@ from types import TracebackType
 from typing import Any
 
 import numpy as np
+from google.protobuf.message import DecodeError
 from mcap.exceptions import EndOfFile, McapError
-from mcap.records import Channel, Message, Metadata, Schema
+from mcap.records import Channel, Message, Metadata
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, IndexType, Writer
 
 from payload.errors import PayloadError
 from payload.schema import N_MANIPULATION
+from payload.teleop.hands import XR_JOINTS
+from payload.trials import codec
 from payload.trials.stepcheck import StepError, check_step
+
+log = logging.getLogger(__name__)
 
 PHASES: tuple[str, ...] = (
     "calibration",
@@ -86,9 +104,10 @@ N_HAND_JOINTS = 25
 """WebXR XRHand joints per hand."""
 
 STEP_TOPIC = "/trial/step"
+HANDS_TOPIC = "/trial/hands"
 STEP_SCHEMA_NAME = "payload.trials.StepRecord"
 META_NAME = "payload.trial"
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 LIBRARY = "payload-workbench"
 
 # name -> (shape, kind); shape () is a scalar. kind: "float" (finite), "float_nan" (NaN
@@ -320,13 +339,20 @@ class TrialRecorder:
         flush_period_s: Longest time [s] between flushes, counted both in wall-clock time
             and in recorded time ``t``. Must be in (0, 1].
         overwrite: Replace an existing file instead of refusing.
+        scene: Optional Foxglove scene writer (:class:`~payload.trials.foxglove.FoxgloveScene`)
+            adding the standard Foxglove channels (transforms, scene, joint states).
 
     Raises:
         RecordingError: ``flush_period_s`` out of range, or the file exists.
     """
 
     def __init__(
-        self, path: str | Path, *, flush_period_s: float = 1.0, overwrite: bool = False
+        self,
+        path: str | Path,
+        *,
+        flush_period_s: float = 1.0,
+        overwrite: bool = False,
+        scene: Any = None,
     ) -> None:
         if not (0.0 < flush_period_s <= 1.0):
             raise RecordingError(f"flush_period_s must be in (0, 1] s, got {flush_period_s}")
@@ -342,6 +368,12 @@ class TrialRecorder:
         self._flush_wall = 0.0
         self._flush_t = -math.inf
         self._closed = False
+        self._hands_channel = 0
+        self._hands: tuple[int, Any] | None = None
+        self._codec = codec.StepCodec()
+        self._scene = scene
+        self._t0_ns: int | None = None
+        self._clock = time.time_ns
 
     # -- lifecycle ---------------------------------------------------------------------
     def open(self) -> TrialRecorder:
@@ -353,24 +385,35 @@ class TrialRecorder:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         # a large buffer (few write calls); the flush deadline bounds what a crash loses
         self._file = open(self.path, "wb", buffering=1 << 20)  # closed in close()
+        # zstd chunks, one per flush (at most a second): a kill loses at most the open one
         self._writer = Writer(
             self._file,
-            use_chunking=False,
-            compression=CompressionType.NONE,
-            index_types=IndexType.METADATA | IndexType.ATTACHMENT,
+            chunk_size=1 << 30,
+            compression=CompressionType.ZSTD,
+            index_types=IndexType.CHUNK | IndexType.METADATA | IndexType.ATTACHMENT,
         )
         self._writer.start(profile="", library=LIBRARY)
-        schema_id = self._writer.register_schema(
-            name=STEP_SCHEMA_NAME,
-            encoding="jsonschema",
-            data=json.dumps(STEP_SCHEMA).encode(),
+        data = codec.schema_data()
+        step_schema = self._writer.register_schema(
+            name=codec.STEP_MESSAGE, encoding="protobuf", data=data
+        )
+        hands_schema = self._writer.register_schema(
+            name=codec.HANDS_MESSAGE, encoding="protobuf", data=data
         )
         self._channel = self._writer.register_channel(
             topic=STEP_TOPIC,
-            message_encoding="json",
-            schema_id=schema_id,
+            message_encoding="protobuf",
+            schema_id=step_schema,
             metadata={"schema_version": str(SCHEMA_VERSION), "rate_hz": "50"},
         )
+        self._hands_channel = self._writer.register_channel(
+            topic=HANDS_TOPIC,
+            message_encoding="protobuf",
+            schema_id=hands_schema,
+            metadata={"frame": "workbench", "joints": ",".join(XR_JOINTS)},
+        )
+        if self._scene is not None:
+            self._scene.start(self._writer)
         self.flush()
         return self
 
@@ -408,8 +451,9 @@ class TrialRecorder:
 
     def flush(self) -> None:
         """Push everything written so far to the operating system (survives SIGKILL)."""
-        if self._file is not None:
-            self._file.flush()
+        if self._writer is not None:
+            self._writer.flush()  # closes the chunk in progress and flushes the file
+            self._codec.key()
             self._flush_wall = time.monotonic()
 
     def write(self, step: StepRecord) -> None:
@@ -428,15 +472,36 @@ class TrialRecorder:
                 f"step t = {step.t} s is not after the previous step (t = {self._last_t} s)"
             )
         writer = self._require_open()
-        wall_ns = time.time_ns()
-        msg = {"seq": self._seq, "wall_time": wall_ns * 1e-9, **step.to_json_dict()}
+        wall_ns = self._clock()
+        stamp = max(0, round(step.t * 1e9))
+        if self._t0_ns is None:
+            self._t0_ns = wall_ns - stamp
+        log_ns = max(0, self._t0_ns + stamp)
+        hands = self._hands if self._hands is not None and self._hands[0] == self._seq else None
+        in_hands = (False, False)
+        if hands is not None:
+            frame = hands[1]
+            in_hands = (
+                codec.same_joints(frame.left.joints, step.left_joints),
+                codec.same_joints(frame.right.joints, step.right_joints),
+            )
+            writer.add_message(
+                channel_id=self._hands_channel,
+                log_time=log_ns,
+                publish_time=stamp,
+                data=self._codec.encode_hands(frame, self._seq),
+                sequence=self._seq,
+            )
+        self._hands = None
         writer.add_message(
             channel_id=self._channel,
-            log_time=wall_ns,
-            publish_time=max(0, round(step.t * 1e9)),
-            data=json.dumps(msg, separators=(",", ":"), allow_nan=False).encode(),
+            log_time=log_ns,
+            publish_time=stamp,
+            data=self._codec.encode_step(step, self._seq, wall_ns * 1e-9, in_hands),
             sequence=self._seq,
         )
+        if self._scene is not None:
+            self._scene.write(writer, step, log_ns)
         self._seq += 1
         self._last_t = step.t
         if self._flush_t == -math.inf:
@@ -449,6 +514,19 @@ class TrialRecorder:
         ):
             self.flush()
             self._flush_t = step.t
+
+    def write_hands(self, frame: Any) -> None:
+        """Record the raw hand frame of the next step (call before :meth:`write`).
+
+        The frame goes to the ``/trial/hands`` channel with the next step's sequence
+        number; a replay of the recording feeds these frames to the pipeline bit for bit.
+
+        Args:
+            frame: A :class:`~payload.teleop.hands.HandFrame` in the workbench convention.
+        """
+        if getattr(frame, "frame", "workbench") != "workbench":
+            raise RecordingError("write_hands: frames must be in the workbench convention")
+        self._hands = (self._seq, frame)
 
     def write_meta(self, meta: dict[str, Any]) -> None:
         """Store trial metadata (seed, design hash, operator parameters, calibration, ...).
@@ -620,6 +698,78 @@ def _decode_meta(items: dict[str, str], path: Path) -> dict[str, Any]:
     return out
 
 
+def _read_file(
+    path: Path,
+) -> tuple[dict[int, Channel], dict[str, Any], list[dict[str, Any]], list[dict[str, Any]], bool]:
+    """Channels, merged metadata, step rows, hand samples and completeness of a file."""
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise RecordingError(f"{path}: no such recording") from None
+    except OSError as exc:
+        raise RecordingError(f"{path}: cannot read ({exc.strerror})") from exc
+    try:
+        end, complete = _complete_prefix(data)
+    except RecordingError as exc:
+        raise RecordingError(f"{path}: {exc}") from None
+    reader = StreamReader(io.BytesIO(data[:end]))
+    channels: dict[int, Channel] = {}
+    meta: dict[str, Any] = {}
+    rows: list[dict[str, Any]] = []
+    hands: dict[int, dict[str, Any]] = {}
+    samples: list[dict[str, Any]] = []
+    step_codec = codec.StepCodec()
+    try:
+        for record in reader.records:
+            if isinstance(record, Channel):
+                channels[record.id] = record
+            elif isinstance(record, Message):
+                channel = channels.get(record.channel_id)
+                if channel is None:
+                    continue
+                if channel.topic == STEP_TOPIC:
+                    if channel.message_encoding == "json":  # schema version 1
+                        if not rows:
+                            log.warning(
+                                "%s: schema version 1 (JSON steps), read as it is; "
+                                "`payload trials convert DIR` rewrites it compactly",
+                                path,
+                            )
+                        rows.append(json.loads(record.data))
+                    else:
+                        rows.append(step_codec.decode_step(record.data, hands.get))
+                elif channel.topic == HANDS_TOPIC:
+                    sample = step_codec.decode_hands(record.data)
+                    hands[sample["seq"]] = sample
+                    samples.append(sample)
+            elif isinstance(record, Metadata) and record.name == META_NAME:
+                meta.update(_decode_meta(record.metadata, path))
+    except EndOfFile:
+        pass  # the complete prefix of a cut-short file ends exactly here
+    except (McapError, ValueError, DecodeError) as exc:  # JSON errors are ValueErrors too
+        where = (
+            f"step {len(rows)}"
+            if isinstance(exc, (json.JSONDecodeError, DecodeError))
+            else "record"
+        )
+        raise RecordingError(f"{path}: {where}: corrupt ({exc})") from None
+    return channels, meta, rows, samples, complete
+
+
+def recording_version(path: str | Path) -> int:
+    """Schema version of a recording: 1 (JSON steps) or 2 (protobuf steps).
+
+    Raises:
+        RecordingError: Unreadable, or no ``/trial/step`` channel.
+    """
+    path = Path(path)
+    channels = _read_file(path)[0]
+    for c in channels.values():
+        if c.topic == STEP_TOPIC:
+            return 1 if c.message_encoding == "json" else 2
+    raise RecordingError(f"{path}: no {STEP_TOPIC} channel (not a trial recording)")
+
+
 def read_recording(path: str | Path) -> Recording:
     """Read a recording written by :class:`TrialRecorder`, complete or cut short.
 
@@ -638,38 +788,7 @@ def read_recording(path: str | Path) -> Recording:
             empty recording.)
     """
     path = Path(path)
-    try:
-        data = path.read_bytes()
-    except FileNotFoundError:
-        raise RecordingError(f"{path}: no such recording") from None
-    except OSError as exc:
-        raise RecordingError(f"{path}: cannot read ({exc.strerror})") from exc
-    try:
-        end, complete = _complete_prefix(data)
-    except RecordingError as exc:
-        raise RecordingError(f"{path}: {exc}") from None
-    reader = StreamReader(io.BytesIO(data[:end]))
-    schemas: dict[int, Schema] = {}
-    channels: dict[int, Channel] = {}
-    meta: dict[str, Any] = {}
-    rows: list[dict[str, Any]] = []
-    try:
-        for record in reader.records:
-            if isinstance(record, Schema):
-                schemas[record.id] = record
-            elif isinstance(record, Channel):
-                channels[record.id] = record
-            elif isinstance(record, Message):
-                channel = channels.get(record.channel_id)
-                if channel is not None and channel.topic == STEP_TOPIC:
-                    rows.append(json.loads(record.data))
-            elif isinstance(record, Metadata) and record.name == META_NAME:
-                meta.update(_decode_meta(record.metadata, path))
-    except EndOfFile:
-        pass  # the complete prefix of a cut-short file ends exactly here
-    except (McapError, ValueError) as exc:  # JSON errors are ValueErrors too
-        where = f"step {len(rows)}" if isinstance(exc, json.JSONDecodeError) else "record"
-        raise RecordingError(f"{path}: {where}: corrupt ({exc})") from None
+    channels, meta, rows, _, complete = _read_file(path)
     if complete and not any(c.topic == STEP_TOPIC for c in channels.values()):
         raise RecordingError(f"{path}: no {STEP_TOPIC} channel (not a trial recording)")
     try:
@@ -678,6 +797,39 @@ def read_recording(path: str | Path) -> Recording:
     except StepError as exc:
         raise RecordingError(str(exc)) from None
     return Recording.from_dicts(rows, meta, path, complete)
+
+
+def read_hand_frames(path: str | Path) -> tuple[dict[str, Any], list[Any]]:
+    """The raw hand frames of a recording's ``/trial/hands`` channel, for a replay.
+
+    Returns:
+        (trial metadata, :class:`~payload.teleop.hands.HandFrame` list in recorded order).
+
+    Raises:
+        RecordingError: Unreadable file, or no hand channel (a recording from before
+            schema version 2: replay its ``hands.jsonl`` instead).
+    """
+    from payload.teleop.hands import Hand, HandFrame
+
+    path = Path(path)
+    channels, meta, _, samples, _ = _read_file(path)
+    if not any(c.topic == HANDS_TOPIC for c in channels.values()):
+        raise RecordingError(
+            f"{path}: no {HANDS_TOPIC} channel (an older recording: replay its hands.jsonl)"
+        )
+
+    def hand(joints: np.ndarray, tracked: bool) -> Hand:
+        if not tracked or not np.all(np.isfinite(joints)):
+            return Hand.untracked()
+        return Hand(joints, True)
+
+    frames = [
+        HandFrame(
+            s["stamp"], hand(s["left"], s["left_tracked"]), hand(s["right"], s["right_tracked"])
+        )
+        for s in samples
+    ]
+    return meta, frames
 
 
 __all__ = [
@@ -691,5 +843,7 @@ __all__ = [
     "StepRecord",
     "TrialRecorder",
     "random_step",
+    "read_hand_frames",
     "read_recording",
+    "recording_version",
 ]

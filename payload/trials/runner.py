@@ -32,6 +32,7 @@ from payload.retarget.hand import load_hand
 from payload.rotations import quat_to_matrix
 from payload.safeio import OverwriteError, check_new, new_folder, replace_file
 from payload.teleop.calibration import CalibrationProcedure, Captures
+from payload.teleop.hands import Hand, HandFrame
 from payload.teleop.loop import (
     ReplaySource,
     StepContext,
@@ -45,7 +46,7 @@ from payload.teleop.pipeline import (
     calibrate_operator,
     pair_index,
 )
-from payload.teleop.replay import HandRecordingWriter, read_hand_recording
+from payload.teleop.replay import read_hand_recording
 
 log = logging.getLogger(__name__)
 
@@ -55,6 +56,49 @@ MAX_TRIAL_S = 240.0
 
 class TrialError(PayloadError):
     """A trial could not be run (bad operator choice, unreadable replay)."""
+
+
+class HeadsetSource:
+    """A hand source whose joint positions are reported on the recorder's grid.
+
+    Args:
+        source: The source (the synthetic operator).
+        grid: Resolution of the reported positions [m].
+    """
+
+    def __init__(self, source: Any, grid: float) -> None:
+        self.source = source
+        self.grid = grid
+
+    def frame(self, t: float, world: WorldView | None) -> HandFrame | None:
+        from payload.trials.codec import quantize_joints
+
+        fr = self.source.frame(t, world)
+        if fr is None:
+            return None
+        hands = [
+            Hand(quantize_joints(h.joints, self.grid), True) if h.tracked else h
+            for h in (fr.left, fr.right)
+        ]
+        return HandFrame(fr.stamp, hands[0], hands[1], fr.frame)
+
+    @property
+    def finished(self) -> bool:
+        return self.source.finished
+
+
+def load_replay(path: str | Path) -> tuple[dict[str, Any], list[HandFrame]]:
+    """``(header, frames)`` to replay: a trial's ``log.mcap`` (its ``/trial/hands``
+    channel) or a ``hands.jsonl``; the header's ``meta`` names the source's seed."""
+    from payload.trials.recorder import RecordingError, read_hand_frames
+
+    if Path(path).suffix == ".mcap":
+        try:
+            meta, frames = read_hand_frames(path)
+        except RecordingError as exc:
+            raise TrialError(str(exc)) from None
+        return {"meta": {"seed": meta.get("seed")}}, frames
+    return read_hand_recording(path)
 
 
 _LOCAL = threading.local()
@@ -247,7 +291,7 @@ def run_trial(
     if operator == "replay":
         if replay is None:
             raise TrialError("operator 'replay' needs a hand recording file")
-        header, frames = read_hand_recording(replay)
+        header, frames = load_replay(replay)
         if seed is None:
             source_seed = header.get("meta", {}).get("seed")
             seed = source_seed if isinstance(source_seed, int) and source_seed >= 0 else 0
@@ -305,7 +349,10 @@ class _Source:
         """The hand source and the operator traits to record."""
         if self.operator == "synthetic":
             synthetic = SyntheticOperator(plan, self.seed, calibration)
-            return SyntheticSource(synthetic), dict(vars(synthetic.traits))
+            from payload.trials.codec import HAND_GRID_M
+
+            source = HeadsetSource(SyntheticSource(synthetic), HAND_GRID_M)
+            return source, dict(vars(synthetic.traits))
         return ReplaySource(self.frames), {"replay": str(self.replay)}
 
     def meta(self) -> dict[str, Any]:
@@ -343,6 +390,7 @@ def _run_trial(
     """Run one trial and write its folder ``out`` (arguments: :func:`run_trial`)."""
     from payload.sim.driver import SimDriver
     from payload.sim.world import WorldConfig
+    from payload.trials.foxglove import FoxgloveScene
     from payload.trials.metrics import CONFIRM_MAX_GAP_S, CONFIRM_MIN_S
     from payload.trials.recorder import TrialRecorder
     from payload.trials.scoring import finish_trial
@@ -385,7 +433,6 @@ def _run_trial(
         "modules": _module_rects(layout),
         "contact_definition": {"min_interval_s": CONFIRM_MIN_S, "max_gap_s": CONFIRM_MAX_GAP_S},
     }
-    hands_meta = {"seed": int(seed), **source_spec.meta()}
     bar = None
     if progress:
         from rich.progress import Progress
@@ -395,14 +442,12 @@ def _run_trial(
         bar.start()
     last_t = [0.0]
     try:
-        with (
-            TrialRecorder(rec_path) as recorder,
-            HandRecordingWriter(out / "hands.jsonl", meta=hands_meta) as hands_out,
-        ):
+        scene = FoxgloveScene(driver.world, _module_rects(layout))
+        with TrialRecorder(rec_path, scene=scene) as recorder:
             recorder.write_meta(meta)
 
             def on_step(ctx: StepContext) -> None:
-                hands_out.write(ctx.frame)
+                recorder.write_hands(ctx.frame)
                 recorder.write(_step_record(ctx, driver, retargeters))
                 last_t[0] = ctx.t
                 if bar is not None:

@@ -1,0 +1,173 @@
+"""``payload bench trial``: a whole trial's real-time factor, where its time goes, log size.
+
+The bench runs one synthetic trial in this process exactly as ``payload trial`` does and
+times it with wrappers around the stages (each figure is exclusive: time inside a nested
+timed stage counts only there):
+
+* ``startup``: building the MuJoCo world (model compile), loading the retargeters (and
+  compiling them when not cached), placing the CTB;
+* ``physics``: the simulator's control steps (vehicle controller + 20 ``mj_step``);
+* ``contacts``: the world-state read-out after each step (poses, fingertip contacts,
+  indicator);
+* ``operator``: the synthetic operator producing hand frames;
+* ``pipeline``: the teleoperation pipeline (filters, retargeting, rail and base channels);
+* ``recording``: building the step records and writing the MCAP file;
+* ``scoring``: reading the recording back, the metrics and the two figures;
+* ``other``: the rest of the loop (phase labels, world views, bookkeeping).
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import os
+import tempfile
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+STAGES: tuple[str, ...] = (
+    "startup",
+    "physics",
+    "contacts",
+    "operator",
+    "pipeline",
+    "recording",
+    "scoring",
+    "other",
+)
+
+
+class _Timers:
+    """Exclusive wall and CPU time per stage (a stack of open stages)."""
+
+    def __init__(self) -> None:
+        self.wall = dict.fromkeys(STAGES, 0.0)
+        self.cpu = dict.fromkeys(STAGES, 0.0)
+        self._stack: list[str] = []
+        self._mark = (time.perf_counter(), time.process_time())
+
+    def _switch(self) -> None:
+        now = (time.perf_counter(), time.process_time())
+        if self._stack:
+            top = self._stack[-1]
+            self.wall[top] += now[0] - self._mark[0]
+            self.cpu[top] += now[1] - self._mark[1]
+        self._mark = now
+
+    def wrap(self, stage: str, fn: Callable) -> Callable:
+        @functools.wraps(fn)
+        def timed(*args: Any, **kwargs: Any) -> Any:
+            self._switch()
+            self._stack.append(stage)
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                self._switch()
+                self._stack.pop()
+
+        return timed
+
+
+@contextmanager
+def _patched(timers: _Timers) -> Iterator[None]:
+    """Wrap the stage functions (class attributes) for the duration."""
+    from payload.sim.driver import SimDriver
+    from payload.teleop.pipeline import TeleopPipeline
+    from payload.trials import campaign, runner
+    from payload.trials.recorder import StepRecord, TrialRecorder
+
+    targets = [
+        (SimDriver, "__init__", "startup"),
+        (runner, "retargeting", "startup"),
+        (runner, "place_ctb_for_teleop", "startup"),
+        (SimDriver, "step", "physics"),
+        (SimDriver, "world_state", "contacts"),
+        (runner.HeadsetSource, "frame", "operator"),
+        (TeleopPipeline, "step", "pipeline"),
+        (StepRecord, "__post_init__", "recording"),
+        (TrialRecorder, "write", "recording"),
+        (TrialRecorder, "write_hands", "recording"),
+        (campaign, "finish_trial", "scoring"),
+    ]
+    saved = [(obj, name, getattr(obj, name)) for obj, name, _ in targets]
+    try:
+        for obj, name, stage in targets:
+            setattr(obj, name, timers.wrap(stage, getattr(obj, name)))
+        yield
+    finally:
+        for obj, name, fn in saved:
+            setattr(obj, name, fn)
+
+
+def run_trial_bench(
+    seed: int = 0,
+    *,
+    out_dir: Path | None = None,
+    pin: bool = False,
+    max_time: float | None = None,
+) -> dict:
+    """Run one synthetic trial and report its speed, time breakdown and log size.
+
+    Args:
+        seed: Trial seed.
+        out_dir: Where the trial folder goes (default: a temporary folder, removed).
+        pin: Restrict the process to one CPU core (Linux).
+        max_time: Cap on the session length [s] (default: the runner's, a whole trial).
+
+    Returns:
+        ``{"sim_seconds", "wall_seconds", "cpu_seconds", "realtime_factor",
+        "cpu_realtime_factor", "breakdown" (wall [s] per stage), "breakdown_cpu",
+        "log_bytes", "log_bytes_per_sim_minute", "steps", "seed", "success"}``.
+    """
+    before = os.sched_getaffinity(0) if pin and hasattr(os, "sched_setaffinity") else None
+    if before is not None:
+        os.sched_setaffinity(0, {min(before)})
+    try:
+        with tempfile.TemporaryDirectory() as tmp:
+            out = Path(out_dir) if out_dir is not None else Path(tmp) / "trial"
+            return _bench(seed, out, pinned=before is not None, max_time=max_time)
+    finally:
+        if before is not None:
+            os.sched_setaffinity(0, before)
+
+
+def _bench(seed: int, out: Path, pinned: bool, max_time: float | None) -> dict:
+    from payload.schema import CONTROL_DT
+
+    timers = _Timers()
+    w0, c0 = time.perf_counter(), time.process_time()
+    timers._stack.append("startup")  # the imports below count as start-up
+    timers._mark = (w0, c0)
+    with _patched(timers):
+        from payload.trials import runner
+
+        timers._switch()
+        timers._stack[-1] = "other"
+        extra = {} if max_time is None else {"max_time": max_time}
+        result = runner.run_trial(seed, out_dir=out, **extra)
+    timers._switch()
+    wall, cpu = timers._mark[0] - w0, timers._mark[1] - c0
+    sim_seconds = result["steps"] * CONTROL_DT
+    size = (out / "log.mcap").stat().st_size
+    return {
+        "seed": seed,
+        "success": bool(result.get("success")),
+        "steps": result["steps"],
+        "sim_seconds": sim_seconds,
+        "wall_seconds": wall,
+        "cpu_seconds": cpu,
+        "realtime_factor": sim_seconds / wall,
+        "cpu_realtime_factor": sim_seconds / cpu if cpu > 0 else math.inf,
+        "breakdown": dict(timers.wall),
+        "breakdown_cpu": dict(timers.cpu),
+        "log_bytes": size,
+        "log_bytes_per_sim_minute": size / (sim_seconds / 60.0),
+        "pinned": pinned,
+        "load_average": list(os.getloadavg()),
+    }
+
+
+__all__ = ["STAGES", "run_trial_bench"]

@@ -1,0 +1,361 @@
+"""Typed, compact step and hand-frame messages for trial recordings (protobuf).
+
+The messages are declared in code as a ``FileDescriptorProto`` (no ``protoc`` needed) and
+their Python classes are generated at import. The schema stored in every recording is the
+``FileDescriptorSet`` of these messages (MCAP ``protobuf`` encoding), so any MCAP tool
+(``mcap cat``, Foxglove, ``mcap_protobuf.decoder``) decodes them.
+
+``payload.trials.Step`` (channel ``/trial/step``): one message per 50 Hz control step.
+Scalars and arrays are ``double`` (packed), lossless. Phases and modules are enums. The
+raw hand joints are a ``payload.trials.Joints`` message, or a reference to the
+``/trial/hands`` message with the same sequence number when it holds the same joints.
+
+When ``pairs_in_cmd`` is set, ``q_left``, ``q_right`` and ``rail_cmd`` are not stored:
+they are the pair L (A, C) and pair R (B, D) entries and the last entry of ``q_cmd``
+(:data:`PAIR_L_INDEX`, :data:`PAIR_R_INDEX`), as the trial runner records them.
+
+``payload.trials.Joints``: 25 x 3 hand-joint positions [m], lossless, in one of three forms:
+
+* ``grid`` > 0: every value is ``k * grid`` for an integer ``k``; ``delta`` holds ``k``
+  minus the previous message's ``k`` (the same hand on the same channel), or ``k`` itself
+  when ``key`` is set (the first message after every flush is a key message, so each MCAP
+  chunk decodes on its own). The trial runner's synthetic headset reports joints on the
+  :data:`HAND_GRID_M` grid, so its frames cost about 2 bytes per coordinate.
+* ``raw``: 75 doubles (values off any grid, e.g. a replayed double-precision recording).
+* ``untracked``: all NaN (no joints).
+
+``payload.trials.HandSample`` (channel ``/trial/hands``): the raw hand frame the pipeline
+saw (stamp, tracked flags, joints), so a recording replays bit for bit.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
+
+PACKAGE = "payload.trials"
+HAND_GRID_M = 1e-5
+"""Resolution of the synthetic headset's joint positions [m] (10 um; WebXR reports float32)."""
+
+PHASE_NAMES: tuple[str, ...] = (
+    "calibration",
+    "acquisition",
+    "translation",
+    "turn",
+    "arrival",
+    "braking",
+)
+MODULE_NAMES: tuple[str, ...] = ("kibo", "hatch", "node2", "outside")
+
+PAIR_L_INDEX = np.array([0, 1, 2, 3, 8, 9, 10, 11])
+"""Positions of pair L's joints (A then C) in the 17 manipulation coordinates."""
+PAIR_R_INDEX = np.array([4, 5, 6, 7, 12, 13, 14, 15])
+"""Positions of pair R's joints (B then D)."""
+_PAIR_FIELDS = ("q_left", "q_right", "rail_cmd")
+
+# (name, number, shape) of the packed double arrays of a Step, in field-number order;
+# shape () = a scalar double.
+STEP_DOUBLES: tuple[tuple[str, int, tuple[int, ...]], ...] = (
+    ("t", 3, ()),
+    ("q_left", 10, (8,)),
+    ("q_right", 11, (8,)),
+    ("rail_cmd", 12, ()),
+    ("twist_cmd", 13, (6,)),
+    ("q_cmd", 14, (17,)),
+    ("deploy_cmd", 15, ()),
+    ("q_meas", 16, (17,)),
+    ("deploy_meas", 17, ()),
+    ("astrobee_pos", 18, (3,)),
+    ("astrobee_quat", 19, (4,)),
+    ("astrobee_twist", 20, (6,)),
+    ("ctb_pos", 21, (3,)),
+    ("ctb_quat", 22, (4,)),
+)
+
+_F = descriptor_pb2.FieldDescriptorProto
+
+
+def _field(
+    msg: descriptor_pb2.DescriptorProto,
+    name: str,
+    number: int,
+    ftype: int,
+    *,
+    repeated: bool = False,
+    type_name: str | None = None,
+) -> None:
+    f = msg.field.add(name=name, number=number, type=ftype)
+    f.label = _F.LABEL_REPEATED if repeated else _F.LABEL_OPTIONAL
+    if type_name is not None:
+        f.type_name = type_name
+    if repeated:
+        f.options.packed = True
+
+
+def _enum(fd: descriptor_pb2.FileDescriptorProto, name: str, values: tuple[str, ...]) -> None:
+    e = fd.enum_type.add(name=name)
+    for i, v in enumerate(values):
+        e.value.add(name=f"{name.upper()}_{v.upper()}", number=i)
+
+
+def _file_descriptor() -> descriptor_pb2.FileDescriptorProto:
+    fd = descriptor_pb2.FileDescriptorProto(
+        name="payload/trials/step.proto", package=PACKAGE, syntax="proto3"
+    )
+    _enum(fd, "Phase", PHASE_NAMES)
+    _enum(fd, "Module", MODULE_NAMES)
+    j = fd.message_type.add(name="Joints")
+    _field(j, "grid", 1, _F.TYPE_DOUBLE)
+    _field(j, "delta", 2, _F.TYPE_SINT64, repeated=True)
+    _field(j, "raw", 3, _F.TYPE_DOUBLE, repeated=True)
+    _field(j, "untracked", 4, _F.TYPE_BOOL)
+    _field(j, "key", 5, _F.TYPE_BOOL)
+    _field(j, "in_hands", 6, _F.TYPE_BOOL)
+    s = fd.message_type.add(name="Step")
+    _field(s, "seq", 1, _F.TYPE_UINT64)
+    _field(s, "wall_time", 2, _F.TYPE_DOUBLE)
+    _field(s, "phase", 4, _F.TYPE_ENUM, type_name=f".{PACKAGE}.Phase")
+    _field(s, "ctb_module", 5, _F.TYPE_ENUM, type_name=f".{PACKAGE}.Module")
+    _field(s, "left_tracked", 6, _F.TYPE_BOOL)
+    _field(s, "right_tracked", 7, _F.TYPE_BOOL)
+    _field(s, "contact", 8, _F.TYPE_BOOL)
+    for name, number, shape in STEP_DOUBLES:
+        _field(s, name, number, _F.TYPE_DOUBLE, repeated=shape != ())
+    _field(s, "pairs_in_cmd", 9, _F.TYPE_BOOL)
+    _field(s, "left_joints", 30, _F.TYPE_MESSAGE, type_name=f".{PACKAGE}.Joints")
+    _field(s, "right_joints", 31, _F.TYPE_MESSAGE, type_name=f".{PACKAGE}.Joints")
+    h = fd.message_type.add(name="HandSample")
+    _field(h, "seq", 1, _F.TYPE_UINT64)
+    _field(h, "stamp", 2, _F.TYPE_DOUBLE)
+    _field(h, "left_tracked", 3, _F.TYPE_BOOL)
+    _field(h, "right_tracked", 4, _F.TYPE_BOOL)
+    _field(h, "left", 5, _F.TYPE_MESSAGE, type_name=f".{PACKAGE}.Joints")
+    _field(h, "right", 6, _F.TYPE_MESSAGE, type_name=f".{PACKAGE}.Joints")
+    return fd
+
+
+FILE_DESCRIPTOR = _file_descriptor()
+_POOL = descriptor_pool.DescriptorPool()
+_POOL.Add(FILE_DESCRIPTOR)
+StepMsg: Any = message_factory.GetMessageClass(_POOL.FindMessageTypeByName(f"{PACKAGE}.Step"))
+HandSampleMsg: Any = message_factory.GetMessageClass(
+    _POOL.FindMessageTypeByName(f"{PACKAGE}.HandSample")
+)
+JointsMsg: Any = message_factory.GetMessageClass(_POOL.FindMessageTypeByName(f"{PACKAGE}.Joints"))
+STEP_MESSAGE = f"{PACKAGE}.Step"
+HANDS_MESSAGE = f"{PACKAGE}.HandSample"
+
+
+def schema_data() -> bytes:
+    """The ``FileDescriptorSet`` of these messages (the MCAP schema data)."""
+    return descriptor_pb2.FileDescriptorSet(file=[FILE_DESCRIPTOR]).SerializeToString()
+
+
+def quantize_joints(joints: np.ndarray, grid: float = HAND_GRID_M) -> np.ndarray:
+    """Joint positions rounded to ``grid`` [m] (what the synthetic headset reports).
+
+    NaN stays NaN; the result is exactly representable by the ``grid`` form of ``Joints``.
+    """
+    return np.round(np.asarray(joints, dtype=np.float64) / grid) * grid
+
+
+class JointsCodec:
+    """Lossless encoder/decoder of one hand's joints on one channel (keeps the delta state).
+
+    Args:
+        grid: The grid [m] tried first (values off it are stored raw).
+    """
+
+    def __init__(self, grid: float = HAND_GRID_M) -> None:
+        self.grid = grid
+        self._prev: np.ndarray | None = None
+
+    def key(self) -> None:
+        """Make the next message a key message (no reference to earlier ones)."""
+        self._prev = None
+
+    def encode(self, joints: np.ndarray, out: Any) -> None:
+        """Fill the ``Joints`` message ``out`` with ``joints`` (25, 3)."""
+        flat = np.asarray(joints, dtype=np.float64).reshape(-1)
+        if np.all(np.isnan(flat)):
+            out.untracked = True
+            return
+        with np.errstate(invalid="ignore"):
+            k = np.round(flat / self.grid)
+        if np.all(np.isfinite(k)) and np.array_equal(k * self.grid, flat):
+            ki = k.astype(np.int64)
+            out.grid = self.grid
+            if self._prev is None:
+                out.key = True
+                out.delta.extend(ki.tolist())
+            else:
+                out.delta.extend((ki - self._prev).tolist())
+            self._prev = ki
+            return
+        out.raw.extend(flat.tolist())
+        self._prev = None
+
+    def decode(self, msg: Any) -> np.ndarray:
+        """Joints (25, 3) [m] from a ``Joints`` message (NaN when untracked)."""
+        if msg.untracked:
+            return np.full((25, 3), np.nan)
+        if msg.grid > 0:
+            d = np.array(msg.delta, dtype=np.int64)
+            if msg.key or self._prev is None:
+                if not msg.key:
+                    raise ValueError("hand joints reference a message that is not in the file")
+                k = d
+            else:
+                k = self._prev + d
+            self._prev = k
+            return (k * msg.grid).reshape(25, 3)
+        self._prev = None
+        return np.array(msg.raw, dtype=np.float64).reshape(25, 3)
+
+
+class StepCodec:
+    """Encode steps and hand samples to protobuf bytes and back (stateful for the deltas)."""
+
+    def __init__(self, grid: float = HAND_GRID_M) -> None:
+        self.joints = {
+            name: JointsCodec(grid)
+            for name in ("left_joints", "right_joints", "hands_left", "hands_right")
+        }
+
+    def key(self) -> None:
+        """The next messages start fresh (call after every flush)."""
+        for c in self.joints.values():
+            c.key()
+
+    def encode_step(
+        self, step: Any, seq: int, wall_time: float, in_hands: tuple[bool, bool] = (False, False)
+    ) -> bytes:
+        """A :class:`~payload.trials.recorder.StepRecord` as ``payload.trials.Step`` bytes.
+
+        Args:
+            step: The step.
+            seq: Its sequence number.
+            wall_time: Wall clock at write [s since the Unix epoch].
+            in_hands: For each hand, whether the ``/trial/hands`` message of this sequence
+                number holds the same joints (they are then not repeated).
+        """
+        m = StepMsg(seq=seq, wall_time=wall_time)
+        m.phase = PHASE_NAMES.index(step.phase)
+        m.ctb_module = MODULE_NAMES.index(step.ctb_module)
+        m.left_tracked = step.left_tracked
+        m.right_tracked = step.right_tracked
+        m.contact = step.contact
+        pairs = _pairs_in_cmd(step)
+        m.pairs_in_cmd = pairs
+        for name, _, shape in STEP_DOUBLES:
+            if pairs and name in _PAIR_FIELDS:
+                continue
+            value = getattr(step, name)
+            if shape == ():
+                setattr(m, name, value)
+            else:
+                getattr(m, name).extend(value.tolist())
+        for name, ref in zip(("left_joints", "right_joints"), in_hands):
+            sub = getattr(m, name)
+            if ref:
+                sub.in_hands = True
+            else:
+                self.joints[name].encode(getattr(step, name), sub)
+        return m.SerializeToString()
+
+    def encode_hands(self, frame: Any, seq: int) -> bytes:
+        """A :class:`~payload.teleop.hands.HandFrame` as ``payload.trials.HandSample`` bytes."""
+        m = HandSampleMsg(seq=seq, stamp=float(frame.stamp))
+        m.left_tracked = bool(frame.left.tracked)
+        m.right_tracked = bool(frame.right.tracked)
+        self.joints["hands_left"].encode(frame.left.joints, m.left)
+        self.joints["hands_right"].encode(frame.right.joints, m.right)
+        return m.SerializeToString()
+
+    def decode_hands(self, data: bytes) -> dict[str, Any]:
+        """``{"seq", "stamp", "left_tracked", "right_tracked", "left", "right"}``."""
+        m = HandSampleMsg.FromString(data)
+        return {
+            "seq": int(m.seq),
+            "stamp": float(m.stamp),
+            "left_tracked": bool(m.left_tracked),
+            "right_tracked": bool(m.right_tracked),
+            "left": self.joints["hands_left"].decode(m.left),
+            "right": self.joints["hands_right"].decode(m.right),
+        }
+
+    def decode_step(
+        self, data: bytes, hands: Callable[[int], dict[str, Any] | None] | None = None
+    ) -> dict[str, Any]:
+        """A step message as the dict :meth:`Recording.from_dicts` takes.
+
+        Args:
+            data: The message bytes.
+            hands: Looks up the decoded hand sample of a sequence number (for joints
+                stored there).
+
+        Raises:
+            ValueError: The message refers to a hand sample that is not in the file.
+        """
+        m = StepMsg.FromString(data)
+        row: dict[str, Any] = {
+            "seq": int(m.seq),
+            "wall_time": float(m.wall_time),
+            "phase": PHASE_NAMES[m.phase],
+            "ctb_module": MODULE_NAMES[m.ctb_module],
+            "left_tracked": bool(m.left_tracked),
+            "right_tracked": bool(m.right_tracked),
+            "contact": bool(m.contact),
+        }
+        for name, _, shape in STEP_DOUBLES:
+            value = getattr(m, name)
+            row[name] = float(value) if shape == () else np.array(value, dtype=np.float64)
+        if m.pairs_in_cmd:
+            q = row["q_cmd"]
+            row["q_left"], row["q_right"], row["rail_cmd"] = (
+                q[PAIR_L_INDEX],
+                q[PAIR_R_INDEX],
+                float(q[-1]),
+            )
+        for name, side in (("left_joints", "left"), ("right_joints", "right")):
+            sub = getattr(m, name)
+            if sub.in_hands:
+                sample = hands(int(m.seq)) if hands is not None else None
+                if sample is None:
+                    raise ValueError(f"step {m.seq}: its hand sample is not in the file")
+                row[name] = sample[side]
+            else:
+                row[name] = self.joints[name].decode(sub)
+        return row
+
+
+def _pairs_in_cmd(step: Any) -> bool:
+    q = step.q_cmd
+    return bool(
+        np.array_equal(step.q_left, q[PAIR_L_INDEX])
+        and np.array_equal(step.q_right, q[PAIR_R_INDEX])
+        and step.rail_cmd == q[-1]
+    )
+
+
+def same_joints(a: np.ndarray, b: np.ndarray) -> bool:
+    """Bit-for-bit equality of two joint arrays (NaN equal to NaN)."""
+    return bool(np.array_equal(a, b, equal_nan=True))
+
+
+__all__ = [
+    "FILE_DESCRIPTOR",
+    "HANDS_MESSAGE",
+    "HAND_GRID_M",
+    "MODULE_NAMES",
+    "PHASE_NAMES",
+    "STEP_MESSAGE",
+    "JointsCodec",
+    "StepCodec",
+    "quantize_joints",
+    "same_joints",
+    "schema_data",
+]

@@ -1,0 +1,103 @@
+"""``payload trials convert DIR``: rewrite schema-1 (JSON step) recordings as schema 2.
+
+Every ``log.mcap`` below ``DIR`` whose steps are JSON is rewritten with the current
+recorder (protobuf steps, zstd chunks, the Foxglove channels); the hand frames of a
+``hands.jsonl`` beside it go into its ``/trial/hands`` channel when they match the steps
+one for one. Nothing recorded is lost: the original is kept as ``log.v1.mcap`` (and
+``hands.jsonl`` stays), and a folder that already holds a ``log.v1.mcap`` is refused
+unless ``force``. Steps, metadata and wall times are carried over unchanged.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from pathlib import Path
+from typing import Any
+
+from payload.trials.recorder import (
+    STEP_TOPIC,
+    RecordingError,
+    TrialRecorder,
+    read_recording,
+    recording_version,
+)
+
+log = logging.getLogger(__name__)
+
+BACKUP_NAME = "log.v1.mcap"
+
+
+def convert_file(path: Path, *, force: bool = False) -> str:
+    """Convert one recording in place (original kept as ``log.v1.mcap``); says what it did.
+
+    Raises:
+        RecordingError: Unreadable file, or a backup exists and ``force`` is not set.
+    """
+    from payload.sim.world import build_world
+    from payload.teleop.replay import ReplayError, read_hand_recording
+    from payload.trials.foxglove import FoxgloveScene
+
+    version = recording_version(path)
+    if version != 1:
+        return f"{path}: already schema version {version}, left as it is"
+    backup = path.with_name(BACKUP_NAME)
+    if backup.exists() and not force:
+        raise RecordingError(f"{backup}: exists; pass --force to convert {path} again")
+    rec = read_recording(path)
+    frames = None
+    hands_path = path.with_name("hands.jsonl")
+    if hands_path.is_file():
+        try:
+            frames = read_hand_recording(hands_path)[1]
+        except ReplayError as exc:
+            log.warning("%s: hand frames not carried over (%s)", hands_path, exc)
+        if frames is not None and len(frames) != len(rec):
+            log.warning(
+                "%s: %d frames for %d steps, not carried over", hands_path, len(frames), len(rec)
+            )
+            frames = None
+    tmp = path.with_name(path.name + ".converting")
+    walls = iter(rec.wall_time)
+    with TrialRecorder(tmp, overwrite=True, scene=FoxgloveScene(build_world(None))) as out:
+        out._clock = lambda: round(float(next(walls)) * 1e9)
+        out.write_meta(rec.meta)
+        for i in range(len(rec)):
+            if frames is not None:
+                out.write_hands(frames[i])
+            out.write(rec.step(i))
+    if not rec.complete:  # keep a cut-short recording's state visible
+        log.warning("%s: the original was cut short; the converted file is closed", path)
+    os.replace(path, backup)
+    os.replace(tmp, path)
+    hands = "with" if frames is not None else "without"
+    return (
+        f"{path}: converted {len(rec)} steps to schema version 2 ({hands} hand frames); "
+        f"the original is {backup.name}"
+    )
+
+
+def convert_dir(root: Path, *, force: bool = False) -> dict[str, Any]:
+    """Convert every ``log.mcap`` below ``root`` (or ``root`` itself if it is a file).
+
+    Returns:
+        ``{"converted": [paths], "skipped": [paths], "messages": [lines]}``.
+
+    Raises:
+        RecordingError: ``root`` does not exist or holds no ``log.mcap``.
+    """
+    root = Path(root)
+    if not root.exists():
+        raise RecordingError(f"{root}: no such file or folder")
+    paths = [root] if root.is_file() else sorted(root.rglob("log.mcap"))
+    if not paths:
+        raise RecordingError(f"{root}: no log.mcap below it")
+    out: dict[str, Any] = {"converted": [], "skipped": [], "messages": []}
+    for p in paths:
+        msg = convert_file(p, force=force)
+        out["converted" if "converted" in msg else "skipped"].append(str(p))
+        out["messages"].append(msg)
+    return out
+
+
+__all__ = ["BACKUP_NAME", "STEP_TOPIC", "convert_dir", "convert_file"]

@@ -1,0 +1,272 @@
+"""Schema-2 recordings: lossless hand-joint coding, the Foxglove channels (decoded with the
+mcap reader and foxglove-schemas-protobuf, transforms checked against MuJoCo's forward
+kinematics), schema-1 (JSON) recordings still reading, and their conversion."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import mujoco
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+from mcap.writer import Writer
+
+from payload.teleop.hands import Hand, HandFrame
+from payload.trials.codec import HAND_GRID_M, JointsCodec, JointsMsg, quantize_joints
+from payload.trials.recorder import (
+    STEP_SCHEMA,
+    TrialRecorder,
+    random_step,
+    read_hand_frames,
+    read_recording,
+    recording_version,
+)
+
+DT = 0.02
+
+
+def _roundtrip(codec_in: JointsCodec, codec_out: JointsCodec, joints: np.ndarray) -> np.ndarray:
+    msg = JointsMsg()
+    codec_in.encode(joints, msg)
+    return codec_out.decode(JointsMsg.FromString(msg.SerializeToString()))
+
+
+def test_joints_codec_is_lossless_on_and_off_the_grid() -> None:
+    rng = np.random.default_rng(0)
+    enc, dec = JointsCodec(), JointsCodec()
+    for k in range(30):
+        x = rng.normal(scale=0.3, size=(25, 3)) + 1.0
+        if k % 3 == 0:
+            x = quantize_joints(x)  # on the grid: small deltas
+        if k == 7:
+            x[:] = np.nan
+        back = _roundtrip(enc, dec, x)
+        assert np.array_equal(back, x, equal_nan=True)
+        if k % 10 == 5:  # a flush: the next message stands alone
+            enc.key()
+    # a grid frame after a grid frame costs ~2 bytes per coordinate, a raw one 8
+    a = quantize_joints(rng.normal(size=(25, 3)))
+    b = quantize_joints(a + HAND_GRID_M * rng.integers(-100, 100, size=(25, 3)))
+    enc = JointsCodec()
+    m1, m2 = JointsMsg(), JointsMsg()
+    enc.encode(a, m1)
+    enc.encode(b, m2)
+    assert m2.ByteSize() <= 2 * 75 + 8
+    raw = JointsMsg()
+    JointsCodec().encode(rng.normal(size=(25, 3)), raw)
+    assert raw.ByteSize() >= 8 * 75
+
+
+def test_delta_joints_without_their_key_are_refused() -> None:
+    enc = JointsCodec()
+    x = quantize_joints(np.ones((25, 3)))
+    _roundtrip(enc, JointsCodec(), x)
+    msg = JointsMsg()
+    enc.encode(quantize_joints(x + 3 * HAND_GRID_M), msg)  # a delta message
+    assert not msg.key
+    with pytest.raises(ValueError, match="not in the file"):
+        JointsCodec().decode(msg)
+
+
+def test_hand_frames_replay_bit_for_bit(tmp_path: Path) -> None:
+    rng = np.random.default_rng(1)
+    path = tmp_path / "log.mcap"
+    frames = []
+    with TrialRecorder(path, flush_period_s=0.1) as rec:
+        for k in range(80):
+            left = Hand(quantize_joints(rng.normal(size=(25, 3))))
+            right = Hand.untracked() if k % 9 == 0 else Hand(rng.normal(size=(25, 3)))
+            fr = HandFrame(k * DT + 0.003, left, right)
+            frames.append(fr)
+            rec.write_hands(fr)
+            rec.write(
+                random_step(
+                    rng,
+                    k * DT,
+                    left_joints=left.joints,
+                    right_joints=right.joints,
+                    right_tracked=right.tracked,
+                )
+            )
+    _, back = read_hand_frames(path)
+    assert len(back) == 80
+    for a, b in zip(frames, back):
+        assert a.stamp == b.stamp and a.right.tracked == b.right.tracked
+        assert np.array_equal(a.left.joints, b.left.joints)
+        assert np.array_equal(a.right.joints, b.right.joints, equal_nan=True)
+    rec_back = read_recording(path)
+    np.testing.assert_array_equal(rec_back.left_joints, np.array([f.left.joints for f in frames]))
+
+
+@pytest.fixture(scope="module")
+def foxglove_recording(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, list, object]:
+    from payload.sim.world import build_world
+    from payload.trials.foxglove import FoxgloveScene
+
+    world = build_world(None)
+    rng = np.random.default_rng(2)
+    path = tmp_path_factory.mktemp("fox") / "log.mcap"
+    lo, hi = world.model.jnt_range[world.model.dof_jntid[world.dof]].T
+    steps = []
+    with TrialRecorder(path, scene=FoxgloveScene(world)) as rec:
+        for k in range(60):
+            q = rng.uniform(lo, hi)
+            st = random_step(rng, k * DT, q_meas=q, contact=k > 30, phase="acquisition")
+            steps.append(st)
+            rec.write(st)
+    return path, steps, world
+
+
+def test_foxglove_channels_decode_with_the_standard_schemas(foxglove_recording) -> None:
+    """mcap's reader with mcap_protobuf's decoder gives foxglove-schemas-protobuf messages
+    for every channel, with the fields Foxglove needs set."""
+    from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
+    from foxglove_schemas_protobuf.JointStates_pb2 import JointStates
+    from foxglove_schemas_protobuf.Log_pb2 import Log
+    from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
+    from mcap_protobuf.decoder import DecoderFactory
+
+    path, steps, _ = foxglove_recording
+    by_topic: dict[str, list] = {}
+    with open(path, "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        for schema, channel, message, decoded in reader.iter_decoded_messages():
+            by_topic.setdefault(channel.topic, []).append((schema, message, decoded))
+    expect = {
+        "/tf": ("foxglove.FrameTransforms", FrameTransforms),
+        "/scene": ("foxglove.SceneUpdate", SceneUpdate),
+        "/payload/joints/commanded": ("foxglove.JointStates", JointStates),
+        "/payload/joints/measured": ("foxglove.JointStates", JointStates),
+        "/trial/events": ("foxglove.Log", Log),
+    }
+    for topic, (name, cls) in expect.items():
+        assert topic in by_topic, topic
+        for schema, _, decoded in by_topic[topic]:
+            assert schema.name == name
+            # the decoded message re-parses as the package's own class: same schema
+            cls.FromString(decoded.SerializeToString())
+    assert len(by_topic["/tf"]) == 12  # 60 steps at 10 Hz
+    scene = SceneUpdate.FromString(by_topic["/scene"][0][2].SerializeToString())
+    frames = {e.frame_id for e in scene.entities}
+    assert {"world", "astrobee", "ctb"} <= frames and "payload/A_distal" in frames
+    assert sum(len(e.cubes) for e in scene.entities if e.frame_id == "world") > 10
+    tf = by_topic["/tf"][0][2]
+    children = {t.child_frame_id: t.parent_frame_id for t in tf.transforms}
+    assert children["astrobee"] == "world" and children["ctb"] == "world"
+    node = "payload/A_distal"
+    while node != "world":  # every payload link chains back to the world
+        node = children[node]
+    events = [d.message for _, _, d in by_topic["/trial/events"]]
+    assert events[:3] == ["phase: acquisition", "opposing contact: off", "opposing contact: on"]
+    js = by_topic["/payload/joints/measured"][1][2]
+    np.testing.assert_allclose([j.position for j in js.joints][:17], steps[5].q_meas, atol=1e-6)
+    # every channel on one timeline: the same log time for a step on every channel
+    step_times = [m.log_time for _, m, _ in by_topic["/trial/step"]]
+    assert by_topic["/tf"][1][1].log_time == step_times[5]
+
+
+def _quat_rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    w, x, y, z = q
+    u = np.array([x, y, z])
+    return v + 2 * np.cross(u, np.cross(u, v) + w * v)
+
+
+def test_foxglove_transforms_compose_to_mujoco_body_poses(foxglove_recording) -> None:
+    """Chaining the recorded parent -> child transforms (composed here with plain quaternion
+    algebra) lands every payload link where MuJoCo's own kinematics puts it."""
+    from mcap_protobuf.decoder import DecoderFactory
+
+    path, steps, world = foxglove_recording
+    with open(path, "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        tfs = [d for _, _, _, d in reader.iter_decoded_messages(topics=["/tf"])]
+    k = 3
+    tf, st = tfs[k], steps[5 * k]
+    rel = {
+        t.child_frame_id: (
+            t.parent_frame_id,
+            np.array([t.translation.x, t.translation.y, t.translation.z]),
+            np.array([t.rotation.w, t.rotation.x, t.rotation.y, t.rotation.z]),
+        )
+        for t in tf.transforms
+    }
+
+    def world_pose(frame: str) -> tuple[np.ndarray, np.ndarray]:
+        if frame == "world":
+            return np.zeros(3), np.array([1.0, 0, 0, 0])
+        parent, p, q = rel[frame]
+        pp, pq = world_pose(parent)
+        out = np.zeros(4)
+        mujoco.mju_mulQuat(out, pq, q)
+        return pp + _quat_rotate(pq, p), out
+
+    m = world.model
+    d = mujoco.MjData(m)
+    a = world.astrobee_qpos
+    d.qpos[a : a + 3], d.qpos[a + 3 : a + 7] = st.astrobee_pos, st.astrobee_quat
+    d.qpos[world.qpos] = st.q_meas
+    d.qpos[world.stage_qpos] = st.deploy_meas
+    d.qpos[world.ctb_qpos : world.ctb_qpos + 3] = st.ctb_pos
+    d.qpos[world.ctb_qpos + 3 : world.ctb_qpos + 7] = st.ctb_quat
+    mujoco.mj_kinematics(m, d)
+    for name in ("astrobee", "payload/A_distal", "payload/D_distal", "ctb"):
+        pos, quat = world_pose(name)
+        # the channel rounds to ~1e-6 (VIEW_RESOLUTION) per link: a few links deep
+        np.testing.assert_allclose(pos, d.body(name).xpos, atol=2e-5)
+        assert abs(abs(float(quat @ d.body(name).xquat)) - 1.0) < 1e-8
+
+
+def _write_v1(path: Path, steps: list) -> None:
+    """A schema-1 recording as the previous recorder wrote it (JSON steps)."""
+    with open(path, "wb") as f:
+        w = Writer(f)
+        w.start(profile="", library="payload-workbench")
+        sid = w.register_schema(
+            name="payload.trials.StepRecord",
+            encoding="jsonschema",
+            data=json.dumps(STEP_SCHEMA).encode(),
+        )
+        cid = w.register_channel(topic="/trial/step", message_encoding="json", schema_id=sid)
+        w.add_metadata("payload.trial", {"seed": "4"})
+        for k, s in enumerate(steps):
+            msg = {"seq": k, "wall_time": 1e9 + k, **s.to_json_dict()}
+            w.add_message(
+                channel_id=cid,
+                log_time=k,
+                publish_time=k,
+                data=json.dumps(msg, allow_nan=False).encode(),
+                sequence=k,
+            )
+        w.finish()
+
+
+def test_schema1_recordings_read_and_convert(tmp_path: Path, capsys) -> None:
+    from payload.cli import main
+
+    rng = np.random.default_rng(3)
+    steps = [random_step(rng, k * DT) for k in range(40)]
+    trial = tmp_path / "camp" / "trial-0004"
+    trial.mkdir(parents=True)
+    path = trial / "log.mcap"
+    _write_v1(path, steps)
+    assert recording_version(path) == 1
+    old = read_recording(path)
+    assert len(old) == 40 and old.meta == {"seed": 4}
+    assert main(["trials", "convert", str(tmp_path / "camp"), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["converted"] == [str(path)]
+    assert recording_version(path) == 2 and (trial / "log.v1.mcap").exists()
+    new = read_recording(path)
+    for name in ("t", "q_cmd", "left_joints", "astrobee_quat", "phase"):
+        a, b = getattr(old, name), getattr(new, name)
+        assert np.array_equal(a, b), name
+    np.testing.assert_allclose(new.wall_time, old.wall_time, rtol=0, atol=1e-6)  # to the ns
+    assert new.meta == old.meta
+    # again: nothing to do, said so; a second backup is never overwritten
+    assert main(["trials", "convert", str(path)]) == 0
+    assert "already schema version 2" in capsys.readouterr().out
+    _write_v1(path, steps)
+    assert main(["trials", "convert", str(path)]) == 2
+    assert "log.v1.mcap: exists" in capsys.readouterr().err
