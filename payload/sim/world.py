@@ -282,8 +282,21 @@ CTB_SIZES: dict[str, CtbSize] = {
     "half": CtbSize("half", 0.425, 0.248, 0.235, 7.3),
     "single": CtbSize("single", 0.502, 0.425, 0.248, 15.4),
     "double": CtbSize("double", 0.502, 0.425, 0.502, 31.0),
+    "rigid": CtbSize("rigid", 0.50, 0.42, 0.25, 5.0),
 }
-"""Standard CTB sizes (NASA packing challenge figures, facts.md)."""
+"""The CTB models, in one place: NASA's standard loaded CTB sizes (packing challenge
+figures, facts.md) and ``rigid``, the rigid CTB model of Morton et al. 2025 (pyastrobee
+config/bag_properties.py: a 50 x 25 x 42 cm compartment of about 5 kg). The rigid bag is
+mounted with its 25 cm edge vertical, so its handle face (normal to that edge, like
+pyastrobee's front handle) is on top under the fingers, as the single bag's is. Both are
+uniform boxes: the inertia is a solid box's of that mass (ASSUMPTION: loaded evenly)."""
+
+CTB_MODELS: tuple[str, ...] = ("single", "rigid")
+"""The CTB models the trials choose between (``--ctb``): NASA's loaded single CTB and the
+rigid CTB of the cited work; which one the paper used is not stated."""
+
+DEFAULT_CTB = "single"
+"""The trials' default CTB model."""
 
 
 @dataclass(frozen=True)
@@ -953,7 +966,9 @@ __all__ = [
     "ASTROBEE_MASS",
     "ASTROBEE_SIZE",
     "CONTROL_DT",
+    "CTB_MODELS",
     "CTB_SIZES",
+    "DEFAULT_CTB",
     "PAYLOAD_MJCF",
     "PAYLOAD_MOUNT",
     "PAYLOAD_PREFIX",

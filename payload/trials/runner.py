@@ -1,10 +1,12 @@
 """One ISS cargo-transport trial: simulator + teleoperation pipeline + recorder + metrics.
 
 ``run_trial(seed, operator, replay, out_dir)`` builds the default world (Astrobee with
-the deployed payload at the start of the route in Kibo, a single CTB under the fingers),
-lets the operator (synthetic, or a replayed hand recording) calibrate, acquire the CTB
-and fly it to Node 2, records every 50 Hz step into ``log.mcap`` and the raw hand frames
-into ``hands.jsonl`` (so any trial can be replayed bit for bit), then scores it.
+the deployed payload at the start of the route in Kibo, a CTB of the chosen model near
+the fingers: displaced by a seeded offset and yaw from where the pinch closes, see
+:mod:`payload.trials.acquisition`), lets the operator (synthetic, or a replayed hand
+recording) calibrate, acquire the CTB and fly it to Node 2, records every 50 Hz step
+into ``log.mcap`` and the raw hand frames into ``hands.jsonl`` (so any trial can be
+replayed bit for bit), then scores it.
 """
 
 from __future__ import annotations
@@ -23,6 +25,8 @@ from payload.errors import PayloadError
 from payload.retarget.calibration import PairRange, pair_range
 from payload.retarget.casadi_solver import PairRetargeter
 from payload.rotations import quat_to_matrix
+from payload.sim.vehicle import DEFAULT_PROPULSION, PROPULSION_MODELS
+from payload.sim.world import CTB_MODELS, DEFAULT_CTB, WorldConfig
 from payload.teleop.calibration import CalibrationProcedure, Captures
 from payload.teleop.loop import (
     ReplaySource,
@@ -38,6 +42,7 @@ from payload.teleop.pipeline import (
     pair_index,
 )
 from payload.teleop.replay import HandRecordingWriter, read_hand_recording
+from payload.trials.acquisition import handle_in_body, place_offset
 
 log = logging.getLogger(__name__)
 
@@ -89,13 +94,16 @@ def _module_rects(layout: Any) -> list[dict[str, float | str]]:
 
 def place_ctb_for_teleop(
     driver: Any, retargeters: dict[str, PairRetargeter], ranges: dict[str, PairRange]
-) -> None:
+) -> np.ndarray:
     """Move the CTB so its handle sits where the teleoperated pinch closes on it.
 
     The pinch the operator commands follows the posture reference of the calibrated pair
     ranges. For each pair, the span at which the reference posture's pads first reach the
     handle's side faces is found by bisection; the handle bar is centred on the mean of
     the four fingertips there. Only the CTB's initial pose changes.
+
+    Returns:
+        That grasp point (the handle centre) in Astrobee's body frame, shape (3,) [m].
     """
     import mujoco
 
@@ -134,6 +142,7 @@ def place_ctb_for_teleop(
     c = w.ctb_qpos
     driver.data.qpos[c : c + 3] = centre - rot[:, 2] * drop
     mujoco.mj_forward(m, driver.data)
+    return rot.T @ (centre - driver.data.qpos[a : a + 3])
 
 
 def run_trial(
@@ -144,6 +153,8 @@ def run_trial(
     *,
     max_time: float = MAX_TRIAL_S,
     progress: bool = False,
+    ctb: str = DEFAULT_CTB,
+    propulsion: str = DEFAULT_PROPULSION,
 ) -> dict[str, Any]:
     """Run one trial and write its folder (reproducible: see :func:`_run_trial`).
 
@@ -155,7 +166,16 @@ def run_trial(
     from threadpoolctl import threadpool_limits
 
     with threadpool_limits(limits=1):
-        return _run_trial(seed, operator, replay, out_dir, max_time=max_time, progress=progress)
+        return _run_trial(
+            seed,
+            operator,
+            replay,
+            out_dir,
+            max_time=max_time,
+            progress=progress,
+            ctb=ctb,
+            propulsion=propulsion,
+        )
 
 
 def _run_trial(
@@ -166,6 +186,8 @@ def _run_trial(
     *,
     max_time: float = MAX_TRIAL_S,
     progress: bool = False,
+    ctb: str = DEFAULT_CTB,
+    propulsion: str = DEFAULT_PROPULSION,
 ) -> dict[str, Any]:
     """Run one trial and write its folder.
 
@@ -176,6 +198,9 @@ def _run_trial(
         out_dir: Trial folder (default ``runs/trial-<seed>``).
         max_time: Cap on the session length [s].
         progress: Show a progress bar.
+        ctb: CTB model (:data:`~payload.sim.world.CTB_MODELS`); a replay uses its
+            recording's.
+        propulsion: ``nozzles`` or ``box``; a replay uses its recording's.
 
     Returns:
         The metrics (as written to ``metrics.json``).
@@ -188,24 +213,51 @@ def _run_trial(
     if operator not in ("synthetic", "replay"):
         raise TrialError(f"operator must be 'synthetic' or 'replay', got {operator!r}")
     out = Path(out_dir) if out_dir is not None else Path("runs") / f"trial-{seed:04d}"
+    recorded: dict[str, Any] = {}
+    frames = None
+    if operator == "replay":
+        if replay is None:
+            raise TrialError("operator 'replay' needs a hand recording file")
+        header, frames = read_hand_recording(replay)
+        recorded = header.get("meta") or {}
+        ctb = recorded.get("ctb", ctb)
+        propulsion = recorded.get("propulsion", propulsion)
+    if ctb not in CTB_MODELS:
+        raise TrialError(f"ctb must be one of {', '.join(CTB_MODELS)}, got {ctb!r}")
+    if propulsion not in PROPULSION_MODELS:
+        raise TrialError(
+            f"propulsion must be one of {', '.join(PROPULSION_MODELS)}, got {propulsion!r}"
+        )
     out.mkdir(parents=True, exist_ok=True)
-    driver = SimDriver()
+    driver = SimDriver(WorldConfig(ctb=ctb), propulsion=propulsion)
     layout = driver.world.layout
     retargeters, ranges = retargeting()
-    place_ctb_for_teleop(driver, retargeters, ranges)
+    grasp_body = place_ctb_for_teleop(driver, retargeters, ranges)
+    offset, yaw = place_offset(
+        driver, seed, recorded.get("ctb_offset_m"), recorded.get("ctb_yaw_deg")
+    )
+    setup = {
+        "ctb": ctb,
+        "propulsion": propulsion,
+        "ctb_offset_m": [float(v) for v in offset],
+        "ctb_yaw_deg": float(yaw),
+        "grasp_body_m": [float(v) for v in grasp_body],
+    }
     calibration = CalibrationProcedure()
     config = TeleopConfig.from_design(load_design(driver.world.config.design))
 
     if operator == "synthetic":
-        plan = OperatorPlan(route=layout.route(), heading0=layout.start_yaw(), base=config.base)
+        plan = OperatorPlan(
+            route=layout.route(),
+            heading0=layout.start_yaw(),
+            base=config.base,
+            grasp_body=grasp_body,
+        )
         synthetic = SyntheticOperator(plan, seed, calibration)
         source: Any = SyntheticSource(synthetic)
         traits = dict(vars(synthetic.traits))
     else:
-        if replay is None:
-            raise TrialError("operator 'replay' needs a hand recording file")
-        _, frames = read_hand_recording(replay)
-        source = ReplaySource(frames)
+        source = ReplaySource(frames or [])
         traits = {"replay": str(replay)}
 
     q0 = driver.read().q
@@ -223,6 +275,7 @@ def _run_trial(
             rot @ state.astrobee_linear,
             state.ctb_pos,
             bool(state.opposing_contact),
+            handle_in_body(driver),
         )
 
     rec_path = out / "log.mcap"
@@ -235,6 +288,7 @@ def _run_trial(
         "route": layout.route().tolist(),
         "modules": _module_rects(layout),
         "contact_definition": {"min_interval_s": CONFIRM_MIN_S, "max_gap_s": CONFIRM_MAX_GAP_S},
+        **setup,
     }
     bar = None
     if progress:
@@ -246,7 +300,7 @@ def _run_trial(
     try:
         with (
             TrialRecorder(rec_path, overwrite=True) as recorder,
-            HandRecordingWriter(hands_path, meta={"seed": int(seed)}) as hands_out,
+            HandRecordingWriter(hands_path, meta={"seed": int(seed), **setup}) as hands_out,
         ):
             recorder.write_meta(meta)
 
@@ -306,6 +360,10 @@ def _run_trial(
                     if stats.pipeline_us
                     else None,
                     "warnings": driver.warnings(),
+                    "ctb_external_max": driver.ctb_external_max,
+                    "equality_constraints": int(driver.model.neq),
+                    "acquisition_state": getattr(source, "operator", None)
+                    and source.operator.acquisition,
                 }
             )
     finally:
