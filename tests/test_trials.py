@@ -690,15 +690,43 @@ def test_summary_table_against_hand_values() -> None:
          "rms_mm": r, "peak_mm": 2 * r, "contact_s": d - 1, "final_module": "node2"}
         for s, ok, d, r in [(0, True, 70.0, 30.0), (1, False, 90.0, 10.0), (2, True, 80.0, 50.0)]
     ]  # fmt: skip
+    for r in rows:  # debounced figures; the paper-literal ones are shorter contacts
+        r.update(acquired=True, min_interval_s=0.5, max_gap_s=0.1, ctb="rigid")
+        r.update(propulsion="nozzles")
+        r["literal"] = {**r, "success": False, "contact_s": 0.2, "rms_mm": 1.0}
+        r["literal"].update(min_interval_s=0.0, max_gap_s=0.0)
+    rows[1]["acquired"] = rows[1]["literal"]["acquired"] = False
     s = summarize(rows)
     assert s["success"] == 2 and s["n"] == 3
     assert s["duration_s"] == {"median": 80.0, "min": 70.0, "max": 90.0, "count": 3}
     assert s["peak_mm"]["median"] == 60.0
+    assert s["acquisition_success"] == pytest.approx(2 / 3)
+    assert s["ctb"] == "rigid" and s["propulsion"] == "nozzles"
+    lit = s["literal"]
+    assert set(s) - {"literal", "ctb", "propulsion"} == set(lit)  # same fields
+    assert lit["success"] == 0 and lit["contact_s"]["median"] == 0.2
+    assert lit["contact_definition"] == {"min_interval_s": 0.0, "max_gap_s": 0.0}
+    assert s["contact_definition"] == {"min_interval_s": 0.5, "max_gap_s": 0.1}
     md = summary_markdown(s)
-    assert "| task success | 2/3 | 10/10 |" in md
-    assert "80.0 (70.0 to 90.0) | 77.5 (67.3 to 97.5) |" in md
-    assert "30.0 (10.0 to 50.0) | 35.6 (16.4 to 79.0) |" in md
-    assert "| 1 | no | 90.0 | 10.00 | 10.0 | 20.0 | 89.0 | node2 |" in md
+    assert "| task success | 2/3 | 0/3 | 10/10 |" in md
+    assert "| acquisition success | 67 % | 67 % | n/a |" in md
+    assert "80.0 (70.0 to 90.0) | 80.0 (70.0 to 90.0) | 77.5 (67.3 to 97.5) |" in md
+    assert "30.0 (10.0 to 50.0) | 1.0 (1.0 to 1.0) | 35.6 (16.4 to 79.0) |" in md
+    assert "| 1 | no | 90.0 | 10.00 | 10.0 | 20.0 | 89.0 | node2 | no | 1.0 | 0.2 |" in md
+    assert "any single sample" in md and "0.50 s skipped" in md
+    assert "CTB model `rigid`" in md
+
+
+def test_summary_of_trials_scored_without_literal_figures() -> None:
+    """Older metrics.json files (no "literal"): paper-definition trials count as literal."""
+    from payload.trials.campaign import summarize
+
+    rows = [{"seed": 0, "success": True, "duration_s": 1.0, "contact_s": 0.5, "acquired": True}]
+    s = summarize(rows)
+    assert s["literal"]["success"] == 1 and s["literal"]["contact_s"]["median"] == 0.5
+    rows[0]["min_interval_s"] = 0.5
+    s = summarize(rows)
+    assert s["literal"]["success"] == 0 and s["literal"]["contact_s"]["count"] == 0
 
 
 def test_summarize_folder_rebuilds_and_rescores(tmp_path: Path) -> None:
@@ -796,3 +824,18 @@ def test_cli_bench_recorder(capsys) -> None:
     # ~230 numbers per step as JSON: far more than 1 kB, far less than 100 kB per step
     assert 1e3 * 100 / 1e6 < out["file_mb_per_min"] * 2 / 60 < 1e5 * 100 / 1e6
     assert 0 < out["write_us_median"] <= out["write_us_p99"]
+
+
+def test_finish_trial_scores_both_contact_definitions(tmp_path: Path) -> None:
+    from payload.trials.campaign import finish_trial
+    from payload.trials.metrics import compute_metrics
+    from payload.trials.recorder import read_recording
+
+    fixture_synthetic_trial(3, tmp_path)
+    result = finish_trial(tmp_path, tmp_path / "log.mcap", min_interval_s=0.5, max_gap_s=0.1)
+    rec = read_recording(tmp_path / "log.mcap")
+    literal = compute_metrics(rec).as_dict()
+    literal.pop("criterion")
+    assert result["literal"] == json.loads(json.dumps(literal))
+    assert result["min_interval_s"] == 0.5 and result["literal"]["min_interval_s"] == 0.0
+    assert json.loads((tmp_path / "metrics.json").read_text())["literal"] == result["literal"]

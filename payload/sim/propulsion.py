@@ -33,7 +33,6 @@ from dataclasses import dataclass
 from functools import cached_property
 
 import numpy as np
-from scipy.optimize import linprog, lsq_linear
 
 from payload.errors import PayloadError
 
@@ -187,6 +186,8 @@ class Propulsion:
 
     # -- allocation --------------------------------------------------------------------
     def _lp(self, cost: np.ndarray, wrench: np.ndarray, lam: tuple[float, float | None]):
+        from scipy.optimize import linprog
+
         a_eq = np.hstack([self.matrix, -wrench.reshape(6, 1)])
         bounds = [(0.0, float(u)) for u in self.thrust_max] + [lam]
         return linprog(cost, A_eq=a_eq, b_eq=np.zeros(6), bounds=bounds, method="highs")
@@ -261,6 +262,8 @@ class Propulsion:
         tol = 1e-7 * float(self.thrust_max.max())
         if np.any(sol < -tol) or np.any(sol > self.thrust_max[free] + tol):
             # more nozzles than the facet's dimension lie in its plane: bounded least squares
+            from scipy.optimize import lsq_linear
+
             fit = lsq_linear(
                 self.matrix[:, free], rest, bounds=(0.0, self.thrust_max[free]), method="bvls"
             )

@@ -41,6 +41,7 @@ from payload.envelope.vehicle import Vehicle, vehicle_from_dict
 from payload.errors import PayloadError
 from payload.rotations import yaw_quat
 from payload.schema import CONTROL_DT as SCHEMA_CONTROL_DT
+from payload.sim.pads import pad_contact
 
 PAYLOAD_MJCF = PROJECT_ROOT / "urdf" / "payload.xml"
 """The generated payload model attached under Astrobee."""
@@ -366,6 +367,9 @@ class WorldConfig:
         design: The design file the payload was generated from (None: cad/design.toml).
         cone: Friction cone, ``elliptic`` or ``pyramidal``.
         impratio: Ratio of frictional to normal impedance (elliptic cones).
+        pads: ``silicone`` (default: the pad contact's solref/solimp derived from the
+            design's pad material, :mod:`payload.sim.pads`) or ``mujoco`` (MuJoCo's
+            default contact parameters, the earlier model, for comparison).
     """
 
     ctb: str | None = "single"
@@ -376,8 +380,11 @@ class WorldConfig:
     design: Path | None = None
     cone: str = "elliptic"
     impratio: float = 10.0
+    pads: str = "silicone"
 
     def __post_init__(self) -> None:
+        if self.pads not in ("silicone", "mujoco"):
+            raise SimError(f"WorldConfig.pads: {self.pads!r} is not 'silicone' or 'mujoco'")
         if self.ctb is not None and self.ctb not in CTB_SIZES:
             raise SimError(
                 f"WorldConfig.ctb: unknown CTB size {self.ctb!r} "
@@ -840,6 +847,18 @@ def build_spec(config: WorldConfig | None = None, design: Design | None = None) 
         spec.delete(key)
 
     size = config.ctb_size
+    if config.pads == "silicone":
+        contact = pad_contact(
+            design,
+            str(config.payload_mjcf),
+            PINCH_OPEN,
+            size.mass if size is not None else None,
+            PHYSICS_DT,
+        )
+        for f in FINGERS:
+            geom = spec.geom(f"{PAYLOAD_PREFIX}{f}_distal_pad")
+            geom.solref = list(contact.solref)
+            geom.solimp = list(contact.solimp)
     if size is not None:
         rot = np.zeros(9)
         mujoco.mju_quat2Mat(rot, quat)

@@ -42,15 +42,24 @@ def _parse_operator(values: list[str]) -> tuple[str, Path | None]:
     )
 
 
+def _check_ctb(ctb: str) -> None:
+    from payload.sim.world import CTB_MODELS
+
+    if ctb not in CTB_MODELS:
+        raise TrialsCliError(f"--ctb: expected one of {', '.join(CTB_MODELS)}, got {ctb!r}")
+
+
 def _cmd_trial(args: argparse.Namespace) -> int:
     from payload.cli import emit_json
 
     if args.seed < 0:
         raise TrialsCliError(f"--seed must be >= 0, got {args.seed}")
     operator, replay = _parse_operator(args.operator)
+    _check_ctb(args.ctb)
     out = Path(args.out) if args.out else Path("runs") / f"trial-{args.seed:04d}"
     run_trial = _run_trial_fn()
     extra = {"progress": True} if not args.json and sys.stderr.isatty() else {}
+    extra.update(ctb=args.ctb, propulsion=args.propulsion)
     result = dict(run_trial(seed=args.seed, operator=operator, replay=replay, out_dir=out, **extra))
     result.setdefault("out_dir", str(out))
     if args.json:
@@ -83,13 +92,14 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
         raise TrialsCliError(f"--seed must be >= 0, got {args.seed}")
     if args.workers is not None and args.workers < 0:
         raise TrialsCliError(f"--workers must be >= 0, got {args.workers}")
+    _check_ctb(args.ctb)
     _run_trial_fn()  # fail here, once, if the runner is missing
     out = Path(args.out)
     seeds = list(range(args.seed, args.seed + args.n))
     workers = default_workers(args.n) if args.workers is None else args.workers
     t0 = time.perf_counter()
     results = run_campaign(
-        runner_trial_fn("synthetic"),
+        runner_trial_fn("synthetic", ctb=args.ctb, propulsion=args.propulsion),
         seeds,
         out,
         workers=workers,
@@ -102,7 +112,7 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
         "wall_s": time.perf_counter() - t0,
         "trial_wall_s": float(sum(r.get("wall_s") or 0.0 for r in results)),
     }
-    title = f"Cargo-transport campaign ({args.n} trials)"
+    title = f"Cargo-transport campaign ({args.n} trials, CTB {args.ctb}, {args.propulsion})"
     summary = write_summary(results, out, title=title, run=run)
     if args.json:
         emit_json({**summary, "out_dir": str(out)})
@@ -225,6 +235,23 @@ def _cmd_bench_recorder(args: argparse.Namespace) -> int:
     return 0
 
 
+def _setup_arguments(p: argparse.ArgumentParser) -> None:
+    from payload.sim.vehicle import DEFAULT_PROPULSION, PROPULSION_MODELS
+
+    p.add_argument(
+        "--ctb",
+        default="single",
+        help="CTB model: single (NASA's loaded single bag) or rigid (the rigid bag of "
+        "Morton et al.); default single",
+    )
+    p.add_argument(
+        "--propulsion",
+        choices=PROPULSION_MODELS,
+        default=DEFAULT_PROPULSION,
+        help=f"vehicle propulsion model (default {DEFAULT_PROPULSION})",
+    )
+
+
 def register(
     sub: argparse._SubParsersAction, groups: dict[str, argparse._SubParsersAction]
 ) -> None:
@@ -240,6 +267,7 @@ def register(
         help="'synthetic' (default) or 'replay FILE' (a recorded hand stream)",
     )
     p.add_argument("--out", help="trial folder (default runs/trial-NNNN)")
+    _setup_arguments(p)
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=_cmd_trial)
 
@@ -256,6 +284,7 @@ def register(
     )
     r.add_argument("--scheduler", help="existing Dask scheduler, e.g. tcp://host:8786")
     r.add_argument("--out", required=True, help="campaign folder")
+    _setup_arguments(r)
     r.add_argument("--json", action="store_true", help="print one JSON object")
     r.set_defaults(func=_cmd_trials_run)
 
