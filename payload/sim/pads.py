@@ -10,19 +10,20 @@ stiffness ``k = dF/d delta = 2 F0 / delta0``.
 
 MuJoCo's contact is a mass-normalised spring-damper: ``solref = (timeconst, dampratio)``
 sets the reference stiffness ``1 / (dmax^2 timeconst^2 dampratio^2)`` and damping
-``2 / (dmax timeconst)``, and the impedance ``d`` of ``solimp`` softens it, so that the
-steady stiffness of a contact of effective mass ``m`` is
-``K = m d / (1 - d) / (dmax^2 timeconst^2 dampratio^2)`` (checked against MuJoCo in the
-tests) and ``dampratio = 1`` damps it critically. The effective mass of a pad contact
-along the closing direction is the finger's (``1 / (n J M^-1 J^T n)`` from the payload
-model at the pinch pre-shape, with its reflected servo inertia) in series with the CTB's.
-So, with ``d = dmax`` at the design load: ``timeconst = sqrt(m dmax / (1 - dmax) / K) /
-(dmax dampratio)``, ``dampratio`` the design's damping ratio (at least 1).
+``2 / (dmax timeconst)``, and the impedance ``d(r)`` of ``solimp`` softens it: a contact
+of effective mass ``m`` pressed with force ``F`` settles at the penetration ``r`` with
+``F / r = m d / (1 - d) / (dmax^2 timeconst^2 dampratio^2)`` (a secant law, checked
+against MuJoCo in the tests), and ``dampratio = 1`` damps it critically. The effective
+mass of a pad contact along the closing direction is the finger's (``1 / (n J M^-1 J^T
+n)`` from the payload model at the pinch pre-shape, with its reflected servo inertia) in
+series with the CTB's. The pad's secant ``F0 / delta0`` at the design load (with
+``d = dmax``) gives ``timeconst = sqrt(m dmax / (1 - dmax) * delta0 / F0) / (dmax
+dampratio)``, ``dampratio`` the design's damping ratio (at least 1).
 
 ``solimp`` follows the thin-layer law's progressive stiffening: the impedance rises from
 ``dmin`` at first touch to ``dmax`` at the design-load indentation ``delta0`` (the
-transition width), with ``dmin`` chosen so that the stiffness half-way in is half the
-design-load stiffness, as ``dF/d delta ~ delta`` gives (midpoint of MuJoCo's sigmoid:
+transition width), with ``dmin`` chosen so that half-way in the secant ``F / delta`` is
+half the design load's, as ``F ~ delta^2`` gives (midpoint of MuJoCo's sigmoid:
 ``d = (dmin + dmax) / 2`` there). MuJoCo needs ``timeconst >= 2 dt``; a stiffer pad is
 clamped there (and said so).
 """
@@ -57,7 +58,7 @@ class PadContact(NamedTuple):
     """The pad contact derived from the design.
 
     Attributes:
-        stiffness: Linearised contact stiffness ``k`` [N/m].
+        stiffness: Linearised (tangent) contact stiffness ``k`` at the design load [N/m].
         indentation: Indentation at the design load [m].
         effective_mass: Effective mass of the contact along the closing direction [kg].
         timeconst: MuJoCo solref time constant [s].
@@ -136,7 +137,8 @@ def pad_contact(
     m_eff = 1.0 / inv
     zeta = float(design.finger.pad.damping_ratio)
     dmax = SOLIMP_DMAX
-    tc = math.sqrt(m_eff * _odds(dmax) / k) / (dmax * zeta)
+    secant = design.finger.pad.load / delta0  # = k / 2
+    tc = math.sqrt(m_eff * _odds(dmax) / secant) / (dmax * zeta)
     least = 2.0 * timestep
     clamped = tc < least
     tc = max(tc, least)
