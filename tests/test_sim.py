@@ -386,7 +386,7 @@ def test_profile_matches_closed_form_minimum_time():
 def test_force_bounds_follow_the_cargo_moment():
     h = 0.3
     plant = MassProperties(26.0, np.array([0.0, 0.0, -h]), np.diag([2.0, 2.0, 0.7]))
-    ctl = VehicleController(plant, "nominal", torque_share=1.0)
+    ctl = VehicleController(plant, "nominal", torque_share=1.0, propulsion="box")
     # F_x makes a pitch moment h F_x, F_y a roll moment h F_y; F_z none
     expected = np.minimum(NOMINAL_FORCE, [NOMINAL_TORQUE[1] / h, NOMINAL_TORQUE[0] / h, np.inf])
     assert ctl.force_max == pytest.approx(expected)
@@ -399,7 +399,7 @@ def test_force_bounds_follow_the_cargo_moment():
 
 @pytest.mark.parametrize("axis", [0, 1])
 def test_vehicle_reaches_speed_within_bounds(bare_world, axis):
-    sim = SimDriver(bare_world, flight_mode="nominal")
+    sim = SimDriver(bare_world, flight_mode="nominal", propulsion="box")
     d = sim.data
     if axis == 1:  # face +x so that body y runs along Kibo's length (room to accelerate)
         d.qpos[bare_world.astrobee_qpos + 3 : bare_world.astrobee_qpos + 7] = [1, 0, 0, 0]
@@ -435,7 +435,7 @@ def test_vehicle_reaches_speed_within_bounds(bare_world, axis):
 
 
 def test_vehicle_wrench_saturates_at_its_bounds_after_a_kick(bare_world):
-    sim = SimDriver(bare_world, flight_mode="nominal")
+    sim = SimDriver(bare_world, flight_mode="nominal", propulsion="box")
     d = sim.data
     sim.command_twist(VehicleTwist.zero())  # station keeping
     sim.step()
@@ -683,6 +683,13 @@ def test_bench_sim_json():
     assert result["realtime_factor"] == pytest.approx(
         result["sim_seconds"] / result["wall_seconds"]
     )
+    assert result["propulsion"] == "nozzles"
+    out = io.StringIO()
+    with redirect_stdout(out), redirect_stderr(io.StringIO()):
+        code = main(
+            ["bench", "sim", "--seconds", "0.2", "--json", "--no-progress", "--propulsion", "box"]
+        )
+    assert code == 0 and json.loads(out.getvalue())["propulsion"] == "box"
 
 
 def test_bench_sim_bad_input_exits_2():

@@ -11,6 +11,7 @@ from hypothesis import strategies as st
 
 from payload.teleop.channels import (
     BaseChannel,
+    BaseCommand,
     BaseConfig,
     ChannelError,
     JerkLimiter,
@@ -340,3 +341,73 @@ def test_blender_holds_then_ramps():
     mid = b.step(np.full(2, 3.0), 0.5)
     np.testing.assert_allclose(mid, [2.0, 2.0])
     np.testing.assert_allclose(b.step(np.full(2, 3.0), 1.0), [3.0, 3.0])
+
+
+# -- braking: the paper's rule (both wrists back in neutral) ------------------------------
+def _cruise(ch: BaseChannel, left: np.ndarray | None, right: np.ndarray, steps: int) -> BaseCommand:
+    out = None
+    for _ in range(steps):
+        out = ch.step(left, None, right)
+    assert out is not None
+    return out
+
+
+def test_both_wrists_back_in_neutral_brake_to_rest():
+    cfg = BaseConfig()
+    nl, nr = np.array([0.35, 0.17, 1.05]), np.array([0.35, -0.17, 1.05])
+    ch = BaseChannel(cfg, nl, neutral_right=nr)
+    ahead = np.array([0.2, 0.0, 0.0])  # both wrists forward together
+    out = _cruise(ch, nl + ahead, nr + ahead, 800)
+    assert out.mode == "drive" and np.linalg.norm(out.v_world) > 0.5 * cfg.max_speed
+    out = _cruise(ch, nl, nr, 2000)
+    assert out.mode == "brake"
+    np.testing.assert_array_equal(out.v_world, np.zeros(3))
+
+
+def test_left_wrist_outside_sets_the_direction_whatever_the_right_does():
+    cfg = BaseConfig()
+    nl, nr = np.zeros(3), np.array([0.0, -0.34, 0.0])
+    a = BaseChannel(cfg, nl, neutral_right=nr)
+    b = BaseChannel(cfg, nl, neutral_right=nr)
+    left = np.array([0.0, 0.0, 0.3])  # up
+    for _ in range(300):
+        oa = a.step(left, None, nr)  # right in neutral
+        ob = b.step(left, None, nr + np.array([0.3, 0.0, 0.0]))  # right pushed forward
+    assert oa.mode == ob.mode == "drive"
+    np.testing.assert_array_equal(oa.v_world, ob.v_world)
+    assert oa.v_world[2] > 0 and abs(oa.v_world[0]) < 1e-12 and abs(oa.v_world[1]) < 1e-12
+
+
+def test_only_the_right_wrist_outside_holds_the_velocity():
+    """Documented behaviour: left back in neutral, right still out -> no braking, no
+    acceleration: the commanded velocity holds (after the acceleration eases off)."""
+    cfg = BaseConfig()
+    nl, nr = np.array([0.35, 0.17, 1.05]), np.array([0.35, -0.17, 1.05])
+    ch = BaseChannel(cfg, nl, neutral_right=nr)
+    ahead = np.array([0.2, 0.0, 0.0])
+    _cruise(ch, nl + ahead, nr + ahead, 400)  # still accelerating
+    out = _cruise(ch, nl, nr + ahead, 1)
+    v0 = float(np.linalg.norm(out.v_world))
+    out = _cruise(ch, nl, nr + ahead, 1500)
+    assert out.mode == "hold" and not out.outside
+    v1 = float(np.linalg.norm(out.v_world))
+    # the acceleration under way is eased off at the jerk bound: a^2 / (2 j) more speed
+    assert v0 < v1 <= v0 + cfg.max_accel**2 / (2 * cfg.max_jerk) + 1e-9
+    speeds = [float(np.linalg.norm(_cruise(ch, nl, nr + ahead, 1).v_world)) for _ in range(200)]
+    assert max(speeds) - min(speeds) < 1e-12  # held
+    out = _cruise(ch, nl, nr, 2000)  # right wrist back too: brake
+    assert out.mode == "brake"
+    np.testing.assert_array_equal(out.v_world, np.zeros(3))
+    # at rest, the right wrist alone does not start the vehicle
+    out = _cruise(ch, nl, nr + ahead, 200)
+    assert out.mode == "hold"
+    np.testing.assert_array_equal(out.v_world, np.zeros(3))
+
+
+def test_a_lost_hand_brakes_even_with_the_right_wrist_outside():
+    cfg = BaseConfig()
+    ch = BaseChannel(cfg, np.zeros(3), neutral_right=np.array([0.0, -0.3, 0.0]))
+    _cruise(ch, np.array([0.3, 0.0, 0.0]), np.array([0.3, -0.3, 0.0]), 600)
+    out = _cruise(ch, None, np.array([0.3, -0.3, 0.0]), 3000)
+    assert out.mode == "brake"
+    np.testing.assert_array_equal(out.v_world, np.zeros(3))

@@ -640,7 +640,8 @@ def test_campaign_on_dask_local_cluster_matches_serial(tmp_path: Path) -> None:
     on_disk = json.loads((tmp_path / "d" / "summary.json").read_text())
     for key in ("duration_s", "net_displacement_m", "rms_mm", "peak_mm", "contact_s"):
         assert set(on_disk[key]) >= {"median", "min", "max"}
-    assert "| task success | 4/4 | 10/10 |" in (tmp_path / "d" / "summary.md").read_text()
+    # the fixture's trials use the paper's definition: both columns agree
+    assert "| task success | 4/4 | 4/4 | 10/10 |" in (tmp_path / "d" / "summary.md").read_text()
 
 
 def test_campaign_on_existing_scheduler_matches_serial(tmp_path: Path) -> None:
@@ -692,15 +693,43 @@ def test_summary_table_against_hand_values() -> None:
          "rms_mm": r, "peak_mm": 2 * r, "contact_s": d - 1, "final_module": "node2"}
         for s, ok, d, r in [(0, True, 70.0, 30.0), (1, False, 90.0, 10.0), (2, True, 80.0, 50.0)]
     ]  # fmt: skip
+    for r in rows:  # debounced figures; the paper-literal ones are shorter contacts
+        r.update(acquired=True, min_interval_s=0.5, max_gap_s=0.1, ctb="rigid")
+        r.update(propulsion="nozzles")
+        r["literal"] = {**r, "success": False, "contact_s": 0.2, "rms_mm": 1.0}
+        r["literal"].update(min_interval_s=0.0, max_gap_s=0.0)
+    rows[1]["acquired"] = rows[1]["literal"]["acquired"] = False
     s = summarize(rows)
     assert s["success"] == 2 and s["n"] == 3
     assert s["duration_s"] == {"median": 80.0, "min": 70.0, "max": 90.0, "count": 3}
     assert s["peak_mm"]["median"] == 60.0
+    assert s["acquisition_success"] == pytest.approx(2 / 3)
+    assert s["ctb"] == "rigid" and s["propulsion"] == "nozzles"
+    lit = s["literal"]
+    assert set(s) - {"literal", "ctb", "propulsion"} == set(lit)  # same fields
+    assert lit["success"] == 0 and lit["contact_s"]["median"] == 0.2
+    assert lit["contact_definition"] == {"min_interval_s": 0.0, "max_gap_s": 0.0}
+    assert s["contact_definition"] == {"min_interval_s": 0.5, "max_gap_s": 0.1}
     md = summary_markdown(s)
-    assert "| task success | 2/3 | 10/10 |" in md
-    assert "80.0 (70.0 to 90.0) | 77.5 (67.3 to 97.5) |" in md
-    assert "30.0 (10.0 to 50.0) | 35.6 (16.4 to 79.0) |" in md
-    assert "| 1 | no | 90.0 | 10.00 | 10.0 | 20.0 | 89.0 | node2 |" in md
+    assert "| task success | 2/3 | 0/3 | 10/10 |" in md
+    assert "| acquisition success | 67 % | 67 % | n/a |" in md
+    assert "80.0 (70.0 to 90.0) | 80.0 (70.0 to 90.0) | 77.5 (67.3 to 97.5) |" in md
+    assert "30.0 (10.0 to 50.0) | 1.0 (1.0 to 1.0) | 35.6 (16.4 to 79.0) |" in md
+    assert "| 1 | no | 90.0 | 10.00 | 10.0 | 20.0 | 89.0 | node2 | no | 1.0 | 0.2 |" in md
+    assert "any single sample" in md and "0.50 s skipped" in md
+    assert "CTB model `rigid`" in md
+
+
+def test_summary_of_trials_scored_without_literal_figures() -> None:
+    """Older metrics.json files (no "literal"): paper-definition trials count as literal."""
+    from payload.trials.campaign import summarize
+
+    rows = [{"seed": 0, "success": True, "duration_s": 1.0, "contact_s": 0.5, "acquired": True}]
+    s = summarize(rows)
+    assert s["literal"]["success"] == 1 and s["literal"]["contact_s"]["median"] == 0.5
+    rows[0]["min_interval_s"] = 0.5
+    s = summarize(rows)
+    assert s["literal"]["success"] == 0 and s["literal"]["contact_s"]["count"] == 0
 
 
 def test_summarize_folder_rebuilds_and_rescores(tmp_path: Path) -> None:
@@ -718,8 +747,10 @@ def _fake_runner(monkeypatch: pytest.MonkeyPatch) -> list[dict[str, Any]]:
     """Stand in for the teleoperation runner (issue 6) with the fixture trial."""
     calls: list[dict[str, Any]] = []
 
-    def run_trial(seed: int, operator: str, replay: Path | None, out_dir: Path) -> dict:
-        calls.append({"seed": seed, "operator": operator, "replay": replay})
+    def run_trial(
+        seed: int, operator: str, replay: Path | None, out_dir: Path, **setup: str
+    ) -> dict:
+        calls.append({"seed": seed, "operator": operator, "replay": replay, **setup})
         return fixture_synthetic_trial(seed, out_dir)
 
     module = types.ModuleType("payload.trials.runner")
@@ -740,7 +771,17 @@ def test_cli_trial_and_campaign(tmp_path: Path, monkeypatch, capsys) -> None:
     replay.write_bytes(b"x")
     assert main(["trial", "--operator", "replay", str(replay), "--out", str(tmp_path / "r")]) == 0
     # a replay's seed is left to the runner, which records the source's
-    assert calls[-1] == {"seed": None, "operator": "replay", "replay": replay}
+    assert calls[-1] == {
+        "seed": None,
+        "operator": "replay",
+        "replay": replay,
+        "ctb": "single",
+        "propulsion": "nozzles",
+    }
+    assert (
+        main(["trial", "--ctb", "rigid", "--propulsion", "box", "--out", str(tmp_path / "b")]) == 0
+    )
+    assert calls[-1]["ctb"] == "rigid" and calls[-1]["propulsion"] == "box"
     capsys.readouterr()
 
     camp = tmp_path / "camp"
@@ -762,7 +803,7 @@ def test_cli_trial_and_campaign(tmp_path: Path, monkeypatch, capsys) -> None:
     }
     assert main(["trials", "summarize", str(camp)]) == 0
     text = capsys.readouterr().out
-    assert "| task success | 3/3 | 10/10 |" in text and "NOT the paper" not in text
+    assert "| task success | 3/3 | 3/3 | 10/10 |" in text and "NOT the paper" not in text
     # rescoring with a relaxed contact definition writes beside the originals, named by
     # the definition, and says so; the originals stay byte for byte
     originals = {p: p.read_bytes() for p in camp.rglob("*") if p.is_file()}
@@ -795,6 +836,8 @@ def test_cli_trial_and_campaign(tmp_path: Path, monkeypatch, capsys) -> None:
         (["trial", "--operator", "replay", "/nonexistent/hands.mcap"], "no such file"),
         (["trial", "--operator", "human"], "expected 'synthetic' or 'replay FILE'"),
         (["trial", "--seed", "-1"], "--seed must be >= 0"),
+        (["trial", "--ctb", "soft"], "--ctb: expected one of single, rigid"),
+        (["trials", "run", "--n", "2", "--ctb", "double", "--out", "x"], "--ctb: expected"),
         (["trials", "run", "--n", "0", "--out", "x"], "--n must be >= 1"),
         (["trials", "summarize", "/nonexistent/campaign"], "no such campaign folder"),
     ],
@@ -871,22 +914,31 @@ def test_check_step_names_step_field_and_expectation(field: str, value: Any, mes
 
 
 def _recording_with_bad_step(path: Path, field: str, value: Any, at: int = 30) -> None:
-    """A recording whose step ``at`` (of 60) carries a bad field, written as the
-    recorder writes a step."""
-    with TrialRecorder(path) as rec:
+    """A recording with JSON steps (schema version 1, still read) whose step ``at`` (of
+    60) carries a bad field; typed (protobuf) steps cannot carry most of these."""
+    from mcap.writer import Writer
+
+    from payload.trials.recorder import STEP_SCHEMA, STEP_SCHEMA_NAME, STEP_TOPIC
+
+    with open(path, "wb") as f:
+        w = Writer(f)
+        w.start(profile="", library="payload-workbench")
+        sid = w.register_schema(
+            name=STEP_SCHEMA_NAME, encoding="jsonschema", data=json.dumps(STEP_SCHEMA).encode()
+        )
+        cid = w.register_channel(topic=STEP_TOPIC, message_encoding="json", schema_id=sid)
         for k in range(60):
-            step = make_step(k * DT)
-            if k != at:
-                rec.write(step)
-                continue
-            msg = _bad({"seq": k, "wall_time": 0.0, **step.to_json_dict()}, field, value)
-            rec._require_open().add_message(
-                channel_id=rec._channel,
-                log_time=0,
+            msg = {"seq": k, "wall_time": 0.0, **make_step(k * DT).to_json_dict()}
+            if k == at:
+                msg = _bad(msg, field, value)
+            w.add_message(
+                channel_id=cid,
+                log_time=k,
                 publish_time=round(k * DT * 1e9),
                 data=json.dumps(msg).encode(),
                 sequence=k,
             )
+        w.finish()
 
 
 @pytest.mark.parametrize(("field", "value", "message"), BAD_STEPS[:3] + BAD_STEPS[5:7])
@@ -903,3 +955,18 @@ def test_a_bad_step_in_the_middle_of_a_recording_gives_one_line_and_exit_2(
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and f"{path}: step 30: {message}" in err[0], err
     assert not (tmp_path / "ds").exists()
+
+
+def test_finish_trial_scores_both_contact_definitions(tmp_path: Path) -> None:
+    from payload.trials.campaign import finish_trial
+    from payload.trials.metrics import compute_metrics
+    from payload.trials.recorder import read_recording
+
+    fixture_synthetic_trial(3, tmp_path)
+    result = finish_trial(tmp_path, tmp_path / "log.mcap", min_interval_s=0.5, max_gap_s=0.1)
+    rec = read_recording(tmp_path / "log.mcap")
+    literal = compute_metrics(rec).as_dict()
+    literal.pop("criterion")
+    assert result["literal"] == json.loads(json.dumps(literal))
+    assert result["min_interval_s"] == 0.5 and result["literal"]["min_interval_s"] == 0.0
+    assert json.loads((tmp_path / "metrics.json").read_text())["literal"] == result["literal"]

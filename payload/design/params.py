@@ -103,6 +103,10 @@ class Section:
 class Pad:
     radius: float = _pos("fingertip pad sphere radius [m]")
     friction: float = _pos("sliding friction coefficient of the pad")
+    thickness: float = _pos("silicone skin thickness over the pad sphere [m]")
+    modulus: float = _pos("Young's modulus of the pad silicone [Pa]")
+    load: float = _pos("pad force the contact stiffness is linearised at [N]")
+    damping_ratio: float = _pos("damping ratio of the pad contact (>= 1)")
 
 
 @dataclass(frozen=True)
@@ -227,6 +231,16 @@ class Design:
     def validate(self) -> Design:
         """Cross-field checks; returns self or raises :class:`DesignError`."""
         f, s, r, st = self.finger, self.servo, self.rail, self.stage
+        if f.pad.damping_ratio < 1.0:
+            raise DesignError(
+                "finger.pad.damping_ratio",
+                f"{f.pad.damping_ratio} would let the pad contact bounce; must be >= 1",
+            )
+        if f.pad.thickness >= f.pad.radius:
+            raise DesignError(
+                "finger.pad.thickness",
+                f"{f.pad.thickness} m skin is not thinner than the {f.pad.radius} m pad",
+            )
         for j in FINGER_JOINTS:
             lim = f.limit(j)
             if not lim.lower < lim.upper:

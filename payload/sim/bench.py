@@ -22,6 +22,7 @@ import numpy as np
 from payload.rotations import quat_to_matrix, yaw_of_matrix
 from payload.schema import PayloadCommand, VehicleTwist
 from payload.sim.driver import SimDriver, WorldState
+from payload.sim.vehicle import DEFAULT_PROPULSION
 from payload.sim.world import CONTROL_DT, PHYSICS_DT, SimError, World, WorldConfig, build_world
 
 
@@ -178,6 +179,8 @@ class BenchResult:
     control_steps: int
     flight_mode: str
     ctb: str | None
+    propulsion: str
+    accel_max: list[float]
     pinned_cpu: int | None
     opposing_contact_fraction: float
     vehicle_distance: float
@@ -212,6 +215,7 @@ def run_bench(
     flight_mode: str = "nominal",
     pin: bool = False,
     progress: Callable[[float], None] | None = None,
+    propulsion: str = DEFAULT_PROPULSION,
 ) -> BenchResult:
     """Run the full CTB scene under the scripted 50 Hz loop and time it.
 
@@ -223,6 +227,7 @@ def run_bench(
             way; ``cpu_seconds`` (process CPU time) gives the one-core figure free of other
             processes' load, ``wall_seconds`` the elapsed time.
         progress: Called with the simulated time every 50 control steps.
+        propulsion: ``nozzles`` or ``box`` (:mod:`payload.sim.vehicle`).
 
     Returns:
         The figures; the wall time covers the control loop only (not building the world).
@@ -230,7 +235,7 @@ def run_bench(
     if not (math.isfinite(seconds) and seconds > 0):
         raise SimError(f"--seconds must be a positive number of seconds, got {seconds}")
     world = build_world(config)
-    with SimDriver(world, flight_mode=flight_mode) as sim:
+    with SimDriver(world, flight_mode=flight_mode, propulsion=propulsion) as sim:
         operator = ScriptedOperator(world, brake=0.8 * float(sim.controller.accel_max[0]))
         steps = max(1, round(seconds / CONTROL_DT))
         state = sim.world_state()
@@ -264,6 +269,8 @@ def run_bench(
             control_steps=steps,
             flight_mode=sim.controller.mode.name,
             ctb=world.config.ctb,
+            propulsion=sim.propulsion,
+            accel_max=[float(a) for a in sim.controller.accel_max],
             pinned_cpu=cpu,
             opposing_contact_fraction=contact_steps / fly_steps if fly_steps else 0.0,
             vehicle_distance=float(np.linalg.norm(state.astrobee_pos - start_pos)),

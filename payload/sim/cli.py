@@ -4,7 +4,12 @@ from __future__ import annotations
 
 import argparse
 
-from payload.sim.vehicle import DEFAULT_FLIGHT_MODE, FLIGHT_MODES
+from payload.sim.vehicle import (
+    DEFAULT_FLIGHT_MODE,
+    DEFAULT_PROPULSION,
+    FLIGHT_MODES,
+    PROPULSION_MODELS,
+)
 
 
 def _cmd_bench_sim(args: argparse.Namespace) -> int:
@@ -38,6 +43,7 @@ def _cmd_bench_sim(args: argparse.Namespace) -> int:
             flight_mode=args.flight_mode,
             pin=args.pin,
             progress=lambda t: bar.update(task, completed=t),
+            propulsion=args.propulsion,
         )
     if args.json:
         emit_json({**result.as_dict(), "project": str(project.root)})
@@ -50,7 +56,8 @@ def _cmd_bench_sim(args: argparse.Namespace) -> int:
         f"{'CPU ' + str(result.pinned_cpu) if result.pinned_cpu is not None else 'unpinned'})"
     )
     print(
-        f"flight mode {result.flight_mode}, CTB {result.ctb}: opposing contact "
+        f"flight mode {result.flight_mode}, propulsion {result.propulsion}, CTB {result.ctb} "
+        f"(x acceleration bound {result.accel_max[0]:.4f} m/s^2): opposing contact "
         f"{100 * result.opposing_contact_fraction:.1f} % of the flight, vehicle moved "
         f"{result.vehicle_distance:.2f} m, CTB {result.ctb_displacement:.2f} m, now in "
         f"{result.module}; MuJoCo warnings: {result.warnings or 'none'}"
@@ -73,7 +80,13 @@ def register(
         default=DEFAULT_FLIGHT_MODE,
         help=f"Astrobee flight mode (default {DEFAULT_FLIGHT_MODE})",
     )
-    p.add_argument("--ctb", default="single", help="CTB size: half, single, double or none")
+    p.add_argument("--ctb", default="single", help="CTB model: half, single, double, rigid or none")
+    p.add_argument(
+        "--propulsion",
+        choices=PROPULSION_MODELS,
+        default=DEFAULT_PROPULSION,
+        help=f"vehicle propulsion model (default {DEFAULT_PROPULSION})",
+    )
     p.add_argument("--pin", action="store_true", help="restrict the run to one CPU core (Linux)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_bench_sim)

@@ -2,7 +2,9 @@
 
 One control step (:meth:`SimDriver.step`) is 20 physics steps of 1 ms under a 50 Hz loop:
 the vehicle controller computes a bounded body wrench for the commanded twist and holds it
-on Astrobee (``xfrc_applied``), the payload position targets move toward the last
+on Astrobee (the 12 allocated nozzle forces at the nozzle positions through
+``qfrc_applied``, or with ``propulsion="box"`` the clipped wrench through
+``xfrc_applied``), the payload position targets move toward the last
 :class:`~payload.schema.PayloadCommand` no faster than the servos turn (XC330 no-load
 speed), and the actuators push no harder than the servos' current-capped torque.
 
@@ -26,8 +28,10 @@ import numpy as np
 
 from payload.schema import Health, PayloadCommand, PayloadState, VehicleTwist
 from payload.sim.contact import Contact, ContactMonitor, opposing
+from payload.sim.propulsion import Allocation
 from payload.sim.vehicle import (
     DEFAULT_FLIGHT_MODE,
+    DEFAULT_PROPULSION,
     FlightMode,
     MassProperties,
     VehicleController,
@@ -102,6 +106,9 @@ class SimDriver:
             the world has a CTB; the trials carry it).
         keyframe: Initial state, ``home`` (deployed) or ``stowed``.
         contact_links: Fingertip geoms of the indicator, ``pad`` or ``distal``.
+        propulsion: ``nozzles`` (default: the 12 nozzle forces applied at the nozzle
+            positions through ``qfrc_applied``) or ``box`` (the per-axis clipped wrench at
+            Astrobee's centre of mass through ``xfrc_applied``).
     """
 
     def __init__(
@@ -112,6 +119,7 @@ class SimDriver:
         carrying: bool | None = None,
         keyframe: str = "home",
         contact_links: str = "pad",
+        propulsion: str = DEFAULT_PROPULSION,
     ) -> None:
         self.world = world if isinstance(world, World) else build_world(world)
         self.model = self.world.model
@@ -122,7 +130,13 @@ class SimDriver:
         if carrying and self.world.ctb < 0:
             raise SimError("SimDriver: carrying=True but the world has no CTB")
         self.carrying = carrying
-        self.controller = VehicleController(self.mass_properties(carrying), flight_mode)
+        self.controller = VehicleController(
+            self.mass_properties(carrying), flight_mode, propulsion=propulsion
+        )
+        self.propulsion = propulsion
+        self.ctb_external_max = 0.0
+        """Largest applied force or generalised force on the CTB seen at any control step
+        (0 when the CTB is moved by contacts only)."""
         self._ctrl = self.world.ctrl_all
         self._ctrl_range = self.model.actuator_ctrlrange[self._ctrl].copy()
         self._goal = self.data.ctrl[self._ctrl].copy()
@@ -204,7 +218,7 @@ class SimDriver:
         self._twist = twist
         if twist is None:
             self._wrench = Wrench(np.zeros(3), np.zeros(3))
-            self.data.xfrc_applied[self.world.astrobee] = 0.0
+            self._clear_vehicle_forces()
 
     def step(self, control_steps: int = 1) -> WorldState:
         """Advance ``control_steps`` control periods (20 physics steps each)."""
@@ -216,13 +230,48 @@ class SimDriver:
             if self._twist is not None:
                 lin, ang = self._body_twist()
                 self._wrench = self.controller.update(self._twist, lin, ang, CONTROL_DT)
-                rot = d.xmat[w.astrobee].reshape(3, 3)
-                d.xfrc_applied[w.astrobee, :3] = rot @ self._wrench.force
-                d.xfrc_applied[w.astrobee, 3:] = rot @ self._wrench.torque
+                if self.controller.allocation is not None:
+                    self.apply_thrusts(self.controller.allocation)
+                else:
+                    rot = d.xmat[w.astrobee].reshape(3, 3)
+                    d.xfrc_applied[w.astrobee, :3] = rot @ self._wrench.force
+                    d.xfrc_applied[w.astrobee, 3:] = rot @ self._wrench.torque
             self._target += np.clip(self._goal - self._target, -self._step_max, self._step_max)
             d.ctrl[self._ctrl] = self._target
+            self._watch_ctb()
             mujoco.mj_step(m, d, nstep=SUBSTEPS)
         return self.world_state()
+
+    def apply_thrusts(self, allocation: Allocation) -> None:
+        """Apply nozzle thrusts as forces at the nozzle positions on Astrobee's body
+        (``mj_applyFT`` into ``qfrc_applied``), held over the next control period."""
+        w, d = self.world, self.data
+        nozzles = self.controller.nozzles
+        if nozzles is None:
+            raise SimError("apply_thrusts: the box propulsion model has no nozzles")
+        self._clear_vehicle_forces()
+        rot = d.xmat[w.astrobee].reshape(3, 3)
+        origin = d.xipos[w.astrobee]
+        torque = np.zeros(3)
+        for k in np.flatnonzero(allocation.thrust > 0.0):
+            force = rot @ (nozzles.directions[k] * allocation.thrust[k])
+            point = origin + rot @ nozzles.positions[k]
+            mujoco.mj_applyFT(self.model, d, force, torque, point, w.astrobee, d.qfrc_applied)
+
+    def _clear_vehicle_forces(self) -> None:
+        w, d = self.world, self.data
+        d.xfrc_applied[w.astrobee] = 0.0
+        d.qfrc_applied[w.astrobee_dof : w.astrobee_dof + 6] = 0.0
+
+    def _watch_ctb(self) -> None:
+        w, d = self.world, self.data
+        if w.ctb < 0:
+            return
+        ext = max(
+            float(np.abs(d.xfrc_applied[w.ctb]).max()),
+            float(np.abs(d.qfrc_applied[w.ctb_dof : w.ctb_dof + 6]).max()),
+        )
+        self.ctb_external_max = max(self.ctb_external_max, ext)
 
     def world_state(self) -> WorldState:
         """Astrobee pose and twist, CTB pose, fingertip contacts, indicator, module."""
@@ -267,6 +316,7 @@ class SimDriver:
         self._target = self._goal.copy()
         self._twist = None
         self._wrench = Wrench(np.zeros(3), np.zeros(3))
+        self.ctb_external_max = 0.0
 
     def mass_properties(self, include_ctb: bool) -> MassProperties:
         """Mass properties of Astrobee + payload (+ CTB) in the current state, body frame.

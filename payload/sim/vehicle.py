@@ -20,6 +20,7 @@ import numpy as np
 
 from payload.errors import PayloadError
 from payload.schema import VehicleTwist
+from payload.sim.propulsion import Allocation, Propulsion
 
 
 class VehicleError(PayloadError):
@@ -74,6 +75,13 @@ FLIGHT_MODES: dict[str, FlightMode] = {
     ),
 }
 """Astrobee flight modes (gnc.config figures via facts.md)."""
+
+PROPULSION_MODELS: tuple[str, ...] = ("nozzles", "box")
+"""``nozzles``: the 12-nozzle allocation (:mod:`payload.sim.propulsion`), force and torque
+drawn from the same non-negative thrusts; ``box``: the older model, force and torque
+clipped per axis independently."""
+
+DEFAULT_PROPULSION = "nozzles"
 
 DEFAULT_FLIGHT_MODE = "nominal"
 """Default mode. Its 0.20 m/s cap is the paper's base-channel top speed. Carrying a single
@@ -234,6 +242,14 @@ class VehicleController:
             in (0, 1]; the rest stays for attitude-rate feedback.
         reference_share: Fraction of the force bound the reference acceleration may use,
             in (0, 1].
+        propulsion: ``nozzles`` (default) or ``box``. With nozzles the bounds come from
+            the reachable wrench polytope instead of the per-axis figures: the force bound
+            along body axis i is ``torque_share`` of the largest ``f`` for which the wrench
+            ``f (e_i, c x e_i)`` (the force and the torque that balances its moment about
+            the carried centre of mass) is reachable in both directions, the torque bound
+            the largest pure torque per axis; the wrench is not clipped per axis but
+            allocated to the nozzles (:attr:`allocation`), scaled down along its own
+            direction when it lies outside the polytope.
     """
 
     def __init__(
@@ -247,8 +263,17 @@ class VehicleController:
         gain_angular: float = 2.0,
         torque_share: float = 0.8,
         reference_share: float = 0.8,
+        propulsion: str = DEFAULT_PROPULSION,
     ) -> None:
         self.mode = flight_mode(mode)
+        if propulsion not in PROPULSION_MODELS:
+            raise VehicleError(
+                f"unknown propulsion model {propulsion!r} (expected one of "
+                f"{', '.join(PROPULSION_MODELS)})"
+            )
+        self.propulsion = propulsion
+        self.nozzles = Propulsion(self.mode.force) if propulsion == "nozzles" else None
+        self.allocation: Allocation | None = None
         inertia = np.asarray(plant.inertia, float)
         com = np.asarray(plant.com, float)
         if not (math.isfinite(plant.mass) and plant.mass > 0):
@@ -272,11 +297,17 @@ class VehicleController:
             if not (math.isfinite(value) and value > 0):
                 raise VehicleError(f"VehicleController.{name}: must be positive, got {value}")
         self.plant = MassProperties(float(plant.mass), com, inertia)
-        self.torque_max = np.array(self.mode.torque)
+        if self.nozzles is None:
+            self.torque_max = np.array(self.mode.torque)
+        else:
+            self.torque_max = self.nozzles.pure_torque_max()
         self.gain_linear = gain_linear
         self.gain_angular = gain_angular
         self.reference_share = reference_share
-        self.force_max = self._force_bounds(torque_share)
+        if self.nozzles is None:
+            self.force_max = self._force_bounds(torque_share)
+        else:
+            self.force_max = self._polytope_force_bounds(torque_share)
         self.accel_max = np.minimum(
             self.mode.accel, reference_share * self.force_max / self.plant.mass
         )
@@ -300,6 +331,17 @@ class VehicleController:
                     bounds[i] = min(bounds[i], share * self.torque_max[j] / moment[j])
         return bounds
 
+    def _polytope_force_bounds(self, share: float) -> np.ndarray:
+        assert self.nozzles is not None
+        c = self.plant.com
+        bounds = np.empty(3)
+        for i in range(3):
+            e = np.zeros(3)
+            e[i] = 1.0
+            w = np.concatenate([e, np.cross(c, e)])
+            bounds[i] = share * min(self.nozzles.max_along(w), self.nozzles.max_along(-w))
+        return bounds
+
     @property
     def limits(self) -> dict[str, list[float]]:
         """The bounds in force: force, torque, accelerations, jerks, speed, rate."""
@@ -311,6 +353,7 @@ class VehicleController:
             "jerk": self.jerk.tolist(),
             "speed": [self.mode.speed],
             "omega": [self.mode.omega],
+            "propulsion": [self.propulsion],
         }
 
     def reset(self, linear: np.ndarray | None = None, angular: np.ndarray | None = None) -> None:
@@ -351,25 +394,33 @@ class VehicleController:
             dt: Control period [s].
 
         Returns:
-            The body-frame wrench to hold over the next period, within the per-axis bounds.
+            The body-frame wrench to hold over the next period: within the per-axis
+            bounds (box), or what the allocated nozzle thrusts make (nozzles; the thrusts
+            are in :attr:`allocation`).
         """
         target = self.clamp(command)
         ref, acc = self.profile.step(target, dt)
         v, w = np.asarray(linear, float), np.asarray(angular, float)
         m, c, inertia = self.plant
         force = m * (acc[:3] + self.gain_linear * (ref[:3] - v) + _cross(w, v))
-        force = np.clip(force, -self.force_max, self.force_max)
+        if self.nozzles is None:
+            force = np.clip(force, -self.force_max, self.force_max)
         alpha = acc[3:] + self.gain_angular * (ref[3:] - w)
         torque = inertia @ alpha + _cross(w, inertia @ w) + _cross(c, force)
-        torque = np.clip(torque, -self.torque_max, self.torque_max)
-        return Wrench(force, torque)
+        if self.nozzles is None:
+            torque = np.clip(torque, -self.torque_max, self.torque_max)
+            return Wrench(force, torque)
+        self.allocation = self.nozzles.allocate(force, torque)
+        return Wrench(self.allocation.force.copy(), self.allocation.torque.copy())
 
 
 __all__ = [
     "DEFAULT_FLIGHT_MODE",
+    "DEFAULT_PROPULSION",
     "FLIGHT_MODES",
     "JERK_ANGULAR",
     "JERK_LINEAR",
+    "PROPULSION_MODELS",
     "FlightMode",
     "JerkLimitedProfile",
     "MassProperties",

@@ -41,6 +41,7 @@ from payload.errors import PayloadError
 from payload.project import Project, current_project, project_of
 from payload.rotations import yaw_quat
 from payload.schema import CONTROL_DT as SCHEMA_CONTROL_DT
+from payload.sim.pads import pad_contact
 
 PAYLOAD_PREFIX = "payload/"
 """Prefix of every payload element name in the world (``payload/A_tip``)."""
@@ -279,8 +280,21 @@ CTB_SIZES: dict[str, CtbSize] = {
     "half": CtbSize("half", 0.425, 0.248, 0.235, 7.3),
     "single": CtbSize("single", 0.502, 0.425, 0.248, 15.4),
     "double": CtbSize("double", 0.502, 0.425, 0.502, 31.0),
+    "rigid": CtbSize("rigid", 0.50, 0.42, 0.25, 5.0),
 }
-"""Standard CTB sizes (NASA packing challenge figures, facts.md)."""
+"""The CTB models, in one place: NASA's standard loaded CTB sizes (packing challenge
+figures, facts.md) and ``rigid``, the rigid CTB model of Morton et al. 2025 (pyastrobee
+config/bag_properties.py: a 50 x 25 x 42 cm compartment of about 5 kg). The rigid bag is
+mounted with its 25 cm edge vertical, so its handle face (normal to that edge, like
+pyastrobee's front handle) is on top under the fingers, as the single bag's is. Both are
+uniform boxes: the inertia is a solid box's of that mass (ASSUMPTION: loaded evenly)."""
+
+CTB_MODELS: tuple[str, ...] = ("single", "rigid")
+"""The CTB models the trials choose between (``--ctb``): NASA's loaded single CTB and the
+rigid CTB of the cited work; which one the paper used is not stated."""
+
+DEFAULT_CTB = "single"
+"""The trials' default CTB model."""
 
 
 @dataclass(frozen=True)
@@ -354,6 +368,9 @@ class WorldConfig:
             concrete paths once the config is made; :meth:`for_project` sets both.
         cone: Friction cone, ``elliptic`` or ``pyramidal``.
         impratio: Ratio of frictional to normal impedance (elliptic cones).
+        pads: ``silicone`` (default: the pad contact's solref/solimp derived from the
+            design's pad material, :mod:`payload.sim.pads`) or ``mujoco`` (MuJoCo's
+            default contact parameters, the earlier model, for comparison).
     """
 
     ctb: str | None = "single"
@@ -364,6 +381,7 @@ class WorldConfig:
     design: Path | None = None
     cone: str = "elliptic"
     impratio: float = 10.0
+    pads: str = "silicone"
 
     @classmethod
     def for_project(cls, project: Project, **kwargs: Any) -> WorldConfig:
@@ -378,6 +396,8 @@ class WorldConfig:
                 object.__setattr__(self, "payload_mjcf", project.mjcf)
             if self.design is None:
                 object.__setattr__(self, "design", project.design_path)
+        if self.pads not in ("silicone", "mujoco"):
+            raise SimError(f"WorldConfig.pads: {self.pads!r} is not 'silicone' or 'mujoco'")
         if self.ctb is not None and self.ctb not in CTB_SIZES:
             raise SimError(
                 f"WorldConfig.ctb: unknown CTB size {self.ctb!r} "
@@ -840,6 +860,18 @@ def build_spec(config: WorldConfig | None = None, design: Design | None = None) 
         spec.delete(key)
 
     size = config.ctb_size
+    if config.pads == "silicone":
+        contact = pad_contact(
+            design,
+            str(config.payload_mjcf),
+            PINCH_OPEN,
+            size.mass if size is not None else None,
+            PHYSICS_DT,
+        )
+        for f in FINGERS:
+            geom = spec.geom(f"{PAYLOAD_PREFIX}{f}_distal_pad")
+            geom.solref = list(contact.solref)
+            geom.solimp = list(contact.solimp)
     if size is not None:
         rot = np.zeros(9)
         mujoco.mju_quat2Mat(rot, quat)
@@ -966,7 +998,9 @@ __all__ = [
     "ASTROBEE_MASS",
     "ASTROBEE_SIZE",
     "CONTROL_DT",
+    "CTB_MODELS",
     "CTB_SIZES",
+    "DEFAULT_CTB",
     "PAYLOAD_MOUNT",
     "PAYLOAD_PREFIX",
     "PHYSICS_DT",

@@ -4,8 +4,13 @@
 - Base: a virtual sphere centred at the neutral left-wrist position. Outside it the left
   wrist sets the travel direction, and its displacement beyond the boundary scales the
   requested speed up to 0.20 m/s. The vehicle turns toward the requested direction while
-  translating. Acceleration and jerk are bounded; with the wrist back inside the sphere
-  the request is zero and the limiter brakes smoothly to rest.
+  translating. Acceleration and jerk are bounded. Braking is the paper's rule: when both
+  wrists are back in their neutral spheres (each centred on its calibrated neutral
+  position, same radius) the request is zero and the limiter brakes smoothly to rest.
+  When the left wrist is back inside but the right wrist is still outside its sphere the
+  channel *holds*: the request is the velocity already commanded, so the vehicle neither
+  speeds up nor brakes (and keeps turning toward its travel direction) until the right
+  wrist returns too or the left wrist leaves again. A lost hand (``None``) always brakes.
 
 Directions are in the operator frame (workbench axes, X forward), which calibration
 aligns with the vehicle's heading at the start; the channel outputs a body-frame twist.
@@ -180,6 +185,8 @@ class BaseCommand:
         yaw_rate: Limited yaw-rate command [rad/s].
         twist: The body-frame twist for the vehicle controller.
         outside: Whether the left wrist is outside the neutral sphere.
+        mode: ``drive`` (left wrist outside), ``hold`` (only the right wrist outside) or
+            ``brake`` (both wrists in neutral, or a hand lost).
     """
 
     v_request: np.ndarray
@@ -187,6 +194,7 @@ class BaseCommand:
     yaw_rate: float
     twist: VehicleTwist
     outside: bool
+    mode: str = "brake"
 
 
 class BaseChannel:
@@ -198,6 +206,8 @@ class BaseChannel:
         heading0: World yaw of the operator's forward direction [rad] (the vehicle's
             heading at calibration).
         dt: Control period [s].
+        neutral_right: Neutral right-wrist position, shape (3,) [m]; None: the right
+            wrist is not consulted (it always counts as in neutral).
     """
 
     def __init__(
@@ -206,12 +216,17 @@ class BaseChannel:
         neutral_left: np.ndarray,
         heading0: float = 0.0,
         dt: float = CONTROL_DT,
+        neutral_right: np.ndarray | None = None,
     ) -> None:
         neutral = np.asarray(neutral_left, dtype=float)
         if neutral.shape != (3,) or not np.all(np.isfinite(neutral)):
             raise ChannelError("base channel: neutral wrist must be 3 finite numbers")
+        right = None if neutral_right is None else np.asarray(neutral_right, dtype=float)
+        if right is not None and (right.shape != (3,) or not np.all(np.isfinite(right))):
+            raise ChannelError("base channel: neutral right wrist must be 3 finite numbers")
         self.config = config
         self.neutral = neutral
+        self.neutral_right = right
         self.heading0 = heading0
         self.dt = dt
         # the limiter aims a hair below the cap so its discrete landing never overshoots it
@@ -236,18 +251,36 @@ class BaseChannel:
         speed = c.max_speed * min(1.0, beyond / c.full_speed_offset)
         return yaw_matrix(self.heading0) @ (disp / dist) * speed, True
 
+    def right_outside(self, right_wrist: np.ndarray | None) -> bool:
+        """Whether the right wrist is outside its neutral sphere (False when it is not
+        consulted: no right neutral, or no right wrist)."""
+        if self.neutral_right is None or right_wrist is None:
+            return False
+        w = np.asarray(right_wrist, dtype=float)
+        if w.shape != (3,) or not np.all(np.isfinite(w)):
+            raise ChannelError("base channel: right wrist is not 3 finite numbers")
+        return float(np.linalg.norm(w - self.neutral_right)) > self.config.sphere_radius
+
     def step(
-        self, left_wrist: np.ndarray | None, vehicle_rotation: np.ndarray | None = None
+        self,
+        left_wrist: np.ndarray | None,
+        vehicle_rotation: np.ndarray | None = None,
+        right_wrist: np.ndarray | None = None,
     ) -> BaseCommand:
         """One control step.
 
         Args:
             left_wrist: Filtered left-wrist position (operator frame) or ``None`` to brake.
             vehicle_rotation: Vehicle body -> world rotation, shape (3, 3) (identity if None).
+            right_wrist: Filtered right-wrist position (operator frame); with the left
+                wrist in neutral, the right one outside its sphere holds the velocity.
         """
         c = self.config
         rot = np.eye(3) if vehicle_rotation is None else np.asarray(vehicle_rotation, float)
         v_req, outside = self.request(left_wrist)
+        mode = "drive" if outside else "brake"
+        if not outside and left_wrist is not None and self.right_outside(right_wrist):
+            v_req, mode = self.linear.value.copy(), "hold"
         v = self.linear.step(v_req, self.dt)
         speed_req = float(np.linalg.norm(v_req[:2]))
         yaw_req = 0.0
@@ -259,4 +292,4 @@ class BaseChannel:
             yaw_req = max(-cap, min(cap, c.yaw_gain * err))
         yaw_rate = float(self.yaw.step(np.array([yaw_req]), self.dt)[0])
         twist = VehicleTwist(rot.T @ v, rot.T @ np.array([0.0, 0.0, yaw_rate]), 0.0)
-        return BaseCommand(v_req, v, yaw_rate, twist, outside)
+        return BaseCommand(v_req, v, yaw_rate, twist, outside, mode)

@@ -92,7 +92,8 @@ class ReplaySource:
 class PhaseTracker:
     """Labels each control step from what the pipeline does, for any source.
 
-    calibration -> acquisition (until the base first moves) -> translation / turn (moving,
+    calibration -> acquisition (until the base first moves after the first opposing
+    contact, when the contact is given) -> translation / turn (moving,
     turn while the yaw-rate command exceeds ``turn_rate``) -> braking (request zero while
     still moving) -> arrival (at rest after having moved).
     """
@@ -101,11 +102,19 @@ class PhaseTracker:
         self.turn_rate = turn_rate
         self.rest_speed = rest_speed
         self.moved = False
+        self.held = False
 
-    def label(self, calibrating: bool, step: TeleopStep | None, speed: float) -> str:
+    def label(
+        self, calibrating: bool, step: TeleopStep | None, speed: float, contact: bool | None = None
+    ) -> str:
+        """The phase of this step; with ``contact`` (the opposing-contact indicator) given,
+        moving the base before the first opposing contact (lining up) is acquisition."""
         if calibrating or step is None:
             return "calibration"
+        self.held = self.held or contact is None or bool(contact)
         requesting = bool(np.any(step.base.v_request))
+        if requesting and not self.held:
+            return "acquisition"
         if requesting:
             self.moved = True
             return "turn" if abs(step.base.yaw_rate) > self.turn_rate else "translation"
@@ -216,7 +225,9 @@ def run_session(
             state = driver.step(1)
             payload = driver.read()
             speed = float(np.linalg.norm(state.astrobee_linear))
-            phase = phases.label(calibrating, step, speed)
+            phase = phases.label(
+                calibrating, step, speed, bool(getattr(state, "opposing_contact", True))
+            )
             if on_step is not None:
                 on_step(StepContext(t, phase, frame, step, command, twist, state, payload))
             k += 1

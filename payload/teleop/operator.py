@@ -1,12 +1,17 @@
 """The synthetic operator: a closed-loop virtual person producing hand frames.
 
 It watches the (simulated) vehicle as a real operator watches through the headset, with a
-reaction delay, and acts in phases: it follows the calibration prompts, flexes both
-pinches onto the CTB handle until it sees opposing contact, flies the route with its
-left wrist (both wrists move together so the rail holds), slows into the turn, arrives,
-and returns both wrists to neutral to brake. Seeded human variability: hand size,
-physiological tremor (a few mm at 8 to 12 Hz), reaction delay, speed preference, small
-tracking noise and short tracking dropouts.
+reaction delay, and acts in phases: it follows the calibration prompts; it acquires the
+CTB: it looks where the handle is relative to where its pinch closes (late by its
+reaction delay, with a seeded misjudgement and frame-to-frame noise), flies the vehicle
+slowly to line the handle up, brakes, waits for the vehicle to settle, and flexes both
+pinches onto the handle until it sees opposing contact (if the pinch closes on nothing it
+re-opens and tries again, and gives up after its last attempt: the trial then fails);
+then it flies the route with its left wrist (both wrists move together so the rail
+holds), slows into the turn, arrives, and returns both wrists to neutral to brake.
+Seeded human variability: hand size, physiological tremor (a few mm at 8 to 12 Hz),
+reaction delay, speed preference, small tracking noise, short tracking dropouts, how well
+it judges the handle's position and how slowly it creeps while lining up.
 """
 
 from __future__ import annotations
@@ -36,6 +41,9 @@ class WorldView:
         astrobee_vel: Vehicle linear velocity (world), shape (3,) [m/s].
         ctb_pos: CTB position, shape (3,) [m].
         contact: The opposing-contact indicator.
+        handle_body: Where the CTB's handle centre is, in the vehicle body frame, shape
+            (3,) [m] (what a person sees of the handle against the robot); None if not
+            visible.
     """
 
     t: float
@@ -44,6 +52,7 @@ class WorldView:
     astrobee_vel: np.ndarray
     ctb_pos: np.ndarray
     contact: bool
+    handle_body: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -63,6 +72,12 @@ class OperatorTraits:
         close_rate: How fast the operator closes its pinch onto the handle [1/s].
         grip: The most open aperture the operator holds a firm grip at.
         wrist_lag: Time constant of the operator's arm moving to where it intends [s].
+        judge_error: Standard deviation of the operator's fixed misjudgement of the
+            handle's position, per axis [m] (depth perception through the headset).
+        look_noise: Frame-to-frame noise of its reading of the handle's position [m].
+        creep_speed: Speed it lines the vehicle up at [m/s] (fine positioning).
+        align_tol: Misalignment it accepts before closing [m].
+        attempts: Closing attempts before it gives up.
     """
 
     hand_size: float = 1.0
@@ -76,9 +91,27 @@ class OperatorTraits:
     close_rate: float = 0.25
     grip: float = 0.02
     wrist_lag: float = 0.3
+    judge_error: float = 0.003
+    look_noise: float = 0.002
+    creep_speed: float = 0.01
+    align_tol: float = 0.005
+    attempts: int = 2
 
     @staticmethod
     def sample(rng: np.random.Generator) -> OperatorTraits:
+        base = OperatorTraits._sample_base(rng)
+        return OperatorTraits(
+            **{
+                **vars(base),
+                "judge_error": float(rng.uniform(0.001, 0.005)),
+                "look_noise": float(rng.uniform(0.001, 0.003)),
+                "creep_speed": float(rng.uniform(0.006, 0.015)),
+                "align_tol": float(rng.uniform(0.003, 0.008)),
+            }
+        )
+
+    @staticmethod
+    def _sample_base(rng: np.random.Generator) -> OperatorTraits:
         return OperatorTraits(
             hand_size=float(rng.uniform(0.9, 1.1)),
             tremor_amp=float(rng.uniform(0.001, 0.003)),
@@ -112,6 +145,9 @@ class OperatorPlan:
         waypoint_radius: Distance at which a waypoint counts as passed [m].
         rail_distance: Inter-wrist distance held during the task [m].
         heading0: World yaw of the operator's forward direction [rad].
+        grasp_body: Where its calibrated pinch closes, in the vehicle body frame, shape
+            (3,) [m] (learnt in practice); None: the handle is assumed there already and
+            the operator closes at once.
     """
 
     route: np.ndarray
@@ -123,6 +159,7 @@ class OperatorPlan:
     waypoint_radius: float = 0.35
     rail_distance: float = 0.34
     heading0: float = 0.0
+    grasp_body: np.ndarray | None = None
 
 
 class SyntheticOperator:
@@ -163,6 +200,11 @@ class SyntheticOperator:
         self._seen: deque[WorldView] = deque()
         self._dropout_until = {"left": -1.0, "right": -1.0}
         self._last_t: float | None = None
+        # acquisition: approach -> settle -> close (-> reopen -> approach ...), or gave_up
+        self.acquisition = "approach" if plan.grasp_body is not None else "close"
+        self.attempt = 1
+        self._since = 0.0
+        self._misjudge = self.rng.normal(0.0, self.traits.judge_error, size=3)
 
     # ------------------------------------------------------------------ perception
     def _perceive(self, world: WorldView) -> WorldView:
@@ -190,23 +232,79 @@ class SyntheticOperator:
             left, right = centre + offset, centre - offset
         return {"left": left, "right": right}, aperture
 
+    def _misalignment(self, seen: WorldView) -> np.ndarray | None:
+        """How far (world frame) the vehicle must move to put the handle where the pinch
+        closes, as the operator judges it; None when it cannot see the handle."""
+        if self.plan.grasp_body is None or seen.handle_body is None:
+            return None
+        look = self.rng.normal(0.0, self.traits.look_noise, size=3)
+        judged = np.asarray(seen.handle_body) + self._misjudge + look
+        return seen.astrobee_rot @ (judged - self.plan.grasp_body)
+
+    def _creep(self, error: np.ndarray) -> np.ndarray:
+        """Wrist offset (operator frame) that creeps the vehicle toward ``error``."""
+        p, tr = self.plan, self.traits
+        dist = float(np.linalg.norm(error))
+        speed = min(tr.creep_speed, math.sqrt(2 * p.brake_accel * max(0.0, dist - tr.align_tol)))
+        if speed <= 1e-4:
+            return np.zeros(3)
+        direction = yaw_matrix(p.heading0).T @ (error / dist)
+        margin = tr.tremor_amp + 0.002  # far enough out that tremor keeps it outside
+        return direction * (
+            p.base.sphere_radius + margin + p.base.full_speed_offset * speed / p.base.max_speed
+        )
+
+    def _acquire(self, t: float, seen: WorldView) -> tuple[np.ndarray, float]:
+        """The acquisition: returns the wrist offset and the aperture."""
+        tr = self.traits
+        state = self.acquisition
+        offset = np.zeros(3)
+        speed = float(np.linalg.norm(seen.astrobee_vel))
+        if state in ("approach", "settle"):
+            error = self._misalignment(seen)
+            far = error is not None and float(np.linalg.norm(error)) > tr.align_tol
+            if state == "approach" and far:
+                offset = self._creep(error)
+            elif state == "approach":
+                self.acquisition, self._since = "settle", t
+            elif far and float(np.linalg.norm(error)) > 2 * tr.align_tol:
+                self.acquisition = "approach"  # drifted off while settling
+            elif speed < 0.002 and t - self._since > 1.5:
+                self.acquisition, self._since = "close", t
+            return offset, 0.5
+        if state == "close":
+            if seen.contact and self.contact_seen_at is None:
+                # contact seen: squeeze firmly, nearly to a full pinch
+                self.contact_seen_at = t
+                self.grip_aperture = max(0.0, min(self.aperture - tr.squeeze, tr.grip))
+            if self.grip_aperture is not None:
+                if t - self.contact_seen_at > 2.0:
+                    self.phase = "translation"
+                return offset, self.grip_aperture
+            aperture = max(0.0, self.aperture - tr.close_rate * CONTROL_DT)
+            if self.aperture > 0.02:
+                self._since = t
+            elif t - self._since > 1.5:  # closed on nothing: open up and try again
+                self.acquisition, self._since = "reopen", t
+            return offset, aperture
+        if state == "reopen":
+            if self.attempt >= tr.attempts:
+                self.acquisition = "gave_up"
+                self.finished = True
+            elif t - self._since > 2.0:
+                self.attempt += 1
+                self.acquisition = "approach"
+            return offset, 0.5
+        return offset, 0.5  # gave up: hands at rest
+
     def _task_intent(self, t: float, seen: WorldView) -> tuple[dict[str, np.ndarray], float]:
         p, tr = self.plan, self.traits
         centre = 0.5 * (p.neutral_left + p.neutral_right)
         half = np.array([0.0, 0.5 * p.rail_distance, 0.0])
         offset = np.zeros(3)
         if self.phase == "acquisition":
-            if seen.contact and self.contact_seen_at is None:
-                # contact seen: squeeze firmly, nearly to a full pinch
-                self.contact_seen_at = t
-                self.grip_aperture = max(0.0, min(self.aperture - tr.squeeze, tr.grip))
-            if self.grip_aperture is None:
-                aperture = max(0.0, self.aperture - tr.close_rate * CONTROL_DT)
-            else:
-                aperture = self.grip_aperture
-                if t - self.contact_seen_at > 2.0:
-                    self.phase = "translation"
-            return {"left": centre + half, "right": centre - half}, aperture
+            offset, aperture = self._acquire(t, seen)
+            return {"left": centre + half + offset, "right": centre - half + offset}, aperture
         aperture = self.grip_aperture if self.grip_aperture is not None else self.aperture
         route = p.route
         pos = seen.astrobee_pos

@@ -204,7 +204,13 @@ class TeleopPipeline:
             c.safety, {"left": calibration.neutral_left, "right": calibration.neutral_right}
         )
         self.filters = {s: OneEuroFilter(c.filter) for s in ("left", "right")}
-        self.base = BaseChannel(c.base, calibration.neutral_left, calibration.heading0, c.dt)
+        self.base = BaseChannel(
+            c.base,
+            calibration.neutral_left,
+            calibration.heading0,
+            c.dt,
+            neutral_right=calibration.neutral_right,
+        )
         self.index = {pair: pair_index(r) for pair, r in retargeters.items()}
         q0 = np.zeros(len(MANIPULATION_JOINTS)) if initial is None else np.array(initial, float)
         # start from the payload's posture and blend the first commands in (no jump at the
@@ -264,7 +270,8 @@ class TeleopPipeline:
         else:
             rail = self.rail_blend.step(None, 0.0)
         left_wrist = hands["left"].wrist if both else None  # a lost hand brakes the vehicle
-        base = self.base.step(left_wrist, vehicle_rotation)
+        right_wrist = hands["right"].wrist if both else None
+        base = self.base.step(left_wrist, vehicle_rotation, right_wrist)
         q17 = np.zeros(len(MANIPULATION_JOINTS))
         for pair, q in q_pair.items():
             q17[self.index[pair]] = q
@@ -273,7 +280,9 @@ class TeleopPipeline:
         command = PayloadCommand(q17, self.config.deploy, stamp)
         self.events.extend(events)
         twist = VehicleTwist(base.twist.linear, base.twist.angular, stamp)
-        base = BaseCommand(base.v_request, base.v_world, base.yaw_rate, twist, base.outside)
+        base = BaseCommand(
+            base.v_request, base.v_world, base.yaw_rate, twist, base.outside, base.mode
+        )
         return TeleopStep(
             stamp,
             q_pair["L"].copy(),

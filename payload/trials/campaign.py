@@ -107,6 +107,7 @@ def _runner_trial(
     project: Path | None = None,
     max_time: float | None = None,
     force: bool = False,
+    **setup: str,
 ) -> dict[str, Any]:
     try:
         from payload.trials.runner import run_trial
@@ -126,6 +127,7 @@ def _runner_trial(
         out_dir=Path(out_dir),
         project=Project.at(project) if project is not None else None,
         **extra,
+        **setup,
     )
 
 
@@ -135,6 +137,7 @@ def runner_trial_fn(
     *,
     max_time: float | None = None,
     force: bool = False,
+    **setup: str,
 ) -> TrialFn:
     """The picklable campaign trial function that calls the teleoperation runner
     (``payload.trials.runner.run_trial``), imported lazily in whichever process runs it.
@@ -145,9 +148,15 @@ def runner_trial_fn(
             project of the process that runs each trial).
         max_time: Session length cap [s] (``None``: the runner's).
         force: Replace trials already in the campaign folder.
+        setup: ``ctb``, ``propulsion``: the same for every trial.
     """
     return functools.partial(
-        _runner_trial, operator=operator, project=project, max_time=max_time, force=force
+        _runner_trial,
+        operator=operator,
+        project=project,
+        max_time=max_time,
+        force=force,
+        **setup,
     )
 
 
@@ -319,30 +328,36 @@ def _finite(values: list[Any]) -> list[float]:
     return out
 
 
-def summarize(results: Sequence[dict[str, Any]]) -> dict[str, Any]:
-    """The campaign summary (what ``summary.json`` holds).
+def _literal_row(r: dict[str, Any]) -> dict[str, Any]:
+    """A trial's figures under the paper-literal contact definition."""
+    lit = r.get("literal")
+    base = {"seed": r.get("seed"), "error": r.get("error"), "wall_s": r.get("wall_s")}
+    if isinstance(lit, dict):
+        return {**lit, **base}
+    if not (r.get("min_interval_s") or r.get("max_gap_s")):
+        return dict(r)  # scored with the paper's definition already
+    return {**base, "final_module": r.get("final_module")}
 
-    Every trial counts in ``n``; ``success`` counts trials that succeeded (a trial that
-    raised is a failure). Each metric's ``median``, ``min`` and ``max`` are over the trials
-    that have a finite value (``count`` of them; ``None`` if none has).
 
-    Args:
-        results: Per-trial dicts (from :func:`run_campaign` or :func:`load_trial_results`).
+def _one_value(rows: Sequence[dict[str, Any]], key: str) -> Any:
+    """The value every trial records under ``key``; ``{"mixed": [...]}`` if they differ,
+    ``None`` if none records it."""
+    values = sorted({str(r[key]) for r in rows if r.get(key) is not None})
+    if not values:
+        return None
+    return values[0] if len(values) == 1 else {"mixed": values}
 
-    Returns:
-        ``{"n", "success", "errors", <metric>: {"median", "min", "max", "count"}, "seeds",
-        "trials", "paper"}``.
-    """
-    if not results:
-        raise CampaignError("no trial results to summarise")
-    rows = sorted(results, key=lambda r: (r.get("seed") is None, r.get("seed") or 0))
+
+def _summary_core(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    ok_rows = [r for r in rows if not r.get("error")]
     summary: dict[str, Any] = {
         "n": len(rows),
-        "success": sum(1 for r in rows if r.get("success") and not r.get("error")),
-        "errors": sum(1 for r in rows if r.get("error")),
+        "success": sum(1 for r in ok_rows if r.get("success")),
+        "errors": len(rows) - len(ok_rows),
+        "acquisition_success": sum(1 for r in ok_rows if r.get("acquired")) / len(rows),
     }
     for key in METRIC_KEYS:
-        vals = _finite([r.get(key) for r in rows if not r.get("error")])
+        vals = _finite([r.get(key) for r in ok_rows])
         if vals:
             arr = np.asarray(vals)
             summary[key] = {
@@ -354,9 +369,7 @@ def summarize(results: Sequence[dict[str, Any]]) -> dict[str, Any]:
         else:
             summary[key] = {"median": None, "min": None, "max": None, "count": 0}
     definitions = {
-        (float(r.get("min_interval_s") or 0.0), float(r.get("max_gap_s") or 0.0))
-        for r in rows
-        if not r.get("error")
+        (float(r.get("min_interval_s") or 0.0), float(r.get("max_gap_s") or 0.0)) for r in ok_rows
     }
     if len(definitions) == 1:
         (mi, mg) = definitions.pop()
@@ -368,6 +381,7 @@ def summarize(results: Sequence[dict[str, Any]]) -> dict[str, Any]:
         {
             "seed": r.get("seed"),
             "success": bool(r.get("success")) and not r.get("error"),
+            "acquired": bool(r.get("acquired")) and not r.get("error"),
             **{k: r.get(k) for k in METRIC_KEYS},
             "final_module": r.get("final_module"),
             "error": r.get("error"),
@@ -377,6 +391,36 @@ def summarize(results: Sequence[dict[str, Any]]) -> dict[str, Any]:
         for r in rows
     ]
     summary["paper"] = PAPER_RESULTS
+    return summary
+
+
+def summarize(results: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """The campaign summary (what ``summary.json`` holds).
+
+    Every trial counts in ``n``; ``success`` counts trials that succeeded (a trial that
+    raised is a failure); ``acquisition_success`` is the fraction of trials whose pinch
+    closed on the handle (a first confirmed-contact interval exists). Each metric's
+    ``median``, ``min`` and ``max`` are over the trials that have a finite value
+    (``count`` of them; ``None`` if none has). ``literal`` holds the same fields under the
+    paper-literal contact definition (any single opposing-contact sample, no bridging);
+    the top level uses the definition the trials were recorded with (``contact_definition``).
+    ``ctb`` and ``propulsion`` name the CTB model and the propulsion model of the trials.
+
+    Args:
+        results: Per-trial dicts (from :func:`run_campaign` or :func:`load_trial_results`).
+
+    Returns:
+        ``{"n", "success", "errors", "acquisition_success", <metric>: {"median", "min",
+        "max", "count"}, "contact_definition", "seeds", "trials", "paper", "ctb",
+        "propulsion", "literal"}``.
+    """
+    if not results:
+        raise CampaignError("no trial results to summarise")
+    rows = sorted(results, key=lambda r: (r.get("seed") is None, r.get("seed") or 0))
+    summary = _summary_core(rows)
+    summary["ctb"] = _one_value(rows, "ctb")
+    summary["propulsion"] = _one_value(rows, "propulsion")
+    summary["literal"] = _summary_core([_literal_row(r) for r in rows])
     return summary
 
 
@@ -395,58 +439,80 @@ def _cell(value: Any, digits: int) -> str:
 _DIGITS = {"duration_s": 1, "net_displacement_m": 2, "rms_mm": 1, "peak_mm": 1, "contact_s": 1}
 
 
-def summary_markdown(summary: dict[str, Any], title: str | None = None) -> str:
-    """The paper's results paragraph as Markdown tables: this campaign next to the paper,
-    then one row per trial."""
-    paper = summary.get("paper", PAPER_RESULTS)
+def _definition_text(definition: dict[str, Any] | None) -> str:
+    d = definition or {}
+    if "mixed" in d:
+        return "mixed definitions across the trials"
+    mi, mg = float(d.get("min_interval_s") or 0.0), float(d.get("max_gap_s") or 0.0)
+    if not (mi or mg):
+        return "the paper's: any single sample with opposing contact counts, no bridging"
+    return (
+        f"debounced: indicator dropouts up to {mg:.2f} s bridged, then runs shorter than "
+        f"{mi:.2f} s skipped (NOT the paper's definition)"
+    )
+
+
+def _header_lines(summary: dict[str, Any], title: str | None) -> list[str]:
     seeds = [s for s in summary.get("seeds", []) if s is not None]
-    lines = [
+    setup = []
+    for key, label in (("ctb", "CTB model"), ("propulsion", "propulsion model")):
+        value = summary.get(key)
+        if value is not None:
+            shown = ", ".join(value["mixed"]) if isinstance(value, dict) else str(value)
+            setup.append(f"{label} `{shown}`")
+    return [
         f"# {title or 'Cargo-transport campaign'}",
         "",
         f"{summary['n']} trials"
         + (f", seeds {min(seeds)} to {max(seeds)}" if seeds else "")
+        + (f"; {', '.join(setup)}" if setup else "")
         + ". Medians with ranges (min to max); the paper's figures are from its Results "
         "section (ten live teleoperated trials).",
         "",
-        "| metric | this campaign | paper |",
-        "| --- | --- | --- |",
-        f"| task success | {summary['success']}/{summary['n']} | {paper['success']}/{paper['n']} |",
+    ]
+
+
+def summary_markdown(summary: dict[str, Any], title: str | None = None) -> str:
+    """The paper's results paragraph as Markdown tables: this campaign under the recorded
+    (confirmed) and the paper-literal contact definitions next to the paper, then one row
+    per trial."""
+    paper = summary.get("paper", PAPER_RESULTS)
+    lit = summary.get("literal") or {}
+    n = summary["n"]
+
+    def acq(s: dict[str, Any]) -> str:
+        v = s.get("acquisition_success")
+        return "n/a" if v is None else f"{100 * v:.0f} %"
+
+    lines = [
+        *_header_lines(summary, title),
+        "| metric | this campaign, confirmed contact | this campaign, paper-literal contact "
+        "| paper |",
+        "| --- | --- | --- | --- |",
+        f"| task success | {summary['success']}/{n} | {lit.get('success', 'n/a')}/{n} "
+        f"| {paper['success']}/{paper['n']} |",
+        f"| acquisition success | {acq(summary)} | {acq(lit)} | n/a |",
     ]
     for key in METRIC_KEYS:
         d = _DIGITS[key]
-        stat = summary.get(key)
-        count = stat.get("count", summary["n"]) if stat else 0
-        note = "" if count == summary["n"] else f" [{count} of {summary['n']} trials]"
-        lines.append(f"| {METRIC_LABELS[key]} | {_fmt(stat, d)}{note} | {_fmt(paper[key], d)} |")
+        cells = []
+        for s in (summary, lit):
+            stat = s.get(key)
+            count = stat.get("count", n) if stat else 0
+            note = "" if count == n else f" [{count} of {n} trials]"
+            cells.append(f"{_fmt(stat, d)}{note}")
+        lines.append(f"| {METRIC_LABELS[key]} | {cells[0]} | {cells[1]} | {_fmt(paper[key], d)} |")
     if summary.get("errors"):
         lines += ["", f"{summary['errors']} trial(s) raised an error (counted as failures)."]
-    relaxed = summary.get("contact_definition") or {}
-    if "mixed" in relaxed:
-        pairs = ", ".join(f"{a:g} s / {b:g} s" for a, b in relaxed["mixed"])
-        lines += ["", f"Contact definitions differ between trials (min run / max gap): {pairs}."]
-    elif relaxed.get("min_interval_s") or relaxed.get("max_gap_s"):
-        lines += [
-            "",
-            "Contact interval NOT the paper's definition: indicator dropouts up to "
-            f"{relaxed.get('max_gap_s') or 0:.2f} s bridged, runs shorter than "
-            f"{relaxed.get('min_interval_s') or 0:.2f} s skipped.",
-        ]
-    elif relaxed:
-        lines += ["", "Contact interval: the paper's definition (no dropout bridged)."]
-    run = summary.get("run")
-    if run and run.get("wall_s"):
-        if run.get("scheduler"):
-            where = f"on the Dask scheduler {run['scheduler']}"
-        elif (run.get("workers") or 0) > 1:
-            where = f"on {run['workers']} local Dask workers"
-        else:
-            where = "serially"
-        lines += [
-            "",
-            f"Ran {where} in {run['wall_s']:.1f} s; the trials took "
-            f"{run.get('trial_wall_s', 0.0):.1f} s added up "
-            f"(speed-up {run.get('trial_wall_s', 0.0) / run['wall_s']:.2f}x).",
-        ]
+    lines += [
+        "",
+        "Contact definitions. Confirmed contact (the recorded one): "
+        + _definition_text(summary.get("contact_definition"))
+        + ". Paper-literal: "
+        + _definition_text(lit.get("contact_definition") if lit else None)
+        + ". Acquisition succeeds when a first contact interval exists under the definition.",
+    ]
+    lines += _run_lines(summary.get("run"))
     lines += [
         "",
         "Success: the CTB is in the destination module at the end, and the first continuous "
@@ -458,15 +524,40 @@ def summary_markdown(summary: dict[str, Any], title: str | None = None) -> str:
         "",
         "## Trials",
         "",
+        "Per trial, confirmed contact, then the paper-literal success, RMS and contact interval.",
+        "",
         "| seed | success | duration [s] | net displacement [m] | RMS [mm] | peak [mm] "
-        "| contact [s] | CTB ends in |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| contact [s] | CTB ends in | literal success | literal RMS [mm] | literal contact [s] |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
+    literal_rows = {r.get("seed"): r for r in lit.get("trials", [])}
     for row in summary.get("trials", []):
         ok = "error" if row.get("error") else ("yes" if row["success"] else "no")
         cells = " | ".join(_cell(row.get(k), _DIGITS[k]) for k in METRIC_KEYS)
-        lines.append(f"| {row['seed']} | {ok} | {cells} | {row.get('final_module') or 'n/a'} |")
+        lr = literal_rows.get(row["seed"], {})
+        lok = "error" if row.get("error") else ("yes" if lr.get("success") else "no")
+        lines.append(
+            f"| {row['seed']} | {ok} | {cells} | {row.get('final_module') or 'n/a'} | {lok} "
+            f"| {_cell(lr.get('rms_mm'), 1)} | {_cell(lr.get('contact_s'), 1)} |"
+        )
     return "\n".join(lines) + "\n"
+
+
+def _run_lines(run: dict[str, Any] | None) -> list[str]:
+    if not run or not run.get("wall_s"):
+        return []
+    if run.get("scheduler"):
+        where = f"on the Dask scheduler {run['scheduler']}"
+    elif (run.get("workers") or 0) > 1:
+        where = f"on {run['workers']} local Dask workers"
+    else:
+        where = "serially"
+    return [
+        "",
+        f"Ran {where} in {run['wall_s']:.1f} s; the trials took "
+        f"{run.get('trial_wall_s', 0.0):.1f} s added up "
+        f"(speed-up {run.get('trial_wall_s', 0.0) / run['wall_s']:.2f}x).",
+    ]
 
 
 def write_summary(

@@ -42,6 +42,13 @@ def _parse_operator(values: list[str]) -> tuple[str, Path | None]:
     )
 
 
+def _check_ctb(ctb: str) -> None:
+    from payload.sim.world import CTB_MODELS
+
+    if ctb not in CTB_MODELS:
+        raise TrialsCliError(f"--ctb: expected one of {', '.join(CTB_MODELS)}, got {ctb!r}")
+
+
 def _cmd_trial(args: argparse.Namespace) -> int:
     from payload.cli import command_project, emit_json
 
@@ -50,10 +57,11 @@ def _cmd_trial(args: argparse.Namespace) -> int:
     if args.max_time is not None and not args.max_time > 0:
         raise TrialsCliError(f"--max-time must be positive, got {args.max_time}")
     operator, replay = _parse_operator(args.operator)
+    _check_ctb(args.ctb)
     project = command_project(args)
     out = Path(args.out) if args.out else None
     run_trial = _run_trial_fn()
-    extra: dict[str, Any] = {"project": project}
+    extra: dict[str, Any] = {"project": project, "ctb": args.ctb, "propulsion": args.propulsion}
     if not args.json and sys.stderr.isatty():
         extra["progress"] = True
     if args.max_time is not None:
@@ -96,6 +104,7 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
         raise TrialsCliError(f"--seed must be >= 0, got {args.seed}")
     if args.workers is not None and args.workers < 0:
         raise TrialsCliError(f"--workers must be >= 0, got {args.workers}")
+    _check_ctb(args.ctb)
     _run_trial_fn()  # fail here, once, if the runner is missing
     project = command_project(args)
     prov = provenance(project)
@@ -113,7 +122,9 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
     workers = default_workers(args.n) if args.workers is None else args.workers
     t0 = time.perf_counter()
     results = run_campaign(
-        runner_trial_fn("synthetic", project.root, force=args.force),
+        runner_trial_fn(
+            "synthetic", project.root, force=args.force, ctb=args.ctb, propulsion=args.propulsion
+        ),
         seeds,
         out,
         workers=workers,
@@ -126,7 +137,7 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
         "wall_s": time.perf_counter() - t0,
         "trial_wall_s": float(sum(r.get("wall_s") or 0.0 for r in results)),
     }
-    title = f"Cargo-transport campaign ({args.n} trials)"
+    title = f"Cargo-transport campaign ({args.n} trials, CTB {args.ctb}, {args.propulsion})"
     summary = write_summary(results, out, title=title, run=run, provenance=prov, force=args.force)
     if args.json:
         emit_json(
@@ -318,6 +329,23 @@ def _cmd_trials_convert(args: argparse.Namespace) -> int:
     return 0
 
 
+def _setup_arguments(p: argparse.ArgumentParser) -> None:
+    from payload.sim.vehicle import DEFAULT_PROPULSION, PROPULSION_MODELS
+
+    p.add_argument(
+        "--ctb",
+        default="single",
+        help="CTB model: single (NASA's loaded single bag) or rigid (the rigid bag of "
+        "Morton et al.); default single",
+    )
+    p.add_argument(
+        "--propulsion",
+        choices=PROPULSION_MODELS,
+        default=DEFAULT_PROPULSION,
+        help=f"vehicle propulsion model (default {DEFAULT_PROPULSION})",
+    )
+
+
 def register(
     sub: argparse._SubParsersAction, groups: dict[str, argparse._SubParsersAction]
 ) -> None:
@@ -342,6 +370,7 @@ def register(
         help="cap on the session length [s] (default: the runner's, 240 s)",
     )
     p.add_argument("--force", action="store_true", help="replace the trial already in --out")
+    _setup_arguments(p)
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=_cmd_trial)
 
@@ -359,6 +388,7 @@ def register(
     r.add_argument("--scheduler", help="existing Dask scheduler, e.g. tcp://host:8786")
     r.add_argument("--out", required=True, help="campaign folder")
     r.add_argument("--force", action="store_true", help="replace a campaign already in --out")
+    _setup_arguments(r)
     r.add_argument("--json", action="store_true", help="print one JSON object")
     r.set_defaults(func=_cmd_trials_run)
 

@@ -19,6 +19,7 @@ Definitions (paper, Sec. III-C and IV):
   the last sample [s].
 * **CTB net world-frame displacement** -- ``||p_c^W(end) - p_c^W(start)||`` with start the
   first sample of the recording (the start of teleoperation) [m].
+* **acquisition** -- succeeded when the recording has a first confirmed-contact interval.
 * **success** -- the CTB is in the destination module at the last sample, *and* the first
   confirmed-contact interval carries it there and holds it until arrival: the interval
   starts no later than the CTB's entry into the destination (first sample of its final,
@@ -91,6 +92,9 @@ class TrialMetrics:
         complete: The recording was closed properly (not cut short).
         min_interval_s: The interval definition used (0 = the paper's).
         max_gap_s: The interval definition used (0 = the paper's).
+        acquired: The acquisition succeeded: the recording has a first confirmed-contact
+            interval under this definition (the pinch closed on the handle from both
+            sides).
     """
 
     success: bool
@@ -114,6 +118,7 @@ class TrialMetrics:
     complete: bool
     min_interval_s: float = 0.0
     max_gap_s: float = 0.0
+    acquired: bool = False
 
     def as_dict(self) -> dict[str, Any]:
         """JSON-ready dict (NaN -> ``None``) with the criterion text under ``criterion``."""
@@ -341,6 +346,7 @@ def compute_metrics(
         complete=recording.complete,
         min_interval_s=float(min_interval_s),
         max_gap_s=float(max_gap_s),
+        acquired=interval is not None,
     )
 
 

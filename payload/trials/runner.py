@@ -31,6 +31,8 @@ from payload.retarget.casadi_solver import PairRetargeter
 from payload.retarget.hand import load_hand
 from payload.rotations import quat_to_matrix
 from payload.safeio import OverwriteError, check_new, new_folder, replace_file
+from payload.sim.vehicle import DEFAULT_PROPULSION, PROPULSION_MODELS
+from payload.sim.world import CTB_MODELS, DEFAULT_CTB, WorldConfig
 from payload.teleop.calibration import CalibrationProcedure, Captures
 from payload.teleop.hands import Hand, HandFrame
 from payload.teleop.loop import (
@@ -47,6 +49,7 @@ from payload.teleop.pipeline import (
     pair_index,
 )
 from payload.teleop.replay import read_hand_recording
+from payload.trials.acquisition import handle_in_body, place_offset
 
 log = logging.getLogger(__name__)
 
@@ -86,6 +89,11 @@ class HeadsetSource:
     def finished(self) -> bool:
         return self.source.finished
 
+    @property
+    def operator(self) -> Any:
+        """The synthetic operator behind the headset (``None`` for other sources)."""
+        return getattr(self.source, "operator", None)
+
 
 def load_replay(path: str | Path) -> tuple[dict[str, Any], list[HandFrame]]:
     """``(header, frames)`` to replay: a trial's ``log.mcap`` (its ``/trial/hands``
@@ -97,7 +105,7 @@ def load_replay(path: str | Path) -> tuple[dict[str, Any], list[HandFrame]]:
             meta, frames = read_hand_frames(path)
         except RecordingError as exc:
             raise TrialError(str(exc)) from None
-        return {"meta": {"seed": meta.get("seed")}}, frames
+        return {"meta": meta}, frames
     return read_hand_recording(path)
 
 
@@ -181,13 +189,16 @@ def _module_rects(layout: Any) -> list[dict[str, float | str]]:
 
 def place_ctb_for_teleop(
     driver: Any, retargeters: dict[str, PairRetargeter], ranges: dict[str, PairRange]
-) -> None:
+) -> np.ndarray:
     """Move the CTB so its handle sits where the teleoperated pinch closes on it.
 
     The pinch the operator commands follows the posture reference of the calibrated pair
     ranges. For each pair, the span at which the reference posture's pads first reach the
     handle's side faces is found by bisection; the handle bar is centred on the mean of
     the four fingertips there. Only the CTB's initial pose changes.
+
+    Returns:
+        That grasp point (the handle centre) in Astrobee's body frame, shape (3,) [m].
     """
     import mujoco
 
@@ -226,6 +237,7 @@ def place_ctb_for_teleop(
     c = w.ctb_qpos
     driver.data.qpos[c : c + 3] = centre - rot[:, 2] * drop
     mujoco.mj_forward(m, driver.data)
+    return rot.T @ (centre - driver.data.qpos[a : a + 3])
 
 
 TRIAL_FILES: tuple[str, ...] = (
@@ -252,6 +264,8 @@ def run_trial(
     progress: bool = False,
     force: bool = False,
     project: Project | None = None,
+    ctb: str = DEFAULT_CTB,
+    propulsion: str = DEFAULT_PROPULSION,
 ) -> dict[str, Any]:
     """Run one trial and write its folder (reproducible: see :func:`_run_trial`).
 
@@ -272,6 +286,9 @@ def run_trial(
         progress: Show a progress bar.
         project: The design project whose models and design the trial runs on (default:
             the current project).
+        ctb: CTB model (:data:`~payload.sim.world.CTB_MODELS`); a replay uses its
+            recording's.
+        propulsion: ``nozzles`` or ``box``; a replay uses its recording's.
         force: Replace the trial in ``out_dir`` (each file through a temporary file and a
             rename, after the new trial has run).
 
@@ -292,10 +309,19 @@ def run_trial(
         if replay is None:
             raise TrialError("operator 'replay' needs a hand recording file")
         header, frames = load_replay(replay)
+        recorded = header.get("meta") or {}
+        ctb = recorded.get("ctb", ctb)
+        propulsion = recorded.get("propulsion", propulsion)
         if seed is None:
             source_seed = header.get("meta", {}).get("seed")
             seed = source_seed if isinstance(source_seed, int) and source_seed >= 0 else 0
     seed = 0 if seed is None else int(seed)
+    if ctb not in CTB_MODELS:
+        raise TrialError(f"ctb must be one of {', '.join(CTB_MODELS)}, got {ctb!r}")
+    if propulsion not in PROPULSION_MODELS:
+        raise TrialError(
+            f"propulsion must be one of {', '.join(PROPULSION_MODELS)}, got {propulsion!r}"
+        )
     stem = f"trial-{seed:04d}" if operator == "synthetic" else f"replay-{seed:04d}"
     out = Path(out_dir) if out_dir is not None else new_folder(project.runs_dir, stem)
     if replay is not None and out.resolve() == Path(replay).resolve().parent:
@@ -306,7 +332,7 @@ def run_trial(
     except OverwriteError as exc:
         raise TrialError(str(exc)) from None
     out.mkdir(parents=True, exist_ok=True)
-    source = _Source(operator, seed, replay, header, frames)
+    source = _Source(operator, seed, replay, header, frames, ctb=ctb, propulsion=propulsion)
     with single_threaded_numerics():
         if not force:
             result = _run_trial(
@@ -338,7 +364,13 @@ class _Source:
         replay: Path | None,
         header: dict[str, Any],
         frames: list[Any],
+        *,
+        ctb: str = DEFAULT_CTB,
+        propulsion: str = DEFAULT_PROPULSION,
     ) -> None:
+        self.ctb = ctb
+        self.propulsion = propulsion
+        self.recorded: dict[str, Any] = header.get("meta") or {}
         self.operator = operator
         self.seed = seed
         self.replay = replay
@@ -389,19 +421,36 @@ def _run_trial(
 ) -> dict[str, Any]:
     """Run one trial and write its folder ``out`` (arguments: :func:`run_trial`)."""
     from payload.sim.driver import SimDriver
-    from payload.sim.world import WorldConfig
     from payload.trials.foxglove import FoxgloveScene
     from payload.trials.metrics import CONFIRM_MAX_GAP_S, CONFIRM_MIN_S
     from payload.trials.recorder import TrialRecorder
     from payload.trials.scoring import finish_trial
 
-    driver = SimDriver(WorldConfig.for_project(project))
+    driver = SimDriver(
+        WorldConfig.for_project(project, ctb=source_spec.ctb), propulsion=source_spec.propulsion
+    )
     layout = driver.world.layout
     retargeters, ranges = retargeting(project)
-    place_ctb_for_teleop(driver, retargeters, ranges)
+    grasp_body = place_ctb_for_teleop(driver, retargeters, ranges)
+    recorded = source_spec.recorded
+    offset, yaw = place_offset(
+        driver, seed, recorded.get("ctb_offset_m"), recorded.get("ctb_yaw_deg")
+    )
+    setup = {
+        "ctb": source_spec.ctb,
+        "propulsion": source_spec.propulsion,
+        "ctb_offset_m": [float(v) for v in offset],
+        "ctb_yaw_deg": float(yaw),
+        "grasp_body_m": [float(v) for v in grasp_body],
+    }
     calibration = CalibrationProcedure()
     config = TeleopConfig.from_design(load_design(driver.world.config.design))
-    plan = OperatorPlan(route=layout.route(), heading0=layout.start_yaw(), base=config.base)
+    plan = OperatorPlan(
+        route=layout.route(),
+        heading0=layout.start_yaw(),
+        base=config.base,
+        grasp_body=grasp_body,
+    )
     source, traits = source_spec.make(plan, calibration)
     q0 = driver.read().q
 
@@ -418,6 +467,7 @@ def _run_trial(
             rot @ state.astrobee_linear,
             state.ctb_pos,
             bool(state.opposing_contact),
+            handle_in_body(driver),
         )
 
     prov = provenance(project, driver.world.config.design)
@@ -432,6 +482,7 @@ def _run_trial(
         "route": layout.route().tolist(),
         "modules": _module_rects(layout),
         "contact_definition": {"min_interval_s": CONFIRM_MIN_S, "max_gap_s": CONFIRM_MAX_GAP_S},
+        **setup,
     }
     bar = None
     if progress:
@@ -478,6 +529,10 @@ def _run_trial(
                     if stats.pipeline_us
                     else None,
                     "warnings": driver.warnings(),
+                    "ctb_external_max": driver.ctb_external_max,
+                    "equality_constraints": int(driver.model.neq),
+                    "acquisition_state": getattr(source, "operator", None)
+                    and source.operator.acquisition,
                 }
             )
     finally:

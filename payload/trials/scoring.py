@@ -50,8 +50,9 @@ def finish_trial(
 
     Returns:
         The metrics dict written to ``metrics.json`` (fields of
-        :class:`~payload.trials.metrics.TrialMetrics` plus ``seed``, ``criterion`` and
-        ``recording``).
+        :class:`~payload.trials.metrics.TrialMetrics` plus ``seed``, ``criterion``,
+        ``recording``, ``literal``: the same figures under the paper-literal contact
+        definition, and the trial's set-up: ``ctb``, ``propulsion``, ``ctb_offset_m``...).
     """
     from payload.trials.figures import plot_ctb_body_frame, plot_route
     from payload.trials.metrics import compute_metrics
@@ -70,6 +71,12 @@ def finish_trial(
         rec, destination=destination, min_interval_s=min_interval_s, max_gap_s=max_gap_s
     )
     result = {"seed": rec.meta.get("seed"), **metrics.as_dict()}
+    # the paper-literal definition (any single opposing-contact sample) beside it
+    literal = (
+        compute_metrics(rec, destination=destination) if (min_interval_s or max_gap_s) else metrics
+    )
+    result["literal"] = {k: v for k, v in literal.as_dict().items() if k != "criterion"}
+    result.update(_trial_setup(rec.meta))
     rec_path = Path(recording_path)
     result["recording"] = (
         rec_path.name if rec_path.resolve().parent == out.resolve() else str(rec_path)
@@ -84,6 +91,22 @@ def finish_trial(
         plot_ctb_body_frame(rec, figures[0], metrics)
         plot_route(rec, figures[1], modules if modules is not None else rec.meta.get("modules"))
     return result
+
+
+def _trial_setup(meta: dict[str, Any]) -> dict[str, Any]:
+    """What the recording says about how the trial was set up (CTB model, propulsion,
+    acquisition offset), for ``metrics.json``; keys absent from older recordings are left
+    out."""
+    keys = (
+        "ctb",
+        "propulsion",
+        "ctb_offset_m",
+        "ctb_yaw_deg",
+        "ctb_external_max",
+        "equality_constraints",
+        "acquisition_state",
+    )
+    return {k: meta[k] for k in keys if k in meta}
 
 
 _OUTPUTS = {"metrics": "json", "fig_ctb_body_frame": "png", "fig_route": "png"}

@@ -1,0 +1,155 @@
+"""Fingertip pads that land like silicone: MuJoCo contact parameters from the pad design.
+
+The pad is a silicone skin of thickness ``h`` and Young's modulus ``E`` over a sphere of
+radius ``R`` (``[finger.pad]`` in the design file; the values are ASSUMPTIONs until
+measured). Pressed by ``delta`` against the flat handle face, the skin is compressed over
+a patch of radius ``a ~ sqrt(2 R delta)`` by about ``delta``, so a thin-layer estimate of
+the contact force is ``F = E (pi a^2) delta / h = 2 pi E R delta^2 / h``. Linearised at
+the design's pad load ``F0``: indentation ``delta0 = sqrt(F0 h / (2 pi E R))`` and
+stiffness ``k = dF/d delta = 2 F0 / delta0``.
+
+MuJoCo's contact is a mass-normalised spring-damper: ``solref = (timeconst, dampratio)``
+sets the reference stiffness ``1 / (dmax^2 timeconst^2 dampratio^2)`` and damping
+``2 / (dmax timeconst)``, and the impedance ``d(r)`` of ``solimp`` softens it: a contact
+of effective mass ``m`` pressed with force ``F`` settles at the penetration ``r`` with
+``F / r = m d / (1 - d) / (dmax^2 timeconst^2 dampratio^2)`` (a secant law, checked
+against MuJoCo in the tests), and ``dampratio = 1`` damps it critically. The effective
+mass of a pad contact along the closing direction is the finger's (``1 / (n J M^-1 J^T
+n)`` from the payload model at the pinch pre-shape, with its reflected servo inertia) in
+series with the CTB's. The pad's secant ``F0 / delta0`` at the design load (with
+``d = dmax``) gives ``timeconst = sqrt(m dmax / (1 - dmax) * delta0 / F0) / (dmax
+dampratio)``, ``dampratio`` the design's damping ratio (at least 1).
+
+``solimp`` follows the thin-layer law's progressive stiffening: the impedance rises from
+``dmin`` at first touch to ``dmax`` at the design-load indentation ``delta0`` (the
+transition width), with ``dmin`` chosen so that half-way in the secant ``F / delta`` is
+half the design load's, as ``F ~ delta^2`` gives (midpoint of MuJoCo's sigmoid:
+``d = (dmin + dmax) / 2`` there). MuJoCo needs ``timeconst >= 2 dt``; a stiffer pad is
+clamped there (and said so).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import mujoco
+import numpy as np
+
+from payload.design import FINGER_JOINTS, FINGERS, SIDE_OF, Design
+from payload.errors import PayloadError
+
+SOLIMP_DMAX = 0.95
+"""Impedance at the design-load indentation (MuJoCo's default dmax)."""
+
+
+def _odds(d: float) -> float:
+    return d / (1.0 - d)
+
+
+def _half_stiffness_dmin(dmax: float) -> float:
+    """``dmin`` with ``odds((dmin + dmax) / 2) = odds(dmax) / 2``."""
+    target = 0.5 * _odds(dmax)
+    mid = target / (1.0 + target)
+    return 2.0 * mid - dmax
+
+
+class PadContact(NamedTuple):
+    """The pad contact derived from the design.
+
+    Attributes:
+        stiffness: Linearised (tangent) contact stiffness ``k`` at the design load [N/m].
+        indentation: Indentation at the design load [m].
+        effective_mass: Effective mass of the contact along the closing direction [kg].
+        timeconst: MuJoCo solref time constant [s].
+        dampratio: MuJoCo solref damping ratio.
+        solref: ``(timeconst, dampratio)``.
+        solimp: ``(dmin, dmax, width, midpoint, power)``.
+        clamped: The time constant was raised to MuJoCo's least stable value.
+    """
+
+    stiffness: float
+    indentation: float
+    effective_mass: float
+    timeconst: float
+    dampratio: float
+    solref: tuple[float, float]
+    solimp: tuple[float, float, float, float, float]
+    clamped: bool
+
+
+def pad_stiffness(design: Design) -> tuple[float, float]:
+    """Thin-layer pad stiffness at the design load: ``(k [N/m], delta0 [m])``."""
+    p = design.finger.pad
+    delta0 = math.sqrt(p.load * p.thickness / (2.0 * math.pi * p.modulus * p.radius))
+    return 2.0 * p.load / delta0, delta0
+
+
+def finger_effective_mass(
+    payload_mjcf: str, design: Design, finger: tuple[float, float, float, float]
+) -> float:
+    """Smallest effective mass of a fingertip pad along its closing direction (+-y) [kg],
+    over the four fingers, at the finger posture ``finger`` (fixed base, home rail and
+    stage)."""
+    m = mujoco.MjModel.from_xml_path(str(payload_mjcf))
+    d = mujoco.MjData(m)
+    values = {"rail": design.home.rail, "stage": design.home.stage}
+    for f in FINGERS:
+        for j, v in zip(FINGER_JOINTS, finger):
+            values[f"{f}_{j}"] = v
+    for name, v in values.items():
+        d.qpos[m.jnt_qposadr[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, name)]] = v
+    mujoco.mj_forward(m, d)
+    masses = []
+    for f in FINGERS:
+        geom = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, f"{f}_distal_pad")
+        if geom < 0:
+            raise PayloadError(f"the payload model has no pad geom {f}_distal_pad")
+        jac = np.zeros((3, m.nv))
+        mujoco.mj_jac(m, d, jac, None, d.geom_xpos[geom], m.geom_bodyid[geom])
+        n = np.array([0.0, 1.0 if SIDE_OF[f] == 2 else -1.0, 0.0])  # toward the other side
+        row = n @ jac
+        minv_row = np.zeros(m.nv)
+        mujoco.mj_solveM(m, d, minv_row.reshape(1, -1), row.reshape(1, -1))
+        masses.append(1.0 / float(row @ minv_row))
+    return min(masses)
+
+
+def pad_contact(
+    design: Design,
+    payload_mjcf: str,
+    finger: tuple[float, float, float, float],
+    cargo_mass: float | None,
+    timestep: float,
+) -> PadContact:
+    """The pad's MuJoCo contact parameters (module docstring for the derivation).
+
+    Args:
+        design: The payload design (``finger.pad``).
+        payload_mjcf: The generated payload model.
+        finger: The finger posture the effective mass is taken at (the pinch pre-shape).
+        cargo_mass: Mass of the body the pad lands on [kg] (None: immovable).
+        timestep: Physics step [s].
+    """
+    k, delta0 = pad_stiffness(design)
+    m_finger = finger_effective_mass(payload_mjcf, design, finger)
+    inv = 1.0 / m_finger + (1.0 / cargo_mass if cargo_mass else 0.0)
+    m_eff = 1.0 / inv
+    zeta = float(design.finger.pad.damping_ratio)
+    dmax = SOLIMP_DMAX
+    secant = design.finger.pad.load / delta0  # = k / 2
+    tc = math.sqrt(m_eff * _odds(dmax) / secant) / (dmax * zeta)
+    least = 2.0 * timestep
+    clamped = tc < least
+    tc = max(tc, least)
+    solimp = (_half_stiffness_dmin(dmax), dmax, delta0, 0.5, 2.0)
+    return PadContact(k, delta0, m_eff, tc, zeta, (tc, zeta), solimp, clamped)
+
+
+__all__ = [
+    "SOLIMP_DMAX",
+    "PadContact",
+    "finger_effective_mass",
+    "pad_contact",
+    "pad_stiffness",
+]

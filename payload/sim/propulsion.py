@@ -1,0 +1,361 @@
+"""Astrobee's propulsion: two propulsion modules, 12 nozzles, and a force allocation.
+
+Geometry from NASA's propulsion code (``reference/facts.md``: gnc/pmc/src/shared.cc):
+nozzle positions, nozzle axes, widths and test-fitted discharge coefficients. The PMC
+simulator (gnc/pmc/src/pmc_sim.cc) maps a nozzle's thrust ``t >= 0`` to the body wrench
+``F = -a t`` and ``tau = r x (-a t)`` with ``a`` the nozzle axis and ``r`` its position:
+the thrust on the robot points against the nozzle axis (the exhaust leaves along it).
+
+Thrust bound per nozzle. The PMC aerodynamics give a nozzle's thrust proportional to
+``Cd^2 * A`` (discharge coefficient squared times open area), and the fully open area is
+proportional to the nozzle width, so the bound is ``s_g Cd^2 w`` with one scale per group
+of nozzles sharing an axis line (x, y or z). The three scales are solved so that the
+largest pure force along each body axis (zero torque, zero force across, the weaker of
+the two directions) equals the flight mode's published per-axis maximum at its impeller
+speed; that absorbs the impeller pressure, which this model does not simulate
+(ASSUMPTION: each nozzle's bound is independent of how far the others are open).
+
+Allocation (:meth:`Propulsion.allocate`): the reachable body wrenches form the zonotope
+``{B t : 0 <= t <= t_max}``, not a box. The allocation delivers the largest ``lambda w``,
+``lambda`` in [0, 1], that is reachable, with the smallest total thrust: inside the
+polytope the wrench is met exactly, outside it is scaled down along its own direction
+(saturation keeps the wrench's direction). For speed at 50 Hz the scale comes from the
+polytope's facets (precomputed half-spaces); the thrusts from the binding facet when
+saturated, else from the basic solutions of the 6-nozzle bases (precomputed inverses),
+with a linear programme (HiGHS) as the last resort.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+
+from payload.errors import PayloadError
+
+INCH = 0.0254
+"""[m]"""
+
+NOZZLE_POSITIONS_IN = np.array(
+    [
+        # PM1 (+y side)
+        (6.00, 4.01, -1.56),
+        (-6.00, 4.01, 1.56),
+        (2.83, 6.00, 2.83),
+        (-2.83, 6.00, -2.83),
+        (-2.66, 4.01, 6.00),
+        (2.66, 4.01, -6.00),
+        # PM2 (-y side)
+        (-6.00, -4.01, -1.56),
+        (6.00, -4.01, 1.56),
+        (-2.83, -6.00, 2.83),
+        (2.83, -6.00, -2.83),
+        (2.66, -4.01, 6.00),
+        (-2.66, -4.01, -6.00),
+    ]
+)
+"""Nozzle positions in the body frame [inch] (facts.md, shared.cc)."""
+
+NOZZLE_AXES = np.array(
+    [
+        (1, 0, 0),
+        (-1, 0, 0),
+        (0, 1, 0),
+        (0, 1, 0),
+        (0, 0, 1),
+        (0, 0, -1),
+        (-1, 0, 0),
+        (1, 0, 0),
+        (0, -1, 0),
+        (0, -1, 0),
+        (0, 0, 1),
+        (0, 0, -1),
+    ],
+    dtype=float,
+)
+"""Nozzle axes (``nozzle_orientations``); the thrust on the robot is ``-axis * t``."""
+
+NOZZLE_WIDTHS_IN = np.array([5.0, 5.0, 2.8, 2.8, 2.8, 2.8] * 2)
+"""Nozzle widths [inch], same order in both modules."""
+
+DISCHARGE_COEFFS = np.array(
+    [0.915, 0.756, 0.941, 0.792, 0.924, 0.930, 0.947, 0.764, 1.000, 0.905, 0.937, 0.894]
+)
+"""Test-fitted discharge coefficients, PM1 then PM2."""
+
+N_NOZZLES = 12
+
+
+class PropulsionError(PayloadError):
+    """Bad propulsion parameters or wrench requests."""
+
+
+@dataclass(frozen=True)
+class Allocation:
+    """One allocation.
+
+    Attributes:
+        thrust: Nozzle thrusts, shape (12,) [N], each in [0, its bound].
+        force: Body force the thrusts make, shape (3,) [N].
+        torque: Body torque about Astrobee's centre of mass, shape (3,) [N m].
+        scale: The fraction of the requested wrench delivered (1 inside the polytope).
+    """
+
+    thrust: np.ndarray
+    force: np.ndarray
+    torque: np.ndarray
+    scale: float
+
+
+class Propulsion:
+    """The 12-nozzle model and its force allocation.
+
+    Args:
+        axis_force: Published per-axis force maxima x, y, z of the flight mode [N] (at its
+            impeller speed); the thrust bounds are scaled to match them.
+        centre: Astrobee's centre of mass in the body frame [m] (the nozzle positions are
+            given about the body frame's origin).
+    """
+
+    def __init__(
+        self, axis_force: tuple[float, float, float], centre: np.ndarray | None = None
+    ) -> None:
+        target = np.asarray(axis_force, dtype=float)
+        if target.shape != (3,) or not np.all(np.isfinite(target)) or np.any(target <= 0):
+            raise PropulsionError(f"Propulsion: axis forces must be 3 positive numbers: {target}")
+        self.axis_force = target
+        c = np.zeros(3) if centre is None else np.asarray(centre, dtype=float)
+        self.positions = NOZZLE_POSITIONS_IN * INCH - c
+        self.directions = -NOZZLE_AXES  # thrust on the robot
+        self.matrix = np.vstack(
+            [self.directions.T, np.cross(self.positions, self.directions).T]
+        )  # (6, 12): wrench per newton of each nozzle
+        self.group = np.argmax(np.abs(NOZZLE_AXES), axis=1)  # 0 x, 1 y, 2 z
+        self.shape = DISCHARGE_COEFFS**2 * NOZZLE_WIDTHS_IN  # relative thrust bounds
+        self.thrust_max = self._fit_bounds()
+
+    # -- bounds ------------------------------------------------------------------------
+    def _fit_bounds(self) -> np.ndarray:
+        scale = np.ones(3)
+        for _ in range(50):
+            self.thrust_max = scale[self.group] * self.shape
+            got = self.pure_force_max()
+            ratio = self.axis_force / got
+            scale = scale * ratio
+            if np.all(np.abs(ratio - 1.0) < 1e-10):
+                break
+        else:  # pragma: no cover - the fit converges in a few iterations
+            raise PropulsionError(f"Propulsion: thrust bounds do not fit {self.axis_force}")
+        return scale[self.group] * self.shape
+
+    def max_along(self, direction: np.ndarray) -> float:
+        """Largest ``lambda`` with the wrench ``lambda * direction`` (6,) reachable, by
+        linear programming (independent of :attr:`facets`)."""
+        most = np.zeros(N_NOZZLES + 1)
+        most[-1] = -1.0
+        res = self._lp(most, np.asarray(direction, dtype=float), (0.0, None))
+        if res.status != 0:  # pragma: no cover - bounded thrusts bound lambda
+            raise PropulsionError(f"polytope extent along {direction}: {res.message}")
+        return float(res.x[-1])
+
+    def pure_force_max(self) -> np.ndarray:
+        """Per body axis, the largest pure force (zero torque), the weaker direction [N]."""
+        out = np.empty(3)
+        for i in range(3):
+            e = np.zeros(6)
+            e[i] = 1.0
+            out[i] = min(self.max_along(e), self.max_along(-e))
+        return out
+
+    def pure_torque_max(self) -> np.ndarray:
+        """Per body axis, the largest pure torque (zero force), the weaker direction [N m]."""
+        out = np.empty(3)
+        for i in range(3):
+            e = np.zeros(6)
+            e[3 + i] = 1.0
+            out[i] = min(self.max_along(e), self.max_along(-e))
+        return out
+
+    @cached_property
+    def thrust_total(self) -> float:
+        """Sum of the thrust bounds [N]."""
+        return float(self.thrust_max.sum())
+
+    # -- allocation --------------------------------------------------------------------
+    def _lp(self, cost: np.ndarray, wrench: np.ndarray, lam: tuple[float, float | None]):
+        from scipy.optimize import linprog
+
+        a_eq = np.hstack([self.matrix, -wrench.reshape(6, 1)])
+        bounds = [(0.0, float(u)) for u in self.thrust_max] + [lam]
+        return linprog(cost, A_eq=a_eq, b_eq=np.zeros(6), bounds=bounds, method="highs")
+
+    @cached_property
+    def _bases(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Every basic solution of the bounded LP, precomputed: each invertible 6-nozzle
+        basis with each choice of its 6 other nozzles at zero or at their bound.
+
+        Returns:
+            (basis indices (K, 6), inverses (K, 6, 6), basis thrust offsets (K, 64, 6),
+            thrust of the nozzles at their bound per pattern (K, 64)), with
+            ``t_basis = inv @ w - offset``.
+        """
+        idx, inv, off, fixed = [], [], [], []
+        patterns = np.array(list(itertools.product((0.0, 1.0), repeat=6)))  # (64, 6)
+        for combo in itertools.combinations(range(N_NOZZLES), 6):
+            sub = self.matrix[:, combo]
+            if abs(np.linalg.det(sub)) <= 1e-12:
+                continue
+            rest = [k for k in range(N_NOZZLES) if k not in combo]
+            at_bound = patterns * self.thrust_max[rest]  # (64, 6) thrust of the others
+            sub_inv = np.linalg.inv(sub)
+            idx.append(combo)
+            inv.append(sub_inv)
+            off.append((at_bound @ self.matrix[:, rest].T) @ sub_inv.T)
+            fixed.append(at_bound)
+        return np.array(idx), np.array(inv), np.array(off), np.array(fixed)
+
+    @cached_property
+    def facets(self) -> tuple[np.ndarray, np.ndarray]:
+        """The polytope as half-spaces ``normals @ w <= offsets``: (normals (K, 6), offsets
+        (K,)). Every facet of a zonotope is spanned by generators, so the normals of all
+        5-nozzle subsets (both signs) with offsets ``sum_i t_max_i max(0, n . b_i)`` (the
+        support function) describe it exactly."""
+        normals = []
+        for combo in itertools.combinations(range(N_NOZZLES), 5):
+            u, sv, _ = np.linalg.svd(self.matrix[:, combo])
+            if sv[-1] < 1e-9 * sv[0]:
+                continue
+            n = u[:, 5]
+            normals += [n, -n]
+        nrm = np.array(normals)
+        offsets = np.maximum(nrm @ self.matrix, 0.0) @ self.thrust_max
+        return nrm, offsets
+
+    def extent(self, wrench: np.ndarray) -> float:
+        """Largest ``lambda`` with ``lambda * wrench`` (6,) reachable (inf for zero)."""
+        return self._extent(np.asarray(wrench, dtype=float))[0]
+
+    def _extent(self, wrench: np.ndarray) -> tuple[float, int]:
+        normals, offsets = self.facets
+        along = normals @ wrench
+        pos = along > 1e-15
+        if not np.any(pos):
+            return math.inf, -1
+        ratio = np.full(len(offsets), np.inf)
+        ratio[pos] = offsets[pos] / along[pos]
+        k = int(np.argmin(ratio))
+        return float(ratio[k]), k
+
+    def _on_facet(self, wrench: np.ndarray, k: int) -> np.ndarray | None:
+        """Thrusts for a wrench on facet ``k``: nozzles pushing outward at their bound,
+        inward ones closed, the ones in the facet's plane solved for the rest."""
+        n = self.facets[0][k]
+        proj = n @ self.matrix
+        eps = 1e-9 * float(np.abs(proj).max())
+        out = np.where(proj > eps, self.thrust_max, 0.0)
+        free = np.flatnonzero(np.abs(proj) <= eps)
+        rest = wrench - self.matrix @ out
+        sol, *_ = np.linalg.lstsq(self.matrix[:, free], rest, rcond=None)
+        tol = 1e-7 * float(self.thrust_max.max())
+        if np.any(sol < -tol) or np.any(sol > self.thrust_max[free] + tol):
+            # more nozzles than the facet's dimension lie in its plane: bounded least squares
+            from scipy.optimize import lsq_linear
+
+            fit = lsq_linear(
+                self.matrix[:, free], rest, bounds=(0.0, self.thrust_max[free]), method="bvls"
+            )
+            sol = fit.x
+        out[free] = np.clip(sol, 0.0, self.thrust_max[free])
+        if not np.allclose(self.matrix @ out, wrench, rtol=1e-7, atol=1e-10):
+            return None
+        return out
+
+    def _least_thrust(self, wrench: np.ndarray) -> np.ndarray | None:
+        """The least-total-thrust solution of ``B t = w, 0 <= t <= t_max`` by enumerating
+        the basic solutions (the LP optimum is one of them); None if none is feasible.
+
+        First without the upper bounds (the other nozzles all closed): if that optimum
+        respects the bounds it is the bounded optimum too; else every basic solution."""
+        idx, inv, off, fixed = self._bases
+        ub = self._basis_bounds
+        tol = 1e-9 * float(self.thrust_max.max())
+        t0 = inv @ wrench  # (K, 6): the other nozzles closed
+        ok = np.all(t0 >= -tol, axis=1)
+        if np.any(ok):
+            k = int(np.argmin(np.where(ok, t0.sum(axis=1), np.inf)))
+            if np.all(t0[k] <= ub[k] + tol):
+                out = np.zeros(N_NOZZLES)
+                out[idx[k]] = t0[k]
+                return np.clip(out, 0.0, self.thrust_max)
+        tb = t0[:, None, :] - off  # (K, 64, 6)
+        ok = np.all((tb >= -tol) & (tb <= ub[:, None, :] + tol), axis=2)
+        if not np.any(ok):
+            return None
+        cost = np.where(ok, tb.sum(axis=2) + fixed.sum(axis=2), np.inf)
+        k, j = np.unravel_index(int(np.argmin(cost)), cost.shape)
+        out = np.zeros(N_NOZZLES)
+        rest = np.setdiff1d(np.arange(N_NOZZLES), idx[k])
+        out[rest] = fixed[k, j]
+        out[idx[k]] = tb[k, j]
+        return np.clip(out, 0.0, self.thrust_max)
+
+    @cached_property
+    def _basis_bounds(self) -> np.ndarray:
+        return self.thrust_max[self._bases[0]]
+
+    def _solve(self, wrench: np.ndarray) -> np.ndarray:
+        """Least total thrust for a reachable ``wrench`` (basis enumeration, else LP)."""
+        t = self._least_thrust(wrench)
+        if t is not None:
+            return t
+        res = self._lp(np.concatenate([np.ones(N_NOZZLES), [0.0]]), wrench, (1.0, 1.0))
+        if res.status != 0:
+            raise PropulsionError(f"force allocation failed: {res.message}")
+        return np.clip(res.x[:N_NOZZLES], 0.0, self.thrust_max)
+
+    def allocate(self, force: np.ndarray, torque: np.ndarray) -> Allocation:
+        """Nozzle thrusts for a body wrench about Astrobee's centre of mass.
+
+        Inside the reachable polytope the wrench is met exactly (with the least total
+        thrust); outside it the largest reachable multiple ``s w``, ``0 <= s < 1``, is
+        delivered, so the wrench keeps its direction.
+
+        Args:
+            force: Body force, shape (3,) [N].
+            torque: Body torque, shape (3,) [N m].
+        """
+        w = np.concatenate([np.asarray(force, float), np.asarray(torque, float)])
+        if w.shape != (6,) or not np.all(np.isfinite(w)):
+            raise PropulsionError("allocate: force and torque must be 3 finite numbers each")
+        if not np.any(w):
+            z = np.zeros(3)
+            return Allocation(np.zeros(N_NOZZLES), z, z.copy(), 1.0)
+        lam, k = self._extent(w)
+        thrust = None
+        if lam < 1.0:  # outside: the binding facet gives the thrusts directly
+            thrust = self._on_facet(lam * w, k)
+        scale = min(1.0, lam) if thrust is not None else min(1.0, lam * (1.0 - 1e-9))
+        if thrust is None:
+            thrust = self._solve(scale * w)
+        out = self.matrix @ thrust
+        return Allocation(thrust, out[:3], out[3:], scale)
+
+    def wrench(self, thrust: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Body force and torque of nozzle thrusts (12,) [N] (the PMC simulator's map)."""
+        out = self.matrix @ np.asarray(thrust, dtype=float)
+        return out[:3], out[3:]
+
+
+__all__ = [
+    "DISCHARGE_COEFFS",
+    "NOZZLE_AXES",
+    "NOZZLE_POSITIONS_IN",
+    "NOZZLE_WIDTHS_IN",
+    "N_NOZZLES",
+    "Allocation",
+    "Propulsion",
+    "PropulsionError",
+]

@@ -1,0 +1,101 @@
+"""The trial's starting scene for a real acquisition: a seeded CTB pose offset.
+
+The CTB starts displaced from where the calibrated pinch would close on its handle: an
+offset of a few centimetres in the vehicle's body frame and a yaw about the vehicle's
+vertical, drawn from the trial's seed (ranges below, ASSUMPTION: what a person leaving a
+bag floating in front of the robot would leave it within). A draw whose bag would start
+touching anything (fingers, vehicle, walls) is redrawn from the same generator, so the
+scene starts without contact and the offset is still a function of the seed alone.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import mujoco
+import numpy as np
+
+from payload.rotations import quat_to_matrix, yaw_quat
+
+OFFSET_RANGE_M = (0.04, 0.025, 0.02)
+"""Half-ranges of the uniform CTB offset along the body x, y, z [m]."""
+
+YAW_RANGE_DEG = 10.0
+"""Half-range of the uniform CTB yaw about the body z axis [deg]."""
+
+_SALT = 0x15C7B  # keeps this stream apart from the operator's own generator
+
+
+def sample_offset(seed: int, k: int = 0) -> tuple[np.ndarray, float]:
+    """The ``k``-th draw of (body-frame offset (3,) [m], yaw [deg]) for this seed."""
+    rng = np.random.default_rng([int(seed), _SALT, int(k)])
+    offset = rng.uniform(-1.0, 1.0, size=3) * np.asarray(OFFSET_RANGE_M)
+    yaw = float(rng.uniform(-YAW_RANGE_DEG, YAW_RANGE_DEG))
+    return offset, yaw
+
+
+def _ctb_touched(model: mujoco.MjModel, data: mujoco.MjData, ctb: int) -> bool:
+    for i in range(data.ncon):
+        g = data.contact.geom[i]
+        if data.contact.dist[i] <= 0.0 and ctb in (
+            model.geom_bodyid[g[0]],
+            model.geom_bodyid[g[1]],
+        ):
+            return True
+    return False
+
+
+def place_offset(
+    driver: Any, seed: int, offset: np.ndarray | None = None, yaw_deg: float | None = None
+) -> tuple[np.ndarray, float]:
+    """Displace the CTB (already placed under the pinch) by the seed's offset and yaw.
+
+    Args:
+        driver: The :class:`~payload.sim.driver.SimDriver` (its ``data`` is changed).
+        seed: The trial's seed.
+        offset: Use this body-frame offset [m] instead of drawing one (replays).
+        yaw_deg: Use this yaw [deg] instead of drawing one.
+
+    Returns:
+        The offset (3,) [m] and yaw [deg] applied.
+    """
+    w, m, d = driver.world, driver.model, driver.data
+    a, c = w.astrobee_qpos, w.ctb_qpos
+    rot = quat_to_matrix(d.qpos[a + 3 : a + 7])
+    pos0 = d.qpos[c : c + 3].copy()
+    quat0 = d.qpos[c + 3 : c + 7].copy()
+
+    def put(off: np.ndarray, yaw: float) -> None:
+        d.qpos[c : c + 3] = pos0 + rot @ off
+        q = np.zeros(4)
+        mujoco.mju_mulQuat(q, quat0, yaw_quat(math.radians(yaw)))
+        d.qpos[c + 3 : c + 7] = q
+        mujoco.mj_forward(m, d)
+
+    if offset is not None and yaw_deg is not None:
+        put(np.asarray(offset, dtype=float), float(yaw_deg))
+        return np.asarray(offset, dtype=float), float(yaw_deg)
+    for k in range(100):
+        off, yaw = sample_offset(seed, k)
+        put(off, yaw)
+        if not _ctb_touched(m, d, w.ctb):
+            return off, yaw
+    raise RuntimeError(f"seed {seed}: no CTB offset without initial contact in 100 draws")
+
+
+def handle_in_body(driver: Any) -> np.ndarray:
+    """The CTB handle's centre in Astrobee's body frame, shape (3,) [m]."""
+    w, d = driver.world, driver.data
+    a = w.astrobee_qpos
+    rot = quat_to_matrix(d.qpos[a + 3 : a + 7])
+    return rot.T @ (d.site("ctb_handle").xpos - d.qpos[a : a + 3])
+
+
+__all__ = [
+    "OFFSET_RANGE_M",
+    "YAW_RANGE_DEG",
+    "handle_in_body",
+    "place_offset",
+    "sample_offset",
+]

@@ -1,0 +1,166 @@
+"""Astrobee's 12-nozzle propulsion: geometry, polytope, allocation, and MuJoCo's side."""
+
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+import pytest
+from scipy.optimize import linprog
+
+from payload.sim import SimDriver, WorldConfig, build_world
+from payload.sim.propulsion import INCH, Propulsion, PropulsionError
+from payload.sim.vehicle import FLIGHT_MODES, MassProperties, VehicleController, VehicleError
+
+NOMINAL = FLIGHT_MODES["nominal"]
+
+
+@pytest.fixture(scope="module")
+def nozzles() -> Propulsion:
+    return Propulsion(NOMINAL.force)
+
+
+@pytest.fixture(scope="module")
+def bare_world():
+    return build_world(WorldConfig(ctb=None))
+
+
+def _lp_extent(p: Propulsion, w: np.ndarray) -> float:
+    """Largest lambda with lambda * w reachable, from a plain LP written here."""
+    n = 12
+    a_eq = np.hstack([p.matrix, -w.reshape(6, 1)])
+    cost = np.zeros(n + 1)
+    cost[-1] = -1.0
+    bounds = [(0.0, u) for u in p.thrust_max] + [(0.0, None)]
+    res = linprog(cost, A_eq=a_eq, b_eq=np.zeros(6), bounds=bounds, method="highs")
+    assert res.status == 0
+    return float(res.x[-1])
+
+
+def test_thrust_on_the_robot_points_against_the_nozzle_axis(nozzles):
+    # PM1 nozzle 1 sits at (6.00, 4.01, -1.56) in with axis +x: it pushes the robot to -x
+    t = np.zeros(12)
+    t[0] = 0.1
+    force, torque = nozzles.wrench(t)
+    np.testing.assert_allclose(force, [-0.1, 0.0, 0.0], atol=1e-15)
+    r = np.array([6.00, 4.01, -1.56]) * INCH
+    np.testing.assert_allclose(torque, np.cross(r, [-0.1, 0.0, 0.0]), atol=1e-15)
+
+
+def test_per_axis_force_maxima_are_the_published_ones(nozzles):
+    for i in range(3):
+        e = np.zeros(6)
+        e[i] = 1.0
+        got = min(_lp_extent(nozzles, e), _lp_extent(nozzles, -e))
+        assert got == pytest.approx(NOMINAL.force[i], rel=1e-8)
+        # the facet description of the polytope agrees with the LP
+        assert min(nozzles.extent(e), nozzles.extent(-e)) == pytest.approx(got, rel=1e-8)
+    # the other mode scales with its own figures
+    hard = Propulsion(FLIGHT_MODES["difficult"].force)
+    np.testing.assert_allclose(hard.pure_force_max(), FLIGHT_MODES["difficult"].force, rtol=1e-8)
+
+
+def test_force_and_torque_share_the_nozzles(nozzles):
+    """Peak force and peak torque cannot be had together: not a box."""
+    fx = NOMINAL.force[0]
+    tz = float(nozzles.pure_torque_max()[2])
+    w = np.array([fx, 0, 0, 0, 0, tz])
+    assert nozzles.extent(w) < 0.99
+
+
+def test_allocation_inside_the_polytope_is_exact_and_least_thrust(nozzles):
+    rng = np.random.default_rng(1)
+    scale = np.array([0.3, 0.15, 0.15, 0.03, 0.03, 0.03])
+    inside = 0
+    for w in rng.normal(size=(60, 6)) * scale:
+        lam = _lp_extent(nozzles, w)
+        w = w * min(1.0, 0.98 * lam)  # inside
+        a = nozzles.allocate(w[:3], w[3:])
+        assert a.scale == 1.0
+        assert np.all(a.thrust >= 0) and np.all(a.thrust <= nozzles.thrust_max)
+        np.testing.assert_allclose(np.concatenate([a.force, a.torque]), w, atol=1e-12)
+        np.testing.assert_allclose(nozzles.matrix @ a.thrust, w, atol=1e-12)
+        res = linprog(
+            np.ones(12),
+            A_eq=nozzles.matrix,
+            b_eq=w,
+            bounds=[(0.0, u) for u in nozzles.thrust_max],
+            method="highs",
+        )
+        assert a.thrust.sum() == pytest.approx(res.fun, rel=1e-7, abs=1e-12)
+        inside += 1
+    assert inside == 60
+
+
+def test_saturation_keeps_the_wrench_direction(nozzles):
+    rng = np.random.default_rng(2)
+    scale = np.array([0.3, 0.15, 0.15, 0.03, 0.03, 0.03])
+    for w in rng.normal(size=(40, 6)) * scale:
+        lam = _lp_extent(nozzles, w)
+        w = w * (1.5 * lam)  # 1.5 times the reachable extent along w
+        a = nozzles.allocate(w[:3], w[3:])
+        out = np.concatenate([a.force, a.torque])
+        assert a.scale == pytest.approx(1.0 / 1.5, rel=1e-6)
+        np.testing.assert_allclose(out, a.scale * w, rtol=1e-7, atol=1e-10)
+        assert np.all(a.thrust >= 0) and np.all(a.thrust <= nozzles.thrust_max + 1e-12)
+        # on the boundary: no larger multiple is reachable
+        assert _lp_extent(nozzles, out) == pytest.approx(1.0, rel=1e-6)
+
+
+def test_bad_inputs(nozzles):
+    with pytest.raises(PropulsionError):
+        Propulsion((0.68, -1.0, 0.3))
+    with pytest.raises(PropulsionError):
+        nozzles.allocate(np.array([np.nan, 0, 0]), np.zeros(3))
+    plant = MassProperties(10.0, np.zeros(3), np.eye(3) * 0.15)
+    with pytest.raises(VehicleError, match="propulsion"):
+        VehicleController(plant, propulsion="jets")
+
+
+def test_controller_plans_inside_the_polytope():
+    plant = MassProperties(26.0, np.array([0.0, 0.0, -0.31]), np.diag([1.2, 1.2, 0.4]))
+    ctl = VehicleController(plant, propulsion="nozzles")
+    box = VehicleController(plant, propulsion="box")
+    assert ctl.nozzles is not None
+    for i in range(3):
+        e = np.zeros(3)
+        e[i] = ctl.force_max[i]
+        for sign in (1.0, -1.0):
+            w = sign * np.concatenate([e, np.cross(plant.com, e)])
+            assert _lp_extent(ctl.nozzles, w) >= 1.0  # the planned force and its moment fit
+    assert not np.allclose(ctl.force_max, box.force_max)
+    np.testing.assert_allclose(ctl.accel_max, np.minimum(NOMINAL.accel, 0.8 * ctl.force_max / 26))
+
+
+def test_nozzle_forces_reproduce_the_wrench_in_mujoco(bare_world):
+    """Applied at the nozzle positions, read back from qfrc_applied."""
+    sim = SimDriver(bare_world, propulsion="nozzles")
+    w, d = bare_world, sim.data
+    mujoco.mj_forward(sim.model, d)
+    force, torque = np.array([0.12, -0.05, 0.03]), np.array([0.004, -0.006, 0.01])
+    alloc = sim.controller.nozzles.allocate(force, torque)
+    assert alloc.scale == 1.0
+    sim.apply_thrusts(alloc)
+    rot = d.xmat[w.astrobee].reshape(3, 3)
+    v = w.astrobee_dof
+    np.testing.assert_allclose(d.qfrc_applied[v : v + 3], rot @ force, atol=1e-12)
+    # a free joint's rotational dofs are in the body frame: the body torque about its CoM
+    np.testing.assert_allclose(d.qfrc_applied[v + 3 : v + 6], torque, atol=1e-12)
+    others = np.delete(d.qfrc_applied, np.arange(v, v + 6))
+    assert not np.any(others) and not np.any(d.xfrc_applied)
+
+
+def test_box_model_stays_available(bare_world):
+    from payload.schema import VehicleTwist
+
+    sim = SimDriver(bare_world, propulsion="box")
+    sim.command_twist(VehicleTwist(np.array([0.1, 0, 0]), np.zeros(3), 0.0))
+    sim.step(5)
+    a = bare_world.astrobee
+    assert np.any(sim.data.xfrc_applied[a]) and not np.any(sim.data.qfrc_applied)
+    assert sim.controller.allocation is None
+    nz = SimDriver(bare_world)
+    nz.command_twist(VehicleTwist(np.array([0.1, 0, 0]), np.zeros(3), 0.0))
+    state = nz.step(5)
+    assert not np.any(nz.data.xfrc_applied) and np.any(nz.data.qfrc_applied)
+    alloc = nz.controller.allocation
+    np.testing.assert_allclose(state.wrench.force, alloc.force)
