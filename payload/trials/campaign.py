@@ -157,7 +157,9 @@ def _call_trial(trial_fn: TrialFn, seed: int, out_dir: str) -> dict[str, Any]:
     }
 
 
-def _runner_trial(seed: int, out_dir: Path, operator: str = "synthetic") -> dict[str, Any]:
+def _runner_trial(
+    seed: int, out_dir: Path, operator: str = "synthetic", retarget_budget: str = "paper"
+) -> dict[str, Any]:
     try:
         from payload.trials.runner import run_trial
     except ModuleNotFoundError as exc:
@@ -166,13 +168,19 @@ def _runner_trial(seed: int, out_dir: Path, operator: str = "synthetic") -> dict
         raise CampaignError(
             "payload.trials.runner (the teleoperation trial loop, issue 6) is not installed yet"
         ) from None
-    return run_trial(seed=seed, operator=operator, replay=None, out_dir=Path(out_dir))
+    return run_trial(
+        seed=seed,
+        operator=operator,
+        replay=None,
+        out_dir=Path(out_dir),
+        retarget_budget=retarget_budget,
+    )
 
 
-def runner_trial_fn(operator: str = "synthetic") -> TrialFn:
+def runner_trial_fn(operator: str = "synthetic", retarget_budget: str = "paper") -> TrialFn:
     """The picklable campaign trial function that calls the teleoperation runner
     (``payload.trials.runner.run_trial``), imported lazily in whichever process runs it."""
-    return functools.partial(_runner_trial, operator=operator)
+    return functools.partial(_runner_trial, operator=operator, retarget_budget=retarget_budget)
 
 
 def default_workers(n_trials: int) -> int:
@@ -452,6 +460,14 @@ def summary_markdown(summary: dict[str, Any], title: str | None = None) -> str:
             f"{relaxed.get('max_gap_s') or 0:.2f} s bridged, runs shorter than "
             f"{relaxed.get('min_interval_s') or 0:.2f} s skipped.",
         ]
+    budget = summary.get("retarget_budget")
+    if budget:
+        shown = budget if isinstance(budget, str) else ", ".join(budget)
+        lines += [
+            "",
+            f"Retargeting budget: {shown} ('paper': at most 20 residual evaluations per pair "
+            "solve, the paper's controller; 'converged': each start run to convergence).",
+        ]
     run = summary.get("run")
     if run and run.get("wall_s"):
         if run.get("scheduler"):
@@ -504,6 +520,9 @@ def write_summary(
             ``wall_s`` of the whole campaign and ``trial_wall_s``, the sum over trials).
     """
     summary = summarize(results)
+    budgets = sorted({str(r["retarget_budget"]) for r in results if r.get("retarget_budget")})
+    if budgets:
+        summary["retarget_budget"] = budgets[0] if len(budgets) == 1 else budgets
     if run is not None:
         summary["run"] = run
     out = Path(out_dir)

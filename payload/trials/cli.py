@@ -51,6 +51,7 @@ def _cmd_trial(args: argparse.Namespace) -> int:
     out = Path(args.out) if args.out else Path("runs") / f"trial-{args.seed:04d}"
     run_trial = _run_trial_fn()
     extra = {"progress": True} if not args.json and sys.stderr.isatty() else {}
+    extra["retarget_budget"] = args.retarget_budget
     result = dict(run_trial(seed=args.seed, operator=operator, replay=replay, out_dir=out, **extra))
     result.setdefault("out_dir", str(out))
     if args.json:
@@ -89,7 +90,7 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
     workers = default_workers(args.n) if args.workers is None else args.workers
     t0 = time.perf_counter()
     results = run_campaign(
-        runner_trial_fn("synthetic"),
+        runner_trial_fn("synthetic", args.retarget_budget),
         seeds,
         out,
         workers=workers,
@@ -102,7 +103,7 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
         "wall_s": time.perf_counter() - t0,
         "trial_wall_s": float(sum(r.get("wall_s") or 0.0 for r in results)),
     }
-    title = f"Cargo-transport campaign ({args.n} trials)"
+    title = f"Cargo-transport campaign ({args.n} trials, retargeting budget {args.retarget_budget})"
     summary = write_summary(results, out, title=title, run=run)
     if args.json:
         emit_json({**summary, "out_dir": str(out)})
@@ -225,6 +226,12 @@ def _cmd_bench_recorder(args: argparse.Namespace) -> int:
     return 0
 
 
+_BUDGET_HELP = (
+    "retargeting budget per pair solve: 'paper' (default, at most 20 residual evaluations, "
+    "the paper's controller) or 'converged' (each start run to convergence)"
+)
+
+
 def register(
     sub: argparse._SubParsersAction, groups: dict[str, argparse._SubParsersAction]
 ) -> None:
@@ -240,6 +247,9 @@ def register(
         help="'synthetic' (default) or 'replay FILE' (a recorded hand stream)",
     )
     p.add_argument("--out", help="trial folder (default runs/trial-NNNN)")
+    p.add_argument(
+        "--retarget-budget", choices=("paper", "converged"), default="paper", help=_BUDGET_HELP
+    )
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=_cmd_trial)
 
@@ -256,6 +266,9 @@ def register(
     )
     r.add_argument("--scheduler", help="existing Dask scheduler, e.g. tcp://host:8786")
     r.add_argument("--out", required=True, help="campaign folder")
+    r.add_argument(
+        "--retarget-budget", choices=("paper", "converged"), default="paper", help=_BUDGET_HELP
+    )
     r.add_argument("--json", action="store_true", help="print one JSON object")
     r.set_defaults(func=_cmd_trials_run)
 

@@ -22,6 +22,7 @@ from payload.design.params import load_design
 from payload.errors import PayloadError
 from payload.retarget.calibration import PairRange, pair_range
 from payload.retarget.casadi_solver import PairRetargeter
+from payload.retarget.objective import RetargetConfig
 from payload.rotations import quat_to_matrix
 from payload.teleop.calibration import CalibrationProcedure, Captures
 from payload.teleop.loop import (
@@ -49,21 +50,29 @@ class TrialError(PayloadError):
     """A trial could not be run (bad operator choice, unreadable replay)."""
 
 
-_RETARGETERS: dict[str, PairRetargeter] = {}
+_RETARGETERS: dict[str, dict[str, PairRetargeter]] = {}
 _RANGES: dict[str, PairRange] = {}
 
 
-def retargeting() -> tuple[dict[str, PairRetargeter], dict[str, PairRange]]:
-    """Production retargeters and pair ranges for our hand (built once per process)."""
-    if not _RETARGETERS:
+def retargeting(
+    budget: str = "paper",
+) -> tuple[dict[str, PairRetargeter], dict[str, PairRange]]:
+    """Production retargeters (with this evaluation budget, see
+    :attr:`RetargetConfig.budget <payload.retarget.RetargetConfig.budget>`) and pair
+    ranges for our hand (built once per process and budget)."""
+    if budget not in _RETARGETERS:
         from threadpoolctl import threadpool_limits
 
+        config = RetargetConfig(budget=budget)
+        built: dict[str, PairRetargeter] = {}
         # single-threaded like the trials themselves, so every process finds the same ranges
         with threadpool_limits(limits=1):
             for pair in ("L", "R"):
-                _RETARGETERS[pair] = PairRetargeter(pair=pair)
-                _RANGES[pair] = pair_range(_RETARGETERS[pair].kinematics)
-    return _RETARGETERS, _RANGES
+                built[pair] = PairRetargeter(pair=pair, config=config)
+                if pair not in _RANGES:
+                    _RANGES[pair] = pair_range(built[pair].kinematics)
+        _RETARGETERS[budget] = built
+    return _RETARGETERS[budget], _RANGES
 
 
 def design_hash() -> str:
@@ -144,6 +153,7 @@ def run_trial(
     *,
     max_time: float = MAX_TRIAL_S,
     progress: bool = False,
+    retarget_budget: str = "paper",
 ) -> dict[str, Any]:
     """Run one trial and write its folder (reproducible: see :func:`_run_trial`).
 
@@ -155,7 +165,15 @@ def run_trial(
     from threadpoolctl import threadpool_limits
 
     with threadpool_limits(limits=1):
-        return _run_trial(seed, operator, replay, out_dir, max_time=max_time, progress=progress)
+        return _run_trial(
+            seed,
+            operator,
+            replay,
+            out_dir,
+            max_time=max_time,
+            progress=progress,
+            retarget_budget=retarget_budget,
+        )
 
 
 def _run_trial(
@@ -166,6 +184,7 @@ def _run_trial(
     *,
     max_time: float = MAX_TRIAL_S,
     progress: bool = False,
+    retarget_budget: str = "paper",
 ) -> dict[str, Any]:
     """Run one trial and write its folder.
 
@@ -176,6 +195,8 @@ def _run_trial(
         out_dir: Trial folder (default ``runs/trial-<seed>``).
         max_time: Cap on the session length [s].
         progress: Show a progress bar.
+        retarget_budget: Evaluation budget of the pair solves (``paper``: at most 20
+            residual evaluations each; ``converged``), recorded with the trial.
 
     Returns:
         The metrics (as written to ``metrics.json``).
@@ -191,7 +212,7 @@ def _run_trial(
     out.mkdir(parents=True, exist_ok=True)
     driver = SimDriver()
     layout = driver.world.layout
-    retargeters, ranges = retargeting()
+    retargeters, ranges = retargeting(retarget_budget)
     place_ctb_for_teleop(driver, retargeters, ranges)
     calibration = CalibrationProcedure()
     config = TeleopConfig.from_design(load_design(driver.world.config.design))
@@ -231,6 +252,7 @@ def _run_trial(
         "seed": int(seed),
         "operator": operator,
         "design_hash": design_hash(),
+        "retarget_budget": retarget_budget,
         "traits": traits,
         "route": layout.route().tolist(),
         "modules": _module_rects(layout),
@@ -314,5 +336,6 @@ def _run_trial(
         driver.close()
     result = finish_trial(out, rec_path)  # scored with the contact definition it recorded
     result["steps"] = stats.steps
+    result["retarget_budget"] = retarget_budget
     (out / "metrics.json").write_text(json.dumps(result, indent=2) + "\n")
     return result
