@@ -478,6 +478,17 @@ def _info(info: np.ndarray) -> SolveInfo:
     return SolveInfo(float(info[0]), int(info[1]), bool(info[2] > 0.5), int(info[3]))
 
 
+def _compiled_or_none(fn: ca.Function) -> _CompiledSolve | None:
+    """``fn`` compiled and loaded, or ``None`` without a working C compiler."""
+    compiler = _compiler()
+    if compiler is None:
+        return None
+    try:
+        return _CompiledSolve(fn, compiler)
+    except (RetargetError, OSError):
+        return None
+
+
 def _prune(directory: Path, name: str, keep: int = 8) -> None:
     """Delete all but the ``keep`` newest libraries of one solver name (older designs)."""
     libs = sorted(directory.glob(f"{name}_*.so"), key=lambda p: p.stat().st_mtime, reverse=True)
