@@ -40,7 +40,9 @@ import shutil
 import subprocess
 import tempfile
 import warnings
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import casadi as ca
 import numpy as np
@@ -106,13 +108,17 @@ def _cholesky_solve(a: ca.SX, b: ca.SX) -> ca.SX:
     return ca.vertcat(*x)
 
 
-def _step_functions(pk: PairKinematics, config: RetargetConfig) -> tuple[ca.Function, ca.Function]:
+def _step_functions(
+    pk: PairKinematics, config: RetargetConfig, wrap: Callable[[ca.Function], Any] | None = None
+) -> tuple[Any, ca.Function]:
     """``evaluate(q, par) -> (cost, g, H)`` and one guarded iteration ``iterate(x, par) -> x``.
 
     The state is ``x = [q (n), cost, g (n), H (n*n), mu, done, iterations, evaluations]``.
     One iteration proposes a step and evaluates the residuals and their Jacobian at the
     candidate once (one residual evaluation), then keeps the candidate if its cost is
     lower; ``done`` is set by the convergence tests or by a damping that ran away.
+    ``wrap`` replaces ``evaluate`` (e.g. by a counting callback); the iteration is then
+    built as an MX graph that calls it.
     """
     n = pk.n
     lb, ub = pk.lower, pk.upper
@@ -129,12 +135,16 @@ def _step_functions(pk: PairKinematics, config: RetargetConfig) -> tuple[ca.Func
     jw = ca.mtimes(ca.diag(ca.sqrt(w1)), jac)
     hess = ca.vec(ca.densify(ca.mtimes(jw.T, jw)))
     evaluate = ca.Function("evaluate", [q, par], [cost, grad, hess], {"cse": True})
+    sym = ca.SX.sym
+    if wrap is not None:
+        evaluate, sym = wrap(evaluate), ca.MX.sym
+        par = sym("p", npar)
 
     nn = n * n
     i_cost, i_g, i_h = n, n + 1, 2 * n + 1
     i_mu, i_it, i_ev = i_h + nn, i_h + nn + 2, i_h + nn + 3
     lbv, ubv, rng = ca.DM(lb), ca.DM(ub), ca.DM(ub - lb)
-    x = ca.SX.sym("x", _state_size(n))
+    x = sym("x", _state_size(n))
     qk, ck, gk, mu = x[:n], x[i_cost], x[i_g : i_g + n], x[i_mu]
     hk = ca.reshape(x[i_h : i_h + nn], n, n)
     active = ca.logic_or(
@@ -172,7 +182,7 @@ def _step_functions(pk: PairKinematics, config: RetargetConfig) -> tuple[ca.Func
     kept = ca.vertcat(qc, cc, gc, hc, mu_ok, conv)
     held = ca.vertcat(x[:i_mu], mu_up, mu_up >= _MU_MAX)
     out = ca.vertcat(ca.if_else(better, kept, held), x[i_it] + 1.0, x[i_ev] + 1.0)
-    iterate = ca.Function("iterate", [x, par], [out], {"cse": True})
+    iterate = ca.Function("iterate", [x, par], [out], {"cse": True} if wrap is None else {})
     return evaluate, iterate
 
 
@@ -193,9 +203,37 @@ def budget_plan(config: RetargetConfig) -> tuple[tuple[str, int], ...]:
     if config.budget == "paper":
         total = config.max_nfev
         first = min(total, config.warm_evaluations)
-        return (("prev", first), ("ref", total)) if first < total else (("prev", total),)
+        return (("prev", first), ("ref", total))
     per = 1 + config.max_iterations
-    return (("prev", per), ("ref", 2 * per))
+    return (("prev", per), ("seed", 2 * per), ("ref", 3 * per))
+
+
+SEEDS = 256
+"""Postures in the seed table of the ``converged`` budget (seeded, uniform in the box)."""
+
+
+def seed_table(pk: PairKinematics) -> tuple[np.ndarray, np.ndarray]:
+    """The seed postures, shape (k, n), and their features, shape (k, 13)."""
+    rng = np.random.default_rng(12345)
+    qs = np.vstack([pk.rest, pk.lower + rng.random((SEEDS - 1, pk.n)) * pk.range])
+    return qs, pk.features_batch(qs)
+
+
+def _table_seed(
+    pk: PairKinematics, config: RetargetConfig, targets: ca.MX, q_ref: ca.MX, q0: ca.MX
+) -> ca.MX:
+    """The table posture of lowest eq. 3 cost (from its tabulated features)."""
+    qs, fs = seed_table(pk)
+    k = qs.shape[0]
+    scales = ca.DM(np.repeat(config.feature_scales()[:, None], k, axis=1))
+    geo = scales * (ca.DM(fs.T) - ca.repmat(targets, 1, k))
+    inv = ca.DM(np.repeat((1.0 / pk.range)[:, None], k, axis=1))
+    post = config.w_p * inv * (ca.DM(qs.T) - ca.repmat(q_ref, 1, k))
+    temp = config.w_t * inv * (ca.DM(qs.T) - ca.repmat(q0, 1, k))
+    r2 = ca.vertcat(geo, post, temp) ** 2
+    cost = ca.sum1(ca.sqrt(1.0 + r2) - 1.0)  # (1, k)
+    pick = cost <= ca.mmin(cost)
+    return ca.mtimes(ca.DM(qs.T), pick.T) / ca.sum2(pick)
 
 
 def evaluation_cap(config: RetargetConfig) -> int:
@@ -204,7 +242,10 @@ def evaluation_cap(config: RetargetConfig) -> int:
 
 
 def build_solve_function(
-    pk: PairKinematics, config: RetargetConfig, name: str = "pair_solve"
+    pk: PairKinematics,
+    config: RetargetConfig,
+    name: str = "pair_solve",
+    wrap_evaluate: Callable[[ca.Function], Any] | None = None,
 ) -> ca.Function:
     """The pair solve as one CasADi function.
 
@@ -212,6 +253,9 @@ def build_solve_function(
         pk: The pair's kinematics (its Pinocchio model supplies the chains).
         config: Weights, scales, budget, iteration cap and tolerances.
         name: Function name (the C symbol when generated).
+        wrap_evaluate: Replaces the one function that evaluates the residuals (and
+            their Jacobian), e.g. by a counting ``casadi.Callback`` for tests; the result
+            then runs only in CasADi's virtual machine.
 
     Returns:
         ``(q_prev (n), targets (13), q_ref (n)) -> (q (n), info (4))`` with
@@ -221,7 +265,7 @@ def build_solve_function(
     n = pk.n
     npar = N_FEATURES + 2 * n
     lbv, ubv = ca.DM(pk.lower), ca.DM(pk.upper)
-    evaluate, iterate = _step_functions(pk, config)
+    evaluate, iterate = _step_functions(pk, config, wrap_evaluate)
     nx = _state_size(n)
     i_cost, i_done, i_it, i_ev = n, nx - 3, nx - 2, nx - 1
     xs, ps = ca.MX.sym("x", nx), ca.MX.sym("p", npar)
@@ -248,22 +292,28 @@ def build_solve_function(
     q0 = ca.fmin(ca.fmax(q_prev, lbv), ubv)
     p_mx = ca.vertcat(targets, q_ref, q0)
     seeds = {"prev": q0, "ref": ca.fmin(ca.fmax(q_ref, lbv), ubv)}
-    best, used, iters = None, 0.0, 0.0
+    if any(tag == "seed" for tag, _ in budget_plan(config)):
+        seeds["seed"] = _table_seed(pk, config, targets, q_ref, q0)
+    # The starts in turn; each keeps the lower-cost state of itself and those before, and
+    # runs only if the solve has an evaluation left under its cumulative cap.
+    xb, qs = ca.MX.sym("best", nx), ca.MX.sym("start", n)
+    skip = ca.Function("skip", [xb, qs, ps], [xb])
+    inf_state = ca.DM.zeros(nx)
+    inf_state[i_cost] = np.inf
+    best: ca.MX = ca.MX(inf_state)
     for tag, cap in budget_plan(config):
-        qs = seeds[tag]
-        c0, g0, h0 = evaluate(qs, p_mx)
+        c0, g0, h0 = evaluate(qs, ps)
         pg0 = qs - ca.fmin(ca.fmax(qs - g0, lbv), ubv)
-        x0 = ca.vertcat(
-            qs, c0, g0, h0, _MU0, ca.mmax(ca.fabs(pg0)) <= config.gtol, iters, used + 1.0
-        )
+        done0 = ca.mmax(ca.fabs(pg0)) <= config.gtol
+        x0 = ca.vertcat(qs, c0, g0, h0, _MU0, done0, xb[i_it], xb[i_ev] + 1.0)
         lv = chain(tag, cap)
-        state = x0 if lv is None else lv(ca.logic_or(x0[i_done], x0[i_ev] >= cap), x0, p_mx)
-        used, iters = state[i_ev], state[i_it]
-        if best is None:
-            best = state
-        else:
-            take = state[i_cost] < best[i_cost]
-            best = ca.if_else(take, state, best)
+        st = x0 if lv is None else lv(ca.logic_or(x0[i_done], x0[i_ev] >= cap), x0, ps)
+        kept = ca.if_else(st[i_cost] < xb[i_cost], st, xb)
+        kept = ca.vertcat(kept[:i_it], st[i_it], st[i_ev])
+        run = ca.Function(f"start_{tag}", [xb, qs, ps], [kept])
+        start = ca.Function.conditional(f"maybe_{tag}", [run], skip)
+        best = start(best[i_ev] >= cap, best, seeds[tag], p_mx)
+    used, iters = best[i_ev], best[i_it]
     info = ca.vertcat(best[i_cost], iters, best[i_done], used)
     return ca.Function(
         name,

@@ -59,7 +59,7 @@ class RetargetConfig:
         max_nfev: Residual evaluations per pair solve: the scipy reference's
             ``max_nfev`` and the production solver's whole ``paper`` budget (paper: 20).
         warm_evaluations: Of the ``paper`` budget, the evaluations the warm start may
-            use; the rest go to a second start from the posture reference.
+            use; what it leaves goes to a second start from the posture reference.
         max_iterations: Hard cap on iterations of each start of the production solver
             (``converged`` budget); each iteration evaluates the residuals and their
             Jacobian once.
@@ -78,7 +78,7 @@ class RetargetConfig:
     w_t: float = 0.03
     budget: str = "paper"
     max_nfev: int = 20
-    warm_evaluations: int = 12
+    warm_evaluations: int = 20
     max_iterations: int = 60
     gtol: float = 1e-8
     ftol: float = 1e-7
