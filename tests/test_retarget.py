@@ -510,12 +510,14 @@ def test_non_finite_input_raises_and_keeps_the_previous_command(prod, ref, solve
 
 @needs_cc
 def test_iteration_cap_is_hard_and_the_vm_agrees_with_the_compiled_solver(prod, ranges):
+    from payload.retarget.casadi_solver import budget_plan
+
     p = prod["L"]
     assert p.backend == "compiled", p.backend_reason
     vm = PairRetargeter(kinematics=p.kinematics, backend="vm")
-    capped = PairRetargeter(
-        kinematics=p.kinematics, config=RetargetConfig(max_iterations=2), backend="vm"
-    )
+    cfg = RetargetConfig(max_iterations=2, budget="converged")
+    capped = PairRetargeter(kinematics=p.kinematics, config=cfg, backend="vm")
+    starts = len(budget_plan(cfg))
     rng = np.random.default_rng(23)
     for q_true in random_q(p.kinematics, rng, 4):
         t = p.features(q_true)
@@ -524,10 +526,9 @@ def test_iteration_cap_is_hard_and_the_vm_agrees_with_the_compiled_solver(prod, 
         qc, ic = p.solve(t, q_prev, q_ref)
         qv, iv = vm.solve(t, q_prev, q_ref)
         np.testing.assert_allclose(qv, qc, atol=1e-9)
-        assert iv.iterations == ic.iterations
+        assert iv.iterations == ic.iterations and iv.evaluations == ic.evaluations
         _, i2 = capped.solve(t, q_prev, q_ref)
-        assert i2.iterations <= 2 and not i2.converged
-        assert i2.cost >= ic.cost
+        assert i2.iterations <= 2 * starts and i2.evaluations <= 3 * starts
 
 
 @needs_cc

@@ -205,7 +205,7 @@ def budget_plan(config: RetargetConfig) -> tuple[tuple[str, int], ...]:
         first = min(total, config.warm_evaluations)
         return (("prev", first), ("ref", total))
     per = 1 + config.max_iterations
-    return (("prev", per), ("seed", 2 * per), ("ref", 3 * per))
+    return (("prev", per), ("seed", 2 * per), ("seed2", 3 * per), ("ref", 4 * per))
 
 
 SEEDS = 256
@@ -219,10 +219,15 @@ def seed_table(pk: PairKinematics) -> tuple[np.ndarray, np.ndarray]:
     return qs, pk.features_batch(qs)
 
 
-def _table_seed(
-    pk: PairKinematics, config: RetargetConfig, targets: ca.MX, q_ref: ca.MX, q0: ca.MX
-) -> ca.MX:
-    """The table posture of lowest eq. 3 cost (from its tabulated features)."""
+def _table_seeds(
+    pk: PairKinematics,
+    config: RetargetConfig,
+    targets: ca.MX,
+    q_ref: ca.MX,
+    q0: ca.MX,
+    count: int,
+) -> list[ca.MX]:
+    """The ``count`` table postures of lowest eq. 3 cost (from their tabulated features)."""
     qs, fs = seed_table(pk)
     k = qs.shape[0]
     scales = ca.DM(np.repeat(config.feature_scales()[:, None], k, axis=1))
@@ -232,8 +237,12 @@ def _table_seed(
     temp = config.w_t * inv * (ca.DM(qs.T) - ca.repmat(q0, 1, k))
     r2 = ca.vertcat(geo, post, temp) ** 2
     cost = ca.sum1(ca.sqrt(1.0 + r2) - 1.0)  # (1, k)
-    pick = cost <= ca.mmin(cost)
-    return ca.mtimes(ca.DM(qs.T), pick.T) / ca.sum2(pick)
+    out = []
+    for _ in range(count):
+        pick = cost <= ca.mmin(cost)
+        out.append(ca.mtimes(ca.DM(qs.T), pick.T) / ca.sum2(pick))
+        cost = cost + 1e30 * pick  # the next pick is another posture
+    return out
 
 
 def evaluation_cap(config: RetargetConfig) -> int:
@@ -292,8 +301,9 @@ def build_solve_function(
     q0 = ca.fmin(ca.fmax(q_prev, lbv), ubv)
     p_mx = ca.vertcat(targets, q_ref, q0)
     seeds = {"prev": q0, "ref": ca.fmin(ca.fmax(q_ref, lbv), ubv)}
-    if any(tag == "seed" for tag, _ in budget_plan(config)):
-        seeds["seed"] = _table_seed(pk, config, targets, q_ref, q0)
+    tags = [tag for tag, _ in budget_plan(config) if tag.startswith("seed")]
+    for tag, q_seed in zip(tags, _table_seeds(pk, config, targets, q_ref, q0, len(tags))):
+        seeds[tag] = q_seed
     # The starts in turn; each keeps the lower-cost state of itself and those before, and
     # runs only if the solve has an evaluation left under its cumulative cap.
     xb, qs = ca.MX.sym("best", nx), ca.MX.sym("start", n)
