@@ -138,6 +138,12 @@ def prod(pks):
 
 
 @pytest.fixture(scope="module")
+def prod_converged(pks):
+    cfg = RetargetConfig(budget="converged")
+    return {p: PairRetargeter(kinematics=pks[p], config=cfg) for p in PAIRS}
+
+
+@pytest.fixture(scope="module")
 def ref(pks):
     return {p: ReferenceRetargeter(kinematics=pks[p]) for p in PAIRS}
 
@@ -411,8 +417,8 @@ def test_soft_l1_cost_is_the_papers_and_scipys(prod):
 
 # ------------------------------------------------------------------ solvers
 @pytest.mark.parametrize("pair", PAIRS)
-def test_production_recovers_reachable_spans_in_one_solve(prod, ranges, pair):
-    r, rg = prod[pair], ranges[pair]
+def test_production_recovers_reachable_spans_in_one_solve(prod_converged, ranges, pair):
+    r, rg = prod_converged[pair], ranges[pair]
     for q_true in random_q(r.kinematics, np.random.default_rng(20), 12):
         t = r.features(q_true)
         q_ref = rg.posture(t.span)
@@ -510,7 +516,7 @@ def test_non_finite_input_raises_and_keeps_the_previous_command(prod, ref, solve
 
 @needs_cc
 def test_iteration_cap_is_hard_and_the_vm_agrees_with_the_compiled_solver(prod, ranges):
-    from payload.retarget.casadi_solver import budget_plan
+    from payload.retarget.budget import budget_plan
 
     p = prod["L"]
     assert p.backend == "compiled", p.backend_reason
@@ -579,7 +585,7 @@ def test_without_a_working_compiler_auto_falls_back_to_the_vm(prod, monkeypatch,
 
 
 def test_the_second_hand_retargets_end_to_end(gripper, gripper_pk):
-    r = PairRetargeter(gripper, kinematics=gripper_pk)
+    r = PairRetargeter(gripper, kinematics=gripper_pk, config=RetargetConfig(budget="converged"))
     rg = pair_range(gripper_pk)
     assert rg.span_min >= 2 * 0.005
     for q_true in random_q(gripper_pk, np.random.default_rng(24), 6):

@@ -28,7 +28,8 @@ from payload.retarget import (
     pair_range,
 )
 from payload.retarget.bench import human_pinch_and_open, target_stream
-from payload.retarget.casadi_solver import build_solve_function, evaluation_cap
+from payload.retarget.budget import evaluation_cap
+from payload.retarget.casadi_solver import build_solve_function
 from payload.retarget.optimum import CompiledObjective, best_known_cost
 
 HANDS_DIR = Path(__file__).resolve().parents[1] / "payload" / "retarget" / "hands"

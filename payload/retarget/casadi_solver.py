@@ -47,6 +47,7 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
+from payload.retarget.budget import budget_plan, table_seeds
 from payload.retarget.errors import RetargetError
 from payload.retarget.features import N_FEATURES, PairFeatures, PairKinematics
 from payload.retarget.hand import HandDescription
@@ -190,66 +191,6 @@ def _state_size(n: int) -> int:
     return 2 * n + n * n + 5
 
 
-def budget_plan(config: RetargetConfig) -> tuple[tuple[str, int], ...]:
-    """The starts of one pair solve and the evaluation count each may run up to.
-
-    Returns ``(start, cumulative cap)`` pairs: ``prev`` (the warm start, the previous
-    command), ``ref`` (the posture reference). Each start costs one evaluation at its
-    start point and one per iteration; a start stops at its convergence tests, its
-    iteration cap, or when the solve's evaluations reach its cumulative cap. The last
-    cap is the solve's whole budget: ``config.max_nfev`` for ``paper``,
-    ``2 (1 + max_iterations)`` for ``converged``.
-    """
-    if config.budget == "paper":
-        total = config.max_nfev
-        first = min(total, config.warm_evaluations)
-        return (("prev", first), ("ref", total))
-    per = 1 + config.max_iterations
-    return (("prev", per), ("seed", 2 * per), ("seed2", 3 * per), ("ref", 4 * per))
-
-
-SEEDS = 256
-"""Postures in the seed table of the ``converged`` budget (seeded, uniform in the box)."""
-
-
-def seed_table(pk: PairKinematics) -> tuple[np.ndarray, np.ndarray]:
-    """The seed postures, shape (k, n), and their features, shape (k, 13)."""
-    rng = np.random.default_rng(12345)
-    qs = np.vstack([pk.rest, pk.lower + rng.random((SEEDS - 1, pk.n)) * pk.range])
-    return qs, pk.features_batch(qs)
-
-
-def _table_seeds(
-    pk: PairKinematics,
-    config: RetargetConfig,
-    targets: ca.MX,
-    q_ref: ca.MX,
-    q0: ca.MX,
-    count: int,
-) -> list[ca.MX]:
-    """The ``count`` table postures of lowest eq. 3 cost (from their tabulated features)."""
-    qs, fs = seed_table(pk)
-    k = qs.shape[0]
-    scales = ca.DM(np.repeat(config.feature_scales()[:, None], k, axis=1))
-    geo = scales * (ca.DM(fs.T) - ca.repmat(targets, 1, k))
-    inv = ca.DM(np.repeat((1.0 / pk.range)[:, None], k, axis=1))
-    post = config.w_p * inv * (ca.DM(qs.T) - ca.repmat(q_ref, 1, k))
-    temp = config.w_t * inv * (ca.DM(qs.T) - ca.repmat(q0, 1, k))
-    r2 = ca.vertcat(geo, post, temp) ** 2
-    cost = ca.sum1(ca.sqrt(1.0 + r2) - 1.0)  # (1, k)
-    out = []
-    for _ in range(count):
-        pick = cost <= ca.mmin(cost)
-        out.append(ca.mtimes(ca.DM(qs.T), pick.T) / ca.sum2(pick))
-        cost = cost + 1e30 * pick  # the next pick is another posture
-    return out
-
-
-def evaluation_cap(config: RetargetConfig) -> int:
-    """Most residual evaluations one pair solve may use under ``config.budget``."""
-    return budget_plan(config)[-1][1]
-
-
 def build_solve_function(
     pk: PairKinematics,
     config: RetargetConfig,
@@ -302,7 +243,7 @@ def build_solve_function(
     p_mx = ca.vertcat(targets, q_ref, q0)
     seeds = {"prev": q0, "ref": ca.fmin(ca.fmax(q_ref, lbv), ubv)}
     tags = [tag for tag, _ in budget_plan(config) if tag.startswith("seed")]
-    for tag, q_seed in zip(tags, _table_seeds(pk, config, targets, q_ref, q0, len(tags))):
+    for tag, q_seed in zip(tags, table_seeds(pk, config, targets, q_ref, q0, len(tags))):
         seeds[tag] = q_seed
     # The starts in turn; each keeps the lower-cost state of itself and those before, and
     # runs only if the solve has an evaluation left under its cumulative cap.
