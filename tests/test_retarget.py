@@ -680,6 +680,15 @@ def test_bench_cli_prints_one_json_object_with_the_issues_fields(capsys):
     assert 0.0 <= r["cost_not_worse_fraction"] <= 1.0
     assert r["span_error_mm_median"] >= 0.0
     assert r["bound_violations"] == 0
+    keys = {"median_us", "p99_us", "evaluations_median", "evaluations_max", "optimum_fraction"}
+    for budget in ("paper", "converged"):
+        b = r["budgets"][budget]
+        assert set(b) >= keys | {"collision_free_fraction"}
+        assert 0.0 <= b["optimum_fraction"] <= 1.0
+        assert 0.0 <= b["collision_free_fraction"] <= 1.0  # our URDF has collision meshes
+    assert 1 <= r["budgets"]["paper"]["evaluations_max"] <= 20
+    assert 0.0 <= r["reference"]["optimum_fraction"] <= 1.0
+    assert r["production"]["budget"] == "paper"
 
 
 def test_bench_cli_with_a_failing_compiler_prints_one_line(capsys, monkeypatch, tmp_path):
