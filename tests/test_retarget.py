@@ -138,6 +138,12 @@ def prod(pks):
 
 
 @pytest.fixture(scope="module")
+def prod_converged(pks):
+    cfg = RetargetConfig(budget="converged")
+    return {p: PairRetargeter(kinematics=pks[p], config=cfg) for p in PAIRS}
+
+
+@pytest.fixture(scope="module")
 def ref(pks):
     return {p: ReferenceRetargeter(kinematics=pks[p]) for p in PAIRS}
 
@@ -411,8 +417,8 @@ def test_soft_l1_cost_is_the_papers_and_scipys(prod):
 
 # ------------------------------------------------------------------ solvers
 @pytest.mark.parametrize("pair", PAIRS)
-def test_production_recovers_reachable_spans_in_one_solve(prod, ranges, pair):
-    r, rg = prod[pair], ranges[pair]
+def test_production_recovers_reachable_spans_in_one_solve(prod_converged, ranges, pair):
+    r, rg = prod_converged[pair], ranges[pair]
     for q_true in random_q(r.kinematics, np.random.default_rng(20), 12):
         t = r.features(q_true)
         q_ref = rg.posture(t.span)
@@ -510,12 +516,14 @@ def test_non_finite_input_raises_and_keeps_the_previous_command(prod, ref, solve
 
 @needs_cc
 def test_iteration_cap_is_hard_and_the_vm_agrees_with_the_compiled_solver(prod, ranges):
+    from payload.retarget.budget import budget_plan
+
     p = prod["L"]
     assert p.backend == "compiled", p.backend_reason
     vm = PairRetargeter(kinematics=p.kinematics, backend="vm")
-    capped = PairRetargeter(
-        kinematics=p.kinematics, config=RetargetConfig(max_iterations=2), backend="vm"
-    )
+    cfg = RetargetConfig(max_iterations=2, budget="converged")
+    capped = PairRetargeter(kinematics=p.kinematics, config=cfg, backend="vm")
+    starts = len(budget_plan(cfg))
     rng = np.random.default_rng(23)
     for q_true in random_q(p.kinematics, rng, 4):
         t = p.features(q_true)
@@ -524,10 +532,9 @@ def test_iteration_cap_is_hard_and_the_vm_agrees_with_the_compiled_solver(prod, 
         qc, ic = p.solve(t, q_prev, q_ref)
         qv, iv = vm.solve(t, q_prev, q_ref)
         np.testing.assert_allclose(qv, qc, atol=1e-9)
-        assert iv.iterations == ic.iterations
+        assert iv.iterations == ic.iterations and iv.evaluations == ic.evaluations
         _, i2 = capped.solve(t, q_prev, q_ref)
-        assert i2.iterations <= 2 and not i2.converged
-        assert i2.cost >= ic.cost
+        assert i2.iterations <= 2 * starts and i2.evaluations <= 3 * starts
 
 
 @needs_cc
@@ -578,7 +585,7 @@ def test_without_a_working_compiler_auto_falls_back_to_the_vm(prod, monkeypatch,
 
 
 def test_the_second_hand_retargets_end_to_end(gripper, gripper_pk):
-    r = PairRetargeter(gripper, kinematics=gripper_pk)
+    r = PairRetargeter(gripper, kinematics=gripper_pk, config=RetargetConfig(budget="converged"))
     rg = pair_range(gripper_pk)
     assert rg.span_min >= 2 * 0.005
     for q_true in random_q(gripper_pk, np.random.default_rng(24), 6):
@@ -673,6 +680,15 @@ def test_bench_cli_prints_one_json_object_with_the_issues_fields(capsys):
     assert 0.0 <= r["cost_not_worse_fraction"] <= 1.0
     assert r["span_error_mm_median"] >= 0.0
     assert r["bound_violations"] == 0
+    keys = {"median_us", "p99_us", "evaluations_median", "evaluations_max", "optimum_fraction"}
+    for budget in ("paper", "converged"):
+        b = r["budgets"][budget]
+        assert set(b) >= keys | {"collision_free_fraction"}
+        assert 0.0 <= b["optimum_fraction"] <= 1.0
+        assert 0.0 <= b["collision_free_fraction"] <= 1.0  # our URDF has collision meshes
+    assert 1 <= r["budgets"]["paper"]["evaluations_max"] <= 20
+    assert 0.0 <= r["reference"]["optimum_fraction"] <= 1.0
+    assert r["production"]["budget"] == "paper"
 
 
 def test_bench_cli_with_a_failing_compiler_prints_one_line(capsys, monkeypatch, tmp_path):

@@ -746,16 +746,24 @@ def test_summarize_folder_rebuilds_and_rescores(tmp_path: Path) -> None:
 def _fake_runner(monkeypatch: pytest.MonkeyPatch) -> list[dict[str, Any]]:
     """Stand in for the teleoperation runner (issue 6) with the fixture trial."""
     calls: list[dict[str, Any]] = []
+    budgets: list[str] = []
 
     def run_trial(
-        seed: int, operator: str, replay: Path | None, out_dir: Path, **setup: str
+        seed: int,
+        operator: str,
+        replay: Path | None,
+        out_dir: Path,
+        retarget_budget: str = "paper",
+        **setup: Any,
     ) -> dict:
         calls.append({"seed": seed, "operator": operator, "replay": replay, **setup})
-        return fixture_synthetic_trial(seed, out_dir)
+        budgets.append(retarget_budget)
+        return {**fixture_synthetic_trial(seed, out_dir), "retarget_budget": retarget_budget}
 
     module = types.ModuleType("payload.trials.runner")
     module.run_trial = run_trial  # type: ignore[attr-defined]
     monkeypatch.setitem(sys.modules, "payload.trials.runner", module)
+    module.budgets = budgets  # type: ignore[attr-defined]
     return calls
 
 
@@ -970,3 +978,25 @@ def test_finish_trial_scores_both_contact_definitions(tmp_path: Path) -> None:
     assert result["literal"] == json.loads(json.dumps(literal))
     assert result["min_interval_s"] == 0.5 and result["literal"]["min_interval_s"] == 0.0
     assert json.loads((tmp_path / "metrics.json").read_text())["literal"] == result["literal"]
+
+
+def test_cli_retarget_budget_reaches_the_runner_and_the_summary(
+    tmp_path: Path, monkeypatch, capsys
+) -> None:
+    from payload.cli import main
+
+    _fake_runner(monkeypatch)
+    budgets = sys.modules["payload.trials.runner"].budgets  # type: ignore[attr-defined]
+    assert main(["trial", "--out", str(tmp_path / "one"), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["retarget_budget"] == "paper"  # the default
+    camp = tmp_path / "camp"
+    args = ["trials", "run", "--n", "2", "--workers", "0", "--out", str(camp)]
+    assert main([*args, "--retarget-budget", "converged", "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert budgets == ["paper", "converged", "converged"]
+    assert summary["retarget_budget"] == "converged"
+    md = (camp / "summary.md").read_text()
+    assert "retargeting budget converged" in md and "Retargeting budget: converged" in md
+    with pytest.raises(SystemExit) as exc:
+        main(["trial", "--retarget-budget", "fast"])
+    assert exc.value.code == 2

@@ -40,11 +40,14 @@ import shutil
 import subprocess
 import tempfile
 import warnings
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import casadi as ca
 import numpy as np
 
+from payload.retarget.budget import budget_plan, table_seeds
 from payload.retarget.errors import RetargetError
 from payload.retarget.features import N_FEATURES, PairFeatures, PairKinematics
 from payload.retarget.hand import HandDescription
@@ -106,26 +109,21 @@ def _cholesky_solve(a: ca.SX, b: ca.SX) -> ca.SX:
     return ca.vertcat(*x)
 
 
-def build_solve_function(
-    pk: PairKinematics, config: RetargetConfig, name: str = "pair_solve"
-) -> ca.Function:
-    """The pair solve as one CasADi function.
+def _step_functions(
+    pk: PairKinematics, config: RetargetConfig, wrap: Callable[[ca.Function], Any] | None = None
+) -> tuple[Any, ca.Function]:
+    """``evaluate(q, par) -> (cost, g, H)`` and one guarded iteration ``iterate(x, par) -> x``.
 
-    Args:
-        pk: The pair's kinematics (its Pinocchio model supplies the chains).
-        config: Weights, scales, iteration cap and tolerances.
-        name: Function name (the C symbol when generated).
-
-    Returns:
-        ``(q_prev (n), targets (13), q_ref (n)) -> (q (n), info (3))`` with
-        ``info = [cost, iterations, converged]``; ``q_prev`` is projected onto the box
-        and is both the warm start and the temporal term's reference.
+    The state is ``x = [q (n), cost, g (n), H (n*n), mu, done, iterations, evaluations]``.
+    One iteration proposes a step and evaluates the residuals and their Jacobian at the
+    candidate once (one residual evaluation), then keeps the candidate if its cost is
+    lower; ``done`` is set by the convergence tests or by a damping that ran away.
+    ``wrap`` replaces ``evaluate`` (e.g. by a counting callback); the iteration is then
+    built as an MX graph that calls it.
     """
     n = pk.n
     lb, ub = pk.lower, pk.upper
     npar = N_FEATURES + 2 * n
-
-    # Cost, gradient and IRLS curvature of the soft-L1 objective.
     q = ca.SX.sym("q", n)
     par = ca.SX.sym("p", npar)
     t, qr, qp = par[:N_FEATURES], par[N_FEATURES : N_FEATURES + n], par[N_FEATURES + n :]
@@ -138,17 +136,16 @@ def build_solve_function(
     jw = ca.mtimes(ca.diag(ca.sqrt(w1)), jac)
     hess = ca.vec(ca.densify(ca.mtimes(jw.T, jw)))
     evaluate = ca.Function("evaluate", [q, par], [cost, grad, hess], {"cse": True})
-    cost_only = ca.Function("cost", [q, par], [cost], {"cse": True})
+    sym = ca.SX.sym
+    if wrap is not None:
+        evaluate, sym = wrap(evaluate), ca.MX.sym
+        par = sym("p", npar)
 
-    # The state of the iteration: x = [q (n), cost, g (n), H (n*n), mu, done, iterations].
     nn = n * n
-    nx = 2 * n + nn + 4
     i_cost, i_g, i_h = n, n + 1, 2 * n + 1
-    i_mu, i_done, i_it = i_h + nn, i_h + nn + 1, i_h + nn + 2
+    i_mu, i_it, i_ev = i_h + nn, i_h + nn + 2, i_h + nn + 3
     lbv, ubv, rng = ca.DM(lb), ca.DM(ub), ca.DM(ub - lb)
-
-    # Propose: the damped step, kept inside the box.
-    x = ca.SX.sym("x", nx)
+    x = sym("x", _state_size(n))
     qk, ck, gk, mu = x[:n], x[i_cost], x[i_g : i_g + n], x[i_mu]
     hk = ca.reshape(x[i_h : i_h + nn], n, n)
     active = ca.logic_or(
@@ -171,67 +168,108 @@ def build_solve_function(
     delta = d_fixed + free2 * _cholesky_solve(
         hk * ca.mtimes(free2, free2.T) + ca.diag(fixed + free2 * damping), rhs
     )
-    # Step cap: no joint moves more than _MAX_STEP of its range per iteration, so one
-    # long step cannot throw the joints onto a far corner of the box.
+    # Step cap: no joint moves more than _MAX_STEP of its range per iteration.
     delta = delta / ca.fmax(1.0, ca.mmax(ca.fabs(delta) / rng) / _MAX_STEP)
     qc = ca.fmin(ca.fmax(qk + delta, lbv), ubv)
     step = qc - qk
     predicted = -(ca.dot(gk, step) + 0.5 * ca.dot(step, ca.mtimes(hk, step)))
-    prop = ca.vertcat(qc, predicted, mu, cost_only(qc, par))  # [q_c (n), pred, mu, cost_c]
-    propose = ca.Function("propose", [x, par], [prop], {"cse": True})
-
-    # Accept: evaluate at the candidate, update the damping by the gain ratio (Nielsen),
-    # test convergence (projected gradient, relative decrease).
-    pr = ca.SX.sym("prop", n + 3)
-    qc, predicted, mu_used, cc = pr[:n], pr[n], pr[n + 1], pr[n + 2]
-    _, gc, hc = evaluate(qc, par)
+    cc, gc, hc = evaluate(qc, par)  # the iteration's one residual evaluation
+    better = cc < ck  # False for a NaN cost
     gain = (ck - cc) / ca.fmax(predicted, 1e-300)
-    mu_next = ca.fmax(mu_used * ca.fmax(1.0 / 3.0, 1.0 - (2.0 * gain - 1.0) ** 3), 1e-12)
+    mu_ok = ca.fmax(mu * ca.fmax(1.0 / 3.0, 1.0 - (2.0 * gain - 1.0) ** 3), 1e-12)
     pg = qc - ca.fmin(ca.fmax(qc - gc, lbv), ubv)
-    done = ca.logic_or(ca.mmax(ca.fabs(pg)) <= config.gtol, ck - cc <= config.ftol * ck)
-    accepted = ca.Function(
-        "accepted",
-        [x, pr, par],
-        [ca.vertcat(qc, cc, gc, hc, mu_next, done, x[i_it] + 1.0)],
-        {"cse": True},
-    )
-    # Reject (the cost did not decrease, or is NaN): keep the point, damp harder.
+    conv = ca.logic_or(ca.mmax(ca.fabs(pg)) <= config.gtol, ck - cc <= config.ftol * ck)
     mu_up = 4.0 * mu
-    rejected = ca.Function(
-        "rejected", [x, pr, par], [ca.vertcat(x[:i_mu], mu_up, mu_up >= _MU_MAX, x[i_it] + 1.0)]
-    )
-    settle = ca.Function.conditional("settle", [accepted], rejected)
+    kept = ca.vertcat(qc, cc, gc, hc, mu_ok, conv)
+    held = ca.vertcat(x[:i_mu], mu_up, mu_up >= _MU_MAX)
+    out = ca.vertcat(ca.if_else(better, kept, held), x[i_it] + 1.0, x[i_ev] + 1.0)
+    iterate = ca.Function("iterate", [x, par], [out], {"cse": True} if wrap is None else {})
+    return evaluate, iterate
+
+
+def _state_size(n: int) -> int:
+    return 2 * n + n * n + 5
+
+
+def build_solve_function(
+    pk: PairKinematics,
+    config: RetargetConfig,
+    name: str = "pair_solve",
+    wrap_evaluate: Callable[[ca.Function], Any] | None = None,
+) -> ca.Function:
+    """The pair solve as one CasADi function.
+
+    Args:
+        pk: The pair's kinematics (its Pinocchio model supplies the chains).
+        config: Weights, scales, budget, iteration cap and tolerances.
+        name: Function name (the C symbol when generated).
+        wrap_evaluate: Replaces the one function that evaluates the residuals (and
+            their Jacobian), e.g. by a counting ``casadi.Callback`` for tests; the result
+            then runs only in CasADi's virtual machine.
+
+    Returns:
+        ``(q_prev (n), targets (13), q_ref (n)) -> (q (n), info (4))`` with
+        ``info = [cost, iterations, converged, evaluations]``; ``q_prev`` is projected
+        onto the box and is both the first start and the temporal term's reference.
+    """
+    n = pk.n
+    npar = N_FEATURES + 2 * n
+    lbv, ubv = ca.DM(pk.lower), ca.DM(pk.upper)
+    evaluate, iterate = _step_functions(pk, config, wrap_evaluate)
+    nx = _state_size(n)
+    i_cost, i_done, i_it, i_ev = n, nx - 3, nx - 2, nx - 1
     xs, ps = ca.MX.sym("x", nx), ca.MX.sym("p", npar)
-    proposal = propose(xs, ps)
-    lower_cost = proposal[n + 2] < xs[i_cost]  # False for a NaN cost
-    iterate = ca.Function("iterate", [xs, ps], [settle(ca.logic_not(lower_cost), xs, proposal, ps)])
     hold = ca.Function("hold", [xs, ps], [xs])
 
-    # The iteration cap as a chain of nested conditionals: level k iterates once and
-    # hands over to level k + 1 unless converged, so a converged solve returns at once.
-    level = None
-    for k in reversed(range(config.max_iterations)):
-        nxt = iterate(xs, ps)
-        out = nxt if level is None else level(nxt[i_done], nxt, ps)
-        level = ca.Function.conditional(
-            f"level_{k}", [ca.Function(f"iterate_{k}", [xs, ps], [out])], hold
-        )
+    def chain(tag: str, cap: int) -> ca.Function:
+        # The cap as nested conditionals: level k iterates once and hands over to level
+        # k + 1 unless done, so a converged start returns at once. A level runs only
+        # while the solve has evaluations left under this start's cumulative cap.
+        level = None
+        levels = min(config.max_iterations, cap - 1)
+        for k in reversed(range(levels)):
+            nxt = iterate(xs, ps)
+            stop = ca.logic_or(nxt[i_done], nxt[i_ev] >= cap)
+            out = nxt if level is None else level(stop, nxt, ps)
+            level = ca.Function.conditional(
+                f"{tag}_level_{k}", [ca.Function(f"{tag}_iterate_{k}", [xs, ps], [out])], hold
+            )
+        return level
 
-    # The solve: project the warm start onto the box, evaluate there, iterate.
     q_prev = ca.MX.sym("q_prev", n)
     targets = ca.MX.sym("targets", N_FEATURES)
     q_ref = ca.MX.sym("q_ref", n)
     q0 = ca.fmin(ca.fmax(q_prev, lbv), ubv)
     p_mx = ca.vertcat(targets, q_ref, q0)
-    c0, g0, h0 = evaluate(q0, p_mx)
-    pg0 = q0 - ca.fmin(ca.fmax(q0 - g0, lbv), ubv)
-    x0 = ca.vertcat(q0, c0, g0, h0, _MU0, ca.mmax(ca.fabs(pg0)) <= config.gtol, 0.0)
-    state = level(x0[i_done], x0, p_mx)
-    info = ca.vertcat(state[i_cost], state[i_it], state[i_done])
+    seeds = {"prev": q0, "ref": ca.fmin(ca.fmax(q_ref, lbv), ubv)}
+    tags = [tag for tag, _ in budget_plan(config) if tag.startswith("seed")]
+    for tag, q_seed in zip(tags, table_seeds(pk, config, targets, q_ref, q0, len(tags))):
+        seeds[tag] = q_seed
+    # The starts in turn; each keeps the lower-cost state of itself and those before, and
+    # runs only if the solve has an evaluation left under its cumulative cap.
+    xb, qs = ca.MX.sym("best", nx), ca.MX.sym("start", n)
+    skip = ca.Function("skip", [xb, qs, ps], [xb])
+    inf_state = ca.DM.zeros(nx)
+    inf_state[i_cost] = np.inf
+    best: ca.MX = ca.MX(inf_state)
+    for tag, cap in budget_plan(config):
+        c0, g0, h0 = evaluate(qs, ps)
+        pg0 = qs - ca.fmin(ca.fmax(qs - g0, lbv), ubv)
+        done0 = ca.mmax(ca.fabs(pg0)) <= config.gtol
+        x0 = ca.vertcat(qs, c0, g0, h0, _MU0, done0, xb[i_it], xb[i_ev] + 1.0)
+        lv = chain(tag, cap)
+        st = x0 if lv is None else lv(ca.logic_or(x0[i_done], x0[i_ev] >= cap), x0, ps)
+        kept = ca.if_else(st[i_cost] < xb[i_cost], st, xb)
+        kept = ca.vertcat(kept[:i_it], st[i_it], st[i_ev])
+        run = ca.Function(f"start_{tag}", [xb, qs, ps], [kept])
+        start = ca.Function.conditional(f"maybe_{tag}", [run], skip)
+        best = start(best[i_ev] >= cap, best, seeds[tag], p_mx)
+    used, iters = best[i_ev], best[i_it]
+    info = ca.vertcat(best[i_cost], iters, best[i_done], used)
     return ca.Function(
         name,
         [q_prev, targets, q_ref],
-        [state[:n], info],
+        [best[:n], info],
         ["q_prev", "targets", "q_ref"],
         ["q", "info"],
     )
@@ -417,7 +455,7 @@ class PairRetargeter(Retargeter):
         q = c.outputs[0].copy()
         self._command = q
         info = c.outputs[1]
-        return q.copy(), SolveInfo(float(info[0]), int(info[1]), bool(info[2] > 0.5))
+        return q.copy(), _info(info)
 
     def _solve(
         self, targets: np.ndarray, q_prev: np.ndarray, q_ref: np.ndarray
@@ -434,7 +472,22 @@ class PairRetargeter(Retargeter):
             out = self.function(q_prev, targets, q_ref)
             q = np.array(out[0], dtype=float).reshape(-1)
             info = np.array(out[1], dtype=float).reshape(-1)
-        return q, SolveInfo(float(info[0]), int(info[1]), bool(info[2] > 0.5))
+        return q, _info(info)
+
+
+def _info(info: np.ndarray) -> SolveInfo:
+    return SolveInfo(float(info[0]), int(info[1]), bool(info[2] > 0.5), int(info[3]))
+
+
+def _compiled_or_none(fn: ca.Function) -> _CompiledSolve | None:
+    """``fn`` compiled and loaded, or ``None`` without a working C compiler."""
+    compiler = _compiler()
+    if compiler is None:
+        return None
+    try:
+        return _CompiledSolve(fn, compiler)
+    except (RetargetError, OSError):
+        return None
 
 
 def _prune(directory: Path, name: str, keep: int = 8) -> None:

@@ -59,6 +59,16 @@ def _print_table(r: dict) -> None:
         f"{p['p99_us']:.1f}",
         f"{p['iterations_median']:.0f} (max {p['iterations_max']})",
     )
+    for name, b in r.get("budgets", {}).items():
+        free = b["collision_free_fraction"]
+        t.add_row(
+            f"production, budget {name} (optimum {100 * b['optimum_fraction']:.1f} %"
+            + ("" if free is None else f", collision-free {100 * free:.1f} %")
+            + ")",
+            f"{b['median_us']:.1f}",
+            f"{b['p99_us']:.1f}",
+            f"{b['evaluations_median']:.0f} ev (max {b['evaluations_max']})",
+        )
     t.add_row(
         "production, replayed back to back",
         f"{p['isolated_median_us']:.1f}",

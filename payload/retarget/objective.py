@@ -36,6 +36,10 @@ else:  # pragma: no cover
     import tomli as tomllib
 
 
+BUDGETS = ("paper", "converged")
+"""Evaluation budgets of a production pair solve (:attr:`RetargetConfig.budget`)."""
+
+
 @dataclass(frozen=True)
 class RetargetConfig:
     """Settings of eq. 3 and of both solvers; defaults are the paper's constants.
@@ -49,9 +53,16 @@ class RetargetConfig:
         w_f: Distal-direction weight (paper: 0.10).
         w_p: Posture weight on range-normalised joints (paper: 3.0).
         w_t: Temporal weight on range-normalised joints (paper: 0.03).
-        max_nfev: Function evaluations per pair solve of the scipy reference (paper: 20).
-        max_iterations: Hard cap on iterations of the production solver; each iteration
-            evaluates the residuals and their Jacobian once.
+        budget: ``paper``: at most ``max_nfev`` residual evaluations per pair solve for
+            the production solver too (every evaluation counted); ``converged``: each
+            start runs to its convergence tests or ``max_iterations``.
+        max_nfev: Residual evaluations per pair solve: the scipy reference's
+            ``max_nfev`` and the production solver's whole ``paper`` budget (paper: 20).
+        warm_evaluations: Of the ``paper`` budget, the evaluations the warm start may
+            use; what it leaves goes to a second start from the posture reference.
+        max_iterations: Hard cap on iterations of each start of the production solver
+            (``converged`` budget); each iteration evaluates the residuals and their
+            Jacobian once.
         gtol: Production stops when the projected gradient's largest component is below.
         ftol: Production stops when an accepted step lowers the cost by less than this
             fraction.
@@ -65,7 +76,9 @@ class RetargetConfig:
     w_f: float = 0.10
     w_p: float = 3.0
     w_t: float = 0.03
+    budget: str = "paper"
     max_nfev: int = 20
+    warm_evaluations: int = 20
     max_iterations: int = 60
     gtol: float = 1e-8
     ftol: float = 1e-7
@@ -73,6 +86,12 @@ class RetargetConfig:
     def __post_init__(self) -> None:
         for f in dataclasses.fields(self):
             v = getattr(self, f.name)
+            if f.name == "budget":
+                if v not in BUDGETS:
+                    raise RetargetError(
+                        f"retarget config: budget: expected one of {', '.join(BUDGETS)}, got {v!r}"
+                    )
+                continue
             if f.type == "int":
                 if not isinstance(v, int) or isinstance(v, bool) or v < 1:
                     raise RetargetError(f"retarget config: {f.name}: expected an integer >= 1")

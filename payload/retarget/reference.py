@@ -24,8 +24,10 @@ class ReferenceRetargeter(Retargeter):
     ) -> tuple[np.ndarray, SolveInfo]:
         obj, pk = self.objective, self.kinematics
         cache: dict[str, object] = {}
+        calls = [0]  # every residual evaluation, including any the Jacobian re-runs
 
         def fun(q: np.ndarray) -> np.ndarray:
+            calls[0] += 1
             f, jf = pk.features_jacobian(q)
             cache["q"], cache["jf"] = q.copy(), jf
             return obj.residuals(f, q, targets, q_ref, q_prev)
@@ -49,5 +51,5 @@ class ReferenceRetargeter(Retargeter):
         # trf keeps every iterate strictly inside the bounds: no clipping here, so a
         # violation would show in the benchmark's bound check.
         return np.array(res.x, dtype=float), SolveInfo(
-            float(res.cost), int(res.nfev), bool(res.status > 0)
+            float(res.cost), int(res.nfev), bool(res.status > 0), calls[0]
         )

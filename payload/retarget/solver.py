@@ -25,13 +25,17 @@ class SolveInfo(NamedTuple):
 
     Attributes:
         cost: Eq. 3's value at the returned command.
-        iterations: Iterations (production) or function evaluations (reference) used.
+        iterations: Iterations (production, all starts) or function evaluations
+            (reference) used.
         converged: True if a convergence test stopped the solver before its cap.
+        evaluations: Residual evaluations used (each computes the residual vector once,
+            with or without its Jacobian; what scipy counts as ``nfev``).
     """
 
     cost: float
     iterations: int
     converged: bool
+    evaluations: int = 0
 
 
 class Retargeter(ABC):

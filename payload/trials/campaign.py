@@ -148,7 +148,7 @@ def runner_trial_fn(
             project of the process that runs each trial).
         max_time: Session length cap [s] (``None``: the runner's).
         force: Replace trials already in the campaign folder.
-        setup: ``ctb``, ``propulsion``: the same for every trial.
+        setup: ``ctb``, ``propulsion``, ``retarget_budget``: the same for every trial.
     """
     return functools.partial(
         _runner_trial,
@@ -512,6 +512,14 @@ def summary_markdown(summary: dict[str, Any], title: str | None = None) -> str:
         + _definition_text(lit.get("contact_definition") if lit else None)
         + ". Acquisition succeeds when a first contact interval exists under the definition.",
     ]
+    budget = summary.get("retarget_budget")
+    if budget:
+        shown = budget if isinstance(budget, str) else ", ".join(budget)
+        lines += [
+            "",
+            f"Retargeting budget: {shown} ('paper': at most 20 residual evaluations per pair "
+            "solve, the paper's controller; 'converged': each start run to convergence).",
+        ]
     lines += _run_lines(summary.get("run"))
     lines += [
         "",
@@ -593,6 +601,9 @@ def write_summary(
     summary = summarize(results)
     if title is not None:
         summary["title"] = title
+    budgets = sorted({str(r["retarget_budget"]) for r in results if r.get("retarget_budget")})
+    if budgets:
+        summary["retarget_budget"] = budgets[0] if len(budgets) == 1 else budgets
     if run is not None:
         summary["run"] = run
     if provenance is not None:

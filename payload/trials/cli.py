@@ -62,6 +62,7 @@ def _cmd_trial(args: argparse.Namespace) -> int:
     out = Path(args.out) if args.out else None
     run_trial = _run_trial_fn()
     extra: dict[str, Any] = {"project": project, "ctb": args.ctb, "propulsion": args.propulsion}
+    extra["retarget_budget"] = args.retarget_budget
     if not args.json and sys.stderr.isatty():
         extra["progress"] = True
     if args.max_time is not None:
@@ -123,7 +124,12 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     results = run_campaign(
         runner_trial_fn(
-            "synthetic", project.root, force=args.force, ctb=args.ctb, propulsion=args.propulsion
+            "synthetic",
+            project.root,
+            force=args.force,
+            ctb=args.ctb,
+            propulsion=args.propulsion,
+            retarget_budget=args.retarget_budget,
         ),
         seeds,
         out,
@@ -137,7 +143,10 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
         "wall_s": time.perf_counter() - t0,
         "trial_wall_s": float(sum(r.get("wall_s") or 0.0 for r in results)),
     }
-    title = f"Cargo-transport campaign ({args.n} trials, CTB {args.ctb}, {args.propulsion})"
+    title = (
+        f"Cargo-transport campaign ({args.n} trials, CTB {args.ctb}, {args.propulsion}, "
+        f"retargeting budget {args.retarget_budget})"
+    )
     summary = write_summary(results, out, title=title, run=run, provenance=prov, force=args.force)
     if args.json:
         emit_json(
@@ -344,6 +353,15 @@ def _setup_arguments(p: argparse.ArgumentParser) -> None:
         default=DEFAULT_PROPULSION,
         help=f"vehicle propulsion model (default {DEFAULT_PROPULSION})",
     )
+    p.add_argument(
+        "--retarget-budget", choices=("paper", "converged"), default="paper", help=_BUDGET_HELP
+    )
+
+
+_BUDGET_HELP = (
+    "retargeting budget per pair solve: 'paper' (default, at most 20 residual evaluations, "
+    "the paper's controller) or 'converged' (each start run to convergence)"
+)
 
 
 def register(

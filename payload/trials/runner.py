@@ -29,6 +29,7 @@ from payload.project import Project, current_project, provenance
 from payload.retarget.calibration import PairRange, pair_range
 from payload.retarget.casadi_solver import PairRetargeter
 from payload.retarget.hand import load_hand
+from payload.retarget.objective import RetargetConfig
 from payload.rotations import quat_to_matrix
 from payload.safeio import OverwriteError, check_new, new_folder, replace_file
 from payload.sim.vehicle import DEFAULT_PROPULSION, PROPULSION_MODELS
@@ -113,24 +114,29 @@ _LOCAL = threading.local()
 
 
 def retargeting(
-    project: Project | None = None,
+    project: Project | None = None, budget: str = "paper"
 ) -> tuple[dict[str, PairRetargeter], dict[str, PairRange]]:
-    """Production retargeters and pair ranges for our hand on ``project``'s URDF (default:
-    the current project), built once per thread and URDF content.
+    """Production retargeters (with this evaluation budget, see
+    :attr:`RetargetConfig.budget <payload.retarget.RetargetConfig.budget>`) and pair ranges
+    for our hand on ``project``'s URDF (default: the current project), built once per
+    thread, URDF content and budget.
 
     A retargeter holds its solver's buffers and warm start, so concurrent trials (a Dask
     worker with several threads) each get their own; nothing here is shared between
     threads.
     """
     hand = load_hand(project=project or current_project())
-    key = (hand.urdf, hand.urdf.read_bytes())
+    key = (hand.urdf, hand.urdf.read_bytes(), budget)
     built: dict[Any, Any] = getattr(_LOCAL, "retargeting", None) or {}
     _LOCAL.retargeting = built
     cached = built.get(key)
     if cached is None:
         # single-threaded like the trials themselves, so every process finds the same ranges
         with single_threaded_numerics():
-            retargeters = {pair: PairRetargeter(hand, pair=pair) for pair in ("L", "R")}
+            config = RetargetConfig(budget=budget)
+            retargeters = {
+                pair: PairRetargeter(hand, pair=pair, config=config) for pair in ("L", "R")
+            }
             ranges = {pair: pair_range(r.kinematics) for pair, r in retargeters.items()}
         cached = built[key] = (retargeters, ranges)
     return cached
@@ -266,6 +272,7 @@ def run_trial(
     project: Project | None = None,
     ctb: str = DEFAULT_CTB,
     propulsion: str = DEFAULT_PROPULSION,
+    retarget_budget: str = "paper",
 ) -> dict[str, Any]:
     """Run one trial and write its folder (reproducible: see :func:`_run_trial`).
 
@@ -289,6 +296,8 @@ def run_trial(
         ctb: CTB model (:data:`~payload.sim.world.CTB_MODELS`); a replay uses its
             recording's.
         propulsion: ``nozzles`` or ``box``; a replay uses its recording's.
+        retarget_budget: Evaluation budget of the pair solves (``paper``: at most 20
+            residual evaluations each; ``converged``), recorded with the trial.
         force: Replace the trial in ``out_dir`` (each file through a temporary file and a
             rename, after the new trial has run).
 
@@ -312,6 +321,7 @@ def run_trial(
         recorded = header.get("meta") or {}
         ctb = recorded.get("ctb", ctb)
         propulsion = recorded.get("propulsion", propulsion)
+        retarget_budget = recorded.get("retarget_budget", retarget_budget)
         if seed is None:
             source_seed = header.get("meta", {}).get("seed")
             seed = source_seed if isinstance(source_seed, int) and source_seed >= 0 else 0
@@ -332,7 +342,16 @@ def run_trial(
     except OverwriteError as exc:
         raise TrialError(str(exc)) from None
     out.mkdir(parents=True, exist_ok=True)
-    source = _Source(operator, seed, replay, header, frames, ctb=ctb, propulsion=propulsion)
+    source = _Source(
+        operator,
+        seed,
+        replay,
+        header,
+        frames,
+        ctb=ctb,
+        propulsion=propulsion,
+        retarget_budget=retarget_budget,
+    )
     with single_threaded_numerics():
         if not force:
             result = _run_trial(
@@ -367,7 +386,9 @@ class _Source:
         *,
         ctb: str = DEFAULT_CTB,
         propulsion: str = DEFAULT_PROPULSION,
+        retarget_budget: str = "paper",
     ) -> None:
+        self.retarget_budget = retarget_budget
         self.ctb = ctb
         self.propulsion = propulsion
         self.recorded: dict[str, Any] = header.get("meta") or {}
@@ -430,13 +451,14 @@ def _run_trial(
         WorldConfig.for_project(project, ctb=source_spec.ctb), propulsion=source_spec.propulsion
     )
     layout = driver.world.layout
-    retargeters, ranges = retargeting(project)
+    retargeters, ranges = retargeting(project, source_spec.retarget_budget)
     grasp_body = place_ctb_for_teleop(driver, retargeters, ranges)
     recorded = source_spec.recorded
     offset, yaw = place_offset(
         driver, seed, recorded.get("ctb_offset_m"), recorded.get("ctb_yaw_deg")
     )
     setup = {
+        "retarget_budget": source_spec.retarget_budget,
         "ctb": source_spec.ctb,
         "propulsion": source_spec.propulsion,
         "ctb_offset_m": [float(v) for v in offset],

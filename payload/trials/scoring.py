@@ -98,6 +98,7 @@ def _trial_setup(meta: dict[str, Any]) -> dict[str, Any]:
     acquisition offset), for ``metrics.json``; keys absent from older recordings are left
     out."""
     keys = (
+        "retarget_budget",
         "ctb",
         "propulsion",
         "ctb_offset_m",

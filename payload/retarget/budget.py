@@ -1,0 +1,76 @@
+"""How a production pair solve spends its residual evaluations (``RetargetConfig.budget``).
+
+A solve runs its starts in turn (:func:`budget_plan`); every residual evaluation (the
+residual vector with its Jacobian, at a start point or at an iteration's candidate)
+counts one. ``paper``: at most ``max_nfev`` (20) in all. ``converged``: each start runs
+to its convergence tests or ``max_iterations``, and two starts come from a fixed seed
+table (:func:`seed_table`), picked by eq. 3 on the table's stored features.
+"""
+
+from __future__ import annotations
+
+import casadi as ca
+import numpy as np
+
+from payload.retarget.features import PairKinematics
+from payload.retarget.objective import RetargetConfig
+
+
+def budget_plan(config: RetargetConfig) -> tuple[tuple[str, int], ...]:
+    """The starts of one pair solve and the evaluation count each may run up to.
+
+    Returns ``(start, cumulative cap)`` pairs: ``prev`` (the warm start, the previous
+    command), ``ref`` (the posture reference). Each start costs one evaluation at its
+    start point and one per iteration; a start stops at its convergence tests, its
+    iteration cap, or when the solve's evaluations reach its cumulative cap. The last
+    cap is the solve's whole budget: ``config.max_nfev`` for ``paper``,
+    ``2 (1 + max_iterations)`` for ``converged``.
+    """
+    if config.budget == "paper":
+        total = config.max_nfev
+        first = min(total, config.warm_evaluations)
+        return (("prev", first), ("ref", total))
+    per = 1 + config.max_iterations
+    return (("prev", per), ("seed", 2 * per), ("seed2", 3 * per), ("ref", 4 * per))
+
+
+SEEDS = 256
+"""Postures in the seed table of the ``converged`` budget (seeded, uniform in the box)."""
+
+
+def seed_table(pk: PairKinematics) -> tuple[np.ndarray, np.ndarray]:
+    """The seed postures, shape (k, n), and their features, shape (k, 13)."""
+    rng = np.random.default_rng(12345)
+    qs = np.vstack([pk.rest, pk.lower + rng.random((SEEDS - 1, pk.n)) * pk.range])
+    return qs, pk.features_batch(qs)
+
+
+def table_seeds(
+    pk: PairKinematics,
+    config: RetargetConfig,
+    targets: ca.MX,
+    q_ref: ca.MX,
+    q0: ca.MX,
+    count: int,
+) -> list[ca.MX]:
+    """The ``count`` table postures of lowest eq. 3 cost (from their tabulated features)."""
+    qs, fs = seed_table(pk)
+    k = qs.shape[0]
+    scales = ca.DM(np.repeat(config.feature_scales()[:, None], k, axis=1))
+    geo = scales * (ca.DM(fs.T) - ca.repmat(targets, 1, k))
+    inv = ca.DM(np.repeat((1.0 / pk.range)[:, None], k, axis=1))
+    post = config.w_p * inv * (ca.DM(qs.T) - ca.repmat(q_ref, 1, k))
+    temp = config.w_t * inv * (ca.DM(qs.T) - ca.repmat(q0, 1, k))
+    r2 = ca.vertcat(geo, post, temp) ** 2
+    cost = ca.sum1(ca.sqrt(1.0 + r2) - 1.0)  # (1, k)
+    out = []
+    for _ in range(count):
+        pick = cost <= ca.mmin(cost)
+        out.append(ca.mtimes(ca.DM(qs.T), pick.T) / ca.sum2(pick))
+        cost = cost + 1e30 * pick  # the next pick is another posture
+    return out
+
+
+def evaluation_cap(config: RetargetConfig) -> int:
+    """Most residual evaluations one pair solve may use under ``config.budget``."""
+    return budget_plan(config)[-1][1]

@@ -1,0 +1,176 @@
+"""Retargeting budgets (issue 14): every residual evaluation counted, the paper's budget
+never exceeded, and the best-known optimum reached on our hand and on two other hands.
+
+The evaluation counts are checked against independent counters: a counting
+``casadi.Callback`` standing in for the production solver's one residual function (in
+CasADi's virtual machine), and a counting residual function handed to scipy, whose own
+``nfev`` must agree. Optimality is judged by :func:`payload.retarget.optimum.best_known_cost`
+(scipy trf/soft_l1 from several starts), costs by Pinocchio and numpy.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import casadi as ca
+import numpy as np
+import pytest
+from scipy.optimize import least_squares
+
+from payload.retarget import (
+    PairKinematics,
+    PairRetargeter,
+    ReferenceRetargeter,
+    RetargetConfig,
+    RetargetError,
+    calibrate,
+    load_hand,
+    pair_range,
+)
+from payload.retarget.bench import human_pinch_and_open, target_stream
+from payload.retarget.budget import evaluation_cap
+from payload.retarget.casadi_solver import build_solve_function
+from payload.retarget.optimum import CompiledObjective, best_known_cost
+
+HANDS_DIR = Path(__file__).resolve().parents[1] / "payload" / "retarget" / "hands"
+EXTRA_HANDS = ("thumb_abduction_first.toml", "offset_distal.toml")
+
+
+class Counted(ca.Callback):
+    """A CasADi function that counts its calls."""
+
+    def __init__(self, f: ca.Function) -> None:
+        ca.Callback.__init__(self)
+        self.f, self.count = f, 0
+        self.construct("counted_evaluate", {})
+
+    def get_n_in(self) -> int:
+        return self.f.n_in()
+
+    def get_n_out(self) -> int:
+        return self.f.n_out()
+
+    def get_sparsity_in(self, i: int) -> ca.Sparsity:
+        return self.f.sparsity_in(i)
+
+    def get_sparsity_out(self, i: int) -> ca.Sparsity:
+        return self.f.sparsity_out(i)
+
+    def eval(self, arg: list) -> list:
+        self.count += 1
+        return self.f.call(arg)
+
+
+@pytest.fixture(scope="module")
+def pk() -> PairKinematics:
+    return PairKinematics(None, "L")
+
+
+def _hard_problems(pk: PairKinematics, seed: int, k: int):
+    """Reachable targets far from the warm start (random jumps), posture reference = rest."""
+    rng = np.random.default_rng(seed)
+    for _ in range(k):
+        q_true = pk.lower + rng.random(pk.n) * pk.range
+        q_prev = pk.lower + rng.random(pk.n) * pk.range
+        yield pk.features(q_true).as_vector(), q_prev, pk.rest
+
+
+@pytest.mark.parametrize("budget", ["paper", "converged"])
+def test_production_counts_every_residual_evaluation(pk, budget):
+    counters: list[Counted] = []
+
+    def wrap(f: ca.Function) -> Counted:
+        counters.append(Counted(f))
+        return counters[-1]
+
+    config = RetargetConfig(budget=budget)
+    counted = build_solve_function(pk, config, "counted", wrap_evaluate=wrap)
+    plain = build_solve_function(pk, config, "plain")
+    (counter,) = counters
+    for targets, q_prev, q_ref in _hard_problems(pk, 3, 4):
+        counter.count = 0
+        q, info = counted(q_prev, targets, q_ref)
+        q2, info2 = plain(q_prev, targets, q_ref)
+        info, info2 = np.array(info).ravel(), np.array(info2).ravel()
+        assert counter.count == int(info[3])  # the solver's own count is every call
+        np.testing.assert_allclose(np.array(q), np.array(q2), atol=1e-12)
+        assert info2[3] == info[3]
+        assert counter.count <= evaluation_cap(config)
+        if budget == "paper":
+            assert counter.count <= 20
+
+
+def test_reference_evaluations_are_scipys_nfev(pk):
+    ref = ReferenceRetargeter(kinematics=pk)
+    obj = ref.objective
+    for targets, q_prev, q_ref in _hard_problems(pk, 4, 3):
+        _, info = ref.solve(targets, q_prev, q_ref)
+        calls = [0]
+
+        def fun(q, targets=targets, q_prev=q_prev, q_ref=q_ref, calls=calls):
+            calls[0] += 1
+            f, _ = pk.features_jacobian(q)
+            return obj.residuals(f, q, targets, q_ref, q_prev)
+
+        def jac(q):
+            _, jf = pk.features_jacobian(q)
+            return obj.jacobian(jf)
+
+        res = least_squares(
+            fun,
+            q_prev,
+            jac=jac,
+            bounds=(pk.lower, pk.upper),
+            method="trf",
+            loss="soft_l1",
+            max_nfev=20,
+        )
+        assert calls[0] == res.nfev  # what scipy counts is every call of the residuals
+        assert info.evaluations == res.nfev <= 20
+
+
+def test_paper_budget_is_never_exceeded(pk):
+    r = PairRetargeter(kinematics=pk)
+    assert r.config.budget == "paper"
+    used = []
+    for targets, q_prev, q_ref in _hard_problems(pk, 5, 200):
+        q, info = r.solve(targets, q_prev, q_ref)
+        used.append(info.evaluations)
+        assert np.all(q >= r.lower) and np.all(q <= r.upper)
+    assert max(used) <= 20 and min(used) >= 1
+
+
+def test_budget_setting_is_validated():
+    assert RetargetConfig().budget == "paper"
+    assert RetargetConfig(budget="converged").budget == "converged"
+    with pytest.raises(RetargetError, match="budget: expected one of paper, converged"):
+        RetargetConfig(budget="fast")
+
+
+def _optimum_fraction(hand_path: Path | None, budget: str, steps: int) -> float:
+    """Fraction of the bench stream's solves within 1e-3 of the best-known optimum."""
+    hand = load_hand(hand_path)
+    kin = hand.kinematics()
+    pinch, open_ = human_pinch_and_open()
+    rng = np.random.default_rng(0)
+    ok = []
+    for i, name in enumerate(hand.pairs):
+        pk = PairKinematics(hand, name, kin)
+        r = PairRetargeter(hand, name, RetargetConfig(budget=budget), pk)
+        compiled = CompiledObjective(pk, r.config)
+        cal = calibrate(pinch, open_, pair_range(pk))
+        for st in target_stream(pk, cal, steps, 1000 * i, phase=1.3 * i):
+            q_prev = r.command
+            q, _ = r.solve(st.targets, q_prev, st.q_ref)
+            cost = r.cost(q, st.targets, st.q_ref, q_prev)
+            best = best_known_cost(
+                pk, r.objective, compiled, st.targets, q_prev, st.q_ref, [q], rng
+            )
+            ok.append(cost <= min(best, cost) * (1.0 + 1e-3))
+    return float(np.mean(ok))
+
+
+@pytest.mark.parametrize("hand", [None, *EXTRA_HANDS])
+def test_converged_budget_reaches_the_optimum_on_every_hand(hand):
+    path = None if hand is None else HANDS_DIR / hand
+    assert _optimum_fraction(path, "converged", 60) >= 0.999
