@@ -287,7 +287,7 @@ class Design:
             )
         if self.vehicle:
             # Astrobee's body and bays: validated where they are modelled
-            from payload.envelope.vehicle import vehicle_from_dict
+            from payload.design.vehicle import vehicle_from_dict
 
             vehicle_from_dict(self.vehicle, source=self.source)
         for name, posture in (("stowed", self.stowed), ("home", self.home)):

@@ -1,0 +1,244 @@
+"""The ``[vehicle]`` table of a design: Astrobee's body and its two lower 1-U payload bays.
+
+The payload frame (REP-103) has its origin at the top centre of the two lower bays;
+the bays reach down to the vehicle's bottom face, where they are open, so the
+stage lowers the finger array through it. Astrobee's bay size is not public: the
+default is the assumption stated in ``docs/sources.md`` (one 1-U bay = 100 x 100 x
+100 mm, the two lower bays side by side fore-aft = 200 x 100 x 100 mm), and every
+report names it. A design file may replace it with a ``[vehicle]`` table (see
+:data:`VEHICLE_TOML`); :class:`~payload.design.params.Design` keeps the table as plain
+data (``design.vehicle``) and validates it with :func:`vehicle_from_dict`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from payload.errors import DesignError
+
+BAY_ASSUMPTION = (
+    "Astrobee's payload-bay size is not public: one 1-U bay is assumed to be "
+    "100 x 100 x 100 mm and the two lower bays, side by side fore-aft, a combined "
+    "200 x 100 x 100 mm envelope (docs/sources.md#vehicle). Replace it with a [vehicle] "
+    "table in the design file."
+)
+
+VEHICLE_TOML = (
+    "# --------------------------------------------------------------------------\n"
+    "# Vehicle: Astrobee's body and the combined envelope of its two lower 1-U bays,\n"
+    "# in the payload frame (origin at the top centre of the bays; the bays reach\n"
+    "# down to the vehicle's bottom face, where they are open).\n"
+    "[vehicle]\n"
+    "body_size = [0.32, 0.32, 0.32]   # [m] x, y, z (docs/sources.md: about a 0.32 m cube)\n"
+    "body_offset = [0.0, 0.0]         # [m] x, y of the body centre from the bays' centre\n"
+    "bay_size = [0.20, 0.10, 0.10]    # [m] two lower bays combined (ASSUMPTION, not public)\n"
+    f'assumption = "{BAY_ASSUMPTION}"\n'
+)
+"""The ``[vehicle]`` table proposed for ``cad/design.toml`` (all keys optional)."""
+
+_KEYS = ("body_size", "body_offset", "bay_size", "assumption")
+_WALLS = ("-x (aft)", "+x (forward)", "-y (right)", "+y (left)", "-z (bottom face)", "+z (mount)")
+
+
+class VehicleError(DesignError):
+    """The ``[vehicle]`` table (or a bay-size override) is invalid.
+
+    Attributes:
+        parameter: Dotted path of the offending parameter, e.g. ``vehicle.bay_size``.
+        reason: What is wrong with it.
+    """
+
+
+@dataclass(frozen=True)
+class Vehicle:
+    """Astrobee's body and the combined envelope of its two lower bays.
+
+    Attributes:
+        body_size: Body extents along x, y, z, shape (3,) [m].
+        body_offset: x, y of the body centre from the bays' centre, shape (2,) [m].
+        bay_size: Combined envelope of the two lower bays along x, y, z, shape (3,) [m].
+        assumption: What the bay size rests on; printed in every report.
+        source: Where the values came from (file, ``defaults`` or an override).
+    """
+
+    body_size: tuple[float, float, float] = (0.32, 0.32, 0.32)
+    body_offset: tuple[float, float] = (0.0, 0.0)
+    bay_size: tuple[float, float, float] = (0.20, 0.10, 0.10)
+    assumption: str = BAY_ASSUMPTION
+    source: str = "defaults (docs/sources.md#vehicle)"
+
+    def __post_init__(self) -> None:
+        _check_vector("vehicle.body_size", self.body_size, 3, positive=True)
+        _check_vector("vehicle.body_offset", self.body_offset, 2, positive=False)
+        _check_vector("vehicle.bay_size", self.bay_size, 3, positive=True)
+        if not isinstance(self.assumption, str):
+            raise VehicleError("vehicle.assumption", f"expected a string, got {self.assumption!r}")
+        for i, axis in enumerate("xy"):
+            bay_half = self.bay_size[i] / 2
+            body_lo = self.body_offset[i] - self.body_size[i] / 2
+            body_hi = self.body_offset[i] + self.body_size[i] / 2
+            if -bay_half < body_lo - 1e-12 or bay_half > body_hi + 1e-12:
+                raise VehicleError(
+                    "vehicle.bay_size",
+                    f"the bays ({self.bay_size[i] * 1e3:.1f} mm along {axis}) stick out of the "
+                    f"body ({body_lo * 1e3:.1f} .. {body_hi * 1e3:.1f} mm along {axis})",
+                )
+        if self.bay_size[2] >= self.body_size[2]:
+            raise VehicleError(
+                "vehicle.bay_size",
+                f"the bays ({self.bay_size[2] * 1e3:.1f} mm deep) are not shallower than the "
+                f"body ({self.body_size[2] * 1e3:.1f} mm high)",
+            )
+
+    @property
+    def bay_lower(self) -> np.ndarray:
+        """Lower corner of the bay envelope in the payload frame, shape (3,) [m]."""
+        sx, sy, sz = self.bay_size
+        return np.array([-sx / 2, -sy / 2, -sz])
+
+    @property
+    def bay_upper(self) -> np.ndarray:
+        """Upper corner of the bay envelope (z = 0 is the mount face), shape (3,) [m]."""
+        sx, sy, _ = self.bay_size
+        return np.array([sx / 2, sy / 2, 0.0])
+
+    @property
+    def bottom_z(self) -> float:
+        """z of the vehicle's bottom face in the payload frame [m]."""
+        return -float(self.bay_size[2])
+
+    @property
+    def body_lower(self) -> np.ndarray:
+        """Lower corner of the body box in the payload frame, shape (3,) [m]."""
+        return np.array(
+            [
+                self.body_offset[0] - self.body_size[0] / 2,
+                self.body_offset[1] - self.body_size[1] / 2,
+                self.bottom_z,
+            ]
+        )
+
+    @property
+    def body_upper(self) -> np.ndarray:
+        """Upper corner of the body box in the payload frame, shape (3,) [m]."""
+        return np.array(
+            [
+                self.body_offset[0] + self.body_size[0] / 2,
+                self.body_offset[1] + self.body_size[1] / 2,
+                self.bottom_z + self.body_size[2],
+            ]
+        )
+
+    @property
+    def walls(self) -> tuple[str, ...]:
+        """Names of the six bay walls, in the order -x, +x, -y, +y, -z, +z."""
+        return _WALLS
+
+    def body_boxes(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """The body minus the open bay cavity as five convex boxes (lower, upper corners).
+
+        The boxes are: the body above the bays, then the blocks aft of, forward of,
+        right of and left of the bays, down to the bottom face. Boxes of zero
+        thickness (bays flush with the body side) are left out.
+        """
+        blo, bhi = self.body_lower, self.body_upper
+        lo, hi = self.bay_lower, self.bay_upper
+        boxes = [
+            (np.array([blo[0], blo[1], hi[2]]), bhi.copy()),
+            (blo.copy(), np.array([lo[0], bhi[1], hi[2]])),
+            (np.array([hi[0], blo[1], blo[2]]), np.array([bhi[0], bhi[1], hi[2]])),
+            (np.array([lo[0], blo[1], blo[2]]), np.array([hi[0], lo[1], hi[2]])),
+            (np.array([lo[0], hi[1], blo[2]]), np.array([hi[0], bhi[1], hi[2]])),
+        ]
+        return [(a, b) for a, b in boxes if np.all(b - a > 1e-9)]
+
+    def body_solid(self) -> Any:
+        """The vehicle body with the open bay cavity, in the payload frame [m]
+        (a ``manifold3d.Manifold``)."""
+        import manifold3d as m3d
+
+        blo, bhi = self.body_lower, self.body_upper
+        lo, hi = self.bay_lower, self.bay_upper
+        body = m3d.Manifold.cube(list(bhi - blo)).translate(list(blo))
+        cavity_lo = lo - np.array([0.0, 0.0, 0.01])
+        cavity = m3d.Manifold.cube(list(hi - cavity_lo)).translate(list(cavity_lo))
+        return body - cavity
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain data with SI values, as the ``[vehicle]`` table holds them."""
+        return {
+            "body_size": list(self.body_size),
+            "body_offset": list(self.body_offset),
+            "bay_size": list(self.bay_size),
+            "assumption": self.assumption,
+        }
+
+
+def _check_vector(where: str, value: Any, n: int, positive: bool) -> None:
+    ok = isinstance(value, (list, tuple)) and len(value) == n
+    ok = ok and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)
+    if not ok:
+        raise VehicleError(where, f"expected {n} numbers, got {value!r}")
+    for v in value:
+        if not math.isfinite(v):
+            raise VehicleError(where, f"must be finite (got {v})")
+        if positive and not v > 0:
+            raise VehicleError(where, f"every size must be positive (got {v})")
+
+
+def vehicle_from_dict(data: Any, source: str = "<memory>") -> Vehicle:
+    """A :class:`Vehicle` from a ``[vehicle]`` table; missing keys take the defaults.
+
+    Raises:
+        VehicleError: An unknown key, or a value of the wrong shape or out of range.
+    """
+    if not isinstance(data, dict):
+        raise VehicleError("vehicle", f"expected a table, got {type(data).__name__}")
+    for key in data:
+        if key not in _KEYS:
+            raise VehicleError(
+                f"vehicle.{key}", f"unknown key (expected one of: {', '.join(_KEYS)})"
+            )
+    kwargs: dict[str, Any] = {"source": source}
+    for key in ("body_size", "body_offset", "bay_size"):
+        if key in data:
+            n = 2 if key == "body_offset" else 3
+            _check_vector(f"vehicle.{key}", data[key], n, positive=key != "body_offset")
+            kwargs[key] = tuple(float(v) for v in data[key])
+    if "assumption" in data:
+        kwargs["assumption"] = data["assumption"]
+    elif "bay_size" in data:
+        kwargs["assumption"] = f"bay size {_mm(kwargs['bay_size'])} given in {source}"
+    return Vehicle(**kwargs)
+
+
+def with_bay_size(vehicle: Vehicle, bay_size: Any) -> Vehicle:
+    """``vehicle`` with its bay envelope replaced (e.g. from ``--bay-size X Y Z``) [m]."""
+    _check_vector("--bay-size", bay_size, 3, positive=True)
+    size = tuple(float(v) for v in bay_size)
+    return dataclasses.replace(
+        vehicle,
+        bay_size=size,
+        assumption=f"bay size {_mm(size)} given on the command line (replaces: "
+        f"{vehicle.assumption})",
+        source="--bay-size",
+    )
+
+
+def _mm(size: tuple[float, ...]) -> str:
+    return " x ".join(f"{v * 1e3:.1f}" for v in size) + " mm"
+
+
+__all__ = [
+    "BAY_ASSUMPTION",
+    "VEHICLE_TOML",
+    "Vehicle",
+    "VehicleError",
+    "vehicle_from_dict",
+    "with_bay_size",
+]
