@@ -42,8 +42,8 @@ def test_a_replayed_trial_reproduces_the_recorded_trial_bit_for_bit(tmp_path):
     size = (first / "log.mcap").stat().st_size
     assert size / (len(a) * 0.02 / 60) < 2e6
     assert len(a.t) == len(b.t) > 0.9 * SHORT / 0.02
-    for name in FIELDS:
-        assert np.array_equal(np.asarray(getattr(a, name)), np.asarray(getattr(b, name))), name
+    for name in FIELDS:  # untracked hand joints are NaN: equal to NaN
+        assert np.array_equal(getattr(a, name), getattr(b, name), equal_nan=True), name
 
 
 def test_a_dask_campaign_of_real_trials_matches_the_serial_run(tmp_path):
@@ -55,4 +55,4 @@ def test_a_dask_campaign_of_real_trials_matches_the_serial_run(tmp_path):
         a = read_recording(trial_dir(tmp_path / "serial", seed) / "log.mcap")
         b = read_recording(trial_dir(tmp_path / "dask", seed) / "log.mcap")
         for name in FIELDS:
-            assert np.array_equal(np.asarray(getattr(a, name)), np.asarray(getattr(b, name)))
+            assert np.array_equal(getattr(a, name), getattr(b, name), equal_nan=True), name
