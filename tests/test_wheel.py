@@ -44,8 +44,14 @@ def _fresh_venv(venv: Path, wheel: Path, env: dict[str, str]) -> tuple[Path, Pat
                 env,
             ).strip()
         )
-        ours = {sysconfig.get_paths()["purelib"], sysconfig.get_paths()["platlib"]}
-        (site / "zz_test_dependencies.pth").write_text("\n".join(sorted(ours)) + "\n")
+        ours = sorted({sysconfig.get_paths()["purelib"], sysconfig.get_paths()["platlib"]})
+        # first on the path (.pth files run in name order), then this environment's other
+        # .pth hooks (cmeel's puts Pinocchio on the path), never the editable install's
+        (site / "aa_test_dependencies.pth").write_text("\n".join(ours) + "\n")
+        for folder in ours:
+            for pth in Path(folder).glob("*.pth"):
+                if not pth.name.startswith("__editable__") and not (site / pth.name).exists():
+                    (site / pth.name).write_text(pth.read_text())
         _run(
             [str(py), "-m", "pip", "install", "-q", "--no-deps", "--ignore-installed", str(wheel)],
             venv.parent,
