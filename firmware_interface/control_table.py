@@ -1,6 +1,6 @@
 """The XC330-M288-T control table (Protocol 2.0): addresses, sizes, access, ranges, units.
 
-Addresses and units follow the ROBOTIS e-Manual (``reference/facts.md``). Registers below
+Addresses and units follow the ROBOTIS e-Manual (``docs/sources.md``). Registers below
 address 64 are the EEPROM area: writable only while torque is off. Defaults and ranges
 the project does not depend on are typical XC330 values; the ones it does depend on
 (model number, the bring-up registers, the feedback registers) are the documented ones.

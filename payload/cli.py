@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import importlib.util
 import json
 import os
 import shutil
@@ -31,7 +30,7 @@ from payload.project import ENV_VAR, Project, ProjectError, find_project, projec
 
 # Modules providing ``register(sub, groups)``; each adds its own subcommands to the top
 # level (``sub``) or to a shared group (``groups["bench"]``, ``groups["report"]``,
-# ``groups["export"]``). A module not written yet is skipped.
+# ``groups["export"]``). Every module must exist: none is skipped.
 COMMAND_MODULES: tuple[str, ...] = (
     "payload.cli",
     "payload.retarget.cli",
@@ -263,13 +262,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     groups = _Groups(sub)
-    for name in COMMAND_MODULES:
-        try:
-            spec = importlib.util.find_spec(name)
-        except ModuleNotFoundError:
-            spec = None
-        if spec is None:
-            continue
+    for name in COMMAND_MODULES:  # every one is part of the package: a missing one is a bug
         module = importlib.import_module(name)
         register_fn: Callable[..., None] = module.register
         register_fn(sub, groups)

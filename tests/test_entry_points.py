@@ -52,3 +52,17 @@ def test_summary_tables_keep_one_line_per_row_and_their_units_when_piped(design_
         assert col in header
     # a wrapped row would leave a continuation line with an empty first cell
     assert not [ln for ln in lines if ln.startswith("│ ") and ln[2:12].strip() == ""]
+
+
+def test_every_command_module_registers_its_commands() -> None:
+    from payload.cli import COMMAND_MODULES, build_parser
+
+    parser = build_parser()
+    sub = next(a for a in parser._actions if a.dest == "command")
+    # the contract's top-level commands (DESIGN.md), each from its own module
+    for command in ("build", "summary", "new", "sweep", "trial", "trials", "teleop", "review"):
+        assert command in sub.choices, command
+    for group, what in (("bench", "retarget"), ("bench", "sim"), ("bench", "trial")):
+        inner = next(a for a in sub.choices[group]._actions if a.dest == f"{group}_command")
+        assert what in inner.choices
+    assert "hw" in sub.choices and len(COMMAND_MODULES) == len(set(COMMAND_MODULES))

@@ -12,13 +12,10 @@ import os
 import shutil
 from pathlib import Path
 
-import casadi as ca
 import numpy as np
 import pytest
 
 from payload.cli import main
-from payload.design import load_design
-from payload.kinematics import Kinematics
 from payload.retarget import (
     DEFAULT_HAND,
     N_FEATURES,
@@ -677,17 +674,22 @@ def test_bench_cli_prints_one_json_object_with_the_issues_fields(capsys):
     assert r["speedup_median"] == pytest.approx(
         r["reference"]["median_us"] / r["production"]["median_us"], rel=0.01
     )
-    assert 0.0 <= r["cost_not_worse_fraction"] <= 1.0
+    n = r["pair_solves"]
+
+    def is_share_of_solves(f: float) -> bool:  # k of the n pair solves, for some whole k
+        return 0 <= f <= 1 and abs(f * n - round(f * n)) < 1e-9
+
+    assert is_share_of_solves(r["cost_not_worse_fraction"])
     assert r["span_error_mm_median"] >= 0.0
     assert r["bound_violations"] == 0
     keys = {"median_us", "p99_us", "evaluations_median", "evaluations_max", "optimum_fraction"}
     for budget in ("paper", "converged"):
         b = r["budgets"][budget]
         assert set(b) >= keys | {"collision_free_fraction"}
-        assert 0.0 <= b["optimum_fraction"] <= 1.0
-        assert 0.0 <= b["collision_free_fraction"] <= 1.0  # our URDF has collision meshes
+        assert is_share_of_solves(b["optimum_fraction"])
+        assert is_share_of_solves(b["collision_free_fraction"])  # our URDF has collision meshes
     assert 1 <= r["budgets"]["paper"]["evaluations_max"] <= 20
-    assert 0.0 <= r["reference"]["optimum_fraction"] <= 1.0
+    assert is_share_of_solves(r["reference"]["optimum_fraction"])
     assert r["production"]["budget"] == "paper"
 
 
@@ -727,6 +729,7 @@ def test_package_api_is_exported():
     import payload.retarget as rt
 
     for name in rt.__all__:
-        assert hasattr(rt, name), name
-    assert isinstance(ca.Function, type)
-    assert Kinematics is not None and load_design is not None
+        obj = getattr(rt, name)
+        # every public name is defined in the package itself, not re-exported from elsewhere
+        if callable(obj):
+            assert obj.__module__.startswith("payload.retarget."), (name, obj.__module__)

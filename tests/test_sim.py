@@ -33,7 +33,7 @@ from payload.sim import (
 )
 from payload.sim.bench import RouteFollower
 
-# Figures from reference/facts.md, typed here independently of the code under test.
+# Figures from docs/sources.md, typed here independently of the code under test.
 XC330_STALL = 0.93  # [N m] at 5 V
 XC330_STALL_CURRENT = 1.80  # [A]
 CURRENT_CAP = 0.35  # [A]
@@ -184,7 +184,7 @@ def test_bad_config_is_one_clear_error():
 def test_iss_volumes_and_route():
     layout = IssLayout()
     kibo, vest, _ = layout.zones()
-    assert kibo.size == pytest.approx([1.7, 7.3, 2.0])  # facts.md
+    assert kibo.size == pytest.approx([1.7, 7.3, 2.0])  # docs/sources.md
     assert vest.size[[0, 2]] == pytest.approx([1.3, 1.3])  # the common hatch
     assert layout.route_length() == pytest.approx(9.0, abs=0.5)
     start, turn, end = layout.route()

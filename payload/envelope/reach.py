@@ -77,8 +77,8 @@ CTB_FEATURES: tuple[GraspFeature, ...] = (
     GraspFeature("handle strap folded double", 0.006, "ASSUMPTION"),
     GraspFeature("bag edge: fabric wall with piping", 0.010, "ASSUMPTION"),
     GraspFeature("bag edge: two walls at a seam", 0.020, "ASSUMPTION"),
-    GraspFeature("half CTB across its 23.5 cm side", 0.235, "facts.md (NASA packing data)"),
-    GraspFeature("rigid CTB model across its 25 cm side", 0.25, "facts.md (pyastrobee)"),
+    GraspFeature("half CTB across its 23.5 cm side", 0.235, "docs/sources.md (NASA packing data)"),
+    GraspFeature("rigid CTB model across its 25 cm side", 0.25, "docs/sources.md (pyastrobee)"),
 )
 """Default features checked by the grasp check (``--thickness`` adds more)."""
 

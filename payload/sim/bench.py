@@ -1,10 +1,12 @@
 """``payload bench sim``: real-time factor of the full CTB scene under the 50 Hz loop.
 
-Until the teleoperation pipeline exists, a scripted operator stands in for it: it pinches
-the CTB handle with fixed joint commands, then flies the cargo route with body-twist
-commands (carrot following, braking to stop at the end). Every control step does what the
-teleoperation loop will: read the payload, read the world state (poses, contacts,
-indicator), send a payload command and a vehicle twist, advance 20 physics steps.
+A scripted operator drives the scene, so the figure is the simulator's own cost: it
+pinches the CTB handle with fixed joint commands, then flies the cargo route with
+body-twist commands (carrot following, braking to stop at the end). Every control step
+does the simulator's part of the teleoperation loop: read the payload, read the world
+state (poses, contacts, indicator), send a payload command and a vehicle twist, advance
+20 physics steps. ``payload bench trial`` measures the whole path with the teleoperation
+pipeline, the synthetic operator and the recorder.
 """
 
 from __future__ import annotations

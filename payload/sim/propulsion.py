@@ -1,6 +1,6 @@
 """Astrobee's propulsion: two propulsion modules, 12 nozzles, and a force allocation.
 
-Geometry from NASA's propulsion code (``reference/facts.md``: gnc/pmc/src/shared.cc):
+Geometry from NASA's propulsion code (``docs/sources.md``: gnc/pmc/src/shared.cc):
 nozzle positions, nozzle axes, widths and test-fitted discharge coefficients. The PMC
 simulator (gnc/pmc/src/pmc_sim.cc) maps a nozzle's thrust ``t >= 0`` to the body wrench
 ``F = -a t`` and ``tau = r x (-a t)`` with ``a`` the nozzle axis and ``r`` its position:
@@ -57,7 +57,7 @@ NOZZLE_POSITIONS_IN = np.array(
         (-2.66, -4.01, -6.00),
     ]
 )
-"""Nozzle positions in the body frame [inch] (facts.md, shared.cc)."""
+"""Nozzle positions in the body frame [inch] (docs/sources.md, shared.cc)."""
 
 NOZZLE_AXES = np.array(
     [

@@ -29,7 +29,7 @@ class VehicleError(PayloadError):
 
 @dataclass(frozen=True)
 class FlightMode:
-    """Astrobee propulsion and motion limits of one flight mode (facts.md).
+    """Astrobee propulsion and motion limits of one flight mode (docs/sources.md).
 
     Attributes:
         name: Mode name.
@@ -74,7 +74,7 @@ FLIGHT_MODES: dict[str, FlightMode] = {
         impeller_rpm=2800,
     ),
 }
-"""Astrobee flight modes (gnc.config figures via facts.md)."""
+"""Astrobee flight modes (gnc.config figures via docs/sources.md)."""
 
 PROPULSION_MODELS: tuple[str, ...] = ("nozzles", "box")
 """``nozzles``: the 12-nozzle allocation (:mod:`payload.sim.propulsion`), force and torque

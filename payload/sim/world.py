@@ -7,7 +7,7 @@ Node 2's port side, so Kibo's long axis runs along +y.
 Every interior is an axis-aligned box of open space bounded by rack faces (thin collision
 boxes) with handrails standing off them; the hatch vestibule is a square tube joining
 Node 2's port rack face to Kibo's forward rack face. Figures come from
-``reference/facts.md``; where a figure is not published the default is marked ASSUMPTION.
+``docs/sources.md``; where a figure is not published the default is marked ASSUMPTION.
 
 The payload MJCF (``urdf/payload.xml``, generated from ``cad/design.toml``) is attached
 under the Astrobee body with the name prefix :data:`PAYLOAD_PREFIX`, so its names stay
@@ -56,10 +56,10 @@ SUBSTEPS = round(CONTROL_DT / PHYSICS_DT)
 """Physics steps per control step (20)."""
 
 ASTROBEE_MASS = 9.5838
-"""Astrobee mass without payloads, four batteries [kg] (facts.md)."""
+"""Astrobee mass without payloads, four batteries [kg] (docs/sources.md)."""
 
 ASTROBEE_INERTIA = (0.15343, 0.14271, 0.16230)
-"""Astrobee principal inertia about its centre of mass [kg m^2] (facts.md)."""
+"""Astrobee principal inertia about its centre of mass [kg m^2] (docs/sources.md)."""
 
 
 def payload_mount(vehicle: Vehicle) -> np.ndarray:
@@ -79,7 +79,7 @@ def design_vehicle(design: Design) -> Vehicle:
 
 
 ASTROBEE_SIZE = float(Vehicle().body_size[0])
-"""Fallback only: edge of the collision cube of the default vehicle (0.32 m, facts.md). The
+"""Fallback only: edge of the collision cube of the default vehicle (0.32 m, docs/sources.md). The
 world sizes Astrobee's collision box from the design's ``vehicle.body_size``."""
 
 PAYLOAD_MOUNT = tuple(float(v) for v in payload_mount(Vehicle()))
@@ -132,17 +132,17 @@ class IssLayout:
     """Dimensions of the route's three volumes (world frame, metres).
 
     Attributes:
-        kibo_width: Kibo open interior across its axis, along x (facts.md: 1.7 m).
-        kibo_height: Kibo open interior, along z (facts.md: 2.0 m).
-        kibo_length: Kibo open interior along its axis, y (facts.md: 7.3 m).
+        kibo_width: Kibo open interior across its axis, along x (docs/sources.md: 1.7 m).
+        kibo_height: Kibo open interior, along z (docs/sources.md: 2.0 m).
+        kibo_length: Kibo open interior along its axis, y (docs/sources.md: 7.3 m).
         node2_length: Node 2 open interior along its axis, x. ASSUMPTION: 6.0 m of the
             7.2 m module (end cones excluded).
         node2_width: Node 2 open interior between rack faces, along y and z. ASSUMPTION:
             2.0 m, Kibo's figure (rack depth is common to the pressurised modules).
-        module_diameter: Outer diameter of Node 2 (facts.md: 4.4 m); sets how far the port
+        module_diameter: Outer diameter of Node 2 (docs/sources.md: 4.4 m); sets how far the port
             rack face stands from the hull.
-        hatch: Edge of the square common hatch (facts.md: 1.3 m).
-        vestibule_length: Length of the berthing vestibule (facts.md: 0.4 m).
+        hatch: Edge of the square common hatch (docs/sources.md: 1.3 m).
+        vestibule_length: Length of the berthing vestibule (docs/sources.md: 0.4 m).
         kibo_endcone: Kibo's forward bulkhead to its first rack face. ASSUMPTION: 0.6 m.
         hatch_x: x of the Kibo hatch centre on Node 2. ASSUMPTION: 1.5 m (radial ports
             toward the forward end of Node 2).
@@ -259,7 +259,7 @@ class IssLayout:
 
 @dataclass(frozen=True)
 class CtbSize:
-    """A Cargo Transfer Bag size: outer box and loaded mass (facts.md).
+    """A Cargo Transfer Bag size: outer box and loaded mass (docs/sources.md).
 
     Attributes:
         name: Size name.
@@ -283,7 +283,7 @@ CTB_SIZES: dict[str, CtbSize] = {
     "rigid": CtbSize("rigid", 0.50, 0.42, 0.25, 5.0),
 }
 """The CTB models, in one place: NASA's standard loaded CTB sizes (packing challenge
-figures, facts.md) and ``rigid``, the rigid CTB model of Morton et al. 2025 (pyastrobee
+figures, docs/sources.md) and ``rigid``, the rigid CTB model of Morton et al. 2025 (pyastrobee
 config/bag_properties.py: a 50 x 25 x 42 cm compartment of about 5 kg). The rigid bag is
 mounted with its 25 cm edge vertical, so its handle face (normal to that edge, like
 pyastrobee's front handle) is on top under the fingers, as the single bag's is. Both are

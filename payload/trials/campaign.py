@@ -61,7 +61,7 @@ PAPER_RESULTS: dict[str, Any] = {
     "peak_mm": {"median": 67.7, "min": 26.8, "max": 176.6},
     "contact_s": {"median": 75.1, "min": 65.7, "max": 94.5},
 }
-"""The paper's ten-trial results (Sec. IV; shared/reference/facts.md), for comparison."""
+"""The paper's ten-trial results (Sec. IV; docs/sources.md), for comparison."""
 
 TRIAL_FILES: tuple[str, ...] = (
     "log.mcap",
