@@ -716,7 +716,9 @@ def _fake_runner(monkeypatch: pytest.MonkeyPatch) -> list[dict[str, Any]]:
     """Stand in for the teleoperation runner (issue 6) with the fixture trial."""
     calls: list[dict[str, Any]] = []
 
-    def run_trial(seed: int, operator: str, replay: Path | None, out_dir: Path) -> dict:
+    def run_trial(
+        seed: int, operator: str, replay: Path | None, out_dir: Path, project: object = None
+    ) -> dict:
         calls.append({"seed": seed, "operator": operator, "replay": replay})
         return fixture_synthetic_trial(seed, out_dir)
 
