@@ -754,6 +754,7 @@ def _fake_runner(monkeypatch: pytest.MonkeyPatch) -> list[dict[str, Any]]:
         replay: Path | None,
         out_dir: Path,
         retarget_budget: str = "paper",
+        project: object = None,
         **setup: Any,
     ) -> dict:
         calls.append({"seed": seed, "operator": operator, "replay": replay, **setup})
