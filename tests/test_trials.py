@@ -972,7 +972,9 @@ def test_finish_trial_scores_both_contact_definitions(tmp_path: Path) -> None:
     from payload.trials.recorder import read_recording
 
     fixture_synthetic_trial(3, tmp_path)
-    result = finish_trial(tmp_path, tmp_path / "log.mcap", min_interval_s=0.5, max_gap_s=0.1)
+    result = finish_trial(
+        tmp_path, tmp_path / "log.mcap", min_interval_s=0.5, max_gap_s=0.1, force=True
+    )
     rec = read_recording(tmp_path / "log.mcap")
     literal = compute_metrics(rec).as_dict()
     literal.pop("criterion")

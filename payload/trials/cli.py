@@ -190,9 +190,12 @@ def _cmd_trials_summarize(args: argparse.Namespace) -> int:
     )
     previous = _previous_summary(Path(args.dir) / "summary.json")
     wall = {t.get("seed"): t.get("wall_s") for t in previous.get("trials", [])}
+    budget = previous.get("retarget_budget")
     for r in results:  # how long each trial took is known only from the campaign run
         if r.get("wall_s") is None and wall.get(r.get("seed")) is not None:
             r["wall_s"] = wall[r.get("seed")]
+        if isinstance(budget, str):  # trials recorded before the budget was in metrics.json
+            r.setdefault("retarget_budget", budget)
     tag = None
     if rescore:  # a rescoring is written beside the originals, named by its definition
         defs = {
@@ -206,6 +209,7 @@ def _cmd_trials_summarize(args: argparse.Namespace) -> int:
         args.dir,
         title=previous.get("title"),
         run=previous.get("run"),
+        provenance=previous.get("provenance"),
         tag=tag,
         force=args.force,
     )

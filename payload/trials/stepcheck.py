@@ -12,9 +12,15 @@ import math
 from collections.abc import Mapping
 from typing import Any
 
+import numpy as np
+
 from payload.errors import PayloadError
 
-_NUMBER = (int, float)
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(
+        value, (bool, np.bool_)
+    )
 
 
 class StepError(PayloadError):
@@ -35,13 +41,15 @@ def _describe(value: Any) -> str:
 
 
 def _check_array(value: Any, shape: tuple[int, ...], nullable: bool) -> str | None:
-    """What is wrong with a nested list of numbers, or ``None`` if nothing."""
+    """What is wrong with a nested list (or array) of numbers, or ``None`` if nothing."""
+    if isinstance(value, np.ndarray):
+        return _check_ndarray(value, shape, nullable)
     if len(shape) == 0:
         if value is None and nullable:
             return None
-        if type(value) not in _NUMBER:
+        if not _is_number(value):
             return f"expected a number{' or null' if nullable else ''}, got {_describe(value)}"
-        if not math.isfinite(value):
+        if not math.isfinite(value) and not (nullable and math.isnan(value)):
             return f"expected a finite number, got {value}"
         return None
     if not isinstance(value, list) or len(value) != shape[0]:
@@ -50,6 +58,21 @@ def _check_array(value: Any, shape: tuple[int, ...], nullable: bool) -> str | No
         problem = _check_array(item, shape[1:], nullable)
         if problem is not None:
             return f"[{i}]{'' if problem.startswith('[') else ': '}{problem}"
+    return None
+
+
+def _check_ndarray(value: np.ndarray, shape: tuple[int, ...], nullable: bool) -> str | None:
+    """The array form of :func:`_check_array` (what a typed decoder returns)."""
+    if value.shape != shape:
+        got = _shape_text(value.shape) if value.shape else "a scalar"
+        return f"expected {_shape_text(shape) or 'a'} number(s), got an array of {got}"
+    if value.dtype.kind not in "fiu":
+        return f"expected numbers, got an array of {value.dtype}"
+    bad = np.isinf(value) if nullable else ~np.isfinite(value)
+    if bad.any():
+        where = tuple(int(i) for i in np.argwhere(bad)[0])
+        index = "".join(f"[{i}]" for i in where)
+        return f"{index}{': ' if index else ''}expected a finite number, got {value[where]}"
     return None
 
 
@@ -67,7 +90,7 @@ def field_problem(value: Any, shape: tuple[int, ...], kind: Any) -> str | None:
             return f"expected one of {list(kind)}, got {_describe(value)}"
         return None
     if kind == "bool":
-        if not isinstance(value, bool):
+        if not isinstance(value, (bool, np.bool_)):
             return f"expected true or false, got {_describe(value)}"
         return None
     return _check_array(value, shape, kind == "float_nan")
