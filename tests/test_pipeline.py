@@ -211,7 +211,9 @@ def test_synthetic_operator_carries_the_ctb_through_a_turn_in_the_simulator():
     from payload.trials import runner
 
     driver = SimDriver()
-    rts, ranges = runner.retargeting()
+    # the converged budget: with the paper's 20 evaluations per pair solve this scripted
+    # flight (seed 11, a turn after 2 m) loses opposing contact for a moment (issue 14)
+    rts, ranges = runner.retargeting(budget="converged")
     runner.place_ctb_for_teleop(driver, rts, ranges)
     start = driver.world_state().astrobee_pos.copy()
     heading = driver.world.layout.start_yaw()
