@@ -26,7 +26,7 @@ from payload.sim.driver import SimDriver, WorldState
 from payload.teleop.calibration import CalibrationProcedure, Captures
 from payload.teleop.loop import ReplaySource, StepContext, run_session
 from payload.teleop.pipeline import TeleopConfig, TeleopPipeline, calibrate_operator, pair_index
-from payload.teleop.replay import HandRecordingWriter, read_hand_recording
+from payload.teleop.replay import HandRecordingWriter
 
 log = logging.getLogger(__name__)
 
@@ -191,9 +191,15 @@ def run_hardware_trial(
     """
     from payload.trials.campaign import finish_trial
     from payload.trials.recorder import TrialRecorder
-    from payload.trials.runner import _module_rects, design_hash, place_ctb_for_teleop, retargeting
+    from payload.trials.runner import (
+        _module_rects,
+        design_hash,
+        load_replay,
+        place_ctb_for_teleop,
+        retargeting,
+    )
 
-    _, frames = read_hand_recording(replay)
+    _, frames = load_replay(replay)  # a trial's log.mcap, or a hands.jsonl
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     sim = SimDriver()
