@@ -676,8 +676,8 @@ def test_bench_cli_prints_one_json_object_with_the_issues_fields(capsys):
     )
     n = r["pair_solves"]
 
-    def is_share_of_solves(f: float) -> bool:  # k of the n pair solves, for some whole k
-        return 0 <= f <= 1 and abs(f * n - round(f * n)) < 1e-9
+    def is_share_of_solves(f: float) -> bool:  # k of the n pair solves (printed to 4 digits)
+        return 0 <= f <= 1 and abs(f * n - round(f * n)) <= n * 5e-5 + 1e-9
 
     assert is_share_of_solves(r["cost_not_worse_fraction"])
     assert r["span_error_mm_median"] >= 0.0
