@@ -17,7 +17,7 @@ demo: $(STAMP)
 	$(BIN)/payload summary
 	$(BIN)/payload report envelope
 	$(BIN)/payload report reach --samples 100000
-	$(BIN)/payload trials run --n 10 --seed 0 --out runs/campaign
+	$(BIN)/payload trials run --n 10 --seed 0 --out runs/campaign-$$(date +%Y%m%d-%H%M%S)
 
 test: $(STAMP)
 	$(BIN)/ruff check .
