@@ -19,7 +19,11 @@ demo: $(STAMP)
 	$(BIN)/payload report reach --samples 100000
 	$(BIN)/payload trials run --n 10 --seed 0 --out runs/campaign-$$(date +%Y%m%d-%H%M%S)
 
-test: $(STAMP)
+# the WebXR emulator the browser tests load (iwer), pinned by package-lock.json
+node_modules/.package-lock.json: package-lock.json
+	npm ci --no-audit --no-fund --loglevel=error
+
+test: $(STAMP) node_modules/.package-lock.json
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 	$(BIN)/python -m pytest -q
