@@ -20,12 +20,11 @@ from typing import Any
 import numpy as np
 
 from payload.design.params import load_design
-from payload.rotations import quat_to_matrix
 from payload.schema import PayloadCommand, PayloadDriver, PayloadState, VehicleTwist
 from payload.sim.driver import SimDriver, WorldState
 from payload.teleop.calibration import CalibrationProcedure, Captures
 from payload.teleop.loop import ReplaySource, StepContext, run_session
-from payload.teleop.pipeline import TeleopConfig, TeleopPipeline, calibrate_operator, pair_index
+from payload.teleop.pipeline import TeleopConfig, TeleopPipeline, calibrate_operator
 from payload.teleop.replay import HandRecordingWriter
 
 log = logging.getLogger(__name__)
@@ -137,38 +136,6 @@ def replay_session(
     return commands
 
 
-def _record(ctx: StepContext, driver: HardwareInTheLoop, retargeters: dict) -> Any:
-    from payload.trials.recorder import StepRecord
-    from payload.trials.runner import MODULE_NAMES
-
-    st, fr, step, q = ctx.state, ctx.frame, ctx.step, ctx.command.q
-    rot = quat_to_matrix(st.astrobee_quat)
-    module = driver.module_at(st.ctb_pos)
-    return StepRecord(
-        t=ctx.t,
-        phase=ctx.phase,
-        left_joints=fr.left.joints,
-        right_joints=fr.right.joints,
-        left_tracked=bool(fr.left.tracked),
-        right_tracked=bool(fr.right.tracked),
-        q_left=step.q_left if step else q[pair_index(retargeters["L"])],
-        q_right=step.q_right if step else q[pair_index(retargeters["R"])],
-        rail_cmd=float(q[-1]),
-        twist_cmd=np.concatenate([ctx.twist.linear, ctx.twist.angular]),
-        q_cmd=q,
-        deploy_cmd=float(ctx.command.deploy),
-        q_meas=ctx.payload.q,
-        deploy_meas=float(ctx.payload.deploy),
-        astrobee_pos=st.astrobee_pos,
-        astrobee_quat=st.astrobee_quat,
-        astrobee_twist=np.concatenate([rot @ st.astrobee_linear, st.astrobee_angular]),
-        ctb_pos=st.ctb_pos,
-        ctb_quat=st.ctb_quat,
-        contact=bool(st.opposing_contact),
-        ctb_module=MODULE_NAMES.get(module.value, "outside") if module is not None else "outside",
-    )
-
-
 def run_hardware_trial(
     hardware: Any,
     replay: Path,
@@ -197,6 +164,7 @@ def run_hardware_trial(
         load_replay,
         place_ctb_for_teleop,
         retargeting,
+        step_record,
     )
 
     _, frames = load_replay(replay)  # a trial's log.mcap, or a hands.jsonl
@@ -226,7 +194,7 @@ def run_hardware_trial(
 
             def on_step(ctx: StepContext) -> None:
                 hands_out.write(ctx.frame)
-                recorder.write(_record(ctx, driver, retargeters))
+                recorder.write(step_record(ctx, driver, retargeters))
                 fault = getattr(hardware, "fault", None)
                 if fault is not None:
                     raise fault

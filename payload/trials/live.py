@@ -35,7 +35,7 @@ from payload.teleop.calibration import (
 )
 from payload.teleop.live import LiveHub, LiveSource, TimedDriver
 from payload.teleop.loop import StepContext, run_session
-from payload.teleop.pipeline import TeleopConfig, TeleopPipeline, calibrate_operator, pair_index
+from payload.teleop.pipeline import TeleopConfig, TeleopPipeline, calibrate_operator
 from payload.teleop.replay import HandRecordingWriter
 from payload.trials.recorder import StepRecord, TrialRecorder
 from payload.trials.runner import (
@@ -165,32 +165,10 @@ class LiveSession:
     def _record(self, ctx: StepContext) -> None:
         if self.record is None:
             return
-        st, fr, step, q = ctx.state, ctx.frame, ctx.step, ctx.command.q
-        rot = quat_to_matrix(st.astrobee_quat)
-        module = self.driver.module_at(st.ctb_pos)
-        rec = StepRecord(
-            t=ctx.t,
-            phase=ctx.phase,
-            left_joints=fr.left.joints,
-            right_joints=fr.right.joints,
-            left_tracked=bool(fr.left.tracked),
-            right_tracked=bool(fr.right.tracked),
-            q_left=step.q_left if step else q[pair_index(self.retargeters["L"])],
-            q_right=step.q_right if step else q[pair_index(self.retargeters["R"])],
-            rail_cmd=float(q[-1]),
-            twist_cmd=np.concatenate([ctx.twist.linear, ctx.twist.angular]),
-            q_cmd=q,
-            deploy_cmd=float(ctx.command.deploy),
-            q_meas=ctx.payload.q,
-            deploy_meas=float(ctx.payload.deploy),
-            astrobee_pos=st.astrobee_pos,
-            astrobee_quat=st.astrobee_quat,
-            astrobee_twist=np.concatenate([rot @ st.astrobee_linear, st.astrobee_angular]),
-            ctb_pos=st.ctb_pos,
-            ctb_quat=st.ctb_quat,
-            contact=bool(st.opposing_contact),
-            ctb_module=MODULE_NAMES.get(module.value, "outside") if module else "outside",
-        )
+        from payload.trials.runner import step_record
+
+        fr = ctx.frame
+        rec = step_record(ctx, self.driver, self.retargeters)
         if not self.calibrated:
             # kept until the calibration succeeds: a dropped attempt is a rehearsal
             self._pending.append((rec, fr))

@@ -521,7 +521,7 @@ def _run_trial(
 
             def on_step(ctx: StepContext) -> None:
                 recorder.write_hands(ctx.frame)
-                recorder.write(_step_record(ctx, driver, retargeters))
+                recorder.write(step_record(ctx, driver, retargeters))
                 last_t[0] = ctx.t
                 if bar is not None:
                     bar.update(task, completed=ctx.t)
@@ -568,8 +568,9 @@ def _run_trial(
     return result
 
 
-def _step_record(ctx: StepContext, driver: Any, retargeters: dict[str, PairRetargeter]) -> Any:
-    """The recorder's step from what the loop hands its observer."""
+def step_record(ctx: StepContext, driver: Any, retargeters: dict[str, PairRetargeter]) -> Any:
+    """The recorder's step from what the loop hands its observer (for any driver with
+    ``module_at``: the simulator, the hardware-in-the-loop rig, the live session)."""
     from payload.trials.recorder import StepRecord
 
     st, fr = ctx.state, ctx.frame
