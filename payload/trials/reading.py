@@ -1,0 +1,296 @@
+"""Reading trial recordings (:func:`read_recording`), complete or cut short by a crash.
+
+The format is described in :mod:`payload.trials.records`.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import logging
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from google.protobuf.message import DecodeError
+from mcap.exceptions import EndOfFile, McapError
+from mcap.records import Channel, Message, Metadata
+from mcap.stream_reader import StreamReader
+
+from payload.trials import codec
+from payload.trials.records import (
+    FIELD_SPECS,
+    HANDS_TOPIC,
+    META_NAME,
+    STEP_TOPIC,
+    RecordingError,
+    StepRecord,
+)
+from payload.trials.stepcheck import StepError, check_step
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Recording:
+    """A recording as numpy arrays, one row per step (field meanings: :class:`StepRecord`).
+
+    Attributes:
+        path: The file read (``None`` for an in-memory recording).
+        meta: Merged trial metadata.
+        complete: ``True`` if the file was closed properly (has its footer); ``False`` for
+            a recording cut short (e.g. a killed process).
+        seq: Step counters, shape (N,).
+        wall_time: Wall clock at write, shape (N,) [s since the Unix epoch].
+        t: Shape (N,) [s]. phase: shape (N,) str. left_joints/right_joints: (N, 25, 3).
+        left_tracked/right_tracked/contact: (N,) bool. q_left/q_right: (N, 8).
+        rail_cmd/deploy_cmd/deploy_meas: (N,). twist_cmd/astrobee_twist: (N, 6).
+        q_cmd/q_meas: (N, 17). astrobee_pos/ctb_pos: (N, 3). astrobee_quat/ctb_quat: (N, 4).
+        ctb_module: (N,) str.
+    """
+
+    path: Path | None
+    meta: dict[str, Any]
+    complete: bool
+    seq: np.ndarray
+    wall_time: np.ndarray
+    t: np.ndarray
+    phase: np.ndarray
+    left_joints: np.ndarray
+    right_joints: np.ndarray
+    left_tracked: np.ndarray
+    right_tracked: np.ndarray
+    q_left: np.ndarray
+    q_right: np.ndarray
+    rail_cmd: np.ndarray
+    twist_cmd: np.ndarray
+    q_cmd: np.ndarray
+    deploy_cmd: np.ndarray
+    q_meas: np.ndarray
+    deploy_meas: np.ndarray
+    astrobee_pos: np.ndarray
+    astrobee_quat: np.ndarray
+    astrobee_twist: np.ndarray
+    ctb_pos: np.ndarray
+    ctb_quat: np.ndarray
+    contact: np.ndarray
+    ctb_module: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.t.shape[0])
+
+    @property
+    def rate_hz(self) -> float:
+        """Median step rate [Hz] (NaN with fewer than two steps)."""
+        if len(self) < 2:
+            return math.nan
+        return float(1.0 / np.median(np.diff(self.t)))
+
+    @staticmethod
+    def from_steps(
+        steps: list[StepRecord],
+        meta: dict[str, Any] | None = None,
+        path: Path | None = None,
+        complete: bool = True,
+    ) -> Recording:
+        """Build a recording from steps in memory (the same arrays the reader returns)."""
+        return Recording.from_dicts([s.to_json_dict() for s in steps], meta, path, complete)
+
+    @staticmethod
+    def from_dicts(
+        rows: list[dict[str, Any]],
+        meta: dict[str, Any] | None = None,
+        path: Path | None = None,
+        complete: bool = True,
+    ) -> Recording:
+        """Build a recording from decoded step messages (``seq``/``wall_time`` optional)."""
+        n = len(rows)
+        cols: dict[str, np.ndarray] = {}
+        for name, (shape, kind) in FIELD_SPECS.items():
+            if isinstance(kind, tuple):
+                cols[name] = np.array([r[name] for r in rows], dtype=object).astype(str)
+                if n == 0:
+                    cols[name] = np.zeros(0, dtype=str)
+            elif kind == "bool":
+                cols[name] = np.array([bool(r[name]) for r in rows], dtype=bool)
+            else:
+                arr = np.array(
+                    [r[name] for r in rows], dtype=object if kind == "float_nan" else np.float64
+                )
+                if kind == "float_nan":
+                    arr = np.where(arr == None, np.nan, arr).astype(np.float64)  # noqa: E711
+                cols[name] = arr.reshape((n, *shape))
+        seq = np.array([r.get("seq", i) for i, r in enumerate(rows)], dtype=np.int64)
+        wall = np.array([r.get("wall_time", math.nan) for r in rows], dtype=np.float64)
+        return Recording(
+            path=path, meta=dict(meta or {}), complete=complete, seq=seq, wall_time=wall, **cols
+        )
+
+    def step(self, i: int) -> StepRecord:
+        """Step ``i`` as a :class:`StepRecord`."""
+        return StepRecord(**{name: getattr(self, name)[i] for name in FIELD_SPECS})
+
+
+def _complete_prefix(data: bytes) -> tuple[int, bool]:
+    """Length of the longest prefix made of whole MCAP records, and whether it is closed."""
+    magic = b"\x89MCAP0\r\n"
+    if not data.startswith(magic):
+        raise RecordingError("not an MCAP file (bad magic)")
+    pos = len(magic)
+    n = len(data)
+    while pos + 9 <= n:
+        opcode = data[pos]
+        length = int.from_bytes(data[pos + 1 : pos + 9], "little")
+        end = pos + 9 + length
+        if end > n:
+            break
+        pos = end
+        if opcode == 0x02 and data[pos : pos + len(magic)] == magic:  # Footer + magic
+            return pos + len(magic), True
+    return pos, False
+
+
+def _decode_meta(items: dict[str, str], path: Path) -> dict[str, Any]:
+    out = {}
+    for key, value in items.items():
+        try:
+            out[key] = json.loads(value)
+        except ValueError:
+            raise RecordingError(f"{path}: metadata {key!r}: expected JSON text") from None
+    return out
+
+
+def _read_file(
+    path: Path,
+) -> tuple[dict[int, Channel], dict[str, Any], list[dict[str, Any]], list[dict[str, Any]], bool]:
+    """Channels, merged metadata, step rows, hand samples and completeness of a file."""
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise RecordingError(f"{path}: no such recording") from None
+    except OSError as exc:
+        raise RecordingError(f"{path}: cannot read ({exc.strerror})") from exc
+    try:
+        end, complete = _complete_prefix(data)
+    except RecordingError as exc:
+        raise RecordingError(f"{path}: {exc}") from None
+    reader = StreamReader(io.BytesIO(data[:end]))
+    channels: dict[int, Channel] = {}
+    meta: dict[str, Any] = {}
+    rows: list[dict[str, Any]] = []
+    hands: dict[int, dict[str, Any]] = {}
+    samples: list[dict[str, Any]] = []
+    step_codec = codec.StepCodec()
+    try:
+        for record in reader.records:
+            if isinstance(record, Channel):
+                channels[record.id] = record
+            elif isinstance(record, Message):
+                channel = channels.get(record.channel_id)
+                if channel is None:
+                    continue
+                if channel.topic == STEP_TOPIC:
+                    if channel.message_encoding == "json":  # schema version 1
+                        if not rows:
+                            log.warning(
+                                "%s: schema version 1 (JSON steps), read as it is; "
+                                "`payload trials convert DIR` rewrites it compactly",
+                                path,
+                            )
+                        rows.append(json.loads(record.data))
+                    else:
+                        rows.append(step_codec.decode_step(record.data, hands.get))
+                elif channel.topic == HANDS_TOPIC:
+                    sample = step_codec.decode_hands(record.data)
+                    hands[sample["seq"]] = sample
+                    samples.append(sample)
+            elif isinstance(record, Metadata) and record.name == META_NAME:
+                meta.update(_decode_meta(record.metadata, path))
+    except EndOfFile:
+        pass  # the complete prefix of a cut-short file ends exactly here
+    except (McapError, ValueError, DecodeError) as exc:  # JSON errors are ValueErrors too
+        where = (
+            f"step {len(rows)}"
+            if isinstance(exc, (json.JSONDecodeError, DecodeError))
+            else "record"
+        )
+        raise RecordingError(f"{path}: {where}: corrupt ({exc})") from None
+    return channels, meta, rows, samples, complete
+
+
+def recording_version(path: str | Path) -> int:
+    """Schema version of a recording: 1 (JSON steps) or 2 (protobuf steps).
+
+    Raises:
+        RecordingError: Unreadable, or no ``/trial/step`` channel.
+    """
+    path = Path(path)
+    channels = _read_file(path)[0]
+    for c in channels.values():
+        if c.topic == STEP_TOPIC:
+            return 1 if c.message_encoding == "json" else 2
+    raise RecordingError(f"{path}: no {STEP_TOPIC} channel (not a trial recording)")
+
+
+def read_recording(path: str | Path) -> Recording:
+    """Read a recording written by :class:`TrialRecorder`, complete or cut short.
+
+    A file whose writer was killed has no summary or footer and may end in a torn record;
+    every complete record before that is read.
+
+    Args:
+        path: The ``.mcap`` file.
+
+    Returns:
+        The recording, with ``complete`` telling whether the file was closed properly.
+
+    Raises:
+        RecordingError: The file is missing, is not MCAP, or is a closed MCAP file without a
+            ``/trial/step`` channel. (A file cut short before its channel record reads as an
+            empty recording.)
+    """
+    path = Path(path)
+    channels, meta, rows, _, complete = _read_file(path)
+    if complete and not any(c.topic == STEP_TOPIC for c in channels.values()):
+        raise RecordingError(f"{path}: no {STEP_TOPIC} channel (not a trial recording)")
+    try:
+        for i, row in enumerate(rows):  # every step, not just the first
+            check_step(row, FIELD_SPECS, i, str(path))
+    except StepError as exc:
+        raise RecordingError(str(exc)) from None
+    return Recording.from_dicts(rows, meta, path, complete)
+
+
+def read_hand_frames(path: str | Path) -> tuple[dict[str, Any], list[Any]]:
+    """The raw hand frames of a recording's ``/trial/hands`` channel, for a replay.
+
+    Returns:
+        (trial metadata, :class:`~payload.teleop.hands.HandFrame` list in recorded order).
+
+    Raises:
+        RecordingError: Unreadable file, or no hand channel (a recording from before
+            schema version 2: replay its ``hands.jsonl`` instead).
+    """
+    from payload.teleop.hands import Hand, HandFrame
+
+    path = Path(path)
+    channels, meta, _, samples, _ = _read_file(path)
+    if not any(c.topic == HANDS_TOPIC for c in channels.values()):
+        raise RecordingError(
+            f"{path}: no {HANDS_TOPIC} channel (an older recording: replay its hands.jsonl)"
+        )
+
+    def hand(joints: np.ndarray, tracked: bool) -> Hand:
+        if not tracked or not np.all(np.isfinite(joints)):
+            return Hand.untracked()
+        return Hand(joints, True)
+
+    frames = [
+        HandFrame(
+            s["stamp"], hand(s["left"], s["left_tracked"]), hand(s["right"], s["right_tracked"])
+        )
+        for s in samples
+    ]
+    return meta, frames

@@ -1,0 +1,311 @@
+"""What a trial recording holds: the file layout, the step record and its schema.
+
+The writer is :class:`payload.trials.recorder.TrialRecorder`, the reader
+:func:`payload.trials.reading.read_recording`; both re-exported by :mod:`payload.trials.recorder`.
+
+File layout (``log.mcap``, schema version 2)
+--------------------------------------------
+* Profile ``""``, library ``payload-workbench``. Messages go into zstd-compressed chunks;
+  the chunk in progress is closed and the file flushed at least once per
+  ``flush_period_s`` (default 1 s) of wall-clock time *and* of recorded time, so a process
+  killed with SIGKILL loses at most the last second; :func:`read_recording` reads such a
+  file (no summary or footer, possibly a torn last chunk) up to the last complete record.
+  The summary holds chunk indexes, so indexed readers (Foxglove) seek without a scan.
+* Channel ``/trial/step``, encoding ``protobuf``, schema ``payload.trials.Step`` (declared
+  in :mod:`payload.trials.codec`): one message per control step, every field below,
+  doubles lossless.
+* Channel ``/trial/hands``, schema ``payload.trials.HandSample``: the raw hand frame the
+  pipeline saw at that step (stamp, tracked flags, 25 x 3 joints, lossless), written by
+  :meth:`TrialRecorder.write_hands`; the step then refers to it instead of repeating the
+  joints. ``payload trial --operator replay log.mcap`` replays it bit for bit.
+* The standard Foxglove channels of :mod:`payload.trials.foxglove` when the recorder has
+  a scene (the trial runner's recordings do).
+* Message ``log_time`` is the wall clock at the first step plus the step time, so every
+  channel shares one timeline in simulated time [ns since the Unix epoch];
+  ``publish_time`` is the step time ``t`` [ns since the start of teleoperation]; the
+  wall clock at write is the step's ``wall_time``.
+* Metadata records named ``payload.trial`` (see :meth:`TrialRecorder.write_meta`): each
+  value is JSON text (trial seed, design hash, operator parameters, calibration, ...).
+* Schema version 1 recordings (one JSON message per step, ``jsonschema`` schema
+  :data:`STEP_SCHEMA`, ``hands.jsonl`` beside them) still read; ``payload trials convert``
+  rewrites them in version 2.
+
+Step message fields (all SI, workbench frame)
+---------------------------------------------
+=================  =========  ============================================================
+field              shape      meaning
+=================  =========  ============================================================
+``seq``            int        step counter from 0 (added by the recorder)
+``wall_time``      float      wall clock at write [s since the Unix epoch] (added)
+``t``              float      time since the start of teleoperation [s]
+``phase``          str        one of :data:`PHASES`
+``left_joints``    (25, 3)    raw WebXR hand-joint positions [m], ``null`` = not tracked
+``right_joints``   (25, 3)    same for the right hand
+``left_tracked``   bool       left hand tracked this step
+``right_tracked``  bool       right hand tracked this step
+``q_left``         (8,)       finger channel, pair L = (A, C): A then C, each
+                              [mcp_flex, mcp_abd, pip, dip] [rad]
+``q_right``        (8,)       finger channel, pair R = (B, D), same order [rad]
+``rail_cmd``       float      rail channel command [m]
+``twist_cmd``      (6,)       base channel: linear xyz [m/s], angular xyz [rad/s], body frame
+``q_cmd``          (17,)      commanded manipulation coordinates, paper order [rad, rail m]
+``deploy_cmd``     float      commanded deployment (stage) coordinate [m]
+``q_meas``         (17,)      measured manipulation coordinates [rad, rail m]
+``deploy_meas``    float      measured deployment coordinate [m]
+``astrobee_pos``   (3,)       Astrobee body origin in the world [m]
+``astrobee_quat``  (4,)       Astrobee orientation, w x y z, body -> world
+``astrobee_twist`` (6,)       world linear velocity [m/s], body angular velocity [rad/s]
+``ctb_pos``        (3,)       CTB centre of mass in the world [m]
+``ctb_quat``       (4,)       CTB orientation, w x y z, CTB -> world
+``contact``        bool       opposing-contact indicator (CTB touches fingertips of both sides)
+``ctb_module``     str        one of :data:`MODULES`
+=================  =========  ============================================================
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import dataclass, fields
+from typing import Any
+
+import numpy as np
+
+from payload.errors import PayloadError
+from payload.schema import N_MANIPULATION
+
+PHASES: tuple[str, ...] = (
+    "calibration",
+    "acquisition",
+    "translation",
+    "turn",
+    "arrival",
+    "braking",
+)
+"""Task phases a step can be in (the paper's four plus calibration and braking)."""
+
+MODULES: tuple[str, ...] = ("kibo", "hatch", "node2", "outside")
+"""Where the CTB centre of mass is: a module, the hatch between them, or outside both."""
+
+N_HAND_JOINTS = 25
+"""WebXR XRHand joints per hand."""
+
+STEP_TOPIC = "/trial/step"
+HANDS_TOPIC = "/trial/hands"
+STEP_SCHEMA_NAME = "payload.trials.StepRecord"
+META_NAME = "payload.trial"
+SCHEMA_VERSION = 2
+LIBRARY = "payload-workbench"
+
+# name -> (shape, kind); shape () is a scalar. kind: "float" (finite), "float_nan" (NaN
+# allowed, stored as null), "bool", or a tuple of allowed strings.
+FIELD_SPECS: dict[str, tuple[tuple[int, ...], Any]] = {
+    "t": ((), "float"),
+    "phase": ((), PHASES),
+    "left_joints": ((N_HAND_JOINTS, 3), "float_nan"),
+    "right_joints": ((N_HAND_JOINTS, 3), "float_nan"),
+    "left_tracked": ((), "bool"),
+    "right_tracked": ((), "bool"),
+    "q_left": ((8,), "float"),
+    "q_right": ((8,), "float"),
+    "rail_cmd": ((), "float"),
+    "twist_cmd": ((6,), "float"),
+    "q_cmd": ((N_MANIPULATION,), "float"),
+    "deploy_cmd": ((), "float"),
+    "q_meas": ((N_MANIPULATION,), "float"),
+    "deploy_meas": ((), "float"),
+    "astrobee_pos": ((3,), "float"),
+    "astrobee_quat": ((4,), "float"),
+    "astrobee_twist": ((6,), "float"),
+    "ctb_pos": ((3,), "float"),
+    "ctb_quat": ((4,), "float"),
+    "contact": ((), "bool"),
+    "ctb_module": ((), MODULES),
+}
+"""Every step field with its shape and kind; the one table the schema, the validation and
+the reader are built from."""
+
+
+class RecordingError(PayloadError):
+    """A step record is malformed, or a recording cannot be written or read."""
+
+
+def _json_schema_for(shape: tuple[int, ...], kind: Any) -> dict[str, Any]:
+    if isinstance(kind, tuple):
+        return {"type": "string", "enum": list(kind)}
+    if kind == "bool":
+        return {"type": "boolean"}
+    item: dict[str, Any] = (
+        {"type": ["number", "null"]} if kind == "float_nan" else {"type": "number"}
+    )
+    for n in reversed(shape):
+        item = {"type": "array", "items": item, "minItems": n, "maxItems": n}
+    return item
+
+
+STEP_SCHEMA: dict[str, Any] = {
+    "$schema": "https://json-schema.org/draft/2020-12/schema",
+    "title": STEP_SCHEMA_NAME,
+    "description": (
+        "One 50 Hz control step of a cargo-transport trial. SI units, workbench frame "
+        "(REP-103); quaternions w x y z; null = not tracked. See payload/trials/recorder.py."
+    ),
+    "type": "object",
+    "properties": {
+        "seq": {"type": "integer", "minimum": 0},
+        "wall_time": {"type": "number"},
+        **{name: _json_schema_for(shape, kind) for name, (shape, kind) in FIELD_SPECS.items()},
+    },
+    "required": ["seq", "wall_time", *FIELD_SPECS],
+    "additionalProperties": True,
+    "x-version": SCHEMA_VERSION,
+}
+"""The JSON schema stored in every recording for the ``/trial/step`` channel."""
+
+
+def _coerce(name: str, value: Any) -> Any:
+    shape, kind = FIELD_SPECS[name]
+    if isinstance(kind, tuple):
+        if not isinstance(value, str) or value not in kind:
+            raise RecordingError(f"StepRecord.{name}: {value!r} is not one of {list(kind)}")
+        return value
+    if kind == "bool":
+        if isinstance(value, np.ndarray) and value.shape == ():
+            value = value.item()
+        if not isinstance(value, (bool, np.bool_)):
+            raise RecordingError(f"StepRecord.{name}: expected a bool, got {type(value).__name__}")
+        return bool(value)
+    if shape == ():
+        try:
+            out = float(value)
+        except (TypeError, ValueError) as exc:
+            raise RecordingError(f"StepRecord.{name}: expected a number, got {value!r}") from exc
+        if not math.isfinite(out):
+            raise RecordingError(f"StepRecord.{name}: not finite ({out})")
+        return out
+    try:
+        arr = np.array(value, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise RecordingError(f"StepRecord.{name}: not numeric") from exc
+    if arr.shape != shape:
+        raise RecordingError(f"StepRecord.{name}: expected shape {shape}, got {arr.shape}")
+    bad = np.isinf(arr) if kind == "float_nan" else ~np.isfinite(arr)
+    if np.any(bad):
+        raise RecordingError(f"StepRecord.{name}: non-finite value(s) at {np.argwhere(bad)[0]}")
+    arr.setflags(write=False)
+    return arr
+
+
+@dataclass(frozen=True)
+class StepRecord:
+    """Everything recorded at one 50 Hz control step (units and frames: module docstring).
+
+    Arrays are converted to read-only float64 numpy arrays and checked for shape and
+    finiteness (only the raw hand joints may be NaN, meaning "not tracked").
+
+    Attributes:
+        t: Time since the start of teleoperation [s].
+        phase: One of :data:`PHASES`.
+        left_joints: Raw left-hand joint positions, shape (25, 3) [m], NaN if untracked.
+        right_joints: Raw right-hand joint positions, shape (25, 3) [m].
+        left_tracked: Whether the left hand was tracked.
+        right_tracked: Whether the right hand was tracked.
+        q_left: Finger-channel command for pair L = (A, C), shape (8,) [rad].
+        q_right: Finger-channel command for pair R = (B, D), shape (8,) [rad].
+        rail_cmd: Rail-channel command [m].
+        twist_cmd: Base-channel command, shape (6,): linear [m/s], angular [rad/s], body.
+        q_cmd: Commanded manipulation coordinates, shape (17,), paper order.
+        deploy_cmd: Commanded deployment coordinate [m].
+        q_meas: Measured manipulation coordinates, shape (17,).
+        deploy_meas: Measured deployment coordinate [m].
+        astrobee_pos: Astrobee position in the world, shape (3,) [m].
+        astrobee_quat: Astrobee orientation (w, x, y, z), body -> world, shape (4,).
+        astrobee_twist: World linear [m/s] and body angular [rad/s] velocity, shape (6,).
+        ctb_pos: CTB centre of mass in the world, shape (3,) [m].
+        ctb_quat: CTB orientation (w, x, y, z), shape (4,).
+        contact: The opposing-contact indicator.
+        ctb_module: One of :data:`MODULES`.
+    """
+
+    t: float
+    phase: str
+    left_joints: np.ndarray
+    right_joints: np.ndarray
+    left_tracked: bool
+    right_tracked: bool
+    q_left: np.ndarray
+    q_right: np.ndarray
+    rail_cmd: float
+    twist_cmd: np.ndarray
+    q_cmd: np.ndarray
+    deploy_cmd: float
+    q_meas: np.ndarray
+    deploy_meas: float
+    astrobee_pos: np.ndarray
+    astrobee_quat: np.ndarray
+    astrobee_twist: np.ndarray
+    ctb_pos: np.ndarray
+    ctb_quat: np.ndarray
+    contact: bool
+    ctb_module: str
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            object.__setattr__(self, f.name, _coerce(f.name, getattr(self, f.name)))
+        for name in ("astrobee_quat", "ctb_quat"):
+            if np.linalg.norm(getattr(self, name)) < 1e-9:
+                raise RecordingError(f"StepRecord.{name}: zero quaternion")
+
+    def to_json_dict(self) -> dict[str, Any]:
+        """The step as JSON-ready data (NaN -> ``None``)."""
+        out: dict[str, Any] = {}
+        for name, (_, kind) in FIELD_SPECS.items():
+            value = getattr(self, name)
+            if isinstance(value, np.ndarray):
+                value = value.tolist()
+                if kind == "float_nan":
+                    value = [[None if v != v else v for v in row] for row in value]
+            out[name] = value
+        return out
+
+
+@functools.lru_cache(maxsize=1)
+def _default_design() -> Any:
+    from payload.design import load_design
+
+    return load_design()
+
+
+def random_step(rng: np.random.Generator, t: float, **fields: Any) -> StepRecord:
+    """An arbitrary but valid step at time ``t`` (benchmarks and format tests).
+
+    Joint commands and poses are random draws; the rail and stage values lie inside the
+    default design's travel; ``fields`` override any attribute.
+    """
+    d = _default_design()
+    q = rng.normal(size=4)
+    values: dict[str, Any] = {
+        "t": t,
+        "phase": "translation",
+        "left_joints": rng.normal(scale=0.05, size=(25, 3)),
+        "right_joints": rng.normal(scale=0.05, size=(25, 3)),
+        "left_tracked": True,
+        "right_tracked": True,
+        "q_left": rng.normal(size=8),
+        "q_right": rng.normal(size=8),
+        "rail_cmd": float(rng.uniform(0, d.rail.travel)),
+        "twist_cmd": rng.normal(size=6),
+        "q_cmd": rng.normal(size=17),
+        "deploy_cmd": d.stage.travel,
+        "q_meas": rng.normal(size=17),
+        "deploy_meas": float(rng.uniform(0, d.stage.travel)),
+        "astrobee_pos": rng.normal(size=3),
+        "astrobee_quat": q / np.linalg.norm(q),
+        "astrobee_twist": rng.normal(size=6),
+        "ctb_pos": rng.normal(size=3),
+        "ctb_quat": np.array([1.0, 0.0, 0.0, 0.0]),
+        "contact": True,
+        "ctb_module": "kibo",
+    }
+    values.update(fields)
+    return StepRecord(**values)
