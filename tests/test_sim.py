@@ -6,6 +6,7 @@ import io
 import itertools
 import json
 import math
+import time
 import warnings
 from contextlib import redirect_stderr, redirect_stdout
 
@@ -670,8 +671,10 @@ def test_bench_sim_json():
     from payload.cli import main
 
     out, err = io.StringIO(), io.StringIO()
+    start = time.perf_counter()
     with redirect_stdout(out), redirect_stderr(err):
         code = main(["bench", "sim", "--seconds", "1", "--json", "--no-progress"])
+    outside = time.perf_counter() - start
     assert code == 0
     lines = out.getvalue().strip().splitlines()
     assert len(lines) == 1
@@ -680,9 +683,9 @@ def test_bench_sim_json():
         assert key in result
     assert result["sim_seconds"] == pytest.approx(1.0)
     assert result["physics_hz"] == 1000 and result["control_hz"] == 50
-    assert result["realtime_factor"] == pytest.approx(
-        result["sim_seconds"] / result["wall_seconds"]
-    )
+    # the bench's clock against this one: it cannot have run longer than the call did
+    assert 0 < result["wall_seconds"] <= outside
+    assert result["realtime_factor"] >= result["sim_seconds"] / outside
     assert result["propulsion"] == "nozzles"
     out = io.StringIO()
     with redirect_stdout(out), redirect_stderr(io.StringIO()):

@@ -16,6 +16,8 @@ from typing import Any
 import mujoco
 import numpy as np
 
+from payload.retarget.calibration import PairRange
+from payload.retarget.casadi_solver import PairRetargeter
 from payload.rotations import quat_to_matrix, yaw_quat
 
 OFFSET_RANGE_M = (0.04, 0.025, 0.02)
@@ -92,10 +94,64 @@ def handle_in_body(driver: Any) -> np.ndarray:
     return rot.T @ (d.site("ctb_handle").xpos - d.qpos[a : a + 3])
 
 
+def place_ctb_for_teleop(
+    driver: Any, retargeters: dict[str, PairRetargeter], ranges: dict[str, PairRange]
+) -> np.ndarray:
+    """Move the CTB so its handle sits where the teleoperated pinch closes on it.
+
+    The pinch the operator commands follows the posture reference of the calibrated pair
+    ranges. For each pair, the span at which the reference posture's pads first reach the
+    handle's side faces is found by bisection; the handle bar is centred on the mean of
+    the four fingertips there. Only the CTB's initial pose changes.
+
+    Returns:
+        That grasp point (the handle centre) in Astrobee's body frame, shape (3,) [m].
+    """
+    import mujoco
+
+    from payload.design.tree import MANIPULATION_JOINTS
+    from payload.sim.world import PAYLOAD_PREFIX
+
+    w, m = driver.world, driver.model
+    data = mujoco.MjData(m)
+    data.qpos[:] = driver.data.qpos
+    handle = w.config.handle
+    a = w.astrobee_qpos
+    rot = quat_to_matrix(driver.data.qpos[a + 3 : a + 7])
+    pad = float(m.geom_size[next(iter(w.pad_geoms.values()))][0])
+
+    def tips_at(pair: str, span: float) -> np.ndarray:
+        r = retargeters[pair]
+        for name, v in zip(r.joints, ranges[pair].posture(span)):
+            data.qpos[w.qpos[MANIPULATION_JOINTS.index(name)]] = v
+        mujoco.mj_kinematics(m, data)
+        sites = r.kinematics.hand.pair(pair).tips
+        return np.array([data.site(f"{PAYLOAD_PREFIX}{s}").xpos for s in sites])
+
+    tips = []
+    for pair in retargeters:
+        lo, hi = ranges[pair].span_min, ranges[pair].span_max
+        for _ in range(40):  # across-array gap between the pads = handle width
+            mid = 0.5 * (lo + hi)
+            t = tips_at(pair, mid)
+            gap = abs(float(rot[:, 1] @ (t[0] - t[1]))) - 2 * pad
+            lo, hi = (mid, hi) if gap < handle.width else (lo, mid)
+        tips.append(tips_at(pair, 0.5 * (lo + hi)))
+    centre = np.vstack(tips).mean(axis=0)
+    # the bag hangs below its handle bar: bar centre -> bag centre along the body -z axis
+    size = w.config.ctb_size
+    drop = handle.height / 2.0 + handle.standoff + size.height / 2.0
+    c = w.ctb_qpos
+    driver.data.qpos[c : c + 3] = centre - rot[:, 2] * drop
+    mujoco.mj_forward(m, driver.data)
+    return rot.T @ (centre - driver.data.qpos[a : a + 3])
+
+
 __all__ = [
     "OFFSET_RANGE_M",
     "YAW_RANGE_DEG",
     "handle_in_body",
+    "place_ctb_for_teleop",
     "place_offset",
     "sample_offset",
 ]

@@ -76,7 +76,7 @@ def _patched(timers: _Timers) -> Iterator[None]:
     """Wrap the stage functions (class attributes) for the duration."""
     from payload.sim.driver import SimDriver
     from payload.teleop.pipeline import TeleopPipeline
-    from payload.trials import campaign, runner
+    from payload.trials import runner, scoring
     from payload.trials.recorder import StepRecord, TrialRecorder
 
     targets = [
@@ -90,7 +90,7 @@ def _patched(timers: _Timers) -> Iterator[None]:
         (StepRecord, "__post_init__", "recording"),
         (TrialRecorder, "write", "recording"),
         (TrialRecorder, "write_hands", "recording"),
-        (campaign, "finish_trial", "scoring"),
+        (scoring, "finish_trial", "scoring"),  # the runner imports it at each trial
     ]
     saved = [(obj, name, getattr(obj, name)) for obj, name, _ in targets]
     try:

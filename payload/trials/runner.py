@@ -9,27 +9,23 @@ into ``hands.jsonl`` (so any trial can be replayed bit for bit), then scores it.
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import json
 import logging
 import os
 import shutil
 import tempfile
-import threading
-from collections.abc import Iterator
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
 from payload.design.params import load_design
 from payload.errors import PayloadError, RunAborted
 from payload.project import Project, current_project, provenance
-from payload.retarget.calibration import PairRange, pair_range
+from payload.retarget.calibration import PairRange
 from payload.retarget.casadi_solver import PairRetargeter
-from payload.retarget.hand import load_hand
-from payload.retarget.objective import RetargetConfig
 from payload.rotations import quat_to_matrix
 from payload.safeio import OverwriteError, check_new, new_folder, replace_file
 from payload.sim.vehicle import DEFAULT_PROPULSION, PROPULSION_MODELS
@@ -50,7 +46,8 @@ from payload.teleop.pipeline import (
     pair_index,
 )
 from payload.teleop.replay import read_hand_recording
-from payload.trials.acquisition import handle_in_body, place_offset
+from payload.trials.acquisition import handle_in_body, place_ctb_for_teleop, place_offset
+from payload.trials.retargeters import retargeting, single_threaded_numerics
 
 log = logging.getLogger(__name__)
 
@@ -110,68 +107,6 @@ def load_replay(path: str | Path) -> tuple[dict[str, Any], list[HandFrame]]:
     return read_hand_recording(path)
 
 
-_LOCAL = threading.local()
-
-
-def retargeting(
-    project: Project | None = None, budget: str = "paper"
-) -> tuple[dict[str, PairRetargeter], dict[str, PairRange]]:
-    """Production retargeters (with this evaluation budget, see
-    :attr:`RetargetConfig.budget <payload.retarget.RetargetConfig.budget>`) and pair ranges
-    for our hand on ``project``'s URDF (default: the current project), built once per
-    thread, URDF content and budget.
-
-    A retargeter holds its solver's buffers and warm start, so concurrent trials (a Dask
-    worker with several threads) each get their own; nothing here is shared between
-    threads.
-    """
-    hand = load_hand(project=project or current_project())
-    key = (hand.urdf, hand.urdf.read_bytes(), budget)
-    built: dict[Any, Any] = getattr(_LOCAL, "retargeting", None) or {}
-    _LOCAL.retargeting = built
-    cached = built.get(key)
-    if cached is None:
-        # single-threaded like the trials themselves, so every process finds the same ranges
-        with single_threaded_numerics():
-            config = RetargetConfig(budget=budget)
-            retargeters = {
-                pair: PairRetargeter(hand, pair=pair, config=config) for pair in ("L", "R")
-            }
-            ranges = {pair: pair_range(r.kinematics) for pair, r in retargeters.items()}
-        cached = built[key] = (retargeters, ranges)
-    return cached
-
-
-_LIMIT_LOCK = threading.Lock()
-_LIMIT_USERS = 0
-_LIMITER: Any = None
-
-
-@contextlib.contextmanager
-def single_threaded_numerics() -> Iterator[None]:
-    """Limit BLAS and OpenMP to one thread while any trial in this process runs.
-
-    The limit is process-wide, so it is counted: the first trial to enter sets it and
-    the last to leave restores it (a thread leaving early must not lift the limit under
-    a trial still running in another thread).
-    """
-    global _LIMIT_USERS, _LIMITER
-    from threadpoolctl import threadpool_limits
-
-    with _LIMIT_LOCK:
-        if _LIMIT_USERS == 0:
-            _LIMITER = threadpool_limits(limits=1)
-        _LIMIT_USERS += 1
-    try:
-        yield
-    finally:
-        with _LIMIT_LOCK:
-            _LIMIT_USERS -= 1
-            if _LIMIT_USERS == 0:
-                _LIMITER.restore_original_limits()
-                _LIMITER = None
-
-
 def design_hash(project: Project | None = None) -> str:
     """SHA-256 of ``project``'s design file (first 16 hex digits; default: the current
     project). :func:`payload.project.provenance` gives the full record."""
@@ -191,59 +126,6 @@ def _module_rects(layout: Any) -> list[dict[str, float | str]]:
             }
         )
     return out
-
-
-def place_ctb_for_teleop(
-    driver: Any, retargeters: dict[str, PairRetargeter], ranges: dict[str, PairRange]
-) -> np.ndarray:
-    """Move the CTB so its handle sits where the teleoperated pinch closes on it.
-
-    The pinch the operator commands follows the posture reference of the calibrated pair
-    ranges. For each pair, the span at which the reference posture's pads first reach the
-    handle's side faces is found by bisection; the handle bar is centred on the mean of
-    the four fingertips there. Only the CTB's initial pose changes.
-
-    Returns:
-        That grasp point (the handle centre) in Astrobee's body frame, shape (3,) [m].
-    """
-    import mujoco
-
-    from payload.design.tree import MANIPULATION_JOINTS
-    from payload.sim.world import PAYLOAD_PREFIX
-
-    w, m = driver.world, driver.model
-    data = mujoco.MjData(m)
-    data.qpos[:] = driver.data.qpos
-    handle = w.config.handle
-    a = w.astrobee_qpos
-    rot = quat_to_matrix(driver.data.qpos[a + 3 : a + 7])
-    pad = float(m.geom_size[next(iter(w.pad_geoms.values()))][0])
-
-    def tips_at(pair: str, span: float) -> np.ndarray:
-        r = retargeters[pair]
-        for name, v in zip(r.joints, ranges[pair].posture(span)):
-            data.qpos[w.qpos[MANIPULATION_JOINTS.index(name)]] = v
-        mujoco.mj_kinematics(m, data)
-        sites = r.kinematics.hand.pair(pair).tips
-        return np.array([data.site(f"{PAYLOAD_PREFIX}{s}").xpos for s in sites])
-
-    tips = []
-    for pair in retargeters:
-        lo, hi = ranges[pair].span_min, ranges[pair].span_max
-        for _ in range(40):  # across-array gap between the pads = handle width
-            mid = 0.5 * (lo + hi)
-            t = tips_at(pair, mid)
-            gap = abs(float(rot[:, 1] @ (t[0] - t[1]))) - 2 * pad
-            lo, hi = (mid, hi) if gap < handle.width else (lo, mid)
-        tips.append(tips_at(pair, 0.5 * (lo + hi)))
-    centre = np.vstack(tips).mean(axis=0)
-    # the bag hangs below its handle bar: bar centre -> bag centre along the body -z axis
-    size = w.config.ctb_size
-    drop = handle.height / 2.0 + handle.standoff + size.height / 2.0
-    c = w.ctb_qpos
-    driver.data.qpos[c : c + 3] = centre - rot[:, 2] * drop
-    mujoco.mj_forward(m, driver.data)
-    return rot.T @ (centre - driver.data.qpos[a : a + 3])
 
 
 TRIAL_FILES: tuple[str, ...] = (
@@ -431,25 +313,20 @@ def _rate(frames: list[Any]) -> float | None:
     return float(1.0 / np.median(steps)) if steps.size else None
 
 
-def _run_trial(
-    seed: int,
-    source_spec: _Source,
-    out: Path,
-    *,
-    max_time: float = MAX_TRIAL_S,
-    progress: bool = False,
-    project: Project,
-) -> dict[str, Any]:
-    """Run one trial and write its folder ``out`` (arguments: :func:`run_trial`)."""
-    from payload.sim.driver import SimDriver
-    from payload.trials.foxglove import FoxgloveScene
-    from payload.trials.metrics import CONFIRM_MAX_GAP_S, CONFIRM_MIN_S
-    from payload.trials.recorder import TrialRecorder
-    from payload.trials.scoring import finish_trial
+class _Setup(NamedTuple):
+    """What a trial is set up with before the session starts."""
 
-    driver = SimDriver(
-        WorldConfig.for_project(project, ctb=source_spec.ctb), propulsion=source_spec.propulsion
-    )
+    retargeters: dict[str, PairRetargeter]
+    ranges: dict[str, PairRange]
+    config: TeleopConfig
+    plan: OperatorPlan
+    calibration: CalibrationProcedure
+    recorded: dict[str, Any]  # the figures of the set-up, recorded in the metadata
+
+
+def _set_up(driver: Any, seed: int, source_spec: _Source, project: Project) -> _Setup:
+    """Retargeters, the CTB under the teleoperated pinch (with the seeded acquisition
+    offset), the teleoperation config and the operator's plan."""
     layout = driver.world.layout
     retargeters, ranges = retargeting(project, source_spec.retarget_budget)
     grasp_body = place_ctb_for_teleop(driver, retargeters, ranges)
@@ -473,12 +350,11 @@ def _run_trial(
         base=config.base,
         grasp_body=grasp_body,
     )
-    source, traits = source_spec.make(plan, calibration)
-    q0 = driver.read().q
+    return _Setup(retargeters, ranges, config, plan, calibration, setup)
 
-    def make_pipeline(captures: Captures, heading: float) -> TeleopPipeline:
-        cal = calibrate_operator(captures, ranges, config.rail_travel, heading)
-        return TeleopPipeline(cal, retargeters, config, initial=q0)
+
+def _world_view(driver: Any) -> Callable[[Any, float], WorldView]:
+    """What the synthetic operator sees of the simulated world at each step."""
 
     def view(state: Any, t: float) -> WorldView:
         rot = quat_to_matrix(state.astrobee_quat)
@@ -492,9 +368,16 @@ def _run_trial(
             handle_in_body(driver),
         )
 
-    prov = provenance(project, driver.world.config.design)
-    rec_path = out / "log.mcap"
-    meta = {
+    return view
+
+
+def _trial_meta(
+    seed: int, source_spec: _Source, traits: dict, prov: dict, layout: Any, setup: _Setup
+) -> dict[str, Any]:
+    """The recording's opening metadata."""
+    from payload.trials.metrics import CONFIRM_MAX_GAP_S, CONFIRM_MIN_S
+
+    return {
         "seed": int(seed),
         "operator": source_spec.operator,
         "design_hash": prov["design_sha256"][:16],
@@ -504,8 +387,40 @@ def _run_trial(
         "route": layout.route().tolist(),
         "modules": _module_rects(layout),
         "contact_definition": {"min_interval_s": CONFIRM_MIN_S, "max_gap_s": CONFIRM_MAX_GAP_S},
-        **setup,
+        **setup.recorded,
     }
+
+
+def _closing_meta(driver: Any, source: Any, stats: Any) -> dict[str, Any]:
+    """The recording's closing metadata: how the session went."""
+    return {
+        "steps": stats.steps,
+        "pipeline_median_us": float(np.median(stats.pipeline_us)) if stats.pipeline_us else None,
+        "warnings": driver.warnings(),
+        "ctb_external_max": driver.ctb_external_max,
+        "equality_constraints": int(driver.model.neq),
+        "acquisition_state": getattr(source, "operator", None) and source.operator.acquisition,
+    }
+
+
+def _record_session(
+    driver: Any,
+    seed: int,
+    source: Any,
+    setup: _Setup,
+    make_pipeline: Callable[[Captures, float], TeleopPipeline],
+    rec_path: Path,
+    meta: dict[str, Any],
+    *,
+    max_time: float,
+    progress: bool,
+) -> Any:
+    """Run the teleoperation session, recording every step into ``rec_path``; returns the
+    session's statistics. An unexpected error marks the recording aborted."""
+    from payload.trials.foxglove import FoxgloveScene
+    from payload.trials.recorder import TrialRecorder
+
+    layout = driver.world.layout
     bar = None
     if progress:
         from rich.progress import Progress
@@ -521,7 +436,7 @@ def _run_trial(
 
             def on_step(ctx: StepContext) -> None:
                 recorder.write_hands(ctx.frame)
-                recorder.write(step_record(ctx, driver, retargeters))
+                recorder.write(step_record(ctx, driver, setup.retargeters))
                 last_t[0] = ctx.t
                 if bar is not None:
                     bar.update(task, completed=ctx.t)
@@ -530,11 +445,11 @@ def _run_trial(
                 stats = run_session(
                     driver,
                     source,
-                    calibration,
+                    setup.calibration,
                     make_pipeline,
                     max_time=max_time,
                     on_step=on_step,
-                    world_view=view,
+                    world_view=_world_view(driver),
                 )
             except Exception as exc:
                 what = f"{type(exc).__name__}: {exc}"
@@ -544,23 +459,53 @@ def _run_trial(
                     f"trial {seed} aborted at t = {last_t[0]:.2f} s by {what}; recording "
                     f"kept (marked aborted, not scored): {rec_path}"
                 ) from exc
-            recorder.write_meta(
-                {
-                    "steps": stats.steps,
-                    "pipeline_median_us": float(np.median(stats.pipeline_us))
-                    if stats.pipeline_us
-                    else None,
-                    "warnings": driver.warnings(),
-                    "ctb_external_max": driver.ctb_external_max,
-                    "equality_constraints": int(driver.model.neq),
-                    "acquisition_state": getattr(source, "operator", None)
-                    and source.operator.acquisition,
-                }
-            )
+            recorder.write_meta(_closing_meta(driver, source, stats))
     finally:
         if bar is not None:
             bar.stop()
         driver.close()
+    return stats
+
+
+def _run_trial(
+    seed: int,
+    source_spec: _Source,
+    out: Path,
+    *,
+    max_time: float = MAX_TRIAL_S,
+    progress: bool = False,
+    project: Project,
+) -> dict[str, Any]:
+    """Run one trial and write its folder ``out`` (arguments: :func:`run_trial`): set up
+    the world and the operator, record the session, score the recording."""
+    from payload.sim.driver import SimDriver
+    from payload.trials.scoring import finish_trial
+
+    driver = SimDriver(
+        WorldConfig.for_project(project, ctb=source_spec.ctb), propulsion=source_spec.propulsion
+    )
+    setup = _set_up(driver, seed, source_spec, project)
+    source, traits = source_spec.make(setup.plan, setup.calibration)
+    q0 = driver.read().q
+
+    def make_pipeline(captures: Captures, heading: float) -> TeleopPipeline:
+        cal = calibrate_operator(captures, setup.ranges, setup.config.rail_travel, heading)
+        return TeleopPipeline(cal, setup.retargeters, setup.config, initial=q0)
+
+    prov = provenance(project, driver.world.config.design)
+    rec_path = out / "log.mcap"
+    meta = _trial_meta(seed, source_spec, traits, prov, driver.world.layout, setup)
+    stats = _record_session(
+        driver,
+        seed,
+        source,
+        setup,
+        make_pipeline,
+        rec_path,
+        meta,
+        max_time=max_time,
+        progress=progress,
+    )
     result = finish_trial(out, rec_path)  # scored with the contact definition it recorded
     result["steps"] = stats.steps
     result["provenance"] = prov
