@@ -89,6 +89,19 @@ DISCHARGE_COEFFS = np.array(
 N_NOZZLES = 12
 
 
+def _bvls(a: np.ndarray, b: np.ndarray, ub: np.ndarray) -> np.ndarray:
+    """``scipy.optimize.lsq_linear(a, b, bounds=(0, ub), method="bvls").x`` without its
+    argument checks: the unbounded least squares if it is inside the bounds, else BVLS
+    started from it (the same calls, so the same result)."""
+    from scipy.optimize._lsq.bvls import bvls
+
+    lb = np.zeros(a.shape[1])
+    x = np.linalg.lstsq(a, b, rcond=-1)[0]
+    if np.all((x >= lb) & (x <= ub)):
+        return x
+    return bvls(a, b, x, lb, ub, 1e-10, None, 0).x
+
+
 class PropulsionError(PayloadError):
     """Bad propulsion parameters or wrench requests."""
 
@@ -249,26 +262,32 @@ class Propulsion:
         k = int(np.argmin(ratio))
         return float(ratio[k]), k
 
+    @cached_property
+    def _facet_parts(self) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+        """Per facet: the thrusts of the nozzles pushing outward (at their bound, the
+        others 0), the in-plane nozzles, their wrench columns and their bounds."""
+        parts = []
+        for n in self.facets[0]:
+            proj = n @ self.matrix
+            eps = 1e-9 * float(np.abs(proj).max())
+            out = np.where(proj > eps, self.thrust_max, 0.0)
+            free = np.flatnonzero(np.abs(proj) <= eps)
+            parts.append((out, free, self.matrix[:, free], self.thrust_max[free]))
+        return parts
+
     def _on_facet(self, wrench: np.ndarray, k: int) -> np.ndarray | None:
         """Thrusts for a wrench on facet ``k``: nozzles pushing outward at their bound,
         inward ones closed, the ones in the facet's plane solved for the rest."""
-        n = self.facets[0][k]
-        proj = n @ self.matrix
-        eps = 1e-9 * float(np.abs(proj).max())
-        out = np.where(proj > eps, self.thrust_max, 0.0)
-        free = np.flatnonzero(np.abs(proj) <= eps)
+        out, free, a_free, ub = self._facet_parts[k]
+        out = out.copy()
         rest = wrench - self.matrix @ out
-        sol, *_ = np.linalg.lstsq(self.matrix[:, free], rest, rcond=None)
+        sol, *_ = np.linalg.lstsq(a_free, rest, rcond=None)
         tol = 1e-7 * float(self.thrust_max.max())
-        if np.any(sol < -tol) or np.any(sol > self.thrust_max[free] + tol):
-            # more nozzles than the facet's dimension lie in its plane: bounded least squares
-            from scipy.optimize import lsq_linear
-
-            fit = lsq_linear(
-                self.matrix[:, free], rest, bounds=(0.0, self.thrust_max[free]), method="bvls"
-            )
-            sol = fit.x
-        out[free] = np.clip(sol, 0.0, self.thrust_max[free])
+        if np.any(sol < -tol) or np.any(sol > ub + tol):
+            # more nozzles than the facet's dimension lie in its plane: bounded least
+            # squares (scipy's BVLS, called as ``lsq_linear(method="bvls")`` calls it)
+            sol = _bvls(a_free, rest, ub)
+        out[free] = np.clip(sol, 0.0, ub)
         if not np.allclose(self.matrix @ out, wrench, rtol=1e-7, atol=1e-10):
             return None
         return out
@@ -290,17 +309,26 @@ class Propulsion:
                 out = np.zeros(N_NOZZLES)
                 out[idx[k]] = t0[k]
                 return np.clip(out, 0.0, self.thrust_max)
-        tb = t0[:, None, :] - off  # (K, 64, 6)
-        ok = np.all((tb >= -tol) & (tb <= ub[:, None, :] + tol), axis=2)
+        tb = np.subtract(t0[:, None, :], off, out=self._basis_buffer)  # (K, 64, 6)
+        ok = np.all(tb >= -tol, axis=2)
+        ok &= np.all(tb <= ub[:, None, :] + tol, axis=2)
         if not np.any(ok):
             return None
-        cost = np.where(ok, tb.sum(axis=2) + fixed.sum(axis=2), np.inf)
+        cost = np.where(ok, tb.sum(axis=2) + self._fixed_total, np.inf)
         k, j = np.unravel_index(int(np.argmin(cost)), cost.shape)
         out = np.zeros(N_NOZZLES)
         rest = np.setdiff1d(np.arange(N_NOZZLES), idx[k])
         out[rest] = fixed[k, j]
         out[idx[k]] = tb[k, j]
         return np.clip(out, 0.0, self.thrust_max)
+
+    @cached_property
+    def _basis_buffer(self) -> np.ndarray:
+        return np.empty(self._bases[2].shape)
+
+    @cached_property
+    def _fixed_total(self) -> np.ndarray:
+        return self._bases[3].sum(axis=2)
 
     @cached_property
     def _basis_bounds(self) -> np.ndarray:
