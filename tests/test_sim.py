@@ -254,6 +254,19 @@ def test_servo_force_limits_are_the_current_capped_xc330(world):
     assert torque == pytest.approx(0.181, abs=5e-4)
 
 
+def test_astrobee_mass_properties_come_from_the_design_vehicle_table(world, design_dict):
+    """The world's Astrobee body takes the design's ``[vehicle]`` mass and inertia: the
+    committed figures (docs/sources.md, typed here), and a changed table changes it."""
+    assert world.model.body_mass[world.astrobee] == 9.5838
+    assert world.model.body_inertia[world.astrobee].tolist() == [0.15343, 0.14271, 0.16230]
+    vehicle = {**design_dict.get("vehicle", {}), "mass": 12.5, "inertia": [0.2, 0.3, 0.4]}
+    other = build_world(design=design_from_dict({**design_dict, "vehicle": vehicle}))
+    assert other.model.body_mass[other.astrobee] == 12.5
+    assert other.model.body_inertia[other.astrobee].tolist() == [0.2, 0.3, 0.4]
+    with pytest.raises(Exception, match=r"vehicle\.mass"):
+        design_from_dict({**design_dict, "vehicle": {**vehicle, "mass": -1.0}})
+
+
 def test_stale_payload_model_is_refused(design_dict):
     changed = {**design_dict, "servo": {**design_dict["servo"], "current_limit": 0.5}}
     with pytest.raises(SimError, match="payload build"):

@@ -37,11 +37,13 @@ VEHICLE_TOML = (
     "body_size = [0.32, 0.32, 0.32]   # [m] x, y, z (docs/sources.md: about a 0.32 m cube)\n"
     "body_offset = [0.0, 0.0]         # [m] x, y of the body centre from the bays' centre\n"
     "bay_size = [0.20, 0.10, 0.10]    # [m] two lower bays combined (ASSUMPTION, not public)\n"
+    "mass = 9.5838                    # [kg] no payloads, four batteries (docs/sources.md)\n"
+    "inertia = [0.15343, 0.14271, 0.16230]  # [kg m^2] principal, about the centre of mass\n"
     f'assumption = "{BAY_ASSUMPTION}"\n'
 )
 """The ``[vehicle]`` table proposed for ``cad/design.toml`` (all keys optional)."""
 
-_KEYS = ("body_size", "body_offset", "bay_size", "assumption")
+_KEYS = ("body_size", "body_offset", "bay_size", "mass", "inertia", "assumption")
 _WALLS = ("-x (aft)", "+x (forward)", "-y (right)", "+y (left)", "-z (bottom face)", "+z (mount)")
 
 
@@ -62,6 +64,9 @@ class Vehicle:
         body_size: Body extents along x, y, z, shape (3,) [m].
         body_offset: x, y of the body centre from the bays' centre, shape (2,) [m].
         bay_size: Combined envelope of the two lower bays along x, y, z, shape (3,) [m].
+        mass: Astrobee's mass without payloads, four batteries [kg] (docs/sources.md).
+        inertia: Astrobee's principal inertia about its centre of mass, shape (3,)
+            [kg m^2] (docs/sources.md).
         assumption: What the bay size rests on; printed in every report.
         source: Where the values came from (file, ``defaults`` or an override).
     """
@@ -69,6 +74,8 @@ class Vehicle:
     body_size: tuple[float, float, float] = (0.32, 0.32, 0.32)
     body_offset: tuple[float, float] = (0.0, 0.0)
     bay_size: tuple[float, float, float] = (0.20, 0.10, 0.10)
+    mass: float = 9.5838
+    inertia: tuple[float, float, float] = (0.15343, 0.14271, 0.16230)
     assumption: str = BAY_ASSUMPTION
     source: str = "defaults (docs/sources.md#vehicle)"
 
@@ -76,6 +83,8 @@ class Vehicle:
         _check_vector("vehicle.body_size", self.body_size, 3, positive=True)
         _check_vector("vehicle.body_offset", self.body_offset, 2, positive=False)
         _check_vector("vehicle.bay_size", self.bay_size, 3, positive=True)
+        _check_vector("vehicle.inertia", self.inertia, 3, positive=True)
+        _check_vector("vehicle.mass", (self.mass,), 1, positive=True)
         if not isinstance(self.assumption, str):
             raise VehicleError("vehicle.assumption", f"expected a string, got {self.assumption!r}")
         for i, axis in enumerate("xy"):
@@ -170,7 +179,9 @@ class Vehicle:
         return body - cavity
 
     def to_dict(self) -> dict[str, Any]:
-        """Plain data with SI values, as the ``[vehicle]`` table holds them."""
+        """The geometry keys of the ``[vehicle]`` table (SI values), as the envelope
+        reports print them; the mass properties are the simulator's (:attr:`mass`,
+        :attr:`inertia`)."""
         return {
             "body_size": list(self.body_size),
             "body_offset": list(self.body_offset),
@@ -205,11 +216,14 @@ def vehicle_from_dict(data: Any, source: str = "<memory>") -> Vehicle:
                 f"vehicle.{key}", f"unknown key (expected one of: {', '.join(_KEYS)})"
             )
     kwargs: dict[str, Any] = {"source": source}
-    for key in ("body_size", "body_offset", "bay_size"):
+    for key in ("body_size", "body_offset", "bay_size", "inertia"):
         if key in data:
             n = 2 if key == "body_offset" else 3
             _check_vector(f"vehicle.{key}", data[key], n, positive=key != "body_offset")
             kwargs[key] = tuple(float(v) for v in data[key])
+    if "mass" in data:
+        _check_vector("vehicle.mass", [data["mass"]], 1, positive=True)
+        kwargs["mass"] = float(data["mass"])
     if "assumption" in data:
         kwargs["assumption"] = data["assumption"]
     elif "bay_size" in data:

@@ -9,11 +9,13 @@ from payload.design import Design
 from payload.envelope.vehicle import Vehicle, vehicle_from_dict
 from payload.sim.iss import _ASTROBEE_CONAFFINITY, _ASTROBEE_CONTYPE
 
-ASTROBEE_MASS = 9.5838
-"""Astrobee mass without payloads, four batteries [kg] (docs/sources.md)."""
+ASTROBEE_MASS = Vehicle().mass
+"""Fallback only: the default vehicle's mass [kg]; the world takes the design's
+``vehicle.mass`` (:func:`design_vehicle`)."""
 
-ASTROBEE_INERTIA = (0.15343, 0.14271, 0.16230)
-"""Astrobee principal inertia about its centre of mass [kg m^2] (docs/sources.md)."""
+ASTROBEE_INERTIA = Vehicle().inertia
+"""Fallback only: the default vehicle's principal inertia [kg m^2]; the world takes the
+design's ``vehicle.inertia``."""
 
 
 def payload_mount(vehicle: Vehicle) -> np.ndarray:
@@ -46,8 +48,8 @@ def _add_astrobee(spec: mujoco.MjSpec, vehicle: Vehicle, pos, quat) -> mujoco.Mj
     body = spec.worldbody.add_body(name="astrobee", pos=list(pos), quat=list(quat))
     body.add_freejoint(name="astrobee")
     body.explicitinertial = True
-    body.mass = ASTROBEE_MASS
-    body.inertia = list(ASTROBEE_INERTIA)
+    body.mass = vehicle.mass
+    body.inertia = list(vehicle.inertia)
     body.ipos = [0.0, 0.0, 0.0]
     half = [float(v) / 2.0 for v in vehicle.body_size]
     body.add_geom(
