@@ -6,9 +6,16 @@ their Python classes are generated at import. The schema stored in every recordi
 (``mcap cat``, Foxglove, ``mcap_protobuf.decoder``) decodes them.
 
 ``payload.trials.Step`` (channel ``/trial/step``): one message per 50 Hz control step.
-Scalars and arrays are ``double`` (packed), lossless. Phases and modules are enums. The
-raw hand joints are a ``payload.trials.Joints`` message, or a reference to the
-``/trial/hands`` message with the same sequence number when it holds the same joints.
+Phases and modules are enums. The numbers are stored at a stated resolution
+(:data:`STEP_GRIDS`: 10 nm, 1e-10 of a unit quaternion, 1 nm/s, 10 nrad, 1 ns; far below
+anything the metrics resolve or the sensors could tell apart): ``grid`` holds, in the
+order of :data:`STEP_GRIDS`, each value's integer multiple of its grid minus the previous
+message's (zigzag varints), or the multiple itself in a ``grid_key`` message (the first
+message after every flush, so each MCAP chunk decodes on its own). A step with a
+non-finite number, and the files of earlier versions, store ``double`` fields (packed,
+lossless) instead; the reader reads both. The raw hand joints are a
+``payload.trials.Joints`` message, or a reference to the ``/trial/hands`` message with the
+same sequence number when it holds the same joints.
 
 When ``pairs_in_cmd`` is set, ``q_left``, ``q_right`` and ``rail_cmd`` are not stored:
 they are the pair L (A, C) and pair R (B, D) entries and the last entry of ``q_cmd``
@@ -75,6 +82,28 @@ STEP_DOUBLES: tuple[tuple[str, int, tuple[int, ...]], ...] = (
     ("ctb_quat", 22, (4,)),
 )
 
+STEP_GRIDS: tuple[tuple[str, float, int], ...] = (
+    ("wall_time", 1e-6, 1),
+    ("t", 1e-9, 1),
+    ("twist_cmd", 1e-9, 6),
+    ("q_cmd", 1e-8, 17),
+    ("deploy_cmd", 1e-8, 1),
+    ("q_meas", 1e-8, 17),
+    ("deploy_meas", 1e-8, 1),
+    ("astrobee_pos", 1e-8, 3),
+    ("astrobee_quat", 1e-10, 4),
+    ("astrobee_twist", 1e-9, 6),
+    ("ctb_pos", 1e-8, 3),
+    ("ctb_quat", 1e-10, 4),
+)
+"""(field, resolution, size) of the numbers a step stores on a grid, in storage order;
+resolutions in the field's unit (s, m, rad, m/s, rad/s, quaternion components)."""
+
+_GRID = np.concatenate([np.full(n, g) for _, g, n in STEP_GRIDS])
+_PER_UNIT = np.round(1.0 / _GRID)  # grid steps per unit, exact integers: decoded values are
+# k / steps, the double nearest the decimal k * grid (0.24 s reads back as 0.24)
+_GRID_SPLITS = np.cumsum([n for _, _, n in STEP_GRIDS])[:-1]
+
 _F = descriptor_pb2.FieldDescriptorProto
 
 
@@ -127,6 +156,8 @@ def _file_descriptor() -> descriptor_pb2.FileDescriptorProto:
     _field(s, "pairs_in_cmd", 9, _F.TYPE_BOOL)
     _field(s, "left_joints", 30, _F.TYPE_MESSAGE, type_name=f".{PACKAGE}.Joints")
     _field(s, "right_joints", 31, _F.TYPE_MESSAGE, type_name=f".{PACKAGE}.Joints")
+    _field(s, "grid", 40, _F.TYPE_SINT64, repeated=True)
+    _field(s, "grid_key", 41, _F.TYPE_BOOL)
     h = fd.message_type.add(name="HandSample")
     _field(h, "seq", 1, _F.TYPE_UINT64)
     _field(h, "stamp", 2, _F.TYPE_DOUBLE)
@@ -224,11 +255,47 @@ class StepCodec:
             name: JointsCodec(grid)
             for name in ("left_joints", "right_joints", "hands_left", "hands_right")
         }
+        self._prev: np.ndarray | None = None  # the last step's grid multiples
 
     def key(self) -> None:
         """The next messages start fresh (call after every flush)."""
         for c in self.joints.values():
             c.key()
+        self._prev = None
+
+    def _encode_grid(self, step: Any, wall_time: float, m: Any) -> bool:
+        """Store the :data:`STEP_GRIDS` numbers in ``m.grid``; False (nothing stored, the
+        next message a key) when one is not finite."""
+        values = np.concatenate(
+            [
+                np.asarray(wall_time if name == "wall_time" else getattr(step, name), float).ravel()
+                for name, _, _ in STEP_GRIDS
+            ]
+        )
+        k = np.round(values * _PER_UNIT)
+        if not np.all(np.isfinite(k)) or np.any(np.abs(k) >= 2.0**62):
+            self._prev = None
+            return False
+        ki = k.astype(np.int64)
+        if self._prev is None:
+            m.grid_key = True
+            m.grid.extend(ki.tolist())
+        else:
+            m.grid.extend((ki - self._prev).tolist())
+        self._prev = ki
+        return True
+
+    def _decode_grid(self, m: Any, row: dict[str, Any]) -> None:
+        d = np.array(m.grid, dtype=np.int64)
+        if m.grid_key:
+            k = d
+        elif self._prev is None or d.shape != self._prev.shape:
+            raise ValueError("a step's numbers refer to a message that is not in the file")
+        else:
+            k = self._prev + d
+        self._prev = k
+        for (name, _, size), part in zip(STEP_GRIDS, np.split(k / _PER_UNIT, _GRID_SPLITS)):
+            row[name] = float(part[0]) if size == 1 else part
 
     def encode_step(
         self, step: Any, seq: int, wall_time: float, in_hands: tuple[bool, bool] = (False, False)
@@ -250,8 +317,13 @@ class StepCodec:
         m.contact = step.contact
         pairs = _pairs_in_cmd(step)
         m.pairs_in_cmd = pairs
+        gridded = self._encode_grid(step, wall_time, m)
+        if gridded:
+            m.wall_time = 0.0
         for name, _, shape in STEP_DOUBLES:
             if pairs and name in _PAIR_FIELDS:
+                continue
+            if gridded and name not in _PAIR_FIELDS:
                 continue
             value = getattr(step, name)
             if shape == ():
@@ -313,6 +385,10 @@ class StepCodec:
         for name, _, shape in STEP_DOUBLES:
             value = getattr(m, name)
             row[name] = float(value) if shape == () else np.array(value, dtype=np.float64)
+        if len(m.grid):
+            self._decode_grid(m, row)
+        else:
+            self._prev = None
         if m.pairs_in_cmd:
             q = row["q_cmd"]
             row["q_left"], row["q_right"], row["rail_cmd"] = (
@@ -352,6 +428,7 @@ __all__ = [
     "HAND_GRID_M",
     "MODULE_NAMES",
     "PHASE_NAMES",
+    "STEP_GRIDS",
     "STEP_MESSAGE",
     "JointsCodec",
     "StepCodec",
