@@ -9,7 +9,6 @@ into ``hands.jsonl`` (so any trial can be replayed bit for bit), then scores it.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
 import os
@@ -22,7 +21,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from payload.design.params import load_design
-from payload.errors import PayloadError, RunAborted
+from payload.errors import RunAborted
 from payload.project import Project, current_project, provenance
 from payload.retarget.calibration import PairRange
 from payload.retarget.casadi_solver import PairRetargeter
@@ -31,80 +30,25 @@ from payload.safeio import OverwriteError, check_new, new_folder, replace_file
 from payload.sim.vehicle import DEFAULT_PROPULSION, PROPULSION_MODELS
 from payload.sim.world import CTB_MODELS, DEFAULT_CTB, WorldConfig
 from payload.teleop.calibration import CalibrationProcedure, Captures
-from payload.teleop.hands import Hand, HandFrame
 from payload.teleop.loop import (
-    ReplaySource,
     StepContext,
-    SyntheticSource,
     run_session,
 )
-from payload.teleop.operator import OperatorPlan, SyntheticOperator, WorldView
+from payload.teleop.operator import OperatorPlan, WorldView
 from payload.teleop.pipeline import (
     TeleopConfig,
     TeleopPipeline,
     calibrate_operator,
     pair_index,
 )
-from payload.teleop.replay import read_hand_recording
 from payload.trials.acquisition import handle_in_body, place_ctb_for_teleop, place_offset
 from payload.trials.retargeters import retargeting, single_threaded_numerics
+from payload.trials.sources import HeadsetSource, TrialError, _Source, load_replay
 
 log = logging.getLogger(__name__)
 
 MODULE_NAMES = {"kibo": "kibo", "vestibule": "hatch", "node2": "node2"}
 MAX_TRIAL_S = 240.0
-
-
-class TrialError(PayloadError):
-    """A trial could not be run (bad operator choice, unreadable replay)."""
-
-
-class HeadsetSource:
-    """A hand source whose joint positions are reported on the recorder's grid.
-
-    Args:
-        source: The source (the synthetic operator).
-        grid: Resolution of the reported positions [m].
-    """
-
-    def __init__(self, source: Any, grid: float) -> None:
-        self.source = source
-        self.grid = grid
-
-    def frame(self, t: float, world: WorldView | None) -> HandFrame | None:
-        from payload.trials.codec import quantize_joints
-
-        fr = self.source.frame(t, world)
-        if fr is None:
-            return None
-        hands = [
-            Hand(quantize_joints(h.joints, self.grid), True) if h.tracked else h
-            for h in (fr.left, fr.right)
-        ]
-        return HandFrame(fr.stamp, hands[0], hands[1], fr.frame)
-
-    @property
-    def finished(self) -> bool:
-        return self.source.finished
-
-    @property
-    def operator(self) -> Any:
-        """The synthetic operator behind the headset (``None`` for other sources)."""
-        return getattr(self.source, "operator", None)
-
-
-def load_replay(path: str | Path) -> tuple[dict[str, Any], list[HandFrame]]:
-    """``(header, frames)`` to replay: a trial's ``log.mcap`` (its ``/trial/hands``
-    channel) or a ``hands.jsonl``; the header's ``meta`` names the source's seed."""
-    from payload.trials.recorder import RecordingError, read_hand_frames
-
-    if Path(path).suffix == ".mcap":
-        try:
-            meta, frames = read_hand_frames(path)
-        except RecordingError as exc:
-            raise TrialError(str(exc)) from None
-        return {"meta": meta}, frames
-    return read_hand_recording(path)
 
 
 def design_hash(project: Project | None = None) -> str:
@@ -253,64 +197,6 @@ def run_trial(
                 else:
                     (out / name).unlink(missing_ok=True)
             shutil.rmtree(staging, ignore_errors=True)
-
-
-class _Source:
-    """Where a trial's hand frames come from, and what its recording says about it."""
-
-    def __init__(
-        self,
-        operator: str,
-        seed: int,
-        replay: Path | None,
-        header: dict[str, Any],
-        frames: list[Any],
-        *,
-        ctb: str = DEFAULT_CTB,
-        propulsion: str = DEFAULT_PROPULSION,
-        retarget_budget: str = "paper",
-    ) -> None:
-        self.retarget_budget = retarget_budget
-        self.ctb = ctb
-        self.propulsion = propulsion
-        self.recorded: dict[str, Any] = header.get("meta") or {}
-        self.operator = operator
-        self.seed = seed
-        self.replay = replay
-        self.header = header
-        self.frames = frames
-
-    def make(self, plan: OperatorPlan, calibration: CalibrationProcedure) -> tuple[Any, dict]:
-        """The hand source and the operator traits to record."""
-        if self.operator == "synthetic":
-            synthetic = SyntheticOperator(plan, self.seed, calibration)
-            from payload.trials.codec import HAND_GRID_M
-
-            source = HeadsetSource(SyntheticSource(synthetic), HAND_GRID_M)
-            return source, dict(vars(synthetic.traits))
-        return ReplaySource(self.frames), {"replay": str(self.replay)}
-
-    def meta(self) -> dict[str, Any]:
-        """Recording metadata naming a replay's source file and seed."""
-        if self.replay is None:
-            return {}
-        data = Path(self.replay).read_bytes()
-        return {
-            "replay": {
-                "file": str(self.replay),
-                "sha256": hashlib.sha256(data).hexdigest(),
-                "seed": self.header.get("meta", {}).get("seed"),
-                "frames": len(self.frames),
-                "rate_hz": _rate(self.frames),
-            }
-        }
-
-
-def _rate(frames: list[Any]) -> float | None:
-    stamps = np.array([f.stamp for f in frames])
-    steps = np.diff(stamps)
-    steps = steps[steps > 0]
-    return float(1.0 / np.median(steps)) if steps.size else None
 
 
 class _Setup(NamedTuple):
@@ -549,3 +435,20 @@ def step_record(ctx: StepContext, driver: Any, retargeters: dict[str, PairRetarg
         if ctb_module is not None
         else "outside",
     )
+
+
+__all__ = [
+    "MAX_TRIAL_S",
+    "MODULE_NAMES",
+    "TRIAL_FILES",
+    "HeadsetSource",
+    "TrialAborted",
+    "TrialError",
+    "design_hash",
+    "load_replay",
+    "place_ctb_for_teleop",
+    "retargeting",
+    "run_trial",
+    "single_threaded_numerics",
+    "step_record",
+]

@@ -1,0 +1,129 @@
+"""Where a trial's hand frames come from: the synthetic operator behind a headset that
+reports on the recorder's grid, or a replayed recording."""
+
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from payload.errors import PayloadError
+from payload.sim.vehicle import DEFAULT_PROPULSION
+from payload.sim.world import DEFAULT_CTB
+from payload.teleop.calibration import CalibrationProcedure
+from payload.teleop.hands import Hand, HandFrame
+from payload.teleop.loop import ReplaySource, SyntheticSource
+from payload.teleop.operator import OperatorPlan, SyntheticOperator, WorldView
+from payload.teleop.replay import read_hand_recording
+
+
+class TrialError(PayloadError):
+    """A trial could not be run (bad operator choice, unreadable replay)."""
+
+
+class HeadsetSource:
+    """A hand source whose joint positions are reported on the recorder's grid.
+
+    Args:
+        source: The source (the synthetic operator).
+        grid: Resolution of the reported positions [m].
+    """
+
+    def __init__(self, source: Any, grid: float) -> None:
+        self.source = source
+        self.grid = grid
+
+    def frame(self, t: float, world: WorldView | None) -> HandFrame | None:
+        from payload.trials.codec import quantize_joints
+
+        fr = self.source.frame(t, world)
+        if fr is None:
+            return None
+        hands = [
+            Hand(quantize_joints(h.joints, self.grid), True) if h.tracked else h
+            for h in (fr.left, fr.right)
+        ]
+        return HandFrame(fr.stamp, hands[0], hands[1], fr.frame)
+
+    @property
+    def finished(self) -> bool:
+        return self.source.finished
+
+    @property
+    def operator(self) -> Any:
+        """The synthetic operator behind the headset (``None`` for other sources)."""
+        return getattr(self.source, "operator", None)
+
+
+def load_replay(path: str | Path) -> tuple[dict[str, Any], list[HandFrame]]:
+    """``(header, frames)`` to replay: a trial's ``log.mcap`` (its ``/trial/hands``
+    channel) or a ``hands.jsonl``; the header's ``meta`` names the source's seed."""
+    from payload.trials.recorder import RecordingError, read_hand_frames
+
+    if Path(path).suffix == ".mcap":
+        try:
+            meta, frames = read_hand_frames(path)
+        except RecordingError as exc:
+            raise TrialError(str(exc)) from None
+        return {"meta": meta}, frames
+    return read_hand_recording(path)
+
+
+class _Source:
+    """Where a trial's hand frames come from, and what its recording says about it."""
+
+    def __init__(
+        self,
+        operator: str,
+        seed: int,
+        replay: Path | None,
+        header: dict[str, Any],
+        frames: list[Any],
+        *,
+        ctb: str = DEFAULT_CTB,
+        propulsion: str = DEFAULT_PROPULSION,
+        retarget_budget: str = "paper",
+    ) -> None:
+        self.retarget_budget = retarget_budget
+        self.ctb = ctb
+        self.propulsion = propulsion
+        self.recorded: dict[str, Any] = header.get("meta") or {}
+        self.operator = operator
+        self.seed = seed
+        self.replay = replay
+        self.header = header
+        self.frames = frames
+
+    def make(self, plan: OperatorPlan, calibration: CalibrationProcedure) -> tuple[Any, dict]:
+        """The hand source and the operator traits to record."""
+        if self.operator == "synthetic":
+            synthetic = SyntheticOperator(plan, self.seed, calibration)
+            from payload.trials.codec import HAND_GRID_M
+
+            source = HeadsetSource(SyntheticSource(synthetic), HAND_GRID_M)
+            return source, dict(vars(synthetic.traits))
+        return ReplaySource(self.frames), {"replay": str(self.replay)}
+
+    def meta(self) -> dict[str, Any]:
+        """Recording metadata naming a replay's source file and seed."""
+        if self.replay is None:
+            return {}
+        data = Path(self.replay).read_bytes()
+        return {
+            "replay": {
+                "file": str(self.replay),
+                "sha256": hashlib.sha256(data).hexdigest(),
+                "seed": self.header.get("meta", {}).get("seed"),
+                "frames": len(self.frames),
+                "rate_hz": _rate(self.frames),
+            }
+        }
+
+
+def _rate(frames: list[Any]) -> float | None:
+    stamps = np.array([f.stamp for f in frames])
+    steps = np.diff(stamps)
+    steps = steps[steps > 0]
+    return float(1.0 / np.median(steps)) if steps.size else None
