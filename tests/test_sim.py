@@ -267,31 +267,6 @@ def test_astrobee_mass_properties_come_from_the_design_vehicle_table(world, desi
         design_from_dict({**design_dict, "vehicle": {**vehicle, "mass": -1.0}})
 
 
-def test_pinch_preshape_is_the_hand_descriptions_rest_posture(tmp_path):
-    """One source: the scripted pinch's pre-shape is the hand file's rest posture, as the
-    retargeting's own loader reads it, for every finger of both pairs."""
-    from payload.retarget.hand import DEFAULT_HAND, load_hand
-    from payload.sim.grasp import HAND_FILE, PINCH_OPEN, pinch_preshape
-
-    assert HAND_FILE.resolve() == DEFAULT_HAND.resolve()
-    hand = load_hand()
-    for pair in ("L", "R"):
-        p = hand.pair(pair)
-        rest = dict(zip(p.joints, p.rest))
-        for f in {j.split("_")[0] for j in p.joints}:
-            assert tuple(rest[f"{f}_{j}"] for j in ("mcp_flex", "mcp_abd", "pip", "dip")) == (
-                PINCH_OPEN
-            )
-    bad = tmp_path / "hand.toml"
-    bad.write_text(
-        DEFAULT_HAND.read_text().replace(
-            "rest = [-0.3, 0.0, 0.0, 1.2, -0.3", "rest = [-0.2, 0.0, 0.0, 1.2, -0.3", 1
-        )
-    )
-    with pytest.raises(SimError, match="rest postures differ"):
-        pinch_preshape(bad)
-
-
 def test_stale_payload_model_is_refused(design_dict):
     changed = {**design_dict, "servo": {**design_dict["servo"], "current_limit": 0.5}}
     with pytest.raises(SimError, match="payload build"):

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import sys
 from collections.abc import Sequence
 from pathlib import Path
 from typing import NamedTuple
@@ -15,46 +14,10 @@ from payload.sim.astrobee import design_vehicle, payload_mount
 from payload.sim.config import WorldConfig
 from payload.sim.errors import SimError
 
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover
-    import tomli as tomllib
-
-HAND_FILE = Path(__file__).resolve().parents[1] / "retarget" / "hands" / "payload.toml"
-"""Our hand description (:data:`payload.retarget.hand.DEFAULT_HAND`): its ``rest`` posture
-is the grasp pre-shape, for the teleoperated pinch and the scripted one alike."""
-
-
-def pinch_preshape(hand_file: Path = HAND_FILE) -> tuple[float, float, float, float]:
-    """The pinch pre-shape (mcp_flex, mcp_abd, pip, dip) [rad]: the ``rest`` posture of
-    the hand description, the one place it is written.
-
-    Read as data (the retargeting package is not imported); every finger of both pairs
-    must have the same pre-shape.
-
-    Raises:
-        SimError: The file gives no rest posture or different ones for the fingers.
-    """
-    try:
-        raw = tomllib.loads(Path(hand_file).read_text())
-        values: dict[str, float] = {}
-        for pair in raw["pairs"].values():
-            names = [n for finger in pair["joints"] for n in finger]
-            values.update(zip(names, (float(v) for v in pair["rest"]), strict=True))
-        shapes = {tuple(values[f"{f}_{j}"] for j in FINGER_JOINTS) for f in FINGERS}
-    except (OSError, tomllib.TOMLDecodeError, KeyError, TypeError, ValueError) as exc:
-        raise SimError(f"{hand_file}: no grasp pre-shape (pairs.*.rest): {exc}") from None
-    if len(shapes) != 1:
-        raise SimError(f"{hand_file}: the fingers' rest postures differ: {sorted(shapes)}")
-    shape = shapes.pop()
-    return (shape[0], shape[1], shape[2], shape[3])
-
-
-PINCH_OPEN = pinch_preshape()
-"""Finger pre-shape for the handle pinch (mcp_flex, mcp_abd, pip, dip) [rad], from the hand
-description (:func:`pinch_preshape`): MCP flexion opened near its lower limit, the distal
-link curled toward the handle so the fingertip pad faces it; the handle is centred on the
-four fingertips of this posture."""
+PINCH_OPEN = (-0.30, 0.0, 0.0, 0.90)
+"""Finger pre-shape for the handle pinch (mcp_flex, mcp_abd, pip, dip) [rad]: MCP flexion
+opened near its lower limit, the distal link curled toward the handle so the fingertip pad
+faces it; the handle is centred on the four fingertips of this posture."""
 
 PINCH_CLEARANCE = 0.005
 """Least gap between the pads and the handle at the pre-shape [m]; a design that leaves
