@@ -8,14 +8,17 @@ from typing import NamedTuple
 import numpy as np
 from scipy import optimize
 
-from payload.design.tree import KinematicTree
+from payload.design.tree import ALL_JOINTS, KinematicTree
 from payload.envelope.pairs import (
     OPPOSITION_CONE,
+    PAIRS,
+    grasp_base,
     pair_joints,
     pair_side,
 )
-from payload.envelope.spans import pair_tips
+from payload.envelope.sampling import frame_positions
 from payload.envelope.vehicle import Vehicle
+from payload.kinematics import Kinematics
 
 
 class GraspFeature(NamedTuple):
@@ -79,11 +82,27 @@ def opposition(p1: np.ndarray, p2: np.ndarray, side_sign: float) -> np.ndarray:
     return np.arccos(np.clip(cos, -1.0, 1.0))
 
 
+def pair_tips(
+    kin: Kinematics, tree: KinematicTree, pair: str, q8: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Fingertips of a pair for joint rows of shape (n, 8), at :func:`grasp_base`, (n, 3) each.
+
+    The other fingers' joints are 0 (they do not move this pair's fingertips).
+    """
+    q8 = np.atleast_2d(q8)
+    rows = np.zeros((len(q8), len(ALL_JOINTS)))
+    rows[:, [ALL_JOINTS.index(j) for j in pair_joints(pair)]] = q8
+    for j, v in grasp_base(tree).items():
+        rows[:, ALL_JOINTS.index(j)] = v
+    tips = frame_positions(kin, rows, [f"{f}_tip" for f in PAIRS[pair]])
+    return tips[:, 0], tips[:, 1]
+
+
 def _pinch(
-    tree: KinematicTree, pair: str, rows: np.ndarray, side: float
+    kin: Kinematics, tree: KinematicTree, pair: str, rows: np.ndarray, side: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Span [m], cosine of the opposition angle and higher tip z [m] for (n, 8) rows."""
-    p1, p2 = pair_tips(tree, pair, rows)
+    p1, p2 = pair_tips(kin, tree, pair, rows)
     d = p2 - p1
     span = np.linalg.norm(d, axis=1)
     cos = side * d[:, 1] / np.maximum(span, 1e-12)
@@ -108,6 +127,7 @@ def symmetric_samples(
 
 
 def grasp_check(
+    kin: Kinematics,
     tree: KinematicTree,
     pair: str,
     candidates: np.ndarray,
@@ -130,7 +150,8 @@ def grasp_check(
     over the pair's 8 joints, then checked.
 
     Args:
-        tree: The kinematic tree.
+        kin: The shared kinematics of the design.
+        tree: The kinematic tree (joint limits, pad radius, home rail).
         pair: ``L`` or ``R``.
         candidates: Pair joint rows (finger 1 then finger 2), shape (m, 8) [rad].
         vehicle: The vehicle.
@@ -149,7 +170,7 @@ def grasp_check(
         [[tree.joint_map[j].lower, tree.joint_map[j].upper] for j in pair_joints(pair)]
     )
     side = pair_side(tree, pair)
-    span, cos, z = _pinch(tree, pair, candidates, side)
+    span, cos, z = _pinch(kin, tree, pair, candidates, side)
     ok = (cos >= np.cos(OPPOSITION_CONE)) & (z + r <= vehicle.bottom_z)
     cand, span, cos, z = candidates[ok], span[ok], cos[ok], z[ok]
     out = []
@@ -163,7 +184,7 @@ def grasp_check(
         for i in order[:attempts]:
             if abs(span[i] - target) > window:
                 break
-            found = _witness(tree, pair, feat, cand[i], bounds, vehicle, is_free, tolerance)
+            found = _witness(kin, tree, pair, feat, cand[i], bounds, vehicle, is_free, tolerance)
             if found is not None:
                 break
         if found is None:
@@ -182,6 +203,7 @@ def grasp_check(
 
 
 def _witness(
+    kin: Kinematics,
     tree: KinematicTree,
     pair: str,
     feat: GraspFeature,
@@ -196,14 +218,14 @@ def _witness(
     side = pair_side(tree, pair)
     target = feat.thickness + 2 * r
     res = optimize.least_squares(
-        lambda x: _pinch(tree, pair, x[None, :], side)[0] - target,
+        lambda x: _pinch(kin, tree, pair, x[None, :], side)[0] - target,
         start,
         bounds=(bounds[:, 0], bounds[:, 1]),
         max_nfev=30,
         xtol=1e-12,
     )
     q8 = np.clip(res.x, bounds[:, 0], bounds[:, 1])
-    (s,), (c,), (zz,) = _pinch(tree, pair, q8[None, :], side)
+    (s,), (c,), (zz,) = _pinch(kin, tree, pair, q8[None, :], side)
     ang = float(np.arccos(np.clip(c, -1.0, 1.0)))
     depth = float(vehicle.bottom_z - (zz + r))
     if abs(s - target) > tolerance or ang > OPPOSITION_CONE or depth < 0:
@@ -219,5 +241,6 @@ __all__ = [
     "GraspResult",
     "grasp_check",
     "opposition",
+    "pair_tips",
     "symmetric_samples",
 ]

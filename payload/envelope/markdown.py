@@ -264,10 +264,12 @@ def reach_markdown(a: ReachAnalysis, command: str, figure: str) -> str:
         "## Method",
         "",
         "- Uniform samples of the 17 manipulation joints inside their limits, stage deployed; "
-        "batched (vectorised numpy) forward kinematics of the kinematic tree.",
-        "- Span range: every combination of one finger's samples with the other's (both hang "
-        "from the same link): nearest by a k-d tree, farthest over the hull vertices, both "
-        "refined by L-BFGS-B.",
+        "forward kinematics by Pinocchio on the design's URDF (the retargeter's model).",
+        "- Span range: the retargeter's (`payload.retarget.pair_range`, the number its "
+        "calibration uses): the largest separation with each fingertip in front of its "
+        "finger's first joint along the finger's rest direction (a finger may not curl back "
+        "through the structure; SLSQP from 16 starts), the smallest by L-BFGS-B; the usable "
+        "minimum is where the pads touch.",
         "- Collisions: MuJoCo on the convex pieces of the link solids; parent/child links "
         "never collide.",
         "",

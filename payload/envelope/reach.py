@@ -1,18 +1,16 @@
 """Reach of the deployed fingers: workspaces, pair spans, rail spacing, grasp check.
 
 The joint space is sampled uniformly inside the limits (the 17 manipulation
-coordinates, stage deployed) and every configuration goes through a batched,
-vectorised forward kinematics derived from the kinematic tree. Self-collision of
+coordinates, stage deployed) and every configuration goes through the shared
+forward kinematics (Pinocchio on the design's URDF, as the retargeter's; see
+:mod:`payload.envelope.kinematics`). Self-collision of
 every sample is checked by MuJoCo on a model built from the convex pieces of the
 link solids (the same pieces python-fcl uses for the stowed checks), with the
 vehicle body beside it.
 
-A pair's span is eq. 2's fingertip separation l = |p2 - p1|. The two fingers of a
-pair hang from the same link (A, C from the stage; B, D from the carriage), so
-every combination of one finger's samples with the other's is a configuration of
-the pair: the span range is the range of distances between the two fingertip
-clouds (a k-d tree for the nearest, the hull vertices for the farthest), refined
-by a bounded local search from the extreme pair.
+A pair's span is eq. 2's fingertip separation l = |p2 - p1|; its range is the
+retargeter's (:func:`payload.retarget.pair_range`: the fingertips kept in front of
+their fingers' first joints), so the report and the calibration agree.
 """
 
 from __future__ import annotations
@@ -36,6 +34,7 @@ from payload.envelope.grasp import (
     opposition,
     symmetric_samples,
 )
+from payload.envelope.kinematics import DesignKinematics, design_kinematics
 from payload.envelope.pairs import (
     OPPOSITION_CONE,
     PAIRS,
@@ -46,16 +45,12 @@ from payload.envelope.pairs import (
     pair_side,
 )
 from payload.envelope.progress import Progress, quiet
-from payload.envelope.sampling import (
-    batch_frames,
-    batch_link_poses,
-    columns,
-    fingertips,
-    sample_configurations,
-)
-from payload.envelope.spans import SpanRange, span_of, span_range
+from payload.envelope.sampling import fingertips, sample_configurations
+from payload.envelope.spans import SpanRange, span_range
 from payload.envelope.vehicle import Vehicle
 from payload.envelope.workspace import Workspace, rail_spacing, value_range, workspace
+
+_TIPS = [f"{f}_tip" for f in FINGERS]
 
 # ----------------------------------------------------------------- the analysis
 
@@ -186,7 +181,8 @@ def analyse_reach(
     rng = np.random.default_rng(seed)
     progress("sampling", 0.0)
     q = sample_configurations(tree, int(samples), rng)
-    tips = fingertips(tree, q)
+    model_kin = design_kinematics(tree)
+    tips = fingertips(model_kin.kin, q)
     timings["batched FK"] = time.perf_counter() - t0
 
     t = time.perf_counter()
@@ -203,12 +199,15 @@ def analyse_reach(
     t = time.perf_counter()
     pairs = []
     for name in PAIRS:
-        pairs.append(_pair_reach(tree, name, q, tips, contacts, model, vehicle, features, rng))
+        pairs.append(
+            _pair_reach(tree, model_kin, name, q, tips, contacts, model, vehicle, features, rng)
+        )
         progress("spans and grasps", len(pairs) / len(PAIRS))
     timings["spans and grasps"] = time.perf_counter() - t
 
-    home_tips = tree.frame_positions(tree.posture("home"))
-    home_depth = max(vehicle.bottom_z - home_tips[f"{f}_tip"][2] for f in FINGERS)
+    kin = model_kin.kin
+    home_tips = kin.frame_positions(kin.configuration(tree.posture("home")), _TIPS)
+    home_depth = max(vehicle.bottom_z - home_tips[:, 2])
     out = ReachAnalysis(
         vehicle,
         tree.design.source,
@@ -216,7 +215,7 @@ def analyse_reach(
         seed,
         spaces,
         pairs,
-        rail_spacing(tree),
+        rail_spacing(kin),
         contacts,
         tips,
         float(home_depth),
@@ -255,6 +254,7 @@ def _workspaces(
 
 def _pair_reach(
     tree: KinematicTree,
+    model_kin: DesignKinematics,
     name: str,
     q: np.ndarray,
     tips: np.ndarray,
@@ -269,7 +269,7 @@ def _pair_reach(
     r = tree.design.finger.pad.radius
     c1 = [ALL_JOINTS.index(f"{f1}_{j}") for j in FINGER_JOINTS]
     c2 = [ALL_JOINTS.index(f"{f2}_{j}") for j in FINGER_JOINTS]
-    span = span_range(tree, name, q[:, c1], q[:, c2])
+    span = span_range(model_kin.pairs[name])
     own = finger_link_names(tree, f1) + finger_link_names(tree, f2)
     others = [n for g in FINGERS if g not in (f1, f2) for n in finger_link_names(tree, g)]
     free = ~contacts.involving(own, ignore=others)
@@ -289,7 +289,9 @@ def _pair_reach(
         return model.pair_free(row, own, others)
 
     candidates = np.vstack([q[opp][:, cols], symmetric_samples(tree, name, 20_000, rng)])
-    grasps = grasp_check(tree, name, candidates, vehicle, features, is_free=pair_free)
+    grasps = grasp_check(
+        model_kin.kin, tree, name, candidates, vehicle, features, is_free=pair_free
+    )
     return PairReach(
         name,
         (f1, f2),
@@ -317,9 +319,7 @@ __all__ = [
     "SpanRange",
     "Workspace",
     "analyse_reach",
-    "batch_frames",
-    "batch_link_poses",
-    "columns",
+    "design_kinematics",
     "finger_link_names",
     "fingertips",
     "grasp_base",
@@ -328,7 +328,6 @@ __all__ = [
     "pair_joints",
     "rail_spacing",
     "sample_configurations",
-    "span_of",
     "span_range",
     "symmetric_samples",
     "workspace",

@@ -8,14 +8,11 @@ import numpy as np
 from scipy.spatial import ConvexHull
 
 from payload.design.params import FINGERS
-from payload.design.tree import KinematicTree
 from payload.envelope.pairs import (
     PAIRS,
     ReachError,
 )
-from payload.envelope.sampling import (
-    batch_link_poses,
-)
+from payload.kinematics import Kinematics
 
 
 class Workspace(NamedTuple):
@@ -67,22 +64,23 @@ def workspace(
     )
 
 
-def rail_spacing(tree: KinematicTree) -> tuple[float, float]:
+def rail_spacing(kin: Kinematics) -> tuple[float, float]:
     """Pair spacing along the rail axis at the two rail limits [m].
 
     The spacing is the x distance between the pairs' centres (the midpoints of the
-    pairs' MCP flexion axes, pair R minus pair L).
+    pairs' MCP flexion axes, pair R minus pair L), on the shared kinematics.
     """
-    rail = tree.joint_map["rail"]
-    q = {"rail": np.array([rail.lower, rail.upper])}
+    (i,) = kin.q_indices(["rail"])
     knuckles = [f"{f}_knuckle" for f in FINGERS]
-    poses = batch_link_poses(tree, q, knuckles)
-    centre = {
-        pair: 0.5 * (poses[f"{a}_knuckle"][1] + poses[f"{b}_knuckle"][1])
-        for pair, (a, b) in PAIRS.items()
-    }
-    dx = centre["R"][:, 0] - centre["L"][:, 0]
-    return float(dx.min()), float(dx.max())
+    dx = []
+    for rail in (kin.lower[i], kin.upper[i]):
+        q = kin.configuration({"rail": float(rail)})
+        pos = dict(zip(knuckles, kin.frame_positions(q, knuckles)))
+        centre = {
+            p: 0.5 * (pos[f"{a}_knuckle"] + pos[f"{b}_knuckle"]) for p, (a, b) in PAIRS.items()
+        }
+        dx.append(float(centre["R"][0] - centre["L"][0]))
+    return min(dx), max(dx)
 
 
 def value_range(values: np.ndarray) -> tuple[float, float]:
