@@ -62,7 +62,7 @@ class PairReach:
     Attributes:
         name: ``L`` or ``R``.
         fingers: The two fingers.
-        span: Range of eq. 2's separation over the pair's joint space.
+        span: Range of eq. 2's separation: the retargeter's (:func:`payload.retarget.pair_range`).
         pad_contact: Separation at which the two pads touch (twice the pad radius) [m].
         free_fraction: Samples in which the pair's links touch nothing (the other pair's
             fingers aside, whose posture is independent).
