@@ -51,7 +51,8 @@ def design_kinematics(tree: KinematicTree) -> DesignKinematics:
     """
     raw = tomllib.loads(DEFAULT_HAND.read_text())
     for pair in raw["pairs"].values():
-        pair["tip_radius"] = float(tree.design.finger.pad.radius)
+        if "tip_radius" in pair:  # the pads touch at twice the design's pad radius
+            pair["tip_radius"] = float(tree.design.finger.pad.radius)
     with tempfile.TemporaryDirectory(prefix="payload-reach-") as tmp:
         path = Path(tmp) / "payload.urdf"
         path.write_text(to_urdf(tree))
