@@ -16,7 +16,14 @@ import pytest
 from conftest import ROOT, URDF
 from scipy import optimize
 
-from payload.design import ALL_JOINTS, FINGER_JOINTS, FINGERS, build_tree
+from payload.design import (
+    ALL_JOINTS,
+    FINGER_JOINTS,
+    FINGERS,
+    build_tree,
+    design_from_dict,
+    design_to_dict,
+)
 from payload.envelope import PayloadGeometry, Vehicle
 from payload.envelope.geometry import box_geometry, signed_distance
 from payload.envelope.reach import (
@@ -102,6 +109,21 @@ def test_the_reach_model_is_the_committed_urdfs(tree, model):
         for k, name in enumerate(frames):
             ref = data.oMf[committed.getFrameId(name)].translation
             assert np.abs(ours[i, k] - ref).max() < 1e-9
+
+
+def test_the_reach_model_follows_the_given_design_not_the_project(design):
+    """A --design with another pad radius and distal length: its own URDF and pads."""
+    data = design_to_dict(design)
+    data["finger"]["pad"]["radius"] = 0.012
+    data["finger"]["lengths"]["distal"] += 0.005
+    other = build_tree(design_from_dict(data))
+    model = design_kinematics(other)
+    assert all(pk.desc.tip_radius == 0.012 for pk in model.pairs.values())
+    q = sample_configurations(other, 5, np.random.default_rng(4))
+    tips = fingertips(model.kin, q)
+    for i, row in enumerate(q):
+        ref = other.frame_positions(dict(zip(ALL_JOINTS, row)))
+        assert np.abs(tips[i, 0] - ref["A_tip"]).max() < 1e-9
 
 
 # ----------------------------------------------------------------- spans
