@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test lint format build clean
+.PHONY: demo test lint format build clean analyses-campaign
 
 $(STAMP): pyproject.toml
 	test -d $(VENV) || $(PYTHON) -m venv $(VENV)
@@ -18,6 +18,21 @@ demo: $(STAMP)
 	$(BIN)/payload report envelope
 	$(BIN)/payload report reach --samples 100000
 	$(BIN)/payload trials run --n 10 --seed 0 --out runs/campaign-$$(date +%Y%m%d-%H%M%S)
+
+# the committed campaign results (analyses/campaign/<name>/): the paper's experiment per CTB
+# model with the paper's retargeting budget, and the single bag with the converged budget.
+# The full runs (recordings included) stay in runs/analyses-<name>/.
+CAMPAIGNS := single:--ctb=single rigid:--ctb=rigid single-converged:--ctb=single:--retarget-budget=converged
+analyses-campaign: $(STAMP)
+	set -e; for spec in $(CAMPAIGNS); do \
+	  name=$${spec%%:*}; args=$$(echo $${spec#*:} | tr ':' ' '); \
+	  $(BIN)/payload trials run --n 10 --seed 0 --workers 2 $$args --out runs/analyses-$$name --force; \
+	  mkdir -p analyses/campaign/$$name; \
+	  cp runs/analyses-$$name/summary.md runs/analyses-$$name/summary.json analyses/campaign/$$name/; \
+	  for f in ctb_body_frame route; do \
+	    cp runs/analyses-$$name/trial-0000/fig_$$f.png analyses/campaign/$$name/trial-0000_$$f.png; \
+	  done; \
+	done
 
 # the WebXR emulator the browser tests load (iwer), pinned by package-lock.json
 node_modules/.package-lock.json: package-lock.json

@@ -119,6 +119,36 @@ def test_mjcf_follows_menagerie_conventions():
         assert mmodel.actuator_biastype[a] == mujoco.mjtBias.mjBIAS_AFFINE
 
 
+def test_finger_servos_carry_the_designs_velocity_feedback(design):
+    """MuJoCo's affine bias of each finger actuator is -kp q - kv qdot, with the design's
+    kp and kv (Menagerie's LEAP values); the rail and stage have no velocity feedback."""
+    mmodel = mujoco.MjModel.from_xml_path(str(MJCF))
+    fingers = [a for a in range(mmodel.nu) if mmodel.actuator(a).name[0] in FINGERS]
+    assert len(fingers) == 16 and design.finger.kv == pytest.approx(0.01)
+    for a in range(mmodel.nu):
+        kp, kv = -mmodel.actuator_biasprm[a, 1], -mmodel.actuator_biasprm[a, 2]
+        if a in fingers:
+            assert (kp, kv) == (design.finger.kp, design.finger.kv)
+        else:
+            assert kv == 0.0
+    # the force it adds: a joint moving at 2 rad/s onto its set point feels -kp e - kv qdot
+    d = mujoco.MjData(mmodel)
+    a = fingers[0]
+    j = mmodel.actuator_trnid[a, 0]
+    d.qpos[mmodel.jnt_qposadr[j]] = 0.3
+    d.qvel[mmodel.jnt_dofadr[j]] = 2.0
+    d.ctrl[a] = 0.25
+    mujoco.mj_forward(mmodel, d)
+    expected = design.finger.kp * (0.25 - 0.3) - design.finger.kv * 2.0
+    assert d.actuator_force[a] == pytest.approx(expected, rel=1e-12)
+
+
+def test_a_design_written_before_kv_existed_still_loads(design_dict):
+    data = copy.deepcopy(design_dict)
+    del data["finger"]["kv"]
+    assert design_from_dict(data).finger.kv == 0.0
+
+
 # ---------------------------------------------------------------- mass properties
 
 

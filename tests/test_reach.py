@@ -1,4 +1,4 @@
-"""Reach report: batched FK, spans, rail spacing, collisions, grasp witnesses, CLI.
+"""Reach report: shared kinematics, spans, rail spacing, collisions, grasp witnesses, CLI.
 
 Numbers are checked against a second library (Pinocchio on the URDF, python-fcl),
 brute force over a coarse grid, or closed forms of the design."""
@@ -14,8 +14,16 @@ import numpy as np
 import pinocchio as pin
 import pytest
 from conftest import ROOT, URDF
+from scipy import optimize
 
-from payload.design import ALL_JOINTS, FINGER_JOINTS, FINGERS, build_tree
+from payload.design import (
+    ALL_JOINTS,
+    FINGER_JOINTS,
+    FINGERS,
+    build_tree,
+    design_from_dict,
+    design_to_dict,
+)
 from payload.envelope import PayloadGeometry, Vehicle
 from payload.envelope.geometry import box_geometry, signed_distance
 from payload.envelope.reach import (
@@ -23,16 +31,17 @@ from payload.envelope.reach import (
     CollisionModel,
     GraspFeature,
     analyse_reach,
-    batch_frames,
-    batch_link_poses,
-    columns,
+    design_kinematics,
     finger_link_names,
+    fingertips,
     opposition,
     rail_spacing,
     sample_configurations,
     span_range,
     workspace,
 )
+from payload.envelope.sampling import frame_positions
+from payload.retarget import PairKinematics, pair_range
 
 VEHICLE = Vehicle()
 
@@ -67,35 +76,54 @@ def pin_q(model: pin.Model, values: dict[str, float]) -> np.ndarray:
     return q
 
 
-# ----------------------------------------------------------------- batched FK
+# ----------------------------------------------------------------- shared kinematics
 
 
-def test_batched_fingertips_match_pinocchio_on_the_urdf(tree):
-    model = pin.buildModelFromUrdf(str(URDF))
-    data = model.createData()
+@pytest.fixture(scope="module")
+def model(tree):
+    return design_kinematics(tree)
+
+
+def test_fingertips_on_the_shared_kinematics_match_the_trees_own(tree, model):
     rng = np.random.default_rng(11)
     q = sample_configurations(tree, 300, rng, stage=None)
     q[:, -1] = rng.uniform(0, tree.joint_map["stage"].upper, len(q))
-    frames = [f"{f}_{k}" for f in FINGERS for k in ("tip", "distal")]
-    batch = batch_frames(tree, columns(q), frames)
+    tips = fingertips(model.kin, q)
     worst = 0.0
     for i, row in enumerate(q):
-        pin.framesForwardKinematics(model, data, pin_q(model, dict(zip(ALL_JOINTS, row))))
-        for name in frames:
-            ref = data.oMf[model.getFrameId(name)].translation
-            worst = max(worst, float(np.abs(batch[name][i] - ref).max()))
+        ref = tree.frame_positions(dict(zip(ALL_JOINTS, row)))  # the tree's own numpy FK
+        for k, f in enumerate(FINGERS):
+            worst = max(worst, float(np.abs(tips[i, k] - ref[f"{f}_tip"]).max()))
     assert worst < 1e-9
 
 
-def test_batched_link_rotations_match_the_trees_own_kinematics(tree):
-    rng = np.random.default_rng(12)
-    q = sample_configurations(tree, 5, rng)
-    poses = batch_link_poses(tree, columns(q))
+def test_the_reach_model_is_the_committed_urdfs(tree, model):
+    """The design's generated model is the one the retargeter loads (urdf/payload.urdf)."""
+    committed = pin.buildModelFromUrdf(str(URDF))
+    data = committed.createData()
+    q = sample_configurations(tree, 50, np.random.default_rng(3))
+    frames = [f"{f}_{k}" for f in FINGERS for k in ("tip", "distal")]
+    ours = frame_positions(model.kin, q, frames)
     for i, row in enumerate(q):
-        ref = tree.link_poses(dict(zip(ALL_JOINTS, row)))
-        for name, (rot, pos) in poses.items():
-            assert np.allclose(rot[i], ref[name][:3, :3], atol=1e-12)
-            assert np.allclose(pos[i], ref[name][:3, 3], atol=1e-12)
+        pin.framesForwardKinematics(committed, data, pin_q(committed, dict(zip(ALL_JOINTS, row))))
+        for k, name in enumerate(frames):
+            ref = data.oMf[committed.getFrameId(name)].translation
+            assert np.abs(ours[i, k] - ref).max() < 1e-9
+
+
+def test_the_reach_model_follows_the_given_design_not_the_project(design):
+    """A --design with another pad radius and distal length: its own URDF and pads."""
+    data = design_to_dict(design)
+    data["finger"]["pad"]["radius"] = 0.012
+    data["finger"]["lengths"]["distal"] += 0.005
+    other = build_tree(design_from_dict(data))
+    model = design_kinematics(other)
+    assert all(pk.desc.tip_radius == 0.012 for pk in model.pairs.values())
+    q = sample_configurations(other, 5, np.random.default_rng(4))
+    tips = fingertips(model.kin, q)
+    for i, row in enumerate(q):
+        ref = other.frame_positions(dict(zip(ALL_JOINTS, row)))
+        assert np.abs(tips[i, 0] - ref["A_tip"]).max() < 1e-9
 
 
 # ----------------------------------------------------------------- spans
@@ -109,48 +137,81 @@ def grid(tree, finger: str, n: int) -> np.ndarray:
     return np.array(list(itertools.product(*axes)))
 
 
+def tree_tips(tree, finger: str, rows: np.ndarray) -> np.ndarray:
+    """Fingertips by the tree's own (unbatched numpy) kinematics, rail and stage at 0."""
+    out = [
+        tree.frame_positions({f"{finger}_{j}": v for j, v in zip(FINGER_JOINTS, row)})[
+            f"{finger}_tip"
+        ]
+        for row in rows
+    ]
+    return np.array(out)
+
+
+def front(tree, finger: str, rest: np.ndarray, tips: np.ndarray) -> np.ndarray:
+    """How far each tip lies in front of the finger's MCP along its rest direction [m]."""
+    origin = tree.link_poses()[tree.joint_map[f"{finger}_mcp_flex"].child][:3, 3]
+    axis = tree_tips(tree, finger, rest[None])[0] - origin
+    return (tips - origin) @ (axis / np.linalg.norm(axis))
+
+
 @pytest.mark.parametrize("pair", ["L", "R"])
-def test_span_range_matches_brute_force_on_a_coarse_grid(tree, pair):
+def test_span_range_is_pair_ranges_and_holds_against_the_trees_kinematics(tree, geom, model, pair):
+    """283.5 mm (the old reach figure) is the maximum over the bare joint box: finger 1
+    curled back through the vehicle, the base and the stage. pair_range's 281.5 mm keeps
+    each fingertip in front of its MCP, and its witness touches nothing."""
+    span = span_range(model.pairs[pair])
+    own = pair_range(PairKinematics(pair=pair))  # the retargeter's, on the committed URDF
+    assert span.maximum == pytest.approx(own.span_max, abs=1e-9)
+    assert span.minimum == pytest.approx(own.span_min_kinematic, abs=1e-9)
+    # independently: a 6^4 grid per finger on the tree's own kinematics
     f1, f2 = PAIRS[pair]
-    g1, g2 = grid(tree, f1, 4), grid(tree, f2, 4)
-    # brute force: the tree's own (unbatched) kinematics, rail mid-travel, every combination
-    rail = {"rail": 0.03, "stage": 0.05}
-
-    def tips(finger, rows):
-        out = []
-        for row in rows:
-            q = dict(rail, **{f"{finger}_{j}": v for j, v in zip(FINGER_JOINTS, row)})
-            out.append(tree.frame_positions(q)[f"{finger}_tip"])
-        return np.array(out)
-
-    p1, p2 = tips(f1, g1), tips(f2, g2)
+    rest = np.array([-0.3, 0.0, 0.0, 1.2])  # the hand file's rest posture, per finger
+    g1, g2 = grid(tree, f1, 6), grid(tree, f2, 6)
+    p1, p2 = tree_tips(tree, f1, g1), tree_tips(tree, f2, g2)
+    ok1, ok2 = front(tree, f1, rest, p1) >= 0, front(tree, f2, rest, p2) >= 0
     d = np.linalg.norm(p1[:, None, :] - p2[None, :, :], axis=2)
-    coarse = span_range(tree, pair, g1, g2, refine=False)
-    assert coarse.minimum == pytest.approx(d.min(), abs=1e-12)
-    assert coarse.maximum == pytest.approx(d.max(), abs=1e-12)
-    refined = span_range(tree, pair, g1, g2, refine=True)
-    assert refined.minimum <= d.min() + 1e-12 and refined.maximum >= d.max() - 1e-12
-    # the refined maximum is a true separation of a configuration inside the limits
-    q = dict(rail)
-    q.update(zip([f"{f}_{j}" for f in (f1, f2) for j in FINGER_JOINTS], refined.q_max))
-    tp = tree.frame_positions(q)
-    assert np.linalg.norm(tp[f"{f2}_tip"] - tp[f"{f1}_tip"]) == pytest.approx(refined.maximum)
-    lo = [tree.joint_map[n].lower for n in q if n not in rail]
-    hi = [tree.joint_map[n].upper for n in q if n not in rail]
-    assert np.all(refined.q_max >= lo) and np.all(refined.q_max <= hi)
-    # and no farther than the two finger lengths plus the MCP axes' distance
-    f = tree.design.finger.lengths
-    length = f.knuckle + f.proximal + f.middle + f.distal
-    base = np.linalg.norm(
-        np.subtract(
-            tree.link_poses(q)[f"{f1}_knuckle"][:3, 3], tree.link_poses(q)[f"{f2}_knuckle"][:3, 3]
+    allowed = d[np.ix_(ok1, ok2)].max()
+    # the grid is a subset of the allowed set (its corner is pair_range's witness)
+    assert span.maximum - 1e-3 <= allowed <= span.maximum + 1e-9
+    # with finger 1 behind its MCP, a local search on the tree's kinematics from the
+    # grid's farthest such pair finds the old 283.5 mm
+    behind = np.where(~ok1[:, None], d, -1.0)
+    i, j = np.unravel_index(int(np.argmax(behind)), d.shape)
+    limits = [tree.joint_map[f"{f}_{n}"] for f in (f1, f2) for n in FINGER_JOINTS]
+
+    def neg(x: np.ndarray) -> float:
+        return -float(
+            np.linalg.norm(tree_tips(tree, f2, x[None, 4:]) - tree_tips(tree, f1, x[None, :4]))
         )
+
+    res = optimize.minimize(
+        neg,
+        np.concatenate([g1[i], g2[j]]),
+        method="L-BFGS-B",
+        bounds=[(lim.lower, lim.upper) for lim in limits],
     )
-    assert refined.maximum <= base + 2 * length + 1e-12
+    x = res.x
+    assert -res.fun == pytest.approx(0.28352, abs=5e-5) and -res.fun > span.maximum + 1e-3
+    assert front(tree, f1, rest, tree_tips(tree, f1, x[None, :4]))[0] < -0.05
+    # that posture collides; pair_range's does not (rail at home, stage deployed)
+    check = CollisionModel(geom, VEHICLE)
+    own_links = finger_link_names(tree, f1) + finger_link_names(tree, f2)
+    others = [n for g in FINGERS if g not in (f1, f2) for n in finger_link_names(tree, g)]
+    cols = [ALL_JOINTS.index(f"{f}_{j}") for f in (f1, f2) for j in FINGER_JOINTS]
+
+    def free(q8: np.ndarray) -> bool:
+        row = np.zeros(len(ALL_JOINTS))
+        row[ALL_JOINTS.index("rail")] = tree.design.home.rail
+        row[ALL_JOINTS.index("stage")] = tree.joint_map["stage"].upper
+        row[cols] = q8
+        return check.pair_free(row, own_links, others)
+
+    assert not free(x) and free(span.q_max)
 
 
-def test_rail_spacing_is_the_closed_form_range(design, tree):
-    lo, hi = rail_spacing(tree)
+def test_rail_spacing_is_the_closed_form_range(design, model):
+    lo, hi = rail_spacing(model.kin)
     assert lo == pytest.approx(design.array.pair_spacing, abs=1e-12)
     assert hi == pytest.approx(design.array.pair_spacing + design.rail.travel, abs=1e-12)
 

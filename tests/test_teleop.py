@@ -3,12 +3,16 @@
 from __future__ import annotations
 
 import math
+import re
 
 import numpy as np
 import pytest
+from conftest import ROOT
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from payload.design import vehicle as design_vehicle
+from payload.sim import vehicle as sim_vehicle
 from payload.teleop.channels import (
     BaseChannel,
     BaseCommand,
@@ -191,6 +195,19 @@ wrist_paths = st.lists(
     min_size=1,
     max_size=12,
 )
+
+
+def test_base_channel_speed_and_acceleration_are_the_nominal_flight_modes():
+    """One source: the simulator's flight-mode table, whose figures docs/sources.md cites."""
+    text = (ROOT / "docs" / "sources.md").read_text()
+    row = next(line for line in text.splitlines() if line.startswith("| flight modes |"))
+    m = re.search(r"nominal ([0-9.]+) m/s, ([0-9.]+) m/s\^2", row)
+    assert m is not None
+    cfg = BaseConfig()
+    assert (cfg.max_speed, cfg.max_accel) == (float(m.group(1)), float(m.group(2)))
+    nominal = sim_vehicle.FLIGHT_MODES[sim_vehicle.DEFAULT_FLIGHT_MODE]
+    assert (cfg.max_speed, cfg.max_accel) == (nominal.speed, nominal.accel)
+    assert sim_vehicle.FLIGHT_MODES is design_vehicle.FLIGHT_MODES  # one table
 
 
 @settings(max_examples=150, deadline=None)

@@ -47,7 +47,8 @@ def _defaults(tree: KinematicTree) -> list[str]:
         '      <default class="finger">',
         f'        <joint type="hinge" damping="{num(fj.damping)}" '
         f'frictionloss="{num(fj.frictionloss)}" armature="{num(fj.armature)}"/>',
-        f'        <position kp="{num(fj.kp)}" forcerange="{num(-fj.effort)} {num(fj.effort)}"/>',
+        f'        <position kp="{num(fj.kp)}" kv="{num(fj.kv)}" '
+        f'forcerange="{num(-fj.effort)} {num(fj.effort)}"/>',
         "      </default>",
         '      <default class="rail">',
         f'        <joint type="slide" damping="{num(rj.damping)}"/>',

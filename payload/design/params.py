@@ -38,8 +38,11 @@ def _pos(doc: str = "") -> Any:
     return field(metadata={"positive": True, "doc": doc})
 
 
-def _nonneg(doc: str = "") -> Any:
-    return field(metadata={"nonneg": True, "doc": doc})
+def _nonneg(doc: str = "", default: float | None = None) -> Any:
+    if default is None:
+        return field(metadata={"nonneg": True, "doc": doc})
+    # an optional key: design files written before it existed keep their meaning
+    return field(default=default, metadata={"nonneg": True, "doc": doc, "optional": True})
 
 
 def _any(doc: str = "") -> Any:
@@ -120,6 +123,7 @@ class Finger:
     frictionloss: float = _nonneg("joint dry friction [N m]")
     armature: float = _nonneg("reflected rotor inertia [kg m^2] (assumption)")
     kp: float = _pos("position-servo stiffness [N m/rad]")
+    kv: float = _nonneg("position-servo velocity feedback [N m s/rad] (optional, 0)", 0.0)
 
     def limit(self, joint: str) -> Range:
         return getattr(self.limits, joint)
@@ -326,6 +330,8 @@ def _build(cls: type, data: Any, path: str) -> Any:
             kwargs[f.name] = copy.deepcopy(table)
             continue
         if f.name not in data:
+            if f.metadata.get("optional"):
+                continue
             raise DesignError(where, "missing key")
         kwargs[f.name] = _value(hints[f.name], data[f.name], where, f.metadata)
     return cls(**kwargs)

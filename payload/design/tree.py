@@ -62,6 +62,7 @@ class Joint:
         frictionloss: Dry friction.
         armature: Reflected rotor inertia.
         kp: Position-servo stiffness for the actuator.
+        kv: Velocity feedback of the actuator (inside its force clamp, unlike ``damping``).
         group: Actuator class (``finger``, ``rail`` or ``stage``).
     """
 
@@ -80,6 +81,7 @@ class Joint:
     frictionloss: float = 0.0
     armature: float = 0.0
     kp: float = 0.0
+    kv: float = 0.0
     group: str = ""
 
     def origin(self) -> np.ndarray:
@@ -270,6 +272,7 @@ def build_tree(design: Design) -> KinematicTree:
                     frictionloss=f.frictionloss,
                     armature=f.armature,
                     kp=f.kp,
+                    kv=f.kv,
                     group="finger",
                 )
             )

@@ -5,7 +5,9 @@ the bays reach down to the vehicle's bottom face, where they are open, so the
 stage lowers the finger array through it. Astrobee's bay size is not public: the
 default is the assumption stated in ``docs/sources.md`` (one 1-U bay = 100 x 100 x
 100 mm, the two lower bays side by side fore-aft = 200 x 100 x 100 mm), and every
-report names it. A design file may replace it with a ``[vehicle]`` table (see
+report names it. Astrobee's flight modes (:data:`FLIGHT_MODES`, its motion and
+propulsion limits) live here too: the simulator's controller and the teleoperation
+base channel read them. A design file may replace it with a ``[vehicle]`` table (see
 :data:`VEHICLE_TOML`); :class:`~payload.design.params.Design` keeps the table as plain
 data (``design.vehicle``) and validates it with :func:`vehicle_from_dict`.
 """
@@ -42,6 +44,65 @@ VEHICLE_TOML = (
     f'assumption = "{BAY_ASSUMPTION}"\n'
 )
 """The ``[vehicle]`` table proposed for ``cad/design.toml`` (all keys optional)."""
+
+
+@dataclass(frozen=True)
+class FlightMode:
+    """Astrobee propulsion and motion limits of one flight mode (docs/sources.md#vehicle).
+
+    Attributes:
+        name: Mode name.
+        force: Maximum body force per axis x, y, z [N].
+        torque: Maximum body torque per axis [N m] (about a tenth of the force figures).
+        speed: Maximum linear speed [m/s].
+        accel: Maximum linear acceleration [m/s^2].
+        omega: Maximum angular rate [rad/s].
+        alpha: Maximum angular acceleration [rad/s^2].
+        impeller_rpm: Impeller speed the force figures belong to.
+    """
+
+    name: str
+    force: tuple[float, float, float]
+    torque: tuple[float, float, float]
+    speed: float
+    accel: float
+    omega: float
+    alpha: float
+    impeller_rpm: int
+
+
+FLIGHT_MODES: dict[str, FlightMode] = {
+    "nominal": FlightMode(
+        "nominal",
+        force=(0.680, 0.332, 0.394),
+        torque=(0.0680, 0.0332, 0.0394),
+        speed=0.20,
+        accel=0.0175,
+        omega=0.1745,
+        alpha=0.1745,
+        impeller_rpm=2500,
+    ),
+    "difficult": FlightMode(
+        "difficult",
+        force=(0.849, 0.406, 0.486),
+        torque=(0.0849, 0.0406, 0.0486),
+        speed=0.40,
+        accel=0.020,
+        omega=0.5236,
+        alpha=0.25,
+        impeller_rpm=2800,
+    ),
+}
+"""Astrobee flight modes (gnc.config figures via docs/sources.md)."""
+
+DEFAULT_FLIGHT_MODE = "nominal"
+"""Default mode. Its 0.20 m/s cap is the paper's base-channel top speed. Carrying a single
+CTB (about 26 kg with vehicle and payload, centre of mass about 0.31 m below Astrobee's)
+the binding bound is the torque that must balance the cargo's moment, in either mode:
+x acceleration 0.0026 m/s^2 nominal against 0.0032 m/s^2 'difficult'. 'Difficult' buys
+about 20 % more acceleration and a 0.40 m/s cap the operator interface never asks for, at
+the price of louder, hungrier 2800 rpm impellers."""
+
 
 _KEYS = ("body_size", "body_offset", "bay_size", "mass", "inertia", "assumption")
 _WALLS = ("-x (aft)", "+x (forward)", "-y (right)", "+y (left)", "-z (bottom face)", "+z (mount)")
@@ -250,7 +311,10 @@ def _mm(size: tuple[float, ...]) -> str:
 
 __all__ = [
     "BAY_ASSUMPTION",
+    "DEFAULT_FLIGHT_MODE",
+    "FLIGHT_MODES",
     "VEHICLE_TOML",
+    "FlightMode",
     "Vehicle",
     "VehicleError",
     "vehicle_from_dict",

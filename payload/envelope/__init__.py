@@ -30,8 +30,7 @@ from payload.envelope.reach import (
     ReachAnalysis,
     ReachError,
     analyse_reach,
-    batch_frames,
-    batch_link_poses,
+    design_kinematics,
     span_range,
 )
 from payload.envelope.vehicle import (
@@ -63,10 +62,9 @@ __all__ = [
     "VehicleError",
     "analyse_envelope",
     "analyse_reach",
-    "batch_frames",
-    "batch_link_poses",
     "check_stowed",
     "deployment_sweep",
+    "design_kinematics",
     "fit_parts",
     "load_design_and_vehicle",
     "search_stowed_posture",

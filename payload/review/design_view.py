@@ -180,6 +180,7 @@ def reach_clouds(
     """Each finger's collision-free fingertip cloud, as the reach report samples it [m]."""
     from payload.envelope.reach import (
         CollisionModel,
+        design_kinematics,
         finger_link_names,
         fingertips,
         sample_configurations,
@@ -187,7 +188,7 @@ def reach_clouds(
 
     tree = geom.tree
     q = sample_configurations(tree, samples, np.random.default_rng(seed))
-    tips = fingertips(tree, q)
+    tips = fingertips(design_kinematics(tree).kin, q)
     contacts = CollisionModel(geom, vehicle).check(q, workers=1)
     links = {f: finger_link_names(tree, f) for f in FINGERS}
     out = {}

@@ -13,11 +13,11 @@ a share of that force bound over the carried mass. Runs at the 50 Hz control rat
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
 
+from payload.design.vehicle import DEFAULT_FLIGHT_MODE, FLIGHT_MODES, FlightMode
 from payload.errors import PayloadError
 from payload.schema import VehicleTwist
 from payload.sim.propulsion import Allocation, Propulsion
@@ -27,69 +27,12 @@ class VehicleError(PayloadError):
     """Bad vehicle-controller parameters or commands."""
 
 
-@dataclass(frozen=True)
-class FlightMode:
-    """Astrobee propulsion and motion limits of one flight mode (docs/sources.md).
-
-    Attributes:
-        name: Mode name.
-        force: Maximum body force per axis x, y, z [N].
-        torque: Maximum body torque per axis [N m] (about a tenth of the force figures).
-        speed: Maximum linear speed [m/s].
-        accel: Maximum linear acceleration [m/s^2].
-        omega: Maximum angular rate [rad/s].
-        alpha: Maximum angular acceleration [rad/s^2].
-        impeller_rpm: Impeller speed the force figures belong to.
-    """
-
-    name: str
-    force: tuple[float, float, float]
-    torque: tuple[float, float, float]
-    speed: float
-    accel: float
-    omega: float
-    alpha: float
-    impeller_rpm: int
-
-
-FLIGHT_MODES: dict[str, FlightMode] = {
-    "nominal": FlightMode(
-        "nominal",
-        force=(0.680, 0.332, 0.394),
-        torque=(0.0680, 0.0332, 0.0394),
-        speed=0.20,
-        accel=0.0175,
-        omega=0.1745,
-        alpha=0.1745,
-        impeller_rpm=2500,
-    ),
-    "difficult": FlightMode(
-        "difficult",
-        force=(0.849, 0.406, 0.486),
-        torque=(0.0849, 0.0406, 0.0486),
-        speed=0.40,
-        accel=0.020,
-        omega=0.5236,
-        alpha=0.25,
-        impeller_rpm=2800,
-    ),
-}
-"""Astrobee flight modes (gnc.config figures via docs/sources.md)."""
-
 PROPULSION_MODELS: tuple[str, ...] = ("nozzles", "box")
 """``nozzles``: the 12-nozzle allocation (:mod:`payload.sim.propulsion`), force and torque
 drawn from the same non-negative thrusts; ``box``: the older model, force and torque
 clipped per axis independently."""
 
 DEFAULT_PROPULSION = "nozzles"
-
-DEFAULT_FLIGHT_MODE = "nominal"
-"""Default mode. Its 0.20 m/s cap is the paper's base-channel top speed. Carrying a single
-CTB (about 26 kg with vehicle and payload, centre of mass about 0.31 m below Astrobee's)
-the binding bound is the torque that must balance the cargo's moment, in either mode:
-x acceleration 0.0026 m/s^2 nominal against 0.0032 m/s^2 'difficult'. 'Difficult' buys
-about 20 % more acceleration and a 0.40 m/s cap the operator interface never asks for, at
-the price of louder, hungrier 2800 rpm impellers."""
 
 JERK_LINEAR = 0.035
 """Linear jerk bound [m/s^3]. ASSUMPTION (not published): the nominal acceleration reached

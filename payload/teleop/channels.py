@@ -3,14 +3,15 @@
 - Rail: calibrated inter-wrist distance maps directly (and monotonically) to the rail.
 - Base: a virtual sphere centred at the neutral left-wrist position. Outside it the left
   wrist sets the travel direction, and its displacement beyond the boundary scales the
-  requested speed up to 0.20 m/s. The vehicle turns toward the requested direction while
-  translating. Acceleration and jerk are bounded. Braking is the paper's rule: when both
-  wrists are back in their neutral spheres (each centred on its calibrated neutral
-  position, same radius) the request is zero and the limiter brakes smoothly to rest.
-  When the left wrist is back inside but the right wrist is still outside its sphere the
-  channel *holds*: the request is the velocity already commanded, so the vehicle neither
-  speeds up nor brakes (and keeps turning toward its travel direction) until the right
-  wrist returns too or the left wrist leaves again. A lost hand (``None``) always brakes.
+  requested speed up to the nominal flight mode's 0.20 m/s (the paper's top speed). The
+  vehicle turns toward the requested direction while translating. Acceleration and jerk
+  are bounded. Braking is the paper's rule: when both wrists are back in their neutral
+  spheres (each centred on its calibrated neutral position, same radius) the request is
+  zero and the limiter brakes smoothly to rest. When the left wrist is back inside but
+  the right wrist is still outside its sphere the channel *holds*: the request is the
+  velocity already commanded, so the vehicle neither speeds up nor brakes (and keeps
+  turning toward its travel direction) until the right wrist returns too or the left
+  wrist leaves again. A lost hand (``None``) always brakes.
 
 Directions are in the operator frame (workbench axes, X forward), which calibration
 aligns with the vehicle's heading at the start; the channel outputs a body-frame twist.
@@ -23,6 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from payload.design.vehicle import DEFAULT_FLIGHT_MODE, FLIGHT_MODES
 from payload.errors import PayloadError
 from payload.rotations import yaw_matrix
 from payload.schema import CONTROL_DT, VehicleTwist
@@ -69,13 +71,14 @@ def rail_command(config: RailConfig, left_wrist: np.ndarray, right_wrist: np.nda
 
 @dataclass(frozen=True)
 class BaseConfig:
-    """Base channel settings (defaults: the paper's 0.20 m/s, Astrobee nominal flight mode).
+    """Base channel settings (defaults: Astrobee's nominal flight mode, the paper's 0.20 m/s).
 
     Attributes:
         sphere_radius: Radius of the neutral sphere around the neutral left wrist [m].
         full_speed_offset: Displacement beyond the sphere that requests full speed [m].
-        max_speed: Requested speed cap [m/s] (paper: 0.20).
-        max_accel: Linear acceleration bound [m/s^2] (Astrobee nominal: 0.0175).
+        max_speed: Requested speed cap [m/s]: the nominal flight mode's speed (0.20, the
+            paper's top speed too).
+        max_accel: Linear acceleration bound [m/s^2]: the nominal flight mode's (0.0175).
         max_jerk: Linear jerk bound [m/s^3].
         max_yaw_rate: [rad/s] (Astrobee nominal: 0.1745).
         max_yaw_accel: [rad/s^2].
@@ -86,8 +89,8 @@ class BaseConfig:
 
     sphere_radius: float = 0.05
     full_speed_offset: float = 0.12
-    max_speed: float = 0.20
-    max_accel: float = 0.0175
+    max_speed: float = FLIGHT_MODES[DEFAULT_FLIGHT_MODE].speed
+    max_accel: float = FLIGHT_MODES[DEFAULT_FLIGHT_MODE].accel
     max_jerk: float = 0.02
     max_yaw_rate: float = 0.1
     max_yaw_accel: float = 0.02

@@ -1,0 +1,222 @@
+"""The envelope report's figure: cross-sections of the stowed payload, the deployment sweep."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import manifold3d as m3d
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+from payload.envelope.drawing import (
+    AXES,
+    AXIS_LABEL,
+    FINGER_COLOURS,
+    STRUCTURE_COLOUR,
+    draw_vehicle,
+    legend_box,
+    part_colour,
+    polygon_patch,
+    polygons,
+    posed_solids,
+    to_view,
+    vehicle_legend,
+)
+from payload.envelope.fit_results import EnvelopeAnalysis, StowedCheck
+from payload.envelope.geometry import PayloadGeometry
+from payload.envelope.vehicle import Vehicle
+
+
+def _section_panel(
+    ax: Any,
+    solids: Mapping[str, m3d.Manifold],
+    vehicle: Vehicle,
+    axis: int,
+    value: float,
+    parts_by_name: Mapping[str, Any],
+    title: str,
+    colliding: frozenset[str] = frozenset(),
+) -> None:
+    h, v = AXES[axis]
+    draw_vehicle(ax, vehicle, axis)
+    for name, solid in solids.items():
+        view = to_view(solid, axis)
+        sil = polygon_patch(
+            polygons(view.project(), axis),
+            facecolor=part_colour(name),
+            alpha=0.12,
+            edgecolor="none",
+            zorder=1,
+        )
+        if sil is not None:
+            ax.add_patch(sil)
+        sec = polygons(view.slice(value), axis)
+        fit = parts_by_name.get(name)
+        outside = fit is not None and not fit.inside
+        edge = "red" if outside else ("magenta" if name in colliding else "black")
+        patch = polygon_patch(
+            sec,
+            facecolor=part_colour(name),
+            alpha=0.85,
+            edgecolor=edge,
+            lw=0.4 if edge == "black" else 1.6,
+            hatch="///" if outside else None,
+            zorder=2,
+        )
+        if patch is not None:
+            ax.add_patch(patch)
+    lo, hi = vehicle.bay_lower * 1e3, vehicle.bay_upper * 1e3
+    pad = 25.0
+    ax.set_xlim(lo[h] - pad, hi[h] + pad)
+    ax.set_ylim(lo[v] - pad, hi[v] + pad)
+    ax.set_aspect("equal")
+    ax.set_xlabel(f"{AXIS_LABEL[h]} [mm]")
+    ax.set_ylabel(f"{AXIS_LABEL[v]} [mm]")
+    ax.set_title(
+        f"{title}\nsection {AXIS_LABEL[axis]} = {value * 1e3:.1f} mm (shaded: silhouettes)",
+        fontsize=9,
+    )
+
+
+def _annotate_clearances(ax: Any, check: StowedCheck, vehicle: Vehicle, axis: int) -> None:
+    """Mark, for each wall seen in this view, the smallest clearance and its part."""
+    h, v = AXES[axis]
+    lo, hi = vehicle.bay_lower * 1e3, vehicle.bay_upper * 1e3
+    for w, wall in enumerate(vehicle.walls):
+        ax_i = w // 2
+        if ax_i not in (h, v):
+            continue
+        vals = [
+            (p.wall_clearance[w], p.name)
+            for p in check.parts
+            if p.inside and np.isfinite(p.wall_clearance[w])
+        ]
+        outs = [(p.protrusion, p.name) for p in check.parts if not p.inside and p.wall == wall]
+        if outs:
+            d, name = max(outs)
+            text, colour = f"{name}: {d * 1e3:.1f} mm out", "red"
+        elif vals:
+            d, name = min(vals)
+            text, colour = f"{d * 1e3:.1f} mm ({name})", "black"
+        else:
+            continue
+        side = w % 2
+        # labels stand just outside their wall, on a white box, so they never cover the
+        # parts (or the hatching of a part that protrudes)
+        box = {"facecolor": "white", "alpha": 0.85, "edgecolor": "none", "pad": 0.6}
+        gap = 1.5  # [mm] between the wall and its label
+        if ax_i == h:
+            x = hi[h] + gap if side else lo[h] - gap
+            ax.annotate(
+                text,
+                (x, (lo[v] + hi[v]) / 2),
+                fontsize=6.5,
+                color=colour,
+                rotation=90,
+                ha="left" if side else "right",
+                va="center",
+                bbox=box,
+                zorder=5,
+            )
+        else:
+            y = hi[v] + gap if side else lo[v] - gap
+            ax.annotate(
+                text,
+                ((lo[h] + hi[h]) / 2, y),
+                fontsize=6.5,
+                color=colour,
+                ha="center",
+                va="bottom" if side else "top",
+                bbox=box,
+                zorder=5,
+            )
+
+
+def envelope_figure(geom: PayloadGeometry, a: EnvelopeAnalysis, path: Path, dpi: int = 130) -> Path:
+    """Cross-sections of the stowed payload in the bays, and the deployment sweep."""
+    check = a.given
+    solids = posed_solids(geom, check.q)
+    fits = {p.name: p for p in check.parts}
+    tree = geom.tree
+    xa = tree.joint_map["A_mcp_flex"].xyz[0]
+    ya = tree.joint_map["A_mcp_flex"].xyz[1]
+    poses = geom.poses(check.q)
+    z_mcp = float(poses["A_knuckle"][2, 3])
+    fig = Figure(figsize=(13, 10), layout="constrained")
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(2, 2)
+    hit = frozenset(n for c in check.collisions for n in (c.a, c.b))
+    panels = (
+        (axes[0, 0], 0, xa, "front view (y-z), through finger A"),
+        (axes[0, 1], 1, ya, "side view (x-z), through fingers A, B"),
+        (axes[1, 0], 2, z_mcp, "top view (x-y), through the MCP axes"),
+    )
+    for ax, axis, value, title in panels:
+        _section_panel(ax, solids, a.vehicle, axis, value, fits, title, hit)
+        _annotate_clearances(ax, check, a.vehicle, axis)
+    _deployment_panel(axes[1, 1], geom, a.vehicle, check)
+    handles = [
+        *vehicle_legend(),
+        legend_box("structure", facecolor=STRUCTURE_COLOUR),
+        *[legend_box(f"finger {f}", facecolor=c) for f, c in FINGER_COLOURS.items()],
+        legend_box("outside the envelope", facecolor="white", edgecolor="red", hatch="///"),
+        legend_box("self-collision", facecolor="white", edgecolor="magenta", lw=1.6),
+    ]
+    fig.legend(handles=handles, loc="outside lower center", ncol=9, fontsize=8, frameon=False)
+    status = "fits" if check.fits else "DOES NOT FIT"
+    fig.suptitle(
+        f"Stowed payload in the two lower bays ({status}; min clearance "
+        f"{check.min_clearance * 1e3:.1f} mm; self-collision: "
+        f"{'yes' if check.self_collision else 'none'})",
+        fontsize=11,
+    )
+    fig.savefig(path, dpi=dpi)
+    return path
+
+
+def _deployment_panel(ax: Any, geom: PayloadGeometry, vehicle: Vehicle, check: StowedCheck) -> None:
+    """Silhouettes at stowed (dashed) and deployed, with the vehicle body (front view)."""
+    tree = geom.tree
+    draw_vehicle(ax, vehicle, 0)
+    stage = tree.joint_map["stage"]
+    for s, deployed in ((stage.lower, False), (stage.upper, True)):
+        q = dict(check.q)
+        q["stage"] = s
+        for name, solid in posed_solids(geom, q).items():
+            polys = polygons(to_view(solid, 0).project(), 0)
+            if deployed:
+                patch = polygon_patch(
+                    polys, facecolor=part_colour(name), alpha=0.6, edgecolor="none", zorder=2
+                )
+            else:
+                patch = polygon_patch(
+                    polys, fill=False, edgecolor=part_colour(name), lw=0.6, ls="--", zorder=3
+                )
+            if patch is not None:
+                ax.add_patch(patch)
+    sweep = check.sweep
+    ax.axhline(vehicle.bottom_z * 1e3, color="#6b6b6b", lw=0.8)
+    blo, bhi = vehicle.body_lower * 1e3, vehicle.body_upper * 1e3
+    ax.set_xlim(blo[1] - 10, bhi[1] + 10)
+    ax.set_ylim((vehicle.bottom_z - stage.upper) * 1e3 - 50, 60)
+    ax.set_aspect("equal")
+    ax.set_xlabel("y [mm]")
+    ax.set_ylabel("z [mm]")
+    verdict = (
+        "clear"
+        if sweep.clear
+        else ("carried parts collide" if sweep.vehicle_clear else "BLOCKED by the vehicle")
+    )
+    ax.set_title(
+        f"deployment sweep, stage 0 -> {stage.upper * 1e3:.0f} mm (dashed: stowed): {verdict}\n"
+        f"closest {sweep.min_distance * 1e3:.1f} mm, {sweep.between[0]} / {sweep.between[1]}",
+        fontsize=9,
+    )
+
+
+__all__ = [
+    "envelope_figure",
+]

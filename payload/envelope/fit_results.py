@@ -1,0 +1,230 @@
+"""Results of the stowed checks: part fits, link contacts, the sweep, the analysis."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from payload.envelope.vehicle import Vehicle
+
+VOLUME_TOL = 1e-12
+"""Volume (1e-3 mm^3) below which an overlap or an outside part counts as nil [m^3]."""
+
+
+class PartFit(NamedTuple):
+    """How one part (link) sits in the bay envelope.
+
+    Attributes:
+        name: Link name.
+        inside: Wholly inside the envelope.
+        clearance: Smallest distance to a wall when inside, minus the protrusion when not [m].
+        protrusion: Largest distance of a part point beyond the walls (0 inside) [m].
+        wall: The nearest wall (inside) or the wall crossed most (outside).
+        outside_volume: Part volume outside the envelope [m^3].
+        mounted: The part is the one bolted to the mount face (+z wall), whose contact
+            with that face is its mounting and not a clearance.
+        wall_clearance: python-fcl distance to each of the six walls, -x .. +z [m]
+            (NaN for a mounted part's mount face; 0 when touching or crossing).
+    """
+
+    name: str
+    inside: bool
+    clearance: float
+    protrusion: float
+    wall: str
+    outside_volume: float
+    mounted: bool
+    wall_clearance: tuple[float, ...]
+
+
+class PairContact(NamedTuple):
+    """Two links' proximity.
+
+    Attributes:
+        a: First link.
+        b: Second link.
+        distance: Signed distance between their convex pieces [m] (negative = depth).
+        overlap_volume: Exact volume the two solids share [m^3].
+    """
+
+    a: str
+    b: str
+    distance: float
+    overlap_volume: float
+
+    @property
+    def colliding(self) -> bool:
+        return bool(self.overlap_volume > VOLUME_TOL)
+
+
+class SweepResult(NamedTuple):
+    """The deployment sweep: the stage from stowed to deployed, fingers in one posture.
+
+    Attributes:
+        clear: No contact with the vehicle body or the fixed base along the path, and no
+            self-collision among the parts the stage carries (they move as one body).
+        vehicle_clear: No contact with the vehicle body or the base along the path.
+        min_distance: Smallest signed distance to the vehicle or the base [m].
+        at_stage: Stage travel where it occurs [m].
+        between: The two things closest there.
+        samples: Stage positions evaluated.
+        certified: Every interval between samples was proved contact-free (the
+            distance is 1-Lipschitz in the stage travel: ``d0 + d1 > step``) or holds a
+            sample in contact.
+        first_contact: Stage travel of the first contact (NaN when none) [m].
+    """
+
+    clear: bool
+    vehicle_clear: bool
+    min_distance: float
+    at_stage: float
+    between: tuple[str, str]
+    samples: int
+    certified: bool
+    first_contact: float = float("nan")
+
+
+class PostureSearch(NamedTuple):
+    """The finger posture (shared by the four fingers) that maximises the minimum clearance.
+
+    Attributes:
+        finger: Joint values [mcp_flex, mcp_abd, pip, dip] [rad].
+        clearance: The minimum over envelope clearances and self-collision distances [m].
+        limited_by: What sets that minimum (a part and a wall, or two links).
+        evaluations: Objective evaluations.
+        seconds: Wall time [s].
+    """
+
+    finger: tuple[float, float, float, float]
+    clearance: float
+    limited_by: str
+    evaluations: int
+    seconds: float
+
+
+@dataclass
+class StowedCheck:
+    """Every check of one stowed configuration.
+
+    Attributes:
+        q: Joint values (every joint of the tree) [rad, m].
+        parts: Per-part fit.
+        self_contacts: Every checked (non-adjacent) pair, closest first.
+        sweep: The deployment sweep from this configuration.
+    """
+
+    q: dict[str, float]
+    parts: list[PartFit]
+    self_contacts: list[PairContact]
+    sweep: SweepResult
+
+    @property
+    def fits(self) -> bool:
+        return all(p.inside for p in self.parts)
+
+    @property
+    def min_clearance(self) -> float:
+        """Smallest part clearance (negative: largest protrusion) [m]."""
+        return min(p.clearance for p in self.parts)
+
+    @property
+    def tightest(self) -> PartFit:
+        return min(self.parts, key=lambda p: p.clearance)
+
+    @property
+    def collisions(self) -> list[PairContact]:
+        return [c for c in self.self_contacts if c.colliding]
+
+    @property
+    def self_collision(self) -> bool:
+        return bool(self.collisions)
+
+    @property
+    def min_self_clearance(self) -> PairContact:
+        return min(self.self_contacts, key=lambda c: c.distance)
+
+    @property
+    def passed(self) -> bool:
+        return self.fits and not self.self_collision and self.sweep.clear
+
+    def failures(self) -> list[str]:
+        """One phrase per failed check, naming parts and millimetres."""
+        out = []
+        for p in sorted(self.parts, key=lambda p: round(p.clearance, 8)):
+            if not p.inside:
+                out.append(
+                    f"{p.name} protrudes {p.protrusion * 1e3:.1f} mm beyond the {p.wall} wall"
+                )
+        for c in self.collisions:
+            out.append(
+                f"{c.a} and {c.b} collide ({-c.distance * 1e3:.1f} mm deep, "
+                f"{c.overlap_volume * 1e9:.0f} mm^3)"
+            )
+        if not self.sweep.vehicle_clear:
+            a, b = self.sweep.between
+            if np.isfinite(self.sweep.first_contact):
+                out.append(
+                    f"deployment: {a} hits {b} from stage {self.sweep.first_contact * 1e3:.1f} mm "
+                    f"(deepest {-self.sweep.min_distance * 1e3:.1f} mm at "
+                    f"{self.sweep.at_stage * 1e3:.1f} mm)"
+                )
+            else:
+                out.append("deployment: the sweep could not prove the path contact-free")
+        return out
+
+
+@dataclass
+class EnvelopeAnalysis:
+    """The envelope report's content.
+
+    Attributes:
+        vehicle: The vehicle and bay envelope used.
+        design_source: The design file.
+        given: Checks of the design's stowed configuration.
+        search: The stowed-posture search (run when the given posture fails, or on request).
+        suggested: Checks of the searched posture (when a search ran).
+        excluded_pairs: Adjacent link pairs left out of self-collision.
+        approximate: Parts whose convex hull is larger than the part (name, excess).
+        seconds: Wall time of the analysis [s].
+    """
+
+    vehicle: Vehicle
+    design_source: str
+    given: StowedCheck
+    search: PostureSearch | None
+    suggested: StowedCheck | None
+    excluded_pairs: list[tuple[str, str]]
+    approximate: list[tuple[str, float]]
+    seconds: float = 0.0
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def passed(self) -> bool:
+        return self.given.passed
+
+    def assumptions(self) -> list[str]:
+        v = self.vehicle
+        size = " x ".join(f"{s * 1e3:.0f}" for s in v.bay_size)
+        body = " x ".join(f"{s * 1e3:.0f}" for s in v.body_size)
+        return [
+            f"ASSUMPTION (bay size): {v.assumption}",
+            f"bay envelope {size} mm from {v.source}; vehicle body {body} mm with its "
+            f"bottom face at z = {v.bottom_z * 1e3:.0f} mm (payload frame)",
+            "the mounted part's contact with the mount face (+z wall) is its mounting, "
+            "not a clearance",
+            "self-collision ignores parent/child link pairs (they meet at their joint by "
+            "construction)",
+        ]
+
+
+__all__ = [
+    "VOLUME_TOL",
+    "EnvelopeAnalysis",
+    "PairContact",
+    "PartFit",
+    "PostureSearch",
+    "StowedCheck",
+    "SweepResult",
+]

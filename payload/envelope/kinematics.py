@@ -1,0 +1,66 @@
+"""The shared kinematics of a design, for the reach report.
+
+The reach report uses the models the retargeter uses: Pinocchio
+(:class:`payload.kinematics.Kinematics`) on the URDF the design generates
+(:func:`payload.design.urdf.to_urdf`, so a ``--design`` other than the project's is
+honoured), and the retargeter's pairs (:class:`payload.retarget.PairKinematics`, our
+hand description with the design's pad radius), whose span range is
+:func:`payload.retarget.pair_range`'s.
+"""
+
+from __future__ import annotations
+
+import sys
+import tempfile
+from pathlib import Path
+from typing import NamedTuple
+
+from payload.design.tree import KinematicTree
+from payload.design.urdf import to_urdf
+from payload.envelope.pairs import PAIRS
+from payload.kinematics import Kinematics
+from payload.retarget.features import PairKinematics
+from payload.retarget.hand import DEFAULT_HAND, hand_from_dict
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+
+class DesignKinematics(NamedTuple):
+    """Pinocchio models of one design.
+
+    Attributes:
+        kin: The whole payload (every joint of the URDF).
+        pairs: Pair name -> the retargeter's model of that pair (its base frame, its 8
+            joints, the design's pad radius).
+    """
+
+    kin: Kinematics
+    pairs: dict[str, PairKinematics]
+
+
+def design_kinematics(tree: KinematicTree) -> DesignKinematics:
+    """The shared kinematics of the design behind ``tree``.
+
+    The URDF is generated from ``tree`` into a temporary folder and loaded there
+    (Pinocchio reads no meshes); the pairs are our hand description
+    (:data:`payload.retarget.hand.DEFAULT_HAND`) on that model, with
+    ``tip_radius`` taken from the design's ``finger.pad.radius``.
+    """
+    raw = tomllib.loads(DEFAULT_HAND.read_text())
+    for pair in raw["pairs"].values():
+        if "tip_radius" in pair:  # the pads touch at twice the design's pad radius
+            pair["tip_radius"] = float(tree.design.finger.pad.radius)
+    with tempfile.TemporaryDirectory(prefix="payload-reach-") as tmp:
+        path = Path(tmp) / "payload.urdf"
+        path.write_text(to_urdf(tree))
+        kin = Kinematics(path)
+        raw["urdf"] = str(path)
+        hand = hand_from_dict(raw, DEFAULT_HAND.parent, source=DEFAULT_HAND)
+    pairs = {name: PairKinematics(hand, name, kin) for name in PAIRS}
+    return DesignKinematics(kin, pairs)
+
+
+__all__ = ["DesignKinematics", "design_kinematics"]

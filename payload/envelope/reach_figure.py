@@ -1,0 +1,166 @@
+"""The reach report's figure: fingertip clouds in three views, the span histograms."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import manifold3d as m3d
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+from payload.design.params import FINGERS
+from payload.envelope.drawing import (
+    AXES,
+    AXIS_LABEL,
+    FINGER_COLOURS,
+    STRUCTURE_COLOUR,
+    draw_vehicle,
+    legend_box,
+    part_colour,
+    polygon_patch,
+    polygons,
+    posed_solids,
+    to_view,
+    vehicle_legend,
+)
+from payload.envelope.geometry import PayloadGeometry
+from payload.envelope.reach import ReachAnalysis
+from payload.envelope.vehicle import Vehicle
+from payload.envelope.workspace import Workspace
+
+
+def reach_figure(
+    geom: PayloadGeometry, a: ReachAnalysis, path: Path, dpi: int = 100, points: int = 2500
+) -> Path:
+    """Fingertip clouds with the vehicle outline in three views, and the span histograms."""
+    rng = np.random.default_rng(0)
+    fig = Figure(figsize=(13, 10), layout="constrained")
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(2, 2)
+    home = posed_solids(geom, geom.tree.posture("home"))
+    views = (
+        (axes[0, 0], 1, "side view (x-z)"),
+        (axes[0, 1], 0, "front view (y-z)"),
+        (axes[1, 0], 2, "top view (x-y)"),
+    )
+    for ax, axis, title in views:
+        _cloud_panel(ax, axis, title, home, a.vehicle, a.workspaces, rng, points)
+    _span_panel(axes[1, 1], a, geom.tree.design.finger.pad.radius)
+    handles = [
+        legend_box(f"finger {f}: fingertip samples, home shaded", facecolor=c)
+        for f, c in FINGER_COLOURS.items()
+    ]
+    handles += [
+        legend_box("structure (home)", facecolor=STRUCTURE_COLOUR, alpha=0.5),
+        *vehicle_legend(),
+    ]
+    fig.legend(handles=handles, loc="outside lower center", ncol=4, fontsize=8, frameon=False)
+    fig.suptitle(
+        f"Reach of the deployed fingers ({a.samples:,} samples; below the bottom face up to "
+        f"{a.below_vehicle * 1e3:.0f} mm; self-collision-free {a.collision_free_fraction:.1%})",
+        fontsize=11,
+    )
+    fig.savefig(path, dpi=dpi)
+    return path
+
+
+def _cloud_panel(
+    ax: Any,
+    axis: int,
+    title: str,
+    home: Mapping[str, m3d.Manifold],
+    vehicle: Vehicle,
+    workspaces: Sequence[Workspace],
+    rng: np.random.Generator,
+    points: int,
+) -> None:
+    """Reachable fingertip samples (``points`` per finger) seen along ``axis``, home shaded."""
+    h, v = AXES[axis]
+    draw_vehicle(ax, vehicle, axis, full_body=True)
+    if axis != 2:
+        ax.axhline(vehicle.bottom_z * 1e3, color="#6b6b6b", lw=0.8)
+    for name, solid in home.items():
+        patch = polygon_patch(
+            polygons(to_view(solid, axis).project(), axis),
+            facecolor=part_colour(name),
+            alpha=0.5,
+            edgecolor="none",
+            zorder=2,
+        )
+        if patch is not None:
+            ax.add_patch(patch)
+    for w in workspaces:
+        k = rng.choice(len(w.points), size=min(points, len(w.points)), replace=False)
+        pts = w.points[k] * 1e3
+        ax.scatter(
+            pts[:, h],
+            pts[:, v],
+            s=0.6,
+            alpha=0.25,
+            color=FINGER_COLOURS[w.finger],
+            zorder=3,
+            rasterized=True,
+        )
+    allp = np.vstack([w.points for w in workspaces]) * 1e3
+    blo, bhi = vehicle.body_lower * 1e3, vehicle.body_upper * 1e3
+    lo = np.minimum(allp.min(axis=0), blo) - 15
+    hi = np.maximum(allp.max(axis=0), bhi) + 15
+    if axis != 2:
+        hi[2] = min(hi[2], vehicle.bottom_z * 1e3 + 80)
+    ax.set_xlim(lo[h], hi[h])
+    ax.set_ylim(lo[v], hi[v])
+    ax.set_aspect("equal")
+    ax.set_xlabel(f"{AXIS_LABEL[h]} [mm]")
+    ax.set_ylabel(f"{AXIS_LABEL[v]} [mm]")
+    ax.set_title(f"{title}: reachable fingertip samples, home posture shaded", fontsize=9)
+
+
+def _span_panel(ax: Any, a: ReachAnalysis, pad_radius: float) -> None:
+    """Histograms of the pairs' fingertip separations, their span ranges, the CTB features."""
+    r = pad_radius
+    bins = np.linspace(0, max(p.span.maximum for p in a.pairs) * 1e3, 80)
+    for p, colour in zip(a.pairs, ("#1f77b4", "#ff7f0e")):
+        f1, f2 = p.fingers
+        i1, i2 = FINGERS.index(f1), FINGERS.index(f2)
+        ell = np.linalg.norm(a.tips[:, i2] - a.tips[:, i1], axis=1) * 1e3
+        ax.hist(ell, bins=bins, histtype="step", color=colour, label=f"pair {p.name}: all samples")
+        ax.hist(
+            ell[p.free],
+            bins=bins,
+            histtype="stepfilled",
+            color=colour,
+            alpha=0.3,
+            label=f"pair {p.name}: pair touching nothing",
+        )
+        # pair L wide and dashed under pair R thin and dotted: equal ranges stay visible
+        style = {"ls": "--", "lw": 2.4} if p.name == "L" else {"ls": ":", "lw": 1.2}
+        ax.axvline(p.span_min * 1e3, color=colour, label=f"pair {p.name}: span range", **style)
+        ax.axvline(p.span.maximum * 1e3, color=colour, **style)
+        for g in p.grasps:
+            x = (g.feature.thickness + 2 * r) * 1e3
+            ax.plot(
+                [x],
+                [0],
+                marker="^" if g.closes else "x",
+                color="green" if g.closes else "red",
+                ms=7,
+                clip_on=False,
+                zorder=4,
+            )
+    ax.plot([], [], ls="none", marker="^", color="green", label="CTB feature: pair closes on it")
+    ax.plot([], [], ls="none", marker="x", color="red", label="CTB feature: no witness")
+    ax.set_xlabel("fingertip separation l [mm] (vertical lines: span range)")
+    ax.set_ylabel("samples")
+    ax.set_title(
+        "pair spans; markers: CTB thicknesses + pad diameter (green: closes, red: no witness)",
+        fontsize=9,
+    )
+    ax.legend(fontsize=8)
+
+
+__all__ = [
+    "reach_figure",
+]

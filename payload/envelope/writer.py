@@ -1,0 +1,169 @@
+"""Writing a report: Markdown, JSON and PNG in ``analyses/``, only when its figures changed."""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from payload.envelope.envelope_figure import envelope_figure
+from payload.envelope.fit_results import EnvelopeAnalysis
+from payload.envelope.geometry import PayloadGeometry
+from payload.envelope.markdown import envelope_markdown, reach_markdown
+from payload.envelope.reach import ReachAnalysis
+from payload.envelope.reach_figure import reach_figure
+from payload.envelope.report_json import envelope_json, reach_json
+from payload.safeio import OverwriteError, replace_file, replacing
+
+TIMING_KEYS = ("seconds", "timings_s")
+"""JSON keys holding wall-clock timings: kept out of the committed report files."""
+
+
+def _split_timings(obj: Any, path: str = "") -> tuple[Any, dict[str, Any]]:
+    """(``obj`` without timing keys, the timings by dotted path)."""
+    if not isinstance(obj, dict):
+        return obj, {}
+    kept, timings = {}, {}
+    for key, value in obj.items():
+        where = f"{path}.{key}" if path else key
+        if key in TIMING_KEYS:
+            timings[where] = value
+        else:
+            kept[key], inner = _split_timings(value, where)
+            timings.update(inner)
+    return kept, timings
+
+
+PROVENANCE_KEY = "provenance"
+"""What a report was computed from (commit, version): recorded, but not a figure."""
+
+
+def _same_figures(path: Path, text: str) -> bool:
+    """Whether the file at ``path`` holds the same report as ``text``: byte for byte, or for
+    JSON the same apart from its provenance (a new commit alone changes no figure)."""
+    old = path.read_bytes()
+    if old == text.encode():
+        return True
+    if path.suffix != ".json":
+        return False
+    try:
+        before = json.loads(old)
+    except ValueError:
+        return False
+    after = json.loads(text)
+    if not isinstance(before, dict):
+        return False
+    before.pop(PROVENANCE_KEY, None)
+    after.pop(PROVENANCE_KEY, None)
+    return before == after
+
+
+def _write_report(
+    out_dir: Path,
+    stem: str,
+    markdown: str,
+    data: dict[str, Any],
+    draw: Callable[[Path], Any],
+    force: bool,
+) -> dict[str, Path]:
+    """Write ``<stem>.md/.json/.png`` only when the report's figures changed.
+
+    Timings go to ``<stem>.timing.json`` (not committed) every run. Identical ``md`` and
+    ``json`` leave all three files untouched; different ones replace existing files only
+    with ``force``, each through a temporary file and a rename.
+
+    Raises:
+        OverwriteError: The report changed, files exist, and ``force`` is false.
+    """
+    out_dir.mkdir(parents=True, exist_ok=True)
+    committed, timings = _split_timings(data)
+    texts = {
+        out_dir / f"{stem}.md": markdown,
+        out_dir / f"{stem}.json": json.dumps(committed, indent=2) + "\n",
+    }
+    paths = {"png": out_dir / f"{stem}.png", "md": out_dir / f"{stem}.md"}
+    paths["json"] = out_dir / f"{stem}.json"
+    paths["timing"] = out_dir / f"{stem}.timing.json"
+    replace_file(paths["timing"], json.dumps(timings, indent=2) + "\n")
+    same = [p for p, t in texts.items() if p.exists() and _same_figures(p, t)]
+    if len(same) == len(texts) and paths["png"].exists():
+        return {"timing": paths["timing"]}  # nothing but the timings changed
+    differ = [p for p in (*texts, paths["png"]) if p.exists() and p not in same]
+    if differ and not force:
+        raise OverwriteError(
+            f"{differ[0]}: the report's figures changed ({', '.join(p.name for p in differ)} "
+            "would be replaced); pass --force to replace them, or --out DIR"
+        )
+    with replacing(paths["png"]) as tmp:
+        draw(tmp)
+    for path, text in texts.items():
+        replace_file(path, text)
+    return paths
+
+
+def write_envelope(
+    geom: PayloadGeometry,
+    a: EnvelopeAnalysis,
+    out_dir: Path,
+    command: str,
+    record: Callable[[dict[str, Any]], dict[str, Any]] | None = None,
+    *,
+    force: bool = False,
+) -> dict[str, Path]:
+    """Write ``envelope.md``, ``envelope.png`` and ``envelope.json`` into ``out_dir`` when
+    the report changed (see :func:`_write_report`); returns the paths written. ``record``
+    adds fields to the JSON (e.g. its provenance)."""
+    a.extra["stage_upper"] = geom.tree.joint_map["stage"].upper
+    return _write_report(
+        out_dir,
+        "envelope",
+        envelope_markdown(a, command, "envelope.png"),
+        envelope_json(a) if record is None else record(envelope_json(a)),
+        lambda path: envelope_figure(geom, a, path),
+        force,
+    )
+
+
+def write_reach(
+    geom: PayloadGeometry,
+    a: ReachAnalysis,
+    out_dir: Path,
+    command: str,
+    t_start: float | None = None,
+    record: Callable[[dict[str, Any]], dict[str, Any]] | None = None,
+    *,
+    force: bool = False,
+) -> dict[str, Path]:
+    """Write ``reach.md``, ``reach.png`` and ``reach.json`` into ``out_dir`` when the
+    report changed (see :func:`_write_report`); returns the paths written.
+
+    Args:
+        geom: Collision geometry.
+        a: The analysis.
+        out_dir: Output directory (created).
+        command: The command that reproduces the report.
+        t_start: ``time.perf_counter()`` at the command's start: when given, ``a.seconds``
+            becomes the wall time up to the writing.
+        record: Adds fields to the JSON (e.g. its provenance).
+        force: Replace a committed report whose figures changed.
+    """
+    if t_start is not None:
+        a.seconds = time.perf_counter() - t_start
+    return _write_report(
+        out_dir,
+        "reach",
+        reach_markdown(a, command, "reach.png"),
+        reach_json(a) if record is None else record(reach_json(a)),
+        lambda path: reach_figure(geom, a, path),
+        force,
+    )
+
+
+__all__ = [
+    "PROVENANCE_KEY",
+    "TIMING_KEYS",
+    "write_envelope",
+    "write_reach",
+]
