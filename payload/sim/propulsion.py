@@ -297,8 +297,9 @@ class Propulsion:
         the basic solutions (the LP optimum is one of them); None if none is feasible.
 
         First without the upper bounds (the other nozzles all closed): if that optimum
-        respects the bounds it is the bounded optimum too; else every basic solution."""
-        idx, inv, off, fixed = self._bases
+        respects the bounds it is the bounded optimum too; else the dual-feasible basic
+        solutions."""
+        idx, inv, _, fixed = self._bases
         ub = self._basis_bounds
         tol = 1e-9 * float(self.thrust_max.max())
         t0 = inv @ wrench  # (K, 6): the other nozzles closed
@@ -309,26 +310,45 @@ class Propulsion:
                 out = np.zeros(N_NOZZLES)
                 out[idx[k]] = t0[k]
                 return np.clip(out, 0.0, self.thrust_max)
-        tb = np.subtract(t0[:, None, :], off, out=self._basis_buffer)  # (K, 64, 6)
-        ok = np.all(tb >= -tol, axis=2)
-        ok &= np.all(tb <= ub[:, None, :] + tol, axis=2)
+        # the optimum is a basic solution whose basis is also dual feasible: with the dual
+        # y = 1 B_k^-1, a nozzle outside the basis sits at its bound where its reduced
+        # cost 1 - y a_j is negative and at zero where it is positive (either where it is
+        # zero). Only those (basis, pattern) pairs can be optimal: :attr:`_candidates`.
+        ck, cj, c_off, c_fixed = self._candidates
+        tb = t0[ck] - c_off  # (M, 6)
+        ok = np.all(tb >= -tol, axis=1)
+        ok &= np.all(tb <= ub[ck] + tol, axis=1)
         if not np.any(ok):
             return None
-        cost = np.where(ok, tb.sum(axis=2) + self._fixed_total, np.inf)
-        k, j = np.unravel_index(int(np.argmin(cost)), cost.shape)
+        m = int(np.argmin(np.where(ok, tb.sum(axis=1) + c_fixed, np.inf)))
+        k, j = int(ck[m]), int(cj[m])
         out = np.zeros(N_NOZZLES)
         rest = np.setdiff1d(np.arange(N_NOZZLES), idx[k])
         out[rest] = fixed[k, j]
-        out[idx[k]] = tb[k, j]
+        out[idx[k]] = tb[m]
         return np.clip(out, 0.0, self.thrust_max)
 
     @cached_property
-    def _basis_buffer(self) -> np.ndarray:
-        return np.empty(self._bases[2].shape)
-
-    @cached_property
-    def _fixed_total(self) -> np.ndarray:
-        return self._bases[3].sum(axis=2)
+    def _candidates(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The dual-feasible (basis, bound pattern) pairs of the least-thrust LP: (basis
+        index (M,), pattern index (M,), basis thrust offsets (M, 6), thrust of the
+        nozzles at their bound (M,)). A reduced cost within rounding of zero admits
+        both choices, so degenerate bases keep every optimal pattern."""
+        idx, inv, off, fixed = self._bases
+        patterns = np.array(list(itertools.product((0.0, 1.0), repeat=6)))  # (64, 6)
+        ck, cj = [], []
+        for k in range(len(idx)):
+            y = inv[k].sum(axis=0)  # 1^T B_k^-1
+            rest = [n for n in range(N_NOZZLES) if n not in idx[k]]
+            reduced = 1.0 - y @ self.matrix[:, rest]  # (6,)
+            tie = np.abs(reduced) <= 1e-9
+            want = (reduced < 0).astype(float)
+            fits = np.all((patterns == want) | tie, axis=1)
+            for j in np.flatnonzero(fits):
+                ck.append(k)
+                cj.append(int(j))
+        ck_a, cj_a = np.array(ck), np.array(cj)
+        return ck_a, cj_a, off[ck_a, cj_a], fixed[ck_a, cj_a].sum(axis=1)
 
     @cached_property
     def _basis_bounds(self) -> np.ndarray:
