@@ -13,6 +13,9 @@ Two steps:
      corner of the box, halfway between the two, and seeded random postures);
    * minimum span: ``max(2 * tip_radius, min l(q))``: the pads touch before the
      points can meet (the kinematic minimum is found the same way);
+   * with ``collisions`` (default), every posture above also keeps the hand's
+     self-collision margin (:mod:`payload.retarget.collision`, plus 0.1 mm), so the
+     range ends at the largest collision-free span and starts at the smallest;
    * postures: for 65 spans evenly spaced between the two, the posture closest to the
      rest posture in range-normalised joints with exactly that span (SLSQP,
      continuation from the rest span outward). ``q_ref(l)`` interpolates linearly.
@@ -102,10 +105,48 @@ def _starts(pk: PairKinematics, seed: int) -> np.ndarray:
     return np.vstack([*fixed, rand])
 
 
+class _Clearance:
+    """The pair's self-collision clearances and their Jacobian, compiled once."""
+
+    def __init__(self, pk: PairKinematics) -> None:
+        import casadi as ca
+
+        from payload.retarget.casadi_solver import _compiled_or_none
+
+        q = ca.SX.sym("q", pk.n)
+        c = pk.collision.clearance_expr(q) - _TABLE_BUFFER
+        name = "payload_clearance_" + "".join(ch if ch.isalnum() else "_" for ch in pk.name)
+        self.function = ca.Function(name, [q], [c, ca.densify(ca.jacobian(c, q))], {"cse": True})
+        self.k = c.shape[0]
+        self._c = _compiled_or_none(self.function)
+
+    def __call__(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        if self._c is None:
+            c, j = self.function(q)
+            return np.array(c).reshape(-1), np.array(j)
+        self._c.inputs[0][:] = q
+        self._c()
+        out = self._c.outputs
+        return out[0].copy(), out[1].reshape((self.k, -1), order="F").copy()
+
+
+_TABLE_BUFFER = 1e-4
+"""Clearance [m] the calibration's postures keep beyond the margin (interpolation slack)."""
+
+
 @functools.lru_cache(maxsize=16)
-def _pair_range_cached(pk: PairKinematics, seed: int) -> PairRange:
+def _pair_range_cached(pk: PairKinematics, seed: int, collisions: bool = True) -> PairRange:
     bounds = list(zip(pk.lower, pk.upper))
     origins, dirs = _front_constraints(pk)
+    clear = _Clearance(pk) if collisions and pk.collision.available else None
+    extra = (
+        []
+        if clear is None
+        else [{"type": "ineq", "fun": lambda q: clear(q)[0], "jac": lambda q: clear(q)[1]}]
+    )
+
+    def free(q: np.ndarray) -> bool:
+        return clear is None or bool(clear(q)[0].min() >= -1e-7)
 
     def span_and_grad(q: np.ndarray) -> tuple[float, np.ndarray]:
         f, jac = pk.features_jacobian(q)
@@ -125,19 +166,19 @@ def _pair_range_cached(pk: PairKinematics, seed: int) -> PairRange:
     # Maximum span (workspace-constrained), multi-start SLSQP.
     best_q, best = None, -np.inf
     for q0 in starts:
-        if np.any(front(q0) < 0):
+        if np.any(front(q0) < 0) or not free(q0):
             continue
         res = minimize(
             lambda q: tuple(-v for v in span_and_grad(q)),
             q0,
             jac=True,
             bounds=bounds,
-            constraints=[front_c],
+            constraints=[front_c, *extra],
             method="SLSQP",
             options={"maxiter": 200, "ftol": 1e-12},
         )
         q = np.clip(res.x, pk.lower, pk.upper)
-        if np.all(front(q) >= -1e-9) and pk.features(q).span > best:
+        if np.all(front(q) >= -1e-9) and free(q) and pk.features(q).span > best:
             best_q, best = q, pk.features(q).span
     if best_q is None:  # pragma: no cover - the rest posture always satisfies the constraint
         raise RetargetError(f"pair {pk.name}: no start posture keeps the fingers in front")
@@ -149,10 +190,28 @@ def _pair_range_cached(pk: PairKinematics, seed: int) -> PairRange:
         d = p[1] - p[0]
         return float(d @ d), 2.0 * d @ (jac[1] - jac[0])
 
-    kin_min = min(
-        float(np.sqrt(max(minimize(sq, q0, jac=True, bounds=bounds, method="L-BFGS-B").fun, 0)))
-        for q0 in starts
-    )
+    if clear is None:
+        kin_min = min(
+            float(np.sqrt(max(minimize(sq, q0, jac=True, bounds=bounds, method="L-BFGS-B").fun, 0)))
+            for q0 in starts
+        )
+    else:  # the smallest span among collision-free postures
+        kin_min = np.inf
+        for q0 in starts:
+            if not free(q0):
+                continue
+            res = minimize(
+                sq,
+                q0,
+                jac=True,
+                bounds=bounds,
+                constraints=extra,
+                method="SLSQP",
+                options={"maxiter": 300, "ftol": 1e-14},
+            )
+            q = np.clip(res.x, pk.lower, pk.upper)
+            if free(q):
+                kin_min = min(kin_min, pk.features(q).span)
     span_min = max(kin_min, 2.0 * pk.desc.tip_radius)
     if span_max <= span_min + 1e-3:
         raise RetargetError(
@@ -166,6 +225,11 @@ def _pair_range_cached(pk: PairKinematics, seed: int) -> PairRange:
     rest_span = pk.features(pk.rest).span
 
     def solve_at(span: float, q0: np.ndarray) -> np.ndarray:
+        # without the clearance constraints first; with them only if that answer needs them
+        q = _solve_at(span, q0, [])
+        return q if free(q) else _solve_at(span, q0, extra)
+
+    def _solve_at(span: float, q0: np.ndarray, more: list) -> np.ndarray:
         res = minimize(
             lambda q: (float(np.sum(((q - pk.rest) * inv) ** 2)), 2.0 * (q - pk.rest) * inv**2),
             q0,
@@ -178,6 +242,7 @@ def _pair_range_cached(pk: PairKinematics, seed: int) -> PairRange:
                     "jac": lambda q: span_and_grad(q)[1][None, :],
                 },
                 front_c,
+                *more,
             ],
             method="SLSQP",
             options={"maxiter": 300, "ftol": 1e-12},
@@ -191,6 +256,13 @@ def _pair_range_cached(pk: PairKinematics, seed: int) -> PairRange:
         for i in order:
             q_prev = q_open if i == _N_POSTURES - 1 else solve_at(spans[i], q_prev)
             postures[i] = q_prev
+    if clear is not None:
+        worst = min(float(clear(q)[0].min()) for q in postures)
+        if worst < -1e-6:
+            raise RetargetError(
+                f"pair {pk.name}: a calibration posture is {-worst * 1e3:.2f} mm inside the "
+                "self-collision margin"
+            )
     errors = np.abs(pk.features_batch(postures)[:, 0] - spans)
     if errors.max() > 1e-5:
         bad = int(errors.argmax())
@@ -210,13 +282,21 @@ def _pair_range_cached(pk: PairKinematics, seed: int) -> PairRange:
     )
 
 
-def pair_range(pk: PairKinematics, seed: int = 0) -> PairRange:
+def pair_range(pk: PairKinematics, seed: int = 0, *, collisions: bool = True) -> PairRange:
     """The pair's span range and posture family (computed once per pair object and seed).
+
+    Args:
+        pk: The pair's kinematics.
+        seed: Seed of the random starts.
+        collisions: Restrict the range and the postures to configurations that keep the
+            hand's self-collision margin (:mod:`payload.retarget.collision`), so the
+            operator's full opening maps to the largest collision-free span; no effect
+            on a hand without collision geometry.
 
     Raises:
         RetargetError: The optimisation finds no usable range or posture.
     """
-    return _pair_range_cached(pk, seed)
+    return _pair_range_cached(pk, seed, bool(collisions))
 
 
 def wahba_rotation(human: np.ndarray, robot: np.ndarray) -> np.ndarray:

@@ -12,7 +12,7 @@ Stacked as a vector the features are ``[l, d_hat (3), c (3), u (6)]``, shape (13
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -200,6 +200,17 @@ class PairKinematics:
     def name(self) -> str:
         """The pair's name."""
         return self.desc.name
+
+    @property
+    def collision(self) -> Any:
+        """The pair's self-collision model (:class:`payload.retarget.collision.PairCollision`),
+        built on first use and kept."""
+        model = self.__dict__.get("_collision")
+        if model is None:
+            from payload.retarget.collision import PairCollision
+
+            model = self.__dict__["_collision"] = PairCollision(self)
+        return model
 
     @property
     def n(self) -> int:
