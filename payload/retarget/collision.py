@@ -170,6 +170,7 @@ def enclosing_capsule(link: str, pts: np.ndarray) -> Capsule:
     centred = pts - pts.mean(axis=0)
     _, _, vt = np.linalg.svd(centred, full_matrices=False)
     best: Capsule | None = None
+    best_vol = np.inf
     for axis in (np.eye(3)[0], np.eye(3)[1], np.eye(3)[2], vt[0]):
         u = axis / np.linalg.norm(axis)
         e1 = np.cross(u, [1.0, 0.0, 0.0] if abs(u[0]) < 0.9 else [0.0, 1.0, 0.0])
@@ -178,7 +179,7 @@ def enclosing_capsule(link: str, pts: np.ndarray) -> Capsule:
         xy = np.column_stack([pts @ e1, pts @ e2])
         lo, hi = xy.min(axis=0), xy.max(axis=0)
         res = minimize(
-            lambda c: float(np.max(np.sum((xy - c) ** 2, axis=1))),
+            lambda c, xy=xy: float(np.max(np.sum((xy - c) ** 2, axis=1))),
             0.5 * (lo + hi),
             method="Nelder-Mead",
             options={"xatol": 1e-7, "fatol": 1e-12},
@@ -198,7 +199,7 @@ def enclosing_capsule(link: str, pts: np.ndarray) -> Capsule:
         b = max(b, a + 1e-6)
         cand = Capsule(link, base + a * u, base + b * u, r)
         vol = np.pi * r * r * (b - a) + 4.0 / 3.0 * np.pi * r**3
-        if best is None or vol < best_vol:
+        if vol < best_vol:
             best, best_vol = cand, vol
     assert best is not None
     return best
