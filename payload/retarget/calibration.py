@@ -257,6 +257,7 @@ def _pair_range_cached(pk: PairKinematics, seed: int, collisions: bool = True) -
             q_prev = q_open if i == _N_POSTURES - 1 else solve_at(spans[i], q_prev)
             postures[i] = q_prev
     if clear is not None:
+        spans, postures = _refine(spans, postures, clear, solve_at)
         worst = min(float(clear(q)[0].min()) for q in postures)
         if worst < -1e-6:
             raise RetargetError(
@@ -280,6 +281,27 @@ def _pair_range_cached(pk: PairKinematics, seed: int, collisions: bool = True) -
         pinch=pk.features(postures[0]),
         open=pk.features(postures[-1]),
     )
+
+
+def _refine(
+    spans: np.ndarray, postures: np.ndarray, clear: _Clearance, solve_at: object
+) -> tuple[np.ndarray, np.ndarray]:
+    """Insert postures where interpolating between neighbours would leave the margin."""
+    spans, postures = list(spans), list(postures)
+    i = 0
+    while i < len(spans) - 1 and len(spans) < 4 * _N_POSTURES:
+        ws = np.linspace(0.0, 1.0, 9)[1:-1]
+        mids = [(1 - w) * postures[i] + w * postures[i + 1] for w in ws]
+        if min(float(clear(q)[0].min()) for q in mids) >= -_TABLE_BUFFER:
+            i += 1
+            continue
+        span = 0.5 * (spans[i] + spans[i + 1])
+        if spans[i + 1] - spans[i] < 1e-5:
+            i += 1
+            continue
+        spans.insert(i + 1, span)
+        postures.insert(i + 1, solve_at(span, 0.5 * (postures[i] + postures[i + 1])))  # type: ignore[operator]
+    return np.array(spans), np.array(postures)
 
 
 def pair_range(pk: PairKinematics, seed: int = 0, *, collisions: bool = True) -> PairRange:

@@ -63,7 +63,7 @@ BACKENDS = ("auto", "compiled", "vm")
 """``compiled``: generated C through ctypes; ``vm``: CasADi's virtual machine; ``auto``:
 compiled when a C compiler works, else the virtual machine."""
 
-_CFLAGS = ("-O2", "-ffp-contract=off", "-fPIC", "-shared")
+_CFLAGS = ("-O1", "-ffp-contract=off", "-fPIC", "-shared")
 _MU0 = 1e-4
 _MU_MAX = 1e12
 _BOUND_EPS = 1e-12
