@@ -207,5 +207,5 @@ def test_hands_with_and_without_collision_geometry(tmp_path):
     pk2 = PairKinematics(thumb)
     assert not pk2.collision.available
     r = PairRetargeter(thumb, config=RetargetConfig(), kinematics=pk2)
-    q, info = r.solve(pk2.features(pk2.rest), pk2.rest, pk2.rest)
+    _, info = r.solve(pk2.features(pk2.rest), pk2.rest, pk2.rest)
     assert info.clearance == np.inf or info.clearance >= 0
