@@ -596,7 +596,10 @@ def test_the_second_hand_retargets_end_to_end(gripper, gripper_pk):
 # -------------------------------------------------------------- calibration
 @pytest.mark.parametrize("pair", PAIRS)
 def test_pair_range_and_posture_family(pks, ranges, pair):
-    pk, rg = pks[pair], ranges[pair]
+    # the kinematic range (no self-collision): the collision-free one has its own test
+    # (tests/test_retarget_collision.py)
+    pk = pks[pair]
+    rg = pair_range(pk, collisions=False)
     assert rg.span_min_kinematic < 1e-3  # the fingertip points can meet...
     assert rg.span_min == pytest.approx(2 * pk.desc.tip_radius)  # ...the pads touch first
     # The optimiser's maximum is attained by a feasible posture and is not beaten by
@@ -626,12 +629,22 @@ def test_pair_range_and_posture_family(pks, ranges, pair):
 def test_calibration_maps_pinch_and_open_to_the_robots_span_range(ranges):
     pinch, open_ = human_pinch_and_open()
     for pair in PAIRS:
-        cal = calibrate(pinch, open_, ranges[pair])
-        assert abs(cal.to_targets(pinch).span - ranges[pair].span_min) < 1e-3
-        assert abs(cal.to_targets(open_).span - ranges[pair].span_max) < 1e-3
-        mid = features_from_points(*synthetic_hand(0.5, 0.3, np.zeros(3)))
+        rg = ranges[pair]
+        cal = calibrate(pinch, open_, rg)
+        # alpha = 0 and 1 give the range's ends: exact up to one rounding
+        assert cal.to_targets(pinch).span == rg.span_min
+        assert cal.to_targets(open_).span == pytest.approx(rg.span_max, rel=1e-15, abs=0)
+        pts = synthetic_hand(0.5, 0.3, np.zeros(3))
+        mid = features_from_points(*pts)
         t, q_ref = cal.command(mid)
-        assert ranges[pair].span_min < t.span < ranges[pair].span_max
+        # the opening from the raw fingertip points, mapped onto the range by hand
+        lo = np.linalg.norm(np.subtract(*synthetic_hand(0.0, 0.0, np.zeros(3))[:2]))
+        hi = np.linalg.norm(np.subtract(*synthetic_hand(1.0, 0.0, np.zeros(3))[:2]))
+        alpha = (np.linalg.norm(pts[1] - pts[0]) - lo) / (hi - lo)
+        assert alpha == pytest.approx(0.5, abs=1e-12)
+        want = rg.span_min + alpha * (rg.span_max - rg.span_min)
+        assert t.span == pytest.approx(want, rel=1e-12, abs=0)
+        assert rg.span_min < t.span < rg.span_max
         assert np.linalg.norm(t.direction) == pytest.approx(1.0)
         np.testing.assert_allclose(np.linalg.norm(t.distal.reshape(2, 3), axis=1), 1.0)
         assert np.allclose(cal.rotation @ cal.rotation.T, np.eye(3))

@@ -163,10 +163,14 @@ def _optimum_fraction(hand_path: Path | None, budget: str, steps: int) -> float:
             q_prev = r.command
             q, _ = r.solve(st.targets, q_prev, st.q_ref)
             cost = r.cost(q, st.targets, st.q_ref, q_prev)
+            # with self-collision modelled: the constrained optimum (answers that keep the
+            # margin), and an answer inside the margin is never optimal
+            clear = r.clearance if r.collisions else None
             best = best_known_cost(
-                pk, r.objective, compiled, st.targets, q_prev, st.q_ref, [q], rng
+                pk, r.objective, compiled, st.targets, q_prev, st.q_ref, [q], rng, clear
             )
-            ok.append(cost <= min(best, cost) * (1.0 + 1e-3))
+            free = clear is None or clear(q) >= 0
+            ok.append(free and cost <= min(best, cost) * (1.0 + 1e-3))
     return float(np.mean(ok))
 
 

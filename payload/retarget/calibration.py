@@ -34,7 +34,9 @@ Two steps:
 from __future__ import annotations
 
 import functools
+import os
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 from scipy.optimize import minimize
@@ -136,6 +138,10 @@ _TABLE_BUFFER = 1e-4
 
 @functools.lru_cache(maxsize=16)
 def _pair_range_cached(pk: PairKinematics, seed: int, collisions: bool = True) -> PairRange:
+    return _load_or_compute(pk, seed, collisions)
+
+
+def _compute_pair_range(pk: PairKinematics, seed: int, collisions: bool) -> PairRange:
     bounds = list(zip(pk.lower, pk.upper))
     origins, dirs = _front_constraints(pk)
     clear = _Clearance(pk) if collisions and pk.collision.available else None
@@ -305,7 +311,9 @@ def _refine(
 
 
 def pair_range(pk: PairKinematics, seed: int = 0, *, collisions: bool = True) -> PairRange:
-    """The pair's span range and posture family (computed once per pair object and seed).
+    """The pair's span range and posture family (computed once per pair object and seed,
+    and kept on disk beside the compiled solvers, keyed by the URDF, the pair, the margin,
+    the design and this code).
 
     Args:
         pk: The pair's kinematics.
@@ -319,6 +327,69 @@ def pair_range(pk: PairKinematics, seed: int = 0, *, collisions: bool = True) ->
         RetargetError: The optimisation finds no usable range or posture.
     """
     return _pair_range_cached(pk, seed, bool(collisions))
+
+
+_CACHE_VERSION = "pair-range-1"
+
+
+def _disk_key(pk: PairKinematics, seed: int, collisions: bool) -> str:
+    import hashlib
+    import inspect
+    import sys
+
+    from payload.retarget import collision
+
+    parts = [
+        _CACHE_VERSION,
+        Path(pk.kin.urdf).read_text(),
+        repr(pk.desc),
+        repr(seed),
+        repr(collisions),
+        repr(pk.hand.collision_margin),
+        # the code that computes it: a change of it or of the collision model is a new key
+        inspect.getsource(sys.modules[__name__]),
+        inspect.getsource(collision),
+    ]
+    if pk.hand.design is not None:
+        parts.append(Path(pk.hand.design).read_text())
+    return hashlib.sha256("\n".join(parts).encode()).hexdigest()[:24]
+
+
+def _load_or_compute(pk: PairKinematics, seed: int, collisions: bool) -> PairRange:
+    """The range from the on-disk cache (next to the compiled solvers), else computed."""
+    from payload.retarget.casadi_solver import cache_dir
+
+    path = cache_dir() / f"pair_range_{_disk_key(pk, seed, collisions)}.npz"
+    try:
+        with np.load(path) as z:
+            spans, postures = z["spans"], z["postures"]
+            lo, hi, kmin = (float(v) for v in z["scalars"])
+        return PairRange(
+            pk.name,
+            lo,
+            hi,
+            kmin,
+            spans,
+            postures,
+            pk.features(postures[0]),
+            pk.features(postures[-1]),
+        )
+    except (OSError, KeyError, ValueError):
+        pass
+    rg = _compute_pair_range(pk, seed, collisions)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(f".{os.getpid()}.tmp.npz")
+        np.savez(
+            tmp,
+            spans=rg.spans,
+            postures=rg.postures,
+            scalars=np.array([rg.span_min, rg.span_max, rg.span_min_kinematic]),
+        )
+        os.replace(tmp, path)
+    except OSError:  # pragma: no cover - a read-only cache only costs the recomputation
+        pass
+    return rg
 
 
 def wahba_rotation(human: np.ndarray, robot: np.ndarray) -> np.ndarray:
