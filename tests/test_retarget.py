@@ -345,7 +345,8 @@ def test_second_hand_features_ignore_joints_above_the_base(gripper, gripper_pk):
 def test_casadi_objective_equals_the_numpy_objective(prod, pair):
     r = prod[pair]
     pk, obj = r.kinematics, r.objective
-    fun = objective_function(pk, r.config)
+    # eq. 3 itself; the collision penalty row: tests/test_retarget_collision.py
+    fun = objective_function(pk, r.config.replace(collisions=False))
     ff = features_function(pk)
     rng = np.random.default_rng(14)
     for q in random_q(pk, rng, 10):
@@ -404,7 +405,10 @@ def test_soft_l1_cost_is_the_papers_and_scipys(prod):
     z = np.array([0.0, 1.0, 3.0, 8.0])
     np.testing.assert_allclose(soft_l1(z), [0.0, 2 * (np.sqrt(2) - 1), 2.0, 4.0])
     # scipy reports its own cost of the soft_l1 problem: it must equal eq. 3's value.
-    r = ReferenceRetargeter(kinematics=prod["L"].kinematics)
+    # scipy's cost is eq. 3's: without the collision penalty, which the reference omits
+    r = ReferenceRetargeter(
+        kinematics=prod["L"].kinematics, config=RetargetConfig(collisions=False)
+    )
     rng = np.random.default_rng(16)
     t = r.features(random_q(r.kinematics, rng, 1)[0]).as_vector()
     qp, qr = random_q(r.kinematics, rng, 2)

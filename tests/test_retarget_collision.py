@@ -28,6 +28,8 @@ from payload.retarget import (
 from payload.retarget.bench import human_pinch_and_open, synthetic_hand
 from payload.retarget.collision import link_geometry
 from payload.retarget.meshcheck import PairMeshCheck
+from payload.retarget.objective import collision_residual
+from payload.retarget.symbolic import objective_function
 
 HANDS_DIR = Path(__file__).resolve().parents[1] / "payload" / "retarget" / "hands"
 PAIRS = ("L", "R")
@@ -135,6 +137,20 @@ def test_the_solvers_distance_never_exceeds_fcls_by_more_than_half_a_millimetre(
     for q in _free_postures(pk, 150, 2):
         solver = pk.collision.distances(q).min()
         assert mc.min_distance(q)[0] >= min(solver, 0.02) - 0.5e-3
+
+
+@pytest.mark.parametrize("pair", PAIRS)
+def test_the_penalty_row_and_the_cost_agree_with_numpy(pks, solvers, pair):
+    pk, r = pks[pair], solvers[pair]
+    fun = objective_function(pk, r.config)
+    rng = np.random.default_rng(8)
+    qs = pk.lower + rng.random((30, pk.n)) * pk.range
+    for q in qs:
+        t = pk.features(qs[0]).as_vector()
+        cost, res, _ = (np.array(v) for v in fun(q, t, pk.rest, pk.rest))
+        want = collision_residual(pk.collision.distances(q) - pk.collision.margin, r.config)
+        assert res.ravel()[-1] == pytest.approx(want, rel=1e-9, abs=1e-12)
+        assert cost.item() == pytest.approx(r.cost(q, t, pk.rest, pk.rest), rel=1e-9)
 
 
 # ------------------------------------------------------------- calibration
