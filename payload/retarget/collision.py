@@ -271,7 +271,8 @@ def segment_distance(p1, q1, p2, q2) -> float:
         t, s = 0.0, float(np.clip(-c / a, 0, 1))
     elif t > 1:
         t, s = 1.0, float(np.clip((b - c) / a, 0, 1))
-    return float(np.linalg.norm(p1 + s * d1 - p2 - t * d2))
+    w = p1 + s * d1 - p2 - t * d2
+    return float(np.sqrt(w @ w + _TINY))
 
 
 def _box_sdf_ca(p, box: Box):
@@ -284,7 +285,8 @@ def _box_sdf_ca(p, box: Box):
 def box_sdf(p: np.ndarray, box: Box) -> float:
     """Signed distance of point p (base frame) to a box [m] (numpy)."""
     qv = np.abs(box.rotation.T @ (p - box.centre)) - box.half
-    return float(np.linalg.norm(np.maximum(qv, 0)) + min(qv.max(), 0.0))
+    out = np.maximum(qv, 0)
+    return float(np.sqrt(out @ out + _TINY) + min(qv.max(), 0.0))
 
 
 @dataclass(frozen=True)
