@@ -37,6 +37,7 @@ import numpy as np
 import pinocchio as pin
 from scipy.optimize import minimize
 
+from payload.retarget import features as _features
 from payload.retarget.features import PairKinematics
 from payload.retarget.symbolic import chain_point, frame_point_chain
 
@@ -453,3 +454,6 @@ class PairCollision:
 
 def _joints(urdf: str | Path) -> list[ET.Element]:
     return ET.parse(urdf).getroot().findall("joint")
+
+
+_features.COLLISION_MODEL[:] = [PairCollision]

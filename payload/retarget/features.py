@@ -25,6 +25,10 @@ N_FEATURES = 13
 
 _EPS = 1e-12
 
+COLLISION_MODEL: list[Any] = []
+"""The self-collision model class (:class:`payload.retarget.collision.PairCollision`),
+registered when that module is imported."""
+
 
 class PairFeatures(NamedTuple):
     """Pair geometry of eq. 2 (also used for the mapped robot targets, the overbars).
@@ -207,9 +211,9 @@ class PairKinematics:
         built on first use and kept."""
         model = self.__dict__.get("_collision")
         if model is None:
-            from payload.retarget.collision import PairCollision
-
-            model = self.__dict__["_collision"] = PairCollision(self)
+            # registered by payload.retarget.collision (imported by the package), so this
+            # module does not import it back
+            model = self.__dict__["_collision"] = COLLISION_MODEL[0](self)
         return model
 
     @property
