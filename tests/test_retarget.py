@@ -345,7 +345,8 @@ def test_second_hand_features_ignore_joints_above_the_base(gripper, gripper_pk):
 def test_casadi_objective_equals_the_numpy_objective(prod, pair):
     r = prod[pair]
     pk, obj = r.kinematics, r.objective
-    fun = objective_function(pk, r.config)
+    # eq. 3 itself; the collision penalty row: tests/test_retarget_collision.py
+    fun = objective_function(pk, r.config.replace(collisions=False))
     ff = features_function(pk)
     rng = np.random.default_rng(14)
     for q in random_q(pk, rng, 10):
@@ -404,7 +405,10 @@ def test_soft_l1_cost_is_the_papers_and_scipys(prod):
     z = np.array([0.0, 1.0, 3.0, 8.0])
     np.testing.assert_allclose(soft_l1(z), [0.0, 2 * (np.sqrt(2) - 1), 2.0, 4.0])
     # scipy reports its own cost of the soft_l1 problem: it must equal eq. 3's value.
-    r = ReferenceRetargeter(kinematics=prod["L"].kinematics)
+    # scipy's cost is eq. 3's: without the collision penalty, which the reference omits
+    r = ReferenceRetargeter(
+        kinematics=prod["L"].kinematics, config=RetargetConfig(collisions=False)
+    )
     rng = np.random.default_rng(16)
     t = r.features(random_q(r.kinematics, rng, 1)[0]).as_vector()
     qp, qr = random_q(r.kinematics, rng, 2)
@@ -596,7 +600,10 @@ def test_the_second_hand_retargets_end_to_end(gripper, gripper_pk):
 # -------------------------------------------------------------- calibration
 @pytest.mark.parametrize("pair", PAIRS)
 def test_pair_range_and_posture_family(pks, ranges, pair):
-    pk, rg = pks[pair], ranges[pair]
+    # the kinematic range (no self-collision): the collision-free one has its own test
+    # (tests/test_retarget_collision.py)
+    pk = pks[pair]
+    rg = pair_range(pk, collisions=False)
     assert rg.span_min_kinematic < 1e-3  # the fingertip points can meet...
     assert rg.span_min == pytest.approx(2 * pk.desc.tip_radius)  # ...the pads touch first
     # The optimiser's maximum is attained by a feasible posture and is not beaten by
@@ -626,12 +633,22 @@ def test_pair_range_and_posture_family(pks, ranges, pair):
 def test_calibration_maps_pinch_and_open_to_the_robots_span_range(ranges):
     pinch, open_ = human_pinch_and_open()
     for pair in PAIRS:
-        cal = calibrate(pinch, open_, ranges[pair])
-        assert abs(cal.to_targets(pinch).span - ranges[pair].span_min) < 1e-3
-        assert abs(cal.to_targets(open_).span - ranges[pair].span_max) < 1e-3
-        mid = features_from_points(*synthetic_hand(0.5, 0.3, np.zeros(3)))
+        rg = ranges[pair]
+        cal = calibrate(pinch, open_, rg)
+        # alpha = 0 and 1 give the range's ends: exact up to one rounding
+        assert cal.to_targets(pinch).span == rg.span_min
+        assert cal.to_targets(open_).span == pytest.approx(rg.span_max, rel=1e-15, abs=0)
+        pts = synthetic_hand(0.5, 0.3, np.zeros(3))
+        mid = features_from_points(*pts)
         t, q_ref = cal.command(mid)
-        assert ranges[pair].span_min < t.span < ranges[pair].span_max
+        # the opening from the raw fingertip points, mapped onto the range by hand
+        lo = np.linalg.norm(np.subtract(*synthetic_hand(0.0, 0.0, np.zeros(3))[:2]))
+        hi = np.linalg.norm(np.subtract(*synthetic_hand(1.0, 0.0, np.zeros(3))[:2]))
+        alpha = (np.linalg.norm(pts[1] - pts[0]) - lo) / (hi - lo)
+        assert alpha == pytest.approx(0.5, abs=1e-12)
+        want = rg.span_min + alpha * (rg.span_max - rg.span_min)
+        assert t.span == pytest.approx(want, rel=1e-12, abs=0)
+        assert rg.span_min < t.span < rg.span_max
         assert np.linalg.norm(t.direction) == pytest.approx(1.0)
         np.testing.assert_allclose(np.linalg.norm(t.distal.reshape(2, 3), axis=1), 1.0)
         assert np.allclose(cal.rotation @ cal.rotation.T, np.eye(3))

@@ -206,6 +206,16 @@ class Materials:
 
 
 @dataclass(frozen=True)
+class RetargetParams:
+    """What the retargeter (``payload.retarget``) takes from the design."""
+
+    collision_margin: float = _pos(
+        "least distance [m] a retargeting command keeps between links of different fingers, "
+        "and between a finger and the structure (stage, carriage, base)"
+    )
+
+
+@dataclass(frozen=True)
 class Posture:
     """A payload configuration: the same finger joints for every finger."""
 
@@ -227,6 +237,7 @@ class Design:
     materials: Materials
     stowed: Posture
     home: Posture
+    retarget: RetargetParams
     vehicle: dict[str, Any] = field(
         default_factory=dict, hash=False, metadata={"optional_table": True}
     )

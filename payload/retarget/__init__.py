@@ -13,6 +13,7 @@ description files (:func:`load_hand`) name the frames and joints of each pair, s
 retargeter runs on any hand URDF.
 """
 
+from payload.retarget import collision as _collision  # noqa: F401  (registers the collision model)
 from payload.retarget.calibration import (
     PairCalibration,
     PairRange,

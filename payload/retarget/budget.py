@@ -35,13 +35,18 @@ def budget_plan(config: RetargetConfig) -> tuple[tuple[str, int], ...]:
 
 
 SEEDS = 256
-"""Postures in the seed table of the ``converged`` budget (seeded, uniform in the box)."""
+"""Postures in the seed table of the ``converged`` budget (seeded, uniform in the box; with
+self-collision modelled, the first that keep the margin)."""
 
 
 def seed_table(pk: PairKinematics) -> tuple[np.ndarray, np.ndarray]:
     """The seed postures, shape (k, n), and their features, shape (k, 13)."""
     rng = np.random.default_rng(12345)
-    qs = np.vstack([pk.rest, pk.lower + rng.random((SEEDS - 1, pk.n)) * pk.range])
+    qs = np.vstack([pk.rest, pk.lower + rng.random((4 * SEEDS, pk.n)) * pk.range])
+    if pk.collision.available:  # collision-free seeds only (the solver's own geometry)
+        dist = np.array(pk.collision.distance_function().map(qs.shape[0])(qs.T))
+        qs = qs[dist.min(axis=0) >= pk.collision.margin]
+    qs = qs[:SEEDS]
     return qs, pk.features_batch(qs)
 
 

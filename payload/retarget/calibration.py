@@ -13,6 +13,9 @@ Two steps:
      corner of the box, halfway between the two, and seeded random postures);
    * minimum span: ``max(2 * tip_radius, min l(q))``: the pads touch before the
      points can meet (the kinematic minimum is found the same way);
+   * with ``collisions`` (default), every posture above also keeps the hand's
+     self-collision margin (:mod:`payload.retarget.collision`, plus 0.1 mm), so the
+     range ends at the largest collision-free span and starts at the smallest;
    * postures: for 65 spans evenly spaced between the two, the posture closest to the
      rest posture in range-normalised joints with exactly that span (SLSQP,
      continuation from the rest span outward). ``q_ref(l)`` interpolates linearly.
@@ -31,7 +34,9 @@ Two steps:
 from __future__ import annotations
 
 import functools
+import os
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 from scipy.optimize import minimize
@@ -102,10 +107,52 @@ def _starts(pk: PairKinematics, seed: int) -> np.ndarray:
     return np.vstack([*fixed, rand])
 
 
+class _Clearance:
+    """The pair's self-collision clearances and their Jacobian, compiled once."""
+
+    def __init__(self, pk: PairKinematics) -> None:
+        import casadi as ca
+
+        from payload.retarget.casadi_solver import _compiled_or_none
+
+        q = ca.SX.sym("q", pk.n)
+        c = pk.collision.clearance_expr(q) - _TABLE_BUFFER
+        name = "payload_clearance_" + "".join(ch if ch.isalnum() else "_" for ch in pk.name)
+        self.function = ca.Function(name, [q], [c, ca.densify(ca.jacobian(c, q))], {"cse": True})
+        self.k = c.shape[0]
+        self._c = _compiled_or_none(self.function)
+
+    def __call__(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        if self._c is None:
+            c, j = self.function(q)
+            return np.array(c).reshape(-1), np.array(j)
+        self._c.inputs[0][:] = q
+        self._c()
+        out = self._c.outputs
+        return out[0].copy(), out[1].reshape((self.k, -1), order="F").copy()
+
+
+_TABLE_BUFFER = 1e-4
+"""Clearance [m] the calibration's postures keep beyond the margin (interpolation slack)."""
+
+
 @functools.lru_cache(maxsize=16)
-def _pair_range_cached(pk: PairKinematics, seed: int) -> PairRange:
+def _pair_range_cached(pk: PairKinematics, seed: int, collisions: bool = True) -> PairRange:
+    return _load_or_compute(pk, seed, collisions)
+
+
+def _compute_pair_range(pk: PairKinematics, seed: int, collisions: bool) -> PairRange:
     bounds = list(zip(pk.lower, pk.upper))
     origins, dirs = _front_constraints(pk)
+    clear = _Clearance(pk) if collisions and pk.collision.available else None
+    extra = (
+        []
+        if clear is None
+        else [{"type": "ineq", "fun": lambda q: clear(q)[0], "jac": lambda q: clear(q)[1]}]
+    )
+
+    def free(q: np.ndarray) -> bool:
+        return clear is None or bool(clear(q)[0].min() >= -1e-7)
 
     def span_and_grad(q: np.ndarray) -> tuple[float, np.ndarray]:
         f, jac = pk.features_jacobian(q)
@@ -125,19 +172,19 @@ def _pair_range_cached(pk: PairKinematics, seed: int) -> PairRange:
     # Maximum span (workspace-constrained), multi-start SLSQP.
     best_q, best = None, -np.inf
     for q0 in starts:
-        if np.any(front(q0) < 0):
+        if np.any(front(q0) < 0) or not free(q0):
             continue
         res = minimize(
             lambda q: tuple(-v for v in span_and_grad(q)),
             q0,
             jac=True,
             bounds=bounds,
-            constraints=[front_c],
+            constraints=[front_c, *extra],
             method="SLSQP",
             options={"maxiter": 200, "ftol": 1e-12},
         )
         q = np.clip(res.x, pk.lower, pk.upper)
-        if np.all(front(q) >= -1e-9) and pk.features(q).span > best:
+        if np.all(front(q) >= -1e-9) and free(q) and pk.features(q).span > best:
             best_q, best = q, pk.features(q).span
     if best_q is None:  # pragma: no cover - the rest posture always satisfies the constraint
         raise RetargetError(f"pair {pk.name}: no start posture keeps the fingers in front")
@@ -149,10 +196,28 @@ def _pair_range_cached(pk: PairKinematics, seed: int) -> PairRange:
         d = p[1] - p[0]
         return float(d @ d), 2.0 * d @ (jac[1] - jac[0])
 
-    kin_min = min(
-        float(np.sqrt(max(minimize(sq, q0, jac=True, bounds=bounds, method="L-BFGS-B").fun, 0)))
-        for q0 in starts
-    )
+    if clear is None:
+        kin_min = min(
+            float(np.sqrt(max(minimize(sq, q0, jac=True, bounds=bounds, method="L-BFGS-B").fun, 0)))
+            for q0 in starts
+        )
+    else:  # the smallest span among collision-free postures
+        kin_min = np.inf
+        for q0 in starts:
+            if not free(q0):
+                continue
+            res = minimize(
+                sq,
+                q0,
+                jac=True,
+                bounds=bounds,
+                constraints=extra,
+                method="SLSQP",
+                options={"maxiter": 300, "ftol": 1e-14},
+            )
+            q = np.clip(res.x, pk.lower, pk.upper)
+            if free(q):
+                kin_min = min(kin_min, pk.features(q).span)
     span_min = max(kin_min, 2.0 * pk.desc.tip_radius)
     if span_max <= span_min + 1e-3:
         raise RetargetError(
@@ -166,6 +231,11 @@ def _pair_range_cached(pk: PairKinematics, seed: int) -> PairRange:
     rest_span = pk.features(pk.rest).span
 
     def solve_at(span: float, q0: np.ndarray) -> np.ndarray:
+        # without the clearance constraints first; with them only if that answer needs them
+        q = _solve_at(span, q0, [])
+        return q if free(q) else _solve_at(span, q0, extra)
+
+    def _solve_at(span: float, q0: np.ndarray, more: list) -> np.ndarray:
         res = minimize(
             lambda q: (float(np.sum(((q - pk.rest) * inv) ** 2)), 2.0 * (q - pk.rest) * inv**2),
             q0,
@@ -178,6 +248,7 @@ def _pair_range_cached(pk: PairKinematics, seed: int) -> PairRange:
                     "jac": lambda q: span_and_grad(q)[1][None, :],
                 },
                 front_c,
+                *more,
             ],
             method="SLSQP",
             options={"maxiter": 300, "ftol": 1e-12},
@@ -191,6 +262,14 @@ def _pair_range_cached(pk: PairKinematics, seed: int) -> PairRange:
         for i in order:
             q_prev = q_open if i == _N_POSTURES - 1 else solve_at(spans[i], q_prev)
             postures[i] = q_prev
+    if clear is not None:
+        spans, postures = _refine(spans, postures, clear, solve_at)
+        worst = min(float(clear(q)[0].min()) for q in postures)
+        if worst < -1e-6:
+            raise RetargetError(
+                f"pair {pk.name}: a calibration posture is {-worst * 1e3:.2f} mm inside the "
+                "self-collision margin"
+            )
     errors = np.abs(pk.features_batch(postures)[:, 0] - spans)
     if errors.max() > 1e-5:
         bad = int(errors.argmax())
@@ -210,13 +289,107 @@ def _pair_range_cached(pk: PairKinematics, seed: int) -> PairRange:
     )
 
 
-def pair_range(pk: PairKinematics, seed: int = 0) -> PairRange:
-    """The pair's span range and posture family (computed once per pair object and seed).
+def _refine(
+    spans: np.ndarray, postures: np.ndarray, clear: _Clearance, solve_at: object
+) -> tuple[np.ndarray, np.ndarray]:
+    """Insert postures where interpolating between neighbours would leave the margin."""
+    spans, postures = list(spans), list(postures)
+    i = 0
+    while i < len(spans) - 1 and len(spans) < 4 * _N_POSTURES:
+        ws = np.linspace(0.0, 1.0, 9)[1:-1]
+        mids = [(1 - w) * postures[i] + w * postures[i + 1] for w in ws]
+        if min(float(clear(q)[0].min()) for q in mids) >= -_TABLE_BUFFER:
+            i += 1
+            continue
+        span = 0.5 * (spans[i] + spans[i + 1])
+        if spans[i + 1] - spans[i] < 1e-5:
+            i += 1
+            continue
+        spans.insert(i + 1, span)
+        postures.insert(i + 1, solve_at(span, 0.5 * (postures[i] + postures[i + 1])))  # type: ignore[operator]
+    return np.array(spans), np.array(postures)
+
+
+def pair_range(pk: PairKinematics, seed: int = 0, *, collisions: bool = True) -> PairRange:
+    """The pair's span range and posture family (computed once per pair object and seed,
+    and kept on disk beside the compiled solvers, keyed by the URDF, the pair, the margin,
+    the design and this code).
+
+    Args:
+        pk: The pair's kinematics.
+        seed: Seed of the random starts.
+        collisions: Restrict the range and the postures to configurations that keep the
+            hand's self-collision margin (:mod:`payload.retarget.collision`), so the
+            operator's full opening maps to the largest collision-free span; no effect
+            on a hand without collision geometry.
 
     Raises:
         RetargetError: The optimisation finds no usable range or posture.
     """
-    return _pair_range_cached(pk, seed)
+    return _pair_range_cached(pk, seed, bool(collisions))
+
+
+_CACHE_VERSION = "pair-range-1"
+
+
+def _disk_key(pk: PairKinematics, seed: int, collisions: bool) -> str:
+    import hashlib
+    import inspect
+    import sys
+
+    from payload.retarget import collision
+
+    parts = [
+        _CACHE_VERSION,
+        Path(pk.kin.urdf).read_text(),
+        repr(pk.desc),
+        repr(seed),
+        repr(collisions),
+        repr(pk.hand.collision_margin),
+        # the code that computes it: a change of it or of the collision model is a new key
+        inspect.getsource(sys.modules[__name__]),
+        inspect.getsource(collision),
+    ]
+    if pk.hand.design is not None:
+        parts.append(Path(pk.hand.design).read_text())
+    return hashlib.sha256("\n".join(parts).encode()).hexdigest()[:24]
+
+
+def _load_or_compute(pk: PairKinematics, seed: int, collisions: bool) -> PairRange:
+    """The range from the on-disk cache (next to the compiled solvers), else computed."""
+    from payload.retarget.casadi_solver import cache_dir
+
+    path = cache_dir() / f"pair_range_{_disk_key(pk, seed, collisions)}.npz"
+    try:
+        with np.load(path) as z:
+            spans, postures = z["spans"], z["postures"]
+            lo, hi, kmin = (float(v) for v in z["scalars"])
+        return PairRange(
+            pk.name,
+            lo,
+            hi,
+            kmin,
+            spans,
+            postures,
+            pk.features(postures[0]),
+            pk.features(postures[-1]),
+        )
+    except (OSError, KeyError, ValueError):
+        pass
+    rg = _compute_pair_range(pk, seed, collisions)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(f".{os.getpid()}.tmp.npz")
+        np.savez(
+            tmp,
+            spans=rg.spans,
+            postures=rg.postures,
+            scalars=np.array([rg.span_min, rg.span_max, rg.span_min_kinematic]),
+        )
+        os.replace(tmp, path)
+    except OSError:  # pragma: no cover - a read-only cache only costs the recomputation
+        pass
+    return rg
 
 
 def wahba_rotation(human: np.ndarray, robot: np.ndarray) -> np.ndarray:

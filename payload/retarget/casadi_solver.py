@@ -53,13 +53,17 @@ from payload.retarget.features import N_FEATURES, PairFeatures, PairKinematics
 from payload.retarget.hand import HandDescription
 from payload.retarget.objective import RetargetConfig
 from payload.retarget.solver import Retargeter, SolveInfo
-from payload.retarget.symbolic import residuals_expr
+from payload.retarget.symbolic import (
+    clearance_and_penalty,
+    paper_residuals_expr,
+    uses_collisions,
+)
 
 BACKENDS = ("auto", "compiled", "vm")
 """``compiled``: generated C through ctypes; ``vm``: CasADi's virtual machine; ``auto``:
 compiled when a C compiler works, else the virtual machine."""
 
-_CFLAGS = ("-O2", "-ffp-contract=off", "-fPIC", "-shared")
+_CFLAGS = ("-O1", "-ffp-contract=off", "-fPIC", "-shared")
 _MU0 = 1e-4
 _MU_MAX = 1e12
 _BOUND_EPS = 1e-12
@@ -127,26 +131,35 @@ def _step_functions(
     q = ca.SX.sym("q", n)
     par = ca.SX.sym("p", npar)
     t, qr, qp = par[:N_FEATURES], par[N_FEATURES : N_FEATURES + n], par[N_FEATURES + n :]
-    r = residuals_expr(pk, config, q, t, qr, qp)
+    r = paper_residuals_expr(pk, config, q, t, qr, qp)
     jac = ca.jacobian(r, q)
+    cp = clearance_and_penalty(pk, config, q)
+    if cp is not None:
+        # the penalty residual's row by one reverse sweep (its gradient)
+        clear = ca.mmin(cp[0])
+        r, jac = ca.vertcat(r, cp[1]), ca.vertcat(jac, ca.gradient(cp[1], q).T)
+    else:
+        clear = ca.SX(1.0)
     s1 = ca.sqrt(1.0 + r * r)
     w1 = 1.0 / s1  # rho'(r^2), the IRLS weight
     cost = ca.sum1(s1 - 1.0)
     grad = ca.mtimes(jac.T, w1 * r)
     jw = ca.mtimes(ca.diag(ca.sqrt(w1)), jac)
     hess = ca.vec(ca.densify(ca.mtimes(jw.T, jw)))
-    evaluate = ca.Function("evaluate", [q, par], [cost, grad, hess], {"cse": True})
-    sym = ca.SX.sym
+    evaluate = ca.Function("evaluate", [q, par], [cost, grad, hess, clear], {"cse": True})
+    # The iteration calls ``evaluate`` as a function (MX graph), so its code exists once.
+    sym = ca.MX.sym
     if wrap is not None:
-        evaluate, sym = wrap(evaluate), ca.MX.sym
-        par = sym("p", npar)
+        evaluate = wrap(evaluate)
+    par = sym("p", npar)
 
     nn = n * n
     i_cost, i_g, i_h = n, n + 1, 2 * n + 1
-    i_mu, i_it, i_ev = i_h + nn, i_h + nn + 2, i_h + nn + 3
+    i_cl = i_h + nn
+    i_mu, i_it, i_ev = i_cl + 1, i_cl + 3, i_cl + 4
     lbv, ubv, rng = ca.DM(lb), ca.DM(ub), ca.DM(ub - lb)
     x = sym("x", _state_size(n))
-    qk, ck, gk, mu = x[:n], x[i_cost], x[i_g : i_g + n], x[i_mu]
+    qk, ck, gk, mu, clk = x[:n], x[i_cost], x[i_g : i_g + n], x[i_mu], x[i_cl]
     hk = ca.reshape(x[i_h : i_h + nn], n, n)
     active = ca.logic_or(
         ca.logic_and(qk <= lbv + _BOUND_EPS, gk > 0), ca.logic_and(qk >= ubv - _BOUND_EPS, gk < 0)
@@ -173,22 +186,33 @@ def _step_functions(
     qc = ca.fmin(ca.fmax(qk + delta, lbv), ubv)
     step = qc - qk
     predicted = -(ca.dot(gk, step) + 0.5 * ca.dot(step, ca.mtimes(hk, step)))
-    cc, gc, hc = evaluate(qc, par)  # the iteration's one residual evaluation
-    better = cc < ck  # False for a NaN cost
+    cc, gc, hc, clc = evaluate(qc, par)  # the iteration's one residual evaluation
+    better = _better(cc, clc, ck, clk)
     gain = (ck - cc) / ca.fmax(predicted, 1e-300)
     mu_ok = ca.fmax(mu * ca.fmax(1.0 / 3.0, 1.0 - (2.0 * gain - 1.0) ** 3), 1e-12)
     pg = qc - ca.fmin(ca.fmax(qc - gc, lbv), ubv)
     conv = ca.logic_or(ca.mmax(ca.fabs(pg)) <= config.gtol, ck - cc <= config.ftol * ck)
     mu_up = 4.0 * mu
-    kept = ca.vertcat(qc, cc, gc, hc, mu_ok, conv)
+    kept = ca.vertcat(qc, cc, gc, hc, clc, mu_ok, conv)
     held = ca.vertcat(x[:i_mu], mu_up, mu_up >= _MU_MAX)
     out = ca.vertcat(ca.if_else(better, kept, held), x[i_it] + 1.0, x[i_ev] + 1.0)
-    iterate = ca.Function("iterate", [x, par], [out], {"cse": True} if wrap is None else {})
+    iterate = ca.Function("iterate", [x, par], [out])
     return evaluate, iterate
 
 
+def _better(c_new: Any, cl_new: Any, c_old: Any, cl_old: Any) -> Any:
+    """A point beats another: both collision-free (clearance >= 0) and a lower cost, or
+    it is collision-free and the other is not, or neither is and it is less deep."""
+    free_new, free_old = cl_new >= 0, cl_old >= 0
+    return ca.logic_or(
+        ca.logic_and(free_new, ca.logic_or(c_new < c_old, ca.logic_not(free_old))),
+        ca.logic_and(ca.logic_not(free_old), ca.logic_and(ca.logic_not(free_new), cl_new > cl_old)),
+    )
+
+
 def _state_size(n: int) -> int:
-    return 2 * n + n * n + 5
+    """``[q (n), cost, g (n), H (n*n), clearance, mu, done, iterations, evaluations]``."""
+    return 2 * n + n * n + 6
 
 
 def build_solve_function(
@@ -208,8 +232,8 @@ def build_solve_function(
             then runs only in CasADi's virtual machine.
 
     Returns:
-        ``(q_prev (n), targets (13), q_ref (n)) -> (q (n), info (4))`` with
-        ``info = [cost, iterations, converged, evaluations]``; ``q_prev`` is projected
+        ``(q_prev (n), targets (13), q_ref (n)) -> (q (n), info (5))`` with
+        ``info = [cost, iterations, converged, evaluations, clearance]``; ``q_prev`` is projected
         onto the box and is both the first start and the temporal term's reference.
     """
     n = pk.n
@@ -249,27 +273,40 @@ def build_solve_function(
     # runs only if the solve has an evaluation left under its cumulative cap.
     xb, qs = ca.MX.sym("best", nx), ca.MX.sym("start", n)
     skip = ca.Function("skip", [xb, qs, ps], [xb])
+    i_cl = 2 * n + 1 + n * n
     inf_state = ca.DM.zeros(nx)
     inf_state[i_cost] = np.inf
+    inf_state[i_cl] = -np.inf
     best: ca.MX = ca.MX(inf_state)
     for tag, cap in budget_plan(config):
-        c0, g0, h0 = evaluate(qs, ps)
+        c0, g0, h0, cl0 = evaluate(qs, ps)
         pg0 = qs - ca.fmin(ca.fmax(qs - g0, lbv), ubv)
         done0 = ca.mmax(ca.fabs(pg0)) <= config.gtol
-        x0 = ca.vertcat(qs, c0, g0, h0, _MU0, done0, xb[i_it], xb[i_ev] + 1.0)
+        x0 = ca.vertcat(qs, c0, g0, h0, cl0, _MU0, done0, xb[i_it], xb[i_ev] + 1.0)
         lv = chain(tag, cap)
         st = x0 if lv is None else lv(ca.logic_or(x0[i_done], x0[i_ev] >= cap), x0, ps)
-        kept = ca.if_else(st[i_cost] < xb[i_cost], st, xb)
+        kept = ca.if_else(_better(st[i_cost], st[i_cl], xb[i_cost], xb[i_cl]), st, xb)
         kept = ca.vertcat(kept[:i_it], st[i_it], st[i_ev])
         run = ca.Function(f"start_{tag}", [xb, qs, ps], [kept])
         start = ca.Function.conditional(f"maybe_{tag}", [run], skip)
         best = start(best[i_ev] >= cap, best, seeds[tag], p_mx)
     used, iters = best[i_ev], best[i_it]
-    info = ca.vertcat(best[i_cost], iters, best[i_done], used)
+    # Never a command inside the margin: if no start reached a collision-free point (both
+    # the previous command and the posture reference were inside it), the safe posture.
+    q_safe, cl_safe = safe_posture(pk, config)
+    free = best[i_cl] >= 0
+    q_out = ca.if_else(free, best[:n], ca.DM(q_safe))
+    info = ca.vertcat(
+        ca.if_else(free, best[i_cost], np.inf),
+        iters,
+        ca.logic_and(free, best[i_done]),
+        used,
+        ca.if_else(free, best[i_cl], cl_safe),
+    )
     return ca.Function(
         name,
         [q_prev, targets, q_ref],
-        [best[:n], info],
+        [q_out, info],
         ["q_prev", "targets", "q_ref"],
         ["q", "info"],
     )
@@ -476,7 +513,27 @@ class PairRetargeter(Retargeter):
 
 
 def _info(info: np.ndarray) -> SolveInfo:
-    return SolveInfo(float(info[0]), int(info[1]), bool(info[2] > 0.5), int(info[3]))
+    return SolveInfo(
+        float(info[0]), int(info[1]), bool(info[2] > 0.5), int(info[3]), float(info[4])
+    )
+
+
+def safe_posture(pk: PairKinematics, config: RetargetConfig) -> tuple[np.ndarray, float]:
+    """A collision-free posture and its clearance [m]: the rest posture if it is, else the
+    collision-free one nearest to it (range-normalised) among seeded samples of the box."""
+    if not uses_collisions(pk, config):
+        return pk.rest.copy(), 1.0
+    col = pk.collision
+    if col.clearance(pk.rest) >= 0:
+        return pk.rest.copy(), col.clearance(pk.rest)
+    rng = np.random.default_rng(99)
+    qs = pk.lower + rng.random((4000, pk.n)) * pk.range
+    dist = np.array(col.distance_function().map(qs.shape[0])(qs.T))
+    ok = np.flatnonzero(dist.min(axis=0) - col.margin >= col.margin)
+    if ok.size == 0:
+        raise RetargetError(f"pair {pk.name}: no collision-free posture found for the fallback")
+    i = ok[np.argmin(np.sum(((qs[ok] - pk.rest) / pk.range) ** 2, axis=1))]
+    return qs[i], float(dist[:, i].min() - col.margin)
 
 
 def _compiled_or_none(fn: ca.Function) -> _CompiledSolve | None:

@@ -12,7 +12,7 @@ Stacked as a vector the features are ``[l, d_hat (3), c (3), u (6)]``, shape (13
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -24,6 +24,10 @@ N_FEATURES = 13
 """Length of a stacked feature vector: span 1, direction 3, centre 3, distal directions 6."""
 
 _EPS = 1e-12
+
+COLLISION_MODEL: list[Any] = []
+"""The self-collision model class (:class:`payload.retarget.collision.PairCollision`),
+registered when that module is imported."""
 
 
 class PairFeatures(NamedTuple):
@@ -200,6 +204,17 @@ class PairKinematics:
     def name(self) -> str:
         """The pair's name."""
         return self.desc.name
+
+    @property
+    def collision(self) -> Any:
+        """The pair's self-collision model (:class:`payload.retarget.collision.PairCollision`),
+        built on first use and kept."""
+        model = self.__dict__.get("_collision")
+        if model is None:
+            # registered by payload.retarget.collision (imported by the package), so this
+            # module does not import it back
+            model = self.__dict__["_collision"] = COLLISION_MODEL[0](self)
+        return model
 
     @property
     def n(self) -> int:

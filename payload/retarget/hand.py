@@ -5,6 +5,9 @@ A hand description is a small TOML file::
     name = "payload"
     urdf = "{project}/urdf/payload.urdf"  # in the design project, relative to the TOML
                                           # file, or absolute
+    design = "{project}/cad/design.toml"  # optional: the design the URDF was built from
+                                          # (pad radius, collision margin, structure)
+    collision_margin = 0.002              # optional, [m], only without a design
 
     [pairs.L]
     base = "stage"                        # frame the pair features are expressed in
@@ -12,13 +15,17 @@ A hand description is a small TOML file::
     distals = ["A_distal", "C_distal"]    # a_1, a_2 of eq. 2
     joints = [["A_mcp_flex", ...], ["C_mcp_flex", ...]]   # per finger, base -> tip
     tip_radius = 0.011                    # optional, [m]: pads touch at span 2 * tip_radius
+                                          # (default: the design's finger.pad.radius, else 0)
     rest = [0.0, ...]                     # optional, [rad or m] per joint: the rest posture
 
 Ours ships as package data, ``payload/retarget/hands/payload.toml``
 (:data:`DEFAULT_HAND`); its URDF path starts with ``{project}/``, which stands for the
 root of the design project the hand is loaded for (:func:`load_hand`'s ``project``,
 default the current project), so it always drives that project's generated model. The
-retargeter runs on any hand URDF by writing one of these.
+retargeter runs on any hand URDF by writing one of these. A hand that names its
+``design`` takes the fingertip pad radius (``finger.pad.radius``) and the self-collision
+margin (``retarget.collision_margin``) from it, so they have one source; a hand without
+one may give ``collision_margin`` (default :data:`DEFAULT_COLLISION_MARGIN`).
 """
 
 from __future__ import annotations
@@ -44,6 +51,9 @@ DEFAULT_HAND: Path = Path(
     str(resources.files("payload.retarget").joinpath("hands", "payload.toml"))
 )
 """Our payload's hand description (pairs L = (A, C) and R = (B, D)), shipped as package data."""
+
+DEFAULT_COLLISION_MARGIN = 0.002
+"""Self-collision margin [m] of a hand that names no design (ours: ``cad/design.toml``)."""
 
 PROJECT_PLACEHOLDER = "{project}/"
 """A hand's ``urdf`` starting with this is relative to the design project's root."""
@@ -86,12 +96,17 @@ class HandDescription:
         urdf: Absolute path of the URDF.
         pairs: Pair name -> description, in file order.
         source: The TOML file it was loaded from (``None`` if built in code).
+        design: The design file the URDF was built from, or ``None``.
+        collision_margin: Least distance a command keeps between links of different
+            fingers and between a finger and the structure [m].
     """
 
     name: str
     urdf: Path
     pairs: dict[str, PairDescription]
     source: Path | None = None
+    design: Path | None = None
+    collision_margin: float = DEFAULT_COLLISION_MARGIN
 
     def pair(self, name: str) -> PairDescription:
         """The pair called ``name``.
@@ -120,7 +135,9 @@ def _str_list(where: str, value: Any, n: int) -> tuple[str, ...]:
     return tuple(value)
 
 
-def _pair_from_dict(where: str, name: str, raw: Any) -> PairDescription:
+def _pair_from_dict(
+    where: str, name: str, raw: Any, pad_radius: float | None = None
+) -> PairDescription:
     if not isinstance(raw, dict):
         raise RetargetError(f"{where}: expected a table")
     allowed = {"base", "tips", "distals", "joints", "tip_radius", "rest"}
@@ -144,7 +161,7 @@ def _pair_from_dict(where: str, name: str, raw: Any) -> PairDescription:
     flat = fj[0] + fj[1]
     if len(set(flat)) != len(flat):
         raise RetargetError(f"{where}.joints: a joint is listed twice")
-    radius = raw.get("tip_radius", 0.0)
+    radius = raw.get("tip_radius", 0.0 if pad_radius is None else pad_radius)
     if not isinstance(radius, (int, float)) or isinstance(radius, bool) or radius < 0:
         raise RetargetError(f"{where}.tip_radius: expected a non-negative number [m]")
     rest = raw.get("rest")
@@ -187,31 +204,62 @@ def hand_from_dict(
             not in the URDF, or joints that are not exactly the chain from base to tip.
     """
     where = str(source) if source else "hand"
-    unknown = sorted(set(raw) - {"name", "urdf", "pairs"})
+    allowed = ("name", "urdf", "design", "collision_margin", "pairs")
+    unknown = sorted(set(raw) - set(allowed))
     if unknown:
-        raise RetargetError(f"{where}: unknown key {unknown[0]!r} (allowed: name, urdf, pairs)")
+        raise RetargetError(f"{where}: unknown key {unknown[0]!r} (allowed: {', '.join(allowed)})")
     if not isinstance(raw.get("urdf"), str):
         raise RetargetError(f"{where}: urdf: missing (path of the hand's URDF)")
-    if raw["urdf"].startswith(PROJECT_PLACEHOLDER):
-        root = (project or current_project()).root
-        urdf = root / raw["urdf"][len(PROJECT_PLACEHOLDER) :]
-    else:
-        urdf = Path(raw["urdf"])
-    if not urdf.is_absolute():
-        urdf = (base_dir / urdf).resolve()
+    urdf = _path(raw["urdf"], base_dir, project)
     if not urdf.is_file():
         raise RetargetError(f"{where}: urdf: file not found: {urdf}")
+    design, pad_radius, margin = None, None, DEFAULT_COLLISION_MARGIN
+    if "design" in raw:
+        if "collision_margin" in raw:
+            raise RetargetError(
+                f"{where}: collision_margin: the design's retarget.collision_margin applies "
+                "(give one or the other)"
+            )
+        if not isinstance(raw["design"], str):
+            raise RetargetError(f"{where}: design: expected a path")
+        design = _path(raw["design"], base_dir, project)
+        from payload.design.params import load_design
+        from payload.errors import DesignError
+
+        try:
+            d = load_design(design)
+        except DesignError as exc:
+            raise RetargetError(f"{where}: design: {exc}") from exc
+        pad_radius, margin = d.finger.pad.radius, d.retarget.collision_margin
+    elif "collision_margin" in raw:
+        margin = raw["collision_margin"]
+        if isinstance(margin, bool) or not isinstance(margin, (int, float)) or not margin > 0:
+            raise RetargetError(f"{where}: collision_margin: expected a positive number [m]")
     pairs_raw = raw.get("pairs")
     if not isinstance(pairs_raw, dict) or not pairs_raw:
         raise RetargetError(f"{where}: pairs: expected at least one [pairs.NAME] table")
     pairs = {
-        name: _pair_from_dict(f"pairs.{name}", name, value) for name, value in pairs_raw.items()
+        name: _pair_from_dict(f"pairs.{name}", name, value, pad_radius)
+        for name, value in pairs_raw.items()
     }
     hand = HandDescription(
-        name=str(raw.get("name", urdf.stem)), urdf=urdf, pairs=pairs, source=source
+        name=str(raw.get("name", urdf.stem)),
+        urdf=urdf,
+        pairs=pairs,
+        source=source,
+        design=design,
+        collision_margin=float(margin),
     )
     validate_hand(hand)
     return hand
+
+
+def _path(value: str, base_dir: Path, project: Project | None) -> Path:
+    if value.startswith(PROJECT_PLACEHOLDER):
+        p = (project or current_project()).root / value[len(PROJECT_PLACEHOLDER) :]
+    else:
+        p = Path(value)
+    return p if p.is_absolute() else (base_dir / p).resolve()
 
 
 def validate_hand(hand: HandDescription, kin: Kinematics | None = None) -> None:

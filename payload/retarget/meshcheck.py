@@ -158,6 +158,43 @@ class PairMeshCheck:
                         return True
         return False
 
+    def _local_points(self) -> dict[str, np.ndarray]:
+        """Per checked link, points whose convex hull holds its collision geometry (link frame)."""
+        pts = self.__dict__.get("_points")
+        if pts is None:
+            from payload.retarget.collision import _points, link_geometry
+
+            geo = link_geometry(Path(self.pk.kin.urdf))
+            pts = {n: np.vstack([_points(k, g, o) for k, g, o in geo[n]]) for n in self._fids}
+            self.__dict__["_points"] = pts
+        return pts
+
+    def near_pairs(self, q: np.ndarray, cutoff: float) -> list[tuple[str, str]]:
+        """Checked pairs whose posed bounding boxes come within ``cutoff`` [m] (the others
+        are farther apart than that, so they can neither touch nor be nearer)."""
+        self._pose(q)
+        world = {}
+        for n, corners in self._local_points().items():
+            m = self._data.oMf[self._fids[n]]
+            w = corners @ np.array(m.rotation).T + np.array(m.translation)
+            world[n] = (w.min(axis=0) - cutoff / 2, w.max(axis=0) + cutoff / 2)
+        return [
+            (a, b)
+            for a, b in self.pairs
+            if np.all(world[a][0] <= world[b][1]) and np.all(world[b][0] <= world[a][1])
+        ]
+
+    def min_distance_near(self, q: np.ndarray, cutoff: float) -> float:
+        """Smallest distance over the checked pairs at q [m], or ``cutoff`` if every pair
+        is farther than that (bounding boxes first, FCL on the near pairs only)."""
+        best = cutoff
+        for a, b in self.near_pairs(q, cutoff):  # near_pairs poses the objects at q
+            for oa, _ in self._objects[a]:
+                for ob, _ in self._objects[b]:
+                    d = fcl.distance(oa, ob, fcl.DistanceRequest(), fcl.DistanceResult())
+                    best = min(best, float(max(d, 0.0)))
+        return best
+
     def min_distance(self, q: np.ndarray) -> tuple[float, tuple[str, str]]:
         """Smallest distance over the checked pairs [m] (0 when touching) and that pair."""
         self._pose(q)

@@ -53,6 +53,11 @@ class RetargetConfig:
         w_f: Distal-direction weight (paper: 0.10).
         w_p: Posture weight on range-normalised joints (paper: 3.0).
         w_t: Temporal weight on range-normalised joints (paper: 0.03).
+        collisions: Keep the hand's self-collision margin (:mod:`payload.retarget.collision`):
+            no accepted iterate comes closer than the margin, and a penalty residual
+            ``w_c |(band - clearance)_+| / band`` pushes away within ``collision_band``.
+        w_c: Weight of the collision penalty residual.
+        collision_band: Clearance below which the penalty acts [m].
         budget: ``paper``: at most ``max_nfev`` residual evaluations per pair solve for
             the production solver too (every evaluation counted); ``converged``: each
             start runs to its convergence tests or ``max_iterations``.
@@ -76,6 +81,9 @@ class RetargetConfig:
     w_f: float = 0.10
     w_p: float = 3.0
     w_t: float = 0.03
+    collisions: bool = True
+    w_c: float = 3.0
+    collision_band: float = 3e-3
     budget: str = "paper"
     max_nfev: int = 20
     warm_evaluations: int = 20
@@ -86,6 +94,10 @@ class RetargetConfig:
     def __post_init__(self) -> None:
         for f in dataclasses.fields(self):
             v = getattr(self, f.name)
+            if f.name == "collisions":
+                if not isinstance(v, bool):
+                    raise RetargetError("retarget config: collisions: expected true or false")
+                continue
             if f.name == "budget":
                 if v not in BUDGETS:
                     raise RetargetError(
@@ -98,7 +110,7 @@ class RetargetConfig:
                 continue
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
                 raise RetargetError(f"retarget config: {f.name}: expected a finite number")
-            if f.name.startswith("sigma") or f.name in ("gtol", "ftol"):
+            if f.name.startswith("sigma") or f.name in ("gtol", "ftol", "collision_band"):
                 if v <= 0:
                     raise RetargetError(f"retarget config: {f.name}: must be positive (got {v})")
             elif v < 0:
@@ -156,6 +168,14 @@ class RetargetConfig:
                 raise RetargetError(f"{p}: put every setting inside the [retarget] table")
             raw = raw["retarget"]
         return cls.from_mapping(raw, where=str(p))
+
+
+def collision_residual(clearance: np.ndarray, config: RetargetConfig) -> float:
+    """The collision penalty residual ``w_c |(band - clearance)_+| / band`` (numpy)."""
+    over = np.maximum(config.collision_band - np.asarray(clearance, dtype=float), 0.0)
+    return float(config.w_c * np.sqrt(over @ over + 1e-12) / config.collision_band) - float(
+        config.w_c * 1e-6 / config.collision_band
+    )
 
 
 def soft_l1(z: np.ndarray) -> np.ndarray:

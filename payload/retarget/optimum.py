@@ -8,20 +8,27 @@ command, the posture reference, the rest posture, every answer the benchmarked s
 gave at this step, and :data:`RANDOM_STARTS` seeded random postures in the box. Each
 start's answer is costed again with Pinocchio and numpy; the lowest cost found, or a
 solver's own cost when it is lower still, is the best-known optimum; a solve counts as
-optimal when its cost is within :data:`OPTIMUM_TOLERANCE` (relative) of it.
+optimal when its cost is within :data:`OPTIMUM_TOLERANCE` (relative) of it. With
+self-collision modelled, the objective carries the collision penalty residual and only
+answers that keep the margin count (the constrained optimum).
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import casadi as ca
 import numpy as np
 from scipy.optimize import least_squares
 
 from payload.retarget.features import N_FEATURES, PairKinematics
-from payload.retarget.objective import Objective, RetargetConfig, cost_of_residuals
-from payload.retarget.symbolic import residuals_expr
+from payload.retarget.objective import (
+    Objective,
+    RetargetConfig,
+    collision_residual,
+    cost_of_residuals,
+)
+from payload.retarget.symbolic import residuals_expr, uses_collisions
 
 OPTIMUM_NFEV = 400
 """Function evaluations of each scipy start of the best-known optimum."""
@@ -50,7 +57,7 @@ class CompiledObjective:
         self.function = ca.Function(
             name, [q, t, qr, qp], [r, ca.densify(ca.jacobian(r, q))], {"cse": True}
         )
-        self.m, self.n = N_FEATURES + 2 * n, n
+        self.m, self.n = int(r.shape[0]), n
         self._c = _compiled_or_none(self.function)
 
     def __call__(
@@ -81,6 +88,7 @@ def best_known_cost(
     q_ref: np.ndarray,
     starts: Sequence[np.ndarray],
     rng: np.random.Generator,
+    clearance: Callable[[np.ndarray], float] | None = None,
 ) -> float:
     """Lowest eq. 3 cost scipy finds from ``starts`` plus the informed and random starts.
 
@@ -93,6 +101,9 @@ def best_known_cost(
         q_ref: Posture reference, shape (n,).
         starts: Extra starts, e.g. the solvers' answers, each shape (n,).
         rng: Source of the random starts.
+        clearance: The self-collision clearance of a posture [m] (solver geometry); when
+            given, only answers with a non-negative clearance count (the constrained
+            optimum), and ``inf`` is returned if none has one.
     """
 
     def fun(q: np.ndarray) -> np.ndarray:
@@ -103,7 +114,11 @@ def best_known_cost(
 
     def pinocchio_cost(q: np.ndarray) -> float:
         f, _ = pk.features_jacobian(q)
-        return cost_of_residuals(objective.residuals(f, q, targets, q_ref, q_prev))
+        r = objective.residuals(f, q, targets, q_ref, q_prev)
+        if uses_collisions(pk, objective.config):
+            col = pk.collision
+            r = np.append(r, collision_residual(col.distances(q) - col.margin, objective.config))
+        return cost_of_residuals(r)
 
     candidates = [q_prev, q_ref, pk.rest, *starts]
     candidates += list(pk.lower + rng.random((RANDOM_STARTS, pk.n)) * pk.range)
@@ -124,5 +139,7 @@ def best_known_cost(
             f_scale=1.0,
             max_nfev=OPTIMUM_NFEV,
         )
-        best = min(best, pinocchio_cost(np.clip(res.x, pk.lower, pk.upper)))
+        q = np.clip(res.x, pk.lower, pk.upper)
+        if clearance is None or clearance(q) >= 0:
+            best = min(best, pinocchio_cost(q))
     return float(best)

@@ -17,7 +17,12 @@ import numpy as np
 from payload.retarget.errors import RetargetError
 from payload.retarget.features import PairFeatures, PairKinematics, as_feature_vector
 from payload.retarget.hand import HandDescription
-from payload.retarget.objective import Objective, RetargetConfig, cost_of_residuals
+from payload.retarget.objective import (
+    Objective,
+    RetargetConfig,
+    collision_residual,
+    cost_of_residuals,
+)
 
 
 class SolveInfo(NamedTuple):
@@ -30,12 +35,15 @@ class SolveInfo(NamedTuple):
         converged: True if a convergence test stopped the solver before its cap.
         evaluations: Residual evaluations used (each computes the residual vector once,
             with or without its Jacobian; what scipy counts as ``nfev``).
+        clearance: Smallest self-collision distance less the margin at the command, in
+            the solver's own geometry [m] (``inf`` when collisions are not modelled).
     """
 
     cost: float
     iterations: int
     converged: bool
     evaluations: int = 0
+    clearance: float = float("inf")
 
 
 class Retargeter(ABC):
@@ -125,7 +133,20 @@ class Retargeter(ABC):
         qr = self.kinematics.rest if q_ref is None else self.kinematics.check_q(q_ref, "q_ref")
         qp = self._command if q_prev is None else self.kinematics.check_q(q_prev, "q_prev")
         f, _ = self.kinematics.features_jacobian(q)
-        return cost_of_residuals(self.objective.residuals(f, q, t, qr, qp))
+        r = self.objective.residuals(f, q, t, qr, qp)
+        if self.collisions:
+            col = self.kinematics.collision
+            r = np.append(r, collision_residual(col.distances(q) - col.margin, self.config))
+        return cost_of_residuals(r)
+
+    @property
+    def collisions(self) -> bool:
+        """True when this solver keeps the hand's self-collision margin."""
+        return bool(self.config.collisions) and self.kinematics.collision.available
+
+    def clearance(self, q: np.ndarray) -> float:
+        """Smallest self-collision distance less the margin at q, solver geometry [m]."""
+        return self.kinematics.collision.clearance(q) if self.collisions else float("inf")
 
     def solve(
         self,

@@ -90,6 +90,31 @@ def point_chains(pk: PairKinematics) -> tuple[PointChain, ...]:
     return tuple(chains)
 
 
+def frame_point_chain(pk: PairKinematics, frame: str, point: np.ndarray) -> PointChain:
+    """The chain from the pair's base frame to a point fixed in ``frame`` (a link)."""
+    kin, d = pk.kin, pk.desc
+    model = kin.model
+    index = {name: i for i, name in enumerate(d.joints)}
+    base = model.frames[kin.frame_id(d.base)].placement.inverse()
+    joints = []
+    for j in kin.chain(d.base, frame):
+        kind, axis = kin.joint_motion(j)
+        pl = model.jointPlacements[j]
+        name = model.names[j]
+        if name not in index:
+            raise ValueError(f"joint {name!r} above {frame!r} is not a joint of pair {d.name!r}")
+        joints.append(
+            ChainJoint(np.array(pl.rotation), np.array(pl.translation), kind, axis, index[name])
+        )
+    fr = model.frames[kin.frame_id(frame)]
+    return PointChain(
+        np.array(base.rotation),
+        np.array(base.translation),
+        tuple(joints),
+        np.array(fr.placement.act(np.asarray(point, dtype=float))),
+    )
+
+
 def _skew(k: np.ndarray) -> np.ndarray:
     return np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
 
@@ -159,6 +184,27 @@ def features_function(pk: PairKinematics) -> ca.Function:
     )
 
 
+def uses_collisions(pk: PairKinematics, config: RetargetConfig) -> bool:
+    """True when the solve keeps a self-collision margin (config on, geometry present)."""
+    return bool(config.collisions) and pk.collision.available
+
+
+def clearance_and_penalty(
+    pk: PairKinematics, config: RetargetConfig, q: ca.SX
+) -> tuple[ca.SX, ca.SX] | None:
+    """The clearances (k, 1) [m] and the collision penalty residual (1, 1), or ``None``.
+
+    The residual is ``w_c |(band - clearance)_+| / band``, smoothed at zero so that it
+    and its gradient vanish when every clearance exceeds the band.
+    """
+    if not uses_collisions(pk, config):
+        return None
+    c = pk.collision.clearance_expr(q)
+    over = ca.fmax(config.collision_band - c, 0.0)
+    scale = config.w_c / config.collision_band
+    return c, scale * (ca.sqrt(ca.dot(over, over) + 1e-12) - 1e-6)
+
+
 def residuals_expr(
     pk: PairKinematics,
     config: RetargetConfig,
@@ -167,7 +213,22 @@ def residuals_expr(
     q_ref: ca.SX,
     q_prev: ca.SX,
 ) -> ca.SX:
-    """Eq. 3's residual vector, shape (13 + 2n, 1), as a CasADi expression."""
+    """Eq. 3's residual vector, shape (13 + 2n, 1), as a CasADi expression; with the
+    collision penalty residual appended (shape (14 + 2n, 1)) when :func:`uses_collisions`."""
+    r = paper_residuals_expr(pk, config, q, targets, q_ref, q_prev)
+    cp = clearance_and_penalty(pk, config, q)
+    return r if cp is None else ca.vertcat(r, cp[1])
+
+
+def paper_residuals_expr(
+    pk: PairKinematics,
+    config: RetargetConfig,
+    q: ca.SX,
+    targets: ca.SX,
+    q_ref: ca.SX,
+    q_prev: ca.SX,
+) -> ca.SX:
+    """Eq. 3's own residual vector, shape (13 + 2n, 1)."""
     f = features_expr(pair_points(pk, q))
     scales = config.feature_scales()
     inv_range = 1.0 / pk.range

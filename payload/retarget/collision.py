@@ -1,0 +1,459 @@
+"""Self-collision distances of one finger pair, as CasADi expressions and in numpy.
+
+The solver's own geometry, derived once per pair:
+
+* every link a finger's joints move is enclosed by one **capsule** (a segment swept by a
+  sphere): the axis is the best of the link frame's axes and the principal axis of the
+  link's collision geometry (its mesh vertices, or points on its box, cylinder and
+  sphere primitives, from the URDF), the radius is the smallest circle enclosing the
+  points projected across the axis, and the end caps are pulled in as far as every
+  point stays inside, so the capsule contains the collision geometry;
+* the **structure** (the links no pair joint moves: for our hand the base, the stage and
+  the rail carriage) is a set of **boxes** fixed in the pair's base frame, posed at the
+  model's neutral configuration: the design's collision boxes and guide columns when the
+  hand names a design (``payload.design.solids``), else the URDF's primitives and, for a
+  mesh, the oriented bounding box of each connected piece.
+
+Checked pairs are those the python-fcl check (:mod:`payload.retarget.meshcheck`) checks:
+a link of finger 1 against a link of finger 2, exactly (segment-to-segment distance less
+both radii), and a finger link against a structure box (the box's signed distance at
+points along the capsule axis no more than :data:`SAMPLE_SPACING` apart, less the
+radius), except a finger's first link against the link it is mounted on (they touch by
+construction). Pairs that never come within :data:`PRUNE_DISTANCE` of each other over
+:data:`PRUNE_SAMPLES` seeded postures of the joint box are left out.
+
+The clearance of a term is its distance less the hand's ``collision_margin``; a command
+is collision-free in the solver's sense when every clearance is non-negative.
+"""
+
+from __future__ import annotations
+
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass
+from pathlib import Path
+
+import casadi as ca
+import numpy as np
+import pinocchio as pin
+from scipy.optimize import minimize
+
+from payload.retarget import features as _features
+from payload.retarget.features import PairKinematics
+from payload.retarget.symbolic import chain_point, frame_point_chain
+
+SAMPLE_SPACING = 0.012
+"""Largest spacing of the points along a capsule axis checked against a box [m]."""
+
+PRUNE_DISTANCE = 0.010
+"""Terms farther than this over every sampled posture are left out [m]."""
+
+PRUNE_SAMPLES = 4000
+"""Seeded postures of the joint box the pruning samples."""
+
+_TINY = 1e-18
+
+
+@dataclass(frozen=True)
+class Capsule:
+    """A capsule fixed in a link frame.
+
+    Attributes:
+        link: The URDF link.
+        a: First end of the axis in the link frame [m], shape (3,).
+        b: Second end [m], shape (3,).
+        radius: [m].
+    """
+
+    link: str
+    a: np.ndarray
+    b: np.ndarray
+    radius: float
+
+
+@dataclass(frozen=True)
+class Box:
+    """A box fixed in the pair's base frame.
+
+    Attributes:
+        link: The structure link it belongs to.
+        centre: [m], shape (3,).
+        rotation: Box axes in the base frame (columns), shape (3, 3).
+        half: Half sizes [m], shape (3,).
+    """
+
+    link: str
+    centre: np.ndarray
+    rotation: np.ndarray
+    half: np.ndarray
+
+
+def _origin(el: ET.Element | None) -> np.ndarray:
+    pose = np.eye(4)
+    if el is not None:
+        xyz = [float(v) for v in el.get("xyz", "0 0 0").split()]
+        rpy = [float(v) for v in el.get("rpy", "0 0 0").split()]
+        pose[:3, :3] = pin.rpy.rpyToMatrix(*rpy)
+        pose[:3, 3] = xyz
+    return pose
+
+
+def _circle(radius: float, z: float, n: int = 48) -> np.ndarray:
+    # a polygon circumscribing the circle, so the points enclose it
+    t = np.linspace(0.0, 2 * np.pi, n, endpoint=False)
+    r = radius / np.cos(np.pi / n)
+    return np.column_stack([r * np.cos(t), r * np.sin(t), np.full(n, z)])
+
+
+def _sphere_points(radius: float, n: int = 24) -> np.ndarray:
+    pts = [np.array([[0.0, 0.0, radius], [0.0, 0.0, -radius]])]
+    for phi in np.linspace(0.0, np.pi, n // 2 + 1)[1:-1]:
+        pts.append(_circle(radius * np.sin(phi), radius * np.cos(phi), n))
+    return np.vstack(pts) * (1.0 / np.cos(np.pi / n))
+
+
+def _mesh_path(name: str, urdf_dir: Path) -> Path:
+    if name.startswith("package://") or name.startswith("file://"):
+        name = name.split("://", 1)[1]
+    return Path(name) if Path(name).is_absolute() else urdf_dir / name
+
+
+def link_geometry(urdf: Path) -> dict[str, list[tuple[str, object, np.ndarray]]]:
+    """Per link, its collision elements ``(kind, data, origin 4x4)`` from a URDF.
+
+    ``kind`` is ``mesh`` (data: a trimesh mesh, scaled), ``box`` (size (3,)),
+    ``cylinder`` ((radius, length)) or ``sphere`` (radius).
+    """
+    import trimesh
+
+    root = ET.parse(urdf).getroot()
+    out: dict[str, list[tuple[str, object, np.ndarray]]] = {}
+    for link in root.findall("link"):
+        for col in link.findall("collision"):
+            geo = col.find("geometry")
+            if geo is None:
+                continue
+            pose = _origin(col.find("origin"))
+            item: tuple[str, object] | None = None
+            if (m := geo.find("mesh")) is not None:
+                tm = trimesh.load(str(_mesh_path(m.get("filename", ""), urdf.parent)), force="mesh")
+                scale = np.array([float(v) for v in m.get("scale", "1 1 1").split()])
+                tm = trimesh.Trimesh(np.asarray(tm.vertices) * scale, tm.faces, process=False)
+                item = ("mesh", tm)
+            elif (b := geo.find("box")) is not None:
+                item = ("box", np.array([float(v) for v in b.get("size", "0 0 0").split()]))
+            elif (c := geo.find("cylinder")) is not None:
+                item = ("cylinder", (float(c.get("radius", 0)), float(c.get("length", 0))))
+            elif (s := geo.find("sphere")) is not None:
+                item = ("sphere", float(s.get("radius", 0)))
+            if item is not None:
+                out.setdefault(link.get("name", ""), []).append((item[0], item[1], pose))
+    return out
+
+
+def _points(kind: str, data: object, pose: np.ndarray) -> np.ndarray:
+    """Points whose convex hull contains the element, in the link frame."""
+    if kind == "mesh":
+        local = np.asarray(data.vertices, dtype=float)  # type: ignore[attr-defined]
+    elif kind == "box":
+        h = 0.5 * np.asarray(data)
+        local = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)]) * h
+    elif kind == "cylinder":
+        r, length = data  # type: ignore[misc]
+        local = np.vstack([_circle(r, -length / 2), _circle(r, length / 2)])
+    else:
+        local = _sphere_points(float(data))  # type: ignore[arg-type]
+    return local @ pose[:3, :3].T + pose[:3, 3]
+
+
+def enclosing_capsule(link: str, pts: np.ndarray) -> Capsule:
+    """A capsule containing every point (shape (k, 3)): see the module docstring."""
+    pts = np.asarray(pts, dtype=float)
+    centred = pts - pts.mean(axis=0)
+    _, _, vt = np.linalg.svd(centred, full_matrices=False)
+    best: Capsule | None = None
+    best_vol = np.inf
+    for axis in (np.eye(3)[0], np.eye(3)[1], np.eye(3)[2], vt[0]):
+        u = axis / np.linalg.norm(axis)
+        e1 = np.cross(u, [1.0, 0.0, 0.0] if abs(u[0]) < 0.9 else [0.0, 1.0, 0.0])
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(u, e1)
+        xy = np.column_stack([pts @ e1, pts @ e2])
+        lo, hi = xy.min(axis=0), xy.max(axis=0)
+        res = minimize(
+            lambda c, xy=xy: float(np.max(np.sum((xy - c) ** 2, axis=1))),
+            0.5 * (lo + hi),
+            method="Nelder-Mead",
+            options={"xatol": 1e-7, "fatol": 1e-12},
+        )
+        c2 = res.x
+        rho = np.sqrt(np.sum((xy - c2) ** 2, axis=1))
+        r = float(rho.max()) * (1.0 + 1e-9) + 1e-9
+        t = pts @ u
+        cap = np.sqrt(np.maximum(r * r - rho * rho, 0.0))
+        a, b = float(np.min(t + cap)), float(np.max(t - cap))
+        base = c2[0] * e1 + c2[1] * e2
+        if a > b:  # a sphere
+            m = 0.5 * (a + b)
+            centre = base + m * u
+            r = float(np.max(np.linalg.norm(pts - centre, axis=1))) * (1.0 + 1e-9) + 1e-9
+            a = b = m
+        b = max(b, a + 1e-6)
+        cand = Capsule(link, base + a * u, base + b * u, r)
+        vol = np.pi * r * r * (b - a) + 4.0 / 3.0 * np.pi * r**3
+        if vol < best_vol:
+            best, best_vol = cand, vol
+    assert best is not None
+    return best
+
+
+def _oriented_boxes(link: str, kind: str, data: object, pose: np.ndarray) -> list[tuple]:
+    """``(centre, rotation, half)`` boxes enclosing one URDF element, in the link frame."""
+    if kind == "box":
+        return [(pose[:3, 3], pose[:3, :3], 0.5 * np.asarray(data))]
+    if kind == "cylinder":
+        r, length = data  # type: ignore[misc]
+        return [(pose[:3, 3], pose[:3, :3], np.array([r, r, length / 2]))]
+    if kind == "sphere":
+        r = float(data)  # type: ignore[arg-type]
+        return [(pose[:3, 3], pose[:3, :3], np.full(3, r))]
+    out = []
+    for piece in data.split(only_watertight=False) or [data]:  # type: ignore[attr-defined]
+        obb = piece.bounding_box_oriented
+        tf = pose @ np.asarray(obb.primitive.transform)
+        out.append((tf[:3, 3], tf[:3, :3], 0.5 * np.asarray(obb.primitive.extents)))
+    return out
+
+
+def _design_boxes(design_path: Path) -> dict[str, list[tuple]]:
+    """The design's structure collision boxes and guide columns, per link frame."""
+    from payload.design.params import load_design
+    from payload.design.solids import structure_bodies
+
+    out: dict[str, list[tuple]] = {}
+    for name, body in structure_bodies(load_design(design_path)).items():
+        items = [(np.array(c), np.eye(3), np.array(h)) for c, h in body.boxes]
+        for c, axis, r, half_len in body.cylinders:
+            half = np.full(3, r)
+            half["xyz".index(axis)] = half_len
+            items.append((np.array(c), np.eye(3), half))
+        out[name] = items
+    return out
+
+
+def _segment_distance_ca(p1, q1, p2, q2):
+    """Distance between segments p1-q1 and p2-q2 (CasADi), Ericson's closest points."""
+    d1, d2, r = q1 - p1, q2 - p2, p1 - p2
+    a, e, f = ca.dot(d1, d1), ca.dot(d2, d2), ca.dot(d2, r)
+    c, b = ca.dot(d1, r), ca.dot(d1, d2)
+    denom = a * e - b * b
+    s = ca.if_else(
+        denom > 1e-14, ca.fmin(ca.fmax((b * f - c * e) / ca.fmax(denom, 1e-30), 0), 1), 0
+    )
+    t = (b * s + f) / e
+    s = ca.if_else(
+        t < 0,
+        ca.fmin(ca.fmax(-c / a, 0), 1),
+        ca.if_else(t > 1, ca.fmin(ca.fmax((b - c) / a, 0), 1), s),
+    )
+    t = ca.fmin(ca.fmax(t, 0), 1)
+    w = p1 + s * d1 - p2 - t * d2
+    return ca.sqrt(ca.dot(w, w) + _TINY)
+
+
+def segment_distance(p1, q1, p2, q2) -> float:
+    """Distance between segments p1-q1 and p2-q2 (numpy)."""
+    d1, d2, r = q1 - p1, q2 - p2, p1 - p2
+    a, e, f = d1 @ d1, d2 @ d2, d2 @ r
+    c, b = d1 @ r, d1 @ d2
+    denom = a * e - b * b
+    s = float(np.clip((b * f - c * e) / denom, 0, 1)) if denom > 1e-14 else 0.0
+    t = (b * s + f) / e
+    if t < 0:
+        t, s = 0.0, float(np.clip(-c / a, 0, 1))
+    elif t > 1:
+        t, s = 1.0, float(np.clip((b - c) / a, 0, 1))
+    w = p1 + s * d1 - p2 - t * d2
+    return float(np.sqrt(w @ w + _TINY))
+
+
+def _box_sdf_ca(p, box: Box):
+    local = ca.mtimes(ca.DM(box.rotation.T), p - ca.DM(box.centre))
+    qv = ca.fabs(local) - ca.DM(box.half)
+    out = ca.fmax(qv, 0)
+    return ca.sqrt(ca.dot(out, out) + _TINY) + ca.fmin(ca.mmax(qv), 0)
+
+
+def box_sdf(p: np.ndarray, box: Box) -> float:
+    """Signed distance of point p (base frame) to a box [m] (numpy)."""
+    qv = np.abs(box.rotation.T @ (p - box.centre)) - box.half
+    out = np.maximum(qv, 0)
+    return float(np.sqrt(out @ out + _TINY) + min(qv.max(), 0.0))
+
+
+@dataclass(frozen=True)
+class Term:
+    """One clearance term: a capsule of finger 1 or 2 against another capsule or a box.
+
+    Attributes:
+        capsule: Index into :attr:`PairCollision.capsules`.
+        other: Index of the other capsule, or of the box (``box`` True).
+        box: True for a capsule-box term.
+        fraction: For a box term, where along the capsule axis the point lies (0 = a).
+    """
+
+    capsule: int
+    other: int
+    box: bool
+    fraction: float = 0.0
+
+
+class PairCollision:
+    """The solver's self-collision model of one pair (see the module docstring).
+
+    Args:
+        pk: The pair's kinematics.
+        margin: Required distance [m] (``None``: the hand's ``collision_margin``).
+
+    Attributes:
+        margin: [m].
+        capsules: Finger link capsules.
+        finger_of: Per capsule, 0 or 1.
+        boxes: Structure boxes in the base frame.
+        terms: The clearance terms kept after pruning.
+    """
+
+    def __init__(self, pk: PairKinematics, margin: float | None = None) -> None:
+        self.pk = pk
+        self.margin = float(pk.hand.collision_margin if margin is None else margin)
+        kin, d = pk.kin, pk.desc
+        model = kin.model
+        geometry = link_geometry(Path(kin.urdf))
+        all_pair_joints = {j for p in pk.hand.pairs.values() for j in p.joints}
+
+        def ancestors(link: str) -> set[str]:
+            j, out = model.frames[model.getFrameId(link, pin.FrameType.BODY)].parentJoint, set()
+            while j > 0:
+                out.add(model.names[j])
+                j = model.parents[j]
+            return out
+
+        links = [n for n in geometry if model.existBodyName(n)]
+        caps: list[Capsule] = []
+        finger_of: list[int] = []
+        for i, fj in enumerate(d.finger_joints):
+            for n in sorted(x for x in links if ancestors(x) & set(fj)):
+                pts = np.vstack([_points(k, g, o) for k, g, o in geometry[n]])
+                caps.append(enclosing_capsule(n, pts))
+                finger_of.append(i)
+        self.capsules: tuple[Capsule, ...] = tuple(caps)
+        self.finger_of: tuple[int, ...] = tuple(finger_of)
+        structure = [n for n in links if not ancestors(n) & all_pair_joints]
+        designed = _design_boxes(pk.hand.design) if pk.hand.design is not None else {}
+        q0 = kin.neutral()
+        base = kin.frame_placement(q0, d.base)
+        boxes: list[Box] = []
+        for n in sorted(structure):
+            pl = base.inverse() * kin.frame_placement(q0, n)
+            rot, tr = np.array(pl.rotation), np.array(pl.translation)
+            items = designed.get(n)
+            if items is None:
+                items = [b for k, g, o in geometry[n] for b in _oriented_boxes(n, k, g, o)]
+            for c, r, h in items:
+                boxes.append(Box(n, rot @ c + tr, rot @ r, np.asarray(h, float)))
+        self.boxes: tuple[Box, ...] = tuple(boxes)
+        joint_parent = {j.get("name"): j.find("parent").get("link") for j in _joints(kin.urdf)}
+        joint_child = {j.get("name"): j.find("child").get("link") for j in _joints(kin.urdf)}
+        mounted = {(joint_parent[fj[0]], joint_child[fj[0]]) for fj in d.finger_joints if fj}
+        terms: list[Term] = []
+        for i, ci in enumerate(caps):
+            for j in range(i + 1, len(caps)):
+                if finger_of[i] != finger_of[j]:
+                    terms.append(Term(i, j, False))
+            k = max(2, int(np.ceil(np.linalg.norm(ci.b - ci.a) / SAMPLE_SPACING)) + 1)
+            for bi, bx in enumerate(boxes):
+                if (bx.link, ci.link) in mounted:
+                    continue
+                terms += [Term(i, bi, True, float(f)) for f in np.linspace(0.0, 1.0, k)]
+        self._chains = [
+            (frame_point_chain(pk, c.link, c.a), frame_point_chain(pk, c.link, c.b)) for c in caps
+        ]
+        self.all_terms: tuple[Term, ...] = tuple(terms)
+        self.terms: tuple[Term, ...] = self.all_terms
+        self._data = model.createData()
+        self._fids = [model.getFrameId(c.link, pin.FrameType.BODY) for c in caps]
+        if terms:
+            self._prune()
+
+    @property
+    def available(self) -> bool:
+        """True when the pair has any clearance term."""
+        return bool(self.terms)
+
+    def _prune(self) -> None:
+        pk = self.pk
+        rng = np.random.default_rng(2024)
+        qs = np.vstack([pk.rest, pk.lower + rng.random((PRUNE_SAMPLES, pk.n)) * pk.range])
+        fn = self.distance_function(self.all_terms).map(qs.shape[0])
+        dist = np.array(fn(qs.T))  # (terms, samples)
+        keep = dist.min(axis=1) < PRUNE_DISTANCE + self.margin
+        self.terms = tuple(t for t, k in zip(self.all_terms, keep) if k)
+
+    def _term_expr(self, t: Term, ends: list) -> ca.SX:
+        ci = self.capsules[t.capsule]
+        a, b = ends[t.capsule]
+        if t.box:
+            p = a + t.fraction * (b - a)
+            return _box_sdf_ca(p, self.boxes[t.other]) - ci.radius
+        a2, b2 = ends[t.other]
+        return _segment_distance_ca(a, b, a2, b2) - ci.radius - self.capsules[t.other].radius
+
+    def distances_expr(self, q: ca.SX, terms: tuple[Term, ...] | None = None) -> ca.SX:
+        """The terms' distances [m] at symbolic q, shape (k, 1) (k may be 0)."""
+        terms = self.terms if terms is None else terms
+        used = sorted({t.capsule for t in terms} | {t.other for t in terms if not t.box})
+        ends: list = [None] * len(self.capsules)
+        for i in used:
+            ca_, cb_ = self._chains[i]
+            ends[i] = (chain_point(ca_, q), chain_point(cb_, q))
+        return ca.vertcat(*[self._term_expr(t, ends) for t in terms])
+
+    def clearance_expr(self, q: ca.SX) -> ca.SX:
+        """Distances less the margin, shape (k, 1): non-negative when collision-free."""
+        return self.distances_expr(q) - self.margin
+
+    def distance_function(self, terms: tuple[Term, ...] | None = None) -> ca.Function:
+        """CasADi ``q (n) -> distances (k)`` [m]."""
+        q = ca.SX.sym("q", self.pk.n)
+        return ca.Function("pair_distances", [q], [self.distances_expr(q, terms)], {"cse": True})
+
+    def distances(self, q: np.ndarray) -> np.ndarray:
+        """The terms' distances at q [m], shape (k,), in numpy with Pinocchio placements."""
+        pk = self.pk
+        model = pk.kin.model
+        pin.framesForwardKinematics(model, self._data, pk.full_configuration(pk.check_q(q)))
+        base = pk.kin.frame_placement(pk.kin.neutral(), pk.desc.base).inverse()
+        ends = []
+        for c, fid in zip(self.capsules, self._fids):
+            m = base * self._data.oMf[fid]
+            ends.append((m.act(c.a), m.act(c.b)))
+        out = np.empty(len(self.terms))
+        for k, t in enumerate(self.terms):
+            ci = self.capsules[t.capsule]
+            a, b = ends[t.capsule]
+            if t.box:
+                out[k] = box_sdf(a + t.fraction * (b - a), self.boxes[t.other]) - ci.radius
+            else:
+                a2, b2 = ends[t.other]
+                out[k] = segment_distance(a, b, a2, b2) - ci.radius - self.capsules[t.other].radius
+        return out
+
+    def clearance(self, q: np.ndarray) -> float:
+        """Smallest distance less the margin at q [m] (``inf`` without terms)."""
+        return float(self.distances(q).min() - self.margin) if self.terms else np.inf
+
+
+def _joints(urdf: str | Path) -> list[ET.Element]:
+    return ET.parse(urdf).getroot().findall("joint")
+
+
+_features.COLLISION_MODEL[:] = [PairCollision]

@@ -1,0 +1,227 @@
+"""Self-collision-aware retargeting (issue 14): the margin comes from the design, the
+solver's geometry encloses the collision meshes, its distances and gradients are right,
+and no command comes closer than the margin, by the solver's distance and by python-fcl
+on the generated meshes (an independent library).
+"""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import casadi as ca
+import numpy as np
+import pytest
+
+from payload.design.params import load_design
+from payload.errors import DesignError
+from payload.project import current_project
+from payload.retarget import (
+    PairKinematics,
+    PairRetargeter,
+    RetargetConfig,
+    calibrate,
+    features_from_points,
+    load_hand,
+    pair_range,
+)
+from payload.retarget.bench import human_pinch_and_open, synthetic_hand
+from payload.retarget.collision import link_geometry
+from payload.retarget.meshcheck import PairMeshCheck
+from payload.retarget.objective import collision_residual
+from payload.retarget.symbolic import objective_function
+
+HANDS_DIR = Path(__file__).resolve().parents[1] / "payload" / "retarget" / "hands"
+PAIRS = ("L", "R")
+N_HUMAN = 100_000
+"""Random human pinch inputs of the acceptance test (split over the two pairs)."""
+
+
+@pytest.fixture(scope="module")
+def hand():
+    return load_hand()
+
+
+@pytest.fixture(scope="module")
+def pks(hand):
+    return {p: PairKinematics(hand, p) for p in PAIRS}
+
+
+@pytest.fixture(scope="module")
+def solvers(hand, pks):
+    return {p: PairRetargeter(hand, p, RetargetConfig(), pks[p]) for p in PAIRS}
+
+
+@pytest.fixture(scope="module")
+def checks(pks):
+    return {p: PairMeshCheck(pks[p]) for p in PAIRS}
+
+
+def _free_postures(pk, k, seed):
+    rng = np.random.default_rng(seed)
+    qs = pk.lower + rng.random((40 * k, pk.n)) * pk.range
+    dist = np.array(pk.collision.distance_function().map(qs.shape[0])(qs.T))
+    return qs[dist.min(axis=0) >= pk.collision.margin][:k]
+
+
+# ------------------------------------------------------------- one source
+def test_margin_and_pad_radius_come_from_the_design(tmp_path, hand):
+    design = load_design(current_project().design_path)
+    assert hand.collision_margin == design.retarget.collision_margin == 0.002
+    assert all(p.tip_radius == design.finger.pad.radius for p in hand.pairs.values())
+    # A hand naming another design follows it: edit both keys in a copy.
+    text = current_project().design_path.read_text()
+    text = text.replace("collision_margin = 0.002", "collision_margin = 0.0035")
+    text = text.replace("radius = 0.011 ", "radius = 0.0125 ")
+    (tmp_path / "design.toml").write_text(text)
+    shutil.copy(hand.urdf, tmp_path / "payload.urdf")
+    toml = (HANDS_DIR / "payload.toml").read_text()
+    toml = toml.replace("{project}/urdf/payload.urdf", "payload.urdf")
+    toml = toml.replace("{project}/cad/design.toml", "design.toml")
+    (tmp_path / "hand.toml").write_text(toml)
+    other = load_hand(tmp_path / "hand.toml")
+    assert other.collision_margin == 0.0035
+    assert all(p.tip_radius == 0.0125 for p in other.pairs.values())
+
+
+def test_a_bad_margin_in_the_design_is_named(tmp_path):
+    text = current_project().design_path.read_text()
+    (tmp_path / "d.toml").write_text(
+        text.replace("collision_margin = 0.002", "collision_margin = -1")
+    )
+    with pytest.raises(DesignError, match=r"retarget\.collision_margin"):
+        load_design(tmp_path / "d.toml")
+
+
+# ------------------------------------------------------------ the geometry
+@pytest.mark.parametrize("pair", PAIRS)
+def test_capsules_contain_every_collision_mesh_vertex(pks, pair):
+    pk = pks[pair]
+    geo = link_geometry(Path(pk.kin.urdf))
+    col = pk.collision
+    assert len(col.capsules) == 8 and col.available
+    for cap in col.capsules:
+        (kind, mesh, pose), *_ = geo[cap.link]
+        assert kind == "mesh"
+        v = np.asarray(mesh.vertices) @ pose[:3, :3].T + pose[:3, 3]
+        # point-to-segment distance, written out here
+        ab = cap.b - cap.a
+        t = np.clip((v - cap.a) @ ab / (ab @ ab), 0.0, 1.0)
+        d = np.linalg.norm(v - (cap.a + t[:, None] * ab), axis=1)
+        assert d.max() <= cap.radius
+
+
+@pytest.mark.parametrize("pair", PAIRS)
+def test_casadi_distances_equal_numpy_and_gradients_match_finite_differences(pks, pair):
+    pk = pks[pair]
+    col = pk.collision
+    q = ca.SX.sym("q", pk.n)
+    c = col.clearance_expr(q)
+    fn = ca.Function("c", [q], [c, ca.jacobian(c, q)])
+    h = 1e-7
+    for q0 in _free_postures(pk, 5, 1):
+        val, jac = (np.array(v) for v in fn(q0))
+        np.testing.assert_allclose(val.ravel(), col.distances(q0) - col.margin, atol=1e-12)
+        fd = np.column_stack(
+            [
+                (col.distances(q0 + h * e) - col.distances(q0 - h * e)) / (2 * h)
+                for e in np.eye(pk.n)
+            ]
+        )
+        np.testing.assert_allclose(jac, fd, atol=1e-5)
+
+
+@pytest.mark.parametrize("pair", PAIRS)
+def test_the_solvers_distance_never_exceeds_fcls_by_more_than_half_a_millimetre(pks, checks, pair):
+    pk, mc = pks[pair], checks[pair]
+    for q in _free_postures(pk, 150, 2):
+        solver = pk.collision.distances(q).min()
+        assert mc.min_distance(q)[0] >= min(solver, 0.02) - 0.5e-3
+
+
+@pytest.mark.parametrize("pair", PAIRS)
+def test_the_penalty_row_and_the_cost_agree_with_numpy(pks, solvers, pair):
+    pk, r = pks[pair], solvers[pair]
+    fun = objective_function(pk, r.config)
+    rng = np.random.default_rng(8)
+    qs = pk.lower + rng.random((30, pk.n)) * pk.range
+    for q in qs:
+        t = pk.features(qs[0]).as_vector()
+        cost, res, _ = (np.array(v) for v in fun(q, t, pk.rest, pk.rest))
+        want = collision_residual(pk.collision.distances(q) - pk.collision.margin, r.config)
+        assert res.ravel()[-1] == pytest.approx(want, rel=1e-9, abs=1e-12)
+        assert cost.item() == pytest.approx(r.cost(q, t, pk.rest, pk.rest), rel=1e-9)
+
+
+# ------------------------------------------------------------- calibration
+@pytest.mark.parametrize("pair", PAIRS)
+def test_the_calibrated_range_and_postures_keep_the_margin(pks, checks, pair):
+    pk, mc = pks[pair], checks[pair]
+    rg, free = pair_range(pk), pair_range(pk, collisions=False)
+    assert rg.span_min > 2 * pk.desc.tip_radius + pk.collision.margin
+    assert rg.span_max <= free.span_max + 1e-9
+    assert rg.span_min_kinematic == rg.span_min
+    for q in np.vstack(
+        [rg.postures, [rg.posture(s) for s in np.linspace(rg.span_min, rg.span_max, 97)]]
+    ):
+        assert pk.collision.clearance(q) >= 0
+        assert mc.min_distance(q)[0] >= pk.collision.margin - 0.5e-3
+
+
+# ------------------------------------------------------------------ solves
+@pytest.mark.parametrize("pair", PAIRS)
+def test_a_solve_from_inside_the_margin_still_returns_a_free_command(pks, solvers, pair):
+    pk, r = pks[pair], solvers[pair]
+    rng = np.random.default_rng(3)
+    qs = pk.lower + rng.random((400, pk.n)) * pk.range
+    bad = [q for q in qs if pk.collision.clearance(q) < -5e-3][:6]
+    assert len(bad) == 6
+    for q in bad:
+        t = pk.features(q).as_vector()
+        out, info = r.solve(t, q, q)  # the previous command and the reference collide
+        assert info.evaluations <= 20
+        assert r.clearance(out) >= 0 and info.clearance >= 0
+        assert info.clearance == pytest.approx(r.clearance(out), abs=1e-9)
+
+
+@pytest.mark.slow
+def test_random_human_pinches_over_the_full_opening_never_command_a_collision(pks, solvers, checks):
+    pinch, open_ = human_pinch_and_open()
+    rng = np.random.default_rng(14)
+    worst_solver, worst_fcl, collided = np.inf, np.inf, 0
+    for i, pair in enumerate(PAIRS):
+        pk, r, mc = pks[pair], solvers[pair], checks[pair]
+        cal = calibrate(pinch, open_, pair_range(pk))
+        margin = pk.collision.margin
+        r.reset()
+        for _ in range(N_HUMAN // len(PAIRS)):
+            opening = rng.uniform(-0.1, 1.1)  # beyond both calibrated ends too
+            roll = rng.uniform(-0.8, 0.8)
+            drift = rng.uniform(-0.02, 0.02, 3)
+            pts = synthetic_hand(opening, roll, drift) + rng.normal(0.0, 1e-3, (4, 3))
+            targets, q_ref = cal.command(features_from_points(*pts))
+            q, info = r.solve(targets, None, q_ref)
+            assert info.evaluations <= 20
+            worst_solver = min(worst_solver, info.clearance)
+            near = mc.near_pairs(q, margin)
+            if near:
+                d = mc.min_distance_near(q, margin)
+                worst_fcl = min(worst_fcl, d)
+                collided += int(d <= 0.0)
+        del i
+    assert collided == 0
+    assert worst_solver >= 0.0  # the margin, in the solver's own distance
+    assert worst_fcl >= 2e-3 - 0.5e-3  # and within 0.5 mm of it by python-fcl
+
+
+# --------------------------------------------------------------- other hands
+def test_hands_with_and_without_collision_geometry(tmp_path):
+    offset = load_hand(HANDS_DIR / "offset_distal.toml")
+    pk = PairKinematics(offset)
+    assert pk.collision.available and offset.collision_margin == 0.002
+    thumb = load_hand(HANDS_DIR / "thumb_abduction_first.toml")
+    pk2 = PairKinematics(thumb)
+    assert not pk2.collision.available
+    r = PairRetargeter(thumb, config=RetargetConfig(), kinematics=pk2)
+    _, info = r.solve(pk2.features(pk2.rest), pk2.rest, pk2.rest)
+    assert info.clearance == np.inf or info.clearance >= 0
