@@ -174,19 +174,12 @@ def _optimum_fraction(hand_path: Path | None, budget: str, steps: int) -> float:
     return float(np.mean(ok))
 
 
-_COLLISION_GAP = pytest.mark.xfail(
-    reason="issue 14 open: with self-collision avoidance on, random jumps whose targets lie "
-    "deep in collision stall on the margin (bench: 77.5 % optimal on ours, trajectory 100 %)",
-    strict=False,
-)
-
-
 @pytest.mark.parametrize(
     "hand",
     [
-        pytest.param(None, marks=_COLLISION_GAP),
-        "thumb_abduction_first.toml",  # no collision geometry: eq. 3 alone
-        pytest.param("offset_distal.toml", marks=_COLLISION_GAP),
+        None,
+        "thumb_abduction_first.toml",
+        "offset_distal.toml",
     ],
 )
 def test_converged_budget_reaches_the_optimum_on_every_hand(hand):

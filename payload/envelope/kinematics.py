@@ -50,9 +50,8 @@ def design_kinematics(tree: KinematicTree) -> DesignKinematics:
     ``tip_radius`` taken from the design's ``finger.pad.radius``.
     """
     raw = tomllib.loads(DEFAULT_HAND.read_text())
-    for pair in raw["pairs"].values():
-        if "tip_radius" in pair:  # the pads touch at twice the design's pad radius
-            pair["tip_radius"] = float(tree.design.finger.pad.radius)
+    for pair in raw["pairs"].values():  # the pads touch at twice the given design's radius
+        pair["tip_radius"] = float(tree.design.finger.pad.radius)
     with tempfile.TemporaryDirectory(prefix="payload-reach-") as tmp:
         path = Path(tmp) / "payload.urdf"
         path.write_text(to_urdf(tree))

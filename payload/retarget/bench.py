@@ -347,7 +347,7 @@ def run_bench(
                 cfg = config.replace(budget=b)
                 solvers[b][name] = PairRetargeter(hand, name, cfg, pk, backend=backend)
         solvers["reference"][name] = ReferenceRetargeter(hand, name, config, pk)
-        cal = calibrate(pinch, open_, pair_range(pk))
+        cal = calibrate(pinch, open_, pair_range(pk, collisions=config.collisions))
         streams[name] = target_stream(pk, cal, steps, seed + 1000 * i, phase=1.3 * i)
         checks[name] = PairMeshCheck(pk)
     setup_s = time.perf_counter() - setup_t0

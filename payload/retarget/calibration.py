@@ -137,7 +137,7 @@ _TABLE_BUFFER = 1e-4
 
 
 @functools.lru_cache(maxsize=16)
-def _pair_range_cached(pk: PairKinematics, seed: int, collisions: bool = True) -> PairRange:
+def _pair_range_cached(pk: PairKinematics, seed: int, collisions: bool = False) -> PairRange:
     return _load_or_compute(pk, seed, collisions)
 
 
@@ -310,7 +310,7 @@ def _refine(
     return np.array(spans), np.array(postures)
 
 
-def pair_range(pk: PairKinematics, seed: int = 0, *, collisions: bool = True) -> PairRange:
+def pair_range(pk: PairKinematics, seed: int = 0, *, collisions: bool = False) -> PairRange:
     """The pair's span range and posture family (computed once per pair object and seed,
     and kept on disk beside the compiled solvers, keyed by the URDF, the pair, the margin,
     the design and this code).
@@ -321,7 +321,8 @@ def pair_range(pk: PairKinematics, seed: int = 0, *, collisions: bool = True) ->
         collisions: Restrict the range and the postures to configurations that keep the
             hand's self-collision margin (:mod:`payload.retarget.collision`), so the
             operator's full opening maps to the largest collision-free span; no effect
-            on a hand without collision geometry.
+            on a hand without collision geometry. Off by default, like
+            ``RetargetConfig.collisions``.
 
     Raises:
         RetargetError: The optimisation finds no usable range or posture.
@@ -359,7 +360,11 @@ def _load_or_compute(pk: PairKinematics, seed: int, collisions: bool) -> PairRan
     """The range from the on-disk cache (next to the compiled solvers), else computed."""
     from payload.retarget.casadi_solver import cache_dir
 
-    path = cache_dir() / f"pair_range_{_disk_key(pk, seed, collisions)}.npz"
+    try:
+        key = _disk_key(pk, seed, collisions)
+    except OSError:  # the model's files are gone (a temporary URDF): no key, no cache
+        return _compute_pair_range(pk, seed, collisions)
+    path = cache_dir() / f"pair_range_{key}.npz"
     try:
         with np.load(path) as z:
             spans, postures = z["spans"], z["postures"]

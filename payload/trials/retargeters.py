@@ -40,7 +40,10 @@ def retargeting(
             retargeters = {
                 pair: PairRetargeter(hand, pair=pair, config=config) for pair in ("L", "R")
             }
-            ranges = {pair: pair_range(r.kinematics) for pair, r in retargeters.items()}
+            ranges = {
+                pair: pair_range(r.kinematics, collisions=r.collisions)
+                for pair, r in retargeters.items()
+            }
         cached = built[key] = (retargeters, ranges)
     return cached
 
