@@ -227,4 +227,7 @@ def test_hands_with_and_without_collision_geometry(tmp_path):
     assert not pk2.collision.available
     r = PairRetargeter(thumb, config=RetargetConfig(collisions=True), kinematics=pk2)
     _, info = r.solve(pk2.features(pk2.rest), pk2.rest, pk2.rest)
-    assert info.clearance == np.inf or info.clearance >= 0
+    assert info.clearance == np.inf  # no collision geometry: nothing measured
+    off = PairRetargeter(load_hand(), config=RetargetConfig())  # collisions off by default
+    _, info = off.solve(off.kinematics.features(off.kinematics.rest), None, None)
+    assert not off.collisions and info.clearance == np.inf

@@ -52,6 +52,13 @@ def design_kinematics(tree: KinematicTree) -> DesignKinematics:
     raw = tomllib.loads(DEFAULT_HAND.read_text())
     for pair in raw["pairs"].values():  # the pads touch at twice the given design's radius
         pair["tip_radius"] = float(tree.design.finger.pad.radius)
+    # the margin and structure of the given design, not the current project's
+    source = Path(tree.design.source)
+    if source.is_file():
+        raw["design"] = str(source.resolve())
+    else:  # a design built in memory
+        raw.pop("design", None)
+        raw["collision_margin"] = float(tree.design.retarget.collision_margin)
     with tempfile.TemporaryDirectory(prefix="payload-reach-") as tmp:
         path = Path(tmp) / "payload.urdf"
         path.write_text(to_urdf(tree))

@@ -18,7 +18,8 @@ pair solve; ``converged``). Every answer's cost is then evaluated by one indepen
 implementation (Pinocchio + numpy) and compared with the best-known optimum of that
 solve (:mod:`payload.retarget.optimum`: scipy trf/soft_l1 with 400 evaluations from
 several starts, lowest kept); ``optimum_fraction`` is the fraction within 1e-3
-relative; with self-collision modelled (``config.collisions``, the default) the objective
+relative; with self-collision modelled (``config.collisions``, off by default: ``--config`` with
+``[retarget] collisions = true``) the objective
 carries the collision penalty and only answers that keep the margin in the solver's own
 geometry count, so the optimum is the constrained one. ``collision_free_fraction`` is
 the fraction of answers python-fcl finds free of self-collision on the URDF's collision

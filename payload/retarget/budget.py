@@ -39,11 +39,12 @@ SEEDS = 256
 self-collision modelled, the first that keep the margin)."""
 
 
-def seed_table(pk: PairKinematics) -> tuple[np.ndarray, np.ndarray]:
-    """The seed postures, shape (k, n), and their features, shape (k, 13)."""
+def seed_table(pk: PairKinematics, collisions: bool) -> tuple[np.ndarray, np.ndarray]:
+    """The seed postures, shape (k, n), and their features, shape (k, 13); with
+    ``collisions`` (the solve keeps the margin), only those that keep it."""
     rng = np.random.default_rng(12345)
     qs = np.vstack([pk.rest, pk.lower + rng.random((4 * SEEDS, pk.n)) * pk.range])
-    if pk.collision.available:  # collision-free seeds only (the solver's own geometry)
+    if collisions:  # collision-free seeds only (the solver's own geometry)
         dist = np.array(pk.collision.distance_function().map(qs.shape[0])(qs.T))
         qs = qs[dist.min(axis=0) >= pk.collision.margin]
     qs = qs[:SEEDS]
@@ -59,7 +60,7 @@ def table_seeds(
     count: int,
 ) -> list[ca.MX]:
     """The ``count`` table postures of lowest eq. 3 cost (from their tabulated features)."""
-    qs, fs = seed_table(pk)
+    qs, fs = seed_table(pk, bool(config.collisions) and pk.collision.available)
     k = qs.shape[0]
     scales = ca.DM(np.repeat(config.feature_scales()[:, None], k, axis=1))
     geo = scales * (ca.DM(fs.T) - ca.repmat(targets, 1, k))

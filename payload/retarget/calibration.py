@@ -13,7 +13,7 @@ Two steps:
      corner of the box, halfway between the two, and seeded random postures);
    * minimum span: ``max(2 * tip_radius, min l(q))``: the pads touch before the
      points can meet (the kinematic minimum is found the same way);
-   * with ``collisions`` (default), every posture above also keeps the hand's
+   * with ``collisions`` (off by default), every posture above also keeps the hand's
      self-collision margin (:mod:`payload.retarget.collision`, plus 0.1 mm), so the
      range ends at the largest collision-free span and starts at the smallest;
    * postures: for 65 spans evenly spaced between the two, the posture closest to the
@@ -35,6 +35,8 @@ from __future__ import annotations
 
 import functools
 import os
+import threading
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -379,12 +381,13 @@ def _load_or_compute(pk: PairKinematics, seed: int, collisions: bool) -> PairRan
             pk.features(postures[0]),
             pk.features(postures[-1]),
         )
-    except (OSError, KeyError, ValueError):
-        pass
+    except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile):
+        pass  # missing or unreadable (a torn write): computed again and rewritten
     rg = _compute_pair_range(pk, seed, collisions)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(f".{os.getpid()}.tmp.npz")
+        # one writer per process and thread (campaign workers run a retargeter per thread)
+        tmp = path.with_suffix(f".{os.getpid()}.{threading.get_ident()}.tmp.npz")
         np.savez(
             tmp,
             spans=rg.spans,

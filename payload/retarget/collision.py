@@ -260,7 +260,7 @@ def _segment_distance_ca(p1, q1, p2, q2):
     return ca.sqrt(ca.dot(w, w) + _TINY)
 
 
-def segment_distance(p1, q1, p2, q2) -> float:
+def segment_distance(p1: np.ndarray, q1: np.ndarray, p2: np.ndarray, q2: np.ndarray) -> float:
     """Distance between segments p1-q1 and p2-q2 (numpy)."""
     d1, d2, r = q1 - p1, q2 - p2, p1 - p2
     a, e, f = d1 @ d1, d2 @ d2, d2 @ r

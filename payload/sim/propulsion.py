@@ -93,13 +93,18 @@ def _bvls(a: np.ndarray, b: np.ndarray, ub: np.ndarray) -> np.ndarray:
     """``scipy.optimize.lsq_linear(a, b, bounds=(0, ub), method="bvls").x`` without its
     argument checks: the unbounded least squares if it is inside the bounds, else BVLS
     started from it (the same calls, so the same result)."""
-    from scipy.optimize._lsq.bvls import bvls
-
     lb = np.zeros(a.shape[1])
     x = np.linalg.lstsq(a, b, rcond=-1)[0]
     if np.all((x >= lb) & (x <= ub)):
         return x
-    return bvls(a, b, x, lb, ub, 1e-10, None, 0).x
+    try:  # scipy's private solver, to skip lsq_linear's checks at 50 Hz
+        from scipy.optimize._lsq.bvls import bvls
+
+        return bvls(a, b, x, lb, ub, 1e-10, None, 0).x
+    except (ImportError, TypeError):  # another scipy: the public call, same algorithm
+        from scipy.optimize import lsq_linear
+
+        return lsq_linear(a, b, bounds=(lb, ub), method="bvls", tol=1e-10).x
 
 
 class PropulsionError(PayloadError):
