@@ -492,7 +492,7 @@ class PairRetargeter(Retargeter):
         q = c.outputs[0].copy()
         self._command = q
         info = c.outputs[1]
-        return q.copy(), _info(info)
+        return q.copy(), _info(info, self.collisions)
 
     def _solve(
         self, targets: np.ndarray, q_prev: np.ndarray, q_ref: np.ndarray
@@ -509,13 +509,12 @@ class PairRetargeter(Retargeter):
             out = self.function(q_prev, targets, q_ref)
             q = np.array(out[0], dtype=float).reshape(-1)
             info = np.array(out[1], dtype=float).reshape(-1)
-        return q, _info(info)
+        return q, _info(info, self.collisions)
 
 
-def _info(info: np.ndarray) -> SolveInfo:
-    return SolveInfo(
-        float(info[0]), int(info[1]), bool(info[2] > 0.5), int(info[3]), float(info[4])
-    )
+def _info(info: np.ndarray, collisions: bool) -> SolveInfo:
+    clearance = float(info[4]) if collisions else float("inf")  # no margin: none measured
+    return SolveInfo(float(info[0]), int(info[1]), bool(info[2] > 0.5), int(info[3]), clearance)
 
 
 def safe_posture(pk: PairKinematics, config: RetargetConfig) -> tuple[np.ndarray, float]:

@@ -175,8 +175,6 @@ class Retargeter(ABC):
         qp = self._command if q_prev is None else self.kinematics.check_q(q_prev, "q_prev")
         qr = self.kinematics.rest if q_ref is None else self.kinematics.check_q(q_ref, "q_ref")
         q, info = self._solve(t, np.clip(qp, self.lower, self.upper), qr)
-        if not self.collisions:  # no margin kept: no clearance measured
-            info = info._replace(clearance=float("inf"))
         self._command = q
         return q.copy(), info
 
