@@ -71,8 +71,9 @@ def _write_report(
     """Write ``<stem>.md/.json/.png`` only when the report's figures changed.
 
     Timings go to ``<stem>.timing.json`` (not committed) every run. Identical ``md`` and
-    ``json`` leave all three files untouched; different ones replace existing files only
-    with ``force``, each through a temporary file and a rename.
+    ``json`` (provenance aside) leave all three files untouched unless ``force`` (which
+    refreshes the provenance); different ones replace existing files only with
+    ``force``, each through a temporary file and a rename.
 
     Raises:
         OverwriteError: The report changed, files exist, and ``force`` is false.
@@ -88,8 +89,8 @@ def _write_report(
     paths["timing"] = out_dir / f"{stem}.timing.json"
     replace_file(paths["timing"], json.dumps(timings, indent=2) + "\n")
     same = [p for p, t in texts.items() if p.exists() and _same_figures(p, t)]
-    if len(same) == len(texts) and paths["png"].exists():
-        return {"timing": paths["timing"]}  # nothing but the timings changed
+    if len(same) == len(texts) and paths["png"].exists() and not force:
+        return {"timing": paths["timing"]}  # nothing but timings or provenance changed
     differ = [p for p in (*texts, paths["png"]) if p.exists() and p not in same]
     if differ and not force:
         raise OverwriteError(
