@@ -233,9 +233,16 @@ def _compute_pair_range(pk: PairKinematics, seed: int, collisions: bool) -> Pair
     rest_span = pk.features(pk.rest).span
 
     def solve_at(span: float, q0: np.ndarray) -> np.ndarray:
-        # without the clearance constraints first; with them only if that answer needs them
-        q = _solve_at(span, q0, [])
-        return q if free(q) else _solve_at(span, q0, extra)
+        # without the clearance constraints first; with them only if that answer needs them.
+        # SLSQP can stall from the neighbouring posture on a very different design: then
+        # from the rest and the widest posture too (the check below judges the result)
+        for start in (q0, pk.rest, q_open):
+            q = _solve_at(span, start, [])
+            if not free(q):
+                q = _solve_at(span, start, extra)
+            if abs(span_and_grad(q)[0] - span) <= 1e-5:
+                break
+        return q
 
     def _solve_at(span: float, q0: np.ndarray, more: list) -> np.ndarray:
         res = minimize(
