@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import logging
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -10,6 +9,7 @@ from typing import Any
 from payload.project import Project
 from payload.sweep.grid import Axis, SweepError, check_axes, edit_design, grid
 from payload.sweep.point import run_point
+from payload.trials.cluster import dask_client
 
 DEFAULT_SAMPLES = 20_000
 """Reach samples per point (``payload report reach`` uses 100,000; a sweep compares)."""
@@ -64,60 +64,41 @@ def run_points(
     Raises:
         SweepError: The scheduler cannot be reached.
     """
-    from distributed import Client, LocalCluster, as_completed
+    from distributed import as_completed
 
-    cluster = None
     results: dict[int, dict[str, Any]] = {}
-    try:
-        if scheduler is None:
-            cluster = LocalCluster(
-                n_workers=workers,
-                threads_per_worker=1,
-                processes=True,
-                dashboard_address=":0",  # a free port: no clash, no warning
-                silence_logs=logging.ERROR,
-            )
-            client = Client(cluster)
-        else:
+    with dask_client(workers, scheduler, SweepError) as client:
+        futures = {
+            client.submit(
+                run_point,
+                str(folder),
+                params,
+                text,
+                samples=samples,
+                seed=seed,
+                trials=trials,
+                pure=False,
+                key=f"sweep-point-{i}-{folder.parent.name}",
+            ): i
+            for i, (folder, params, text) in enumerate(points)
+        }
+        for fut in as_completed(list(futures)):
+            i = futures[fut]
             try:
-                client = Client(scheduler, timeout=10)
-            except (OSError, TimeoutError) as exc:
-                raise SweepError(f"cannot reach Dask scheduler {scheduler}: {exc}") from None
-        with client:
-            futures = {
-                client.submit(
-                    run_point,
-                    str(folder),
-                    params,
-                    text,
-                    samples=samples,
-                    seed=seed,
-                    trials=trials,
-                    pure=False,
-                    key=f"sweep-point-{i}-{folder.parent.name}",
-                ): i
-                for i, (folder, params, text) in enumerate(points)
-            }
-            for fut in as_completed(list(futures)):
-                i = futures[fut]
-                try:
-                    results[i] = fut.result()
-                except Exception as exc:  # e.g. a worker died
-                    results[i] = {
-                        "params": points[i][1],
-                        "valid": False,
-                        "error": f"{type(exc).__name__}: {exc}",
-                        "fits": False,
-                        "min_clearance_mm": None,
-                        "below_vehicle_mm": None,
-                        "span_max_mm": None,
-                        "trials": None,
-                        "project": str(points[i][0]),
-                    }
-                on_result(results[i])
-    finally:
-        if cluster is not None:
-            cluster.close()
+                results[i] = fut.result()
+            except Exception as exc:  # e.g. a worker died
+                results[i] = {
+                    "params": points[i][1],
+                    "valid": False,
+                    "error": f"{type(exc).__name__}: {exc}",
+                    "fits": False,
+                    "min_clearance_mm": None,
+                    "below_vehicle_mm": None,
+                    "span_max_mm": None,
+                    "trials": None,
+                    "project": str(points[i][0]),
+                }
+            on_result(results[i])
     return [results[i] for i in range(len(points))]
 
 

@@ -15,7 +15,6 @@ called as ``trial_fn(seed, out_dir)`` and must be picklable (a module-level func
 from __future__ import annotations
 
 import functools
-import logging
 import math
 import os
 import time
@@ -25,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from payload.project import Project
+from payload.trials.cluster import dask_client
 from payload.trials.scoring import contact_tag, finish_trial
 from payload.trials.summary import (
     METRIC_KEYS,
@@ -201,44 +201,25 @@ def _run_dask(
     results: dict[int, dict[str, Any]],
     bar: _Bar,
 ) -> None:
-    from distributed import Client, LocalCluster, as_completed
+    from distributed import as_completed
 
-    cluster = None
-    try:
-        if scheduler is None:
-            cluster = LocalCluster(
-                n_workers=workers,
-                threads_per_worker=1,
-                processes=True,
-                dashboard_address=None,
-                silence_logs=logging.ERROR,
-            )
-            client = Client(cluster)
-        else:
+    with dask_client(workers, scheduler, CampaignError) as client:
+        futures = {
+            client.submit(_call_trial, trial_fn, s, dirs[s], pure=False, key=f"trial-{s}"): s
+            for s in seeds
+        }
+        for fut in as_completed(list(futures)):
+            s = futures[fut]
             try:
-                client = Client(scheduler, timeout=10)
-            except (OSError, TimeoutError) as exc:
-                raise CampaignError(f"cannot reach Dask scheduler {scheduler}: {exc}") from None
-        with client:
-            futures = {
-                client.submit(_call_trial, trial_fn, s, dirs[s], pure=False, key=f"trial-{s}"): s
-                for s in seeds
-            }
-            for fut in as_completed(list(futures)):
-                s = futures[fut]
-                try:
-                    results[s] = fut.result()
-                except Exception as exc:  # e.g. a worker died
-                    results[s] = {
-                        "seed": s,
-                        "out_dir": dirs[s],
-                        "wall_s": math.nan,
-                        "error": f"{type(exc).__name__}: {exc}",
-                    }
-                bar.advance(results[s])
-    finally:
-        if cluster is not None:
-            cluster.close()
+                results[s] = fut.result()
+            except Exception as exc:  # e.g. a worker died
+                results[s] = {
+                    "seed": s,
+                    "out_dir": dirs[s],
+                    "wall_s": math.nan,
+                    "error": f"{type(exc).__name__}: {exc}",
+                }
+            bar.advance(results[s])
 
 
 class _Bar:
