@@ -149,6 +149,33 @@ def test_a_design_written_before_kv_existed_still_loads(design_dict):
     assert design_from_dict(data).finger.kv == 0.0
 
 
+def test_the_pinch_pre_shape_has_one_source(design_dict, tmp_path):
+    """The simulator's scripted pinch and the retargeter's rest posture both read the
+    design's ``[pinch]``; a design file written before it existed takes the packaged
+    default's; a value outside the joint limits is refused by name."""
+    from payload.retarget.hand import DEFAULT_HAND, load_hand
+    from payload.sim.config import WorldConfig
+    from payload.sim.grasp import pinch_grasp
+
+    data = copy.deepcopy(design_dict)
+    data["pinch"]["finger"] = [-0.3, 0.05, 0.0, 1.0]
+    path = tmp_path / "design.toml"
+    path.write_text(tomli_w.dumps(data))
+    changed = design_from_dict(data)
+    assert pinch_grasp(changed, WorldConfig(ctb=None)).open == (-0.3, 0.05, 0.0, 1.0)
+    hand = tmp_path / "hand.toml"
+    text = DEFAULT_HAND.read_text()
+    text = text.replace('"{project}/urdf/payload.urdf"', f'"{URDF}"')
+    hand.write_text(text.replace('"{project}/cad/design.toml"', f'"{path}"'))
+    for pair in load_hand(hand).pairs.values():
+        assert pair.rest == (-0.3, 0.05, 0.0, 1.0) * 2
+    del data["pinch"]
+    assert design_from_dict(data).pinch == load_design(DESIGN).pinch
+    data["pinch"] = {"finger": [-0.3, 0.0, 0.0, 9.0]}
+    with pytest.raises(DesignError, match=r"pinch\.finger.*dip"):
+        design_from_dict(data)
+
+
 # ---------------------------------------------------------------- mass properties
 
 

@@ -15,7 +15,7 @@ from payload.design.params import DesignError
 from payload.schema import PayloadCommand
 from payload.sim import SimDriver, WorldConfig, build_world
 from payload.sim.pads import pad_contact, pad_stiffness
-from payload.sim.world import PHYSICS_DT, PINCH_OPEN
+from payload.sim.world import PHYSICS_DT
 from payload.teleop.operator import OperatorTraits
 
 
@@ -52,7 +52,7 @@ def test_thin_layer_stiffness_closed_form(design):
 
 
 def test_mujoco_contact_has_the_derived_stiffness_and_is_critically_damped(design):
-    c = pad_contact(design, str(MJCF), PINCH_OPEN, 15.4, PHYSICS_DT)
+    c = pad_contact(design, str(MJCF), design.pinch.finger, 15.4, PHYSICS_DT)
     assert not c.clamped and c.dampratio >= 1.0
     # MuJoCo, not our formula: the indentation at the design load is the pad's
     pen = _penetration(c.solref, c.solimp, c.effective_mass, design.finger.pad.load)
@@ -88,7 +88,7 @@ def test_pad_design_is_validated(design):
 
 def test_world_pads_carry_the_derived_contact(design):
     w = build_world(WorldConfig(ctb="single"))
-    c = pad_contact(design, str(MJCF), PINCH_OPEN, 15.4, PHYSICS_DT)
+    c = pad_contact(design, str(MJCF), design.pinch.finger, 15.4, PHYSICS_DT)
     for g in w.pad_geoms.values():
         np.testing.assert_allclose(w.model.geom_solref[g], c.solref)
         np.testing.assert_allclose(w.model.geom_solimp[g], c.solimp)

@@ -23,6 +23,7 @@ from payload.design import (
     build_tree,
     design_from_dict,
     design_to_dict,
+    load_design,
 )
 from payload.envelope import PayloadGeometry, Vehicle
 from payload.envelope.geometry import box_geometry, signed_distance
@@ -166,7 +167,8 @@ def test_span_range_is_pair_ranges_and_holds_against_the_trees_kinematics(tree, 
     assert span.minimum == pytest.approx(own.span_min_kinematic, abs=1e-9)
     # independently: a 6^4 grid per finger on the tree's own kinematics
     f1, f2 = PAIRS[pair]
-    rest = np.array([-0.3, 0.0, 0.0, 1.2])  # the hand file's rest posture, per finger
+    rest = np.array(load_design().pinch.finger)  # the retargeter's rest posture, per finger
+    assert np.array_equal(PairKinematics(pair=pair).rest, np.tile(rest, 2))
     g1, g2 = grid(tree, f1, 6), grid(tree, f2, 6)
     p1, p2 = tree_tips(tree, f1, g1), tree_tips(tree, f2, g2)
     ok1, ok2 = front(tree, f1, rest, p1) >= 0, front(tree, f2, rest, p2) >= 0

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import functools
 import math
 import sys
 import types
@@ -18,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from payload.errors import DesignError
-from payload.project import current_project
+from payload.project import current_project, default_design_text
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -225,6 +226,13 @@ class Posture:
 
 
 @dataclass(frozen=True)
+class Pinch:
+    """The grasp pre-shape: the finger posture a pinch closes from."""
+
+    finger: tuple[float, float, float, float]
+
+
+@dataclass(frozen=True)
 class Design:
     """The whole payload design."""
 
@@ -238,6 +246,7 @@ class Design:
     stowed: Posture
     home: Posture
     retarget: RetargetParams
+    pinch: Pinch = field(default=None, metadata={"optional": True})  # type: ignore[assignment]
     vehicle: dict[str, Any] = field(
         default_factory=dict, hash=False, metadata={"optional_table": True}
     )
@@ -305,6 +314,9 @@ class Design:
             from payload.design.vehicle import vehicle_from_dict
 
             vehicle_from_dict(self.vehicle, source=self.source)
+        for j, v in zip(FINGER_JOINTS, self.pinch.finger):
+            if not f.limit(j).contains(v):
+                raise DesignError("pinch.finger", f"{j} = {v} rad is outside its limits")
         for name, posture in (("stowed", self.stowed), ("home", self.home)):
             for j, v in zip(FINGER_JOINTS, posture.finger):
                 if not f.limit(j).contains(v):
@@ -387,7 +399,15 @@ def _value(tp: Any, v: Any, where: str, meta: Any) -> Any:
 def design_from_dict(data: dict[str, Any], source: str = "<memory>") -> Design:
     """Build and validate a :class:`Design` from a parsed TOML document."""
     design = _build(Design, data, "")
+    if design.pinch is None:
+        # a design file written before [pinch] existed takes the packaged default's
+        design = dataclasses.replace(design, pinch=_default_pinch())
     return dataclasses.replace(design, source=source).validate()
+
+
+@functools.cache
+def _default_pinch() -> Pinch:
+    return _build(Pinch, tomllib.loads(default_design_text())["pinch"], "pinch")
 
 
 def load_design(path: str | Path | None = None) -> Design:

@@ -17,14 +17,18 @@ A hand description is a small TOML file::
     tip_radius = 0.011                    # optional, [m]: pads touch at span 2 * tip_radius
                                           # (default: the design's finger.pad.radius, else 0)
     rest = [0.0, ...]                     # optional, [rad or m] per joint: the rest posture
+                                          # (default: the design's pinch pre-shape
+                                          # pinch.finger, matched by joint-name suffix;
+                                          # without a design, zeros clipped to limits)
 
 Ours ships as package data, ``payload/retarget/hands/payload.toml``
 (:data:`DEFAULT_HAND`); its URDF path starts with ``{project}/``, which stands for the
 root of the design project the hand is loaded for (:func:`load_hand`'s ``project``,
 default the current project), so it always drives that project's generated model. The
 retargeter runs on any hand URDF by writing one of these. A hand that names its
-``design`` takes the fingertip pad radius (``finger.pad.radius``) and the self-collision
-margin (``retarget.collision_margin``) from it, so they have one source; a hand without
+``design`` takes the fingertip pad radius (``finger.pad.radius``), the self-collision
+margin (``retarget.collision_margin``) and the rest posture (the grasp pre-shape
+``pinch.finger``) from it, so they have one source; a hand without
 one may give ``collision_margin`` (default :data:`DEFAULT_COLLISION_MARGIN`).
 """
 
@@ -135,8 +139,26 @@ def _str_list(where: str, value: Any, n: int) -> tuple[str, ...]:
     return tuple(value)
 
 
+def _design_rest(where: str, joints: tuple[str, ...], preshape: dict[str, float]) -> tuple:
+    """The rest posture from the design's pinch pre-shape, matching joints by name suffix."""
+    rest = []
+    for j in joints:
+        match = [v for suffix, v in preshape.items() if j.endswith(f"_{suffix}")]
+        if len(match) != 1:
+            raise RetargetError(
+                f"{where}.rest: joint {j!r} is not one of the design's finger joints "
+                f"({', '.join(preshape)}); give the rest posture here"
+            )
+        rest.append(match[0])
+    return tuple(rest)
+
+
 def _pair_from_dict(
-    where: str, name: str, raw: Any, pad_radius: float | None = None
+    where: str,
+    name: str,
+    raw: Any,
+    pad_radius: float | None = None,
+    preshape: dict[str, float] | None = None,
 ) -> PairDescription:
     if not isinstance(raw, dict):
         raise RetargetError(f"{where}: expected a table")
@@ -173,6 +195,8 @@ def _pair_from_dict(
         ):
             raise RetargetError(f"{where}.rest: expected {len(flat)} numbers (one per joint)")
         rest = tuple(float(v) for v in rest)
+    elif preshape is not None:
+        rest = _design_rest(where, flat, preshape)
     return PairDescription(
         name=name,
         base=raw["base"],
@@ -213,7 +237,7 @@ def hand_from_dict(
     urdf = _path(raw["urdf"], base_dir, project)
     if not urdf.is_file():
         raise RetargetError(f"{where}: urdf: file not found: {urdf}")
-    design, pad_radius, margin = None, None, DEFAULT_COLLISION_MARGIN
+    design, pad_radius, margin, preshape = None, None, DEFAULT_COLLISION_MARGIN, None
     if "design" in raw:
         if "collision_margin" in raw:
             raise RetargetError(
@@ -231,6 +255,9 @@ def hand_from_dict(
         except DesignError as exc:
             raise RetargetError(f"{where}: design: {exc}") from exc
         pad_radius, margin = d.finger.pad.radius, d.retarget.collision_margin
+        from payload.design import FINGER_JOINTS
+
+        preshape = dict(zip(FINGER_JOINTS, d.pinch.finger))
     elif "collision_margin" in raw:
         margin = raw["collision_margin"]
         if isinstance(margin, bool) or not isinstance(margin, (int, float)) or not margin > 0:
@@ -239,7 +266,7 @@ def hand_from_dict(
     if not isinstance(pairs_raw, dict) or not pairs_raw:
         raise RetargetError(f"{where}: pairs: expected at least one [pairs.NAME] table")
     pairs = {
-        name: _pair_from_dict(f"pairs.{name}", name, value, pad_radius)
+        name: _pair_from_dict(f"pairs.{name}", name, value, pad_radius, preshape)
         for name, value in pairs_raw.items()
     }
     hand = HandDescription(

@@ -14,11 +14,6 @@ from payload.sim.astrobee import design_vehicle, payload_mount
 from payload.sim.config import WorldConfig
 from payload.sim.errors import SimError
 
-PINCH_OPEN = (-0.30, 0.0, 0.0, 0.90)
-"""Finger pre-shape for the handle pinch (mcp_flex, mcp_abd, pip, dip) [rad]: MCP flexion
-opened near its lower limit, the distal link curled toward the handle so the fingertip pad
-faces it; the handle is centred on the four fingertips of this posture."""
-
 PINCH_CLEARANCE = 0.005
 """Least gap between the pads and the handle at the pre-shape [m]; a design that leaves
 less makes :func:`pinch_grasp` refuse."""
@@ -90,16 +85,17 @@ def pinch_grasp(design: Design, config: WorldConfig) -> PinchGrasp:
     """
     kin = _PayloadKinematics(config.payload_mjcf)
     rail, stage = design.home.rail, design.home.stage
+    preshape = design.pinch.finger
     face = config.handle.width / 2.0 + design.finger.pad.radius
 
     side = np.array([1.0 if SIDE_OF[f] == 1 else -1.0 for f in FINGERS])  # +y is side 1
 
     def gap(mcp: float) -> float:
-        tips = kin.tips((mcp, *PINCH_OPEN[1:]), rail, stage)
+        tips = kin.tips((mcp, *preshape[1:]), rail, stage)
         return float(np.min(side * tips[:, 1])) - face
 
     # search the first 0.6 rad of closing: the pads cross the array's mid-plane within it
-    lo = PINCH_OPEN[0]
+    lo = preshape[0]
     hi = min(lo + 0.6, design.finger.limits.mcp_flex.upper)
     if gap(lo) < PINCH_CLEARANCE:
         raise SimError(
@@ -112,8 +108,8 @@ def pinch_grasp(design: Design, config: WorldConfig) -> PinchGrasp:
         mid = 0.5 * (lo + hi)
         lo, hi = (mid, hi) if gap(mid) > 0.0 else (lo, mid)
     contact = 0.5 * (lo + hi)
-    closed = (contact + PINCH_SQUEEZE, *PINCH_OPEN[1:])
-    return PinchGrasp(PINCH_OPEN, closed, contact, rail, stage)
+    closed = (contact + PINCH_SQUEEZE, *preshape[1:])
+    return PinchGrasp(preshape, closed, contact, rail, stage)
 
 
 def ctb_offset(design: Design, config: WorldConfig) -> np.ndarray:
@@ -126,7 +122,7 @@ def ctb_offset(design: Design, config: WorldConfig) -> np.ndarray:
     if size is None:
         raise SimError("ctb_offset: the world has no CTB")
     kin = _PayloadKinematics(config.payload_mjcf)
-    tips = kin.tips(PINCH_OPEN, design.home.rail, design.home.stage)
+    tips = kin.tips(design.pinch.finger, design.home.rail, design.home.stage)
     tips = tips + payload_mount(design_vehicle(design))
     centre = tips.mean(axis=0)
     h = config.handle

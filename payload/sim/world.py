@@ -49,7 +49,6 @@ from payload.sim.config import WorldConfig
 from payload.sim.errors import SimError
 from payload.sim.grasp import (
     PINCH_CLEARANCE,
-    PINCH_OPEN,
     PINCH_SQUEEZE,
     PinchGrasp,
     ctb_offset,
@@ -242,7 +241,7 @@ def build_spec(config: WorldConfig | None = None, design: Design | None = None) 
         contact = pad_contact(
             design,
             str(config.payload_mjcf),
-            PINCH_OPEN,
+            design.pinch.finger,
             size.mass if size is not None else None,
             PHYSICS_DT,
         )
@@ -395,7 +394,6 @@ __all__ = [
     "PAYLOAD_PREFIX",
     "PHYSICS_DT",
     "PINCH_CLEARANCE",
-    "PINCH_OPEN",
     "PINCH_SQUEEZE",
     "SUBSTEPS",
     "CtbSize",
