@@ -216,19 +216,22 @@ def test_base_channel_respects_speed_acceleration_and_jerk_bounds(path, heading)
     cfg = BaseConfig()
     ch = BaseChannel(cfg, np.array([0.3, 0.2, 1.0]), heading0=heading, dt=DT)
     v, w = [np.zeros(3)], [0.0]
+    rots, body = [], []
     yaw = heading
     for x, y, z, steps in path:
+        wrist = np.array([0.3 + x, 0.2 + y, 1.0 + z])
         for _ in range(steps):
-            rot = np.array(
-                [[math.cos(yaw), -math.sin(yaw), 0], [math.sin(yaw), math.cos(yaw), 0], [0, 0, 1]]
-            )
-            out = ch.step(np.array([0.3 + x, 0.2 + y, 1.0 + z]), rot)
+            c, s = math.cos(yaw), math.sin(yaw)
+            rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+            out = ch.step(wrist, rot)
             yaw += out.yaw_rate * DT
             v.append(out.v_world)
             w.append(out.yaw_rate)
-            # the body twist is the world command seen from the vehicle
-            np.testing.assert_allclose(rot @ out.twist.linear, out.v_world, atol=1e-12)
+            rots.append(rot)
+            body.append(out.twist.linear)
     v, w = np.array(v), np.array(w)
+    # the body twist is the world command seen from the vehicle
+    np.testing.assert_allclose(np.einsum("nij,nj->ni", rots, body), v[1:], atol=1e-12)
     if len(v) < 3:
         return
     acc = np.diff(v, axis=0) / DT
