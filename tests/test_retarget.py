@@ -630,6 +630,30 @@ def test_pair_range_and_posture_family(pks, ranges, pair):
         assert abs(pk.features(rg.posture(span)).span - span) < 1e-3
 
 
+_RANGE_CHILD = """
+import sys, numpy as np
+from payload.retarget import PairKinematics
+from payload.retarget.calibration import _compute_pair_range
+np.save(sys.argv[1], _compute_pair_range(PairKinematics(pair="L"), 0, False).postures)
+"""
+
+
+def test_a_pair_range_is_the_same_to_the_bit_whatever_blas_threads_the_caller_has(tmp_path):
+    """The trials, the reports and the benches share the on-disk range, so whoever computes
+    it first must get the trials' numbers: here, this process's default BLAS threads
+    against a process whose BLAS and OpenMP are limited to one thread by environment."""
+    import subprocess
+    import sys
+
+    from payload.retarget.calibration import _compute_pair_range
+
+    here = _compute_pair_range(PairKinematics(pair="L"), 0, False).postures
+    env = {**os.environ, "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"}
+    out = tmp_path / "postures.npy"
+    subprocess.run([sys.executable, "-c", _RANGE_CHILD, str(out)], env=env, check=True)
+    assert np.array_equal(here, np.load(out))
+
+
 def test_calibration_maps_pinch_and_open_to_the_robots_span_range(ranges):
     pinch, open_ = human_pinch_and_open()
     for pair in PAIRS:

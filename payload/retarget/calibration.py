@@ -43,6 +43,7 @@ from pathlib import Path
 import numpy as np
 from scipy.optimize import minimize
 
+from payload.numerics import single_threaded_numerics
 from payload.retarget.errors import RetargetError
 from payload.retarget.features import PairFeatures, PairKinematics, as_feature_vector
 
@@ -144,6 +145,13 @@ def _pair_range_cached(pk: PairKinematics, seed: int, collisions: bool = False) 
 
 
 def _compute_pair_range(pk: PairKinematics, seed: int, collisions: bool) -> PairRange:
+    # single-threaded BLAS: the same range, to the last bit, whoever computes it first
+    # (a trial, a report or a bench; the disk cache keeps the first)
+    with single_threaded_numerics():
+        return _compute_pair_range_here(pk, seed, collisions)
+
+
+def _compute_pair_range_here(pk: PairKinematics, seed: int, collisions: bool) -> PairRange:
     bounds = list(zip(pk.lower, pk.upper))
     origins, dirs = _front_constraints(pk)
     clear = _Clearance(pk) if collisions and pk.collision.available else None

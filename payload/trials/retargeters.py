@@ -1,12 +1,11 @@
-"""The trials' retargeters, built once per thread, and single-threaded numerics."""
+"""The trials' retargeters, built once per thread."""
 
 from __future__ import annotations
 
-import contextlib
 import threading
-from collections.abc import Iterator
 from typing import Any
 
+from payload.numerics import single_threaded_numerics
 from payload.project import Project, current_project
 from payload.retarget.calibration import PairRange, pair_range
 from payload.retarget.casadi_solver import PairRetargeter
@@ -46,33 +45,3 @@ def retargeting(
             }
         cached = built[key] = (retargeters, ranges)
     return cached
-
-
-_LIMIT_LOCK = threading.Lock()
-_LIMIT_USERS = 0
-_LIMITER: Any = None
-
-
-@contextlib.contextmanager
-def single_threaded_numerics() -> Iterator[None]:
-    """Limit BLAS and OpenMP to one thread while any trial in this process runs.
-
-    The limit is process-wide, so it is counted: the first trial to enter sets it and
-    the last to leave restores it (a thread leaving early must not lift the limit under
-    a trial still running in another thread).
-    """
-    global _LIMIT_USERS, _LIMITER
-    from threadpoolctl import threadpool_limits
-
-    with _LIMIT_LOCK:
-        if _LIMIT_USERS == 0:
-            _LIMITER = threadpool_limits(limits=1)
-        _LIMIT_USERS += 1
-    try:
-        yield
-    finally:
-        with _LIMIT_LOCK:
-            _LIMIT_USERS -= 1
-            if _LIMIT_USERS == 0:
-                _LIMITER.restore_original_limits()
-                _LIMITER = None
