@@ -70,7 +70,9 @@ class WorldState(NamedTuple):
         opposing_contact: The CTB touches fingertips of both sides of the array.
         module: ISS module containing Astrobee's centre (None outside the three).
         wrench: Body wrench the vehicle controller applies over the next period.
-        contacts: Every active contact.
+
+    Every active contact with names and forces is :meth:`SimDriver.contacts` (built on
+    request: the loop does not need it at every step).
     """
 
     time: float
@@ -84,7 +86,6 @@ class WorldState(NamedTuple):
     opposing_contact: bool
     module: IssModule | None
     wrench: Wrench
-    contacts: tuple[Contact, ...]
 
     def ctb_in_body(self) -> np.ndarray:
         """CTB centre in Astrobee's body frame (the paper's eq. 4), shape (3,) [m]."""
@@ -293,8 +294,12 @@ class SimDriver:
             opposing_contact=opposing(touching),
             module=w.layout.module_at(pos),
             wrench=Wrench(self._wrench.force.copy(), self._wrench.torque.copy()),
-            contacts=self.monitor.contacts(d),
         )
+
+    def contacts(self) -> tuple[Contact, ...]:
+        """Every active contact now (geom names, point, normal force, distance)."""
+        self._check_open()
+        return self.monitor.contacts(self.data)
 
     def module_at(self, point: np.ndarray) -> IssModule | None:
         """Which ISS module contains ``point`` (3,) [m, world frame], None outside."""

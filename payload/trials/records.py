@@ -66,7 +66,7 @@ from __future__ import annotations
 
 import functools
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -183,17 +183,27 @@ def _coerce(name: str, value: Any) -> Any:
         if not math.isfinite(out):
             raise RecordingError(f"StepRecord.{name}: not finite ({out})")
         return out
-    try:
-        arr = np.array(value, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
-        raise RecordingError(f"StepRecord.{name}: not numeric") from exc
-    if arr.shape != shape:
-        raise RecordingError(f"StepRecord.{name}: expected shape {shape}, got {arr.shape}")
-    bad = np.isinf(arr) if kind == "float_nan" else ~np.isfinite(arr)
-    if np.any(bad):
-        raise RecordingError(f"StepRecord.{name}: non-finite value(s) at {np.argwhere(bad)[0]}")
+    if type(value) is np.ndarray and value.dtype == np.float64 and value.shape == shape:
+        arr = value.copy()  # the common case: what np.array(value, float64) gives, sooner
+    else:
+        try:
+            arr = np.array(value, dtype=np.float64)
+        except (TypeError, ValueError) as exc:
+            raise RecordingError(f"StepRecord.{name}: not numeric") from exc
+        if arr.shape != shape:
+            raise RecordingError(f"StepRecord.{name}: expected shape {shape}, got {arr.shape}")
+    # a finite sum means every value is finite (NaN and inf propagate); only when it is
+    # not are the values checked one by one (an overflowing sum of finite values passes)
+    if not math.isfinite(arr.sum()):
+        bad = np.isinf(arr) if kind == "float_nan" else ~np.isfinite(arr)
+        if np.any(bad):
+            where = np.argwhere(bad)[0]
+            raise RecordingError(f"StepRecord.{name}: non-finite value(s) at {where}")
     arr.setflags(write=False)
     return arr
+
+
+_FIELD_NAMES: tuple[str, ...] = tuple(FIELD_SPECS)
 
 
 @dataclass(frozen=True)
@@ -250,10 +260,11 @@ class StepRecord:
     ctb_module: str
 
     def __post_init__(self) -> None:
-        for f in fields(self):
-            object.__setattr__(self, f.name, _coerce(f.name, getattr(self, f.name)))
+        for name in _FIELD_NAMES:
+            object.__setattr__(self, name, _coerce(name, getattr(self, name)))
         for name in ("astrobee_quat", "ctb_quat"):
-            if np.linalg.norm(getattr(self, name)) < 1e-9:
+            q = getattr(self, name)
+            if math.sqrt(q.dot(q)) < 1e-9:  # np.linalg.norm's own formula
                 raise RecordingError(f"StepRecord.{name}: zero quaternion")
 
     def to_json_dict(self) -> dict[str, Any]:
