@@ -29,6 +29,9 @@ from payload.teleop.channels import BaseConfig
 from payload.teleop.handmodel import HandModel
 from payload.teleop.hands import Hand, HandFrame
 
+_IDENTITY = np.eye(3)
+_IDENTITY.setflags(write=False)
+
 
 @dataclass(frozen=True)
 class WorldView:
@@ -386,7 +389,7 @@ class SyntheticOperator:
             ph = self.phases[side]
             tremor = tr.tremor_amp * np.sin(2 * math.pi * tr.tremor_freq * t + ph)
             wrist = self.wrist[side] + tremor
-            joints = self.models[side].joints(wrist, np.eye(3), self.aperture)
+            joints = self.models[side].joints(wrist, _IDENTITY, self.aperture)
             joints = joints + self.rng.normal(0.0, tr.noise, size=joints.shape)
             hands[side] = Hand(joints)
         return HandFrame(t, hands["left"], hands["right"])

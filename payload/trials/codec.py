@@ -211,12 +211,12 @@ class JointsCodec:
     def encode(self, joints: np.ndarray, out: Any) -> None:
         """Fill the ``Joints`` message ``out`` with ``joints`` (25, 3)."""
         flat = np.asarray(joints, dtype=np.float64).reshape(-1)
-        if np.all(np.isnan(flat)):
+        if np.isnan(flat).all():
             out.untracked = True
             return
         with np.errstate(invalid="ignore"):
             k = np.round(flat / self.grid)
-        if np.all(np.isfinite(k)) and np.array_equal(k * self.grid, flat):
+        if np.isfinite(k).all() and (k * self.grid == flat).all():  # np.array_equal
             ki = k.astype(np.int64)
             out.grid = self.grid
             if self._prev is None:
@@ -384,7 +384,10 @@ class StepCodec:
         }
         for name, _, shape in STEP_DOUBLES:
             value = getattr(m, name)
-            row[name] = float(value) if shape == () else np.array(value, dtype=np.float64)
+            if shape == ():
+                row[name] = float(value)
+            else:
+                row[name] = np.array(value, dtype=np.float64) if len(value) else _EMPTY
         if len(m.grid):
             self._decode_grid(m, row)
         else:
@@ -408,6 +411,10 @@ class StepCodec:
         return row
 
 
+_EMPTY = np.zeros(0)
+_EMPTY.setflags(write=False)
+
+
 def _pairs_in_cmd(step: Any) -> bool:
     q = step.q_cmd
     return bool(
@@ -419,6 +426,8 @@ def _pairs_in_cmd(step: Any) -> bool:
 
 def same_joints(a: np.ndarray, b: np.ndarray) -> bool:
     """Bit-for-bit equality of two joint arrays (NaN equal to NaN)."""
+    if a is b or (a.shape == b.shape and a.tobytes() == b.tobytes()):
+        return True  # identical bytes: equal (the common case, decided without a pass)
     return bool(np.array_equal(a, b, equal_nan=True))
 
 

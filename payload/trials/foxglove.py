@@ -193,23 +193,24 @@ class FoxgloveScene:
         m = self.model
         ts = _timestamp(ns)
         out = FrameTransforms()
-        rel = np.zeros(4)
-        inv = np.zeros(4)
         bodies = [*self.bodies, *([self.world.ctb] if self.world.ctb >= 0 else [])]
-        for b in bodies:
+        poses = np.zeros((len(bodies), 7))  # parent-frame position and quaternion (w x y z)
+        inv = np.zeros(4)
+        for i, b in enumerate(bodies):
             p = int(m.body_parentid[b])
             rot_p = d.xmat[p].reshape(3, 3)
-            pos = rot_p.T @ (d.xpos[b] - d.xpos[p])
+            poses[i, :3] = rot_p.T @ (d.xpos[b] - d.xpos[p])
             mujoco.mju_negQuat(inv, d.xquat[p])
-            mujoco.mju_mulQuat(rel, inv, d.xquat[b])
-            pose = _pose(pos, rel)
+            mujoco.mju_mulQuat(poses[i, 3:], inv, d.xquat[b])
+        for b, (x, y, z, qw, qx, qy, qz) in zip(bodies, _view(poses).tolist()):
+            p = int(m.body_parentid[b])
             out.transforms.append(
                 FrameTransform(
                     timestamp=ts,
                     parent_frame_id=self.names[p],
                     child_frame_id=self.names[b],
-                    translation=pose.position,
-                    rotation=pose.orientation,
+                    translation=Vector3(x=x, y=y, z=z),
+                    rotation=Quaternion(x=qx, y=qy, z=qz, w=qw),
                 )
             )
         return out

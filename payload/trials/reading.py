@@ -116,11 +116,12 @@ class Recording:
             elif kind == "bool":
                 cols[name] = np.array([bool(r[name]) for r in rows], dtype=bool)
             else:
-                arr = np.array(
-                    [r[name] for r in rows], dtype=object if kind == "float_nan" else np.float64
-                )
-                if kind == "float_nan":
+                values = [r[name] for r in rows]
+                if kind == "float_nan" and not all(isinstance(v, np.ndarray) for v in values):
+                    arr = np.array(values, dtype=object)  # JSON rows: null for NaN
                     arr = np.where(arr == None, np.nan, arr).astype(np.float64)  # noqa: E711
+                else:  # numbers, or arrays as the typed decoder returns them (NaN kept)
+                    arr = np.array(values, dtype=np.float64)
                 cols[name] = arr.reshape((n, *shape))
         seq = np.array([r.get("seq", i) for i, r in enumerate(rows)], dtype=np.int64)
         wall = np.array([r.get("wall_time", math.nan) for r in rows], dtype=np.float64)
