@@ -24,6 +24,7 @@ from payload.trials.records import (
     FIELD_SPECS,
     HANDS_TOPIC,
     META_NAME,
+    SCHEMA_VERSION,
     STEP_TOPIC,
     RecordingError,
     StepRecord,
@@ -163,6 +164,19 @@ def _decode_meta(items: dict[str, str], path: Path) -> dict[str, Any]:
     return out
 
 
+def _check_version(channel: Channel, path: Path) -> None:
+    """Refuse a step channel of a schema version newer than this reader's."""
+    try:
+        version = _channel_version(channel)
+    except RecordingError as exc:
+        raise RecordingError(f"{path}: {exc}") from None
+    if version > SCHEMA_VERSION:
+        raise RecordingError(
+            f"{path}: schema version {version} is newer than this reader's "
+            f"({SCHEMA_VERSION}); update the workbench to read it"
+        )
+
+
 def _read_file(
     path: Path,
 ) -> tuple[dict[int, Channel], dict[str, Any], list[dict[str, Any]], list[dict[str, Any]], bool]:
@@ -193,6 +207,8 @@ def _read_file(
                 if channel is None:
                     continue
                 if channel.topic == STEP_TOPIC:
+                    if not rows:
+                        _check_version(channel, path)
                     if channel.message_encoding == "json":  # schema version 1
                         if not rows:
                             log.warning(
@@ -221,8 +237,21 @@ def _read_file(
     return channels, meta, rows, samples, complete
 
 
+def _channel_version(channel: Channel) -> int:
+    """The schema version a ``/trial/step`` channel declares (1: JSON steps; a protobuf
+    channel without the key is version 2, the first protobuf one)."""
+    if channel.message_encoding == "json":
+        return 1
+    text = (channel.metadata or {}).get("schema_version", "2")
+    try:
+        return int(text)
+    except ValueError:
+        raise RecordingError(f"schema_version {text!r} is not a number") from None
+
+
 def recording_version(path: str | Path) -> int:
-    """Schema version of a recording: 1 (JSON steps) or 2 (protobuf steps).
+    """Schema version of a recording: 1 (JSON steps), 2 (protobuf steps, lossless
+    doubles) or 3 (protobuf steps on the stated grids); see :mod:`payload.trials.records`.
 
     Raises:
         RecordingError: Unreadable, or no ``/trial/step`` channel.
@@ -231,7 +260,10 @@ def recording_version(path: str | Path) -> int:
     channels = _read_file(path)[0]
     for c in channels.values():
         if c.topic == STEP_TOPIC:
-            return 1 if c.message_encoding == "json" else 2
+            try:
+                return _channel_version(c)
+            except RecordingError as exc:
+                raise RecordingError(f"{path}: {exc}") from None
     raise RecordingError(f"{path}: no {STEP_TOPIC} channel (not a trial recording)")
 
 

@@ -3,7 +3,7 @@
 The writer is :class:`payload.trials.recorder.TrialRecorder`, the reader
 :func:`payload.trials.reading.read_recording`; both re-exported by :mod:`payload.trials.recorder`.
 
-File layout (``log.mcap``, schema version 2)
+File layout (``log.mcap``, schema version 3)
 --------------------------------------------
 * Profile ``""``, library ``payload-workbench``. Messages go into zstd-compressed chunks;
   the chunk in progress is closed and the file flushed at least once per
@@ -26,9 +26,15 @@ File layout (``log.mcap``, schema version 2)
   wall clock at write is the step's ``wall_time``.
 * Metadata records named ``payload.trial`` (see :meth:`TrialRecorder.write_meta`): each
   value is JSON text (trial seed, design hash, operator parameters, calibration, ...).
-* Schema version 1 recordings (one JSON message per step, ``jsonschema`` schema
-  :data:`STEP_SCHEMA`, ``hands.jsonl`` beside them) still read; ``payload trials convert``
-  rewrites them in version 2.
+* The version is the ``schema_version`` of the ``/trial/step`` channel's metadata
+  (:func:`payload.trials.reading.recording_version`). Version 3 stores the step numbers
+  on the grids (``grid``/``grid_key``, leaving the ``double`` fields empty); version 2
+  stored every number as a lossless ``double`` (a generic protobuf decoder of a version 3
+  step sees zeros there and must apply the grids). Both read, the same way. Version 1
+  recordings (one JSON message per step, ``jsonschema`` schema :data:`STEP_SCHEMA`,
+  ``hands.jsonl`` beside them) still read too; ``payload trials convert`` rewrites them in
+  the current version. A version newer than this reader's is refused with a clear
+  message.
 
 Step message fields (all SI, workbench frame)
 ---------------------------------------------
@@ -94,7 +100,7 @@ STEP_TOPIC = "/trial/step"
 HANDS_TOPIC = "/trial/hands"
 STEP_SCHEMA_NAME = "payload.trials.StepRecord"
 META_NAME = "payload.trial"
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 LIBRARY = "payload-workbench"
 
 # name -> (shape, kind); shape () is a scalar. kind: "float" (finite), "float_nan" (NaN
