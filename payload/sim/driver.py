@@ -143,6 +143,9 @@ class SimDriver:
         self._goal = self.data.ctrl[self._ctrl].copy()
         self._target = self._goal.copy()
         self._step_max = self.world.slew_rate * CONTROL_DT
+        self._overload = 0.999 * self.world.force_limit
+        self._limit_lo = self._ctrl_range[:17, 0] + _AT_LIMIT
+        self._limit_hi = self._ctrl_range[:17, 1] - _AT_LIMIT
         self._twist: VehicleTwist | None = None
         self._wrench = Wrench(np.zeros(3), np.zeros(3))
         self._closed = False
@@ -169,14 +172,13 @@ class SimDriver:
         w, d = self.world, self.data
         effort = d.actuator_force[w.ctrl]
         health = Health.OK
-        if np.any(np.abs(d.actuator_force[self._ctrl]) >= 0.999 * w.force_limit):
+        if (np.abs(d.actuator_force[self._ctrl]) >= self._overload).any():
             health |= Health.OVERLOAD
         q = d.qpos[w.qpos]
-        lo, hi = self._ctrl_range[:17, 0], self._ctrl_range[:17, 1]
-        if np.any(q <= lo + _AT_LIMIT) or np.any(q >= hi - _AT_LIMIT):
+        if (q <= self._limit_lo).any() or (q >= self._limit_hi).any():
             health |= Health.LIMIT
         return PayloadState(
-            q=d.qpos[w.qpos].copy(),
+            q=q.copy(),
             deploy=float(d.qpos[w.stage_qpos]),
             stamp=float(d.time),
             dq=d.qvel[w.dof].copy(),

@@ -418,10 +418,15 @@ _EMPTY.setflags(write=False)
 def _pairs_in_cmd(step: Any) -> bool:
     q = step.q_cmd
     return bool(
-        np.array_equal(step.q_left, q[PAIR_L_INDEX])
-        and np.array_equal(step.q_right, q[PAIR_R_INDEX])
+        _equal(step.q_left, q[PAIR_L_INDEX])
+        and _equal(step.q_right, q[PAIR_R_INDEX])
         and step.rail_cmd == q[-1]
     )
+
+
+def _equal(a: np.ndarray, b: np.ndarray) -> bool:
+    """``np.array_equal`` of two arrays (same shape, every element ==), sooner."""
+    return a.shape == b.shape and bool((a == b).all())
 
 
 def same_joints(a: np.ndarray, b: np.ndarray) -> bool:

@@ -220,7 +220,7 @@ class FoxgloveScene:
         return JointStates(
             timestamp=_timestamp(ns),
             joints=[
-                JointState(name=n, position=float(v)) for n, v in zip(JOINT_NAMES, _view(values))
+                JointState(name=n, position=v) for n, v in zip(JOINT_NAMES, _view(values).tolist())
             ],
         )
 
