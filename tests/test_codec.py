@@ -346,3 +346,17 @@ def test_schema2_recordings_read_and_newer_versions_are_refused(
     assert main(["trials", "convert", str(newer)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "schema version 9 is newer" in err[0]
+
+
+def test_a_non_finite_typed_step_is_named_by_the_reader(tmp_path: Path) -> None:
+    """Typed rows are checked by column; a bad one is still named by step and field."""
+    rng = np.random.default_rng(6)
+    path = tmp_path / "log.mcap"
+    with TrialRecorder(path) as rec:
+        for k in range(40):
+            step = random_step(rng, (k + 1) * DT)
+            if k == 30:  # what a foreign writer could store: the validation bypassed
+                object.__setattr__(step, "ctb_pos", np.array([0.0, np.nan, 0.0]))
+            rec.write(step)
+    with pytest.raises(RecordingError, match=r"step 30: ctb_pos: \[1\]: expected a finite"):
+        read_recording(path)

@@ -288,12 +288,31 @@ def read_recording(path: str | Path) -> Recording:
     channels, meta, rows, _, complete = _read_file(path)
     if complete and not any(c.topic == STEP_TOPIC for c in channels.values()):
         raise RecordingError(f"{path}: no {STEP_TOPIC} channel (not a trial recording)")
-    try:
+    typed = any(c.topic == STEP_TOPIC and c.message_encoding != "json" for c in channels.values())
+    if typed:  # the typed decoder's rows: right types, so shapes and finiteness, by column
+        try:
+            rec = Recording.from_dicts(rows, meta, path, complete)
+        except (KeyError, TypeError, ValueError):
+            rec = None
+        if rec is not None and _finite_columns(rec):
+            return rec
+    try:  # JSON rows, or a problem somewhere: step by step, naming the first bad field
         for i, row in enumerate(rows):  # every step, not just the first
             check_step(row, FIELD_SPECS, i, str(path))
     except StepError as exc:
         raise RecordingError(str(exc)) from None
     return Recording.from_dicts(rows, meta, path, complete)
+
+
+def _finite_columns(rec: Recording) -> bool:
+    """Every number of every step finite (NaN allowed where the field allows it)."""
+    for name, (_, kind) in FIELD_SPECS.items():
+        if kind == "float":
+            if not np.isfinite(getattr(rec, name)).all():
+                return False
+        elif kind == "float_nan" and np.isinf(getattr(rec, name)).any():
+            return False
+    return True
 
 
 def read_hand_frames(path: str | Path) -> tuple[dict[str, Any], list[Any]]:
