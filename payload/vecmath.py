@@ -14,7 +14,7 @@ def norm(v: np.ndarray) -> float:
     array's dot product with itself, as numpy computes it."""
     x = np.asarray(v)
     if x.dtype != np.float64:
-        x = x.astype(float)
+        return float(np.linalg.norm(x))  # other types: numpy's own handling
     x = x.ravel(order="K")
     return math.sqrt(x.dot(x))
 

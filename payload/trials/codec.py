@@ -270,14 +270,11 @@ class StepCodec:
     def _encode_grid(self, step: Any, wall_time: float, m: Any) -> bool:
         """Store the :data:`STEP_GRIDS` numbers in ``m.grid``; False (nothing stored, the
         next message a key) when one is not finite."""
-        values = np.concatenate(
-            [
-                np.asarray(wall_time if name == "wall_time" else getattr(step, name), float).ravel()
-                for name, _, _ in STEP_GRIDS
-            ]
-        )
+        values = np.empty(len(_GRID))
+        for name, start, stop in _GRID_SLICES:
+            values[start:stop] = np.ravel(wall_time if name == "wall_time" else getattr(step, name))
         k = np.round(values * _PER_UNIT)
-        if not np.all(np.isfinite(k)) or np.any(np.abs(k) >= 2.0**62):
+        if not np.isfinite(k).all() or (np.abs(k) >= 2.0**62).any():
             self._prev = None
             return False
         ki = k.astype(np.int64)
