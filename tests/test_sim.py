@@ -498,6 +498,17 @@ def test_one_side_touching_is_not_opposing(world):
     assert state.touching and state.touching <= {"A", "B"}
     assert state.touching == _fingers_touching_by_name(sim)
     assert not state.opposing_contact
+    # every contact on request: the same pad-CTB pairs, pressing (MuJoCo's contact force)
+    contacts = sim.contacts()
+    assert len(contacts) == sim.data.ncon
+    pads = {
+        other[len(PAYLOAD_PREFIX)]
+        for c in contacts
+        for one, other in ((c.geom1, c.geom2), (c.geom2, c.geom1))
+        if c.dist <= 0 and one.startswith("ctb") and other.endswith("_distal_pad")
+    }
+    assert pads == state.touching
+    assert all(c.normal_force > 0 for c in contacts if c.dist < 0)
 
 
 def test_ctb_moves_only_through_contact(world):
