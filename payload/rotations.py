@@ -9,7 +9,7 @@ import numpy as np
 
 def quat_to_matrix(quat: np.ndarray) -> np.ndarray:
     """Rotation matrix of a unit quaternion (w, x, y, z), shape (3, 3)."""
-    w, x, y, z = np.asarray(quat, dtype=float)
+    w, x, y, z = np.asarray(quat, dtype=float).tolist()  # floats: the same arithmetic, sooner
     return np.array(
         [
             [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],

@@ -67,6 +67,12 @@ class ContactMonitor:
             self._finger_of[list(geoms)] = k
         self._is_ctb = np.zeros(model.ngeom, dtype=bool)
         self._is_ctb[list(world.ctb_geoms)] = True
+        # geom pair -> the finger whose fingertip geom touches a CTB geom in it (-1: none)
+        pair = np.full((model.ngeom, model.ngeom), -1, dtype=np.int64)
+        tips, ctb = np.flatnonzero(self._finger_of >= 0), np.flatnonzero(self._is_ctb)
+        for g in tips:
+            pair[g, ctb] = pair[ctb, g] = self._finger_of[g]
+        self._pair_finger = pair
         self._force = np.zeros(6)
 
     def touching(self, data: mujoco.MjData) -> frozenset[str]:
@@ -74,16 +80,10 @@ class ContactMonitor:
         n = data.ncon
         if n == 0:
             return frozenset()
-        pairs = data.contact.geom[:n]
-        touching = data.contact.dist[:n] <= 0.0
-        g1, g2 = pairs[:, 0], pairs[:, 1]
-        hits = np.concatenate(
-            [
-                self._finger_of[g1][touching & self._is_ctb[g2]],
-                self._finger_of[g2][touching & self._is_ctb[g1]],
-            ]
-        )
-        return frozenset(FINGERS[k] for k in np.unique(hits) if k >= 0)
+        contact = data.contact
+        pairs = contact.geom[:n][contact.dist[:n] <= 0.0]
+        hits = set(self._pair_finger[pairs[:, 0], pairs[:, 1]].tolist())
+        return frozenset(FINGERS[k] for k in sorted(hits) if k >= 0)
 
     def opposing(self, data: mujoco.MjData) -> bool:
         """The opposing-contact indicator for the current state."""

@@ -70,7 +70,9 @@ class WorldState(NamedTuple):
         opposing_contact: The CTB touches fingertips of both sides of the array.
         module: ISS module containing Astrobee's centre (None outside the three).
         wrench: Body wrench the vehicle controller applies over the next period.
-        contacts: Every active contact.
+
+    Every active contact with names and forces is :meth:`SimDriver.contacts` (built on
+    request: the loop does not need it at every step).
     """
 
     time: float
@@ -84,7 +86,6 @@ class WorldState(NamedTuple):
     opposing_contact: bool
     module: IssModule | None
     wrench: Wrench
-    contacts: tuple[Contact, ...]
 
     def ctb_in_body(self) -> np.ndarray:
         """CTB centre in Astrobee's body frame (the paper's eq. 4), shape (3,) [m]."""
@@ -142,6 +143,9 @@ class SimDriver:
         self._goal = self.data.ctrl[self._ctrl].copy()
         self._target = self._goal.copy()
         self._step_max = self.world.slew_rate * CONTROL_DT
+        self._overload = 0.999 * self.world.force_limit
+        self._limit_lo = self._ctrl_range[:17, 0] + _AT_LIMIT
+        self._limit_hi = self._ctrl_range[:17, 1] - _AT_LIMIT
         self._twist: VehicleTwist | None = None
         self._wrench = Wrench(np.zeros(3), np.zeros(3))
         self._closed = False
@@ -168,14 +172,13 @@ class SimDriver:
         w, d = self.world, self.data
         effort = d.actuator_force[w.ctrl]
         health = Health.OK
-        if np.any(np.abs(d.actuator_force[self._ctrl]) >= 0.999 * w.force_limit):
+        if (np.abs(d.actuator_force[self._ctrl]) >= self._overload).any():
             health |= Health.OVERLOAD
         q = d.qpos[w.qpos]
-        lo, hi = self._ctrl_range[:17, 0], self._ctrl_range[:17, 1]
-        if np.any(q <= lo + _AT_LIMIT) or np.any(q >= hi - _AT_LIMIT):
+        if (q <= self._limit_lo).any() or (q >= self._limit_hi).any():
             health |= Health.LIMIT
         return PayloadState(
-            q=d.qpos[w.qpos].copy(),
+            q=q.copy(),
             deploy=float(d.qpos[w.stage_qpos]),
             stamp=float(d.time),
             dq=d.qvel[w.dof].copy(),
@@ -293,8 +296,12 @@ class SimDriver:
             opposing_contact=opposing(touching),
             module=w.layout.module_at(pos),
             wrench=Wrench(self._wrench.force.copy(), self._wrench.torque.copy()),
-            contacts=self.monitor.contacts(d),
         )
+
+    def contacts(self) -> tuple[Contact, ...]:
+        """Every active contact now (geom names, point, normal force, distance)."""
+        self._check_open()
+        return self.monitor.contacts(self.data)
 
     def module_at(self, point: np.ndarray) -> IssModule | None:
         """Which ISS module contains ``point`` (3,) [m, world frame], None outside."""

@@ -14,6 +14,7 @@ This module holds the layout (volumes, route) and the MJCF bodies of the walls.
 from __future__ import annotations
 
 import enum
+import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -47,7 +48,9 @@ class Zone(NamedTuple):
 
     def contains(self, point: Sequence[float]) -> bool:
         """True when ``point`` (3,) [m] lies inside the box (boundary included)."""
-        return all(self.lo[i] <= float(point[i]) <= self.hi[i] for i in range(3))
+        lo, hi = self.lo, self.hi
+        x, y, z = float(point[0]), float(point[1]), float(point[2])
+        return lo[0] <= x <= hi[0] and lo[1] <= y <= hi[1] and lo[2] <= z <= hi[2]
 
     @property
     def centre(self) -> np.ndarray:
@@ -158,14 +161,20 @@ class IssLayout:
         """Kibo, vestibule, Node 2, in route order."""
         return (self.kibo, self.vestibule, self.node2)
 
+    @functools.cached_property
+    def _lookup_order(self) -> tuple[Zone, Zone, Zone]:
+        """The zones as :meth:`module_at` tries them (vestibule first); computed once,
+        the layout being frozen."""
+        kibo, vest, node2 = self.zones()
+        return (vest, kibo, node2)
+
     def module_at(self, point: Sequence[float]) -> IssModule | None:
         """The module containing ``point`` (3,) [m, world frame], or None outside all three.
 
         The vestibule wins on its shared faces with the modules (a point on the hatch
         plane counts as in the hatch).
         """
-        kibo, vest, node2 = self.zones()
-        for zone in (vest, kibo, node2):
+        for zone in self._lookup_order:
             if zone.contains(point):
                 return zone.module
         return None

@@ -107,6 +107,14 @@ def _bvls(a: np.ndarray, b: np.ndarray, ub: np.ndarray) -> np.ndarray:
         return lsq_linear(a, b, bounds=(lb, ub), method="bvls", tol=1e-10).x
 
 
+def _allclose(a: np.ndarray, b: np.ndarray, rtol: float, atol: float) -> bool:
+    """``np.allclose(a, b, rtol, atol)``: numpy's own test first (``|a - b| <= atol +
+    rtol |b|`` with ``b`` finite, which implies it), numpy itself only when that fails."""
+    if ((np.abs(a - b) <= atol + rtol * np.abs(b)) & np.isfinite(b)).all():
+        return True
+    return bool(np.allclose(a, b, rtol=rtol, atol=atol))
+
+
 class PropulsionError(PayloadError):
     """Bad propulsion parameters or wrench requests."""
 
@@ -262,8 +270,7 @@ class Propulsion:
         pos = along > 1e-15
         if not np.any(pos):
             return math.inf, -1
-        ratio = np.full(len(offsets), np.inf)
-        ratio[pos] = offsets[pos] / along[pos]
+        ratio = np.divide(offsets, along, out=np.full(len(offsets), np.inf), where=pos)
         k = int(np.argmin(ratio))
         return float(ratio[k]), k
 
@@ -293,7 +300,7 @@ class Propulsion:
             # squares (scipy's BVLS, called as ``lsq_linear(method="bvls")`` calls it)
             sol = _bvls(a_free, rest, ub)
         out[free] = np.clip(sol, 0.0, ub)
-        if not np.allclose(self.matrix @ out, wrench, rtol=1e-7, atol=1e-10):
+        if not _allclose(self.matrix @ out, wrench, rtol=1e-7, atol=1e-10):
             return None
         return out
 

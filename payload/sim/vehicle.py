@@ -21,6 +21,7 @@ from payload.design.vehicle import DEFAULT_FLIGHT_MODE, FLIGHT_MODES, FlightMode
 from payload.errors import PayloadError
 from payload.schema import VehicleTwist
 from payload.sim.propulsion import Allocation, Propulsion
+from payload.vecmath import norm
 
 
 class VehicleError(PayloadError):
@@ -130,28 +131,38 @@ class JerkLimitedProfile:
         velocity error ``e``. Far from the target this saturates at the bounds (the
         closed-form minimum-time profile); near it, it lands without overshoot.
         """
-        target = np.asarray(target, float)
-        j, a_max = self.jerk, self.accel
-        e = target - self.velocity
-        s = np.where(e >= 0.0, 1.0, -1.0)
-        a = s * self.acceleration  # current acceleration toward the target
-        dist = np.abs(e)
-        quad = 1.0 / (2.0 * j)
+        target = np.broadcast_to(np.asarray(target, float), self.velocity.shape)
+        # per axis on Python floats: the same IEEE operations, in the same order, as the
+        # array form (x = up if const <= 0 else down, clipped to the jerk step and the
+        # acceleration bound), without the overhead of two dozen numpy calls at 50 Hz
         lin = 0.5 * dt
-        const = a * lin - dist
-        with np.errstate(invalid="ignore"):
-            up = (-lin + np.sqrt(lin * lin - 4.0 * quad * np.minimum(const, 0.0))) / (2.0 * quad)
-            down = (lin - np.sqrt(lin * lin + 4.0 * quad * np.maximum(const, 0.0))) / (2.0 * quad)
-        x = np.where(const <= 0.0, up, down)
-        x = np.clip(x, a - j * dt, a + j * dt)
-        x = np.clip(x, -a_max, a_max)
-        v_new = self.velocity + s * 0.5 * (a + x) * dt
-        a_new = s * x
-        arrived = (np.abs(target - v_new) <= 1e-12 + 1e-9 * np.abs(target)) & (
-            np.abs(a_new) <= j * dt
-        )
-        self.velocity = np.where(arrived, target, v_new)
-        self.acceleration = np.where(arrived, 0.0, a_new)
+        vel, acc = [], []
+        for tg, v, a0, j, a_max in zip(
+            target.tolist(),
+            self.velocity.tolist(),
+            self.acceleration.tolist(),
+            self.jerk.tolist(),
+            self.accel.tolist(),
+        ):
+            e = tg - v
+            s = 1.0 if e >= 0.0 else -1.0
+            a = s * a0  # current acceleration toward the target
+            dist = abs(e)
+            quad = 1.0 / (2.0 * j)
+            const = a * lin - dist
+            if const <= 0.0:
+                x = (-lin + math.sqrt(lin * lin - 4.0 * quad * min(const, 0.0))) / (2.0 * quad)
+            else:
+                x = (lin - math.sqrt(lin * lin + 4.0 * quad * max(const, 0.0))) / (2.0 * quad)
+            x = min(max(x, a - j * dt), a + j * dt)
+            x = min(max(x, -a_max), a_max)
+            v_new = v + s * 0.5 * (a + x) * dt
+            a_new = s * x
+            arrived = abs(tg - v_new) <= 1e-12 + 1e-9 * abs(tg) and abs(a_new) <= j * dt
+            vel.append(tg if arrived else v_new)
+            acc.append(0.0 if arrived else a_new)
+        self.velocity = np.array(vel)
+        self.acceleration = np.array(acc)
         return self.velocity.copy(), self.acceleration.copy()
 
 
@@ -313,7 +324,7 @@ class VehicleController:
         ``reference_share`` of the acceleration bound on every axis.
         """
         lin, ang = np.asarray(twist.linear, float), np.asarray(twist.angular, float)
-        s, w = float(np.linalg.norm(lin)), float(np.linalg.norm(ang))
+        s, w = float(norm(lin)), float(norm(ang))
         if s > self.mode.speed:
             lin = lin * (self.mode.speed / s)
         if w > self.mode.omega:

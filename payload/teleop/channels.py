@@ -28,6 +28,7 @@ from payload.design.vehicle import DEFAULT_FLIGHT_MODE, FLIGHT_MODES
 from payload.errors import PayloadError
 from payload.rotations import yaw_matrix
 from payload.schema import CONTROL_DT, VehicleTwist
+from payload.vecmath import norm
 
 
 class ChannelError(PayloadError):
@@ -62,7 +63,7 @@ class RailConfig:
 
 def rail_command(config: RailConfig, left_wrist: np.ndarray, right_wrist: np.ndarray) -> float:
     """Rail position [m] in [0, travel], non-decreasing in the inter-wrist distance."""
-    d = float(np.linalg.norm(np.asarray(right_wrist) - np.asarray(left_wrist)))
+    d = float(norm(np.asarray(right_wrist) - np.asarray(left_wrist)))
     if not math.isfinite(d):
         raise ChannelError("rail channel: wrist position is not finite")
     s = (d - config.d_min) / (config.d_max - config.d_min)
@@ -124,33 +125,30 @@ class JerkLimiter:
     def step(self, target: np.ndarray, dt: float) -> np.ndarray:
         target = np.asarray(target, dtype=float)
         if self.max_value is not None:
-            tn = float(np.linalg.norm(target))
+            tn = float(norm(target))
             if tn > self.max_value:
                 target = target * (self.max_value / tn)
         e = target - self.value
         jdt = self.max_jerk * dt
-        if not np.any(e) and float(np.linalg.norm(self.rate)) <= jdt:
+        if not np.any(e) and float(norm(self.rate)) <= jdt:
             self.rate = np.zeros_like(self.rate)  # at rest on the target
             return self.value.copy()
         landing = e / dt
-        if (
-            float(np.linalg.norm(landing)) <= jdt
-            and float(np.linalg.norm(landing - self.rate)) <= jdt
-        ):
+        if float(norm(landing)) <= jdt and float(norm(landing - self.rate)) <= jdt:
             # land exactly this step; the next step's return to zero rate is within jdt too
             self.rate = landing
             self.value = target.copy()
             return self.value.copy()
         # brake the acceleration already under way: the value still moves by a^2/(2j)
-        lead = self.rate * np.linalg.norm(self.rate) / (2 * self.max_jerk)
+        lead = self.rate * norm(self.rate) / (2 * self.max_jerk)
         e_eff = e - lead
-        n = float(np.linalg.norm(e_eff))
+        n = float(norm(e_eff))
         if n < 1e-15:
             a_target = np.zeros_like(e)
         else:
             a_target = e_eff / n * min(self.max_rate, math.sqrt(2 * self.max_jerk * n))
         da = a_target - self.rate
-        vn = float(np.linalg.norm(self.value))
+        vn = float(norm(self.value))
         if self.max_value is not None and vn > 1e-12:
             # keep the magnitude below its cap: the outward rate follows a landing profile
             # onto the cap and gets the jerk budget first, so it is eased off in time
@@ -161,16 +159,16 @@ class JerkLimiter:
             dr = float(np.clip(radial_want - radial_now, -jdt, jdt))
             tangential = da - float(da @ u) * u
             budget = math.sqrt(max(0.0, jdt * jdt - dr * dr))
-            tn = float(np.linalg.norm(tangential))
+            tn = float(norm(tangential))
             if tn > budget:
                 tangential *= budget / tn
             da = dr * u + tangential
             new = self.rate + da
-            nn = float(np.linalg.norm(new))
+            nn = float(norm(new))
             if nn > self.max_rate:  # projecting onto the ball moves it by at most |da|
                 da = new * (self.max_rate / nn) - self.rate
         else:
-            dn = float(np.linalg.norm(da))
+            dn = float(norm(da))
             if dn > jdt:
                 da *= jdt / dn
         self.rate = self.rate + da
@@ -247,7 +245,7 @@ class BaseChannel:
         if w.shape != (3,) or not np.all(np.isfinite(w)):
             raise ChannelError("base channel: left wrist is not 3 finite numbers")
         disp = w - self.neutral
-        dist = float(np.linalg.norm(disp))
+        dist = float(norm(disp))
         beyond = dist - c.sphere_radius
         if beyond <= 0:
             return np.zeros(3), False
@@ -262,7 +260,7 @@ class BaseChannel:
         w = np.asarray(right_wrist, dtype=float)
         if w.shape != (3,) or not np.all(np.isfinite(w)):
             raise ChannelError("base channel: right wrist is not 3 finite numbers")
-        return float(np.linalg.norm(w - self.neutral_right)) > self.config.sphere_radius
+        return float(norm(w - self.neutral_right)) > self.config.sphere_radius
 
     def step(
         self,
@@ -285,7 +283,7 @@ class BaseChannel:
         if not outside and left_wrist is not None and self.right_outside(right_wrist):
             v_req, mode = self.linear.value.copy(), "hold"
         v = self.linear.step(v_req, self.dt)
-        speed_req = float(np.linalg.norm(v_req[:2]))
+        speed_req = float(norm(v_req[:2]))
         yaw_req = 0.0
         if speed_req > c.turn_min_speed:
             heading = math.atan2(rot[1, 0], rot[0, 0])

@@ -9,6 +9,7 @@ the thumb, z the back of the hand) and mirrored (y -> -y) for a left hand.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -26,16 +27,57 @@ _THUMB_BASE = np.array([0.03, 0.022, -0.015])
 _THUMB_LENGTHS = (0.044, 0.033, 0.027)
 
 
-def _chain(origin: np.ndarray, lengths, angles, u: np.ndarray, v: np.ndarray) -> list:
-    """Joint points of a planar chain starting along ``u`` and flexing toward ``v``."""
-    pts = [origin]
-    cum = 0.0
-    p = origin
-    for length, ang in zip(lengths, angles):
-        cum += ang
-        p = p + length * (np.cos(cum) * u + np.sin(cum) * v)
-        pts.append(p)
-    return pts
+def _chain(origin: np.ndarray, lengths, angles, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Joint points of a planar chain starting along ``u`` and flexing toward ``v``,
+    shape (len(lengths) + 1, 3) (each point the previous one plus its phalanx)."""
+    cum = np.cumsum(np.asarray(angles, dtype=float))[:, None]
+    steps = np.asarray(lengths, dtype=float)[:, None] * (np.cos(cum) * u + np.sin(cum) * v)
+    return np.cumsum(np.vstack([origin, steps]), axis=0)
+
+
+def _unit_thumb_plane() -> tuple[np.ndarray, np.ndarray]:
+    """The thumb's flexion plane: ``u`` along it at rest, ``v`` toward the index."""
+    u = np.array([0.573, 0.786, -0.232])
+    v = np.array([0.633, -0.604, -0.484])
+    u /= np.linalg.norm(u)
+    v -= np.dot(v, u) * u
+    v /= np.linalg.norm(v)
+    return u, v
+
+
+_THUMB_U, _THUMB_V = _unit_thumb_plane()
+_X, _Z = np.array([1.0, 0.0, 0.0]), np.array([0.0, 0.0, -1.0])
+_PARTS = ("phalanx-proximal", "phalanx-intermediate", "phalanx-distal", "tip")
+_THUMB_PARTS = ("metacarpal", "phalanx-proximal", "phalanx-distal", "tip")
+
+
+@functools.lru_cache(maxsize=256)
+def _local_joints(side: str, size: float, s: float, curl: float) -> np.ndarray:
+    """:meth:`HandModel.local_joints` for a clipped aperture ``s`` (cached, read-only: the
+    synthetic operator holds its aperture for long spells and both hands share it)."""
+    out = np.zeros((25, 3))
+    for name, ((kx, ky), lengths) in _FINGERS.items():
+        knuckle = np.array([kx, ky, 0.0])
+        base = np.array([0.03, ky * 0.6, 0.0])
+        if name == "index-finger":
+            angles = (0.75 - 0.65 * s, 0.55 - 0.45 * s, 0.35 - 0.3 * s)
+        else:
+            angles = (curl, curl, curl * 0.6)
+        pts = _chain(knuckle, lengths, angles, _X, _Z)
+        out[JOINT_INDEX[f"{name}-metacarpal"]] = base
+        for part, p in zip(_PARTS, pts):
+            out[JOINT_INDEX[f"{name}-{part}"]] = p
+    # thumb: starts along (forward, thumb side), flexes across the palm toward the index
+    # plane chosen so the tips are ~18 mm apart pinched and ~95 mm open (size 1)
+    ang = (0.2 + 0.3 * (1 - s), 0.2 + 0.4 * (1 - s), 0.1 + 0.35 * (1 - s))
+    pts = _chain(_THUMB_BASE, _THUMB_LENGTHS, ang, _THUMB_U, _THUMB_V)
+    for part, p in zip(_THUMB_PARTS, pts):
+        out[JOINT_INDEX[f"thumb-{part}"]] = p
+    out *= size
+    if side == "left":
+        out[:, 1] *= -1.0
+    out.setflags(write=False)
+    return out
 
 
 @dataclass(frozen=True)
@@ -57,36 +99,8 @@ class HandModel:
             aperture: 0 = pinch (thumb and index tips together), 1 = wide open.
             curl: Flexion of the middle, ring and pinky fingers [rad per joint].
         """
-        s = float(np.clip(aperture, 0.0, 1.0))
-        out = np.zeros((25, 3))
-        x, z = np.array([1.0, 0.0, 0.0]), np.array([0.0, 0.0, -1.0])
-        for name, ((kx, ky), lengths) in _FINGERS.items():
-            knuckle = np.array([kx, ky, 0.0])
-            base = np.array([0.03, ky * 0.6, 0.0])
-            if name == "index-finger":
-                angles = (0.75 - 0.65 * s, 0.55 - 0.45 * s, 0.35 - 0.3 * s)
-            else:
-                angles = (curl, curl, curl * 0.6)
-            pts = _chain(knuckle, lengths, angles, x, z)
-            out[JOINT_INDEX[f"{name}-metacarpal"]] = base
-            parts = ("phalanx-proximal", "phalanx-intermediate", "phalanx-distal", "tip")
-            for part, p in zip(parts, pts):
-                out[JOINT_INDEX[f"{name}-{part}"]] = p
-        # thumb: starts along (forward, thumb side), flexes across the palm toward the index
-        # plane chosen so the tips are ~18 mm apart pinched and ~95 mm open (size 1)
-        u = np.array([0.573, 0.786, -0.232])
-        v = np.array([0.633, -0.604, -0.484])
-        u /= np.linalg.norm(u)
-        v -= np.dot(v, u) * u
-        v /= np.linalg.norm(v)
-        ang = (0.2 + 0.3 * (1 - s), 0.2 + 0.4 * (1 - s), 0.1 + 0.35 * (1 - s))
-        pts = _chain(_THUMB_BASE, _THUMB_LENGTHS, ang, u, v)
-        for part, p in zip(("metacarpal", "phalanx-proximal", "phalanx-distal", "tip"), pts):
-            out[JOINT_INDEX[f"thumb-{part}"]] = p
-        out *= self.size
-        if self.side == "left":
-            out[:, 1] *= -1.0
-        return out
+        s = min(max(float(aperture), 0.0), 1.0)  # np.clip's result, without its overhead
+        return _local_joints(self.side, float(self.size), s, float(curl)).copy()
 
     def joints(
         self, wrist: np.ndarray, rotation: np.ndarray, aperture: float, curl: float = 0.6
@@ -99,5 +113,6 @@ class HandModel:
             aperture: 0 = pinch, 1 = open.
             curl: Flexion of the other three fingers [rad].
         """
-        local = self.local_joints(aperture, curl)
+        s = min(max(float(aperture), 0.0), 1.0)
+        local = _local_joints(self.side, float(self.size), s, float(curl))
         return local @ np.asarray(rotation).T + np.asarray(wrist)

@@ -22,6 +22,7 @@ from payload.teleop.calibration import CalibrationProcedure, Captures
 from payload.teleop.hands import HandFrame
 from payload.teleop.operator import SyntheticOperator, WorldView
 from payload.teleop.pipeline import TeleopPipeline, TeleopStep
+from payload.vecmath import norm
 
 log = logging.getLogger(__name__)
 
@@ -120,7 +121,7 @@ class PhaseTracker:
             return "turn" if abs(step.base.yaw_rate) > self.turn_rate else "translation"
         if not self.moved:
             return "acquisition"
-        if speed > self.rest_speed or float(np.linalg.norm(step.base.v_world)) > 1e-4:
+        if speed > self.rest_speed or float(norm(step.base.v_world)) > 1e-4:
             return "braking"
         return "arrival"
 
@@ -224,7 +225,7 @@ def run_session(
             driver.command_twist(twist)
             state = driver.step(1)
             payload = driver.read()
-            speed = float(np.linalg.norm(state.astrobee_linear))
+            speed = float(norm(state.astrobee_linear))
             phase = phases.label(
                 calibrating, step, speed, bool(getattr(state, "opposing_contact", True))
             )

@@ -28,6 +28,10 @@ from payload.teleop.calibration import CalibrationProcedure
 from payload.teleop.channels import BaseConfig
 from payload.teleop.handmodel import HandModel
 from payload.teleop.hands import Hand, HandFrame
+from payload.vecmath import norm
+
+_IDENTITY = np.eye(3)
+_IDENTITY.setflags(write=False)
 
 
 @dataclass(frozen=True)
@@ -244,7 +248,7 @@ class SyntheticOperator:
     def _creep(self, error: np.ndarray) -> np.ndarray:
         """Wrist offset (operator frame) that creeps the vehicle toward ``error``."""
         p, tr = self.plan, self.traits
-        dist = float(np.linalg.norm(error))
+        dist = float(norm(error))
         speed = min(tr.creep_speed, math.sqrt(2 * p.brake_accel * max(0.0, dist - tr.align_tol)))
         if speed <= 1e-4:
             return np.zeros(3)
@@ -259,15 +263,15 @@ class SyntheticOperator:
         tr = self.traits
         state = self.acquisition
         offset = np.zeros(3)
-        speed = float(np.linalg.norm(seen.astrobee_vel))
+        speed = float(norm(seen.astrobee_vel))
         if state in ("approach", "settle"):
             error = self._misalignment(seen)
-            far = error is not None and float(np.linalg.norm(error)) > tr.align_tol
+            far = error is not None and float(norm(error)) > tr.align_tol
             if state == "approach" and far:
                 offset = self._creep(error)
             elif state == "approach":
                 self.acquisition, self._since = "settle", t
-            elif far and float(np.linalg.norm(error)) > 2 * tr.align_tol:
+            elif far and float(norm(error)) > 2 * tr.align_tol:
                 self.acquisition = "approach"  # drifted off while settling
             elif speed < 0.002 and t - self._since > 1.5:
                 self.acquisition, self._since = "close", t
@@ -310,17 +314,16 @@ class SyntheticOperator:
         pos = seen.astrobee_pos
         # advance along the route
         while self.waypoint < len(route) - 1 and (
-            np.linalg.norm(route[self.waypoint] - pos) < p.waypoint_radius
+            norm(route[self.waypoint] - pos) < p.waypoint_radius
         ):
             self.waypoint += 1
         target = route[self.waypoint]
         to_target = target - pos
-        dist = float(np.linalg.norm(to_target))
+        dist = float(norm(to_target))
         last = self.waypoint == len(route) - 1
         if self.phase in ("translation", "turn"):
             remaining = dist + sum(
-                float(np.linalg.norm(route[k + 1] - route[k]))
-                for k in range(self.waypoint, len(route) - 1)
+                float(norm(route[k + 1] - route[k])) for k in range(self.waypoint, len(route) - 1)
             )
             stop_speed = math.sqrt(2 * p.brake_accel * max(0.0, remaining - 0.3))
             corner = (
@@ -346,7 +349,7 @@ class SyntheticOperator:
                 )
                 offset = direction * reach
         if self.phase in ("arrival", "braking"):
-            speed_now = float(np.linalg.norm(seen.astrobee_vel))
+            speed_now = float(norm(seen.astrobee_vel))
             self.phase = "braking"
             if speed_now < 0.005:
                 self.stopped_since = self.stopped_since if self.stopped_since else t
@@ -386,7 +389,7 @@ class SyntheticOperator:
             ph = self.phases[side]
             tremor = tr.tremor_amp * np.sin(2 * math.pi * tr.tremor_freq * t + ph)
             wrist = self.wrist[side] + tremor
-            joints = self.models[side].joints(wrist, np.eye(3), self.aperture)
+            joints = self.models[side].joints(wrist, _IDENTITY, self.aperture)
             joints = joints + self.rng.normal(0.0, tr.noise, size=joints.shape)
             hands[side] = Hand(joints)
         return HandFrame(t, hands["left"], hands["right"])

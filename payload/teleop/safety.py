@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from payload.teleop.hands import Hand, HandFrame
+from payload.vecmath import norm
 
 log = logging.getLogger(__name__)
 
@@ -103,18 +104,19 @@ class TrackingSupervisor:
         c = self.config
         if not hand.tracked:
             return False, "not tracked"
-        if not np.all(np.isfinite(hand.joints)):
+        if not np.isfinite(hand.joints).all():
             return False, "non-finite joint position"
-        extent = float(np.max(np.linalg.norm(hand.joints - hand.wrist, axis=1)))
+        d = hand.joints - hand.wrist  # np.linalg.norm(d, axis=1)'s formula, then the max
+        extent = float(np.sqrt(np.add.reduce(d * d, axis=1)).max())
         if extent > c.max_extent:
             return False, f"joint {extent:.2f} m from the wrist"
         if side in self.neutral:
-            dist = float(np.linalg.norm(hand.wrist - self.neutral[side]))
+            dist = float(norm(hand.wrist - self.neutral[side]))
             if dist > c.workspace_radius:
                 return False, f"wrist {dist:.2f} m from neutral"
         st = self.status[side]
         if st.last_valid is not None and t > st.last_valid_stamp:
-            jump = float(np.linalg.norm(hand.wrist - st.last_valid.wrist))
+            jump = float(norm(hand.wrist - st.last_valid.wrist))
             if jump > c.max_wrist_speed * (t - st.last_valid_stamp):
                 return False, f"wrist jumped {jump:.2f} m in {t - st.last_valid_stamp:.3f} s"
         return True, ""

@@ -91,7 +91,10 @@ def handle_in_body(driver: Any) -> np.ndarray:
     w, d = driver.world, driver.data
     a = w.astrobee_qpos
     rot = quat_to_matrix(d.qpos[a + 3 : a + 7])
-    return rot.T @ (d.site("ctb_handle").xpos - d.qpos[a : a + 3])
+    site = mujoco.mj_name2id(driver.model, mujoco.mjtObj.mjOBJ_SITE, "ctb_handle")
+    if site < 0:
+        raise KeyError("ctb_handle")  # what d.site("ctb_handle") raises
+    return rot.T @ (d.site_xpos[site] - d.qpos[a : a + 3])
 
 
 def place_ctb_for_teleop(

@@ -443,7 +443,7 @@ def register(
     s.set_defaults(func=_cmd_trials_summarize)
 
     c = tsub.add_parser(
-        "convert", help="rewrite schema-1 (JSON) recordings in a folder as schema 2"
+        "convert", help="rewrite schema-1 (JSON) recordings in a folder as schema 3"
     )
     c.add_argument("dir", help="trial or campaign folder (every log.mcap below it)")
     c.add_argument("--force", action="store_true", help="convert even if a backup exists")

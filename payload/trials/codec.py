@@ -103,6 +103,10 @@ _GRID = np.concatenate([np.full(n, g) for _, g, n in STEP_GRIDS])
 _PER_UNIT = np.round(1.0 / _GRID)  # grid steps per unit, exact integers: decoded values are
 # k / steps, the double nearest the decimal k * grid (0.24 s reads back as 0.24)
 _GRID_SPLITS = np.cumsum([n for _, _, n in STEP_GRIDS])[:-1]
+_GRID_SLICES: tuple[tuple[str, int, int], ...] = tuple(
+    (name, int(start), int(start) + n)
+    for (name, _, n), start in zip(STEP_GRIDS, np.concatenate([[0], _GRID_SPLITS]))
+)
 
 _F = descriptor_pb2.FieldDescriptorProto
 
@@ -211,12 +215,12 @@ class JointsCodec:
     def encode(self, joints: np.ndarray, out: Any) -> None:
         """Fill the ``Joints`` message ``out`` with ``joints`` (25, 3)."""
         flat = np.asarray(joints, dtype=np.float64).reshape(-1)
-        if np.all(np.isnan(flat)):
+        if np.isnan(flat).all():
             out.untracked = True
             return
         with np.errstate(invalid="ignore"):
             k = np.round(flat / self.grid)
-        if np.all(np.isfinite(k)) and np.array_equal(k * self.grid, flat):
+        if np.isfinite(k).all() and (k * self.grid == flat).all():  # np.array_equal
             ki = k.astype(np.int64)
             out.grid = self.grid
             if self._prev is None:
@@ -266,14 +270,11 @@ class StepCodec:
     def _encode_grid(self, step: Any, wall_time: float, m: Any) -> bool:
         """Store the :data:`STEP_GRIDS` numbers in ``m.grid``; False (nothing stored, the
         next message a key) when one is not finite."""
-        values = np.concatenate(
-            [
-                np.asarray(wall_time if name == "wall_time" else getattr(step, name), float).ravel()
-                for name, _, _ in STEP_GRIDS
-            ]
-        )
+        values = np.empty(len(_GRID))
+        for name, start, stop in _GRID_SLICES:
+            values[start:stop] = np.ravel(wall_time if name == "wall_time" else getattr(step, name))
         k = np.round(values * _PER_UNIT)
-        if not np.all(np.isfinite(k)) or np.any(np.abs(k) >= 2.0**62):
+        if not np.isfinite(k).all() or (np.abs(k) >= 2.0**62).any():
             self._prev = None
             return False
         ki = k.astype(np.int64)
@@ -294,8 +295,9 @@ class StepCodec:
         else:
             k = self._prev + d
         self._prev = k
-        for (name, _, size), part in zip(STEP_GRIDS, np.split(k / _PER_UNIT, _GRID_SPLITS)):
-            row[name] = float(part[0]) if size == 1 else part
+        values = k / _PER_UNIT
+        for name, start, stop in _GRID_SLICES:  # np.split's views, without its overhead
+            row[name] = float(values[start]) if stop == start + 1 else values[start:stop]
 
     def encode_step(
         self, step: Any, seq: int, wall_time: float, in_hands: tuple[bool, bool] = (False, False)
@@ -384,7 +386,10 @@ class StepCodec:
         }
         for name, _, shape in STEP_DOUBLES:
             value = getattr(m, name)
-            row[name] = float(value) if shape == () else np.array(value, dtype=np.float64)
+            if shape == ():
+                row[name] = float(value)
+            else:
+                row[name] = np.array(value, dtype=np.float64) if len(value) else _EMPTY
         if len(m.grid):
             self._decode_grid(m, row)
         else:
@@ -408,17 +413,28 @@ class StepCodec:
         return row
 
 
+_EMPTY = np.zeros(0)
+_EMPTY.setflags(write=False)
+
+
 def _pairs_in_cmd(step: Any) -> bool:
     q = step.q_cmd
     return bool(
-        np.array_equal(step.q_left, q[PAIR_L_INDEX])
-        and np.array_equal(step.q_right, q[PAIR_R_INDEX])
+        _equal(step.q_left, q[PAIR_L_INDEX])
+        and _equal(step.q_right, q[PAIR_R_INDEX])
         and step.rail_cmd == q[-1]
     )
 
 
+def _equal(a: np.ndarray, b: np.ndarray) -> bool:
+    """``np.array_equal`` of two arrays (same shape, every element ==), sooner."""
+    return a.shape == b.shape and bool((a == b).all())
+
+
 def same_joints(a: np.ndarray, b: np.ndarray) -> bool:
     """Bit-for-bit equality of two joint arrays (NaN equal to NaN)."""
+    if a is b or (a.shape == b.shape and a.tobytes() == b.tobytes()):
+        return True  # identical bytes: equal (the common case, decided without a pass)
     return bool(np.array_equal(a, b, equal_nan=True))
 
 

@@ -1,4 +1,5 @@
-"""``payload trials convert DIR``: rewrite schema-1 (JSON step) recordings as schema 2.
+"""``payload trials convert DIR``: rewrite schema-1 (JSON step) recordings in the current
+schema (:data:`payload.trials.records.SCHEMA_VERSION`).
 
 Every ``log.mcap`` below ``DIR`` whose steps are JSON is rewritten with the current
 recorder (protobuf steps, zstd chunks, the Foxglove channels); the hand frames of a
@@ -18,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from payload.trials.recorder import (
+    SCHEMA_VERSION,
     STEP_TOPIC,
     RecordingError,
     TrialRecorder,
@@ -41,7 +43,12 @@ def convert_file(path: Path, *, force: bool = False) -> str:
     from payload.trials.foxglove import FoxgloveScene
 
     version = recording_version(path)
-    if version != 1:
+    if version > SCHEMA_VERSION:
+        raise RecordingError(
+            f"{path}: schema version {version} is newer than this workbench's "
+            f"({SCHEMA_VERSION}); update the workbench to read it"
+        )
+    if version != 1:  # versions 2 and up read as they are
         return f"{path}: already schema version {version}, left as it is"
     backup = path.with_name(BACKUP_NAME)
     if backup.exists() and not force:
@@ -74,7 +81,8 @@ def convert_file(path: Path, *, force: bool = False) -> str:
     os.replace(tmp, path)
     hands = "with" if frames is not None else "without"
     return (
-        f"{path}: converted {len(rec)} steps to schema version 2 ({hands} hand frames); "
+        f"{path}: converted {len(rec)} steps to schema version {SCHEMA_VERSION} "
+        f"({hands} hand frames); "
         f"the original is {backup.name}"
     )
 

@@ -38,7 +38,6 @@ import numpy as np
 from foxglove_schemas_protobuf.Color_pb2 import Color
 from foxglove_schemas_protobuf.CubePrimitive_pb2 import CubePrimitive
 from foxglove_schemas_protobuf.CylinderPrimitive_pb2 import CylinderPrimitive
-from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
 from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
 from foxglove_schemas_protobuf.JointState_pb2 import JointState
 from foxglove_schemas_protobuf.JointStates_pb2 import JointStates
@@ -193,25 +192,24 @@ class FoxgloveScene:
         m = self.model
         ts = _timestamp(ns)
         out = FrameTransforms()
-        rel = np.zeros(4)
-        inv = np.zeros(4)
         bodies = [*self.bodies, *([self.world.ctb] if self.world.ctb >= 0 else [])]
-        for b in bodies:
-            p = int(m.body_parentid[b])
-            rot_p = d.xmat[p].reshape(3, 3)
-            pos = rot_p.T @ (d.xpos[b] - d.xpos[p])
-            mujoco.mju_negQuat(inv, d.xquat[p])
-            mujoco.mju_mulQuat(rel, inv, d.xquat[b])
-            pose = _pose(pos, rel)
-            out.transforms.append(
-                FrameTransform(
-                    timestamp=ts,
-                    parent_frame_id=self.names[p],
-                    child_frame_id=self.names[b],
-                    translation=pose.position,
-                    rotation=pose.orientation,
-                )
-            )
+        poses = np.zeros((len(bodies), 7))  # parent-frame position and quaternion (w x y z)
+        inv = np.zeros(4)
+        xmat, xpos, xquat = d.xmat, d.xpos, d.xquat  # each access makes a new view
+        parents = m.body_parentid.tolist()
+        for i, b in enumerate(bodies):
+            p = parents[b]
+            poses[i, :3] = xmat[p].reshape(3, 3).T @ (xpos[b] - xpos[p])
+            mujoco.mju_negQuat(inv, xquat[p])
+            mujoco.mju_mulQuat(poses[i, 3:], inv, xquat[b])
+        for b, (x, y, z, qw, qx, qy, qz) in zip(bodies, _view(poses).tolist()):
+            t = out.transforms.add()  # filled in place: no temporary messages to copy
+            t.timestamp.CopyFrom(ts)
+            t.parent_frame_id = self.names[parents[b]]
+            t.child_frame_id = self.names[b]
+            v, q = t.translation, t.rotation
+            v.x, v.y, v.z = x, y, z
+            q.x, q.y, q.z, q.w = qx, qy, qz, qw
         return out
 
     def joint_states(self, values: np.ndarray, ns: int) -> JointStates:
@@ -219,7 +217,7 @@ class FoxgloveScene:
         return JointStates(
             timestamp=_timestamp(ns),
             joints=[
-                JointState(name=n, position=float(v)) for n, v in zip(JOINT_NAMES, _view(values))
+                JointState(name=n, position=v) for n, v in zip(JOINT_NAMES, _view(values).tolist())
             ],
         )
 

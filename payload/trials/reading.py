@@ -24,6 +24,7 @@ from payload.trials.records import (
     FIELD_SPECS,
     HANDS_TOPIC,
     META_NAME,
+    SCHEMA_VERSION,
     STEP_TOPIC,
     RecordingError,
     StepRecord,
@@ -116,11 +117,12 @@ class Recording:
             elif kind == "bool":
                 cols[name] = np.array([bool(r[name]) for r in rows], dtype=bool)
             else:
-                arr = np.array(
-                    [r[name] for r in rows], dtype=object if kind == "float_nan" else np.float64
-                )
-                if kind == "float_nan":
+                values = [r[name] for r in rows]
+                if kind == "float_nan" and not all(isinstance(v, np.ndarray) for v in values):
+                    arr = np.array(values, dtype=object)  # JSON rows: null for NaN
                     arr = np.where(arr == None, np.nan, arr).astype(np.float64)  # noqa: E711
+                else:  # numbers, or arrays as the typed decoder returns them (NaN kept)
+                    arr = np.array(values, dtype=np.float64)
                 cols[name] = arr.reshape((n, *shape))
         seq = np.array([r.get("seq", i) for i, r in enumerate(rows)], dtype=np.int64)
         wall = np.array([r.get("wall_time", math.nan) for r in rows], dtype=np.float64)
@@ -162,6 +164,19 @@ def _decode_meta(items: dict[str, str], path: Path) -> dict[str, Any]:
     return out
 
 
+def _check_version(channel: Channel, path: Path) -> None:
+    """Refuse a step channel of a schema version newer than this reader's."""
+    try:
+        version = _channel_version(channel)
+    except RecordingError as exc:
+        raise RecordingError(f"{path}: {exc}") from None
+    if version > SCHEMA_VERSION:
+        raise RecordingError(
+            f"{path}: schema version {version} is newer than this reader's "
+            f"({SCHEMA_VERSION}); update the workbench to read it"
+        )
+
+
 def _read_file(
     path: Path,
 ) -> tuple[dict[int, Channel], dict[str, Any], list[dict[str, Any]], list[dict[str, Any]], bool]:
@@ -192,6 +207,8 @@ def _read_file(
                 if channel is None:
                     continue
                 if channel.topic == STEP_TOPIC:
+                    if not rows:
+                        _check_version(channel, path)
                     if channel.message_encoding == "json":  # schema version 1
                         if not rows:
                             log.warning(
@@ -220,8 +237,21 @@ def _read_file(
     return channels, meta, rows, samples, complete
 
 
+def _channel_version(channel: Channel) -> int:
+    """The schema version a ``/trial/step`` channel declares (1: JSON steps; a protobuf
+    channel without the key is version 2, the first protobuf one)."""
+    if channel.message_encoding == "json":
+        return 1
+    text = (channel.metadata or {}).get("schema_version", "2")
+    try:
+        return int(text)
+    except ValueError:
+        raise RecordingError(f"schema_version {text!r} is not a number") from None
+
+
 def recording_version(path: str | Path) -> int:
-    """Schema version of a recording: 1 (JSON steps) or 2 (protobuf steps).
+    """Schema version of a recording: 1 (JSON steps), 2 (protobuf steps, lossless
+    doubles) or 3 (protobuf steps on the stated grids); see :mod:`payload.trials.records`.
 
     Raises:
         RecordingError: Unreadable, or no ``/trial/step`` channel.
@@ -230,7 +260,10 @@ def recording_version(path: str | Path) -> int:
     channels = _read_file(path)[0]
     for c in channels.values():
         if c.topic == STEP_TOPIC:
-            return 1 if c.message_encoding == "json" else 2
+            try:
+                return _channel_version(c)
+            except RecordingError as exc:
+                raise RecordingError(f"{path}: {exc}") from None
     raise RecordingError(f"{path}: no {STEP_TOPIC} channel (not a trial recording)")
 
 
@@ -255,12 +288,31 @@ def read_recording(path: str | Path) -> Recording:
     channels, meta, rows, _, complete = _read_file(path)
     if complete and not any(c.topic == STEP_TOPIC for c in channels.values()):
         raise RecordingError(f"{path}: no {STEP_TOPIC} channel (not a trial recording)")
-    try:
+    typed = any(c.topic == STEP_TOPIC and c.message_encoding != "json" for c in channels.values())
+    if typed:  # the typed decoder's rows: right types, so shapes and finiteness, by column
+        try:
+            rec = Recording.from_dicts(rows, meta, path, complete)
+        except (KeyError, TypeError, ValueError):
+            rec = None
+        if rec is not None and _finite_columns(rec):
+            return rec
+    try:  # JSON rows, or a problem somewhere: step by step, naming the first bad field
         for i, row in enumerate(rows):  # every step, not just the first
             check_step(row, FIELD_SPECS, i, str(path))
     except StepError as exc:
         raise RecordingError(str(exc)) from None
     return Recording.from_dicts(rows, meta, path, complete)
+
+
+def _finite_columns(rec: Recording) -> bool:
+    """Every number of every step finite (NaN allowed where the field allows it)."""
+    for name, (_, kind) in FIELD_SPECS.items():
+        if kind == "float":
+            if not np.isfinite(getattr(rec, name)).all():
+                return False
+        elif kind == "float_nan" and np.isinf(getattr(rec, name)).any():
+            return False
+    return True
 
 
 def read_hand_frames(path: str | Path) -> tuple[dict[str, Any], list[Any]]:

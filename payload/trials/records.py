@@ -3,7 +3,7 @@
 The writer is :class:`payload.trials.recorder.TrialRecorder`, the reader
 :func:`payload.trials.reading.read_recording`; both re-exported by :mod:`payload.trials.recorder`.
 
-File layout (``log.mcap``, schema version 2)
+File layout (``log.mcap``, schema version 3)
 --------------------------------------------
 * Profile ``""``, library ``payload-workbench``. Messages go into zstd-compressed chunks;
   the chunk in progress is closed and the file flushed at least once per
@@ -26,9 +26,15 @@ File layout (``log.mcap``, schema version 2)
   wall clock at write is the step's ``wall_time``.
 * Metadata records named ``payload.trial`` (see :meth:`TrialRecorder.write_meta`): each
   value is JSON text (trial seed, design hash, operator parameters, calibration, ...).
-* Schema version 1 recordings (one JSON message per step, ``jsonschema`` schema
-  :data:`STEP_SCHEMA`, ``hands.jsonl`` beside them) still read; ``payload trials convert``
-  rewrites them in version 2.
+* The version is the ``schema_version`` of the ``/trial/step`` channel's metadata
+  (:func:`payload.trials.reading.recording_version`). Version 3 stores the step numbers
+  on the grids (``grid``/``grid_key``, leaving the ``double`` fields empty); version 2
+  stored every number as a lossless ``double`` (a generic protobuf decoder of a version 3
+  step sees zeros there and must apply the grids). Both read, the same way. Version 1
+  recordings (one JSON message per step, ``jsonschema`` schema :data:`STEP_SCHEMA`,
+  ``hands.jsonl`` beside them) still read too; ``payload trials convert`` rewrites them in
+  the current version. A version newer than this reader's is refused with a clear
+  message.
 
 Step message fields (all SI, workbench frame)
 ---------------------------------------------
@@ -66,7 +72,7 @@ from __future__ import annotations
 
 import functools
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -94,7 +100,7 @@ STEP_TOPIC = "/trial/step"
 HANDS_TOPIC = "/trial/hands"
 STEP_SCHEMA_NAME = "payload.trials.StepRecord"
 META_NAME = "payload.trial"
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 LIBRARY = "payload-workbench"
 
 # name -> (shape, kind); shape () is a scalar. kind: "float" (finite), "float_nan" (NaN
@@ -183,17 +189,27 @@ def _coerce(name: str, value: Any) -> Any:
         if not math.isfinite(out):
             raise RecordingError(f"StepRecord.{name}: not finite ({out})")
         return out
-    try:
-        arr = np.array(value, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
-        raise RecordingError(f"StepRecord.{name}: not numeric") from exc
-    if arr.shape != shape:
-        raise RecordingError(f"StepRecord.{name}: expected shape {shape}, got {arr.shape}")
-    bad = np.isinf(arr) if kind == "float_nan" else ~np.isfinite(arr)
-    if np.any(bad):
-        raise RecordingError(f"StepRecord.{name}: non-finite value(s) at {np.argwhere(bad)[0]}")
+    if type(value) is np.ndarray and value.dtype == np.float64 and value.shape == shape:
+        arr = value.copy()  # the common case: what np.array(value, float64) gives, sooner
+    else:
+        try:
+            arr = np.array(value, dtype=np.float64)
+        except (TypeError, ValueError) as exc:
+            raise RecordingError(f"StepRecord.{name}: not numeric") from exc
+        if arr.shape != shape:
+            raise RecordingError(f"StepRecord.{name}: expected shape {shape}, got {arr.shape}")
+    # a finite sum means every value is finite (NaN and inf propagate); only when it is
+    # not are the values checked one by one (an overflowing sum of finite values passes)
+    if not math.isfinite(arr.sum()):
+        bad = np.isinf(arr) if kind == "float_nan" else ~np.isfinite(arr)
+        if np.any(bad):
+            where = np.argwhere(bad)[0]
+            raise RecordingError(f"StepRecord.{name}: non-finite value(s) at {where}")
     arr.setflags(write=False)
     return arr
+
+
+_FIELD_NAMES: tuple[str, ...] = tuple(FIELD_SPECS)
 
 
 @dataclass(frozen=True)
@@ -250,10 +266,11 @@ class StepRecord:
     ctb_module: str
 
     def __post_init__(self) -> None:
-        for f in fields(self):
-            object.__setattr__(self, f.name, _coerce(f.name, getattr(self, f.name)))
+        for name in _FIELD_NAMES:
+            object.__setattr__(self, name, _coerce(name, getattr(self, name)))
         for name in ("astrobee_quat", "ctb_quat"):
-            if np.linalg.norm(getattr(self, name)) < 1e-9:
+            q = getattr(self, name)
+            if math.sqrt(q.dot(q)) < 1e-9:  # np.linalg.norm's own formula
                 raise RecordingError(f"StepRecord.{name}: zero quaternion")
 
     def to_json_dict(self) -> dict[str, Any]:
