@@ -159,9 +159,9 @@ def run_hardware_trial(
     from payload.trials.campaign import finish_trial
     from payload.trials.recorder import TrialRecorder
     from payload.trials.runner import (
-        _module_rects,
         design_hash,
         load_replay,
+        module_rects,
         place_ctb_for_teleop,
         retargeting,
         step_record,
@@ -183,7 +183,7 @@ def run_hardware_trial(
         "design_hash": design_hash(),
         "traits": {"replay": str(replay)},
         "route": layout.route().tolist(),
-        "modules": _module_rects(layout),
+        "modules": module_rects(layout),
     }
     try:
         with (

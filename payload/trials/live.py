@@ -40,8 +40,8 @@ from payload.teleop.replay import HandRecordingWriter
 from payload.trials.recorder import StepRecord, TrialRecorder
 from payload.trials.runner import (
     MODULE_NAMES,
-    _module_rects,
     design_hash,
+    module_rects,
     place_ctb_for_teleop,
     retargeting,
 )
@@ -158,7 +158,7 @@ class LiveSession:
                 "design_hash": design_hash(),
                 "traits": {"live": True},
                 "route": self.scene["route"],
-                "modules": _module_rects(self.driver.world.layout),
+                "modules": module_rects(self.driver.world.layout),
             }
         )
 

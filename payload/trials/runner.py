@@ -57,7 +57,9 @@ def design_hash(project: Project | None = None) -> str:
     return provenance(project or current_project())["design_sha256"][:16]
 
 
-def _module_rects(layout: Any) -> list[dict[str, float | str]]:
+def module_rects(layout: Any) -> list[dict[str, float | str]]:
+    """The ISS layout's module zones as the recording's metadata lists them (name and
+    x, y extents [m]), for the route figure and replays."""
     out = []
     for zone in layout.zones():
         out.append(
@@ -271,7 +273,7 @@ def _trial_meta(
         "traits": traits,
         **source_spec.meta(),
         "route": layout.route().tolist(),
-        "modules": _module_rects(layout),
+        "modules": module_rects(layout),
         "contact_definition": {"min_interval_s": CONFIRM_MIN_S, "max_gap_s": CONFIRM_MAX_GAP_S},
         **setup.recorded,
     }
@@ -316,7 +318,7 @@ def _record_session(
         bar.start()
     last_t = [0.0]
     try:
-        scene = FoxgloveScene(driver.world, _module_rects(layout))
+        scene = FoxgloveScene(driver.world, module_rects(layout))
         with TrialRecorder(rec_path, scene=scene) as recorder:
             recorder.write_meta(meta)
 
@@ -446,6 +448,7 @@ __all__ = [
     "TrialError",
     "design_hash",
     "load_replay",
+    "module_rects",
     "place_ctb_for_teleop",
     "retargeting",
     "run_trial",
