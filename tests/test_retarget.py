@@ -565,11 +565,11 @@ def _failing_compiler(tmp_path: Path) -> str:
 
 
 def test_without_a_working_compiler_auto_falls_back_to_the_vm(prod, monkeypatch, tmp_path):
-    import payload.retarget.casadi_solver as cs
+    import payload.retarget.compiled as compiled
 
     monkeypatch.setenv("PAYLOAD_CACHE_DIR", str(tmp_path))
     cc = _failing_compiler(tmp_path)
-    monkeypatch.setattr(cs, "_compiler", lambda: cc)
+    monkeypatch.setattr(compiled, "_compiler", lambda: cc)
     with pytest.warns(RuntimeWarning, match="virtual machine") as caught:
         r = PairRetargeter(kinematics=prod["L"].kinematics)
     assert r.backend == "vm" and r.library is None
@@ -711,11 +711,11 @@ def test_bench_cli_prints_one_json_object_with_the_issues_fields(capsys):
 
 
 def test_bench_cli_with_a_failing_compiler_prints_one_line(capsys, monkeypatch, tmp_path):
-    import payload.retarget.casadi_solver as cs
+    import payload.retarget.compiled as compiled
 
     monkeypatch.setenv("PAYLOAD_CACHE_DIR", str(tmp_path))
     cc = _failing_compiler(tmp_path)
-    monkeypatch.setattr(cs, "_compiler", lambda: cc)
+    monkeypatch.setattr(compiled, "_compiler", lambda: cc)
     assert main(["bench", "retarget", "--steps", "2", "--backend", "compiled"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "compiling the retargeting solver failed" in err[0]
