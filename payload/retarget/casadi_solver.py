@@ -53,7 +53,7 @@ from payload.retarget.hand import HandDescription
 from payload.retarget.lm_graph import (  # noqa: F401  (old import paths)
     _better,
     _cholesky_solve,
-    _state_size,
+    _layout,
     _step_functions,
     build_solve_function,
     safe_posture,
@@ -133,6 +133,14 @@ class PairRetargeter(Retargeter):
         elif backend == "auto":
             self.backend_reason = "no C compiler found (set CC or install gcc)"
         self.backend: str = "compiled" if self._compiled is not None else "vm"
+        # The collision groups' clearance bounds and the posture they hold at (the last
+        # answer), carried into the next solve (payload.retarget.collision_eval).
+        self._anchor_q = self.kinematics.rest.copy()
+        self._anchor_b = np.full(int(self.function.nnz_in(4)), -np.inf)
+        self._checked = 2 * self.n + N_FEATURES  # q_prev, targets, q_ref: must be finite
+        if self._compiled is not None:
+            self._compiled.inputs[3][:] = self._anchor_q
+            self._compiled.inputs[4][:] = self._anchor_b
 
     def solve(
         self,
@@ -155,7 +163,7 @@ class PairRetargeter(Retargeter):
             or not (q_ref is None or (type(q_ref) is np.ndarray and q_ref.shape == (n,)))
         ):
             return super().solve(targets, q_prev, q_ref)
-        q_in, t_in, r_in = c.inputs
+        q_in, t_in, r_in = c.inputs[:3]
         if type(targets) is np.ndarray and targets.shape == (N_FEATURES,):
             t_in[:] = targets
         elif isinstance(targets, PairFeatures):
@@ -167,10 +175,12 @@ class PairRetargeter(Retargeter):
             return super().solve(targets, q_prev, q_ref)
         q_in[:] = self._command if q_prev is None else q_prev
         r_in[:] = self.kinematics.rest if q_ref is None else q_ref
-        if not np.isfinite(c.input).all():
+        if not np.isfinite(c.input[: self._checked]).all():
             return super().solve(targets, q_prev, q_ref)  # raises, naming the value
         c()
         q = c.outputs[0].copy()
+        c.inputs[3][:] = q
+        c.inputs[4][:] = c.outputs[2]
         self._command = q
         info = c.outputs[1]
         return q.copy(), _info(info, self.collisions)
@@ -185,11 +195,15 @@ class PairRetargeter(Retargeter):
             c.inputs[2][:] = q_ref
             c()
             q = c.outputs[0].copy()
+            c.inputs[3][:] = q
+            c.inputs[4][:] = c.outputs[2]
             info = c.outputs[1]
         else:
-            out = self.function(q_prev, targets, q_ref)
+            out = self.function(q_prev, targets, q_ref, self._anchor_q, self._anchor_b)
             q = np.array(out[0], dtype=float).reshape(-1)
             info = np.array(out[1], dtype=float).reshape(-1)
+            self._anchor_q = q.copy()
+            self._anchor_b = np.array(out[2], dtype=float).reshape(-1)
         return q, _info(info, self.collisions)
 
 

@@ -17,14 +17,11 @@ import casadi as ca
 import numpy as np
 
 from payload.retarget.budget import budget_plan, table_seeds
+from payload.retarget.collision_eval import evaluate_function
 from payload.retarget.errors import RetargetError
 from payload.retarget.features import N_FEATURES, PairKinematics
 from payload.retarget.objective import RetargetConfig
-from payload.retarget.symbolic import (
-    clearance_and_penalty,
-    paper_residuals_expr,
-    uses_collisions,
-)
+from payload.retarget.symbolic import paper_residuals_expr, uses_collisions
 
 _MU0 = 1e-4
 _MU_MAX = 1e12
@@ -64,51 +61,59 @@ def _cholesky_solve(a: ca.SX, b: ca.SX) -> ca.SX:
 def _step_functions(
     pk: PairKinematics, config: RetargetConfig, wrap: Callable[[ca.Function], Any] | None = None
 ) -> tuple[Any, ca.Function]:
-    """``evaluate(q, par) -> (cost, g, H)`` and one guarded iteration ``iterate(x, par) -> x``.
+    """``evaluate(q, par, q_anchor, bounds) -> (cost, g, H, clearance, bounds)`` and one
+    guarded iteration ``iterate(x, par) -> x``.
 
-    The state is ``x = [q (n), cost, g (n), H (n*n), mu, done, iterations, evaluations]``.
-    One iteration proposes a step and evaluates the residuals and their Jacobian at the
-    candidate once (one residual evaluation), then keeps the candidate if its cost is
-    lower; ``done`` is set by the convergence tests or by a damping that ran away.
-    ``wrap`` replaces ``evaluate`` (e.g. by a counting callback); the iteration is then
-    built as an MX graph that calls it.
+    The state is ``x = [q (n), cost, g (n), H (n*n), clearance, bounds (groups), mu, done,
+    iterations, evaluations]`` (:func:`_layout`; ``bounds``: the collision groups' clearance
+    bounds at q, :mod:`payload.retarget.collision_eval`). One iteration proposes a step and
+    evaluates the residuals and their Jacobian at the candidate once (one residual
+    evaluation), then keeps the candidate if it is better; ``done`` is set by the
+    convergence tests or by a damping that ran away. ``wrap`` replaces ``evaluate`` (e.g.
+    by a counting callback). The step and the acceptance are SX functions; the iteration
+    is an MX graph that calls them and ``evaluate``.
     """
     n = pk.n
-    lb, ub = pk.lower, pk.upper
     npar = N_FEATURES + 2 * n
     q = ca.SX.sym("q", n)
     par = ca.SX.sym("p", npar)
     t, qr, qp = par[:N_FEATURES], par[N_FEATURES : N_FEATURES + n], par[N_FEATURES + n :]
     r = paper_residuals_expr(pk, config, q, t, qr, qp)
-    jac = ca.jacobian(r, q)
-    cp = clearance_and_penalty(pk, config, q)
-    if cp is not None:
-        # the penalty residual's row by one reverse sweep (its gradient)
-        clear = ca.mmin(cp[0])
-        r, jac = ca.vertcat(r, cp[1]), ca.vertcat(jac, ca.gradient(cp[1], q).T)
-    else:
-        clear = ca.SX(1.0)
-    s1 = ca.sqrt(1.0 + r * r)
-    w1 = 1.0 / s1  # rho'(r^2), the IRLS weight
-    cost = ca.sum1(s1 - 1.0)
-    grad = ca.mtimes(jac.T, w1 * r)
-    jw = ca.mtimes(ca.diag(ca.sqrt(w1)), jac)
-    hess = ca.vec(ca.densify(ca.mtimes(jw.T, jw)))
-    evaluate = ca.Function("evaluate", [q, par], [cost, grad, hess, clear], {"cse": True})
-    # The iteration calls ``evaluate`` as a function (MX graph), so its code exists once.
-    sym = ca.MX.sym
+    evaluate, ng = evaluate_function(pk, config, r, ca.jacobian(r, q), q, par)
     if wrap is not None:
         evaluate = wrap(evaluate)
-    par = sym("p", npar)
+    lay = _layout(n, ng)
+    x = ca.SX.sym("x", lay["size"])
+    qc, predicted = _proposal(pk, x, lay)
+    propose = ca.Function("propose", [x], [qc, predicted], {"cse": True})
+    cc, gc, hc = ca.SX.sym("c"), ca.SX.sym("g", n), ca.SX.sym("h", n * n)
+    clc, bc, qs, pr = ca.SX.sym("cl"), ca.SX.sym("b", ng), ca.SX.sym("qc", n), ca.SX.sym("pr")
+    ck, clk, mu = x[lay["cost"]], x[lay["clear"]], x[lay["mu"]]
+    lbv, ubv = ca.DM(pk.lower), ca.DM(pk.upper)
+    better = _better(cc, clc, ck, clk)
+    gain = (ck - cc) / ca.fmax(pr, 1e-300)
+    mu_ok = ca.fmax(mu * ca.fmax(1.0 / 3.0, 1.0 - (2.0 * gain - 1.0) ** 3), 1e-12)
+    pg = qs - ca.fmin(ca.fmax(qs - gc, lbv), ubv)
+    conv = ca.logic_or(ca.mmax(ca.fabs(pg)) <= config.gtol, ck - cc <= config.ftol * ck)
+    mu_up = 4.0 * mu
+    kept = ca.vertcat(qs, cc, gc, hc, clc, bc, mu_ok, conv)
+    held = ca.vertcat(x[: lay["mu"]], mu_up, mu_up >= _MU_MAX)
+    out = ca.vertcat(ca.if_else(better, kept, held), x[lay["it"]] + 1.0, x[lay["ev"]] + 1.0)
+    accept = ca.Function("accept", [x, qs, pr, cc, gc, hc, clc, bc], [out], {"cse": True})
+    xm, pm = ca.MX.sym("x", lay["size"]), ca.MX.sym("p", npar)
+    qm, prm = propose(xm)
+    anchor_q, anchor_b = xm[:n], xm[lay["bounds"] : lay["bounds"] + ng]
+    ev = evaluate(qm, pm, anchor_q, anchor_b)  # the iteration's one residual evaluation
+    iterate = ca.Function("iterate", [xm, pm], [accept(xm, qm, prm, *ev)])
+    return evaluate, iterate
 
-    nn = n * n
-    i_cost, i_g, i_h = n, n + 1, 2 * n + 1
-    i_cl = i_h + nn
-    i_mu, i_it, i_ev = i_cl + 1, i_cl + 3, i_cl + 4
-    lbv, ubv, rng = ca.DM(lb), ca.DM(ub), ca.DM(ub - lb)
-    x = sym("x", _state_size(n))
-    qk, ck, gk, mu, clk = x[:n], x[i_cost], x[i_g : i_g + n], x[i_mu], x[i_cl]
-    hk = ca.reshape(x[i_h : i_h + nn], n, n)
+
+def _proposal(pk: PairKinematics, x: ca.SX, lay: dict[str, int]) -> tuple[ca.SX, ca.SX]:
+    """The candidate of one iteration from state x, and its predicted decrease."""
+    n, nn = pk.n, pk.n * pk.n
+    lbv, ubv, rng = ca.DM(pk.lower), ca.DM(pk.upper), ca.DM(pk.range)
+    qk, gk, mu = x[:n], x[lay["g"] : lay["g"] + n], x[lay["mu"]]
+    hk = ca.reshape(x[lay["h"] : lay["h"] + nn], n, n)
     active = ca.logic_or(
         ca.logic_and(qk <= lbv + _BOUND_EPS, gk > 0), ca.logic_and(qk >= ubv - _BOUND_EPS, gk < 0)
     )
@@ -134,18 +139,7 @@ def _step_functions(
     qc = ca.fmin(ca.fmax(qk + delta, lbv), ubv)
     step = qc - qk
     predicted = -(ca.dot(gk, step) + 0.5 * ca.dot(step, ca.mtimes(hk, step)))
-    cc, gc, hc, clc = evaluate(qc, par)  # the iteration's one residual evaluation
-    better = _better(cc, clc, ck, clk)
-    gain = (ck - cc) / ca.fmax(predicted, 1e-300)
-    mu_ok = ca.fmax(mu * ca.fmax(1.0 / 3.0, 1.0 - (2.0 * gain - 1.0) ** 3), 1e-12)
-    pg = qc - ca.fmin(ca.fmax(qc - gc, lbv), ubv)
-    conv = ca.logic_or(ca.mmax(ca.fabs(pg)) <= config.gtol, ck - cc <= config.ftol * ck)
-    mu_up = 4.0 * mu
-    kept = ca.vertcat(qc, cc, gc, hc, clc, mu_ok, conv)
-    held = ca.vertcat(x[:i_mu], mu_up, mu_up >= _MU_MAX)
-    out = ca.vertcat(ca.if_else(better, kept, held), x[i_it] + 1.0, x[i_ev] + 1.0)
-    iterate = ca.Function("iterate", [x, par], [out])
-    return evaluate, iterate
+    return qc, predicted
 
 
 def _better(c_new: Any, cl_new: Any, c_old: Any, cl_old: Any) -> Any:
@@ -158,9 +152,23 @@ def _better(c_new: Any, cl_new: Any, c_old: Any, cl_old: Any) -> Any:
     )
 
 
-def _state_size(n: int) -> int:
-    """``[q (n), cost, g (n), H (n*n), clearance, mu, done, iterations, evaluations]``."""
-    return 2 * n + n * n + 6
+def _layout(n: int, groups: int) -> dict[str, int]:
+    """Offsets in the state ``[q (n), cost, g (n), H (n*n), clearance, bounds (groups), mu,
+    done, iterations, evaluations]`` and its ``size``."""
+    cl = 2 * n + 1 + n * n
+    mu = cl + 1 + groups
+    return {
+        "cost": n,
+        "g": n + 1,
+        "h": 2 * n + 1,
+        "clear": cl,
+        "bounds": cl + 1,
+        "mu": mu,
+        "done": mu + 1,
+        "it": mu + 2,
+        "ev": mu + 3,
+        "size": mu + 4,
+    }
 
 
 def build_solve_function(
@@ -180,16 +188,23 @@ def build_solve_function(
             then runs only in CasADi's virtual machine.
 
     Returns:
-        ``(q_prev (n), targets (13), q_ref (n)) -> (q (n), info (5))`` with
-        ``info = [cost, iterations, converged, evaluations, clearance]``; ``q_prev`` is projected
-        onto the box and is both the first start and the temporal term's reference.
+        ``(q_prev (n), targets (13), q_ref (n), q_anchor (n), bounds (g)) -> (q (n),
+        info (5), bounds (g))`` with ``info = [cost, iterations, converged, evaluations,
+        clearance]``; ``q_prev`` is projected onto the box and is both the first start and
+        the temporal term's reference. ``bounds`` are lower bounds of the ``g`` collision
+        groups' clearances valid at ``q_anchor`` (``-inf``: unknown; pass the previous
+        solve's output with its ``q``), :mod:`payload.retarget.collision_eval`; the output
+        ``bounds`` are valid at the output ``q``. ``g`` is 0 without collision terms.
     """
     n = pk.n
     npar = N_FEATURES + 2 * n
     lbv, ubv = ca.DM(pk.lower), ca.DM(pk.upper)
     evaluate, iterate = _step_functions(pk, config, wrap_evaluate)
-    nx = _state_size(n)
-    i_cost, i_done, i_it, i_ev = n, nx - 3, nx - 2, nx - 1
+    ng = int(evaluate.nnz_in(3))
+    lay = _layout(n, ng)
+    nx = lay["size"]
+    i_cost, i_cl, i_b = lay["cost"], lay["clear"], lay["bounds"]
+    i_done, i_it, i_ev = lay["done"], lay["it"], lay["ev"]
     xs, ps = ca.MX.sym("x", nx), ca.MX.sym("p", npar)
     hold = ca.Function("hold", [xs, ps], [xs])
 
@@ -211,33 +226,39 @@ def build_solve_function(
     q_prev = ca.MX.sym("q_prev", n)
     targets = ca.MX.sym("targets", N_FEATURES)
     q_ref = ca.MX.sym("q_ref", n)
+    q_anchor, bounds_in = ca.MX.sym("q_anchor", n), ca.MX.sym("bounds", ng)
     q0 = ca.fmin(ca.fmax(q_prev, lbv), ubv)
     p_mx = ca.vertcat(targets, q_ref, q0)
     seeds = {"prev": q0, "ref": ca.fmin(ca.fmax(q_ref, lbv), ubv)}
     tags = [tag for tag, _ in budget_plan(config) if tag.startswith("seed")]
     for tag, q_seed in zip(tags, table_seeds(pk, config, targets, q_ref, q0, len(tags))):
         seeds[tag] = q_seed
-    # The starts in turn; each keeps the lower-cost state of itself and those before, and
-    # runs only if the solve has an evaluation left under its cumulative cap.
+    # The starts in turn; each keeps the better state of itself and those before, and
+    # runs only if the solve has an evaluation left under its cumulative cap. The first
+    # start carries the collision bounds from the input anchor, the others from the best
+    # state so far.
     xb, qs = ca.MX.sym("best", nx), ca.MX.sym("start", n)
-    skip = ca.Function("skip", [xb, qs, ps], [xb])
-    i_cl = 2 * n + 1 + n * n
+    qa, ba = ca.MX.sym("anchor", n), ca.MX.sym("anchor_bounds", ng)
+    skip = ca.Function("skip", [xb, qs, ps, qa, ba], [xb])
     inf_state = ca.DM.zeros(nx)
     inf_state[i_cost] = np.inf
     inf_state[i_cl] = -np.inf
+    for k in range(ng):
+        inf_state[i_b + k] = -np.inf
     best: ca.MX = ca.MX(inf_state)
-    for tag, cap in budget_plan(config):
-        c0, g0, h0, cl0 = evaluate(qs, ps)
+    for k, (tag, cap) in enumerate(budget_plan(config)):
+        c0, g0, h0, cl0, b0 = evaluate(qs, ps, qa, ba)
         pg0 = qs - ca.fmin(ca.fmax(qs - g0, lbv), ubv)
         done0 = ca.mmax(ca.fabs(pg0)) <= config.gtol
-        x0 = ca.vertcat(qs, c0, g0, h0, cl0, _MU0, done0, xb[i_it], xb[i_ev] + 1.0)
+        x0 = ca.vertcat(qs, c0, g0, h0, cl0, b0, _MU0, done0, xb[i_it], xb[i_ev] + 1.0)
         lv = chain(tag, cap)
         st = x0 if lv is None else lv(ca.logic_or(x0[i_done], x0[i_ev] >= cap), x0, ps)
         kept = ca.if_else(_better(st[i_cost], st[i_cl], xb[i_cost], xb[i_cl]), st, xb)
         kept = ca.vertcat(kept[:i_it], st[i_it], st[i_ev])
-        run = ca.Function(f"start_{tag}", [xb, qs, ps], [kept])
+        run = ca.Function(f"start_{tag}", [xb, qs, ps, qa, ba], [kept])
         start = ca.Function.conditional(f"maybe_{tag}", [run], skip)
-        best = start(best[i_ev] >= cap, best, seeds[tag], p_mx)
+        anchor = (q_anchor, bounds_in) if k == 0 else (best[:n], best[i_b : i_b + ng])
+        best = start(best[i_ev] >= cap, best, seeds[tag], p_mx, *anchor)
     used, iters = best[i_ev], best[i_it]
     # Never a command inside the margin: if no start reached a collision-free point (both
     # the previous command and the posture reference were inside it), the safe posture.
@@ -251,12 +272,13 @@ def build_solve_function(
         used,
         ca.if_else(free, best[i_cl], cl_safe),
     )
+    bounds_out = ca.if_else(free, best[i_b : i_b + ng], -np.inf * ca.DM.ones(ng))
     return ca.Function(
         name,
-        [q_prev, targets, q_ref],
-        [q_out, info],
-        ["q_prev", "targets", "q_ref"],
-        ["q", "info"],
+        [q_prev, targets, q_ref, q_anchor, bounds_in],
+        [q_out, info, bounds_out],
+        ["q_prev", "targets", "q_ref", "q_anchor", "bounds"],
+        ["q", "info", "bounds_out"],
     )
 
 
