@@ -32,7 +32,7 @@ import numpy as np
 
 from payload.retarget.features import PairKinematics
 from payload.retarget.objective import RetargetConfig
-from payload.retarget.symbolic import PointChain
+from payload.retarget.symbolic import PointChain, chain_point
 
 
 def chain_lipschitz(chain: PointChain, pk: PairKinematics) -> np.ndarray:
@@ -73,23 +73,76 @@ class CollisionGroups:
     def __len__(self) -> int:
         return len(self.terms)
 
-    def branch(self, g: int, config: RetargetConfig, name: str) -> ca.Function:
-        """``(q, bound) -> (S_g, dS_g/dq (n), smallest clearance)`` of group g, evaluated;
-        ``S_g`` is the sum of ``(band - clearance)_+^2`` over its terms."""
+    def keys(self) -> list[tuple[int, bool, int]]:
+        """Per group ``(capsule, box, other)``: the capsule, whether the other is a box,
+        and the other capsule's or box's index."""
         col = self.pk.collision
+        return [
+            (col.terms[t[0]].capsule, col.terms[t[0]].box, col.terms[t[0]].other)
+            for t in self.terms
+        ]
+
+    def ends_function(self) -> ca.Function:
+        """``q -> ends (6 per capsule)``: every capsule's axis ends in the base frame."""
         q = ca.SX.sym("q", self.pk.n)
-        bound = ca.SX.sym("bound")
-        terms = tuple(col.terms[k] for k in self.terms[g])
-        c = col.distances_expr(q, terms) - col.margin
+        ends = [chain_point(c, q) for pair in self.pk.collision._chains for c in pair]
+        return ca.Function("capsule_ends", [q], [ca.vertcat(*ends)], {"cse": True})
+
+    def vjp_function(self) -> ca.Function:
+        """``(q, v) -> (d ends / d q)^T v``: a gradient with respect to the ends, in q."""
+        q, v = ca.SX.sym("q", self.pk.n), ca.SX.sym("v", 6 * len(self.pk.collision.capsules))
+        ends = self.ends_function()(q)
+        return ca.Function("capsule_vjp", [q, v], [ca.jtimes(ends, q, v, True)], {"cse": True})
+
+    def branch(self, g: int, config: RetargetConfig, name: str) -> ca.Function:
+        """``(ends_1 (6), ends_2 (6 or 0), bound) -> (S_g, dS_g/d ends_1, dS_g/d ends_2,
+        smallest clearance)`` of group g, evaluated; ``S_g`` is the sum of
+        ``(band - clearance)_+^2`` over its terms."""
+        col = self.pk.collision
+        cap, box, other = self.keys()[g]
+        e1, e2 = ca.SX.sym("e1", 6), ca.SX.sym("e2", 0 if box else 6)
+        ends: list = [None] * len(col.capsules)
+        ends[cap] = (e1[:3], e1[3:])
+        if not box:
+            ends[other] = (e2[:3], e2[3:])
+        c = ca.vertcat(*[col._term_expr(col.terms[k], ends) for k in self.terms[g]]) - col.margin
         over = ca.fmax(config.collision_band - c, 0.0)
         s = ca.dot(over, over)
-        return ca.Function(name, [q, bound], [s, ca.gradient(s, q), ca.mmin(c)], {"cse": True})
-
-    def skip(self, name: str) -> ca.Function:
-        """``(q, bound) -> (0, 0, bound)``: a group proven beyond the band."""
-        q = ca.SX.sym("q", self.pk.n)
         bound = ca.SX.sym("bound")
-        return ca.Function(name, [q, bound], [ca.SX(0.0), ca.SX.zeros(self.pk.n), bound])
+        outs = [s, ca.gradient(s, e1), ca.gradient(s, e2), ca.mmin(c)]
+        return ca.Function(name, [e1, e2, bound], outs, {"cse": True})
+
+    def skip(self, name: str, box: bool) -> ca.Function:
+        """``(ends_1, ends_2, bound) -> (0, 0, 0, bound)``: a group proven beyond the band."""
+        e1, e2 = ca.SX.sym("e1", 6), ca.SX.sym("e2", 0 if box else 6)
+        bound = ca.SX.sym("bound")
+        zero = ca.SX.zeros
+        return ca.Function(name, [e1, e2, bound], [ca.SX(0.0), zero(6), zero(e2.shape[0]), bound])
+
+    def penalty_function(self, config: RetargetConfig) -> ca.Function:
+        """``(q, pre-bounds) -> (S, dS/dq, group minima)``: the groups whose bound is below
+        the band evaluated on the capsule ends computed once, the others skipped."""
+        n, ng = self.pk.n, len(self)
+        ncap = len(self.pk.collision.capsules)
+        q, pre = ca.MX.sym("q", n), ca.MX.sym("pre", ng)
+        e = self.ends_function()(q)
+        caps = [e[6 * i : 6 * i + 6] for i in range(ncap)]
+        grads: list = [0.0] * ncap
+        skips = {box: self.skip(f"group_skip_{int(box)}", box) for box in (False, True)}
+        total, mins = 0.0, []
+        for g, (cap, box, other) in enumerate(self.keys()):
+            branch = self.branch(g, config, f"group_branch_{g}")
+            cond = ca.Function.conditional(f"group_{g}", [branch], skips[box])
+            e2 = ca.MX(0, 1) if box else caps[other]
+            s_g, d1, d2, m_g = cond(pre[g] >= config.collision_band, caps[cap], e2, pre[g])
+            total = total + s_g
+            mins.append(m_g)
+            grads[cap] = grads[cap] + d1
+            if not box:
+                grads[other] = grads[other] + d2
+        v = ca.vertcat(*[gr if isinstance(gr, ca.MX) else ca.MX.zeros(6) for gr in grads])
+        dq = self.vjp_function()(q, v)
+        return ca.Function("collision_penalty", [q, pre], [total, dq, ca.vertcat(*mins)])
 
 
 def evaluate_function(
@@ -105,7 +158,8 @@ def evaluate_function(
 
     ``r``/``jac`` are eq. 3's residuals and Jacobian in ``q`` and ``par``; ``bounds``
     (groups,) are lower bounds of the groups' clearances valid at ``q_anchor`` (``-inf``:
-    unknown), and the output ``bounds`` are valid at ``q``.
+    unknown), and the output ``bounds`` are valid at ``q``. When every group's bound
+    is beyond the band, the collision part is not evaluated at all.
     """
     n = pk.n
     groups = CollisionGroups(pk) if config.collisions and pk.collision.available else None
@@ -118,7 +172,8 @@ def evaluate_function(
         )
         return fn, 0
     pre = lba - ca.mtimes(ca.DM(groups.lipschitz), ca.fabs(q - qa))
-    base = ca.Function("evaluate_base", [q, par, qa, lba], [r, jac, pre], {"cse": True})
+    far = ca.mmin(pre) >= config.collision_band
+    base = ca.Function("evaluate_base", [q, par, qa, lba], [r, jac, pre, far], {"cse": True})
     rs, js = ca.SX.sym("r", r.sparsity()), ca.SX.sym("J", jac.sparsity())
     ss, ds, ms = ca.SX.sym("s"), ca.SX.sym("ds", n), ca.SX.sym("mins", ng)
     scale = config.w_c / config.collision_band
@@ -129,21 +184,17 @@ def evaluate_function(
     combine = ca.Function(
         "evaluate_combine", [rs, js, ss, ds, ms], [cost, grad, hess, ca.mmin(ms)], {"cse": True}
     )
+    qs, pres = ca.SX.sym("q", n), ca.SX.sym("pre", ng)
+    none_near = ca.Function("collision_far", [qs, pres], [ca.SX(0.0), ca.SX.zeros(n), pres])
+    penalty = ca.Function.conditional(
+        "collision_part", [groups.penalty_function(config)], none_near
+    )
     sym = ca.MX.sym
     qm, pm, qam, lbm = sym("q", n), sym("p", par.shape[0]), sym("q_anchor", n), sym("bounds", ng)
-    rm, jm, prem = base(qm, pm, qam, lbm)
-    skip = groups.skip("group_skip")
-    total, dtotal, mins = 0.0, 0.0, []
-    for g in range(ng):
-        cond = ca.Function.conditional(
-            f"group_{g}", [groups.branch(g, config, f"branch_{g}")], skip
-        )
-        s_g, d_g, m_g = cond(prem[g] >= config.collision_band, qm, prem[g])
-        total, dtotal = total + s_g, dtotal + d_g
-        mins.append(m_g)
-    mins_mx = ca.vertcat(*mins)
-    cost_m, grad_m, hess_m, clear_m = combine(rm, jm, total, dtotal, mins_mx)
-    fn = ca.Function("evaluate", [qm, pm, qam, lbm], [cost_m, grad_m, hess_m, clear_m, mins_mx])
+    rm, jm, prem, farm = base(qm, pm, qam, lbm)
+    total, dtotal, mins = penalty(farm, qm, prem)
+    cost_m, grad_m, hess_m, clear_m = combine(rm, jm, total, dtotal, mins)
+    fn = ca.Function("evaluate", [qm, pm, qam, lbm], [cost_m, grad_m, hess_m, clear_m, mins])
     return fn, ng
 
 
