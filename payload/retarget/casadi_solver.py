@@ -15,9 +15,12 @@ iterations of a projected Levenberg-Marquardt method on the soft-L1 cost
   would push through a bound stop on it and the rest are solved again with that
   displacement fixed; no joint moves more than 10 % of its range per iteration; the
   step is projected onto the box, so no iterate ever leaves the bounds;
-* a step is kept only if it lowers the cost (the full evaluation at the new point runs
-  only then); ``mu`` follows the gain ratio (Nielsen's rule) and grows fourfold on a
-  rejection;
+* a step is kept only if it lowers the cost; ``mu`` follows the gain ratio (Nielsen's
+  rule) and grows fourfold on a rejection; with self-collision modelled the iterates may
+  cross the margin (the penalty residual pushes them out) and each start returns the best
+  collision-free point it met, so no answer is inside the margin; the collision terms are
+  evaluated in groups, each only while a carried bound cannot prove it beyond the
+  penalty band (:mod:`payload.retarget.collision_eval`);
 * iterations are nested ``casadi.Function.conditional`` calls: each returns at once
   when the projected gradient (``config.gtol``) or the relative decrease
   (``config.ftol``) says converged, and there are at most ``config.max_iterations`` of

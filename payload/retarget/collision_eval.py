@@ -176,10 +176,8 @@ def evaluate_function(
     base = ca.Function("evaluate_base", [q, par, qa, lba], [r, jac, pre, far], {"cse": True})
     rs, js = ca.SX.sym("r", r.sparsity()), ca.SX.sym("J", jac.sparsity())
     ss, ds, ms = ca.SX.sym("s"), ca.SX.sym("ds", n), ca.SX.sym("mins", ng)
-    scale = config.w_c / config.collision_band
-    root = ca.sqrt(ss + 1e-12)
-    rc = scale * (root - 1e-6)
-    jc = (scale * 0.5 / root) * ds
+    scale = config.w_c / config.collision_band**2
+    rc, jc = scale * ss, scale * ds
     cost, grad, hess = _cost_terms(ca.vertcat(rs, rc), ca.vertcat(js, jc.T))
     combine = ca.Function(
         "evaluate_combine", [rs, js, ss, ds, ms], [cost, grad, hess, ca.mmin(ms)], {"cse": True}

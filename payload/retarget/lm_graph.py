@@ -88,17 +88,22 @@ def _step_functions(
     propose = ca.Function("propose", [x], [qc, predicted], {"cse": True})
     cc, gc, hc = ca.SX.sym("c"), ca.SX.sym("g", n), ca.SX.sym("h", n * n)
     clc, bc, qs, pr = ca.SX.sym("cl"), ca.SX.sym("b", ng), ca.SX.sym("qc", n), ca.SX.sym("pr")
-    ck, clk, mu = x[lay["cost"]], x[lay["clear"]], x[lay["mu"]]
+    ck, mu = x[lay["cost"]], x[lay["mu"]]
     lbv, ubv = ca.DM(pk.lower), ca.DM(pk.upper)
-    better = _better(cc, clc, ck, clk)
     gain = (ck - cc) / ca.fmax(pr, 1e-300)
     mu_ok = ca.fmax(mu * ca.fmax(1.0 / 3.0, 1.0 - (2.0 * gain - 1.0) ** 3), 1e-12)
     pg = qs - ca.fmin(ca.fmax(qs - gc, lbv), ubv)
     conv = ca.logic_or(ca.mmax(ca.fabs(pg)) <= config.gtol, ck - cc <= config.ftol * ck)
     mu_up = 4.0 * mu
-    kept = ca.vertcat(qs, cc, gc, hc, clc, bc, mu_ok, conv)
-    held = ca.vertcat(x[: lay["mu"]], mu_up, mu_up >= _MU_MAX)
-    out = ca.vertcat(ca.if_else(better, kept, held), x[lay["it"]] + 1.0, x[lay["ev"]] + 1.0)
+    # The iterates follow the cost (the penalty keeps them near the free region but may
+    # pass through the margin); the best collision-free point met is recorded apart.
+    lower = cc < ck
+    i_f, nf = lay["free"], n + 2 + ng
+    free_ok = ca.logic_and(clc >= 0, cc < x[i_f + n])
+    record = ca.if_else(free_ok, ca.vertcat(qs, cc, clc, bc), x[i_f : i_f + nf])
+    main = ca.if_else(lower, ca.vertcat(qs, cc, gc, hc, clc, bc), x[:i_f])
+    tail = ca.if_else(lower, ca.vertcat(mu_ok, conv), ca.vertcat(mu_up, mu_up >= _MU_MAX))
+    out = ca.vertcat(main, record, tail, x[lay["it"]] + 1.0, x[lay["ev"]] + 1.0)
     accept = ca.Function("accept", [x, qs, pr, cc, gc, hc, clc, bc], [out], {"cse": True})
     xm, pm = ca.MX.sym("x", lay["size"]), ca.MX.sym("p", npar)
     qm, prm = propose(xm)
@@ -142,6 +147,19 @@ def _proposal(pk: PairKinematics, x: ca.SX, lay: dict[str, int]) -> tuple[ca.SX,
     return qc, predicted
 
 
+def _collapse(st: ca.MX, lay: dict[str, int], n: int, ng: int) -> ca.MX:
+    """A start's result: its best collision-free point when it met one (converged only
+    if that is where the iterates stopped), else where the iterates stopped."""
+    i_f, i_cost, i_cl = lay["free"], lay["cost"], lay["clear"]
+    fq, fc = st[i_f : i_f + n], st[i_f + n]
+    fcl, fb = st[i_f + n + 1], st[i_f + n + 2 : i_f + n + 2 + ng]
+    done = ca.logic_and(st[lay["done"]], fc == st[i_cost])
+    moved = ca.vertcat(
+        fq, fc, st[i_cost + 1 : i_cl], fcl, fb, st[i_f : lay["done"]], done, st[lay["it"] :]
+    )
+    return ca.if_else(fc < np.inf, moved, st)
+
+
 def _better(c_new: Any, cl_new: Any, c_old: Any, cl_old: Any) -> Any:
     """A point beats another: both collision-free (clearance >= 0) and a lower cost, or
     it is collision-free and the other is not, or neither is and it is less deep."""
@@ -153,16 +171,19 @@ def _better(c_new: Any, cl_new: Any, c_old: Any, cl_old: Any) -> Any:
 
 
 def _layout(n: int, groups: int) -> dict[str, int]:
-    """Offsets in the state ``[q (n), cost, g (n), H (n*n), clearance, bounds (groups), mu,
-    done, iterations, evaluations]`` and its ``size``."""
+    """Offsets in the state ``[q (n), cost, g (n), H (n*n), clearance, bounds (groups),
+    free record, mu, done, iterations, evaluations]`` and its ``size``; the free record is
+    the best collision-free point met, ``[q (n), cost, clearance, bounds (groups)]``
+    (cost ``inf`` while none)."""
     cl = 2 * n + 1 + n * n
-    mu = cl + 1 + groups
+    mu = cl + 1 + groups + n + 2 + groups
     return {
         "cost": n,
         "g": n + 1,
         "h": 2 * n + 1,
         "clear": cl,
         "bounds": cl + 1,
+        "free": cl + 1 + groups,
         "mu": mu,
         "done": mu + 1,
         "it": mu + 2,
@@ -250,9 +271,13 @@ def build_solve_function(
         c0, g0, h0, cl0, b0 = evaluate(qs, ps, qa, ba)
         pg0 = qs - ca.fmin(ca.fmax(qs - g0, lbv), ubv)
         done0 = ca.mmax(ca.fabs(pg0)) <= config.gtol
-        x0 = ca.vertcat(qs, c0, g0, h0, cl0, b0, _MU0, done0, xb[i_it], xb[i_ev] + 1.0)
+        rec0 = ca.if_else(
+            cl0 >= 0, ca.vertcat(qs, c0, cl0, b0), ca.vertcat(qs, np.inf, -np.inf, b0)
+        )
+        x0 = ca.vertcat(qs, c0, g0, h0, cl0, b0, rec0, _MU0, done0, xb[i_it], xb[i_ev] + 1.0)
         lv = chain(tag, cap)
         st = x0 if lv is None else lv(ca.logic_or(x0[i_done], x0[i_ev] >= cap), x0, ps)
+        st = _collapse(st, lay, n, ng)
         kept = ca.if_else(_better(st[i_cost], st[i_cl], xb[i_cost], xb[i_cl]), st, xb)
         kept = ca.vertcat(kept[:i_it], st[i_it], st[i_ev])
         run = ca.Function(f"start_{tag}", [xb, qs, ps, qa, ba], [kept])
