@@ -64,9 +64,10 @@ def _step_functions(
     """``evaluate(q, par, q_anchor, bounds) -> (cost, g, H, clearance, bounds)`` and one
     guarded iteration ``iterate(x, par) -> x``.
 
-    The state is ``x = [q (n), cost, g (n), H (n*n), clearance, bounds (groups), mu, done,
-    iterations, evaluations]`` (:func:`_layout`; ``bounds``: the collision groups' clearance
-    bounds at q, :mod:`payload.retarget.collision_eval`). One iteration proposes a step and
+    The state is ``x = [q (n), cost, g (n), H (n*n), clearance, bounds (groups), free
+    record, mu, done, iterations, evaluations]`` (:func:`_layout`; ``bounds``: the collision
+    groups' clearance bounds at q, :mod:`payload.retarget.collision_eval`; the free record:
+    the best collision-free point met). One iteration proposes a step and
     evaluates the residuals and their Jacobian at the candidate once (one residual
     evaluation), then keeps the candidate if it is better; ``done`` is set by the
     convergence tests or by a damping that ran away. ``wrap`` replaces ``evaluate`` (e.g.
@@ -192,6 +193,26 @@ def _layout(n: int, groups: int) -> dict[str, int]:
     }
 
 
+def _iterations(
+    iterate: ca.Function, config: RetargetConfig, lay: dict[str, int], npar: int, tag: str, cap: int
+) -> ca.Function | None:
+    """One start's iterations as nested conditionals (``None``: no iteration fits): level k
+    iterates once and hands over to level k + 1 unless done, so a converged start returns
+    at once; a level runs only while the solve has evaluations left under the start's
+    cumulative cap."""
+    xs, ps = ca.MX.sym("x", lay["size"]), ca.MX.sym("p", npar)
+    hold = ca.Function("hold", [xs, ps], [xs])
+    level = None
+    for k in reversed(range(min(config.max_iterations, cap - 1))):
+        nxt = iterate(xs, ps)
+        stop = ca.logic_or(nxt[lay["done"]], nxt[lay["ev"]] >= cap)
+        out = nxt if level is None else level(stop, nxt, ps)
+        level = ca.Function.conditional(
+            f"{tag}_level_{k}", [ca.Function(f"{tag}_iterate_{k}", [xs, ps], [out])], hold
+        )
+    return level
+
+
 def build_solve_function(
     pk: PairKinematics,
     config: RetargetConfig,
@@ -226,24 +247,7 @@ def build_solve_function(
     nx = lay["size"]
     i_cost, i_cl, i_b = lay["cost"], lay["clear"], lay["bounds"]
     i_done, i_it, i_ev = lay["done"], lay["it"], lay["ev"]
-    xs, ps = ca.MX.sym("x", nx), ca.MX.sym("p", npar)
-    hold = ca.Function("hold", [xs, ps], [xs])
-
-    def chain(tag: str, cap: int) -> ca.Function:
-        # The cap as nested conditionals: level k iterates once and hands over to level
-        # k + 1 unless done, so a converged start returns at once. A level runs only
-        # while the solve has evaluations left under this start's cumulative cap.
-        level = None
-        levels = min(config.max_iterations, cap - 1)
-        for k in reversed(range(levels)):
-            nxt = iterate(xs, ps)
-            stop = ca.logic_or(nxt[i_done], nxt[i_ev] >= cap)
-            out = nxt if level is None else level(stop, nxt, ps)
-            level = ca.Function.conditional(
-                f"{tag}_level_{k}", [ca.Function(f"{tag}_iterate_{k}", [xs, ps], [out])], hold
-            )
-        return level
-
+    ps = ca.MX.sym("p", npar)
     q_prev = ca.MX.sym("q_prev", n)
     targets = ca.MX.sym("targets", N_FEATURES)
     q_ref = ca.MX.sym("q_ref", n)
@@ -275,7 +279,7 @@ def build_solve_function(
             cl0 >= 0, ca.vertcat(qs, c0, cl0, b0), ca.vertcat(qs, np.inf, -np.inf, b0)
         )
         x0 = ca.vertcat(qs, c0, g0, h0, cl0, b0, rec0, _MU0, done0, xb[i_it], xb[i_ev] + 1.0)
-        lv = chain(tag, cap)
+        lv = _iterations(iterate, config, lay, npar, tag, cap)
         st = x0 if lv is None else lv(ca.logic_or(x0[i_done], x0[i_ev] >= cap), x0, ps)
         st = _collapse(st, lay, n, ng)
         kept = ca.if_else(_better(st[i_cost], st[i_cl], xb[i_cost], xb[i_cl]), st, xb)
@@ -284,6 +288,22 @@ def build_solve_function(
         start = ca.Function.conditional(f"maybe_{tag}", [run], skip)
         anchor = (q_anchor, bounds_in) if k == 0 else (best[:n], best[i_b : i_b + ng])
         best = start(best[i_ev] >= cap, best, seeds[tag], p_mx, *anchor)
+    q_out, info, bounds_out = _outputs(pk, config, best, lay, ng)
+    return ca.Function(
+        name,
+        [q_prev, targets, q_ref, q_anchor, bounds_in],
+        [q_out, info, bounds_out],
+        ["q_prev", "targets", "q_ref", "q_anchor", "bounds"],
+        ["q", "info", "bounds_out"],
+    )
+
+
+def _outputs(
+    pk: PairKinematics, config: RetargetConfig, best: ca.MX, lay: dict[str, int], ng: int
+) -> tuple[ca.MX, ca.MX, ca.MX]:
+    """The command, the info vector and the bounds at the command, from the best state."""
+    n, i_cost, i_cl, i_b = pk.n, lay["cost"], lay["clear"], lay["bounds"]
+    i_done, i_it, i_ev = lay["done"], lay["it"], lay["ev"]
     used, iters = best[i_ev], best[i_it]
     # Never a command inside the margin: if no start reached a collision-free point (both
     # the previous command and the posture reference were inside it), the safe posture.
@@ -298,13 +318,7 @@ def build_solve_function(
         ca.if_else(free, best[i_cl], cl_safe),
     )
     bounds_out = ca.if_else(free, best[i_b : i_b + ng], -np.inf * ca.DM.ones(ng))
-    return ca.Function(
-        name,
-        [q_prev, targets, q_ref, q_anchor, bounds_in],
-        [q_out, info, bounds_out],
-        ["q_prev", "targets", "q_ref", "q_anchor", "bounds"],
-        ["q", "info", "bounds_out"],
-    )
+    return q_out, info, bounds_out
 
 
 def safe_posture(pk: PairKinematics, config: RetargetConfig) -> tuple[np.ndarray, float]:
