@@ -565,11 +565,11 @@ def _failing_compiler(tmp_path: Path) -> str:
 
 
 def test_without_a_working_compiler_auto_falls_back_to_the_vm(prod, monkeypatch, tmp_path):
-    import payload.retarget.casadi_solver as cs
+    import payload.retarget.compiled as compiled
 
     monkeypatch.setenv("PAYLOAD_CACHE_DIR", str(tmp_path))
     cc = _failing_compiler(tmp_path)
-    monkeypatch.setattr(cs, "_compiler", lambda: cc)
+    monkeypatch.setattr(compiled, "_compiler", lambda: cc)
     with pytest.warns(RuntimeWarning, match="virtual machine") as caught:
         r = PairRetargeter(kinematics=prod["L"].kinematics)
     assert r.backend == "vm" and r.library is None
@@ -633,7 +633,7 @@ def test_pair_range_and_posture_family(pks, ranges, pair):
 _RANGE_CHILD = """
 import sys, numpy as np
 from payload.retarget import PairKinematics
-from payload.retarget.calibration import _compute_pair_range
+from payload.retarget.span_range import _compute_pair_range
 np.save(sys.argv[1], _compute_pair_range(PairKinematics(pair="L"), 0, False).postures)
 """
 
@@ -645,7 +645,7 @@ def test_a_pair_range_is_the_same_to_the_bit_whatever_blas_threads_the_caller_ha
     import subprocess
     import sys
 
-    from payload.retarget.calibration import _compute_pair_range
+    from payload.retarget.span_range import _compute_pair_range
 
     here = _compute_pair_range(PairKinematics(pair="L"), 0, False).postures
     env = {**os.environ, "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"}
@@ -735,11 +735,11 @@ def test_bench_cli_prints_one_json_object_with_the_issues_fields(capsys):
 
 
 def test_bench_cli_with_a_failing_compiler_prints_one_line(capsys, monkeypatch, tmp_path):
-    import payload.retarget.casadi_solver as cs
+    import payload.retarget.compiled as compiled
 
     monkeypatch.setenv("PAYLOAD_CACHE_DIR", str(tmp_path))
     cc = _failing_compiler(tmp_path)
-    monkeypatch.setattr(cs, "_compiler", lambda: cc)
+    monkeypatch.setattr(compiled, "_compiler", lambda: cc)
     assert main(["bench", "retarget", "--steps", "2", "--backend", "compiled"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "compiling the retargeting solver failed" in err[0]

@@ -75,22 +75,26 @@ def _hard_problems(pk: PairKinematics, seed: int, k: int):
         yield pk.features(q_true).as_vector(), q_prev, pk.rest
 
 
-@pytest.mark.parametrize("budget", ["paper", "converged"])
-def test_production_counts_every_residual_evaluation(pk, budget):
+@pytest.mark.parametrize(
+    ("budget", "collisions"), [("paper", False), ("converged", False), ("paper", True)]
+)
+def test_production_counts_every_residual_evaluation(pk, budget, collisions):
     counters: list[Counted] = []
 
     def wrap(f: ca.Function) -> Counted:
         counters.append(Counted(f))
         return counters[-1]
 
-    config = RetargetConfig(budget=budget)
+    config = RetargetConfig(budget=budget, collisions=collisions)
     counted = build_solve_function(pk, config, "counted", wrap_evaluate=wrap)
     plain = build_solve_function(pk, config, "plain")
     (counter,) = counters
-    for targets, q_prev, q_ref in _hard_problems(pk, 3, 4):
+    unknown = np.full(counted.nnz_in(4), -np.inf)  # no collision bounds known yet
+    assert (unknown.size > 0) == collisions
+    for targets, q_prev, q_ref in _hard_problems(pk, 3, 4 if budget == "paper" else 2):
         counter.count = 0
-        q, info = counted(q_prev, targets, q_ref)
-        q2, info2 = plain(q_prev, targets, q_ref)
+        q, info, _ = counted(q_prev, targets, q_ref, q_prev, unknown)
+        q2, info2, _ = plain(q_prev, targets, q_ref, q_prev, unknown)
         info, info2 = np.array(info).ravel(), np.array(info2).ravel()
         assert counter.count == int(info[3])  # the solver's own count is every call
         np.testing.assert_allclose(np.array(q), np.array(q2), atol=1e-12)

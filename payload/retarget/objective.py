@@ -55,8 +55,9 @@ class RetargetConfig:
         w_t: Temporal weight on range-normalised joints (paper: 0.03).
         collisions: Keep the hand's self-collision margin (:mod:`payload.retarget.collision`)
             (off by default until a solve with it meets the 100 us budget, issue 14):
-            no accepted iterate comes closer than the margin, and a penalty residual
-            ``w_c |(band - clearance)_+| / band`` pushes away within ``collision_band``.
+            no returned command comes closer than the margin (the iterates may cross it;
+            each start keeps the best collision-free point it met), and a penalty residual
+            ``w_c sum((band - clearance)_+^2) / band^2`` pushes away within ``collision_band``.
         w_c: Weight of the collision penalty residual.
         collision_band: Clearance below which the penalty acts [m].
         budget: ``paper``: at most ``max_nfev`` residual evaluations per pair solve for
@@ -172,11 +173,9 @@ class RetargetConfig:
 
 
 def collision_residual(clearance: np.ndarray, config: RetargetConfig) -> float:
-    """The collision penalty residual ``w_c |(band - clearance)_+| / band`` (numpy)."""
+    """The collision penalty residual ``w_c sum((band - clearance)_+^2) / band^2`` (numpy)."""
     over = np.maximum(config.collision_band - np.asarray(clearance, dtype=float), 0.0)
-    return float(config.w_c * np.sqrt(over @ over + 1e-12) / config.collision_band) - float(
-        config.w_c * 1e-6 / config.collision_band
-    )
+    return float(config.w_c * (over @ over) / config.collision_band**2)
 
 
 def soft_l1(z: np.ndarray) -> np.ndarray:

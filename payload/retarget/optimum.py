@@ -47,7 +47,7 @@ class CompiledObjective:
     """
 
     def __init__(self, pk: PairKinematics, config: RetargetConfig) -> None:
-        from payload.retarget.casadi_solver import _compiled_or_none
+        from payload.retarget.compiled import _compiled_or_none
 
         n = pk.n
         q, t = ca.SX.sym("q", n), ca.SX.sym("t", N_FEATURES)

@@ -194,15 +194,15 @@ def clearance_and_penalty(
 ) -> tuple[ca.SX, ca.SX] | None:
     """The clearances (k, 1) [m] and the collision penalty residual (1, 1), or ``None``.
 
-    The residual is ``w_c |(band - clearance)_+| / band``, smoothed at zero so that it
-    and its gradient vanish when every clearance exceeds the band.
+    The residual is ``w_c sum((band - clearance)_+^2) / band^2``: it and its gradient
+    vanish continuously as every clearance reaches the band (no kink at the band's edge,
+    where the constrained optimum tends to lie), and it is ``w_c`` per term at the margin.
     """
     if not uses_collisions(pk, config):
         return None
     c = pk.collision.clearance_expr(q)
     over = ca.fmax(config.collision_band - c, 0.0)
-    scale = config.w_c / config.collision_band
-    return c, scale * (ca.sqrt(ca.dot(over, over) + 1e-12) - 1e-6)
+    return c, (config.w_c / config.collision_band**2) * ca.dot(over, over)
 
 
 def residuals_expr(

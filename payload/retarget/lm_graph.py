@@ -1,0 +1,339 @@
+"""The pair solve as one CasADi graph: guarded projected Levenberg-Marquardt iterations.
+
+The forward kinematics rebuilt from the Pinocchio model (:mod:`payload.retarget.symbolic`),
+the residuals of eq. 3, their Jacobian by algorithmic differentiation, and a capped
+sequence of guarded iterations of a projected Levenberg-Marquardt method on the soft-L1
+cost ``sum(sqrt(1 + r^2) - 1)`` (the same value scipy's ``loss="soft_l1"`` minimises).
+See :mod:`payload.retarget.casadi_solver` for the method; :func:`build_solve_function`
+returns the whole solve (every start of the budget, :mod:`payload.retarget.budget`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import casadi as ca
+import numpy as np
+
+from payload.retarget.budget import budget_plan, table_seeds
+from payload.retarget.collision_eval import evaluate_function
+from payload.retarget.errors import RetargetError
+from payload.retarget.features import N_FEATURES, PairKinematics
+from payload.retarget.objective import RetargetConfig
+from payload.retarget.symbolic import paper_residuals_expr, uses_collisions
+
+_MU0 = 1e-4
+_MU_MAX = 1e12
+_BOUND_EPS = 1e-12
+_MAX_STEP = 0.1
+
+
+def _cholesky_solve(a: ca.SX, b: ca.SX) -> ca.SX:
+    """Solve ``a x = b`` for a symmetric positive definite symbolic matrix (n, n)."""
+    n = a.shape[0]
+    low = [[None] * n for _ in range(n)]
+    for j in range(n):
+        s = a[j, j]
+        for k in range(j):
+            s = s - low[j][k] * low[j][k]
+        low[j][j] = ca.sqrt(s)
+        for i in range(j + 1, n):
+            s = a[i, j]
+            for k in range(j):
+                s = s - low[i][k] * low[j][k]
+            low[i][j] = s / low[j][j]
+    y = [None] * n
+    for i in range(n):
+        s = b[i]
+        for k in range(i):
+            s = s - low[i][k] * y[k]
+        y[i] = s / low[i][i]
+    x = [None] * n
+    for i in reversed(range(n)):
+        s = y[i]
+        for k in range(i + 1, n):
+            s = s - low[k][i] * x[k]
+        x[i] = s / low[i][i]
+    return ca.vertcat(*x)
+
+
+def _step_functions(
+    pk: PairKinematics, config: RetargetConfig, wrap: Callable[[ca.Function], Any] | None = None
+) -> tuple[Any, ca.Function]:
+    """``evaluate(q, par, q_anchor, bounds) -> (cost, g, H, clearance, bounds)`` and one
+    guarded iteration ``iterate(x, par) -> x``.
+
+    The state is ``x = [q (n), cost, g (n), H (n*n), clearance, bounds (groups), free
+    record, mu, done, iterations, evaluations]`` (:func:`_layout`; ``bounds``: the collision
+    groups' clearance bounds at q, :mod:`payload.retarget.collision_eval`; the free record:
+    the best collision-free point met). One iteration proposes a step and
+    evaluates the residuals and their Jacobian at the candidate once (one residual
+    evaluation), then keeps the candidate if it is better; ``done`` is set by the
+    convergence tests or by a damping that ran away. ``wrap`` replaces ``evaluate`` (e.g.
+    by a counting callback). The step and the acceptance are SX functions; the iteration
+    is an MX graph that calls them and ``evaluate``.
+    """
+    n = pk.n
+    npar = N_FEATURES + 2 * n
+    q = ca.SX.sym("q", n)
+    par = ca.SX.sym("p", npar)
+    t, qr, qp = par[:N_FEATURES], par[N_FEATURES : N_FEATURES + n], par[N_FEATURES + n :]
+    r = paper_residuals_expr(pk, config, q, t, qr, qp)
+    evaluate, ng = evaluate_function(pk, config, r, ca.jacobian(r, q), q, par)
+    if wrap is not None:
+        evaluate = wrap(evaluate)
+    lay = _layout(n, ng)
+    x = ca.SX.sym("x", lay["size"])
+    qc, predicted = _proposal(pk, x, lay)
+    propose = ca.Function("propose", [x], [qc, predicted], {"cse": True})
+    cc, gc, hc = ca.SX.sym("c"), ca.SX.sym("g", n), ca.SX.sym("h", n * n)
+    clc, bc, qs, pr = ca.SX.sym("cl"), ca.SX.sym("b", ng), ca.SX.sym("qc", n), ca.SX.sym("pr")
+    ck, mu = x[lay["cost"]], x[lay["mu"]]
+    lbv, ubv = ca.DM(pk.lower), ca.DM(pk.upper)
+    gain = (ck - cc) / ca.fmax(pr, 1e-300)
+    mu_ok = ca.fmax(mu * ca.fmax(1.0 / 3.0, 1.0 - (2.0 * gain - 1.0) ** 3), 1e-12)
+    pg = qs - ca.fmin(ca.fmax(qs - gc, lbv), ubv)
+    conv = ca.logic_or(ca.mmax(ca.fabs(pg)) <= config.gtol, ck - cc <= config.ftol * ck)
+    mu_up = 4.0 * mu
+    # The iterates follow the cost (the penalty keeps them near the free region but may
+    # pass through the margin); the best collision-free point met is recorded apart.
+    lower = cc < ck
+    i_f, nf = lay["free"], n + 2 + ng
+    free_ok = ca.logic_and(clc >= 0, cc < x[i_f + n])
+    record = ca.if_else(free_ok, ca.vertcat(qs, cc, clc, bc), x[i_f : i_f + nf])
+    main = ca.if_else(lower, ca.vertcat(qs, cc, gc, hc, clc, bc), x[:i_f])
+    tail = ca.if_else(lower, ca.vertcat(mu_ok, conv), ca.vertcat(mu_up, mu_up >= _MU_MAX))
+    out = ca.vertcat(main, record, tail, x[lay["it"]] + 1.0, x[lay["ev"]] + 1.0)
+    accept = ca.Function("accept", [x, qs, pr, cc, gc, hc, clc, bc], [out], {"cse": True})
+    xm, pm = ca.MX.sym("x", lay["size"]), ca.MX.sym("p", npar)
+    qm, prm = propose(xm)
+    anchor_q, anchor_b = xm[:n], xm[lay["bounds"] : lay["bounds"] + ng]
+    ev = evaluate(qm, pm, anchor_q, anchor_b)  # the iteration's one residual evaluation
+    iterate = ca.Function("iterate", [xm, pm], [accept(xm, qm, prm, *ev)])
+    return evaluate, iterate
+
+
+def _proposal(pk: PairKinematics, x: ca.SX, lay: dict[str, int]) -> tuple[ca.SX, ca.SX]:
+    """The candidate of one iteration from state x, and its predicted decrease."""
+    n, nn = pk.n, pk.n * pk.n
+    lbv, ubv, rng = ca.DM(pk.lower), ca.DM(pk.upper), ca.DM(pk.range)
+    qk, gk, mu = x[:n], x[lay["g"] : lay["g"] + n], x[lay["mu"]]
+    hk = ca.reshape(x[lay["h"] : lay["h"] + nn], n, n)
+    active = ca.logic_or(
+        ca.logic_and(qk <= lbv + _BOUND_EPS, gk > 0), ca.logic_and(qk >= ubv - _BOUND_EPS, gk < 0)
+    )
+    free = 1.0 - active
+    damping = mu * ca.fmax(ca.diag(hk), 1e-9) + 1e-14
+    # First pass: the damped step over the free joints.
+    delta = -_cholesky_solve(
+        hk * ca.mtimes(free, free.T) + ca.diag(active + free * damping), free * gk
+    )
+    # Second pass: joints the step would push through a bound stop on it, and the others
+    # are solved again with that displacement fixed.
+    hit_lo = free * (qk + delta < lbv)
+    hit_hi = free * (qk + delta > ubv)
+    fixed = ca.fmax(active, hit_lo + hit_hi)
+    free2 = 1.0 - fixed
+    d_fixed = hit_lo * (lbv - qk) + hit_hi * (ubv - qk)
+    rhs = -free2 * (gk + ca.mtimes(hk, d_fixed))
+    delta = d_fixed + free2 * _cholesky_solve(
+        hk * ca.mtimes(free2, free2.T) + ca.diag(fixed + free2 * damping), rhs
+    )
+    # Step cap: no joint moves more than _MAX_STEP of its range per iteration.
+    delta = delta / ca.fmax(1.0, ca.mmax(ca.fabs(delta) / rng) / _MAX_STEP)
+    qc = ca.fmin(ca.fmax(qk + delta, lbv), ubv)
+    step = qc - qk
+    predicted = -(ca.dot(gk, step) + 0.5 * ca.dot(step, ca.mtimes(hk, step)))
+    return qc, predicted
+
+
+def _collapse(st: ca.MX, lay: dict[str, int], n: int, ng: int) -> ca.MX:
+    """A start's result: its best collision-free point when it met one (converged only
+    if that is where the iterates stopped), else where the iterates stopped."""
+    i_f, i_cost, i_cl = lay["free"], lay["cost"], lay["clear"]
+    fq, fc = st[i_f : i_f + n], st[i_f + n]
+    fcl, fb = st[i_f + n + 1], st[i_f + n + 2 : i_f + n + 2 + ng]
+    done = ca.logic_and(st[lay["done"]], fc == st[i_cost])
+    moved = ca.vertcat(
+        fq, fc, st[i_cost + 1 : i_cl], fcl, fb, st[i_f : lay["done"]], done, st[lay["it"] :]
+    )
+    return ca.if_else(fc < np.inf, moved, st)
+
+
+def _better(c_new: Any, cl_new: Any, c_old: Any, cl_old: Any) -> Any:
+    """A point beats another: both collision-free (clearance >= 0) and a lower cost, or
+    it is collision-free and the other is not, or neither is and it is less deep."""
+    free_new, free_old = cl_new >= 0, cl_old >= 0
+    return ca.logic_or(
+        ca.logic_and(free_new, ca.logic_or(c_new < c_old, ca.logic_not(free_old))),
+        ca.logic_and(ca.logic_not(free_old), ca.logic_and(ca.logic_not(free_new), cl_new > cl_old)),
+    )
+
+
+def _layout(n: int, groups: int) -> dict[str, int]:
+    """Offsets in the state ``[q (n), cost, g (n), H (n*n), clearance, bounds (groups),
+    free record, mu, done, iterations, evaluations]`` and its ``size``; the free record is
+    the best collision-free point met, ``[q (n), cost, clearance, bounds (groups)]``
+    (cost ``inf`` while none)."""
+    cl = 2 * n + 1 + n * n
+    mu = cl + 1 + groups + n + 2 + groups
+    return {
+        "cost": n,
+        "g": n + 1,
+        "h": 2 * n + 1,
+        "clear": cl,
+        "bounds": cl + 1,
+        "free": cl + 1 + groups,
+        "mu": mu,
+        "done": mu + 1,
+        "it": mu + 2,
+        "ev": mu + 3,
+        "size": mu + 4,
+    }
+
+
+def _iterations(
+    iterate: ca.Function, config: RetargetConfig, lay: dict[str, int], npar: int, tag: str, cap: int
+) -> ca.Function | None:
+    """One start's iterations as nested conditionals (``None``: no iteration fits): level k
+    iterates once and hands over to level k + 1 unless done, so a converged start returns
+    at once; a level runs only while the solve has evaluations left under the start's
+    cumulative cap."""
+    xs, ps = ca.MX.sym("x", lay["size"]), ca.MX.sym("p", npar)
+    hold = ca.Function("hold", [xs, ps], [xs])
+    level = None
+    for k in reversed(range(min(config.max_iterations, cap - 1))):
+        nxt = iterate(xs, ps)
+        stop = ca.logic_or(nxt[lay["done"]], nxt[lay["ev"]] >= cap)
+        out = nxt if level is None else level(stop, nxt, ps)
+        level = ca.Function.conditional(
+            f"{tag}_level_{k}", [ca.Function(f"{tag}_iterate_{k}", [xs, ps], [out])], hold
+        )
+    return level
+
+
+def build_solve_function(
+    pk: PairKinematics,
+    config: RetargetConfig,
+    name: str = "pair_solve",
+    wrap_evaluate: Callable[[ca.Function], Any] | None = None,
+) -> ca.Function:
+    """The pair solve as one CasADi function.
+
+    Args:
+        pk: The pair's kinematics (its Pinocchio model supplies the chains).
+        config: Weights, scales, budget, iteration cap and tolerances.
+        name: Function name (the C symbol when generated).
+        wrap_evaluate: Replaces the one function that evaluates the residuals (and
+            their Jacobian), e.g. by a counting ``casadi.Callback`` for tests; the result
+            then runs only in CasADi's virtual machine.
+
+    Returns:
+        ``(q_prev (n), targets (13), q_ref (n), q_anchor (n), bounds (g)) -> (q (n),
+        info (5), bounds (g))`` with ``info = [cost, iterations, converged, evaluations,
+        clearance]``; ``q_prev`` is projected onto the box and is both the first start and
+        the temporal term's reference. ``bounds`` are lower bounds of the ``g`` collision
+        groups' clearances valid at ``q_anchor`` (``-inf``: unknown; pass the previous
+        solve's output with its ``q``), :mod:`payload.retarget.collision_eval`; the output
+        ``bounds`` are valid at the output ``q``. ``g`` is 0 without collision terms.
+    """
+    n = pk.n
+    npar = N_FEATURES + 2 * n
+    lbv, ubv = ca.DM(pk.lower), ca.DM(pk.upper)
+    evaluate, iterate = _step_functions(pk, config, wrap_evaluate)
+    ng = int(evaluate.nnz_in(3))
+    lay = _layout(n, ng)
+    nx = lay["size"]
+    i_cost, i_cl, i_b = lay["cost"], lay["clear"], lay["bounds"]
+    i_done, i_it, i_ev = lay["done"], lay["it"], lay["ev"]
+    ps = ca.MX.sym("p", npar)
+    q_prev = ca.MX.sym("q_prev", n)
+    targets = ca.MX.sym("targets", N_FEATURES)
+    q_ref = ca.MX.sym("q_ref", n)
+    q_anchor, bounds_in = ca.MX.sym("q_anchor", n), ca.MX.sym("bounds", ng)
+    q0 = ca.fmin(ca.fmax(q_prev, lbv), ubv)
+    p_mx = ca.vertcat(targets, q_ref, q0)
+    seeds = {"prev": q0, "ref": ca.fmin(ca.fmax(q_ref, lbv), ubv)}
+    tags = [tag for tag, _ in budget_plan(config) if tag.startswith("seed")]
+    for tag, q_seed in zip(tags, table_seeds(pk, config, targets, q_ref, q0, len(tags))):
+        seeds[tag] = q_seed
+    # The starts in turn; each keeps the better state of itself and those before, and
+    # runs only if the solve has an evaluation left under its cumulative cap. The first
+    # start carries the collision bounds from the input anchor, the others from the best
+    # state so far.
+    xb, qs = ca.MX.sym("best", nx), ca.MX.sym("start", n)
+    qa, ba = ca.MX.sym("anchor", n), ca.MX.sym("anchor_bounds", ng)
+    skip = ca.Function("skip", [xb, qs, ps, qa, ba], [xb])
+    inf_state = ca.DM.zeros(nx)
+    inf_state[i_cost] = np.inf
+    inf_state[i_cl] = -np.inf
+    for k in range(ng):
+        inf_state[i_b + k] = -np.inf
+    best: ca.MX = ca.MX(inf_state)
+    for k, (tag, cap) in enumerate(budget_plan(config)):
+        c0, g0, h0, cl0, b0 = evaluate(qs, ps, qa, ba)
+        pg0 = qs - ca.fmin(ca.fmax(qs - g0, lbv), ubv)
+        done0 = ca.mmax(ca.fabs(pg0)) <= config.gtol
+        rec0 = ca.if_else(
+            cl0 >= 0, ca.vertcat(qs, c0, cl0, b0), ca.vertcat(qs, np.inf, -np.inf, b0)
+        )
+        x0 = ca.vertcat(qs, c0, g0, h0, cl0, b0, rec0, _MU0, done0, xb[i_it], xb[i_ev] + 1.0)
+        lv = _iterations(iterate, config, lay, npar, tag, cap)
+        st = x0 if lv is None else lv(ca.logic_or(x0[i_done], x0[i_ev] >= cap), x0, ps)
+        st = _collapse(st, lay, n, ng)
+        kept = ca.if_else(_better(st[i_cost], st[i_cl], xb[i_cost], xb[i_cl]), st, xb)
+        kept = ca.vertcat(kept[:i_it], st[i_it], st[i_ev])
+        run = ca.Function(f"start_{tag}", [xb, qs, ps, qa, ba], [kept])
+        start = ca.Function.conditional(f"maybe_{tag}", [run], skip)
+        anchor = (q_anchor, bounds_in) if k == 0 else (best[:n], best[i_b : i_b + ng])
+        best = start(best[i_ev] >= cap, best, seeds[tag], p_mx, *anchor)
+    q_out, info, bounds_out = _outputs(pk, config, best, lay, ng)
+    return ca.Function(
+        name,
+        [q_prev, targets, q_ref, q_anchor, bounds_in],
+        [q_out, info, bounds_out],
+        ["q_prev", "targets", "q_ref", "q_anchor", "bounds"],
+        ["q", "info", "bounds_out"],
+    )
+
+
+def _outputs(
+    pk: PairKinematics, config: RetargetConfig, best: ca.MX, lay: dict[str, int], ng: int
+) -> tuple[ca.MX, ca.MX, ca.MX]:
+    """The command, the info vector and the bounds at the command, from the best state."""
+    n, i_cost, i_cl, i_b = pk.n, lay["cost"], lay["clear"], lay["bounds"]
+    i_done, i_it, i_ev = lay["done"], lay["it"], lay["ev"]
+    used, iters = best[i_ev], best[i_it]
+    # Never a command inside the margin: if no start reached a collision-free point (both
+    # the previous command and the posture reference were inside it), the safe posture.
+    q_safe, cl_safe = safe_posture(pk, config)
+    free = best[i_cl] >= 0
+    q_out = ca.if_else(free, best[:n], ca.DM(q_safe))
+    info = ca.vertcat(
+        ca.if_else(free, best[i_cost], np.inf),
+        iters,
+        ca.logic_and(free, best[i_done]),
+        used,
+        ca.if_else(free, best[i_cl], cl_safe),
+    )
+    bounds_out = ca.if_else(free, best[i_b : i_b + ng], -np.inf * ca.DM.ones(ng))
+    return q_out, info, bounds_out
+
+
+def safe_posture(pk: PairKinematics, config: RetargetConfig) -> tuple[np.ndarray, float]:
+    """A collision-free posture and its clearance [m]: the rest posture if it is, else the
+    collision-free one nearest to it (range-normalised) among seeded samples of the box."""
+    if not uses_collisions(pk, config):
+        return pk.rest.copy(), 1.0
+    col = pk.collision
+    if col.clearance(pk.rest) >= 0:
+        return pk.rest.copy(), col.clearance(pk.rest)
+    rng = np.random.default_rng(99)
+    qs = pk.lower + rng.random((4000, pk.n)) * pk.range
+    dist = np.array(col.distance_function().map(qs.shape[0])(qs.T))
+    ok = np.flatnonzero(dist.min(axis=0) - col.margin >= col.margin)
+    if ok.size == 0:
+        raise RetargetError(f"pair {pk.name}: no collision-free posture found for the fallback")
+    i = ok[np.argmin(np.sum(((qs[ok] - pk.rest) / pk.range) ** 2, axis=1))]
+    return qs[i], float(dist[:, i].min() - col.margin)
