@@ -174,6 +174,11 @@ def test_the_pinch_pre_shape_has_one_source(design_dict, tmp_path):
     data["pinch"] = {"finger": [-0.3, 0.0, 0.0, 9.0]}
     with pytest.raises(DesignError, match=r"pinch\.finger.*dip"):
         design_from_dict(data)
+    # an older file whose own limits exclude the packaged default is told to add [pinch]
+    del data["pinch"]
+    data["finger"]["limits"]["dip"] = [0.0, 0.8]
+    with pytest.raises(DesignError, match=r"^pinch: missing.*add a \[pinch\] table"):
+        design_from_dict(data)
 
 
 # ---------------------------------------------------------------- mass properties

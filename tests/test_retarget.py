@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import DESIGN
 
 from payload.cli import main
 from payload.retarget import (
@@ -234,6 +235,24 @@ def test_bad_hand_files_are_rejected_naming_the_key(tmp_path, change, message):
     path = _write_hand(tmp_path, "\n".join(lines.values()))
     with pytest.raises(RetargetError, match=message):
         load_hand(path)
+
+
+def test_a_hand_resting_on_its_design_names_a_joint_the_design_has_no_rest_for(tmp_path):
+    """Without ``rest``, a hand that names its design rests each joint at the design's
+    pinch pre-shape by name; the rail joint of an A-B pair has none: one line, the file."""
+    path = _write_hand(
+        tmp_path,
+        'base = "stage"\ntips = ["A_tip", "B_tip"]\ndistals = ["A_distal", "B_distal"]\n'
+        'joints = [["A_mcp_flex", "A_mcp_abd", "A_pip", "A_dip"], '
+        '["rail", "B_mcp_flex", "B_mcp_abd", "B_pip", "B_dip"]]',
+    )
+    text = path.read_text().replace("[pairs.L]", f'design = "{DESIGN}"\n[pairs.L]')
+    path.write_text(text)
+    with pytest.raises(RetargetError, match=r"hand\.toml: pairs\.L\.rest: joint 'rail' is not"):
+        load_hand(path)
+    # with every joint's rest given in the hand file, it loads
+    path.write_text(text + "rest = [-0.3, 0, 0, 0.9, 0.01, -0.3, 0, 0, 0.9]\n")
+    assert load_hand(path).pair("L").rest[4] == 0.01
 
 
 def test_missing_hand_file_or_urdf(tmp_path):
@@ -645,8 +664,12 @@ def test_a_pair_range_is_the_same_to_the_bit_whatever_blas_threads_the_caller_ha
     import subprocess
     import sys
 
+    from threadpoolctl import threadpool_info
+
     from payload.retarget.span_range import _compute_pair_range
 
+    if max((p["num_threads"] for p in threadpool_info()), default=1) < 2:
+        pytest.skip("one BLAS thread here: the comparison could not tell the two apart")
     here = _compute_pair_range(PairKinematics(pair="L"), 0, False).postures
     env = {**os.environ, "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"}
     out = tmp_path / "postures.npy"

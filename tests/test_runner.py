@@ -271,3 +271,36 @@ def test_a_replay_honours_recorded_timestamps_and_records_its_source(tmp_path, r
     assert rec.meta["replay"]["rate_hz"] == pytest.approx(rate)
     meta, resampled = read_hand_frames(out / "log.mcap")
     assert meta["seed"] == 7 and len(resampled) == len(rec)
+
+
+def test_the_trials_retargeters_are_rebuilt_when_only_the_designs_pre_shape_changes(
+    tmp_path, monkeypatch
+):
+    """The per-thread retargeters are keyed by everything they are built from: a design
+    edit that leaves the URDF alone (the ``[pinch]`` rest posture) builds new ones."""
+    import shutil
+
+    import tomli_w
+
+    from payload.design.params import tomllib
+    from payload.trials import retargeters
+
+    built = []
+
+    class Recorder:
+        def __init__(self, hand, pair, config):
+            built.append(hand.pair(pair).rest)
+            self.kinematics, self.collisions = None, False
+
+    monkeypatch.setattr(retargeters, "PairRetargeter", Recorder)
+    monkeypatch.setattr(retargeters, "pair_range", lambda pk, collisions: None)
+    data = tomllib.loads(DESIGN.read_text())
+    project = Project.at(tmp_path / "p")
+    (project.root / "cad").mkdir(parents=True)
+    shutil.copytree(DESIGN.parent.parent / "urdf", project.urdf_dir)
+    for dip in (0.9, 1.0):
+        data["pinch"]["finger"][3] = dip
+        project.design_path.write_text(tomli_w.dumps(data))
+        retargeters.retargeting(project, budget="paper")
+        retargeters.retargeting(project, budget="paper")  # the same design: cached
+    assert [rest[3] for rest in built] == [0.9, 0.9, 1.0, 1.0]  # pairs L and R, twice

@@ -399,10 +399,21 @@ def _value(tp: Any, v: Any, where: str, meta: Any) -> Any:
 def design_from_dict(data: dict[str, Any], source: str = "<memory>") -> Design:
     """Build and validate a :class:`Design` from a parsed TOML document."""
     design = _build(Design, data, "")
-    if design.pinch is None:
+    defaulted = design.pinch is None
+    if defaulted:
         # a design file written before [pinch] existed takes the packaged default's
         design = dataclasses.replace(design, pinch=_default_pinch())
-    return dataclasses.replace(design, source=source).validate()
+    try:
+        return dataclasses.replace(design, source=source).validate()
+    except DesignError as exc:
+        if not (defaulted and exc.parameter == "pinch.finger"):
+            raise
+        raise DesignError(
+            "pinch",
+            f"missing, and the packaged default pre-shape {list(design.pinch.finger)} does "
+            f"not fit this design ({exc.reason}); add a [pinch] table with "
+            "finger = [mcp_flex, mcp_abd, pip, dip]",
+        ) from None
 
 
 @functools.cache

@@ -266,7 +266,7 @@ def hand_from_dict(
     if not isinstance(pairs_raw, dict) or not pairs_raw:
         raise RetargetError(f"{where}: pairs: expected at least one [pairs.NAME] table")
     pairs = {
-        name: _pair_from_dict(f"pairs.{name}", name, value, pad_radius, preshape)
+        name: _pair_from_dict(f"{where}: pairs.{name}", name, value, pad_radius, preshape)
         for name, value in pairs_raw.items()
     }
     hand = HandDescription(

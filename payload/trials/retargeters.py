@@ -21,14 +21,17 @@ def retargeting(
     """Production retargeters (with this evaluation budget, see
     :attr:`RetargetConfig.budget <payload.retarget.RetargetConfig.budget>`) and pair ranges
     for our hand on ``project``'s URDF (default: the current project), built once per
-    thread, URDF content and budget.
+    thread, URDF and design content, resolved hand and budget.
 
     A retargeter holds its solver's buffers and warm start, so concurrent trials (a Dask
     worker with several threads) each get their own; nothing here is shared between
     threads.
     """
     hand = load_hand(project=project or current_project())
-    key = (hand.urdf, hand.urdf.read_bytes(), budget)
+    # everything the retargeters are built from: the URDF, the resolved hand (rest
+    # posture, margin) and the design it names (pre-shape, structure boxes)
+    design = hand.design.read_bytes() if hand.design is not None else b""
+    key = (hand.urdf, hand.urdf.read_bytes(), repr(hand), design, budget)
     built: dict[Any, Any] = getattr(_LOCAL, "retargeting", None) or {}
     _LOCAL.retargeting = built
     cached = built.get(key)
