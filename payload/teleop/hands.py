@@ -13,6 +13,7 @@ import numpy as np
 
 from payload.errors import PayloadError
 from payload.rotations import matrix_to_quat, quat_to_matrix
+from payload.vecmath import cross
 
 XR_JOINTS: tuple[str, ...] = (
     "wrist",
@@ -149,14 +150,6 @@ def _rotate_quat(q: np.ndarray) -> np.ndarray:
     return matrix_to_quat(WEBXR_TO_WORKBENCH @ r @ WEBXR_TO_WORKBENCH.T)
 
 
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``np.cross`` of two 3-vectors (the same products and differences), without its
-    tens of microseconds of overhead."""
-    return np.array(
-        [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
-    )
-
-
 def wrist_frame(hand: Hand) -> np.ndarray:
     """Wrist frame built from joint positions alone, as a (4, 4) transform wrist -> workbench.
 
@@ -168,9 +161,9 @@ def wrist_frame(hand: Hand) -> np.ndarray:
     along = hand.joints[MIDDLE_KNUCKLE] - w
     across = hand.joints[INDEX_KNUCKLE] - hand.joints[PINKY_KNUCKLE]
     x = along / math.sqrt(along.dot(along))  # np.linalg.norm's formula, without its overhead
-    z = _cross(x, across)
+    z = cross(x, across)
     z /= math.sqrt(z.dot(z))
-    y = _cross(z, x)
+    y = cross(z, x)
     t = np.eye(4)
     t[:3, :3] = np.column_stack([x, y, z])
     t[:3, 3] = w
