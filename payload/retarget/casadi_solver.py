@@ -69,11 +69,6 @@ BACKENDS = ("auto", "compiled", "vm")
 compiled when a C compiler works, else the virtual machine."""
 
 
-def _compiler() -> str | None:
-    """The C compiler (:func:`payload.retarget.compiled._compiler`)."""
-    return _compiled_mod._compiler()
-
-
 class PairRetargeter(Retargeter):
     """The production pair retargeter: eq. 3 in one compiled CasADi call.
 
@@ -113,7 +108,7 @@ class PairRetargeter(Retargeter):
         self.library: Path | None = None
         self.backend_reason: str | None = None
         self._compiled: _CompiledSolve | None = None
-        compiler = _compiler() if backend != "vm" else None
+        compiler = _compiled_mod._compiler() if backend != "vm" else None
         if backend == "compiled" and compiler is None:
             raise RetargetError("backend 'compiled' needs a C compiler (set CC or install gcc)")
         if compiler is not None:

@@ -9,10 +9,11 @@ from typing import NamedTuple
 import mujoco
 import numpy as np
 
-from payload.design import FINGER_JOINTS, FINGERS, SIDE_OF, Design
+from payload.design import FINGERS, SIDE_OF, Design
 from payload.sim.astrobee import design_vehicle, payload_mount
 from payload.sim.config import WorldConfig
 from payload.sim.errors import SimError
+from payload.sim.pads import pose_payload
 
 PINCH_CLEARANCE = 0.005
 """Least gap between the pads and the handle at the pre-shape [m]; a design that leaves
@@ -58,12 +59,7 @@ class _PayloadKinematics:
     def tips(self, finger: Sequence[float], rail: float, stage: float) -> np.ndarray:
         """Fingertip points of A, B, C, D, shape (4, 3) [m], all fingers at ``finger``."""
         m, d = self.model, self.data
-        values = {"rail": rail, "stage": stage}
-        for f in FINGERS:
-            for j, v in zip(FINGER_JOINTS, finger):
-                values[f"{f}_{j}"] = v
-        for name, v in values.items():
-            d.qpos[m.jnt_qposadr[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, name)]] = v
+        pose_payload(m, d, finger, rail, stage)
         mujoco.mj_kinematics(m, d)
         return np.array(
             [

@@ -31,6 +31,7 @@ clamped there (and said so).
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from typing import NamedTuple
 
 import mujoco
@@ -85,6 +86,19 @@ def pad_stiffness(design: Design) -> tuple[float, float]:
     return 2.0 * p.load / delta0, delta0
 
 
+def pose_payload(
+    m: mujoco.MjModel, d: mujoco.MjData, finger: Sequence[float], rail: float, stage: float
+) -> None:
+    """Set the payload model's joints in ``d.qpos``: every finger at ``finger`` (mcp_flex,
+    mcp_abd, pip, dip) [rad], the rail and the stage [m]."""
+    values = {"rail": rail, "stage": stage}
+    for f in FINGERS:
+        for j, v in zip(FINGER_JOINTS, finger):
+            values[f"{f}_{j}"] = v
+    for name, v in values.items():
+        d.qpos[m.jnt_qposadr[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, name)]] = v
+
+
 def finger_effective_mass(
     payload_mjcf: str, design: Design, finger: tuple[float, float, float, float]
 ) -> float:
@@ -93,12 +107,7 @@ def finger_effective_mass(
     stage)."""
     m = mujoco.MjModel.from_xml_path(str(payload_mjcf))
     d = mujoco.MjData(m)
-    values = {"rail": design.home.rail, "stage": design.home.stage}
-    for f in FINGERS:
-        for j, v in zip(FINGER_JOINTS, finger):
-            values[f"{f}_{j}"] = v
-    for name, v in values.items():
-        d.qpos[m.jnt_qposadr[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, name)]] = v
+    pose_payload(m, d, finger, design.home.rail, design.home.stage)
     mujoco.mj_forward(m, d)
     masses = []
     for f in FINGERS:
@@ -152,4 +161,5 @@ __all__ = [
     "finger_effective_mass",
     "pad_contact",
     "pad_stiffness",
+    "pose_payload",
 ]

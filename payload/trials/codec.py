@@ -82,22 +82,27 @@ STEP_DOUBLES: tuple[tuple[str, int, tuple[int, ...]], ...] = (
     ("ctb_quat", 22, (4,)),
 )
 
-STEP_GRIDS: tuple[tuple[str, float, int], ...] = (
-    ("wall_time", 1e-6, 1),
-    ("t", 1e-9, 1),
-    ("twist_cmd", 1e-9, 6),
-    ("q_cmd", 1e-8, 17),
-    ("deploy_cmd", 1e-8, 1),
-    ("q_meas", 1e-8, 17),
-    ("deploy_meas", 1e-8, 1),
-    ("astrobee_pos", 1e-8, 3),
-    ("astrobee_quat", 1e-10, 4),
-    ("astrobee_twist", 1e-9, 6),
-    ("ctb_pos", 1e-8, 3),
-    ("ctb_quat", 1e-10, 4),
+_SIZES = {"wall_time": 1, **{name: int(np.prod(shape)) for name, _, shape in STEP_DOUBLES}}
+STEP_GRIDS: tuple[tuple[str, float, int], ...] = tuple(
+    (name, resolution, _SIZES[name])
+    for name, resolution in (
+        ("wall_time", 1e-6),
+        ("t", 1e-9),
+        ("twist_cmd", 1e-9),
+        ("q_cmd", 1e-8),
+        ("deploy_cmd", 1e-8),
+        ("q_meas", 1e-8),
+        ("deploy_meas", 1e-8),
+        ("astrobee_pos", 1e-8),
+        ("astrobee_quat", 1e-10),
+        ("astrobee_twist", 1e-9),
+        ("ctb_pos", 1e-8),
+        ("ctb_quat", 1e-10),
+    )
 )
-"""(field, resolution, size) of the numbers a step stores on a grid, in storage order;
-resolutions in the field's unit (s, m, rad, m/s, rad/s, quaternion components)."""
+"""(field, resolution, size) of the numbers a step stores on a grid, in storage order (sizes
+from :data:`STEP_DOUBLES`; ``wall_time`` is a scalar); resolutions in the field's unit
+(s, m, rad, m/s, rad/s, quaternion components)."""
 
 _GRID = np.concatenate([np.full(n, g) for _, g, n in STEP_GRIDS])
 _PER_UNIT = np.round(1.0 / _GRID)  # grid steps per unit, exact integers: decoded values are
