@@ -30,6 +30,7 @@ from collections import defaultdict
 import casadi as ca
 import numpy as np
 
+from payload.retarget.collision import _TINY, _segment_distance_ca
 from payload.retarget.features import PairKinematics
 from payload.retarget.objective import RetargetConfig
 from payload.retarget.symbolic import PointChain, chain_point
@@ -69,6 +70,7 @@ class CollisionGroups:
         self.terms: tuple[tuple[int, ...], ...] = tuple(tuple(by_key[k]) for k in keys)
         rows = [caps[c] if box else caps[c] + caps[o] for c, box, o in keys]
         self.lipschitz = np.array(rows).reshape(len(keys), pk.n)
+        self._shared: dict[object, ca.Function] = {}
 
     def __len__(self) -> int:
         return len(self.terms)
@@ -97,20 +99,75 @@ class CollisionGroups:
     def branch(self, g: int, config: RetargetConfig, name: str) -> ca.Function:
         """``(ends_1 (6), ends_2 (6 or 0), bound) -> (S_g, dS_g/d ends_1, dS_g/d ends_2,
         smallest clearance)`` of group g, evaluated; ``S_g`` is the sum of
-        ``(band - clearance)_+^2`` over its terms."""
+        ``(band - clearance)_+^2`` over its terms.
+
+        The arithmetic is one shared function per kind of group (a capsule against two
+        to k sample points on one box, or a capsule pair), called with the group's
+        geometry as constants: one copy of the code for every group, so the generated
+        solver stays small enough to stay in the instruction cache."""
         col = self.pk.collision
         cap, box, other = self.keys()[g]
-        e1, e2 = ca.SX.sym("e1", 6), ca.SX.sym("e2", 0 if box else 6)
-        ends: list = [None] * len(col.capsules)
-        ends[cap] = (e1[:3], e1[3:])
-        if not box:
-            ends[other] = (e2[:3], e2[3:])
-        c = ca.vertcat(*[col._term_expr(col.terms[k], ends) for k in self.terms[g]]) - col.margin
-        over = ca.fmax(config.collision_band - c, 0.0)
-        s = ca.dot(over, over)
-        bound = ca.SX.sym("bound")
-        outs = [s, ca.gradient(s, e1), ca.gradient(s, e2), ca.mmin(c)]
-        return ca.Function(name, [e1, e2, bound], outs, {"cse": True})
+        e1, e2 = ca.MX.sym("e1", 6), ca.MX.sym("e2", 0 if box else 6)
+        bound = ca.MX.sym("bound")
+        if box:
+            bx = col.boxes[other]
+            fractions = [col.terms[k].fraction for k in self.terms[g]]
+            fn = self._shared_box(len(fractions), config)
+            s, d1, m = fn(
+                e1,
+                ca.DM(bx.centre),
+                ca.DM(bx.rotation),
+                ca.DM(bx.half),
+                col.capsules[cap].radius,
+                ca.DM(fractions),
+            )
+            d2 = ca.MX(0, 1)
+        else:
+            fn = self._shared_pair(config)
+            radii = col.capsules[cap].radius + col.capsules[other].radius
+            s, d1, d2, m = fn(e1, e2, radii)
+        return ca.Function(name, [e1, e2, bound], [s, d1, d2, m])
+
+    def _shared_box(self, k: int, config: RetargetConfig) -> ca.Function:
+        """The group function of a capsule against k points on one box (see :meth:`branch`)."""
+        key = ("box", k)
+        if key not in self._shared:
+            e1, centre = ca.SX.sym("e1", 6), ca.SX.sym("centre", 3)
+            rot, half = ca.SX.sym("rotation", 3, 3), ca.SX.sym("half", 3)
+            radius, fr = ca.SX.sym("radius"), ca.SX.sym("fractions", k)
+            a, b = e1[:3], e1[3:]
+            dist = []
+            for i in range(k):
+                local = ca.mtimes(rot.T, a + fr[i] * (b - a) - centre)
+                qv = ca.fabs(local) - half
+                out = ca.fmax(qv, 0)
+                dist.append(ca.sqrt(ca.dot(out, out) + _TINY) + ca.fmin(ca.mmax(qv), 0) - radius)
+            c = ca.vertcat(*dist) - self.pk.collision.margin
+            over = ca.fmax(config.collision_band - c, 0.0)
+            s = ca.dot(over, over)
+            self._shared[key] = ca.Function(
+                f"group_box_{k}",
+                [e1, centre, rot, half, radius, fr],
+                [s, ca.gradient(s, e1), ca.mmin(c)],
+                {"cse": True},
+            )
+        return self._shared[key]
+
+    def _shared_pair(self, config: RetargetConfig) -> ca.Function:
+        """The group function of a capsule pair (see :meth:`branch`)."""
+        if "pair" not in self._shared:
+            e1, e2, radii = ca.SX.sym("e1", 6), ca.SX.sym("e2", 6), ca.SX.sym("radii")
+            dist = _segment_distance_ca(e1[:3], e1[3:], e2[:3], e2[3:]) - radii
+            c = dist - self.pk.collision.margin
+            over = ca.fmax(config.collision_band - c, 0.0)
+            s = over * over
+            self._shared["pair"] = ca.Function(
+                "group_pair",
+                [e1, e2, radii],
+                [s, ca.gradient(s, e1), ca.gradient(s, e2), c],
+                {"cse": True},
+            )
+        return self._shared["pair"]
 
     def skip(self, name: str, box: bool) -> ca.Function:
         """``(ends_1, ends_2, bound) -> (0, 0, 0, bound)``: a group proven beyond the band."""
