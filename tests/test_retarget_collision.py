@@ -12,6 +12,7 @@ from pathlib import Path
 
 import casadi as ca
 import numpy as np
+import pinocchio as pin
 import pytest
 
 from payload.design.params import load_design
@@ -163,6 +164,43 @@ def _group_minima(pk: PairKinematics, groups: CollisionGroups, q: np.ndarray) ->
     return np.array([c[list(t)].min() for t in groups.terms])
 
 
+def _ends(pk: PairKinematics, q: np.ndarray) -> np.ndarray:
+    """Every capsule's axis ends in the pair's base frame, by Pinocchio (6 per capsule)."""
+    col, model = pk.collision, pk.kin.model
+    data = model.createData()
+    pin.framesForwardKinematics(model, data, pk.full_configuration(q))
+    base = pk.kin.frame_placement(pk.kin.neutral(), pk.desc.base).inverse()
+    out = []
+    for c in col.capsules:
+        m = base * data.oMf[model.getFrameId(c.link, pin.FrameType.BODY)]
+        out += [m.act(c.a), m.act(c.b)]
+    return np.concatenate(out)
+
+
+def _midpoint_bounds(pk: PairKinematics, groups: CollisionGroups, q: np.ndarray) -> np.ndarray:
+    ends = _ends(pk, q)
+    return np.array([groups.midpoint_bound(g, ends) for g in range(len(groups))])
+
+
+@pytest.mark.parametrize("pair", PAIRS)
+def test_the_midpoint_bounds_are_lower_bounds_of_each_group(pks, pair):
+    """At random postures, every group's midpoint bound is below its smallest clearance
+    (numpy distances); the capsule ends by Pinocchio equal the solver's CasADi ends."""
+    pk = pks[pair]
+    groups = CollisionGroups(pk)
+    ends_fn = groups.ends_function()
+    rng = np.random.default_rng(31)
+    gaps = []
+    for q in pk.lower + rng.random((200, pk.n)) * pk.range:
+        ends = _ends(pk, q)
+        np.testing.assert_allclose(np.array(ends_fn(q)).ravel(), ends, rtol=0, atol=1e-12)
+        bound, exact = _midpoint_bounds(pk, groups, q), _group_minima(pk, groups, q)
+        assert np.all(bound <= exact + 1e-12)
+        gaps.append(exact - bound)
+    gaps = np.concatenate(gaps)
+    assert np.median(gaps) < 0.03  # not vacuous: typically within a few centimetres
+
+
 @pytest.mark.parametrize("pair", PAIRS)
 def test_the_groups_clearance_bounds_hold_for_every_move(pks, pair):
     """``min_g(q) >= min_g(q_a) - L_g . |q - q_a|``, by numpy distances at both postures."""
@@ -194,6 +232,7 @@ def test_the_grouped_evaluation_equals_the_dense_penalty(pks, solvers, pair):
     groups = CollisionGroups(pk)
     rng = np.random.default_rng(5)
     band = config.collision_band
+    seen = np.zeros(2, dtype=int)  # groups evaluated exactly, groups the midpoint skipped
     for k in range(24):
         q = pk.lower + rng.random(pk.n) * pk.range
         qa = (
@@ -216,8 +255,14 @@ def test_the_grouped_evaluation_equals_the_dense_penalty(pks, solvers, pair):
         exact = _group_minima(pk, groups, q)
         assert np.all(out <= exact + 1e-12)
         pre = bounds - groups.lipschitz @ np.abs(q - qa)
-        np.testing.assert_allclose(out[pre < band], exact[pre < band], rtol=0, atol=1e-12)
+        mid = _midpoint_bounds(pk, groups, q)
+        evaluated = (pre < band) & (mid < band)
+        np.testing.assert_allclose(out[evaluated], exact[evaluated], rtol=0, atol=1e-12)
+        skipped = (pre < band) & ~evaluated  # kept the better of the two bounds
+        np.testing.assert_allclose(out[skipped], np.maximum(pre, mid)[skipped], atol=1e-12)
+        seen += evaluated.sum(), skipped.sum()
         _assert_reported_clearance(float(clear[0]), float(exact.min()), band)
+    assert seen.min() > 0  # both paths taken
 
 
 # ------------------------------------------------------------- calibration

@@ -30,10 +30,14 @@ from collections import defaultdict
 import casadi as ca
 import numpy as np
 
-from payload.retarget.collision import _TINY, _segment_distance_ca
+from payload.retarget.collision import _TINY, _segment_distance_ca, box_sdf
 from payload.retarget.features import PairKinematics
 from payload.retarget.objective import RetargetConfig
 from payload.retarget.symbolic import PointChain, chain_point
+
+_SLACK = 1e-9
+"""Added to the midpoint bounds' reach [m]: covers rounding (and the ``1e-18`` under the
+distances' square roots)."""
 
 
 def chain_lipschitz(chain: PointChain, pk: PairKinematics) -> np.ndarray:
@@ -96,85 +100,121 @@ class CollisionGroups:
         ends = self.ends_function()(q)
         return ca.Function("capsule_vjp", [q, v], [ca.jtimes(ends, q, v, True)], {"cse": True})
 
-    def branch(self, g: int, config: RetargetConfig, name: str) -> ca.Function:
-        """``(ends_1 (6), ends_2 (6 or 0), bound) -> (S_g, dS_g/d ends_1, dS_g/d ends_2,
-        smallest clearance)`` of group g, evaluated; ``S_g`` is the sum of
-        ``(band - clearance)_+^2`` over its terms.
+    def group_call(self, g: int, config: RetargetConfig) -> tuple[ca.Function, list]:
+        """Group g's shared function and the group's constants.
 
-        The arithmetic is one shared function per kind of group (a capsule against two
-        to k sample points on one box, or a capsule pair), called with the group's
-        geometry as constants: one copy of the code for every group, so the generated
-        solver stays small enough to stay in the instruction cache."""
+        ``fn(far, ends_1 (6), [ends_2 (6),] *constants, bound) -> (S_g, dS_g/d ends_1,
+        [dS_g/d ends_2,] clearance bound)``: with ``far`` true, ``(0, 0, [0,] bound)``;
+        else first the group's **midpoint bound** (:meth:`midpoint_bound`), and only if
+        that is below the band the exact terms (``S_g``, the sum of
+        ``(band - clearance)_+^2`` over them, and their smallest clearance), else
+        ``(0, 0, [0,] max(bound, midpoint bound))``. ``ends_2`` is there for a capsule pair.
+
+        There is one such function per kind of group (a capsule against k sample points
+        on one box; a capsule pair), the group's geometry passed as constants: one copy of
+        the code for all groups, so the generated solver stays small enough to stay in
+        the instruction cache.
+        """
         col = self.pk.collision
         cap, box, other = self.keys()[g]
-        e1, e2 = ca.MX.sym("e1", 6), ca.MX.sym("e2", 0 if box else 6)
-        bound = ca.MX.sym("bound")
         if box:
             bx = col.boxes[other]
             fractions = [col.terms[k].fraction for k in self.terms[g]]
-            fn = self._shared_box(len(fractions), config)
-            s, d1, m = fn(
-                e1,
-                ca.DM(bx.centre),
-                ca.DM(bx.rotation),
-                ca.DM(bx.half),
-                col.capsules[cap].radius,
-                ca.DM(fractions),
-            )
-            d2 = ca.MX(0, 1)
-        else:
-            fn = self._shared_pair(config)
-            radii = col.capsules[cap].radius + col.capsules[other].radius
-            s, d1, d2, m = fn(e1, e2, radii)
-        return ca.Function(name, [e1, e2, bound], [s, d1, d2, m])
+            f_mid, slack = self._box_midpoint(g)
+            consts = [ca.DM(bx.centre), ca.DM(bx.rotation), ca.DM(bx.half)]
+            consts += [col.capsules[cap].radius, ca.DM(fractions), f_mid, slack]
+            return self._shared_group(("box", len(fractions)), config), consts
+        radii = col.capsules[cap].radius + col.capsules[other].radius
+        return self._shared_group(("pair", 0), config), [radii, self._pair_slack(cap, other)]
 
-    def _shared_box(self, k: int, config: RetargetConfig) -> ca.Function:
-        """The group function of a capsule against k points on one box (see :meth:`branch`)."""
-        key = ("box", k)
-        if key not in self._shared:
-            e1, centre = ca.SX.sym("e1", 6), ca.SX.sym("centre", 3)
-            rot, half = ca.SX.sym("rotation", 3, 3), ca.SX.sym("half", 3)
+    def _box_midpoint(self, g: int) -> tuple[float, float]:
+        """A box group's middle fraction along the capsule axis, and the farthest any of
+        its points lies from that point [m] (the axis length is fixed in its link)."""
+        col = self.pk.collision
+        fr = [col.terms[k].fraction for k in self.terms[g]]
+        c = col.capsules[col.terms[self.terms[g][0]].capsule]
+        length = float(np.linalg.norm(c.b - c.a))
+        return 0.5 * (min(fr) + max(fr)), 0.5 * (max(fr) - min(fr)) * length + _SLACK
+
+    def _pair_slack(self, cap: int, other: int) -> float:
+        """Half the two axis lengths [m]: no point of a segment is farther from its middle."""
+        caps = self.pk.collision.capsules
+        half = [0.5 * float(np.linalg.norm(caps[i].b - caps[i].a)) for i in (cap, other)]
+        return half[0] + half[1] + _SLACK
+
+    def midpoint_bound(self, g: int, ends: np.ndarray) -> float:
+        """Group g's midpoint bound at capsule ends ``ends`` (6 per capsule) [m], in numpy:
+        a lower bound of its smallest clearance, because a box's signed distance and the
+        distance between two points are 1-Lipschitz: for a box group, the signed distance
+        of the middle sample point less the farthest sample's distance from it, the radius
+        and the margin; for a capsule pair, the distance between the axis middles less
+        half of each axis, both radii and the margin."""
+        col = self.pk.collision
+        cap, box, other = self.keys()[g]
+        a, b = ends[6 * cap : 6 * cap + 3], ends[6 * cap + 3 : 6 * cap + 6]
+        if box:
+            f_mid, slack = self._box_midpoint(g)
+            d = box_sdf(a + f_mid * (b - a), col.boxes[other]) - col.capsules[cap].radius
+            return float(d - slack - col.margin)
+        a2, b2 = ends[6 * other : 6 * other + 3], ends[6 * other + 3 : 6 * other + 6]
+        radii = col.capsules[cap].radius + col.capsules[other].radius
+        gap = float(np.linalg.norm(0.5 * (a + b) - 0.5 * (a2 + b2)))
+        return gap - self._pair_slack(cap, other) - radii - col.margin
+
+    def _shared_group(self, kind: tuple[str, int], config: RetargetConfig) -> ca.Function:
+        """The shared function of one kind of group (see :meth:`group_call`)."""
+        if kind in self._shared:
+            return self._shared[kind]
+        margin, band = self.pk.collision.margin, config.collision_band
+        e1 = ca.SX.sym("e1", 6)
+        a, b = e1[:3], e1[3:]
+        if kind[0] == "box":
+            k = kind[1]
+            centre, rot, half = (
+                ca.SX.sym("centre", 3),
+                ca.SX.sym("rotation", 3, 3),
+                ca.SX.sym("half", 3),
+            )
             radius, fr = ca.SX.sym("radius"), ca.SX.sym("fractions", k)
-            a, b = e1[:3], e1[3:]
-            dist = []
-            for i in range(k):
-                local = ca.mtimes(rot.T, a + fr[i] * (b - a) - centre)
-                qv = ca.fabs(local) - half
+            f_mid, slack = ca.SX.sym("f_mid"), ca.SX.sym("slack")
+            others = [centre, rot, half, radius, fr, f_mid, slack]
+
+            def sdf(t: ca.SX) -> ca.SX:
+                qv = ca.fabs(ca.mtimes(rot.T, a + t * (b - a) - centre)) - half
                 out = ca.fmax(qv, 0)
-                dist.append(ca.sqrt(ca.dot(out, out) + _TINY) + ca.fmin(ca.mmax(qv), 0) - radius)
-            c = ca.vertcat(*dist) - self.pk.collision.margin
-            over = ca.fmax(config.collision_band - c, 0.0)
-            s = ca.dot(over, over)
-            self._shared[key] = ca.Function(
-                f"group_box_{k}",
-                [e1, centre, rot, half, radius, fr],
-                [s, ca.gradient(s, e1), ca.mmin(c)],
-                {"cse": True},
-            )
-        return self._shared[key]
+                return ca.sqrt(ca.dot(out, out) + _TINY) + ca.fmin(ca.mmax(qv), 0) - radius
 
-    def _shared_pair(self, config: RetargetConfig) -> ca.Function:
-        """The group function of a capsule pair (see :meth:`branch`)."""
-        if "pair" not in self._shared:
-            e1, e2, radii = ca.SX.sym("e1", 6), ca.SX.sym("e2", 6), ca.SX.sym("radii")
-            dist = _segment_distance_ca(e1[:3], e1[3:], e2[:3], e2[3:]) - radii
-            c = dist - self.pk.collision.margin
-            over = ca.fmax(config.collision_band - c, 0.0)
-            s = over * over
-            self._shared["pair"] = ca.Function(
-                "group_pair",
-                [e1, e2, radii],
-                [s, ca.gradient(s, e1), ca.gradient(s, e2), c],
-                {"cse": True},
-            )
-        return self._shared["pair"]
-
-    def skip(self, name: str, box: bool) -> ca.Function:
-        """``(ends_1, ends_2, bound) -> (0, 0, 0, bound)``: a group proven beyond the band."""
-        e1, e2 = ca.SX.sym("e1", 6), ca.SX.sym("e2", 0 if box else 6)
+            c = ca.vertcat(*[sdf(fr[i]) for i in range(k)]) - margin
+            gate = sdf(f_mid) - slack - margin
+            e2: list = []
+        else:
+            e2s, radii, slack = ca.SX.sym("e2", 6), ca.SX.sym("radii"), ca.SX.sym("slack")
+            others = [radii, slack]
+            c = _segment_distance_ca(a, b, e2s[:3], e2s[3:]) - radii - margin
+            w = 0.5 * (a + b) - 0.5 * (e2s[:3] + e2s[3:])
+            gate = ca.sqrt(ca.dot(w, w)) - slack - radii - margin
+            e2 = [e2s]
         bound = ca.SX.sym("bound")
-        zero = ca.SX.zeros
-        return ca.Function(name, [e1, e2, bound], [ca.SX(0.0), zero(6), zero(e2.shape[0]), bound])
+        ins = [e1, *e2, *others, bound]
+        over = ca.fmax(band - c, 0.0)
+        s = ca.dot(over, over)
+        grads = [ca.gradient(s, e) for e in (e1, *e2)]
+        tag = f"group_{kind[0]}{kind[1] or ''}"
+        exact = ca.Function(f"{tag}_exact", ins, [s, *grads, ca.mmin(c)], {"cse": True})
+        zeros = [ca.SX.zeros(6) for _ in grads]
+        skip = ca.Function(f"{tag}_skip", ins, [ca.SX(0.0), *zeros, bound])
+        gate_fn = ca.Function(f"{tag}_gate", ins[:-1], [gate], {"cse": True})
+        mx = [
+            ca.MX.sym(str(x.name()) if x.is_scalar() else f"in{i}", x.sparsity())
+            for i, x in enumerate(ins)
+        ]
+        g_mx = gate_fn(*mx[:-1])
+        inner = ca.Function.conditional(f"{tag}_near", [exact], skip)
+        gated = ca.Function(
+            f"{tag}_gated", mx, inner(g_mx >= band, *mx[:-1], ca.fmax(mx[-1], g_mx))
+        )
+        self._shared[kind] = ca.Function.conditional(tag, [gated], skip)
+        return self._shared[kind]
 
     def penalty_function(self, config: RetargetConfig) -> ca.Function:
         """``(q, pre-bounds) -> (S, dS/dq, group minima)``: the groups whose bound is below
@@ -185,18 +225,16 @@ class CollisionGroups:
         e = self.ends_function()(q)
         caps = [e[6 * i : 6 * i + 6] for i in range(ncap)]
         grads: list = [0.0] * ncap
-        skips = {box: self.skip(f"group_skip_{int(box)}", box) for box in (False, True)}
         total, mins = 0.0, []
         for g, (cap, box, other) in enumerate(self.keys()):
-            branch = self.branch(g, config, f"group_branch_{g}")
-            cond = ca.Function.conditional(f"group_{g}", [branch], skips[box])
-            e2 = ca.MX(0, 1) if box else caps[other]
-            s_g, d1, d2, m_g = cond(pre[g] >= config.collision_band, caps[cap], e2, pre[g])
-            total = total + s_g
-            mins.append(m_g)
-            grads[cap] = grads[cap] + d1
+            fn, consts = self.group_call(g, config)
+            ends = [caps[cap]] if box else [caps[cap], caps[other]]
+            out = fn(pre[g] >= config.collision_band, *ends, *consts, pre[g])
+            total = total + out[0]
+            mins.append(out[-1])
+            grads[cap] = grads[cap] + out[1]
             if not box:
-                grads[other] = grads[other] + d2
+                grads[other] = grads[other] + out[2]
         v = ca.vertcat(*[gr if isinstance(gr, ca.MX) else ca.MX.zeros(6) for gr in grads])
         dq = self.vjp_function()(q, v)
         return ca.Function("collision_penalty", [q, pre], [total, dq, ca.vertcat(*mins)])
