@@ -14,6 +14,7 @@ import casadi as ca
 import numpy as np
 import pinocchio as pin
 import pytest
+from scipy.spatial.transform import Rotation
 
 from payload.design.params import load_design
 from payload.errors import DesignError
@@ -28,7 +29,13 @@ from payload.retarget import (
     pair_range,
 )
 from payload.retarget.bench import human_pinch_and_open, synthetic_hand
-from payload.retarget.collision import link_geometry
+from payload.retarget.collision import (
+    Box,
+    box_sdf,
+    link_geometry,
+    segment_box_distance,
+    segment_box_distance_expr,
+)
 from payload.retarget.collision_eval import CollisionGroups
 from payload.retarget.lm_graph import _step_functions
 from payload.retarget.meshcheck import PairMeshCheck
@@ -66,7 +73,7 @@ def checks(pks):
 def _free_postures(pk, k, seed):
     rng = np.random.default_rng(seed)
     qs = pk.lower + rng.random((40 * k, pk.n)) * pk.range
-    dist = np.array(pk.collision.distance_function().map(qs.shape[0])(qs.T))
+    dist = pk.collision.distances_many(qs)
     return qs[dist.min(axis=0) >= pk.collision.margin][:k]
 
 
@@ -135,6 +142,46 @@ def test_casadi_distances_equal_numpy_and_gradients_match_finite_differences(pks
             ]
         )
         np.testing.assert_allclose(jac, fd, atol=1e-5)
+
+
+def test_the_segment_box_distance_is_the_smallest_along_the_segment():
+    """The closed form (numpy and CasADi) against the box's signed distance at 20,001
+    points along the segment: outside the box the smallest, through it a depth no deeper
+    than the deepest; rotated and axis-aligned boxes."""
+    a_, b_, c_, h_ = (ca.SX.sym(n, 3) for n in "abch")
+    r_ = ca.SX.sym("R", 3, 3)
+    fn = ca.Function("d", [a_, b_, c_, r_, h_], [segment_box_distance_expr(a_, b_, c_, r_, h_)])
+    rng = np.random.default_rng(12)
+    ts = np.linspace(0.0, 1.0, 20001)
+    inside = 0
+    for k in range(400):
+        a = rng.uniform(-0.1, 0.1, 3)
+        b = a + rng.uniform(-0.06, 0.06, 3)
+        if k % 5 == 0:  # parallel to an axis
+            b = a.copy()
+            b[k % 3] += 0.03
+        rot = (
+            Rotation.random(random_state=int(rng.integers(1 << 30))).as_matrix()
+            if k % 2
+            else np.eye(3)
+        )
+        box = Box("x", rng.uniform(-0.02, 0.02, 3), rot, rng.uniform(0.005, 0.05, 3))
+        local = (a + ts[:, None] * (b - a) - box.centre) @ box.rotation
+        qv = np.abs(local) - box.half
+        out = np.maximum(qv, 0)
+        dense = float(np.min(np.sqrt(np.sum(out * out, axis=1) + 1e-18) + np.minimum(qv.max(1), 0)))
+        assert box_sdf(a, box) == pytest.approx(
+            np.sqrt(out[0] @ out[0] + 1e-18) + min(qv[0].max(), 0)
+        )
+        step = np.linalg.norm(b - a) / 20000
+        d = segment_box_distance(a, b, box)
+        assert float(fn(a, b, box.centre, box.rotation, box.half)) == pytest.approx(d, abs=1e-15)
+        if dense > 0:  # outside: the smallest distance, which the samples bracket
+            assert dense - step <= d <= dense + 1e-12
+        else:  # entering: a depth inside the box, no deeper than the deepest sample
+            assert dense - step <= d <= 1e-9
+            inside += 1
+    assert 0 < inside < 400
 
 
 @pytest.mark.parametrize("pair", PAIRS)
@@ -233,6 +280,10 @@ def test_the_grouped_evaluation_equals_the_dense_penalty(pks, solvers, pair):
     rng = np.random.default_rng(5)
     band = config.collision_band
     seen = np.zeros(2, dtype=int)  # groups evaluated exactly, groups the midpoint skipped
+    seen_band = 0  # postures with terms in the band
+    qsym = ca.SX.sym("q", pk.n)
+    dense = pk.collision.distance_function()(qsym)
+    dense_jac = ca.Function("dense_jac", [qsym], [ca.jacobian(dense, qsym)])
     for k in range(24):
         q = pk.lower + rng.random(pk.n) * pk.range
         qa = (
@@ -249,9 +300,16 @@ def test_the_grouped_evaluation_equals_the_dense_penalty(pks, solvers, pair):
         w = 1.0 / np.sqrt(1.0 + res**2)
         np.testing.assert_allclose(cost, c0.ravel(), rtol=1e-12)
         np.testing.assert_allclose(g, jac.T @ (w * res), rtol=1e-9, atol=1e-12)
+        # The penalty row's own curvature: 2 scale rho'(r_c) r_c sum(grad c grad c^T) over
+        # the terms in the band, by the dense distances' Jacobian (every term).
+        scale = config.w_c / band**2
+        c_all = pk.collision.distances(q) - pk.collision.margin
+        grad_c = np.array(dense_jac(q))[c_all < band]
+        extra = 2 * scale * res[-1] * w[-1] * grad_c.T @ grad_c
         np.testing.assert_allclose(
-            h, (jac.T @ (w[:, None] * jac)).ravel(order="F"), rtol=1e-9, atol=1e-12
+            h, (jac.T @ (w[:, None] * jac) + extra).ravel(order="F"), rtol=1e-9, atol=1e-12
         )
+        seen_band += grad_c.shape[0] > 0
         exact = _group_minima(pk, groups, q)
         assert np.all(out <= exact + 1e-12)
         pre = bounds - groups.lipschitz @ np.abs(q - qa)
@@ -262,7 +320,7 @@ def test_the_grouped_evaluation_equals_the_dense_penalty(pks, solvers, pair):
         np.testing.assert_allclose(out[skipped], np.maximum(pre, mid)[skipped], atol=1e-12)
         seen += evaluated.sum(), skipped.sum()
         _assert_reported_clearance(float(clear[0]), float(exact.min()), band)
-    assert seen.min() > 0  # both paths taken
+    assert seen.min() > 0 and seen_band > 0  # both paths taken; the curvature tested
 
 
 # ------------------------------------------------------------- calibration
@@ -294,6 +352,26 @@ def test_a_solve_from_inside_the_margin_still_returns_a_free_command(pks, solver
         assert info.evaluations <= 20
         assert r.clearance(out) >= 0 and info.clearance >= 0
         _assert_reported_clearance(info.clearance, r.clearance(out), r.config.collision_band)
+
+
+def test_the_vm_agrees_with_the_compiled_solver_with_collisions_on(pks, solvers):
+    """The same graph in CasADi's virtual machine and as generated C: the same commands,
+    evaluations and clearances over a sequence that carries the groups' bounds."""
+    pk, r = pks["L"], solvers["L"]
+    assert r.backend == "compiled", r.backend_reason
+    vm = PairRetargeter(kinematics=pk, config=r.config, backend="vm")
+    r.reset()
+    rng = np.random.default_rng(17)
+    near = 0
+    for q_true in _free_postures(pk, 6, 41):
+        t = pk.features(np.clip(q_true + 0.05 * rng.standard_normal(pk.n), pk.lower, pk.upper))
+        qc, ic = r.solve(t.as_vector(), None, pk.rest)
+        qv, iv = vm.solve(t.as_vector(), None, pk.rest)
+        np.testing.assert_allclose(qv, qc, rtol=0, atol=1e-9)
+        assert iv.evaluations == ic.evaluations and iv.iterations == ic.iterations
+        assert iv.clearance == pytest.approx(ic.clearance, abs=1e-9)
+        near += ic.clearance < r.config.collision_band
+    assert near > 0  # some answers end in the band, where the collision terms act
 
 
 def _assert_reported_clearance(reported: float, exact: float, band: float) -> None:

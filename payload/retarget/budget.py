@@ -45,7 +45,7 @@ def seed_table(pk: PairKinematics, collisions: bool) -> tuple[np.ndarray, np.nda
     rng = np.random.default_rng(12345)
     qs = np.vstack([pk.rest, pk.lower + rng.random((4 * SEEDS, pk.n)) * pk.range])
     if collisions:  # collision-free seeds only (the solver's own geometry)
-        dist = np.array(pk.collision.distance_function().map(qs.shape[0])(qs.T))
+        dist = pk.collision.distances_many(qs)
         qs = qs[dist.min(axis=0) >= pk.collision.margin]
     qs = qs[:SEEDS]
     return qs, pk.features_batch(qs)

@@ -140,6 +140,16 @@ class PairRetargeter(Retargeter):
             self._compiled.inputs[3][:] = self._anchor_q
             self._compiled.inputs[4][:] = self._anchor_b
 
+    def reset(self, q: np.ndarray | None = None) -> None:
+        """Set the held command (``None``: the rest posture), clipped to the limits, and
+        forget the carried collision bounds: a reset solver answers as a new one does."""
+        super().reset(q)
+        self._anchor_q = self.kinematics.rest.copy()
+        self._anchor_b = np.full(self._anchor_b.shape[0], -np.inf)
+        if self._compiled is not None:
+            self._compiled.inputs[3][:] = self._anchor_q
+            self._compiled.inputs[4][:] = self._anchor_b
+
     def solve(
         self,
         targets: PairFeatures | np.ndarray,

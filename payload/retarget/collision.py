@@ -16,8 +16,8 @@ The solver's own geometry, derived once per pair:
 
 Checked pairs are those the python-fcl check (:mod:`payload.retarget.meshcheck`) checks:
 a link of finger 1 against a link of finger 2, exactly (segment-to-segment distance less
-both radii), and a finger link against a structure box (the box's signed distance at
-points along the capsule axis no more than :data:`SAMPLE_SPACING` apart, less the
+both radii), and a finger link against a structure box, exactly too (the smallest signed
+distance of the box along the capsule axis, :func:`segment_box_distance_expr`, less the
 radius), except a finger's first link against the link it is mounted on (they touch by
 construction). Pairs that never come within :data:`PRUNE_DISTANCE` of each other over
 :data:`PRUNE_SAMPLES` seeded postures of the joint box are left out.
@@ -40,9 +40,6 @@ from scipy.optimize import minimize
 from payload.retarget import features as _features
 from payload.retarget.features import PairKinematics
 from payload.retarget.symbolic import chain_point, frame_point_chain
-
-SAMPLE_SPACING = 0.012
-"""Largest spacing of the points along a capsule axis checked against a box [m]."""
 
 PRUNE_DISTANCE = 0.010
 """Terms farther than this over every sampled posture are left out [m]."""
@@ -276,18 +273,138 @@ def segment_distance(p1: np.ndarray, q1: np.ndarray, p2: np.ndarray, q2: np.ndar
     return float(np.sqrt(w @ w + _TINY))
 
 
-def _box_sdf_ca(p, box: Box):
-    local = ca.mtimes(ca.DM(box.rotation.T), p - ca.DM(box.centre))
-    qv = ca.fabs(local) - ca.DM(box.half)
-    out = ca.fmax(qv, 0)
-    return ca.sqrt(ca.dot(out, out) + _TINY) + ca.fmin(ca.mmax(qv), 0)
-
-
 def box_sdf(p: np.ndarray, box: Box) -> float:
     """Signed distance of point p (base frame) to a box [m] (numpy)."""
     qv = np.abs(box.rotation.T @ (p - box.centre)) - box.half
     out = np.maximum(qv, 0)
     return float(np.sqrt(out @ out + _TINY) + min(qv.max(), 0.0))
+
+
+_TOUCH2 = 1e-24
+"""A point of the segment whose squared distance outside the box is at most this [m^2]
+is on or in the box (a face crossing computed with rounding lands within 1e-12 m)."""
+
+
+def _breakpoints(x0, v, half, safe_div, clip):
+    """The segment parameters where a coordinate crosses a face plane (clipped to
+    [0, 1]; a coordinate that does not move gives 0), and the two ends."""
+    out = [0.0, 1.0]
+    for j in range(3):
+        for sgn in (1.0, -1.0):
+            out.append(clip(safe_div(sgn * half[j] - x0[j], v[j])))
+    return out
+
+
+def segment_box_distance_expr(a, b, centre, rotation, half):
+    """Signed distance between segment a-b and a box (CasADi; the box's centre, rotation
+    (columns: its axes) and half sizes may be constants or symbols), in closed form.
+
+    Outside the box the squared distance along the segment, ``sum_j max(|x_j(t)| - h_j,
+    0)^2``, is convex and piecewise quadratic in the segment parameter t, with pieces
+    that change only where a coordinate crosses a face plane: its slope is linear
+    between those breakpoints, so the minimiser lies where the slope changes sign,
+    found by linear interpolation between the last breakpoint of non-positive slope and
+    the first of positive slope; the value is the distance there, exact. A segment that
+    enters the box gets the box's signed distance (<= 0) in the middle of its part
+    inside the box, whose ends are breakpoints: not necessarily the deepest point, but
+    continuous in the ends and pointing out of the box."""
+    x0 = ca.mtimes(rotation.T, a - centre)
+    v = ca.mtimes(rotation.T, b - a)
+
+    def slope(t):
+        x = x0 + t * v
+        return ca.dot(ca.fmax(ca.fabs(x) - half, 0) * ca.sign(x), v)
+
+    def safe_div(num, den):
+        return ca.if_else(ca.fabs(den) > 1e-15, num / ca.if_else(den == 0, 1.0, den), 0.0)
+
+    ts = _breakpoints(x0, v, half, safe_div, lambda t: ca.fmin(ca.fmax(t, 0.0), 1.0))
+    t_l, t_r = ca.SX(0.0), ca.SX(1.0)
+    for t in ts:
+        s = slope(t)
+        t_l = ca.fmax(t_l, ca.if_else(s <= 0, t, 0.0))
+        t_r = ca.fmin(t_r, ca.if_else(s > 0, t, 1.0))
+    s_l, s_r = slope(t_l), slope(t_r)
+    gap = s_r - s_l
+    t_star = ca.if_else(
+        ca.logic_and(t_r > t_l, gap > 0), t_l - s_l * (t_r - t_l) / ca.fmax(gap, 1e-300), t_l
+    )
+
+    def sdf(t):
+        qv = ca.fabs(x0 + t * v) - half
+        out = ca.fmax(qv, 0)
+        return ca.sqrt(ca.dot(out, out) + _TINY) + ca.fmin(ca.mmax(qv), 0)
+
+    # Outside: the distance at the minimiser. Entering: the depth in the middle of the
+    # part of the segment inside the box (its ends are breakpoints or segment ends).
+    def outside2(t):
+        out = ca.fmax(ca.fabs(x0 + t * v) - half, 0)
+        return ca.dot(out, out)
+
+    t_in, t_out = ca.SX(1.0), ca.SX(0.0)
+    for t in ts:
+        touching = outside2(t) <= _TOUCH2
+        t_in = ca.fmin(t_in, ca.if_else(touching, t, 1.0))
+        t_out = ca.fmax(t_out, ca.if_else(touching, t, 0.0))
+    enters = ca.logic_or(outside2(t_star) <= _TOUCH2, t_out >= t_in)
+    return sdf(ca.if_else(enters, 0.5 * (t_in + t_out), t_star))
+
+
+def segment_box_distances(
+    a: np.ndarray, b: np.ndarray, centre: np.ndarray, rotation: np.ndarray, half: np.ndarray
+) -> np.ndarray:
+    """Signed distances between segments and boxes [m], one per row (numpy; the closed
+    form of :func:`segment_box_distance_expr`): ends ``a``, ``b`` (m, 3), box centres
+    (m, 3), rotations (m, 3, 3) and half sizes (m, 3)."""
+    x0 = np.einsum("mji,mj->mi", rotation, a - centre)
+    v = np.einsum("mji,mj->mi", rotation, b - a)
+
+    def slope(t: np.ndarray) -> np.ndarray:
+        x = x0 + t[:, None] * v
+        return np.sum(np.maximum(np.abs(x) - half, 0) * np.sign(x) * v, axis=1)
+
+    moving = np.abs(v) > 1e-15
+    den = np.where(moving, v, 1.0)
+    ts = [np.zeros(len(a)), np.ones(len(a))]
+    for j in range(3):
+        for sgn in (1.0, -1.0):
+            t = np.where(moving[:, j], (sgn * half[:, j] - x0[:, j]) / den[:, j], 0.0)
+            ts.append(np.clip(t, 0.0, 1.0))
+    t_l, t_r = np.zeros(len(a)), np.ones(len(a))
+    for t in ts:
+        s = slope(t)
+        t_l = np.maximum(t_l, np.where(s <= 0, t, 0.0))
+        t_r = np.minimum(t_r, np.where(s > 0, t, 1.0))
+    s_l, s_r = slope(t_l), slope(t_r)
+    gap = s_r - s_l
+    ok = (t_r > t_l) & (gap > 0)
+    t_star = np.where(ok, t_l - s_l * (t_r - t_l) / np.where(ok, gap, 1.0), t_l)
+
+    def sdf(t: np.ndarray) -> np.ndarray:
+        qv = np.abs(x0 + t[:, None] * v) - half
+        out = np.maximum(qv, 0)
+        return np.sqrt(np.sum(out * out, axis=1) + _TINY) + np.minimum(qv.max(axis=1), 0.0)
+
+    def outside2(t: np.ndarray) -> np.ndarray:
+        out = np.maximum(np.abs(x0 + t[:, None] * v) - half, 0)
+        return np.sum(out * out, axis=1)
+
+    t_in, t_out = np.ones(len(a)), np.zeros(len(a))
+    for t in ts:
+        touching = outside2(t) <= _TOUCH2
+        t_in = np.minimum(t_in, np.where(touching, t, 1.0))
+        t_out = np.maximum(t_out, np.where(touching, t, 0.0))
+    enters = (outside2(t_star) <= _TOUCH2) | (t_out >= t_in)
+    return sdf(np.where(enters, 0.5 * (t_in + t_out), t_star))
+
+
+def segment_box_distance(a: np.ndarray, b: np.ndarray, box: Box) -> float:
+    """Signed distance between segment a-b (base frame) and a box [m] (numpy)."""
+    return float(
+        segment_box_distances(
+            a[None], b[None], box.centre[None], box.rotation[None], box.half[None]
+        )[0]
+    )
 
 
 @dataclass(frozen=True)
@@ -298,7 +415,8 @@ class Term:
         capsule: Index into :attr:`PairCollision.capsules`.
         other: Index of the other capsule, or of the box (``box`` True).
         box: True for a capsule-box term.
-        fraction: For a box term, where along the capsule axis the point lies (0 = a).
+        fraction: Unused (box terms once sampled points along the axis; they are now the
+            exact segment-box distance).
     """
 
     capsule: int
@@ -369,20 +487,24 @@ class PairCollision:
             for j in range(i + 1, len(caps)):
                 if finger_of[i] != finger_of[j]:
                     terms.append(Term(i, j, False))
-            k = max(2, int(np.ceil(np.linalg.norm(ci.b - ci.a) / SAMPLE_SPACING)) + 1)
             for bi, bx in enumerate(boxes):
-                if (bx.link, ci.link) in mounted:
-                    continue
-                terms += [Term(i, bi, True, float(f)) for f in np.linspace(0.0, 1.0, k)]
+                if (bx.link, ci.link) not in mounted:
+                    terms.append(Term(i, bi, True))
         self._chains = [
             (frame_point_chain(pk, c.link, c.a), frame_point_chain(pk, c.link, c.b)) for c in caps
         ]
         self.all_terms: tuple[Term, ...] = tuple(terms)
         self.terms: tuple[Term, ...] = self.all_terms
         self._data = model.createData()
+        self._batch: dict[tuple, tuple] = {}
         self._fids = [model.getFrameId(c.link, pin.FrameType.BODY) for c in caps]
         if terms:
             self._prune()
+
+    def __getstate__(self) -> dict:
+        state = self.__dict__.copy()
+        state["_batch"] = {}  # compiled libraries are loaded again where needed
+        return state
 
     @property
     def available(self) -> bool:
@@ -393,8 +515,7 @@ class PairCollision:
         pk = self.pk
         rng = np.random.default_rng(2024)
         qs = np.vstack([pk.rest, pk.lower + rng.random((PRUNE_SAMPLES, pk.n)) * pk.range])
-        fn = self.distance_function(self.all_terms).map(qs.shape[0])
-        dist = np.array(fn(qs.T))  # (terms, samples)
+        dist = self.distances_many(qs, self.all_terms)  # (terms, samples)
         keep = dist.min(axis=1) < PRUNE_DISTANCE + self.margin
         self.terms = tuple(t for t, k in zip(self.all_terms, keep) if k)
 
@@ -402,20 +523,62 @@ class PairCollision:
         ci = self.capsules[t.capsule]
         a, b = ends[t.capsule]
         if t.box:
-            p = a + t.fraction * (b - a)
-            return _box_sdf_ca(p, self.boxes[t.other]) - ci.radius
+            bx = self.boxes[t.other]
+            d = segment_box_distance_expr(
+                a, b, ca.DM(bx.centre), ca.DM(bx.rotation), ca.DM(bx.half)
+            )
+            return d - ci.radius
         a2, b2 = ends[t.other]
         return _segment_distance_ca(a, b, a2, b2) - ci.radius - self.capsules[t.other].radius
 
     def distances_expr(self, q: ca.SX, terms: tuple[Term, ...] | None = None) -> ca.SX:
-        """The terms' distances [m] at symbolic q, shape (k, 1) (k may be 0)."""
+        """The terms' distances [m] at symbolic q, shape (k, 1) (k may be 0).
+
+        With an ``SX`` q, one expression (every term written out); with an ``MX`` q, a
+        graph calling one shared function per kind of term with each term's geometry as
+        constants, so generated C stays small and compiles in seconds."""
         terms = self.terms if terms is None else terms
+        if isinstance(q, ca.MX):
+            return self._distances_mx(q, terms)
         used = sorted({t.capsule for t in terms} | {t.other for t in terms if not t.box})
         ends: list = [None] * len(self.capsules)
         for i in used:
             ca_, cb_ = self._chains[i]
             ends[i] = (chain_point(ca_, q), chain_point(cb_, q))
         return ca.vertcat(*[self._term_expr(t, ends) for t in terms])
+
+    def _distances_mx(self, q: ca.MX, terms: tuple[Term, ...]) -> ca.MX:
+        if not terms:
+            return ca.MX(0, 1)
+        qs = ca.SX.sym("q", self.pk.n)
+        pts = [chain_point(c, qs) for pair in self._chains for c in pair]
+        ends = ca.Function("capsule_ends", [qs], [ca.vertcat(*pts)], {"cse": True})(q)
+        e = [
+            (ends[6 * i : 6 * i + 3], ends[6 * i + 3 : 6 * i + 6])
+            for i in range(len(self.capsules))
+        ]
+        a, b, c, h = (ca.SX.sym(x, 3) for x in "abch")
+        r, a2, b2 = ca.SX.sym("R", 3, 3), ca.SX.sym("a2", 3), ca.SX.sym("b2", 3)
+        box_fn = ca.Function(
+            "segment_box",
+            [a, b, c, r, h],
+            [segment_box_distance_expr(a, b, c, r, h)],
+            {"cse": True},
+        )
+        pair_fn = ca.Function(
+            "segment_segment", [a, b, a2, b2], [_segment_distance_ca(a, b, a2, b2)], {"cse": True}
+        )
+        out = []
+        for t in terms:
+            ci = self.capsules[t.capsule]
+            if t.box:
+                bx = self.boxes[t.other]
+                d = box_fn(*e[t.capsule], ca.DM(bx.centre), ca.DM(bx.rotation), ca.DM(bx.half))
+                out.append(d - ci.radius)
+            else:
+                d = pair_fn(*e[t.capsule], *e[t.other])
+                out.append(d - ci.radius - self.capsules[t.other].radius)
+        return ca.vertcat(*out)
 
     def clearance_expr(self, q: ca.SX) -> ca.SX:
         """Distances less the margin, shape (k, 1): non-negative when collision-free."""
@@ -425,6 +588,30 @@ class PairCollision:
         """CasADi ``q (n) -> distances (k)`` [m]."""
         q = ca.SX.sym("q", self.pk.n)
         return ca.Function("pair_distances", [q], [self.distances_expr(q, terms)], {"cse": True})
+
+    def distances_many(self, qs: np.ndarray, terms: tuple[Term, ...] | None = None) -> np.ndarray:
+        """The terms' distances [m] at many postures ``qs`` (m, n): shape (k, m). The
+        CasADi expressions compiled to C once per set of terms (CasADi's virtual machine
+        without a C compiler)."""
+        from payload.retarget.compiled import _compiled_or_none
+
+        terms = self.terms if terms is None else terms
+        key = tuple(terms)
+        if key not in self._batch:
+            qm = ca.MX.sym("q", self.pk.n)
+            fn = ca.Function("pair_distances", [qm], [self.distances_expr(qm, terms)])
+            name = "payload_distances_" + "".join(c if c.isalnum() else "_" for c in self.pk.name)
+            self._batch[key] = (fn, _compiled_or_none(ca.Function(name, [qm], [fn(qm)])))
+        fn, compiled = self._batch[key]
+        qs = np.atleast_2d(np.asarray(qs, dtype=float))
+        if compiled is None:
+            return np.array(fn.map(qs.shape[0])(qs.T)).reshape(len(terms), qs.shape[0])
+        out = np.empty((len(terms), qs.shape[0]))
+        for i, q in enumerate(qs):
+            compiled.inputs[0][:] = q
+            compiled()
+            out[:, i] = compiled.outputs[0]
+        return out
 
     def distances(self, q: np.ndarray) -> np.ndarray:
         """The terms' distances at q [m], shape (k,), in numpy with Pinocchio placements."""
@@ -437,14 +624,26 @@ class PairCollision:
             m = base * self._data.oMf[fid]
             ends.append((m.act(c.a), m.act(c.b)))
         out = np.empty(len(self.terms))
+        kb = [k for k, t in enumerate(self.terms) if t.box]
+        if kb:
+            tb = [self.terms[k] for k in kb]
+            a = np.array([ends[t.capsule][0] for t in tb])
+            b = np.array([ends[t.capsule][1] for t in tb])
+            boxes = [self.boxes[t.other] for t in tb]
+            d = segment_box_distances(
+                a,
+                b,
+                np.array([x.centre for x in boxes]),
+                np.array([x.rotation for x in boxes]),
+                np.array([x.half for x in boxes]),
+            )
+            out[kb] = d - np.array([self.capsules[t.capsule].radius for t in tb])
         for k, t in enumerate(self.terms):
-            ci = self.capsules[t.capsule]
-            a, b = ends[t.capsule]
-            if t.box:
-                out[k] = box_sdf(a + t.fraction * (b - a), self.boxes[t.other]) - ci.radius
-            else:
+            if not t.box:
+                a, b = ends[t.capsule]
                 a2, b2 = ends[t.other]
-                out[k] = segment_distance(a, b, a2, b2) - ci.radius - self.capsules[t.other].radius
+                radii = self.capsules[t.capsule].radius + self.capsules[t.other].radius
+                out[k] = segment_distance(a, b, a2, b2) - radii
         return out
 
     def clearance(self, q: np.ndarray) -> float:

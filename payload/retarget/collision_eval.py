@@ -30,7 +30,12 @@ from collections import defaultdict
 import casadi as ca
 import numpy as np
 
-from payload.retarget.collision import _TINY, _segment_distance_ca, box_sdf
+from payload.retarget.collision import (
+    _TINY,
+    _segment_distance_ca,
+    box_sdf,
+    segment_box_distance_expr,
+)
 from payload.retarget.features import PairKinematics
 from payload.retarget.objective import RetargetConfig
 from payload.retarget.symbolic import PointChain, chain_point
@@ -94,11 +99,14 @@ class CollisionGroups:
         ends = [chain_point(c, q) for pair in self.pk.collision._chains for c in pair]
         return ca.Function("capsule_ends", [q], [ca.vertcat(*ends)], {"cse": True})
 
-    def vjp_function(self) -> ca.Function:
-        """``(q, v) -> (d ends / d q)^T v``: a gradient with respect to the ends, in q."""
-        q, v = ca.SX.sym("q", self.pk.n), ca.SX.sym("v", 6 * len(self.pk.collision.capsules))
+    def ends_jacobian_function(self) -> ca.Function:
+        """``q -> (ends, d ends / d q)``: the capsule ends (6 per capsule) and their
+        Jacobian, shape (6 * capsules, n)."""
+        q = ca.SX.sym("q", self.pk.n)
         ends = self.ends_function()(q)
-        return ca.Function("capsule_vjp", [q, v], [ca.jtimes(ends, q, v, True)], {"cse": True})
+        return ca.Function(
+            "capsule_ends_jacobian", [q], [ends, ca.jacobian(ends, q)], {"cse": True}
+        )
 
     def group_call(self, g: int, config: RetargetConfig) -> tuple[ca.Function, list]:
         """Group g's shared function and the group's constants.
@@ -119,43 +127,35 @@ class CollisionGroups:
         cap, box, other = self.keys()[g]
         if box:
             bx = col.boxes[other]
-            fractions = [col.terms[k].fraction for k in self.terms[g]]
-            f_mid, slack = self._box_midpoint(g)
             consts = [ca.DM(bx.centre), ca.DM(bx.rotation), ca.DM(bx.half)]
-            consts += [col.capsules[cap].radius, ca.DM(fractions), f_mid, slack]
-            return self._shared_group(("box", len(fractions)), config), consts
+            consts += [col.capsules[cap].radius, self._half_axis(cap)]
+            return self._shared_group(("box", 1), config), consts
         radii = col.capsules[cap].radius + col.capsules[other].radius
         return self._shared_group(("pair", 0), config), [radii, self._pair_slack(cap, other)]
 
-    def _box_midpoint(self, g: int) -> tuple[float, float]:
-        """A box group's middle fraction along the capsule axis, and the farthest any of
-        its points lies from that point [m] (the axis length is fixed in its link)."""
-        col = self.pk.collision
-        fr = [col.terms[k].fraction for k in self.terms[g]]
-        c = col.capsules[col.terms[self.terms[g][0]].capsule]
-        length = float(np.linalg.norm(c.b - c.a))
-        return 0.5 * (min(fr) + max(fr)), 0.5 * (max(fr) - min(fr)) * length + _SLACK
+    def _half_axis(self, cap: int) -> float:
+        """Half the capsule's axis length [m] (fixed in its link), plus rounding slack:
+        no point of the axis is farther from its middle."""
+        c = self.pk.collision.capsules[cap]
+        return 0.5 * float(np.linalg.norm(c.b - c.a)) + _SLACK
 
     def _pair_slack(self, cap: int, other: int) -> float:
         """Half the two axis lengths [m]: no point of a segment is farther from its middle."""
-        caps = self.pk.collision.capsules
-        half = [0.5 * float(np.linalg.norm(caps[i].b - caps[i].a)) for i in (cap, other)]
-        return half[0] + half[1] + _SLACK
+        return self._half_axis(cap) + self._half_axis(other)
 
     def midpoint_bound(self, g: int, ends: np.ndarray) -> float:
         """Group g's midpoint bound at capsule ends ``ends`` (6 per capsule) [m], in numpy:
         a lower bound of its smallest clearance, because a box's signed distance and the
-        distance between two points are 1-Lipschitz: for a box group, the signed distance
-        of the middle sample point less the farthest sample's distance from it, the radius
-        and the margin; for a capsule pair, the distance between the axis middles less
-        half of each axis, both radii and the margin."""
+        distance between two points are 1-Lipschitz: for a capsule and a box, the box's
+        signed distance at the axis middle less half the axis, the radius and the margin;
+        for a capsule pair, the distance between the axis middles less half of each axis,
+        both radii and the margin."""
         col = self.pk.collision
         cap, box, other = self.keys()[g]
         a, b = ends[6 * cap : 6 * cap + 3], ends[6 * cap + 3 : 6 * cap + 6]
         if box:
-            f_mid, slack = self._box_midpoint(g)
-            d = box_sdf(a + f_mid * (b - a), col.boxes[other]) - col.capsules[cap].radius
-            return float(d - slack - col.margin)
+            d = box_sdf(0.5 * (a + b), col.boxes[other]) - col.capsules[cap].radius
+            return float(d - self._half_axis(cap) - col.margin)
         a2, b2 = ends[6 * other : 6 * other + 3], ends[6 * other + 3 : 6 * other + 6]
         radii = col.capsules[cap].radius + col.capsules[other].radius
         gap = float(np.linalg.norm(0.5 * (a + b) - 0.5 * (a2 + b2)))
@@ -169,23 +169,14 @@ class CollisionGroups:
         e1 = ca.SX.sym("e1", 6)
         a, b = e1[:3], e1[3:]
         if kind[0] == "box":
-            k = kind[1]
-            centre, rot, half = (
-                ca.SX.sym("centre", 3),
-                ca.SX.sym("rotation", 3, 3),
-                ca.SX.sym("half", 3),
-            )
-            radius, fr = ca.SX.sym("radius"), ca.SX.sym("fractions", k)
-            f_mid, slack = ca.SX.sym("f_mid"), ca.SX.sym("slack")
-            others = [centre, rot, half, radius, fr, f_mid, slack]
-
-            def sdf(t: ca.SX) -> ca.SX:
-                qv = ca.fabs(ca.mtimes(rot.T, a + t * (b - a) - centre)) - half
-                out = ca.fmax(qv, 0)
-                return ca.sqrt(ca.dot(out, out) + _TINY) + ca.fmin(ca.mmax(qv), 0) - radius
-
-            c = ca.vertcat(*[sdf(fr[i]) for i in range(k)]) - margin
-            gate = sdf(f_mid) - slack - margin
+            centre, rot = ca.SX.sym("centre", 3), ca.SX.sym("rotation", 3, 3)
+            half, radius, slack = ca.SX.sym("half", 3), ca.SX.sym("radius"), ca.SX.sym("slack")
+            others = [centre, rot, half, radius, slack]
+            c = segment_box_distance_expr(a, b, centre, rot, half) - radius - margin
+            qv = ca.fabs(ca.mtimes(rot.T, 0.5 * (a + b) - centre)) - half
+            out = ca.fmax(qv, 0)
+            mid = ca.sqrt(ca.dot(out, out) + _TINY) + ca.fmin(ca.mmax(qv), 0)
+            gate = mid - radius - slack - margin
             e2: list = []
         else:
             e2s, radii, slack = ca.SX.sym("e2", 6), ca.SX.sym("radii"), ca.SX.sym("slack")
@@ -194,50 +185,62 @@ class CollisionGroups:
             w = 0.5 * (a + b) - 0.5 * (e2s[:3] + e2s[3:])
             gate = ca.sqrt(ca.dot(w, w)) - slack - radii - margin
             e2 = [e2s]
-        bound = ca.SX.sym("bound")
-        ins = [e1, *e2, *others, bound]
+        n = self.pk.n
+        jacs = [ca.SX.sym(f"J{i + 1}", 6, n) for i in range(1 + len(e2))]
+        bound, acc = ca.SX.sym("bound"), ca.SX.sym("curvature", n * n)
+        ins = [e1, *e2, *jacs, *others, bound, acc]
         over = ca.fmax(band - c, 0.0)
         s = ca.dot(over, over)
         grads = [ca.gradient(s, e) for e in (e1, *e2)]
+        # Each term's gradient in q (chain rule through the ends' Jacobian), for the
+        # curvature of the penalty's sum of squares: sum over terms in the band of u u^T.
+        u = ca.mtimes(ca.jacobian(c, ca.vertcat(e1, *e2)), ca.vertcat(*jacs))
+        inside = ca.if_else(over > 0, 1.0, 0.0)
+        curv = acc + ca.vec(ca.mtimes(u.T, ca.mtimes(ca.diag(inside), u)))
         tag = f"group_{kind[0]}{kind[1] or ''}"
-        exact = ca.Function(f"{tag}_exact", ins, [s, *grads, ca.mmin(c)], {"cse": True})
+        exact = ca.Function(f"{tag}_exact", ins, [s, *grads, ca.mmin(c), curv], {"cse": True})
         zeros = [ca.SX.zeros(6) for _ in grads]
-        skip = ca.Function(f"{tag}_skip", ins, [ca.SX(0.0), *zeros, bound])
-        gate_fn = ca.Function(f"{tag}_gate", ins[:-1], [gate], {"cse": True})
+        skip = ca.Function(f"{tag}_skip", ins, [ca.SX(0.0), *zeros, bound, acc])
+        gate_fn = ca.Function(f"{tag}_gate", ins[:-2], [gate], {"cse": True})
         mx = [
             ca.MX.sym(str(x.name()) if x.is_scalar() else f"in{i}", x.sparsity())
             for i, x in enumerate(ins)
         ]
-        g_mx = gate_fn(*mx[:-1])
+        g_mx = gate_fn(*mx[:-2])
         inner = ca.Function.conditional(f"{tag}_near", [exact], skip)
         gated = ca.Function(
-            f"{tag}_gated", mx, inner(g_mx >= band, *mx[:-1], ca.fmax(mx[-1], g_mx))
+            f"{tag}_gated", mx, inner(g_mx >= band, *mx[:-2], ca.fmax(mx[-2], g_mx), mx[-1])
         )
         self._shared[kind] = ca.Function.conditional(tag, [gated], skip)
         return self._shared[kind]
 
     def penalty_function(self, config: RetargetConfig) -> ca.Function:
-        """``(q, pre-bounds) -> (S, dS/dq, group minima)``: the groups whose bound is below
-        the band evaluated on the capsule ends computed once, the others skipped."""
+        """``(q, pre-bounds) -> (S, dS/dq, group minima, A)``: the groups whose bound is
+        below the band evaluated on the capsule ends (and their Jacobian) computed once,
+        the others skipped; ``A`` (n*n, column-major) is the sum over the terms in the band
+        of ``grad c grad c^T``, the curvature of ``S`` bar the terms' own."""
         n, ng = self.pk.n, len(self)
         ncap = len(self.pk.collision.capsules)
         q, pre = ca.MX.sym("q", n), ca.MX.sym("pre", ng)
-        e = self.ends_function()(q)
+        e, jac = self.ends_jacobian_function()(q)
         caps = [e[6 * i : 6 * i + 6] for i in range(ncap)]
+        jcaps = [jac[6 * i : 6 * i + 6, :] for i in range(ncap)]
         grads: list = [0.0] * ncap
-        total, mins = 0.0, []
+        total, mins, acc = 0.0, [], ca.MX.zeros(n * n)
         for g, (cap, box, other) in enumerate(self.keys()):
             fn, consts = self.group_call(g, config)
-            ends = [caps[cap]] if box else [caps[cap], caps[other]]
-            out = fn(pre[g] >= config.collision_band, *ends, *consts, pre[g])
+            two = [cap] if box else [cap, other]
+            ends, jacs = [caps[i] for i in two], [jcaps[i] for i in two]
+            out = fn(pre[g] >= config.collision_band, *ends, *jacs, *consts, pre[g], acc)
             total = total + out[0]
-            mins.append(out[-1])
+            mins.append(out[-2])
+            acc = out[-1]
             grads[cap] = grads[cap] + out[1]
             if not box:
                 grads[other] = grads[other] + out[2]
         v = ca.vertcat(*[gr if isinstance(gr, ca.MX) else ca.MX.zeros(6) for gr in grads])
-        dq = self.vjp_function()(q, v)
-        return ca.Function("collision_penalty", [q, pre], [total, dq, ca.vertcat(*mins)])
+        dq = ca.mtimes(jac.T, v)
+        return ca.Function("collision_penalty", [q, pre], [total, dq, ca.vertcat(*mins), acc])
 
 
 def evaluate_function(
@@ -271,22 +274,32 @@ def evaluate_function(
     base = ca.Function("evaluate_base", [q, par, qa, lba], [r, jac, pre, far], {"cse": True})
     rs, js = ca.SX.sym("r", r.sparsity()), ca.SX.sym("J", jac.sparsity())
     ss, ds, ms = ca.SX.sym("s"), ca.SX.sym("ds", n), ca.SX.sym("mins", ng)
+    curv = ca.SX.sym("A", n * n)
     scale = config.w_c / config.collision_band**2
     rc, jc = scale * ss, scale * ds
     cost, grad, hess = _cost_terms(ca.vertcat(rs, rc), ca.vertcat(js, jc.T))
+    # The penalty row's own curvature, rho'(r_c) r_c d2 r_c / dq2 with d2 S / dq2 taken as
+    # 2 sum(grad c grad c^T) over the terms in the band: Gauss-Newton of the single row
+    # sees only the direction of dS/dq, so without it the iterates zigzag along the band.
+    hess = hess + 2.0 * scale * rc / ca.sqrt(1.0 + rc * rc) * curv
     combine = ca.Function(
-        "evaluate_combine", [rs, js, ss, ds, ms], [cost, grad, hess, ca.mmin(ms)], {"cse": True}
+        "evaluate_combine",
+        [rs, js, ss, ds, ms, curv],
+        [cost, grad, hess, ca.mmin(ms)],
+        {"cse": True},
     )
     qs, pres = ca.SX.sym("q", n), ca.SX.sym("pre", ng)
-    none_near = ca.Function("collision_far", [qs, pres], [ca.SX(0.0), ca.SX.zeros(n), pres])
+    none_near = ca.Function(
+        "collision_far", [qs, pres], [ca.SX(0.0), ca.SX.zeros(n), pres, ca.SX.zeros(n * n)]
+    )
     penalty = ca.Function.conditional(
         "collision_part", [groups.penalty_function(config)], none_near
     )
     sym = ca.MX.sym
     qm, pm, qam, lbm = sym("q", n), sym("p", par.shape[0]), sym("q_anchor", n), sym("bounds", ng)
     rm, jm, prem, farm = base(qm, pm, qam, lbm)
-    total, dtotal, mins = penalty(farm, qm, prem)
-    cost_m, grad_m, hess_m, clear_m = combine(rm, jm, total, dtotal, mins)
+    total, dtotal, mins, curv_m = penalty(farm, qm, prem)
+    cost_m, grad_m, hess_m, clear_m = combine(rm, jm, total, dtotal, mins, curv_m)
     fn = ca.Function("evaluate", [qm, pm, qam, lbm], [cost_m, grad_m, hess_m, clear_m, mins])
     return fn, ng
 

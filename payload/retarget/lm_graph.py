@@ -331,7 +331,7 @@ def safe_posture(pk: PairKinematics, config: RetargetConfig) -> tuple[np.ndarray
         return pk.rest.copy(), col.clearance(pk.rest)
     rng = np.random.default_rng(99)
     qs = pk.lower + rng.random((4000, pk.n)) * pk.range
-    dist = np.array(col.distance_function().map(qs.shape[0])(qs.T))
+    dist = col.distances_many(qs)
     ok = np.flatnonzero(dist.min(axis=0) - col.margin >= col.margin)
     if ok.size == 0:
         raise RetargetError(f"pair {pk.name}: no collision-free posture found for the fallback")

@@ -28,7 +28,12 @@ from payload.retarget.objective import (
     collision_residual,
     cost_of_residuals,
 )
-from payload.retarget.symbolic import residuals_expr, uses_collisions
+from payload.retarget.symbolic import (
+    clearance_and_penalty,
+    paper_residuals_expr,
+    residuals_expr,
+    uses_collisions,
+)
 
 OPTIMUM_NFEV = 400
 """Function evaluations of each scipy start of the best-known optimum."""
@@ -52,11 +57,26 @@ class CompiledObjective:
         n = pk.n
         q, t = ca.SX.sym("q", n), ca.SX.sym("t", N_FEATURES)
         qr, qp = ca.SX.sym("qr", n), ca.SX.sym("qp", n)
-        r = residuals_expr(pk, config, q, t, qr, qp)
         name = "payload_objective_" + "".join(c if c.isalnum() else "_" for c in pk.name)
-        self.function = ca.Function(
-            name, [q, t, qr, qp], [r, ca.densify(ca.jacobian(r, q))], {"cse": True}
-        )
+        if uses_collisions(pk, config):
+            # eq. 3's rows as one expression, the penalty row as calls of the shared
+            # distance functions (small C; see PairCollision.distances_expr)
+            paper = ca.Function(
+                "paper_rows", [q, t, qr, qp], [paper_residuals_expr(pk, config, q, t, qr, qp)]
+            )
+            qm, tm = ca.MX.sym("q", n), ca.MX.sym("t", N_FEATURES)
+            qrm, qpm = ca.MX.sym("qr", n), ca.MX.sym("qp", n)
+            cp = clearance_and_penalty(pk, config, qm)
+            assert cp is not None
+            r = ca.vertcat(paper(qm, tm, qrm, qpm), cp[1])
+            self.function = ca.Function(
+                name, [qm, tm, qrm, qpm], [r, ca.densify(ca.jacobian(r, qm))]
+            )
+        else:
+            r = residuals_expr(pk, config, q, t, qr, qp)
+            self.function = ca.Function(
+                name, [q, t, qr, qp], [r, ca.densify(ca.jacobian(r, q))], {"cse": True}
+            )
         self.m, self.n = int(r.shape[0]), n
         self._c = _compiled_or_none(self.function)
 

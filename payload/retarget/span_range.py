@@ -106,10 +106,10 @@ class _Clearance:
 
         from payload.retarget.compiled import _compiled_or_none
 
-        q = ca.SX.sym("q", pk.n)
+        q = ca.MX.sym("q", pk.n)  # shared functions per kind of term: small C
         c = pk.collision.clearance_expr(q) - _TABLE_BUFFER
         name = "payload_clearance_" + "".join(ch if ch.isalnum() else "_" for ch in pk.name)
-        self.function = ca.Function(name, [q], [c, ca.densify(ca.jacobian(c, q))], {"cse": True})
+        self.function = ca.Function(name, [q], [c, ca.densify(ca.jacobian(c, q))])
         self.k = c.shape[0]
         self._c = _compiled_or_none(self.function)
 
