@@ -15,7 +15,15 @@ the joint to the capsule end (and of the travel of prismatic joints between them
 it bounds the point's distance from the joint axis; for a prismatic joint, 1. Signed
 distances to a box and segment distances are 1-Lipschitz in the points, so
 ``clearance(q) >= bound(q_anchor) - L_g . |q - q_anchor|``. An exact evaluation resets
-the bound to the group's smallest clearance.
+the bound to the group's smallest clearance. A group the carried bound does not prove far
+is checked next by its **midpoint bound** at the current capsule ends
+(:meth:`CollisionGroups.midpoint_bound`), and evaluated exactly only if that is below
+the band too.
+
+Besides the penalty and its gradient, the exactly evaluated groups return the sum of
+``grad c grad c^T`` over their terms in the band: the curvature of the penalty's sum of
+squares that the single penalty row's Gauss-Newton term does not see
+(:func:`evaluate_function` adds it).
 
 The result is the dense computation's (the same penalty and gradient, the same sign of
 the smallest clearance, so the same accepted steps); the reported smallest clearance is
