@@ -31,6 +31,7 @@ from __future__ import annotations
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import casadi as ca
 import numpy as np
@@ -295,7 +296,7 @@ def _breakpoints(x0, v, half, safe_div, clip):
     return out
 
 
-def segment_box_distance_expr(a, b, centre, rotation, half):
+def segment_box_distance_expr(a: ca.SX, b: ca.SX, centre: Any, rotation: Any, half: Any) -> ca.SX:
     """Signed distance between segment a-b and a box (CasADi; the box's centre, rotation
     (columns: its axes) and half sizes may be constants or symbols), in closed form.
 

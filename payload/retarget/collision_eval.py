@@ -119,17 +119,19 @@ class CollisionGroups:
     def group_call(self, g: int, config: RetargetConfig) -> tuple[ca.Function, list]:
         """Group g's shared function and the group's constants.
 
-        ``fn(far, ends_1 (6), [ends_2 (6),] *constants, bound) -> (S_g, dS_g/d ends_1,
-        [dS_g/d ends_2,] clearance bound)``: with ``far`` true, ``(0, 0, [0,] bound)``;
-        else first the group's **midpoint bound** (:meth:`midpoint_bound`), and only if
-        that is below the band the exact terms (``S_g``, the sum of
-        ``(band - clearance)_+^2`` over them, and their smallest clearance), else
-        ``(0, 0, [0,] max(bound, midpoint bound))``. ``ends_2`` is there for a capsule pair.
+        ``fn(far, ends_1 (6), [ends_2 (6),] J_1 (6, n), [J_2 (6, n),] *constants, bound,
+        A (n*n)) -> (S_g, dS_g/d ends_1, [dS_g/d ends_2,] clearance bound, A')``, with
+        ``J`` the ends' Jacobians in q: with ``far`` true, ``(0, 0, [0,] bound, A)``; else
+        first the group's **midpoint bound** (:meth:`midpoint_bound`), and only if that is
+        below the band the exact terms (``S_g``, the sum of ``(band - clearance)_+^2``
+        over them, their smallest clearance, and ``A`` plus the sum of ``grad c grad c^T``
+        over the terms in the band), else ``(0, 0, [0,] max(bound, midpoint bound), A)``.
+        ``ends_2`` and ``J_2`` are there for a capsule pair.
 
-        There is one such function per kind of group (a capsule against k sample points
-        on one box; a capsule pair), the group's geometry passed as constants: one copy of
-        the code for all groups, so the generated solver stays small enough to stay in
-        the instruction cache.
+        There is one such function per kind of group (a capsule against a box; a capsule
+        pair), the group's geometry passed as constants: one copy of the code for all
+        groups, so the generated solver stays small enough to stay in the instruction
+        cache.
         """
         col = self.pk.collision
         cap, box, other = self.keys()[g]
