@@ -16,9 +16,10 @@ The solver's own geometry, derived once per pair:
 
 Checked pairs are those the python-fcl check (:mod:`payload.retarget.meshcheck`) checks:
 a link of finger 1 against a link of finger 2, exactly (segment-to-segment distance less
-both radii), and a finger link against a structure box, exactly too (the smallest signed
-distance of the box along the capsule axis, :func:`segment_box_distance_expr`, less the
-radius), except a finger's first link against the link it is mounted on (they touch by
+both radii), and a finger link against a structure box, exactly too while apart (the
+smallest distance of the box along the capsule axis, :func:`segment_box_distance_expr`,
+less the radius; an axis entering the box gets the depth in the middle of its inside
+part), except a finger's first link against the link it is mounted on (they touch by
 construction). Pairs that never come within :data:`PRUNE_DISTANCE` of each other over
 :data:`PRUNE_SAMPLES` seeded postures of the joint box are left out.
 
@@ -532,7 +533,9 @@ class PairCollision:
         a2, b2 = ends[t.other]
         return _segment_distance_ca(a, b, a2, b2) - ci.radius - self.capsules[t.other].radius
 
-    def distances_expr(self, q: ca.SX, terms: tuple[Term, ...] | None = None) -> ca.SX:
+    def distances_expr(
+        self, q: ca.SX | ca.MX, terms: tuple[Term, ...] | None = None
+    ) -> ca.SX | ca.MX:
         """The terms' distances [m] at symbolic q, shape (k, 1) (k may be 0).
 
         With an ``SX`` q, one expression (every term written out); with an ``MX`` q, a
@@ -581,7 +584,7 @@ class PairCollision:
                 out.append(d - ci.radius - self.capsules[t.other].radius)
         return ca.vertcat(*out)
 
-    def clearance_expr(self, q: ca.SX) -> ca.SX:
+    def clearance_expr(self, q: ca.SX | ca.MX) -> ca.SX | ca.MX:
         """Distances less the margin, shape (k, 1): non-negative when collision-free."""
         return self.distances_expr(q) - self.margin
 

@@ -88,6 +88,8 @@ class CollisionGroups:
         rows = [caps[c] if box else caps[c] + caps[o] for c, box, o in keys]
         self.lipschitz = np.array(rows).reshape(len(keys), pk.n)
         self._shared: dict[object, ca.Function] = {}
+        if any(len(t) != 1 for t in self.terms):  # pragma: no cover - a model change
+            raise AssertionError("collision groups expect one term per capsule and box or pair")
 
     def __len__(self) -> int:
         return len(self.terms)
@@ -173,9 +175,10 @@ class CollisionGroups:
 
     def _shared_group(self, kind: tuple[str, int], config: RetargetConfig) -> ca.Function:
         """The shared function of one kind of group (see :meth:`group_call`)."""
-        if kind in self._shared:
-            return self._shared[kind]
         margin, band = self.pk.collision.margin, config.collision_band
+        key = (kind, band, margin)  # both are built into the function
+        if key in self._shared:
+            return self._shared[key]
         e1 = ca.SX.sym("e1", 6)
         a, b = e1[:3], e1[3:]
         if kind[0] == "box":
@@ -221,8 +224,8 @@ class CollisionGroups:
         gated = ca.Function(
             f"{tag}_gated", mx, inner(g_mx >= band, *mx[:-2], ca.fmax(mx[-2], g_mx), mx[-1])
         )
-        self._shared[kind] = ca.Function.conditional(tag, [gated], skip)
-        return self._shared[kind]
+        self._shared[key] = ca.Function.conditional(tag, [gated], skip)
+        return self._shared[key]
 
     def penalty_function(self, config: RetargetConfig) -> ca.Function:
         """``(q, pre-bounds) -> (S, dS/dq, group minima, A)``: the groups whose bound is
@@ -288,7 +291,8 @@ def evaluate_function(
     scale = config.w_c / config.collision_band**2
     rc, jc = scale * ss, scale * ds
     cost, grad, hess = _cost_terms(ca.vertcat(rs, rc), ca.vertcat(js, jc.T))
-    # The penalty row's own curvature, rho'(r_c) r_c d2 r_c / dq2 with d2 S / dq2 taken as
+    # The penalty row's own curvature, w r_c d2 r_c / dq2 (w = 1 / sqrt(1 + r_c^2), the
+    # row's IRLS weight) with d2 S / dq2 taken as
     # 2 sum(grad c grad c^T) over the terms in the band: Gauss-Newton of the single row
     # sees only the direction of dS/dq, so without it the iterates zigzag along the band.
     hess = hess + 2.0 * scale * rc / ca.sqrt(1.0 + rc * rc) * curv

@@ -48,7 +48,8 @@ RANDOM_STARTS = 1
 class CompiledObjective:
     """Eq. 3's residuals and dense Jacobian of one pair as compiled C (VM without a compiler).
 
-    ``(q, targets, q_ref, q_prev) -> (r (13 + 2n), J (13 + 2n, n))``.
+    ``(q, targets, q_ref, q_prev) -> (r (m), J (m, n))``, m = 13 + 2n, plus the penalty row
+    with self-collision modelled.
     """
 
     def __init__(self, pk: PairKinematics, config: RetargetConfig) -> None:

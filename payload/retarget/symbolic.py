@@ -190,8 +190,8 @@ def uses_collisions(pk: PairKinematics, config: RetargetConfig) -> bool:
 
 
 def clearance_and_penalty(
-    pk: PairKinematics, config: RetargetConfig, q: ca.SX
-) -> tuple[ca.SX, ca.SX] | None:
+    pk: PairKinematics, config: RetargetConfig, q: ca.SX | ca.MX
+) -> tuple[ca.SX | ca.MX, ca.SX | ca.MX] | None:
     """The clearances (k, 1) [m] and the collision penalty residual (1, 1), or ``None``.
 
     The residual is ``w_c sum((band - clearance)_+^2) / band^2``: it and its gradient
