@@ -32,6 +32,7 @@ from __future__ import annotations
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import casadi as ca
@@ -287,14 +288,75 @@ _TOUCH2 = 1e-24
 is on or in the box (a face crossing computed with rounding lands within 1e-12 m)."""
 
 
-def _breakpoints(x0, v, half, safe_div, clip):
-    """The segment parameters where a coordinate crosses a face plane (clipped to
-    [0, 1]; a coordinate that does not move gives 0), and the two ends."""
-    out = [0.0, 1.0]
+_CASADI = SimpleNamespace(
+    abs=ca.fabs,
+    max=ca.fmax,
+    min=ca.fmin,
+    where=ca.if_else,
+    sqrt=ca.sqrt,
+    sign=ca.sign,
+    or_=ca.logic_or,
+    and_=ca.logic_and,
+)
+_NUMPY = SimpleNamespace(
+    abs=np.abs,
+    max=np.maximum,
+    min=np.minimum,
+    where=np.where,
+    sqrt=np.sqrt,
+    sign=np.sign,
+    or_=np.logical_or,
+    and_=np.logical_and,
+)
+
+
+def _segment_box(x0: list, v: list, half: list, o: SimpleNamespace) -> Any:
+    """The closed form of :func:`segment_box_distance_expr` on three coordinates each of
+    the segment's start and direction in the box frame and the half sizes, written once
+    for CasADi (``o = _CASADI``, scalars) and numpy (``o = _NUMPY``, arrays of segments)."""
+
+    def at(t: Any) -> list:
+        return [x0[j] + t * v[j] for j in range(3)]
+
+    def slope(t: Any) -> Any:
+        x = at(t)
+        return sum(o.max(o.abs(x[j]) - half[j], 0.0) * o.sign(x[j]) * v[j] for j in range(3))
+
+    def outside2(t: Any) -> Any:
+        out = [o.max(o.abs(xj) - hj, 0.0) for xj, hj in zip(at(t), half)]
+        return sum(e * e for e in out)
+
+    def sdf(t: Any) -> Any:
+        qv = [o.abs(xj) - hj for xj, hj in zip(at(t), half)]
+        deepest = o.max(o.max(qv[0], qv[1]), qv[2])
+        return o.sqrt(outside2(t) + _TINY) + o.min(deepest, 0.0)
+
+    # breakpoints: the ends, and where a coordinate crosses a face plane (a coordinate
+    # that does not move gives 0)
+    ts: list = [0.0, 1.0]
     for j in range(3):
+        moves = o.abs(v[j]) > 1e-15
+        den = o.where(moves, v[j], 1.0)
         for sgn in (1.0, -1.0):
-            out.append(clip(safe_div(sgn * half[j] - x0[j], v[j])))
-    return out
+            t = o.where(moves, (sgn * half[j] - x0[j]) / den, 0.0)
+            ts.append(o.min(o.max(t, 0.0), 1.0))
+    t_l, t_r = 0.0, 1.0
+    for t in ts:
+        s = slope(t)
+        t_l = o.max(t_l, o.where(s <= 0, t, 0.0))
+        t_r = o.min(t_r, o.where(s > 0, t, 1.0))
+    s_l, s_r = slope(t_l), slope(t_r)
+    ok = o.and_(t_r > t_l, s_r - s_l > 0)
+    t_star = o.where(ok, t_l - s_l * (t_r - t_l) / o.where(ok, s_r - s_l, 1.0), t_l)
+    # Outside: the distance at the minimiser. Entering: the depth in the middle of the
+    # part of the segment inside the box (its ends are breakpoints or segment ends).
+    t_in, t_out = 1.0, 0.0
+    for t in ts:
+        touching = outside2(t) <= _TOUCH2
+        t_in = o.min(t_in, o.where(touching, t, 1.0))
+        t_out = o.max(t_out, o.where(touching, t, 0.0))
+    enters = o.or_(outside2(t_star) <= _TOUCH2, t_out >= t_in)
+    return sdf(o.where(enters, 0.5 * (t_in + t_out), t_star))
 
 
 def segment_box_distance_expr(a: ca.SX, b: ca.SX, centre: Any, rotation: Any, half: Any) -> ca.SX:
@@ -312,44 +374,9 @@ def segment_box_distance_expr(a: ca.SX, b: ca.SX, centre: Any, rotation: Any, ha
     continuous in the ends and pointing out of the box."""
     x0 = ca.mtimes(rotation.T, a - centre)
     v = ca.mtimes(rotation.T, b - a)
-
-    def slope(t):
-        x = x0 + t * v
-        return ca.dot(ca.fmax(ca.fabs(x) - half, 0) * ca.sign(x), v)
-
-    def safe_div(num, den):
-        return ca.if_else(ca.fabs(den) > 1e-15, num / ca.if_else(den == 0, 1.0, den), 0.0)
-
-    ts = _breakpoints(x0, v, half, safe_div, lambda t: ca.fmin(ca.fmax(t, 0.0), 1.0))
-    t_l, t_r = ca.SX(0.0), ca.SX(1.0)
-    for t in ts:
-        s = slope(t)
-        t_l = ca.fmax(t_l, ca.if_else(s <= 0, t, 0.0))
-        t_r = ca.fmin(t_r, ca.if_else(s > 0, t, 1.0))
-    s_l, s_r = slope(t_l), slope(t_r)
-    gap = s_r - s_l
-    t_star = ca.if_else(
-        ca.logic_and(t_r > t_l, gap > 0), t_l - s_l * (t_r - t_l) / ca.fmax(gap, 1e-300), t_l
+    return _segment_box(
+        [x0[j] for j in range(3)], [v[j] for j in range(3)], [half[j] for j in range(3)], _CASADI
     )
-
-    def sdf(t):
-        qv = ca.fabs(x0 + t * v) - half
-        out = ca.fmax(qv, 0)
-        return ca.sqrt(ca.dot(out, out) + _TINY) + ca.fmin(ca.mmax(qv), 0)
-
-    # Outside: the distance at the minimiser. Entering: the depth in the middle of the
-    # part of the segment inside the box (its ends are breakpoints or segment ends).
-    def outside2(t):
-        out = ca.fmax(ca.fabs(x0 + t * v) - half, 0)
-        return ca.dot(out, out)
-
-    t_in, t_out = ca.SX(1.0), ca.SX(0.0)
-    for t in ts:
-        touching = outside2(t) <= _TOUCH2
-        t_in = ca.fmin(t_in, ca.if_else(touching, t, 1.0))
-        t_out = ca.fmax(t_out, ca.if_else(touching, t, 0.0))
-    enters = ca.logic_or(outside2(t_star) <= _TOUCH2, t_out >= t_in)
-    return sdf(ca.if_else(enters, 0.5 * (t_in + t_out), t_star))
 
 
 def segment_box_distances(
@@ -360,44 +387,7 @@ def segment_box_distances(
     (m, 3), rotations (m, 3, 3) and half sizes (m, 3)."""
     x0 = np.einsum("mji,mj->mi", rotation, a - centre)
     v = np.einsum("mji,mj->mi", rotation, b - a)
-
-    def slope(t: np.ndarray) -> np.ndarray:
-        x = x0 + t[:, None] * v
-        return np.sum(np.maximum(np.abs(x) - half, 0) * np.sign(x) * v, axis=1)
-
-    moving = np.abs(v) > 1e-15
-    den = np.where(moving, v, 1.0)
-    ts = [np.zeros(len(a)), np.ones(len(a))]
-    for j in range(3):
-        for sgn in (1.0, -1.0):
-            t = np.where(moving[:, j], (sgn * half[:, j] - x0[:, j]) / den[:, j], 0.0)
-            ts.append(np.clip(t, 0.0, 1.0))
-    t_l, t_r = np.zeros(len(a)), np.ones(len(a))
-    for t in ts:
-        s = slope(t)
-        t_l = np.maximum(t_l, np.where(s <= 0, t, 0.0))
-        t_r = np.minimum(t_r, np.where(s > 0, t, 1.0))
-    s_l, s_r = slope(t_l), slope(t_r)
-    gap = s_r - s_l
-    ok = (t_r > t_l) & (gap > 0)
-    t_star = np.where(ok, t_l - s_l * (t_r - t_l) / np.where(ok, gap, 1.0), t_l)
-
-    def sdf(t: np.ndarray) -> np.ndarray:
-        qv = np.abs(x0 + t[:, None] * v) - half
-        out = np.maximum(qv, 0)
-        return np.sqrt(np.sum(out * out, axis=1) + _TINY) + np.minimum(qv.max(axis=1), 0.0)
-
-    def outside2(t: np.ndarray) -> np.ndarray:
-        out = np.maximum(np.abs(x0 + t[:, None] * v) - half, 0)
-        return np.sum(out * out, axis=1)
-
-    t_in, t_out = np.ones(len(a)), np.zeros(len(a))
-    for t in ts:
-        touching = outside2(t) <= _TOUCH2
-        t_in = np.minimum(t_in, np.where(touching, t, 1.0))
-        t_out = np.maximum(t_out, np.where(touching, t, 0.0))
-    enters = (outside2(t_star) <= _TOUCH2) | (t_out >= t_in)
-    return sdf(np.where(enters, 0.5 * (t_in + t_out), t_star))
+    return np.asarray(_segment_box(list(x0.T), list(v.T), list(half.T), _NUMPY), dtype=float)
 
 
 def segment_box_distance(a: np.ndarray, b: np.ndarray, box: Box) -> float:
