@@ -44,6 +44,8 @@ from payload.retarget.symbolic import objective_function
 
 HANDS_DIR = Path(__file__).resolve().parents[1] / "payload" / "retarget" / "hands"
 PAIRS = ("L", "R")
+FCL_TOLERANCE = 0.5e-3
+"""How much nearer python-fcl may find the meshes than the solver's capsules (issue 14) [m]."""
 N_HUMAN = int(os.environ.get("PAYLOAD_HUMAN_PINCHES", "10000"))
 """Random human pinch inputs of the acceptance test (split over the two pairs). The suite
 runs 10,000 (under a minute); issue 14 asks for 100,000 (``PAYLOAD_HUMAN_PINCHES=100000``,
@@ -190,7 +192,7 @@ def test_the_solvers_distance_never_exceeds_fcls_by_more_than_half_a_millimetre(
     pk, mc = pks[pair], checks[pair]
     for q in _free_postures(pk, 150, 2):
         solver = pk.collision.distances(q).min()
-        assert mc.min_distance(q)[0] >= min(solver, 0.02) - 0.5e-3
+        assert mc.min_distance(q)[0] >= min(solver, 0.02) - FCL_TOLERANCE
 
 
 @pytest.mark.parametrize("pair", PAIRS)
@@ -336,7 +338,7 @@ def test_the_calibrated_range_and_postures_keep_the_margin(pks, checks, pair):
         [rg.postures, [rg.posture(s) for s in np.linspace(rg.span_min, rg.span_max, 97)]]
     ):
         assert pk.collision.clearance(q) >= 0
-        assert mc.min_distance(q)[0] >= pk.collision.margin - 0.5e-3
+        assert mc.min_distance(q)[0] >= pk.collision.margin - FCL_TOLERANCE
 
 
 # ------------------------------------------------------------------ solves
@@ -410,7 +412,7 @@ def test_random_human_pinches_over_the_full_opening_never_command_a_collision(pk
         del i
     assert collided == 0
     assert worst_solver >= 0.0  # the margin, in the solver's own distance
-    assert worst_fcl >= 2e-3 - 0.5e-3  # and within 0.5 mm of it by python-fcl
+    assert worst_fcl >= margin - FCL_TOLERANCE  # and within 0.5 mm of it by python-fcl
 
 
 # --------------------------------------------------------------- other hands
