@@ -541,12 +541,16 @@ class PairCollision:
             ends[i] = (chain_point(ca_, q), chain_point(cb_, q))
         return ca.vertcat(*[self._term_expr(t, ends) for t in terms])
 
+    def ends_function(self) -> ca.Function:
+        """``q -> ends (6 per capsule)``: every capsule's axis ends in the base frame."""
+        q = ca.SX.sym("q", self.pk.n)
+        ends = [chain_point(c, q) for pair in self._chains for c in pair]
+        return ca.Function("capsule_ends", [q], [ca.vertcat(*ends)], {"cse": True})
+
     def _distances_mx(self, q: ca.MX, terms: tuple[Term, ...]) -> ca.MX:
         if not terms:
             return ca.MX(0, 1)
-        qs = ca.SX.sym("q", self.pk.n)
-        pts = [chain_point(c, qs) for pair in self._chains for c in pair]
-        ends = ca.Function("capsule_ends", [qs], [ca.vertcat(*pts)], {"cse": True})(q)
+        ends = self.ends_function()(q)
         e = [
             (ends[6 * i : 6 * i + 3], ends[6 * i + 3 : 6 * i + 6])
             for i in range(len(self.capsules))

@@ -46,7 +46,7 @@ from payload.retarget.collision import (
 )
 from payload.retarget.features import PairKinematics
 from payload.retarget.objective import RetargetConfig
-from payload.retarget.symbolic import PointChain, chain_point
+from payload.retarget.symbolic import PointChain
 
 _SLACK = 1e-9
 """Added to the midpoint bounds' reach [m]: covers rounding (and the ``1e-18`` under the
@@ -104,10 +104,9 @@ class CollisionGroups:
         ]
 
     def ends_function(self) -> ca.Function:
-        """``q -> ends (6 per capsule)``: every capsule's axis ends in the base frame."""
-        q = ca.SX.sym("q", self.pk.n)
-        ends = [chain_point(c, q) for pair in self.pk.collision._chains for c in pair]
-        return ca.Function("capsule_ends", [q], [ca.vertcat(*ends)], {"cse": True})
+        """``q -> ends (6 per capsule)``: :meth:`PairCollision.ends_function
+        <payload.retarget.collision.PairCollision.ends_function>`."""
+        return self.pk.collision.ends_function()
 
     def ends_jacobian_function(self) -> ca.Function:
         """``q -> (ends, d ends / d q)``: the capsule ends (6 per capsule) and their
