@@ -406,15 +406,12 @@ class Term:
     Attributes:
         capsule: Index into :attr:`PairCollision.capsules`.
         other: Index of the other capsule, or of the box (``box`` True).
-        box: True for a capsule-box term.
-        fraction: Unused (box terms once sampled points along the axis; they are now the
-            exact segment-box distance).
+        box: True for a capsule-box term (the exact segment-box distance).
     """
 
     capsule: int
     other: int
     box: bool
-    fraction: float = 0.0
 
 
 class PairCollision:
