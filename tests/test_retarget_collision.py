@@ -358,10 +358,12 @@ def test_a_solve_from_inside_the_margin_still_returns_a_free_command(pks, solver
 
 
 def test_the_vm_agrees_with_the_compiled_solver_with_collisions_on(pks, solvers):
-    """The same graph in CasADi's virtual machine and as generated C: the same commands,
-    evaluations and clearances over a sequence that carries the groups' bounds."""
+    """The virtual machine's graph (the conditional CasADi collision part) and the
+    generated C (with the C group loop): the same commands, evaluations and clearances over
+    a sequence that carries the groups' bounds."""
     pk, r = pks["L"], solvers["L"]
     assert r.backend == "compiled", r.backend_reason
+    assert r.native is not None
     vm = PairRetargeter(kinematics=pk, config=r.config, backend="vm")
     r.reset()
     rng = np.random.default_rng(17)
@@ -375,6 +377,36 @@ def test_the_vm_agrees_with_the_compiled_solver_with_collisions_on(pks, solvers)
         assert iv.clearance == pytest.approx(ic.clearance, abs=1e-9)
         near += ic.clearance < r.config.collision_band
     assert near > 0  # some answers end in the band, where the collision terms act
+
+
+@pytest.mark.parametrize("pair", PAIRS)
+def test_the_c_group_loop_equals_the_conditional_casadi_form(pks, solvers, pair):
+    """The compiled solver's C loop over the groups and the conditional CasADi form give
+    the same penalty, gradient, group minima and curvature, with bounds that skip some
+    groups, let the midpoint bound skip others and leave the rest to the exact terms."""
+    pk, r = pks[pair], solvers[pair]
+    groups = CollisionGroups(pk)
+    native = r.native.penalty_function()
+    form = groups.penalty_function(r.config)
+    rng = np.random.default_rng(13)
+    band = r.config.collision_band
+    paths = np.zeros(3, dtype=int)  # bound-skipped, midpoint-skipped, exact
+    free = _free_postures(pk, 60, 100)  # near the margin's edge, where groups are exact
+    for k in range(120):
+        q = free[k // 2 % len(free)] if k % 2 else pk.lower + rng.random(pk.n) * pk.range
+        exact = _group_minima(pk, groups, q)
+        pre = np.where(
+            rng.random(len(groups)) < 0.5, -np.inf, exact - rng.random(len(groups)) * 0.02
+        )
+        a = [np.array(v).ravel() for v in native(q, pre)]
+        b = [np.array(v).ravel() for v in form(q, pre)]
+        for x, y in zip(a, b):
+            np.testing.assert_allclose(x, y, rtol=1e-12, atol=1e-15)
+        mid = _midpoint_bounds(pk, groups, q)
+        evaluated = (pre < band) & (mid < band)
+        paths += [(pre >= band).sum(), ((pre < band) & (mid >= band)).sum(), evaluated.sum()]
+        np.testing.assert_allclose(a[2][evaluated], exact[evaluated], rtol=0, atol=1e-12)
+    assert paths.min() > 0 and a[0].size == 1
 
 
 def _assert_reported_clearance(reported: float, exact: float, band: float) -> None:

@@ -42,6 +42,8 @@ import casadi as ca
 import numpy as np
 
 from payload.retarget import compiled as _compiled_mod
+from payload.retarget.collision_c import NativeCollision
+from payload.retarget.collision_eval import CollisionGroups
 from payload.retarget.compiled import (  # noqa: F401  (old import paths)
     _CFLAGS,
     _compiled_or_none,
@@ -104,16 +106,31 @@ class PairRetargeter(Retargeter):
             raise RetargetError(f"backend: expected one of {BACKENDS}, got {backend!r}")
         super().__init__(hand, pair, config, kinematics)
         name = f"payload_retarget_{_slug(self.kinematics.hand.name)}_{_slug(self.pair)}"
-        self.function: ca.Function = build_solve_function(self.kinematics, self.config, name)
         self.library: Path | None = None
         self.backend_reason: str | None = None
         self._compiled: _CompiledSolve | None = None
         compiler = _compiled_mod._compiler() if backend != "vm" else None
         if backend == "compiled" and compiler is None:
             raise RetargetError("backend 'compiled' needs a C compiler (set CC or install gcc)")
+        # With a compiler, the collision part is a C loop over the groups linked into the
+        # solver (payload.retarget.collision_c); the virtual machine keeps the conditional
+        # CasADi form of the same computation.
+        self.native: NativeCollision | None = None
+        if compiler is not None and self.collisions:
+            try:
+                self.native = NativeCollision(
+                    CollisionGroups(self.kinematics), self.config, f"{name}_collision", compiler
+                )
+            except (RetargetError, OSError, RuntimeError):
+                self.native = None  # the conditional form below; the solver reports on it
+        penalty = self.native.penalty_function() if self.native is not None else None
+        self.function: ca.Function = build_solve_function(
+            self.kinematics, self.config, name, penalty=penalty
+        )
         if compiler is not None:
             try:
-                self._compiled = _CompiledSolve(self.function, compiler)
+                extra = {f"{self.native.name}.c": self.native.source} if self.native else None
+                self._compiled = _CompiledSolve(self.function, compiler, extra)
                 self.library = self._compiled.path
             except (RetargetError, OSError) as exc:
                 reason = " ".join(str(exc).split())  # one line, whatever the OS says

@@ -109,13 +109,16 @@ class CollisionGroups:
         return self.pk.collision.ends_function()
 
     def ends_jacobian_function(self) -> ca.Function:
-        """``q -> (ends, d ends / d q)``: the capsule ends (6 per capsule) and their
-        Jacobian, shape (6 * capsules, n)."""
+        """``q -> (ends_0, ..., ends_k, J_0, ..., J_k)``: each capsule's ends (6) and their
+        Jacobian in q (dense, shape (6, n)), one output each so callers pass them on
+        without slicing."""
         q = ca.SX.sym("q", self.pk.n)
         ends = self.ends_function()(q)
-        return ca.Function(
-            "capsule_ends_jacobian", [q], [ends, ca.jacobian(ends, q)], {"cse": True}
-        )
+        jac = ca.densify(ca.jacobian(ends, q))
+        ncap = len(self.pk.collision.capsules)
+        outs = [ends[6 * i : 6 * i + 6] for i in range(ncap)]
+        outs += [jac[6 * i : 6 * i + 6, :] for i in range(ncap)]
+        return ca.Function("capsule_ends_jacobian", [q], outs, {"cse": True})
 
     def group_call(self, g: int, config: RetargetConfig) -> tuple[ca.Function, list]:
         """Group g's shared function and the group's constants.
@@ -140,9 +143,9 @@ class CollisionGroups:
             bx = col.boxes[other]
             consts = [ca.DM(bx.centre), ca.DM(bx.rotation), ca.DM(bx.half)]
             consts += [col.capsules[cap].radius, self._half_axis(cap)]
-            return self._shared_group(("box", 1), config), consts
+            return self._shared_group("box", config), consts
         radii = col.capsules[cap].radius + col.capsules[other].radius
-        return self._shared_group(("pair", 0), config), [radii, self._pair_slack(cap, other)]
+        return self._shared_group("pair", config), [radii, self._pair_slack(cap, other)]
 
     def _half_axis(self, cap: int) -> float:
         """Half the capsule's axis length [m] (fixed in its link), plus rounding slack:
@@ -172,15 +175,26 @@ class CollisionGroups:
         gap = float(np.linalg.norm(0.5 * (a + b) - 0.5 * (a2 + b2)))
         return gap - self._pair_slack(cap, other) - radii - col.margin
 
-    def _shared_group(self, kind: tuple[str, int], config: RetargetConfig) -> ca.Function:
-        """The shared function of one kind of group (see :meth:`group_call`)."""
+    def kind_functions(self, kind: str, config: RetargetConfig) -> tuple[ca.Function, ca.Function]:
+        """The two SX functions of one kind of group (``box``: a capsule against a box;
+        ``pair``: a capsule pair), the group's geometry passed as constants.
+
+        ``gate(ends_1 (6), [ends_2 (6),] *constants) -> midpoint bound`` (see
+        :meth:`midpoint_bound`) and ``exact(ends_1, [ends_2,] J_1 (6, n), [J_2 (6, n),]
+        *constants) -> (over, c, u)``: the clearance ``c`` less the margin, ``over =
+        (band - c)_+`` and ``u`` (n,) the clearance's gradient in q when ``over > 0``
+        (else 0), through the ends' Jacobians ``J``: the penalty's ``S = over^2`` has the
+        gradient ``-2 over u`` and ``u u^T`` is its term of the curvature. Constants: for
+        a box its centre (3), rotation (3x3), half sizes (3), the capsule radius and
+        :meth:`_half_axis`; for a pair the radii's sum and :meth:`_pair_slack`.
+        """
         margin, band = self.pk.collision.margin, config.collision_band
-        key = (kind, band, margin)  # both are built into the function
+        key = (kind, band, margin)  # both are built into the functions
         if key in self._shared:
             return self._shared[key]
         e1 = ca.SX.sym("e1", 6)
         a, b = e1[:3], e1[3:]
-        if kind[0] == "box":
+        if kind == "box":
             centre, rot = ca.SX.sym("centre", 3), ca.SX.sym("rotation", 3, 3)
             half, radius, slack = ca.SX.sym("half", 3), ca.SX.sym("radius"), ca.SX.sym("slack")
             others = [centre, rot, half, radius, slack]
@@ -199,59 +213,134 @@ class CollisionGroups:
             e2 = [e2s]
         n = self.pk.n
         jacs = [ca.SX.sym(f"J{i + 1}", 6, n) for i in range(1 + len(e2))]
-        bound, acc = ca.SX.sym("bound"), ca.SX.sym("curvature", n * n)
-        ins = [e1, *e2, *jacs, *others, bound, acc]
         over = ca.fmax(band - c, 0.0)
-        s = ca.dot(over, over)
-        grads = [ca.gradient(s, e) for e in (e1, *e2)]
-        # Each term's gradient in q (chain rule through the ends' Jacobian), for the
-        # curvature of the penalty's sum of squares: sum over terms in the band of u u^T.
-        u = ca.mtimes(ca.jacobian(c, ca.vertcat(e1, *e2)), ca.vertcat(*jacs))
         inside = ca.if_else(over > 0, 1.0, 0.0)
-        curv = acc + ca.vec(ca.mtimes(u.T, ca.mtimes(ca.diag(inside), u)))
-        tag = f"group_{kind[0]}{kind[1] or ''}"
-        exact = ca.Function(f"{tag}_exact", ins, [s, *grads, ca.mmin(c), curv], {"cse": True})
-        zeros = [ca.SX.zeros(6) for _ in grads]
-        skip = ca.Function(f"{tag}_skip", ins, [ca.SX(0.0), *zeros, bound, acc])
-        gate_fn = ca.Function(f"{tag}_gate", ins[:-2], [gate], {"cse": True})
-        mx = [
-            ca.MX.sym(str(x.name()) if x.is_scalar() else f"in{i}", x.sparsity())
-            for i, x in enumerate(ins)
-        ]
-        g_mx = gate_fn(*mx[:-2])
-        inner = ca.Function.conditional(f"{tag}_near", [exact], skip)
-        gated = ca.Function(
-            f"{tag}_gated", mx, inner(g_mx >= band, *mx[:-2], ca.fmax(mx[-2], g_mx), mx[-1])
+        u = inside * ca.mtimes(ca.jacobian(c, ca.vertcat(e1, *e2)), ca.vertcat(*jacs)).T
+        gate_fn = ca.Function(f"group_{kind}_gate", [e1, *e2, *others], [gate], {"cse": True})
+        exact = ca.Function(
+            f"group_{kind}_exact", [e1, *e2, *jacs, *others], [over, c, u], {"cse": True}
         )
-        self._shared[key] = ca.Function.conditional(tag, [gated], skip)
+        self._shared[key] = (gate_fn, exact)
+        return gate_fn, exact
+
+    def _shared_group(self, kind: str, config: RetargetConfig) -> ca.Function:
+        """The shared MX function of one kind of group (see :meth:`group_call`)."""
+        key = ("group", kind, config.collision_band, self.pk.collision.margin)
+        if key in self._shared:
+            return self._shared[key]
+        gate_fn, exact = self.kind_functions(kind, config)
+        band, n = config.collision_band, self.pk.n
+        ne = 1 if kind == "box" else 2
+        ends = [ca.MX.sym(f"e{i + 1}", 6) for i in range(ne)]
+        jacs = [ca.MX.sym(f"J{i + 1}", 6, n) for i in range(ne)]
+        others = [ca.MX.sym(f"k{i}", exact.sparsity_in(i)) for i in range(2 * ne, exact.n_in())]
+        bound = ca.MX.sym("bound")
+        ins = [*ends, *jacs, *others, bound]
+        sx_ins = [ca.SX.sym(x.name(), x.sparsity()) for x in ins]
+        skip = ca.Function(f"group_{kind}_skip", sx_ins, [ca.SX(0.0), sx_ins[-1], ca.SX.zeros(n)])
+        exact_mx = ca.Function(f"group_{kind}_exact_b", ins, exact(*ends, *jacs, *others))
+        g_mx = gate_fn(*ends, *others)
+        inner = ca.Function.conditional(f"group_{kind}_near", [exact_mx], skip)
+        gated = ca.Function(
+            f"group_{kind}_gated", ins, inner(g_mx >= band, *ins[:-1], ca.fmax(bound, g_mx))
+        )
+        self._shared[key] = ca.Function.conditional(f"group_{kind}", [gated], skip)
         return self._shared[key]
+
+    def capsule_groups(self) -> list[tuple[int, tuple[int, ...]]]:
+        """The groups by their first capsule, in group order: ``(capsule, groups)``.
+
+        Groups are sorted by capsule first, so each capsule's groups are consecutive."""
+        out: list[tuple[int, list[int]]] = []
+        for g, (cap, _box, _other) in enumerate(self.keys()):
+            if not out or out[-1][0] != cap:
+                out.append((cap, []))
+            out[-1][1].append(g)
+        return [(cap, tuple(gs)) for cap, gs in out]
+
+    def _capsule_function(
+        self, cap: int, gs: tuple[int, ...], config: RetargetConfig
+    ) -> tuple[ca.Function, list[int]]:
+        """Capsule ``cap``'s function over its groups ``gs``, and the capsules whose ends
+        and Jacobians it takes (``cap`` first).
+
+        ``(far, ends..., J..., bounds (len gs), A) -> (S, dS/dq, minima, A')``: with
+        ``far`` true (every bound beyond the band) nothing is evaluated: ``(0, 0, bounds,
+        A)``; else each group through its shared function (:meth:`group_call`), which
+        skips it on its own bound. One dispatch per capsule when it is far instead of one
+        per group."""
+        n = self.pk.n
+        used = [cap]
+        for g in gs:
+            _cap, box, other = self.keys()[g]
+            if not box and other not in used:
+                used.append(other)
+        es = {i: ca.MX.sym(f"ends{i}", 6) for i in used}
+        js = {i: ca.MX.sym(f"J{i}", 6, n) for i in used}
+        pre, acc = ca.MX.sym("bounds", len(gs)), ca.MX.sym("A", n * n)
+        band = config.collision_band
+        overs, mins, us = [], [], []
+        for k, g in enumerate(gs):
+            _cap, box, other = self.keys()[g]
+            fn, consts = self.group_call(g, config)
+            two = [cap] if box else [cap, other]
+            out = fn(pre[k] >= band, *[es[i] for i in two], *[js[i] for i in two], *consts, pre[k])
+            overs.append(out[0])
+            mins.append(out[1])
+            us.append(out[2])
+        total, dq, acc_out = self._accumulate(len(gs))(ca.horzcat(*us), ca.vertcat(*overs), acc)
+        ins = [*es.values(), *js.values(), pre, acc]
+        near = ca.Function(f"capsule{cap}_near", ins, [total, dq, ca.vertcat(*mins), acc_out])
+        sx_ins = [ca.SX.sym(x.name(), x.sparsity()) for x in ins]
+        skip = ca.Function(
+            f"capsule{cap}_far", sx_ins, [ca.SX(0.0), ca.SX.zeros(n), sx_ins[-2], sx_ins[-1]]
+        )
+        return ca.Function.conditional(f"capsule{cap}", [near], skip), used
+
+    def _accumulate(self, k: int) -> ca.Function:
+        """``(U (n, k), over (k), A) -> (sum over^2, -2 U over, A + U U^T)``, written out
+        (straight-line code, the symmetric product's upper triangle computed once)."""
+        key = ("accumulate", k)
+        if key in self._shared:
+            return self._shared[key]
+        n = self.pk.n
+        u, over, acc = ca.SX.sym("U", n, k), ca.SX.sym("over", k), ca.SX.sym("A", n * n)
+        prod = [[None] * n for _ in range(n)]
+        for i in range(n):
+            for j in range(i, n):
+                prod[i][j] = prod[j][i] = ca.dot(u[i, :].T, u[j, :].T)
+        outer = ca.vertcat(*[prod[i][j] for j in range(n) for i in range(n)])  # column-major
+        fn = ca.Function(
+            f"accumulate{k}",
+            [u, over, acc],
+            [ca.dot(over, over), ca.mtimes(u, -2.0 * over), acc + outer],
+            {"cse": True},
+        )
+        self._shared[key] = fn
+        return fn
 
     def penalty_function(self, config: RetargetConfig) -> ca.Function:
         """``(q, pre-bounds) -> (S, dS/dq, group minima, A)``: the groups whose bound is
         below the band evaluated on the capsule ends (and their Jacobian) computed once,
-        the others skipped; ``A`` (n*n, column-major) is the sum over the terms in the band
-        of ``grad c grad c^T``, the curvature of ``S`` bar the terms' own."""
+        the others skipped, a capsule whose groups are all far with one test; ``A``
+        (n*n, column-major) is the sum over the terms in the band of ``grad c grad c^T``,
+        the curvature of ``S`` bar the terms' own."""
         n, ng = self.pk.n, len(self)
-        ncap = len(self.pk.collision.capsules)
         q, pre = ca.MX.sym("q", n), ca.MX.sym("pre", ng)
-        e, jac = self.ends_jacobian_function()(q)
-        caps = [e[6 * i : 6 * i + 6] for i in range(ncap)]
-        jcaps = [jac[6 * i : 6 * i + 6, :] for i in range(ncap)]
-        grads: list = [0.0] * ncap
-        total, mins, acc = 0.0, [], ca.MX.zeros(n * n)
-        for g, (cap, box, other) in enumerate(self.keys()):
-            fn, consts = self.group_call(g, config)
-            two = [cap] if box else [cap, other]
-            ends, jacs = [caps[i] for i in two], [jcaps[i] for i in two]
-            out = fn(pre[g] >= config.collision_band, *ends, *jacs, *consts, pre[g], acc)
+        ncap = len(self.pk.collision.capsules)
+        outs = self.ends_jacobian_function()(q)
+        ends, jacs = outs[:ncap], outs[ncap:]
+        total, dq, mins, acc = ca.MX(0.0), ca.MX.zeros(n), [], ca.MX.zeros(n * n)
+        band = config.collision_band
+        for cap, gs in self.capsule_groups():
+            fn, used = self._capsule_function(cap, gs, config)
+            bounds = pre[gs[0] : gs[-1] + 1]
+            args = [ends[i] for i in used] + [jacs[i] for i in used]
+            out = fn(ca.mmin(bounds) >= band, *args, bounds, acc)
             total = total + out[0]
-            mins.append(out[-2])
-            acc = out[-1]
-            grads[cap] = grads[cap] + out[1]
-            if not box:
-                grads[other] = grads[other] + out[2]
-        v = ca.vertcat(*[gr if isinstance(gr, ca.MX) else ca.MX.zeros(6) for gr in grads])
-        dq = ca.mtimes(jac.T, v)
+            dq = dq + out[1]
+            mins.append(out[2])
+            acc = out[3]
         return ca.Function("collision_penalty", [q, pre], [total, dq, ca.vertcat(*mins), acc])
 
 
@@ -262,9 +351,13 @@ def evaluate_function(
     jac: ca.SX,
     q: ca.SX,
     par: ca.SX,
+    penalty: ca.Function | None = None,
 ) -> tuple[ca.Function, int]:
     """``evaluate(q, par, q_anchor, bounds) -> (cost, g, H, clearance, bounds)`` and the
     number of groups (0 without collision terms: ``bounds`` is then empty).
+
+    ``penalty`` replaces :meth:`CollisionGroups.penalty_function` (same contract), e.g.
+    by the C loop of :class:`payload.retarget.collision_c.NativeCollision`.
 
     ``r``/``jac`` are eq. 3's residuals and Jacobian in ``q`` and ``par``; ``bounds``
     (groups,) are lower bounds of the groups' clearances valid at ``q_anchor`` (``-inf``:
@@ -306,7 +399,7 @@ def evaluate_function(
         "collision_far", [qs, pres], [ca.SX(0.0), ca.SX.zeros(n), pres, ca.SX.zeros(n * n)]
     )
     penalty = ca.Function.conditional(
-        "collision_part", [groups.penalty_function(config)], none_near
+        "collision_part", [penalty or groups.penalty_function(config)], none_near
     )
     sym = ca.MX.sym
     qm, pm, qam, lbm = sym("q", n), sym("p", par.shape[0]), sym("q_anchor", n), sym("bounds", ng)

@@ -41,44 +41,69 @@ def _compiler() -> str | None:
     return shutil.which(cc) or shutil.which("gcc") or shutil.which("clang")
 
 
-class _CompiledSolve:
-    """A generated CasADi function in a shared library, called through ctypes."""
+def build_library(name: str, sources: dict[str, str], compiler: str) -> Path:
+    """C ``sources`` (file name -> code) compiled into one shared library, cached.
 
-    def __init__(self, fn: ca.Function, compiler: str) -> None:
+    The library is named by ``name`` and the hash of the code, the compiler, the flags,
+    the machine and CasADi's version; an existing one is reused. A failed compilation
+    leaves its log beside the cache and raises :class:`RetargetError`.
+    """
+    key = hashlib.sha256(
+        "\n".join(
+            [
+                *(f"{k}\n{v}" for k, v in sorted(sources.items())),
+                compiler,
+                *_CFLAGS,
+                platform.machine(),
+                ca.__version__,
+            ]
+        ).encode()
+    ).hexdigest()[:20]
+    directory = cache_dir()
+    lib_path = directory / f"{name}_{key}.so"
+    if lib_path.is_file():
+        return lib_path
+    directory.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(dir=directory) as tmp:
+        paths = []
+        for file_name, code in sources.items():
+            paths.append(Path(tmp) / file_name)
+            paths[-1].write_text(code)
+        out = Path(tmp) / "lib.so"
+        proc = subprocess.run(
+            [compiler, *_CFLAGS, "-o", str(out), *map(str, paths), "-lm"],
+            capture_output=True,
+            text=True,
+            check=False,
+        )
+        if proc.returncode != 0:
+            log = directory / f"{name}_{key}.log"
+            log.write_text(
+                f"$ {' '.join(proc.args)}\nexit {proc.returncode}\n"
+                f"--- stdout\n{proc.stdout}--- stderr\n{proc.stderr}"
+            )
+            raise RetargetError(
+                f"compiling the retargeting solver failed ({Path(compiler).name} "
+                f"exit {proc.returncode}); log: {log}"
+            )
+        os.replace(out, lib_path)
+    (directory / f"{name}_{key}.log").unlink(missing_ok=True)  # an older failure's
+    _prune(directory, name)
+    return lib_path
+
+
+class _CompiledSolve:
+    """A generated CasADi function in a shared library, called through ctypes.
+
+    ``extra``: further C sources (file name -> code) compiled into the same library,
+    e.g. the definitions of external functions the generated code calls."""
+
+    def __init__(self, fn: ca.Function, compiler: str, extra: dict[str, str] | None = None) -> None:
         name = fn.name()
         cg = ca.CodeGenerator(f"{name}.c", {"with_header": False, "casadi_int": "long long int"})
         cg.add(fn)
         code = cg.dump()
-        key = hashlib.sha256(
-            "\n".join([code, compiler, *_CFLAGS, platform.machine(), ca.__version__]).encode()
-        ).hexdigest()[:20]
-        directory = cache_dir()
-        lib_path = directory / f"{name}_{key}.so"
-        if not lib_path.is_file():
-            directory.mkdir(parents=True, exist_ok=True)
-            with tempfile.TemporaryDirectory(dir=directory) as tmp:
-                src = Path(tmp) / f"{name}.c"
-                src.write_text(code)
-                out = Path(tmp) / "lib.so"
-                proc = subprocess.run(
-                    [compiler, *_CFLAGS, "-o", str(out), str(src), "-lm"],
-                    capture_output=True,
-                    text=True,
-                    check=False,
-                )
-                if proc.returncode != 0:
-                    log = directory / f"{name}_{key}.log"
-                    log.write_text(
-                        f"$ {' '.join(proc.args)}\nexit {proc.returncode}\n"
-                        f"--- stdout\n{proc.stdout}--- stderr\n{proc.stderr}"
-                    )
-                    raise RetargetError(
-                        f"compiling the retargeting solver failed ({Path(compiler).name} "
-                        f"exit {proc.returncode}); log: {log}"
-                    )
-                os.replace(out, lib_path)
-            (directory / f"{name}_{key}.log").unlink(missing_ok=True)  # an older failure's
-            _prune(directory, name)
+        lib_path = build_library(name, {f"{name}.c": code, **(extra or {})}, compiler)
         self.path = lib_path
         self._lib = ctypes.CDLL(str(lib_path))
         ll = ctypes.c_longlong

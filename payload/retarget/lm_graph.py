@@ -59,7 +59,10 @@ def _cholesky_solve(a: ca.SX, b: ca.SX) -> ca.SX:
 
 
 def _step_functions(
-    pk: PairKinematics, config: RetargetConfig, wrap: Callable[[ca.Function], Any] | None = None
+    pk: PairKinematics,
+    config: RetargetConfig,
+    wrap: Callable[[ca.Function], Any] | None = None,
+    penalty: ca.Function | None = None,
 ) -> tuple[Any, ca.Function]:
     """``evaluate(q, par, q_anchor, bounds) -> (cost, g, H, clearance, bounds)`` and one
     guarded iteration ``iterate(x, par) -> x``.
@@ -80,7 +83,7 @@ def _step_functions(
     par = ca.SX.sym("p", npar)
     t, qr, qp = par[:N_FEATURES], par[N_FEATURES : N_FEATURES + n], par[N_FEATURES + n :]
     r = paper_residuals_expr(pk, config, q, t, qr, qp)
-    evaluate, ng = evaluate_function(pk, config, r, ca.jacobian(r, q), q, par)
+    evaluate, ng = evaluate_function(pk, config, r, ca.jacobian(r, q), q, par, penalty)
     if wrap is not None:
         evaluate = wrap(evaluate)
     lay = _layout(n, ng)
@@ -218,6 +221,7 @@ def build_solve_function(
     config: RetargetConfig,
     name: str = "pair_solve",
     wrap_evaluate: Callable[[ca.Function], Any] | None = None,
+    penalty: ca.Function | None = None,
 ) -> ca.Function:
     """The pair solve as one CasADi function.
 
@@ -228,6 +232,9 @@ def build_solve_function(
         wrap_evaluate: Replaces the one function that evaluates the residuals (and
             their Jacobian), e.g. by a counting ``casadi.Callback`` for tests; the result
             then runs only in CasADi's virtual machine.
+        penalty: The collision part of an evaluation in place of the conditional CasADi
+            form (:func:`payload.retarget.collision_eval.evaluate_function`), e.g. the C
+            loop of :class:`payload.retarget.collision_c.NativeCollision`.
 
     Returns:
         ``(q_prev (n), targets (13), q_ref (n), q_anchor (n), bounds (g)) -> (q (n),
@@ -241,7 +248,7 @@ def build_solve_function(
     n = pk.n
     npar = N_FEATURES + 2 * n
     lbv, ubv = ca.DM(pk.lower), ca.DM(pk.upper)
-    evaluate, iterate = _step_functions(pk, config, wrap_evaluate)
+    evaluate, iterate = _step_functions(pk, config, wrap_evaluate, penalty)
     ng = int(evaluate.nnz_in(3))
     lay = _layout(n, ng)
     nx = lay["size"]

@@ -1,0 +1,213 @@
+"""The collision part of a residual evaluation as one C loop over the groups.
+
+:meth:`CollisionGroups.penalty_function
+<payload.retarget.collision_eval.CollisionGroups.penalty_function>` expresses the group
+skipping with nested ``casadi.Function.conditional`` calls; CasADi's generated code then
+copies every argument and result through each level, which costs more than the few groups
+it evaluates. Here the same computation is a plain C loop: a group whose carried bound is
+beyond the band costs one comparison, else its midpoint bound (the ``gate`` function)
+decides whether its ``exact`` function runs. Both are the CasADi SX functions of
+:meth:`~payload.retarget.collision_eval.CollisionGroups.kind_functions`
+(algorithmic differentiation included), generated into the same file; the loop
+accumulates the penalty, its gradient and its curvature from their outputs.
+
+The loop is a CasADi ``external`` function, so the solver's graph calls it like any other
+function and the generated solver links it in (:class:`NativeCollision`); it needs a C
+compiler, so without one the solver keeps the conditional form (same values; a test
+compares the two).
+"""
+
+from __future__ import annotations
+
+import casadi as ca
+
+from payload.retarget.collision_eval import CollisionGroups
+from payload.retarget.compiled import build_library
+from payload.retarget.objective import RetargetConfig
+
+_DISPATCH = r"""
+/* ---- the group loop (payload.retarget.collision_c) ---- */
+#define NG {ng}
+#define NC {nc}
+#define NQ {n}
+#define BAND {band!r}
+static const int KIND[NG] = {{{kinds}}}; /* 0: capsule-box, 1: capsule pair */
+static const int CAP[NG] = {{{caps}}};
+static const int OTHER[NG] = {{{others}}};
+static const casadi_real K[NG][17] = {{{consts}}};
+typedef int (*kind_fn)(const casadi_real**, casadi_real**, casadi_int*, casadi_real*, int);
+static const kind_fn GATE[2] = {{{name}_box_gate, {name}_pair_gate}};
+static const kind_fn EXACT[2] = {{{name}_box_exact, {name}_pair_exact}};
+
+static int constants(const int kind, const casadi_real* k, const casadi_real** ar) {{
+  if (kind == 0) {{ /* centre (3), rotation (3x3), half sizes (3), radius, half axis */
+    ar[0] = k; ar[1] = k + 3; ar[2] = k + 12; ar[3] = k + 15; ar[4] = k + 16; return 5;
+  }}
+  ar[0] = k; ar[1] = k + 1; return 2; /* radii, half axes */
+}}
+
+/* (ends_0..ends_{{NC-1}} (6), J_0..J_{{NC-1}} (6 x NQ), bounds (NG))
+   -> (S, dS/dq (NQ), group minima (NG), A (NQ x NQ)) */
+CASADI_SYMBOL_EXPORT int {name}(const casadi_real** arg, casadi_real** res, casadi_int* iw,
+                               casadi_real* w, int mem) {{
+  const casadi_real* pre = arg[2 * NC];
+  casadi_real s = 0, dq[NQ], a[NQ * NQ], mins[NG], gate, over, c, u[NQ];
+  casadi_real wk[{szw}];
+  casadi_int iwk[{sziw}];
+  const casadi_real* ar[{szarg}];
+  casadi_real* rs[{szres}];
+  int g, i, j, m, kind;
+  for (i = 0; i < NQ; ++i) dq[i] = 0;
+  for (i = 0; i < NQ * NQ; ++i) a[i] = 0;
+  for (g = 0; g < NG; ++g) {{
+    const casadi_real b = pre ? pre[g] : 0;
+    if (b >= BAND) {{ mins[g] = b; continue; }} /* the carried bound proves it far */
+    kind = KIND[g];
+    m = 0;
+    ar[m++] = arg[CAP[g]];
+    if (kind) ar[m++] = arg[OTHER[g]];
+    constants(kind, K[g], ar + m);
+    rs[0] = &gate;
+    if (GATE[kind](ar, rs, iwk, wk, 0)) return 1;
+    if (gate >= BAND) {{ mins[g] = fmax(b, gate); continue; }} /* the midpoint bound does */
+    m = 0;
+    ar[m++] = arg[CAP[g]];
+    if (kind) ar[m++] = arg[OTHER[g]];
+    ar[m++] = arg[NC + CAP[g]];
+    if (kind) ar[m++] = arg[NC + OTHER[g]];
+    constants(kind, K[g], ar + m);
+    rs[0] = &over; rs[1] = &c; rs[2] = u;
+    if (EXACT[kind](ar, rs, iwk, wk, 0)) return 1;
+    mins[g] = c;
+    if (over > 0) {{
+      s += over * over;
+      for (i = 0; i < NQ; ++i) dq[i] -= 2.0 * over * u[i];
+      for (j = 0; j < NQ; ++j)
+        for (i = 0; i < NQ; ++i) a[i + NQ * j] += u[i] * u[j];
+    }}
+  }}
+  if (res[0]) res[0][0] = s;
+  if (res[1]) for (i = 0; i < NQ; ++i) res[1][i] = dq[i];
+  if (res[2]) for (g = 0; g < NG; ++g) res[2][g] = mins[g];
+  if (res[3]) for (i = 0; i < NQ * NQ; ++i) res[3][i] = a[i];
+  return 0;
+}}
+
+static const casadi_int SP_ENDS[] = {{{sp_ends}}};
+static const casadi_int SP_JAC[] = {{{sp_jac}}};
+static const casadi_int SP_PRE[] = {{{sp_pre}}};
+static const casadi_int SP_ONE[] = {{{sp_one}}};
+static const casadi_int SP_Q[] = {{{sp_q}}};
+static const casadi_int SP_A[] = {{{sp_a}}};
+CASADI_SYMBOL_EXPORT casadi_int {name}_n_in(void) {{ return 2 * NC + 1; }}
+CASADI_SYMBOL_EXPORT casadi_int {name}_n_out(void) {{ return 4; }}
+CASADI_SYMBOL_EXPORT const casadi_int* {name}_sparsity_in(casadi_int i) {{
+  return i < NC ? SP_ENDS : i < 2 * NC ? SP_JAC : i == 2 * NC ? SP_PRE : 0;
+}}
+CASADI_SYMBOL_EXPORT const casadi_int* {name}_sparsity_out(casadi_int i) {{
+  static const casadi_int* out[4] = {{SP_ONE, SP_Q, SP_PRE, SP_A}};
+  return i >= 0 && i < 4 ? out[i] : 0;
+}}
+CASADI_SYMBOL_EXPORT int {name}_work(casadi_int* sz_arg, casadi_int* sz_res, casadi_int* sz_iw,
+                                    casadi_int* sz_w) {{
+  if (sz_arg) *sz_arg = 2 * NC + 1;
+  if (sz_res) *sz_res = 4;
+  if (sz_iw) *sz_iw = 0;
+  if (sz_w) *sz_w = 0;
+  return 0;
+}}
+"""
+
+
+def _ints(values: list[int]) -> str:
+    return ", ".join(str(int(v)) for v in values)
+
+
+def _reals(values: list[float]) -> str:
+    return ", ".join(repr(float(v)) for v in values)
+
+
+class NativeCollision:
+    """The collision part of one pair's residual evaluation in C (see the module).
+
+    Args:
+        groups: The pair's collision groups.
+        config: Retargeting settings (the band).
+        name: The C symbol of the loop (the solver's name plus ``_collision``).
+        compiler: The C compiler.
+
+    Attributes:
+        name: The loop's C symbol.
+        source: The C file (the kind functions and the loop), to compile into the solver.
+        function: The loop as a CasADi ``external`` function: ``(ends (6) per capsule,
+            J (6, n) per capsule, bounds (groups)) -> (S, dS/dq, group minima, A)``, as
+            :meth:`CollisionGroups.penalty_function
+            <payload.retarget.collision_eval.CollisionGroups.penalty_function>` returns
+            after the capsule ends.
+    """
+
+    def __init__(
+        self, groups: CollisionGroups, config: RetargetConfig, name: str, compiler: str
+    ) -> None:
+        self.name = name
+        self.groups = groups
+        pk = groups.pk
+        n, ncap, ng = pk.n, len(pk.collision.capsules), len(groups)
+        cg = ca.CodeGenerator(f"{name}.c", {"with_header": False, "casadi_int": "long long int"})
+        sizes = {"w": 1, "iw": 1, "arg": 1, "res": 1}
+        for kind in ("box", "pair"):
+            for fn, part in zip(groups.kind_functions(kind, config), ("gate", "exact")):
+                ins = fn.sx_in()
+                named = ca.Function(f"{name}_{kind}_{part}", ins, fn.call(ins), {"cse": True})
+                cg.add(named)
+                sizes["w"] = max(sizes["w"], int(named.sz_w()))
+                sizes["iw"] = max(sizes["iw"], int(named.sz_iw()))
+                sizes["arg"] = max(sizes["arg"], int(named.sz_arg()))
+                sizes["res"] = max(sizes["res"], int(named.sz_res()))
+        kinds, caps, others, consts = [], [], [], []
+        for g, (cap, box, other) in enumerate(groups.keys()):
+            _fn, values = groups.group_call(g, config)
+            flat = [float(x) for v in values for x in ca.DM(v).full().ravel(order="F")]
+            kinds.append(0 if box else 1)
+            caps.append(cap)
+            others.append(other if not box else cap)
+            consts.append("{" + _reals(flat + [0.0] * (17 - len(flat))) + "}")
+        sp = {
+            "sp_ends": ca.Sparsity.dense(6, 1),
+            "sp_jac": ca.Sparsity.dense(6, n),
+            "sp_pre": ca.Sparsity.dense(ng, 1),
+            "sp_one": ca.Sparsity.dense(1, 1),
+            "sp_q": ca.Sparsity.dense(n, 1),
+            "sp_a": ca.Sparsity.dense(n * n, 1),
+        }
+        loop = _DISPATCH.format(
+            ng=ng,
+            nc=ncap,
+            n=n,
+            band=float(config.collision_band),
+            kinds=_ints(kinds),
+            caps=_ints(caps),
+            others=_ints(others),
+            consts=", ".join(consts),
+            name=name,
+            szw=sizes["w"],
+            sziw=sizes["iw"],
+            szarg=sizes["arg"],
+            szres=sizes["res"],
+            **{k: _ints(list(v.compress())) for k, v in sp.items()},
+        )
+        self.source = cg.dump() + loop
+        path = build_library(name, {f"{name}.c": self.source}, compiler)
+        self.function = ca.external(name, str(path))
+
+    def penalty_function(self) -> ca.Function:
+        """``(q, pre-bounds) -> (S, dS/dq, group minima, A)``: the capsule ends and their
+        Jacobians, then the C loop (same contract as :meth:`CollisionGroups.penalty_function
+        <payload.retarget.collision_eval.CollisionGroups.penalty_function>`)."""
+        pk = self.groups.pk
+        q, pre = ca.MX.sym("q", pk.n), ca.MX.sym("pre", len(self.groups))
+        outs = self.groups.ends_jacobian_function()(q)
+        return ca.Function("collision_penalty", [q, pre], self.function(*outs, pre))
+
+
+__all__ = ["NativeCollision"]
