@@ -240,6 +240,21 @@ def _design_boxes(design_path: Path) -> dict[str, list[tuple]]:
     return out
 
 
+def _point_segment_ca(p, a, b):
+    """Distance from point p to segment a-b (CasADi); ``sqrt(. + 1e-18)`` keeps it smooth."""
+    d = b - a
+    t = ca.fmin(ca.fmax(ca.dot(p - a, d) / ca.fmax(ca.dot(d, d), 1e-30), 0), 1)
+    w = a + t * d - p
+    return ca.sqrt(ca.dot(w, w) + _TINY)
+
+
+def _point_segment_np(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
+    """Distance from point p to segment a-b (numpy)."""
+    d = b - a
+    t = float(np.clip((p - a) @ d / max(float(d @ d), 1e-30), 0.0, 1.0))
+    return float(np.linalg.norm(a + t * d - p))
+
+
 def _segment_distance_ca(p1, q1, p2, q2):
     """Distance between segments p1-q1 and p2-q2 (CasADi), Ericson's closest points."""
     d1, d2, r = q1 - p1, q2 - p2, p1 - p2

@@ -43,7 +43,7 @@ static int constants(const int kind, const casadi_real* k, const casadi_real** a
   if (kind == 0) {{ /* centre (3), rotation (3x3), half sizes (3), radius, half axis */
     ar[0] = k; ar[1] = k + 3; ar[2] = k + 12; ar[3] = k + 15; ar[4] = k + 16; return 5;
   }}
-  ar[0] = k; ar[1] = k + 1; return 2; /* radii, half axes */
+  ar[0] = k; ar[1] = k + 1; ar[2] = k + 2; return 3; /* radii, the two half axes */
 }}
 
 /* (ends_0..ends_{{NC-1}} (6), J_0..J_{{NC-1}} (6 x NQ), bounds (NG))
@@ -51,7 +51,8 @@ static int constants(const int kind, const casadi_real* k, const casadi_real** a
 CASADI_SYMBOL_EXPORT int {name}(const casadi_real** arg, casadi_real** res, casadi_int* iw,
                                casadi_real* w, int mem) {{
   const casadi_real* pre = arg[2 * NC];
-  casadi_real s = 0, dq[NQ], a[NQ * NQ], mins[NG], gate, over, c, u[NQ];
+  casadi_real s = 0, dq[NQ], a[NQ * NQ], mins[NG], gate, over, c, grad[12], u[NQ];
+  const casadi_real *j1, *j2;
   casadi_real wk[{szw}];
   casadi_int iwk[{sziw}];
   const casadi_real* ar[{szarg}];
@@ -70,16 +71,17 @@ CASADI_SYMBOL_EXPORT int {name}(const casadi_real** arg, casadi_real** res, casa
     rs[0] = &gate;
     if (GATE[kind](ar, rs, iwk, wk, 0)) return 1;
     if (gate >= BAND) {{ mins[g] = fmax(b, gate); continue; }} /* the midpoint bound does */
-    m = 0;
-    ar[m++] = arg[CAP[g]];
-    if (kind) ar[m++] = arg[OTHER[g]];
-    ar[m++] = arg[NC + CAP[g]];
-    if (kind) ar[m++] = arg[NC + OTHER[g]];
-    constants(kind, K[g], ar + m);
-    rs[0] = &over; rs[1] = &c; rs[2] = u;
+    rs[0] = &over; rs[1] = &c; rs[2] = grad;
     if (EXACT[kind](ar, rs, iwk, wk, 0)) return 1;
     mins[g] = c;
-    if (over > 0) {{
+    if (over > 0) {{ /* u = J^T grad: the clearance's gradient in q */
+      j1 = arg[NC + CAP[g]];
+      j2 = arg[NC + OTHER[g]];
+      for (i = 0; i < NQ; ++i) {{
+        u[i] = 0;
+        for (m = 0; m < 6; ++m) u[i] += j1[m + 6 * i] * grad[m];
+        if (kind) for (m = 0; m < 6; ++m) u[i] += j2[m + 6 * i] * grad[6 + m];
+      }}
       s += over * over;
       for (i = 0; i < NQ; ++i) dq[i] -= 2.0 * over * u[i];
       for (j = 0; j < NQ; ++j)

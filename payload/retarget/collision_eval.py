@@ -40,6 +40,8 @@ import numpy as np
 
 from payload.retarget.collision import (
     _TINY,
+    _point_segment_ca,
+    _point_segment_np,
     _segment_distance_ca,
     box_sdf,
     segment_box_distance_expr,
@@ -145,7 +147,8 @@ class CollisionGroups:
             consts += [col.capsules[cap].radius, self._half_axis(cap)]
             return self._shared_group("box", config), consts
         radii = col.capsules[cap].radius + col.capsules[other].radius
-        return self._shared_group("pair", config), [radii, self._pair_slack(cap, other)]
+        halves = [self._half_axis(cap), self._half_axis(other)]
+        return self._shared_group("pair", config), [radii, *halves]
 
     def _half_axis(self, cap: int) -> float:
         """Half the capsule's axis length [m] (fixed in its link), plus rounding slack:
@@ -153,17 +156,13 @@ class CollisionGroups:
         c = self.pk.collision.capsules[cap]
         return 0.5 * float(np.linalg.norm(c.b - c.a)) + _SLACK
 
-    def _pair_slack(self, cap: int, other: int) -> float:
-        """Half the two axis lengths [m]: no point of a segment is farther from its middle."""
-        return self._half_axis(cap) + self._half_axis(other)
-
     def midpoint_bound(self, g: int, ends: np.ndarray) -> float:
         """Group g's midpoint bound at capsule ends ``ends`` (6 per capsule) [m], in numpy:
         a lower bound of its smallest clearance, because a box's signed distance and the
         distance between two points are 1-Lipschitz: for a capsule and a box, the box's
         signed distance at the axis middle less half the axis, the radius and the margin;
-        for a capsule pair, the distance between the axis middles less half of each axis,
-        both radii and the margin."""
+        for a capsule pair, the larger of each axis's distance to the other's middle less
+        half the other axis, less both radii and the margin."""
         col = self.pk.collision
         cap, box, other = self.keys()[g]
         a, b = ends[6 * cap : 6 * cap + 3], ends[6 * cap + 3 : 6 * cap + 6]
@@ -172,8 +171,11 @@ class CollisionGroups:
             return float(d - self._half_axis(cap) - col.margin)
         a2, b2 = ends[6 * other : 6 * other + 3], ends[6 * other + 3 : 6 * other + 6]
         radii = col.capsules[cap].radius + col.capsules[other].radius
-        gap = float(np.linalg.norm(0.5 * (a + b) - 0.5 * (a2 + b2)))
-        return gap - self._pair_slack(cap, other) - radii - col.margin
+        gap = max(
+            _point_segment_np(0.5 * (a2 + b2), a, b) - self._half_axis(other),
+            _point_segment_np(0.5 * (a + b), a2, b2) - self._half_axis(cap),
+        )
+        return gap - radii - col.margin
 
     def kind_functions(self, kind: str, config: RetargetConfig) -> tuple[ca.Function, ca.Function]:
         """The two SX functions of one kind of group (``box``: a capsule against a box;
@@ -186,7 +188,7 @@ class CollisionGroups:
         (else 0), through the ends' Jacobians ``J``: the penalty's ``S = over^2`` has the
         gradient ``-2 over u`` and ``u u^T`` is its term of the curvature. Constants: for
         a box its centre (3), rotation (3x3), half sizes (3), the capsule radius and
-        :meth:`_half_axis`; for a pair the radii's sum and :meth:`_pair_slack`.
+        :meth:`_half_axis`; for a pair the radii's sum and each capsule's :meth:`_half_axis`.
         """
         margin, band = self.pk.collision.margin, config.collision_band
         key = (kind, band, margin)  # both are built into the functions
@@ -205,23 +207,37 @@ class CollisionGroups:
             gate = mid - radius - slack - margin
             e2: list = []
         else:
-            e2s, radii, slack = ca.SX.sym("e2", 6), ca.SX.sym("radii"), ca.SX.sym("slack")
-            others = [radii, slack]
-            c = _segment_distance_ca(a, b, e2s[:3], e2s[3:]) - radii - margin
-            w = 0.5 * (a + b) - 0.5 * (e2s[:3] + e2s[3:])
-            gate = ca.sqrt(ca.dot(w, w)) - slack - radii - margin
+            e2s, radii = ca.SX.sym("e2", 6), ca.SX.sym("radii")
+            half1, half2 = ca.SX.sym("half1"), ca.SX.sym("half2")
+            others = [radii, half1, half2]
+            a2, b2 = e2s[:3], e2s[3:]
+            c = _segment_distance_ca(a, b, a2, b2) - radii - margin
+            gap = ca.fmax(
+                _point_segment_ca(0.5 * (a2 + b2), a, b) - half2,
+                _point_segment_ca(0.5 * (a + b), a2, b2) - half1,
+            )
+            gate = gap - radii - margin
             e2 = [e2s]
-        n = self.pk.n
-        jacs = [ca.SX.sym(f"J{i + 1}", 6, n) for i in range(1 + len(e2))]
         over = ca.fmax(band - c, 0.0)
-        inside = ca.if_else(over > 0, 1.0, 0.0)
-        u = inside * ca.mtimes(ca.jacobian(c, ca.vertcat(e1, *e2)), ca.vertcat(*jacs)).T
+        grad = ca.gradient(c, ca.vertcat(e1, *e2))
         gate_fn = ca.Function(f"group_{kind}_gate", [e1, *e2, *others], [gate], {"cse": True})
         exact = ca.Function(
-            f"group_{kind}_exact", [e1, *e2, *jacs, *others], [over, c, u], {"cse": True}
+            f"group_{kind}_exact", [e1, *e2, *others], [over, c, grad], {"cse": True}
         )
         self._shared[key] = (gate_fn, exact)
         return gate_fn, exact
+
+    def _project(self, ne: int) -> ca.Function:
+        """``(over, grad (6 ne), J_1 (6, n), ...) -> u``: the clearance's gradient in q
+        (``J^T grad``) where ``over > 0``, else 0."""
+        key = ("project", ne)
+        if key not in self._shared:
+            n = self.pk.n
+            over, grad = ca.SX.sym("over"), ca.SX.sym("grad", 6 * ne)
+            jacs = [ca.SX.sym(f"J{i + 1}", 6, n) for i in range(ne)]
+            u = ca.if_else(over > 0, 1.0, 0.0) * ca.mtimes(ca.vertcat(*jacs).T, grad)
+            self._shared[key] = ca.Function(f"project{ne}", [over, grad, *jacs], [u])
+        return self._shared[key]
 
     def _shared_group(self, kind: str, config: RetargetConfig) -> ca.Function:
         """The shared MX function of one kind of group (see :meth:`group_call`)."""
@@ -233,12 +249,14 @@ class CollisionGroups:
         ne = 1 if kind == "box" else 2
         ends = [ca.MX.sym(f"e{i + 1}", 6) for i in range(ne)]
         jacs = [ca.MX.sym(f"J{i + 1}", 6, n) for i in range(ne)]
-        others = [ca.MX.sym(f"k{i}", exact.sparsity_in(i)) for i in range(2 * ne, exact.n_in())]
+        others = [ca.MX.sym(f"k{i}", exact.sparsity_in(i)) for i in range(ne, exact.n_in())]
         bound = ca.MX.sym("bound")
         ins = [*ends, *jacs, *others, bound]
         sx_ins = [ca.SX.sym(x.name(), x.sparsity()) for x in ins]
         skip = ca.Function(f"group_{kind}_skip", sx_ins, [ca.SX(0.0), sx_ins[-1], ca.SX.zeros(n)])
-        exact_mx = ca.Function(f"group_{kind}_exact_b", ins, exact(*ends, *jacs, *others))
+        over, c, grad = exact(*ends, *others)
+        u = self._project(ne)(over, grad, *jacs)
+        exact_mx = ca.Function(f"group_{kind}_exact_b", ins, [over, c, u])
         g_mx = gate_fn(*ends, *others)
         inner = ca.Function.conditional(f"group_{kind}_near", [exact_mx], skip)
         gated = ca.Function(
