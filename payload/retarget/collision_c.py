@@ -199,7 +199,8 @@ class NativeCollision:
             **{k: _ints(list(v.compress())) for k, v in sp.items()},
         )
         self.source = cg.dump() + loop
-        path = build_library(name, {f"{name}.c": self.source}, compiler)
+        # its own library name: the solver's cache pruning (by name prefix) leaves it alone
+        path = build_library(f"loop_{name}", {f"{name}.c": self.source}, compiler)
         self.function = ca.external(name, str(path))
 
     def penalty_function(self) -> ca.Function:
