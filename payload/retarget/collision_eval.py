@@ -20,10 +20,15 @@ is checked next by its **midpoint bound** at the current capsule ends
 (:meth:`CollisionGroups.midpoint_bound`), and evaluated exactly only if that is below
 the band too.
 
-Besides the penalty and its gradient, the exactly evaluated groups return the sum of
-``grad c grad c^T`` over their terms in the band: the curvature of the penalty's sum of
+Besides the penalty and its gradient, the collision part returns the sum of
+``grad c grad c^T`` over the terms in the band: the curvature of the penalty's sum of
 squares that the single penalty row's Gauss-Newton term does not see
 (:func:`evaluate_function` adds it).
+
+This module writes the skipping as nested ``casadi.Function.conditional`` calls
+(:meth:`CollisionGroups.penalty_function`, what CasADi's virtual machine runs); with a C
+compiler the solver runs the same computation as one C loop
+(:mod:`payload.retarget.collision_c`).
 
 The result is the dense computation's (the same penalty and gradient, the same sign of
 the smallest clearance, so the same accepted steps); the reported smallest clearance is
@@ -34,6 +39,7 @@ the band.
 from __future__ import annotations
 
 from collections import defaultdict
+from typing import Any
 
 import casadi as ca
 import numpy as np
@@ -89,7 +95,7 @@ class CollisionGroups:
         self.terms: tuple[tuple[int, ...], ...] = tuple(tuple(by_key[k]) for k in keys)
         rows = [caps[c] if box else caps[c] + caps[o] for c, box, o in keys]
         self.lipschitz = np.array(rows).reshape(len(keys), pk.n)
-        self._shared: dict[object, ca.Function] = {}
+        self._shared: dict[object, Any] = {}
         if any(len(t) != 1 for t in self.terms):  # pragma: no cover - a model change
             raise AssertionError("collision groups expect one term per capsule and box or pair")
 
@@ -125,14 +131,13 @@ class CollisionGroups:
     def group_call(self, g: int, config: RetargetConfig) -> tuple[ca.Function, list]:
         """Group g's shared function and the group's constants.
 
-        ``fn(far, ends_1 (6), [ends_2 (6),] J_1 (6, n), [J_2 (6, n),] *constants, bound,
-        A (n*n)) -> (S_g, dS_g/d ends_1, [dS_g/d ends_2,] clearance bound, A')``, with
-        ``J`` the ends' Jacobians in q: with ``far`` true, ``(0, 0, [0,] bound, A)``; else
-        first the group's **midpoint bound** (:meth:`midpoint_bound`), and only if that is
-        below the band the exact terms (``S_g``, the sum of ``(band - clearance)_+^2``
-        over them, their smallest clearance, and ``A`` plus the sum of ``grad c grad c^T``
-        over the terms in the band), else ``(0, 0, [0,] max(bound, midpoint bound), A)``.
-        ``ends_2`` and ``J_2`` are there for a capsule pair.
+        ``fn(far, ends_1 (6), [ends_2 (6),] J_1 (6, n), [J_2 (6, n),] *constants, bound)
+        -> (over, clearance bound, u)``, with ``J`` the ends' Jacobians in q: with
+        ``far`` true, ``(0, bound, 0)``; else first the group's **midpoint bound**
+        (:meth:`midpoint_bound`), and only if that is below the band the exact term
+        (``over``, its clearance and ``u`` of :meth:`kind_functions`), else ``(0,
+        max(bound, midpoint bound), 0)``. ``ends_2`` and ``J_2`` are there for a capsule
+        pair.
 
         There is one such function per kind of group (a capsule against a box; a capsule
         pair), the group's geometry passed as constants: one copy of the code for all
@@ -182,13 +187,14 @@ class CollisionGroups:
         ``pair``: a capsule pair), the group's geometry passed as constants.
 
         ``gate(ends_1 (6), [ends_2 (6),] *constants) -> midpoint bound`` (see
-        :meth:`midpoint_bound`) and ``exact(ends_1, [ends_2,] J_1 (6, n), [J_2 (6, n),]
-        *constants) -> (over, c, u)``: the clearance ``c`` less the margin, ``over =
-        (band - c)_+`` and ``u`` (n,) the clearance's gradient in q when ``over > 0``
-        (else 0), through the ends' Jacobians ``J``: the penalty's ``S = over^2`` has the
-        gradient ``-2 over u`` and ``u u^T`` is its term of the curvature. Constants: for
-        a box its centre (3), rotation (3x3), half sizes (3), the capsule radius and
-        :meth:`_half_axis`; for a pair the radii's sum and each capsule's :meth:`_half_axis`.
+        :meth:`midpoint_bound`) and ``exact(ends_1, [ends_2,] *constants) -> (over, c,
+        grad)``: the clearance ``c`` less the margin, ``over = (band - c)_+`` and
+        ``grad`` (6 per capsule) the clearance's gradient in the ends. Through the ends'
+        Jacobians ``J``, ``u = J^T grad`` is its gradient in q: the penalty's term
+        ``over^2`` has the gradient ``-2 over u`` and ``u u^T`` is its term of the
+        curvature (only while ``over > 0``). Constants: for a box its centre (3),
+        rotation (3x3), half sizes (3), the capsule radius and :meth:`_half_axis`; for a
+        pair the radii's sum and each capsule's :meth:`_half_axis`.
         """
         margin, band = self.pk.collision.margin, config.collision_band
         key = (kind, band, margin)  # both are built into the functions
