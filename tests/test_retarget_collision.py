@@ -409,6 +409,37 @@ def test_the_c_group_loop_equals_the_conditional_casadi_form(pks, solvers, pair)
     assert paths.min() > 0 and a[0].size == 1
 
 
+def test_without_a_working_compiler_collisions_run_in_the_conditional_form(
+    pks, solvers, monkeypatch, tmp_path
+):
+    """A compiler that fails: the collision loop and the solver are not compiled, both
+    are said in one line each, and the virtual machine's conditional form gives the
+    compiled solver's command."""
+    import payload.retarget.compiled as compiled
+
+    monkeypatch.setenv("PAYLOAD_CACHE_DIR", str(tmp_path))
+    cc = tmp_path / "bad-cc"
+    cc.write_text("#!/bin/sh\necho 'x.c:1: error: no' >&2\nexit 1\n")
+    cc.chmod(0o755)
+    monkeypatch.setattr(compiled, "_compiler", lambda: str(cc))
+    pk, r = pks["R"], solvers["R"]
+    with pytest.warns(RuntimeWarning) as caught:
+        vm = PairRetargeter(kinematics=pk, config=r.config)
+    messages = [str(w.message) for w in caught]
+    assert any(
+        "collision loop not compiled (compiling the collision loop failed" in m for m in messages
+    )
+    assert any("virtual machine" in m for m in messages)
+    assert all("\n" not in m for m in messages)
+    assert vm.backend == "vm" and vm.native is None
+    t = pk.features(_free_postures(pk, 1, 5)[0]).as_vector()
+    r.reset()
+    qc, ic = r.solve(t, None, pk.rest)
+    qv, iv = vm.solve(t, None, pk.rest)
+    np.testing.assert_allclose(qv, qc, rtol=0, atol=1e-9)
+    assert iv.evaluations == ic.evaluations and iv.clearance >= 0
+
+
 def _assert_reported_clearance(reported: float, exact: float, band: float) -> None:
     """The solver's clearance: exact below the band, else a lower bound of at least it."""
     if exact < band:

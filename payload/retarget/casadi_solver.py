@@ -30,7 +30,10 @@ The graph is generated as C, compiled with the system C compiler into a shared
 library cached under :func:`cache_dir` by the hash of its code, and called directly
 through ``ctypes`` on preallocated buffers: one call per pair solve, a few
 microseconds of Python around it (a ``casadi.Function`` call from Python alone costs
-about 20 us). Without a compiler the same graph runs in CasADi's virtual machine.
+about 20 us). Without a compiler the same graph runs in CasADi's virtual machine, except
+that with self-collision modelled the compiled solver's collision part is a C loop
+(:mod:`payload.retarget.collision_c`) and the virtual machine's the equivalent
+conditional CasADi form.
 """
 
 from __future__ import annotations
@@ -113,7 +116,7 @@ class PairRetargeter(Retargeter):
         if backend == "compiled" and compiler is None:
             raise RetargetError("backend 'compiled' needs a C compiler (set CC or install gcc)")
         # With a compiler, the collision part is a C loop over the groups linked into the
-        # solver (payload.retarget.collision_c); the virtual machine keeps the conditional
+        # solver (payload.retarget.collision_c); the virtual machine runs the conditional
         # CasADi form of the same computation.
         self.native: NativeCollision | None = None
         if compiler is not None and self.collisions:
@@ -121,8 +124,13 @@ class PairRetargeter(Retargeter):
                 self.native = NativeCollision(
                     CollisionGroups(self.kinematics), self.config, f"{name}_collision", compiler
                 )
-            except (RetargetError, OSError, RuntimeError):
-                self.native = None  # the conditional form below; the solver reports on it
+            except (RetargetError, OSError, RuntimeError) as exc:
+                reason = " ".join(str(exc).split())
+                warnings.warn(
+                    f"collision loop not compiled ({reason}); using the conditional CasADi form",
+                    RuntimeWarning,
+                    stacklevel=2,
+                )
         penalty = self.native.penalty_function() if self.native is not None else None
         self.function: ca.Function = build_solve_function(
             self.kinematics, self.config, name, penalty=penalty
@@ -133,6 +141,9 @@ class PairRetargeter(Retargeter):
                 self._compiled = _CompiledSolve(self.function, compiler, extra)
                 self.library = self._compiled.path
             except (RetargetError, OSError) as exc:
+                if self.native is not None:  # the virtual machine: the conditional form
+                    self.native = None
+                    self.function = build_solve_function(self.kinematics, self.config, name)
                 reason = " ".join(str(exc).split())  # one line, whatever the OS says
                 if backend == "compiled":
                     if isinstance(exc, RetargetError):

@@ -140,6 +140,7 @@ class NativeCollision:
 
     Attributes:
         name: The loop's C symbol.
+        groups: The pair's collision groups.
         source: The C file (the kind functions and the loop), to compile into the solver.
         function: The loop as a CasADi ``external`` function: ``(ends (6) per capsule,
             J (6, n) per capsule, bounds (groups)) -> (S, dS/dq, group minima, A)``, as
@@ -168,7 +169,7 @@ class NativeCollision:
                 sizes["res"] = max(sizes["res"], int(named.sz_res()))
         kinds, caps, others, consts = [], [], [], []
         for g, (cap, box, other) in enumerate(groups.keys()):
-            _fn, values = groups.group_call(g, config)
+            values = groups.group_constants(g)
             flat = [float(x) for v in values for x in ca.DM(v).full().ravel(order="F")]
             kinds.append(0 if box else 1)
             caps.append(cap)
@@ -200,7 +201,9 @@ class NativeCollision:
         )
         self.source = cg.dump() + loop
         # its own library name: the solver's cache pruning (by name prefix) leaves it alone
-        path = build_library(f"loop_{name}", {f"{name}.c": self.source}, compiler)
+        path = build_library(
+            f"loop_{name}", {f"{name}.c": self.source}, compiler, what="the collision loop"
+        )
         self.function = ca.external(name, str(path))
 
     def penalty_function(self) -> ca.Function:

@@ -144,16 +144,20 @@ class CollisionGroups:
         groups, so the generated solver stays small enough to stay in the instruction
         cache.
         """
+        kind = "box" if self.keys()[g][1] else "pair"
+        return self._shared_group(kind, config), self.group_constants(g)
+
+    def group_constants(self, g: int) -> list:
+        """Group g's geometry, the constants of its kind's functions
+        (:meth:`kind_functions`)."""
         col = self.pk.collision
         cap, box, other = self.keys()[g]
         if box:
             bx = col.boxes[other]
             consts = [ca.DM(bx.centre), ca.DM(bx.rotation), ca.DM(bx.half)]
-            consts += [col.capsules[cap].radius, self._half_axis(cap)]
-            return self._shared_group("box", config), consts
+            return [*consts, col.capsules[cap].radius, self._half_axis(cap)]
         radii = col.capsules[cap].radius + col.capsules[other].radius
-        halves = [self._half_axis(cap), self._half_axis(other)]
-        return self._shared_group("pair", config), [radii, *halves]
+        return [radii, self._half_axis(cap), self._half_axis(other)]
 
     def _half_axis(self, cap: int) -> float:
         """Half the capsule's axis length [m] (fixed in its link), plus rounding slack:

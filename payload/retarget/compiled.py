@@ -41,12 +41,14 @@ def _compiler() -> str | None:
     return shutil.which(cc) or shutil.which("gcc") or shutil.which("clang")
 
 
-def build_library(name: str, sources: dict[str, str], compiler: str) -> Path:
+def build_library(
+    name: str, sources: dict[str, str], compiler: str, what: str = "the retargeting solver"
+) -> Path:
     """C ``sources`` (file name -> code) compiled into one shared library, cached.
 
     The library is named by ``name`` and the hash of the code, the compiler, the flags,
     the machine and CasADi's version; an existing one is reused. A failed compilation
-    leaves its log beside the cache and raises :class:`RetargetError`.
+    leaves its log beside the cache and raises :class:`RetargetError` naming ``what``.
     """
     key = hashlib.sha256(
         "\n".join(
@@ -83,7 +85,7 @@ def build_library(name: str, sources: dict[str, str], compiler: str) -> Path:
                 f"--- stdout\n{proc.stdout}--- stderr\n{proc.stderr}"
             )
             raise RetargetError(
-                f"compiling the retargeting solver failed ({Path(compiler).name} "
+                f"compiling {what} failed ({Path(compiler).name} "
                 f"exit {proc.returncode}); log: {log}"
             )
         os.replace(out, lib_path)
