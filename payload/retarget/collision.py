@@ -240,19 +240,23 @@ def _design_boxes(design_path: Path) -> dict[str, list[tuple]]:
     return out
 
 
-def _point_segment_ca(p, a, b):
-    """Distance from point p to segment a-b (CasADi); ``sqrt(. + 1e-18)`` keeps it smooth."""
+def _point_segment(p: Any, a: Any, b: Any, o: SimpleNamespace) -> Any:
+    """Distance from point p to segment a-b, for CasADi (``o = _CASADI``) and numpy
+    (``o = _NUMPY``, single points); ``sqrt(. + 1e-18)`` keeps it smooth."""
     d = b - a
-    t = ca.fmin(ca.fmax(ca.dot(p - a, d) / ca.fmax(ca.dot(d, d), 1e-30), 0), 1)
+    t = o.min(o.max(o.dot(p - a, d) / o.max(o.dot(d, d), 1e-30), 0.0), 1.0)
     w = a + t * d - p
-    return ca.sqrt(ca.dot(w, w) + _TINY)
+    return o.sqrt(o.dot(w, w) + _TINY)
+
+
+def _point_segment_ca(p: Any, a: Any, b: Any) -> Any:
+    """Distance from point p to segment a-b (CasADi)."""
+    return _point_segment(p, a, b, _CASADI)
 
 
 def _point_segment_np(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
     """Distance from point p to segment a-b (numpy)."""
-    d = b - a
-    t = float(np.clip((p - a) @ d / max(float(d @ d), 1e-30), 0.0, 1.0))
-    return float(np.linalg.norm(a + t * d - p))
+    return float(_point_segment(p, a, b, _NUMPY))
 
 
 def _segment_distance_ca(p1, q1, p2, q2):
@@ -303,26 +307,20 @@ _TOUCH2 = 1e-24
 is on or in the box (a face crossing computed with rounding lands within 1e-12 m)."""
 
 
-_CASADI = SimpleNamespace(
-    abs=ca.fabs,
-    max=ca.fmax,
-    min=ca.fmin,
-    where=ca.if_else,
-    sqrt=ca.sqrt,
-    sign=ca.sign,
-    or_=ca.logic_or,
-    and_=ca.logic_and,
-)
-_NUMPY = SimpleNamespace(
-    abs=np.abs,
-    max=np.maximum,
-    min=np.minimum,
-    where=np.where,
-    sqrt=np.sqrt,
-    sign=np.sign,
-    or_=np.logical_or,
-    and_=np.logical_and,
-)
+_OPS = {
+    "abs": (ca.fabs, np.abs),
+    "max": (ca.fmax, np.maximum),
+    "min": (ca.fmin, np.minimum),
+    "where": (ca.if_else, np.where),
+    "sqrt": (ca.sqrt, np.sqrt),
+    "sign": (ca.sign, np.sign),
+    "or_": (ca.logic_or, np.logical_or),
+    "and_": (ca.logic_and, np.logical_and),
+    "dot": (ca.dot, np.dot),
+}
+"""The elementary operations the closed forms below use, in CasADi and in numpy."""
+_CASADI = SimpleNamespace(**{k: v[0] for k, v in _OPS.items()})
+_NUMPY = SimpleNamespace(**{k: v[1] for k, v in _OPS.items()})
 
 
 def _segment_box(x0: list, v: list, half: list, o: SimpleNamespace) -> Any:
