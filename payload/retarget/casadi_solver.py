@@ -125,9 +125,9 @@ class PairRetargeter(Retargeter):
                     CollisionGroups(self.kinematics), self.config, f"{name}_collision", compiler
                 )
             except (RetargetError, OSError, RuntimeError) as exc:
-                reason = " ".join(str(exc).split())
                 warnings.warn(
-                    f"collision loop not compiled ({reason}); using the conditional CasADi form",
+                    f"collision loop not compiled ({_one_line(exc)}); using the conditional "
+                    "CasADi form",
                     RuntimeWarning,
                     stacklevel=2,
                 )
@@ -144,7 +144,7 @@ class PairRetargeter(Retargeter):
                 if self.native is not None:  # the virtual machine: the conditional form
                     self.native = None
                     self.function = build_solve_function(self.kinematics, self.config, name)
-                reason = " ".join(str(exc).split())  # one line, whatever the OS says
+                reason = _one_line(exc)
                 if backend == "compiled":
                     if isinstance(exc, RetargetError):
                         raise
@@ -159,11 +159,15 @@ class PairRetargeter(Retargeter):
         elif backend == "auto":
             self.backend_reason = "no C compiler found (set CC or install gcc)"
         self.backend: str = "compiled" if self._compiled is not None else "vm"
-        # The collision groups' clearance bounds and the posture they hold at (the last
-        # answer), carried into the next solve (payload.retarget.collision_eval).
+        self._checked = 2 * self.n + N_FEATURES  # q_prev, targets, q_ref: must be finite
+        self._forget_bounds()
+
+    def _forget_bounds(self) -> None:
+        """No carried collision bounds: the groups' clearance bounds and the posture they
+        hold at (the last answer), carried into the next solve
+        (payload.retarget.collision_eval), are unknown (``-inf``) at the rest posture."""
         self._anchor_q = self.kinematics.rest.copy()
         self._anchor_b = np.full(int(self.function.nnz_in(4)), -np.inf)
-        self._checked = 2 * self.n + N_FEATURES  # q_prev, targets, q_ref: must be finite
         if self._compiled is not None:
             self._compiled.inputs[3][:] = self._anchor_q
             self._compiled.inputs[4][:] = self._anchor_b
@@ -172,11 +176,7 @@ class PairRetargeter(Retargeter):
         """Set the held command (``None``: the rest posture), clipped to the limits, and
         forget the carried collision bounds: a reset solver answers as a new one does."""
         super().reset(q)
-        self._anchor_q = self.kinematics.rest.copy()
-        self._anchor_b = np.full(self._anchor_b.shape[0], -np.inf)
-        if self._compiled is not None:
-            self._compiled.inputs[3][:] = self._anchor_q
-            self._compiled.inputs[4][:] = self._anchor_b
+        self._forget_bounds()
 
     def solve(
         self,
@@ -241,6 +241,11 @@ class PairRetargeter(Retargeter):
             self._anchor_q = q.copy()
             self._anchor_b = np.array(out[2], dtype=float).reshape(-1)
         return q, _info(info, self.collisions)
+
+
+def _one_line(exc: BaseException) -> str:
+    """An exception's message on one line, whatever the OS or the compiler says."""
+    return " ".join(str(exc).split())
 
 
 def _info(info: np.ndarray, collisions: bool) -> SolveInfo:
