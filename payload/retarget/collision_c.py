@@ -34,16 +34,18 @@ _DISPATCH = r"""
 static const int KIND[NG] = {{{kinds}}}; /* 0: capsule-box, 1: capsule pair */
 static const int CAP[NG] = {{{caps}}};
 static const int OTHER[NG] = {{{others}}};
-static const casadi_real K[NG][17] = {{{consts}}};
+#define NK {width}
+static const casadi_real K[NG][NK] = {{{consts}}};
+/* per kind, its constant inputs' count and their offsets in a row of K */
+static const int NCONST[2] = {{{nconst}}};
+static const int OFFSET[2][NK] = {{{offsets}}};
 typedef int (*kind_fn)(const casadi_real**, casadi_real**, casadi_int*, casadi_real*, int);
 static const kind_fn GATE[2] = {{{name}_box_gate, {name}_pair_gate}};
 static const kind_fn EXACT[2] = {{{name}_box_exact, {name}_pair_exact}};
 
-static int constants(const int kind, const casadi_real* k, const casadi_real** ar) {{
-  if (kind == 0) {{ /* centre (3), rotation (3x3), half sizes (3), radius, half axis */
-    ar[0] = k; ar[1] = k + 3; ar[2] = k + 12; ar[3] = k + 15; ar[4] = k + 16; return 5;
-  }}
-  ar[0] = k; ar[1] = k + 1; ar[2] = k + 2; return 3; /* radii, the two half axes */
+static void constants(const int kind, const casadi_real* k, const casadi_real** ar) {{
+  int i;
+  for (i = 0; i < NCONST[kind]; ++i) ar[i] = k + OFFSET[kind][i];
 }}
 
 /* (ends_0..ends_{{NC-1}} (6), J_0..J_{{NC-1}} (6 x NQ), bounds (NG))
@@ -167,6 +169,13 @@ class NativeCollision:
                 sizes["iw"] = max(sizes["iw"], int(named.sz_iw()))
                 sizes["arg"] = max(sizes["arg"], int(named.sz_arg()))
                 sizes["res"] = max(sizes["res"], int(named.sz_res()))
+        # Each kind's constant inputs (after its capsule ends), as CasADi lays them out.
+        layout = []
+        for kind, ne in (("box", 1), ("pair", 2)):
+            gate = groups.kind_functions(kind, config)[0]
+            counts = [int(gate.nnz_in(i)) for i in range(ne, gate.n_in())]
+            layout.append([sum(counts[:i]) for i in range(len(counts))] + [sum(counts)])
+        width = max(row[-1] for row in layout)
         kinds, caps, others, consts = [], [], [], []
         for g, (cap, box, other) in enumerate(groups.keys()):
             values = groups.group_constants(g)
@@ -174,7 +183,10 @@ class NativeCollision:
             kinds.append(0 if box else 1)
             caps.append(cap)
             others.append(other if not box else cap)
-            consts.append("{" + _reals(flat + [0.0] * (17 - len(flat))) + "}")
+            if len(flat) != layout[kinds[-1]][-1]:  # pragma: no cover - a model change
+                raise AssertionError(f"group {g}: constants do not fit its kind's inputs")
+            consts.append("{" + _reals(flat + [0.0] * (width - len(flat))) + "}")
+        offsets = [row[:-1] + [0] * (width - len(row) + 1) for row in layout]
         sp = {
             "sp_ends": ca.Sparsity.dense(6, 1),
             "sp_jac": ca.Sparsity.dense(6, n),
@@ -192,6 +204,9 @@ class NativeCollision:
             caps=_ints(caps),
             others=_ints(others),
             consts=", ".join(consts),
+            width=width,
+            nconst=_ints([len(row) - 1 for row in layout]),
+            offsets=", ".join("{" + _ints(row) + "}" for row in offsets),
             name=name,
             szw=sizes["w"],
             sziw=sizes["iw"],
