@@ -56,3 +56,17 @@ def _isolated_payload_cache(tmp_path_factory):
         os.environ.pop("PAYLOAD_CACHE_DIR", None)
     else:
         os.environ["PAYLOAD_CACHE_DIR"] = old
+
+
+@pytest.fixture
+def failing_compiler(monkeypatch, tmp_path) -> Path:
+    """A C compiler that prints several lines on stderr and exits 1, made the one the
+    retargeting solvers use, with a fresh solver cache in ``tmp_path``."""
+    import payload.retarget.compiled as compiled
+
+    cc = tmp_path / "bad-cc"
+    cc.write_text("#!/bin/sh\necho 'x.c:1: error: one' >&2\necho 'x.c:2: error: two' >&2\nexit 1\n")
+    cc.chmod(0o755)
+    monkeypatch.setenv("PAYLOAD_CACHE_DIR", str(tmp_path))
+    monkeypatch.setattr(compiled, "_compiler", lambda: str(cc))
+    return cc

@@ -575,20 +575,7 @@ def test_compiled_solver_is_cached_on_disk(prod, monkeypatch, tmp_path):
         PairRetargeter(kinematics=p.kinematics, backend="gpu")
 
 
-def _failing_compiler(tmp_path: Path) -> str:
-    """A C compiler that prints several lines on stderr and exits 1."""
-    cc = tmp_path / "bad-cc"
-    cc.write_text("#!/bin/sh\necho 'x.c:1: error: one' >&2\necho 'x.c:2: error: two' >&2\nexit 1\n")
-    cc.chmod(0o755)
-    return str(cc)
-
-
-def test_without_a_working_compiler_auto_falls_back_to_the_vm(prod, monkeypatch, tmp_path):
-    import payload.retarget.compiled as compiled
-
-    monkeypatch.setenv("PAYLOAD_CACHE_DIR", str(tmp_path))
-    cc = _failing_compiler(tmp_path)
-    monkeypatch.setattr(compiled, "_compiler", lambda: cc)
+def test_without_a_working_compiler_auto_falls_back_to_the_vm(prod, failing_compiler, tmp_path):
     with pytest.warns(RuntimeWarning, match="virtual machine") as caught:
         r = PairRetargeter(kinematics=prod["L"].kinematics)
     assert r.backend == "vm" and r.library is None
@@ -757,12 +744,7 @@ def test_bench_cli_prints_one_json_object_with_the_issues_fields(capsys):
     assert r["production"]["budget"] == "paper"
 
 
-def test_bench_cli_with_a_failing_compiler_prints_one_line(capsys, monkeypatch, tmp_path):
-    import payload.retarget.compiled as compiled
-
-    monkeypatch.setenv("PAYLOAD_CACHE_DIR", str(tmp_path))
-    cc = _failing_compiler(tmp_path)
-    monkeypatch.setattr(compiled, "_compiler", lambda: cc)
+def test_bench_cli_with_a_failing_compiler_prints_one_line(capsys, failing_compiler):
     assert main(["bench", "retarget", "--steps", "2", "--backend", "compiled"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "compiling the retargeting solver failed" in err[0]

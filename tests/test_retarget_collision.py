@@ -410,18 +410,11 @@ def test_the_c_group_loop_equals_the_conditional_casadi_form(pks, solvers, pair)
 
 
 def test_without_a_working_compiler_collisions_run_in_the_conditional_form(
-    pks, solvers, monkeypatch, tmp_path
+    pks, solvers, failing_compiler
 ):
     """A compiler that fails: the collision loop and the solver are not compiled, both
     are said in one line each, and the virtual machine's conditional form gives the
     compiled solver's command."""
-    import payload.retarget.compiled as compiled
-
-    monkeypatch.setenv("PAYLOAD_CACHE_DIR", str(tmp_path))
-    cc = tmp_path / "bad-cc"
-    cc.write_text("#!/bin/sh\necho 'x.c:1: error: no' >&2\nexit 1\n")
-    cc.chmod(0o755)
-    monkeypatch.setattr(compiled, "_compiler", lambda: str(cc))
     pk, r = pks["R"], solvers["R"]
     with pytest.warns(RuntimeWarning) as caught:
         vm = PairRetargeter(kinematics=pk, config=r.config)
