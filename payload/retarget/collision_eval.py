@@ -275,101 +275,31 @@ class CollisionGroups:
         self._shared[key] = ca.Function.conditional(f"group_{kind}", [gated], skip)
         return self._shared[key]
 
-    def capsule_groups(self) -> list[tuple[int, tuple[int, ...]]]:
-        """The groups by their first capsule, in group order: ``(capsule, groups)``.
-
-        Groups are sorted by capsule first, so each capsule's groups are consecutive."""
-        out: list[tuple[int, list[int]]] = []
-        for g, (cap, _box, _other) in enumerate(self.keys()):
-            if not out or out[-1][0] != cap:
-                out.append((cap, []))
-            out[-1][1].append(g)
-        return [(cap, tuple(gs)) for cap, gs in out]
-
-    def _capsule_function(
-        self, cap: int, gs: tuple[int, ...], config: RetargetConfig
-    ) -> tuple[ca.Function, list[int]]:
-        """Capsule ``cap``'s function over its groups ``gs``, and the capsules whose ends
-        and Jacobians it takes (``cap`` first).
-
-        ``(far, ends..., J..., bounds (len gs), A) -> (S, dS/dq, minima, A')``: with
-        ``far`` true (every bound beyond the band) nothing is evaluated: ``(0, 0, bounds,
-        A)``; else each group through its shared function (:meth:`group_call`), which
-        skips it on its own bound. One dispatch per capsule when it is far instead of one
-        per group."""
-        n = self.pk.n
-        used = [cap]
-        for g in gs:
-            _cap, box, other = self.keys()[g]
-            if not box and other not in used:
-                used.append(other)
-        es = {i: ca.MX.sym(f"ends{i}", 6) for i in used}
-        js = {i: ca.MX.sym(f"J{i}", 6, n) for i in used}
-        pre, acc = ca.MX.sym("bounds", len(gs)), ca.MX.sym("A", n * n)
-        band = config.collision_band
-        overs, mins, us = [], [], []
-        for k, g in enumerate(gs):
-            _cap, box, other = self.keys()[g]
-            fn, consts = self.group_call(g, config)
-            two = [cap] if box else [cap, other]
-            out = fn(pre[k] >= band, *[es[i] for i in two], *[js[i] for i in two], *consts, pre[k])
-            overs.append(out[0])
-            mins.append(out[1])
-            us.append(out[2])
-        total, dq, acc_out = self._accumulate(len(gs))(ca.horzcat(*us), ca.vertcat(*overs), acc)
-        ins = [*es.values(), *js.values(), pre, acc]
-        near = ca.Function(f"capsule{cap}_near", ins, [total, dq, ca.vertcat(*mins), acc_out])
-        sx_ins = [ca.SX.sym(x.name(), x.sparsity()) for x in ins]
-        skip = ca.Function(
-            f"capsule{cap}_far", sx_ins, [ca.SX(0.0), ca.SX.zeros(n), sx_ins[-2], sx_ins[-1]]
-        )
-        return ca.Function.conditional(f"capsule{cap}", [near], skip), used
-
-    def _accumulate(self, k: int) -> ca.Function:
-        """``(U (n, k), over (k), A) -> (sum over^2, -2 U over, A + U U^T)``, written out
-        (straight-line code, the symmetric product's upper triangle computed once)."""
-        key = ("accumulate", k)
-        if key in self._shared:
-            return self._shared[key]
-        n = self.pk.n
-        u, over, acc = ca.SX.sym("U", n, k), ca.SX.sym("over", k), ca.SX.sym("A", n * n)
-        prod = [[None] * n for _ in range(n)]
-        for i in range(n):
-            for j in range(i, n):
-                prod[i][j] = prod[j][i] = ca.dot(u[i, :].T, u[j, :].T)
-        outer = ca.vertcat(*[prod[i][j] for j in range(n) for i in range(n)])  # column-major
-        fn = ca.Function(
-            f"accumulate{k}",
-            [u, over, acc],
-            [ca.dot(over, over), ca.mtimes(u, -2.0 * over), acc + outer],
-            {"cse": True},
-        )
-        self._shared[key] = fn
-        return fn
-
     def penalty_function(self, config: RetargetConfig) -> ca.Function:
         """``(q, pre-bounds) -> (S, dS/dq, group minima, A)``: the groups whose bound is
         below the band evaluated on the capsule ends (and their Jacobian) computed once,
-        the others skipped, a capsule whose groups are all far with one test; ``A``
-        (n*n, column-major) is the sum over the terms in the band of ``grad c grad c^T``,
-        the curvature of ``S`` bar the terms' own."""
+        the others skipped; ``A`` (n*n, column-major) is the sum over the terms in the
+        band of ``grad c grad c^T``, the curvature of ``S`` bar the terms' own."""
         n, ng = self.pk.n, len(self)
         q, pre = ca.MX.sym("q", n), ca.MX.sym("pre", ng)
         ncap = len(self.pk.collision.capsules)
         outs = self.ends_jacobian_function()(q)
         ends, jacs = outs[:ncap], outs[ncap:]
-        total, dq, mins, acc = ca.MX(0.0), ca.MX.zeros(n), [], ca.MX.zeros(n * n)
         band = config.collision_band
-        for cap, gs in self.capsule_groups():
-            fn, used = self._capsule_function(cap, gs, config)
-            bounds = pre[gs[0] : gs[-1] + 1]
-            args = [ends[i] for i in used] + [jacs[i] for i in used]
-            out = fn(ca.mmin(bounds) >= band, *args, bounds, acc)
-            total = total + out[0]
-            dq = dq + out[1]
-            mins.append(out[2])
-            acc = out[3]
-        return ca.Function("collision_penalty", [q, pre], [total, dq, ca.vertcat(*mins), acc])
+        overs, mins, us = [], [], []
+        for g, (cap, box, other) in enumerate(self.keys()):
+            fn, consts = self.group_call(g, config)
+            two = [cap] if box else [cap, other]
+            out = fn(
+                pre[g] >= band, *[ends[i] for i in two], *[jacs[i] for i in two], *consts, pre[g]
+            )
+            overs.append(out[0])
+            mins.append(out[1])
+            us.append(out[2])
+        over, u = ca.vertcat(*overs), ca.horzcat(*us)  # u is 0 outside the band
+        result = [ca.dot(over, over), ca.mtimes(u, -2.0 * over), ca.vertcat(*mins)]
+        result.append(ca.vec(ca.mtimes(u, u.T)))
+        return ca.Function("collision_penalty", [q, pre], result)
 
 
 def evaluate_function(
