@@ -37,6 +37,7 @@ from payload.retarget.collision import (
     segment_box_distance_expr,
 )
 from payload.retarget.collision_eval import CollisionGroups
+from payload.retarget.compiled import _CompiledSolve
 from payload.retarget.lm_graph import _step_functions
 from payload.retarget.meshcheck import PairMeshCheck
 from payload.retarget.objective import collision_residual
@@ -377,6 +378,34 @@ def test_the_vm_agrees_with_the_compiled_solver_with_collisions_on(pks, solvers)
         assert iv.clearance == pytest.approx(ic.clearance, abs=1e-9)
         near += ic.clearance < r.config.collision_band
     assert near > 0  # some answers end in the band, where the collision terms act
+
+
+def test_the_c_driver_gives_the_graphs_generated_code_bit_for_bit(hand, pks):
+    """The compiled solver's C loop over the starts and iterations (payload.retarget.lm_c)
+    and CasADi's own generated code of the nested-conditional graph, compiled beside it:
+    the same bits on a carried sequence through all four starts of the converged budget
+    (short iteration caps: the starts stop at their caps and the later ones still run)."""
+    pk = pks["R"]
+    config = RetargetConfig(collisions=True, budget="converged", max_iterations=4)
+    r = PairRetargeter(hand, "R", config, pk, backend="compiled")
+    extra = {f"{r.native.name}.c": r.native.source}
+    graph = _CompiledSolve(r.function, shutil.which("cc") or "gcc", extra)
+    assert graph.path != r.library
+    rng = np.random.default_rng(5)
+    used = set()
+    for q_true in _free_postures(pk, 12, 8):
+        t = pk.features(np.clip(q_true + 0.1 * rng.standard_normal(pk.n), pk.lower, pk.upper))
+        anchor = (r._compiled.inputs[3].copy(), r._compiled.inputs[4].copy())
+        q_prev = r.command.copy()
+        q, info = r.solve(t.as_vector(), None, pk.rest)
+        for buf, v in zip(graph.inputs, (q_prev, t.as_vector(), pk.rest, *anchor)):
+            buf[:] = v
+        graph()
+        np.testing.assert_array_equal(graph.outputs[0], q)
+        np.testing.assert_array_equal(graph.outputs[1], r._compiled.outputs[1])
+        np.testing.assert_array_equal(graph.outputs[2], r._compiled.outputs[2])
+        used.add(info.evaluations)
+    assert max(used) == 4 * (1 + 4)  # every start ran, the last to its cap
 
 
 @pytest.mark.parametrize("pair", PAIRS)

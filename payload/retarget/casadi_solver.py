@@ -58,6 +58,7 @@ from payload.retarget.compiled import (  # noqa: F401  (old import paths)
 from payload.retarget.errors import RetargetError
 from payload.retarget.features import N_FEATURES, PairFeatures, PairKinematics
 from payload.retarget.hand import HandDescription
+from payload.retarget.lm_c import driver_source
 from payload.retarget.lm_graph import (  # noqa: F401  (old import paths)
     _better,
     _cholesky_solve,
@@ -65,6 +66,7 @@ from payload.retarget.lm_graph import (  # noqa: F401  (old import paths)
     _step_functions,
     build_solve_function,
     safe_posture,
+    solve_parts,
 )
 from payload.retarget.objective import RetargetConfig
 from payload.retarget.solver import Retargeter, SolveInfo
@@ -132,13 +134,15 @@ class PairRetargeter(Retargeter):
                     stacklevel=2,
                 )
         penalty = self.native.penalty_function() if self.native is not None else None
+        parts = solve_parts(self.kinematics, self.config, penalty, prefix=f"{name}_")
         self.function: ca.Function = build_solve_function(
-            self.kinematics, self.config, name, penalty=penalty
+            self.kinematics, self.config, name, parts=parts
         )
         if compiler is not None:
             try:
                 extra = {f"{self.native.name}.c": self.native.source} if self.native else None
-                self._compiled = _CompiledSolve(self.function, compiler, extra)
+                code = driver_source(parts, name)
+                self._compiled = _CompiledSolve(self.function, compiler, extra, code)
                 self.library = self._compiled.path
             except (RetargetError, OSError) as exc:
                 if self.native is not None:  # the virtual machine: the conditional form

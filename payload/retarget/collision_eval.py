@@ -310,9 +310,11 @@ def evaluate_function(
     q: ca.SX,
     par: ca.SX,
     penalty: ca.Function | None = None,
+    name: str = "evaluate",
 ) -> tuple[ca.Function, int]:
-    """``evaluate(q, par, q_anchor, bounds) -> (cost, g, H, clearance, bounds)`` and the
-    number of groups (0 without collision terms: ``bounds`` is then empty).
+    """``evaluate(q, par, q_anchor, bounds) -> (cost, g, H, clearance, bounds)`` (named
+    ``name``) and the number of groups (0 without collision terms: ``bounds`` is then
+    empty).
 
     ``penalty`` replaces :meth:`CollisionGroups.penalty_function` (same contract), e.g.
     by the C loop of :class:`payload.retarget.collision_c.NativeCollision`.
@@ -329,7 +331,7 @@ def evaluate_function(
     if groups is None:
         cost, grad, hess = _cost_terms(r, jac)
         fn = ca.Function(
-            "evaluate", [q, par, qa, lba], [cost, grad, hess, ca.SX(1.0), lba], {"cse": True}
+            name, [q, par, qa, lba], [cost, grad, hess, ca.SX(1.0), lba], {"cse": True}
         )
         return fn, 0
     pre = lba - ca.mtimes(ca.DM(groups.lipschitz), ca.fabs(q - qa))
@@ -364,7 +366,7 @@ def evaluate_function(
     rm, jm, prem, farm = base(qm, pm, qam, lbm)
     total, dtotal, mins, curv_m = penalty(farm, qm, prem)
     cost_m, grad_m, hess_m, clear_m = combine(rm, jm, total, dtotal, mins, curv_m)
-    fn = ca.Function("evaluate", [qm, pm, qam, lbm], [cost_m, grad_m, hess_m, clear_m, mins])
+    fn = ca.Function(name, [qm, pm, qam, lbm], [cost_m, grad_m, hess_m, clear_m, mins])
     return fn, ng
 
 

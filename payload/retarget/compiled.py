@@ -98,13 +98,24 @@ class _CompiledSolve:
     """A generated CasADi function in a shared library, called through ctypes.
 
     ``extra``: further C sources (file name -> code) compiled into the same library,
-    e.g. the definitions of external functions the generated code calls."""
+    e.g. the definitions of external functions the generated code calls. ``code``: the
+    C of ``fn`` when it is not CasADi's own generation of it (the same symbol, inputs,
+    outputs and calling convention, e.g. :func:`payload.retarget.lm_c.driver_source`)."""
 
-    def __init__(self, fn: ca.Function, compiler: str, extra: dict[str, str] | None = None) -> None:
+    def __init__(
+        self,
+        fn: ca.Function,
+        compiler: str,
+        extra: dict[str, str] | None = None,
+        code: str | None = None,
+    ) -> None:
         name = fn.name()
-        cg = ca.CodeGenerator(f"{name}.c", {"with_header": False, "casadi_int": "long long int"})
-        cg.add(fn)
-        code = cg.dump()
+        if code is None:
+            cg = ca.CodeGenerator(
+                f"{name}.c", {"with_header": False, "casadi_int": "long long int"}
+            )
+            cg.add(fn)
+            code = cg.dump()
         lib_path = build_library(name, {f"{name}.c": code, **(extra or {})}, compiler)
         self.path = lib_path
         self._lib = ctypes.CDLL(str(lib_path))

@@ -11,6 +11,7 @@ returns the whole solve (every start of the budget, :mod:`payload.retarget.budge
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 import casadi as ca
@@ -65,31 +66,93 @@ def _step_functions(
     penalty: ca.Function | None = None,
 ) -> tuple[Any, ca.Function]:
     """``evaluate(q, par, q_anchor, bounds) -> (cost, g, H, clearance, bounds)`` and one
-    guarded iteration ``iterate(x, par) -> x``.
+    guarded iteration ``iterate(x, par) -> x`` (:func:`solve_parts`; ``wrap`` replaces
+    ``evaluate``, e.g. by a counting callback). The iteration is an MX graph that calls
+    ``propose``, ``evaluate`` and ``accept``."""
+    parts = solve_parts(pk, config, penalty=penalty)
+    evaluate = parts.evaluate if wrap is None else wrap(parts.evaluate)
+    return evaluate, _iterate_function(parts, evaluate)
+
+
+def _iterate_function(parts: SolveParts, evaluate: Any) -> ca.Function:
+    """One guarded iteration as an MX graph: ``propose``, one residual evaluation at the
+    candidate, ``accept``."""
+    lay, ng = parts.layout, parts.groups
+    xm, pm = ca.MX.sym("x", lay["size"]), ca.MX.sym("p", parts.npar)
+    qm, prm = parts.propose(xm)
+    anchor_q, anchor_b = xm[: parts.n], xm[lay["bounds"] : lay["bounds"] + ng]
+    ev = evaluate(qm, pm, anchor_q, anchor_b)  # the iteration's one residual evaluation
+    return ca.Function("iterate", [xm, pm], [parts.accept(xm, qm, prm, *ev)])
+
+
+@dataclass(frozen=True)
+class SolveParts:
+    """The pieces of one pair solve, each a CasADi function; :func:`build_solve_function`
+    composes them into one graph, :mod:`payload.retarget.lm_c` drives them from a C loop.
 
     The state is ``x = [q (n), cost, g (n), H (n*n), clearance, bounds (groups), free
     record, mu, done, iterations, evaluations]`` (:func:`_layout`; ``bounds``: the collision
     groups' clearance bounds at q, :mod:`payload.retarget.collision_eval`; the free record:
-    the best collision-free point met). One iteration proposes a step and
-    evaluates the residuals and their Jacobian at the candidate once (one residual
-    evaluation), then keeps the candidate if it is better; ``done`` is set by the
-    convergence tests or by a damping that ran away. ``wrap`` replaces ``evaluate`` (e.g.
-    by a counting callback). The step and the acceptance are SX functions; the iteration
-    is an MX graph that calls them and ``evaluate``.
+    the best collision-free point met).
+
+    Attributes:
+        evaluate: ``(q, par, q_anchor, bounds) -> (cost, g, H, clearance, bounds)``: one
+            residual evaluation (the residuals and their Jacobian).
+        propose: ``x -> (q_candidate, predicted decrease)``: one iteration's step.
+        accept: ``(x, q_candidate, predicted, cost, g, H, clearance, bounds) -> x``: the
+            candidate kept if it lowers the cost; ``done`` set by the convergence tests or
+            by a damping that ran away; iterations and evaluations counted.
+        prep: ``(q_prev, targets, q_ref) -> (par, starts (n, k))``: the parameters and the
+            start points in the budget's order (:func:`payload.retarget.budget.budget_plan`).
+        init: ``(q_start, cost, g, H, clearance, bounds, best) -> x``: a start's first state
+            from its evaluation (counted on ``best``'s count).
+        finish: ``(x, best) -> best``: a start's result (:func:`_collapse`) kept if better.
+        outputs: ``best -> (q, info, bounds)``: the solve's outputs.
+        starts: ``(cumulative evaluation cap, iteration levels)`` per start.
+        initial: The ``best`` state before any start (cost ``inf``).
+        layout: :func:`_layout`.
+        n: Joints.
+        groups: Collision groups (0 without collision terms).
+        npar: Length of ``par``.
     """
+
+    evaluate: ca.Function
+    propose: ca.Function
+    accept: ca.Function
+    prep: ca.Function
+    init: ca.Function
+    finish: ca.Function
+    outputs: ca.Function
+    starts: tuple[tuple[int, int], ...]
+    initial: np.ndarray
+    layout: dict[str, int]
+    n: int
+    groups: int
+    npar: int
+
+
+def solve_parts(
+    pk: PairKinematics,
+    config: RetargetConfig,
+    penalty: ca.Function | None = None,
+    prefix: str = "",
+) -> SolveParts:
+    """The pieces of one pair solve (:class:`SolveParts`); ``penalty``: see
+    :func:`build_solve_function`; ``prefix`` starts each piece's name (its C symbol)."""
     n = pk.n
     npar = N_FEATURES + 2 * n
     q = ca.SX.sym("q", n)
     par = ca.SX.sym("p", npar)
     t, qr, qp = par[:N_FEATURES], par[N_FEATURES : N_FEATURES + n], par[N_FEATURES + n :]
     r = paper_residuals_expr(pk, config, q, t, qr, qp)
-    evaluate, ng = evaluate_function(pk, config, r, ca.jacobian(r, q), q, par, penalty)
-    if wrap is not None:
-        evaluate = wrap(evaluate)
+    evaluate, ng = evaluate_function(
+        pk, config, r, ca.jacobian(r, q), q, par, penalty, prefix + "evaluate"
+    )
     lay = _layout(n, ng)
-    x = ca.SX.sym("x", lay["size"])
+    nx = lay["size"]
+    x = ca.SX.sym("x", nx)
     qc, predicted = _proposal(pk, x, lay)
-    propose = ca.Function("propose", [x], [qc, predicted], {"cse": True})
+    propose = ca.Function(prefix + "propose", [x], [qc, predicted], {"cse": True})
     cc, gc, hc = ca.SX.sym("c"), ca.SX.sym("g", n), ca.SX.sym("h", n * n)
     clc, bc, qs, pr = ca.SX.sym("cl"), ca.SX.sym("b", ng), ca.SX.sym("qc", n), ca.SX.sym("pr")
     ck, mu = x[lay["cost"]], x[lay["mu"]]
@@ -108,13 +171,48 @@ def _step_functions(
     main = ca.if_else(lower, ca.vertcat(qs, cc, gc, hc, clc, bc), x[:i_f])
     tail = ca.if_else(lower, ca.vertcat(mu_ok, conv), ca.vertcat(mu_up, mu_up >= _MU_MAX))
     out = ca.vertcat(main, record, tail, x[lay["it"]] + 1.0, x[lay["ev"]] + 1.0)
-    accept = ca.Function("accept", [x, qs, pr, cc, gc, hc, clc, bc], [out], {"cse": True})
-    xm, pm = ca.MX.sym("x", lay["size"]), ca.MX.sym("p", npar)
-    qm, prm = propose(xm)
-    anchor_q, anchor_b = xm[:n], xm[lay["bounds"] : lay["bounds"] + ng]
-    ev = evaluate(qm, pm, anchor_q, anchor_b)  # the iteration's one residual evaluation
-    iterate = ca.Function("iterate", [xm, pm], [accept(xm, qm, prm, *ev)])
-    return evaluate, iterate
+    accept = ca.Function(prefix + "accept", [x, qs, pr, cc, gc, hc, clc, bc], [out], {"cse": True})
+    # A start's first state from its evaluation at the start point.
+    best = ca.SX.sym("best", nx)
+    pg0 = qs - ca.fmin(ca.fmax(qs - gc, lbv), ubv)
+    done0 = ca.mmax(ca.fabs(pg0)) <= config.gtol
+    rec0 = ca.if_else(clc >= 0, ca.vertcat(qs, cc, clc, bc), ca.vertcat(qs, np.inf, -np.inf, bc))
+    x0 = ca.vertcat(
+        qs, cc, gc, hc, clc, bc, rec0, _MU0, done0, best[lay["it"]], best[lay["ev"]] + 1.0
+    )
+    init = ca.Function(prefix + "init", [qs, cc, gc, hc, clc, bc, best], [x0], {"cse": True})
+    st = _collapse(x, lay, n, ng)
+    kept = ca.if_else(
+        _better(st[lay["cost"]], st[lay["clear"]], best[lay["cost"]], best[lay["clear"]]), st, best
+    )
+    kept = ca.vertcat(kept[: lay["it"]], st[lay["it"]], st[lay["ev"]])
+    finish = ca.Function(prefix + "finish", [x, best], [kept], {"cse": True})
+    outputs = ca.Function(prefix + "outputs", [best], list(_outputs(pk, config, best, lay, ng)))
+    # The parameters and the start points.
+    q_prev, targets, q_ref = (
+        ca.MX.sym("q_prev", n),
+        ca.MX.sym("targets", N_FEATURES),
+        ca.MX.sym("q_ref", n),
+    )
+    q0 = ca.fmin(ca.fmax(q_prev, lbv), ubv)
+    seeds = {"prev": q0, "ref": ca.fmin(ca.fmax(q_ref, lbv), ubv)}
+    plan = budget_plan(config)
+    tags = [tag for tag, _ in plan if tag.startswith("seed")]
+    for tag, q_seed in zip(tags, table_seeds(pk, config, targets, q_ref, q0, len(tags))):
+        seeds[tag] = q_seed
+    prep = ca.Function(
+        prefix + "prep",
+        [q_prev, targets, q_ref],
+        [ca.vertcat(targets, q_ref, q0), ca.horzcat(*(seeds[tag] for tag, _ in plan))],
+    )
+    initial = np.zeros(nx)
+    initial[lay["cost"]] = np.inf
+    initial[lay["clear"]] = -np.inf
+    initial[lay["bounds"] : lay["bounds"] + ng] = -np.inf
+    starts = tuple((cap, max(0, min(config.max_iterations, cap - 1))) for _, cap in plan)
+    return SolveParts(
+        evaluate, propose, accept, prep, init, finish, outputs, starts, initial, lay, n, ng, npar
+    )
 
 
 def _proposal(pk: PairKinematics, x: ca.SX, lay: dict[str, int]) -> tuple[ca.SX, ca.SX]:
@@ -197,7 +295,7 @@ def _layout(n: int, groups: int) -> dict[str, int]:
 
 
 def _iterations(
-    iterate: ca.Function, config: RetargetConfig, lay: dict[str, int], npar: int, tag: str, cap: int
+    iterate: ca.Function, levels: int, lay: dict[str, int], npar: int, tag: str, cap: int
 ) -> ca.Function | None:
     """One start's iterations as nested conditionals (``None``: no iteration fits): level k
     iterates once and hands over to level k + 1 unless done, so a converged start returns
@@ -206,7 +304,7 @@ def _iterations(
     xs, ps = ca.MX.sym("x", lay["size"]), ca.MX.sym("p", npar)
     hold = ca.Function("hold", [xs, ps], [xs])
     level = None
-    for k in reversed(range(min(config.max_iterations, cap - 1))):
+    for k in reversed(range(levels)):
         nxt = iterate(xs, ps)
         stop = ca.logic_or(nxt[lay["done"]], nxt[lay["ev"]] >= cap)
         out = nxt if level is None else level(stop, nxt, ps)
@@ -222,6 +320,7 @@ def build_solve_function(
     name: str = "pair_solve",
     wrap_evaluate: Callable[[ca.Function], Any] | None = None,
     penalty: ca.Function | None = None,
+    parts: SolveParts | None = None,
 ) -> ca.Function:
     """The pair solve as one CasADi function.
 
@@ -235,6 +334,8 @@ def build_solve_function(
         penalty: The collision part of an evaluation in place of the conditional CasADi
             form (:func:`payload.retarget.collision_eval.evaluate_function`), e.g. the C
             loop of :class:`payload.retarget.collision_c.NativeCollision`.
+        parts: The solve's pieces when already built (:func:`solve_parts`; ``penalty``
+            is then ignored).
 
     Returns:
         ``(q_prev (n), targets (13), q_ref (n), q_anchor (n), bounds (g)) -> (q (n),
@@ -245,57 +346,34 @@ def build_solve_function(
         solve's output with its ``q``), :mod:`payload.retarget.collision_eval`; the output
         ``bounds`` are valid at the output ``q``. ``g`` is 0 without collision terms.
     """
-    n = pk.n
-    npar = N_FEATURES + 2 * n
-    lbv, ubv = ca.DM(pk.lower), ca.DM(pk.upper)
-    evaluate, iterate = _step_functions(pk, config, wrap_evaluate, penalty)
-    ng = int(evaluate.nnz_in(3))
-    lay = _layout(n, ng)
-    nx = lay["size"]
-    i_cost, i_cl, i_b = lay["cost"], lay["clear"], lay["bounds"]
-    i_done, i_it, i_ev = lay["done"], lay["it"], lay["ev"]
-    ps = ca.MX.sym("p", npar)
+    parts = parts if parts is not None else solve_parts(pk, config, penalty)
+    evaluate = parts.evaluate if wrap_evaluate is None else wrap_evaluate(parts.evaluate)
+    iterate = _iterate_function(parts, evaluate)
+    n, ng, npar, lay = parts.n, parts.groups, parts.npar, parts.layout
+    nx, i_b, i_done, i_ev = lay["size"], lay["bounds"], lay["done"], lay["ev"]
     q_prev = ca.MX.sym("q_prev", n)
     targets = ca.MX.sym("targets", N_FEATURES)
     q_ref = ca.MX.sym("q_ref", n)
     q_anchor, bounds_in = ca.MX.sym("q_anchor", n), ca.MX.sym("bounds", ng)
-    q0 = ca.fmin(ca.fmax(q_prev, lbv), ubv)
-    p_mx = ca.vertcat(targets, q_ref, q0)
-    seeds = {"prev": q0, "ref": ca.fmin(ca.fmax(q_ref, lbv), ubv)}
-    tags = [tag for tag, _ in budget_plan(config) if tag.startswith("seed")]
-    for tag, q_seed in zip(tags, table_seeds(pk, config, targets, q_ref, q0, len(tags))):
-        seeds[tag] = q_seed
+    p_mx, start_points = parts.prep(q_prev, targets, q_ref)
     # The starts in turn; each keeps the better state of itself and those before, and
     # runs only if the solve has an evaluation left under its cumulative cap. The first
     # start carries the collision bounds from the input anchor, the others from the best
     # state so far.
-    xb, qs = ca.MX.sym("best", nx), ca.MX.sym("start", n)
+    xb, qs, ps = ca.MX.sym("best", nx), ca.MX.sym("start", n), ca.MX.sym("p", npar)
     qa, ba = ca.MX.sym("anchor", n), ca.MX.sym("anchor_bounds", ng)
     skip = ca.Function("skip", [xb, qs, ps, qa, ba], [xb])
-    inf_state = ca.DM.zeros(nx)
-    inf_state[i_cost] = np.inf
-    inf_state[i_cl] = -np.inf
-    for k in range(ng):
-        inf_state[i_b + k] = -np.inf
-    best: ca.MX = ca.MX(inf_state)
-    for k, (tag, cap) in enumerate(budget_plan(config)):
-        c0, g0, h0, cl0, b0 = evaluate(qs, ps, qa, ba)
-        pg0 = qs - ca.fmin(ca.fmax(qs - g0, lbv), ubv)
-        done0 = ca.mmax(ca.fabs(pg0)) <= config.gtol
-        rec0 = ca.if_else(
-            cl0 >= 0, ca.vertcat(qs, c0, cl0, b0), ca.vertcat(qs, np.inf, -np.inf, b0)
-        )
-        x0 = ca.vertcat(qs, c0, g0, h0, cl0, b0, rec0, _MU0, done0, xb[i_it], xb[i_ev] + 1.0)
-        lv = _iterations(iterate, config, lay, npar, tag, cap)
+    best: ca.MX = ca.MX(ca.DM(parts.initial))
+    plan = budget_plan(config)
+    for k, ((tag, _), (cap, levels)) in enumerate(zip(plan, parts.starts)):
+        x0 = parts.init(qs, *evaluate(qs, ps, qa, ba), xb)
+        lv = _iterations(iterate, levels, lay, npar, tag, cap)
         st = x0 if lv is None else lv(ca.logic_or(x0[i_done], x0[i_ev] >= cap), x0, ps)
-        st = _collapse(st, lay, n, ng)
-        kept = ca.if_else(_better(st[i_cost], st[i_cl], xb[i_cost], xb[i_cl]), st, xb)
-        kept = ca.vertcat(kept[:i_it], st[i_it], st[i_ev])
-        run = ca.Function(f"start_{tag}", [xb, qs, ps, qa, ba], [kept])
+        run = ca.Function(f"start_{tag}", [xb, qs, ps, qa, ba], [parts.finish(st, xb)])
         start = ca.Function.conditional(f"maybe_{tag}", [run], skip)
         anchor = (q_anchor, bounds_in) if k == 0 else (best[:n], best[i_b : i_b + ng])
-        best = start(best[i_ev] >= cap, best, seeds[tag], p_mx, *anchor)
-    q_out, info, bounds_out = _outputs(pk, config, best, lay, ng)
+        best = start(best[i_ev] >= cap, best, start_points[:, k], p_mx, *anchor)
+    q_out, info, bounds_out = parts.outputs(best)
     return ca.Function(
         name,
         [q_prev, targets, q_ref, q_anchor, bounds_in],

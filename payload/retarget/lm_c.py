@@ -1,0 +1,164 @@
+"""The compiled pair solve's control flow as a C loop.
+
+:func:`payload.retarget.lm_graph.build_solve_function` expresses the starts and the
+guarded Levenberg-Marquardt iterations as nested ``casadi.Function.conditional`` calls;
+CasADi's generated code then copies the whole state (about 230 doubles with collision
+groups) in and out of every level and start, and each level is its own piece of code. Here
+the same sequence is a plain C loop (:func:`driver_source`) over the same CasADi functions
+(:class:`payload.retarget.lm_graph.SolveParts`, generated into the same file): the state
+lives in two buffers the iterations swap, a converged or capped start stops at a
+comparison. The arithmetic is the generated functions', called in the same order on the
+same values, so the answers are the graph's to the bit (a test replays solves through both).
+
+The loop has the calling convention of a CasADi-generated function (``arg``, ``res``,
+``iw``, ``w``, ``mem``; ``<name>_work`` reports the work sizes), so
+:class:`payload.retarget.compiled._CompiledSolve` loads it like the graph's code.
+"""
+
+from __future__ import annotations
+
+import casadi as ca
+
+from payload.retarget.lm_graph import SolveParts
+
+_DRIVER = r"""
+/* ---- the solve's control flow (payload.retarget.lm_c) ---- */
+#define NQ {n}
+#define NG {ng}
+#define NP {npar}
+#define NX {nx}
+#define NS {nstarts}
+#define I_BOUNDS {i_bounds}
+#define I_DONE {i_done}
+#define I_EV {i_ev}
+#define SUB_W {sub_w}
+static const casadi_real CAP[NS] = {{{caps}}};
+static const int LEVELS[NS] = {{{levels}}};
+static const casadi_real INITIAL[NX] = {{{initial}}};
+
+/* w: best, two iteration states, par, start points, one evaluation's outputs,
+   the candidate and its predicted decrease, then the called functions' work */
+#define W_SIZE (3 * NX + NP + NS * NQ + 2 + NQ + NQ * NQ + NG + NQ + 1)
+
+static int evaluate_at(const casadi_real* q, const casadi_real* p, const casadi_real* qa,
+                       const casadi_real* ba, casadi_real* ev, casadi_int* iw,
+                       casadi_real* ws) {{
+  const casadi_real* a[{sz_arg}];
+  casadi_real* r[{sz_res}];
+  a[0] = q; a[1] = p; a[2] = qa; a[3] = ba;
+  r[0] = ev; r[1] = ev + 1; r[2] = ev + 1 + NQ; r[3] = ev + 1 + NQ + NQ * NQ;
+  r[4] = ev + 2 + NQ + NQ * NQ;
+  return {name}_evaluate(a, r, iw, ws, 0);
+}}
+
+static const casadi_real* evaluation_part(const casadi_real* ev, int k) {{
+  static const int at[5] = {{0, 1, 1 + NQ, 1 + NQ + NQ * NQ, 2 + NQ + NQ * NQ}};
+  return ev + at[k];
+}}
+
+/* (q_prev, targets, q_ref, q_anchor, bounds) -> (q, info, bounds_out) */
+CASADI_SYMBOL_EXPORT int {name}(const casadi_real** arg, casadi_real** res, casadi_int* iw,
+                               casadi_real* w, int mem) {{
+  casadi_real *best = w, *x = best + NX, *y = x + NX, *p = y + NX, *starts = p + NP;
+  casadi_real *ev = starts + NS * NQ, *qc = ev + 2 + NQ + NQ * NQ + NG, *pr = qc + NQ;
+  casadi_real *ws = pr + 1, *t;
+  const casadi_real* a[{sz_arg}];
+  casadi_real* r[{sz_res}];
+  int k, level, i, stop;
+  (void)mem;
+  a[0] = arg[0]; a[1] = arg[1]; a[2] = arg[2];
+  r[0] = p; r[1] = starts;
+  if ({name}_prep(a, r, iw, ws, 0)) return 1;
+  for (i = 0; i < NX; ++i) best[i] = INITIAL[i];
+  for (k = 0; k < NS; ++k) {{
+    const casadi_real* qs = starts + k * NQ;
+    if (best[I_EV] >= CAP[k]) continue; /* no evaluation left under this start's cap */
+    /* the first start carries the input anchor's bounds, the others the best state's */
+    if (evaluate_at(qs, p, k ? best : arg[3], k ? best + I_BOUNDS : arg[4], ev, iw, ws))
+      return 1;
+    a[0] = qs;
+    for (i = 0; i < 5; ++i) a[1 + i] = evaluation_part(ev, i);
+    a[6] = best;
+    r[0] = x;
+    if ({name}_init(a, r, iw, ws, 0)) return 1;
+    stop = x[I_DONE] != 0 || x[I_EV] >= CAP[k];
+    for (level = 0; level < LEVELS[k] && !stop; ++level) {{
+      a[0] = x;
+      r[0] = qc; r[1] = pr;
+      if ({name}_propose(a, r, iw, ws, 0)) return 1;
+      if (evaluate_at(qc, p, x, x + I_BOUNDS, ev, iw, ws)) return 1;
+      a[0] = x; a[1] = qc; a[2] = pr;
+      for (i = 0; i < 5; ++i) a[3 + i] = evaluation_part(ev, i);
+      r[0] = y;
+      if ({name}_accept(a, r, iw, ws, 0)) return 1;
+      t = x; x = y; y = t;
+      stop = x[I_DONE] != 0 || x[I_EV] >= CAP[k];
+    }}
+    a[0] = x; a[1] = best;
+    r[0] = y;
+    if ({name}_finish(a, r, iw, ws, 0)) return 1;
+    for (i = 0; i < NX; ++i) best[i] = y[i];
+  }}
+  a[0] = best;
+  r[0] = res[0]; r[1] = res[1]; r[2] = res[2];
+  return {name}_outputs(a, r, iw, ws, 0);
+}}
+
+CASADI_SYMBOL_EXPORT int {name}_work(casadi_int* sz_arg, casadi_int* sz_res, casadi_int* sz_iw,
+                                    casadi_int* sz_w) {{
+  if (sz_arg) *sz_arg = 5;
+  if (sz_res) *sz_res = 3;
+  if (sz_iw) *sz_iw = {sz_iw};
+  if (sz_w) *sz_w = W_SIZE + SUB_W;
+  return 0;
+}}
+"""
+
+
+def _reals(values: list[float]) -> str:
+    names = {float("inf"): "INFINITY", -float("inf"): "-INFINITY"}
+    return ", ".join(names.get(float(v), repr(float(v))) for v in values)
+
+
+def driver_source(parts: SolveParts, name: str) -> str:
+    """The C file of one pair solve: the parts (built with ``prefix=name + "_"``,
+    :func:`payload.retarget.lm_graph.solve_parts`) generated by CasADi, and the loop that
+    drives them, exported as ``name`` (same inputs and outputs as
+    :func:`payload.retarget.lm_graph.build_solve_function`'s function)."""
+    cg = ca.CodeGenerator(f"{name}.c", {"with_header": False, "casadi_int": "long long int"})
+    fns = {
+        part: getattr(parts, part)
+        for part in ("prep", "evaluate", "init", "propose", "accept", "finish", "outputs")
+    }
+    sizes = {"w": 1, "iw": 1, "arg": 8, "res": 5}
+    for part, named in fns.items():
+        if named.name() != f"{name}_{part}":
+            raise ValueError(f"solve part {named.name()!r}: built without the prefix {name}_")
+        cg.add(named)
+        sizes["w"] = max(sizes["w"], int(named.sz_w()))
+        sizes["iw"] = max(sizes["iw"], int(named.sz_iw()))
+        sizes["arg"] = max(sizes["arg"], int(named.sz_arg()))
+        sizes["res"] = max(sizes["res"], int(named.sz_res()))
+    lay = parts.layout
+    code = _DRIVER.format(
+        name=name,
+        n=parts.n,
+        ng=parts.groups,
+        npar=parts.npar,
+        nx=lay["size"],
+        nstarts=len(parts.starts),
+        i_bounds=lay["bounds"],
+        i_done=lay["done"],
+        i_ev=lay["ev"],
+        sub_w=sizes["w"],
+        sz_iw=sizes["iw"],
+        sz_arg=sizes["arg"],
+        sz_res=sizes["res"],
+        caps=_reals([cap for cap, _ in parts.starts]),
+        levels=", ".join(str(levels) for _, levels in parts.starts),
+        initial=_reals(list(parts.initial)),
+    )
+    return cg.dump() + code
+
+
+__all__ = ["driver_source"]
