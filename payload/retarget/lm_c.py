@@ -29,6 +29,9 @@ _DRIVER = r"""
 #define NX {nx}
 #define NS {nstarts}
 #define I_BOUNDS {i_bounds}
+#define I_FREE {i_free}
+#define I_MU {i_mu}
+#define I_IT {i_it}
 #define I_DONE {i_done}
 #define I_EV {i_ev}
 #define SUB_W {sub_w}
@@ -36,9 +39,10 @@ static const casadi_real CAP[NS] = {{{caps}}};
 static const int LEVELS[NS] = {{{levels}}};
 static const casadi_real INITIAL[NX] = {{{initial}}};
 
-/* w: best, two iteration states, par, start points, one evaluation's outputs,
-   the candidate and its predicted decrease, then the called functions' work */
-#define W_SIZE (3 * NX + NP + NS * NQ + 2 + NQ + NQ * NQ + NG + NQ + 1)
+/* w: best, two states, par, start points, one evaluation's outputs, the candidate
+   state (q and its evaluation, laid out as the state's head) and its predicted decrease,
+   then the called functions' work */
+#define W_SIZE (3 * NX + NP + NS * NQ + 2 + NQ + NQ * NQ + NG + I_FREE + 1)
 
 static int evaluate_at(const casadi_real* q, const casadi_real* p, const casadi_real* qa,
                        const casadi_real* ba, casadi_real* ev, casadi_int* iw,
@@ -60,8 +64,8 @@ static const casadi_real* evaluation_part(const casadi_real* ev, int k) {{
 CASADI_SYMBOL_EXPORT int {name}(const casadi_real** arg, casadi_real** res, casadi_int* iw,
                                casadi_real* w, int mem) {{
   casadi_real *best = w, *x = best + NX, *y = x + NX, *p = y + NX, *starts = p + NP;
-  casadi_real *ev = starts + NS * NQ, *qc = ev + 2 + NQ + NQ * NQ + NG, *pr = qc + NQ;
-  casadi_real *ws = pr + 1, *t;
+  casadi_real *ev = starts + NS * NQ, *cand = ev + 2 + NQ + NQ * NQ + NG, *pr = cand + I_FREE;
+  casadi_real *ws = pr + 1, flag[4];
   const casadi_real* a[{sz_arg}];
   casadi_real* r[{sz_res}];
   int k, level, i, stop;
@@ -84,14 +88,26 @@ CASADI_SYMBOL_EXPORT int {name}(const casadi_real** arg, casadi_real** res, casa
     stop = x[I_DONE] != 0 || x[I_EV] >= CAP[k];
     for (level = 0; level < LEVELS[k] && !stop; ++level) {{
       a[0] = x;
-      r[0] = qc; r[1] = pr;
+      r[0] = cand; r[1] = pr;
       if ({name}_propose(a, r, iw, ws, 0)) return 1;
-      if (evaluate_at(qc, p, x, x + I_BOUNDS, ev, iw, ws)) return 1;
-      a[0] = x; a[1] = qc; a[2] = pr;
-      for (i = 0; i < 5; ++i) a[3 + i] = evaluation_part(ev, i);
-      r[0] = y;
-      if ({name}_accept(a, r, iw, ws, 0)) return 1;
-      t = x; x = y; y = t;
+      /* the candidate's evaluation lands after its q: the state's head [q, cost, g, H,
+         clearance, bounds] */
+      if (evaluate_at(cand, p, x, x + I_BOUNDS, cand + NQ, iw, ws)) return 1;
+      a[0] = x; a[1] = cand; a[2] = pr; a[3] = evaluation_part(cand + NQ, 0);
+      a[4] = evaluation_part(cand + NQ, 1); a[5] = evaluation_part(cand + NQ, 3);
+      r[0] = flag; r[1] = flag + 1; r[2] = flag + 2; r[3] = flag + 3;
+      if ({name}_decide(a, r, iw, ws, 0)) return 1;
+      if (flag[1] != 0) {{ /* the best collision-free point met: [q, cost, clearance, bounds] */
+        for (i = 0; i < NQ; ++i) x[I_FREE + i] = cand[i];
+        x[I_FREE + NQ] = cand[NQ];
+        x[I_FREE + NQ + 1] = cand[I_BOUNDS - 1];
+        for (i = 0; i < NG; ++i) x[I_FREE + NQ + 2 + i] = cand[I_BOUNDS + i];
+      }}
+      if (flag[0] != 0) for (i = 0; i < I_FREE; ++i) x[i] = cand[i]; /* a lower cost: kept */
+      x[I_MU] = flag[2];
+      x[I_DONE] = flag[3];
+      x[I_IT] = x[I_IT] + 1.0;
+      x[I_EV] = x[I_EV] + 1.0;
       stop = x[I_DONE] != 0 || x[I_EV] >= CAP[k];
     }}
     a[0] = x; a[1] = best;
@@ -128,7 +144,7 @@ def driver_source(parts: SolveParts, name: str) -> str:
     cg = ca.CodeGenerator(f"{name}.c", {"with_header": False, "casadi_int": "long long int"})
     fns = {
         part: getattr(parts, part)
-        for part in ("prep", "evaluate", "init", "propose", "accept", "finish", "outputs")
+        for part in ("prep", "evaluate", "init", "propose", "decide", "finish", "outputs")
     }
     sizes = {"w": 1, "iw": 1, "arg": 8, "res": 5}
     for part, named in fns.items():
@@ -148,6 +164,9 @@ def driver_source(parts: SolveParts, name: str) -> str:
         nx=lay["size"],
         nstarts=len(parts.starts),
         i_bounds=lay["bounds"],
+        i_free=lay["free"],
+        i_mu=lay["mu"],
+        i_it=lay["it"],
         i_done=lay["done"],
         i_ev=lay["ev"],
         sub_w=sizes["w"],

@@ -102,6 +102,8 @@ class SolveParts:
         accept: ``(x, q_candidate, predicted, cost, g, H, clearance, bounds) -> x``: the
             candidate kept if it lowers the cost; ``done`` set by the convergence tests or
             by a damping that ran away; iterations and evaluations counted.
+        decide: ``(x, q_candidate, predicted, cost, g, clearance) -> (lower, free, mu,
+            done)``: ``accept``'s choices, for a caller that moves the state itself.
         prep: ``(q_prev, targets, q_ref) -> (par, starts (n, k))``: the parameters and the
             start points in the budget's order (:func:`payload.retarget.budget.budget_plan`).
         init: ``(q_start, cost, g, H, clearance, bounds, best) -> x``: a start's first state
@@ -119,6 +121,7 @@ class SolveParts:
     evaluate: ca.Function
     propose: ca.Function
     accept: ca.Function
+    decide: ca.Function
     prep: ca.Function
     init: ca.Function
     finish: ca.Function
@@ -172,6 +175,17 @@ def solve_parts(
     tail = ca.if_else(lower, ca.vertcat(mu_ok, conv), ca.vertcat(mu_up, mu_up >= _MU_MAX))
     out = ca.vertcat(main, record, tail, x[lay["it"]] + 1.0, x[lay["ev"]] + 1.0)
     accept = ca.Function(prefix + "accept", [x, qs, pr, cc, gc, hc, clc, bc], [out], {"cse": True})
+    decide = ca.Function(
+        prefix + "decide",
+        [x, qs, pr, cc, gc, clc],
+        [
+            lower,
+            free_ok,
+            ca.if_else(lower, mu_ok, mu_up),
+            ca.if_else(lower, conv, mu_up >= _MU_MAX),
+        ],
+        {"cse": True},
+    )
     # A start's first state from its evaluation at the start point.
     best = ca.SX.sym("best", nx)
     pg0 = qs - ca.fmin(ca.fmax(qs - gc, lbv), ubv)
@@ -211,7 +225,20 @@ def solve_parts(
     initial[lay["bounds"] : lay["bounds"] + ng] = -np.inf
     starts = tuple((cap, max(0, min(config.max_iterations, cap - 1))) for _, cap in plan)
     return SolveParts(
-        evaluate, propose, accept, prep, init, finish, outputs, starts, initial, lay, n, ng, npar
+        evaluate,
+        propose,
+        accept,
+        decide,
+        prep,
+        init,
+        finish,
+        outputs,
+        starts,
+        initial,
+        lay,
+        n,
+        ng,
+        npar,
     )
 
 
