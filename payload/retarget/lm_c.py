@@ -5,10 +5,11 @@ guarded Levenberg-Marquardt iterations as nested ``casadi.Function.conditional``
 CasADi's generated code then copies the whole state (about 230 doubles with collision
 groups) in and out of every level and start, and each level is its own piece of code. Here
 the same sequence is a plain C loop (:func:`driver_source`) over the same CasADi functions
-(:class:`payload.retarget.lm_graph.SolveParts`, generated into the same file): the state
-lives in two buffers the iterations swap, a converged or capped start stops at a
-comparison. The arithmetic is the generated functions', called in the same order on the
-same values, so the answers are the graph's to the bit (a test replays solves through both).
+(:class:`payload.retarget.lm_graph.SolveParts`, generated into the same file): an
+iteration evaluates its candidate into a buffer laid out as the state's head and copies
+only what it keeps; a converged or capped start stops at a comparison. The arithmetic is
+the generated functions' (``decide`` makes ``accept``'s choices), called in the same order
+on the same values, so the answers are the graph's to the bit (a test compares the two).
 
 The loop has the calling convention of a CasADi-generated function (``arg``, ``res``,
 ``iw``, ``w``, ``mem``; ``<name>_work`` reports the work sizes), so
@@ -28,6 +29,10 @@ _DRIVER = r"""
 #define NP {npar}
 #define NX {nx}
 #define NS {nstarts}
+#define I_COST {i_cost}
+#define I_G {i_g}
+#define I_H {i_h}
+#define I_CLEAR {i_clear}
 #define I_BOUNDS {i_bounds}
 #define I_FREE {i_free}
 #define I_MU {i_mu}
@@ -39,33 +44,29 @@ static const casadi_real CAP[NS] = {{{caps}}};
 static const int LEVELS[NS] = {{{levels}}};
 static const casadi_real INITIAL[NX] = {{{initial}}};
 
-/* w: best, two states, par, start points, one evaluation's outputs, the candidate
-   state (q and its evaluation, laid out as the state's head) and its predicted decrease,
-   then the called functions' work */
-#define W_SIZE (3 * NX + NP + NS * NQ + 2 + NQ + NQ * NQ + NG + I_FREE + 1)
+/* an evaluation's outputs (cost, g, H, clearance, bounds) where the state holds them */
+static const int AT[5] = {{I_COST, I_G, I_H, I_CLEAR, I_BOUNDS}};
 
-static int evaluate_at(const casadi_real* q, const casadi_real* p, const casadi_real* qa,
-                       const casadi_real* ba, casadi_real* ev, casadi_int* iw,
-                       casadi_real* ws) {{
+/* w: best, two states, par, start points, the candidate (its q and evaluation, laid out
+   as the state's head) and its predicted decrease, then the called functions' work */
+#define W_SIZE (3 * NX + NP + NS * NQ + I_FREE + 1)
+
+/* the evaluation at head[0..NQ) written into the rest of head */
+static int evaluate_at(casadi_real* head, const casadi_real* p, const casadi_real* qa,
+                       const casadi_real* ba, casadi_int* iw, casadi_real* ws) {{
   const casadi_real* a[{sz_arg}];
   casadi_real* r[{sz_res}];
-  a[0] = q; a[1] = p; a[2] = qa; a[3] = ba;
-  r[0] = ev; r[1] = ev + 1; r[2] = ev + 1 + NQ; r[3] = ev + 1 + NQ + NQ * NQ;
-  r[4] = ev + 2 + NQ + NQ * NQ;
+  int i;
+  a[0] = head; a[1] = p; a[2] = qa; a[3] = ba;
+  for (i = 0; i < 5; ++i) r[i] = head + AT[i];
   return {name}_evaluate(a, r, iw, ws, 0);
-}}
-
-static const casadi_real* evaluation_part(const casadi_real* ev, int k) {{
-  static const int at[5] = {{0, 1, 1 + NQ, 1 + NQ + NQ * NQ, 2 + NQ + NQ * NQ}};
-  return ev + at[k];
 }}
 
 /* (q_prev, targets, q_ref, q_anchor, bounds) -> (q, info, bounds_out) */
 CASADI_SYMBOL_EXPORT int {name}(const casadi_real** arg, casadi_real** res, casadi_int* iw,
                                casadi_real* w, int mem) {{
   casadi_real *best = w, *x = best + NX, *y = x + NX, *p = y + NX, *starts = p + NP;
-  casadi_real *ev = starts + NS * NQ, *cand = ev + 2 + NQ + NQ * NQ + NG, *pr = cand + I_FREE;
-  casadi_real *ws = pr + 1, flag[4];
+  casadi_real *cand = starts + NS * NQ, *pr = cand + I_FREE, *ws = pr + 1, flag[4];
   const casadi_real* a[{sz_arg}];
   casadi_real* r[{sz_res}];
   int k, level, i, stop;
@@ -75,13 +76,13 @@ CASADI_SYMBOL_EXPORT int {name}(const casadi_real** arg, casadi_real** res, casa
   if ({name}_prep(a, r, iw, ws, 0)) return 1;
   for (i = 0; i < NX; ++i) best[i] = INITIAL[i];
   for (k = 0; k < NS; ++k) {{
-    const casadi_real* qs = starts + k * NQ;
     if (best[I_EV] >= CAP[k]) continue; /* no evaluation left under this start's cap */
+    for (i = 0; i < NQ; ++i) cand[i] = starts[k * NQ + i];
     /* the first start carries the input anchor's bounds, the others the best state's */
-    if (evaluate_at(qs, p, k ? best : arg[3], k ? best + I_BOUNDS : arg[4], ev, iw, ws))
+    if (evaluate_at(cand, p, k ? best : arg[3], k ? best + I_BOUNDS : arg[4], iw, ws))
       return 1;
-    a[0] = qs;
-    for (i = 0; i < 5; ++i) a[1 + i] = evaluation_part(ev, i);
+    a[0] = cand;
+    for (i = 0; i < 5; ++i) a[1 + i] = cand + AT[i];
     a[6] = best;
     r[0] = x;
     if ({name}_init(a, r, iw, ws, 0)) return 1;
@@ -90,17 +91,15 @@ CASADI_SYMBOL_EXPORT int {name}(const casadi_real** arg, casadi_real** res, casa
       a[0] = x;
       r[0] = cand; r[1] = pr;
       if ({name}_propose(a, r, iw, ws, 0)) return 1;
-      /* the candidate's evaluation lands after its q: the state's head [q, cost, g, H,
-         clearance, bounds] */
-      if (evaluate_at(cand, p, x, x + I_BOUNDS, cand + NQ, iw, ws)) return 1;
-      a[0] = x; a[1] = cand; a[2] = pr; a[3] = evaluation_part(cand + NQ, 0);
-      a[4] = evaluation_part(cand + NQ, 1); a[5] = evaluation_part(cand + NQ, 3);
+      if (evaluate_at(cand, p, x, x + I_BOUNDS, iw, ws)) return 1;
+      a[0] = x; a[1] = cand; a[2] = pr; a[3] = cand + I_COST; a[4] = cand + I_G;
+      a[5] = cand + I_CLEAR;
       r[0] = flag; r[1] = flag + 1; r[2] = flag + 2; r[3] = flag + 3;
       if ({name}_decide(a, r, iw, ws, 0)) return 1;
       if (flag[1] != 0) {{ /* the best collision-free point met: [q, cost, clearance, bounds] */
         for (i = 0; i < NQ; ++i) x[I_FREE + i] = cand[i];
-        x[I_FREE + NQ] = cand[NQ];
-        x[I_FREE + NQ + 1] = cand[I_BOUNDS - 1];
+        x[I_FREE + NQ] = cand[I_COST];
+        x[I_FREE + NQ + 1] = cand[I_CLEAR];
         for (i = 0; i < NG; ++i) x[I_FREE + NQ + 2 + i] = cand[I_BOUNDS + i];
       }}
       if (flag[0] != 0) for (i = 0; i < I_FREE; ++i) x[i] = cand[i]; /* a lower cost: kept */
@@ -146,7 +145,7 @@ def driver_source(parts: SolveParts, name: str) -> str:
         part: getattr(parts, part)
         for part in ("prep", "evaluate", "init", "propose", "decide", "finish", "outputs")
     }
-    sizes = {"w": 1, "iw": 1, "arg": 8, "res": 5}
+    sizes = {"w": 1, "iw": 1, "arg": 1, "res": 1}  # a function's sz_arg covers its n_in
     for part, named in fns.items():
         if named.name() != f"{name}_{part}":
             raise ValueError(f"solve part {named.name()!r}: built without the prefix {name}_")
@@ -163,6 +162,10 @@ def driver_source(parts: SolveParts, name: str) -> str:
         npar=parts.npar,
         nx=lay["size"],
         nstarts=len(parts.starts),
+        i_cost=lay["cost"],
+        i_g=lay["g"],
+        i_h=lay["h"],
+        i_clear=lay["clear"],
         i_bounds=lay["bounds"],
         i_free=lay["free"],
         i_mu=lay["mu"],
