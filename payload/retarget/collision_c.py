@@ -22,7 +22,7 @@ from __future__ import annotations
 import casadi as ca
 
 from payload.retarget.collision_eval import CollisionGroups
-from payload.retarget.compiled import build_library
+from payload.retarget.compiled import build_library, c_ints, c_reals, code_generator
 from payload.retarget.objective import RetargetConfig
 
 _DISPATCH = r"""
@@ -123,14 +123,6 @@ CASADI_SYMBOL_EXPORT int {name}_work(casadi_int* sz_arg, casadi_int* sz_res, cas
 """
 
 
-def _ints(values: list[int]) -> str:
-    return ", ".join(str(int(v)) for v in values)
-
-
-def _reals(values: list[float]) -> str:
-    return ", ".join(repr(float(v)) for v in values)
-
-
 class NativeCollision:
     """The collision part of one pair's residual evaluation in C (see the module).
 
@@ -158,7 +150,7 @@ class NativeCollision:
         self.groups = groups
         pk = groups.pk
         n, ncap, ng = pk.n, len(pk.collision.capsules), len(groups)
-        cg = ca.CodeGenerator(f"{name}.c", {"with_header": False, "casadi_int": "long long int"})
+        cg = code_generator(f"{name}.c")
         sizes = {"w": 1, "iw": 1, "arg": 1, "res": 1}
         for kind in ("box", "pair"):
             for fn, part in zip(groups.kind_functions(kind, config), ("gate", "exact")):
@@ -185,7 +177,7 @@ class NativeCollision:
             others.append(other if not box else cap)
             if len(flat) != layout[kinds[-1]][-1]:  # pragma: no cover - a model change
                 raise AssertionError(f"group {g}: constants do not fit its kind's inputs")
-            consts.append("{" + _reals(flat + [0.0] * (width - len(flat))) + "}")
+            consts.append("{" + c_reals(flat + [0.0] * (width - len(flat))) + "}")
         offsets = [row[:-1] + [0] * (width - len(row) + 1) for row in layout]
         sp = {
             "sp_ends": ca.Sparsity.dense(6, 1),
@@ -200,19 +192,19 @@ class NativeCollision:
             nc=ncap,
             n=n,
             band=float(config.collision_band),
-            kinds=_ints(kinds),
-            caps=_ints(caps),
-            others=_ints(others),
+            kinds=c_ints(kinds),
+            caps=c_ints(caps),
+            others=c_ints(others),
             consts=", ".join(consts),
             width=width,
-            nconst=_ints([len(row) - 1 for row in layout]),
-            offsets=", ".join("{" + _ints(row) + "}" for row in offsets),
+            nconst=c_ints([len(row) - 1 for row in layout]),
+            offsets=", ".join("{" + c_ints(row) + "}" for row in offsets),
             name=name,
             szw=sizes["w"],
             sziw=sizes["iw"],
             szarg=sizes["arg"],
             szres=sizes["res"],
-            **{k: _ints(list(v.compress())) for k, v in sp.items()},
+            **{k: c_ints(list(v.compress())) for k, v in sp.items()},
         )
         self.source = cg.dump() + loop
         # its own library name: the solver's cache pruning (by name prefix) leaves it alone

@@ -41,6 +41,23 @@ def _compiler() -> str | None:
     return shutil.which(cc) or shutil.which("gcc") or shutil.which("clang")
 
 
+def code_generator(name: str) -> ca.CodeGenerator:
+    """CasADi's code generator for the C file ``name`` of a library this module loads: no
+    header, and ``casadi_int`` is ``long long``, as :class:`_CompiledSolve` passes it."""
+    return ca.CodeGenerator(name, {"with_header": False, "casadi_int": "long long int"})
+
+
+def c_ints(values: list[int]) -> str:
+    """Integers as the body of a C array initialiser."""
+    return ", ".join(str(int(v)) for v in values)
+
+
+def c_reals(values: list[float]) -> str:
+    """Doubles as the body of a C array initialiser (exact; infinities as ``INFINITY``)."""
+    names = {float("inf"): "INFINITY", -float("inf"): "-INFINITY"}
+    return ", ".join(names.get(float(v), repr(float(v))) for v in values)
+
+
 def build_library(
     name: str, sources: dict[str, str], compiler: str, what: str = "the retargeting solver"
 ) -> Path:
@@ -111,9 +128,7 @@ class _CompiledSolve:
     ) -> None:
         name = fn.name()
         if code is None:
-            cg = ca.CodeGenerator(
-                f"{name}.c", {"with_header": False, "casadi_int": "long long int"}
-            )
+            cg = code_generator(f"{name}.c")
             cg.add(fn)
             code = cg.dump()
         lib_path = build_library(name, {f"{name}.c": code, **(extra or {})}, compiler)

@@ -172,18 +172,14 @@ def solve_parts(
     free_ok = ca.logic_and(clc >= 0, cc < x[i_f + n])
     record = ca.if_else(free_ok, ca.vertcat(qs, cc, clc, bc), x[i_f : i_f + nf])
     main = ca.if_else(lower, ca.vertcat(qs, cc, gc, hc, clc, bc), x[:i_f])
-    tail = ca.if_else(lower, ca.vertcat(mu_ok, conv), ca.vertcat(mu_up, mu_up >= _MU_MAX))
-    out = ca.vertcat(main, record, tail, x[lay["it"]] + 1.0, x[lay["ev"]] + 1.0)
+    mu_new = ca.if_else(lower, mu_ok, mu_up)
+    done_new = ca.if_else(lower, conv, mu_up >= _MU_MAX)
+    out = ca.vertcat(main, record, mu_new, done_new, x[lay["it"]] + 1.0, x[lay["ev"]] + 1.0)
     accept = ca.Function(prefix + "accept", [x, qs, pr, cc, gc, hc, clc, bc], [out], {"cse": True})
     decide = ca.Function(
         prefix + "decide",
         [x, qs, pr, cc, gc, clc],
-        [
-            lower,
-            free_ok,
-            ca.if_else(lower, mu_ok, mu_up),
-            ca.if_else(lower, conv, mu_up >= _MU_MAX),
-        ],
+        [lower, free_ok, mu_new, done_new],
         {"cse": True},
     )
     # A start's first state from its evaluation at the start point.
