@@ -184,8 +184,7 @@ def solve_parts(
     )
     # A start's first state from its evaluation at the start point.
     best = ca.SX.sym("best", nx)
-    pg0 = qs - ca.fmin(ca.fmax(qs - gc, lbv), ubv)
-    done0 = ca.mmax(ca.fabs(pg0)) <= config.gtol
+    done0 = ca.mmax(ca.fabs(pg)) <= config.gtol  # pg: the projected gradient at qs
     rec0 = ca.if_else(clc >= 0, ca.vertcat(qs, cc, clc, bc), ca.vertcat(qs, np.inf, -np.inf, bc))
     x0 = ca.vertcat(
         qs, cc, gc, hc, clc, bc, rec0, _MU0, done0, best[lay["it"]], best[lay["ev"]] + 1.0
