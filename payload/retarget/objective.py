@@ -89,7 +89,7 @@ class RetargetConfig:
     budget: str = "paper"
     max_nfev: int = 20
     warm_evaluations: int = 20
-    max_iterations: int = 60
+    max_iterations: int = 150
     gtol: float = 1e-8
     ftol: float = 1e-7
 
