@@ -575,6 +575,50 @@ def test_compiled_solver_is_cached_on_disk(prod, monkeypatch, tmp_path):
         PairRetargeter(kinematics=p.kinematics, backend="gpu")
 
 
+@needs_cc
+def test_a_compiler_without_the_optional_flag_builds_and_fmax_fmin_give_libms_bits(
+    tmp_path, monkeypatch
+):
+    import ctypes
+    import ctypes.util
+    import platform
+
+    import casadi as ca
+
+    import payload.retarget.compiled as compiled
+
+    real = compiled._compiler()
+    assert real is not None
+    assert "-fno-semantic-interposition" in compiled._flags(real)  # gcc and clang have it
+    picky = tmp_path / "picky-cc"  # rejects the flag, else the real compiler
+    picky.write_text(
+        '#!/bin/sh\nfor a in "$@"; do [ "$a" = -fno-semantic-interposition ] && exit 1; done\n'
+        f'exec {real} "$@"\n'
+    )
+    picky.chmod(0o755)
+    assert compiled._flags(str(picky)) == compiled._CFLAGS
+    x = ca.SX.sym("x", 2)
+    fn = ca.Function(
+        "payload_flag_probe", [x], [ca.vertcat(ca.fmax(x[0], x[1]), ca.fmin(x[0], x[1]))]
+    )
+    monkeypatch.setenv("PAYLOAD_CACHE_DIR", str(tmp_path))
+    built = {cc: compiled._CompiledSolve(fn, cc) for cc in (real, str(picky))}
+    assert built[real].path != built[str(picky)].path  # the flags are in the library's key
+    pairs = [(3.0, -2.0), (1.5, 1.5), (-4.0, 7.25), (np.nan, 1.0), (1.0, np.nan)]
+    if platform.machine() == "x86_64":  # the prelude follows glibc's x86-64 signed zeros
+        pairs += [(-0.0, 0.0), (0.0, -0.0)]
+    libm = ctypes.CDLL(ctypes.util.find_library("m"))  # what the code called before
+    for name in ("fmax", "fmin"):
+        getattr(libm, name).restype = ctypes.c_double
+        getattr(libm, name).argtypes = [ctypes.c_double, ctypes.c_double]
+    for a, b in pairs:
+        want = np.array([libm.fmax(a, b), libm.fmin(a, b)])
+        for c in built.values():
+            c.inputs[0][:] = (a, b)
+            c()
+            assert c.outputs[0].tobytes() == want.tobytes(), (a, b)  # signed zeros too
+
+
 def test_without_a_working_compiler_auto_falls_back_to_the_vm(prod, failing_compiler, tmp_path):
     with pytest.warns(RuntimeWarning, match="virtual machine") as caught:
         r = PairRetargeter(kinematics=prod["L"].kinematics)

@@ -10,6 +10,7 @@ for a ``casadi.Function`` call. A failed compilation leaves its log beside the c
 from __future__ import annotations
 
 import ctypes
+import functools
 import hashlib
 import os
 import platform
@@ -23,17 +24,41 @@ import numpy as np
 
 from payload.retarget.errors import RetargetError
 
-_CFLAGS = ("-O3", "-ffp-contract=off", "-fPIC", "-shared", "-fno-semantic-interposition")
-"""No -ffast-math and no contraction: IEEE arithmetic, so -O3 gives the bits -O1 gave.
-``-fno-semantic-interposition``: the generated code's helpers (``casadi_sq``, ...) are
-global functions; without it, position-independent code calls every one of them through
-the PLT instead of inlining it (the solve took about 1.4 times as long)."""
+_CFLAGS = ("-O3", "-ffp-contract=off", "-fPIC", "-shared")
+"""No -ffast-math and no contraction: IEEE arithmetic, so -O3 gives the bits -O1 gave."""
+
+_OPTIONAL_CFLAGS = ("-fno-semantic-interposition",)
+"""Added when the compiler accepts them (:func:`_flags`). ``-fno-semantic-interposition``:
+the generated code's helpers (``casadi_sq``, ...) are global functions; without it,
+position-independent code calls every one of them through the PLT instead of inlining it
+(a paper-budget solve with collisions took about 1.25 to 1.6 times as long)."""
+
+
+@functools.cache
+def _flags(compiler: str) -> tuple[str, ...]:
+    """The compile flags for ``compiler``: :data:`_CFLAGS` and those of
+    :data:`_OPTIONAL_CFLAGS` it accepts (an older compiler without one still builds)."""
+    flags = list(_CFLAGS)
+    with tempfile.TemporaryDirectory() as tmp:
+        src = Path(tmp) / "probe.c"
+        src.write_text("int payload_probe(void) { return 0; }\n")
+        for flag in _OPTIONAL_CFLAGS:
+            proc = subprocess.run(
+                [compiler, *flags, flag, "-o", str(Path(tmp) / "probe.so"), str(src)],
+                capture_output=True,
+                check=False,
+            )
+            if proc.returncode == 0:
+                flags.append(flag)
+    return tuple(flags)
+
 
 PRELUDE = r"""/* ---- payload.retarget.compiled: prepended to every C source it compiles ---- */
 #include <math.h>
-/* fmax and fmin inline, with glibc's x86-64 results (maxsd/minsd: on equal operands,
-   +0 and -0 included, the second; a NaN operand gives the other one), instead of a call
-   into libm for each (about a sixth of a solve with collisions). */
+/* fmax and fmin inline, with glibc's x86-64 results for every quiet input (maxsd/minsd
+   after a NaN check: on equal operands, +0 and -0 included, the second; a NaN operand
+   gives the other one), instead of a call into libm for each (about a sixth of a solve
+   with collisions). Other machines' libm may order signed zeros otherwise. */
 static inline double payload_fmax(double x, double y) { return (x > y || y != y) ? x : y; }
 static inline double payload_fmin(double x, double y) { return (x < y || y != y) ? x : y; }
 #define fmax payload_fmax
@@ -88,7 +113,7 @@ def build_library(
                 PRELUDE,
                 *(f"{k}\n{v}" for k, v in sorted(sources.items())),
                 compiler,
-                *_CFLAGS,
+                *_flags(compiler),
                 platform.machine(),
                 ca.__version__,
             ]
@@ -106,7 +131,7 @@ def build_library(
             paths[-1].write_text(PRELUDE + code)
         out = Path(tmp) / "lib.so"
         proc = subprocess.run(
-            [compiler, *_CFLAGS, "-o", str(out), *map(str, paths), "-lm"],
+            [compiler, *_flags(compiler), "-o", str(out), *map(str, paths), "-lm"],
             capture_output=True,
             text=True,
             check=False,
