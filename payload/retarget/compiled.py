@@ -31,7 +31,7 @@ _OPTIONAL_CFLAGS = ("-fno-semantic-interposition",)
 """Added when the compiler accepts them (:func:`_flags`). ``-fno-semantic-interposition``:
 the generated code's helpers (``casadi_sq``, ...) are global functions; without it,
 position-independent code calls every one of them through the PLT instead of inlining it
-(a paper-budget solve with collisions took about 1.25 to 1.6 times as long)."""
+(a paper-budget solve with collisions took about 1.2 to 1.3 times as long)."""
 
 
 @functools.cache
@@ -57,8 +57,8 @@ PRELUDE = r"""/* ---- payload.retarget.compiled: prepended to every C source it 
 #include <math.h>
 /* fmax and fmin inline, with glibc's x86-64 results for every quiet input (maxsd/minsd
    after a NaN check: on equal operands, +0 and -0 included, the second; a NaN operand
-   gives the other one), instead of a call into libm for each (about a sixth of a solve
-   with collisions). Other machines' libm may order signed zeros otherwise. */
+   gives the other one), instead of a call into libm for each (a solve with collisions
+   takes 0.91 to 0.97 of the time). Other machines' libm may order signed zeros otherwise. */
 static inline double payload_fmax(double x, double y) { return (x > y || y != y) ? x : y; }
 static inline double payload_fmin(double x, double y) { return (x < y || y != y) ? x : y; }
 #define fmax payload_fmax
