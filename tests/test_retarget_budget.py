@@ -164,7 +164,7 @@ def _optimum_fraction(
         pk = PairKinematics(hand, name, kin)
         r = PairRetargeter(hand, name, RetargetConfig(budget=budget, collisions=collisions), pk)
         compiled = CompiledObjective(pk, r.config)
-        cal = calibrate(pinch, open_, pair_range(pk, collisions=collisions))
+        cal = calibrate(pinch, open_, pair_range(pk, collisions=r.collisions))
         for st in target_stream(pk, cal, steps, 1000 * i, phase=1.3 * i):
             q_prev = r.command
             q, _ = r.solve(st.targets, q_prev, st.q_ref)

@@ -24,7 +24,7 @@ def budget_plan(config: RetargetConfig) -> tuple[tuple[str, int], ...]:
     start point and one per iteration; a start stops at its convergence tests, its
     iteration cap, or when the solve's evaluations reach its cumulative cap. The last
     cap is the solve's whole budget: ``config.max_nfev`` for ``paper``,
-    ``4 (1 + max_iterations)`` for ``converged`` (four starts).
+    ``1 + max_iterations`` per start for ``converged``.
     """
     if config.budget == "paper":
         total = config.max_nfev
