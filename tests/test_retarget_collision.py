@@ -514,3 +514,29 @@ def test_hands_with_and_without_collision_geometry(tmp_path):
     off = PairRetargeter(load_hand(), config=RetargetConfig())  # collisions off by default
     _, info = off.solve(off.kinematics.features(off.kinematics.rest), None, None)
     assert not off.collisions and info.clearance == np.inf
+
+
+def test_hold_keeps_the_carried_bounds_and_answers_as_reset_does(hand, pks):
+    """``hold`` (what the teleoperation pipeline calls between steps) keeps the collision
+    groups' carried bounds, ``reset`` forgets them; both then give the same answers bit
+    for bit, with the same evaluation counts, on a stream whose held command is not the
+    last answer (a blend toward it, as after a tracking recovery)."""
+    pk = pks["L"]
+    held = PairRetargeter(hand, "L", RetargetConfig(collisions=True), pk)
+    fresh = PairRetargeter(hand, "L", RetargetConfig(collisions=True), pk)
+    rng = np.random.default_rng(21)
+    kept = 0
+    for q_true in _free_postures(pk, 40, 22):
+        t = pk.features(np.clip(q_true + 0.05 * rng.standard_normal(pk.n), pk.lower, pk.upper))
+        before = held.command
+        q_a, info_a = held.solve(t.as_vector(), None, pk.rest)
+        q_b, info_b = fresh.solve(t.as_vector(), None, pk.rest)
+        np.testing.assert_array_equal(q_a, q_b)
+        assert info_a.evaluations == info_b.evaluations
+        blend = q_a + 0.3 * rng.random() * (before - q_a)  # partway back to the last hold
+        held.hold(blend)
+        fresh.reset(blend)
+        np.testing.assert_array_equal(held.command, fresh.command)
+        kept += int(np.isfinite(held._compiled.inputs[4]).any())
+        assert not np.isfinite(fresh._compiled.inputs[4]).any()
+    assert kept == 40  # every hold kept bounds to carry

@@ -164,6 +164,7 @@ class PairRetargeter(Retargeter):
             self.backend_reason = "no C compiler found (set CC or install gcc)"
         self.backend: str = "compiled" if self._compiled is not None else "vm"
         self._checked = 2 * self.n + N_FEATURES  # q_prev, targets, q_ref: must be finite
+        self._groups = int(self.function.nnz_in(4))  # carried bounds, one per group
         self._forget_bounds()
 
     def _forget_bounds(self) -> None:
@@ -171,7 +172,7 @@ class PairRetargeter(Retargeter):
         hold at (the last answer), carried into the next solve
         (payload.retarget.collision_eval), are unknown (``-inf``) at the rest posture."""
         self._anchor_q = self.kinematics.rest.copy()
-        self._anchor_b = np.full(int(self.function.nnz_in(4)), -np.inf)
+        self._anchor_b = np.full(self._groups, -np.inf)
         if self._compiled is not None:
             self._compiled.inputs[3][:] = self._anchor_q
             self._compiled.inputs[4][:] = self._anchor_b

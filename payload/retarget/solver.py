@@ -112,6 +112,14 @@ class Retargeter(ABC):
         q = self.kinematics.rest if q is None else self.kinematics.check_q(q, "reset q")
         self._command = np.clip(q, self.lower, self.upper)
 
+    def hold(self, q: np.ndarray) -> None:
+        """Set the held command (the next solve's warm start) to ``q``, clipped to the
+        limits, keeping what the solver carries from its earlier solves (for the compiled
+        solver, the collision groups' clearance bounds: they stay valid at the posture
+        they were computed at, so the next answer is the same as after :meth:`reset`,
+        sooner). The teleoperation pipeline holds what it actually commanded."""
+        self._command = np.clip(self.kinematics.check_q(q, "hold q"), self.lower, self.upper)
+
     # ---------------------------------------------------------------- maths
     def features(self, q: np.ndarray) -> PairFeatures:
         """Eq. 2 features at q (shape (n,)), with Pinocchio."""

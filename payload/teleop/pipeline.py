@@ -260,7 +260,7 @@ class TeleopPipeline:
             q = self.blend[pair].step(fresh, weights[side] if fresh is not None else 0.0)
             q_pair[pair] = q
             # warm start from what is actually commanded (held or blended)
-            self.retargeters[pair].reset(q)
+            self.retargeters[pair].hold(q)
         both = hands["left"] is not None and hands["right"] is not None
         if both:
             rail_fresh = np.array(
