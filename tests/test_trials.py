@@ -899,6 +899,12 @@ def test_cli_bench_trial_accounts_for_its_time(tmp_path: Path, capsys) -> None:
     assert r["realtime_factor"] >= r["sim_seconds"] / outside
     size = (out / "log.mcap").stat().st_size
     assert r["log_bytes_per_sim_minute"] == pytest.approx(size / (r["sim_seconds"] / 60))
+    # mj_step alone: inside the physics stage, 20 steps of 1 ms per control step
+    assert 0 < r["mj_step_seconds"] < r["breakdown"]["physics"]
+    assert r["mj_step_seconds"] / (r["mj_step_us"] * 1e-6) == pytest.approx(20 * r["steps"])
+    assert r["physics_only_realtime_factor"] == pytest.approx(
+        r["sim_seconds"] / r["mj_step_seconds"]
+    )
 
 
 def test_cli_bench_recorder(capsys) -> None:

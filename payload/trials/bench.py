@@ -7,6 +7,9 @@ timed stage counts only there):
 * ``startup``: building the MuJoCo world (model compile), loading the retargeters (and
   compiling them when not cached), placing the CTB;
 * ``physics``: the simulator's control steps (vehicle controller + 20 ``mj_step``);
+  of it, ``mj_step_seconds`` is the time inside ``mujoco.mj_step`` alone, and
+  ``physics_only_realtime_factor`` the real-time factor a trial could reach if nothing
+  but MuJoCo's stepping took time (the ceiling any work outside MuJoCo can approach);
 * ``contacts``: the world-state read-out after each step (poses, fingertip contacts,
   indicator);
 * ``operator``: the synthetic operator producing hand frames;
@@ -71,6 +74,42 @@ class _Timers:
         return timed
 
 
+class _StepClock:
+    """Wall and CPU time inside ``mujoco.mj_step`` alone (part of ``physics``)."""
+
+    def __init__(self) -> None:
+        self.wall = 0.0
+        self.cpu = 0.0
+        self.steps = 0
+
+    def wrap(self, fn: Callable) -> Callable:
+        @functools.wraps(fn)
+        def timed(model: Any, data: Any, nstep: int = 1) -> Any:
+            w0, c0 = time.perf_counter(), time.process_time()
+            try:
+                return fn(model, data, nstep)
+            finally:
+                self.wall += time.perf_counter() - w0
+                self.cpu += time.process_time() - c0
+                self.steps += nstep
+
+        return timed
+
+
+@contextmanager
+def _stepping_timed(clock: _StepClock) -> Iterator[None]:
+    """Time every ``mj_step`` call the simulator makes (it looks the function up on the
+    ``mujoco`` module at each control step)."""
+    import mujoco
+
+    saved = mujoco.mj_step
+    mujoco.mj_step = clock.wrap(saved)
+    try:
+        yield
+    finally:
+        mujoco.mj_step = saved
+
+
 @contextmanager
 def _patched(timers: _Timers) -> Iterator[None]:
     """Wrap the stage functions (class attributes) for the duration."""
@@ -120,7 +159,9 @@ def run_trial_bench(
     Returns:
         ``{"sim_seconds", "wall_seconds", "cpu_seconds", "realtime_factor",
         "cpu_realtime_factor", "breakdown" (wall [s] per stage), "breakdown_cpu",
-        "log_bytes", "log_bytes_per_sim_minute", "steps", "seed", "success"}``.
+        "mj_step_seconds", "mj_step_cpu_seconds", "mj_step_us" (per 1 ms physics step),
+        "physics_only_realtime_factor", "log_bytes", "log_bytes_per_sim_minute", "steps",
+        "seed", "success"}``.
     """
     before = os.sched_getaffinity(0) if pin and hasattr(os, "sched_setaffinity") else None
     if before is not None:
@@ -138,10 +179,11 @@ def _bench(seed: int, out: Path, pinned: bool, max_time: float | None) -> dict:
     from payload.schema import CONTROL_DT
 
     timers = _Timers()
+    clock = _StepClock()
     w0, c0 = time.perf_counter(), time.process_time()
     timers._stack.append("startup")  # the imports below count as start-up
     timers._mark = (w0, c0)
-    with _patched(timers):
+    with _patched(timers), _stepping_timed(clock):
         from payload.trials import runner
 
         timers._switch()
@@ -163,6 +205,10 @@ def _bench(seed: int, out: Path, pinned: bool, max_time: float | None) -> dict:
         "cpu_realtime_factor": sim_seconds / cpu if cpu > 0 else math.inf,
         "breakdown": dict(timers.wall),
         "breakdown_cpu": dict(timers.cpu),
+        "mj_step_seconds": clock.wall,
+        "mj_step_cpu_seconds": clock.cpu,
+        "mj_step_us": clock.wall / clock.steps * 1e6 if clock.steps else None,
+        "physics_only_realtime_factor": sim_seconds / clock.wall if clock.wall > 0 else None,
         "log_bytes": size,
         "log_bytes_per_sim_minute": size / (sim_seconds / 60.0),
         "pinned": pinned,

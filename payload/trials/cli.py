@@ -326,6 +326,12 @@ def _cmd_bench_trial(args: argparse.Namespace) -> int:
     )
     for stage, wall in result["breakdown"].items():
         print(f"  {stage:10s} {wall:7.2f} s wall {result['breakdown_cpu'][stage]:7.2f} s CPU")
+    if result["mj_step_us"] is not None:
+        print(
+            f"  of physics, mujoco.mj_step alone: {result['mj_step_seconds']:.2f} s wall "
+            f"({result['mj_step_us']:.1f} us per 1 ms step): at most "
+            f"{result['physics_only_realtime_factor']:.1f}x real time with nothing else"
+        )
     return 0
 
 
