@@ -504,7 +504,7 @@ def test_production_cost_is_not_worse_on_a_teleoperation_trajectory(prod, ref, r
     assert worse == 0
 
 
-@pytest.mark.parametrize("bad", ["nan_direction", "inf_span", "nan_q_prev", "short"])
+@pytest.mark.parametrize("bad", ["nan_direction", "inf_span", "nan_q_prev", "inf_q_ref", "short"])
 @pytest.mark.parametrize("solver", ["production", "reference", "vm"])
 def test_non_finite_input_raises_and_keeps_the_previous_command(prod, ref, solver, bad):
     if solver == "vm":
@@ -515,7 +515,8 @@ def test_non_finite_input_raises_and_keeps_the_previous_command(prod, ref, solve
     good = r.features(np.full(8, 0.3))
     r.solve(good, np.full(8, 0.2), None)
     before = r.command
-    t, q_prev = good.as_vector(), None
+    carried = [b.copy() for b in r._compiled.inputs[3:]] if solver == "production" else []
+    t, q_prev, q_ref = good.as_vector(), None, None
     if bad == "nan_direction":
         t[2] = np.nan
         match = r"direction\[1\]=nan not finite"
@@ -526,12 +527,18 @@ def test_non_finite_input_raises_and_keeps_the_previous_command(prod, ref, solve
         q_prev = np.full(8, 0.1)
         q_prev[5] = np.nan
         match = "q_prev: non-finite value for C_mcp_abd"
+    elif bad == "inf_q_ref":
+        q_ref = np.full(8, 0.1)
+        q_ref[2] = -np.inf
+        match = "q_ref: non-finite value for A_pip"
     else:
         t = t[:12]
         match = "expected 13 values, got 12"
     with pytest.raises(RetargetError, match=match):
-        r.solve(t, q_prev)
+        r.solve(t, q_prev, q_ref)
     np.testing.assert_array_equal(r.command, before)
+    for kept, now in zip(carried, r._compiled.inputs[3:] if carried else []):
+        np.testing.assert_array_equal(now, kept)  # the carried anchor and bounds too
 
 
 @needs_cc

@@ -216,15 +216,18 @@ class PairRetargeter(Retargeter):
             return super().solve(targets, q_prev, q_ref)
         q_in[:] = self._command if q_prev is None else q_prev
         r_in[:] = self.kinematics.rest if q_ref is None else q_ref
-        if not np.isfinite(c.input[: self._checked]).all():
-            return super().solve(targets, q_prev, q_ref)  # raises, naming the value
-        c()
+        if c.has_step:  # the finiteness check and the anchor update in C
+            if not c.step():
+                return super().solve(targets, q_prev, q_ref)  # raises, naming the value
+        else:
+            if not np.isfinite(c.input[: self._checked]).all():
+                return super().solve(targets, q_prev, q_ref)  # raises, naming the value
+            c()
+            c.inputs[3][:] = c.outputs[0]
+            c.inputs[4][:] = c.outputs[2]
         q = c.outputs[0].copy()
-        c.inputs[3][:] = q
-        c.inputs[4][:] = c.outputs[2]
         self._command = q
-        info = c.outputs[1]
-        return q.copy(), _info(info, self.collisions)
+        return q.copy(), _info(c.outputs[1], self.collisions)
 
     def _solve(
         self, targets: np.ndarray, q_prev: np.ndarray, q_ref: np.ndarray
@@ -254,5 +257,7 @@ def _one_line(exc: BaseException) -> str:
 
 
 def _info(info: np.ndarray, collisions: bool) -> SolveInfo:
-    clearance = float(info[4]) if collisions else float("inf")  # no margin: none measured
-    return SolveInfo(float(info[0]), int(info[1]), bool(info[2] > 0.5), int(info[3]), clearance)
+    cost, iterations, converged, evaluations, clearance = info.tolist()
+    if not collisions:
+        clearance = float("inf")  # no margin: none measured
+    return SolveInfo(cost, int(iterations), converged > 0.5, int(evaluations), clearance)

@@ -207,10 +207,32 @@ class _CompiledSolve:
         self._fn.restype = ctypes.c_int
         checkout = getattr(self._lib, f"{name}_checkout", None)
         self._mem = int(checkout()) if checkout is not None else 0
+        # A teleoperation step's entry (payload.retarget.lm_c), when the library has one:
+        # the inputs' finiteness checked and the anchor inputs updated in C.
+        step = getattr(self._lib, f"{name}_step", None)
+        if step is not None:
+            step.argtypes = self._fn.argtypes
+            step.restype = ctypes.c_int
+            self._step_call = functools.partial(
+                step, self._arg, self._res, self._iw, self._w, self._mem
+            )
+        self.has_step: bool = step is not None
 
     def __call__(self) -> None:
         if self._fn(self._arg, self._res, self._iw, self._w, self._mem) != 0:
             raise RetargetError("the compiled retargeting solver reported an error")
+
+    def step(self) -> bool:
+        """One solve through the library's step entry (:attr:`has_step`): the first three
+        inputs checked finite (``False``, nothing solved, when one is not), then the
+        command and bounds outputs copied into the fourth and fifth inputs (the next
+        solve's anchor)."""
+        code = self._step_call()
+        if code == 2:
+            return False
+        if code != 0:
+            raise RetargetError("the compiled retargeting solver reported an error")
+        return True
 
 
 def _compiled_or_none(fn: ca.Function) -> _CompiledSolve | None:

@@ -46,6 +46,60 @@ static const casadi_real INITIAL[NX] = {{{initial}}};
 /* an evaluation's outputs (cost, g, H, clearance, bounds) where the state holds them */
 static const int AT[5] = {{I_COST, I_G, I_H, I_CLEAR, I_BOUNDS}};
 
+static const casadi_real LB[NQ] = {{{lower}}};
+static const casadi_real UB[NQ] = {{{upper}}};
+#define GTOL {gtol}
+#define MU0 {mu0}
+#define I_REC_COST (I_FREE + NQ)
+#define I_REC_CLEAR (I_FREE + NQ + 1)
+#define I_REC_BOUNDS (I_FREE + NQ + 2)
+
+/* CasADi's SX if_else to the bit: (c ? a : 0) + (!c ? b : 0) (so -0 becomes +0) */
+#define SEL(c, a, b) ((((c) != 0) ? (a) : 0.0) + (((c) != 0) ? 0.0 : (b)))
+
+/* init: a start's first state x from its evaluation in head (the state's head laid out:
+   q, cost, g, H, clearance, bounds) and the best state so far (its counts) */
+static void start_state(casadi_real* x, const casadi_real* head, const casadi_real* best) {{
+  int i;
+  casadi_real c = 0.0 <= head[I_CLEAR], m = 0.0, pg;
+  for (i = 0; i < I_FREE; ++i) x[i] = head[i];
+  for (i = 0; i < NQ; ++i) x[I_FREE + i] = SEL(c, head[i], head[i]);
+  x[I_REC_COST] = SEL(c, head[I_COST], casadi_inf);
+  x[I_REC_CLEAR] = SEL(c, head[I_CLEAR], -casadi_inf);
+  for (i = 0; i < NG; ++i) x[I_REC_BOUNDS + i] = SEL(c, head[I_BOUNDS + i], head[I_BOUNDS + i]);
+  x[I_MU] = MU0;
+  for (i = 0; i < NQ; ++i) {{ /* the projected gradient's largest magnitude */
+    pg = fabs(head[i] - fmin(fmax(head[i] - head[I_G + i], LB[i]), UB[i]));
+    m = i ? fmax(m, pg) : pg;
+  }}
+  x[I_DONE] = m <= GTOL;
+  x[I_IT] = best[I_IT];
+  x[I_EV] = best[I_EV] + 1.0;
+}}
+
+/* finish: a start's result st (its best collision-free point when it met one) into best
+   when better (payload.retarget.lm_graph._collapse and _better), the counts always */
+static void finish_start(casadi_real* best, const casadi_real* x, casadi_real* st) {{
+  int i;
+  casadi_real c = x[I_REC_COST] < casadi_inf, f_new, f_old, better;
+  for (i = 0; i < NQ; ++i) st[i] = SEL(c, x[I_FREE + i], x[i]);
+  st[I_COST] = SEL(c, x[I_REC_COST], x[I_COST]);
+  for (i = I_G; i < I_CLEAR; ++i) st[i] = SEL(c, x[i], x[i]);
+  st[I_CLEAR] = SEL(c, x[I_REC_CLEAR], x[I_CLEAR]);
+  for (i = 0; i < NG; ++i) st[I_BOUNDS + i] = SEL(c, x[I_REC_BOUNDS + i], x[I_BOUNDS + i]);
+  for (i = I_FREE; i <= I_MU; ++i) st[i] = SEL(c, x[i], x[i]);
+  st[I_DONE] = SEL(c, (x[I_DONE] != 0 && x[I_REC_COST] == x[I_COST]), x[I_DONE]);
+  st[I_IT] = SEL(c, x[I_IT], x[I_IT]);
+  st[I_EV] = SEL(c, x[I_EV], x[I_EV]);
+  f_new = 0.0 <= st[I_CLEAR];
+  f_old = 0.0 <= best[I_CLEAR];
+  better = (f_new != 0 && (st[I_COST] < best[I_COST] || f_old == 0))
+           || (f_old == 0 && f_new == 0 && best[I_CLEAR] < st[I_CLEAR]);
+  for (i = 0; i < I_IT; ++i) best[i] = SEL(better, st[i], best[i]);
+  best[I_IT] = st[I_IT];
+  best[I_EV] = st[I_EV];
+}}
+
 /* w: best, two states, par, start points, the candidate (its q and evaluation, laid out
    as the state's head) and its predicted decrease, then the called functions' work */
 #define W_SIZE (3 * NX + NP + NS * NQ + I_FREE + 1)
@@ -80,11 +134,7 @@ CASADI_SYMBOL_EXPORT int {name}(const casadi_real** arg, casadi_real** res, casa
     /* the first start carries the input anchor's bounds, the others the best state's */
     if (evaluate_at(cand, p, k ? best : arg[3], k ? best + I_BOUNDS : arg[4], iw, ws))
       return 1;
-    a[0] = cand;
-    for (i = 0; i < 5; ++i) a[1 + i] = cand + AT[i];
-    a[6] = best;
-    r[0] = x;
-    if ({name}_init(a, r, iw, ws, 0)) return 1;
+    start_state(x, cand, best);
     stop = x[I_DONE] != 0 || x[I_EV] >= CAP[k];
     for (level = 0; level < LEVELS[k] && !stop; ++level) {{
       a[0] = x;
@@ -108,14 +158,27 @@ CASADI_SYMBOL_EXPORT int {name}(const casadi_real** arg, casadi_real** res, casa
       x[I_EV] = x[I_EV] + 1.0;
       stop = x[I_DONE] != 0 || x[I_EV] >= CAP[k];
     }}
-    a[0] = x; a[1] = best;
-    r[0] = y;
-    if ({name}_finish(a, r, iw, ws, 0)) return 1;
-    for (i = 0; i < NX; ++i) best[i] = y[i];
+    finish_start(best, x, y);
   }}
   a[0] = best;
   r[0] = res[0]; r[1] = res[1]; r[2] = res[2];
   return {name}_outputs(a, r, iw, ws, 0);
+}}
+
+/* One teleoperation step around {name}: 2 (nothing solved) unless q_prev, targets and
+   q_ref are all finite; after the solve, its command and bounds become the next solve's
+   anchor (arg[3], arg[4]: the caller's own buffers). */
+CASADI_SYMBOL_EXPORT int {name}_step(const casadi_real** arg, casadi_real** res, casadi_int* iw,
+                                    casadi_real* w, int mem) {{
+  int i;
+  for (i = 0; i < NQ; ++i)
+    if (!isfinite(arg[0][i]) || !isfinite(arg[2][i])) return 2;
+  for (i = 0; i < NP - 2 * NQ; ++i)
+    if (!isfinite(arg[1][i])) return 2;
+  if ({name}(arg, res, iw, w, mem)) return 1;
+  for (i = 0; i < NQ; ++i) ((casadi_real*)arg[3])[i] = res[0][i];
+  for (i = 0; i < NG; ++i) ((casadi_real*)arg[4])[i] = res[2][i];
+  return 0;
 }}
 
 CASADI_SYMBOL_EXPORT int {name}_work(casadi_int* sz_arg, casadi_int* sz_res, casadi_int* sz_iw,
@@ -136,8 +199,7 @@ def driver_source(parts: SolveParts, name: str) -> str:
     :func:`payload.retarget.lm_graph.build_solve_function`'s function)."""
     cg = code_generator(f"{name}.c")
     fns = {
-        part: getattr(parts, part)
-        for part in ("prep", "evaluate", "init", "propose", "decide", "finish", "outputs")
+        part: getattr(parts, part) for part in ("prep", "evaluate", "propose", "decide", "outputs")
     }
     sizes = {"w": 1, "iw": 1, "arg": 1, "res": 1}  # a function's sz_arg covers its n_in
     for part, named in fns.items():
@@ -173,6 +235,10 @@ def driver_source(parts: SolveParts, name: str) -> str:
         caps=c_reals([cap for cap, _ in parts.starts]),
         levels=c_ints([levels for _, levels in parts.starts]),
         initial=c_reals(list(parts.initial)),
+        lower=c_reals(list(parts.lower)),
+        upper=c_reals(list(parts.upper)),
+        gtol=c_reals([parts.gtol]),
+        mu0=c_reals([parts.mu0]),
     )
     return cg.dump() + code
 

@@ -116,6 +116,10 @@ class SolveParts:
         n: Joints.
         groups: Collision groups (0 without collision terms).
         npar: Length of ``par``.
+        lower: Lower joint limits, shape (n,) [rad, m].
+        upper: Upper joint limits, shape (n,) [rad, m].
+        gtol: The projected-gradient convergence threshold of ``init`` and ``accept``.
+        mu0: A start's first damping.
     """
 
     evaluate: ca.Function
@@ -132,6 +136,10 @@ class SolveParts:
     n: int
     groups: int
     npar: int
+    lower: np.ndarray
+    upper: np.ndarray
+    gtol: float
+    mu0: float
 
 
 def solve_parts(
@@ -234,6 +242,10 @@ def solve_parts(
         n,
         ng,
         npar,
+        np.asarray(pk.lower, dtype=float).copy(),
+        np.asarray(pk.upper, dtype=float).copy(),
+        float(config.gtol),
+        _MU0,
     )
 
 
