@@ -19,7 +19,7 @@ The loop has the calling convention of a CasADi-generated function (``arg``, ``r
 from __future__ import annotations
 
 from payload.retarget.compiled import c_ints, c_reals, code_generator
-from payload.retarget.lm_graph import SolveParts
+from payload.retarget.lm_graph import _BOUND_EPS, _MAX_STEP, SolveParts
 
 _DRIVER = r"""
 /* ---- the solve's control flow (payload.retarget.lm_c) ---- */
@@ -53,6 +53,101 @@ static const casadi_real UB[NQ] = {{{upper}}};
 #define I_REC_COST (I_FREE + NQ)
 #define I_REC_CLEAR (I_FREE + NQ + 1)
 #define I_REC_BOUNDS (I_FREE + NQ + 2)
+
+static const casadi_real LB_EPS[NQ] = {{{lower_eps}}};
+static const casadi_real UB_EPS[NQ] = {{{upper_eps}}};
+static const casadi_real RANGE[NQ] = {{{span}}};
+#define MAX_STEP {max_step}
+
+/* a x = b for a symmetric positive definite a (column-major, lower triangle read) by
+   Cholesky, the operations of payload.retarget.lm_graph._cholesky_solve in its order */
+static void cholesky_solve(const casadi_real* a, const casadi_real* b, casadi_real* x) {{
+  casadi_real low[NQ * NQ], y[NQ], s;
+  int i, j, k;
+  _Pragma("GCC unroll 8") for (j = 0; j < NQ; ++j) {{
+    s = a[j + j * NQ];
+    _Pragma("GCC unroll 8") for (k = 0; k < j; ++k) s = s - low[j * NQ + k] * low[j * NQ + k];
+    low[j * NQ + j] = sqrt(s);
+    _Pragma("GCC unroll 8") for (i = j + 1; i < NQ; ++i) {{
+      s = a[i + j * NQ];
+      _Pragma("GCC unroll 8") for (k = 0; k < j; ++k) s = s - low[i * NQ + k] * low[j * NQ + k];
+      low[i * NQ + j] = s / low[j * NQ + j];
+    }}
+  }}
+  _Pragma("GCC unroll 8") for (i = 0; i < NQ; ++i) {{
+    s = b[i];
+    _Pragma("GCC unroll 8") for (k = 0; k < i; ++k) s = s - low[i * NQ + k] * y[k];
+    y[i] = s / low[i * NQ + i];
+  }}
+  _Pragma("GCC unroll 8") for (i = NQ - 1; i >= 0; --i) {{
+    s = y[i];
+    _Pragma("GCC unroll 8") for (k = i + 1; k < NQ; ++k) s = s - low[k * NQ + i] * x[k];
+    x[i] = s / low[i * NQ + i];
+  }}
+}}
+
+/* the damped system over the joints f marks free, the others (fixed) held: its lower
+   triangle, h * f f^T + diag(fixed + f * damping) */
+static void damped(const casadi_real* h, const casadi_real* f, const casadi_real* fixed,
+                   const casadi_real* damping, casadi_real* a) {{
+  int i, j;
+  _Pragma("GCC unroll 8") for (j = 0; j < NQ; ++j) {{
+    a[j + j * NQ] = h[j + j * NQ] * (f[j] * f[j]) + (fixed[j] + f[j] * damping[j]);
+    _Pragma("GCC unroll 8") for (i = j + 1; i < NQ; ++i) a[i + j * NQ] = h[i + j * NQ] * (f[i] * f[j]);
+  }}
+}}
+
+/* (h v)[i], the sum in CasADi's order */
+static casadi_real row_times(const casadi_real* h, int i, const casadi_real* v) {{
+  casadi_real s = h[i] * v[0];
+  int j;
+  _Pragma("GCC unroll 8") for (j = 1; j < NQ; ++j) s = s + h[i + j * NQ] * v[j];
+  return s;
+}}
+
+/* propose: one iteration's candidate qc from state x and its predicted decrease, the
+   operations of payload.retarget.lm_graph._proposal */
+static void propose(const casadi_real* x, casadi_real* qc, casadi_real* pr) {{
+  const casadi_real *q = x, *g = x + I_G, *h = x + I_H;
+  casadi_real active[NQ], f[NQ], damping[NQ], a[NQ * NQ], b[NQ], d[NQ], e[NQ];
+  casadi_real lo[NQ], hi[NQ], fixed[NQ], f2[NQ], dfix[NQ], step[NQ], hs[NQ], m = 0.0, s, t;
+  int i;
+  for (i = 0; i < NQ; ++i) {{
+    active[i] = (q[i] <= LB_EPS[i] && 0.0 < g[i]) || (UB_EPS[i] <= q[i] && g[i] < 0.0);
+    f[i] = 1.0 - active[i];
+    damping[i] = x[I_MU] * fmax(h[i + i * NQ], 1e-9) + 1e-14;
+    b[i] = f[i] * g[i];
+  }}
+  damped(h, f, active, damping, a);
+  cholesky_solve(a, b, d);
+  for (i = 0; i < NQ; ++i) {{
+    d[i] = -d[i];
+    lo[i] = f[i] * (q[i] + d[i] < LB[i]);
+    hi[i] = f[i] * (q[i] + d[i] > UB[i]);
+    fixed[i] = fmax(active[i], lo[i] + hi[i]);
+    f2[i] = 1.0 - fixed[i];
+    dfix[i] = lo[i] * (LB[i] - q[i]) + hi[i] * (UB[i] - q[i]);
+  }}
+  for (i = 0; i < NQ; ++i) b[i] = -f2[i] * (g[i] + row_times(h, i, dfix));
+  damped(h, f2, fixed, damping, a);
+  cholesky_solve(a, b, e);
+  for (i = 0; i < NQ; ++i) {{
+    d[i] = dfix[i] + f2[i] * e[i];
+    s = fabs(d[i]) / RANGE[i];
+    m = i ? fmax(m, s) : s;
+  }}
+  t = fmax(1.0, m / MAX_STEP);
+  for (i = 0; i < NQ; ++i) {{
+    qc[i] = fmin(fmax(q[i] + d[i] / t, LB[i]), UB[i]);
+    step[i] = qc[i] - q[i];
+  }}
+  for (i = 0; i < NQ; ++i) hs[i] = row_times(h, i, step);
+  s = g[0] * step[0];
+  for (i = 1; i < NQ; ++i) s = s + g[i] * step[i];
+  t = step[0] * hs[0];
+  for (i = 1; i < NQ; ++i) t = t + step[i] * hs[i];
+  *pr = -(s + 0.5 * t);
+}}
 
 /* CasADi's SX if_else to the bit: (c ? a : 0) + (!c ? b : 0) (so -0 becomes +0) */
 #define SEL(c, a, b) ((((c) != 0) ? (a) : 0.0) + (((c) != 0) ? 0.0 : (b)))
@@ -137,9 +232,7 @@ CASADI_SYMBOL_EXPORT int {name}(const casadi_real** arg, casadi_real** res, casa
     start_state(x, cand, best);
     stop = x[I_DONE] != 0 || x[I_EV] >= CAP[k];
     for (level = 0; level < LEVELS[k] && !stop; ++level) {{
-      a[0] = x;
-      r[0] = cand; r[1] = pr;
-      if ({name}_propose(a, r, iw, ws, 0)) return 1;
+      propose(x, cand, pr);
       if (evaluate_at(cand, p, x, x + I_BOUNDS, iw, ws)) return 1;
       a[0] = x; a[1] = cand; a[2] = pr; a[3] = cand + I_COST; a[4] = cand + I_G;
       a[5] = cand + I_CLEAR;
@@ -198,9 +291,7 @@ def driver_source(parts: SolveParts, name: str) -> str:
     drives them, exported as ``name`` (same inputs and outputs as
     :func:`payload.retarget.lm_graph.build_solve_function`'s function)."""
     cg = code_generator(f"{name}.c")
-    fns = {
-        part: getattr(parts, part) for part in ("prep", "evaluate", "propose", "decide", "outputs")
-    }
+    fns = {part: getattr(parts, part) for part in ("prep", "evaluate", "decide", "outputs")}
     sizes = {"w": 1, "iw": 1, "arg": 1, "res": 1}  # a function's sz_arg covers its n_in
     for part, named in fns.items():
         if named.name() != f"{name}_{part}":
@@ -239,6 +330,10 @@ def driver_source(parts: SolveParts, name: str) -> str:
         upper=c_reals(list(parts.upper)),
         gtol=c_reals([parts.gtol]),
         mu0=c_reals([parts.mu0]),
+        lower_eps=c_reals(list(parts.lower + _BOUND_EPS)),
+        upper_eps=c_reals(list(parts.upper - _BOUND_EPS)),
+        span=c_reals(list(parts.span)),
+        max_step=c_reals([_MAX_STEP]),
     )
     return cg.dump() + code
 

@@ -120,6 +120,7 @@ class SolveParts:
         upper: Upper joint limits, shape (n,) [rad, m].
         gtol: The projected-gradient convergence threshold of ``init`` and ``accept``.
         mu0: A start's first damping.
+        span: The joints' ranges the step cap divides by, shape (n,).
     """
 
     evaluate: ca.Function
@@ -140,6 +141,7 @@ class SolveParts:
     upper: np.ndarray
     gtol: float
     mu0: float
+    span: np.ndarray
 
 
 def solve_parts(
@@ -246,6 +248,7 @@ def solve_parts(
         np.asarray(pk.upper, dtype=float).copy(),
         float(config.gtol),
         _MU0,
+        np.asarray(pk.range, dtype=float).copy(),
     )
 
 
