@@ -5,10 +5,10 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 import pytest
-from scipy.optimize import linprog
+from scipy.optimize import linprog, lsq_linear
 
 from payload.sim import SimDriver, WorldConfig, build_world
-from payload.sim.propulsion import INCH, Propulsion, PropulsionError
+from payload.sim.propulsion import INCH, Propulsion, PropulsionError, _bvls, _lstsq
 from payload.sim.vehicle import FLIGHT_MODES, MassProperties, VehicleController, VehicleError
 
 NOMINAL = FLIGHT_MODES["nominal"]
@@ -104,6 +104,58 @@ def test_saturation_keeps_the_wrench_direction(nozzles):
         assert np.all(a.thrust >= 0) and np.all(a.thrust <= nozzles.thrust_max + 1e-12)
         # on the boundary: no larger multiple is reachable
         assert _lp_extent(nozzles, out) == pytest.approx(1.0, rel=1e-6)
+
+
+def test_fast_facet_solve_matches_numpy_and_scipy(nozzles):
+    """The direct LAPACK least squares and the own BVLS give numpy's and scipy's bits:
+    the saturated allocation equals the straightforward facet solve written here with
+    ``np.linalg.lstsq`` and ``lsq_linear(method="bvls")``."""
+    rng = np.random.default_rng(3)
+    scale = np.array([0.3, 0.15, 0.15, 0.03, 0.03, 0.03])
+    tol = 1e-7 * nozzles.thrust_max.max()
+    bounded = 0
+    normals, offsets = nozzles.facets
+    for w in rng.normal(size=(300, 6)) * scale:
+        if rng.random() < 0.3:
+            w[rng.random(6) < 0.4] = 0.0  # axis-aligned requests hit degenerate facets
+        if not np.any(w):
+            continue
+        w = w * (nozzles.extent(w) * rng.uniform(1.05, 3.0))  # outside: onto a facet
+        along = normals @ w
+        ratio = np.full(len(offsets), np.inf)
+        np.divide(offsets, along, out=ratio, where=along > 1e-15)
+        k = int(np.argmin(ratio))
+        lam = ratio[k]
+        proj = normals[k] @ nozzles.matrix
+        eps = 1e-9 * np.abs(proj).max()
+        free = np.flatnonzero(np.abs(proj) <= eps)
+        ref = np.where(proj > eps, nozzles.thrust_max, 0.0)
+        a, ub = nozzles.matrix[:, free], nozzles.thrust_max[free]
+        rest = lam * w - nozzles.matrix @ ref
+        sol = np.linalg.lstsq(a, rest, rcond=None)[0]
+        np.testing.assert_array_equal(_lstsq(a, rest)[0], sol)
+        start = np.linalg.lstsq(a, rest, rcond=-1)[0]
+        np.testing.assert_array_equal(_lstsq(a, rest, -1.0)[0], start)
+        if np.any(sol < -tol) or np.any(sol > ub + tol):
+            sol = lsq_linear(a, rest, bounds=(np.zeros(len(free)), ub), method="bvls", tol=1e-10).x
+            np.testing.assert_array_equal(_bvls(a, rest, ub), sol)
+            np.testing.assert_array_equal(_bvls(a, rest, ub, start), sol)
+            bounded += 1
+        ref[free] = np.clip(sol, 0.0, ub)
+        got = nozzles.allocate(w[:3], w[3:])
+        assert got.scale == lam
+        np.testing.assert_array_equal(got.thrust, ref)
+    assert bounded > 50  # the bounded least squares ran
+    # general bounded problems (inconsistent, rank-deficient): scipy's BVLS, bit for bit
+    for _ in range(200):
+        m, n = rng.integers(3, 9, size=2)
+        a = rng.normal(size=(m, n))
+        if rng.random() < 0.3:
+            a[:, -1] = a[:, 0]
+        b = rng.normal(size=m) * 3.0
+        ub = rng.uniform(0.1, 1.0, size=n)
+        want = lsq_linear(a, b, bounds=(np.zeros(n), ub), method="bvls", tol=1e-10).x
+        np.testing.assert_array_equal(_bvls(a, b, ub), want)
 
 
 def test_bad_inputs(nozzles):

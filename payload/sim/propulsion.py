@@ -22,7 +22,10 @@ polytope the wrench is met exactly, outside it is scaled down along its own dire
 (saturation keeps the wrench's direction). For speed at 50 Hz the scale comes from the
 polytope's facets (precomputed half-spaces); the thrusts from the binding facet when
 saturated, else from the basic solutions of the 6-nozzle bases (precomputed inverses),
-with a linear programme (HiGHS) as the last resort.
+with a linear programme (HiGHS) as the last resort. The facet's least squares call
+numpy's LAPACK kernel directly and its bounded least squares is BVLS in scipy's order of
+operations: the same bits as ``np.linalg.lstsq`` and ``lsq_linear(method="bvls")``,
+without their per-call overhead.
 """
 
 from __future__ import annotations
@@ -89,22 +92,171 @@ DISCHARGE_COEFFS = np.array(
 N_NOZZLES = 12
 
 
-def _bvls(a: np.ndarray, b: np.ndarray, ub: np.ndarray) -> np.ndarray:
-    """``scipy.optimize.lsq_linear(a, b, bounds=(0, ub), method="bvls").x`` without its
-    argument checks: the unbounded least squares if it is inside the bounds, else BVLS
-    started from it (the same calls, so the same result)."""
+try:  # numpy's LAPACK least-squares kernel (dgelsd), the one np.linalg.lstsq calls
+    from numpy.linalg import _umath_linalg
+
+    _GELSD = getattr(_umath_linalg, "lstsq", None)
+except ImportError:  # pragma: no cover - another numpy: np.linalg.lstsq itself
+    _GELSD = None
+
+_EPS = float(np.finfo(float).eps)
+
+
+def _lstsq(a: np.ndarray, b: np.ndarray, rcond: float | None = None) -> tuple[np.ndarray, int]:
+    """``np.linalg.lstsq(a, b, rcond)`` for a real 2-D ``a`` and 1-D ``b``: the solution
+    and the rank.
+
+    At 50 Hz the wrapper's checks and copies cost as much as the solve, so numpy's own
+    kernel is called directly with the arguments numpy would give it (the same LAPACK
+    call, so the same bits). Where that is unavailable or LAPACK fails, numpy's wrapper
+    (which raises its usual error).
+
+    Args:
+        a: Matrix, shape (m, n), float64.
+        b: Right-hand side, shape (m,), float64.
+        rcond: Relative singular-value cutoff (None: numpy's default ``eps * max(m, n)``).
+
+    Returns:
+        (least-squares solution (n,), numerical rank of ``a``).
+    """
+    m, n = a.shape
+    cutoff = _EPS * max(m, n) if rcond is None else rcond
+    if _GELSD is not None:
+        try:
+            with np.errstate(over="ignore", divide="ignore", under="ignore", invalid="raise"):
+                x, _, rank, _ = _GELSD(a, b[:, None], cutoff, signature="ddd->ddid")
+            return x[:, 0], int(rank)
+        except (FloatingPointError, TypeError):
+            pass
+    x, _, rank, _ = np.linalg.lstsq(a, b, rcond=cutoff)
+    return x, int(rank)
+
+
+def _kkt_violation(g: np.ndarray, side: np.ndarray) -> float:
+    """Largest violation of the bounded least-squares optimality conditions: ``|g|`` for
+    a free variable (``side`` 0), ``g * side`` for one at its lower (-1) or upper (+1)
+    bound."""
+    return float(np.max(np.where(side == 0, np.abs(g), g * side)))
+
+
+def _bvls(
+    a: np.ndarray, b: np.ndarray, ub: np.ndarray, start: np.ndarray | None = None
+) -> np.ndarray:
+    """``scipy.optimize.lsq_linear(a, b, bounds=(0, ub), method="bvls", tol=1e-10).x``
+    without its argument checks and bookkeeping.
+
+    The unbounded least squares (``lstsq`` with ``rcond=-1``, as ``lsq_linear`` computes
+    it) if it is inside the bounds, else the bounded-variable least squares of Stark and
+    Parker started from it, in the order of operations scipy's BVLS uses (same start,
+    same sub-problems, same step rule, same stopping tests), so the result is the same.
+
+    Args:
+        a: Matrix, shape (m, n).
+        b: Right-hand side, shape (m,).
+        ub: Upper bounds, shape (n,) (the lower bounds are 0).
+        start: The unbounded least-squares solution ``lstsq(a, b, rcond=-1)`` when the
+            caller already has it (None: computed here).
+
+    Returns:
+        The bounded least-squares solution, shape (n,).
+    """
     lb = np.zeros(a.shape[1])
-    x = np.linalg.lstsq(a, b, rcond=-1)[0]
+    x = _lstsq(a, b, -1.0)[0] if start is None else start
     if np.all((x >= lb) & (x <= ub)):
         return x
-    try:  # scipy's private solver, to skip lsq_linear's checks at 50 Hz
-        from scipy.optimize._lsq.bvls import bvls
+    return _bvls_from(a, b, x, lb, ub, 1e-10)
 
-        return bvls(a, b, x, lb, ub, 1e-10, None, 0).x
-    except (ImportError, TypeError):  # another scipy: the public call, same algorithm
-        from scipy.optimize import lsq_linear
 
-        return lsq_linear(a, b, bounds=(lb, ub), method="bvls", tol=1e-10).x
+def _bvls_from(
+    a: np.ndarray, b: np.ndarray, start: np.ndarray, lb: np.ndarray, ub: np.ndarray, tol: float
+) -> np.ndarray:
+    """Bounded-variable least squares ``min |a x - b|, lb <= x <= ub`` from ``start``.
+
+    First the variables outside their bounds are put on them and the rest re-solved
+    (repeatedly, until the free variables' solution is feasible); then, at most ``n``
+    times, the bound variable with the most negative optimality measure is freed and
+    the free ones re-solved, stepping back to the first bound crossed until the
+    sub-problem's solution is feasible. Stops when the optimality violation drops below
+    ``tol`` or the squared residual stops decreasing by more than ``tol`` relative.
+
+    Args:
+        a: Matrix, shape (m, n).
+        b: Right-hand side, shape (m,).
+        start: Starting point, shape (n,).
+        lb: Lower bounds, shape (n,).
+        ub: Upper bounds, shape (n,).
+        tol: Stopping tolerance.
+
+    Returns:
+        The solution, shape (n,).
+    """
+    n = a.shape[1]
+    x = start.copy()
+    side = np.zeros(n)  # -1 on the lower bound, +1 on the upper bound, 0 free
+    low = x <= lb
+    x[low] = lb[low]
+    side[low] = -1.0
+    high = x >= ub
+    x[high] = ub[high]
+    side[high] = 1.0
+    fixed = side != 0
+    free = np.flatnonzero(~fixed)
+    while free.size > 0:  # make the free variables' least squares feasible
+        z = _lstsq(a[:, free], b - a.dot(x * fixed))[0]
+        below = z < lb[free]
+        above = z > ub[free]
+        out = below | above
+        if below.any():
+            ind = free[below]
+            x[ind] = lb[ind]
+            fixed[ind] = True
+            side[ind] = -1.0
+        if above.any():
+            ind = free[above]
+            x[ind] = ub[ind]
+            fixed[ind] = True
+            side[ind] = 1.0
+        x[free[~out]] = z[~out]
+        if not out.any():
+            break
+        free = free[~out]
+    r = a.dot(x) - b
+    cost = 0.5 * np.dot(r, r)
+    g = a.T.dot(r)
+    optimality = _kkt_violation(g, side)
+    stalled = False
+    for _ in range(n):
+        if optimality < tol or stalled:
+            break
+        side[np.argmax(g * side)] = 0.0
+        while True:
+            is_free = side == 0
+            free = np.flatnonzero(is_free)
+            x_free = x[free]
+            lb_free = lb[free]
+            ub_free = ub[free]
+            z = _lstsq(a[:, free], b - a.dot(x * ~is_free))[0]
+            below = np.flatnonzero(z < lb_free)
+            above = np.flatnonzero(z > ub_free)
+            if below.size == 0 and above.size == 0:
+                x[free] = z
+                break
+            crossed = np.concatenate((below, above))
+            gaps = np.concatenate((lb_free[below] - x_free[below], ub_free[above] - x_free[above]))
+            steps = gaps / (z[crossed] - x_free[crossed])
+            i = int(np.argmin(steps))
+            step = steps[i]
+            x_free *= 1 - step
+            x_free += step * z
+            x[free] = x_free
+            side[free[crossed[i]]] = -1.0 if i < below.size else 1.0
+        r = a.dot(x) - b
+        cost_new = 0.5 * np.dot(r, r)
+        stalled = bool(cost - cost_new < tol * cost)
+        cost = cost_new
+        g = a.T.dot(r)
+        optimality = _kkt_violation(g, side)
+    return x
 
 
 def _allclose(a: np.ndarray, b: np.ndarray, rtol: float, atol: float) -> bool:
@@ -268,41 +420,58 @@ class Propulsion:
         normals, offsets = self.facets
         along = normals @ wrench
         pos = along > 1e-15
-        if not np.any(pos):
+        if not pos.any():
             return math.inf, -1
         ratio = np.divide(offsets, along, out=np.full(len(offsets), np.inf), where=pos)
-        k = int(np.argmin(ratio))
+        k = int(ratio.argmin())
         return float(ratio[k]), k
 
     @cached_property
-    def _facet_parts(self) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+    def _facet_parts(
+        self,
+    ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]]:
         """Per facet: the thrusts of the nozzles pushing outward (at their bound, the
-        others 0), the in-plane nozzles, their wrench columns and their bounds."""
+        others 0), the in-plane nozzles, their wrench columns, their bounds, and whether
+        ``lstsq`` finds the same rank of those columns with numpy's default cutoff and
+        with ``rcond=-1`` (then both give the same solution: the cutoff only decides
+        which singular values count, and the rank depends on the matrix alone)."""
         parts = []
+        probe = np.ones(6)
         for n in self.facets[0]:
             proj = n @ self.matrix
             eps = 1e-9 * float(np.abs(proj).max())
             out = np.where(proj > eps, self.thrust_max, 0.0)
             free = np.flatnonzero(np.abs(proj) <= eps)
-            parts.append((out, free, self.matrix[:, free], self.thrust_max[free]))
+            a_free = self.matrix[:, free]
+            same = _lstsq(a_free, probe)[1] == _lstsq(a_free, probe, -1.0)[1]
+            parts.append((out, free, a_free, self.thrust_max[free], same))
         return parts
+
+    @cached_property
+    def _facet_tol(self) -> float:
+        return 1e-7 * float(self.thrust_max.max())
 
     def _on_facet(self, wrench: np.ndarray, k: int) -> np.ndarray | None:
         """Thrusts for a wrench on facet ``k``: nozzles pushing outward at their bound,
         inward ones closed, the ones in the facet's plane solved for the rest."""
-        out, free, a_free, ub = self._facet_parts[k]
+        out, free, a_free, ub, same_rank = self._facet_parts[k]
         out = out.copy()
         rest = wrench - self.matrix @ out
-        sol, *_ = np.linalg.lstsq(a_free, rest, rcond=None)
-        tol = 1e-7 * float(self.thrust_max.max())
-        if np.any(sol < -tol) or np.any(sol > ub + tol):
+        sol = _lstsq(a_free, rest)[0]
+        tol = self._facet_tol
+        if (sol < -tol).any() or (sol > ub + tol).any():
             # more nozzles than the facet's dimension lie in its plane: bounded least
-            # squares (scipy's BVLS, called as ``lsq_linear(method="bvls")`` calls it)
-            sol = _bvls(a_free, rest, ub)
+            # squares (scipy's BVLS as ``lsq_linear(method="bvls")`` runs it), started
+            # from the solution just found when it is the one ``rcond=-1`` gives
+            sol = _bvls(a_free, rest, ub, sol if same_rank else None)
         out[free] = np.clip(sol, 0.0, ub)
         if not _allclose(self.matrix @ out, wrench, rtol=1e-7, atol=1e-10):
             return None
         return out
+
+    @cached_property
+    def _least_tol(self) -> float:
+        return 1e-9 * float(self.thrust_max.max())
 
     def _least_thrust(self, wrench: np.ndarray) -> np.ndarray | None:
         """The least-total-thrust solution of ``B t = w, 0 <= t <= t_max`` by enumerating
@@ -313,12 +482,12 @@ class Propulsion:
         solutions."""
         idx, inv, _, fixed = self._bases
         ub = self._basis_bounds
-        tol = 1e-9 * float(self.thrust_max.max())
+        tol = self._least_tol
         t0 = inv @ wrench  # (K, 6): the other nozzles closed
-        ok = np.all(t0 >= -tol, axis=1)
-        if np.any(ok):
-            k = int(np.argmin(np.where(ok, t0.sum(axis=1), np.inf)))
-            if np.all(t0[k] <= ub[k] + tol):
+        ok = (t0 >= -tol).all(axis=1)
+        if ok.any():
+            k = int(np.where(ok, t0.sum(axis=1), np.inf).argmin())
+            if (t0[k] <= ub[k] + tol).all():
                 out = np.zeros(N_NOZZLES)
                 out[idx[k]] = t0[k]
                 return np.clip(out, 0.0, self.thrust_max)
@@ -328,17 +497,26 @@ class Propulsion:
         # zero). Only those (basis, pattern) pairs can be optimal: :attr:`_candidates`.
         ck, cj, c_off, c_fixed = self._candidates
         tb = t0[ck] - c_off  # (M, 6)
-        ok = np.all(tb >= -tol, axis=1)
-        ok &= np.all(tb <= ub[ck] + tol, axis=1)
-        if not np.any(ok):
+        ok = (tb >= -tol).all(axis=1)
+        ok &= (tb <= self._candidate_bounds + tol).all(axis=1)
+        if not ok.any():
             return None
-        m = int(np.argmin(np.where(ok, tb.sum(axis=1) + c_fixed, np.inf)))
+        m = int(np.where(ok, tb.sum(axis=1) + c_fixed, np.inf).argmin())
         k, j = int(ck[m]), int(cj[m])
         out = np.zeros(N_NOZZLES)
-        rest = np.setdiff1d(np.arange(N_NOZZLES), idx[k])
-        out[rest] = fixed[k, j]
+        out[self._basis_rest[k]] = fixed[k, j]
         out[idx[k]] = tb[m]
         return np.clip(out, 0.0, self.thrust_max)
+
+    @cached_property
+    def _basis_rest(self) -> np.ndarray:
+        """Per basis, the 6 nozzles outside it, ascending: (K, 6)."""
+        return np.array([np.setdiff1d(np.arange(N_NOZZLES), b) for b in self._bases[0]])
+
+    @cached_property
+    def _candidate_bounds(self) -> np.ndarray:
+        """The basis nozzles' thrust bounds per candidate of :attr:`_candidates`: (M, 6)."""
+        return self._basis_bounds[self._candidates[0]]
 
     @cached_property
     def _candidates(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -388,9 +566,9 @@ class Propulsion:
             torque: Body torque, shape (3,) [N m].
         """
         w = np.concatenate([np.asarray(force, float), np.asarray(torque, float)])
-        if w.shape != (6,) or not np.all(np.isfinite(w)):
+        if w.shape != (6,) or not np.isfinite(w).all():
             raise PropulsionError("allocate: force and torque must be 3 finite numbers each")
-        if not np.any(w):
+        if not w.any():
             z = np.zeros(3)
             return Allocation(np.zeros(N_NOZZLES), z, z.copy(), 1.0)
         lam, k = self._extent(w)
