@@ -93,7 +93,8 @@ static void damped(const casadi_real* h, const casadi_real* f, const casadi_real
   int i, j;
   _Pragma("GCC unroll 8") for (j = 0; j < NQ; ++j) {{
     a[j + j * NQ] = h[j + j * NQ] * (f[j] * f[j]) + (fixed[j] + f[j] * damping[j]);
-    _Pragma("GCC unroll 8") for (i = j + 1; i < NQ; ++i) a[i + j * NQ] = h[i + j * NQ] * (f[i] * f[j]);
+    _Pragma("GCC unroll 8") for (i = j + 1; i < NQ; ++i)
+      a[i + j * NQ] = h[i + j * NQ] * (f[i] * f[j]);
   }}
 }}
 
