@@ -42,18 +42,38 @@ static const int OFFSET[2][NK] = {{{offsets}}};
 typedef int (*kind_fn)(const casadi_real**, casadi_real**, casadi_int*, casadi_real*, int);
 static const kind_fn GATE[2] = {{{name}_box_gate, {name}_pair_gate}};
 static const kind_fn EXACT[2] = {{{name}_box_exact, {name}_pair_exact}};
+/* capsule c's ends' Jacobian in q (6 x NQ), computed only for a capsule with a term in
+   the band */
+static const kind_fn JAC[NC] = {{{jacs}}};
 
 static void constants(const int kind, const casadi_real* k, const casadi_real** ar) {{
   int i;
   for (i = 0; i < NCONST[kind]; ++i) ar[i] = k + OFFSET[kind][i];
 }}
 
-/* (ends_0..ends_{{NC-1}} (6), J_0..J_{{NC-1}} (6 x NQ), bounds (NG))
+/* the Jacobian of capsule c's ends at q, computed once per call */
+static const casadi_real* jacobian(int c, const casadi_real* q, casadi_real (*store)[6 * NQ],
+                                   int* have, casadi_int* iwk, casadi_real* wk) {{
+  const casadi_real* ar[1];
+  casadi_real* rs[1];
+  if (!have[c]) {{
+    ar[0] = q;
+    rs[0] = store[c];
+    if (JAC[c](ar, rs, iwk, wk, 0)) return 0;
+    have[c] = 1;
+  }}
+  return store[c];
+}}
+
+/* (ends_0..ends_{{NC-1}} (6), q (NQ), bounds (NG))
    -> (S, dS/dq (NQ), group minima (NG), A (NQ x NQ)) */
 CASADI_SYMBOL_EXPORT int {name}(const casadi_real** arg, casadi_real** res, casadi_int* iw,
                                casadi_real* w, int mem) {{
-  const casadi_real* pre = arg[2 * NC];
+  const casadi_real* pre = arg[NC + 1];
+  const casadi_real* q = arg[NC];
   casadi_real s = 0, dq[NQ], a[NQ * NQ], mins[NG], gate, over, c, grad[12], u[NQ];
+  casadi_real store[NC][6 * NQ];
+  int have[NC];
   const casadi_real *j1, *j2;
   casadi_real wk[{szw}];
   casadi_int iwk[{sziw}];
@@ -62,6 +82,7 @@ CASADI_SYMBOL_EXPORT int {name}(const casadi_real** arg, casadi_real** res, casa
   int g, i, j, m, kind;
   for (i = 0; i < NQ; ++i) dq[i] = 0;
   for (i = 0; i < NQ * NQ; ++i) a[i] = 0;
+  for (i = 0; i < NC; ++i) have[i] = 0;
   for (g = 0; g < NG; ++g) {{
     const casadi_real b = pre ? pre[g] : 0;
     if (b >= BAND) {{ mins[g] = b; continue; }} /* the carried bound proves it far */
@@ -77,8 +98,9 @@ CASADI_SYMBOL_EXPORT int {name}(const casadi_real** arg, casadi_real** res, casa
     if (EXACT[kind](ar, rs, iwk, wk, 0)) return 1;
     mins[g] = c;
     if (over > 0) {{ /* u = J^T grad: the clearance's gradient in q */
-      j1 = arg[NC + CAP[g]];
-      j2 = arg[NC + OTHER[g]];
+      j1 = jacobian(CAP[g], q, store, have, iwk, wk);
+      j2 = jacobian(OTHER[g], q, store, have, iwk, wk);
+      if (!j1 || !j2) return 1;
       for (i = 0; i < NQ; ++i) {{
         u[i] = 0;
         for (m = 0; m < 6; ++m) u[i] += j1[m + 6 * i] * grad[m];
@@ -98,15 +120,14 @@ CASADI_SYMBOL_EXPORT int {name}(const casadi_real** arg, casadi_real** res, casa
 }}
 
 static const casadi_int SP_ENDS[] = {{{sp_ends}}};
-static const casadi_int SP_JAC[] = {{{sp_jac}}};
 static const casadi_int SP_PRE[] = {{{sp_pre}}};
 static const casadi_int SP_ONE[] = {{{sp_one}}};
 static const casadi_int SP_Q[] = {{{sp_q}}};
 static const casadi_int SP_A[] = {{{sp_a}}};
-CASADI_SYMBOL_EXPORT casadi_int {name}_n_in(void) {{ return 2 * NC + 1; }}
+CASADI_SYMBOL_EXPORT casadi_int {name}_n_in(void) {{ return NC + 2; }}
 CASADI_SYMBOL_EXPORT casadi_int {name}_n_out(void) {{ return 4; }}
 CASADI_SYMBOL_EXPORT const casadi_int* {name}_sparsity_in(casadi_int i) {{
-  return i < NC ? SP_ENDS : i < 2 * NC ? SP_JAC : i == 2 * NC ? SP_PRE : 0;
+  return i < NC ? SP_ENDS : i == NC ? SP_Q : i == NC + 1 ? SP_PRE : 0;
 }}
 CASADI_SYMBOL_EXPORT const casadi_int* {name}_sparsity_out(casadi_int i) {{
   static const casadi_int* out[4] = {{SP_ONE, SP_Q, SP_PRE, SP_A}};
@@ -114,7 +135,7 @@ CASADI_SYMBOL_EXPORT const casadi_int* {name}_sparsity_out(casadi_int i) {{
 }}
 CASADI_SYMBOL_EXPORT int {name}_work(casadi_int* sz_arg, casadi_int* sz_res, casadi_int* sz_iw,
                                     casadi_int* sz_w) {{
-  if (sz_arg) *sz_arg = 2 * NC + 1;
+  if (sz_arg) *sz_arg = NC + 2;
   if (sz_res) *sz_res = 4;
   if (sz_iw) *sz_iw = 0;
   if (sz_w) *sz_w = 0;
@@ -137,7 +158,8 @@ class NativeCollision:
         groups: The pair's collision groups.
         source: The C file (the kind functions and the loop), to compile into the solver.
         function: The loop as a CasADi ``external`` function: ``(ends (6) per capsule,
-            J (6, n) per capsule, bounds (groups)) -> (S, dS/dq, group minima, A)``, as
+            q (n), bounds (groups)) -> (S, dS/dq, group minima, A)`` (a capsule's ends'
+            Jacobian computed in the loop, only for a capsule with a term in the band), as
             :meth:`CollisionGroups.penalty_function
             <payload.retarget.collision_eval.CollisionGroups.penalty_function>` returns
             after the capsule ends.
@@ -161,6 +183,15 @@ class NativeCollision:
                 sizes["iw"] = max(sizes["iw"], int(named.sz_iw()))
                 sizes["arg"] = max(sizes["arg"], int(named.sz_arg()))
                 sizes["res"] = max(sizes["res"], int(named.sz_res()))
+        # Each capsule's ends' Jacobian on its own, sliced from the one Jacobian of all
+        # the ends (the same expressions, so the same bits as computing them together).
+        qs = ca.SX.sym("q", n)
+        jac = ca.densify(ca.jacobian(groups.pk.collision.ends_function()(qs), qs))
+        for c in range(ncap):
+            named = ca.Function(f"{name}_jac_{c}", [qs], [jac[6 * c : 6 * c + 6, :]], {"cse": True})
+            cg.add(named)
+            sizes["w"] = max(sizes["w"], int(named.sz_w()))
+            sizes["iw"] = max(sizes["iw"], int(named.sz_iw()))
         # Each kind's constant inputs (after its capsule ends), as CasADi lays them out.
         layout = []
         for kind, ne in (("box", 1), ("pair", 2)):
@@ -181,7 +212,6 @@ class NativeCollision:
         offsets = [row[:-1] + [0] * (width - len(row) + 1) for row in layout]
         sp = {
             "sp_ends": ca.Sparsity.dense(6, 1),
-            "sp_jac": ca.Sparsity.dense(6, n),
             "sp_pre": ca.Sparsity.dense(ng, 1),
             "sp_one": ca.Sparsity.dense(1, 1),
             "sp_q": ca.Sparsity.dense(n, 1),
@@ -204,6 +234,7 @@ class NativeCollision:
             sziw=sizes["iw"],
             szarg=sizes["arg"],
             szres=sizes["res"],
+            jacs=", ".join(f"{name}_jac_{c}" for c in range(ncap)),
             **{k: c_ints(list(v.compress())) for k, v in sp.items()},
         )
         self.source = cg.dump() + loop
@@ -214,13 +245,17 @@ class NativeCollision:
         self.function = ca.external(name, str(path))
 
     def penalty_function(self) -> ca.Function:
-        """``(q, pre-bounds) -> (S, dS/dq, group minima, A)``: the capsule ends and their
-        Jacobians, then the C loop (same contract as :meth:`CollisionGroups.penalty_function
+        """``(q, pre-bounds) -> (S, dS/dq, group minima, A)``: the capsule ends, then the
+        C loop (same contract as :meth:`CollisionGroups.penalty_function
         <payload.retarget.collision_eval.CollisionGroups.penalty_function>`)."""
         pk = self.groups.pk
         q, pre = ca.MX.sym("q", pk.n), ca.MX.sym("pre", len(self.groups))
-        outs = self.groups.ends_jacobian_function()(q)
-        return ca.Function("collision_penalty", [q, pre], self.function(*outs, pre))
+        ncap = len(pk.collision.capsules)
+        qs = ca.SX.sym("q", pk.n)
+        e = pk.collision.ends_function()(qs)
+        split = ca.Function("capsule_ends", [qs], [e[6 * i : 6 * i + 6] for i in range(ncap)])
+        # the loop computes a capsule's Jacobian itself, when one of its terms is in the band
+        return ca.Function("collision_penalty", [q, pre], self.function(*split(q), q, pre))
 
 
 __all__ = ["NativeCollision"]
