@@ -380,20 +380,31 @@ def test_the_vm_agrees_with_the_compiled_solver_with_collisions_on(pks, solvers)
     assert near > 0  # some answers end in the band, where the collision terms act
 
 
-def test_the_c_driver_gives_the_graphs_generated_code_bit_for_bit(hand, pks):
-    """The compiled solver's C loop over the starts and iterations (payload.retarget.lm_c)
-    and CasADi's own generated code of the nested-conditional graph, compiled beside it:
-    the same bits on a carried sequence through all four starts of the converged budget
-    (short iteration caps: the starts stop at their caps and the later ones still run)."""
+@pytest.mark.parametrize("collisions", [True, False])
+def test_the_c_driver_gives_the_graphs_generated_code_bit_for_bit(hand, pks, collisions):
+    """The compiled solver's C loop over the starts and iterations (payload.retarget.lm_c,
+    with its own init, finish and proposal) and CasADi's own generated code of the
+    nested-conditional graph, compiled beside it: the same bytes on a carried sequence.
+    With collision groups, through all four starts of the converged budget (short
+    iteration caps: the starts stop at their caps and the later ones still run); without
+    (no groups), the paper budget, with targets past the joint limits so that steps stop
+    on bounds."""
     pk = pks["R"]
-    config = RetargetConfig(collisions=True, budget="converged", max_iterations=4)
+    if collisions:
+        config = RetargetConfig(collisions=True, budget="converged", max_iterations=4)
+    else:
+        config = RetargetConfig(collisions=False, budget="paper")
     r = PairRetargeter(hand, "R", config, pk, backend="compiled")
-    extra = {f"{r.native.name}.c": r.native.source}
+    extra = {f"{r.native.name}.c": r.native.source} if r.native is not None else None
     graph = _CompiledSolve(r.function, shutil.which("cc") or "gcc", extra)
-    assert graph.path != r.library
+    assert graph.path != r.library and (r.native is not None) == collisions
     rng = np.random.default_rng(5)
     used = set()
-    for q_true in _free_postures(pk, 12, 8):
+    postures = list(_free_postures(pk, 12, 8))
+    if not collisions:  # past the limits: clipped targets, answers on the bounds
+        postures += list(pk.lower - 0.2 * pk.range + rng.random((12, pk.n)) * 1.4 * pk.range)
+    on_bound = 0
+    for q_true in postures:
         t = pk.features(np.clip(q_true + 0.1 * rng.standard_normal(pk.n), pk.lower, pk.upper))
         anchor = (r._compiled.inputs[3].copy(), r._compiled.inputs[4].copy())
         q_prev = r.command.copy()
@@ -401,11 +412,15 @@ def test_the_c_driver_gives_the_graphs_generated_code_bit_for_bit(hand, pks):
         for buf, v in zip(graph.inputs, (q_prev, t.as_vector(), pk.rest, *anchor)):
             buf[:] = v
         graph()
-        np.testing.assert_array_equal(graph.outputs[0], q)
-        np.testing.assert_array_equal(graph.outputs[1], r._compiled.outputs[1])
-        np.testing.assert_array_equal(graph.outputs[2], r._compiled.outputs[2])
+        assert graph.outputs[0].tobytes() == q.tobytes()
+        assert graph.outputs[1].tobytes() == r._compiled.outputs[1].tobytes()
+        assert graph.outputs[2].tobytes() == r._compiled.outputs[2].tobytes()
         used.add(info.evaluations)
-    assert max(used) == 4 * (1 + 4)  # every start ran, the last to its cap
+        on_bound += int(np.any((q == pk.lower) | (q == pk.upper)))
+    if collisions:
+        assert max(used) == 4 * (1 + 4)  # every start ran, the last to its cap
+    else:
+        assert used == {r.config.max_nfev} and on_bound > 0
 
 
 @pytest.mark.parametrize("pair", PAIRS)

@@ -216,6 +216,8 @@ class _CompiledSolve:
             self._step_call = functools.partial(
                 step, self._arg, self._res, self._iw, self._w, self._mem
             )
+        else:
+            self._step_call = None
         self.has_step: bool = step is not None
 
     def __call__(self) -> None:
@@ -227,6 +229,8 @@ class _CompiledSolve:
         inputs checked finite (``False``, nothing solved, when one is not), then the
         command and bounds outputs copied into the fourth and fifth inputs (the next
         solve's anchor)."""
+        if self._step_call is None:
+            raise RetargetError(f"{self.path.name} has no step entry (has_step is False)")
         code = self._step_call()
         if code == 2:
             return False

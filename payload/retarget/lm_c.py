@@ -4,16 +4,23 @@
 guarded Levenberg-Marquardt iterations as nested ``casadi.Function.conditional`` calls;
 CasADi's generated code then copies the whole state (about 230 doubles with collision
 groups) in and out of every level and start, and each level is its own piece of code. Here
-the same sequence is a plain C loop (:func:`driver_source`) over the same CasADi functions
-(:class:`payload.retarget.lm_graph.SolveParts`, generated into the same file): an
-iteration evaluates its candidate into a buffer laid out as the state's head and copies
-only what it keeps; a converged or capped start stops at a comparison. The arithmetic is
-the generated functions' (``decide`` makes ``accept``'s choices), called in the same order
-on the same values, so the answers are the graph's to the bit (a test compares the two).
+the same sequence is a plain C loop (:func:`driver_source`): the residual evaluations, a
+start's parameters and start points, an iteration's acceptance choices (``decide``) and
+the outputs are the CasADi functions of :class:`payload.retarget.lm_graph.SolveParts`,
+generated into the same file; a start's first state (``init``), its result (``finish``)
+and an iteration's proposal (``propose``) are written here in C, with the graph's
+operations in the graph's order (CasADi's ``if_else`` as ``(c ? a : 0) + (!c ? b : 0)``),
+which keeps the code a cold solve has to fetch small. An iteration evaluates its candidate
+into a buffer laid out as the state's head and copies only what it keeps; a converged or
+capped start stops at a comparison. The answers are the graph's to the bit (a test
+compares the two, with and without collision groups): a change to
+``lm_graph._proposal``, ``_collapse``, ``_better`` or ``init`` must be made here too.
 
 The loop has the calling convention of a CasADi-generated function (``arg``, ``res``,
 ``iw``, ``w``, ``mem``; ``<name>_work`` reports the work sizes), so
-:class:`payload.retarget.compiled._CompiledSolve` loads it like the graph's code.
+:class:`payload.retarget.compiled._CompiledSolve` loads it like the graph's code;
+``<name>_step`` wraps it for the teleoperation loop (inputs checked finite, the command
+and bounds carried into the next solve's anchor).
 """
 
 from __future__ import annotations
@@ -160,8 +167,8 @@ static void start_state(casadi_real* x, const casadi_real* head, const casadi_re
   casadi_real c = 0.0 <= head[I_CLEAR], m = 0.0, pg;
   for (i = 0; i < I_FREE; ++i) x[i] = head[i];
   for (i = 0; i < NQ; ++i) x[I_FREE + i] = SEL(c, head[i], head[i]);
-  x[I_REC_COST] = SEL(c, head[I_COST], casadi_inf);
-  x[I_REC_CLEAR] = SEL(c, head[I_CLEAR], -casadi_inf);
+  x[I_REC_COST] = SEL(c, head[I_COST], INFINITY);
+  x[I_REC_CLEAR] = SEL(c, head[I_CLEAR], -INFINITY);
   for (i = 0; i < NG; ++i) x[I_REC_BOUNDS + i] = SEL(c, head[I_BOUNDS + i], head[I_BOUNDS + i]);
   x[I_MU] = MU0;
   for (i = 0; i < NQ; ++i) {{ /* the projected gradient's largest magnitude */
@@ -177,7 +184,7 @@ static void start_state(casadi_real* x, const casadi_real* head, const casadi_re
    when better (payload.retarget.lm_graph._collapse and _better), the counts always */
 static void finish_start(casadi_real* best, const casadi_real* x, casadi_real* st) {{
   int i;
-  casadi_real c = x[I_REC_COST] < casadi_inf, f_new, f_old, better;
+  casadi_real c = x[I_REC_COST] < INFINITY, f_new, f_old, better;
   for (i = 0; i < NQ; ++i) st[i] = SEL(c, x[I_FREE + i], x[i]);
   st[I_COST] = SEL(c, x[I_REC_COST], x[I_COST]);
   for (i = I_G; i < I_CLEAR; ++i) st[i] = SEL(c, x[i], x[i]);

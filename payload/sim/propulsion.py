@@ -23,9 +23,8 @@ polytope the wrench is met exactly, outside it is scaled down along its own dire
 polytope's facets (precomputed half-spaces); the thrusts from the binding facet when
 saturated, else from the basic solutions of the 6-nozzle bases (precomputed inverses),
 with a linear programme (HiGHS) as the last resort. The facet's least squares call
-numpy's LAPACK kernel directly and its bounded least squares is BVLS in scipy's order of
-operations: the same bits as ``np.linalg.lstsq`` and ``lsq_linear(method="bvls")``,
-without their per-call overhead.
+numpy's LAPACK kernel directly (the same bits as ``np.linalg.lstsq``, without its
+per-call overhead) and its bounded least squares is scipy's BVLS.
 """
 
 from __future__ import annotations
@@ -126,29 +125,19 @@ def _lstsq(a: np.ndarray, b: np.ndarray, rcond: float | None = None) -> tuple[np
             with np.errstate(over="ignore", divide="ignore", under="ignore", invalid="raise"):
                 x, _, rank, _ = _GELSD(a, b[:, None], cutoff, signature="ddd->ddid")
             return x[:, 0], int(rank)
-        except (FloatingPointError, TypeError):
-            pass
+        except (FloatingPointError, TypeError, ValueError):
+            pass  # LAPACK did not converge, or another numpy's kernel: numpy's wrapper
     x, _, rank, _ = np.linalg.lstsq(a, b, rcond=cutoff)
     return x, int(rank)
-
-
-def _kkt_violation(g: np.ndarray, side: np.ndarray) -> float:
-    """Largest violation of the bounded least-squares optimality conditions: ``|g|`` for
-    a free variable (``side`` 0), ``g * side`` for one at its lower (-1) or upper (+1)
-    bound."""
-    return float(np.max(np.where(side == 0, np.abs(g), g * side)))
 
 
 def _bvls(
     a: np.ndarray, b: np.ndarray, ub: np.ndarray, start: np.ndarray | None = None
 ) -> np.ndarray:
     """``scipy.optimize.lsq_linear(a, b, bounds=(0, ub), method="bvls", tol=1e-10).x``
-    without its argument checks and bookkeeping.
-
-    The unbounded least squares (``lstsq`` with ``rcond=-1``, as ``lsq_linear`` computes
-    it) if it is inside the bounds, else the bounded-variable least squares of Stark and
-    Parker started from it, in the order of operations scipy's BVLS uses (same start,
-    same sub-problems, same step rule, same stopping tests), so the result is the same.
+    without its argument checks: the unbounded least squares (``lstsq`` with
+    ``rcond=-1``, as ``lsq_linear`` computes it) if it is inside the bounds, else scipy's
+    BVLS started from it (the same calls, so the same result).
 
     Args:
         a: Matrix, shape (m, n).
@@ -162,101 +151,16 @@ def _bvls(
     """
     lb = np.zeros(a.shape[1])
     x = _lstsq(a, b, -1.0)[0] if start is None else start
-    if np.all((x >= lb) & (x <= ub)):
+    if ((x >= lb) & (x <= ub)).all():
         return x
-    return _bvls_from(a, b, x, lb, ub, 1e-10)
+    try:  # scipy's private solver, to skip lsq_linear's checks at 50 Hz
+        from scipy.optimize._lsq.bvls import bvls
 
+        return bvls(a, b, x, lb, ub, 1e-10, None, 0).x
+    except (ImportError, TypeError):  # another scipy: the public call, same algorithm
+        from scipy.optimize import lsq_linear
 
-def _bvls_from(
-    a: np.ndarray, b: np.ndarray, start: np.ndarray, lb: np.ndarray, ub: np.ndarray, tol: float
-) -> np.ndarray:
-    """Bounded-variable least squares ``min |a x - b|, lb <= x <= ub`` from ``start``.
-
-    First the variables outside their bounds are put on them and the rest re-solved
-    (repeatedly, until the free variables' solution is feasible); then, at most ``n``
-    times, the bound variable with the most negative optimality measure is freed and
-    the free ones re-solved, stepping back to the first bound crossed until the
-    sub-problem's solution is feasible. Stops when the optimality violation drops below
-    ``tol`` or the squared residual stops decreasing by more than ``tol`` relative.
-
-    Args:
-        a: Matrix, shape (m, n).
-        b: Right-hand side, shape (m,).
-        start: Starting point, shape (n,).
-        lb: Lower bounds, shape (n,).
-        ub: Upper bounds, shape (n,).
-        tol: Stopping tolerance.
-
-    Returns:
-        The solution, shape (n,).
-    """
-    n = a.shape[1]
-    x = start.copy()
-    side = np.zeros(n)  # -1 on the lower bound, +1 on the upper bound, 0 free
-    low = x <= lb
-    x[low] = lb[low]
-    side[low] = -1.0
-    high = x >= ub
-    x[high] = ub[high]
-    side[high] = 1.0
-    fixed = side != 0
-    free = np.flatnonzero(~fixed)
-    while free.size > 0:  # make the free variables' least squares feasible
-        z = _lstsq(a[:, free], b - a.dot(x * fixed))[0]
-        below = z < lb[free]
-        above = z > ub[free]
-        out = below | above
-        if below.any():
-            ind = free[below]
-            x[ind] = lb[ind]
-            fixed[ind] = True
-            side[ind] = -1.0
-        if above.any():
-            ind = free[above]
-            x[ind] = ub[ind]
-            fixed[ind] = True
-            side[ind] = 1.0
-        x[free[~out]] = z[~out]
-        if not out.any():
-            break
-        free = free[~out]
-    r = a.dot(x) - b
-    cost = 0.5 * np.dot(r, r)
-    g = a.T.dot(r)
-    optimality = _kkt_violation(g, side)
-    stalled = False
-    for _ in range(n):
-        if optimality < tol or stalled:
-            break
-        side[np.argmax(g * side)] = 0.0
-        while True:
-            is_free = side == 0
-            free = np.flatnonzero(is_free)
-            x_free = x[free]
-            lb_free = lb[free]
-            ub_free = ub[free]
-            z = _lstsq(a[:, free], b - a.dot(x * ~is_free))[0]
-            below = np.flatnonzero(z < lb_free)
-            above = np.flatnonzero(z > ub_free)
-            if below.size == 0 and above.size == 0:
-                x[free] = z
-                break
-            crossed = np.concatenate((below, above))
-            gaps = np.concatenate((lb_free[below] - x_free[below], ub_free[above] - x_free[above]))
-            steps = gaps / (z[crossed] - x_free[crossed])
-            i = int(np.argmin(steps))
-            step = steps[i]
-            x_free *= 1 - step
-            x_free += step * z
-            x[free] = x_free
-            side[free[crossed[i]]] = -1.0 if i < below.size else 1.0
-        r = a.dot(x) - b
-        cost_new = 0.5 * np.dot(r, r)
-        stalled = bool(cost - cost_new < tol * cost)
-        cost = cost_new
-        g = a.T.dot(r)
-        optimality = _kkt_violation(g, side)
-    return x
+        return lsq_linear(a, b, bounds=(lb, ub), method="bvls", tol=1e-10).x
 
 
 def _allclose(a: np.ndarray, b: np.ndarray, rtol: float, atol: float) -> bool:
