@@ -26,7 +26,13 @@ and bounds carried into the next solve's anchor).
 from __future__ import annotations
 
 from payload.retarget.compiled import c_ints, c_reals, code_generator
-from payload.retarget.lm_graph import _BOUND_EPS, _MAX_STEP, SolveParts
+from payload.retarget.lm_graph import (
+    _BOUND_EPS,
+    _CURVATURE_FLOOR,
+    _DAMPING_EPS,
+    _MAX_STEP,
+    SolveParts,
+)
 
 _DRIVER = r"""
 /* ---- the solve's control flow (payload.retarget.lm_c) ---- */
@@ -65,6 +71,8 @@ static const casadi_real LB_EPS[NQ] = {{{lower_eps}}};
 static const casadi_real UB_EPS[NQ] = {{{upper_eps}}};
 static const casadi_real RANGE[NQ] = {{{span}}};
 #define MAX_STEP {max_step}
+#define CURVATURE_FLOOR {curvature_floor}
+#define DAMPING_EPS {damping_eps}
 
 /* a x = b for a symmetric positive definite a (column-major, lower triangle read) by
    Cholesky, the operations of payload.retarget.lm_graph._cholesky_solve in its order */
@@ -123,7 +131,7 @@ static void propose(const casadi_real* x, casadi_real* qc, casadi_real* pr) {{
   for (i = 0; i < NQ; ++i) {{
     active[i] = (q[i] <= LB_EPS[i] && 0.0 < g[i]) || (UB_EPS[i] <= q[i] && g[i] < 0.0);
     f[i] = 1.0 - active[i];
-    damping[i] = x[I_MU] * fmax(h[i + i * NQ], 1e-9) + 1e-14;
+    damping[i] = x[I_MU] * fmax(h[i + i * NQ], CURVATURE_FLOOR) + DAMPING_EPS;
     b[i] = f[i] * g[i];
   }}
   damped(h, f, active, damping, a);
@@ -342,6 +350,8 @@ def driver_source(parts: SolveParts, name: str) -> str:
         upper_eps=c_reals(list(parts.upper - _BOUND_EPS)),
         span=c_reals(list(parts.span)),
         max_step=c_reals([_MAX_STEP]),
+        curvature_floor=c_reals([_CURVATURE_FLOOR]),
+        damping_eps=c_reals([_DAMPING_EPS]),
     )
     return cg.dump() + code
 

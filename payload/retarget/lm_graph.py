@@ -27,6 +27,8 @@ from payload.retarget.symbolic import paper_residuals_expr, uses_collisions
 _MU0 = 1e-4
 _MU_MAX = 1e12
 _BOUND_EPS = 1e-12
+_CURVATURE_FLOOR = 1e-9
+_DAMPING_EPS = 1e-14
 _MAX_STEP = 0.1
 
 
@@ -262,7 +264,7 @@ def _proposal(pk: PairKinematics, x: ca.SX, lay: dict[str, int]) -> tuple[ca.SX,
         ca.logic_and(qk <= lbv + _BOUND_EPS, gk > 0), ca.logic_and(qk >= ubv - _BOUND_EPS, gk < 0)
     )
     free = 1.0 - active
-    damping = mu * ca.fmax(ca.diag(hk), 1e-9) + 1e-14
+    damping = mu * ca.fmax(ca.diag(hk), _CURVATURE_FLOOR) + _DAMPING_EPS
     # First pass: the damped step over the free joints.
     delta = -_cholesky_solve(
         hk * ca.mtimes(free, free.T) + ca.diag(active + free * damping), free * gk
