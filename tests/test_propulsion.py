@@ -107,7 +107,7 @@ def test_saturation_keeps_the_wrench_direction(nozzles):
 
 
 def test_fast_facet_solve_matches_numpy_and_scipy(nozzles):
-    """The direct LAPACK least squares and the own BVLS give numpy's and scipy's bits:
+    """The direct LAPACK least squares and the BVLS call give numpy's and scipy's bits:
     the saturated allocation equals the straightforward facet solve written here with
     ``np.linalg.lstsq`` and ``lsq_linear(method="bvls")``."""
     rng = np.random.default_rng(3)
@@ -216,3 +216,25 @@ def test_box_model_stays_available(bare_world):
     assert not np.any(nz.data.xfrc_applied) and np.any(nz.data.qfrc_applied)
     alloc = nz.controller.allocation
     np.testing.assert_allclose(state.wrench.force, alloc.force)
+
+
+@pytest.mark.parametrize("kernel", ["missing", "rejects"])
+def test_least_squares_falls_back_to_numpys_wrapper(monkeypatch, kernel):
+    """Without numpy's kernel, or with one that refuses the call (another numpy), the
+    facet least squares is numpy's own ``lstsq``: same solution and rank."""
+    from payload.sim import propulsion
+
+    def refuse(*args, **kwargs):
+        raise ValueError("signature")
+
+    monkeypatch.setattr(propulsion, "_GELSD", None if kernel == "missing" else refuse)
+    rng = np.random.default_rng(11)
+    for cols in (3, 6, 8):
+        a = rng.normal(size=(6, cols))
+        a[:, -1] = a[:, 0]  # rank-deficient: the cut-off matters
+        b = rng.normal(size=6)
+        for rcond in (None, -1.0):
+            x, rank = _lstsq(a, b, rcond)
+            want = np.linalg.lstsq(a, b, rcond=rcond)
+            np.testing.assert_array_equal(x, want[0])
+            assert rank == want[2] == min(6, cols - 1)
