@@ -163,7 +163,6 @@ class PairRetargeter(Retargeter):
         elif backend == "auto":
             self.backend_reason = "no C compiler found (set CC or install gcc)"
         self.backend: str = "compiled" if self._compiled is not None else "vm"
-        self._checked = 2 * self.n + N_FEATURES  # q_prev, targets, q_ref: must be finite
         self._groups = int(self.function.nnz_in(4))  # carried bounds, one per group
         self._forget_bounds()
 
@@ -216,15 +215,8 @@ class PairRetargeter(Retargeter):
             return super().solve(targets, q_prev, q_ref)
         q_in[:] = self._command if q_prev is None else q_prev
         r_in[:] = self.kinematics.rest if q_ref is None else q_ref
-        if c.has_step:  # the finiteness check and the anchor update in C
-            if not c.step():
-                return super().solve(targets, q_prev, q_ref)  # raises, naming the value
-        else:
-            if not np.isfinite(c.input[: self._checked]).all():
-                return super().solve(targets, q_prev, q_ref)  # raises, naming the value
-            c()
-            c.inputs[3][:] = c.outputs[0]
-            c.inputs[4][:] = c.outputs[2]
+        if not c.step():  # the finiteness check and the anchor update in C
+            return super().solve(targets, q_prev, q_ref)  # raises, naming the value
         q = c.outputs[0].copy()
         self._command = q
         return q.copy(), _info(c.outputs[1], self.collisions)

@@ -22,7 +22,13 @@ from __future__ import annotations
 import casadi as ca
 
 from payload.retarget.collision_eval import CollisionGroups
-from payload.retarget.compiled import build_library, c_ints, c_reals, code_generator
+from payload.retarget.compiled import (
+    build_library,
+    c_ints,
+    c_reals,
+    code_generator,
+    work_sizes,
+)
 from payload.retarget.objective import RetargetConfig
 
 _DISPATCH = r"""
@@ -54,8 +60,8 @@ static void constants(const int kind, const casadi_real* k, const casadi_real** 
 /* the Jacobian of capsule c's ends at q, computed once per call */
 static const casadi_real* jacobian(int c, const casadi_real* q, casadi_real (*store)[6 * NQ],
                                    int* have, casadi_int* iwk, casadi_real* wk) {{
-  const casadi_real* ar[1];
-  casadi_real* rs[1];
+  const casadi_real* ar[{szarg}];
+  casadi_real* rs[{szres}];
   if (!have[c]) {{
     ar[0] = q;
     rs[0] = store[c];
@@ -173,25 +179,23 @@ class NativeCollision:
         pk = groups.pk
         n, ncap, ng = pk.n, len(pk.collision.capsules), len(groups)
         cg = code_generator(f"{name}.c")
-        sizes = {"w": 1, "iw": 1, "arg": 1, "res": 1}
+        generated = []
         for kind in ("box", "pair"):
             for fn, part in zip(groups.kind_functions(kind, config), ("gate", "exact")):
                 ins = fn.sx_in()
-                named = ca.Function(f"{name}_{kind}_{part}", ins, fn.call(ins), {"cse": True})
-                cg.add(named)
-                sizes["w"] = max(sizes["w"], int(named.sz_w()))
-                sizes["iw"] = max(sizes["iw"], int(named.sz_iw()))
-                sizes["arg"] = max(sizes["arg"], int(named.sz_arg()))
-                sizes["res"] = max(sizes["res"], int(named.sz_res()))
+                generated.append(
+                    ca.Function(f"{name}_{kind}_{part}", ins, fn.call(ins), {"cse": True})
+                )
         # Each capsule's ends' Jacobian on its own, sliced from the one Jacobian of all
         # the ends (the same expressions, so the same bits as computing them together).
         qs = ca.SX.sym("q", n)
-        jac = ca.densify(ca.jacobian(groups.pk.collision.ends_function()(qs), qs))
+        jac = ca.densify(ca.jacobian(groups.ends_function()(qs), qs))
         for c in range(ncap):
-            named = ca.Function(f"{name}_jac_{c}", [qs], [jac[6 * c : 6 * c + 6, :]], {"cse": True})
-            cg.add(named)
-            sizes["w"] = max(sizes["w"], int(named.sz_w()))
-            sizes["iw"] = max(sizes["iw"], int(named.sz_iw()))
+            rows = jac[6 * c : 6 * c + 6, :]
+            generated.append(ca.Function(f"{name}_jac_{c}", [qs], [rows], {"cse": True}))
+        for fn in generated:
+            cg.add(fn)
+        sizes = work_sizes(generated)
         # Each kind's constant inputs (after its capsule ends), as CasADi lays them out.
         layout = []
         for kind, ne in (("box", 1), ("pair", 2)):
@@ -252,7 +256,7 @@ class NativeCollision:
         q, pre = ca.MX.sym("q", pk.n), ca.MX.sym("pre", len(self.groups))
         ncap = len(pk.collision.capsules)
         qs = ca.SX.sym("q", pk.n)
-        e = pk.collision.ends_function()(qs)
+        e = self.groups.ends_function()(qs)
         split = ca.Function("capsule_ends", [qs], [e[6 * i : 6 * i + 6] for i in range(ncap)])
         # the loop computes a capsule's Jacobian itself, when one of its terms is in the band
         return ca.Function("collision_penalty", [q, pre], self.function(*split(q), q, pre))

@@ -98,6 +98,18 @@ def c_reals(values: list[float]) -> str:
     return ", ".join(names.get(float(v), repr(float(v))) for v in values)
 
 
+def work_sizes(functions: list[ca.Function]) -> dict[str, int]:
+    """The largest ``w``, ``iw``, ``arg`` and ``res`` work sizes of generated functions a
+    C caller calls with one shared set of buffers (at least 1 each)."""
+    sizes = {"w": 1, "iw": 1, "arg": 1, "res": 1}
+    for fn in functions:
+        sizes["w"] = max(sizes["w"], int(fn.sz_w()))
+        sizes["iw"] = max(sizes["iw"], int(fn.sz_iw()))
+        sizes["arg"] = max(sizes["arg"], int(fn.sz_arg()))
+        sizes["res"] = max(sizes["res"], int(fn.sz_res()))
+    return sizes
+
+
 def build_library(
     name: str, sources: dict[str, str], compiler: str, what: str = "the retargeting solver"
 ) -> Path:
@@ -210,27 +222,25 @@ class _CompiledSolve:
         # A teleoperation step's entry (payload.retarget.lm_c), when the library has one:
         # the inputs' finiteness checked and the anchor inputs updated in C.
         step = getattr(self._lib, f"{name}_step", None)
+        self._step_call = None
         if step is not None:
             step.argtypes = self._fn.argtypes
             step.restype = ctypes.c_int
             self._step_call = functools.partial(
                 step, self._arg, self._res, self._iw, self._w, self._mem
             )
-        else:
-            self._step_call = None
-        self.has_step: bool = step is not None
 
     def __call__(self) -> None:
         if self._fn(self._arg, self._res, self._iw, self._w, self._mem) != 0:
             raise RetargetError("the compiled retargeting solver reported an error")
 
     def step(self) -> bool:
-        """One solve through the library's step entry (:attr:`has_step`): the first three
-        inputs checked finite (``False``, nothing solved, when one is not), then the
-        command and bounds outputs copied into the fourth and fifth inputs (the next
-        solve's anchor)."""
+        """One solve through the library's step entry (``<name>_step``, the driver's of
+        :mod:`payload.retarget.lm_c`): the first three inputs checked finite (``False``,
+        nothing solved, when one is not), then the command and bounds outputs copied into
+        the fourth and fifth inputs (the next solve's anchor)."""
         if self._step_call is None:
-            raise RetargetError(f"{self.path.name} has no step entry (has_step is False)")
+            raise RetargetError(f"{self.path.name} has no step entry")
         code = self._step_call()
         if code == 2:
             return False

@@ -25,12 +25,13 @@ and bounds carried into the next solve's anchor).
 
 from __future__ import annotations
 
-from payload.retarget.compiled import c_ints, c_reals, code_generator
+from payload.retarget.compiled import c_ints, c_reals, code_generator, work_sizes
 from payload.retarget.lm_graph import (
     _BOUND_EPS,
     _CURVATURE_FLOOR,
     _DAMPING_EPS,
     _MAX_STEP,
+    _MU0,
     SolveParts,
 )
 
@@ -63,9 +64,9 @@ static const casadi_real LB[NQ] = {{{lower}}};
 static const casadi_real UB[NQ] = {{{upper}}};
 #define GTOL {gtol}
 #define MU0 {mu0}
-#define I_REC_COST (I_FREE + NQ)
-#define I_REC_CLEAR (I_FREE + NQ + 1)
-#define I_REC_BOUNDS (I_FREE + NQ + 2)
+#define I_REC_COST {i_rec_cost}
+#define I_REC_CLEAR {i_rec_clear}
+#define I_REC_BOUNDS {i_rec_bounds}
 
 static const casadi_real LB_EPS[NQ] = {{{lower_eps}}};
 static const casadi_real UB_EPS[NQ] = {{{upper_eps}}};
@@ -256,9 +257,9 @@ CASADI_SYMBOL_EXPORT int {name}(const casadi_real** arg, casadi_real** res, casa
       if ({name}_decide(a, r, iw, ws, 0)) return 1;
       if (flag[1] != 0) {{ /* the best collision-free point met: [q, cost, clearance, bounds] */
         for (i = 0; i < NQ; ++i) x[I_FREE + i] = cand[i];
-        x[I_FREE + NQ] = cand[I_COST];
-        x[I_FREE + NQ + 1] = cand[I_CLEAR];
-        for (i = 0; i < NG; ++i) x[I_FREE + NQ + 2 + i] = cand[I_BOUNDS + i];
+        x[I_REC_COST] = cand[I_COST];
+        x[I_REC_CLEAR] = cand[I_CLEAR];
+        for (i = 0; i < NG; ++i) x[I_REC_BOUNDS + i] = cand[I_BOUNDS + i];
       }}
       if (flag[0] != 0) for (i = 0; i < I_FREE; ++i) x[i] = cand[i]; /* a lower cost: kept */
       x[I_MU] = flag[2];
@@ -308,15 +309,11 @@ def driver_source(parts: SolveParts, name: str) -> str:
     :func:`payload.retarget.lm_graph.build_solve_function`'s function)."""
     cg = code_generator(f"{name}.c")
     fns = {part: getattr(parts, part) for part in ("prep", "evaluate", "decide", "outputs")}
-    sizes = {"w": 1, "iw": 1, "arg": 1, "res": 1}  # a function's sz_arg covers its n_in
     for part, named in fns.items():
         if named.name() != f"{name}_{part}":
             raise ValueError(f"solve part {named.name()!r}: built without the prefix {name}_")
         cg.add(named)
-        sizes["w"] = max(sizes["w"], int(named.sz_w()))
-        sizes["iw"] = max(sizes["iw"], int(named.sz_iw()))
-        sizes["arg"] = max(sizes["arg"], int(named.sz_arg()))
-        sizes["res"] = max(sizes["res"], int(named.sz_res()))
+    sizes = work_sizes(list(fns.values()))  # a function's sz_arg covers its n_in
     lay = parts.layout
     code = _DRIVER.format(
         name=name,
@@ -335,6 +332,9 @@ def driver_source(parts: SolveParts, name: str) -> str:
         i_it=lay["it"],
         i_done=lay["done"],
         i_ev=lay["ev"],
+        i_rec_cost=lay["rec_cost"],
+        i_rec_clear=lay["rec_clear"],
+        i_rec_bounds=lay["rec_bounds"],
         sub_w=sizes["w"],
         sz_iw=sizes["iw"],
         sz_arg=sizes["arg"],
@@ -345,10 +345,10 @@ def driver_source(parts: SolveParts, name: str) -> str:
         lower=c_reals(list(parts.lower)),
         upper=c_reals(list(parts.upper)),
         gtol=c_reals([parts.gtol]),
-        mu0=c_reals([parts.mu0]),
+        mu0=c_reals([_MU0]),
         lower_eps=c_reals(list(parts.lower + _BOUND_EPS)),
         upper_eps=c_reals(list(parts.upper - _BOUND_EPS)),
-        span=c_reals(list(parts.span)),
+        span=c_reals(list(parts.upper - parts.lower)),  # PairKinematics.range
         max_step=c_reals([_MAX_STEP]),
         curvature_floor=c_reals([_CURVATURE_FLOOR]),
         damping_eps=c_reals([_DAMPING_EPS]),

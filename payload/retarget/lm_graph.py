@@ -121,8 +121,6 @@ class SolveParts:
         lower: Lower joint limits, shape (n,) [rad, m].
         upper: Upper joint limits, shape (n,) [rad, m].
         gtol: The projected-gradient convergence threshold of ``init`` and ``accept``.
-        mu0: A start's first damping.
-        span: The joints' ranges the step cap divides by, shape (n,).
     """
 
     evaluate: ca.Function
@@ -142,8 +140,6 @@ class SolveParts:
     lower: np.ndarray
     upper: np.ndarray
     gtol: float
-    mu0: float
-    span: np.ndarray
 
 
 def solve_parts(
@@ -180,9 +176,9 @@ def solve_parts(
     # The iterates follow the cost (the penalty keeps them near the free region but may
     # pass through the margin); the best collision-free point met is recorded apart.
     lower = cc < ck
-    i_f, nf = lay["free"], n + 2 + ng
-    free_ok = ca.logic_and(clc >= 0, cc < x[i_f + n])
-    record = ca.if_else(free_ok, ca.vertcat(qs, cc, clc, bc), x[i_f : i_f + nf])
+    i_f = lay["free"]
+    free_ok = ca.logic_and(clc >= 0, cc < x[lay["rec_cost"]])
+    record = ca.if_else(free_ok, ca.vertcat(qs, cc, clc, bc), x[i_f : lay["mu"]])
     main = ca.if_else(lower, ca.vertcat(qs, cc, gc, hc, clc, bc), x[:i_f])
     mu_new = ca.if_else(lower, mu_ok, mu_up)
     done_new = ca.if_else(lower, conv, mu_up >= _MU_MAX)
@@ -202,7 +198,7 @@ def solve_parts(
         qs, cc, gc, hc, clc, bc, rec0, _MU0, done0, best[lay["it"]], best[lay["ev"]] + 1.0
     )
     init = ca.Function(prefix + "init", [qs, cc, gc, hc, clc, bc, best], [x0], {"cse": True})
-    st = _collapse(x, lay, n, ng)
+    st = _collapse(x, lay)
     kept = ca.if_else(
         _better(st[lay["cost"]], st[lay["clear"]], best[lay["cost"]], best[lay["clear"]]), st, best
     )
@@ -249,8 +245,6 @@ def solve_parts(
         np.asarray(pk.lower, dtype=float).copy(),
         np.asarray(pk.upper, dtype=float).copy(),
         float(config.gtol),
-        _MU0,
-        np.asarray(pk.range, dtype=float).copy(),
     )
 
 
@@ -288,12 +282,12 @@ def _proposal(pk: PairKinematics, x: ca.SX, lay: dict[str, int]) -> tuple[ca.SX,
     return qc, predicted
 
 
-def _collapse(st: ca.MX, lay: dict[str, int], n: int, ng: int) -> ca.MX:
+def _collapse(st: ca.MX, lay: dict[str, int]) -> ca.MX:
     """A start's result: its best collision-free point when it met one (converged only
     if that is where the iterates stopped), else where the iterates stopped."""
     i_f, i_cost, i_cl = lay["free"], lay["cost"], lay["clear"]
-    fq, fc = st[i_f : i_f + n], st[i_f + n]
-    fcl, fb = st[i_f + n + 1], st[i_f + n + 2 : i_f + n + 2 + ng]
+    fq, fc = st[i_f : lay["rec_cost"]], st[lay["rec_cost"]]
+    fcl, fb = st[lay["rec_clear"]], st[lay["rec_bounds"] : lay["mu"]]
     done = ca.logic_and(st[lay["done"]], fc == st[i_cost])
     moved = ca.vertcat(
         fq, fc, st[i_cost + 1 : i_cl], fcl, fb, st[i_f : lay["done"]], done, st[lay["it"] :]
@@ -315,16 +309,21 @@ def _layout(n: int, groups: int) -> dict[str, int]:
     """Offsets in the state ``[q (n), cost, g (n), H (n*n), clearance, bounds (groups),
     free record, mu, done, iterations, evaluations]`` and its ``size``; the free record is
     the best collision-free point met, ``[q (n), cost, clearance, bounds (groups)]``
-    (cost ``inf`` while none)."""
+    (cost ``inf`` while none), its cost, clearance and bounds at ``rec_cost``,
+    ``rec_clear`` and ``rec_bounds``."""
     cl = 2 * n + 1 + n * n
-    mu = cl + 1 + groups + n + 2 + groups
+    free = cl + 1 + groups
+    mu = free + n + 2 + groups
     return {
         "cost": n,
         "g": n + 1,
         "h": 2 * n + 1,
         "clear": cl,
         "bounds": cl + 1,
-        "free": cl + 1 + groups,
+        "free": free,
+        "rec_cost": free + n,
+        "rec_clear": free + n + 1,
+        "rec_bounds": free + n + 2,
         "mu": mu,
         "done": mu + 1,
         "it": mu + 2,
