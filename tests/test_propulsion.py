@@ -8,7 +8,14 @@ import pytest
 from scipy.optimize import linprog, lsq_linear
 
 from payload.sim import SimDriver, WorldConfig, build_world
-from payload.sim.propulsion import INCH, Propulsion, PropulsionError, _bvls, _lstsq
+from payload.sim.propulsion import (
+    BVLS_TOL,
+    INCH,
+    Propulsion,
+    PropulsionError,
+    _bvls,
+    _lstsq,
+)
 from payload.sim.vehicle import FLIGHT_MODES, MassProperties, VehicleController, VehicleError
 
 NOMINAL = FLIGHT_MODES["nominal"]
@@ -108,36 +115,30 @@ def test_saturation_keeps_the_wrench_direction(nozzles):
 
 def test_fast_facet_solve_matches_numpy_and_scipy(nozzles):
     """The direct LAPACK least squares and the BVLS call give numpy's and scipy's bits:
-    the saturated allocation equals the straightforward facet solve written here with
-    ``np.linalg.lstsq`` and ``lsq_linear(method="bvls")``."""
+    the saturated allocation equals the binding facet's solve written here with
+    ``np.linalg.lstsq`` and ``lsq_linear(method="bvls")`` (the facet's parts and tolerance
+    are the allocation's own, not typed again)."""
     rng = np.random.default_rng(3)
     scale = np.array([0.3, 0.15, 0.15, 0.03, 0.03, 0.03])
-    tol = 1e-7 * nozzles.thrust_max.max()
+    tol = nozzles._facet_tol
     bounded = 0
-    normals, offsets = nozzles.facets
     for w in rng.normal(size=(300, 6)) * scale:
         if rng.random() < 0.3:
             w[rng.random(6) < 0.4] = 0.0  # axis-aligned requests hit degenerate facets
         if not np.any(w):
             continue
         w = w * (nozzles.extent(w) * rng.uniform(1.05, 3.0))  # outside: onto a facet
-        along = normals @ w
-        ratio = np.full(len(offsets), np.inf)
-        np.divide(offsets, along, out=ratio, where=along > 1e-15)
-        k = int(np.argmin(ratio))
-        lam = ratio[k]
-        proj = normals[k] @ nozzles.matrix
-        eps = 1e-9 * np.abs(proj).max()
-        free = np.flatnonzero(np.abs(proj) <= eps)
-        ref = np.where(proj > eps, nozzles.thrust_max, 0.0)
-        a, ub = nozzles.matrix[:, free], nozzles.thrust_max[free]
+        lam, k = nozzles._extent(w)  # the binding facet
+        ref, free, a, ub, _ = nozzles._facet_parts[k]
+        ref = ref.copy()
         rest = lam * w - nozzles.matrix @ ref
         sol = np.linalg.lstsq(a, rest, rcond=None)[0]
         np.testing.assert_array_equal(_lstsq(a, rest)[0], sol)
         start = np.linalg.lstsq(a, rest, rcond=-1)[0]
         np.testing.assert_array_equal(_lstsq(a, rest, -1.0)[0], start)
         if np.any(sol < -tol) or np.any(sol > ub + tol):
-            sol = lsq_linear(a, rest, bounds=(np.zeros(len(free)), ub), method="bvls", tol=1e-10).x
+            lb = np.zeros(len(free))
+            sol = lsq_linear(a, rest, bounds=(lb, ub), method="bvls", tol=BVLS_TOL).x
             np.testing.assert_array_equal(_bvls(a, rest, ub), sol)
             np.testing.assert_array_equal(_bvls(a, rest, ub, start), sol)
             bounded += 1
@@ -154,7 +155,7 @@ def test_fast_facet_solve_matches_numpy_and_scipy(nozzles):
             a[:, -1] = a[:, 0]
         b = rng.normal(size=m) * 3.0
         ub = rng.uniform(0.1, 1.0, size=n)
-        want = lsq_linear(a, b, bounds=(np.zeros(n), ub), method="bvls", tol=1e-10).x
+        want = lsq_linear(a, b, bounds=(np.zeros(n), ub), method="bvls", tol=BVLS_TOL).x
         np.testing.assert_array_equal(_bvls(a, b, ub), want)
 
 

@@ -100,6 +100,9 @@ except ImportError:  # pragma: no cover - another numpy: np.linalg.lstsq itself
 
 _EPS = float(np.finfo(float).eps)
 
+BVLS_TOL = 1e-10
+"""Stopping tolerance of the facet's bounded least squares (``lsq_linear``'s ``tol``)."""
+
 
 def _lstsq(a: np.ndarray, b: np.ndarray, rcond: float | None = None) -> tuple[np.ndarray, int]:
     """``np.linalg.lstsq(a, b, rcond)`` for a real 2-D ``a`` and 1-D ``b``: the solution
@@ -134,7 +137,7 @@ def _lstsq(a: np.ndarray, b: np.ndarray, rcond: float | None = None) -> tuple[np
 def _bvls(
     a: np.ndarray, b: np.ndarray, ub: np.ndarray, start: np.ndarray | None = None
 ) -> np.ndarray:
-    """``scipy.optimize.lsq_linear(a, b, bounds=(0, ub), method="bvls", tol=1e-10).x``
+    """``scipy.optimize.lsq_linear(a, b, bounds=(0, ub), method="bvls", tol=BVLS_TOL).x``
     without its argument checks: the unbounded least squares (``lstsq`` with
     ``rcond=-1``, as ``lsq_linear`` computes it) if it is inside the bounds, else scipy's
     BVLS started from it (the same calls, so the same result).
@@ -156,11 +159,11 @@ def _bvls(
     try:  # scipy's private solver, to skip lsq_linear's checks at 50 Hz
         from scipy.optimize._lsq.bvls import bvls
 
-        return bvls(a, b, x, lb, ub, 1e-10, None, 0).x
+        return bvls(a, b, x, lb, ub, BVLS_TOL, None, 0).x
     except (ImportError, TypeError):  # another scipy: the public call, same algorithm
         from scipy.optimize import lsq_linear
 
-        return lsq_linear(a, b, bounds=(lb, ub), method="bvls", tol=1e-10).x
+        return lsq_linear(a, b, bounds=(lb, ub), method="bvls", tol=BVLS_TOL).x
 
 
 def _allclose(a: np.ndarray, b: np.ndarray, rtol: float, atol: float) -> bool:
