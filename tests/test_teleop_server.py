@@ -369,6 +369,18 @@ def test_dropped_connection_brakes_and_holds_then_resumes_blended(live):
         snap = hub.snapshot
         return snap.get("phase") in flying and (snap.get("vehicle") or {}).get("speed", 0) > 1e-3
 
+    # the page reads state and snapshot together: sample both under the hub's lock all along
+    pairs: list[tuple[str, object]] = []
+    sampling = threading.Event()
+
+    def sample() -> None:
+        while not sampling.is_set():
+            with hub.lock:
+                pairs.append((hub.state, (hub.snapshot or {}).get("safe_stop")))
+            time.sleep(0.0005)
+
+    sampler = threading.Thread(target=sample, daemon=True)
+    sampler.start()
     page = Page(hub, server.port, forward=0.12)
     page.start()
     wait_for(lambda: hub.state in ("teleop", "safe_stop"), timeout=60)
@@ -389,6 +401,12 @@ def test_dropped_connection_brakes_and_holds_then_resumes_blended(live):
     page2.halt.set()
     page2.join(10)
     steps = session.steps
+    sampling.set()
+    sampler.join(5)
+    # every published state agrees with its snapshot: safe stop exactly when a reason is shown
+    live_states = ("teleop", "safe_stop")
+    seen = {(state, reason is not None) for state, reason in pairs if state in live_states}
+    assert seen == {("teleop", False), ("safe_stop", True)}, seen
     hub.stop.set()
     wait_for(lambda: hub.state == "stopped", timeout=30)
     session.close()

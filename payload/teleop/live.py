@@ -109,11 +109,13 @@ class LiveHub:
             if self.active == conn_id:
                 self.latest = Received(message, arrival, xr)
 
-    def publish(self, snapshot: dict[str, Any]) -> None:
-        """Set the state the page shows (from the loop thread)."""
+    def publish(self, snapshot: dict[str, Any], state: str | None = None) -> None:
+        """Set the snapshot the page shows, and with it the state (from the loop thread)."""
         with self.lock:
             self.snapshot = snapshot
             self.snapshot_seq += 1
+            if state is not None:
+                self.state = state
 
     def status(self) -> dict[str, Any]:
         """The ``/status`` document."""

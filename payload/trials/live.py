@@ -237,15 +237,18 @@ class LiveSession:
         def on_step(ctx: StepContext) -> None:
             k = round(ctx.t / CONTROL_DT) + 1
             lag = time.perf_counter() - t0_wall - k * CONTROL_DT
-            with self.hub.lock:
-                if lag > CONTROL_DT:  # this step ended more than a period late
-                    self.hub.loop_overruns += 1
-                if not self.calibrated:
-                    self.hub.state = "calibrating"
-                else:
-                    self.hub.state = "safe_stop" if source.lost_reason else "teleop"
             self._record(ctx)
-            self.hub.publish(self._snapshot(ctx, source, calibration))
+            snap = self._snapshot(ctx, source, calibration)
+            # the state follows the snapshot's own safe-stop reason, and both change under
+            # one lock: a reader never sees "safe_stop" beside a snapshot without its reason
+            if not self.calibrated:
+                state = "calibrating"
+            else:
+                state = "safe_stop" if snap["safe_stop"] else "teleop"
+            if lag > CONTROL_DT:  # this step ended more than a period late
+                with self.hub.lock:
+                    self.hub.loop_overruns += 1
+            self.hub.publish(snap, state=state)
             self.steps += 1
 
         try:
