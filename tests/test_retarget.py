@@ -796,6 +796,38 @@ def test_bench_cli_prints_one_json_object_with_the_issues_fields(capsys):
     assert r["production"]["budget"] == "paper"
 
 
+def test_bench_runs_each_solver_in_its_own_loop_then_replays_interleaved(monkeypatch):
+    """The timed loops run one after the other (every reference solve, then every paper
+    solve, then every converged one), each warm-started from its own answers; then the
+    interleaved replay (reference, paper, converged per solve) and the back-to-back one."""
+    from payload.retarget import bench
+
+    calls: list[str] = []
+
+    def logged(cls, who):
+        solve = cls.solve
+
+        def wrapper(self, *args, **kwargs):
+            calls.append(who(self))
+            return solve(self, *args, **kwargs)
+
+        monkeypatch.setattr(cls, "solve", wrapper)
+
+    logged(ReferenceRetargeter, lambda s: "reference")
+    logged(PairRetargeter, lambda s: s.config.budget)
+    steps, pairs = 3, 2
+    r = bench.run_bench(steps=steps)
+    n = steps * pairs
+    own = ["reference"] * n + ["paper"] * n + ["converged"] * n
+    assert calls[: 3 * n] == own
+    assert calls[3 * n : 6 * n] == ["reference", "paper", "converged"] * n
+    assert calls[6 * n :] == ["paper"] * n
+    for b in ("paper", "converged"):
+        assert r["budgets"][b]["interleaved_median_us"] > 0
+    paper = r["budgets"]["paper"]
+    assert r["production"]["interleaved_median_us"] == paper["interleaved_median_us"]
+
+
 def test_bench_cli_with_a_failing_compiler_prints_one_line(capsys, failing_compiler):
     assert main(["bench", "retarget", "--steps", "2", "--backend", "compiled"]) == 2
     err = capsys.readouterr().err.strip().splitlines()

@@ -144,6 +144,36 @@ def test_paper_budget_is_never_exceeded(pk):
     assert max(used) <= 20 and min(used) >= 1
 
 
+@pytest.mark.parametrize("collisions", [False, True])
+def test_table_seeds_alternate_full_and_geometric_picks(pk, collisions):
+    """The converged budget's table starts, recomputed with numpy from the table: picks
+    alternate between the lowest eq. 3 cost and the lowest geometric cost, never twice the
+    same posture; with collisions modelled, the table keeps only margin-keeping postures."""
+    from payload.retarget.budget import TABLE_STARTS, seed_table, table_seeds
+    from payload.retarget.objective import soft_l1
+
+    cfg = RetargetConfig(budget="converged", collisions=collisions)
+    qs, fs = seed_table(pk, collisions)
+    if collisions:
+        assert pk.collision.distances_many(qs).min() >= pk.collision.margin
+    t, qr, q0 = ca.MX.sym("t", 13), ca.MX.sym("qr", pk.n), ca.MX.sym("q0", pk.n)
+    picks = ca.Function("picks", [t, qr, q0], table_seeds(pk, cfg, t, qr, q0, TABLE_STARTS))
+    scales = cfg.feature_scales()
+    for targets, q_prev, q_ref in _hard_problems(pk, 31, 3):
+        geo = (scales * (fs - targets)) ** 2
+        post = (cfg.w_p * (qs - q_ref) / pk.range) ** 2
+        temp = (cfg.w_t * (qs - q_prev) / pk.range) ** 2
+        costs = [
+            soft_l1(np.hstack([geo, post, temp])).sum(axis=1),
+            soft_l1(geo).sum(axis=1),
+        ]
+        taken: list[int] = []
+        for j, got in enumerate(picks(targets, q_ref, q_prev)):
+            order = [i for i in np.argsort(costs[j % 2], kind="stable") if i not in taken]
+            taken.append(order[0])
+            np.testing.assert_allclose(np.array(got).ravel(), qs[order[0]], rtol=0, atol=1e-12)
+
+
 def test_budget_setting_is_validated():
     assert RetargetConfig().budget == "paper"
     assert RetargetConfig(budget="converged").budget == "converged"

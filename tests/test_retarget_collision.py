@@ -29,6 +29,7 @@ from payload.retarget import (
     pair_range,
 )
 from payload.retarget.bench import human_pinch_and_open, synthetic_hand
+from payload.retarget.budget import evaluation_cap
 from payload.retarget.collision import (
     Box,
     box_sdf,
@@ -385,7 +386,7 @@ def test_the_c_driver_gives_the_graphs_generated_code_bit_for_bit(hand, pks, col
     """The compiled solver's C loop over the starts and iterations (payload.retarget.lm_c,
     with its own init, finish and proposal) and CasADi's own generated code of the
     nested-conditional graph, compiled beside it: the same bytes on a carried sequence.
-    With collision groups, through all four starts of the converged budget (short
+    With collision groups, through all the starts of the converged budget (short
     iteration caps: the starts stop at their caps and the later ones still run); without
     (no groups), the paper budget, with targets past the joint limits so that steps stop
     on bounds."""
@@ -418,7 +419,7 @@ def test_the_c_driver_gives_the_graphs_generated_code_bit_for_bit(hand, pks, col
         used.add(info.evaluations)
         on_bound += int(np.any((q == pk.lower) | (q == pk.upper)))
     if collisions:
-        assert max(used) == 4 * (1 + 4)  # every start ran, the last to its cap
+        assert max(used) == evaluation_cap(config)  # every start ran, the last to its cap
     else:
         assert used == {r.config.max_nfev} and on_bound > 0
 

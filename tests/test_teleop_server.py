@@ -485,3 +485,25 @@ def test_payload_rig_commands_both_drivers_and_reads_the_payload():
         assert rig.read().q[-1] == bench.read().q[-1]
         assert abs(bench.read().q[-1] - 0.02) < 0.005 and abs(sim.read().q[-1] - 0.02) < 0.005
         assert rig.world is sim.world  # the vehicle and the world stay the simulator's
+
+
+@pytest.mark.parametrize(("flag", "modelled"), [([], True), (["--no-retarget-collisions"], False)])
+def test_serve_models_self_collision_by_default(monkeypatch, capsys, flag, modelled):
+    """``payload teleop serve`` builds its session with the self-collision model unless
+    told not to (a live operator, possibly the hardware)."""
+    from payload.cli import main
+    from payload.trials import live
+
+    seen = []
+
+    class Stop(Exception):
+        pass
+
+    def session(hub, record, payload=None, collisions=False):
+        seen.append(collisions)
+        raise Stop
+
+    monkeypatch.setattr(live, "LiveSession", session)
+    with pytest.raises(Stop):
+        main(["teleop", "serve", "--port", "0", *flag])
+    assert seen == [modelled]

@@ -768,6 +768,7 @@ def _fake_runner(monkeypatch: pytest.MonkeyPatch) -> list[dict[str, Any]]:
     """Stand in for the teleoperation runner (issue 6) with the fixture trial."""
     calls: list[dict[str, Any]] = []
     budgets: list[str] = []
+    modelled: list[bool] = []
 
     def run_trial(
         seed: int,
@@ -775,17 +776,24 @@ def _fake_runner(monkeypatch: pytest.MonkeyPatch) -> list[dict[str, Any]]:
         replay: Path | None,
         out_dir: Path,
         retarget_budget: str = "paper",
+        retarget_collisions: bool = False,
         project: object = None,
         **setup: Any,
     ) -> dict:
         calls.append({"seed": seed, "operator": operator, "replay": replay, **setup})
         budgets.append(retarget_budget)
-        return {**fixture_synthetic_trial(seed, out_dir), "retarget_budget": retarget_budget}
+        modelled.append(retarget_collisions)
+        return {
+            **fixture_synthetic_trial(seed, out_dir),
+            "retarget_budget": retarget_budget,
+            "retarget_collisions": retarget_collisions,
+        }
 
     module = types.ModuleType("payload.trials.runner")
     module.run_trial = run_trial  # type: ignore[attr-defined]
     monkeypatch.setitem(sys.modules, "payload.trials.runner", module)
     module.budgets = budgets  # type: ignore[attr-defined]
+    module.modelled = modelled  # type: ignore[attr-defined]
     return calls
 
 
@@ -1034,3 +1042,23 @@ def test_cli_retarget_budget_reaches_the_runner_and_the_summary(
     with pytest.raises(SystemExit) as exc:
         main(["trial", "--retarget-budget", "fast"])
     assert exc.value.code == 2
+
+
+def test_cli_retarget_collisions_reaches_the_runner_and_the_summary(
+    tmp_path: Path, monkeypatch, capsys
+) -> None:
+    from payload.cli import main
+
+    _fake_runner(monkeypatch)
+    modelled = sys.modules["payload.trials.runner"].modelled  # type: ignore[attr-defined]
+    assert main(["trial", "--out", str(tmp_path / "one"), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["retarget_collisions"] is False  # the default
+    camp = tmp_path / "camp"
+    args = ["trials", "run", "--n", "2", "--workers", "0", "--out", str(camp)]
+    assert main([*args, "--retarget-collisions", "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert modelled == [False, True, True]
+    assert summary["retarget_collisions"] is True
+    md = (camp / "summary.md").read_text()
+    assert "self-collision modelled)" in md
+    assert "Self-collision modelled in the pair solves: yes" in md

@@ -3,8 +3,9 @@
 A solve runs its starts in turn (:func:`budget_plan`); every residual evaluation (the
 residual vector with its Jacobian, at a start point or at an iteration's candidate)
 counts one. ``paper``: at most ``max_nfev`` (20) in all. ``converged``: each start runs
-to its convergence tests or ``max_iterations``, and two starts come from a fixed seed
-table (:func:`seed_table`), picked by eq. 3 on the table's stored features.
+to its convergence tests or ``max_iterations``, and :data:`TABLE_STARTS` starts come from
+a fixed seed table (:func:`seed_table`), picked on the table's stored features
+(:func:`table_seeds`).
 """
 
 from __future__ import annotations
@@ -31,10 +32,15 @@ def budget_plan(config: RetargetConfig) -> tuple[tuple[str, int], ...]:
         first = min(total, config.warm_evaluations)
         return (("prev", first), ("ref", total))
     per = 1 + config.max_iterations
-    return (("prev", per), ("seed", 2 * per), ("seed2", 3 * per), ("ref", 4 * per))
+    tags = ("prev", *(f"seed{k}" for k in range(TABLE_STARTS)), "ref")
+    return tuple((tag, (k + 1) * per) for k, tag in enumerate(tags))
 
 
-SEEDS = 256
+TABLE_STARTS = 6
+"""Starts of a ``converged`` solve taken from the seed table, besides the previous command
+and the posture reference."""
+
+SEEDS = 512
 """Postures in the seed table of the ``converged`` budget (seeded, uniform in the box; with
 self-collision modelled, the first that keep the margin)."""
 
@@ -59,7 +65,13 @@ def table_seeds(
     q0: ca.MX,
     count: int,
 ) -> list[ca.MX]:
-    """The ``count`` table postures of lowest eq. 3 cost (from their tabulated features)."""
+    """``count`` table postures, picked in turn by their eq. 3 cost and by their geometric
+    residuals alone (from the tabulated features), each pick another posture.
+
+    The geometric picks ignore the posture and temporal terms, which pull every full-cost
+    pick toward the posture reference and the previous command (starts of their own): on a
+    target far from both (a jump), they reach the basins those terms hide.
+    """
     qs, fs = seed_table(pk, bool(config.collisions) and pk.collision.available)
     k = qs.shape[0]
     scales = ca.DM(np.repeat(config.feature_scales()[:, None], k, axis=1))
@@ -67,13 +79,14 @@ def table_seeds(
     inv = ca.DM(np.repeat((1.0 / pk.range)[:, None], k, axis=1))
     post = config.w_p * inv * (ca.DM(qs.T) - ca.repmat(q_ref, 1, k))
     temp = config.w_t * inv * (ca.DM(qs.T) - ca.repmat(q0, 1, k))
-    r2 = ca.vertcat(geo, post, temp) ** 2
-    cost = ca.sum1(ca.sqrt(1.0 + r2) - 1.0)  # (1, k)
+    geo_cost = ca.sum1(ca.sqrt(1.0 + geo**2) - 1.0)  # (1, k)
+    costs = [geo_cost + ca.sum1(ca.sqrt(1.0 + ca.vertcat(post, temp) ** 2) - 1.0), geo_cost]
     out = []
-    for _ in range(count):
+    for j in range(count):
+        cost = costs[j % 2]
         pick = cost <= ca.mmin(cost)
         out.append(ca.mtimes(ca.DM(qs.T), pick.T) / ca.sum2(pick))
-        cost = cost + 1e30 * pick  # the next pick is another posture
+        costs = [c + 1e30 * pick for c in costs]  # the next picks are other postures
     return out
 
 

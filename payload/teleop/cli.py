@@ -103,7 +103,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     hub = LiveHub()
     payload = _hardware_driver(args.device) if args.driver == "hardware" else None
     print("loading the simulator and the retargeters ...", flush=True)
-    session = LiveSession(hub, record, payload=payload)
+    session = LiveSession(hub, record, payload=payload, collisions=args.retarget_collisions)
     server = TeleopServer(
         hub, args.host, args.port, ssl_context=ssl_context, token=token, scene=session.scene
     ).start()
@@ -171,6 +171,13 @@ def register(
     p.add_argument("--port", type=_port, default=8765)
     p.add_argument("--record", help="record the session as a trial into this folder")
     p.add_argument("--tls", action="store_true", help="use TLS on a local bind too")
+    p.add_argument(
+        "--retarget-collisions",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="model self-collision in the pair solves, so no command drives fingers closer "
+        "than the design's margin (default on for a live operator)",
+    )
     p.add_argument("--status-interval", type=float, default=1.0, help=argparse.SUPPRESS)
     p.add_argument("--seconds", type=float, default=0.0, help=argparse.SUPPRESS)
     p.set_defaults(func=_cmd_serve)

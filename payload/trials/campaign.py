@@ -121,7 +121,8 @@ def runner_trial_fn(
             project of the process that runs each trial).
         max_time: Session length cap [s] (``None``: the runner's).
         force: Replace trials already in the campaign folder.
-        setup: ``ctb``, ``propulsion``, ``retarget_budget``: the same for every trial.
+        setup: ``ctb``, ``propulsion``, ``retarget_budget``, ``retarget_collisions``: the
+            same for every trial.
     """
     return functools.partial(
         _runner_trial,

@@ -63,6 +63,8 @@ def _cmd_trial(args: argparse.Namespace) -> int:
     run_trial = _run_trial_fn()
     extra: dict[str, Any] = {"project": project, "ctb": args.ctb, "propulsion": args.propulsion}
     extra["retarget_budget"] = args.retarget_budget
+    if args.retarget_collisions:
+        extra["retarget_collisions"] = True
     if not args.json and sys.stderr.isatty():
         extra["progress"] = True
     if args.max_time is not None:
@@ -130,6 +132,7 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
             ctb=args.ctb,
             propulsion=args.propulsion,
             retarget_budget=args.retarget_budget,
+            retarget_collisions=args.retarget_collisions,
         ),
         seeds,
         out,
@@ -145,7 +148,8 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
     }
     title = (
         f"Cargo-transport campaign ({args.n} trials, CTB {args.ctb}, {args.propulsion}, "
-        f"retargeting budget {args.retarget_budget})"
+        f"retargeting budget {args.retarget_budget}"
+        f"{', self-collision modelled' if args.retarget_collisions else ''})"
     )
     summary = write_summary(results, out, title=title, run=run, provenance=prov, force=args.force)
     if args.json:
@@ -191,11 +195,15 @@ def _cmd_trials_summarize(args: argparse.Namespace) -> int:
     previous = _previous_summary(Path(args.dir) / "summary.json")
     wall = {t.get("seed"): t.get("wall_s") for t in previous.get("trials", [])}
     budget = previous.get("retarget_budget")
+    modelled = previous.get("retarget_collisions")
     for r in results:  # how long each trial took is known only from the campaign run
         if r.get("wall_s") is None and wall.get(r.get("seed")) is not None:
             r["wall_s"] = wall[r.get("seed")]
-        if isinstance(budget, str):  # trials recorded before the budget was in metrics.json
+        # trials whose metrics.json lacks these: the campaign's summary says
+        if isinstance(budget, str):
             r.setdefault("retarget_budget", budget)
+        if isinstance(modelled, bool):
+            r.setdefault("retarget_collisions", modelled)
     tag = None
     if rescore:  # a rescoring is written beside the originals, named by its definition
         defs = {
@@ -365,6 +373,14 @@ def _setup_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--retarget-budget", choices=("paper", "converged"), default="paper", help=_BUDGET_HELP
+    )
+    p.add_argument(
+        "--retarget-collisions",
+        action=argparse.BooleanOptionalAction,
+        default=False,
+        help="model self-collision in the pair solves: no command closer than the design's "
+        "margin, the operator's opening mapped to the collision-free span range (default "
+        "off: the paper's controller)",
     )
 
 

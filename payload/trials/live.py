@@ -110,6 +110,8 @@ class LiveSession:
         steps: The calibration prompts.
         payload: A payload driver to command besides the simulator (the hardware), or
             None for the simulator alone.
+        collisions: Model self-collision in the pair solves (no command closer than the
+            design's margin); recorded with the session.
     """
 
     def __init__(
@@ -118,6 +120,7 @@ class LiveSession:
         record: Path | None = None,
         steps: tuple[Step, ...] = DEFAULT_STEPS,
         payload: Any = None,
+        collisions: bool = False,
     ) -> None:
         from payload.sim.driver import SimDriver
 
@@ -125,7 +128,8 @@ class LiveSession:
         self.record = record
         self.calibration_steps = steps
         self.driver = SimDriver()
-        self.retargeters, self.ranges = retargeting()
+        self.collisions = bool(collisions)
+        self.retargeters, self.ranges = retargeting(collisions=self.collisions)
         place_ctb_for_teleop(self.driver, self.retargeters, self.ranges)
         self.config = TeleopConfig.from_design(load_design(self.driver.world.config.design))
         if payload is not None:
@@ -148,8 +152,9 @@ class LiveSession:
         out = self.record
         out.mkdir(parents=True, exist_ok=True)
         self._recorder = TrialRecorder(out / "log.mcap")
+        setup = {"retarget_budget": "paper", "retarget_collisions": self.collisions}
         self._hands = HandRecordingWriter(
-            out / "hands.jsonl", frame="webxr", meta={"operator": "live"}
+            out / "hands.jsonl", frame="webxr", meta={"operator": "live", **setup}
         )
         self._recorder.write_meta(
             {
@@ -157,6 +162,7 @@ class LiveSession:
                 "operator": "live",
                 "design_hash": design_hash(),
                 "traits": {"live": True},
+                **setup,
                 "route": self.scene["route"],
                 "modules": module_rects(self.driver.world.layout),
             }

@@ -16,12 +16,14 @@ _LOCAL = threading.local()
 
 
 def retargeting(
-    project: Project | None = None, budget: str = "paper"
+    project: Project | None = None, budget: str = "paper", collisions: bool = False
 ) -> tuple[dict[str, PairRetargeter], dict[str, PairRange]]:
     """Production retargeters (with this evaluation budget, see
-    :attr:`RetargetConfig.budget <payload.retarget.RetargetConfig.budget>`) and pair ranges
-    for our hand on ``project``'s URDF (default: the current project), built once per
-    thread, URDF and design content, resolved hand and budget.
+    :attr:`RetargetConfig.budget <payload.retarget.RetargetConfig.budget>`, and with
+    self-collision modelled when ``collisions``: no command inside the design's margin, the
+    calibration's span range restricted to collision-free postures) and pair ranges for our
+    hand on ``project``'s URDF (default: the current project), built once per thread, URDF
+    and design content, resolved hand, budget and collision setting.
 
     A retargeter holds its solver's buffers and warm start, so concurrent trials (a Dask
     worker with several threads) each get their own; nothing here is shared between
@@ -31,14 +33,14 @@ def retargeting(
     # everything the retargeters are built from: the URDF, the resolved hand (rest
     # posture, margin) and the design it names (pre-shape, structure boxes)
     design = hand.design.read_bytes() if hand.design is not None else b""
-    key = (hand.urdf, hand.urdf.read_bytes(), repr(hand), design, budget)
+    key = (hand.urdf, hand.urdf.read_bytes(), repr(hand), design, budget, bool(collisions))
     built: dict[Any, Any] = getattr(_LOCAL, "retargeting", None) or {}
     _LOCAL.retargeting = built
     cached = built.get(key)
     if cached is None:
         # single-threaded like the trials themselves, so every process finds the same ranges
         with single_threaded_numerics():
-            config = RetargetConfig(budget=budget)
+            config = RetargetConfig(budget=budget, collisions=bool(collisions))
             retargeters = {
                 pair: PairRetargeter(hand, pair=pair, config=config) for pair in ("L", "R")
             }

@@ -101,6 +101,7 @@ def run_trial(
     ctb: str = DEFAULT_CTB,
     propulsion: str = DEFAULT_PROPULSION,
     retarget_budget: str = "paper",
+    retarget_collisions: bool = False,
 ) -> dict[str, Any]:
     """Run one trial and write its folder (reproducible: see :func:`_run_trial`).
 
@@ -125,7 +126,10 @@ def run_trial(
             recording's.
         propulsion: ``nozzles`` or ``box``; a replay uses its recording's.
         retarget_budget: Evaluation budget of the pair solves (``paper``: at most 20
-            residual evaluations each; ``converged``), recorded with the trial.
+            residual evaluations each; ``converged``), recorded with the trial; a replay
+            uses its recording's.
+        retarget_collisions: Self-collision modelled in the pair solves (off: the
+            paper's controller), recorded with the trial; a replay uses its recording's.
         force: Replace the trial in ``out_dir`` (each file through a temporary file and a
             rename, after the new trial has run).
 
@@ -150,6 +154,11 @@ def run_trial(
         ctb = recorded.get("ctb", ctb)
         propulsion = recorded.get("propulsion", propulsion)
         retarget_budget = recorded.get("retarget_budget", retarget_budget)
+        retarget_collisions = recorded.get("retarget_collisions", retarget_collisions)
+        if not isinstance(retarget_collisions, bool):
+            raise TrialError(
+                f"{replay}: retarget_collisions must be true or false, got {retarget_collisions!r}"
+            )
         if seed is None:
             source_seed = header.get("meta", {}).get("seed")
             seed = source_seed if isinstance(source_seed, int) and source_seed >= 0 else 0
@@ -179,6 +188,7 @@ def run_trial(
         ctb=ctb,
         propulsion=propulsion,
         retarget_budget=retarget_budget,
+        retarget_collisions=bool(retarget_collisions),
     )
     with single_threaded_numerics():
         if not force:
@@ -216,7 +226,9 @@ def _set_up(driver: Any, seed: int, source_spec: _Source, project: Project) -> _
     """Retargeters, the CTB under the teleoperated pinch (with the seeded acquisition
     offset), the teleoperation config and the operator's plan."""
     layout = driver.world.layout
-    retargeters, ranges = retargeting(project, source_spec.retarget_budget)
+    retargeters, ranges = retargeting(
+        project, source_spec.retarget_budget, source_spec.retarget_collisions
+    )
     grasp_body = place_ctb_for_teleop(driver, retargeters, ranges)
     recorded = source_spec.recorded
     offset, yaw = place_offset(
@@ -224,6 +236,7 @@ def _set_up(driver: Any, seed: int, source_spec: _Source, project: Project) -> _
     )
     setup = {
         "retarget_budget": source_spec.retarget_budget,
+        "retarget_collisions": source_spec.retarget_collisions,
         "ctb": source_spec.ctb,
         "propulsion": source_spec.propulsion,
         "ctb_offset_m": [float(v) for v in offset],

@@ -99,6 +99,7 @@ def _trial_setup(meta: dict[str, Any]) -> dict[str, Any]:
     out."""
     keys = (
         "retarget_budget",
+        "retarget_collisions",
         "ctb",
         "propulsion",
         "ctb_offset_m",

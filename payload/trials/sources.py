@@ -85,8 +85,10 @@ class _Source:
         ctb: str = DEFAULT_CTB,
         propulsion: str = DEFAULT_PROPULSION,
         retarget_budget: str = "paper",
+        retarget_collisions: bool = False,
     ) -> None:
         self.retarget_budget = retarget_budget
+        self.retarget_collisions = retarget_collisions
         self.ctb = ctb
         self.propulsion = propulsion
         self.recorded: dict[str, Any] = header.get("meta") or {}

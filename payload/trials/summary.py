@@ -250,6 +250,14 @@ def summary_markdown(summary: dict[str, Any], title: str | None = None) -> str:
             f"Retargeting budget: {shown} ('paper': at most 20 residual evaluations per pair "
             "solve, the paper's controller; 'converged': each start run to convergence).",
         ]
+    modelled = summary.get("retarget_collisions")
+    if modelled is not None:
+        shown = ("yes" if modelled else "no") if isinstance(modelled, bool) else "mixed"
+        lines += [
+            "",
+            f"Self-collision modelled in the pair solves: {shown} (the paper's controller "
+            "does not; with it, no command comes closer than the design's margin).",
+        ]
     lines += _run_lines(summary.get("run"))
     lines += [
         "",
@@ -334,6 +342,10 @@ def write_summary(
     budgets = sorted({str(r["retarget_budget"]) for r in results if r.get("retarget_budget")})
     if budgets:
         summary["retarget_budget"] = budgets[0] if len(budgets) == 1 else budgets
+    key = "retarget_collisions"
+    modelled = sorted({bool(r[key]) for r in results if key in r})
+    if modelled:
+        summary["retarget_collisions"] = modelled[0] if len(modelled) == 1 else modelled
     if run is not None:
         summary["run"] = run
     if provenance is not None:
