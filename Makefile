@@ -20,9 +20,10 @@ demo: $(STAMP)
 	$(BIN)/payload trials run --n 10 --seed 0 --out runs/campaign-$$(date +%Y%m%d-%H%M%S)
 
 # the committed campaign results (analyses/campaign/<name>/): the paper's experiment per CTB
-# model with the paper's retargeting budget, and the single bag with the converged budget.
-# The full runs (recordings included) stay in runs/analyses-<name>/.
-CAMPAIGNS := single:--ctb=single rigid:--ctb=rigid single-converged:--ctb=single:--retarget-budget=converged
+# model with the paper's retargeting budget, and the single bag with the converged budget
+# and with self-collision modelled. The full runs (recordings included) stay in
+# runs/analyses-<name>/.
+CAMPAIGNS := single:--ctb=single rigid:--ctb=rigid single-converged:--ctb=single:--retarget-budget=converged single-collisions:--ctb=single:--retarget-collisions
 analyses-campaign: $(STAMP)
 	set -e; for spec in $(CAMPAIGNS); do \
 	  name=$${spec%%:*}; args=$$(echo $${spec#*:} | tr ':' ' '); \

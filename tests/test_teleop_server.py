@@ -487,10 +487,10 @@ def test_payload_rig_commands_both_drivers_and_reads_the_payload():
         assert rig.world is sim.world  # the vehicle and the world stay the simulator's
 
 
-@pytest.mark.parametrize(("flag", "modelled"), [([], True), (["--no-retarget-collisions"], False)])
-def test_serve_models_self_collision_by_default(monkeypatch, capsys, flag, modelled):
-    """``payload teleop serve`` builds its session with the self-collision model unless
-    told not to (a live operator, possibly the hardware)."""
+@pytest.mark.parametrize(("flag", "modelled"), [([], False), (["--retarget-collisions"], True)])
+def test_serve_models_self_collision_when_asked(monkeypatch, capsys, flag, modelled):
+    """``payload teleop serve`` builds its session with the self-collision model only with
+    ``--retarget-collisions`` (it keeps the fingers from squeezing the CTB's handle)."""
     from payload.cli import main
     from payload.trials import live
 

@@ -174,9 +174,10 @@ def register(
     p.add_argument(
         "--retarget-collisions",
         action=argparse.BooleanOptionalAction,
-        default=True,
+        default=False,
         help="model self-collision in the pair solves, so no command drives fingers closer "
-        "than the design's margin (default on for a live operator)",
+        "than the design's margin (default off: it also keeps the fingers from squeezing "
+        "a thin handle, see the README)",
     )
     p.add_argument("--status-interval", type=float, default=1.0, help=argparse.SUPPRESS)
     p.add_argument("--seconds", type=float, default=0.0, help=argparse.SUPPRESS)
