@@ -824,6 +824,10 @@ def test_bench_runs_each_solver_in_its_own_loop_then_replays_interleaved(monkeyp
     assert calls[6 * n :] == ["paper"] * n
     for b in ("paper", "converged"):
         assert r["budgets"][b]["interleaved_median_us"] > 0
+    # the answers are costed after the loops, each with its own step's kind: the span
+    # error is kept for the random jumps only (the last steps // 2 steps of each pair)
+    assert r["by_kind"]["random"]["pair_solves"] == (steps // 2) * pairs
+    assert set(r["timing"]) == {"loops", "interleaved", "isolated"}
     paper = r["budgets"]["paper"]
     assert r["production"]["interleaved_median_us"] == paper["interleaved_median_us"]
 

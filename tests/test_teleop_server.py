@@ -374,7 +374,8 @@ def test_dropped_connection_brakes_and_holds_then_resumes_blended(live):
     sampling = threading.Event()
 
     def sample() -> None:
-        while not sampling.is_set():
+        deadline = time.monotonic() + 180.0  # ends by itself if the test fails early
+        while not sampling.is_set() and time.monotonic() < deadline:
             with hub.lock:
                 pairs.append((hub.state, (hub.snapshot or {}).get("safe_stop")))
             time.sleep(0.0005)
@@ -507,3 +508,18 @@ def test_serve_models_self_collision_when_asked(monkeypatch, capsys, flag, model
     with pytest.raises(Stop):
         main(["teleop", "serve", "--port", "0", *flag])
     assert seen == [modelled]
+
+
+def test_publish_sets_the_snapshot_and_the_state_together():
+    """One lock for both, so a reader never sees a state beside another step's snapshot."""
+    hub = LiveHub()
+    hub.publish({"t": 1.0, "safe_stop": None}, state="teleop")
+    assert (hub.state, hub.snapshot_seq) == ("teleop", 1)
+    hub.publish({"t": 1.02, "safe_stop": "left hand lost"}, state="safe_stop")
+    assert (hub.state, hub.snapshot["safe_stop"], hub.snapshot_seq) == (
+        "safe_stop",
+        "left hand lost",
+        2,
+    )
+    hub.publish({"t": 1.04})  # no state given: the state is kept
+    assert hub.state == "safe_stop" and hub.snapshot == {"t": 1.04}

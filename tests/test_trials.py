@@ -1044,6 +1044,36 @@ def test_cli_retarget_budget_reaches_the_runner_and_the_summary(
     assert exc.value.code == 2
 
 
+@pytest.mark.parametrize(
+    ("values", "expected", "line"),
+    [
+        ([True, True], True, "yes"),
+        ([False, False], False, "no"),
+        ([True, False], [False, True], "mixed"),
+        ([True, "true"], [None, True], "mixed"),  # a non-bool value is not taken as one
+        ([True, None], [None, True], "mixed"),  # a trial that does not say
+        ([None, None], None, None),  # trials from before the setting: nothing said
+    ],
+)
+def test_summary_says_whether_self_collision_was_modelled(tmp_path, values, expected, line):
+    from payload.trials.campaign import write_summary
+
+    results = []
+    for seed, value in enumerate(values):
+        r = fixture_synthetic_trial(seed, tmp_path / f"t{seed}")
+        if value is not None:
+            r["retarget_collisions"] = value
+        results.append(r)
+    summary = write_summary(results, tmp_path / "camp")
+    assert summary.get("retarget_collisions") == expected
+    md = (tmp_path / "camp" / "summary.md").read_text()
+    said = [x for x in md.splitlines() if x.startswith("Self-collision modelled")]
+    if line is None:
+        assert said == []
+    else:
+        assert said and said[0].startswith(f"Self-collision modelled in the pair solves: {line} ")
+
+
 def test_cli_retarget_collisions_reaches_the_runner_and_the_summary(
     tmp_path: Path, monkeypatch, capsys
 ) -> None:

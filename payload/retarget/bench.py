@@ -31,10 +31,11 @@ Times are wall-clock per pair solve, including each solver's Python call
 preempted (its wall time exceeds its CPU time by more than :data:`PREEMPTED_US` and by
 half) is counted in ``preempted_calls`` and keeps its time. The loops run one after
 the other, and nothing but the solves runs inside one (answers are costed afterwards).
-The production solves are then replayed twice: each right after the reference's solve
-of the same step (``interleaved_median_us``, ``interleaved_p99_us``: cold caches, as in
-a control loop that simulates or renders between solves; on a shared 2-core VM this
-costs about twice the own-loop time), and back to back (``isolated_median_us``).
+The production solves are then replayed twice (not counted in ``preempted_calls``):
+interleaved, per pair solve the reference's solve of the same step, then each budget's
+(``interleaved_median_us``, ``interleaved_p99_us``: cold caches, as in a control loop
+that simulates or renders between solves; on a shared 2-core VM this costs about twice
+the own-loop time), and back to back (``isolated_median_us``).
 ``production`` is the production solver under the configuration's budget (default
 ``paper``); ``cost_not_worse_fraction`` compares its costs with the reference's, step by
 step.
@@ -183,6 +184,7 @@ class _Loop:
     span_err: list[float] = field(default_factory=list)
     answers: list[np.ndarray] = field(default_factory=list)
     inputs: list[tuple[str, np.ndarray, np.ndarray, np.ndarray]] = field(default_factory=list)
+    kinds: list[str] = field(default_factory=list)
     violations: int = 0
 
     def optimal(self) -> np.ndarray:
@@ -255,6 +257,7 @@ def _run_loops(
             q, info = _timed(lp, solver.solve, st.targets, q_prev, st.q_ref)
             lp.answers.append(q)
             lp.inputs.append((name, st.targets, q_prev, st.q_ref))
+            lp.kinds.append(st.kind)
             lp.iterations.append(info.iterations)
             lp.evaluations.append(info.evaluations)
             lp.converged.append(info.converged)
@@ -278,18 +281,19 @@ def _run_loops(
             solver, q = lp.solvers[name], lp.answers[i]
             lp.cost.append(solver.cost(q, targets, q_ref, q_prev))
             lp.violations += int(np.sum((q < solver.lower) | (q > solver.upper)))
-            if streams[name][i // len(pairs)].kind == "random":
+            if lp.kinds[i] == "random":
                 lp.span_err.append(abs(solver.features(q).span - targets[0]) * 1e3)
 
 
 def _interleaved(ref: _Loop, loops: list[_Loop]) -> dict[str, np.ndarray]:
-    """The production solves again, each right after the reference's solve of the same
-    step (cold caches, as in a control loop that does other work between solves): wall
-    time [us] per solve and loop. The answers are not used."""
+    """The production solves again, interleaved as a control loop that does other work
+    between solves would run them: per pair solve, the reference's solve of the same step,
+    then each budget's (cold caches). Wall time [us] per solve and loop; the answers are
+    not used."""
     clock = time.perf_counter_ns
     out: dict[str, list[float]] = {lp.name: [] for lp in loops}
-    for i, (name, targets, q_prev, q_ref) in enumerate(ref.inputs):
-        ref.solvers[name].solve(targets, q_prev, q_ref)
+    for i, (ref_name, *ref_args) in enumerate(ref.inputs):
+        ref.solvers[ref_name].solve(*ref_args)
         for lp in loops:
             name, targets, q_prev, q_ref = lp.inputs[i]
             t0 = clock()
@@ -468,6 +472,13 @@ def run_bench(
         "span_error_mm_median_reference": round(float(np.median(ref.span_err)), 4),
         "bound_violations": int(sum(lp.violations for lp in loops)),
         "by_kind": by_kind,
+        "timing": {
+            "loops": "each solver's own loop, one after the other, nothing but the solves "
+            "inside (median_us, p99_us, speedup_median, by_kind)",
+            "interleaved": "production solves replayed per pair solve after the reference's "
+            "and the other budget's solve of the same step (cold caches)",
+            "isolated": "production solves replayed back to back",
+        },
         "optimum": {
             "method": "scipy least_squares trf/soft_l1, analytic Jacobian (compiled CasADi "
             "kinematics), every start's answer costed with Pinocchio",

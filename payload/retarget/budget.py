@@ -21,10 +21,11 @@ def budget_plan(config: RetargetConfig) -> tuple[tuple[str, int], ...]:
     """The starts of one pair solve and the evaluation count each may run up to.
 
     Returns ``(start, cumulative cap)`` pairs: ``prev`` (the warm start, the previous
-    command), ``ref`` (the posture reference). Each start costs one evaluation at its
-    start point and one per iteration; a start stops at its convergence tests, its
-    iteration cap, or when the solve's evaluations reach its cumulative cap. The last
-    cap is the solve's whole budget: ``config.max_nfev`` for ``paper``,
+    command), for ``converged`` the table starts ``seed0`` to ``seed5``
+    (:func:`table_seeds`), then ``ref`` (the posture reference). Each start costs one
+    evaluation at its start point and one per iteration; a start stops at its convergence
+    tests, its iteration cap, or when the solve's evaluations reach its cumulative cap.
+    The last cap is the solve's whole budget: ``config.max_nfev`` for ``paper``,
     ``1 + max_iterations`` per start for ``converged``.
     """
     if config.budget == "paper":

@@ -80,7 +80,7 @@ def _runner_trial(
     project: Path | None = None,
     max_time: float | None = None,
     force: bool = False,
-    **setup: str,
+    **setup: Any,
 ) -> dict[str, Any]:
     try:
         from payload.trials.runner import run_trial
@@ -110,7 +110,7 @@ def runner_trial_fn(
     *,
     max_time: float | None = None,
     force: bool = False,
-    **setup: str,
+    **setup: Any,
 ) -> TrialFn:
     """The picklable campaign trial function that calls the teleoperation runner
     (``payload.trials.runner.run_trial``), imported lazily in whichever process runs it.

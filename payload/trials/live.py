@@ -152,7 +152,8 @@ class LiveSession:
         out = self.record
         out.mkdir(parents=True, exist_ok=True)
         self._recorder = TrialRecorder(out / "log.mcap")
-        setup = {"retarget_budget": "paper", "retarget_collisions": self.collisions}
+        budget = self.retargeters["L"].config.budget
+        setup = {"retarget_budget": budget, "retarget_collisions": self.collisions}
         self._hands = HandRecordingWriter(
             out / "hands.jsonl", frame="webxr", meta={"operator": "live", **setup}
         )

@@ -342,10 +342,14 @@ def write_summary(
     budgets = sorted({str(r["retarget_budget"]) for r in results if r.get("retarget_budget")})
     if budgets:
         summary["retarget_budget"] = budgets[0] if len(budgets) == 1 else budgets
-    key = "retarget_collisions"
-    modelled = sorted({bool(r[key]) for r in results if key in r})
-    if modelled:
-        summary["retarget_collisions"] = modelled[0] if len(modelled) == 1 else modelled
+    # whether the pair solves modelled self-collision: one bool when every trial says the
+    # same, else the values seen (None: a trial that does not say)
+    seen = {r.get("retarget_collisions") for r in results}
+    seen = {v if isinstance(v, bool) else None for v in seen}
+    if seen != {None}:
+        summary["retarget_collisions"] = (
+            seen.pop() if len(seen) == 1 else sorted(seen, key=lambda v: (v is not None, v))
+        )
     if run is not None:
         summary["run"] = run
     if provenance is not None:
