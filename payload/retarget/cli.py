@@ -69,6 +69,13 @@ def _print_table(r: dict) -> None:
             f"{b['p99_us']:.1f}",
             f"{b['evaluations_median']:.0f} ev (max {b['evaluations_max']})",
         )
+    for name, b in r.get("budgets", {}).items():
+        t.add_row(
+            f"production, budget {name}, interleaved (cold caches)",
+            f"{b['interleaved_median_us']:.1f}",
+            f"{b['interleaved_p99_us']:.1f}",
+            "",
+        )
     t.add_row(
         "production, replayed back to back",
         f"{p['isolated_median_us']:.1f}",
