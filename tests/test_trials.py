@@ -1022,23 +1022,32 @@ def test_finish_trial_scores_both_contact_definitions(tmp_path: Path) -> None:
     assert json.loads((tmp_path / "metrics.json").read_text())["literal"] == result["literal"]
 
 
-def test_cli_retarget_budget_reaches_the_runner_and_the_summary(
+def test_cli_retarget_settings_reach_the_runner_and_the_summary(
     tmp_path: Path, monkeypatch, capsys
 ) -> None:
+    """``--retarget-budget`` and ``--retarget-collisions``: defaults on a trial, both given
+    to a campaign, each reaching the runner, the summary and its table."""
     from payload.cli import main
 
     _fake_runner(monkeypatch)
-    budgets = sys.modules["payload.trials.runner"].budgets  # type: ignore[attr-defined]
+    runner = sys.modules["payload.trials.runner"]
     assert main(["trial", "--out", str(tmp_path / "one"), "--json"]) == 0
-    assert json.loads(capsys.readouterr().out)["retarget_budget"] == "paper"  # the default
+    one = json.loads(capsys.readouterr().out)
+    assert one["retarget_budget"] == "paper"  # the defaults
+    assert one["retarget_collisions"] is False
     camp = tmp_path / "camp"
     args = ["trials", "run", "--n", "2", "--workers", "0", "--out", str(camp)]
-    assert main([*args, "--retarget-budget", "converged", "--json"]) == 0
+    given = ["--retarget-budget", "converged", "--retarget-collisions"]
+    assert main([*args, *given, "--json"]) == 0
     summary = json.loads(capsys.readouterr().out)
-    assert budgets == ["paper", "converged", "converged"]
+    assert runner.budgets == ["paper", "converged", "converged"]  # type: ignore[attr-defined]
+    assert runner.modelled == [False, True, True]  # type: ignore[attr-defined]
     assert summary["retarget_budget"] == "converged"
+    assert summary["retarget_collisions"] is True
     md = (camp / "summary.md").read_text()
-    assert "retargeting budget converged" in md and "Retargeting budget: converged" in md
+    assert "retargeting budget converged, self-collision modelled)" in md
+    assert "Retargeting budget: converged" in md
+    assert "Self-collision modelled in the pair solves: yes" in md
     with pytest.raises(SystemExit) as exc:
         main(["trial", "--retarget-budget", "fast"])
     assert exc.value.code == 2
@@ -1072,23 +1081,3 @@ def test_summary_says_whether_self_collision_was_modelled(tmp_path, values, expe
         assert said == []
     else:
         assert said and said[0].startswith(f"Self-collision modelled in the pair solves: {line} ")
-
-
-def test_cli_retarget_collisions_reaches_the_runner_and_the_summary(
-    tmp_path: Path, monkeypatch, capsys
-) -> None:
-    from payload.cli import main
-
-    _fake_runner(monkeypatch)
-    modelled = sys.modules["payload.trials.runner"].modelled  # type: ignore[attr-defined]
-    assert main(["trial", "--out", str(tmp_path / "one"), "--json"]) == 0
-    assert json.loads(capsys.readouterr().out)["retarget_collisions"] is False  # the default
-    camp = tmp_path / "camp"
-    args = ["trials", "run", "--n", "2", "--workers", "0", "--out", str(camp)]
-    assert main([*args, "--retarget-collisions", "--json"]) == 0
-    summary = json.loads(capsys.readouterr().out)
-    assert modelled == [False, True, True]
-    assert summary["retarget_collisions"] is True
-    md = (camp / "summary.md").read_text()
-    assert "self-collision modelled)" in md
-    assert "Self-collision modelled in the pair solves: yes" in md
