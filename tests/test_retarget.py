@@ -815,7 +815,7 @@ def test_bench_runs_each_solver_in_its_own_loop_then_replays_interleaved(monkeyp
 
     logged(ReferenceRetargeter, lambda s: "reference")
     logged(PairRetargeter, lambda s: s.config.budget)
-    steps, pairs = 3, 2
+    steps, pairs = 3, len(load_hand().pairs)
     r = bench.run_bench(steps=steps)
     n = steps * pairs
     own = ["reference"] * n + ["paper"] * n + ["converged"] * n

@@ -18,6 +18,7 @@ import pytest
 from scipy.optimize import least_squares
 
 from payload.retarget import (
+    N_FEATURES,
     PairKinematics,
     PairRetargeter,
     ReferenceRetargeter,
@@ -156,7 +157,7 @@ def test_table_seeds_alternate_full_and_geometric_picks(pk, collisions):
     qs, fs = seed_table(pk, collisions)
     if collisions:
         assert pk.collision.distances_many(qs).min() >= pk.collision.margin
-    t, qr, q0 = ca.MX.sym("t", 13), ca.MX.sym("qr", pk.n), ca.MX.sym("q0", pk.n)
+    t, qr, q0 = ca.MX.sym("t", N_FEATURES), ca.MX.sym("qr", pk.n), ca.MX.sym("q0", pk.n)
     picks = ca.Function("picks", [t, qr, q0], table_seeds(pk, cfg, t, qr, q0, TABLE_STARTS))
     scales = cfg.feature_scales()
     for targets, q_prev, q_ref in _hard_problems(pk, 31, 3):

@@ -285,15 +285,17 @@ def _run_loops(
                 lp.span_err.append(abs(solver.features(q).span - targets[0]) * 1e3)
 
 
-def _interleaved(ref: _Loop, loops: list[_Loop]) -> dict[str, np.ndarray]:
-    """The production solves again, interleaved as a control loop that does other work
-    between solves would run them: per pair solve, the reference's solve of the same step,
-    then each budget's (cold caches). Wall time [us] per solve and loop; the answers are
-    not used."""
+def _replay(loops: list[_Loop], between: _Loop | None = None) -> dict[str, np.ndarray]:
+    """The loops' solves again, per pair solve one of each loop in turn, after ``between``'s
+    solve of the same step when given (interleaved as a control loop that does other work
+    between solves would run them: cold caches), else back to back. Wall time [us] per
+    solve and loop; the answers are not used."""
     clock = time.perf_counter_ns
     out: dict[str, list[float]] = {lp.name: [] for lp in loops}
-    for i, (ref_name, *ref_args) in enumerate(ref.inputs):
-        ref.solvers[ref_name].solve(*ref_args)
+    for i in range(len(loops[0].inputs)):
+        if between is not None:
+            name, *args = between.inputs[i]
+            between.solvers[name].solve(*args)
         for lp in loops:
             name, targets, q_prev, q_ref = lp.inputs[i]
             t0 = clock()
@@ -395,20 +397,13 @@ def run_bench(
     ref, prod = by_name["reference"], by_name[config.budget]
     checked = all(c.available for c in checks.values())
 
-    cold = _interleaved(ref, [by_name[b] for b in BUDGETS])
-
-    # The production solves again, back to back (warm caches, nothing else in between):
-    # what the solver costs when the loop does little else.
-    clock = time.perf_counter_ns
-    isolated = []
-    for name, targets, q_prev, q_ref in prod.inputs:
-        t0 = clock()
-        prod.solvers[name].solve(targets, q_prev, q_ref)
-        isolated.append((clock() - t0) / 1e3)
+    cold = _replay([by_name[b] for b in BUDGETS], between=ref)
+    # back to back (warm caches): what the solver costs when the loop does little else
+    isolated = _replay([prod])[prod.name]
 
     prod_us, ref_us = np.array(prod.wall_us), np.array(ref.wall_us)
     pc, rc = np.array(prod.cost), np.array(ref.cost)
-    kind = np.array([streams[n][k].kind for k in range(steps) for n in pairs])
+    kind = np.array(prod.kinds)
     not_worse = pc <= rc * (1.0 + COST_TOLERANCE)
     p_stats: dict[str, Any] = _stats(prod_us, np.array(prod.cpu_us))
     r_stats: dict[str, Any] = _stats(ref_us, np.array(ref.cpu_us))

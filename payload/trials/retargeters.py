@@ -33,14 +33,15 @@ def retargeting(
     # everything the retargeters are built from: the URDF, the resolved hand (rest
     # posture, margin) and the design it names (pre-shape, structure boxes)
     design = hand.design.read_bytes() if hand.design is not None else b""
-    key = (hand.urdf, hand.urdf.read_bytes(), repr(hand), design, budget, bool(collisions))
+    collisions = bool(collisions)
+    key = (hand.urdf, hand.urdf.read_bytes(), repr(hand), design, budget, collisions)
     built: dict[Any, Any] = getattr(_LOCAL, "retargeting", None) or {}
     _LOCAL.retargeting = built
     cached = built.get(key)
     if cached is None:
         # single-threaded like the trials themselves, so every process finds the same ranges
         with single_threaded_numerics():
-            config = RetargetConfig(budget=budget, collisions=bool(collisions))
+            config = RetargetConfig(budget=budget, collisions=collisions)
             retargeters = {
                 pair: PairRetargeter(hand, pair=pair, config=config) for pair in ("L", "R")
             }
