@@ -110,3 +110,29 @@ def test_no_import_cycles() -> None:
     assert "payload.cli" in graph
     found = cycles(graph)
     assert not found, "import cycles: " + "; ".join(" <-> ".join(c) for c in found)
+
+
+def test_simulation_and_trials_do_not_load_the_mesh_libraries() -> None:
+    """The exporters (trimesh) load on first use: a trial's process never needs them, the
+    design package still offers them."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys\n"
+        "import payload.trials.runner, payload.trials.campaign, payload.sim, payload.teleop\n"
+        "assert 'trimesh' not in sys.modules, 'trimesh loaded'\n"
+        "import payload.design as d, payload.design.build as b\n"
+        "assert (d.write, d.generate, d.stale_files) == (b.write, b.generate, b.stale_files)\n"
+        "from payload.design.solids import to_trimesh\n"
+        "import manifold3d\n"
+        "assert abs(to_trimesh(manifold3d.Manifold.cube([1, 2, 3])).volume - 6.0) < 1e-12\n"
+        "try:\n"
+        "    d.nope\n"
+        "except AttributeError as exc:\n"
+        "    assert 'nope' in str(exc)\n"
+        "else:\n"
+        "    raise AssertionError('no AttributeError')\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
+    assert done.returncode == 0, done.stderr

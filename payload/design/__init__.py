@@ -1,6 +1,14 @@
-"""Parametric payload design: parameters, validation, solids, kinematic tree, exporters."""
+"""Parametric payload design: parameters, validation, solids, kinematic tree, exporters.
 
-from payload.design.build import generate, stale_files, write
+The exporters (``generate``, ``stale_files``, ``write``) load on first use: they need
+trimesh and manifold3d, about a second of imports that the simulator, the teleoperation
+loop and the trials never use.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
 from payload.design.params import (
     FINGER_JOINTS,
     FINGERS,
@@ -19,6 +27,20 @@ from payload.design.tree import (
     Link,
     build_tree,
 )
+
+if TYPE_CHECKING:
+    from payload.design.build import generate, stale_files, write
+
+_BUILD_NAMES = ("generate", "stale_files", "write")
+
+
+def __getattr__(name: str) -> Any:
+    if name in _BUILD_NAMES:
+        from payload.design import build
+
+        return getattr(build, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 
 __all__ = [
     "ALL_JOINTS",

@@ -8,13 +8,16 @@ overlap, so their mass properties add up exactly.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import manifold3d as m3d
 import numpy as np
-import trimesh
 
 from payload.design.params import FINGERS, SIDE_OF, Design
 from payload.errors import BuildError
+
+if TYPE_CHECKING:
+    import trimesh
 
 SEGMENTS = 32
 """Circular segments of cylinders and spheres (deterministic tessellation)."""
@@ -87,6 +90,8 @@ def sphere(radius: float, center: tuple[float, float, float]) -> m3d.Manifold:
 
 def to_trimesh(solid: m3d.Manifold) -> trimesh.Trimesh:
     """Convert a manifold3d solid to a trimesh mesh (checked watertight)."""
+    import trimesh  # half a second of imports, needed only where meshes are built
+
     mesh = solid.to_mesh()
     tm = trimesh.Trimesh(
         vertices=np.asarray(mesh.vert_properties)[:, :3].astype(np.float64),
