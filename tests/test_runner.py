@@ -119,6 +119,19 @@ def test_a_trial_with_self_collision_modelled_keeps_every_command_clear(tmp_path
     b = read_recording(again / "log.mcap")
     assert b.meta["retarget_collisions"] is True
     assert np.array_equal(np.asarray(rec.q_cmd), np.asarray(b.q_cmd))
+    # a setting given to a replay overrides the recording's: the same hands without the
+    # model command the pinch inside the margin again; the rest stays the recording's
+    off = tmp_path / "replay-off"
+    result = run_trial(
+        operator="replay", replay=out / "log.mcap", out_dir=off, retarget_collisions=False
+    )
+    assert result["retarget_collisions"] is False and result["seed"] == 5
+    c = read_recording(off / "log.mcap")
+    assert c.meta["retarget_collisions"] is False and c.meta["ctb"] == rec.meta["ctb"]
+    assert np.array_equal(c.left_joints, rec.left_joints, equal_nan=True)
+    pk = PairKinematics(None, "R")
+    qs = np.unique(np.asarray(c.q_right), axis=0)
+    assert (pk.collision.distances_many(qs).min(axis=0) < pk.collision.margin).any()
     from payload.teleop.replay import HandRecordingWriter
 
     meta, frames = read_hand_frames(out / "log.mcap")

@@ -808,14 +808,21 @@ def test_cli_trial_and_campaign(tmp_path: Path, monkeypatch, capsys) -> None:
     replay = tmp_path / "hands.mcap"
     replay.write_bytes(b"x")
     assert main(["trial", "--operator", "replay", str(replay), "--out", str(tmp_path / "r")]) == 0
-    # a replay's seed is left to the runner, which records the source's
+    # a replay's seed and setup are left to the runner, which takes the recording's
+    assert calls[-1] == {"seed": None, "operator": "replay", "replay": replay}
+    again = ["trial", "--operator", "replay", str(replay), "--out", str(tmp_path / "r2")]
+    assert main([*again, "--ctb", "rigid", "--retarget-collisions"]) == 0
+    # only what is given overrides the recording's
     assert calls[-1] == {
         "seed": None,
         "operator": "replay",
         "replay": replay,
-        "ctb": "single",
-        "propulsion": "nozzles",
+        "ctb": "rigid",
     }
+    runner = sys.modules["payload.trials.runner"]
+    assert runner.modelled[-2:] == [False, True]  # type: ignore[attr-defined]
+    assert runner.budgets[-1] == "paper"  # type: ignore[attr-defined]  # not given: not passed
+    assert "setup: CTB " in capsys.readouterr().out
     assert (
         main(["trial", "--ctb", "rigid", "--propulsion", "box", "--out", str(tmp_path / "b")]) == 0
     )

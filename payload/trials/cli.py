@@ -57,14 +57,17 @@ def _cmd_trial(args: argparse.Namespace) -> int:
     if args.max_time is not None and not args.max_time > 0:
         raise TrialsCliError(f"--max-time must be positive, got {args.max_time}")
     operator, replay = _parse_operator(args.operator)
-    _check_ctb(args.ctb)
+    if operator == "synthetic":
+        _setup_defaults(args)
+    if args.ctb is not None:
+        _check_ctb(args.ctb)
     project = command_project(args)
     out = Path(args.out) if args.out else None
     run_trial = _run_trial_fn()
-    extra: dict[str, Any] = {"project": project, "ctb": args.ctb, "propulsion": args.propulsion}
-    extra["retarget_budget"] = args.retarget_budget
-    if args.retarget_collisions:
-        extra["retarget_collisions"] = True
+    extra: dict[str, Any] = {"project": project}
+    for name in ("ctb", "propulsion", "retarget_budget", "retarget_collisions"):
+        if getattr(args, name) is not None:  # a replay: the others are its recording's
+            extra[name] = getattr(args, name)
     if not args.json and sys.stderr.isatty():
         extra["progress"] = True
     if args.max_time is not None:
@@ -81,6 +84,13 @@ def _cmd_trial(args: argparse.Namespace) -> int:
     from payload.trials.campaign import METRIC_KEYS, METRIC_LABELS
 
     print(f"trial seed {seed} ({operator}) -> {out}")
+    given = " (flags given, else the recording's)" if operator == "replay" else ""
+    modelled = "modelled" if result.get("retarget_collisions") else "off"
+    print(
+        f"  setup: CTB {result.get('ctb')}, {result.get('propulsion')} propulsion, "
+        f"retargeting budget {result.get('retarget_budget')}, self-collision "
+        f"{modelled}{given}"
+    )
     print(f"  success: {bool(result.get('success'))}")
     for key in METRIC_KEYS:
         value = result.get(key)
@@ -107,6 +117,7 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
         raise TrialsCliError(f"--seed must be >= 0, got {args.seed}")
     if args.workers is not None and args.workers < 0:
         raise TrialsCliError(f"--workers must be >= 0, got {args.workers}")
+    _setup_defaults(args)
     _check_ctb(args.ctb)
     _run_trial_fn()  # fail here, once, if the runner is missing
     project = command_project(args)
@@ -356,38 +367,51 @@ def _cmd_trials_convert(args: argparse.Namespace) -> int:
     return 0
 
 
-def _setup_arguments(p: argparse.ArgumentParser) -> None:
+def _setup_arguments(p: argparse.ArgumentParser, replay: bool = False) -> None:
+    """The trial setup flags; with ``replay`` each left out means "the recording's" for a
+    replay (``None`` here, resolved by the runner)."""
     from payload.sim.vehicle import DEFAULT_PROPULSION, PROPULSION_MODELS
 
+    mine = "; a replay: its recording's unless given" if replay else ""
     p.add_argument(
         "--ctb",
-        default="single",
+        default=None,
         help="CTB model: single (NASA's loaded single bag) or rigid (the rigid bag of "
-        "Morton et al.); default single",
+        f"Morton et al.); default single{mine}",
     )
     p.add_argument(
         "--propulsion",
         choices=PROPULSION_MODELS,
-        default=DEFAULT_PROPULSION,
-        help=f"vehicle propulsion model (default {DEFAULT_PROPULSION})",
+        default=None,
+        help=f"vehicle propulsion model (default {DEFAULT_PROPULSION}{mine})",
     )
     p.add_argument(
-        "--retarget-budget", choices=("paper", "converged"), default="paper", help=_BUDGET_HELP
+        "--retarget-budget",
+        choices=("paper", "converged"),
+        default=None,
+        help=f"retargeting budget per pair solve: 'paper' (default{mine}; at most 20 "
+        "residual evaluations, the paper's controller) or 'converged' (each start run to "
+        "convergence)",
     )
     p.add_argument(
         "--retarget-collisions",
         action=argparse.BooleanOptionalAction,
-        default=False,
+        default=None,
         help="model self-collision in the pair solves: no command closer than the design's "
         "margin, the operator's opening mapped to the collision-free span range (default "
-        "off: the paper's controller)",
+        f"off: the paper's controller{mine})",
     )
 
 
-_BUDGET_HELP = (
-    "retargeting budget per pair solve: 'paper' (default, at most 20 residual evaluations, "
-    "the paper's controller) or 'converged' (each start run to convergence)"
-)
+def _setup_defaults(args: argparse.Namespace) -> None:
+    """Fill the setup flags left out with the defaults (synthetic trials, campaigns)."""
+    from payload.sim.vehicle import DEFAULT_PROPULSION
+    from payload.sim.world import DEFAULT_CTB
+
+    args.ctb = DEFAULT_CTB if args.ctb is None else args.ctb
+    args.propulsion = DEFAULT_PROPULSION if args.propulsion is None else args.propulsion
+    args.retarget_budget = "paper" if args.retarget_budget is None else args.retarget_budget
+    args.retarget_collisions = bool(args.retarget_collisions)
 
 
 def register(
@@ -414,7 +438,7 @@ def register(
         help="cap on the session length [s] (default: the runner's, 240 s)",
     )
     p.add_argument("--force", action="store_true", help="replace the trial already in --out")
-    _setup_arguments(p)
+    _setup_arguments(p, replay=True)
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=_cmd_trial)
 

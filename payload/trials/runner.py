@@ -98,10 +98,10 @@ def run_trial(
     progress: bool = False,
     force: bool = False,
     project: Project | None = None,
-    ctb: str = DEFAULT_CTB,
-    propulsion: str = DEFAULT_PROPULSION,
-    retarget_budget: str = "paper",
-    retarget_collisions: bool = False,
+    ctb: str | None = None,
+    propulsion: str | None = None,
+    retarget_budget: str | None = None,
+    retarget_collisions: bool | None = None,
 ) -> dict[str, Any]:
     """Run one trial and write its folder (reproducible: see :func:`_run_trial`).
 
@@ -122,14 +122,17 @@ def run_trial(
         progress: Show a progress bar.
         project: The design project whose models and design the trial runs on (default:
             the current project).
-        ctb: CTB model (:data:`~payload.sim.world.CTB_MODELS`); a replay uses its
-            recording's.
-        propulsion: ``nozzles`` or ``box``; a replay uses its recording's.
+        ctb: CTB model (:data:`~payload.sim.world.CTB_MODELS`).
+        propulsion: ``nozzles`` or ``box``.
         retarget_budget: Evaluation budget of the pair solves (``paper``: at most 20
-            residual evaluations each; ``converged``), recorded with the trial; a replay
-            uses its recording's.
+            residual evaluations each; ``converged``), recorded with the trial.
         retarget_collisions: Self-collision modelled in the pair solves (off: the
-            paper's controller), recorded with the trial; a replay uses its recording's.
+            paper's controller), recorded with the trial.
+
+            Each of these four left at ``None`` is the default (single CTB, nozzles,
+            ``paper``, off) or, for a replay, its recording's setting (the default where
+            the recording has none); a value given replays the recorded hands on that
+            setup instead.
         force: Replace the trial in ``out_dir`` (each file through a temporary file and a
             rename, after the new trial has run).
 
@@ -151,18 +154,24 @@ def run_trial(
             raise TrialError("operator 'replay' needs a hand recording file")
         header, frames = load_replay(replay)
         recorded = header.get("meta") or {}
-        ctb = recorded.get("ctb", ctb)
-        propulsion = recorded.get("propulsion", propulsion)
-        retarget_budget = recorded.get("retarget_budget", retarget_budget)
-        retarget_collisions = recorded.get("retarget_collisions", retarget_collisions)
-        if not isinstance(retarget_collisions, bool):
-            raise TrialError(
-                f"{replay}: retarget_collisions must be true or false, got {retarget_collisions!r}"
-            )
+        ctb = recorded.get("ctb") if ctb is None else ctb
+        propulsion = recorded.get("propulsion") if propulsion is None else propulsion
+        if retarget_budget is None:
+            retarget_budget = recorded.get("retarget_budget")
+        if retarget_collisions is None:
+            retarget_collisions = recorded.get("retarget_collisions", False)
+            if not isinstance(retarget_collisions, bool):
+                raise TrialError(
+                    f"{replay}: retarget_collisions must be true or false, "
+                    f"got {retarget_collisions!r}"
+                )
         if seed is None:
             source_seed = header.get("meta", {}).get("seed")
             seed = source_seed if isinstance(source_seed, int) and source_seed >= 0 else 0
     seed = 0 if seed is None else int(seed)
+    ctb = DEFAULT_CTB if ctb is None else ctb
+    propulsion = DEFAULT_PROPULSION if propulsion is None else propulsion
+    retarget_budget = "paper" if retarget_budget is None else retarget_budget
     if ctb not in CTB_MODELS:
         raise TrialError(f"ctb must be one of {', '.join(CTB_MODELS)}, got {ctb!r}")
     if propulsion not in PROPULSION_MODELS:
