@@ -52,6 +52,24 @@ def test_a_replayed_trial_reproduces_the_recorded_trial_bit_for_bit(tmp_path):
     for name in FIELDS:
         # untracked hand joints are NaN: equal to NaN
         assert np.array_equal(getattr(a, name), getattr(b, name), equal_nan=True), name
+    assert {k: b.meta[k] for k in ("ctb", "propulsion", "retarget_budget")} == {
+        "ctb": "single",
+        "propulsion": "nozzles",
+        "retarget_budget": "paper",
+    }
+    # settings given to a replay win over the recording's; the rest stay the recording's
+    other = tmp_path / "replay-other"
+    run_trial(
+        operator="replay",
+        replay=first / "log.mcap",
+        out_dir=other,
+        max_time=1.0,
+        propulsion="box",
+        retarget_budget="converged",
+    )
+    c = read_recording(other / "log.mcap")
+    assert (c.meta["propulsion"], c.meta["retarget_budget"]) == ("box", "converged")
+    assert c.meta["ctb"] == "single" and c.meta["retarget_collisions"] is False
     # provenance: the design file the trial's world was built from, in the recording too
     digest = hashlib.sha256(DESIGN.read_bytes()).hexdigest()
     metrics = json.loads((first / "metrics.json").read_text())

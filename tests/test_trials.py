@@ -775,18 +775,18 @@ def _fake_runner(monkeypatch: pytest.MonkeyPatch) -> list[dict[str, Any]]:
         operator: str,
         replay: Path | None,
         out_dir: Path,
-        retarget_budget: str = "paper",
-        retarget_collisions: bool = False,
+        retarget_budget: str | None = None,
+        retarget_collisions: bool | None = None,
         project: object = None,
         **setup: Any,
     ) -> dict:
         calls.append({"seed": seed, "operator": operator, "replay": replay, **setup})
         budgets.append(retarget_budget)
         modelled.append(retarget_collisions)
-        return {
+        return {  # what the real runner resolves a left-out setting to
             **fixture_synthetic_trial(seed, out_dir),
-            "retarget_budget": retarget_budget,
-            "retarget_collisions": retarget_collisions,
+            "retarget_budget": retarget_budget or "paper",
+            "retarget_collisions": bool(retarget_collisions),
         }
 
     module = types.ModuleType("payload.trials.runner")
@@ -809,20 +809,27 @@ def test_cli_trial_and_campaign(tmp_path: Path, monkeypatch, capsys) -> None:
     replay.write_bytes(b"x")
     assert main(["trial", "--operator", "replay", str(replay), "--out", str(tmp_path / "r")]) == 0
     # a replay's seed and setup are left to the runner, which takes the recording's
+    runner = sys.modules["payload.trials.runner"]
     assert calls[-1] == {"seed": None, "operator": "replay", "replay": replay}
+    assert runner.budgets[-1] is None and runner.modelled[-1] is None  # type: ignore[attr-defined]
+    capsys.readouterr()
     again = ["trial", "--operator", "replay", str(replay), "--out", str(tmp_path / "r2")]
     assert main([*again, "--ctb", "rigid", "--retarget-collisions"]) == 0
     # only what is given overrides the recording's
-    assert calls[-1] == {
-        "seed": None,
-        "operator": "replay",
-        "replay": replay,
-        "ctb": "rigid",
-    }
-    runner = sys.modules["payload.trials.runner"]
-    assert runner.modelled[-2:] == [False, True]  # type: ignore[attr-defined]
-    assert runner.budgets[-1] == "paper"  # type: ignore[attr-defined]  # not given: not passed
-    assert "setup: CTB " in capsys.readouterr().out
+    assert calls[-1] == {"seed": None, "operator": "replay", "replay": replay, "ctb": "rigid"}
+    assert runner.budgets[-1] is None and runner.modelled[-1] is True  # type: ignore[attr-defined]
+    assert (
+        "retargeting budget paper, self-collision modelled "
+        "(given: ctb, retarget_collisions; the rest the recording's)\n"
+    ) in capsys.readouterr().out
+    off = ["trial", "--operator", "replay", str(replay), "--out", str(tmp_path / "r3")]
+    assert main([*off, "--no-retarget-collisions", "--retarget-budget", "converged"]) == 0
+    assert runner.modelled[-1] is False and runner.budgets[-1] == "converged"  # type: ignore[attr-defined]
+    # a synthetic trial gets the defaults, spelled out
+    assert main(["trial", "--out", str(tmp_path / "s")]) == 0
+    assert calls[-1]["ctb"] == "single" and calls[-1]["propulsion"] == "nozzles"
+    assert runner.budgets[-1] == "paper" and runner.modelled[-1] is False  # type: ignore[attr-defined]
+    capsys.readouterr()
     assert (
         main(["trial", "--ctb", "rigid", "--propulsion", "box", "--out", str(tmp_path / "b")]) == 0
     )

@@ -1,8 +1,8 @@
 """Parametric payload design: parameters, validation, solids, kinematic tree, exporters.
 
 The exporters (``generate``, ``stale_files``, ``write``) load on first use: they need
-trimesh and manifold3d, about a second of imports that the simulator, the teleoperation
-loop and the trials never use.
+trimesh, about 0.6 s of imports that the simulator, the teleoperation loop and the
+trials do not need.
 """
 
 from __future__ import annotations

@@ -90,7 +90,7 @@ def sphere(radius: float, center: tuple[float, float, float]) -> m3d.Manifold:
 
 def to_trimesh(solid: m3d.Manifold) -> trimesh.Trimesh:
     """Convert a manifold3d solid to a trimesh mesh (checked watertight)."""
-    import trimesh  # half a second of imports, needed only where meshes are built
+    import trimesh  # about 0.6 s of imports, needed only where meshes are built
 
     mesh = solid.to_mesh()
     tm = trimesh.Trimesh(

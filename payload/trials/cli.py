@@ -65,7 +65,7 @@ def _cmd_trial(args: argparse.Namespace) -> int:
     out = Path(args.out) if args.out else None
     run_trial = _run_trial_fn()
     extra: dict[str, Any] = {"project": project}
-    for name in ("ctb", "propulsion", "retarget_budget", "retarget_collisions"):
+    for name in _SETUP:
         if getattr(args, name) is not None:  # a replay: the others are its recording's
             extra[name] = getattr(args, name)
     if not args.json and sys.stderr.isatty():
@@ -84,7 +84,11 @@ def _cmd_trial(args: argparse.Namespace) -> int:
     from payload.trials.campaign import METRIC_KEYS, METRIC_LABELS
 
     print(f"trial seed {seed} ({operator}) -> {out}")
-    given = " (flags given, else the recording's)" if operator == "replay" else ""
+    given = ""
+    if operator == "replay":
+        names = [n for n in _SETUP if getattr(args, n) is not None]
+        given = f" (given: {', '.join(names)}; the rest the recording's)" if names else ""
+        given = given or " (the recording's)"
     modelled = "modelled" if result.get("retarget_collisions") else "off"
     print(
         f"  setup: CTB {result.get('ctb')}, {result.get('propulsion')} propulsion, "
@@ -367,7 +371,11 @@ def _cmd_trials_convert(args: argparse.Namespace) -> int:
     return 0
 
 
-def _setup_arguments(p: argparse.ArgumentParser, replay: bool = False) -> None:
+_SETUP = ("ctb", "propulsion", "retarget_budget", "retarget_collisions")
+"""The trial setup flags' attribute names."""
+
+
+def _setup_arguments(p: argparse.ArgumentParser, *, replay: bool = False) -> None:
     """The trial setup flags; with ``replay`` each left out means "the recording's" for a
     replay (``None`` here, resolved by the runner)."""
     from payload.sim.vehicle import DEFAULT_PROPULSION, PROPULSION_MODELS
