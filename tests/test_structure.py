@@ -124,6 +124,7 @@ def test_simulation_and_trials_do_not_load_the_mesh_libraries() -> None:
         "assert 'trimesh' not in sys.modules, 'trimesh loaded'\n"
         "import payload.design as d, payload.design.build as b\n"
         "assert (d.write, d.generate, d.stale_files) == (b.write, b.generate, b.stale_files)\n"
+        "assert {'write', 'generate', 'stale_files', 'load_design'} <= set(dir(d))\n"
         "from payload.design.solids import to_trimesh\n"
         "import manifold3d\n"
         "assert abs(to_trimesh(manifold3d.Manifold.cube([1, 2, 3])).volume - 6.0) < 1e-12\n"

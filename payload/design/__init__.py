@@ -42,6 +42,10 @@ def __getattr__(name: str) -> Any:
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
+def __dir__() -> list[str]:
+    return sorted({*globals(), *_BUILD_NAMES})
+
+
 __all__ = [
     "ALL_JOINTS",
     "FINGERS",
