@@ -87,8 +87,9 @@ def _cmd_trial(args: argparse.Namespace) -> int:
     given = ""
     if operator == "replay":
         names = [n for n in _SETUP if getattr(args, n) is not None]
-        given = f" (given: {', '.join(names)}; the rest the recording's)" if names else ""
-        given = given or " (the recording's)"
+        given = " (the recording's)"
+        if names:
+            given = f" (given: {', '.join(names)}; the rest the recording's)"
     modelled = "modelled" if result.get("retarget_collisions") else "off"
     print(
         f"  setup: CTB {result.get('ctb')}, {result.get('propulsion')} propulsion, "
