@@ -686,6 +686,12 @@ def test_pair_range_and_posture_family(pks, ranges, pair):
     assert np.all(rg.postures >= pk.lower) and np.all(rg.postures <= pk.upper)
     for span in np.linspace(rg.span_min, rg.span_max, 50):
         assert abs(pk.features(rg.posture(span)).span - span) < 1e-3
+    # the reference is the table interpolated per joint, clipped at both ends (np.interp)
+    rng = np.random.default_rng(3)
+    spans = [*rng.uniform(rg.spans[0] - 0.01, rg.spans[-1] + 0.01, 200), *rg.spans]
+    for span in spans:
+        want = [np.interp(span, rg.spans, rg.postures[:, j]) for j in range(pk.n)]
+        np.testing.assert_allclose(rg.posture(span), want, rtol=0, atol=1e-12)
 
 
 _RANGE_CHILD = """

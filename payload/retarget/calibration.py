@@ -72,7 +72,7 @@ class PairCalibration:
     def opening(self, human_span: float) -> float:
         """Calibrated opening in [0, 1] of a human span [m] (0 = pinch, 1 = open)."""
         lo, hi = self.human_pinch.span, self.human_open.span
-        return float(np.clip((human_span - lo) / (hi - lo), 0.0, 1.0))
+        return min(max(float((human_span - lo) / (hi - lo)), 0.0), 1.0)  # np.clip's result
 
     def to_targets(self, human: PairFeatures | np.ndarray) -> PairFeatures:
         """Robot targets ``(l_bar, d_bar, c_bar, u_bar)`` for human features (wrist frame).

@@ -19,6 +19,7 @@ import numpy as np
 from payload.kinematics import Kinematics
 from payload.retarget.errors import RetargetError
 from payload.retarget.hand import HandDescription, PairDescription, load_hand
+from payload.vecmath import norm as vec_norm
 
 N_FEATURES = 13
 """Length of a stacked feature vector: span 1, direction 3, centre 3, distal directions 6."""
@@ -97,7 +98,7 @@ def _nonfinite_names(v: np.ndarray) -> str:
 
 
 def _unit(v: np.ndarray, what: str) -> tuple[np.ndarray, float]:
-    n = float(np.linalg.norm(v))
+    n = vec_norm(v)  # np.linalg.norm's bits, without its overhead
     if not n > _EPS:
         raise RetargetError(f"pair features: {what} has zero length (degenerate geometry)")
     return v / n, n

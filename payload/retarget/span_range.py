@@ -23,6 +23,7 @@ The result is kept on disk (:mod:`payload.retarget.range_cache`).
 
 from __future__ import annotations
 
+import bisect
 import functools
 import sys
 from dataclasses import dataclass
@@ -67,10 +68,17 @@ class PairRange:
 
     def posture(self, span: float) -> np.ndarray:
         """Posture reference ``q_ref`` for a commanded span [m] (clipped to the range), (n,)."""
-        s = float(np.clip(span, self.spans[0], self.spans[-1]))
-        i = int(np.clip(np.searchsorted(self.spans, s) - 1, 0, len(self.spans) - 2))
-        w = (s - self.spans[i]) / (self.spans[i + 1] - self.spans[i])
+        # on Python floats (twice a control step): the same IEEE operations as
+        # np.clip / np.searchsorted on the table, without their call overhead
+        spans = self._span_list
+        s = min(max(float(span), spans[0]), spans[-1])
+        i = min(max(bisect.bisect_left(spans, s) - 1, 0), len(spans) - 2)
+        w = (s - spans[i]) / (spans[i + 1] - spans[i])
         return (1.0 - w) * self.postures[i] + w * self.postures[i + 1]
+
+    @functools.cached_property
+    def _span_list(self) -> list[float]:
+        return [float(s) for s in self.spans]
 
 
 def _front_constraints(pk: PairKinematics) -> tuple[np.ndarray, np.ndarray]:

@@ -156,7 +156,7 @@ class JerkLimiter:
             cap = math.sqrt(2 * self.max_jerk * max(0.0, self.max_value - vn))
             radial_now = float(self.rate @ u)
             radial_want = min(float(a_target @ u), cap)
-            dr = float(np.clip(radial_want - radial_now, -jdt, jdt))
+            dr = min(max(radial_want - radial_now, -jdt), jdt)  # np.clip's result
             tangential = da - float(da @ u) * u
             budget = math.sqrt(max(0.0, jdt * jdt - dr * dr))
             tn = float(norm(tangential))
