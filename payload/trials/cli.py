@@ -414,13 +414,10 @@ def _setup_arguments(p: argparse.ArgumentParser, *, replay: bool = False) -> Non
 
 def _setup_defaults(args: argparse.Namespace) -> None:
     """Fill the setup flags left out with the defaults (synthetic trials, campaigns)."""
-    from payload.sim.vehicle import DEFAULT_PROPULSION
-    from payload.sim.world import DEFAULT_CTB
+    from payload.trials.sources import trial_setup
 
-    args.ctb = DEFAULT_CTB if args.ctb is None else args.ctb
-    args.propulsion = DEFAULT_PROPULSION if args.propulsion is None else args.propulsion
-    args.retarget_budget = "paper" if args.retarget_budget is None else args.retarget_budget
-    args.retarget_collisions = bool(args.retarget_collisions)
+    for name, value in trial_setup(**{n: getattr(args, n) for n in _SETUP}).items():
+        setattr(args, name, value)
 
 
 def register(

@@ -27,8 +27,8 @@ from payload.retarget.calibration import PairRange
 from payload.retarget.casadi_solver import PairRetargeter
 from payload.rotations import quat_to_matrix
 from payload.safeio import OverwriteError, check_new, new_folder, replace_file
-from payload.sim.vehicle import DEFAULT_PROPULSION, PROPULSION_MODELS
-from payload.sim.world import CTB_MODELS, DEFAULT_CTB, WorldConfig
+from payload.sim.vehicle import PROPULSION_MODELS
+from payload.sim.world import CTB_MODELS, WorldConfig
 from payload.teleop.calibration import CalibrationProcedure, Captures
 from payload.teleop.loop import (
     StepContext,
@@ -43,7 +43,7 @@ from payload.teleop.pipeline import (
 )
 from payload.trials.acquisition import handle_in_body, place_ctb_for_teleop, place_offset
 from payload.trials.retargeters import retargeting, single_threaded_numerics
-from payload.trials.sources import HeadsetSource, TrialError, _Source, load_replay
+from payload.trials.sources import HeadsetSource, TrialError, _Source, load_replay, trial_setup
 
 log = logging.getLogger(__name__)
 
@@ -169,9 +169,8 @@ def run_trial(
             source_seed = header.get("meta", {}).get("seed")
             seed = source_seed if isinstance(source_seed, int) and source_seed >= 0 else 0
     seed = 0 if seed is None else int(seed)
-    ctb = DEFAULT_CTB if ctb is None else ctb
-    propulsion = DEFAULT_PROPULSION if propulsion is None else propulsion
-    retarget_budget = "paper" if retarget_budget is None else retarget_budget
+    setup = trial_setup(ctb, propulsion, retarget_budget, retarget_collisions)
+    ctb, propulsion = setup["ctb"], setup["propulsion"]
     if ctb not in CTB_MODELS:
         raise TrialError(f"ctb must be one of {', '.join(CTB_MODELS)}, got {ctb!r}")
     if propulsion not in PROPULSION_MODELS:
@@ -194,10 +193,7 @@ def run_trial(
         replay,
         header,
         frames,
-        ctb=ctb,
-        propulsion=propulsion,
-        retarget_budget=retarget_budget,
-        retarget_collisions=bool(retarget_collisions),
+        **setup,
     )
     with single_threaded_numerics():
         if not force:

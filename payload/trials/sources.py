@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 
 from payload.errors import PayloadError
+from payload.retarget.objective import RetargetConfig
 from payload.sim.vehicle import DEFAULT_PROPULSION
 from payload.sim.world import DEFAULT_CTB
 from payload.teleop.calibration import CalibrationProcedure
@@ -21,6 +22,22 @@ from payload.teleop.replay import read_hand_recording
 
 class TrialError(PayloadError):
     """A trial could not be run (bad operator choice, unreadable replay)."""
+
+
+def trial_setup(
+    ctb: str | None = None,
+    propulsion: str | None = None,
+    retarget_budget: str | None = None,
+    retarget_collisions: bool | None = None,
+) -> dict[str, Any]:
+    """A trial's setup with each setting left at ``None`` given its default: the single
+    CTB, nozzle propulsion, the paper's retargeting budget, self-collision not modelled."""
+    return {
+        "ctb": DEFAULT_CTB if ctb is None else ctb,
+        "propulsion": DEFAULT_PROPULSION if propulsion is None else propulsion,
+        "retarget_budget": RetargetConfig.budget if retarget_budget is None else retarget_budget,
+        "retarget_collisions": bool(retarget_collisions),
+    }
 
 
 class HeadsetSource:
@@ -82,10 +99,10 @@ class _Source:
         header: dict[str, Any],
         frames: list[Any],
         *,
-        ctb: str = DEFAULT_CTB,
-        propulsion: str = DEFAULT_PROPULSION,
-        retarget_budget: str = "paper",
-        retarget_collisions: bool = False,
+        ctb: str,
+        propulsion: str,
+        retarget_budget: str,
+        retarget_collisions: bool,
     ) -> None:
         self.retarget_budget = retarget_budget
         self.retarget_collisions = retarget_collisions
