@@ -1,0 +1,89 @@
+"""Controller profiles: what sits between the operator and the robot (DESIGN.md).
+
+``paper`` is the paper's controller (the 20-evaluation pair solve, no self-collision
+model, no base safety filter): the default of ``payload trial`` and ``trials run`` so the
+reproduction is the paper's. ``safe`` adds every safety layer (the contact-aware
+self-collision model, the base safety filter): the default wherever a person or real
+servos are in the loop (``teleop serve``, ``hw run``). Finer flags override a profile;
+trials and summaries record the profile and every override.
+
+This module imports nothing heavy: the command line reads it to build its options.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+from payload.errors import PayloadError
+
+
+@dataclass(frozen=True)
+class ControllerProfile:
+    """One controller profile.
+
+    Attributes:
+        name: ``paper`` or ``safe``.
+        retarget_budget: Pair-solve budget (``paper``: at most 20 residual evaluations;
+            ``converged``).
+        retarget_collisions: The self-collision model in the pair solves.
+        base_filter: The base safety filter between the base channel and the vehicle
+            controller.
+    """
+
+    name: str
+    retarget_budget: str
+    retarget_collisions: bool
+    base_filter: bool
+
+    def override(
+        self,
+        retarget_budget: str | None = None,
+        retarget_collisions: bool | None = None,
+        base_filter: bool | None = None,
+    ) -> ControllerProfile:
+        """This profile with each setting given (not ``None``) replacing its own."""
+        changes = {
+            k: v
+            for k, v in (
+                ("retarget_budget", retarget_budget),
+                ("retarget_collisions", retarget_collisions),
+                ("base_filter", base_filter),
+            )
+            if v is not None
+        }
+        return replace(self, **changes)
+
+    def as_dict(self) -> dict[str, object]:
+        """The profile as recorded in a trial and a summary."""
+        return {
+            "controller": self.name,
+            "retarget_budget": self.retarget_budget,
+            "retarget_collisions": self.retarget_collisions,
+            "base_filter": self.base_filter,
+        }
+
+
+PROFILES: dict[str, ControllerProfile] = {
+    "paper": ControllerProfile("paper", "paper", False, False),
+    "safe": ControllerProfile("safe", "paper", True, True),
+}
+"""The profiles by name."""
+
+PAPER = "paper"
+"""The profile of ``payload trial`` and ``trials run``."""
+SAFE = "safe"
+"""The profile wherever a person or real servos are in the loop."""
+
+
+def profile(name: str) -> ControllerProfile:
+    """The profile called ``name``.
+
+    Raises:
+        PayloadError: No such profile.
+    """
+    try:
+        return PROFILES[name]
+    except KeyError:
+        raise PayloadError(
+            f"--controller: expected one of {', '.join(PROFILES)}, got {name!r}"
+        ) from None
