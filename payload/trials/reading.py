@@ -20,6 +20,7 @@ from mcap.records import Channel, Message, Metadata
 from mcap.stream_reader import StreamReader
 
 from payload.trials import codec
+from payload.trials.integrity import META_CRC_KEY, clean_records
 from payload.trials.records import (
     FIELD_SPECS,
     HANDS_TOPIC,
@@ -135,28 +136,11 @@ class Recording:
         return StepRecord(**{name: getattr(self, name)[i] for name in FIELD_SPECS})
 
 
-def _complete_prefix(data: bytes) -> tuple[int, bool]:
-    """Length of the longest prefix made of whole MCAP records, and whether it is closed."""
-    magic = b"\x89MCAP0\r\n"
-    if not data.startswith(magic):
-        raise RecordingError("not an MCAP file (bad magic)")
-    pos = len(magic)
-    n = len(data)
-    while pos + 9 <= n:
-        opcode = data[pos]
-        length = int.from_bytes(data[pos + 1 : pos + 9], "little")
-        end = pos + 9 + length
-        if end > n:
-            break
-        pos = end
-        if opcode == 0x02 and data[pos : pos + len(magic)] == magic:  # Footer + magic
-            return pos + len(magic), True
-    return pos, False
-
-
 def _decode_meta(items: dict[str, str], path: Path) -> dict[str, Any]:
     out = {}
     for key, value in items.items():
+        if key == META_CRC_KEY:
+            continue
         try:
             out[key] = json.loads(value)
         except ValueError:
@@ -187,11 +171,9 @@ def _read_file(
         raise RecordingError(f"{path}: no such recording") from None
     except OSError as exc:
         raise RecordingError(f"{path}: cannot read ({exc.strerror})") from exc
-    try:
-        end, complete = _complete_prefix(data)
-    except RecordingError as exc:
-        raise RecordingError(f"{path}: {exc}") from None
-    reader = StreamReader(io.BytesIO(data[:end]))
+    records = clean_records(data, path)
+    complete = records.complete
+    reader = StreamReader(io.BytesIO(records.data))
     channels: dict[int, Channel] = {}
     meta: dict[str, Any] = {}
     rows: list[dict[str, Any]] = []

@@ -20,6 +20,7 @@ from mcap.writer import CompressionType, IndexType, Writer
 
 from payload.teleop.hands import XR_JOINTS
 from payload.trials import codec
+from payload.trials.integrity import META_CRC_KEY, metadata_crc
 from payload.trials.reading import (
     Recording,
     read_hand_frames,
@@ -268,6 +269,7 @@ class TrialRecorder:
                 data[key] = json.dumps(value, default=_json_default, allow_nan=False)
             except (TypeError, ValueError) as exc:
                 raise RecordingError(f"write_meta: value of {key!r} is not JSON: {exc}") from exc
+        data[META_CRC_KEY] = metadata_crc(data)
         writer.add_metadata(META_NAME, data)
         self.flush()
 
