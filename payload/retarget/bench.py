@@ -359,7 +359,7 @@ def run_bench(
         progress: Show a progress bar on stderr.
 
     Returns:
-        The JSON-ready result (fields listed in the README).
+        The JSON-ready result (fields listed in docs/retargeting.md).
 
     Raises:
         RetargetError: ``steps`` below 2, or an invalid hand or setting.

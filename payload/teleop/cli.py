@@ -177,7 +177,7 @@ def register(
         default=False,
         help="model self-collision in the pair solves, so no command drives fingers closer "
         "than the design's margin (default off: it also keeps the fingers from squeezing "
-        "a thin handle, see the README)",
+        "a thin handle, see docs/retargeting.md)",
     )
     p.add_argument("--status-interval", type=float, default=1.0, help=argparse.SUPPRESS)
     p.add_argument("--seconds", type=float, default=0.0, help=argparse.SUPPRESS)

@@ -210,9 +210,7 @@ def clean_records(data: bytes, path: str | Path) -> CleanRecords:
     if last is not None:  # the data section ended; closed if the footer's magic ends it
         complete = closed_file
     elif closed_file:
-        _damaged(
-            path, f"bytes {pos}-{n}: the records do not chain to the file's footer", chunks
-        )
+        _damaged(path, f"bytes {pos}-{n}: the records do not chain to the file's footer", chunks)
     _check_chunks(path, chunks, names, step_channels)
     return CleanRecords(b"".join(out), complete)
 

@@ -1,0 +1,71 @@
+"""Every ``payload`` command the README and docs/ show parses as shown, and the front page
+stays a front page."""
+
+from __future__ import annotations
+
+import re
+import shlex
+from pathlib import Path
+
+import pytest
+
+from payload.cli import build_parser
+
+ROOT = Path(__file__).resolve().parents[1]
+PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+FENCE = re.compile(r"^```(\w*)\s*$")
+
+
+def shell_commands(text: str) -> list[str]:
+    """The ``payload ...`` command lines of a Markdown text's bash blocks (continuation
+    lines joined, comments and a leading ``$ `` prompt dropped)."""
+    out, block, joined = [], None, ""
+    for line in text.splitlines():
+        fence = FENCE.match(line.strip())
+        if fence:
+            block = None if block is not None else fence.group(1)
+            continue
+        if block not in ("bash", "sh", "console", ""):
+            continue
+        line = line.strip()
+        if line.startswith("$ "):
+            line = line[2:]
+        joined += line
+        if joined.endswith("\\"):
+            joined = joined[:-1] + " "
+            continue
+        command, joined = joined, ""
+        command = re.sub(r"\s+#.*$", "", command).strip()
+        for part in re.split(r"\s*(?:&&|;)\s*", command):
+            if part.startswith("payload "):
+                out.append(part)
+    return out
+
+
+CASES = [
+    pytest.param(cmd, id=f"{page.name}:{cmd[:60]}")
+    for page in PAGES
+    for cmd in shell_commands(page.read_text(encoding="utf-8"))
+]
+
+
+def test_pages_show_commands():
+    assert len(CASES) >= 30  # the docs teach by example; losing them all is a bug
+    front = (ROOT / "README.md").read_text(encoding="utf-8")
+    assert len(shell_commands(front)) >= 4  # the four uses
+    assert len(front.splitlines()) <= 220  # a front page, not a manual
+
+
+@pytest.fixture(scope="module")
+def parser():
+    return build_parser()
+
+
+@pytest.mark.parametrize("command", CASES)
+def test_command_parses_as_shown(parser, command: str):
+    argv = shlex.split(command)[1:]
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # argparse's usage error
+        pytest.fail(f"`{command}` does not parse (exit {exc.code})")
+    assert callable(getattr(args, "func", None)), command
