@@ -10,6 +10,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from payload.cliutil import command_project, emit_json
 from payload.sweep.grid import SweepError, parse_set
 from payload.sweep.run import DEFAULT_SAMPLES
 
@@ -31,7 +32,6 @@ def _progress(enabled: bool, total: int) -> Any:
 
 
 def _cmd_sweep(args: argparse.Namespace) -> int:
-    from payload.cli import command_project, emit_json
     from payload.project import provenance
     from payload.sweep.report import sweep_json, sweep_markdown, write_sweep
     from payload.sweep.run import plan, run_points

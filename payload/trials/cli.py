@@ -10,6 +10,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from payload.cliutil import CheckFailed, command_project, emit_json
 from payload.errors import PayloadError
 
 
@@ -50,7 +51,6 @@ def _check_ctb(ctb: str) -> None:
 
 
 def _cmd_trial(args: argparse.Namespace) -> int:
-    from payload.cli import command_project, emit_json
 
     if args.seed is not None and args.seed < 0:
         raise TrialsCliError(f"--seed must be >= 0, got {args.seed}")
@@ -105,7 +105,6 @@ def _cmd_trial(args: argparse.Namespace) -> int:
 
 
 def _cmd_trials_run(args: argparse.Namespace) -> int:
-    from payload.cli import CheckFailed, command_project, emit_json
     from payload.project import provenance
     from payload.trials.campaign import (
         default_workers,
@@ -187,7 +186,6 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
 
 
 def _cmd_trials_summarize(args: argparse.Namespace) -> int:
-    from payload.cli import emit_json
     from payload.trials.campaign import (
         contact_tag,
         load_trial_results,
@@ -255,7 +253,6 @@ def _previous_summary(path: Path) -> dict[str, Any]:
 
 
 def _cmd_export_lerobot(args: argparse.Namespace) -> int:
-    from payload.cli import emit_json
     from payload.trials.lerobot import export_lerobot
 
     info = export_lerobot(
@@ -280,7 +277,6 @@ def _cmd_bench_recorder(args: argparse.Namespace) -> int:
 
     import numpy as np
 
-    from payload.cli import emit_json
     from payload.schema import CONTROL_DT
     from payload.trials.metrics import compute_metrics
     from payload.trials.recorder import TrialRecorder, random_step, read_recording
@@ -330,7 +326,6 @@ def _cmd_bench_recorder(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench_trial(args: argparse.Namespace) -> int:
-    from payload.cli import emit_json
     from payload.trials.bench import run_trial_bench
 
     if args.seed < 0:
@@ -360,7 +355,6 @@ def _cmd_bench_trial(args: argparse.Namespace) -> int:
 
 
 def _cmd_trials_convert(args: argparse.Namespace) -> int:
-    from payload.cli import emit_json
     from payload.trials.convert import convert_dir
 
     info = convert_dir(Path(args.dir), force=args.force)
