@@ -10,7 +10,14 @@ import time
 from pathlib import Path
 from typing import Any
 
-from payload.cliutil import CheckFailed, command_project, emit_json
+from payload.cliutil import (
+    CheckFailed,
+    add_deprecated,
+    add_replay,
+    command_project,
+    default_out,
+    emit_json,
+)
 from payload.errors import PayloadError
 
 
@@ -30,7 +37,23 @@ def _run_trial_fn() -> Any:
     return run_trial
 
 
-def _parse_operator(values: list[str]) -> tuple[str, Path | None]:
+def _parse_operator(args: argparse.Namespace) -> tuple[str, Path | None]:
+    """The operator of ``payload trial``: ``--replay FILE``, else synthetic; or the
+    deprecated ``--operator synthetic|replay FILE``.
+
+    Raises:
+        TrialsCliError: Both spellings, a bad ``--operator`` or no such file.
+    """
+    values = getattr(args, "operator", None)
+    if values is None:
+        if args.replay is None:
+            return "synthetic", None
+        replay = Path(args.replay)
+        if not replay.is_file():
+            raise TrialsCliError(f"--replay: {replay}: no such file")
+        return "replay", replay
+    if args.replay is not None:
+        raise TrialsCliError("--replay and --operator (its deprecated spelling): give one")
     if values == ["synthetic"]:
         return "synthetic", None
     if len(values) == 2 and values[0] == "replay":
@@ -56,7 +79,7 @@ def _cmd_trial(args: argparse.Namespace) -> int:
         raise TrialsCliError(f"--seed must be >= 0, got {args.seed}")
     if args.max_time is not None and not args.max_time > 0:
         raise TrialsCliError(f"--max-time must be positive, got {args.max_time}")
-    operator, replay = _parse_operator(args.operator)
+    operator, replay = _parse_operator(args)
     if operator == "synthetic":
         _setup_defaults(args)
     if args.ctb is not None:
@@ -110,10 +133,10 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
         default_workers,
         run_campaign,
         runner_trial_fn,
-        summary_markdown,
         trial_dir,
         write_summary,
     )
+    from payload.trials.summary import summary_terminal, trial_line_printer
 
     if args.n < 1:
         raise TrialsCliError(f"--n must be >= 1, got {args.n}")
@@ -126,7 +149,7 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
     _run_trial_fn()  # fail here, once, if the runner is missing
     project = command_project(args)
     prov = provenance(project)
-    out = Path(args.out)
+    out = Path(args.out) if args.out else default_out(project, "campaign")
     seeds = list(range(args.seed, args.seed + args.n))
     if not args.force:
         taken = [trial_dir(out, s) for s in seeds if any(trial_dir(out, s).glob("*"))]
@@ -153,7 +176,8 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
         out,
         workers=workers,
         scheduler=args.scheduler,
-        progress=not args.json and sys.stderr.isatty(),
+        progress=not args.json and sys.stderr.isatty() and sys.stdout.isatty(),
+        on_trial=None if args.json or sys.stdout.isatty() else trial_line_printer(len(seeds)),
     )
     run = {
         "workers": None if args.scheduler else workers,
@@ -172,8 +196,9 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
             {**summary, "wall_s": run["wall_s"], "out_dir": str(out), "project": str(project.root)}
         )
     else:
-        print(summary_markdown(summary, title))
-        print(f"wrote {out / 'summary.md'} and {out / 'summary.json'}")
+        print(summary_terminal(summary, title))
+        print(f"wrote {out / 'summary.md'} (definitions, the paper-literal column, every "
+              f"trial) and {out / 'summary.json'}")  # fmt: skip
     errors = [r for r in results if r.get("error")]
     if errors:
         first = errors[0]
@@ -255,9 +280,10 @@ def _previous_summary(path: Path) -> dict[str, Any]:
 def _cmd_export_lerobot(args: argparse.Namespace) -> int:
     from payload.trials.lerobot import export_lerobot
 
+    out = Path(args.out) if args.out else default_out(command_project(args), "lerobot")
     info = export_lerobot(
         [Path(r) for r in args.runs],
-        Path(args.out),
+        out,
         task=args.task,
         overwrite=args.force,
         progress=not args.json and sys.stderr.isatty(),
@@ -423,12 +449,19 @@ def register(
     p.add_argument(
         "--seed", type=int, default=None, help="trial seed (default 0; a replay: its source's)"
     )
-    p.add_argument(
+    add_replay(
+        p,
+        "replay this recording's hands (a trial's log.mcap or a hands.jsonl) instead of the "
+        "synthetic operator",
+    )
+    add_deprecated(
+        p,
         "--operator",
+        "--replay FILE",
+        "operator",
         nargs="+",
-        default=["synthetic"],
         metavar=("synthetic|replay", "F"),
-        help="'synthetic' (default) or 'replay FILE' (a recorded hand stream)",
+        help="'synthetic' or 'replay FILE'",
     )
     p.add_argument("--out", help="trial folder (default: a new runs/trial-NNNN[-k] in the project)")
     p.add_argument(
@@ -454,7 +487,9 @@ def register(
         help="local Dask worker processes (default: one per core; 0 or 1: serial)",
     )
     r.add_argument("--scheduler", help="existing Dask scheduler, e.g. tcp://host:8786")
-    r.add_argument("--out", required=True, help="campaign folder")
+    r.add_argument(
+        "--out", help="campaign folder (default: a new runs/campaign-NNNN in the project)"
+    )
     r.add_argument("--force", action="store_true", help="replace a campaign already in --out")
     _setup_arguments(r)
     r.add_argument("--json", action="store_true", help="print one JSON object")
@@ -498,7 +533,7 @@ def register(
 
     e = groups["export"].add_parser("lerobot", help="recordings as a LeRobot v3 dataset")
     e.add_argument("runs", nargs="+", metavar="RUN", help="log.mcap, trial or campaign folder")
-    e.add_argument("--out", required=True, help="dataset folder")
+    e.add_argument("--out", help="dataset folder (default: a new runs/lerobot-NNNN in the project)")
     e.add_argument("--task", help="task text for every episode")
     e.add_argument("--force", action="store_true", help="replace an existing dataset")
     e.add_argument("--json", action="store_true", help="print one JSON object")
