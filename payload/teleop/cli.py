@@ -155,6 +155,7 @@ def bench(args: argparse.Namespace, make_session: SessionFactory) -> int:
     makes."""
     from payload.teleop.bench import run_bench
 
+    command_project(args)  # the session flies this project's models
     # the emulated operator's tracking drop-outs are part of the run, not news
     logging.getLogger("payload.teleop.safety").setLevel(logging.ERROR)
     result = run_bench(make_session, seconds=args.seconds)

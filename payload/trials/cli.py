@@ -359,6 +359,7 @@ def _cmd_bench_trial(args: argparse.Namespace) -> int:
     out = Path(args.out) if args.out else None
     if args.seconds is not None and args.seconds <= 0:
         raise TrialsCliError(f"--seconds must be positive, got {args.seconds}")
+    command_project(args)  # the trial flies this project's models
     result = run_trial_bench(args.seed, out_dir=out, pin=args.pin, max_time=args.seconds)
     if args.json:
         emit_json(result)
