@@ -136,7 +136,7 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
         trial_dir,
         write_summary,
     )
-    from payload.trials.summary import summary_terminal, trial_line_printer
+    from payload.trials.terminal import summary_terminal, trial_line_printer
 
     if args.n < 1:
         raise TrialsCliError(f"--n must be >= 1, got {args.n}")
