@@ -158,3 +158,12 @@ def test_teleop_and_the_layers_below_never_import_the_trials_or_the_commands() -
         or target in upper[:3]
     )
     assert upward == []
+
+
+def test_only_the_entry_points_import_the_dispatcher() -> None:
+    """payload.cli is the top: command modules take their helpers from payload.cliutil
+    and a sweep point runs the build and the reports through their functions, so nothing
+    but ``python -m payload`` imports it."""
+    graph = import_graph()
+    importers = sorted(mod for mod, targets in graph.items() if "payload.cli" in targets)
+    assert importers == ["payload.__main__"]
