@@ -1,13 +1,28 @@
-"""``payload hw emulate|scan|check|run`` and ``payload bench hw``."""
+"""``payload hw emulate|scan|check|run`` and ``payload bench hw``.
+
+The serial device is ``--device`` (``--port``, its earlier spelling here, is kept for one
+release as a deprecated alias); ``hw run`` replays ``--replay FILE`` (``--source replay
+FILE``, its earlier spelling, likewise).
+"""
 
 from __future__ import annotations
 
 import argparse
 import sys
-import time
 from pathlib import Path
 from typing import Any
 
+from payload.cliutil import (
+    CheckFailed,
+    add_deprecated,
+    add_device,
+    add_json,
+    add_replay,
+    command_project,
+    default_out,
+    emit_json,
+    need_device,
+)
 from payload.errors import PayloadError
 
 
@@ -30,10 +45,11 @@ def _cmd_emulate(args: argparse.Namespace) -> int:
 
 def _cmd_scan(args: argparse.Namespace) -> int:
     from firmware_interface.driver import DynamixelDriver
-    from payload.cli import emit_json
 
+    command_project(args)  # the servo map's joints are this project's
+    device = need_device(args)
     smap = _map(args)
-    with DynamixelDriver(args.port, smap, latency_timer_ms=args.latency_ms) as drv:
+    with DynamixelDriver(device, smap, latency_timer_ms=args.latency_ms) as drv:
         found = drv.scan()
     known = {s.id: s.joint for s in smap.servos}
     servos = [
@@ -42,7 +58,8 @@ def _cmd_scan(args: argparse.Namespace) -> int:
     ]
     missing = [{"id": i, "joint": j} for i, j in known.items() if i not in found]
     if args.json:
-        emit_json({"port": args.port, "servos": servos, "missing": missing})
+        # "port": the device's field name before --device (kept: JSON fields are never renamed)
+        emit_json({"device": device, "port": device, "servos": servos, "missing": missing})
     else:
         for s in servos:
             print(f"ID {s['id']:3d}  model {s['model_number']}  firmware {s['firmware']}  "
@@ -83,10 +100,9 @@ def check(port: str, smap: Any, latency_ms: float = 16.0) -> dict[str, Any]:
 
 
 def _cmd_check(args: argparse.Namespace) -> int:
-    from payload.cli import CheckFailed, command_project, emit_json
 
     command_project(args)  # the servo map is validated against this project's design
-    report = check(args.port, _map(args), args.latency_ms)
+    report = check(need_device(args), _map(args), args.latency_ms)
     if args.json:
         emit_json(report)
     else:
@@ -105,24 +121,14 @@ def _cmd_check(args: argparse.Namespace) -> int:
 def _cmd_run(args: argparse.Namespace) -> int:
     from firmware_interface.driver import DynamixelDriver
     from firmware_interface.run import run_hardware_trial
-    from payload.cli import command_project, emit_json
 
     project = command_project(args)
-    source = args.source
-    if source[0] == "webxr":
-        raise HwUsageError(
-            "--source webxr: the live interface drives the hardware through "
-            "`payload teleop serve --driver hardware`"
-        )
-    if source[0] != "replay" or len(source) != 2:
-        raise HwUsageError("--source must be 'replay FILE' or 'webxr'")
-    replay = Path(source[1])
-    if not replay.is_file():
-        raise HwUsageError(f"--source replay: {replay} is not a file")
-    out = Path(args.out) if args.out else project.runs_dir / f"hw-{time.strftime('%Y%m%d-%H%M%S')}"
-    if (out / "log.mcap").exists():
-        raise HwUsageError(f"--out {out}: already holds a recording; choose another folder")
-    with DynamixelDriver(args.port, _map(args), latency_timer_ms=args.latency_ms) as drv:
+    device = need_device(args)
+    replay = _replay_of(args)
+    if args.out and (Path(args.out) / "log.mcap").exists():
+        raise HwUsageError(f"--out {args.out}: already holds a recording; choose another folder")
+    out = Path(args.out) if args.out else default_out(project, "hw")
+    with DynamixelDriver(device, _map(args), latency_timer_ms=args.latency_ms) as drv:
         drv.bring_up()
         result = run_hardware_trial(drv, replay, out, max_time=args.max_time,
                                     pace=not args.no_pace)  # fmt: skip
@@ -134,13 +140,40 @@ def _cmd_run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _replay_of(args: argparse.Namespace) -> Path:
+    """The recording ``hw run`` replays: ``--replay FILE``, or the deprecated ``--source``.
+
+    Raises:
+        HwUsageError: None, both, a ``--source`` other than ``replay FILE``, or no file.
+    """
+    source = getattr(args, "source", None)
+    if source is not None and args.replay is not None:
+        raise HwUsageError("--replay and --source (its deprecated spelling): give one")
+    if source is not None:
+        if source[0] == "webxr":
+            raise HwUsageError(
+                "--source webxr: the live interface drives the hardware through "
+                "`payload teleop serve --driver hardware`"
+            )
+        if source[0] != "replay" or len(source) != 2:
+            raise HwUsageError("--source must be 'replay FILE' (use --replay FILE)")
+        given, name = source[1], "--source replay"
+    elif args.replay is not None:
+        given, name = args.replay, "--replay"
+    else:
+        raise HwUsageError("--replay FILE is required (a trial's log.mcap or a hands.jsonl)")
+    replay = Path(given)
+    if not replay.is_file():
+        raise HwUsageError(f"{name}: {replay} is not a file")
+    return replay
+
+
 def _cmd_bench(args: argparse.Namespace) -> int:
     from firmware_interface.bench import bench_hw
-    from payload.cli import emit_json
 
     if args.cycles < 1:
         raise HwUsageError(f"--cycles must be at least 1, got {args.cycles}")
-    result = bench_hw(args.port, args.cycles, args.servos, args.latency_ms)
+    result = bench_hw(args.device, args.cycles, args.servos, args.latency_ms)
     if args.json:
         emit_json(result)
     else:
@@ -183,33 +216,33 @@ def register(
         ("check", _cmd_check, "bring-up and health of every servo (exit 1 when not ok)"),
     ):
         p = hws.add_parser(name, help=text)
-        p.add_argument("--port", required=True, help="serial device or emulator pty")
+        add_device(p, "serial device of the servo bus or an emulator's pty (required)",
+                   old_port=True)  # fmt: skip
         p.add_argument("--servos", metavar="MAP", help="servo map TOML")
-        p.add_argument("--json", action="store_true", help="print one JSON object")
+        add_json(p)
         _latency(p)
         p.set_defaults(func=fn)
 
     p = hws.add_parser("run", help="the 50 Hz teleoperation loop on the hardware")
-    p.add_argument("--port", required=True, help="serial device or emulator pty")
-    p.add_argument(
-        "--source",
-        nargs="+",
-        required=True,
-        metavar="SRC",
-        help="'replay FILE' (a hands.jsonl) or 'webxr'",
-    )
+    add_device(p, "serial device of the servo bus or an emulator's pty (required)", old_port=True)
+    add_replay(p, "the recorded hands to replay (required): a trial's log.mcap or a hands.jsonl")
+    add_deprecated(p, "--source", "--replay FILE", "source", nargs="+", metavar="SRC",
+                   help="'replay FILE'")  # fmt: skip
     p.add_argument("--servos", metavar="MAP", help="servo map TOML")
-    p.add_argument("--out", help="trial folder (default runs/hw-<time>)")
+    p.add_argument("--out", help="trial folder (default: a new runs/hw-NNNN in the project)")
     p.add_argument("--max-time", type=float, default=240.0, help="session cap [s]")
     p.add_argument("--no-pace", action="store_true", help=argparse.SUPPRESS)
-    p.add_argument("--json", action="store_true", help="print one JSON object")
+    add_json(p)
     _latency(p)
     p.set_defaults(func=_cmd_run)
 
     p = groups["bench"].add_parser("hw", help="sync write + fast sync read cycle vs wire time")
-    p.add_argument("--port", help="serial device (default: start an emulator at 4 Mbaud)")
-    p.add_argument("--cycles", type=int, default=2000)
+    add_device(p, "serial device of the servo bus (default: start an emulator at 4 Mbaud)",
+               old_port=True)  # fmt: skip
+    p.add_argument(
+        "--cycles", type=int, default=2000, help="write/read cycles to time (default 2000)"
+    )
     p.add_argument("--servos", metavar="MAP", help="servo map TOML")
-    p.add_argument("--json", action="store_true", help="print one JSON object")
+    add_json(p)
     _latency(p)
     p.set_defaults(func=_cmd_bench)

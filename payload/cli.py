@@ -1,237 +1,116 @@
-"""The ``payload`` command line (contract in DESIGN.md).
+"""The ``payload`` command line (contract in DESIGN.md): the dispatcher at the top.
 
-Every subcommand lives in a ``register(subparsers)`` function; a subcommand's
-handler returns the exit code. Errors print one line on stderr and exit 2 (bad
-input) or 1 (failed check).
+Every command lives in a command module's ``register(sub, groups)``; its handler returns
+the exit code. Errors print one line on stderr and exit 2 (bad input) or 1 (failed check).
+What the commands share (project resolution, ``--json`` output, check failures, the shared
+options) lives in :mod:`payload.cliutil`, below every command module: no command module
+imports this one.
 
-A command that works on a design project calls :func:`command_project` once: it
-finds the project (``--project DIR``, ``PAYLOAD_PROJECT``, the cwd upward, or the
-project holding ``--design F``), prints ``project: <root>`` as the first line of
-terminal output, and exports ``PAYLOAD_PROJECT`` for the rest of the command so
-library defaults and worker processes use the same project. Its JSON carries
-``"project"``.
+Command modules load on first use. :data:`COMMANDS` names every command with its module
+and its help, so ``payload --help`` (and ``payload bench --help``) list every command
+without importing any command module, and ``payload <command>`` imports only the module
+of that command. ``tests/test_cli.py`` checks the table against what the modules register.
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
-import json
 import os
-import shutil
 import sys
-import time
-from collections.abc import Callable, Sequence
-from pathlib import Path
-from typing import Any
+from collections.abc import Callable, Iterable, Sequence
+from typing import NamedTuple
 
+from payload.cliutil import CheckFailed, command_project, emit_json
 from payload.errors import PayloadError, RunAborted
-from payload.project import ENV_VAR, Project, ProjectError, find_project, project_of
+from payload.project import ENV_VAR
 
-# Modules providing ``register(sub, groups)``; each adds its own subcommands to the top
-# level (``sub``) or to a shared group (``groups["bench"]``, ``groups["report"]``,
-# ``groups["export"]``). Every module must exist: none is skipped.
-COMMAND_MODULES: tuple[str, ...] = (
-    "payload.cli",
-    "payload.retarget.cli",
-    "payload.envelope.cli",
-    "payload.sim.cli",
-    "payload.teleop.cli",
-    "payload.trials.cli",
-    "payload.review.cli",
-    "firmware_interface.cli",
-    "payload.sweep.cli",
+
+class Command(NamedTuple):
+    """One command of the table: its words, the module registering it, its help line."""
+
+    path: str
+    module: str
+    help: str
+
+
+# One line per command: "words", module whose register() adds it, the help it registers.
+# A command inside a shared group (bench, report, export) is "group name"; a command with
+# subcommands of its own (hw, teleop, trials) is one line.
+COMMANDS: tuple[Command, ...] = (
+    Command("new", "payload.design.cli", "a new design project, built and ready"),
+    Command("build", "payload.design.cli", "regenerate urdf/ and cad/meshes/ from the design"),
+    Command("summary", "payload.design.cli", "DoF, joint ranges, masses and bounding boxes"),
+    Command(
+        "report envelope",
+        "payload.envelope.cli",
+        "stowed fit in the two lower bays, self-collision, deployment sweep",
+    ),
+    Command(
+        "report reach",
+        "payload.envelope.cli",
+        "fingertip workspaces, pair spans, rail spacing, CTB grasp check",
+    ),
+    Command(
+        "review", "payload.review.cli", "Meshcat design review (and trial replay) in the browser"
+    ),
+    Command("trial", "payload.trials.cli", "one ISS cargo-transport trial"),
+    Command("trials", "payload.trials.cli", "trial campaigns and their summaries"),
+    Command("export lerobot", "payload.trials.cli", "recordings as a LeRobot v3 dataset"),
+    Command(
+        "sweep",
+        "payload.sweep.cli",
+        "a design sweep on Dask: every combination of --set values, each a project",
+    ),
+    Command("teleop", "payload.trials.live_cli", "the live Quest (WebXR) interface"),
+    Command("hw", "firmware_interface.cli", "the Dynamixel hardware and its emulator"),
+    Command(
+        "bench retarget",
+        "payload.retarget.cli",
+        "production (CasADi) against reference (scipy) retargeting, same run",
+    ),
+    Command(
+        "bench sim",
+        "payload.sim.cli",
+        "real-time factor of the full CTB scene under the 50 Hz loop",
+    ),
+    Command(
+        "bench teleop",
+        "payload.trials.live_cli",
+        "latency of the live interface through an emulated Quest 3",
+    ),
+    Command("bench recorder", "payload.trials.cli", "trial recorder cost and file size"),
+    Command(
+        "bench trial",
+        "payload.trials.cli",
+        "a trial's real-time factor, time breakdown and log size",
+    ),
+    Command("bench hw", "firmware_interface.cli", "sync write + fast sync read cycle vs wire time"),
 )
+"""Every command: one line each (see docs/cli.md, "Adding a command")."""
+
 GROUPS: dict[str, str] = {
     "bench": "benchmarks: production against reference, same run",
     "report": "reports written into analyses/",
     "export": "export recordings",
 }
+"""Shared groups whose subcommands come from several modules."""
 
+COMMAND_MODULES: tuple[str, ...] = tuple(dict.fromkeys(c.module for c in COMMANDS))
+"""Every command module, in the table's order."""
 
-class CheckFailed(Exception):
-    """A check ran and failed (exit 1)."""
-
-
-def emit_json(obj: Any) -> None:
-    """Print exactly one JSON object on stdout."""
-    sys.stdout.write(json.dumps(obj, sort_keys=False) + "\n")
-
-
-def command_project(args: argparse.Namespace, design: str | Path | None = None) -> Project:
-    """The design project of this command, resolved once per command.
-
-    ``design`` (a ``--design F``) selects the project holding F, so a command never
-    writes another project's models; ``--project`` must then agree with it. A design
-    file in no project applies to the project found as usual. Prints
-    ``project: <root>`` unless the command prints JSON (``args.json``), and exports it
-    as ``PAYLOAD_PROJECT`` until :func:`main` returns.
-
-    Raises:
-        ProjectError: No project, or ``--design`` and ``--project`` disagree.
-    """
-    cached = getattr(args, "_project", None)
-    if cached is not None:
-        return cached
-    explicit = getattr(args, "project", None)
-    if design is not None:
-        owner = project_of(design)
-        if owner is None:
-            project = find_project(explicit)
-        elif explicit is not None and find_project(explicit).root != owner.root:
-            raise ProjectError(
-                f"--design {design} belongs to project {owner.root}, not --project {explicit}"
-            )
-        else:
-            project = owner
-    else:
-        project = find_project(explicit)
-    args._project = project
-    os.environ[ENV_VAR] = str(project.root)
-    if not getattr(args, "json", False):
-        print(f"project: {project.root}", flush=True)
-    return project
-
-
-def _cmd_build(args: argparse.Namespace) -> int:
-    from payload.design import load_design, stale_files, write
-
-    if args.root:  # hidden: generate into any folder (tests), no project involved
-        design, root = load_design(args.design), Path(args.root)
-    else:
-        if args.design and not args.check:
-            _check_own_design(Path(args.design))
-        project = command_project(args, args.design)
-        design, root = load_design(args.design or project.design_path), project.root
-    t0 = time.perf_counter()
-    if args.check:
-        stale = stale_files(design, root)
-        if stale:
-            raise CheckFailed(
-                f"stale: {', '.join(stale)} ({len(stale)} generated file(s) do not match "
-                f"{design.source}; run `payload build`)"
-            )
-        print(f"generated files match {design.source} ({time.perf_counter() - t0:.2f} s)")
-        return 0
-    result = write(design, root)
-    dt = time.perf_counter() - t0
-    print(f"wrote {len(result.files)} files under {root} in {dt:.2f} s")
-    return 0
-
-
-def _check_own_design(design: Path) -> None:
-    """Building writes a design's models into its own project, so the design must be a
-    project's ``cad/design.toml``.
-
-    Raises:
-        PayloadError: The file is not a project's ``cad/design.toml``.
-    """
-    owner = project_of(design)
-    if owner is None or owner.design_path != design.expanduser().resolve():
-        raise PayloadError(
-            f"{design}: not a design project's cad/design.toml, so its models have no project "
-            "to go to; nothing written (make one with `payload new DIR`, or compare with "
-            "--check)"
-        )
-
-
-def _cmd_summary(args: argparse.Namespace) -> int:
-    from payload.design import load_design
-    from payload.design.summary import print_summary, summarize
-
-    project = command_project(args, args.design)
-    design = load_design(args.design or project.design_path)
-    summary = summarize(design)
-    if args.json:
-        emit_json({**summary, "project": str(project.root)})
-    else:
-        print_summary(summary)
-    return 0
-
-
-def new_project(directory: str | Path, source: str | Path | None = None) -> tuple[Project, int]:
-    """Create a design project in ``directory`` and build its models.
-
-    Args:
-        directory: The new project's folder: must not exist, or be empty.
-        source: A project (or its design file) whose design is copied; ``None``: the
-            packaged default design.
-
-    Returns:
-        The project and the number of generated files.
-
-    Raises:
-        ProjectError: ``directory`` is a non-empty folder or a file, or ``source`` is
-            not a project.
-        DesignError: The copied design is invalid (the folder is removed again).
-    """
-    from payload.design import load_design, write
-    from payload.project import default_design_text
-
-    target = Path(directory)
-    if target.exists() and (not target.is_dir() or any(target.iterdir())):
-        raise ProjectError(f"{target}: not an empty folder; `payload new` needs a new one")
-    if source is not None:
-        src = Path(source)
-        src_project = project_of(src) if src.is_file() else find_project(src)
-        if src_project is None:
-            raise ProjectError(f"--from {source}: not a design project")
-        text = (src if src.is_file() else src_project.design_path).read_text(encoding="utf-8")
-    else:
-        text = default_design_text()
-    created = not target.exists()
-    project = Project.at(target)
-    project.design_path.parent.mkdir(parents=True, exist_ok=True)
-    project.design_path.write_text(text, encoding="utf-8")
-    try:
-        result = write(load_design(project.design_path), project.root)
-    except PayloadError:
-        if created:
-            shutil.rmtree(project.root, ignore_errors=True)
-        else:
-            for child in list(project.root.iterdir()):
-                shutil.rmtree(child) if child.is_dir() else child.unlink()
-        raise
-    return project, len(result.files)
-
-
-def _cmd_new(args: argparse.Namespace) -> int:
-    t0 = time.perf_counter()
-    project, n = new_project(args.dir, args.source)
-    print(f"project: {project.root}")
-    print(
-        f"new design project from {args.source or 'the packaged default design'}: "
-        f"{project.relative(project.design_path)} and {n} generated files in "
-        f"{time.perf_counter() - t0:.2f} s"
-    )
-    return 0
-
-
-def register(
-    sub: argparse._SubParsersAction, groups: dict[str, argparse._SubParsersAction]
-) -> None:
-    p = sub.add_parser("new", help="a new design project, built and ready")
-    p.add_argument("dir", metavar="DIR", help="folder of the new project (new or empty)")
-    p.add_argument(
-        "--from",
-        dest="source",
-        metavar="PROJECT",
-        help="copy this project's design (default: the packaged default design)",
-    )
-    p.set_defaults(func=_cmd_new)
-
-    p = sub.add_parser("build", help="regenerate urdf/ and cad/meshes/ from the design")
-    p.add_argument(
-        "--design", help="design TOML (default: cad/design.toml); builds the project holding it"
-    )
-    p.add_argument("--check", action="store_true", help="exit 1 naming every stale file")
-    p.add_argument("--root", help=argparse.SUPPRESS)
-    p.set_defaults(func=_cmd_build)
-
-    p = sub.add_parser("summary", help="DoF, joint ranges, masses and bounding boxes")
-    p.add_argument("--design", help="design TOML (default: cad/design.toml)")
-    p.add_argument("--json", action="store_true", help="print one JSON object")
-    p.set_defaults(func=_cmd_summary)
+__all__ = [
+    "COMMANDS",
+    "COMMAND_MODULES",
+    "GROUPS",
+    "CheckFailed",
+    "Command",
+    "build_parser",
+    "command_project",
+    "emit_json",
+    "main",
+    "registered_commands",
+]
 
 
 class _Groups(dict):
@@ -247,7 +126,28 @@ class _Groups(dict):
         return self[name]
 
 
-def build_parser() -> argparse.ArgumentParser:
+def _register(module: str, sub: argparse._SubParsersAction, groups: _Groups) -> None:
+    register_fn: Callable[..., None] = importlib.import_module(module).register
+    register_fn(sub, groups)
+
+
+def _placeholders(sub: argparse._SubParsersAction, groups: _Groups) -> None:
+    """A parser with only its help line for every command no loaded module registered,
+    so every command is listed; choosing one loads its module (:func:`main`)."""
+    for cmd in COMMANDS:
+        *group, name = cmd.path.split()
+        target = groups[group[0]] if group else sub
+        if name not in target.choices:
+            target.add_parser(name, help=cmd.help).set_defaults(_lazy_module=cmd.module)
+
+
+def build_parser(modules: Iterable[str] | None = None) -> argparse.ArgumentParser:
+    """The ``payload`` parser.
+
+    Args:
+        modules: Command modules to load and register fully; the other commands are
+            listed with their help only. ``None``: every module (the whole tree).
+    """
     from payload import __version__
 
     parser = argparse.ArgumentParser(
@@ -262,13 +162,53 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     groups = _Groups(sub)
+    wanted = set(COMMAND_MODULES if modules is None else modules)
+    if not wanted:  # listing only: the table's order
+        _placeholders(sub, groups)
     for name in COMMAND_MODULES:  # every one is part of the package: a missing one is a bug
-        module = importlib.import_module(name)
-        register_fn: Callable[..., None] = module.register
-        register_fn(sub, groups)
+        if name in wanted:
+            _register(name, sub, groups)
+    _placeholders(sub, groups)
     _add_project_option(parser)
     _strict(parser)
     return parser
+
+
+def registered_commands(module: str) -> dict[str, str]:
+    """What ``module``'s ``register()`` adds: ``{"words": help}`` (for the table's test)."""
+    root = argparse.ArgumentParser(add_help=False)
+    sub = root.add_subparsers(dest="command")
+    groups = _Groups(sub)
+    _register(module, sub, groups)
+    found: dict[str, str] = {}
+    for choice in sub._choices_actions:
+        if choice.dest not in groups:
+            found[choice.dest] = choice.help or ""
+    for name, group in groups.items():
+        for choice in group._choices_actions:
+            found[f"{name} {choice.dest}"] = choice.help or ""
+    return found
+
+
+def _modules_for(argv: Sequence[str]) -> set[str]:
+    """The command module ``argv`` selects (none for ``--help``, ``--version`` or a group's
+    own help): the first words that are not options, matched against :data:`COMMANDS`."""
+    words: list[str] = []
+    skip = False
+    for token in argv:
+        if skip:
+            skip = False
+        elif token == "--project":
+            skip = True
+        elif not token.startswith("-"):
+            words.append(token)
+            if len(words) == 2:
+                break
+    for cmd in COMMANDS:
+        parts = cmd.path.split()
+        if words[: len(parts)] == parts:
+            return {cmd.module}
+    return set()
 
 
 def _add_project_option(parser: argparse.ArgumentParser) -> None:
@@ -298,12 +238,23 @@ def _strict(parser: argparse.ArgumentParser) -> None:
                 _strict(child)
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of the ``payload`` console script; returns the exit code."""
-    parser = build_parser()
+def _parse(argv: Sequence[str] | None) -> argparse.Namespace:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    modules = _modules_for(argv)
+    parser = build_parser(modules)
     args, unknown = parser.parse_known_args(argv)
+    lazy = getattr(args, "_lazy_module", None)
+    if lazy is not None and lazy not in modules:  # an order the word scan did not foresee
+        parser = build_parser({lazy})
+        args, unknown = parser.parse_known_args(argv)
     if unknown:  # the usage of the subcommand given, not the top level's (exits 2)
         getattr(args, "_parser", parser).error(f"unrecognized arguments: {' '.join(unknown)}")
+    return args
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``payload`` console script; returns the exit code."""
+    args = _parse(argv)
     saved = os.environ.get(ENV_VAR)
     try:
         return int(args.func(args) or 0)

@@ -17,7 +17,6 @@ import hashlib
 import os
 import subprocess
 from dataclasses import dataclass
-from importlib import metadata, resources
 from pathlib import Path
 from typing import Any
 
@@ -162,11 +161,15 @@ def project_of(design_file: str | Path) -> Project | None:
 
 def default_design_text() -> str:
     """The packaged default design (``payload/data/design.toml``) as text."""
+    from importlib import resources  # loaded here: every command imports this module
+
     return resources.files("payload").joinpath("data", "design.toml").read_text(encoding="utf-8")
 
 
 def package_version() -> str:
     """The installed version of the ``astrobee-payload`` distribution."""
+    from importlib import metadata  # loaded here: every command imports this module
+
     try:
         return metadata.version(DISTRIBUTION)
     except metadata.PackageNotFoundError:  # pragma: no cover - running from a bare tree

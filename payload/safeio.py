@@ -98,10 +98,28 @@ def new_folder(parent: str | Path, stem: str) -> Path:
         return candidate
 
 
+def numbered_folder(parent: str | Path, prefix: str) -> Path:
+    """Create and return ``parent/<prefix>-NNNN``, the number one above the highest taken
+    (``campaign-0001``, ``campaign-0002``, ...), claimed atomically like :func:`new_folder`."""
+    parent = Path(parent)
+    parent.mkdir(parents=True, exist_ok=True)
+    taken = [p.name.removeprefix(f"{prefix}-") for p in parent.glob(f"{prefix}-*")]
+    n = max((int(t) for t in taken if t.isdigit()), default=0) + 1
+    while True:
+        candidate = parent / f"{prefix}-{n:04d}"
+        try:
+            candidate.mkdir()
+        except FileExistsError:
+            n += 1
+            continue
+        return candidate
+
+
 __all__ = [
     "OverwriteError",
     "check_new",
     "new_folder",
+    "numbered_folder",
     "replace_file",
     "replacing",
     "write_unless_changed",

@@ -4,12 +4,16 @@ subcommand's usage, and bad input files give one line and exit 2."""
 from __future__ import annotations
 
 import argparse
+import json
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
 from conftest import ROOT
 
-from payload.cli import build_parser, main
+from payload.cli import COMMAND_MODULES, COMMANDS, GROUPS, build_parser, main, registered_commands
+from payload.cliutil import DeprecatedAlias
 
 STL = ROOT / "cad" / "meshes" / "finger_distal.stl"
 
@@ -52,7 +56,7 @@ def test_a_wrong_option_prints_the_subcommands_usage(argv, usage, capsys) -> Non
     [
         (["summary", "--design", str(STL)], "not a text (UTF-8 TOML) file"),
         (["report", "envelope", "--design", str(STL)], "not a text (UTF-8 TOML) file"),
-        (["trial", "--operator", "replay", str(STL)], "not a payload-hands recording"),
+        (["trial", "--replay", str(STL)], "not a payload-hands recording"),
     ],
 )
 def test_binary_input_files_give_one_line_and_exit_2(argv, message, capsys) -> None:
@@ -82,3 +86,169 @@ def test_build_of_another_projects_design_writes_that_project(tmp_path: Path, ca
         ROOT / "urdf" / "payload.urdf"
     ).read_bytes()
     assert {p: p.stat().st_mtime_ns for p in (ROOT / "urdf").iterdir()} == committed
+
+
+# -- the lazy registry -------------------------------------------------------------------
+HEAVY = ("mujoco", "scipy", "casadi", "pinocchio", "fcl", "trimesh", "matplotlib", "dask")
+
+
+def _imports_of(argv: list[str]) -> tuple[subprocess.CompletedProcess, set[str]]:
+    """Run ``payload ARGV`` in a fresh interpreter; its output and the heavy modules its
+    ``sys.modules`` holds at exit."""
+    code = (
+        "import sys, json, atexit\n"
+        f"atexit.register(lambda: print(json.dumps([m for m in {HEAVY!r} if m in "
+        "sys.modules]), file=sys.stderr))\n"
+        "from payload.cli import main\n"
+        "sys.exit(main(sys.argv[1:]))\n"
+    )
+    res = subprocess.run(
+        [sys.executable, "-c", code, *argv], capture_output=True, text=True, check=False
+    )
+    return res, set(json.loads(res.stderr.strip().splitlines()[-1]))
+
+
+@pytest.mark.parametrize(
+    "argv", [["--version"], ["--help"], ["bench", "--help"], ["report", "--help"]]
+)
+def test_version_and_help_import_no_numerical_library(argv: list[str]) -> None:
+    res, heavy = _imports_of(argv)
+    assert res.returncode == 0, res.stderr
+    assert heavy == set(), heavy
+
+
+def test_help_lists_every_command_of_the_table_with_its_help() -> None:
+    """Top level and every shared group list their commands (from the table, no module
+    loaded), each with the help its module registers."""
+    res, _ = _imports_of(["--help"])
+    top = " ".join(res.stdout.split())
+    for cmd in COMMANDS:
+        first = cmd.path.split()[0]
+        assert f" {first} " in top, first
+        if first not in GROUPS:
+            assert " ".join(cmd.help.split()) in top, cmd
+    for group in GROUPS:
+        listing = " ".join(_imports_of([group, "--help"])[0].stdout.split())
+        for cmd in COMMANDS:
+            words = cmd.path.split()
+            if words[0] == group:
+                assert f" {words[1]} {cmd.help}" in listing, cmd
+
+
+def test_the_command_table_matches_what_the_modules_register() -> None:
+    """Every module's register() adds exactly its table lines, with the same help, so
+    ``payload --help`` (from the table) cannot drift from the commands (from the
+    modules); and the full parser holds every table line."""
+    for module in COMMAND_MODULES:
+        table = {c.path: c.help for c in COMMANDS if c.module == module}
+        assert registered_commands(module) == table, module
+    found = {path.removeprefix("payload ") for path, _ in _parsers(build_parser())}
+    assert {c.path for c in COMMANDS} <= found
+
+
+@pytest.mark.parametrize(
+    ("argv", "loaded", "not_loaded"),
+    [
+        (["build", "--help"], "payload.design.cli", "payload.trials.cli"),
+        (["--project", ".", "bench", "sim", "--help"], "payload.sim.cli", "payload.trials.cli"),
+        (["hw", "scan", "--help"], "firmware_interface.cli", "payload.envelope.cli"),
+    ],
+)
+def test_a_command_loads_only_its_own_module(argv, loaded, not_loaded) -> None:
+    code = (
+        "import sys\nfrom payload.cli import main\ntry:\n    main(sys.argv[1:])\n"
+        "except SystemExit:\n    pass\n"
+        f"print({loaded!r} in sys.modules, {not_loaded!r} in sys.modules)\n"
+    )
+    res = subprocess.run(
+        [sys.executable, "-c", code, *argv], capture_output=True, text=True, check=True
+    )
+    assert res.stdout.strip().splitlines()[-1] == "True False"
+
+
+def test_no_command_module_imports_the_dispatcher() -> None:
+    """Command modules take their helpers from payload.cliutil: none names payload.cli,
+    at the top or inside a function (the dispatcher imports them, never the reverse)."""
+    import ast
+
+    for module in COMMAND_MODULES:
+        path = ROOT / (module.replace(".", "/") + ".py")
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom):
+                names = [node.module or ""]
+                names += [f"{node.module}.{a.name}" for a in node.names]
+            elif isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            else:
+                continue
+            assert "payload.cli" not in names, (module, node.lineno)
+
+
+# -- one vocabulary ----------------------------------------------------------------------
+FORBIDDEN = {"--serial", "--dev", "--tty", "--source", "--operator", "--input", "--recording"}
+"""Spellings outside the vocabulary (DESIGN.md), allowed only as deprecated aliases."""
+
+
+def test_every_option_has_help_and_speaks_the_vocabulary() -> None:
+    """The whole tree (every subcommand, built through the registry): every option and
+    positional has help text; ``--device`` is a serial device, ``--port`` a TCP port,
+    ``--replay`` a recording, ``--out`` never required; other spellings only as
+    deprecated aliases of the vocabulary's."""
+    problems = []
+    for path, parser in _parsers(build_parser()):
+        for action in parser._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                continue
+            where = f"{path} {'/'.join(action.option_strings) or action.dest}"
+            text = action.help or ""
+            if text == argparse.SUPPRESS:
+                continue  # hidden (tests, internal)
+            if not text.strip():
+                problems.append(f"{where}: no help")
+            deprecated = isinstance(action, DeprecatedAlias)
+            if deprecated and not text.startswith("deprecated spelling of --"):
+                problems.append(f"{where}: a deprecated alias must say so and name the new one")
+            for opt in action.option_strings:
+                if opt in FORBIDDEN and not deprecated:
+                    problems.append(f"{where}: {opt} is outside the vocabulary")
+                if opt == "--port" and not deprecated and "TCP" not in text:
+                    problems.append(f"{where}: --port is a TCP port")
+                if opt == "--port" and deprecated and action.new != "--device":
+                    problems.append(f"{where}: the old serial --port is an alias of --device")
+                if opt == "--device" and "serial" not in text:
+                    problems.append(f"{where}: --device is a serial device")
+                if opt == "--replay" and "log.mcap" not in text:
+                    problems.append(f"{where}: --replay should say which recordings it takes")
+                if opt == "--out" and action.required:
+                    problems.append(f"{where}: --out must be optional")
+    assert problems == []
+
+
+@pytest.mark.parametrize(
+    ("argv", "dest", "value", "warning"),
+    [
+        (["hw", "scan", "--port", "/dev/ttyUSB0"], "device", "/dev/ttyUSB0", "--port"),
+        (["hw", "check", "--port", "/dev/pts/3"], "device", "/dev/pts/3", "--port"),
+        (["bench", "hw", "--port", "/dev/pts/3"], "device", "/dev/pts/3", "--port"),
+        (
+            ["hw", "run", "--device", "D", "--source", "replay", "h.jsonl"],
+            "source",
+            None,
+            "--source",
+        ),
+        (["trial", "--operator", "replay", "log.mcap"], "operator", None, "--operator"),
+    ],
+)
+def test_old_spellings_still_parse_with_one_warning(argv, dest, value, warning, capsys) -> None:
+    args, unknown = build_parser().parse_known_args(argv)
+    assert unknown == []
+    assert getattr(args, dest) == (value if value is not None else argv[-2:])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"payload: warning: {warning} is deprecated")
+
+
+def test_new_from_a_non_project_names_from(tmp_path: Path, capsys) -> None:
+    assert main(["new", str(tmp_path / "p"), "--from", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"--from {tmp_path}: not a design project" in err[0]
+    assert "--project" not in err[0] and not (tmp_path / "p").exists()

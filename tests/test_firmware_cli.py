@@ -36,15 +36,34 @@ def test_emulate_prints_the_port_path_first(emulate):
 
 
 def test_scan_lists_ids_models_and_firmware(emulate, capsys):
-    assert main(["hw", "scan", "--port", emulate, "--json", "--latency-ms", LAT]) == 0
+    assert main(["hw", "scan", "--device", emulate, "--json", "--latency-ms", LAT]) == 0
     out = json.loads(capsys.readouterr().out)
     assert [s["id"] for s in out["servos"]] == [i for i in range(1, 19) if i != 7]
     assert {s["model_number"] for s in out["servos"]} == {1240}
     assert out["missing"] == [{"id": 7, "joint": "B_pip"}]
+    assert out["device"] == out["port"] == emulate  # "port": the field before --device
+
+
+def test_scan_names_the_project_first_and_takes_the_old_port_with_a_warning(emulate, capsys):
+    from payload.project import find_project
+
+    assert main(["hw", "scan", "--port", emulate, "--latency-ms", LAT]) == 0
+    captured = capsys.readouterr()
+    lines = captured.out.splitlines()
+    assert lines[0] == f"project: {find_project().root}"
+    assert sum(ln.startswith("ID ") for ln in lines) == 18  # 17 answering, 7 missing
+    warning = captured.err.strip().splitlines()
+    assert len(warning) == 1 and "--port is deprecated here; use --device" in warning[0]
+
+
+def test_hw_commands_without_a_device_say_so(capsys):
+    assert main(["hw", "scan"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--device DEV is required" in err[0]
 
 
 def test_check_fails_naming_the_missing_servo(emulate, capsys):
-    assert main(["hw", "check", "--port", emulate, "--json", "--latency-ms", LAT]) == 1
+    assert main(["hw", "check", "--device", emulate, "--json", "--latency-ms", LAT]) == 1
     captured = capsys.readouterr()
     report = json.loads(captured.out)
     assert report["ok"] is False

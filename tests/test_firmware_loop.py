@@ -75,7 +75,7 @@ def test_hw_run_records_the_trial_like_the_simulator(session, tmp_path):
 
     out = tmp_path / "trial"
     with EmulatorProcess() as emu:
-        argv = ["hw", "run", "--port", emu.port, "--source", "replay", str(session),
+        argv = ["hw", "run", "--device", emu.port, "--replay", str(session),
                 "--out", str(out), "--no-pace", "--latency-ms", str(LAT), "--json"]  # fmt: skip
         assert main(argv) == 0
         assert not any(s["torque"] for s in emu.servos().values())  # left safe
@@ -87,7 +87,7 @@ def test_hw_run_records_the_trial_like_the_simulator(session, tmp_path):
     _, replayed = read_hand_recording(out / "hands.jsonl")
     assert all(np.array_equal(a.left.joints, b.left.joints, equal_nan=True)
                for a, b in zip(frames, replayed))  # fmt: skip
-    # refuses to overwrite the recording
+    # refuses to overwrite the recording (asked in the earlier spellings, kept for a release)
     with EmulatorProcess() as emu:
         argv = ["hw", "run", "--port", emu.port, "--source", "replay", str(session),
                 "--out", str(out)]  # fmt: skip

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import os
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import casadi as ca
@@ -34,6 +36,7 @@ from payload.retarget.collision import (
     Box,
     box_sdf,
     link_geometry,
+    register,
     segment_box_distance,
     segment_box_distance_expr,
 )
@@ -62,7 +65,31 @@ def hand():
 
 @pytest.fixture(scope="module")
 def pks(hand):
+    register()  # the pairs' .collision below, before any retargeter registers it
     return {p: PairKinematics(hand, p) for p in PAIRS}
+
+
+def test_the_collision_model_is_registered_by_a_call_not_by_an_import() -> None:
+    """Importing the package and the collision module registers nothing; a pair's model
+    without the call says what to call; a retargeter makes the call itself."""
+    code = (
+        "import payload.retarget, payload.retarget.collision as c\n"
+        "from payload.retarget.features import COLLISION_MODEL, PairKinematics\n"
+        "from payload.retarget.errors import RetargetError\n"
+        "assert COLLISION_MODEL == [], COLLISION_MODEL\n"
+        "pk = PairKinematics(None, 'L')\n"
+        "try:\n"
+        "    pk.collision\n"
+        "    raise SystemExit('no error')\n"
+        "except RetargetError as exc:\n"
+        "    assert 'register()' in str(exc), exc\n"
+        "from payload.retarget import ReferenceRetargeter, RetargetConfig\n"
+        "ReferenceRetargeter(None, 'L', RetargetConfig(collisions=True), pk)\n"
+        "assert COLLISION_MODEL == [c.PairCollision]\n"
+        "assert pk.collision.margin > 0\n"
+    )
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr
 
 
 @pytest.fixture(scope="module")

@@ -137,3 +137,33 @@ def test_simulation_and_trials_do_not_load_the_mesh_libraries() -> None:
     )
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
     assert done.returncode == 0, done.stderr
+
+
+def test_teleop_and_the_layers_below_never_import_the_trials_or_the_commands() -> None:
+    """design < kinematics < retarget, envelope, sim < teleop < trials < cli (DESIGN.md):
+    nothing in those lower packages imports payload.trials, payload.sweep, payload.review
+    or the dispatcher payload.cli, not even inside a function (``teleop serve`` gets its
+    trial-layer live session handed down by payload.trials.live_cli)."""
+    lower = ("payload.design", "payload.kinematics", "payload.retarget", "payload.envelope")
+    lower += ("payload.sim", "payload.teleop")
+    upper = ("payload.trials", "payload.sweep", "payload.review", "payload.cli")
+    graph = import_graph()
+    upward = sorted(
+        f"{mod} -> {target}"
+        for mod, targets in graph.items()
+        if mod.startswith(lower)
+        for target in targets
+        if target == "payload.cli"
+        or target.startswith(tuple(u + "." for u in upper[:3]))
+        or target in upper[:3]
+    )
+    assert upward == []
+
+
+def test_only_the_entry_points_import_the_dispatcher() -> None:
+    """payload.cli is the top: command modules take their helpers from payload.cliutil
+    and a sweep point runs the build and the reports through their functions, so nothing
+    but ``python -m payload`` imports it."""
+    graph = import_graph()
+    importers = sorted(mod for mod, targets in graph.items() if "payload.cli" in targets)
+    assert importers == ["payload.__main__"]

@@ -807,13 +807,13 @@ def test_cli_trial_and_campaign(tmp_path: Path, monkeypatch, capsys) -> None:
     assert (tmp_path / "one" / "fig_route.png").exists()
     replay = tmp_path / "hands.mcap"
     replay.write_bytes(b"x")
-    assert main(["trial", "--operator", "replay", str(replay), "--out", str(tmp_path / "r")]) == 0
+    assert main(["trial", "--replay", str(replay), "--out", str(tmp_path / "r")]) == 0
     # a replay's seed and setup are left to the runner, which takes the recording's
     runner = sys.modules["payload.trials.runner"]
     assert calls[-1] == {"seed": None, "operator": "replay", "replay": replay}
     assert runner.budgets[-1] is None and runner.modelled[-1] is None  # type: ignore[attr-defined]
     capsys.readouterr()
-    again = ["trial", "--operator", "replay", str(replay), "--out", str(tmp_path / "r2")]
+    again = ["trial", "--replay", str(replay), "--out", str(tmp_path / "r2")]
     assert main([*again, "--ctb", "rigid", "--retarget-collisions"]) == 0
     # only what is given overrides the recording's
     assert calls[-1] == {"seed": None, "operator": "replay", "replay": replay, "ctb": "rigid"}
@@ -822,9 +822,15 @@ def test_cli_trial_and_campaign(tmp_path: Path, monkeypatch, capsys) -> None:
         "retargeting budget paper, self-collision modelled "
         "(given: ctb, retarget_collisions; the rest the recording's)\n"
     ) in capsys.readouterr().out
+    # the earlier spelling, kept for one release: the same run, and one warning line
     off = ["trial", "--operator", "replay", str(replay), "--out", str(tmp_path / "r3")]
+    capsys.readouterr()
     assert main([*off, "--no-retarget-collisions", "--retarget-budget", "converged"]) == 0
     assert runner.modelled[-1] is False and runner.budgets[-1] == "converged"  # type: ignore[attr-defined]
+    assert calls[-1]["operator"] == "replay" and calls[-1]["replay"] == replay
+    warning = capsys.readouterr().err.strip().splitlines()
+    assert len(warning) == 1 and "--operator is deprecated" in warning[0]
+    assert "--replay FILE" in warning[0]
     # a synthetic trial gets the defaults, spelled out
     assert main(["trial", "--out", str(tmp_path / "s")]) == 0
     assert calls[-1]["ctb"] == "single" and calls[-1]["propulsion"] == "nozzles"
@@ -885,8 +891,8 @@ def test_cli_trial_and_campaign(tmp_path: Path, monkeypatch, capsys) -> None:
 @pytest.mark.parametrize(
     ("argv", "message"),
     [
-        (["trial", "--operator", "replay", "/nonexistent/hands.mcap"], "no such file"),
-        (["trial", "--operator", "human"], "expected 'synthetic' or 'replay FILE'"),
+        (["trial", "--replay", "/nonexistent/hands.mcap"], "--replay: /nonexistent/hands.mcap: no"),
+        (["trial", "--replay", "a.mcap", "--operator", "synthetic"], "give one"),
         (["trial", "--seed", "-1"], "--seed must be >= 0"),
         (["trial", "--ctb", "soft"], "--ctb: expected one of single, rigid"),
         (["trials", "run", "--n", "2", "--ctb", "double", "--out", "x"], "--ctb: expected"),
@@ -898,7 +904,8 @@ def test_cli_bad_input_exits_2(argv: list[str], message: str, capsys) -> None:
     from payload.cli import main
 
     assert main(argv) == 2
-    err = capsys.readouterr().err.strip().splitlines()
+    lines = capsys.readouterr().err.strip().splitlines()
+    err = [ln for ln in lines if not ln.startswith("payload: warning: --operator is deprecated")]
     assert len(err) == 1 and message in err[0]
 
 
@@ -1095,3 +1102,45 @@ def test_summary_says_whether_self_collision_was_modelled(tmp_path, values, expe
         assert said == []
     else:
         assert said and said[0].startswith(f"Self-collision modelled in the pair solves: {line} ")
+
+
+def test_campaign_prints_a_line_per_trial_then_a_headline_off_a_terminal(
+    tmp_path: Path, monkeypatch, capsys
+) -> None:
+    """Not on a terminal (captured stdout), ``trials run`` prints one line per finished
+    trial as it finishes, then the headline (successes and medians, from the trials'
+    own metrics.json, beside the paper's), the metric table, and leaves the definitions
+    and the per-trial table to summary.md. Without --out it makes runs/campaign-0001,
+    then campaign-0002. --json prints only the JSON object."""
+    from payload.cli import main
+    from payload.trials.summary import PAPER_RESULTS
+
+    _fake_runner(monkeypatch)
+    project = tmp_path / "proj"
+    (project / "cad").mkdir(parents=True)
+    (project / "cad" / "design.toml").write_text((ROOT / "cad" / "design.toml").read_text())
+    argv = ["--project", str(project), "trials", "run", "--n", "3", "--seed", "4"]
+    assert main([*argv, "--workers", "0"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    camp = project / "runs" / "campaign-0001"
+    metrics = [
+        json.loads((camp / f"trial-{s:04d}" / "metrics.json").read_text()) for s in (4, 5, 6)
+    ]
+    assert lines[0] == f"project: {project.resolve()}"
+    for k, m in enumerate(metrics):  # one line per trial, in order, before the summary
+        assert lines[1 + k].startswith(f"[{k + 1}/3] seed {4 + k}: ")
+        assert f"RMS {m['rms_mm']:.1f} mm" in lines[1 + k]
+    ok = sum(bool(m["success"]) for m in metrics)
+    rms = float(np.median([m["rms_mm"] for m in metrics]))
+    head = lines[4]
+    assert head.startswith(f"{ok}/3 succeeded (confirmed contact")
+    assert f"paper {PAPER_RESULTS['success']}/{PAPER_RESULTS['n']}" in head
+    assert f"RMS median {rms:.1f} mm (paper {PAPER_RESULTS['rms_mm']['median']:.1f})" in head
+    text = "\n".join(lines)
+    assert "Contact definitions" not in text and "## Trials" not in text
+    assert "Contact definitions" in (camp / "summary.md").read_text()
+    assert f"wrote {camp / 'summary.md'}" in text
+    assert main([*argv, "--workers", "0", "--json"]) == 0
+    out = capsys.readouterr().out
+    assert json.loads(out)["out_dir"] == str(project / "runs" / "campaign-0002")
+    assert len(out.strip().splitlines()) == 1

@@ -6,70 +6,60 @@ a stowed-posture search, the deployment sweep); ``payload report reach`` samples
 the deployed joint space (workspaces, pair spans, rail spacing, collision-free
 fraction, CTB grasp check). The bay size is an assumption (not public); every
 report names it.
+
+
+Names load on first use (module ``__getattr__``), so importing the package (or
+a command module inside it) costs no numerical library.
 """
 
-from payload.envelope.fit import (
-    EnvelopeAnalysis,
-    PairContact,
-    PartFit,
-    PostureSearch,
-    StowedCheck,
-    SweepResult,
-    analyse_envelope,
-    check_stowed,
-    deployment_sweep,
-    fit_parts,
-    search_stowed_posture,
-    self_contacts,
-)
-from payload.envelope.geometry import PayloadGeometry
-from payload.envelope.reach import (
-    CTB_FEATURES,
-    PAIRS,
-    GraspFeature,
-    ReachAnalysis,
-    ReachError,
-    analyse_reach,
-    design_kinematics,
-    span_range,
-)
-from payload.envelope.vehicle import (
-    BAY_ASSUMPTION,
-    VEHICLE_TOML,
-    Vehicle,
-    VehicleError,
-    load_design_and_vehicle,
-    vehicle_from_dict,
-    with_bay_size,
-)
+from __future__ import annotations
 
-__all__ = [
-    "BAY_ASSUMPTION",
-    "CTB_FEATURES",
-    "PAIRS",
-    "VEHICLE_TOML",
-    "EnvelopeAnalysis",
-    "GraspFeature",
-    "PairContact",
-    "PartFit",
-    "PayloadGeometry",
-    "PostureSearch",
-    "ReachAnalysis",
-    "ReachError",
-    "StowedCheck",
-    "SweepResult",
-    "Vehicle",
-    "VehicleError",
-    "analyse_envelope",
-    "analyse_reach",
-    "check_stowed",
-    "deployment_sweep",
-    "design_kinematics",
-    "fit_parts",
-    "load_design_and_vehicle",
-    "search_stowed_posture",
-    "self_contacts",
-    "span_range",
-    "vehicle_from_dict",
-    "with_bay_size",
-]
+import importlib
+from typing import Any
+
+_LAZY: dict[str, str] = {
+    "EnvelopeAnalysis": "payload.envelope.fit",
+    "PairContact": "payload.envelope.fit",
+    "PartFit": "payload.envelope.fit",
+    "PostureSearch": "payload.envelope.fit",
+    "StowedCheck": "payload.envelope.fit",
+    "SweepResult": "payload.envelope.fit",
+    "analyse_envelope": "payload.envelope.fit",
+    "check_stowed": "payload.envelope.fit",
+    "deployment_sweep": "payload.envelope.fit",
+    "fit_parts": "payload.envelope.fit",
+    "search_stowed_posture": "payload.envelope.fit",
+    "self_contacts": "payload.envelope.fit",
+    "PayloadGeometry": "payload.envelope.geometry",
+    "CTB_FEATURES": "payload.envelope.reach",
+    "PAIRS": "payload.envelope.reach",
+    "GraspFeature": "payload.envelope.reach",
+    "ReachAnalysis": "payload.envelope.reach",
+    "ReachError": "payload.envelope.reach",
+    "analyse_reach": "payload.envelope.reach",
+    "design_kinematics": "payload.envelope.reach",
+    "span_range": "payload.envelope.reach",
+    "BAY_ASSUMPTION": "payload.envelope.vehicle",
+    "VEHICLE_TOML": "payload.envelope.vehicle",
+    "Vehicle": "payload.envelope.vehicle",
+    "VehicleError": "payload.envelope.vehicle",
+    "load_design_and_vehicle": "payload.envelope.vehicle",
+    "vehicle_from_dict": "payload.envelope.vehicle",
+    "with_bay_size": "payload.envelope.vehicle",
+}
+"""Each public name and the module defining it."""
+
+__all__ = sorted(_LAZY)
+
+
+def __getattr__(name: str) -> Any:
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value  # once loaded, an ordinary attribute
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted({*globals(), *_LAZY})

@@ -10,6 +10,8 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from payload.cliutil import CheckFailed, command_project, emit_json
+
 if TYPE_CHECKING:
     from payload.design.params import Design
     from payload.envelope.fit import EnvelopeAnalysis
@@ -21,7 +23,6 @@ DEFAULT_SAMPLES = 100_000
 
 
 def _project(args: argparse.Namespace) -> Project:
-    from payload.cli import command_project
 
     return command_project(args, args.design)
 
@@ -106,7 +107,6 @@ def _command(args: argparse.Namespace, name: str) -> str:
 
 
 def _cmd_envelope(args: argparse.Namespace) -> int:
-    from payload.cli import CheckFailed, emit_json
     from payload.envelope.fit import analyse_envelope
     from payload.envelope.report import envelope_json, write_envelope
 
@@ -160,7 +160,6 @@ def _print_written(paths: dict[str, Path]) -> None:
 
 
 def _cmd_reach(args: argparse.Namespace) -> int:
-    from payload.cli import emit_json
     from payload.envelope.reach import CTB_FEATURES, GraspFeature, ReachError, analyse_reach
     from payload.envelope.report import reach_json, write_reach
 

@@ -11,62 +11,59 @@ solvers on the same objective:
 :func:`calibrate` maps human features to robot targets and a posture reference; hand
 description files (:func:`load_hand`) name the frames and joints of each pair, so the
 retargeter runs on any hand URDF.
+
+
+Names load on first use (module ``__getattr__``), so importing the package (or
+a command module inside it) costs no numerical library.
 """
 
-from payload.retarget import collision as _collision  # noqa: F401  (registers the collision model)
-from payload.retarget.calibration import (
-    PairCalibration,
-    PairRange,
-    calibrate,
-    pair_range,
-    wahba_rotation,
-)
-from payload.retarget.casadi_solver import BACKENDS, PairRetargeter, build_solve_function, cache_dir
-from payload.retarget.errors import RetargetError
-from payload.retarget.features import (
-    N_FEATURES,
-    PairFeatures,
-    PairKinematics,
-    features_from_points,
-    features_jacobian_from_points,
-)
-from payload.retarget.hand import (
-    DEFAULT_HAND,
-    HandDescription,
-    PairDescription,
-    hand_from_dict,
-    load_hand,
-)
-from payload.retarget.objective import Objective, RetargetConfig, cost_of_residuals, soft_l1
-from payload.retarget.reference import ReferenceRetargeter
-from payload.retarget.solver import Retargeter, SolveInfo
+from __future__ import annotations
 
-__all__ = [
-    "BACKENDS",
-    "DEFAULT_HAND",
-    "N_FEATURES",
-    "HandDescription",
-    "Objective",
-    "PairCalibration",
-    "PairDescription",
-    "PairFeatures",
-    "PairKinematics",
-    "PairRange",
-    "PairRetargeter",
-    "ReferenceRetargeter",
-    "RetargetConfig",
-    "RetargetError",
-    "Retargeter",
-    "SolveInfo",
-    "build_solve_function",
-    "cache_dir",
-    "calibrate",
-    "cost_of_residuals",
-    "features_from_points",
-    "features_jacobian_from_points",
-    "hand_from_dict",
-    "load_hand",
-    "pair_range",
-    "soft_l1",
-    "wahba_rotation",
-]
+import importlib
+from typing import Any
+
+_LAZY: dict[str, str] = {
+    "PairCalibration": "payload.retarget.calibration",
+    "PairRange": "payload.retarget.calibration",
+    "calibrate": "payload.retarget.calibration",
+    "pair_range": "payload.retarget.calibration",
+    "wahba_rotation": "payload.retarget.calibration",
+    "BACKENDS": "payload.retarget.casadi_solver",
+    "PairRetargeter": "payload.retarget.casadi_solver",
+    "build_solve_function": "payload.retarget.casadi_solver",
+    "cache_dir": "payload.retarget.casadi_solver",
+    "RetargetError": "payload.retarget.errors",
+    "N_FEATURES": "payload.retarget.features",
+    "PairFeatures": "payload.retarget.features",
+    "PairKinematics": "payload.retarget.features",
+    "features_from_points": "payload.retarget.features",
+    "features_jacobian_from_points": "payload.retarget.features",
+    "DEFAULT_HAND": "payload.retarget.hand",
+    "HandDescription": "payload.retarget.hand",
+    "PairDescription": "payload.retarget.hand",
+    "hand_from_dict": "payload.retarget.hand",
+    "load_hand": "payload.retarget.hand",
+    "Objective": "payload.retarget.objective",
+    "RetargetConfig": "payload.retarget.objective",
+    "cost_of_residuals": "payload.retarget.objective",
+    "soft_l1": "payload.retarget.objective",
+    "ReferenceRetargeter": "payload.retarget.reference",
+    "Retargeter": "payload.retarget.solver",
+    "SolveInfo": "payload.retarget.solver",
+}
+"""Each public name and the module defining it."""
+
+__all__ = sorted(_LAZY)
+
+
+def __getattr__(name: str) -> Any:
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value  # once loaded, an ordinary attribute
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted({*globals(), *_LAZY})

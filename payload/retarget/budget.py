@@ -13,6 +13,7 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 
+from payload.retarget.collision import register as register_collision_model
 from payload.retarget.features import PairKinematics
 from payload.retarget.objective import RetargetConfig
 
@@ -52,6 +53,7 @@ def seed_table(pk: PairKinematics, collisions: bool) -> tuple[np.ndarray, np.nda
     rng = np.random.default_rng(12345)
     qs = np.vstack([pk.rest, pk.lower + rng.random((4 * SEEDS, pk.n)) * pk.range])
     if collisions:  # collision-free seeds only (the solver's own geometry)
+        register_collision_model()
         dist = pk.collision.distances_many(qs)
         qs = qs[dist.min(axis=0) >= pk.collision.margin]
     qs = qs[:SEEDS]

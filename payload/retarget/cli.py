@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from payload.cliutil import CheckFailed, command_project, emit_json
 from payload.retarget.errors import RetargetError
 
 FLOORS = {
@@ -95,7 +96,6 @@ def _print_table(r: dict) -> None:
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
-    from payload.cli import CheckFailed, command_project, emit_json
     from payload.retarget.bench import run_bench
     from payload.retarget.hand import load_hand
     from payload.retarget.objective import RetargetConfig

@@ -663,4 +663,12 @@ def _joints(urdf: str | Path) -> list[ET.Element]:
     return ET.parse(urdf).getroot().findall("joint")
 
 
-_features.COLLISION_MODEL[:] = [PairCollision]
+def register() -> None:
+    """Name :class:`PairCollision` as the pairs' self-collision model
+    (:attr:`PairKinematics.collision <payload.retarget.features.PairKinematics.collision>`).
+
+    Called explicitly by what builds a model on a pair (the retargeters, the span range,
+    the seed table, the optimum check); idempotent. Importing this module registers
+    nothing.
+    """
+    _features.COLLISION_MODEL[:] = [PairCollision]

@@ -28,7 +28,8 @@ _EPS = 1e-12
 
 COLLISION_MODEL: list[Any] = []
 """The self-collision model class (:class:`payload.retarget.collision.PairCollision`),
-registered when that module is imported."""
+named by :func:`payload.retarget.collision.register` (an explicit call: that module
+imports this one, so this one cannot import it)."""
 
 
 class PairFeatures(NamedTuple):
@@ -212,8 +213,11 @@ class PairKinematics:
         built on first use and kept."""
         model = self.__dict__.get("_collision")
         if model is None:
-            # registered by payload.retarget.collision (imported by the package), so this
-            # module does not import it back
+            if not COLLISION_MODEL:
+                raise RetargetError(
+                    "no self-collision model registered: call "
+                    "payload.retarget.collision.register() first (the retargeters do)"
+                )
             model = self.__dict__["_collision"] = COLLISION_MODEL[0](self)
         return model
 

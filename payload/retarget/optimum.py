@@ -21,6 +21,7 @@ import casadi as ca
 import numpy as np
 from scipy.optimize import least_squares
 
+from payload.retarget.collision import register as register_collision_model
 from payload.retarget.features import N_FEATURES, PairKinematics
 from payload.retarget.objective import (
     Objective,
@@ -55,6 +56,7 @@ class CompiledObjective:
     def __init__(self, pk: PairKinematics, config: RetargetConfig) -> None:
         from payload.retarget.compiled import _compiled_or_none
 
+        register_collision_model()  # pk.collision, when the config models it
         n = pk.n
         q, t = ca.SX.sym("q", n), ca.SX.sym("t", N_FEATURES)
         qr, qp = ca.SX.sym("qr", n), ca.SX.sym("qp", n)

@@ -14,6 +14,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from payload.retarget.collision import register as register_collision_model
 from payload.retarget.errors import RetargetError
 from payload.retarget.features import PairFeatures, PairKinematics, as_feature_vector
 from payload.retarget.hand import HandDescription
@@ -71,6 +72,7 @@ class Retargeter(ABC):
                 raise RetargetError(f"kinematics is for pair {kinematics.name!r}, not {pair!r}")
         else:
             kinematics = PairKinematics(hand, pair)
+        register_collision_model()  # kinematics.collision, when the config models it
         self.kinematics: PairKinematics = kinematics
         self.config: RetargetConfig = config or RetargetConfig()
         self.objective: Objective = Objective(self.lower, self.upper, self.config)

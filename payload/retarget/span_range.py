@@ -32,6 +32,7 @@ import numpy as np
 from scipy.optimize import minimize
 
 from payload.numerics import single_threaded_numerics
+from payload.retarget.collision import register as register_collision_model
 from payload.retarget.errors import RetargetError
 from payload.retarget.features import PairFeatures, PairKinematics
 from payload.retarget.range_cache import load_or_compute
@@ -152,6 +153,7 @@ def _compute_pair_range(pk: PairKinematics, seed: int, collisions: bool) -> Pair
 def _compute_pair_range_here(pk: PairKinematics, seed: int, collisions: bool) -> PairRange:
     bounds = list(zip(pk.lower, pk.upper))
     origins, dirs = _front_constraints(pk)
+    register_collision_model()
     clear = _Clearance(pk) if collisions and pk.collision.available else None
     extra = (
         []

@@ -9,6 +9,7 @@ import webbrowser
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from payload.cliutil import command_project
 from payload.review.errors import ReviewError
 
 if TYPE_CHECKING:
@@ -55,7 +56,6 @@ def _cmd_review(args: argparse.Namespace) -> int:
         raise ReviewError(f"--reach-samples must be >= 0 (got {args.reach_samples})")
     if args.static is not None and Path(args.static).is_dir():
         raise ReviewError(f"--static {args.static}: is a folder, expected a file name")
-    from payload.cli import command_project
 
     command_project(args, args.design)  # names the project first; library defaults use it
     scene = build_review(args.design, args.trial, args.reach_samples)

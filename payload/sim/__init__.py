@@ -1,76 +1,66 @@
 """Zero-gravity MuJoCo ISS simulator: Kibo, the hatch vestibule and Node 2, Astrobee with the
 payload attached in its lower bays, a rigid Cargo Transfer Bag, the bounded-wrench vehicle
 controller, the opposing-contact indicator and :class:`SimDriver` (the ``PayloadDriver``
-protocol). Physics at 1 kHz under a 50 Hz control loop."""
+protocol). Physics at 1 kHz under a 50 Hz control loop.
 
-from payload.sim.contact import SIDES, Contact, ContactMonitor, opposing
-from payload.sim.driver import SimDriver, WorldState
-from payload.sim.vehicle import (
-    DEFAULT_FLIGHT_MODE,
-    FLIGHT_MODES,
-    FlightMode,
-    JerkLimitedProfile,
-    MassProperties,
-    VehicleController,
-    VehicleError,
-    Wrench,
-    flight_mode,
-    min_time_to_speed,
-)
-from payload.sim.world import (
-    CONTROL_DT,
-    CTB_SIZES,
-    PAYLOAD_PREFIX,
-    PHYSICS_DT,
-    SUBSTEPS,
-    CtbSize,
-    Handle,
-    IssLayout,
-    IssModule,
-    PinchGrasp,
-    SimError,
-    World,
-    WorldConfig,
-    Zone,
-    build_spec,
-    build_world,
-    pinch_grasp,
-    servo_limits,
-)
+Names load on first use (module ``__getattr__``), so importing the package (or
+a command module inside it) costs no numerical library.
+"""
 
-__all__ = [
-    "CONTROL_DT",
-    "CTB_SIZES",
-    "DEFAULT_FLIGHT_MODE",
-    "FLIGHT_MODES",
-    "PAYLOAD_PREFIX",
-    "PHYSICS_DT",
-    "SIDES",
-    "SUBSTEPS",
-    "Contact",
-    "ContactMonitor",
-    "CtbSize",
-    "FlightMode",
-    "Handle",
-    "IssLayout",
-    "IssModule",
-    "JerkLimitedProfile",
-    "MassProperties",
-    "PinchGrasp",
-    "SimDriver",
-    "SimError",
-    "VehicleController",
-    "VehicleError",
-    "World",
-    "WorldConfig",
-    "WorldState",
-    "Wrench",
-    "Zone",
-    "build_spec",
-    "build_world",
-    "flight_mode",
-    "min_time_to_speed",
-    "opposing",
-    "pinch_grasp",
-    "servo_limits",
-]
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+_LAZY: dict[str, str] = {
+    "SIDES": "payload.sim.contact",
+    "Contact": "payload.sim.contact",
+    "ContactMonitor": "payload.sim.contact",
+    "opposing": "payload.sim.contact",
+    "SimDriver": "payload.sim.driver",
+    "WorldState": "payload.sim.driver",
+    "DEFAULT_FLIGHT_MODE": "payload.sim.vehicle",
+    "FLIGHT_MODES": "payload.sim.vehicle",
+    "FlightMode": "payload.sim.vehicle",
+    "JerkLimitedProfile": "payload.sim.vehicle",
+    "MassProperties": "payload.sim.vehicle",
+    "VehicleController": "payload.sim.vehicle",
+    "VehicleError": "payload.sim.vehicle",
+    "Wrench": "payload.sim.vehicle",
+    "flight_mode": "payload.sim.vehicle",
+    "min_time_to_speed": "payload.sim.vehicle",
+    "CONTROL_DT": "payload.sim.world",
+    "CTB_SIZES": "payload.sim.world",
+    "PAYLOAD_PREFIX": "payload.sim.world",
+    "PHYSICS_DT": "payload.sim.world",
+    "SUBSTEPS": "payload.sim.world",
+    "CtbSize": "payload.sim.world",
+    "Handle": "payload.sim.world",
+    "IssLayout": "payload.sim.world",
+    "IssModule": "payload.sim.world",
+    "PinchGrasp": "payload.sim.world",
+    "SimError": "payload.sim.world",
+    "World": "payload.sim.world",
+    "WorldConfig": "payload.sim.world",
+    "Zone": "payload.sim.world",
+    "build_spec": "payload.sim.world",
+    "build_world": "payload.sim.world",
+    "pinch_grasp": "payload.sim.world",
+    "servo_limits": "payload.sim.world",
+}
+"""Each public name and the module defining it."""
+
+__all__ = sorted(_LAZY)
+
+
+def __getattr__(name: str) -> Any:
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value  # once loaded, an ordinary attribute
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted({*globals(), *_LAZY})

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from payload.cliutil import command_project, emit_json
 from payload.sim.vehicle import (
     DEFAULT_FLIGHT_MODE,
     DEFAULT_PROPULSION,
@@ -16,7 +17,6 @@ def _cmd_bench_sim(args: argparse.Namespace) -> int:
     from rich.console import Console
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from payload.cli import command_project, emit_json
     from payload.sim.bench import run_bench
     from payload.sim.world import CTB_SIZES, SimError, WorldConfig
 

@@ -3,25 +3,45 @@ built, envelope-checked, reach-analysed (and optionally flown in trials) on Dask
 
 ``payload sweep --set KEY=V1,V2 --set KEY=A:B:N --out DIR`` is the command line
 (:mod:`payload.sweep.cli`); :func:`plan` and :func:`run_points` are the library.
+
+
+Names load on first use (module ``__getattr__``), so importing the package (or
+a command module inside it) costs no numerical library.
 """
 
-from payload.sweep.grid import Axis, SweepError, edit_design, grid, parse_set
-from payload.sweep.point import POINT_FIELDS, point_commands, run_point
-from payload.sweep.report import sweep_json, write_sweep
-from payload.sweep.run import DEFAULT_SAMPLES, plan, run_points
+from __future__ import annotations
 
-__all__ = [
-    "DEFAULT_SAMPLES",
-    "POINT_FIELDS",
-    "Axis",
-    "SweepError",
-    "edit_design",
-    "grid",
-    "parse_set",
-    "plan",
-    "point_commands",
-    "run_point",
-    "run_points",
-    "sweep_json",
-    "write_sweep",
-]
+import importlib
+from typing import Any
+
+_LAZY: dict[str, str] = {
+    "Axis": "payload.sweep.grid",
+    "SweepError": "payload.sweep.grid",
+    "edit_design": "payload.sweep.grid",
+    "grid": "payload.sweep.grid",
+    "parse_set": "payload.sweep.grid",
+    "POINT_FIELDS": "payload.sweep.point",
+    "point_commands": "payload.sweep.point",
+    "run_point": "payload.sweep.point",
+    "sweep_json": "payload.sweep.report",
+    "write_sweep": "payload.sweep.report",
+    "DEFAULT_SAMPLES": "payload.sweep.run",
+    "plan": "payload.sweep.run",
+    "run_points": "payload.sweep.run",
+}
+"""Each public name and the module defining it."""
+
+__all__ = sorted(_LAZY)
+
+
+def __getattr__(name: str) -> Any:
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value  # once loaded, an ordinary attribute
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted({*globals(), *_LAZY})

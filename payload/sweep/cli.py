@@ -10,6 +10,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from payload.cliutil import command_project, default_out, emit_json
 from payload.sweep.grid import SweepError, parse_set
 from payload.sweep.run import DEFAULT_SAMPLES
 
@@ -31,7 +32,6 @@ def _progress(enabled: bool, total: int) -> Any:
 
 
 def _cmd_sweep(args: argparse.Namespace) -> int:
-    from payload.cli import command_project, emit_json
     from payload.project import provenance
     from payload.sweep.report import sweep_json, sweep_markdown, write_sweep
     from payload.sweep.run import plan, run_points
@@ -45,10 +45,13 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
         raise SweepError(f"--seed must not be negative (got {args.seed})")
     if args.workers is not None and args.workers < 1:
         raise SweepError(f"--workers must be at least 1, got {args.workers}")
-    out = Path(args.out).resolve()
-    if (out / "sweep.json").exists():
-        raise SweepError(f"{out / 'sweep.json'} exists; choose a new --out (nothing overwritten)")
+    if args.out and (Path(args.out) / "sweep.json").exists():
+        raise SweepError(
+            f"{Path(args.out).resolve() / 'sweep.json'} exists; choose a new --out (nothing "
+            "overwritten)"
+        )
     project = command_project(args)
+    out = Path(args.out).resolve() if args.out else default_out(project, "sweep")
     points = plan(project, axes, out)
     workers = args.workers or max(1, min(len(points), os.cpu_count() or 1))
     t0 = time.perf_counter()
@@ -85,7 +88,7 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
         + ([f"--trials {args.trials}"] if args.trials else [])
         + ([f"--samples {args.samples}"] if args.samples != DEFAULT_SAMPLES else [])
         + ([f"--seed {args.seed}"] if args.seed else [])
-        + [f"--out {args.out}"]
+        + [f"--out {args.out or out}"]
     )
     paths = write_sweep(data, out, command)
     if args.json:
@@ -128,7 +131,10 @@ def register(
         help="local Dask worker processes (default: one per core, at most one per point)",
     )
     where.add_argument("--scheduler", help="existing Dask scheduler, e.g. tcp://host:8786")
-    p.add_argument("--out", required=True, help="sweep folder (one project per point)")
+    p.add_argument(
+        "--out",
+        help="sweep folder, one project per point (default: a new runs/sweep-NNNN in the project)",
+    )
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=_cmd_sweep)
 

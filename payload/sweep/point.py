@@ -1,23 +1,23 @@
 """One point of a design sweep: a project of its own, built, checked and analysed.
 
 :func:`run_point` runs in whichever process Dask gives it. It writes the point's
-design file, then runs the very commands a person would type in that project
-(``payload build``, ``payload report envelope --json``, ``payload report reach --json``
-and, with trials, ``payload trials run --json``), so a point's figures are those
-commands' figures. An invalid design or a failed command is a result, never an
+design file, then runs what the commands a person would type in that project run
+(:func:`point_commands`: ``payload build``, ``payload report envelope``, ``payload
+report reach`` and, with trials, ``payload trials run``) through the same library
+functions, with the same settings, and writes the same files; so a point's figures are
+those commands' figures. An invalid design or a failed step is a result, never an
 exception.
 """
 
 from __future__ import annotations
 
-import contextlib
-import io
 import json
+import time
 import traceback
 from pathlib import Path
 from typing import Any
 
-from payload.errors import DesignError
+from payload.errors import DesignError, PayloadError
 
 POINT_FIELDS = (
     "params",
@@ -30,28 +30,6 @@ POINT_FIELDS = (
     "trials",
 )
 """The fields of a point in ``sweep.json`` (the issue's contract), in order."""
-
-
-def _run(argv: list[str]) -> tuple[int, dict[str, Any] | None, str]:
-    """Run ``payload ARGV`` in this process: exit code, the JSON it printed, its stderr."""
-    from payload.cli import main
-
-    out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        code = main(argv)
-    text = out.getvalue().strip()
-    data = None
-    if text:
-        try:
-            data = json.loads(text.splitlines()[-1])
-        except json.JSONDecodeError:
-            data = None
-    return code, data, err.getvalue().strip()
-
-
-def _first_line(text: str) -> str:
-    lines = [ln for ln in text.splitlines() if ln.strip()]
-    return lines[-1].removeprefix("payload: error: ") if lines else "no message"
 
 
 def point_commands(root: Path, samples: int, seed: int, trials: int) -> list[list[str]]:
@@ -141,41 +119,149 @@ def run_point(
         validate_point(design_text)
     except DesignError as exc:
         return {**_empty(params, str(exc), valid=False), "project": str(root)}
-    cmds = point_commands(root, samples, seed, trials)
     try:
-        return _analyse(root, params, cmds)
+        return _analyse(root, params, samples, seed, trials)
     except Exception as exc:  # a crashed point is a result, not a crashed sweep
         result = _empty(params, f"{type(exc).__name__}: {exc}", valid=False)
         result["traceback"] = traceback.format_exc(limit=8)
         return {**result, "project": str(root)}
 
 
-def _analyse(root: Path, params: dict[str, float], cmds: list[list[str]]) -> dict[str, Any]:
+def _first_line(exc: BaseException) -> str:
+    lines = [ln for ln in str(exc).splitlines() if ln.strip()]
+    return lines[0] if lines else type(exc).__name__
+
+
+def _build(root: Path) -> None:
+    """``payload build`` in the point's project."""
+    from payload.design import load_design, write
+
+    write(load_design(root / "cad" / "design.toml"), root)
+
+
+class _Reports:
+    """``payload report envelope --no-search`` and ``payload report reach --samples N
+    --seed S --workers 1`` in the point's project: their JSON, their files written."""
+
+    def __init__(self, root: Path, samples: int, seed: int) -> None:
+        from payload.project import Project, provenance
+
+        self.project = Project.at(root)
+        self.samples, self.seed = samples, seed
+        self.cmds = point_commands(root, samples, seed, 0)
+        self.prov = provenance(self.project, self.project.design_path)
+        self.prov.pop("project")
+
+    def _record(self, data: dict[str, Any]) -> dict[str, Any]:
+        return {**data, "provenance": self.prov}
+
+    def envelope(self) -> dict[str, Any]:
+        from payload.design import build_tree
+        from payload.envelope.fit import analyse_envelope
+        from payload.envelope.geometry import PayloadGeometry
+        from payload.envelope.report import envelope_json, write_envelope
+        from payload.envelope.vehicle import load_design_and_vehicle
+
+        t0 = time.perf_counter()
+        design, self.vehicle = load_design_and_vehicle(self.project.design_path)
+        self.geom = PayloadGeometry(build_tree(design))
+        env = analyse_envelope(self.geom, self.vehicle, search=False)
+        env.seconds = time.perf_counter() - t0
+        out = self.project.analyses_dir
+        write_envelope(self.geom, env, out, _typed(self.cmds[1]), self._record)
+        return self._record(envelope_json(env))
+
+    def reach(self) -> dict[str, Any]:
+        from payload.envelope.reach import CTB_FEATURES, analyse_reach
+        from payload.envelope.report import reach_json, write_reach
+
+        t0 = time.perf_counter()
+        a = analyse_reach(
+            self.geom,
+            self.vehicle,
+            samples=self.samples,
+            seed=self.seed,
+            features=list(CTB_FEATURES),
+            workers=1,  # one process: a Dask worker may not fork
+        )
+        out = self.project.analyses_dir
+        write_reach(self.geom, a, out, _typed(self.cmds[2]), t_start=t0, record=self._record)
+        return self._record(reach_json(a))
+
+
+def _typed(argv: list[str]) -> str:
+    """A point command as the report names it: without ``--project``, ``--json``, the
+    default seed and ``--workers`` (which do not change the figures)."""
+    words = [w for w in argv[2:] if w != "--json"]
+    for flag, value in (("--seed", "0"), ("--workers", "1")):
+        if flag in words and words[words.index(flag) + 1] == value:
+            i = words.index(flag)
+            del words[i : i + 2]
+    return "payload " + " ".join(words)
+
+
+def _trials(root: Path, trials: int, seed: int) -> dict[str, Any]:
+    """``payload trials run --n N --seed S --workers 1 --out runs/campaign`` in the point's
+    project: its summary (written into that folder)."""
+    from payload.project import Project, provenance
+    from payload.trials.campaign import run_campaign, runner_trial_fn, write_summary
+    from payload.trials.sources import trial_setup
+
+    project = Project.at(root)
+    out = root / "runs" / "campaign"
+    setup = trial_setup()
+    seeds = list(range(seed, seed + trials))
+    t0 = time.perf_counter()
+    results = run_campaign(
+        runner_trial_fn("synthetic", project.root, **setup), seeds, out, workers=1, progress=False
+    )
+    run = {
+        "workers": 1,
+        "scheduler": None,
+        "wall_s": time.perf_counter() - t0,
+        "trial_wall_s": float(sum(r.get("wall_s") or 0.0 for r in results)),
+    }
+    title = (
+        f"Cargo-transport campaign ({trials} trials, CTB {setup['ctb']}, {setup['propulsion']}, "
+        f"retargeting budget {setup['retarget_budget']})"
+    )
+    # a trial that raised counts as a failure in the summary, as in the command's JSON
+    return write_summary(results, out, title=title, run=run, provenance=provenance(project))
+
+
+def _analyse(
+    root: Path, params: dict[str, float], samples: int, seed: int, trials: int
+) -> dict[str, Any]:
     result = {**_empty(params, None, valid=True), "project": str(root)}
-    code, _, err = _run(cmds[0])
-    if code != 0:  # the design validates but its solids or files cannot be made
-        return {**result, "valid": False, "error": f"build: {_first_line(err)}"}
-    code, env, err = _run(cmds[1])
-    if env is None:
-        return {**result, "valid": False, "error": f"report envelope: {_first_line(err)}"}
+    try:
+        _build(root)
+    except PayloadError as exc:  # the design validates but its solids or files cannot be made
+        return {**result, "valid": False, "error": f"build: {_first_line(exc)}"}
+    reports = _Reports(root, samples, seed)
+    try:
+        env = reports.envelope()
+    except PayloadError as exc:
+        return {**result, "valid": False, "error": f"report envelope: {_first_line(exc)}"}
     result.update(
         fits=bool(env["fits"]),
         passed=bool(env["passed"]),
         min_clearance_mm=env["min_clearance_mm"],
         failures=env["failures"],
     )
-    code, reach, err = _run(cmds[2])
-    if reach is None:
-        return {**result, "error": f"report reach: {_first_line(err)}"}
+    try:
+        reach = reports.reach()
+    except PayloadError as exc:
+        return {**result, "error": f"report reach: {_first_line(exc)}"}
     result.update(
         below_vehicle_mm=reach["below_vehicle_mm"],
         span_max_mm={p: reach["pairs"][p]["span_max_mm"] for p in ("L", "R")},
         span_min_mm={p: reach["pairs"][p]["span_min_mm"] for p in ("L", "R")},
     )
-    if len(cmds) > 3:
-        code, summary, err = _run(cmds[3])
-        if summary is None:
-            return {**result, "error": f"trials run: {_first_line(err)}"}
+    if trials:
+        try:
+            summary = _trials(root, trials, seed)
+        except PayloadError as exc:
+            return {**result, "error": f"trials run: {_first_line(exc)}"}
         result["trials"] = {
             "n": int(summary["n"]),
             "success": int(summary["success"]),

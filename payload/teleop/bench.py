@@ -12,21 +12,27 @@ from __future__ import annotations
 
 import os
 import time
+from collections.abc import Callable
 from typing import Any
 
 from payload.teleop.live import LiveHub, percentiles
 from payload.teleop.server import TeleopServer
 
 
-def run_bench(seconds: float = 20.0) -> dict[str, Any]:
-    """Run the emulated session; returns the figures (see the module docstring)."""
+def run_bench(make_session: Callable[[LiveHub], Any], seconds: float = 20.0) -> dict[str, Any]:
+    """Run the emulated session; returns the figures (see the module docstring).
+
+    Args:
+        make_session: Makes the live session from the hub (the command line passes
+            :class:`payload.trials.live.LiveSession`, from the layer above).
+        seconds: Teleoperation time to measure [s].
+    """
     import threading
 
     from payload.teleop.emulate import EmulatedQuest
-    from payload.trials.live import LiveSession
 
     hub = LiveHub()
-    session = LiveSession(hub)
+    session = make_session(hub)
     server = TeleopServer(hub, port=0, scene=session.scene).start()
     worker = threading.Thread(target=session.run, name="teleop-loop", daemon=True)
     worker.start()

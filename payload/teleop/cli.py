@@ -1,4 +1,10 @@
-"""Command line of the live Quest interface: ``payload teleop serve``, ``payload bench teleop``."""
+"""The live Quest interface's command-line parts: options, terminal status line, serving.
+
+``payload teleop serve`` and ``payload bench teleop`` are registered by
+:mod:`payload.trials.live_cli`, which composes the live session (a trial-layer
+:class:`~payload.trials.live.LiveSession`) and hands it to :func:`serve` and
+:func:`bench` here as a factory: this package never imports the trials above it.
+"""
 
 from __future__ import annotations
 
@@ -6,10 +12,16 @@ import argparse
 import logging
 import sys
 import threading
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from payload.cliutil import add_device, add_json, command_project, emit_json
 from payload.errors import PayloadError
+
+SessionFactory = Callable[..., Any]
+"""Makes the live session: ``(hub, record, payload=..., collisions=...)``, an object with
+``scene``, ``steps``, ``run()`` and ``close()`` (:class:`payload.trials.live.LiveSession`)."""
 
 
 class TeleopCliError(PayloadError):
@@ -69,7 +81,7 @@ def _hardware_driver(device: str | None) -> Any:
     from firmware_interface import DynamixelDriver
 
     if not device:
-        raise TeleopCliError("--driver hardware needs --device PORT (the servo bus's serial port)")
+        raise TeleopCliError("--driver hardware needs --device DEV (the servo bus's serial device)")
     driver = DynamixelDriver(device)
     try:
         driver.bring_up()
@@ -79,8 +91,8 @@ def _hardware_driver(device: str | None) -> Any:
     return driver
 
 
-def _cmd_serve(args: argparse.Namespace) -> int:
-    from payload.cli import command_project
+def serve(args: argparse.Namespace, make_session: SessionFactory) -> int:
+    """``payload teleop serve``: the live page driving the session ``make_session`` makes."""
     from payload.teleop.live import LiveHub
     from payload.teleop.server import TeleopServer, is_local, new_token
     from payload.teleop.tls import ensure_certificate, fingerprint, server_context
@@ -98,12 +110,10 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     if not local:
         token = new_token()
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    from payload.trials.live import LiveSession
-
     hub = LiveHub()
     payload = _hardware_driver(args.device) if args.driver == "hardware" else None
     print("loading the simulator and the retargeters ...", flush=True)
-    session = LiveSession(hub, record, payload=payload, collisions=args.retarget_collisions)
+    session = make_session(hub, record, payload=payload, collisions=args.retarget_collisions)
     server = TeleopServer(
         hub, args.host, args.port, ssl_context=ssl_context, token=token, scene=session.scene
     ).start()
@@ -140,13 +150,15 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     return 0
 
 
-def _cmd_bench(args: argparse.Namespace) -> int:
-    from payload.cli import emit_json
+def bench(args: argparse.Namespace, make_session: SessionFactory) -> int:
+    """``payload bench teleop``: the emulated Quest against the session ``make_session``
+    makes."""
     from payload.teleop.bench import run_bench
 
+    command_project(args)  # the session flies this project's models
     # the emulated operator's tracking drop-outs are part of the run, not news
     logging.getLogger("payload.teleop.safety").setLevel(logging.ERROR)
-    result = run_bench(seconds=args.seconds)
+    result = run_bench(make_session, seconds=args.seconds)
     if args.json:
         emit_json(result)
         return 0
@@ -159,16 +171,24 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
-def register(
-    sub: argparse._SubParsersAction, groups: dict[str, argparse._SubParsersAction]
-) -> None:
-    teleop = sub.add_parser("teleop", help="the live Quest (WebXR) interface")
-    tsub = teleop.add_subparsers(dest="teleop_command", required=True, metavar="WHAT")
-    p = tsub.add_parser("serve", help="serve the WebXR page, its WebSocket and /status")
-    p.add_argument("--driver", choices=("sim", "hardware"), default="sim")
-    p.add_argument("--device", help="serial device of the servo bus (--driver hardware)")
+def serve_arguments(p: argparse.ArgumentParser) -> None:
+    """The options of ``payload teleop serve``."""
+    p.add_argument(
+        "--driver",
+        choices=("sim", "hardware"),
+        default="sim",
+        help="what the page drives: the simulator alone (default), or the Dynamixel "
+        "payload on --device beside the simulated scene",
+    )
+    add_device(p, "serial device of the servo bus (--driver hardware)")
     p.add_argument("--host", default="127.0.0.1", help="bind address (non-local needs TLS)")
-    p.add_argument("--port", type=_port, default=8765)
+    p.add_argument(
+        "--port",
+        type=_port,
+        default=8765,
+        help="TCP port the page, its WebSocket and /status are served on (default 8765; "
+        "0: any free port)",
+    )
     p.add_argument("--record", help="record the session as a trial into this folder")
     p.add_argument("--tls", action="store_true", help="use TLS on a local bind too")
     p.add_argument(
@@ -181,11 +201,9 @@ def register(
     )
     p.add_argument("--status-interval", type=float, default=1.0, help=argparse.SUPPRESS)
     p.add_argument("--seconds", type=float, default=0.0, help=argparse.SUPPRESS)
-    p.set_defaults(func=_cmd_serve)
 
-    b = groups["bench"].add_parser(
-        "teleop", help="latency of the live interface through an emulated Quest 3"
-    )
-    b.add_argument("--seconds", type=float, default=20.0, help="teleoperation time to measure")
-    b.add_argument("--json", action="store_true", help="print one JSON object")
-    b.set_defaults(func=_cmd_bench)
+
+def bench_arguments(p: argparse.ArgumentParser) -> None:
+    """The options of ``payload bench teleop``."""
+    p.add_argument("--seconds", type=float, default=20.0, help="teleoperation time to measure")
+    add_json(p)

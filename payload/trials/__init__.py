@@ -1,8 +1,10 @@
 """Cargo-transport trials: crash-safe recording, the paper's metrics, figures, campaigns
 on Dask and LeRobot export.
 
-The recorder and the metrics are imported eagerly (numpy, scipy, mcap); figures,
-campaigns and the LeRobot export load matplotlib, Dask and pyarrow on first use.
+Every name loads on first use (module ``__getattr__``): importing the package (or a
+command module inside it) costs no numerical library; the recorder and the metrics bring
+numpy, scipy and mcap, figures, campaigns and the LeRobot export matplotlib, Dask and
+pyarrow, when first used.
 """
 
 from __future__ import annotations
@@ -10,27 +12,22 @@ from __future__ import annotations
 import importlib
 from typing import Any
 
-from payload.trials.metrics import (
-    SUCCESS_CRITERION,
-    MetricsError,
-    TrialMetrics,
-    compute_metrics,
-    ctb_in_body_frame,
-    first_contact_interval,
-    rms_deviation,
-)
-from payload.trials.recorder import (
-    MODULES,
-    PHASES,
-    STEP_SCHEMA,
-    Recording,
-    RecordingError,
-    StepRecord,
-    TrialRecorder,
-    read_recording,
-)
-
 _LAZY = {
+    "SUCCESS_CRITERION": "payload.trials.metrics",
+    "MetricsError": "payload.trials.metrics",
+    "TrialMetrics": "payload.trials.metrics",
+    "compute_metrics": "payload.trials.metrics",
+    "ctb_in_body_frame": "payload.trials.metrics",
+    "first_contact_interval": "payload.trials.metrics",
+    "rms_deviation": "payload.trials.metrics",
+    "MODULES": "payload.trials.recorder",
+    "PHASES": "payload.trials.recorder",
+    "STEP_SCHEMA": "payload.trials.recorder",
+    "Recording": "payload.trials.recorder",
+    "RecordingError": "payload.trials.recorder",
+    "StepRecord": "payload.trials.recorder",
+    "TrialRecorder": "payload.trials.recorder",
+    "read_recording": "payload.trials.recorder",
     "CampaignError": "payload.trials.campaign",
     "PAPER_RESULTS": "payload.trials.campaign",
     "finish_trial": "payload.trials.campaign",
@@ -54,7 +51,9 @@ def __getattr__(name: str) -> Any:
     module = _LAZY.get(name)
     if module is None:
         raise AttributeError(f"module 'payload.trials' has no attribute {name!r}")
-    return getattr(importlib.import_module(module), name)
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value  # once loaded, an ordinary attribute
+    return value
 
 
 __all__ = [

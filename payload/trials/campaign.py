@@ -147,6 +147,7 @@ def run_campaign(
     workers: int | None = None,
     scheduler: str | None = None,
     progress: bool = True,
+    on_trial: Callable[[dict[str, Any]], None] | None = None,
 ) -> list[dict[str, Any]]:
     """Run one trial per seed, in parallel on Dask or serially.
 
@@ -158,6 +159,8 @@ def run_campaign(
             one per trial); 0 or 1 = serial, in this process. Ignored with ``scheduler``.
         scheduler: Address of an existing Dask scheduler (``tcp://host:8786``).
         progress: Show a rich progress bar.
+        on_trial: Called with each trial's result as it finishes (in finishing order),
+            e.g. to print a line per trial where no progress bar can show.
 
     Returns:
         One dict per seed, ordered by seed: the trial's metrics plus ``seed``, ``out_dir``,
@@ -183,7 +186,7 @@ def run_campaign(
     k = default_workers(len(seeds)) if workers is None else workers
 
     results: dict[int, dict[str, Any]] = {}
-    with _progress(progress, len(seeds)) as bar:
+    with _Bar(progress, len(seeds), on_trial) as bar:
         if scheduler is None and k <= 1:
             for s in seeds:
                 results[s] = _call_trial(trial_fn, s, dirs[s])
@@ -226,8 +229,14 @@ def _run_dask(
 class _Bar:
     """A rich progress bar (or nothing) counting finished and successful trials."""
 
-    def __init__(self, enabled: bool, total: int) -> None:
+    def __init__(
+        self,
+        enabled: bool,
+        total: int,
+        on_trial: Callable[[dict[str, Any]], None] | None = None,
+    ) -> None:
         self.enabled = enabled
+        self.on_trial = on_trial
         self.total = total
         self.ok = 0
         self._progress: Any = None
@@ -261,14 +270,12 @@ class _Bar:
         self.ok += bool(result.get("success")) and not result.get("error")
         if self._progress is not None:
             self._progress.update(self._task, advance=1, ok=self.ok)
+        if self.on_trial is not None:
+            self.on_trial(result)
 
     def __exit__(self, *exc: object) -> None:
         if self._progress is not None:
             self._progress.__exit__(None, None, None)
-
-
-def _progress(enabled: bool, total: int) -> _Bar:
-    return _Bar(enabled, total)
 
 
 # -- summary ---------------------------------------------------------------------------

@@ -10,6 +10,14 @@ import time
 from pathlib import Path
 from typing import Any
 
+from payload.cliutil import (
+    CheckFailed,
+    add_deprecated,
+    add_replay,
+    command_project,
+    default_out,
+    emit_json,
+)
 from payload.errors import PayloadError
 
 
@@ -29,7 +37,23 @@ def _run_trial_fn() -> Any:
     return run_trial
 
 
-def _parse_operator(values: list[str]) -> tuple[str, Path | None]:
+def _parse_operator(args: argparse.Namespace) -> tuple[str, Path | None]:
+    """The operator of ``payload trial``: ``--replay FILE``, else synthetic; or the
+    deprecated ``--operator synthetic|replay FILE``.
+
+    Raises:
+        TrialsCliError: Both spellings, a bad ``--operator`` or no such file.
+    """
+    values = getattr(args, "operator", None)
+    if values is None:
+        if args.replay is None:
+            return "synthetic", None
+        replay = Path(args.replay)
+        if not replay.is_file():
+            raise TrialsCliError(f"--replay: {replay}: no such file")
+        return "replay", replay
+    if args.replay is not None:
+        raise TrialsCliError("--replay and --operator (its deprecated spelling): give one")
     if values == ["synthetic"]:
         return "synthetic", None
     if len(values) == 2 and values[0] == "replay":
@@ -50,13 +74,12 @@ def _check_ctb(ctb: str) -> None:
 
 
 def _cmd_trial(args: argparse.Namespace) -> int:
-    from payload.cli import command_project, emit_json
 
     if args.seed is not None and args.seed < 0:
         raise TrialsCliError(f"--seed must be >= 0, got {args.seed}")
     if args.max_time is not None and not args.max_time > 0:
         raise TrialsCliError(f"--max-time must be positive, got {args.max_time}")
-    operator, replay = _parse_operator(args.operator)
+    operator, replay = _parse_operator(args)
     if operator == "synthetic":
         _setup_defaults(args)
     if args.ctb is not None:
@@ -105,16 +128,15 @@ def _cmd_trial(args: argparse.Namespace) -> int:
 
 
 def _cmd_trials_run(args: argparse.Namespace) -> int:
-    from payload.cli import CheckFailed, command_project, emit_json
     from payload.project import provenance
     from payload.trials.campaign import (
         default_workers,
         run_campaign,
         runner_trial_fn,
-        summary_markdown,
         trial_dir,
         write_summary,
     )
+    from payload.trials.terminal import summary_terminal, trial_line_printer
 
     if args.n < 1:
         raise TrialsCliError(f"--n must be >= 1, got {args.n}")
@@ -127,7 +149,7 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
     _run_trial_fn()  # fail here, once, if the runner is missing
     project = command_project(args)
     prov = provenance(project)
-    out = Path(args.out)
+    out = Path(args.out) if args.out else default_out(project, "campaign")
     seeds = list(range(args.seed, args.seed + args.n))
     if not args.force:
         taken = [trial_dir(out, s) for s in seeds if any(trial_dir(out, s).glob("*"))]
@@ -154,7 +176,8 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
         out,
         workers=workers,
         scheduler=args.scheduler,
-        progress=not args.json and sys.stderr.isatty(),
+        progress=not args.json and sys.stderr.isatty() and sys.stdout.isatty(),
+        on_trial=None if args.json or sys.stdout.isatty() else trial_line_printer(len(seeds)),
     )
     run = {
         "workers": None if args.scheduler else workers,
@@ -173,8 +196,9 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
             {**summary, "wall_s": run["wall_s"], "out_dir": str(out), "project": str(project.root)}
         )
     else:
-        print(summary_markdown(summary, title))
-        print(f"wrote {out / 'summary.md'} and {out / 'summary.json'}")
+        print(summary_terminal(summary, title))
+        print(f"wrote {out / 'summary.md'} (definitions, the paper-literal column, every "
+              f"trial) and {out / 'summary.json'}")  # fmt: skip
     errors = [r for r in results if r.get("error")]
     if errors:
         first = errors[0]
@@ -187,7 +211,6 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
 
 
 def _cmd_trials_summarize(args: argparse.Namespace) -> int:
-    from payload.cli import emit_json
     from payload.trials.campaign import (
         contact_tag,
         load_trial_results,
@@ -255,12 +278,12 @@ def _previous_summary(path: Path) -> dict[str, Any]:
 
 
 def _cmd_export_lerobot(args: argparse.Namespace) -> int:
-    from payload.cli import emit_json
     from payload.trials.lerobot import export_lerobot
 
+    out = Path(args.out) if args.out else default_out(command_project(args), "lerobot")
     info = export_lerobot(
         [Path(r) for r in args.runs],
-        Path(args.out),
+        out,
         task=args.task,
         overwrite=args.force,
         progress=not args.json and sys.stderr.isatty(),
@@ -280,7 +303,6 @@ def _cmd_bench_recorder(args: argparse.Namespace) -> int:
 
     import numpy as np
 
-    from payload.cli import emit_json
     from payload.schema import CONTROL_DT
     from payload.trials.metrics import compute_metrics
     from payload.trials.recorder import TrialRecorder, random_step, read_recording
@@ -330,7 +352,6 @@ def _cmd_bench_recorder(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench_trial(args: argparse.Namespace) -> int:
-    from payload.cli import emit_json
     from payload.trials.bench import run_trial_bench
 
     if args.seed < 0:
@@ -338,6 +359,7 @@ def _cmd_bench_trial(args: argparse.Namespace) -> int:
     out = Path(args.out) if args.out else None
     if args.seconds is not None and args.seconds <= 0:
         raise TrialsCliError(f"--seconds must be positive, got {args.seconds}")
+    command_project(args)  # the trial flies this project's models
     result = run_trial_bench(args.seed, out_dir=out, pin=args.pin, max_time=args.seconds)
     if args.json:
         emit_json(result)
@@ -360,7 +382,6 @@ def _cmd_bench_trial(args: argparse.Namespace) -> int:
 
 
 def _cmd_trials_convert(args: argparse.Namespace) -> int:
-    from payload.cli import emit_json
     from payload.trials.convert import convert_dir
 
     info = convert_dir(Path(args.dir), force=args.force)
@@ -429,12 +450,19 @@ def register(
     p.add_argument(
         "--seed", type=int, default=None, help="trial seed (default 0; a replay: its source's)"
     )
-    p.add_argument(
+    add_replay(
+        p,
+        "replay this recording's hands (a trial's log.mcap or a hands.jsonl) instead of the "
+        "synthetic operator",
+    )
+    add_deprecated(
+        p,
         "--operator",
+        "--replay FILE",
+        "operator",
         nargs="+",
-        default=["synthetic"],
         metavar=("synthetic|replay", "F"),
-        help="'synthetic' (default) or 'replay FILE' (a recorded hand stream)",
+        help="'synthetic' or 'replay FILE'",
     )
     p.add_argument("--out", help="trial folder (default: a new runs/trial-NNNN[-k] in the project)")
     p.add_argument(
@@ -460,7 +488,9 @@ def register(
         help="local Dask worker processes (default: one per core; 0 or 1: serial)",
     )
     r.add_argument("--scheduler", help="existing Dask scheduler, e.g. tcp://host:8786")
-    r.add_argument("--out", required=True, help="campaign folder")
+    r.add_argument(
+        "--out", help="campaign folder (default: a new runs/campaign-NNNN in the project)"
+    )
     r.add_argument("--force", action="store_true", help="replace a campaign already in --out")
     _setup_arguments(r)
     r.add_argument("--json", action="store_true", help="print one JSON object")
@@ -504,7 +534,7 @@ def register(
 
     e = groups["export"].add_parser("lerobot", help="recordings as a LeRobot v3 dataset")
     e.add_argument("runs", nargs="+", metavar="RUN", help="log.mcap, trial or campaign folder")
-    e.add_argument("--out", required=True, help="dataset folder")
+    e.add_argument("--out", help="dataset folder (default: a new runs/lerobot-NNNN in the project)")
     e.add_argument("--task", help="task text for every episode")
     e.add_argument("--force", action="store_true", help="replace an existing dataset")
     e.add_argument("--json", action="store_true", help="print one JSON object")

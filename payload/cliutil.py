@@ -1,0 +1,180 @@
+"""What every command of the ``payload`` command line shares, below every command module.
+
+A command module (``payload/<package>/cli.py``, ``firmware_interface/cli.py``) takes its
+helpers from here, never from :mod:`payload.cli` (the dispatcher at the top):
+
+- :class:`CheckFailed` (a check ran and failed: exit 1), :func:`emit_json` (``--json``
+  prints exactly one JSON object);
+- :func:`command_project`: the design project of a command, resolved once, printed as the
+  first line (``project: <root>``) and exported as ``PAYLOAD_PROJECT`` for the command;
+- the shared options of the vocabulary (DESIGN.md): :func:`add_json`, :func:`add_device`
+  (a serial device), :func:`add_replay` (a recording), and :class:`DeprecatedAlias` for
+  an old spelling kept for one release with a warning;
+- :func:`default_out`: the numbered default folder of an ``--out`` left out.
+
+This module imports only the standard library and :mod:`payload.project`, so every
+command (``--help`` and ``--version`` included) starts without the numerical stack.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from payload.errors import PayloadError
+from payload.project import ENV_VAR, Project, ProjectError, find_project, project_of
+
+
+class CheckFailed(Exception):
+    """A check ran and failed (exit 1)."""
+
+
+class UsageError(PayloadError):
+    """Bad command-line input shared by every command (exit 2)."""
+
+
+def emit_json(obj: Any) -> None:
+    """Print exactly one JSON object on stdout."""
+    sys.stdout.write(json.dumps(obj, sort_keys=False) + "\n")
+
+
+def command_project(args: argparse.Namespace, design: str | Path | None = None) -> Project:
+    """The design project of this command, resolved once per command.
+
+    ``design`` (a ``--design F``) selects the project holding F, so a command never
+    writes another project's models; ``--project`` must then agree with it. A design
+    file in no project applies to the project found as usual. Prints
+    ``project: <root>`` unless the command prints JSON (``args.json``), and exports it
+    as ``PAYLOAD_PROJECT`` until :func:`payload.cli.main` returns.
+
+    Raises:
+        ProjectError: No project, or ``--design`` and ``--project`` disagree.
+    """
+    cached = getattr(args, "_project", None)
+    if cached is not None:
+        return cached
+    explicit = getattr(args, "project", None)
+    if design is not None:
+        owner = project_of(design)
+        if owner is None:
+            project = find_project(explicit)
+        elif explicit is not None and find_project(explicit).root != owner.root:
+            raise ProjectError(
+                f"--design {design} belongs to project {owner.root}, not --project {explicit}"
+            )
+        else:
+            project = owner
+    else:
+        project = find_project(explicit)
+    args._project = project
+    os.environ[ENV_VAR] = str(project.root)
+    if not getattr(args, "json", False):
+        print(f"project: {project.root}", flush=True)
+    return project
+
+
+def warn(message: str) -> None:
+    """One warning line on stderr (``payload: warning: ...``)."""
+    print(f"payload: warning: {message}", file=sys.stderr, flush=True)
+
+
+class DeprecatedAlias(argparse.Action):
+    """An old option spelling kept for one release: stores into the new option's ``dest``
+    and prints one warning line naming the new spelling.
+
+    Use through :func:`add_deprecated`.
+    """
+
+    def __init__(self, option_strings: Sequence[str], dest: str, new: str = "", **kw: Any):
+        self.new = new
+        super().__init__(option_strings, dest, **kw)
+
+    def __call__(
+        self,
+        parser: argparse.ArgumentParser,
+        namespace: argparse.Namespace,
+        values: Any,
+        option_string: str | None = None,
+    ) -> None:
+        warn(f"{option_string} is deprecated here; use {self.new} (the old spelling goes in a "
+             "later release)")  # fmt: skip
+        setattr(namespace, self.dest, values)
+
+
+def add_deprecated(
+    p: argparse.ArgumentParser, old: str, new: str, dest: str, **kw: Any
+) -> argparse.Action:
+    """Add ``old`` as a deprecated alias of the option ``new`` (same ``dest``).
+
+    The alias's help says it is deprecated and names ``new``; using it prints a warning.
+    """
+    extra = kw.pop("help", "")
+    text = f"deprecated spelling of {new}" + (f" ({extra})" if extra else "")
+    return p.add_argument(
+        old, dest=dest, action=DeprecatedAlias, new=new, default=argparse.SUPPRESS, help=text, **kw
+    )
+
+
+def add_json(p: argparse.ArgumentParser) -> None:
+    """``--json``: print one JSON object on stdout."""
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+
+
+def add_device(
+    p: argparse.ArgumentParser,
+    help: str = "serial device of the servo bus (or an emulator's pty)",
+    *,
+    old_port: bool = False,
+) -> None:
+    """``--device DEV``, the serial device; with ``old_port`` the earlier ``--port`` spelling
+    is kept as a deprecated alias. A command that needs a device checks it with
+    :func:`need_device` (argparse cannot require one of two spellings)."""
+    p.add_argument("--device", metavar="DEV", default=None, help=help)
+    if old_port:
+        add_deprecated(p, "--port", "--device", "device", metavar="DEV")
+
+
+def need_device(args: argparse.Namespace) -> str:
+    """The ``--device`` of a command that needs one.
+
+    Raises:
+        UsageError: None given.
+    """
+    device = getattr(args, "device", None)
+    if not device:
+        raise UsageError("--device DEV is required (the servo bus's serial device or pty)")
+    return str(device)
+
+
+def add_replay(p: argparse.ArgumentParser, what: str) -> None:
+    """``--replay FILE``: a recording to replay (``what`` says which files it takes)."""
+    p.add_argument("--replay", metavar="FILE", default=None, help=what)
+
+
+def default_out(project: Project, prefix: str) -> Path:
+    """A new numbered folder ``runs/<prefix>-NNNN`` of ``project`` (created), for an
+    ``--out`` left out."""
+    from payload.safeio import numbered_folder
+
+    return numbered_folder(project.runs_dir, prefix)
+
+
+__all__ = [
+    "CheckFailed",
+    "DeprecatedAlias",
+    "UsageError",
+    "add_deprecated",
+    "add_device",
+    "add_json",
+    "add_replay",
+    "command_project",
+    "default_out",
+    "emit_json",
+    "need_device",
+    "warn",
+]

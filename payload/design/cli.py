@@ -1,0 +1,168 @@
+"""``payload new``, ``payload build`` and ``payload summary``: a design project's own commands."""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import time
+from pathlib import Path
+
+from payload.cliutil import CheckFailed, add_json, command_project, emit_json
+from payload.errors import PayloadError
+from payload.project import Project, ProjectError, project_of
+
+
+def _cmd_build(args: argparse.Namespace) -> int:
+    from payload.design import load_design, stale_files, write
+
+    if args.root:  # hidden: generate into any folder (tests), no project involved
+        design, root = load_design(args.design), Path(args.root)
+    else:
+        if args.design and not args.check:
+            _check_own_design(Path(args.design))
+        project = command_project(args, args.design)
+        design, root = load_design(args.design or project.design_path), project.root
+    t0 = time.perf_counter()
+    if args.check:
+        stale = stale_files(design, root)
+        if stale:
+            raise CheckFailed(
+                f"stale: {', '.join(stale)} ({len(stale)} generated file(s) do not match "
+                f"{design.source}; run `payload build`)"
+            )
+        print(f"generated files match {design.source} ({time.perf_counter() - t0:.2f} s)")
+        return 0
+    result = write(design, root)
+    dt = time.perf_counter() - t0
+    print(f"wrote {len(result.files)} files under {root} in {dt:.2f} s")
+    return 0
+
+
+def _check_own_design(design: Path) -> None:
+    """Building writes a design's models into its own project, so the design must be a
+    project's ``cad/design.toml``.
+
+    Raises:
+        PayloadError: The file is not a project's ``cad/design.toml``.
+    """
+    owner = project_of(design)
+    if owner is None or owner.design_path != design.expanduser().resolve():
+        raise PayloadError(
+            f"{design}: not a design project's cad/design.toml, so its models have no project "
+            "to go to; nothing written (make one with `payload new DIR`, or compare with "
+            "--check)"
+        )
+
+
+def _cmd_summary(args: argparse.Namespace) -> int:
+    from payload.design import load_design
+    from payload.design.summary import print_summary, summarize
+
+    project = command_project(args, args.design)
+    design = load_design(args.design or project.design_path)
+    summary = summarize(design)
+    if args.json:
+        emit_json({**summary, "project": str(project.root)})
+    else:
+        print_summary(summary)
+    return 0
+
+
+def _source_design_text(source: str | Path) -> str:
+    """The design text of ``--from``: a project folder or a design file inside a project.
+
+    Raises:
+        ProjectError: ``source`` is neither (the line names ``--from``).
+    """
+    src = Path(source)
+    if src.is_file():
+        if project_of(src) is None:
+            raise ProjectError(f"--from {source}: not a design project's design file")
+        return src.read_text(encoding="utf-8")
+    project = Project.at(src)
+    if not project.is_project():
+        raise ProjectError(f"--from {source}: not a design project (no cad/design.toml there)")
+    return project.design_path.read_text(encoding="utf-8")
+
+
+def new_project(directory: str | Path, source: str | Path | None = None) -> tuple[Project, int]:
+    """Create a design project in ``directory`` and build its models.
+
+    Args:
+        directory: The new project's folder: must not exist, or be empty.
+        source: A project (or its design file) whose design is copied; ``None``: the
+            packaged default design.
+
+    Returns:
+        The project and the number of generated files.
+
+    Raises:
+        ProjectError: ``directory`` is a non-empty folder or a file, or ``source`` is
+            not a project.
+        DesignError: The copied design is invalid (the folder is removed again).
+    """
+    from payload.design import load_design, write
+    from payload.project import default_design_text
+
+    target = Path(directory)
+    if target.exists() and (not target.is_dir() or any(target.iterdir())):
+        raise ProjectError(f"{target}: not an empty folder; `payload new` needs a new one")
+    text = default_design_text() if source is None else _source_design_text(source)
+    created = not target.exists()
+    project = Project.at(target)
+    project.design_path.parent.mkdir(parents=True, exist_ok=True)
+    project.design_path.write_text(text, encoding="utf-8")
+    try:
+        result = write(load_design(project.design_path), project.root)
+    except PayloadError:
+        if created:
+            shutil.rmtree(project.root, ignore_errors=True)
+        else:
+            for child in list(project.root.iterdir()):
+                shutil.rmtree(child) if child.is_dir() else child.unlink()
+        raise
+    return project, len(result.files)
+
+
+def _cmd_new(args: argparse.Namespace) -> int:
+    t0 = time.perf_counter()
+    project, n = new_project(args.dir, args.source)
+    print(f"project: {project.root}")
+    print(
+        f"new design project from {args.source or 'the packaged default design'}: "
+        f"{project.relative(project.design_path)} and {n} generated files in "
+        f"{time.perf_counter() - t0:.2f} s"
+    )
+    return 0
+
+
+def register(
+    sub: argparse._SubParsersAction, groups: dict[str, argparse._SubParsersAction]
+) -> None:
+    """Add ``new``, ``build`` and ``summary``."""
+    del groups
+    p = sub.add_parser("new", help="a new design project, built and ready")
+    p.add_argument("dir", metavar="DIR", help="folder of the new project (new or empty)")
+    p.add_argument(
+        "--from",
+        dest="source",
+        metavar="PROJECT",
+        help="copy this project's design (default: the packaged default design)",
+    )
+    p.set_defaults(func=_cmd_new)
+
+    p = sub.add_parser("build", help="regenerate urdf/ and cad/meshes/ from the design")
+    p.add_argument(
+        "--design", help="design TOML (default: cad/design.toml); builds the project holding it"
+    )
+    p.add_argument("--check", action="store_true", help="exit 1 naming every stale file")
+    p.add_argument("--root", help=argparse.SUPPRESS)
+    p.set_defaults(func=_cmd_build)
+
+    p = sub.add_parser("summary", help="DoF, joint ranges, masses and bounding boxes")
+    p.add_argument("--design", help="design TOML (default: cad/design.toml)")
+    add_json(p)
+    p.set_defaults(func=_cmd_summary)
+
+
+__all__ = ["new_project", "register"]

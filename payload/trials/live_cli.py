@@ -1,0 +1,48 @@
+"""``payload teleop serve`` and ``payload bench teleop``: the live Quest interface composed
+with the trial-layer live session.
+
+The teleoperation package provides the server, the options and the terminal output
+(:mod:`payload.teleop.cli`); the session it drives records a trial, so it is composed
+here, one layer up, and handed down as a factory.
+"""
+
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+from payload.teleop.cli import bench, bench_arguments, serve, serve_arguments
+
+
+def _live_session(*args: Any, **kwargs: Any) -> Any:
+    from payload.trials.live import LiveSession
+
+    return LiveSession(*args, **kwargs)
+
+
+def _cmd_serve(args: argparse.Namespace) -> int:
+    return serve(args, _live_session)
+
+
+def _cmd_bench(args: argparse.Namespace) -> int:
+    return bench(args, _live_session)
+
+
+def register(
+    sub: argparse._SubParsersAction, groups: dict[str, argparse._SubParsersAction]
+) -> None:
+    """Add ``teleop serve`` and ``bench teleop``."""
+    teleop = sub.add_parser("teleop", help="the live Quest (WebXR) interface")
+    tsub = teleop.add_subparsers(dest="teleop_command", required=True, metavar="WHAT")
+    p = tsub.add_parser("serve", help="serve the WebXR page, its WebSocket and /status")
+    serve_arguments(p)
+    p.set_defaults(func=_cmd_serve)
+
+    b = groups["bench"].add_parser(
+        "teleop", help="latency of the live interface through an emulated Quest 3"
+    )
+    bench_arguments(b)
+    b.set_defaults(func=_cmd_bench)
+
+
+__all__ = ["register"]
