@@ -89,7 +89,8 @@ def test_deployment_animation_goes_from_stowed_to_home(review, design) -> None:
 
 
 def test_clearance_segments_measure_the_envelope_reports_clearances(review) -> None:
-    objects = review.scene.objects()
+    objects, labels = review.scene.objects(), dict(review.scene.overlay.labels)
+    anchors = review.scene.transforms()
     fits = {p.name: p for p in review.check.parts}
     segments = [p for p in objects if p.startswith(f"{REVIEW}/findings/clearance/")]
     assert len([p for p in segments if p.endswith("/segment")]) == 6
@@ -97,12 +98,54 @@ def test_clearance_segments_measure_the_envelope_reports_clearances(review) -> N
         if not path.endswith("/segment"):
             continue
         a, b = objects[path].geometry.position.T.astype(float)
-        label = objects[path.replace("/segment", "/label")].material.texture.text
-        mm, _, part = label.partition(" mm ")
+        label = labels[path.replace("/segment", "/label")]
+        # "<part> - bay <wall> <d> mm": names the part, the wall and the distance
+        part, _, rest = label.partition(" - ")
+        where, mm = rest.removesuffix(" mm").rsplit(" ", 1)
         wall = next(w for w in range(6) if path.split("/")[-2] == _wall_key(w))
+        assert where == _WALL_NAMES[wall]
+        anchor = anchors[path.replace("/segment", "/label")][:3, 3]
+        np.testing.assert_allclose(anchor, (a + b) / 2, atol=1e-6)  # points at its segment
         assert np.linalg.norm(a - b) == pytest.approx(fits[part].wall_clearance[wall], abs=2e-6)
         assert float(mm) == pytest.approx(fits[part].wall_clearance[wall] * 1e3, abs=0.051)
     assert not review.offending
+
+
+_WALL_NAMES = (
+    "bay aft",
+    "bay forward",
+    "bay right",
+    "bay left",
+    "bay bottom face",
+    "bay mount",
+)
+
+
+def test_clearance_labels_show_with_the_stowed_payload_only(review) -> None:
+    anim = review.scene.animation
+    frames, shown = frame_values(anim, f"{REVIEW}/findings", "visible")
+    _, stage = frame_values(anim, f"{REVIEW}/payload/stage", "position")
+    moved = [i for i in range(len(stage)) if not np.allclose(stage[i], stage[0])]
+    assert shown[0] is True and frames[0] == 0
+    assert frames[1:] == [moved[0]] and shown[1:] == [False]  # hidden as the stage leaves
+    assert not review.scene.autoplay  # so the page opens on the stowed, labelled payload
+    assert all(p.startswith(f"{REVIEW}/findings/") for p, _ in review.scene.overlay.labels)
+
+
+def test_finger_colours_are_not_the_pass_fail_colours() -> None:
+    import matplotlib.colors as mc
+
+    from payload.envelope.drawing import FAIL_COLOUR, FINGER_COLOURS, TIGHT_COLOUR
+
+    for f, c in FINGER_COLOURS.items():
+        for signal in (FAIL_COLOUR, TIGHT_COLOUR):
+            h1, h2 = mc.rgb_to_hsv(mc.to_rgb(c))[0], mc.rgb_to_hsv(mc.to_rgb(signal))[0]
+            assert min(abs(h1 - h2), 1 - abs(h1 - h2)) > 0.06, (f, c, signal)
+
+
+def test_title_names_the_design_and_its_hash(review) -> None:
+    assert design_hash(project_files().design) in review.scene.overlay.title
+    assert "cad/design.toml" in review.scene.overlay.title
 
 
 def _wall_key(w: int) -> str:
@@ -151,7 +194,7 @@ def test_a_design_that_does_not_fit_shows_the_offending_parts_red(tmp_path, desi
     for n in geom.links:
         colour = objects[f"{REVIEW}/payload/{n}/visual0"].material.color
         assert (colour == OFFENDING_COLOUR) == (n in out), n
-    labels = [p for p in objects if p.startswith(f"{REVIEW}/findings/protrusion/")]
+    labels = [p for p, _ in rv.scene.overlay.labels if "/findings/protrusion/" in p]
     assert sorted(p.rsplit("/", 1)[1] for p in labels) == sorted(out)
 
 

@@ -6,11 +6,16 @@ must cover the region where its meshes project through the camera the review set
 pinhole projection computed here, independently of three.js), in the fingers' colours,
 and the background must be untouched everywhere else.
 
-Without Chromium the test skips, except under CI (``CI`` set), where it fails.
+The same page, as it opens: every finger, the stage, the carriage and Astrobee's body lie
+inside the viewport, projected through the page's own three.js camera; no two label boxes
+(their screen rectangles) intersect; the legend lists every colour the scene draws.
+
+Without Chromium the tests skip, except under CI (``CI`` set), where they fail.
 """
 
 from __future__ import annotations
 
+import itertools
 import math
 import os
 import sys
@@ -100,7 +105,7 @@ def test_static_review_draws_the_payload_where_it_projects(tmp_path: Path) -> No
 
     png = tmp_path / "review.png"
     hide = [["meshcat", "review", n] for n in ("vehicle", "findings", "reach")]
-    screenshot(html, png, time_s=0.0, hide=hide)
+    screenshot(html, png, time_s=0.0, hide=hide, overlay=False)
     img = imread(png)[..., :3].astype(float)
     h, w = img.shape[:2]
     assert (w, h) == VIEWPORT
@@ -139,3 +144,133 @@ def test_static_review_draws_the_payload_where_it_projects(tmp_path: Path) -> No
         match = (dh < 0.03) & (hsv[..., 1] > 0.4) & (hsv[..., 2] > 0.15)
         assert match[inside].sum() > 40, f"finger {finger} ({colour}) is not drawn"
         assert match[outside].sum() == 0, f"finger {finger}'s colour outside the payload"
+
+
+# ------------------------------------------------------------- the default view
+
+
+@pytest.fixture(scope="module")
+def static_review(tmp_path_factory) -> Path:
+    from payload.cli import main
+
+    html = tmp_path_factory.mktemp("review") / "review.html"
+    assert main(["review", "--static", str(html), "--reach-samples", "1000"]) == 0
+    return html
+
+
+_CAMERA = """() => {
+    const c = viewer.camera;
+    c.updateMatrixWorld();
+    const root = viewer.scene_tree.find(["meshcat", "review"]).object;
+    root.updateMatrixWorld(true);
+    return {P: c.projectionMatrix.elements, V: c.matrixWorldInverse.elements,
+            R: root.matrixWorld.elements,
+            w: viewer.renderer.domElement.clientWidth, h: viewer.renderer.domElement.clientHeight};
+}"""
+
+
+def page_projection(page) -> tuple[np.ndarray, tuple[int, int]]:
+    """The page's world-from-payload, view and projection matrices as one (4, 4) matrix."""
+    cam = page.evaluate(_CAMERA)
+    m = [np.array(cam[k], dtype=float).reshape(4, 4).T for k in ("P", "V", "R")]  # column-major
+    return m[0] @ m[1] @ m[2], (int(cam["w"]), int(cam["h"]))
+
+
+def to_pixels(points: np.ndarray, m: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """Pixel coordinates (u right, v down) of payload-frame points, shape (n, 2)."""
+    clip = np.c_[points, np.ones(len(points))] @ m.T
+    assert np.all(clip[:, 3] > 0), "a point is behind the camera"
+    ndc = clip[:, :3] / clip[:, 3:]
+    w, h = size
+    return np.stack([(ndc[:, 0] + 1) / 2 * w, (1 - ndc[:, 1]) / 2 * h], axis=1)
+
+
+def _posed(geom, poses: dict, links) -> dict[str, np.ndarray]:
+    return {n: geom.mesh_vertices[n] @ poses[n][:3, :3].T + poses[n][:3, 3] for n in links}
+
+
+def test_the_default_view_frames_vehicle_fingers_stage_and_carriage(static_review) -> None:
+    _require_browser()
+    import itertools
+
+    from payload.envelope.vehicle import vehicle_from_dict
+    from payload.review.browser import open_page, pose_page
+
+    design = load_design(project_files().design)
+    tree = build_tree(design)
+    geom = PayloadGeometry(tree)
+    vehicle = vehicle_from_dict(design.vehicle or {})
+    body = vehicle.body_lower, vehicle.body_upper
+    silhouette = np.array(
+        [np.where(c, body[1], body[0]) for c in itertools.product((0, 1), repeat=3)]
+    )
+    wanted = ["stage", "carriage"] + [n for n in geom.links if n[1:2] == "_"]
+    assert {n[0] for n in wanted if n[1:2] == "_"} == set("ABCD")
+    with open_page(static_review) as page:
+        duration = page.evaluate(
+            "() => Math.max(...viewer.animator.actions.map(a => a._clip.duration))"
+        )
+        for state, t in (("stowed", 0.0), ("home", duration)):
+            pose_page(page, t)
+            m, (w, h) = page_projection(page)
+            assert (w, h) == VIEWPORT
+            parts = _posed(geom, tree.link_poses(tree.posture(state)), wanted)
+            parts["Astrobee"] = silhouette
+            for name, pts in parts.items():
+                uv = to_pixels(pts, m, (w, h))
+                assert np.all((uv >= 0) & (uv <= [w, h])), f"{name} ({state}) leaves the view"
+        # the vehicle is the subject, not a speck: its silhouette spans a good part of the view
+        pose_page(page, 0.0)
+        m, size = page_projection(page)
+        uv = to_pixels(silhouette, m, size)
+        assert np.ptp(uv[:, 1]) > 0.3 * size[1]
+
+
+def test_no_two_labels_overlap_and_each_names_what_it_measures(static_review) -> None:
+    _require_browser()
+    from payload.review.browser import open_page
+
+    review = build_design_review(project_files(), reach_samples=0)
+    texts = sorted(t for _, t in review.scene.overlay.labels)
+    with open_page(static_review) as page:
+        boxes = page.evaluate("() => payloadReview.labelBoxes()")
+    assert sorted(b["text"] for b in boxes) == texts  # every stowed label shown
+    for a, b in itertools.combinations(boxes, 2):
+        apart = (
+            a["x"] + a["w"] <= b["x"]
+            or b["x"] + b["w"] <= a["x"]
+            or a["y"] + a["h"] <= b["y"]
+            or b["y"] + b["h"] <= a["y"]
+        )
+        assert apart, f"labels overlap: {a} {b}"
+    for b in boxes:
+        assert 0 <= b["x"] and b["x"] + b["w"] <= VIEWPORT[0]
+        assert 0 <= b["y"] and b["y"] + b["h"] <= VIEWPORT[1]
+
+
+_COLOURS = """() => {
+    const out = new Set();
+    viewer.scene_tree.find(["meshcat"]).object.traverseVisible(o => {
+        const mats = o.material ? [].concat(o.material) : [];
+        for (const m of mats) if (m.color && !m.vertexColors && m.type !== "SpriteMaterial")
+            out.add("#" + m.color.getHexString());
+    });
+    return [...out];
+}"""
+
+
+def test_the_legend_lists_every_colour_drawn(static_review) -> None:
+    _require_browser()
+    from payload.review.browser import open_page, pose_page
+
+    with open_page(static_review) as page:
+        legend = set(
+            page.evaluate(
+                "() => [...document.querySelectorAll('.payload-legend-row')]"
+                ".map(r => r.dataset.colour)"
+            )
+        )
+        pose_page(page, 0.0, show=[["meshcat", "review", "reach"]])
+        drawn = set(page.evaluate(_COLOURS))
+    assert len(drawn) >= 6  # fingers, structure, body, bays, segments
+    assert drawn <= legend, f"colours drawn but not in the legend: {drawn - legend}"

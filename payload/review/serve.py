@@ -64,13 +64,12 @@ def close_viewer(vis: Any) -> None:
 
 
 def static_html(scene: Scene, zmq_url: str | None = None) -> str:
-    """The scene and its animation as one standalone HTML page (meshcat's JS inlined)."""
-    vis = open_viewer(zmq_url)
-    try:
-        scene.send(vis.window)
-        return vis.static_html()
-    finally:
-        close_viewer(vis)
+    """The scene, its animation and overlay as one standalone HTML page (meshcat's JS
+    inlined; see :func:`payload.review.page.static_html`). ``zmq_url`` is not needed."""
+    from payload.review.page import static_html as page
+
+    del zmq_url
+    return page(scene)
 
 
 __all__ = ["check_server", "close_viewer", "open_viewer", "static_html"]
