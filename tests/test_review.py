@@ -6,6 +6,7 @@ kinematic tree (numpy) and against Pinocchio called here directly on the generat
 
 from __future__ import annotations
 
+import json
 import shutil
 import xml.etree.ElementTree as ET
 from pathlib import Path
@@ -371,3 +372,43 @@ def test_stale_generated_models_exit_2(tmp_path, design_dict, capsys) -> None:
     path.write_bytes(tomli_w.dumps(data).encode())
     assert main(["review", "--design", str(path), "--static", str(tmp_path / "r.html")]) == 2
     assert "do not match" in _err(capsys) and not (tmp_path / "r.html").exists()
+
+
+def test_watch_serves_the_page_and_stops_cleanly_on_ctrl_c(tmp_path, design_dict) -> None:
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+    import urllib.request
+
+    path = _copy_project(tmp_path, design_dict, design_dict["vehicle"]["bay_size"])
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    cmd = [sys.executable, "-m", "payload.cli", "review", "--watch", "--design", str(path)]
+    proc = subprocess.Popen(
+        [*cmd, "--port", "0", "--reach-samples", "0"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
+    try:
+        url = None
+        deadline = time.monotonic() + 120
+        while url is None and time.monotonic() < deadline:
+            line = proc.stdout.readline()
+            if line.startswith("review: "):
+                url = line.split()[1]
+        assert url is not None, "no address printed"
+        page = urllib.request.urlopen(url, timeout=10).read().decode()
+        assert "MeshCat.Viewer" in page and "payload-overlay" in page
+        update = json.loads(urllib.request.urlopen(url + "update?have=-1", timeout=10).read())
+        assert update["version"] == 0 and update["commands"] and update["error"] is None
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=20) == 0
+        err = proc.stderr.read()
+        assert "stopped" in err and "Traceback" not in err
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()

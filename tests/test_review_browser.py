@@ -274,3 +274,81 @@ def test_the_legend_lists_every_colour_drawn(static_review) -> None:
         drawn = set(page.evaluate(_COLOURS))
     assert len(drawn) >= 6  # fingers, structure, body, bays, segments
     assert drawn <= legend, f"colours drawn but not in the legend: {drawn - legend}"
+
+
+# ------------------------------------------------------------- the live review
+
+_DISTAL = """() => {
+    const n = viewer.scene_tree.find(["meshcat", "review", "payload", "A_distal", "visual0",
+                                      "<object>"]).object;
+    const g = n.geometry;
+    if (!g) return null;
+    g.computeBoundingBox();
+    return [g.attributes.position.count, g.boundingBox.min.toArray(), g.boundingBox.max.toArray()];
+}"""
+
+
+def _wait_for(page, check, seconds: float) -> float:
+    """Seconds until ``check(page)`` holds (fails after ``seconds``)."""
+    import time
+
+    t0 = time.perf_counter()
+    while time.perf_counter() - t0 < seconds:
+        if check(page):
+            return time.perf_counter() - t0
+        page.wait_for_timeout(50)
+    raise AssertionError(f"the page did not change within {seconds} s")
+
+
+def test_watch_follows_the_saved_design_and_shows_an_invalid_one(tmp_path, design_dict) -> None:
+    _require_browser()
+    import shutil
+    import threading
+
+    import tomli_w
+    from conftest import ROOT
+
+    from payload.review.browser import open_page
+    from payload.review.cli import live_review
+    from payload.review.live import serve
+
+    root = tmp_path / "project"
+    shutil.copytree(ROOT / "urdf", root / "urdf")
+    shutil.copytree(ROOT / "cad" / "meshes", root / "cad" / "meshes")
+    design = root / "cad" / "design.toml"
+    design.write_bytes(tomli_w.dumps(design_dict).encode())
+    live = live_review(str(design), 0)
+    assert live.rebuild() is None
+    server = serve(live, 0)
+    stop = threading.Event()
+    watcher = threading.Thread(target=live.watch, args=(stop, lambda line: None), daemon=True)
+    watcher.start()
+    try:
+        url = f"http://127.0.0.1:{server.server_address[1]}/"
+        with open_page(url) as page:
+            before = page.evaluate(_DISTAL)
+            assert before is not None and before[0] > 0
+            shorter = {**design_dict, "finger": {**design_dict["finger"]}}
+            lengths = dict(design_dict["finger"]["lengths"])
+            lengths["distal"] = lengths["distal"] - 0.006
+            shorter["finger"]["lengths"] = lengths
+            design.write_bytes(tomli_w.dumps(shorter).encode())
+            took = _wait_for(page, lambda p: p.evaluate(_DISTAL) != before, 3.0)
+            after = page.evaluate(_DISTAL)
+            # the distal mesh is shorter along the finger (its longest extent) by about 6 mm
+            span = lambda b: max(np.subtract(b[2], b[1]))  # noqa: E731
+            assert span(before) - span(after) == pytest.approx(0.006, abs=1e-3), took
+            # only what changed was sent: the vehicle's boxes are not in the update
+            update = live.update(live.builds[-2].version)
+            assert 0 < len(update["commands"]) < len(live.builds[-1].commands) / 2
+
+            lengths["distal"] = -0.01
+            design.write_bytes(tomli_w.dumps(shorter).encode())
+            _wait_for(page, lambda p: p.evaluate("() => payloadReview.error || ''") != "", 3.0)
+            text = page.evaluate("() => document.getElementById('payload-error').textContent")
+            assert "distal" in text and "\n" not in text
+            assert page.evaluate(_DISTAL) == after  # the last good model stays
+    finally:
+        stop.set()
+        server.shutdown()
+        server.server_close()

@@ -12,18 +12,25 @@ from typing import TYPE_CHECKING
 from payload.review.errors import ReviewError
 
 if TYPE_CHECKING:
+    from payload.review.live import LiveReview
     from payload.review.scene import Scene
 
 DEFAULT_REACH_SAMPLES = 5000
+DEFAULT_PORT = 7070
+"""TCP port of the ``--watch`` page."""
 
 
 def build_review(
-    design: str | None, trial: str | None, reach_samples: int = DEFAULT_REACH_SAMPLES
+    design: str | None,
+    trial: str | None,
+    reach_samples: int = DEFAULT_REACH_SAMPLES,
+    check_models: bool = True,
 ) -> Scene:
     """The review scene: the design review, and the trial replay when ``trial`` is given.
 
     With a trial, the replay is what shows (the design review stays in the scene tree,
-    hidden) and its animation is the trial's.
+    hidden) and its animation is the trial's. ``check_models`` False skips the check that
+    the generated models match the design (for a caller that has just written them).
     """
     from payload.review.design_view import REVIEW, build_design_review
     from payload.review.project import project_files
@@ -34,7 +41,7 @@ def build_review(
 
         files.check()
         read_trial(trial, files)  # bad input fails before the slow work
-    review = build_design_review(files, reach_samples=reach_samples).scene
+    review = build_design_review(files, reach_samples, check_models=check_models).scene
     if trial is None:
         return review
     from payload.review.trial_view import build_trial_replay
@@ -44,6 +51,40 @@ def build_review(
     replay.prop(REVIEW, "visible", False)
     replay.notes = review.notes + replay.notes
     return replay
+
+
+def live_review(design: str | None, reach_samples: int) -> LiveReview:
+    """A live review of the design project of ``design``: each build regenerates the
+    project's models from the design file, then builds the review scene."""
+    from payload.design import load_design
+    from payload.design.build import write
+    from payload.review.live import LiveReview
+    from payload.review.project import project_files
+
+    files = project_files(design)
+
+    def build() -> Scene:
+        write(load_design(files.design), files.urdf.parent.parent)
+        return build_review(str(files.design), None, reach_samples, check_models=False)
+
+    return LiveReview(files.design, build)
+
+
+def _cmd_watch(args: argparse.Namespace) -> int:
+    from payload.review.live import run
+
+    for option in ("static", "trial", "zmq_url"):
+        if getattr(args, option) is not None:
+            flag = "--" + option.replace("_", "-")
+            raise ReviewError(f"--watch serves its own page; it does not take {flag}")
+    live = live_review(args.design, args.reach_samples)
+    error = live.rebuild()
+    if error is not None:
+        raise ReviewError(error)
+    for line in live.notes():
+        print(line)
+    opener = (lambda url: webbrowser.open(url, new=2)) if args.open else None
+    return run(live, args.port, opener)
 
 
 def _cmd_review(args: argparse.Namespace) -> int:
@@ -58,6 +99,8 @@ def _cmd_review(args: argparse.Namespace) -> int:
     from payload.cli import command_project
 
     command_project(args, args.design)  # names the project first; library defaults use it
+    if args.watch:
+        return _cmd_watch(args)
     scene = build_review(args.design, args.trial, args.reach_samples)
     for line in scene.notes:
         print(line)
@@ -94,6 +137,18 @@ def register(
     p.add_argument("--static", metavar="FILE", help="write a standalone HTML file and exit")
     p.add_argument("--zmq-url", metavar="URL", help="use the meshcat server at URL")
     p.add_argument("--open", action="store_true", help="open the review in a browser")
+    p.add_argument(
+        "--watch",
+        action="store_true",
+        help="serve the review and follow the design file: every save rebuilds the models, "
+        "the envelope check and the open page (Ctrl-C stops)",
+    )
+    p.add_argument(
+        "--port",
+        type=int,
+        default=DEFAULT_PORT,
+        help=f"TCP port of the --watch page (default {DEFAULT_PORT}; 0: any free port)",
+    )
     p.add_argument(
         "--reach-samples",
         type=int,

@@ -85,8 +85,12 @@
       viewer.set_control("whole station view", "() => payloadReview.toggleView()");
       state.controlAdded = true;
     }
-    if (state.follow) state.chase = true;
-    placeCamera();
+    if (!state.placed) {
+      // the first scene sets the view; a rebuild keeps the one the user has
+      if (state.follow) state.chase = true;
+      placeCamera();
+      state.placed = true;
+    }
   }
 
   function placeCamera() {
@@ -227,6 +231,9 @@
   window.payloadReview = {
     apply,
     state,
+    get error() {
+      return error.style.display === "none" ? "" : error.textContent;
+    },
     toggleView() {
       state.chase = !state.chase;
       placeCamera();

@@ -56,11 +56,21 @@ def _meshcat_js() -> str:
     return (Path(VIEWER_ROOT) / "main.min.js").read_text(encoding="utf-8")
 
 
-def packed(command: Any) -> bytes:
-    """One meshcat command as the msgpack blob the viewer decodes."""
+def _ext(obj: Any) -> Any:
+    import msgpack
     import umsgpack
 
-    return umsgpack.packb(command.lower())
+    if isinstance(obj, umsgpack.Ext):  # meshcat's typed arrays
+        return msgpack.ExtType(obj.type, obj.data)
+    raise TypeError(f"cannot pack {type(obj).__name__}")
+
+
+def packed(command: Any) -> bytes:
+    """One meshcat command as the msgpack blob the viewer decodes (meshcat's own encoder,
+    umsgpack, is pure Python; msgpack's C packer writes the same message much faster)."""
+    import msgpack
+
+    return msgpack.packb(command.lower(), default=_ext, use_bin_type=True)
 
 
 def command_key(command: Any, blob: bytes) -> tuple[str, str, bytes]:
