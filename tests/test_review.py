@@ -234,9 +234,32 @@ def _record_trial(folder: Path, design_file: Path = DESIGN) -> Path:
 
 
 @pytest.fixture(scope="module")
-def replay(tmp_path_factory):
-    folder = _record_trial(tmp_path_factory.mktemp("trial"))
-    return build_trial_replay(folder, project_files())
+def trial_folder(tmp_path_factory) -> Path:
+    return _record_trial(tmp_path_factory.mktemp("trial"))
+
+
+@pytest.fixture(scope="module")
+def replay(trial_folder):
+    return build_trial_replay(trial_folder, project_files(), rate=50.0)  # every recorded step
+
+
+def test_a_replay_at_10_hz_shows_the_step_at_each_tenth_of_a_second(trial_folder) -> None:
+    replay = build_trial_replay(trial_folder, project_files(), rate=10.0)
+    rec, anim = replay.recording, replay.scene.animation
+    t = rec.t - rec.t[0]
+    # independent: for each 0.1 s tick, the first recorded step at or after it; and the last
+    want = {int(np.flatnonzero(t >= tick - 1e-9)[0]) for tick in np.arange(0, t[-1], 0.1)}
+    want = sorted({*want, len(t) - 1})
+    frames, pos = frame_values(anim, f"{TRIAL}/astrobee", "position")
+    np.testing.assert_allclose(np.array(frames) / 10.0, t[want], atol=1e-12)
+    np.testing.assert_allclose(pos, rec.astrobee_pos[want])
+    assert replay.fps == 10.0
+    # a pad shows contact at a frame when the indicator was set at any step since the last
+    keys, values = frame_values(anim, f"{TRIAL}/astrobee/payload/A_tip/pad_contact", "visible")
+    for i, k in enumerate(want):
+        since = rec.contact[(want[i - 1] + 1 if i else 0) : k + 1]
+        value = values[int(np.searchsorted(keys, t[k] * 10.0 + 1e-9, side="right")) - 1]
+        assert value == since.any(), (i, k)
 
 
 def test_one_animation_frame_per_recorded_step_at_the_recorded_rate(replay) -> None:
@@ -288,8 +311,13 @@ def test_pads_show_the_opposing_contact_indicator_and_labels_the_phases(replay) 
             at = np.searchsorted(frames, np.arange(N_STEPS), side="right") - 1
             np.testing.assert_array_equal(np.array(values)[at], want)
     assert [s[0] for s in phase_spans(rec)] == ["acquisition", "translation"]
-    frames, values = frame_values(anim, f"{TRIAL}/astrobee/phase/translation", "visible")
-    assert frames == pytest.approx([0.0, N_STEPS // 2]) and values == [False, True]
+    # the phase is the page's text at the animation time: spans from the trial's start
+    t = rec.t - rec.t[0]
+    half = N_STEPS // 2
+    assert replay.scene.overlay.phases == [
+        ("acquisition", pytest.approx(0.0), pytest.approx(t[half - 1])),
+        ("translation", pytest.approx(t[half]), pytest.approx(t[-1])),
+    ]
 
 
 # -- command line and bad input ------------------------------------------------------------

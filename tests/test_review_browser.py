@@ -158,10 +158,10 @@ def static_review(tmp_path_factory) -> Path:
     return html
 
 
-_CAMERA = """() => {
+_CAMERA = """(names) => {
     const c = viewer.camera;
     c.updateMatrixWorld();
-    const root = viewer.scene_tree.find(["meshcat", "review"]).object;
+    const root = viewer.scene_tree.find(names).object;
     root.updateMatrixWorld(true);
     return {P: c.projectionMatrix.elements, V: c.matrixWorldInverse.elements,
             R: root.matrixWorld.elements,
@@ -169,9 +169,10 @@ _CAMERA = """() => {
 }"""
 
 
-def page_projection(page) -> tuple[np.ndarray, tuple[int, int]]:
-    """The page's world-from-payload, view and projection matrices as one (4, 4) matrix."""
-    cam = page.evaluate(_CAMERA)
+def page_projection(page, root: str = "review") -> tuple[np.ndarray, tuple[int, int]]:
+    """The page's projection, view and scene-root (``/meshcat/<root>``) matrices as one
+    (4, 4) matrix: from a point in the root's frame to clip coordinates."""
+    cam = page.evaluate(_CAMERA, ["meshcat", root])
     m = [np.array(cam[k], dtype=float).reshape(4, 4).T for k in ("P", "V", "R")]  # column-major
     return m[0] @ m[1] @ m[2], (int(cam["w"]), int(cam["h"]))
 
@@ -352,3 +353,44 @@ def test_watch_follows_the_saved_design_and_shows_an_invalid_one(tmp_path, desig
         stop.set()
         server.shutdown()
         server.server_close()
+
+
+# ------------------------------------------------------------- the trial replay
+
+
+def test_a_trial_replay_follows_the_vehicle_from_first_to_last_frame(tmp_path) -> None:
+    _require_browser()
+    import itertools
+
+    from test_review import _record_trial
+
+    from payload.cli import main
+    from payload.envelope.vehicle import vehicle_from_dict
+    from payload.review.browser import open_page, pose_page
+    from payload.review.trial_view import pose
+    from payload.trials.recorder import read_recording
+
+    folder = _record_trial(tmp_path / "trial")
+    html = tmp_path / "replay.html"
+    assert main(["review", "--trial", str(folder), "--static", str(html)]) == 0
+    rec = read_recording(folder / "log.mcap")
+    vehicle = vehicle_from_dict(load_design(project_files().design).vehicle or {})
+    half = np.asarray(vehicle.body_size) / 2
+    box = np.array([np.where(c, half, -half) for c in itertools.product((0, 1), repeat=3)])
+    with open_page(html) as page:
+        end = page.evaluate("() => Math.max(...viewer.animator.actions.map(a => a._clip.duration))")
+        for k, t in ((0, 0.0), (len(rec) - 1, end)):
+            pose_page(page, t)
+            m, size = page_projection(page, "trial")  # ISS frame -> clip, as the page draws
+            body = pose(rec.astrobee_pos[k], rec.astrobee_quat[k])
+            pts = box @ body[:3, :3].T + body[:3, 3]
+            uv = to_pixels(pts, m, size)
+            assert np.all((uv >= 0) & (uv <= size)), f"the vehicle leaves the view at step {k}"
+            assert np.ptp(uv[:, 1]) >= 0.2 * size[1], f"the vehicle is small at step {k}"
+        text = page.evaluate("() => document.getElementById('payload-phase').textContent")
+        assert "translation" in text  # the last frame's phase, as text
+        names = {b["text"] for b in page.evaluate("() => payloadReview.labelBoxes()")}
+        page.evaluate("() => payloadReview.toggleView()")  # the whole-station view
+        pose_page(page, 0.0)
+        names |= {b["text"] for b in page.evaluate("() => payloadReview.labelBoxes()")}
+    assert names & {"Kibo (JEM)", "Node 2", "vestibule"}

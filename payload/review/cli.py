@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from payload.review.errors import ReviewError
+from payload.review.project import DEFAULT_RATE
 
 if TYPE_CHECKING:
     from payload.review.live import LiveReview
@@ -25,6 +26,7 @@ def build_review(
     trial: str | None,
     reach_samples: int = DEFAULT_REACH_SAMPLES,
     check_models: bool = True,
+    rate: float = DEFAULT_RATE,
 ) -> Scene:
     """The review scene: the design review, and the trial replay when ``trial`` is given.
 
@@ -46,7 +48,7 @@ def build_review(
         return review
     from payload.review.trial_view import build_trial_replay
 
-    replay = build_trial_replay(trial, files).scene
+    replay = build_trial_replay(trial, files, rate=rate).scene
     replay.commands += review.commands
     replay.prop(REVIEW, "visible", False)
     replay.notes = review.notes + replay.notes
@@ -101,7 +103,7 @@ def _cmd_review(args: argparse.Namespace) -> int:
     command_project(args, args.design)  # names the project first; library defaults use it
     if args.watch:
         return _cmd_watch(args)
-    scene = build_review(args.design, args.trial, args.reach_samples)
+    scene = build_review(args.design, args.trial, args.reach_samples, rate=args.rate)
     for line in scene.notes:
         print(line)
     if args.static is not None:
@@ -137,6 +139,13 @@ def register(
     p.add_argument("--static", metavar="FILE", help="write a standalone HTML file and exit")
     p.add_argument("--zmq-url", metavar="URL", help="use the meshcat server at URL")
     p.add_argument("--open", action="store_true", help="open the review in a browser")
+    p.add_argument(
+        "--rate",
+        type=float,
+        default=DEFAULT_RATE,
+        metavar="HZ",
+        help=f"frames per second of trial time in a --trial replay (default {DEFAULT_RATE:g})",
+    )
     p.add_argument(
         "--watch",
         action="store_true",
