@@ -206,17 +206,12 @@ def reach_clouds(
     geom: PayloadGeometry, vehicle: Vehicle, samples: int, seed: int
 ) -> dict[str, np.ndarray]:
     """Each finger's collision-free fingertip cloud, as the reach report samples it [m]."""
-    from payload.envelope.reach import (
-        CollisionModel,
-        design_kinematics,
-        finger_link_names,
-        fingertips,
-        sample_configurations,
-    )
+    from payload.envelope.batch_fk import fingertips_batch
+    from payload.envelope.reach import CollisionModel, finger_link_names, sample_configurations
 
     tree = geom.tree
     q = sample_configurations(tree, samples, np.random.default_rng(seed))
-    tips = fingertips(design_kinematics(tree).kin, q)
+    tips = fingertips_batch(tree, q)
     contacts = CollisionModel(geom, vehicle).check(q, workers=1)
     links = {f: finger_link_names(tree, f) for f in FINGERS}
     out = {}
