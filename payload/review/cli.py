@@ -38,17 +38,18 @@ def build_review(
     from payload.review.project import project_files
 
     files = project_files(design)
+    rec = None
     if trial is not None:
         from payload.review.trial_view import read_trial
 
         files.check()
-        read_trial(trial, files)  # bad input fails before the slow work
+        rec = read_trial(trial, files)  # bad input fails before the slow work
     review = build_design_review(files, reach_samples, check_models=check_models).scene
     if trial is None:
         return review
     from payload.review.trial_view import build_trial_replay
 
-    replay = build_trial_replay(trial, files, rate=rate).scene
+    replay = build_trial_replay(trial, files, rate=rate, recording=rec).scene
     replay.commands += review.commands
     replay.prop(REVIEW, "visible", False)
     replay.notes = review.notes + replay.notes

@@ -39,7 +39,7 @@ body { margin: 0; }
 .payload-swatch { width: 12px; height: 12px; border: 1px solid #555; flex: none; }
 .payload-label { position: absolute; white-space: nowrap; font-size: 12px;
   background: rgba(255,255,255,0.9); border: 1px solid #555; padding: 0 4px; }
-#payload-phase { position: absolute; left: 50%; top: 8px; transform: translateX(-50%);
+#payload-phase { position: absolute; right: 10px; top: 32px;
   font-size: 20px; font-weight: 600; background: rgba(255,255,255,0.85); padding: 2px 8px;
   display: none; }
 #payload-error { position: absolute; left: 10px; right: 260px; top: 56px; display: none;

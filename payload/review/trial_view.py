@@ -256,16 +256,18 @@ def draw_pads(scene: Scene, anim: Animation, root: str, radius: float, frames, c
             set_visibility(anim, path, frames, list(on))
 
 
-def trial_legend(world) -> list[tuple[str, str]]:
-    """The replay's colours: fingers, structure, pads, the vehicle, the CTB, the station."""
+def trial_legend(world, keep_in: bool) -> list[tuple[str, str]]:
+    """The replay's colours: fingers, structure, pads, the vehicle, the CTB, the station
+    (and the keep-in boxes when drawn)."""
     out = [(FINGER_COLOURS[f], f"finger {f}") for f in FINGERS]
     out += [
         (STRUCTURE_COLOUR, "structure: base, stage, carriage"),
         (colour_text(CONTACT_COLOUR), "pads in opposing contact"),
         (colour_text(FREE_COLOUR), "pads not in opposing contact"),
         (colour_text(BODY_COLOUR), "Astrobee's body"),
-        (colour_text(KEEP_IN_COLOUR), "keep-in boxes"),
     ]
+    if keep_in:
+        out.append((colour_text(KEEP_IN_COLOUR), "keep-in boxes"))
     seen = {c for c, _ in out}
     m = world.model
     for name, geoms in (("CTB", _ctb_geoms(world)), ("ISS racks and handrails", world.iss_geoms)):
@@ -292,7 +294,11 @@ def _rgb(rgba: np.ndarray) -> int:
 
 
 def build_trial_replay(
-    folder: str | Path, files: ProjectFiles, root: str = TRIAL, rate: float = DEFAULT_RATE
+    folder: str | Path,
+    files: ProjectFiles,
+    root: str = TRIAL,
+    rate: float = DEFAULT_RATE,
+    recording: object | None = None,
 ) -> TrialReplay:
     """The replay scene of the trial recorded in ``folder`` (see the module docstring).
 
@@ -302,6 +308,8 @@ def build_trial_replay(
         root: Scene node to build under.
         rate: Animation frames per second of trial time [Hz]; the recording is sampled
             at this rate (a 150 s trial at 10 Hz: 1,500 frames).
+        recording: The folder's recording when the caller has read it already
+            (:func:`read_trial`); reading a long recording is most of a replay's time.
 
     Raises:
         ReviewError: Bad folder or recording (see :func:`read_trial`), or a rate <= 0.
@@ -311,7 +319,7 @@ def build_trial_replay(
     if not (np.isfinite(rate) and rate > 0):
         raise ReviewError(f"--rate must be > 0 Hz (got {rate})")
     files.check()
-    rec = read_trial(folder, files)
+    rec = read_trial(folder, files) if recording is None else recording
     design = load_design(files.design)
     if not files.mjcf.is_file():
         raise ReviewError(f"generated MJCF not found: {files.mjcf}; run `payload build`")
@@ -327,7 +335,8 @@ def build_trial_replay(
     scene.transform(root, translation(-centre))
     draw_world(scene, world, root)
     draw_modules(scene, world, root)
-    draw_keep_in(scene, keep_in_boxes(world), root)
+    keep_in = keep_in_boxes(world)
+    draw_keep_in(scene, keep_in, root)
     mount = translation(world.mount)
     scene.transform(f"{root}/astrobee/payload", mount)
     placements = []
@@ -360,7 +369,7 @@ def build_trial_replay(
         title=f"trial {Path(folder).name}: {design_id}",
         subtitle=f"{len(rec)} steps shown at {fps:g} Hz; chase view "
         "(Open Controls: whole station view)",
-        legend=trial_legend(world),
+        legend=trial_legend(world, bool(keep_in)),
         labels=scene.overlay.labels,
         phases=[(ph, a - t0, b - t0) for ph, a, b in spans],
         views={"default": chase.tolist(), "station": station.tolist()},
