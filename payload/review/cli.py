@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import sys
-import time
 import webbrowser
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -91,7 +89,7 @@ def _cmd_watch(args: argparse.Namespace) -> int:
 
 
 def _cmd_review(args: argparse.Namespace) -> int:
-    from payload.review.serve import check_server, close_viewer, open_viewer, static_html
+    from payload.review.serve import check_server, open_viewer, static_html
 
     if args.zmq_url is not None:
         check_server(args.zmq_url)
@@ -116,19 +114,19 @@ def _cmd_review(args: argparse.Namespace) -> int:
         if args.open:
             webbrowser.open(out.resolve().as_uri(), new=2)
         return 0
-    vis = open_viewer(args.zmq_url)
+    opener = (lambda url: webbrowser.open(url, new=2)) if args.open else None
+    if args.zmq_url is None:  # the review's own page: title, legend, labels, chase camera
+        from payload.review.live import LiveReview, run
+
+        live = LiveReview(Path(args.design or "."), lambda: scene)
+        live.rebuild()
+        return run(live, args.port, opener, watch=False)
+    vis = open_viewer(args.zmq_url)  # meshcat's own page: the scene without the overlay
     scene.send(vis.window)
     print(f"meshcat: {vis.url()}")
     if args.open:
         vis.open()
-    if args.zmq_url is not None:
-        return 0
-    print("serving the review; Ctrl-C to stop", file=sys.stderr)
-    try:
-        while True:
-            time.sleep(3600)
-    finally:
-        close_viewer(vis)
+    return 0
 
 
 def register(
@@ -157,7 +155,7 @@ def register(
         "--port",
         type=int,
         default=DEFAULT_PORT,
-        help=f"TCP port of the --watch page (default {DEFAULT_PORT}; 0: any free port)",
+        help=f"TCP port of the served page (default {DEFAULT_PORT}; 0: any free port)",
     )
     p.add_argument(
         "--reach-samples",

@@ -201,17 +201,26 @@ def serve(live: LiveReview, port: int = 0, host: str = "127.0.0.1") -> Threading
     return server
 
 
-def run(live: LiveReview, port: int, on_ready: Callable[[str], None] | None = None) -> int:
-    """Serve and watch until Ctrl-C (the command's loop); returns the exit code 0."""
+def run(
+    live: LiveReview,
+    port: int,
+    on_ready: Callable[[str], None] | None = None,
+    watch: bool = True,
+) -> int:
+    """Serve (and with ``watch``, follow the design file) until Ctrl-C; returns 0."""
     server = serve(live, port)
     url = f"http://{server.server_address[0]}:{server.server_address[1]}/"
     print(f"review: {url}")
     if on_ready is not None:
         on_ready(url)
-    print(f"watching {live.design}; Ctrl-C to stop", file=sys.stderr)
+    what = f"watching {live.design}" if watch else "serving the review"
+    print(f"{what}; Ctrl-C to stop", file=sys.stderr)
     stop = threading.Event()
     try:
-        live.watch(stop)
+        if watch:
+            live.watch(stop)
+        else:
+            stop.wait()
     except KeyboardInterrupt:
         pass
     finally:
