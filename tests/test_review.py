@@ -352,6 +352,13 @@ def test_bad_reach_samples_and_static_folder_exit_2(tmp_path, capsys) -> None:
     assert "is a folder" in _err(capsys)
     assert main(["review", "--zmq-url", "tcp://127.0.0.1:1", "--reach-samples", "0"]) == 2
     assert "no meshcat server" in _err(capsys)
+    assert main(["review", "--rate", "0"]) == 2
+    assert "--rate must be > 0 Hz" in _err(capsys)
+    assert main(["review", "--port", "70000"]) == 2
+    assert "--port" in _err(capsys)
+    assert main(["review", "--watch", "--trial", str(tmp_path)]) == 2
+    err = _err(capsys)
+    assert "--watch" in err and "--trial" in err
 
 
 def _scene_paths(html: str) -> set[str]:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import webbrowser
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -95,6 +96,10 @@ def _cmd_review(args: argparse.Namespace) -> int:
         check_server(args.zmq_url)
     if args.reach_samples < 0:
         raise ReviewError(f"--reach-samples must be >= 0 (got {args.reach_samples})")
+    if not (math.isfinite(args.rate) and args.rate > 0):
+        raise ReviewError(f"--rate must be > 0 Hz (got {args.rate})")
+    if not 0 <= args.port <= 65535:
+        raise ReviewError(f"--port must be 0..65535 (got {args.port})")
     if args.static is not None and Path(args.static).is_dir():
         raise ReviewError(f"--static {args.static}: is a folder, expected a file name")
     from payload.cli import command_project
