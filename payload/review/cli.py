@@ -90,7 +90,8 @@ def _cmd_watch(args: argparse.Namespace) -> int:
 
 
 def _cmd_review(args: argparse.Namespace) -> int:
-    from payload.review.serve import check_server, open_viewer, static_html
+    from payload.review.page import static_html
+    from payload.review.serve import check_server, open_viewer
 
     if args.zmq_url is not None:
         check_server(args.zmq_url)
@@ -112,7 +113,7 @@ def _cmd_review(args: argparse.Namespace) -> int:
         print(line)
     if args.static is not None:
         out = Path(args.static)
-        html = static_html(scene, args.zmq_url)
+        html = static_html(scene)
         out.parent.mkdir(parents=True, exist_ok=True)
         out.write_text(html, encoding="utf-8")
         print(f"wrote {out} ({len(html) / 1e6:.1f} MB)")

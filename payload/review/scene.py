@@ -3,7 +3,8 @@
 A :class:`Scene` holds meshcat command objects (``SetObject``, ``SetTransform``,
 ``SetProperty``, one ``SetAnimation``) in the order they are sent. Building a scene needs
 no server, so tests can inspect it; :meth:`Scene.send` plays it into a live viewer and
-:func:`static_html` into a standalone HTML page (meshcat's JavaScript inlined).
+:func:`payload.review.page.static_html` into a standalone HTML page (meshcat's JavaScript
+inlined).
 
 Paths are absolute meshcat paths (``/meshcat/review/payload/base``); the viewer's own
 nodes (``/Background``, ``/Grid``, ``/Cameras/default``) are set the same way.
@@ -54,51 +55,6 @@ class StlGeometry(mg.MeshGeometry):
 
     def lower(self, object_data: Any) -> dict[str, Any]:
         return {**super().lower(object_data), "type": "_meshfile_geometry"}
-
-
-class TextTexture(mg.Texture):
-    """A canvas texture holding one line of text (meshcat's ``_text`` texture)."""
-
-    def __init__(self, text: str, font_size: int = 44, font_face: str = "sans-serif") -> None:
-        super().__init__()
-        self.text, self.font_size, self.font_face = text, font_size, font_face
-
-    def lower(self, object_data: Any) -> dict[str, Any]:
-        return {
-            "uuid": self.uuid,
-            "type": "_text",
-            "text": self.text,
-            "font_size": self.font_size,
-            "font_face": self.font_face,
-        }
-
-
-class SpriteMaterial(mg.Material):
-    """three.js ``SpriteMaterial`` showing a texture."""
-
-    def __init__(self, texture: mg.Texture) -> None:
-        super().__init__()
-        self.texture = texture
-
-    def lower(self, object_data: Any) -> dict[str, Any]:
-        return {
-            "uuid": self.uuid,
-            "type": "SpriteMaterial",
-            "map": self.texture.lower_in_object(object_data),
-            "transparent": True,
-            "depthTest": False,
-        }
-
-
-class Sprite(mg.Object):
-    """A camera-facing label (three.js ``Sprite``); its geometry is never read."""
-
-    _type = "Sprite"
-
-
-def label_object(text: str) -> Sprite:
-    """A text label as a sprite of unit size (scale it with the node's transform)."""
-    return Sprite(mg.Box([1.0, 1.0, 1.0]), SpriteMaterial(TextTexture(text)))
 
 
 @dataclass
@@ -278,15 +234,12 @@ __all__ = [
     "Overlay",
     "ReviewError",
     "Scene",
-    "Sprite",
     "StlGeometry",
-    "TextTexture",
     "box_pose",
     "camera_local",
     "frame_values",
     "framing",
     "hex_colour",
-    "label_object",
     "mpath",
     "segment",
     "translation",
