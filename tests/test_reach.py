@@ -384,3 +384,28 @@ def test_generated_reach_report_is_committed():
     assert data["samples"] >= 100_000 and data["design"] == "cad/design.toml"
     assert (ROOT / "analyses" / "reach.png").exists()
     assert "ASSUMPTION" in (ROOT / "analyses" / "reach.md").read_text()
+
+
+def test_batched_fingertips_match_pinocchio_on_the_generated_urdf(design) -> None:
+    """The numpy forward kinematics over samples against Pinocchio, one sample at a time,
+    on the generated URDF (joints and tip links as the URDF names them)."""
+    from payload.envelope.batch_fk import fingertips_batch, frame_positions_batch
+    from payload.envelope.sampling import sample_configurations
+
+    tree = build_tree(design)
+    q = sample_configurations(tree, 300, np.random.default_rng(7))
+    q[:100, -1] = np.random.default_rng(8).uniform(0, tree.joint_map["stage"].upper, 100)
+    got = fingertips_batch(tree, q)
+    model = pin.buildModelFromUrdf(str(URDF))
+    data = model.createData()
+    idx = [model.joints[model.getJointId(j)].idx_q for j in ALL_JOINTS]
+    tips = [model.getFrameId(f"{f}_tip") for f in "ABCD"]
+    for i, row in enumerate(q):
+        qp = pin.neutral(model)
+        qp[idx] = row
+        pin.framesForwardKinematics(model, data, qp)
+        want = np.array([data.oMf[t].translation for t in tips])
+        np.testing.assert_allclose(got[i], want, atol=1e-12)
+    assert np.ptp(got[:, 0, 2]) > 0.05  # the samples move the tips (not a constant)
+    with pytest.raises(KeyError, match="no frame named X_tip"):
+        frame_positions_batch(tree, q, ["X_tip"])

@@ -6,6 +6,7 @@ kinematic tree (numpy) and against Pinocchio called here directly on the generat
 
 from __future__ import annotations
 
+import json
 import shutil
 import xml.etree.ElementTree as ET
 from pathlib import Path
@@ -89,7 +90,8 @@ def test_deployment_animation_goes_from_stowed_to_home(review, design) -> None:
 
 
 def test_clearance_segments_measure_the_envelope_reports_clearances(review) -> None:
-    objects = review.scene.objects()
+    objects, labels = review.scene.objects(), dict(review.scene.overlay.labels)
+    anchors = review.scene.transforms()
     fits = {p.name: p for p in review.check.parts}
     segments = [p for p in objects if p.startswith(f"{REVIEW}/findings/clearance/")]
     assert len([p for p in segments if p.endswith("/segment")]) == 6
@@ -97,12 +99,54 @@ def test_clearance_segments_measure_the_envelope_reports_clearances(review) -> N
         if not path.endswith("/segment"):
             continue
         a, b = objects[path].geometry.position.T.astype(float)
-        label = objects[path.replace("/segment", "/label")].material.texture.text
-        mm, _, part = label.partition(" mm ")
+        label = labels[path.replace("/segment", "/label")]
+        # "<part> - bay <wall> <d> mm": names the part, the wall and the distance
+        part, _, rest = label.partition(" - ")
+        where, mm = rest.removesuffix(" mm").rsplit(" ", 1)
         wall = next(w for w in range(6) if path.split("/")[-2] == _wall_key(w))
+        assert where == _WALL_NAMES[wall]
+        anchor = anchors[path.replace("/segment", "/label")][:3, 3]
+        np.testing.assert_allclose(anchor, (a + b) / 2, atol=1e-6)  # points at its segment
         assert np.linalg.norm(a - b) == pytest.approx(fits[part].wall_clearance[wall], abs=2e-6)
         assert float(mm) == pytest.approx(fits[part].wall_clearance[wall] * 1e3, abs=0.051)
     assert not review.offending
+
+
+_WALL_NAMES = (
+    "bay aft",
+    "bay forward",
+    "bay right",
+    "bay left",
+    "bay bottom face",
+    "bay mount",
+)
+
+
+def test_clearance_labels_show_with_the_stowed_payload_only(review) -> None:
+    anim = review.scene.animation
+    frames, shown = frame_values(anim, f"{REVIEW}/findings", "visible")
+    _, stage = frame_values(anim, f"{REVIEW}/payload/stage", "position")
+    moved = [i for i in range(len(stage)) if not np.allclose(stage[i], stage[0])]
+    assert shown[0] is True and frames[0] == 0
+    assert frames[1:] == [moved[0]] and shown[1:] == [False]  # hidden as the stage leaves
+    assert not review.scene.autoplay  # so the page opens on the stowed, labelled payload
+    assert all(p.startswith(f"{REVIEW}/findings/") for p, _ in review.scene.overlay.labels)
+
+
+def test_finger_colours_are_not_the_pass_fail_colours() -> None:
+    import matplotlib.colors as mc
+
+    from payload.envelope.drawing import FAIL_COLOUR, FINGER_COLOURS, TIGHT_COLOUR
+
+    for f, c in FINGER_COLOURS.items():
+        for signal in (FAIL_COLOUR, TIGHT_COLOUR):
+            h1, h2 = mc.rgb_to_hsv(mc.to_rgb(c))[0], mc.rgb_to_hsv(mc.to_rgb(signal))[0]
+            assert min(abs(h1 - h2), 1 - abs(h1 - h2)) > 0.06, (f, c, signal)
+
+
+def test_title_names_the_design_and_its_hash(review) -> None:
+    assert design_hash(project_files().design) in review.scene.overlay.title
+    assert "cad/design.toml" in review.scene.overlay.title
 
 
 def _wall_key(w: int) -> str:
@@ -151,7 +195,7 @@ def test_a_design_that_does_not_fit_shows_the_offending_parts_red(tmp_path, desi
     for n in geom.links:
         colour = objects[f"{REVIEW}/payload/{n}/visual0"].material.color
         assert (colour == OFFENDING_COLOUR) == (n in out), n
-    labels = [p for p in objects if p.startswith(f"{REVIEW}/findings/protrusion/")]
+    labels = [p for p, _ in rv.scene.overlay.labels if "/findings/protrusion/" in p]
     assert sorted(p.rsplit("/", 1)[1] for p in labels) == sorted(out)
 
 
@@ -190,9 +234,32 @@ def _record_trial(folder: Path, design_file: Path = DESIGN) -> Path:
 
 
 @pytest.fixture(scope="module")
-def replay(tmp_path_factory):
-    folder = _record_trial(tmp_path_factory.mktemp("trial"))
-    return build_trial_replay(folder, project_files())
+def trial_folder(tmp_path_factory) -> Path:
+    return _record_trial(tmp_path_factory.mktemp("trial"))
+
+
+@pytest.fixture(scope="module")
+def replay(trial_folder):
+    return build_trial_replay(trial_folder, project_files(), rate=50.0)  # every recorded step
+
+
+def test_a_replay_at_10_hz_shows_the_step_at_each_tenth_of_a_second(trial_folder) -> None:
+    replay = build_trial_replay(trial_folder, project_files(), rate=10.0)
+    rec, anim = replay.recording, replay.scene.animation
+    t = rec.t - rec.t[0]
+    # independent: for each 0.1 s tick, the first recorded step at or after it; and the last
+    want = {int(np.flatnonzero(t >= tick - 1e-9)[0]) for tick in np.arange(0, t[-1], 0.1)}
+    want = sorted({*want, len(t) - 1})
+    frames, pos = frame_values(anim, f"{TRIAL}/astrobee", "position")
+    np.testing.assert_allclose(np.array(frames) / 10.0, t[want], atol=1e-12)
+    np.testing.assert_allclose(pos, rec.astrobee_pos[want])
+    assert replay.fps == 10.0
+    # a pad shows contact at a frame when the indicator was set at any step since the last
+    keys, values = frame_values(anim, f"{TRIAL}/astrobee/payload/A_tip/pad_contact", "visible")
+    for i, k in enumerate(want):
+        since = rec.contact[(want[i - 1] + 1 if i else 0) : k + 1]
+        value = values[int(np.searchsorted(keys, t[k] * 10.0 + 1e-9, side="right")) - 1]
+        assert value == since.any(), (i, k)
 
 
 def test_one_animation_frame_per_recorded_step_at_the_recorded_rate(replay) -> None:
@@ -244,8 +311,13 @@ def test_pads_show_the_opposing_contact_indicator_and_labels_the_phases(replay) 
             at = np.searchsorted(frames, np.arange(N_STEPS), side="right") - 1
             np.testing.assert_array_equal(np.array(values)[at], want)
     assert [s[0] for s in phase_spans(rec)] == ["acquisition", "translation"]
-    frames, values = frame_values(anim, f"{TRIAL}/astrobee/phase/translation", "visible")
-    assert frames == pytest.approx([0.0, N_STEPS // 2]) and values == [False, True]
+    # the phase is the page's text at the animation time: spans from the trial's start
+    t = rec.t - rec.t[0]
+    half = N_STEPS // 2
+    assert replay.scene.overlay.phases == [
+        ("acquisition", pytest.approx(0.0), pytest.approx(t[half - 1])),
+        ("translation", pytest.approx(t[half]), pytest.approx(t[-1])),
+    ]
 
 
 # -- command line and bad input ------------------------------------------------------------
@@ -280,6 +352,13 @@ def test_bad_reach_samples_and_static_folder_exit_2(tmp_path, capsys) -> None:
     assert "is a folder" in _err(capsys)
     assert main(["review", "--zmq-url", "tcp://127.0.0.1:1", "--reach-samples", "0"]) == 2
     assert "no meshcat server" in _err(capsys)
+    assert main(["review", "--rate", "0"]) == 2
+    assert "--rate must be > 0 Hz" in _err(capsys)
+    assert main(["review", "--port", "70000"]) == 2
+    assert "--port" in _err(capsys)
+    assert main(["review", "--watch", "--trial", str(tmp_path)]) == 2
+    err = _err(capsys)
+    assert "--watch" in err and "--trial" in err
 
 
 def _scene_paths(html: str) -> set[str]:
@@ -328,3 +407,43 @@ def test_stale_generated_models_exit_2(tmp_path, design_dict, capsys) -> None:
     path.write_bytes(tomli_w.dumps(data).encode())
     assert main(["review", "--design", str(path), "--static", str(tmp_path / "r.html")]) == 2
     assert "do not match" in _err(capsys) and not (tmp_path / "r.html").exists()
+
+
+def test_watch_serves_the_page_and_stops_cleanly_on_ctrl_c(tmp_path, design_dict) -> None:
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+    import urllib.request
+
+    path = _copy_project(tmp_path, design_dict, design_dict["vehicle"]["bay_size"])
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    cmd = [sys.executable, "-m", "payload.cli", "review", "--watch", "--design", str(path)]
+    proc = subprocess.Popen(
+        [*cmd, "--port", "0", "--reach-samples", "0"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
+    try:
+        url = None
+        deadline = time.monotonic() + 120
+        while url is None and time.monotonic() < deadline:
+            line = proc.stdout.readline()
+            if line.startswith("review: "):
+                url = line.split()[1]
+        assert url is not None, "no address printed"
+        page = urllib.request.urlopen(url, timeout=10).read().decode()
+        assert "MeshCat.Viewer" in page and "payload-overlay" in page
+        update = json.loads(urllib.request.urlopen(url + "update?have=-1", timeout=10).read())
+        assert update["version"] == 0 and update["commands"] and update["error"] is None
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=20) == 0
+        err = proc.stderr.read()
+        assert "stopped" in err and "Traceback" not in err
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()

@@ -6,11 +6,16 @@ must cover the region where its meshes project through the camera the review set
 pinhole projection computed here, independently of three.js), in the fingers' colours,
 and the background must be untouched everywhere else.
 
-Without Chromium the test skips, except under CI (``CI`` set), where it fails.
+The same page, as it opens: every finger, the stage, the carriage and Astrobee's body lie
+inside the viewport, projected through the page's own three.js camera; no two label boxes
+(their screen rectangles) intersect; the legend lists every colour the scene draws.
+
+Without Chromium the tests skip, except under CI (``CI`` set), where they fail.
 """
 
 from __future__ import annotations
 
+import itertools
 import math
 import os
 import sys
@@ -100,7 +105,7 @@ def test_static_review_draws_the_payload_where_it_projects(tmp_path: Path) -> No
 
     png = tmp_path / "review.png"
     hide = [["meshcat", "review", n] for n in ("vehicle", "findings", "reach")]
-    screenshot(html, png, time_s=0.0, hide=hide)
+    screenshot(html, png, time_s=0.0, hide=hide, overlay=False)
     img = imread(png)[..., :3].astype(float)
     h, w = img.shape[:2]
     assert (w, h) == VIEWPORT
@@ -139,3 +144,253 @@ def test_static_review_draws_the_payload_where_it_projects(tmp_path: Path) -> No
         match = (dh < 0.03) & (hsv[..., 1] > 0.4) & (hsv[..., 2] > 0.15)
         assert match[inside].sum() > 40, f"finger {finger} ({colour}) is not drawn"
         assert match[outside].sum() == 0, f"finger {finger}'s colour outside the payload"
+
+
+# ------------------------------------------------------------- the default view
+
+
+@pytest.fixture(scope="module")
+def static_review(tmp_path_factory) -> Path:
+    from payload.cli import main
+
+    html = tmp_path_factory.mktemp("review") / "review.html"
+    assert main(["review", "--static", str(html), "--reach-samples", "1000"]) == 0
+    return html
+
+
+_CAMERA = """(names) => {
+    const c = viewer.camera;
+    c.updateMatrixWorld();
+    const root = viewer.scene_tree.find(names).object;
+    root.updateMatrixWorld(true);
+    return {P: c.projectionMatrix.elements, V: c.matrixWorldInverse.elements,
+            R: root.matrixWorld.elements,
+            w: viewer.renderer.domElement.clientWidth, h: viewer.renderer.domElement.clientHeight};
+}"""
+
+
+def page_projection(page, root: str = "review") -> tuple[np.ndarray, tuple[int, int]]:
+    """The page's projection, view and scene-root (``/meshcat/<root>``) matrices as one
+    (4, 4) matrix: from a point in the root's frame to clip coordinates."""
+    cam = page.evaluate(_CAMERA, ["meshcat", root])
+    m = [np.array(cam[k], dtype=float).reshape(4, 4).T for k in ("P", "V", "R")]  # column-major
+    return m[0] @ m[1] @ m[2], (int(cam["w"]), int(cam["h"]))
+
+
+def to_pixels(points: np.ndarray, m: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """Pixel coordinates (u right, v down) of payload-frame points, shape (n, 2)."""
+    clip = np.c_[points, np.ones(len(points))] @ m.T
+    assert np.all(clip[:, 3] > 0), "a point is behind the camera"
+    ndc = clip[:, :3] / clip[:, 3:]
+    w, h = size
+    return np.stack([(ndc[:, 0] + 1) / 2 * w, (1 - ndc[:, 1]) / 2 * h], axis=1)
+
+
+def _posed(geom, poses: dict, links) -> dict[str, np.ndarray]:
+    return {n: geom.mesh_vertices[n] @ poses[n][:3, :3].T + poses[n][:3, 3] for n in links}
+
+
+def test_the_default_view_frames_vehicle_fingers_stage_and_carriage(static_review) -> None:
+    _require_browser()
+    import itertools
+
+    from payload.envelope.vehicle import vehicle_from_dict
+    from payload.review.browser import open_page, pose_page
+
+    design = load_design(project_files().design)
+    tree = build_tree(design)
+    geom = PayloadGeometry(tree)
+    vehicle = vehicle_from_dict(design.vehicle or {})
+    body = vehicle.body_lower, vehicle.body_upper
+    silhouette = np.array(
+        [np.where(c, body[1], body[0]) for c in itertools.product((0, 1), repeat=3)]
+    )
+    wanted = ["stage", "carriage"] + [n for n in geom.links if n[1:2] == "_"]
+    assert {n[0] for n in wanted if n[1:2] == "_"} == set("ABCD")
+    with open_page(static_review) as page:
+        duration = page.evaluate(
+            "() => Math.max(...viewer.animator.actions.map(a => a._clip.duration))"
+        )
+        for state, t in (("stowed", 0.0), ("home", duration)):
+            pose_page(page, t)
+            m, (w, h) = page_projection(page)
+            assert (w, h) == VIEWPORT
+            parts = _posed(geom, tree.link_poses(tree.posture(state)), wanted)
+            parts["Astrobee"] = silhouette
+            for name, pts in parts.items():
+                uv = to_pixels(pts, m, (w, h))
+                assert np.all((uv >= 0) & (uv <= [w, h])), f"{name} ({state}) leaves the view"
+        # the vehicle is the subject, not a speck: its silhouette spans a good part of the view
+        pose_page(page, 0.0)
+        m, size = page_projection(page)
+        uv = to_pixels(silhouette, m, size)
+        assert np.ptp(uv[:, 1]) > 0.3 * size[1]
+
+
+def test_no_two_labels_overlap_and_each_names_what_it_measures(static_review) -> None:
+    _require_browser()
+    from payload.review.browser import open_page
+
+    review = build_design_review(project_files(), reach_samples=0)
+    texts = sorted(t for _, t in review.scene.overlay.labels)
+    with open_page(static_review) as page:
+        boxes = page.evaluate("() => payloadReview.labelBoxes()")
+    assert sorted(b["text"] for b in boxes) == texts  # every stowed label shown
+    for a, b in itertools.combinations(boxes, 2):
+        apart = (
+            a["x"] + a["w"] <= b["x"]
+            or b["x"] + b["w"] <= a["x"]
+            or a["y"] + a["h"] <= b["y"]
+            or b["y"] + b["h"] <= a["y"]
+        )
+        assert apart, f"labels overlap: {a} {b}"
+    for b in boxes:
+        assert 0 <= b["x"] and b["x"] + b["w"] <= VIEWPORT[0]
+        assert 0 <= b["y"] and b["y"] + b["h"] <= VIEWPORT[1]
+
+
+_COLOURS = """() => {
+    const out = new Set();
+    viewer.scene_tree.find(["meshcat"]).object.traverseVisible(o => {
+        const mats = o.material ? [].concat(o.material) : [];
+        for (const m of mats) if (m.color && !m.vertexColors && m.type !== "SpriteMaterial")
+            out.add("#" + m.color.getHexString());
+    });
+    return [...out];
+}"""
+
+
+def test_the_legend_lists_every_colour_drawn(static_review) -> None:
+    _require_browser()
+    from payload.review.browser import open_page, pose_page
+
+    with open_page(static_review) as page:
+        legend = set(
+            page.evaluate(
+                "() => [...document.querySelectorAll('.payload-legend-row')]"
+                ".map(r => r.dataset.colour)"
+            )
+        )
+        pose_page(page, 0.0, show=[["meshcat", "review", "reach"]])
+        drawn = set(page.evaluate(_COLOURS))
+    assert len(drawn) >= 6  # fingers, structure, body, bays, segments
+    assert drawn <= legend, f"colours drawn but not in the legend: {drawn - legend}"
+
+
+# ------------------------------------------------------------- the live review
+
+_DISTAL = """() => {
+    const n = viewer.scene_tree.find(["meshcat", "review", "payload", "A_distal", "visual0",
+                                      "<object>"]).object;
+    const g = n.geometry;
+    if (!g) return null;
+    g.computeBoundingBox();
+    return [g.attributes.position.count, g.boundingBox.min.toArray(), g.boundingBox.max.toArray()];
+}"""
+
+
+def _wait_for(page, check, seconds: float) -> float:
+    """Seconds until ``check(page)`` holds (fails after ``seconds``)."""
+    import time
+
+    t0 = time.perf_counter()
+    while time.perf_counter() - t0 < seconds:
+        if check(page):
+            return time.perf_counter() - t0
+        page.wait_for_timeout(50)
+    raise AssertionError(f"the page did not change within {seconds} s")
+
+
+def test_watch_follows_the_saved_design_and_shows_an_invalid_one(tmp_path, design_dict) -> None:
+    _require_browser()
+    import shutil
+    import threading
+
+    import tomli_w
+    from conftest import ROOT
+
+    from payload.review.browser import open_page
+    from payload.review.cli import live_review
+    from payload.review.live import serve
+
+    root = tmp_path / "project"
+    shutil.copytree(ROOT / "urdf", root / "urdf")
+    shutil.copytree(ROOT / "cad" / "meshes", root / "cad" / "meshes")
+    design = root / "cad" / "design.toml"
+    design.write_bytes(tomli_w.dumps(design_dict).encode())
+    live = live_review(str(design), 0)
+    assert live.rebuild() is None
+    server = serve(live, 0)
+    stop = threading.Event()
+    watcher = threading.Thread(target=live.watch, args=(stop, lambda line: None), daemon=True)
+    watcher.start()
+    try:
+        url = f"http://127.0.0.1:{server.server_address[1]}/"
+        with open_page(url) as page:
+            before = page.evaluate(_DISTAL)
+            assert before is not None and before[0] > 0
+            shorter = {**design_dict, "finger": {**design_dict["finger"]}}
+            lengths = dict(design_dict["finger"]["lengths"])
+            lengths["distal"] = lengths["distal"] - 0.006
+            shorter["finger"]["lengths"] = lengths
+            design.write_bytes(tomli_w.dumps(shorter).encode())
+            took = _wait_for(page, lambda p: p.evaluate(_DISTAL) != before, 3.0)
+            after = page.evaluate(_DISTAL)
+            # the distal mesh is shorter along the finger (its longest extent) by about 6 mm
+            span = lambda b: max(np.subtract(b[2], b[1]))  # noqa: E731
+            assert span(before) - span(after) == pytest.approx(0.006, abs=1e-3), took
+            # only what changed was sent: the vehicle's boxes are not in the update
+            update = live.update(live.builds[-2].version)
+            assert 0 < len(update["commands"]) < len(live.builds[-1].commands) / 2
+
+            lengths["distal"] = -0.01
+            design.write_bytes(tomli_w.dumps(shorter).encode())
+            _wait_for(page, lambda p: p.evaluate("() => payloadReview.error || ''") != "", 3.0)
+            text = page.evaluate("() => document.getElementById('payload-error').textContent")
+            assert "distal" in text and "\n" not in text
+            assert page.evaluate(_DISTAL) == after  # the last good model stays
+    finally:
+        stop.set()
+        server.shutdown()
+        server.server_close()
+
+
+# ------------------------------------------------------------- the trial replay
+
+
+def test_a_trial_replay_follows_the_vehicle_from_first_to_last_frame(tmp_path) -> None:
+    _require_browser()
+    import itertools
+
+    from test_review import _record_trial
+
+    from payload.cli import main
+    from payload.envelope.vehicle import vehicle_from_dict
+    from payload.review.browser import open_page, pose_page
+    from payload.review.trial_view import pose
+    from payload.trials.recorder import read_recording
+
+    folder = _record_trial(tmp_path / "trial")
+    html = tmp_path / "replay.html"
+    assert main(["review", "--trial", str(folder), "--static", str(html)]) == 0
+    rec = read_recording(folder / "log.mcap")
+    vehicle = vehicle_from_dict(load_design(project_files().design).vehicle or {})
+    half = np.asarray(vehicle.body_size) / 2
+    box = np.array([np.where(c, half, -half) for c in itertools.product((0, 1), repeat=3)])
+    with open_page(html) as page:
+        end = page.evaluate("() => Math.max(...viewer.animator.actions.map(a => a._clip.duration))")
+        for k, t in ((0, 0.0), (len(rec) - 1, end)):
+            pose_page(page, t)
+            m, size = page_projection(page, "trial")  # ISS frame -> clip, as the page draws
+            body = pose(rec.astrobee_pos[k], rec.astrobee_quat[k])
+            pts = box @ body[:3, :3].T + body[:3, 3]
+            uv = to_pixels(pts, m, size)
+            assert np.all((uv >= 0) & (uv <= size)), f"the vehicle leaves the view at step {k}"
+            assert np.ptp(uv[:, 1]) >= 0.2 * size[1], f"the vehicle is small at step {k}"
+        text = page.evaluate("() => document.getElementById('payload-phase').textContent")
+        assert "translation" in text  # the last frame's phase, as text
+        names = {b["text"] for b in page.evaluate("() => payloadReview.labelBoxes()")}
+        page.evaluate("() => payloadReview.toggleView()")  # the whole-station view
+        pose_page(page, 0.0)
+        names |= {b["text"] for b in page.evaluate("() => payloadReview.labelBoxes()")}
+    assert names & {"Kibo (JEM)", "Node 2", "vestibule"}

@@ -13,8 +13,13 @@ from matplotlib.path import Path as MplPath
 from payload.envelope.geometry import PayloadGeometry
 from payload.envelope.vehicle import Vehicle
 
-FINGER_COLOURS = {"A": "#1f77b4", "B": "#ff7f0e", "C": "#2ca02c", "D": "#d62728"}
+FINGER_COLOURS = {"A": "#1f77b4", "B": "#9467bd", "C": "#2ca02c", "D": "#e377c2"}
+"""One colour per finger, none of them the pass/fail colours below."""
 STRUCTURE_COLOUR = "#8c8c8c"
+FAIL_COLOUR = "#e00000"
+"""A part that protrudes from the bays or collides: red, and nothing else is."""
+TIGHT_COLOUR = "#ffb000"
+"""A part inside the bays with little clearance: amber, and nothing else is."""
 
 # a view: (name, section axis, (horizontal axis, vertical axis))
 AXES = {0: (1, 2), 1: (0, 2), 2: (0, 1)}
@@ -99,8 +104,10 @@ __all__ = [
     "AXES",
     "AXIS_LABEL",
     "BAY_STYLE",
+    "FAIL_COLOUR",
     "FINGER_COLOURS",
     "STRUCTURE_COLOUR",
+    "TIGHT_COLOUR",
     "VEHICLE_STYLE",
     "draw_vehicle",
     "legend_box",

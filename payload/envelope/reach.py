@@ -2,8 +2,9 @@
 
 The joint space is sampled uniformly inside the limits (the 17 manipulation
 coordinates, stage deployed) and every configuration goes through the shared
-forward kinematics (Pinocchio on the design's URDF, as the retargeter's; see
-:mod:`payload.envelope.kinematics`). Self-collision of
+forward kinematics (the design's tree, the URDF's source, numpy over the samples:
+:mod:`payload.envelope.batch_fk`, checked against Pinocchio on the URDF as the retargeter
+uses it; see :mod:`payload.envelope.kinematics`). Self-collision of
 every sample is checked by MuJoCo on a model built from the convex pieces of the
 link solids (the same pieces python-fcl uses for the stowed checks), with the
 vehicle body beside it.
@@ -24,6 +25,7 @@ import numpy as np
 
 from payload.design.params import FINGER_JOINTS, FINGERS
 from payload.design.tree import ALL_JOINTS, KinematicTree
+from payload.envelope.batch_fk import fingertips_batch
 from payload.envelope.collisions import CollisionModel, Contacts
 from payload.envelope.geometry import PayloadGeometry
 from payload.envelope.grasp import (
@@ -182,7 +184,7 @@ def analyse_reach(
     progress("sampling", 0.0)
     q = sample_configurations(tree, int(samples), rng)
     model_kin = design_kinematics(tree)
-    tips = fingertips(model_kin.kin, q)
+    tips = fingertips_batch(tree, q)
     timings["batched FK"] = time.perf_counter() - t0
 
     t = time.perf_counter()

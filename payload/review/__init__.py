@@ -3,8 +3,10 @@
 ``payload review`` (:mod:`payload.review.cli`) builds a :class:`~payload.review.scene.Scene`
 (meshcat commands as data) from the design project with
 :func:`~payload.review.design_view.build_design_review` and, for a recorded trial,
-:func:`~payload.review.trial_view.build_trial_replay`, then sends it to a meshcat server
-or writes it as one standalone HTML page (:mod:`payload.review.serve`).
+:func:`~payload.review.trial_view.build_trial_replay`, then serves it on the review's own
+page (:mod:`payload.review.live`; with ``--watch`` the page follows the design file),
+draws it into a running meshcat server (``--zmq-url``) or writes it as one standalone HTML
+page (:mod:`payload.review.page`).
 
 Names load on first use, so the command line starts without the geometry stack.
 """
@@ -26,7 +28,7 @@ _LAZY = {
     "project_files": "payload.review.project",
     "ReviewError": "payload.review.errors",
     "Scene": "payload.review.scene",
-    "static_html": "payload.review.serve",
+    "static_html": "payload.review.page",
 }
 
 __all__ = sorted(_LAZY)

@@ -10,11 +10,13 @@ Only a system Chromium is driven (``executable_path``); no browser is ever downl
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import shutil
 import tempfile
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
+from typing import Any
 
 CHROMIUM = "/usr/bin/chromium"
 FLAGS = (
@@ -54,30 +56,19 @@ def chromium_path() -> str | None:
     return None
 
 
-def screenshot(
-    html: Path,
-    png: Path,
-    *,
-    time_s: float | None = 0.0,
-    hide: Sequence[Sequence[str]] = (),
-    show: Sequence[Sequence[str]] = (),
-    viewport: tuple[int, int] = VIEWPORT,
-) -> bytes:
-    """Open a static review page, pose it, wait for it to render, and screenshot it.
+@contextlib.contextmanager
+def open_page(url: str | Path, viewport: tuple[int, int] = VIEWPORT) -> Iterator[Any]:
+    """A review page open in headless Chromium, once its scene is loaded.
 
     Args:
-        html: The static HTML file.
-        png: Where to write the PNG.
-        time_s: Animation time to show (the animation is paused there); ``None`` lets it play.
-        hide: Scene-tree paths (lists of names) to hide first.
-        show: Scene-tree paths to show.
+        url: A static review file, or the address of a live review.
         viewport: Page size [px].
 
-    Returns:
-        The PNG bytes.
+    Yields:
+        The Playwright page (``viewer`` and ``payloadReview`` are its globals).
 
     Raises:
-        RuntimeError: No Chromium, or the page did not render a meshcat viewer.
+        RuntimeError: No Chromium.
     """
     from playwright.sync_api import sync_playwright
 
@@ -96,26 +87,76 @@ def screenshot(
         try:
             page = ctx.new_page()
             page.add_init_script(_COUNT_FETCHES)
-            page.goto(Path(html).resolve().as_uri())
+            page.goto(url.resolve().as_uri() if isinstance(url, Path) else url)
             page.wait_for_function(
-                "() => window.__pending === 0 && typeof viewer !== 'undefined'"
-                " && viewer.animator.actions.length > 0",
+                "() => window.__pending === 0 && window.payloadReady === true",
                 timeout=120_000,
             )
-            script = """([hide, show, t]) => {
-                for (const p of hide) viewer.scene_tree.find(p).set_property("visible", false);
-                for (const p of show) viewer.scene_tree.find(p).set_property("visible", true);
-                if (t !== null) { viewer.animator.pause(); viewer.animator.seek(t); }
-                viewer.set_dirty();
-            }"""
-            page.evaluate(script, [list(map(list, hide)), list(map(list, show)), time_s])
-            for _ in range(3):  # the viewer renders in its requestAnimationFrame loop
-                page.evaluate("() => new Promise(r => requestAnimationFrame(() => r()))")
-            page.wait_for_timeout(500)
-            data = page.screenshot(path=str(png))
+            settle(page)
+            yield page
         finally:
             ctx.close()
-    return data
+
+
+def settle(page: Any) -> None:
+    """Let the viewer render a few frames (it renders in its requestAnimationFrame loop)."""
+    page.evaluate("() => viewer.set_dirty()")
+    for _ in range(3):
+        page.evaluate("() => new Promise(r => requestAnimationFrame(() => r()))")
+    page.wait_for_timeout(300)
+
+
+def pose_page(
+    page: Any,
+    time_s: float | None = 0.0,
+    hide: Sequence[Sequence[str]] = (),
+    show: Sequence[Sequence[str]] = (),
+    overlay: bool = True,
+) -> None:
+    """Hide and show scene-tree paths (lists of names), hold the animation at ``time_s``;
+    ``overlay`` False hides the title, legend and labels."""
+    script = """([hide, show, t, overlay]) => {
+        document.getElementById("payload-overlay").style.display = overlay ? "" : "none";
+        for (const p of hide) viewer.scene_tree.find(p).set_property("visible", false);
+        for (const p of show) viewer.scene_tree.find(p).set_property("visible", true);
+        if (t !== null) { viewer.animator.pause(); viewer.animator.seek(t); }
+        viewer.set_dirty();
+    }"""
+    page.evaluate(script, [list(map(list, hide)), list(map(list, show)), time_s, overlay])
+    settle(page)
+
+
+def screenshot(
+    html: Path,
+    png: Path,
+    *,
+    time_s: float | None = 0.0,
+    hide: Sequence[Sequence[str]] = (),
+    show: Sequence[Sequence[str]] = (),
+    viewport: tuple[int, int] = VIEWPORT,
+    overlay: bool = True,
+) -> bytes:
+    """Open a static review page, pose it, wait for it to render, and screenshot it.
+
+    Args:
+        html: The static HTML file.
+        png: Where to write the PNG.
+        time_s: Animation time to show (the animation is paused there); ``None`` lets it play.
+        hide: Scene-tree paths (lists of names) to hide first.
+        show: Scene-tree paths to show.
+        viewport: Page size [px].
+        overlay: Draw the title, legend and labels.
+
+    Returns:
+        The PNG bytes.
+
+    Raises:
+        RuntimeError: No Chromium, or the page did not render a meshcat viewer.
+    """
+    with open_page(html, viewport) as page:
+        pose_page(page, time_s, hide, show, overlay)
+        page.wait_for_timeout(200)
+        return page.screenshot(path=str(png))
 
 
 def main(argv: Sequence[str] | None = None) -> int:

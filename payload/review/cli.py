@@ -3,86 +3,136 @@
 from __future__ import annotations
 
 import argparse
-import sys
-import time
+import math
 import webbrowser
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 from payload.cliutil import command_project
 from payload.review.errors import ReviewError
+from payload.review.project import DEFAULT_RATE
 
 if TYPE_CHECKING:
+    from payload.review.live import LiveReview
     from payload.review.scene import Scene
 
 DEFAULT_REACH_SAMPLES = 5000
+DEFAULT_PORT = 7070
+"""TCP port of the ``--watch`` page."""
 
 
 def build_review(
-    design: str | None, trial: str | None, reach_samples: int = DEFAULT_REACH_SAMPLES
+    design: str | None,
+    trial: str | None,
+    reach_samples: int = DEFAULT_REACH_SAMPLES,
+    check_models: bool = True,
+    rate: float = DEFAULT_RATE,
 ) -> Scene:
     """The review scene: the design review, and the trial replay when ``trial`` is given.
 
     With a trial, the replay is what shows (the design review stays in the scene tree,
-    hidden) and its animation is the trial's.
+    hidden) and its animation is the trial's. ``check_models`` False skips the check that
+    the generated models match the design (for a caller that has just written them).
     """
     from payload.review.design_view import REVIEW, build_design_review
     from payload.review.project import project_files
 
     files = project_files(design)
+    rec = None
     if trial is not None:
         from payload.review.trial_view import read_trial
 
         files.check()
-        read_trial(trial, files)  # bad input fails before the slow work
-    review = build_design_review(files, reach_samples=reach_samples).scene
+        rec = read_trial(trial, files)  # bad input fails before the slow work
+    review = build_design_review(files, reach_samples, check_models=check_models).scene
     if trial is None:
         return review
     from payload.review.trial_view import build_trial_replay
 
-    replay = build_trial_replay(trial, files).scene
+    replay = build_trial_replay(trial, files, rate=rate, recording=rec).scene
     replay.commands += review.commands
     replay.prop(REVIEW, "visible", False)
     replay.notes = review.notes + replay.notes
     return replay
 
 
+def live_review(design: str | None, reach_samples: int) -> LiveReview:
+    """A live review of the design project of ``design``: each build regenerates the
+    project's models from the design file, then builds the review scene."""
+    from payload.design import load_design
+    from payload.design.build import write
+    from payload.review.live import LiveReview
+    from payload.review.project import project_files
+
+    files = project_files(design)
+
+    def build() -> Scene:
+        write(load_design(files.design), files.urdf.parent.parent)
+        return build_review(str(files.design), None, reach_samples, check_models=False)
+
+    return LiveReview(files.design, build)
+
+
+def _cmd_watch(args: argparse.Namespace) -> int:
+    from payload.review.live import run
+
+    for option in ("static", "trial", "zmq_url"):
+        if getattr(args, option) is not None:
+            flag = "--" + option.replace("_", "-")
+            raise ReviewError(f"--watch serves its own page; it does not take {flag}")
+    live = live_review(args.design, args.reach_samples)
+    error = live.rebuild()
+    if error is not None:
+        raise ReviewError(error)
+    for line in live.notes():
+        print(line)
+    opener = (lambda url: webbrowser.open(url, new=2)) if args.open else None
+    return run(live, args.port, opener)
+
+
 def _cmd_review(args: argparse.Namespace) -> int:
-    from payload.review.serve import check_server, close_viewer, open_viewer, static_html
+    from payload.review.page import static_html
+    from payload.review.serve import check_server, open_viewer
 
     if args.zmq_url is not None:
         check_server(args.zmq_url)
     if args.reach_samples < 0:
         raise ReviewError(f"--reach-samples must be >= 0 (got {args.reach_samples})")
+    if not (math.isfinite(args.rate) and args.rate > 0):
+        raise ReviewError(f"--rate must be > 0 Hz (got {args.rate})")
+    if not 0 <= args.port <= 65535:
+        raise ReviewError(f"--port must be 0..65535 (got {args.port})")
     if args.static is not None and Path(args.static).is_dir():
         raise ReviewError(f"--static {args.static}: is a folder, expected a file name")
 
     command_project(args, args.design)  # names the project first; library defaults use it
-    scene = build_review(args.design, args.trial, args.reach_samples)
+    if args.watch:
+        return _cmd_watch(args)
+    scene = build_review(args.design, args.trial, args.reach_samples, rate=args.rate)
     for line in scene.notes:
         print(line)
     if args.static is not None:
         out = Path(args.static)
-        html = static_html(scene, args.zmq_url)
+        html = static_html(scene)
         out.parent.mkdir(parents=True, exist_ok=True)
         out.write_text(html, encoding="utf-8")
         print(f"wrote {out} ({len(html) / 1e6:.1f} MB)")
         if args.open:
             webbrowser.open(out.resolve().as_uri(), new=2)
         return 0
-    vis = open_viewer(args.zmq_url)
+    opener = (lambda url: webbrowser.open(url, new=2)) if args.open else None
+    if args.zmq_url is None:  # the review's own page: title, legend, labels, chase camera
+        from payload.review.live import LiveReview, run
+
+        live = LiveReview(Path(args.design or "."), lambda: scene)
+        live.rebuild()
+        return run(live, args.port, opener, watch=False)
+    vis = open_viewer(args.zmq_url)  # meshcat's own page: the scene without the overlay
     scene.send(vis.window)
     print(f"meshcat: {vis.url()}")
     if args.open:
         vis.open()
-    if args.zmq_url is not None:
-        return 0
-    print("serving the review; Ctrl-C to stop", file=sys.stderr)
-    try:
-        while True:
-            time.sleep(3600)
-    finally:
-        close_viewer(vis)
+    return 0
 
 
 def register(
@@ -94,6 +144,25 @@ def register(
     p.add_argument("--static", metavar="FILE", help="write a standalone HTML file and exit")
     p.add_argument("--zmq-url", metavar="URL", help="use the meshcat server at URL")
     p.add_argument("--open", action="store_true", help="open the review in a browser")
+    p.add_argument(
+        "--rate",
+        type=float,
+        default=DEFAULT_RATE,
+        metavar="HZ",
+        help=f"frames per second of trial time in a --trial replay (default {DEFAULT_RATE:g})",
+    )
+    p.add_argument(
+        "--watch",
+        action="store_true",
+        help="serve the review and follow the design file: every save rebuilds the models, "
+        "the envelope check and the open page (Ctrl-C stops)",
+    )
+    p.add_argument(
+        "--port",
+        type=int,
+        default=DEFAULT_PORT,
+        help=f"TCP port of the served page (default {DEFAULT_PORT}; 0: any free port)",
+    )
     p.add_argument(
         "--reach-samples",
         type=int,

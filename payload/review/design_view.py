@@ -9,11 +9,14 @@ sampling and collision model.
 Scene tree (under :data:`REVIEW`):
 ``vehicle/body/<i>``, ``vehicle/bays``, ``payload/<link>`` (every URDF link; meshes at
 ``payload/<link>/visual<k>``), ``findings/clearance/<wall>`` and ``findings/protrusion/<part>``
-(segments and labels), ``reach/<finger>`` (point clouds, hidden until ticked).
+(segments and label anchors; shown with the stowed payload only), ``reach/<finger>`` (point
+clouds, hidden until ticked). The page's overlay (:class:`~payload.review.scene.Overlay`)
+carries the title, the legend of every colour and the labels.
 """
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,21 +26,26 @@ import numpy as np
 from meshcat.animation import Animation, AnimationClip, AnimationTrack
 
 from payload.design import FINGERS, build_tree, load_design, stale_files
+from payload.envelope.drawing import (
+    FAIL_COLOUR,
+    FINGER_COLOURS,
+    STRUCTURE_COLOUR,
+    TIGHT_COLOUR,
+)
 from payload.envelope.fit import StowedCheck, check_stowed, wall_gaps
 from payload.envelope.geometry import PayloadGeometry
-from payload.envelope.report import FINGER_COLOURS, STRUCTURE_COLOUR
 from payload.envelope.vehicle import Vehicle, vehicle_from_dict
 from payload.review.model import PayloadModel
-from payload.review.project import ProjectFiles
+from payload.review.project import ProjectFiles, design_hash
 from payload.review.scene import (
     ROOT,
+    Overlay,
     ReviewError,
     Scene,
     StlGeometry,
     box_pose,
     framing,
     hex_colour,
-    label_object,
     mpath,
     segment,
     translation,
@@ -46,16 +54,27 @@ from payload.review.scene import (
 REVIEW = f"{ROOT}/review"
 """Root node of the design review."""
 
-OFFENDING_COLOUR = 0xFF0000
+OFFENDING_COLOUR = hex_colour(FAIL_COLOUR)
 """Colour of a part that protrudes from the bays or collides."""
+TIGHT = hex_colour(TIGHT_COLOUR)
+"""Colour of a part inside the bays with less than :data:`TIGHT_CLEARANCE` to a wall."""
+TIGHT_CLEARANCE = 0.5e-3
+"""Clearance below which a stowed part is drawn amber [m] (ASSUMPTION: about the
+dimensional tolerance of a printed part, so a tighter fit is worth a second look)."""
 
-BODY_COLOUR, BAY_COLOUR = 0xB8BCC8, 0x3A7BD5
+BODY_COLOUR, BAY_COLOUR, SEGMENT_COLOUR = 0xB8BCC8, 0x17BECF, 0x000000
 DEPLOY_FPS = 30
 STAGE_SECONDS, FINGER_SECONDS = 2.0, 1.5
 VIEW_DIRECTION = (1.0, -1.25, -0.45)
 """The camera looks at the payload from forward, right and a little below the vehicle."""
-LABEL_SIZE = 0.08
-"""Edge of a label sprite [m]."""
+FRAME_MARGIN = 1.1
+"""Margin of the default view around the vehicle, the payload (stowed and deployed) and
+the reach clouds (see :func:`payload.review.scene.framing`)."""
+
+
+def colour_text(colour: int) -> str:
+    """An integer colour as ``#rrggbb``."""
+    return f"#{colour:06x}"
 
 
 def link_colour(name: str) -> int:
@@ -131,14 +150,22 @@ def draw_links(
 
 
 def _label(scene: Scene, path: str, text: str, at: np.ndarray) -> None:
-    scene.object(path, label_object(text))
-    scene.transform(path, translation(at) @ np.diag([LABEL_SIZE, LABEL_SIZE, LABEL_SIZE, 1.0]))
+    """A label anchor: an empty node at ``at``; the overlay draws ``text`` pointing there."""
+    scene.transform(path, translation(at))
+    scene.overlay.labels.append((path, text))
+
+
+def wall_name(wall: str) -> str:
+    """A bay wall as a label names it: ``'-z (bottom face)'`` -> ``'bay bottom face'``."""
+    return "bay " + wall.partition("(")[2].rstrip(")") if "(" in wall else f"bay {wall}"
 
 
 def draw_findings(
     scene: Scene, geom: PayloadGeometry, check: StowedCheck, vehicle: Vehicle, root: str
 ) -> list[tuple[str, float, np.ndarray, np.ndarray]]:
     """The tightest clearance to each bay wall as a labelled segment, and each protrusion.
+
+    Labels name the part, the wall and the distance (``stage - bay bottom face 6.0 mm``).
 
     Returns:
         ``(wall, clearance [m], part point, wall point)`` per drawn clearance segment.
@@ -162,14 +189,15 @@ def draw_findings(
         b[w // 2] = lo[w // 2] if w % 2 == 0 else hi[w // 2]
         key = wall.split()[0].replace("+", "plus_").replace("-", "minus_")
         scene.object(f"{root}/clearance/{key}/segment", segment(a, b))
-        _label(scene, f"{root}/clearance/{key}/label", f"{d * 1e3:.1f} mm {name}", (a + b) / 2)
+        text = f"{name} - {wall_name(wall)} {d * 1e3:.1f} mm"
+        _label(scene, f"{root}/clearance/{key}/label", text, (a + b) / 2)
         drawn.append((wall, float(d), a, b))
     for p in check.parts:
         if p.inside:
             continue
         pts = geom.hull_vertices(p.name, poses[p.name])
         far = pts[int(np.argmax(np.linalg.norm(pts - np.clip(pts, lo, hi), axis=1)))]
-        text = f"{p.name}: {p.protrusion * 1e3:.1f} mm out"
+        text = f"{p.name} - outside the bays by {p.protrusion * 1e3:.1f} mm"
         _label(scene, f"{root}/protrusion/{p.name}", text, far)
     return drawn
 
@@ -178,17 +206,12 @@ def reach_clouds(
     geom: PayloadGeometry, vehicle: Vehicle, samples: int, seed: int
 ) -> dict[str, np.ndarray]:
     """Each finger's collision-free fingertip cloud, as the reach report samples it [m]."""
-    from payload.envelope.reach import (
-        CollisionModel,
-        design_kinematics,
-        finger_link_names,
-        fingertips,
-        sample_configurations,
-    )
+    from payload.envelope.batch_fk import fingertips_batch
+    from payload.envelope.reach import CollisionModel, finger_link_names, sample_configurations
 
     tree = geom.tree
     q = sample_configurations(tree, samples, np.random.default_rng(seed))
-    tips = fingertips(design_kinematics(tree).kin, q)
+    tips = fingertips_batch(tree, q)
     contacts = CollisionModel(geom, vehicle).check(q, workers=1)
     links = {f: finger_link_names(tree, f) for f in FINGERS}
     out = {}
@@ -212,13 +235,11 @@ def set_track(
     animation: Animation, path: str, frames: list[float], poses: list[np.ndarray]
 ) -> None:
     """Keyframes of a node's pose: one per frame (``frames`` in animation frames)."""
-    import meshcat.transformations as tf
+    from scipy.spatial.transform import Rotation
 
-    pos = [list(map(float, p[:3, 3])) for p in poses]
-    quat = []
-    for p in poses:
-        w, x, y, z = tf.quaternion_from_matrix(p)
-        quat.append([float(x), float(y), float(z), float(w)])
+    mats = np.asarray(poses, dtype=float).reshape(-1, 4, 4)
+    pos = mats[:, :3, 3].tolist()
+    quat = Rotation.from_matrix(mats[:, :3, :3]).as_quat().tolist()  # x y z w, as three.js
     clip = animation.clips.setdefault(mpath(path), AnimationClip(fps=animation.default_framerate))
     clip.tracks["position"] = AnimationTrack("position", "vector3", list(frames), pos)
     clip.tracks["quaternion"] = AnimationTrack("quaternion", "quaternion", list(frames), quat)
@@ -241,20 +262,83 @@ def deployment_configurations(
     return out
 
 
+def part_colours(model: PayloadModel, check: StowedCheck, bad: frozenset[str]) -> dict[str, int]:
+    """Each link's colour: red failing, amber tight, else its finger's colour or grey."""
+    tight = {p.name for p in check.parts if p.inside and p.clearance < TIGHT_CLEARANCE}
+    return {
+        n: OFFENDING_COLOUR if n in bad else TIGHT if n in tight else link_colour(n)
+        for n in model.links
+    }
+
+
+def legend(colours: Mapping[str, int], reach: bool) -> list[tuple[str, str]]:
+    """The legend: every colour the design review draws, with what it means."""
+    used = set(colours.values())
+    out = [
+        (FINGER_COLOURS[f], f"finger {f}" + (" and its reach" if reach else "")) for f in FINGERS
+    ]
+    out += [
+        (STRUCTURE_COLOUR, "structure: base, stage, carriage"),
+        (colour_text(OFFENDING_COLOUR), "fails: outside the bays or colliding"),
+        (colour_text(TIGHT), f"tight: under {TIGHT_CLEARANCE * 1e3:.1f} mm to a bay wall"),
+        (colour_text(BODY_COLOUR), "Astrobee's body"),
+        (colour_text(BAY_COLOUR), "payload bays (the stowed envelope)"),
+        (colour_text(SEGMENT_COLOUR), "clearance measured (stowed)"),
+    ]
+    listed = {hex_colour(c) for c, _ in out}
+    missing = used - listed
+    if missing:  # a colour drawn but not explained is a bug here, not in the design
+        raise AssertionError(f"legend misses {sorted(map(colour_text, missing))}")
+    return out
+
+
+def frame_points(
+    vehicle: Vehicle, placed: list[np.ndarray], clouds: Mapping[str, np.ndarray]
+) -> np.ndarray:
+    """What the default view frames: the vehicle's body and bays, the payload's meshes in
+    every placement given, the reach clouds; payload frame, shape (n, 3) [m]."""
+    pick = np.array(list(itertools.product((0, 1), repeat=3)))
+    corners = [
+        np.where(pick, hi, lo)
+        for lo, hi in [(vehicle.bay_lower, vehicle.bay_upper), *vehicle.body_boxes()]
+    ]
+    return np.vstack([*corners, *placed, *clouds.values()])
+
+
+def title(files: ProjectFiles, check: StowedCheck) -> tuple[str, str]:
+    """The title (project, design file, hash) and the verdict line."""
+    design = Path(files.design)
+    name = f"{design.resolve().parents[1].name}/{design.parent.name}/{design.name}"
+    verdict = "stowed fit: pass" if check.passed else "stowed fit: FAIL"
+    if check.parts:
+        t = check.tightest
+        verdict += f"; tightest {t.name} {t.clearance * 1e3:.1f} mm"
+    return f"{name}  (design {design_hash(design)})", verdict
+
+
 def build_design_review(
-    files: ProjectFiles, reach_samples: int = 5000, seed: int = 0, root: str = REVIEW
+    files: ProjectFiles,
+    reach_samples: int = 5000,
+    seed: int = 0,
+    root: str = REVIEW,
+    check_models: bool = True,
 ) -> DesignReview:
     """The design review scene of a design project (stowed, with the deployment animation).
+
+    The page opens on the stowed payload with its clearance labels; the deployment plays
+    from the controls (the labels hide once the stage moves).
 
     Args:
         files: The design project's files.
         reach_samples: Configurations sampled for the reach clouds (0: no clouds).
         seed: Seed of the reach sampling.
         root: Scene node to build under.
+        check_models: Check that the generated models match the design (skip it only
+            right after writing them).
     """
     files.check()
     design = load_design(files.design)
-    stale = stale_files(design, files.urdf.parent.parent)
+    stale = stale_files(design, files.urdf.parent.parent) if check_models else []
     if stale:
         raise ReviewError(
             f"the generated models do not match {files.design} ({', '.join(stale)}); "
@@ -269,6 +353,7 @@ def build_design_review(
     bad = offending_parts(check)
     stowed = model.placements(model.configuration(check.q))
     deployed = model.placements(model.configuration(home_q))
+    clouds = reach_clouds(geom, vehicle, reach_samples, seed) if reach_samples else {}
 
     verts = []
     for poses in (stowed, deployed):
@@ -276,18 +361,26 @@ def build_design_review(
             if link in geom.solids:
                 v = geom.mesh_vertices[link]
                 verts.append(v @ poses[link][:3, :3].T + poses[link][:3, 3])
-    allv = np.vstack(verts)
+    allv = frame_points(vehicle, verts, clouds)
     centre = (allv.min(axis=0) + allv.max(axis=0)) / 2
 
-    scene = Scene()
+    scene = Scene(autoplay=False)
     scene.transform(root, translation(-centre))
     draw_vehicle(scene, vehicle, f"{root}/vehicle")
-    colours = {n: OFFENDING_COLOUR if n in bad else link_colour(n) for n in model.links}
+    colours = part_colours(model, check, bad)
     draw_links(scene, model, f"{root}/payload", stowed, colours)
     draw_findings(scene, geom, check, vehicle, f"{root}/findings")
-    if reach_samples:
-        draw_reach(scene, reach_clouds(geom, vehicle, reach_samples, seed), f"{root}/reach")
-    scene.camera = (framing(allv - centre, VIEW_DIRECTION), np.zeros(3))
+    if clouds:
+        draw_reach(scene, clouds, f"{root}/reach")
+    scene.camera = (framing(allv - centre, VIEW_DIRECTION, FRAME_MARGIN), np.zeros(3))
+    head, verdict = title(files, check)
+    scene.overlay = Overlay(
+        title=head,
+        subtitle=verdict,
+        legend=legend(colours, bool(clouds)),
+        labels=scene.overlay.labels,
+        views={"default": [float(v) for v in scene.camera[0]]},
+    )
 
     anim = Animation(default_framerate=DEPLOY_FPS)
     configs = deployment_configurations(model, check.q, home_q)
@@ -295,18 +388,25 @@ def build_design_review(
     placements = [model.placements(q) for q in configs]
     for link in model.links:
         set_track(anim, f"{root}/payload/{link}", frames, [p[link] for p in placements])
+    set_visibility(anim, f"{root}/findings", frames, [i == 0 for i in frames])
     scene.animation = anim
-    scene.notes += [
-        f"design: {Path(files.design)}",
-        f"stowed fit: {'pass' if check.passed else 'FAIL'}",
-    ]
+    scene.notes += [f"design: {Path(files.design)}", verdict]
     scene.notes += [f"  {line}" for line in check.failures()]
     return DesignReview(scene, check, bad, centre, stowed, deployed)
+
+
+def set_visibility(animation: Animation, path: str, frames: list[float], on: list[bool]) -> None:
+    """Keys of a node's visibility at the first frame and every frame where it changes."""
+    keep = [0, *[i for i in range(1, len(on)) if on[i] != on[i - 1]]]
+    clip = animation.clips.setdefault(mpath(path), AnimationClip(fps=animation.default_framerate))
+    values = [bool(on[i]) for i in keep]
+    clip.tracks["visible"] = AnimationTrack("visible", "boolean", [frames[i] for i in keep], values)
 
 
 __all__ = [
     "OFFENDING_COLOUR",
     "REVIEW",
+    "TIGHT_CLEARANCE",
     "DesignReview",
     "build_design_review",
     "deployment_configurations",
@@ -317,4 +417,5 @@ __all__ = [
     "offending_parts",
     "reach_clouds",
     "set_track",
+    "set_visibility",
 ]

@@ -8,6 +8,9 @@ from pathlib import Path
 
 from payload.review.errors import ReviewError
 
+DEFAULT_RATE = 10.0
+"""Frames per second of trial time a trial replay shows by default [Hz] (``--rate``)."""
+
 
 @dataclass(frozen=True)
 class ProjectFiles:
@@ -53,4 +56,4 @@ def design_hash(path: str | Path) -> str:
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()[:16]
 
 
-__all__ = ["ProjectFiles", "design_hash", "project_files"]
+__all__ = ["DEFAULT_RATE", "ProjectFiles", "design_hash", "project_files"]

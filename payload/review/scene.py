@@ -3,7 +3,8 @@
 A :class:`Scene` holds meshcat command objects (``SetObject``, ``SetTransform``,
 ``SetProperty``, one ``SetAnimation``) in the order they are sent. Building a scene needs
 no server, so tests can inspect it; :meth:`Scene.send` plays it into a live viewer and
-:func:`static_html` into a standalone HTML page (meshcat's JavaScript inlined).
+:func:`payload.review.page.static_html` into a standalone HTML page (meshcat's JavaScript
+inlined).
 
 Paths are absolute meshcat paths (``/meshcat/review/payload/base``); the viewer's own
 nodes (``/Background``, ``/Grid``, ``/Cameras/default``) are set the same way.
@@ -56,49 +57,41 @@ class StlGeometry(mg.MeshGeometry):
         return {**super().lower(object_data), "type": "_meshfile_geometry"}
 
 
-class TextTexture(mg.Texture):
-    """A canvas texture holding one line of text (meshcat's ``_text`` texture)."""
+@dataclass
+class Overlay:
+    """What the page draws over the 3D view (see :mod:`payload.review.page`).
 
-    def __init__(self, text: str, font_size: int = 44, font_face: str = "sans-serif") -> None:
-        super().__init__()
-        self.text, self.font_size, self.font_face = text, font_size, font_face
+    Attributes:
+        title: First line of the title (the design's name and hash).
+        subtitle: Second line (the verdict, the trial).
+        legend: ``(#rrggbb, meaning)`` for every colour the scene uses.
+        labels: ``(anchor node path, text)``: a label pointing at the node's origin, shown
+            while the node is (so a label belongs to the state its node is shown in).
+        phases: ``(phase, start [s], end [s])`` of a trial, shown at the animation time.
+        views: Camera positions by name (``default``, ``station``), world frame [m].
+        follow: ``(root path, vehicle path, station centre)``: the chase camera keeps the
+            vehicle node at the origin by moving the root; ``None``: no chase camera.
+    """
 
-    def lower(self, object_data: Any) -> dict[str, Any]:
+    title: str = ""
+    subtitle: str = ""
+    legend: list[tuple[str, str]] = field(default_factory=list)
+    labels: list[tuple[str, str]] = field(default_factory=list)
+    phases: list[tuple[str, float, float]] = field(default_factory=list)
+    views: dict[str, list[float]] = field(default_factory=dict)
+    follow: tuple[str, str, list[float]] | None = None
+
+    def as_json(self) -> dict[str, Any]:
+        """The overlay as the page's script reads it."""
         return {
-            "uuid": self.uuid,
-            "type": "_text",
-            "text": self.text,
-            "font_size": self.font_size,
-            "font_face": self.font_face,
+            "title": self.title,
+            "subtitle": self.subtitle,
+            "legend": [list(e) for e in self.legend],
+            "labels": [list(e) for e in self.labels],
+            "phases": [list(e) for e in self.phases],
+            "views": self.views,
+            "follow": None if self.follow is None else list(self.follow),
         }
-
-
-class SpriteMaterial(mg.Material):
-    """three.js ``SpriteMaterial`` showing a texture."""
-
-    def __init__(self, texture: mg.Texture) -> None:
-        super().__init__()
-        self.texture = texture
-
-    def lower(self, object_data: Any) -> dict[str, Any]:
-        return {
-            "uuid": self.uuid,
-            "type": "SpriteMaterial",
-            "map": self.texture.lower_in_object(object_data),
-            "transparent": True,
-            "depthTest": False,
-        }
-
-
-class Sprite(mg.Object):
-    """A camera-facing label (three.js ``Sprite``); its geometry is never read."""
-
-    _type = "Sprite"
-
-
-def label_object(text: str) -> Sprite:
-    """A text label as a sprite of unit size (scale it with the node's transform)."""
-    return Sprite(mg.Box([1.0, 1.0, 1.0]), SpriteMaterial(TextTexture(text)))
 
 
 @dataclass
@@ -110,12 +103,16 @@ class Scene:
         animation: The animation (``None``: none).
         camera: ``(position, target)`` of the camera in the world [m].
         notes: One line per thing worth printing (findings, phases).
+        overlay: Title, legend, labels and camera views drawn over the 3D view.
+        autoplay: Play the animation when the page opens.
     """
 
     commands: list[Any] = field(default_factory=list)
     animation: Animation | None = None
     camera: tuple[np.ndarray, np.ndarray] | None = None
     notes: list[str] = field(default_factory=list)
+    overlay: Overlay = field(default_factory=Overlay)
+    autoplay: bool = True
 
     def object(self, path: str, geometry: Any, material: Any = None) -> None:
         """Draw ``geometry`` (or a meshcat object) at ``path``."""
@@ -150,13 +147,18 @@ class Scene:
         out = list(self.commands)
         out += viewer_settings(self.camera)
         if self.animation is not None:
-            out.append(SetAnimation(self.animation, play=True, repetitions=1))
+            out.append(SetAnimation(self.animation, play=self.autoplay, repetitions=1))
         return out
 
     def send(self, window: Any) -> None:
         """Send the scene to a meshcat ``ViewerWindow`` (``Visualizer().window``)."""
         for command in self.all_commands():
             window.send(command)
+
+
+def camera_local(position: Sequence[float]) -> list[float]:
+    """A world position ``(x, y, z)`` in meshcat's rotated camera node: ``(x, z, -y)``."""
+    return [float(position[0]), float(position[2]), float(-position[1])]
 
 
 def viewer_settings(camera: tuple[np.ndarray, np.ndarray] | None) -> list[Any]:
@@ -176,8 +178,9 @@ def viewer_settings(camera: tuple[np.ndarray, np.ndarray] | None) -> list[Any]:
         pos, target = (np.asarray(v, dtype=float) for v in camera)
         if np.linalg.norm(target) > 1e-9:
             raise ValueError("build the scene around the camera target: it must be the origin")
-        local = [float(pos[0]), float(pos[2]), float(-pos[1])]
-        out.append(SetProperty("position", local, mpath("/Cameras/default/rotated/<object>")))
+        out.append(
+            SetProperty("position", camera_local(pos), mpath("/Cameras/default/rotated/<object>"))
+        )
     return out
 
 
@@ -228,16 +231,15 @@ __all__ = [
     "BACKGROUND",
     "CAMERA_FOV_DEG",
     "ROOT",
+    "Overlay",
     "ReviewError",
     "Scene",
-    "Sprite",
     "StlGeometry",
-    "TextTexture",
     "box_pose",
+    "camera_local",
     "frame_values",
     "framing",
     "hex_colour",
-    "label_object",
     "mpath",
     "segment",
     "translation",

@@ -1,4 +1,4 @@
-"""Meshcat servers for a review: start one (or attach), send a scene, write static HTML."""
+"""Meshcat servers for a review: start one, or attach to a running one (``--zmq-url``)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from typing import Any
 
 from meshcat.commands import Delete
 
-from payload.review.scene import ROOT, ReviewError, Scene, mpath
+from payload.review.scene import ROOT, ReviewError, mpath
 
 ANSWER_TIMEOUT_MS = 5000
 """How long an existing server has to answer before ``--zmq-url`` gives up [ms]."""
@@ -63,14 +63,4 @@ def close_viewer(vis: Any) -> None:
         proc.wait()
 
 
-def static_html(scene: Scene, zmq_url: str | None = None) -> str:
-    """The scene and its animation as one standalone HTML page (meshcat's JS inlined)."""
-    vis = open_viewer(zmq_url)
-    try:
-        scene.send(vis.window)
-        return vis.static_html()
-    finally:
-        close_viewer(vis)
-
-
-__all__ = ["check_server", "close_viewer", "open_viewer", "static_html"]
+__all__ = ["check_server", "close_viewer", "open_viewer"]

@@ -1,15 +1,17 @@
 """Trial replay: a recorded cargo-transport trial as a meshcat animation.
 
-One animation frame per recorded control step, at the recorded rate: Astrobee's pose,
-every payload link placed by Pinocchio forward kinematics of the recorded (measured)
+The recording sampled at a stated rate (``--rate``, default :data:`DEFAULT_RATE`): Astrobee's
+pose, every payload link placed by Pinocchio forward kinematics of the recorded (measured)
 joints and deployment, the CTB's pose, the fingertip pads green while the recording's
-opposing-contact indicator is set, and a label naming the task phase. The ISS module
-walls, Astrobee's body and the CTB come from the simulator world built for the design
+opposing-contact indicator is set (at any step since the previous frame), the task phase
+as text over the view, the ISS modules named, the keep-in boxes when the world has them.
+The camera follows the vehicle (a chase view); the whole-station view is a click away.
+The ISS module walls, Astrobee's body and the CTB come from the simulator world built for the design
 project (its ``[vehicle]`` table and generated MJCF).
 
 Scene tree (under :data:`TRIAL`): ``iss/<geom>``, ``astrobee`` (animated) with ``body``,
-``payload/<link>`` (animated) and ``phase/<phase>`` (labels, visibility animated),
-``ctb`` (animated).
+``payload/<link>`` (animated, pads ``<f>_tip/pad_contact|pad_free``), ``ctb`` (animated),
+``modules/<module>`` (label anchors), ``keep_in/<i>``.
 """
 
 from __future__ import annotations
@@ -19,19 +21,27 @@ from pathlib import Path
 
 import meshcat.geometry as mg
 import numpy as np
-from meshcat.animation import Animation, AnimationClip, AnimationTrack
+from meshcat.animation import Animation
 
 from payload.design import FINGERS, MANIPULATION_JOINTS, load_design
-from payload.review.design_view import draw_links, link_colour, set_track
+from payload.envelope.drawing import FINGER_COLOURS, STRUCTURE_COLOUR
+from payload.review.design_view import (
+    BODY_COLOUR,
+    colour_text,
+    draw_links,
+    link_colour,
+    set_track,
+    set_visibility,
+)
 from payload.review.model import PayloadModel
-from payload.review.project import ProjectFiles, design_hash
+from payload.review.project import DEFAULT_RATE, ProjectFiles, design_hash
 from payload.review.scene import (
     ROOT,
+    Overlay,
     ReviewError,
     Scene,
+    box_pose,
     framing,
-    label_object,
-    mpath,
     translation,
 )
 from payload.rotations import quat_to_matrix
@@ -43,8 +53,17 @@ TRIAL = f"{ROOT}/trial"
 CONTACT_COLOUR, FREE_COLOUR = 0x00C000, 0x303030
 """Pad colour with the opposing-contact indicator set, and without."""
 
+KEEP_IN_COLOUR = 0x7F00FF
+"""Colour of the station's keep-in boxes."""
+
 RECORDING = "log.mcap"
-VIEW_DIRECTION = (0.6, -1.0, 0.8)
+STATION_DIRECTION = (0.6, -1.0, 0.8)
+"""The whole-station view looks from starboard-aft and above."""
+CHASE_DIRECTION = (0.8, -1.0, 0.55)
+"""The chase camera looks at the vehicle from forward-right and above."""
+CHASE_RADIUS = 0.55
+"""Radius about the vehicle's centre the chase view frames [m]: the body (a 0.32 m cube,
+half-diagonal 0.28 m) with the deployed payload and a grasped CTB below it."""
 
 
 @dataclass
@@ -150,7 +169,9 @@ def draw_world(scene: Scene, world, root: str) -> None:
         scene.transform(path, t)
     size = [float(v) for v in world.vehicle.body_size]
     scene.object(
-        f"{root}/astrobee/body", mg.Box(size), mg.MeshLambertMaterial(color=0xB8BCC8, opacity=0.35)
+        f"{root}/astrobee/body",
+        mg.Box(size),
+        mg.MeshLambertMaterial(color=BODY_COLOUR, opacity=0.35),
     )
     if world.ctb >= 0:
         com = pose(m.body_ipos[world.ctb], m.body_iquat[world.ctb])
@@ -158,14 +179,6 @@ def draw_world(scene: Scene, world, root: str) -> None:
             path = f"{root}/ctb/{name}"
             scene.object(path, mg.Box(size), _rgba_material(rgba))
             scene.transform(path, np.linalg.inv(com) @ t)
-
-
-def _visibility(animation: Animation, path: str, frames: list[float], on: np.ndarray) -> None:
-    """Keys of a node's visibility at every frame where it changes (and the first)."""
-    keep = [0, *[i for i in range(1, len(on)) if on[i] != on[i - 1]]]
-    clip = animation.clips.setdefault(mpath(path), AnimationClip(fps=animation.default_framerate))
-    values = [bool(on[i]) for i in keep]
-    clip.tracks["visible"] = AnimationTrack("visible", "boolean", [frames[i] for i in keep], values)
 
 
 def phase_spans(rec) -> list[tuple[str, float, float]]:
@@ -180,74 +193,196 @@ def phase_spans(rec) -> list[tuple[str, float, float]]:
     return out
 
 
-def build_trial_replay(folder: str | Path, files: ProjectFiles, root: str = TRIAL) -> TrialReplay:
-    """The replay scene of the trial recorded in ``folder`` (see the module docstring)."""
-    from payload.sim.world import WorldConfig, build_world
+def keep_in_boxes(world) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The station's keep-in boxes, world frame ``(lower, upper)`` corners [m].
 
-    files.check()
-    rec = read_trial(folder, files)
-    design = load_design(files.design)
-    if not files.mjcf.is_file():
-        raise ReviewError(f"generated MJCF not found: {files.mjcf}; run `payload build`")
-    world = build_world(WorldConfig(payload_mjcf=files.mjcf, design=files.design), design)
-    model = PayloadModel(files.urdf)
-    rate = rec.rate_hz
-    fps = float(rate) if np.isfinite(rate) and rate > 0 else 1.0 / CONTROL_DT
-    frames = [float(v) for v in (rec.t - rec.t[0]) * fps]
+    HOOK: the simulator does not yet name its keep-in boxes on this branch (issue 33 adds
+    them); when the world offers ``keep_in_boxes()``, they are drawn from here.
+    """
+    fn = getattr(world, "keep_in_boxes", None)
+    if fn is None:
+        return []
+    return [(np.asarray(lo, dtype=float), np.asarray(hi, dtype=float)) for lo, hi in fn()]
 
-    centre = (rec.astrobee_pos.min(axis=0) + rec.astrobee_pos.max(axis=0)) / 2
-    scene = Scene()
-    scene.transform(root, translation(-centre))
-    draw_world(scene, world, root)
-    mount = translation(world.mount)
-    scene.transform(f"{root}/astrobee/payload", mount)
-    configs = []
-    for q, deploy in zip(rec.q_meas, rec.deploy_meas):
-        values = dict(zip(MANIPULATION_JOINTS, (float(v) for v in q)))
-        values["stage"] = float(deploy)
-        configs.append(model.configuration(values))
-    placements = [model.placements(q) for q in configs]
-    colours = {n: link_colour(n) for n in model.links}
-    draw_links(scene, model, f"{root}/astrobee/payload", placements[0], colours)
 
-    anim = Animation(default_framerate=fps)
-    set_track(
-        anim,
-        f"{root}/astrobee",
-        frames,
-        [pose(p, q) for p, q in zip(rec.astrobee_pos, rec.astrobee_quat)],
-    )
-    set_track(anim, f"{root}/ctb", frames, [pose(p, q) for p, q in zip(rec.ctb_pos, rec.ctb_quat)])
-    for link in model.links:
-        set_track(anim, f"{root}/astrobee/payload/{link}", frames, [p[link] for p in placements])
-    radius = 1.08 * design.finger.pad.radius
-    contact = np.asarray(rec.contact, dtype=bool)
+def draw_keep_in(scene: Scene, boxes: list[tuple[np.ndarray, np.ndarray]], root: str) -> None:
+    """Keep-in boxes as translucent boxes under ``root/keep_in/<i>``."""
+    for i, (lo, hi) in enumerate(boxes):
+        size, centre = box_pose(lo, hi)
+        path = f"{root}/keep_in/{i}"
+        scene.object(path, mg.Box(size), mg.MeshLambertMaterial(color=KEEP_IN_COLOUR, opacity=0.08))
+        scene.transform(path, centre)
+
+
+def sample_steps(t: np.ndarray, rate: float) -> np.ndarray:
+    """Indices of the recorded steps shown at ``rate`` [Hz]: the first step at or after
+    each multiple of ``1 / rate`` from the start, and the last step, shape (k,)."""
+    t = np.asarray(t, dtype=float) - float(t[0])
+    ticks = np.arange(0.0, t[-1] + 1e-9, 1.0 / rate)
+    idx = np.unique(np.searchsorted(t, ticks - 1e-9))
+    idx = idx[idx < len(t)]
+    return np.unique(np.r_[idx, len(t) - 1])
+
+
+def any_since_last(flags: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """Per shown step: whether ``flags`` was set at any step since the previous shown one
+    (so a contact shorter than a frame still shows), shape (k,)."""
+    flags = np.asarray(flags, dtype=bool)
+    starts = np.r_[0, idx[:-1] + 1]
+    return np.array([flags[a : b + 1].any() for a, b in zip(starts, idx)])
+
+
+MODULE_NAMES = {"kibo": "Kibo (JEM)", "vestibule": "vestibule", "node2": "Node 2"}
+"""How the replay labels the ISS modules along the route."""
+
+
+def draw_modules(scene: Scene, world, root: str) -> None:
+    """A label anchor at the centre of each module along the route."""
+    for zone in world.layout.zones():
+        path = f"{root}/modules/{zone.module.value}"
+        scene.transform(path, translation(zone.centre))
+        scene.overlay.labels.append((path, MODULE_NAMES.get(zone.module.value, zone.module.value)))
+
+
+def draw_pads(scene: Scene, anim: Animation, root: str, radius: float, frames, contact) -> None:
+    """Each fingertip pad twice, coloured by the opposing-contact indicator, one shown."""
     for f in FINGERS:
         for state, colour, on in (
             ("contact", CONTACT_COLOUR, contact),
             ("free", FREE_COLOUR, ~contact),
         ):
-            path = f"{root}/astrobee/payload/{f}_tip/pad_{state}"
+            path = f"{root}/{f}_tip/pad_{state}"
             scene.object(path, mg.Sphere(radius), mg.MeshPhongMaterial(color=colour))
-            _visibility(anim, path, frames, on)
-    spans = phase_spans(rec)
-    top = float(world.vehicle.body_size[2]) / 2 + 0.12
-    for ph in dict.fromkeys(s[0] for s in spans):
-        path = f"{root}/astrobee/phase/{ph}"
-        scene.object(path, label_object(ph))
-        scene.transform(path, translation([0, 0, top]) @ np.diag([0.35, 0.35, 0.35, 1.0]))
-        _visibility(anim, path, frames, np.asarray(rec.phase == ph))
+            set_visibility(anim, path, frames, list(on))
+
+
+def trial_legend(world, keep_in: bool) -> list[tuple[str, str]]:
+    """The replay's colours: fingers, structure, pads, the vehicle, the CTB, the station
+    (and the keep-in boxes when drawn)."""
+    out = [(FINGER_COLOURS[f], f"finger {f}") for f in FINGERS]
+    out += [
+        (STRUCTURE_COLOUR, "structure: base, stage, carriage"),
+        (colour_text(CONTACT_COLOUR), "pads in opposing contact"),
+        (colour_text(FREE_COLOUR), "pads not in opposing contact"),
+        (colour_text(BODY_COLOUR), "Astrobee's body"),
+    ]
+    if keep_in:
+        out.append((colour_text(KEEP_IN_COLOUR), "keep-in boxes"))
+    seen = {c for c, _ in out}
+    m = world.model
+    for name, geoms in (("CTB", _ctb_geoms(world)), ("ISS racks and handrails", world.iss_geoms)):
+        for g in geoms:
+            c = colour_text(_rgb(m.geom_rgba[g]))
+            if c not in seen:
+                seen.add(c)
+                out.append((c, name))
+    return out
+
+
+def _ctb_geoms(world) -> list[int]:
+    m = world.model
+    return [
+        g
+        for g in range(m.ngeom)
+        if world.ctb >= 0 and m.geom_bodyid[g] == world.ctb and m.geom_group[g] != 3
+    ]
+
+
+def _rgb(rgba: np.ndarray) -> int:
+    r, g, b = (round(float(v) * 255) for v in rgba[:3])
+    return (r << 16) | (g << 8) | b
+
+
+def build_trial_replay(
+    folder: str | Path,
+    files: ProjectFiles,
+    root: str = TRIAL,
+    rate: float = DEFAULT_RATE,
+    recording: object | None = None,
+) -> TrialReplay:
+    """The replay scene of the trial recorded in ``folder`` (see the module docstring).
+
+    Args:
+        folder: The trial folder (its ``log.mcap``).
+        files: The design project's files.
+        root: Scene node to build under.
+        rate: Animation frames per second of trial time [Hz]; the recording is sampled
+            at this rate (a 150 s trial at 10 Hz: 1,500 frames).
+        recording: The folder's recording when the caller has read it already
+            (:func:`read_trial`); reading a long recording is most of a replay's time.
+
+    Raises:
+        ReviewError: Bad folder or recording (see :func:`read_trial`), or a rate <= 0.
+    """
+    from payload.sim.world import WorldConfig, build_world
+
+    if not (np.isfinite(rate) and rate > 0):
+        raise ReviewError(f"--rate must be > 0 Hz (got {rate})")
+    files.check()
+    rec = read_trial(folder, files) if recording is None else recording
+    design = load_design(files.design)
+    if not files.mjcf.is_file():
+        raise ReviewError(f"generated MJCF not found: {files.mjcf}; run `payload build`")
+    world = build_world(WorldConfig(payload_mjcf=files.mjcf, design=files.design), design)
+    model = PayloadModel(files.urdf)
+    recorded = rec.rate_hz if np.isfinite(rec.rate_hz) and rec.rate_hz > 0 else 1 / CONTROL_DT
+    fps = float(min(rate, recorded))
+    idx = sample_steps(rec.t, fps)
+    frames = [float(v) for v in (rec.t[idx] - rec.t[0]) * fps]
+
+    centre = (rec.astrobee_pos.min(axis=0) + rec.astrobee_pos.max(axis=0)) / 2
+    scene = Scene()
+    scene.transform(root, translation(-centre))
+    draw_world(scene, world, root)
+    draw_modules(scene, world, root)
+    keep_in = keep_in_boxes(world)
+    draw_keep_in(scene, keep_in, root)
+    mount = translation(world.mount)
+    scene.transform(f"{root}/astrobee/payload", mount)
+    placements = []
+    for k in idx:
+        values = dict(zip(MANIPULATION_JOINTS, (float(v) for v in rec.q_meas[k])))
+        values["stage"] = float(rec.deploy_meas[k])
+        placements.append(model.placements(model.configuration(values)))
+    colours = {n: link_colour(n) for n in model.links}
+    draw_links(scene, model, f"{root}/astrobee/payload", placements[0], colours)
+
+    anim = Animation(default_framerate=fps)
+    vehicle = [pose(rec.astrobee_pos[k], rec.astrobee_quat[k]) for k in idx]
+    set_track(anim, f"{root}/astrobee", frames, vehicle)
+    set_track(anim, f"{root}/ctb", frames, [pose(rec.ctb_pos[k], rec.ctb_quat[k]) for k in idx])
+    for link in model.links:
+        set_track(anim, f"{root}/astrobee/payload/{link}", frames, [p[link] for p in placements])
+    contact = any_since_last(rec.contact, idx)
+    radius = 1.08 * design.finger.pad.radius
+    draw_pads(scene, anim, f"{root}/astrobee/payload", radius, frames, contact)
     scene.animation = anim
 
+    spans = phase_spans(rec)
+    t0 = float(rec.t[0])
     extent = np.vstack([rec.astrobee_pos, rec.ctb_pos]) - centre
-    scene.camera = (framing(np.vstack([extent, [[0.8, 0.8, 0.8]]]), VIEW_DIRECTION), np.zeros(3))
-    scene.notes.append(f"trial: {Path(folder)} ({len(rec)} steps at {fps:.1f} Hz)")
+    station = framing(np.vstack([extent, [[0.8, 0.8, 0.8]]]), STATION_DIRECTION)
+    chase = framing(np.array([[CHASE_RADIUS, 0.0, 0.0]]), CHASE_DIRECTION)
+    scene.camera = (chase, np.zeros(3))
+    design_id = f"{Path(files.design).name} (design {design_hash(files.design)})"
+    scene.overlay = Overlay(
+        title=f"trial {Path(folder).name}: {design_id}",
+        subtitle=f"{len(rec)} steps shown at {fps:g} Hz; chase view "
+        "(Open Controls: whole station view)",
+        legend=trial_legend(world, bool(keep_in)),
+        labels=scene.overlay.labels,
+        phases=[(ph, a - t0, b - t0) for ph, a, b in spans],
+        views={"default": chase.tolist(), "station": station.tolist()},
+        follow=(root, f"{root}/astrobee", centre.tolist()),
+    )
+    scene.notes.append(f"trial: {Path(folder)} ({len(rec)} steps, shown at {fps:g} Hz)")
     scene.notes += [f"  {ph}: {a:.2f} .. {b:.2f} s" for ph, a, b in spans]
     return TrialReplay(scene, rec, fps, centre, mount)
 
 
 __all__ = [
     "CONTACT_COLOUR",
+    "DEFAULT_RATE",
     "FREE_COLOUR",
     "TRIAL",
     "TrialReplay",
@@ -255,4 +390,5 @@ __all__ = [
     "phase_spans",
     "pose",
     "read_trial",
+    "sample_steps",
 ]

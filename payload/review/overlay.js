@@ -1,0 +1,255 @@
+// The review's overlay on meshcat's viewer: title, legend, labels placed by a layout pass
+// with leader lines, the trial phase, an error banner, the chase camera, live updates.
+// Reads window.viewer (meshcat's Viewer). Data: see payload/review/page.py.
+(function () {
+  "use strict";
+  const pane = document.getElementById("meshcat-pane");
+  const layer = document.createElement("div");
+  layer.id = "payload-overlay";
+  pane.appendChild(layer);
+  const svg = document.createElementNS("http://www.w3.org/2000/svg", "svg");
+  svg.id = "payload-leaders";
+  layer.appendChild(svg);
+  const title = div("payload-title", layer);
+  const legend = div("payload-legend", layer);
+  const phase = div("payload-phase", layer);
+  const error = div("payload-error", layer);
+  const state = { labels: [], phases: [], follow: null, chase: true, views: {}, version: -1 };
+
+  function div(id, parent) {
+    const el = document.createElement("div");
+    if (id) el.id = id;
+    parent.appendChild(el);
+    return el;
+  }
+
+  function b64bytes(s) {
+    const bin = atob(s);
+    const out = new Uint8Array(bin.length);
+    for (let i = 0; i < bin.length; i++) out[i] = bin.charCodeAt(i);
+    return out;
+  }
+
+  function names(path) {
+    return path.split("/").filter((x) => x.length > 0);
+  }
+
+  function node(path) {
+    let n = viewer.scene_tree;
+    for (const name of names(path)) {
+      n = n.children[name];
+      if (n === undefined) return null;
+    }
+    return n.object;
+  }
+
+  function shown(obj) {
+    for (let o = obj; o; o = o.parent) if (!o.visible) return false;
+    return true;
+  }
+
+  function setOverlay(o) {
+    title.innerHTML = "";
+    div(null, title).textContent = o.title || "";
+    const sub = div(null, title);
+    sub.className = "payload-subtitle";
+    sub.textContent = o.subtitle || "";
+    legend.innerHTML = "";
+    for (const [colour, text] of o.legend || []) {
+      const row = div(null, legend);
+      row.className = "payload-legend-row";
+      row.dataset.colour = colour.toLowerCase();
+      const sw = div(null, row);
+      sw.className = "payload-swatch";
+      sw.style.background = colour;
+      const t = document.createElement("span");
+      t.textContent = text;
+      row.appendChild(t);
+    }
+    for (const lab of state.labels) {
+      lab.el.remove();
+      lab.line.remove();
+    }
+    state.labels = (o.labels || []).map(([anchor, text]) => {
+      const el = div(null, layer);
+      el.className = "payload-label";
+      el.textContent = text;
+      const line = document.createElementNS("http://www.w3.org/2000/svg", "line");
+      svg.appendChild(line);
+      return { anchor, el, line };
+    });
+    state.phases = o.phases || [];
+    state.follow = o.follow || null;
+    state.views = o.views || {};
+    if (state.follow && !state.controlAdded) {
+      viewer.set_control("whole station view", "() => payloadReview.toggleView()");
+      state.controlAdded = true;
+    }
+    if (!state.placed) {
+      // the first scene sets the view; a rebuild keeps the one the user has
+      if (state.follow) state.chase = true;
+      placeCamera();
+      state.placed = true;
+    }
+  }
+
+  function placeCamera() {
+    const key = state.follow && !state.chase ? "station" : "default";
+    const p = state.views[key];
+    if (!p) return;
+    const cam = viewer.scene_tree.find(["Cameras", "default", "rotated", "<object>"]);
+    cam.set_property("position", [p[0], p[2], -p[1]]);
+    if (viewer.controls) viewer.controls.target.set(0, 0, 0);
+    viewer.set_dirty();
+  }
+
+  function follow() {
+    if (!state.follow) return;
+    const [rootPath, vehiclePath, centre] = state.follow;
+    const root = node(rootPath);
+    const vehicle = node(vehiclePath);
+    if (!root || !vehicle) return;
+    const c = state.chase ? vehicle.position : { x: centre[0], y: centre[1], z: centre[2] };
+    root.position.set(-c.x, -c.y, -c.z);
+    root.updateMatrixWorld(true);
+  }
+
+  function animationTime() {
+    const a = viewer.animator;
+    return a && a.actions.length ? Math.max(...a.actions.map((x) => x.time)) : 0;
+  }
+
+  function showPhase() {
+    if (!state.phases.length) {
+      phase.style.display = "none";
+      return;
+    }
+    const t = animationTime();
+    let now = state.phases[0];
+    for (const p of state.phases) if (p[1] <= t + 1e-9) now = p;
+    phase.style.display = "block";
+    phase.textContent = `phase: ${now[0]}   t = ${t.toFixed(1)} s`;
+  }
+
+  function overlaps(a, b) {
+    return a.x < b.x + b.w && b.x < a.x + a.w && a.y < b.y + b.h && b.y < a.y + a.h;
+  }
+
+  function layout() {
+    const cam = viewer.camera;
+    const w = pane.clientWidth;
+    const h = pane.clientHeight;
+    cam.updateMatrixWorld();
+    const items = [];
+    for (const lab of state.labels) {
+      const obj = node(lab.anchor);
+      lab.el.style.display = "none";
+      lab.line.style.display = "none";
+      if (!obj || !shown(obj)) continue;
+      const p = obj.getWorldPosition(new obj.position.constructor());
+      p.project(cam);
+      if (p.z > 1 || p.z < -1 || Math.abs(p.x) > 1 || Math.abs(p.y) > 1) continue;
+      items.push({ lab, x: ((p.x + 1) / 2) * w, y: ((1 - p.y) / 2) * h });
+    }
+    // fixed boxes labels must not cover: title, legend, phase, meshcat's controls
+    const fixed = [title, legend, phase, error].filter((e) => e.offsetParent !== null);
+    const placed = fixed.map((e) => {
+      const r = e.getBoundingClientRect();
+      return { x: r.left, y: r.top, w: r.width, h: r.height };
+    });
+    placed.push({ x: w - 250, y: 0, w: 250, h: 24 });
+    items.sort((a, b) => a.y - b.y);
+    for (const it of items) {
+      const el = it.lab.el;
+      el.style.display = "block";
+      const bw = el.offsetWidth;
+      const bh = el.offsetHeight;
+      let best = null;
+      for (let k = 0; k < 60 && best === null; k++) {
+        for (const side of [1, -1]) {
+          for (const dir of [-1, 1]) {
+            const x = side > 0 ? it.x + 28 : it.x - 28 - bw;
+            const y = it.y - bh / 2 + dir * k * (bh / 2 + 2);
+            const box = { x, y, w: bw, h: bh };
+            if (x < 0 || y < 0 || x + bw > w || y + bh > h) continue;
+            if (placed.every((b) => !overlaps(box, b))) {
+              best = box;
+              break;
+            }
+          }
+          if (best !== null) break;
+        }
+      }
+      if (best === null) {
+        el.style.display = "none";
+        continue;
+      }
+      placed.push(best);
+      el.style.left = `${best.x}px`;
+      el.style.top = `${best.y}px`;
+      const ex = best.x > it.x ? best.x : best.x + bw;
+      const line = it.lab.line;
+      line.style.display = "block";
+      line.setAttribute("x1", it.x);
+      line.setAttribute("y1", it.y);
+      line.setAttribute("x2", ex);
+      line.setAttribute("y2", best.y + bh / 2);
+    }
+  }
+
+  function frame() {
+    follow();
+    showPhase();
+    layout();
+    requestAnimationFrame(frame);
+  }
+
+  function apply(update) {
+    for (const c of update.commands || []) viewer.handle_command_bytearray(b64bytes(c));
+    if (update.overlay) setOverlay(update.overlay);
+    error.textContent = update.error || "";
+    error.style.display = update.error ? "block" : "none";
+    if (update.version !== undefined) state.version = update.version;
+    viewer.set_dirty();
+    window.payloadReady = true;
+  }
+
+  async function poll() {
+    try {
+      const r = await fetch(`update?have=${state.version}`, { cache: "no-store" });
+      if (r.ok) {
+        const u = await r.json();
+        if (u.version !== state.version || (u.error || "") !== error.textContent) apply(u);
+      }
+    } catch (e) {
+      error.textContent = "the review server stopped";
+      error.style.display = "block";
+    }
+    setTimeout(poll, 250);
+  }
+
+  window.payloadReview = {
+    apply,
+    state,
+    get error() {
+      return error.style.display === "none" ? "" : error.textContent;
+    },
+    toggleView() {
+      state.chase = !state.chase;
+      placeCamera();
+    },
+    // screen rectangles of the shown labels, for tests
+    labelBoxes() {
+      return state.labels
+        .filter((l) => l.el.style.display !== "none")
+        .map((l) => {
+          const r = l.el.getBoundingClientRect();
+          return { text: l.el.textContent, x: r.left, y: r.top, w: r.width, h: r.height };
+        });
+    },
+  };
+  const embedded = document.getElementById("payload-data");
+  if (embedded) apply(JSON.parse(embedded.textContent));
+  else poll();
+  requestAnimationFrame(frame);
+})();
