@@ -347,7 +347,7 @@ INVALID = [
     ("finger.lengths.bogus", 0.02, "finger.lengths.bogus", "unknown key"),
     ("stage.travel", _DELETE, "stage.travel", "missing key"),
     ("materials.finger", "heavy", "materials.finger", "expected a number"),
-    ("stage.travel", 0.5, "stage.travel", "guide columns"),
+    ("stage.travel", 0.2, "stage.travel", "guide columns"),
 ]
 
 
@@ -381,6 +381,63 @@ def test_cli_prints_one_line_and_exits_2_on_an_invalid_design(design_dict, tmp_p
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1
     assert "finger.lengths.middle" in lines[0] and "positive" in lines[0]
+
+
+# ---------------------------------------------------------------- plausibility (issue 30)
+
+PLAUSIBILITY = [  # edit, the parameter named, what the one line must say
+    ("finger.lengths.distal", 45, "finger.lengths.distal", "45 m: did you mean 45 mm = 0.045?"),
+    ("finger.lengths.middle", 0.005, "finger.lengths.middle", "cannot hold the servos"),
+    ("finger.lengths.proximal", 0.005, "finger.lengths.proximal", "cannot hold the servos"),
+    ("servo.mass", 23, "servo.mass", "23 kg: did you mean 23 g = 0.023? (23 kg is heavier"),
+    ("rail.length", 0.5, "rail.length", "longer than the vehicle"),
+    ("finger.offsets.tip", 0.05, "finger.offsets.tip", "outside its link"),
+    ("finger.lengths.distal", 0.012, "finger.lengths.distal", "cannot hold the DIP servo"),
+]
+
+
+@pytest.mark.parametrize(("path", "value", "named", "says"), PLAUSIBILITY)
+def test_an_implausible_design_gives_one_line_naming_the_parameter_and_exit_2(
+    design_dict, tmp_path, capsys, path, value, named, says
+):
+    from payload.cli import main
+
+    bad = tmp_path / "bad.toml"
+    bad.write_text(tomli_w.dumps(_edit(design_dict, path, value)).replace("45.0", "45"))
+    assert main(["build", "--design", str(bad), "--root", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"payload: error: {named}: ")
+    assert says in err[0]
+    assert not (tmp_path / "out").exists()
+
+
+def test_the_bounds_come_from_the_design_itself(design_dict):
+    """A link exactly one servo width long holds its servos, a hair shorter does not; a
+    bigger servo raises the bound; a bigger vehicle admits a longer part."""
+    width = design_dict["servo"]["width"]
+    design_from_dict(_edit(design_dict, "finger.lengths.middle", width))
+    with pytest.raises(DesignError, match="cannot hold"):
+        design_from_dict(_edit(design_dict, "finger.lengths.middle", width * 0.99))
+    wider = _edit(_edit(design_dict, "servo.width", 0.022), "finger.lengths.middle", 0.021)
+    with pytest.raises(DesignError, match=r"22\.0 mm between the axes"):
+        design_from_dict(wider)
+    long_rail = _edit(design_dict, "rail.length", 0.33)
+    with pytest.raises(DesignError, match="Astrobee's body is 320 mm"):
+        design_from_dict(long_rail)
+    design_from_dict(_edit(long_rail, "vehicle", {"body_size": [0.4, 0.4, 0.4]}))
+
+
+def test_an_empty_design_file_says_it_is_empty(tmp_path, capsys):
+    from payload.cli import main
+
+    for text in ("", "# nothing but a comment\n"):
+        empty = tmp_path / "design.toml"
+        empty.write_text(text)
+        assert main(["summary", "--design", str(empty)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith(
+            f"payload: error: {empty}: the design file is empty"
+        )
 
 
 def test_unreadable_and_malformed_files_are_design_errors(tmp_path):
