@@ -108,6 +108,9 @@ def _cmd_run(args: argparse.Namespace) -> int:
     from payload.cli import command_project, emit_json
 
     project = command_project(args)
+    from payload.design import models_follow_design
+
+    models_follow_design(project.design_path, project.root, json=args.json)
     source = args.source
     if source[0] == "webxr":
         raise HwUsageError(

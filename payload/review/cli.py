@@ -57,7 +57,10 @@ def _cmd_review(args: argparse.Namespace) -> int:
         raise ReviewError(f"--static {args.static}: is a folder, expected a file name")
     from payload.cli import command_project
 
-    command_project(args, args.design)  # names the project first; library defaults use it
+    project = command_project(args, args.design)  # named first; library defaults use it
+    from payload.design import models_follow_design
+
+    models_follow_design(project.design_path, project.root)  # the one rule for stale models
     scene = build_review(args.design, args.trial, args.reach_samples)
     for line in scene.notes:
         print(line)

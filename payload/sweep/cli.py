@@ -49,6 +49,9 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
     if (out / "sweep.json").exists():
         raise SweepError(f"{out / 'sweep.json'} exists; choose a new --out (nothing overwritten)")
     project = command_project(args)
+    from payload.design import models_follow_design
+
+    models_follow_design(project.design_path, project.root, json=args.json)
     points = plan(project, axes, out)
     workers = args.workers or max(1, min(len(points), os.cpu_count() or 1))
     t0 = time.perf_counter()

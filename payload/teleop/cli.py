@@ -85,7 +85,10 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     from payload.teleop.server import TeleopServer, is_local, new_token
     from payload.teleop.tls import ensure_certificate, fingerprint, server_context
 
-    command_project(args)  # the simulator and the retargeters read this project's models
+    project = command_project(args)  # the simulator and the retargeters read its models
+    from payload.design import models_follow_design
+
+    models_follow_design(project.design_path, project.root)  # the one rule for stale models
     record = Path(args.record) if args.record else None
     _check_record(record)
     local = is_local(args.host)
@@ -144,6 +147,11 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     from payload.cli import emit_json
     from payload.teleop.bench import run_bench
 
+    from payload.design import models_follow_design
+    from payload.project import current_project
+
+    project = current_project()  # what the bench's live session reads
+    models_follow_design(project.design_path, project.root, json=args.json)
     # the emulated operator's tracking drop-outs are part of the run, not news
     logging.getLogger("payload.teleop.safety").setLevel(logging.ERROR)
     result = run_bench(seconds=args.seconds)

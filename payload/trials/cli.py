@@ -51,6 +51,7 @@ def _check_ctb(ctb: str) -> None:
 
 def _cmd_trial(args: argparse.Namespace) -> int:
     from payload.cli import command_project, emit_json
+    from payload.design import models_follow_design
 
     if args.seed is not None and args.seed < 0:
         raise TrialsCliError(f"--seed must be >= 0, got {args.seed}")
@@ -62,6 +63,7 @@ def _cmd_trial(args: argparse.Namespace) -> int:
     if args.ctb is not None:
         _check_ctb(args.ctb)
     project = command_project(args)
+    models_follow_design(project.design_path, project.root, json=args.json)
     out = Path(args.out) if args.out else None
     run_trial = _run_trial_fn()
     extra: dict[str, Any] = {"project": project}
@@ -106,6 +108,7 @@ def _cmd_trial(args: argparse.Namespace) -> int:
 
 def _cmd_trials_run(args: argparse.Namespace) -> int:
     from payload.cli import CheckFailed, command_project, emit_json
+    from payload.design import models_follow_design
     from payload.project import provenance
     from payload.trials.campaign import (
         default_workers,
@@ -126,6 +129,7 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
     _check_ctb(args.ctb)
     _run_trial_fn()  # fail here, once, if the runner is missing
     project = command_project(args)
+    models_follow_design(project.design_path, project.root, json=args.json)
     prov = provenance(project)
     out = Path(args.out)
     seeds = list(range(args.seed, args.seed + args.n))
@@ -338,6 +342,11 @@ def _cmd_bench_trial(args: argparse.Namespace) -> int:
     out = Path(args.out) if args.out else None
     if args.seconds is not None and args.seconds <= 0:
         raise TrialsCliError(f"--seconds must be positive, got {args.seconds}")
+    from payload.design import models_follow_design
+    from payload.project import current_project
+
+    project = current_project()  # what the bench's trial reads
+    models_follow_design(project.design_path, project.root, json=args.json)
     result = run_trial_bench(args.seed, out_dir=out, pin=args.pin, max_time=args.seconds)
     if args.json:
         emit_json(result)
