@@ -496,10 +496,46 @@ def test_the_report_follows_the_design_through_two_edits(tmp_path, capsys):
     assert len(err) == 1 and err[0].startswith("payload: check failed: stowed payload: ")
     second = json.loads((out / "envelope.json").read_text())
     assert second["provenance"]["design_sha256"] == sha2 and second["passed"] is False
-    assert "**The stowed configuration fails the envelope check.**" in (out / "envelope.md").read_text()
+    md = (out / "envelope.md").read_text()
+    assert "**The stowed configuration fails the envelope check.**" in md
     assert json.loads((out / "envelope.prev.json").read_text()) == first
     change = next(x for x in lines if x.startswith("changed since envelope.prev.json: "))
     assert "passes yes -> no" in change and "deployment path clear yes -> no" in change
     assert lines[-1].startswith("wrote ") and str(out / "envelope.prev.json") in lines[-1]
     # the models followed the design too
     assert run_cli("build", "--check", "--project", str(project.root)).returncode == 0
+
+
+def test_write_stowed_writes_the_proposal_into_the_stowed_table_and_nothing_else(geom, tmp_path):
+    """``--write-stowed``: only ``[stowed] finger`` and its comment change, and the design
+    then loads with the proposed posture (the proposal here is checked by check_stowed)."""
+    import argparse
+    import dataclasses
+
+    from payload.design import load_design
+    from payload.envelope.cli import _write_stowed
+    from payload.envelope.fit_results import PostureSearch
+
+    design = tmp_path / "design.toml"
+    design.write_bytes(DESIGN.read_bytes())
+    finger = (1.65, 0.0, 1.40, 1.80)  # near the committed posture
+    suggested = check_stowed(
+        geom, VEHICLE, with_finger_posture(geom.tree.posture("stowed"), finger)
+    )
+    assert suggested.passed, suggested.failures()
+    analysis = dataclasses.replace(
+        analyse_envelope(geom, VEHICLE, search=False),
+        search=PostureSearch(finger, suggested.min_clearance, "test", 1, 0.0),
+        suggested=suggested,
+    )
+    args = argparse.Namespace(design=str(design))
+    line = _write_stowed(args, analysis)
+    assert line == f"wrote [stowed] finger = {list(finger)} into {design}"
+    before, after = DESIGN.read_text().splitlines(), design.read_text().splitlines()
+    changed = [(a, b) for a, b in zip(before, after) if a != b]
+    assert len(before) == len(after) and len(changed) == 1
+    assert changed[0][0].startswith("finger = [1.66, 0.0, 1.398, 1.805]")
+    assert changed[0][1].startswith("finger = [1.65, 0.0, 1.4, 1.8]  # written by `payload report")
+    assert "--write-stowed" in changed[0][1] and "min clearance" in changed[0][1]
+    assert load_design(design).stowed.finger == finger
+    assert _write_stowed(args, analysis) == f"{design} already holds the proposed posture"

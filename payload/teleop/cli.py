@@ -145,10 +145,9 @@ def _cmd_serve(args: argparse.Namespace) -> int:
 
 def _cmd_bench(args: argparse.Namespace) -> int:
     from payload.cli import emit_json
-    from payload.teleop.bench import run_bench
-
     from payload.design import models_follow_design
     from payload.project import current_project
+    from payload.teleop.bench import run_bench
 
     project = current_project()  # what the bench's live session reads
     models_follow_design(project.design_path, project.root, json=args.json)
