@@ -539,3 +539,31 @@ def test_write_stowed_writes_the_proposal_into_the_stowed_table_and_nothing_else
     assert "--write-stowed" in changed[0][1] and "min clearance" in changed[0][1]
     assert load_design(design).stowed.finger == finger
     assert _write_stowed(args, analysis) == f"{design} already holds the proposed posture"
+
+
+def test_report_all_runs_everything_and_leads_with_one_verdict(tmp_path, capsys):
+    from payload.cli import main
+    from payload.design import load_design
+    from payload.design.summary import summarize
+
+    out = tmp_path / "analyses"
+    code = main(["report", "all", "--samples", "2000", "--out", str(out)])
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].startswith("project: ") and lines[1].startswith("verdict: ")
+    assert sum(x.startswith("verdict: ") for x in lines) == 3  # overall, envelope, reach
+    assert lines.index("-- envelope") < lines.index("-- reach") < lines.index("-- design summary")
+    env = json.loads((out / "envelope.json").read_text())
+    reach = json.loads((out / "reach.json").read_text())
+    grasps = all(any(g["closes"] for g in p["grasp"]) for p in reach["pairs"].values())
+    passed = env["passed"] and grasps and reach["below_vehicle_mm"] > 0
+    assert code == (0 if passed else 1)
+    assert lines[1].startswith("verdict: passes" if passed else "verdict: FAILS")
+    # --json: one object holding the three parts and the verdict
+    assert main(["report", "all", "--samples", "2000", "--out", str(out), "--json"]) == code
+    data = json.loads(capsys.readouterr().out)
+    assert data["passed"] is passed and data["models"] == {"rebuilt": []}
+    assert data["envelope"]["passed"] == env["passed"] and data["reach"]["pairs"].keys() == {
+        "L",
+        "R",
+    }
+    assert data["summary"]["dof"] == summarize(load_design(DESIGN))["dof"]

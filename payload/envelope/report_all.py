@@ -4,20 +4,34 @@ one run, led by one verdict line."""
 from __future__ import annotations
 
 import argparse
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from payload.envelope import cli as report_cli
 
+if TYPE_CHECKING:
+    from payload.envelope.fit_results import EnvelopeAnalysis
+    from payload.envelope.reach import ReachAnalysis
 
-def _verdict(envelope_ok: bool, reach_ok: bool, env: str, reach: str) -> str:
+
+def _verdict(envelope: EnvelopeAnalysis, reach: ReachAnalysis) -> str:
     """The one verdict line: ``verdict: passes: ...`` or ``verdict: FAILS: ...``."""
-    env = env.split(": ", 2)[2]  # "verdict: fits: ..." -> "..."
-    reach = reach.split(": ", 2)[2]
-    if envelope_ok and reach_ok:
-        return f"verdict: passes: stowed {env}; grasp: {reach}"
-    failing = ([f"stowed: {env}"] if not envelope_ok else []) + (
-        [f"reach: {reach}"] if not reach_ok else []
-    )
+    from payload.envelope.verdict import envelope_verdict, reach_passed, reach_verdict
+
+    env_ok, reach_ok = envelope.passed, reach_passed(reach)
+    if env_ok and reach_ok:
+        tight = envelope.given.tightest
+        thinnest = {
+            p.name: min(g.feature.thickness for g in p.grasps if g.closes) for p in reach.pairs
+        }
+        closes = ", ".join(f"{name} down to {t * 1e3:.1f} mm" for name, t in thinnest.items())
+        return (
+            f"verdict: passes: the stowed payload fits (min clearance "
+            f"{tight.clearance * 1e3:.2f} mm, {tight.name}); every pair closes on a CTB "
+            f"feature ({closes})"
+        )
+    failing = [] if env_ok else [f"stowed: {envelope_verdict(envelope).split(': ', 2)[2]}"]
+    if not reach_ok:
+        failing.append(f"reach: {reach_verdict(reach).split(': ', 2)[2]}")
     return "verdict: FAILS: " + "; ".join(failing)
 
 
@@ -45,7 +59,7 @@ def report_all(args: argparse.Namespace) -> int:
     design = load_design(report_cli._design_path(args))
     summary = summarize(design)
     env_ok, reach_ok = envelope.passed, reach_passed(reach)
-    verdict = _verdict(env_ok, reach_ok, envelope_verdict(envelope), reach_verdict(reach))
+    verdict = _verdict(envelope, reach)
     if args.json:
         record = report_cli._recorder(args)
         data: dict[str, Any] = {
@@ -60,7 +74,7 @@ def report_all(args: argparse.Namespace) -> int:
     else:
         print(verdict)
         where = project.relative(project.design_path)
-        print(f"models: {'rebuilt above' if rebuilt else 'match ' + where}")
+        print(f"models: {'rebuilt (above)' if rebuilt else 'match ' + where}")
         print("-- envelope")
         print(envelope_verdict(envelope))
         for line in [*env_lines, *report_cli.written_lines(env_paths, "envelope")]:
