@@ -491,3 +491,55 @@ def test_stale_extra_mesh_is_reported(design, tmp_path):
     (tmp_path / "cad" / "meshes" / "old_part.stl").write_bytes(b"x")
     (tmp_path / "urdf" / "payload.urdf").write_text("edited")
     assert stale_files(design, tmp_path) == ["urdf/payload.urdf", "cad/meshes/old_part.stl"]
+
+
+# ---------------------------------------------------------------- stale models (issue 30)
+
+MODEL_READERS = {  # every command that reads the generated models -> its handler
+    "report envelope": ("payload.envelope.cli", "run_envelope"),
+    "report reach": ("payload.envelope.cli", "run_reach"),
+    "report all": ("payload.envelope.report_all", "report_all"),
+    "review": ("payload.review.cli", "_cmd_review"),
+    "trial": ("payload.trials.cli", "_cmd_trial"),
+    "trials run": ("payload.trials.cli", "_cmd_trials_run"),
+    "bench retarget": ("payload.retarget.cli", "_cmd_bench"),
+    "bench sim": ("payload.sim.cli", "_cmd_bench_sim"),
+    "bench trial": ("payload.trials.cli", "_cmd_bench_trial"),
+    "bench teleop": ("payload.teleop.cli", "_cmd_bench"),
+    "teleop serve": ("payload.teleop.cli", "_cmd_serve"),
+    "sweep": ("payload.sweep.cli", "_cmd_sweep"),
+    "hw run": ("firmware_interface.cli", "_cmd_run"),
+}
+
+
+def test_every_command_reading_the_models_applies_the_one_rule():
+    import importlib
+    import inspect
+
+    for command, (module, name) in MODEL_READERS.items():
+        source = inspect.getsource(getattr(importlib.import_module(module), name))
+        assert "models_follow_design(" in source or "_models_follow(" in source, command
+
+
+def test_stale_models_are_rebuilt_saying_so(tmp_path, capsys):
+    from payload.cli import new_project
+    from payload.design import models_follow_design, stale_files
+
+    project, _ = new_project(tmp_path / "p")
+    assert models_follow_design(project.design_path, project.root) == []
+    assert capsys.readouterr().out == ""  # models that match: nothing to say
+    text = project.design_path.read_text()
+    project.design_path.write_text(text.replace("middle = 0.0361 ", "middle = 0.0400 "))
+    expected = stale_files(load_design(project.design_path), project.root)
+    assert expected  # the edit made the models stale
+    assert models_follow_design(project.design_path, project.root, json=True) == expected
+    out = capsys.readouterr()
+    assert out.out == ""  # --json: stdout keeps its one object; the line goes to stderr
+    assert out.err.startswith("models: rebuilt ") and expected[0] in out.err
+    assert stale_files(load_design(project.design_path), project.root) == []
+    # an invalid design rebuilds nothing: the models stay those of the last valid design
+    before = {p: p.read_bytes() for p in project.urdf_dir.iterdir()}
+    project.design_path.write_text(text.replace("middle = 0.0361 ", "middle = 0.005 "))
+    with pytest.raises(DesignError, match=r"finger\.lengths\.middle"):
+        models_follow_design(project.design_path, project.root)
+    assert {p: p.read_bytes() for p in project.urdf_dir.iterdir()} == before
