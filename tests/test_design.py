@@ -498,7 +498,7 @@ def test_stale_extra_mesh_is_reported(design, tmp_path):
 MODEL_READERS = {  # every command that reads the generated models -> its handler
     "report envelope": ("payload.envelope.cli", "run_envelope"),
     "report reach": ("payload.envelope.cli", "run_reach"),
-    "report all": ("payload.envelope.report_all", "report_all"),
+    "report all": ("payload.envelope.cli", "_cmd_all"),
     "review": ("payload.review.cli", "_cmd_review"),
     "trial": ("payload.trials.cli", "_cmd_trial"),
     "trials run": ("payload.trials.cli", "_cmd_trials_run"),

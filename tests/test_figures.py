@@ -57,7 +57,7 @@ def test_the_campaign_figure_draws_every_trial_beside_the_papers_median_and_rang
 
     from payload.trials.campaign import run_campaign
     from payload.trials.campaign_figure import OURS, PAPER, campaign_figure
-    from payload.trials.summary import METRIC_KEYS, write_summary
+    from payload.trials.summary import METRIC_KEYS, METRIC_LABELS, write_summary
 
     results = run_campaign(fixture_synthetic_trial, [4, 6], tmp_path, workers=0, progress=False)
     summary = write_summary(results, tmp_path)
@@ -65,7 +65,7 @@ def test_the_campaign_figure_draws_every_trial_beside_the_papers_median_and_rang
     assert img.shape[1] > 1000 and img[..., :3].std() > 0.05  # drawn, not a blank canvas
     per_trial = [json.loads(p.read_text()) for p in sorted(tmp_path.glob("trial-*/metrics.json"))]
     paper = _paper_from_facts() if FACTS.exists() else None
-    fig = campaign_figure(summary)
+    fig = campaign_figure(summary, METRIC_LABELS)
     assert len(fig.axes) == len(METRIC_KEYS)
     for i, (ax, key) in enumerate(zip(fig.axes, METRIC_KEYS)):
         dots = next(c for c in ax.collections if isinstance(c, PathCollection)).get_offsets()

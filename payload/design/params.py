@@ -256,7 +256,9 @@ class Design:
     def validate(self) -> Design:
         """Cross-field checks; returns self or raises :class:`DesignError`."""
         f, s, r, st = self.finger, self.servo, self.rail, self.stage
-        check_plausible(self)  # first: a unit slip is named before what it breaks
+        check_plausible(
+            self, design_to_dict(self)
+        )  # first: a unit slip is named before what it breaks
         if f.pad.damping_ratio < 1.0:
             raise DesignError(
                 "finger.pad.damping_ratio",

@@ -22,7 +22,7 @@ from __future__ import annotations
 import functools
 import sys
 from collections.abc import Iterator
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from payload.errors import DesignError
 from payload.project import default_design_text
@@ -31,9 +31,6 @@ if sys.version_info >= (3, 11):
     import tomllib
 else:  # pragma: no cover
     import tomli as tomllib
-
-if TYPE_CHECKING:
-    from payload.design.params import Design
 
 SLIP_FACTOR = 1000.0
 """The unit slip recognised: mm typed as m, g typed as kg."""
@@ -101,18 +98,20 @@ def _refuse(parameter: str, value: float, unit: str, small_unit: str, reason: st
     raise DesignError(parameter, f"{slip}{value:g} {unit} {reason}" + (")" if slip else ""))
 
 
-def check_plausible(design: Design) -> None:
+def check_plausible(design: Any, data: dict[str, Any]) -> None:
     """Refuse a design outside the physical bounds above.
+
+    Args:
+        design: The :class:`~payload.design.params.Design` (its per-field checks passed).
+        data: The same design as plain data (``design_to_dict``).
 
     Raises:
         DesignError: The first implausible parameter, in one line.
     """
-    from payload.design.params import design_to_dict
     from payload.design.vehicle import Vehicle, vehicle_from_dict
 
     vehicle = vehicle_from_dict(design.vehicle) if design.vehicle else Vehicle()
     longest = max(vehicle.body_size)
-    data = design_to_dict(design)
     for parameter, value in lengths(data):
         if abs(value) >= longest:
             _refuse(

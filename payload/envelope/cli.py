@@ -1,4 +1,4 @@
-"""``payload report envelope`` and ``payload report reach``."""
+"""``payload report envelope``, ``payload report reach`` and ``payload report all``."""
 
 from __future__ import annotations
 
@@ -303,10 +303,85 @@ def _cmd_reach(args: argparse.Namespace) -> int:
     return 0
 
 
-def _cmd_all(args: argparse.Namespace) -> int:
-    from payload.envelope.report_all import report_all
+def _all_verdict(envelope: EnvelopeAnalysis, reach: ReachAnalysis) -> str:
+    """The one verdict line: ``verdict: passes: ...`` or ``verdict: FAILS: ...``."""
+    from payload.envelope.verdict import envelope_verdict, reach_passed, reach_verdict
 
-    return report_all(args)
+    env_ok, reach_ok = envelope.passed, reach_passed(reach)
+    if env_ok and reach_ok:
+        tight = envelope.given.tightest
+        thinnest = {
+            p.name: min(g.feature.thickness for g in p.grasps if g.closes) for p in reach.pairs
+        }
+        closes = ", ".join(f"{name} down to {t * 1e3:.1f} mm" for name, t in thinnest.items())
+        return (
+            f"verdict: passes: the stowed payload fits (min clearance "
+            f"{tight.clearance * 1e3:.2f} mm, {tight.name}); every pair closes on a CTB "
+            f"feature ({closes})"
+        )
+    failing = [] if env_ok else [f"stowed: {envelope_verdict(envelope).split(': ', 2)[2]}"]
+    if not reach_ok:
+        failing.append(f"reach: {reach_verdict(reach).split(': ', 2)[2]}")
+    return "verdict: FAILS: " + "; ".join(failing)
+
+
+def _cmd_all(args: argparse.Namespace) -> int:
+    """``payload report all``: the models, the envelope, the reach and the design summary
+    in one run, led by one verdict line; 0 when the design passes, else raises.
+
+    Raises:
+        CheckFailed: The stowed payload or the grasp check fails (exit 1).
+    """
+    from payload.cli import CheckFailed, emit_json
+    from payload.design import load_design, models_follow_design
+    from payload.design.summary import print_summary, summarize
+    from payload.envelope.report import envelope_json, reach_json
+    from payload.envelope.verdict import (
+        envelope_verdict,
+        reach_passed,
+        reach_verdict,
+    )
+
+    project = _project(args)
+    _check_reach_args(args)  # bad numbers: exit 2 before any work
+    rebuilt = models_follow_design(project.design_path, project.root, json=args.json)
+    envelope, env_paths, env_lines = run_envelope(args)
+    reach, reach_paths = run_reach(args)
+    design = load_design(_design_path(args))
+    summary = summarize(design)
+    env_ok, reach_ok = envelope.passed, reach_passed(reach)
+    verdict = _all_verdict(envelope, reach)
+    if args.json:
+        record = _recorder(args)
+        data: dict[str, Any] = {
+            "passed": env_ok and reach_ok,
+            "verdict": verdict.removeprefix("verdict: "),
+            "models": {"rebuilt": rebuilt},
+            "envelope": record(envelope_json(envelope)),
+            "reach": record(reach_json(reach)),
+            "summary": summary,
+        }
+        emit_json(_stdout_json(args, data))
+    else:
+        print(verdict)
+        where = project.relative(project.design_path)
+        print(f"models: {'rebuilt (above)' if rebuilt else 'match ' + where}")
+        print("-- envelope")
+        print(envelope_verdict(envelope))
+        for line in [*env_lines, *written_lines(env_paths, "envelope")]:
+            print(line)
+        print("-- reach")
+        print(reach_verdict(reach))
+        for line in [
+            *reach_lines(reach),
+            *written_lines(reach_paths, "reach"),
+        ]:
+            print(line)
+        print("-- design summary")
+        print_summary(summary)
+    if not (env_ok and reach_ok):
+        raise CheckFailed(verdict.removeprefix("verdict: FAILS: "))
+    return 0
 
 
 def _integer(text: str) -> int:

@@ -370,7 +370,7 @@ def write_summary(
     # the campaign figure follows the summary: drawn when the summary changed or it is missing
     figure = campaign_figure_path(out, tag)
     if changed or force or not figure.exists():
-        write_campaign_figure(summary, out, tag)
+        write_campaign_figure(summary, METRIC_LABELS, out, tag)
     return summary
 
 
