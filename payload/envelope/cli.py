@@ -193,7 +193,7 @@ def _write_stowed(args: argparse.Namespace, analysis: EnvelopeAnalysis) -> str:
     path = _design_path(args)
     if not c.passed:
         return f"not written into {path}: the proposed posture fails too"
-    finger = [round(v, 4) for v in s.finger]
+    finger = [round(v, 4) + 0.0 for v in s.finger]  # + 0.0: no "-0.0" in the file
     comment = (
         "written by `payload report envelope --write-stowed` (stowed-posture search, "
         f"min clearance {s.clearance * 1e3:.2f} mm)"
