@@ -123,6 +123,9 @@ def _cmd_run(args: argparse.Namespace) -> int:
     from firmware_interface.run import run_hardware_trial
 
     project = command_project(args)
+    from payload.design import models_follow_design
+
+    models_follow_design(project.design_path, project.root, json=args.json)
     device = need_device(args)
     replay = _replay_of(args)
     if args.out and (Path(args.out) / "log.mcap").exists():

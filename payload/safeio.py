@@ -4,6 +4,9 @@
   rename, so a reader (or a crash) sees either the old file or the new one, never half.
 - :func:`write_unless_changed` refuses to replace a file whose content differs unless
   asked to (``force``), and leaves an identical file untouched.
+- Files written here get the mode a plain ``open()`` would give (0666 less the umask:
+  0644 at umask 022), so colleagues on a shared disk can read them; the temporary file
+  ``mkstemp`` makes is 0600 until it is given that mode.
 - :func:`new_folder` claims a fresh numbered folder (``runs/trial-0000``,
   ``runs/trial-0000-2``, ...) atomically, so two runs never share one.
 """
@@ -17,6 +20,17 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from payload.errors import PayloadError
+
+
+def umask_mode() -> int:
+    """The mode a new file gets from ``open()`` under the current umask (0o644 at 022).
+
+    The umask can only be read by setting it, so it is set back at once (process-wide,
+    not thread-safe for a concurrent ``os.umask`` caller; nothing here calls it elsewhere).
+    """
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return 0o666 & ~mask
 
 
 class OverwriteError(PayloadError):
@@ -36,6 +50,7 @@ def replacing(path: str | Path) -> Iterator[Path]:
     tmp = Path(tmp_name)
     try:
         yield tmp
+        os.chmod(tmp, umask_mode())  # mkstemp's 0600 -> what open() would have given
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
@@ -122,5 +137,6 @@ __all__ = [
     "numbered_folder",
     "replace_file",
     "replacing",
+    "umask_mode",
     "write_unless_changed",
 ]

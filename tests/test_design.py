@@ -347,7 +347,7 @@ INVALID = [
     ("finger.lengths.bogus", 0.02, "finger.lengths.bogus", "unknown key"),
     ("stage.travel", _DELETE, "stage.travel", "missing key"),
     ("materials.finger", "heavy", "materials.finger", "expected a number"),
-    ("stage.travel", 0.5, "stage.travel", "guide columns"),
+    ("stage.travel", 0.2, "stage.travel", "guide columns"),
 ]
 
 
@@ -381,6 +381,63 @@ def test_cli_prints_one_line_and_exits_2_on_an_invalid_design(design_dict, tmp_p
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1
     assert "finger.lengths.middle" in lines[0] and "positive" in lines[0]
+
+
+# ---------------------------------------------------------------- plausibility (issue 30)
+
+PLAUSIBILITY = [  # edit, the parameter named, what the one line must say
+    ("finger.lengths.distal", 45, "finger.lengths.distal", "45 m: did you mean 45 mm = 0.045?"),
+    ("finger.lengths.middle", 0.005, "finger.lengths.middle", "cannot hold the servos"),
+    ("finger.lengths.proximal", 0.005, "finger.lengths.proximal", "cannot hold the servos"),
+    ("servo.mass", 23, "servo.mass", "23 kg: did you mean 23 g = 0.023? (23 kg is heavier"),
+    ("rail.length", 0.5, "rail.length", "longer than the vehicle"),
+    ("finger.offsets.tip", 0.05, "finger.offsets.tip", "outside its link"),
+    ("finger.lengths.distal", 0.012, "finger.lengths.distal", "cannot hold the DIP servo"),
+]
+
+
+@pytest.mark.parametrize(("path", "value", "named", "says"), PLAUSIBILITY)
+def test_an_implausible_design_gives_one_line_naming_the_parameter_and_exit_2(
+    design_dict, tmp_path, capsys, path, value, named, says
+):
+    from payload.cli import main
+
+    bad = tmp_path / "bad.toml"
+    bad.write_text(tomli_w.dumps(_edit(design_dict, path, value)).replace("45.0", "45"))
+    assert main(["build", "--design", str(bad), "--root", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"payload: error: {named}: ")
+    assert says in err[0]
+    assert not (tmp_path / "out").exists()
+
+
+def test_the_bounds_come_from_the_design_itself(design_dict):
+    """A link exactly one servo width long holds its servos, a hair shorter does not; a
+    bigger servo raises the bound; a bigger vehicle admits a longer part."""
+    width = design_dict["servo"]["width"]
+    design_from_dict(_edit(design_dict, "finger.lengths.middle", width))
+    with pytest.raises(DesignError, match="cannot hold"):
+        design_from_dict(_edit(design_dict, "finger.lengths.middle", width * 0.99))
+    wider = _edit(_edit(design_dict, "servo.width", 0.022), "finger.lengths.middle", 0.021)
+    with pytest.raises(DesignError, match=r"22\.0 mm between the axes"):
+        design_from_dict(wider)
+    long_rail = _edit(design_dict, "rail.length", 0.33)
+    with pytest.raises(DesignError, match="Astrobee's body is 320 mm"):
+        design_from_dict(long_rail)
+    design_from_dict(_edit(long_rail, "vehicle", {"body_size": [0.4, 0.4, 0.4]}))
+
+
+def test_an_empty_design_file_says_it_is_empty(tmp_path, capsys):
+    from payload.cli import main
+
+    for text in ("", "# nothing but a comment\n"):
+        empty = tmp_path / "design.toml"
+        empty.write_text(text)
+        assert main(["summary", "--design", str(empty)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith(
+            f"payload: error: {empty}: the design file is empty"
+        )
 
 
 def test_unreadable_and_malformed_files_are_design_errors(tmp_path):
@@ -434,3 +491,55 @@ def test_stale_extra_mesh_is_reported(design, tmp_path):
     (tmp_path / "cad" / "meshes" / "old_part.stl").write_bytes(b"x")
     (tmp_path / "urdf" / "payload.urdf").write_text("edited")
     assert stale_files(design, tmp_path) == ["urdf/payload.urdf", "cad/meshes/old_part.stl"]
+
+
+# ---------------------------------------------------------------- stale models (issue 30)
+
+MODEL_READERS = {  # every command that reads the generated models -> its handler
+    "report envelope": ("payload.envelope.cli", "run_envelope"),
+    "report reach": ("payload.envelope.cli", "run_reach"),
+    "report all": ("payload.envelope.cli", "_cmd_all"),
+    "review": ("payload.review.cli", "_cmd_review"),
+    "trial": ("payload.trials.cli", "_cmd_trial"),
+    "trials run": ("payload.trials.cli", "_cmd_trials_run"),
+    "bench retarget": ("payload.retarget.cli", "_cmd_bench"),
+    "bench sim": ("payload.sim.cli", "_cmd_bench_sim"),
+    "bench trial": ("payload.trials.cli", "_cmd_bench_trial"),
+    "bench teleop": ("payload.teleop.cli", "_cmd_bench"),
+    "teleop serve": ("payload.teleop.cli", "_cmd_serve"),
+    "sweep": ("payload.sweep.cli", "_cmd_sweep"),
+    "hw run": ("firmware_interface.cli", "_cmd_run"),
+}
+
+
+def test_every_command_reading_the_models_applies_the_one_rule():
+    import importlib
+    import inspect
+
+    for command, (module, name) in MODEL_READERS.items():
+        source = inspect.getsource(getattr(importlib.import_module(module), name))
+        assert "models_follow_design(" in source or "_models_follow(" in source, command
+
+
+def test_stale_models_are_rebuilt_saying_so(tmp_path, capsys):
+    from payload.cli import new_project
+    from payload.design import models_follow_design, stale_files
+
+    project, _ = new_project(tmp_path / "p")
+    assert models_follow_design(project.design_path, project.root) == []
+    assert capsys.readouterr().out == ""  # models that match: nothing to say
+    text = project.design_path.read_text()
+    project.design_path.write_text(text.replace("middle = 0.0361 ", "middle = 0.0400 "))
+    expected = stale_files(load_design(project.design_path), project.root)
+    assert expected  # the edit made the models stale
+    assert models_follow_design(project.design_path, project.root, json=True) == expected
+    out = capsys.readouterr()
+    assert out.out == ""  # --json: stdout keeps its one object; the line goes to stderr
+    assert out.err.startswith("models: rebuilt ") and expected[0] in out.err
+    assert stale_files(load_design(project.design_path), project.root) == []
+    # an invalid design rebuilds nothing: the models stay those of the last valid design
+    before = {p: p.read_bytes() for p in project.urdf_dir.iterdir()}
+    project.design_path.write_text(text.replace("middle = 0.0361 ", "middle = 0.005 "))
+    with pytest.raises(DesignError, match=r"finger\.lengths\.middle"):
+        models_follow_design(project.design_path, project.root)
+    assert {p: p.read_bytes() for p in project.urdf_dir.iterdir()} == before

@@ -4,6 +4,7 @@ deployment sweep, CLI. Numbers are checked against closed forms of known geometr
 from __future__ import annotations
 
 import copy
+import hashlib
 import json
 import math
 import subprocess
@@ -451,26 +452,118 @@ def test_generated_envelope_report_is_committed_and_names_the_assumption():
     assert data["design"] == "cad/design.toml" and Path(DESIGN).exists()
 
 
-def test_a_report_is_rewritten_only_when_its_figures_change(tmp_path):
-    out = tmp_path / "analyses"
-    assert run_cli("report", "envelope", "--out", str(out)).returncode == 0
+def _report(project, capsys, *extra):
+    from payload.cli import main
+
+    code = main(["--project", str(project), "report", "envelope", "--no-search", *extra])
+    out = capsys.readouterr()
+    return code, out.out.splitlines(), out.err.strip().splitlines()
+
+
+def _edit_design(path, old, new):
+    text = path.read_text()
+    assert text.count(old) == 1
+    path.write_text(text.replace(old, new))
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def test_the_report_follows_the_design_through_two_edits(tmp_path, capsys):
+    """edit -> report envelope -> edit -> report envelope in a new project (issue 30)."""
+    from payload.cli import new_project
+
+    project, _ = new_project(tmp_path / "p")
+    design, out = project.design_path, project.analyses_dir
     names = ("envelope.md", "envelope.json", "envelope.png")
-    first = {n: ((out / n).read_bytes(), (out / n).stat().st_mtime_ns) for n in names}
-    committed = json.loads((out / "envelope.json").read_text())
-    assert "seconds" not in committed and "seconds" not in (committed["stowed_search"] or {})
-    assert json.loads((out / "envelope.timing.json").read_text())["seconds"] >= 0
-    # a second run changes only the (uncommitted) timings
-    res = run_cli("report", "envelope", "--out", str(out))
-    assert res.returncode == 0 and "report unchanged" in res.stdout
-    assert {n: ((out / n).read_bytes(), (out / n).stat().st_mtime_ns) for n in names} == first
-    # a report with other figures is not replaced without --force
-    committed["min_clearance_mm"] = -1.0
-    (out / "envelope.json").write_text(json.dumps(committed, indent=2) + "\n")
-    edited = (out / "envelope.json").read_bytes()
-    res = run_cli("report", "envelope", "--out", str(out))
-    assert res.returncode == 2
-    lines = res.stderr.strip().splitlines()
-    assert len(lines) == 1 and "figures changed" in lines[0] and "--force" in lines[0]
-    assert (out / "envelope.json").read_bytes() == edited
-    assert run_cli("report", "envelope", "--out", str(out), "--force").returncode == 0
-    assert (out / "envelope.json").read_bytes() == first["envelope.json"][0]
+    # edit 1: a shorter distal link still stows
+    sha1 = _edit_design(design, "distal = 0.045 ", "distal = 0.044 ")
+    code, lines, err = _report(project.root, capsys)
+    assert code == 0 and err == []
+    assert lines[0] == f"project: {project.root}"
+    assert lines[1].startswith("models: rebuilt ") and "urdf/payload.urdf" in lines[1]
+    assert lines[2].startswith("verdict: fits: every part inside the bays, min clearance")
+    first = json.loads((out / "envelope.json").read_text())
+    assert first["passed"] is True and first["provenance"]["design_sha256"] == sha1
+    assert not (out / "envelope.prev.json").exists()
+    # the same design again: the files are left as they are
+    stamp = {n: (out / n).stat().st_mtime_ns for n in names}
+    code, lines, _ = _report(project.root, capsys)
+    assert code == 0 and lines[1].startswith("verdict: fits") and "report unchanged" in lines[-1]
+    assert {n: (out / n).stat().st_mtime_ns for n in names} == stamp
+    # edit 2: a distal link 15 mm longer runs into the stage when curled
+    sha2 = _edit_design(design, "distal = 0.044 ", "distal = 0.060 ")
+    code, lines, err = _report(project.root, capsys)
+    assert code == 1 and lines[2].startswith("verdict: FAILS: ") and "_distal" in lines[2]
+    assert len(err) == 1 and err[0].startswith("payload: check failed: stowed payload: ")
+    second = json.loads((out / "envelope.json").read_text())
+    assert second["provenance"]["design_sha256"] == sha2 and second["passed"] is False
+    md = (out / "envelope.md").read_text()
+    assert "**The stowed configuration fails the envelope check.**" in md
+    assert json.loads((out / "envelope.prev.json").read_text()) == first
+    change = next(x for x in lines if x.startswith("changed since envelope.prev.json: "))
+    assert "passes yes -> no" in change and "deployment path clear yes -> no" in change
+    assert lines[-1].startswith("wrote ") and str(out / "envelope.prev.json") in lines[-1]
+    # the models followed the design too
+    assert run_cli("build", "--check", "--project", str(project.root)).returncode == 0
+
+
+def test_write_stowed_writes_the_proposal_into_the_stowed_table_and_nothing_else(geom, tmp_path):
+    """``--write-stowed``: only ``[stowed] finger`` and its comment change, and the design
+    then loads with the proposed posture (the proposal here is checked by check_stowed)."""
+    import argparse
+    import dataclasses
+
+    from payload.design import load_design
+    from payload.envelope.cli import _write_stowed
+    from payload.envelope.fit_results import PostureSearch
+
+    design = tmp_path / "design.toml"
+    design.write_bytes(DESIGN.read_bytes())
+    finger = (1.65, 0.0, 1.40, 1.80)  # near the committed posture
+    suggested = check_stowed(
+        geom, VEHICLE, with_finger_posture(geom.tree.posture("stowed"), finger)
+    )
+    assert suggested.passed, suggested.failures()
+    analysis = dataclasses.replace(
+        analyse_envelope(geom, VEHICLE, search=False),
+        search=PostureSearch(finger, suggested.min_clearance, "test", 1, 0.0),
+        suggested=suggested,
+    )
+    args = argparse.Namespace(design=str(design))
+    line = _write_stowed(args, analysis)
+    assert line == f"wrote [stowed] finger = {list(finger)} into {design}"
+    before, after = DESIGN.read_text().splitlines(), design.read_text().splitlines()
+    changed = [(a, b) for a, b in zip(before, after) if a != b]
+    assert len(before) == len(after) and len(changed) == 1
+    assert changed[0][0].startswith("finger = [1.66, 0.0, 1.398, 1.805]")
+    assert changed[0][1].startswith("finger = [1.65, 0.0, 1.4, 1.8]  # written by `payload report")
+    assert "--write-stowed" in changed[0][1] and "min clearance" in changed[0][1]
+    assert load_design(design).stowed.finger == finger
+    assert _write_stowed(args, analysis) == f"{design} already holds the proposed posture"
+
+
+def test_report_all_runs_everything_and_leads_with_one_verdict(tmp_path, capsys):
+    from payload.cli import main
+    from payload.design import load_design
+    from payload.design.summary import summarize
+
+    out = tmp_path / "analyses"
+    code = main(["report", "all", "--samples", "2000", "--out", str(out)])
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].startswith("project: ") and lines[1].startswith("verdict: ")
+    assert sum(x.startswith("verdict: ") for x in lines) == 3  # overall, envelope, reach
+    assert lines.index("-- envelope") < lines.index("-- reach") < lines.index("-- design summary")
+    env = json.loads((out / "envelope.json").read_text())
+    reach = json.loads((out / "reach.json").read_text())
+    grasps = all(any(g["closes"] for g in p["grasp"]) for p in reach["pairs"].values())
+    passed = env["passed"] and grasps and reach["below_vehicle_mm"] > 0
+    assert code == (0 if passed else 1)
+    assert lines[1].startswith("verdict: passes" if passed else "verdict: FAILS")
+    # --json: one object holding the three parts and the verdict
+    assert main(["report", "all", "--samples", "2000", "--out", str(out), "--json"]) == code
+    data = json.loads(capsys.readouterr().out)
+    assert data["passed"] is passed and data["models"] == {"rebuilt": []}
+    assert data["envelope"]["passed"] == env["passed"] and data["reach"]["pairs"].keys() == {
+        "L",
+        "R",
+    }
+    assert data["summary"]["dof"] == summarize(load_design(DESIGN))["dof"]

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
 from payload.trials.figures import phase_spans, phases_in_time_order
@@ -30,3 +32,55 @@ def test_phase_legend_is_in_time_order_not_declaration_order() -> None:
     t = np.arange(len(seq)) * 0.02
     firsts = list(dict.fromkeys(name for name, _, _ in phase_spans(t, phase)))
     assert firsts == phases_in_time_order(phase)
+
+
+# -- the campaign figure (issue 30) ----------------------------------------------------
+FACTS = Path("/work/shared/reference/facts.md")
+
+
+def _paper_from_facts() -> list[tuple[float, float, float]]:
+    """The paper's (median, min, max) per metric, in the paper's order, read from the
+    reference facts' results row (not from the package's own table)."""
+    import re
+
+    row = next(ln for ln in FACTS.read_text().splitlines() if ln.startswith("| results, 10"))
+    found = re.findall(r"median ([\d.]+) \w+ \(([\d.]+) to ([\d.]+)\)", row)
+    return [tuple(float(v) for v in m) for m in found]
+
+
+def test_the_campaign_figure_draws_every_trial_beside_the_papers_median_and_range(tmp_path):
+    import json
+
+    from matplotlib.collections import LineCollection, PathCollection
+    from matplotlib.image import imread
+    from test_trials import fixture_synthetic_trial
+
+    from payload.trials.campaign import run_campaign
+    from payload.trials.campaign_figure import OURS, PAPER, campaign_figure
+    from payload.trials.summary import METRIC_KEYS, METRIC_LABELS, write_summary
+
+    results = run_campaign(fixture_synthetic_trial, [4, 6], tmp_path, workers=0, progress=False)
+    summary = write_summary(results, tmp_path)
+    img = imread(tmp_path / "fig_campaign.png")
+    assert img.shape[1] > 1000 and img[..., :3].std() > 0.05  # drawn, not a blank canvas
+    per_trial = [json.loads(p.read_text()) for p in sorted(tmp_path.glob("trial-*/metrics.json"))]
+    paper = _paper_from_facts() if FACTS.exists() else None
+    fig = campaign_figure(summary, METRIC_LABELS)
+    assert len(fig.axes) == len(METRIC_KEYS)
+    for i, (ax, key) in enumerate(zip(fig.axes, METRIC_KEYS)):
+        dots = next(c for c in ax.collections if isinstance(c, PathCollection)).get_offsets()
+        want = sorted(m[key] for m in per_trial)
+        assert np.allclose(sorted(np.asarray(dots)[:, 1]), want)
+        assert np.all(np.abs(np.asarray(dots)[:, 0] - OURS) < 0.2)
+        bars = {}
+        for c in ax.collections:
+            if isinstance(c, LineCollection):
+                (x0, lo), (_, hi) = c.get_segments()[0]
+                bars[round(float(x0), 3)] = (lo, hi)
+        assert np.allclose(bars[OURS], (min(want), max(want)))
+        if paper is not None:
+            assert np.allclose(bars[PAPER], paper[i][1:])
+    # the summary unchanged: the figure is left as it is
+    stamp = (tmp_path / "fig_campaign.png").stat().st_mtime_ns
+    write_summary(results, tmp_path)
+    assert (tmp_path / "fig_campaign.png").stat().st_mtime_ns == stamp

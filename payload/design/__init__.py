@@ -29,9 +29,9 @@ from payload.design.tree import (
 )
 
 if TYPE_CHECKING:
-    from payload.design.build import generate, stale_files, write
+    from payload.design.build import generate, models_follow_design, stale_files, write
 
-_BUILD_NAMES = ("generate", "stale_files", "write")
+_BUILD_NAMES = ("generate", "models_follow_design", "stale_files", "write")
 
 
 def __getattr__(name: str) -> Any:
@@ -62,6 +62,7 @@ __all__ = [
     "design_to_dict",
     "generate",
     "load_design",
+    "models_follow_design",
     "stale_files",
     "write",
 ]

@@ -2,9 +2,8 @@
 
 from __future__ import annotations
 
-import filecmp
 import struct
-import tempfile
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -16,6 +15,7 @@ from payload.design.params import Design
 from payload.design.solids import check_solid
 from payload.design.tree import KinematicTree, build_tree
 from payload.design.urdf import to_urdf
+from payload.safeio import replace_file
 
 URDF_DIR = "urdf"
 MESH_DIR = "cad/meshes"
@@ -75,6 +75,11 @@ def write(design: Design, root: Path) -> BuildResult:
     """Regenerate the models under ``root`` (a project folder, e.g. ``Project.root``);
     stale meshes no longer produced are removed."""
     tree, files = generate(design)
+    _write_files(files, root)
+    return BuildResult(tree, tuple(files))
+
+
+def _write_files(files: dict[str, bytes], root: Path) -> None:
     mesh_dir = root / MESH_DIR
     mesh_dir.mkdir(parents=True, exist_ok=True)
     (root / URDF_DIR).mkdir(parents=True, exist_ok=True)
@@ -83,25 +88,62 @@ def write(design: Design, root: Path) -> BuildResult:
             old.unlink()
     for rel, data in files.items():
         path = root / rel
-        if not path.exists() or path.read_bytes() != data:
-            path.write_bytes(data)
-    return BuildResult(tree, tuple(files))
+        if not _holds(path, data):
+            replace_file(path, data)  # atomic: a command reading the models sees old or new
+
+
+def _stale(files: dict[str, bytes], root: Path) -> list[str]:
+    """Paths of ``files`` (a fresh :func:`generate`) that differ on disk under ``root``
+    (missing or changed), then meshes under ``root`` no longer produced."""
+    stale = [rel for rel, data in files.items() if not _holds(root / rel, data)]
+    mesh_dir = root / MESH_DIR
+    if mesh_dir.exists():
+        for extra in sorted(mesh_dir.glob("*.stl")):
+            if f"{MESH_DIR}/{extra.name}" not in files:
+                stale.append(f"{MESH_DIR}/{extra.name}")
+    return stale
+
+
+def _holds(path: Path, data: bytes) -> bool:
+    return path.is_file() and path.stat().st_size == len(data) and path.read_bytes() == data
 
 
 def stale_files(design: Design, root: Path) -> list[str]:
     """Generated files under ``root`` that differ from a fresh build (missing, changed or
     no longer produced), as paths relative to ``root``."""
-    with tempfile.TemporaryDirectory(prefix="payload-build-") as tmp:
-        fresh = write(design, Path(tmp))
-        stale = []
-        for rel in fresh.files:
-            mine = root / rel
-            if not mine.exists() or not filecmp.cmp(mine, Path(tmp) / rel, shallow=False):
-                stale.append(rel)
-        mesh_dir = root / MESH_DIR
-        if mesh_dir.exists():
-            for extra in sorted(mesh_dir.glob("*.stl")):
-                rel = f"{MESH_DIR}/{extra.name}"
-                if rel not in fresh.files:
-                    stale.append(rel)
+    return _stale(generate(design)[1], root)
+
+
+MODELS_LINE = "models: rebuilt {files} from {design} (the models follow the design)"
+"""What every command that reads the generated models prints after rebuilding stale ones."""
+
+
+def models_follow_design(design_path: Path, root: Path, *, json: bool = False) -> list[str]:
+    """The one rule for stale models: every command that reads a project's generated
+    models calls this first, and stale models are rebuilt, never used and never refused.
+
+    Like ``payload build``, the models are regenerated from the project's own design
+    file; the line :data:`MODELS_LINE` is printed naming what changed: on stdout, or on
+    stderr when the command prints JSON (stdout then holds the one JSON object).
+
+    Args:
+        design_path: The project's ``cad/design.toml``.
+        root: The project folder (models under ``urdf/`` and ``cad/meshes/``).
+        json: The command prints JSON (``--json``): the line goes to stderr.
+
+    Returns:
+        The rebuilt files relative to ``root`` (empty: the models matched).
+
+    Raises:
+        DesignError: The design file is invalid (nothing is written).
+    """
+    from payload.design.params import load_design
+
+    _, files = generate(load_design(design_path))
+    stale = _stale(files, root)
+    if stale:
+        _write_files(files, root)
+        shown = ", ".join(stale[:3]) + (f" and {len(stale) - 3} more" if len(stale) > 3 else "")
+        line = MODELS_LINE.format(files=shown, design=design_path)
+        print(line, file=sys.stderr if json else sys.stdout, flush=True)
     return stale

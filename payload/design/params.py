@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from payload.design.plausible import check_plausible
 from payload.errors import DesignError
 from payload.project import current_project, default_design_text
 
@@ -255,6 +256,9 @@ class Design:
     def validate(self) -> Design:
         """Cross-field checks; returns self or raises :class:`DesignError`."""
         f, s, r, st = self.finger, self.servo, self.rail, self.stage
+        check_plausible(
+            self, design_to_dict(self)
+        )  # first: a unit slip is named before what it breaks
         if f.pad.damping_ratio < 1.0:
             raise DesignError(
                 "finger.pad.damping_ratio",
@@ -398,6 +402,12 @@ def _value(tp: Any, v: Any, where: str, meta: Any) -> Any:
 
 def design_from_dict(data: dict[str, Any], source: str = "<memory>") -> Design:
     """Build and validate a :class:`Design` from a parsed TOML document."""
+    if not data:
+        raise DesignError(
+            source,
+            "the design file is empty (no tables, no parameters); `payload new DIR` makes a "
+            "project whose cad/design.toml holds every parameter",
+        )
     design = _build(Design, data, "")
     defaulted = design.pinch is None
     if defaulted:

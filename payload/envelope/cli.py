@@ -1,8 +1,9 @@
-"""``payload report envelope`` and ``payload report reach``."""
+"""``payload report envelope``, ``payload report reach`` and ``payload report all``."""
 
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from collections.abc import Callable, Iterator
@@ -16,6 +17,8 @@ if TYPE_CHECKING:
     from payload.design.params import Design
     from payload.envelope.fit import EnvelopeAnalysis
     from payload.envelope.geometry import PayloadGeometry
+    from payload.envelope.grasp import GraspFeature
+    from payload.envelope.reach import ReachAnalysis
     from payload.envelope.vehicle import Vehicle
     from payload.project import Project
 
@@ -106,24 +109,62 @@ def _command(args: argparse.Namespace, name: str) -> str:
     return " ".join(parts)
 
 
-def _cmd_envelope(args: argparse.Namespace) -> int:
-    from payload.envelope.fit import analyse_envelope
-    from payload.envelope.report import envelope_json, write_envelope
+def _models_follow(args: argparse.Namespace) -> None:
+    """The one rule for stale models (docs/design-loop.md): rebuild them, saying so."""
+    from payload.design import models_follow_design
 
+    project = _project(args)
+    models_follow_design(project.design_path, project.root, json=args.json)
+
+
+def run_envelope(args: argparse.Namespace) -> tuple[EnvelopeAnalysis, dict[str, Path], list[str]]:
+    """Analyse the stowed payload (after ``--write-stowed``'s write) and write its report.
+
+    Returns:
+        The analysis, the paths written, and the lines to print after the verdict.
+    """
+    from payload.envelope.fit import analyse_envelope
+    from payload.envelope.report import write_envelope
+    from payload.errors import PayloadError
+
+    if args.write_stowed and args.search is False:
+        raise PayloadError(
+            "--write-stowed writes the stowed-posture search's proposal: drop --no-search"
+        )
     t0 = time.perf_counter()
-    _project(args)
+    _models_follow(args)
     _, vehicle, geom = _load(args)
+    search = True if args.write_stowed and args.search is None else args.search
     with _progress(not args.json and sys.stderr.isatty()) as progress:
-        analysis = analyse_envelope(geom, vehicle, search=args.search, progress=progress)
+        analysis = analyse_envelope(geom, vehicle, search=search, progress=progress)
+    lines = [_search_line(analysis)] if analysis.search is not None else []
+    if args.write_stowed:
+        written = _write_stowed(args, analysis)
+        lines.append(written)
+        if written.startswith("wrote"):  # the models, then the report, follow the design
+            _models_follow(args)
+            _, vehicle, geom = _load(args)
+            analysis = analyse_envelope(geom, vehicle, search=False)
     analysis.seconds = time.perf_counter() - t0
-    record = _recorder(args)
     paths = write_envelope(
-        geom, analysis, _out_dir(args), _command(args, "envelope"), record, force=args.force
-    )
+        geom, analysis, _out_dir(args), _command(args, "envelope"), _recorder(args),
+        force=args.force,
+    )  # fmt: skip
+    return analysis, paths, lines
+
+
+def _cmd_envelope(args: argparse.Namespace) -> int:
+    from payload.envelope.report import envelope_json
+    from payload.envelope.verdict import envelope_verdict
+
+    analysis, paths, lines = run_envelope(args)
     if args.json:
-        emit_json(_stdout_json(args, record(envelope_json(analysis))))
+        emit_json(_stdout_json(args, _recorder(args)(envelope_json(analysis))))
     else:
-        _print_envelope(analysis, paths)
+        print(envelope_verdict(analysis))
+        print(f"assumption: {analysis.vehicle.assumption}")
+        for line in [*lines, *written_lines(paths, "envelope")]:
+            print(line)
     if not analysis.passed:
         failures = analysis.given.failures()
         more = f" (+{len(failures) - 3} more)" if len(failures) > 3 else ""
@@ -131,40 +172,57 @@ def _cmd_envelope(args: argparse.Namespace) -> int:
     return 0
 
 
-def _print_envelope(analysis: EnvelopeAnalysis, paths: dict[str, Path]) -> None:
-    g = analysis.given
-    t = g.tightest
-    print(f"assumption: {analysis.vehicle.assumption}")
-    if g.fits:
-        print(
-            f"fits: every part inside; min clearance {t.clearance * 1e3:.2f} mm "
-            f"({t.name}, {t.wall} wall)"
-        )
-    for f in g.failures():
-        print(f"FAIL: {f}")
-    if analysis.search is not None and analysis.suggested is not None:
-        s, c = analysis.search, analysis.suggested
-        fing = ", ".join(f"{v:.4f}" for v in s.finger)
-        print(
-            f"stowed-posture search: finger [{fing}] rad -> min clearance "
-            f"{s.clearance * 1e3:.2f} mm ({s.limited_by}); {'passes' if c.passed else 'fails'}"
-        )
-    _print_written(paths)
+def _search_line(analysis: EnvelopeAnalysis) -> str:
+    s, c = analysis.search, analysis.suggested
+    assert s is not None and c is not None
+    fing = ", ".join(f"{v:.4f}" for v in s.finger)
+    return (
+        f"stowed-posture search: finger [{fing}] rad -> min clearance "
+        f"{s.clearance * 1e3:.2f} mm ({s.limited_by}); {'passes' if c.passed else 'fails'}"
+    )
 
 
-def _print_written(paths: dict[str, Path]) -> None:
+def _write_stowed(args: argparse.Namespace, analysis: EnvelopeAnalysis) -> str:
+    """Write the search's proposed finger posture into the design's ``[stowed]`` table
+    (only that value and its comment change); returns the line to print."""
+    from payload.design.edit import set_in_text
+    from payload.safeio import replace_file
+
+    s, c = analysis.search, analysis.suggested
+    assert s is not None and c is not None
+    path = _design_path(args)
+    if not c.passed:
+        return f"not written into {path}: the proposed posture fails too"
+    finger = [round(v, 4) + 0.0 for v in s.finger]  # + 0.0: no "-0.0" in the file
+    comment = (
+        "written by `payload report envelope --write-stowed` (stowed-posture search, "
+        f"min clearance {s.clearance * 1e3:.2f} mm)"
+    )
+    text = path.read_text(encoding="utf-8")
+    edited = set_in_text(text, "stowed.finger", finger, comment)
+    if edited == text:
+        return f"{path} already holds the proposed posture"
+    replace_file(path, edited)
+    return f"wrote [stowed] finger = {finger} into {path}"
+
+
+def written_lines(paths: dict[str, Path], stem: str) -> list[str]:
+    """What a report wrote: the change of its headline figures, then the files."""
+    from payload.envelope.verdict import headline_changes
+
     if set(paths) == {"timing"}:
-        print(f"report unchanged (figures as committed); timings in {paths['timing']}")
-    else:
-        print("wrote " + ", ".join(str(p) for p in paths.values()))
+        return [f"report unchanged (figures as before); timings in {paths['timing']}"]
+    lines = []
+    if "prev" in paths:
+        before = json.loads(paths["prev"].read_text())
+        lines.append(headline_changes(stem, before, json.loads(paths["json"].read_text())))
+    return [*lines, "wrote " + ", ".join(str(p) for p in paths.values())]
 
 
-def _cmd_reach(args: argparse.Namespace) -> int:
-    from payload.envelope.reach import CTB_FEATURES, GraspFeature, ReachError, analyse_reach
-    from payload.envelope.report import reach_json, write_reach
+def _check_reach_args(args: argparse.Namespace) -> list[GraspFeature]:
+    """The grasp features to check; bad numbers raise :class:`ReachError` (exit 2)."""
+    from payload.envelope.reach import CTB_FEATURES, GraspFeature, ReachError
 
-    t0 = time.perf_counter()
-    _project(args)
     if args.samples < 1000:
         raise ReachError(f"--samples must be at least 1000 (got {args.samples})")
     if args.seed < 0:
@@ -176,6 +234,18 @@ def _cmd_reach(args: argparse.Namespace) -> int:
         if not t >= 0 or t > 1.0:
             raise ReachError(f"--thickness must be between 0 and 1 m (got {t})")
         features.append(GraspFeature(f"given thickness {t * 1e3:.1f} mm", t, "command line"))
+    return features
+
+
+def run_reach(args: argparse.Namespace) -> tuple[ReachAnalysis, dict[str, Path]]:
+    """Sample the deployed workspace and write the reach report; (analysis, paths)."""
+    from payload.envelope.reach import analyse_reach
+    from payload.envelope.report import write_reach
+
+    t0 = time.perf_counter()
+    _project(args)
+    features = _check_reach_args(args)
+    _models_follow(args)
     _, vehicle, geom = _load(args)
     with _progress(not args.json and sys.stderr.isatty()) as progress:
         analysis = analyse_reach(
@@ -187,32 +257,128 @@ def _cmd_reach(args: argparse.Namespace) -> int:
             workers=args.workers,
             progress=progress,
         )
-    record = _recorder(args)
     command = _command(args, "reach")
     paths = write_reach(
-        geom, analysis, _out_dir(args), command, t_start=t0, record=record, force=args.force
+        geom, analysis, _out_dir(args), command, t_start=t0, record=_recorder(args),
+        force=args.force,
+    )  # fmt: skip
+    return analysis, paths
+
+
+def reach_lines(analysis: ReachAnalysis) -> list[str]:
+    """The reach report's figures as terminal lines (after its verdict)."""
+    lines = [
+        f"assumption: {analysis.vehicle.assumption}",
+        f"{analysis.samples:,} samples in {analysis.seconds:.1f} s; fingertips reach "
+        f"{analysis.below_vehicle * 1e3:.1f} mm below the vehicle; self-collision-free "
+        f"{analysis.collision_free_fraction:.1%}",
+    ]
+    for pr in analysis.pairs:
+        closes = [g.feature.name for g in pr.grasps if g.closes]
+        lines.append(
+            f"pair {pr.name}: span {pr.span_min * 1e3:.1f} .. {pr.span.maximum * 1e3:.1f} mm; "
+            f"closes on: {', '.join(closes) if closes else 'nothing checked'}"
+        )
+    lines.append(
+        f"rail spacing {analysis.rail_spacing[0] * 1e3:.1f} .. "
+        f"{analysis.rail_spacing[1] * 1e3:.1f} mm"
     )
+    return lines
+
+
+def _cmd_reach(args: argparse.Namespace) -> int:
+    from payload.envelope.report import reach_json
+    from payload.envelope.verdict import reach_passed, reach_verdict
+
+    analysis, paths = run_reach(args)
     if args.json:
-        emit_json(_stdout_json(args, record(reach_json(analysis))))
+        emit_json(_stdout_json(args, _recorder(args)(reach_json(analysis))))
     else:
-        p = {x.name: x for x in analysis.pairs}
-        print(f"assumption: {analysis.vehicle.assumption}")
-        print(
-            f"{analysis.samples:,} samples in {analysis.seconds:.1f} s; fingertips reach "
-            f"{analysis.below_vehicle * 1e3:.1f} mm below the vehicle; self-collision-free "
-            f"{analysis.collision_free_fraction:.1%}"
+        print(reach_verdict(analysis))
+        for line in [*reach_lines(analysis), *written_lines(paths, "reach")]:
+            print(line)
+    if not reach_passed(analysis):
+        raise CheckFailed("reach: " + reach_verdict(analysis).split("FAILS: ", 1)[1])
+    return 0
+
+
+def _all_verdict(envelope: EnvelopeAnalysis, reach: ReachAnalysis) -> str:
+    """The one verdict line: ``verdict: passes: ...`` or ``verdict: FAILS: ...``."""
+    from payload.envelope.verdict import envelope_verdict, reach_passed, reach_verdict
+
+    env_ok, reach_ok = envelope.passed, reach_passed(reach)
+    if env_ok and reach_ok:
+        tight = envelope.given.tightest
+        thinnest = {
+            p.name: min(g.feature.thickness for g in p.grasps if g.closes) for p in reach.pairs
+        }
+        closes = ", ".join(f"{name} down to {t * 1e3:.1f} mm" for name, t in thinnest.items())
+        return (
+            f"verdict: passes: the stowed payload fits (min clearance "
+            f"{tight.clearance * 1e3:.2f} mm, {tight.name}); every pair closes on a CTB "
+            f"feature ({closes})"
         )
-        for name, pr in p.items():
-            closes = [g.feature.name for g in pr.grasps if g.closes]
-            print(
-                f"pair {name}: span {pr.span_min * 1e3:.1f} .. {pr.span.maximum * 1e3:.1f} mm; "
-                f"closes on: {', '.join(closes) if closes else 'nothing checked'}"
-            )
-        print(
-            f"rail spacing {analysis.rail_spacing[0] * 1e3:.1f} .. "
-            f"{analysis.rail_spacing[1] * 1e3:.1f} mm"
-        )
-        _print_written(paths)
+    failing = [] if env_ok else [f"stowed: {envelope_verdict(envelope).split(': ', 2)[2]}"]
+    if not reach_ok:
+        failing.append(f"reach: {reach_verdict(reach).split(': ', 2)[2]}")
+    return "verdict: FAILS: " + "; ".join(failing)
+
+
+def _cmd_all(args: argparse.Namespace) -> int:
+    """``payload report all``: the models, the envelope, the reach and the design summary
+    in one run, led by one verdict line; 0 when the design passes, else raises.
+
+    Raises:
+        CheckFailed: The stowed payload or the grasp check fails (exit 1).
+    """
+    from payload.design import load_design, models_follow_design
+    from payload.design.summary import print_summary, summarize
+    from payload.envelope.report import envelope_json, reach_json
+    from payload.envelope.verdict import (
+        envelope_verdict,
+        reach_passed,
+        reach_verdict,
+    )
+
+    project = _project(args)
+    _check_reach_args(args)  # bad numbers: exit 2 before any work
+    rebuilt = models_follow_design(project.design_path, project.root, json=args.json)
+    envelope, env_paths, env_lines = run_envelope(args)
+    reach, reach_paths = run_reach(args)
+    design = load_design(_design_path(args))
+    summary = summarize(design)
+    env_ok, reach_ok = envelope.passed, reach_passed(reach)
+    verdict = _all_verdict(envelope, reach)
+    if args.json:
+        record = _recorder(args)
+        data: dict[str, Any] = {
+            "passed": env_ok and reach_ok,
+            "verdict": verdict.removeprefix("verdict: "),
+            "models": {"rebuilt": rebuilt},
+            "envelope": record(envelope_json(envelope)),
+            "reach": record(reach_json(reach)),
+            "summary": summary,
+        }
+        emit_json(_stdout_json(args, data))
+    else:
+        print(verdict)
+        where = project.relative(project.design_path)
+        print(f"models: {'rebuilt (above)' if rebuilt else 'match ' + where}")
+        print("-- envelope")
+        print(envelope_verdict(envelope))
+        for line in [*env_lines, *written_lines(env_paths, "envelope")]:
+            print(line)
+        print("-- reach")
+        print(reach_verdict(reach))
+        for line in [
+            *reach_lines(reach),
+            *written_lines(reach_paths, "reach"),
+        ]:
+            print(line)
+        print("-- design summary")
+        print_summary(summary)
+    if not (env_ok and reach_ok):
+        raise CheckFailed(verdict.removeprefix("verdict: FAILS: "))
     return 0
 
 
@@ -226,7 +392,8 @@ def _integer(text: str) -> int:
 def register(
     sub: argparse._SubParsersAction, groups: dict[str, argparse._SubParsersAction]
 ) -> None:
-    """Add ``report envelope`` and ``report reach`` to the shared ``report`` group."""
+    """Add ``report envelope``, ``report reach`` and ``report all`` to the shared
+    ``report`` group."""
     del sub
     common = argparse.ArgumentParser(add_help=False)
     common.add_argument(
@@ -242,7 +409,10 @@ def register(
     common.add_argument("--json", action="store_true", help="print one JSON object")
     common.add_argument("--out", help="output directory (default: analyses/)")
     common.add_argument(
-        "--force", action="store_true", help="replace a report whose figures changed"
+        "--force",
+        action="store_true",
+        help="rewrite the report even when its figures did not change (a report whose "
+        "figures changed is always replaced: reports follow the design)",
     )
 
     p = groups["report"].add_parser(
@@ -263,34 +433,48 @@ def register(
         action="store_false",
         help="never run the stowed-posture search",
     )
+    p.add_argument(
+        "--write-stowed",
+        action="store_true",
+        help="write the stowed-posture search's proposed posture into the design's "
+        "[stowed] table (a comment says so), then report on the edited design",
+    )
     p.set_defaults(func=_cmd_envelope)
 
-    p = groups["report"].add_parser(
-        "reach",
-        parents=[common],
-        help="fingertip workspaces, pair spans, rail spacing, CTB grasp check",
-    )
-    p.add_argument(
+    sampling = argparse.ArgumentParser(add_help=False)
+    sampling.add_argument(
         "--samples",
         type=_integer,
         default=DEFAULT_SAMPLES,
         help=f"sampled configurations (default {DEFAULT_SAMPLES:,})",
     )
-    p.add_argument("--seed", type=_integer, default=0, help="random seed (default 0)")
-    p.add_argument(
+    sampling.add_argument("--seed", type=_integer, default=0, help="random seed (default 0)")
+    sampling.add_argument(
         "--thickness",
         nargs="+",
         type=float,
         metavar="T",
         help="extra thicknesses for the grasp check [m]",
     )
-    p.add_argument(
+    sampling.add_argument(
         "--workers",
         type=_integer,
         default=None,
         help="processes for the collision checks (default: up to 2)",
     )
+    p = groups["report"].add_parser(
+        "reach",
+        parents=[common, sampling],
+        help="fingertip workspaces, pair spans, rail spacing, CTB grasp check",
+    )
     p.set_defaults(func=_cmd_reach)
 
+    p = groups["report"].add_parser(
+        "all",
+        parents=[common, sampling],
+        help="models, envelope, reach and design summary in one run, one verdict line",
+    )
+    p.set_defaults(func=_cmd_all, search=None, write_stowed=False)
 
-__all__ = ["register"]
+
+__all__ = ["reach_lines", "register", "run_envelope", "run_reach", "written_lines"]

@@ -1,4 +1,10 @@
-"""Writing a report: Markdown, JSON and PNG in ``analyses/``, only when its figures changed."""
+"""Writing a report: Markdown, JSON and PNG in ``analyses/``, only when its figures changed.
+
+A report is derived from the design, like the generated models: when the design changed,
+its report follows (the files are replaced, each through a temporary file and a rename),
+and the previous figures are kept beside it as ``<stem>.prev.json`` so the change can be
+printed and compared. Recordings (trials, campaigns) are never replaced this way.
+"""
 
 from __future__ import annotations
 
@@ -15,7 +21,7 @@ from payload.envelope.markdown import envelope_markdown, reach_markdown
 from payload.envelope.reach import ReachAnalysis
 from payload.envelope.reach_figure import reach_figure
 from payload.envelope.report_json import envelope_json, reach_json
-from payload.safeio import OverwriteError, replace_file, replacing
+from payload.safeio import replace_file, replacing
 
 TIMING_KEYS = ("seconds", "timings_s")
 """JSON keys holding wall-clock timings: kept out of the committed report files."""
@@ -68,15 +74,17 @@ def _write_report(
     draw: Callable[[Path], Any],
     force: bool,
 ) -> dict[str, Path]:
-    """Write ``<stem>.md/.json/.png`` only when the report's figures changed.
+    """Write ``<stem>.md/.json/.png``, following the design.
 
     Timings go to ``<stem>.timing.json`` (not committed) every run. Identical ``md`` and
     ``json`` (provenance aside) leave all three files untouched unless ``force`` (which
-    refreshes the provenance); different ones replace existing files only with
-    ``force``, each through a temporary file and a rename.
+    refreshes the provenance). Different ones replace the report, each file through a
+    temporary file and a rename, after the previous ``<stem>.json`` is copied to
+    ``<stem>.prev.json``.
 
-    Raises:
-        OverwriteError: The report changed, files exist, and ``force`` is false.
+    Returns:
+        The paths written: ``png``, ``md``, ``json``, ``timing``, and ``prev`` when a
+        report with other figures was replaced; only ``timing`` when nothing changed.
     """
     out_dir.mkdir(parents=True, exist_ok=True)
     committed, timings = _split_timings(data)
@@ -91,12 +99,9 @@ def _write_report(
     same = [p for p, t in texts.items() if p.exists() and _same_figures(p, t)]
     if len(same) == len(texts) and paths["png"].exists() and not force:
         return {"timing": paths["timing"]}  # nothing but timings or provenance changed
-    differ = [p for p in (*texts, paths["png"]) if p.exists() and p not in same]
-    if differ and not force:
-        raise OverwriteError(
-            f"{differ[0]}: the report's figures changed ({', '.join(p.name for p in differ)} "
-            "would be replaced); pass --force to replace them, or --out DIR"
-        )
+    if paths["json"].exists() and paths["json"] not in same:
+        paths["prev"] = out_dir / f"{stem}.prev.json"
+        replace_file(paths["prev"], paths["json"].read_bytes())
     with replacing(paths["png"]) as tmp:
         draw(tmp)
     for path, text in texts.items():
@@ -115,7 +120,7 @@ def write_envelope(
 ) -> dict[str, Path]:
     """Write ``envelope.md``, ``envelope.png`` and ``envelope.json`` into ``out_dir`` when
     the report changed (see :func:`_write_report`); returns the paths written. ``record``
-    adds fields to the JSON (e.g. its provenance)."""
+    adds fields to the JSON (e.g. its provenance); ``force`` rewrites an unchanged report."""
     a.extra["stage_upper"] = geom.tree.joint_map["stage"].upper
     return _write_report(
         out_dir,
@@ -148,7 +153,7 @@ def write_reach(
         t_start: ``time.perf_counter()`` at the command's start: when given, ``a.seconds``
             becomes the wall time up to the writing.
         record: Adds fields to the JSON (e.g. its provenance).
-        force: Replace a committed report whose figures changed.
+        force: Rewrite the report even when its figures did not change.
     """
     if t_start is not None:
         a.seconds = time.perf_counter() - t_start

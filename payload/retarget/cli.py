@@ -103,6 +103,9 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     if args.steps < 2:
         raise RetargetError(f"--steps: need at least 2 steps, got {args.steps}")
     project = command_project(args)
+    from payload.design import models_follow_design
+
+    models_follow_design(project.design_path, project.root, json=args.json)
     hand = load_hand(args.hand, project=project)
     config = RetargetConfig.from_toml(args.config) if args.config else RetargetConfig()
     result = run_bench(

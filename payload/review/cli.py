@@ -105,9 +105,12 @@ def _cmd_review(args: argparse.Namespace) -> int:
     if args.static is not None and Path(args.static).is_dir():
         raise ReviewError(f"--static {args.static}: is a folder, expected a file name")
 
-    command_project(args, args.design)  # names the project first; library defaults use it
+    project = command_project(args, args.design)  # named first; library defaults use it
     if args.watch:
         return _cmd_watch(args)
+    from payload.design import models_follow_design
+
+    models_follow_design(project.design_path, project.root)  # the one rule for stale models
     scene = build_review(args.design, args.trial, args.reach_samples, rate=args.rate)
     for line in scene.notes:
         print(line)

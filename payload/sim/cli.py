@@ -25,6 +25,9 @@ def _cmd_bench_sim(args: argparse.Namespace) -> int:
             f"--ctb: unknown size {args.ctb!r} (expected {', '.join(CTB_SIZES)} or none)"
         )
     project = command_project(args)
+    from payload.design import models_follow_design
+
+    models_follow_design(project.design_path, project.root, json=args.json)
     config = WorldConfig.for_project(project, ctb=None if args.ctb == "none" else args.ctb)
     console = Console(stderr=True)
     with Progress(

@@ -52,6 +52,9 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
         )
     project = command_project(args)
     out = Path(args.out).resolve() if args.out else default_out(project, "sweep")
+    from payload.design import models_follow_design
+
+    models_follow_design(project.design_path, project.root, json=args.json)
     points = plan(project, axes, out)
     workers = args.workers or max(1, min(len(points), os.cpu_count() or 1))
     t0 = time.perf_counter()

@@ -10,13 +10,13 @@ from __future__ import annotations
 
 import itertools
 import math
-import re
 import sys
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
+from payload.design.edit import set_in_text
 from payload.design.params import Design, design_from_dict, design_to_dict
 from payload.errors import PayloadError
 
@@ -131,37 +131,6 @@ def grid(axes: list[Axis]) -> list[dict[str, float]]:
     return [dict(zip(keys, combo)) for combo in itertools.product(*(a.values for a in axes))]
 
 
-def _set_in_text(text: str, key: str, value: float) -> str:
-    """``text`` with ``key = value`` in its table, keeping every comment and line."""
-    *table, leaf = key.split(".")
-    lines = text.splitlines(keepends=True)
-    header = re.compile(r"^\s*\[\s*([A-Za-z0-9_.\- ]+?)\s*\]\s*(#.*)?$")
-    assign = re.compile(rf"^(\s*{re.escape(leaf)}\s*=\s*)([^#\n]*?)(\s*(#.*)?)(\r?\n?)$")
-    current: list[str] = []
-    end_of_table = None
-    for i, line in enumerate(lines):
-        m = header.match(line)
-        if m and not line.lstrip().startswith("[["):
-            if current == table and end_of_table is None:
-                end_of_table = i
-            current = [p.strip() for p in m.group(1).split(".")]
-            continue
-        if current == table:
-            a = assign.match(line)
-            if a:
-                lines[i] = f"{a.group(1)}{value!r}{a.group(3)}{a.group(5)}"
-                return "".join(lines)
-    addition = f"{leaf} = {value!r}\n"
-    if current == table and end_of_table is None:  # the table is the last one
-        sep = "" if not lines or lines[-1].endswith("\n") else "\n"
-        return "".join(lines) + sep + addition
-    if end_of_table is not None:
-        lines.insert(end_of_table, addition)
-        return "".join(lines)
-    sep = "" if not lines or lines[-1].endswith("\n") else "\n"
-    return "".join(lines) + sep + f"\n[{'.'.join(table)}]\n" + addition
-
-
 def edit_design(text: str, params: dict[str, float]) -> str:
     """The design TOML ``text`` with each dotted key of ``params`` set to its value.
 
@@ -180,7 +149,7 @@ def edit_design(text: str, params: dict[str, float]) -> str:
         for part in table:
             node = node.setdefault(part, {})
         node[leaf] = value
-        out = _set_in_text(out, key, value)
+        out = set_in_text(out, key, value)
     if tomllib.loads(out) != want:
         raise SweepError(f"cannot write {', '.join(params)} into the design file text")
     return out

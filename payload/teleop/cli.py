@@ -97,7 +97,10 @@ def serve(args: argparse.Namespace, make_session: SessionFactory) -> int:
     from payload.teleop.server import TeleopServer, is_local, new_token
     from payload.teleop.tls import ensure_certificate, fingerprint, server_context
 
-    command_project(args)  # the simulator and the retargeters read this project's models
+    project = command_project(args)  # the simulator and the retargeters read its models
+    from payload.design import models_follow_design
+
+    models_follow_design(project.design_path, project.root)  # the one rule for stale models
     record = Path(args.record) if args.record else None
     _check_record(record)
     local = is_local(args.host)
@@ -155,7 +158,10 @@ def bench(args: argparse.Namespace, make_session: SessionFactory) -> int:
     makes."""
     from payload.teleop.bench import run_bench
 
-    command_project(args)  # the session flies this project's models
+    project = command_project(args)  # the session flies this project's models
+    from payload.design import models_follow_design
+
+    models_follow_design(project.design_path, project.root, json=args.json)
     # the emulated operator's tracking drop-outs are part of the run, not news
     logging.getLogger("payload.teleop.safety").setLevel(logging.ERROR)
     result = run_bench(make_session, seconds=args.seconds)

@@ -74,6 +74,7 @@ def _check_ctb(ctb: str) -> None:
 
 
 def _cmd_trial(args: argparse.Namespace) -> int:
+    from payload.design import models_follow_design
 
     if args.seed is not None and args.seed < 0:
         raise TrialsCliError(f"--seed must be >= 0, got {args.seed}")
@@ -85,6 +86,7 @@ def _cmd_trial(args: argparse.Namespace) -> int:
     if args.ctb is not None:
         _check_ctb(args.ctb)
     project = command_project(args)
+    models_follow_design(project.design_path, project.root, json=args.json)
     out = Path(args.out) if args.out else None
     run_trial = _run_trial_fn()
     extra: dict[str, Any] = {"project": project}
@@ -128,6 +130,7 @@ def _cmd_trial(args: argparse.Namespace) -> int:
 
 
 def _cmd_trials_run(args: argparse.Namespace) -> int:
+    from payload.design import models_follow_design
     from payload.project import provenance
     from payload.trials.campaign import (
         default_workers,
@@ -148,6 +151,7 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
     _check_ctb(args.ctb)
     _run_trial_fn()  # fail here, once, if the runner is missing
     project = command_project(args)
+    models_follow_design(project.design_path, project.root, json=args.json)
     prov = provenance(project)
     out = Path(args.out) if args.out else default_out(project, "campaign")
     seeds = list(range(args.seed, args.seed + args.n))
@@ -359,7 +363,10 @@ def _cmd_bench_trial(args: argparse.Namespace) -> int:
     out = Path(args.out) if args.out else None
     if args.seconds is not None and args.seconds <= 0:
         raise TrialsCliError(f"--seconds must be positive, got {args.seconds}")
-    command_project(args)  # the trial flies this project's models
+    from payload.design import models_follow_design
+
+    project = command_project(args)  # the trial flies this project's models
+    models_follow_design(project.design_path, project.root, json=args.json)
     result = run_trial_bench(args.seed, out_dir=out, pin=args.pin, max_time=args.seconds)
     if args.json:
         emit_json(result)

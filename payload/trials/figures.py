@@ -108,7 +108,8 @@ def _shade(ax: Any, spans: Iterable[tuple[str, float, float]]) -> None:
         ax.axvspan(a, b, color=PHASE_COLORS.get(name, "#eeeeee"), alpha=0.6, lw=0, zorder=0)
 
 
-def _save(fig: Figure, path: Path, dpi: int) -> Path:
+def save_figure(fig: Figure, path: Path, dpi: int) -> Path:
+    """Save ``fig`` to ``path`` (format from the suffix) through a temporary file."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     FigureCanvasAgg(fig)
@@ -189,7 +190,7 @@ def plot_ctb_body_frame(
         f"{m.destination}",
         fontsize=10,
     )
-    return _save(fig, Path(path), dpi)
+    return save_figure(fig, Path(path), dpi)
 
 
 def plot_route(
@@ -250,7 +251,7 @@ def plot_route(
     ax.legend(loc="best", fontsize=8)
     net = float(np.linalg.norm(pc[-1] - pc[0]))
     ax.set_title(f"Route, top view (CTB net displacement {net:.2f} m)", fontsize=10)
-    return _save(fig, Path(path), dpi)
+    return save_figure(fig, Path(path), dpi)
 
 
 __all__ = [
@@ -261,4 +262,5 @@ __all__ = [
     "phases_in_time_order",
     "plot_ctb_body_frame",
     "plot_route",
+    "save_figure",
 ]

@@ -12,6 +12,7 @@ import numpy as np
 
 from payload.errors import PayloadError
 from payload.safeio import OverwriteError, write_unless_changed
+from payload.trials.campaign_figure import campaign_figure_path, write_campaign_figure
 from payload.trials.scoring import finish_trial
 
 METRIC_KEYS: tuple[str, ...] = (
@@ -316,7 +317,8 @@ def write_summary(
     tag: str | None = None,
     force: bool = False,
 ) -> dict[str, Any]:
-    """Write ``summary.md`` and ``summary.json`` into ``out_dir`` and return the summary.
+    """Write ``summary.md``, ``summary.json`` and the campaign figure ``fig_campaign.png``
+    (:mod:`payload.trials.campaign_figure`) into ``out_dir`` and return the summary.
 
     With ``tag`` (a rescoring's contact definition) the files are ``summary.<tag>.md``
     and ``summary.<tag>.json``, beside the originals. Files that exist with other content
@@ -363,8 +365,12 @@ def write_summary(
     for path, content in files.items():  # check both before writing either
         if not force and path.exists() and path.read_bytes() != content.encode():
             raise OverwriteError(f"{path}: exists with different content (pass --force to replace)")
-    write_unless_changed(out / f"{stem}.json", data, force=force)
+    changed = write_unless_changed(out / f"{stem}.json", data, force=force)
     write_unless_changed(out / f"{stem}.md", text, force=force)
+    # the campaign figure follows the summary: drawn when the summary changed or it is missing
+    figure = campaign_figure_path(out, tag)
+    if changed or force or not figure.exists():
+        write_campaign_figure(summary, METRIC_LABELS, out, tag)
     return summary
 
 

@@ -1,0 +1,162 @@
+"""Physical plausibility of a design: bounds derived from the design itself.
+
+:func:`check_plausible` runs after the per-field checks of :mod:`payload.design.params`
+(types, signs) and refuses, in one line naming the parameter, a design no one could
+build:
+
+- nothing longer than the vehicle: every length, offset and size of the payload must be
+  shorter than Astrobee's largest body dimension (the ``[vehicle]`` table's, else the
+  default 0.32 m cube), and no servo heavier than the vehicle;
+- a link must hold its servos: a link whose both ends are servo-driven joints (knuckle,
+  proximal, middle) is at least one servo body width long (two bodies, each
+  ``servo.width`` across its output axis, cannot stand closer without intersecting);
+  the distal link holds the DIP servo's half body and the pad sphere;
+- a joint offset lies within the link: ``|offset| <= finger.section.depth``.
+
+A value refused here that is about 1000 times its packaged default names the probable
+unit slip (``45 m: did you mean 45 mm = 0.045?``): the design file is SI throughout.
+"""
+
+from __future__ import annotations
+
+import functools
+import sys
+from collections.abc import Iterator
+from typing import Any
+
+from payload.errors import DesignError
+from payload.project import default_design_text
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+SLIP_FACTOR = 1000.0
+"""The unit slip recognised: mm typed as m, g typed as kg."""
+
+_SLIP_TOLERANCE = 10**0.5
+"""A value within this factor of 1000 times its default counts as a slip (~316x..3162x)."""
+
+LENGTH_TABLES: dict[str, tuple[str, ...] | None] = {
+    "finger.lengths": None,
+    "finger.offsets": None,
+    "finger.section": None,
+    "finger.pad": ("radius", "thickness"),
+    "array": None,
+    "rail": ("travel", "length", "width", "height", "carriage_length", "carriage_thickness",
+             "drive_radius"),
+    "stage": ("travel", "plate_length", "plate_width", "plate_thickness", "guide_radius",
+              "guide_length", "guide_x", "stowed_gap", "drive_radius"),
+    "mounting": None,
+    "servo": ("width", "length", "height"),
+}  # fmt: skip
+"""The design's lengths [m]: a table and its length keys (``None``: every number in it)."""
+
+
+def _get(data: dict[str, Any], dotted: str) -> Any:
+    for part in dotted.split("."):
+        data = data[part]
+    return data
+
+
+def lengths(data: dict[str, Any]) -> Iterator[tuple[str, float]]:
+    """Every length of a design as plain data: ``(dotted parameter, value [m])``."""
+    for table, keys in LENGTH_TABLES.items():
+        values = _get(data, table)
+        for key in keys or [k for k, v in values.items() if isinstance(v, (int, float))]:
+            yield f"{table}.{key}", float(values[key])
+
+
+def _slip(parameter: str, value: float, unit: str, small_unit: str) -> str:
+    """``45 m: did you mean 45 mm = 0.045? (`` when ``value`` is ~1000 times the packaged
+    default of ``parameter``, else ``""``."""
+    default = _packaged_default(parameter)
+    if not default or not value:
+        return ""
+    ratio = abs(value / default) / SLIP_FACTOR
+    if not 1 / _SLIP_TOLERANCE <= ratio <= _SLIP_TOLERANCE:
+        return ""
+    return f"{value:g} {unit}: did you mean {value:g} {small_unit} = {value / SLIP_FACTOR:g}? ("
+
+
+def _packaged_default(parameter: str) -> float | None:
+    try:
+        value = _get(_packaged(), parameter)
+    except (KeyError, TypeError):
+        return None
+    return float(value) if isinstance(value, (int, float)) else None
+
+
+@functools.cache
+def _packaged() -> dict[str, Any]:
+    return tomllib.loads(default_design_text())
+
+
+def _refuse(parameter: str, value: float, unit: str, small_unit: str, reason: str) -> None:
+    slip = _slip(parameter, value, unit, small_unit)
+    raise DesignError(parameter, f"{slip}{value:g} {unit} {reason}" + (")" if slip else ""))
+
+
+def check_plausible(design: Any, data: dict[str, Any]) -> None:
+    """Refuse a design outside the physical bounds above.
+
+    Args:
+        design: The :class:`~payload.design.params.Design` (its per-field checks passed).
+        data: The same design as plain data (``design_to_dict``).
+
+    Raises:
+        DesignError: The first implausible parameter, in one line.
+    """
+    from payload.design.vehicle import Vehicle, vehicle_from_dict
+
+    vehicle = vehicle_from_dict(design.vehicle) if design.vehicle else Vehicle()
+    longest = max(vehicle.body_size)
+    for parameter, value in lengths(data):
+        if abs(value) >= longest:
+            _refuse(
+                parameter,
+                value,
+                "m",
+                "mm",
+                f"is longer than the vehicle: Astrobee's body is {longest * 1e3:.0f} mm at "
+                "its largest, and the design file is in metres",
+            )
+    s = design.servo
+    if s.mass >= vehicle.mass:
+        _refuse(
+            "servo.mass",
+            s.mass,
+            "kg",
+            "g",
+            f"is heavier than the vehicle ({vehicle.mass:g} kg), and the design file is in kg",
+        )
+    f = design.finger
+    for link in ("knuckle", "proximal", "middle"):
+        length = getattr(f.lengths, link)
+        if length < s.width:
+            raise DesignError(
+                f"finger.lengths.{link}",
+                f"{length * 1e3:.1f} mm cannot hold the servos at its two joints (two "
+                f"{s.model} bodies, {s.width * 1e3:.1f} mm across their output axes, need "
+                f"at least {s.width * 1e3:.1f} mm between the axes)",
+            )
+    least = s.width / 2 + f.pad.radius
+    if f.lengths.distal < least:
+        raise DesignError(
+            "finger.lengths.distal",
+            f"{f.lengths.distal * 1e3:.1f} mm cannot hold the DIP servo's half body "
+            f"({s.width / 2 * 1e3:.1f} mm) and the pad (radius {f.pad.radius * 1e3:.1f} mm): "
+            f"at least {least * 1e3:.1f} mm",
+        )
+    for joint in ("mcp_abd", "pip", "dip", "tip"):
+        offset = getattr(f.offsets, joint)
+        if abs(offset) > f.section.depth:
+            raise DesignError(
+                f"finger.offsets.{joint}",
+                f"{offset * 1e3:.1f} mm puts the joint outside its link (finger.section.depth "
+                f"{f.section.depth * 1e3:.1f} mm)",
+            )
+
+
+__all__ = ["LENGTH_TABLES", "SLIP_FACTOR", "check_plausible", "lengths"]

@@ -1,0 +1,129 @@
+"""The verdict a report prints first, and the change of its headline figures.
+
+Every report leads with one ``verdict:`` line: whether the design passes (the stowed fit;
+the grasp: every pair closes on a CTB feature) and the tightest or failing parts. When a
+report follows a changed design, the headline figures of the previous report
+(``<stem>.prev.json``) and of the new one are printed side by side.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from payload.envelope.fit_results import EnvelopeAnalysis
+from payload.envelope.reach import ReachAnalysis
+
+HEADLINES: dict[str, tuple[tuple[str, str, str], ...]] = {
+    "envelope": (
+        ("passed", "passes", ""),
+        ("fits", "fits the bays", ""),
+        ("min_clearance_mm", "min clearance", "mm"),
+        ("tightest.part", "tightest part", ""),
+        ("min_self_clearance_mm", "min self-clearance", "mm"),
+        ("deploy_path_clear", "deployment path clear", ""),
+    ),
+    "reach": (
+        ("below_vehicle_mm", "fingertips below the vehicle", "mm"),
+        ("collision_free_fraction", "self-collision-free fraction", ""),
+        ("pairs.L.span_max_mm", "pair L widest span", "mm"),
+        ("pairs.R.span_max_mm", "pair R widest span", "mm"),
+        ("rail_spacing_mm.max", "rail spacing max", "mm"),
+    ),
+}
+"""Per report: (dotted JSON key, label, unit) of the figures whose change is printed."""
+
+
+def _failures(failures: list[str]) -> str:
+    more = f" (+{len(failures) - 3} more)" if len(failures) > 3 else ""
+    return "; ".join(failures[:3]) + more
+
+
+def envelope_verdict(a: EnvelopeAnalysis) -> str:
+    """``verdict: fits ...`` or ``verdict: FAILS ...`` for the stowed payload."""
+    g = a.given
+    if a.passed:
+        t = g.tightest
+        return (
+            f"verdict: fits: every part inside the bays, min clearance "
+            f"{t.clearance * 1e3:.2f} mm ({t.name}, {t.wall} wall); no self-collision; "
+            "deployment path clear"
+        )
+    return "verdict: FAILS: " + _failures(g.failures())
+
+
+def reach_passed(a: ReachAnalysis) -> bool:
+    """Whether the deployed fingertips reach below the vehicle and every pair closes on
+    at least one of the CTB features checked (a sampled search: with few ``--samples`` a
+    grasp can be missed; the default 100,000 is what the committed report uses)."""
+    return a.below_vehicle > 0 and all(_closes_on(p) for p in a.pairs)
+
+
+def _closes_on(pair: Any) -> list[str]:
+    return [g.feature.name for g in pair.grasps if g.closes]
+
+
+def reach_verdict(a: ReachAnalysis) -> str:
+    """``verdict: grasps ...`` or ``verdict: FAILS ...`` for the reach report."""
+    if reach_passed(a):
+        thinnest = {
+            p.name: min((g for g in p.grasps if g.closes), key=lambda g: g.feature.thickness)
+            for p in a.pairs
+        }
+        closes = ", ".join(
+            f"pair {name} closes down to {g.feature.thickness * 1e3:.1f} mm ({g.feature.name})"
+            for name, g in thinnest.items()
+        )
+        return (
+            f"verdict: grasps: {closes}; "
+            f"fingertips reach {a.below_vehicle * 1e3:.1f} mm below the vehicle"
+        )
+    bad = [
+        f"pair {p.name} closes on none of the {len(p.grasps)} CTB features checked (spans "
+        f"{p.span_min * 1e3:.1f} .. {p.span.maximum * 1e3:.1f} mm)"
+        for p in a.pairs
+        if not _closes_on(p)
+    ]
+    if a.below_vehicle <= 0:
+        bad.insert(0, "the deployed fingertips do not reach below the vehicle")
+    return "verdict: FAILS: " + _failures(bad)
+
+
+def _get(data: dict[str, Any], dotted: str) -> Any:
+    node: Any = data
+    for part in dotted.split("."):
+        if not isinstance(node, dict) or part not in node:
+            return None
+        node = node[part]
+    return node
+
+
+def _show(value: Any, unit: str) -> str:
+    if isinstance(value, bool):
+        return "yes" if value else "no"
+    if value is None:
+        return "-"
+    if isinstance(value, float):
+        text = f"{value:.2f}" if unit == "mm" else f"{value:.4g}"
+        return f"{text} {unit}".strip()
+    return f"{value}{' ' + unit if unit else ''}"
+
+
+def headline_changes(stem: str, before: dict[str, Any], after: dict[str, Any]) -> str:
+    """One line: each headline figure of report ``stem`` that changed, ``old -> new``."""
+    changed = []
+    for key, label, unit in HEADLINES[stem]:
+        old, new = _get(before, key), _get(after, key)
+        if old != new:
+            changed.append(f"{label} {_show(old, unit)} -> {_show(new, unit)}")
+    if not changed:
+        return f"changed since {stem}.prev.json: other figures only (headline figures as before)"
+    return f"changed since {stem}.prev.json: " + "; ".join(changed)
+
+
+__all__ = [
+    "HEADLINES",
+    "envelope_verdict",
+    "headline_changes",
+    "reach_passed",
+    "reach_verdict",
+]

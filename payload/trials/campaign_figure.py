@@ -1,0 +1,99 @@
+"""The campaign figure: each metric's spread over the trials beside the paper's.
+
+One panel per metric the paper summarises (:data:`~payload.trials.summary.METRIC_LABELS`):
+every trial as a dot, this campaign's median as a bar with its range as a whisker, and
+beside it the paper's median and range (Sec. IV, ten trials). Written by the campaign
+summary as ``fig_campaign.png`` beside ``summary.md``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from matplotlib.figure import Figure
+
+from payload.trials.figures import save_figure
+
+CAMPAIGN_FIGURE = "fig_campaign.png"
+"""The campaign figure's file name (``fig_campaign.<tag>.png`` for a rescoring)."""
+
+OURS, PAPER = 0.0, 1.0
+"""x positions of this campaign's column and the paper's in every panel."""
+
+
+def campaign_figure(
+    summary: dict[str, Any], labels: dict[str, str], title: str | None = None
+) -> Figure:
+    """The figure of a campaign summary (:func:`~payload.trials.summary.summarize`).
+
+    Args:
+        summary: The summary: ``trials`` (per-trial values), a ``{"median", "min",
+            "max"}`` per metric, and ``paper`` (the paper's figures).
+        labels: Metric key -> panel title, in panel order
+            (:data:`~payload.trials.summary.METRIC_LABELS`).
+        title: The figure's title (default: the summary's ``title``, else "Campaign").
+
+    Returns:
+        The figure: one axis per metric; in each, the trials' values are the first
+        scatter collection (x = :data:`OURS`), the paper's median and range the error bar
+        at x = :data:`PAPER`.
+    """
+    trials = [t for t in summary.get("trials", []) if not t.get("error")]
+    fig = Figure(figsize=(3.0 * len(labels), 4.2), layout="constrained")
+    axes = fig.subplots(1, len(labels))
+    n_ok = summary.get("success", 0)
+    fig.suptitle(
+        f"{title or summary.get('title') or 'Campaign'}: {n_ok}/{summary.get('n', 0)} "
+        f"succeeded (paper {summary['paper']['success']}/{summary['paper']['n']}); "
+        "dots: trials, bar: median, whisker: range"
+    )
+    rng = np.random.default_rng(0)  # a fixed jitter: the same summary draws the same figure
+    for ax, (key, label) in zip(np.atleast_1d(axes), labels.items()):
+        values = np.array([t[key] for t in trials if _finite(t.get(key))], dtype=float)
+        jitter = rng.uniform(-0.12, 0.12, len(values))
+        ax.scatter(OURS + jitter, values, s=18, color="#1f77b4", zorder=3, label="trials")
+        _median_range(ax, OURS, summary.get(key), "#1f77b4")
+        _median_range(ax, PAPER, summary["paper"].get(key), "#d62728")
+        ax.set_xticks([OURS, PAPER], [f"this run\n(n = {len(values)})", "paper\n(n = 10)"])
+        ax.set_xlim(-0.6, 1.6)
+        ax.set_title(label, fontsize=9, wrap=True)
+        ax.grid(axis="y", alpha=0.3)
+    return fig
+
+
+def _finite(value: Any) -> bool:
+    return isinstance(value, (int, float)) and bool(np.isfinite(value))
+
+
+def _median_range(ax: Any, x: float, stat: dict[str, Any] | None, color: str) -> None:
+    """A bar at the median with a whisker from the minimum to the maximum."""
+    if not stat or stat.get("median") is None:
+        return
+    med, lo, hi = stat["median"], stat["min"], stat["max"]
+    ax.errorbar(
+        [x], [med], yerr=[[med - lo], [hi - med]], fmt="_", markersize=24, color=color,
+        capsize=6, lw=1.5, zorder=4,
+    )  # fmt: skip
+
+
+def campaign_figure_path(out_dir: str | Path, tag: str | None = None) -> Path:
+    """``out_dir/fig_campaign.png``, or ``fig_campaign.<tag>.png`` for a rescoring."""
+    name = CAMPAIGN_FIGURE if tag is None else CAMPAIGN_FIGURE.replace(".png", f".{tag}.png")
+    return Path(out_dir) / name
+
+
+def write_campaign_figure(
+    summary: dict[str, Any],
+    labels: dict[str, str],
+    out_dir: str | Path,
+    tag: str | None = None,
+    dpi: int = 110,
+) -> Path:
+    """Draw :func:`campaign_figure` into :func:`campaign_figure_path` (atomically)."""
+    figure = campaign_figure(summary, labels)
+    return save_figure(figure, campaign_figure_path(out_dir, tag), dpi)
+
+
+__all__ = ["CAMPAIGN_FIGURE", "campaign_figure", "campaign_figure_path", "write_campaign_figure"]
