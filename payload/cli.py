@@ -52,6 +52,11 @@ COMMANDS: tuple[Command, ...] = (
         "fingertip workspaces, pair spans, rail spacing, CTB grasp check",
     ),
     Command(
+        "report all",
+        "payload.envelope.cli",
+        "models, envelope, reach and design summary in one run, one verdict line",
+    ),
+    Command(
         "review", "payload.review.cli", "Meshcat design review (and trial replay) in the browser"
     ),
     Command("trial", "payload.trials.cli", "one ISS cargo-transport trial"),
