@@ -7,9 +7,13 @@ Bring-up follows the LEAP hand's: torque off, Return Delay Time, Operating Mode 
 one sync write of the 18 goal positions (:meth:`send`) and one fast sync read of present
 current, velocity and position (:meth:`read`, falling back to a plain sync read); every
 ``health_every`` reads, Hardware Error Status, Bus Watchdog, input voltage and
-temperature are read too. A hardware error stops the payload safely (``hold``: every
-servo holds where it is; ``torque_off``) and :meth:`recover` reboots the servo, restores
-its settings and returns it to service.
+temperature are read too. Every read also looks at each servo's status error byte: its
+alert bit (bit 7) means a latched hardware error, and Hardware Error Status of those
+servos is read in the same cycle, so the safe stop follows within one control period.
+A hardware error stops the payload safely (``hold``: every servo holds where it is;
+``torque_off``) and :meth:`recover` reboots the servo, restores its settings and returns
+it to service. The rail and the stage are homed at bring-up and after a reboot of either
+(:mod:`firmware_interface.homing`); until then :meth:`send` refuses every command.
 """
 
 from __future__ import annotations
@@ -21,16 +25,31 @@ from types import TracebackType
 import numpy as np
 from dynamixel_sdk import COMM_SUCCESS, GroupSyncRead, GroupSyncWrite, PacketHandler
 
-from firmware_interface.control_table import ADDR, VELOCITY_UNIT_RPM, hw_error_names, to_signed
+from firmware_interface import protocol as P
+from firmware_interface.control_table import (
+    ADDR,
+    BY_NAME,
+    VELOCITY_UNIT_RPM,
+    hw_error_names,
+    to_signed,
+)
 from firmware_interface.errors import (
     CommError,
     DynamixelError,
     HardwareFault,
     MissingServoError,
+    NotHomedError,
 )
 from firmware_interface.health import Recovery, ServoHealth
-from firmware_interface.port import SdkPort
-from firmware_interface.servo_map import LINEAR_JOINTS, ServoMap, ServoSpec, load_servo_map
+from firmware_interface.homing import home_linear
+from firmware_interface.port import AlertSyncRead, SdkPort
+from firmware_interface.servo_map import (
+    LINEAR_JOINTS,
+    ServoMap,
+    ServoSpec,
+    load_servo_map,
+    travel_ticks,
+)
 from payload.design.params import Design, load_design
 from payload.schema import Health, PayloadCommand, PayloadState
 
@@ -95,6 +114,9 @@ class DynamixelDriver:
         self.fault: HardwareFault | None = None
         self.faults: list[HardwareFault] = []
         self.health: dict[int, ServoHealth] = {}
+        self.homed: set[int] = set()
+        self.alerts = 0  # reads whose status carried an alert bit
+        self._linear = [sp for sp in self.map.servos if sp.joint in LINEAR_JOINTS]
         self._stopped = False
         self._closed = True
         self._last_io = time.monotonic()
@@ -120,7 +142,7 @@ class DynamixelDriver:
         if poll_timeout > 0 and getattr(self.port, "ser", None) is not None:
             self.port.ser.timeout = poll_timeout
         self._writer = GroupSyncWrite(self.port, self.packet, ADDR["goal_position"], 4)
-        self._reader = GroupSyncRead(self.port, self.packet, FEEDBACK_ADDR, FEEDBACK_LEN)
+        self._reader = AlertSyncRead(self.port, self.packet, FEEDBACK_ADDR, FEEDBACK_LEN)
         for i in self.ids:
             self._writer.addParam(i, [0, 0, 0, 0])
             self._reader.addParam(i)
@@ -131,8 +153,7 @@ class DynamixelDriver:
 
     def _write(self, dxl_id: int, name: str, value: int) -> None:
         """Write one register and check the status (retried on a timeout or CRC error)."""
-        addr = ADDR[name]
-        size = {64: 1, 9: 1, 11: 1, 98: 1}.get(addr, 4 if addr in (116, 20) else 2)
+        addr, size = ADDR[name], BY_NAME[name].size
         fn = {1: self.packet.write1ByteTxRx, 2: self.packet.write2ByteTxRx,
               4: self.packet.write4ByteTxRx}[size]  # fmt: skip
         for attempt in range(self.retries + 1):
@@ -191,8 +212,34 @@ class DynamixelDriver:
             if err:
                 raise HardwareFault(spec.id, spec.joint, hw_error_names(err))
             self._configure(spec)
+        self.home()
         self._arm_watchdog(self.ids)
         self._last_io = time.monotonic()
+
+    def home(self, specs: list[ServoSpec] | None = None) -> dict[int, int]:
+        """Home the rail and the stage (default both): a current-limited move to the stowed
+        hard stop, Homing Offset set from it (see :mod:`firmware_interface.homing`).
+
+        Returns:
+            ID -> the Homing Offset written [ticks].
+
+        Raises:
+            HomingError: A servo did not reach its stop in time.
+        """
+        specs = self._linear if specs is None else specs
+        for sp in specs:
+            self.homed.discard(sp.id)
+        spans = {i: hi - lo for i, (lo, hi) in travel_ticks(self.map, self.design).items()}
+
+        def feedback() -> tuple[np.ndarray, np.ndarray]:
+            raw = self._feedback_raw()
+            return raw["current"].astype(float), raw["position"].astype(np.int64)
+
+        offsets = home_linear(self._write, self._read_reg, feedback, self.ids, specs, spans,
+                              self.map.current_limit_ma)  # fmt: skip
+        self.homed.update(sp.id for sp in specs)
+        log.info("homed %s", ", ".join(f"{self._name(i)} (offset {h})" for i, h in offsets.items()))
+        return offsets
 
     def _arm_watchdog(self, ids: list[int]) -> None:
         """Bus Watchdog on, for all servos at once (after every servo is configured)."""
@@ -227,6 +274,9 @@ class DynamixelDriver:
         self._check_open()
         if not isinstance(command, PayloadCommand):
             raise DynamixelError(f"send: expected a PayloadCommand, got {type(command).__name__}")
+        unhomed = [sp.joint for sp in self._linear if sp.id not in self.homed]
+        if unhomed:
+            raise NotHomedError(f"{' and '.join(unhomed)} not homed: bring_up() homes them")
         values = np.clip(np.append(command.q, command.deploy), self._lower, self._upper)
         ticks = np.rint(self._zero + self._direction * values / self._units).astype(np.int64)
         if self._stopped:
@@ -286,6 +336,14 @@ class DynamixelDriver:
         """One fast sync read (or a sync read) of current, velocity and position."""
         self._sync_read(self._reader, "feedback")
 
+    def _feedback_raw(self) -> np.ndarray:
+        """One feedback read as a record array (current, velocity, position), shape (n,)."""
+        self._feedback()
+        self._last_io = time.monotonic()
+        return np.frombuffer(
+            b"".join(bytes(self._reader.data_dict[i]) for i in self.ids), dtype=_FEEDBACK
+        )
+
     def read(self) -> PayloadState:
         """Measured positions [rad, m], velocities and efforts, with health flags.
 
@@ -293,20 +351,32 @@ class DynamixelDriver:
             CommError: The feedback could not be read within the retries.
         """
         self._check_open()
-        self._feedback()
-        stamp = self._last_io = time.monotonic()
-        self.reads += 1
         # the group's raw bytes per servo: current int16, velocity int32, position int32
-        raw = np.frombuffer(
-            b"".join(bytes(self._reader.data_dict[i]) for i in self.ids), dtype=_FEEDBACK
-        )
+        raw = self._feedback_raw()
+        stamp = self._last_io
+        self.reads += 1
         cur = raw["current"].astype(float)
         vel = raw["velocity"].astype(float)
         pos = raw["position"].astype(np.int64)
         self._present = pos
+        alerted = [i for i in self.ids if self._reader.errors.get(i, 0) & P.ALERT]
+        if alerted:
+            self.alerts += 1
         if self.reads % self.health_every == 0 or self.fault is not None:
             self.check_health()
+        elif alerted and not self._stopped:
+            self._check_alerted(alerted)
         return self._state(pos, vel, cur, stamp)
+
+    def _check_alerted(self, ids: list[int]) -> None:
+        """Hardware Error Status of the servos whose status carried the alert bit."""
+        faulted = []
+        for i in ids:
+            err = self._read_reg(i, ADDR["hardware_error_status"], 1)
+            if err:
+                faulted.append(ServoHealth(i, self.map.joint_of(i), err, 0.0, 0.0, 0))
+        if faulted:
+            self._on_hardware_error(faulted)
 
     def _state(
         self, pos: np.ndarray, vel: np.ndarray, cur: np.ndarray, stamp: float
@@ -404,7 +474,7 @@ class DynamixelDriver:
             CommError: A servo did not come back within ``timeout``.
         """
         self._check_open()
-        self.check_health() if self.fault is None else None
+        self.check_health()
         ids = [h.id for h in self.health.values() if h.hardware_error]
         t0 = time.monotonic()
         for i in ids:
@@ -420,6 +490,9 @@ class DynamixelDriver:
             if err:
                 raise HardwareFault(i, self.map.joint_of(i), hw_error_names(err))
             self._configure(self.map.by_id(i))
+        relost = [sp for sp in self._linear if sp.id in ids]
+        if relost:  # a reboot lost the multi-turn count: home again
+            self.home(relost)
         self._arm_watchdog(self.ids)
         if self.on_fault == "torque_off":
             for spec in self.map.servos:

@@ -30,6 +30,34 @@ from payload.teleop.replay import HandRecordingWriter
 log = logging.getLogger(__name__)
 
 
+def move_to_home(hardware: Any, timeout: float = 6.0) -> PayloadState:
+    """Drive the brought-up (homed) payload to the design's home posture, where every
+    simulated trial starts (homing leaves the rail and the stage stowed).
+
+    Returns:
+        The measured state there (every joint within one tick).
+
+    Raises:
+        DynamixelError: The posture was not reached within ``timeout`` [s].
+    """
+    import time
+
+    from firmware_interface.errors import DynamixelError
+    from firmware_interface.servo_map import home_command
+
+    cmd = home_command(hardware.design)
+    target = np.append(cmd.q, cmd.deploy)
+    tol = np.array([s.units_per_tick for s in hardware.map.servos]) * 1.0001
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < timeout:
+        hardware.send(cmd)
+        state = hardware.read()
+        if np.all(np.abs(np.append(state.q, state.deploy) - target) <= tol):
+            return state
+        time.sleep(0.01)
+    raise DynamixelError(f"the payload did not reach its home posture within {timeout} s")
+
+
 class HardwareInTheLoop:
     """A hardware payload with the simulated vehicle and cargo (the loop's driver).
 
@@ -168,6 +196,7 @@ def run_hardware_trial(
     )
 
     _, frames = load_replay(replay)  # a trial's log.mcap, or a hands.jsonl
+    move_to_home(hardware)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     sim = SimDriver()

@@ -275,7 +275,7 @@ HOST = textwrap.dedent(
     from payload.schema import PayloadCommand
     drv = DynamixelDriver(sys.argv[1], latency_timer_ms=50.0)
     drv.bring_up()
-    cmd = PayloadCommand(np.zeros(17), 0.0, 0.0)  # retract the stage: a long move
+    cmd = PayloadCommand(np.zeros(17), 0.075, 0.0)  # deploy the homed stage: a long move
     drv.send(cmd)
     print("moving", flush=True)
     while True:
@@ -313,7 +313,7 @@ def test_killing_the_host_stops_the_servos_within_the_watchdog_time(smap):
             assert s["watchdog_trip"] <= t_kill + wd + 0.05
             assert s["pos"] == first[i]["pos"] and s["vel"] == 0.0
             assert reg(emu.table(i), "bus_watchdog") == 0xFF  # reads -1
-        goal = smap.servos[17].to_ticks(0.0)
+        goal = smap.servos[17].to_ticks(0.075)
         assert abs(later[18]["pos"] - goal) > 500  # stopped on the way, not at the goal
 
 

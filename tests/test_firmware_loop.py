@@ -11,7 +11,7 @@ import pytest
 from firmware_interface.control_table import BY_NAME, decode
 from firmware_interface.driver import DynamixelDriver
 from firmware_interface.emulator import EmulatorProcess
-from firmware_interface.run import HardwareInTheLoop, replay_session
+from firmware_interface.run import HardwareInTheLoop, move_to_home, replay_session
 from firmware_interface.servo_map import load_servo_map
 from payload.schema import CONTROL_DT
 from payload.sim.driver import SimDriver
@@ -52,6 +52,7 @@ def test_sim_and_hardware_get_the_same_commands_from_the_same_session(session):
     with EmulatorProcess() as emu:
         with DynamixelDriver(emu.port, smap, latency_timer_ms=LAT) as drv:
             drv.bring_up()
+            move_to_home(drv)  # homing stowed the rail and the stage; the sim starts at home
             with SimDriver() as world:
                 on_hw = replay_session(HardwareInTheLoop(drv, world), frames)
             tables = emu.tables()
