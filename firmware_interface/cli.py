@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
 import time
 from pathlib import Path
@@ -122,15 +123,30 @@ def _cmd_run(args: argparse.Namespace) -> int:
     out = Path(args.out) if args.out else project.runs_dir / f"hw-{time.strftime('%Y%m%d-%H%M%S')}"
     if (out / "log.mcap").exists():
         raise HwUsageError(f"--out {out}: already holds a recording; choose another folder")
-    with DynamixelDriver(args.port, _map(args), latency_timer_ms=args.latency_ms) as drv:
-        drv.bring_up()
+    if (args.port is None) == (not args.emulator):
+        raise HwUsageError("give either --port DEVICE or --emulator")
+    with contextlib.ExitStack() as stack:
+        emu = None
+        if args.emulator:
+            from firmware_interface.emulator import EmulatorProcess
+
+            emu = stack.enter_context(EmulatorProcess(args.servos))
+        device = emu.port if emu is not None else args.port
+        drv = stack.enter_context(
+            DynamixelDriver(device, _map(args), latency_timer_ms=args.latency_ms)
+        )
         result = run_hardware_trial(drv, replay, out, max_time=args.max_time,
-                                    pace=not args.no_pace)  # fmt: skip
+                                    pace=not args.no_pace, emulator=emu)  # fmt: skip
     result["out"] = str(out)
     if args.json:
         emit_json(result)
-    else:
-        print(f"{result['steps']} steps recorded in {out}")
+        return 0
+    from payload.trials.cli import print_trial_summary
+
+    far = "the emulator" if result["emulator"] else "hardware"
+    print(f"hw run ({far} on {result['device']}), {result['steps']} steps -> {out}")
+    print(f"  Bus Watchdog: {result['watchdog']['effect']}")
+    print_trial_summary(result, f" (from {replay.name})")
     return 0
 
 
@@ -190,7 +206,12 @@ def register(
         p.set_defaults(func=fn)
 
     p = hws.add_parser("run", help="the 50 Hz teleoperation loop on the hardware")
-    p.add_argument("--port", required=True, help="serial device or emulator pty")
+    p.add_argument("--port", help="serial device or emulator pty")
+    p.add_argument(
+        "--emulator",
+        action="store_true",
+        help="start an emulated bus here instead of --port (it takes the grasp's load)",
+    )
     p.add_argument(
         "--source",
         nargs="+",

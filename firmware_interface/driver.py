@@ -29,6 +29,7 @@ from firmware_interface import protocol as P
 from firmware_interface.control_table import (
     ADDR,
     BY_NAME,
+    EMULATOR_MODEL_INFORMATION,
     VELOCITY_UNIT_RPM,
     hw_error_names,
     to_signed,
@@ -115,6 +116,9 @@ class DynamixelDriver:
         self.faults: list[HardwareFault] = []
         self.health: dict[int, ServoHealth] = {}
         self.homed: set[int] = set()
+        self.device = port
+        self.emulated = False  # the far end reports the emulator's Model Information
+        self.watchdog_trips: list[dict] = []  # {"t", "servos", "silence_s"} per trip
         self.alerts = 0  # reads whose status carried an alert bit
         self._linear = [sp for sp in self.map.servos if sp.joint in LINEAR_JOINTS]
         self._stopped = False
@@ -207,6 +211,8 @@ class DynamixelDriver:
         missing = [i for i in self.ids if i not in found]
         if missing:
             raise MissingServoError(missing, [self.map.joint_of(i) for i in missing])
+        info = self._read_reg(self.ids[0], ADDR["model_information"], 4)
+        self.emulated = info == EMULATOR_MODEL_INFORMATION
         for spec in self.map.servos:
             err = self._read_reg(spec.id, ADDR["hardware_error_status"], 1)
             if err:
@@ -241,11 +247,16 @@ class DynamixelDriver:
         log.info("homed %s", ", ".join(f"{self._name(i)} (offset {h})" for i, h in offsets.items()))
         return offsets
 
-    def _arm_watchdog(self, ids: list[int]) -> None:
+    def set_watchdog(self, armed: bool) -> None:
+        """Arm (the map's period) or disarm the Bus Watchdog of every servo: a session
+        disarms it while it sets up (no 50 Hz traffic yet) and arms it once its loop runs."""
+        self._arm_watchdog(self.ids, armed)
+
+    def _arm_watchdog(self, ids: list[int], armed: bool = True) -> None:
         """Bus Watchdog on, for all servos at once (after every servo is configured)."""
         g = GroupSyncWrite(self.port, self.packet, ADDR["bus_watchdog"], 1)
         for i in ids:
-            g.addParam(i, [self.map.watchdog_ms // 20])
+            g.addParam(i, [self.map.watchdog_ms // 20 if armed else 0])
         result = g.txPacket()
         if result != COMM_SUCCESS:
             raise CommError(f"arming the Bus Watchdog: {self.packet.getTxRxResult(result)}")
@@ -284,18 +295,23 @@ class DynamixelDriver:
         if self.map.watchdog_ms and time.monotonic() - self._last_io > self.map.watchdog_ms / 1e3:
             # silent for longer than the Bus Watchdog: servos that stopped refuse goals
             # until it is cleared, so re-arm them first
-            self._rearm_watchdog()
+            self._rearm_watchdog(time.monotonic() - self._last_io)
         self._sync_write_goals(ticks)
         self._last_io = time.monotonic()
 
-    def _rearm_watchdog(self) -> None:
-        """Clear and re-arm the servos whose Bus Watchdog tripped (two sync writes)."""
+    def _rearm_watchdog(self, silence: float) -> None:
+        """Clear and re-arm the servos whose Bus Watchdog tripped (two sync writes);
+        ``silence``: how long the host had been silent [s] (recorded with the trip)."""
         wd = self._group_read(ADDR["bus_watchdog"], 1)
         tripped = [i for i in self.ids if wd.getData(i, ADDR["bus_watchdog"], 1) == 0xFF]
         if not tripped:
             return
-        log.warning("Bus Watchdog tripped on %s; re-arming",
-                    ", ".join(self._name(i) for i in tripped))  # fmt: skip
+        self.watchdog_trips.append(
+            {"t": time.monotonic(), "servos": tripped, "silence_s": round(silence, 4)}
+        )
+        log.warning("Bus Watchdog tripped on %d servo(s) after %.0f ms of host silence: "
+                    "they held still until now; re-arming", len(tripped),
+                    silence * 1e3)  # fmt: skip
         clear = GroupSyncWrite(self.port, self.packet, ADDR["bus_watchdog"], 1)
         for i in tripped:
             clear.addParam(i, [0])
@@ -437,7 +453,7 @@ class DynamixelDriver:
             )
         self.health = out
         if any(h.watchdog == 0xFF for h in out.values()) and not self._stopped:
-            self._rearm_watchdog()
+            self._rearm_watchdog(0.0)
         faulted = [h for h in out.values() if h.hardware_error]
         if faulted and (self.fault is None or not self._stopped):
             self._on_hardware_error(faulted)

@@ -32,6 +32,7 @@ from firmware_interface.control_table import (
     BY_ADDRESS,
     BY_NAME,
     EEPROM_END,
+    EMULATOR_MODEL_INFORMATION,
     HW_ERROR_BITS,
     REGISTERS,
     TABLE_SIZE,
@@ -74,6 +75,7 @@ class ServoModel:
         for reg in REGISTERS:
             self._set(reg.name, reg.default)
         self._set("id", dxl_id)
+        self._set("model_information", EMULATOR_MODEL_INFORMATION)
         self.pos = float(position)
         self.origin = 0.0  # physical position of count 0 [ticks], whole turns
         self.stops = stops

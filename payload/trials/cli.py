@@ -81,8 +81,6 @@ def _cmd_trial(args: argparse.Namespace) -> int:
     if args.json:
         emit_json({**result, "project": str(project.root)})
         return 0
-    from payload.trials.campaign import METRIC_KEYS, METRIC_LABELS
-
     print(f"trial seed {seed} ({operator}) -> {out}")
     given = ""
     if operator == "replay":
@@ -90,6 +88,19 @@ def _cmd_trial(args: argparse.Namespace) -> int:
         given = " (the recording's)"
         if names:
             given = f" (given: {', '.join(names)}; the rest the recording's)"
+    print_trial_summary(result, given)
+    return 0
+
+
+def print_trial_summary(result: dict[str, Any], given: str = "") -> None:
+    """Print a trial's set-up, success and metrics (``payload trial``, ``payload hw run``).
+
+    Args:
+        result: The trial's metrics (``metrics.json``).
+        given: Where the set-up came from, appended to its line.
+    """
+    from payload.trials.campaign import METRIC_KEYS, METRIC_LABELS
+
     modelled = "modelled" if result.get("retarget_collisions") else "off"
     print(
         f"  setup: CTB {result.get('ctb')}, {result.get('propulsion')} propulsion, "
@@ -101,7 +112,6 @@ def _cmd_trial(args: argparse.Namespace) -> int:
         value = result.get(key)
         shown = "n/a" if value is None else f"{value:.3f}"
         print(f"  {METRIC_LABELS[key]}: {shown}")
-    return 0
 
 
 def _cmd_trials_run(args: argparse.Namespace) -> int:
