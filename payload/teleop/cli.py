@@ -36,7 +36,8 @@ def status_line(status: dict[str, Any], lat: dict[str, float]) -> str:
     age = status["frame_age_ms"]
     refused = " ".join(f"{k}={v}" for k, v in d.items() if v)
     return (
-        f"{status['state']:<11} clients={status['clients']} frames={status['frames']} "
+        f"{status['state']:<11} [{status.get('driver', 'simulator')}] "
+        f"clients={status['clients']} frames={status['frames']} "
         f"age={_ms(age['median'])}/{_ms(age['p99'])} ms "
         f"latency={_ms(lat['median'])}/{_ms(lat['p99'])} ms "
         f"overruns={status['loop_overruns']} dropped: {refused or 'none'}"
@@ -83,18 +84,27 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     from payload.cli import command_project
     from payload.teleop.live import LiveHub
     from payload.teleop.server import TeleopServer, is_local, new_token
-    from payload.teleop.tls import ensure_certificate, fingerprint, server_context
+    from payload.teleop.tls import CA_NAME, ensure_certificate, fingerprint, server_context
 
     command_project(args)  # the simulator and the retargeters read this project's models
     record = Path(args.record) if args.record else None
     _check_record(record)
     local = is_local(args.host)
     ssl_context, token = None, None
-    if not local or args.tls:
+    if (args.cert is None) != (args.key is None):
+        raise TeleopCliError("--cert and --key go together (a certificate and its key)")
+    if args.cert is not None:
+        cert, key = Path(args.cert), Path(args.key)
+        ssl_context = server_context(cert, key)
+        print(f"TLS certificate (yours): {cert}")
+        print(f"  SHA-256 fingerprint {fingerprint(cert)}")
+    elif not local or args.tls:
         cert, key, made = ensure_certificate(args.host)
         ssl_context = server_context(cert, key)
         print(f"TLS certificate {'made' if made else 'kept'}: {cert}")
         print(f"  SHA-256 fingerprint {fingerprint(cert)}")
+        print(f"  the headset trusts it through the CA {cert.parent / CA_NAME}"
+              f"{' (new: install it on the headset again)' if made else ''}")  # fmt: skip
     if not local:
         token = new_token()
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
@@ -102,6 +112,8 @@ def _cmd_serve(args: argparse.Namespace) -> int:
 
     hub = LiveHub()
     payload = _hardware_driver(args.device) if args.driver == "hardware" else None
+    if payload is not None:
+        hub.driver = f"hardware on {args.device}" + (" (emulator)" if payload.emulated else "")
     print("loading the simulator and the retargeters ...", flush=True)
     session = LiveSession(hub, record, payload=payload, collisions=args.retarget_collisions)
     server = TeleopServer(
@@ -171,6 +183,8 @@ def register(
     p.add_argument("--port", type=_port, default=8765)
     p.add_argument("--record", help="record the session as a trial into this folder")
     p.add_argument("--tls", action="store_true", help="use TLS on a local bind too")
+    p.add_argument("--cert", help="your TLS certificate (PEM) instead of the made one")
+    p.add_argument("--key", help="the key of --cert (PEM)")
     p.add_argument(
         "--retarget-collisions",
         action=argparse.BooleanOptionalAction,
