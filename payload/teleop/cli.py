@@ -116,8 +116,22 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         hub.driver = f"hardware on {args.device}" + (" (emulator)" if payload.emulated else "")
     print("loading the simulator and the retargeters ...", flush=True)
     session = LiveSession(hub, record, payload=payload, collisions=args.retarget_collisions)
+    desktop = None
+    if args.desktop:
+        from payload.teleop.emulate import EmulationError, find_iwer
+
+        try:
+            desktop = find_iwer()
+        except EmulationError as exc:
+            raise TeleopCliError(f"--desktop: {exc}") from None
     server = TeleopServer(
-        hub, args.host, args.port, ssl_context=ssl_context, token=token, scene=session.scene
+        hub,
+        args.host,
+        args.port,
+        ssl_context=ssl_context,
+        token=token,
+        scene=session.scene,
+        desktop=desktop,
     ).start()
     if args.host in ("0.0.0.0", "::"):
         from payload.teleop.tls import lan_addresses
@@ -183,6 +197,12 @@ def register(
     p.add_argument("--port", type=_port, default=8765)
     p.add_argument("--record", help="record the session as a trial into this folder")
     p.add_argument("--tls", action="store_true", help="use TLS on a local bind too")
+    p.add_argument(
+        "--desktop",
+        action="store_true",
+        help="also serve the desktop mode: an emulated headset driven by the keyboard "
+        "(iwer from node_modules)",
+    )
     p.add_argument("--cert", help="your TLS certificate (PEM) instead of the made one")
     p.add_argument("--key", help="the key of --cert (PEM)")
     p.add_argument(

@@ -71,6 +71,7 @@ MIN_TOKEN_CHARS = 16  # new_token() makes 22 (128 bits)
 HEADSET_MAX_HZ = 120.0  # the fastest display rate of the Quest headsets (one frame each)
 RATE_LIMIT_HZ = 2.0 * HEADSET_MAX_HZ
 RATE_BURST = 0.1 * RATE_LIMIT_HZ  # messages a connection may send at once (0.1 s worth)
+DESKTOP_SCRIPTS = b'<script src="/iwer.js"></script>\n<script src="/desktop.js"></script>\n'
 MAX_CLIENTS = 4  # open WebSocket connections: an operator, a spare page, a few watchers
 
 
@@ -162,6 +163,8 @@ class TeleopServer:
         token: Session token; required unless the bind is local (made when None).
         scene: What the page needs to draw the world (sent in ``hello``).
         web_dir: The page's folder.
+        desktop: iwer's browser build: serve the desktop mode (an emulated headset driven
+            by the keyboard, ``web/desktop/desktop.js``) with the page; None: never.
     """
 
     def __init__(
@@ -174,6 +177,7 @@ class TeleopServer:
         token: str | None = None,
         scene: dict[str, Any] | None = None,
         web_dir: Path = WEB_DIR,
+        desktop: Path | None = None,
     ) -> None:
         self.hub = hub
         self.host = host
@@ -189,6 +193,10 @@ class TeleopServer:
         self.token = token if token is not None or self.local else new_token()
         self.scene = scene or {}
         self.files = page_files(web_dir)
+        self.desktop = desktop is not None
+        if desktop is not None:
+            self.files["/iwer.js"] = desktop
+            self.files["/desktop.js"] = web_dir / "desktop" / "desktop.js"
         self._server: Server | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._thread: threading.Thread | None = None
@@ -267,7 +275,12 @@ class TeleopServer:
         ctype = mimetypes.guess_type(file.name)[0] or "application/octet-stream"
         if file.suffix == ".js":
             ctype = "text/javascript"
-        return _response(200, file.read_bytes(), f"{ctype}; charset=utf-8")
+        body = file.read_bytes()
+        if self.desktop and file.name == "index.html":  # the emulated headset first
+            body = body.replace(
+                b'<script type="module"', DESKTOP_SCRIPTS + b'<script type="module"'
+            )
+        return _response(200, body, f"{ctype}; charset=utf-8")
 
     # -- WebSocket -------------------------------------------------------------------------
     async def _handler(self, ws: ServerConnection) -> None:
