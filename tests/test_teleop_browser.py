@@ -193,7 +193,14 @@ def test_page_with_the_hardware_driver_over_the_emulator_says_hardware_and_fits(
         argv = [sys.executable, "-c", code, "teleop", "serve", "--driver", "hardware",
                 "--device", emu.port, "--port", "0", "--seconds", "120",
                 "--status-interval", "0.5"]  # fmt: skip
-        proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        # Ctrl-C reaches it even when this process ignores SIGINT (a background job)
+        proc = subprocess.Popen(
+            argv,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+        )
         try:
             url = None
             for line in proc.stdout:
@@ -223,7 +230,7 @@ def test_page_with_the_hardware_driver_over_the_emulator_says_hardware_and_fits(
         finally:
             proc.send_signal(signal.SIGINT)
             try:
-                _, err = proc.communicate(timeout=60)
+                _, err = proc.communicate(timeout=30)
             except subprocess.TimeoutExpired:
                 proc.kill()
                 _, err = proc.communicate()

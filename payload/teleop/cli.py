@@ -149,8 +149,10 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         target=_status_printer, args=(hub, stop_status, args.status_interval), daemon=True
     )
     printer.start()
-    if args.seconds:
-        threading.Timer(args.seconds, hub.stop.set).start()
+    if args.seconds:  # a daemon: Ctrl-C before it fires must not wait for it
+        timer = threading.Timer(args.seconds, hub.stop.set)
+        timer.daemon = True
+        timer.start()
     try:
         session.run()
     except KeyboardInterrupt:
