@@ -626,16 +626,17 @@ def test_a_2khz_client_is_rate_limited_while_a_50hz_loop_keeps_its_rate(local_se
     halt.set()
     worker.join(5)
     sent = json.loads(proc.stdout)
-    assert sent["sent"] / sent["seconds"] > 1500  # it really flooded
+    # it really flooded (2 kHz asked; a loaded machine may send a little less)
+    assert sent["sent"] / sent["seconds"] > 1500, sent
     st = hub.status()
     taken = st["frames"] + st["dropped"]["out_of_order"]
     limited = st["dropped"]["rate_limited"]
     wait_for(lambda: hub.status()["frames"] + hub.status()["dropped"]["rate_limited"] > 0)
-    assert limited > sent["sent"] / 2  # most of it dropped, and counted
-    assert taken <= RATE_BURST + RATE_LIMIT_HZ * sent["seconds"] * 1.1 + 5
+    assert limited > sent["sent"] / 2, (sent, st)  # most of it dropped, and counted
+    assert taken <= RATE_BURST + RATE_LIMIT_HZ * sent["seconds"] * 1.1 + 5, (sent, st)
     # the loop kept 50 Hz: as many steps as the wall time allows
     span = periods[-1] - periods[0]
-    assert (len(periods) - 1) / span == pytest.approx(50.0, rel=0.05)
+    assert (len(periods) - 1) / span == pytest.approx(50.0, rel=0.05), (len(periods), span)
 
 
 def test_an_empty_or_short_token_is_refused():
@@ -647,7 +648,8 @@ def test_an_empty_or_short_token_is_refused():
 
 
 def test_the_size_limit_counts_bytes_not_characters():
-    text = json.dumps({"type": "frame", "pad": "\u20ac" * (MAX_MESSAGE_BYTES // 2)})
+    pad = "\u20ac" * (MAX_MESSAGE_BYTES // 2)  # 3 bytes each in UTF-8
+    text = json.dumps({"type": "frame", "pad": pad}, ensure_ascii=False)
     assert len(text) < MAX_MESSAGE_BYTES < len(text.encode())
     with pytest.raises(MessageError) as info:
         parse_message(text)

@@ -66,14 +66,20 @@ def _check_record(record: Path | None) -> None:
 
 
 def _hardware_driver(device: str | None) -> Any:
-    """The Dynamixel payload driver (``firmware_interface``), brought up on ``device``."""
+    """The Dynamixel payload driver (``firmware_interface``), brought up on ``device`` (the
+    rail and the stage homed), at the design's home posture where the simulated session
+    starts, its Bus Watchdog disarmed until the session's loop runs (the simulator and the
+    retargeters load for seconds first)."""
     from firmware_interface import DynamixelDriver
+    from firmware_interface.run import move_to_home
 
     if not device:
         raise TeleopCliError("--driver hardware needs --device PORT (the servo bus's serial port)")
     driver = DynamixelDriver(device)
     try:
         driver.bring_up()
+        move_to_home(driver)
+        driver.set_watchdog(False)
     except BaseException:
         driver.close()
         raise
