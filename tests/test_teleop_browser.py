@@ -139,8 +139,8 @@ def test_missing_browser_fails_in_ci_and_skips_elsewhere(monkeypatch):
 
 # -- the page itself: status line, driver, layout, desktop mode --------------------------------
 QUEST_BROWSER = {"width": 1280, "height": 720}
-"""The Quest Browser's 2D window in CSS pixels at its default zoom (ASSUMPTION: Meta
-documents the panel as 1280 wide; 720 its default height)."""
+"""The Quest Browser's 2D window in CSS pixels at its default zoom (ASSUMPTION: no source
+at hand gives it; 1280x720 is the usual default of a headset's browser panel)."""
 
 
 class _Page:
