@@ -141,7 +141,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     if args.json:
         emit_json(result)
         return 0
-    from payload.trials.cli import print_trial_summary
+    from payload.trials.summary import print_trial_summary
 
     far = "the emulator" if result["emulator"] else "hardware"
     print(f"hw run ({far} on {result['device']}), {result['steps']} steps -> {out}")

@@ -88,30 +88,10 @@ def _cmd_trial(args: argparse.Namespace) -> int:
         given = " (the recording's)"
         if names:
             given = f" (given: {', '.join(names)}; the rest the recording's)"
+    from payload.trials.summary import print_trial_summary
+
     print_trial_summary(result, given)
     return 0
-
-
-def print_trial_summary(result: dict[str, Any], given: str = "") -> None:
-    """Print a trial's set-up, success and metrics (``payload trial``, ``payload hw run``).
-
-    Args:
-        result: The trial's metrics (``metrics.json``).
-        given: Where the set-up came from, appended to its line.
-    """
-    from payload.trials.campaign import METRIC_KEYS, METRIC_LABELS
-
-    modelled = "modelled" if result.get("retarget_collisions") else "off"
-    print(
-        f"  setup: CTB {result.get('ctb')}, {result.get('propulsion')} propulsion, "
-        f"retargeting budget {result.get('retarget_budget')}, self-collision "
-        f"{modelled}{given}"
-    )
-    print(f"  success: {bool(result.get('success'))}")
-    for key in METRIC_KEYS:
-        value = result.get(key)
-        shown = "n/a" if value is None else f"{value:.3f}"
-        print(f"  {METRIC_LABELS[key]}: {shown}")
 
 
 def _cmd_trials_run(args: argparse.Namespace) -> int:
