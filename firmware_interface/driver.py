@@ -125,6 +125,7 @@ class DynamixelDriver(FaultHandling):
         self._stopped = False
         self._closed = True
         self._last_io = time.monotonic()
+        self._gap = 0.0
         self._present = np.zeros(len(self.ids), dtype=np.int64)
         s = self.design.servo
         self._kt = s.stall_torque / s.stall_current  # [N m / A]
@@ -356,7 +357,9 @@ class DynamixelDriver(FaultHandling):
     def _feedback_raw(self) -> np.ndarray:
         """One feedback read as a record array (current, velocity, position), shape (n,)."""
         self._feedback()
-        self._last_io = time.monotonic()
+        now = time.monotonic()
+        self._gap = now - self._last_io  # the host's silence before this read [s]
+        self._last_io = now
         return np.frombuffer(
             b"".join(bytes(self._reader.data_dict[i]) for i in self.ids), dtype=_FEEDBACK
         )

@@ -35,6 +35,7 @@ class FaultHandling:
     health: dict[int, ServoHealth]
     _stopped: bool
     _present: Any
+    _gap: float
 
     def _check_alerted(self, ids: list[int]) -> None:
         """Hardware Error Status of the servos whose status carried the alert bit."""
@@ -87,7 +88,7 @@ class FaultHandling:
             )
         self.health = out
         if any(h.watchdog == 0xFF for h in out.values()) and not self._stopped:
-            self._rearm_watchdog(0.0)
+            self._rearm_watchdog(self._gap)
         faulted = [h for h in out.values() if h.hardware_error]
         if faulted and (self.fault is None or not self._stopped):
             self._on_hardware_error(faulted)

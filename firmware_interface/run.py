@@ -196,10 +196,11 @@ def replay_session(
     return commands
 
 
-ARM_AFTER_STEPS = 2
-"""The Bus Watchdog is armed after this many loop steps: the first steps of a session
-build what they use once (measured: one step of ~0.4 s on the emulator rig), longer than
-the watchdog's period, which would trip it on a healthy session."""
+ARM_AFTER_STEPS = 25
+"""The Bus Watchdog is armed after this many loop steps (half a second): the first steps
+of a session build what they use once (measured on the emulator rig: the third step
+~0.4 s, under load), longer than the watchdog's period, which would trip it on a
+healthy session."""
 
 
 def _replay_setup(sim_project: Any, recorded: dict[str, Any]) -> tuple[Any, dict, Any]:

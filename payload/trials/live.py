@@ -80,7 +80,7 @@ class PayloadRig:
     simulator's.
     """
 
-    ARM_AFTER_SENDS = 3
+    ARM_AFTER_SENDS = 25  # half a second of the loop: past its first steps' one-off set-up
     """A payload whose Bus Watchdog was left disarmed while the session set up (see
     ``payload teleop serve --driver hardware``) has it armed once the loop runs."""
 
