@@ -44,10 +44,16 @@ class Bus:
         baud: Bus baud rate [bit/s] (the servos' Baud Rate register is set to match).
         seed: Seed of the fault dice.
         now: Start time [s].
+        stops: Servo ID -> hard stops ``(low, high)`` [ticks] (the rail's and the stage's).
     """
 
     def __init__(
-        self, positions: dict[int, int], baud: int = 4_000_000, seed: int = 0, now: float = 0.0
+        self,
+        positions: dict[int, int],
+        baud: int = 4_000_000,
+        seed: int = 0,
+        now: float = 0.0,
+        stops: dict[int, tuple[float, float]] | None = None,
     ) -> None:
         code = {v: k for k, v in BAUD_RATES.items()}.get(baud)
         if code is None:
@@ -55,7 +61,7 @@ class Bus:
         self.baud = baud
         self.servos: dict[int, ServoModel] = {}
         for dxl_id, pos in positions.items():
-            s = ServoModel(dxl_id, pos, now)
+            s = ServoModel(dxl_id, pos, now, (stops or {}).get(dxl_id))
             s.table[ADDR["baud_rate"]] = code
             self.servos[dxl_id] = s
         self.missing: set[int] = set()
@@ -83,6 +89,11 @@ class Bus:
             self.servos[int(fault.id)].set_error(str(fault.bit))
         elif fault.kind == "block":
             self.servos[int(fault.id)].blocked = True
+
+    def power_cycle(self) -> None:
+        """Every servo off and on again (EEPROM kept, multi-turn counts lost)."""
+        for s in self.servos.values():
+            s.power_cycle()
 
     def clear_faults(self) -> None:
         """Remove the bus faults (missing IDs, corruption, drops, latency, blocks)."""

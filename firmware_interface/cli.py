@@ -8,6 +8,7 @@ FILE``, its earlier spelling, likewise).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
 from pathlib import Path
 from typing import Any
@@ -126,20 +127,34 @@ def _cmd_run(args: argparse.Namespace) -> int:
     from payload.design import models_follow_design
 
     models_follow_design(project.design_path, project.root, json=args.json)
-    device = need_device(args)
     replay = _replay_of(args)
     if args.out and (Path(args.out) / "log.mcap").exists():
         raise HwUsageError(f"--out {args.out}: already holds a recording; choose another folder")
     out = Path(args.out) if args.out else default_out(project, "hw")
-    with DynamixelDriver(device, _map(args), latency_timer_ms=args.latency_ms) as drv:
-        drv.bring_up()
+    if (getattr(args, "device", None) is None) == (not args.emulator):
+        raise HwUsageError("give either --device DEV or --emulator")
+    with contextlib.ExitStack() as stack:
+        emu = None
+        if args.emulator:
+            from firmware_interface.emulator import EmulatorProcess
+
+            emu = stack.enter_context(EmulatorProcess(args.servos))
+        device = emu.port if emu is not None else need_device(args)
+        drv = stack.enter_context(
+            DynamixelDriver(device, _map(args), latency_timer_ms=args.latency_ms)
+        )
         result = run_hardware_trial(drv, replay, out, max_time=args.max_time,
-                                    pace=not args.no_pace)  # fmt: skip
+                                    pace=not args.no_pace, emulator=emu)  # fmt: skip
     result["out"] = str(out)
     if args.json:
         emit_json(result)
-    else:
-        print(f"{result['steps']} steps recorded in {out}")
+        return 0
+    from payload.trials.summary import print_trial_summary
+
+    far = "the emulator" if result["emulator"] else "hardware"
+    print(f"hw run ({far} on {result['device']}), {result['steps']} steps -> {out}")
+    print(f"  Bus Watchdog: {result['watchdog']['effect']}")
+    print_trial_summary(result, f" (from {replay.name})")
     return 0
 
 
@@ -227,7 +242,13 @@ def register(
         p.set_defaults(func=fn)
 
     p = hws.add_parser("run", help="the 50 Hz teleoperation loop on the hardware")
-    add_device(p, "serial device of the servo bus or an emulator's pty (required)", old_port=True)
+    add_device(p, "serial device of the servo bus or an emulator's pty (or --emulator)",
+               old_port=True)  # fmt: skip
+    p.add_argument(
+        "--emulator",
+        action="store_true",
+        help="start an emulated bus here instead of --device (it takes the grasp's load)",
+    )
     add_replay(p, "the recorded hands to replay (required): a trial's log.mcap or a hands.jsonl")
     add_deprecated(p, "--source", "--replay FILE", "source", nargs="+", metavar="SRC",
                    help="'replay FILE'")  # fmt: skip

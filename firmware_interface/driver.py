@@ -7,9 +7,13 @@ Bring-up follows the LEAP hand's: torque off, Return Delay Time, Operating Mode 
 one sync write of the 18 goal positions (:meth:`send`) and one fast sync read of present
 current, velocity and position (:meth:`read`, falling back to a plain sync read); every
 ``health_every`` reads, Hardware Error Status, Bus Watchdog, input voltage and
-temperature are read too. A hardware error stops the payload safely (``hold``: every
-servo holds where it is; ``torque_off``) and :meth:`recover` reboots the servo, restores
-its settings and returns it to service.
+temperature are read too. Every read also looks at each servo's status error byte: its
+alert bit (bit 7) means a latched hardware error, and Hardware Error Status of those
+servos is read in the same cycle, so the safe stop follows within one control period.
+A hardware error stops the payload safely (``hold``: every servo holds where it is;
+``torque_off``) and :meth:`recover` reboots the servo, restores its settings and returns
+it to service. The rail and the stage are homed at bring-up and after a reboot of either
+(:mod:`firmware_interface.homing`); until then :meth:`send` refuses every command.
 """
 
 from __future__ import annotations
@@ -21,16 +25,33 @@ from types import TracebackType
 import numpy as np
 from dynamixel_sdk import COMM_SUCCESS, GroupSyncRead, GroupSyncWrite, PacketHandler
 
-from firmware_interface.control_table import ADDR, VELOCITY_UNIT_RPM, hw_error_names, to_signed
+from firmware_interface import protocol as P
+from firmware_interface.control_table import (
+    ADDR,
+    BY_NAME,
+    EMULATOR_MODEL_INFORMATION,
+    VELOCITY_UNIT_RPM,
+    hw_error_names,
+    to_signed,
+)
 from firmware_interface.errors import (
     CommError,
     DynamixelError,
     HardwareFault,
     MissingServoError,
+    NotHomedError,
 )
-from firmware_interface.health import Recovery, ServoHealth
-from firmware_interface.port import SdkPort
-from firmware_interface.servo_map import LINEAR_JOINTS, ServoMap, ServoSpec, load_servo_map
+from firmware_interface.fault_handling import FaultHandling
+from firmware_interface.health import ServoHealth
+from firmware_interface.homing import home_linear
+from firmware_interface.port import AlertSyncRead, SdkPort
+from firmware_interface.servo_map import (
+    LINEAR_JOINTS,
+    ServoMap,
+    ServoSpec,
+    load_servo_map,
+    travel_ticks,
+)
 from payload.design.params import Design, load_design
 from payload.schema import Health, PayloadCommand, PayloadState
 
@@ -49,7 +70,7 @@ def _gains(spec: ServoSpec) -> tuple[int, int, int]:
     return GAINS["abduction"] if spec.joint.endswith("mcp_abd") else GAINS["finger"]
 
 
-class DynamixelDriver:
+class DynamixelDriver(FaultHandling):
     """The hardware payload (see the module docstring).
 
     Args:
@@ -95,9 +116,16 @@ class DynamixelDriver:
         self.fault: HardwareFault | None = None
         self.faults: list[HardwareFault] = []
         self.health: dict[int, ServoHealth] = {}
+        self.homed: set[int] = set()
+        self.device = port
+        self.emulated = False  # the far end reports the emulator's Model Information
+        self.watchdog_trips: list[dict] = []  # {"t", "servos", "silence_s"} per trip
+        self.alerts = 0  # reads whose status carried an alert bit
+        self._linear = [sp for sp in self.map.servos if sp.joint in LINEAR_JOINTS]
         self._stopped = False
         self._closed = True
         self._last_io = time.monotonic()
+        self._gap = 0.0
         self._present = np.zeros(len(self.ids), dtype=np.int64)
         s = self.design.servo
         self._kt = s.stall_torque / s.stall_current  # [N m / A]
@@ -120,7 +148,7 @@ class DynamixelDriver:
         if poll_timeout > 0 and getattr(self.port, "ser", None) is not None:
             self.port.ser.timeout = poll_timeout
         self._writer = GroupSyncWrite(self.port, self.packet, ADDR["goal_position"], 4)
-        self._reader = GroupSyncRead(self.port, self.packet, FEEDBACK_ADDR, FEEDBACK_LEN)
+        self._reader = AlertSyncRead(self.port, self.packet, FEEDBACK_ADDR, FEEDBACK_LEN)
         for i in self.ids:
             self._writer.addParam(i, [0, 0, 0, 0])
             self._reader.addParam(i)
@@ -131,8 +159,7 @@ class DynamixelDriver:
 
     def _write(self, dxl_id: int, name: str, value: int) -> None:
         """Write one register and check the status (retried on a timeout or CRC error)."""
-        addr = ADDR[name]
-        size = {64: 1, 9: 1, 11: 1, 98: 1}.get(addr, 4 if addr in (116, 20) else 2)
+        addr, size = ADDR[name], BY_NAME[name].size
         fn = {1: self.packet.write1ByteTxRx, 2: self.packet.write2ByteTxRx,
               4: self.packet.write4ByteTxRx}[size]  # fmt: skip
         for attempt in range(self.retries + 1):
@@ -186,19 +213,52 @@ class DynamixelDriver:
         missing = [i for i in self.ids if i not in found]
         if missing:
             raise MissingServoError(missing, [self.map.joint_of(i) for i in missing])
+        info = self._read_reg(self.ids[0], ADDR["model_information"], 4)
+        self.emulated = info == EMULATOR_MODEL_INFORMATION
         for spec in self.map.servos:
             err = self._read_reg(spec.id, ADDR["hardware_error_status"], 1)
             if err:
                 raise HardwareFault(spec.id, spec.joint, hw_error_names(err))
             self._configure(spec)
+        self.home()
         self._arm_watchdog(self.ids)
         self._last_io = time.monotonic()
 
-    def _arm_watchdog(self, ids: list[int]) -> None:
+    def home(self, specs: list[ServoSpec] | None = None) -> dict[int, int]:
+        """Home the rail and the stage (default both): a current-limited move to the stowed
+        hard stop, Homing Offset set from it (see :mod:`firmware_interface.homing`).
+
+        Returns:
+            ID -> the Homing Offset written [ticks].
+
+        Raises:
+            HomingError: A servo did not reach its stop in time.
+        """
+        specs = self._linear if specs is None else specs
+        for sp in specs:
+            self.homed.discard(sp.id)
+        spans = {i: hi - lo for i, (lo, hi) in travel_ticks(self.map, self.design).items()}
+
+        def feedback() -> tuple[np.ndarray, np.ndarray]:
+            raw = self._feedback_raw()
+            return raw["current"].astype(float), raw["position"].astype(np.int64)
+
+        offsets = home_linear(self._write, self._read_reg, feedback, self.ids, specs, spans,
+                              self.map.current_limit_ma)  # fmt: skip
+        self.homed.update(sp.id for sp in specs)
+        log.info("homed %s", ", ".join(f"{self._name(i)} (offset {h})" for i, h in offsets.items()))
+        return offsets
+
+    def set_watchdog(self, armed: bool) -> None:
+        """Arm (the map's period) or disarm the Bus Watchdog of every servo: a session
+        disarms it while it sets up (no 50 Hz traffic yet) and arms it once its loop runs."""
+        self._arm_watchdog(self.ids, armed)
+
+    def _arm_watchdog(self, ids: list[int], armed: bool = True) -> None:
         """Bus Watchdog on, for all servos at once (after every servo is configured)."""
         g = GroupSyncWrite(self.port, self.packet, ADDR["bus_watchdog"], 1)
         for i in ids:
-            g.addParam(i, [self.map.watchdog_ms // 20])
+            g.addParam(i, [self.map.watchdog_ms // 20 if armed else 0])
         result = g.txPacket()
         if result != COMM_SUCCESS:
             raise CommError(f"arming the Bus Watchdog: {self.packet.getTxRxResult(result)}")
@@ -227,6 +287,9 @@ class DynamixelDriver:
         self._check_open()
         if not isinstance(command, PayloadCommand):
             raise DynamixelError(f"send: expected a PayloadCommand, got {type(command).__name__}")
+        unhomed = [sp.joint for sp in self._linear if sp.id not in self.homed]
+        if unhomed:
+            raise NotHomedError(f"{' and '.join(unhomed)} not homed: bring_up() homes them")
         values = np.clip(np.append(command.q, command.deploy), self._lower, self._upper)
         ticks = np.rint(self._zero + self._direction * values / self._units).astype(np.int64)
         if self._stopped:
@@ -234,18 +297,23 @@ class DynamixelDriver:
         if self.map.watchdog_ms and time.monotonic() - self._last_io > self.map.watchdog_ms / 1e3:
             # silent for longer than the Bus Watchdog: servos that stopped refuse goals
             # until it is cleared, so re-arm them first
-            self._rearm_watchdog()
+            self._rearm_watchdog(time.monotonic() - self._last_io)
         self._sync_write_goals(ticks)
         self._last_io = time.monotonic()
 
-    def _rearm_watchdog(self) -> None:
-        """Clear and re-arm the servos whose Bus Watchdog tripped (two sync writes)."""
+    def _rearm_watchdog(self, silence: float) -> None:
+        """Clear and re-arm the servos whose Bus Watchdog tripped (two sync writes);
+        ``silence``: how long the host had been silent [s] (recorded with the trip)."""
         wd = self._group_read(ADDR["bus_watchdog"], 1)
         tripped = [i for i in self.ids if wd.getData(i, ADDR["bus_watchdog"], 1) == 0xFF]
         if not tripped:
             return
-        log.warning("Bus Watchdog tripped on %s; re-arming",
-                    ", ".join(self._name(i) for i in tripped))  # fmt: skip
+        self.watchdog_trips.append(
+            {"t": time.monotonic(), "servos": tripped, "silence_s": round(silence, 4)}
+        )
+        log.warning("Bus Watchdog tripped on %d servo(s) after %.0f ms of host silence: "
+                    "they held still until now; re-arming", len(tripped),
+                    silence * 1e3)  # fmt: skip
         clear = GroupSyncWrite(self.port, self.packet, ADDR["bus_watchdog"], 1)
         for i in tripped:
             clear.addParam(i, [0])
@@ -286,6 +354,16 @@ class DynamixelDriver:
         """One fast sync read (or a sync read) of current, velocity and position."""
         self._sync_read(self._reader, "feedback")
 
+    def _feedback_raw(self) -> np.ndarray:
+        """One feedback read as a record array (current, velocity, position), shape (n,)."""
+        self._feedback()
+        now = time.monotonic()
+        self._gap = now - self._last_io  # the host's silence before this read [s]
+        self._last_io = now
+        return np.frombuffer(
+            b"".join(bytes(self._reader.data_dict[i]) for i in self.ids), dtype=_FEEDBACK
+        )
+
     def read(self) -> PayloadState:
         """Measured positions [rad, m], velocities and efforts, with health flags.
 
@@ -293,19 +371,21 @@ class DynamixelDriver:
             CommError: The feedback could not be read within the retries.
         """
         self._check_open()
-        self._feedback()
-        stamp = self._last_io = time.monotonic()
-        self.reads += 1
         # the group's raw bytes per servo: current int16, velocity int32, position int32
-        raw = np.frombuffer(
-            b"".join(bytes(self._reader.data_dict[i]) for i in self.ids), dtype=_FEEDBACK
-        )
+        raw = self._feedback_raw()
+        stamp = self._last_io
+        self.reads += 1
         cur = raw["current"].astype(float)
         vel = raw["velocity"].astype(float)
         pos = raw["position"].astype(np.int64)
         self._present = pos
+        alerted = [i for i in self.ids if self._reader.errors.get(i, 0) & P.ALERT]
+        if alerted:
+            self.alerts += 1
         if self.reads % self.health_every == 0 or self.fault is not None:
             self.check_health()
+        elif alerted and not self._stopped:
+            self._check_alerted(alerted)
         return self._state(pos, vel, cur, stamp)
 
     def _state(
@@ -325,113 +405,6 @@ class DynamixelDriver:
         if np.any((q[:-1] <= lo + 1e-4) | (q[:-1] >= hi - 1e-4)):
             health |= Health.LIMIT
         return PayloadState(q[:-1], float(q[-1]), stamp, dq[:-1], effort[:-1], health)
-
-    # -- health, faults, recovery ------------------------------------------------------------
-    def _group_read(self, address: int, size: int) -> GroupSyncRead:
-        g = GroupSyncRead(self.port, self.packet, address, size)
-        for i in self.ids:
-            g.addParam(i)
-        self._sync_read(g, f"address {address}")
-        return g
-
-    def read_health(self, dxl_id: int) -> ServoHealth:
-        """One servo's health, read register by register (works with servos missing)."""
-        return ServoHealth(
-            dxl_id,
-            self.map.joint_of(dxl_id),
-            self._read_reg(dxl_id, ADDR["hardware_error_status"], 1),
-            float(self._read_reg(dxl_id, ADDR["present_temperature"], 1)),
-            self._read_reg(dxl_id, ADDR["present_input_voltage"], 2) * 0.1,
-            self._read_reg(dxl_id, ADDR["bus_watchdog"], 1),
-            self._read_reg(dxl_id, ADDR["model_number"], 2),
-        )
-
-    def check_health(self) -> dict[int, ServoHealth]:
-        """Read Hardware Error Status, Bus Watchdog, input voltage and temperature.
-
-        A hardware error stops the payload safely and is logged (see :meth:`safe_stop`).
-        """
-        err = self._group_read(ADDR["hardware_error_status"], 1)
-        wd = self._group_read(ADDR["bus_watchdog"], 1)
-        env = self._group_read(ADDR["present_input_voltage"], 3)
-        out = {}
-        for spec in self.map.servos:
-            i = spec.id
-            out[i] = ServoHealth(
-                i,
-                spec.joint,
-                int(err.getData(i, 70, 1)),
-                float(env.getData(i, 146, 1)),
-                env.getData(i, 144, 2) * 0.1,
-                int(wd.getData(i, 98, 1)),
-            )
-        self.health = out
-        if any(h.watchdog == 0xFF for h in out.values()) and not self._stopped:
-            self._rearm_watchdog()
-        faulted = [h for h in out.values() if h.hardware_error]
-        if faulted and (self.fault is None or not self._stopped):
-            self._on_hardware_error(faulted)
-        return out
-
-    def _on_hardware_error(self, faulted: list[ServoHealth]) -> None:
-        h = faulted[0]
-        fault = HardwareFault(h.id, h.joint, hw_error_names(h.hardware_error),
-                              others=[x.id for x in faulted[1:]])  # fmt: skip
-        self.fault = fault
-        self.faults.append(fault)
-        log.error("payload stopped (%s): %s", self.on_fault, fault)
-        self.safe_stop()
-
-    def safe_stop(self) -> None:
-        """Stop the payload: hold every servo where it is, or turn the torque off."""
-        self._stopped = True
-        if self.on_fault == "torque_off":
-            g = GroupSyncWrite(self.port, self.packet, ADDR["torque_enable"], 1)
-            for i in self.ids:
-                g.addParam(i, [0])
-            g.txPacket()
-            return
-        self._sync_write_goals([int(p) for p in self._present])
-
-    def recover(self, timeout: float = 5.0) -> Recovery:
-        """Reboot the faulted servo(s), restore their settings, return them to service.
-
-        Returns:
-            The servos rebooted and the time from the REBOOT to back in service.
-
-        Raises:
-            HardwareFault: The error is still there after the reboot (the cause persists).
-            CommError: A servo did not come back within ``timeout``.
-        """
-        self._check_open()
-        self.check_health() if self.fault is None else None
-        ids = [h.id for h in self.health.values() if h.hardware_error]
-        t0 = time.monotonic()
-        for i in ids:
-            self.packet.reboot(self.port, i)
-        for i in ids:
-            while True:
-                _, result, _ = self.packet.ping(self.port, i)
-                if result == COMM_SUCCESS:
-                    break
-                if time.monotonic() - t0 > timeout:
-                    raise CommError(f"{self._name(i)}: did not answer within {timeout} s of REBOOT")
-            err = self._read_reg(i, ADDR["hardware_error_status"], 1)
-            if err:
-                raise HardwareFault(i, self.map.joint_of(i), hw_error_names(err))
-            self._configure(self.map.by_id(i))
-        self._arm_watchdog(self.ids)
-        if self.on_fault == "torque_off":
-            for spec in self.map.servos:
-                if spec.id not in ids:
-                    present = to_signed(self._read_reg(spec.id, ADDR["present_position"], 4), 4)
-                    self._write(spec.id, "goal_position", present)
-                    self._write(spec.id, "torque_enable", 1)
-        self._stopped = False
-        self.fault = None
-        seconds = time.monotonic() - t0
-        log.info("recovered %s in %.3f s", ", ".join(self._name(i) for i in ids), seconds)
-        return Recovery(tuple(ids), seconds)
 
     # -- lifetime ----------------------------------------------------------------------------
     def _check_open(self) -> None:

@@ -99,7 +99,11 @@ class _Server:
 
 
 def control(bus: Bus, req: dict[str, Any]) -> dict[str, Any]:
-    """Answer one control request (``op``: table, servos, fault, clear, stats)."""
+    """Answer one control request (``op``: table(s), servos, fault, clear, stats, power, load).
+
+    ``power`` power-cycles every servo; ``load`` sets the external load on servos'
+    outputs (``ma``: servo ID -> holding current [mA], signed in the tick direction).
+    """
     op = req.get("op")
     bus.advance(time.monotonic(), force=True)
     if op == "table":
@@ -109,7 +113,8 @@ def control(bus: Bus, req: dict[str, Any]) -> dict[str, Any]:
     if op == "servos":
         return {
             str(i): {
-                "pos": s.pos,
+                "pos": s.physical,
+                "count": s.pos,
                 "vel": s.vel,
                 "current": s.current,
                 "torque": s.torque,
@@ -118,11 +123,20 @@ def control(bus: Bus, req: dict[str, Any]) -> dict[str, Any]:
                 "watchdog_trip": s.watchdog_trip,
                 "reboots": s.reboots,
                 "blocked": s.blocked,
+                "power_ups": s.power_ups,
+                "load_ma": s.load_ma,
             }
             for i, s in bus.servos.items()
         }
     if op == "fault":
         bus.apply(parse_fault(str(req["spec"])))
+        return {"ok": True}
+    if op == "power":
+        bus.power_cycle()
+        return {"ok": True}
+    if op == "load":
+        for k, v in dict(req["ma"]).items():
+            bus.servos[int(k)].load_ma = float(v)
         return {"ok": True}
     if op == "cpu":
         return {"cpu_s": time.process_time()}
@@ -137,18 +151,20 @@ def control(bus: Bus, req: dict[str, Any]) -> dict[str, Any]:
 
 
 def bus_spec(servos: str | None) -> dict[str, Any]:
-    """IDs at the design's home posture and the baud rate of a map file (default map)."""
-    from firmware_interface.servo_map import home_ticks, load_servo_map
+    """IDs at the design's home posture, the rail's and the stage's hard stops (the
+    design's travel ends) and the baud rate of a map file (default map)."""
+    from firmware_interface.servo_map import home_ticks, load_servo_map, travel_ticks
 
     smap = load_servo_map(servos)
-    return {"positions": home_ticks(smap), "baud": smap.baud}
+    return {"positions": home_ticks(smap), "baud": smap.baud, "stops": travel_ticks(smap)}
 
 
 def make_bus(spec: dict[str, Any], faults: list[str], seed: int = 0) -> Bus:
     """A bus from :func:`bus_spec` with the faults applied."""
     parsed = [parse_fault(f) for f in faults]  # validate before opening anything
     positions = {int(k): int(v) for k, v in spec["positions"].items()}
-    bus = Bus(positions, int(spec["baud"]), seed=seed, now=time.monotonic())
+    stops = {int(k): (float(v[0]), float(v[1])) for k, v in spec.get("stops", {}).items()}
+    bus = Bus(positions, int(spec["baud"]), seed=seed, now=time.monotonic(), stops=stops)
     for f in parsed:
         bus.apply(f)
     return bus
@@ -190,12 +206,18 @@ class EmulatorProcess:
         servos: Servo map file (default map).
         faults: Fault specs applied from the start.
         seed: Seed of the fault dice.
+        positions: Servo ID -> physical position at power-up [ticks] (default: home).
     """
 
     def __init__(
-        self, servos: str | None = None, faults: list[str] | None = None, seed: int = 0
+        self,
+        servos: str | None = None,
+        faults: list[str] | None = None,
+        seed: int = 0,
+        positions: dict[int, int] | None = None,
     ) -> None:
         spec = bus_spec(servos)
+        spec["positions"].update(positions or {})
         for f in faults or []:
             parse_fault(f)
         ours, theirs = socket.socketpair()
@@ -240,6 +262,14 @@ class EmulatorProcess:
 
     def clear(self) -> None:
         self.request(op="clear")
+
+    def power_cycle(self) -> None:
+        """Every servo off and on (RAM defaults, multi-turn counts lost, EEPROM kept)."""
+        self.request(op="power")
+
+    def load(self, ma: dict[int, float]) -> None:
+        """External loads on servo outputs, as holding current [mA] (signed in ticks)."""
+        self.request(op="load", ma={str(k): v for k, v in ma.items()})
 
     def stats(self) -> dict[str, Any]:
         return self.request(op="stats")

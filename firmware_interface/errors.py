@@ -49,3 +49,11 @@ class HardwareFault(DynamixelError):
         super().__init__(
             f"servo {dxl_id} ({joint}): hardware error {', '.join(bits) or 'unknown'}{more}"
         )
+
+
+class NotHomedError(DynamixelError):
+    """A command for the rail or the stage before their absolute position is known."""
+
+
+class HomingError(DynamixelError):
+    """Homing did not find the hard stop (the message names the servo)."""

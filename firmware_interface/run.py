@@ -30,18 +30,64 @@ from payload.teleop.replay import HandRecordingWriter
 log = logging.getLogger(__name__)
 
 
+def move_to_home(hardware: Any, timeout: float = 6.0) -> PayloadState:
+    """Drive the brought-up (homed) payload to the design's home posture, where every
+    simulated trial starts (homing leaves the rail and the stage stowed).
+
+    Returns:
+        The measured state there (every joint within one tick).
+
+    Raises:
+        DynamixelError: The posture was not reached within ``timeout`` [s].
+    """
+    import time
+
+    from firmware_interface.errors import DynamixelError
+    from firmware_interface.servo_map import home_command
+
+    cmd = home_command(hardware.design)
+    target = np.append(cmd.q, cmd.deploy)
+    tol = np.array([s.units_per_tick for s in hardware.map.servos]) * 1.0001
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < timeout:
+        hardware.send(cmd)
+        state = hardware.read()
+        if np.all(np.abs(np.append(state.q, state.deploy) - target) <= tol):
+            return state
+        time.sleep(0.01)
+    raise DynamixelError(f"the payload did not reach its home posture within {timeout} s")
+
+
+def _finger_dofs(sim: SimDriver) -> np.ndarray:
+    """The simulator's DOF addresses of the 16 finger joints (the servo map's order)."""
+    import mujoco
+
+    from payload.design.tree import MANIPULATION_JOINTS
+    from payload.sim.world import PAYLOAD_PREFIX
+
+    m = sim.model
+    ids = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, PAYLOAD_PREFIX + j)
+           for j in MANIPULATION_JOINTS if j != "rail"]  # fmt: skip
+    return np.array([m.jnt_dofadr[i] for i in ids])
+
+
 class HardwareInTheLoop:
     """A hardware payload with the simulated vehicle and cargo (the loop's driver).
 
     Args:
         hardware: The payload driver (``DynamixelDriver``).
         sim: The simulator providing Astrobee, the CTB and contacts.
+        emulator: The emulator's control handle, when the far end is one: each step, the
+            simulated contact torque on each finger joint is put on its servo as load
+            (so a finger blocked by the cargo stalls on the bus as it would on the payload).
     """
 
-    def __init__(self, hardware: PayloadDriver, sim: SimDriver) -> None:
+    def __init__(self, hardware: PayloadDriver, sim: SimDriver, emulator: Any = None) -> None:
         self.hardware = hardware
         self.sim = sim
+        self.emulator = emulator
         self.world = sim.world
+        self._dofs = _finger_dofs(sim)
         self._measured: PayloadState = hardware.read()
         self._follow(self._measured)
 
@@ -61,7 +107,19 @@ class HardwareInTheLoop:
         """Read the servos, let the simulated payload follow them, step the world."""
         self._measured = self.hardware.read()
         self._follow(self._measured)
-        return self.sim.step(control_steps)
+        state = self.sim.step(control_steps)
+        if self.emulator is not None:
+            self.emulator.load(self.finger_loads())
+        return state
+
+    def finger_loads(self) -> dict[int, float]:
+        """The simulated contact torque on each finger joint as its servo's holding
+        current, ID -> mA, signed in the servo's tick direction."""
+        tau = self.sim.data.qfrc_constraint[self._dofs]  # [N m], joint direction
+        hw = self.hardware
+        kt = hw.design.servo.stall_torque / hw.design.servo.stall_current  # [N m / A]
+        specs = hw.map.servos[: len(self._dofs)]
+        return {sp.id: float(sp.direction * t / kt * 1e3) for sp, t in zip(specs, tau)}
 
     def world_state(self) -> WorldState:
         return self.sim.world_state()
@@ -97,18 +155,20 @@ def replay_session(
     max_time: float = 240.0,
     pace: bool = False,
     on_step: Any = None,
+    rt: tuple[dict, dict] | None = None,
 ) -> list[PayloadCommand]:
     """Run a recorded hand session through the 50 Hz loop on ``driver``.
 
     The same code for the simulator (``SimDriver``) and the hardware
-    (:class:`HardwareInTheLoop`): calibration, pipeline, loop.
+    (:class:`HardwareInTheLoop`): calibration, pipeline, loop. ``rt``: the retargeters
+    and pair ranges to use (default: the paper's).
 
     Returns:
         The payload command sent at every step.
     """
     from payload.trials.runner import retargeting
 
-    retargeters, ranges = retargeting()
+    retargeters, ranges = rt if rt is not None else retargeting()
     for r in retargeters.values():
         r.reset()
     config = TeleopConfig.from_design(load_design())
@@ -136,6 +196,48 @@ def replay_session(
     return commands
 
 
+ARM_AFTER_STEPS = 25
+"""The Bus Watchdog is armed after this many loop steps (half a second): the first steps
+of a session build what they use once (measured on the emulator rig: the third step
+~0.4 s, under load), longer than the watchdog's period, which would trip it on a
+healthy session."""
+
+
+def _replay_setup(sim_project: Any, recorded: dict[str, Any]) -> tuple[Any, dict, Any]:
+    """The simulated world, retargeting and CTB placement of the replayed recording's
+    source trial (its CTB model, propulsion, retargeting budget, acquisition offset and
+    yaw); a bare hand session (no set-up recorded) gets the defaults and no offset.
+
+    Returns:
+        ``(sim, retargeting, recorded_setup)``.
+    """
+    from payload.sim.config import WorldConfig
+    from payload.trials.acquisition import place_offset
+    from payload.trials.retargeters import retargeting
+    from payload.trials.runner import place_ctb_for_teleop
+    from payload.trials.sources import trial_setup
+
+    setup = trial_setup(
+        recorded.get("ctb"),
+        recorded.get("propulsion"),
+        recorded.get("retarget_budget"),
+        recorded.get("retarget_collisions"),
+    )
+    sim = SimDriver(
+        WorldConfig.for_project(sim_project, ctb=setup["ctb"]), propulsion=setup["propulsion"]
+    )
+    rt = retargeting(sim_project, setup["retarget_budget"], setup["retarget_collisions"])
+    grasp_body = place_ctb_for_teleop(sim, *rt)
+    offset = recorded.get("ctb_offset_m")
+    yaw = recorded.get("ctb_yaw_deg")
+    if offset is None or yaw is None:  # no acquisition offset recorded: none applied
+        offset, yaw = [0.0, 0.0, 0.0], 0.0
+    off, yaw = place_offset(sim, int(recorded.get("seed") or 0), np.asarray(offset), yaw)
+    setup.update(ctb_offset_m=[float(v) for v in off], ctb_yaw_deg=float(yaw),
+                 grasp_body_m=[float(v) for v in grasp_body])  # fmt: skip
+    return sim, rt, setup
+
+
 def run_hardware_trial(
     hardware: Any,
     replay: Path,
@@ -143,69 +245,108 @@ def run_hardware_trial(
     *,
     max_time: float = 240.0,
     pace: bool = True,
+    emulator: Any = None,
 ) -> dict[str, Any]:
     """Replay a hand recording on the hardware and record the trial like ``payload trial``.
 
+    The simulated world is set up as the recording's source trial was (CTB model and
+    placement, propulsion, retargeting); the hardware is brought up (homing the rail and
+    the stage) after that set-up, so the Bus Watchdog is armed only once the 50 Hz loop
+    is about to run, and driven to the design's home posture where the session starts.
+
     Args:
-        hardware: A brought-up payload driver (``DynamixelDriver``).
-        replay: The hand recording (``hands.jsonl``).
+        hardware: An open payload driver (``DynamixelDriver``), brought up here if not yet.
+        replay: The hand recording (a trial's ``log.mcap`` or a ``hands.jsonl``).
         out_dir: The trial folder (``log.mcap``, ``hands.jsonl``, ``metrics.json``).
         max_time: Session length cap [s].
         pace: Pace the loop to wall-clock 50 Hz (the servos move in real time).
+        emulator: The emulator's control handle (``EmulatorProcess``) when the far end is
+            one started here: the grasp's load is fed to its servos.
 
     Returns:
-        The metrics (as written to ``metrics.json``), with ``steps`` and ``driver``.
+        The metrics (as written to ``metrics.json``) with ``steps``, ``driver``,
+        ``device``, ``emulator``, ``provenance``, the set-up and ``watchdog``.
     """
-    from payload.trials.campaign import finish_trial
+    from payload.project import current_project, provenance
     from payload.trials.recorder import TrialRecorder
-    from payload.trials.runner import (
-        design_hash,
-        load_replay,
-        module_rects,
-        place_ctb_for_teleop,
-        retargeting,
-        step_record,
-    )
+    from payload.trials.runner import module_rects, step_record
+    from payload.trials.scoring import finish_trial
+    from payload.trials.sources import load_replay
 
-    _, frames = load_replay(replay)  # a trial's log.mcap, or a hands.jsonl
+    header, frames = load_replay(replay)  # a trial's log.mcap, or a hands.jsonl
+    recorded = header.get("meta") or {}
+    project = current_project()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    sim = SimDriver()
-    retargeters, ranges = retargeting()
-    place_ctb_for_teleop(sim, retargeters, ranges)
-    driver = HardwareInTheLoop(hardware, sim)
+    sim, (retargeters, ranges), setup = _replay_setup(project, recorded)
+    prov = provenance(project, sim.world.config.design)
+    if not getattr(hardware, "homed", None):
+        hardware.bring_up()
+    move_to_home(hardware)
+    hardware.set_watchdog(False)  # armed again once the 50 Hz loop runs (see on_step)
+    driver = HardwareInTheLoop(hardware, sim, emulator=emulator)
     layout = sim.world.layout
     rec_path = out / "log.mcap"
+    far_end = {"device": hardware.device, "emulator": bool(hardware.emulated)}
     meta = {
-        "seed": 0,
+        "seed": int(recorded.get("seed") or 0),
         "operator": "replay",
         "driver": "hardware",
-        "design_hash": design_hash(),
+        **far_end,
+        "design_hash": prov["design_sha256"][:16],
+        "provenance": prov,
         "traits": {"replay": str(replay)},
         "route": layout.route().tolist(),
         "modules": module_rects(layout),
-    }
+        **({"contact_definition": recorded["contact_definition"]}
+           if "contact_definition" in recorded else {}),
+        **setup,
+    }  # fmt: skip
+    trips0 = len(hardware.watchdog_trips)
     try:
         with (
             TrialRecorder(rec_path, overwrite=True) as recorder,
-            HandRecordingWriter(out / "hands.jsonl", meta={"seed": 0}) as hands_out,
+            HandRecordingWriter(out / "hands.jsonl", meta={"seed": meta["seed"]}) as hands_out,
         ):
             recorder.write_meta(meta)
+            steps = [0]
 
             def on_step(ctx: StepContext) -> None:
                 hands_out.write(ctx.frame)
                 recorder.write(step_record(ctx, driver, retargeters))
+                steps[0] += 1
+                if steps[0] == ARM_AFTER_STEPS:  # past the first steps' one-off set-up
+                    hardware.set_watchdog(True)
                 fault = getattr(hardware, "fault", None)
                 if fault is not None:
                     raise fault
 
             commands = replay_session(driver, frames, max_time=max_time, pace=pace,
-                                      on_step=on_step)  # fmt: skip
-            recorder.write_meta({"steps": len(commands), "warnings": driver.warnings()})
+                                      on_step=on_step, rt=(retargeters, ranges))  # fmt: skip
+            watchdog = watchdog_report(hardware.watchdog_trips[trips0:])
+            recorder.write_meta({"steps": len(commands), "warnings": driver.warnings(),
+                                 "watchdog": watchdog})  # fmt: skip
     finally:
         sim.close()
     result = finish_trial(out, rec_path)
-    result["steps"] = len(commands)
-    result["driver"] = "hardware"
+    result.update(steps=len(commands), driver="hardware", **far_end, provenance=prov,
+                  watchdog=watchdog)  # fmt: skip
     (out / "metrics.json").write_text(json.dumps(result, indent=2) + "\n")
     return result
+
+
+def watchdog_report(trips: list[dict[str, Any]]) -> dict[str, Any]:
+    """What Bus Watchdog trips did to a session (each: the servos stopped and held until
+    re-armed by the next command; the host's silence that caused it)."""
+    if not trips:
+        return {"trips": 0, "effect": "none: the watchdog never tripped"}
+    longest = max(t["silence_s"] for t in trips)
+    return {
+        "trips": len(trips),
+        "events": trips,
+        "effect": (
+            f"the servos stopped and held where they were {len(trips)} time(s), after host "
+            f"silences up to {longest * 1e3:.0f} ms, until the next command re-armed them; "
+            "the session continued"
+        ),
+    }

@@ -247,10 +247,35 @@ def load_servo_map(path: str | Path | None = None, design: Design | None = None)
     return servo_map_from_dict(data, design, source)
 
 
-def home_ticks(smap: ServoMap, design: Design | None = None) -> dict[int, int]:
-    """Present positions of the design's ``home`` posture, ID -> ticks."""
+def travel_ticks(smap: ServoMap, design: Design | None = None) -> dict[int, tuple[int, int]]:
+    """The rail's and the stage's travel ends (their hard stops), ID -> (low, high) ticks."""
+    design = design if design is not None else load_design()
+    out = {}
+    for s in smap.servos:
+        if s.joint in LINEAR_JOINTS:
+            lo, hi = _design_limits(design, s.joint)
+            ends = [round(s.zero + s.direction * v / s.units_per_tick) for v in (lo, hi)]
+            out[s.id] = (min(ends), max(ends))
+    return out
+
+
+def home_values(design: Design | None = None) -> dict[str, float]:
+    """The design's ``home`` posture (where every trial starts), joint -> value."""
     design = design if design is not None else load_design()
     home = design.home
     values = {f"{f}_{j}": v for f in "ABCD" for j, v in zip(FINGER_JOINTS, home.finger)}
     values["rail"], values["stage"] = home.rail, home.stage
+    return values
+
+
+def home_command(design: Design | None = None) -> PayloadCommand:
+    """The command of the design's ``home`` posture (joints in ``ALL_JOINTS`` order)."""
+    values = home_values(design)
+    v = np.array([values[j] for j in ALL_JOINTS])
+    return PayloadCommand(v[:-1], float(v[-1]), 0.0)
+
+
+def home_ticks(smap: ServoMap, design: Design | None = None) -> dict[int, int]:
+    """Present positions of the design's ``home`` posture, ID -> ticks."""
+    values = home_values(design)
     return {s.id: s.to_ticks(values[s.joint]) for s in smap.servos}

@@ -6,6 +6,19 @@ no faster than the no-load speed (81 rpm); the present current is the position e
 times the gain, capped at Goal Current (the current cap). A blocked output (an injected
 obstacle) cannot move: its current sits at the cap and after ``OVERLOAD_S`` at the cap
 the overload bit trips, as the servo's overload protection does.
+
+Power-up and REBOOT (e-Manual, Extended Position Control Mode and Homing Offset): the
+servo's absolute encoder covers one turn, so after power-up or a REBOOT the multi-turn
+count is lost and Present Position reads the shaft angle within one turn (0..4095) plus
+the Homing Offset (an EEPROM register, kept). The model keeps the physical output
+position (``pos + origin``, in the servo map's tick frame) apart from the count the
+servo reports (``pos``); ``origin`` is a whole number of turns fixed at power-up.
+
+Constraints applied after the motion law (kept apart from it): hard stops (the rail's
+and the stage's travel ends, physical ticks) and an external load on the output (the
+grasp's contact torque, as the current it takes to hold it [mA]). An output pushed into
+a stop, or against a load its current cap cannot overcome, does not move; its current
+sits at the cap and the overload bit trips after ``OVERLOAD_S``, as with ``blocked``.
 """
 
 from __future__ import annotations
@@ -19,6 +32,7 @@ from firmware_interface.control_table import (
     BY_ADDRESS,
     BY_NAME,
     EEPROM_END,
+    EMULATOR_MODEL_INFORMATION,
     HW_ERROR_BITS,
     REGISTERS,
     TABLE_SIZE,
@@ -47,14 +61,26 @@ class ServoModel:
         dxl_id: Its ID.
         position: Initial output position [ticks].
         now: Current time [s] (monotonic).
+        stops: Hard stops ``(low, high)`` of the output [physical ticks], or None.
     """
 
-    def __init__(self, dxl_id: int, position: float = 2048.0, now: float = 0.0) -> None:
+    def __init__(
+        self,
+        dxl_id: int,
+        position: float = 2048.0,
+        now: float = 0.0,
+        stops: tuple[float, float] | None = None,
+    ) -> None:
         self.table = bytearray(TABLE_SIZE)
         for reg in REGISTERS:
             self._set(reg.name, reg.default)
         self._set("id", dxl_id)
+        self._set("model_information", EMULATOR_MODEL_INFORMATION)
         self.pos = float(position)
+        self.origin = 0.0  # physical position of count 0 [ticks], whole turns
+        self.stops = stops
+        self.load_ma = 0.0  # external load on the output, as holding current [mA]
+        self.stop_stall = 0.0  # time pushed into a stop or a load at the cap [s]
         self.vel = 0.0  # [ticks/s]
         self.current = 0.0  # [mA]
         self.blocked = False
@@ -64,6 +90,8 @@ class ServoModel:
         self.watchdog_start = now
         self.watchdog_trip: float | None = None
         self.reboots = 0
+        self.power_ups = 0
+        self._power_up()
         self._refresh()
 
     # -- table access ------------------------------------------------------------------------
@@ -190,11 +218,29 @@ class ServoModel:
             if reg.address >= EEPROM_END:
                 self._set(reg.name, reg.default)
         self.watchdog_trip = None
-        self.stall_time = 0.0
+        self.stall_time = self.stop_stall = 0.0
         self.vel = 0.0
         self.current = 0.0
         self.reboots += 1
+        self._power_up()
         self._refresh()
+
+    def _power_up(self) -> None:
+        """The multi-turn count is lost: the count restarts within one turn of the encoder."""
+        phys = self.pos + self.origin
+        self.origin = TICKS_PER_REV * math.floor(phys / TICKS_PER_REV)
+        self.pos = phys - self.origin
+        self.power_ups += 1
+
+    def power_cycle(self) -> None:
+        """Power off and on: RAM back to its defaults (EEPROM kept), count within one turn."""
+        self.reboot()
+        self.reboots -= 1
+
+    @property
+    def physical(self) -> float:
+        """The output's physical position [ticks of the servo map's frame]."""
+        return self.pos + self.origin
 
     # -- dynamics ----------------------------------------------------------------------------
     def advance(self, now: float) -> None:
@@ -207,7 +253,7 @@ class ServoModel:
             if now > trip:
                 # move until the trip, then stop: hold there, the register reads -1
                 if trip > self.t:
-                    self._move(trip - self.t)
+                    self._step(trip - self.t)
                     self.t = trip
                 self.watchdog_trip = trip
                 self._set("bus_watchdog", -1 & 0xFF)
@@ -215,10 +261,39 @@ class ServoModel:
         dt = now - self.t
         self.t = now
         if self.torque:
-            self._move(dt)
+            self._step(dt)
         else:
-            self.vel, self.current, self.stall_time = 0.0, 0.0, 0.0
+            self.vel, self.current, self.stall_time, self.stop_stall = 0.0, 0.0, 0.0, 0.0
         self._refresh()
+
+    def _step(self, dt: float) -> None:
+        """The motion law, then the constraints on the output (stops, load)."""
+        before = self.pos
+        self._move(dt)
+        self._constrain(before, dt)
+
+    def _constrain(self, before: float, dt: float) -> None:
+        cap = float(abs(self.get("goal_current")))
+        held = False
+        push = self.current
+        if self.stops is not None:
+            lo, hi = self.stops[0] - self.origin, self.stops[1] - self.origin
+            if self.pos < lo or (self.pos <= lo and push < 0):
+                self.pos, held = lo, True
+            elif self.pos > hi or (self.pos >= hi and push > 0):
+                self.pos, held = hi, True
+        if self.load_ma and push * self.load_ma < 0 and cap <= abs(self.load_ma):
+            self.pos, held = before, True  # the load holds the output where it was
+        if not held:
+            self.stop_stall = 0.0
+            return
+        self.vel = (self.pos - before) / dt if dt > 0 else 0.0
+        if cap > 0 and abs(push) >= cap:
+            self.stop_stall += dt
+            if self.stop_stall >= OVERLOAD_S:
+                self.set_error("overload")
+        else:
+            self.stop_stall = 0.0
 
     def _move(self, dt: float) -> None:
         if dt <= 0.0:

@@ -275,7 +275,7 @@ HOST = textwrap.dedent(
     from payload.schema import PayloadCommand
     drv = DynamixelDriver(sys.argv[1], latency_timer_ms=50.0)
     drv.bring_up()
-    cmd = PayloadCommand(np.zeros(17), 0.0, 0.0)  # retract the stage: a long move
+    cmd = PayloadCommand(np.zeros(17), 0.075, 0.0)  # deploy the homed stage: a long move
     drv.send(cmd)
     print("moving", flush=True)
     while True:
@@ -313,7 +313,7 @@ def test_killing_the_host_stops_the_servos_within_the_watchdog_time(smap):
             assert s["watchdog_trip"] <= t_kill + wd + 0.05
             assert s["pos"] == first[i]["pos"] and s["vel"] == 0.0
             assert reg(emu.table(i), "bus_watchdog") == 0xFF  # reads -1
-        goal = smap.servos[17].to_ticks(0.0)
+        goal = smap.servos[17].to_ticks(0.075)
         assert abs(later[18]["pos"] - goal) > 500  # stopped on the way, not at the goal
 
 
@@ -334,3 +334,29 @@ def test_every_hardware_error_bit_is_named_and_recovered(smap):
         assert [
             s["reboots"] for i, s in sorted(emu.servos().items()) if i in (2, 6, 10, 17, 18)
         ] == [1] * 5
+
+
+def test_a_watchdog_trip_mid_session_is_recorded_with_what_it_did(smap):
+    from firmware_interface.run import watchdog_report
+
+    with (
+        EmulatorProcess() as emu,
+        DynamixelDriver(emu.port, smap, latency_timer_ms=LAT) as drv,
+    ):
+        drv.bring_up()
+        cmd = PayloadCommand(np.zeros(17), 0.0, 0.0)
+        for _ in range(5):
+            drv.send(cmd)
+            drv.read()
+            time.sleep(0.02)
+        assert drv.watchdog_trips == [] and watchdog_report([])["trips"] == 0
+        time.sleep(0.25)  # the host falls silent for longer than the 100 ms watchdog
+        assert all(s["watchdog_trip"] is not None for s in emu.servos().values())
+        drv.send(cmd)  # the next command re-arms them
+        assert len(drv.watchdog_trips) == 1
+        trip = drv.watchdog_trips[0]
+        assert trip["servos"] == smap.ids and trip["silence_s"] >= 0.25
+        report = watchdog_report(drv.watchdog_trips)
+        assert report["trips"] == 1 and "held" in report["effect"]
+        assert "the session continued" in report["effect"]
+        assert all(s["watchdog_trip"] is None for s in emu.servos().values())

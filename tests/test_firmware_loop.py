@@ -11,7 +11,7 @@ import pytest
 from firmware_interface.control_table import BY_NAME, decode
 from firmware_interface.driver import DynamixelDriver
 from firmware_interface.emulator import EmulatorProcess
-from firmware_interface.run import HardwareInTheLoop, replay_session
+from firmware_interface.run import HardwareInTheLoop, move_to_home, replay_session
 from firmware_interface.servo_map import load_servo_map
 from payload.schema import CONTROL_DT
 from payload.sim.driver import SimDriver
@@ -52,6 +52,7 @@ def test_sim_and_hardware_get_the_same_commands_from_the_same_session(session):
     with EmulatorProcess() as emu:
         with DynamixelDriver(emu.port, smap, latency_timer_ms=LAT) as drv:
             drv.bring_up()
+            move_to_home(drv)  # homing stowed the rail and the stage; the sim starts at home
             with SimDriver() as world:
                 on_hw = replay_session(HardwareInTheLoop(drv, world), frames)
             tables = emu.tables()
@@ -92,3 +93,31 @@ def test_hw_run_records_the_trial_like_the_simulator(session, tmp_path):
         argv = ["hw", "run", "--port", emu.port, "--source", "replay", str(session),
                 "--out", str(out)]  # fmt: skip
         assert main(argv) == 2
+
+
+def test_hw_run_of_a_synthetic_trial_says_what_it_ran_on_and_places_the_ctb_as_its_source(
+    tmp_path, capsys
+):
+    from payload.cli import main
+    from payload.trials.recorder import read_recording
+    from payload.trials.runner import run_trial
+
+    src = tmp_path / "src"
+    run_trial(3, "synthetic", out_dir=src, max_time=2.0)  # a short synthetic trial
+    source = json.loads((src / "metrics.json").read_text())
+    out = tmp_path / "hw"
+    argv = ["hw", "run", "--emulator", "--source", "replay", str(src / "log.mcap"),
+            "--out", str(out), "--no-pace", "--latency-ms", str(LAT)]  # fmt: skip
+    assert main(argv) == 0
+    printed = capsys.readouterr().out
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["driver"] == "hardware" and metrics["emulator"] is True
+    assert metrics["device"].startswith("/dev/pts/")
+    assert metrics["provenance"]["design_sha256"] == source["provenance"]["design_sha256"]
+    for key in ("ctb", "propulsion", "retarget_budget", "ctb_offset_m", "ctb_yaw_deg"):
+        assert metrics[key] == source[key], key
+    assert metrics["watchdog"]["trips"] == 0  # a healthy session never trips it
+    a, b = read_recording(src / "log.mcap"), read_recording(out / "log.mcap")
+    # the CTB where the source trial had it (both from rest: the first recorded step)
+    assert np.linalg.norm(a.ctb_pos[0] - b.ctb_pos[0]) < 1e-4
+    assert "success:" in printed and "emulator" in printed  # the trial's summary, its far end

@@ -163,6 +163,10 @@ def test_sdk_sync_write_is_applied_by_the_bus():
 @pytest.mark.parametrize("fast", [True, False])
 def test_bus_sync_read_replies_are_parsed_by_the_sdk(fast):
     bus = Bus({1: 2048, 4: -70000, 9: 0x3FDFFFF})
+    for i in (4, 9):  # multi-turn counts (turns counted since power-up, which starts within one)
+        bus.servos[i].pos = bus.servos[i].physical
+        bus.servos[i].origin = 0.0
+        bus.servos[i].advance(1e-3)
     sdk = PacketHandler(2.0)
     wire = _Wire()
     g = GroupSyncRead(wire, sdk, 132, 4)

@@ -135,3 +135,149 @@ def test_missing_browser_fails_in_ci_and_skips_elsewhere(monkeypatch):
     monkeypatch.delenv("CI")
     with pytest.raises(pytest.skip.Exception):
         _need_browser()
+
+
+# -- the page itself: status line, driver, layout, desktop mode --------------------------------
+QUEST_BROWSER = {"width": 1280, "height": 720}
+"""The Quest Browser's 2D window in CSS pixels at its default zoom (ASSUMPTION: no source
+at hand gives it; 1280x720 is the usual default of a headset's browser panel)."""
+
+
+class _Page:
+    """The product page in headless Chromium, with nothing injected (context manager)."""
+
+    def __init__(self, url: str, viewport: dict[str, int]) -> None:
+        self.url, self.viewport = url, viewport
+        self.console: list[str] = []
+
+    def __enter__(self):
+        from playwright.sync_api import sync_playwright
+
+        from payload.teleop.emulate import CHROMIUM_FLAGS
+
+        self._pw = sync_playwright().start()
+        self._browser = self._pw.chromium.launch(
+            executable_path=chromium_path(), headless=True, args=list(CHROMIUM_FLAGS)
+        )
+        self.page = self._browser.new_page(viewport=self.viewport)
+        self.page.on("console", lambda m: self.console.append(f"{m.type}: {m.text}"))
+        self.page.on("pageerror", lambda e: self.console.append(f"pageerror: {e}"))
+        self.page.goto(self.url)
+        return self.page
+
+    def __exit__(self, *exc: object) -> None:
+        self._browser.close()
+        self._pw.stop()
+
+
+def _scrolls(page) -> dict:
+    return page.evaluate(
+        "() => { const e = document.documentElement; return {sw: e.scrollWidth, "
+        "sh: e.scrollHeight, cw: e.clientWidth, ch: e.clientHeight, w: innerWidth, "
+        "h: innerHeight}; }"
+    )
+
+
+def test_page_with_the_hardware_driver_over_the_emulator_says_hardware_and_fits(tmp_path):
+    import json
+    import signal
+    import subprocess
+    import sys
+    import urllib.request
+
+    from firmware_interface.emulator import EmulatorProcess
+
+    _need_browser()
+    code = "import sys; from payload.cli import main; sys.exit(main(sys.argv[1:]))"
+    with EmulatorProcess() as emu:
+        argv = [sys.executable, "-c", code, "teleop", "serve", "--driver", "hardware",
+                "--device", emu.port, "--port", "0", "--seconds", "120",
+                "--status-interval", "0.5"]  # fmt: skip
+        # Ctrl-C reaches it even when this process ignores SIGINT (a background job)
+        proc = subprocess.Popen(
+            argv,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+        )
+        try:
+            url = None
+            for line in proc.stdout:
+                if line.startswith("serving the live Quest page on "):
+                    url = line.split(" on ", 1)[1].strip()
+                    break
+            assert url, proc.stderr.read()
+            with _Page(url, {"width": 1280, "height": 800}) as page:
+                page.wait_for_function(
+                    "document.getElementById('driver').textContent.includes('hardware')",
+                    timeout=60e3,
+                )
+                driver = page.text_content("#driver")
+                assert driver == f"driver: hardware on {emu.port} (emulator)"
+                status = page.text_content("#status")
+                assert "connecting" not in status and "()" not in status, status
+                base = url.split("/?")[0].rstrip("/")
+                with urllib.request.urlopen(base + "/status", timeout=10) as r:
+                    assert json.loads(r.read())["driver"] == driver.removeprefix("driver: ")
+                page.screenshot(path=str(tmp_path / "page-1280x800.png"))
+                for size in ({"width": 1280, "height": 800}, QUEST_BROWSER):
+                    page.set_viewport_size(size)
+                    page.wait_for_timeout(200)
+                    s = _scrolls(page)  # no scrollbar: the document is the viewport's size
+                    assert s["sw"] <= s["w"] and s["sh"] <= s["h"], (size, s)
+                    assert s["cw"] == s["w"] and s["ch"] == s["h"], (size, s)
+        finally:
+            proc.send_signal(signal.SIGINT)
+            try:
+                _, err = proc.communicate(timeout=30)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                _, err = proc.communicate()
+    # the terminal's status line names the live driver too
+    assert f"[hardware on {emu.port} (emulator)]" in err, err[-2000:]
+
+
+KEYS = {"neutral": " ", "pinch": "q", "open": "e", "together": "z", "apart": "x",
+        "release": " "}  # fmt: skip
+"""The desktop mode's key for each calibration gesture (see web/desktop/desktop.js)."""
+
+
+def test_desktop_mode_drives_a_calibration_without_a_headset(tmp_path):
+    import urllib.request
+
+    from payload.trials.live import LiveSession
+
+    iwer = _need_browser()
+    hub = LiveHub()
+    session = LiveSession(hub, None, steps=BROWSER_STEPS)
+    plain = TeleopServer(hub, port=0).start()
+    try:  # served only when asked
+        with pytest.raises(urllib.error.HTTPError):
+            urllib.request.urlopen(f"http://127.0.0.1:{plain.port}/desktop.js", timeout=10)
+    finally:
+        plain.stop()
+    server = TeleopServer(hub, port=0, scene=session.scene, desktop=iwer).start()
+    worker = threading.Thread(target=session.run, daemon=True)
+    worker.start()
+    try:
+        with _Page(server.url(), {"width": 480, "height": 360}) as page:
+            page.wait_for_function("!document.getElementById('enter').disabled", timeout=30e3)
+            page.click("#enter")
+            page.wait_for_function("window.__teleop.xr", timeout=30e3)
+            done, end = "", time.monotonic() + 120
+            while time.monotonic() < end and hub.state != "teleop":
+                step = hub.snapshot.get("step") or ""
+                if hub.state == "calibrating" and step in KEYS and step != done:
+                    page.keyboard.press(" ")  # back to half open and centred, then the gesture
+                    page.keyboard.press(KEYS[step])
+                    done = step
+                time.sleep(0.05)
+            assert hub.state == "teleop", hub.snapshot
+            assert session.calibrated
+            assert "you have control" in page.text_content("#status")
+    finally:
+        hub.stop.set()
+        worker.join(30)
+        server.stop()
+        session.close()

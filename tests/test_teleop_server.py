@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import socket
@@ -21,10 +22,12 @@ from payload.teleop.hands import WEBXR_TO_WORKBENCH, XR_JOINTS
 from payload.teleop.live import LiveHub
 from payload.teleop.messages import MAX_MESSAGE_BYTES, MessageError, parse_message
 from payload.teleop.server import TeleopServer, page_files
-from payload.teleop.tls import ensure_certificate, server_context
+from payload.teleop.tls import CA_NAME, ensure_certificate, server_context
 
-STATUS_FIELDS = {"state", "clients", "frames", "dropped", "frame_age_ms", "loop_overruns"}
-DROPPED_FIELDS = {"malformed", "oversized", "non_finite", "out_of_order", "unauthorized"}
+STATUS_FIELDS = {"state", "driver", "operator", "clients", "frames", "dropped", "frame_age_ms",
+                 "loop_overruns"}  # fmt: skip
+DROPPED_FIELDS = {"malformed", "oversized", "non_finite", "out_of_order", "unauthorized",
+                  "rate_limited", "not_holder", "connection_cap"}  # fmt: skip
 NEUTRAL_WB = {"left": np.array([0.35, 0.15, 1.1]), "right": np.array([0.35, -0.15, 1.1])}
 
 
@@ -168,6 +171,9 @@ def test_every_bad_message_is_dropped_and_counted_and_the_server_keeps_serving(l
             "non_finite": 1,
             "out_of_order": 3,
             "unauthorized": 0,
+            "rate_limited": 0,
+            "not_holder": 0,
+            "connection_cap": 0,
         }
         assert st["clients"] == 1 and st["frames"] == 2
         # refused frames never reach the hand source: the newest frame is the valid one
@@ -243,7 +249,9 @@ def test_non_local_bind_checks_token_and_origin_over_tls(tmp_path):
     hub = LiveHub()
     server = TeleopServer(hub, host=host, port=0, ssl_context=server_context(cert, key)).start()
     try:
-        client = ssl.create_default_context(cafile=str(cert))
+        client = ssl.create_default_context(
+            cafile=str(cert.parent / CA_NAME)
+        )  # trusts the CA, as a headset
         base = f"{host}:{server.port}"
         origin = f"https://{base}"
         token = server.token
@@ -523,3 +531,153 @@ def test_publish_sets_the_snapshot_and_the_state_together():
     )
     hub.publish({"t": 1.04})  # no state given: the state is kept
     assert hub.state == "safe_stop" and hub.snapshot == {"t": 1.04}
+
+
+# -- one operator at a time, rate and connection limits, tokens, certificates ----------------
+def _roles(ws, until: str, timeout: float = 5.0) -> str:
+    """Read messages until a ``control`` message with role ``until`` (returned) arrives."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        try:
+            msg = json.loads(ws.recv(timeout=0.2))
+        except TimeoutError:
+            continue
+        if msg["type"] == "control" and msg["role"] == until:
+            return until
+    raise AssertionError(f"never told {until!r}")
+
+
+def test_a_second_client_is_refused_control_and_both_are_told(local_server):
+    hub, server = local_server
+    url, origin = f"ws://127.0.0.1:{server.port}/ws", f"http://127.0.0.1:{server.port}"
+    with connect(url, origin=origin) as a, connect(url, origin=origin) as b:
+        _roles(a, "free")
+        a.send(frame_msg(0, 0.0, aperture=0.1))
+        _roles(a, "holder")
+        _roles(b, "watching")  # b is told someone else holds control
+        b.send(frame_msg(0, 0.0, aperture=0.9))
+        wait_for(lambda: hub.status()["dropped"]["not_holder"] == 1)
+        assert hub.status()["frames"] == 1  # only a's frame drives
+        a.send(json.dumps({"type": "release"}))  # a hands over: both told
+        _roles(a, "free")
+        _roles(b, "free")
+        b.send(frame_msg(1, 20.0, aperture=0.9))
+        _roles(b, "holder")
+        _roles(a, "watching")
+    wait_for(lambda: hub.status()["clients"] == 0)
+    assert hub.status()["operator"] == "none"
+
+
+def test_connections_beyond_the_cap_are_refused(local_server):
+    from payload.teleop.server import MAX_CLIENTS
+
+    hub, server = local_server
+    url, origin = f"ws://127.0.0.1:{server.port}/ws", f"http://127.0.0.1:{server.port}"
+    with contextlib.ExitStack() as stack:
+        for _ in range(MAX_CLIENTS):
+            stack.enter_context(connect(url, origin=origin))
+        wait_for(lambda: hub.status()["clients"] == MAX_CLIENTS)
+        with pytest.raises(InvalidStatus):
+            connect(url, origin=origin)
+        assert hub.status()["dropped"]["connection_cap"] == 1
+
+
+FLOOD = """
+import sys, time, json
+from websockets.sync.client import connect
+port, seconds, msg = int(sys.argv[1]), float(sys.argv[2]), sys.stdin.read()
+with connect(f"ws://127.0.0.1:{port}/ws", origin=f"http://127.0.0.1:{port}") as ws:
+    n, t0 = 0, time.monotonic()
+    while time.monotonic() - t0 < seconds:
+        due = int((time.monotonic() - t0) * 2000.0)  # 2 kHz on average, sent as due
+        while n < due:
+            ws.send(msg.replace('"seq": 0', f'"seq": {n}'))
+            n += 1
+        time.sleep(0.002)
+    print(json.dumps({"sent": n, "seconds": time.monotonic() - t0}))
+"""
+
+
+def test_a_2khz_client_is_rate_limited_while_a_50hz_loop_keeps_its_rate(local_server):
+    import subprocess
+    import sys
+
+    from payload.teleop.server import RATE_BURST, RATE_LIMIT_HZ
+
+    hub, server = local_server
+    periods: list[float] = []
+    halt = threading.Event()
+
+    def loop():  # a 50 Hz consumer of the hub, on absolute deadlines like the live loop
+        t_next = time.monotonic()
+        while not halt.is_set():
+            with hub.lock:
+                _ = hub.latest
+            t_next += 0.02
+            time.sleep(max(0.0, t_next - time.monotonic()))
+            periods.append(time.monotonic())
+
+    worker = threading.Thread(target=loop, daemon=True)
+    worker.start()
+    seconds = 2.0
+    proc = subprocess.run([sys.executable, "-c", FLOOD, str(server.port), str(seconds)],
+                          input=frame_msg(0, 0.0), capture_output=True, text=True,
+                          timeout=60)  # fmt: skip
+    halt.set()
+    worker.join(5)
+    sent = json.loads(proc.stdout)
+    # it really flooded (2 kHz asked; a loaded machine may send a little less)
+    assert sent["sent"] / sent["seconds"] > 1500, sent
+    st = hub.status()
+    taken = st["frames"] + st["dropped"]["out_of_order"]
+    limited = st["dropped"]["rate_limited"]
+    wait_for(lambda: hub.status()["frames"] + hub.status()["dropped"]["rate_limited"] > 0)
+    assert limited > sent["sent"] / 2, (sent, st)  # most of it dropped, and counted
+    assert taken <= RATE_BURST + RATE_LIMIT_HZ * sent["seconds"] * 1.1 + 5, (sent, st)
+    # the loop kept 50 Hz: as many steps as the wall time allows
+    span = periods[-1] - periods[0]
+    assert (len(periods) - 1) / span == pytest.approx(50.0, rel=0.05), (len(periods), span)
+
+
+def test_an_empty_or_short_token_is_refused():
+    from payload.teleop.server import ServerError
+
+    for token in ("", "short"):
+        with pytest.raises(ServerError, match="session token"):
+            TeleopServer(LiveHub(), port=0, token=token)
+
+
+def test_the_size_limit_counts_bytes_not_characters():
+    pad = "\u20ac" * (MAX_MESSAGE_BYTES // 2)  # 3 bytes each in UTF-8
+    text = json.dumps({"type": "frame", "pad": pad}, ensure_ascii=False)
+    assert len(text) < MAX_MESSAGE_BYTES < len(text.encode())
+    with pytest.raises(MessageError) as info:
+        parse_message(text)
+    assert info.value.kind == "oversized"
+
+
+def test_the_leaf_certificate_is_not_a_ca_and_names_the_bind_address(tmp_path):
+    import datetime
+    import ipaddress
+
+    from cryptography import x509
+
+    from payload.teleop.tls import CA_NAME
+
+    cert_path, key_path, made = ensure_certificate("192.0.2.10", tmp_path)
+    assert made
+    leaf = x509.load_pem_x509_certificate(cert_path.read_bytes())
+    ca = x509.load_pem_x509_certificate((tmp_path / CA_NAME).read_bytes())
+    assert leaf.extensions.get_extension_for_class(x509.BasicConstraints).value.ca is False
+    assert ca.extensions.get_extension_for_class(x509.BasicConstraints).value.ca is True
+    assert not leaf.extensions.get_extension_for_class(x509.KeyUsage).value.key_cert_sign
+    leaf.verify_directly_issued_by(ca)  # signed by the CA the headset trusts
+    san = leaf.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
+    assert ipaddress.ip_address("192.0.2.10") in san.get_values_for_type(x509.IPAddress)
+    life = leaf.not_valid_after_utc - leaf.not_valid_before_utc
+    assert datetime.timedelta(days=360) < life < datetime.timedelta(days=370)
+    assert key_path.stat().st_mode & 0o077 == 0  # the key: the user's only
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
+        [cert_path.name, key_path.name, CA_NAME]
+    )  # the CA's key is nowhere
+    assert ensure_certificate("192.0.2.10", tmp_path)[2] is False  # kept for the next run

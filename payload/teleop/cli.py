@@ -48,7 +48,8 @@ def status_line(status: dict[str, Any], lat: dict[str, float]) -> str:
     age = status["frame_age_ms"]
     refused = " ".join(f"{k}={v}" for k, v in d.items() if v)
     return (
-        f"{status['state']:<11} clients={status['clients']} frames={status['frames']} "
+        f"{status['state']:<11} [{status.get('driver', 'simulator')}] "
+        f"clients={status['clients']} frames={status['frames']} "
         f"age={_ms(age['median'])}/{_ms(age['p99'])} ms "
         f"latency={_ms(lat['median'])}/{_ms(lat['p99'])} ms "
         f"overruns={status['loop_overruns']} dropped: {refused or 'none'}"
@@ -77,14 +78,20 @@ def _check_record(record: Path | None) -> None:
 
 
 def _hardware_driver(device: str | None) -> Any:
-    """The Dynamixel payload driver (``firmware_interface``), brought up on ``device``."""
+    """The Dynamixel payload driver (``firmware_interface``), brought up on ``device`` (the
+    rail and the stage homed), at the design's home posture where the simulated session
+    starts, its Bus Watchdog disarmed until the session's loop runs (the simulator and the
+    retargeters load for seconds first)."""
     from firmware_interface import DynamixelDriver
+    from firmware_interface.run import move_to_home
 
     if not device:
         raise TeleopCliError("--driver hardware needs --device DEV (the servo bus's serial device)")
     driver = DynamixelDriver(device)
     try:
         driver.bring_up()
+        move_to_home(driver)
+        driver.set_watchdog(False)
     except BaseException:
         driver.close()
         raise
@@ -95,7 +102,7 @@ def serve(args: argparse.Namespace, make_session: SessionFactory) -> int:
     """``payload teleop serve``: the live page driving the session ``make_session`` makes."""
     from payload.teleop.live import LiveHub
     from payload.teleop.server import TeleopServer, is_local, new_token
-    from payload.teleop.tls import ensure_certificate, fingerprint, server_context
+    from payload.teleop.tls import CA_NAME, ensure_certificate, fingerprint, server_context
 
     project = command_project(args)  # the simulator and the retargeters read its models
     from payload.design import models_follow_design
@@ -105,20 +112,45 @@ def serve(args: argparse.Namespace, make_session: SessionFactory) -> int:
     _check_record(record)
     local = is_local(args.host)
     ssl_context, token = None, None
-    if not local or args.tls:
+    if (args.cert is None) != (args.key is None):
+        raise TeleopCliError("--cert and --key go together (a certificate and its key)")
+    if args.cert is not None:
+        cert, key = Path(args.cert), Path(args.key)
+        ssl_context = server_context(cert, key)
+        print(f"TLS certificate (yours): {cert}")
+        print(f"  SHA-256 fingerprint {fingerprint(cert)}")
+    elif not local or args.tls:
         cert, key, made = ensure_certificate(args.host)
         ssl_context = server_context(cert, key)
         print(f"TLS certificate {'made' if made else 'kept'}: {cert}")
         print(f"  SHA-256 fingerprint {fingerprint(cert)}")
+        print(f"  the headset trusts it through the CA {cert.parent / CA_NAME}"
+              f"{' (new: install it on the headset again)' if made else ''}")  # fmt: skip
     if not local:
         token = new_token()
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     hub = LiveHub()
     payload = _hardware_driver(args.device) if args.driver == "hardware" else None
+    if payload is not None:
+        hub.driver = f"hardware on {args.device}" + (" (emulator)" if payload.emulated else "")
     print("loading the simulator and the retargeters ...", flush=True)
     session = make_session(hub, record, payload=payload, collisions=args.retarget_collisions)
+    desktop = None
+    if args.desktop:
+        from payload.teleop.emulate import EmulationError, find_iwer
+
+        try:
+            desktop = find_iwer()
+        except EmulationError as exc:
+            raise TeleopCliError(f"--desktop: {exc}") from None
     server = TeleopServer(
-        hub, args.host, args.port, ssl_context=ssl_context, token=token, scene=session.scene
+        hub,
+        args.host,
+        args.port,
+        ssl_context=ssl_context,
+        token=token,
+        scene=session.scene,
+        desktop=desktop,
     ).start()
     if args.host in ("0.0.0.0", "::"):
         from payload.teleop.tls import lan_addresses
@@ -136,8 +168,10 @@ def serve(args: argparse.Namespace, make_session: SessionFactory) -> int:
         target=_status_printer, args=(hub, stop_status, args.status_interval), daemon=True
     )
     printer.start()
-    if args.seconds:
-        threading.Timer(args.seconds, hub.stop.set).start()
+    if args.seconds:  # a daemon: Ctrl-C before it fires must not wait for it
+        timer = threading.Timer(args.seconds, hub.stop.set)
+        timer.daemon = True
+        timer.start()
     try:
         session.run()
     except KeyboardInterrupt:
@@ -197,6 +231,14 @@ def serve_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--record", help="record the session as a trial into this folder")
     p.add_argument("--tls", action="store_true", help="use TLS on a local bind too")
+    p.add_argument(
+        "--desktop",
+        action="store_true",
+        help="also serve the desktop mode: an emulated headset driven by the keyboard "
+        "(iwer from node_modules)",
+    )
+    p.add_argument("--cert", help="your TLS certificate (PEM) instead of the made one")
+    p.add_argument("--key", help="the key of --cert (PEM)")
     p.add_argument(
         "--retarget-collisions",
         action=argparse.BooleanOptionalAction,

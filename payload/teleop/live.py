@@ -68,7 +68,8 @@ class LiveHub:
 
     lock: threading.Lock = field(default_factory=threading.Lock)
     clients: int = 0
-    active: int | None = None  # id of the connection that drives
+    active: int | None = None  # id of the connection that holds control (drives)
+    driver: str = "simulator"  # what the loop drives: "simulator" / "hardware on DEVICE"
     latest: Received | None = None
     frames: int = 0
     dropped: dict[str, int] = field(default_factory=lambda: dict.fromkeys(DROP_KINDS, 0))
@@ -85,29 +86,52 @@ class LiveHub:
             self.dropped[kind] += 1
 
     def connect(self, conn_id: int) -> None:
-        """A new connection takes over driving (the newest one wins after a drop)."""
+        """A new connection: it watches until it takes control (see :meth:`put`)."""
         with self.lock:
             self.clients += 1
-            self.active = conn_id
-            self.latest = None
 
     def disconnect(self, conn_id: int) -> None:
+        """A connection closed: control is free again if it held it."""
+        self.release(conn_id)
         with self.lock:
             self.clients -= 1
-            if self.active == conn_id:
-                self.active = None
-                self.latest = None
 
-    def put(self, conn_id: int, message: FrameMessage, offset_ms: float | None) -> None:
-        """Store a validated frame; ``offset_ms`` = page clock - server clock."""
+    def release(self, conn_id: int) -> bool:
+        """The holder hands control over; returns whether ``conn_id`` held it."""
+        with self.lock:
+            if self.active != conn_id:
+                return False
+            self.active = None
+            self.latest = None
+            return True
+
+    def role(self, conn_id: int) -> str:
+        """``holder``, ``watching`` (another connection holds control) or ``free``."""
+        with self.lock:
+            if self.active is None:
+                return "free"
+            return "holder" if self.active == conn_id else "watching"
+
+    def put(self, conn_id: int, message: FrameMessage, offset_ms: float | None) -> bool:
+        """Store a validated frame; ``offset_ms`` = page clock - server clock.
+
+        The first connection to send frames while control is free takes it (it is the one
+        that calibrates); another connection's frames are refused (counted ``not_holder``)
+        until the holder disconnects or hands over. Returns whether the frame was taken.
+        """
         arrival = now_ms()
         xr = None if offset_ms is None else message.t - offset_ms
         with self.lock:
+            if self.active is None:
+                self.active = conn_id
+            if self.active != conn_id:
+                self.dropped["not_holder"] += 1
+                return False
             self.frames += 1
             if xr is not None:
                 self.frame_age_ms.append(arrival - xr)
-            if self.active == conn_id:
-                self.latest = Received(message, arrival, xr)
+            self.latest = Received(message, arrival, xr)
+            return True
 
     def publish(self, snapshot: dict[str, Any], state: str | None = None) -> None:
         """Set the snapshot the page shows, and with it the state (from the loop thread)."""
@@ -122,6 +146,8 @@ class LiveHub:
         with self.lock:
             return {
                 "state": self.state,
+                "driver": self.driver,
+                "operator": "holding" if self.active is not None else "none",
                 "clients": int(self.clients),
                 "frames": int(self.frames),
                 "dropped": {k: int(v) for k, v in self.dropped.items()},

@@ -8,8 +8,8 @@ The page sends JSON text, one message per XR frame::
 
 joints in WebXR's XRHand order and the ``local-floor`` reference space (metres, Y up), and
 answers the server's clock pings with ``{"type": "pong", "id": int, "t": float}`` (page
-clock [ms]). Anything else is rejected with one of the :data:`DROP_KINDS`, never raised
-past the server.
+clock [ms]); ``{"type": "release"}`` hands control over (the page's button). Anything
+else is rejected with one of the :data:`DROP_KINDS`, never raised past the server.
 """
 
 from __future__ import annotations
@@ -36,6 +36,9 @@ DROP_KINDS: tuple[str, ...] = (
     "non_finite",
     "out_of_order",
     "unauthorized",
+    "rate_limited",
+    "not_holder",
+    "connection_cap",
 )
 """Why a message or a connection was refused (the ``/status`` ``dropped`` counters)."""
 
@@ -136,7 +139,19 @@ def _hand(obj: Any, side: str) -> Hand:
     return Hand(arr, tracked) if tracked else Hand.untracked()
 
 
-def parse_message(data: str | bytes) -> FrameMessage | PongMessage:
+@dataclass(frozen=True)
+class ReleaseMessage:
+    """The page hands control over (its operator leaves the controls)."""
+
+
+def message_bytes(data: str | bytes) -> int:
+    """A message's size on the wire [bytes] (UTF-8 for text)."""
+    if isinstance(data, bytes):
+        return len(data)
+    return len(data.encode("utf-8", "surrogatepass"))
+
+
+def parse_message(data: str | bytes) -> FrameMessage | PongMessage | ReleaseMessage:
     """Validate one message from the page.
 
     Args:
@@ -145,8 +160,9 @@ def parse_message(data: str | bytes) -> FrameMessage | PongMessage:
     Raises:
         MessageError: With ``kind`` oversized, malformed or non_finite.
     """
-    if len(data) > MAX_MESSAGE_BYTES:
-        raise MessageError("oversized", f"{len(data)} bytes > {MAX_MESSAGE_BYTES}")
+    size = message_bytes(data)
+    if size > MAX_MESSAGE_BYTES:
+        raise MessageError("oversized", f"{size} bytes > {MAX_MESSAGE_BYTES}")
     if isinstance(data, bytes):
         raise MessageError("malformed", "binary message (JSON text expected)")
     try:
@@ -158,6 +174,10 @@ def parse_message(data: str | bytes) -> FrameMessage | PongMessage:
     if not isinstance(obj, dict):
         raise MessageError("malformed", "a message must be a JSON object")
     kind = obj.get("type")
+    if kind == "release":
+        if set(obj) != {"type"}:
+            raise MessageError("malformed", "release has only a type")
+        return ReleaseMessage()
     if kind == "pong":
         if set(obj) != {"type", "id", "t"}:
             raise MessageError("malformed", "pong needs exactly type, id, t")

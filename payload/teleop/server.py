@@ -10,7 +10,16 @@ status document, through ``process_request``) and the WebSocket. Security:
   bind the ``Host`` must be a loopback name (no DNS rebinding);
 - only the files of the page (``payload/teleop/web``) are served, by exact name;
 - every message is validated (:mod:`payload.teleop.messages`); a refused message or
-  connection is counted in ``/status`` and changes nothing else.
+  connection is counted in ``/status`` and changes nothing else;
+- a token, when one is used, is at least :data:`MIN_TOKEN_CHARS` characters (an empty
+  or short one is refused, never taken as "no authentication");
+- one operator at a time: the first connection to send hand frames (the one that
+  calibrates) holds control; the others watch read-only (their frames are refused and
+  counted ``not_holder``) until the holder disconnects or hands over (``release``);
+  every connection is told its role (``control`` messages) whenever it changes;
+- each connection may send at most :data:`RATE_LIMIT_HZ` messages a second (twice the
+  fastest headset's frame rate; the excess is dropped before parsing and counted
+  ``rate_limited``), and at most :data:`MAX_CLIENTS` connections are open at once.
 
 The WebSocket sends the page ``hello`` (the scene), ``ping`` (clock synchronisation) and
 ``state`` messages (session state, calibration prompt, vehicle, payload, safe-stop
@@ -40,7 +49,13 @@ from websockets.http11 import Request, Response
 
 from payload.errors import PayloadError
 from payload.teleop.live import LiveHub, now_ms
-from payload.teleop.messages import MAX_MESSAGE_BYTES, FrameMessage, MessageError, parse_message
+from payload.teleop.messages import (
+    MAX_MESSAGE_BYTES,
+    FrameMessage,
+    MessageError,
+    ReleaseMessage,
+    parse_message,
+)
 
 log = logging.getLogger(__name__)
 
@@ -52,6 +67,12 @@ WIRE_LIMIT = 1024 * 1024  # the WebSocket layer closes above this; 64 KiB..1 MiB
 STATE_PERIOD_S = 0.05  # state messages to the page at 20 Hz
 SYNC_PINGS = 6  # clock pings right after connecting, then one every SYNC_PERIOD_S
 SYNC_PERIOD_S = 2.0
+MIN_TOKEN_CHARS = 16  # new_token() makes 22 (128 bits)
+HEADSET_MAX_HZ = 120.0  # the fastest display rate of the Quest headsets (one frame each)
+RATE_LIMIT_HZ = 2.0 * HEADSET_MAX_HZ
+RATE_BURST = 0.1 * RATE_LIMIT_HZ  # messages a connection may send at once (0.1 s worth)
+DESKTOP_SCRIPTS = b'<script src="/iwer.js"></script>\n<script src="/desktop.js"></script>\n'
+MAX_CLIENTS = 4  # open WebSocket connections: an operator, a spare page, a few watchers
 
 
 class ServerError(PayloadError):
@@ -110,6 +131,18 @@ class _Link:
         self.pings: dict[int, float] = {}
         self.samples: list[tuple[float, float]] = []  # (round trip, offset) [ms]
         self.next_id = 0
+        self.allowance = RATE_BURST  # token bucket of the rate limit [messages]
+        self.checked = now_ms()
+
+    def admit(self) -> bool:
+        """Whether one more message fits the rate limit (token bucket)."""
+        t = now_ms()
+        self.allowance = min(RATE_BURST, self.allowance + (t - self.checked) * RATE_LIMIT_HZ / 1e3)
+        self.checked = t
+        if self.allowance < 1.0:
+            return False
+        self.allowance -= 1.0
+        return True
 
     @property
     def offset_ms(self) -> float | None:
@@ -130,6 +163,8 @@ class TeleopServer:
         token: Session token; required unless the bind is local (made when None).
         scene: What the page needs to draw the world (sent in ``hello``).
         web_dir: The page's folder.
+        desktop: iwer's browser build: serve the desktop mode (an emulated headset driven
+            by the keyboard, ``web/desktop/desktop.js``) with the page; None: never.
     """
 
     def __init__(
@@ -142,6 +177,7 @@ class TeleopServer:
         token: str | None = None,
         scene: dict[str, Any] | None = None,
         web_dir: Path = WEB_DIR,
+        desktop: Path | None = None,
     ) -> None:
         self.hub = hub
         self.host = host
@@ -149,10 +185,18 @@ class TeleopServer:
         self.local = is_local(host)
         if not self.local and ssl_context is None:
             raise ServerError(f"--host {host}: binding a non-local address requires TLS")
+        if token is not None and len(token) < MIN_TOKEN_CHARS:
+            raise ServerError(
+                f"session token: {len(token)} characters; at least {MIN_TOKEN_CHARS} needed"
+            )
         self.ssl_context = ssl_context
         self.token = token if token is not None or self.local else new_token()
         self.scene = scene or {}
         self.files = page_files(web_dir)
+        self.desktop = desktop is not None
+        if desktop is not None:
+            self.files["/iwer.js"] = desktop
+            self.files["/desktop.js"] = web_dir / "desktop" / "desktop.js"
         self._server: Server | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._thread: threading.Thread | None = None
@@ -212,6 +256,9 @@ class TeleopServer:
                 self.hub.drop("unauthorized")
                 log.warning("teleop server: refused WebSocket from %s: %s", _peer(connection), why)
                 return _text(403, "forbidden\n")
+            if self.hub.status()["clients"] >= MAX_CLIENTS:
+                self.hub.drop("connection_cap")
+                return _text(503, f"at most {MAX_CLIENTS} connections\n")
             return None
         if path == "/status" or path == "/":
             why = self._authorised(request, query)
@@ -228,7 +275,12 @@ class TeleopServer:
         ctype = mimetypes.guess_type(file.name)[0] or "application/octet-stream"
         if file.suffix == ".js":
             ctype = "text/javascript"
-        return _response(200, file.read_bytes(), f"{ctype}; charset=utf-8")
+        body = file.read_bytes()
+        if self.desktop and file.name == "index.html":  # the emulated headset first
+            body = body.replace(
+                b'<script type="module"', DESKTOP_SCRIPTS + b'<script type="module"'
+            )
+        return _response(200, body, f"{ctype}; charset=utf-8")
 
     # -- WebSocket -------------------------------------------------------------------------
     async def _handler(self, ws: ServerConnection) -> None:
@@ -236,13 +288,14 @@ class TeleopServer:
         link = _Link()
         self.hub.connect(conn_id)
         log.info("teleop server: page connected from %s", _peer(ws))
-        hello = {"type": "hello", "scene": self.scene, "max_message_bytes": MAX_MESSAGE_BYTES}
+        hello = {"type": "hello", "scene": self.scene, "max_message_bytes": MAX_MESSAGE_BYTES,
+                 "driver": self.hub.status()["driver"]}  # fmt: skip
         tasks = []
         try:
             await ws.send(json.dumps(hello))
             tasks = [
                 asyncio.create_task(self._sync(ws, link)),
-                asyncio.create_task(self._push_state(ws)),
+                asyncio.create_task(self._push_state(ws, conn_id)),
             ]
             async for data in ws:
                 self._receive(conn_id, link, data)
@@ -256,6 +309,9 @@ class TeleopServer:
             log.info("teleop server: page disconnected (%s)", _peer(ws))
 
     def _receive(self, conn_id: int, link: _Link, data: str | bytes) -> None:
+        if not link.admit():
+            self.hub.drop("rate_limited")
+            return
         try:
             msg = parse_message(data)
         except MessageError as exc:
@@ -268,6 +324,10 @@ class TeleopServer:
                 return
             link.last_seq, link.last_t = msg.seq, msg.t
             self.hub.put(conn_id, msg, link.offset_ms)
+            return
+        if isinstance(msg, ReleaseMessage):
+            if self.hub.release(conn_id):
+                log.info("teleop server: the operator handed control over")
             return
         sent = link.pings.pop(msg.id, None)
         if sent is None:
@@ -288,14 +348,20 @@ class TeleopServer:
                 del link.pings[stale]
             await asyncio.sleep(0.1 if n < SYNC_PINGS else SYNC_PERIOD_S)
 
-    async def _push_state(self, ws: ServerConnection) -> None:
-        seen = -1
+    async def _push_state(self, ws: ServerConnection, conn_id: int) -> None:
+        seen, told = -1, ""
         while True:
+            role = self.hub.role(conn_id)
+            if role != told:  # the role changed: this connection is told at once
+                told = role
+                await ws.send(json.dumps({"type": "control", "role": role}))
             with self.hub.lock:
                 seq, snap, state = self.hub.snapshot_seq, self.hub.snapshot, self.hub.state
+                driver = self.hub.driver
             if seq != seen:
                 seen = seq
-                await ws.send(json.dumps({"type": "state", "state": state, **snap}))
+                msg = {"type": "state", "state": state, "driver": driver, **snap}
+                await ws.send(json.dumps(msg))
             await asyncio.sleep(STATE_PERIOD_S)
 
     # -- running ---------------------------------------------------------------------------

@@ -1,12 +1,21 @@
-"""The teleop server's self-signed TLS certificate, made on first use and kept for the next.
+"""The teleop server's TLS certificate: a leaf signed by a one-off local CA, kept for reuse.
 
-The certificate and its key live in the user's config folder
-(``$XDG_CONFIG_HOME/astrobee-payload/``, default ``~/.config/astrobee-payload/``) as
-``teleop-cert.pem`` and ``teleop-key.pem`` (the key readable by the user only). It names
-``localhost``, the loopback addresses and the address the server binds (for a wildcard
-bind, this machine's network addresses), so a headset
-that trusts it once keeps trusting it. A new certificate is made when the bound address
-is not among the names, or the certificate expires within a week.
+Two certificates live in the user's config folder (``$XDG_CONFIG_HOME/astrobee-payload/``,
+default ``~/.config/astrobee-payload/``):
+
+- ``teleop-ca.pem``: a CA certificate (``CA:TRUE``, path length 0, key usage: sign
+  certificates only) that the headset is told to trust once;
+- ``teleop-cert.pem`` and ``teleop-key.pem``: the server's leaf certificate (``CA:FALSE``,
+  server authentication only, valid :data:`VALID_DAYS` days) naming ``localhost``, the
+  loopback addresses and the bind address (for a wildcard bind, this machine's network
+  addresses), and its key (readable by the user only, unencrypted: the server starts
+  unattended).
+
+The CA's private key is never written anywhere: it signs the leaf and is discarded, so
+nothing else can ever be signed by the CA a headset trusts. The price: a new leaf (a new
+bind address, or the leaf within a week of expiry) comes with a new CA to trust again.
+A user-supplied certificate and key (e.g. from an organisation's CA) can be used instead
+(``payload teleop serve --cert FILE --key FILE``).
 """
 
 from __future__ import annotations
@@ -27,7 +36,9 @@ from payload.errors import PayloadError
 
 CERT_NAME = "teleop-cert.pem"
 KEY_NAME = "teleop-key.pem"
-VALID_DAYS = 825  # the longest lifetime browsers accept for a server certificate
+CA_NAME = "teleop-ca.pem"
+VALID_DAYS = 365  # the leaf: about a year (browsers accept at most 398 days)
+CA_VALID_DAYS = 366  # the CA outlives its one leaf
 
 
 class TlsError(PayloadError):
@@ -88,32 +99,79 @@ def _covers(cert: x509.Certificate, host: str) -> bool:
     return wanted <= have and cert.not_valid_after_utc > soon
 
 
-def make_certificate(host: str) -> tuple[bytes, bytes]:
-    """A new self-signed certificate and key (PEM) naming ``host`` and the loopback names."""
+def make_certificate(host: str) -> tuple[bytes, bytes, bytes]:
+    """A new one-off CA and the leaf it signs for ``host`` and the loopback names.
+
+    Returns:
+        (leaf certificate, leaf key, CA certificate), PEM; the CA's key is discarded.
+    """
+    now = datetime.datetime.now(datetime.timezone.utc)
+    ca_key = ec.generate_private_key(ec.SECP256R1())
+    ca_name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "astrobee-payload teleop CA")])
+    ca = (
+        x509.CertificateBuilder()
+        .subject_name(ca_name)
+        .issuer_name(ca_name)
+        .public_key(ca_key.public_key())
+        .serial_number(x509.random_serial_number())
+        .not_valid_before(now - datetime.timedelta(minutes=5))
+        .not_valid_after(now + datetime.timedelta(days=CA_VALID_DAYS))
+        .add_extension(x509.BasicConstraints(ca=True, path_length=0), critical=True)
+        .add_extension(_usage(cert_sign=True), critical=True)
+        .add_extension(x509.SubjectKeyIdentifier.from_public_key(ca_key.public_key()), False)
+        .sign(ca_key, hashes.SHA256())
+    )
     key = ec.generate_private_key(ec.SECP256R1())
     name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "astrobee-payload teleop")])
-    now = datetime.datetime.now(datetime.timezone.utc)
+    ski = ca.extensions.get_extension_for_class(x509.SubjectKeyIdentifier).value
     cert = (
         x509.CertificateBuilder()
         .subject_name(name)
-        .issuer_name(name)
+        .issuer_name(ca_name)
         .public_key(key.public_key())
         .serial_number(x509.random_serial_number())
         .not_valid_before(now - datetime.timedelta(minutes=5))
         .not_valid_after(now + datetime.timedelta(days=VALID_DAYS))
         .add_extension(x509.SubjectAlternativeName(_names(host)), critical=False)
-        .add_extension(x509.BasicConstraints(ca=True, path_length=0), critical=True)
+        .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
+        .add_extension(_usage(cert_sign=False), critical=True)
         .add_extension(
             x509.ExtendedKeyUsage([x509.oid.ExtendedKeyUsageOID.SERVER_AUTH]), critical=False
         )
-        .sign(key, hashes.SHA256())
+        .add_extension(
+            x509.AuthorityKeyIdentifier.from_issuer_subject_key_identifier(ski), critical=False
+        )
+        .sign(ca_key, hashes.SHA256())
     )
     key_pem = key.private_bytes(
         serialization.Encoding.PEM,
         serialization.PrivateFormat.PKCS8,
         serialization.NoEncryption(),
     )
-    return cert.public_bytes(serialization.Encoding.PEM), key_pem
+    pem = serialization.Encoding.PEM
+    return cert.public_bytes(pem), key_pem, ca.public_bytes(pem)
+
+
+def _usage(cert_sign: bool) -> x509.KeyUsage:
+    """Key usage: a CA signs certificates only; the leaf signs TLS handshakes only."""
+    return x509.KeyUsage(
+        digital_signature=not cert_sign,
+        content_commitment=False,
+        key_encipherment=False,
+        data_encipherment=False,
+        key_agreement=False,
+        key_cert_sign=cert_sign,
+        crl_sign=False,
+        encipher_only=False,
+        decipher_only=False,
+    )
+
+
+def _is_ca(cert: x509.Certificate) -> bool:
+    try:
+        return bool(cert.extensions.get_extension_for_class(x509.BasicConstraints).value.ca)
+    except x509.ExtensionNotFound:
+        return False
 
 
 def ensure_certificate(host: str, folder: Path | None = None) -> tuple[Path, Path, bool]:
@@ -126,18 +184,19 @@ def ensure_certificate(host: str, folder: Path | None = None) -> tuple[Path, Pat
         TlsError: The folder or files cannot be written or read.
     """
     d = folder if folder is not None else config_dir()
-    cert_path, key_path = d / CERT_NAME, d / KEY_NAME
+    cert_path, key_path, ca_path = d / CERT_NAME, d / KEY_NAME, d / CA_NAME
     try:
-        if cert_path.exists() and key_path.exists():
+        if cert_path.exists() and key_path.exists() and ca_path.exists():
             cert = x509.load_pem_x509_certificate(cert_path.read_bytes())
-            if _covers(cert, host):
+            if _covers(cert, host) and not _is_ca(cert):  # an old self-signed CA is remade
                 return cert_path, key_path, False
         d.mkdir(parents=True, exist_ok=True)
-        cert_pem, key_pem = make_certificate(host)
+        cert_pem, key_pem, ca_pem = make_certificate(host)
         fd = os.open(key_path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
         with os.fdopen(fd, "wb") as fh:
             fh.write(key_pem)
         cert_path.write_bytes(cert_pem)
+        ca_path.write_bytes(ca_pem)
     except (OSError, ValueError) as exc:
         raise TlsError(f"TLS certificate in {d}: {exc}") from exc
     return cert_path, key_path, True

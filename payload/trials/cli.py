@@ -106,8 +106,6 @@ def _cmd_trial(args: argparse.Namespace) -> int:
     if args.json:
         emit_json({**result, "project": str(project.root)})
         return 0
-    from payload.trials.campaign import METRIC_KEYS, METRIC_LABELS
-
     print(f"trial seed {seed} ({operator}) -> {out}")
     given = ""
     if operator == "replay":
@@ -115,17 +113,9 @@ def _cmd_trial(args: argparse.Namespace) -> int:
         given = " (the recording's)"
         if names:
             given = f" (given: {', '.join(names)}; the rest the recording's)"
-    modelled = "modelled" if result.get("retarget_collisions") else "off"
-    print(
-        f"  setup: CTB {result.get('ctb')}, {result.get('propulsion')} propulsion, "
-        f"retargeting budget {result.get('retarget_budget')}, self-collision "
-        f"{modelled}{given}"
-    )
-    print(f"  success: {bool(result.get('success'))}")
-    for key in METRIC_KEYS:
-        value = result.get(key)
-        shown = "n/a" if value is None else f"{value:.3f}"
-        print(f"  {METRIC_LABELS[key]}: {shown}")
+    from payload.trials.summary import print_trial_summary
+
+    print_trial_summary(result, given)
     return 0
 
 

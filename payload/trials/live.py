@@ -80,12 +80,20 @@ class PayloadRig:
     simulator's.
     """
 
+    ARM_AFTER_SENDS = 25  # half a second of the loop: past its first steps' one-off set-up
+    """A payload whose Bus Watchdog was left disarmed while the session set up (see
+    ``payload teleop serve --driver hardware``) has it armed once the loop runs."""
+
     def __init__(self, sim: Any, payload: Any) -> None:
         self._sim = sim
         self.payload = payload
+        self._sends = 0
 
     def send(self, command: Any) -> None:
         self._sim.send(command)
+        self._sends += 1
+        if self._sends == self.ARM_AFTER_SENDS and hasattr(self.payload, "set_watchdog"):
+            self.payload.set_watchdog(True)
         self.payload.send(command)
 
     def read(self) -> Any:

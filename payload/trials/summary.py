@@ -440,3 +440,23 @@ def load_trial_results(
         row["out_dir"] = str(d)
         results.append(row)
     return sorted(results, key=lambda r: (r.get("seed") is None, r.get("seed") or 0))
+
+
+def print_trial_summary(result: dict[str, Any], given: str = "") -> None:
+    """Print a trial's set-up, success and metrics (``payload trial``, ``payload hw run``).
+
+    Args:
+        result: The trial's metrics (``metrics.json``).
+        given: Where the set-up came from, appended to its line.
+    """
+    modelled = "modelled" if result.get("retarget_collisions") else "off"
+    print(
+        f"  setup: CTB {result.get('ctb')}, {result.get('propulsion')} propulsion, "
+        f"retargeting budget {result.get('retarget_budget')}, self-collision "
+        f"{modelled}{given}"
+    )
+    print(f"  success: {bool(result.get('success'))}")
+    for key in METRIC_KEYS:
+        value = result.get(key)
+        shown = "n/a" if value is None else f"{value:.3f}"
+        print(f"  {METRIC_LABELS[key]}: {shown}")

@@ -20,7 +20,10 @@ const wsUrl = `${location.protocol === 'https:' ? 'wss' : 'ws'}://${location.hos
 const $ = (id) => document.getElementById(id);
 
 // what the browser test (and a curious developer) can look at
-const debug = { sent: 0, received: 0, connects: 0, state: null, open: false, xr: false };
+const debug = {
+  sent: 0, received: 0, connects: 0, state: null, open: false, xr: false,
+  role: null, driver: null, link: 'connecting to the teleop server…',
+};
 window.__teleop = debug;
 
 // ---- the WebSocket, reconnecting -----------------------------------------------------
@@ -39,7 +42,10 @@ class Link {
       this.retry = 250;
       debug.open = true;
       debug.connects += 1;
-      $('link').textContent = 'connected';
+      debug.link = 'connected';
+      debug.state = null;  // nothing of the last connection's session is current any more
+      debug.role = null;
+      showStatus();
     };
     ws.onmessage = (ev) => {
       debug.received += 1;
@@ -47,7 +53,10 @@ class Link {
     };
     ws.onclose = () => {
       debug.open = false;
-      $('link').textContent = `disconnected, retrying in ${(this.retry / 1000).toFixed(1)} s`;
+      debug.link = `disconnected, retrying in ${(this.retry / 1000).toFixed(1)} s`;
+      debug.state = null;
+      debug.role = null;
+      showStatus();
       setTimeout(() => this.connect(), this.retry);
       this.retry = Math.min(4000, this.retry * 2);
     };
@@ -68,25 +77,37 @@ const canvas = $('view');
 const gl = canvas.getContext('webgl', { xrCompatible: true, antialias: true });
 const renderer = new Renderer(gl);
 
-function panelLines(st) {
-  if (!st) return ['connecting to the teleop server…'];
-  const lines = [`${st.state}${st.step ? `: ${st.step}` : ''}`];
-  if (st.prompt) lines.push(`${st.prompt} (${st.remaining.toFixed(1)} s)`);
-  if (st.safe_stop) lines.push(`SAFE STOP: ${st.safe_stop}`);
-  if (st.vehicle) lines.push(`vehicle ${st.vehicle.speed.toFixed(3)} m/s  rail ` +
-    `${(st.rail * 1000).toFixed(0)} mm  ${st.contact ? 'CTB held' : ''}`);
-  if (st.notice && lines.length < 4) lines.push(st.notice);
+const ROLES = {
+  holder: 'you have control',
+  watching: 'watching: another operator has control',
+  free: 'control free: start calibrating to take it',
+};
+
+// the one status line, always rebuilt from what is current (link, role, session state)
+function statusLines() {
+  const st = debug.state;
+  if (!debug.open) return [debug.link];
+  const head = [st ? st.state + (st.step ? `: ${st.step}` : '') : 'connected, waiting for ' +
+    'the session', debug.role ? ROLES[debug.role] : null].filter(Boolean).join(' · ');
+  const lines = [head];
+  if (st && st.safe_stop) lines.push(`SAFE STOP: ${st.safe_stop}`);
+  if (st && st.vehicle) lines.push(`vehicle ${st.vehicle.speed.toFixed(3)} m/s  rail ` +
+    `${(st.rail * 1000).toFixed(0)} mm${st.contact ? '  CTB held' : ''}`);
+  if (st && st.notice && !st.prompt) lines.push(st.notice);
   return lines;
 }
 
-function showState(st) {
-  debug.state = st;
-  renderer.state = st;
-  $('state').textContent = `${st.state} (${st.phase || ''})`;
-  $('prompt').textContent = st.prompt ? `${st.prompt} — ${st.remaining.toFixed(1)} s` : st.notice;
-  $('vehicle').textContent = st.vehicle ? `vehicle speed ${st.vehicle.speed.toFixed(3)} m/s` : '';
-  $('safety').textContent = st.safe_stop ? `safe stop: ${st.safe_stop}` : '';
-  renderer.setPanel(panelLines(st), st.safe_stop ? '#f96' : '#7fd');
+function showStatus() {
+  const st = debug.state;
+  const lines = statusLines();
+  $('status').textContent = lines.join(' — ');
+  $('prompt').textContent = st && st.prompt ? `${st.prompt} (${st.remaining.toFixed(1)} s)` : '';
+  $('driver').textContent = debug.driver ? `driver: ${debug.driver}` : '';
+  $('handover').hidden = debug.role !== 'holder';
+  const panel = st && st.prompt ? [lines[0], `${st.prompt} (${st.remaining.toFixed(1)} s)`,
+    ...lines.slice(1)] : lines;
+  if (debug.driver) panel.push(`driver: ${debug.driver}`);
+  renderer.setPanel(panel.slice(0, 4), st && st.safe_stop ? '#f96' : '#7fd');
 }
 
 const link = new Link((msg) => {
@@ -94,10 +115,35 @@ const link = new Link((msg) => {
     link.send({ type: 'pong', id: msg.id, t: performance.now() });
   } else if (msg.type === 'hello') {
     renderer.scene = msg.scene;
+    debug.driver = msg.driver || null;
+    showStatus();
   } else if (msg.type === 'state') {
-    showState(msg);
+    debug.state = msg;
+    renderer.state = msg;
+    if (msg.driver) debug.driver = msg.driver;
+    showStatus();
+  } else if (msg.type === 'control') {
+    debug.role = msg.role;
+    showStatus();
   }
 });
+$('handover').addEventListener('click', () => link.send({ type: 'release' }));
+showStatus();
+
+// the boxes' labels over the desktop view (normalised device coordinates -> pixels)
+function placeLabels(w, h) {
+  const box = $('labels');
+  const labels = renderer.labels || [];
+  while (box.children.length < labels.length) box.appendChild(document.createElement('span'));
+  [...box.children].forEach((el, i) => {
+    const l = labels[i];
+    el.hidden = !l || Math.abs(l.x) > 1 || Math.abs(l.y) > 1;
+    if (el.hidden) return;
+    el.textContent = l.text;
+    el.style.left = `${((l.x + 1) / 2) * w}px`;
+    el.style.top = `${((1 - l.y) / 2) * h}px`;
+  });
+}
 
 function drawDesktop() {
   if (debug.xr) return;
@@ -107,9 +153,9 @@ function drawDesktop() {
   gl.viewport(0, 0, w, h);
   gl.clearColor(0.04, 0.06, 0.09, 1);
   gl.clear(gl.COLOR_BUFFER_BIT | gl.DEPTH_BUFFER_BIT);
-  renderer.setPanel(panelLines(debug.state));
   const eye = [0, 1.6, 0.8];
   renderer.draw(perspective(1.0, w / Math.max(h, 1), 0.05, 60), lookAt(eye, ANCHOR, [0, 1, 0]));
+  placeLabels(w, h);
   requestAnimationFrame(drawDesktop);
 }
 requestAnimationFrame(drawDesktop);
@@ -139,7 +185,8 @@ function onXRFrame(t, frame) {
       hands[source.handedness] = readHand(frame, source, space);
     }
   }
-  if (link.send({ type: 'frame', seq, t, hands })) debug.sent += 1;
+  // a watching page sends no frames (the server would refuse them); a free one takes control
+  if (debug.role !== 'watching' && link.send({ type: 'frame', seq, t, hands })) debug.sent += 1;
   seq += 1;
   const pose = frame.getViewerPose(space);
   const layer = session.renderState.baseLayer;
@@ -182,7 +229,8 @@ async function setup() {
   button.textContent = ok ? 'Enter VR' : 'immersive VR not supported here';
   button.addEventListener('click', () => enterXR().catch((e) => {
     console.error(e);
-    $('safety').textContent = `could not start VR: ${e.message}`;
+    debug.link = `could not start VR: ${e.message}`;
+    $('status').textContent = debug.link;
   }));
 }
 setup();

@@ -156,9 +156,11 @@ export class Renderer {
       mul(yawMatrix(-heading), translation(pos.map((x) => -x)))));
   }
 
-  box(vp, centre, quat, size, color) {
+  box(vp, centre, quat, size, color, label) {
     const gl = this.gl;
     const m = mul(vp, mul(translation(centre), mul(quatMatrix(quat), scaling(size.map((s) => s / 2)))));
+    // the box's label at its centre, in normalised device coordinates (drawn by the page)
+    if (label && m[15] > 0) this.labels.push({ text: label, x: m[12] / m[15], y: m[13] / m[15] });
     gl.uniformMatrix4fv(gl.getUniformLocation(this.line, 'mvp'), false, m);
     gl.uniform4fv(gl.getUniformLocation(this.line, 'color'), color);
     gl.bindBuffer(gl.ARRAY_BUFFER, this.cube);
@@ -182,20 +184,22 @@ export class Renderer {
     gl.enable(gl.DEPTH_TEST);
     const vpXr = mul(projection, view);
     const vp = mul(vpXr, this.worldMatrix());
+    this.labels = [];
     gl.useProgram(this.line);
     gl.enableVertexAttribArray(0);
     const id = [1, 0, 0, 0];
     for (const m of (this.scene && this.scene.modules) || []) {
       const c = m.lo.map((lo, i) => (lo + m.hi[i]) / 2), s = m.lo.map((lo, i) => m.hi[i] - lo);
-      this.box(vp, c, id, s, [0.45, 0.55, 0.7, 1]);
+      this.box(vp, c, id, s, [0.45, 0.55, 0.7, 1], m.name);
     }
     const st = this.state;
     if (st && st.vehicle) {
       const vs = (this.scene && this.scene.vehicle_size) || 0.32;
-      this.box(vp, st.vehicle.pos, st.vehicle.quat, [vs, vs, vs], [0.95, 0.8, 0.2, 1]);
+      this.box(vp, st.vehicle.pos, st.vehicle.quat, [vs, vs, vs], [0.95, 0.8, 0.2, 1],
+        'Astrobee + payload');
       if (st.ctb && st.ctb.pos && this.scene && this.scene.ctb_size) {
         this.box(vp, st.ctb.pos, st.ctb.quat, this.scene.ctb_size,
-          st.contact ? [0.3, 1, 0.4, 1] : [0.9, 0.9, 0.9, 1]);
+          st.contact ? [0.3, 1, 0.4, 1] : [0.9, 0.9, 0.9, 1], st.contact ? 'CTB (held)' : 'CTB');
       }
       const tips = Object.values(st.fingers || {});
       const base = [st.vehicle.pos[0], st.vehicle.pos[1], st.vehicle.pos[2] - vs / 2];

@@ -1,0 +1,158 @@
+"""Health, faults and recovery of the payload's servos: a part of :class:`DynamixelDriver`.
+
+:class:`FaultHandling` holds the driver's health reads, the reaction to a hardware error
+(the safe stop) and the recovery (REBOOT, restore, re-home); the driver inherits it.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from typing import TYPE_CHECKING, Any
+
+from dynamixel_sdk import COMM_SUCCESS, GroupSyncRead, GroupSyncWrite
+
+from firmware_interface.control_table import ADDR, hw_error_names, to_signed
+from firmware_interface.errors import CommError, HardwareFault
+from firmware_interface.health import Recovery, ServoHealth
+
+if TYPE_CHECKING:
+    from firmware_interface.servo_map import ServoMap
+
+log = logging.getLogger("firmware_interface.driver")
+
+
+class FaultHandling:
+    """Health reads, the safe stop and recovery (mixed into :class:`DynamixelDriver`)."""
+
+    map: ServoMap
+    ids: list[int]
+    port: Any
+    packet: Any
+    on_fault: str
+    fault: HardwareFault | None
+    faults: list[HardwareFault]
+    health: dict[int, ServoHealth]
+    _stopped: bool
+    _present: Any
+    _gap: float
+
+    def _check_alerted(self, ids: list[int]) -> None:
+        """Hardware Error Status of the servos whose status carried the alert bit."""
+        faulted = []
+        for i in ids:
+            err = self._read_reg(i, ADDR["hardware_error_status"], 1)
+            if err:
+                faulted.append(ServoHealth(i, self.map.joint_of(i), err, 0.0, 0.0, 0))
+        if faulted:
+            self._on_hardware_error(faulted)
+
+    # -- health, faults, recovery ------------------------------------------------------------
+    def _group_read(self, address: int, size: int) -> GroupSyncRead:
+        g = GroupSyncRead(self.port, self.packet, address, size)
+        for i in self.ids:
+            g.addParam(i)
+        self._sync_read(g, f"address {address}")
+        return g
+
+    def read_health(self, dxl_id: int) -> ServoHealth:
+        """One servo's health, read register by register (works with servos missing)."""
+        return ServoHealth(
+            dxl_id,
+            self.map.joint_of(dxl_id),
+            self._read_reg(dxl_id, ADDR["hardware_error_status"], 1),
+            float(self._read_reg(dxl_id, ADDR["present_temperature"], 1)),
+            self._read_reg(dxl_id, ADDR["present_input_voltage"], 2) * 0.1,
+            self._read_reg(dxl_id, ADDR["bus_watchdog"], 1),
+            self._read_reg(dxl_id, ADDR["model_number"], 2),
+        )
+
+    def check_health(self) -> dict[int, ServoHealth]:
+        """Read Hardware Error Status, Bus Watchdog, input voltage and temperature.
+
+        A hardware error stops the payload safely and is logged (see :meth:`safe_stop`).
+        """
+        err = self._group_read(ADDR["hardware_error_status"], 1)
+        wd = self._group_read(ADDR["bus_watchdog"], 1)
+        env = self._group_read(ADDR["present_input_voltage"], 3)
+        out = {}
+        for spec in self.map.servos:
+            i = spec.id
+            out[i] = ServoHealth(
+                i,
+                spec.joint,
+                int(err.getData(i, 70, 1)),
+                float(env.getData(i, 146, 1)),
+                env.getData(i, 144, 2) * 0.1,
+                int(wd.getData(i, 98, 1)),
+            )
+        self.health = out
+        if any(h.watchdog == 0xFF for h in out.values()) and not self._stopped:
+            self._rearm_watchdog(self._gap)
+        faulted = [h for h in out.values() if h.hardware_error]
+        if faulted and (self.fault is None or not self._stopped):
+            self._on_hardware_error(faulted)
+        return out
+
+    def _on_hardware_error(self, faulted: list[ServoHealth]) -> None:
+        h = faulted[0]
+        fault = HardwareFault(h.id, h.joint, hw_error_names(h.hardware_error),
+                              others=[x.id for x in faulted[1:]])  # fmt: skip
+        self.fault = fault
+        self.faults.append(fault)
+        log.error("payload stopped (%s): %s", self.on_fault, fault)
+        self.safe_stop()
+
+    def safe_stop(self) -> None:
+        """Stop the payload: hold every servo where it is, or turn the torque off."""
+        self._stopped = True
+        if self.on_fault == "torque_off":
+            g = GroupSyncWrite(self.port, self.packet, ADDR["torque_enable"], 1)
+            for i in self.ids:
+                g.addParam(i, [0])
+            g.txPacket()
+            return
+        self._sync_write_goals([int(p) for p in self._present])
+
+    def recover(self, timeout: float = 5.0) -> Recovery:
+        """Reboot the faulted servo(s), restore their settings, return them to service.
+
+        Returns:
+            The servos rebooted and the time from the REBOOT to back in service.
+
+        Raises:
+            HardwareFault: The error is still there after the reboot (the cause persists).
+            CommError: A servo did not come back within ``timeout``.
+        """
+        self._check_open()
+        self.check_health()
+        ids = [h.id for h in self.health.values() if h.hardware_error]
+        t0 = time.monotonic()
+        for i in ids:
+            self.packet.reboot(self.port, i)
+        for i in ids:
+            while True:
+                _, result, _ = self.packet.ping(self.port, i)
+                if result == COMM_SUCCESS:
+                    break
+                if time.monotonic() - t0 > timeout:
+                    raise CommError(f"{self._name(i)}: did not answer within {timeout} s of REBOOT")
+            err = self._read_reg(i, ADDR["hardware_error_status"], 1)
+            if err:
+                raise HardwareFault(i, self.map.joint_of(i), hw_error_names(err))
+            self._configure(self.map.by_id(i))
+        relost = [sp for sp in self._linear if sp.id in ids]
+        if relost:  # a reboot lost the multi-turn count: home again
+            self.home(relost)
+        self._arm_watchdog(self.ids)
+        if self.on_fault == "torque_off":
+            for spec in self.map.servos:
+                if spec.id not in ids:
+                    present = to_signed(self._read_reg(spec.id, ADDR["present_position"], 4), 4)
+                    self._write(spec.id, "goal_position", present)
+                    self._write(spec.id, "torque_enable", 1)
+        self._stopped = False
+        self.fault = None
+        seconds = time.monotonic() - t0
+        log.info("recovered %s in %.3f s", ", ".join(self._name(i) for i in ids), seconds)
+        return Recovery(tuple(ids), seconds)

@@ -1,0 +1,104 @@
+"""Homing of the rail and the stage: a current-limited move to the stowed hard stop.
+
+The XC330's encoder is absolute over one turn only: after power-up or a REBOOT, Present
+Position reads the shaft angle within one turn plus the Homing Offset, the multi-turn
+count is lost (ROBOTIS e-Manual, XC330: Homing Offset (20), Present Position (132),
+Extended Position Control Mode). The rail and the stage span several turns (the rail
+ticks 1024 to 6456, the stage 1024 to -7125), so their absolute position is unknown
+until homed. The method the e-Manual supports: with the torque off, Homing Offset is
+cleared; the servo is driven under a low current cap (Goal Current, current-based
+position mode) toward the stowed end (joint value 0) by more than the whole travel plus
+a turn; when it stalls against the hard stop, Homing Offset is set so that Present
+Position reads the stop's tick (the map's ``zero``) and the full current cap restored.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+from firmware_interface.control_table import ADDR, TICKS_PER_REV, to_signed
+from firmware_interface.errors import HomingError
+from firmware_interface.servo_map import ServoSpec
+
+HOMING_CURRENT_FRACTION = 0.5
+"""Goal Current while homing, as a fraction of the design's current cap (ASSUMPTION: low
+enough that the stop is met at half the running force, high enough to overcome the
+drive's friction)."""
+STALL_TICKS = 1  # a homing servo that moved no more than this ...
+STALL_S = 0.06  # ... for this long [s], at its current cap, is at the stop
+POLL_S = 0.01  # feedback read period while homing [s]
+
+
+def home_linear(
+    write: Callable[[int, str, int], None],
+    read_reg: Callable[[int, int, int], int],
+    feedback: Callable[[], tuple[np.ndarray, np.ndarray]],
+    ids: list[int],
+    specs: list[ServoSpec],
+    span_ticks: dict[int, int],
+    cap_ma: int,
+    timeout: float = 6.0,
+) -> dict[int, int]:
+    """Home the rail and/or the stage together; returns ID -> Homing Offset written.
+
+    Args:
+        write: Writes one register (``write(id, name, value)``), status checked.
+        read_reg: Reads one register (``read_reg(id, address, size)``), unsigned.
+        feedback: One feedback read of every mapped servo: ``(current [mA], position
+            [ticks])``, each shape (n,), in the order of ``ids``.
+        ids: Every mapped servo ID (the order of ``feedback``).
+        specs: The servos to home (the rail, the stage).
+        span_ticks: ID -> the joint's travel [ticks].
+        cap_ma: The design's current cap [mA] (restored after homing).
+        timeout: Longest time to wait for the stops [s].
+
+    Raises:
+        HomingError: A servo did not reach its stop within ``timeout``.
+    """
+    i_home = max(1, round(HOMING_CURRENT_FRACTION * cap_ma))
+    for spec in specs:
+        i = spec.id
+        write(i, "torque_enable", 0)
+        write(i, "homing_offset", 0)
+        write(i, "goal_current", i_home)
+        write(i, "torque_enable", 1)
+        raw = to_signed(read_reg(i, ADDR["present_position"], 4), 4)
+        # toward joint value 0 by more than the whole travel and a turn
+        write(i, "goal_position", raw - spec.direction * (span_ticks[i] + TICKS_PER_REV))
+    index = {spec.id: ids.index(spec.id) for spec in specs}
+    still_since: dict[int, float] = {}
+    last: dict[int, int] = {}
+    stopped: dict[int, int] = {}
+    t0 = time.monotonic()
+    while len(stopped) < len(specs):
+        if time.monotonic() - t0 > timeout:
+            missing = [s.joint for s in specs if s.id not in stopped]
+            raise HomingError(f"homing: {', '.join(missing)} did not reach the hard stop "
+                              f"within {timeout} s")  # fmt: skip
+        time.sleep(POLL_S)
+        cur, pos = feedback()
+        now = time.monotonic()
+        for spec in specs:
+            i = spec.id
+            if i in stopped:
+                continue
+            p, c = int(pos[index[i]]), float(cur[index[i]])
+            if i not in last or abs(p - last[i]) > STALL_TICKS:
+                last[i], still_since[i] = p, now
+            elif now - still_since[i] >= STALL_S and abs(c) >= 0.9 * i_home:
+                stopped[i] = p
+                write(i, "goal_position", p)  # stop pushing: the overload would trip
+    offsets = {}
+    for spec in specs:
+        i = spec.id
+        raw = to_signed(read_reg(i, ADDR["present_position"], 4), 4)
+        offsets[i] = spec.zero - raw
+        write(i, "torque_enable", 0)
+        write(i, "homing_offset", offsets[i])
+        write(i, "goal_current", cap_ma)
+        write(i, "torque_enable", 1)
+        write(i, "goal_position", spec.zero)
+    return offsets

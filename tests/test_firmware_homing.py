@@ -1,0 +1,183 @@
+"""Homing of the rail and the stage, power-up and REBOOT as the XC330 does them, hard
+stops, the grasp's load, and faults seen within one cycle (the status alert bit).
+
+The emulator keeps the physical output position (``pos``, in the servo map's tick frame)
+apart from the count the servo reports; the checks compare the driver's reading with
+that physical position, read through the emulator's control channel.
+"""
+
+from __future__ import annotations
+
+import random
+import time
+
+import numpy as np
+import pytest
+
+from firmware_interface.control_table import ADDR, BY_NAME, TICKS_PER_REV, decode
+from firmware_interface.driver import DynamixelDriver
+from firmware_interface.emulator import EmulatorProcess
+from firmware_interface.errors import HardwareFault, NotHomedError
+from firmware_interface.servo_map import load_servo_map
+from firmware_interface.servo_model import OVERLOAD_S, ServoModel
+from payload.schema import PayloadCommand
+
+LAT = 50.0  # [ms] reply timeout allowance on a busy machine
+
+
+def reg(table: bytes, name: str) -> int:
+    r = BY_NAME[name]
+    return decode(r, table[r.address : r.address + r.size])
+
+
+@pytest.fixture(scope="module")
+def smap():
+    return load_servo_map()
+
+
+def _stage_reading(drv, smap) -> float:
+    """The driver's stage position as ticks of the map's frame."""
+    spec = smap.servos[17]
+    return spec.zero + spec.direction * drv.read().deploy / spec.units_per_tick
+
+
+def _go(drv, cmd, timeout=4.0):
+    """Command until the stage reads the goal's tick (half a tick of the command)."""
+    half = 0.5001 * drv.map.servos[17].units_per_tick
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < timeout:
+        drv.send(cmd)
+        st = drv.read()
+        if abs(st.deploy - cmd.deploy) <= half and drv.fault is None:
+            return st
+    raise AssertionError(f"did not reach {cmd.deploy} m")
+
+
+# -- the servo model alone (no process) -------------------------------------------------------
+def test_power_up_and_reboot_keep_the_angle_within_one_turn_and_lose_the_count():
+    s = ServoModel(18, position=-7125.0)
+    assert s.get("present_position") == -7125 % TICKS_PER_REV  # 1067: within one turn
+    assert s.physical == -7125.0
+    s._set("homing_offset", 5000)  # EEPROM: kept across a REBOOT
+    s.reboot()
+    assert s.get("homing_offset") == 5000
+    assert s.get("present_position") == 1067 + 5000
+    s.pos += 3 * TICKS_PER_REV  # three turns on the multi-turn count ...
+    s.power_cycle()  # ... lost at power-up; the physical position is not
+    assert s.get("present_position") == 1067 + 5000 and s.physical == -7125.0 + 3 * 4096
+
+
+def test_hard_stop_holds_the_output_and_overloads_after_the_protection_time():
+    s = ServoModel(17, position=1500.0, stops=(1024.0, 6456.0))
+    s._set("operating_mode", 5)
+    s._set("torque_enable", 1)
+    s._set("goal_position", -20000)
+    t = 0.0
+    while t < 1.0:  # 476 ticks at no more than 81 rpm: there within 0.1 s
+        t += 0.001
+        s.advance(t)
+    assert s.physical == 1024.0 and s.vel == 0.0 and s.hw_error == 0
+    while t < 1.0 + OVERLOAD_S:
+        t += 0.001
+        s.advance(t)
+    assert s.hw_error & (1 << 5)  # pushed into the stop at the current cap: overload
+
+
+def test_a_load_the_current_cap_cannot_hold_stalls_the_finger():
+    free, loaded = ServoModel(3, 2048.0), ServoModel(3, 2048.0)
+    for s in (free, loaded):
+        s._set("operating_mode", 5)
+        s._set("goal_current", 350)
+        s._set("torque_enable", 1)
+        s._set("goal_position", 2548)
+    loaded.load_ma = -400.0  # the contact pushes back harder than 350 mA can
+    for k in range(1, 301):
+        free.advance(k * 1e-3)
+        loaded.advance(k * 1e-3)
+    assert free.physical > 2500 and loaded.physical == 2048.0
+    assert abs(loaded.current) == 350 and loaded.vel == 0.0
+
+
+# -- the driver against the emulator ----------------------------------------------------------
+def test_power_cycle_mid_travel_homes_within_one_tick_before_any_deploy(smap):
+    stage, rail = smap.servos[17], smap.servos[16]
+    mid = stage.to_ticks(0.04)  # -3322: not within one turn of the map's zero
+    with EmulatorProcess(positions={18: mid, 17: rail.to_ticks(0.03)}) as emu:
+        assert reg(emu.table(18), "present_position") == mid % TICKS_PER_REV
+        with DynamixelDriver(emu.port, smap, latency_timer_ms=LAT) as drv:
+            with pytest.raises(NotHomedError, match="rail and stage not homed"):
+                drv.send(PayloadCommand(np.zeros(17), 0.075, 0.0))
+            assert reg(emu.table(18), "goal_position") == 0  # nothing reached the stage
+            drv.bring_up()
+            true = emu.servos()[18]["pos"]
+            assert true == stage.zero  # homed at the stowed stop
+            assert abs(_stage_reading(drv, smap) - true) <= 1.0
+            _go(drv, PayloadCommand(np.zeros(17), 0.04, 0.0))
+            assert abs(emu.servos()[18]["pos"] - mid) <= 1.0
+        # power cycle with the stage mid-travel: EEPROM (Homing Offset) kept, count lost
+        emu.power_cycle()
+        s18 = emu.servos()[18]
+        assert s18["pos"] == pytest.approx(mid, abs=1) and 0 <= s18["count"] < TICKS_PER_REV
+        with DynamixelDriver(emu.port, smap, latency_timer_ms=LAT) as drv:
+            with pytest.raises(NotHomedError):
+                drv.send(PayloadCommand(np.zeros(17), 0.075, 0.0))
+            drv.bring_up()
+            assert abs(_stage_reading(drv, smap) - emu.servos()[18]["pos"]) <= 1.0
+            _go(drv, PayloadCommand(np.zeros(17), 0.06, 0.0))
+            assert abs(emu.servos()[18]["pos"] - stage.to_ticks(0.06)) <= 1.0
+
+
+def test_recover_of_the_stage_rehomes_it(smap):
+    stage = smap.servos[17]
+    with (
+        EmulatorProcess() as emu,
+        DynamixelDriver(emu.port, smap, latency_timer_ms=LAT) as drv,
+    ):
+        drv.bring_up()
+        cmd = PayloadCommand(np.zeros(17), 0.05, 0.0)
+        _go(drv, cmd)
+        emu.fault("error:18:overload")
+        drv.read()
+        assert isinstance(drv.fault, HardwareFault) and drv.fault.id == 18
+        rec = drv.recover()  # REBOOT: the stage's count is lost, it is homed again
+        assert rec.ids == (18,) and 18 in drv.homed
+        s = emu.servos()[18]
+        assert s["reboots"] == 1 and s["pos"] == stage.zero
+        assert abs(_stage_reading(drv, smap) - s["pos"]) <= 1.0
+        _go(drv, cmd)
+        assert abs(emu.servos()[18]["pos"] - stage.to_ticks(0.05)) <= 1.0
+
+
+def test_injected_overload_at_a_random_cycle_stops_within_one_control_period(smap):
+    rng = random.Random(34)
+    k_fault = rng.randrange(5, 40)
+    victim = rng.choice(smap.ids)
+    period = 0.02  # 50 Hz
+    with (
+        EmulatorProcess() as emu,
+        # the periodic health read never comes: only the status alert bit can see it
+        DynamixelDriver(emu.port, smap, latency_timer_ms=LAT, health_every=10_000) as drv,
+    ):
+        drv.bring_up()
+        cmd = PayloadCommand(np.zeros(17), 0.02, 0.0)
+        for k in range(60):
+            t0 = time.monotonic()
+            if k == k_fault:
+                emu.fault(f"error:{victim}:overload")
+                t_fault = time.monotonic()
+            drv.send(cmd)
+            drv.read()
+            if k == k_fault:
+                assert drv.fault is not None and drv.fault.id == victim
+                assert drv.fault.bits == ["overload"]
+                assert time.monotonic() - t_fault < period
+                break
+            assert drv.fault is None
+            time.sleep(max(0.0, period - (time.monotonic() - t0)))
+        tables = emu.tables()
+        for i in smap.ids:  # the safe stop (hold) reached every servo
+            t = tables[i]
+            if i != victim:
+                assert abs(reg(t, "goal_position") - reg(t, "present_position")) <= 2, i
+        assert reg(tables[victim], "torque_enable") == 0
+        assert tables[victim][ADDR["hardware_error_status"]] == 1 << 5
