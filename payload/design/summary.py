@@ -7,6 +7,7 @@ from typing import Any
 import numpy as np
 
 from payload.design.params import Design
+from payload.design.servo import servo_summary
 from payload.design.solids import to_trimesh
 from payload.design.tree import MANIPULATION_JOINTS, KinematicTree, build_tree
 
@@ -68,6 +69,7 @@ def summarize(design: Design, tree: KinematicTree | None = None) -> dict[str, An
         "joints": joints,
         "mass_kg": {"total": tree.total_mass(), "groups": groups, "links": masses},
         "bounding_box": {"stowed": boxes["stowed"], "deployed": boxes["home"]},
+        "servo": servo_summary(tree),
     }
 
 

@@ -9,10 +9,12 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass
 from functools import cached_property
+from typing import Any
 
 import numpy as np
 
 from payload.design.params import FINGER_JOINTS, FINGERS, SIDE_OF, Design
+from payload.design.servo import joint_servo, kind_of
 from payload.design.solids import LinkBody, MassProps, all_bodies, carriage_origin_x, finger_mount
 
 MANIPULATION_JOINTS: tuple[str, ...] = (
@@ -63,7 +65,8 @@ class Joint:
         armature: Reflected rotor inertia.
         kp: Position-servo stiffness for the actuator.
         kv: Velocity feedback of the actuator (inside its force clamp, unlike ``damping``).
-        group: Actuator class (``finger``, ``rail`` or ``stage``).
+        group: Actuator class: the servo's joint kind (``finger``, ``abduction``, ``rail``,
+            ``stage``; :data:`payload.design.servo.JOINT_KINDS`).
     """
 
     name: str
@@ -193,12 +196,25 @@ class KinematicTree:
         return q
 
 
+def _servo_fields(design: Design, kind: str) -> dict[str, Any]:
+    """A joint's servo parameters from the one servo model (:mod:`payload.design.servo`)."""
+    js = joint_servo(design, kind)
+    return {
+        "effort": js.torque_cap,
+        "damping": js.damping,
+        "frictionloss": js.frictionloss,
+        "armature": js.armature,
+        "kp": js.kp,
+        "kv": js.kv,
+        "group": kind,
+    }
+
+
 def build_tree(design: Design) -> KinematicTree:
     """The kinematic tree of ``design`` with inertias from its solids and servos."""
     bodies = all_bodies(design)
     props = {name: body.mass_props() for name, body in bodies.items()}
     f, s, rl, st, mnt = design.finger, design.servo, design.rail, design.stage, design.mounting
-    torque = s.torque_limit
 
     links = [
         Link("base", bodies["base"], props["base"]),
@@ -215,11 +231,8 @@ def build_tree(design: Design) -> KinematicTree:
             axis=(0.0, 0.0, -1.0),
             lower=0.0,
             upper=st.travel,
-            effort=torque / st.drive_radius,
             velocity=s.no_load_speed * st.drive_radius,
-            damping=st.damping,
-            kp=st.kp,
-            group="stage",
+            **_servo_fields(design, "stage"),
         ),
         Joint(
             "rail",
@@ -230,11 +243,8 @@ def build_tree(design: Design) -> KinematicTree:
             axis=(1.0, 0.0, 0.0),
             lower=0.0,
             upper=rl.travel,
-            effort=torque / rl.drive_radius,
             velocity=s.no_load_speed * rl.drive_radius,
-            damping=rl.damping,
-            kp=rl.kp,
-            group="rail",
+            **_servo_fields(design, "rail"),
         ),
     ]
     frames = []
@@ -266,14 +276,8 @@ def build_tree(design: Design) -> KinematicTree:
                     axis=axis,
                     lower=lim.lower,
                     upper=lim.upper,
-                    effort=torque,
                     velocity=s.no_load_speed,
-                    damping=f.damping,
-                    frictionloss=f.frictionloss,
-                    armature=f.armature,
-                    kp=f.kp,
-                    kv=f.kv,
-                    group="finger",
+                    **_servo_fields(design, kind_of(jname)),
                 )
             )
             mesh = f"finger_{lname}"
