@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 from firmware_interface import protocol as P
 from firmware_interface.control_table import ADDR, BAUD_RATES, FIRMWARE_VERSION, MODEL_NUMBER
 from firmware_interface.faults import Fault
+from firmware_interface.servo_dynamics import Plant
 from firmware_interface.servo_model import ServoModel
 
 ADVANCE_S = 0.0005  # servo state is integrated at least this finely [s]
@@ -44,10 +45,16 @@ class Bus:
         baud: Bus baud rate [bit/s] (the servos' Baud Rate register is set to match).
         seed: Seed of the fault dice.
         now: Start time [s].
+        plants: Servo ID -> its output shaft (default: an unloaded servo).
     """
 
     def __init__(
-        self, positions: dict[int, int], baud: int = 4_000_000, seed: int = 0, now: float = 0.0
+        self,
+        positions: dict[int, int],
+        baud: int = 4_000_000,
+        seed: int = 0,
+        now: float = 0.0,
+        plants: dict[int, Plant] | None = None,
     ) -> None:
         code = {v: k for k, v in BAUD_RATES.items()}.get(baud)
         if code is None:
@@ -55,7 +62,7 @@ class Bus:
         self.baud = baud
         self.servos: dict[int, ServoModel] = {}
         for dxl_id, pos in positions.items():
-            s = ServoModel(dxl_id, pos, now)
+            s = ServoModel(dxl_id, pos, now, (plants or {}).get(dxl_id))
             s.table[ADDR["baud_rate"]] = code
             self.servos[dxl_id] = s
         self.missing: set[int] = set()

@@ -24,7 +24,7 @@ def _map(args: argparse.Namespace) -> Any:
 def _cmd_emulate(args: argparse.Namespace) -> int:
     from firmware_interface.emulator import bus_spec, serve
 
-    serve(bus_spec(args.servos), args.fault, seed=args.seed)
+    serve(bus_spec(args.servos, args.servo_params), args.fault, seed=args.seed)
     return 0
 
 
@@ -176,6 +176,12 @@ def register(
         help="missing:ID, corrupt:P, latency:3ms, drop:P, error:ID:BIT, block:ID",
     )
     p.add_argument("--seed", type=int, default=0, help="seed of the fault dice")
+    p.add_argument(
+        "--servo-params",
+        metavar="FILE",
+        help="JSON of servo plant values overriding the design's, by ID, joint kind or '*' "
+        "(hidden parameters for `hw identify`; docs/servo.md)",
+    )
     p.set_defaults(func=_cmd_emulate)
 
     for name, fn, text in (

@@ -27,6 +27,7 @@ from typing import Any
 
 from firmware_interface.bus import Bus
 from firmware_interface.faults import parse_fault
+from firmware_interface.servo_dynamics import plants_from_spec
 
 TICK_S = 0.005  # dynamics and watchdog update period while idle [s]
 SPIN_S = 0.0  # spin this long before a due reply instead of sleeping [s]
@@ -136,19 +137,37 @@ def control(bus: Bus, req: dict[str, Any]) -> dict[str, Any]:
     raise ValueError(f"unknown control op {op!r}")
 
 
-def bus_spec(servos: str | None) -> dict[str, Any]:
-    """IDs at the design's home posture and the baud rate of a map file (default map)."""
+def bus_spec(servos: str | None, servo_params: str | None = None) -> dict[str, Any]:
+    """IDs at the design's home posture, the baud rate of a map file (default map) and
+    each servo's plant: the design's servo model moving its joint's load, with the
+    overrides of a servo-parameters file (:func:`~firmware_interface.servo_dynamics.
+    load_plant_overrides`) applied."""
+    from firmware_interface.servo_dynamics import apply_overrides, design_plants
     from firmware_interface.servo_map import home_ticks, load_servo_map
+    from payload.design.params import load_design
+    from payload.design.servo import kind_of
 
-    smap = load_servo_map(servos)
-    return {"positions": home_ticks(smap), "baud": smap.baud}
+    design = load_design()
+    smap = load_servo_map(servos, design)
+    kinds = {s.id: kind_of(s.joint) for s in smap.servos}
+    plants = design_plants(design, kinds)
+    if servo_params:
+        from firmware_interface.servo_dynamics import load_plant_overrides
+
+        plants = apply_overrides(plants, kinds, load_plant_overrides(servo_params))
+    return {
+        "positions": home_ticks(smap, design),
+        "baud": smap.baud,
+        "plants": {str(i): p.to_dict() for i, p in plants.items()},
+    }
 
 
 def make_bus(spec: dict[str, Any], faults: list[str], seed: int = 0) -> Bus:
     """A bus from :func:`bus_spec` with the faults applied."""
     parsed = [parse_fault(f) for f in faults]  # validate before opening anything
     positions = {int(k): int(v) for k, v in spec["positions"].items()}
-    bus = Bus(positions, int(spec["baud"]), seed=seed, now=time.monotonic())
+    bus = Bus(positions, int(spec["baud"]), seed=seed, now=time.monotonic(),
+              plants=plants_from_spec(spec))  # fmt: skip
     for f in parsed:
         bus.apply(f)
     return bus
@@ -171,11 +190,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--servos", help="servo map TOML (default: the packaged map)")
     ap.add_argument("--fault", action="append", default=[], help="fault spec (repeatable)")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--servo-params", help="servo parameters JSON (default: the design's)")
     ap.add_argument("--control-fd", type=int, help=argparse.SUPPRESS)
     ap.add_argument("--bus", help=argparse.SUPPRESS)  # JSON from bus_spec (saves the imports)
     args = ap.parse_args(argv)
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))
-    spec = json.loads(args.bus) if args.bus else bus_spec(args.servos)
+    spec = json.loads(args.bus) if args.bus else bus_spec(args.servos, args.servo_params)
     try:
         serve(spec, args.fault, args.control_fd, args.seed)
     except KeyboardInterrupt:
@@ -190,12 +210,17 @@ class EmulatorProcess:
         servos: Servo map file (default map).
         faults: Fault specs applied from the start.
         seed: Seed of the fault dice.
+        servo_params: Servo-parameters file the servos' plants take (hidden parameters).
     """
 
     def __init__(
-        self, servos: str | None = None, faults: list[str] | None = None, seed: int = 0
+        self,
+        servos: str | None = None,
+        faults: list[str] | None = None,
+        seed: int = 0,
+        servo_params: str | None = None,
     ) -> None:
-        spec = bus_spec(servos)
+        spec = bus_spec(servos, servo_params)
         for f in faults or []:
             parse_fault(f)
         ours, theirs = socket.socketpair()
