@@ -11,7 +11,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from payload.design.servo import CURRENT_UNIT_A, TICKS_PER_REV
+from payload.design.servo import CURRENT_UNIT_A as CURRENT_UNIT_A  # re-exported
+from payload.design.servo import TICKS_PER_REV
 
 MODEL_NUMBER = 1240  # XC330-M288-T
 FIRMWARE_VERSION = 52  # ASSUMPTION: a current XC330 firmware, reported by PING

@@ -47,6 +47,8 @@ log = logging.getLogger(__name__)
 FEEDBACK_ADDR = ADDR["present_current"]  # 126: current (2), velocity (4), position (4)
 FEEDBACK_LEN = 10
 _FEEDBACK = np.dtype([("current", "<i2"), ("velocity", "<i4"), ("position", "<i4")])
+
+
 class DynamixelDriver:
     """The hardware payload (see the module docstring).
 

@@ -12,8 +12,6 @@ from __future__ import annotations
 import struct
 
 from firmware_interface import protocol as P
-from firmware_interface.servo_dynamics import Plant, ServoDynamics, default_plant
-from payload.design.servo import TICKS_PER_RAD
 from firmware_interface.control_table import (
     ADDR,
     BY_ADDRESS,
@@ -27,6 +25,8 @@ from firmware_interface.control_table import (
     WATCHDOG_UNIT_S,
     decode,
 )
+from firmware_interface.servo_dynamics import Plant, ServoDynamics, default_plant
+from payload.design.servo import TICKS_PER_RAD
 
 OVERLOAD_S = 1.0  # [s] at the current cap while stalled before the overload bit trips
 _FMT = {

@@ -206,7 +206,7 @@ class Servo:
     viscous: float = _nonneg("output-side viscous friction [N m s/rad]")
     control_period: float = _pos("time base of the firmware's derivative term [s]")
     operating_mode: float = _any("Operating Mode the driver sets (5: current-based position)")
-    gains: ServoGains = _any("Position P, I, D per joint kind")
+    gains: ServoGains
 
     @property
     def torque_limit(self) -> float:
