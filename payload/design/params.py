@@ -392,20 +392,18 @@ def _upgrade(data: dict[str, Any]) -> dict[str, Any]:
     default's values.
     """
     data = copy.deepcopy(data)
+    dropped = []
     for table, keys in _LEGACY_KEYS.items():
         sub = data.get(table)
-        if not isinstance(sub, dict):
-            continue
-        old = [k for k in keys if k in sub]
-        for k in old:
-            del sub[k]
-        if old:
-            warnings.warn(
-                f"design: {table}.{', {table}.'.join(old)} ignored; the servo model "
-                "derives them from [servo] (docs/servo.md)",
-                DeprecationWarning,
-                stacklevel=3,
-            )
+        if isinstance(sub, dict):
+            dropped += [f"{table}.{k}" for k in keys if sub.pop(k, None) is not None]
+    if dropped:
+        warnings.warn(
+            f"design: {', '.join(dropped)} ignored; the servo model derives them from "
+            "[servo] (docs/servo.md)",
+            DeprecationWarning,
+            stacklevel=3,
+        )
     servo = data.get("servo")
     if isinstance(servo, dict):
         for key, value in _default_servo().items():
