@@ -22,6 +22,7 @@ from firmware_interface.control_table import (
     TABLE_SIZE,
     TICKS_PER_REV,
     VELOCITY_UNIT_RPM,
+    VOLTAGE_UNIT_V,
     WATCHDOG_UNIT_S,
     decode,
 )
@@ -65,6 +66,7 @@ class ServoModel:
         self.watchdog_trip: float | None = None
         self.reboots = 0
         self.dynamics = ServoDynamics(plant or default_plant(), self.pos)
+        self._set("present_input_voltage", round(self.dynamics.plant.voltage / VOLTAGE_UNIT_V))
         self._refresh()
 
     # -- table access ------------------------------------------------------------------------
