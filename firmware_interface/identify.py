@@ -4,14 +4,18 @@ responses, through the driver (dynamixel_sdk on a serial device or the emulator'
 Per servo, the others holding still: (1) saturated steps across the joint's range with
 Goal Current raised to the servo's Current Limit, so that the supply voltage, not the
 current cap, bounds the current at speed; (2) a chirp (0.5 to 6 Hz) and (3) small steps at
-the design's Goal Current. Present current, velocity and position are read after every
-goal write, as fast as the bus answers.
+the design's Goal Current, after goal ramps across the range at steady speeds (friction at
+several velocities). Present current, velocity and position are read after every
+goal write, as fast as the bus answers, with the servo's Realtime Tick (its own
+millisecond clock) as their time stamp.
 
 Two linear least-squares fits (docs/servo.md):
 
 - dynamics, integrated over windows of about 40 ms so nothing is differentiated:
   ``(J / kt) dw + (b / kt) dtheta + (c / kt) int sign(w) dt = int i dt`` (windows where the
-  shaft moves one way throughout), giving ``J / kt``, ``b / kt``, ``c / kt``;
+  shaft moves one way throughout, without a pause of the host; each weighted by its
+  current impulse), giving ``b / kt``, ``c / kt``; then ``J / kt`` alone, unweighted,
+  friction fixed (the saturated steps' large velocity changes decide it);
 - the voltage bound, on samples of the saturated steps where the current stays under the
   cap while the position error asks for more: ``sign(w) V = R i + kt w``, giving ``R`` and
   ``kt`` (``V`` from Present Input Voltage).
@@ -44,18 +48,30 @@ from payload.design.tree import build_tree
 
 WINDOW_S = 0.04
 """Integration window of the dynamics fit [s]."""
+MAX_GAP_S = 0.015
+"""Windows with a longer pause between samples are left out (the trapezoid would guess
+what happened in it; a loaded host pauses) [s]."""
+CURRENT_FLOOR_A = 0.01
+"""Current added to a window's mean in its weight (keeps slow windows finite) [A]."""
 MIN_SPEED = 0.3
 """Windows and samples slower than this are left out (static friction is ambiguous) [rad/s]."""
 MARGIN_RAD = 0.25
 """The saturated steps stop this far inside the joint's limits [rad of the servo shaft]."""
+RAMP_SPEEDS = (0.7, 1.5, 3.0)
+"""Goal ramps across the range at these speeds [rad/s], each way."""
 SUGGESTED = ("kt", "resistance", "armature", "coulomb", "viscous")
 _RPM_TO_RAD_S = VELOCITY_UNIT_RPM * 2.0 * math.pi / 60.0
+_TICK_ADDR = ADDR["realtime_tick"]
+_STAMPED = struct.Struct("<HBBhhii")  # Realtime Tick ... Present Position (120-135)
+assert _TICK_ADDR + _STAMPED.size == FEEDBACK_ADDR + FEEDBACK_LEN
+_TICK_WRAP = 32768  # Realtime Tick range [ms]
 
 
 @dataclass
 class Record:
     """Samples of one servo: time [s], shaft position [rad], speed [rad/s], current [A],
-    goal [ticks], the cap in force [A], and whether a saturated step was running."""
+    goal [ticks], the cap in force [A], whether a saturated step was running, and the speed
+    of the goal ramp running [rad/s] (0 outside the ramps)."""
 
     t: list[float]
     pos: list[float]
@@ -64,20 +80,22 @@ class Record:
     goal: list[float]
     cap: list[float]
     sat: list[bool]
+    ramp: list[float]
 
 
-def _feedback(drv: DynamixelDriver, dxl_id: int) -> tuple[float, float, float]:
-    """(current [A], speed [rad/s], position [ticks]) of one servo."""
+def _feedback(drv: DynamixelDriver, dxl_id: int) -> tuple[int, float, float, float]:
+    """(Realtime Tick [ms, modulo 32768], current [A], speed [rad/s], position [ticks]) of
+    one servo, in one read: the servo's own clock stamps the sample."""
     for _ in range(drv.retries + 1):
-        data, result, _ = drv.packet.readTxRx(drv.port, dxl_id, FEEDBACK_ADDR, FEEDBACK_LEN)
+        data, result, _ = drv.packet.readTxRx(drv.port, dxl_id, _TICK_ADDR, _STAMPED.size)
         if result == COMM_SUCCESS:
-            cur, vel, pos = struct.unpack("<hii", bytes(data))
-            return cur * CURRENT_UNIT_A, vel * _RPM_TO_RAD_S, float(pos)
+            tick, _, _, _, cur, vel, pos = _STAMPED.unpack(bytes(data))
+            return tick, cur * CURRENT_UNIT_A, vel * _RPM_TO_RAD_S, float(pos)
     raise CommError(f"servo {dxl_id}: reading feedback: {drv.packet.getTxRxResult(result)}")
 
 
 def _run(drv: DynamixelDriver, dxl_id: int, rec: Record, goals, seconds: float, cap: float,
-         sat: bool) -> None:  # fmt: skip
+         sat: bool, ramp: float = 0.0) -> None:  # fmt: skip
     """Drive ``goals(t)`` [ticks] for ``seconds`` and append the samples to ``rec``."""
     t0 = time.monotonic()
     last = None
@@ -86,8 +104,10 @@ def _run(drv: DynamixelDriver, dxl_id: int, rec: Record, goals, seconds: float, 
         if goal != last:
             drv._write(dxl_id, "goal_position", goal)
             last = goal
-        stamp = time.monotonic()
-        cur, vel, pos = _feedback(drv, dxl_id)
+        tick, cur, vel, pos = _feedback(drv, dxl_id)
+        stamp = tick * 1e-3
+        if rec.t:  # unwrap the servo's millisecond clock
+            stamp += round((rec.t[-1] - stamp) * 1e3 / _TICK_WRAP) * _TICK_WRAP * 1e-3
         rec.t.append(stamp)
         rec.pos.append(pos / TICKS_PER_RAD)
         rec.vel.append(vel)
@@ -95,6 +115,7 @@ def _run(drv: DynamixelDriver, dxl_id: int, rec: Record, goals, seconds: float, 
         rec.goal.append(goal)
         rec.cap.append(cap)
         rec.sat.append(sat)
+        rec.ramp.append(ramp)
 
 
 def excite(drv: DynamixelDriver, spec: ServoSpec) -> tuple[Record, float]:
@@ -104,11 +125,11 @@ def excite(drv: DynamixelDriver, spec: ServoSpec) -> tuple[Record, float]:
     margin = MARGIN_RAD * TICKS_PER_RAD
     a, b = lo + margin, hi - margin
     centre = 0.5 * (lo + hi)
-    rec = Record([], [], [], [], [], [], [])
+    rec = Record([], [], [], [], [], [], [], [])
     cap_design = drv.map.current_limit_ma
     limit = drv._read_reg(i, ADDR["current_limit"], 2)
     volts = drv._read_reg(i, ADDR["present_input_voltage"], 2) * VOLTAGE_UNIT_V
-    start = _feedback(drv, i)[2]
+    start = _feedback(drv, i)[3]
     _run(drv, i, rec, lambda t: start + (centre - start) * min(1.0, t / 0.5), 0.8,
          cap_design * CURRENT_UNIT_A, False)  # fmt: skip
     drv._write(i, "goal_current", limit)
@@ -116,11 +137,18 @@ def excite(drv: DynamixelDriver, spec: ServoSpec) -> tuple[Record, float]:
         _run(drv, i, rec, lambda t, g=target: g, 0.7, limit * CURRENT_UNIT_A, True)
     _run(drv, i, rec, lambda t: centre, 0.6, limit * CURRENT_UNIT_A, False)
     drv._write(i, "goal_current", cap_design)
+    for speed in RAMP_SPEEDS:  # steady speeds: friction at several velocities
+        span = (b - a) / (speed * TICKS_PER_RAD)
+        for g0, g1 in ((a, b), (b, a)):
+            ramp = math.copysign(speed, g1 - g0)
+            _run(drv, i, rec, lambda t, g0=g0, g1=g1, s=span: g0 + (g1 - g0) * min(1.0, t / s),
+                 span, cap_design * CURRENT_UNIT_A, False, ramp)  # fmt: skip
     amp = min(0.15 * TICKS_PER_RAD, 0.25 * (hi - lo))
     f0, f1, dur = 0.5, 6.0, 4.0
-    chirp = lambda t: (
-        centre + amp * math.sin(2 * math.pi * (f0 * t + (f1 - f0) * t * t / (2 * dur)))
-    )  # noqa: E731,E501
+
+    def chirp(t: float) -> float:
+        return centre + amp * math.sin(2 * math.pi * (f0 * t + (f1 - f0) * t * t / (2 * dur)))
+
     _run(drv, i, rec, chirp, dur, cap_design * CURRENT_UNIT_A, False)
     for target in (centre + amp, centre - amp, centre):
         _run(drv, i, rec, lambda t, g=target: g, 0.5, cap_design * CURRENT_UNIT_A, False)
@@ -140,14 +168,24 @@ def fit(rec: Record, volts: float, p_gain: float) -> dict[str, Any]:
         m = int(np.searchsorted(t, t[k] + WINDOW_S))
         m = min(m, len(t) - 1)
         seg = slice(k, m + 1)
-        ws = w[seg]
-        if m > k + 1 and np.all(np.abs(ws) > MIN_SPEED) and abs(np.sign(ws).sum()) == len(ws):
-            ts = t[seg]
+        ws, ts = w[seg], t[seg]
+        steady = m > k + 1 and np.diff(ts).max() <= MAX_GAP_S  # no stall of the host inside
+        if steady and np.all(np.abs(ws) > MIN_SPEED) and abs(np.sign(ws).sum()) == len(ws):
             rows.append([w[m] - w[k], th[m] - th[k], _trapezoid(np.sign(ws), ts)])
             rhs.append(_trapezoid(cur[seg], ts))
         k = m
     a_dyn, b_dyn = np.array(rows), np.array(rhs)
-    x_dyn, *_ = np.linalg.lstsq(a_dyn, b_dyn, rcond=None)
+    if len(b_dyn) < 10:
+        raise ValueError(f"only {len(b_dyn)} usable windows (is the host pausing?)")
+    # relative errors: each window's equation divided by its current impulse (plus a floor),
+    # so that the slow windows where friction shows weigh as much as the saturated ones
+    scale = 1.0 / (np.abs(b_dyn) + CURRENT_FLOOR_A * WINDOW_S)
+    x_dyn, *_ = np.linalg.lstsq(a_dyn * scale[:, None], b_dyn * scale, rcond=None)
+    _, b_kt, c_kt = (float(v) for v in x_dyn)
+    # the inertia again, unweighted, friction fixed: the large velocity changes decide it
+    rest = b_dyn - a_dyn[:, 1] * b_kt - a_dyn[:, 2] * c_kt
+    j_kt = float(a_dyn[:, 0] @ rest / (a_dyn[:, 0] @ a_dyn[:, 0]))
+    x_dyn = np.array([j_kt, b_kt, c_kt])
     res_dyn = np.sqrt(np.mean((a_dyn @ x_dyn - b_dyn) ** 2)) / np.sqrt(np.mean(b_dyn**2))
     # the voltage bound: under the cap although the error asks for more than the cap
     err = np.abs(np.asarray(rec.goal) - th * TICKS_PER_RAD)
@@ -161,7 +199,6 @@ def fit(rec: Record, volts: float, p_gain: float) -> dict[str, Any]:
         raise ValueError("too few voltage-bound samples (the saturated steps never saturated)")
     (r_fit, kt), *_ = np.linalg.lstsq(a_v, b_v, rcond=None)
     res_v = np.sqrt(np.mean((a_v @ np.array([r_fit, kt]) - b_v) ** 2)) / volts
-    j_kt, b_kt, c_kt = x_dyn
     return {
         "inertia": float(j_kt * kt),
         "viscous": float(b_kt * kt),
@@ -180,6 +217,10 @@ def identify(drv: DynamixelDriver, joints: list[str] | None = None) -> dict[str,
     design = drv.design
     tree = build_tree(design)
     drv.bring_up()
+    for i in drv.ids:
+        # one servo is talked to at a time: the others would trip their Bus Watchdog (and
+        # hold, as they do anyway); without it, a pause of the host cannot stop the test
+        drv._write(i, "bus_watchdog", 0)
     out = []
     for spec in specs:
         kind = kind_of(spec.joint)
