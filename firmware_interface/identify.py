@@ -43,8 +43,8 @@ from firmware_interface.control_table import ADDR, VELOCITY_UNIT_RPM, VOLTAGE_UN
 from firmware_interface.driver import FEEDBACK_ADDR, FEEDBACK_LEN, DynamixelDriver
 from firmware_interface.errors import CommError
 from firmware_interface.servo_map import ServoSpec
-from payload.design.servo import CURRENT_UNIT_A, KPP_DIV, TICKS_PER_RAD, kind_of, load_inertia
-from payload.design.tree import build_tree
+from payload.design.servo import CURRENT_UNIT_A, KPP_DIV, TICKS_PER_RAD, kind_of
+from payload.design.tree import build_tree, load_inertia
 
 WINDOW_S = 0.04
 """Integration window of the dynamics fit [s]."""

@@ -32,7 +32,6 @@ from payload.design.servo import (
     KPI_DIV,
     KPP_DIV,
     TICKS_PER_RAD,
-    load_inertia,
     scale_of,
 )
 from payload.errors import PayloadError
@@ -91,7 +90,7 @@ def plant_for(design: Design, kind: str, load: float) -> Plant:
 
 def design_plants(design: Design, kinds: dict[int, str]) -> dict[int, Plant]:
     """Per servo ID (``kinds``: ID -> joint kind): the design's plant with its load."""
-    from payload.design.tree import build_tree
+    from payload.design.tree import build_tree, load_inertia
 
     tree = build_tree(design)
     loads = {k: load_inertia(tree, k) for k in set(kinds.values())}

@@ -26,14 +26,9 @@ from payload.cli import main
 from payload.design import load_design
 from payload.design.mjcf import MESH_DIR, to_mjcf
 from payload.design.params import design_from_dict, design_to_dict
-from payload.design.servo import (
-    TICKS_PER_RAD,
-    joint_servo,
-    load_inertia,
-    no_load_speed,
-    servo_summary,
-)
-from payload.design.tree import build_tree
+from payload.design.servo import TICKS_PER_RAD, joint_servo, no_load_speed
+from payload.design.summary import servo_summary
+from payload.design.tree import build_tree, load_inertia
 
 if sys.version_info >= (3, 11):
     import tomllib

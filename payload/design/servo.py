@@ -41,14 +41,8 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
-
-import numpy as np
 
 from payload.design.params import Design
-
-if TYPE_CHECKING:
-    from payload.design.tree import KinematicTree
 
 TICKS_PER_REV = 4096
 """Encoder ticks per output turn (XC330 e-Manual)."""
@@ -150,67 +144,6 @@ def no_load_speed(design: Design) -> float:
     )
 
 
-def load_inertia(tree: KinematicTree, kind: str) -> float:
-    """What a servo of ``kind`` moves besides itself at the home posture, in joint units.
-
-    Finger flexion: the finger's links below its MCP flexion about that axis; abduction:
-    the links below MCP abduction about its axis [kg m^2]; rail: the carriage and the
-    fingers it carries; stage: everything below the mounting plate [kg]. Finger A is
-    taken (the four fingers are alike).
-    """
-    joint = {"finger": "A_mcp_flex", "abduction": "A_mcp_abd"}.get(kind, kind)
-    j = tree.joint_map[joint]
-    poses = tree.link_poses(tree.posture("home"))
-    below = _subtree(tree, j.child)
-    if kind in ("rail", "stage"):
-        return float(sum(tree.link_map[n].mass.mass for n in below))
-    frame = poses[j.child]
-    axis = frame[:3, :3] @ np.asarray(j.axis, dtype=float)
-    point = frame[:3, 3]
-    total = 0.0
-    for name in below:
-        mp = tree.link_map[name].mass
-        if mp.mass <= 0:
-            continue
-        rot, pos = poses[name][:3, :3], poses[name][:3, 3]
-        com = rot @ mp.com + pos
-        arm = np.cross(com - point, axis)
-        total += float(axis @ (rot @ mp.inertia @ rot.T) @ axis + mp.mass * arm @ arm)
-    return total
-
-
-def _subtree(tree: KinematicTree, link: str) -> list[str]:
-    out, stack = [], [link]
-    while stack:
-        name = stack.pop()
-        out.append(name)
-        stack += [c.child for c in tree.children(name)]
-    return out
-
-
-def servo_summary(tree: KinematicTree) -> dict[str, dict[str, Any]]:
-    """Per joint kind: the MuJoCo parameters and the free response they give.
-
-    ``natural_hz = sqrt(kp / M) / 2 pi`` and ``damping_ratio = (kv + damping) / (2 sqrt(kp
-    M))`` with ``M`` = armature + :func:`load_inertia` (linear, Coulomb friction aside).
-    """
-    out = {}
-    for kind in JOINT_KINDS:
-        js = joint_servo(tree.design, kind)
-        m = js.armature + load_inertia(tree, kind)
-        out[kind] = {
-            "kp": js.kp,
-            "kv": js.kv,
-            "damping": js.damping,
-            "armature": js.armature,
-            "frictionloss": js.frictionloss,
-            "torque_cap": js.torque_cap,
-            "natural_hz": math.sqrt(js.kp / m) / (2.0 * math.pi),
-            "damping_ratio": (js.kv + js.damping) / (2.0 * math.sqrt(js.kp * m)),
-        }
-    return out
-
-
 __all__ = [
     "CURRENT_UNIT_A",
     "JOINT_KINDS",
@@ -223,9 +156,7 @@ __all__ = [
     "gains_of",
     "joint_servo",
     "kind_of",
-    "load_inertia",
     "no_load_speed",
     "scale_of",
-    "servo_summary",
     "shaft_gains",
 ]

@@ -286,3 +286,41 @@ def build_tree(design: Design) -> KinematicTree:
         frames.append(Frame(f"{finger}_distal", f"{finger}_distal", (0.0, 0.0, 0.0)))
         frames.append(Frame(f"{finger}_tip", f"{finger}_distal", (0.0, o.tip, -L.distal)))
     return KinematicTree(design, tuple(links), tuple(joints), tuple(frames))
+
+
+def load_inertia(tree: KinematicTree, kind: str) -> float:
+    """What a servo of ``kind`` moves besides itself at the home posture, in joint units.
+
+    Finger flexion: the finger's links below its MCP flexion about that axis; abduction:
+    the links below MCP abduction about its axis [kg m^2]; rail: the carriage and the
+    fingers it carries; stage: everything below the mounting plate [kg]. Finger A is
+    taken (the four fingers are alike).
+    """
+    joint = {"finger": "A_mcp_flex", "abduction": "A_mcp_abd"}.get(kind, kind)
+    j = tree.joint_map[joint]
+    poses = tree.link_poses(tree.posture("home"))
+    below = _subtree(tree, j.child)
+    if kind in ("rail", "stage"):
+        return float(sum(tree.link_map[n].mass.mass for n in below))
+    frame = poses[j.child]
+    axis = frame[:3, :3] @ np.asarray(j.axis, dtype=float)
+    point = frame[:3, 3]
+    total = 0.0
+    for name in below:
+        mp = tree.link_map[name].mass
+        if mp.mass <= 0:
+            continue
+        rot, pos = poses[name][:3, :3], poses[name][:3, 3]
+        com = rot @ mp.com + pos
+        arm = np.cross(com - point, axis)
+        total += float(axis @ (rot @ mp.inertia @ rot.T) @ axis + mp.mass * arm @ arm)
+    return total
+
+
+def _subtree(tree: KinematicTree, link: str) -> list[str]:
+    out, stack = [], [link]
+    while stack:
+        name = stack.pop()
+        out.append(name)
+        stack += [c.child for c in tree.children(name)]
+    return out
