@@ -70,6 +70,7 @@ class Plant:
 
 
 PLANT_KEYS = tuple(f.name for f in fields(Plant))
+_MAY_BE_ZERO = ("viscous", "coulomb")
 
 
 def plant_for(design: Design, kind: str, load: float) -> Plant:
@@ -101,7 +102,8 @@ def load_plant_overrides(path: str | Path) -> dict[str, dict[str, float]]:
     """A servo-parameters file: JSON ``{"<id or joint kind or *>": {plant key: value}}``.
 
     Raises:
-        PayloadError: Unreadable file, unknown key or a non-positive value (one line).
+        PayloadError: Unreadable file, unknown key, a negative friction or another value
+            not positive (one line).
     """
     p = Path(path)
     try:
@@ -116,8 +118,10 @@ def load_plant_overrides(path: str | Path) -> dict[str, dict[str, float]]:
         for key, v in values.items():
             if key not in PLANT_KEYS:
                 raise PayloadError(f"{p}: {who}.{key}: unknown (expected one of {PLANT_KEYS})")
-            if not isinstance(v, (int, float)) or isinstance(v, bool) or v < 0:
-                raise PayloadError(f"{p}: {who}.{key}: expected a number >= 0, got {v!r}")
+            least = 0.0 if key in _MAY_BE_ZERO else math.ulp(0.0)
+            if not isinstance(v, (int, float)) or isinstance(v, bool) or not v >= least:
+                what = ">= 0" if key in _MAY_BE_ZERO else "> 0"
+                raise PayloadError(f"{p}: {who}.{key}: expected a number {what}, got {v!r}")
     return data
 
 
