@@ -45,3 +45,14 @@ def test_write_servo_values_keeps_comments_and_refuses_unknown_keys(tmp_path):
     assert path.read_text() == "[servo]\nkt = 0.45  # [N m/A] datasheet\n[other]\nkt = 1.0\n"
     with pytest.raises(ValueError, match="no resistance"):
         write_servo_values(path, {"resistance": 3.0})
+
+
+def test_a_bad_servo_params_file_is_refused_in_one_line(tmp_path, capsys):
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"finger": {"kt": 0.0}}))
+    assert main(["hw", "emulate", "--servo-params", str(bad)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "finger.kt: expected a number > 0" in err
+    bad.write_text(json.dumps({"*": {"stiffness": 1.0}}))
+    assert main(["hw", "emulate", "--servo-params", str(bad)]) == 2
+    assert "*.stiffness: unknown" in capsys.readouterr().err
