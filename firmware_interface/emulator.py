@@ -142,19 +142,20 @@ def bus_spec(servos: str | None, servo_params: str | None = None) -> dict[str, A
     each servo's plant: the design's servo model moving its joint's load, with the
     overrides of a servo-parameters file (:func:`~firmware_interface.servo_dynamics.
     load_plant_overrides`) applied."""
-    from firmware_interface.servo_dynamics import apply_overrides, design_plants
+    from firmware_interface.servo_dynamics import (
+        apply_overrides,
+        design_plants,
+        load_plant_overrides,
+    )
     from firmware_interface.servo_map import home_ticks, load_servo_map
     from payload.design.params import load_design
     from payload.design.servo import kind_of
 
+    overrides = load_plant_overrides(servo_params) if servo_params else {}  # checked first
     design = load_design()
     smap = load_servo_map(servos, design)
     kinds = {s.id: kind_of(s.joint) for s in smap.servos}
-    plants = design_plants(design, kinds)
-    if servo_params:
-        from firmware_interface.servo_dynamics import load_plant_overrides
-
-        plants = apply_overrides(plants, kinds, load_plant_overrides(servo_params))
+    plants = apply_overrides(design_plants(design, kinds), kinds, overrides)
     return {
         "positions": home_ticks(smap, design),
         "baud": smap.baud,
