@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 from firmware_interface import protocol as P
 from firmware_interface.control_table import ADDR, BAUD_RATES, FIRMWARE_VERSION, MODEL_NUMBER
 from firmware_interface.faults import Fault
+from firmware_interface.servo_dynamics import Plant
 from firmware_interface.servo_model import ServoModel
 
 ADVANCE_S = 0.0005  # servo state is integrated at least this finely [s]
@@ -45,6 +46,7 @@ class Bus:
         seed: Seed of the fault dice.
         now: Start time [s].
         stops: Servo ID -> hard stops ``(low, high)`` [ticks] (the rail's and the stage's).
+        plants: Servo ID -> its output shaft (default: an unloaded servo).
     """
 
     def __init__(
@@ -54,6 +56,7 @@ class Bus:
         seed: int = 0,
         now: float = 0.0,
         stops: dict[int, tuple[float, float]] | None = None,
+        plants: dict[int, Plant] | None = None,
     ) -> None:
         code = {v: k for k, v in BAUD_RATES.items()}.get(baud)
         if code is None:
@@ -61,7 +64,7 @@ class Bus:
         self.baud = baud
         self.servos: dict[int, ServoModel] = {}
         for dxl_id, pos in positions.items():
-            s = ServoModel(dxl_id, pos, now, (stops or {}).get(dxl_id))
+            s = ServoModel(dxl_id, pos, now, (stops or {}).get(dxl_id), (plants or {}).get(dxl_id))
             s.table[ADDR["baud_rate"]] = code
             self.servos[dxl_id] = s
         self.missing: set[int] = set()

@@ -40,7 +40,7 @@ def _map(args: argparse.Namespace) -> Any:
 def _cmd_emulate(args: argparse.Namespace) -> int:
     from firmware_interface.emulator import bus_spec, serve
 
-    serve(bus_spec(args.servos), args.fault, seed=args.seed)
+    serve(bus_spec(args.servos, args.servo_params), args.fault, seed=args.seed)
     return 0
 
 
@@ -202,6 +202,40 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_identify(args: argparse.Namespace) -> int:
+    from firmware_interface.driver import DynamixelDriver
+    from firmware_interface.identify import identify, write_servo_values
+    from payload.cli import emit_json
+
+    smap = _map(args)
+    known = {s.joint for s in smap.servos}
+    unknown = [j for j in args.joints or [] if j not in known]
+    if unknown:
+        raise HwUsageError(f"--joints: no servo drives {', '.join(unknown)}")
+    with DynamixelDriver(args.device, smap, latency_timer_ms=args.latency_ms) as drv:
+        report = identify(drv, args.joints)
+        design_file = drv.design.source
+    report["device"] = args.device
+    report["written"] = None
+    if args.write:
+        write_servo_values(design_file, report["suggested"])
+        report["written"] = design_file
+    if args.json:
+        emit_json(report)
+        return 0
+    for s in report["servos"]:
+        f = s["fit"]
+        print(f"{s['joint']:>10} (ID {s['id']}): J {f['inertia']:.3e} kg m^2, "
+              f"b {f['viscous']:.4f} N m s/rad, c {f['coulomb']:.4f} N m, kt {f['kt']:.3f} N m/A, "
+              f"R {f['resistance']:.2f} ohm; residual {f['residual']['dynamics']:.1%} "
+              f"(dynamics), {f['residual']['voltage']:.1%} (voltage)")  # fmt: skip
+    for k, v in report["suggested"].items():
+        print(f"servo.{k}: design {report['design'][k]:.6g}, suggested {v:.6g}")
+    print(f"written to {report['written']}" if report["written"] else
+          "(not written: --write puts the suggested values into the design)")  # fmt: skip
+    return 0
+
+
 def _latency(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--latency-ms",
@@ -227,6 +261,12 @@ def register(
         help="missing:ID, corrupt:P, latency:3ms, drop:P, error:ID:BIT, block:ID",
     )
     p.add_argument("--seed", type=int, default=0, help="seed of the fault dice")
+    p.add_argument(
+        "--servo-params",
+        metavar="FILE",
+        help="JSON of servo plant values overriding the design's, by ID, joint kind or '*' "
+        "(hidden parameters for `hw identify`; docs/servo.md)",
+    )
     p.set_defaults(func=_cmd_emulate)
 
     for name, fn, text in (
@@ -240,6 +280,20 @@ def register(
         add_json(p)
         _latency(p)
         p.set_defaults(func=fn)
+
+    p = hws.add_parser(
+        "identify",
+        help="fit each servo's armature, friction and torque constant from step and chirp "
+        "responses (moves every named joint across its range)",
+    )
+    p.add_argument("--device", required=True, help="serial device or emulator pty")
+    p.add_argument("--servos", metavar="MAP", help="servo map TOML")
+    p.add_argument("--joints", nargs="+", metavar="JOINT", help="joints to identify (default all)")
+    p.add_argument("--write", action="store_true",
+                   help="write the suggested [servo] values into the design file")  # fmt: skip
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    _latency(p)
+    p.set_defaults(func=_cmd_identify)
 
     p = hws.add_parser("run", help="the 50 Hz teleoperation loop on the hardware")
     add_device(p, "serial device of the servo bus or an emulator's pty (or --emulator)",

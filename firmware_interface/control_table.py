@@ -11,15 +11,16 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from payload.design.servo import CURRENT_UNIT_A as CURRENT_UNIT_A  # re-exported
+from payload.design.servo import TICKS_PER_REV
+
 MODEL_NUMBER = 1240  # XC330-M288-T
 FIRMWARE_VERSION = 52  # ASSUMPTION: a current XC330 firmware, reported by PING
 EMULATOR_MODEL_INFORMATION = int.from_bytes(b"EMU1", "little")
 """Model Information (address 2) the emulator's servos report, so a host can tell it from
 a payload (a real XC330 reports its own value there)."""
-TICKS_PER_REV = 4096
 RAD_PER_TICK = 2.0 * math.pi / TICKS_PER_REV
 VELOCITY_UNIT_RPM = 0.229
-CURRENT_UNIT_A = 0.001
 VOLTAGE_UNIT_V = 0.1
 WATCHDOG_UNIT_S = 0.020
 EEPROM_END = 64

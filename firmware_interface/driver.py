@@ -2,7 +2,8 @@
 
 Built on ``dynamixel_sdk`` (PortHandler, PacketHandler 2.0, GroupSyncWrite, GroupSyncRead).
 Bring-up follows the LEAP hand's: torque off, Return Delay Time, Operating Mode 5
-(current-based position), Position P/I/D, Goal Current as the current cap (the design's
+(current-based position), Position P/I/D per joint kind from the design's ``[servo.gains]``
+(:mod:`payload.design.servo`), Goal Current as the current cap (the design's
 ``servo.current_limit``), Bus Watchdog, goal = present position, torque on. Each cycle is
 one sync write of the 18 goal positions (:meth:`send`) and one fast sync read of present
 current, velocity and position (:meth:`read`, falling back to a plain sync read); every
@@ -29,6 +30,7 @@ from firmware_interface import protocol as P
 from firmware_interface.control_table import (
     ADDR,
     BY_NAME,
+    CURRENT_UNIT_A,
     EMULATOR_MODEL_INFORMATION,
     VELOCITY_UNIT_RPM,
     hw_error_names,
@@ -53,6 +55,7 @@ from firmware_interface.servo_map import (
     travel_ticks,
 )
 from payload.design.params import Design, load_design
+from payload.design.servo import gains_of, kind_of
 from payload.schema import Health, PayloadCommand, PayloadState
 
 log = logging.getLogger(__name__)
@@ -60,14 +63,6 @@ log = logging.getLogger(__name__)
 FEEDBACK_ADDR = ADDR["present_current"]  # 126: current (2), velocity (4), position (4)
 FEEDBACK_LEN = 10
 _FEEDBACK = np.dtype([("current", "<i2"), ("velocity", "<i4"), ("position", "<i4")])
-GAINS = {"finger": (600, 0, 200), "abduction": (450, 0, 150), "linear": (600, 0, 200)}
-"""Position P, I, D per servo kind (LEAP API values; abduction softer)."""
-
-
-def _gains(spec: ServoSpec) -> tuple[int, int, int]:
-    if spec.joint in LINEAR_JOINTS:
-        return GAINS["linear"]
-    return GAINS["abduction"] if spec.joint.endswith("mcp_abd") else GAINS["finger"]
 
 
 class DynamixelDriver(FaultHandling):
@@ -128,7 +123,7 @@ class DynamixelDriver(FaultHandling):
         self._gap = 0.0
         self._present = np.zeros(len(self.ids), dtype=np.int64)
         s = self.design.servo
-        self._kt = s.stall_torque / s.stall_current  # [N m / A]
+        self._kt = s.kt  # [N m / A], output-side
         specs = self.map.servos
         self._direction = np.array([sp.direction for sp in specs], dtype=float)
         self._zero = np.array([sp.zero for sp in specs], dtype=float)
@@ -267,8 +262,8 @@ class DynamixelDriver(FaultHandling):
         i = spec.id
         self._write(i, "torque_enable", 0)
         self._write(i, "return_delay_time", self.map.return_delay)
-        self._write(i, "operating_mode", 5)
-        p, i_gain, d = _gains(spec)
+        self._write(i, "operating_mode", int(self.design.servo.operating_mode))
+        p, i_gain, d = gains_of(self.design, kind_of(spec.joint))
         self._write(i, "position_p_gain", p)
         self._write(i, "position_i_gain", i_gain)
         self._write(i, "position_d_gain", d)
@@ -393,7 +388,7 @@ class DynamixelDriver(FaultHandling):
     ) -> PayloadState:
         q = self._direction * (pos - self._zero) * self._units
         w = vel * VELOCITY_UNIT_RPM * 2.0 * np.pi / 60.0  # servo shaft [rad/s]
-        torque = cur * 1e-3 * self._kt  # [N m]
+        torque = cur * CURRENT_UNIT_A * self._kt  # [N m]
         dq = self._direction * w * self._ratio  # [rad/s or m/s]
         effort = self._direction * torque / self._ratio  # [N m or N]
         health = Health.OK

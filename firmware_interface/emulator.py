@@ -27,6 +27,7 @@ from typing import Any
 
 from firmware_interface.bus import Bus
 from firmware_interface.faults import parse_fault
+from firmware_interface.servo_dynamics import plants_from_spec
 
 TICK_S = 0.005  # dynamics and watchdog update period while idle [s]
 SPIN_S = 0.0  # spin this long before a due reply instead of sleeping [s]
@@ -150,13 +151,32 @@ def control(bus: Bus, req: dict[str, Any]) -> dict[str, Any]:
     raise ValueError(f"unknown control op {op!r}")
 
 
-def bus_spec(servos: str | None) -> dict[str, Any]:
+def bus_spec(servos: str | None, servo_params: str | None = None) -> dict[str, Any]:
     """IDs at the design's home posture, the rail's and the stage's hard stops (the
-    design's travel ends) and the baud rate of a map file (default map)."""
+    design's travel ends), the baud rate of a map file (default map) and each servo's
+    plant: the design's servo model moving its joint's load, with the overrides of a
+    servo-parameters file (:func:`~firmware_interface.servo_dynamics.
+    load_plant_overrides`) applied."""
+    from firmware_interface.servo_dynamics import (
+        apply_overrides,
+        design_plants,
+        load_plant_overrides,
+    )
     from firmware_interface.servo_map import home_ticks, load_servo_map, travel_ticks
+    from payload.design.params import load_design
+    from payload.design.servo import kind_of
 
-    smap = load_servo_map(servos)
-    return {"positions": home_ticks(smap), "baud": smap.baud, "stops": travel_ticks(smap)}
+    overrides = load_plant_overrides(servo_params) if servo_params else {}  # checked first
+    design = load_design()
+    smap = load_servo_map(servos, design)
+    kinds = {s.id: kind_of(s.joint) for s in smap.servos}
+    plants = apply_overrides(design_plants(design, kinds), kinds, overrides)
+    return {
+        "positions": home_ticks(smap, design),
+        "baud": smap.baud,
+        "stops": travel_ticks(smap, design),
+        "plants": {str(i): p.to_dict() for i, p in plants.items()},
+    }
 
 
 def make_bus(spec: dict[str, Any], faults: list[str], seed: int = 0) -> Bus:
@@ -164,7 +184,8 @@ def make_bus(spec: dict[str, Any], faults: list[str], seed: int = 0) -> Bus:
     parsed = [parse_fault(f) for f in faults]  # validate before opening anything
     positions = {int(k): int(v) for k, v in spec["positions"].items()}
     stops = {int(k): (float(v[0]), float(v[1])) for k, v in spec.get("stops", {}).items()}
-    bus = Bus(positions, int(spec["baud"]), seed=seed, now=time.monotonic(), stops=stops)
+    bus = Bus(positions, int(spec["baud"]), seed=seed, now=time.monotonic(), stops=stops,
+              plants=plants_from_spec(spec))  # fmt: skip
     for f in parsed:
         bus.apply(f)
     return bus
@@ -187,11 +208,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--servos", help="servo map TOML (default: the packaged map)")
     ap.add_argument("--fault", action="append", default=[], help="fault spec (repeatable)")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--servo-params", help="servo parameters JSON (default: the design's)")
     ap.add_argument("--control-fd", type=int, help=argparse.SUPPRESS)
     ap.add_argument("--bus", help=argparse.SUPPRESS)  # JSON from bus_spec (saves the imports)
     args = ap.parse_args(argv)
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))
-    spec = json.loads(args.bus) if args.bus else bus_spec(args.servos)
+    spec = json.loads(args.bus) if args.bus else bus_spec(args.servos, args.servo_params)
     try:
         serve(spec, args.fault, args.control_fd, args.seed)
     except KeyboardInterrupt:
@@ -207,6 +229,7 @@ class EmulatorProcess:
         faults: Fault specs applied from the start.
         seed: Seed of the fault dice.
         positions: Servo ID -> physical position at power-up [ticks] (default: home).
+        servo_params: Servo-parameters file the servos' plants take (hidden parameters).
     """
 
     def __init__(
@@ -215,8 +238,9 @@ class EmulatorProcess:
         faults: list[str] | None = None,
         seed: int = 0,
         positions: dict[int, int] | None = None,
+        servo_params: str | None = None,
     ) -> None:
-        spec = bus_spec(servos)
+        spec = bus_spec(servos, servo_params)
         spec["positions"].update(positions or {})
         for f in faults or []:
             parse_fault(f)

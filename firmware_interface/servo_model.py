@@ -1,9 +1,8 @@
 """One emulated XC330 servo: its control table, write rules, dynamics and hardware errors.
 
-Dynamics (current-based position mode, and position modes): the output moves toward the
-goal position as a first-order system with time constant ``TAU_REF * 600 / Position P``,
-no faster than the no-load speed (81 rpm); the present current is the position error
-times the gain, capped at Goal Current (the current cap). A blocked output (an injected
+Dynamics (current-based position mode): the design's servo model, a second-order shaft
+driven by the firmware's PID current law under the Goal Current cap and the supply
+voltage (:mod:`firmware_interface.servo_dynamics`, docs/servo.md). A blocked output (an injected
 obstacle) cannot move: its current sits at the cap and after ``OVERLOAD_S`` at the cap
 the overload bit trips, as the servo's overload protection does.
 
@@ -38,13 +37,13 @@ from firmware_interface.control_table import (
     TABLE_SIZE,
     TICKS_PER_REV,
     VELOCITY_UNIT_RPM,
+    VOLTAGE_UNIT_V,
     WATCHDOG_UNIT_S,
     decode,
 )
+from firmware_interface.servo_dynamics import Plant, ServoDynamics, default_plant
+from payload.design.servo import TICKS_PER_RAD
 
-NO_LOAD_TICKS_S = 81.0 / 60.0 * TICKS_PER_REV  # 81 rpm [ticks/s]
-TAU_REF = 0.02  # [s] time constant at Position P = 600 (ASSUMPTION, typical response)
-CURRENT_PER_TICK = 4.0  # [mA/tick] current demand per tick of error at P = 600 (ASSUMPTION)
 OVERLOAD_S = 1.0  # [s] at the current cap while stalled before the overload bit trips
 _FMT = {
     r.name: (r.address, struct.Struct("<" + {1: "b", 2: "h", 4: "i"}[r.size]
@@ -62,6 +61,7 @@ class ServoModel:
         position: Initial output position [ticks].
         now: Current time [s] (monotonic).
         stops: Hard stops ``(low, high)`` of the output [physical ticks], or None.
+        plant: Its output shaft (default: an unloaded servo of the packaged design).
     """
 
     def __init__(
@@ -70,6 +70,7 @@ class ServoModel:
         position: float = 2048.0,
         now: float = 0.0,
         stops: tuple[float, float] | None = None,
+        plant: Plant | None = None,
     ) -> None:
         self.table = bytearray(TABLE_SIZE)
         for reg in REGISTERS:
@@ -92,6 +93,8 @@ class ServoModel:
         self.reboots = 0
         self.power_ups = 0
         self._power_up()
+        self.dynamics = ServoDynamics(plant or default_plant(), self.pos)
+        self._set("present_input_voltage", round(self.dynamics.plant.voltage / VOLTAGE_UNIT_V))
         self._refresh()
 
     # -- table access ------------------------------------------------------------------------
@@ -221,6 +224,7 @@ class ServoModel:
         self.stall_time = self.stop_stall = 0.0
         self.vel = 0.0
         self.current = 0.0
+        self.dynamics.reset()
         self.reboots += 1
         self._power_up()
         self._refresh()
@@ -264,6 +268,7 @@ class ServoModel:
             self._step(dt)
         else:
             self.vel, self.current, self.stall_time, self.stop_stall = 0.0, 0.0, 0.0, 0.0
+            self.dynamics.reset()
         self._refresh()
 
     def _step(self, dt: float) -> None:
@@ -288,6 +293,7 @@ class ServoModel:
             self.stop_stall = 0.0
             return
         self.vel = (self.pos - before) / dt if dt > 0 else 0.0
+        self.dynamics.pos, self.dynamics.vel = self.pos, 0.0  # the stop or load took it
         if cap > 0 and abs(push) >= cap:
             self.stop_stall += dt
             if self.stop_stall >= OVERLOAD_S:
@@ -301,29 +307,21 @@ class ServoModel:
         goal = self.get("goal_position") - self.get("homing_offset")
         if self.watchdog_trip is not None:
             goal = self.pos
-        p_gain = self.get("position_p_gain")
+        gains = (self.get("position_p_gain"), self.get("position_i_gain"),
+                 self.get("position_d_gain"))  # fmt: skip
         cap = float(abs(self.get("goal_current")))
-        err = goal - self.pos
-        demand = CURRENT_PER_TICK * err * p_gain / 600.0
-        self.current = max(-cap, min(cap, demand))
+        dyn = self.dynamics
+        dyn.pos = self.pos
+        dyn.advance(dt, goal, gains, cap, self.blocked)
+        self.pos, self.current = dyn.pos, dyn.current
+        self.vel = dyn.vel * TICKS_PER_RAD  # [ticks/s]
         if self.blocked:
-            self.vel = 0.0
-            if cap > 0 and abs(demand) >= cap:
+            if cap > 0 and abs(dyn.demand) >= cap:
                 self.stall_time += dt
                 if self.stall_time >= OVERLOAD_S:
                     self.set_error("overload")
             return
         self.stall_time = 0.0
-        if p_gain == 0 or cap == 0:
-            self.vel = 0.0
-            return
-        tau = TAU_REF * 600.0 / p_gain
-        if abs(err) / tau > NO_LOAD_TICKS_S:
-            step = math.copysign(min(abs(err), NO_LOAD_TICKS_S * dt), err)
-        else:
-            step = err * (1.0 - math.exp(-dt / tau))
-        self.pos += step
-        self.vel = step / dt
 
     def _refresh(self) -> None:
         """Present registers from the state."""

@@ -119,34 +119,42 @@ def test_mjcf_follows_menagerie_conventions():
         assert mmodel.actuator_biastype[a] == mujoco.mjtBias.mjBIAS_AFFINE
 
 
-def test_finger_servos_carry_the_designs_velocity_feedback(design):
-    """MuJoCo's affine bias of each finger actuator is -kp q - kv qdot, with the design's
-    kp and kv (Menagerie's LEAP values); the rail and stage have no velocity feedback."""
+def test_servos_carry_the_derived_gains_per_joint_kind(design):
+    """MuJoCo's affine bias of each actuator is -kp q - kv qdot with the servo model's kp
+    and kv for the joint's kind (finger flexion, abduction, rail, stage)."""
+    from payload.design.servo import joint_servo, kind_of
+
     mmodel = mujoco.MjModel.from_xml_path(str(MJCF))
-    fingers = [a for a in range(mmodel.nu) if mmodel.actuator(a).name[0] in FINGERS]
-    assert len(fingers) == 16 and design.finger.kv == pytest.approx(0.01)
     for a in range(mmodel.nu):
+        js = joint_servo(design, kind_of(mmodel.actuator(a).name))
         kp, kv = -mmodel.actuator_biasprm[a, 1], -mmodel.actuator_biasprm[a, 2]
-        if a in fingers:
-            assert (kp, kv) == (design.finger.kp, design.finger.kv)
-        else:
-            assert kv == 0.0
+        assert (kp, kv) == pytest.approx((js.kp, js.kv), rel=1e-5)
+        j = mmodel.actuator_trnid[a, 0]
+        assert mmodel.dof_armature[mmodel.jnt_dofadr[j]] == pytest.approx(js.armature, rel=1e-5)
     # the force it adds: a joint moving at 2 rad/s onto its set point feels -kp e - kv qdot
     d = mujoco.MjData(mmodel)
-    a = fingers[0]
+    a = mmodel.actuator("A_mcp_flex").id
+    js = joint_servo(design, "finger")
     j = mmodel.actuator_trnid[a, 0]
     d.qpos[mmodel.jnt_qposadr[j]] = 0.3
     d.qvel[mmodel.jnt_dofadr[j]] = 2.0
     d.ctrl[a] = 0.25
     mujoco.mj_forward(mmodel, d)
-    expected = design.finger.kp * (0.25 - 0.3) - design.finger.kv * 2.0
-    assert d.actuator_force[a] == pytest.approx(expected, rel=1e-12)
+    expected = js.kp * (0.25 - 0.3) - js.kv * 2.0
+    assert d.actuator_force[a] == pytest.approx(expected, rel=1e-5)
 
 
-def test_a_design_written_before_kv_existed_still_loads(design_dict):
+def test_a_design_written_before_the_servo_model_still_loads(design_dict):
+    """The per-joint servo keys of older design files are ignored with a warning, and a
+    [servo] table without the new keys takes the packaged default's."""
     data = copy.deepcopy(design_dict)
-    del data["finger"]["kv"]
-    assert design_from_dict(data).finger.kv == 0.0
+    data["finger"].update(kp=3.0, kv=0.01, damping=0.03, frictionloss=0.001, armature=8e-4)
+    data["rail"].update(kp=3000.0, damping=40.0)
+    for key in ("kt", "gains", "armature"):
+        del data["servo"][key]
+    with pytest.warns(DeprecationWarning, match="finger.damping"):
+        old = design_from_dict(data)
+    assert old.servo == design_from_dict(design_dict).servo
 
 
 def test_the_pinch_pre_shape_has_one_source(design_dict, tmp_path):

@@ -11,6 +11,7 @@ from __future__ import annotations
 from xml.sax.saxutils import quoteattr
 
 from payload.design.fmt import num, quat_from_matrix, vec
+from payload.design.servo import JOINT_KINDS
 from payload.design.tree import KinematicTree, rpy_matrix
 
 MESH_DIR = "../cad/meshes"
@@ -22,11 +23,25 @@ MATERIALS = {
 }
 
 
+def _servo_classes(tree: KinematicTree) -> list[str]:
+    """One default class per servo joint kind (the values of :mod:`payload.design.servo`)."""
+    out = []
+    for kind in JOINT_KINDS:
+        j = next(j for j in tree.joints if j.group == kind)
+        hinge = "hinge" if j.kind == "revolute" else "slide"
+        out += [
+            f'      <default class="{kind}">',
+            f'        <joint type="{hinge}" damping="{num(j.damping)}" '
+            f'frictionloss="{num(j.frictionloss)}" armature="{num(j.armature)}"/>',
+            f'        <position kp="{num(j.kp)}" kv="{num(j.kv)}" '
+            f'forcerange="{num(-j.effort)} {num(j.effort)}"/>',
+            "      </default>",
+        ]
+    return out
+
+
 def _defaults(tree: KinematicTree) -> list[str]:
     d = tree.design
-    fj = next(j for j in tree.joints if j.group == "finger")
-    rj = tree.joint_map["rail"]
-    sj = tree.joint_map["stage"]
     mu = d.finger.pad.friction
     return [
         "  <default>",
@@ -44,20 +59,7 @@ def _defaults(tree: KinematicTree) -> list[str]:
         f'friction="{num(mu)} 0.005 0.0001"/>',
         "        </default>",
         "      </default>",
-        '      <default class="finger">',
-        f'        <joint type="hinge" damping="{num(fj.damping)}" '
-        f'frictionloss="{num(fj.frictionloss)}" armature="{num(fj.armature)}"/>',
-        f'        <position kp="{num(fj.kp)}" kv="{num(fj.kv)}" '
-        f'forcerange="{num(-fj.effort)} {num(fj.effort)}"/>',
-        "      </default>",
-        '      <default class="rail">',
-        f'        <joint type="slide" damping="{num(rj.damping)}"/>',
-        f'        <position kp="{num(rj.kp)}" forcerange="{num(-rj.effort)} {num(rj.effort)}"/>',
-        "      </default>",
-        '      <default class="stage">',
-        f'        <joint type="slide" damping="{num(sj.damping)}"/>',
-        f'        <position kp="{num(sj.kp)}" forcerange="{num(-sj.effort)} {num(sj.effort)}"/>',
-        "      </default>",
+        *_servo_classes(tree),
         "    </default>",
         "  </default>",
     ]

@@ -14,6 +14,7 @@ import math
 import sys
 import types
 import typing
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -121,11 +122,6 @@ class Finger:
     limits: FingerLimits
     section: Section
     pad: Pad
-    damping: float = _nonneg("joint viscous damping [N m s/rad]")
-    frictionloss: float = _nonneg("joint dry friction [N m]")
-    armature: float = _nonneg("reflected rotor inertia [kg m^2] (assumption)")
-    kp: float = _pos("position-servo stiffness [N m/rad]")
-    kv: float = _nonneg("position-servo velocity feedback [N m s/rad] (optional, 0)", 0.0)
 
     def limit(self, joint: str) -> Range:
         return getattr(self.limits, joint)
@@ -152,8 +148,6 @@ class Rail:
     carriage_length: float = _pos("carriage length along the rail [m]")
     carriage_thickness: float = _pos("carriage plate thickness [m]")
     drive_radius: float = _pos("pinion pitch radius of the rail drive [m]")
-    damping: float = _nonneg("viscous damping [N s/m]")
-    kp: float = _pos("position-servo stiffness [N/m]")
 
 
 @dataclass(frozen=True)
@@ -167,8 +161,6 @@ class Stage:
     guide_x: float = _pos("|x| of the guide columns [m]")
     stowed_gap: float = _nonneg("gap between mounting plate and stage plate when stowed [m]")
     drive_radius: float = _pos("pinion pitch radius of the rack drive [m]")
-    damping: float = _nonneg("viscous damping [N s/m]")
-    kp: float = _pos("position-servo stiffness [N/m]")
 
 
 @dataclass(frozen=True)
@@ -179,8 +171,23 @@ class Mounting:
 
 
 @dataclass(frozen=True)
+class ServoGains:
+    """The firmware's Position P, I, D gains (control-table values) per joint kind."""
+
+    finger: tuple[float, float, float]
+    abduction: tuple[float, float, float]
+    rail: tuple[float, float, float]
+    stage: tuple[float, float, float]
+
+
+@dataclass(frozen=True)
 class Servo:
-    """A Dynamixel servo body and its drive limits."""
+    """A Dynamixel servo: body, datasheet limits, identified physics and the controller it runs.
+
+    The physical constants are output-side (after the gearbox), as the datasheet and
+    Rhoban's BAM identification give them; :mod:`payload.design.servo` derives every
+    consumer's parameters from them (docs/servo.md).
+    """
 
     model: str = _any()
     width: float = _pos("body size across the output axis [m]")
@@ -191,11 +198,21 @@ class Servo:
     stall_current: float = _pos("[A]")
     current_limit: float = _pos("current cap used on hardware [A]")
     no_load_speed: float = _pos("[rad/s]")
+    gear_ratio: float = _pos("gearbox reduction (motor turns per output turn)")
+    supply_voltage: float = _pos("supply voltage [V]")
+    kt: float = _pos("output torque per ampere [N m/A] (gear losses included)")
+    resistance: float = _pos("winding resistance [ohm]")
+    armature: float = _pos("output-side apparent rotor and gearbox inertia [kg m^2]")
+    coulomb: float = _nonneg("output-side Coulomb friction [N m]")
+    viscous: float = _nonneg("output-side viscous friction [N m s/rad]")
+    control_period: float = _pos("time base of the firmware's derivative term [s]")
+    operating_mode: float = _any("Operating Mode the driver sets (5: current-based position)")
+    gains: ServoGains
 
     @property
     def torque_limit(self) -> float:
-        """Torque available at the hardware current cap [N m] (torque ~ current)."""
-        return self.stall_torque * min(1.0, self.current_limit / self.stall_current)
+        """Torque available at the hardware current cap [N m]: ``kt x Goal Current``."""
+        return self.kt * self.current_limit
 
 
 @dataclass(frozen=True)
@@ -259,6 +276,7 @@ class Design:
         check_plausible(
             self, design_to_dict(self)
         )  # first: a unit slip is named before what it breaks
+        _validate_servo(s)
         if f.pad.damping_ratio < 1.0:
             raise DesignError(
                 "finger.pad.damping_ratio",
@@ -330,6 +348,76 @@ class Design:
             if not 0.0 <= posture.stage <= st.travel:
                 raise DesignError(f"{name}.stage", f"{posture.stage} m is outside [0, {st.travel}]")
         return self
+
+
+GAIN_MAX = 16383
+"""Largest Position P/I/D gain the control table takes (e-Manual, addresses 80-84)."""
+
+_LEGACY_KEYS = {
+    "finger": ("damping", "frictionloss", "armature", "kp", "kv"),
+    "rail": ("damping", "kp"),
+    "stage": ("damping", "kp"),
+}
+"""Keys of design files written before the servo model: now derived from ``[servo]``."""
+
+
+def _validate_servo(s: Servo) -> None:
+    if s.operating_mode != 5:
+        raise DesignError(
+            "servo.operating_mode",
+            f"{s.operating_mode}: only 5 (current-based position) is modelled",
+        )
+    for kind in ("finger", "abduction", "rail", "stage"):
+        gains = getattr(s.gains, kind)
+        for name, g in zip("PID", gains):
+            if g != int(g) or not 0 <= g <= GAIN_MAX:
+                raise DesignError(
+                    f"servo.gains.{kind}",
+                    f"Position {name} gain {g} is not an integer in [0, {GAIN_MAX}]",
+                )
+        if gains[1] != 0:
+            raise DesignError(
+                f"servo.gains.{kind}",
+                f"Position I gain {gains[1]}: the simulator's position actuator has no "
+                "integral term; use 0",
+            )
+    if s.current_limit > s.stall_current:
+        raise DesignError(
+            "servo.current_limit",
+            f"{s.current_limit} A is above the stall current {s.stall_current} A",
+        )
+
+
+def _upgrade(data: dict[str, Any]) -> dict[str, Any]:
+    """A design document from before the servo model, brought to today's keys.
+
+    The per-joint servo keys of ``[finger]``, ``[rail]`` and ``[stage]`` are dropped with a
+    warning (the servo model derives them); missing ``[servo]`` keys take the packaged
+    default's values.
+    """
+    data = copy.deepcopy(data)
+    dropped = []
+    for table, keys in _LEGACY_KEYS.items():
+        sub = data.get(table)
+        if isinstance(sub, dict):
+            dropped += [f"{table}.{k}" for k in keys if sub.pop(k, None) is not None]
+    if dropped:
+        warnings.warn(
+            f"design: {', '.join(dropped)} ignored; the servo model derives them from "
+            "[servo] (docs/servo.md)",
+            DeprecationWarning,
+            stacklevel=3,
+        )
+    servo = data.get("servo")
+    if isinstance(servo, dict):
+        for key, value in _default_servo().items():
+            servo.setdefault(key, copy.deepcopy(value))
+    return data
+
+
+@functools.cache
+def _default_servo() -> dict[str, Any]:
+    return dict(tomllib.loads(default_design_text())["servo"])
 
 
 def _is_number(v: Any) -> bool:
@@ -408,7 +496,7 @@ def design_from_dict(data: dict[str, Any], source: str = "<memory>") -> Design:
             "the design file is empty (no tables, no parameters); `payload new DIR` makes a "
             "project whose cad/design.toml holds every parameter",
         )
-    design = _build(Design, data, "")
+    design = _build(Design, _upgrade(data), "")
     defaulted = design.pinch is None
     if defaulted:
         # a design file written before [pinch] existed takes the packaged default's

@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
 
 from payload.design.params import Design
+from payload.design.servo import JOINT_KINDS, joint_servo
 from payload.design.solids import to_trimesh
-from payload.design.tree import MANIPULATION_JOINTS, KinematicTree, build_tree
+from payload.design.tree import MANIPULATION_JOINTS, KinematicTree, build_tree, load_inertia
 
 
 def bounding_box(tree: KinematicTree, q: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
@@ -68,7 +70,31 @@ def summarize(design: Design, tree: KinematicTree | None = None) -> dict[str, An
         "joints": joints,
         "mass_kg": {"total": tree.total_mass(), "groups": groups, "links": masses},
         "bounding_box": {"stowed": boxes["stowed"], "deployed": boxes["home"]},
+        "servo": servo_summary(tree),
     }
+
+
+def servo_summary(tree: KinematicTree) -> dict[str, dict[str, Any]]:
+    """Per joint kind: the MuJoCo parameters and the free response they give.
+
+    ``natural_hz = sqrt(kp / M) / 2 pi`` and ``damping_ratio = (kv + damping) / (2 sqrt(kp
+    M))`` with ``M`` = armature + :func:`load_inertia` (linear, Coulomb friction aside).
+    """
+    out = {}
+    for kind in JOINT_KINDS:
+        js = joint_servo(tree.design, kind)
+        m = js.armature + load_inertia(tree, kind)
+        out[kind] = {
+            "kp": js.kp,
+            "kv": js.kv,
+            "damping": js.damping,
+            "armature": js.armature,
+            "frictionloss": js.frictionloss,
+            "torque_cap": js.torque_cap,
+            "natural_hz": math.sqrt(js.kp / m) / (2.0 * math.pi),
+            "damping_ratio": (js.kv + js.damping) / (2.0 * math.sqrt(js.kp * m)),
+        }
+    return out
 
 
 def print_summary(summary: dict[str, Any]) -> None:

@@ -9,10 +9,12 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass
 from functools import cached_property
+from typing import Any
 
 import numpy as np
 
 from payload.design.params import FINGER_JOINTS, FINGERS, SIDE_OF, Design
+from payload.design.servo import joint_servo, kind_of
 from payload.design.solids import LinkBody, MassProps, all_bodies, carriage_origin_x, finger_mount
 
 MANIPULATION_JOINTS: tuple[str, ...] = (
@@ -63,7 +65,8 @@ class Joint:
         armature: Reflected rotor inertia.
         kp: Position-servo stiffness for the actuator.
         kv: Velocity feedback of the actuator (inside its force clamp, unlike ``damping``).
-        group: Actuator class (``finger``, ``rail`` or ``stage``).
+        group: Actuator class: the servo's joint kind (``finger``, ``abduction``, ``rail``,
+            ``stage``; :data:`payload.design.servo.JOINT_KINDS`).
     """
 
     name: str
@@ -193,12 +196,25 @@ class KinematicTree:
         return q
 
 
+def _servo_fields(design: Design, kind: str) -> dict[str, Any]:
+    """A joint's servo parameters from the one servo model (:mod:`payload.design.servo`)."""
+    js = joint_servo(design, kind)
+    return {
+        "effort": js.torque_cap,
+        "damping": js.damping,
+        "frictionloss": js.frictionloss,
+        "armature": js.armature,
+        "kp": js.kp,
+        "kv": js.kv,
+        "group": kind,
+    }
+
+
 def build_tree(design: Design) -> KinematicTree:
     """The kinematic tree of ``design`` with inertias from its solids and servos."""
     bodies = all_bodies(design)
     props = {name: body.mass_props() for name, body in bodies.items()}
     f, s, rl, st, mnt = design.finger, design.servo, design.rail, design.stage, design.mounting
-    torque = s.torque_limit
 
     links = [
         Link("base", bodies["base"], props["base"]),
@@ -215,11 +231,8 @@ def build_tree(design: Design) -> KinematicTree:
             axis=(0.0, 0.0, -1.0),
             lower=0.0,
             upper=st.travel,
-            effort=torque / st.drive_radius,
             velocity=s.no_load_speed * st.drive_radius,
-            damping=st.damping,
-            kp=st.kp,
-            group="stage",
+            **_servo_fields(design, "stage"),
         ),
         Joint(
             "rail",
@@ -230,11 +243,8 @@ def build_tree(design: Design) -> KinematicTree:
             axis=(1.0, 0.0, 0.0),
             lower=0.0,
             upper=rl.travel,
-            effort=torque / rl.drive_radius,
             velocity=s.no_load_speed * rl.drive_radius,
-            damping=rl.damping,
-            kp=rl.kp,
-            group="rail",
+            **_servo_fields(design, "rail"),
         ),
     ]
     frames = []
@@ -266,14 +276,8 @@ def build_tree(design: Design) -> KinematicTree:
                     axis=axis,
                     lower=lim.lower,
                     upper=lim.upper,
-                    effort=torque,
                     velocity=s.no_load_speed,
-                    damping=f.damping,
-                    frictionloss=f.frictionloss,
-                    armature=f.armature,
-                    kp=f.kp,
-                    kv=f.kv,
-                    group="finger",
+                    **_servo_fields(design, kind_of(jname)),
                 )
             )
             mesh = f"finger_{lname}"
@@ -282,3 +286,41 @@ def build_tree(design: Design) -> KinematicTree:
         frames.append(Frame(f"{finger}_distal", f"{finger}_distal", (0.0, 0.0, 0.0)))
         frames.append(Frame(f"{finger}_tip", f"{finger}_distal", (0.0, o.tip, -L.distal)))
     return KinematicTree(design, tuple(links), tuple(joints), tuple(frames))
+
+
+def load_inertia(tree: KinematicTree, kind: str) -> float:
+    """What a servo of ``kind`` moves besides itself at the home posture, in joint units.
+
+    Finger flexion: the finger's links below its MCP flexion about that axis; abduction:
+    the links below MCP abduction about its axis [kg m^2]; rail: the carriage and the
+    fingers it carries; stage: everything below the mounting plate [kg]. Finger A is
+    taken (the four fingers are alike).
+    """
+    joint = {"finger": "A_mcp_flex", "abduction": "A_mcp_abd"}.get(kind, kind)
+    j = tree.joint_map[joint]
+    poses = tree.link_poses(tree.posture("home"))
+    below = _subtree(tree, j.child)
+    if kind in ("rail", "stage"):
+        return float(sum(tree.link_map[n].mass.mass for n in below))
+    frame = poses[j.child]
+    axis = frame[:3, :3] @ np.asarray(j.axis, dtype=float)
+    point = frame[:3, 3]
+    total = 0.0
+    for name in below:
+        mp = tree.link_map[name].mass
+        if mp.mass <= 0:
+            continue
+        rot, pos = poses[name][:3, :3], poses[name][:3, 3]
+        com = rot @ mp.com + pos
+        arm = np.cross(com - point, axis)
+        total += float(axis @ (rot @ mp.inertia @ rot.T) @ axis + mp.mass * arm @ arm)
+    return total
+
+
+def _subtree(tree: KinematicTree, link: str) -> list[str]:
+    out, stack = [], [link]
+    while stack:
+        name = stack.pop()
+        out.append(name)
+        stack += [c.child for c in tree.children(name)]
+    return out

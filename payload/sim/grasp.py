@@ -10,6 +10,7 @@ import mujoco
 import numpy as np
 
 from payload.design import FINGERS, SIDE_OF, Design
+from payload.design.servo import joint_servo
 from payload.sim.astrobee import design_vehicle, payload_mount
 from payload.sim.config import WorldConfig
 from payload.sim.errors import SimError
@@ -19,11 +20,20 @@ PINCH_CLEARANCE = 0.005
 """Least gap between the pads and the handle at the pre-shape [m]; a design that leaves
 less makes :func:`pinch_grasp` refuse."""
 
-PINCH_SQUEEZE = 0.05
-"""MCP flexion commanded past first contact for the pinch [rad]: with kp = 3 N m/rad this
-asks 0.15 N m, 83 % of the current-capped torque. Unsaturated fingers act as springs, which
-lets the handle settle under the yaw couple of the staggered opposing fingers (A/C and B/D
-are offset along x); saturated fingers push equally and the handle keeps yawing."""
+PINCH_TORQUE_FRACTION = 5.0 / 6.0
+"""Share of the current-capped torque the pinch asks of each MCP servo. Below the cap the
+fingers act as springs, which lets the handle settle under the yaw couple of the staggered
+opposing fingers (A/C and B/D are offset along x); saturated fingers push equally and the
+handle keeps yawing. (Before the servo model, kp 3 N m/rad with a 0.05 rad squeeze asked
+0.15 N m: the same 83 %.)"""
+
+
+def pinch_squeeze(design: Design) -> float:
+    """MCP flexion commanded past first contact for the pinch [rad]: the servo's
+    proportional torque ``kp x squeeze`` is :data:`PINCH_TORQUE_FRACTION` of its torque cap
+    (``kt x Goal Current``), both from the servo model (:mod:`payload.design.servo`)."""
+    js = joint_servo(design, "finger")
+    return PINCH_TORQUE_FRACTION * js.torque_cap / js.kp
 
 
 class PinchGrasp(NamedTuple):
@@ -74,7 +84,7 @@ def pinch_grasp(design: Design, config: WorldConfig) -> PinchGrasp:
 
     The first-contact MCP flexion solves ``|y_tip| - r_pad = w_handle / 2`` (pad sphere on
     the handle's side face) by bisection on the payload model's kinematics; the closing
-    command adds :data:`PINCH_SQUEEZE`.
+    command adds :func:`pinch_squeeze`.
 
     Raises:
         SimError: The pads cannot reach the handle from the pre-shape.
@@ -104,7 +114,7 @@ def pinch_grasp(design: Design, config: WorldConfig) -> PinchGrasp:
         mid = 0.5 * (lo + hi)
         lo, hi = (mid, hi) if gap(mid) > 0.0 else (lo, mid)
     contact = 0.5 * (lo + hi)
-    closed = (contact + PINCH_SQUEEZE, *preshape[1:])
+    closed = (contact + pinch_squeeze(design), *preshape[1:])
     return PinchGrasp(preshape, closed, contact, rail, stage)
 
 

@@ -2,11 +2,19 @@
 
 The pad is a silicone skin of thickness ``h`` and Young's modulus ``E`` over a sphere of
 radius ``R`` (``[finger.pad]`` in the design file; the values are ASSUMPTIONs until
-measured). Pressed by ``delta`` against the flat handle face, the skin is compressed over
-a patch of radius ``a ~ sqrt(2 R delta)`` by about ``delta``, so a thin-layer estimate of
-the contact force is ``F = E (pi a^2) delta / h = 2 pi E R delta^2 / h``. Linearised at
-the design's pad load ``F0``: indentation ``delta0 = sqrt(F0 h / (2 pi E R))`` and
-stiffness ``k = dF/d delta = 2 F0 / delta0``.
+measured), pressed by ``delta`` against the flat handle face. Its force law is Hertz's
+for an elastic sphere on a rigid flat (Hertz 1882; K. L. Johnson, *Contact Mechanics*,
+1985, eqs. 4.22-4.23):
+
+    F = (4/3) E* sqrt(R) delta^(3/2),   E* = E / (1 - nu^2),   contact radius a = sqrt(R delta)
+
+with silicone incompressible (``nu = 0.5``). Linearised at the design's pad load ``F0``:
+``delta0 = (3 F0 / (4 E* sqrt(R)))^(2/3)`` and tangent stiffness ``k = 1.5 F0 / delta0``.
+Hertz treats the skin as a half-space, which holds while the contact radius is small
+beside the skin (``a < h``: at the design values a = 1.8 mm under a 3 mm skin). The former
+thin-layer law ``F = E (pi a^2) delta / h`` with ``a^2 = 2 R delta`` assumed the opposite
+(``a >> h``; it gave a = 2.1 mm, not thin) and was twice the Winkler layer's own integral
+``int (E / h)(delta - r^2 / 2R) 2 pi r dr = pi E R delta^2 / h``.
 
 MuJoCo's contact is a mass-normalised spring-damper: ``solref = (timeconst, dampratio)``
 sets the reference stiffness ``1 / (dmax^2 timeconst^2 dampratio^2)`` and damping
@@ -20,10 +28,10 @@ series with the CTB's. The pad's secant ``F0 / delta0`` at the design load (with
 ``d = dmax``) gives ``timeconst = sqrt(m dmax / (1 - dmax) * delta0 / F0) / (dmax
 dampratio)``, ``dampratio`` the design's damping ratio (at least 1).
 
-``solimp`` follows the thin-layer law's progressive stiffening: the impedance rises from
-``dmin`` at first touch to ``dmax`` at the design-load indentation ``delta0`` (the
-transition width), with ``dmin`` chosen so that half-way in the secant ``F / delta`` is
-half the design load's, as ``F ~ delta^2`` gives (midpoint of MuJoCo's sigmoid:
+``solimp`` follows Hertz's progressive stiffening: the impedance rises from ``dmin`` at
+first touch to ``dmax`` at the design-load indentation ``delta0`` (the transition width),
+with ``dmin`` chosen so that half-way in the secant ``F / delta`` is ``0.5^(1/2)`` of the
+design load's, as ``F ~ delta^(3/2)`` gives (midpoint of MuJoCo's sigmoid:
 ``d = (dmin + dmax) / 2`` there). MuJoCo needs ``timeconst >= 2 dt``; a stiffer pad is
 clamped there (and said so).
 """
@@ -42,15 +50,20 @@ from payload.errors import PayloadError
 
 SOLIMP_DMAX = 0.95
 """Impedance at the design-load indentation (MuJoCo's default dmax)."""
+POISSON = 0.5
+"""Poisson's ratio of the pad silicone (an elastomer: incompressible)."""
+HERTZ_EXPONENT = 1.5
+"""``F ~ delta^HERTZ_EXPONENT`` (Hertz, sphere on a flat)."""
 
 
 def _odds(d: float) -> float:
     return d / (1.0 - d)
 
 
-def _half_stiffness_dmin(dmax: float) -> float:
-    """``dmin`` with ``odds((dmin + dmax) / 2) = odds(dmax) / 2``."""
-    target = 0.5 * _odds(dmax)
+def _midpoint_dmin(dmax: float) -> float:
+    """``dmin`` with ``odds((dmin + dmax) / 2) = odds(dmax) 0.5^(n - 1)``, n the Hertz
+    exponent: half-way to the design indentation the secant stiffness is that share."""
+    target = 0.5 ** (HERTZ_EXPONENT - 1.0) * _odds(dmax)
     mid = target / (1.0 + target)
     return 2.0 * mid - dmax
 
@@ -80,10 +93,17 @@ class PadContact(NamedTuple):
 
 
 def pad_stiffness(design: Design) -> tuple[float, float]:
-    """Thin-layer pad stiffness at the design load: ``(k [N/m], delta0 [m])``."""
+    """Hertz pad stiffness at the design load: ``(k [N/m], delta0 [m])`` (module docstring)."""
     p = design.finger.pad
-    delta0 = math.sqrt(p.load * p.thickness / (2.0 * math.pi * p.modulus * p.radius))
-    return 2.0 * p.load / delta0, delta0
+    e_star = p.modulus / (1.0 - POISSON**2)
+    delta0 = (3.0 * p.load / (4.0 * e_star * math.sqrt(p.radius))) ** (2.0 / 3.0)
+    return HERTZ_EXPONENT * p.load / delta0, delta0
+
+
+def patch_radius(design: Design) -> float:
+    """Hertz contact radius at the design load ``a = sqrt(R delta0)`` [m]: the model holds
+    while it is below the skin thickness."""
+    return math.sqrt(design.finger.pad.radius * pad_stiffness(design)[1])
 
 
 def pose_payload(
@@ -146,20 +166,23 @@ def pad_contact(
     m_eff = 1.0 / inv
     zeta = float(design.finger.pad.damping_ratio)
     dmax = SOLIMP_DMAX
-    secant = design.finger.pad.load / delta0  # = k / 2
+    secant = design.finger.pad.load / delta0  # = k / HERTZ_EXPONENT
     tc = math.sqrt(m_eff * _odds(dmax) / secant) / (dmax * zeta)
     least = 2.0 * timestep
     clamped = tc < least
     tc = max(tc, least)
-    solimp = (_half_stiffness_dmin(dmax), dmax, delta0, 0.5, 2.0)
+    solimp = (_midpoint_dmin(dmax), dmax, delta0, 0.5, 2.0)
     return PadContact(k, delta0, m_eff, tc, zeta, (tc, zeta), solimp, clamped)
 
 
 __all__ = [
+    "HERTZ_EXPONENT",
+    "POISSON",
     "SOLIMP_DMAX",
     "PadContact",
     "finger_effective_mass",
     "pad_contact",
     "pad_stiffness",
+    "patch_radius",
     "pose_payload",
 ]

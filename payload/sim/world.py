@@ -49,7 +49,7 @@ from payload.sim.config import WorldConfig
 from payload.sim.errors import SimError
 from payload.sim.grasp import (
     PINCH_CLEARANCE,
-    PINCH_SQUEEZE,
+    PINCH_TORQUE_FRACTION,
     PinchGrasp,
     ctb_offset,
     pinch_grasp,
@@ -394,7 +394,7 @@ __all__ = [
     "PAYLOAD_PREFIX",
     "PHYSICS_DT",
     "PINCH_CLEARANCE",
-    "PINCH_SQUEEZE",
+    "PINCH_TORQUE_FRACTION",
     "SUBSTEPS",
     "CtbSize",
     "Handle",

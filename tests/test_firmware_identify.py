@@ -1,0 +1,58 @@
+"""``payload hw identify`` against the emulator holding hidden servo parameters."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from firmware_interface.emulator import EmulatorProcess
+from firmware_interface.identify import write_servo_values
+from payload.cli import main
+from payload.design import load_design
+
+HIDDEN = {"kt": 0.45, "resistance": 3.3, "viscous": 0.0105, "coulomb": 0.015}
+HIDDEN_INERTIA = 0.0032  # [kg m^2] finger flexion servo with its load
+
+
+def test_identify_recovers_hidden_emulator_parameters_within_10_percent(tmp_path, capsys):
+    """The emulator's finger servos hold kt, R, friction and inertia 13-35 % off the
+    design's; identify, through the driver on the pty, recovers each within 10 %."""
+    design = load_design()
+    for key, value in HIDDEN.items():
+        assert abs(value / getattr(design.servo, key) - 1) > 0.1, key  # really hidden
+    params = tmp_path / "hidden.json"
+    params.write_text(json.dumps({"*": HIDDEN, "finger": {"inertia": HIDDEN_INERTIA}}))
+    with EmulatorProcess(servo_params=str(params)) as emu:
+        code = main(["hw", "identify", "--device", emu.port, "--joints", "A_mcp_flex",
+                     "--json", "--latency-ms", "50"])  # fmt: skip
+    assert code == 0
+    report = json.loads(capsys.readouterr().out)
+    (servo,) = report["servos"]
+    got = servo["fit"]
+    for key, value in HIDDEN.items():
+        assert got[key] == pytest.approx(value, rel=0.10), key
+    assert got["inertia"] == pytest.approx(HIDDEN_INERTIA, rel=0.10)
+    assert got["residual"]["voltage"] < 0.2 and got["residual"]["dynamics"] < 0.3
+    assert report["written"] is None  # nothing written without --write
+    assert report["suggested"]["kt"] == got["kt"]
+
+
+def test_write_servo_values_keeps_comments_and_refuses_unknown_keys(tmp_path):
+    path = tmp_path / "design.toml"
+    path.write_text("[servo]\nkt = 0.517  # [N m/A] datasheet\n[other]\nkt = 1.0\n")
+    write_servo_values(path, {"kt": 0.45})
+    assert path.read_text() == "[servo]\nkt = 0.45  # [N m/A] datasheet\n[other]\nkt = 1.0\n"
+    with pytest.raises(ValueError, match="no resistance"):
+        write_servo_values(path, {"resistance": 3.0})
+
+
+def test_a_bad_servo_params_file_is_refused_in_one_line(tmp_path, capsys):
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"finger": {"kt": 0.0}}))
+    assert main(["hw", "emulate", "--servo-params", str(bad)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "finger.kt: expected a number > 0" in err
+    bad.write_text(json.dumps({"*": {"stiffness": 1.0}}))
+    assert main(["hw", "emulate", "--servo-params", str(bad)]) == 2
+    assert "*.stiffness: unknown" in capsys.readouterr().err
