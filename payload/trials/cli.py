@@ -372,6 +372,23 @@ def _cmd_trials_convert(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_trials_compare(args: argparse.Namespace) -> int:
+    from payload.cli import emit_json
+    from payload.safeio import check_new, replace_file
+    from payload.trials.compare import compare_markdown, compare_runs
+
+    result = compare_runs(Path(args.run_a), Path(args.run_b), steps=args.steps)
+    text = compare_markdown(result)
+    if args.out:
+        check_new([Path(args.out)], force=args.force, what="comparison")
+        replace_file(Path(args.out), text)
+    if args.json:
+        emit_json(result)
+    else:
+        print(text, end="")
+    return 0
+
+
 _SETUP = ("ctb", "propulsion", "retarget_budget", "retarget_collisions")
 """The trial setup flags' attribute names."""
 
@@ -501,6 +518,19 @@ def register(
     c.add_argument("--force", action="store_true", help="convert even if a backup exists")
     c.add_argument("--json", action="store_true", help="print one JSON object")
     c.set_defaults(func=_cmd_trials_convert)
+
+    cm = tsub.add_parser(
+        "compare", help="two runs of the same seeds, seed by seed (metrics, and steps)"
+    )
+    cm.add_argument("run_a", metavar="RUN_A", help="reference campaign or trial folder")
+    cm.add_argument("run_b", metavar="RUN_B", help="campaign or trial folder compared with it")
+    cm.add_argument(
+        "--steps", action="store_true", help="also compare every recorded step, bit for bit"
+    )
+    cm.add_argument("--out", help="also write the Markdown table to this file")
+    cm.add_argument("--force", action="store_true", help="replace --out if it exists")
+    cm.add_argument("--json", action="store_true", help="print one JSON object")
+    cm.set_defaults(func=_cmd_trials_compare)
 
     e = groups["export"].add_parser("lerobot", help="recordings as a LeRobot v3 dataset")
     e.add_argument("runs", nargs="+", metavar="RUN", help="log.mcap, trial or campaign folder")
