@@ -927,6 +927,11 @@ def test_cli_bench_trial_accounts_for_its_time(tmp_path: Path, capsys) -> None:
     assert r["physics_only_realtime_factor"] == pytest.approx(
         r["sim_seconds"] / r["mj_step_seconds"]
     )
+    # the physics floor is the summed mj_step time; the default step is the paper's 1 ms
+    assert r["physics_dt"] == 0.001
+    assert r["physics_floor_s"] == r["mj_step_seconds"]
+    assert r["overhead_ratio"] == pytest.approx(r["wall_seconds"] / r["mj_step_seconds"])
+    assert r["overhead_ratio"] > 1.0
 
 
 def test_cli_bench_recorder(capsys) -> None:
