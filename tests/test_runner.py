@@ -398,7 +398,6 @@ def test_a_2_ms_trial_records_its_step_and_compare_shows_what_changed(tmp_path, 
     tells the 2 ms steps apart from the 1 ms ones."""
     from payload.cli import main
     from payload.trials.compare import compare_runs
-
     from payload.trials.summary import write_summary
 
     runs = {}
