@@ -176,9 +176,7 @@ def test_bvls_gives_scipys_bits_on_general_bounded_problems():
         lb = -rng.uniform(0.0, 1.0, size=n)
         ub = lb + rng.uniform(0.05, 2.0, size=n)
         max_iter = None if rng.random() < 0.8 else int(rng.integers(1, 4))
-        want = lsq_linear(
-            a, b, bounds=(lb, ub), method="bvls", tol=BVLS_TOL, max_iter=max_iter
-        )
+        want = lsq_linear(a, b, bounds=(lb, ub), method="bvls", tol=BVLS_TOL, max_iter=max_iter)
         x0 = np.linalg.lstsq(a, b, rcond=-1)[0]  # lsq_linear's start
         got = bvls(a, b, x0, lb, ub, BVLS_TOL, max_iter)
         if ((x0 < lb) | (x0 > ub)).any():
