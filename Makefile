@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test lint format build clean analyses-campaign
+.PHONY: demo test lint format build clean analyses-campaign validate-physics-dt
 
 $(STAMP): pyproject.toml
 	test -d $(VENV) || $(PYTHON) -m venv $(VENV)
@@ -34,6 +34,15 @@ analyses-campaign: $(STAMP)
 	    cp runs/analyses-$$name/trial-0000/fig_$$f.png analyses/campaign/$$name/trial-0000_$$f.png; \
 	  done; \
 	done
+
+# the opt-in 2 ms physics step against the paper's 1 kHz: the `single` campaign at both
+# steps, compared seed by seed with the largest change of each metric
+# (analyses/physics-dt/compare.md; docs/speed.md)
+validate-physics-dt: $(STAMP)
+	$(BIN)/payload trials run --n 10 --seed 0 --workers 2 --ctb single --out runs/physics-dt-1ms --force
+	$(BIN)/payload trials run --n 10 --seed 0 --workers 2 --ctb single --physics-dt 0.002 --out runs/physics-dt-2ms --force
+	mkdir -p analyses/physics-dt
+	$(BIN)/payload trials compare runs/physics-dt-1ms runs/physics-dt-2ms --out analyses/physics-dt/compare.md --force
 
 # the WebXR emulator the browser tests load (iwer), pinned by package-lock.json
 node_modules/.package-lock.json: package-lock.json

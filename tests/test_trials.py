@@ -932,6 +932,7 @@ def test_cli_bench_trial_accounts_for_its_time(tmp_path: Path, capsys) -> None:
     assert r["physics_floor_s"] == r["mj_step_seconds"]
     assert r["overhead_ratio"] == pytest.approx(r["wall_seconds"] / r["mj_step_seconds"])
     assert r["overhead_ratio"] > 1.0
+    assert r["overhead_ratio_cpu"] == pytest.approx(r["cpu_seconds"] / r["mj_step_cpu_seconds"])
 
 
 def test_cli_bench_recorder(capsys) -> None:

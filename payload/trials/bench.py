@@ -11,7 +11,8 @@ timed stage counts only there):
   ``physics_only_realtime_factor`` the real-time factor a trial could reach if nothing
   but MuJoCo's stepping took time (the ceiling any work outside MuJoCo can approach);
   ``physics_floor_s`` is that same summed ``mj_step`` time (the least a trial can take)
-  and ``overhead_ratio`` the wall time over it (1 would be a trial at its physics' cost);
+  and ``overhead_ratio`` the wall time over it (1 would be a trial at its physics' cost;
+  ``overhead_ratio_cpu`` the same in CPU time, less disturbed by other processes);
 * ``contacts``: the world-state read-out after each step (poses, fingertip contacts,
   indicator);
 * ``operator``: the synthetic operator producing hand frames;
@@ -219,6 +220,7 @@ def _bench(
         "physics_dt": result.get("physics_dt"),
         "physics_floor_s": clock.wall,
         "overhead_ratio": wall / clock.wall if clock.wall > 0 else None,
+        "overhead_ratio_cpu": cpu / clock.cpu if clock.cpu > 0 else None,
         "physics_only_realtime_factor": sim_seconds / clock.wall if clock.wall > 0 else None,
         "log_bytes": size,
         "log_bytes_per_sim_minute": size / (sim_seconds / 60.0),
