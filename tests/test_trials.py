@@ -892,6 +892,9 @@ def test_cli_trial_and_campaign(tmp_path: Path, monkeypatch, capsys) -> None:
         (["trials", "run", "--n", "2", "--ctb", "double", "--out", "x"], "--ctb: expected"),
         (["trials", "run", "--n", "0", "--out", "x"], "--n must be >= 1"),
         (["trials", "summarize", "/nonexistent/campaign"], "no such campaign folder"),
+        (["trial", "--physics-dt", "0.0015"], "--physics-dt: the physics step 0.0015 s does"),
+        (["trials", "run", "--n", "1", "--out", "x", "--physics-dt", "0"], "--physics-dt:"),
+        (["bench", "trial", "--physics-dt", "-0.002"], "--physics-dt: the physics step must"),
     ],
 )
 def test_cli_bad_input_exits_2(argv: list[str], message: str, capsys) -> None:
