@@ -392,11 +392,12 @@ def _cmd_trials_convert(args: argparse.Namespace) -> int:
 
 
 def _cmd_trials_compare(args: argparse.Namespace) -> int:
-    from payload.cli import emit_json
+    from payload.cli import CheckFailed, emit_json
     from payload.safeio import check_new, replace_file
     from payload.trials.compare import compare_markdown, compare_runs
 
-    result = compare_runs(Path(args.run_a), Path(args.run_b), steps=args.steps)
+    steps = args.steps or args.require_identical
+    result = compare_runs(Path(args.run_a), Path(args.run_b), steps=steps)
     text = compare_markdown(result)
     if args.out:
         check_new([Path(args.out)], force=args.force, what="comparison")
@@ -405,6 +406,12 @@ def _cmd_trials_compare(args: argparse.Namespace) -> int:
         emit_json(result)
     else:
         print(text, end="")
+    if args.require_identical and not result["identical"]:
+        differ = [r["trial"] for r in result["trials"] if not r["steps"]["identical"]]
+        raise CheckFailed(
+            f"the runs differ (metrics or recorded steps; steps differ in: "
+            f"{', '.join(differ) or 'none'})"
+        )
     return 0
 
 
@@ -566,6 +573,12 @@ def register(
     cm.add_argument("run_b", metavar="RUN_B", help="campaign or trial folder compared with it")
     cm.add_argument(
         "--steps", action="store_true", help="also compare every recorded step, bit for bit"
+    )
+    cm.add_argument(
+        "--require-identical",
+        action="store_true",
+        help="compare the steps too and exit 1 unless every common trial's metrics and "
+        "recorded steps are the same in every bit",
     )
     cm.add_argument("--out", help="also write the Markdown table to this file")
     cm.add_argument("--force", action="store_true", help="replace --out if it exists")
