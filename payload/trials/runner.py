@@ -171,6 +171,10 @@ def run_trial(
                 )
         if physics_dt is None:
             physics_dt = recorded.get("physics_dt")
+            if physics_dt is not None and (
+                isinstance(physics_dt, bool) or not isinstance(physics_dt, (int, float))
+            ):
+                raise TrialError(f"{replay}: physics_dt must be a number, got {physics_dt!r}")
         if seed is None:
             source_seed = header.get("meta", {}).get("seed")
             seed = source_seed if isinstance(source_seed, int) and source_seed >= 0 else 0
