@@ -93,10 +93,11 @@ def _cmd_trial(args: argparse.Namespace) -> int:
             given = f" (given: {', '.join(names)}; the rest the recording's)"
     modelled = "modelled" if result.get("retarget_collisions") else "off"
     dt = result.get("physics_dt")
+    physics = "" if dt is None else f"{1e3 * dt:g} ms physics step, "
     print(
-        f"  setup: CTB {result.get('ctb')}, {result.get('propulsion')} propulsion, "
+        f"  setup: CTB {result.get('ctb')}, {result.get('propulsion')} propulsion, {physics}"
         f"retargeting budget {result.get('retarget_budget')}, self-collision "
-        f"{modelled}, physics step {'n/a' if dt is None else f'{1e3 * dt:g} ms'}{given}"
+        f"{modelled}{given}"
     )
     print(f"  success: {bool(result.get('success'))}")
     for key in METRIC_KEYS:
