@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test lint format build clean analyses-campaign
+.PHONY: demo test lint format build clean analyses-campaign validate-physics-dt bit-for-bit
 
 $(STAMP): pyproject.toml
 	test -d $(VENV) || $(PYTHON) -m venv $(VENV)
@@ -34,6 +34,31 @@ analyses-campaign: $(STAMP)
 	    cp runs/analyses-$$name/trial-0000/fig_$$f.png analyses/campaign/$$name/trial-0000_$$f.png; \
 	  done; \
 	done
+
+# the opt-in 2 ms physics step against the paper's 1 kHz: the `single` campaign at both
+# steps, compared seed by seed with the largest change of each metric
+# (analyses/physics-dt/compare.md; docs/speed.md)
+validate-physics-dt: $(STAMP)
+	$(BIN)/payload trials run --n 10 --seed 0 --workers 2 --ctb single --out runs/physics-dt-1ms --force
+	$(BIN)/payload trials run --n 10 --seed 0 --workers 2 --ctb single --physics-dt 0.002 --out runs/physics-dt-2ms --force
+	mkdir -p analyses/physics-dt
+	$(BIN)/payload trials compare runs/physics-dt-1ms runs/physics-dt-2ms --out analyses/physics-dt/compare.md --force
+
+# speed work's "the maths is unchanged" check: full trials of seeds 0, 5 and 9 on the
+# commit BASE (default main, in a temporary worktree) and on this tree, every recorded
+# step compared bit for bit (exit 1 on any difference; docs/speed.md)
+BASE ?= main
+BFB := runs/bit-for-bit
+bit-for-bit: $(STAMP)
+	rm -rf $(BFB) && mkdir -p $(BFB)
+	git worktree add --detach $(BFB)/base $(BASE)
+	set -e; for s in 0 5 9; do d=trial-$$(printf %04d $$s); \
+	  (cd $(BFB)/base && PYTHONPATH=$$PWD $(CURDIR)/$(BIN)/payload trial --seed $$s \
+	    --out $(CURDIR)/$(BFB)/before/$$d --json > /dev/null); \
+	  $(BIN)/payload trial --seed $$s --out $(BFB)/after/$$d --json > /dev/null; \
+	done
+	git worktree remove --force $(BFB)/base
+	$(BIN)/payload trials compare $(BFB)/before $(BFB)/after --require-identical
 
 # the WebXR emulator the browser tests load (iwer), pinned by package-lock.json
 node_modules/.package-lock.json: package-lock.json

@@ -5,6 +5,7 @@ the conversion of schema 1, and newer versions refused."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -20,7 +21,10 @@ from payload.trials.codec import (
     STEP_GRIDS,
     JointsCodec,
     JointsMsg,
+    StepCodec,
+    StepMsg,
     quantize_joints,
+    same_joints,
 )
 from payload.trials.recorder import (
     SCHEMA_VERSION,
@@ -66,6 +70,47 @@ def test_joints_codec_is_lossless_on_and_off_the_grid() -> None:
     raw = JointsMsg()
     JointsCodec().encode(rng.normal(size=(25, 3)), raw)
     assert raw.ByteSize() >= 8 * 75
+
+
+def test_a_batch_encodes_to_the_bytes_of_one_step_at_a_time() -> None:
+    """The recorder's flush encodes its steps as a batch: the same hand-sample and step
+    bytes as encode_hands/encode_step called step by step, through keys, steps without
+    a hand frame, joints that differ from the frame's, untracked and off-grid hands, and
+    a non-finite number that breaks the delta chain."""
+    rng = np.random.default_rng(17)
+    items = []
+    for k in range(60):
+        step = random_step(rng, (k + 1) * DT)
+        joints = [quantize_joints(rng.normal(size=(25, 3)) * 0.1) for _ in range(2)]
+        if k % 7 == 3:
+            joints[0] = rng.normal(size=(25, 3))  # off the grid: raw
+        tracked = [k % 11 != 5, True]
+        hands = [Hand(j if t else np.full((25, 3), np.nan), t) for j, t in zip(joints, tracked)]
+        frame = None if k % 9 == 4 else HandFrame(k * DT, hands[0], hands[1])
+        fields = {"left_joints": hands[0].joints, "right_joints": hands[1].joints}
+        if k % 5 == 2:  # the step's own joints differ from the frame's
+            fields["right_joints"] = quantize_joints(rng.normal(size=(25, 3)) * 0.1)
+        step = dataclasses.replace(step, **fields)
+        if k == 33:  # a non-finite number (past the record's checks): doubles, then a key
+            object.__setattr__(step, "ctb_pos", np.array([np.nan, 0.0, 0.0]))
+        items.append((step, k, 1.7e9 + k * DT, frame))
+    for cut in ((0, 60), (0, 1), (5, 41)):
+        one, batch = StepCodec(), StepCodec()
+        want = []
+        for step, seq, wall, frame in items[cut[0] : cut[1]]:
+            refs = (False, False)
+            hands_bytes = None
+            if frame is not None:
+                refs = (
+                    same_joints(frame.left.joints, step.left_joints),
+                    same_joints(frame.right.joints, step.right_joints),
+                )
+                hands_bytes = one.encode_hands(frame, seq)
+            want.append((hands_bytes, one.encode_step(step, seq, wall, refs)))
+        assert batch.encode_batch(items[cut[0] : cut[1]]) == want
+    msgs = [StepMsg.FromString(w[1]) for w in want]
+    assert any(w[0] is None for w in want) and any(m.left_joints.in_hands for m in msgs)
+    assert len(msgs[33 - 5].grid) == 0 and msgs[34 - 5].grid_key
 
 
 def test_delta_joints_without_their_key_are_refused() -> None:
@@ -286,8 +331,6 @@ def test_schema1_recordings_read_and_convert(tmp_path: Path, capsys) -> None:
 
 
 def _step_messages(path: Path) -> list:
-    from payload.trials.codec import StepMsg
-
     with path.open("rb") as f:
         return [
             StepMsg.FromString(m.data)
@@ -324,7 +367,7 @@ def test_schema2_recordings_read_and_newer_versions_are_refused(
     old = tmp_path / "v2" / "log.mcap"
     with monkeypatch.context() as mp:  # what the version-2 recorder wrote
         mp.setattr(recorder_module, "SCHEMA_VERSION", 2)
-        mp.setattr(codec.StepCodec, "_encode_grid", lambda self, step, wall, m: False)
+        mp.setattr(codec.StepCodec, "_grid_batch", lambda self, steps, walls: [None] * len(steps))
         write(old)
     assert recording_version(old) == 2
     msgs = _step_messages(old)

@@ -159,6 +159,32 @@ def test_fast_facet_solve_matches_numpy_and_scipy(nozzles):
         np.testing.assert_array_equal(_bvls(a, b, ub), want)
 
 
+def test_bvls_gives_scipys_bits_on_general_bounded_problems():
+    """payload.sim.lsq.bvls against SciPy's own BVLS (``lsq_linear(method="bvls")``):
+    any lower and upper bounds, starts inside and outside them, rank-deficient and
+    inconsistent systems, a short iteration budget; the same bits every time."""
+    from payload.sim.lsq import bvls
+
+    rng = np.random.default_rng(31)
+    moved = 0
+    for _ in range(400):
+        m, n = rng.integers(2, 10, size=2)
+        a = rng.normal(size=(m, n))
+        if rng.random() < 0.3:
+            a[:, -1] = a[:, 0] * rng.uniform(0.5, 2.0)
+        b = rng.normal(size=m) * rng.uniform(0.5, 5.0)
+        lb = -rng.uniform(0.0, 1.0, size=n)
+        ub = lb + rng.uniform(0.05, 2.0, size=n)
+        max_iter = None if rng.random() < 0.8 else int(rng.integers(1, 4))
+        want = lsq_linear(a, b, bounds=(lb, ub), method="bvls", tol=BVLS_TOL, max_iter=max_iter)
+        x0 = np.linalg.lstsq(a, b, rcond=-1)[0]  # lsq_linear's start
+        got = bvls(a, b, x0, lb, ub, BVLS_TOL, max_iter)
+        if ((x0 < lb) | (x0 > ub)).any():
+            moved += 1
+            np.testing.assert_array_equal(got, want.x)
+    assert moved > 300  # most problems needed the bounded solve
+
+
 def test_bad_inputs(nozzles):
     with pytest.raises(PropulsionError):
         Propulsion((0.68, -1.0, 0.3))
@@ -223,12 +249,12 @@ def test_box_model_stays_available(bare_world):
 def test_least_squares_falls_back_to_numpys_wrapper(monkeypatch, kernel):
     """Without numpy's kernel, or with one that refuses the call (another numpy), the
     facet least squares is numpy's own ``lstsq``: same solution and rank."""
-    from payload.sim import propulsion
+    from payload.sim import lsq
 
     def refuse(*args, **kwargs):
         raise ValueError("signature")
 
-    monkeypatch.setattr(propulsion, "_GELSD", None if kernel == "missing" else refuse)
+    monkeypatch.setattr(lsq, "_GELSD", None if kernel == "missing" else refuse)
     rng = np.random.default_rng(11)
     for cols in (3, 6, 8):
         a = rng.normal(size=(6, cols))

@@ -377,3 +377,58 @@ def test_the_trials_retargeters_are_rebuilt_when_only_the_designs_pre_shape_chan
         retargeters.retargeting(project, budget="paper")
         retargeters.retargeting(project, budget="paper")  # the same design: cached
     assert [rest[3] for rest in built] == [0.9, 0.9, 1.0, 1.0]  # pairs L and R, twice
+
+
+def test_every_trial_command_defaults_to_1_khz_physics():
+    """`payload trial`, `trials run` and `bench trial` leave --physics-dt unset, which the
+    trial setup resolves to the paper's 1 ms; only an explicit flag changes it."""
+    from payload.cli import build_parser
+    from payload.trials.sources import trial_setup
+
+    parser = build_parser()
+    for argv in (["trial"], ["trials", "run", "--n", "1", "--out", "x"], ["bench", "trial"]):
+        assert parser.parse_args(argv).physics_dt is None
+        assert parser.parse_args([*argv, "--physics-dt", "0.002"]).physics_dt == 0.002
+    assert trial_setup()["physics_dt"] == 0.001
+
+
+def test_a_2_ms_trial_records_its_step_and_compare_shows_what_changed(tmp_path, capsys):
+    """Two tiny one-trial runs (1 ms and 2 ms): the step is in the metadata, the metrics
+    and the summary; `payload trials compare` finds them identical to themselves and
+    tells the 2 ms steps apart from the 1 ms ones."""
+    from payload.cli import main
+    from payload.trials.compare import compare_runs
+    from payload.trials.summary import write_summary
+
+    runs = {}
+    for dt in (None, 0.002):
+        out = tmp_path / f"run-{dt}"
+        setup = {} if dt is None else {"physics_dt": dt}
+        results = run_campaign(runner_trial_fn(max_time=12.5, **setup), [0], out, workers=0)
+        summary = write_summary(results, out)
+        assert summary["physics_dt"] == (dt or 0.001)
+        runs[dt] = out
+        metrics = json.loads((trial_dir(out, 0) / "metrics.json").read_text())
+        assert metrics["physics_dt"] == (dt or 0.001)
+        assert read_recording(trial_dir(out, 0) / "log.mcap").meta["physics_dt"] == (dt or 0.001)
+    same = compare_runs(runs[None], runs[None], steps=True)
+    assert same["identical"] and same["trials"][0]["steps"]["differing_steps"] == 0
+    diff = compare_runs(runs[None], runs[0.002], steps=True)
+    row = diff["trials"][0]
+    assert row["physics_dt_a"] == 0.001 and row["physics_dt_b"] == 0.002
+    assert not diff["identical"] and row["steps"]["differing_steps"] > 0
+    # the largest change per metric is the (only) seed's change, B - A
+    for key, best in diff["largest_change"].items():
+        assert best["change"] == row["metrics"][key]["b"] - row["metrics"][key]["a"]
+    assert main(["trials", "compare", str(runs[None]), str(runs[0.002])]) == 0
+    table = capsys.readouterr().out
+    assert "trial-0000" in table and "largest change" in table
+    same_run = [str(runs[None]), str(runs[None]), "--require-identical", "--json"]
+    assert main(["trials", "compare", *same_run]) == 0
+    assert json.loads(capsys.readouterr().out)["identical"]
+    assert (
+        main(["trials", "compare", str(runs[None]), str(runs[0.002]), "--require-identical"]) == 1
+    )
+    assert "steps differ in: trial-0000" in capsys.readouterr().err
+    assert main(["trials", "compare", str(runs[None]), str(tmp_path / "nope")]) == 2
+    assert "no such trial or campaign folder" in capsys.readouterr().err

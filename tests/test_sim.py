@@ -735,3 +735,28 @@ def test_bench_sim_bad_input_exits_2():
     assert code == 2
     lines = err.getvalue().strip().splitlines()
     assert len(lines) == 1 and "--seconds" in lines[0]
+
+
+def test_the_physics_step_is_1_ms_by_default_and_a_2_ms_world_is_derived_from_its_step(world):
+    """1 kHz is the default; a 2 ms world has the 2 ms timestep, 10 substeps, and the
+    pad contact derived from 2 ms (pad_contact called here with the step)."""
+    from payload.design.params import load_design
+    from payload.sim.pads import pad_contact
+
+    assert WorldConfig().physics_dt == 0.001 and WorldConfig().substeps == 20
+    assert world.model.opt.timestep == 0.001
+    fast = build_world(WorldConfig(physics_dt=0.002))
+    assert fast.model.opt.timestep == 0.002 and fast.config.substeps == 10
+    design = load_design(fast.config.design)
+    size = fast.config.ctb_size
+    for dt, w in ((0.001, world), (0.002, fast)):
+        c = pad_contact(design, str(w.config.payload_mjcf), design.pinch.finger, size.mass, dt)
+        pad = w.pad_geoms["A"]
+        assert tuple(w.model.geom_solref[pad]) == pytest.approx(c.solref, rel=1e-12)
+        assert c.solref[0] >= 2 * dt  # MuJoCo's stability floor of the time constant
+    with SimDriver(fast) as sim:
+        sim.step()
+        assert sim.time == pytest.approx(0.02, abs=1e-12)  # one control period either way
+    for bad in (0.0, -0.001, 0.0015, float("nan")):
+        with pytest.raises(SimError, match="physics_dt"):
+            WorldConfig(physics_dt=bad)

@@ -727,7 +727,8 @@ def test_summary_table_against_hand_values() -> None:
     assert s["acquisition_success"] == pytest.approx(2 / 3)
     assert s["ctb"] == "rigid" and s["propulsion"] == "nozzles"
     lit = s["literal"]
-    assert set(s) - {"literal", "ctb", "propulsion"} == set(lit)  # same fields
+    assert s["physics_dt"] is None  # rows from before the option: no step recorded
+    assert set(s) - {"literal", "ctb", "propulsion", "physics_dt"} == set(lit)  # same fields
     assert lit["success"] == 0 and lit["contact_s"]["median"] == 0.2
     assert lit["contact_definition"] == {"min_interval_s": 0.0, "max_gap_s": 0.0}
     assert s["contact_definition"] == {"min_interval_s": 0.5, "max_gap_s": 0.1}
@@ -898,6 +899,9 @@ def test_cli_trial_and_campaign(tmp_path: Path, monkeypatch, capsys) -> None:
         (["trials", "run", "--n", "2", "--ctb", "double", "--out", "x"], "--ctb: expected"),
         (["trials", "run", "--n", "0", "--out", "x"], "--n must be >= 1"),
         (["trials", "summarize", "/nonexistent/campaign"], "no such campaign folder"),
+        (["trial", "--physics-dt", "0.0015"], "--physics-dt: the physics step 0.0015 s does"),
+        (["trials", "run", "--n", "1", "--out", "x", "--physics-dt", "0"], "--physics-dt:"),
+        (["bench", "trial", "--physics-dt", "-0.002"], "--physics-dt: the physics step must"),
     ],
 )
 def test_cli_bad_input_exits_2(argv: list[str], message: str, capsys) -> None:
@@ -934,6 +938,12 @@ def test_cli_bench_trial_accounts_for_its_time(tmp_path: Path, capsys) -> None:
     assert r["physics_only_realtime_factor"] == pytest.approx(
         r["sim_seconds"] / r["mj_step_seconds"]
     )
+    # the physics floor is the summed mj_step time; the default step is the paper's 1 ms
+    assert r["physics_dt"] == 0.001
+    assert r["physics_floor_s"] == r["mj_step_seconds"]
+    assert r["overhead_ratio"] == pytest.approx(r["wall_seconds"] / r["mj_step_seconds"])
+    assert r["overhead_ratio"] > 1.0
+    assert r["overhead_ratio_cpu"] == pytest.approx(r["cpu_seconds"] / r["mj_step_cpu_seconds"])
 
 
 def test_cli_bench_recorder(capsys) -> None:

@@ -8,9 +8,27 @@ from pathlib import Path
 from typing import Any
 
 from payload.project import Project, current_project, project_of
+from payload.schema import CONTROL_DT
 from payload.sim.cargo import CTB_SIZES, CtbSize, Handle
 from payload.sim.errors import SimError
 from payload.sim.iss import IssLayout
+
+PHYSICS_DT = 0.001
+"""Physics time step [s] (1 kHz, the paper's): the default of every command."""
+
+
+def check_physics_dt(dt: float) -> str | None:
+    """What is wrong with a physics step [s] (``None`` if it is usable): it must be
+    positive and divide the 50 Hz control period into a whole number of steps."""
+    if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0.0):
+        return f"the physics step must be a positive number of seconds, got {dt!r}"
+    n = CONTROL_DT / dt
+    if abs(n - round(n)) > 1e-9 * n or round(n) < 1:
+        return (
+            f"the physics step {dt:g} s does not divide the control period {CONTROL_DT:g} s "
+            "into whole steps (e.g. 0.001 or 0.002)"
+        )
+    return None
 
 
 @dataclass(frozen=True)
@@ -33,6 +51,9 @@ class WorldConfig:
         pads: ``silicone`` (default: the pad contact's solref/solimp derived from the
             design's pad material, :mod:`payload.sim.pads`) or ``mujoco`` (MuJoCo's
             default contact parameters, the earlier model, for comparison).
+        physics_dt: Physics time step [s] (default :data:`PHYSICS_DT`, 1 kHz); it must
+            divide the control period. The pad contact's time constant is derived from
+            it (:func:`payload.sim.pads.pad_contact`).
     """
 
     ctb: str | None = "single"
@@ -44,6 +65,7 @@ class WorldConfig:
     cone: str = "elliptic"
     impratio: float = 10.0
     pads: str = "silicone"
+    physics_dt: float = PHYSICS_DT
 
     @classmethod
     def for_project(cls, project: Project, **kwargs: Any) -> WorldConfig:
@@ -71,6 +93,14 @@ class WorldConfig:
             raise SimError(f"WorldConfig.cone: {self.cone!r} is not 'elliptic' or 'pyramidal'")
         if not (math.isfinite(self.impratio) and self.impratio >= 1.0):
             raise SimError(f"WorldConfig.impratio: must be >= 1, got {self.impratio}")
+        problem = check_physics_dt(self.physics_dt)
+        if problem is not None:
+            raise SimError(f"WorldConfig.physics_dt: {problem}")
+
+    @property
+    def substeps(self) -> int:
+        """Physics steps per control step (20 at 1 kHz)."""
+        return round(CONTROL_DT / self.physics_dt)
 
     @property
     def ctb_size(self) -> CtbSize | None:

@@ -39,7 +39,6 @@ from payload.sim.vehicle import (
 )
 from payload.sim.world import (
     CONTROL_DT,
-    SUBSTEPS,
     IssModule,
     SimError,
     World,
@@ -143,6 +142,7 @@ class SimDriver:
         self._goal = self.data.ctrl[self._ctrl].copy()
         self._target = self._goal.copy()
         self._step_max = self.world.slew_rate * CONTROL_DT
+        self._substeps = self.world.config.substeps
         self._overload = 0.999 * self.world.force_limit
         self._limit_lo = self._ctrl_range[:17, 0] + _AT_LIMIT
         self._limit_hi = self._ctrl_range[:17, 1] - _AT_LIMIT
@@ -224,7 +224,8 @@ class SimDriver:
             self._clear_vehicle_forces()
 
     def step(self, control_steps: int = 1) -> WorldState:
-        """Advance ``control_steps`` control periods (20 physics steps each)."""
+        """Advance ``control_steps`` control periods (20 physics steps of 1 ms each at the
+        default step; ``WorldConfig.substeps`` in general)."""
         self._check_open()
         if control_steps < 1:
             raise SimError(f"step: control_steps must be >= 1, got {control_steps}")
@@ -242,7 +243,7 @@ class SimDriver:
             self._target += np.clip(self._goal - self._target, -self._step_max, self._step_max)
             d.ctrl[self._ctrl] = self._target
             self._watch_ctb()
-            mujoco.mj_step(m, d, nstep=SUBSTEPS)
+            mujoco.mj_step(m, d, nstep=self._substeps)
         return self.world_state()
 
     def apply_thrusts(self, allocation: Allocation) -> None:

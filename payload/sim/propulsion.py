@@ -24,7 +24,8 @@ polytope's facets (precomputed half-spaces); the thrusts from the binding facet 
 saturated, else from the basic solutions of the 6-nozzle bases (precomputed inverses),
 with a linear programme (HiGHS) as the last resort. The facet's least squares call
 numpy's LAPACK kernel directly (the same bits as ``np.linalg.lstsq``, without its
-per-call overhead) and its bounded least squares is scipy's BVLS.
+per-call overhead) and its bounded least squares is SciPy's BVLS made the same way
+(:mod:`payload.sim.lsq`: the same bits as SciPy's, at a fraction of its per-call cost).
 """
 
 from __future__ import annotations
@@ -37,6 +38,8 @@ from functools import cached_property
 import numpy as np
 
 from payload.errors import PayloadError
+from payload.sim.lsq import bvls
+from payload.sim.lsq import lstsq as _lstsq
 
 INCH = 0.0254
 """[m]"""
@@ -91,47 +94,8 @@ DISCHARGE_COEFFS = np.array(
 N_NOZZLES = 12
 
 
-try:  # numpy's LAPACK least-squares kernel (dgelsd), the one np.linalg.lstsq calls
-    from numpy.linalg import _umath_linalg
-
-    _GELSD = getattr(_umath_linalg, "lstsq", None)
-except ImportError:  # pragma: no cover - another numpy: np.linalg.lstsq itself
-    _GELSD = None
-
-_EPS = float(np.finfo(float).eps)
-
 BVLS_TOL = 1e-10
 """Stopping tolerance of the facet's bounded least squares (``lsq_linear``'s ``tol``)."""
-
-
-def _lstsq(a: np.ndarray, b: np.ndarray, rcond: float | None = None) -> tuple[np.ndarray, int]:
-    """``np.linalg.lstsq(a, b, rcond)`` for a real 2-D ``a`` and 1-D ``b``: the solution
-    and the rank.
-
-    At 50 Hz the wrapper's checks and copies cost as much as the solve, so numpy's own
-    kernel is called directly with the arguments numpy would give it (the same LAPACK
-    call, so the same bits). Where that is unavailable or LAPACK fails, numpy's wrapper
-    (which raises its usual error).
-
-    Args:
-        a: Matrix, shape (m, n), float64.
-        b: Right-hand side, shape (m,), float64.
-        rcond: Relative singular-value cutoff (None: numpy's default ``eps * max(m, n)``).
-
-    Returns:
-        (least-squares solution (n,), numerical rank of ``a``).
-    """
-    m, n = a.shape
-    cutoff = _EPS * max(m, n) if rcond is None else rcond
-    if _GELSD is not None:
-        try:
-            with np.errstate(over="ignore", divide="ignore", under="ignore", invalid="raise"):
-                x, _, rank, _ = _GELSD(a, b[:, None], cutoff, signature="ddd->ddid")
-            return x[:, 0], int(rank)
-        except (FloatingPointError, TypeError, ValueError):
-            pass  # LAPACK did not converge, or another numpy's kernel: numpy's wrapper
-    x, _, rank, _ = np.linalg.lstsq(a, b, rcond=cutoff)
-    return x, int(rank)
 
 
 def _bvls(
@@ -139,8 +103,9 @@ def _bvls(
 ) -> np.ndarray:
     """``scipy.optimize.lsq_linear(a, b, bounds=(0, ub), method="bvls", tol=BVLS_TOL).x``
     without its argument checks: the unbounded least squares (``lstsq`` with
-    ``rcond=-1``, as ``lsq_linear`` computes it) if it is inside the bounds, else scipy's
-    BVLS started from it (the same calls, so the same result).
+    ``rcond=-1``, as ``lsq_linear`` computes it) if it is inside the bounds, else SciPy's
+    BVLS started from it (:func:`payload.sim.lsq.bvls`: the same operations, so the same
+    result).
 
     Args:
         a: Matrix, shape (m, n).
@@ -156,14 +121,7 @@ def _bvls(
     x = _lstsq(a, b, -1.0)[0] if start is None else start
     if ((x >= lb) & (x <= ub)).all():
         return x
-    try:  # scipy's private solver, to skip lsq_linear's checks at 50 Hz
-        from scipy.optimize._lsq.bvls import bvls
-
-        return bvls(a, b, x, lb, ub, BVLS_TOL, None, 0).x
-    except (ImportError, TypeError):  # another scipy: the public call, same algorithm
-        from scipy.optimize import lsq_linear
-
-        return lsq_linear(a, b, bounds=(lb, ub), method="bvls", tol=BVLS_TOL).x
+    return bvls(a, b, x, lb, ub, BVLS_TOL)
 
 
 def _allclose(a: np.ndarray, b: np.ndarray, rtol: float, atol: float) -> bool:

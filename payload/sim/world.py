@@ -45,7 +45,7 @@ from payload.sim.astrobee import (
     payload_mount,
 )
 from payload.sim.cargo import CTB_MODELS, CTB_SIZES, DEFAULT_CTB, CtbSize, Handle, _add_ctb
-from payload.sim.config import WorldConfig
+from payload.sim.config import PHYSICS_DT, WorldConfig
 from payload.sim.errors import SimError
 from payload.sim.grasp import (
     PINCH_CLEARANCE,
@@ -60,14 +60,12 @@ from payload.sim.pads import pad_contact
 PAYLOAD_PREFIX = "payload/"
 """Prefix of every payload element name in the world (``payload/A_tip``)."""
 
-PHYSICS_DT = 0.001
-"""Physics time step [s] (1 kHz)."""
-
 CONTROL_DT = SCHEMA_CONTROL_DT
 """Control period [s] (50 Hz)."""
 
 SUBSTEPS = round(CONTROL_DT / PHYSICS_DT)
-"""Physics steps per control step (20)."""
+"""Physics steps per control step at the default step (20; a world's own:
+``WorldConfig.substeps``)."""
 
 
 @dataclass(frozen=True)
@@ -209,7 +207,7 @@ def build_spec(config: WorldConfig | None = None, design: Design | None = None) 
         raise SimError(f"payload model {config.payload_mjcf} not found; run `payload build`")
     spec = mujoco.MjSpec()
     spec.modelname = "iss_astrobee_payload"
-    spec.option.timestep = PHYSICS_DT
+    spec.option.timestep = config.physics_dt
     spec.option.gravity = [0.0, 0.0, 0.0]
     spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
     spec.option.cone = (
@@ -231,6 +229,7 @@ def build_spec(config: WorldConfig | None = None, design: Design | None = None) 
 
     child = mujoco.MjSpec.from_file(str(config.payload_mjcf))
     # the parent's options rule; match them so the attach reports no conflict
+    child.option.timestep = config.physics_dt
     frame = astrobee.add_frame(pos=payload_mount(vehicle).tolist())
     frame.attach_body(child.body("base"), PAYLOAD_PREFIX, "")
     for key in list(spec.keys):
@@ -243,7 +242,7 @@ def build_spec(config: WorldConfig | None = None, design: Design | None = None) 
             str(config.payload_mjcf),
             design.pinch.finger,
             size.mass if size is not None else None,
-            PHYSICS_DT,
+            config.physics_dt,
         )
         for f in FINGERS:
             geom = spec.geom(f"{PAYLOAD_PREFIX}{f}_distal_pad")

@@ -10,6 +10,9 @@ timed stage counts only there):
   of it, ``mj_step_seconds`` is the time inside ``mujoco.mj_step`` alone, and
   ``physics_only_realtime_factor`` the real-time factor a trial could reach if nothing
   but MuJoCo's stepping took time (the ceiling any work outside MuJoCo can approach);
+  ``physics_floor_s`` is that same summed ``mj_step`` time (the least a trial can take)
+  and ``overhead_ratio`` the wall time over it (1 would be a trial at its physics' cost;
+  ``overhead_ratio_cpu`` the same in CPU time, less disturbed by other processes);
 * ``contacts``: the world-state read-out after each step (poses, fingertip contacts,
   indicator);
 * ``operator``: the synthetic operator producing hand frames;
@@ -147,6 +150,7 @@ def run_trial_bench(
     out_dir: Path | None = None,
     pin: bool = False,
     max_time: float | None = None,
+    physics_dt: float | None = None,
 ) -> dict:
     """Run one synthetic trial and report its speed, time breakdown and log size.
 
@@ -155,6 +159,7 @@ def run_trial_bench(
         out_dir: Where the trial folder goes (default: a temporary folder, removed).
         pin: Restrict the process to one CPU core (Linux).
         max_time: Cap on the session length [s] (default: the runner's, a whole trial).
+        physics_dt: Physics time step [s] (default: the runner's, 1 ms).
 
     Returns:
         ``{"sim_seconds", "wall_seconds", "cpu_seconds", "realtime_factor",
@@ -169,13 +174,15 @@ def run_trial_bench(
     try:
         with tempfile.TemporaryDirectory() as tmp:
             out = Path(out_dir) if out_dir is not None else Path(tmp) / "trial"
-            return _bench(seed, out, pinned=before is not None, max_time=max_time)
+            return _bench(seed, out, before is not None, max_time, physics_dt)
     finally:
         if before is not None:
             os.sched_setaffinity(0, before)
 
 
-def _bench(seed: int, out: Path, pinned: bool, max_time: float | None) -> dict:
+def _bench(
+    seed: int, out: Path, pinned: bool, max_time: float | None, physics_dt: float | None
+) -> dict:
     from payload.schema import CONTROL_DT
 
     timers = _Timers()
@@ -188,7 +195,9 @@ def _bench(seed: int, out: Path, pinned: bool, max_time: float | None) -> dict:
 
         timers._switch()
         timers._stack[-1] = "other"
-        extra = {} if max_time is None else {"max_time": max_time}
+        extra: dict[str, Any] = {} if max_time is None else {"max_time": max_time}
+        if physics_dt is not None:
+            extra["physics_dt"] = physics_dt
         result = runner.run_trial(seed, out_dir=out, **extra)
     timers._switch()
     wall, cpu = timers._mark[0] - w0, timers._mark[1] - c0
@@ -208,6 +217,10 @@ def _bench(seed: int, out: Path, pinned: bool, max_time: float | None) -> dict:
         "mj_step_seconds": clock.wall,
         "mj_step_cpu_seconds": clock.cpu,
         "mj_step_us": clock.wall / clock.steps * 1e6 if clock.steps else None,
+        "physics_dt": result.get("physics_dt"),
+        "physics_floor_s": clock.wall,
+        "overhead_ratio": wall / clock.wall if clock.wall > 0 else None,
+        "overhead_ratio_cpu": cpu / clock.cpu if clock.cpu > 0 else None,
         "physics_only_realtime_factor": sim_seconds / clock.wall if clock.wall > 0 else None,
         "log_bytes": size,
         "log_bytes_per_sim_minute": size / (sim_seconds / 60.0),

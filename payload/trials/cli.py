@@ -80,6 +80,7 @@ def _cmd_trial(args: argparse.Namespace) -> int:
         raise TrialsCliError(f"--seed must be >= 0, got {args.seed}")
     if args.max_time is not None and not args.max_time > 0:
         raise TrialsCliError(f"--max-time must be positive, got {args.max_time}")
+    _check_physics_dt(args.physics_dt)
     operator, replay = _parse_operator(args)
     if operator == "synthetic":
         _setup_defaults(args)
@@ -137,6 +138,7 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
         raise TrialsCliError(f"--seed must be >= 0, got {args.seed}")
     if args.workers is not None and args.workers < 0:
         raise TrialsCliError(f"--workers must be >= 0, got {args.workers}")
+    _check_physics_dt(args.physics_dt)
     _setup_defaults(args)
     _check_ctb(args.ctb)
     _run_trial_fn()  # fail here, once, if the runner is missing
@@ -165,6 +167,7 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
             propulsion=args.propulsion,
             retarget_budget=args.retarget_budget,
             retarget_collisions=args.retarget_collisions,
+            physics_dt=args.physics_dt,
         ),
         seeds,
         out,
@@ -182,7 +185,8 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
     title = (
         f"Cargo-transport campaign ({args.n} trials, CTB {args.ctb}, {args.propulsion}, "
         f"retargeting budget {args.retarget_budget}"
-        f"{', self-collision modelled' if args.retarget_collisions else ''})"
+        f"{', self-collision modelled' if args.retarget_collisions else ''}"
+        f"{_physics_text(args.physics_dt)})"
     )
     summary = write_summary(results, out, title=title, run=run, provenance=prov, force=args.force)
     if args.json:
@@ -202,6 +206,13 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
             "tracebacks in summary.json)"
         )
     return 0
+
+
+def _physics_text(dt: float) -> str:
+    """The title's note of a physics step other than the default (empty at 1 kHz)."""
+    from payload.sim.config import PHYSICS_DT
+
+    return "" if dt == PHYSICS_DT else f", physics step {1e3 * dt:g} ms"
 
 
 def _cmd_trials_summarize(args: argparse.Namespace) -> int:
@@ -355,9 +366,12 @@ def _cmd_bench_trial(args: argparse.Namespace) -> int:
         raise TrialsCliError(f"--seconds must be positive, got {args.seconds}")
     from payload.design import models_follow_design
 
+    _check_physics_dt(args.physics_dt)
     project = command_project(args)  # the trial flies this project's models
     models_follow_design(project.design_path, project.root, json=args.json)
-    result = run_trial_bench(args.seed, out_dir=out, pin=args.pin, max_time=args.seconds)
+    result = run_trial_bench(
+        args.seed, out_dir=out, pin=args.pin, max_time=args.seconds, physics_dt=args.physics_dt
+    )
     if args.json:
         emit_json(result)
         return 0
@@ -372,8 +386,12 @@ def _cmd_bench_trial(args: argparse.Namespace) -> int:
     if result["mj_step_us"] is not None:
         print(
             f"  of physics, mujoco.mj_step alone: {result['mj_step_seconds']:.2f} s wall "
-            f"({result['mj_step_us']:.1f} us per 1 ms step): at most "
-            f"{result['physics_only_realtime_factor']:.1f}x real time with nothing else"
+            f"({result['mj_step_us']:.1f} us per {1e3 * result['physics_dt']:g} ms step): at "
+            f"most {result['physics_only_realtime_factor']:.1f}x real time with nothing else"
+        )
+        print(
+            f"  physics floor {result['physics_floor_s']:.2f} s; overhead ratio "
+            f"{result['overhead_ratio']:.2f} (wall time over the physics floor)"
         )
     return 0
 
@@ -390,7 +408,31 @@ def _cmd_trials_convert(args: argparse.Namespace) -> int:
     return 0
 
 
-_SETUP = ("ctb", "propulsion", "retarget_budget", "retarget_collisions")
+def _cmd_trials_compare(args: argparse.Namespace) -> int:
+    from payload.cli import CheckFailed, emit_json
+    from payload.safeio import check_new, replace_file
+    from payload.trials.compare import compare_markdown, compare_runs
+
+    steps = args.steps or args.require_identical
+    result = compare_runs(Path(args.run_a), Path(args.run_b), steps=steps)
+    text = compare_markdown(result)
+    if args.out:
+        check_new([Path(args.out)], force=args.force, what="comparison")
+        replace_file(Path(args.out), text)
+    if args.json:
+        emit_json(result)
+    else:
+        print(text, end="")
+    if args.require_identical and not result["identical"]:
+        differ = [r["trial"] for r in result["trials"] if not r["steps"]["identical"]]
+        raise CheckFailed(
+            f"the runs differ (metrics or recorded steps; steps differ in: "
+            f"{', '.join(differ) or 'none'})"
+        )
+    return 0
+
+
+_SETUP = ("ctb", "propulsion", "retarget_budget", "retarget_collisions", "physics_dt")
 """The trial setup flags' attribute names."""
 
 
@@ -428,6 +470,27 @@ def _setup_arguments(p: argparse.ArgumentParser, *, replay: bool = False) -> Non
         "margin, the operator's opening mapped to the collision-free span range (default "
         f"off: the paper's controller{mine})",
     )
+    _physics_dt_argument(p, mine)
+
+
+def _physics_dt_argument(p: argparse.ArgumentParser, mine: str = "") -> None:
+    p.add_argument(
+        "--physics-dt",
+        type=float,
+        default=None,
+        metavar="S",
+        help="physics time step [s]: 0.001 (default, the paper's 1 kHz"
+        f"{mine}) or an opt-in faster step that divides the 20 ms control period, e.g. "
+        "0.002 (the pad contact is derived from the step; results differ from 1 kHz)",
+    )
+
+
+def _check_physics_dt(dt: float | None) -> None:
+    from payload.sim.config import check_physics_dt
+
+    problem = None if dt is None else check_physics_dt(dt)
+    if problem is not None:
+        raise TrialsCliError(f"--physics-dt: {problem}")
 
 
 def _setup_defaults(args: argparse.Namespace) -> None:
@@ -529,6 +592,25 @@ def register(
     c.add_argument("--json", action="store_true", help="print one JSON object")
     c.set_defaults(func=_cmd_trials_convert)
 
+    cm = tsub.add_parser(
+        "compare", help="two runs of the same seeds, seed by seed (metrics, and steps)"
+    )
+    cm.add_argument("run_a", metavar="RUN_A", help="reference campaign or trial folder")
+    cm.add_argument("run_b", metavar="RUN_B", help="campaign or trial folder compared with it")
+    cm.add_argument(
+        "--steps", action="store_true", help="also compare every recorded step, bit for bit"
+    )
+    cm.add_argument(
+        "--require-identical",
+        action="store_true",
+        help="compare the steps too and exit 1 unless every common trial's metrics and "
+        "recorded steps are the same in every bit",
+    )
+    cm.add_argument("--out", help="also write the Markdown table to this file")
+    cm.add_argument("--force", action="store_true", help="replace --out if it exists")
+    cm.add_argument("--json", action="store_true", help="print one JSON object")
+    cm.set_defaults(func=_cmd_trials_compare)
+
     e = groups["export"].add_parser("lerobot", help="recordings as a LeRobot v3 dataset")
     e.add_argument("runs", nargs="+", metavar="RUN", help="log.mcap, trial or campaign folder")
     e.add_argument("--out", help="dataset folder (default: a new runs/lerobot-NNNN in the project)")
@@ -551,5 +633,6 @@ def register(
         "--seconds", type=float, default=None, help="cap the trial [s] (default: a whole trial)"
     )
     bt.add_argument("--pin", action="store_true", help="restrict the run to one CPU core (Linux)")
+    _physics_dt_argument(bt)
     bt.add_argument("--json", action="store_true", help="print one JSON object")
     bt.set_defaults(func=_cmd_bench_trial)

@@ -43,10 +43,15 @@ from typing import Any
 import numpy as np
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 
-PACKAGE = "payload.trials"
-HAND_GRID_M = 1e-5
-"""Resolution of the synthetic headset's joint positions [m] (10 um; WebXR reports float32)."""
+from payload.trials.jointcodec import (
+    HAND_GRID_M,
+    JointsCodec,
+    fill_joints,
+    quantize_joints,
+    same_joints,
+)
 
+PACKAGE = "payload.trials"
 PHASE_NAMES: tuple[str, ...] = (
     "calibration",
     "acquisition",
@@ -194,68 +199,6 @@ def schema_data() -> bytes:
     return descriptor_pb2.FileDescriptorSet(file=[FILE_DESCRIPTOR]).SerializeToString()
 
 
-def quantize_joints(joints: np.ndarray, grid: float = HAND_GRID_M) -> np.ndarray:
-    """Joint positions rounded to ``grid`` [m] (what the synthetic headset reports).
-
-    NaN stays NaN; the result is exactly representable by the ``grid`` form of ``Joints``.
-    """
-    return np.round(np.asarray(joints, dtype=np.float64) / grid) * grid
-
-
-class JointsCodec:
-    """Lossless encoder/decoder of one hand's joints on one channel (keeps the delta state).
-
-    Args:
-        grid: The grid [m] tried first (values off it are stored raw).
-    """
-
-    def __init__(self, grid: float = HAND_GRID_M) -> None:
-        self.grid = grid
-        self._prev: np.ndarray | None = None
-
-    def key(self) -> None:
-        """Make the next message a key message (no reference to earlier ones)."""
-        self._prev = None
-
-    def encode(self, joints: np.ndarray, out: Any) -> None:
-        """Fill the ``Joints`` message ``out`` with ``joints`` (25, 3)."""
-        flat = np.asarray(joints, dtype=np.float64).reshape(-1)
-        if np.isnan(flat).all():
-            out.untracked = True
-            return
-        with np.errstate(invalid="ignore"):
-            k = np.round(flat / self.grid)
-        if np.isfinite(k).all() and (k * self.grid == flat).all():  # np.array_equal
-            ki = k.astype(np.int64)
-            out.grid = self.grid
-            if self._prev is None:
-                out.key = True
-                out.delta.extend(ki.tolist())
-            else:
-                out.delta.extend((ki - self._prev).tolist())
-            self._prev = ki
-            return
-        out.raw.extend(flat.tolist())
-        self._prev = None
-
-    def decode(self, msg: Any) -> np.ndarray:
-        """Joints (25, 3) [m] from a ``Joints`` message (NaN when untracked)."""
-        if msg.untracked:
-            return np.full((25, 3), np.nan)
-        if msg.grid > 0:
-            d = np.array(msg.delta, dtype=np.int64)
-            if msg.key or self._prev is None:
-                if not msg.key:
-                    raise ValueError("hand joints reference a message that is not in the file")
-                k = d
-            else:
-                k = self._prev + d
-            self._prev = k
-            return (k * msg.grid).reshape(25, 3)
-        self._prev = None
-        return np.array(msg.raw, dtype=np.float64).reshape(25, 3)
-
-
 class StepCodec:
     """Encode steps and hand samples to protobuf bytes and back (stateful for the deltas)."""
 
@@ -264,6 +207,7 @@ class StepCodec:
             name: JointsCodec(grid)
             for name in ("left_joints", "right_joints", "hands_left", "hands_right")
         }
+        self.grid = grid
         self._prev: np.ndarray | None = None  # the last step's grid multiples
 
     def key(self) -> None:
@@ -272,24 +216,120 @@ class StepCodec:
             c.key()
         self._prev = None
 
-    def _encode_grid(self, step: Any, wall_time: float, m: Any) -> bool:
-        """Store the :data:`STEP_GRIDS` numbers in ``m.grid``; False (nothing stored, the
-        next message a key) when one is not finite."""
-        values = np.empty(len(_GRID))
+    def _grid_batch(self, steps: list[Any], walls: list[float]) -> list[Any]:
+        """The grid numbers of a batch of steps in turn: per step ``(key, ints)`` or
+        ``None`` (a non-finite number: stored as doubles, the next one a key)."""
+        n = len(steps)
+        values = np.empty((n, len(_GRID)))
         for name, start, stop in _GRID_SLICES:
-            values[start:stop] = np.ravel(wall_time if name == "wall_time" else getattr(step, name))
+            if name == "wall_time":
+                values[:, start] = walls
+            else:
+                values[:, start:stop] = np.array([getattr(s, name) for s in steps]).reshape(n, -1)
         k = np.round(values * _PER_UNIT)
-        if not np.isfinite(k).all() or (np.abs(k) >= 2.0**62).any():
-            self._prev = None
-            return False
-        ki = k.astype(np.int64)
-        if self._prev is None:
-            m.grid_key = True
-            m.grid.extend(ki.tolist())
-        else:
-            m.grid.extend((ki - self._prev).tolist())
-        self._prev = ki
-        return True
+        ok = np.isfinite(k).all(axis=1) & ~(np.abs(k) >= 2.0**62).any(axis=1)
+        ki = np.where(ok[:, None], k, 0.0).astype(np.int64)
+        out: list[Any] = []
+        for i in range(n):
+            if not ok[i]:
+                self._prev = None
+                out.append(None)
+                continue
+            if self._prev is None:
+                out.append((True, ki[i].tolist()))
+            else:
+                out.append((False, (ki[i] - self._prev).tolist()))
+            self._prev = ki[i]
+        return out
+
+    def encode_batch(self, items: list[tuple[Any, int, float, Any]]) -> list[tuple[Any, bytes]]:
+        """Several steps (and their hand samples) at once, in order: the bytes that
+        :meth:`encode_hands` and :meth:`encode_step` give one at a time, with the grid and
+        joint arithmetic done once for the batch (the recorder's flush).
+
+        Args:
+            items: Per step ``(step, seq, wall_time, frame)``: ``frame`` the hand frame
+                recorded with it (``None``: none); the step's joints refer to the frame's
+                where they are the same (:func:`same_joints`).
+
+        Returns:
+            Per step ``(hand sample bytes or None, step bytes)``.
+        """
+        frames = [(i, f) for i, (_, _, _, f) in enumerate(items) if f is not None]
+        hands = {
+            side: dict(
+                zip(
+                    [i for i, _ in frames],
+                    self.joints[f"hands_{side}"].encode_many(
+                        [getattr(f, side).joints for _, f in frames]
+                    ),
+                )
+            )
+            for side in ("left", "right")
+        }
+        refs = []
+        for step, _, _, frame in items:
+            refs.append(
+                (False, False)
+                if frame is None
+                else (
+                    same_joints(frame.left.joints, step.left_joints),
+                    same_joints(frame.right.joints, step.right_joints),
+                )
+            )
+        own = {}
+        for name, side in (("left_joints", 0), ("right_joints", 1)):
+            rows = [i for i, ref in enumerate(refs) if not ref[side]]
+            specs = self.joints[name].encode_many([getattr(items[i][0], name) for i in rows])
+            own[name] = dict(zip(rows, specs))
+        grids = self._grid_batch([it[0] for it in items], [it[2] for it in items])
+        out = []
+        for i, (step, seq, wall_time, frame) in enumerate(items):
+            data = None
+            if frame is not None:
+                h = HandSampleMsg(seq=seq, stamp=float(frame.stamp))
+                h.left_tracked = bool(frame.left.tracked)
+                h.right_tracked = bool(frame.right.tracked)
+                fill_joints(h.left, hands["left"][i], self.grid)
+                fill_joints(h.right, hands["right"][i], self.grid)
+                data = h.SerializeToString()
+            m = self._step_fields(step, seq, wall_time, grids[i])
+            for name in ("left_joints", "right_joints"):
+                sub = getattr(m, name)
+                if i in own[name]:
+                    fill_joints(sub, own[name][i], self.grid)
+                else:
+                    sub.in_hands = True
+            out.append((data, m.SerializeToString()))
+        return out
+
+    def _step_fields(self, step: Any, seq: int, wall_time: float, grid: Any) -> Any:
+        """A ``Step`` message with everything but the joints (``grid``: ``(key, ints)`` or
+        ``None`` for doubles), as :meth:`encode_step` fills it."""
+        m = StepMsg(seq=seq, wall_time=wall_time)
+        m.phase = PHASE_NAMES.index(step.phase)
+        m.ctb_module = MODULE_NAMES.index(step.ctb_module)
+        m.left_tracked = step.left_tracked
+        m.right_tracked = step.right_tracked
+        m.contact = step.contact
+        pairs = _pairs_in_cmd(step)
+        m.pairs_in_cmd = pairs
+        gridded = grid is not None
+        if gridded:
+            m.grid_key = grid[0]
+            m.grid.extend(grid[1])
+            m.wall_time = 0.0
+        for name, _, shape in STEP_DOUBLES:
+            if pairs and name in _PAIR_FIELDS:
+                continue
+            if gridded and name not in _PAIR_FIELDS:
+                continue
+            value = getattr(step, name)
+            if shape == ():
+                setattr(m, name, value)
+            else:
+                getattr(m, name).extend(value.tolist())
+        return m
 
     def _decode_grid(self, m: Any, row: dict[str, Any]) -> None:
         d = np.array(m.grid, dtype=np.int64)
@@ -316,27 +356,7 @@ class StepCodec:
             in_hands: For each hand, whether the ``/trial/hands`` message of this sequence
                 number holds the same joints (they are then not repeated).
         """
-        m = StepMsg(seq=seq, wall_time=wall_time)
-        m.phase = PHASE_NAMES.index(step.phase)
-        m.ctb_module = MODULE_NAMES.index(step.ctb_module)
-        m.left_tracked = step.left_tracked
-        m.right_tracked = step.right_tracked
-        m.contact = step.contact
-        pairs = _pairs_in_cmd(step)
-        m.pairs_in_cmd = pairs
-        gridded = self._encode_grid(step, wall_time, m)
-        if gridded:
-            m.wall_time = 0.0
-        for name, _, shape in STEP_DOUBLES:
-            if pairs and name in _PAIR_FIELDS:
-                continue
-            if gridded and name not in _PAIR_FIELDS:
-                continue
-            value = getattr(step, name)
-            if shape == ():
-                setattr(m, name, value)
-            else:
-                getattr(m, name).extend(value.tolist())
+        m = self._step_fields(step, seq, wall_time, self._grid_batch([step], [wall_time])[0])
         for name, ref in zip(("left_joints", "right_joints"), in_hands):
             sub = getattr(m, name)
             if ref:
@@ -434,13 +454,6 @@ def _pairs_in_cmd(step: Any) -> bool:
 def _equal(a: np.ndarray, b: np.ndarray) -> bool:
     """``np.array_equal`` of two arrays (same shape, every element ==), sooner."""
     return a.shape == b.shape and bool((a == b).all())
-
-
-def same_joints(a: np.ndarray, b: np.ndarray) -> bool:
-    """Bit-for-bit equality of two joint arrays (NaN equal to NaN)."""
-    if a is b or (a.shape == b.shape and a.tobytes() == b.tobytes()):
-        return True  # identical bytes: equal (the common case, decided without a pass)
-    return bool(np.array_equal(a, b, equal_nan=True))
 
 
 __all__ = [

@@ -97,6 +97,7 @@ class TrialRecorder:
         self._scene = scene
         self._t0_ns: int | None = None
         self._clock = time.time_ns
+        self._pending: list[tuple[Any, ...]] = []  # steps written, not yet encoded
 
     # -- lifecycle ---------------------------------------------------------------------
     def open(self) -> TrialRecorder:
@@ -143,6 +144,7 @@ class TrialRecorder:
     def close(self) -> None:
         """Write the summary and footer and close the file (idempotent)."""
         if self._writer is not None:
+            self._drain()
             self._writer.finish()
             self._file.close()
             self._writer = None
@@ -175,9 +177,37 @@ class TrialRecorder:
     def flush(self) -> None:
         """Push everything written so far to the operating system (survives SIGKILL)."""
         if self._writer is not None:
+            self._drain()
             self._writer.flush()  # closes the chunk in progress and flushes the file
             self._codec.key()
             self._flush_wall = time.monotonic()
+
+    def _drain(self) -> None:
+        """Encode the steps written since the last flush, as one batch, and add their
+        messages (hand sample, step, Foxglove scene) in the order they were written."""
+        if not self._pending or self._writer is None:
+            return
+        writer, pending = self._writer, self._pending
+        self._pending = []
+        encoded = self._codec.encode_batch([p[:4] for p in pending])
+        for (step, seq, _, _, log_ns, stamp), (hands, data) in zip(pending, encoded):
+            if hands is not None:
+                writer.add_message(
+                    channel_id=self._hands_channel,
+                    log_time=log_ns,
+                    publish_time=stamp,
+                    data=hands,
+                    sequence=seq,
+                )
+            writer.add_message(
+                channel_id=self._channel,
+                log_time=log_ns,
+                publish_time=stamp,
+                data=data,
+                sequence=seq,
+            )
+            if self._scene is not None:
+                self._scene.write(writer, step, log_ns)
 
     def write(self, step: StepRecord) -> None:
         """Append one control step.
@@ -194,37 +224,18 @@ class TrialRecorder:
             raise RecordingError(
                 f"step t = {step.t} s is not after the previous step (t = {self._last_t} s)"
             )
-        writer = self._require_open()
+        self._require_open()
         wall_ns = self._clock()
         stamp = max(0, round(step.t * 1e9))
         if self._t0_ns is None:
             self._t0_ns = wall_ns - stamp
         log_ns = max(0, self._t0_ns + stamp)
         hands = self._hands if self._hands is not None and self._hands[0] == self._seq else None
-        in_hands = (False, False)
-        if hands is not None:
-            frame = hands[1]
-            in_hands = (
-                codec.same_joints(frame.left.joints, step.left_joints),
-                codec.same_joints(frame.right.joints, step.right_joints),
-            )
-            writer.add_message(
-                channel_id=self._hands_channel,
-                log_time=log_ns,
-                publish_time=stamp,
-                data=self._codec.encode_hands(frame, self._seq),
-                sequence=self._seq,
-            )
         self._hands = None
-        writer.add_message(
-            channel_id=self._channel,
-            log_time=log_ns,
-            publish_time=stamp,
-            data=self._codec.encode_step(step, self._seq, wall_ns * 1e-9, in_hands),
-            sequence=self._seq,
+        # encoded and added at the next flush, in this order, as a batch (same messages)
+        self._pending.append(
+            (step, self._seq, wall_ns * 1e-9, None if hands is None else hands[1], log_ns, stamp)
         )
-        if self._scene is not None:
-            self._scene.write(writer, step, log_ns)
         self._seq += 1
         self._last_t = step.t
         if self._flush_t == -math.inf:
@@ -270,6 +281,7 @@ class TrialRecorder:
             except (TypeError, ValueError) as exc:
                 raise RecordingError(f"write_meta: value of {key!r} is not JSON: {exc}") from exc
         data[META_CRC_KEY] = metadata_crc(data)
+        self._drain()  # the steps before it stay before it in the file
         writer.add_metadata(META_NAME, data)
         self.flush()
 

@@ -102,6 +102,7 @@ def _trial_setup(meta: dict[str, Any]) -> dict[str, Any]:
         "retarget_collisions",
         "ctb",
         "propulsion",
+        "physics_dt",
         "ctb_offset_m",
         "ctb_yaw_deg",
         "ctb_external_max",

@@ -11,6 +11,7 @@ import numpy as np
 
 from payload.errors import PayloadError
 from payload.retarget.objective import RetargetConfig
+from payload.sim.config import PHYSICS_DT
 from payload.sim.vehicle import DEFAULT_PROPULSION
 from payload.sim.world import DEFAULT_CTB
 from payload.teleop.calibration import CalibrationProcedure
@@ -29,14 +30,17 @@ def trial_setup(
     propulsion: str | None = None,
     retarget_budget: str | None = None,
     retarget_collisions: bool | None = None,
+    physics_dt: float | None = None,
 ) -> dict[str, Any]:
     """A trial's setup with each setting left at ``None`` given its default: the single
-    CTB, nozzle propulsion, the paper's retargeting budget, self-collision not modelled."""
+    CTB, nozzle propulsion, the paper's retargeting budget, self-collision not modelled,
+    the paper's 1 kHz physics (``physics_dt`` [s])."""
     return {
         "ctb": DEFAULT_CTB if ctb is None else ctb,
         "propulsion": DEFAULT_PROPULSION if propulsion is None else propulsion,
         "retarget_budget": RetargetConfig.budget if retarget_budget is None else retarget_budget,
         "retarget_collisions": bool(retarget_collisions),
+        "physics_dt": PHYSICS_DT if physics_dt is None else float(physics_dt),
     }
 
 
@@ -103,7 +107,9 @@ class _Source:
         propulsion: str,
         retarget_budget: str,
         retarget_collisions: bool,
+        physics_dt: float,
     ) -> None:
+        self.physics_dt = physics_dt
         self.retarget_budget = retarget_budget
         self.retarget_collisions = retarget_collisions
         self.ctb = ctb

@@ -135,7 +135,9 @@ def summarize(results: Sequence[dict[str, Any]]) -> dict[str, Any]:
     (``count`` of them; ``None`` if none has). ``literal`` holds the same fields under the
     paper-literal contact definition (any single opposing-contact sample, no bridging);
     the top level uses the definition the trials were recorded with (``contact_definition``).
-    ``ctb`` and ``propulsion`` name the CTB model and the propulsion model of the trials.
+    ``ctb`` and ``propulsion`` name the CTB model and the propulsion model of the trials,
+    ``physics_dt`` their physics step [s] (``{"mixed": [...]}`` if they differ; ``None``
+    when no trial records it: those before the option, all at 1 ms).
 
     Args:
         results: Per-trial dicts (from :func:`run_campaign` or :func:`load_trial_results`).
@@ -143,7 +145,7 @@ def summarize(results: Sequence[dict[str, Any]]) -> dict[str, Any]:
     Returns:
         ``{"n", "success", "errors", "acquisition_success", <metric>: {"median", "min",
         "max", "count"}, "contact_definition", "seeds", "trials", "paper", "ctb",
-        "propulsion", "literal"}``.
+        "propulsion", "physics_dt", "literal"}``.
     """
     if not results:
         raise CampaignError("no trial results to summarise")
@@ -151,6 +153,8 @@ def summarize(results: Sequence[dict[str, Any]]) -> dict[str, Any]:
     summary = _summary_core(rows)
     summary["ctb"] = _one_value(rows, "ctb")
     summary["propulsion"] = _one_value(rows, "propulsion")
+    steps = sorted({float(r["physics_dt"]) for r in rows if r.get("physics_dt") is not None})
+    summary["physics_dt"] = (steps[0] if len(steps) == 1 else {"mixed": steps}) if steps else None
     summary["literal"] = _summary_core([_literal_row(r) for r in rows])
     return summary
 
@@ -191,6 +195,11 @@ def _header_lines(summary: dict[str, Any], title: str | None) -> list[str]:
         if value is not None:
             shown = ", ".join(value["mixed"]) if isinstance(value, dict) else str(value)
             setup.append(f"{label} `{shown}`")
+    dt = summary.get("physics_dt")
+    if dt is not None:
+        values = dt["mixed"] if isinstance(dt, dict) else [dt]
+        shown = ", ".join(f"{1e3 * v:g} ms" for v in values)
+        setup.append(f"physics step `{shown}`")
     return [
         f"# {title or 'Cargo-transport campaign'}",
         "",
@@ -450,8 +459,10 @@ def print_trial_summary(result: dict[str, Any], given: str = "") -> None:
         given: Where the set-up came from, appended to its line.
     """
     modelled = "modelled" if result.get("retarget_collisions") else "off"
+    dt = result.get("physics_dt")
+    physics = "" if dt is None else f"{1e3 * dt:g} ms physics step, "
     print(
-        f"  setup: CTB {result.get('ctb')}, {result.get('propulsion')} propulsion, "
+        f"  setup: CTB {result.get('ctb')}, {result.get('propulsion')} propulsion, {physics}"
         f"retargeting budget {result.get('retarget_budget')}, self-collision "
         f"{modelled}{given}"
     )

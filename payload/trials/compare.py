@@ -1,0 +1,230 @@
+"""``payload trials compare RUN_A RUN_B``: two runs of the same seeds, seed by seed.
+
+A run is a campaign folder (``trial-NNNN`` folders) or one trial folder. Trials are
+matched by folder name (the seed). Per seed the change ``B - A`` of every metric the
+paper summarises, and per metric the largest change over the seeds; with ``steps``,
+every recorded step of both recordings compared field by field (every field of
+:data:`~payload.trials.records.FIELD_SPECS`; ``seq`` and ``wall_time`` are not
+compared), counting the steps that differ in any bit.
+
+Uses: the validation of ``--physics-dt 0.002`` (the ``single`` campaign at 2 ms against
+1 ms), and the bit-for-bit check of a speed change (the same seeds before and after).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from payload.errors import PayloadError
+from payload.trials.records import FIELD_SPECS
+from payload.trials.summary import METRIC_KEYS, METRIC_LABELS
+
+
+class CompareError(PayloadError):
+    """A run to compare is missing or unreadable, or two runs share no seed."""
+
+
+def _trials(run: Path) -> dict[str, Path]:
+    """Trial folders of a run by name (a campaign's ``trial-*``, or the folder itself)."""
+    if not run.is_dir():
+        raise CompareError(f"{run}: no such trial or campaign folder")
+    if (run / "metrics.json").is_file() or (run / "log.mcap").is_file():
+        return {run.name: run}
+    found = {p.name: p for p in sorted(run.glob("trial-*")) if p.is_dir()}
+    if not found:
+        raise CompareError(f"{run}: no metrics.json and no trial-* folders")
+    return found
+
+
+def _metrics(trial: Path) -> dict[str, Any]:
+    path = trial / "metrics.json"
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise CompareError(f"{path}: cannot read the trial's metrics ({exc})") from None
+
+
+def _change(a: Any, b: Any) -> float | None:
+    """``b - a`` for two numbers; None where either is missing or not finite."""
+    if not isinstance(a, (int, float)) or not isinstance(b, (int, float)):
+        return None
+    if isinstance(a, bool) or isinstance(b, bool):
+        return None
+    d = float(b) - float(a)
+    return d if math.isfinite(d) else None
+
+
+def compare_steps(log_a: Path, log_b: Path) -> dict[str, Any]:
+    """Every recorded step of two recordings, field by field, bit for bit.
+
+    Args:
+        log_a: The first ``log.mcap``.
+        log_b: The second.
+
+    Returns:
+        ``{"steps_a", "steps_b", "identical" (same step count and every field's bits),
+        "differing_steps" (steps of the common length where any field differs),
+        "first_differing_step" (index or None), "fields": {name: largest absolute
+        difference (numbers; NaN where one side is NaN and the other not) or the count
+        of differing steps (text and flags)}}`` with only the differing fields listed.
+    """
+    from payload.trials.reading import read_recording
+
+    a, b = read_recording(log_a), read_recording(log_b)
+    n = min(len(a), len(b))
+    differs = np.zeros(n, dtype=bool)
+    fields: dict[str, float | int] = {}
+    for name, (_shape, kind) in FIELD_SPECS.items():
+        x, y = getattr(a, name)[:n], getattr(b, name)[:n]
+        if isinstance(kind, tuple) or kind == "bool":
+            row = x != y
+        else:  # bits: NaN equals NaN, -0.0 differs from 0.0
+            xb = np.ascontiguousarray(x, dtype=np.float64).view(np.uint64)
+            yb = np.ascontiguousarray(y, dtype=np.float64).view(np.uint64)
+            row = (xb != yb).reshape(n, -1).any(axis=1)
+        row = np.asarray(row).reshape(n, -1).any(axis=1)
+        if row.any():
+            differs |= row
+            if isinstance(kind, tuple) or kind == "bool":
+                fields[name] = int(row.sum())
+            else:
+                with np.errstate(invalid="ignore"):
+                    gap = np.abs(np.asarray(x, float) - np.asarray(y, float))
+                fields[name] = float(np.nanmax(gap)) if not np.isnan(gap).all() else math.nan
+    first = int(np.argmax(differs)) if differs.any() else None
+    return {
+        "steps_a": len(a),
+        "steps_b": len(b),
+        "identical": len(a) == len(b) and not differs.any(),
+        "differing_steps": int(differs.sum()),
+        "first_differing_step": first,
+        "fields": fields,
+    }
+
+
+def compare_runs(run_a: str | Path, run_b: str | Path, *, steps: bool = False) -> dict[str, Any]:
+    """Two runs of the same seeds, seed by seed.
+
+    Args:
+        run_a: Campaign or trial folder (the reference).
+        run_b: Campaign or trial folder (the one compared with it).
+        steps: Also compare every recorded step (:func:`compare_steps`).
+
+    Returns:
+        ``{"a", "b", "trials": [{"trial", "success_a", "success_b", "physics_dt_a",
+        "physics_dt_b", "metrics": {key: {"a", "b", "change"}}, "steps"?}],
+        "largest_change": {key: {"change" (signed, largest in size), "trial"}},
+        "only_a", "only_b" (trial names in one run only), "identical" (with ``steps``:
+        every common trial's metrics equal and steps bit for bit)}``.
+
+    Raises:
+        CompareError: A run is missing, a metrics file unreadable, or no trial in common.
+    """
+    a_dir, b_dir = Path(run_a), Path(run_b)
+    ta, tb = _trials(a_dir), _trials(b_dir)
+    if len(ta) == 1 and len(tb) == 1:  # two single trials: compare them whatever their names
+        common = [(next(iter(ta)), next(iter(tb)))]
+    else:
+        common = [(name, name) for name in ta if name in tb]
+    if not common:
+        raise CompareError(f"{a_dir} and {b_dir} have no trial (seed) in common")
+    rows = []
+    largest: dict[str, dict[str, Any]] = {}
+    identical = True
+    for name_a, name_b in common:
+        ma, mb = _metrics(ta[name_a]), _metrics(tb[name_b])
+        metrics = {}
+        for key in METRIC_KEYS:
+            change = _change(ma.get(key), mb.get(key))
+            metrics[key] = {"a": ma.get(key), "b": mb.get(key), "change": change}
+            if ma.get(key) != mb.get(key):
+                identical = False
+            best = largest.get(key)
+            if change is not None and (best is None or abs(change) > abs(best["change"])):
+                largest[key] = {"change": change, "trial": name_b}
+        row: dict[str, Any] = {
+            "trial": name_b,
+            "success_a": ma.get("success"),
+            "success_b": mb.get("success"),
+            "physics_dt_a": ma.get("physics_dt"),
+            "physics_dt_b": mb.get("physics_dt"),
+            "metrics": metrics,
+        }
+        if ma.get("success") != mb.get("success"):
+            identical = False
+        if steps:
+            row["steps"] = compare_steps(ta[name_a] / "log.mcap", tb[name_b] / "log.mcap")
+            identical = identical and row["steps"]["identical"]
+        rows.append(row)
+    names_a = {x for x, _ in common}
+    names_b = {y for _, y in common}
+    return {
+        "a": str(a_dir),
+        "b": str(b_dir),
+        "trials": rows,
+        "largest_change": largest,
+        "only_a": sorted(set(ta) - names_a),
+        "only_b": sorted(set(tb) - names_b),
+        "identical": identical if steps else None,
+    }
+
+
+def _num(value: Any) -> str:
+    if value is None:
+        return "n/a"
+    if isinstance(value, bool):
+        return "yes" if value else "no"
+    return f"{value:.3f}" if isinstance(value, (int, float)) else str(value)
+
+
+def compare_markdown(result: dict[str, Any]) -> str:
+    """The comparison as a Markdown table: per seed each metric's A, B and change, then
+    the largest change of each metric (and the step comparison when it was made)."""
+    keys = METRIC_KEYS
+    head = ["trial", "success A/B", *(f"{k} A / B (change)" for k in keys)]
+    lines = [
+        f"Comparison of `{result['b']}` (B) against `{result['a']}` (A), seed by seed.",
+        "",
+        "| " + " | ".join(head) + " |",
+        "|" + "---|" * len(head),
+    ]
+    for row in result["trials"]:
+        cells = [row["trial"], f"{_num(row['success_a'])} / {_num(row['success_b'])}"]
+        for k in keys:
+            m = row["metrics"][k]
+            change = "n/a" if m["change"] is None else f"{m['change']:+.3f}"
+            cells.append(f"{_num(m['a'])} / {_num(m['b'])} ({change})")
+        lines.append("| " + " | ".join(cells) + " |")
+    lines += ["", "| metric | largest change (B - A) | trial |", "|---|---|---|"]
+    for k in keys:
+        best = result["largest_change"].get(k)
+        if best is None:
+            lines.append(f"| {METRIC_LABELS[k]} | n/a | |")
+        else:
+            lines.append(f"| {METRIC_LABELS[k]} | {best['change']:+.4g} | {best['trial']} |")
+    with_steps = [r for r in result["trials"] if "steps" in r]
+    if with_steps:
+        lines += [
+            "",
+            "| trial | steps A / B | differing steps | first | fields (largest difference) |",
+            "|---|---|---|---|---|",
+        ]
+        for r in with_steps:
+            s = r["steps"]
+            fields = ", ".join(f"{k} {v:.3g}" for k, v in s["fields"].items()) or "none"
+            lines.append(
+                f"| {r['trial']} | {s['steps_a']} / {s['steps_b']} | {s['differing_steps']} | "
+                f"{s['first_differing_step'] if s['first_differing_step'] is not None else '-'}"
+                f" | {fields} |"
+            )
+    if result["only_a"] or result["only_b"]:
+        lines += ["", f"Only in A: {result['only_a']}; only in B: {result['only_b']}."]
+    return "\n".join(lines) + "\n"
+
+
+__all__ = ["CompareError", "compare_markdown", "compare_runs", "compare_steps"]

@@ -1,0 +1,140 @@
+"""Lossless coding of hand-joint positions for trial recordings (the ``Joints`` message of
+:mod:`payload.trials.codec`).
+
+``payload.trials.Joints``: 25 x 3 hand-joint positions [m], lossless, in one of three forms:
+
+* ``grid`` > 0: every value is ``k * grid`` for an integer ``k``; ``delta`` holds ``k``
+  minus the previous message's ``k`` (the same hand on the same channel), or ``k`` itself
+  when ``key`` is set (the first message after every flush is a key message).
+* ``raw``: 75 doubles (values off any grid).
+* ``untracked``: all NaN (no joints).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+HAND_GRID_M = 1e-5
+"""Resolution of the synthetic headset's joint positions [m] (10 um; WebXR reports float32)."""
+
+
+def quantize_joints(joints: np.ndarray, grid: float = HAND_GRID_M) -> np.ndarray:
+    """Joint positions rounded to ``grid`` [m] (what the synthetic headset reports).
+
+    NaN stays NaN; the result is exactly representable by the ``grid`` form of ``Joints``.
+    """
+    return np.round(np.asarray(joints, dtype=np.float64) / grid) * grid
+
+
+class JointsCodec:
+    """Lossless encoder/decoder of one hand's joints on one channel (keeps the delta state).
+
+    Args:
+        grid: The grid [m] tried first (values off it are stored raw).
+    """
+
+    def __init__(self, grid: float = HAND_GRID_M) -> None:
+        self.grid = grid
+        self._prev: np.ndarray | None = None
+
+    def key(self) -> None:
+        """Make the next message a key message (no reference to earlier ones)."""
+        self._prev = None
+
+    def encode(self, joints: np.ndarray, out: Any) -> None:
+        """Fill the ``Joints`` message ``out`` with ``joints`` (25, 3)."""
+        flat = np.asarray(joints, dtype=np.float64).reshape(-1)
+        if np.isnan(flat).all():
+            out.untracked = True
+            return
+        with np.errstate(invalid="ignore"):
+            k = np.round(flat / self.grid)
+        if np.isfinite(k).all() and (k * self.grid == flat).all():  # np.array_equal
+            ki = k.astype(np.int64)
+            out.grid = self.grid
+            if self._prev is None:
+                out.key = True
+                out.delta.extend(ki.tolist())
+            else:
+                out.delta.extend((ki - self._prev).tolist())
+            self._prev = ki
+            return
+        out.raw.extend(flat.tolist())
+        self._prev = None
+
+    def encode_many(self, joints: list[np.ndarray]) -> list[tuple[Any, ...]]:
+        """What :meth:`encode` would store for each of several joint arrays in turn, as
+        specs for :func:`_fill_joints` (the arithmetic done once for the batch: the same
+        elementwise operations, so the same integers).
+
+        Args:
+            joints: Joint arrays (25, 3), in the order they are written.
+
+        Returns:
+            Per array ``("untracked",)``, ``("grid", key, deltas)`` or ``("raw", values)``.
+        """
+        if not joints:
+            return []
+        flat = np.array(joints, dtype=np.float64).reshape(len(joints), -1)
+        untracked = np.isnan(flat).all(axis=1)
+        with np.errstate(invalid="ignore"):
+            k = np.round(flat / self.grid)
+            gridded = np.isfinite(k).all(axis=1) & (k * self.grid == flat).all(axis=1)
+        ki = np.where(gridded[:, None], k, 0.0).astype(np.int64)
+        specs: list[tuple[Any, ...]] = []
+        for i in range(len(joints)):
+            if untracked[i]:
+                specs.append(("untracked",))
+            elif gridded[i]:
+                if self._prev is None:
+                    specs.append(("grid", True, ki[i].tolist()))
+                else:
+                    specs.append(("grid", False, (ki[i] - self._prev).tolist()))
+                self._prev = ki[i]
+            else:
+                specs.append(("raw", flat[i].tolist()))
+                self._prev = None
+        return specs
+
+    def decode(self, msg: Any) -> np.ndarray:
+        """Joints (25, 3) [m] from a ``Joints`` message (NaN when untracked)."""
+        if msg.untracked:
+            return np.full((25, 3), np.nan)
+        if msg.grid > 0:
+            d = np.array(msg.delta, dtype=np.int64)
+            if msg.key or self._prev is None:
+                if not msg.key:
+                    raise ValueError("hand joints reference a message that is not in the file")
+                k = d
+            else:
+                k = self._prev + d
+            self._prev = k
+            return (k * msg.grid).reshape(25, 3)
+        self._prev = None
+        return np.array(msg.raw, dtype=np.float64).reshape(25, 3)
+
+
+def fill_joints(out: Any, spec: tuple[Any, ...], grid: float) -> None:
+    """Fill a ``Joints`` message from a :meth:`JointsCodec.encode_many` spec, as
+    :meth:`JointsCodec.encode` fills it."""
+    if spec[0] == "untracked":
+        out.untracked = True
+    elif spec[0] == "grid":
+        out.grid = grid
+        if spec[1]:
+            out.key = True
+        out.delta.extend(spec[2])
+    else:
+        out.raw.extend(spec[1])
+
+
+def same_joints(a: np.ndarray, b: np.ndarray) -> bool:
+    """Bit-for-bit equality of two joint arrays (NaN equal to NaN)."""
+    if a is b or (a.shape == b.shape and a.tobytes() == b.tobytes()):
+        return True  # identical bytes: equal (the common case, decided without a pass)
+    return bool(np.array_equal(a, b, equal_nan=True))
+
+
+__all__ = ["HAND_GRID_M", "JointsCodec", "fill_joints", "quantize_joints", "same_joints"]
