@@ -513,8 +513,8 @@ MODEL_READERS = {  # every command that reads the generated models -> its handle
     "bench retarget": ("payload.retarget.cli", "_cmd_bench"),
     "bench sim": ("payload.sim.cli", "_cmd_bench_sim"),
     "bench trial": ("payload.trials.cli", "_cmd_bench_trial"),
-    "bench teleop": ("payload.teleop.cli", "_cmd_bench"),
-    "teleop serve": ("payload.teleop.cli", "_cmd_serve"),
+    "bench teleop": ("payload.teleop.cli", "bench"),
+    "teleop serve": ("payload.teleop.cli", "serve"),
     "sweep": ("payload.sweep.cli", "_cmd_sweep"),
     "hw run": ("firmware_interface.cli", "_cmd_run"),
 }
@@ -530,7 +530,7 @@ def test_every_command_reading_the_models_applies_the_one_rule():
 
 
 def test_stale_models_are_rebuilt_saying_so(tmp_path, capsys):
-    from payload.cli import new_project
+    from payload.design.cli import new_project
     from payload.design import models_follow_design, stale_files
 
     project, _ = new_project(tmp_path / "p")

@@ -469,7 +469,7 @@ def _edit_design(path, old, new):
 
 def test_the_report_follows_the_design_through_two_edits(tmp_path, capsys):
     """edit -> report envelope -> edit -> report envelope in a new project (issue 30)."""
-    from payload.cli import new_project
+    from payload.design.cli import new_project
 
     project, _ = new_project(tmp_path / "p")
     design, out = project.design_path, project.analyses_dir
