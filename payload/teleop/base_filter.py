@@ -76,20 +76,21 @@ class SafetyConfig:
                 raise ValueError(f"SafetyConfig.{name}: must be a positive number, got {value!r}")
 
 
-def stop_speed(distance: np.ndarray, accel: float, jerk: float, lag: float) -> np.ndarray:
+def stop_speed(distance: np.ndarray, accel: np.ndarray | float, jerk: float, lag: float) -> np.ndarray:
     """Largest closing speed [m/s] from which a jerk-limited brake stops within
     ``distance`` [m] (0 for distances <= 0).
 
-    Worst case: the stage is accelerating toward the wall at ``accel`` when braking
-    starts, and the brake acts after ``lag`` [s]. The speed first grows by
-    ``accel^2 / (2 jerk)`` to ``u`` while the acceleration ramps to zero, then takes
-    ``accel / jerk`` to reach full deceleration; so the distance is at most
-    ``2 u accel / jerk + u lag + u^2 / (2 accel)``, solved here for ``u``.
+    Worst case: the stage is accelerating toward the wall at ``accel`` and keeps doing so
+    for ``lag`` [s] before the brake starts ramping the acceleration down at ``jerk``. The
+    speed grows to at most ``u = v + accel lag + accel^2 / (2 jerk)``; the lag and the two
+    ramps (``accel / jerk`` each) cover at most ``u (lag + 2 accel / jerk)`` and the full
+    deceleration ``u^2 / (2 accel)``. That bound is solved here for ``v``.
     """
-    b = 2.0 * accel / jerk + lag
+    a = np.asarray(accel, float)
+    b = lag + 2.0 * a / jerk
     d = np.maximum(np.asarray(distance, float), 0.0)
-    u = accel * (np.sqrt(b * b + 2.0 * d / accel) - b)
-    return np.maximum(u - accel * accel / (2.0 * jerk), 0.0)
+    u = a * (np.sqrt(b * b + 2.0 * d / a) - b)
+    return np.maximum(u - a * lag - a * a / (2.0 * jerk), 0.0)
 
 
 def _grid(n: int) -> np.ndarray:
