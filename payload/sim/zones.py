@@ -117,7 +117,7 @@ class StationZones:
                     raise ZoneError(f"{at}.sequence[{j}]: a zone is a list of 6 numbers")
                 target.append(_box(values, f"{at}.sequence[{j}]"))
         if not keepin:
-            raise ZoneError(f"{where}: no keep-in zone (an object with \"safe\": true)")
+            raise ZoneError(f'{where}: no keep-in zone (an object with "safe": true)')
         return cls(tuple(keepin), tuple(keepout))
 
     @classmethod

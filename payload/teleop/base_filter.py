@@ -76,7 +76,9 @@ class SafetyConfig:
                 raise ValueError(f"SafetyConfig.{name}: must be a positive number, got {value!r}")
 
 
-def stop_speed(distance: np.ndarray, accel: np.ndarray | float, jerk: float, lag: float) -> np.ndarray:
+def stop_speed(
+    distance: np.ndarray, accel: np.ndarray | float, jerk: float, lag: float
+) -> np.ndarray:
     """Largest closing speed [m/s] from which a jerk-limited brake stops within
     ``distance`` [m] (0 for distances <= 0).
 
@@ -344,22 +346,19 @@ class BaseSafetyFilter:
             allowed = stop_speed(gap - margin, axis_accel, self.jerk, self.lag)
             safe = ((gap > margin) & (closing <= allowed)).any(axis=1)
             lower = gap.max(axis=1)  # a lower bound of each pair's distance
-            k = int(lower.argmin())
-            if lower[k] < best[0]:
-                best = (float(lower[k]), shape.kind, self.obs_names[k])
             near = np.flatnonzero(~safe)
-            if near.size == 0:
-                continue
-            pts = shape.points(s_centre, s_rot, half)
+            if near.size:
+                pts = shape.points(s_centre, s_rot, half)
             for m in near:
                 rows, b, slack, d = self._pair(pts, int(m), centre, rot, req)
-                j = int(d.argmin())
-                if d[j] < best[0] or best[2] == self.obs_names[m] and best[1] == shape.kind:
-                    best = (min(float(d[j]), best[0]), shape.kind, self.obs_names[m])
+                lower[m] = d.min()  # checked point by point: the sampled distance
                 keep = np.argsort(slack)[: self.per_face]
                 all_rows.append(rows[keep])
                 all_b.append(b[keep])
                 all_slack.append(slack[keep])
+            k = int(lower.argmin())
+            if lower[k] < best[0]:
+                best = (float(lower[k]), shape.kind, self.obs_names[k])
         if not all_rows:
             return np.zeros((0, 4)), np.zeros(0), np.zeros(0), *best
         return np.vstack(all_rows), np.concatenate(all_b), np.concatenate(all_slack), *best

@@ -102,6 +102,9 @@ def run_trial(
     propulsion: str | None = None,
     retarget_budget: str | None = None,
     retarget_collisions: bool | None = None,
+    base_filter: bool | None = None,
+    link_delay: tuple[float, float] | None = None,
+    zones: Any = None,
 ) -> dict[str, Any]:
     """Run one trial and write its folder (reproducible: see :func:`_run_trial`).
 
@@ -133,6 +136,13 @@ def run_trial(
             ``paper``, off) or, for a replay, its recording's setting (the default where
             the recording has none); a value given replays the recorded hands on that
             setup instead.
+        base_filter: The base safety filter between the base channel and the vehicle
+            (``None``: off, or a replay's recorded setting).
+        link_delay: (delay, jitter) [s] of a delayed ground link between the operator
+            and the robot (:mod:`payload.teleop.link`); never taken from a replay (its
+            recorded frames are what the robot received).
+        zones: Keep-in and keep-out boxes of the filter
+            (:class:`~payload.sim.zones.StationZones`; default: the station's).
         force: Replace the trial in ``out_dir`` (each file through a temporary file and a
             rename, after the new trial has run).
 
@@ -165,11 +175,15 @@ def run_trial(
                     f"{replay}: retarget_collisions must be true or false, "
                     f"got {retarget_collisions!r}"
                 )
+        if base_filter is None:
+            base_filter = bool(recorded.get("base_filter", False))
         if seed is None:
             source_seed = header.get("meta", {}).get("seed")
             seed = source_seed if isinstance(source_seed, int) and source_seed >= 0 else 0
     seed = 0 if seed is None else int(seed)
-    setup = trial_setup(ctb, propulsion, retarget_budget, retarget_collisions)
+    setup = trial_setup(
+        ctb, propulsion, retarget_budget, retarget_collisions, base_filter, link_delay
+    )
     ctb, propulsion = setup["ctb"], setup["propulsion"]
     if ctb not in CTB_MODELS:
         raise TrialError(f"ctb must be one of {', '.join(CTB_MODELS)}, got {ctb!r}")
@@ -195,6 +209,7 @@ def run_trial(
         frames,
         **setup,
     )
+    source.zones = zones
     with single_threaded_numerics():
         if not force:
             result = _run_trial(
@@ -244,6 +259,8 @@ def _set_up(driver: Any, seed: int, source_spec: _Source, project: Project) -> _
         "retarget_collisions": source_spec.retarget_collisions,
         "ctb": source_spec.ctb,
         "propulsion": source_spec.propulsion,
+        "base_filter": source_spec.base_filter,
+        "link_delay": source_spec.link_delay,
         "ctb_offset_m": [float(v) for v in offset],
         "ctb_yaw_deg": float(yaw),
         "grasp_body_m": [float(v) for v in grasp_body],
@@ -297,9 +314,11 @@ def _trial_meta(
     }
 
 
-def _closing_meta(driver: Any, source: Any, stats: Any) -> dict[str, Any]:
-    """The recording's closing metadata: how the session went."""
+def _closing_meta(driver: Any, source: Any, stats: Any, scene: Any) -> dict[str, Any]:
+    """The recording's closing metadata: how the session went (with the station
+    contacts, the least station clearance and the filter's active time)."""
     return {
+        **scene.summary(),
         "steps": stats.steps,
         "pipeline_median_us": float(np.median(stats.pipeline_us)) if stats.pipeline_us else None,
         "warnings": driver.warnings(),
@@ -325,6 +344,7 @@ def _record_session(
     session's statistics. An unexpected error marks the recording aborted."""
     from payload.trials.foxglove import FoxgloveScene
     from payload.trials.recorder import TrialRecorder
+    from payload.trials.safety import SafetyScene
 
     layout = driver.world.layout
     bar = None
@@ -336,7 +356,8 @@ def _record_session(
         bar.start()
     last_t = [0.0]
     try:
-        scene = FoxgloveScene(driver.world, module_rects(layout))
+        zones = getattr(driver.twist_filter, "zones", None)
+        scene = SafetyScene(FoxgloveScene(driver.world, module_rects(layout)), driver, zones)
         with TrialRecorder(rec_path, scene=scene) as recorder:
             recorder.write_meta(meta)
 
@@ -365,7 +386,7 @@ def _record_session(
                     f"trial {seed} aborted at t = {last_t[0]:.2f} s by {what}; recording "
                     f"kept (marked aborted, not scored): {rec_path}"
                 ) from exc
-            recorder.write_meta(_closing_meta(driver, source, stats))
+            recorder.write_meta(_closing_meta(driver, source, stats, scene))
     finally:
         if bar is not None:
             bar.stop()
@@ -391,6 +412,8 @@ def _run_trial(
         WorldConfig.for_project(project, ctb=source_spec.ctb), propulsion=source_spec.propulsion
     )
     setup = _set_up(driver, seed, source_spec, project)
+    if source_spec.base_filter:
+        driver.twist_filter = base_filter_for(driver, setup.config.base, source_spec.zones)
     source, traits = source_spec.make(setup.plan, setup.calibration)
     q0 = driver.read().q
 
@@ -417,6 +440,15 @@ def _run_trial(
     result["provenance"] = prov
     replace_file(out / "metrics.json", json.dumps(result, indent=2) + "\n")
     return result
+
+
+def base_filter_for(driver: Any, base: Any, zones: Any = None) -> Any:
+    """The base safety filter for a simulator driver: the base channel's bounds and the
+    deceleration its vehicle controller gives the loaded stack."""
+    from payload.teleop.base_filter import BaseSafetyFilter
+
+    c = driver.controller
+    return BaseSafetyFilter(driver.world, base, c.accel_max, float(c.jerk[0]), zones)
 
 
 def step_record(ctx: StepContext, driver: Any, retargeters: dict[str, PairRetargeter]) -> Any:
@@ -464,6 +496,7 @@ __all__ = [
     "HeadsetSource",
     "TrialAborted",
     "TrialError",
+    "base_filter_for",
     "design_hash",
     "load_replay",
     "module_rects",
