@@ -10,8 +10,9 @@ import mujoco
 import numpy as np
 import pytest
 
-from payload.schema import PayloadCommand, VehicleTwist
+from payload.schema import VehicleTwist
 from payload.sim.driver import SimDriver
+from payload.sim.stack import hold_ctb, place_stack
 from payload.sim.world import build_world
 from payload.sim.zones import StationZones, ZoneError, station_zones
 from payload.teleop.base_filter import BaseSafetyFilter, SafetyConfig, stop_speed
@@ -28,42 +29,13 @@ def world():
     return build_world()
 
 
-def _grasped(world) -> SimDriver:
-    """A driver whose payload holds the CTB in the scripted pinch (2.5 s)."""
-    sim = SimDriver(world)
-    pinch = world.pinch
-    sim.send(PayloadCommand(pinch.command_q(False), pinch.stage, 0.0))
-    sim.step(50)
-    sim.send(PayloadCommand(pinch.command_q(True), pinch.stage, sim.time))
-    state = sim.step(75)
-    assert state.opposing_contact
-    return sim
-
-
 @pytest.fixture(scope="module")
 def grasped_state(world):
-    sim = _grasped(world)
-    return sim.data.qpos.copy(), sim.data.ctrl.copy(), sim._goal.copy(), sim._target.copy()
+    return hold_ctb(world)
 
 
-def _driver(world, grasped_state, pos, velocity) -> SimDriver:
-    """The grasped stack moved rigidly to put Astrobee's centre at ``pos``, moving at
-    ``velocity`` (world) with the bag."""
-    sim = SimDriver(world)
-    qpos, ctrl, goal, target = grasped_state
-    d = sim.data
-    d.qpos[:] = qpos
-    d.ctrl[:] = ctrl
-    sim._goal, sim._target = goal.copy(), target.copy()
-    a, c = world.astrobee_qpos, world.ctb_qpos
-    offset = np.asarray(pos, float) - d.qpos[a : a + 3]
-    d.qpos[a : a + 3] += offset
-    d.qpos[c : c + 3] += offset
-    d.qvel[:] = 0.0
-    d.qvel[world.astrobee_dof : world.astrobee_dof + 3] = velocity
-    d.qvel[world.ctb_dof : world.ctb_dof + 3] = velocity
-    mujoco.mj_forward(sim.model, d)
-    return sim
+def _driver(world, held, pos, velocity) -> SimDriver:
+    return place_stack(world, held, pos, velocity)
 
 
 def _filter(sim: SimDriver, **kw) -> BaseSafetyFilter:

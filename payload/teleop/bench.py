@@ -63,3 +63,48 @@ def run_bench(seconds: float = 20.0) -> dict[str, Any]:
         "loop_overruns": overruns,
         "load": [round(x, 2) for x in os.getloadavg()],
     }
+
+
+def run_filter_bench(seconds: float = 8.0) -> dict[str, Any]:
+    """The base safety filter's cost per control step, timed inside the filter, while
+    the loaded stack is flown at Kibo's side wall under a full-speed request (the filter
+    acting most of the run) and then across mid-Kibo (the identity).
+
+    Returns:
+        ``{"median_us", "p99_us", "constraints", "active_steps", "steps", "load"}``:
+        per-step time [us] over every step, the most constraints in one QP.
+    """
+    import numpy as np
+
+    from payload.schema import VehicleTwist
+    from payload.sim.stack import hold_ctb, place_stack
+    from payload.sim.world import build_world
+    from payload.teleop.base_filter import BaseSafetyFilter
+    from payload.teleop.channels import BaseConfig
+
+    world = build_world()
+    held = hold_ctb(world)
+    times, most, active = [], 0, 0
+    for pos, v0, request in (
+        ((1.6, 7.0, 0.25), (0.06, 0.0, 0.0), (0.2, 0.0, 0.0)),
+        ((1.5, 7.0, 0.25), (0.0, -0.05, 0.0), (0.0, -0.05, 0.0)),
+    ):
+        sim = place_stack(world, held, pos, v0)
+        c = sim.controller
+        filt = BaseSafetyFilter(world, BaseConfig(), c.accel_max, float(c.jerk[0]))
+        sim.twist_filter = filt
+        for _ in range(round(seconds * 25)):
+            rot = sim.data.xmat[world.astrobee].reshape(3, 3)
+            sim.command_twist(VehicleTwist(rot.T @ np.asarray(request), np.zeros(3), 0.0))
+            sim.step()
+            times.append(filt.status.solve_us)
+            most = max(most, filt.status.constraints)
+            active += filt.status.active
+    return {
+        "median_us": float(np.median(times)),
+        "p99_us": float(np.percentile(times, 99)),
+        "constraints": most,
+        "active_steps": active,
+        "steps": len(times),
+        "load": [round(x, 2) for x in os.getloadavg()],
+    }

@@ -103,7 +103,24 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     hub = LiveHub()
     payload = _hardware_driver(args.device) if args.driver == "hardware" else None
     print("loading the simulator and the retargeters ...", flush=True)
-    session = LiveSession(hub, record, payload=payload, collisions=args.retarget_collisions)
+    link_delay = None
+    if args.link_delay is not None:
+        from payload.teleop.link import parse_link_delay
+
+        link_delay = parse_link_delay(args.link_delay)
+    base_filter = args.base_filter
+    if base_filter is None:  # the profile wherever a person is in the loop
+        from payload.profiles import PROFILES, SAFE
+
+        base_filter = PROFILES[SAFE].base_filter
+    session = LiveSession(
+        hub,
+        record,
+        payload=payload,
+        collisions=args.retarget_collisions,
+        base_filter=base_filter,
+        link_delay=link_delay,
+    )
     server = TeleopServer(
         hub, args.host, args.port, ssl_context=ssl_context, token=token, scene=session.scene
     ).start()
@@ -159,6 +176,24 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_bench_filter(args: argparse.Namespace) -> int:
+    from payload.cli import emit_json
+    from payload.teleop.bench import run_filter_bench
+
+    if not args.seconds > 0:
+        raise TeleopCliError(f"--seconds must be positive, got {args.seconds}")
+    result = run_filter_bench(seconds=args.seconds)
+    if args.json:
+        emit_json(result)
+        return 0
+    print(
+        f"base safety filter, {result['steps']} steps ({result['active_steps']} acting): "
+        f"median {result['median_us']:.0f} us, p99 {result['p99_us']:.0f} us, at most "
+        f"{result['constraints']} constraints; load average {result['load']}"
+    )
+    return 0
+
+
 def register(
     sub: argparse._SubParsersAction, groups: dict[str, argparse._SubParsersAction]
 ) -> None:
@@ -179,6 +214,20 @@ def register(
         "than the design's margin (default off: it also keeps the fingers from squeezing "
         "a thin handle, see the README)",
     )
+    p.add_argument(
+        "--base-filter",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="the base safety filter between the base channel and the vehicle, keeping the "
+        "vehicle, payload and bag off the station (default on: the 'safe' profile)",
+    )
+    p.add_argument(
+        "--link-delay",
+        default=None,
+        metavar="S[:JITTER]",
+        help="a delayed ground link: hand frames reach the robot and its state reaches the "
+        "page S seconds late (each message +-JITTER, uniform); default none",
+    )
     p.add_argument("--status-interval", type=float, default=1.0, help=argparse.SUPPRESS)
     p.add_argument("--seconds", type=float, default=0.0, help=argparse.SUPPRESS)
     p.set_defaults(func=_cmd_serve)
@@ -189,3 +238,10 @@ def register(
     b.add_argument("--seconds", type=float, default=20.0, help="teleoperation time to measure")
     b.add_argument("--json", action="store_true", help="print one JSON object")
     b.set_defaults(func=_cmd_bench)
+
+    bf = groups["bench"].add_parser("filter", help="the base safety filter's cost per step")
+    bf.add_argument(
+        "--seconds", type=float, default=8.0, help="simulated seconds per scenario (default 8)"
+    )
+    bf.add_argument("--json", action="store_true", help="print one JSON object")
+    bf.set_defaults(func=_cmd_bench_filter)

@@ -52,6 +52,46 @@ def parse_link_delay(text: str) -> tuple[float, float]:
     return delay, jitter
 
 
+class DelayLine:
+    """One direction of the link: items put at time ``t`` arrive at ``t + delay``
+    (+- jitter); :meth:`take` gives the newest-sent item arrived so far, holding it.
+
+    Args:
+        delay: One-way delay [s].
+        jitter: Half-width of the uniform spread of each item's delay [s].
+        rng: The jitter draws.
+    """
+
+    def __init__(self, delay: float, jitter: float, rng: np.random.Generator) -> None:
+        self.delay = float(delay)
+        self.jitter = float(jitter)
+        self._rng = rng
+        self._queue: deque[tuple[float, float, Any]] = deque()  # (arrival, sent, item)
+        self.held: Any = None
+        self._held_sent = -math.inf
+
+    def put(self, t: float, item: Any) -> None:
+        """Send ``item`` at time ``t`` [s]; the first item sent is held until another
+        arrives (what was there before the link opened)."""
+        spread = float(self._rng.uniform(-self.jitter, self.jitter)) if self.jitter else 0.0
+        self._queue.append((t + max(0.0, self.delay + spread), t, item))
+        if self.held is None:
+            self.held = item
+
+    def take(self, t: float) -> Any:
+        """The newest-sent item that has arrived by ``t`` (arrived items leave the line)."""
+        keep: deque[tuple[float, float, Any]] = deque()
+        while self._queue:
+            arrival, sent, item = self._queue.popleft()
+            if arrival <= t + 1e-12:
+                if sent > self._held_sent:
+                    self.held, self._held_sent = item, sent
+            else:
+                keep.append((arrival, sent, item))
+        self._queue = keep
+        return self.held
+
+
 class DelayedLink:
     """A hand source seen through a delayed link (see the module docstring).
 
@@ -64,58 +104,26 @@ class DelayedLink:
 
     def __init__(self, source: Any, delay: float, jitter: float = 0.0, seed: int = 0) -> None:
         self.source = source
-        self.delay = float(delay)
-        self.jitter = float(jitter)
-        self._rng = np.random.default_rng(seed)
-        self._views: deque[tuple[float, float, Any]] = deque()  # (arrival, sent, view)
-        self._frames: deque[tuple[float, float, Any]] = deque()  # (arrival, sent, frame)
-        self._seen: Any = None  # newest state the operator has
-        self._seen_sent = -math.inf
-        self._held: Any = None  # newest frame the robot has
-        self._held_sent = -math.inf
+        rng = np.random.default_rng(seed)
+        self.up = DelayLine(delay, jitter, rng)  # hand frames to the robot
+        self.down = DelayLine(delay, jitter, rng)  # the robot's state to the operator
         self._stamp0: float | None = None
-
-    def _arrival(self, t: float) -> float:
-        if self.jitter == 0.0:
-            return t + self.delay
-        return t + max(0.0, self.delay + float(self._rng.uniform(-self.jitter, self.jitter)))
-
-    @staticmethod
-    def _newest(queue: deque, t: float, held: Any, held_sent: float) -> tuple[Any, float]:
-        """The newest-sent item of ``queue`` that has arrived by ``t`` (arrived items
-        leave the queue), or what was held."""
-        keep = deque()
-        while queue:
-            arrival, sent, item = queue.popleft()
-            if arrival <= t + 1e-12:
-                if sent > held_sent:
-                    held, held_sent = item, sent
-            else:
-                keep.append((arrival, sent, item))
-        queue.extend(keep)
-        return held, held_sent
 
     def frame(self, t: float, world: Any) -> Any:
         """The frame the robot has at control time ``t``; ``world`` is the robot's state
         now (it reaches the operator later)."""
-        if world is not None:
-            self._views.append((self._arrival(t), t, world))
-            if self._seen is None:
-                self._seen = world
-            self._seen, self._seen_sent = self._newest(self._views, t, self._seen, self._seen_sent)
         view = None
-        if self._seen is not None:  # the operator acts now on what it has seen
-            view = dataclasses.replace(self._seen, t=t)
+        if world is not None:
+            self.down.put(t, world)
+            view = dataclasses.replace(self.down.take(t), t=t)  # acted on now
         made = self.source.frame(t, view)
         if made is None:
             return None
-        self._frames.append((self._arrival(t), t, made))
-        if self._held is None:
-            self._held = made
-        self._held, self._held_sent = self._newest(self._frames, t, self._held, self._held_sent)
+        self.up.put(t, made)
+        held = self.up.take(t)
         if self._stamp0 is None:
-            self._stamp0 = float(self._held.stamp)
-        return dataclasses.replace(self._held, stamp=self._stamp0 + t)
+            self._stamp0 = float(held.stamp)
+        return dataclasses.replace(held, stamp=self._stamp0 + t)
 
     @property
     def finished(self) -> bool:
@@ -127,4 +135,4 @@ class DelayedLink:
         return getattr(self.source, "operator", None)
 
 
-__all__ = ["DelayedLink", "LinkError", "parse_link_delay"]
+__all__ = ["DelayLine", "DelayedLink", "LinkError", "parse_link_delay"]
