@@ -261,3 +261,90 @@ def test_filter_cost_per_step(world, grasped_state):
         times.append(time.perf_counter() - t)
     assert filt.status.constraints > 0
     assert np.median(times) < 5e-3
+
+
+def test_station_monitor_sees_the_strike(world, grasped_state):
+    """StationMonitor against the unfiltered strike: contact and zero clearance at the
+    wall, the cap in mid-module."""
+    from payload.sim.station import CLEARANCE_CAP, StationMonitor
+
+    sim = _driver(world, grasped_state, (1.5, 7.0, 0.25), (0.0, 0.0, 0.0))
+    monitor = StationMonitor(world)
+    assert monitor.read(sim.data) == (False, CLEARANCE_CAP)
+    sim = _driver(world, grasped_state, (1.6, 7.0, 0.25), (0.06, 0.0, 0.0))
+    moving = _moving_geoms(world)
+    touched = False
+    for _ in range(400):
+        rot = sim.data.xmat[world.astrobee].reshape(3, 3)
+        sim.command_twist(VehicleTwist(rot.T @ np.array([0.2, 0.0, 0.0]), np.zeros(3), 0.0))
+        sim.step()
+        reading = monitor.read(sim.data)
+        assert reading.clearance == pytest.approx(least_distance(sim, moving), abs=1e-9)
+        touched |= reading.contact
+    assert touched
+
+
+def test_cli_controller_filter_zones_and_delay_reach_the_runner(tmp_path, monkeypatch, capsys):
+    """``--controller safe`` turns the filter on (``--no-base-filter`` overrides it);
+    ``--zones`` and ``--link-delay`` are parsed and passed on; bad values exit 2."""
+    import sys
+    import types
+
+    from payload.cli import main
+
+    calls = []
+
+    def run_trial(**kw):
+        calls.append(kw)
+        return {"seed": kw.get("seed", 0), "out_dir": str(tmp_path)}
+
+    module = types.ModuleType("payload.trials.runner")
+    module.run_trial = run_trial
+    monkeypatch.setitem(sys.modules, "payload.trials.runner", module)
+    zones = tmp_path / "zones.json"
+    station_zones().write(zones)
+    base = ["trial", "--out", str(tmp_path / "t"), "--json"]
+    assert (
+        main([*base, "--controller", "safe", "--link-delay", "1.0:0.2", "--zones", str(zones)]) == 0
+    )
+    assert calls[-1]["base_filter"] is True and calls[-1]["retarget_collisions"] is True
+    assert calls[-1]["link_delay"] == (1.0, 0.2)
+    assert calls[-1]["zones"] == StationZones.read(zones)
+    assert main([*base, "--controller", "safe", "--no-base-filter"]) == 0
+    assert calls[-1]["base_filter"] is False
+    assert main(base) == 0
+    assert calls[-1]["base_filter"] is False and "link_delay" not in calls[-1]
+    capsys.readouterr()
+    assert main([*base, "--link-delay", "soon"]) == 2
+    assert "--link-delay" in capsys.readouterr().err
+    (tmp_path / "bad.json").write_text('{"sequence": [[0, 0, 0, 1, 1]], "safe": true}')
+    assert main([*base, "--zones", str(tmp_path / "bad.json")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "6 numbers" in err[0]
+
+
+def test_summary_aggregates_station_contacts():
+    from payload.trials.summary import station_summary
+
+    rows = [
+        {
+            "seed": 0,
+            "station_contacts": 0,
+            "min_station_clearance_mm": 120.0,
+            "filter_active_s": 3.0,
+            "base_filter": True,
+        },
+        {
+            "seed": 1,
+            "station_contacts": 4,
+            "min_station_clearance_mm": 0.0,
+            "filter_active_s": 5.0,
+            "base_filter": True,
+        },
+        {"seed": 2, "error": "boom"},
+    ]
+    s = station_summary(rows)
+    assert s["measured"] == 2 and s["trials_with_contacts"] == 1
+    assert s["station_contacts"] == {"total": 4, "max": 4}
+    assert s["min_station_clearance_mm"] == 0.0
+    assert s["filter_active_s"] == {"median": 4.0, "max": 5.0}
