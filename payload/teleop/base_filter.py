@@ -261,9 +261,8 @@ class BaseSafetyFilter:
     def _accel_along(self, normals: np.ndarray, rot: np.ndarray) -> np.ndarray:
         """Deceleration the stack can give along world unit vectors (P, 3) [m/s^2]: the
         per-body-axis bounds met along each vector's body components."""
-        nb = np.abs(normals @ rot)  # body components of each vector
-        with np.errstate(divide="ignore"):
-            return np.min(np.where(nb > 1e-9, self.body_accel / nb, np.inf), axis=1)
+        nb = np.maximum(np.abs(normals @ rot), 1e-12)  # body components of each vector
+        return np.min(self.body_accel / nb, axis=1)
 
     def __call__(self, twist: VehicleTwist, data: mujoco.MjData) -> VehicleTwist:
         """The filtered body twist for the request ``twist`` at the state in ``data``."""
@@ -326,49 +325,60 @@ class BaseSafetyFilter:
         (translation plus the yaw rate times the shape's lever) is one the stack stops
         from within the separation; the others are checked point by point.
         """
-        c = self.config
-        margin = c.margin
+        margin = self.config.margin
         w = abs(float(req[3]))
         axis_accel = self._accel_along(np.eye(3), rot)  # (3,)
-        all_rows, all_b, all_slack = [], [], []
-        best = (math.inf, "", "")
-        for shape in self.shapes:
-            s_centre, s_rot, half = shape.box(data)
-            ext = np.abs(s_rot) @ half
-            lo, hi = s_centre - ext, s_centre + ext
-            above = self.obs_lo - hi  # (M, 3) > 0: the obstacle lies on the + side
-            below = self.obs_hi - lo
-            below = -below  # > 0: the obstacle lies on the - side
-            arm = np.abs(s_centre - centre) + ext
-            lever = w * np.array([arm[1], arm[0], 0.0])
-            closing = np.where(above > below, req[:3] + lever, -req[:3] + lever)
-            gap = np.maximum(above, below)
-            allowed = stop_speed(gap - margin, axis_accel, self.jerk, self.lag)
-            safe = ((gap > margin) & (closing <= allowed)).any(axis=1)
-            lower = gap.max(axis=1)  # a lower bound of each pair's distance
-            near = np.flatnonzero(~safe)
-            if near.size:
-                pts = shape.points(s_centre, s_rot, half)
-            for m in near:
-                rows, b, slack, d = self._pair(pts, int(m), centre, rot, req)
-                lower[m] = d.min()  # checked point by point: the sampled distance
-                keep = np.argsort(slack)[: self.per_face]
-                all_rows.append(rows[keep])
-                all_b.append(b[keep])
-                all_slack.append(slack[keep])
-            k = int(lower.argmin())
-            if lower[k] < best[0]:
-                best = (float(lower[k]), shape.kind, self.obs_names[k])
-        if not all_rows:
-            return np.zeros((0, 4)), np.zeros(0), np.zeros(0), *best
-        return np.vstack(all_rows), np.concatenate(all_b), np.concatenate(all_slack), *best
+        boxes = [shape.box(data) for shape in self.shapes]
+        s_centre = np.array([bx[0] for bx in boxes])  # (S, 3)
+        ext = np.array([np.abs(bx[1]) @ bx[2] for bx in boxes])  # (S, 3) world half-extents
+        above = self.obs_lo[None] - (s_centre + ext)[:, None]  # (S, M, 3) > 0: obstacle on +
+        below = (s_centre - ext)[:, None] - self.obs_hi[None]  # > 0: obstacle on the - side
+        arm = np.abs(s_centre - centre) + ext
+        lever = w * arm[:, [1, 0, 2]] * np.array([1.0, 1.0, 0.0])  # (S, 3)
+        toward = req[:3] + lever  # closing speed bound toward + (per shape)
+        away = -req[:3] + lever
+        closing = np.where(above > below, toward[:, None], away[:, None])
+        gap = np.maximum(above, below)
+        allowed = stop_speed(gap - margin, axis_accel, self.jerk, self.lag)
+        safe = ((gap > margin) & (closing <= allowed)).any(axis=2)  # (S, M)
+        lower = gap.max(axis=2)  # a lower bound of each pair's distance
+        pairs = np.argwhere(~safe)
+        rows = b = slack = np.zeros(0)
+        if pairs.size:
+            pts_by_shape = {
+                int(si): self.shapes[si].points(*boxes[si]) for si in np.unique(pairs[:, 0])
+            }
+            pts = np.vstack([pts_by_shape[int(si)] for si, _ in pairs])
+            counts = [len(pts_by_shape[int(si)]) for si, _ in pairs]
+            obstacle = np.repeat(pairs[:, 1], counts)
+            pair_of = np.repeat(np.arange(len(pairs)), counts)
+            rows, b, slack, d = self._rows(pts, obstacle, centre, rot, req)
+            starts = np.r_[0, np.cumsum(counts)[:-1]]
+            lower[pairs[:, 0], pairs[:, 1]] = np.minimum.reduceat(d, starts)  # sampled
+            keep = self._most_binding(pair_of, slack)
+            rows, b, slack = rows[keep], b[keep], slack[keep]
+        si, mi = np.unravel_index(int(lower.argmin()), lower.shape)
+        return rows, b, slack, float(lower[si, mi]), self.shapes[si].kind, self.obs_names[mi]
 
-    def _pair(
-        self, pts: np.ndarray, m: int, centre: np.ndarray, rot: np.ndarray, req: np.ndarray
+    def _most_binding(self, group: np.ndarray, slack: np.ndarray) -> np.ndarray:
+        """Per group (a shape and obstacle pair), the ``per_face`` rows of least slack."""
+        order = np.lexsort((slack, group))
+        g = group[order]
+        first = np.r_[0, np.flatnonzero(np.diff(g)) + 1]
+        rank = np.arange(order.size) - np.repeat(first, np.diff(np.r_[first, order.size]))
+        return order[rank < self.per_face]
+
+    def _rows(
+        self,
+        pts: np.ndarray,
+        obstacle: np.ndarray,
+        centre: np.ndarray,
+        rot: np.ndarray,
+        req: np.ndarray,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Rows, bounds, slack and distances of every point against obstacle ``m``."""
+        """Rows, bounds, slack and distances of points (P, 3) against their obstacles (P,)."""
         c = self.config
-        lo, hi = self.obs_lo[m], self.obs_hi[m]
+        lo, hi = self.obs_lo[obstacle], self.obs_hi[obstacle]
         delta = pts - np.clip(pts, lo, hi)
         d = np.sqrt((delta * delta).sum(axis=1))
         n = np.empty_like(delta)
@@ -376,7 +386,7 @@ class BaseSafetyFilter:
         n[out] = delta[out] / d[out, None]
         inside = np.flatnonzero(~out)
         if inside.size:  # depth to the box's nearest face, pointing out of it
-            below, above = pts[inside] - lo, hi - pts[inside]
+            below, above = pts[inside] - lo[inside], hi[inside] - pts[inside]
             depth = np.minimum(below, above)
             axis = depth.argmin(axis=1)
             rows_i = np.arange(inside.size)
@@ -388,8 +398,7 @@ class BaseSafetyFilter:
         a[:, :3] = n
         a[:, 3] = n[:, 1] * r[:, 0] - n[:, 0] * r[:, 1]  # n . (e_z x r)
         gap = d - c.margin
-        accel = self._accel_along(n, rot)
-        b = -stop_speed(gap, accel, self.jerk, self.lag)
+        b = -stop_speed(gap, self._accel_along(n, rot), self.jerk, self.lag)
         b = np.where(gap < 0.0, np.minimum(-c.recovery_gain * gap, c.recovery_speed), b)
         return a, b, a @ req - b, d
 
