@@ -143,6 +143,7 @@ def run_hardware_trial(
     *,
     max_time: float = 240.0,
     pace: bool = True,
+    base_filter: bool = True,
 ) -> dict[str, Any]:
     """Replay a hand recording on the hardware and record the trial like ``payload trial``.
 
@@ -152,6 +153,8 @@ def run_hardware_trial(
         out_dir: The trial folder (``log.mcap``, ``hands.jsonl``, ``metrics.json``).
         max_time: Session length cap [s].
         pace: Pace the loop to wall-clock 50 Hz (the servos move in real time).
+        base_filter: The base safety filter on the simulated vehicle (default on: the
+            ``safe`` profile, real servos being in the loop).
 
     Returns:
         The metrics (as written to ``metrics.json``), with ``steps`` and ``driver``.
@@ -159,6 +162,7 @@ def run_hardware_trial(
     from payload.trials.campaign import finish_trial
     from payload.trials.recorder import TrialRecorder
     from payload.trials.runner import (
+        base_filter_for,
         design_hash,
         load_replay,
         module_rects,
@@ -173,6 +177,8 @@ def run_hardware_trial(
     sim = SimDriver()
     retargeters, ranges = retargeting()
     place_ctb_for_teleop(sim, retargeters, ranges)
+    if base_filter:
+        sim.twist_filter = base_filter_for(sim, TeleopConfig.from_design(load_design()).base)
     driver = HardwareInTheLoop(hardware, sim)
     layout = sim.world.layout
     rec_path = out / "log.mcap"
@@ -182,6 +188,7 @@ def run_hardware_trial(
         "driver": "hardware",
         "design_hash": design_hash(),
         "traits": {"replay": str(replay)},
+        "base_filter": bool(base_filter),
         "route": layout.route().tolist(),
         "modules": module_rects(layout),
     }
