@@ -1,7 +1,8 @@
 """The base safety filter: a control-barrier QP between the base channel and the vehicle.
 
 Every collision shape that moves with the vehicle (Astrobee, the deployed payload, the
-held CTB) is sampled as points on the surface of its oriented bounding box (corners,
+held CTB: from the first opposing contact of the pinch until a second after the last) is
+sampled as points on the surface of its oriented bounding box (corners,
 then edges and faces at :attr:`SafetyConfig.spacing`), placed from the poses MuJoCo
 measures each control step. The obstacles are the complement of the keep-in union
 (:meth:`payload.sim.zones.StationZones.obstacles`) plus the keep-out boxes. For a sample
@@ -38,6 +39,7 @@ import mujoco
 import numpy as np
 
 from payload.schema import CONTROL_DT, VehicleTwist
+from payload.sim.contact import ContactMonitor
 from payload.sim.zones import StationZones, station_zones
 from payload.teleop.channels import BaseConfig, JerkLimiter
 
@@ -245,7 +247,13 @@ class BaseSafetyFilter:
         self.zones = zones or station_zones(world.layout)
         self.obs_lo, self.obs_hi, self.obs_names = self.zones.obstacles()
         kinds = ("astrobee", "payload", "ctb") if world.ctb >= 0 else ("astrobee", "payload")
-        self.shapes = [_Shape(world, k, self.config.spacing) for k in kinds]
+        self.all_shapes = [_Shape(world, k, self.config.spacing) for k in kinds]
+        self.shapes = self.all_shapes
+        # the CTB moves with the vehicle only while the pinch holds it: it counts from the
+        # first opposing contact until ``release_s`` after the last one
+        self.contacts = ContactMonitor(world) if world.ctb >= 0 else None
+        self.release_s = 1.0
+        self._held_until = -math.inf
         self.per_face = per_face
         # braking: the output stage (channel bounds) and the controller (polytope bounds)
         self.body_accel = np.minimum(np.asarray(vehicle_accel, float), base.max_accel)
@@ -267,6 +275,11 @@ class BaseSafetyFilter:
     def __call__(self, twist: VehicleTwist, data: mujoco.MjData) -> VehicleTwist:
         """The filtered body twist for the request ``twist`` at the state in ``data``."""
         start = time.perf_counter()
+        if self.contacts is not None:
+            if self.contacts.opposing(data):
+                self._held_until = float(data.time) + self.release_s
+            held = float(data.time) <= self._held_until
+            self.shapes = self.all_shapes if held else self.all_shapes[:2]
         rot = data.xmat[self.world.astrobee].reshape(3, 3)
         centre = data.xpos[self.world.astrobee]
         v_req = rot @ twist.linear
@@ -424,7 +437,8 @@ class BaseSafetyFilter:
         """Forget the output stage's state (a new session)."""
         self.engaged = False
         self._last = None
-        for shape in self.shapes:
+        self._held_until = -math.inf
+        for shape in self.all_shapes:
             shape.unit = None
         self.linear.reset()
         self.yaw.reset()
