@@ -727,7 +727,7 @@ def test_summary_table_against_hand_values() -> None:
     assert s["acquisition_success"] == pytest.approx(2 / 3)
     assert s["ctb"] == "rigid" and s["propulsion"] == "nozzles"
     lit = s["literal"]
-    assert set(s) - {"literal", "ctb", "propulsion"} == set(lit)  # same fields
+    assert set(s) - {"literal", "ctb", "propulsion", "station"} == set(lit)  # same fields
     assert lit["success"] == 0 and lit["contact_s"]["median"] == 0.2
     assert lit["contact_definition"] == {"min_interval_s": 0.0, "max_gap_s": 0.0}
     assert s["contact_definition"] == {"min_interval_s": 0.5, "max_gap_s": 0.1}

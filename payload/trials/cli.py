@@ -104,13 +104,13 @@ def _cmd_trial(args: argparse.Namespace) -> int:
     print(
         f"  setup: CTB {result.get('ctb')}, {result.get('propulsion')} propulsion, "
         f"retargeting budget {result.get('retarget_budget')}, self-collision "
-        f"{modelled}, base filter {'on' if result.get('base_filter') else 'off'}"
-        f"{_delay_text(result.get('link_delay'))}"
-        f"{given}"
+        f"{modelled}{given}"
     )
     print(f"  success: {bool(result.get('success'))}")
     print(
-        f"  station contacts: {result.get('station_contacts')} steps, least clearance "
+        f"  base filter {'on' if result.get('base_filter') else 'off'}"
+        f"{_delay_text(result.get('link_delay'))}; "
+        f"station contacts: {result.get('station_contacts')} steps, least clearance "
         f"{result.get('min_station_clearance_mm')} mm, filter active "
         f"{result.get('filter_active_s')} s"
     )
