@@ -348,3 +348,40 @@ def test_summary_aggregates_station_contacts():
     assert s["station_contacts"] == {"total": 4, "max": 4}
     assert s["min_station_clearance_mm"] == 0.0
     assert s["filter_active_s"] == {"median": 4.0, "max": 5.0}
+
+
+def test_recording_carries_the_filter_channel_and_the_keepin_boxes(world, grasped_state, tmp_path):
+    """A recorder with the safety scene: one JSON record per step on /safety/filter (what
+    the filter and the station monitor said) and the keep-in boxes on /safety/keepin."""
+    from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
+    from mcap.reader import make_reader
+
+    from payload.trials.foxglove import FoxgloveScene
+    from payload.trials.recorder import TrialRecorder
+    from payload.trials.records import random_step
+    from payload.trials.safety import FILTER_TOPIC, KEEPIN_TOPIC, SafetyScene, keepin_boxes
+
+    sim = _driver(world, grasped_state, (1.6, 7.0, 0.25), (0.06, 0.0, 0.0))
+    sim.twist_filter = _filter(sim)
+    scene = SafetyScene(FoxgloveScene(world), sim)
+    rng = np.random.default_rng(0)
+    with TrialRecorder(tmp_path / "log.mcap", scene=scene) as rec:
+        for k in range(3):
+            rot = sim.data.xmat[world.astrobee].reshape(3, 3)
+            sim.command_twist(VehicleTwist(rot.T @ np.array([0.2, 0, 0]), np.zeros(3), 0.0))
+            sim.step()
+            rec.write(random_step(rng, 0.02 * k))
+    with open(tmp_path / "log.mcap", "rb") as f:
+        msgs = list(make_reader(f).iter_messages(topics=[FILTER_TOPIC, KEEPIN_TOPIC]))
+    records = [json.loads(m.data) for _, c, m in msgs if c.topic == FILTER_TOPIC]
+    assert [r["t"] for r in records] == [0.0, 0.02, 0.04]
+    assert all(r["active"] and r["constraints"] > 0 for r in records)
+    assert records[-1]["shape"] in ("astrobee", "payload", "ctb")
+    boxes = [m for _, c, m in msgs if c.topic == KEEPIN_TOPIC]
+    update = SceneUpdate.FromString(boxes[0].data)
+    assert len(update.entities[0].cubes) == len(keepin_boxes(layout=world.layout)) == 3
+    assert scene.summary() == {
+        "station_contacts": 0,
+        "min_station_clearance_mm": round(scene.least * 1e3, 1),
+        "filter_active_s": 0.06,
+    }
