@@ -359,26 +359,26 @@ class BaseSafetyFilter:
         rows = b = slack = np.zeros(0)
         if pairs.size:
             pts_by_shape = {
-                int(si): self.shapes[si].points(*boxes[si]) for si in np.unique(pairs[:, 0])
+                si: self.shapes[si].points(*boxes[si]) for si in set(pairs[:, 0].tolist())
             }
             pts = np.vstack([pts_by_shape[int(si)] for si, _ in pairs])
             counts = [len(pts_by_shape[int(si)]) for si, _ in pairs]
             obstacle = np.repeat(pairs[:, 1], counts)
             pair_of = np.repeat(np.arange(len(pairs)), counts)
             rows, b, slack, d = self._rows(pts, obstacle, centre, rot, req)
-            starts = np.r_[0, np.cumsum(counts)[:-1]]
+            starts = np.cumsum([0, *counts[:-1]])
             lower[pairs[:, 0], pairs[:, 1]] = np.minimum.reduceat(d, starts)  # sampled
             keep = self._most_binding(pair_of, slack)
             rows, b, slack = rows[keep], b[keep], slack[keep]
-        si, mi = np.unravel_index(int(lower.argmin()), lower.shape)
+        si, mi = divmod(int(lower.argmin()), lower.shape[1])
         return rows, b, slack, float(lower[si, mi]), self.shapes[si].kind, self.obs_names[mi]
 
     def _most_binding(self, group: np.ndarray, slack: np.ndarray) -> np.ndarray:
         """Per group (a shape and obstacle pair), the ``per_face`` rows of least slack."""
         order = np.lexsort((slack, group))
         g = group[order]
-        first = np.r_[0, np.flatnonzero(np.diff(g)) + 1]
-        rank = np.arange(order.size) - np.repeat(first, np.diff(np.r_[first, order.size]))
+        first = np.flatnonzero(np.concatenate(([True], g[1:] != g[:-1])))
+        rank = np.arange(order.size) - np.repeat(first, np.diff(np.append(first, order.size)))
         return order[rank < self.per_face]
 
     def _rows(
