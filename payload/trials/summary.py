@@ -191,14 +191,15 @@ def _station_lines(station: dict[str, Any] | None) -> list[str]:
         return []
     active = station.get("filter_active_s") or {}
     delay = station.get("link_delay")
+    on = {"True": "on", "False": "off"}.get(str(station.get("base_filter")), "mixed")
     return [
         "",
         f"Station contacts: {station['trials_with_contacts']} of {station['measured']} "
         f"trials touched the station ({station['station_contacts']['total']} control steps "
         f"in all); least clearance {station['min_station_clearance_mm']} mm (measured up to "
-        f"300 mm); base filter {station.get('base_filter')}, active "
+        f"300 mm); base filter {on}, active "
         f"{active.get('median', 0.0):.1f} s median per trial"
-        f"{f'; link delay {delay} s' if delay else ''}.",
+        f"{f'; link delay (delay, jitter) {delay} s' if delay else ''}.",
     ]
 
 
