@@ -222,9 +222,11 @@ def _replay_setup(sim_project: Any, recorded: dict[str, Any]) -> tuple[Any, dict
         recorded.get("propulsion"),
         recorded.get("retarget_budget"),
         recorded.get("retarget_collisions"),
+        recorded.get("physics_dt"),
     )
     sim = SimDriver(
-        WorldConfig.for_project(sim_project, ctb=setup["ctb"]), propulsion=setup["propulsion"]
+        WorldConfig.for_project(sim_project, ctb=setup["ctb"], physics_dt=setup["physics_dt"]),
+        propulsion=setup["propulsion"],
     )
     rt = retargeting(sim_project, setup["retarget_budget"], setup["retarget_collisions"])
     grasp_body = place_ctb_for_teleop(sim, *rt)
@@ -246,6 +248,7 @@ def run_hardware_trial(
     max_time: float = 240.0,
     pace: bool = True,
     emulator: Any = None,
+    base_filter: bool = True,
 ) -> dict[str, Any]:
     """Replay a hand recording on the hardware and record the trial like ``payload trial``.
 
@@ -262,6 +265,8 @@ def run_hardware_trial(
         pace: Pace the loop to wall-clock 50 Hz (the servos move in real time).
         emulator: The emulator's control handle (``EmulatorProcess``) when the far end is
             one started here: the grasp's load is fed to its servos.
+        base_filter: The base safety filter on the simulated vehicle (default on: the
+            ``safe`` profile, real servos being in the loop).
 
     Returns:
         The metrics (as written to ``metrics.json``) with ``steps``, ``driver``,
@@ -269,7 +274,7 @@ def run_hardware_trial(
     """
     from payload.project import current_project, provenance
     from payload.trials.recorder import TrialRecorder
-    from payload.trials.runner import module_rects, step_record
+    from payload.trials.runner import base_filter_for, module_rects, step_record
     from payload.trials.scoring import finish_trial
     from payload.trials.sources import load_replay
 
@@ -279,6 +284,8 @@ def run_hardware_trial(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     sim, (retargeters, ranges), setup = _replay_setup(project, recorded)
+    if base_filter:
+        sim.twist_filter = base_filter_for(sim, TeleopConfig.from_design(load_design()).base)
     prov = provenance(project, sim.world.config.design)
     if not getattr(hardware, "homed", None):
         hardware.bring_up()
@@ -296,6 +303,7 @@ def run_hardware_trial(
         "design_hash": prov["design_sha256"][:16],
         "provenance": prov,
         "traits": {"replay": str(replay)},
+        "base_filter": bool(base_filter),
         "route": layout.route().tolist(),
         "modules": module_rects(layout),
         **({"contact_definition": recorded["contact_definition"]}

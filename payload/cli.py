@@ -59,6 +59,7 @@ COMMANDS: tuple[Command, ...] = (
     Command(
         "review", "payload.review.cli", "Meshcat design review (and trial replay) in the browser"
     ),
+    Command("bench filter", "payload.trials.live_cli", "the base safety filter's cost per step"),
     Command("trial", "payload.trials.cli", "one ISS cargo-transport trial"),
     Command("trials", "payload.trials.cli", "trial campaigns and their summaries"),
     Command("export lerobot", "payload.trials.cli", "recordings as a LeRobot v3 dataset"),

@@ -530,8 +530,8 @@ def test_every_command_reading_the_models_applies_the_one_rule():
 
 
 def test_stale_models_are_rebuilt_saying_so(tmp_path, capsys):
-    from payload.design.cli import new_project
     from payload.design import models_follow_design, stale_files
+    from payload.design.cli import new_project
 
     project, _ = new_project(tmp_path / "p")
     assert models_follow_design(project.design_path, project.root) == []

@@ -508,7 +508,7 @@ def test_serve_models_self_collision_when_asked(monkeypatch, capsys, flag, model
     class Stop(Exception):
         pass
 
-    def session(hub, record, payload=None, collisions=False):
+    def session(hub, record, payload=None, collisions=False, **safety):
         seen.append(collisions)
         raise Stop
 
@@ -516,6 +516,31 @@ def test_serve_models_self_collision_when_asked(monkeypatch, capsys, flag, model
     with pytest.raises(Stop):
         main(["teleop", "serve", "--port", "0", *flag])
     assert seen == [modelled]
+
+
+@pytest.mark.parametrize(
+    ("flags", "expected"),
+    [([], (True, None)), (["--no-base-filter", "--link-delay", "0.5:0.1"], (False, (0.5, 0.1)))],
+)
+def test_serve_runs_the_base_filter_by_default(monkeypatch, flags, expected):
+    """``payload teleop serve``: the base safety filter on unless ``--no-base-filter``
+    (the ``safe`` profile), and ``--link-delay`` parsed for the session."""
+    from payload.cli import main
+    from payload.trials import live
+
+    seen = []
+
+    class Stop(Exception):
+        pass
+
+    def session(hub, record, payload=None, collisions=False, base_filter=None, link_delay=None):
+        seen.append((base_filter, link_delay))
+        raise Stop
+
+    monkeypatch.setattr(live, "LiveSession", session)
+    with pytest.raises(Stop):
+        main(["teleop", "serve", "--port", "0", *flags])
+    assert seen == [expected]
 
 
 def test_publish_sets_the_snapshot_and_the_state_together():

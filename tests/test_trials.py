@@ -728,7 +728,7 @@ def test_summary_table_against_hand_values() -> None:
     assert s["ctb"] == "rigid" and s["propulsion"] == "nozzles"
     lit = s["literal"]
     assert s["physics_dt"] is None  # rows from before the option: no step recorded
-    assert set(s) - {"literal", "ctb", "propulsion", "physics_dt"} == set(lit)  # same fields
+    assert set(s) - {"literal", "ctb", "propulsion", "physics_dt", "station"} == set(lit)
     assert lit["success"] == 0 and lit["contact_s"]["median"] == 0.2
     assert lit["contact_definition"] == {"min_interval_s": 0.0, "max_gap_s": 0.0}
     assert s["contact_definition"] == {"min_interval_s": 0.5, "max_gap_s": 0.1}

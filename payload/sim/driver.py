@@ -20,6 +20,7 @@ Typical use by a 50 Hz loop::
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from types import TracebackType
 from typing import NamedTuple
 
@@ -147,6 +148,9 @@ class SimDriver:
         self._limit_lo = self._ctrl_range[:17, 0] + _AT_LIMIT
         self._limit_hi = self._ctrl_range[:17, 1] - _AT_LIMIT
         self._twist: VehicleTwist | None = None
+        self.twist_filter: Callable[[VehicleTwist, mujoco.MjData], VehicleTwist] | None = None
+        """Called with the requested twist and the data each control step, before the
+        vehicle controller (the base safety filter, on the robot's side); None: none."""
         self._wrench = Wrench(np.zeros(3), np.zeros(3))
         self._closed = False
 
@@ -233,7 +237,10 @@ class SimDriver:
         for _ in range(control_steps):
             if self._twist is not None:
                 lin, ang = self._body_twist()
-                self._wrench = self.controller.update(self._twist, lin, ang, CONTROL_DT)
+                twist = self._twist
+                if self.twist_filter is not None:
+                    twist = self.twist_filter(twist, d)
+                self._wrench = self.controller.update(twist, lin, ang, CONTROL_DT)
                 if self.controller.allocation is not None:
                     self.apply_thrusts(self.controller.allocation)
                 else:

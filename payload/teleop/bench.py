@@ -69,3 +69,59 @@ def run_bench(make_session: Callable[[LiveHub], Any], seconds: float = 20.0) -> 
         "loop_overruns": overruns,
         "load": [round(x, 2) for x in os.getloadavg()],
     }
+
+
+def run_filter_bench(seconds: float = 8.0) -> dict[str, Any]:
+    """The base safety filter's cost per control step, timed inside the filter, while
+    the loaded stack is flown at Kibo's side wall under a full-speed request (the filter
+    acting most of the run) and then across mid-Kibo (the identity).
+
+    Returns:
+        ``{"median_us", "p99_us", "cpu_median_us", "cpu_p99_us", "constraints",
+        "active_steps", "steps", "load"}``: per-step wall-clock time [us] over every step,
+        the same in the thread's CPU time (what the step costs without waiting for a
+        core on a loaded machine), the most constraints in one QP.
+    """
+    import numpy as np
+
+    from payload.schema import VehicleTwist
+    from payload.sim.stack import hold_ctb, place_stack
+    from payload.sim.world import build_world
+    from payload.teleop.base_filter import BaseSafetyFilter
+    from payload.teleop.channels import BaseConfig
+
+    world = build_world()
+    held = hold_ctb(world)
+    times, cpu, most, active = [], [], 0, 0
+    for pos, v0, request in (
+        ((1.6, 7.0, 0.25), (0.06, 0.0, 0.0), (0.2, 0.0, 0.0)),
+        ((1.5, 7.0, 0.25), (0.0, -0.05, 0.0), (0.0, -0.05, 0.0)),
+    ):
+        sim = place_stack(world, held, pos, v0)
+        c = sim.controller
+        filt = BaseSafetyFilter(world, BaseConfig(), c.accel_max, float(c.jerk[0]))
+
+        def timed(twist: Any, data: Any, filt: Any = filt) -> Any:
+            wall, own = time.perf_counter(), time.thread_time()
+            out = filt(twist, data)
+            cpu.append((time.thread_time() - own) * 1e6)
+            times.append((time.perf_counter() - wall) * 1e6)
+            return out
+
+        sim.twist_filter = timed
+        for _ in range(round(seconds * 25)):
+            rot = sim.data.xmat[world.astrobee].reshape(3, 3)
+            sim.command_twist(VehicleTwist(rot.T @ np.asarray(request), np.zeros(3), 0.0))
+            sim.step()
+            most = max(most, filt.status.constraints)
+            active += filt.status.active
+    return {
+        "median_us": float(np.median(times)),
+        "p99_us": float(np.percentile(times, 99)),
+        "cpu_median_us": float(np.median(cpu)),
+        "cpu_p99_us": float(np.percentile(cpu, 99)),
+        "constraints": most,
+        "active_steps": active,
+        "steps": len(times),
+        "load": [round(x, 2) for x in os.getloadavg()],
+    }

@@ -134,7 +134,24 @@ def serve(args: argparse.Namespace, make_session: SessionFactory) -> int:
     if payload is not None:
         hub.driver = f"hardware on {args.device}" + (" (emulator)" if payload.emulated else "")
     print("loading the simulator and the retargeters ...", flush=True)
-    session = make_session(hub, record, payload=payload, collisions=args.retarget_collisions)
+    link_delay = None
+    if args.link_delay is not None:
+        from payload.teleop.link import parse_link_delay
+
+        link_delay = parse_link_delay(args.link_delay)
+    base_filter = args.base_filter
+    if base_filter is None:  # the profile wherever a person is in the loop
+        from payload.profiles import PROFILES, SAFE
+
+        base_filter = PROFILES[SAFE].base_filter
+    session = make_session(
+        hub,
+        record,
+        payload=payload,
+        collisions=args.retarget_collisions,
+        base_filter=base_filter,
+        link_delay=link_delay,
+    )
     desktop = None
     if args.desktop:
         from payload.teleop.emulate import EmulationError, find_iwer
@@ -211,6 +228,24 @@ def bench(args: argparse.Namespace, make_session: SessionFactory) -> int:
     return 0
 
 
+def bench_filter(args: argparse.Namespace) -> int:
+    """``payload bench filter``: the base safety filter's cost per step."""
+    from payload.teleop.bench import run_filter_bench
+
+    if not args.seconds > 0:
+        raise TeleopCliError(f"--seconds must be positive, got {args.seconds}")
+    result = run_filter_bench(seconds=args.seconds)
+    if args.json:
+        emit_json(result)
+        return 0
+    print(
+        f"base safety filter, {result['steps']} steps ({result['active_steps']} acting): "
+        f"median {result['median_us']:.0f} us, p99 {result['p99_us']:.0f} us, at most "
+        f"{result['constraints']} constraints; load average {result['load']}"
+    )
+    return 0
+
+
 def serve_arguments(p: argparse.ArgumentParser) -> None:
     """The options of ``payload teleop serve``."""
     p.add_argument(
@@ -247,6 +282,20 @@ def serve_arguments(p: argparse.ArgumentParser) -> None:
         "than the design's margin (default off: it also keeps the fingers from squeezing "
         "a thin handle, see docs/retargeting.md)",
     )
+    p.add_argument(
+        "--base-filter",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="the base safety filter between the base channel and the vehicle, keeping the "
+        "vehicle, payload and bag off the station (default on: the 'safe' profile)",
+    )
+    p.add_argument(
+        "--link-delay",
+        default=None,
+        metavar="S[:JITTER]",
+        help="a delayed ground link: hand frames reach the robot and its state reaches the "
+        "page S seconds late (each message +-JITTER, uniform); default none",
+    )
     p.add_argument("--status-interval", type=float, default=1.0, help=argparse.SUPPRESS)
     p.add_argument("--seconds", type=float, default=0.0, help=argparse.SUPPRESS)
 
@@ -254,4 +303,12 @@ def serve_arguments(p: argparse.ArgumentParser) -> None:
 def bench_arguments(p: argparse.ArgumentParser) -> None:
     """The options of ``payload bench teleop``."""
     p.add_argument("--seconds", type=float, default=20.0, help="teleoperation time to measure")
+    add_json(p)
+
+
+def bench_filter_arguments(p: argparse.ArgumentParser) -> None:
+    """The options of ``payload bench filter``."""
+    p.add_argument(
+        "--seconds", type=float, default=8.0, help="simulated seconds per scenario (default 8)"
+    )
     add_json(p)

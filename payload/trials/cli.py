@@ -73,6 +73,14 @@ def _check_ctb(ctb: str) -> None:
         raise TrialsCliError(f"--ctb: expected one of {', '.join(CTB_MODELS)}, got {ctb!r}")
 
 
+def _delay_text(delay: Any) -> str:
+    """``, link delay S s (+-J s)`` for a recorded link delay, else nothing."""
+    if not delay:
+        return ""
+    jitter = f" +-{delay[1]:g}" if len(delay) > 1 and delay[1] else ""
+    return f", link delay {delay[0]:g}{jitter} s"
+
+
 def _cmd_trial(args: argparse.Namespace) -> int:
     from payload.design import models_follow_design
 
@@ -84,13 +92,15 @@ def _cmd_trial(args: argparse.Namespace) -> int:
     operator, replay = _parse_operator(args)
     if operator == "synthetic":
         _setup_defaults(args)
+    else:
+        _apply_profile(args)
     if args.ctb is not None:
         _check_ctb(args.ctb)
     project = command_project(args)
     models_follow_design(project.design_path, project.root, json=args.json)
     out = Path(args.out) if args.out else None
     run_trial = _run_trial_fn()
-    extra: dict[str, Any] = {"project": project}
+    extra: dict[str, Any] = {"project": project, **_link_and_zones(args)}
     for name in _SETUP:
         if getattr(args, name) is not None:  # a replay: the others are its recording's
             extra[name] = getattr(args, name)
@@ -141,6 +151,7 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
     _check_physics_dt(args.physics_dt)
     _setup_defaults(args)
     _check_ctb(args.ctb)
+    link_zones = _link_and_zones(args)
     _run_trial_fn()  # fail here, once, if the runner is missing
     project = command_project(args)
     models_follow_design(project.design_path, project.root, json=args.json)
@@ -168,6 +179,8 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
             retarget_budget=args.retarget_budget,
             retarget_collisions=args.retarget_collisions,
             physics_dt=args.physics_dt,
+            base_filter=args.base_filter,
+            **link_zones,
         ),
         seeds,
         out,
@@ -186,6 +199,8 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
         f"Cargo-transport campaign ({args.n} trials, CTB {args.ctb}, {args.propulsion}, "
         f"retargeting budget {args.retarget_budget}"
         f"{', self-collision modelled' if args.retarget_collisions else ''}"
+        f"{', base filter' if args.base_filter else ''}"
+        f"{f', link delay {args.link_delay} s' if args.link_delay else ''}"
         f"{_physics_text(args.physics_dt)})"
     )
     summary = write_summary(results, out, title=title, run=run, provenance=prov, force=args.force)
@@ -409,7 +424,6 @@ def _cmd_trials_convert(args: argparse.Namespace) -> int:
 
 
 def _cmd_trials_compare(args: argparse.Namespace) -> int:
-    from payload.cli import CheckFailed, emit_json
     from payload.safeio import check_new, replace_file
     from payload.trials.compare import compare_markdown, compare_runs
 
@@ -432,7 +446,14 @@ def _cmd_trials_compare(args: argparse.Namespace) -> int:
     return 0
 
 
-_SETUP = ("ctb", "propulsion", "retarget_budget", "retarget_collisions", "physics_dt")
+_SETUP = (
+    "ctb",
+    "propulsion",
+    "retarget_budget",
+    "retarget_collisions",
+    "physics_dt",
+    "base_filter",
+)
 """The trial setup flags' attribute names."""
 
 
@@ -471,6 +492,37 @@ def _setup_arguments(p: argparse.ArgumentParser, *, replay: bool = False) -> Non
         f"off: the paper's controller{mine})",
     )
     _physics_dt_argument(p, mine)
+    from payload.profiles import PROFILES
+
+    p.add_argument(
+        "--controller",
+        choices=tuple(PROFILES),
+        default=None,
+        help="controller profile: 'paper' (the paper's: no self-collision model, no base "
+        "filter; the default) or 'safe' (self-collision model and base safety filter); "
+        f"the finer flags override it{mine}",
+    )
+    p.add_argument(
+        "--base-filter",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="the base safety filter between the base channel and the vehicle (default: "
+        f"the profile's; off in 'paper'{mine})",
+    )
+    p.add_argument(
+        "--zones",
+        default=None,
+        metavar="FILE",
+        help="keep-in/keep-out boxes of the base filter, Astrobee zone JSON (default: the "
+        "station's, from the simulator's ISS layout)",
+    )
+    p.add_argument(
+        "--link-delay",
+        default=None,
+        metavar="S[:JITTER]",
+        help="a delayed ground link: hand frames reach the robot and its state reaches the "
+        "operator S seconds late (each message +-JITTER, uniform); default none",
+    )
 
 
 def _physics_dt_argument(p: argparse.ArgumentParser, mine: str = "") -> None:
@@ -493,12 +545,42 @@ def _check_physics_dt(dt: float | None) -> None:
         raise TrialsCliError(f"--physics-dt: {problem}")
 
 
+def _apply_profile(args: argparse.Namespace) -> None:
+    """A ``--controller`` profile's settings for the setup flags not given."""
+    if getattr(args, "controller", None) is None:
+        return
+    from payload.profiles import profile
+
+    chosen = profile(args.controller).override(
+        args.retarget_budget, args.retarget_collisions, args.base_filter
+    )
+    args.retarget_budget = chosen.retarget_budget
+    args.retarget_collisions = chosen.retarget_collisions
+    args.base_filter = chosen.base_filter
+
+
+def _link_and_zones(args: argparse.Namespace) -> dict[str, Any]:
+    """The parsed ``--link-delay`` and ``--zones`` as run_trial arguments (bad input: one
+    line, exit 2)."""
+    from payload.sim.zones import StationZones
+    from payload.teleop.link import parse_link_delay
+
+    extra: dict[str, Any] = {}
+    if args.link_delay is not None:
+        extra["link_delay"] = parse_link_delay(args.link_delay)
+    if args.zones is not None:
+        extra["zones"] = StationZones.read(args.zones)
+    return extra
+
+
 def _setup_defaults(args: argparse.Namespace) -> None:
     """Fill the setup flags left out with the defaults (synthetic trials, campaigns)."""
     from payload.trials.sources import trial_setup
 
+    _apply_profile(args)
     for name, value in trial_setup(**{n: getattr(args, n) for n in _SETUP}).items():
-        setattr(args, name, value)
+        if name in _SETUP:
+            setattr(args, name, value)
 
 
 def register(

@@ -33,6 +33,7 @@ from payload.teleop.calibration import (
     Captures,
     Step,
 )
+from payload.teleop.link import DelayedLink, DelayLine
 from payload.teleop.live import LiveHub, LiveSource, TimedDriver
 from payload.teleop.loop import StepContext, run_session
 from payload.teleop.pipeline import TeleopConfig, TeleopPipeline, calibrate_operator
@@ -40,6 +41,7 @@ from payload.teleop.replay import HandRecordingWriter
 from payload.trials.recorder import StepRecord, TrialRecorder
 from payload.trials.runner import (
     MODULE_NAMES,
+    base_filter_for,
     design_hash,
     module_rects,
     place_ctb_for_teleop,
@@ -120,6 +122,11 @@ class LiveSession:
             None for the simulator alone.
         collisions: Model self-collision in the pair solves (no command closer than the
             design's margin); recorded with the session.
+        base_filter: The base safety filter on the robot's side, between the base channel
+            and the vehicle; recorded with the session.
+        link_delay: (delay, jitter) [s] of a delayed ground link: the page's hand frames
+            reach the loop, and the loop's state reaches the page, that late
+            (:mod:`payload.teleop.link`); None: no delay.
     """
 
     def __init__(
@@ -129,6 +136,8 @@ class LiveSession:
         steps: tuple[Step, ...] = DEFAULT_STEPS,
         payload: Any = None,
         collisions: bool = False,
+        base_filter: bool = False,
+        link_delay: tuple[float, float] | None = None,
     ) -> None:
         from payload.sim.driver import SimDriver
 
@@ -140,6 +149,10 @@ class LiveSession:
         self.retargeters, self.ranges = retargeting(collisions=self.collisions)
         place_ctb_for_teleop(self.driver, self.retargeters, self.ranges)
         self.config = TeleopConfig.from_design(load_design(self.driver.world.config.design))
+        self.base_filter = bool(base_filter)
+        if self.base_filter:
+            self.driver.twist_filter = base_filter_for(self.driver, self.config.base)
+        self.link_delay = link_delay if link_delay and link_delay[0] > 0 else None
         if payload is not None:
             self.driver = PayloadRig(self.driver, payload)
         self.q0 = self.driver.read().q
@@ -161,7 +174,12 @@ class LiveSession:
         out.mkdir(parents=True, exist_ok=True)
         self._recorder = TrialRecorder(out / "log.mcap")
         budget = self.retargeters["L"].config.budget
-        setup = {"retarget_budget": budget, "retarget_collisions": self.collisions}
+        setup = {
+            "retarget_budget": budget,
+            "retarget_collisions": self.collisions,
+            "base_filter": self.base_filter,
+            "link_delay": None if self.link_delay is None else list(self.link_delay),
+        }
         self._hands = HandRecordingWriter(
             out / "hands.jsonl", frame="webxr", meta={"operator": "live", **setup}
         )
@@ -240,6 +258,11 @@ class LiveSession:
         self.source = source
         driver = TimedDriver(self.driver, source, self.hub)
         t0_wall = time.perf_counter()
+        hands: Any = source
+        states = None
+        if self.link_delay is not None:  # hands up, state down, each that late
+            hands = DelayedLink(source, *self.link_delay)
+            states = DelayLine(*self.link_delay, np.random.default_rng(1))
 
         def make_pipeline(captures: Captures, heading: float) -> TeleopPipeline:
             cal = calibrate_operator(captures, self.ranges, self.config.rail_travel, heading)
@@ -263,13 +286,16 @@ class LiveSession:
             if lag > CONTROL_DT:  # this step ended more than a period late
                 with self.hub.lock:
                     self.hub.loop_overruns += 1
+            if states is not None:  # the page sees the state sent a delay ago
+                states.put(ctx.t, (snap, state))
+                snap, state = states.take(ctx.t)
             self.hub.publish(snap, state=state)
             self.steps += 1
 
         try:
             run_session(
                 driver,
-                source,
+                hands,
                 calibration,
                 make_pipeline,
                 max_time=SESSION_CAP_S,

@@ -11,7 +11,14 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from payload.teleop.cli import bench, bench_arguments, serve, serve_arguments
+from payload.teleop.cli import (
+    bench,
+    bench_arguments,
+    bench_filter,
+    bench_filter_arguments,
+    serve,
+    serve_arguments,
+)
 
 
 def _live_session(*args: Any, **kwargs: Any) -> Any:
@@ -31,7 +38,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 def register(
     sub: argparse._SubParsersAction, groups: dict[str, argparse._SubParsersAction]
 ) -> None:
-    """Add ``teleop serve`` and ``bench teleop``."""
+    """Add ``teleop serve``, ``bench teleop`` and ``bench filter``."""
     teleop = sub.add_parser("teleop", help="the live Quest (WebXR) interface")
     tsub = teleop.add_subparsers(dest="teleop_command", required=True, metavar="WHAT")
     p = tsub.add_parser("serve", help="serve the WebXR page, its WebSocket and /status")
@@ -43,6 +50,10 @@ def register(
     )
     bench_arguments(b)
     b.set_defaults(func=_cmd_bench)
+
+    f = groups["bench"].add_parser("filter", help="the base safety filter's cost per step")
+    bench_filter_arguments(f)
+    f.set_defaults(func=bench_filter)
 
 
 __all__ = ["register"]

@@ -104,6 +104,9 @@ def run_trial(
     retarget_budget: str | None = None,
     retarget_collisions: bool | None = None,
     physics_dt: float | None = None,
+    base_filter: bool | None = None,
+    link_delay: tuple[float, float] | None = None,
+    zones: Any = None,
 ) -> dict[str, Any]:
     """Run one trial and write its folder (reproducible: see :func:`_run_trial`).
 
@@ -137,6 +140,13 @@ def run_trial(
             ``paper``, off) or, for a replay, its recording's setting (the default where
             the recording has none); a value given replays the recorded hands on that
             setup instead.
+        base_filter: The base safety filter between the base channel and the vehicle
+            (``None``: off, or a replay's recorded setting).
+        link_delay: (delay, jitter) [s] of a delayed ground link between the operator
+            and the robot (:mod:`payload.teleop.link`); never taken from a replay (its
+            recorded frames are what the robot received).
+        zones: Keep-in and keep-out boxes of the filter
+            (:class:`~payload.sim.zones.StationZones`; default: the station's).
         force: Replace the trial in ``out_dir`` (each file through a temporary file and a
             rename, after the new trial has run).
 
@@ -175,11 +185,21 @@ def run_trial(
                 isinstance(physics_dt, bool) or not isinstance(physics_dt, (int, float))
             ):
                 raise TrialError(f"{replay}: physics_dt must be a number, got {physics_dt!r}")
+        if base_filter is None:
+            base_filter = bool(recorded.get("base_filter", False))
         if seed is None:
             source_seed = header.get("meta", {}).get("seed")
             seed = source_seed if isinstance(source_seed, int) and source_seed >= 0 else 0
     seed = 0 if seed is None else int(seed)
-    setup = trial_setup(ctb, propulsion, retarget_budget, retarget_collisions, physics_dt)
+    setup = trial_setup(
+        ctb,
+        propulsion,
+        retarget_budget,
+        retarget_collisions,
+        physics_dt,
+        base_filter=base_filter,
+        link_delay=link_delay,
+    )
     problem = check_physics_dt(setup["physics_dt"])
     if problem is not None:
         raise TrialError(f"physics_dt: {problem}")
@@ -208,6 +228,7 @@ def run_trial(
         frames,
         **setup,
     )
+    source.zones = zones
     with single_threaded_numerics():
         if not force:
             result = _run_trial(
@@ -258,6 +279,8 @@ def _set_up(driver: Any, seed: int, source_spec: _Source, project: Project) -> _
         "ctb": source_spec.ctb,
         "propulsion": source_spec.propulsion,
         "physics_dt": source_spec.physics_dt,
+        "base_filter": source_spec.base_filter,
+        "link_delay": source_spec.link_delay,
         "ctb_offset_m": [float(v) for v in offset],
         "ctb_yaw_deg": float(yaw),
         "grasp_body_m": [float(v) for v in grasp_body],
@@ -311,9 +334,11 @@ def _trial_meta(
     }
 
 
-def _closing_meta(driver: Any, source: Any, stats: Any) -> dict[str, Any]:
-    """The recording's closing metadata: how the session went."""
+def _closing_meta(driver: Any, source: Any, stats: Any, scene: Any) -> dict[str, Any]:
+    """The recording's closing metadata: how the session went (with the station
+    contacts, the least station clearance and the filter's active time)."""
     return {
+        **scene.summary(),
         "steps": stats.steps,
         "pipeline_median_us": float(np.median(stats.pipeline_us)) if stats.pipeline_us else None,
         "warnings": driver.warnings(),
@@ -339,6 +364,7 @@ def _record_session(
     session's statistics. An unexpected error marks the recording aborted."""
     from payload.trials.foxglove import FoxgloveScene
     from payload.trials.recorder import TrialRecorder
+    from payload.trials.safety import SafetyScene
 
     layout = driver.world.layout
     bar = None
@@ -350,7 +376,8 @@ def _record_session(
         bar.start()
     last_t = [0.0]
     try:
-        scene = FoxgloveScene(driver.world, module_rects(layout))
+        zones = getattr(driver.twist_filter, "zones", None)
+        scene = SafetyScene(FoxgloveScene(driver.world, module_rects(layout)), driver, zones)
         with TrialRecorder(rec_path, scene=scene) as recorder:
             recorder.write_meta(meta)
 
@@ -379,7 +406,7 @@ def _record_session(
                     f"trial {seed} aborted at t = {last_t[0]:.2f} s by {what}; recording "
                     f"kept (marked aborted, not scored): {rec_path}"
                 ) from exc
-            recorder.write_meta(_closing_meta(driver, source, stats))
+            recorder.write_meta(_closing_meta(driver, source, stats, scene))
     finally:
         if bar is not None:
             bar.stop()
@@ -406,6 +433,8 @@ def _run_trial(
         propulsion=source_spec.propulsion,
     )
     setup = _set_up(driver, seed, source_spec, project)
+    if source_spec.base_filter:
+        driver.twist_filter = base_filter_for(driver, setup.config.base, source_spec.zones)
     source, traits = source_spec.make(setup.plan, setup.calibration)
     q0 = driver.read().q
 
@@ -432,6 +461,15 @@ def _run_trial(
     result["provenance"] = prov
     replace_file(out / "metrics.json", json.dumps(result, indent=2) + "\n")
     return result
+
+
+def base_filter_for(driver: Any, base: Any, zones: Any = None) -> Any:
+    """The base safety filter for a simulator driver: the base channel's bounds and the
+    deceleration its vehicle controller gives the loaded stack."""
+    from payload.teleop.base_filter import BaseSafetyFilter
+
+    c = driver.controller
+    return BaseSafetyFilter(driver.world, base, c.accel_max, float(c.jerk[0]), zones)
 
 
 def step_record(ctx: StepContext, driver: Any, retargeters: dict[str, PairRetargeter]) -> Any:
@@ -479,6 +517,7 @@ __all__ = [
     "HeadsetSource",
     "TrialAborted",
     "TrialError",
+    "base_filter_for",
     "design_hash",
     "load_replay",
     "module_rects",

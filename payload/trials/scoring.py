@@ -108,6 +108,11 @@ def _trial_setup(meta: dict[str, Any]) -> dict[str, Any]:
         "ctb_external_max",
         "equality_constraints",
         "acquisition_state",
+        "base_filter",
+        "link_delay",
+        "station_contacts",
+        "min_station_clearance_mm",
+        "filter_active_s",
     )
     return {k: meta[k] for k in keys if k in meta}
 

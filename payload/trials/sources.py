@@ -16,6 +16,7 @@ from payload.sim.vehicle import DEFAULT_PROPULSION
 from payload.sim.world import DEFAULT_CTB
 from payload.teleop.calibration import CalibrationProcedure
 from payload.teleop.hands import Hand, HandFrame
+from payload.teleop.link import DelayedLink
 from payload.teleop.loop import ReplaySource, SyntheticSource
 from payload.teleop.operator import OperatorPlan, SyntheticOperator, WorldView
 from payload.teleop.replay import read_hand_recording
@@ -31,16 +32,21 @@ def trial_setup(
     retarget_budget: str | None = None,
     retarget_collisions: bool | None = None,
     physics_dt: float | None = None,
+    base_filter: bool | None = None,
+    link_delay: tuple[float, float] | None = None,
 ) -> dict[str, Any]:
     """A trial's setup with each setting left at ``None`` given its default: the single
     CTB, nozzle propulsion, the paper's retargeting budget, self-collision not modelled,
-    the paper's 1 kHz physics (``physics_dt`` [s])."""
+    the paper's 1 kHz physics (``physics_dt`` [s]), no base safety filter, no link delay
+    (``link_delay``: (delay, jitter) [s])."""
     return {
         "ctb": DEFAULT_CTB if ctb is None else ctb,
         "propulsion": DEFAULT_PROPULSION if propulsion is None else propulsion,
         "retarget_budget": RetargetConfig.budget if retarget_budget is None else retarget_budget,
         "retarget_collisions": bool(retarget_collisions),
         "physics_dt": PHYSICS_DT if physics_dt is None else float(physics_dt),
+        "base_filter": bool(base_filter),
+        "link_delay": None if link_delay is None else [float(v) for v in link_delay],
     }
 
 
@@ -108,8 +114,13 @@ class _Source:
         retarget_budget: str,
         retarget_collisions: bool,
         physics_dt: float,
+        base_filter: bool = False,
+        link_delay: list[float] | None = None,
     ) -> None:
         self.physics_dt = physics_dt
+        self.base_filter = base_filter
+        self.link_delay = link_delay
+        self.zones: Any = None  # the filter's zones (None: the station's)
         self.retarget_budget = retarget_budget
         self.retarget_collisions = retarget_collisions
         self.ctb = ctb
@@ -122,14 +133,20 @@ class _Source:
         self.frames = frames
 
     def make(self, plan: OperatorPlan, calibration: CalibrationProcedure) -> tuple[Any, dict]:
-        """The hand source and the operator traits to record."""
+        """The hand source and the operator traits to record; behind the delayed link
+        when the trial has one (a replay is what the robot received: never delayed again
+        unless asked)."""
         if self.operator == "synthetic":
             synthetic = SyntheticOperator(plan, self.seed, calibration)
             from payload.trials.codec import HAND_GRID_M
 
-            source = HeadsetSource(SyntheticSource(synthetic), HAND_GRID_M)
-            return source, dict(vars(synthetic.traits))
-        return ReplaySource(self.frames), {"replay": str(self.replay)}
+            source: Any = HeadsetSource(SyntheticSource(synthetic), HAND_GRID_M)
+            traits = dict(vars(synthetic.traits))
+        else:
+            source, traits = ReplaySource(self.frames), {"replay": str(self.replay)}
+        if self.link_delay is not None and self.link_delay[0] > 0:
+            source = DelayedLink(source, *self.link_delay, seed=self.seed)
+        return source, traits
 
     def meta(self) -> dict[str, Any]:
         """Recording metadata naming a replay's source file and seed."""

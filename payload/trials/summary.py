@@ -115,6 +115,7 @@ def _summary_core(rows: list[dict[str, Any]]) -> dict[str, Any]:
             "acquired": bool(r.get("acquired")) and not r.get("error"),
             **{k: r.get(k) for k in METRIC_KEYS},
             "final_module": r.get("final_module"),
+            **{k: r.get(k) for k in STATION_KEYS if k in r},
             "error": r.get("error"),
             **({"traceback": r["traceback"]} if r.get("traceback") else {}),
             "wall_s": r.get("wall_s"),
@@ -156,7 +157,55 @@ def summarize(results: Sequence[dict[str, Any]]) -> dict[str, Any]:
     steps = sorted({float(r["physics_dt"]) for r in rows if r.get("physics_dt") is not None})
     summary["physics_dt"] = (steps[0] if len(steps) == 1 else {"mixed": steps}) if steps else None
     summary["literal"] = _summary_core([_literal_row(r) for r in rows])
+    summary["station"] = station_summary(rows)
     return summary
+
+
+STATION_KEYS = ("station_contacts", "min_station_clearance_mm", "filter_active_s")
+"""The per-trial station figures (:mod:`payload.trials.safety`)."""
+
+
+def station_summary(rows: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """Station contacts over the trials that measured them: how many trials touched the
+    station, the contact steps in all and at most, the least clearance [mm], the filter's
+    active time [s] (median, max), and the base-filter and link-delay settings."""
+    ok = [r for r in rows if not r.get("error") and r.get("station_contacts") is not None]
+    out: dict[str, Any] = {
+        "measured": len(ok),
+        "base_filter": _one_value(rows, "base_filter"),
+        "link_delay": _one_value(rows, "link_delay"),
+    }
+    if not ok:
+        return out
+    contacts = [int(r["station_contacts"]) for r in ok]
+    clearance = _finite([r.get("min_station_clearance_mm") for r in ok])
+    active = _finite([r.get("filter_active_s") for r in ok])
+    out.update(
+        trials_with_contacts=sum(1 for c in contacts if c > 0),
+        station_contacts={"total": sum(contacts), "max": max(contacts)},
+        min_station_clearance_mm=min(clearance) if clearance else None,
+        filter_active_s={"median": float(np.median(active)), "max": max(active)}
+        if active
+        else None,
+    )
+    return out
+
+
+def _station_lines(station: dict[str, Any] | None) -> list[str]:
+    if not station or not station.get("measured"):
+        return []
+    active = station.get("filter_active_s") or {}
+    delay = station.get("link_delay")
+    on = {"True": "on", "False": "off"}.get(str(station.get("base_filter")), "mixed")
+    return [
+        "",
+        f"Station contacts: {station['trials_with_contacts']} of {station['measured']} "
+        f"trials touched the station ({station['station_contacts']['total']} control steps "
+        f"in all); least clearance {station['min_station_clearance_mm']} mm (measured up to "
+        f"300 mm); base filter {on}, active "
+        f"{active.get('median', 0.0):.1f} s median per trial"
+        f"{f'; link delay (delay, jitter) {delay} s' if delay else ''}.",
+    ]
 
 
 def _fmt(stat: dict[str, Any] | None, digits: int) -> str:
@@ -268,6 +317,7 @@ def summary_markdown(summary: dict[str, Any], title: str | None = None) -> str:
             f"Self-collision modelled in the pair solves: {shown} (the paper's controller "
             "does not; with it, no command comes closer than the design's margin).",
         ]
+    lines += _station_lines(summary.get("station"))
     lines += _run_lines(summary.get("run"))
     lines += [
         "",
@@ -467,6 +517,16 @@ def print_trial_summary(result: dict[str, Any], given: str = "") -> None:
         f"{modelled}{given}"
     )
     print(f"  success: {bool(result.get('success'))}")
+    if "station_contacts" in result:
+        delay = result.get("link_delay")
+        jitter = f" +-{delay[1]:g}" if delay and len(delay) > 1 and delay[1] else ""
+        print(
+            f"  base filter {'on' if result.get('base_filter') else 'off'}"
+            f"{f', link delay {delay[0]:g}{jitter} s' if delay else ''}; "
+            f"station contacts: {result.get('station_contacts')} steps, least clearance "
+            f"{result.get('min_station_clearance_mm')} mm, filter active "
+            f"{result.get('filter_active_s')} s"
+        )
     for key in METRIC_KEYS:
         value = result.get(key)
         shown = "n/a" if value is None else f"{value:.3f}"

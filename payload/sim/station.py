@@ -1,0 +1,101 @@
+"""Contacts and clearance between the station and what moves with the vehicle.
+
+Measured in every trial, with or without the base safety filter: at each control step,
+whether any MuJoCo contact joins a station geom (walls, handrails) to a geom of Astrobee,
+the payload or the CTB, and the least distance between those two sets by MuJoCo's own
+distance query (``mj_geomDistance``), for the pairs whose world bounding boxes come within
+:data:`CLEARANCE_CAP` of each other (farther pairs count as the cap).
+"""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import mujoco
+import numpy as np
+
+CLEARANCE_CAP = 0.3
+"""Distances beyond this are not measured [m]: the clearance reads at most the cap."""
+
+
+class StationReading(NamedTuple):
+    """One control step's reading.
+
+    Attributes:
+        contact: Some station geom touches the vehicle, the payload or the CTB.
+        clearance: Least distance between them [m], at most :data:`CLEARANCE_CAP`.
+    """
+
+    contact: bool
+    clearance: float
+
+
+def moving_geoms(world: Any) -> np.ndarray:
+    """Collision geoms of Astrobee, the payload and the CTB, shape (G,)."""
+    m = world.model
+    out = [
+        g
+        for g in range(m.ngeom)
+        if (
+            m.body_rootid[m.geom_bodyid[g]] == world.astrobee
+            or (world.ctb >= 0 and m.geom_bodyid[g] == world.ctb)
+        )
+        and (m.geom_contype[g] or m.geom_conaffinity[g])
+    ]
+    return np.array(out, dtype=int)
+
+
+def _world_aabb(model: mujoco.MjModel, data: mujoco.MjData, geoms: np.ndarray):
+    box = model.geom_aabb[geoms]
+    rot = data.geom_xmat[geoms].reshape(-1, 3, 3)
+    centre = data.geom_xpos[geoms] + np.einsum("nij,nj->ni", rot, box[:, :3])
+    half = np.einsum("nij,nj->ni", np.abs(rot), box[:, 3:])
+    return centre - half, centre + half
+
+
+class StationMonitor:
+    """Reads :class:`StationReading` from a world's model and data.
+
+    Args:
+        world: The simulator's :class:`~payload.sim.world.World`.
+    """
+
+    def __init__(self, world: Any) -> None:
+        self.model = world.model
+        self.moving = moving_geoms(world)
+        self.station = np.asarray(world.iss_geoms, dtype=int)
+        self._is_moving = np.zeros(self.model.ngeom, bool)
+        self._is_moving[self.moving] = True
+        self._is_station = np.zeros(self.model.ngeom, bool)
+        self._is_station[self.station] = True
+        self._station_box: tuple[np.ndarray, np.ndarray] | None = None
+        self._fromto = np.zeros(6)
+
+    def read(self, data: mujoco.MjData) -> StationReading:
+        """The contact flag and the clearance now."""
+        m = self.model
+        contact = False
+        for i in range(data.ncon):
+            c = data.contact[i]
+            g1, g2 = int(c.geom1), int(c.geom2)
+            if c.dist <= 0.0 and (
+                (self._is_station[g1] and self._is_moving[g2])
+                or (self._is_station[g2] and self._is_moving[g1])
+            ):
+                contact = True
+                break
+        if self._station_box is None:  # static geoms: their boxes never change
+            self._station_box = _world_aabb(m, data, self.station)
+        s_lo, s_hi = self._station_box
+        lo, hi = _world_aabb(m, data, self.moving)
+        gap = np.maximum(s_lo[None] - hi[:, None], lo[:, None] - s_hi[None]).max(axis=2)
+        best = CLEARANCE_CAP
+        for i, j in zip(*np.nonzero(gap < CLEARANCE_CAP)):
+            d = mujoco.mj_geomDistance(
+                m, data, int(self.moving[i]), int(self.station[j]), CLEARANCE_CAP, self._fromto
+            )
+            best = min(best, d)
+        return StationReading(contact or best <= 0.0, float(best))
+
+
+__all__ = ["CLEARANCE_CAP", "StationMonitor", "StationReading", "moving_geoms"]

@@ -1,0 +1,447 @@
+"""The base safety filter: a control-barrier QP between the base channel and the vehicle.
+
+Every collision shape that moves with the vehicle (Astrobee, the deployed payload, the
+held CTB: from the first opposing contact of the pinch until a second after the last) is
+sampled as points on the surface of its oriented bounding box (corners,
+then edges and faces at :attr:`SafetyConfig.spacing`), placed from the poses MuJoCo
+measures each control step. The obstacles are the complement of the keep-in union
+(:meth:`payload.sim.zones.StationZones.obstacles`) plus the keep-out boxes. For a sample
+point ``p`` at distance ``d`` from an obstacle box, with ``n`` the unit vector from the
+box's closest point to ``p`` (so at the hatch's rim it points diagonally), the barrier
+asks that the point's closing speed be one the vehicle can still stop from::
+
+    n . (v + w e_z x r)  >=  -v_stop(d - margin)
+
+``v`` the world linear velocity, ``w`` the yaw rate, ``r = p - c`` (``c`` Astrobee's
+centre), and ``v_stop(s)`` the largest speed from which the chain after the filter (the
+jerk-limited output stage at the base channel's bounds, then the vehicle controller's
+reference with the acceleration the nozzle polytope gives the loaded stack,
+:attr:`payload.sim.vehicle.VehicleController.accel_max`) stops within ``s``
+(:func:`stop_speed`). Inside the margin the point must move out at a small speed.
+
+The filter solves ``min |x - x_req|_W`` over ``x = (v, w)`` under those constraints with
+DAQP (a dual active-set solver for small dense QPs). When the request already meets every
+constraint and the output stage has caught up with it, the filter returns the request
+object itself: far from every wall it is exactly the identity. Its output is scaled to the
+base channel's speed and yaw-rate caps and passes through jerk limiters with the channel's
+acceleration and jerk bounds, so it never asks more than the channel would.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from typing import Any, NamedTuple
+
+import daqp
+import mujoco
+import numpy as np
+
+from payload.schema import CONTROL_DT, VehicleTwist
+from payload.sim.contact import ContactMonitor
+from payload.sim.zones import StationZones, station_zones
+from payload.teleop.channels import BaseConfig, JerkLimiter
+
+_INF = 1e30
+
+
+@dataclass(frozen=True)
+class SafetyConfig:
+    """Settings of the base safety filter.
+
+    Attributes:
+        margin: Least distance [m] every vehicle, payload and CTB shape keeps from the
+            keep-in boundary. Default 0.05: Astrobee's flight software pads its 0.28 m
+            radius by 0.02 m for a robot flown by its own planner; a teleoperated stack
+            with a bag held in a pinch swings by about 25 mm under a strike and moves up
+            to 4 mm per control step at 0.2 m/s, so 0.05 m keeps room for both while the
+            hatch (1.3 m) still leaves 0.24 m above and below the loaded stack.
+        spacing: Largest spacing of the sample points on a shape's box [m].
+        recovery_gain: Inside the margin, the outward speed asked per metre of
+            intrusion [1/s].
+        recovery_speed: Cap on that outward speed [m/s].
+        yaw_weight: Length that weighs a yaw-rate change against a velocity change in
+            the QP's cost [m] (about the stack's reach from Astrobee's centre).
+    """
+
+    margin: float = 0.05
+    spacing: float = 0.1
+    recovery_gain: float = 0.5
+    recovery_speed: float = 0.02
+    yaw_weight: float = 0.5
+
+    def __post_init__(self) -> None:
+        for name in self.__dataclass_fields__:
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0.0):
+                raise ValueError(f"SafetyConfig.{name}: must be a positive number, got {value!r}")
+
+
+def stop_speed(
+    distance: np.ndarray, accel: np.ndarray | float, jerk: float, lag: float
+) -> np.ndarray:
+    """Largest closing speed [m/s] from which a jerk-limited brake stops within
+    ``distance`` [m] (0 for distances <= 0).
+
+    Worst case: the stage is accelerating toward the wall at ``accel`` and keeps doing so
+    for ``lag`` [s] before the brake starts ramping the acceleration down at ``jerk``. The
+    speed grows to at most ``u = v + accel lag + accel^2 / (2 jerk)``; the lag and the two
+    ramps (``accel / jerk`` each) cover at most ``u (lag + 2 accel / jerk)`` and the full
+    deceleration ``u^2 / (2 accel)``. That bound is solved here for ``v``.
+    """
+    a = np.asarray(accel, float)
+    b = lag + 2.0 * a / jerk
+    d = np.maximum(np.asarray(distance, float), 0.0)
+    u = a * (np.sqrt(b * b + 2.0 * d / a) - b)
+    return np.maximum(u - a * lag - a * a / (2.0 * jerk), 0.0)
+
+
+def _grid(n: int) -> np.ndarray:
+    return np.linspace(-1.0, 1.0, n + 1)
+
+
+def box_samples(counts: tuple[int, int, int]) -> np.ndarray:
+    """Points on the surface of the unit box [-1, 1]^3: a grid of ``counts`` (3,)
+    intervals per axis on each face (corners and edges included).
+
+    Returns:
+        Shape (K, 3), to be scaled by a box's half-extents.
+    """
+    pts = []
+    for axis in range(3):
+        u, v = [a for a in range(3) if a != axis]
+        gu, gv = np.meshgrid(_grid(counts[u]), _grid(counts[v]), indexing="ij")
+        for side in (-1.0, 1.0):
+            p = np.zeros((gu.size, 3))
+            p[:, axis] = side
+            p[:, u] = gu.ravel()
+            p[:, v] = gv.ravel()
+            pts.append(p)
+    return np.unique(np.round(np.vstack(pts), 12), axis=0)
+
+
+def _moving_geoms(world: Any, which: str) -> np.ndarray:
+    m = world.model
+    out = []
+    for g in range(m.ngeom):
+        b = int(m.geom_bodyid[g])
+        if not (m.geom_contype[g] or m.geom_conaffinity[g]):
+            continue
+        if which == "ctb" and b == world.ctb and world.ctb >= 0:
+            out.append(g)
+        elif which == "astrobee" and b == world.astrobee:
+            out.append(g)
+        elif which == "payload" and b != world.astrobee and m.body_rootid[b] == world.astrobee:
+            out.append(g)
+    return np.array(out, dtype=int)
+
+
+class _Shape:
+    """One box moving with the vehicle: the oriented box enclosing the collision geoms of
+    Astrobee, of the payload, or of the CTB, in the frame of its reference body."""
+
+    def __init__(self, world: Any, kind: str, spacing: float) -> None:
+        m = world.model
+        self.kind = kind
+        self.body = world.ctb if kind == "ctb" else world.astrobee
+        self.geoms = _moving_geoms(world, kind)
+        signs = np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1], indexing="ij")).reshape(3, -1).T
+        aabb = m.geom_aabb[self.geoms]  # (G, 6): centre, half-extent in the geom frame
+        self.corners = (aabb[:, None, :3] + signs[None] * aabb[:, None, 3:]).reshape(-1, 3)
+        self.owner = np.repeat(np.arange(len(self.geoms)), 8)
+        self.spacing = spacing
+        self.unit: np.ndarray | None = None
+        self.refresh_steps = 10 if kind == "payload" else 0
+        self.local_centre = np.zeros(3)
+        self.half = np.zeros(3)
+        self._age = 0
+
+    def refresh(self, data: mujoco.MjData) -> None:
+        """Measure the enclosing box in the reference body's frame from the geoms' poses."""
+        pos = data.geom_xpos[self.geoms][self.owner]
+        rot = data.geom_xmat[self.geoms].reshape(-1, 3, 3)[self.owner]
+        world_pts = pos + np.einsum("nij,nj->ni", rot, self.corners)
+        frame = data.xmat[self.body].reshape(3, 3)
+        local = (world_pts - data.xpos[self.body]) @ frame
+        lo, hi = local.min(axis=0), local.max(axis=0)
+        self.local_centre = (lo + hi) / 2.0
+        self.half = (hi - lo) / 2.0
+        if self.unit is None:  # the sampling grid is set by the first box
+            counts = tuple(max(1, math.ceil(2.0 * h / self.spacing)) for h in self.half)
+            self.unit = box_samples(counts)  # type: ignore[arg-type]
+        self._age = 0
+
+    def box(self, data: mujoco.MjData) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(centre (3,), rotation (3, 3), half-extents (3,)) of the enclosing box [m],
+        world frame. Astrobee's and the CTB's boxes are rigid in their bodies; the
+        payload's (its fingers and rail move) is measured again every ``refresh_steps``
+        calls."""
+        if self.unit is None or (self.refresh_steps and self._age >= self.refresh_steps):
+            self.refresh(data)
+        self._age += 1
+        frame = data.xmat[self.body].reshape(3, 3)
+        return data.xpos[self.body] + frame @ self.local_centre, frame, self.half
+
+    def points(self, centre: np.ndarray, rot: np.ndarray, half: np.ndarray) -> np.ndarray:
+        """World positions of the sample points, shape (K, 3) [m]."""
+        assert self.unit is not None
+        return centre + (self.unit * half) @ rot.T
+
+
+class FilterStatus(NamedTuple):
+    """What the filter did at one control step (recorded per step).
+
+    Attributes:
+        active: The filter changed the command (or its output stage was catching up).
+        clearance: Least distance from any sample point to an obstacle within reach
+            [m] (``reach`` when none is within it).
+        shape: Kind of the shape closest to an obstacle (``astrobee``, ``payload``,
+            ``ctb``), or ``""`` when none is within reach.
+        face: The obstacle it is closest to (``<keep-in box> <axis><sign>``).
+        change: Norm of the change of the world linear velocity [m/s].
+        yaw_change: Change of the yaw rate [rad/s].
+        constraints: Constraints in the QP (0 when not solved).
+        solve_us: Time of the whole filter step [us].
+    """
+
+    active: bool
+    clearance: float
+    shape: str
+    face: str
+    change: float
+    yaw_change: float
+    constraints: int
+    solve_us: float
+
+
+class BaseSafetyFilter:
+    """The base safety filter (see the module docstring).
+
+    Args:
+        world: The simulator's :class:`~payload.sim.world.World`.
+        base: The base channel's settings (speed, acceleration and jerk bounds).
+        vehicle_accel: Linear acceleration the vehicle controller gives the loaded stack
+            per body axis, shape (3,) [m/s^2] (its ``accel_max``, from the nozzle
+            polytope and the carried mass).
+        vehicle_jerk: The controller's linear jerk bound [m/s^3].
+        zones: Keep-in and keep-out boxes (default: the world's layout).
+        config: Filter settings.
+        per_face: Constraints kept per (shape, obstacle box) pair: the most binding at
+            the request.
+    """
+
+    def __init__(
+        self,
+        world: Any,
+        base: BaseConfig,
+        vehicle_accel: np.ndarray,
+        vehicle_jerk: float,
+        zones: StationZones | None = None,
+        config: SafetyConfig | None = None,
+        per_face: int = 4,
+    ) -> None:
+        self.world = world
+        self.base = base
+        self.config = config or SafetyConfig()
+        self.zones = zones or station_zones(world.layout)
+        self.obs_lo, self.obs_hi, self.obs_names = self.zones.obstacles()
+        kinds = ("astrobee", "payload", "ctb") if world.ctb >= 0 else ("astrobee", "payload")
+        self.all_shapes = [_Shape(world, k, self.config.spacing) for k in kinds]
+        self.shapes = self.all_shapes
+        # the CTB moves with the vehicle only while the pinch holds it: it counts from the
+        # first opposing contact until ``release_s`` after the last one
+        self.contacts = ContactMonitor(world) if world.ctb >= 0 else None
+        self.release_s = 1.0
+        self._held_until = -math.inf
+        self.per_face = per_face
+        # braking: the output stage (channel bounds) and the controller (polytope bounds)
+        self.body_accel = np.minimum(np.asarray(vehicle_accel, float), base.max_accel)
+        self.jerk = min(base.max_jerk, vehicle_jerk)
+        self.lag = 2.0 * CONTROL_DT + float(self.body_accel.max()) / vehicle_jerk
+        self.weights = np.array([1.0, 1.0, 1.0, self.config.yaw_weight**2])
+        self.linear = JerkLimiter(3, base.max_accel, base.max_jerk, base.max_speed)
+        self.yaw = JerkLimiter(1, base.max_yaw_accel, base.max_yaw_jerk, base.max_yaw_rate)
+        self.engaged = False
+        self._last: np.ndarray | None = None
+        self.status = FilterStatus(False, math.inf, "", "", 0.0, 0.0, 0, 0.0)
+
+    def _accel_along(self, normals: np.ndarray, rot: np.ndarray) -> np.ndarray:
+        """Deceleration the stack can give along world unit vectors (P, 3) [m/s^2]: the
+        per-body-axis bounds met along each vector's body components."""
+        nb = np.maximum(np.abs(normals @ rot), 1e-12)  # body components of each vector
+        return np.min(self.body_accel / nb, axis=1)
+
+    def __call__(self, twist: VehicleTwist, data: mujoco.MjData) -> VehicleTwist:
+        """The filtered body twist for the request ``twist`` at the state in ``data``."""
+        start = time.perf_counter()
+        if self.contacts is not None:
+            if self.contacts.opposing(data):
+                self._held_until = float(data.time) + self.release_s
+            held = float(data.time) <= self._held_until
+            self.shapes = self.all_shapes if held else self.all_shapes[:2]
+        rot = data.xmat[self.world.astrobee].reshape(3, 3)
+        centre = data.xpos[self.world.astrobee]
+        v_req = rot @ twist.linear
+        ang = rot @ twist.angular
+        req = np.array([v_req[0], v_req[1], v_req[2], ang[2]])
+        rows, b, slack, clearance, shape, face = self._constraints(data, rot, centre, req)
+        violated = bool(slack.size and slack.min() < 0.0)
+        if not violated and not self.engaged:
+            self._follow(req)
+            self.status = FilterStatus(
+                False, clearance, shape, face, 0.0, 0.0, 0, (time.perf_counter() - start) * 1e6
+            )
+            return twist
+        target = req
+        used = 0
+        if violated:
+            used = int(b.size)
+            target = self._solve(req, rows, b)
+        out = np.empty(4)
+        out[:3] = self.linear.step(target[:3], CONTROL_DT)
+        out[3] = self.yaw.step(target[3:], CONTROL_DT)[0]
+        self.engaged = violated or not np.array_equal(out, req)
+        if not self.engaged:
+            self._follow(req)
+            out = req
+        self._last = out
+        ang_out = np.array([ang[0], ang[1], out[3]])
+        filtered = VehicleTwist(rot.T @ out[:3], rot.T @ ang_out, twist.stamp)
+        self.status = FilterStatus(
+            True,
+            clearance,
+            shape,
+            face,
+            float(np.linalg.norm(out[:3] - req[:3])),
+            float(out[3] - req[3]),
+            used,
+            (time.perf_counter() - start) * 1e6,
+        )
+        return filtered
+
+    def _follow(self, req: np.ndarray) -> None:
+        """Keep the output stage on the request (rate from the last two outputs)."""
+        rate = np.zeros(4) if self._last is None else (req - self._last) / CONTROL_DT
+        self.linear.value, self.linear.rate = req[:3].copy(), rate[:3].copy()
+        self.yaw.value, self.yaw.rate = req[3:].copy(), rate[3:].copy()
+        self._last = req
+
+    def _constraints(
+        self, data: mujoco.MjData, rot: np.ndarray, centre: np.ndarray, req: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, str, str]:
+        """Rows ``A x >= b`` of the (point, obstacle) pairs that could bind, their slack
+        at the request, and the least clearance with its shape and obstacle.
+
+        A (shape, obstacle) pair is skipped when the two are separated along a world
+        axis by more than the margin and the request's closing speed along that axis
+        (translation plus the yaw rate times the shape's lever) is one the stack stops
+        from within the separation; the others are checked point by point.
+        """
+        margin = self.config.margin
+        w = abs(float(req[3]))
+        axis_accel = self._accel_along(np.eye(3), rot)  # (3,)
+        boxes = [shape.box(data) for shape in self.shapes]
+        s_centre = np.array([bx[0] for bx in boxes])  # (S, 3)
+        ext = np.array([np.abs(bx[1]) @ bx[2] for bx in boxes])  # (S, 3) world half-extents
+        above = self.obs_lo[None] - (s_centre + ext)[:, None]  # (S, M, 3) > 0: obstacle on +
+        below = (s_centre - ext)[:, None] - self.obs_hi[None]  # > 0: obstacle on the - side
+        arm = np.abs(s_centre - centre) + ext
+        lever = w * arm[:, [1, 0, 2]] * np.array([1.0, 1.0, 0.0])  # (S, 3)
+        toward = req[:3] + lever  # closing speed bound toward + (per shape)
+        away = -req[:3] + lever
+        closing = np.where(above > below, toward[:, None], away[:, None])
+        gap = np.maximum(above, below)
+        allowed = stop_speed(gap - margin, axis_accel, self.jerk, self.lag)
+        safe = ((gap > margin) & (closing <= allowed)).any(axis=2)  # (S, M)
+        lower = gap.max(axis=2)  # a lower bound of each pair's distance
+        pairs = np.argwhere(~safe)
+        rows = b = slack = np.zeros(0)
+        if pairs.size:
+            pts_by_shape = {
+                si: self.shapes[si].points(*boxes[si]) for si in set(pairs[:, 0].tolist())
+            }
+            pts = np.vstack([pts_by_shape[int(si)] for si, _ in pairs])
+            counts = [len(pts_by_shape[int(si)]) for si, _ in pairs]
+            obstacle = np.repeat(pairs[:, 1], counts)
+            pair_of = np.repeat(np.arange(len(pairs)), counts)
+            rows, b, slack, d = self._rows(pts, obstacle, centre, rot, req)
+            starts = np.cumsum([0, *counts[:-1]])
+            lower[pairs[:, 0], pairs[:, 1]] = np.minimum.reduceat(d, starts)  # sampled
+            keep = self._most_binding(pair_of, slack)
+            rows, b, slack = rows[keep], b[keep], slack[keep]
+        si, mi = divmod(int(lower.argmin()), lower.shape[1])
+        return rows, b, slack, float(lower[si, mi]), self.shapes[si].kind, self.obs_names[mi]
+
+    def _most_binding(self, group: np.ndarray, slack: np.ndarray) -> np.ndarray:
+        """Per group (a shape and obstacle pair), the ``per_face`` rows of least slack."""
+        order = np.lexsort((slack, group))
+        g = group[order]
+        first = np.flatnonzero(np.concatenate(([True], g[1:] != g[:-1])))
+        rank = np.arange(order.size) - np.repeat(first, np.diff(np.append(first, order.size)))
+        return order[rank < self.per_face]
+
+    def _rows(
+        self,
+        pts: np.ndarray,
+        obstacle: np.ndarray,
+        centre: np.ndarray,
+        rot: np.ndarray,
+        req: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Rows, bounds, slack and distances of points (P, 3) against their obstacles (P,)."""
+        c = self.config
+        lo, hi = self.obs_lo[obstacle], self.obs_hi[obstacle]
+        delta = pts - np.clip(pts, lo, hi)
+        d = np.sqrt((delta * delta).sum(axis=1))
+        n = np.empty_like(delta)
+        out = d > 1e-12
+        n[out] = delta[out] / d[out, None]
+        inside = np.flatnonzero(~out)
+        if inside.size:  # depth to the box's nearest face, pointing out of it
+            below, above = pts[inside] - lo[inside], hi[inside] - pts[inside]
+            depth = np.minimum(below, above)
+            axis = depth.argmin(axis=1)
+            rows_i = np.arange(inside.size)
+            n[inside] = 0.0
+            n[inside, axis] = np.where(below[rows_i, axis] < above[rows_i, axis], -1.0, 1.0)
+            d[inside] = -depth[rows_i, axis]
+        r = pts - centre
+        a = np.empty((d.size, 4))
+        a[:, :3] = n
+        a[:, 3] = n[:, 1] * r[:, 0] - n[:, 0] * r[:, 1]  # n . (e_z x r)
+        gap = d - c.margin
+        b = -stop_speed(gap, self._accel_along(n, rot), self.jerk, self.lag)
+        b = np.where(gap < 0.0, np.minimum(-c.recovery_gain * gap, c.recovery_speed), b)
+        return a, b, a @ req - b, d
+
+    def _solve(self, req: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """The least (weighted) change of ``req`` meeting ``a x >= b``, then capped to the
+        channel's speed and yaw rate; rest if even holding every distance is infeasible."""
+        h = np.diag(self.weights)
+        f = -self.weights * req
+        a = np.ascontiguousarray(a)
+        upper = np.full(b.size, _INF)
+        x, _, flag, _ = daqp.solve(h, f, a, upper, b.copy())
+        if flag != 1:  # conflicting recoveries: hold every distance instead
+            x, _, flag, _ = daqp.solve(h, f, a, upper, np.minimum(b, 0.0))
+        if flag != 1:
+            return np.zeros(4)
+        x = np.asarray(x, float)
+        speed, rate = float(np.linalg.norm(x[:3])), abs(float(x[3]))
+        scale = min(1.0, self.base.max_speed / max(speed, 1e-12))
+        scale = min(scale, self.base.max_yaw_rate / max(rate, 1e-12))
+        return x * scale  # scaling toward rest keeps every b <= 0 row met
+
+    def reset(self) -> None:
+        """Forget the output stage's state (a new session)."""
+        self.engaged = False
+        self._last = None
+        self._held_until = -math.inf
+        for shape in self.all_shapes:
+            shape.unit = None
+        self.linear.reset()
+        self.yaw.reset()
+
+
+__all__ = ["BaseSafetyFilter", "FilterStatus", "SafetyConfig", "box_samples", "stop_speed"]

@@ -1,0 +1,387 @@
+"""The base safety filter against scripted base commands (no operator), measured with
+MuJoCo's own distance query (mj_geomDistance), independent of the filter's geometry."""
+
+from __future__ import annotations
+
+import json
+import time
+
+import mujoco
+import numpy as np
+import pytest
+
+from payload.schema import VehicleTwist
+from payload.sim.driver import SimDriver
+from payload.sim.stack import hold_ctb, place_stack
+from payload.sim.world import build_world
+from payload.sim.zones import StationZones, ZoneError, station_zones
+from payload.teleop.base_filter import BaseSafetyFilter, SafetyConfig, stop_speed
+from payload.teleop.channels import BaseConfig
+
+TOLERANCE = 0.01
+"""What the least measured distance may fall below the margin [m]: the filter samples
+each box at 0.1 m, acts once per control step (4 mm at 0.2 m/s) and does not model the
+bag's swing in the pinch between two steps."""
+
+
+@pytest.fixture(scope="module")
+def world():
+    return build_world()
+
+
+@pytest.fixture(scope="module")
+def grasped_state(world):
+    return hold_ctb(world)
+
+
+def _driver(world, held, pos, velocity) -> SimDriver:
+    return place_stack(world, held, pos, velocity)
+
+
+def _filter(sim: SimDriver, **kw) -> BaseSafetyFilter:
+    c = sim.controller
+    return BaseSafetyFilter(sim.world, BaseConfig(), c.accel_max, float(c.jerk[0]), **kw)
+
+
+def _moving_geoms(world) -> list[int]:
+    m = world.model
+    return [
+        g
+        for g in range(m.ngeom)
+        if (m.body_rootid[m.geom_bodyid[g]] == world.astrobee or m.geom_bodyid[g] == world.ctb)
+        and (m.geom_contype[g] or m.geom_conaffinity[g])
+    ]
+
+
+def least_distance(sim: SimDriver, moving: list[int], cap: float = 0.3) -> float:
+    """Least distance from any vehicle, payload or CTB geom to the station [m] by
+    mj_geomDistance (pairs whose bounding spheres are farther than ``cap`` skipped)."""
+    m, d = sim.model, sim.data
+    iss = np.asarray(sim.world.iss_geoms)
+    moving = np.asarray(moving)
+    centres = np.linalg.norm(d.geom_xpos[moving][:, None] - d.geom_xpos[iss][None], axis=2)
+    gaps = centres - m.geom_rbound[moving][:, None] - m.geom_rbound[iss][None]
+    best = cap
+    fromto = np.zeros(6)
+    for i, j in zip(*np.nonzero(gaps < cap)):
+        best = min(best, mujoco.mj_geomDistance(m, d, int(moving[i]), int(iss[j]), cap, fromto))
+    return best
+
+
+def fly(sim, filt, v_world, yaw_rate, seconds):
+    """Request a constant world velocity and yaw rate; returns (least distance [m],
+    steps with the filter active, whether the bag stayed in the pinch)."""
+    sim.twist_filter = filt
+    moving = _moving_geoms(sim.world)
+    least, active, held = np.inf, 0, True
+    for _ in range(round(seconds * 50)):
+        rot = sim.data.xmat[sim.world.astrobee].reshape(3, 3)
+        sim.command_twist(
+            VehicleTwist(rot.T @ np.asarray(v_world, float), rot.T @ np.array([0, 0, yaw_rate]), 0)
+        )
+        state = sim.step()
+        least = min(least, least_distance(sim, moving))
+        status = getattr(filt, "status", None)
+        active += bool(status is not None and status.active)
+        held &= state.opposing_contact
+    return least, active, held
+
+
+MARGIN = SafetyConfig().margin
+
+
+@pytest.mark.parametrize(
+    "name, pos, v0, wanted, yaw, seconds",
+    [
+        # straight at Kibo's side wall, the request at full speed
+        ("kibo wall", (1.6, 7.0, 0.25), (0.06, 0.0, 0.0), (0.2, 0.0, 0.0), 0.0, 8.0),
+        # up and forward into the hatch's upper edge, Astrobee's top above the opening
+        ("hatch edge", (1.5, 4.2, 0.55), (0.0, -0.06, 0.015), (0.0, -0.194, 0.0485), 0.0, 10.0),
+        # a fast right turn toward Node 2's starboard wall, the bag swinging outward
+        ("node2 turn", (1.5, -0.2, 0.25), (-0.08, -0.06, 0.0), (-0.16, -0.12, 0.0), -0.1, 10.0),
+    ],
+)
+def test_filter_keeps_the_margin(world, grasped_state, name, pos, v0, wanted, yaw, seconds):
+    sim = _driver(world, grasped_state, pos, v0)
+    filt = _filter(sim)
+    least, active, held = fly(sim, filt, wanted, yaw, seconds)
+    assert active > 0, f"{name}: the filter never acted"
+    assert least >= MARGIN - TOLERANCE, f"{name}: {least * 1e3:.1f} mm from the station"
+    assert held, f"{name}: the bag left the pinch"
+
+
+def test_unfiltered_request_strikes_the_wall(world, grasped_state):
+    """The first scenario without the filter: the station is struck (so the test above
+    measures something)."""
+    sim = _driver(world, grasped_state, (1.6, 7.0, 0.25), (0.06, 0.0, 0.0))
+    least, _, _ = fly(sim, lambda t, d: t, (0.2, 0.0, 0.0), 0.0, 8.0)
+    assert least <= 1e-3
+
+
+def test_hatch_stays_passable_with_the_bag(world, grasped_state):
+    sim = _driver(world, grasped_state, (1.5, 3.9, 0.25), (0.0, -0.1, 0.0))
+    filt = _filter(sim)
+    y0 = float(sim.world_state().astrobee_pos[1])
+    least, _, held = fly(sim, filt, (0.0, -0.2, 0.0), 0.0, 14.0)
+    state = sim.world_state()
+    vestibule = world.layout.vestibule
+    assert state.astrobee_pos[1] < vestibule.hi[1] - 0.4, "not into the vestibule"
+    assert y0 - state.astrobee_pos[1] > 1.1
+    assert np.linalg.norm(state.astrobee_linear) > 0.05, "trapped in the hatch"
+    assert least >= MARGIN - TOLERANCE and held
+
+
+def test_far_from_the_walls_the_filter_is_the_identity(world, grasped_state):
+    """Mid-Kibo, a slow request: the filter returns the request itself, and a driver
+    with the filter steps bit for bit like one without."""
+    pos, v0 = (1.5, 7.0, 0.25), (0.0, 0.0, 0.0)
+    plain = _driver(world, grasped_state, pos, v0)
+    guarded = _driver(world, grasped_state, pos, v0)
+    filt = _filter(guarded)
+    guarded.twist_filter = filt
+    rot = plain.data.xmat[world.astrobee].reshape(3, 3)
+    twist = VehicleTwist(rot.T @ np.array([0.0, -0.03, 0.0]), np.zeros(3), 0.0)
+    assert filt(twist, guarded.data) is twist
+    filt.reset()
+    for _ in range(25):
+        plain.command_twist(twist)
+        guarded.command_twist(twist)
+        plain.step()
+        guarded.step()
+        assert not filt.status.active
+    assert np.array_equal(plain.data.qpos, guarded.data.qpos)
+    assert np.array_equal(plain.data.qvel, guarded.data.qvel)
+
+
+def test_filter_respects_the_channel_bounds(world, grasped_state):
+    """Braking hard at a wall, the filtered command still moves within the channel's
+    speed, acceleration and jerk bounds (finite differences of the output)."""
+    sim = _driver(world, grasped_state, (1.6, 7.0, 0.25), (0.06, 0.0, 0.0))
+    filt = _filter(sim)
+    base = BaseConfig()
+    outs = []
+
+    def recording(twist, data):
+        out = filt(twist, data)
+        rot = data.xmat[world.astrobee].reshape(3, 3)
+        outs.append(rot @ out.linear)
+        return out
+
+    fly(sim, recording, (0.2, 0.0, 0.0), 0.0, 3.0)
+    v = np.array(outs)
+    dt = 0.02
+    acc = np.diff(v, axis=0) / dt
+    jerk = np.diff(acc, axis=0) / dt
+    assert np.linalg.norm(v, axis=1).max() <= base.max_speed + 1e-9
+    assert np.linalg.norm(acc[1:], axis=1).max() <= base.max_accel * (1 + 1e-6)
+    assert np.linalg.norm(jerk[1:], axis=1).max() <= base.max_jerk * (1 + 1e-6) + 1e-9
+
+
+def test_stop_speed_matches_a_simulated_brake():
+    """stop_speed against a brute-force jerk-limited brake from the worst case."""
+    accel, jerk, lag, dt = 0.004, 0.02, 0.3, 1e-4
+    for dist in (0.05, 0.4, 2.0):
+        v0 = float(stop_speed(np.array([dist]), accel, jerk, lag)[0])
+        v, a, x, t = v0, accel, 0.0, 0.0
+        while v > 0:
+            if t >= lag:
+                a = max(a - jerk * dt, -accel)
+            x += v * dt
+            v += a * dt
+            t += dt
+        assert x <= dist + 1e-3
+
+
+# -- zones -----------------------------------------------------------------------------------
+def test_station_zones_follow_the_simulated_walls(world):
+    """The keep-in union holds the route and no ISS geom: every wall and handrail lies
+    outside it (sampled on each geom's box), and the obstacles cover the station's geoms."""
+    zones = station_zones(world.layout)
+    for p in world.layout.route():
+        assert zones.contains(p)
+    m, d = world.model, mujoco.MjData(world.model)
+    mujoco.mj_kinematics(m, d)
+    lo, hi, _ = zones.obstacles()
+    grid = np.array(np.meshgrid(*[np.linspace(-0.999, 0.999, 5)] * 3)).reshape(3, -1).T
+    for g in world.iss_geoms:
+        pts = d.geom_xpos[g] + (grid * m.geom_size[g]) @ d.geom_xmat[g].reshape(3, 3).T
+        for p in pts:
+            assert not zones.contains(p), f"geom {g} reaches into the keep-in set at {p}"
+            # open space outside the keep-in union but inside a wall: an obstacle holds it
+            assert np.any(np.all((lo <= p + 1e-9) & (p - 1e-9 <= hi), axis=1))
+
+
+def test_zone_json_round_trip_and_errors(tmp_path):
+    zones = StationZones(
+        (((0.0, 0.0, 0.0), (1.0, 2.0, 3.0)),), (((0.2, 0.2, 0.2), (0.4, 0.4, 0.4)),)
+    )
+    path = tmp_path / "zones.json"
+    zones.write(path)
+    data = json.loads(path.read_text())
+    assert data[0] == {"sequence": [[0.0, 0.0, 0.0, 1.0, 2.0, 3.0]], "safe": True}
+    back = StationZones.read(path)
+    assert back.keepin == zones.keepin and back.keepout == zones.keepout
+    assert back.contains((0.5, 0.5, 0.5)) and not back.contains((0.3, 0.3, 0.3))
+    one = StationZones.from_json({"sequence": [[0, 0, 0, 1, 1, 1]], "safe": True})
+    assert one.keepin == (((0.0, 0.0, 0.0), (1.0, 1.0, 1.0)),)
+    for bad, words in (
+        ({"sequence": [[0, 0, 0, 1, 1]], "safe": True}, "6 numbers"),
+        ({"sequence": [[1, 0, 0, 0, 1, 1]], "safe": True}, "below"),
+        ({"sequence": [[0, 0, 0, 1, 1, 1]], "safe": "yes"}, "'safe'"),
+        ({"sequence": [[0, 0, 0, 1, 1, 1]], "safe": False}, "no keep-in"),
+        ([1, 2], "expected"),
+    ):
+        with pytest.raises(ZoneError, match=words):
+            StationZones.from_json(bad)
+    (tmp_path / "bad.json").write_text("{")
+    with pytest.raises(ZoneError, match="not JSON"):
+        StationZones.read(tmp_path / "bad.json")
+
+
+def test_a_keepout_box_stops_the_vehicle(world, grasped_state):
+    """A loaded zone file's keep-out box in mid-Kibo is kept off like a wall."""
+    zones = station_zones(world.layout, keepout=[((1.2, 5.6, -0.9), (1.8, 5.9, 0.9))])
+    sim = _driver(world, grasped_state, (1.5, 6.6, 0.25), (0.0, -0.05, 0.0))
+    filt = _filter(sim, zones=zones)
+    fly(sim, filt, (0.0, -0.2, 0.0), 0.0, 8.0)
+    pts = np.vstack([s.points(*s.box(sim.data)) for s in filt.shapes])
+    assert pts[:, 1].min() >= 5.9 + MARGIN - TOLERANCE
+
+
+def test_filter_cost_per_step(world, grasped_state):
+    """Indicative on a shared machine: the median step is well under a millisecond."""
+    sim = _driver(world, grasped_state, (1.6, 7.0, 0.25), (0.06, 0.0, 0.0))
+    filt = _filter(sim)
+    rot = sim.data.xmat[world.astrobee].reshape(3, 3)
+    twist = VehicleTwist(rot.T @ np.array([0.2, 0.0, 0.0]), np.zeros(3), 0.0)
+    times = []
+    for _ in range(100):
+        t = time.perf_counter()
+        filt(twist, sim.data)
+        times.append(time.perf_counter() - t)
+    assert filt.status.constraints > 0
+    assert np.median(times) < 5e-3
+
+
+def test_station_monitor_sees_the_strike(world, grasped_state):
+    """StationMonitor against the unfiltered strike: contact and zero clearance at the
+    wall, the cap in mid-module."""
+    from payload.sim.station import CLEARANCE_CAP, StationMonitor
+
+    sim = _driver(world, grasped_state, (1.5, 7.0, 0.25), (0.0, 0.0, 0.0))
+    monitor = StationMonitor(world)
+    assert monitor.read(sim.data) == (False, CLEARANCE_CAP)
+    sim = _driver(world, grasped_state, (1.6, 7.0, 0.25), (0.06, 0.0, 0.0))
+    moving = _moving_geoms(world)
+    touched = False
+    for _ in range(400):
+        rot = sim.data.xmat[world.astrobee].reshape(3, 3)
+        sim.command_twist(VehicleTwist(rot.T @ np.array([0.2, 0.0, 0.0]), np.zeros(3), 0.0))
+        sim.step()
+        reading = monitor.read(sim.data)
+        assert reading.clearance == pytest.approx(least_distance(sim, moving), abs=1e-9)
+        touched |= reading.contact
+    assert touched
+
+
+def test_cli_controller_filter_zones_and_delay_reach_the_runner(tmp_path, monkeypatch, capsys):
+    """``--controller safe`` turns the filter on (``--no-base-filter`` overrides it);
+    ``--zones`` and ``--link-delay`` are parsed and passed on; bad values exit 2."""
+    import sys
+    import types
+
+    from payload.cli import main
+
+    calls = []
+
+    def run_trial(**kw):
+        calls.append(kw)
+        return {"seed": kw.get("seed", 0), "out_dir": str(tmp_path)}
+
+    module = types.ModuleType("payload.trials.runner")
+    module.run_trial = run_trial
+    monkeypatch.setitem(sys.modules, "payload.trials.runner", module)
+    zones = tmp_path / "zones.json"
+    station_zones().write(zones)
+    base = ["trial", "--out", str(tmp_path / "t"), "--json"]
+    assert (
+        main([*base, "--controller", "safe", "--link-delay", "1.0:0.2", "--zones", str(zones)]) == 0
+    )
+    assert calls[-1]["base_filter"] is True and calls[-1]["retarget_collisions"] is True
+    assert calls[-1]["link_delay"] == (1.0, 0.2)
+    assert calls[-1]["zones"] == StationZones.read(zones)
+    assert main([*base, "--controller", "safe", "--no-base-filter"]) == 0
+    assert calls[-1]["base_filter"] is False
+    assert main(base) == 0
+    assert calls[-1]["base_filter"] is False and "link_delay" not in calls[-1]
+    capsys.readouterr()
+    assert main([*base, "--link-delay", "soon"]) == 2
+    assert "--link-delay" in capsys.readouterr().err
+    (tmp_path / "bad.json").write_text('{"sequence": [[0, 0, 0, 1, 1]], "safe": true}')
+    assert main([*base, "--zones", str(tmp_path / "bad.json")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "6 numbers" in err[0]
+
+
+def test_summary_aggregates_station_contacts():
+    from payload.trials.summary import station_summary
+
+    rows = [
+        {
+            "seed": 0,
+            "station_contacts": 0,
+            "min_station_clearance_mm": 120.0,
+            "filter_active_s": 3.0,
+            "base_filter": True,
+        },
+        {
+            "seed": 1,
+            "station_contacts": 4,
+            "min_station_clearance_mm": 0.0,
+            "filter_active_s": 5.0,
+            "base_filter": True,
+        },
+        {"seed": 2, "error": "boom"},
+    ]
+    s = station_summary(rows)
+    assert s["measured"] == 2 and s["trials_with_contacts"] == 1
+    assert s["station_contacts"] == {"total": 4, "max": 4}
+    assert s["min_station_clearance_mm"] == 0.0
+    assert s["filter_active_s"] == {"median": 4.0, "max": 5.0}
+
+
+def test_recording_carries_the_filter_channel_and_the_keepin_boxes(world, grasped_state, tmp_path):
+    """A recorder with the safety scene: one JSON record per step on /safety/filter (what
+    the filter and the station monitor said) and the keep-in boxes on /safety/keepin."""
+    from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
+    from mcap.reader import make_reader
+
+    from payload.trials.foxglove import FoxgloveScene
+    from payload.trials.recorder import TrialRecorder
+    from payload.trials.records import random_step
+    from payload.trials.safety import FILTER_TOPIC, KEEPIN_TOPIC, SafetyScene, keepin_boxes
+
+    sim = _driver(world, grasped_state, (1.6, 7.0, 0.25), (0.06, 0.0, 0.0))
+    sim.twist_filter = _filter(sim)
+    scene = SafetyScene(FoxgloveScene(world), sim)
+    rng = np.random.default_rng(0)
+    with TrialRecorder(tmp_path / "log.mcap", scene=scene) as rec:
+        for k in range(3):
+            rot = sim.data.xmat[world.astrobee].reshape(3, 3)
+            sim.command_twist(VehicleTwist(rot.T @ np.array([0.2, 0, 0]), np.zeros(3), 0.0))
+            sim.step()
+            rec.write(random_step(rng, 0.02 * k))
+    with open(tmp_path / "log.mcap", "rb") as f:
+        msgs = list(make_reader(f).iter_messages(topics=[FILTER_TOPIC, KEEPIN_TOPIC]))
+    records = [json.loads(m.data) for _, c, m in msgs if c.topic == FILTER_TOPIC]
+    assert [r["t"] for r in records] == [0.0, 0.02, 0.04]
+    assert all(r["active"] and r["constraints"] > 0 for r in records)
+    assert records[-1]["shape"] in ("astrobee", "payload", "ctb")
+    boxes = [m for _, c, m in msgs if c.topic == KEEPIN_TOPIC]
+    update = SceneUpdate.FromString(boxes[0].data)
+    assert len(update.entities[0].cubes) == len(keepin_boxes(layout=world.layout)) == 3
+    assert scene.summary() == {
+        "station_contacts": 0,
+        "min_station_clearance_mm": round(scene.least * 1e3, 1),
+        "filter_active_s": 0.06,
+    }
