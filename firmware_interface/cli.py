@@ -205,14 +205,14 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 def _cmd_identify(args: argparse.Namespace) -> int:
     from firmware_interface.driver import DynamixelDriver
     from firmware_interface.identify import identify, write_servo_values
-    from payload.cli import emit_json
 
+    command_project(args)  # the design whose servo model is fitted (and --write written)
     smap = _map(args)
     known = {s.joint for s in smap.servos}
     unknown = [j for j in args.joints or [] if j not in known]
     if unknown:
         raise HwUsageError(f"--joints: no servo drives {', '.join(unknown)}")
-    with DynamixelDriver(args.device, smap, latency_timer_ms=args.latency_ms) as drv:
+    with DynamixelDriver(need_device(args), smap, latency_timer_ms=args.latency_ms) as drv:
         report = identify(drv, args.joints)
         design_file = drv.design.source
     report["device"] = args.device
@@ -286,7 +286,7 @@ def register(
         help="fit each servo's armature, friction and torque constant from step and chirp "
         "responses (moves every named joint across its range)",
     )
-    p.add_argument("--device", required=True, help="serial device or emulator pty")
+    add_device(p, "serial device of the servo bus or an emulator's pty (required)")
     p.add_argument("--servos", metavar="MAP", help="servo map TOML")
     p.add_argument("--joints", nargs="+", metavar="JOINT", help="joints to identify (default all)")
     p.add_argument("--write", action="store_true",
