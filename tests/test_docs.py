@@ -62,10 +62,11 @@ def parser():
 
 
 @pytest.mark.parametrize("command", CASES)
-def test_command_parses_as_shown(parser, command: str):
+def test_command_parses_as_shown(parser, command: str, capsys):
     argv = shlex.split(command)[1:]
     try:
         args = parser.parse_args(argv)
     except SystemExit as exc:  # argparse's usage error
         pytest.fail(f"`{command}` does not parse (exit {exc.code})")
     assert callable(getattr(args, "func", None)), command
+    assert "deprecated" not in capsys.readouterr().err, f"`{command}`: an old spelling"
