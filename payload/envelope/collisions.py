@@ -187,13 +187,13 @@ class Contacts(NamedTuple):
 
     def pair_counts(self) -> dict[tuple[str, str], int]:
         """Link pair (``world`` = the vehicle) -> configurations where they touch."""
+        nb = len(self.body_names)
+        counts = np.bincount(self.body_a * nb + self.body_b, minlength=nb * nb)
         out: dict[tuple[str, str], int] = {}
-        pairs, counts = np.unique(
-            np.column_stack([self.body_a, self.body_b]), axis=0, return_counts=True
-        )
-        for (a, b), c in zip(pairs, counts):
+        for key in np.flatnonzero(counts):
+            a, b = divmod(int(key), nb)
             name_a = "vehicle" if a == 0 else self.body_names[a]
-            out[(name_a, self.body_names[b])] = int(c)
+            out[(name_a, self.body_names[b])] = int(counts[key])
         return out
 
 
