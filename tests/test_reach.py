@@ -269,6 +269,66 @@ def test_forked_workers_find_the_same_contacts(geom, tree):
         assert np.array_equal(getattr(one, field), getattr(two, field))
 
 
+def test_contact_rows_are_every_body_pair_mujoco_reports_per_sample(geom, tree):
+    """The batched bookkeeping against MuJoCo's contacts read one sample at a time."""
+    import collections
+
+    import mujoco
+
+    model = CollisionModel(geom, VEHICLE)
+    q = sample_configurations(tree, 2500, np.random.default_rng(21))
+    contacts = model.check(q)
+    m, d = model.model, model.data
+    expected = set()
+    for i, row in enumerate(q):
+        for name, v in zip(ALL_JOINTS, row):
+            d.qpos[m.jnt_qposadr[m.joint(name).id]] = v
+        mujoco.mj_kinematics(m, d)
+        mujoco.mj_collision(m, d)
+        for g1, g2 in d.contact.geom:
+            a, b = sorted((int(m.geom_bodyid[g1]), int(m.geom_bodyid[g2])))
+            expected.add((i, a, b))
+    got = list(zip(contacts.index.tolist(), contacts.body_a.tolist(), contacts.body_b.tolist()))
+    assert len(got) == len(set(got)) and set(got) == expected
+    names = ["vehicle", *contacts.body_names[1:]]
+    counts = collections.Counter((names[a], names[b]) for _, a, b in expected)
+    assert contacts.pair_counts() == dict(counts)
+
+
+@pytest.mark.parametrize("pair", ["L", "R"])
+def test_grasp_screening_fk_matches_pinocchio(tree, model, pair):
+    from payload.envelope.grasp import pair_tips, symmetric_samples
+
+    rows = np.vstack(
+        [
+            symmetric_samples(tree, pair, 200, np.random.default_rng(3)),
+            sample_configurations(tree, 200, np.random.default_rng(4))[:, :8],
+        ]
+    )
+    fast = pair_tips(model.kin, tree, pair, rows, batch=True)
+    pino = pair_tips(model.kin, tree, pair, rows)
+    for a, b in zip(fast, pino):
+        np.testing.assert_allclose(a, b, atol=1e-12)
+
+
+def test_the_reach_models_urdf_lives_with_it_so_the_span_range_is_cached(tree):
+    import gc
+    from pathlib import Path
+
+    from payload.retarget.range_cache import disk_key
+
+    dk = design_kinematics(tree)
+    urdf = Path(dk.kin.urdf)
+    assert urdf.is_file()
+    keys = {
+        disk_key(pk, 0, False, []) for pk in (dk.pairs["L"], design_kinematics(tree).pairs["L"])
+    }
+    assert len(keys) == 1  # the same design, the same key: a second report reads the range
+    del dk
+    gc.collect()
+    assert not urdf.exists()
+
+
 # ----------------------------------------------------------------- the analysis
 
 

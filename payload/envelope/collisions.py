@@ -113,24 +113,32 @@ class CollisionModel:
         return Contacts(n, rows[:, 0], rows[:, 1], rows[:, 2], tuple(self.body_names))
 
     def _check_range(self, samples: np.ndarray, start: int, stop: int) -> np.ndarray:
-        """Rows (sample, body a, body b) of distinct body pairs in contact, a < b."""
+        """Rows (sample, body a, body b) of distinct body pairs in contact, a < b.
+
+        The loop does only MuJoCo's work per sample (place, kinematics, collision, copy
+        the contacts' geoms); the bookkeeping runs once over the whole range.
+        """
         m, d = self.model, self.data
-        qpos = np.zeros(m.nq)
-        adr = self._qadr
-        found = []
-        for i in range(start, stop):
-            qpos[adr] = samples[i]
-            d.qpos[:] = qpos
+        qpos = np.zeros((stop - start, m.nq))
+        qpos[:, self._qadr] = samples[start:stop]
+        found: list[np.ndarray] = []
+        where: list[int] = []
+        counts: list[int] = []
+        for k in range(stop - start):
+            d.qpos[:] = qpos[k]
             mujoco.mj_kinematics(m, d)
             mujoco.mj_collision(m, d)
             if d.ncon:
-                g = d.contact.geom[: d.ncon]
-                found.append(np.column_stack([np.full(len(g), i), m.geom_bodyid[g]]))
+                found.append(d.contact.geom.copy())
+                where.append(start + k)
+                counts.append(d.ncon)
         if not found:
             return np.zeros((0, 3), dtype=int)
-        rows = np.concatenate(found)
-        rows[:, 1:] = np.sort(rows[:, 1:], axis=1)
-        return np.unique(rows, axis=0)
+        bodies = np.sort(m.geom_bodyid[np.concatenate(found)], axis=1).astype(np.int64)
+        index = np.repeat(np.asarray(where, dtype=np.int64), counts)
+        nb = np.int64(m.nbody)
+        keys = np.unique((index * nb + bodies[:, 0]) * nb + bodies[:, 1])
+        return np.column_stack([keys // (nb * nb), (keys // nb) % nb, keys % nb]).astype(int)
 
     def pair_free(self, row: np.ndarray, links: Sequence[str], ignore: Sequence[str]) -> bool:
         """No contact of ``links`` with anything but ``ignore`` in one configuration (18,)."""
@@ -179,13 +187,13 @@ class Contacts(NamedTuple):
 
     def pair_counts(self) -> dict[tuple[str, str], int]:
         """Link pair (``world`` = the vehicle) -> configurations where they touch."""
+        nb = len(self.body_names)
+        counts = np.bincount(self.body_a * nb + self.body_b, minlength=nb * nb)
         out: dict[tuple[str, str], int] = {}
-        pairs, counts = np.unique(
-            np.column_stack([self.body_a, self.body_b]), axis=0, return_counts=True
-        )
-        for (a, b), c in zip(pairs, counts):
+        for key in np.flatnonzero(counts):
+            a, b = divmod(int(key), nb)
             name_a = "vehicle" if a == 0 else self.body_names[a]
-            out[(name_a, self.body_names[b])] = int(c)
+            out[(name_a, self.body_names[b])] = int(counts[key])
         return out
 
 

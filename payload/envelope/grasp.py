@@ -9,6 +9,7 @@ import numpy as np
 from scipy import optimize
 
 from payload.design.tree import ALL_JOINTS, KinematicTree
+from payload.envelope.batch_fk import frame_positions_batch
 from payload.envelope.pairs import (
     OPPOSITION_CONE,
     PAIRS,
@@ -83,26 +84,37 @@ def opposition(p1: np.ndarray, p2: np.ndarray, side_sign: float) -> np.ndarray:
 
 
 def pair_tips(
-    kin: Kinematics, tree: KinematicTree, pair: str, q8: np.ndarray
+    kin: Kinematics, tree: KinematicTree, pair: str, q8: np.ndarray, batch: bool = False
 ) -> tuple[np.ndarray, np.ndarray]:
     """Fingertips of a pair for joint rows of shape (n, 8), at :func:`grasp_base`, (n, 3) each.
 
-    The other fingers' joints are 0 (they do not move this pair's fingertips).
+    The other fingers' joints are 0 (they do not move this pair's fingertips). With
+    ``batch`` the rows go through the numpy forward kinematics of the design's tree
+    (:mod:`payload.envelope.batch_fk`, the same kinematics to rounding) instead of
+    Pinocchio: the way for many rows at once.
     """
     q8 = np.atleast_2d(q8)
     rows = np.zeros((len(q8), len(ALL_JOINTS)))
     rows[:, [ALL_JOINTS.index(j) for j in pair_joints(pair)]] = q8
     for j, v in grasp_base(tree).items():
         rows[:, ALL_JOINTS.index(j)] = v
-    tips = frame_positions(kin, rows, [f"{f}_tip" for f in PAIRS[pair]])
+    frames = [f"{f}_tip" for f in PAIRS[pair]]
+    tips = (
+        frame_positions_batch(tree, rows, frames) if batch else frame_positions(kin, rows, frames)
+    )
     return tips[:, 0], tips[:, 1]
 
 
 def _pinch(
-    kin: Kinematics, tree: KinematicTree, pair: str, rows: np.ndarray, side: float
+    kin: Kinematics,
+    tree: KinematicTree,
+    pair: str,
+    rows: np.ndarray,
+    side: float,
+    batch: bool = False,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Span [m], cosine of the opposition angle and higher tip z [m] for (n, 8) rows."""
-    p1, p2 = pair_tips(kin, tree, pair, rows)
+    p1, p2 = pair_tips(kin, tree, pair, rows, batch)
     d = p2 - p1
     span = np.linalg.norm(d, axis=1)
     cos = side * d[:, 1] / np.maximum(span, 1e-12)
@@ -170,7 +182,8 @@ def grasp_check(
         [[tree.joint_map[j].lower, tree.joint_map[j].upper] for j in pair_joints(pair)]
     )
     side = pair_side(tree, pair)
-    span, cos, z = _pinch(kin, tree, pair, candidates, side)
+    # screening the many candidates: numpy FK; the witnesses themselves: Pinocchio
+    span, cos, z = _pinch(kin, tree, pair, candidates, side, batch=True)
     ok = (cos >= np.cos(OPPOSITION_CONE)) & (z + r <= vehicle.bottom_z)
     cand, span, cos, z = candidates[ok], span[ok], cos[ok], z[ok]
     out = []
@@ -189,13 +202,15 @@ def grasp_check(
                 break
         if found is None:
             i = order[0]
+            # the reported figures of the nearest candidate: Pinocchio, as for a witness
+            (s,), (c,), (zz,) = _pinch(kin, tree, pair, cand[i][None, :], side)
             found = GraspResult(
                 feat,
                 pair,
                 False,
-                float(span[i]),
-                float(np.arccos(np.clip(cos[i], -1, 1))),
-                float(vehicle.bottom_z - (z[i] + r)),
+                float(s),
+                float(np.arccos(np.clip(c, -1, 1))),
+                float(vehicle.bottom_z - (zz + r)),
                 cand[i],
             )
         out.append(found)

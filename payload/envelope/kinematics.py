@@ -10,8 +10,10 @@ hand description with the design's pad radius), whose span range is
 
 from __future__ import annotations
 
+import shutil
 import sys
 import tempfile
+import weakref
 from pathlib import Path
 from typing import NamedTuple
 
@@ -44,8 +46,8 @@ class DesignKinematics(NamedTuple):
 def design_kinematics(tree: KinematicTree) -> DesignKinematics:
     """The shared kinematics of the design behind ``tree``.
 
-    The URDF is generated from ``tree`` into a temporary folder and loaded there
-    (Pinocchio reads no meshes); the pairs are our hand description
+    The URDF is generated from ``tree`` into a temporary folder, loaded there
+    (Pinocchio reads no meshes) and removed with the model; the pairs are our hand description
     (:data:`payload.retarget.hand.DEFAULT_HAND`) on that model, with
     ``tip_radius`` taken from the design's ``finger.pad.radius``.
     """
@@ -59,12 +61,16 @@ def design_kinematics(tree: KinematicTree) -> DesignKinematics:
     else:  # a design built in memory
         raw.pop("design", None)
         raw["collision_margin"] = float(tree.design.retarget.collision_margin)
-    with tempfile.TemporaryDirectory(prefix="payload-reach-") as tmp:
-        path = Path(tmp) / "payload.urdf"
-        path.write_text(to_urdf(tree))
-        kin = Kinematics(path)
-        raw["urdf"] = str(path)
-        hand = hand_from_dict(raw, DEFAULT_HAND.parent, source=DEFAULT_HAND)
+    # the URDF lives as long as the model: the span range's disk cache
+    # (:mod:`payload.retarget.range_cache`) keys on its text, so a report run again on
+    # the same design reads the range instead of solving it again
+    tmp = tempfile.mkdtemp(prefix="payload-reach-")
+    path = Path(tmp) / "payload.urdf"
+    path.write_text(to_urdf(tree))
+    kin = Kinematics(path)
+    weakref.finalize(kin, shutil.rmtree, tmp, ignore_errors=True)
+    raw["urdf"] = str(path)
+    hand = hand_from_dict(raw, DEFAULT_HAND.parent, source=DEFAULT_HAND)
     pairs = {name: PairKinematics(hand, name, kin) for name in PAIRS}
     return DesignKinematics(kin, pairs)
 
