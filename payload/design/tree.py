@@ -12,7 +12,7 @@ from functools import cached_property
 
 import numpy as np
 
-from payload.design.params import FINGER_JOINTS, FINGERS, SIDE_OF, Design
+from payload.design.params import FINGER_JOINTS, FINGER_LINKS, FINGERS, SIDE_OF, Design
 from payload.design.solids import LinkBody, MassProps, all_bodies, carriage_origin_x, finger_mount
 
 MANIPULATION_JOINTS: tuple[str, ...] = (
@@ -23,8 +23,6 @@ MANIPULATION_JOINTS: tuple[str, ...] = (
 
 ALL_JOINTS: tuple[str, ...] = (*MANIPULATION_JOINTS, "stage")
 """The 17 manipulation coordinates followed by the deployment coordinate."""
-
-FINGER_LINKS: tuple[str, ...] = ("knuckle", "proximal", "middle", "distal")
 
 
 @dataclass(frozen=True)

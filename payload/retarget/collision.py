@@ -15,7 +15,9 @@ The solver's own geometry, derived once per pair:
   mesh, the oriented bounding box of each connected piece.
 
 Checked pairs are those the python-fcl check (:mod:`payload.retarget.meshcheck`) checks:
-a link of finger 1 against a link of finger 2, exactly (segment-to-segment distance less
+a link of finger 1 against a link of finger 2 except the two **pad links** (the links
+carrying the fingertip pads, :func:`pad_links`, from the design's ``retarget.pad_link``:
+a pinch closes them on each other and on what they hold, docs/retargeting.md), exactly (segment-to-segment distance less
 both radii), and a finger link against a structure box, exactly too while apart (the
 smallest distance of the box along the capsule axis, :func:`segment_box_distance_expr`,
 less the radius; an axis entering the box gets the depth in the middle of its inside
@@ -439,6 +441,8 @@ class PairCollision:
         capsules: Finger link capsules.
         finger_of: Per capsule, 0 or 1.
         boxes: Structure boxes in the base frame.
+        pads: Per finger, its pad link (``None``: none found); the two pad links keep
+            no margin between them, so they have no term.
         terms: The clearance terms kept after pruning.
     """
 
@@ -484,10 +488,12 @@ class PairCollision:
         joint_parent = {j.get("name"): j.find("parent").get("link") for j in _joints(kin.urdf)}
         joint_child = {j.get("name"): j.find("child").get("link") for j in _joints(kin.urdf)}
         mounted = {(joint_parent[fj[0]], joint_child[fj[0]]) for fj in d.finger_joints if fj}
+        self.pads: tuple[str | None, ...] = pad_links(pk, frozenset(links))
+        pad_pair = set(self.pads) if None not in self.pads else set()
         terms: list[Term] = []
         for i, ci in enumerate(caps):
             for j in range(i + 1, len(caps)):
-                if finger_of[i] != finger_of[j]:
+                if finger_of[i] != finger_of[j] and {ci.link, caps[j].link} != pad_pair:
                     terms.append(Term(i, j, False))
             for bi, bx in enumerate(boxes):
                 if (bx.link, ci.link) not in mounted:
@@ -657,6 +663,52 @@ class PairCollision:
     def clearance(self, q: np.ndarray) -> float:
         """Smallest distance less the margin at q [m] (``inf`` without terms)."""
         return float(self.distances(q).min() - self.margin) if self.terms else np.inf
+
+
+def pad_links(pk: PairKinematics, links: set[str] | frozenset[str]) -> tuple[str | None, ...]:
+    """Per finger of the pair, its pad link (the two keep no margin), or ``None``.
+
+    With a hand ``pad_link`` (the design's ``retarget.pad_link``), the finger's link among
+    ``links`` (the links with collision geometry) whose URDF name ends in ``_<pad_link>``;
+    without one, the first link with collision geometry at or above the finger's tip
+    frame (the link the fingertip is fixed to).
+    """
+    model = pk.kin.model
+    out: list[str | None] = []
+    for tip in pk.desc.tips:
+        fid = model.getFrameId(tip)
+        found: str | None = None
+        while fid < len(model.frames):
+            f = model.frames[fid]
+            if f.type == pin.FrameType.BODY and f.name in links:
+                found = f.name
+                break
+            if fid == 0 or f.parentFrame == fid:
+                break
+            fid = f.parentFrame
+        if pk.hand.pad_link is not None:
+            # the design names the pad link: the one of this finger's chain with that suffix
+            found = next(
+                (
+                    n
+                    for n in sorted(links)
+                    if n.endswith("_" + pk.hand.pad_link) and _same_finger(model, n, tip)
+                ),
+                None,
+            )
+        out.append(found)
+    return tuple(out)
+
+
+def _same_finger(model: pin.Model, link: str, tip: str) -> bool:
+    """True when ``link`` is ``tip``'s frame's body or one of its ancestors."""
+    j_tip = model.frames[model.getFrameId(tip)].parentJoint
+    j_link = model.frames[model.getFrameId(link, pin.FrameType.BODY)].parentJoint
+    while j_tip > 0:
+        if j_tip == j_link:
+            return True
+        j_tip = model.parents[j_tip]
+    return False
 
 
 def _joints(urdf: str | Path) -> list[ET.Element]:
