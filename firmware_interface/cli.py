@@ -122,10 +122,20 @@ def _cmd_run(args: argparse.Namespace) -> int:
     out = Path(args.out) if args.out else project.runs_dir / f"hw-{time.strftime('%Y%m%d-%H%M%S')}"
     if (out / "log.mcap").exists():
         raise HwUsageError(f"--out {out}: already holds a recording; choose another folder")
+    from payload.profiles import SAFE, resolve
+
+    prof, overrides = resolve(
+        args.controller,
+        SAFE,
+        retarget_budget=args.retarget_budget,
+        retarget_collisions=args.retarget_collisions,
+    )
     with DynamixelDriver(args.port, _map(args), latency_timer_ms=args.latency_ms) as drv:
         drv.bring_up()
         result = run_hardware_trial(drv, replay, out, max_time=args.max_time,
-                                    pace=not args.no_pace)  # fmt: skip
+                                    pace=not args.no_pace, controller=(prof.name, overrides),
+                                    budget=prof.retarget_budget,
+                                    collisions=prof.retarget_collisions)  # fmt: skip
     result["out"] = str(out)
     if args.json:
         emit_json(result)
@@ -202,6 +212,27 @@ def register(
     p.add_argument("--out", help="trial folder (default runs/hw-<time>)")
     p.add_argument("--max-time", type=float, default=240.0, help="session cap [s]")
     p.add_argument("--no-pace", action="store_true", help=argparse.SUPPRESS)
+    from payload.profiles import PROFILES, SAFE
+
+    p.add_argument(
+        "--controller",
+        choices=tuple(PROFILES),
+        default=None,
+        help=f"controller profile (default {SAFE}: real servos): 'safe' models "
+        "self-collision (the pads of a pair excepted); 'paper' is the paper's controller",
+    )
+    p.add_argument(
+        "--retarget-budget",
+        choices=("paper", "converged"),
+        default=None,
+        help="retargeting budget per pair solve (default: the --controller profile's)",
+    )
+    p.add_argument(
+        "--retarget-collisions",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="model self-collision in the pair solves (default: the --controller profile's)",
+    )
     p.add_argument("--json", action="store_true", help="print one JSON object")
     _latency(p)
     p.set_defaults(func=_cmd_run)

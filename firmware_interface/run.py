@@ -97,18 +97,22 @@ def replay_session(
     max_time: float = 240.0,
     pace: bool = False,
     on_step: Any = None,
+    budget: str = "paper",
+    collisions: bool = False,
 ) -> list[PayloadCommand]:
     """Run a recorded hand session through the 50 Hz loop on ``driver``.
 
     The same code for the simulator (``SimDriver``) and the hardware
     (:class:`HardwareInTheLoop`): calibration, pipeline, loop.
 
+    ``budget`` and ``collisions`` set the pair solves (as ``payload trial``'s flags).
+
     Returns:
         The payload command sent at every step.
     """
     from payload.trials.runner import retargeting
 
-    retargeters, ranges = retargeting()
+    retargeters, ranges = retargeting(budget=budget, collisions=collisions)
     for r in retargeters.values():
         r.reset()
     config = TeleopConfig.from_design(load_design())
@@ -143,6 +147,9 @@ def run_hardware_trial(
     *,
     max_time: float = 240.0,
     pace: bool = True,
+    controller: tuple[str, list[str]] = ("safe", []),
+    budget: str = "paper",
+    collisions: bool = True,
 ) -> dict[str, Any]:
     """Replay a hand recording on the hardware and record the trial like ``payload trial``.
 
@@ -152,6 +159,10 @@ def run_hardware_trial(
         out_dir: The trial folder (``log.mcap``, ``hands.jsonl``, ``metrics.json``).
         max_time: Session length cap [s].
         pace: Pace the loop to wall-clock 50 Hz (the servos move in real time).
+        controller: The controller profile's name and the settings overridden
+            (:func:`payload.profiles.resolve`), recorded.
+        budget: The pair solves' evaluation budget.
+        collisions: Self-collision modelled in the pair solves.
 
     Returns:
         The metrics (as written to ``metrics.json``), with ``steps`` and ``driver``.
@@ -171,7 +182,7 @@ def run_hardware_trial(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     sim = SimDriver()
-    retargeters, ranges = retargeting()
+    retargeters, ranges = retargeting(budget=budget, collisions=collisions)
     place_ctb_for_teleop(sim, retargeters, ranges)
     driver = HardwareInTheLoop(hardware, sim)
     layout = sim.world.layout
@@ -184,6 +195,10 @@ def run_hardware_trial(
         "traits": {"replay": str(replay)},
         "route": layout.route().tolist(),
         "modules": module_rects(layout),
+        "retarget_budget": budget,
+        "retarget_collisions": collisions,
+        "controller": controller[0],
+        "controller_overrides": controller[1],
     }
     try:
         with (
@@ -200,7 +215,8 @@ def run_hardware_trial(
                     raise fault
 
             commands = replay_session(driver, frames, max_time=max_time, pace=pace,
-                                      on_step=on_step)  # fmt: skip
+                                      on_step=on_step, budget=budget,
+                                      collisions=collisions)  # fmt: skip
             recorder.write_meta({"steps": len(commands), "warnings": driver.warnings()})
     finally:
         sim.close()

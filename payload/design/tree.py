@@ -12,7 +12,7 @@ from functools import cached_property
 
 import numpy as np
 
-from payload.design.params import FINGER_JOINTS, FINGER_LINKS, FINGERS, SIDE_OF, Design
+from payload.design.params import FINGER_JOINTS, FINGERS, SIDE_OF, Design
 from payload.design.solids import LinkBody, MassProps, all_bodies, carriage_origin_x, finger_mount
 
 MANIPULATION_JOINTS: tuple[str, ...] = (

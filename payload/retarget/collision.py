@@ -17,13 +17,14 @@ The solver's own geometry, derived once per pair:
 Checked pairs are those the python-fcl check (:mod:`payload.retarget.meshcheck`) checks:
 a link of finger 1 against a link of finger 2 except the two **pad links** (the links
 carrying the fingertip pads, :func:`pad_links`, from the design's ``retarget.pad_link``:
-a pinch closes them on each other and on what they hold, docs/retargeting.md), exactly (segment-to-segment distance less
-both radii), and a finger link against a structure box, exactly too while apart (the
-smallest distance of the box along the capsule axis, :func:`segment_box_distance_expr`,
-less the radius; an axis entering the box gets the depth in the middle of its inside
-part), except a finger's first link against the link it is mounted on (they touch by
-construction). Pairs that never come within :data:`PRUNE_DISTANCE` of each other over
-:data:`PRUNE_SAMPLES` seeded postures of the joint box are left out.
+a pinch closes them on each other and on what they hold, docs/retargeting.md), exactly
+(segment-to-segment distance less both radii), and a finger link against a structure
+box, exactly too while apart (the smallest distance of the box along the capsule axis,
+:func:`segment_box_distance_expr`, less the radius; an axis entering the box gets the
+depth in the middle of its inside part), except a finger's first link against the link
+it is mounted on (they touch by construction). Pairs that never come within
+:data:`PRUNE_DISTANCE` of each other over :data:`PRUNE_SAMPLES` seeded postures of the
+joint box are left out.
 
 The clearance of a term is its distance less the hand's ``collision_margin``; a command
 is collision-free in the solver's sense when every clearance is non-negative.

@@ -103,7 +103,22 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     hub = LiveHub()
     payload = _hardware_driver(args.device) if args.driver == "hardware" else None
     print("loading the simulator and the retargeters ...", flush=True)
-    session = LiveSession(hub, record, payload=payload, collisions=args.retarget_collisions)
+    from payload.profiles import SAFE, resolve
+
+    prof, overrides = resolve(
+        args.controller,
+        SAFE,
+        retarget_budget=args.retarget_budget,
+        retarget_collisions=args.retarget_collisions,
+    )
+    session = LiveSession(
+        hub,
+        record,
+        payload=payload,
+        collisions=prof.retarget_collisions,
+        budget=prof.retarget_budget,
+        controller=(prof.name, overrides),
+    )
     server = TeleopServer(
         hub, args.host, args.port, ssl_context=ssl_context, token=token, scene=session.scene
     ).start()
@@ -171,13 +186,28 @@ def register(
     p.add_argument("--port", type=_port, default=8765)
     p.add_argument("--record", help="record the session as a trial into this folder")
     p.add_argument("--tls", action="store_true", help="use TLS on a local bind too")
+    from payload.profiles import PROFILES, SAFE
+
+    p.add_argument(
+        "--controller",
+        choices=tuple(PROFILES),
+        default=None,
+        help=f"controller profile (default {SAFE}: real servos and a person in the loop): "
+        "'safe' models self-collision (every link pair keeps the design's margin, the two "
+        "pads of a pair excepted) and filters the base; 'paper' is the paper's controller",
+    )
+    p.add_argument(
+        "--retarget-budget",
+        choices=("paper", "converged"),
+        default=None,
+        help="retargeting budget per pair solve (default: the --controller profile's)",
+    )
     p.add_argument(
         "--retarget-collisions",
         action=argparse.BooleanOptionalAction,
-        default=False,
-        help="model self-collision in the pair solves, so no command drives fingers closer "
-        "than the design's margin (default off: it also keeps the fingers from squeezing "
-        "a thin handle, see the README)",
+        default=None,
+        help="model self-collision in the pair solves (default: the --controller "
+        "profile's); overrides the profile",
     )
     p.add_argument("--status-interval", type=float, default=1.0, help=argparse.SUPPRESS)
     p.add_argument("--seconds", type=float, default=0.0, help=argparse.SUPPRESS)

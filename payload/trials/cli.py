@@ -93,7 +93,8 @@ def _cmd_trial(args: argparse.Namespace) -> int:
     modelled = "modelled" if result.get("retarget_collisions") else "off"
     print(
         f"  setup: CTB {result.get('ctb')}, {result.get('propulsion')} propulsion, "
-        f"retargeting budget {result.get('retarget_budget')}, self-collision "
+        f"controller {result.get('controller')}, retargeting budget "
+        f"{result.get('retarget_budget')}, self-collision "
         f"{modelled}{given}"
     )
     print(f"  success: {bool(result.get('success'))}")
@@ -149,6 +150,7 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
             propulsion=args.propulsion,
             retarget_budget=args.retarget_budget,
             retarget_collisions=args.retarget_collisions,
+            controller=args.controller,
         ),
         seeds,
         out,
@@ -164,7 +166,7 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
     }
     title = (
         f"Cargo-transport campaign ({args.n} trials, CTB {args.ctb}, {args.propulsion}, "
-        f"retargeting budget {args.retarget_budget}"
+        f"controller {args.controller}, retargeting budget {args.retarget_budget}"
         f"{', self-collision modelled' if args.retarget_collisions else ''})"
     )
     summary = write_summary(results, out, title=title, run=run, provenance=prov, force=args.force)
@@ -372,16 +374,26 @@ def _cmd_trials_convert(args: argparse.Namespace) -> int:
     return 0
 
 
-_SETUP = ("ctb", "propulsion", "retarget_budget", "retarget_collisions")
+_SETUP = ("ctb", "propulsion", "retarget_budget", "retarget_collisions", "controller")
 """The trial setup flags' attribute names."""
 
 
 def _setup_arguments(p: argparse.ArgumentParser, *, replay: bool = False) -> None:
     """The trial setup flags; with ``replay`` each left out means "the recording's" for a
     replay (``None`` here, resolved by the runner)."""
+    from payload.profiles import PAPER, PROFILES
     from payload.sim.vehicle import DEFAULT_PROPULSION, PROPULSION_MODELS
 
     mine = "; a replay: its recording's unless given" if replay else ""
+    p.add_argument(
+        "--controller",
+        choices=tuple(PROFILES),
+        default=None,
+        help=f"controller profile (default {PAPER}{mine}): 'paper' is the paper's "
+        "controller (20-evaluation pair solves, no self-collision model); 'safe' adds the "
+        "contact-aware self-collision model and the base safety filter; "
+        "--retarget-budget and --[no-]retarget-collisions override it",
+    )
     p.add_argument(
         "--ctb",
         default=None,
@@ -398,17 +410,17 @@ def _setup_arguments(p: argparse.ArgumentParser, *, replay: bool = False) -> Non
         "--retarget-budget",
         choices=("paper", "converged"),
         default=None,
-        help=f"retargeting budget per pair solve: 'paper' (default{mine}; at most 20 "
-        "residual evaluations, the paper's controller) or 'converged' (each start run to "
-        "convergence)",
+        help="retargeting budget per pair solve: 'paper' (at most 20 residual evaluations, "
+        "the paper's controller) or 'converged' (each start run to convergence); default: "
+        f"the --controller profile's{mine}",
     )
     p.add_argument(
         "--retarget-collisions",
         action=argparse.BooleanOptionalAction,
         default=None,
         help="model self-collision in the pair solves: no command closer than the design's "
-        "margin, the operator's opening mapped to the collision-free span range (default "
-        f"off: the paper's controller{mine})",
+        "margin (the pads of a pair excepted), the operator's opening mapped to the "
+        f"collision-free span range (default: the --controller profile's{mine})",
     )
 
 
@@ -416,7 +428,11 @@ def _setup_defaults(args: argparse.Namespace) -> None:
     """Fill the setup flags left out with the defaults (synthetic trials, campaigns)."""
     from payload.trials.sources import trial_setup
 
-    for name, value in trial_setup(**{n: getattr(args, n) for n in _SETUP}).items():
+    try:
+        setup = trial_setup(**{n: getattr(args, n) for n in _SETUP})
+    except PayloadError as exc:
+        raise TrialsCliError(str(exc)) from None
+    for name, value in setup.items():
         setattr(args, name, value)
 
 

@@ -111,7 +111,10 @@ class LiveSession:
         payload: A payload driver to command besides the simulator (the hardware), or
             None for the simulator alone.
         collisions: Model self-collision in the pair solves (no command closer than the
-            design's margin); recorded with the session.
+            design's margin, the pads of a pair excepted); recorded with the session.
+        budget: The pair solves' evaluation budget (``paper``, ``converged``).
+        controller: The controller profile these settings come from, and the settings
+            the command line overrides (:func:`payload.profiles.resolve`), recorded.
     """
 
     def __init__(
@@ -121,6 +124,8 @@ class LiveSession:
         steps: tuple[Step, ...] = DEFAULT_STEPS,
         payload: Any = None,
         collisions: bool = False,
+        budget: str = "paper",
+        controller: tuple[str, list[str]] | None = None,
     ) -> None:
         from payload.sim.driver import SimDriver
 
@@ -129,7 +134,8 @@ class LiveSession:
         self.calibration_steps = steps
         self.driver = SimDriver()
         self.collisions = bool(collisions)
-        self.retargeters, self.ranges = retargeting(collisions=self.collisions)
+        self.controller = controller
+        self.retargeters, self.ranges = retargeting(budget=budget, collisions=self.collisions)
         place_ctb_for_teleop(self.driver, self.retargeters, self.ranges)
         self.config = TeleopConfig.from_design(load_design(self.driver.world.config.design))
         if payload is not None:
@@ -153,7 +159,9 @@ class LiveSession:
         out.mkdir(parents=True, exist_ok=True)
         self._recorder = TrialRecorder(out / "log.mcap")
         budget = self.retargeters["L"].config.budget
-        setup = {"retarget_budget": budget, "retarget_collisions": self.collisions}
+        setup: dict[str, Any] = {"retarget_budget": budget, "retarget_collisions": self.collisions}
+        if self.controller is not None:
+            setup["controller"], setup["controller_overrides"] = self.controller
         self._hands = HandRecordingWriter(
             out / "hands.jsonl", frame="webxr", meta={"operator": "live", **setup}
         )

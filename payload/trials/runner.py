@@ -21,7 +21,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from payload.design.params import load_design
-from payload.errors import RunAborted
+from payload.errors import PayloadError, RunAborted
 from payload.project import Project, current_project, provenance
 from payload.retarget.calibration import PairRange
 from payload.retarget.casadi_solver import PairRetargeter
@@ -102,6 +102,7 @@ def run_trial(
     propulsion: str | None = None,
     retarget_budget: str | None = None,
     retarget_collisions: bool | None = None,
+    controller: str | None = None,
 ) -> dict[str, Any]:
     """Run one trial and write its folder (reproducible: see :func:`_run_trial`).
 
@@ -128,8 +129,11 @@ def run_trial(
             residual evaluations each; ``converged``), recorded with the trial.
         retarget_collisions: Self-collision modelled in the pair solves (off: the
             paper's controller), recorded with the trial.
+        controller: The controller profile (:mod:`payload.profiles`, default ``paper``)
+            the two settings above override, recorded with the trial and the settings
+            it overrides.
 
-            Each of these four left at ``None`` is the default (single CTB, nozzles,
+            Each of these five left at ``None`` is the default (single CTB, nozzles,
             ``paper``, off) or, for a replay, its recording's setting (the default where
             the recording has none); a value given replays the recorded hands on that
             setup instead.
@@ -156,6 +160,8 @@ def run_trial(
         recorded = header.get("meta") or {}
         ctb = recorded.get("ctb") if ctb is None else ctb
         propulsion = recorded.get("propulsion") if propulsion is None else propulsion
+        if controller is None and isinstance(recorded.get("controller"), str):
+            controller = recorded["controller"]
         if retarget_budget is None:
             retarget_budget = recorded.get("retarget_budget")
         if retarget_collisions is None:
@@ -169,7 +175,10 @@ def run_trial(
             source_seed = header.get("meta", {}).get("seed")
             seed = source_seed if isinstance(source_seed, int) and source_seed >= 0 else 0
     seed = 0 if seed is None else int(seed)
-    setup = trial_setup(ctb, propulsion, retarget_budget, retarget_collisions)
+    try:
+        setup = trial_setup(ctb, propulsion, retarget_budget, retarget_collisions, controller)
+    except PayloadError as exc:
+        raise TrialError(str(exc)) from None
     ctb, propulsion = setup["ctb"], setup["propulsion"]
     if ctb not in CTB_MODELS:
         raise TrialError(f"ctb must be one of {', '.join(CTB_MODELS)}, got {ctb!r}")
@@ -242,6 +251,8 @@ def _set_up(driver: Any, seed: int, source_spec: _Source, project: Project) -> _
     setup = {
         "retarget_budget": source_spec.retarget_budget,
         "retarget_collisions": source_spec.retarget_collisions,
+        "controller": source_spec.controller,
+        "controller_overrides": source_spec.controller_overrides,
         "ctb": source_spec.ctb,
         "propulsion": source_spec.propulsion,
         "ctb_offset_m": [float(v) for v in offset],

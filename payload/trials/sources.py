@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from payload.errors import PayloadError
-from payload.retarget.objective import RetargetConfig
+from payload.profiles import PAPER, resolve
 from payload.sim.vehicle import DEFAULT_PROPULSION
 from payload.sim.world import DEFAULT_CTB
 from payload.teleop.calibration import CalibrationProcedure
@@ -29,14 +29,26 @@ def trial_setup(
     propulsion: str | None = None,
     retarget_budget: str | None = None,
     retarget_collisions: bool | None = None,
+    controller: str | None = None,
 ) -> dict[str, Any]:
     """A trial's setup with each setting left at ``None`` given its default: the single
-    CTB, nozzle propulsion, the paper's retargeting budget, self-collision not modelled."""
+    CTB, nozzle propulsion and the controller profile's (:mod:`payload.profiles`; default
+    ``paper``: the paper's retargeting budget, self-collision not modelled).
+
+    ``controller_overrides`` names the profile settings the given flags change (a flag
+    equal to the profile's own setting is no override), so the same setup resolved twice
+    reads the same.
+    """
+    prof, overrides = resolve(
+        controller, PAPER, retarget_budget=retarget_budget, retarget_collisions=retarget_collisions
+    )
     return {
         "ctb": DEFAULT_CTB if ctb is None else ctb,
         "propulsion": DEFAULT_PROPULSION if propulsion is None else propulsion,
-        "retarget_budget": RetargetConfig.budget if retarget_budget is None else retarget_budget,
-        "retarget_collisions": bool(retarget_collisions),
+        "retarget_budget": prof.retarget_budget,
+        "retarget_collisions": bool(prof.retarget_collisions),
+        "controller": prof.name,
+        "controller_overrides": overrides,
     }
 
 
@@ -103,9 +115,13 @@ class _Source:
         propulsion: str,
         retarget_budget: str,
         retarget_collisions: bool,
+        controller: str = PAPER,
+        controller_overrides: list[str] | None = None,
     ) -> None:
         self.retarget_budget = retarget_budget
         self.retarget_collisions = retarget_collisions
+        self.controller = controller
+        self.controller_overrides = list(controller_overrides or [])
         self.ctb = ctb
         self.propulsion = propulsion
         self.recorded: dict[str, Any] = header.get("meta") or {}

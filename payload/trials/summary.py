@@ -242,6 +242,17 @@ def summary_markdown(summary: dict[str, Any], title: str | None = None) -> str:
         + _definition_text(lit.get("contact_definition") if lit else None)
         + ". Acquisition succeeds when a first contact interval exists under the definition.",
     ]
+    prof = summary.get("controller")
+    if prof:
+        shown = prof if isinstance(prof, str) else ", ".join(prof)
+        over = summary.get("controller_overrides") or []
+        flat = sorted({x for o in over for x in (o if isinstance(o, list) else [o])})
+        lines += [
+            "",
+            f"Controller profile: {shown} ('paper': the paper's controller; 'safe': the "
+            "contact-aware self-collision model and the base safety filter)"
+            + (f", overridden: {', '.join(flat)}." if flat else "."),
+        ]
     budget = summary.get("retarget_budget")
     if budget:
         shown = budget if isinstance(budget, str) else ", ".join(budget)
@@ -342,6 +353,18 @@ def write_summary(
     budgets = sorted({str(r["retarget_budget"]) for r in results if r.get("retarget_budget")})
     if budgets:
         summary["retarget_budget"] = budgets[0] if len(budgets) == 1 else budgets
+    # the controller profile and the settings the trials' flags override (one value when
+    # every trial says the same, else the values seen)
+    profiles = sorted({str(r["controller"]) for r in results if r.get("controller")})
+    if profiles:
+        summary["controller"] = profiles[0] if len(profiles) == 1 else profiles
+    overrides = sorted(
+        {tuple(r["controller_overrides"]) for r in results if "controller_overrides" in r}
+    )
+    if overrides:
+        summary["controller_overrides"] = (
+            list(overrides[0]) if len(overrides) == 1 else [list(o) for o in overrides]
+        )
     # whether the pair solves modelled self-collision: one bool when every trial says the
     # same, else the values seen (None: a trial that does not say)
     seen = {r.get("retarget_collisions") for r in results}
