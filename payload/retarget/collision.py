@@ -243,6 +243,24 @@ def _design_boxes(design_path: Path) -> dict[str, list[tuple]]:
     return out
 
 
+def structure_boxes(
+    design: Path | None, geometry: dict[str, list], links: list[str]
+) -> dict[str, list[Box]]:
+    """The structure's boxes per link, in that link's frame: the design's collision boxes
+    and guide columns when the hand names a design, else the URDF's primitives and, for a
+    mesh, the oriented bounding box of each connected piece (``geometry``:
+    :func:`link_geometry`)."""
+    designed = _design_boxes(design) if design is not None else {}
+    out: dict[str, list[Box]] = {}
+    for n in links:
+        items = designed.get(n)
+        if items is None:
+            items = [b for k, g, o in geometry[n] for b in _oriented_boxes(n, k, g, o)]
+        out[n] = [Box(n, np.asarray(c, float), np.asarray(r, float), np.asarray(h, float))
+                  for c, r, h in items]  # fmt: skip
+    return out
+
+
 def _point_segment(p: Any, a: Any, b: Any, o: SimpleNamespace) -> Any:
     """Distance from point p to segment a-b, for CasADi (``o = _CASADI``) and numpy
     (``o = _NUMPY``, single points); ``sqrt(. + 1e-18)`` keeps it smooth."""
@@ -296,6 +314,25 @@ def segment_distance(p1: np.ndarray, q1: np.ndarray, p2: np.ndarray, q2: np.ndar
         t, s = 1.0, float(np.clip((b - c) / a, 0, 1))
     w = p1 + s * d1 - p2 - t * d2
     return float(np.sqrt(w @ w + _TINY))
+
+
+def segment_distances(
+    p1: np.ndarray, q1: np.ndarray, p2: np.ndarray, q2: np.ndarray
+) -> np.ndarray:
+    """Distances between segments p1-q1 and p2-q2 [m], one per row (numpy, shapes (m, 3);
+    :func:`segment_distance` on arrays of segments)."""
+    d1, d2, r = q1 - p1, q2 - p2, p1 - p2
+    a, e = np.einsum("ij,ij->i", d1, d1), np.einsum("ij,ij->i", d2, d2)
+    f, c = np.einsum("ij,ij->i", d2, r), np.einsum("ij,ij->i", d1, r)
+    b = np.einsum("ij,ij->i", d1, d2)
+    denom = a * e - b * b
+    ok = denom > 1e-14
+    s = np.where(ok, np.clip((b * f - c * e) / np.where(ok, denom, 1.0), 0, 1), 0.0)
+    t = (b * s + f) / e
+    s = np.where(t < 0, np.clip(-c / a, 0, 1), np.where(t > 1, np.clip((b - c) / a, 0, 1), s))
+    t = np.clip(t, 0, 1)
+    w = p1 + s[:, None] * d1 - p2 - t[:, None] * d2
+    return np.sqrt(np.einsum("ij,ij->i", w, w) + _TINY)
 
 
 def box_sdf(p: np.ndarray, box: Box) -> float:
@@ -473,18 +510,15 @@ class PairCollision:
         self.capsules: tuple[Capsule, ...] = tuple(caps)
         self.finger_of: tuple[int, ...] = tuple(finger_of)
         structure = [n for n in links if not ancestors(n) & all_pair_joints]
-        designed = _design_boxes(pk.hand.design) if pk.hand.design is not None else {}
+        local = structure_boxes(pk.hand.design, geometry, structure)
         q0 = kin.neutral()
         base = kin.frame_placement(q0, d.base)
         boxes: list[Box] = []
         for n in sorted(structure):
             pl = base.inverse() * kin.frame_placement(q0, n)
             rot, tr = np.array(pl.rotation), np.array(pl.translation)
-            items = designed.get(n)
-            if items is None:
-                items = [b for k, g, o in geometry[n] for b in _oriented_boxes(n, k, g, o)]
-            for c, r, h in items:
-                boxes.append(Box(n, rot @ c + tr, rot @ r, np.asarray(h, float)))
+            for bx in local[n]:
+                boxes.append(Box(n, rot @ bx.centre + tr, rot @ bx.rotation, bx.half))
         self.boxes: tuple[Box, ...] = tuple(boxes)
         joint_parent = {j.get("name"): j.find("parent").get("link") for j in _joints(kin.urdf)}
         joint_child = {j.get("name"): j.find("child").get("link") for j in _joints(kin.urdf)}
