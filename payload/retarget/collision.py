@@ -44,6 +44,7 @@ import pinocchio as pin
 from scipy.optimize import minimize
 
 from payload.retarget import features as _features
+from payload.retarget.errors import RetargetError
 from payload.retarget.features import PairKinematics
 from payload.retarget.symbolic import chain_point, frame_point_chain
 
@@ -120,6 +121,27 @@ def _mesh_path(name: str, urdf_dir: Path) -> Path:
     return Path(name) if Path(name).is_absolute() else urdf_dir / name
 
 
+def load_collision_mesh(filename: str, urdf_dir: Path) -> Any:
+    """The trimesh mesh a URDF ``<mesh filename=...>`` names (relative to the URDF's folder,
+    ``package://`` and ``file://`` stripped), unscaled.
+
+    Raises:
+        RetargetError: The file is missing or unreadable: one line naming it.
+    """
+    import trimesh
+
+    path = _mesh_path(filename, urdf_dir)
+    if not path.is_file():
+        raise RetargetError(
+            f"collision mesh not found: {path} (the self-collision model and the mesh check "
+            "need the URDF's collision meshes; without them, retarget without the model)"
+        )
+    try:
+        return trimesh.load(str(path), force="mesh")
+    except (ValueError, OSError) as exc:
+        raise RetargetError(f"collision mesh unreadable: {path} ({exc})") from None
+
+
 def link_geometry(urdf: Path) -> dict[str, list[tuple[str, object, np.ndarray]]]:
     """Per link, its collision elements ``(kind, data, origin 4x4)`` from a URDF.
 
@@ -138,7 +160,7 @@ def link_geometry(urdf: Path) -> dict[str, list[tuple[str, object, np.ndarray]]]
             pose = _origin(col.find("origin"))
             item: tuple[str, object] | None = None
             if (m := geo.find("mesh")) is not None:
-                tm = trimesh.load(str(_mesh_path(m.get("filename", ""), urdf.parent)), force="mesh")
+                tm = load_collision_mesh(m.get("filename", ""), urdf.parent)
                 scale = np.array([float(v) for v in m.get("scale", "1 1 1").split()])
                 tm = trimesh.Trimesh(np.asarray(tm.vertices) * scale, tm.faces, process=False)
                 item = ("mesh", tm)

@@ -26,7 +26,6 @@ import fcl
 import numpy as np
 import pinocchio as pin
 
-from payload.retarget.errors import RetargetError
 from payload.retarget.features import PairKinematics
 
 
@@ -42,17 +41,11 @@ def _origin(el: ET.Element | None) -> np.ndarray:
 
 
 def _geometry(geo: ET.Element, urdf_dir: Path) -> fcl.CollisionGeometry | None:
-    import trimesh
+    from payload.retarget.collision import load_collision_mesh
 
     mesh = geo.find("mesh")
     if mesh is not None:
-        name = mesh.get("filename", "")
-        if name.startswith("package://") or name.startswith("file://"):
-            name = name.split("://", 1)[1]
-        path = Path(name) if Path(name).is_absolute() else urdf_dir / name
-        if not path.is_file():
-            raise RetargetError(f"collision mesh not found: {path}")
-        tm = trimesh.load(str(path), force="mesh")
+        tm = load_collision_mesh(mesh.get("filename", ""), urdf_dir)
         scale = np.array([float(v) for v in mesh.get("scale", "1 1 1").split()])
         vertices = np.asarray(tm.vertices, dtype=float) * scale
         model = fcl.BVHModel()
