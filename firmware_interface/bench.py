@@ -34,11 +34,12 @@ def bench_hw(
 
     Returns:
         ``cycles``, ``cycle_mean_us``, ``cycle_p99_us``, ``wire_us``, ``ratio_to_wire``,
-        ``retries``, ``baud``, ``guard_us`` (the mean time of the driver's collision check
-        of one command, :mod:`firmware_interface.guard`, included in every cycle), plus ``cycle_median_us``, ``fallbacks``, ``load_1min`` and
-        the CPU time per cycle of the host (``host_cpu_us``) and of the emulator
-        (``emulator_cpu_us``): on a loaded machine the wall-clock cycle mostly waits for
-        the scheduler, and wire + CPU is what an idle machine would see.
+        ``retries``, ``baud``, ``guard_us`` (the mean time of the driver's collision
+        check of one command, :mod:`firmware_interface.guard`, included in every cycle),
+        plus ``cycle_median_us``, ``fallbacks``, ``load_1min`` and the CPU time per
+        cycle of the host (``host_cpu_us``) and of the emulator (``emulator_cpu_us``):
+        on a loaded machine the wall-clock cycle mostly waits for the scheduler, and
+        wire + CPU is what an idle machine would see.
     """
     from firmware_interface.driver import DynamixelDriver
     from firmware_interface.emulator import EmulatorProcess

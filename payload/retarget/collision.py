@@ -338,9 +338,7 @@ def segment_distance(p1: np.ndarray, q1: np.ndarray, p2: np.ndarray, q2: np.ndar
     return float(np.sqrt(w @ w + _TINY))
 
 
-def segment_distances(
-    p1: np.ndarray, q1: np.ndarray, p2: np.ndarray, q2: np.ndarray
-) -> np.ndarray:
+def segment_distances(p1: np.ndarray, q1: np.ndarray, p2: np.ndarray, q2: np.ndarray) -> np.ndarray:
     """Distances between segments p1-q1 and p2-q2 [m], one per row (numpy, shapes (m, 3);
     :func:`segment_distance` on arrays of segments)."""
     d1, d2, r = q1 - p1, q2 - p2, p1 - p2
