@@ -42,8 +42,13 @@ def smap():
 
 @pytest.fixture(scope="module")
 def rig(smap):
-    """One emulator and a brought-up driver shared by the non-destructive tests."""
-    with EmulatorProcess() as emu, DynamixelDriver(emu.port, smap, latency_timer_ms=LAT) as drv:
+    """One emulator and a brought-up driver shared by the non-destructive tests (the
+    collision guard off: they command random postures to check the unit conversions; the
+    guard has its own tests, test_firmware_guard.py)."""
+    with (
+        EmulatorProcess() as emu,
+        DynamixelDriver(emu.port, smap, latency_timer_ms=LAT, guard=False) as drv,
+    ):
         drv.bring_up()
         yield emu, drv
 

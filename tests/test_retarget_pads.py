@@ -73,6 +73,7 @@ N_PINCHES = 100_000
 """Random pinches and openings of the acceptance test (issue 36), split over the pairs."""
 
 
+@pytest.mark.slow
 def test_random_pinches_and_openings_give_no_non_pad_collision(hand):
     """100,000 solves of the safe controller (the paper budget with the model) on random
     human pinches and openings (beyond both calibrated ends, rolled, drifting, noisy).
