@@ -159,7 +159,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
               f"{result['wire_us']:.0f} us ({result['ratio_to_wire']:.2f}x), "
               f"{result['retries']} retries, load {result['load_1min']:.2f}")  # fmt: skip
         if result.get("guard_us") is not None:
-            print(f"collision guard: {result['guard_us']:.0f} us a command (in every cycle)")
+            print(f"collision guard: {result['guard_us']:.0f} us a command, "
+                  f"{result['guard_cpu_us']:.0f} us CPU (in every cycle)")  # fmt: skip
     return 0
 
 
