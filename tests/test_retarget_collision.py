@@ -331,12 +331,14 @@ def test_the_grouped_evaluation_equals_the_dense_penalty(pks, solvers, pair):
 
 # ------------------------------------------------------------- calibration
 @pytest.mark.parametrize("pair", PAIRS)
-def test_the_calibrated_range_and_postures_keep_the_margin(pks, checks, pair):
+def test_the_calibrated_range_and_postures_keep_the_non_pad_margin(pks, checks, pair):
     pk, mc = pks[pair], checks[pair]
     rg, free = pair_range(pk, collisions=True), pair_range(pk)
-    assert rg.span_min > 2 * pk.desc.tip_radius + pk.collision.margin
+    # the pads may close on each other (issue 36): the model keeps the pinch end, the
+    # pads touching, where the kinematics put it; it narrows only the opening
+    assert rg.span_min == pytest.approx(free.span_min, abs=1e-9)
+    assert rg.span_min == pytest.approx(2 * pk.desc.tip_radius, abs=1e-6)
     assert rg.span_max <= free.span_max + 1e-9
-    assert rg.span_min_kinematic == rg.span_min
     for q in np.vstack(
         [rg.postures, [rg.posture(s) for s in np.linspace(rg.span_min, rg.span_max, 97)]]
     ):
