@@ -11,6 +11,7 @@ from typing import Any
 
 _EXPORTS = {
     "DynamixelDriver": "firmware_interface.driver",
+    "CommandGuard": "firmware_interface.guard",
     "Recovery": "firmware_interface.health",
     "ServoHealth": "firmware_interface.health",
     "ServoMap": "firmware_interface.servo_map",

@@ -34,10 +34,13 @@ def bench_hw(
 
     Returns:
         ``cycles``, ``cycle_mean_us``, ``cycle_p99_us``, ``wire_us``, ``ratio_to_wire``,
-        ``retries``, ``baud``, plus ``cycle_median_us``, ``fallbacks``, ``load_1min`` and
-        the CPU time per cycle of the host (``host_cpu_us``) and of the emulator
-        (``emulator_cpu_us``): on a loaded machine the wall-clock cycle mostly waits for
-        the scheduler, and wire + CPU is what an idle machine would see.
+        ``retries``, ``baud``, ``guard_us`` and ``guard_cpu_us`` (the mean wall-clock
+        and CPU time of the driver's collision check of one command,
+        :mod:`firmware_interface.guard`, included in every cycle),
+        plus ``cycle_median_us``, ``fallbacks``, ``load_1min`` and the CPU time per
+        cycle of the host (``host_cpu_us``) and of the emulator (``emulator_cpu_us``):
+        on a loaded machine the wall-clock cycle mostly waits for the scheduler, and
+        wire + CPU is what an idle machine would see.
     """
     from firmware_interface.driver import DynamixelDriver
     from firmware_interface.emulator import EmulatorProcess
@@ -67,6 +70,11 @@ def bench_hw(
             host_cpu = (time.process_time() - cpu0) / cycles
             emu_cpu = (emu.request(op="cpu")["cpu_s"] - emu0) / cycles if emu is not None else None
             retries, fallbacks = drv.retry_count, drv.fallbacks
+            # the collision guard's check of one command (part of every send above)
+            values = np.append(cmd.q, cmd.deploy)
+            guard_us, guard_cpu_us = (
+                drv.guard.cost_us(values, min(cycles, 500)) if drv.guard else (None, None)
+            )
     finally:
         if emu is not None:
             emu.close()
@@ -85,5 +93,7 @@ def bench_hw(
         "port": port or "emulator",
         "host_cpu_us": host_cpu * 1e6,
         "emulator_cpu_us": emu_cpu * 1e6 if emu_cpu is not None else None,
+        "guard_us": guard_us,
+        "guard_cpu_us": guard_cpu_us,
         "load_1min": os.getloadavg()[0],
     }

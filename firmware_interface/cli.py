@@ -133,6 +133,15 @@ def _cmd_run(args: argparse.Namespace) -> int:
     out = Path(args.out) if args.out else default_out(project, "hw")
     if (getattr(args, "device", None) is None) == (not args.emulator):
         raise HwUsageError("give either --device DEV or --emulator")
+    from payload.profiles import SAFE, resolve
+
+    prof, overrides = resolve(
+        args.controller,
+        SAFE,
+        retarget_budget=args.retarget_budget,
+        retarget_collisions=args.retarget_collisions,
+        base_filter=args.base_filter,
+    )
     with contextlib.ExitStack() as stack:
         emu = None
         if args.emulator:
@@ -144,7 +153,11 @@ def _cmd_run(args: argparse.Namespace) -> int:
             DynamixelDriver(device, _map(args), latency_timer_ms=args.latency_ms)
         )
         result = run_hardware_trial(drv, replay, out, max_time=args.max_time,
-                                    pace=not args.no_pace, emulator=emu)  # fmt: skip
+                                    pace=not args.no_pace, emulator=emu,
+                                    base_filter=prof.base_filter,
+                                    controller=(prof.name, overrides),
+                                    budget=prof.retarget_budget,
+                                    collisions=prof.retarget_collisions)  # fmt: skip
     result["out"] = str(out)
     if args.json:
         emit_json(result)
@@ -199,6 +212,9 @@ def _cmd_bench(args: argparse.Namespace) -> int:
               f"{result['cycle_mean_us']:.0f} us, p99 {result['cycle_p99_us']:.0f} us, wire "
               f"{result['wire_us']:.0f} us ({result['ratio_to_wire']:.2f}x), "
               f"{result['retries']} retries, load {result['load_1min']:.2f}")  # fmt: skip
+        if result.get("guard_us") is not None:
+            print(f"collision guard: {result['guard_us']:.0f} us a command, "
+                  f"{result['guard_cpu_us']:.0f} us CPU (in every cycle)")  # fmt: skip
     return 0
 
 
@@ -310,6 +326,34 @@ def register(
     p.add_argument("--out", help="trial folder (default: a new runs/hw-NNNN in the project)")
     p.add_argument("--max-time", type=float, default=240.0, help="session cap [s]")
     p.add_argument("--no-pace", action="store_true", help=argparse.SUPPRESS)
+    from payload.profiles import PROFILES, SAFE
+
+    p.add_argument(
+        "--controller",
+        choices=tuple(PROFILES),
+        default=None,
+        help=f"controller profile (default {SAFE}: real servos): 'safe' models "
+        "self-collision (the pads of a pair excepted); 'paper' is the paper's controller",
+    )
+    p.add_argument(
+        "--retarget-budget",
+        choices=("paper", "converged"),
+        default=None,
+        help="retargeting budget per pair solve (default: the --controller profile's)",
+    )
+    p.add_argument(
+        "--retarget-collisions",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="model self-collision in the pair solves (default: the --controller profile's)",
+    )
+    p.add_argument(
+        "--base-filter",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="the base safety filter on the simulated vehicle (default: the --controller "
+        "profile's, on in 'safe')",
+    )
     add_json(p)
     _latency(p)
     p.set_defaults(func=_cmd_run)

@@ -44,6 +44,7 @@ from firmware_interface.errors import (
     NotHomedError,
 )
 from firmware_interface.fault_handling import FaultHandling
+from firmware_interface.guard import CommandGuard, default_guard
 from firmware_interface.health import ServoHealth
 from firmware_interface.homing import home_linear
 from firmware_interface.port import AlertSyncRead, SdkPort
@@ -81,6 +82,10 @@ class DynamixelDriver(FaultHandling):
             soon as the bytes it asks for are there, without spinning the CPU (0 keeps
             the SDK's busy polling).
         latency_timer_ms: Latency allowance of the reply timeout (SDK default 16 ms).
+        guard: Check every command against the self-collision margins before it is sent
+            (:mod:`firmware_interface.guard`): ``True`` (default) builds the guard for
+            our hand, a :class:`~firmware_interface.guard.CommandGuard` is used as given,
+            ``False`` sends commands unchecked (tests of the unit conversions).
     """
 
     def __init__(
@@ -95,6 +100,7 @@ class DynamixelDriver(FaultHandling):
         fast: bool = True,
         poll_timeout: float = 0.002,
         latency_timer_ms: float = 16.0,
+        guard: bool | CommandGuard = True,
     ) -> None:
         self.design = design if design is not None else load_design()
         self.map = servo_map if servo_map is not None else load_servo_map(design=self.design)
@@ -108,6 +114,11 @@ class DynamixelDriver(FaultHandling):
         self.retry_count = 0
         self.fallbacks = 0
         self.reads = 0
+        self.guard: CommandGuard | None = None
+        if isinstance(guard, CommandGuard):
+            self.guard = guard
+        elif guard:
+            self.guard = default_guard()
         self.fault: HardwareFault | None = None
         self.faults: list[HardwareFault] = []
         self.health: dict[int, ServoHealth] = {}
@@ -218,6 +229,8 @@ class DynamixelDriver(FaultHandling):
         self.home()
         self._arm_watchdog(self.ids)
         self._last_io = time.monotonic()
+        if self.guard is not None:  # where the servos hold is the guard's last safe command
+            self.guard.reset(self._direction * (self._present - self._zero) * self._units)
 
     def home(self, specs: list[ServoSpec] | None = None) -> dict[int, int]:
         """Home the rail and the stage (default both): a current-limited move to the stowed
@@ -270,6 +283,7 @@ class DynamixelDriver(FaultHandling):
         self._write(i, "goal_current", self.map.current_limit_ma)
         self._write(i, "bus_watchdog", 0)
         present = to_signed(self._read_reg(i, ADDR["present_position"], 4), 4)
+        self._present[self.ids.index(i)] = present
         self._write(i, "goal_position", present)
         self._write(i, "torque_enable", 1)
 
@@ -286,9 +300,14 @@ class DynamixelDriver(FaultHandling):
         if unhomed:
             raise NotHomedError(f"{' and '.join(unhomed)} not homed: bring_up() homes them")
         values = np.clip(np.append(command.q, command.deploy), self._lower, self._upper)
-        ticks = np.rint(self._zero + self._direction * values / self._units).astype(np.int64)
         if self._stopped:
             return
+        if self.guard is not None:  # the last line: no command inside a non-pad margin
+            guarded = self.guard.filter(values)
+            if guarded is None:
+                return
+            values = guarded
+        ticks = np.rint(self._zero + self._direction * values / self._units).astype(np.int64)
         if self.map.watchdog_ms and time.monotonic() - self._last_io > self.map.watchdog_ms / 1e3:
             # silent for longer than the Bus Watchdog: servos that stopped refuse goals
             # until it is cleared, so re-arm them first

@@ -163,6 +163,8 @@ def replay_session(
     (:class:`HardwareInTheLoop`): calibration, pipeline, loop. ``rt``: the retargeters
     and pair ranges to use (default: the paper's).
 
+    ``budget`` and ``collisions`` set the pair solves (as ``payload trial``'s flags).
+
     Returns:
         The payload command sent at every step.
     """
@@ -249,6 +251,9 @@ def run_hardware_trial(
     pace: bool = True,
     emulator: Any = None,
     base_filter: bool = True,
+    controller: tuple[str, list[str]] = ("safe", []),
+    budget: str = "paper",
+    collisions: bool = True,
 ) -> dict[str, Any]:
     """Replay a hand recording on the hardware and record the trial like ``payload trial``.
 
@@ -267,6 +272,10 @@ def run_hardware_trial(
             one started here: the grasp's load is fed to its servos.
         base_filter: The base safety filter on the simulated vehicle (default on: the
             ``safe`` profile, real servos being in the loop).
+        controller: The controller profile's name and the settings overridden
+            (:func:`payload.profiles.resolve`), recorded.
+        budget: The pair solves' evaluation budget.
+        collisions: Self-collision modelled in the pair solves.
 
     Returns:
         The metrics (as written to ``metrics.json``) with ``steps``, ``driver``,
@@ -283,7 +292,13 @@ def run_hardware_trial(
     project = current_project()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    sim, (retargeters, ranges), setup = _replay_setup(project, recorded)
+    sim, rt_source, setup = _replay_setup(project, recorded)
+    if (budget, collisions) == (setup["retarget_budget"], setup["retarget_collisions"]):
+        retargeters, ranges = rt_source
+    else:  # the CTB placed as the source trial's retargeting placed it; the session's own
+        from payload.trials.retargeters import retargeting
+
+        retargeters, ranges = retargeting(project, budget, collisions)
     if base_filter:
         sim.twist_filter = base_filter_for(sim, TeleopConfig.from_design(load_design()).base)
     prov = provenance(project, sim.world.config.design)
@@ -303,12 +318,16 @@ def run_hardware_trial(
         "design_hash": prov["design_sha256"][:16],
         "provenance": prov,
         "traits": {"replay": str(replay)},
-        "base_filter": bool(base_filter),
         "route": layout.route().tolist(),
         "modules": module_rects(layout),
         **({"contact_definition": recorded["contact_definition"]}
            if "contact_definition" in recorded else {}),
         **setup,
+        "retarget_budget": budget,
+        "retarget_collisions": collisions,
+        "base_filter": bool(base_filter),
+        "controller": controller[0],
+        "controller_overrides": controller[1],
     }  # fmt: skip
     trips0 = len(hardware.watchdog_trips)
     try:

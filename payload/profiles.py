@@ -87,3 +87,17 @@ def profile(name: str) -> ControllerProfile:
         raise PayloadError(
             f"--controller: expected one of {', '.join(PROFILES)}, got {name!r}"
         ) from None
+
+
+def resolve(name: str | None, default: str, **given: object) -> tuple[ControllerProfile, list[str]]:
+    """The profile called ``name`` (``None``: ``default``) with the settings given (not
+    ``None``) replacing its own, and the names of those that differ from the profile's
+    (the overrides a trial and a summary record; a flag equal to the profile's own setting
+    is none, so the same setup resolved twice reads the same).
+
+    Raises:
+        PayloadError: No such profile.
+    """
+    prof = profile(default if name is None else name)
+    overrides = sorted(k for k, v in given.items() if v is not None and getattr(prof, k) != v)
+    return prof.override(**given), overrides  # type: ignore[arg-type]

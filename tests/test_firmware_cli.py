@@ -100,3 +100,5 @@ def test_bench_hw_reports_the_cycle_against_the_wire_time(capsys):
     assert out["wire_us"] == pytest.approx(n_bytes * 10 / 4e6 * 1e6)
     assert out["ratio_to_wire"] == pytest.approx(out["cycle_mean_us"] / out["wire_us"])
     assert out["cycle_p99_us"] >= out["cycle_mean_us"] * 0.5 > 0
+    # the driver's collision guard, part of every cycle: well inside the 20 ms of 50 Hz
+    assert 0 < out["guard_cpu_us"] < 20_000 and out["guard_us"] > 0

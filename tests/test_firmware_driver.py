@@ -42,8 +42,13 @@ def smap():
 
 @pytest.fixture(scope="module")
 def rig(smap):
-    """One emulator and a brought-up driver shared by the non-destructive tests."""
-    with EmulatorProcess() as emu, DynamixelDriver(emu.port, smap, latency_timer_ms=LAT) as drv:
+    """One emulator and a brought-up driver shared by the non-destructive tests (the
+    collision guard off: they command random postures to check the unit conversions; the
+    guard has its own tests, test_firmware_guard.py)."""
+    with (
+        EmulatorProcess() as emu,
+        DynamixelDriver(emu.port, smap, latency_timer_ms=LAT, guard=False) as drv,
+    ):
         drv.bring_up()
         yield emu, drv
 
@@ -263,7 +268,9 @@ def test_hardware_error_stops_safely_and_recover_returns_the_servo(smap, mode, c
 def test_a_blocked_joint_trips_overload_at_the_current_cap(smap):
     with (
         EmulatorProcess(faults=["block:3"]) as emu,
-        DynamixelDriver(emu.port, smap, latency_timer_ms=LAT) as drv,
+        # the guard off: A_pip at 1 rad brings A's distal capsule (which encloses the pad)
+        # inside the margin of C's middle link, and this test is about the current cap
+        DynamixelDriver(emu.port, smap, latency_timer_ms=LAT, guard=False) as drv,
     ):
         drv.bring_up()
         q = np.zeros(17)

@@ -42,6 +42,7 @@ from payload.retarget.collision import (
 )
 from payload.retarget.collision_eval import CollisionGroups
 from payload.retarget.compiled import _CompiledSolve
+from payload.retarget.errors import RetargetError
 from payload.retarget.lm_graph import _step_functions
 from payload.retarget.meshcheck import PairMeshCheck
 from payload.retarget.objective import collision_residual
@@ -357,12 +358,14 @@ def test_the_grouped_evaluation_equals_the_dense_penalty(pks, solvers, pair):
 
 # ------------------------------------------------------------- calibration
 @pytest.mark.parametrize("pair", PAIRS)
-def test_the_calibrated_range_and_postures_keep_the_margin(pks, checks, pair):
+def test_the_calibrated_range_and_postures_keep_the_non_pad_margin(pks, checks, pair):
     pk, mc = pks[pair], checks[pair]
     rg, free = pair_range(pk, collisions=True), pair_range(pk)
-    assert rg.span_min > 2 * pk.desc.tip_radius + pk.collision.margin
+    # the pads may close on each other (issue 36): the model keeps the pinch end, the
+    # pads touching, where the kinematics put it; it narrows only the opening
+    assert rg.span_min == pytest.approx(free.span_min, abs=1e-9)
+    assert rg.span_min == pytest.approx(2 * pk.desc.tip_radius, abs=1e-6)
     assert rg.span_max <= free.span_max + 1e-9
-    assert rg.span_min_kinematic == rg.span_min
     for q in np.vstack(
         [rg.postures, [rg.posture(s) for s in np.linspace(rg.span_min, rg.span_max, 97)]]
     ):
@@ -583,3 +586,25 @@ def test_hold_keeps_the_carried_bounds_and_answers_as_reset_does(hand, pks):
         kept += int(np.isfinite(held._compiled.inputs[4]).any())
         assert not np.isfinite(fresh._compiled.inputs[4]).any()
     assert kept == 40  # every hold kept bounds to carry
+
+
+def test_a_hand_without_its_meshes_retargets_without_the_model_and_names_the_file_with_it(
+    tmp_path,
+):
+    # our URDF copied alone: every collision mesh it names is missing
+    shutil.copy(current_project().root / "urdf" / "payload.urdf", tmp_path / "payload.urdf")
+    text = (HANDS_DIR / "payload.toml").read_text()
+    text = text.replace("{project}/urdf/payload.urdf", "payload.urdf")
+    text = text.replace("{project}/", f"{current_project().root}/")  # the design, in place
+    (tmp_path / "hand.toml").write_text(text)
+    bare = load_hand(tmp_path / "hand.toml")
+    pk = PairKinematics(bare, "L")
+    off = PairRetargeter(bare, "L", RetargetConfig(collisions=False), pk)
+    cal = calibrate(*human_pinch_and_open(), pair_range(pk, collisions=False))
+    targets, q_ref = cal.command(features_from_points(*synthetic_hand(0.5, 0.0, np.zeros(3))))
+    q, info = off.solve(targets, None, q_ref)
+    assert np.all(np.isfinite(q)) and info.evaluations <= 20
+    with pytest.raises(RetargetError, match=r"^collision mesh not found: .*meshes/\w+\.stl \("):
+        PairRetargeter(bare, "L", RetargetConfig(collisions=True), PairKinematics(bare, "L"))
+    with pytest.raises(RetargetError, match=r"^collision mesh not found: .*\.stl"):
+        PairMeshCheck(pk)

@@ -496,10 +496,25 @@ def test_payload_rig_commands_both_drivers_and_reads_the_payload():
         assert rig.world is sim.world  # the vehicle and the world stay the simulator's
 
 
-@pytest.mark.parametrize(("flag", "modelled"), [([], False), (["--retarget-collisions"], True)])
-def test_serve_models_self_collision_when_asked(monkeypatch, capsys, flag, modelled):
-    """``payload teleop serve`` builds its session with the self-collision model only with
-    ``--retarget-collisions`` (it keeps the fingers from squeezing the CTB's handle)."""
+@pytest.mark.parametrize(
+    ("flag", "modelled", "recorded"),
+    [
+        ([], True, ("safe", [])),
+        (["--controller", "paper"], False, ("paper", [])),
+        (["--no-retarget-collisions"], False, ("safe", ["retarget_collisions"])),
+        (
+            ["--controller", "paper", "--retarget-collisions"],
+            True,
+            ("paper", ["retarget_collisions"]),
+        ),
+    ],
+)
+def test_serve_models_self_collision_unless_told_not_to(
+    monkeypatch, capsys, flag, modelled, recorded
+):
+    """``payload teleop serve`` runs the ``safe`` controller profile by default (a person
+    and possibly real servos in the loop): its session models self-collision unless the
+    ``paper`` profile or ``--no-retarget-collisions`` is given, and records which."""
     from payload.cli import main
     from payload.trials import live
 
@@ -508,14 +523,15 @@ def test_serve_models_self_collision_when_asked(monkeypatch, capsys, flag, model
     class Stop(Exception):
         pass
 
-    def session(hub, record, payload=None, collisions=False, **safety):
-        seen.append(collisions)
+    def session(hub, record, payload=None, collisions=False, budget="paper", controller=None,
+                **safety):  # fmt: skip
+        seen.append((collisions, budget, controller))
         raise Stop
 
     monkeypatch.setattr(live, "LiveSession", session)
     with pytest.raises(Stop):
         main(["teleop", "serve", "--port", "0", *flag])
-    assert seen == [modelled]
+    assert seen == [(modelled, "paper", recorded)]
 
 
 @pytest.mark.parametrize(
@@ -533,7 +549,7 @@ def test_serve_runs_the_base_filter_by_default(monkeypatch, flags, expected):
     class Stop(Exception):
         pass
 
-    def session(hub, record, payload=None, collisions=False, base_filter=None, link_delay=None):
+    def session(hub, record, payload=None, base_filter=None, link_delay=None, **settings):
         seen.append((base_filter, link_delay))
         raise Stop
 

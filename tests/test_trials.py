@@ -788,6 +788,8 @@ def _fake_runner(monkeypatch: pytest.MonkeyPatch) -> list[dict[str, Any]]:
             **fixture_synthetic_trial(seed, out_dir),
             "retarget_budget": retarget_budget or "paper",
             "retarget_collisions": bool(retarget_collisions),
+            "controller": setup.get("controller") or "paper",
+            "controller_overrides": [],
         }
 
     module = types.ModuleType("payload.trials.runner")
@@ -1051,6 +1053,47 @@ def test_finish_trial_scores_both_contact_definitions(tmp_path: Path) -> None:
     assert result["literal"] == json.loads(json.dumps(literal))
     assert result["min_interval_s"] == 0.5 and result["literal"]["min_interval_s"] == 0.0
     assert json.loads((tmp_path / "metrics.json").read_text())["literal"] == result["literal"]
+
+
+def test_cli_controller_profile_reaches_the_runner_and_the_summary(
+    tmp_path: Path, monkeypatch, capsys
+) -> None:
+    """``--controller safe`` on a campaign: the self-collision model on in every trial,
+    the profile named in the summary and its table; a bad profile is refused (exit 2)."""
+    from payload.cli import main
+
+    calls = _fake_runner(monkeypatch)
+    runner = sys.modules["payload.trials.runner"]
+    camp = tmp_path / "camp"
+    args = ["trials", "run", "--n", "2", "--workers", "0", "--out", str(camp)]
+    assert main([*args, "--controller", "safe", "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert runner.modelled == [True, True]  # type: ignore[attr-defined]
+    assert runner.budgets == ["paper", "paper"]  # type: ignore[attr-defined]
+    assert [c["controller"] for c in calls] == ["safe", "safe"]
+    assert summary["controller"] == "safe" and summary["controller_overrides"] == []
+    assert "Controller profile: safe" in (camp / "summary.md").read_text()
+    with pytest.raises(SystemExit) as info:
+        main(["trial", "--controller", "careful"])
+    assert info.value.code == 2
+    assert "invalid choice: 'careful'" in capsys.readouterr().err
+
+
+def test_trial_setup_resolves_the_profile_and_names_the_overrides() -> None:
+    from payload.errors import PayloadError
+    from payload.trials.sources import trial_setup
+
+    paper = trial_setup()
+    assert (paper["controller"], paper["retarget_collisions"]) == ("paper", False)
+    safe = trial_setup(controller="safe")
+    assert safe["retarget_collisions"] is True and safe["controller_overrides"] == []
+    off = trial_setup(controller="safe", retarget_collisions=False, retarget_budget="paper")
+    assert off["retarget_collisions"] is False
+    assert off["controller_overrides"] == ["retarget_collisions"]  # paper is safe's own
+    assert trial_setup(**{k: off[k] for k in ("retarget_budget", "retarget_collisions",
+                                              "controller")}) == off  # fmt: skip
+    with pytest.raises(PayloadError, match="--controller: expected one of paper, safe"):
+        trial_setup(controller="careful")
 
 
 def test_cli_retarget_settings_reach_the_runner_and_the_summary(

@@ -34,6 +34,9 @@ FINGERS: tuple[str, ...] = ("A", "B", "C", "D")
 FINGER_JOINTS: tuple[str, ...] = ("mcp_flex", "mcp_abd", "pip", "dip")
 """Per-finger joints in LEAP's order (abduction after flexion)."""
 
+FINGER_LINKS: tuple[str, ...] = ("knuckle", "proximal", "middle", "distal")
+"""Per-finger links, base to tip (URDF link ``<finger>_<link>``)."""
+
 SIDE_OF: dict[str, int] = {"A": 1, "B": 1, "C": 2, "D": 2}
 
 
@@ -230,7 +233,17 @@ class RetargetParams:
 
     collision_margin: float = _pos(
         "least distance [m] a retargeting command keeps between links of different fingers, "
-        "and between a finger and the structure (stage, carriage, base)"
+        "and between a finger and the structure (stage, carriage, base), except between "
+        "the two pad links of one pair"
+    )
+    pad_link: str = field(
+        default="distal",
+        metadata={
+            "doc": "the finger link (knuckle, proximal, middle or distal) whose collision "
+            "geometry carries the fingertip pad: the two pad links of one pair may close on "
+            "each other and on what they hold (no margin between them)",
+            "optional": True,
+        },
     )
 
 
@@ -336,6 +349,11 @@ class Design:
             from payload.design.vehicle import vehicle_from_dict
 
             vehicle_from_dict(self.vehicle, source=self.source)
+        if self.retarget.pad_link not in FINGER_LINKS:
+            raise DesignError(
+                "retarget.pad_link",
+                f"expected one of {', '.join(FINGER_LINKS)}, got {self.retarget.pad_link!r}",
+            )
         for j, v in zip(FINGER_JOINTS, self.pinch.finger):
             if not f.limit(j).contains(v):
                 raise DesignError("pinch.finger", f"{j} = {v} rad is outside its limits")

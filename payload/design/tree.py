@@ -26,8 +26,6 @@ MANIPULATION_JOINTS: tuple[str, ...] = (
 ALL_JOINTS: tuple[str, ...] = (*MANIPULATION_JOINTS, "stage")
 """The 17 manipulation coordinates followed by the deployment coordinate."""
 
-FINGER_LINKS: tuple[str, ...] = ("knuckle", "proximal", "middle", "distal")
-
 
 @dataclass(frozen=True)
 class Link:

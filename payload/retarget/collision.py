@@ -15,13 +15,16 @@ The solver's own geometry, derived once per pair:
   mesh, the oriented bounding box of each connected piece.
 
 Checked pairs are those the python-fcl check (:mod:`payload.retarget.meshcheck`) checks:
-a link of finger 1 against a link of finger 2, exactly (segment-to-segment distance less
-both radii), and a finger link against a structure box, exactly too while apart (the
-smallest distance of the box along the capsule axis, :func:`segment_box_distance_expr`,
-less the radius; an axis entering the box gets the depth in the middle of its inside
-part), except a finger's first link against the link it is mounted on (they touch by
-construction). Pairs that never come within :data:`PRUNE_DISTANCE` of each other over
-:data:`PRUNE_SAMPLES` seeded postures of the joint box are left out.
+a link of finger 1 against a link of finger 2 except the two **pad links** (the links
+carrying the fingertip pads, :func:`pad_links`, from the design's ``retarget.pad_link``:
+a pinch closes them on each other and on what they hold, docs/retargeting.md), exactly
+(segment-to-segment distance less both radii), and a finger link against a structure
+box, exactly too while apart (the smallest distance of the box along the capsule axis,
+:func:`segment_box_distance_expr`, less the radius; an axis entering the box gets the
+depth in the middle of its inside part), except a finger's first link against the link
+it is mounted on (they touch by construction). Pairs that never come within
+:data:`PRUNE_DISTANCE` of each other over :data:`PRUNE_SAMPLES` seeded postures of the
+joint box are left out.
 
 The clearance of a term is its distance less the hand's ``collision_margin``; a command
 is collision-free in the solver's sense when every clearance is non-negative.
@@ -41,6 +44,7 @@ import pinocchio as pin
 from scipy.optimize import minimize
 
 from payload.retarget import features as _features
+from payload.retarget.errors import RetargetError
 from payload.retarget.features import PairKinematics
 from payload.retarget.symbolic import chain_point, frame_point_chain
 
@@ -117,6 +121,27 @@ def _mesh_path(name: str, urdf_dir: Path) -> Path:
     return Path(name) if Path(name).is_absolute() else urdf_dir / name
 
 
+def load_collision_mesh(filename: str, urdf_dir: Path) -> Any:
+    """The trimesh mesh a URDF ``<mesh filename=...>`` names (relative to the URDF's folder,
+    ``package://`` and ``file://`` stripped), unscaled.
+
+    Raises:
+        RetargetError: The file is missing or unreadable: one line naming it.
+    """
+    import trimesh
+
+    path = _mesh_path(filename, urdf_dir)
+    if not path.is_file():
+        raise RetargetError(
+            f"collision mesh not found: {path} (the self-collision model and the mesh check "
+            "need the URDF's collision meshes; without them, retarget without the model)"
+        )
+    try:
+        return trimesh.load(str(path), force="mesh")
+    except (ValueError, OSError) as exc:
+        raise RetargetError(f"collision mesh unreadable: {path} ({exc})") from None
+
+
 def link_geometry(urdf: Path) -> dict[str, list[tuple[str, object, np.ndarray]]]:
     """Per link, its collision elements ``(kind, data, origin 4x4)`` from a URDF.
 
@@ -135,7 +160,7 @@ def link_geometry(urdf: Path) -> dict[str, list[tuple[str, object, np.ndarray]]]
             pose = _origin(col.find("origin"))
             item: tuple[str, object] | None = None
             if (m := geo.find("mesh")) is not None:
-                tm = trimesh.load(str(_mesh_path(m.get("filename", ""), urdf.parent)), force="mesh")
+                tm = load_collision_mesh(m.get("filename", ""), urdf.parent)
                 scale = np.array([float(v) for v in m.get("scale", "1 1 1").split()])
                 tm = trimesh.Trimesh(np.asarray(tm.vertices) * scale, tm.faces, process=False)
                 item = ("mesh", tm)
@@ -240,6 +265,24 @@ def _design_boxes(design_path: Path) -> dict[str, list[tuple]]:
     return out
 
 
+def structure_boxes(
+    design: Path | None, geometry: dict[str, list], links: list[str]
+) -> dict[str, list[Box]]:
+    """The structure's boxes per link, in that link's frame: the design's collision boxes
+    and guide columns when the hand names a design, else the URDF's primitives and, for a
+    mesh, the oriented bounding box of each connected piece (``geometry``:
+    :func:`link_geometry`)."""
+    designed = _design_boxes(design) if design is not None else {}
+    out: dict[str, list[Box]] = {}
+    for n in links:
+        items = designed.get(n)
+        if items is None:
+            items = [b for k, g, o in geometry[n] for b in _oriented_boxes(n, k, g, o)]
+        out[n] = [Box(n, np.asarray(c, float), np.asarray(r, float), np.asarray(h, float))
+                  for c, r, h in items]  # fmt: skip
+    return out
+
+
 def _point_segment(p: Any, a: Any, b: Any, o: SimpleNamespace) -> Any:
     """Distance from point p to segment a-b, for CasADi (``o = _CASADI``) and numpy
     (``o = _NUMPY``, single points); ``sqrt(. + 1e-18)`` keeps it smooth."""
@@ -293,6 +336,23 @@ def segment_distance(p1: np.ndarray, q1: np.ndarray, p2: np.ndarray, q2: np.ndar
         t, s = 1.0, float(np.clip((b - c) / a, 0, 1))
     w = p1 + s * d1 - p2 - t * d2
     return float(np.sqrt(w @ w + _TINY))
+
+
+def segment_distances(p1: np.ndarray, q1: np.ndarray, p2: np.ndarray, q2: np.ndarray) -> np.ndarray:
+    """Distances between segments p1-q1 and p2-q2 [m], one per row (numpy, shapes (m, 3);
+    :func:`segment_distance` on arrays of segments)."""
+    d1, d2, r = q1 - p1, q2 - p2, p1 - p2
+    a, e = np.einsum("ij,ij->i", d1, d1), np.einsum("ij,ij->i", d2, d2)
+    f, c = np.einsum("ij,ij->i", d2, r), np.einsum("ij,ij->i", d1, r)
+    b = np.einsum("ij,ij->i", d1, d2)
+    denom = a * e - b * b
+    ok = denom > 1e-14
+    s = np.where(ok, np.clip((b * f - c * e) / np.where(ok, denom, 1.0), 0, 1), 0.0)
+    t = (b * s + f) / e
+    s = np.where(t < 0, np.clip(-c / a, 0, 1), np.where(t > 1, np.clip((b - c) / a, 0, 1), s))
+    t = np.clip(t, 0, 1)
+    w = p1 + s[:, None] * d1 - p2 - t[:, None] * d2
+    return np.sqrt(np.einsum("ij,ij->i", w, w) + _TINY)
 
 
 def box_sdf(p: np.ndarray, box: Box) -> float:
@@ -439,6 +499,8 @@ class PairCollision:
         capsules: Finger link capsules.
         finger_of: Per capsule, 0 or 1.
         boxes: Structure boxes in the base frame.
+        pads: Per finger, its pad link (``None``: none found); the two pad links keep
+            no margin between them, so they have no term.
         terms: The clearance terms kept after pruning.
     """
 
@@ -468,26 +530,25 @@ class PairCollision:
         self.capsules: tuple[Capsule, ...] = tuple(caps)
         self.finger_of: tuple[int, ...] = tuple(finger_of)
         structure = [n for n in links if not ancestors(n) & all_pair_joints]
-        designed = _design_boxes(pk.hand.design) if pk.hand.design is not None else {}
+        local = structure_boxes(pk.hand.design, geometry, structure)
         q0 = kin.neutral()
         base = kin.frame_placement(q0, d.base)
         boxes: list[Box] = []
         for n in sorted(structure):
             pl = base.inverse() * kin.frame_placement(q0, n)
             rot, tr = np.array(pl.rotation), np.array(pl.translation)
-            items = designed.get(n)
-            if items is None:
-                items = [b for k, g, o in geometry[n] for b in _oriented_boxes(n, k, g, o)]
-            for c, r, h in items:
-                boxes.append(Box(n, rot @ c + tr, rot @ r, np.asarray(h, float)))
+            for bx in local[n]:
+                boxes.append(Box(n, rot @ bx.centre + tr, rot @ bx.rotation, bx.half))
         self.boxes: tuple[Box, ...] = tuple(boxes)
         joint_parent = {j.get("name"): j.find("parent").get("link") for j in _joints(kin.urdf)}
         joint_child = {j.get("name"): j.find("child").get("link") for j in _joints(kin.urdf)}
         mounted = {(joint_parent[fj[0]], joint_child[fj[0]]) for fj in d.finger_joints if fj}
+        self.pads: tuple[str | None, ...] = pad_links(pk, frozenset(links))
+        pad_pair = set(self.pads) if None not in self.pads else set()
         terms: list[Term] = []
         for i, ci in enumerate(caps):
             for j in range(i + 1, len(caps)):
-                if finger_of[i] != finger_of[j]:
+                if finger_of[i] != finger_of[j] and {ci.link, caps[j].link} != pad_pair:
                     terms.append(Term(i, j, False))
             for bi, bx in enumerate(boxes):
                 if (bx.link, ci.link) not in mounted:
@@ -657,6 +718,52 @@ class PairCollision:
     def clearance(self, q: np.ndarray) -> float:
         """Smallest distance less the margin at q [m] (``inf`` without terms)."""
         return float(self.distances(q).min() - self.margin) if self.terms else np.inf
+
+
+def pad_links(pk: PairKinematics, links: set[str] | frozenset[str]) -> tuple[str | None, ...]:
+    """Per finger of the pair, its pad link (the two keep no margin), or ``None``.
+
+    With a hand ``pad_link`` (the design's ``retarget.pad_link``), the finger's link among
+    ``links`` (the links with collision geometry) whose URDF name ends in ``_<pad_link>``;
+    without one, the first link with collision geometry at or above the finger's tip
+    frame (the link the fingertip is fixed to).
+    """
+    model = pk.kin.model
+    out: list[str | None] = []
+    for tip in pk.desc.tips:
+        fid = model.getFrameId(tip)
+        found: str | None = None
+        while fid < len(model.frames):
+            f = model.frames[fid]
+            if f.type == pin.FrameType.BODY and f.name in links:
+                found = f.name
+                break
+            if fid == 0 or f.parentFrame == fid:
+                break
+            fid = f.parentFrame
+        if pk.hand.pad_link is not None:
+            # the design names the pad link: the one of this finger's chain with that suffix
+            found = next(
+                (
+                    n
+                    for n in sorted(links)
+                    if n.endswith("_" + pk.hand.pad_link) and _same_finger(model, n, tip)
+                ),
+                None,
+            )
+        out.append(found)
+    return tuple(out)
+
+
+def _same_finger(model: pin.Model, link: str, tip: str) -> bool:
+    """True when ``link`` is ``tip``'s frame's body or one of its ancestors."""
+    j_tip = model.frames[model.getFrameId(tip)].parentJoint
+    j_link = model.frames[model.getFrameId(link, pin.FrameType.BODY)].parentJoint
+    while j_tip > 0:
+        if j_tip == j_link:
+            return True
+        j_tip = model.parents[j_tip]
+    return False
 
 
 def _joints(urdf: str | Path) -> list[ET.Element]:

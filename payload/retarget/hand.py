@@ -103,6 +103,9 @@ class HandDescription:
         design: The design file the URDF was built from, or ``None``.
         collision_margin: Least distance a command keeps between links of different
             fingers and between a finger and the structure [m].
+        pad_link: The finger link carrying the fingertip pad, as the suffix of its URDF
+            name (the design's ``retarget.pad_link``), or ``None``: the link each tip
+            frame is fixed to. The two pad links of one pair keep no margin.
     """
 
     name: str
@@ -111,6 +114,7 @@ class HandDescription:
     source: Path | None = None
     design: Path | None = None
     collision_margin: float = DEFAULT_COLLISION_MARGIN
+    pad_link: str | None = None
 
     def pair(self, name: str) -> PairDescription:
         """The pair called ``name``.
@@ -238,6 +242,7 @@ def hand_from_dict(
     if not urdf.is_file():
         raise RetargetError(f"{where}: urdf: file not found: {urdf}")
     design, pad_radius, margin, preshape = None, None, DEFAULT_COLLISION_MARGIN, None
+    pad_link = None
     if "design" in raw:
         if "collision_margin" in raw:
             raise RetargetError(
@@ -255,6 +260,7 @@ def hand_from_dict(
         except DesignError as exc:
             raise RetargetError(f"{where}: design: {exc}") from exc
         pad_radius, margin = d.finger.pad.radius, d.retarget.collision_margin
+        pad_link = d.retarget.pad_link
         from payload.design import FINGER_JOINTS
 
         preshape = dict(zip(FINGER_JOINTS, d.pinch.finger))
@@ -276,6 +282,7 @@ def hand_from_dict(
         source=source,
         design=design,
         collision_margin=float(margin),
+        pad_link=pad_link,
     )
     validate_hand(hand)
     return hand

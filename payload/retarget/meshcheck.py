@@ -6,7 +6,9 @@ by Pinocchio's forward kinematics, and tested with python-fcl (BVH triangle mesh
 
 Checked link pairs, for one finger pair:
 
-* every link moved by finger 1's joints against every link moved by finger 2's;
+* every link moved by finger 1's joints against every link moved by finger 2's, except
+  the two pad links (:func:`payload.retarget.collision.pad_links`: a pinch closes the
+  pads on each other, so that pair has no margin and is not a collision here);
 * every link moved by either finger against the structure: the links that no joint of
   any pair moves (for our hand the base, the stage and the rail carriage), except the
   link a finger's first joint is mounted on, against that finger's first link (they are
@@ -24,7 +26,6 @@ import fcl
 import numpy as np
 import pinocchio as pin
 
-from payload.retarget.errors import RetargetError
 from payload.retarget.features import PairKinematics
 
 
@@ -40,17 +41,11 @@ def _origin(el: ET.Element | None) -> np.ndarray:
 
 
 def _geometry(geo: ET.Element, urdf_dir: Path) -> fcl.CollisionGeometry | None:
-    import trimesh
+    from payload.retarget.collision import load_collision_mesh
 
     mesh = geo.find("mesh")
     if mesh is not None:
-        name = mesh.get("filename", "")
-        if name.startswith("package://") or name.startswith("file://"):
-            name = name.split("://", 1)[1]
-        path = Path(name) if Path(name).is_absolute() else urdf_dir / name
-        if not path.is_file():
-            raise RetargetError(f"collision mesh not found: {path}")
-        tm = trimesh.load(str(path), force="mesh")
+        tm = load_collision_mesh(mesh.get("filename", ""), urdf_dir)
         scale = np.array([float(v) for v in mesh.get("scale", "1 1 1").split()])
         vertices = np.asarray(tm.vertices, dtype=float) * scale
         model = fcl.BVHModel()
@@ -83,6 +78,7 @@ class PairMeshCheck:
     Attributes:
         fingers: Per finger, the names of the links it moves that have collision geometry.
         structure: Structure links with collision geometry.
+        pads: Per finger, its pad link (the pad pair is not checked).
         pairs: The checked link pairs.
     """
 
@@ -121,7 +117,11 @@ class PairMeshCheck:
             sorted(n for n in shapes if not ancestors(n) & all_pair_joints)
         )
         mounted = {(joint_parent[fj[0]], joint_child[fj[0]]) for fj in pk.desc.finger_joints if fj}
-        pairs = [(a, b) for a in self.fingers[0] for b in self.fingers[1]]
+        from payload.retarget.collision import pad_links
+
+        self.pads: tuple[str | None, ...] = pad_links(pk, frozenset(shapes))
+        pads = set(self.pads) if None not in self.pads else set()
+        pairs = [(a, b) for a in self.fingers[0] for b in self.fingers[1] if {a, b} != pads]
         for finger in self.fingers:
             for a in finger:
                 pairs += [(a, s) for s in self.structure if (s, a) not in mounted]

@@ -13,7 +13,9 @@ reference) whose span is ``l``:
   points can meet (the kinematic minimum is found the same way);
 * with ``collisions`` (off by default), every posture above also keeps the hand's
   self-collision margin (:mod:`payload.retarget.collision`, plus 0.1 mm), so the
-  range ends at the largest collision-free span and starts at the smallest;
+  range ends at the largest collision-free span and starts at the smallest (the two
+  pad links of the pair keep no margin, so with our hand that is still the pads
+  touching, 2 * tip_radius);
 * postures: for 65 spans evenly spaced between the two, the posture closest to the
   rest posture in range-normalised joints with exactly that span (SLSQP,
   continuation from the rest span outward). ``q_ref(l)`` interpolates linearly.

@@ -139,17 +139,23 @@ def serve(args: argparse.Namespace, make_session: SessionFactory) -> int:
         from payload.teleop.link import parse_link_delay
 
         link_delay = parse_link_delay(args.link_delay)
-    base_filter = args.base_filter
-    if base_filter is None:  # the profile wherever a person is in the loop
-        from payload.profiles import PROFILES, SAFE
+    from payload.profiles import SAFE, resolve
 
-        base_filter = PROFILES[SAFE].base_filter
+    prof, overrides = resolve(
+        args.controller,
+        SAFE,
+        retarget_budget=args.retarget_budget,
+        retarget_collisions=args.retarget_collisions,
+        base_filter=args.base_filter,
+    )
     session = make_session(
         hub,
         record,
         payload=payload,
-        collisions=args.retarget_collisions,
-        base_filter=base_filter,
+        collisions=prof.retarget_collisions,
+        budget=prof.retarget_budget,
+        controller=(prof.name, overrides),
+        base_filter=prof.base_filter,
         link_delay=link_delay,
     )
     desktop = None
@@ -266,6 +272,22 @@ def serve_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--record", help="record the session as a trial into this folder")
     p.add_argument("--tls", action="store_true", help="use TLS on a local bind too")
+    from payload.profiles import PROFILES, SAFE
+
+    p.add_argument(
+        "--controller",
+        choices=tuple(PROFILES),
+        default=None,
+        help=f"controller profile (default {SAFE}: real servos and a person in the loop): "
+        "'safe' models self-collision (every link pair keeps the design's margin, the two "
+        "pads of a pair excepted) and filters the base; 'paper' is the paper's controller",
+    )
+    p.add_argument(
+        "--retarget-budget",
+        choices=("paper", "converged"),
+        default=None,
+        help="retargeting budget per pair solve (default: the --controller profile's)",
+    )
     p.add_argument(
         "--desktop",
         action="store_true",
@@ -277,17 +299,17 @@ def serve_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--retarget-collisions",
         action=argparse.BooleanOptionalAction,
-        default=False,
-        help="model self-collision in the pair solves, so no command drives fingers closer "
-        "than the design's margin (default off: it also keeps the fingers from squeezing "
-        "a thin handle, see docs/retargeting.md)",
+        default=None,
+        help="model self-collision in the pair solves (default: the --controller "
+        "profile's); overrides the profile",
     )
     p.add_argument(
         "--base-filter",
         action=argparse.BooleanOptionalAction,
         default=None,
         help="the base safety filter between the base channel and the vehicle, keeping the "
-        "vehicle, payload and bag off the station (default on: the 'safe' profile)",
+        "vehicle, payload and bag off the station (default: the --controller profile's, on "
+        "in 'safe')",
     )
     p.add_argument(
         "--link-delay",

@@ -92,8 +92,6 @@ def _cmd_trial(args: argparse.Namespace) -> int:
     operator, replay = _parse_operator(args)
     if operator == "synthetic":
         _setup_defaults(args)
-    else:
-        _apply_profile(args)
     if args.ctb is not None:
         _check_ctb(args.ctb)
     project = command_project(args)
@@ -181,6 +179,7 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
             physics_dt=args.physics_dt,
             base_filter=args.base_filter,
             **link_zones,
+            controller=args.controller,
         ),
         seeds,
         out,
@@ -197,7 +196,7 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
     }
     title = (
         f"Cargo-transport campaign ({args.n} trials, CTB {args.ctb}, {args.propulsion}, "
-        f"retargeting budget {args.retarget_budget}"
+        f"controller {args.controller}, retargeting budget {args.retarget_budget}"
         f"{', self-collision modelled' if args.retarget_collisions else ''}"
         f"{', base filter' if args.base_filter else ''}"
         f"{f', link delay {args.link_delay} s' if args.link_delay else ''}"
@@ -453,6 +452,7 @@ _SETUP = (
     "retarget_collisions",
     "physics_dt",
     "base_filter",
+    "controller",
 )
 """The trial setup flags' attribute names."""
 
@@ -460,9 +460,19 @@ _SETUP = (
 def _setup_arguments(p: argparse.ArgumentParser, *, replay: bool = False) -> None:
     """The trial setup flags; with ``replay`` each left out means "the recording's" for a
     replay (``None`` here, resolved by the runner)."""
+    from payload.profiles import PAPER, PROFILES
     from payload.sim.vehicle import DEFAULT_PROPULSION, PROPULSION_MODELS
 
     mine = "; a replay: its recording's unless given" if replay else ""
+    p.add_argument(
+        "--controller",
+        choices=tuple(PROFILES),
+        default=None,
+        help=f"controller profile (default {PAPER}{mine}): 'paper' is the paper's "
+        "controller (20-evaluation pair solves, no self-collision model); 'safe' adds the "
+        "contact-aware self-collision model and the base safety filter; "
+        "--retarget-budget, --[no-]retarget-collisions and --[no-]base-filter override it",
+    )
     p.add_argument(
         "--ctb",
         default=None,
@@ -479,29 +489,19 @@ def _setup_arguments(p: argparse.ArgumentParser, *, replay: bool = False) -> Non
         "--retarget-budget",
         choices=("paper", "converged"),
         default=None,
-        help=f"retargeting budget per pair solve: 'paper' (default{mine}; at most 20 "
-        "residual evaluations, the paper's controller) or 'converged' (each start run to "
-        "convergence)",
+        help="retargeting budget per pair solve: 'paper' (at most 20 residual evaluations, "
+        "the paper's controller) or 'converged' (each start run to convergence); default: "
+        f"the --controller profile's{mine}",
     )
     p.add_argument(
         "--retarget-collisions",
         action=argparse.BooleanOptionalAction,
         default=None,
         help="model self-collision in the pair solves: no command closer than the design's "
-        "margin, the operator's opening mapped to the collision-free span range (default "
-        f"off: the paper's controller{mine})",
+        "margin (the pads of a pair excepted), the operator's opening mapped to the "
+        f"collision-free span range (default: the --controller profile's{mine})",
     )
     _physics_dt_argument(p, mine)
-    from payload.profiles import PROFILES
-
-    p.add_argument(
-        "--controller",
-        choices=tuple(PROFILES),
-        default=None,
-        help="controller profile: 'paper' (the paper's: no self-collision model, no base "
-        "filter; the default) or 'safe' (self-collision model and base safety filter); "
-        f"the finer flags override it{mine}",
-    )
     p.add_argument(
         "--base-filter",
         action=argparse.BooleanOptionalAction,
@@ -545,20 +545,6 @@ def _check_physics_dt(dt: float | None) -> None:
         raise TrialsCliError(f"--physics-dt: {problem}")
 
 
-def _apply_profile(args: argparse.Namespace) -> None:
-    """A ``--controller`` profile's settings for the setup flags not given."""
-    if getattr(args, "controller", None) is None:
-        return
-    from payload.profiles import profile
-
-    chosen = profile(args.controller).override(
-        args.retarget_budget, args.retarget_collisions, args.base_filter
-    )
-    args.retarget_budget = chosen.retarget_budget
-    args.retarget_collisions = chosen.retarget_collisions
-    args.base_filter = chosen.base_filter
-
-
 def _link_and_zones(args: argparse.Namespace) -> dict[str, Any]:
     """The parsed ``--link-delay`` and ``--zones`` as run_trial arguments (bad input: one
     line, exit 2)."""
@@ -577,8 +563,11 @@ def _setup_defaults(args: argparse.Namespace) -> None:
     """Fill the setup flags left out with the defaults (synthetic trials, campaigns)."""
     from payload.trials.sources import trial_setup
 
-    _apply_profile(args)
-    for name, value in trial_setup(**{n: getattr(args, n) for n in _SETUP}).items():
+    try:
+        setup = trial_setup(**{n: getattr(args, n) for n in _SETUP})
+    except PayloadError as exc:
+        raise TrialsCliError(str(exc)) from None
+    for name, value in setup.items():
         if name in _SETUP:
             setattr(args, name, value)
 

@@ -121,7 +121,10 @@ class LiveSession:
         payload: A payload driver to command besides the simulator (the hardware), or
             None for the simulator alone.
         collisions: Model self-collision in the pair solves (no command closer than the
-            design's margin); recorded with the session.
+            design's margin, the pads of a pair excepted); recorded with the session.
+        budget: The pair solves' evaluation budget (``paper``, ``converged``).
+        controller: The controller profile these settings come from, and the settings
+            the command line overrides (:func:`payload.profiles.resolve`), recorded.
         base_filter: The base safety filter on the robot's side, between the base channel
             and the vehicle; recorded with the session.
         link_delay: (delay, jitter) [s] of a delayed ground link: the page's hand frames
@@ -136,6 +139,8 @@ class LiveSession:
         steps: tuple[Step, ...] = DEFAULT_STEPS,
         payload: Any = None,
         collisions: bool = False,
+        budget: str = "paper",
+        controller: tuple[str, list[str]] | None = None,
         base_filter: bool = False,
         link_delay: tuple[float, float] | None = None,
     ) -> None:
@@ -146,7 +151,8 @@ class LiveSession:
         self.calibration_steps = steps
         self.driver = SimDriver()
         self.collisions = bool(collisions)
-        self.retargeters, self.ranges = retargeting(collisions=self.collisions)
+        self.controller = controller
+        self.retargeters, self.ranges = retargeting(budget=budget, collisions=self.collisions)
         place_ctb_for_teleop(self.driver, self.retargeters, self.ranges)
         self.config = TeleopConfig.from_design(load_design(self.driver.world.config.design))
         self.base_filter = bool(base_filter)
@@ -174,12 +180,14 @@ class LiveSession:
         out.mkdir(parents=True, exist_ok=True)
         self._recorder = TrialRecorder(out / "log.mcap")
         budget = self.retargeters["L"].config.budget
-        setup = {
+        setup: dict[str, Any] = {
             "retarget_budget": budget,
             "retarget_collisions": self.collisions,
             "base_filter": self.base_filter,
             "link_delay": None if self.link_delay is None else list(self.link_delay),
         }
+        if self.controller is not None:
+            setup["controller"], setup["controller_overrides"] = self.controller
         self._hands = HandRecordingWriter(
             out / "hands.jsonl", frame="webxr", meta={"operator": "live", **setup}
         )

@@ -21,7 +21,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from payload.design.params import load_design
-from payload.errors import RunAborted
+from payload.errors import PayloadError, RunAborted
 from payload.project import Project, current_project, provenance
 from payload.retarget.calibration import PairRange
 from payload.retarget.casadi_solver import PairRetargeter
@@ -107,6 +107,7 @@ def run_trial(
     base_filter: bool | None = None,
     link_delay: tuple[float, float] | None = None,
     zones: Any = None,
+    controller: str | None = None,
 ) -> dict[str, Any]:
     """Run one trial and write its folder (reproducible: see :func:`_run_trial`).
 
@@ -135,6 +136,9 @@ def run_trial(
             paper's controller), recorded with the trial.
         physics_dt: Physics time step [s] (default 0.001, the paper's 1 kHz; an opt-in
             0.002 is faster), recorded with the trial.
+        controller: The controller profile (:mod:`payload.profiles`, default ``paper``)
+            the two settings above override, recorded with the trial and the settings
+            it overrides.
 
             Each of these five left at ``None`` is the default (single CTB, nozzles,
             ``paper``, off) or, for a replay, its recording's setting (the default where
@@ -170,6 +174,8 @@ def run_trial(
         recorded = header.get("meta") or {}
         ctb = recorded.get("ctb") if ctb is None else ctb
         propulsion = recorded.get("propulsion") if propulsion is None else propulsion
+        if controller is None and isinstance(recorded.get("controller"), str):
+            controller = recorded["controller"]
         if retarget_budget is None:
             retarget_budget = recorded.get("retarget_budget")
         if retarget_collisions is None:
@@ -191,15 +197,19 @@ def run_trial(
             source_seed = header.get("meta", {}).get("seed")
             seed = source_seed if isinstance(source_seed, int) and source_seed >= 0 else 0
     seed = 0 if seed is None else int(seed)
-    setup = trial_setup(
-        ctb,
-        propulsion,
-        retarget_budget,
-        retarget_collisions,
-        physics_dt,
-        base_filter=base_filter,
-        link_delay=link_delay,
-    )
+    try:
+        setup = trial_setup(
+            ctb,
+            propulsion,
+            retarget_budget,
+            retarget_collisions,
+            physics_dt,
+            base_filter=base_filter,
+            link_delay=link_delay,
+            controller=controller,
+        )
+    except PayloadError as exc:
+        raise TrialError(str(exc)) from None
     problem = check_physics_dt(setup["physics_dt"])
     if problem is not None:
         raise TrialError(f"physics_dt: {problem}")
@@ -276,6 +286,8 @@ def _set_up(driver: Any, seed: int, source_spec: _Source, project: Project) -> _
     setup = {
         "retarget_budget": source_spec.retarget_budget,
         "retarget_collisions": source_spec.retarget_collisions,
+        "controller": source_spec.controller,
+        "controller_overrides": source_spec.controller_overrides,
         "ctb": source_spec.ctb,
         "propulsion": source_spec.propulsion,
         "physics_dt": source_spec.physics_dt,

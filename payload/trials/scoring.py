@@ -100,6 +100,8 @@ def _trial_setup(meta: dict[str, Any]) -> dict[str, Any]:
     keys = (
         "retarget_budget",
         "retarget_collisions",
+        "controller",
+        "controller_overrides",
         "ctb",
         "propulsion",
         "physics_dt",

@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from payload.errors import PayloadError
-from payload.retarget.objective import RetargetConfig
+from payload.profiles import PAPER, resolve
 from payload.sim.config import PHYSICS_DT
 from payload.sim.vehicle import DEFAULT_PROPULSION
 from payload.sim.world import DEFAULT_CTB
@@ -34,19 +34,35 @@ def trial_setup(
     physics_dt: float | None = None,
     base_filter: bool | None = None,
     link_delay: tuple[float, float] | None = None,
+    controller: str | None = None,
 ) -> dict[str, Any]:
     """A trial's setup with each setting left at ``None`` given its default: the single
-    CTB, nozzle propulsion, the paper's retargeting budget, self-collision not modelled,
-    the paper's 1 kHz physics (``physics_dt`` [s]), no base safety filter, no link delay
-    (``link_delay``: (delay, jitter) [s])."""
+    CTB, nozzle propulsion, the paper's 1 kHz physics (``physics_dt`` [s]), no link delay
+    (``link_delay``: (delay, jitter) [s]) and the controller profile's
+    (:mod:`payload.profiles`; default ``paper``: the paper's retargeting budget,
+    self-collision not modelled, no base safety filter).
+
+    ``controller_overrides`` names the profile settings the given flags change (a flag
+    equal to the profile's own setting is no override), so the same setup resolved twice
+    reads the same.
+    """
+    prof, overrides = resolve(
+        controller,
+        PAPER,
+        retarget_budget=retarget_budget,
+        retarget_collisions=retarget_collisions,
+        base_filter=base_filter,
+    )
     return {
         "ctb": DEFAULT_CTB if ctb is None else ctb,
         "propulsion": DEFAULT_PROPULSION if propulsion is None else propulsion,
-        "retarget_budget": RetargetConfig.budget if retarget_budget is None else retarget_budget,
-        "retarget_collisions": bool(retarget_collisions),
+        "retarget_budget": prof.retarget_budget,
+        "retarget_collisions": bool(prof.retarget_collisions),
         "physics_dt": PHYSICS_DT if physics_dt is None else float(physics_dt),
-        "base_filter": bool(base_filter),
+        "base_filter": bool(prof.base_filter),
         "link_delay": None if link_delay is None else [float(v) for v in link_delay],
+        "controller": prof.name,
+        "controller_overrides": overrides,
     }
 
 
@@ -116,6 +132,8 @@ class _Source:
         physics_dt: float,
         base_filter: bool = False,
         link_delay: list[float] | None = None,
+        controller: str = PAPER,
+        controller_overrides: list[str] | None = None,
     ) -> None:
         self.physics_dt = physics_dt
         self.base_filter = base_filter
@@ -123,6 +141,8 @@ class _Source:
         self.zones: Any = None  # the filter's zones (None: the station's)
         self.retarget_budget = retarget_budget
         self.retarget_collisions = retarget_collisions
+        self.controller = controller
+        self.controller_overrides = list(controller_overrides or [])
         self.ctb = ctb
         self.propulsion = propulsion
         self.recorded: dict[str, Any] = header.get("meta") or {}

@@ -301,6 +301,17 @@ def summary_markdown(summary: dict[str, Any], title: str | None = None) -> str:
         + _definition_text(lit.get("contact_definition") if lit else None)
         + ". Acquisition succeeds when a first contact interval exists under the definition.",
     ]
+    prof = summary.get("controller")
+    if prof:
+        shown = prof if isinstance(prof, str) else ", ".join(prof)
+        over = summary.get("controller_overrides") or []
+        flat = sorted({x for o in over for x in (o if isinstance(o, list) else [o])})
+        lines += [
+            "",
+            f"Controller profile: {shown} ('paper': the paper's controller; 'safe': the "
+            "contact-aware self-collision model and the base safety filter)"
+            + (f", overridden: {', '.join(flat)}." if flat else "."),
+        ]
     budget = summary.get("retarget_budget")
     if budget:
         shown = budget if isinstance(budget, str) else ", ".join(budget)
@@ -403,6 +414,18 @@ def write_summary(
     budgets = sorted({str(r["retarget_budget"]) for r in results if r.get("retarget_budget")})
     if budgets:
         summary["retarget_budget"] = budgets[0] if len(budgets) == 1 else budgets
+    # the controller profile and the settings the trials' flags override (one value when
+    # every trial says the same, else the values seen)
+    profiles = sorted({str(r["controller"]) for r in results if r.get("controller")})
+    if profiles:
+        summary["controller"] = profiles[0] if len(profiles) == 1 else profiles
+    overrides = sorted(
+        {tuple(r["controller_overrides"]) for r in results if "controller_overrides" in r}
+    )
+    if overrides:
+        summary["controller_overrides"] = (
+            list(overrides[0]) if len(overrides) == 1 else [list(o) for o in overrides]
+        )
     # whether the pair solves modelled self-collision: one bool when every trial says the
     # same, else the values seen (None: a trial that does not say)
     seen = {r.get("retarget_collisions") for r in results}
@@ -513,8 +536,8 @@ def print_trial_summary(result: dict[str, Any], given: str = "") -> None:
     physics = "" if dt is None else f"{1e3 * dt:g} ms physics step, "
     print(
         f"  setup: CTB {result.get('ctb')}, {result.get('propulsion')} propulsion, {physics}"
-        f"retargeting budget {result.get('retarget_budget')}, self-collision "
-        f"{modelled}{given}"
+        f"controller {result.get('controller')}, retargeting budget "
+        f"{result.get('retarget_budget')}, self-collision {modelled}{given}"
     )
     print(f"  success: {bool(result.get('success'))}")
     if "station_contacts" in result:
