@@ -258,10 +258,19 @@ def _parse(argv: Sequence[str] | None) -> argparse.Namespace:
     return args
 
 
+COMMAND_ENV: dict[str, str] = {"MUJOCO_GL": "disable"}
+"""Environment every command runs with, unless the user set the variable: no command
+renders with MuJoCo, and MuJoCo's import otherwise loads GLFW (which starts a Python
+process to read the library's version), a tenth of a second or more in every process
+that simulates, each Dask worker of a campaign included (they inherit it)."""
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``payload`` console script; returns the exit code."""
     args = _parse(argv)
     saved = os.environ.get(ENV_VAR)
+    added = [k for k in COMMAND_ENV if k not in os.environ]
+    os.environ.update({k: COMMAND_ENV[k] for k in added})
     try:
         return int(args.func(args) or 0)
     except CheckFailed as exc:
@@ -277,6 +286,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         print("payload: interrupted", file=sys.stderr)
         return 130
     finally:  # command_project exported the project for this command only
+        for k in added:
+            os.environ.pop(k, None)
         if saved is None:
             os.environ.pop(ENV_VAR, None)
         else:

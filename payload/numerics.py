@@ -20,11 +20,17 @@ def single_threaded_numerics() -> Iterator[None]:
     bits with the thread count; trials and the retargeter's span ranges run under this so
     every process and machine gets the same numbers.
 
+    The limit covers the BLAS libraries loaded when the first user enters, so SciPy's
+    (which the trials and span ranges use: linear programs, SLSQP) is loaded here first.
+
     The limit is process-wide, so it is counted: the first trial to enter sets it and
     the last to leave restores it (a thread leaving early must not lift the limit under
     a trial still running in another thread).
     """
     global _LIMIT_USERS, _LIMITER
+    # SciPy ships its own OpenBLAS, loaded with scipy.linalg; a library loaded after the
+    # limit is set escapes it, so it is loaded first (nothing imports SciPy at start-up)
+    import scipy.linalg  # noqa: F401
     from threadpoolctl import threadpool_limits
 
     with _LIMIT_LOCK:

@@ -252,3 +252,23 @@ def test_new_from_a_non_project_names_from(tmp_path: Path, capsys) -> None:
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and f"--from {tmp_path}: not a design project" in err[0]
     assert "--project" not in err[0] and not (tmp_path / "p").exists()
+
+
+def test_commands_run_without_mujoco_rendering_unless_the_user_asks(monkeypatch) -> None:
+    """A command runs with ``MUJOCO_GL=disable`` (nothing renders with MuJoCo, whose
+    import then skips GLFW; Dask workers inherit it), removed after the command; a
+    user's own setting is kept."""
+    import os
+
+    import payload.cli as cli
+
+    seen: list[str | None] = []
+    command = argparse.Namespace(func=lambda args: seen.append(os.environ.get("MUJOCO_GL")))
+    monkeypatch.setattr(cli, "_parse", lambda argv: command)
+    monkeypatch.delenv("MUJOCO_GL", raising=False)
+    assert main([]) == 0
+    assert "MUJOCO_GL" not in os.environ
+    monkeypatch.setenv("MUJOCO_GL", "egl")
+    assert main([]) == 0
+    assert seen == ["disable", "egl"]
+    assert os.environ["MUJOCO_GL"] == "egl"

@@ -167,3 +167,56 @@ def test_only_the_entry_points_import_the_dispatcher() -> None:
     graph = import_graph()
     importers = sorted(mod for mod, targets in graph.items() if "payload.cli" in targets)
     assert importers == ["payload.__main__"]
+
+
+# Libraries a trial's worker must not load with a trial's modules: those only other
+# commands use (meshes, mesh collision checks, Meshcat, the Dask client, progress bars),
+# those a trial needs only once it runs (SciPy, MCAP, protobuf, figures) and MuJoCo's GLFW
+# renderer, which nothing uses (the command line turns it off, its workers inherit that).
+WORKER_NEVER = (
+    "scipy",
+    "matplotlib",
+    "PIL",
+    "trimesh",
+    "fcl",
+    "meshcat",
+    "mcap",
+    "mcap_protobuf",
+    "google.protobuf",
+    "foxglove_schemas_protobuf",
+    "dask",
+    "distributed",
+    "rich",
+    "glfw",
+    "cffi",
+)
+
+
+def test_a_trial_worker_imports_only_what_a_trial_needs() -> None:
+    """What a Dask worker imports for its first trial (the campaign, then the runner), in
+    a fresh interpreter with the command line's environment, loads none of
+    :data:`WORKER_NEVER` (a list of names, not a time: it cannot drift with the load)."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    from payload.cli import COMMAND_ENV
+
+    code = (
+        "import json, sys\n"
+        "import payload.trials.campaign, payload.trials.runner\n"
+        "print(json.dumps(sorted(sys.modules)))\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        env={**os.environ, **COMMAND_ENV},
+        check=True,
+    )
+    loaded = set(json.loads(done.stdout))
+    assert {"numpy", "mujoco", "pinocchio", "casadi", "payload.sim.world"} <= loaded
+    never = tuple(f"{name}." for name in WORKER_NEVER)
+    assert sorted(m for m in loaded if m in WORKER_NEVER or m.startswith(never)) == []

@@ -41,7 +41,6 @@ from typing import Any
 import casadi as ca
 import numpy as np
 import pinocchio as pin
-from scipy.optimize import minimize
 
 from payload.retarget import features as _features
 from payload.retarget.errors import RetargetError
@@ -192,6 +191,8 @@ def _points(kind: str, data: object, pose: np.ndarray) -> np.ndarray:
 
 def enclosing_capsule(link: str, pts: np.ndarray) -> Capsule:
     """A capsule containing every point (shape (k, 3)): see the module docstring."""
+    from scipy.optimize import minimize  # here, not at import (a trial needs no SciPy)
+
     pts = np.asarray(pts, dtype=float)
     centred = pts - pts.mean(axis=0)
     _, _, vt = np.linalg.svd(centred, full_matrices=False)

@@ -31,7 +31,6 @@ import sys
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import minimize
 
 from payload.numerics import single_threaded_numerics
 from payload.retarget.collision import register as register_collision_model
@@ -153,6 +152,8 @@ def _compute_pair_range(pk: PairKinematics, seed: int, collisions: bool) -> Pair
 
 
 def _compute_pair_range_here(pk: PairKinematics, seed: int, collisions: bool) -> PairRange:
+    from scipy.optimize import minimize  # ~0.4 s of imports, only on a cache miss
+
     bounds = list(zip(pk.lower, pk.upper))
     origins, dirs = _front_constraints(pk)
     register_collision_model()

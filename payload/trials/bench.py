@@ -20,6 +20,9 @@ timed stage counts only there):
 * ``recording``: building the step records and writing the MCAP file;
 * ``scoring``: reading the recording back, the metrics and the two figures;
 * ``other``: the rest of the loop (phase labels, world views, bookkeeping).
+
+Before the trial, ``worker_import_s``: how long a fresh interpreter takes to import a
+trial's modules, what each Dask worker of a campaign pays before its first trial.
 """
 
 from __future__ import annotations
@@ -27,6 +30,8 @@ from __future__ import annotations
 import functools
 import math
 import os
+import subprocess
+import sys
 import tempfile
 import time
 from collections.abc import Callable, Iterator
@@ -166,15 +171,17 @@ def run_trial_bench(
         "cpu_realtime_factor", "breakdown" (wall [s] per stage), "breakdown_cpu",
         "mj_step_seconds", "mj_step_cpu_seconds", "mj_step_us" (per 1 ms physics step),
         "physics_only_realtime_factor", "log_bytes", "log_bytes_per_sim_minute", "steps",
-        "seed", "success"}``.
+        "seed", "success", "worker_import_s"}``.
     """
+    imports = worker_import_seconds()  # first: no trial running beside it
     before = os.sched_getaffinity(0) if pin and hasattr(os, "sched_setaffinity") else None
     if before is not None:
         os.sched_setaffinity(0, {min(before)})
     try:
         with tempfile.TemporaryDirectory() as tmp:
             out = Path(out_dir) if out_dir is not None else Path(tmp) / "trial"
-            return _bench(seed, out, before is not None, max_time, physics_dt)
+            result = _bench(seed, out, before is not None, max_time, physics_dt)
+            return {**result, "worker_import_s": imports}
     finally:
         if before is not None:
             os.sched_setaffinity(0, before)
@@ -229,4 +236,32 @@ def _bench(
     }
 
 
-__all__ = ["STAGES", "run_trial_bench"]
+WORKER_MODULES: tuple[str, ...] = ("payload.trials.runner", "payload.trials.campaign")
+"""What a Dask worker imports to run its first trial (the campaign's trial function, then
+the runner it calls)."""
+
+
+def worker_import_seconds() -> float:
+    """Wall time [s] a fresh interpreter takes to import :data:`WORKER_MODULES` (the
+    imports alone, not the interpreter's start), in this process's environment (under
+    the ``payload`` command: ``MUJOCO_GL=disable``, as its Dask workers get) and with this
+    process's ``payload`` package first on the path.
+    """
+    import payload
+
+    code = (
+        "import time\n"
+        "t = time.perf_counter()\n"
+        f"import {', '.join(WORKER_MODULES)}\n"
+        "print(time.perf_counter() - t)\n"
+    )
+    env = dict(os.environ)
+    root = str(Path(payload.__file__).resolve().parents[1])
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (root, env.get("PYTHONPATH")) if p)
+    done = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True
+    )
+    return float(done.stdout.split()[-1])
+
+
+__all__ = ["STAGES", "WORKER_MODULES", "run_trial_bench", "worker_import_seconds"]

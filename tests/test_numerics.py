@@ -1,0 +1,37 @@
+"""payload.numerics: the single-threaded numerics cover every BLAS a trial uses."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+from conftest import ROOT
+
+
+def test_single_threaded_numerics_limit_the_blas_scipy_loads_after_start_up() -> None:
+    """A trial's process loads no SciPy at start-up, and SciPy may bring its own BLAS:
+    the optimisers imported inside the limit (as the span range and the propulsion do)
+    run every BLAS and OpenMP library on one thread, and after it every library runs as
+    many threads as before (threadpoolctl reads the loaded libraries)."""
+    code = (
+        "import json, sys\n"
+        "import payload.trials.campaign, payload.trials.runner\n"
+        "from threadpoolctl import threadpool_info\n"
+        "from payload.numerics import single_threaded_numerics\n"
+        "def pools():\n"
+        "    return {i['filepath']: i['num_threads'] for i in threadpool_info()}\n"
+        "before, scipy_at_start = pools(), 'scipy' in sys.modules\n"
+        "with single_threaded_numerics():\n"
+        "    import scipy.optimize\n"
+        "    inside = pools()\n"
+        "print(json.dumps([scipy_at_start, before, inside, pools()]))\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, check=True
+    )
+    scipy_at_start, before, inside, after = json.loads(done.stdout)
+    assert not scipy_at_start
+    assert before and set(inside) == set(after) >= set(before)
+    assert set(inside.values()) == {1}
+    assert {path: after[path] for path in before} == before
