@@ -8,8 +8,9 @@ ticks 1024 to 6456, the stage 1024 to -7125), so their absolute position is unkn
 until homed. The method the e-Manual supports: with the torque off, Homing Offset is
 cleared; the servo is driven under a low current cap (Goal Current, current-based
 position mode) toward the stowed end (joint value 0) by more than the whole travel plus
-a turn; when it stalls against the hard stop, Homing Offset is set so that Present
-Position reads the stop's tick (the map's ``zero``) and the full current cap restored.
+a turn; when it stalls against the hard stop its torque goes off, Homing Offset is set
+so that Present Position reads the stop's tick (the map's ``zero``) and the full current
+cap restored.
 """
 
 from __future__ import annotations
@@ -90,7 +91,11 @@ def home_linear(
                 last[i], still_since[i] = p, now
             elif now - still_since[i] >= STALL_S and abs(c) >= 0.9 * i_home:
                 stopped[i] = p
-                write(i, "goal_position", p)  # stop pushing: the overload would trip
+                # stop pushing (the overload would trip) by turning the torque off: a goal
+                # rewritten to p would step the error from the whole travel to 0 and the
+                # D term's kick (D/16 per tick of that step) would pull the shaft off the
+                # stop by a fraction of a tick, where the friction then holds it
+                write(i, "torque_enable", 0)
     offsets = {}
     for spec in specs:
         i = spec.id

@@ -32,10 +32,16 @@ log = logging.getLogger(__name__)
 
 def move_to_home(hardware: Any, timeout: float = 6.0) -> PayloadState:
     """Drive the brought-up (homed) payload to the design's home posture, where every
-    simulated trial starts (homing leaves the rail and the stage stowed).
+    simulated trial starts (homing leaves the rail and the stage stowed), and wait until
+    every servo has stopped there.
+
+    A servo with no I gain stops anywhere inside its friction dead band around the goal
+    (:func:`payload.design.servo.dead_band_ticks`, 8.5 ticks at P 600): "there" is
+    within that band plus one tick (half a tick of the goal's rounding to a whole tick,
+    half of Present Position's).
 
     Returns:
-        The measured state there (every joint within one tick).
+        The measured state there, every joint at rest.
 
     Raises:
         DynamixelError: The posture was not reached within ``timeout`` [s].
@@ -44,16 +50,23 @@ def move_to_home(hardware: Any, timeout: float = 6.0) -> PayloadState:
 
     from firmware_interface.errors import DynamixelError
     from firmware_interface.servo_map import home_command
+    from payload.design.servo import dead_band_ticks, kind_of
 
     cmd = home_command(hardware.design)
     target = np.append(cmd.q, cmd.deploy)
-    tol = np.array([s.units_per_tick for s in hardware.map.servos]) * 1.0001
+    band = [dead_band_ticks(hardware.design, kind_of(s.joint)) + 1.0 for s in hardware.map.servos]
+    tol = np.array([s.units_per_tick for s in hardware.map.servos]) * band
     t0 = time.monotonic()
+    last = None
     while time.monotonic() - t0 < timeout:
         hardware.send(cmd)
         state = hardware.read()
-        if np.all(np.abs(np.append(state.q, state.deploy) - target) <= tol):
+        now = np.append(state.q, state.deploy)
+        # at rest: Present Velocity zero, and the stage (no velocity in the state) unmoved
+        still = np.all(state.dq == 0.0) and last is not None and now[-1] == last[-1]
+        if still and np.all(np.abs(now - target) <= tol):
             return state
+        last = now
         time.sleep(0.01)
     raise DynamixelError(f"the payload did not reach its home posture within {timeout} s")
 

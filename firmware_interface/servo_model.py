@@ -304,9 +304,9 @@ class ServoModel:
     def _move(self, dt: float) -> None:
         if dt <= 0.0:
             return
+        # after a Bus Watchdog trip the goal is the position at the trip (written then,
+        # goals refused since): the shaft brakes back to it, it does not drift
         goal = self.get("goal_position") - self.get("homing_offset")
-        if self.watchdog_trip is not None:
-            goal = self.pos
         gains = (self.get("position_p_gain"), self.get("position_i_gain"),
                  self.get("position_d_gain"))  # fmt: skip
         cap = float(abs(self.get("goal_current")))

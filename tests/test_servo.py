@@ -26,7 +26,7 @@ from payload.cli import main
 from payload.design import load_design
 from payload.design.mjcf import MESH_DIR, to_mjcf
 from payload.design.params import design_from_dict, design_to_dict
-from payload.design.servo import TICKS_PER_RAD, joint_servo, no_load_speed
+from payload.design.servo import TICKS_PER_RAD, dead_band_ticks, joint_servo, no_load_speed
 from payload.design.summary import servo_summary
 from payload.design.tree import build_tree, load_inertia
 
@@ -173,6 +173,30 @@ def test_free_finger_step_with_friction_mujoco_and_emulator_agree(design):
     for y in (y_mj, y_em):
         assert abs(y[-1] - step) <= band * 1.05
         assert np.ptp(y[-200:]) < 0.02 * step  # at rest
+
+
+@pytest.mark.parametrize("kind", ["finger", "abduction", "stage"])
+def test_the_dead_band_is_the_largest_step_an_emulated_servo_at_rest_ignores(design, kind):
+    """``dead_band_ticks`` (move_to_home's tolerance) against the emulator's integration:
+    a goal step of the band's whole ticks leaves the shaft at rest, one tick more moves
+    it; and it equals MuJoCo's frictionloss / kp in ticks."""
+    band = dead_band_ticks(design, kind)
+    js = joint_servo(design, kind)
+    assert band == pytest.approx(js.frictionloss / js.kp / js.scale * TICKS_PER_RAD, rel=1e-12)
+    moved = []
+    for step in (math.floor(band), math.floor(band) + 1):
+        s = ServoModel(1, 2048.0, plant=plant_for(design, kind, 0.0))
+        s._set("operating_mode", 5)
+        for name, value in zip(("position_p_gain", "position_i_gain", "position_d_gain"),
+                               js.gains):  # fmt: skip
+            s._set(name, value)
+        s._set("goal_current", round(design.servo.current_limit * 1000))
+        s._set("torque_enable", 1)
+        s._set("goal_position", 2048 + step)
+        for k in range(1, 301):
+            s.advance(k * 1e-3)
+        moved.append(s.physical != 2048.0)
+    assert moved == [False, True]
 
 
 def test_blocked_finger_torque_is_goal_current_times_kt(design):
