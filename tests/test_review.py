@@ -262,6 +262,36 @@ def test_a_replay_at_10_hz_shows_the_step_at_each_tenth_of_a_second(trial_folder
         assert value == since.any(), (i, k)
 
 
+def test_the_replay_draws_the_keep_in_boxes_around_the_route(replay) -> None:
+    """The station's keep-in boxes (issue 33) are drawn, and together they cover the
+    simulated route's waypoints (where the vehicle is meant to fly) and none of the
+    station's solid geoms' centres (MuJoCo's world, read independently)."""
+    import mujoco
+
+    from payload.sim.world import build_world
+
+    objects, transforms = replay.scene.objects(), replay.scene.transforms()
+    paths = sorted(p for p in objects if "/keep_in/" in p)
+    assert len(paths) == 3  # Kibo, the vestibule, Node 2
+    boxes = []
+    for path in paths:
+        size = np.asarray(objects[path].geometry.lengths, dtype=float)
+        centre = transforms[path][:3, 3]
+        boxes.append((centre - size / 2, centre + size / 2))
+
+    def inside(p: np.ndarray) -> bool:
+        return any(np.all(p >= lo - 1e-9) and np.all(p <= hi + 1e-9) for lo, hi in boxes)
+
+    world = build_world()
+    for waypoint in world.layout.route():
+        assert inside(np.asarray(waypoint, dtype=float)), waypoint
+    m, d = world.model, mujoco.MjData(world.model)
+    mujoco.mj_forward(m, d)
+    station = list(world.iss_geoms)
+    assert station  # the walls, racks and handrails
+    assert not any(inside(d.geom_xpos[g]) for g in station)
+
+
 def test_one_animation_frame_per_recorded_step_at_the_recorded_rate(replay) -> None:
     rec, anim = replay.recording, replay.scene.animation
     assert replay.fps == pytest.approx(50.0)

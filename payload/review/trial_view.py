@@ -194,15 +194,13 @@ def phase_spans(rec) -> list[tuple[str, float, float]]:
 
 
 def keep_in_boxes(world) -> list[tuple[np.ndarray, np.ndarray]]:
-    """The station's keep-in boxes, world frame ``(lower, upper)`` corners [m].
+    """The station's keep-in boxes (:func:`payload.sim.zones.station_zones` of the world's
+    ISS layout, what the base safety filter keeps the vehicle in), world frame
+    ``(lower, upper)`` corners [m]."""
+    from payload.sim.zones import station_zones
 
-    HOOK: the simulator does not yet name its keep-in boxes on this branch (issue 33 adds
-    them); when the world offers ``keep_in_boxes()``, they are drawn from here.
-    """
-    fn = getattr(world, "keep_in_boxes", None)
-    if fn is None:
-        return []
-    return [(np.asarray(lo, dtype=float), np.asarray(hi, dtype=float)) for lo, hi in fn()]
+    zones = station_zones(world.layout)
+    return [(np.asarray(lo, dtype=float), np.asarray(hi, dtype=float)) for lo, hi in zones.keepin]
 
 
 def draw_keep_in(scene: Scene, boxes: list[tuple[np.ndarray, np.ndarray]], root: str) -> None:
