@@ -35,8 +35,15 @@ def code_lines(text: str) -> list[str]:
     return [line.rstrip() for line in text.splitlines() if line.strip()]
 
 
+PAGES = [ROOT / "README.md", *sorted(p for p in (ROOT / "docs").glob("*.md") if p.name != "cli.md")]
+
+
+def _docs_text() -> str:
+    return "\n".join(p.read_text() for p in PAGES)
+
+
 def readme_blocks() -> list[str]:
-    return re.findall(r"```python\n(.*?)```", (ROOT / "README.md").read_text(), flags=re.S)
+    return re.findall(r"```python\n(.*?)```", _docs_text(), flags=re.S)
 
 
 @pytest.mark.parametrize("name", ["retarget_pair.py", "simulate_ctb.py"])
@@ -50,8 +57,8 @@ def test_readme_snippet_is_a_run_of_the_examples_lines(name):
 
 
 def _after(block: str) -> str:
-    """The README text just after a snippet (where it names its example)."""
-    text = (ROOT / "README.md").read_text()
+    """The docs' text just after a snippet (where it names its example)."""
+    text = _docs_text()
     end = text.index(block) + len(block)
     return text[end : end + 300]
 

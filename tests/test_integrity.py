@@ -147,7 +147,7 @@ def test_commands_name_a_damaged_recording(recording: Path, tmp_path: Path):
     for args in (
         ["trials", "convert", str(trial)],
         ["export", "lerobot", str(trial / "log.mcap"), "--out", str(tmp_path / "ds")],
-        ["trial", "--operator", "replay", str(trial / "log.mcap"), "--out", str(tmp_path / "t")],
+        ["trial", "--replay", str(trial / "log.mcap"), "--out", str(tmp_path / "t")],
     ):
         proc = subprocess.run(
             [sys.executable, "-m", "payload", *args], capture_output=True, text=True

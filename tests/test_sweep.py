@@ -13,8 +13,8 @@ from conftest import DESIGN
 
 from payload.cli import main
 from payload.design import load_design
-from payload.sweep import POINT_FIELDS, SweepError, edit_design, grid, parse_set
-from payload.sweep.grid import check_axes
+from payload.sweep import POINT_FIELDS, SweepError, edit_design, parse_set
+from payload.sweep.grid import check_axes, grid
 
 
 def test_parse_set_lists_and_ranges():

@@ -1180,6 +1180,8 @@ def test_campaign_prints_a_line_per_trial_then_a_headline_off_a_terminal(
         json.loads((camp / f"trial-{s:04d}" / "metrics.json").read_text()) for s in (4, 5, 6)
     ]
     assert lines[0] == f"project: {project.resolve()}"
+    assert lines[1].startswith("models: rebuilt ")  # a new project's models, built first
+    del lines[1]
     for k, m in enumerate(metrics):  # one line per trial, in order, before the summary
         assert lines[1 + k].startswith(f"[{k + 1}/3] seed {4 + k}: ")
         assert f"RMS {m['rms_mm']:.1f} mm" in lines[1 + k]

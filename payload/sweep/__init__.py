@@ -18,7 +18,6 @@ _LAZY: dict[str, str] = {
     "Axis": "payload.sweep.grid",
     "SweepError": "payload.sweep.grid",
     "edit_design": "payload.sweep.grid",
-    "grid": "payload.sweep.grid",
     "parse_set": "payload.sweep.grid",
     "POINT_FIELDS": "payload.sweep.point",
     "point_commands": "payload.sweep.point",

@@ -262,6 +262,9 @@ def _cmd_trials_summarize(args: argparse.Namespace) -> int:
             r.setdefault("retarget_budget", budget)
         if isinstance(modelled, bool):
             r.setdefault("retarget_collisions", modelled)
+        if isinstance(previous.get("controller"), str):
+            r.setdefault("controller", previous["controller"])
+            r.setdefault("controller_overrides", previous.get("controller_overrides") or [])
     tag = None
     if rescore:  # a rescoring is written beside the originals, named by its definition
         defs = {

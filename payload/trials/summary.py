@@ -12,7 +12,6 @@ import numpy as np
 
 from payload.errors import PayloadError
 from payload.safeio import OverwriteError, write_unless_changed
-from payload.trials.campaign_figure import campaign_figure_path, write_campaign_figure
 from payload.trials.scoring import finish_trial
 
 METRIC_KEYS: tuple[str, ...] = (
@@ -450,6 +449,9 @@ def write_summary(
     changed = write_unless_changed(out / f"{stem}.json", data, force=force)
     write_unless_changed(out / f"{stem}.md", text, force=force)
     # the campaign figure follows the summary: drawn when the summary changed or it is missing
+    # matplotlib only when a summary is written: a trial's worker never loads it
+    from payload.trials.campaign_figure import campaign_figure_path, write_campaign_figure
+
     figure = campaign_figure_path(out, tag)
     if changed or force or not figure.exists():
         write_campaign_figure(summary, METRIC_LABELS, out, tag)
