@@ -9,8 +9,7 @@ a command module inside it) costs no numerical library.
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
+from payload.lazy import lazy_exports
 
 _LAZY: dict[str, str] = {
     "SIDES": "payload.sim.contact",
@@ -53,14 +52,4 @@ _LAZY: dict[str, str] = {
 __all__ = sorted(_LAZY)
 
 
-def __getattr__(name: str) -> Any:
-    module = _LAZY.get(name)
-    if module is None:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    value = getattr(importlib.import_module(module), name)
-    globals()[name] = value  # once loaded, an ordinary attribute
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted({*globals(), *_LAZY})
+__getattr__, __dir__ = lazy_exports(__name__, _LAZY)

@@ -1,0 +1,142 @@
+"""The trial setup options shared by ``payload trial``, ``trials run`` and ``bench trial``
+(CTB, propulsion, controller profile and its overrides, physics step, base filter, zones,
+link delay), and the resolution of the ones left out (:func:`payload.trials.sources.
+trial_setup`)."""
+
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+from payload.errors import PayloadError
+
+
+class TrialsCliError(PayloadError):
+    """Bad arguments to a trials command, or the trial runner is not available."""
+
+
+_SETUP = (
+    "ctb",
+    "propulsion",
+    "retarget_budget",
+    "retarget_collisions",
+    "physics_dt",
+    "base_filter",
+    "controller",
+)
+"""The trial setup flags' attribute names."""
+
+
+def _setup_arguments(p: argparse.ArgumentParser, *, replay: bool = False) -> None:
+    """The trial setup flags; with ``replay`` each left out means "the recording's" for a
+    replay (``None`` here, resolved by the runner)."""
+    from payload.profiles import PAPER, PROFILES
+    from payload.sim.vehicle import DEFAULT_PROPULSION, PROPULSION_MODELS
+
+    mine = "; a replay: its recording's unless given" if replay else ""
+    p.add_argument(
+        "--controller",
+        choices=tuple(PROFILES),
+        default=None,
+        help=f"controller profile (default {PAPER}{mine}): 'paper' is the paper's "
+        "controller (20-evaluation pair solves, no self-collision model); 'safe' adds the "
+        "contact-aware self-collision model and the base safety filter; "
+        "--retarget-budget, --[no-]retarget-collisions and --[no-]base-filter override it",
+    )
+    p.add_argument(
+        "--ctb",
+        default=None,
+        help="CTB model: single (NASA's loaded single bag) or rigid (the rigid bag of "
+        f"Morton et al.); default single{mine}",
+    )
+    p.add_argument(
+        "--propulsion",
+        choices=PROPULSION_MODELS,
+        default=None,
+        help=f"vehicle propulsion model (default {DEFAULT_PROPULSION}{mine})",
+    )
+    p.add_argument(
+        "--retarget-budget",
+        choices=("paper", "converged"),
+        default=None,
+        help="retargeting budget per pair solve: 'paper' (at most 20 residual evaluations, "
+        "the paper's controller) or 'converged' (each start run to convergence); default: "
+        f"the --controller profile's{mine}",
+    )
+    p.add_argument(
+        "--retarget-collisions",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="model self-collision in the pair solves: no command closer than the design's "
+        "margin (the pads of a pair excepted), the operator's opening mapped to the "
+        f"collision-free span range (default: the --controller profile's{mine})",
+    )
+    _physics_dt_argument(p, mine)
+    p.add_argument(
+        "--base-filter",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="the base safety filter between the base channel and the vehicle (default: "
+        f"the profile's; off in 'paper'{mine})",
+    )
+    p.add_argument(
+        "--zones",
+        default=None,
+        metavar="FILE",
+        help="keep-in/keep-out boxes of the base filter, Astrobee zone JSON (default: the "
+        "station's, from the simulator's ISS layout)",
+    )
+    p.add_argument(
+        "--link-delay",
+        default=None,
+        metavar="S[:JITTER]",
+        help="a delayed ground link: hand frames reach the robot and its state reaches the "
+        "operator S seconds late (each message +-JITTER, uniform); default none",
+    )
+
+
+def _physics_dt_argument(p: argparse.ArgumentParser, mine: str = "") -> None:
+    p.add_argument(
+        "--physics-dt",
+        type=float,
+        default=None,
+        metavar="S",
+        help="physics time step [s]: 0.001 (default, the paper's 1 kHz"
+        f"{mine}) or an opt-in faster step that divides the 20 ms control period, e.g. "
+        "0.002 (the pad contact is derived from the step; results differ from 1 kHz)",
+    )
+
+
+def _check_physics_dt(dt: float | None) -> None:
+    from payload.sim.config import check_physics_dt
+
+    problem = None if dt is None else check_physics_dt(dt)
+    if problem is not None:
+        raise TrialsCliError(f"--physics-dt: {problem}")
+
+
+def _link_and_zones(args: argparse.Namespace) -> dict[str, Any]:
+    """The parsed ``--link-delay`` and ``--zones`` as run_trial arguments (bad input: one
+    line, exit 2)."""
+    from payload.sim.zones import StationZones
+    from payload.teleop.link import parse_link_delay
+
+    extra: dict[str, Any] = {}
+    if args.link_delay is not None:
+        extra["link_delay"] = parse_link_delay(args.link_delay)
+    if args.zones is not None:
+        extra["zones"] = StationZones.read(args.zones)
+    return extra
+
+
+def _setup_defaults(args: argparse.Namespace) -> None:
+    """Fill the setup flags left out with the defaults (synthetic trials, campaigns)."""
+    from payload.trials.sources import trial_setup
+
+    try:
+        setup = trial_setup(**{n: getattr(args, n) for n in _SETUP})
+    except PayloadError as exc:
+        raise TrialsCliError(str(exc)) from None
+    for name, value in setup.items():
+        if name in _SETUP:
+            setattr(args, name, value)
