@@ -41,7 +41,7 @@ def _origin(el: ET.Element | None) -> np.ndarray:
 
 
 def _geometry(geo: ET.Element, urdf_dir: Path) -> fcl.CollisionGeometry | None:
-    from payload.retarget.collision import load_collision_mesh
+    from payload.retarget.collision_geometry import load_collision_mesh
 
     mesh = geo.find("mesh")
     if mesh is not None:
