@@ -75,26 +75,39 @@ class StationMonitor:
         """The contact flag and the clearance now."""
         m = self.model
         contact = False
-        for i in range(data.ncon):
-            c = data.contact[i]
-            g1, g2 = int(c.geom1), int(c.geom2)
-            if c.dist <= 0.0 and (
-                (self._is_station[g1] and self._is_moving[g2])
-                or (self._is_station[g2] and self._is_moving[g1])
-            ):
-                contact = True
-                break
+        if data.ncon:
+            con = data.contact
+            g1, g2 = con.geom1, con.geom2
+            pair = (self._is_station[g1] & self._is_moving[g2]) | (
+                self._is_station[g2] & self._is_moving[g1]
+            )
+            contact = bool((pair & (con.dist <= 0.0)).any())
         if self._station_box is None:  # static geoms: their boxes never change
             self._station_box = _world_aabb(m, data, self.station)
         s_lo, s_hi = self._station_box
         lo, hi = _world_aabb(m, data, self.moving)
-        gap = np.maximum(s_lo[None] - hi[:, None], lo[:, None] - s_hi[None]).max(axis=2)
-        best = CLEARANCE_CAP
-        for i, j in zip(*np.nonzero(gap < CLEARANCE_CAP)):
-            d = mujoco.mj_geomDistance(
-                m, data, int(self.moving[i]), int(self.station[j]), CLEARANCE_CAP, self._fromto
+        # the station boxes within the cap of the moving geoms' union box first (IEEE
+        # subtraction is monotone, so every pair within the cap passes this), then the
+        # pairs among those
+        near = np.flatnonzero(
+            ((s_lo - hi.max(axis=0) < CLEARANCE_CAP) & (lo.min(axis=0) - s_hi < CLEARANCE_CAP)).all(
+                axis=1
             )
-            best = min(best, d)
+        )
+        best = CLEARANCE_CAP
+        if near.size:
+            n_lo, n_hi = s_lo[near], s_hi[near]
+            gap = np.maximum(n_lo[None] - hi[:, None], lo[:, None] - n_hi[None]).max(axis=2)
+            for i, j in zip(*np.nonzero(gap < CLEARANCE_CAP)):
+                d = mujoco.mj_geomDistance(
+                    m,
+                    data,
+                    int(self.moving[i]),
+                    int(self.station[near[j]]),
+                    CLEARANCE_CAP,
+                    self._fromto,
+                )
+                best = min(best, d)
         return StationReading(contact or best <= 0.0, float(best))
 
 

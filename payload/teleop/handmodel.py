@@ -27,14 +27,6 @@ _THUMB_BASE = np.array([0.03, 0.022, -0.015])
 _THUMB_LENGTHS = (0.044, 0.033, 0.027)
 
 
-def _chain(origin: np.ndarray, lengths, angles, u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Joint points of a planar chain starting along ``u`` and flexing toward ``v``,
-    shape (len(lengths) + 1, 3) (each point the previous one plus its phalanx)."""
-    cum = np.cumsum(np.asarray(angles, dtype=float))[:, None]
-    steps = np.asarray(lengths, dtype=float)[:, None] * (np.cos(cum) * u + np.sin(cum) * v)
-    return np.cumsum(np.vstack([origin, steps]), axis=0)
-
-
 def _unit_thumb_plane() -> tuple[np.ndarray, np.ndarray]:
     """The thumb's flexion plane: ``u`` along it at rest, ``v`` toward the index."""
     u = np.array([0.573, 0.786, -0.232])
@@ -50,29 +42,48 @@ _X, _Z = np.array([1.0, 0.0, 0.0]), np.array([0.0, 0.0, -1.0])
 _PARTS = ("phalanx-proximal", "phalanx-intermediate", "phalanx-distal", "tip")
 _THUMB_PARTS = ("metacarpal", "phalanx-proximal", "phalanx-distal", "tip")
 
+# the five planar chains (four fingers, then the thumb) as arrays, so one hand is a few
+# array operations: chain origins (5, 3), phalanx lengths (5, 3), flexion plane (u, v)
+# (5, 3) each, the rows of the 25 joints the chain points (5, 4) fill, and the finger
+# metacarpals (4, 3) with their rows (4,)
+_ORIGINS = np.array([[kx, ky, 0.0] for (kx, ky), _ in _FINGERS.values()] + [_THUMB_BASE])
+_LENGTHS = np.array([lengths for _, lengths in _FINGERS.values()] + [_THUMB_LENGTHS])
+_U = np.array([_X] * 4 + [_THUMB_U])
+_V = np.array([_Z] * 4 + [_THUMB_V])
+_CHAIN_ROWS = np.array(
+    [[JOINT_INDEX[f"{name}-{part}"] for part in _PARTS] for name in _FINGERS]
+    + [[JOINT_INDEX[f"thumb-{part}"] for part in _THUMB_PARTS]]
+)
+_METACARPALS = np.array([[0.03, ky * 0.6, 0.0] for (_, ky), _ in _FINGERS.values()])
+_METACARPAL_ROWS = np.array([JOINT_INDEX[f"{name}-metacarpal"] for name in _FINGERS])
+assert next(iter(_FINGERS)) == "index-finger"  # the row whose angles follow the aperture
+
 
 @functools.lru_cache(maxsize=256)
 def _local_joints(side: str, size: float, s: float, curl: float) -> np.ndarray:
     """:meth:`HandModel.local_joints` for a clipped aperture ``s`` (cached, read-only: the
-    synthetic operator holds its aperture for long spells and both hands share it)."""
+    synthetic operator holds its aperture for long spells and both hands share it).
+
+    Each chain starts at its origin along ``u`` and flexes toward ``v``: its points are
+    the origin plus the cumulated phalanges ``length (cos(a) u + sin(a) v)``, ``a`` the
+    cumulated joint angles."""
     out = np.zeros((25, 3))
-    for name, ((kx, ky), lengths) in _FINGERS.items():
-        knuckle = np.array([kx, ky, 0.0])
-        base = np.array([0.03, ky * 0.6, 0.0])
-        if name == "index-finger":
-            angles = (0.75 - 0.65 * s, 0.55 - 0.45 * s, 0.35 - 0.3 * s)
-        else:
-            angles = (curl, curl, curl * 0.6)
-        pts = _chain(knuckle, lengths, angles, _X, _Z)
-        out[JOINT_INDEX[f"{name}-metacarpal"]] = base
-        for part, p in zip(_PARTS, pts):
-            out[JOINT_INDEX[f"{name}-{part}"]] = p
-    # thumb: starts along (forward, thumb side), flexes across the palm toward the index
-    # plane chosen so the tips are ~18 mm apart pinched and ~95 mm open (size 1)
-    ang = (0.2 + 0.3 * (1 - s), 0.2 + 0.4 * (1 - s), 0.1 + 0.35 * (1 - s))
-    pts = _chain(_THUMB_BASE, _THUMB_LENGTHS, ang, _THUMB_U, _THUMB_V)
-    for part, p in zip(_THUMB_PARTS, pts):
-        out[JOINT_INDEX[f"thumb-{part}"]] = p
+    c = 1 - s
+    angles = np.array(
+        [
+            (0.75 - 0.65 * s, 0.55 - 0.45 * s, 0.35 - 0.3 * s),  # index: the aperture
+            (curl, curl, curl * 0.6),
+            (curl, curl, curl * 0.6),
+            (curl, curl, curl * 0.6),
+            # thumb: starts along (forward, thumb side), flexes across the palm toward the
+            # index (plane chosen so the tips are ~18 mm apart pinched, ~95 mm open)
+            (0.2 + 0.3 * c, 0.2 + 0.4 * c, 0.1 + 0.35 * c),
+        ]
+    )
+    cum = np.cumsum(angles, axis=1)[:, :, None]  # (5, 3, 1)
+    steps = _LENGTHS[:, :, None] * (np.cos(cum) * _U[:, None] + np.sin(cum) * _V[:, None])
+    out[_METACARPAL_ROWS] = _METACARPALS
+    out[_CHAIN_ROWS] = np.cumsum(np.concatenate([_ORIGINS[:, None], steps], axis=1), axis=1)
     out *= size
     if side == "left":
         out[:, 1] *= -1.0
