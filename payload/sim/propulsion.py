@@ -351,9 +351,11 @@ class Propulsion:
         # (K, 6): the other nozzles closed; the inverses stacked as one (6K, 6) matrix
         # make one matrix-vector product instead of K (the same row dot products)
         t0 = (self._stacked_inverses @ wrench).reshape(-1, 6)
-        ok = (t0 >= -tol).all(axis=1)
-        if ok.any():
-            k = int(np.where(ok, t0.sum(axis=1), np.inf).argmin())
+        # the feasible rows only: the first least sum among them, as argmin over all rows
+        # with the others at inf finds it
+        rows = np.flatnonzero((t0 >= -tol).all(axis=1))
+        if rows.size:
+            k = int(rows[t0[rows].sum(axis=1).argmin()])
             if (t0[k] <= ub[k] + tol).all():
                 out = np.zeros(N_NOZZLES)
                 out[idx[k]] = t0[k]
@@ -364,11 +366,10 @@ class Propulsion:
         # zero). Only those (basis, pattern) pairs can be optimal: :attr:`_candidates`.
         ck, cj, c_off, c_fixed = self._candidates
         tb = t0[ck] - c_off  # (M, 6)
-        ok = (tb >= -tol).all(axis=1)
-        ok &= (tb <= self._candidate_bounds + tol).all(axis=1)
-        if not ok.any():
+        rows = np.flatnonzero(((tb >= -tol) & (tb <= self._candidate_ceiling)).all(axis=1))
+        if not rows.size:
             return None
-        m = int(np.where(ok, tb.sum(axis=1) + c_fixed, np.inf).argmin())
+        m = int(rows[(tb[rows].sum(axis=1) + c_fixed[rows]).argmin()])
         k, j = int(ck[m]), int(cj[m])
         out = np.zeros(N_NOZZLES)
         out[self._basis_rest[k]] = fixed[k, j]
@@ -389,6 +390,11 @@ class Propulsion:
     def _candidate_bounds(self) -> np.ndarray:
         """The basis nozzles' thrust bounds per candidate of :attr:`_candidates`: (M, 6)."""
         return self._basis_bounds[self._candidates[0]]
+
+    @cached_property
+    def _candidate_ceiling(self) -> np.ndarray:
+        """:attr:`_candidate_bounds` plus the least-thrust tolerance: (M, 6)."""
+        return self._candidate_bounds + self._least_tol
 
     @cached_property
     def _candidates(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
