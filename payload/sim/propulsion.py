@@ -30,10 +30,13 @@ per-call overhead) and its bounded least squares is SciPy's BVLS made the same w
 
 from __future__ import annotations
 
+import functools
 import itertools
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property
+from typing import Any
 
 import numpy as np
 
@@ -153,6 +156,18 @@ class Allocation:
     scale: float
 
 
+class _FacetParts(dict):
+    """A dict filled on first access of each key by ``make(key)``."""
+
+    def __init__(self, make: Callable[[int], Any]) -> None:
+        super().__init__()
+        self._make = make
+
+    def __missing__(self, key: int) -> Any:
+        value = self[key] = self._make(key)
+        return value
+
+
 class Propulsion:
     """The 12-nozzle model and its force allocation.
 
@@ -215,6 +230,10 @@ class Propulsion:
 
     def pure_torque_max(self) -> np.ndarray:
         """Per body axis, the largest pure torque (zero force), the weaker direction [N m]."""
+        return self._pure_torque_max.copy()
+
+    @cached_property
+    def _pure_torque_max(self) -> np.ndarray:
         out = np.empty(3)
         for i in range(3):
             e = np.zeros(6)
@@ -292,25 +311,25 @@ class Propulsion:
         return float(ratio[k]), k
 
     @cached_property
-    def _facet_parts(
-        self,
-    ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]]:
-        """Per facet: the thrusts of the nozzles pushing outward (at their bound, the
-        others 0), the in-plane nozzles, their wrench columns, their bounds, and whether
-        ``lstsq`` finds the same rank of those columns with numpy's default cutoff and
-        with ``rcond=-1`` (then both give the same solution: the cutoff only decides
-        which singular values count, and the rank depends on the matrix alone)."""
-        parts = []
+    def _facet_parts(self) -> _FacetParts:
+        """Per facet ``k`` (``self._facet_parts[k]``, worked out on first use: a trial
+        saturates on a few dozen of the facets): the thrusts of the nozzles pushing
+        outward (at their bound, the others 0), the in-plane nozzles, their wrench
+        columns, their bounds, and whether ``lstsq`` finds the same rank of those columns
+        with numpy's default cutoff and with ``rcond=-1`` (then both give the same
+        solution: the cutoff only decides which singular values count, and the rank
+        depends on the matrix alone)."""
+        return _FacetParts(self._facet_part)
+
+    def _facet_part(self, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:
+        proj = self.facets[0][k] @ self.matrix
+        eps = 1e-9 * float(np.abs(proj).max())
+        out = np.where(proj > eps, self.thrust_max, 0.0)
+        free = np.flatnonzero(np.abs(proj) <= eps)
+        a_free = self.matrix[:, free]
         probe = np.ones(6)
-        for n in self.facets[0]:
-            proj = n @ self.matrix
-            eps = 1e-9 * float(np.abs(proj).max())
-            out = np.where(proj > eps, self.thrust_max, 0.0)
-            free = np.flatnonzero(np.abs(proj) <= eps)
-            a_free = self.matrix[:, free]
-            same = _lstsq(a_free, probe)[1] == _lstsq(a_free, probe, -1.0)[1]
-            parts.append((out, free, a_free, self.thrust_max[free], same))
-        return parts
+        same = _lstsq(a_free, probe)[1] == _lstsq(a_free, probe, -1.0)[1]
+        return out, free, a_free, self.thrust_max[free], same
 
     @cached_property
     def _facet_tol(self) -> float:
@@ -465,6 +484,15 @@ class Propulsion:
         return out[:3], out[3:]
 
 
+@functools.lru_cache(maxsize=8)
+def shared_propulsion(axis_force: tuple[float, float, float]) -> Propulsion:
+    """The process's one :class:`Propulsion` for these per-axis forces [N]: its thrust
+    bounds (linear programmes) and allocation tables are worked out once per process,
+    not once per trial (a Dask worker runs several). Nothing changes a Propulsion after
+    its construction but its lazily filled tables, which depend on it alone."""
+    return Propulsion(axis_force)
+
+
 __all__ = [
     "DISCHARGE_COEFFS",
     "NOZZLE_AXES",
@@ -474,4 +502,5 @@ __all__ = [
     "Allocation",
     "Propulsion",
     "PropulsionError",
+    "shared_propulsion",
 ]

@@ -20,7 +20,7 @@ import numpy as np
 from payload.design.vehicle import DEFAULT_FLIGHT_MODE, FLIGHT_MODES, FlightMode
 from payload.errors import PayloadError
 from payload.schema import VehicleTwist
-from payload.sim.propulsion import Allocation, Propulsion
+from payload.sim.propulsion import Allocation, shared_propulsion
 from payload.vecmath import norm
 
 
@@ -226,7 +226,9 @@ class VehicleController:
                 f"{', '.join(PROPULSION_MODELS)})"
             )
         self.propulsion = propulsion
-        self.nozzles = Propulsion(self.mode.force) if propulsion == "nozzles" else None
+        self.nozzles = (
+            shared_propulsion(tuple(self.mode.force)) if propulsion == "nozzles" else None
+        )
         self.allocation: Allocation | None = None
         inertia = np.asarray(plant.inertia, float)
         com = np.asarray(plant.com, float)
