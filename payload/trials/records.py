@@ -169,8 +169,11 @@ STEP_SCHEMA: dict[str, Any] = {
 """The JSON schema stored in every recording for the ``/trial/step`` channel."""
 
 
-def _coerce(name: str, value: Any) -> Any:
-    shape, kind = FIELD_SPECS[name]
+def _coerce(name: str, value: Any, shape: Any = None, kind: Any = None) -> Any:
+    if shape is None:
+        shape, kind = FIELD_SPECS[name]
+    if shape and type(value) is np.ndarray and value.dtype == np.float64 and value.shape == shape:
+        return _finite_copy(name, value.copy(), kind)  # the common case, checked first
     if isinstance(kind, tuple):
         if not isinstance(value, str) or value not in kind:
             raise RecordingError(f"StepRecord.{name}: {value!r} is not one of {list(kind)}")
@@ -189,15 +192,17 @@ def _coerce(name: str, value: Any) -> Any:
         if not math.isfinite(out):
             raise RecordingError(f"StepRecord.{name}: not finite ({out})")
         return out
-    if type(value) is np.ndarray and value.dtype == np.float64 and value.shape == shape:
-        arr = value.copy()  # the common case: what np.array(value, float64) gives, sooner
-    else:
-        try:
-            arr = np.array(value, dtype=np.float64)
-        except (TypeError, ValueError) as exc:
-            raise RecordingError(f"StepRecord.{name}: not numeric") from exc
-        if arr.shape != shape:
-            raise RecordingError(f"StepRecord.{name}: expected shape {shape}, got {arr.shape}")
+    try:
+        arr = np.array(value, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise RecordingError(f"StepRecord.{name}: not numeric") from exc
+    if arr.shape != shape:
+        raise RecordingError(f"StepRecord.{name}: expected shape {shape}, got {arr.shape}")
+    return _finite_copy(name, arr, kind)
+
+
+def _finite_copy(name: str, arr: np.ndarray, kind: Any) -> np.ndarray:
+    """``arr`` (a float64 array of its own) checked and made read-only."""
     # a finite sum means every value is finite (NaN and inf propagate); only when it is
     # not are the values checked one by one (an overflowing sum of finite values passes)
     if not math.isfinite(arr.sum()):
@@ -209,7 +214,9 @@ def _coerce(name: str, value: Any) -> Any:
     return arr
 
 
-_FIELD_NAMES: tuple[str, ...] = tuple(FIELD_SPECS)
+_FIELDS: tuple[tuple[str, tuple[int, ...], Any], ...] = tuple(
+    (name, shape, kind) for name, (shape, kind) in FIELD_SPECS.items()
+)
 
 
 @dataclass(frozen=True)
@@ -266,8 +273,9 @@ class StepRecord:
     ctb_module: str
 
     def __post_init__(self) -> None:
-        for name in _FIELD_NAMES:
-            object.__setattr__(self, name, _coerce(name, getattr(self, name)))
+        fields = self.__dict__  # a frozen dataclass's fields, set as object.__setattr__ does
+        for name, shape, kind in _FIELDS:
+            fields[name] = _coerce(name, fields[name], shape, kind)
         for name in ("astrobee_quat", "ctb_quat"):
             q = getattr(self, name)
             if math.sqrt(q.dot(q)) < 1e-9:  # np.linalg.norm's own formula
