@@ -403,7 +403,11 @@ class Propulsion:
     @cached_property
     def _basis_rest(self) -> np.ndarray:
         """Per basis, the 6 nozzles outside it, ascending: (K, 6)."""
-        return np.array([np.setdiff1d(np.arange(N_NOZZLES), b) for b in self._bases[0]])
+        rest = []
+        for basis in self._bases[0].tolist():
+            inside = set(basis)
+            rest.append([n for n in range(N_NOZZLES) if n not in inside])
+        return np.array(rest)
 
     @cached_property
     def _candidate_bounds(self) -> np.ndarray:
@@ -426,7 +430,7 @@ class Propulsion:
         ck, cj = [], []
         for k in range(len(idx)):
             y = inv[k].sum(axis=0)  # 1^T B_k^-1
-            rest = [n for n in range(N_NOZZLES) if n not in idx[k]]
+            rest = self._basis_rest[k]
             reduced = 1.0 - y @ self.matrix[:, rest]  # (6,)
             tie = np.abs(reduced) <= 1e-9
             want = (reduced < 0).astype(float)
