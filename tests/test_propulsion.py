@@ -15,6 +15,7 @@ from payload.sim.propulsion import (
     PropulsionError,
     _bvls,
     _lstsq,
+    shared_propulsion,
 )
 from payload.sim.vehicle import FLIGHT_MODES, MassProperties, VehicleController, VehicleError
 
@@ -265,3 +266,28 @@ def test_least_squares_falls_back_to_numpys_wrapper(monkeypatch, kernel):
             want = np.linalg.lstsq(a, b, rcond=rcond)
             np.testing.assert_array_equal(x, want[0])
             assert rank == want[2] == min(6, cols - 1)
+
+
+def test_one_propulsion_per_flight_mode_gives_a_fresh_ones_bits():
+    """Controllers share their flight mode's Propulsion (bounds fitted once a process);
+    its lazily filled tables do not depend on what was asked first: a fresh Propulsion
+    asked the same wrenches in reverse order gives the same thrusts, bit for bit."""
+    plant = MassProperties(12.0, np.array([0.0, 0.0, -0.05]), np.diag([0.2, 0.2, 0.15]))
+    shared = shared_propulsion(NOMINAL.force)
+    assert shared is shared_propulsion(tuple(NOMINAL.force))
+    assert VehicleController(plant).nozzles is VehicleController(plant).nozzles is shared
+    assert shared_propulsion(FLIGHT_MODES["difficult"].force) is not shared
+    rng = np.random.default_rng(5)
+    scale = np.array([0.3, 0.15, 0.15, 0.03, 0.03, 0.03])
+    wrenches = [
+        w * (shared.extent(w) * rng.uniform(0.3, 3.0)) for w in rng.normal(size=(80, 6)) * scale
+    ]
+    fresh = Propulsion(NOMINAL.force)
+    theirs = {i: fresh.allocate(w[:3], w[3:]) for i, w in reversed(list(enumerate(wrenches)))}
+    saturated = 0
+    for i, w in enumerate(wrenches):
+        mine = shared.allocate(w[:3], w[3:])
+        assert mine.thrust.tobytes() == theirs[i].thrust.tobytes()
+        assert mine.scale == theirs[i].scale
+        saturated += mine.scale < 1.0
+    assert 0 < saturated < len(wrenches)  # both the facet and the basis solutions ran
