@@ -264,10 +264,13 @@ class SimDriver:
         rot = d.xmat[w.astrobee].reshape(3, 3)
         origin = d.xipos[w.astrobee]
         torque = np.zeros(3)
-        for k in np.flatnonzero(allocation.thrust > 0.0):
-            force = rot @ (nozzles.directions[k] * allocation.thrust[k])
-            point = origin + rot @ nozzles.positions[k]
-            mujoco.mj_applyFT(self.model, d, force, torque, point, w.astrobee, d.qfrc_applied)
+        model, body, qfrc = self.model, w.astrobee, d.qfrc_applied
+        directions, positions = nozzles.directions, nozzles.positions
+        thrust = allocation.thrust
+        for k in np.flatnonzero(thrust > 0.0).tolist():  # Python ints: cheaper indexing
+            force = rot @ (directions[k] * thrust[k])
+            point = origin + rot @ positions[k]
+            mujoco.mj_applyFT(model, d, force, torque, point, body, qfrc)
 
     def _clear_vehicle_forces(self) -> None:
         w, d = self.world, self.data
