@@ -44,6 +44,7 @@ from payload.sim.zones import StationZones, station_zones
 from payload.teleop.channels import BaseConfig, JerkLimiter
 
 _INF = 1e30
+_EMPTY = np.zeros(0)
 
 
 @dataclass(frozen=True)
@@ -218,6 +219,11 @@ class FilterStatus(NamedTuple):
 class BaseSafetyFilter:
     """The base safety filter (see the module docstring).
 
+    Every step's work is vectorised over all shapes, sample points and obstacle boxes at
+    once; what is constant for the filter's life (the shapes' local sample points, the
+    QP's cost matrix, the braking constants) is computed once, here or when a shape's box
+    is measured again.
+
     Args:
         world: The simulator's :class:`~payload.sim.world.World`.
         base: The base channel's settings (speed, acceleration and jerk bounds).
@@ -265,12 +271,20 @@ class BaseSafetyFilter:
         self.engaged = False
         self._last: np.ndarray | None = None
         self.status = FilterStatus(False, math.inf, "", "", 0.0, 0.0, 0, 0.0)
-
-    def _accel_along(self, normals: np.ndarray, rot: np.ndarray) -> np.ndarray:
-        """Deceleration the stack can give along world unit vectors (P, 3) [m/s^2]: the
-        per-body-axis bounds met along each vector's body components."""
-        nb = np.maximum(np.abs(normals @ rot), 1e-12)  # body components of each vector
-        return np.min(self.body_accel / nb, axis=1)
+        # constant per filter: the QP's cost, the shapes' bodies, the lever mask
+        self._hessian = np.diag(self.weights)
+        self._upper = np.full(per_face * len(kinds) * len(self.obs_names), _INF)
+        self._bodies = np.array([s.body for s in self.all_shapes], dtype=int)
+        self._obs_lo = np.ascontiguousarray(self.obs_lo.T)  # (3, M): axis first
+        self._obs_hi = np.ascontiguousarray(self.obs_hi.T)
+        self._accel0, self._accel1, self._accel2 = (float(x) for x in self.body_accel)
+        self._packed = False  # the arrays below follow the shapes' measured boxes
+        self._centre = np.zeros((len(kinds), 3))  # each box's centre, its body's frame
+        self._half = np.zeros((len(kinds), 3))
+        self._local = np.zeros((0, 3))  # every sample point, its body's frame (K, 3)
+        self._shape_of = np.zeros(0, dtype=int)  # the shape of each sample point (K,)
+        self._on_vehicle = 0  # points [0, n) move with Astrobee's body, the rest with the CTB
+        self._n_points = np.zeros(len(kinds) + 1, dtype=int)  # points of the first i shapes
 
     def __call__(self, twist: VehicleTwist, data: mujoco.MjData) -> VehicleTwist:
         """The filtered body twist for the request ``twist`` at the state in ``data``."""
@@ -327,6 +341,40 @@ class BaseSafetyFilter:
         self.yaw.value, self.yaw.rate = req[3:].copy(), rate[3:].copy()
         self._last = req
 
+    def _measure(self, data: mujoco.MjData, n: int) -> None:
+        """Measure again the boxes of the first ``n`` shapes that are due (see
+        :meth:`_Shape.box`), and pack every shape's box and sample points in arrays."""
+        changed = not self._packed
+        for shape in self.all_shapes[:n]:
+            if shape.unit is None or (shape.refresh_steps and shape._age >= shape.refresh_steps):
+                shape.refresh(data)
+                changed = True
+            shape._age += 1
+        if not changed:
+            return
+        ready = [s for s in self.all_shapes if s.unit is not None]
+        for i, s in enumerate(ready):
+            self._centre[i], self._half[i] = s.local_centre, s.half
+        local = [s.local_centre + s.unit * s.half for s in ready]  # type: ignore[operator]
+        self._local = np.ascontiguousarray(np.vstack(local).T)
+        self._n_points = np.cumsum([0, *(len(p) for p in local)])
+        self._shape_of = np.repeat(np.arange(len(ready)), [len(p) for p in local])
+        self._on_vehicle = int(self._n_points[min(2, len(ready))])
+        self._packed = True
+
+    def _points(self, data: mujoco.MjData, rot: np.ndarray, n: int) -> np.ndarray:
+        """World positions of the sample points of the first ``n`` shapes, axis first
+        (3, K) [m]."""
+        k, on = int(self._n_points[n]), self._on_vehicle
+        pts = np.empty((3, k))
+        np.matmul(rot, self._local[:, :on], out=pts[:, :on])
+        pts[:, :on] += data.xpos[self.world.astrobee][:, None]
+        if k > on:
+            ctb = self.world.ctb
+            np.matmul(data.xmat[ctb].reshape(3, 3), self._local[:, on:k], out=pts[:, on:])
+            pts[:, on:] += data.xpos[ctb][:, None]
+        return pts
+
     def _constraints(
         self, data: mujoco.MjData, rot: np.ndarray, centre: np.ndarray, req: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, str, str]:
@@ -336,40 +384,52 @@ class BaseSafetyFilter:
         A (shape, obstacle) pair is skipped when the two are separated along a world
         axis by more than the margin and the request's closing speed along that axis
         (translation plus the yaw rate times the shape's lever) is one the stack stops
-        from within the separation; the others are checked point by point.
+        from within the separation; when every pair is skipped (the conservative bound
+        that decides the identity) no constraint is built. The others are checked at
+        every sample point of the shape, all pairs at once. Arrays are axis first
+        (3, ...), so the reductions over the axes are elementwise.
         """
         margin = self.config.margin
+        n = len(self.shapes)
+        self._measure(data, n)
         w = abs(float(req[3]))
-        axis_accel = self._accel_along(np.eye(3), rot)  # (3,)
-        boxes = [shape.box(data) for shape in self.shapes]
-        s_centre = np.array([bx[0] for bx in boxes])  # (S, 3)
-        ext = np.array([np.abs(bx[1]) @ bx[2] for bx in boxes])  # (S, 3) world half-extents
-        above = self.obs_lo[None] - (s_centre + ext)[:, None]  # (S, M, 3) > 0: obstacle on +
-        below = (s_centre - ext)[:, None] - self.obs_hi[None]  # > 0: obstacle on the - side
-        arm = np.abs(s_centre - centre) + ext
-        lever = w * arm[:, [1, 0, 2]] * np.array([1.0, 1.0, 0.0])  # (S, 3)
-        toward = req[:3] + lever  # closing speed bound toward + (per shape)
-        away = -req[:3] + lever
-        closing = np.where(above > below, toward[:, None], away[:, None])
+        # deceleration along each world axis: the body bounds met along its body components
+        nb = np.maximum(np.abs(rot), 1e-12)
+        axis_accel = np.minimum(
+            np.minimum(self._accel0 / nb[:, 0], self._accel1 / nb[:, 1]), self._accel2 / nb[:, 2]
+        )
+        frames = data.xmat[self._bodies[:n]].reshape(n, 3, 3)
+        s_centre = (data.xpos[self._bodies[:n]] + (frames @ self._centre[:n, :, None])[..., 0]).T
+        ext = (np.abs(frames) @ self._half[:n, :, None])[..., 0].T  # (3, S) world half-extents
+        above = self._obs_lo[:, None] - (s_centre + ext)[:, :, None]  # (3, S, M) > 0: on +
+        below = (s_centre - ext)[:, :, None] - self._obs_hi[:, None]  # > 0: on the - side
+        lever = w * (np.abs(s_centre - centre[:, None]) + ext)[[1, 0, 2]]  # (3, S)
+        lever[2] = 0.0
+        toward = req[:3, None] + lever  # closing speed bound toward + (per shape)
+        away = lever - req[:3, None]
+        closing = np.where(above > below, toward[:, :, None], away[:, :, None])
         gap = np.maximum(above, below)
-        allowed = stop_speed(gap - margin, axis_accel, self.jerk, self.lag)
-        safe = ((gap > margin) & (closing <= allowed)).any(axis=2)  # (S, M)
-        lower = gap.max(axis=2)  # a lower bound of each pair's distance
-        pairs = np.argwhere(~safe)
-        rows = b = slack = np.zeros(0)
-        if pairs.size:
-            pts_by_shape = {
-                si: self.shapes[si].points(*boxes[si]) for si in set(pairs[:, 0].tolist())
-            }
-            pts = np.vstack([pts_by_shape[int(si)] for si, _ in pairs])
-            counts = [len(pts_by_shape[int(si)]) for si, _ in pairs]
-            obstacle = np.repeat(pairs[:, 1], counts)
-            pair_of = np.repeat(np.arange(len(pairs)), counts)
-            rows, b, slack, d = self._rows(pts, obstacle, centre, rot, req)
-            starts = np.cumsum([0, *counts[:-1]])
-            lower[pairs[:, 0], pairs[:, 1]] = np.minimum.reduceat(d, starts)  # sampled
-            keep = self._most_binding(pair_of, slack)
-            rows, b, slack = rows[keep], b[keep], slack[keep]
+        allowed = stop_speed(gap - margin, axis_accel[:, None, None], self.jerk, self.lag)
+        ok = (gap > margin) & (closing <= allowed)
+        unsafe = ~(ok[0] | ok[1] | ok[2])  # (S, M)
+        lower = np.maximum(np.maximum(gap[0], gap[1]), gap[2])  # bounds the pair's distance
+        rows = b = slack = _EMPTY
+        if unsafe.any():
+            cols = np.flatnonzero(unsafe.any(axis=0))  # obstacles in some pair
+            pts = self._points(data, rot, n)
+            point, col = np.nonzero(unsafe[self._shape_of[: pts.shape[1]]][:, cols])
+            obstacle = cols[col]
+            group = self._shape_of[point] * lower.shape[1] + obstacle
+            normal, lever_z, b, d = self._rows(pts[:, point], obstacle, centre, rot)
+            slack = req[:3] @ normal + req[3] * lever_z - b
+            flat = lower.reshape(-1)
+            flat[group] = np.inf  # the sampled distance replaces the bound
+            np.minimum.at(flat, group, d)
+            keep = self._most_binding(group, slack)
+            rows = np.empty((keep.size, 4))
+            rows[:, :3] = normal[:, keep].T
+            rows[:, 3] = lever_z[keep]
+            b, slack = b[keep], slack[keep]
         si, mi = divmod(int(lower.argmin()), lower.shape[1])
         return rows, b, slack, float(lower[si, mi]), self.shapes[si].kind, self.obs_names[mi]
 
@@ -382,46 +442,46 @@ class BaseSafetyFilter:
         return order[rank < self.per_face]
 
     def _rows(
-        self,
-        pts: np.ndarray,
-        obstacle: np.ndarray,
-        centre: np.ndarray,
-        rot: np.ndarray,
-        req: np.ndarray,
+        self, pts: np.ndarray, obstacle: np.ndarray, centre: np.ndarray, rot: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Rows, bounds, slack and distances of points (P, 3) against their obstacles (P,)."""
+        """The barrier of points (3, P) against their obstacles (P,): the unit normal
+        (3, P), its yaw lever ``n . (e_z x r)`` (P,) [m], the bound ``b`` (P,) [m/s] and
+        the distance (P,) [m]."""
         c = self.config
-        lo, hi = self.obs_lo[obstacle], self.obs_hi[obstacle]
-        delta = pts - np.clip(pts, lo, hi)
-        d = np.sqrt((delta * delta).sum(axis=1))
-        n = np.empty_like(delta)
+        lo, hi = self._obs_lo[:, obstacle], self._obs_hi[:, obstacle]
+        delta = pts - np.minimum(np.maximum(pts, lo), hi)
+        d = np.sqrt(delta[0] * delta[0] + delta[1] * delta[1] + delta[2] * delta[2])
         out = d > 1e-12
-        n[out] = delta[out] / d[out, None]
-        inside = np.flatnonzero(~out)
-        if inside.size:  # depth to the box's nearest face, pointing out of it
-            below, above = pts[inside] - lo[inside], hi[inside] - pts[inside]
+        if out.all():
+            n = delta / d
+        else:
+            n = np.zeros_like(delta)
+            n[:, out] = delta[:, out] / d[out]
+            inside = np.flatnonzero(~out)
+            # depth to the box's nearest face, pointing out of it
+            below, above = pts[:, inside] - lo[:, inside], hi[:, inside] - pts[:, inside]
             depth = np.minimum(below, above)
-            axis = depth.argmin(axis=1)
-            rows_i = np.arange(inside.size)
-            n[inside] = 0.0
-            n[inside, axis] = np.where(below[rows_i, axis] < above[rows_i, axis], -1.0, 1.0)
-            d[inside] = -depth[rows_i, axis]
-        r = pts - centre
-        a = np.empty((d.size, 4))
-        a[:, :3] = n
-        a[:, 3] = n[:, 1] * r[:, 0] - n[:, 0] * r[:, 1]  # n . (e_z x r)
+            axis = depth.argmin(axis=0)
+            cols = np.arange(inside.size)
+            n[axis, inside] = np.where(below[axis, cols] < above[axis, cols], -1.0, 1.0)
+            d[inside] = -depth[axis, cols]
+        lever = n[1] * (pts[0] - centre[0]) - n[0] * (pts[1] - centre[1])  # n . (e_z x r)
+        nb = np.maximum(np.abs(rot.T @ n), 1e-12)  # body components of each normal
+        accel = np.minimum(
+            np.minimum(self._accel0 / nb[0], self._accel1 / nb[1]), self._accel2 / nb[2]
+        )
         gap = d - c.margin
-        b = -stop_speed(gap, self._accel_along(n, rot), self.jerk, self.lag)
+        b = -stop_speed(gap, accel, self.jerk, self.lag)
         b = np.where(gap < 0.0, np.minimum(-c.recovery_gain * gap, c.recovery_speed), b)
-        return a, b, a @ req - b, d
+        return n, lever, b, d
 
     def _solve(self, req: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
         """The least (weighted) change of ``req`` meeting ``a x >= b``, then capped to the
         channel's speed and yaw rate; rest if even holding every distance is infeasible."""
-        h = np.diag(self.weights)
+        h = self._hessian
         f = -self.weights * req
         a = np.ascontiguousarray(a)
-        upper = np.full(b.size, _INF)
+        upper = self._upper[: b.size]
         x, _, flag, _ = daqp.solve(h, f, a, upper, b.copy())
         if flag != 1:  # conflicting recoveries: hold every distance instead
             x, _, flag, _ = daqp.solve(h, f, a, upper, np.minimum(b, 0.0))
@@ -440,6 +500,7 @@ class BaseSafetyFilter:
         self._held_until = -math.inf
         for shape in self.all_shapes:
             shape.unit = None
+        self._packed = False
         self.linear.reset()
         self.yaw.reset()
 
