@@ -42,9 +42,9 @@ from payload.schema import CONTROL_DT, VehicleTwist
 from payload.sim.contact import ContactMonitor
 from payload.sim.zones import StationZones, station_zones
 from payload.teleop.channels import BaseConfig, JerkLimiter
+from payload.teleop.filter_kernel import barrier_rows, stop_speed_many
 
 _INF = 1e30
-_EMPTY = np.zeros(0)
 
 
 @dataclass(frozen=True)
@@ -91,11 +91,7 @@ def stop_speed(
     ramps (``accel / jerk`` each) cover at most ``u (lag + 2 accel / jerk)`` and the full
     deceleration ``u^2 / (2 accel)``. That bound is solved here for ``v``.
     """
-    a = np.asarray(accel, float)
-    b = lag + 2.0 * a / jerk
-    d = np.maximum(np.asarray(distance, float), 0.0)
-    u = a * (np.sqrt(b * b + 2.0 * d / a) - b)
-    return np.maximum(u - a * lag - a * a / (2.0 * jerk), 0.0)
+    return np.asarray(stop_speed_many(distance, accel, float(jerk), float(lag)), float)
 
 
 def _grid(n: int) -> np.ndarray:
@@ -274,16 +270,20 @@ class BaseSafetyFilter:
         # constant per filter: the QP's cost, the shapes' bodies, the lever mask
         self._hessian = np.diag(self.weights)
         self._upper = np.full(per_face * len(kinds) * len(self.obs_names), _INF)
+        self._scratch = np.zeros((0, 3))  # the sample points in the world (K, 3)
         self._bodies = np.array([s.body for s in self.all_shapes], dtype=int)
-        self._obs_lo = np.ascontiguousarray(self.obs_lo.T)  # (3, M): axis first
-        self._obs_hi = np.ascontiguousarray(self.obs_hi.T)
-        self._accel0, self._accel1, self._accel2 = (float(x) for x in self.body_accel)
+        c = self.config
+        self._params = np.array([c.margin, self.jerk, self.lag, c.recovery_gain, c.recovery_speed])
+        most = per_face * len(kinds) * len(self.obs_names)  # rows of one step, at most
+        self._rows_out, self._bound_out, self._slack_out = (
+            np.empty((most, 4)),
+            np.empty(most),
+            np.empty(most),
+        )
         self._packed = False  # the arrays below follow the shapes' measured boxes
         self._centre = np.zeros((len(kinds), 3))  # each box's centre, its body's frame
         self._half = np.zeros((len(kinds), 3))
         self._local = np.zeros((0, 3))  # every sample point, its body's frame (K, 3)
-        self._shape_of = np.zeros(0, dtype=int)  # the shape of each sample point (K,)
-        self._on_vehicle = 0  # points [0, n) move with Astrobee's body, the rest with the CTB
         self._n_points = np.zeros(len(kinds) + 1, dtype=int)  # points of the first i shapes
 
     def __call__(self, twist: VehicleTwist, data: mujoco.MjData) -> VehicleTwist:
@@ -356,24 +356,10 @@ class BaseSafetyFilter:
         for i, s in enumerate(ready):
             self._centre[i], self._half[i] = s.local_centre, s.half
         local = [s.local_centre + s.unit * s.half for s in ready]  # type: ignore[operator]
-        self._local = np.ascontiguousarray(np.vstack(local).T)
-        self._n_points = np.cumsum([0, *(len(p) for p in local)])
-        self._shape_of = np.repeat(np.arange(len(ready)), [len(p) for p in local])
-        self._on_vehicle = int(self._n_points[min(2, len(ready))])
+        self._local = np.vstack(local)
+        self._scratch = np.empty_like(self._local)
+        self._n_points[: len(ready) + 1] = np.cumsum([0, *(len(p) for p in local)])
         self._packed = True
-
-    def _points(self, data: mujoco.MjData, rot: np.ndarray, n: int) -> np.ndarray:
-        """World positions of the sample points of the first ``n`` shapes, axis first
-        (3, K) [m]."""
-        k, on = int(self._n_points[n]), self._on_vehicle
-        pts = np.empty((3, k))
-        np.matmul(rot, self._local[:, :on], out=pts[:, :on])
-        pts[:, :on] += data.xpos[self.world.astrobee][:, None]
-        if k > on:
-            ctb = self.world.ctb
-            np.matmul(data.xmat[ctb].reshape(3, 3), self._local[:, on:k], out=pts[:, on:])
-            pts[:, on:] += data.xpos[ctb][:, None]
-        return pts
 
     def _constraints(
         self, data: mujoco.MjData, rot: np.ndarray, centre: np.ndarray, req: np.ndarray
@@ -385,95 +371,44 @@ class BaseSafetyFilter:
         axis by more than the margin and the request's closing speed along that axis
         (translation plus the yaw rate times the shape's lever) is one the stack stops
         from within the separation; when every pair is skipped (the conservative bound
-        that decides the identity) no constraint is built. The others are checked at
-        every sample point of the shape, all pairs at once. Arrays are axis first
-        (3, ...), so the reductions over the axes are elementwise.
+        that decides the identity) no row is built. The others are checked at every
+        sample point of the shape, and the ``per_face`` rows of least slack kept
+        (:func:`payload.teleop.filter_kernel.barrier_rows`, one compiled pass).
         """
-        margin = self.config.margin
         n = len(self.shapes)
         self._measure(data, n)
-        w = abs(float(req[3]))
-        # deceleration along each world axis: the body bounds met along its body components
-        nb = np.maximum(np.abs(rot), 1e-12)
-        axis_accel = np.minimum(
-            np.minimum(self._accel0 / nb[:, 0], self._accel1 / nb[:, 1]), self._accel2 / nb[:, 2]
+        bodies = self._bodies[:n]
+        lower = np.empty((n, len(self.obs_names)))
+        count = barrier_rows(
+            data.xmat[bodies].reshape(n, 3, 3),
+            data.xpos[bodies],
+            self._centre[:n],
+            self._half[:n],
+            self._local,
+            self._n_points,
+            self.obs_lo,
+            self.obs_hi,
+            rot,
+            centre,
+            req,
+            self.body_accel,
+            self._params,
+            self.per_face,
+            self._rows_out,
+            self._bound_out,
+            self._slack_out,
+            lower,
+            self._scratch,
         )
-        frames = data.xmat[self._bodies[:n]].reshape(n, 3, 3)
-        s_centre = (data.xpos[self._bodies[:n]] + (frames @ self._centre[:n, :, None])[..., 0]).T
-        ext = (np.abs(frames) @ self._half[:n, :, None])[..., 0].T  # (3, S) world half-extents
-        above = self._obs_lo[:, None] - (s_centre + ext)[:, :, None]  # (3, S, M) > 0: on +
-        below = (s_centre - ext)[:, :, None] - self._obs_hi[:, None]  # > 0: on the - side
-        lever = w * (np.abs(s_centre - centre[:, None]) + ext)[[1, 0, 2]]  # (3, S)
-        lever[2] = 0.0
-        toward = req[:3, None] + lever  # closing speed bound toward + (per shape)
-        away = lever - req[:3, None]
-        closing = np.where(above > below, toward[:, :, None], away[:, :, None])
-        gap = np.maximum(above, below)
-        allowed = stop_speed(gap - margin, axis_accel[:, None, None], self.jerk, self.lag)
-        ok = (gap > margin) & (closing <= allowed)
-        unsafe = ~(ok[0] | ok[1] | ok[2])  # (S, M)
-        lower = np.maximum(np.maximum(gap[0], gap[1]), gap[2])  # bounds the pair's distance
-        rows = b = slack = _EMPTY
-        if unsafe.any():
-            cols = np.flatnonzero(unsafe.any(axis=0))  # obstacles in some pair
-            pts = self._points(data, rot, n)
-            point, col = np.nonzero(unsafe[self._shape_of[: pts.shape[1]]][:, cols])
-            obstacle = cols[col]
-            group = self._shape_of[point] * lower.shape[1] + obstacle
-            normal, lever_z, b, d = self._rows(pts[:, point], obstacle, centre, rot)
-            slack = req[:3] @ normal + req[3] * lever_z - b
-            flat = lower.reshape(-1)
-            flat[group] = np.inf  # the sampled distance replaces the bound
-            np.minimum.at(flat, group, d)
-            keep = self._most_binding(group, slack)
-            rows = np.empty((keep.size, 4))
-            rows[:, :3] = normal[:, keep].T
-            rows[:, 3] = lever_z[keep]
-            b, slack = b[keep], slack[keep]
         si, mi = divmod(int(lower.argmin()), lower.shape[1])
-        return rows, b, slack, float(lower[si, mi]), self.shapes[si].kind, self.obs_names[mi]
-
-    def _most_binding(self, group: np.ndarray, slack: np.ndarray) -> np.ndarray:
-        """Per group (a shape and obstacle pair), the ``per_face`` rows of least slack."""
-        order = np.lexsort((slack, group))
-        g = group[order]
-        first = np.flatnonzero(np.concatenate(([True], g[1:] != g[:-1])))
-        rank = np.arange(order.size) - np.repeat(first, np.diff(np.append(first, order.size)))
-        return order[rank < self.per_face]
-
-    def _rows(
-        self, pts: np.ndarray, obstacle: np.ndarray, centre: np.ndarray, rot: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """The barrier of points (3, P) against their obstacles (P,): the unit normal
-        (3, P), its yaw lever ``n . (e_z x r)`` (P,) [m], the bound ``b`` (P,) [m/s] and
-        the distance (P,) [m]."""
-        c = self.config
-        lo, hi = self._obs_lo[:, obstacle], self._obs_hi[:, obstacle]
-        delta = pts - np.minimum(np.maximum(pts, lo), hi)
-        d = np.sqrt(delta[0] * delta[0] + delta[1] * delta[1] + delta[2] * delta[2])
-        out = d > 1e-12
-        if out.all():
-            n = delta / d
-        else:
-            n = np.zeros_like(delta)
-            n[:, out] = delta[:, out] / d[out]
-            inside = np.flatnonzero(~out)
-            # depth to the box's nearest face, pointing out of it
-            below, above = pts[:, inside] - lo[:, inside], hi[:, inside] - pts[:, inside]
-            depth = np.minimum(below, above)
-            axis = depth.argmin(axis=0)
-            cols = np.arange(inside.size)
-            n[axis, inside] = np.where(below[axis, cols] < above[axis, cols], -1.0, 1.0)
-            d[inside] = -depth[axis, cols]
-        lever = n[1] * (pts[0] - centre[0]) - n[0] * (pts[1] - centre[1])  # n . (e_z x r)
-        nb = np.maximum(np.abs(rot.T @ n), 1e-12)  # body components of each normal
-        accel = np.minimum(
-            np.minimum(self._accel0 / nb[0], self._accel1 / nb[1]), self._accel2 / nb[2]
+        return (
+            self._rows_out[:count],
+            self._bound_out[:count],
+            self._slack_out[:count],
+            float(lower[si, mi]),
+            self.shapes[si].kind,
+            self.obs_names[mi],
         )
-        gap = d - c.margin
-        b = -stop_speed(gap, accel, self.jerk, self.lag)
-        b = np.where(gap < 0.0, np.minimum(-c.recovery_gain * gap, c.recovery_speed), b)
-        return n, lever, b, d
 
     def _solve(self, req: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
         """The least (weighted) change of ``req`` meeting ``a x >= b``, then capped to the

@@ -1,0 +1,219 @@
+"""The base safety filter's geometry, compiled: every (shape, obstacle) pair's bound, and the
+barrier rows of the pairs that could bind, in one pass.
+
+:class:`~payload.teleop.base_filter.BaseSafetyFilter` calls :func:`barrier_rows` once per
+control step. It is the same arithmetic as the filter's description (the module docstring
+of :mod:`payload.teleop.base_filter`), written as loops and compiled by Numba (LLVM, IEEE
+arithmetic: no fast-math), because in NumPy the step is a few hundred small array calls
+whose fixed cost alone exceeds the filter's 200 us budget. The compiled function is cached
+on disk next to this module (``cache=True``), so only the first process compiles it.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+
+def _stop_speed(distance: float, accel: float, jerk: float, lag: float) -> float:
+    """The largest closing speed [m/s] a jerk-limited brake stops from within ``distance``
+    [m] with deceleration ``accel`` [m/s^2] (see
+    :func:`payload.teleop.base_filter.stop_speed`)."""
+    b = lag + 2.0 * accel / jerk
+    d = max(distance, 0.0)
+    u = accel * (math.sqrt(b * b + 2.0 * d / accel) - b)
+    return max(u - accel * lag - accel * accel / (2.0 * jerk), 0.0)
+
+
+stop_speed_one = numba.njit(cache=True)(_stop_speed)
+""":func:`_stop_speed` compiled for scalars (called by :func:`barrier_rows`)."""
+stop_speed_many = numba.vectorize(["float64(float64, float64, float64, float64)"], cache=True)(
+    _stop_speed
+)
+"""The same formula as a NumPy ufunc (arrays broadcast)."""
+
+
+@numba.njit(cache=True)
+def _barrier(
+    p: np.ndarray,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    rot: np.ndarray,
+    centre: np.ndarray,
+    body_accel: np.ndarray,
+    params: np.ndarray,
+) -> tuple[float, float, float, float, float, float]:
+    """One point's barrier against one box: (n_x, n_y, n_z, yaw lever ``n . (e_z x r)``
+    [m], bound ``b`` [m/s], distance [m])."""
+    margin, jerk, lag, gain, recovery = params[0], params[1], params[2], params[3], params[4]
+    n0, n1, n2, d = _normal(p, lo, hi)
+    nb0 = max(abs(rot[0, 0] * n0 + rot[1, 0] * n1 + rot[2, 0] * n2), 1e-12)
+    nb1 = max(abs(rot[0, 1] * n0 + rot[1, 1] * n1 + rot[2, 1] * n2), 1e-12)
+    nb2 = max(abs(rot[0, 2] * n0 + rot[1, 2] * n1 + rot[2, 2] * n2), 1e-12)
+    accel = min(min(body_accel[0] / nb0, body_accel[1] / nb1), body_accel[2] / nb2)
+    gap = d - margin
+    b = -stop_speed_one(gap, accel, jerk, lag)
+    if gap < 0.0:  # inside the margin: move out at a small speed
+        b = min(-gain * gap, recovery)
+    arm = n1 * (p[0] - centre[0]) - n0 * (p[1] - centre[1])
+    return n0, n1, n2, arm, b, d
+
+
+@numba.njit(cache=True)
+def barrier_rows(
+    frames: np.ndarray,
+    origins: np.ndarray,
+    box_centre: np.ndarray,
+    box_half: np.ndarray,
+    local: np.ndarray,
+    first_point: np.ndarray,
+    obs_lo: np.ndarray,
+    obs_hi: np.ndarray,
+    rot: np.ndarray,
+    centre: np.ndarray,
+    req: np.ndarray,
+    body_accel: np.ndarray,
+    params: np.ndarray,
+    per_face: int,
+    rows: np.ndarray,
+    bound: np.ndarray,
+    slack: np.ndarray,
+    lower: np.ndarray,
+    pts: np.ndarray,
+) -> int:
+    """The barrier rows ``rows x >= bound`` of the pairs that could bind; returns how many.
+
+    Args:
+        frames: Rotation of each shape's body, (S, 3, 3).
+        origins: Position of each shape's body, (S, 3) [m].
+        box_centre: Each shape's box centre in its body's frame, (S, 3) [m].
+        box_half: Each shape's box half-extents, (S, 3) [m].
+        local: Every shape's sample points in its body's frame, (K, 3) [m].
+        first_point: Index of each shape's first point in ``local``, and K, (S + 1,).
+        obs_lo: Lower corners of the obstacle boxes, (M, 3) [m].
+        obs_hi: Upper corners, (M, 3) [m].
+        rot: Astrobee's rotation (3, 3); ``centre`` its position (3,) [m].
+        req: The request (v_x, v_y, v_z [m/s], yaw rate [rad/s]), world frame, (4,).
+        body_accel: Deceleration per body axis (3,) [m/s^2].
+        params: (margin [m], jerk [m/s^3], lag [s], recovery gain [1/s], recovery
+            speed [m/s]).
+        per_face: Rows kept per pair, those of least slack at the request.
+        rows: Out: the rows (R, 4), pairs in shape-major order, least slack first.
+        bound: Out: their bounds (R,) [m/s].
+        slack: Out: their slack at the request (R,) [m/s].
+        lower: Out: a lower bound of each pair's distance (S, M) [m]; the least sampled
+            distance for the pairs checked point by point.
+        pts: Scratch: world positions of the sample points (K, 3) [m].
+    """
+    margin, jerk, lag = params[0], params[1], params[2]
+    n_shapes, n_obs = frames.shape[0], obs_lo.shape[0]
+    w = abs(req[3])
+    axis_accel = np.empty(3)
+    for i in range(3):  # deceleration along each world axis (its body components)
+        best = np.inf
+        for j in range(3):
+            best = min(best, body_accel[j] / max(abs(rot[i, j]), 1e-12))
+        axis_accel[i] = best
+    s_centre = np.empty(3)
+    ext = np.empty(3)
+    toward = np.empty(3)
+    away = np.empty(3)
+    sel = np.empty(per_face, dtype=np.int64)
+    sel_slack = np.empty(per_face)
+    count = 0
+    for s in range(n_shapes):
+        for i in range(3):
+            c = origins[s, i]
+            e = 0.0
+            for j in range(3):
+                c += frames[s, i, j] * box_centre[s, j]
+                e += abs(frames[s, i, j]) * box_half[s, j]
+            s_centre[i], ext[i] = c, e
+        lever = np.empty(3)
+        for i in range(3):
+            lever[i] = w * (abs(s_centre[i] - centre[i]) + ext[i])
+        lev = (lever[1], lever[0], 0.0)
+        for i in range(3):
+            toward[i] = req[i] + lev[i]
+            away[i] = lev[i] - req[i]
+        placed = False
+        for m in range(n_obs):
+            safe = False
+            gap_max = -np.inf
+            for i in range(3):
+                above = obs_lo[m, i] - (s_centre[i] + ext[i])
+                below = (s_centre[i] - ext[i]) - obs_hi[m, i]
+                gap = max(above, below)
+                gap_max = max(gap_max, gap)
+                if gap > margin:
+                    closing = toward[i] if above > below else away[i]
+                    if closing <= stop_speed_one(gap - margin, axis_accel[i], jerk, lag):
+                        safe = True
+            lower[s, m] = gap_max
+            if safe:
+                continue
+            if not placed:  # this shape's sample points in the world, once per step
+                frame = frames[s]
+                for k in range(first_point[s], first_point[s + 1]):
+                    for i in range(3):
+                        pts[k, i] = (
+                            origins[s, i]
+                            + frame[i, 0] * local[k, 0]
+                            + frame[i, 1] * local[k, 1]
+                            + frame[i, 2] * local[k, 2]
+                        )
+                placed = True
+            kept = 0
+            least = np.inf
+            for k in range(first_point[s], first_point[s + 1]):
+                n0, n1, n2, arm, b, d = _barrier(
+                    pts[k], obs_lo[m], obs_hi[m], rot, centre, body_accel, params
+                )
+                least = min(least, d)
+                sk = req[0] * n0 + req[1] * n1 + req[2] * n2 + req[3] * arm - b
+                # keep the per_face least slack (ties: the earlier point first)
+                pos = kept
+                while pos > 0 and sel_slack[pos - 1] > sk:
+                    pos -= 1
+                if pos < per_face:
+                    for q in range(min(kept, per_face - 1), pos, -1):
+                        sel[q], sel_slack[q] = sel[q - 1], sel_slack[q - 1]
+                    sel[pos], sel_slack[pos] = k, sk
+                    kept = min(kept + 1, per_face)
+            lower[s, m] = least
+            for q in range(kept):
+                n0, n1, n2, arm, b, d = _barrier(
+                    pts[sel[q]], obs_lo[m], obs_hi[m], rot, centre, body_accel, params
+                )
+                rows[count, 0], rows[count, 1], rows[count, 2], rows[count, 3] = n0, n1, n2, arm
+                bound[count] = b
+                slack[count] = sel_slack[q]
+                count += 1
+    return count
+
+
+@numba.njit(cache=True)
+def _normal(p: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tuple[float, float, float, float]:
+    """Unit normal (out of the box ``lo``, ``hi``) and signed distance [m] of point ``p``:
+    from the box's closest point, or, inside it, to its nearest face (negative)."""
+    d0 = p[0] - min(max(p[0], lo[0]), hi[0])
+    d1 = p[1] - min(max(p[1], lo[1]), hi[1])
+    d2 = p[2] - min(max(p[2], lo[2]), hi[2])
+    d = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+    if d > 1e-12:
+        return d0 / d, d1 / d, d2 / d, d
+    best, axis, sign = np.inf, 0, 1.0
+    for i in range(3):
+        below, above = p[i] - lo[i], hi[i] - p[i]
+        depth = min(below, above)
+        if depth < best:
+            best, axis = depth, i
+            sign = -1.0 if below < above else 1.0
+    n = [0.0, 0.0, 0.0]
+    n[axis] = sign
+    return n[0], n[1], n[2], -best
+
+
+__all__ = ["barrier_rows", "stop_speed_many", "stop_speed_one"]
