@@ -296,9 +296,10 @@ class BaseSafetyFilter:
             self.shapes = self.all_shapes if held else self.all_shapes[:2]
         rot = data.xmat[self.world.astrobee].reshape(3, 3)
         centre = data.xpos[self.world.astrobee]
-        v_req = rot @ twist.linear
         ang = rot @ twist.angular
-        req = np.array([v_req[0], v_req[1], v_req[2], ang[2]])
+        req = np.empty(4)  # world velocity and yaw rate
+        np.matmul(rot, twist.linear, out=req[:3])
+        req[3] = ang[2]
         rows, b, slack, clearance, shape, face = self._constraints(data, rot, centre, req)
         violated = bool(slack.size and slack.min() < 0.0)
         if not violated and not self.engaged:
@@ -315,19 +316,20 @@ class BaseSafetyFilter:
         out = np.empty(4)
         out[:3] = self.linear.step(target[:3], CONTROL_DT)
         out[3] = self.yaw.step(target[3:], CONTROL_DT)[0]
-        self.engaged = violated or not np.array_equal(out, req)
+        self.engaged = violated or not bool((out == req).all())
         if not self.engaged:
             self._follow(req)
             out = req
         self._last = out
-        ang_out = np.array([ang[0], ang[1], out[3]])
-        filtered = VehicleTwist(rot.T @ out[:3], rot.T @ ang_out, twist.stamp)
+        ang[2] = out[3]
+        filtered = VehicleTwist(rot.T @ out[:3], rot.T @ ang, twist.stamp)
+        change = out[:3] - req[:3]
         self.status = FilterStatus(
             True,
             clearance,
             shape,
             face,
-            float(np.linalg.norm(out[:3] - req[:3])),
+            math.sqrt(change @ change),
             float(out[3] - req[3]),
             used,
             (time.perf_counter() - start) * 1e6,
@@ -422,8 +424,7 @@ class BaseSafetyFilter:
             x, _, flag, _ = daqp.solve(h, f, a, upper, np.minimum(b, 0.0))
         if flag != 1:
             return np.zeros(4)
-        x = np.asarray(x, float)
-        speed, rate = float(np.linalg.norm(x[:3])), abs(float(x[3]))
+        speed, rate = math.sqrt(x[:3] @ x[:3]), abs(float(x[3]))
         scale = min(1.0, self.base.max_speed / max(speed, 1e-12))
         scale = min(scale, self.base.max_yaw_rate / max(rate, 1e-12))
         return x * scale  # scaling toward rest keeps every b <= 0 row met

@@ -28,11 +28,9 @@ def _stop_speed(distance: float, accel: float, jerk: float, lag: float) -> float
 
 
 stop_speed_one = numba.njit(cache=True)(_stop_speed)
-""":func:`_stop_speed` compiled for scalars (called by :func:`barrier_rows`)."""
-stop_speed_many = numba.vectorize(["float64(float64, float64, float64, float64)"], cache=True)(
-    _stop_speed
-)
-"""The same formula as a NumPy ufunc (arrays broadcast)."""
+""":func:`_stop_speed` compiled (called by :func:`barrier_rows`)."""
+stop_speed_many = np.vectorize(_stop_speed, otypes=[float])
+""":func:`_stop_speed` over arrays (broadcast), uncompiled: for checks and figures."""
 
 
 @numba.njit(cache=True)
