@@ -215,10 +215,10 @@ class FilterStatus(NamedTuple):
 class BaseSafetyFilter:
     """The base safety filter (see the module docstring).
 
-    Every step's work is vectorised over all shapes, sample points and obstacle boxes at
-    once; what is constant for the filter's life (the shapes' local sample points, the
-    QP's cost matrix, the braking constants) is computed once, here or when a shape's box
-    is measured again.
+    Each step's geometry is one compiled pass over every shape, sample point and obstacle
+    box (:func:`payload.teleop.filter_kernel.barrier_rows`); what is constant for the
+    filter's life (the shapes' local sample points, the QP's cost matrix and bounds, the
+    braking constants) is computed once, here or when a shape's box is measured again.
 
     Args:
         world: The simulator's :class:`~payload.sim.world.World`.

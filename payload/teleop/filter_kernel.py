@@ -27,26 +27,28 @@ def _stop_speed(distance: float, accel: float, jerk: float, lag: float) -> float
     return max(u - accel * lag - accel * accel / (2.0 * jerk), 0.0)
 
 
-stop_speed_one = numba.njit(cache=True)(_stop_speed)
+stop_speed_one = numba.njit(cache=True, error_model="numpy")(_stop_speed)
 """:func:`_stop_speed` compiled (called by :func:`barrier_rows`)."""
 stop_speed_many = np.vectorize(_stop_speed, otypes=[float])
 """:func:`_stop_speed` over arrays (broadcast), uncompiled: for checks and figures."""
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")
 def _barrier(
-    p: np.ndarray,
-    lo: np.ndarray,
-    hi: np.ndarray,
+    pts: np.ndarray,
+    k: int,
+    obs_lo: np.ndarray,
+    obs_hi: np.ndarray,
+    m: int,
     rot: np.ndarray,
     centre: np.ndarray,
     body_accel: np.ndarray,
     params: np.ndarray,
 ) -> tuple[float, float, float, float, float, float]:
-    """One point's barrier against one box: (n_x, n_y, n_z, yaw lever ``n . (e_z x r)``
-    [m], bound ``b`` [m/s], distance [m])."""
+    """Point ``pts[k]``'s barrier against box ``m``: (n_x, n_y, n_z, yaw lever
+    ``n . (e_z x r)`` [m], bound ``b`` [m/s], distance [m])."""
     margin, jerk, lag, gain, recovery = params[0], params[1], params[2], params[3], params[4]
-    n0, n1, n2, d = _normal(p, lo, hi)
+    n0, n1, n2, d = _normal(pts, k, obs_lo, obs_hi, m)
     nb0 = max(abs(rot[0, 0] * n0 + rot[1, 0] * n1 + rot[2, 0] * n2), 1e-12)
     nb1 = max(abs(rot[0, 1] * n0 + rot[1, 1] * n1 + rot[2, 1] * n2), 1e-12)
     nb2 = max(abs(rot[0, 2] * n0 + rot[1, 2] * n1 + rot[2, 2] * n2), 1e-12)
@@ -55,11 +57,11 @@ def _barrier(
     b = -stop_speed_one(gap, accel, jerk, lag)
     if gap < 0.0:  # inside the margin: move out at a small speed
         b = min(-gain * gap, recovery)
-    arm = n1 * (p[0] - centre[0]) - n0 * (p[1] - centre[1])
+    arm = n1 * (pts[k, 0] - centre[0]) - n0 * (pts[k, 1] - centre[1])
     return n0, n1, n2, arm, b, d
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")
 def barrier_rows(
     frames: np.ndarray,
     origins: np.ndarray,
@@ -167,7 +169,7 @@ def barrier_rows(
             least = np.inf
             for k in range(first_point[s], first_point[s + 1]):
                 n0, n1, n2, arm, b, d = _barrier(
-                    pts[k], obs_lo[m], obs_hi[m], rot, centre, body_accel, params
+                    pts, k, obs_lo, obs_hi, m, rot, centre, body_accel, params
                 )
                 least = min(least, d)
                 sk = req[0] * n0 + req[1] * n1 + req[2] * n2 + req[3] * arm - b
@@ -183,7 +185,7 @@ def barrier_rows(
             lower[s, m] = least
             for q in range(kept):
                 n0, n1, n2, arm, b, d = _barrier(
-                    pts[sel[q]], obs_lo[m], obs_hi[m], rot, centre, body_accel, params
+                    pts, sel[q], obs_lo, obs_hi, m, rot, centre, body_accel, params
                 )
                 rows[count, 0], rows[count, 1], rows[count, 2], rows[count, 3] = n0, n1, n2, arm
                 bound[count] = b
@@ -192,26 +194,32 @@ def barrier_rows(
     return count
 
 
-@numba.njit(cache=True)
-def _normal(p: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tuple[float, float, float, float]:
-    """Unit normal (out of the box ``lo``, ``hi``) and signed distance [m] of point ``p``:
-    from the box's closest point, or, inside it, to its nearest face (negative)."""
-    d0 = p[0] - min(max(p[0], lo[0]), hi[0])
-    d1 = p[1] - min(max(p[1], lo[1]), hi[1])
-    d2 = p[2] - min(max(p[2], lo[2]), hi[2])
+@numba.njit(cache=True, error_model="numpy")
+def _normal(
+    pts: np.ndarray, k: int, obs_lo: np.ndarray, obs_hi: np.ndarray, m: int
+) -> tuple[float, float, float, float]:
+    """Unit normal (out of box ``m``) and signed distance [m] of point ``pts[k]``: from
+    the box's closest point, or, inside it, to its nearest face (negative)."""
+    p0, p1, p2 = pts[k, 0], pts[k, 1], pts[k, 2]
+    d0 = p0 - min(max(p0, obs_lo[m, 0]), obs_hi[m, 0])
+    d1 = p1 - min(max(p1, obs_lo[m, 1]), obs_hi[m, 1])
+    d2 = p2 - min(max(p2, obs_lo[m, 2]), obs_hi[m, 2])
     d = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
     if d > 1e-12:
         return d0 / d, d1 / d, d2 / d, d
     best, axis, sign = np.inf, 0, 1.0
     for i in range(3):
-        below, above = p[i] - lo[i], hi[i] - p[i]
+        below, above = pts[k, i] - obs_lo[m, i], obs_hi[m, i] - pts[k, i]
         depth = min(below, above)
         if depth < best:
             best, axis = depth, i
             sign = -1.0 if below < above else 1.0
-    n = [0.0, 0.0, 0.0]
-    n[axis] = sign
-    return n[0], n[1], n[2], -best
+    return (
+        sign if axis == 0 else 0.0,
+        sign if axis == 1 else 0.0,
+        sign if axis == 2 else 0.0,
+        -best,
+    )
 
 
 __all__ = ["barrier_rows", "stop_speed_many", "stop_speed_one"]
