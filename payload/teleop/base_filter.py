@@ -267,24 +267,24 @@ class BaseSafetyFilter:
         self.engaged = False
         self._last: np.ndarray | None = None
         self.status = FilterStatus(False, math.inf, "", "", 0.0, 0.0, 0, 0.0)
-        # constant per filter: the QP's cost, the shapes' bodies, the lever mask
-        self._hessian = np.diag(self.weights)
-        self._upper = np.full(per_face * len(kinds) * len(self.obs_names), _INF)
-        self._scratch = np.zeros((0, 3))  # the sample points in the world (K, 3)
-        self._bodies = np.array([s.body for s in self.all_shapes], dtype=int)
+        # constant per filter: the QP's cost and bounds, the shapes' bodies, the obstacles,
+        # the braking constants, the output arrays of the compiled pass
         c = self.config
-        self._params = np.array([c.margin, self.jerk, self.lag, c.recovery_gain, c.recovery_speed])
         most = per_face * len(kinds) * len(self.obs_names)  # rows of one step, at most
-        self._rows_out, self._bound_out, self._slack_out = (
-            np.empty((most, 4)),
-            np.empty(most),
-            np.empty(most),
-        )
+        self._hessian = np.diag(self.weights)
+        self._upper = np.full(most, _INF)
+        bodies = np.array([s.body for s in self.all_shapes], dtype=np.int64)
+        self._bodies = [bodies[:n] for n in range(len(kinds) + 1)]  # of the first n shapes
+        self._obs = np.stack([self.obs_lo, self.obs_hi])  # (2, M, 3)
+        braking = [c.margin, self.jerk, self.lag, c.recovery_gain, c.recovery_speed]
+        self._params = np.array([*braking, *self.body_accel])
+        self._out = np.empty((most, 6))  # rows, bound, slack
+        self._lower = [np.empty((n, len(self.obs_names))) for n in range(len(kinds) + 1)]
         self._packed = False  # the arrays below follow the shapes' measured boxes
-        self._centre = np.zeros((len(kinds), 3))  # each box's centre, its body's frame
-        self._half = np.zeros((len(kinds), 3))
+        self._boxes = np.zeros((2, len(kinds), 3))  # each box's centre (body frame), half
         self._local = np.zeros((0, 3))  # every sample point, its body's frame (K, 3)
-        self._n_points = np.zeros(len(kinds) + 1, dtype=int)  # points of the first i shapes
+        self._scratch = np.zeros((0, 3))  # the sample points in the world (K, 3)
+        self._n_points = np.zeros(len(kinds) + 1, dtype=np.int64)  # of the first i shapes
 
     def __call__(self, twist: VehicleTwist, data: mujoco.MjData) -> VehicleTwist:
         """The filtered body twist for the request ``twist`` at the state in ``data``."""
@@ -356,7 +356,7 @@ class BaseSafetyFilter:
             return
         ready = [s for s in self.all_shapes if s.unit is not None]
         for i, s in enumerate(ready):
-            self._centre[i], self._half[i] = s.local_centre, s.half
+            self._boxes[0, i], self._boxes[1, i] = s.local_centre, s.half
         local = [s.local_centre + s.unit * s.half for s in ready]  # type: ignore[operator]
         self._local = np.vstack(local)
         self._scratch = np.empty_like(self._local)
@@ -379,34 +379,29 @@ class BaseSafetyFilter:
         """
         n = len(self.shapes)
         self._measure(data, n)
-        bodies = self._bodies[:n]
-        lower = np.empty((n, len(self.obs_names)))
+        lower = self._lower[n]
         count = barrier_rows(
-            data.xmat[bodies].reshape(n, 3, 3),
-            data.xpos[bodies],
-            self._centre[:n],
-            self._half[:n],
+            data.xmat,
+            data.xpos,
+            self.world.astrobee,
+            self._bodies[n],
+            self._boxes,
             self._local,
             self._n_points,
-            self.obs_lo,
-            self.obs_hi,
-            rot,
-            centre,
+            self._obs,
             req,
-            self.body_accel,
             self._params,
             self.per_face,
-            self._rows_out,
-            self._bound_out,
-            self._slack_out,
+            self._out,
             lower,
             self._scratch,
         )
         si, mi = divmod(int(lower.argmin()), lower.shape[1])
+        out = self._out[:count]
         return (
-            self._rows_out[:count],
-            self._bound_out[:count],
-            self._slack_out[:count],
+            np.ascontiguousarray(out[:, :4]),
+            out[:, 4],
+            out[:, 5],
             float(lower[si, mi]),
             self.shapes[si].kind,
             self.obs_names[mi],

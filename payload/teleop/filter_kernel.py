@@ -63,52 +63,49 @@ def _barrier(
 
 @numba.njit(cache=True, error_model="numpy")
 def barrier_rows(
-    frames: np.ndarray,
-    origins: np.ndarray,
-    box_centre: np.ndarray,
-    box_half: np.ndarray,
+    xmat: np.ndarray,
+    xpos: np.ndarray,
+    vehicle: int,
+    bodies: np.ndarray,
+    boxes: np.ndarray,
     local: np.ndarray,
     first_point: np.ndarray,
-    obs_lo: np.ndarray,
-    obs_hi: np.ndarray,
-    rot: np.ndarray,
-    centre: np.ndarray,
+    obs: np.ndarray,
     req: np.ndarray,
-    body_accel: np.ndarray,
     params: np.ndarray,
     per_face: int,
-    rows: np.ndarray,
-    bound: np.ndarray,
-    slack: np.ndarray,
+    out: np.ndarray,
     lower: np.ndarray,
     pts: np.ndarray,
 ) -> int:
-    """The barrier rows ``rows x >= bound`` of the pairs that could bind; returns how many.
+    """The barrier rows ``A x >= b`` of the pairs that could bind; returns how many.
 
     Args:
-        frames: Rotation of each shape's body, (S, 3, 3).
-        origins: Position of each shape's body, (S, 3) [m].
-        box_centre: Each shape's box centre in its body's frame, (S, 3) [m].
-        box_half: Each shape's box half-extents, (S, 3) [m].
+        xmat: Every body's rotation, MuJoCo's ``data.xmat`` (bodies, 9).
+        xpos: Every body's position, ``data.xpos`` (bodies, 3) [m].
+        vehicle: Astrobee's body.
+        bodies: The body of each shape (S,).
+        boxes: Each shape's box centre in its body's frame and its half-extents,
+            (2, S, 3) [m].
         local: Every shape's sample points in its body's frame, (K, 3) [m].
         first_point: Index of each shape's first point in ``local``, and K, (S + 1,).
-        obs_lo: Lower corners of the obstacle boxes, (M, 3) [m].
-        obs_hi: Upper corners, (M, 3) [m].
-        rot: Astrobee's rotation (3, 3); ``centre`` its position (3,) [m].
+        obs: Lower and upper corners of the obstacle boxes, (2, M, 3) [m].
         req: The request (v_x, v_y, v_z [m/s], yaw rate [rad/s]), world frame, (4,).
-        body_accel: Deceleration per body axis (3,) [m/s^2].
         params: (margin [m], jerk [m/s^3], lag [s], recovery gain [1/s], recovery
-            speed [m/s]).
+            speed [m/s], deceleration per body axis (3) [m/s^2]).
         per_face: Rows kept per pair, those of least slack at the request.
-        rows: Out: the rows (R, 4), pairs in shape-major order, least slack first.
-        bound: Out: their bounds (R,) [m/s].
-        slack: Out: their slack at the request (R,) [m/s].
+        out: Out: the rows (R, 6): ``A`` (4 columns), ``b`` [m/s] and the slack at the
+            request [m/s]; pairs in shape-major order, least slack first.
         lower: Out: a lower bound of each pair's distance (S, M) [m]; the least sampled
             distance for the pairs checked point by point.
         pts: Scratch: world positions of the sample points (K, 3) [m].
     """
     margin, jerk, lag = params[0], params[1], params[2]
-    n_shapes, n_obs = frames.shape[0], obs_lo.shape[0]
+    body_accel = params[5:8]
+    rot = xmat[vehicle].reshape((3, 3))
+    centre = xpos[vehicle]
+    obs_lo, obs_hi = obs[0], obs[1]
+    n_shapes, n_obs = bodies.shape[0], obs_lo.shape[0]
     w = abs(req[3])
     axis_accel = np.empty(3)
     for i in range(3):  # deceleration along each world axis (its body components)
@@ -124,12 +121,14 @@ def barrier_rows(
     sel_slack = np.empty(per_face)
     count = 0
     for s in range(n_shapes):
+        frame = xmat[bodies[s]].reshape((3, 3))
+        origin = xpos[bodies[s]]
         for i in range(3):
-            c = origins[s, i]
+            c = origin[i]
             e = 0.0
             for j in range(3):
-                c += frames[s, i, j] * box_centre[s, j]
-                e += abs(frames[s, i, j]) * box_half[s, j]
+                c += frame[i, j] * boxes[0, s, j]
+                e += abs(frame[i, j]) * boxes[1, s, j]
             s_centre[i], ext[i] = c, e
         lever = np.empty(3)
         for i in range(3):
@@ -155,11 +154,10 @@ def barrier_rows(
             if safe:
                 continue
             if not placed:  # this shape's sample points in the world, once per step
-                frame = frames[s]
                 for k in range(first_point[s], first_point[s + 1]):
                     for i in range(3):
                         pts[k, i] = (
-                            origins[s, i]
+                            origin[i]
                             + frame[i, 0] * local[k, 0]
                             + frame[i, 1] * local[k, 1]
                             + frame[i, 2] * local[k, 2]
@@ -187,9 +185,9 @@ def barrier_rows(
                 n0, n1, n2, arm, b, d = _barrier(
                     pts, sel[q], obs_lo, obs_hi, m, rot, centre, body_accel, params
                 )
-                rows[count, 0], rows[count, 1], rows[count, 2], rows[count, 3] = n0, n1, n2, arm
-                bound[count] = b
-                slack[count] = sel_slack[q]
+                out[count, 0], out[count, 1], out[count, 2], out[count, 3] = n0, n1, n2, arm
+                out[count, 4] = b
+                out[count, 5] = sel_slack[q]
                 count += 1
     return count
 
