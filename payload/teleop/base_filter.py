@@ -42,7 +42,7 @@ from payload.schema import CONTROL_DT, VehicleTwist
 from payload.sim.contact import ContactMonitor
 from payload.sim.zones import StationZones, station_zones
 from payload.teleop.channels import BaseConfig, JerkLimiter
-from payload.teleop.filter_kernel import barrier_rows, stop_speed_many
+from payload.teleop.filter_kernel import barrier_rows, enclosing_box, stop_speed_many
 
 _INF = 1e30
 
@@ -146,7 +146,7 @@ class _Shape:
         signs = np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1], indexing="ij")).reshape(3, -1).T
         aabb = m.geom_aabb[self.geoms]  # (G, 6): centre, half-extent in the geom frame
         self.corners = (aabb[:, None, :3] + signs[None] * aabb[:, None, 3:]).reshape(-1, 3)
-        self.owner = np.repeat(np.arange(len(self.geoms)), 8)
+        self.corner_geom = np.repeat(self.geoms, 8)  # the geom of each corner
         self.spacing = spacing
         self.unit: np.ndarray | None = None
         self.refresh_steps = 10 if kind == "payload" else 0
@@ -156,12 +156,14 @@ class _Shape:
 
     def refresh(self, data: mujoco.MjData) -> None:
         """Measure the enclosing box in the reference body's frame from the geoms' poses."""
-        pos = data.geom_xpos[self.geoms][self.owner]
-        rot = data.geom_xmat[self.geoms].reshape(-1, 3, 3)[self.owner]
-        world_pts = pos + np.einsum("nij,nj->ni", rot, self.corners)
-        frame = data.xmat[self.body].reshape(3, 3)
-        local = (world_pts - data.xpos[self.body]) @ frame
-        lo, hi = local.min(axis=0), local.max(axis=0)
+        lo, hi = enclosing_box(
+            data.geom_xpos,
+            data.geom_xmat,
+            self.corner_geom,
+            self.corners,
+            data.xpos[self.body],
+            data.xmat[self.body].reshape(3, 3),
+        )
         self.local_centre = (lo + hi) / 2.0
         self.half = (hi - lo) / 2.0
         if self.unit is None:  # the sampling grid is set by the first box
@@ -272,6 +274,7 @@ class BaseSafetyFilter:
         c = self.config
         most = per_face * len(kinds) * len(self.obs_names)  # rows of one step, at most
         self._hessian = np.diag(self.weights)
+        self._minus_weights = -self.weights
         self._upper = np.full(most, _INF)
         bodies = np.array([s.body for s in self.all_shapes], dtype=np.int64)
         self._bodies = [bodies[:n] for n in range(len(kinds) + 1)]  # of the first n shapes
@@ -285,6 +288,30 @@ class BaseSafetyFilter:
         self._local = np.zeros((0, 3))  # every sample point, its body's frame (K, 3)
         self._scratch = np.zeros((0, 3))  # the sample points in the world (K, 3)
         self._n_points = np.zeros(len(kinds) + 1, dtype=np.int64)  # of the first i shapes
+        self._warm_up()
+
+    def _warm_up(self) -> None:
+        """Load the compiled functions now (from Numba's disk cache, or compile them), with
+        empty inputs of the step's types, so that the first control step does not wait."""
+        empty, none = np.zeros((0, 3)), np.zeros(0, dtype=np.int64)
+        rot = np.eye(3)
+        enclosing_box(empty, np.zeros((0, 9)), none, empty, np.zeros(3), rot)
+        barrier_rows(
+            rot.reshape(1, 9),
+            np.zeros((1, 3)),
+            0,
+            none,
+            np.zeros((2, 0, 3)),
+            empty,
+            self._n_points[:1],
+            self._obs,
+            np.zeros(4),
+            self._params,
+            self.per_face,
+            self._out,
+            self._lower[0],
+            empty,
+        )
 
     def __call__(self, twist: VehicleTwist, data: mujoco.MjData) -> VehicleTwist:
         """The filtered body twist for the request ``twist`` at the state in ``data``."""
@@ -355,6 +382,13 @@ class BaseSafetyFilter:
         if not changed:
             return
         ready = [s for s in self.all_shapes if s.unit is not None]
+        if self._packed and len(self._local) == self._n_points[len(ready)]:
+            # the same sample points, measured again: update each shape's in place
+            for i, s in enumerate(ready):
+                a, b = self._n_points[i], self._n_points[i + 1]
+                self._local[a:b] = s.local_centre + s.unit * s.half  # type: ignore[operator]
+                self._boxes[0, i], self._boxes[1, i] = s.local_centre, s.half
+            return
         for i, s in enumerate(ready):
             self._boxes[0, i], self._boxes[1, i] = s.local_centre, s.half
         local = [s.local_centre + s.unit * s.half for s in ready]  # type: ignore[operator]
@@ -411,7 +445,7 @@ class BaseSafetyFilter:
         """The least (weighted) change of ``req`` meeting ``a x >= b``, then capped to the
         channel's speed and yaw rate; rest if even holding every distance is infeasible."""
         h = self._hessian
-        f = -self.weights * req
+        f = self._minus_weights * req
         a = np.ascontiguousarray(a)
         upper = self._upper[: b.size]
         x, _, flag, _ = daqp.solve(h, f, a, upper, b.copy())

@@ -193,6 +193,44 @@ def barrier_rows(
 
 
 @numba.njit(cache=True, error_model="numpy")
+def enclosing_box(
+    geom_xpos: np.ndarray,
+    geom_xmat: np.ndarray,
+    corner_geom: np.ndarray,
+    corners: np.ndarray,
+    origin: np.ndarray,
+    frame: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The box enclosing geom corners, in a body's frame: (lo (3,), hi (3,)) [m].
+
+    Args:
+        geom_xpos: Every geom's position, MuJoCo's ``data.geom_xpos`` (geoms, 3) [m].
+        geom_xmat: Every geom's rotation, ``data.geom_xmat`` (geoms, 9).
+        corner_geom: The geom of each corner (N,).
+        corners: The corners in their geom's frame (N, 3) [m].
+        origin: The body's position (3,) [m]; ``frame`` its rotation (3, 3).
+    """
+    lo = np.full(3, np.inf)
+    hi = np.full(3, -np.inf)
+    for k in range(corner_geom.shape[0]):
+        g = corner_geom[k]
+        rel = np.empty(3)
+        for i in range(3):  # the corner in the world, relative to the body
+            rel[i] = (
+                geom_xpos[g, i]
+                + geom_xmat[g, 3 * i] * corners[k, 0]
+                + geom_xmat[g, 3 * i + 1] * corners[k, 1]
+                + geom_xmat[g, 3 * i + 2] * corners[k, 2]
+                - origin[i]
+            )
+        for j in range(3):  # in the body's frame
+            v = frame[0, j] * rel[0] + frame[1, j] * rel[1] + frame[2, j] * rel[2]
+            lo[j] = min(lo[j], v)
+            hi[j] = max(hi[j], v)
+    return lo, hi
+
+
+@numba.njit(cache=True, error_model="numpy")
 def _normal(
     pts: np.ndarray, k: int, obs_lo: np.ndarray, obs_hi: np.ndarray, m: int
 ) -> tuple[float, float, float, float]:
@@ -220,4 +258,4 @@ def _normal(
     )
 
 
-__all__ = ["barrier_rows", "stop_speed_many", "stop_speed_one"]
+__all__ = ["barrier_rows", "enclosing_box", "stop_speed_many", "stop_speed_one"]
