@@ -33,7 +33,7 @@ stop_speed_many = np.vectorize(_stop_speed, otypes=[float])
 """:func:`_stop_speed` over arrays (broadcast), uncompiled: for checks and figures."""
 
 
-@numba.njit(cache=True, error_model="numpy")
+@numba.njit(cache=True, error_model="numpy", inline="always")
 def _barrier(
     pts: np.ndarray,
     k: int,
@@ -214,23 +214,35 @@ def enclosing_box(
     hi = np.full(3, -np.inf)
     for k in range(corner_geom.shape[0]):
         g = corner_geom[k]
-        rel = np.empty(3)
-        for i in range(3):  # the corner in the world, relative to the body
-            rel[i] = (
-                geom_xpos[g, i]
-                + geom_xmat[g, 3 * i] * corners[k, 0]
-                + geom_xmat[g, 3 * i + 1] * corners[k, 1]
-                + geom_xmat[g, 3 * i + 2] * corners[k, 2]
-                - origin[i]
-            )
-        for j in range(3):  # in the body's frame
-            v = frame[0, j] * rel[0] + frame[1, j] * rel[1] + frame[2, j] * rel[2]
+        r0 = (
+            geom_xpos[g, 0]
+            + geom_xmat[g, 0] * corners[k, 0]
+            + geom_xmat[g, 1] * corners[k, 1]
+            + geom_xmat[g, 2] * corners[k, 2]
+            - origin[0]
+        )
+        r1 = (
+            geom_xpos[g, 1]
+            + geom_xmat[g, 3] * corners[k, 0]
+            + geom_xmat[g, 4] * corners[k, 1]
+            + geom_xmat[g, 5] * corners[k, 2]
+            - origin[1]
+        )
+        r2 = (
+            geom_xpos[g, 2]
+            + geom_xmat[g, 6] * corners[k, 0]
+            + geom_xmat[g, 7] * corners[k, 1]
+            + geom_xmat[g, 8] * corners[k, 2]
+            - origin[2]
+        )
+        for j in range(3):  # the corner relative to the body, in the body's frame
+            v = frame[0, j] * r0 + frame[1, j] * r1 + frame[2, j] * r2
             lo[j] = min(lo[j], v)
             hi[j] = max(hi[j], v)
     return lo, hi
 
 
-@numba.njit(cache=True, error_model="numpy")
+@numba.njit(cache=True, error_model="numpy", inline="always")
 def _normal(
     pts: np.ndarray, k: int, obs_lo: np.ndarray, obs_hi: np.ndarray, m: int
 ) -> tuple[float, float, float, float]:
