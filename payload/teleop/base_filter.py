@@ -281,7 +281,8 @@ class BaseSafetyFilter:
         self._obs = np.stack([self.obs_lo, self.obs_hi])  # (2, M, 3)
         braking = [c.margin, self.jerk, self.lag, c.recovery_gain, c.recovery_speed]
         self._params = np.array([*braking, *self.body_accel])
-        self._out = np.empty((most, 6))  # rows, bound, slack
+        self._rows = np.empty((most, 4))  # the rows A of a step
+        self._out = np.empty((2, most))  # their bounds b and slack
         self._lower = [np.empty((n, len(self.obs_names))) for n in range(len(kinds) + 1)]
         self._packed = False  # the arrays below follow the shapes' measured boxes
         self._boxes = np.zeros((2, len(kinds), 3))  # each box's centre (body frame), half
@@ -308,6 +309,7 @@ class BaseSafetyFilter:
             np.zeros(4),
             self._params,
             self.per_face,
+            self._rows,
             self._out,
             self._lower[0],
             empty,
@@ -317,9 +319,10 @@ class BaseSafetyFilter:
         """The filtered body twist for the request ``twist`` at the state in ``data``."""
         start = time.perf_counter()
         if self.contacts is not None:
+            now = float(data.time)
             if self.contacts.opposing(data):
-                self._held_until = float(data.time) + self.release_s
-            held = float(data.time) <= self._held_until
+                self._held_until = now + self.release_s
+            held = now <= self._held_until
             self.shapes = self.all_shapes if held else self.all_shapes[:2]
         rot = data.xmat[self.world.astrobee].reshape(3, 3)
         centre = data.xpos[self.world.astrobee]
@@ -343,7 +346,7 @@ class BaseSafetyFilter:
         out = np.empty(4)
         out[:3] = self.linear.step(target[:3], CONTROL_DT)
         out[3] = self.yaw.step(target[3:], CONTROL_DT)[0]
-        self.engaged = violated or not bool((out == req).all())
+        self.engaged = violated or out.tolist() != req.tolist()
         if not self.engaged:
             self._follow(req)
             out = req
@@ -426,16 +429,16 @@ class BaseSafetyFilter:
             req,
             self._params,
             self.per_face,
+            self._rows,
             self._out,
             lower,
             self._scratch,
         )
         si, mi = divmod(int(lower.argmin()), lower.shape[1])
-        out = self._out[:count]
         return (
-            np.ascontiguousarray(out[:, :4]),
-            out[:, 4],
-            out[:, 5],
+            self._rows[:count],
+            self._out[0, :count],
+            self._out[1, :count],
             float(lower[si, mi]),
             self.shapes[si].kind,
             self.obs_names[mi],
@@ -446,7 +449,6 @@ class BaseSafetyFilter:
         channel's speed and yaw rate; rest if even holding every distance is infeasible."""
         h = self._hessian
         f = self._minus_weights * req
-        a = np.ascontiguousarray(a)
         upper = self._upper[: b.size]
         x, _, flag, _ = daqp.solve(h, f, a, upper, b.copy())
         if flag != 1:  # conflicting recoveries: hold every distance instead

@@ -74,6 +74,7 @@ def barrier_rows(
     req: np.ndarray,
     params: np.ndarray,
     per_face: int,
+    rows: np.ndarray,
     out: np.ndarray,
     lower: np.ndarray,
     pts: np.ndarray,
@@ -94,8 +95,8 @@ def barrier_rows(
         params: (margin [m], jerk [m/s^3], lag [s], recovery gain [1/s], recovery
             speed [m/s], deceleration per body axis (3) [m/s^2]).
         per_face: Rows kept per pair, those of least slack at the request.
-        out: Out: the rows (R, 6): ``A`` (4 columns), ``b`` [m/s] and the slack at the
-            request [m/s]; pairs in shape-major order, least slack first.
+        rows: Out: the rows ``A`` (R, 4); pairs in shape-major order, least slack first.
+        out: Out: their bounds ``b`` [m/s] and their slack at the request [m/s], (2, R).
         lower: Out: a lower bound of each pair's distance (S, M) [m]; the least sampled
             distance for the pairs checked point by point.
         pts: Scratch: world positions of the sample points (K, 3) [m].
@@ -185,9 +186,9 @@ def barrier_rows(
                 n0, n1, n2, arm, b, d = _barrier(
                     pts, sel[q], obs_lo, obs_hi, m, rot, centre, body_accel, params
                 )
-                out[count, 0], out[count, 1], out[count, 2], out[count, 3] = n0, n1, n2, arm
-                out[count, 4] = b
-                out[count, 5] = sel_slack[q]
+                rows[count, 0], rows[count, 1], rows[count, 2], rows[count, 3] = n0, n1, n2, arm
+                out[0, count] = b
+                out[1, count] = sel_slack[q]
                 count += 1
     return count
 
