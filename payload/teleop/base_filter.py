@@ -330,8 +330,8 @@ class BaseSafetyFilter:
         req = np.empty(4)  # world velocity and yaw rate
         np.matmul(rot, twist.linear, out=req[:3])
         req[3] = ang[2]
-        rows, b, slack, clearance, shape, face = self._constraints(data, rot, centre, req)
-        violated = bool(slack.size and slack.min() < 0.0)
+        rows, b, least, clearance, shape, face = self._constraints(data, rot, centre, req)
+        violated = least < 0.0
         if not violated and not self.engaged:
             self._follow(req)
             self.status = FilterStatus(
@@ -402,9 +402,10 @@ class BaseSafetyFilter:
 
     def _constraints(
         self, data: mujoco.MjData, rot: np.ndarray, centre: np.ndarray, req: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, str, str]:
-        """Rows ``A x >= b`` of the (point, obstacle) pairs that could bind, their slack
-        at the request, and the least clearance with its shape and obstacle.
+    ) -> tuple[np.ndarray, np.ndarray, float, float, str, str]:
+        """Rows ``A x >= b`` of the (point, obstacle) pairs that could bind, their least
+        slack at the request (inf: no row), and the least clearance with its shape and
+        obstacle.
 
         A (shape, obstacle) pair is skipped when the two are separated along a world
         axis by more than the margin and the request's closing speed along that axis
@@ -417,7 +418,7 @@ class BaseSafetyFilter:
         n = len(self.shapes)
         self._measure(data, n)
         lower = self._lower[n]
-        count = barrier_rows(
+        count, least = barrier_rows(
             data.xmat,
             data.xpos,
             self.world.astrobee,
@@ -438,7 +439,7 @@ class BaseSafetyFilter:
         return (
             self._rows[:count],
             self._out[0, :count],
-            self._out[1, :count],
+            least,
             float(lower[si, mi]),
             self.shapes[si].kind,
             self.obs_names[mi],

@@ -78,8 +78,9 @@ def barrier_rows(
     out: np.ndarray,
     lower: np.ndarray,
     pts: np.ndarray,
-) -> int:
-    """The barrier rows ``A x >= b`` of the pairs that could bind; returns how many.
+) -> tuple[int, float]:
+    """The barrier rows ``A x >= b`` of the pairs that could bind; returns how many, and
+    the least slack among them [m/s] (inf: none).
 
     Args:
         xmat: Every body's rotation, MuJoCo's ``data.xmat`` (bodies, 9).
@@ -121,6 +122,7 @@ def barrier_rows(
     sel = np.empty(per_face, dtype=np.int64)
     sel_slack = np.empty(per_face)
     count = 0
+    least_slack = np.inf
     for s in range(n_shapes):
         frame = xmat[bodies[s]].reshape((3, 3))
         origin = xpos[bodies[s]]
@@ -189,8 +191,9 @@ def barrier_rows(
                 rows[count, 0], rows[count, 1], rows[count, 2], rows[count, 3] = n0, n1, n2, arm
                 out[0, count] = b
                 out[1, count] = sel_slack[q]
+                least_slack = min(least_slack, sel_slack[q])
                 count += 1
-    return count
+    return count, least_slack
 
 
 @numba.njit(cache=True, error_model="numpy")
