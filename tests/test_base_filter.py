@@ -357,7 +357,7 @@ def test_recording_carries_the_filter_channel_and_the_keepin_boxes(world, graspe
     from mcap.reader import make_reader
 
     from payload.trials.foxglove import FoxgloveScene
-    from payload.trials.recorder import TrialRecorder
+    from payload.trials.recorder import RecordingError, TrialRecorder
     from payload.trials.records import random_step
     from payload.trials.safety import FILTER_TOPIC, KEEPIN_TOPIC, SafetyScene, keepin_boxes
 
@@ -365,17 +365,28 @@ def test_recording_carries_the_filter_channel_and_the_keepin_boxes(world, graspe
     sim.twist_filter = _filter(sim)
     scene = SafetyScene(FoxgloveScene(world), sim)
     rng = np.random.default_rng(0)
+    moving = _moving_geoms(world)
+    measured, changes = [], []
     with TrialRecorder(tmp_path / "log.mcap", scene=scene) as rec:
-        for k in range(3):
+        for k in range(60):  # past the recorder's first batch (it writes a second late)
             rot = sim.data.xmat[world.astrobee].reshape(3, 3)
             sim.command_twist(VehicleTwist(rot.T @ np.array([0.2, 0, 0]), np.zeros(3), 0.0))
             sim.step()
+            measured.append(least_distance(sim, moving))
+            changes.append(sim.twist_filter.status.change)
+            scene.observe(0.02 * k)
             rec.write(random_step(rng, 0.02 * k))
+        with pytest.raises(RecordingError, match="not taken"):  # a step without its record
+            rec.write(random_step(rng, 2.0))
+            rec.flush()
     with open(tmp_path / "log.mcap", "rb") as f:
         msgs = list(make_reader(f).iter_messages(topics=[FILTER_TOPIC, KEEPIN_TOPIC]))
     records = [json.loads(m.data) for _, c, m in msgs if c.topic == FILTER_TOPIC]
-    assert [r["t"] for r in records] == [0.0, 0.02, 0.04]
+    assert [r["t"] for r in records] == [0.02 * k for k in range(60)]
     assert all(r["active"] and r["constraints"] > 0 for r in records)
+    # each step's own reading, taken at the step (mj_geomDistance, capped like the monitor)
+    np.testing.assert_allclose([r["station_clearance_m"] for r in records], measured, atol=1e-9)
+    assert [r["change_mps"] for r in records] == changes
     assert records[-1]["shape"] in ("astrobee", "payload", "ctb")
     boxes = [m for _, c, m in msgs if c.topic == KEEPIN_TOPIC]
     update = SceneUpdate.FromString(boxes[0].data)
@@ -383,5 +394,5 @@ def test_recording_carries_the_filter_channel_and_the_keepin_boxes(world, graspe
     assert scene.summary() == {
         "station_contacts": 0,
         "min_station_clearance_mm": round(scene.least * 1e3, 1),
-        "filter_active_s": 0.06,
+        "filter_active_s": 1.2,
     }

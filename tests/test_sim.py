@@ -504,7 +504,7 @@ def test_one_side_touching_is_not_opposing(world):
             break
     assert state.touching and state.touching <= {"A", "B"}
     assert state.touching == _fingers_touching_by_name(sim)
-    assert not state.opposing_contact
+    assert not state.opposing_contact and not sim.monitor.opposing(sim.data)
     # every contact on request: the same pad-CTB pairs, pressing (MuJoCo's contact force)
     contacts = sim.contacts()
     assert len(contacts) == sim.data.ncon
@@ -573,6 +573,7 @@ def test_scripted_grasp_then_1m_translation_carries_the_ctb(world):
         steps += 1
         assert state.opposing_contact, f"lost opposing contact at t = {state.time:.2f} s"
         assert state.touching == _fingers_touching_by_name(sim)
+        assert sim.monitor.opposing(sim.data)  # the one-pass indicator agrees
         if not np.any(twist.linear) and np.linalg.norm(state.astrobee_linear) < 1e-3:
             break
     moved = state.astrobee_pos - start

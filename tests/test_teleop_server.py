@@ -454,6 +454,61 @@ def test_dropped_connection_brakes_and_holds_then_resumes_blended(live):
     assert math.isfinite(hub.status()["frame_age_ms"]["median"] or 0.0)
 
 
+def test_live_session_records_the_safety_channel_and_station_metrics(tmp_path):
+    """A live session with the base filter (``teleop serve``'s default) records what a
+    trial does: one ``/safety/filter`` record per recorded step, taken at that step, and
+    ``metrics.json``'s station figures, which agree with the records."""
+    from mcap.reader import make_reader
+
+    from payload.sim.station import CLEARANCE_CAP
+    from payload.trials.live import LiveSession
+    from payload.trials.recorder import read_recording
+    from payload.trials.safety import FILTER_TOPIC, KEEPIN_TOPIC
+
+    out = tmp_path / "session"
+    hub = LiveHub()
+    session = LiveSession(hub, out, steps=QUICK_STEPS, base_filter=True)
+    server = TeleopServer(hub, port=0, scene=session.scene).start()
+    worker = threading.Thread(target=session.run, daemon=True)
+    worker.start()
+    page = Page(hub, server.port, forward=0.12)
+    page.start()
+    try:
+        wait_for(lambda: hub.state == "teleop", timeout=60)
+        wait_for(lambda: (hub.snapshot.get("vehicle") or {}).get("speed", 0) > 1e-3, timeout=30)
+        time.sleep(1.5)
+    finally:
+        page.halt.set()
+        page.join(10)
+        hub.stop.set()
+        worker.join(30)
+        server.stop()
+    result = session.close()
+    rec = read_recording(out / "log.mcap")
+    with open(out / "log.mcap", "rb") as f:
+        msgs = list(make_reader(f).iter_messages(topics=[FILTER_TOPIC, KEEPIN_TOPIC]))
+    records = [json.loads(m.data) for _, c, m in msgs if c.topic == FILTER_TOPIC]
+    assert len(records) == len(rec) > 50
+    np.testing.assert_allclose([r["t"] for r in records], rec.t, atol=1e-6)
+    assert any(c.topic == KEEPIN_TOPIC for _, c, _ in msgs)
+    clearance = np.array([r["station_clearance_m"] for r in records])
+    assert np.all((clearance >= 0.0) & (clearance <= CLEARANCE_CAP))
+    # the filter's clearance of each step, taken at that step: it changes as the stack flies
+    assert len({r["filter_clearance_m"] for r in records}) > 10
+    for r in records:
+        assert isinstance(r["active"], bool) and r["constraints"] >= 0
+        assert r["change_mps"] >= 0.0 and math.isfinite(r["yaw_change_radps"])
+        assert r["shape"] in ("", "astrobee", "payload", "ctb")
+        if r["constraints"]:  # the QP ran: the filter acted, near a named face
+            assert r["active"] and r["shape"] and r["face"]
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics == result and metrics["base_filter"] is True
+    assert metrics["station_contacts"] == sum(r["station_contact"] for r in records)
+    assert metrics["min_station_clearance_mm"] == round(clearance.min() * 1e3, 1)
+    active = sum(r["active"] for r in records)
+    assert metrics["filter_active_s"] == round(active * 0.02, 2)
+
+
 def test_calibration_captures_webxr_frames_in_the_workbench_frame():
     from payload.teleop.calibration import CalibrationProcedure
     from payload.teleop.hands import Hand, HandFrame

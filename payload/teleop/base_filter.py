@@ -42,6 +42,7 @@ from payload.schema import CONTROL_DT, VehicleTwist
 from payload.sim.contact import ContactMonitor
 from payload.sim.zones import StationZones, station_zones
 from payload.teleop.channels import BaseConfig, JerkLimiter
+from payload.teleop.filter_kernel import barrier_rows, enclosing_box, stop_speed_many
 
 _INF = 1e30
 
@@ -90,11 +91,7 @@ def stop_speed(
     ramps (``accel / jerk`` each) cover at most ``u (lag + 2 accel / jerk)`` and the full
     deceleration ``u^2 / (2 accel)``. That bound is solved here for ``v``.
     """
-    a = np.asarray(accel, float)
-    b = lag + 2.0 * a / jerk
-    d = np.maximum(np.asarray(distance, float), 0.0)
-    u = a * (np.sqrt(b * b + 2.0 * d / a) - b)
-    return np.maximum(u - a * lag - a * a / (2.0 * jerk), 0.0)
+    return np.asarray(stop_speed_many(distance, accel, float(jerk), float(lag)), float)
 
 
 def _grid(n: int) -> np.ndarray:
@@ -149,7 +146,7 @@ class _Shape:
         signs = np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1], indexing="ij")).reshape(3, -1).T
         aabb = m.geom_aabb[self.geoms]  # (G, 6): centre, half-extent in the geom frame
         self.corners = (aabb[:, None, :3] + signs[None] * aabb[:, None, 3:]).reshape(-1, 3)
-        self.owner = np.repeat(np.arange(len(self.geoms)), 8)
+        self.corner_geom = np.repeat(self.geoms, 8)  # the geom of each corner
         self.spacing = spacing
         self.unit: np.ndarray | None = None
         self.refresh_steps = 10 if kind == "payload" else 0
@@ -159,12 +156,14 @@ class _Shape:
 
     def refresh(self, data: mujoco.MjData) -> None:
         """Measure the enclosing box in the reference body's frame from the geoms' poses."""
-        pos = data.geom_xpos[self.geoms][self.owner]
-        rot = data.geom_xmat[self.geoms].reshape(-1, 3, 3)[self.owner]
-        world_pts = pos + np.einsum("nij,nj->ni", rot, self.corners)
-        frame = data.xmat[self.body].reshape(3, 3)
-        local = (world_pts - data.xpos[self.body]) @ frame
-        lo, hi = local.min(axis=0), local.max(axis=0)
+        lo, hi = enclosing_box(
+            data.geom_xpos,
+            data.geom_xmat,
+            self.corner_geom,
+            self.corners,
+            data.xpos[self.body],
+            data.xmat[self.body].reshape(3, 3),
+        )
         self.local_centre = (lo + hi) / 2.0
         self.half = (hi - lo) / 2.0
         if self.unit is None:  # the sampling grid is set by the first box
@@ -218,6 +217,11 @@ class FilterStatus(NamedTuple):
 class BaseSafetyFilter:
     """The base safety filter (see the module docstring).
 
+    Each step's geometry is one compiled pass over every shape, sample point and obstacle
+    box (:func:`payload.teleop.filter_kernel.barrier_rows`); what is constant for the
+    filter's life (the shapes' local sample points, the QP's cost matrix and bounds, the
+    braking constants) is computed once, here or when a shape's box is measured again.
+
     Args:
         world: The simulator's :class:`~payload.sim.world.World`.
         base: The base channel's settings (speed, acceleration and jerk bounds).
@@ -265,28 +269,69 @@ class BaseSafetyFilter:
         self.engaged = False
         self._last: np.ndarray | None = None
         self.status = FilterStatus(False, math.inf, "", "", 0.0, 0.0, 0, 0.0)
+        # constant per filter: the QP's cost and bounds, the shapes' bodies, the obstacles,
+        # the braking constants, the output arrays of the compiled pass
+        c = self.config
+        most = per_face * len(kinds) * len(self.obs_names)  # rows of one step, at most
+        self._hessian = np.diag(self.weights)
+        self._minus_weights = -self.weights
+        self._upper = np.full(most, _INF)
+        bodies = np.array([s.body for s in self.all_shapes], dtype=np.int64)
+        self._bodies = [bodies[:n] for n in range(len(kinds) + 1)]  # of the first n shapes
+        self._obs = np.stack([self.obs_lo, self.obs_hi])  # (2, M, 3)
+        braking = [c.margin, self.jerk, self.lag, c.recovery_gain, c.recovery_speed]
+        self._params = np.array([*braking, *self.body_accel])
+        self._rows = np.empty((most, 4))  # the rows A of a step
+        self._out = np.empty((2, most))  # their bounds b and slack
+        self._lower = [np.empty((n, len(self.obs_names))) for n in range(len(kinds) + 1)]
+        self._packed = False  # the arrays below follow the shapes' measured boxes
+        self._boxes = np.zeros((2, len(kinds), 3))  # each box's centre (body frame), half
+        self._local = np.zeros((0, 3))  # every sample point, its body's frame (K, 3)
+        self._scratch = np.zeros((0, 3))  # the sample points in the world (K, 3)
+        self._n_points = np.zeros(len(kinds) + 1, dtype=np.int64)  # of the first i shapes
+        self._warm_up()
 
-    def _accel_along(self, normals: np.ndarray, rot: np.ndarray) -> np.ndarray:
-        """Deceleration the stack can give along world unit vectors (P, 3) [m/s^2]: the
-        per-body-axis bounds met along each vector's body components."""
-        nb = np.maximum(np.abs(normals @ rot), 1e-12)  # body components of each vector
-        return np.min(self.body_accel / nb, axis=1)
+    def _warm_up(self) -> None:
+        """Load the compiled functions now (from Numba's disk cache, or compile them), with
+        empty inputs of the step's types, so that the first control step does not wait."""
+        empty, none = np.zeros((0, 3)), np.zeros(0, dtype=np.int64)
+        rot = np.eye(3)
+        enclosing_box(empty, np.zeros((0, 9)), none, empty, np.zeros(3), rot)
+        barrier_rows(
+            rot.reshape(1, 9),
+            np.zeros((1, 3)),
+            0,
+            none,
+            np.zeros((2, 0, 3)),
+            empty,
+            self._n_points[:1],
+            self._obs,
+            np.zeros(4),
+            self._params,
+            self.per_face,
+            self._rows,
+            self._out,
+            self._lower[0],
+            empty,
+        )
 
     def __call__(self, twist: VehicleTwist, data: mujoco.MjData) -> VehicleTwist:
         """The filtered body twist for the request ``twist`` at the state in ``data``."""
         start = time.perf_counter()
         if self.contacts is not None:
+            now = float(data.time)
             if self.contacts.opposing(data):
-                self._held_until = float(data.time) + self.release_s
-            held = float(data.time) <= self._held_until
+                self._held_until = now + self.release_s
+            held = now <= self._held_until
             self.shapes = self.all_shapes if held else self.all_shapes[:2]
         rot = data.xmat[self.world.astrobee].reshape(3, 3)
         centre = data.xpos[self.world.astrobee]
-        v_req = rot @ twist.linear
         ang = rot @ twist.angular
-        req = np.array([v_req[0], v_req[1], v_req[2], ang[2]])
-        rows, b, slack, clearance, shape, face = self._constraints(data, rot, centre, req)
-        violated = bool(slack.size and slack.min() < 0.0)
+        req = np.empty(4)  # world velocity and yaw rate
+        np.matmul(rot, twist.linear, out=req[:3])
+        req[3] = ang[2]
+        rows, b, least, clearance, shape, face = self._constraints(data, rot, centre, req)
+        violated = least < 0.0
         if not violated and not self.engaged:
             self._follow(req)
             self.status = FilterStatus(
@@ -301,19 +346,20 @@ class BaseSafetyFilter:
         out = np.empty(4)
         out[:3] = self.linear.step(target[:3], CONTROL_DT)
         out[3] = self.yaw.step(target[3:], CONTROL_DT)[0]
-        self.engaged = violated or not np.array_equal(out, req)
+        self.engaged = violated or out.tolist() != req.tolist()
         if not self.engaged:
             self._follow(req)
             out = req
         self._last = out
-        ang_out = np.array([ang[0], ang[1], out[3]])
-        filtered = VehicleTwist(rot.T @ out[:3], rot.T @ ang_out, twist.stamp)
+        ang[2] = out[3]
+        filtered = VehicleTwist(rot.T @ out[:3], rot.T @ ang, twist.stamp)
+        change = out[:3] - req[:3]
         self.status = FilterStatus(
             True,
             clearance,
             shape,
             face,
-            float(np.linalg.norm(out[:3] - req[:3])),
+            math.sqrt(change @ change),
             float(out[3] - req[3]),
             used,
             (time.perf_counter() - start) * 1e6,
@@ -327,108 +373,90 @@ class BaseSafetyFilter:
         self.yaw.value, self.yaw.rate = req[3:].copy(), rate[3:].copy()
         self._last = req
 
+    def _measure(self, data: mujoco.MjData, n: int) -> None:
+        """Measure again the boxes of the first ``n`` shapes that are due (see
+        :meth:`_Shape.box`), and pack every shape's box and sample points in arrays."""
+        changed = not self._packed
+        for shape in self.all_shapes[:n]:
+            if shape.unit is None or (shape.refresh_steps and shape._age >= shape.refresh_steps):
+                shape.refresh(data)
+                changed = True
+            shape._age += 1
+        if not changed:
+            return
+        ready = [s for s in self.all_shapes if s.unit is not None]
+        if self._packed and len(self._local) == self._n_points[len(ready)]:
+            # the same sample points, measured again: update each shape's in place
+            for i, s in enumerate(ready):
+                a, b = self._n_points[i], self._n_points[i + 1]
+                self._local[a:b] = s.local_centre + s.unit * s.half  # type: ignore[operator]
+                self._boxes[0, i], self._boxes[1, i] = s.local_centre, s.half
+            return
+        for i, s in enumerate(ready):
+            self._boxes[0, i], self._boxes[1, i] = s.local_centre, s.half
+        local = [s.local_centre + s.unit * s.half for s in ready]  # type: ignore[operator]
+        self._local = np.vstack(local)
+        self._scratch = np.empty_like(self._local)
+        self._n_points[: len(ready) + 1] = np.cumsum([0, *(len(p) for p in local)])
+        self._packed = True
+
     def _constraints(
         self, data: mujoco.MjData, rot: np.ndarray, centre: np.ndarray, req: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, str, str]:
-        """Rows ``A x >= b`` of the (point, obstacle) pairs that could bind, their slack
-        at the request, and the least clearance with its shape and obstacle.
+    ) -> tuple[np.ndarray, np.ndarray, float, float, str, str]:
+        """Rows ``A x >= b`` of the (point, obstacle) pairs that could bind, their least
+        slack at the request (inf: no row), and the least clearance with its shape and
+        obstacle.
 
         A (shape, obstacle) pair is skipped when the two are separated along a world
         axis by more than the margin and the request's closing speed along that axis
         (translation plus the yaw rate times the shape's lever) is one the stack stops
-        from within the separation; the others are checked point by point.
+        from within the separation; when every pair is skipped (the conservative bound
+        that decides the identity) no row is built. The others are checked at every
+        sample point of the shape, and the ``per_face`` rows of least slack kept
+        (:func:`payload.teleop.filter_kernel.barrier_rows`, one compiled pass).
         """
-        margin = self.config.margin
-        w = abs(float(req[3]))
-        axis_accel = self._accel_along(np.eye(3), rot)  # (3,)
-        boxes = [shape.box(data) for shape in self.shapes]
-        s_centre = np.array([bx[0] for bx in boxes])  # (S, 3)
-        ext = np.array([np.abs(bx[1]) @ bx[2] for bx in boxes])  # (S, 3) world half-extents
-        above = self.obs_lo[None] - (s_centre + ext)[:, None]  # (S, M, 3) > 0: obstacle on +
-        below = (s_centre - ext)[:, None] - self.obs_hi[None]  # > 0: obstacle on the - side
-        arm = np.abs(s_centre - centre) + ext
-        lever = w * arm[:, [1, 0, 2]] * np.array([1.0, 1.0, 0.0])  # (S, 3)
-        toward = req[:3] + lever  # closing speed bound toward + (per shape)
-        away = -req[:3] + lever
-        closing = np.where(above > below, toward[:, None], away[:, None])
-        gap = np.maximum(above, below)
-        allowed = stop_speed(gap - margin, axis_accel, self.jerk, self.lag)
-        safe = ((gap > margin) & (closing <= allowed)).any(axis=2)  # (S, M)
-        lower = gap.max(axis=2)  # a lower bound of each pair's distance
-        pairs = np.argwhere(~safe)
-        rows = b = slack = np.zeros(0)
-        if pairs.size:
-            pts_by_shape = {
-                si: self.shapes[si].points(*boxes[si]) for si in set(pairs[:, 0].tolist())
-            }
-            pts = np.vstack([pts_by_shape[int(si)] for si, _ in pairs])
-            counts = [len(pts_by_shape[int(si)]) for si, _ in pairs]
-            obstacle = np.repeat(pairs[:, 1], counts)
-            pair_of = np.repeat(np.arange(len(pairs)), counts)
-            rows, b, slack, d = self._rows(pts, obstacle, centre, rot, req)
-            starts = np.cumsum([0, *counts[:-1]])
-            lower[pairs[:, 0], pairs[:, 1]] = np.minimum.reduceat(d, starts)  # sampled
-            keep = self._most_binding(pair_of, slack)
-            rows, b, slack = rows[keep], b[keep], slack[keep]
+        n = len(self.shapes)
+        self._measure(data, n)
+        lower = self._lower[n]
+        count, least = barrier_rows(
+            data.xmat,
+            data.xpos,
+            self.world.astrobee,
+            self._bodies[n],
+            self._boxes,
+            self._local,
+            self._n_points,
+            self._obs,
+            req,
+            self._params,
+            self.per_face,
+            self._rows,
+            self._out,
+            lower,
+            self._scratch,
+        )
         si, mi = divmod(int(lower.argmin()), lower.shape[1])
-        return rows, b, slack, float(lower[si, mi]), self.shapes[si].kind, self.obs_names[mi]
-
-    def _most_binding(self, group: np.ndarray, slack: np.ndarray) -> np.ndarray:
-        """Per group (a shape and obstacle pair), the ``per_face`` rows of least slack."""
-        order = np.lexsort((slack, group))
-        g = group[order]
-        first = np.flatnonzero(np.concatenate(([True], g[1:] != g[:-1])))
-        rank = np.arange(order.size) - np.repeat(first, np.diff(np.append(first, order.size)))
-        return order[rank < self.per_face]
-
-    def _rows(
-        self,
-        pts: np.ndarray,
-        obstacle: np.ndarray,
-        centre: np.ndarray,
-        rot: np.ndarray,
-        req: np.ndarray,
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Rows, bounds, slack and distances of points (P, 3) against their obstacles (P,)."""
-        c = self.config
-        lo, hi = self.obs_lo[obstacle], self.obs_hi[obstacle]
-        delta = pts - np.clip(pts, lo, hi)
-        d = np.sqrt((delta * delta).sum(axis=1))
-        n = np.empty_like(delta)
-        out = d > 1e-12
-        n[out] = delta[out] / d[out, None]
-        inside = np.flatnonzero(~out)
-        if inside.size:  # depth to the box's nearest face, pointing out of it
-            below, above = pts[inside] - lo[inside], hi[inside] - pts[inside]
-            depth = np.minimum(below, above)
-            axis = depth.argmin(axis=1)
-            rows_i = np.arange(inside.size)
-            n[inside] = 0.0
-            n[inside, axis] = np.where(below[rows_i, axis] < above[rows_i, axis], -1.0, 1.0)
-            d[inside] = -depth[rows_i, axis]
-        r = pts - centre
-        a = np.empty((d.size, 4))
-        a[:, :3] = n
-        a[:, 3] = n[:, 1] * r[:, 0] - n[:, 0] * r[:, 1]  # n . (e_z x r)
-        gap = d - c.margin
-        b = -stop_speed(gap, self._accel_along(n, rot), self.jerk, self.lag)
-        b = np.where(gap < 0.0, np.minimum(-c.recovery_gain * gap, c.recovery_speed), b)
-        return a, b, a @ req - b, d
+        return (
+            self._rows[:count],
+            self._out[0, :count],
+            least,
+            float(lower[si, mi]),
+            self.shapes[si].kind,
+            self.obs_names[mi],
+        )
 
     def _solve(self, req: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
         """The least (weighted) change of ``req`` meeting ``a x >= b``, then capped to the
         channel's speed and yaw rate; rest if even holding every distance is infeasible."""
-        h = np.diag(self.weights)
-        f = -self.weights * req
-        a = np.ascontiguousarray(a)
-        upper = np.full(b.size, _INF)
+        h = self._hessian
+        f = self._minus_weights * req
+        upper = self._upper[: b.size]
         x, _, flag, _ = daqp.solve(h, f, a, upper, b.copy())
         if flag != 1:  # conflicting recoveries: hold every distance instead
             x, _, flag, _ = daqp.solve(h, f, a, upper, np.minimum(b, 0.0))
         if flag != 1:
             return np.zeros(4)
-        x = np.asarray(x, float)
-        speed, rate = float(np.linalg.norm(x[:3])), abs(float(x[3]))
+        speed, rate = math.sqrt(x[:3] @ x[:3]), abs(float(x[3]))
         scale = min(1.0, self.base.max_speed / max(speed, 1e-12))
         scale = min(scale, self.base.max_yaw_rate / max(rate, 1e-12))
         return x * scale  # scaling toward rest keeps every b <= 0 row met
@@ -440,6 +468,7 @@ class BaseSafetyFilter:
         self._held_until = -math.inf
         for shape in self.all_shapes:
             shape.unit = None
+        self._packed = False
         self.linear.reset()
         self.yaw.reset()
 

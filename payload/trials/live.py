@@ -47,6 +47,7 @@ from payload.trials.runner import (
     place_ctb_for_teleop,
     retargeting,
 )
+from payload.trials.safety import recording_scene
 
 log = logging.getLogger(__name__)
 
@@ -171,6 +172,12 @@ class LiveSession:
         self._pending: list[tuple[StepRecord, Any]] = []
         self._recorder: TrialRecorder | None = None
         self._hands: HandRecordingWriter | None = None
+        # the trial's Foxglove and safety channels (the filter's record, station contacts)
+        self._scene = (
+            None
+            if record is None
+            else recording_scene(self.driver, module_rects(self.driver.world.layout))
+        )
 
     # -- recording -------------------------------------------------------------------------
     def _open_recording(self) -> None:
@@ -178,7 +185,7 @@ class LiveSession:
             return
         out = self.record
         out.mkdir(parents=True, exist_ok=True)
-        self._recorder = TrialRecorder(out / "log.mcap")
+        self._recorder = TrialRecorder(out / "log.mcap", scene=self._scene)
         budget = self.retargeters["L"].config.budget
         setup: dict[str, Any] = {
             "retarget_budget": budget,
@@ -209,6 +216,7 @@ class LiveSession:
         from payload.trials.runner import step_record
 
         fr = ctx.frame
+        self._scene.observe(ctx.t)
         rec = step_record(ctx, self.driver, self.retargeters)
         if not self.calibrated:
             # kept until the calibration succeeds: a dropped attempt is a rehearsal
@@ -315,6 +323,8 @@ class LiveSession:
             log.warning("teleop: %s", self.notice)
         if not self.calibrated:
             self._pending.clear()
+            if self._scene is not None:
+                self._scene.discard()
 
     def run(self) -> None:
         """Serve attempts until ``hub.stop`` is set (Ctrl-C in the terminal)."""
@@ -341,7 +351,9 @@ class LiveSession:
         self.driver.command_twist(None)
         result = None
         if self._recorder is not None:
-            self._recorder.write_meta({"steps": self.steps, "warnings": self.driver.warnings()})
+            self._recorder.write_meta(
+                {"steps": self.steps, "warnings": self.driver.warnings(), **self._scene.summary()}
+            )
             self._recorder.close()
             self._hands.close()
             from payload.trials.campaign import finish_trial

@@ -374,9 +374,8 @@ def _record_session(
 ) -> Any:
     """Run the teleoperation session, recording every step into ``rec_path``; returns the
     session's statistics. An unexpected error marks the recording aborted."""
-    from payload.trials.foxglove import FoxgloveScene
     from payload.trials.recorder import TrialRecorder
-    from payload.trials.safety import SafetyScene
+    from payload.trials.safety import recording_scene
 
     layout = driver.world.layout
     bar = None
@@ -388,13 +387,13 @@ def _record_session(
         bar.start()
     last_t = [0.0]
     try:
-        zones = getattr(driver.twist_filter, "zones", None)
-        scene = SafetyScene(FoxgloveScene(driver.world, module_rects(layout)), driver, zones)
+        scene = recording_scene(driver, module_rects(layout))
         with TrialRecorder(rec_path, scene=scene) as recorder:
             recorder.write_meta(meta)
 
             def on_step(ctx: StepContext) -> None:
                 recorder.write_hands(ctx.frame)
+                scene.observe(ctx.t)
                 recorder.write(step_record(ctx, driver, setup.retargeters))
                 last_t[0] = ctx.t
                 if bar is not None:

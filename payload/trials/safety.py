@@ -7,12 +7,18 @@ the command, and the station contact and clearance measured by
 :class:`~payload.sim.station.StationMonitor`), and the keep-in boxes as a
 ``foxglove.SceneUpdate`` on ``/safety/keepin``. :meth:`SafetyScene.summary` gives the
 trial's ``station_contacts``, ``min_station_clearance_mm`` and ``filter_active_s``.
+
+The recorder writes its messages in batches, up to a second after the step, so each
+step's record is taken at the step (:meth:`SafetyScene.observe`, called by whoever runs
+the loop) and written with the step. :func:`recording_scene` is the scene of every
+recording the simulator makes: a synthetic trial's and a live session's.
 """
 
 from __future__ import annotations
 
 import json
 import math
+from collections import deque
 from typing import Any
 
 from foxglove_schemas_protobuf.Color_pb2 import Color
@@ -27,6 +33,7 @@ from mcap_protobuf.schema import build_file_descriptor_set
 from payload.schema import CONTROL_DT
 from payload.sim.station import CLEARANCE_CAP, StationMonitor
 from payload.sim.zones import StationZones, station_zones
+from payload.trials.records import RecordingError
 
 FILTER_TOPIC = "/safety/filter"
 KEEPIN_TOPIC = "/safety/keepin"
@@ -87,6 +94,7 @@ class SafetyScene:
         self.least = CLEARANCE_CAP
         self.active_steps = 0
         self._next_boxes_ns = 0
+        self._observed: deque[dict[str, Any]] = deque()  # taken, not yet written
 
     def start(self, writer: Any) -> None:
         """Register the wrapped scene's channels and the safety channels."""
@@ -108,21 +116,18 @@ class SafetyScene:
             topic=KEEPIN_TOPIC, message_encoding="protobuf", schema_id=boxes
         )
 
-    def write(self, writer: Any, step: Any, ns: int) -> None:
-        """The wrapped scene's messages, then this step's safety record."""
-        self.scene.write(writer, step, ns)
+    def observe(self, t: float) -> None:
+        """Take the safety record of the control step at time ``t`` [s] from the
+        simulator's state and the filter's status now (call it once per step, before the
+        step is written); it is written, and counted, with that step."""
         reading = self.monitor.read(self.driver.data)
-        self.contacts += reading.contact
-        self.least = min(self.least, reading.clearance)
-        filt = getattr(self.driver, "twist_filter", None)
-        status = getattr(filt, "status", None)
         record: dict[str, Any] = {
-            "t": step.t,
+            "t": t,
             "station_contact": reading.contact,
             "station_clearance_m": reading.clearance,
         }
+        status = getattr(getattr(self.driver, "twist_filter", None), "status", None)
         if status is not None:
-            self.active_steps += bool(status.active)
             record.update(
                 active=bool(status.active),
                 filter_clearance_m=status.clearance if math.isfinite(status.clearance) else None,
@@ -132,6 +137,25 @@ class SafetyScene:
                 yaw_change_radps=status.yaw_change,
                 constraints=status.constraints,
             )
+        self._observed.append(record)
+
+    def discard(self) -> None:
+        """Forget the records taken and not written (steps that will not be recorded)."""
+        self._observed.clear()
+
+    def write(self, writer: Any, step: Any, ns: int) -> None:
+        """The wrapped scene's messages, then this step's safety record.
+
+        Raises:
+            RecordingError: The step's record was not taken (:meth:`observe`).
+        """
+        self.scene.write(writer, step, ns)
+        if not self._observed or self._observed[0]["t"] != step.t:
+            raise RecordingError(f"safety record of the step at t = {step.t} s was not taken")
+        record = self._observed.popleft()
+        self.contacts += record["station_contact"]
+        self.least = min(self.least, record["station_clearance_m"])
+        self.active_steps += bool(record.get("active", False))
         writer.add_message(
             channel_id=self.channels[FILTER_TOPIC],
             log_time=ns,
@@ -183,4 +207,19 @@ class SafetyScene:
         }
 
 
-__all__ = ["FILTER_TOPIC", "KEEPIN_TOPIC", "SafetyScene", "keepin_boxes"]
+def recording_scene(driver: Any, module_rects: list[dict[str, Any]]) -> SafetyScene:
+    """The scene of a recording the simulator makes (a trial or a live session): the
+    Foxglove channels and the safety channels, with the keep-in boxes of the driver's
+    base filter if it has one (else the world's layout).
+
+    Args:
+        driver: The simulator driver.
+        module_rects: The modules' rectangles (:func:`payload.trials.runner.module_rects`).
+    """
+    from payload.trials.foxglove import FoxgloveScene
+
+    zones = getattr(getattr(driver, "twist_filter", None), "zones", None)
+    return SafetyScene(FoxgloveScene(driver.world, module_rects), driver, zones)
+
+
+__all__ = ["FILTER_TOPIC", "KEEPIN_TOPIC", "SafetyScene", "keepin_boxes", "recording_scene"]
