@@ -25,7 +25,7 @@ import meshcat.geometry as mg
 import numpy as np
 from meshcat.animation import Animation, AnimationClip, AnimationTrack
 
-from payload.design import FINGERS, build_tree, load_design, stale_files
+from payload.design import FINGERS, build_tree, load_design
 from payload.envelope.drawing import (
     FAIL_COLOUR,
     FINGER_COLOURS,
@@ -338,7 +338,11 @@ def build_design_review(
     """
     files.check()
     design = load_design(files.design)
-    stale = stale_files(design, files.urdf.parent.parent) if check_models else []
+    stale = []
+    if check_models:
+        from payload.design import stale_files  # generates every model: trimesh
+
+        stale = stale_files(design, files.urdf.parent.parent)
     if stale:
         raise ReviewError(
             f"the generated models do not match {files.design} ({', '.join(stale)}); "
