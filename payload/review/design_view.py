@@ -206,8 +206,11 @@ def reach_clouds(
     geom: PayloadGeometry, vehicle: Vehicle, samples: int, seed: int
 ) -> dict[str, np.ndarray]:
     """Each finger's collision-free fingertip cloud, as the reach report samples it [m]."""
+    # from the defining modules: payload.envelope.reach loads the grasp check (SciPy's optimize)
     from payload.envelope.batch_fk import fingertips_batch
-    from payload.envelope.reach import CollisionModel, finger_link_names, sample_configurations
+    from payload.envelope.collisions import CollisionModel
+    from payload.envelope.pairs import finger_link_names
+    from payload.envelope.sampling import sample_configurations
 
     tree = geom.tree
     q = sample_configurations(tree, samples, np.random.default_rng(seed))
