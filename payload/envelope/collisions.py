@@ -5,7 +5,7 @@ from __future__ import annotations
 import itertools
 import multiprocessing as mp
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import NamedTuple
 
 import mujoco
@@ -95,24 +95,45 @@ class CollisionModel:
         Returns:
             The :class:`Contacts` (body pairs in contact, per sample).
         """
+        return self.start(samples, workers)(progress)
+
+    def start(self, samples: np.ndarray, workers: int = 1) -> Callable[[Progress], Contacts]:
+        """Start :meth:`check` in forked workers now and return what waits for its result
+        (call it once, with a progress callback), so that this process can do other work
+        meanwhile. Without workers (one, fewer than 10,000 samples, or not Linux) the
+        check runs when the result is asked for."""
         n = len(samples)
         bounds = np.linspace(0, n, max(2, min(100, n // 500)) + 1).astype(int)
         ranges = [(int(a), int(b)) for a, b in itertools.pairwise(bounds) if b > a]
-        parts = []
-        if workers > 1 and n >= 10_000 and sys.platform.startswith("linux"):
-            global _ACTIVE
-            _ACTIVE = (self, samples)
-            try:
-                with mp.get_context("fork").Pool(workers) as pool:
-                    for k, part in enumerate(pool.imap_unordered(_check_range, ranges)):
-                        parts.append(part)
-                        progress("collisions", (k + 1) / len(ranges))
-            finally:
-                _ACTIVE = None
-        else:
-            for k, (a, b) in enumerate(ranges):
-                parts.append(self._check_range(samples, a, b))
-                progress("collisions", (k + 1) / len(ranges))
+        if not (workers > 1 and n >= 10_000 and sys.platform.startswith("linux")):
+
+            def serial(progress: Progress) -> Contacts:
+                parts = []
+                for k, (a, b) in enumerate(ranges):
+                    parts.append(self._check_range(samples, a, b))
+                    progress("collisions", (k + 1) / len(ranges))
+                return self._contacts(n, parts)
+
+            return serial
+        global _ACTIVE
+        _ACTIVE = (self, samples)
+        try:
+            pool = mp.get_context("fork").Pool(workers)  # the workers fork here
+            results = pool.imap_unordered(_check_range, ranges)
+        finally:
+            _ACTIVE = None
+
+        def forked(progress: Progress) -> Contacts:
+            parts = []
+            with pool:
+                for k, part in enumerate(results):
+                    parts.append(part)
+                    progress("collisions", (k + 1) / len(ranges))
+            return self._contacts(n, parts)
+
+        return forked
+
+    def _contacts(self, n: int, parts: list[np.ndarray]) -> Contacts:
         rows = np.concatenate(parts) if parts else np.zeros((0, 3), dtype=int)
         rows = rows[np.lexsort((rows[:, 2], rows[:, 1], rows[:, 0]))]
         return Contacts(n, rows[:, 0], rows[:, 1], rows[:, 2], tuple(self.body_names))
