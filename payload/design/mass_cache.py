@@ -60,7 +60,7 @@ def cached_mass_props(
         row = np.load(path, allow_pickle=False)
         if row.shape == (13,):
             return float(row[0]), row[1:4].copy(), row[4:].reshape(3, 3).copy()
-    except (OSError, ValueError):
+    except (OSError, ValueError, EOFError):
         pass
     mass, com, inertia = compute()
     row = np.concatenate([[mass], np.asarray(com, float), np.asarray(inertia, float).ravel()])

@@ -116,19 +116,24 @@ class CollisionModel:
 
             return serial
         global _ACTIVE
-        _ACTIVE = (self, samples)
+        _ACTIVE = (self, samples)  # kept until the results are in (a replaced worker forks)
         try:
             pool = mp.get_context("fork").Pool(workers)  # the workers fork here
-            results = pool.imap_unordered(_check_range, ranges)
-        finally:
+        except BaseException:
             _ACTIVE = None
+            raise
+        results = pool.imap_unordered(_check_range, ranges)
 
         def forked(progress: Progress) -> Contacts:
+            global _ACTIVE
             parts = []
-            with pool:
-                for k, part in enumerate(results):
-                    parts.append(part)
-                    progress("collisions", (k + 1) / len(ranges))
+            try:
+                with pool:
+                    for k, part in enumerate(results):
+                        parts.append(part)
+                        progress("collisions", (k + 1) / len(ranges))
+            finally:
+                _ACTIVE = None
             return self._contacts(n, parts)
 
         return forked
