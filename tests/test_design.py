@@ -551,3 +551,50 @@ def test_stale_models_are_rebuilt_saying_so(tmp_path, capsys):
     with pytest.raises(DesignError, match=r"finger\.lengths\.middle"):
         models_follow_design(project.design_path, project.root)
     assert {p: p.read_bytes() for p in project.urdf_dir.iterdir()} == before
+
+
+def test_part_mass_properties_from_the_cache_are_trimeshs_own(design):
+    """The cached figures equal trimesh's computed afresh, first run and cached run alike."""
+    from payload.design.solids import part_props
+    from payload.design.tree import build_tree
+
+    tree = build_tree(design)
+    parts = [p for link in tree.links if link.body is not None for p in link.body.parts][:4]
+    for part in parts:
+        tm = trimesh.Trimesh(
+            vertices=np.asarray(part.solid.to_mesh().vert_properties)[:, :3].astype(float),
+            faces=np.asarray(part.solid.to_mesh().tri_verts).astype(np.int64),
+            process=False,
+        )
+        for _ in range(2):  # computed (and kept), then read from the cache
+            props = part_props(part)
+            assert props.mass == tm.volume * part.density
+            assert np.array_equal(props.com, tm.center_mass)
+            assert np.array_equal(props.inertia, tm.moment_inertia * part.density)
+
+
+def test_fresh_models_skip_the_rebuild_and_any_edit_is_rebuilt(tmp_path, design_dict, monkeypatch):
+    """The fingerprint spares the rebuild only while every generated file is unchanged."""
+    import payload.design.build as build
+    from payload.design.follow import models_follow_design
+
+    path = tmp_path / "cad" / "design.toml"
+    path.parent.mkdir(parents=True)
+    design_dict = copy.deepcopy(design_dict)
+    path.write_text(tomli_w.dumps(design_dict))
+    assert "urdf/payload.urdf" in models_follow_design(path, tmp_path)
+    calls = []
+    real = build.follow_design
+    monkeypatch.setattr(build, "follow_design", lambda *a, **k: calls.append(1) or real(*a, **k))
+    assert models_follow_design(path, tmp_path) == [] and calls == []  # fingerprint: fresh
+    urdf = tmp_path / "urdf" / "payload.urdf"
+    urdf.write_text(urdf.read_text() + " ")
+    assert models_follow_design(path, tmp_path) == ["urdf/payload.urdf"] and len(calls) == 1
+    stray = tmp_path / "cad" / "meshes" / "stray.stl"
+    stray.write_bytes(b"")
+    assert models_follow_design(path, tmp_path) == ["cad/meshes/stray.stl"] and len(calls) == 2
+    assert not stray.exists()
+    design_dict["finger"]["lengths"]["distal"] = 0.044
+    path.write_text(tomli_w.dumps(design_dict))
+    rebuilt = models_follow_design(path, tmp_path)
+    assert "urdf/payload.urdf" in rebuilt and len(calls) == 3

@@ -488,3 +488,37 @@ def test_watch_serves_the_page_and_stops_cleanly_on_ctrl_c(tmp_path, design_dict
         if proc.poll() is None:
             proc.kill()
             proc.wait()
+
+
+def test_the_models_visuals_are_those_yourdfpy_reads(tmp_path):
+    """The review reads the URDF's mesh visuals itself (no trimesh): against yourdfpy, on
+    the committed model and on one whose visuals have an origin and a scale."""
+    import yourdfpy
+
+    from payload.review.model import PayloadModel
+
+    text = URDF.read_text()
+    first = text.index("<mesh ")
+    edited = (
+        text[:first].replace(
+            "<visual>", '<visual>\n      <origin xyz="0.01 -0.02 0.03" rpy="0.3 -0.2 1.1"/>', 1
+        )
+        + text[first:].replace("<mesh ", '<mesh scale="0.5 2 1" ', 1)
+    ).replace('filename="../', f'filename="{URDF.parent.parent}/')
+    other = tmp_path / "other.urdf"
+    other.write_text(edited)
+    for urdf in (URDF, other):
+        model = PayloadModel(urdf)
+        robot = yourdfpy.URDF.load(str(urdf), build_scene_graph=False, load_meshes=False)
+        assert model.links == tuple(link.name for link in robot.robot.links)
+        for link in robot.robot.links:
+            theirs = [v for v in link.visuals if v.geometry and v.geometry.mesh]
+            mine = model.visuals[link.name]
+            assert len(mine) == len(theirs)
+            for v, w in zip(mine, theirs):
+                assert v.mesh == (urdf.parent / w.geometry.mesh.filename).resolve()
+                origin = np.eye(4) if w.origin is None else np.asarray(w.origin, float)
+                assert np.allclose(v.origin, origin, atol=1e-15)
+                scale = 1.0 if w.geometry.mesh.scale is None else w.geometry.mesh.scale
+                assert np.array_equal(v.scale, np.broadcast_to(np.asarray(scale, float), (3,)))
+    assert not np.allclose(PayloadModel(other).visuals[model.links[0]][0].origin, np.eye(4))

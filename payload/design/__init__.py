@@ -29,12 +29,17 @@ from payload.design.tree import (
 )
 
 if TYPE_CHECKING:
-    from payload.design.build import generate, models_follow_design, stale_files, write
+    from payload.design.build import generate, stale_files, write
+    from payload.design.follow import models_follow_design
 
 _BUILD_NAMES = ("generate", "models_follow_design", "stale_files", "write")
 
 
 def __getattr__(name: str) -> Any:
+    if name == "models_follow_design":  # no trimesh while the models are fresh
+        from payload.design.follow import models_follow_design
+
+        return models_follow_design
     if name in _BUILD_NAMES:
         from payload.design import build
 

@@ -10,15 +10,13 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from payload.design.follow import MESH_DIR, URDF_DIR
 from payload.design.mjcf import scene_xml, to_mjcf
 from payload.design.params import Design
 from payload.design.solids import check_solid
 from payload.design.tree import KinematicTree, build_tree
 from payload.design.urdf import to_urdf
 from payload.safeio import replace_file
-
-URDF_DIR = "urdf"
-MESH_DIR = "cad/meshes"
 
 
 def stl_bytes(mesh: trimesh.Trimesh, name: str) -> bytes:
@@ -118,21 +116,15 @@ MODELS_LINE = "models: rebuilt {files} from {design} (the models follow the desi
 """What every command that reads the generated models prints after rebuilding stale ones."""
 
 
-def models_follow_design(design_path: Path, root: Path, *, json: bool = False) -> list[str]:
-    """The one rule for stale models: every command that reads a project's generated
-    models calls this first, and stale models are rebuilt, never used and never refused.
-
-    Like ``payload build``, the models are regenerated from the project's own design
-    file; the line :data:`MODELS_LINE` is printed naming what changed: on stdout, or on
-    stderr when the command prints JSON (stdout then holds the one JSON object).
-
-    Args:
-        design_path: The project's ``cad/design.toml``.
-        root: The project folder (models under ``urdf/`` and ``cad/meshes/``).
-        json: The command prints JSON (``--json``): the line goes to stderr.
+def follow_design(
+    design_path: Path, root: Path, *, json: bool = False
+) -> tuple[list[str], dict[str, bytes]]:
+    """The work of :func:`payload.design.follow.models_follow_design`: generate every model
+    from the design, rewrite the stale ones under ``root`` and print :data:`MODELS_LINE`.
 
     Returns:
-        The rebuilt files relative to ``root`` (empty: the models matched).
+        The rebuilt files relative to ``root`` (empty: the models matched), and every
+        generated file's bytes by path relative to ``root``.
 
     Raises:
         DesignError: The design file is invalid (nothing is written).
@@ -146,4 +138,4 @@ def models_follow_design(design_path: Path, root: Path, *, json: bool = False) -
         shown = ", ".join(stale[:3]) + (f" and {len(stale) - 3} more" if len(stale) > 3 else "")
         line = MODELS_LINE.format(files=shown, design=design_path)
         print(line, file=sys.stderr if json else sys.stdout, flush=True)
-    return stale
+    return stale, files

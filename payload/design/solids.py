@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING
 import manifold3d as m3d
 import numpy as np
 
+from payload.design.mass_cache import cached_mass_props
 from payload.design.params import FINGERS, SIDE_OF, Design
 from payload.errors import BuildError
 
@@ -115,12 +116,18 @@ def servo_props(design: Design, center: np.ndarray, long_axis: int) -> MassProps
 
 
 def part_props(part: Part) -> MassProps:
-    tm = to_trimesh(part.solid)
-    vol = float(tm.volume)
-    if vol <= 0:
-        raise BuildError(f"part {part.name} has non-positive volume")
-    mass = vol * part.density
-    return MassProps(mass, np.asarray(tm.center_mass), np.asarray(tm.moment_inertia) * part.density)
+    """Mass properties of one part (trimesh's, kept in the disk cache by the mesh's hash)."""
+
+    def compute() -> tuple[float, np.ndarray, np.ndarray]:
+        tm = to_trimesh(part.solid)
+        vol = float(tm.volume)
+        if vol <= 0:
+            raise BuildError(f"part {part.name} has non-positive volume")
+        mass = vol * part.density
+        return mass, np.asarray(tm.center_mass), np.asarray(tm.moment_inertia) * part.density
+
+    mass, com, inertia = cached_mass_props(part.solid, part.density, compute)
+    return MassProps(mass, com, inertia)
 
 
 @dataclass(frozen=True)

@@ -3,15 +3,16 @@
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import manifold3d as m3d
 import numpy as np
-from matplotlib.patches import PathPatch, Rectangle
-from matplotlib.path import Path as MplPath
 
 from payload.envelope.geometry import PayloadGeometry
 from payload.envelope.vehicle import Vehicle
+
+if TYPE_CHECKING:  # matplotlib loads with the first drawing: the colours below need none
+    from matplotlib.patches import PathPatch, Rectangle
 
 FINGER_COLOURS = {"A": "#1f77b4", "B": "#9467bd", "C": "#2ca02c", "D": "#e377c2"}
 """One colour per finger, none of them the pass/fail colours below."""
@@ -49,6 +50,9 @@ def polygons(section: m3d.CrossSection, axis: int) -> list[np.ndarray]:
 
 
 def polygon_patch(polys: Sequence[np.ndarray], **kw: Any) -> PathPatch | None:
+    from matplotlib.patches import PathPatch
+    from matplotlib.path import Path as MplPath
+
     if not polys:
         return None
     verts, codes = [], []
@@ -72,11 +76,15 @@ BAY_STYLE: dict[str, Any] = {"facecolor": "white", "edgecolor": "black", "ls": "
 
 def legend_box(label: str, **style: Any) -> Rectangle:
     """A legend handle: a box in ``style`` (matplotlib patch properties) named ``label``."""
+    from matplotlib.patches import Rectangle
+
     return Rectangle((0, 0), 1, 1, label=label, **style)
 
 
 def _box(lower: np.ndarray, upper: np.ndarray, h: int, v: int, **style: Any) -> Rectangle:
     """The (h, v) view of the axis-aligned box from ``lower`` to ``upper`` [mm]."""
+    from matplotlib.patches import Rectangle
+
     size = (upper[h] - lower[h], upper[v] - lower[v])
     return Rectangle((lower[h], lower[v]), *size, fill=True, **style)
 

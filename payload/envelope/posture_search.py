@@ -7,7 +7,6 @@ import time
 from collections.abc import Mapping, Sequence
 
 import numpy as np
-from scipy import optimize
 
 from payload.design.params import FINGER_JOINTS, FINGERS
 from payload.envelope.containment import box_clearance, protrusion
@@ -127,6 +126,8 @@ def search_stowed_posture(
             progress("posture search: grid", i / total)
     seeds.sort(key=lambda s: -s[0])
     best_x, best_v = seeds[0][1], seeds[0][0]
+    from scipy import optimize  # about 0.5 s of imports, for the search alone
+
     for k, (_, x0) in enumerate(seeds[:starts]):
         progress("posture search: refine", k / starts)
         res = optimize.minimize(

@@ -183,15 +183,19 @@ def analyse_reach(
     rng = np.random.default_rng(seed)
     progress("sampling", 0.0)
     q = sample_configurations(tree, int(samples), rng)
-    model_kin = design_kinematics(tree)
-    tips = fingertips_batch(tree, q)
-    timings["batched FK"] = time.perf_counter() - t0
-
     t = time.perf_counter()
     model = CollisionModel(geom, vehicle)
     if workers is None:
         workers = min(2, os.cpu_count() or 1)
-    contacts = model.check(q, progress, workers=workers)
+    pending = model.start(q, workers=workers)  # forked workers check while this goes on
+
+    t1 = time.perf_counter()
+    model_kin = design_kinematics(tree)
+    tips = fingertips_batch(tree, q)
+    spans = {name: span_range(model_kin.pairs[name]) for name in PAIRS}
+    timings["batched FK"] = time.perf_counter() - t1
+
+    contacts = pending(progress)
     timings["collisions"] = time.perf_counter() - t
 
     t = time.perf_counter()
@@ -202,7 +206,9 @@ def analyse_reach(
     pairs = []
     for name in PAIRS:
         pairs.append(
-            _pair_reach(tree, model_kin, name, q, tips, contacts, model, vehicle, features, rng)
+            _pair_reach(
+                tree, model_kin, name, spans[name], q, tips, contacts, model, vehicle, features, rng
+            )
         )
         progress("spans and grasps", len(pairs) / len(PAIRS))
     timings["spans and grasps"] = time.perf_counter() - t
@@ -258,6 +264,7 @@ def _pair_reach(
     tree: KinematicTree,
     model_kin: DesignKinematics,
     name: str,
+    span: SpanRange,
     q: np.ndarray,
     tips: np.ndarray,
     contacts: Contacts,
@@ -271,7 +278,6 @@ def _pair_reach(
     r = tree.design.finger.pad.radius
     c1 = [ALL_JOINTS.index(f"{f1}_{j}") for j in FINGER_JOINTS]
     c2 = [ALL_JOINTS.index(f"{f2}_{j}") for j in FINGER_JOINTS]
-    span = span_range(model_kin.pairs[name])
     own = finger_link_names(tree, f1) + finger_link_names(tree, f2)
     others = [n for g in FINGERS if g not in (f1, f2) for n in finger_link_names(tree, g)]
     free = ~contacts.involving(own, ignore=others)

@@ -4,24 +4,27 @@ The pieces, one job each: :mod:`~payload.envelope.report_json` (the data),
 :mod:`~payload.envelope.markdown`, :mod:`~payload.envelope.envelope_figure` and
 :mod:`~payload.envelope.reach_figure` (with :mod:`~payload.envelope.drawing`), and
 :mod:`~payload.envelope.writer` (the files, written only when a figure changed).
+Each loads on first use: a report whose figures did not change is not drawn, and then
+matplotlib is never imported.
 """
 
-from payload.envelope.drawing import FINGER_COLOURS, STRUCTURE_COLOUR
-from payload.envelope.envelope_figure import envelope_figure
-from payload.envelope.markdown import envelope_markdown, reach_markdown
-from payload.envelope.reach_figure import reach_figure
-from payload.envelope.report_json import envelope_json, reach_json
-from payload.envelope.writer import write_envelope, write_reach
+from __future__ import annotations
 
-__all__ = [
-    "FINGER_COLOURS",
-    "STRUCTURE_COLOUR",
-    "envelope_figure",
-    "envelope_json",
-    "envelope_markdown",
-    "reach_figure",
-    "reach_json",
-    "reach_markdown",
-    "write_envelope",
-    "write_reach",
-]
+from payload.lazy import lazy_exports
+
+_LAZY: dict[str, str] = {
+    "FINGER_COLOURS": "payload.envelope.drawing",
+    "STRUCTURE_COLOUR": "payload.envelope.drawing",
+    "envelope_figure": "payload.envelope.envelope_figure",
+    "envelope_json": "payload.envelope.report_json",
+    "envelope_markdown": "payload.envelope.markdown",
+    "reach_figure": "payload.envelope.reach_figure",
+    "reach_json": "payload.envelope.report_json",
+    "reach_markdown": "payload.envelope.markdown",
+    "write_envelope": "payload.envelope.writer",
+    "write_reach": "payload.envelope.writer",
+}
+
+__getattr__, __dir__ = lazy_exports(__name__, _LAZY)
+
+__all__ = sorted(_LAZY)

@@ -14,12 +14,10 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from payload.envelope.envelope_figure import envelope_figure
 from payload.envelope.fit_results import EnvelopeAnalysis
 from payload.envelope.geometry import PayloadGeometry
 from payload.envelope.markdown import envelope_markdown, reach_markdown
 from payload.envelope.reach import ReachAnalysis
-from payload.envelope.reach_figure import reach_figure
 from payload.envelope.report_json import envelope_json, reach_json
 from payload.safeio import replace_file, replacing
 
@@ -109,6 +107,20 @@ def _write_report(
     return paths
 
 
+def _draw_envelope(geom: PayloadGeometry, a: EnvelopeAnalysis, path: Path) -> None:
+    """The envelope figure (matplotlib loads here: only a changed report is drawn)."""
+    from payload.envelope.envelope_figure import envelope_figure
+
+    envelope_figure(geom, a, path)
+
+
+def _draw_reach(geom: PayloadGeometry, a: ReachAnalysis, path: Path) -> None:
+    """The reach figure (matplotlib loads here: only a changed report is drawn)."""
+    from payload.envelope.reach_figure import reach_figure
+
+    reach_figure(geom, a, path)
+
+
 def write_envelope(
     geom: PayloadGeometry,
     a: EnvelopeAnalysis,
@@ -127,7 +139,7 @@ def write_envelope(
         "envelope",
         envelope_markdown(a, command, "envelope.png"),
         envelope_json(a) if record is None else record(envelope_json(a)),
-        lambda path: envelope_figure(geom, a, path),
+        lambda path: _draw_envelope(geom, a, path),
         force,
     )
 
@@ -162,7 +174,7 @@ def write_reach(
         "reach",
         reach_markdown(a, command, "reach.png"),
         reach_json(a) if record is None else record(reach_json(a)),
-        lambda path: reach_figure(geom, a, path),
+        lambda path: _draw_reach(geom, a, path),
         force,
     )
 

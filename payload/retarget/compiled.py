@@ -22,6 +22,7 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 
+from payload.cache import cache_dir
 from payload.retarget.errors import RetargetError
 
 _CFLAGS = ("-O3", "-ffp-contract=off", "-fPIC", "-shared")
@@ -65,15 +66,6 @@ static inline double payload_fmin(double x, double y) { return (x < y || y != y)
 #define fmin payload_fmin
 /* ---- end of prelude ---- */
 """
-
-
-def cache_dir() -> Path:
-    """Directory of compiled solvers: ``$PAYLOAD_CACHE_DIR``, else the user cache dir."""
-    env = os.environ.get("PAYLOAD_CACHE_DIR")
-    if env:
-        return Path(env)
-    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
-    return Path(base) / "astrobee-payload" / "retarget"
 
 
 def _compiler() -> str | None:

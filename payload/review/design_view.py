@@ -25,7 +25,7 @@ import meshcat.geometry as mg
 import numpy as np
 from meshcat.animation import Animation, AnimationClip, AnimationTrack
 
-from payload.design import FINGERS, build_tree, load_design, stale_files
+from payload.design import FINGERS, build_tree, load_design
 from payload.envelope.drawing import (
     FAIL_COLOUR,
     FINGER_COLOURS,
@@ -206,8 +206,11 @@ def reach_clouds(
     geom: PayloadGeometry, vehicle: Vehicle, samples: int, seed: int
 ) -> dict[str, np.ndarray]:
     """Each finger's collision-free fingertip cloud, as the reach report samples it [m]."""
+    # from the defining modules: payload.envelope.reach loads the grasp check (SciPy's optimize)
     from payload.envelope.batch_fk import fingertips_batch
-    from payload.envelope.reach import CollisionModel, finger_link_names, sample_configurations
+    from payload.envelope.collisions import CollisionModel
+    from payload.envelope.pairs import finger_link_names
+    from payload.envelope.sampling import sample_configurations
 
     tree = geom.tree
     q = sample_configurations(tree, samples, np.random.default_rng(seed))
@@ -338,7 +341,11 @@ def build_design_review(
     """
     files.check()
     design = load_design(files.design)
-    stale = stale_files(design, files.urdf.parent.parent) if check_models else []
+    stale = []
+    if check_models:
+        from payload.design import stale_files  # generates every model: trimesh
+
+        stale = stale_files(design, files.urdf.parent.parent)
     if stale:
         raise ReviewError(
             f"the generated models do not match {files.design} ({', '.join(stale)}); "

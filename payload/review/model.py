@@ -5,10 +5,12 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
+from xml.etree import ElementTree
 
 import numpy as np
 import pinocchio as pin
 
+from payload.design.tree import rpy_matrix
 from payload.kinematics import Kinematics, KinematicsError
 from payload.review.errors import ReviewError
 
@@ -39,30 +41,22 @@ class PayloadModel:
     """
 
     def __init__(self, urdf: Path) -> None:
-        import yourdfpy
-
         try:
             self.kinematics = Kinematics(urdf)
-            robot = yourdfpy.URDF.load(str(urdf), build_scene_graph=False, load_meshes=False)
-        except (KinematicsError, OSError, ValueError) as exc:
+            links = _link_visuals(Path(urdf))
+        except (KinematicsError, OSError, ValueError, ElementTree.ParseError) as exc:
             raise ReviewError(f"cannot read the generated model {urdf}: {exc}") from exc
         self.urdf = Path(urdf)
-        self.links: tuple[str, ...] = tuple(link.name for link in robot.robot.links)
+        self.links: tuple[str, ...] = tuple(links)
         self.visuals: dict[str, list[Visual]] = {}
-        for link in robot.robot.links:
+        for name, visuals in links.items():
             out = []
-            for v in link.visuals:
-                if v.geometry is None or v.geometry.mesh is None:
-                    continue
-                mesh = (self.urdf.parent / v.geometry.mesh.filename).resolve()
+            for filename, origin, scale in visuals:
+                mesh = (self.urdf.parent / filename).resolve()
                 if not mesh.is_file():
-                    raise ReviewError(
-                        f"mesh {mesh} of link {link.name} not found; run `payload build`"
-                    )
-                origin = np.eye(4) if v.origin is None else np.asarray(v.origin, dtype=float)
-                scale = np.ones(3) if v.geometry.mesh.scale is None else v.geometry.mesh.scale
-                out.append(Visual(mesh, origin, np.broadcast_to(np.asarray(scale, float), (3,))))
-            self.visuals[link.name] = out
+                    raise ReviewError(f"mesh {mesh} of link {name} not found; run `payload build`")
+                out.append(Visual(mesh, origin, scale))
+            self.visuals[name] = out
         model = self.kinematics.model
         self._frames = {n: model.getFrameId(n, pin.FrameType.BODY) for n in self.links}
 
@@ -79,6 +73,32 @@ class PayloadModel:
         pin.forwardKinematics(kin.model, kin.data, q)
         pin.updateFramePlacements(kin.model, kin.data)
         return {n: np.array(kin.data.oMf[f].homogeneous) for n, f in self._frames.items()}
+
+
+def _numbers(text: str | None, default: tuple[float, ...]) -> np.ndarray:
+    return np.array(default if text is None else [float(v) for v in text.split()], dtype=float)
+
+
+def _link_visuals(urdf: Path) -> dict[str, list[tuple[str, np.ndarray, np.ndarray]]]:
+    """Each link of a URDF (in file order) -> its mesh visuals: (file name as written,
+    placement in the link frame (4, 4), per-axis scale (3,)). Read with the standard
+    library: a URDF parser (yourdfpy) would load trimesh, about a second of imports."""
+    out: dict[str, list[tuple[str, np.ndarray, np.ndarray]]] = {}
+    for link in ElementTree.parse(urdf).getroot().iter("link"):
+        visuals = []
+        for v in link.findall("visual"):
+            mesh = v.find("geometry/mesh")
+            if mesh is None or mesh.get("filename") is None:
+                continue
+            origin = np.eye(4)
+            o = v.find("origin")
+            if o is not None:
+                origin[:3, :3] = rpy_matrix(tuple(_numbers(o.get("rpy"), (0.0, 0.0, 0.0))))
+                origin[:3, 3] = _numbers(o.get("xyz"), (0.0, 0.0, 0.0))
+            scale = np.broadcast_to(_numbers(mesh.get("scale"), (1.0,)), (3,))
+            visuals.append((str(mesh.get("filename")), origin, scale))
+        out[str(link.get("name"))] = visuals
+    return out
 
 
 __all__ = ["PayloadModel", "Visual"]
