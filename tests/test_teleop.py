@@ -431,3 +431,21 @@ def test_a_lost_hand_brakes_even_with_the_right_wrist_outside():
     out = _cruise(ch, None, np.array([0.3, -0.3, 0.0]), 3000)
     assert out.mode == "brake"
     np.testing.assert_array_equal(out.v_world, np.zeros(3))
+
+
+@pytest.mark.parametrize("max_value", [None, 0.1])
+def test_one_dimensional_limiter_gives_the_vector_limiters_bits(max_value):
+    """The scalar path of a one-dimensional limiter against the general numpy path:
+    random targets (jumps, holds, sign changes, beyond the cap), every value and rate
+    bit for bit."""
+    rng = np.random.default_rng(7)
+    fast = JerkLimiter(1, 0.02, 0.02, max_value)
+    ref = JerkLimiter(1, 0.02, 0.02, max_value)
+    target = np.zeros(1)
+    for k in range(3000):
+        if k % 40 == 0:
+            target = rng.uniform(-0.3, 0.3, 1) * rng.choice([0.0, 1.0, 3.0])
+        out = fast.step(target, 0.02)
+        expect = ref._step_vector(target, 0.02)
+        assert out.tobytes() == expect.tobytes(), k
+        assert fast.rate.tobytes() == np.asarray(ref.rate, float).tobytes(), k

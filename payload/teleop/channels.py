@@ -123,6 +123,67 @@ class JerkLimiter:
         self.rate = np.zeros_like(self.rate)
 
     def step(self, target: np.ndarray, dt: float) -> np.ndarray:
+        """Advance one step of ``dt`` [s] toward ``target`` (shape (dim,)); the new value."""
+        if self.value.shape == (1,):
+            return self._step_scalar(float(np.asarray(target, dtype=float).reshape(1)[0]), dt)
+        return self._step_vector(target, dt)
+
+    def _step_scalar(self, t: float, dt: float) -> np.ndarray:
+        """:meth:`_step_vector` for one dimension in Python floats: the same operations in
+        the same order (a 1-vector's norm is ``sqrt(x * x)``, its dot product one product),
+        so the same bits, without numpy's per-call cost on one-element arrays."""
+        value, rate = float(self.value[0]), float(self.rate[0])
+        mj, mv = self.max_jerk, self.max_value
+        if mv is not None:
+            tn = math.sqrt(t * t)
+            if tn > mv:
+                t = t * (mv / tn)
+        e = t - value
+        jdt = mj * dt
+        if e == 0.0 and math.sqrt(rate * rate) <= jdt:
+            self.rate = np.zeros(1)
+            return np.array([value])
+        landing = e / dt
+        if (
+            math.sqrt(landing * landing) <= jdt
+            and math.sqrt((landing - rate) * (landing - rate)) <= jdt
+        ):
+            self.rate = np.array([landing])
+            self.value = np.array([t])
+            return np.array([t])
+        lead = rate * math.sqrt(rate * rate) / (2 * mj)
+        e_eff = e - lead
+        n = math.sqrt(e_eff * e_eff)
+        a_target = 0.0 if n < 1e-15 else e_eff / n * min(self.max_rate, math.sqrt(2 * mj * n))
+        da = a_target - rate
+        vn = math.sqrt(value * value)
+        if mv is not None and vn > 1e-12:
+            u = value / vn
+            cap = math.sqrt(2 * mj * max(0.0, mv - vn))
+            radial_now = rate * u
+            radial_want = min(a_target * u, cap)
+            dr = min(max(radial_want - radial_now, -jdt), jdt)
+            tangential = da - (da * u) * u
+            budget = math.sqrt(max(0.0, jdt * jdt - dr * dr))
+            tn = math.sqrt(tangential * tangential)
+            if tn > budget:
+                tangential *= budget / tn
+            da = dr * u + tangential
+            new = rate + da
+            nn = math.sqrt(new * new)
+            if nn > self.max_rate:
+                da = new * (self.max_rate / nn) - rate
+        else:
+            dn = math.sqrt(da * da)
+            if dn > jdt:
+                da *= jdt / dn
+        rate = rate + da
+        value = value + rate * dt
+        self.rate = np.array([rate])
+        self.value = np.array([value])
+        return np.array([value])
+
+    def _step_vector(self, target: np.ndarray, dt: float) -> np.ndarray:
         target = np.asarray(target, dtype=float)
         if self.max_value is not None:
             tn = float(norm(target))
