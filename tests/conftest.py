@@ -46,11 +46,42 @@ def _checkout_is_the_project():
         os.environ["PAYLOAD_PROJECT"] = old
 
 
+SERIAL_FILES = frozenset(
+    {
+        "test_firmware_cli.py",
+        "test_firmware_driver.py",
+        "test_firmware_guard.py",
+        "test_firmware_homing.py",
+        "test_firmware_identify.py",
+        "test_firmware_loop.py",
+        "test_review.py",
+        "test_review_browser.py",
+        "test_teleop_browser.py",
+        "test_teleop_server.py",
+    }
+)
+"""Tests that run against the wall clock (the servo-bus emulator integrates in real time
+on a pty, headless Chromium, live servers with latency and watch deadlines): ``make test``
+runs them after the parallel part, one at a time, so no other test steals their core."""
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    for item in items:
+        if item.path.name in SERIAL_FILES:
+            item.add_marker(pytest.mark.serial)
+
+
 @pytest.fixture(scope="session", autouse=True)
 def _isolated_payload_cache(tmp_path_factory):
-    """Compiled solvers go to a temporary ``PAYLOAD_CACHE_DIR``, not the user's cache."""
+    """Compiled solvers go to a temporary ``PAYLOAD_CACHE_DIR``, not the user's cache; the
+    workers of one parallel run share it (the cache writes each library atomically)."""
     old = os.environ.get("PAYLOAD_CACHE_DIR")
-    os.environ["PAYLOAD_CACHE_DIR"] = str(tmp_path_factory.mktemp("payload-cache"))
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        shared = tmp_path_factory.getbasetemp().parent / "payload-cache"
+        shared.mkdir(exist_ok=True)
+        os.environ["PAYLOAD_CACHE_DIR"] = str(shared)
+    else:
+        os.environ["PAYLOAD_CACHE_DIR"] = str(tmp_path_factory.mktemp("payload-cache"))
     yield
     if old is None:
         os.environ.pop("PAYLOAD_CACHE_DIR", None)
