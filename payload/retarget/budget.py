@@ -31,7 +31,7 @@ def budget_plan(config: RetargetConfig) -> tuple[tuple[str, int], ...]:
     * ``paper`` without self-collision: ``prev`` (the warm start, the previous command)
       with ``config.warm_evaluations``, then ``ref`` (the posture reference) with the rest.
     * ``paper`` with self-collision modelled: :data:`PAPER_COLLISION_PLAN`.
-    * ``converged``: ``prev``, the table starts ``seed0`` to ``seed9`` (:func:`table_seeds`),
+    * ``converged``: ``prev``, the table starts ``seed0`` to ``seed11`` (:func:`table_seeds`),
       then ``ref``.
     """
     if config.budget == "paper":
@@ -73,7 +73,7 @@ gives the descent a collision-free start. On ours (``payload bench retarget --st
 99.5 %; without the model, where nothing blocks the warm start, the probes gave no gain
 (99.3 % and 99.2 %) and the plan stays ``prev`` then ``ref``."""
 
-TABLE_STARTS = 10
+TABLE_STARTS = 12
 """Starts of a ``converged`` solve taken from the seed table, besides the previous command
 and the posture reference."""
 
