@@ -18,6 +18,7 @@ import casadi as ca
 import numpy as np
 
 from payload.retarget.budget import RESUME, budget_plan, table_seeds
+from payload.retarget.collision import register as register_collision_model
 from payload.retarget.collision_eval import evaluate_function
 from payload.retarget.errors import RetargetError
 from payload.retarget.features import N_FEATURES, PairKinematics
@@ -152,6 +153,7 @@ def solve_parts(
 ) -> SolveParts:
     """The pieces of one pair solve (:class:`SolveParts`); ``penalty``: see
     :func:`build_solve_function`; ``prefix`` starts each piece's name (its C symbol)."""
+    register_collision_model()  # pk.collision, when the config models it
     n = pk.n
     npar = N_FEATURES + 2 * n
     q = ca.SX.sym("q", n)
