@@ -31,7 +31,7 @@ from payload.retarget import (
     pair_range,
 )
 from payload.retarget.bench import human_pinch_and_open, synthetic_hand
-from payload.retarget.budget import evaluation_cap
+from payload.retarget.budget import RESUME, budget_plan, evaluation_cap
 from payload.retarget.collision import (
     Box,
     box_sdf,
@@ -411,18 +411,23 @@ def test_the_vm_agrees_with_the_compiled_solver_with_collisions_on(pks, solvers)
     assert near > 0  # some answers end in the band, where the collision terms act
 
 
-@pytest.mark.parametrize("collisions", [True, False])
-def test_the_c_driver_gives_the_graphs_generated_code_bit_for_bit(hand, pks, collisions):
+@pytest.mark.parametrize(
+    ("collisions", "budget"), [(True, "converged"), (True, "paper"), (False, "paper")]
+)
+def test_the_c_driver_gives_the_graphs_generated_code_bit_for_bit(hand, pks, collisions, budget):
     """The compiled solver's C loop over the starts and iterations (payload.retarget.lm_c,
     with its own init, finish and proposal) and CasADi's own generated code of the
     nested-conditional graph, compiled beside it: the same bytes on a carried sequence.
     With collision groups, through all the starts of the converged budget (short
-    iteration caps: the starts stop at their caps and the later ones still run); without
-    (no groups), the paper budget, with targets past the joint limits so that steps stop
-    on bounds."""
+    iteration caps: the starts stop at their caps and the later ones still run) and the
+    paper budget's starts with the model (probes, then the start from the best point met);
+    without (no groups), the paper budget, with targets past the joint limits so that
+    steps stop on bounds."""
     pk = pks["R"]
-    if collisions:
+    if collisions and budget == "converged":
         config = RetargetConfig(collisions=True, budget="converged", max_iterations=4)
+    elif collisions:
+        config = RetargetConfig(collisions=True, budget="paper")
     else:
         config = RetargetConfig(collisions=False, budget="paper")
     r = PairRetargeter(hand, "R", config, pk, backend="compiled")
@@ -450,6 +455,8 @@ def test_the_c_driver_gives_the_graphs_generated_code_bit_for_bit(hand, pks, col
         on_bound += int(np.any((q == pk.lower) | (q == pk.upper)))
     if collisions:
         assert max(used) == evaluation_cap(config)  # every start ran, the last to its cap
+        if budget == "paper":
+            assert budget_plan(config)[-1][0] == RESUME
     else:
         assert used == {r.config.max_nfev} and on_bound > 0
 

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from payload.retarget import PairKinematics, load_hand
+from payload.retarget.collision import register
 from payload.retarget.meshcheck import PairMeshCheck
 
 DATA = Path(__file__).resolve().parent / "data"
@@ -24,6 +25,7 @@ FCL_TOLERANCE = 0.5e-3
 
 @pytest.fixture(scope="module")
 def hand():
+    register()  # pk.collision (the retargeters call it; a test alone might not build one)
     return load_hand()
 
 

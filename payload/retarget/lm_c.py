@@ -25,6 +25,7 @@ and bounds carried into the next solve's anchor).
 
 from __future__ import annotations
 
+from payload.retarget.budget import RESUME
 from payload.retarget.compiled import c_ints, c_reals, code_generator, work_sizes
 from payload.retarget.lm_graph import (
     _BOUND_EPS,
@@ -55,6 +56,7 @@ _DRIVER = r"""
 #define SUB_W {sub_w}
 static const casadi_real CAP[NS] = {{{caps}}};
 static const int LEVELS[NS] = {{{levels}}};
+static const int RESUME[NS] = {{{resume}}}; /* continue from the best point met */
 static const casadi_real INITIAL[NX] = {{{initial}}};
 
 /* an evaluation's outputs (cost, g, H, clearance, bounds) where the state holds them */
@@ -242,7 +244,8 @@ CASADI_SYMBOL_EXPORT int {name}(const casadi_real** arg, casadi_real** res, casa
   for (i = 0; i < NX; ++i) best[i] = INITIAL[i];
   for (k = 0; k < NS; ++k) {{
     if (best[I_EV] >= CAP[k]) continue; /* no evaluation left under this start's cap */
-    for (i = 0; i < NQ; ++i) cand[i] = starts[k * NQ + i];
+    /* a RESUME start begins at the best point met so far */
+    for (i = 0; i < NQ; ++i) cand[i] = RESUME[k] ? best[i] : starts[k * NQ + i];
     /* the first start carries the input anchor's bounds, the others the best state's */
     if (evaluate_at(cand, p, k ? best : arg[3], k ? best + I_BOUNDS : arg[4], iw, ws))
       return 1;
@@ -341,6 +344,7 @@ def driver_source(parts: SolveParts, name: str) -> str:
         sz_res=sizes["res"],
         caps=c_reals([cap for cap, _ in parts.starts]),
         levels=c_ints([levels for _, levels in parts.starts]),
+        resume=c_ints([int(tag == RESUME) for tag in parts.tags]),
         initial=c_reals(list(parts.initial)),
         lower=c_reals(list(parts.lower)),
         upper=c_reals(list(parts.upper)),

@@ -17,7 +17,8 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-from payload.retarget.budget import budget_plan, table_seeds
+from payload.retarget.budget import RESUME, budget_plan, table_seeds
+from payload.retarget.collision import register as register_collision_model
 from payload.retarget.collision_eval import evaluate_function
 from payload.retarget.errors import RetargetError
 from payload.retarget.features import N_FEATURES, PairKinematics
@@ -113,6 +114,7 @@ class SolveParts:
         finish: ``(x, best) -> best``: a start's result (:func:`_collapse`) kept if better.
         outputs: ``best -> (q, info, bounds)``: the solve's outputs.
         starts: ``(cumulative evaluation cap, iteration levels)`` per start.
+        tags: Each start's tag (:func:`payload.retarget.budget.budget_plan`).
         initial: The ``best`` state before any start (cost ``inf``).
         layout: :func:`_layout`.
         n: Joints.
@@ -132,6 +134,7 @@ class SolveParts:
     finish: ca.Function
     outputs: ca.Function
     starts: tuple[tuple[int, int], ...]
+    tags: tuple[str, ...]
     initial: np.ndarray
     layout: dict[str, int]
     n: int
@@ -150,6 +153,7 @@ def solve_parts(
 ) -> SolveParts:
     """The pieces of one pair solve (:class:`SolveParts`); ``penalty``: see
     :func:`build_solve_function`; ``prefix`` starts each piece's name (its C symbol)."""
+    register_collision_model()  # pk.collision, when the config models it
     n = pk.n
     npar = N_FEATURES + 2 * n
     q = ca.SX.sym("q", n)
@@ -212,7 +216,8 @@ def solve_parts(
         ca.MX.sym("q_ref", n),
     )
     q0 = ca.fmin(ca.fmax(q_prev, lbv), ubv)
-    seeds = {"prev": q0, "ref": ca.fmin(ca.fmax(q_ref, lbv), ubv)}
+    # RESUME's column is a placeholder: that start continues from the best point met
+    seeds = {"prev": q0, "ref": ca.fmin(ca.fmax(q_ref, lbv), ubv), RESUME: q0}
     plan = budget_plan(config)
     tags = [tag for tag, _ in plan if tag.startswith("seed")]
     for tag, q_seed in zip(tags, table_seeds(pk, config, targets, q_ref, q0, len(tags))):
@@ -237,6 +242,7 @@ def solve_parts(
         finish,
         outputs,
         starts,
+        tuple(tag for tag, _ in plan),
         initial,
         lay,
         n,
@@ -410,7 +416,10 @@ def build_solve_function(
         run = ca.Function(f"start_{tag}", [xb, qs, ps, qa, ba], [parts.finish(st, xb)])
         start = ca.Function.conditional(f"maybe_{tag}", [run], skip)
         anchor = (q_anchor, bounds_in) if k == 0 else (best[:n], best[i_b : i_b + ng])
-        best = start(best[i_ev] >= cap, best, start_points[:, k], p_mx, *anchor)
+        # RESUME starts again from the best point met (evaluated again: a start's best
+        # state keeps the gradient of where its iterates stopped, not of its best point)
+        q_start = best[:n] if tag == RESUME else start_points[:, k]
+        best = start(best[i_ev] >= cap, best, q_start, p_mx, *anchor)
     q_out, info, bounds_out = parts.outputs(best)
     return ca.Function(
         name,

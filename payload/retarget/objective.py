@@ -65,8 +65,10 @@ class RetargetConfig:
             start runs to its convergence tests or ``max_iterations``.
         max_nfev: Residual evaluations per pair solve: the scipy reference's
             ``max_nfev`` and the production solver's whole ``paper`` budget (paper: 20).
-        warm_evaluations: Of the ``paper`` budget, the evaluations the warm start may
-            use; what it leaves goes to a second start from the posture reference.
+        warm_evaluations: Of the ``paper`` budget without self-collision, the
+            evaluations the warm start may use; what it leaves goes to a second start from
+            the posture reference (with self-collision modelled the starts are
+            :data:`payload.retarget.budget.PAPER_COLLISION_PLAN`).
         max_iterations: Hard cap on iterations of each start of the production solver
             (``converged`` budget); each iteration evaluates the residuals and their
             Jacobian once.
