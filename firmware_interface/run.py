@@ -297,6 +297,7 @@ def run_hardware_trial(
     from payload.project import current_project, provenance
     from payload.trials.recorder import TrialRecorder
     from payload.trials.runner import base_filter_for, module_rects, step_record
+    from payload.trials.safety import recording_scene
     from payload.trials.scoring import finish_trial
     from payload.trials.sources import load_replay
 
@@ -343,9 +344,11 @@ def run_hardware_trial(
         "controller_overrides": controller[1],
     }  # fmt: skip
     trips0 = len(hardware.watchdog_trips)
+    # the trial's Foxglove and safety channels (the filter's record, station contacts)
+    scene = recording_scene(sim, module_rects(layout))
     try:
         with (
-            TrialRecorder(rec_path, overwrite=True) as recorder,
+            TrialRecorder(rec_path, overwrite=True, scene=scene) as recorder,
             HandRecordingWriter(out / "hands.jsonl", meta={"seed": meta["seed"]}) as hands_out,
         ):
             recorder.write_meta(meta)
@@ -353,6 +356,7 @@ def run_hardware_trial(
 
             def on_step(ctx: StepContext) -> None:
                 hands_out.write(ctx.frame)
+                scene.observe(ctx.t)
                 recorder.write(step_record(ctx, driver, retargeters))
                 steps[0] += 1
                 if steps[0] == ARM_AFTER_STEPS:  # past the first steps' one-off set-up
@@ -365,7 +369,7 @@ def run_hardware_trial(
                                       on_step=on_step, rt=(retargeters, ranges))  # fmt: skip
             watchdog = watchdog_report(hardware.watchdog_trips[trips0:])
             recorder.write_meta({"steps": len(commands), "warnings": driver.warnings(),
-                                 "watchdog": watchdog})  # fmt: skip
+                                 "watchdog": watchdog, **scene.summary()})  # fmt: skip
     finally:
         sim.close()
     result = finish_trial(out, rec_path)

@@ -100,6 +100,17 @@ def test_hw_run_records_the_trial_like_the_simulator(session, tmp_path):
     _, replayed = read_hand_recording(out / "hands.jsonl")
     assert all(np.array_equal(a.left.joints, b.left.joints, equal_nan=True)
                for a, b in zip(frames, replayed))  # fmt: skip
+    # the safety channel a trial records, one record per step, and the station figures
+    from payload.schema import CONTROL_DT
+    from payload.trials.safety import FILTER_TOPIC
+
+    safety = [json.loads(m.data) for m in _messages(out / "log.mcap", FILTER_TOPIC)]
+    assert len(safety) == len(frames)
+    assert all(r["station_clearance_m"] > 0 and "active" in r for r in safety)
+    assert metrics["station_contacts"] == sum(r["station_contact"] for r in safety) == 0
+    least = min(r["station_clearance_m"] for r in safety)
+    assert metrics["min_station_clearance_mm"] == round(least * 1e3, 1)
+    assert metrics["filter_active_s"] == round(sum(r["active"] for r in safety) * CONTROL_DT, 2)
     # refuses to overwrite the recording (asked in the earlier spellings, kept for a release)
     with EmulatorProcess() as emu:
         argv = ["hw", "run", "--port", emu.port, "--source", "replay", str(session),
@@ -133,3 +144,11 @@ def test_hw_run_of_a_synthetic_trial_says_what_it_ran_on_and_places_the_ctb_as_i
     # the CTB where the source trial had it (both from rest: the first recorded step)
     assert np.linalg.norm(a.ctb_pos[0] - b.ctb_pos[0]) < 1e-4
     assert "success:" in printed and "emulator" in printed  # the trial's summary, its far end
+
+
+def _messages(path, topic):
+    """The messages of one topic of an MCAP file, read with the mcap library itself."""
+    from mcap.reader import make_reader
+
+    with open(path, "rb") as f:
+        return [m for _, _, m in make_reader(f).iter_messages(topics=[topic])]
