@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 from conftest import DESIGN
 
+from payload.cache import cache_dir
 from payload.cli import main
 from payload.retarget import (
     DEFAULT_HAND,
@@ -26,7 +27,6 @@ from payload.retarget import (
     ReferenceRetargeter,
     RetargetConfig,
     RetargetError,
-    cache_dir,
     calibrate,
     cost_of_residuals,
     features_from_points,

@@ -149,11 +149,14 @@ def test_a_trial_with_self_collision_modelled_keeps_every_command_clear(tmp_path
     assert np.array_equal(c.left_joints, rec.left_joints, equal_nan=True)
     # the contact-aware rule leaves a pinch alone (only the pads close): without the model
     # the replay commands the right pair as the modelled trial did, and no non-pad term of
-    # the model is inside its margin in either
+    # the model is inside its margin in either. Not bit for bit: the paper budget with the
+    # model spends two of its 20 evaluations probing two more starts (docs/retargeting.md),
+    # so where the 20 evaluations stop short of the optimum the two stop at different
+    # points; 1e-4 rad is 10 um at the fingertip (the bench's median span error is 70 um)
     pk = PairKinematics(None, "R")
     qs = np.unique(np.asarray(c.q_right), axis=0)
     assert (pk.collision.distances_many(qs).min(axis=0) >= pk.collision.margin).all()
-    np.testing.assert_allclose(c.q_right, rec.q_right, atol=1e-9)
+    np.testing.assert_allclose(c.q_right, rec.q_right, atol=1e-4)
     from payload.teleop.replay import HandRecordingWriter
 
     meta, frames = read_hand_frames(out / "log.mcap")

@@ -10,9 +10,9 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from payload.design.follow import MESH_DIR, URDF_DIR
 from payload.design.mjcf import scene_xml, to_mjcf
 from payload.design.params import Design
+from payload.design.paths import MESH_DIR, URDF_DIR
 from payload.design.solids import check_solid
 from payload.design.tree import KinematicTree, build_tree
 from payload.design.urdf import to_urdf

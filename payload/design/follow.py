@@ -17,13 +17,10 @@ import json as json_module
 from pathlib import Path
 
 from payload.cache import cache_dir
+from payload.design.paths import MESH_DIR
 
 _FINGERPRINT_VERSION = "models-1"
 _PACKAGE = Path(__file__).resolve().parents[1]
-URDF_DIR = "urdf"
-"""Folder of the generated URDF and MJCF models, relative to the project root."""
-MESH_DIR = "cad/meshes"
-"""Folder of the generated link meshes (STL), relative to the project root."""
 
 
 def _code_hash() -> str:
@@ -119,4 +116,4 @@ def models_follow_design(design_path: Path, root: Path, *, json: bool = False) -
     return stale
 
 
-__all__ = ["MESH_DIR", "URDF_DIR", "models_follow_design"]
+__all__ = ["models_follow_design"]

@@ -30,7 +30,6 @@ _LAZY: dict[str, str] = {
     "BACKENDS": "payload.retarget.casadi_solver",
     "PairRetargeter": "payload.retarget.casadi_solver",
     "build_solve_function": "payload.retarget.casadi_solver",
-    "cache_dir": "payload.retarget.casadi_solver",
     "RetargetError": "payload.retarget.errors",
     "N_FEATURES": "payload.retarget.features",
     "PairFeatures": "payload.retarget.features",
