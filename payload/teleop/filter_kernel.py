@@ -216,29 +216,18 @@ def enclosing_box(
     """
     lo = np.full(3, np.inf)
     hi = np.full(3, -np.inf)
+    r = np.empty(3)
     for k in range(corner_geom.shape[0]):
         g = corner_geom[k]
-        r0 = (
-            geom_xpos[g, 0]
-            + geom_xmat[g, 0] * corners[k, 0]
-            + geom_xmat[g, 1] * corners[k, 1]
-            + geom_xmat[g, 2] * corners[k, 2]
-            - origin[0]
-        )
-        r1 = (
-            geom_xpos[g, 1]
-            + geom_xmat[g, 3] * corners[k, 0]
-            + geom_xmat[g, 4] * corners[k, 1]
-            + geom_xmat[g, 5] * corners[k, 2]
-            - origin[1]
-        )
-        r2 = (
-            geom_xpos[g, 2]
-            + geom_xmat[g, 6] * corners[k, 0]
-            + geom_xmat[g, 7] * corners[k, 1]
-            + geom_xmat[g, 8] * corners[k, 2]
-            - origin[2]
-        )
+        for i in range(3):  # the corner in the world, relative to the body's origin
+            r[i] = (
+                geom_xpos[g, i]
+                + geom_xmat[g, 3 * i] * corners[k, 0]
+                + geom_xmat[g, 3 * i + 1] * corners[k, 1]
+                + geom_xmat[g, 3 * i + 2] * corners[k, 2]
+                - origin[i]
+            )
+        r0, r1, r2 = r[0], r[1], r[2]
         for j in range(3):  # the corner relative to the body, in the body's frame
             v = frame[0, j] * r0 + frame[1, j] * r1 + frame[2, j] * r2
             lo[j] = min(lo[j], v)
