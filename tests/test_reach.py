@@ -271,7 +271,8 @@ def test_forked_workers_find_the_same_contacts(geom, tree):
 
 def test_contact_rows_are_every_body_pair_mujoco_reports_per_sample(geom, tree):
     """The batched bookkeeping against MuJoCo's contacts read one sample at a time, with
-    MuJoCo's default multi-point CCD (the check turns it off: same touching pairs)."""
+    MuJoCo's default convex collision (native GJK/EPA with multi-point CCD; the check uses
+    libccd with one point a pair: the same touching pairs)."""
     import collections
 
     import mujoco
@@ -280,9 +281,9 @@ def test_contact_rows_are_every_body_pair_mujoco_reports_per_sample(geom, tree):
     q = sample_configurations(tree, 2500, np.random.default_rng(21))
     contacts = model.check(q)
     m, d = model.model, model.data
-    multiccd = int(mujoco.mjtDisableBit.mjDSBL_MULTICCD)
-    assert m.opt.disableflags & multiccd
-    m.opt.disableflags &= ~multiccd
+    defaults = int(mujoco.mjtDisableBit.mjDSBL_MULTICCD | mujoco.mjtDisableBit.mjDSBL_NATIVECCD)
+    assert m.opt.disableflags & defaults == defaults
+    m.opt.disableflags &= ~defaults
     expected = set()
     for i, row in enumerate(q):
         for name, v in zip(ALL_JOINTS, row):

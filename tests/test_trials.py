@@ -665,6 +665,24 @@ def test_campaign_on_dask_local_cluster_matches_serial(tmp_path: Path) -> None:
     assert "| task success | 4/4 | 4/4 | 10/10 |" in (tmp_path / "d" / "summary.md").read_text()
 
 
+def _worker_profiler_enabled() -> bool:
+    import dask
+
+    return bool(dask.config.get("distributed.worker.profile.enabled"))
+
+
+def test_the_local_clusters_workers_run_without_the_dask_profiler() -> None:
+    # the profiler samples the task's stack every 10 ms under the GIL (docs/speed.md);
+    # asked of each worker process itself, not of this one's configuration
+    from payload.trials.cluster import dask_client
+
+    assert _worker_profiler_enabled()  # Dask's own default, in this process
+    with dask_client(2, None, RuntimeError) as client:
+        seen = client.run(_worker_profiler_enabled)
+    assert len(seen) == 2 and not any(seen.values())
+    assert _worker_profiler_enabled()  # the setting did not leak into this process
+
+
 def test_campaign_on_existing_scheduler_matches_serial(tmp_path: Path) -> None:
     from distributed import LocalCluster
 
