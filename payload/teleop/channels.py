@@ -118,6 +118,11 @@ class JerkLimiter:
         self.max_jerk = max_jerk
         self.max_value = max_value
 
+    ZERO_ERROR = 1e-15
+    """Below this magnitude of the braked error the landing acceleration is zero."""
+    ZERO_VALUE = 1e-12
+    """Below this magnitude of the value it has no outward direction for the cap."""
+
     def reset(self, value: np.ndarray | None = None) -> None:
         self.value = np.zeros_like(self.value) if value is None else np.array(value, float)
         self.rate = np.zeros_like(self.rate)
@@ -154,10 +159,12 @@ class JerkLimiter:
         lead = rate * math.sqrt(rate * rate) / (2 * mj)
         e_eff = e - lead
         n = math.sqrt(e_eff * e_eff)
-        a_target = 0.0 if n < 1e-15 else e_eff / n * min(self.max_rate, math.sqrt(2 * mj * n))
+        a_target = (
+            0.0 if n < self.ZERO_ERROR else e_eff / n * min(self.max_rate, math.sqrt(2 * mj * n))
+        )
         da = a_target - rate
         vn = math.sqrt(value * value)
-        if mv is not None and vn > 1e-12:
+        if mv is not None and vn > self.ZERO_VALUE:
             u = value / vn
             cap = math.sqrt(2 * mj * max(0.0, mv - vn))
             radial_now = rate * u
@@ -204,13 +211,13 @@ class JerkLimiter:
         lead = self.rate * norm(self.rate) / (2 * self.max_jerk)
         e_eff = e - lead
         n = float(norm(e_eff))
-        if n < 1e-15:
+        if n < self.ZERO_ERROR:
             a_target = np.zeros_like(e)
         else:
             a_target = e_eff / n * min(self.max_rate, math.sqrt(2 * self.max_jerk * n))
         da = a_target - self.rate
         vn = float(norm(self.value))
-        if self.max_value is not None and vn > 1e-12:
+        if self.max_value is not None and vn > self.ZERO_VALUE:
             # keep the magnitude below its cap: the outward rate follows a landing profile
             # onto the cap and gets the jerk budget first, so it is eased off in time
             u = self.value / vn
