@@ -4,17 +4,21 @@
 from __future__ import annotations
 
 import dataclasses
+import io
 import subprocess
 import sys
+import zlib
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from payload.teleop.hands import Hand, HandFrame
+from payload.trials import reading
+from payload.trials.integrity import _open_chunk, clean_records
 from payload.trials.reading import Recording, read_hand_frames, read_recording
 from payload.trials.recorder import TrialRecorder, random_step
-from payload.trials.records import RecordingError
+from payload.trials.records import HANDS_TOPIC, STEP_TOPIC, RecordingError
 
 N_STEPS = 120
 DT = 0.02
@@ -155,3 +159,170 @@ def test_commands_name_a_damaged_recording(recording: Path, tmp_path: Path):
         lines = proc.stderr.strip().splitlines()
         assert proc.returncode == 2, (args, proc.stderr)
         assert len(lines) == 1 and "log.mcap" in lines[0], (args, proc.stderr)
+
+
+# -- the reader's own walk of the records it uses (issue 31) -------------------------------
+@pytest.fixture(scope="module")
+def scene_recording(tmp_path_factory) -> Path:
+    """A recording as a trial writes it: Foxglove scene channels, hands, steps and
+    metadata, in many small chunks."""
+    from payload.sim.world import build_world
+    from payload.trials.foxglove import FoxgloveScene
+
+    world = build_world(None)
+    path = tmp_path_factory.mktemp("scene") / "log.mcap"
+    rng = np.random.default_rng(11)
+    lo, hi = world.model.jnt_range[world.model.dof_jntid[world.dof]].T
+    with TrialRecorder(path, flush_period_s=0.2, scene=FoxgloveScene(world)) as rec:
+        rec.write_meta({"seed": 5, "ctb": "single"})
+        for k in range(N_STEPS):
+            step = random_step(rng, k * DT, q_meas=rng.uniform(lo, hi), contact=k > 40)
+            rec.write_hands(
+                HandFrame(k * DT, Hand(step.left_joints, True), Hand(step.right_joints, True))
+            )
+            rec.write(step)
+        rec.write_meta({"finished": True})
+    return path
+
+
+def _general(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Make the reader take the general path (mcap's StreamReader over every record)."""
+    monkeypatch.setattr(reading, "_used_records", lambda data: None)
+
+
+def _outcome(path: Path) -> tuple[str, Recording | None, list | None]:
+    try:
+        return "", read_recording(path), _hands(path)
+    except RecordingError as exc:
+        return str(exc), None, None
+
+
+def test_the_used_records_are_the_stream_readers(scene_recording: Path):
+    """The reader's walk yields exactly the records of mcap's StreamReader it acts on (the
+    same Channel, Metadata and step/hand Message objects, in order), skipping the scene's."""
+    from mcap.exceptions import EndOfFile
+    from mcap.records import Channel, Message, Metadata
+    from mcap.stream_reader import StreamReader
+
+    data = clean_records(scene_recording.read_bytes(), scene_recording).data
+    everything = []
+    with pytest.raises(EndOfFile):  # how the stream of used records ends (no footer)
+        for r in StreamReader(io.BytesIO(data)).records:
+            everything.append(r)
+    topics: dict[int, str] = {}
+    expected = []
+    for r in everything:
+        if isinstance(r, Channel):
+            topics[r.id] = r.topic
+            expected.append(r)
+        elif isinstance(r, Metadata):
+            expected.append(r)
+        elif isinstance(r, Message) and topics.get(r.channel_id) in (STEP_TOPIC, HANDS_TOPIC):
+            expected.append(r)
+    fast = reading._used_records(data)
+    assert fast is not None
+    assert fast == expected
+    scene = sum(isinstance(r, Message) for r in everything) - sum(
+        isinstance(r, Message) for r in expected
+    )
+    assert scene >= N_STEPS // 2  # the file has scene messages, and they were skipped
+    assert {r.topic for r in expected if isinstance(r, Channel)} > {STEP_TOPIC, HANDS_TOPIC}
+
+
+def test_the_readers_walk_reads_what_the_general_path_reads(
+    scene_recording: Path, monkeypatch: pytest.MonkeyPatch
+):
+    fast = read_recording(scene_recording)
+    fast_hands = _hands(scene_recording)
+    assert len(fast) == N_STEPS and fast.complete and fast.meta["finished"]
+    _general(monkeypatch)
+    general = read_recording(scene_recording)
+    assert _same(fast, general)
+    for f in dataclasses.fields(Recording):  # bit for bit, dtypes included
+        x = getattr(fast, f.name)
+        if isinstance(x, np.ndarray):
+            y = getattr(general, f.name)
+            assert x.dtype == y.dtype and x.tobytes() == y.tobytes(), f.name
+    assert fast_hands == _hands(scene_recording)
+
+
+@pytest.mark.parametrize(
+    "tail",
+    [
+        b"\x05" + (10).to_bytes(8, "little") + bytes(10),  # a message shorter than its header
+        b"\x05" + (30).to_bytes(8, "little") + bytes(12),  # a torn last record
+        b"\x01" + (8).to_bytes(8, "little") + bytes(8),  # a record type it does not act on
+        b"\x04" + (30).to_bytes(8, "little") + bytes(30),  # a channel not filling its length
+        b"\x05\x00",  # less than a record's opcode and length
+    ],
+)
+def test_anything_unusual_goes_to_the_general_path(scene_recording: Path, tail: bytes):
+    data = clean_records(scene_recording.read_bytes(), scene_recording).data
+    assert reading._used_records(data) is not None
+    assert reading._used_records(data + tail) is None
+
+
+def _chunk_record(times: bytes, raw: bytes) -> bytes:
+    """An uncompressed chunk record of the records ``raw`` (its CRC right); ``times``: the
+    message start and end times of the chunk it replaces."""
+    body = b"".join(
+        (
+            times,
+            len(raw).to_bytes(8, "little"),
+            zlib.crc32(raw).to_bytes(4, "little"),
+            (0).to_bytes(4, "little"),  # compression "" (none)
+            len(raw).to_bytes(8, "little"),
+            raw,
+        )
+    )
+    return b"\x06" + len(body).to_bytes(8, "little") + body
+
+
+def test_fuzzed_recordings_read_or_fail_as_on_the_general_path(
+    scene_recording: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+):
+    """Seeded corruptions of a recording with a scene, half of them inside a chunk's
+    records (anywhere, or in a record's opcode or length) with the chunk rewritten to pass
+    its CRC (damage the integrity check cannot see): the same error line, or the same
+    recording, through the reader's walk as through the StreamReader."""
+    data = scene_recording.read_bytes()
+    chunks, pos = [], 8
+    while pos + 9 <= len(data):
+        length = int.from_bytes(data[pos + 1 : pos + 9], "little")
+        if data[pos] == 0x06:
+            chunks.append((pos, pos + 9 + length))
+        pos += 9 + length
+    rng = np.random.default_rng(31)
+    cases = []
+    for case in range(60):
+        damaged = bytearray(data)
+        if case % 2:
+            start, end = chunks[int(rng.integers(len(chunks)))]
+            raw = bytearray(_open_chunk(data[start + 9 : end]))
+            if case % 4 == 1:  # anywhere
+                at = int(rng.integers(len(raw) - 2))
+            else:  # a record's opcode or the low bytes of its length
+                heads, p = [], 0
+                while p + 9 <= len(raw):
+                    heads.append(p)
+                    p += 9 + int.from_bytes(raw[p + 1 : p + 9], "little")
+                at = heads[int(rng.integers(len(heads)))] + int(rng.integers(2))
+            raw[at : at + 2] = rng.integers(0, 256, size=2, dtype=np.uint8).tobytes()
+            damaged[start:end] = _chunk_record(data[start + 9 : start + 25], bytes(raw))
+        else:
+            at = int(rng.integers(8, len(data) - 8))
+            damaged[at : at + 4] = rng.integers(0, 256, size=4, dtype=np.uint8).tobytes()
+        path = tmp_path / f"case{case}.mcap"
+        path.write_bytes(bytes(damaged))
+        cases.append(path)
+    fast = [_outcome(p) for p in cases]
+    _general(monkeypatch)
+    general = [_outcome(p) for p in cases]
+    errors = 0
+    for path, (e1, r1, h1), (e2, r2, h2) in zip(cases, fast, general):
+        assert e1 == e2, path
+        if e1:
+            errors += 1
+        else:
+            assert _same(r1, r2) and h1 == h2, path
+    assert 0 < errors < len(cases), errors

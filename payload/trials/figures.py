@@ -108,6 +108,31 @@ def _shade(ax: Any, spans: Iterable[tuple[str, float, float]]) -> None:
         ax.axvspan(a, b, color=PHASE_COLORS.get(name, "#eeeeee"), alpha=0.6, lw=0, zorder=0)
 
 
+_EDGE_IN = 0.06
+"""Blank border around a figure's outermost text [in]."""
+_CTB_SIZE_IN = (9.0, 7.5)
+_CTB_MARGINS_IN = {"left": 0.9, "right": 0.08, "top": 0.5, "bottom": 0.85, "hspace": 0.2}
+_ROUTE_SIZE_IN = (8.0, 7.0)
+_ROUTE_MARGINS_IN = {"left": 0.75, "right": 0.08, "top": 0.3, "bottom": 0.5}
+"""Fixed margins [in] (left/right/top/bottom from the figure's edges; hspace between
+panels): room for the tick labels, axis labels, title and figure legend, so no layout
+engine measures the texts (constrained layout drew every text twice more)."""
+
+
+def _margins(size_in: tuple[float, float], margins_in: dict[str, float]) -> dict[str, float]:
+    """Gridspec parameters (figure fractions) of margins in inches."""
+    w, h = size_in
+    out = {
+        "left": margins_in["left"] / w,
+        "right": 1.0 - margins_in["right"] / w,
+        "top": 1.0 - margins_in["top"] / h,
+        "bottom": margins_in["bottom"] / h,
+    }
+    if "hspace" in margins_in:
+        out["hspace"] = margins_in["hspace"]
+    return out
+
+
 def save_figure(fig: Figure, path: Path, dpi: int) -> Path:
     """Save ``fig`` to ``path`` (format from the suffix) through a temporary file."""
     path = Path(path)
@@ -147,8 +172,8 @@ def plot_ctb_body_frame(
     bp = 1e3 * ctb_in_body_frame(recording.astrobee_pos, recording.astrobee_quat, recording.ctb_pos)
     spans = phase_spans(t, recording.phase)
 
-    fig = Figure(figsize=(9.0, 7.5), layout="constrained")
-    axes = fig.subplots(4, 1, sharex=True)
+    fig = Figure(figsize=_CTB_SIZE_IN)
+    axes = fig.subplots(4, 1, sharex=True, gridspec_kw=_margins(_CTB_SIZE_IN, _CTB_MARGINS_IN))
     labels = ("x", "y", "z")
     has_contact = math.isfinite(m.t0_s)
     for k, ax in enumerate(axes[:3]):
@@ -181,7 +206,9 @@ def plot_ctb_body_frame(
 
     present = phases_in_time_order(recording.phase)
     handles = [Patch(color=PHASE_COLORS[p], alpha=0.6, label=p) for p in present]
-    fig.legend(handles=handles, loc="outside lower center", ncols=max(1, len(handles)))
+    fig.legend(
+        handles=handles, loc="lower center", ncols=max(1, len(handles)), bbox_to_anchor=(0.5, 0.0)
+    )
     verdict = "success" if m.success else "failure"
     fig.suptitle(
         f"CTB centre of mass in the Astrobee body frame (eq. 4) -- {verdict}, "
@@ -189,6 +216,8 @@ def plot_ctb_body_frame(
         "solid: first confirmed contact (t0); dashed: its end; dash-dot: arrival in "
         f"{m.destination}",
         fontsize=10,
+        y=1.0 - _EDGE_IN / _CTB_SIZE_IN[1],
+        va="top",
     )
     return save_figure(fig, Path(path), dpi)
 
@@ -216,8 +245,8 @@ def plot_route(
     if len(recording) == 0:
         raise FigureError("cannot plot an empty recording")
     rects = [_as_rect(m) for m in (modules or [])]
-    fig = Figure(figsize=(8.0, 7.0), layout="constrained")
-    ax = fig.subplots()
+    fig = Figure(figsize=_ROUTE_SIZE_IN)
+    ax = fig.subplots(gridspec_kw=_margins(_ROUTE_SIZE_IN, _ROUTE_MARGINS_IN))
     for i, r in enumerate(rects):
         ax.add_patch(
             Rectangle(

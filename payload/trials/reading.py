@@ -9,18 +9,22 @@ import io
 import json
 import logging
 import math
+import struct
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from google.protobuf.message import DecodeError
+from mcap.data_stream import ReadDataStream
 from mcap.exceptions import EndOfFile, McapError
-from mcap.records import Channel, Message, Metadata
+from mcap.opcode import Opcode
+from mcap.records import Channel, McapRecord, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 
 from payload.trials import codec
-from payload.trials.integrity import META_CRC_KEY, clean_records
+from payload.trials.integrity import MAGIC, META_CRC_KEY, clean_records
 from payload.trials.records import (
     FIELD_SPECS,
     HANDS_TOPIC,
@@ -173,7 +177,9 @@ def _read_file(
         raise RecordingError(f"{path}: cannot read ({exc.strerror})") from exc
     records = clean_records(data, path)
     complete = records.complete
-    reader = StreamReader(io.BytesIO(records.data))
+    stream: Iterable[McapRecord] | None = _used_records(records.data)
+    if stream is None:  # anything unusual: the general reader, and its errors
+        stream = StreamReader(io.BytesIO(records.data)).records
     channels: dict[int, Channel] = {}
     meta: dict[str, Any] = {}
     rows: list[dict[str, Any]] = []
@@ -181,7 +187,7 @@ def _read_file(
     samples: list[dict[str, Any]] = []
     step_codec = codec.StepCodec()
     try:
-        for record in reader.records:
+        for record in stream:
             if isinstance(record, Channel):
                 channels[record.id] = record
             elif isinstance(record, Message):
@@ -217,6 +223,71 @@ def _read_file(
         )
         raise RecordingError(f"{path}: {where}: corrupt ({exc})") from None
     return channels, meta, rows, samples, complete
+
+
+_MESSAGE_HEADER = struct.Struct("<HIQQ")  # channel id, sequence, log and publish times
+_READ = {Opcode.SCHEMA: Schema.read, Opcode.CHANNEL: Channel.read, Opcode.METADATA: Metadata.read}
+_USED_TOPICS = frozenset((STEP_TOPIC, HANDS_TOPIC))
+
+
+def _used_records(data: bytes) -> list[McapRecord] | None:
+    """The records of :func:`clean_records`' stream that :func:`_read_file` acts on: its
+    channels and metadata, and the messages of the step and hand channels (the
+    Foxglove scene's messages, most of the file, are skipped without being built).
+
+    The records are the ones :class:`StreamReader` yields for them, parsed by the same
+    ``read`` methods from the same stream position; ``None`` (read it with the
+    ``StreamReader``, which then raises or stops where it does) for anything else: a
+    record type other than these four, a record whose fields do not fill its length
+    exactly, a message shorter than its header, a torn last record, a parse error.
+    """
+    n = len(data)
+    if not data.startswith(MAGIC):
+        return None
+    buffer = io.BytesIO(data)  # shares the bytes (no copy while only read)
+    out: list[McapRecord] = []
+    used: dict[int, bool] = {}  # channel id -> its messages are used
+    unpack_message = _MESSAGE_HEADER.unpack_from
+    pos = len(MAGIC)
+    try:
+        while pos < n:
+            if pos + 9 > n:
+                return None
+            op = data[pos]
+            length = struct.unpack_from("<Q", data, pos + 1)[0]
+            start, end = pos + 9, pos + 9 + length
+            if end > n:
+                return None
+            if op == Opcode.MESSAGE:
+                if length < _MESSAGE_HEADER.size:
+                    return None
+                cid, sequence, log_time, publish_time = unpack_message(data, start)
+                if used.get(cid, False):
+                    out.append(
+                        Message(
+                            channel_id=cid,
+                            log_time=log_time,
+                            data=data[start + _MESSAGE_HEADER.size : end],
+                            publish_time=publish_time,
+                            sequence=sequence,
+                        )
+                    )
+            elif op in _READ:
+                buffer.seek(start)
+                stream = ReadDataStream(buffer)
+                record = _READ[op](stream)
+                if stream.count != length:
+                    return None
+                if isinstance(record, Channel):
+                    used[record.id] = record.topic in _USED_TOPICS
+                if not isinstance(record, Schema):  # parsed (to fail where the
+                    out.append(record)  # StreamReader fails), never used
+            else:
+                return None
+            pos = end
+    except Exception:  # any parse problem: the general reader decides
+        return None
+    return out
 
 
 def _channel_version(channel: Channel) -> int:
