@@ -267,6 +267,9 @@ def test_forked_workers_find_the_same_contacts(geom, tree):
     one, two = model.check(q, workers=1), model.check(q, workers=2)
     for field in ("index", "body_a", "body_b"):
         assert np.array_equal(getattr(one, field), getattr(two, field))
+    # the ranges come back in any order; the rows are sorted by (sample, body a, body b)
+    order = np.lexsort((two.body_b, two.body_a, two.index))
+    assert np.array_equal(order, np.arange(len(order)))
 
 
 def test_contact_rows_are_every_body_pair_mujoco_reports_per_sample(geom, tree):

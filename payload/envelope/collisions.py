@@ -116,7 +116,7 @@ class CollisionModel:
             def serial(progress: Progress) -> Contacts:
                 parts = []
                 for k, (a, b) in enumerate(ranges):
-                    parts.append(self._check_range(samples, a, b))
+                    parts.append((a, self._check_range(samples, a, b)))
                     progress("collisions", (k + 1) / len(ranges))
                 return self._contacts(n, parts)
 
@@ -144,13 +144,16 @@ class CollisionModel:
 
         return forked
 
-    def _contacts(self, n: int, parts: list[np.ndarray]) -> Contacts:
-        rows = np.concatenate(parts) if parts else np.zeros((0, 3), dtype=int)
-        rows = rows[np.lexsort((rows[:, 2], rows[:, 1], rows[:, 0]))]
+    def _contacts(self, n: int, parts: list[tuple[int, np.ndarray]]) -> Contacts:
+        """The rows of every range, in sample order: each range's rows are sorted by
+        (sample, body a, body b) already (:meth:`_check_range`), and the ranges are
+        consecutive, so ordering the ranges by their first sample sorts the whole."""
+        parts = sorted(parts, key=lambda part: part[0])
+        rows = np.concatenate([r for _, r in parts]) if parts else np.zeros((0, 3), dtype=int)
         return Contacts(n, rows[:, 0], rows[:, 1], rows[:, 2], tuple(self.body_names))
 
     def _check_range(self, samples: np.ndarray, start: int, stop: int) -> np.ndarray:
-        """Rows (sample, body a, body b) of distinct body pairs in contact, a < b.
+        """Rows (sample, body a, body b) of distinct body pairs in contact, a < b, sorted.
 
         The loop does only MuJoCo's work per sample (place, kinematics, collision, copy
         the contacts' geoms); the bookkeeping runs once over the whole range.
@@ -238,10 +241,10 @@ _ACTIVE: tuple[CollisionModel, np.ndarray] | None = None
 """The model and samples a forked worker checks (set by the parent before forking)."""
 
 
-def _check_range(bounds: tuple[int, int]) -> np.ndarray:
+def _check_range(bounds: tuple[int, int]) -> tuple[int, np.ndarray]:
     assert _ACTIVE is not None
     model, samples = _ACTIVE
-    return model._check_range(samples, *bounds)
+    return bounds[0], model._check_range(samples, *bounds)
 
 
 def _quat(r: np.ndarray) -> list[float]:
