@@ -676,11 +676,11 @@ def test_the_local_clusters_workers_run_without_the_dask_profiler() -> None:
     # asked of each worker process itself, not of this one's configuration
     from payload.trials.cluster import dask_client
 
-    assert _worker_profiler_enabled()  # Dask's own default, in this process
+    here = _worker_profiler_enabled()  # Dask's default (on) unless the environment says
     with dask_client(2, None, RuntimeError) as client:
         seen = client.run(_worker_profiler_enabled)
     assert len(seen) == 2 and not any(seen.values())
-    assert _worker_profiler_enabled()  # the setting did not leak into this process
+    assert _worker_profiler_enabled() == here  # the setting did not leak into this process
 
 
 def test_campaign_on_existing_scheduler_matches_serial(tmp_path: Path) -> None:
