@@ -667,6 +667,7 @@ def test_campaign_on_dask_local_cluster_matches_serial(tmp_path: Path) -> None:
 
 def _worker_profiler_enabled() -> bool:
     import dask
+    import distributed  # noqa: F401  (its import registers the distributed.* defaults)
 
     return bool(dask.config.get("distributed.worker.profile.enabled"))
 
