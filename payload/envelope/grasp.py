@@ -6,6 +6,7 @@ from collections.abc import Callable, Sequence
 from typing import NamedTuple
 
 import numpy as np
+from scipy import optimize
 
 from payload.design.tree import ALL_JOINTS, KinematicTree
 from payload.envelope.batch_fk import frame_positions_batch
@@ -231,8 +232,6 @@ def _witness(
     r = tree.design.finger.pad.radius
     side = pair_side(tree, pair)
     target = feat.thickness + 2 * r
-    from scipy import optimize  # here, not at import: the reach check's workers start sooner
-
     res = optimize.least_squares(
         lambda x: _pinch(kin, tree, pair, x[None, :], side)[0] - target,
         start,

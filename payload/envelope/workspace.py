@@ -5,6 +5,7 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import numpy as np
+from scipy.spatial import ConvexHull
 
 from payload.design.params import FINGERS
 from payload.envelope.pairs import (
@@ -51,8 +52,6 @@ def workspace(
     pts = points if keep is None else points[keep]
     if len(pts) < 4:
         raise ReachError(f"finger {finger}: fewer than 4 reachable samples; sample more")
-    from scipy.spatial import ConvexHull  # here: the reach check's workers start sooner
-
     hull = ConvexHull(pts)
     return Workspace(
         finger,
