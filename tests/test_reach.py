@@ -272,6 +272,22 @@ def test_forked_workers_find_the_same_contacts(geom, tree):
     assert np.array_equal(order, np.arange(len(order)))
 
 
+def test_contact_ranges_in_any_order_give_the_sorted_rows(geom, tree):
+    """The ranges' rows joined in range order are every row sorted by (sample, body a,
+    body b), as a lexsort of all of them puts them, whatever order the ranges came in."""
+    model = CollisionModel(geom, VEHICLE)
+    q = sample_configurations(tree, 1200, np.random.default_rng(4))
+    bounds = [0, 150, 400, 401, 900, 1200]
+    parts = [(a, model._check_range(q, a, b)) for a, b in itertools.pairwise(bounds)]
+    rows = np.concatenate([r for _, r in parts])
+    expected = rows[np.lexsort((rows[:, 2], rows[:, 1], rows[:, 0]))]
+    shuffled = [parts[i] for i in np.random.default_rng(1).permutation(len(parts))]
+    assert [a for a, _ in shuffled] != bounds[:-1]
+    got = model._contacts(len(q), shuffled)
+    assert np.array_equal(np.column_stack([got.index, got.body_a, got.body_b]), expected)
+    assert len(expected) > len(q)  # most samples touch something: a real ordering problem
+
+
 def test_contact_rows_are_every_body_pair_mujoco_reports_per_sample(geom, tree):
     """The batched bookkeeping against MuJoCo's contacts read one sample at a time, with
     MuJoCo's default convex collision (native GJK/EPA with multi-point CCD; the check uses

@@ -627,6 +627,49 @@ def test_finish_trial_writes_files(tmp_path: Path) -> None:
         assert img[..., :3].std() > 0.05  # not a blank canvas
 
 
+def test_the_trial_figures_keep_every_text_on_the_canvas(tmp_path: Path, monkeypatch) -> None:
+    """The fixed margins (no layout engine) leave room for wide tick labels, every phase in
+    the legend and two-line titles: each axes' drawn extent (tick labels, axis labels,
+    titles) and each legend lie inside the figure, read from the drawn figure."""
+    from matplotlib.legend import Legend
+
+    from payload.trials import figures
+
+    drawn = []
+    save = figures.save_figure
+
+    def keep(fig, path, dpi):
+        drawn.append(fig)
+        return save(fig, path, dpi)
+
+    monkeypatch.setattr(figures, "save_figure", keep)
+    n = 600
+    phases = list(figures.PHASE_COLORS)
+    k = np.arange(n)
+    # offsets of ten metres and more: tick labels such as "-12000" on every panel
+    offsets = [(-12345.0 * (i % 7), 23456.0 * math.sin(i / 9), -34567.0) for i in range(n)]
+    rec = recording_with_offsets(
+        offsets,
+        [bool(i > 100) for i in range(n)],
+        phases=[phases[min(len(phases) - 1, int(i * len(phases) / n))] for i in k],
+    )
+    modules = [{"name": "kibo", "x_min": -2, "x_max": 2, "y_min": 3, "y_max": 10}]
+    figures.plot_ctb_body_frame(rec, tmp_path / "ctb.png")
+    figures.plot_route(rec, tmp_path / "route.png", modules)
+    assert len(drawn) == 2
+    for fig in drawn:
+        fig.canvas.draw()
+        renderer = fig.canvas.get_renderer()
+        page = fig.bbox
+        boxes = [ax.get_tightbbox(renderer) for ax in fig.axes]
+        boxes += [a.get_window_extent(renderer) for a in fig.findobj(Legend)]
+        if fig._suptitle is not None:
+            boxes.append(fig._suptitle.get_window_extent(renderer))
+        for box in boxes:
+            assert box.x0 >= page.x0 - 0.5 and box.x1 <= page.x1 + 0.5, (box, page)
+            assert box.y0 >= page.y0 - 0.5 and box.y1 <= page.y1 + 0.5, (box, page)
+
+
 def test_figures_reject_bad_modules(tmp_path: Path) -> None:
     from payload.trials.figures import FigureError, plot_route
 
@@ -675,13 +718,17 @@ def _worker_profiler_enabled() -> bool:
 def test_the_local_clusters_workers_run_without_the_dask_profiler() -> None:
     # the profiler samples the task's stack every 10 ms under the GIL (docs/speed.md);
     # asked of each worker process itself, not of this one's configuration
+    import dask
+
     from payload.trials.cluster import dask_client
 
-    here = _worker_profiler_enabled()  # Dask's default (on) unless the environment says
-    with dask_client(2, None, RuntimeError) as client:
-        seen = client.run(_worker_profiler_enabled)
+    # on here (Dask's default, set explicitly whatever the environment says), so the
+    # workers would run it unless the cluster turns it off for them
+    with dask.config.set({"distributed.worker.profile.enabled": True}):
+        with dask_client(2, None, RuntimeError) as client:
+            seen = client.run(_worker_profiler_enabled)
+        assert _worker_profiler_enabled()  # the setting did not leak into this process
     assert len(seen) == 2 and not any(seen.values())
-    assert _worker_profiler_enabled() == here  # the setting did not leak into this process
 
 
 def test_campaign_on_existing_scheduler_matches_serial(tmp_path: Path) -> None:

@@ -77,7 +77,7 @@ class CollisionModel:
         # The convex pairs go through libccd's MPR instead of MuJoCo's native GJK/EPA:
         # the same touching pairs (tests/test_reach.py checks them against the native
         # solver and python-fcl), and about a third less time a sample here, since the
-        # check needs whether pieces overlap, not EPA's exact penetration (docs/reach.md).
+        # check needs whether pieces overlap, not EPA's exact penetration (docs/envelope.md).
         spec.option.disableflags |= int(
             mujoco.mjtDisableBit.mjDSBL_GRAVITY
             | mujoco.mjtDisableBit.mjDSBL_MULTICCD

@@ -109,6 +109,11 @@ class JerkLimiter:
     second differences stay within ``a_max`` and ``j_max``.
     """
 
+    ZERO_ERROR = 1e-15
+    """Below this magnitude of the braked error the landing acceleration is zero."""
+    ZERO_VALUE = 1e-12
+    """Below this magnitude of the value it has no outward direction for the cap."""
+
     def __init__(
         self, dim: int, max_rate: float, max_jerk: float, max_value: float | None = None
     ) -> None:
@@ -117,11 +122,6 @@ class JerkLimiter:
         self.max_rate = max_rate
         self.max_jerk = max_jerk
         self.max_value = max_value
-
-    ZERO_ERROR = 1e-15
-    """Below this magnitude of the braked error the landing acceleration is zero."""
-    ZERO_VALUE = 1e-12
-    """Below this magnitude of the value it has no outward direction for the cap."""
 
     def reset(self, value: np.ndarray | None = None) -> None:
         self.value = np.zeros_like(self.value) if value is None else np.array(value, float)

@@ -27,6 +27,8 @@ MAGIC = b"\x89MCAP0\r\n"
 """The MCAP magic at both ends of a file."""
 META_CRC_KEY = "_crc32"
 """The metadata key holding the CRC-32 of a metadata record's other items."""
+RECORD_HEADER = 9
+"""Bytes before a record's fields: its opcode (1) and the fields' length (u64)."""
 
 _HEADER, _FOOTER, _SCHEMA, _CHANNEL, _MESSAGE, _CHUNK = 0x01, 0x02, 0x03, 0x04, 0x05, 0x06
 _MESSAGE_INDEX, _METADATA, _DATA_END = 0x07, 0x0C, 0x0F
@@ -112,9 +114,9 @@ def _open_chunk(body: bytes) -> bytes:
 def _scan_chunk(raw: bytes, chunk: _Chunk, step_channels: set[int], names: dict[int, str]):
     """Channel ids, channel names and the step sequence range of a good chunk's records."""
     pos, seqs = 0, []
-    while pos + 9 <= len(raw):
+    while pos + RECORD_HEADER <= len(raw):
         op, length = raw[pos], _u64(raw, pos + 1)
-        body = raw[pos + 9 : pos + 9 + length]
+        body = raw[pos + RECORD_HEADER : pos + RECORD_HEADER + length]
         if op == _MESSAGE and len(body) >= 6:
             cid, seq = struct.unpack_from("<HI", body, 0)
             chunk.channels.add(cid)
@@ -126,7 +128,7 @@ def _scan_chunk(raw: bytes, chunk: _Chunk, step_channels: set[int], names: dict[
             names[cid] = body[8 : 8 + n].decode("utf-8", "replace")
             if names[cid] == "/trial/step":
                 step_channels.add(cid)
-        pos += 9 + length
+        pos += RECORD_HEADER + length
     if seqs:
         chunk.steps = (min(seqs), max(seqs))
 
@@ -176,14 +178,14 @@ def clean_records(data: bytes, path: str | Path) -> CleanRecords:
     names: dict[int, str] = {}
     step_channels: set[int] = set()
     pos, n, complete, last = len(MAGIC), len(data), False, None
-    while pos + 9 <= n:
+    while pos + RECORD_HEADER <= n:
         op, length = data[pos], _u64(data, pos + 1)
-        end = pos + 9 + length
+        end = pos + RECORD_HEADER + length
         if op not in _KNOWN:
             _damaged(path, f"bytes {pos}-{n}: record type 0x{op:02x} is not MCAP's", chunks)
         if end > n:
             break  # a torn last record (a killed writer), or a damaged length: see below
-        body = data[pos + 9 : end]
+        body = data[pos + RECORD_HEADER : end]
         if op == _CHUNK:
             chunk = _Chunk(pos, end)
             try:
