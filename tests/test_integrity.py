@@ -12,10 +12,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from mcap.opcode import Opcode
 
 from payload.teleop.hands import Hand, HandFrame
 from payload.trials import reading
-from payload.trials.integrity import _open_chunk, clean_records
+from payload.trials.integrity import RECORD_HEADER, _open_chunk, clean_records, record_head
 from payload.trials.reading import Recording, read_hand_frames, read_recording
 from payload.trials.recorder import TrialRecorder, random_step
 from payload.trials.records import HANDS_TOPIC, STEP_TOPIC, RecordingError
@@ -249,11 +250,14 @@ def test_the_readers_walk_reads_what_the_general_path_reads(
 @pytest.mark.parametrize(
     "tail",
     [
-        b"\x05" + (10).to_bytes(8, "little") + bytes(10),  # a message shorter than its header
-        b"\x05" + (30).to_bytes(8, "little") + bytes(12),  # a torn last record
-        b"\x01" + (8).to_bytes(8, "little") + bytes(8),  # a record type it does not act on
-        b"\x04" + (30).to_bytes(8, "little") + bytes(30),  # a channel not filling its length
-        b"\x05\x00",  # less than a record's opcode and length
+        # a message shorter than its header
+        bytes([Opcode.MESSAGE]) + (10).to_bytes(8, "little") + bytes(10),
+        bytes([Opcode.MESSAGE]) + (30).to_bytes(8, "little") + bytes(12),  # a torn last record
+        # a record type it does not act on
+        bytes([Opcode.HEADER]) + (8).to_bytes(8, "little") + bytes(8),
+        # a channel not filling its length
+        bytes([Opcode.CHANNEL]) + (30).to_bytes(8, "little") + bytes(30),
+        bytes([Opcode.MESSAGE, 0]),  # less than a record's opcode and length
     ],
 )
 def test_anything_unusual_goes_to_the_general_path(scene_recording: Path, tail: bytes):
@@ -275,7 +279,7 @@ def _chunk_record(times: bytes, raw: bytes) -> bytes:
             raw,
         )
     )
-    return b"\x06" + len(body).to_bytes(8, "little") + body
+    return bytes([Opcode.CHUNK]) + len(body).to_bytes(8, "little") + body
 
 
 def test_fuzzed_recordings_read_or_fail_as_on_the_general_path(
@@ -287,28 +291,29 @@ def test_fuzzed_recordings_read_or_fail_as_on_the_general_path(
     recording, through the reader's walk as through the StreamReader."""
     data = scene_recording.read_bytes()
     chunks, pos = [], 8
-    while pos + 9 <= len(data):
-        length = int.from_bytes(data[pos + 1 : pos + 9], "little")
-        if data[pos] == 0x06:
-            chunks.append((pos, pos + 9 + length))
-        pos += 9 + length
+    while pos + RECORD_HEADER <= len(data):
+        op, length = record_head(data, pos)
+        if op == Opcode.CHUNK:
+            chunks.append((pos, pos + RECORD_HEADER + length))
+        pos += RECORD_HEADER + length
     rng = np.random.default_rng(31)
     cases = []
     for case in range(60):
         damaged = bytearray(data)
         if case % 2:
             start, end = chunks[int(rng.integers(len(chunks)))]
-            raw = bytearray(_open_chunk(data[start + 9 : end]))
+            raw = bytearray(_open_chunk(data[start + RECORD_HEADER : end]))
             if case % 4 == 1:  # anywhere
                 at = int(rng.integers(len(raw) - 2))
             else:  # a record's opcode or the low bytes of its length
                 heads, p = [], 0
-                while p + 9 <= len(raw):
+                while p + RECORD_HEADER <= len(raw):
                     heads.append(p)
-                    p += 9 + int.from_bytes(raw[p + 1 : p + 9], "little")
+                    p += RECORD_HEADER + record_head(raw, p)[1]
                 at = heads[int(rng.integers(len(heads)))] + int(rng.integers(2))
             raw[at : at + 2] = rng.integers(0, 256, size=2, dtype=np.uint8).tobytes()
-            damaged[start:end] = _chunk_record(data[start + 9 : start + 25], bytes(raw))
+            times = data[start + RECORD_HEADER : start + RECORD_HEADER + 16]
+            damaged[start:end] = _chunk_record(times, bytes(raw))
         else:
             at = int(rng.integers(8, len(data) - 8))
             damaged[at : at + 4] = rng.integers(0, 256, size=4, dtype=np.uint8).tobytes()

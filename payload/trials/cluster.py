@@ -26,8 +26,8 @@ def dask_client(workers: int, scheduler: str | None, error: type[Exception]) -> 
     cluster = None
     if scheduler is None:
         # The workers' statistical profiler samples the running task's stack every 10 ms
-        # while holding the GIL: about a fifth of a trial's wall time on this 2-core
-        # machine (docs/speed.md). Nothing here reads its profiles, so it is off.
+        # while holding the GIL: 19.3/18.3 s against 15.8/16.1 s a trial on this 2-core
+        # machine (docs/speed.md, item 9). Nothing here reads its profiles, so it is off.
         with dask.config.set(WORKER_CONFIG):
             cluster = LocalCluster(
                 n_workers=workers,

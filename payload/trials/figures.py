@@ -109,14 +109,18 @@ def _shade(ax: Any, spans: Iterable[tuple[str, float, float]]) -> None:
 
 
 _EDGE_IN = 0.06
-"""Blank border around a figure's outermost text [in]."""
+"""Blank border above Fig. 3's two-line title [in]."""
 _CTB_SIZE_IN = (9.0, 7.5)
+"""Fig. 3's size (width, height) [in]."""
 _CTB_MARGINS_IN = {"left": 0.9, "right": 0.08, "top": 0.5, "bottom": 0.85, "hspace": 0.2}
 _ROUTE_SIZE_IN = (8.0, 7.0)
+"""The route plot's size (width, height) [in]."""
 _ROUTE_MARGINS_IN = {"left": 0.75, "right": 0.08, "top": 0.3, "bottom": 0.5}
-"""Fixed margins [in] (left/right/top/bottom from the figure's edges; hspace between
-panels): room for the tick labels, axis labels, title and figure legend, so no layout
-engine measures the texts (constrained layout drew every text twice more)."""
+"""Fixed margins of both figures [in] (left/right/top/bottom from the figure's edges;
+hspace between panels): room for the tick labels, axis labels, title and figure legend,
+so no layout engine measures the texts (constrained layout drew every text twice more);
+tests/test_trials.py draws both with wide tick labels and checks every text is on the
+canvas."""
 
 
 def _margins(size_in: tuple[float, float], margins_in: dict[str, float]) -> dict[str, float]:

@@ -21,7 +21,9 @@ import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from payload.trials.records import RecordingError
+from mcap.opcode import Opcode
+
+from payload.trials.records import STEP_TOPIC, RecordingError
 
 MAGIC = b"\x89MCAP0\r\n"
 """The MCAP magic at both ends of a file."""
@@ -30,11 +32,9 @@ META_CRC_KEY = "_crc32"
 RECORD_HEADER = 9
 """Bytes before a record's fields: its opcode (1) and the fields' length (u64)."""
 
-_HEADER, _FOOTER, _SCHEMA, _CHANNEL, _MESSAGE, _CHUNK = 0x01, 0x02, 0x03, 0x04, 0x05, 0x06
-_MESSAGE_INDEX, _METADATA, _DATA_END = 0x07, 0x0C, 0x0F
 _KNOWN = frozenset(range(0x01, 0x11))
 """Every record type of MCAP version 0."""
-_PASSED = (_SCHEMA, _CHANNEL, _METADATA)
+_PASSED = (Opcode.SCHEMA, Opcode.CHANNEL, Opcode.METADATA)
 """Records outside chunks that the reader uses (the recorder keeps schemas and channels
 inside its chunks; these are the summary's repeats and the metadata)."""
 
@@ -79,6 +79,12 @@ def _u64(data: bytes, pos: int) -> int:
     return struct.unpack_from("<Q", data, pos)[0]
 
 
+def record_head(data: bytes, pos: int) -> tuple[int, int]:
+    """The opcode and the fields' length of the record at ``pos`` (its first
+    :data:`RECORD_HEADER` bytes; the caller checks that they are there)."""
+    return data[pos], _u64(data, pos + 1)
+
+
 def _open_chunk(body: bytes) -> bytes:
     """The records of a chunk record's body, decompressed and checked against its CRC.
 
@@ -115,18 +121,18 @@ def _scan_chunk(raw: bytes, chunk: _Chunk, step_channels: set[int], names: dict[
     """Channel ids, channel names and the step sequence range of a good chunk's records."""
     pos, seqs = 0, []
     while pos + RECORD_HEADER <= len(raw):
-        op, length = raw[pos], _u64(raw, pos + 1)
+        op, length = record_head(raw, pos)
         body = raw[pos + RECORD_HEADER : pos + RECORD_HEADER + length]
-        if op == _MESSAGE and len(body) >= 6:
+        if op == Opcode.MESSAGE and len(body) >= 6:
             cid, seq = struct.unpack_from("<HI", body, 0)
             chunk.channels.add(cid)
             if cid in step_channels:
                 seqs.append(seq)
-        elif op == _CHANNEL and len(body) >= 4:
+        elif op == Opcode.CHANNEL and len(body) >= 4:
             cid = struct.unpack_from("<H", body, 0)[0]
             n = _u32(body, 4)
             names[cid] = body[8 : 8 + n].decode("utf-8", "replace")
-            if names[cid] == "/trial/step":
+            if names[cid] == STEP_TOPIC:
                 step_channels.add(cid)
         pos += RECORD_HEADER + length
     if seqs:
@@ -179,14 +185,14 @@ def clean_records(data: bytes, path: str | Path) -> CleanRecords:
     step_channels: set[int] = set()
     pos, n, complete, last = len(MAGIC), len(data), False, None
     while pos + RECORD_HEADER <= n:
-        op, length = data[pos], _u64(data, pos + 1)
+        op, length = record_head(data, pos)
         end = pos + RECORD_HEADER + length
         if op not in _KNOWN:
             _damaged(path, f"bytes {pos}-{n}: record type 0x{op:02x} is not MCAP's", chunks)
         if end > n:
             break  # a torn last record (a killed writer), or a damaged length: see below
         body = data[pos + RECORD_HEADER : end]
-        if op == _CHUNK:
+        if op == Opcode.CHUNK:
             chunk = _Chunk(pos, end)
             try:
                 raw = _open_chunk(body)
@@ -196,16 +202,16 @@ def clean_records(data: bytes, path: str | Path) -> CleanRecords:
                 _scan_chunk(raw, chunk, step_channels, names)
                 out.append(raw)
             chunks.append(chunk)
-        elif op == _MESSAGE_INDEX and chunks and len(body) >= 2:
+        elif op == Opcode.MESSAGE_INDEX and chunks and len(body) >= 2:
             chunks[-1].channels.add(struct.unpack_from("<H", body, 0)[0])
         elif op in _PASSED:
-            if op == _METADATA:
+            if op == Opcode.METADATA:
                 try:
                     _check_metadata(body)
                 except (ValueError, struct.error, UnicodeDecodeError) as exc:
                     _damaged(path, f"metadata at bytes {pos}-{end}: {exc}", chunks)
             out.append(data[pos:end])
-        elif op == _DATA_END:
+        elif op == Opcode.DATA_END:
             last = end
             break
         pos = end
@@ -227,7 +233,7 @@ def _check_chunks(
             if chunk.steps is not None:
                 if chunk.steps[0] != previous + 1:
                     raise RecordingError(
-                        f"{path}: /trial/step: steps {previous + 1}-{chunk.steps[0] - 1} "
+                        f"{path}: {STEP_TOPIC}: steps {previous + 1}-{chunk.steps[0] - 1} "
                         f"missing before bytes {chunk.start}-{chunk.end}; the recording is "
                         "damaged"
                     )

@@ -24,7 +24,13 @@ from mcap.records import Channel, McapRecord, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 
 from payload.trials import codec
-from payload.trials.integrity import MAGIC, META_CRC_KEY, RECORD_HEADER, clean_records
+from payload.trials.integrity import (
+    MAGIC,
+    META_CRC_KEY,
+    RECORD_HEADER,
+    clean_records,
+    record_head,
+)
 from payload.trials.records import (
     FIELD_SPECS,
     HANDS_TOPIC,
@@ -253,8 +259,7 @@ def _used_records(data: bytes) -> list[McapRecord] | None:
         while pos < n:
             if pos + RECORD_HEADER > n:
                 return None
-            op = data[pos]
-            length = struct.unpack_from("<Q", data, pos + 1)[0]
+            op, length = record_head(data, pos)
             start = pos + RECORD_HEADER
             end = start + length
             if end > n:
