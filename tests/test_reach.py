@@ -273,36 +273,36 @@ def test_forked_workers_find_the_same_contacts(geom, tree):
 
 
 def test_contact_ranges_in_any_order_give_the_sorted_rows(geom, tree):
-    """The ranges' rows joined in range order are every row sorted by (sample, body a,
-    body b), as a lexsort of all of them puts them, whatever order the ranges came in."""
+    """Ranges checked apart and joined in any order give the rows of one whole check,
+    sorted by (sample, body a, body b) as a lexsort of them puts them."""
     model = CollisionModel(geom, VEHICLE)
     q = sample_configurations(tree, 1200, np.random.default_rng(4))
     bounds = [0, 150, 400, 401, 900, 1200]
-    parts = [(a, model._check_range(q, a, b)) for a, b in itertools.pairwise(bounds)]
-    rows = np.concatenate([r for _, r in parts])
-    expected = rows[np.lexsort((rows[:, 2], rows[:, 1], rows[:, 0]))]
+    parts = [(a, b, model._check_range(q, a, b)) for a, b in itertools.pairwise(bounds)]
     shuffled = [parts[i] for i in np.random.default_rng(1).permutation(len(parts))]
-    assert [a for a, _ in shuffled] != bounds[:-1]
+    assert [a for a, _, _ in shuffled] != bounds[:-1]
     got = model._contacts(len(q), shuffled)
-    assert np.array_equal(np.column_stack([got.index, got.body_a, got.body_b]), expected)
-    assert len(expected) > len(q)  # most samples touch something: a real ordering problem
+    whole = model._contacts(len(q), [(0, len(q), model._check_range(q, 0, len(q)))])
+    rows = np.column_stack([got.index, got.body_a, got.body_b])
+    assert np.array_equal(rows, np.column_stack([whole.index, whole.body_a, whole.body_b]))
+    assert np.array_equal(rows, rows[np.lexsort((rows[:, 2], rows[:, 1], rows[:, 0]))])
+    assert np.all(got.body_a < got.body_b)
+    assert len(rows) > len(q)  # most samples touch something: a real ordering problem
 
 
 def test_contact_rows_are_every_body_pair_mujoco_reports_per_sample(geom, tree):
-    """The batched bookkeeping against MuJoCo's contacts read one sample at a time, with
-    MuJoCo's default convex collision (native GJK/EPA with multi-point CCD; the check uses
-    libccd with one point a pair: the same touching pairs)."""
+    """The compiled overlap check against MuJoCo's own collision (``mj_collision`` one
+    sample at a time, as MuJoCo runs by default: native GJK/EPA, multi-point CCD): the
+    same body pairs touch in every sample, none more, none fewer."""
     import collections
 
     import mujoco
 
     model = CollisionModel(geom, VEHICLE)
-    q = sample_configurations(tree, 2500, np.random.default_rng(21))
+    q = sample_configurations(tree, 3000, np.random.default_rng(21))
     contacts = model.check(q)
     m, d = model.model, model.data
-    defaults = int(mujoco.mjtDisableBit.mjDSBL_MULTICCD | mujoco.mjtDisableBit.mjDSBL_NATIVECCD)
-    assert m.opt.disableflags & defaults == defaults
-    m.opt.disableflags &= ~defaults
+    assert m.opt.disableflags == 0  # MuJoCo's defaults
     expected = set()
     for i, row in enumerate(q):
         for name, v in zip(ALL_JOINTS, row):
@@ -314,9 +314,92 @@ def test_contact_rows_are_every_body_pair_mujoco_reports_per_sample(geom, tree):
             expected.add((i, a, b))
     got = list(zip(contacts.index.tolist(), contacts.body_a.tolist(), contacts.body_b.tolist()))
     assert len(got) == len(set(got)) and set(got) == expected
+    assert len(expected) > 2 * len(q)  # most samples touch: many decisions compared
     names = ["vehicle", *contacts.body_names[1:]]
     counts = collections.Counter((names[a], names[b]) for _, a, b in expected)
     assert contacts.pair_counts() == dict(counts)
+
+
+def _rotation(rng: np.random.Generator) -> np.ndarray:
+    q, r = np.linalg.qr(rng.normal(size=(3, 3)))
+    q = q * np.sign(np.diag(r))
+    return q if np.linalg.det(q) > 0 else -q
+
+
+def _hulls_meet(a: np.ndarray, b: np.ndarray) -> bool:
+    """Whether conv(a) and conv(b) share a point: a linear program (SciPy's HiGHS),
+    lambda, mu >= 0, sum 1 each, sum lambda_i a_i = sum mu_j b_j."""
+    na, nb = len(a), len(b)
+    eq = np.zeros((5, na + nb))
+    eq[:3, :na], eq[:3, na:] = a.T, -b.T
+    eq[3, :na], eq[4, na:] = 1.0, 1.0
+    res = optimize.linprog(np.zeros(na + nb), A_eq=eq, b_eq=[0, 0, 0, 1, 1], bounds=(0, None))
+    return res.status == 0
+
+
+def _overlap(verts, rads, rots, origins) -> bool:
+    from payload.envelope.overlap import overlap
+
+    (v1, v2), (r1, r2), (p1, p2) = verts, rots, origins
+    both = np.concatenate([v1, v2])
+    guess = (r1 @ v1.mean(0) + p1) - (r2 @ v2.mean(0) + p2)
+    return bool(
+        overlap(
+            both, 0, len(v1), rads[0], r1.ravel(), p1, len(v1), len(v2), rads[1], r2.ravel(), p2,
+            *guess, np.empty((4, 3)),
+        )
+    )  # fmt: skip
+
+
+def test_overlap_of_random_polytopes_is_a_linear_programs_answer():
+    """GJK's answer for random convex polytopes (4 to 60 points, rotated and moved) against
+    the feasibility of a linear program; pairs whose answer changes when the offset
+    is scaled by 1 +- 1e-6 (grazing) are left out."""
+    rng = np.random.default_rng(3)
+    tested = {True: 0, False: 0}
+    for _ in range(400):
+        v1 = rng.normal(size=(int(rng.integers(4, 60)), 3)) * rng.uniform(0.005, 0.03, 3)
+        v2 = rng.normal(size=(int(rng.integers(4, 60)), 3)) * rng.uniform(0.005, 0.03, 3)
+        r1, r2 = _rotation(rng), _rotation(rng)
+        p1 = rng.uniform(-0.01, 0.01, 3)
+        offset = rng.normal(size=3) * 0.03
+
+        def world(v, r, p):
+            return v @ r.T + p
+
+        truth = [
+            _hulls_meet(world(v1, r1, p1), world(v2, r2, p1 + offset * s))
+            for s in (1 - 1e-6, 1.0, 1 + 1e-6)
+        ]
+        if len(set(truth)) > 1:
+            continue
+        got = _overlap((v1, v2), (0.0, 0.0), (r1, r2), (p1, p1 + offset))
+        assert got == truth[1]
+        tested[got] += 1
+    assert min(tested.values()) > 100  # both answers well represented
+
+
+def test_overlap_of_a_sphere_and_a_box_is_the_closed_form():
+    """A ball (one vertex and a radius) against a rotated box: they meet when the
+    ball's centre, in the box's frame, is within the radius of the box (clamped point)."""
+    rng = np.random.default_rng(8)
+    half = np.array([0.02, 0.01, 0.005])
+    corners = np.array(list(itertools.product((-1.0, 1.0), repeat=3))) * half
+    tested = {True: 0, False: 0}
+    for _ in range(600):
+        r_box, p_box = _rotation(rng), rng.uniform(-0.01, 0.01, 3)
+        radius = float(rng.uniform(0.002, 0.02))
+        centre = p_box + rng.normal(size=3) * 0.02
+        local = r_box.T @ (centre - p_box)
+        gap = np.linalg.norm(local - np.clip(local, -half, half)) - radius
+        if abs(gap) < 1e-7:
+            continue
+        got = _overlap(
+            (corners, np.zeros((1, 3))), (0.0, radius), (r_box, _rotation(rng)), (p_box, centre)
+        )
+        assert got == (gap < 0)
+        tested[got] += 1
+    assert min(tested.values()) > 100
 
 
 @pytest.mark.parametrize("pair", ["L", "R"])

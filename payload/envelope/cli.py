@@ -219,44 +219,60 @@ def written_lines(paths: dict[str, Path], stem: str) -> list[str]:
     return [*lines, "wrote " + ", ".join(str(p) for p in paths.values())]
 
 
-def _check_reach_args(args: argparse.Namespace) -> list[GraspFeature]:
-    """The grasp features to check; bad numbers raise :class:`ReachError` (exit 2)."""
-    from payload.envelope.reach import CTB_FEATURES, GraspFeature, ReachError
+def _check_reach_args(args: argparse.Namespace) -> None:
+    """Bad numbers raise :class:`ReachError` (exit 2)."""
+    from payload.envelope.pairs import ReachError
+    from payload.envelope.reach_start import MIN_SAMPLES
 
-    if args.samples < 1000:
-        raise ReachError(f"--samples must be at least 1000 (got {args.samples})")
+    if args.samples < MIN_SAMPLES:
+        raise ReachError(f"--samples must be at least {MIN_SAMPLES} (got {args.samples})")
     if args.seed < 0:
         raise ReachError(f"--seed must not be negative (got {args.seed})")
     if args.workers is not None and args.workers < 1:
         raise ReachError(f"--workers must be at least 1 (got {args.workers})")
-    features = list(CTB_FEATURES)
     for t in args.thickness or ():
         if not t >= 0 or t > 1.0:
             raise ReachError(f"--thickness must be between 0 and 1 m (got {t})")
+
+
+def _grasp_features(args: argparse.Namespace) -> list[GraspFeature]:
+    """The CTB's features and the ``--thickness`` ones (checked by :func:`_check_reach_args`)."""
+    from payload.envelope.reach import CTB_FEATURES, GraspFeature
+
+    features = list(CTB_FEATURES)
+    for t in args.thickness or ():
         features.append(GraspFeature(f"given thickness {t * 1e3:.1f} mm", t, "command line"))
     return features
 
 
 def run_reach(args: argparse.Namespace) -> tuple[ReachAnalysis, dict[str, Path]]:
-    """Sample the deployed workspace and write the reach report; (analysis, paths)."""
-    from payload.envelope.reach import analyse_reach
-    from payload.envelope.report import write_reach
+    """Sample the deployed workspace and write the reach report; (analysis, paths).
+
+    The collision check starts in forked workers before the rest of the analysis is
+    imported (:mod:`payload.envelope.reach_start`), so that those imports overlap it."""
+    from payload.envelope.reach_start import start_check
 
     t0 = time.perf_counter()
     _project(args)
-    features = _check_reach_args(args)
+    _check_reach_args(args)
     _models_follow(args)
     _, vehicle, geom = _load(args)
     with _progress(not args.json and sys.stderr.isatty()) as progress:
+        started = start_check(geom, vehicle, args.samples, args.seed, args.workers, progress)
+        from payload.envelope.reach import analyse_reach
+
         analysis = analyse_reach(
             geom,
             vehicle,
             samples=args.samples,
             seed=args.seed,
-            features=features,
+            features=_grasp_features(args),
             workers=args.workers,
             progress=progress,
+            started=started,
         )
+    from payload.envelope.report import write_reach
+
     command = _command(args, "reach")
     paths = write_reach(
         geom, analysis, _out_dir(args), command, t_start=t0, record=_recorder(args),
@@ -287,10 +303,10 @@ def reach_lines(analysis: ReachAnalysis) -> list[str]:
 
 
 def _cmd_reach(args: argparse.Namespace) -> int:
+    analysis, paths = run_reach(args)  # before the imports below: see run_reach
     from payload.envelope.report import reach_json
     from payload.envelope.verdict import reach_passed, reach_verdict
 
-    analysis, paths = run_reach(args)
     if args.json:
         emit_json(_stdout_json(args, _recorder(args)(reach_json(analysis))))
     else:

@@ -13,6 +13,7 @@ import numpy as np
 
 from payload.design.tree import ALL_JOINTS, rpy_matrix
 from payload.envelope.geometry import PayloadGeometry
+from payload.envelope.overlap import touching
 from payload.envelope.progress import Progress, quiet
 from payload.envelope.vehicle import Vehicle
 from payload.rotations import matrix_to_quat
@@ -71,23 +72,12 @@ class CollisionModel:
             )
         for j in tree.joints:
             spec.add_exclude(bodyname1=j.parent, bodyname2=j.child)
-        # Multi-point CCD (on by default since MuJoCo 3.3) adds up to three more contact
-        # points to a touching mesh pair; which pairs touch is decided before it, by the
-        # first contact, so the check only needs that one (about 10 % of its time).
-        # The convex pairs go through libccd's MPR instead of MuJoCo's native GJK/EPA:
-        # the same touching pairs (tests/test_reach.py checks them against the native
-        # solver and python-fcl), and about a third less time a sample here, since the
-        # check needs whether pieces overlap, not EPA's exact penetration (docs/envelope.md).
-        spec.option.disableflags |= int(
-            mujoco.mjtDisableBit.mjDSBL_GRAVITY
-            | mujoco.mjtDisableBit.mjDSBL_MULTICCD
-            | mujoco.mjtDisableBit.mjDSBL_NATIVECCD
-        )
         self.model = spec.compile()
         self.data = mujoco.MjData(self.model)
         m = self.model
         self._qadr = np.array([m.jnt_qposadr[m.joint(j).id] for j in ALL_JOINTS])
         self.body_names = [m.body(b).name for b in range(m.nbody)]
+        self._pieces = _Pieces.of(m)
 
     def check(self, samples: np.ndarray, progress: Progress = quiet, workers: int = 1) -> Contacts:
         """Every contact of every configuration.
@@ -116,11 +106,14 @@ class CollisionModel:
             def serial(progress: Progress) -> Contacts:
                 parts = []
                 for k, (a, b) in enumerate(ranges):
-                    parts.append((a, self._check_range(samples, a, b)))
+                    parts.append((a, b, self._check_range(samples, a, b)))
                     progress("collisions", (k + 1) / len(ranges))
                 return self._contacts(n, parts)
 
             return serial
+        # load the compiled check here, once, for the workers to inherit (each would
+        # otherwise load it from Numba's cache itself: about 0.3 s a process)
+        self._check_range(samples, 0, 0)
         global _ACTIVE
         _ACTIVE = (self, samples)  # kept until the results are in (a replaced worker forks)
         try:
@@ -144,41 +137,43 @@ class CollisionModel:
 
         return forked
 
-    def _contacts(self, n: int, parts: list[tuple[int, np.ndarray]]) -> Contacts:
-        """The rows of every range, in sample order: each range's rows are sorted by
-        (sample, body a, body b) already (:meth:`_check_range`), and the ranges are
-        consecutive, so ordering the ranges by their first sample sorts the whole."""
-        parts = sorted(parts, key=lambda part: part[0])
-        rows = np.concatenate([r for _, r in parts]) if parts else np.zeros((0, 3), dtype=int)
-        return Contacts(n, rows[:, 0], rows[:, 1], rows[:, 2], tuple(self.body_names))
+    def _contacts(self, n: int, parts: list[tuple[int, int, np.ndarray]]) -> Contacts:
+        """The rows of every range ``(start, stop, packed flags)`` (:meth:`_check_range`),
+        in sample order whatever order the ranges came in."""
+        p = self._pieces
+        ngroup = len(p.body_a)
+        flags = np.zeros((n, ngroup), dtype=bool)
+        for start, stop, packed in parts:
+            bits = np.unpackbits(packed, count=(stop - start) * ngroup)
+            flags[start:stop] = bits.reshape(stop - start, ngroup).view(bool)
+        k, group = np.nonzero(flags)  # row-major: by sample, then body pair (sorted)
+        return Contacts(n, k, p.body_a[group], p.body_b[group], tuple(self.body_names))
 
     def _check_range(self, samples: np.ndarray, start: int, stop: int) -> np.ndarray:
-        """Rows (sample, body a, body b) of distinct body pairs in contact, a < b, sorted.
+        """The body pairs in contact in samples ``start:stop``: flags (sample, body pair)
+        packed into bits (:func:`numpy.packbits`, row-major; 1/8 of the bytes to send
+        back from a worker).
 
-        The loop does only MuJoCo's work per sample (place, kinematics, collision, copy
-        the contacts' geoms); the bookkeeping runs once over the whole range.
+        MuJoCo places the pieces sample by sample; the compiled overlap test then runs
+        once over the whole range.
         """
         m, d = self.model, self.data
         qpos = np.zeros((stop - start, m.nq))
         qpos[:, self._qadr] = samples[start:stop]
-        found: list[np.ndarray] = []
-        where: list[int] = []
-        counts: list[int] = []
+        xpos = np.empty((stop - start, m.ngeom, 3))
+        xmat = np.empty((stop - start, m.ngeom, 9))
+        q, geom_xpos, geom_xmat = d.qpos, d.geom_xpos, d.geom_xmat  # views, taken once
         for k in range(stop - start):
-            d.qpos[:] = qpos[k]
+            q[:] = qpos[k]
             mujoco.mj_kinematics(m, d)
-            mujoco.mj_collision(m, d)
-            if d.ncon:
-                found.append(d.contact.geom.copy())
-                where.append(start + k)
-                counts.append(d.ncon)
-        if not found:
-            return np.zeros((0, 3), dtype=int)
-        bodies = np.sort(m.geom_bodyid[np.concatenate(found)], axis=1).astype(np.int64)
-        index = np.repeat(np.asarray(where, dtype=np.int64), counts)
-        nb = np.int64(m.nbody)
-        keys = np.unique((index * nb + bodies[:, 0]) * nb + bodies[:, 1])
-        return np.column_stack([keys // (nb * nb), (keys // nb) % nb, keys % nb]).astype(int)
+            xpos[k] = geom_xpos
+            xmat[k] = geom_xmat
+        p = self._pieces
+        flags = touching(
+            xpos, xmat, p.verts, p.vadr, p.vnum, p.radius, p.box_c, p.box_h, p.g1, p.g2,
+            p.group_start,
+        )  # fmt: skip
+        return np.packbits(flags)
 
     def pair_free(self, row: np.ndarray, links: Sequence[str], ignore: Sequence[str]) -> bool:
         """No contact of ``links`` with anything but ``ignore`` in one configuration (18,)."""
@@ -237,14 +232,91 @@ class Contacts(NamedTuple):
         return out
 
 
+class _Pieces(NamedTuple):
+    """What :func:`payload.envelope.overlap.touching` needs of a model: every geom's
+    vertices in its frame (a mesh's as MuJoCo holds them, a box's corners, a sphere's
+    centre and radius) and bounding box, and the geom pairs MuJoCo's filters pass,
+    grouped by body pair (sorted)."""
+
+    verts: np.ndarray
+    vadr: np.ndarray
+    vnum: np.ndarray
+    radius: np.ndarray
+    box_c: np.ndarray
+    box_h: np.ndarray
+    g1: np.ndarray
+    g2: np.ndarray
+    group_start: np.ndarray
+    body_a: np.ndarray
+    body_b: np.ndarray
+
+    @classmethod
+    def of(cls, m: mujoco.MjModel) -> _Pieces:
+        verts = []
+        radius = np.zeros(m.ngeom)
+        for g in range(m.ngeom):
+            if m.geom_type[g] == mujoco.mjtGeom.mjGEOM_MESH:
+                i = m.geom_dataid[g]
+                v = m.mesh_vert[m.mesh_vertadr[i] : m.mesh_vertadr[i] + m.mesh_vertnum[i]]
+            elif m.geom_type[g] == mujoco.mjtGeom.mjGEOM_BOX:
+                v = np.array(list(itertools.product((-1.0, 1.0), repeat=3))) * m.geom_size[g]
+            elif m.geom_type[g] == mujoco.mjtGeom.mjGEOM_SPHERE:
+                v = np.zeros((1, 3))
+                radius[g] = m.geom_size[g, 0]
+            else:
+                raise ValueError(f"geom {g}: the overlap check takes meshes, boxes and spheres")
+            verts.append(np.asarray(v, dtype=float))
+        vnum = np.array([len(v) for v in verts])
+        groups: dict[tuple[int, int], list[tuple[int, int]]] = {}
+        for g1, g2 in itertools.combinations(range(m.ngeom), 2):
+            if _mujoco_filters(m, g1, g2):
+                a, b = sorted((int(m.geom_bodyid[g1]), int(m.geom_bodyid[g2])))
+                groups.setdefault((a, b), []).append((g1, g2))
+        keys = sorted(groups)
+        pairs = np.array([p for k in keys for p in groups[k]], dtype=np.int64).reshape(-1, 2)
+        return cls(
+            verts=np.concatenate(verts),
+            vadr=np.concatenate([[0], np.cumsum(vnum)[:-1]]).astype(np.int64),
+            vnum=vnum.astype(np.int64),
+            radius=radius,
+            box_c=np.array([(v.min(0) + v.max(0)) / 2 for v in verts]),
+            box_h=np.array([(v.max(0) - v.min(0)) / 2 for v in verts]) + radius[:, None],
+            g1=pairs[:, 0].copy(),
+            g2=pairs[:, 1].copy(),
+            group_start=np.cumsum([0] + [len(groups[k]) for k in keys]).astype(np.int64),
+            body_a=np.array([a for a, _ in keys], dtype=np.int64),
+            body_b=np.array([b for _, b in keys], dtype=np.int64),
+        )
+
+
+def _mujoco_filters(m: mujoco.MjModel, g1: int, g2: int) -> bool:
+    """Whether ``mj_collision`` would test geoms ``g1`` and ``g2`` at all: bodies not welded
+    together, not welded parent and child (its parent filter), not an excluded body pair,
+    and contype/conaffinity matching (``filterBodyPair``, the exclusions and
+    ``filterBitmask`` of MuJoCo's collision driver)."""
+    b1, b2 = int(m.geom_bodyid[g1]), int(m.geom_bodyid[g2])
+    w1, w2 = int(m.body_weldid[b1]), int(m.body_weldid[b2])
+    if w1 == w2:
+        return False
+    wp1, wp2 = int(m.body_weldid[m.body_parentid[w1]]), int(m.body_weldid[m.body_parentid[w2]])
+    if w1 and w2 and (w1 == wp2 or w2 == wp1):
+        return False
+    lo, hi = sorted((b1, b2))
+    if (lo << 16) + hi in set(m.exclude_signature.tolist()):
+        return False
+    return bool(
+        m.geom_contype[g1] & m.geom_conaffinity[g2] or m.geom_contype[g2] & m.geom_conaffinity[g1]
+    )
+
+
 _ACTIVE: tuple[CollisionModel, np.ndarray] | None = None
 """The model and samples a forked worker checks (set by the parent before forking)."""
 
 
-def _check_range(bounds: tuple[int, int]) -> tuple[int, np.ndarray]:
+def _check_range(bounds: tuple[int, int]) -> tuple[int, int, np.ndarray]:
     assert _ACTIVE is not None
     model, samples = _ACTIVE
-    return bounds[0], model._check_range(samples, *bounds)
+    return bounds[0], bounds[1], model._check_range(samples, *bounds)
 
 
 def _quat(r: np.ndarray) -> list[float]:

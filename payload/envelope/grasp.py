@@ -6,7 +6,6 @@ from collections.abc import Callable, Sequence
 from typing import NamedTuple
 
 import numpy as np
-from scipy import optimize
 
 from payload.design.tree import ALL_JOINTS, KinematicTree
 from payload.envelope.batch_fk import frame_positions_batch
@@ -229,6 +228,8 @@ def _witness(
     tolerance: float,
 ) -> GraspResult | None:
     """Move one candidate onto the feature's separation; the witness when it holds."""
+    from scipy import optimize  # imported when used: the reach check starts without it
+
     r = tree.design.finger.pad.radius
     side = pair_side(tree, pair)
     target = feat.thickness + 2 * r

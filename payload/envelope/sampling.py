@@ -8,12 +8,15 @@ the retargeter and the review use, on the design's generated URDF
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from payload.design.params import FINGERS
 from payload.design.tree import ALL_JOINTS, KinematicTree
-from payload.kinematics import Kinematics
+
+if TYPE_CHECKING:  # Pinocchio loads with the kinematics, not with the sampling
+    from payload.kinematics import Kinematics
 
 
 def sample_configurations(

@@ -5,7 +5,6 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import numpy as np
-from scipy.spatial import ConvexHull
 
 from payload.design.params import FINGERS
 from payload.envelope.pairs import (
@@ -48,6 +47,8 @@ def workspace(
         bottom_z: z of the vehicle's bottom face [m].
         keep: Samples to keep, shape (n,) (default: all).
     """
+    from scipy.spatial import ConvexHull  # imported when used: the reach check starts without it
+
     frac = 1.0 if keep is None else float(np.mean(keep))
     pts = points if keep is None else points[keep]
     if len(pts) < 4:
