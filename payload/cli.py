@@ -60,6 +60,11 @@ COMMANDS: tuple[Command, ...] = (
         "review", "payload.review.cli", "Meshcat design review (and trial replay) in the browser"
     ),
     Command("bench filter", "payload.trials.live_cli", "the base safety filter's cost per step"),
+    Command(
+        "bench reach",
+        "payload.envelope.cli",
+        "the reach check against MuJoCo's collision, same run; the report's time",
+    ),
     Command("trial", "payload.trials.cli", "one ISS cargo-transport trial"),
     Command("trials", "payload.trials.cli", "trial campaigns and their summaries"),
     Command("export lerobot", "payload.trials.cli", "recordings as a LeRobot v3 dataset"),

@@ -546,6 +546,24 @@ def test_report_reach_bad_input_is_one_line_exit_2(tmp_path, args, message):
     assert len(lines) == 1 and lines[0].startswith(message)
 
 
+def test_bench_reach_compares_the_checks_and_times_the_report_elsewhere():
+    """``bench reach``: the compiled check and MuJoCo's collision agree row for row on
+    the same samples (counted independently: MuJoCo's rows read contact by contact), and
+    the timed report goes to a temporary folder, never the project's analyses/."""
+    committed = {f.name: f.read_bytes() for f in (ROOT / "analyses").glob("reach.*")}
+    r = run_cli("bench", "reach", "--samples", "1000", "--check-samples", "300", "--runs", "1",
+                "--json")  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    assert out["identical"] and out["rows_only_overlap"] == out["rows_only_mujoco"] == 0
+    assert out["rows"] > 300 and out["overlap_us"] > 0 and out["mujoco_us"] > 0
+    assert len(out["report_wall_s"]) == len(out["report_cpu_s"]) == 1
+    assert out["within_aim"] is None  # the aim is for 100,000 samples
+    assert {f.name: f.read_bytes() for f in (ROOT / "analyses").glob("reach.*")} == committed
+    bad = run_cli("bench", "reach", "--check-samples", "0")
+    assert bad.returncode == 2 and bad.stderr.count("\n") == 1 and "--check-samples" in bad.stderr
+
+
 def test_generated_reach_report_is_committed():
     data = json.loads((ROOT / "analyses" / "reach.json").read_text())
     assert data["samples"] >= 100_000 and data["design"] == "cad/design.toml"

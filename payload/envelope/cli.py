@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import statistics
 import sys
 import time
 from collections.abc import Callable, Iterator
@@ -398,6 +399,50 @@ def _cmd_all(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_bench_reach(args: argparse.Namespace) -> int:
+    """``payload bench reach``: the compiled check against MuJoCo's collision, same run;
+    ``report reach`` timed in a fresh interpreter."""
+    from payload.envelope.bench import run_reach_bench
+    from payload.envelope.pairs import ReachError
+    from payload.envelope.reach_start import MIN_SAMPLES
+
+    if args.samples < MIN_SAMPLES:
+        raise ReachError(f"--samples must be at least {MIN_SAMPLES} (got {args.samples})")
+    if args.check_samples < 1:
+        raise ReachError(f"--check-samples must be at least 1 (got {args.check_samples})")
+    if args.runs < 1:
+        raise ReachError(f"--runs must be at least 1 (got {args.runs})")
+    project = _project(args)
+    _models_follow(args)
+    _, vehicle, geom = _load(args)
+    r = run_reach_bench(
+        geom, vehicle, project.root, project.analyses_dir, samples=args.samples,
+        check_samples=args.check_samples, runs=args.runs, seed=args.seed,
+    )  # fmt: skip
+    if args.json:
+        emit_json(r)
+        return 0
+    same = "identical" if r["identical"] else (
+        f"{r['rows_only_overlap']} only in the compiled check, "
+        f"{r['rows_only_mujoco']} only in MuJoCo's"
+    )  # fmt: skip
+    print(
+        f"reach check, {r['check_samples']:,} samples, one process: compiled "
+        f"{r['overlap_us']:.1f} us a sample, MuJoCo's mj_collision {r['mujoco_us']:.1f} us "
+        f"({r['speedup']:.1f}x); rows {same} ({r['rows']:,})"
+    )
+    walls = ", ".join(f"{w:.2f}" for w in r["report_wall_s"])
+    aim = {True: "within", False: "NOT within", None: "for"}[r["within_aim"]]
+    print(
+        f"report reach --samples {r['samples']}: {walls} s wall (median "
+        f"{r['report_wall_median_s']:.2f} s; {aim} the aim of under {r['aim_s']:g} s at "
+        f"100,000 samples), CPU "
+        f"{statistics.median(r['report_cpu_s']):.2f} s (median, workers included); "
+        f"load average {r['load'][0]} -> {r['load'][1]}"
+    )
+    return 0
+
+
 def _integer(text: str) -> int:
     try:
         return int(text)
@@ -491,6 +536,26 @@ def register(
         help="models, envelope, reach and design summary in one run, one verdict line",
     )
     p.set_defaults(func=_cmd_all, search=None, write_stowed=False)
+
+    p = groups["bench"].add_parser(
+        "reach", help="the reach check against MuJoCo's collision, same run; the report's time"
+    )
+    p.add_argument(
+        "--samples",
+        type=_integer,
+        default=DEFAULT_SAMPLES,
+        help=f"samples of the timed report (default {DEFAULT_SAMPLES:,})",
+    )
+    p.add_argument(
+        "--check-samples",
+        type=_integer,
+        default=10_000,
+        help="samples both checks run on (default 10,000)",
+    )
+    p.add_argument("--runs", type=_integer, default=3, help="timed reports (default 3)")
+    p.add_argument("--seed", type=_integer, default=0, help="random seed (default 0)")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.set_defaults(func=_cmd_bench_reach, design=None, bay_size=None)
 
 
 __all__ = ["reach_lines", "register", "run_envelope", "run_reach", "written_lines"]
