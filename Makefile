@@ -10,6 +10,8 @@ $(STAMP): pyproject.toml
 	test -d $(VENV) || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet -e '.[dev]'
+	# compile the reach check once now (Numba caches it beside the module)
+	$(BIN)/python -c 'from payload.envelope.overlap import compile_check; compile_check()'
 	touch $(STAMP)
 
 demo: $(STAMP)

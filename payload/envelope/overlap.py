@@ -365,3 +365,15 @@ def touching(
                     out[k, grp] = True
                     break
     return out
+
+
+def compile_check() -> None:
+    """Compile :func:`touching` now, or load it from Numba's cache (setup runs this once,
+    so that the first ``report reach`` does not spend 4 to 5 s compiling; the argument
+    types are those :class:`payload.envelope.collisions.CollisionModel` passes)."""
+    i = np.zeros(1, dtype=np.int64)
+    f3 = np.zeros((1, 3))
+    touching(
+        np.zeros((0, 1, 3)), np.zeros((0, 1, 9)), f3, i, i + 1, np.zeros(1), f3, f3, i[:0].copy(),
+        i[:0].copy(), i,
+    )  # fmt: skip
