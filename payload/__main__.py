@@ -1,8 +1,6 @@
 """``python -m payload``: the same command line as the ``payload`` console script."""
 
-import sys
-
-from payload.cli import main
+from payload.cli import run
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run()

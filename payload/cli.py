@@ -15,11 +15,12 @@ of that command. ``tests/test_cli.py`` checks the table against what the modules
 from __future__ import annotations
 
 import argparse
+import gc
 import importlib
 import os
 import sys
 from collections.abc import Callable, Iterable, Sequence
-from typing import NamedTuple
+from typing import NamedTuple, NoReturn
 
 from payload.cliutil import CheckFailed, command_project, emit_json
 from payload.errors import PayloadError, RunAborted
@@ -121,6 +122,7 @@ __all__ = [
     "emit_json",
     "main",
     "registered_commands",
+    "run",
 ]
 
 
@@ -270,8 +272,25 @@ process to read the library's version), a tenth of a second or more in every pro
 that simulates, each Dask worker of a campaign included (they inherit it)."""
 
 
+def run() -> NoReturn:
+    """The ``payload`` console script and ``python -m payload``: :func:`main`, then exit.
+
+    Before the interpreter shuts down, the objects still alive are moved out of the cyclic
+    garbage collector's reach (``gc.freeze``): Python's shutdown otherwise ends with a
+    full collection over a heap holding MuJoCo, Numba, SciPy and the rest, 0.3 to 0.4 s
+    after a command on this machine (measured after ``report reach``), to free memory the
+    process's exit frees anyway. Exit handlers (temporary folders, worker pools) still run
+    and objects freed by reference counting are still finalized; the commands close
+    their own files.
+    """
+    code = main()
+    gc.freeze()
+    sys.exit(code)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of the ``payload`` console script; returns the exit code."""
+    """The command line: parse ``argv`` (default ``sys.argv[1:]``), run the command, and
+    return the exit code (the console script is :func:`run`)."""
     args = _parse(argv)
     saved = os.environ.get(ENV_VAR)
     added = [k for k in COMMAND_ENV if k not in os.environ]

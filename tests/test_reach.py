@@ -379,6 +379,64 @@ def test_overlap_of_random_polytopes_is_a_linear_programs_answer():
     assert min(tested.values()) > 100  # both answers well represented
 
 
+def test_overlap_at_grazing_depths_is_the_closed_form():
+    """A ball sunk into, or held off, a rotated box's face, edge or corner by 2 nm to
+    1 um: GJK's answer is the closed form's at every depth (a sliver simplex near the
+    contact must neither stall into "apart" nor call a 2 nm gap a contact)."""
+    rng = np.random.default_rng(11)
+    half = np.array([0.02, 0.01, 0.005])
+    corners = np.array(list(itertools.product((-1.0, 1.0), repeat=3))) * half
+    for gap in (-1e-6, -1e-7, -1e-8, -2e-9, 2e-9, 1e-8, 1e-7, 1e-6):
+        for _ in range(1500):
+            r_box, radius = _rotation(rng), float(rng.uniform(0.002, 0.02))
+            local = rng.uniform(-1.5, 1.5, 3) * half  # outside: nearest a face, edge or corner
+            near = np.clip(local, -half, half)
+            out = local - near
+            if not np.any(out):
+                continue
+            centre = r_box @ (near + out / np.linalg.norm(out) * (radius + gap))
+            verts, radii = (corners, np.zeros((1, 3))), (0.0, radius)
+            got = _overlap(verts, radii, (r_box, np.eye(3)), (np.zeros(3), centre))
+            assert got == (gap < 0), (gap, radius)
+
+
+def test_the_checked_pairs_are_those_mujoco_collides(tmp_path):
+    """``_mujoco_filters`` against MuJoCo itself on a scene where every geom overlaps every
+    other: a free body, a body welded to it, a hinge chain (parent filter), an excluded
+    pair, a geom of another contype and static geoms (world, a body welded to the world):
+    the body pairs MuJoCo reports touching are exactly those the check would test."""
+    import mujoco
+
+    from payload.envelope.collisions import _mujoco_filters
+
+    ball = '<geom type="sphere" size="0.1"/>'
+    xml = f"""<mujoco><worldbody>{ball}
+      <body name="static">{ball}</body>
+      <body name="free"><freejoint/>{ball}<body name="welded">{ball}</body></body>
+      <body name="a"><joint type="hinge"/>{ball}
+        <body name="b"><joint type="hinge"/>{ball}
+          <body name="c"><joint type="hinge"/>{ball}</body></body></body>
+      <body name="other"><joint type="slide"/><geom type="sphere" size="0.1" contype="2"
+        conaffinity="2"/></body>
+      <body name="d"><joint type="slide"/>{ball}</body>
+    </worldbody><contact><exclude body1="a" body2="d"/></contact></mujoco>"""
+    m = mujoco.MjModel.from_xml_string(xml)
+    d = mujoco.MjData(m)
+    mujoco.mj_forward(m, d)
+    seen = {tuple(sorted(m.geom_bodyid[g].tolist())) for g in d.contact.geom}
+    tested = {
+        tuple(sorted((int(m.geom_bodyid[g1]), int(m.geom_bodyid[g2]))))
+        for g1, g2 in itertools.combinations(range(m.ngeom), 2)
+        if _mujoco_filters(m, g1, g2)
+    }
+    assert tested == seen
+    name = {m.body(b).name: b for b in range(m.nbody)}
+    assert (name["a"], name["c"]) in seen  # grandparent: not filtered
+    for x, y in [("world", "static"), ("free", "welded"), ("a", "b"), ("a", "d")]:
+        assert tuple(sorted((name[x], name[y]))) not in seen
+    assert not any(name["other"] in pair for pair in seen)
+
+
 def test_overlap_of_a_sphere_and_a_box_is_the_closed_form():
     """A ball (one vertex and a radius) against a rotated box: they meet when the
     ball's centre, in the box's frame, is within the radius of the box (clamped point)."""

@@ -18,6 +18,10 @@ from payload.envelope.progress import Progress, quiet
 from payload.envelope.vehicle import Vehicle
 from payload.rotations import matrix_to_quat
 
+RANGE = 1000
+"""The most samples a range of the check holds (a worker's task; about 3.4 MB of poses
+for the default design)."""
+
 
 class CollisionModel:
     """MuJoCo model of the payload's convex pieces and the vehicle body, for batch checks.
@@ -78,9 +82,10 @@ class CollisionModel:
         self._qadr = np.array([m.jnt_qposadr[m.joint(j).id] for j in ALL_JOINTS])
         self.body_names = [m.body(b).name for b in range(m.nbody)]
         self._pieces = _Pieces.of(m)
+        self._poses = (np.empty((0, m.ngeom, 3)), np.empty((0, m.ngeom, 9)))
 
     def check(self, samples: np.ndarray, progress: Progress = quiet, workers: int = 1) -> Contacts:
-        """Every contact of every configuration.
+        """The body pairs in contact in every configuration.
 
         Args:
             samples: Shape (n, 18), :data:`ALL_JOINTS` order.
@@ -99,7 +104,8 @@ class CollisionModel:
         meanwhile. Without workers (one, fewer than 10,000 samples, or not Linux) the
         check runs when the result is asked for."""
         n = len(samples)
-        bounds = np.linspace(0, n, max(2, min(100, n // 500)) + 1).astype(int)
+        # ranges of at most RANGE samples (a range's poses: RANGE x geoms x 12 floats)
+        bounds = np.linspace(0, n, max(2, -(-n // RANGE)) + 1).astype(int)
         ranges = [(int(a), int(b)) for a, b in itertools.pairwise(bounds) if b > a]
         if not (workers > 1 and n >= 10_000 and sys.platform.startswith("linux")):
 
@@ -160,8 +166,12 @@ class CollisionModel:
         m, d = self.model, self.data
         qpos = np.zeros((stop - start, m.nq))
         qpos[:, self._qadr] = samples[start:stop]
-        xpos = np.empty((stop - start, m.ngeom, 3))
-        xmat = np.empty((stop - start, m.ngeom, 9))
+        if len(self._poses[0]) < stop - start:  # kept from range to range (fresh pages
+            self._poses = (  # cost a page fault each: about a tenth of the check)
+                np.empty((stop - start, m.ngeom, 3)),
+                np.empty((stop - start, m.ngeom, 9)),
+            )
+        xpos, xmat = self._poses[0][: stop - start], self._poses[1][: stop - start]
         q, geom_xpos, geom_xmat = d.qpos, d.geom_xpos, d.geom_xmat  # views, taken once
         for k in range(stop - start):
             q[:] = qpos[k]

@@ -23,13 +23,17 @@ import numpy as np
 
 GJK_ITERATIONS = 64
 """Iterations before GJK gives up on a pair (it needs about 4 to 12 here); a pair still
-undecided then counts as overlapping when its distance estimate is under
-:data:`TOUCH_TOLERANCE`."""
+undecided then is decided as a stalled one (:data:`STALL_TOLERANCE`)."""
 TOUCH_TOLERANCE = 1e-9
-"""Distance [m] under which two pieces count as touching (MuJoCo's MPR stops at 1e-6 of
-its own portal measure; the check's agreement with MuJoCo is tested, tests/test_reach.py)."""
-_REL = 1e-12
-"""GJK's convergence test: no progress of more than this fraction of |v|^2."""
+"""The pieces touch when the simplex's point closest to the origin is this close [m]."""
+STALL_TOLERANCE = 1e-7
+"""When GJK stops getting closer (rounding, at a grazing contact: |v| does not shrink) no
+plane along v has separated the pieces, and |v| bounds their distance from above; they
+count as touching when it is under this [m]. MuJoCo's MPR stops at 1e-6 of its own
+portal measure; the check's agreement with MuJoCo is tested (tests/test_reach.py)."""
+_FLAT = 1e-24
+"""A triangle is flat when |ab x ac|^2 is under this fraction of |ab|^2 |ac|^2 (the sine
+of its angle at a under 1e-12)."""
 
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
@@ -103,12 +107,16 @@ def _closest_triangle(s: np.ndarray, ia: int, ib: int, ic: int) -> tuple[float, 
     if va <= 0.0 and (d4 - d3) >= 0.0 and (d5 - d6) >= 0.0:
         t = (d4 - d3) / ((d4 - d3) + (d5 - d6))
         return bx + t * (cx - bx), by + t * (cy - by), bz + t * (cz - bz), 6
-    den = va + vb + vc
-    if den == 0.0:  # a degenerate (flat) triangle: its best edge
-        return _closest_flat(s, ia, ib, ic)
-    v = vb / den
-    w = vc / den
-    return ax + abx * v + acx * w, ay + aby * v + acy * w, az + abz * v + acz * w, 7
+    # inside the face: the origin's projection on the triangle's plane (through the
+    # normal, which keeps its precision on a sliver where the barycentric weights lose it)
+    nx = aby * acz - abz * acy
+    ny = abz * acx - abx * acz
+    nz = abx * acy - aby * acx
+    nn = nx * nx + ny * ny + nz * nz
+    if nn <= _FLAT * (abx * abx + aby * aby + abz * abz) * (acx * acx + acy * acy + acz * acz):
+        return _closest_flat(s, ia, ib, ic)  # a degenerate (flat) triangle: its best edge
+    f = (nx * ax + ny * ay + nz * az) / nn
+    return f * nx, f * ny, f * nz, 7
 
 
 @numba.njit(cache=True, error_model="numpy")
@@ -215,17 +223,14 @@ def overlap(
     if vx == 0.0 and vy == 0.0 and vz == 0.0:
         vx = 1.0
     n = 0
+    last = np.inf  # |v|^2 of the simplex before
     for _ in range(GJK_ITERATIONS):
         # w: the point of A - B furthest along -v
         ax, ay, az = _support(verts, a1, n1, rad1, r1, p1, -vx, -vy, -vz)
         bx, by, bz = _support(verts, a2, n2, rad2, r2, p2, vx, vy, vz)
         wx, wy, wz = ax - bx, ay - by, az - bz
-        vw = vx * wx + vy * wy + vz * wz
-        if vw > 0.0:  # the plane through w normal to v separates A - B from the origin
-            return False
-        vv = vx * vx + vy * vy + vz * vz
-        if n > 0 and vv - vw <= _REL * vv:  # no progress: v is the closest point
-            return vv <= TOUCH_TOLERANCE * TOUCH_TOLERANCE
+        if vx * wx + vy * wy + vz * wz > 0.0:  # the plane through w normal to v
+            return False  # separates A - B from the origin
         s[n, 0], s[n, 1], s[n, 2] = wx, wy, wz
         n += 1
         if n == 1:
@@ -238,8 +243,12 @@ def overlap(
             vx, vy, vz, mask = _closest_tetrahedron(s)
             if mask == 15:
                 return True
-        if vx * vx + vy * vy + vz * vz <= TOUCH_TOLERANCE * TOUCH_TOLERANCE:
+        vv = vx * vx + vy * vy + vz * vz
+        if vv <= TOUCH_TOLERANCE * TOUCH_TOLERANCE:
             return True
+        if vv >= last:  # no progress (rounding, at a grazing contact): no plane separates
+            return vv <= STALL_TOLERANCE * STALL_TOLERANCE  # them along v; how close?
+        last = vv
         k = 0  # keep the vertices the closest point needs, in order
         for i in range(n):
             if mask & (1 << i):
@@ -247,7 +256,7 @@ def overlap(
                     s[k, 0], s[k, 1], s[k, 2] = s[i, 0], s[i, 1], s[i, 2]
                 k += 1
         n = k
-    return vx * vx + vy * vy + vz * vz <= TOUCH_TOLERANCE * TOUCH_TOLERANCE
+    return vx * vx + vy * vy + vz * vz <= STALL_TOLERANCE * STALL_TOLERANCE
 
 
 @numba.njit(cache=True, error_model="numpy")

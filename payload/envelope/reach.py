@@ -183,6 +183,8 @@ def analyse_reach(
     _check_inputs(samples, features)
     if started is None:
         started = start_check(geom, vehicle, samples, seed, workers, progress)
+    elif len(started.samples) != samples:
+        raise ReachError(f"the started check has {len(started.samples)} samples, not {samples}")
     tree = geom.tree
     t0, q, rng, model = started.t_start, started.samples, started.rng, started.model
     timings: dict[str, float] = {}

@@ -1,7 +1,8 @@
 """The reach check's first step, light to import: sample the deployed joint space and
 start the collision check in forked workers.
 
-It needs MuJoCo, Numba and the design only, so ``payload report reach`` starts the
+It needs MuJoCo, Numba (which loads SciPy's top-level package, not its optimize or
+spatial modules) and the design only, so ``payload report reach`` starts the
 workers before it imports what the rest of the analysis uses (Pinocchio, CasADi,
 SciPy), and those load while the workers check (:func:`payload.envelope.reach.analyse_reach`
 finishes the analysis).
