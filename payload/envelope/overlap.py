@@ -5,12 +5,16 @@ touch. MuJoCo answers a wider one (every touching pair of pieces, with its penet
 depth and contact frame: MPR or EPA after the overlap is found), which is most of the
 check's time. This module answers only the question asked, with the same poses (MuJoCo's
 ``mj_kinematics``) and the same convex sets (the hull of each piece's vertices, as MuJoCo
-collides a mesh; a box's eight corners):
+collides a mesh; a box's eight corners; a sphere's centre and radius):
 
-1. each piece's world box (its local bounding box, rotated: ``|R| h``) rules out most pairs;
+1. each piece's world box (its local bounding box, rotated: ``|R| h``) rules out most
+   pairs, the oriented boxes' 15 separating axes about half of the rest;
 2. the remaining pairs go through GJK (Gilbert, Johnson, Keerthi 1988; the simplex's
-   closest point by Voronoi regions, Ericson 2005, sec. 5.1): it stops as soon as a plane
-   separates the two pieces (``v . w > 0``), or the simplex holds the origin (they overlap);
+   closest point by Voronoi regions, Ericson 2005, sec. 5.1, a face's through its
+   normal): it stops as soon as a plane separates the two pieces (``v . w > 0``: apart),
+   the simplex holds the origin or comes within :data:`TOUCH_TOLERANCE` of it (they
+   touch), or stops getting closer (rounding, at a grazing contact: decided by
+   :data:`STALL_TOLERANCE`);
 3. a body pair is done at its first overlapping pair of pieces.
 
 Compiled by Numba (IEEE arithmetic, no fast-math), cached on disk beside this module.
@@ -218,7 +222,9 @@ def overlap(
         s: Scratch, shape (4, 3).
 
     Returns:
-        True when they overlap or are within :data:`TOUCH_TOLERANCE`.
+        True when they overlap: the simplex holds the origin or comes within
+        :data:`TOUCH_TOLERANCE` of it, or GJK stops getting closer (or runs out of
+        iterations) within :data:`STALL_TOLERANCE` with no separating plane found.
     """
     if vx == 0.0 and vy == 0.0 and vz == 0.0:
         vx = 1.0
