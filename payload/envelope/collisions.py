@@ -166,8 +166,8 @@ class CollisionModel:
         m, d = self.model, self.data
         qpos = np.zeros((stop - start, m.nq))
         qpos[:, self._qadr] = samples[start:stop]
-        if len(self._poses[0]) < stop - start:  # kept from range to range (fresh pages
-            self._poses = (  # cost a page fault each: about a tenth of the check)
+        if len(self._poses[0]) < stop - start:  # allocated once, kept from range to range
+            self._poses = (
                 np.empty((stop - start, m.ngeom, 3)),
                 np.empty((stop - start, m.ngeom, 9)),
             )

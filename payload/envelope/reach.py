@@ -237,7 +237,7 @@ def analyse_reach(
 def _load_scipy() -> None:
     """Import the SciPy modules the workspaces and the grasp check use (each imports its
     own when first used): here, while the collision check's workers run, instead of
-    after them (0.3 to 0.4 s on this machine)."""
+    after them (0.2 to 0.4 s on this machine)."""
     import scipy.optimize
     import scipy.spatial  # noqa: F401
 
