@@ -222,8 +222,7 @@ def written_lines(paths: dict[str, Path], stem: str) -> list[str]:
 
 def _check_reach_args(args: argparse.Namespace) -> None:
     """Bad numbers raise :class:`ReachError` (exit 2)."""
-    from payload.envelope.pairs import ReachError
-    from payload.envelope.reach_start import MIN_SAMPLES
+    from payload.envelope.pairs import MIN_SAMPLES, ReachError
 
     if args.samples < MIN_SAMPLES:
         raise ReachError(f"--samples must be at least {MIN_SAMPLES} (got {args.samples})")
@@ -404,22 +403,19 @@ def _cmd_bench_reach(args: argparse.Namespace) -> int:
     ``report reach`` timed in a fresh interpreter."""
     from payload.envelope.bench import run_reach_bench
     from payload.envelope.pairs import ReachError
-    from payload.envelope.reach_start import MIN_SAMPLES
 
-    if args.samples < MIN_SAMPLES:
-        raise ReachError(f"--samples must be at least {MIN_SAMPLES} (got {args.samples})")
+    _check_reach_args(args)  # --samples, --seed
     if args.check_samples < 1:
         raise ReachError(f"--check-samples must be at least 1 (got {args.check_samples})")
     if args.runs < 1:
         raise ReachError(f"--runs must be at least 1 (got {args.runs})")
-    if args.seed < 0:
-        raise ReachError(f"--seed must not be negative (got {args.seed})")
     project = _project(args)
     _models_follow(args)
     _, vehicle, geom = _load(args)
     r = run_reach_bench(
         geom, vehicle, project.root, project.analyses_dir, samples=args.samples,
         check_samples=args.check_samples, runs=args.runs, seed=args.seed,
+        aim_samples=DEFAULT_SAMPLES,
     )  # fmt: skip
     if args.json:
         emit_json(r)
@@ -437,7 +433,7 @@ def _cmd_bench_reach(args: argparse.Namespace) -> int:
     aim = {
         True: f"every run under the aim of {r['aim_s']:g} s",
         False: f"NOT every run under the aim of {r['aim_s']:g} s",
-        None: f"the aim of {r['aim_s']:g} s is for 100,000 samples",
+        None: f"the aim of {r['aim_s']:g} s is for {r['aim_samples']:,} samples",
     }[r["within_aim"]]
     print(
         f"report reach --samples {r['samples']}: {walls} s wall (median "
@@ -566,7 +562,7 @@ def register(
         "runs at its default seed, as users run it)",
     )
     p.add_argument("--json", action="store_true", help="print one JSON object")
-    p.set_defaults(func=_cmd_bench_reach, design=None, bay_size=None)
+    p.set_defaults(func=_cmd_bench_reach, design=None, bay_size=None, workers=None, thickness=None)
 
 
 __all__ = ["reach_lines", "register", "run_envelope", "run_reach", "written_lines"]

@@ -13,7 +13,7 @@ import numpy as np
 
 from payload.design.tree import ALL_JOINTS, rpy_matrix
 from payload.envelope.geometry import PayloadGeometry
-from payload.envelope.overlap import touching
+from payload.envelope.overlap import compile_check, touching
 from payload.envelope.progress import Progress, quiet
 from payload.envelope.vehicle import Vehicle
 from payload.rotations import matrix_to_quat
@@ -82,7 +82,6 @@ class CollisionModel:
         self._qadr = np.array([m.jnt_qposadr[m.joint(j).id] for j in ALL_JOINTS])
         self.body_names = [m.body(b).name for b in range(m.nbody)]
         self._pieces = _Pieces.of(m)
-        self._poses = (np.empty((0, m.ngeom, 3)), np.empty((0, m.ngeom, 9)))
 
     def check(self, samples: np.ndarray, progress: Progress = quiet, workers: int = 1) -> Contacts:
         """The body pairs in contact in every configuration.
@@ -119,7 +118,7 @@ class CollisionModel:
             return serial
         # load the compiled check here, once, for the workers to inherit (each would
         # otherwise load it from Numba's cache itself: about 0.3 s a process)
-        self._check_range(samples, 0, 0)
+        compile_check()
         global _ACTIVE
         _ACTIVE = (self, samples)  # kept until the results are in (a replaced worker forks)
         try:
@@ -166,12 +165,8 @@ class CollisionModel:
         m, d = self.model, self.data
         qpos = np.zeros((stop - start, m.nq))
         qpos[:, self._qadr] = samples[start:stop]
-        if len(self._poses[0]) < stop - start:  # allocated once, kept from range to range
-            self._poses = (
-                np.empty((stop - start, m.ngeom, 3)),
-                np.empty((stop - start, m.ngeom, 9)),
-            )
-        xpos, xmat = self._poses[0][: stop - start], self._poses[1][: stop - start]
+        xpos = np.empty((stop - start, m.ngeom, 3))
+        xmat = np.empty((stop - start, m.ngeom, 9))
         q, geom_xpos, geom_xmat = d.qpos, d.geom_xpos, d.geom_xmat  # views, taken once
         for k in range(stop - start):
             q[:] = qpos[k]

@@ -15,6 +15,10 @@ OPPOSITION_CONE = np.radians(30.0)
 """Largest angle between a pinch axis and the across-array (y) axis for opposing pads [rad]."""
 
 
+MIN_SAMPLES = 1000
+"""The fewest sampled configurations a reach analysis takes."""
+
+
 class ReachError(PayloadError):
     """Bad input to the reach analysis (a sample count, a thickness, a pair)."""
 
@@ -50,6 +54,7 @@ def pair_side(tree: KinematicTree, pair: str) -> float:
 
 
 __all__ = [
+    "MIN_SAMPLES",
     "OPPOSITION_CONE",
     "PAIRS",
     "ReachError",

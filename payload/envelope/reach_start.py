@@ -19,13 +19,10 @@ import numpy as np
 
 from payload.envelope.collisions import CollisionModel, Contacts
 from payload.envelope.geometry import PayloadGeometry
-from payload.envelope.pairs import ReachError
+from payload.envelope.pairs import MIN_SAMPLES, ReachError
 from payload.envelope.progress import Progress, quiet
 from payload.envelope.sampling import sample_configurations
 from payload.envelope.vehicle import Vehicle
-
-MIN_SAMPLES = 1000
-"""The fewest sampled configurations a reach analysis takes."""
 
 
 class StartedCheck(NamedTuple):
@@ -50,7 +47,7 @@ class StartedCheck(NamedTuple):
 
 def check_samples(samples: object) -> None:
     """Raise :class:`ReachError` unless ``samples`` is an integer of at least
-    :data:`MIN_SAMPLES`."""
+    :data:`~payload.envelope.pairs.MIN_SAMPLES`."""
     if (
         isinstance(samples, bool)
         or not isinstance(samples, (int, np.integer))
@@ -72,7 +69,7 @@ def start_check(
     Args:
         geom: Collision geometry of the design.
         vehicle: The vehicle.
-        samples: Number of configurations (at least :data:`MIN_SAMPLES`).
+        samples: Number of configurations (at least :data:`~payload.envelope.pairs.MIN_SAMPLES`).
         seed: Random seed.
         workers: Processes for the check (default: up to 2, the CPUs there are).
         progress: Progress callback.
@@ -93,4 +90,4 @@ def start_check(
     return StartedCheck(q, rng, model, contacts, t_start, t_model)
 
 
-__all__ = ["MIN_SAMPLES", "StartedCheck", "check_samples", "start_check"]
+__all__ = ["StartedCheck", "check_samples", "start_check"]
