@@ -113,6 +113,65 @@ def test_a_batch_encodes_to_the_bytes_of_one_step_at_a_time() -> None:
     assert len(msgs[33 - 5].grid) == 0 and msgs[34 - 5].grid_key
 
 
+def _same_arrays(a, b) -> list[str]:
+    """The fields of two recordings whose values differ in any bit (dtype and shape too)."""
+    bad = []
+    for f in dataclasses.fields(a):
+        x, y = getattr(a, f.name), getattr(b, f.name)
+        if isinstance(x, np.ndarray):
+            same = x.dtype == y.dtype and x.shape == y.shape and x.tobytes() == y.tobytes()
+        else:
+            same = x == y
+        if not same:
+            bad.append(f.name)
+    return bad
+
+
+def test_a_kept_recording_is_what_the_reader_reads_back(tmp_path: Path) -> None:
+    """A trial scores the recording its recorder kept instead of reading the file: every
+    array bit for bit what read_recording decodes from the file (and the same metadata),
+    through flushes, steps stored as doubles (a number off the grid's range), pair fields
+    stored apart from q_cmd, untracked hands, hand frames whose joints differ from the
+    step's, off-grid and negative-zero joints."""
+    rng = np.random.default_rng(5)
+    path = tmp_path / "log.mcap"
+    with TrialRecorder(path, keep=True, flush_period_s=0.1) as rec:
+        rec.write_meta({"seed": 3, "pair": (1, 2.5), "nested": {"a": [0.1, None]}})
+        for k in range(300):
+            fields: dict = {}
+            if k % 7 == 0:  # the pairs are q_cmd's entries: stored as a flag
+                q = rng.normal(size=17)
+                fields.update(
+                    q_cmd=q,
+                    q_left=q[[0, 1, 2, 3, 8, 9, 10, 11]],
+                    q_right=q[[4, 5, 6, 7, 12, 13, 14, 15]],
+                    rail_cmd=float(q[-1]),
+                )
+            if k % 5 == 0:
+                fields["left_joints"] = np.full((25, 3), np.nan)
+            if k % 3 == 0:
+                fields["right_joints"] = quantize_joints(rng.normal(scale=0.05, size=(25, 3)))
+            if k % 11 == 0:
+                fields["right_joints"] = -np.zeros((25, 3))  # on the grid, read back as +0
+            if k in (100, 101):
+                fields["ctb_pos"] = np.array([1e30, 0.0, 0.0])  # beyond the grid: doubles
+            step = random_step(rng, (k + 1) * DT, **fields)
+            if k % 2 == 0:
+                left = step.left_joints if k % 4 else quantize_joints(rng.normal(size=(25, 3)))
+                rec.write_hands(HandFrame(k * DT, Hand(left, True), Hand(step.right_joints, True)))
+            rec.write(step)
+        rec.write_meta({"closing": True, "seed": 4})
+        with pytest.raises(RecordingError, match="close the recorder"):
+            rec.recording()
+    kept, read = rec.recording(), read_recording(path)
+    assert len(kept) == 300 and _same_arrays(kept, read) == []
+    assert kept.meta["seed"] == 4 and kept.meta["pair"] == [1, 2.5]
+    with TrialRecorder(tmp_path / "other.mcap") as plain:
+        plain.write(random_step(rng, DT))
+    with pytest.raises(RecordingError, match="not asked to keep"):
+        plain.recording()
+
+
 def test_delta_joints_without_their_key_are_refused() -> None:
     enc = JointsCodec()
     x = quantize_joints(np.ones((25, 3)))

@@ -38,7 +38,7 @@ saw (stamp, tracked flags, joints), so a recording replays bit for bit.
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
@@ -217,8 +217,10 @@ class StepCodec:
         self._prev = None
 
     def _grid_batch(self, steps: list[Any], walls: list[float]) -> list[Any]:
-        """The grid numbers of a batch of steps in turn: per step ``(key, ints)`` or
-        ``None`` (a non-finite number: stored as doubles, the next one a key)."""
+        """The grid numbers of a batch of steps in turn: per step ``(key, ints, values)``
+        or ``None`` (a non-finite number: stored as doubles, the next one a key);
+        ``values`` are the numbers as the decoder reads them back (the same integers
+        over the same grid steps per unit)."""
         n = len(steps)
         values = np.empty((n, len(_GRID)))
         for name, start, stop in _GRID_SLICES:
@@ -229,6 +231,7 @@ class StepCodec:
         k = np.round(values * _PER_UNIT)
         ok = np.isfinite(k).all(axis=1) & ~(np.abs(k) >= 2.0**62).any(axis=1)
         ki = np.where(ok[:, None], k, 0.0).astype(np.int64)
+        decoded = ki / _PER_UNIT
         out: list[Any] = []
         for i in range(n):
             if not ok[i]:
@@ -236,13 +239,15 @@ class StepCodec:
                 out.append(None)
                 continue
             if self._prev is None:
-                out.append((True, ki[i].tolist()))
+                out.append((True, ki[i].tolist(), decoded[i]))
             else:
-                out.append((False, (ki[i] - self._prev).tolist()))
+                out.append((False, (ki[i] - self._prev).tolist(), decoded[i]))
             self._prev = ki[i]
         return out
 
-    def encode_batch(self, items: list[tuple[Any, int, float, Any]]) -> list[tuple[Any, bytes]]:
+    def encode_batch(
+        self, items: list[tuple[Any, int, float, Any]], decoded: list[Any] | None = None
+    ) -> list[tuple[Any, bytes]]:
         """Several steps (and their hand samples) at once, in order: the bytes that
         :meth:`encode_hands` and :meth:`encode_step` give one at a time, with the grid and
         joint arithmetic done once for the batch (the recorder's flush).
@@ -251,22 +256,22 @@ class StepCodec:
             items: Per step ``(step, seq, wall_time, frame)``: ``frame`` the hand frame
                 recorded with it (``None``: none); the step's joints refer to the frame's
                 where they are the same (:func:`same_joints`).
+            decoded: If given, gets per step what :meth:`decode_step` will read back from
+                its bytes, as a :class:`Decoded` (without decoding them).
 
         Returns:
             Per step ``(hand sample bytes or None, step bytes)``.
         """
         frames = [(i, f) for i, (_, _, _, f) in enumerate(items) if f is not None]
-        hands = {
-            side: dict(
-                zip(
-                    [i for i, _ in frames],
-                    self.joints[f"hands_{side}"].encode_many(
-                        [getattr(f, side).joints for _, f in frames]
-                    ),
-                )
+        hands: dict[str, dict[int, Any]] = {}
+        hands_read: dict[str, dict[int, np.ndarray]] = {}
+        for side in ("left", "right"):
+            specs, values = self.joints[f"hands_{side}"].encode_many(
+                [getattr(f, side).joints for _, f in frames]
             )
-            for side in ("left", "right")
-        }
+            rows = [i for i, _ in frames]
+            hands[side] = dict(zip(rows, specs))
+            hands_read[side] = dict(zip(rows, values))
         refs = []
         for step, _, _, frame in items:
             refs.append(
@@ -278,11 +283,24 @@ class StepCodec:
                 )
             )
         own = {}
+        own_read: dict[str, dict[int, np.ndarray]] = {}
         for name, side in (("left_joints", 0), ("right_joints", 1)):
             rows = [i for i, ref in enumerate(refs) if not ref[side]]
-            specs = self.joints[name].encode_many([getattr(items[i][0], name) for i in rows])
+            specs, values = self.joints[name].encode_many(
+                [getattr(items[i][0], name) for i in rows]
+            )
             own[name] = dict(zip(rows, specs))
+            own_read[name] = dict(zip(rows, values))
         grids = self._grid_batch([it[0] for it in items], [it[2] for it in items])
+        if decoded is not None:
+            for i, (step, _, wall_time, _) in enumerate(items):
+                joints = [
+                    own_read[name][i] if i in own_read[name] else hands_read[side][i]
+                    for name, side in (("left_joints", "left"), ("right_joints", "right"))
+                ]
+                decoded.append(
+                    Decoded(step, None if grids[i] is None else grids[i][2], wall_time, *joints)
+                )
         out = []
         for i, (step, seq, wall_time, frame) in enumerate(items):
             data = None
@@ -442,6 +460,52 @@ _EMPTY = np.zeros(0)
 _EMPTY.setflags(write=False)
 
 
+class Decoded(NamedTuple):
+    """What the reader will decode from a step's message, known when it is encoded.
+
+    Attributes:
+        step: The :class:`~payload.trials.recorder.StepRecord` encoded.
+        grid: The numbers stored on their grids (:data:`STEP_GRIDS` order) as they read
+            back, or ``None`` when the step was stored as doubles (read back exactly).
+        wall_time: Its wall-clock time as stored (read back from ``grid`` when gridded).
+        left_joints: The left-hand joints (25, 3) as they read back.
+        right_joints: The right-hand joints.
+    """
+
+    step: Any
+    grid: np.ndarray | None
+    wall_time: float
+    left_joints: np.ndarray
+    right_joints: np.ndarray
+
+    def row(self) -> dict[str, Any]:
+        """The dict :meth:`StepCodec.decode_step` returns for this step (but ``seq``)."""
+        step = self.step
+        row: dict[str, Any] = {
+            "wall_time": float(self.wall_time),
+            "phase": step.phase,
+            "ctb_module": step.ctb_module,
+            "left_tracked": bool(step.left_tracked),
+            "right_tracked": bool(step.right_tracked),
+            "contact": bool(step.contact),
+        }
+        for name, _, _ in STEP_DOUBLES:
+            row[name] = getattr(step, name)
+        if self.grid is not None:
+            for name, start, stop in _GRID_SLICES:
+                row[name] = float(self.grid[start]) if stop == start + 1 else self.grid[start:stop]
+        if _pairs_in_cmd(step):
+            q = row["q_cmd"]
+            row["q_left"], row["q_right"], row["rail_cmd"] = (
+                q[PAIR_L_INDEX],
+                q[PAIR_R_INDEX],
+                float(q[-1]),
+            )
+        row["left_joints"] = self.left_joints
+        row["right_joints"] = self.right_joints
+        return row
+
+
 def _pairs_in_cmd(step: Any) -> bool:
     q = step.q_cmd
     return bool(
@@ -458,6 +522,7 @@ def _equal(a: np.ndarray, b: np.ndarray) -> bool:
 
 __all__ = [
     "FILE_DESCRIPTOR",
+    "Decoded",
     "HANDS_MESSAGE",
     "HAND_GRID_M",
     "MODULE_NAMES",

@@ -64,19 +64,22 @@ class JointsCodec:
         out.raw.extend(flat.tolist())
         self._prev = None
 
-    def encode_many(self, joints: list[np.ndarray]) -> list[tuple[Any, ...]]:
+    def encode_many(self, joints: list[np.ndarray]) -> tuple[list[tuple[Any, ...]], np.ndarray]:
         """What :meth:`encode` would store for each of several joint arrays in turn, as
         specs for :func:`_fill_joints` (the arithmetic done once for the batch: the same
-        elementwise operations, so the same integers).
+        elementwise operations, so the same integers), and what :meth:`decode` reads back
+        from them.
 
         Args:
             joints: Joint arrays (25, 3), in the order they are written.
 
         Returns:
-            Per array ``("untracked",)``, ``("grid", key, deltas)`` or ``("raw", values)``.
+            Per array ``("untracked",)``, ``("grid", key, deltas)`` or ``("raw", values)``;
+            and the decoded joints, (n, 25, 3): NaN where untracked, ``k * grid`` on the
+            grid (the decoder's product of the same integers), the values themselves raw.
         """
         if not joints:
-            return []
+            return [], np.zeros((0, 25, 3))
         flat = np.array(joints, dtype=np.float64).reshape(len(joints), -1)
         untracked = np.isnan(flat).all(axis=1)
         with np.errstate(invalid="ignore"):
@@ -96,7 +99,9 @@ class JointsCodec:
             else:
                 specs.append(("raw", flat[i].tolist()))
                 self._prev = None
-        return specs
+        decoded = np.where(gridded[:, None], ki * self.grid, flat)
+        decoded[untracked] = np.nan
+        return specs, decoded.reshape(len(joints), 25, 3)
 
     def decode(self, msg: Any) -> np.ndarray:
         """Joints (25, 3) [m] from a ``Joints`` message (NaN when untracked)."""

@@ -7,6 +7,7 @@ re-exports both, so ``from payload.trials.recorder import read_recording`` keeps
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import math
@@ -64,6 +65,8 @@ class TrialRecorder:
         overwrite: Replace an existing file instead of refusing.
         scene: Optional Foxglove scene writer (:class:`~payload.trials.foxglove.FoxgloveScene`)
             adding the standard Foxglove channels (transforms, scene, joint states).
+        keep: Also keep what was written as the reader will read it back, for
+            :meth:`recording` (a trial scores its recording without reading the file).
 
     Raises:
         RecordingError: ``flush_period_s`` out of range, or the file exists.
@@ -76,6 +79,7 @@ class TrialRecorder:
         flush_period_s: float = 1.0,
         overwrite: bool = False,
         scene: Any = None,
+        keep: bool = False,
     ) -> None:
         if not (0.0 < flush_period_s <= 1.0):
             raise RecordingError(f"flush_period_s must be in (0, 1] s, got {flush_period_s}")
@@ -98,6 +102,8 @@ class TrialRecorder:
         self._t0_ns: int | None = None
         self._clock = time.time_ns
         self._pending: list[tuple[Any, ...]] = []  # steps written, not yet encoded
+        self._kept: list[Recording] | None = [] if keep else None  # per flush, as read back
+        self._meta: dict[str, Any] = {}  # the metadata as read back
 
     # -- lifecycle ---------------------------------------------------------------------
     def open(self) -> TrialRecorder:
@@ -189,7 +195,11 @@ class TrialRecorder:
             return
         writer, pending = self._writer, self._pending
         self._pending = []
-        encoded = self._codec.encode_batch([p[:4] for p in pending])
+        decoded: list[codec.Decoded] | None = [] if self._kept is not None else None
+        encoded = self._codec.encode_batch([p[:4] for p in pending], decoded)
+        if self._kept is not None and decoded is not None:
+            rows = [{**d.row(), "seq": p[1]} for d, p in zip(decoded, pending)]
+            self._kept.append(Recording.from_dicts(rows))
         for (step, seq, _, _, log_ns, stamp), (hands, data) in zip(pending, encoded):
             if hands is not None:
                 writer.add_message(
@@ -280,10 +290,30 @@ class TrialRecorder:
                 data[key] = json.dumps(value, default=_json_default, allow_nan=False)
             except (TypeError, ValueError) as exc:
                 raise RecordingError(f"write_meta: value of {key!r} is not JSON: {exc}") from exc
+        self._meta.update({key: json.loads(text) for key, text in data.items()})
         data[META_CRC_KEY] = metadata_crc(data)
         self._drain()  # the steps before it stay before it in the file
         writer.add_metadata(META_NAME, data)
         self.flush()
+
+    def recording(self) -> Recording:
+        """What :func:`read_recording` reads back from the closed file, from what was
+        written (the same arrays, bit for bit, and the same metadata), without reading it.
+
+        Raises:
+            RecordingError: The recorder was made without ``keep``, or is not closed.
+        """
+        if self._kept is None:
+            raise RecordingError("recording(): the recorder was not asked to keep its steps")
+        if not self._closed:
+            raise RecordingError("recording(): close the recorder first")
+        parts = self._kept or [Recording.from_dicts([])]
+        columns = {
+            f.name: np.concatenate([getattr(p, f.name) for p in parts])
+            for f in dataclasses.fields(Recording)
+            if f.name not in ("path", "meta", "complete")
+        }
+        return Recording(path=self.path, meta=dict(self._meta), complete=True, **columns)
 
     def _require_open(self) -> Writer:
         if self._writer is None:

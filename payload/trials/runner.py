@@ -371,9 +371,10 @@ def _record_session(
     *,
     max_time: float,
     progress: bool,
-) -> Any:
+) -> tuple[Any, Any]:
     """Run the teleoperation session, recording every step into ``rec_path``; returns the
-    session's statistics. An unexpected error marks the recording aborted."""
+    session's statistics and the recording as the reader reads it back. An unexpected
+    error marks the recording aborted."""
     from payload.trials.recorder import TrialRecorder
     from payload.trials.safety import recording_scene
 
@@ -388,7 +389,7 @@ def _record_session(
     last_t = [0.0]
     try:
         scene = recording_scene(driver, module_rects(layout))
-        with TrialRecorder(rec_path, scene=scene) as recorder:
+        with TrialRecorder(rec_path, scene=scene, keep=True) as recorder:
             recorder.write_meta(meta)
 
             def on_step(ctx: StepContext) -> None:
@@ -422,7 +423,7 @@ def _record_session(
         if bar is not None:
             bar.stop()
         driver.close()
-    return stats
+    return stats, recorder.recording()
 
 
 def _run_trial(
@@ -456,7 +457,7 @@ def _run_trial(
     prov = provenance(project, driver.world.config.design)
     rec_path = out / "log.mcap"
     meta = _trial_meta(seed, source_spec, traits, prov, driver.world.layout, setup)
-    stats = _record_session(
+    stats, recording = _record_session(
         driver,
         seed,
         source,
@@ -467,7 +468,9 @@ def _run_trial(
         max_time=max_time,
         progress=progress,
     )
-    result = finish_trial(out, rec_path)  # scored with the contact definition it recorded
+    # scored with the contact definition it recorded, from what was written (the arrays
+    # the file reads back as, without reading it)
+    result = finish_trial(out, rec_path, recording=recording)
     result["steps"] = stats.steps
     result["provenance"] = prov
     replace_file(out / "metrics.json", json.dumps(result, indent=2) + "\n")

@@ -25,6 +25,7 @@ def finish_trial(
     max_gap_s: float | None = None,
     beside: bool = False,
     force: bool = False,
+    recording: Any = None,
 ) -> dict[str, Any]:
     """Score a finished (or cut-short) recording and write the trial's files.
 
@@ -47,6 +48,10 @@ def finish_trial(
         max_gap_s: Contact-interval relaxation; 0 = the paper's definition.
         beside: Name the files by the contact definition (a rescoring).
         force: Replace files that exist with other content.
+        recording: The :class:`~payload.trials.reading.Recording` the file reads back as,
+            when the caller has it (the trial runner: its recorder's
+            :meth:`~payload.trials.recorder.TrialRecorder.recording`); default: read the
+            file.
 
     Returns:
         The metrics dict written to ``metrics.json`` (fields of
@@ -60,7 +65,7 @@ def finish_trial(
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    rec = read_recording(recording_path)
+    rec = recording if recording is not None else read_recording(recording_path)
     # the contact definition the trial was recorded with, unless the caller overrides it
     recorded = rec.meta.get("contact_definition") or {}
     if min_interval_s is None:
