@@ -522,13 +522,13 @@ def _equal(a: np.ndarray, b: np.ndarray) -> bool:
 
 __all__ = [
     "FILE_DESCRIPTOR",
-    "Decoded",
     "HANDS_MESSAGE",
     "HAND_GRID_M",
     "MODULE_NAMES",
     "PHASE_NAMES",
     "STEP_GRIDS",
     "STEP_MESSAGE",
+    "Decoded",
     "JointsCodec",
     "StepCodec",
     "quantize_joints",
