@@ -284,6 +284,47 @@ def test_station_monitor_sees_the_strike(world, grasped_state):
     assert touched
 
 
+def test_the_station_monitors_quick_bound_never_changes_a_reading(
+    world, grasped_state, monkeypatch
+):
+    """StationMonitor first tests a box around every moving geom's box; where that says
+    nothing is near it returns the cap without the per-geom boxes. Against the same
+    monitor with that bound off, on 600 random poses of the stack (CTB included) over
+    the trial's route and off it into the walls: the same reading, bit for bit, both ways of
+    answering taken many times."""
+    from payload.sim import station
+
+    sim = _driver(world, grasped_state, (1.5, 7.0, 0.25), (0.0, 0.0, 0.0))
+    m, d = sim.model, sim.data
+    quick, exact = station.StationMonitor(world), station.StationMonitor(world)
+    boxes = station._world_aabb
+    calls = []
+    monkeypatch.setattr(
+        station, "_world_aabb", lambda *args: calls.append(args[2] is quick.moving) or boxes(*args)
+    )
+    exact._reach[:] = np.inf  # every pose goes on to the per-geom boxes
+    rng = np.random.default_rng(4)
+    route = np.asarray(world.layout.route(), dtype=float)
+    a, c = world.astrobee_qpos, world.ctb_qpos
+    held = d.qpos[c : c + 3] - d.qpos[a : a + 3]
+    quat0 = d.qpos[a + 3 : a + 7].copy()
+    for k in range(600):
+        leg = rng.integers(len(route) - 1)
+        on_route = route[leg] + rng.uniform() * (route[leg + 1] - route[leg])
+        spread = 0.1 if k % 2 else 0.5  # about the route, or out to and past the walls
+        pos = on_route + rng.normal(scale=spread, size=3)
+        quat = quat0 + rng.normal(scale=0.1 if k % 3 else 1.0, size=4)
+        d.qpos[a : a + 3] = pos
+        d.qpos[a + 3 : a + 7] = quat / np.linalg.norm(quat)
+        d.qpos[c : c + 3] = pos + held + rng.normal(scale=0.05, size=3)
+        mujoco.mj_forward(m, d)
+        want = exact.read(d)
+        got = quick.read(d)
+        assert got == want and type(got.clearance) is type(want.clearance)
+    boxed = sum(calls[1:])  # the quick monitor's per-geom boxes (the first: the station's)
+    assert 50 < boxed < 550, boxed  # both ways of answering, many times
+
+
 def test_cli_controller_filter_zones_and_delay_reach_the_runner(tmp_path, monkeypatch, capsys):
     """``--controller safe`` turns the filter on (``--no-base-filter`` overrides it);
     ``--zones`` and ``--link-delay`` are parsed and passed on; bad values exit 2."""
