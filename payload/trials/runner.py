@@ -9,14 +9,12 @@ into ``hands.jsonl`` (so any trial can be replayed bit for bit), then scores it.
 
 from __future__ import annotations
 
-import gc
 import json
 import logging
 import os
 import shutil
 import tempfile
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -403,16 +401,15 @@ def _record_session(
                     bar.update(task, completed=ctx.t)
 
             try:
-                with collector_paused():
-                    stats = run_session(
-                        driver,
-                        source,
-                        setup.calibration,
-                        make_pipeline,
-                        max_time=max_time,
-                        on_step=on_step,
-                        world_view=_world_view(driver),
-                    )
+                stats = run_session(
+                    driver,
+                    source,
+                    setup.calibration,
+                    make_pipeline,
+                    max_time=max_time,
+                    on_step=on_step,
+                    world_view=_world_view(driver),
+                )
             except Exception as exc:
                 what = f"{type(exc).__name__}: {exc}"
                 log.error("trial %s aborted at t = %.2f s", seed, last_t[0], exc_info=True)
@@ -480,27 +477,6 @@ def _run_trial(
     return result
 
 
-@contextmanager
-def collector_paused() -> Iterator[None]:
-    """Python's cyclic garbage collector off for the duration (a trial's session), then
-    back as it was.
-
-    A simulated session makes no cyclic garbage (``gc.collect()`` after a 60 s session
-    run with the collector off found no object to free); its reference counts free
-    everything. The collector's passes over the whole heap (MuJoCo's, CasADi's and
-    Pinocchio's objects included) were 0.4-0.7 s of CPU in a 60 s session for nothing.
-    A session is capped (:data:`MAX_TRIAL_S`), so whatever cyclic garbage a future
-    change made would be bounded and freed by the collector once it is back.
-    """
-    was = gc.isenabled()
-    gc.disable()
-    try:
-        yield
-    finally:
-        if was:
-            gc.enable()
-
-
 def base_filter_for(driver: Any, base: Any, zones: Any = None) -> Any:
     """The base safety filter for a simulator driver: the base channel's bounds and the
     deceleration its vehicle controller gives the loaded stack."""
@@ -556,7 +532,6 @@ __all__ = [
     "TrialAborted",
     "TrialError",
     "base_filter_for",
-    "collector_paused",
     "design_hash",
     "load_replay",
     "module_rects",
