@@ -132,13 +132,18 @@ def test_a_kept_recording_is_what_the_reader_reads_back(tmp_path: Path) -> None:
     array bit for bit what read_recording decodes from the file (and the same metadata),
     through flushes, steps stored as doubles (a number off the grid's range), pair fields
     stored apart from q_cmd, untracked hands, hand frames whose joints differ from the
-    step's, off-grid and negative-zero joints."""
+    step's (or equal them but for the sign of zero), off-grid, negative-zero and
+    beyond-the-integers joints, phase and module names of other lengths in other
+    flushes, and a run that dies (its "aborted" metadata). A recorder that wrote no step
+    has no recording (the reader refuses its file)."""
     rng = np.random.default_rng(5)
     path = tmp_path / "log.mcap"
-    with TrialRecorder(path, keep=True, flush_period_s=0.1) as rec:
+    phases = ("calibration", "acquisition", "turn", "arrival")
+    modules = ("kibo", "hatch", "node2", "outside")
+    with pytest.raises(RuntimeError), TrialRecorder(path, keep=True, flush_period_s=0.1) as rec:
         rec.write_meta({"seed": 3, "pair": (1, 2.5), "nested": {"a": [0.1, None]}})
         for k in range(300):
-            fields: dict = {}
+            fields: dict = {"phase": phases[k // 80], "ctb_module": modules[k // 75]}
             if k % 7 == 0:  # the pairs are q_cmd's entries: stored as a flag
                 q = rng.normal(size=17)
                 fields.update(
@@ -155,21 +160,35 @@ def test_a_kept_recording_is_what_the_reader_reads_back(tmp_path: Path) -> None:
                 fields["right_joints"] = -np.zeros((25, 3))  # on the grid, read back as +0
             if k in (100, 101):
                 fields["ctb_pos"] = np.array([1e30, 0.0, 0.0])  # beyond the grid: doubles
+            if k == 150:
+                fields["left_joints"] = np.full((25, 3), 1e14)  # beyond int64 multiples: raw
             step = random_step(rng, (k + 1) * DT, **fields)
             if k % 2 == 0:
                 left = step.left_joints if k % 4 else quantize_joints(rng.normal(size=(25, 3)))
-                rec.write_hands(HandFrame(k * DT, Hand(left, True), Hand(step.right_joints, True)))
+                right = step.right_joints
+                if k % 11 == 0:  # the step's -0 against the frame's +0: the frame's is stored
+                    right = np.zeros((25, 3))
+                rec.write_hands(HandFrame(k * DT, Hand(left, True), Hand(right, True)))
             rec.write(step)
         rec.write_meta({"closing": True, "seed": 4})
         with pytest.raises(RecordingError, match="close the recorder"):
             rec.recording()
+        raise RuntimeError("the run dies")
     kept, read = rec.recording(), read_recording(path)
     assert len(kept) == 300 and _same_arrays(kept, read) == []
     assert kept.meta["seed"] == 4 and kept.meta["pair"] == [1, 2.5]
+    assert "the run dies" in kept.meta["aborted"] and set(kept.ctb_module) == set(modules)
+    assert kept.left_joints[150, 0, 0] == 1e14 and np.signbit(read.right_joints[0]).sum() == 0
     with TrialRecorder(tmp_path / "other.mcap") as plain:
         plain.write(random_step(rng, DT))
     with pytest.raises(RecordingError, match="not asked to keep"):
         plain.recording()
+    with TrialRecorder(tmp_path / "empty.mcap", keep=True) as empty:
+        empty.write_meta({"seed": 1})
+    with pytest.raises(RecordingError, match="no step was written"):
+        empty.recording()
+    with pytest.raises(RecordingError):
+        read_recording(tmp_path / "empty.mcap")
 
 
 def test_delta_joints_without_their_key_are_refused() -> None:

@@ -44,6 +44,7 @@ import numpy as np
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 
 from payload.trials.jointcodec import (
+    GRID_INT_LIMIT,
     HAND_GRID_M,
     JointsCodec,
     fill_joints,
@@ -229,7 +230,7 @@ class StepCodec:
             else:
                 values[:, start:stop] = np.array([getattr(s, name) for s in steps]).reshape(n, -1)
         k = np.round(values * _PER_UNIT)
-        ok = np.isfinite(k).all(axis=1) & ~(np.abs(k) >= 2.0**62).any(axis=1)
+        ok = np.isfinite(k).all(axis=1) & ~(np.abs(k) >= GRID_INT_LIMIT).any(axis=1)
         ki = np.where(ok[:, None], k, 0.0).astype(np.int64)
         decoded = ki / _PER_UNIT
         out: list[Any] = []
@@ -246,7 +247,7 @@ class StepCodec:
         return out
 
     def encode_batch(
-        self, items: list[tuple[Any, int, float, Any]], decoded: list[Any] | None = None
+        self, items: list[tuple[Any, int, float, Any]], decoded: list[Decoded] | None = None
     ) -> list[tuple[Any, bytes]]:
         """Several steps (and their hand samples) at once, in order: the bytes that
         :meth:`encode_hands` and :meth:`encode_step` give one at a time, with the grid and
@@ -322,7 +323,7 @@ class StepCodec:
         return out
 
     def _step_fields(self, step: Any, seq: int, wall_time: float, grid: Any) -> Any:
-        """A ``Step`` message with everything but the joints (``grid``: ``(key, ints)`` or
+        """A ``Step`` message with everything but the joints (``grid``: ``(key, ints, _)`` or
         ``None`` for doubles), as :meth:`encode_step` fills it."""
         m = StepMsg(seq=seq, wall_time=wall_time)
         m.phase = PHASE_NAMES.index(step.phase)

@@ -19,6 +19,10 @@ import numpy as np
 HAND_GRID_M = 1e-5
 """Resolution of the synthetic headset's joint positions [m] (10 um; WebXR reports float32)."""
 
+GRID_INT_LIMIT = 2.0**62
+"""Grid multiples at or beyond this are not stored on a grid (an int64 holds those below
+it and their deltas): such joints are stored raw, such steps as doubles."""
+
 
 def quantize_joints(joints: np.ndarray, grid: float = HAND_GRID_M) -> np.ndarray:
     """Joint positions rounded to ``grid`` [m] (what the synthetic headset reports).
@@ -51,7 +55,12 @@ class JointsCodec:
             return
         with np.errstate(invalid="ignore"):
             k = np.round(flat / self.grid)
-        if np.isfinite(k).all() and (k * self.grid == flat).all():  # np.array_equal
+        # on the grid: integers an int64 holds, and exactly the values (np.array_equal)
+        if (
+            np.isfinite(k).all()
+            and (np.abs(k) < GRID_INT_LIMIT).all()
+            and (k * self.grid == flat).all()
+        ):
             ki = k.astype(np.int64)
             out.grid = self.grid
             if self._prev is None:
@@ -66,7 +75,7 @@ class JointsCodec:
 
     def encode_many(self, joints: list[np.ndarray]) -> tuple[list[tuple[Any, ...]], np.ndarray]:
         """What :meth:`encode` would store for each of several joint arrays in turn, as
-        specs for :func:`_fill_joints` (the arithmetic done once for the batch: the same
+        specs for :func:`fill_joints` (the arithmetic done once for the batch: the same
         elementwise operations, so the same integers), and what :meth:`decode` reads back
         from them.
 
@@ -84,7 +93,11 @@ class JointsCodec:
         untracked = np.isnan(flat).all(axis=1)
         with np.errstate(invalid="ignore"):
             k = np.round(flat / self.grid)
-            gridded = np.isfinite(k).all(axis=1) & (k * self.grid == flat).all(axis=1)
+            gridded = (
+                np.isfinite(k).all(axis=1)
+                & (np.abs(k) < GRID_INT_LIMIT).all(axis=1)
+                & (k * self.grid == flat).all(axis=1)
+            )
         ki = np.where(gridded[:, None], k, 0.0).astype(np.int64)
         specs: list[tuple[Any, ...]] = []
         for i in range(len(joints)):
@@ -142,4 +155,11 @@ def same_joints(a: np.ndarray, b: np.ndarray) -> bool:
     return bool(np.array_equal(a, b, equal_nan=True))
 
 
-__all__ = ["HAND_GRID_M", "JointsCodec", "fill_joints", "quantize_joints", "same_joints"]
+__all__ = [
+    "GRID_INT_LIMIT",
+    "HAND_GRID_M",
+    "JointsCodec",
+    "fill_joints",
+    "quantize_joints",
+    "same_joints",
+]

@@ -301,13 +301,16 @@ class TrialRecorder:
         written (the same arrays, bit for bit, and the same metadata), without reading it.
 
         Raises:
-            RecordingError: The recorder was made without ``keep``, or is not closed.
+            RecordingError: The recorder was made without ``keep``, is not closed, or
+                wrote no step (the reader refuses such a file: no step channel).
         """
         if self._kept is None:
             raise RecordingError("recording(): the recorder was not asked to keep its steps")
         if not self._closed:
             raise RecordingError("recording(): close the recorder first")
-        parts = self._kept or [Recording.from_dicts([])]
+        parts = self._kept
+        if not parts:
+            raise RecordingError(f"{self.path}: no step was written")
         columns = {
             f.name: np.concatenate([getattr(p, f.name) for p in parts])
             for f in dataclasses.fields(Recording)

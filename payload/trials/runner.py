@@ -16,7 +16,7 @@ import shutil
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 
@@ -32,6 +32,7 @@ from payload.sim.vehicle import PROPULSION_MODELS
 from payload.sim.world import CTB_MODELS, WorldConfig
 from payload.teleop.calibration import CalibrationProcedure, Captures
 from payload.teleop.loop import (
+    LoopStats,
     StepContext,
     run_session,
 )
@@ -45,6 +46,9 @@ from payload.teleop.pipeline import (
 from payload.trials.acquisition import handle_in_body, place_ctb_for_teleop, place_offset
 from payload.trials.retargeters import retargeting, single_threaded_numerics
 from payload.trials.sources import HeadsetSource, TrialError, _Source, load_replay, trial_setup
+
+if TYPE_CHECKING:
+    from payload.trials.reading import Recording
 
 log = logging.getLogger(__name__)
 
@@ -371,11 +375,11 @@ def _record_session(
     *,
     max_time: float,
     progress: bool,
-) -> tuple[Any, Any]:
+) -> tuple[LoopStats, Recording | None]:
     """Run the teleoperation session, recording every step into ``rec_path``; returns the
-    session's statistics and the recording as the reader reads it back. An unexpected
-    error marks the recording aborted."""
-    from payload.trials.recorder import TrialRecorder
+    session's statistics and the recording as the reader reads it back (``None`` when no
+    step was recorded). An unexpected error marks the recording aborted."""
+    from payload.trials.recorder import RecordingError, TrialRecorder
     from payload.trials.safety import recording_scene
 
     layout = driver.world.layout
@@ -423,7 +427,10 @@ def _record_session(
         if bar is not None:
             bar.stop()
         driver.close()
-    return stats, recorder.recording()
+    try:
+        return stats, recorder.recording()
+    except RecordingError:  # no step recorded: scoring reads the file, and says what is wrong
+        return stats, None
 
 
 def _run_trial(

@@ -10,9 +10,12 @@ from __future__ import annotations
 import json
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from payload.safeio import write_unless_changed
+
+if TYPE_CHECKING:
+    from payload.trials.reading import Recording
 
 
 def finish_trial(
@@ -25,7 +28,7 @@ def finish_trial(
     max_gap_s: float | None = None,
     beside: bool = False,
     force: bool = False,
-    recording: Any = None,
+    recording: Recording | None = None,
 ) -> dict[str, Any]:
     """Score a finished (or cut-short) recording and write the trial's files.
 
