@@ -45,8 +45,7 @@ def _mujoco_rows(model: CollisionModel, samples: np.ndarray) -> tuple[set, float
     """MuJoCo's own answer: ``mj_collision`` at the model's options (MuJoCo's defaults),
     one sample at a time; (rows, seconds)."""
     m, d = model.model, model.data
-    qpos = np.zeros((len(samples), m.nq))
-    qpos[:, model._qadr] = samples
+    qpos = model.qpos(samples)
     rows: set[tuple[int, int, int]] = set()
     t = time.perf_counter()
     for k in range(len(samples)):

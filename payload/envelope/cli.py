@@ -24,6 +24,10 @@ if TYPE_CHECKING:
     from payload.project import Project
 
 DEFAULT_SAMPLES = 100_000
+BENCH_CHECK_SAMPLES = 10_000
+"""``payload bench reach``: the samples both checks run on, by default."""
+BENCH_RUNS = 3
+"""``payload bench reach``: the timed reports, by default."""
 
 
 def _project(args: argparse.Namespace) -> Project:
@@ -550,10 +554,12 @@ def register(
     p.add_argument(
         "--check-samples",
         type=_integer,
-        default=10_000,
-        help="samples both checks run on (default 10,000)",
+        default=BENCH_CHECK_SAMPLES,
+        help=f"samples both checks run on (default {BENCH_CHECK_SAMPLES:,})",
     )
-    p.add_argument("--runs", type=_integer, default=3, help="timed reports (default 3)")
+    p.add_argument(
+        "--runs", type=_integer, default=BENCH_RUNS, help=f"timed reports (default {BENCH_RUNS})"
+    )
     p.add_argument(
         "--seed",
         type=_integer,

@@ -83,6 +83,12 @@ class CollisionModel:
         self.body_names = [m.body(b).name for b in range(m.nbody)]
         self._pieces = _Pieces.of(m)
 
+    def qpos(self, samples: np.ndarray) -> np.ndarray:
+        """The model's ``qpos`` of configurations (n, 18) in :data:`ALL_JOINTS` order: (n, nq)."""
+        out = np.zeros((len(samples), self.model.nq))
+        out[:, self._qadr] = samples
+        return out
+
     def check(self, samples: np.ndarray, progress: Progress = quiet, workers: int = 1) -> Contacts:
         """The body pairs in contact in every configuration.
 
@@ -163,8 +169,7 @@ class CollisionModel:
         once over the whole range.
         """
         m, d = self.model, self.data
-        qpos = np.zeros((stop - start, m.nq))
-        qpos[:, self._qadr] = samples[start:stop]
+        qpos = self.qpos(samples[start:stop])
         xpos = np.empty((stop - start, m.ngeom, 3))
         xmat = np.empty((stop - start, m.ngeom, 9))
         q, geom_xpos, geom_xmat = d.qpos, d.geom_xpos, d.geom_xmat  # views, taken once

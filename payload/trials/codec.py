@@ -359,9 +359,7 @@ class StepCodec:
         else:
             k = self._prev + d
         self._prev = k
-        values = k / _PER_UNIT
-        for name, start, stop in _GRID_SLICES:  # np.split's views, without its overhead
-            row[name] = float(values[start]) if stop == start + 1 else values[start:stop]
+        _grid_fields(row, k / _PER_UNIT)
 
     def encode_step(
         self, step: Any, seq: int, wall_time: float, in_hands: tuple[bool, bool] = (False, False)
@@ -439,12 +437,7 @@ class StepCodec:
         else:
             self._prev = None
         if m.pairs_in_cmd:
-            q = row["q_cmd"]
-            row["q_left"], row["q_right"], row["rail_cmd"] = (
-                q[PAIR_L_INDEX],
-                q[PAIR_R_INDEX],
-                float(q[-1]),
-            )
+            _pair_fields(row)
         for name, side in (("left_joints", "left"), ("right_joints", "right")):
             sub = getattr(m, name)
             if sub.in_hands:
@@ -493,18 +486,24 @@ class Decoded(NamedTuple):
         for name, _, _ in STEP_DOUBLES:
             row[name] = getattr(step, name)
         if self.grid is not None:
-            for name, start, stop in _GRID_SLICES:
-                row[name] = float(self.grid[start]) if stop == start + 1 else self.grid[start:stop]
+            _grid_fields(row, self.grid)
         if _pairs_in_cmd(step):
-            q = row["q_cmd"]
-            row["q_left"], row["q_right"], row["rail_cmd"] = (
-                q[PAIR_L_INDEX],
-                q[PAIR_R_INDEX],
-                float(q[-1]),
-            )
+            _pair_fields(row)
         row["left_joints"] = self.left_joints
         row["right_joints"] = self.right_joints
         return row
+
+
+def _grid_fields(row: dict[str, Any], values: np.ndarray) -> None:
+    """Set a decoded row's gridded fields from their values, in :data:`STEP_GRIDS` order."""
+    for name, start, stop in _GRID_SLICES:  # np.split's views, without its overhead
+        row[name] = float(values[start]) if stop == start + 1 else values[start:stop]
+
+
+def _pair_fields(row: dict[str, Any]) -> None:
+    """Set a decoded row's pair fields from its ``q_cmd`` (a step stored ``pairs_in_cmd``)."""
+    q = row["q_cmd"]
+    row["q_left"], row["q_right"], row["rail_cmd"] = q[PAIR_L_INDEX], q[PAIR_R_INDEX], float(q[-1])
 
 
 def _pairs_in_cmd(step: Any) -> bool:
