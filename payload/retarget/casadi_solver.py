@@ -44,6 +44,7 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 
+from payload.cache import cache_dir  # noqa: F401  (old import path)
 from payload.retarget import compiled as _compiled_mod
 from payload.retarget.collision_c import NativeCollision
 from payload.retarget.collision_eval import CollisionGroups
@@ -53,7 +54,6 @@ from payload.retarget.compiled import (  # noqa: F401  (old import paths)
     _CompiledSolve,
     _prune,
     _slug,
-    cache_dir,
 )
 from payload.retarget.errors import RetargetError
 from payload.retarget.features import N_FEATURES, PairFeatures, PairKinematics

@@ -1,7 +1,7 @@
 """Generated C for CasADi functions: compiled once, cached on disk, called through ctypes.
 
 A function's C code (``casadi.CodeGenerator``) is compiled with the system C compiler
-into a shared library under :func:`cache_dir`, named by the hash of its code, the
+into a shared library under :func:`payload.cache.cache_dir`, named by the hash of its code, the
 compiler, the flags, the machine and CasADi's version, and loaded with ``ctypes`` on
 preallocated buffers: a call costs a few microseconds of Python instead of about 20 us
 for a ``casadi.Function`` call. A failed compilation leaves its log beside the cache.
@@ -11,47 +11,17 @@ from __future__ import annotations
 
 import ctypes
 import functools
-import hashlib
-import os
-import platform
-import shutil
-import subprocess
-import tempfile
 from pathlib import Path
 
 import casadi as ca
 import numpy as np
 
-from payload.cache import cache_dir
+from payload import native
 from payload.retarget.errors import RetargetError
 
-_CFLAGS = ("-O3", "-ffp-contract=off", "-fPIC", "-shared")
-"""No -ffast-math and no contraction: IEEE arithmetic, so -O3 gives the bits -O1 gave."""
-
-_OPTIONAL_CFLAGS = ("-fno-semantic-interposition",)
-"""Added when the compiler accepts them (:func:`_flags`). ``-fno-semantic-interposition``:
-the generated code's helpers (``casadi_sq``, ...) are global functions; without it,
-position-independent code calls every one of them through the PLT instead of inlining it
-(a paper-budget solve with collisions took about 1.2 to 1.3 times as long)."""
-
-
-@functools.cache
-def _flags(compiler: str) -> tuple[str, ...]:
-    """The compile flags for ``compiler``: :data:`_CFLAGS` and those of
-    :data:`_OPTIONAL_CFLAGS` it accepts (an older compiler without one still builds)."""
-    flags = list(_CFLAGS)
-    with tempfile.TemporaryDirectory() as tmp:
-        src = Path(tmp) / "probe.c"
-        src.write_text("int payload_probe(void) { return 0; }\n")
-        for flag in _OPTIONAL_CFLAGS:
-            proc = subprocess.run(
-                [compiler, *flags, flag, "-o", str(Path(tmp) / "probe.so"), str(src)],
-                capture_output=True,
-                check=False,
-            )
-            if proc.returncode == 0:
-                flags.append(flag)
-    return tuple(flags)
+_CFLAGS = native.CFLAGS
+_OPTIONAL_CFLAGS = native.OPTIONAL_CFLAGS
+_flags = native.flags
 
 
 PRELUDE = r"""/* ---- payload.retarget.compiled: prepended to every C source it compiles ---- */
@@ -69,8 +39,7 @@ static inline double payload_fmin(double x, double y) { return (x < y || y != y)
 
 
 def _compiler() -> str | None:
-    cc = os.environ.get("CC") or "cc"
-    return shutil.which(cc) or shutil.which("gcc") or shutil.which("clang")
+    return native.find_compiler()
 
 
 def code_generator(name: str) -> ca.CodeGenerator:
@@ -107,53 +76,20 @@ def build_library(
 ) -> Path:
     """C ``sources`` (file name -> code) compiled into one shared library, cached.
 
-    The library is named by ``name`` and the hash of the code, the compiler, the flags,
-    the machine and CasADi's version; an existing one is reused. A failed compilation
-    leaves its log beside the cache and raises :class:`RetargetError` naming ``what``.
+    The library is named by ``name`` and the hash of the code (with :data:`PRELUDE`), the
+    compiler, the flags, the machine and CasADi's version; an existing one is reused. A
+    failed compilation leaves its log beside the cache and raises :class:`RetargetError`
+    naming ``what`` (:func:`payload.native.build_library`).
     """
-    key = hashlib.sha256(
-        "\n".join(
-            [
-                PRELUDE,
-                *(f"{k}\n{v}" for k, v in sorted(sources.items())),
-                compiler,
-                *_flags(compiler),
-                platform.machine(),
-                ca.__version__,
-            ]
-        ).encode()
-    ).hexdigest()[:20]
-    directory = cache_dir()
-    lib_path = directory / f"{name}_{key}.so"
-    if lib_path.is_file():
-        return lib_path
-    directory.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory(dir=directory) as tmp:
-        paths = []
-        for file_name, code in sources.items():
-            paths.append(Path(tmp) / file_name)
-            paths[-1].write_text(PRELUDE + code)
-        out = Path(tmp) / "lib.so"
-        proc = subprocess.run(
-            [compiler, *_flags(compiler), "-o", str(out), *map(str, paths), "-lm"],
-            capture_output=True,
-            text=True,
-            check=False,
-        )
-        if proc.returncode != 0:
-            log = directory / f"{name}_{key}.log"
-            log.write_text(
-                f"$ {' '.join(proc.args)}\nexit {proc.returncode}\n"
-                f"--- stdout\n{proc.stdout}--- stderr\n{proc.stderr}"
-            )
-            raise RetargetError(
-                f"compiling {what} failed ({Path(compiler).name} "
-                f"exit {proc.returncode}); log: {log}"
-            )
-        os.replace(out, lib_path)
-    (directory / f"{name}_{key}.log").unlink(missing_ok=True)  # an older failure's
-    _prune(directory, name)
-    return lib_path
+    return native.build_library(
+        name,
+        sources,
+        compiler,
+        prelude=PRELUDE,
+        key_parts=(ca.__version__,),
+        error=RetargetError,
+        what=what,
+    )
 
 
 class _CompiledSolve:
@@ -252,14 +188,7 @@ def _compiled_or_none(fn: ca.Function) -> _CompiledSolve | None:
         return None
 
 
-def _prune(directory: Path, name: str, keep: int = 8) -> None:
-    """Delete all but the ``keep`` newest libraries of one solver name (older designs)."""
-    libs = sorted(directory.glob(f"{name}_*.so"), key=lambda p: p.stat().st_mtime, reverse=True)
-    for old in libs[keep:]:
-        try:
-            old.unlink()
-        except OSError:  # pragma: no cover - another process may have removed it
-            pass
+_prune = native.prune
 
 
 def _slug(s: str) -> str:

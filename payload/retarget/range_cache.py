@@ -1,6 +1,6 @@
 """The on-disk cache of :func:`payload.retarget.span_range.pair_range` results.
 
-A range is kept beside the compiled solvers (:func:`payload.retarget.compiled.cache_dir`),
+A range is kept beside the compiled solvers (:func:`payload.cache.cache_dir`),
 keyed by the URDF, the pair, the seed, the margin, the design and the source of the code
 that computes it; an unreadable or torn file is computed again and rewritten.
 """
@@ -75,7 +75,7 @@ def load_or_compute(
             pinch, open) -> range``, from the stored arrays.
         sources: The modules whose code the key covers.
     """
-    from payload.retarget.compiled import cache_dir
+    from payload.cache import cache_dir
 
     try:
         key = disk_key(pk, seed, collisions, sources)

@@ -300,7 +300,22 @@ class Propulsion:
         """Largest ``lambda`` with ``lambda * wrench`` (6,) reachable (inf for zero)."""
         return self._extent(np.asarray(wrench, dtype=float))[0]
 
+    @cached_property
+    def _kernels(self) -> Any:
+        """The two per-step searches compiled (:mod:`payload.sim.allocation_c`: numpy's
+        bits, checked on probe wrenches when built), or None to run them in numpy."""
+        from payload.sim.allocation_c import compiled_searches
+
+        return compiled_searches(self)
+
     def _extent(self, wrench: np.ndarray) -> tuple[float, int]:
+        """(largest scale, binding facet) for ``wrench`` (6,): ``(inf, -1)`` if none binds."""
+        kernels = self._kernels
+        if kernels is not None:
+            return kernels.extent(wrench)
+        return self._extent_numpy(wrench)
+
+    def _extent_numpy(self, wrench: np.ndarray) -> tuple[float, int]:
         normals, offsets = self.facets
         along = normals @ wrench
         pos = along > 1e-15
@@ -358,6 +373,13 @@ class Propulsion:
         return 1e-9 * float(self.thrust_max.max())
 
     def _least_thrust(self, wrench: np.ndarray) -> np.ndarray | None:
+        """:meth:`_least_thrust_numpy`, compiled when it can be (:attr:`_kernels`)."""
+        kernels = self._kernels
+        if kernels is not None:
+            return kernels.least_thrust(wrench)
+        return self._least_thrust_numpy(wrench)
+
+    def _least_thrust_numpy(self, wrench: np.ndarray) -> np.ndarray | None:
         """The least-total-thrust solution of ``B t = w, 0 <= t <= t_max`` by enumerating
         the basic solutions (the LP optimum is one of them); None if none is feasible.
 

@@ -1,0 +1,175 @@
+"""Native code: C sources compiled with the system compiler, cached on disk, loaded by ctypes.
+
+The retargeting solvers (:mod:`payload.retarget.compiled`) and the simulator's compiled
+kernels (:mod:`payload.sim.allocation_c`) build their shared libraries here. A library is
+named by the hash of its code, the compiler, the flags, the machine and whatever else its
+caller says it depends on (``key_parts``), so a stale one is never loaded; a failed
+compilation leaves its log beside the cache.
+
+The flags keep IEEE arithmetic (no ``-ffast-math``, no contraction into fused
+multiply-adds), so compiled code that does the same operations in the same order as
+numpy gives numpy's bits.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import functools
+import hashlib
+import os
+import platform
+import shutil
+import subprocess
+import tempfile
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+from payload.cache import cache_dir
+
+CFLAGS: tuple[str, ...] = ("-O3", "-ffp-contract=off", "-fPIC", "-shared")
+"""No -ffast-math and no contraction: IEEE arithmetic, so -O3 gives the bits -O1 gave."""
+
+OPTIONAL_CFLAGS: tuple[str, ...] = ("-fno-semantic-interposition",)
+"""Added when the compiler accepts them (:func:`flags`). ``-fno-semantic-interposition``:
+generated code's helpers (``casadi_sq``, ...) are global functions; without it,
+position-independent code calls every one of them through the PLT instead of inlining it
+(a paper-budget solve with collisions took about 1.2 to 1.3 times as long)."""
+
+
+@functools.cache
+def flags(compiler: str) -> tuple[str, ...]:
+    """The compile flags for ``compiler``: :data:`CFLAGS` and those of
+    :data:`OPTIONAL_CFLAGS` it accepts (an older compiler without one still builds)."""
+    out = list(CFLAGS)
+    with tempfile.TemporaryDirectory() as tmp:
+        src = Path(tmp) / "probe.c"
+        src.write_text("int payload_probe(void) { return 0; }\n")
+        for flag in OPTIONAL_CFLAGS:
+            proc = subprocess.run(
+                [compiler, *out, flag, "-o", str(Path(tmp) / "probe.so"), str(src)],
+                capture_output=True,
+                check=False,
+            )
+            if proc.returncode == 0:
+                out.append(flag)
+    return tuple(out)
+
+
+def find_compiler() -> str | None:
+    """The C compiler: ``$CC``, else ``cc``, ``gcc`` or ``clang`` on the path (None: none)."""
+    cc = os.environ.get("CC") or "cc"
+    return shutil.which(cc) or shutil.which("gcc") or shutil.which("clang")
+
+
+def build_library(
+    name: str,
+    sources: dict[str, str],
+    compiler: str,
+    *,
+    prelude: str = "",
+    key_parts: Sequence[str] = (),
+    error: Callable[[str], Exception] = RuntimeError,
+    what: str = "native code",
+) -> Path:
+    """C ``sources`` (file name -> code, each prefixed with ``prelude``) compiled into one
+    shared library under :func:`~payload.cache.cache_dir`, or the cached one.
+
+    Raises:
+        ``error(message)``: The compiler failed; the message names ``what`` and the log.
+    """
+    key = hashlib.sha256(
+        "\n".join(
+            [
+                prelude,
+                *(f"{k}\n{v}" for k, v in sorted(sources.items())),
+                compiler,
+                *flags(compiler),
+                platform.machine(),
+                *key_parts,
+            ]
+        ).encode()
+    ).hexdigest()[:20]
+    directory = cache_dir()
+    lib_path = directory / f"{name}_{key}.so"
+    if lib_path.is_file():
+        return lib_path
+    directory.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(dir=directory) as tmp:
+        paths = []
+        for file_name, code in sources.items():
+            paths.append(Path(tmp) / file_name)
+            paths[-1].write_text(prelude + code)
+        out = Path(tmp) / "lib.so"
+        proc = subprocess.run(
+            [compiler, *flags(compiler), "-o", str(out), *map(str, paths), "-lm"],
+            capture_output=True,
+            text=True,
+            check=False,
+        )
+        if proc.returncode != 0:
+            log = directory / f"{name}_{key}.log"
+            log.write_text(
+                f"$ {' '.join(proc.args)}\nexit {proc.returncode}\n"
+                f"--- stdout\n{proc.stdout}--- stderr\n{proc.stderr}"
+            )
+            raise error(
+                f"compiling {what} failed ({Path(compiler).name} "
+                f"exit {proc.returncode}); log: {log}"
+            )
+        os.replace(out, lib_path)
+    (directory / f"{name}_{key}.log").unlink(missing_ok=True)  # an older failure's
+    prune(directory, name)
+    return lib_path
+
+
+def prune(directory: Path, name: str, keep: int = 8) -> None:
+    """Delete all but the ``keep`` newest libraries of one name (older designs)."""
+    libs = sorted(directory.glob(f"{name}_*.so"), key=lambda p: p.stat().st_mtime, reverse=True)
+    for old in libs[keep:]:
+        try:
+            old.unlink()
+        except OSError:  # pragma: no cover - another process may have removed it
+            pass
+
+
+NUMPY_DGEMV = "scipy_cblas_dgemv64_"
+"""The CBLAS ``dgemv`` of the OpenBLAS numpy's wheels bundle (64-bit integers), the kernel
+numpy's ``matmul`` runs for a C-contiguous matrix times a vector."""
+
+
+@functools.cache
+def numpy_dgemv() -> int | None:
+    """The address of numpy's own CBLAS ``dgemv`` (:data:`NUMPY_DGEMV`), found among the
+    libraries this process has loaded (numpy loads its OpenBLAS on import), or None: numpy
+    built against another BLAS, or not on Linux. Calling it as numpy does gives numpy's
+    bits on every machine (OpenBLAS picks its kernel by the processor, for both alike)."""
+    import numpy  # noqa: F401 - loads the OpenBLAS numpy links
+
+    try:
+        maps = Path("/proc/self/maps").read_text().splitlines()
+    except OSError:
+        return None
+    seen: set[str] = set()
+    for line in maps:
+        path = line.split()[-1] if line.split() else ""
+        if "openblas" not in path or path in seen or not path.startswith("/"):
+            continue
+        seen.add(path)
+        try:
+            fn = getattr(ctypes.CDLL(path), NUMPY_DGEMV)
+        except (OSError, AttributeError):
+            continue
+        return ctypes.cast(fn, ctypes.c_void_p).value
+    return None
+
+
+__all__ = [
+    "CFLAGS",
+    "NUMPY_DGEMV",
+    "OPTIONAL_CFLAGS",
+    "build_library",
+    "find_compiler",
+    "flags",
+    "numpy_dgemv",
+    "prune",
+]
