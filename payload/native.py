@@ -136,40 +136,69 @@ NUMPY_DGEMV = "scipy_cblas_dgemv64_"
 """The CBLAS ``dgemv`` of the OpenBLAS numpy's wheels bundle (64-bit integers), the kernel
 numpy's ``matmul`` runs for a C-contiguous matrix times a vector."""
 
+NUMPY_DDOT = "scipy_cblas_ddot64_"
+"""Its CBLAS ``ddot``, what numpy's ``dot`` of two float64 vectors runs."""
 
-@functools.cache
-def numpy_dgemv() -> int | None:
-    """The address of numpy's own CBLAS ``dgemv`` (:data:`NUMPY_DGEMV`), found among the
-    libraries this process has loaded (numpy loads its OpenBLAS on import), or None: numpy
-    built against another BLAS, or not on Linux. Calling it as numpy does gives numpy's
-    bits on every machine (OpenBLAS picks its kernel by the processor, for both alike)."""
-    import numpy  # noqa: F401 - loads the OpenBLAS numpy links
 
+def loaded_symbol(library: str, symbol: str) -> int | None:
+    """The address of ``symbol`` in a shared library this process has loaded whose path
+    contains ``library`` (the very code the Python package calls), or None: not loaded,
+    no such symbol, or no ``/proc/self/maps`` (not Linux)."""
     try:
         maps = Path("/proc/self/maps").read_text().splitlines()
     except OSError:
         return None
     seen: set[str] = set()
     for line in maps:
-        path = line.split()[-1] if line.split() else ""
-        if "openblas" not in path or path in seen or not path.startswith("/"):
+        fields = line.split()
+        path = fields[-1] if len(fields) >= 6 else ""
+        if library not in Path(path).name or path in seen or not path.startswith("/"):
             continue
         seen.add(path)
         try:
-            fn = getattr(ctypes.CDLL(path), NUMPY_DGEMV)
+            fn = getattr(ctypes.CDLL(path), symbol)
         except (OSError, AttributeError):
             continue
         return ctypes.cast(fn, ctypes.c_void_p).value
     return None
 
 
+@functools.cache
+def numpy_blas(symbol: str) -> int | None:
+    """The address of one of numpy's own CBLAS functions (:data:`NUMPY_DGEMV`,
+    :data:`NUMPY_DDOT`) in the OpenBLAS numpy loaded on import, or None (numpy built
+    against another BLAS, or not on Linux). Calling it as numpy does gives numpy's bits on
+    every machine (OpenBLAS picks its kernel by the processor, for both alike)."""
+    import numpy  # noqa: F401 - loads the OpenBLAS numpy links
+
+    return loaded_symbol("openblas", symbol)
+
+
+def numpy_dgemv() -> int | None:
+    """:func:`numpy_blas` of :data:`NUMPY_DGEMV`."""
+    return numpy_blas(NUMPY_DGEMV)
+
+
+@functools.cache
+def mujoco_function(name: str) -> int | None:
+    """The address of MuJoCo's C function ``name`` in the library its Python bindings
+    loaded (``libmujoco``), or None."""
+    import mujoco  # noqa: F401 - loads libmujoco
+
+    return loaded_symbol("libmujoco", name)
+
+
 __all__ = [
     "CFLAGS",
+    "NUMPY_DDOT",
     "NUMPY_DGEMV",
     "OPTIONAL_CFLAGS",
     "build_library",
     "find_compiler",
     "flags",
+    "loaded_symbol",
+    "mujoco_function",
+    "numpy_blas",
     "numpy_dgemv",
     "prune",
 ]

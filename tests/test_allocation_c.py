@@ -10,7 +10,15 @@ import pytest
 from payload import native
 from payload.sim import allocation_c
 from payload.sim.propulsion import Propulsion
-from payload.sim.vehicle import FLIGHT_MODES
+from payload.sim.vehicle import FLIGHT_MODES, MassProperties, VehicleController
+
+
+@pytest.fixture(scope="module")
+def bare_driver():
+    from payload.sim import SimDriver, WorldConfig
+
+    with SimDriver(WorldConfig(ctb=None)) as d:
+        yield d
 
 
 @pytest.fixture(scope="module", params=sorted(FLIGHT_MODES))
@@ -135,3 +143,123 @@ def test_a_failing_compiler_falls_back_to_numpy(monkeypatch, tmp_path, caplog):
         assert p._kernels is None
     assert "compiling the allocation kernels failed" in caplog.text
     assert list(tmp_path.glob("allocation_*.log"))  # the compiler's words are kept
+
+
+# -- the controller's step and the thrusts -------------------------------------------------------
+def _plants() -> list[MassProperties]:
+    """Astrobee alone (centred) and with a bag off-centre (inertia not diagonal)."""
+    rng = np.random.default_rng(8)
+    a = rng.normal(size=(3, 3))
+    return [
+        MassProperties(10.0, np.zeros(3), np.diag([0.16, 0.15, 0.16])),
+        MassProperties(
+            15.3, np.array([0.03, -0.05, 0.21]), np.diag([0.5, 0.6, 0.4]) + 0.01 * a @ a.T
+        ),
+    ]
+
+
+@pytest.mark.parametrize("mode", sorted(FLIGHT_MODES))
+@pytest.mark.parametrize("plant", range(2))
+def test_the_compiled_control_step_gives_numpys_bits(mode, plant):
+    """2,000 control steps from the same states through numpy's code and the kernel: the
+    same wrench, thrusts, scale and profile state in every bit, with every outcome of the
+    step taken (allocated, zero wrench, saturated on a facet)."""
+    from payload.schema import VehicleTwist
+
+    ctl = VehicleController(_plants()[plant], mode)
+    kernel = ctl._kernel
+    assert kernel is not None
+    codes: list[int] = []
+    step = kernel._step
+    kernel._step = lambda dt: codes.append(step(dt)) or codes[-1]
+    rng = np.random.default_rng(21)
+    prof = ctl.profile
+    command = VehicleTwist.zero()
+    lin, ang = np.zeros(3), np.zeros(3)
+    for i in range(2000):
+        if i % 100 == 0:  # rest, moving, turning, beyond the mode's limits
+            scale = (0.0, 0.3, 1.0, 3.0)[(i // 100) % 4]
+            command = VehicleTwist(
+                rng.normal(size=3) * ctl.mode.speed * scale,
+                rng.normal(size=3) * ctl.mode.omega * scale * (i % 300 != 0),
+                0.0,
+            )
+        start = (prof.velocity.copy(), prof.acceleration.copy())
+        want = ctl._update_numpy(command, lin, ang, 0.02)
+        want_alloc, want_state = ctl.allocation, (prof.velocity, prof.acceleration)
+        prof.velocity, prof.acceleration = start[0].copy(), start[1].copy()
+        got = ctl.update(command, lin, ang, 0.02)
+        assert got.force.tobytes() == want.force.tobytes(), i
+        assert got.torque.tobytes() == want.torque.tobytes(), i
+        assert ctl.allocation.thrust.tobytes() == want_alloc.thrust.tobytes(), i
+        assert ctl.allocation.scale == want_alloc.scale, i
+        assert prof.velocity.tobytes() == want_state[0].tobytes(), i
+        assert prof.acceleration.tobytes() == want_state[1].tobytes(), i
+        # the measured twist lags the reference (a vehicle that follows it, with noise),
+        # and now and then is knocked far off it (the feedback saturates the nozzles)
+        knock = 0.1 if 150 <= i % 300 < 170 else 2e-4
+        lin = prof.velocity[:3] * 0.97 + rng.normal(scale=knock, size=3) * (i % 300 > 20)
+        ang = prof.velocity[3:] * 0.97 + rng.normal(scale=knock, size=3) * (i % 300 > 20)
+    assert {0, 1, 2} <= set(codes), sorted(set(codes))
+
+
+def test_the_control_kernel_follows_a_reset_and_refuses_a_bad_wrench():
+    from payload.schema import VehicleTwist
+    from payload.sim.propulsion import PropulsionError
+
+    ctl = VehicleController(_plants()[1])
+    twin = VehicleController(_plants()[1])
+    assert ctl._kernel is not None and twin._kernel is not None
+    command = VehicleTwist(np.array([0.1, 0.0, 0.02]), np.array([0.0, 0.0, 0.05]), 0.0)
+    for c in (ctl, twin):
+        c.reset(np.array([0.01, 0.0, 0.0]), np.array([0.0, 0.0, 0.01]))
+    for i in range(50):
+        v = np.array([0.01 + 1e-4 * i, 0.0, 0.0])
+        w = np.array([0.0, 0.0, 0.01])
+        a = ctl.update(command, v, w, 0.02)
+        b = twin._update_numpy(command, v, w, 0.02)
+        assert a.force.tobytes() == b.force.tobytes() and a.torque.tobytes() == b.torque.tobytes()
+    with pytest.raises(PropulsionError, match="finite"):
+        ctl.update(command, np.array([np.nan, 0.0, 0.0]), np.zeros(3), 0.02)
+
+
+def test_a_control_kernel_with_other_bits_is_refused(monkeypatch, tmp_path, caplog):
+    """The control step's self-check: a kernel that adds the force's terms in another
+    order (the same sum in exact arithmetic) is refused, and numpy's code runs."""
+    monkeypatch.setenv("PAYLOAD_CACHE_DIR", str(tmp_path))
+    reordered = allocation_c.SOURCE.replace(
+        "c->mass * ((acc[i] + c->gain_lin * (ref[i] - v[i])) + cwv[i])",
+        "c->mass * (acc[i] + (c->gain_lin * (ref[i] - v[i]) + cwv[i]))",
+    )
+    assert reordered != allocation_c.SOURCE
+    monkeypatch.setattr(allocation_c, "SOURCE", reordered)
+    ctl = VehicleController(_plants()[1])
+    with caplog.at_level("WARNING", logger="payload.sim.allocation_c"):
+        assert ctl._kernel is None
+    assert "compiled step differs" in caplog.text
+
+
+def test_the_compiled_thrusts_are_mujocos(bare_driver):
+    """The thrusts' generalised forces through the kernel and through the numpy loop of
+    ``mj_applyFT`` calls, in a moving, rotated state: the same bits; a reset (new data)
+    gets a kernel of its own."""
+    d = bare_driver
+    from payload.schema import VehicleTwist
+
+    d.command_twist(VehicleTwist(np.array([0.05, 0.02, 0.0]), np.array([0.0, 0.0, 0.1]), 0.0))
+    d.step(30)
+    kernel = d._thrust_kernel
+    assert kernel is not None and kernel.data is d.data
+    rng = np.random.default_rng(6)
+    bounds = d.controller.nozzles.thrust_max
+    for _ in range(200):
+        thrust = rng.uniform(0.0, 1.0, size=12) * bounds * (rng.random(12) < 0.5)
+        mine, theirs = np.zeros(d.model.nv), np.zeros(d.model.nv)
+        kernel(thrust, mine)
+        d._apply_thrusts_numpy(thrust, theirs)
+        assert mine.tobytes() == theirs.tobytes()
+        assert np.any(mine != 0.0) == bool(np.any(thrust > 0.0))
+    old = d.data
+    d.reset()
+    assert d.data is not old and d._thrust_kernel is not kernel
+    assert d._thrust_kernel.data is d.data

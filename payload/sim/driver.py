@@ -22,7 +22,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from types import TracebackType
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import mujoco
 import numpy as np
@@ -256,17 +256,42 @@ class SimDriver:
     def apply_thrusts(self, allocation: Allocation) -> None:
         """Apply nozzle thrusts as forces at the nozzle positions on Astrobee's body
         (``mj_applyFT`` into ``qfrc_applied``), held over the next control period."""
-        w, d = self.world, self.data
-        nozzles = self.controller.nozzles
-        if nozzles is None:
+        if self.controller.nozzles is None:
             raise SimError("apply_thrusts: the box propulsion model has no nozzles")
         self._clear_vehicle_forces()
+        kernel = self._thrust_kernel
+        if kernel is not None:
+            kernel(allocation.thrust)
+        else:
+            self._apply_thrusts_numpy(allocation.thrust, self.data.qfrc_applied)
+
+    @property
+    def _thrust_kernel(self) -> Any:
+        """:meth:`_apply_thrusts_numpy` compiled for the current data
+        (:func:`payload.sim.allocation_c.compiled_thrusts`, checked when built), or None."""
+        kernel = self.__dict__.get("_thrusts")
+        if kernel is None or kernel[0] is not self.data:
+            from payload.sim.allocation_c import compiled_thrusts
+
+            made = compiled_thrusts(
+                self.model,
+                self.data,
+                self.world.astrobee,
+                self.controller.nozzles,
+                self._apply_thrusts_numpy,
+            )
+            kernel = self.__dict__["_thrusts"] = (self.data, made)
+        return kernel[1]
+
+    def _apply_thrusts_numpy(self, thrust: np.ndarray, qfrc: np.ndarray) -> None:
+        """Add the thrusts' generalised forces to ``qfrc`` (``mj_applyFT`` per open nozzle)."""
+        w, d = self.world, self.data
+        nozzles = self.controller.nozzles
         rot = d.xmat[w.astrobee].reshape(3, 3)
         origin = d.xipos[w.astrobee]
         torque = np.zeros(3)
-        model, body, qfrc = self.model, w.astrobee, d.qfrc_applied
+        model, body = self.model, w.astrobee
         directions, positions = nozzles.directions, nozzles.positions
-        thrust = allocation.thrust
         for k in np.flatnonzero(thrust > 0.0).tolist():  # Python ints: cheaper indexing
             force = rot @ (directions[k] * thrust[k])
             point = origin + rot @ positions[k]

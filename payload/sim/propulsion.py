@@ -495,6 +495,11 @@ class Propulsion:
             z = np.zeros(3)
             return Allocation(np.zeros(N_NOZZLES), z, z.copy(), 1.0)
         lam, k = self._extent(w)
+        return self._finish(w, lam, k)
+
+    def _finish(self, w: np.ndarray, lam: float, k: int) -> Allocation:
+        """The allocation of a finite nonzero wrench ``w`` (6,) whose extent is ``lam``
+        with binding facet ``k`` (:meth:`_extent`)."""
         thrust = None
         if lam < 1.0:  # outside: the binding facet gives the thrusts directly
             thrust = self._on_facet(lam * w, k)

@@ -13,14 +13,15 @@ a share of that force bound over the carried mass. Runs at the 50 Hz control rat
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
+from functools import cached_property
+from typing import Any, NamedTuple
 
 import numpy as np
 
 from payload.design.vehicle import DEFAULT_FLIGHT_MODE, FLIGHT_MODES, FlightMode
 from payload.errors import PayloadError
 from payload.schema import VehicleTwist
-from payload.sim.propulsion import Allocation, shared_propulsion
+from payload.sim.propulsion import N_NOZZLES, Allocation, shared_propulsion
 from payload.vecmath import norm
 
 
@@ -338,7 +339,52 @@ class VehicleController:
             ang = ang * float(np.min(budget[over] / centripetal[over]))
         return np.concatenate([lin, ang])
 
+    @cached_property
+    def _kernel(self) -> Any:
+        """The nozzle controller's step compiled (:mod:`payload.sim.allocation_c`: numpy's
+        bits, checked when built), or None to run :meth:`_update_numpy`."""
+        if self.nozzles is None:
+            return None
+        from payload.sim.allocation_c import compiled_control
+
+        return compiled_control(self)
+
     def update(
+        self, command: VehicleTwist, linear: np.ndarray, angular: np.ndarray, dt: float
+    ) -> Wrench:
+        """One control step (:meth:`_update_numpy`, compiled when it can be: :attr:`_kernel`).
+
+        Args:
+            command: Requested body twist.
+            linear: Measured body-frame linear velocity of Astrobee's centre, (3,) [m/s].
+            angular: Measured body-frame angular velocity, (3,) [rad/s].
+            dt: Control period [s].
+        """
+        kernel = self._kernel
+        if kernel is not None:
+            return self._update_kernel(kernel, command, linear, angular, dt)
+        return self._update_numpy(command, linear, angular, dt)
+
+    def _update_kernel(
+        self, kernel: Any, command: VehicleTwist, linear: np.ndarray, angular: np.ndarray, dt: float
+    ) -> Wrench:
+        """:meth:`_update_numpy` through the compiled step ``kernel``
+        (:class:`~payload.sim.allocation_c.CompiledControl`)."""
+        assert self.nozzles is not None
+        code, *out = kernel.step(command, linear, angular, dt)
+        if code == 0:
+            self.allocation = Allocation(*out)
+        elif code == 1:
+            z = np.zeros(3)
+            self.allocation = Allocation(np.zeros(N_NOZZLES), z, z.copy(), 1.0)
+        elif code == 4:
+            self.nozzles.allocate(out[0][:3], out[0][3:])  # raises: a non-finite wrench
+            raise VehicleError("the control step found a non-finite wrench")  # pragma: no cover
+        else:
+            self.allocation = self.nozzles._finish(*out)
+        return Wrench(self.allocation.force.copy(), self.allocation.torque.copy())
+
+    def _update_numpy(
         self, command: VehicleTwist, linear: np.ndarray, angular: np.ndarray, dt: float
     ) -> Wrench:
         """One control step.
