@@ -155,6 +155,12 @@ class Allocation:
     torque: np.ndarray
     scale: float
 
+    @classmethod
+    def zero(cls) -> Allocation:
+        """The allocation of a zero wrench: every nozzle closed."""
+        z = np.zeros(3)
+        return cls(np.zeros(N_NOZZLES), z, z.copy(), 1.0)
+
 
 class _FacetParts(dict):
     """A dict filled on first access of each key by ``make(key)``."""
@@ -492,8 +498,7 @@ class Propulsion:
         if w.shape != (6,) or not np.isfinite(w).all():
             raise PropulsionError("allocate: force and torque must be 3 finite numbers each")
         if not w.any():
-            z = np.zeros(3)
-            return Allocation(np.zeros(N_NOZZLES), z, z.copy(), 1.0)
+            return Allocation.zero()
         lam, k = self._extent(w)
         return self._finish(w, lam, k)
 

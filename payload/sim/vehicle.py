@@ -21,7 +21,7 @@ import numpy as np
 from payload.design.vehicle import DEFAULT_FLIGHT_MODE, FLIGHT_MODES, FlightMode
 from payload.errors import PayloadError
 from payload.schema import VehicleTwist
-from payload.sim.propulsion import N_NOZZLES, Allocation, shared_propulsion
+from payload.sim.propulsion import Allocation, shared_propulsion
 from payload.vecmath import norm
 
 
@@ -375,8 +375,7 @@ class VehicleController:
         if code == 0:
             self.allocation = Allocation(*out)
         elif code == 1:
-            z = np.zeros(3)
-            self.allocation = Allocation(np.zeros(N_NOZZLES), z, z.copy(), 1.0)
+            self.allocation = Allocation.zero()
         elif code == 4:
             self.nozzles.allocate(out[0][:3], out[0][3:])  # raises: a non-finite wrench
             raise VehicleError("the control step found a non-finite wrench")  # pragma: no cover
@@ -387,13 +386,7 @@ class VehicleController:
     def _update_numpy(
         self, command: VehicleTwist, linear: np.ndarray, angular: np.ndarray, dt: float
     ) -> Wrench:
-        """One control step.
-
-        Args:
-            command: Requested body twist.
-            linear: Measured body-frame linear velocity of Astrobee's centre, (3,) [m/s].
-            angular: Measured body-frame angular velocity, (3,) [rad/s].
-            dt: Control period [s].
+        """One control step in numpy (the arguments of :meth:`update`).
 
         Returns:
             The body-frame wrench to hold over the next period: within the per-axis
