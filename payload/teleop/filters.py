@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -47,6 +48,7 @@ class OneEuroFilter:
         self._x: np.ndarray | None = None
         self._dx: np.ndarray | None = None
         self._t: float | None = None
+        self._bound: tuple[Any, Any, Any] | None = None
 
     def reset(self) -> None:
         """Forget the history: the next sample passes through unfiltered."""
@@ -64,15 +66,52 @@ class OneEuroFilter:
             return self._x.copy()
         c = self.config
         dt = t - self._t
-        dx = (x - self._x) / dt
         a_d = _alpha(c.d_cutoff, dt)
-        dx_hat = a_d * dx + (1 - a_d) * self._dx
-        if x.ndim == 2 and x.shape[1] == 3:
-            # np.linalg.norm(dx_hat, axis=1, keepdims=True)'s formula, without its overhead
-            speed = np.sqrt(np.add.reduce(dx_hat * dx_hat, axis=1, keepdims=True))
-        else:
-            speed = np.abs(dx_hat)
-        a = _alpha(c.min_cutoff + c.beta * speed, dt)
-        x_hat = a * x + (1 - a) * self._x
+        step = self._stepper(x) if isinstance(a_d, float) else None
+        if step is not None:  # the compiled step: the estimates updated in place
+            step(x, dt, a_d)
+            self._t = t
+            return self._x.copy()
+        x_hat, dx_hat = _step_numpy(x, self._x, self._dx, dt, a_d, c.min_cutoff, c.beta)
         self._x, self._dx, self._t = x_hat, dx_hat, t
         return x_hat.copy()
+
+    def _stepper(self, x: np.ndarray) -> Any:
+        """The compiled step (:mod:`payload.teleop.filter_c`) bound to this filter's
+        estimate arrays for samples like ``x``, or None to run :func:`_step_numpy`."""
+        bound = self._bound
+        if bound is not None and bound[0] is self._x and bound[1] is self._dx:
+            return bound[2]
+        step = None
+        if x.ndim == 2 and x.shape[1] == 3 and x.shape == self._x.shape == self._dx.shape:
+            from payload.teleop.filter_c import compiled_one_euro
+
+            kernel = compiled_one_euro(_step_numpy)
+            if kernel is not None:
+                # estimates of the filter's own that the kernel may update in place
+                self._x, self._dx = np.array(self._x, float), np.array(self._dx, float)
+                c = self.config
+                step = kernel.stepper(self._x, self._dx, float(c.min_cutoff), float(c.beta))
+        self._bound = (self._x, self._dx, step)
+        return step
+
+
+def _step_numpy(
+    x: np.ndarray,
+    prev_x: np.ndarray,
+    prev_dx: np.ndarray,
+    dt: float,
+    a_d: float | np.ndarray,
+    min_cutoff: float,
+    beta: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """One filter step after the first sample: (estimate, speed estimate) of ``x``."""
+    dx = (x - prev_x) / dt
+    dx_hat = a_d * dx + (1 - a_d) * prev_dx
+    if x.ndim == 2 and x.shape[1] == 3:
+        # np.linalg.norm(dx_hat, axis=1, keepdims=True)'s formula, without its overhead
+        speed = np.sqrt(np.add.reduce(dx_hat * dx_hat, axis=1, keepdims=True))
+    else:
+        speed = np.abs(dx_hat)
+    a = _alpha(min_cutoff + beta * speed, dt)
+    return a * x + (1 - a) * prev_x, dx_hat

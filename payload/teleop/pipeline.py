@@ -33,6 +33,7 @@ from payload.schema import CONTROL_DT, PayloadCommand, VehicleTwist
 from payload.teleop.calibration import CalibrationError, Captures
 from payload.teleop.channels import BaseChannel, BaseCommand, BaseConfig, RailConfig, rail_command
 from payload.teleop.filters import OneEuroConfig, OneEuroFilter
+from payload.teleop.hand_c import compiled_hand_features
 from payload.teleop.hands import Hand, HandFrame, HandFrameError, pinch_points, wrist_frame
 from payload.teleop.safety import Blender, SafetyConfig, SafetyEvent, TrackingSupervisor
 
@@ -54,6 +55,21 @@ def human_features(hand: Hand) -> PairFeatures:
     """
     pts = pinch_points(hand, wrist_frame(hand))
     return features_from_points(pts["p1"], pts["p2"], pts["a1"], pts["a2"])
+
+
+def human_feature_vector(hand: Hand) -> np.ndarray:
+    """``human_features(hand).as_vector()``, compiled when it can be
+    (:mod:`payload.teleop.hand_c`: the same bits).
+
+    Raises:
+        RetargetError: Degenerate or non-finite geometry.
+    """
+    kernel = compiled_hand_features(human_features)
+    if kernel is not None:
+        v = kernel(hand.joints)
+        if v is not None:
+            return v
+    return human_features(hand).as_vector()
 
 
 @dataclass(frozen=True)
@@ -252,7 +268,9 @@ class TeleopPipeline:
             fresh = None
             if hand is not None:
                 try:
-                    targets, q_ref = self.calibration.pairs[pair].command(human_features(hand))
+                    targets, q_ref = self.calibration.pairs[pair].command(
+                        human_feature_vector(hand)
+                    )
                     fresh, solves[pair] = self.retargeters[pair].solve(targets, q_ref=q_ref)
                 except TRACKING_FAULTS as exc:  # bad hand data holds the pair; a bug aborts
                     events.append(SafetyEvent(t, side, "invalid", f"finger channel: {exc}"))

@@ -1,0 +1,128 @@
+"""The teleoperation pipeline's compiled kernels (hand features, the One Euro filter's
+step) give numpy's bits, and fall back when they cannot."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from payload.retarget.errors import RetargetError
+from payload.teleop import filter_c, hand_c
+from payload.teleop.filters import OneEuroConfig, OneEuroFilter, _step_numpy
+from payload.teleop.hands import INDEX_TIP, THUMB_TIP, Hand
+from payload.teleop.pipeline import human_feature_vector, human_features
+
+
+@pytest.fixture
+def fresh_kernel(monkeypatch, tmp_path):
+    """Build the kernel anew (own cache), and forget it afterwards."""
+    monkeypatch.setenv("PAYLOAD_CACHE_DIR", str(tmp_path))
+    hand_c.compiled_hand_features.cache_clear()
+    filter_c.compiled_one_euro.cache_clear()
+    yield
+    hand_c.compiled_hand_features.cache_clear()
+    filter_c.compiled_one_euro.cache_clear()
+
+
+def test_the_compiled_features_are_numpys():
+    kernel = hand_c.compiled_hand_features(human_features)
+    assert kernel is not None  # a compiler and numpy's OpenBLAS are here
+    degenerate = 0
+    with np.errstate(all="ignore"):
+        for joints in hand_c.random_hands(3000, seed=99):
+            got = kernel(joints)
+            try:
+                want = human_features(Hand(joints, True)).as_vector()
+            except RetargetError:
+                want = None
+            if want is None:
+                degenerate += 1
+                assert got is None
+            else:
+                assert got.tobytes() == want.tobytes()
+                assert human_feature_vector(Hand(joints, True)).tobytes() == want.tobytes()
+    assert 0 < degenerate < 300  # coincident tips and NaN joints among the probes
+
+
+@pytest.mark.parametrize("fault", ["coincident", "nan"])
+def test_a_bad_hand_raises_numpys_error(fault):
+    joints = hand_c.random_hands(1, seed=3)[0].copy()
+    if fault == "coincident":
+        joints[INDEX_TIP] = joints[THUMB_TIP]
+    else:
+        joints[THUMB_TIP, 0] = np.nan
+    with pytest.raises(RetargetError) as numpy_error:
+        human_features(Hand(joints, True))
+    with pytest.raises(RetargetError) as error:
+        human_feature_vector(Hand(joints, True))
+    assert str(error.value) == str(numpy_error.value)
+
+
+def test_a_kernel_with_other_bits_is_refused(fresh_kernel, monkeypatch, caplog):
+    """The wrist frame's x axis as along * (1 / |along|) (the same in exact arithmetic)
+    is refused."""
+    other = hand_c.SOURCE.replace(
+        "x[i] = along[i] / n;",
+        "x[i] = along[i] * (1.0 / n);",
+    )
+    assert other != hand_c.SOURCE
+    monkeypatch.setattr(hand_c, "SOURCE", other)
+    with caplog.at_level("WARNING", logger="payload.teleop.hand_c"):
+        assert hand_c.compiled_hand_features(human_features) is None
+    assert "differ" in caplog.text
+    joints = hand_c.random_hands(1, seed=4)[0]
+    want = human_features(Hand(joints, True)).as_vector()
+    assert human_feature_vector(Hand(joints, True)).tobytes() == want.tobytes()
+
+
+def test_native_off_runs_numpy(fresh_kernel, monkeypatch):
+    monkeypatch.setenv("PAYLOAD_NATIVE", "0")
+    assert hand_c.compiled_hand_features(human_features) is None
+
+
+def _run_filter(samples, stamps, config) -> list:
+    """A filter's outputs (or the error's text) over the samples, with a reset now and then."""
+    f = OneEuroFilter(config)
+    out = []
+    for i, (x, t) in enumerate(zip(samples, stamps)):
+        if i % 250 == 249:
+            f.reset()
+        try:
+            out.append(f(x, t).tobytes())
+        except ValueError as exc:
+            out.append(str(exc))
+    return out
+
+
+@pytest.mark.parametrize("config", [OneEuroConfig(), OneEuroConfig(1.0, 0.2, 2.5)])
+def test_the_compiled_filter_step_is_numpys(config, monkeypatch):
+    """1,000 samples of 25 joints (and of one point) with irregular, repeated and older
+    stamps, resets and a non-finite sample: the same outputs and errors with the compiled
+    step and with numpy's."""
+    assert filter_c.compiled_one_euro(_step_numpy) is not None
+    rng = np.random.default_rng(17)
+    for rows in (25, 1):
+        samples = np.cumsum(rng.normal(scale=0.004, size=(1000, rows, 3)), axis=0)
+        samples[500, 0, 1] = np.inf
+        steps = rng.choice([0.02, 0.021, 0.0, -0.01], size=1000, p=[0.85, 0.1, 0.03, 0.02])
+        stamps = np.cumsum(steps)
+        compiled = _run_filter(samples, stamps, config)
+        monkeypatch.setattr(filter_c, "compiled_one_euro", lambda reference: None)
+        plain = _run_filter(samples, stamps, config)
+        monkeypatch.undo()
+        assert compiled == plain
+        assert "One Euro filter: non-finite sample" in compiled
+
+
+def test_a_filter_kernel_with_other_bits_is_refused(fresh_kernel, monkeypatch, caplog):
+    """The new estimate as x_prev + a (x - x_prev) (the same in exact arithmetic) is
+    refused, and numpy's step runs."""
+    other = filter_c.SOURCE.replace(
+        "xs[3 * r + i] = a * x[3 * r + i] + (1 - a) * xs[3 * r + i];",
+        "xs[3 * r + i] = xs[3 * r + i] + a * (x[3 * r + i] - xs[3 * r + i]);",
+    )
+    assert other != filter_c.SOURCE
+    monkeypatch.setattr(filter_c, "SOURCE", other)
+    with caplog.at_level("WARNING", logger="payload.teleop.filter_c"):
+        assert filter_c.compiled_one_euro(_step_numpy) is None
+    assert "differs" in caplog.text
