@@ -23,6 +23,7 @@ import subprocess
 import tempfile
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
 
 from payload.cache import cache_dir
 
@@ -179,6 +180,19 @@ def numpy_dgemv() -> int | None:
     return numpy_blas(NUMPY_DGEMV)
 
 
+def gemv_layout(a: Any) -> tuple[int, int] | None:
+    """How numpy's ``matmul`` hands the float64 matrix ``a`` (m, n) to ``dgemv``: (CBLAS
+    order, leading dimension), row-major for C order and column-major for Fortran order
+    (numpy passes the memory as it lies), or None for other layouts."""
+    if a.dtype != "float64" or a.ndim != 2:
+        return None
+    if a.flags.c_contiguous:
+        return 101, a.shape[1]
+    if a.flags.f_contiguous:
+        return 102, a.shape[0]
+    return None
+
+
 @functools.cache
 def mujoco_function(name: str) -> int | None:
     """The address of MuJoCo's C function ``name`` in the library its Python bindings
@@ -196,6 +210,7 @@ __all__ = [
     "build_library",
     "find_compiler",
     "flags",
+    "gemv_layout",
     "loaded_symbol",
     "mujoco_function",
     "numpy_blas",

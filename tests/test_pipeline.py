@@ -11,6 +11,7 @@ import pytest
 from payload.design import load_design
 from payload.retarget.calibration import pair_range
 from payload.retarget.casadi_solver import PairRetargeter
+from payload.retarget.errors import RetargetError
 from payload.schema import CONTROL_DT
 from payload.teleop.calibration import CalibrationProcedure
 from payload.teleop.hands import Hand, HandFrame
@@ -286,3 +287,41 @@ def test_live_pacing_counts_overruns(retargeting):
     # paced: a 30-step session lasts at least its 0.6 s of control time
     assert quick.steps == 30
     assert time.perf_counter() - t1 >= 30 * 0.02 - 1e-3
+
+
+def test_the_compiled_targets_are_numpys(retargeting, monkeypatch, tmp_path, caplog):
+    """Both pairs' calibrated targets through the compiled kernel and through numpy's
+    code on 2,000 random features (inside, below and beyond the calibrated spans): the
+    same bits; a non-finite feature raises numpy's error; a kernel that forms the robot
+    centre as pinch + alpha (open - pinch) (the same in exact arithmetic) is refused."""
+    from payload.retarget import targets_c
+
+    _, _proc, cal, _, _ = _calibrated(3, retargeting, QUIET)
+    rng = np.random.default_rng(5)
+    for pc in cal.pairs.values():
+        assert pc._kernel is not None
+        lo, hi = pc.human_pinch.span, pc.human_open.span
+        for _ in range(1000):
+            h = np.concatenate(
+                [[rng.uniform(lo - 0.5 * (hi - lo), hi + 0.5 * (hi - lo))], rng.normal(size=12)]
+            )
+            got, want = pc.to_targets(h), pc._to_targets_numpy(h)
+            for g, w in zip(got, want):
+                assert np.asarray(g).tobytes() == np.asarray(w).tobytes()
+        h[5] = np.nan
+        with pytest.raises(RetargetError) as numpy_error:
+            pc._to_targets_numpy(h)
+        with pytest.raises(RetargetError) as error:
+            pc.to_targets(h)
+        assert str(error.value) == str(numpy_error.value)
+    monkeypatch.setenv("PAYLOAD_CACHE_DIR", str(tmp_path))
+    other = targets_c.SOURCE.replace(
+        "c_robot[i] = (1.0 - alpha) * c[4 + i] + alpha * c[7 + i];",
+        "c_robot[i] = c[4 + i] + alpha * (c[7 + i] - c[4 + i]);",
+    )
+    assert other != targets_c.SOURCE
+    monkeypatch.setattr(targets_c, "SOURCE", other)
+    pc = cal.pairs["L"]
+    with caplog.at_level("WARNING", logger="payload.retarget.targets_c"):
+        assert targets_c.compiled_targets(pc, pc._to_targets_numpy) is None
+    assert "differ" in caplog.text

@@ -126,3 +126,50 @@ def test_a_filter_kernel_with_other_bits_is_refused(fresh_kernel, monkeypatch, c
     with caplog.at_level("WARNING", logger="payload.teleop.filter_c"):
         assert filter_c.compiled_one_euro(_step_numpy) is None
     assert "differs" in caplog.text
+
+
+@pytest.mark.parametrize("cap", [None, 0.19])
+def test_the_compiled_limiter_step_is_numpys(cap):
+    """3,000 steps toward requests that hold, move, rest and overshoot the cap, with the
+    state replaced from outside now and then (as the base filter does): the compiled
+    step and numpy's give the same values and rates in every bit."""
+    from payload.teleop.channels import JerkLimiter
+    from payload.teleop.limiter_c import compiled_limiter
+
+    assert compiled_limiter(JerkLimiter) is not None
+    mine, theirs = JerkLimiter(3, 0.0175, 0.02, cap), JerkLimiter(3, 0.0175, 0.02, cap)
+    rng = np.random.default_rng(31)
+    target = np.zeros(3)
+    for k in range(3000):
+        if k % 75 == 0:
+            target = rng.normal(scale=(0.0, 0.02, 0.4, 1e-4, 0.1)[(k // 75) % 5], size=3)
+        if k % 500 == 499:  # the state set from outside: new arrays
+            v, r = rng.normal(scale=0.05, size=3), rng.normal(scale=0.005, size=3)
+            mine.value, mine.rate = v.copy(), r.copy()
+            theirs.value, theirs.rate = v.copy(), r.copy()
+        got = mine.step(target, 0.02)
+        want = theirs._step_vector(target, 0.02)
+        assert got.tobytes() == want.tobytes(), k
+        assert mine.rate.tobytes() == theirs.rate.tobytes(), k
+    assert mine._bound is not None and mine._bound[2] is not None  # the compiled step ran
+
+
+def test_a_limiter_kernel_with_other_bits_is_refused(fresh_kernel, monkeypatch, caplog):
+    """The braking lead as rate * (|rate| / 2j) (the same in exact arithmetic) is
+    refused, and numpy's step runs."""
+    from payload.teleop import limiter_c
+    from payload.teleop.channels import JerkLimiter
+
+    limiter_c.compiled_limiter.cache_clear()
+    other = limiter_c.SOURCE.replace(
+        "w[i] = e[i] - rate[i] * nr / (2 * max_jerk);",
+        "w[i] = e[i] - rate[i] * (nr / (2 * max_jerk));",
+    )
+    assert other != limiter_c.SOURCE
+    monkeypatch.setattr(limiter_c, "SOURCE", other)
+    try:
+        with caplog.at_level("WARNING", logger="payload.teleop.limiter_c"):
+            assert limiter_c.compiled_limiter(JerkLimiter) is None
+        assert "differs" in caplog.text
+    finally:
+        limiter_c.compiled_limiter.cache_clear()

@@ -21,12 +21,14 @@ Two steps:
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
 from payload.retarget.errors import RetargetError
-from payload.retarget.features import PairFeatures, as_feature_vector
+from payload.retarget.features import N_FEATURES, PairFeatures, as_feature_vector
 from payload.retarget.span_range import (  # noqa: F401  (old import paths)
     PairRange,
     _compute_pair_range,
@@ -75,11 +77,29 @@ class PairCalibration:
         return min(max(float((human_span - lo) / (hi - lo)), 0.0), 1.0)  # np.clip's result
 
     def to_targets(self, human: PairFeatures | np.ndarray) -> PairFeatures:
-        """Robot targets ``(l_bar, d_bar, c_bar, u_bar)`` for human features (wrist frame).
+        """Robot targets ``(l_bar, d_bar, c_bar, u_bar)`` for human features (wrist frame)
+        (:meth:`_to_targets_numpy`, compiled for stacked features when it can be:
+        :mod:`payload.retarget.targets_c`, the same bits).
 
         Raises:
             RetargetError: A NaN or infinite or malformed feature.
         """
+        if isinstance(human, np.ndarray) and human.shape == (N_FEATURES,):
+            kernel = self._kernel
+            if kernel is not None:
+                out = kernel(human)
+                if out is not None:
+                    return out
+        return self._to_targets_numpy(human)
+
+    @functools.cached_property
+    def _kernel(self) -> Any:
+        from payload.retarget.targets_c import compiled_targets
+
+        return compiled_targets(self, self._to_targets_numpy)
+
+    def _to_targets_numpy(self, human: PairFeatures | np.ndarray) -> PairFeatures:
+        """:meth:`to_targets` in numpy."""
         h = PairFeatures.from_vector(as_feature_vector(human, "human features"))
         rg, rot = self.range, self.rotation
         alpha = self.opening(h.span)

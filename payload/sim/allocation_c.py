@@ -532,19 +532,6 @@ def _load(what: str, nozzles: int) -> tuple[ctypes.CDLL, int] | None:
         return None
 
 
-def _layout(a: np.ndarray) -> tuple[int, int] | None:
-    """How numpy's ``matmul`` hands the float64 matrix ``a`` (m, n) to ``dgemv``: (CBLAS
-    order, leading dimension), row-major for C order and column-major for Fortran order
-    (numpy passes the memory as it lies), or None for other layouts."""
-    if a.dtype != np.float64 or a.ndim != 2:
-        return None
-    if a.flags.c_contiguous:
-        return 101, a.shape[1]
-    if a.flags.f_contiguous:
-        return 102, a.shape[0]
-    return None
-
-
 class CompiledControl:
     """The step of :meth:`VehicleController.update
     <payload.sim.vehicle.VehicleController.update>` with nozzles in C: the twist clamp,
@@ -567,7 +554,7 @@ class CompiledControl:
         self.searches = searches
         mass, com, inertia = controller.plant
         matrix, inertia = controller.nozzles.matrix, np.asarray(inertia)
-        layouts = [_layout(matrix), _layout(inertia)]
+        layouts = [native.gemv_layout(matrix), native.gemv_layout(inertia)]
         if None in layouts:
             raise SimError("the controller kernel needs contiguous float64 matrices")
         (m_order, m_ld), (i_order, i_ld) = layouts

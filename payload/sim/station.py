@@ -74,6 +74,7 @@ class StationMonitor:
         self._is_station[self.station] = True
         self._station_box: tuple[np.ndarray, np.ndarray] | None = None
         self._fromto = np.zeros(6)
+        self._kernel: tuple[Any, Any] | None = None
         # per moving geom, a bound on how far its world box reaches from its frame's
         # origin along any axis: |R c|_i <= |c| and (|R| h)_i <= |h| for a rotation R
         # (the box's centre c and half-sizes h in the geom frame), with slack for rounding
@@ -100,15 +101,8 @@ class StationMonitor:
         # no station box comes within the cap of their union, neither does any of the
         # boxes inside (the test below, with the same monotone subtractions), and the
         # clearance reads the cap (most steps, in mid-module)
-        origin = data.geom_xpos[self.moving]
-        if (
-            not (
-                (s_lo - (origin + self._reach).max(axis=0) < CLEARANCE_CAP)
-                & ((origin - self._reach).min(axis=0) - s_hi < CLEARANCE_CAP)
-            )
-            .all(axis=1)
-            .any()
-        ):
+        kernel = self._bound_kernel(data)
+        if not (kernel.near() if kernel is not None else self._near_numpy(data)):
             return StationReading(contact, CLEARANCE_CAP)
         lo, hi = _world_aabb(m, data, self.moving)
         # the station boxes within the cap of the moving geoms' union box first (IEEE
@@ -134,6 +128,38 @@ class StationMonitor:
                 )
                 best = min(best, d)
         return StationReading(contact or best <= 0.0, float(best))
+
+    def _near_numpy(self, data: mujoco.MjData) -> bool:
+        """Whether a station box comes within the cap of the moving geoms' bound."""
+        s_lo, s_hi = self._station_box
+        origin = data.geom_xpos[self.moving]
+        return bool(
+            (
+                (s_lo - (origin + self._reach).max(axis=0) < CLEARANCE_CAP)
+                & ((origin - self._reach).min(axis=0) - s_hi < CLEARANCE_CAP)
+            )
+            .all(axis=1)
+            .any()
+        )
+
+    def _bound_kernel(self, data: mujoco.MjData) -> Any:
+        """:meth:`_near_numpy` compiled for ``data`` (:mod:`payload.sim.station_c`,
+        checked when built), or None."""
+        if self._kernel is None or self._kernel[0] is not data:
+            from payload.sim.station_c import compiled_station_bound
+
+            s_lo, s_hi = self._station_box
+            made = compiled_station_bound(
+                data,
+                self.moving,
+                self._reach,
+                s_lo,
+                s_hi,
+                CLEARANCE_CAP,
+                lambda: self._near_numpy(data),
+            )
+            self._kernel = (data, made)
+        return self._kernel[1]
 
 
 __all__ = ["CLEARANCE_CAP", "StationMonitor", "StationReading", "moving_geoms"]

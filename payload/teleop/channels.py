@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -122,6 +123,7 @@ class JerkLimiter:
         self.max_rate = max_rate
         self.max_jerk = max_jerk
         self.max_value = max_value
+        self._bound: tuple[Any, Any, Any] | None = None
 
     def reset(self, value: np.ndarray | None = None) -> None:
         self.value = np.zeros_like(self.value) if value is None else np.array(value, float)
@@ -131,7 +133,26 @@ class JerkLimiter:
         """Advance one step of ``dt`` [s] toward ``target`` (shape (dim,)); the new value."""
         if self.value.shape == (1,):
             return self._step_scalar(float(np.asarray(target, dtype=float).reshape(1)[0]), dt)
+        step = self._stepper()
+        if step is not None and np.shape(target) == self.value.shape:
+            step(target, dt)  # the compiled step: value and rate updated in place
+            return self.value.copy()
         return self._step_vector(target, dt)
+
+    def _stepper(self) -> Any:
+        """The compiled vector step (:mod:`payload.teleop.limiter_c`) bound to this
+        limiter's current value and rate arrays, or None to run :meth:`_step_vector`."""
+        bound = self._bound
+        if bound is not None and bound[0] is self.value and bound[1] is self.rate:
+            return bound[2]
+        from payload.teleop.limiter_c import compiled_limiter
+
+        kernel = compiled_limiter(JerkLimiter)
+        if kernel is not None:  # arrays of the limiter's own that the kernel updates
+            self.value, self.rate = np.array(self.value, float), np.array(self.rate, float)
+        step = kernel.stepper(self) if kernel is not None else None
+        self._bound = (self.value, self.rate, step)
+        return step
 
     def _step_scalar(self, t: float, dt: float) -> np.ndarray:
         """:meth:`_step_vector` for one dimension in Python floats: the same operations in

@@ -1,4 +1,5 @@
-"""The allocation's compiled searches give numpy's bits, and fall back when they cannot."""
+"""The simulator's compiled kernels (the allocation's searches, the controller's step, the
+thrusts, the station bound) give numpy's bits, and fall back when they cannot."""
 
 from __future__ import annotations
 
@@ -263,3 +264,54 @@ def test_the_compiled_thrusts_are_mujocos(bare_driver):
     d.reset()
     assert d.data is not old and d._thrust_kernel is not kernel
     assert d._thrust_kernel.data is d.data
+
+
+# -- the station clearance's quick bound ----------------------------------------------------------
+def _moved(driver, rng, scale: float) -> None:
+    """The vehicle somewhere in the station, now and then near a wall."""
+    import mujoco
+
+    d, a = driver.data, driver.world.astrobee_qpos
+    d.qpos[a : a + 3] = d.qpos[a : a + 3] + rng.normal(scale=scale, size=3)
+    mujoco.mj_forward(driver.model, d)
+
+
+def test_the_compiled_station_bound_answers_as_numpy(bare_driver):
+    from payload.sim.station import StationMonitor
+
+    d = bare_driver
+    monitor = StationMonitor(d.world)
+    monitor.read(d.data)
+    kernel = monitor._bound_kernel(d.data)
+    assert kernel is not None and kernel.data is d.data
+    rng = np.random.default_rng(12)
+    saved = d.data.qpos.copy()
+    answers = set()
+    try:
+        for k in range(300):
+            _moved(d, rng, 0.8 if k % 2 else 3.0)
+            if k % 50 == 3:
+                d.data.geom_xpos[monitor.moving[0], 1] = np.nan
+            near = kernel.near()
+            assert near == monitor._near_numpy(d.data)
+            answers.add(near)
+    finally:
+        d.data.qpos[:] = saved
+    assert answers == {True, False}
+
+
+def test_a_station_bound_with_other_answers_is_refused(bare_driver, monkeypatch, tmp_path, caplog):
+    """A bound 5 cm short of the cap on one side answers otherwise on some of the
+    self-check's poses: refused, and the numpy test runs."""
+    from payload.sim import station_c
+    from payload.sim.station import StationMonitor
+
+    monkeypatch.setenv("PAYLOAD_CACHE_DIR", str(tmp_path))
+    other = station_c.SOURCE.replace("< cap) & (lo[i]", "< cap - 0.05) & (lo[i]")
+    assert other != station_c.SOURCE
+    monkeypatch.setattr(station_c, "SOURCE", other)
+    monitor = StationMonitor(bare_driver.world)
+    with caplog.at_level("WARNING", logger="payload.sim.station_c"):
+        monitor.read(bare_driver.data)
+        assert monitor._bound_kernel(bare_driver.data) is None
+    assert "differs" in caplog.text
