@@ -16,6 +16,7 @@ from __future__ import annotations
 import ctypes
 import functools
 import hashlib
+import logging
 import os
 import platform
 import shutil
@@ -133,6 +134,50 @@ def prune(directory: Path, name: str, keep: int = 8) -> None:
             pass
 
 
+NATIVE_ENV = "PAYLOAD_NATIVE"
+"""Set to ``0`` to run every compiled kernel's numpy code instead (the same results)."""
+
+
+def load_kernel(
+    name: str,
+    source: str,
+    what: str,
+    logger: logging.Logger,
+    *,
+    prelude: str = "",
+    key_parts: Sequence[str] = (),
+) -> ctypes.CDLL | None:
+    """A compiled kernel's library (``source`` built by :func:`build_library` as
+    ``name``), or None when the numpy code is to run: :data:`NATIVE_ENV` is ``0``, there
+    is no C compiler, or the build fails (said on ``logger``, the compiler's log kept).
+    The kernel's caller still checks it against the numpy code before using it."""
+    if os.environ.get(NATIVE_ENV, "1") == "0":
+        return None
+    compiler = find_compiler()
+    if compiler is None:
+        logger.info("%s: numpy (no C compiler)", what)
+        return None
+    try:
+        path = build_library(
+            name,
+            {f"{name}.c": source},
+            compiler,
+            prelude=prelude,
+            key_parts=(*key_parts, _numpy_version()),
+            what=what,
+        )
+        return ctypes.CDLL(str(path))
+    except (RuntimeError, OSError) as exc:
+        logger.warning("%s: numpy (%s)", what, exc)
+        return None
+
+
+def _numpy_version() -> str:
+    import numpy
+
+    return numpy.__version__
+
+
 NUMPY_DGEMV = "scipy_cblas_dgemv64_"
 """The CBLAS ``dgemv`` of the OpenBLAS numpy's wheels bundle (64-bit integers), the kernel
 numpy's ``matmul`` runs for a C-contiguous matrix times a vector."""
@@ -204,6 +249,7 @@ def mujoco_function(name: str) -> int | None:
 
 __all__ = [
     "CFLAGS",
+    "NATIVE_ENV",
     "NUMPY_DDOT",
     "NUMPY_DGEMV",
     "OPTIONAL_CFLAGS",
@@ -211,6 +257,7 @@ __all__ = [
     "find_compiler",
     "flags",
     "gemv_layout",
+    "load_kernel",
     "loaded_symbol",
     "mujoco_function",
     "numpy_blas",

@@ -17,7 +17,6 @@ from __future__ import annotations
 import ctypes
 import functools
 import logging
-import os
 import threading
 from collections.abc import Callable
 from typing import Any
@@ -25,7 +24,6 @@ from typing import Any
 import numpy as np
 
 from payload import native
-from payload.retarget.errors import RetargetError
 from payload.retarget.features import N_FEATURES, PairFeatures
 
 log = logging.getLogger(__name__)
@@ -129,22 +127,15 @@ def compiled_targets(
     numpy code): no compiler, no numpy OpenBLAS, ``PAYLOAD_NATIVE=0``, a failed build, or
     a self-check on 200 random features (pinch, open, beyond both) that differs from
     ``reference`` in a single bit."""
-    if os.environ.get("PAYLOAD_NATIVE", "1") == "0":
+    gemv = native.numpy_dgemv()
+    if gemv is None:
         return None
-    compiler, gemv = native.find_compiler(), native.numpy_dgemv()
-    if compiler is None or gemv is None:
+    lib = native.load_kernel("targets", SOURCE, "the targets kernel", log)
+    if lib is None:
         return None
     try:
-        path = native.build_library(
-            "targets",
-            {"targets.c": SOURCE},
-            compiler,
-            key_parts=(np.__version__,),
-            error=RetargetError,
-            what="the targets kernel",
-        )
-        kernel = CompiledTargets(calibration, ctypes.CDLL(str(path)), gemv)
-    except (RetargetError, OSError, ValueError) as exc:
+        kernel = CompiledTargets(calibration, lib, gemv)
+    except ValueError as exc:
         log.warning("pair targets: numpy (%s)", exc)
         return None
     rng = np.random.default_rng(0)

@@ -28,7 +28,6 @@ from __future__ import annotations
 import ctypes
 import functools
 import logging
-import os
 import threading
 from typing import Any
 
@@ -509,27 +508,14 @@ def compiled_searches(prop: Any) -> CompiledSearches | None:
 def _load(what: str, nozzles: int) -> tuple[ctypes.CDLL, int] | None:
     """The kernels' library for a propulsion of ``nozzles`` nozzles and numpy's dgemv, or
     None (logged) to run the numpy code."""
-    if os.environ.get("PAYLOAD_NATIVE", "1") == "0":
-        return None
-    compiler = native.find_compiler()
     gemv = native.numpy_dgemv()
-    if compiler is None or gemv is None:
-        log.info("%s: numpy (compiler %s, numpy dgemv %s)", what, compiler, gemv)
+    if gemv is None:
+        log.info("%s: numpy (no numpy OpenBLAS dgemv)", what)
         return None
-    try:
-        path = native.build_library(
-            "allocation",
-            {"allocation.c": SOURCE},
-            compiler,
-            prelude=f"#define NZ {int(nozzles)}\n",
-            key_parts=(np.__version__,),
-            error=SimError,
-            what="the allocation kernels",
-        )
-        return ctypes.CDLL(str(path)), gemv
-    except (SimError, OSError) as exc:
-        log.warning("%s: numpy (%s)", what, exc)
-        return None
+    lib = native.load_kernel(
+        "allocation", SOURCE, "the allocation kernels", log, prelude=f"#define NZ {int(nozzles)}\n"
+    )
+    return None if lib is None else (lib, gemv)
 
 
 class CompiledControl:
@@ -704,7 +690,11 @@ def compiled_control(controller: Any) -> CompiledControl | None:
     ddot = native.numpy_blas(native.NUMPY_DDOT)
     if loaded is None or ddot is None:
         return None
-    kernel = CompiledControl(controller, searches, loaded[0], ddot)
+    try:
+        kernel = CompiledControl(controller, searches, loaded[0], ddot)
+    except SimError as exc:
+        log.warning("controller kernel: numpy (%s)", exc)
+        return None
     if not check_control(controller, kernel):
         log.warning("controller kernel: numpy (the compiled step differs)")
         return None

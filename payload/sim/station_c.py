@@ -16,7 +16,6 @@ from __future__ import annotations
 import ctypes
 import functools
 import logging
-import os
 from collections.abc import Callable
 from typing import Any
 
@@ -122,17 +121,12 @@ def compiled_station_bound(
     the data's current positions): no compiler, ``PAYLOAD_NATIVE=0``, a failed build, or a
     self-check that answers otherwise than ``reference`` on random positions (written into
     the data's ``geom_xpos`` and restored)."""
-    if os.environ.get("PAYLOAD_NATIVE", "1") == "0":
-        return None
-    compiler = native.find_compiler()
-    if compiler is None:
+    lib = native.load_kernel("station", SOURCE, "the station bound kernel", log)
+    if lib is None:
         return None
     try:
-        path = native.build_library(
-            "station", {"station.c": SOURCE}, compiler, what="the station bound kernel"
-        )
-        kernel = CompiledStationBound(ctypes.CDLL(str(path)), data, geoms, reach, s_lo, s_hi, cap)
-    except (RuntimeError, OSError, ValueError) as exc:
+        kernel = CompiledStationBound(lib, data, geoms, reach, s_lo, s_hi, cap)
+    except ValueError as exc:
         log.warning("station bound: numpy (%s)", exc)
         return None
     saved = data.geom_xpos.copy()

@@ -15,7 +15,6 @@ import ctypes
 import functools
 import logging
 import math
-import os
 from collections.abc import Callable
 from typing import Any
 
@@ -87,19 +86,10 @@ def compiled_one_euro(reference: Callable[..., Any]) -> CompiledOneEuro | None:
     ``PAYLOAD_NATIVE=0``, a failed build, or a self-check that differs in a single bit from
     ``reference(x, prev_x, prev_dx, dt, a_d, min_cutoff, beta)``, the numpy step, on 300
     random samples, histories, periods and settings)."""
-    if os.environ.get("PAYLOAD_NATIVE", "1") == "0":
+    lib = native.load_kernel("one_euro", SOURCE, "the One Euro filter kernel", log)
+    if lib is None:
         return None
-    compiler = native.find_compiler()
-    if compiler is None:
-        return None
-    try:
-        path = native.build_library(
-            "one_euro", {"one_euro.c": SOURCE}, compiler, what="the One Euro filter kernel"
-        )
-        kernel = CompiledOneEuro(ctypes.CDLL(str(path)))
-    except (RuntimeError, OSError) as exc:
-        log.warning("One Euro filter: numpy (%s)", exc)
-        return None
+    kernel = CompiledOneEuro(lib)
     rng = np.random.default_rng(0)
     for i in range(300):
         n = (25, 1, 4)[i % 3]

@@ -18,7 +18,6 @@ from __future__ import annotations
 import ctypes
 import functools
 import logging
-import os
 import threading
 from collections.abc import Callable
 from typing import Any
@@ -193,25 +192,13 @@ def compiled_hand_features(reference: Callable[[Any], Any]) -> CompiledHandFeatu
     compiler, no numpy OpenBLAS, ``PAYLOAD_NATIVE=0``, a failed build, or a self-check on
     :func:`random_hands` that differs in a single bit from ``reference``, the numpy code:
     :func:`~payload.teleop.pipeline.human_features`)."""
-    if os.environ.get("PAYLOAD_NATIVE", "1") == "0":
-        return None
-    compiler = native.find_compiler()
     gemv, ddot = native.numpy_dgemv(), native.numpy_blas(native.NUMPY_DDOT)
-    if compiler is None or gemv is None or ddot is None:
+    if gemv is None or ddot is None:
         return None
-    try:
-        path = native.build_library(
-            "hand_features",
-            {"hand_features.c": SOURCE},
-            compiler,
-            key_parts=(np.__version__,),
-            error=RetargetError,
-            what="the hand features kernel",
-        )
-        kernel = CompiledHandFeatures(ctypes.CDLL(str(path)), gemv, ddot)
-    except (RetargetError, OSError) as exc:
-        log.warning("hand features: numpy (%s)", exc)
+    lib = native.load_kernel("hand_features", SOURCE, "the hand features kernel", log)
+    if lib is None:
         return None
+    kernel = CompiledHandFeatures(lib, gemv, ddot)
     from payload.teleop.hands import Hand
 
     def want_of(joints: np.ndarray) -> np.ndarray | None:

@@ -14,7 +14,6 @@ from __future__ import annotations
 import ctypes
 import functools
 import logging
-import os
 from collections.abc import Callable
 from typing import Any
 
@@ -182,23 +181,13 @@ def compiled_limiter(factory: Callable[..., Any]) -> CompiledLimiter | None:
     no numpy OpenBLAS, ``PAYLOAD_NATIVE=0``, a failed build, or a self-check that differs
     in a single bit from the numpy step of limiters made by ``factory(dim, max_rate,
     max_jerk, max_value)``, on random requests with and without a value cap)."""
-    if os.environ.get("PAYLOAD_NATIVE", "1") == "0":
+    ddot = native.numpy_blas(native.NUMPY_DDOT)
+    if ddot is None:
         return None
-    compiler, ddot = native.find_compiler(), native.numpy_blas(native.NUMPY_DDOT)
-    if compiler is None or ddot is None:
+    lib = native.load_kernel("limiter", SOURCE, "the jerk limiter kernel", log)
+    if lib is None:
         return None
-    try:
-        path = native.build_library(
-            "limiter",
-            {"limiter.c": SOURCE},
-            compiler,
-            key_parts=(np.__version__,),
-            what="the jerk limiter kernel",
-        )
-        kernel = CompiledLimiter(ctypes.CDLL(str(path)), ddot)
-    except (RuntimeError, OSError) as exc:
-        log.warning("jerk limiter: numpy (%s)", exc)
-        return None
+    kernel = CompiledLimiter(lib, ddot)
     rng = np.random.default_rng(0)
     for cap in (None, 0.19, 0.05):
         mine, theirs = factory(3, 0.0175, 0.02, cap), factory(3, 0.0175, 0.02, cap)
