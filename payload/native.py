@@ -15,13 +15,8 @@ from __future__ import annotations
 
 import ctypes
 import functools
-import hashlib
 import logging
 import os
-import platform
-import shutil
-import subprocess
-import tempfile
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -42,6 +37,9 @@ position-independent code calls every one of them through the PLT instead of inl
 def flags(compiler: str) -> tuple[str, ...]:
     """The compile flags for ``compiler``: :data:`CFLAGS` and those of
     :data:`OPTIONAL_CFLAGS` it accepts (an older compiler without one still builds)."""
+    import subprocess
+    import tempfile
+
     out = list(CFLAGS)
     with tempfile.TemporaryDirectory() as tmp:
         src = Path(tmp) / "probe.c"
@@ -59,6 +57,8 @@ def flags(compiler: str) -> tuple[str, ...]:
 
 def find_compiler() -> str | None:
     """The C compiler: ``$CC``, else ``cc``, ``gcc`` or ``clang`` on the path (None: none)."""
+    import shutil
+
     cc = os.environ.get("CC") or "cc"
     return shutil.which(cc) or shutil.which("gcc") or shutil.which("clang")
 
@@ -79,6 +79,11 @@ def build_library(
     Raises:
         ``error(message)``: The compiler failed; the message names ``what`` and the log.
     """
+    import hashlib
+    import platform
+    import subprocess
+    import tempfile
+
     key = hashlib.sha256(
         "\n".join(
             [
