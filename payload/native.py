@@ -1,7 +1,10 @@
 """Native code: C sources compiled with the system compiler, cached on disk, loaded by ctypes.
 
-The retargeting solvers (:mod:`payload.retarget.compiled`) and the simulator's compiled
-kernels (:mod:`payload.sim.allocation_c`) build their shared libraries here. A library is
+The retargeting solvers (:mod:`payload.retarget.compiled`) and the 50 Hz loop's compiled
+kernels (:mod:`payload.sim.allocation_c`, :mod:`payload.sim.station_c`,
+:mod:`payload.teleop.hand_c`, :mod:`payload.teleop.filter_c`,
+:mod:`payload.teleop.limiter_c`, :mod:`payload.retarget.targets_c`) build their shared
+libraries here. A library is
 named by the hash of its code, the compiler, the flags, the machine and whatever else its
 caller says it depends on (``key_parts``), so a stale one is never loaded; a failed
 compilation leaves its log beside the cache.
@@ -140,7 +143,8 @@ def prune(directory: Path, name: str, keep: int = 8) -> None:
 
 
 NATIVE_ENV = "PAYLOAD_NATIVE"
-"""Set to ``0`` to run every compiled kernel's numpy code instead (the same results)."""
+"""Set to ``0`` to run the numpy code of every kernel loaded by :func:`load_kernel` (the
+50 Hz loop's; the same results). The retargeting solvers' generated C is not affected."""
 
 
 def load_kernel(
@@ -185,7 +189,8 @@ def _numpy_version() -> str:
 
 NUMPY_DGEMV = "scipy_cblas_dgemv64_"
 """The CBLAS ``dgemv`` of the OpenBLAS numpy's wheels bundle (64-bit integers), the kernel
-numpy's ``matmul`` runs for a C-contiguous matrix times a vector."""
+numpy's ``matmul`` runs for a contiguous matrix times a vector (numpy 2's wheels; numpy
+1.26's name it without the ``scipy_`` prefix, :func:`numpy_blas` tries both)."""
 
 NUMPY_DDOT = "scipy_cblas_ddot64_"
 """Its CBLAS ``ddot``, what numpy's ``dot`` of two float64 vectors runs."""
@@ -201,8 +206,8 @@ def loaded_symbol(library: str, symbol: str) -> int | None:
         return None
     seen: set[str] = set()
     for line in maps:
-        fields = line.split()
-        path = fields[-1] if len(fields) >= 6 else ""
+        fields = line.split(maxsplit=5)  # the path, the sixth field, may hold spaces
+        path = fields[5].strip() if len(fields) == 6 else ""
         if library not in Path(path).name or path in seen or not path.startswith("/"):
             continue
         seen.add(path)
@@ -222,7 +227,10 @@ def numpy_blas(symbol: str) -> int | None:
     every machine (OpenBLAS picks its kernel by the processor, for both alike)."""
     import numpy  # noqa: F401 - loads the OpenBLAS numpy links
 
-    return loaded_symbol("openblas", symbol)
+    found = loaded_symbol("openblas", symbol)
+    if found is None and symbol.startswith("scipy_"):  # numpy 1.26's wheels
+        found = loaded_symbol("openblas", symbol.removeprefix("scipy_"))
+    return found
 
 
 def numpy_dgemv() -> int | None:

@@ -51,15 +51,18 @@ def test_numpys_dgemv_is_what_matmul_runs():
     )(address)  # fmt: skip
     rng = np.random.default_rng(11)
     naive_differs = 0
-    for shape in ((3, 3), (6, 6), (1344, 6), (3024, 6)):
-        for _ in range(20):
-            a, x = rng.normal(size=shape), rng.normal(size=shape[1])
-            y = np.empty(shape[0])
-            dgemv(101, 111, shape[0], shape[1], 1.0, a.ctypes.data, shape[1], x.ctypes.data, 1,
-                  0.0, y.ctypes.data, 1)  # fmt: skip
-            assert y.tobytes() == (a @ x).tobytes()
-            naive = np.array([sum(float(u) * float(v) for u, v in zip(row, x)) for row in a])
-            naive_differs += int((naive != a @ x).sum())
+    for shape in ((3, 3), (6, 6), (6, 12), (1344, 6), (3024, 6)):
+        for order in "CF":  # row-major, and column-major (the nozzle matrix's layout)
+            for _ in range(20):
+                a = np.asarray(rng.normal(size=shape), order=order)
+                x = rng.normal(size=shape[1])
+                cblas, ld = native.gemv_layout(a)
+                y = np.empty(shape[0])
+                dgemv(cblas, 111, shape[0], shape[1], 1.0, a.ctypes.data, ld, x.ctypes.data, 1,
+                      0.0, y.ctypes.data, 1)  # fmt: skip
+                assert y.tobytes() == (a @ x).tobytes()
+                naive = np.array([sum(float(u) * float(v) for u, v in zip(r, x)) for r in a])
+                naive_differs += int((naive != a @ x).sum())
     assert naive_differs > 0
 
 
@@ -124,13 +127,21 @@ def test_a_kernel_with_other_bits_is_refused(monkeypatch, tmp_path, caplog):
 
 
 def test_without_a_compiler_numpy_searches(monkeypatch, tmp_path):
+    with_kernels = Propulsion(FLIGHT_MODES["nominal"].force)
+    assert with_kernels._kernels is not None
     monkeypatch.setenv("PAYLOAD_CACHE_DIR", str(tmp_path))
     monkeypatch.setattr(native, "find_compiler", lambda: None)
     p = Propulsion(FLIGHT_MODES["nominal"].force)
     assert p._kernels is None
     assert not list(tmp_path.glob("allocation_*.so"))
-    w = np.array([0.2, 0.0, 0.0, 0.0, 0.0, 0.0])
-    assert p.extent(w) == p._extent_numpy(w)[0]
+    w = np.array([0.2, 0.05, 0.0, 0.0, 0.0, 0.01])
+    assert p.extent(w) == with_kernels.extent(w)
+    assert (
+        p.allocate(w[:3], w[3:]).thrust.tobytes()
+        == with_kernels.allocate(w[:3], w[3:]).thrust.tobytes()
+    )
+    with pytest.raises(ValueError):  # a wrench of another shape: numpy's error, as before
+        with_kernels.extent(np.ones(3))
 
 
 def test_a_failing_compiler_falls_back_to_numpy(monkeypatch, tmp_path, caplog):
@@ -162,9 +173,10 @@ def _plants() -> list[MassProperties]:
 @pytest.mark.parametrize("mode", sorted(FLIGHT_MODES))
 @pytest.mark.parametrize("plant", range(2))
 def test_the_compiled_control_step_gives_numpys_bits(mode, plant):
-    """2,000 control steps from the same states through numpy's code and the kernel: the
-    same wrench, thrusts, scale and profile state in every bit, with every outcome of the
-    step taken (allocated, zero wrench, saturated on a facet)."""
+    """2,000 control steps from the same states through numpy's code (its allocation's
+    searches in numpy too) and the kernel: the same wrench, thrusts, scale and profile
+    state in every bit, with every outcome of the step taken (allocated, zero wrench,
+    saturated on a facet)."""
     from payload.schema import VehicleTwist
 
     ctl = VehicleController(_plants()[plant], mode)
@@ -186,7 +198,12 @@ def test_the_compiled_control_step_gives_numpys_bits(mode, plant):
                 0.0,
             )
         start = (prof.velocity.copy(), prof.acceleration.copy())
-        want = ctl._update_numpy(command, lin, ang, 0.02)
+        cache = ctl.nozzles.__dict__
+        searches, cache["_kernels"] = cache["_kernels"], None  # the reference: numpy throughout
+        try:
+            want = ctl._update_numpy(command, lin, ang, 0.02)
+        finally:
+            ctl.nozzles.__dict__["_kernels"] = searches
         want_alloc, want_state = ctl.allocation, (prof.velocity, prof.acceleration)
         prof.velocity, prof.acceleration = start[0].copy(), start[1].copy()
         got = ctl.update(command, lin, ang, 0.02)

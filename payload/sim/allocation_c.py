@@ -592,7 +592,8 @@ class CompiledControl:
         """Point the kernel at the profile's state arrays (new ones after a reset)."""
         for name in ("velocity", "acceleration"):
             arr = getattr(profile, name)
-            if not (arr.dtype == np.float64 and arr.flags.c_contiguous and arr.shape == (6,)):
+            own = arr.base is None and arr.flags.writeable and arr.flags.c_contiguous
+            if not (own and arr.dtype == np.float64 and arr.shape == (6,)):
                 setattr(profile, name, np.array(arr, dtype=np.float64).reshape(6))
         self._bound = (profile.velocity, profile.acceleration)
         self._state(self._handle, profile.velocity.ctypes.data, profile.acceleration.ctypes.data)

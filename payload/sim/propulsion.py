@@ -317,7 +317,7 @@ class Propulsion:
     def _extent(self, wrench: np.ndarray) -> tuple[float, int]:
         """(largest scale, binding facet) for ``wrench`` (6,): ``(inf, -1)`` if none binds."""
         kernels = self._kernels
-        if kernels is not None:
+        if kernels is not None and wrench.shape == (6,):
             return kernels.extent(wrench)
         return self._extent_numpy(wrench)
 
@@ -381,7 +381,7 @@ class Propulsion:
     def _least_thrust(self, wrench: np.ndarray) -> np.ndarray | None:
         """:meth:`_least_thrust_numpy`, compiled when it can be (:attr:`_kernels`)."""
         kernels = self._kernels
-        if kernels is not None:
+        if kernels is not None and wrench.shape == (6,):
             return kernels.least_thrust(wrench)
         return self._least_thrust_numpy(wrench)
 

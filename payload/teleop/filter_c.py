@@ -68,6 +68,9 @@ class CompiledOneEuro:
         """``step(x, dt, a_d)``: one filter step for sample ``x`` that updates the estimate
         ``x_state`` and the speed estimate ``dx_state`` (C-contiguous float64, (n, 3)) in
         place; ``x`` is copied into a buffer of the stepper's own first."""
+        for a in (x_state, dx_state):
+            if not (a.dtype == np.float64 and a.flags.c_contiguous and a.shape == x_state.shape):
+                raise ValueError("the filter's estimates must be C-contiguous float64 (n, 3)")
         buf = np.empty_like(x_state)
         fixed = [ctypes.c_void_p(a.ctypes.data) for a in (buf, x_state, dx_state)]
         call = functools.partial(self._fn, *fixed, len(x_state))
@@ -77,6 +80,7 @@ class CompiledOneEuro:
             np.copyto(buf, x)
             call(dt, a_d, two_pi, min_cutoff, beta)
 
+        step.keep = (buf, x_state, dx_state)  # type: ignore[attr-defined]
         return step
 
 

@@ -67,7 +67,9 @@ class OneEuroFilter:
         c = self.config
         dt = t - self._t
         a_d = _alpha(c.d_cutoff, dt)
-        step = self._stepper(x) if isinstance(a_d, float) else None
+        step = None
+        if isinstance(a_d, float) and x.shape == self._x.shape:
+            step = self._stepper(x)
         if step is not None:  # the compiled step: the estimates updated in place
             step(x, dt, a_d)
             self._t = t
@@ -89,7 +91,8 @@ class OneEuroFilter:
             kernel = compiled_one_euro(_step_numpy)
             if kernel is not None:
                 # estimates of the filter's own that the kernel may update in place
-                self._x, self._dx = np.array(self._x, float), np.array(self._dx, float)
+                self._x = np.ascontiguousarray(self._x, dtype=float).copy()
+                self._dx = np.ascontiguousarray(self._dx, dtype=float).copy()
                 c = self.config
                 step = kernel.stepper(self._x, self._dx, float(c.min_cutoff), float(c.beta))
         self._bound = (self._x, self._dx, step)

@@ -149,6 +149,8 @@ class CompiledLimiter:
                 return None
         if not 1 <= n <= MAX_DIM:
             return None
+        if not (limiter.max_jerk > 0 and limiter.max_rate >= 0):
+            return None  # numpy's step says what is wrong (math.sqrt of a negative)
         has_max = limiter.max_value is not None
         params = np.array(
             [
