@@ -181,6 +181,31 @@ def load_kernel(
         return None
 
 
+_KERNELS: dict[str, bool] = {}
+
+
+def reported(name: str) -> Callable[[Callable[..., Any]], Callable[..., Any]]:
+    """Decorate a kernel's factory (it returns the kernel, or None for the numpy code):
+    :func:`kernel_status` then says which way its last call went, as ``name``."""
+
+    def wrap(factory: Callable[..., Any]) -> Callable[..., Any]:
+        @functools.wraps(factory)
+        def made(*args: Any, **kwargs: Any) -> Any:
+            kernel = factory(*args, **kwargs)
+            _KERNELS[name] = kernel is not None
+            return kernel
+
+        return made
+
+    return wrap
+
+
+def kernel_status() -> dict[str, str]:
+    """Each kernel built in this process so far: ``compiled``, or ``numpy`` (why is in the
+    log: no compiler, no numpy OpenBLAS, :data:`NATIVE_ENV`, a failed build or check)."""
+    return {name: "compiled" if ok else "numpy" for name, ok in sorted(_KERNELS.items())}
+
+
 def _numpy_version() -> str:
     import numpy
 
@@ -270,10 +295,12 @@ __all__ = [
     "find_compiler",
     "flags",
     "gemv_layout",
+    "kernel_status",
     "load_kernel",
     "loaded_symbol",
     "mujoco_function",
     "numpy_blas",
     "numpy_dgemv",
     "prune",
+    "reported",
 ]

@@ -1012,6 +1012,22 @@ def test_cli_bench_trial_accounts_for_its_time(tmp_path: Path, capsys) -> None:
     assert r["overhead_ratio"] == pytest.approx(r["wall_seconds"] / r["mj_step_seconds"])
     assert r["overhead_ratio"] > 1.0
     assert r["overhead_ratio_cpu"] == pytest.approx(r["cpu_seconds"] / r["mj_step_cpu_seconds"])
+    # the kernels built for this trial ran compiled (a C compiler and numpy's OpenBLAS
+    # here); 3 s end before the calibration, so the pipeline's are not built
+    per_trial = {"vehicle controller", "thrusts", "station bound"}
+    assert per_trial <= set(r["kernels"]), r["kernels"]
+    assert all(r["kernels"][k] == "compiled" for k in per_trial), r["kernels"]
+
+
+def test_cli_bench_trial_says_which_kernels_ran_in_numpy(tmp_path: Path, monkeypatch, capsys):
+    from payload.cli import main
+
+    monkeypatch.setenv("PAYLOAD_NATIVE", "0")
+    assert main(["bench", "trial", "--seconds", "1", "--out", str(tmp_path / "b")]) == 0
+    text = capsys.readouterr().out
+    line = next(x for x in text.splitlines() if "compiled kernels" in x)
+    assert "vehicle controller" in line and "thrusts" in line and "station bound" in line
+    assert "in numpy" in line
 
 
 def test_cli_bench_recorder(capsys) -> None:

@@ -120,6 +120,7 @@ class CompiledTargets:
             return PairFeatures(float(out[0]), out[1:4].copy(), out[4:7].copy(), out[7:].copy())
 
 
+@native.reported("pair targets")
 def compiled_targets(
     calibration: Any, reference: Callable[[np.ndarray], PairFeatures]
 ) -> CompiledTargets | None:

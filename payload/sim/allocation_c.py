@@ -1,11 +1,15 @@
-"""The allocation's two per-step searches as compiled C, with numpy's bits.
+"""The vehicle's control step as compiled C, with numpy's bits: the allocation's searches,
+the nozzle controller's step and the thrusts into MuJoCo.
 
 :meth:`Propulsion._extent <payload.sim.propulsion.Propulsion._extent>` (the binding facet
 of the reachable-wrench polytope) and :meth:`Propulsion._least_thrust
 <payload.sim.propulsion.Propulsion._least_thrust>` (the least-total-thrust basic
 solution) run every control step of a trial. In numpy each is about fifteen calls on
 arrays of a few thousand numbers, so their cost is numpy's per-call overhead more than
-arithmetic. Here each is one C call on the same tables:
+arithmetic. Here each is one C call on the same tables (:class:`CompiledSearches`), and
+so are the controller's step around them (:class:`CompiledControl`, also with numpy's
+``ddot`` for its norms and Python's ``min``/``max`` tie rules) and the thrusts'
+``mj_applyFT`` calls (:class:`CompiledThrusts`, MuJoCo's own function):
 
 * the matrix-vector products are numpy's own: the CBLAS ``dgemv`` of the OpenBLAS numpy
   loaded (:func:`payload.native.numpy_dgemv`), called as numpy's ``matmul`` calls it, so
@@ -19,8 +23,9 @@ arithmetic. Here each is one C call on the same tables:
   the flags forbid contraction into fused multiply-adds (:data:`payload.native.CFLAGS`).
 
 Without a C compiler, or without numpy's bundled OpenBLAS, or if a self-check on probe
-wrenches finds a single differing bit, :func:`compiled_searches` returns None and the
-numpy code runs (``PAYLOAD_NATIVE=0`` asks for that too).
+inputs finds a single differing bit, :func:`compiled_searches`, :func:`compiled_control`
+and :func:`compiled_thrusts` return None and the numpy code runs (``PAYLOAD_NATIVE=0``
+asks for that too).
 """
 
 from __future__ import annotations
@@ -487,6 +492,7 @@ def probe_wrenches(prop: Any, n: int = _PROBES, seed: int = 0) -> np.ndarray:
     return np.array(out)
 
 
+@native.reported("allocation searches")
 def compiled_searches(prop: Any) -> CompiledSearches | None:
     """The compiled searches for ``prop``, or None to run numpy's (no compiler, no numpy
     OpenBLAS, ``PAYLOAD_NATIVE=0``, a failed build, or a self-check that differs from the
@@ -680,6 +686,7 @@ def check_control(controller: Any, kernel: CompiledControl, steps: int = 160) ->
         profile.velocity, profile.acceleration, controller.allocation = saved
 
 
+@native.reported("vehicle controller")
 def compiled_control(controller: Any) -> CompiledControl | None:
     """The compiled control step for a nozzle ``controller``, or None to run the numpy
     code (no kernels, no numpy ``ddot``, or a self-check (:func:`check_control`) that
@@ -749,6 +756,7 @@ class CompiledThrusts:
         self._call(self._qfrc if qfrc is None else qfrc.ctypes.data)
 
 
+@native.reported("thrusts")
 def compiled_thrusts(
     model: Any, data: Any, body: int, nozzles: Any, python: Any
 ) -> CompiledThrusts | None:

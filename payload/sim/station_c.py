@@ -108,6 +108,7 @@ class CompiledStationBound:
         return bool(self._near())
 
 
+@native.reported("station bound")
 def compiled_station_bound(
     data: Any,
     geoms: np.ndarray,

@@ -85,6 +85,7 @@ class CompiledOneEuro:
 
 
 @functools.cache
+@native.reported("One Euro filter")
 def compiled_one_euro(reference: Callable[..., Any]) -> CompiledOneEuro | None:
     """The process's compiled filter step, or None to run the numpy step (no compiler,
     ``PAYLOAD_NATIVE=0``, a failed build, or a self-check that differs in a single bit from

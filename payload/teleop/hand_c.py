@@ -187,6 +187,7 @@ def random_hands(n: int, seed: int = 0) -> list[np.ndarray]:
 
 
 @functools.cache
+@native.reported("hand features")
 def compiled_hand_features(reference: Callable[[Any], Any]) -> CompiledHandFeatures | None:
     """The process's compiled hand features, or None to run the numpy code (no
     compiler, no numpy OpenBLAS, ``PAYLOAD_NATIVE=0``, a failed build, or a self-check on

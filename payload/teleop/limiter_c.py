@@ -178,6 +178,7 @@ class CompiledLimiter:
 
 
 @functools.cache
+@native.reported("jerk limiter")
 def compiled_limiter(factory: Callable[..., Any]) -> CompiledLimiter | None:
     """The process's compiled vector step, or None to run the numpy step (no compiler,
     no numpy OpenBLAS, ``PAYLOAD_NATIVE=0``, a failed build, or a self-check that differs

@@ -171,7 +171,8 @@ def run_trial_bench(
         "cpu_realtime_factor", "breakdown" (wall [s] per stage), "breakdown_cpu",
         "mj_step_seconds", "mj_step_cpu_seconds", "mj_step_us" (per 1 ms physics step),
         "physics_only_realtime_factor", "log_bytes", "log_bytes_per_sim_minute", "steps",
-        "seed", "success", "worker_import_s"}``.
+        "seed", "success", "worker_import_s", "kernels" (each compiled kernel of the loop:
+        ``compiled`` or ``numpy``)}``.
     """
     imports = worker_import_seconds()  # first: no trial running beside it
     before = os.sched_getaffinity(0) if pin and hasattr(os, "sched_setaffinity") else None
@@ -233,7 +234,15 @@ def _bench(
         "log_bytes_per_sim_minute": size / (sim_seconds / 60.0),
         "pinned": pinned,
         "load_average": list(os.getloadavg()),
+        "kernels": _kernels(),
     }
+
+
+def _kernels() -> dict[str, str]:
+    """The loop's compiled kernels and whether each ran compiled or in numpy."""
+    from payload.native import kernel_status
+
+    return kernel_status()
 
 
 WORKER_MODULES: tuple[str, ...] = ("payload.trials.runner", "payload.trials.campaign")

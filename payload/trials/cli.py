@@ -406,6 +406,12 @@ def _cmd_bench_trial(args: argparse.Namespace) -> int:
             f"  physics floor {result['physics_floor_s']:.2f} s; overhead ratio "
             f"{result['overhead_ratio']:.2f} (wall time over the physics floor)"
         )
+    kernels = result.get("kernels") or {}
+    in_numpy = sorted(name for name, how in kernels.items() if how != "compiled")
+    print(
+        f"  compiled kernels: {len(kernels) - len(in_numpy)} of {len(kernels)}"
+        + (f"; in numpy: {', '.join(in_numpy)} (the log says why)" if in_numpy else "")
+    )
     return 0
 
 
