@@ -1027,7 +1027,7 @@ def test_cli_bench_trial_says_which_kernels_ran_in_numpy(tmp_path: Path, monkeyp
     text = capsys.readouterr().out
     line = next(x for x in text.splitlines() if "compiled kernels" in x)
     assert "vehicle controller" in line and "thrusts" in line and "station bound" in line
-    assert "in numpy" in line
+    assert "in numpy" in line and "(PAYLOAD_NATIVE=0)" in line
 
 
 def test_cli_bench_recorder(capsys) -> None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -406,11 +407,14 @@ def _cmd_bench_trial(args: argparse.Namespace) -> int:
             f"  physics floor {result['physics_floor_s']:.2f} s; overhead ratio "
             f"{result['overhead_ratio']:.2f} (wall time over the physics floor)"
         )
+    from payload.native import NATIVE_ENV
+
     kernels = result.get("kernels") or {}
     in_numpy = sorted(name for name, how in kernels.items() if how != "compiled")
+    why = f"{NATIVE_ENV}=0" if os.environ.get(NATIVE_ENV) == "0" else "the log says why"
     print(
         f"  compiled kernels: {len(kernels) - len(in_numpy)} of {len(kernels)}"
-        + (f"; in numpy: {', '.join(in_numpy)} (the log says why)" if in_numpy else "")
+        + (f"; in numpy: {', '.join(in_numpy)} ({why})" if in_numpy else "")
     )
     return 0
 
