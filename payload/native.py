@@ -1,7 +1,8 @@
 """Native code: C sources compiled with the system compiler, cached on disk, loaded by ctypes.
 
 The retargeting solvers (:mod:`payload.retarget.compiled`) and the 50 Hz loop's compiled
-kernels (:mod:`payload.sim.allocation_c`, :mod:`payload.sim.station_c`,
+kernels (:mod:`payload.sim.allocation_c`, :mod:`payload.sim.vehicle_c`,
+:mod:`payload.sim.station_c`,
 :mod:`payload.teleop.hand_c`, :mod:`payload.teleop.filter_c`,
 :mod:`payload.teleop.limiter_c`, :mod:`payload.retarget.targets_c`) build their shared
 libraries here. A library is

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from payload import native
-from payload.sim import allocation_c
+from payload.sim import allocation_c, vehicle_c
 from payload.sim.propulsion import Propulsion
 from payload.sim.vehicle import FLIGHT_MODES, MassProperties, VehicleController
 
@@ -245,14 +245,14 @@ def test_a_control_kernel_with_other_bits_is_refused(monkeypatch, tmp_path, capl
     """The control step's self-check: a kernel that adds the force's terms in another
     order (the same sum in exact arithmetic) is refused, and numpy's code runs."""
     monkeypatch.setenv("PAYLOAD_CACHE_DIR", str(tmp_path))
-    reordered = allocation_c.SOURCE.replace(
+    reordered = vehicle_c.CONTROL_SOURCE.replace(
         "c->mass * ((acc[i] + c->gain_lin * (ref[i] - v[i])) + cwv[i])",
         "c->mass * (acc[i] + (c->gain_lin * (ref[i] - v[i]) + cwv[i]))",
     )
-    assert reordered != allocation_c.SOURCE
-    monkeypatch.setattr(allocation_c, "SOURCE", reordered)
+    assert reordered != vehicle_c.CONTROL_SOURCE
+    monkeypatch.setattr(vehicle_c, "CONTROL_SOURCE", reordered)
     ctl = VehicleController(_plants()[1])
-    with caplog.at_level("WARNING", logger="payload.sim.allocation_c"):
+    with caplog.at_level("WARNING", logger="payload.sim.vehicle_c"):
         assert ctl._kernel is None
     assert "compiled step differs" in caplog.text
 

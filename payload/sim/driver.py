@@ -268,10 +268,10 @@ class SimDriver:
     @property
     def _thrust_kernel(self) -> Any:
         """:meth:`_apply_thrusts_numpy` compiled for the current data
-        (:func:`payload.sim.allocation_c.compiled_thrusts`, checked when built), or None."""
+        (:func:`payload.sim.vehicle_c.compiled_thrusts`, checked when built), or None."""
         kernel = self.__dict__.get("_thrusts")
         if kernel is None or kernel[0] is not self.data:
-            from payload.sim.allocation_c import compiled_thrusts
+            from payload.sim.vehicle_c import compiled_thrusts
 
             made = compiled_thrusts(
                 self.model,

@@ -341,11 +341,11 @@ class VehicleController:
 
     @cached_property
     def _kernel(self) -> Any:
-        """The nozzle controller's step compiled (:mod:`payload.sim.allocation_c`: numpy's
+        """The nozzle controller's step compiled (:mod:`payload.sim.vehicle_c`: numpy's
         bits, checked when built), or None to run :meth:`_update_numpy`."""
         if self.nozzles is None:
             return None
-        from payload.sim.allocation_c import compiled_control
+        from payload.sim.vehicle_c import compiled_control
 
         return compiled_control(self)
 
@@ -369,7 +369,7 @@ class VehicleController:
         self, kernel: Any, command: VehicleTwist, linear: np.ndarray, angular: np.ndarray, dt: float
     ) -> Wrench:
         """:meth:`_update_numpy` through the compiled step ``kernel``
-        (:class:`~payload.sim.allocation_c.CompiledControl`)."""
+        (:class:`~payload.sim.vehicle_c.CompiledControl`)."""
         assert self.nozzles is not None
         code, *out = kernel.step(command, linear, angular, dt)
         if code == 0:
