@@ -43,7 +43,7 @@ int payload_targets(void *gemv_p, const double *c, const double *rot, int rot_or
                     const double *h, double *out)
 {
     dgemv_fn gemv = (dgemv_fn)gemv_p;
-    for (int k = 0; k < 13; k++)
+    for (int k = 0; k < N_FEATURES; k++)
         if (!isfinite(h[k])) return 1;
     double x = (h[0] - c[0]) / (c[1] - c[0]);
     double m = (0.0 > x) ? 0.0 : x;         /* Python max(x, 0.0) */
@@ -131,7 +131,9 @@ def compiled_targets(
     gemv = native.numpy_dgemv()
     if gemv is None:
         return None
-    lib = native.load_kernel("targets", SOURCE, "the targets kernel", log)
+    lib = native.load_kernel(
+        "targets", SOURCE, "the targets kernel", log, prelude=f"#define N_FEATURES {N_FEATURES}\n"
+    )
     if lib is None:
         return None
     try:

@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from payload import native
+from payload.schema import CONTROL_DT
 from payload.sim.allocation_c import CompiledSearches, load_with_searches
 from payload.sim.errors import SimError
 
@@ -360,11 +361,11 @@ def check_control(controller: Any, kernel: CompiledControl, steps: int = 160) ->
             lin = profile.velocity[:3] + rng.normal(scale=1e-3, size=3)
             ang = profile.velocity[3:] + rng.normal(scale=1e-3, size=3)
             start = (profile.velocity.copy(), profile.acceleration.copy())
-            wrench = controller._update_numpy(command, lin, ang, 0.02)
+            wrench = controller._update_numpy(command, lin, ang, CONTROL_DT)
             want = (wrench, controller.allocation, profile.velocity, profile.acceleration)
             after = (profile.velocity, profile.acceleration)
             profile.velocity, profile.acceleration = start[0].copy(), start[1].copy()
-            wrench = controller._update_kernel(kernel, command, lin, ang, 0.02)
+            wrench = controller._update_kernel(kernel, command, lin, ang, CONTROL_DT)
             got = (wrench, controller.allocation, profile.velocity, profile.acceleration)
             if not _same_update(want, got):
                 return False

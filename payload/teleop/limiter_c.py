@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from payload import native
+from payload.schema import CONTROL_DT
 
 log = logging.getLogger(__name__)
 
@@ -201,8 +202,8 @@ def compiled_limiter(factory: Callable[..., Any]) -> CompiledLimiter | None:
         for k in range(400):
             if k % 60 == 0:  # hold, move, beyond the cap, back to rest
                 target = rng.normal(scale=(0.0, 0.05, 0.3, 1e-3)[(k // 60) % 4], size=3)
-            step(target, 0.02)
-            theirs._step_vector(target, 0.02)
+            step(target, CONTROL_DT)
+            theirs._step_vector(target, CONTROL_DT)
             if mine.value.tobytes() != theirs.value.tobytes() or (
                 mine.rate.tobytes() != theirs.rate.tobytes()
             ):
