@@ -352,6 +352,48 @@ def test_foxglove_transforms_compose_to_mujoco_body_poses(foxglove_recording) ->
         assert abs(abs(float(quat @ d.body(name).xquat)) - 1.0) < 8 * 2.0**-20
 
 
+def test_the_compiled_frame_poses_are_numpys(foxglove_recording) -> None:
+    """The /tf poses through the kernel (numpy's dgemv, MuJoCo's quaternion functions)
+    and through the numpy loop, at random measured states: the same bits, so the same
+    message bytes."""
+    from payload.trials.foxglove import FoxgloveScene
+
+    _, _, world = foxglove_recording
+    compiled, python = FoxgloveScene(world), FoxgloveScene(world)
+    assert compiled._poses_kernel is not None
+    python.__dict__["_poses_kernel"] = None  # the numpy loop
+    rng = np.random.default_rng(21)
+    lo, hi = world.model.jnt_range[world.model.dof_jntid[world.dof]].T
+    for k in range(300):
+        q = rng.uniform(lo, hi)
+        st = random_step(rng, k * DT, q_meas=q, ctb_quat=rng.normal(size=4) / 2.0)
+        compiled.kinematics(st)
+        poses = compiled._poses_kernel()
+        assert poses.tobytes() == compiled._poses_numpy().tobytes()
+        ns = 1_700_000_000_000_000_000 + k * 20_000_000
+        assert (
+            compiled.transforms(st, ns).SerializeToString()
+            == python.transforms(st, ns).SerializeToString()
+        )
+
+
+def test_frame_poses_with_other_bits_are_refused(foxglove_recording, monkeypatch, tmp_path):
+    """A kernel that forgets the transpose (the parent's rotation, not its inverse) fails
+    its self-check and the numpy loop runs; so does any kernel with PAYLOAD_NATIVE=0."""
+    from payload.trials import foxglove_c
+    from payload.trials.foxglove import FoxgloveScene
+
+    _, _, world = foxglove_recording
+    monkeypatch.setenv("PAYLOAD_CACHE_DIR", str(tmp_path))
+    other = foxglove_c.SOURCE.replace("mv(COL_MAJOR,", "mv(101,")
+    assert other != foxglove_c.SOURCE
+    monkeypatch.setattr(foxglove_c, "SOURCE", other)
+    assert FoxgloveScene(world)._poses_kernel is None
+    monkeypatch.undo()
+    monkeypatch.setenv("PAYLOAD_NATIVE", "0")
+    assert FoxgloveScene(world)._poses_kernel is None
+
+
 def _write_v1(path: Path, steps: list) -> None:
     """A schema-1 recording as the previous recorder wrote it (JSON steps)."""
     with open(path, "wb") as f:

@@ -422,9 +422,29 @@ def test_step_record_validation() -> None:
         make_step(0.0, contact=1)
     with pytest.raises(RecordingError, match=r"left_joints.*non-finite"):
         make_step(0.0, left_joints=np.full((25, 3), np.inf))
+    joints = np.full((25, 3), np.nan)  # untracked, but for one infinity
+    joints[7, 2] = -np.inf
+    with pytest.raises(RecordingError, match=r"right_joints.*non-finite.*\[7 2\]"):
+        make_step(0.0, right_joints=joints)
+    with pytest.raises(RecordingError, match=r"t: not finite"):
+        make_step(np.inf)
     s = make_step(0.0)
     with pytest.raises(ValueError):
         s.q_cmd[0] = 1.0  # read-only
+    # every array its own values: read-only, unchanged when the caller's arrays change
+    given = {"q_cmd": np.arange(17.0), "left_joints": np.full((25, 3), np.nan)}
+    s = make_step(0.0, **given)
+    for name, value in given.items():
+        kept = getattr(s, name)
+        assert not kept.flags.writeable and kept.shape == value.shape
+        before = kept.copy()
+        value[0] = 5.0
+        assert np.array_equal(kept, before, equal_nan=True)
+    # finite values whose sum overflows are finite values
+    big = np.zeros(17)
+    big[:2] = 1e308
+    with np.errstate(over="ignore"):  # the check's sum overflows, as it did before
+        assert make_step(0.0, q_cmd=big).q_cmd[1] == 1e308
 
 
 def test_recorder_errors(tmp_path: Path) -> None:
@@ -1014,7 +1034,7 @@ def test_cli_bench_trial_accounts_for_its_time(tmp_path: Path, capsys) -> None:
     assert r["overhead_ratio_cpu"] == pytest.approx(r["cpu_seconds"] / r["mj_step_cpu_seconds"])
     # the kernels built for this trial ran compiled (a C compiler and numpy's OpenBLAS
     # here); 3 s end before the calibration, so the pipeline's are not built
-    per_trial = {"vehicle controller", "thrusts", "station bound"}
+    per_trial = {"vehicle controller", "thrusts", "station bound", "frame poses"}
     assert per_trial <= set(r["kernels"]), r["kernels"]
     assert all(r["kernels"][k] == "compiled" for k in per_trial), r["kernels"]
 

@@ -30,6 +30,7 @@ model on the recorded measured joints, so they are exactly what the step records
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 from typing import Any
 
@@ -117,6 +118,11 @@ class FoxgloveScene:
         self.bodies = [b for b in range(1, m.nbody) if m.body_rootid[b] == world.astrobee]
         self.names = {b: m.body(b).name for b in range(m.nbody)}
         self.names[0] = "world"
+        # the /tf links: Astrobee's tree, then the CTB, each with its parent
+        self._links = [*self.bodies, *([world.ctb] if world.ctb >= 0 else [])]
+        self._parents = [int(m.body_parentid[b]) for b in self._links]
+        self._link_names = [self.names[b] for b in self._links]
+        self._parent_names = [self.names[p] for p in self._parents]
         self.every = max(1, round(50.0 / RATE_HZ))
         self.channels: dict[str, int] = {}
         self._k = 0
@@ -188,29 +194,50 @@ class FoxgloveScene:
 
     def transforms(self, step: Any, ns: int) -> FrameTransforms:
         """``world -> astrobee -> payload links`` and ``world -> ctb`` at a step."""
-        d = self.kinematics(step)
-        m = self.model
+        self.kinematics(step)
+        kernel = self._poses_kernel
+        poses = kernel() if kernel is not None else self._poses_numpy()
         ts = _timestamp(ns)
         out = FrameTransforms()
-        bodies = [*self.bodies, *([self.world.ctb] if self.world.ctb >= 0 else [])]
-        poses = np.zeros((len(bodies), 7))  # parent-frame position and quaternion (w x y z)
-        inv = np.zeros(4)
-        xmat, xpos, xquat = d.xmat, d.xpos, d.xquat  # each access makes a new view
-        parents = m.body_parentid.tolist()
-        for i, b in enumerate(bodies):
-            p = parents[b]
-            poses[i, :3] = xmat[p].reshape(3, 3).T @ (xpos[b] - xpos[p])
-            mujoco.mju_negQuat(inv, xquat[p])
-            mujoco.mju_mulQuat(poses[i, 3:], inv, xquat[b])
-        for b, (x, y, z, qw, qx, qy, qz) in zip(bodies, _view(poses).tolist()):
+        for parent, child, (x, y, z, qw, qx, qy, qz) in zip(
+            self._parent_names, self._link_names, poses.tolist()
+        ):
             t = out.transforms.add()  # filled in place: no temporary messages to copy
             t.timestamp.CopyFrom(ts)
-            t.parent_frame_id = self.names[parents[b]]
-            t.child_frame_id = self.names[b]
+            t.parent_frame_id = parent
+            t.child_frame_id = child
             v, q = t.translation, t.rotation
             v.x, v.y, v.z = x, y, z
             q.x, q.y, q.z, q.w = qx, qy, qz, qw
         return out
+
+    def _poses_numpy(self) -> np.ndarray:
+        """Each link's pose in its parent's frame now, rounded for viewing: (N, 7),
+        position then quaternion (w x y z)."""
+        d = self.data
+        poses = np.zeros((len(self._links), 7))
+        inv = np.zeros(4)
+        xmat, xpos, xquat = d.xmat, d.xpos, d.xquat  # each access makes a new view
+        for i, (b, p) in enumerate(zip(self._links, self._parents)):
+            poses[i, :3] = xmat[p].reshape(3, 3).T @ (xpos[b] - xpos[p])
+            mujoco.mju_negQuat(inv, xquat[p])
+            mujoco.mju_mulQuat(poses[i, 3:], inv, xquat[b])
+        return _view(poses)
+
+    @functools.cached_property
+    def _poses_kernel(self) -> Any:
+        """:meth:`_poses_numpy` compiled (:mod:`payload.trials.foxglove_c`, checked when
+        built), or None."""
+        from payload.trials.foxglove_c import compiled_frame_poses
+
+        return compiled_frame_poses(
+            self.model,
+            self.data,
+            np.array(self._links, dtype=np.int64),
+            np.array(self._parents, dtype=np.int64),
+            VIEW_RESOLUTION,
+            self._poses_numpy,
+        )
 
     def joint_states(self, values: np.ndarray, ns: int) -> JointStates:
         """Named joint positions (17 manipulation coordinates and the stage)."""

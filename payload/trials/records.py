@@ -71,6 +71,7 @@ field              shape      meaning
 from __future__ import annotations
 
 import functools
+import itertools
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -217,6 +218,46 @@ def _finite_copy(name: str, arr: np.ndarray, kind: Any) -> np.ndarray:
 _FIELDS: tuple[tuple[str, tuple[int, ...], Any], ...] = tuple(
     (name, shape, kind) for name, (shape, kind) in FIELD_SPECS.items()
 )
+# The array fields, NaN-allowed ones first, each with its place in one shared buffer: the
+# common case (float64 arrays of the right shapes, as the trial loop hands them) is copied
+# into that buffer in one go and checked with one sum per kind (see StepRecord.__post_init__)
+_ARRAY_FIELDS: tuple[tuple[str, tuple[int, ...]], ...] = tuple(
+    sorted(
+        (
+            (name, shape)
+            for name, shape, kind in _FIELDS
+            if shape and kind in ("float", "float_nan")
+        ),
+        key=lambda item: FIELD_SPECS[item[0]][1] != "float_nan",
+    )
+)
+_ARRAY_SLICES: tuple[tuple[str, int, int, tuple[int, ...]], ...] = tuple(
+    (name, start, start + math.prod(shape), shape)
+    for (name, shape), start in zip(
+        _ARRAY_FIELDS,
+        itertools.accumulate((math.prod(shape) for _, shape in _ARRAY_FIELDS), initial=0),
+    )
+)
+_NAN_END = sum(
+    math.prod(shape) for name, shape in _ARRAY_FIELDS if FIELD_SPECS[name][1] == "float_nan"
+)
+_OTHER_FIELDS: tuple[tuple[str, tuple[int, ...], Any, type], ...] = tuple(
+    (name, shape, kind, str if isinstance(kind, tuple) else bool if kind == "bool" else float)
+    for name, shape, kind in _FIELDS
+    if name not in dict(_ARRAY_FIELDS)
+)
+"""The scalar fields with the type they keep (a string of the allowed ones, a bool, a float)."""
+
+
+_F64 = np.dtype(np.float64)
+
+
+def _common_arrays(arrays: list[Any]) -> bool:
+    """Whether every array field is a float64 numpy array of its shape (the loop's case)."""
+    for a, (_, shape) in zip(arrays, _ARRAY_FIELDS):
+        if type(a) is not np.ndarray or a.dtype != _F64 or a.shape != shape:
+            return False
+    return True
 
 
 @dataclass(frozen=True)
@@ -274,10 +315,34 @@ class StepRecord:
 
     def __post_init__(self) -> None:
         fields = self.__dict__  # a frozen dataclass's fields, set as object.__setattr__ does
+        arrays = [fields[name] for name, _ in _ARRAY_FIELDS]
+        if _common_arrays(arrays):
+            # one copy of every array field into one read-only buffer, each field a view
+            # of its part; a sum per kind that is not finite sends the fields through the
+            # per-field checks below, which say what is wrong (or pass an overflowing sum)
+            buf = np.concatenate([a.ravel() for a in arrays])
+            untracked = buf[:_NAN_END]  # NaN allowed (not tracked), infinities not
+            if math.isfinite(buf[_NAN_END:].sum()) and (
+                math.isfinite(untracked.sum()) or not np.isinf(untracked).any()
+            ):
+                buf.setflags(write=False)
+                for name, start, stop, shape in _ARRAY_SLICES:
+                    fields[name] = buf[start:stop].reshape(shape)
+                for name, shape, kind, kept in _OTHER_FIELDS:
+                    value = fields[name]
+                    if type(value) is not kept or not (  # the loop's own types pass as they are
+                        value in kind if kept is str else kept is bool or math.isfinite(value)
+                    ):
+                        fields[name] = _coerce(name, value, shape, kind)
+                self._check_quaternions()
+                return
         for name, shape, kind in _FIELDS:
             fields[name] = _coerce(name, fields[name], shape, kind)
+        self._check_quaternions()
+
+    def _check_quaternions(self) -> None:
         for name in ("astrobee_quat", "ctb_quat"):
-            q = getattr(self, name)
+            q = self.__dict__[name]
             if math.sqrt(q.dot(q)) < 1e-9:  # np.linalg.norm's own formula
                 raise RecordingError(f"StepRecord.{name}: zero quaternion")
 
