@@ -179,3 +179,94 @@ def test_a_limiter_kernel_with_other_bits_is_refused(fresh_kernel, monkeypatch, 
         assert "differs" in caplog.text
     finally:
         limiter_c.compiled_limiter.cache_clear()
+
+
+# -- the tracking supervisor's hand check -----------------------------------------------------
+def _supervisors():
+    from payload.teleop.safety import SafetyConfig, TrackingSupervisor
+
+    neutral = {"left": np.array([0.3, 0.2, 1.0]), "right": np.array([0.3, -0.2, 1.0])}
+    compiled = TrackingSupervisor(SafetyConfig(), {s: v.copy() for s, v in neutral.items()})
+    python = TrackingSupervisor(SafetyConfig(), {s: v.copy() for s, v in neutral.items()})
+    for side in ("left", "right"):  # the numpy check for this one, for good
+        python._kernels[side] = ((python.config, python.neutral[side]), None)
+    return compiled, python, neutral
+
+
+def test_the_compiled_hand_check_judges_as_numpy():
+    """3,000 frames of two hands wandering about their neutral poses, with dropouts,
+    non-finite joints, stretched hands, far wrists and jumps: the supervisor with the
+    compiled check and with numpy's gives the same hands, weights and events."""
+    from payload.teleop.hands import WRIST, HandFrame
+
+    compiled, python, neutral = _supervisors()
+    assert compiled._check_kernel("left") is not None
+    rng = np.random.default_rng(31)
+    pose = {s: neutral[s] + rng.normal(scale=0.03, size=(25, 3)) for s in neutral}
+    kinds = set()
+    for k in range(3000):
+        hands = {}
+        for side in ("left", "right"):
+            pose[side] = pose[side] + rng.normal(scale=0.004, size=3)  # the hand drifts
+            joints = pose[side] + rng.normal(scale=1e-3, size=(25, 3))
+            glitch = rng.integers(40)
+            if glitch == 0:
+                joints[rng.integers(25), rng.integers(3)] = np.nan
+            elif glitch == 1:
+                joints[rng.integers(25)] = joints[WRIST] + rng.normal(size=3)  # stretched
+            elif glitch == 2:
+                joints = joints + rng.normal(scale=0.5, size=3)  # a jump
+            elif glitch == 3:
+                joints = joints + np.array([1.5, 0.0, 0.0])  # far from neutral
+            hands[side] = Hand(joints, tracked=bool(glitch != 4))
+        frame = HandFrame(0.02 * k - 0.05 * (k % 700 == 5), hands["left"], hands["right"])
+        a, b = compiled.step(frame), python.step(frame)
+        assert (a.blend_left, a.blend_right) == (b.blend_left, b.blend_right)
+        for x, y in ((a.left, b.left), (a.right, b.right)):
+            assert (x is None) == (y is None)
+            assert x is None or np.array_equal(x.joints, y.joints, equal_nan=True)
+        assert [(e.kind, e.detail) for e in a.events] == [(e.kind, e.detail) for e in b.events]
+        kinds.update(e.detail.split(" ")[0] for e in a.events)
+    assert {"non-finite", "joint", "wrist", "not"} <= kinds, kinds
+
+
+def test_the_compiled_hand_check_on_the_limits():
+    """Joints a hair inside, on and outside the reach and the workspace limits: the
+    kernel's verdicts are numpy's (the same arithmetic, not just the same idea)."""
+    compiled, python, neutral = _supervisors()
+    kernel = compiled._check_kernel("left")
+    c = compiled.config
+    rng = np.random.default_rng(32)
+    agreed = {True: 0, False: 0}
+    for _ in range(300):
+        wrist = neutral["left"] + rng.normal(scale=0.05, size=3)
+        u = rng.normal(size=3)
+        joints = wrist + rng.normal(scale=0.02, size=(25, 3))
+        joints[0] = wrist
+        for limit, where in ((c.max_extent, "joint"), (c.workspace_radius, "wrist")):
+            for r in (np.nextafter(limit, 0.0), limit, np.nextafter(limit, 1.0)):
+                hand = joints.copy()
+                if where == "joint":
+                    hand[7] = wrist + u / np.linalg.norm(u) * r
+                else:
+                    hand = hand - wrist + neutral["left"] + u / np.linalg.norm(u) * r
+                verdict = kernel(hand, None, 0.0) == 0
+                assert verdict == (not python._judge("left", hand, None, 0.0)), (where, r)
+                agreed[verdict] += 1
+    assert agreed[True] and agreed[False]
+
+
+def test_a_hand_check_with_another_workspace_is_refused(fresh_kernel, monkeypatch, caplog):
+    """A kernel whose workspace is twice the radius judges displaced hands otherwise:
+    refused, and the numpy check runs."""
+    from payload.teleop import safety_c
+
+    other = safety_c.SOURCE.replace("> p[1]) return 3;", "> 2 * p[1]) return 3;")
+    assert other != safety_c.SOURCE
+    monkeypatch.setattr(safety_c, "SOURCE", other)
+    compiled, _, _ = _supervisors()
+    with caplog.at_level("WARNING", logger="payload.teleop.safety_c"):
+        assert compiled._check_kernel("left") is None
+    assert "differs" in caplog.text
+    monkeypatch.setenv("PAYLOAD_NATIVE", "0")
+    assert _supervisors()[0]._check_kernel("right") is None

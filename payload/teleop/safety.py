@@ -11,10 +11,11 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
-from payload.teleop.hands import Hand, HandFrame
+from payload.teleop.hands import WRIST, XR_JOINTS, Hand, HandFrame
 from payload.vecmath import norm
 
 log = logging.getLogger(__name__)
@@ -99,27 +100,80 @@ class TrackingSupervisor:
         self.status = {"left": HandStatus(), "right": HandStatus()}
         self.last_stamp = -np.inf
         self.events: list[SafetyEvent] = []
+        self._kernels: dict[str, tuple[tuple[Any, Any], Any]] = {}
 
     def _valid(self, side: str, hand: Hand, t: float) -> tuple[bool, str]:
-        c = self.config
+        """Whether ``hand`` passes the checks at ``t``, and if not, why (the numbers
+        compiled when they can be: :mod:`payload.teleop.safety_c`)."""
         if not hand.tracked:
             return False, "not tracked"
-        if not np.isfinite(hand.joints).all():
-            return False, "non-finite joint position"
-        d = hand.joints - hand.wrist  # np.linalg.norm(d, axis=1)'s formula, then the max
+        st = self.status[side]
+        since = None
+        if st.last_valid is not None and t > st.last_valid_stamp:
+            since = t - st.last_valid_stamp
+        last = None if since is None else st.last_valid.wrist
+        allowed = 0.0 if since is None else self.config.max_wrist_speed * since
+        joints = hand.joints
+        kernel = self._check_kernel(side)
+        if (
+            kernel is not None
+            and type(joints) is np.ndarray
+            and joints.dtype == np.float64
+            and joints.shape == kernel.shape
+            and kernel(joints, last, allowed) == 0
+        ):
+            return True, ""
+        why = self._judge(side, joints, last, allowed, since)
+        return not why, why
+
+    def _judge(
+        self,
+        side: str,
+        joints: np.ndarray,
+        last: np.ndarray | None,
+        allowed: float,
+        since: float | None = None,
+    ) -> str:
+        """Why a tracked hand's joints fail the checks, or "" (numpy): ``last`` is the
+        last valid wrist (None: no jump check), ``allowed`` how far it may have moved in
+        the ``since`` seconds since."""
+        c = self.config
+        if not np.isfinite(joints).all():
+            return "non-finite joint position"
+        wrist = joints[WRIST]
+        d = joints - wrist  # np.linalg.norm(d, axis=1)'s formula, then the max
         extent = float(np.sqrt(np.add.reduce(d * d, axis=1)).max())
         if extent > c.max_extent:
-            return False, f"joint {extent:.2f} m from the wrist"
+            return f"joint {extent:.2f} m from the wrist"
         if side in self.neutral:
-            dist = float(norm(hand.wrist - self.neutral[side]))
+            dist = float(norm(wrist - self.neutral[side]))
             if dist > c.workspace_radius:
-                return False, f"wrist {dist:.2f} m from neutral"
-        st = self.status[side]
-        if st.last_valid is not None and t > st.last_valid_stamp:
-            jump = float(norm(hand.wrist - st.last_valid.wrist))
-            if jump > c.max_wrist_speed * (t - st.last_valid_stamp):
-                return False, f"wrist jumped {jump:.2f} m in {t - st.last_valid_stamp:.3f} s"
-        return True, ""
+                return f"wrist {dist:.2f} m from neutral"
+        if last is not None:
+            jump = float(norm(wrist - last))
+            if jump > allowed:
+                return f"wrist jumped {jump:.2f} m in {since:.3f} s"
+        return ""
+
+    def _check_kernel(self, side: str) -> Any:
+        """The compiled checks of one side for the current settings and neutral pose, or
+        None (numpy)."""
+        key = (self.config, self.neutral.get(side))
+        made = self._kernels.get(side)
+        if made is None or made[0][0] is not key[0] or made[0][1] is not key[1]:
+            from payload.teleop.safety_c import compiled_hand_check
+
+            c = self.config
+            kernel = compiled_hand_check(
+                len(XR_JOINTS),
+                WRIST,
+                c.max_extent,
+                key[1],
+                c.workspace_radius,
+                lambda joints, last, allowed: not self._judge(side, joints, last, allowed, 0.0),
+            )
+            made = self._kernels[side] = (key, kernel)
+        return made[1]
 
     def _event(self, stamp: float, side: str, kind: str, detail: str) -> SafetyEvent:
         ev = SafetyEvent(stamp, side, kind, detail)
