@@ -332,3 +332,63 @@ def test_a_station_bound_with_other_answers_is_refused(bare_driver, monkeypatch,
         monitor.read(bare_driver.data)
         assert monitor._bound_kernel(bare_driver.data) is None
     assert "differs" in caplog.text
+
+
+def test_the_compiled_clearance_is_numpys(bare_driver):
+    """Near the walls, the clearance through the kernel (the moving boxes as numpy's einsum
+    sums them, MuJoCo's own mj_geomDistance) and through numpy: the same bits, boxes
+    included, at poses where it measures something."""
+    import mujoco
+
+    from payload.sim.station import CLEARANCE_CAP, StationMonitor, _world_aabb
+
+    d = bare_driver
+    monitor = StationMonitor(d.world)
+    monitor.read(d.data)
+    kernel = monitor._bound_kernel(d.data)
+    assert kernel is not None and kernel.clearance() is not None
+    rng = np.random.default_rng(13)
+    saved = d.data.qpos.copy()
+    zones = [z for z in d.world.layout.zones() if z.module.name != "VESTIBULE"]
+    a = d.world.astrobee_qpos
+    measured = 0
+    try:
+        for k in range(300):
+            # anywhere in a module, turned any way: near a wall now and then
+            zone = zones[k % len(zones)]
+            d.data.qpos[a : a + 3] = rng.uniform(zone.lo, zone.hi)
+            q = rng.normal(size=4)
+            d.data.qpos[a + 3 : a + 7] = q / np.linalg.norm(q)
+            mujoco.mj_forward(d.model, d.data)
+            if not kernel.near():
+                continue
+            mine, theirs = kernel.clearance(), monitor._clearance_numpy(d.data)
+            assert np.float64(mine).tobytes() == np.float64(theirs).tobytes()
+            lo, hi = _world_aabb(d.model, d.data, monitor.moving)
+            assert lo.tobytes() == kernel.boxes[0].tobytes()
+            assert hi.tobytes() == kernel.boxes[1].tobytes()
+            assert monitor.read(d.data).clearance == theirs
+            measured += mine < CLEARANCE_CAP
+    finally:
+        d.data.qpos[:] = saved
+    assert measured > 10
+
+
+def test_a_clearance_with_other_boxes_is_refused(bare_driver, monkeypatch, tmp_path, caplog):
+    """The boxes' half-sizes summed left to right (the same in exact arithmetic, not
+    numpy's einsum order here) are refused, and numpy reads the clearance."""
+    from payload.sim import station_c
+    from payload.sim.station import StationMonitor
+
+    monkeypatch.setenv("PAYLOAD_CACHE_DIR", str(tmp_path))
+    other = station_c.SOURCE.replace(
+        "(fabs(ri[0]) * h[0] + fabs(ri[2]) * h[2]) + fabs(ri[1]) * h[1]",
+        "(fabs(ri[0]) * h[0] + fabs(ri[1]) * h[1]) + fabs(ri[2]) * h[2]",
+    )
+    assert other != station_c.SOURCE
+    monkeypatch.setattr(station_c, "SOURCE", other)
+    monitor = StationMonitor(bare_driver.world)
+    with caplog.at_level("WARNING", logger="payload.sim.station_c"):
+        monitor.read(bare_driver.data)
+        assert monitor._bound_kernel(bare_driver.data) is None
+    assert "clearance differs" in caplog.text

@@ -96,7 +96,6 @@ class StationMonitor:
             contact = bool((pair & (con.dist <= 0.0)).any())
         if self._station_box is None:  # static geoms: their boxes never change
             self._station_box = _world_aabb(m, data, self.station)
-        s_lo, s_hi = self._station_box
         # first a box around every moving geom's box (its origin plus its reach): when
         # no station box comes within the cap of their union, neither does any of the
         # boxes inside (the test below, with the same monotone subtractions), and the
@@ -104,6 +103,16 @@ class StationMonitor:
         kernel = self._bound_kernel(data)
         if not (kernel.near() if kernel is not None else self._near_numpy(data)):
             return StationReading(contact, CLEARANCE_CAP)
+        best = kernel.clearance() if kernel is not None else None
+        if best is None:
+            best = self._clearance_numpy(data)
+        return StationReading(contact or best <= 0.0, float(best))
+
+    def _clearance_numpy(self, data: mujoco.MjData) -> float:
+        """The least distance between the moving geoms and the station, at most the cap
+        (MuJoCo's distance for every pair whose world boxes come within the cap)."""
+        m = self.model
+        s_lo, s_hi = self._station_box
         lo, hi = _world_aabb(m, data, self.moving)
         # the station boxes within the cap of the moving geoms' union box first (IEEE
         # subtraction is monotone, so every pair within the cap passes this), then the
@@ -127,7 +136,7 @@ class StationMonitor:
                     self._fromto,
                 )
                 best = min(best, d)
-        return StationReading(contact or best <= 0.0, float(best))
+        return best
 
     def _near_numpy(self, data: mujoco.MjData) -> bool:
         """Whether a station box comes within the cap of the moving geoms' bound."""
@@ -157,6 +166,10 @@ class StationMonitor:
                 s_hi,
                 CLEARANCE_CAP,
                 lambda: self._near_numpy(data),
+                model=self.model,
+                station=self.station,
+                clearance=lambda: self._clearance_numpy(data),
+                boxes=lambda: _world_aabb(self.model, data, self.moving),
             )
             self._kernel = (data, made)
         return self._kernel[1]

@@ -26,6 +26,7 @@ from payload import native
 log = logging.getLogger(__name__)
 
 SOURCE = r"""
+#include <math.h>
 #include <stdint.h>
 
 /* numpy's maximum/minimum reductions: a NaN wins and stays */
@@ -56,21 +57,76 @@ int payload_station_near(const double *xpos, const int64_t *geoms, const double 
     }
     return 0;
 }
+
+typedef double (*geomdist_fn)(const void *, void *, int, int, double, double *);
+
+/* StationMonitor._clearance_numpy: the moving geoms' world boxes (centre xpos + R c and
+   half-size |R| h, each row's three products summed as numpy's einsum sums them here:
+   the first and third, then the second), the station boxes within cap of their union,
+   then MuJoCo's distance for every pair whose boxes come within cap (moving geom by
+   moving geom, station box by station box), the least of them and cap. */
+double payload_station_clearance(void *geomdist, const void *m, void *d, const double *xpos,
+    const double *xmat, const double *aabb, const int64_t *geoms, int64_t ng,
+    const int64_t *station, const double *s_lo, const double *s_hi, int64_t ns, double cap,
+    double *lo, double *hi, int64_t *near, double *fromto)
+{
+    geomdist_fn dist = (geomdist_fn)geomdist;
+    double ulo[3], uhi[3];
+    for (int64_t g = 0; g < ng; g++) {
+        const double *r = xmat + 9 * geoms[g], *c = aabb + 6 * geoms[g], *h = c + 3;
+        for (int i = 0; i < 3; i++) {
+            const double *ri = r + 3 * i;
+            double centre = xpos[3 * geoms[g] + i]
+                          + ((ri[0] * c[0] + ri[2] * c[2]) + ri[1] * c[1]);
+            double half = (fabs(ri[0]) * h[0] + fabs(ri[2]) * h[2]) + fabs(ri[1]) * h[1];
+            lo[3 * g + i] = centre - half;
+            hi[3 * g + i] = centre + half;
+            ulo[i] = g ? nmin(ulo[i], lo[3 * g + i]) : lo[3 * g + i];
+            uhi[i] = g ? nmax(uhi[i], hi[3 * g + i]) : hi[3 * g + i];
+        }
+    }
+    int64_t nn = 0;
+    for (int64_t s = 0; s < ns; s++) {
+        int all = 1;
+        for (int i = 0; i < 3; i++)
+            all &= (s_lo[3 * s + i] - uhi[i] < cap) & (ulo[i] - s_hi[3 * s + i] < cap);
+        if (all) near[nn++] = s;
+    }
+    double best = cap;
+    for (int64_t g = 0; g < ng; g++)
+        for (int64_t k = 0; k < nn; k++) {
+            const int64_t s = near[k];
+            double gap = 0.0;
+            for (int i = 0; i < 3; i++) {
+                double a = s_lo[3 * s + i] - hi[3 * g + i], b = lo[3 * g + i] - s_hi[3 * s + i];
+                double e = nmax(a, b);  /* np.maximum, then the max over the axes */
+                gap = i ? nmax(gap, e) : e;
+            }
+            if (gap < cap) {
+                double got = dist(m, d, (int)geoms[g], (int)station[s], cap, fromto);
+                if (got < best) best = got;  /* Python's min(best, got) */
+            }
+        }
+    return best;
+}
 """
 """The kernel's C (:func:`payload.native.build_library` compiles it)."""
 
 
 class CompiledStationBound:
-    """The quick bound for one MuJoCo data's geom positions.
+    """The quick bound, and the clearance after it, for one MuJoCo data's geom poses.
 
     Args:
         lib: The kernel's library.
-        data: The MuJoCo data (its ``geom_xpos`` is read in place).
+        data: The MuJoCo data (its ``geom_xpos`` and ``geom_xmat`` are read in place).
         geoms: The moving geoms (G,).
         reach: Their reach (G,) [m].
         s_lo: The station boxes' lower corners (S, 3) [m].
         s_hi: Their upper corners (S, 3) [m].
         cap: The clearance cap [m].
+        model: The MuJoCo model (for :meth:`clearance`; None: no clearance).
+        station: The station geoms of the boxes (S,).
+        geomdist: The address of MuJoCo's ``mj_geomDistance``.
     """
 
     def __init__(
@@ -82,6 +138,9 @@ class CompiledStationBound:
         s_lo: np.ndarray,
         s_hi: np.ndarray,
         cap: float,
+        model: Any = None,
+        station: np.ndarray | None = None,
+        geomdist: int | None = None,
     ) -> None:
         self.data = data
         self._keep = [
@@ -95,17 +154,61 @@ class CompiledStationBound:
         fn.restype = ctypes.c_int
         fn.argtypes = [ptr, ptr, ptr, i64, ptr, ptr, i64, ctypes.c_double]
         g, r, lo, hi = self._keep
+        for name in ("geom_xpos", "geom_xmat"):
+            a = getattr(data, name)
+            if not (a.dtype == np.float64 and a.flags.c_contiguous):
+                raise ValueError(f"{name} is not a C-contiguous float64 array")
         xpos = data.geom_xpos
-        if not (xpos.dtype == np.float64 and xpos.flags.c_contiguous):
-            raise ValueError("geom_xpos is not a C-contiguous float64 array")
         self._near = functools.partial(
             fn, xpos.ctypes.data, g.ctypes.data, r.ctypes.data, len(g), lo.ctypes.data,
             hi.ctypes.data, len(lo), cap,
+        )  # fmt: skip
+        self._clearance = None
+        if model is None or station is None or geomdist is None:
+            return
+        aabb = model.geom_aabb
+        if not (aabb.dtype == np.float64 and aabb.flags.c_contiguous):
+            raise ValueError("geom_aabb is not a C-contiguous float64 array")
+        ids = np.ascontiguousarray(station, dtype=np.int64)
+        scratch = [np.zeros((len(g), 3)), np.zeros((len(g), 3)), np.zeros(len(lo), np.int64)]
+        fromto = np.zeros(6)
+        self.boxes = (scratch[0], scratch[1])
+        """The moving geoms' world boxes (lower and upper corners, (G, 3) each) as the last
+        :meth:`clearance` computed them."""
+        self._keep += [ids, *scratch, fromto, model]
+        clear = lib.payload_station_clearance
+        clear.restype = ctypes.c_double
+        clear.argtypes = [ptr] * 7 + [i64, ptr, ptr, ptr, i64, ctypes.c_double] + [ptr] * 4
+        self._clearance = functools.partial(
+            clear, geomdist, model._address, data._address, xpos.ctypes.data,
+            data.geom_xmat.ctypes.data, aabb.ctypes.data, g.ctypes.data, len(g),
+            ids.ctypes.data, lo.ctypes.data, hi.ctypes.data, len(lo), cap,
+            *(a.ctypes.data for a in scratch), fromto.ctypes.data,
         )  # fmt: skip
 
     def near(self) -> bool:
         """Whether some station box comes within the cap of the moving geoms' bound."""
         return bool(self._near())
+
+    def clearance(self) -> float | None:
+        """The least distance of the moving geoms from the station, at most the cap
+        (:meth:`payload.sim.station.StationMonitor._clearance_numpy`'s), or None
+        when the kernel was made without it."""
+        return None if self._clearance is None else self._clearance()
+
+
+def _rotations(rng: np.random.Generator, n: int) -> np.ndarray:
+    """``n`` random rotation matrices, row-major (n, 9)."""
+    q = rng.normal(size=(n, 4))
+    w, x, y, z = (q / np.linalg.norm(q, axis=1, keepdims=True)).T
+    return np.stack(
+        [
+            1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w),
+            2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w),
+            2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y),
+        ],
+        axis=1,
+    )  # fmt: skip
 
 
 @native.reported("station bound")
@@ -117,36 +220,68 @@ def compiled_station_bound(
     s_hi: np.ndarray,
     cap: float,
     reference: Callable[[], bool],
+    *,
+    model: Any = None,
+    station: np.ndarray | None = None,
+    clearance: Callable[[], float] | None = None,
+    boxes: Callable[[], tuple[np.ndarray, np.ndarray]] | None = None,
 ) -> CompiledStationBound | None:
-    """The compiled bound for ``data``, or None to run ``reference`` (the numpy test of
-    the data's current positions): no compiler, ``PAYLOAD_NATIVE=0``, a failed build, or a
-    self-check that answers otherwise than ``reference`` on random positions (written into
-    the data's ``geom_xpos`` and restored)."""
+    """The compiled bound (and, given ``model``, ``station``, ``clearance`` and
+    ``boxes``, the clearance) for ``data``, or None to run ``reference`` (the numpy test
+    of the data's current positions) and ``clearance`` (the numpy clearance): no
+    compiler, ``PAYLOAD_NATIVE=0``, a failed build, or a self-check that answers otherwise
+    than ``reference`` or ``clearance``, or makes other moving boxes than ``boxes``, in a
+    single bit, on random poses (written into the data's ``geom_xpos`` and ``geom_xmat``
+    and restored)."""
     if len(geoms) == 0 or len(s_lo) == 0:  # nothing to bound: the numpy test answers
         return None
     lib = native.load_kernel("station", SOURCE, "the station bound kernel", log)
     if lib is None:
         return None
+    if boxes is None:
+        clearance = None  # the clearance's boxes are checked, or it is not made
+    geomdist = native.mujoco_function("mj_geomDistance") if clearance is not None else None
     try:
-        kernel = CompiledStationBound(lib, data, geoms, reach, s_lo, s_hi, cap)
+        kernel = CompiledStationBound(
+            lib, data, geoms, reach, s_lo, s_hi, cap, model, station, geomdist
+        )
     except ValueError as exc:
         log.warning("station bound: numpy (%s)", exc)
         return None
-    saved = data.geom_xpos.copy()
+    saved = data.geom_xpos.copy(), data.geom_xmat.copy()
     rng = np.random.default_rng(0)
     span_lo, span_hi = s_lo.min(axis=0) - 1.0, s_hi.max(axis=0) + 1.0
+    measured = 0
     try:
         for i in range(400):
-            # the moving geoms clustered somewhere around the station (some near a box)
+            # the moving geoms clustered somewhere around the station (some near a box),
+            # turned every way
             centre = rng.uniform(span_lo, span_hi)
             data.geom_xpos[geoms] = centre + rng.normal(scale=0.2, size=(len(geoms), 3))
+            data.geom_xmat[geoms] = _rotations(rng, len(geoms))
             if i % 97 == 5:
                 data.geom_xpos[geoms[i % len(geoms)], i % 3] = np.nan
-            if kernel.near() != reference():
+            near = kernel.near()
+            if near != reference():
                 log.warning("station bound: numpy (the compiled bound differs)")
                 return None
+            if near and clearance is not None:
+                mine, theirs = kernel.clearance(), clearance()
+                lo, hi = boxes()  # type: ignore[misc]
+                if (
+                    mine is None
+                    or np.float64(mine).tobytes() != np.float64(theirs).tobytes()
+                    or lo.tobytes() != kernel.boxes[0].tobytes()
+                    or hi.tobytes() != kernel.boxes[1].tobytes()
+                ):
+                    log.warning("station bound: numpy (the compiled clearance differs)")
+                    return None
+                measured += theirs < cap
     finally:
-        data.geom_xpos[:] = saved
+        data.geom_xpos[:], data.geom_xmat[:] = saved
+    if clearance is not None and not measured:  # pragma: no cover - the poses reach walls
+        log.warning("station bound: numpy (the clearance's self-check measured nothing)")
+        return None
     return kernel
 
 
