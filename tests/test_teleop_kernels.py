@@ -270,3 +270,71 @@ def test_a_hand_check_with_another_workspace_is_refused(fresh_kernel, monkeypatc
     assert "differs" in caplog.text
     monkeypatch.setenv("PAYLOAD_NATIVE", "0")
     assert _supervisors()[0]._check_kernel("right") is None
+
+
+# -- the base channel's step --------------------------------------------------------------------
+def _base_pair(heading: float, with_right: bool):
+    from payload.teleop.channels import _base_channel
+
+    neutral, right = np.array([0.1, 0.25, 0.9]), np.array([0.1, -0.25, 0.9])
+    compiled = _base_channel(neutral, heading, right if with_right else None)
+    python = _base_channel(neutral, heading, right if with_right else None)
+    python.__dict__["_compiled_step"] = None  # numpy's step, for good
+    return compiled, python, neutral, right
+
+
+@pytest.mark.parametrize(("heading", "with_right"), [(0.4, True), (-2.9, False)])
+def test_the_compiled_base_step_is_numpys(heading, with_right):
+    """3,000 steps of a wandering left wrist (in and out of the sphere), a right wrist
+    that now and then holds, lost hands and a turning vehicle: the same commands, twists
+    and limiter states, bit for bit, every mode met (hold needs the right neutral)."""
+    from payload.teleop.base_c import _same, _same_state
+
+    compiled, python, neutral, right_n = _base_pair(heading, with_right)
+    assert compiled._compiled_step is not None
+    rng = np.random.default_rng(41)
+    left, yaw, modes = neutral.copy(), 0.0, set()
+    for k in range(3000):
+        if k % 120 == 0:
+            aim = rng.normal(scale=(0.02, 0.08, 0.2)[(k // 120) % 3], size=3)
+        left = left + 0.05 * (neutral + aim - left)
+        right = right_n + (rng.normal(scale=0.1, size=3) if k % 200 > 150 else 0.0)
+        yaw += 0.01
+        rot = np.array(
+            [[np.cos(yaw), -np.sin(yaw), 0.0], [np.sin(yaw), np.cos(yaw), 0.0], [0, 0, 1]]
+        )
+        args = (None if k % 97 == 3 else left, None if k % 31 == 1 else rot, right)
+        a, b = compiled.step(*args), python.step(*args)
+        assert _same(a, b) and _same_state(compiled, python), k
+        modes.add(a.mode)
+    assert modes == ({"drive", "hold", "brake"} if with_right else {"drive", "brake"})
+
+
+def test_a_bad_wrist_gets_numpys_error_from_the_compiled_channel():
+    from payload.teleop.channels import ChannelError
+
+    compiled, python, neutral, _ = _base_pair(0.0, True)
+    for bad in (np.array([np.nan, 0.0, 0.0]), np.array([0.1, np.inf, 0.9])):
+        for ch in (compiled, python):
+            with pytest.raises(ChannelError, match="left wrist is not 3 finite numbers"):
+                ch.step(bad, None, None)
+            with pytest.raises(ChannelError, match="right wrist is not 3 finite numbers"):
+                ch.step(neutral, None, bad)  # the left wrist in neutral: the right one counts
+    assert compiled.step(neutral + 0.2, None, None).mode == "drive"
+
+
+def test_a_base_kernel_with_other_bits_is_refused(fresh_kernel, monkeypatch, caplog):
+    """C's fmod for Python's % (they differ on negative headings) is refused."""
+    from payload.teleop import base_c
+    from payload.teleop.channels import _base_channel
+
+    base_c.compiled_base.cache_clear()
+    other = base_c.SOURCE.replace("pymod(desired - heading + M_PI", "fmod(desired - heading + M_PI")
+    assert other != base_c.SOURCE
+    monkeypatch.setattr(base_c, "SOURCE", other)
+    try:
+        with caplog.at_level("WARNING", logger="payload.teleop.base_c"):
+            assert base_c.compiled_base(_base_channel) is None
+        assert "differs" in caplog.text
+    finally:
+        base_c.compiled_base.cache_clear()

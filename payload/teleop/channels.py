@@ -19,6 +19,7 @@ aligns with the vehicle's heading at the start; the channel outputs a body-frame
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -357,7 +358,9 @@ class BaseChannel:
         vehicle_rotation: np.ndarray | None = None,
         right_wrist: np.ndarray | None = None,
     ) -> BaseCommand:
-        """One control step.
+        """One control step (:meth:`_step_numpy`, compiled when it can be:
+        :mod:`payload.teleop.base_c`, the same bits; the settings, the neutral wrists and
+        the heading are taken at the first step).
 
         Args:
             left_wrist: Filtered left-wrist position (operator frame) or ``None`` to brake.
@@ -365,6 +368,27 @@ class BaseChannel:
             right_wrist: Filtered right-wrist position (operator frame); with the left
                 wrist in neutral, the right one outside its sphere holds the velocity.
         """
+        step = self._compiled_step
+        if step is not None:
+            out = step(left_wrist, vehicle_rotation, right_wrist)
+            if out is not None:
+                return out
+        return self._step_numpy(left_wrist, vehicle_rotation, right_wrist)
+
+    @functools.cached_property
+    def _compiled_step(self) -> Any:
+        from payload.teleop.base_c import compiled_base
+
+        kernel = compiled_base(_base_channel)
+        return None if kernel is None else kernel.stepper(self)
+
+    def _step_numpy(
+        self,
+        left_wrist: np.ndarray | None,
+        vehicle_rotation: np.ndarray | None = None,
+        right_wrist: np.ndarray | None = None,
+    ) -> BaseCommand:
+        """:meth:`step` in numpy."""
         c = self.config
         rot = np.eye(3) if vehicle_rotation is None else np.asarray(vehicle_rotation, float)
         v_req, outside = self.request(left_wrist)
@@ -383,3 +407,10 @@ class BaseChannel:
         yaw_rate = float(self.yaw.step(np.array([yaw_req]), self.dt)[0])
         twist = VehicleTwist(rot.T @ v, rot.T @ np.array([0.0, 0.0, yaw_rate]), 0.0)
         return BaseCommand(v_req, v, yaw_rate, twist, outside, mode)
+
+
+def _base_channel(
+    neutral_left: np.ndarray, heading0: float, neutral_right: np.ndarray | None
+) -> BaseChannel:
+    """A base channel with the default settings (the compiled step's self-check)."""
+    return BaseChannel(BaseConfig(), neutral_left, heading0, CONTROL_DT, neutral_right)

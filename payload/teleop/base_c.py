@@ -1,0 +1,350 @@
+"""The base channel's step as compiled C, with numpy's bits.
+
+:meth:`payload.teleop.channels.BaseChannel.step` turns the wrists into the vehicle's twist
+every control step: the virtual sphere's request, the hold by the right wrist, the
+jerk-limited velocity, the heading's yaw request and its jerk-limited rate, the twist in
+the body frame. In numpy that is about sixty small-array calls. Here it is one C call
+with the same operations in the same order (see :mod:`payload.sim.allocation_c` for the
+method):
+
+* norms through numpy's own CBLAS ``ddot`` (:func:`payload.vecmath.norm`), the rotations'
+  products through its ``dgemv`` with the layouts numpy's ``matmul`` passes (the yaw
+  matrix row-major, the transposed vehicle rotation column-major);
+* ``cos``, ``sin``, ``atan2`` and ``fmod`` of the C library Python's ``math`` calls,
+  Python's ``%`` (:func:`pymod`) and its ``min``/``max`` tie rules;
+* both jerk limiters by the C of :mod:`payload.teleop.limiter_c` (the yaw one as a
+  vector of one, which is what :meth:`JerkLimiter._step_scalar
+  <payload.teleop.channels.JerkLimiter._step_scalar>` computes), their state updated in
+  place.
+
+It is checked against the numpy step on random wrists when it is built; a wrist that is
+not three finite numbers, or inputs of other types, go to the numpy step (which raises
+its error). Without a compiler, numpy's OpenBLAS or with ``PAYLOAD_NATIVE=0`` the numpy
+step runs.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import functools
+import logging
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from payload import native
+from payload.schema import VehicleTwist
+from payload.teleop import limiter_c
+
+log = logging.getLogger(__name__)
+
+SOURCE = r"""
+typedef void (*dgemv_fn)(int, int, int64_t, int64_t, double, const double *, int64_t,
+                         const double *, int64_t, double, double *, int64_t);
+static dgemv_fn mv;
+void payload_base_init(void *ddot, void *gemv) { payload_limiter_init(ddot); mv = (dgemv_fn)gemv; }
+
+enum { ROW_MAJOR = 101, COL_MAJOR = 102, NO_TRANS = 111 };
+
+/* Python's float % */
+static double pymod(double x, double y)
+{
+    double m = fmod(x, y);
+    if (m != 0.0) {
+        if ((y < 0) != (m < 0)) m += y;
+    } else {
+        m = copysign(0.0, y);
+    }
+    return m;
+}
+
+static int finite3(const double *v) { return isfinite(v[0]) && isfinite(v[1]) && isfinite(v[2]); }
+
+/* BaseChannel.step. cfg: sphere radius, full-speed offset, max speed, turn min speed, yaw
+   gain, max yaw rate, max yaw jerk, heading0. flags: 1 left wrist, 2 right wrist, 4 vehicle
+   rotation (row-major 3x3), 8 right neutral, 16 linear cap, 32 yaw cap. lin/yaw: each
+   limiter's value, rate and parameters (payload_limiter_step's). out: v_req (3), v (3),
+   yaw rate, twist linear (3), twist angular (3), outside. Returns the mode (0 brake,
+   1 drive, 2 hold), or -1, nothing changed, for a wrist that is not finite. */
+int payload_base_step(const double *cfg, const double *neutral, const double *neutral_right,
+    const double *left, const double *right, const double *rot, int flags,
+    double *lin_value, double *lin_rate, const double *lin_p,
+    double *yaw_value, double *yaw_rate, const double *yaw_p, double dt, double *out)
+{
+    const double sphere = cfg[0], full = cfg[1], max_speed = cfg[2], turn_min = cfg[3];
+    const double gain = cfg[4], max_yaw_rate = cfg[5], max_yaw_jerk = cfg[6];
+    double v_req[3] = {0.0, 0.0, 0.0};
+    int outside = 0;
+    if (flags & 1) {                                   /* request() */
+        if (!finite3(left)) return -1;
+        double disp[3], u[3], m[9];
+        for (int k = 0; k < 3; k++) disp[k] = left[k] - neutral[k];
+        const double dist = sqrt(dot(3, disp, 1, disp, 1));
+        const double beyond = dist - sphere;
+        if (!(beyond <= 0)) {
+            const double x = beyond / full;
+            const double speed = max_speed * ((x < 1.0) ? x : 1.0);  /* min(1.0, x) */
+            const double c = cos(cfg[7]), s = sin(cfg[7]);          /* yaw_matrix */
+            m[0] = c; m[1] = -s; m[2] = 0.0;
+            m[3] = s; m[4] = c; m[5] = 0.0;
+            m[6] = 0.0; m[7] = 0.0; m[8] = 1.0;
+            for (int k = 0; k < 3; k++) u[k] = disp[k] / dist;
+            mv(ROW_MAJOR, NO_TRANS, 3, 3, 1.0, m, 3, u, 1, 0.0, v_req, 1);
+            for (int k = 0; k < 3; k++) v_req[k] = v_req[k] * speed;
+            outside = 1;
+        }
+    }
+    int mode = outside ? 1 : 0;
+    if (!outside && (flags & 1) && (flags & 8) && (flags & 2)) {  /* right_outside() */
+        if (!finite3(right)) return -1;
+        double d[3];
+        for (int k = 0; k < 3; k++) d[k] = right[k] - neutral_right[k];
+        if (sqrt(dot(3, d, 1, d, 1)) > sphere) {
+            for (int k = 0; k < 3; k++) v_req[k] = lin_value[k];
+            mode = 2;
+        }
+    }
+    for (int k = 0; k < 3; k++) out[k] = v_req[k];
+    payload_limiter_step(v_req, lin_value, lin_rate, 3, dt, lin_p, (flags & 16) != 0);
+    for (int k = 0; k < 3; k++) out[3 + k] = lin_value[k];
+    static const double eye[9] = {1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0};
+    const double *r = (flags & 4) ? rot : eye;
+    double yaw_req = 0.0;
+    if (sqrt(dot(2, v_req, 1, v_req, 1)) > turn_min) {
+        const double heading = atan2(r[3], r[0]);
+        const double desired = atan2(v_req[1], v_req[0]);
+        const double err = pymod(desired - heading + M_PI, 2 * M_PI) - M_PI;
+        const double cap = max_yaw_rate - 10.0 * max_yaw_jerk * dt * dt;
+        const double g = gain * err;
+        const double lo = (g < cap) ? g : cap;           /* min(cap, g) */
+        yaw_req = (lo > -cap) ? lo : -cap;               /* max(-cap, lo) */
+    }
+    payload_limiter_step(&yaw_req, yaw_value, yaw_rate, 1, dt, yaw_p, (flags & 32) != 0);
+    out[6] = yaw_value[0];
+    const double z[3] = {0.0, 0.0, out[6]};
+    /* rot.T @ v: the transposed row-major matrix is a column-major one, as numpy passes it */
+    mv(COL_MAJOR, NO_TRANS, 3, 3, 1.0, r, 3, out + 3, 1, 0.0, out + 7, 1);
+    mv(COL_MAJOR, NO_TRANS, 3, 3, 1.0, r, 3, z, 1, 0.0, out + 10, 1);
+    out[13] = outside;
+    return mode;
+}
+
+/* payload_base_step with its arguments in one array (one argument for ctypes to pass):
+   a: the pointers cfg .. rot, the flags, the pointers lin_value .. yaw_p, out; s: dt */
+int payload_base_packed(const int64_t *a, const double *s)
+{
+    typedef double *P;
+    return payload_base_step((P)a[0], (P)a[1], (P)a[2], (P)a[3], (P)a[4], (P)a[5], (int)a[6],
+                             (P)a[7], (P)a[8], (P)a[9], (P)a[10], (P)a[11], (P)a[12], s[0],
+                             (P)a[13]);
+}
+"""
+"""The base step's C, compiled after :data:`payload.teleop.limiter_c.SOURCE`."""
+
+MODES = ("brake", "drive", "hold")
+"""The kernel's mode codes, in order."""
+
+
+def _own(a: Any, n: int) -> bool:
+    return (
+        type(a) is np.ndarray
+        and a.dtype == np.float64
+        and a.shape == (n,)
+        and (a.flags.c_contiguous and a.flags.writeable)
+    )
+
+
+def _limiter_params(limiter: Any) -> np.ndarray:
+    return np.array(
+        [
+            limiter.max_rate,
+            limiter.max_jerk,
+            0.0 if limiter.max_value is None else limiter.max_value,
+            limiter.ZERO_ERROR,
+            limiter.ZERO_VALUE,
+        ]
+    )
+
+
+class CompiledBase:
+    """The base step, compiled (:data:`SOURCE`), bound to channels by :meth:`stepper`."""
+
+    def __init__(self, lib: ctypes.CDLL, ddot: int, gemv: int) -> None:
+        init = lib.payload_base_init
+        init.argtypes = [ctypes.c_void_p, ctypes.c_void_p]
+        init(ddot, gemv)
+        fn = lib.payload_base_packed
+        fn.restype = ctypes.c_int
+        fn.argtypes = [ctypes.c_void_p, ctypes.c_void_p]
+        self._fn = fn
+
+    def stepper(self, channel: Any) -> Callable[..., Any] | None:
+        """``step(left, rotation, right)`` of ``channel`` (a :class:`BaseChannel
+        <payload.teleop.channels.BaseChannel>`), returning what its numpy step returns, or
+        None where the numpy step is to run (other input types, a non-finite wrist); or
+        None for a channel the kernel does not take."""
+        from payload.teleop.channels import BaseCommand
+
+        c = channel.config
+        lin, yaw = channel.linear, channel.yaw
+        if lin.value.shape != (3,) or yaw.value.shape != (1,):
+            return None
+        for limiter in (lin, yaw):
+            if not (limiter.max_jerk > 0 and limiter.max_rate >= 0):
+                return None  # numpy's step says what is wrong
+        cfg = np.array(
+            [
+                c.sphere_radius,
+                c.full_speed_offset,
+                c.max_speed,
+                c.turn_min_speed,
+                c.yaw_gain,
+                c.max_yaw_rate,
+                c.max_yaw_jerk,
+                channel.heading0,
+            ],
+            dtype=np.float64,
+        )
+        neutral = np.array(channel.neutral, dtype=np.float64)
+        has_right = channel.neutral_right is not None
+        neutral_right = np.array(channel.neutral_right if has_right else np.zeros(3), float)
+        lin_p, yaw_p = _limiter_params(lin), _limiter_params(yaw)
+        left, right, rot, out = np.zeros(3), np.zeros(3), np.zeros((3, 3)), np.zeros(14)
+        fixed = 8 * has_right + 16 * (lin.max_value is not None) + 32 * (yaw.max_value is not None)
+        args = np.zeros(14, dtype=np.int64)  # payload_base_packed's pointers and flags
+        args[:6] = [a.ctypes.data for a in (cfg, neutral, neutral_right, left, right, rot)]
+        args[9], args[12], args[13] = lin_p.ctypes.data, yaw_p.ctypes.data, out.ctypes.data
+        scalars = np.array([channel.dt])
+        call = functools.partial(self._fn, args.ctypes.data, scalars.ctypes.data)
+        bound: list[Any] = [None, None, None, None]
+
+        def state() -> None:
+            """Bind the limiters' arrays (made the limiters' own first)."""
+            if not (bound[0] is lin.value and bound[1] is lin.rate):
+                lin.value, lin.rate = np.array(lin.value, float), np.array(lin.rate, float)
+            if not (bound[2] is yaw.value and bound[3] is yaw.rate):
+                yaw.value, yaw.rate = np.array(yaw.value, float), np.array(yaw.rate, float)
+            bound[:] = lin.value, lin.rate, yaw.value, yaw.rate
+            args[7], args[8] = lin.value.ctypes.data, lin.rate.ctypes.data
+            args[10], args[11] = yaw.value.ctypes.data, yaw.rate.ctypes.data
+
+        def step(left_wrist: Any, rotation: Any, right_wrist: Any) -> Any:
+            flags = fixed
+            if left_wrist is not None:
+                if not (type(left_wrist) is np.ndarray and left_wrist.shape == (3,)):
+                    return None
+                np.copyto(left, left_wrist)
+                flags |= 1
+            if right_wrist is not None:
+                if not (type(right_wrist) is np.ndarray and right_wrist.shape == (3,)):
+                    return None
+                np.copyto(right, right_wrist)
+                flags |= 2
+            if rotation is not None:
+                if not (type(rotation) is np.ndarray and rotation.shape == (3, 3)):
+                    return None
+                np.copyto(rot, rotation)
+                flags |= 4
+            if not (
+                bound[0] is lin.value
+                and bound[1] is lin.rate
+                and bound[2] is yaw.value
+                and bound[3] is yaw.rate
+            ):
+                state()
+            args[6] = flags
+            mode = call()
+            if mode < 0:
+                return None
+            twist = VehicleTwist(out[7:10].copy(), out[10:13].copy(), 0.0)
+            return BaseCommand(
+                out[0:3].copy(), out[3:6].copy(), float(out[6]), twist, bool(out[13]), MODES[mode]
+            )
+
+        state()
+        keep = (cfg, neutral, neutral_right, lin_p, yaw_p, left, right, rot, out, args, scalars)
+        step.keep = keep  # type: ignore[attr-defined]
+        return step
+
+
+def _load() -> tuple[ctypes.CDLL, int, int] | None:
+    ddot, gemv = native.numpy_blas(native.NUMPY_DDOT), native.numpy_dgemv()
+    if ddot is None or gemv is None:
+        return None
+    lib = native.load_kernel("base", limiter_c.SOURCE + SOURCE, "the base channel kernel", log)
+    return None if lib is None else (lib, ddot, gemv)
+
+
+@functools.cache
+@native.reported("base channel")
+def compiled_base(factory: Callable[..., Any]) -> CompiledBase | None:
+    """The process's compiled base step, or None to run the numpy step (no compiler, no
+    numpy OpenBLAS, ``PAYLOAD_NATIVE=0``, a failed build, or a self-check that differs in a
+    single bit from the numpy step of channels made by ``factory(neutral_left, heading0,
+    neutral_right)``, on random wrists in every mode)."""
+    loaded = _load()
+    if loaded is None:
+        return None
+    kernel = CompiledBase(*loaded)
+    rng = np.random.default_rng(0)
+    for heading, with_right in ((0.0, True), (2.3, True), (-1.1, False)):
+        neutral = rng.normal(scale=0.1, size=3)
+        right_neutral = neutral + np.array([0.0, -0.3, 0.0])
+        mine = factory(neutral, heading, right_neutral if with_right else None)
+        theirs = factory(neutral, heading, right_neutral if with_right else None)
+        step = kernel.stepper(mine)
+        if step is None:
+            return None
+        left, right = neutral.copy(), right_neutral.copy()
+        q = rng.normal(size=4)
+        for k in range(600):
+            if k % 50 == 0:  # a new leg: push, hold with the right hand, let go, lose
+                aim = rng.normal(scale=(0.0, 0.03, 0.1, 0.3)[(k // 50) % 4], size=3)
+                q = rng.normal(size=4)
+            left = left + 0.1 * (neutral + aim - left)
+            right = right_neutral + (rng.normal(scale=0.08, size=3) if k % 100 > 70 else 0.0)
+            q = q + rng.normal(scale=0.01, size=4)
+            w, x, y, z = q / np.linalg.norm(q)
+            rot = np.array(
+                [
+                    [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                    [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                    [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+                ]
+            )
+            args = (
+                None if k % 173 == 7 else left.copy(),
+                None if k % 61 == 3 else rot,
+                None if k % 89 == 5 else right.copy(),
+            )
+            a, b = step(*args), theirs._step_numpy(*args)
+            if a is None or not _same(a, b) or not _same_state(mine, theirs):
+                log.warning("base channel: numpy (the compiled step differs)")
+                return None
+    return kernel
+
+
+def _same(a: Any, b: Any) -> bool:
+    """Two base commands alike to the bit."""
+    arrays = ("v_request", "v_world")
+    return (
+        all(getattr(a, n).tobytes() == getattr(b, n).tobytes() for n in arrays)
+        and np.float64(a.yaw_rate).tobytes() == np.float64(b.yaw_rate).tobytes()
+        and a.twist.linear.tobytes() == b.twist.linear.tobytes()
+        and a.twist.angular.tobytes() == b.twist.angular.tobytes()
+        and (a.outside, a.mode, a.twist.stamp) == (b.outside, b.mode, b.twist.stamp)
+    )
+
+
+def _same_state(a: Any, b: Any) -> bool:
+    """Two channels' limiters in the same state, to the bit."""
+    return all(
+        np.asarray(getattr(getattr(a, lim), part), float).tobytes()
+        == np.asarray(getattr(getattr(b, lim), part), float).tobytes()
+        for lim in ("linear", "yaw")
+        for part in ("value", "rate")
+    )
+
+
+__all__ = ["MODES", "SOURCE", "CompiledBase", "compiled_base"]
