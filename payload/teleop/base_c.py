@@ -181,11 +181,11 @@ class CompiledBase:
 
     def stepper(self, channel: Any) -> Callable[..., Any] | None:
         """``step(left, rotation, right)`` of ``channel`` (a :class:`BaseChannel
-        <payload.teleop.channels.BaseChannel>`), returning what its numpy step returns, or
-        None where the numpy step is to run (other input types, a non-finite wrist); or
-        None for a channel the kernel does not take."""
-        from payload.teleop.channels import BaseCommand
-
+        <payload.teleop.channels.BaseChannel>`), returning the fields of what its numpy
+        step returns (``v_request, v_world, yaw_rate, twist, outside, mode``, a
+        :class:`BaseCommand <payload.teleop.channels.BaseCommand>`'s), or None where the
+        numpy step is to run (other input types, a non-finite wrist); or None for a
+        channel the kernel does not take."""
         c = channel.config
         lin, yaw = channel.linear, channel.yaw
         if lin.value.shape != (3,) or yaw.value.shape != (1,):
@@ -258,9 +258,9 @@ class CompiledBase:
             if mode < 0:
                 return None
             twist = VehicleTwist(out[7:10].copy(), out[10:13].copy(), 0.0)
-            return BaseCommand(
+            return (
                 out[0:3].copy(), out[3:6].copy(), float(out[6]), twist, bool(out[13]), MODES[mode]
-            )
+            )  # fmt: skip
 
         state()
         keep = (cfg, neutral, neutral_right, lin_p, yaw_p, left, right, rot, out, args, scalars)
@@ -325,15 +325,24 @@ def compiled_base(factory: Callable[..., Any]) -> CompiledBase | None:
     return kernel
 
 
+def _fields(command: Any) -> tuple:
+    """A base command's fields (a command, or the kernel's tuple of them)."""
+    if isinstance(command, tuple):
+        return command
+    c = command
+    return (c.v_request, c.v_world, c.yaw_rate, c.twist, c.outside, c.mode)
+
+
 def _same(a: Any, b: Any) -> bool:
-    """Two base commands alike to the bit."""
-    arrays = ("v_request", "v_world")
+    """Two base commands (or the kernel's tuples of their fields) alike to the bit."""
+    (ra, va, ya, ta, oa, ma), (rb, vb, yb, tb, ob, mb) = _fields(a), _fields(b)
     return (
-        all(getattr(a, n).tobytes() == getattr(b, n).tobytes() for n in arrays)
-        and np.float64(a.yaw_rate).tobytes() == np.float64(b.yaw_rate).tobytes()
-        and a.twist.linear.tobytes() == b.twist.linear.tobytes()
-        and a.twist.angular.tobytes() == b.twist.angular.tobytes()
-        and (a.outside, a.mode, a.twist.stamp) == (b.outside, b.mode, b.twist.stamp)
+        ra.tobytes() == rb.tobytes()
+        and va.tobytes() == vb.tobytes()
+        and np.float64(ya).tobytes() == np.float64(yb).tobytes()
+        and ta.linear.tobytes() == tb.linear.tobytes()
+        and ta.angular.tobytes() == tb.angular.tobytes()
+        and (oa, ma, ta.stamp) == (ob, mb, tb.stamp)
     )
 
 

@@ -372,7 +372,7 @@ class BaseChannel:
         if step is not None:
             out = step(left_wrist, vehicle_rotation, right_wrist)
             if out is not None:
-                return out
+                return BaseCommand(*out)
         return self._step_numpy(left_wrist, vehicle_rotation, right_wrist)
 
     @functools.cached_property
