@@ -523,3 +523,47 @@ def test_a_non_finite_typed_step_is_named_by_the_reader(tmp_path: Path) -> None:
             rec.write(step)
     with pytest.raises(RecordingError, match=r"step 30: ctb_pos: \[1\]: expected a finite"):
         read_recording(path)
+
+
+def test_compare_channels_sees_every_message_but_the_clock(foxglove_recording, tmp_path):
+    """Two recordings of the same steps and hand frames made at other wall-clock times
+    compare identical on every channel; a different hand frame (its step the same) is
+    found on /trial/hands alone, and `trials compare --require-identical` fails on it."""
+    import time
+
+    from payload.cli import main
+    from payload.trials.compare import compare_channels, compare_steps
+    from payload.trials.foxglove import FoxgloveScene
+
+    _, steps, world = foxglove_recording
+    rng = np.random.default_rng(5)
+    frames = [
+        HandFrame(k * DT, Hand(rng.normal(size=(25, 3))), Hand.untracked()) for k in range(60)
+    ]
+    odd = HandFrame(frames[17].stamp, Hand(rng.normal(size=(25, 3))), Hand.untracked())
+
+    def record(path: Path, shift_ns: int, swap: bool) -> Path:
+        with TrialRecorder(path, scene=FoxgloveScene(world)) as rec:
+            rec._clock = lambda: time.time_ns() + shift_ns
+            for k, st in enumerate(steps):
+                rec.write_hands(odd if swap and k == 17 else frames[k])
+                rec.write(st)
+        return path
+
+    a = record(tmp_path / "a" / "trial-0000" / "log.mcap", 0, False)
+    b = record(tmp_path / "b" / "trial-0000" / "log.mcap", 3_600_000_000_000, False)
+    c = record(tmp_path / "c" / "trial-0000" / "log.mcap", 0, True)
+    same = compare_channels(a, b)
+    assert same["identical"]
+    assert {"/tf", "/scene", "/trial/hands", "/trial/events"} <= set(same["channels"])
+    assert same["channels"]["/tf"]["messages_a"] == 12
+    other = compare_channels(a, c)
+    assert not other["identical"] and compare_steps(a, c)["identical"]
+    assert {t for t, ch in other["channels"].items() if ch["differing"]} == {"/trial/hands"}
+    assert other["channels"]["/trial/hands"]["differing"] == 1
+    for run in "abc":
+        (tmp_path / run / "trial-0000" / "metrics.json").write_text('{"success": true}')
+    runs = [str(tmp_path / "a"), str(tmp_path / "b"), "--require-identical"]
+    assert main(["trials", "compare", *runs]) == 0
+    runs[1] = str(tmp_path / "c")
+    assert main(["trials", "compare", *runs]) == 1

@@ -447,9 +447,10 @@ def _cmd_trials_compare(args: argparse.Namespace) -> int:
         print(text, end="")
     if args.require_identical and not result["identical"]:
         differ = [r["trial"] for r in result["trials"] if not r["steps"]["identical"]]
+        channels = [r["trial"] for r in result["trials"] if not r["channels"]["identical"]]
         raise CheckFailed(
-            f"the runs differ (metrics or recorded steps; steps differ in: "
-            f"{', '.join(differ) or 'none'})"
+            f"the runs differ (metrics, recorded steps or other channels; steps differ in: "
+            f"{', '.join(differ) or 'none'}; other channels in: {', '.join(channels) or 'none'})"
         )
     return 0
 
@@ -556,8 +557,9 @@ def register(
     cm.add_argument(
         "--require-identical",
         action="store_true",
-        help="compare the steps too and exit 1 unless every common trial's metrics and "
-        "recorded steps are the same in every bit",
+        help="compare the steps too and exit 1 unless every common trial's metrics, "
+        "recorded steps and other channels' messages (their wall-clock timestamps aside) "
+        "are the same in every bit",
     )
     cm.add_argument("--out", help="also write the Markdown table to this file")
     cm.add_argument("--force", action="store_true", help="replace --out if it exists")

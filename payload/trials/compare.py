@@ -5,7 +5,9 @@ matched by folder name (the seed). Per seed the change ``B - A`` of every metric
 paper summarises, and per metric the largest change over the seeds; with ``steps``,
 every recorded step of both recordings compared field by field (every field of
 :data:`~payload.trials.records.FIELD_SPECS`; ``seq`` and ``wall_time`` are not
-compared), counting the steps that differ in any bit.
+compared), counting the steps that differ in any bit, every message of the other
+channels (hand frames, Foxglove, safety records; the wall-clock timestamps aside) and
+every other metric of ``metrics.json`` but the provenance.
 
 Uses: the validation of ``--physics-dt 0.002`` (the ``single`` campaign at 2 ms against
 1 ms), and the bit-for-bit check of a speed change (the same seeds before and after).
@@ -107,20 +109,95 @@ def compare_steps(log_a: Path, log_b: Path) -> dict[str, Any]:
     }
 
 
+_STEPS_COMPARED = "/trial/step"
+"""The channel :func:`compare_steps` compares (its ``wall_time`` is the clock's)."""
+
+_CLOCK_FIELDS = frozenset({"wall_time"})
+"""Fields of the metrics that hold the wall clock (the others must match)."""
+
+
+def _without_timestamps(message: Any) -> Any:
+    """``message`` with every ``google.protobuf.Timestamp`` in it cleared, at any depth
+    (the Foxglove channels stamp their messages with the wall clock at the start plus the
+    step time)."""
+    for field, value in message.ListFields():
+        if field.message_type is None:
+            continue
+        if field.message_type.full_name == "google.protobuf.Timestamp":
+            message.ClearField(field.name)
+        elif field.is_repeated:  # a repeated message field (maps are not used here)
+            for item in value:
+                _without_timestamps(item)
+        else:
+            _without_timestamps(value)
+    return message
+
+
+def _channel_messages(log: Path) -> dict[str, list[bytes]]:
+    """Every message of every channel but the steps', in order, as comparable bytes:
+    protobuf messages re-serialised without their timestamps, others as written."""
+    from mcap.reader import make_reader
+    from mcap_protobuf.decoder import DecoderFactory
+
+    decoders = DecoderFactory()
+    out: dict[str, list[bytes]] = {}
+    try:
+        with open(log, "rb") as f:
+            for schema, channel, message in make_reader(f).iter_messages(log_time_order=False):
+                if channel.topic == _STEPS_COMPARED:
+                    continue
+                data = message.data
+                if channel.message_encoding == "protobuf" and schema is not None:
+                    decode = decoders.decoder_for(channel.message_encoding, schema)
+                    if decode is not None:
+                        data = _without_timestamps(decode(data)).SerializeToString()
+                out.setdefault(channel.topic, []).append(data)
+    except (OSError, ValueError) as exc:
+        raise CompareError(f"{log}: cannot read the recording's channels ({exc})") from None
+    return out
+
+
+def compare_channels(log_a: Path, log_b: Path) -> dict[str, Any]:
+    """Every message of every other channel of two recordings (the raw hand frames, the
+    Foxglove channels, the safety records), in order, bit for bit, their wall-clock
+    timestamps aside.
+
+    Returns:
+        ``{"identical", "channels": {topic: {"messages_a", "messages_b",
+        "differing"}}}`` (``differing``: messages of the common length whose bytes
+        differ; a channel in one recording only counts all its messages).
+    """
+    a, b = _channel_messages(log_a), _channel_messages(log_b)
+    channels = {}
+    for topic in sorted(set(a) | set(b)):
+        ma, mb = a.get(topic, []), b.get(topic, [])
+        n = min(len(ma), len(mb))
+        differing = sum(x != y for x, y in zip(ma[:n], mb[:n])) + abs(len(ma) - len(mb))
+        channels[topic] = {"messages_a": len(ma), "messages_b": len(mb), "differing": differing}
+    return {
+        "identical": all(c["differing"] == 0 for c in channels.values()),
+        "channels": channels,
+    }
+
+
 def compare_runs(run_a: str | Path, run_b: str | Path, *, steps: bool = False) -> dict[str, Any]:
     """Two runs of the same seeds, seed by seed.
 
     Args:
         run_a: Campaign or trial folder (the reference).
         run_b: Campaign or trial folder (the one compared with it).
-        steps: Also compare every recorded step (:func:`compare_steps`).
+        steps: Also compare every recorded step (:func:`compare_steps`), every message of
+            the recordings' other channels (:func:`compare_channels`) and every metric
+            in ``metrics.json`` but the provenance.
 
     Returns:
         ``{"a", "b", "trials": [{"trial", "success_a", "success_b", "physics_dt_a",
         "physics_dt_b", "metrics": {key: {"a", "b", "change"}}, "steps"?}],
         "largest_change": {key: {"change" (signed, largest in size), "trial"}},
         "only_a", "only_b" (trial names in one run only), "identical" (with ``steps``:
-        every common trial's metrics equal and steps bit for bit)}``.
+        every common trial's metrics equal, its steps and its other channels' messages
+        bit for bit)}``; with ``steps`` each trial also has ``"channels"`` and
+        ``"other_metrics"`` (the names of the other metrics that differ).
 
     Raises:
         CompareError: A run is missing, a metrics file unreadable, or no trial in common.
@@ -158,8 +235,20 @@ def compare_runs(run_a: str | Path, run_b: str | Path, *, steps: bool = False) -
         if ma.get("success") != mb.get("success"):
             identical = False
         if steps:
-            row["steps"] = compare_steps(ta[name_a] / "log.mcap", tb[name_b] / "log.mcap")
-            identical = identical and row["steps"]["identical"]
+            log_a, log_b = ta[name_a] / "log.mcap", tb[name_b] / "log.mcap"
+            row["steps"] = compare_steps(log_a, log_b)
+            row["channels"] = compare_channels(log_a, log_b)
+            row["other_metrics"] = sorted(
+                key
+                for key in (set(ma) | set(mb)) - {"provenance", *METRIC_KEYS, *_CLOCK_FIELDS}
+                if ma.get(key) != mb.get(key)
+            )
+            identical = (
+                identical
+                and row["steps"]["identical"]
+                and row["channels"]["identical"]
+                and not row["other_metrics"]
+            )
         rows.append(row)
     names_a = {x for x, _ in common}
     names_b = {y for _, y in common}
@@ -222,9 +311,25 @@ def compare_markdown(result: dict[str, Any]) -> str:
                 f"{s['first_differing_step'] if s['first_differing_step'] is not None else '-'}"
                 f" | {fields} |"
             )
+    with_channels = [r for r in result["trials"] if "channels" in r]
+    if with_channels:
+        lines += ["", "| trial | other channels: differing messages | other metrics differing |"]
+        lines += ["|---|---|---|"]
+        for r in with_channels:
+            chans = r["channels"]["channels"]
+            counts = ", ".join(
+                f"{t} {c['differing']} of {max(c['messages_a'], c['messages_b'])}"
+                for t, c in chans.items()
+                if c["differing"]
+            )
+            total = sum(max(c["messages_a"], c["messages_b"]) for c in chans.values())
+            lines.append(
+                f"| {r['trial']} | {counts or f'none ({len(chans)} channels, {total} messages)'}"
+                f" | {', '.join(r['other_metrics']) or 'none'} |"
+            )
     if result["only_a"] or result["only_b"]:
         lines += ["", f"Only in A: {result['only_a']}; only in B: {result['only_b']}."]
     return "\n".join(lines) + "\n"
 
 
-__all__ = ["CompareError", "compare_markdown", "compare_runs", "compare_steps"]
+__all__ = ["CompareError", "compare_channels", "compare_markdown", "compare_runs", "compare_steps"]
