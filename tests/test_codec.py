@@ -548,6 +548,8 @@ def test_compare_channels_sees_every_message_but_the_clock(foxglove_recording, t
             for k, st in enumerate(steps):
                 rec.write_hands(odd if swap and k == 17 else frames[k])
                 rec.write(st)
+                if shift_ns and k == 23:
+                    rec.flush()  # as the wall clock may decide: the hands' deltas restart
         return path
 
     a = record(tmp_path / "a" / "trial-0000" / "log.mcap", 0, False)
@@ -555,6 +557,12 @@ def test_compare_channels_sees_every_message_but_the_clock(foxglove_recording, t
     c = record(tmp_path / "c" / "trial-0000" / "log.mcap", 0, True)
     same = compare_channels(a, b)
     assert same["identical"]
+    # a cut-short copy reads as its complete prefix: fewer messages, not a crash
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(a.read_bytes()[: a.stat().st_size * 2 // 3])
+    short = compare_channels(a, cut)
+    assert not short["identical"]
+    assert 0 < short["channels"]["/tf"]["messages_b"] < short["channels"]["/tf"]["messages_a"]
     assert {"/tf", "/scene", "/trial/hands", "/trial/events"} <= set(same["channels"])
     assert same["channels"]["/tf"]["messages_a"] == 12
     other = compare_channels(a, c)
@@ -566,4 +574,9 @@ def test_compare_channels_sees_every_message_but_the_clock(foxglove_recording, t
     runs = [str(tmp_path / "a"), str(tmp_path / "b"), "--require-identical"]
     assert main(["trials", "compare", *runs]) == 0
     runs[1] = str(tmp_path / "c")
+    assert main(["trials", "compare", *runs]) == 1
+    # a trial in one run only is a difference
+    (tmp_path / "b" / "trial-0001").mkdir()
+    (tmp_path / "b" / "trial-0001" / "metrics.json").write_text('{"success": true}')
+    runs[1] = str(tmp_path / "b")
     assert main(["trials", "compare", *runs]) == 1

@@ -392,3 +392,18 @@ def test_a_clearance_with_other_boxes_is_refused(bare_driver, monkeypatch, tmp_p
         monitor.read(bare_driver.data)
         assert monitor._bound_kernel(bare_driver.data) is None
     assert "clearance differs" in caplog.text
+
+
+def test_without_mujocos_distance_the_bound_alone_is_compiled(bare_driver, monkeypatch, tmp_path):
+    """Without MuJoCo's mj_geomDistance symbol (no /proc/self/maps, say), the quick bound
+    is still compiled and numpy reads the clearance near a wall."""
+    from payload.sim.station import StationMonitor
+
+    real = native.mujoco_function
+    monkeypatch.setattr(
+        native, "mujoco_function", lambda name: None if name == "mj_geomDistance" else real(name)
+    )
+    monitor = StationMonitor(bare_driver.world)
+    monitor.read(bare_driver.data)
+    kernel = monitor._bound_kernel(bare_driver.data)
+    assert kernel is not None and kernel.clearance() is None

@@ -338,3 +338,68 @@ def test_a_base_kernel_with_other_bits_is_refused(fresh_kernel, monkeypatch, cap
         assert "differs" in caplog.text
     finally:
         base_c.compiled_base.cache_clear()
+
+
+def test_the_compiled_channel_leaves_what_it_does_not_take_to_numpy():
+    """A Fortran-ordered rotation (numpy's product then takes another BLAS layout), object
+    and integer wrists, a moved neutral, a changed heading or limit, and limiters whose
+    state was replaced by one of another shape: the same results (or the same error) as
+    numpy's step."""
+    from payload.rotations import quat_to_matrix
+    from payload.teleop.base_c import _same, _same_state
+
+    compiled, python, neutral, _ = _base_pair(0.8, True)
+    rng = np.random.default_rng(42)
+    for k in range(400):
+        q = rng.normal(size=4)
+        rot = quat_to_matrix(q / np.linalg.norm(q))
+        left = neutral + rng.normal(scale=0.1, size=3)
+        args = [
+            (left, np.asfortranarray(rot), None),
+            (left.astype(object), rot, None),
+            (np.round(left * 10).astype(int), rot[::1, ::1], None),
+        ][k % 3]
+        assert _same(compiled.step(*args), python.step(*args)), k
+        assert _same_state(compiled, python)
+        if k == 200:  # the settings change under the compiled step: it steps aside
+            for ch in (compiled, python):
+                ch.neutral[0] += 0.05  # in place: read in place
+                ch.heading0 = -1.0
+                ch.linear.max_jerk = 0.03
+    for ch in (compiled, python):
+        ch.linear.reset(np.zeros(2))
+    with pytest.raises(ValueError, match="broadcast"):
+        python.step(neutral + 0.2, None, None)
+    with pytest.raises(ValueError, match="broadcast"):
+        compiled.step(neutral + 0.2, None, None)
+
+
+def test_a_hand_check_needs_a_neutral_it_can_read_in_place():
+    from payload.teleop.safety import SafetyConfig, TrackingSupervisor
+
+    strided = np.zeros((3, 2))[:, 0]  # a view: not contiguous
+    sup = TrackingSupervisor(SafetyConfig(), {"left": strided, "right": np.zeros(3)})
+    assert sup._check_kernel("left") is None and sup._check_kernel("right") is not None
+
+
+def test_compiled_steps_follow_settings_changed_after_binding():
+    """A limiter whose jerk bound and a filter whose settings change after their first
+    compiled step: both step as numpy's code with the new settings."""
+    from payload.teleop.channels import JerkLimiter
+
+    mine, theirs = JerkLimiter(3, 0.0175, 0.02, 0.19), JerkLimiter(3, 0.0175, 0.02, 0.19)
+    rng = np.random.default_rng(43)
+    for k in range(200):
+        if k == 100:
+            mine.max_jerk = theirs.max_jerk = 0.05
+            mine.max_value = theirs.max_value = None
+        target = rng.normal(scale=0.2, size=3)
+        assert mine.step(target, 0.02).tobytes() == theirs._step_vector(target, 0.02).tobytes()
+    assert mine._bound is not None and mine._bound[2] is not None  # compiled, rebound
+    f, g = OneEuroFilter(OneEuroConfig()), OneEuroFilter(OneEuroConfig())
+    g.__dict__["_stepper"] = lambda x: None  # numpy's step
+    for k in range(100):
+        if k == 50:
+            f.config = g.config = OneEuroConfig(1.0, 0.2, 2.5)
+        x = rng.normal(scale=0.01, size=(25, 3))
+        assert f(x, 0.02 * k).tobytes() == g(x, 0.02 * k).tobytes()

@@ -1,4 +1,4 @@
-"""The station clearance's quick bound as compiled C.
+"""The station clearance as compiled C: the quick bound, then the distances near a wall.
 
 :meth:`payload.sim.station.StationMonitor.read` runs every control step of every trial,
 and on most steps (mid-module) it ends at its first test: a box around every moving
@@ -6,9 +6,21 @@ geom's box (its frame's origin plus a fixed reach) whose union comes within
 :data:`~payload.sim.station.CLEARANCE_CAP` of no station box. That test is maxima,
 minima, additions, subtractions and comparisons, exact in any order, so one C call gives
 the numpy test's answer (NaN included: a NaN position propagates through the maxima and
-fails every comparison, as in numpy); it is checked against the numpy test on random
-poses when it is built. When the bound does not settle the reading, the numpy code reads
-on as before. Without a compiler or with ``PAYLOAD_NATIVE=0`` the numpy test runs.
+fails every comparison, as in numpy). Near a wall (about a quarter of a trial's steps)
+a second call reads the clearance as
+:meth:`~payload.sim.station.StationMonitor._clearance_numpy` does: the moving geoms' world
+boxes with their three products summed as numpy's ``einsum`` sums them on this machine
+(the first and third, then the second), the station boxes near their union, and
+MuJoCo's own ``mj_geomDistance`` (from the library its bindings loaded) for the pairs
+within the cap, in numpy's order. Both are checked against the numpy code on random poses
+when built (the clearance's boxes too, bit for bit). Without a compiler, without the
+MuJoCo symbol (then the bound alone is compiled) or with ``PAYLOAD_NATIVE=0`` the numpy
+code runs.
+
+MuJoCo's function is called directly, not through its Python bindings: an ``mju_error``
+inside it would reach MuJoCo's own error handler (which ends the process) rather than
+raise ``mujoco.FatalError``; the distance query raises none for the geoms it is given
+(the same holds for ``mj_applyFT`` in :mod:`payload.sim.vehicle_c`).
 """
 
 from __future__ import annotations
@@ -22,6 +34,7 @@ from typing import Any
 import numpy as np
 
 from payload import native
+from payload.rotations import quat_to_matrix
 
 log = logging.getLogger(__name__)
 
@@ -200,15 +213,7 @@ class CompiledStationBound:
 def _rotations(rng: np.random.Generator, n: int) -> np.ndarray:
     """``n`` random rotation matrices, row-major (n, 9)."""
     q = rng.normal(size=(n, 4))
-    w, x, y, z = (q / np.linalg.norm(q, axis=1, keepdims=True)).T
-    return np.stack(
-        [
-            1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w),
-            2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w),
-            2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y),
-        ],
-        axis=1,
-    )  # fmt: skip
+    return np.array([quat_to_matrix(v / np.linalg.norm(v)).ravel() for v in q])
 
 
 @native.reported("station bound")
@@ -238,9 +243,9 @@ def compiled_station_bound(
     lib = native.load_kernel("station", SOURCE, "the station bound kernel", log)
     if lib is None:
         return None
-    if boxes is None:
-        clearance = None  # the clearance's boxes are checked, or it is not made
-    geomdist = native.mujoco_function("mj_geomDistance") if clearance is not None else None
+    geomdist = native.mujoco_function("mj_geomDistance")
+    if boxes is None or geomdist is None:
+        clearance = None  # checked with its boxes and MuJoCo's function, or not made
     try:
         kernel = CompiledStationBound(
             lib, data, geoms, reach, s_lo, s_hi, cap, model, station, geomdist

@@ -34,6 +34,7 @@ from typing import Any
 import numpy as np
 
 from payload import native
+from payload.rotations import quat_to_matrix, yaw_matrix
 from payload.schema import VehicleTwist
 from payload.teleop import limiter_c
 
@@ -62,8 +63,9 @@ static double pymod(double x, double y)
 static int finite3(const double *v) { return isfinite(v[0]) && isfinite(v[1]) && isfinite(v[2]); }
 
 /* BaseChannel.step. cfg: sphere radius, full-speed offset, max speed, turn min speed, yaw
-   gain, max yaw rate, max yaw jerk, heading0. flags: 1 left wrist, 2 right wrist, 4 vehicle
-   rotation (row-major 3x3), 8 right neutral, 16 linear cap, 32 yaw cap. lin/yaw: each
+   gain, the yaw request's cap (BaseChannel.yaw_cap), yaw_matrix(heading0) (9, row-major).
+   flags: 1 left wrist, 2 right wrist, 4 vehicle rotation (row-major 3x3), 8 right
+   neutral, 16 linear cap, 32 yaw cap. lin/yaw: each
    limiter's value, rate and parameters (payload_limiter_step's). out: v_req (3), v (3),
    yaw rate, twist linear (3), twist angular (3), outside. Returns the mode (0 brake,
    1 drive, 2 hold), or -1, nothing changed, for a wrist that is not finite. */
@@ -73,24 +75,21 @@ int payload_base_step(const double *cfg, const double *neutral, const double *ne
     double *yaw_value, double *yaw_rate, const double *yaw_p, double dt, double *out)
 {
     const double sphere = cfg[0], full = cfg[1], max_speed = cfg[2], turn_min = cfg[3];
-    const double gain = cfg[4], max_yaw_rate = cfg[5], max_yaw_jerk = cfg[6];
+    const double gain = cfg[4], cap = cfg[5];
     double v_req[3] = {0.0, 0.0, 0.0};
     int outside = 0;
     if (flags & 1) {                                   /* request() */
         if (!finite3(left)) return -1;
-        double disp[3], u[3], m[9];
+        double disp[3], u[3];
         for (int k = 0; k < 3; k++) disp[k] = left[k] - neutral[k];
         const double dist = sqrt(dot(3, disp, 1, disp, 1));
         const double beyond = dist - sphere;
         if (!(beyond <= 0)) {
             const double x = beyond / full;
             const double speed = max_speed * ((x < 1.0) ? x : 1.0);  /* min(1.0, x) */
-            const double c = cos(cfg[7]), s = sin(cfg[7]);          /* yaw_matrix */
-            m[0] = c; m[1] = -s; m[2] = 0.0;
-            m[3] = s; m[4] = c; m[5] = 0.0;
-            m[6] = 0.0; m[7] = 0.0; m[8] = 1.0;
             for (int k = 0; k < 3; k++) u[k] = disp[k] / dist;
-            mv(ROW_MAJOR, NO_TRANS, 3, 3, 1.0, m, 3, u, 1, 0.0, v_req, 1);
+            /* yaw_matrix(heading0), row-major in cfg */
+            mv(ROW_MAJOR, NO_TRANS, 3, 3, 1.0, cfg + 6, 3, u, 1, 0.0, v_req, 1);
             for (int k = 0; k < 3; k++) v_req[k] = v_req[k] * speed;
             outside = 1;
         }
@@ -115,7 +114,6 @@ int payload_base_step(const double *cfg, const double *neutral, const double *ne
         const double heading = atan2(r[3], r[0]);
         const double desired = atan2(v_req[1], v_req[0]);
         const double err = pymod(desired - heading + M_PI, 2 * M_PI) - M_PI;
-        const double cap = max_yaw_rate - 10.0 * max_yaw_jerk * dt * dt;
         const double g = gain * err;
         const double lo = (g < cap) ? g : cap;           /* min(cap, g) */
         yaw_req = (lo > -cap) ? lo : -cap;               /* max(-cap, lo) */
@@ -146,25 +144,10 @@ MODES = ("brake", "drive", "hold")
 """The kernel's mode codes, in order."""
 
 
-def _own(a: Any, n: int) -> bool:
-    return (
-        type(a) is np.ndarray
-        and a.dtype == np.float64
-        and a.shape == (n,)
-        and (a.flags.c_contiguous and a.flags.writeable)
-    )
-
-
-def _limiter_params(limiter: Any) -> np.ndarray:
-    return np.array(
-        [
-            limiter.max_rate,
-            limiter.max_jerk,
-            0.0 if limiter.max_value is None else limiter.max_value,
-            limiter.ZERO_ERROR,
-            limiter.ZERO_VALUE,
-        ]
-    )
+def _real(a: Any, shape: tuple[int, ...]) -> bool:
+    """A numpy array of real numbers (what ``np.asarray(a, float)`` takes as it is) of
+    ``shape``."""
+    return type(a) is np.ndarray and a.shape == shape and a.dtype.kind in "biuf"
 
 
 class CompiledBase:
@@ -188,11 +171,18 @@ class CompiledBase:
         channel the kernel does not take."""
         c = channel.config
         lin, yaw = channel.linear, channel.yaw
-        if lin.value.shape != (3,) or yaw.value.shape != (1,):
-            return None
+        if lin.value.shape != (3,) or yaw.value.shape != (1,) or yaw.max_value is not None:
+            return None  # the channel's own limiters only (its yaw limiter has no cap)
         for limiter in (lin, yaw):
             if not (limiter.max_jerk > 0 and limiter.max_rate >= 0):
                 return None  # numpy's step says what is wrong
+        neutrals = (channel.neutral, channel.neutral_right)
+        has_right = neutrals[1] is not None
+        for a in neutrals[: 1 + has_right]:  # read in place: a change to them counts
+            if not (type(a) is np.ndarray and a.dtype == np.float64 and a.shape == (3,)):
+                return None
+            if not a.flags.c_contiguous:
+                return None
         cfg = np.array(
             [
                 c.sphere_radius,
@@ -200,27 +190,32 @@ class CompiledBase:
                 c.max_speed,
                 c.turn_min_speed,
                 c.yaw_gain,
-                c.max_yaw_rate,
-                c.max_yaw_jerk,
-                channel.heading0,
+                channel.yaw_cap,
+                *yaw_matrix(channel.heading0).ravel(),
             ],
             dtype=np.float64,
         )
-        neutral = np.array(channel.neutral, dtype=np.float64)
-        has_right = channel.neutral_right is not None
-        neutral_right = np.array(channel.neutral_right if has_right else np.zeros(3), float)
-        lin_p, yaw_p = _limiter_params(lin), _limiter_params(yaw)
+        neutral_right = neutrals[1] if has_right else np.zeros(3)
+        lin_p, yaw_p = limiter_c.limiter_params(lin), limiter_c.limiter_params(yaw)
         left, right, rot, out = np.zeros(3), np.zeros(3), np.zeros((3, 3)), np.zeros(14)
-        fixed = 8 * has_right + 16 * (lin.max_value is not None) + 32 * (yaw.max_value is not None)
+        fixed = 8 * has_right + 16 * (lin.max_value is not None)
         args = np.zeros(14, dtype=np.int64)  # payload_base_packed's pointers and flags
-        args[:6] = [a.ctypes.data for a in (cfg, neutral, neutral_right, left, right, rot)]
+        args[:6] = [a.ctypes.data for a in (cfg, neutrals[0], neutral_right, left, right, rot)]
         args[9], args[12], args[13] = lin_p.ctypes.data, yaw_p.ctypes.data, out.ctypes.data
         scalars = np.array([channel.dt])
         call = functools.partial(self._fn, args.ctypes.data, scalars.ctypes.data)
         bound: list[Any] = [None, None, None, None]
+        # what the step was made for: another setting, neutral, limiter or limit -> numpy
+        n0, n1, h0, dt0 = neutrals[0], neutrals[1], channel.heading0, channel.dt
+        lr, lj, lv = lin.max_rate, lin.max_jerk, lin.max_value
+        yr, yj, yv = yaw.max_rate, yaw.max_jerk, yaw.max_value
 
-        def state() -> None:
-            """Bind the limiters' arrays (made the limiters' own first)."""
+        def state() -> bool:
+            """Bind the limiters' arrays (made the limiters' own first); False for arrays
+            of other shapes (the numpy step says what is wrong)."""
+            for m, n in ((lin, 3), (yaw, 1)):
+                if np.shape(m.value) != (n,) or np.shape(m.rate) != (n,):
+                    return False
             if not (bound[0] is lin.value and bound[1] is lin.rate):
                 lin.value, lin.rate = np.array(lin.value, float), np.array(lin.rate, float)
             if not (bound[2] is yaw.value and bound[3] is yaw.rate):
@@ -228,31 +223,48 @@ class CompiledBase:
             bound[:] = lin.value, lin.rate, yaw.value, yaw.rate
             args[7], args[8] = lin.value.ctypes.data, lin.rate.ctypes.data
             args[10], args[11] = yaw.value.ctypes.data, yaw.rate.ctypes.data
+            return True
 
         def step(left_wrist: Any, rotation: Any, right_wrist: Any) -> Any:
+            if (
+                channel.config is not c
+                or channel.neutral is not n0
+                or channel.neutral_right is not n1
+                or channel.linear is not lin
+                or channel.yaw is not yaw
+                or channel.heading0 != h0
+                or channel.dt != dt0
+                or (lin.max_rate, lin.max_jerk, lin.max_value) != (lr, lj, lv)
+                or (yaw.max_rate, yaw.max_jerk, yaw.max_value) != (yr, yj, yv)
+            ):
+                return None
             flags = fixed
             if left_wrist is not None:
-                if not (type(left_wrist) is np.ndarray and left_wrist.shape == (3,)):
+                if not _real(left_wrist, (3,)):
                     return None
                 np.copyto(left, left_wrist)
                 flags |= 1
             if right_wrist is not None:
-                if not (type(right_wrist) is np.ndarray and right_wrist.shape == (3,)):
+                if not _real(right_wrist, (3,)):
                     return None
                 np.copyto(right, right_wrist)
                 flags |= 2
             if rotation is not None:
-                if not (type(rotation) is np.ndarray and rotation.shape == (3, 3)):
+                # numpy's rot.T @ v takes its BLAS layout from the memory: row-major only
+                if not (_real(rotation, (3, 3)) and rotation.flags.c_contiguous):
                     return None
                 np.copyto(rot, rotation)
                 flags |= 4
-            if not (
-                bound[0] is lin.value
-                and bound[1] is lin.rate
-                and bound[2] is yaw.value
-                and bound[3] is yaw.rate
+            if (
+                not (
+                    bound[0] is lin.value
+                    and bound[1] is lin.rate
+                    and bound[2] is yaw.value
+                    and bound[3] is yaw.rate
+                )
+                and not state()
             ):
-                state()
+                return None
             args[6] = flags
             mode = call()
             if mode < 0:
@@ -262,8 +274,9 @@ class CompiledBase:
                 out[0:3].copy(), out[3:6].copy(), float(out[6]), twist, bool(out[13]), MODES[mode]
             )  # fmt: skip
 
-        state()
-        keep = (cfg, neutral, neutral_right, lin_p, yaw_p, left, right, rot, out, args, scalars)
+        if not state():
+            return None
+        keep = (cfg, *neutrals, neutral_right, lin_p, yaw_p, left, right, rot, out, args, scalars)
         step.keep = keep  # type: ignore[attr-defined]
         return step
 
@@ -305,14 +318,7 @@ def compiled_base(factory: Callable[..., Any]) -> CompiledBase | None:
             left = left + 0.1 * (neutral + aim - left)
             right = right_neutral + (rng.normal(scale=0.08, size=3) if k % 100 > 70 else 0.0)
             q = q + rng.normal(scale=0.01, size=4)
-            w, x, y, z = q / np.linalg.norm(q)
-            rot = np.array(
-                [
-                    [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                    [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                    [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-                ]
-            )
+            rot = quat_to_matrix(q / np.linalg.norm(q))
             args = (
                 None if k % 173 == 7 else left.copy(),
                 None if k % 61 == 3 else rot,

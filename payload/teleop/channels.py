@@ -124,7 +124,7 @@ class JerkLimiter:
         self.max_rate = max_rate
         self.max_jerk = max_jerk
         self.max_value = max_value
-        self._bound: tuple[Any, Any, Any] | None = None
+        self._bound: tuple[Any, Any, Any, Any] | None = None
 
     def reset(self, value: np.ndarray | None = None) -> None:
         self.value = np.zeros_like(self.value) if value is None else np.array(value, float)
@@ -144,15 +144,21 @@ class JerkLimiter:
         """The compiled vector step (:mod:`payload.teleop.limiter_c`) bound to this
         limiter's current value and rate arrays, or None to run :meth:`_step_vector`."""
         bound = self._bound
-        if bound is not None and bound[0] is self.value and bound[1] is self.rate:
+        limits = (self.max_rate, self.max_jerk, self.max_value)
+        if (
+            bound is not None
+            and bound[0] is self.value
+            and bound[1] is self.rate
+            and bound[3] == limits
+        ):
             return bound[2]
         from payload.teleop.limiter_c import compiled_limiter
 
         kernel = compiled_limiter(JerkLimiter)
         if kernel is not None:  # arrays of the limiter's own that the kernel updates
             self.value, self.rate = np.array(self.value, float), np.array(self.rate, float)
-        step = kernel.stepper(self) if kernel is not None else None
-        self._bound = (self.value, self.rate, step)
+        step = kernel.stepper(self) if kernel is not None else None  # takes the limits now
+        self._bound = (self.value, self.rate, step, limits)
         return step
 
     def _step_scalar(self, t: float, dt: float) -> np.ndarray:
@@ -375,6 +381,13 @@ class BaseChannel:
                 return BaseCommand(*out)
         return self._step_numpy(left_wrist, vehicle_rotation, right_wrist)
 
+    @property
+    def yaw_cap(self) -> float:
+        """The yaw request's bound [rad/s]: the yaw-rate cap less the limiter's landing
+        margin (10 jerk steps), so the limited rate never overshoots the cap."""
+        c = self.config
+        return c.max_yaw_rate - 10.0 * c.max_yaw_jerk * self.dt * self.dt
+
     @functools.cached_property
     def _compiled_step(self) -> Any:
         from payload.teleop.base_c import compiled_base
@@ -402,7 +415,7 @@ class BaseChannel:
             heading = math.atan2(rot[1, 0], rot[0, 0])
             desired = math.atan2(v_req[1], v_req[0])
             err = (desired - heading + math.pi) % (2 * math.pi) - math.pi
-            cap = c.max_yaw_rate - 10.0 * c.max_yaw_jerk * self.dt * self.dt
+            cap = self.yaw_cap
             yaw_req = max(-cap, min(cap, c.yaw_gain * err))
         yaw_rate = float(self.yaw.step(np.array([yaw_req]), self.dt)[0])
         twist = VehicleTwist(rot.T @ v, rot.T @ np.array([0.0, 0.0, yaw_rate]), 0.0)

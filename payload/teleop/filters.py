@@ -48,7 +48,7 @@ class OneEuroFilter:
         self._x: np.ndarray | None = None
         self._dx: np.ndarray | None = None
         self._t: float | None = None
-        self._bound: tuple[Any, Any, Any] | None = None
+        self._bound: tuple[Any, Any, Any, Any] | None = None
 
     def reset(self) -> None:
         """Forget the history: the next sample passes through unfiltered."""
@@ -82,7 +82,12 @@ class OneEuroFilter:
         """The compiled step (:mod:`payload.teleop.filter_c`) bound to this filter's
         estimate arrays for samples like ``x``, or None to run :func:`_step_numpy`."""
         bound = self._bound
-        if bound is not None and bound[0] is self._x and bound[1] is self._dx:
+        if (
+            bound is not None
+            and bound[0] is self._x
+            and bound[1] is self._dx
+            and bound[3] is self.config  # a frozen config: another object, other settings
+        ):
             return bound[2]
         step = None
         if x.ndim == 2 and x.shape[1] == 3 and x.shape == self._x.shape == self._dx.shape:
@@ -95,7 +100,7 @@ class OneEuroFilter:
                 self._dx = np.ascontiguousarray(self._dx, dtype=float).copy()
                 c = self.config
                 step = kernel.stepper(self._x, self._dx, float(c.min_cutoff), float(c.beta))
-        self._bound = (self._x, self._dx, step)
+        self._bound = (self._x, self._dx, step, self.config)
         return step
 
 

@@ -127,6 +127,22 @@ void payload_limiter_step(const double *tgt, double *value, double *rate, int64_
 """The kernel's C (:func:`payload.native.build_library` compiles it)."""
 
 
+def limiter_params(limiter: Any) -> np.ndarray:
+    """A limiter's settings as ``payload_limiter_step`` takes them (``p``): max rate, max
+    jerk, max value (0 without a cap; the call says whether there is one), zero error,
+    zero value."""
+    return np.array(
+        [
+            limiter.max_rate,
+            limiter.max_jerk,
+            0.0 if limiter.max_value is None else limiter.max_value,
+            limiter.ZERO_ERROR,
+            limiter.ZERO_VALUE,
+        ],
+        dtype=np.float64,
+    )
+
+
 class CompiledLimiter:
     """The vector step, compiled (:data:`SOURCE`), bound to limiters by :meth:`stepper`."""
 
@@ -153,16 +169,7 @@ class CompiledLimiter:
         if not (limiter.max_jerk > 0 and limiter.max_rate >= 0):
             return None  # numpy's step says what is wrong (math.sqrt of a negative)
         has_max = limiter.max_value is not None
-        params = np.array(
-            [
-                limiter.max_rate,
-                limiter.max_jerk,
-                limiter.max_value if has_max else 0.0,
-                limiter.ZERO_ERROR,
-                limiter.ZERO_VALUE,
-            ],
-            dtype=np.float64,
-        )
+        params = limiter_params(limiter)
         buf = np.empty(n)
         ptr = ctypes.c_void_p
         call = functools.partial(
@@ -213,4 +220,4 @@ def compiled_limiter(factory: Callable[..., Any]) -> CompiledLimiter | None:
     return kernel
 
 
-__all__ = ["MAX_DIM", "SOURCE", "CompiledLimiter", "compiled_limiter"]
+__all__ = ["MAX_DIM", "SOURCE", "CompiledLimiter", "compiled_limiter", "limiter_params"]

@@ -81,8 +81,11 @@ class CompiledHandCheck:
         joints: Joints per hand.
         wrist: The wrist's row.
         max_extent: The largest joint distance from the wrist [m].
-        neutral: The neutral wrist (3,) [m], or None (no workspace check); a float64
-            array is read in place at every check.
+        neutral: The neutral wrist, a contiguous float64 array (3,) [m] read in place at
+            every check, or None (no workspace check).
+
+    Raises:
+        ValueError: Another neutral (the numpy check runs).
         radius: The workspace radius around it [m].
     """
 
@@ -107,7 +110,7 @@ class CompiledHandCheck:
             and neutral.shape == (3,)
             and neutral.flags.c_contiguous
         ):
-            neutral = np.array(neutral, dtype=np.float64).reshape(3)
+            raise ValueError("the neutral wrist is not a contiguous float64 3-vector")
         self._neutral = neutral  # read in place: a change to the caller's array counts
         self._last = np.zeros(3)
         self._params = np.array([max_extent, radius, 0.0])
@@ -150,7 +153,10 @@ def compiled_hand_check(
     lib = native.load_kernel("hand_check", SOURCE, "the hand check kernel", log)
     if lib is None:
         return None
-    kernel = CompiledHandCheck(lib, ddot, joints, wrist, max_extent, neutral, radius)
+    try:
+        kernel = CompiledHandCheck(lib, ddot, joints, wrist, max_extent, neutral, radius)
+    except ValueError:
+        return None  # a neutral the kernel cannot read in place: the numpy check
     rng = np.random.default_rng(0)
     centre = np.zeros(3) if neutral is None else np.asarray(neutral, dtype=np.float64)
     verdicts = set()

@@ -446,11 +446,15 @@ def _cmd_trials_compare(args: argparse.Namespace) -> int:
     else:
         print(text, end="")
     if args.require_identical and not result["identical"]:
-        differ = [r["trial"] for r in result["trials"] if not r["steps"]["identical"]]
-        channels = [r["trial"] for r in result["trials"] if not r["channels"]["identical"]]
+        rows = result["trials"]
+        differ = [r["trial"] for r in rows if not r["steps"]["identical"]]
+        channels = [r["trial"] for r in rows if not r["channels"]["identical"]]
+        others = sorted({m for r in rows for m in r["other_metrics"]})
+        alone = result["only_a"] + result["only_b"]
         raise CheckFailed(
-            f"the runs differ (metrics, recorded steps or other channels; steps differ in: "
-            f"{', '.join(differ) or 'none'}; other channels in: {', '.join(channels) or 'none'})"
+            f"the runs differ (steps differ in: {', '.join(differ) or 'none'}; other channels "
+            f"in: {', '.join(channels) or 'none'}; other metrics: {', '.join(others) or 'none'}"
+            f"; trials in one run only: {', '.join(alone) or 'none'}; metric table above)"
         )
     return 0
 
@@ -552,14 +556,17 @@ def register(
     cm.add_argument("run_a", metavar="RUN_A", help="reference campaign or trial folder")
     cm.add_argument("run_b", metavar="RUN_B", help="campaign or trial folder compared with it")
     cm.add_argument(
-        "--steps", action="store_true", help="also compare every recorded step, bit for bit"
+        "--steps",
+        action="store_true",
+        help="also compare every recorded step, every message of the other channels (their "
+        "wall-clock timestamps aside) and every other metric, bit for bit",
     )
     cm.add_argument(
         "--require-identical",
         action="store_true",
-        help="compare the steps too and exit 1 unless every common trial's metrics, "
-        "recorded steps and other channels' messages (their wall-clock timestamps aside) "
-        "are the same in every bit",
+        help="compare as --steps does and exit 1 unless both runs hold the same trials, "
+        "with the same metrics, recorded steps and other channels' messages (their "
+        "wall-clock timestamps aside) in every bit",
     )
     cm.add_argument("--out", help="also write the Markdown table to this file")
     cm.add_argument("--force", action="store_true", help="replace --out if it exists")

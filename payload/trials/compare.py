@@ -17,13 +17,14 @@ from __future__ import annotations
 
 import json
 import math
+import struct
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from payload.errors import PayloadError
-from payload.trials.records import FIELD_SPECS
+from payload.trials.records import FIELD_SPECS, HANDS_TOPIC, STEP_TOPIC, RecordingError
 from payload.trials.summary import METRIC_KEYS, METRIC_LABELS
 
 
@@ -49,6 +50,11 @@ def _metrics(trial: Path) -> dict[str, Any]:
         return json.loads(path.read_text())
     except (OSError, ValueError) as exc:
         raise CompareError(f"{path}: cannot read the trial's metrics ({exc})") from None
+
+
+def _same_value(a: Any, b: Any) -> bool:
+    """Two metric values alike as written (so -0.0 differs from 0.0)."""
+    return json.dumps(a, sort_keys=True) == json.dumps(b, sort_keys=True)
 
 
 def _change(a: Any, b: Any) -> float | None:
@@ -109,17 +115,11 @@ def compare_steps(log_a: Path, log_b: Path) -> dict[str, Any]:
     }
 
 
-_STEPS_COMPARED = "/trial/step"
-"""The channel :func:`compare_steps` compares (its ``wall_time`` is the clock's)."""
-
-_CLOCK_FIELDS = frozenset({"wall_time"})
-"""Fields of the metrics that hold the wall clock (the others must match)."""
-
-
 def _without_timestamps(message: Any) -> Any:
     """``message`` with every ``google.protobuf.Timestamp`` in it cleared, at any depth
     (the Foxglove channels stamp their messages with the wall clock at the start plus the
-    step time)."""
+    step time; the message's log time, compared relative to the recording's first, keeps
+    the step)."""
     for field, value in message.ListFields():
         if field.message_type is None:
             continue
@@ -133,34 +133,54 @@ def _without_timestamps(message: Any) -> Any:
     return message
 
 
+def _hand_sample(sample: dict[str, Any]) -> bytes:
+    """A decoded hand sample as comparable bytes (the joints' bits, NaN rows included)."""
+    head = struct.pack(
+        "<qd??", sample["seq"], sample["stamp"], sample["left_tracked"], sample["right_tracked"]
+    )
+    return head + np.asarray(sample["left"]).tobytes() + np.asarray(sample["right"]).tobytes()
+
+
 def _channel_messages(log: Path) -> dict[str, list[bytes]]:
-    """Every message of every channel but the steps', in order, as comparable bytes:
-    protobuf messages re-serialised without their timestamps, others as written."""
-    from mcap.reader import make_reader
+    """Every message of every channel but the steps', in order, as comparable bytes: its
+    log time relative to the recording's first message (the wall clock at the start
+    cancels), then its content: the raw hand samples decoded (their delta encoding
+    restarts at each flush, which the wall clock decides), the other protobuf messages
+    re-serialised without their timestamps, the rest as written."""
+    from google.protobuf.message import DecodeError
     from mcap_protobuf.decoder import DecoderFactory
 
-    decoders = DecoderFactory()
-    out: dict[str, list[bytes]] = {}
+    from payload.trials.codec import StepCodec
+    from payload.trials.reading import read_messages
+
     try:
-        with open(log, "rb") as f:
-            for schema, channel, message in make_reader(f).iter_messages(log_time_order=False):
-                if channel.topic == _STEPS_COMPARED:
-                    continue
-                data = message.data
-                if channel.message_encoding == "protobuf" and schema is not None:
-                    decode = decoders.decoder_for(channel.message_encoding, schema)
-                    if decode is not None:
-                        data = _without_timestamps(decode(data)).SerializeToString()
-                out.setdefault(channel.topic, []).append(data)
-    except (OSError, ValueError) as exc:
-        raise CompareError(f"{log}: cannot read the recording's channels ({exc})") from None
+        messages, _ = read_messages(log)
+    except RecordingError as exc:
+        raise CompareError(str(exc)) from None
+    decoders, hands = DecoderFactory(), StepCodec()
+    t0 = messages[0][2].log_time if messages else 0
+    out: dict[str, list[bytes]] = {}
+    for channel, schema, message in messages:
+        if channel.topic == STEP_TOPIC:
+            continue  # compare_steps compares them (their wall_time is the clock's)
+        data = message.data
+        try:
+            if channel.topic == HANDS_TOPIC:
+                data = _hand_sample(hands.decode_hands(data))
+            elif channel.message_encoding == "protobuf" and schema is not None:
+                decode = decoders.decoder_for(channel.message_encoding, schema)
+                if decode is not None:
+                    data = _without_timestamps(decode(data)).SerializeToString()
+        except (DecodeError, ValueError) as exc:
+            raise CompareError(f"{log}: {channel.topic}: a corrupt message ({exc})") from None
+        out.setdefault(channel.topic, []).append(struct.pack("<q", message.log_time - t0) + data)
     return out
 
 
 def compare_channels(log_a: Path, log_b: Path) -> dict[str, Any]:
     """Every message of every other channel of two recordings (the raw hand frames, the
-    Foxglove channels, the safety records), in order, bit for bit, their wall-clock
-    timestamps aside.
+    Foxglove channels, the safety records), in order, bit for bit, at the same time
+    relative to the recording's start, their wall-clock timestamps aside.
 
     Returns:
         ``{"identical", "channels": {topic: {"messages_a", "messages_b",
@@ -195,9 +215,10 @@ def compare_runs(run_a: str | Path, run_b: str | Path, *, steps: bool = False) -
         "physics_dt_b", "metrics": {key: {"a", "b", "change"}}, "steps"?}],
         "largest_change": {key: {"change" (signed, largest in size), "trial"}},
         "only_a", "only_b" (trial names in one run only), "identical" (with ``steps``:
-        every common trial's metrics equal, its steps and its other channels' messages
-        bit for bit)}``; with ``steps`` each trial also has ``"channels"`` and
-        ``"other_metrics"`` (the names of the other metrics that differ).
+        the same trials in both, every trial's metrics the same as written, its steps
+        and its other channels' messages bit for bit)}``; with ``steps`` each trial also
+        has ``"channels"`` and ``"other_metrics"`` (the names of the other metrics that
+        differ).
 
     Raises:
         CompareError: A run is missing, a metrics file unreadable, or no trial in common.
@@ -219,7 +240,7 @@ def compare_runs(run_a: str | Path, run_b: str | Path, *, steps: bool = False) -
         for key in METRIC_KEYS:
             change = _change(ma.get(key), mb.get(key))
             metrics[key] = {"a": ma.get(key), "b": mb.get(key), "change": change}
-            if ma.get(key) != mb.get(key):
+            if not _same_value(ma.get(key), mb.get(key)):
                 identical = False
             best = largest.get(key)
             if change is not None and (best is None or abs(change) > abs(best["change"])):
@@ -240,8 +261,8 @@ def compare_runs(run_a: str | Path, run_b: str | Path, *, steps: bool = False) -
             row["channels"] = compare_channels(log_a, log_b)
             row["other_metrics"] = sorted(
                 key
-                for key in (set(ma) | set(mb)) - {"provenance", *METRIC_KEYS, *_CLOCK_FIELDS}
-                if ma.get(key) != mb.get(key)
+                for key in (set(ma) | set(mb)) - {"provenance", *METRIC_KEYS}
+                if not _same_value(ma.get(key), mb.get(key))
             )
             identical = (
                 identical
@@ -259,7 +280,8 @@ def compare_runs(run_a: str | Path, run_b: str | Path, *, steps: bool = False) -
         "largest_change": largest,
         "only_a": sorted(set(ta) - names_a),
         "only_b": sorted(set(tb) - names_b),
-        "identical": identical if steps else None,
+        # a trial in one run only is a difference too
+        "identical": (identical and names_a == set(ta) and names_b == set(tb)) if steps else None,
     }
 
 

@@ -374,6 +374,44 @@ def _finite_columns(rec: Recording) -> bool:
     return True
 
 
+def read_messages(path: str | Path) -> tuple[list[tuple[Channel, Schema | None, Message]], bool]:
+    """Every message of every channel of a recording, in file order, with its channel and
+    schema, read as :func:`read_recording` reads a file: a cut-short file up to its last
+    complete record (``complete`` False), a corrupt one refused.
+
+    Returns:
+        (``(channel, schema or None, message)`` per message, ``complete``).
+
+    Raises:
+        RecordingError: Unreadable or corrupt file.
+    """
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise RecordingError(f"{path}: no such recording") from None
+    except OSError as exc:
+        raise RecordingError(f"{path}: cannot read ({exc.strerror})") from exc
+    records = clean_records(data, path)
+    schemas: dict[int, Schema] = {}
+    channels: dict[int, Channel] = {}
+    out: list[tuple[Channel, Schema | None, Message]] = []
+    try:
+        for record in StreamReader(io.BytesIO(records.data)).records:
+            if isinstance(record, Schema):
+                schemas[record.id] = record
+            elif isinstance(record, Channel):
+                channels[record.id] = record
+            elif isinstance(record, Message) and record.channel_id in channels:
+                channel = channels[record.channel_id]
+                out.append((channel, schemas.get(channel.schema_id), record))
+    except EndOfFile:
+        pass  # the complete prefix of a cut-short file ends exactly here
+    except McapError as exc:
+        raise RecordingError(f"{path}: record {len(out)}: corrupt ({exc})") from None
+    return out, records.complete
+
+
 def read_hand_frames(path: str | Path) -> tuple[dict[str, Any], list[Any]]:
     """The raw hand frames of a recording's ``/trial/hands`` channel, for a replay.
 
