@@ -171,16 +171,21 @@ def _check_version(channel: Channel, path: Path) -> None:
         )
 
 
-def _read_file(
-    path: Path,
-) -> tuple[dict[int, Channel], dict[str, Any], list[dict[str, Any]], list[dict[str, Any]], bool]:
-    """Channels, merged metadata, step rows, hand samples and completeness of a file."""
+def _file_bytes(path: Path) -> bytes:
+    """A recording's bytes (a missing or unreadable file: :class:`RecordingError`)."""
     try:
-        data = path.read_bytes()
+        return path.read_bytes()
     except FileNotFoundError:
         raise RecordingError(f"{path}: no such recording") from None
     except OSError as exc:
         raise RecordingError(f"{path}: cannot read ({exc.strerror})") from exc
+
+
+def _read_file(
+    path: Path,
+) -> tuple[dict[int, Channel], dict[str, Any], list[dict[str, Any]], list[dict[str, Any]], bool]:
+    """Channels, merged metadata, step rows, hand samples and completeness of a file."""
+    data = _file_bytes(path)
     records = clean_records(data, path)
     complete = records.complete
     stream: Iterable[McapRecord] | None = _used_records(records.data)
@@ -386,12 +391,7 @@ def read_messages(path: str | Path) -> tuple[list[tuple[Channel, Schema | None, 
         RecordingError: Unreadable or corrupt file.
     """
     path = Path(path)
-    try:
-        data = path.read_bytes()
-    except FileNotFoundError:
-        raise RecordingError(f"{path}: no such recording") from None
-    except OSError as exc:
-        raise RecordingError(f"{path}: cannot read ({exc.strerror})") from exc
+    data = _file_bytes(path)
     records = clean_records(data, path)
     schemas: dict[int, Schema] = {}
     channels: dict[int, Channel] = {}
