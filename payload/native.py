@@ -148,6 +148,31 @@ NATIVE_ENV = "PAYLOAD_NATIVE"
 50 Hz loop's; the same results). The retargeting solvers' generated C is not affected."""
 
 
+CBLAS_ROW_MAJOR = 101
+"""CBLAS's ``CblasRowMajor``."""
+CBLAS_COL_MAJOR = 102
+"""CBLAS's ``CblasColMajor``."""
+CBLAS_NO_TRANS = 111
+"""CBLAS's ``CblasNoTrans``."""
+
+BLAS_C = f"""#include <math.h>
+#include <stdint.h>
+
+/* numpy's CBLAS functions, as the kernels call them through their addresses */
+typedef void (*dgemv_fn)(int, int, int64_t, int64_t, double, const double *, int64_t,
+                         const double *, int64_t, double, double *, int64_t);
+typedef double (*ddot_fn)(int64_t, const double *, int64_t, const double *, int64_t);
+enum {{
+    ROW_MAJOR = {CBLAS_ROW_MAJOR},
+    COL_MAJOR = {CBLAS_COL_MAJOR},
+    NO_TRANS = {CBLAS_NO_TRANS},
+}};
+
+"""
+"""What every kernel's C starts with (:func:`load_kernel` puts it first): the headers,
+the types of numpy's ``dgemv`` and ``ddot`` and CBLAS's layout codes."""
+
+
 def load_kernel(
     name: str,
     source: str,
@@ -172,7 +197,7 @@ def load_kernel(
             name,
             {f"{name}.c": source},
             compiler,
-            prelude=prelude,
+            prelude=BLAS_C + prelude,
             key_parts=(*key_parts, _numpy_version()),
             what=what,
         )
@@ -271,9 +296,9 @@ def gemv_layout(a: Any) -> tuple[int, int] | None:
     if a.dtype != "float64" or a.ndim != 2:
         return None
     if a.flags.c_contiguous:
-        return 101, a.shape[1]
+        return CBLAS_ROW_MAJOR, a.shape[1]
     if a.flags.f_contiguous:
-        return 102, a.shape[0]
+        return CBLAS_COL_MAJOR, a.shape[0]
     return None
 
 
@@ -287,6 +312,10 @@ def mujoco_function(name: str) -> int | None:
 
 
 __all__ = [
+    "BLAS_C",
+    "CBLAS_COL_MAJOR",
+    "CBLAS_NO_TRANS",
+    "CBLAS_ROW_MAJOR",
     "CFLAGS",
     "NATIVE_ENV",
     "NUMPY_DDOT",

@@ -58,8 +58,8 @@ def test_numpys_dgemv_is_what_matmul_runs():
                 x = rng.normal(size=shape[1])
                 cblas, ld = native.gemv_layout(a)
                 y = np.empty(shape[0])
-                dgemv(cblas, 111, shape[0], shape[1], 1.0, a.ctypes.data, ld, x.ctypes.data, 1,
-                      0.0, y.ctypes.data, 1)  # fmt: skip
+                dgemv(cblas, native.CBLAS_NO_TRANS, shape[0], shape[1], 1.0, a.ctypes.data, ld,
+                      x.ctypes.data, 1, 0.0, y.ctypes.data, 1)  # fmt: skip
                 assert y.tobytes() == (a @ x).tobytes()
                 naive = np.array([sum(float(u) * float(v) for u, v in zip(r, x)) for r in a])
                 naive_differs += int((naive != a @ x).sum())

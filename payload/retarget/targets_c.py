@@ -29,11 +29,7 @@ from payload.retarget.features import N_FEATURES, PairFeatures
 log = logging.getLogger(__name__)
 
 SOURCE = r"""
-#include <math.h>
-#include <stdint.h>
 
-typedef void (*dgemv_fn)(int, int, int64_t, int64_t, double, const double *, int64_t,
-                         const double *, int64_t, double, double *, int64_t);
 
 /* c: human pinch and open spans, span min and max, robot pinch and open centres, human
    pinch and open centres (16); rot and grot (centre_gain * rot) with their layouts.
@@ -55,11 +51,11 @@ int payload_targets(void *gemv_p, const double *c, const double *rot, int rot_or
         double c_human = (1.0 - alpha) * c[10 + i] + alpha * c[13 + i];
         diff[i] = h[4 + i] - c_human;
     }
-    gemv(grot_order, 111, 3, 3, 1.0, grot, grot_ld, diff, 1, 0.0, moved, 1);
+    gemv(grot_order, NO_TRANS, 3, 3, 1.0, grot, grot_ld, diff, 1, 0.0, moved, 1);
     for (int i = 0; i < 3; i++) out[4 + i] = c_robot[i] + moved[i];
-    gemv(rot_order, 111, 3, 3, 1.0, rot, rot_ld, h + 7, 1, 0.0, out + 7, 1);
-    gemv(rot_order, 111, 3, 3, 1.0, rot, rot_ld, h + 10, 1, 0.0, out + 10, 1);
-    gemv(rot_order, 111, 3, 3, 1.0, rot, rot_ld, h + 1, 1, 0.0, out + 1, 1);
+    gemv(rot_order, NO_TRANS, 3, 3, 1.0, rot, rot_ld, h + 7, 1, 0.0, out + 7, 1);
+    gemv(rot_order, NO_TRANS, 3, 3, 1.0, rot, rot_ld, h + 10, 1, 0.0, out + 10, 1);
+    gemv(rot_order, NO_TRANS, 3, 3, 1.0, rot, rot_ld, h + 1, 1, 0.0, out + 1, 1);
     return 0;
 }
 """

@@ -39,14 +39,10 @@ from payload import native
 log = logging.getLogger(__name__)
 
 SOURCE = r"""
-#include <math.h>
-#include <stdint.h>
 #include <stdlib.h>
 
-typedef void (*dgemv_fn)(int, int, int64_t, int64_t, double, const double *, int64_t,
-                         const double *, int64_t, double, double *, int64_t);
 /* NZ, the number of nozzles, is defined by the caller (load_with_searches) */
-enum { ROW_MAJOR = 101, NO_TRANS = 111, NB = 6, NPAT = 1 << (NZ - NB) };
+enum { NB = 6, NPAT = 1 << (NZ - NB) };
 
 typedef struct {
     dgemv_fn gemv;

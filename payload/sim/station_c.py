@@ -39,8 +39,6 @@ from payload.rotations import quat_to_matrix
 log = logging.getLogger(__name__)
 
 SOURCE = r"""
-#include <math.h>
-#include <stdint.h>
 
 /* numpy's maximum/minimum reductions: a NaN wins and stays */
 static double nmax(double a, double b) { return (b > a || b != b) && a == a ? b : a; }

@@ -30,7 +30,6 @@ log = logging.getLogger(__name__)
 
 CONTROL_SOURCE = r"""
 /* ---- the vehicle controller's step (payload.sim.vehicle.VehicleController.update) ---- */
-typedef double (*ddot_fn)(int64_t, const double *, int64_t, const double *, int64_t);
 
 typedef struct {
     searches *s;

@@ -41,12 +41,9 @@ from payload.teleop import limiter_c
 log = logging.getLogger(__name__)
 
 SOURCE = r"""
-typedef void (*dgemv_fn)(int, int, int64_t, int64_t, double, const double *, int64_t,
-                         const double *, int64_t, double, double *, int64_t);
 static dgemv_fn mv;
 void payload_base_init(void *ddot, void *gemv) { payload_limiter_init(ddot); mv = (dgemv_fn)gemv; }
 
-enum { ROW_MAJOR = 101, COL_MAJOR = 102, NO_TRANS = 111 };
 
 /* Python's float % */
 static double pymod(double x, double y)

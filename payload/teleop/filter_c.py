@@ -25,8 +25,6 @@ from payload import native
 log = logging.getLogger(__name__)
 
 SOURCE = r"""
-#include <math.h>
-#include <stdint.h>
 
 /* One step for samples x (n, 3): the estimate xs and the speed estimate ds (n, 3) are
    updated in place (each element from its own previous value); dt, the speed filter's

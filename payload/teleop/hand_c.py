@@ -41,12 +41,7 @@ from payload.teleop.hands import (
 log = logging.getLogger(__name__)
 
 SOURCE = r"""
-#include <math.h>
-#include <stdint.h>
 
-typedef void (*dgemv_fn)(int, int, int64_t, int64_t, double, const double *, int64_t,
-                         const double *, int64_t, double, double *, int64_t);
-typedef double (*ddot_fn)(int64_t, const double *, int64_t, const double *, int64_t);
 
 static double norm3(ddot_fn dot, const double *v) { return sqrt(dot(3, v, 1, v, 1)); }
 
@@ -97,7 +92,7 @@ int payload_hand_features(void *gemv_p, void *dot_p, const double *J, const int6
     for (int k = 0; k < 4; k++) {
         double d[3];
         for (int i = 0; i < 3; i++) d[i] = J[3 * which[k] + i] - t[4 * i + 3];
-        gemv(102, 111, 3, 3, 1.0, t, 4, d, 1, 0.0, pts[k], 1);
+        gemv(COL_MAJOR, NO_TRANS, 3, 3, 1.0, t, 4, d, 1, 0.0, pts[k], 1);
     }
     for (int k = 0; k < 4; k++)
         for (int i = 0; i < 3; i++)

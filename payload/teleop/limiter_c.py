@@ -28,12 +28,9 @@ MAX_DIM = 16
 """The largest vector the kernel takes (the base channel's is 3)."""
 
 SOURCE = r"""
-#include <math.h>
-#include <stdint.h>
 
 #define MAX_DIM @MAX_DIM@
 
-typedef double (*ddot_fn)(int64_t, const double *, int64_t, const double *, int64_t);
 
 static ddot_fn dot;
 void payload_limiter_init(void *d) { dot = (ddot_fn)d; }

@@ -31,10 +31,7 @@ from payload import native
 log = logging.getLogger(__name__)
 
 SOURCE = r"""
-#include <math.h>
-#include <stdint.h>
 
-typedef double (*ddot_fn)(int64_t, const double *, int64_t, const double *, int64_t);
 
 /* The checks of TrackingSupervisor._valid on a tracked hand: joints (n x 3, row-major),
    the wrist its row `wrist`. p: max_extent, workspace radius, the jump allowed now.

@@ -34,15 +34,10 @@ from payload import native
 log = logging.getLogger(__name__)
 
 SOURCE = r"""
-#include <math.h>
-#include <stdint.h>
 
-typedef void (*dgemv_fn)(int, int, int64_t, int64_t, double, const double *, int64_t,
-                         const double *, int64_t, double, double *, int64_t);
 typedef void (*quat1_fn)(double *, const double *);
 typedef void (*quat2_fn)(double *, const double *, const double *);
 
-enum { COL_MAJOR = 102, NO_TRANS = 111 };
 
 /* per link i: out[7i..7i+2] = R(parent)^T (x(link) - x(parent)), out[7i+3..7i+6] =
    conj(q(parent)) q(link) (w x y z), then every value rounded to the resolution */
