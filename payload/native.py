@@ -207,6 +207,19 @@ def load_kernel(
         return None
 
 
+def load_blas_kernel(
+    name: str, source: str, what: str, logger: logging.Logger, *functions: str
+) -> tuple[Any, ...] | None:
+    """:func:`load_kernel` for a kernel that calls numpy's CBLAS ``functions`` (e.g.
+    :data:`NUMPY_DDOT`, :data:`NUMPY_DGEMV`): ``(library, *their addresses)``, or None
+    when one of them or the library is not there (the numpy code runs)."""
+    addresses = [numpy_blas(f) for f in functions]
+    if any(a is None for a in addresses):
+        return None
+    lib = load_kernel(name, source, what, logger)
+    return None if lib is None else (lib, *addresses)
+
+
 _KERNELS: dict[str, bool] = {}
 
 
@@ -326,6 +339,7 @@ __all__ = [
     "flags",
     "gemv_layout",
     "kernel_status",
+    "load_blas_kernel",
     "load_kernel",
     "loaded_symbol",
     "mujoco_function",

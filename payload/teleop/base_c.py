@@ -278,12 +278,15 @@ class CompiledBase:
         return step
 
 
-def _load() -> tuple[ctypes.CDLL, int, int] | None:
-    ddot, gemv = native.numpy_blas(native.NUMPY_DDOT), native.numpy_dgemv()
-    if ddot is None or gemv is None:
-        return None
-    lib = native.load_kernel("base", limiter_c.SOURCE + SOURCE, "the base channel kernel", log)
-    return None if lib is None else (lib, ddot, gemv)
+def _load() -> tuple[Any, ...] | None:
+    return native.load_blas_kernel(
+        "base",
+        limiter_c.SOURCE + SOURCE,
+        "the base channel kernel",
+        log,
+        native.NUMPY_DDOT,
+        native.NUMPY_DGEMV,
+    )
 
 
 @functools.cache

@@ -189,13 +189,12 @@ def compiled_limiter(factory: Callable[..., Any]) -> CompiledLimiter | None:
     no numpy OpenBLAS, ``PAYLOAD_NATIVE=0``, a failed build, or a self-check that differs
     in a single bit from the numpy step of limiters made by ``factory(dim, max_rate,
     max_jerk, max_value)``, on random requests with and without a value cap)."""
-    ddot = native.numpy_blas(native.NUMPY_DDOT)
-    if ddot is None:
+    loaded = native.load_blas_kernel(
+        "limiter", SOURCE, "the jerk limiter kernel", log, native.NUMPY_DDOT
+    )
+    if loaded is None:
         return None
-    lib = native.load_kernel("limiter", SOURCE, "the jerk limiter kernel", log)
-    if lib is None:
-        return None
-    kernel = CompiledLimiter(lib, ddot)
+    kernel = CompiledLimiter(*loaded)
     rng = np.random.default_rng(0)
     for cap in (None, 0.19, 0.05):
         mine, theirs = factory(3, 0.0175, 0.02, cap), factory(3, 0.0175, 0.02, cap)

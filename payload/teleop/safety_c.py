@@ -144,14 +144,13 @@ def compiled_hand_check(
     numpy OpenBLAS, ``PAYLOAD_NATIVE=0``, a failed build, or a self-check on random hands
     (valid, stretched, displaced, jumping and non-finite ones) that judges one otherwise
     than ``reference(joints, last, jump)``, the numpy check's verdict."""
-    ddot = native.numpy_blas(native.NUMPY_DDOT)
-    if ddot is None:
-        return None
-    lib = native.load_kernel("hand_check", SOURCE, "the hand check kernel", log)
-    if lib is None:
+    loaded = native.load_blas_kernel(
+        "hand_check", SOURCE, "the hand check kernel", log, native.NUMPY_DDOT
+    )
+    if loaded is None:
         return None
     try:
-        kernel = CompiledHandCheck(lib, ddot, joints, wrist, max_extent, neutral, radius)
+        kernel = CompiledHandCheck(*loaded, joints, wrist, max_extent, neutral, radius)
     except ValueError:
         return None  # a neutral the kernel cannot read in place: the numpy check
     rng = np.random.default_rng(0)
