@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import os
 import sys
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -101,3 +103,39 @@ def failing_compiler(monkeypatch, tmp_path) -> Path:
     monkeypatch.setenv("PAYLOAD_CACHE_DIR", str(tmp_path))
     monkeypatch.setattr(compiled, "_compiler", lambda: str(cc))
     return cc
+
+
+@pytest.fixture
+def refused_kernel(monkeypatch, caplog, tmp_path) -> Callable[..., Any]:
+    """``with refused_kernel(module, old, new):`` builds, inside the block, the kernel of
+    ``module`` whose C has ``old`` replaced by ``new`` (the replacement must change it;
+    ``attr`` names the source, ``SOURCE`` by default) in a cache of its own; on leaving,
+    the module's logger must have warned ``says`` (its self-check refused the kernel).
+    ``forget``: a cached factory to clear before and after."""
+    monkeypatch.setenv("PAYLOAD_CACHE_DIR", str(tmp_path))
+
+    @contextmanager
+    def refused(
+        module: Any,
+        old: str,
+        new: str,
+        *,
+        attr: str = "SOURCE",
+        says: str = "differ",
+        forget: Any = None,
+    ) -> Iterator[None]:
+        source = getattr(module, attr)
+        other = source.replace(old, new)
+        assert other != source, f"{module.__name__}.{attr} has no {old!r}"
+        monkeypatch.setattr(module, attr, other)
+        if forget is not None:  # a factory that keeps its kernel for the process
+            forget.cache_clear()
+        try:
+            with caplog.at_level("WARNING", logger=module.__name__):
+                yield
+            assert says in caplog.text
+        finally:
+            if forget is not None:
+                forget.cache_clear()
+
+    return refused

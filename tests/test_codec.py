@@ -377,18 +377,15 @@ def test_the_compiled_frame_poses_are_numpys(foxglove_recording) -> None:
         )
 
 
-def test_frame_poses_with_other_bits_are_refused(foxglove_recording, monkeypatch, tmp_path):
+def test_frame_poses_with_other_bits_are_refused(foxglove_recording, monkeypatch, refused_kernel):
     """A kernel that forgets the transpose (the parent's rotation, not its inverse) fails
     its self-check and the numpy loop runs; so does any kernel with PAYLOAD_NATIVE=0."""
     from payload.trials import foxglove_c
     from payload.trials.foxglove import FoxgloveScene
 
     _, _, world = foxglove_recording
-    monkeypatch.setenv("PAYLOAD_CACHE_DIR", str(tmp_path))
-    other = foxglove_c.SOURCE.replace("mv(COL_MAJOR,", "mv(101,")
-    assert other != foxglove_c.SOURCE
-    monkeypatch.setattr(foxglove_c, "SOURCE", other)
-    assert FoxgloveScene(world)._poses_kernel is None
+    with refused_kernel(foxglove_c, "mv(COL_MAJOR,", "mv(ROW_MAJOR,"):
+        assert FoxgloveScene(world)._poses_kernel is None
     monkeypatch.undo()
     monkeypatch.setenv("PAYLOAD_NATIVE", "0")
     assert FoxgloveScene(world)._poses_kernel is None

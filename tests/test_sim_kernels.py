@@ -107,21 +107,17 @@ def test_allocations_with_and_without_the_kernels_are_the_same(prop, monkeypatch
     assert 0 < saturated < 300
 
 
-def test_a_kernel_with_other_bits_is_refused(monkeypatch, tmp_path, caplog):
+def test_a_kernel_with_other_bits_is_refused(refused_kernel):
     """The self-check compares the built kernels with numpy on probe wrenches: a kernel
     summing its rows right to left (the same sums in exact arithmetic) is refused and
     numpy's code runs."""
-    monkeypatch.setenv("PAYLOAD_CACHE_DIR", str(tmp_path))
-    right_to_left = allocation_c.SOURCE.replace(
+    p = Propulsion(FLIGHT_MODES["nominal"].force)
+    with refused_kernel(
+        allocation_c,
         "double a = r[0];\n    for (int i = 1; i < NB; i++) a += r[i];",
         "double a = r[NB - 1];\n    for (int i = NB - 2; i >= 0; i--) a += r[i];",
-    )
-    assert right_to_left != allocation_c.SOURCE
-    monkeypatch.setattr(allocation_c, "SOURCE", right_to_left)
-    p = Propulsion(FLIGHT_MODES["nominal"].force)
-    with caplog.at_level("WARNING", logger="payload.sim.allocation_c"):
+    ):
         assert p._kernels is None
-    assert "differ" in caplog.text
     w = np.array([0.1, 0.05, -0.02, 0.001, 0.0, -0.002])
     assert p.allocate(w[:3], w[3:]).scale == 1.0  # numpy's searches answer
 
@@ -241,20 +237,18 @@ def test_the_control_kernel_follows_a_reset_and_refuses_a_bad_wrench():
         ctl.update(command, np.array([np.nan, 0.0, 0.0]), np.zeros(3), 0.02)
 
 
-def test_a_control_kernel_with_other_bits_is_refused(monkeypatch, tmp_path, caplog):
+def test_a_control_kernel_with_other_bits_is_refused(refused_kernel):
     """The control step's self-check: a kernel that adds the force's terms in another
     order (the same sum in exact arithmetic) is refused, and numpy's code runs."""
-    monkeypatch.setenv("PAYLOAD_CACHE_DIR", str(tmp_path))
-    reordered = vehicle_c.CONTROL_SOURCE.replace(
+    ctl = VehicleController(_plants()[1])
+    with refused_kernel(
+        vehicle_c,
         "c->mass * ((acc[i] + c->gain_lin * (ref[i] - v[i])) + cwv[i])",
         "c->mass * (acc[i] + (c->gain_lin * (ref[i] - v[i]) + cwv[i]))",
-    )
-    assert reordered != vehicle_c.CONTROL_SOURCE
-    monkeypatch.setattr(vehicle_c, "CONTROL_SOURCE", reordered)
-    ctl = VehicleController(_plants()[1])
-    with caplog.at_level("WARNING", logger="payload.sim.vehicle_c"):
+        attr="CONTROL_SOURCE",
+        says="compiled step differs",
+    ):
         assert ctl._kernel is None
-    assert "compiled step differs" in caplog.text
 
 
 def test_the_compiled_thrusts_are_mujocos(bare_driver):
@@ -317,21 +311,23 @@ def test_the_compiled_station_bound_answers_as_numpy(bare_driver):
     assert answers == {True, False}
 
 
-def test_a_station_bound_with_other_answers_is_refused(bare_driver, monkeypatch, tmp_path, caplog):
+def test_a_station_bound_with_other_answers_is_refused(bare_driver, refused_kernel):
     """A bound 5 cm short of the cap on one side answers otherwise on some of the
     self-check's poses: refused, and the numpy test runs."""
     from payload.sim import station_c
+
+    _refused_station(bare_driver, refused_kernel, station_c, "< cap) & (lo[i]",
+                     "< cap - 0.05) & (lo[i]", "differs")  # fmt: skip
+
+
+def _refused_station(driver, refused_kernel, module, old: str, new: str, says: str) -> None:
+    """A station monitor on ``driver`` reads with the station kernel's C changed: refused."""
     from payload.sim.station import StationMonitor
 
-    monkeypatch.setenv("PAYLOAD_CACHE_DIR", str(tmp_path))
-    other = station_c.SOURCE.replace("< cap) & (lo[i]", "< cap - 0.05) & (lo[i]")
-    assert other != station_c.SOURCE
-    monkeypatch.setattr(station_c, "SOURCE", other)
-    monitor = StationMonitor(bare_driver.world)
-    with caplog.at_level("WARNING", logger="payload.sim.station_c"):
-        monitor.read(bare_driver.data)
-        assert monitor._bound_kernel(bare_driver.data) is None
-    assert "differs" in caplog.text
+    monitor = StationMonitor(driver.world)
+    with refused_kernel(module, old, new, says=says):
+        monitor.read(driver.data)
+        assert monitor._bound_kernel(driver.data) is None
 
 
 def test_the_compiled_clearance_is_numpys(bare_driver):
@@ -374,24 +370,19 @@ def test_the_compiled_clearance_is_numpys(bare_driver):
     assert measured > 10
 
 
-def test_a_clearance_with_other_boxes_is_refused(bare_driver, monkeypatch, tmp_path, caplog):
+def test_a_clearance_with_other_boxes_is_refused(bare_driver, refused_kernel):
     """The boxes' half-sizes summed left to right (the same in exact arithmetic, not
     numpy's einsum order here) are refused, and numpy reads the clearance."""
     from payload.sim import station_c
-    from payload.sim.station import StationMonitor
 
-    monkeypatch.setenv("PAYLOAD_CACHE_DIR", str(tmp_path))
-    other = station_c.SOURCE.replace(
+    _refused_station(
+        bare_driver,
+        refused_kernel,
+        station_c,
         "(fabs(ri[0]) * h[0] + fabs(ri[2]) * h[2]) + fabs(ri[1]) * h[1]",
         "(fabs(ri[0]) * h[0] + fabs(ri[1]) * h[1]) + fabs(ri[2]) * h[2]",
+        "clearance differs",
     )
-    assert other != station_c.SOURCE
-    monkeypatch.setattr(station_c, "SOURCE", other)
-    monitor = StationMonitor(bare_driver.world)
-    with caplog.at_level("WARNING", logger="payload.sim.station_c"):
-        monitor.read(bare_driver.data)
-        assert monitor._bound_kernel(bare_driver.data) is None
-    assert "clearance differs" in caplog.text
 
 
 def test_without_mujocos_distance_the_bound_alone_is_compiled(bare_driver, monkeypatch, tmp_path):

@@ -60,18 +60,11 @@ def test_a_bad_hand_raises_numpys_error(fault):
     assert str(error.value) == str(numpy_error.value)
 
 
-def test_a_kernel_with_other_bits_is_refused(fresh_kernel, monkeypatch, caplog):
+def test_a_kernel_with_other_bits_is_refused(fresh_kernel, refused_kernel):
     """The wrist frame's x axis as along * (1 / |along|) (the same in exact arithmetic)
     is refused."""
-    other = hand_c.SOURCE.replace(
-        "x[i] = along[i] / n;",
-        "x[i] = along[i] * (1.0 / n);",
-    )
-    assert other != hand_c.SOURCE
-    monkeypatch.setattr(hand_c, "SOURCE", other)
-    with caplog.at_level("WARNING", logger="payload.teleop.hand_c"):
+    with refused_kernel(hand_c, "x[i] = along[i] / n;", "x[i] = along[i] * (1.0 / n);"):
         assert hand_c.compiled_hand_features(human_features) is None
-    assert "differ" in caplog.text
     joints = hand_c.random_hands(1, seed=4)[0]
     want = human_features(Hand(joints, True)).as_vector()
     assert human_feature_vector(Hand(joints, True)).tobytes() == want.tobytes()
@@ -120,18 +113,16 @@ def test_the_compiled_filter_step_is_numpys(config, monkeypatch):
         assert "One Euro filter: non-finite sample" in compiled
 
 
-def test_a_filter_kernel_with_other_bits_is_refused(fresh_kernel, monkeypatch, caplog):
+def test_a_filter_kernel_with_other_bits_is_refused(fresh_kernel, refused_kernel):
     """The new estimate as x_prev + a (x - x_prev) (the same in exact arithmetic) is
     refused, and numpy's step runs."""
-    other = filter_c.SOURCE.replace(
+    with refused_kernel(
+        filter_c,
         "xs[3 * r + i] = a * x[3 * r + i] + (1 - a) * xs[3 * r + i];",
         "xs[3 * r + i] = xs[3 * r + i] + a * (x[3 * r + i] - xs[3 * r + i]);",
-    )
-    assert other != filter_c.SOURCE
-    monkeypatch.setattr(filter_c, "SOURCE", other)
-    with caplog.at_level("WARNING", logger="payload.teleop.filter_c"):
+        says="differs",
+    ):
         assert filter_c.compiled_one_euro(_step_numpy) is None
-    assert "differs" in caplog.text
 
 
 @pytest.mark.parametrize("cap", [None, 0.19])
@@ -160,25 +151,20 @@ def test_the_compiled_limiter_step_is_numpys(cap):
     assert mine._bound is not None and mine._bound[2] is not None  # the compiled step ran
 
 
-def test_a_limiter_kernel_with_other_bits_is_refused(fresh_kernel, monkeypatch, caplog):
+def test_a_limiter_kernel_with_other_bits_is_refused(fresh_kernel, refused_kernel):
     """The braking lead as rate * (|rate| / 2j) (the same in exact arithmetic) is
     refused, and numpy's step runs."""
     from payload.teleop import limiter_c
     from payload.teleop.channels import JerkLimiter
 
-    limiter_c.compiled_limiter.cache_clear()
-    other = limiter_c.SOURCE.replace(
+    with refused_kernel(
+        limiter_c,
         "w[i] = e[i] - rate[i] * nr / (2 * max_jerk);",
         "w[i] = e[i] - rate[i] * (nr / (2 * max_jerk));",
-    )
-    assert other != limiter_c.SOURCE
-    monkeypatch.setattr(limiter_c, "SOURCE", other)
-    try:
-        with caplog.at_level("WARNING", logger="payload.teleop.limiter_c"):
-            assert limiter_c.compiled_limiter(JerkLimiter) is None
-        assert "differs" in caplog.text
-    finally:
-        limiter_c.compiled_limiter.cache_clear()
+        says="differs",
+        forget=limiter_c.compiled_limiter,
+    ):
+        assert limiter_c.compiled_limiter(JerkLimiter) is None
 
 
 # -- the tracking supervisor's hand check -----------------------------------------------------
@@ -256,18 +242,14 @@ def test_the_compiled_hand_check_on_the_limits():
     assert agreed[True] and agreed[False]
 
 
-def test_a_hand_check_with_another_workspace_is_refused(fresh_kernel, monkeypatch, caplog):
+def test_a_hand_check_with_another_workspace_is_refused(fresh_kernel, monkeypatch, refused_kernel):
     """A kernel whose workspace is twice the radius judges displaced hands otherwise:
     refused, and the numpy check runs."""
     from payload.teleop import safety_c
 
-    other = safety_c.SOURCE.replace("> p[1]) return 3;", "> 2 * p[1]) return 3;")
-    assert other != safety_c.SOURCE
-    monkeypatch.setattr(safety_c, "SOURCE", other)
     compiled, _, _ = _supervisors()
-    with caplog.at_level("WARNING", logger="payload.teleop.safety_c"):
+    with refused_kernel(safety_c, "> p[1]) return 3;", "> 2 * p[1]) return 3;", says="differs"):
         assert compiled._check_kernel("left") is None
-    assert "differs" in caplog.text
     monkeypatch.setenv("PAYLOAD_NATIVE", "0")
     assert _supervisors()[0]._check_kernel("right") is None
 
@@ -323,21 +305,19 @@ def test_a_bad_wrist_gets_numpys_error_from_the_compiled_channel():
     assert compiled.step(neutral + 0.2, None, None).mode == "drive"
 
 
-def test_a_base_kernel_with_other_bits_is_refused(fresh_kernel, monkeypatch, caplog):
+def test_a_base_kernel_with_other_bits_is_refused(fresh_kernel, refused_kernel):
     """C's fmod for Python's % (they differ on negative headings) is refused."""
     from payload.teleop import base_c
     from payload.teleop.channels import _base_channel
 
-    base_c.compiled_base.cache_clear()
-    other = base_c.SOURCE.replace("pymod(desired - heading + M_PI", "fmod(desired - heading + M_PI")
-    assert other != base_c.SOURCE
-    monkeypatch.setattr(base_c, "SOURCE", other)
-    try:
-        with caplog.at_level("WARNING", logger="payload.teleop.base_c"):
-            assert base_c.compiled_base(_base_channel) is None
-        assert "differs" in caplog.text
-    finally:
-        base_c.compiled_base.cache_clear()
+    with refused_kernel(
+        base_c,
+        "pymod(desired - heading + M_PI",
+        "fmod(desired - heading + M_PI",
+        says="differs",
+        forget=base_c.compiled_base,
+    ):
+        assert base_c.compiled_base(_base_channel) is None
 
 
 def test_the_compiled_channel_leaves_what_it_does_not_take_to_numpy():
