@@ -21,7 +21,7 @@ import ctypes
 import functools
 import logging
 import os
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Hashable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -237,6 +237,24 @@ def reported(name: str) -> Callable[[Callable[..., Any]], Callable[..., Any]]:
         return made
 
     return wrap
+
+
+_CHECKED: set[tuple[str, Hashable]] = set()
+
+
+def probes(lib: ctypes.CDLL, key: Hashable, full: int, again: int) -> int:
+    """How many probes a kernel's self-check against the numpy code runs: ``full`` the
+    first time the library ``lib`` is checked for ``key`` (what shapes the kernel's code
+    paths: counts, sizes, which parts are made) in this process, and ``again`` once such
+    a check passed (:func:`passed`): the first ``again`` of the same probes, which show
+    that a new build (a campaign worker's next trial, a driver's reset) reads its own
+    data and settings. Another library (changed C, another cache) is checked in full."""
+    return again if (str(lib._name), key) in _CHECKED else full
+
+
+def passed(lib: ctypes.CDLL, key: Hashable) -> None:
+    """Record that ``lib``'s kernel passed its full self-check for ``key`` (:func:`probes`)."""
+    _CHECKED.add((str(lib._name), key))
 
 
 def kernel_status() -> dict[str, str]:

@@ -385,6 +385,46 @@ def test_a_clearance_with_other_boxes_is_refused(bare_driver, refused_kernel):
     )
 
 
+def test_a_second_station_bound_runs_the_short_check_and_it_still_refuses(bare_driver, monkeypatch):
+    """The first build in a process asks the numpy test on all 400 probe poses; a build of
+    the same shape after it (a campaign's next trial) on the first 40, and is refused when
+    the numpy test answers otherwise on one of them; another shape is checked in full."""
+    from payload.sim import station_c
+    from payload.sim.station import CLEARANCE_CAP, StationMonitor, _world_aabb
+
+    d = bare_driver
+    monitor = StationMonitor(d.world)
+    monitor.read(d.data)
+    s_lo, s_hi = monitor._station_box
+    monkeypatch.setattr(native, "_CHECKED", set())  # no kernel checked in this process yet
+
+    def build(moving, lie_at=None):  # the monitor's own arguments for its kernel
+        asked = []
+
+        def reference():
+            asked.append(1)
+            answer = monitor._near_numpy(d.data)
+            return (not answer) if len(asked) == lie_at else answer
+
+        kernel = station_c.compiled_station_bound(
+            d.data, moving, monitor._reach, s_lo, s_hi, CLEARANCE_CAP, reference,
+            model=d.model, station=monitor.station,
+            clearance=lambda: monitor._clearance_numpy(d.data),
+            boxes=lambda: _world_aabb(d.model, d.data, moving),
+        )  # fmt: skip
+        return kernel, len(asked)
+
+    first, asked = build(monitor.moving)
+    assert first is not None and asked == 400
+    again, asked = build(monitor.moving)
+    assert again is not None and asked == 40
+    assert build(monitor.moving, lie_at=37) == (None, 37)
+    # another shape (a geom less), checked in full
+    monitor.moving, monitor._reach = monitor.moving[:-1], monitor._reach[:-1]
+    kernel, asked = build(monitor.moving)
+    assert kernel is not None and asked == 400
+
+
 def test_without_mujocos_distance_the_bound_alone_is_compiled(bare_driver, monkeypatch, tmp_path):
     """Without MuJoCo's mj_geomDistance symbol (no /proc/self/maps, say), the quick bound
     is still compiled and numpy reads the clearance near a wall."""
