@@ -10,7 +10,7 @@ import pytest
 
 from payload import native
 from payload.sim import allocation_c, vehicle_c
-from payload.sim.propulsion import Propulsion
+from payload.sim.propulsion import BVLS_TOL, Propulsion
 from payload.sim.vehicle import FLIGHT_MODES, MassProperties, VehicleController
 
 
@@ -89,10 +89,11 @@ def test_the_compiled_searches_give_numpys_bits(prop):
 
 def test_allocations_with_and_without_the_kernels_are_the_same(prop, monkeypatch):
     """The whole allocation (facet, basis and LP paths) with the compiled searches and
-    with numpy's: the same thrusts, wrench and scale, bit for bit."""
+    facet solve and with numpy's: the same thrusts, wrench and scale, bit for bit."""
+    assert prop._kernels is not None and prop._facet_kernel is not None  # built before:
     monkeypatch.setenv("PAYLOAD_NATIVE", "0")
     plain = Propulsion(tuple(prop.axis_force))
-    assert plain._kernels is None
+    assert plain._kernels is None and plain._facet_kernel is None
     rng = np.random.default_rng(4)
     scale = np.array([0.3, 0.15, 0.15, 0.03, 0.03, 0.03])
     saturated = 0
@@ -120,6 +121,62 @@ def test_a_kernel_with_other_bits_is_refused(refused_kernel):
         assert p._kernels is None
     w = np.array([0.1, 0.05, -0.02, 0.001, 0.0, -0.002])
     assert p.allocate(w[:3], w[3:]).scale == 1.0  # numpy's searches answer
+
+
+def test_the_compiled_facet_solve_is_numpys_lstsq_and_scipys_bvls(prop):
+    """The facet solve in C against numpy's ``lstsq`` and SciPy's own BVLS
+    (``lsq_linear(method="bvls")``, started as ``lsq_linear`` starts it), bit for bit, on
+    problems shaped like the facets' in both memory orders, many of them bounded."""
+    from scipy.optimize import lsq_linear
+
+    kernel = prop._facet_kernel
+    assert kernel is not None
+    rng = np.random.default_rng(21)
+    bounded = fortran = 0
+    for i in range(400):
+        n = int(rng.integers(2, 13))
+        a = rng.normal(size=(6, n))
+        if i % 5 == 2:
+            a[:, -1] = a[:, 0]  # coplanar nozzles: rank-deficient
+        if i % 2:
+            a = np.asfortranarray(a)
+            fortran += 1
+        ub = rng.uniform(0.1, 1.0, size=n)
+        rest = a @ rng.uniform(-0.6, 1.6, size=n)
+        want, _, rank, _ = np.linalg.lstsq(a, rest, rcond=None)
+        # BVLS starts from this solution when rcond=-1 (lsq_linear's) finds the same rank
+        got = kernel(a, rest, ub, 1e-7, rank == np.linalg.lstsq(a, rest, rcond=-1)[2])
+        if (want < -1e-7).any() or (want > ub + 1e-7).any():
+            want = lsq_linear(a, rest, bounds=(np.zeros(n), ub), method="bvls", tol=BVLS_TOL).x
+            bounded += 1
+        assert got is not None and got.tobytes() == want.tobytes(), i
+    assert bounded > 150 and fortran == 200
+
+
+def test_a_facet_solve_with_other_bits_is_refused(refused_kernel):
+    """A step length computed as a product with the reciprocal (the same in exact
+    arithmetic) is refused by the self-check, and numpy's facet solve answers."""
+    from payload.sim import facet_c
+
+    p = Propulsion(FLIGHT_MODES["nominal"].force)
+    with refused_kernel(
+        facet_c,
+        "alphas[k] = (bound - xf[j]) / (z[j] - xf[j]);",
+        "alphas[k] = (bound - xf[j]) * (1.0 / (z[j] - xf[j]));",
+    ):
+        assert p._facet_kernel is None
+    w = np.array([0.5, 0.4, -0.3, 0.02, 0.01, -0.02])
+    a = p.allocate(w[:3], w[3:])
+    assert a.scale < 1.0 and np.all(a.thrust <= p.thrust_max)
+
+
+def test_a_problem_the_facet_kernel_cannot_take_goes_to_numpy(prop):
+    """One column (numpy multiplies it by a scalar, not with dgemv) or a wrong dtype: the
+    kernel answers None, and the allocation's numpy solve does."""
+    kernel = prop._facet_kernel
+    a, rest, ub = np.ones((6, 1)), np.ones(6), np.ones(1)
+    assert kernel(a, rest, ub, 1e-7, True) is None
+    assert kernel(np.ones((6, 3), dtype=np.float32), rest, np.ones(3), 1e-7, True) is None
 
 
 def test_without_a_compiler_numpy_searches(monkeypatch, tmp_path):

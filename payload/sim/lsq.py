@@ -25,7 +25,8 @@ try:  # numpy's LAPACK least-squares kernel (dgelsd), the one np.linalg.lstsq ca
 except ImportError:  # pragma: no cover - another numpy: np.linalg.lstsq itself
     _GELSD = None
 
-_EPS = float(np.finfo(float).eps)
+EPS = float(np.finfo(float).eps)
+"""float64's machine epsilon: numpy's default ``lstsq`` cutoff is ``EPS * max(m, n)``."""
 
 
 def lstsq(a: np.ndarray, b: np.ndarray, rcond: float | None = None) -> tuple[np.ndarray, int]:
@@ -44,7 +45,7 @@ def lstsq(a: np.ndarray, b: np.ndarray, rcond: float | None = None) -> tuple[np.
         (least-squares solution (n,), numerical rank of ``a``).
     """
     m, n = a.shape
-    cutoff = _EPS * max(m, n) if rcond is None else rcond
+    cutoff = EPS * max(m, n) if rcond is None else rcond
     if _GELSD is not None:
         try:
             with np.errstate(over="ignore", divide="ignore", under="ignore", invalid="raise"):
@@ -173,4 +174,4 @@ def bvls(
     return x
 
 
-__all__ = ["bvls", "lstsq"]
+__all__ = ["EPS", "bvls", "lstsq"]

@@ -33,7 +33,7 @@ from __future__ import annotations
 import functools
 import itertools
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from functools import cached_property
 from typing import Any
@@ -125,6 +125,20 @@ def _bvls(
     if ((x >= lb) & (x <= ub)).all():
         return x
     return bvls(a, b, x, lb, ub, BVLS_TOL)
+
+
+def _facet_solve(
+    a: np.ndarray, rest: np.ndarray, ub: np.ndarray, tol: float, same_rank: bool
+) -> np.ndarray:
+    """The thrusts of a facet's in-plane nozzles (:meth:`Propulsion._on_facet`): the least
+    squares ``lstsq(a, rest)``; if it leaves the bounds ``[0, ub]`` by more than ``tol``
+    (more nozzles than the facet's dimension lie in its plane), bounded least squares
+    (scipy's BVLS as ``lsq_linear(method="bvls")`` runs it), started from the solution just
+    found when it is the one ``rcond=-1`` gives (``same_rank``)."""
+    sol = _lstsq(a, rest)[0]
+    if (sol < -tol).any() or (sol > ub + tol).any():
+        sol = _bvls(a, rest, ub, sol if same_rank else None)
+    return sol
 
 
 def _allclose(a: np.ndarray, b: np.ndarray, rtol: float, atol: float) -> bool:
@@ -362,17 +376,32 @@ class Propulsion:
         out, free, a_free, ub, same_rank = self._facet_parts[k]
         out = out.copy()
         rest = wrench - self.matrix @ out
-        sol = _lstsq(a_free, rest)[0]
-        tol = self._facet_tol
-        if (sol < -tol).any() or (sol > ub + tol).any():
-            # more nozzles than the facet's dimension lie in its plane: bounded least
-            # squares (scipy's BVLS as ``lsq_linear(method="bvls")`` runs it), started
-            # from the solution just found when it is the one ``rcond=-1`` gives
-            sol = _bvls(a_free, rest, ub, sol if same_rank else None)
+        kernel = self._facet_kernel
+        sol = None if kernel is None else kernel(a_free, rest, ub, self._facet_tol, same_rank)
+        if sol is None:
+            sol = _facet_solve(a_free, rest, ub, self._facet_tol, same_rank)
         out[free] = np.clip(sol, 0.0, ub)
         if not _allclose(self.matrix @ out, wrench, rtol=1e-7, atol=1e-10):
             return None
         return out
+
+    @cached_property
+    def _facet_kernel(self) -> Any:
+        """:func:`_facet_solve` compiled (:mod:`payload.sim.facet_c`, checked when built
+        on this propulsion's facets), or None."""
+        from payload.sim.facet_c import compiled_facet_solve
+
+        def problems() -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray, float, bool]]:
+            rng = np.random.default_rng(4)
+            normals, offsets = self.facets
+            for k in range(0, len(offsets), max(1, len(offsets) // 40)):
+                _, _, a_free, ub, same_rank = self._facet_parts[k]
+                for scale in (1.0, 1.2, 2.0):  # on the facet and beyond it, pulled sideways
+                    w = normals[k] * offsets[k] * scale + rng.normal(scale=0.3, size=6)
+                    out = self._facet_parts[k][0]
+                    yield a_free, w - self.matrix @ out, ub, self._facet_tol, same_rank
+
+        return compiled_facet_solve(_facet_solve, problems(), BVLS_TOL)
 
     @cached_property
     def _least_tol(self) -> float:
