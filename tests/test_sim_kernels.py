@@ -334,6 +334,74 @@ def test_the_compiled_thrusts_are_mujocos(bare_driver):
     assert d._thrust_kernel.data is d.data
 
 
+# -- the world and payload read-out ---------------------------------------------------------------
+def test_the_compiled_read_out_is_numpys_and_mujocos():
+    """Along a flight with the CTB held: the read-out kernel's world state and payload
+    state have numpy's bits, and the body-frame velocity is MuJoCo's own
+    (``mj_objectVelocity`` in the body frame, a different computation: to rounding)."""
+    import mujoco
+
+    from payload.schema import VehicleTwist
+    from payload.sim import SimDriver
+
+    with SimDriver() as d:
+        kernel = d._readout
+        assert kernel is not None and kernel.data is d.data
+        d.command_twist(VehicleTwist(np.array([0.04, -0.02, 0.01]), np.array([0.0, 0.0, 0.2]), 0.0))
+        vel = np.zeros(6)
+        for _ in range(60):
+            d.step(1)
+            mujoco.mj_forward(d.model, d.data)  # the rotation and MuJoCo's cvel of this qpos
+            mine, theirs = d._world_state_kernel(kernel), d._world_state_numpy()
+            for a, b in zip(mine[:7], theirs[:7]):
+                assert np.asarray(a).tobytes() == np.asarray(b).tobytes()
+            assert mine[7:10] == theirs[7:10] and mine.time == theirs.time
+            a, b = d._read_kernel(kernel), d._read_numpy()
+            for x, y in ((a.q, b.q), (a.dq, b.dq), (a.effort, b.effort)):
+                assert x.tobytes() == y.tobytes()
+            assert (a.deploy, a.stamp, a.health) == (b.deploy, b.stamp, b.health)
+            body = d.world.astrobee
+            mujoco.mj_objectVelocity(d.model, d.data, mujoco.mjtObj.mjOBJ_BODY, body, vel, 1)
+            np.testing.assert_allclose(mine.astrobee_linear, vel[3:], rtol=1e-9, atol=1e-12)
+            np.testing.assert_allclose(mine.astrobee_angular, vel[:3], rtol=1e-9, atol=1e-12)
+        assert np.linalg.norm(mine.astrobee_angular) > 1e-3  # it turned
+
+
+def test_the_read_out_flags_a_limit_and_an_overload(bare_driver):
+    """A coordinate placed at the end of its control range reads LIMIT, an actuator force
+    at the world's force limit OVERLOAD (the thresholds from the model, not the driver)."""
+    from payload.schema import Health
+
+    d = bare_driver
+    assert d._readout is not None
+    w, data = d.world, d.data
+    saved = data.qpos.copy(), data.actuator_force.copy()
+    try:
+        assert not d.read().health & Health.LIMIT
+        data.qpos[w.qpos[3]] = d.model.actuator_ctrlrange[w.ctrl[3], 1]
+        assert d.read().health == Health.LIMIT
+        data.actuator_force[w.ctrl[5]] = -w.force_limit[5]  # the 18 actuators' bounds
+        assert d.read().health == Health.LIMIT | Health.OVERLOAD
+    finally:
+        data.qpos[:], data.actuator_force[:] = saved
+
+
+def test_a_read_out_with_other_bits_is_refused(bare_driver, refused_kernel, monkeypatch):
+    """A read-out that turns the velocity into the body frame with the rotation itself
+    instead of its transpose is refused by the self-check; numpy reads the world."""
+    from payload.sim import readout_c
+
+    monkeypatch.delitem(bare_driver.__dict__, "_readouts", raising=False)
+    with refused_kernel(
+        readout_c,
+        "r->gemv(COL_MAJOR, NO_TRANS, 3, 3, 1.0, r->xmat, 3, v, 1, 0.0, out + 7, 1);",
+        "r->gemv(ROW_MAJOR, NO_TRANS, 3, 3, 1.0, r->xmat, 3, v, 1, 0.0, out + 7, 1);",
+    ):
+        assert bare_driver._readout is None
+    assert bare_driver.world_state().astrobee_linear.shape == (3,)
+    monkeypatch.delitem(bare_driver.__dict__, "_readouts")
+
+
 # -- the station clearance's quick bound ----------------------------------------------------------
 def _moved(driver, rng, scale: float) -> None:
     """The vehicle somewhere in the station, now and then near a wall."""

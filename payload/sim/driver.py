@@ -27,7 +27,7 @@ from typing import Any, NamedTuple
 import mujoco
 import numpy as np
 
-from payload.schema import Health, PayloadCommand, PayloadState, VehicleTwist
+from payload.schema import Health, PayloadCommand, PayloadState, SchemaError, VehicleTwist
 from payload.sim.contact import Contact, ContactMonitor, opposing
 from payload.sim.propulsion import Allocation
 from payload.sim.vehicle import (
@@ -48,6 +48,9 @@ from payload.sim.world import (
 )
 
 _AT_LIMIT = 1e-4  # [rad or m] a coordinate this close to a range end is at its limit
+_HEALTH = (Health.OK, Health.OVERLOAD, Health.LIMIT, Health.OVERLOAD | Health.LIMIT)
+"""The health of the read-out kernel's bits (1: an actuator at its force bound, 2: a
+coordinate at a range end)."""
 _WARNING_NAMES = tuple(
     name
     for name, value in sorted(mujoco.mjtWarning.__members__.items(), key=lambda kv: int(kv[1]))
@@ -173,6 +176,24 @@ class SimDriver:
         manipulation coordinates is at or beyond an end of its range.
         """
         self._check_open()
+        kernel = self._readout
+        return self._read_numpy() if kernel is None else self._read_kernel(kernel)
+
+    def _read_kernel(self, kernel: Any) -> PayloadState:
+        """:meth:`read` through the read-out kernel."""
+        out, bits = kernel.read()
+        n = kernel.n
+        return PayloadState(
+            q=out[:n],
+            deploy=float(out[n]),
+            stamp=float(self.data.time),
+            dq=out[n + 1 : 2 * n + 1],
+            effort=out[2 * n + 1 :],
+            health=_HEALTH[bits],
+        )
+
+    def _read_numpy(self) -> PayloadState:
+        """:meth:`read` in numpy (what the read-out kernel is checked against)."""
         w, d = self.world, self.data
         effort = d.actuator_force[w.ctrl]
         health = Health.OK
@@ -297,6 +318,82 @@ class SimDriver:
             point = origin + rot @ positions[k]
             mujoco.mj_applyFT(model, d, force, torque, point, body, qfrc)
 
+    @property
+    def _readout(self) -> Any:
+        """:meth:`_world_state_numpy` and :meth:`_read_numpy` compiled for the current data
+        (:mod:`payload.sim.readout_c`, checked when built), or None."""
+        kernel = self.__dict__.get("_readouts")
+        if kernel is None or kernel[0] is not self.data:
+            from payload.sim.readout_c import CompiledReadout, compiled_readout
+
+            w, d = self.world, self.data
+
+            def make(lib: Any, gemv: int) -> CompiledReadout:
+                return CompiledReadout(
+                    lib, gemv, d, w.astrobee, w.astrobee_qpos, w.astrobee_dof, w.ctb_qpos,
+                    w.qpos, w.dof, w.stage_qpos, w.ctrl, self._ctrl, self._overload,
+                    self._limit_lo, self._limit_hi,
+                )  # fmt: skip
+
+            made = compiled_readout(make, self._check_readout)
+            kernel = self.__dict__["_readouts"] = (d, made)
+        return kernel[1]
+
+    def _check_readout(self, kernel: Any, probes: int = 200) -> bool:
+        """Whether ``kernel`` reads what :meth:`_world_state_numpy` and :meth:`_read_numpy`
+        read, to the bit, in ``probes`` random states written into the data (positions,
+        velocities, rotations and actuator forces; some at a force bound, at a joint limit,
+        or not a number), which is restored afterwards."""
+        d = self.data
+        names = ("qpos", "qvel", "xmat", "actuator_force")
+        saved = [getattr(d, n).copy() for n in names]
+        rng = np.random.default_rng(0)
+        body, n = self.world.astrobee, kernel.n
+        bound = np.broadcast_to(self._overload, self._ctrl.shape)
+        try:
+            for k in range(probes):
+                d.qpos[:] = rng.normal(size=d.qpos.shape)
+                d.qvel[:] = rng.normal(size=d.qvel.shape)
+                q = rng.normal(size=4)
+                mujoco.mju_quat2Mat(d.xmat[body], q / np.linalg.norm(q))
+                d.actuator_force[:] = rng.normal(scale=bound.max(), size=d.actuator_force.shape)
+                if k % 7 == 3:  # at a joint limit (either end) or a force bound
+                    d.qpos[self.world.qpos[k % n]] = (self._limit_lo, self._limit_hi)[k % 2][k % n]
+                    j = k % len(self._ctrl)
+                    d.actuator_force[self._ctrl[j]] = -bound[j]
+                if k % 31 == 5:
+                    d.qpos[self.world.qpos[k % n]] = np.nan
+                    d.qvel[self.world.dof[k % n]] = np.inf
+                mine, theirs = self._world_state_kernel(kernel), self._world_state_numpy()
+                if not all(
+                    np.asarray(a, dtype=float).tobytes() == np.asarray(b, dtype=float).tobytes()
+                    for a, b in zip(mine[:7], theirs[:7])
+                    if a is not None or b is not None
+                ):
+                    return False
+                try:  # a coordinate not a number: both refuse the state alike
+                    a = self._read_kernel(kernel)
+                except SchemaError as exc:
+                    a = str(exc)
+                try:
+                    b = self._read_numpy()
+                except SchemaError as exc:
+                    b = str(exc)
+                if isinstance(a, str) or isinstance(b, str):
+                    if a != b:
+                        return False
+                    continue
+                if a.health != b.health or not all(
+                    np.asarray(x, dtype=float).tobytes() == np.asarray(y, dtype=float).tobytes()
+                    for x, y in ((a.q, b.q), (a.dq, b.dq), (a.effort, b.effort),
+                                 (a.deploy, b.deploy), (a.stamp, b.stamp))
+                ):  # fmt: skip
+                    return False
+            return True
+        finally:
+            for name, values in zip(names, saved):
+                getattr(d, name)[:] = values
+
     def _clear_vehicle_forces(self) -> None:
         w, d = self.world, self.data
         d.xfrc_applied[w.astrobee] = 0.0
@@ -315,6 +412,31 @@ class SimDriver:
     def world_state(self) -> WorldState:
         """Astrobee pose and twist, CTB pose, fingertip contacts, indicator, module."""
         self._check_open()
+        kernel = self._readout
+        return self._world_state_numpy() if kernel is None else self._world_state_kernel(kernel)
+
+    def _world_state_kernel(self, kernel: Any) -> WorldState:
+        """:meth:`world_state` through the read-out kernel."""
+        w, d = self.world, self.data
+        out = kernel.world()
+        touching = self.monitor.touching(d)
+        pos = out[:3]
+        return WorldState(
+            time=float(d.time),
+            astrobee_pos=pos,
+            astrobee_quat=out[3:7],
+            astrobee_linear=out[7:10],
+            astrobee_angular=out[10:13],
+            ctb_pos=out[13:16] if w.ctb >= 0 else None,
+            ctb_quat=out[16:20] if w.ctb >= 0 else None,
+            touching=touching,
+            opposing_contact=opposing(touching),
+            module=w.layout.module_at(pos),
+            wrench=Wrench(self._wrench.force.copy(), self._wrench.torque.copy()),
+        )
+
+    def _world_state_numpy(self) -> WorldState:
+        """:meth:`world_state` in numpy (what the read-out kernel is checked against)."""
         w, d = self.world, self.data
         a = w.astrobee_qpos
         lin, ang = self._body_twist()

@@ -1,0 +1,195 @@
+"""The simulator's per-step read-out as compiled C, with numpy's bits.
+
+After every control step the loop reads the world (:meth:`SimDriver.world_state
+<payload.sim.driver.SimDriver.world_state>`: Astrobee's and the CTB's poses, Astrobee's
+body twist) and the payload (:meth:`SimDriver.read <payload.sim.driver.SimDriver.read>`:
+joint positions, velocities, efforts and the health flags). In numpy that is about twenty
+calls on arrays of three to seventeen numbers. Here each is one C call reading the MuJoCo
+data's arrays in place (their addresses are fixed for the data's lifetime) into a fresh
+buffer (the time, a field of the data's struct, stays Python's ``float(data.time)``):
+
+* copies and gathers are copies of the same numbers;
+* the body-frame velocity ``rot.T @ v`` is numpy's CBLAS ``dgemv`` called as numpy's
+  ``matmul`` calls it for the transposed rotation (column-major, as in
+  :mod:`payload.trials.foxglove_c`);
+* the health tests are the same comparisons (``|force| >= overload``, ``q <= lo``,
+  ``q >= hi``; a NaN fails them all, as in numpy).
+
+The fingertip contacts stay with :class:`~payload.sim.contact.ContactMonitor` (nothing to
+do without contacts, and the contact array moves in MuJoCo's arena).
+:func:`compiled_readout` checks the kernel against the numpy read-out on random states
+written into the data when it is built, and returns None (the numpy code runs) without a
+C compiler or numpy's OpenBLAS, with ``PAYLOAD_NATIVE=0``, or on a single differing bit.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import logging
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from payload import native
+
+log = logging.getLogger(__name__)
+
+SOURCE = r"""
+typedef struct {
+    dgemv_fn gemv;
+    const double *qpos, *qvel, *xmat, *force;
+    int64_t a_qpos, a_dof, ctb_qpos;           /* Astrobee's and the CTB's (-1: none) */
+    int64_t nq, stage;                          /* manipulation joints, stage qpos */
+    const int64_t *q_idx, *dof_idx, *effort_idx, *ctrl_idx;
+    int64_t nctrl;
+    const double *overload, *lo, *hi;          /* (nctrl), (nq), (nq) */
+} readout;
+
+/* pos (3), quat (4), body linear (3), angular (3)[, CTB pos (3), quat (4)] */
+void payload_world(const readout *r, double *out)
+{
+    const double *q = r->qpos + r->a_qpos, *v = r->qvel + r->a_dof;
+    for (int i = 0; i < 7; i++) out[i] = q[i];
+    r->gemv(COL_MAJOR, NO_TRANS, 3, 3, 1.0, r->xmat, 3, v, 1, 0.0, out + 7, 1);
+    for (int i = 0; i < 3; i++) out[10 + i] = v[3 + i];
+    if (r->ctb_qpos >= 0)
+        for (int i = 0; i < 7; i++) out[13 + i] = r->qpos[r->ctb_qpos + i];
+}
+
+/* q (nq), deploy, dq (nq), effort (nq); returns the health bits (overload 1, limit 2) */
+int payload_read(const readout *r, double *out)
+{
+    int64_t n = r->nq;
+    int health = 0;
+    for (int64_t i = 0; i < r->nctrl; i++)
+        if (fabs(r->force[r->ctrl_idx[i]]) >= r->overload[i]) health |= 1;
+    for (int64_t i = 0; i < n; i++) {
+        double q = r->qpos[r->q_idx[i]];
+        out[i] = q;
+        if (q <= r->lo[i] || q >= r->hi[i]) health |= 2;
+    }
+    out[n] = r->qpos[r->stage];
+    for (int64_t i = 0; i < n; i++) out[n + 1 + i] = r->qvel[r->dof_idx[i]];
+    for (int64_t i = 0; i < n; i++) out[2 * n + 1 + i] = r->force[r->effort_idx[i]];
+    return health;
+}
+"""
+
+
+class _Readout(ctypes.Structure):
+    _fields_ = [
+        ("gemv", ctypes.c_void_p),
+        *[(f, ctypes.c_void_p) for f in ("qpos", "qvel", "xmat", "force")],
+        *[(f, ctypes.c_int64) for f in ("a_qpos", "a_dof", "ctb_qpos", "nq", "stage")],
+        *[(f, ctypes.c_void_p) for f in ("q_idx", "dof_idx", "effort_idx", "ctrl_idx")],
+        ("nctrl", ctypes.c_int64),
+        *[(f, ctypes.c_void_p) for f in ("overload", "lo", "hi")],
+    ]
+
+
+class CompiledReadout:
+    """The world and payload read-outs of one MuJoCo data (see the module).
+
+    Args:
+        lib: The kernel's library.
+        gemv: The address of numpy's CBLAS ``dgemv``.
+        data: The MuJoCo data (read in place).
+        body: Astrobee's body id (its rotation ``xmat[body]``).
+        a_qpos, a_dof: Astrobee's free joint's first ``qpos`` and ``qvel`` index.
+        ctb_qpos: The CTB's free joint's first ``qpos`` index (-1: no CTB).
+        q_idx, dof_idx: The manipulation joints' ``qpos`` and ``qvel`` indices (N,).
+        stage: The stage's ``qpos`` index.
+        effort_idx: The manipulation actuators (N,) (their ``actuator_force`` is the effort).
+        ctrl_idx: Every payload actuator (the overload test), with ``overload`` its bound.
+        lo, hi: The manipulation joints' at-limit thresholds (N,).
+    """
+
+    def __init__(
+        self,
+        lib: ctypes.CDLL,
+        gemv: int,
+        data: Any,
+        body: int,
+        a_qpos: int,
+        a_dof: int,
+        ctb_qpos: int,
+        q_idx: np.ndarray,
+        dof_idx: np.ndarray,
+        stage: int,
+        effort_idx: np.ndarray,
+        ctrl_idx: np.ndarray,
+        overload: Any,
+        lo: np.ndarray,
+        hi: np.ndarray,
+    ) -> None:
+        self.data = data
+        for name in ("qpos", "qvel", "xmat", "actuator_force"):
+            a = getattr(data, name)
+            if not (a.dtype == np.float64 and a.flags.c_contiguous):
+                raise ValueError(f"{name} is not a C-contiguous float64 array")
+        ints = [np.ascontiguousarray(x, dtype=np.int64) for x in (q_idx, dof_idx, effort_idx,
+                                                                    ctrl_idx)]  # fmt: skip
+        n = len(ints[0])
+        if not (len(ints[1]) == len(ints[2]) == len(lo) == len(hi) == n):
+            raise ValueError("the joint, velocity, effort and limit lists differ in length")
+        bounds = np.broadcast_to(np.asarray(overload, dtype=np.float64), ints[3].shape)
+        reals = [np.ascontiguousarray(x, dtype=np.float64) for x in (bounds, lo, hi)]
+        self._keep = (ints, reals)
+        self._ctx = _Readout(
+            gemv, data.qpos.ctypes.data, data.qvel.ctypes.data,
+            data.xmat[body].ctypes.data, data.actuator_force.ctypes.data,
+            a_qpos, a_dof, ctb_qpos, n, stage,
+            *[x.ctypes.data for x in ints], len(ints[3]),
+            *[x.ctypes.data for x in reals],
+        )  # fmt: skip
+        self.n = n
+        self.world_size = 20 if ctb_qpos >= 0 else 13
+        self._world = lib.payload_world
+        self._world.restype = None
+        self._world.argtypes = [ctypes.c_void_p, ctypes.c_void_p]
+        self._read = lib.payload_read
+        self._read.restype = ctypes.c_int
+        self._read.argtypes = [ctypes.c_void_p, ctypes.c_void_p]
+        self._ptr = ctypes.addressof(self._ctx)
+
+    def world(self) -> np.ndarray:
+        """Astrobee pos (3), quat (4), body linear (3), angular (3)[, CTB pos (3), quat
+        (4)], a fresh array."""
+        out = np.empty(self.world_size)
+        self._world(self._ptr, out.ctypes.data)
+        return out
+
+    def read(self) -> tuple[np.ndarray, int]:
+        """(q (N), deploy, dq (N), effort (N) as one fresh array; the health bits: 1
+        overload, 2 limit)."""
+        out = np.empty(3 * self.n + 1)
+        return out, self._read(self._ptr, out.ctypes.data)
+
+
+@native.reported("read-out")
+def compiled_readout(
+    make: Callable[[ctypes.CDLL, int], CompiledReadout],
+    check: Callable[[CompiledReadout], bool],
+) -> CompiledReadout | None:
+    """``make(lib, gemv)``'s read-out, or None to run the numpy read-outs: no compiler,
+    no numpy OpenBLAS, ``PAYLOAD_NATIVE=0``, a failed build, or ``check(kernel)`` (the
+    caller's comparison with its numpy read-outs on random states) False."""
+    gemv = native.numpy_dgemv()
+    if gemv is None:
+        return None
+    lib = native.load_kernel("readout", SOURCE, "the read-out kernel", log)
+    if lib is None:
+        return None
+    try:
+        kernel = make(lib, gemv)
+    except ValueError as exc:
+        log.warning("read-out: numpy (%s)", exc)
+        return None
+    if not check(kernel):
+        log.warning("read-out: numpy (the compiled read-out differs)")
+        return None
+    return kernel
+
+
+__all__ = ["SOURCE", "CompiledReadout", "compiled_readout"]
