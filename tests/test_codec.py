@@ -391,6 +391,58 @@ def test_frame_poses_with_other_bits_are_refused(foxglove_recording, monkeypatch
     assert FoxgloveScene(world)._poses_kernel is None
 
 
+def test_the_compiled_messages_are_the_protobuf_runtimes(foxglove_recording) -> None:
+    """The /tf and joint-state bytes written in C against the protobuf runtime's
+    serialisation of the messages built field by field, at random states with zeros of
+    both signs and at whole seconds; and read back by the runtime's parser, the values
+    themselves (to the bit) and the names."""
+    from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
+    from foxglove_schemas_protobuf.JointStates_pb2 import JointStates
+
+    from payload.trials.foxglove import JOINT_NAMES, FoxgloveScene
+
+    _, _, world = foxglove_recording
+    scene = FoxgloveScene(world)
+    kernel = scene._messages_kernel
+    assert kernel is not None
+    rng = np.random.default_rng(22)
+    lo, hi = world.model.jnt_range[world.model.dof_jntid[world.dof]].T
+    for k in range(200):
+        st = random_step(rng, k * DT, q_meas=rng.uniform(lo, hi))
+        poses = scene._poses(st)
+        poses[rng.random(poses.shape) < 0.05] = (0.0, -0.0)[k % 2]
+        ns = 1_000_000_000 * k if k % 5 == 0 else int(rng.integers(0, 2**62))
+        tf = kernel.frame_transforms(poses, ns)
+        assert tf == scene._frame_transforms(poses, ns).SerializeToString()
+        back = FrameTransforms.FromString(tf)
+        assert [(t.parent_frame_id, t.child_frame_id) for t in back.transforms] == list(
+            zip(scene._parent_names, scene._link_names)
+        )
+        got = np.array(
+            [[t.translation.x, t.translation.y, t.translation.z, t.rotation.w, t.rotation.x,
+              t.rotation.y, t.rotation.z] for t in back.transforms]
+        )  # fmt: skip
+        assert got.tobytes() == poses.tobytes()  # a -0.0 is written, an omitted 0.0 reads 0.0
+        assert back.transforms[0].timestamp.ToNanoseconds() == ns
+        values = rng.normal(size=len(JOINT_NAMES)) * (rng.random(len(JOINT_NAMES)) < 0.7)
+        js = kernel.joint_states(values, ns)
+        assert js == scene._joint_states(values, ns).SerializeToString()
+        back = JointStates.FromString(js)
+        assert [j.name for j in back.joints] == list(JOINT_NAMES)
+        assert np.array([j.position for j in back.joints]).tobytes() == values.tobytes()
+
+
+def test_messages_with_other_bytes_are_refused(foxglove_recording, refused_kernel) -> None:
+    """A kernel that writes the zero doubles the runtime leaves out fails its self-check,
+    and the recording's messages are built as protobuf objects."""
+    from payload.trials import messages_c
+    from payload.trials.foxglove import FoxgloveScene
+
+    _, _, world = foxglove_recording
+    with refused_kernel(messages_c, "if (!bits && !always) return p;", "(void)always;"):
+        assert FoxgloveScene(world)._messages_kernel is None
+
+
 def _write_v1(path: Path, steps: list) -> None:
     """A schema-1 recording as the previous recorder wrote it (JSON steps)."""
     with open(path, "wb") as f:

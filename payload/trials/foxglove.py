@@ -150,19 +150,42 @@ class FoxgloveScene:
             self._emit(writer, "/scene", self.scene(ns), ns)
             self._next_scene_ns = ns + round(SCENE_PERIOD_S * 1e9)
         if self._k % self.every == 0:
-            self._emit(writer, "/tf", self.transforms(step, ns), ns)
-            cmd = np.append(step.q_cmd, step.deploy_cmd)
-            meas = np.append(step.q_meas, step.deploy_meas)
-            self._emit(writer, "/payload/joints/commanded", self.joint_states(cmd, ns), ns)
-            self._emit(writer, "/payload/joints/measured", self.joint_states(meas, ns), ns)
+            kernel = self._messages_kernel
+            poses = self._poses(step)
+            cmd = _view(np.append(step.q_cmd, step.deploy_cmd))
+            meas = _view(np.append(step.q_meas, step.deploy_meas))
+            for topic, data in (
+                ("/tf", kernel and kernel.frame_transforms(poses, ns)),
+                ("/payload/joints/commanded", kernel and kernel.joint_states(cmd, ns)),
+                ("/payload/joints/measured", kernel and kernel.joint_states(meas, ns)),
+            ):
+                if data is None:  # the protobuf objects, serialised by the runtime
+                    data = (
+                        self._frame_transforms(poses, ns)
+                        if topic == "/tf"
+                        else self._joint_states(cmd if topic.endswith("commanded") else meas, ns)
+                    ).SerializeToString()
+                self._emit_bytes(writer, topic, data, ns)
         self._k += 1
 
     def _emit(self, writer: Any, topic: str, msg: Any, ns: int) -> None:
-        writer.add_message(
-            channel_id=self.channels[topic],
-            log_time=ns,
-            publish_time=ns,
-            data=msg.SerializeToString(),
+        self._emit_bytes(writer, topic, msg.SerializeToString(), ns)
+
+    def _emit_bytes(self, writer: Any, topic: str, data: bytes, ns: int) -> None:
+        writer.add_message(channel_id=self.channels[topic], log_time=ns, publish_time=ns, data=data)
+
+    @functools.cached_property
+    def _messages_kernel(self) -> Any:
+        """The ``/tf`` and joint-state messages serialised in C
+        (:mod:`payload.trials.messages_c`, checked when built against the protobuf
+        runtime's bytes), or None."""
+        from payload.trials.messages_c import compiled_messages
+
+        return compiled_messages(
+            list(zip(self._parent_names, self._link_names)),
+            list(JOINT_NAMES),
+            lambda poses, ns: self._frame_transforms(poses, ns).SerializeToString(),
+            lambda positions, ns: self._joint_states(positions, ns).SerializeToString(),
         )
 
     def _events(self, writer: Any, step: Any, ns: int) -> None:
@@ -194,9 +217,16 @@ class FoxgloveScene:
 
     def transforms(self, step: Any, ns: int) -> FrameTransforms:
         """``world -> astrobee -> payload links`` and ``world -> ctb`` at a step."""
+        return self._frame_transforms(self._poses(step), ns)
+
+    def _poses(self, step: Any) -> np.ndarray:
+        """Each link's pose in its parent's frame at a step (:meth:`_poses_numpy`)."""
         self.kinematics(step)
         kernel = self._poses_kernel
-        poses = kernel() if kernel is not None else self._poses_numpy()
+        return kernel() if kernel is not None else self._poses_numpy()
+
+    def _frame_transforms(self, poses: np.ndarray, ns: int) -> FrameTransforms:
+        """The transforms message of ``poses`` (N, 7: position, quaternion w x y z)."""
         ts = _timestamp(ns)
         out = FrameTransforms()
         for parent, child, (x, y, z, qw, qx, qy, qz) in zip(
@@ -241,10 +271,15 @@ class FoxgloveScene:
 
     def joint_states(self, values: np.ndarray, ns: int) -> JointStates:
         """Named joint positions (17 manipulation coordinates and the stage)."""
+        return self._joint_states(_view(values), ns)
+
+    @staticmethod
+    def _joint_states(positions: np.ndarray, ns: int) -> JointStates:
+        """The joint-states message of ``positions`` as they are (rounded by the caller)."""
         return JointStates(
             timestamp=_timestamp(ns),
             joints=[
-                JointState(name=n, position=v) for n, v in zip(JOINT_NAMES, _view(values).tolist())
+                JointState(name=n, position=v) for n, v in zip(JOINT_NAMES, positions.tolist())
             ],
         )
 

@@ -1,0 +1,210 @@
+"""The recording's most frequent Foxglove messages serialised in C, byte for byte.
+
+At every fifth control step a trial's recording gets a ``foxglove.FrameTransforms`` (``/tf``:
+a transform per link) and two ``foxglove.JointStates`` (the commanded and the measured
+joints). Building them as protobuf objects field by field and serialising them costs about
+90 and 25 us a message in Python. Here each is one C call that writes the serialised bytes
+directly, in protobuf's wire format as the protobuf runtime writes these messages:
+
+* fields in field-number order; a set sub-message (``timestamp``, ``translation``,
+  ``rotation``, each joint) always, even when empty;
+* a double of implicit presence (``Vector3``, ``Quaternion``) only when its bits are not
+  zero (so ``-0.0`` is written, ``0.0`` is not), a double of explicit presence
+  (``JointState.position``) always; integers (``Timestamp``) as varints when not zero;
+* the frame and joint names as the runtime serialises them, taken once from the runtime
+  itself (a message holding the names alone).
+
+:func:`compiled_messages` checks the kernel against the runtime's ``SerializeToString``
+on probe messages (random values, zeros of both signs, the recording's own names) when it
+is built, and returns None (the protobuf objects are built) without a C compiler, with
+``PAYLOAD_NATIVE=0``, or on a single differing byte. The values written are the ones the
+Python code would set: the caller rounds them as before.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import logging
+from collections.abc import Callable, Sequence
+
+import numpy as np
+from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
+from foxglove_schemas_protobuf.JointState_pb2 import JointState
+
+from payload import native
+
+log = logging.getLogger(__name__)
+
+SOURCE = r"""
+#include <string.h>
+
+static unsigned char *varint(unsigned char *p, uint64_t v)
+{
+    while (v >= 0x80) { *p++ = (unsigned char)(v | 0x80); v >>= 7; }
+    *p++ = (unsigned char)v;
+    return p;
+}
+
+/* a double field (tag: its key byte); implicit presence skips all-zero bits */
+static unsigned char *dbl(unsigned char *p, unsigned char tag, double x, int always)
+{
+    uint64_t bits;
+    memcpy(&bits, &x, 8);
+    if (!bits && !always) return p;
+    *p++ = tag;
+    for (int i = 0; i < 8; i++) *p++ = (unsigned char)(bits >> (8 * i));  /* little-endian */
+    return p;
+}
+
+/* a length-delimited field from the body in [body, end) */
+static unsigned char *field(unsigned char *p, unsigned char tag, const unsigned char *body,
+                            const unsigned char *end)
+{
+    *p++ = tag;
+    p = varint(p, (uint64_t)(end - body));
+    memmove(p, body, (size_t)(end - body));
+    return p + (end - body);
+}
+
+/* google.protobuf.Timestamp's body */
+static unsigned char *stamp(unsigned char *p, int64_t seconds, int64_t nanos)
+{
+    if (seconds) { *p++ = 0x08; p = varint(p, (uint64_t)seconds); }
+    if (nanos) { *p++ = 0x10; p = varint(p, (uint64_t)nanos); }
+    return p;
+}
+
+/* foxglove.FrameTransforms: per transform i, the timestamp, the names (names[off[i],
+   off[i + 1]): the serialised parent and child fields), the translation (poses[7 i ..])
+   and the rotation (poses: x y z, then w x y z); returns the length written */
+int64_t payload_frame_transforms(int64_t n, const double *poses, const unsigned char *names,
+                                 const int64_t *off, int64_t seconds, int64_t nanos,
+                                 unsigned char *out)
+{
+    unsigned char ts[24], body[1024], sub[64], *p = out;
+    unsigned char *ts_end = stamp(ts, seconds, nanos);
+    for (int64_t i = 0; i < n; i++) {
+        const double *v = poses + 7 * i;
+        unsigned char *b = field(body, 0x0a, ts, ts_end);
+        if (off[i + 1] - off[i] > 900) return -1;
+        memcpy(b, names + off[i], (size_t)(off[i + 1] - off[i]));
+        b += off[i + 1] - off[i];
+        unsigned char *s = dbl(dbl(dbl(sub, 0x09, v[0], 0), 0x11, v[1], 0), 0x19, v[2], 0);
+        b = field(b, 0x22, sub, s);
+        s = dbl(dbl(dbl(dbl(sub, 0x09, v[4], 0), 0x11, v[5], 0), 0x19, v[6], 0), 0x21, v[3], 0);
+        b = field(b, 0x2a, sub, s);
+        p = field(p, 0x0a, body, b);
+    }
+    return p - out;
+}
+
+/* foxglove.JointStates: the timestamp, then per joint its name (names[off[i], off[i + 1]):
+   the serialised name field) and its position; returns the length written */
+int64_t payload_joint_states(int64_t n, const double *positions, const unsigned char *names,
+                             const int64_t *off, int64_t seconds, int64_t nanos,
+                             unsigned char *out)
+{
+    unsigned char ts[24], body[1024], *p = out;
+    p = field(p, 0x0a, ts, stamp(ts, seconds, nanos));
+    for (int64_t i = 0; i < n; i++) {
+        if (off[i + 1] - off[i] > 1000) return -1;
+        memcpy(body, names + off[i], (size_t)(off[i + 1] - off[i]));
+        unsigned char *b = dbl(body + (off[i + 1] - off[i]), 0x11, positions[i], 1);
+        p = field(p, 0x12, body, b);
+    }
+    return p - out;
+}
+"""
+
+
+def _names(chunks: Sequence[bytes]) -> tuple[bytes, np.ndarray]:
+    """The chunks concatenated, and their offsets (n + 1,)."""
+    off = np.zeros(len(chunks) + 1, dtype=np.int64)
+    off[1:] = np.cumsum([len(c) for c in chunks])
+    return b"".join(chunks), off
+
+
+class CompiledMessages:
+    """The ``/tf`` and joint-state messages of one recording's frames and joints.
+
+    Args:
+        lib: The kernel's library.
+        frames: (parent, child) frame names of each transform, in order.
+        joints: The joint names, in order.
+    """
+
+    def __init__(
+        self, lib: ctypes.CDLL, frames: Sequence[tuple[str, str]], joints: Sequence[str]
+    ) -> None:
+        # the name fields as the protobuf runtime serialises them
+        self._tf_names = _names(
+            [FrameTransform(parent_frame_id=p, child_frame_id=c).SerializeToString()
+             for p, c in frames]
+        )  # fmt: skip
+        self._joint_names = _names([JointState(name=n).SerializeToString() for n in joints])
+        self.n_frames, self.n_joints = len(frames), len(joints)
+        ptr, i64 = ctypes.c_void_p, ctypes.c_int64
+        for fn in (lib.payload_frame_transforms, lib.payload_joint_states):
+            fn.restype = i64
+            fn.argtypes = [i64, ptr, ctypes.c_char_p, ptr, i64, i64, ptr]
+        self._tf, self._js = lib.payload_frame_transforms, lib.payload_joint_states
+        # room for every message: the names, and per item at most 128 bytes of the rest
+        self._tf_out = ctypes.create_string_buffer(len(self._tf_names[0]) + 128 * len(frames) + 64)
+        self._js_out = ctypes.create_string_buffer(
+            len(self._joint_names[0]) + 32 * len(joints) + 64
+        )
+
+    def _call(
+        self, fn: Callable, n: int, values: np.ndarray, names: tuple, ns: int, out: ctypes.Array
+    ) -> bytes | None:
+        v = np.ascontiguousarray(values, dtype=np.float64)
+        size = fn(n, v.ctypes.data, names[0], names[1].ctypes.data,
+                  ns // 1_000_000_000, ns % 1_000_000_000, out)  # fmt: skip
+        return None if size < 0 else ctypes.string_at(out, size)
+
+    def frame_transforms(self, poses: np.ndarray, ns: int) -> bytes | None:
+        """The serialised ``FrameTransforms`` of ``poses`` (N, 7: position, quaternion w x
+        y z) at log time ``ns``, or None (a name too long: build the message)."""
+        if poses.shape != (self.n_frames, 7):
+            return None
+        return self._call(self._tf, self.n_frames, poses, self._tf_names, ns, self._tf_out)
+
+    def joint_states(self, positions: np.ndarray, ns: int) -> bytes | None:
+        """The serialised ``JointStates`` of ``positions`` (J,) at log time ``ns``, or None."""
+        if positions.shape != (self.n_joints,):
+            return None
+        return self._call(self._js, self.n_joints, positions, self._joint_names, ns, self._js_out)
+
+
+@native.reported("Foxglove messages")
+def compiled_messages(
+    frames: Sequence[tuple[str, str]],
+    joints: Sequence[str],
+    transforms: Callable[[np.ndarray, int], bytes],
+    joint_states: Callable[[np.ndarray, int], bytes],
+) -> CompiledMessages | None:
+    """The compiled messages, or None to build them as protobuf objects: no compiler,
+    ``PAYLOAD_NATIVE=0``, a failed build, or a self-check against ``transforms(poses,
+    ns)`` and ``joint_states(positions, ns)`` (the runtime's serialisation of the messages
+    the Python code builds) that differs in a byte, on random values (some zero, of either
+    sign) and log times (some on whole seconds)."""
+    lib = native.load_kernel("messages", SOURCE, "the Foxglove messages kernel", log)
+    if lib is None:
+        return None
+    kernel = CompiledMessages(lib, frames, joints)
+    rng = np.random.default_rng(0)
+    for k in range(60):
+        ns = int(rng.integers(0, 10**12)) if k % 4 else 10**9 * (k // 4)
+        poses = rng.normal(size=(len(frames), 7)) * (rng.random((len(frames), 7)) < 0.8)
+        poses[rng.random(poses.shape) < 0.1] = -0.0
+        positions = rng.normal(size=len(joints)) * (rng.random(len(joints)) < 0.8)
+        positions[rng.random(len(joints)) < 0.1] = -0.0
+        if kernel.frame_transforms(poses, ns) != transforms(poses, ns) or kernel.joint_states(
+            positions, ns
+        ) != joint_states(positions, ns):
+            log.warning("Foxglove messages: protobuf (the compiled bytes differ)")
+            return None
+    return kernel
+
+
+__all__ = ["SOURCE", "CompiledMessages", "compiled_messages"]
