@@ -6,10 +6,10 @@ kernels (:mod:`payload.sim.allocation_c`, :mod:`payload.sim.vehicle_c`,
 :mod:`payload.teleop.hand_c`, :mod:`payload.teleop.filter_c`, :mod:`payload.teleop.limiter_c`,
 :mod:`payload.teleop.safety_c`, :mod:`payload.teleop.base_c`,
 :mod:`payload.retarget.targets_c`, :mod:`payload.trials.foxglove_c`,
-:mod:`payload.trials.messages_c`) build their shared
-libraries here. A library is named by the hash of its code, the compiler, the flags, the
-machine and whatever else its caller says it depends on (``key_parts``), so a stale one is
-never loaded; a failed compilation leaves its log beside the cache.
+:mod:`payload.trials.messages_c`) build their shared libraries here. A library is named
+by the hash of its code, the compiler, the flags, the machine and whatever else its caller
+says it depends on (``key_parts``), so a stale one is never loaded; a failed compilation
+leaves its log beside the cache.
 
 The flags keep IEEE arithmetic (no ``-ffast-math``, no contraction into fused
 multiply-adds), so compiled code that does the same operations in the same order as
