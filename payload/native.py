@@ -3,13 +3,14 @@
 The retargeting solvers (:mod:`payload.retarget.compiled`) and the 50 Hz loop's compiled
 kernels (:mod:`payload.sim.allocation_c`, :mod:`payload.sim.vehicle_c`,
 :mod:`payload.sim.station_c`, :mod:`payload.sim.facet_c`, :mod:`payload.sim.readout_c`,
-:mod:`payload.teleop.hand_c`, :mod:`payload.teleop.filter_c`, :mod:`payload.teleop.limiter_c`,
-:mod:`payload.teleop.safety_c`, :mod:`payload.teleop.base_c`,
+:mod:`payload.sim.contacts_c`, :mod:`payload.teleop.hand_c`, :mod:`payload.teleop.filter_c`,
+:mod:`payload.teleop.limiter_c`, :mod:`payload.teleop.safety_c`, :mod:`payload.teleop.base_c`,
 :mod:`payload.retarget.targets_c`, :mod:`payload.trials.foxglove_c`,
 :mod:`payload.trials.messages_c`) build their shared libraries here. A library is named
 by the hash of its code, the compiler, the flags, the machine and whatever else its caller
-says it depends on (``key_parts``), so a stale one is never loaded; a failed compilation
-leaves its log beside the cache.
+says it depends on (``key_parts``; a kernel compiled against MuJoCo's headers, MuJoCo's
+version), so a stale one is never loaded; a failed compilation leaves its log beside the
+cache.
 
 The flags keep IEEE arithmetic (no ``-ffast-math``, no contraction into fused
 multiply-adds), so compiled code that does the same operations in the same order as
@@ -77,9 +78,12 @@ def build_library(
     key_parts: Sequence[str] = (),
     error: Callable[[str], Exception] = RuntimeError,
     what: str = "native code",
+    include_dirs: Sequence[str] = (),
 ) -> Path:
     """C ``sources`` (file name -> code, each prefixed with ``prelude``) compiled into one
-    shared library under :func:`~payload.cache.cache_dir`, or the cached one.
+    shared library under :func:`~payload.cache.cache_dir`, or the cached one. Headers
+    are searched in ``include_dirs`` too (what they hold belongs in ``key_parts``: a
+    version).
 
     Raises:
         ``error(message)``: The compiler failed; the message names ``what`` and the log.
@@ -97,6 +101,7 @@ def build_library(
                 compiler,
                 *flags(compiler),
                 platform.machine(),
+                *include_dirs,
                 *key_parts,
             ]
         ).encode()
@@ -113,7 +118,15 @@ def build_library(
             paths[-1].write_text(prelude + code)
         out = Path(tmp) / "lib.so"
         proc = subprocess.run(
-            [compiler, *flags(compiler), "-o", str(out), *map(str, paths), "-lm"],
+            [
+                compiler,
+                *flags(compiler),
+                *(f"-I{d}" for d in include_dirs),
+                "-o",
+                str(out),
+                *map(str, paths),
+                "-lm",
+            ],
             capture_output=True,
             text=True,
             check=False,
@@ -182,6 +195,7 @@ def load_kernel(
     *,
     prelude: str = "",
     key_parts: Sequence[str] = (),
+    include_dirs: Sequence[str] = (),
 ) -> ctypes.CDLL | None:
     """A compiled kernel's library (``source`` built by :func:`build_library` as
     ``name``), or None when the numpy code is to run: :data:`NATIVE_ENV` is ``0``, there
@@ -201,6 +215,7 @@ def load_kernel(
             prelude=BLAS_C + prelude,
             key_parts=(*key_parts, _numpy_version()),
             what=what,
+            include_dirs=include_dirs,
         )
         return ctypes.CDLL(str(path))
     except (RuntimeError, OSError) as exc:
@@ -334,6 +349,17 @@ def gemv_layout(a: Any) -> tuple[int, int] | None:
     return None
 
 
+def mujoco_headers() -> tuple[str, str] | None:
+    """MuJoCo's C headers as its Python package ships them (the directory to include
+    ``<mujoco/mujoco.h>`` from) and the package's version (what they describe), or None."""
+    import mujoco
+
+    include = Path(mujoco.__file__).parent / "include"
+    if not (include / "mujoco" / "mujoco.h").is_file():
+        return None
+    return str(include), mujoco.__version__
+
+
 @functools.cache
 def mujoco_function(name: str) -> int | None:
     """The address of MuJoCo's C function ``name`` in the library its Python bindings
@@ -362,8 +388,11 @@ __all__ = [
     "load_kernel",
     "loaded_symbol",
     "mujoco_function",
+    "mujoco_headers",
     "numpy_blas",
     "numpy_dgemv",
+    "passed",
+    "probes",
     "prune",
     "reported",
 ]

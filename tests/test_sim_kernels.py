@@ -402,6 +402,70 @@ def test_a_read_out_with_other_bits_is_refused(bare_driver, refused_kernel, monk
     monkeypatch.delitem(bare_driver.__dict__, "_readouts")
 
 
+# -- the contact list's readers -----------------------------------------------------------------
+def _touching_ctb():
+    """A driver whose CTB is moved onto finger A's pad: contacts in the list."""
+    import mujoco
+
+    from payload.sim import SimDriver
+
+    d = SimDriver()
+    w = d.world
+    pad = d.data.geom_xpos[w.pad_geoms["A"]].copy()
+    d.data.qpos[w.ctb_qpos : w.ctb_qpos + 3] = pad
+    mujoco.mj_forward(d.model, d.data)
+    assert d.data.ncon > 0
+    return d
+
+
+def test_the_compiled_contact_readers_are_numpys_and_a_plain_loops():
+    """On a contact list rewritten with random pairs and distances (zeros of both signs,
+    NaN, flex ids): the compiled readers, the numpy ones and a plain loop over MuJoCo's
+    contact structs through the bindings give the same fingers and station contact."""
+    from payload.design import FINGERS
+    from payload.sim import contacts_c
+    from payload.sim.station import StationMonitor
+
+    with _touching_ctb() as d:
+        monitor, station = d.monitor, StationMonitor(d.world)
+        fingers = monitor._touching_kernel(d.data)
+        walls = station._contact_kernel(d.data)
+        assert fingers is not None and walls is not None
+        n = d.model.ngeom
+        geoms = np.concatenate([np.arange(n), [-1]])
+        seen = set()
+        for _ in contacts_c._rewritten_contacts(d.data, np.random.default_rng(5), geoms, 300):
+            bits, hit = 0, False
+            for i in range(d.data.ncon):  # the plain loop: one struct at a time
+                c = d.data.contact[i]
+                a, b = (int(g) % n for g in c.geom)
+                if c.dist <= 0.0 and monitor._pair_finger[a, b] >= 0:
+                    bits |= 1 << int(monitor._pair_finger[a, b])
+                a, b = int(c.geom1) % n, int(c.geom2) % n
+                st, mv = station._is_station, station._is_moving
+                hit |= bool((st[a] and mv[b]) or (st[b] and mv[a])) and c.dist <= 0.0
+            assert fingers(d.data) == monitor._touching_bits(d.data) == bits
+            assert walls(d.data) == station._contact_numpy(d.data) == hit
+            assert monitor.touching(d.data) == {f for k, f in enumerate(FINGERS) if bits >> k & 1}
+            seen.add((bits > 0, hit))
+        assert {b for b, _ in seen} == {h for _, h in seen} == {False, True}  # both answers
+
+
+def test_a_contact_reader_with_other_answers_is_refused(refused_kernel):
+    """A fingertip reader that counts only penetrating contacts (dist < 0, not <= 0)
+    answers otherwise on the self-check's zero distances: refused, numpy reads them."""
+    from payload.sim import contacts_c
+
+    with (
+        _touching_ctb() as d,
+        refused_kernel(
+            contacts_c, "if (!(c->dist <= 0.0)) continue;", "if (!(c->dist < 0.0)) continue;"
+        ),
+    ):
+        assert d.monitor._touching_kernel(d.data) is None
+        assert d.world_state().touching  # numpy's reader
+
+
 # -- the station clearance's quick bound ----------------------------------------------------------
 def _moved(driver, rng, scale: float) -> None:
     """The vehicle somewhere in the station, now and then near a wall."""

@@ -9,7 +9,7 @@ the distal link, for postures whose link edge rather than pad meets the cargo.
 from __future__ import annotations
 
 from collections.abc import Iterable
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import mujoco
 import numpy as np
@@ -25,6 +25,13 @@ SIDES: dict[int, tuple[str, ...]] = {
 
 _EVERY_SIDE = sum(1 << side for side in SIDES)
 """A bit per side of the array (:meth:`ContactMonitor.opposing`)."""
+
+
+_FINGER_SETS = tuple(
+    frozenset(f for k, f in enumerate(FINGERS) if bits >> k & 1)
+    for bits in range(1 << len(FINGERS))
+)
+"""The set of fingers of each bit pattern (bit k: ``FINGERS[k]``)."""
 
 
 def opposing(fingers: Iterable[str]) -> bool:
@@ -81,16 +88,33 @@ class ContactMonitor:
         side_bit = np.array([1 << SIDE_OF[f] for f in FINGERS], dtype=np.int64)
         self._pair_side = np.where(pair >= 0, side_bit[pair], 0)
         self._force = np.zeros(6)
+        self._touching: tuple[Any] | None = None  # (the compiled reader or None) once tried
 
     def touching(self, data: mujoco.MjData) -> frozenset[str]:
         """Fingers whose fingertip geoms are in contact with any CTB geom."""
-        n = data.ncon
-        if n == 0:
+        if data.ncon == 0:
             return frozenset()
+        kernel = self._touching_kernel(data)
+        if kernel is not None:
+            return _FINGER_SETS[kernel(data)]
+        return _FINGER_SETS[self._touching_bits(data)]
+
+    def _touching_bits(self, data: mujoco.MjData) -> int:
+        """The touching fingers in numpy, as bits (bit k: ``FINGERS[k]``)."""
+        n = data.ncon
         contact = data.contact
         pairs = contact.geom[:n][contact.dist[:n] <= 0.0]
         hits = set(self._pair_finger[pairs[:, 0], pairs[:, 1]].tolist())
-        return frozenset(FINGERS[k] for k in sorted(hits) if k >= 0)
+        return sum(1 << k for k in hits if k >= 0)
+
+    def _touching_kernel(self, data: mujoco.MjData) -> Any:
+        """:meth:`_touching_bits` compiled (:mod:`payload.sim.contacts_c`, checked on the
+        first data with contacts it is asked about), or None."""
+        if self._touching is None:
+            from payload.sim.contacts_c import compiled_touching
+
+            self._touching = (compiled_touching(data, self._pair_finger, self._touching_bits),)
+        return self._touching[0]
 
     def opposing(self, data: mujoco.MjData) -> bool:
         """The opposing-contact indicator for the current state: :func:`opposing` of

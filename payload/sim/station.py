@@ -75,6 +75,7 @@ class StationMonitor:
         self._station_box: tuple[np.ndarray, np.ndarray] | None = None
         self._fromto = np.zeros(6)
         self._kernel: tuple[Any, Any] | None = None
+        self._contact: tuple[Any] | None = None  # (the compiled reader or None) once tried
         # per moving geom, a bound on how far its world box reaches from its frame's
         # origin along any axis: |R c|_i <= |c| and (|R| h)_i <= |h| for a rotation R
         # (the box's centre c and half-sizes h in the geom frame), with slack for rounding
@@ -88,12 +89,8 @@ class StationMonitor:
         m = self.model
         contact = False
         if data.ncon:
-            con = data.contact
-            g1, g2 = con.geom1, con.geom2
-            pair = (self._is_station[g1] & self._is_moving[g2]) | (
-                self._is_station[g2] & self._is_moving[g1]
-            )
-            contact = bool((pair & (con.dist <= 0.0)).any())
+            kernel = self._contact_kernel(data)
+            contact = kernel(data) if kernel is not None else self._contact_numpy(data)
         if self._station_box is None:  # static geoms: their boxes never change
             self._station_box = _world_aabb(m, data, self.station)
         # first a box around every moving geom's box (its origin plus its reach): when
@@ -107,6 +104,28 @@ class StationMonitor:
         if best is None:
             best = self._clearance_numpy(data)
         return StationReading(contact or best <= 0.0, float(best))
+
+    def _contact_numpy(self, data: mujoco.MjData) -> bool:
+        """Whether a station geom and a moving one are in contact (numpy)."""
+        con = data.contact
+        g1, g2 = con.geom1, con.geom2
+        pair = (self._is_station[g1] & self._is_moving[g2]) | (
+            self._is_station[g2] & self._is_moving[g1]
+        )
+        return bool((pair & (con.dist <= 0.0)).any())
+
+    def _contact_kernel(self, data: mujoco.MjData) -> Any:
+        """:meth:`_contact_numpy` compiled (:mod:`payload.sim.contacts_c`, checked on the
+        first data with contacts it is asked about), or None."""
+        if self._contact is None:
+            from payload.sim.contacts_c import compiled_station_contact
+
+            self._contact = (
+                compiled_station_contact(
+                    data, self._is_station, self._is_moving, self._contact_numpy
+                ),
+            )
+        return self._contact[0]
 
     def _clearance_numpy(self, data: mujoco.MjData) -> float:
         """The least distance between the moving geoms and the station, at most the cap
