@@ -399,7 +399,7 @@ def test_the_compiled_messages_are_the_protobuf_runtimes(foxglove_recording) -> 
     from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
     from foxglove_schemas_protobuf.JointStates_pb2 import JointStates
 
-    from payload.trials.foxglove import JOINT_NAMES, FoxgloveScene
+    from payload.trials.foxglove import JOINT_NAMES, FoxgloveScene, split_ns
 
     _, _, world = foxglove_recording
     scene = FoxgloveScene(world)
@@ -412,7 +412,7 @@ def test_the_compiled_messages_are_the_protobuf_runtimes(foxglove_recording) -> 
         poses = scene._poses(st)
         poses[rng.random(poses.shape) < 0.05] = (0.0, -0.0)[k % 2]
         ns = 1_000_000_000 * k if k % 5 == 0 else int(rng.integers(0, 2**62))
-        tf = kernel.frame_transforms(poses, ns)
+        tf = kernel.frame_transforms(poses, split_ns(ns))
         assert tf == scene._frame_transforms(poses, ns).SerializeToString()
         back = FrameTransforms.FromString(tf)
         assert [(t.parent_frame_id, t.child_frame_id) for t in back.transforms] == list(
@@ -425,11 +425,27 @@ def test_the_compiled_messages_are_the_protobuf_runtimes(foxglove_recording) -> 
         assert got.tobytes() == poses.tobytes()  # a -0.0 is written, an omitted 0.0 reads 0.0
         assert back.transforms[0].timestamp.ToNanoseconds() == ns
         values = rng.normal(size=len(JOINT_NAMES)) * (rng.random(len(JOINT_NAMES)) < 0.7)
-        js = kernel.joint_states(values, ns)
+        js = kernel.joint_states(values, split_ns(ns))
         assert js == scene._joint_states(values, ns).SerializeToString()
         back = JointStates.FromString(js)
         assert [j.name for j in back.joints] == list(JOINT_NAMES)
         assert np.array([j.position for j in back.joints]).tobytes() == values.tobytes()
+
+
+def test_names_too_long_for_the_message_kernel_go_to_the_runtime(foxglove_recording) -> None:
+    """A frame or joint name longer than the kernel's item buffer: the kernel answers None
+    and the recording's message is built by the protobuf runtime (whose bytes it is)."""
+    from payload.trials import messages_c
+    from payload.trials.foxglove import split_ns
+
+    lib = messages_c.load_library()
+    long = "x" * messages_c.ITEM_BYTES
+    kernel = messages_c.CompiledMessages(lib, [("world", "a"), ("a", long)], ["j", long])
+    stamp = split_ns(1_500_000_000)
+    assert kernel.frame_transforms(np.zeros((2, 7)), stamp) is None
+    assert kernel.joint_states(np.zeros(2), stamp) is None
+    short = messages_c.CompiledMessages(lib, [("world", "a")], ["j"])
+    assert short.frame_transforms(np.zeros((1, 7)), stamp) is not None
 
 
 def test_messages_with_other_bytes_are_refused(foxglove_recording, refused_kernel) -> None:

@@ -172,7 +172,7 @@ def test_a_facet_solve_with_other_bits_is_refused(refused_kernel):
 
 def test_a_problem_the_facet_kernel_cannot_take_goes_to_numpy(prop):
     """One column (numpy multiplies it by a scalar, not with dgemv) or a wrong dtype: the
-    kernel answers None, and the allocation's numpy solve does."""
+    kernel answers None (so that ``_on_facet`` runs the numpy solve)."""
     kernel = prop._facet_kernel
     a, rest, ub = np.ones((6, 1)), np.ones(6), np.ones(1)
     assert kernel(a, rest, ub, 1e-7, True) is None
@@ -386,20 +386,25 @@ def test_the_read_out_flags_a_limit_and_an_overload(bare_driver):
         data.qpos[:], data.actuator_force[:] = saved
 
 
-def test_a_read_out_with_other_bits_is_refused(bare_driver, refused_kernel, monkeypatch):
+def test_a_read_out_with_other_bits_is_refused(bare_driver, refused_kernel):
     """A read-out that turns the velocity into the body frame with the rotation itself
     instead of its transpose is refused by the self-check; numpy reads the world."""
     from payload.sim import readout_c
 
-    monkeypatch.delitem(bare_driver.__dict__, "_readouts", raising=False)
-    with refused_kernel(
-        readout_c,
-        "r->gemv(COL_MAJOR, NO_TRANS, 3, 3, 1.0, r->xmat, 3, v, 1, 0.0, out + 7, 1);",
-        "r->gemv(ROW_MAJOR, NO_TRANS, 3, 3, 1.0, r->xmat, 3, v, 1, 0.0, out + 7, 1);",
-    ):
-        assert bare_driver._readout is None
-    assert bare_driver.world_state().astrobee_linear.shape == (3,)
-    monkeypatch.delitem(bare_driver.__dict__, "_readouts")
+    built = bare_driver.__dict__.pop("_readouts", None)  # the shared driver's, put back
+    try:
+        with refused_kernel(
+            readout_c,
+            "r->gemv(COL_MAJOR, NO_TRANS, 3, 3, 1.0, r->xmat, 3, v, 1, 0.0, out + OFF_LINEAR, 1);",
+            "r->gemv(ROW_MAJOR, NO_TRANS, 3, 3, 1.0, r->xmat, 3, v, 1, 0.0, out + OFF_LINEAR, 1);",
+        ):
+            assert bare_driver._readout is None
+        state = bare_driver.world_state()  # numpy's read-out
+        assert state.astrobee_linear.tobytes() == bare_driver._world_state_numpy()[3].tobytes()
+    finally:
+        bare_driver.__dict__.pop("_readouts", None)
+        if built is not None:
+            bare_driver.__dict__["_readouts"] = built
 
 
 # -- the contact list's readers -----------------------------------------------------------------

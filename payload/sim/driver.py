@@ -48,9 +48,7 @@ from payload.sim.world import (
 )
 
 _AT_LIMIT = 1e-4  # [rad or m] a coordinate this close to a range end is at its limit
-_HEALTH = (Health.OK, Health.OVERLOAD, Health.LIMIT, Health.OVERLOAD | Health.LIMIT)
-"""The health of the read-out kernel's bits (1: an actuator at its force bound, 2: a
-coordinate at a range end)."""
+
 _WARNING_NAMES = tuple(
     name
     for name, value in sorted(mujoco.mjtWarning.__members__.items(), key=lambda kv: int(kv[1]))
@@ -183,13 +181,18 @@ class SimDriver:
         """:meth:`read` through the read-out kernel."""
         out, bits = kernel.read()
         n = kernel.n
+        health = Health.OK
+        if bits & kernel.overload_bit:
+            health |= Health.OVERLOAD
+        if bits & kernel.limit_bit:
+            health |= Health.LIMIT
         return PayloadState(
             q=out[:n],
             deploy=float(out[n]),
             stamp=float(self.data.time),
             dq=out[n + 1 : 2 * n + 1],
             effort=out[2 * n + 1 :],
-            health=_HEALTH[bits],
+            health=health,
         )
 
     def _read_numpy(self) -> PayloadState:
@@ -419,16 +422,17 @@ class SimDriver:
         """:meth:`world_state` through the read-out kernel."""
         w, d = self.world, self.data
         out = kernel.world()
+        at = kernel.slices
         touching = self.monitor.touching(d)
-        pos = out[:3]
+        pos = out[at["astrobee_pos"]]
         return WorldState(
             time=float(d.time),
             astrobee_pos=pos,
-            astrobee_quat=out[3:7],
-            astrobee_linear=out[7:10],
-            astrobee_angular=out[10:13],
-            ctb_pos=out[13:16] if w.ctb >= 0 else None,
-            ctb_quat=out[16:20] if w.ctb >= 0 else None,
+            astrobee_quat=out[at["astrobee_quat"]],
+            astrobee_linear=out[at["astrobee_linear"]],
+            astrobee_angular=out[at["astrobee_angular"]],
+            ctb_pos=out[at["ctb_pos"]] if w.ctb >= 0 else None,
+            ctb_quat=out[at["ctb_quat"]] if w.ctb >= 0 else None,
             touching=touching,
             opposing_contact=opposing(touching),
             module=w.layout.module_at(pos),

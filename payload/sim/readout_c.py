@@ -15,8 +15,8 @@ buffer (the time, a field of the data's struct, stays Python's ``float(data.time
 * the health tests are the same comparisons (``|force| >= overload``, ``q <= lo``,
   ``q >= hi``; a NaN fails them all, as in numpy).
 
-The fingertip contacts stay with :class:`~payload.sim.contact.ContactMonitor` (nothing to
-do without contacts, and the contact array moves in MuJoCo's arena).
+The fingertip contacts are :class:`~payload.sim.contact.ContactMonitor`'s (compiled in
+:mod:`payload.sim.contacts_c`, which reads the contact list where MuJoCo's arena has it).
 :func:`compiled_readout` checks the kernel against the numpy read-out on random states
 written into the data when it is built, and returns None (the numpy code runs) without a
 C compiler or numpy's OpenBLAS, with ``PAYLOAD_NATIVE=0``, or on a single differing bit.
@@ -25,6 +25,7 @@ C compiler or numpy's OpenBLAS, with ``PAYLOAD_NATIVE=0``, or on a single differ
 from __future__ import annotations
 
 import ctypes
+import itertools
 import logging
 from collections.abc import Callable
 from typing import Any
@@ -35,7 +36,30 @@ from payload import native
 
 log = logging.getLogger(__name__)
 
+WORLD_LAYOUT = (
+    ("astrobee_pos", 3),
+    ("astrobee_quat", 4),
+    ("astrobee_linear", 3),
+    ("astrobee_angular", 3),
+    ("ctb_pos", 3),
+    ("ctb_quat", 4),
+)
+"""The world read-out's fields in its buffer, in order (the CTB's only with a CTB)."""
+
+WORLD_SLICES: dict[str, slice] = {
+    name: slice(at - size, at)
+    for (name, size), at in zip(WORLD_LAYOUT, itertools.accumulate(s for _, s in WORLD_LAYOUT))
+}
+"""Each field's part of the world read-out's buffer."""
+
+OVERLOAD_BIT = 1
+"""The payload read-out's health bit: an actuator at its force bound."""
+
+LIMIT_BIT = 2
+"""The payload read-out's health bit: a coordinate at an end of its range."""
+
 SOURCE = r"""
+/* OFF_LINEAR, OFF_ANGULAR, OFF_CTB, OVERLOAD_BIT and LIMIT_BIT are defined by the loader */
 typedef struct {
     dgemv_fn gemv;
     const double *qpos, *qvel, *xmat, *force;
@@ -51,10 +75,10 @@ void payload_world(const readout *r, double *out)
 {
     const double *q = r->qpos + r->a_qpos, *v = r->qvel + r->a_dof;
     for (int i = 0; i < 7; i++) out[i] = q[i];
-    r->gemv(COL_MAJOR, NO_TRANS, 3, 3, 1.0, r->xmat, 3, v, 1, 0.0, out + 7, 1);
-    for (int i = 0; i < 3; i++) out[10 + i] = v[3 + i];
+    r->gemv(COL_MAJOR, NO_TRANS, 3, 3, 1.0, r->xmat, 3, v, 1, 0.0, out + OFF_LINEAR, 1);
+    for (int i = 0; i < 3; i++) out[OFF_ANGULAR + i] = v[3 + i];
     if (r->ctb_qpos >= 0)
-        for (int i = 0; i < 7; i++) out[13 + i] = r->qpos[r->ctb_qpos + i];
+        for (int i = 0; i < 7; i++) out[OFF_CTB + i] = r->qpos[r->ctb_qpos + i];
 }
 
 /* q (nq), deploy, dq (nq), effort (nq); returns the health bits (overload 1, limit 2) */
@@ -63,11 +87,11 @@ int payload_read(const readout *r, double *out)
     int64_t n = r->nq;
     int health = 0;
     for (int64_t i = 0; i < r->nctrl; i++)
-        if (fabs(r->force[r->ctrl_idx[i]]) >= r->overload[i]) health |= 1;
+        if (fabs(r->force[r->ctrl_idx[i]]) >= r->overload[i]) health |= OVERLOAD_BIT;
     for (int64_t i = 0; i < n; i++) {
         double q = r->qpos[r->q_idx[i]];
         out[i] = q;
-        if (q <= r->lo[i] || q >= r->hi[i]) health |= 2;
+        if (q <= r->lo[i] || q >= r->hi[i]) health |= LIMIT_BIT;
     }
     out[n] = r->qpos[r->stage];
     for (int64_t i = 0; i < n; i++) out[n + 1 + i] = r->qvel[r->dof_idx[i]];
@@ -144,7 +168,10 @@ class CompiledReadout:
             *[x.ctypes.data for x in reals],
         )  # fmt: skip
         self.n = n
-        self.world_size = 20 if ctb_qpos >= 0 else 13
+        last = "ctb_quat" if ctb_qpos >= 0 else "astrobee_angular"
+        self.world_size = WORLD_SLICES[last].stop
+        self.slices = WORLD_SLICES
+        self.overload_bit, self.limit_bit = OVERLOAD_BIT, LIMIT_BIT
         self._world = lib.payload_world
         self._world.restype = None
         self._world.argtypes = [ctypes.c_void_p, ctypes.c_void_p]
@@ -154,15 +181,14 @@ class CompiledReadout:
         self._ptr = ctypes.addressof(self._ctx)
 
     def world(self) -> np.ndarray:
-        """Astrobee pos (3), quat (4), body linear (3), angular (3)[, CTB pos (3), quat
-        (4)], a fresh array."""
+        """The world read-out, a fresh array laid out as :data:`WORLD_LAYOUT`."""
         out = np.empty(self.world_size)
         self._world(self._ptr, out.ctypes.data)
         return out
 
     def read(self) -> tuple[np.ndarray, int]:
-        """(q (N), deploy, dq (N), effort (N) as one fresh array; the health bits: 1
-        overload, 2 limit)."""
+        """(q (N), deploy, dq (N), effort (N) as one fresh array; the health bits,
+        :data:`OVERLOAD_BIT` and :data:`LIMIT_BIT`)."""
         out = np.empty(3 * self.n + 1)
         return out, self._read(self._ptr, out.ctypes.data)
 
@@ -178,7 +204,16 @@ def compiled_readout(
     gemv = native.numpy_dgemv()
     if gemv is None:
         return None
-    lib = native.load_kernel("readout", SOURCE, "the read-out kernel", log)
+    at = {name: part.start for name, part in WORLD_SLICES.items()}
+    prelude = (
+        f"#define OFF_LINEAR {at['astrobee_linear']}\n"
+        f"#define OFF_ANGULAR {at['astrobee_angular']}\n"
+        f"#define OFF_CTB {at['ctb_pos']}\n"
+        f"#define OVERLOAD_BIT {OVERLOAD_BIT}\n#define LIMIT_BIT {LIMIT_BIT}\n"
+    )
+    if [at["astrobee_pos"], at["astrobee_quat"], at["ctb_quat"] - at["ctb_pos"]] != [0, 3, 3]:
+        return None  # pragma: no cover - the C copies pos and quat as one run of seven
+    lib = native.load_kernel("readout", SOURCE, "the read-out kernel", log, prelude=prelude)
     if lib is None:
         return None
     try:
@@ -192,4 +227,12 @@ def compiled_readout(
     return kernel
 
 
-__all__ = ["SOURCE", "CompiledReadout", "compiled_readout"]
+__all__ = [
+    "LIMIT_BIT",
+    "OVERLOAD_BIT",
+    "SOURCE",
+    "WORLD_LAYOUT",
+    "WORLD_SLICES",
+    "CompiledReadout",
+    "compiled_readout",
+]

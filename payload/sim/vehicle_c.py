@@ -337,10 +337,11 @@ def _same_update(a: tuple, b: tuple) -> bool:
 
 
 def check_control(controller: Any, kernel: CompiledControl, steps: int = 160) -> bool:
-    """Run ``steps`` control steps of piecewise-constant random commands (moving, turning,
-    at rest, beyond the mode's speed) from the same states through the numpy code and
-    the kernel; True if every wrench, allocation and profile state has the same bits.
-    The controller's profile state and allocation are restored afterwards."""
+    """Run ``steps`` control steps of piecewise-constant random commands (four of them, each
+    moving and turning, at rest, within or beyond the mode's speed) from the same states
+    through the numpy code and the kernel; True if every wrench, allocation and profile
+    state has the same bits. The controller's profile state and allocation are restored
+    afterwards."""
     from payload.schema import VehicleTwist
 
     profile = controller.profile
@@ -350,7 +351,7 @@ def check_control(controller: Any, kernel: CompiledControl, steps: int = 160) ->
     command = VehicleTwist.zero()
     try:
         for i in range(steps):
-            if i % 40 == 0:
+            if i % max(1, steps // 4) == 0:
                 scale = rng.choice((0.0, 0.5, 1.0, 2.0))
                 command = VehicleTwist(
                     rng.normal(size=3) * mode.speed * scale,

@@ -88,8 +88,14 @@ def _view(x: np.ndarray) -> np.ndarray:
     return np.round(np.asarray(x, dtype=np.float64) / VIEW_RESOLUTION) * VIEW_RESOLUTION
 
 
+def split_ns(ns: int) -> tuple[int, int]:
+    """A log time [ns] as a protobuf ``Timestamp``'s (seconds, nanos)."""
+    return ns // 1_000_000_000, ns % 1_000_000_000
+
+
 def _timestamp(ns: int) -> Timestamp:
-    return Timestamp(seconds=ns // 1_000_000_000, nanos=ns % 1_000_000_000)
+    seconds, nanos = split_ns(ns)
+    return Timestamp(seconds=seconds, nanos=nanos)
 
 
 def _pose(pos: np.ndarray, quat_wxyz: np.ndarray) -> Pose:
@@ -154,10 +160,11 @@ class FoxgloveScene:
             poses = self._poses(step)
             cmd = _view(np.append(step.q_cmd, step.deploy_cmd))
             meas = _view(np.append(step.q_meas, step.deploy_meas))
+            stamp = split_ns(ns)
             for topic, data in (
-                ("/tf", kernel and kernel.frame_transforms(poses, ns)),
-                ("/payload/joints/commanded", kernel and kernel.joint_states(cmd, ns)),
-                ("/payload/joints/measured", kernel and kernel.joint_states(meas, ns)),
+                ("/tf", kernel and kernel.frame_transforms(poses, stamp)),
+                ("/payload/joints/commanded", kernel and kernel.joint_states(cmd, stamp)),
+                ("/payload/joints/measured", kernel and kernel.joint_states(meas, stamp)),
             ):
                 if data is None:  # the protobuf objects, serialised by the runtime
                     data = (
@@ -186,6 +193,7 @@ class FoxgloveScene:
             list(JOINT_NAMES),
             lambda poses, ns: self._frame_transforms(poses, ns).SerializeToString(),
             lambda positions, ns: self._joint_states(positions, ns).SerializeToString(),
+            split_ns,
         )
 
     def _events(self, writer: Any, step: Any, ns: int) -> None:

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import ctypes
 import logging
+import threading
 from collections.abc import Callable, Sequence
 
 import numpy as np
@@ -35,8 +36,18 @@ from payload import native
 
 log = logging.getLogger(__name__)
 
+ITEM_BYTES = 1024
+"""The most bytes one transform or joint may take serialised (its names included): longer
+names are left to the protobuf runtime."""
+
+REST_BYTES = 124
+"""A bound on the bytes of one item besides its names (tags, lengths, a timestamp, seven
+doubles: 88 at most): ``ITEM_BYTES - REST_BYTES`` is the room for the names."""
+
 SOURCE = r"""
 #include <string.h>
+
+/* ITEM_BYTES and REST_BYTES are defined by the loader */
 
 static unsigned char *varint(unsigned char *p, uint64_t v)
 {
@@ -76,17 +87,19 @@ static unsigned char *stamp(unsigned char *p, int64_t seconds, int64_t nanos)
 
 /* foxglove.FrameTransforms: per transform i, the timestamp, the names (names[off[i],
    off[i + 1]): the serialised parent and child fields), the translation (poses[7 i ..])
-   and the rotation (poses: x y z, then w x y z); returns the length written */
+   and the rotation (poses: x y z, then w x y z) into out (cap bytes); returns the length
+   written, or -1 (names too long, or no room) */
 int64_t payload_frame_transforms(int64_t n, const double *poses, const unsigned char *names,
                                  const int64_t *off, int64_t seconds, int64_t nanos,
-                                 unsigned char *out)
+                                 unsigned char *out, int64_t cap)
 {
-    unsigned char ts[24], body[1024], sub[64], *p = out;
+    unsigned char ts[24], body[ITEM_BYTES], sub[64], *p = out;
     unsigned char *ts_end = stamp(ts, seconds, nanos);
     for (int64_t i = 0; i < n; i++) {
         const double *v = poses + 7 * i;
+        int64_t len = off[i + 1] - off[i];
+        if (len > ITEM_BYTES - REST_BYTES || (p - out) + len + REST_BYTES > cap) return -1;
         unsigned char *b = field(body, 0x0a, ts, ts_end);
-        if (off[i + 1] - off[i] > 900) return -1;
         memcpy(b, names + off[i], (size_t)(off[i + 1] - off[i]));
         b += off[i + 1] - off[i];
         unsigned char *s = dbl(dbl(dbl(sub, 0x09, v[0], 0), 0x11, v[1], 0), 0x19, v[2], 0);
@@ -99,15 +112,17 @@ int64_t payload_frame_transforms(int64_t n, const double *poses, const unsigned 
 }
 
 /* foxglove.JointStates: the timestamp, then per joint its name (names[off[i], off[i + 1]):
-   the serialised name field) and its position; returns the length written */
+   the serialised name field) and its position into out (cap bytes); returns the length
+   written, or -1 */
 int64_t payload_joint_states(int64_t n, const double *positions, const unsigned char *names,
                              const int64_t *off, int64_t seconds, int64_t nanos,
-                             unsigned char *out)
+                             unsigned char *out, int64_t cap)
 {
-    unsigned char ts[24], body[1024], *p = out;
+    unsigned char ts[24], body[ITEM_BYTES], *p = out;
     p = field(p, 0x0a, ts, stamp(ts, seconds, nanos));
     for (int64_t i = 0; i < n; i++) {
-        if (off[i + 1] - off[i] > 1000) return -1;
+        int64_t len = off[i + 1] - off[i];
+        if (len > ITEM_BYTES - REST_BYTES || (p - out) + len + REST_BYTES > cap) return -1;
         memcpy(body, names + off[i], (size_t)(off[i + 1] - off[i]));
         unsigned char *b = dbl(body + (off[i + 1] - off[i]), 0x11, positions[i], 1);
         p = field(p, 0x12, body, b);
@@ -146,34 +161,49 @@ class CompiledMessages:
         ptr, i64 = ctypes.c_void_p, ctypes.c_int64
         for fn in (lib.payload_frame_transforms, lib.payload_joint_states):
             fn.restype = i64
-            fn.argtypes = [i64, ptr, ctypes.c_char_p, ptr, i64, i64, ptr]
+            fn.argtypes = [i64, ptr, ctypes.c_char_p, ptr, i64, i64, ptr, i64]
         self._tf, self._js = lib.payload_frame_transforms, lib.payload_joint_states
-        # room for every message: the names, and per item at most 128 bytes of the rest
-        self._tf_out = ctypes.create_string_buffer(len(self._tf_names[0]) + 128 * len(frames) + 64)
-        self._js_out = ctypes.create_string_buffer(
-            len(self._joint_names[0]) + 32 * len(joints) + 64
+        # room for every message: the timestamp, and per item its names and the rest
+        self._tf_out = ctypes.create_string_buffer(
+            len(self._tf_names[0]) + REST_BYTES * (len(frames) + 1)
         )
+        self._js_out = ctypes.create_string_buffer(
+            len(self._joint_names[0]) + REST_BYTES * (len(joints) + 1)
+        )
+        self._lock = threading.Lock()  # the buffers are shared by the calls
 
     def _call(
-        self, fn: Callable, n: int, values: np.ndarray, names: tuple, ns: int, out: ctypes.Array
-    ) -> bytes | None:
+        self, fn: Callable, n: int, values: np.ndarray, names: tuple, stamp: tuple[int, int],
+        out: ctypes.Array,
+    ) -> bytes | None:  # fmt: skip
         v = np.ascontiguousarray(values, dtype=np.float64)
-        size = fn(n, v.ctypes.data, names[0], names[1].ctypes.data,
-                  ns // 1_000_000_000, ns % 1_000_000_000, out)  # fmt: skip
-        return None if size < 0 else ctypes.string_at(out, size)
+        with self._lock:
+            size = fn(n, v.ctypes.data, names[0], names[1].ctypes.data, *stamp, out, len(out))
+            return None if size < 0 else ctypes.string_at(out, size)
 
-    def frame_transforms(self, poses: np.ndarray, ns: int) -> bytes | None:
+    def frame_transforms(self, poses: np.ndarray, stamp: tuple[int, int]) -> bytes | None:
         """The serialised ``FrameTransforms`` of ``poses`` (N, 7: position, quaternion w x
-        y z) at log time ``ns``, or None (a name too long: build the message)."""
+        y z) at ``stamp`` (seconds, nanos), or None (a name too long: build the message)."""
         if poses.shape != (self.n_frames, 7):
             return None
-        return self._call(self._tf, self.n_frames, poses, self._tf_names, ns, self._tf_out)
+        return self._call(self._tf, self.n_frames, poses, self._tf_names, stamp, self._tf_out)
 
-    def joint_states(self, positions: np.ndarray, ns: int) -> bytes | None:
-        """The serialised ``JointStates`` of ``positions`` (J,) at log time ``ns``, or None."""
+    def joint_states(self, positions: np.ndarray, stamp: tuple[int, int]) -> bytes | None:
+        """The serialised ``JointStates`` of ``positions`` (J,) at ``stamp``, or None."""
         if positions.shape != (self.n_joints,):
             return None
-        return self._call(self._js, self.n_joints, positions, self._joint_names, ns, self._js_out)
+        return self._call(
+            self._js, self.n_joints, positions, self._joint_names, stamp, self._js_out
+        )
+
+
+def load_library() -> ctypes.CDLL | None:
+    """The kernel's library (None: the protobuf objects are to be built; the log says
+    why)."""
+    prelude = f"#define ITEM_BYTES {ITEM_BYTES}\n#define REST_BYTES {REST_BYTES}\n"
+    return native.load_kernel(
+        "messages", SOURCE, "the Foxglove messages kernel", log, prelude=prelude
+    )
 
 
 @native.reported("Foxglove messages")
@@ -182,29 +212,41 @@ def compiled_messages(
     joints: Sequence[str],
     transforms: Callable[[np.ndarray, int], bytes],
     joint_states: Callable[[np.ndarray, int], bytes],
+    split: Callable[[int], tuple[int, int]],
 ) -> CompiledMessages | None:
     """The compiled messages, or None to build them as protobuf objects: no compiler,
     ``PAYLOAD_NATIVE=0``, a failed build, or a self-check against ``transforms(poses,
     ns)`` and ``joint_states(positions, ns)`` (the runtime's serialisation of the messages
-    the Python code builds) that differs in a byte, on random values (some zero, of either
-    sign) and log times (some on whole seconds)."""
-    lib = native.load_kernel("messages", SOURCE, "the Foxglove messages kernel", log)
+    the Python code builds at log time ``ns``, which ``split`` makes the kernel's (seconds,
+    nanos)) that differs in a byte, on random values (some zero, of either sign) and log
+    times (some on whole seconds)."""
+    lib = load_library()
     if lib is None:
         return None
     kernel = CompiledMessages(lib, frames, joints)
     rng = np.random.default_rng(0)
     for k in range(60):
-        ns = int(rng.integers(0, 10**12)) if k % 4 else 10**9 * (k // 4)
+        ns = int(rng.integers(0, 10**12)) if k else 0
+        if k % 4 == 1:
+            ns -= split(ns)[1]  # on a whole second: no nanos written
         poses = rng.normal(size=(len(frames), 7)) * (rng.random((len(frames), 7)) < 0.8)
         poses[rng.random(poses.shape) < 0.1] = -0.0
         positions = rng.normal(size=len(joints)) * (rng.random(len(joints)) < 0.8)
         positions[rng.random(len(joints)) < 0.1] = -0.0
-        if kernel.frame_transforms(poses, ns) != transforms(poses, ns) or kernel.joint_states(
-            positions, ns
+        stamp = split(ns)
+        if kernel.frame_transforms(poses, stamp) != transforms(poses, ns) or kernel.joint_states(
+            positions, stamp
         ) != joint_states(positions, ns):
             log.warning("Foxglove messages: protobuf (the compiled bytes differ)")
             return None
     return kernel
 
 
-__all__ = ["SOURCE", "CompiledMessages", "compiled_messages"]
+__all__ = [
+    "ITEM_BYTES",
+    "REST_BYTES",
+    "SOURCE",
+    "CompiledMessages",
+    "compiled_messages",
+    "load_library",
+]
