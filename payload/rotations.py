@@ -6,17 +6,30 @@ import math
 
 import numpy as np
 
+_LAST: tuple[bytes, np.ndarray] = (b"", np.eye(3))
+"""The last quaternion converted (its bytes) and its matrix: the control loop asks for the
+rotation of the same state three or four times a step."""
+
 
 def quat_to_matrix(quat: np.ndarray) -> np.ndarray:
-    """Rotation matrix of a unit quaternion (w, x, y, z), shape (3, 3)."""
-    w, x, y, z = np.asarray(quat, dtype=float).tolist()  # floats: the same arithmetic, sooner
-    return np.array(
+    """Rotation matrix of a unit quaternion (w, x, y, z), shape (3, 3) (a fresh array)."""
+    global _LAST
+    q = np.asarray(quat, dtype=float)
+    key = q.tobytes() if q.shape == (4,) else b""
+    last = _LAST
+    if key and key == last[0]:  # the same bits: the same matrix
+        return last[1].copy()
+    w, x, y, z = q.tolist()  # floats: the same arithmetic, sooner
+    out = np.array(
         [
             [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
             [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
             [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
         ]
     )
+    if key:
+        _LAST = (key, out.copy())
+    return out
 
 
 def matrix_to_quat(r: np.ndarray) -> np.ndarray:

@@ -12,6 +12,7 @@ Stacked as a vector the features are ``[l, d_hat (3), c (3), u (6)]``, shape (13
 
 from __future__ import annotations
 
+import math
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -245,7 +246,8 @@ class PairKinematics:
         q = np.asarray(q, dtype=float).reshape(-1)
         if q.shape != (self.n,):
             raise RetargetError(f"{what}: expected {self.n} joint values, got {q.size}")
-        if not np.isfinite(q).all():
+        # a finite sum means every value is finite; only otherwise are they checked one by one
+        if not math.isfinite(np.add.reduce(q)) and not np.isfinite(q).all():
             bad = [self.joints[i] for i in np.flatnonzero(~np.isfinite(q))]
             raise RetargetError(f"{what}: non-finite value for {', '.join(bad)}")
         return q

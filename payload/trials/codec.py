@@ -229,7 +229,7 @@ class StepCodec:
                 values[:, start] = walls
             else:
                 values[:, start:stop] = np.array([getattr(s, name) for s in steps]).reshape(n, -1)
-        k = np.round(values * _PER_UNIT)
+        k = np.rint(values * _PER_UNIT)  # what round() calls on floats
         ok = np.isfinite(k).all(axis=1) & ~(np.abs(k) >= GRID_INT_LIMIT).any(axis=1)
         ki = np.where(ok[:, None], k, 0.0).astype(np.int64)
         decoded = ki / _PER_UNIT

@@ -85,7 +85,8 @@ mantissa bytes zero so the chunks compress well."""
 
 
 def _view(x: np.ndarray) -> np.ndarray:
-    return np.round(np.asarray(x, dtype=np.float64) / VIEW_RESOLUTION) * VIEW_RESOLUTION
+    # rint is what round(decimals=0) calls on floats (the same bits, without its wrappers)
+    return np.rint(np.asarray(x, dtype=np.float64) / VIEW_RESOLUTION) * VIEW_RESOLUTION
 
 
 def split_ns(ns: int) -> tuple[int, int]:

@@ -29,7 +29,8 @@ def quantize_joints(joints: np.ndarray, grid: float = HAND_GRID_M) -> np.ndarray
 
     NaN stays NaN; the result is exactly representable by the ``grid`` form of ``Joints``.
     """
-    return np.round(np.asarray(joints, dtype=np.float64) / grid) * grid
+    # rint is what round(decimals=0) calls on floats (the same bits, without its wrappers)
+    return np.rint(np.asarray(joints, dtype=np.float64) / grid) * grid
 
 
 class JointsCodec:
@@ -54,7 +55,7 @@ class JointsCodec:
             out.untracked = True
             return
         with np.errstate(invalid="ignore"):
-            k = np.round(flat / self.grid)
+            k = np.rint(flat / self.grid)  # what round() calls on floats
         # on the grid: integers an int64 holds, and exactly the values (np.array_equal)
         if (
             np.isfinite(k).all()
@@ -92,7 +93,7 @@ class JointsCodec:
         flat = np.array(joints, dtype=np.float64).reshape(len(joints), -1)
         untracked = np.isnan(flat).all(axis=1)
         with np.errstate(invalid="ignore"):
-            k = np.round(flat / self.grid)
+            k = np.rint(flat / self.grid)
             gridded = (
                 np.isfinite(k).all(axis=1)
                 & (np.abs(k) < GRID_INT_LIMIT).all(axis=1)
