@@ -152,6 +152,21 @@ def _rewritten_contacts(
         con.geom[:], con.geom1[:], con.geom2[:], con.dist[:] = saved
 
 
+def _made(data: Any, make: Callable[[ctypes.CDLL], Any], what: str) -> Any:
+    """``make(library)``, or None: no contacts in ``data`` to check it on, no library, or
+    tables it refuses (said on the log)."""
+    if data.ncon == 0:
+        return None
+    lib = _load()
+    if lib is None:
+        return None
+    try:
+        return make(lib)
+    except ValueError as exc:
+        log.warning("%s: numpy (%s)", what, exc)
+        return None
+
+
 def _checked(kernel: Any, data: Any, reference: Callable[[Any], Any], geoms: np.ndarray,
              what: str) -> Any:  # fmt: skip
     """``kernel`` if it answers as ``reference`` on the data's rewritten contact list (and
@@ -181,15 +196,8 @@ def compiled_touching(
     :meth:`~payload.sim.contact.ContactMonitor.touching`): no MuJoCo headers, no
     compiler, ``PAYLOAD_NATIVE=0``, a failed build, or a self-check on ``data``'s contact
     list (it must hold contacts), rewritten, that answers otherwise."""
-    if data.ncon == 0:
-        return None
-    lib = _load()
-    if lib is None:
-        return None
-    try:
-        kernel = CompiledTouching(lib, pair_finger)
-    except ValueError as exc:
-        log.warning("fingertip contacts: numpy (%s)", exc)
+    kernel = _made(data, lambda lib: CompiledTouching(lib, pair_finger), "fingertip contacts")
+    if kernel is None:
         return None
     tips = np.flatnonzero((pair_finger >= 0).any(axis=1))
     rest = np.random.default_rng(1).integers(0, len(pair_finger), size=4)
@@ -203,15 +211,10 @@ def compiled_station_contact(
     """The compiled station-contact reader, or None for ``reference(data)`` (the numpy
     test of :meth:`~payload.sim.station.StationMonitor.read`): as
     :func:`compiled_touching`."""
-    if data.ncon == 0:
-        return None
-    lib = _load()
-    if lib is None:
-        return None
-    try:
-        kernel = CompiledStationContact(lib, is_station, is_moving)
-    except ValueError as exc:
-        log.warning("station contacts: numpy (%s)", exc)
+    kernel = _made(
+        data, lambda lib: CompiledStationContact(lib, is_station, is_moving), "station contacts"
+    )
+    if kernel is None:
         return None
     rng = np.random.default_rng(1)
     geoms = np.concatenate([
