@@ -48,7 +48,6 @@ from payload.sim.world import (
 )
 
 _AT_LIMIT = 1e-4  # [rad or m] a coordinate this close to a range end is at its limit
-
 _WARNING_NAMES = tuple(
     name
     for name, value in sorted(mujoco.mjtWarning.__members__.items(), key=lambda kv: int(kv[1]))
