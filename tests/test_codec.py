@@ -435,6 +435,12 @@ def test_the_compiled_messages_are_the_protobuf_runtimes(foxglove_recording) -> 
 def test_names_too_long_for_the_message_kernel_go_to_the_runtime(foxglove_recording) -> None:
     """A frame or joint name longer than the kernel's item buffer: the kernel answers None
     and the recording's message is built by the protobuf runtime (whose bytes it is)."""
+    from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
+    from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
+    from foxglove_schemas_protobuf.Quaternion_pb2 import Quaternion
+    from foxglove_schemas_protobuf.Vector3_pb2 import Vector3
+    from google.protobuf.timestamp_pb2 import Timestamp
+
     from payload.trials import messages_c
     from payload.trials.foxglove import split_ns
 
@@ -445,7 +451,10 @@ def test_names_too_long_for_the_message_kernel_go_to_the_runtime(foxglove_record
     assert kernel.frame_transforms(np.zeros((2, 7)), stamp) is None
     assert kernel.joint_states(np.zeros(2), stamp) is None
     short = messages_c.CompiledMessages(lib, [("world", "a")], ["j"])
-    assert short.frame_transforms(np.zeros((1, 7)), stamp) is not None
+    want = FrameTransforms(transforms=[FrameTransform(
+        timestamp=Timestamp(seconds=stamp[0], nanos=stamp[1]), parent_frame_id="world",
+        child_frame_id="a", translation=Vector3(), rotation=Quaternion())])  # fmt: skip
+    assert short.frame_transforms(np.zeros((1, 7)), stamp) == want.SerializeToString()
 
 
 def test_messages_with_other_bytes_are_refused(foxglove_recording, refused_kernel) -> None:

@@ -151,20 +151,32 @@ def test_the_compiled_limiter_step_is_numpys(cap):
     assert mine._bound is not None and mine._bound[2] is not None  # the compiled step ran
 
 
-def test_a_limiter_kernel_with_other_bits_is_refused(fresh_kernel, refused_kernel):
-    """The braking lead as rate * (|rate| / 2j) (the same in exact arithmetic) is
-    refused, and numpy's step runs."""
-    from payload.teleop import limiter_c
-    from payload.teleop.channels import JerkLimiter
+@pytest.mark.parametrize(
+    ("module", "old", "new", "factory", "made_of"),
+    [
+        # the braking lead as rate * (|rate| / 2j): the same in exact arithmetic
+        ("limiter_c", "w[i] = e[i] - rate[i] * nr / (2 * max_jerk);",
+         "w[i] = e[i] - rate[i] * (nr / (2 * max_jerk));", "compiled_limiter", "JerkLimiter"),
+        # C's fmod for Python's %: they differ on negative headings
+        ("base_c", "pymod(desired - heading + M_PI", "fmod(desired - heading + M_PI",
+         "compiled_base", "_base_channel"),
+    ],
+    ids=["limiter", "base channel"],
+)  # fmt: skip
+def test_a_channel_kernel_with_other_bits_is_refused(
+    fresh_kernel, refused_kernel, module, old, new, factory, made_of
+):
+    """A jerk limiter or base channel kernel whose C differs from numpy's operations in a
+    way exact arithmetic would not see is refused by its self-check, and numpy's step
+    runs."""
+    import importlib
 
-    with refused_kernel(
-        limiter_c,
-        "w[i] = e[i] - rate[i] * nr / (2 * max_jerk);",
-        "w[i] = e[i] - rate[i] * (nr / (2 * max_jerk));",
-        says="differs",
-        forget=limiter_c.compiled_limiter,
-    ):
-        assert limiter_c.compiled_limiter(JerkLimiter) is None
+    from payload.teleop import channels
+
+    kernels = importlib.import_module(f"payload.teleop.{module}")
+    make = getattr(kernels, factory)
+    with refused_kernel(kernels, old, new, says="differs", forget=make):
+        assert make(getattr(channels, made_of)) is None
 
 
 # -- the tracking supervisor's hand check -----------------------------------------------------
@@ -303,21 +315,6 @@ def test_a_bad_wrist_gets_numpys_error_from_the_compiled_channel():
             with pytest.raises(ChannelError, match="right wrist is not 3 finite numbers"):
                 ch.step(neutral, None, bad)  # the left wrist in neutral: the right one counts
     assert compiled.step(neutral + 0.2, None, None).mode == "drive"
-
-
-def test_a_base_kernel_with_other_bits_is_refused(fresh_kernel, refused_kernel):
-    """C's fmod for Python's % (they differ on negative headings) is refused."""
-    from payload.teleop import base_c
-    from payload.teleop.channels import _base_channel
-
-    with refused_kernel(
-        base_c,
-        "pymod(desired - heading + M_PI",
-        "fmod(desired - heading + M_PI",
-        says="differs",
-        forget=base_c.compiled_base,
-    ):
-        assert base_c.compiled_base(_base_channel) is None
 
 
 def test_the_compiled_channel_leaves_what_it_does_not_take_to_numpy():
