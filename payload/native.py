@@ -224,15 +224,15 @@ def load_kernel(
 
 
 def load_blas_kernel(
-    name: str, source: str, what: str, logger: logging.Logger, *functions: str
+    name: str, source: str, what: str, logger: logging.Logger, *functions: str, prelude: str = ""
 ) -> tuple[Any, ...] | None:
-    """:func:`load_kernel` for a kernel that calls numpy's CBLAS ``functions`` (e.g.
-    :data:`NUMPY_DDOT`, :data:`NUMPY_DGEMV`): ``(library, *their addresses)``, or None
-    when one of them or the library is not there (the numpy code runs)."""
+    """:func:`load_kernel` for a kernel that calls numpy's CBLAS (or LAPACK) ``functions``
+    (e.g. :data:`NUMPY_DDOT`, :data:`NUMPY_DGEMV`): ``(library, *their addresses)``, or
+    None when one of them or the library is not there (the numpy code runs)."""
     addresses = [numpy_blas(f) for f in functions]
     if any(a is None for a in addresses):
         return None
-    lib = load_kernel(name, source, what, logger)
+    lib = load_kernel(name, source, what, logger, prelude=prelude)
     return None if lib is None else (lib, *addresses)
 
 

@@ -152,11 +152,8 @@ def _rewritten_contacts(
         con.geom[:], con.geom1[:], con.geom2[:], con.dist[:] = saved
 
 
-def _made(data: Any, make: Callable[[ctypes.CDLL], Any], what: str) -> Any:
-    """``make(library)``, or None: no contacts in ``data`` to check it on, no library, or
-    tables it refuses (said on the log)."""
-    if data.ncon == 0:
-        return None
+def _made(make: Callable[[ctypes.CDLL], Any], what: str) -> Any:
+    """``make(library)``, or None: no library, or tables it refuses (said on the log)."""
     lib = _load()
     if lib is None:
         return None
@@ -195,8 +192,9 @@ def compiled_touching(
     """The compiled fingertip reader, or None for ``reference(data)`` (the numpy bits of
     :meth:`~payload.sim.contact.ContactMonitor.touching`): no MuJoCo headers, no
     compiler, ``PAYLOAD_NATIVE=0``, a failed build, or a self-check on ``data``'s contact
-    list (it must hold contacts), rewritten, that answers otherwise."""
-    kernel = _made(data, lambda lib: CompiledTouching(lib, pair_finger), "fingertip contacts")
+    list (the callers build it at the first step with contacts), rewritten, that answers
+    otherwise."""
+    kernel = _made(lambda lib: CompiledTouching(lib, pair_finger), "fingertip contacts")
     if kernel is None:
         return None
     tips = np.flatnonzero((pair_finger >= 0).any(axis=1))
@@ -212,7 +210,7 @@ def compiled_station_contact(
     test of :meth:`~payload.sim.station.StationMonitor.read`): as
     :func:`compiled_touching`."""
     kernel = _made(
-        data, lambda lib: CompiledStationContact(lib, is_station, is_moving), "station contacts"
+        lambda lib: CompiledStationContact(lib, is_station, is_moving), "station contacts"
     )
     if kernel is None:
         return None

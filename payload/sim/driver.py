@@ -178,20 +178,15 @@ class SimDriver:
 
     def _read_kernel(self, kernel: Any) -> PayloadState:
         """:meth:`read` through the read-out kernel."""
-        out, bits = kernel.read()
+        out, health = kernel.read()
         n = kernel.n
-        health = Health.OK
-        if bits & kernel.overload_bit:
-            health |= Health.OVERLOAD
-        if bits & kernel.limit_bit:
-            health |= Health.LIMIT
         return PayloadState(
             q=out[:n],
             deploy=float(out[n]),
             stamp=float(self.data.time),
             dq=out[n + 1 : 2 * n + 1],
             effort=out[2 * n + 1 :],
-            health=health,
+            health=Health(health),
         )
 
     def _read_numpy(self) -> PayloadState:
@@ -341,7 +336,7 @@ class SimDriver:
             kernel = self.__dict__["_readouts"] = (d, made)
         return kernel[1]
 
-    def _check_readout(self, kernel: Any, probes: int = 200) -> bool:
+    def _check_readout(self, kernel: Any, probes: int) -> bool:
         """Whether ``kernel`` reads what :meth:`_world_state_numpy` and :meth:`_read_numpy`
         read, to the bit, in ``probes`` random states written into the data (positions,
         velocities, rotations and actuator forces; some at a force bound, at a joint limit,
@@ -368,9 +363,10 @@ class SimDriver:
                     d.qvel[self.world.dof[k % n]] = np.inf
                 mine, theirs = self._world_state_kernel(kernel), self._world_state_numpy()
                 if not all(
-                    np.asarray(a, dtype=float).tobytes() == np.asarray(b, dtype=float).tobytes()
-                    for a, b in zip(mine[:7], theirs[:7])
-                    if a is not None or b is not None
+                    np.asarray(getattr(mine, f), dtype=float).tobytes()
+                    == np.asarray(getattr(theirs, f), dtype=float).tobytes()
+                    for f in ("time", *kernel.slices)
+                    if getattr(mine, f) is not None or getattr(theirs, f) is not None
                 ):
                     return False
                 try:  # a coordinate not a number: both refuse the state alike
@@ -419,44 +415,40 @@ class SimDriver:
 
     def _world_state_kernel(self, kernel: Any) -> WorldState:
         """:meth:`world_state` through the read-out kernel."""
-        w, d = self.world, self.data
         out = kernel.world()
-        at = kernel.slices
-        touching = self.monitor.touching(d)
-        pos = out[at["astrobee_pos"]]
-        return WorldState(
-            time=float(d.time),
-            astrobee_pos=pos,
-            astrobee_quat=out[at["astrobee_quat"]],
-            astrobee_linear=out[at["astrobee_linear"]],
-            astrobee_angular=out[at["astrobee_angular"]],
-            ctb_pos=out[at["ctb_pos"]] if w.ctb >= 0 else None,
-            ctb_quat=out[at["ctb_quat"]] if w.ctb >= 0 else None,
-            touching=touching,
-            opposing_contact=opposing(touching),
-            module=w.layout.module_at(pos),
-            wrench=Wrench(self._wrench.force.copy(), self._wrench.torque.copy()),
-        )
+        ctb = self.world.ctb >= 0
+        return self._world_state(
+            **{name: out[part] if ctb or not name.startswith("ctb") else None
+               for name, part in kernel.slices.items()}
+        )  # fmt: skip
 
     def _world_state_numpy(self) -> WorldState:
         """:meth:`world_state` in numpy (what the read-out kernel is checked against)."""
         w, d = self.world, self.data
-        a = w.astrobee_qpos
+        a, c = w.astrobee_qpos, w.ctb_qpos
         lin, ang = self._body_twist()
-        touching = self.monitor.touching(d)
-        pos = d.qpos[a : a + 3].copy()
-        return WorldState(
-            time=float(d.time),
-            astrobee_pos=pos,
+        return self._world_state(
+            astrobee_pos=d.qpos[a : a + 3].copy(),
             astrobee_quat=d.qpos[a + 3 : a + 7].copy(),
             astrobee_linear=lin,
             astrobee_angular=ang,
-            ctb_pos=d.qpos[w.ctb_qpos : w.ctb_qpos + 3].copy() if w.ctb >= 0 else None,
-            ctb_quat=d.qpos[w.ctb_qpos + 3 : w.ctb_qpos + 7].copy() if w.ctb >= 0 else None,
+            ctb_pos=d.qpos[c : c + 3].copy() if w.ctb >= 0 else None,
+            ctb_quat=d.qpos[c + 3 : c + 7].copy() if w.ctb >= 0 else None,
+        )
+
+    def _world_state(self, astrobee_pos: np.ndarray, **poses: np.ndarray | None) -> WorldState:
+        """The world state of these poses and velocities, with the data's time, contacts
+        and module and the wrench held."""
+        w, d = self.world, self.data
+        touching = self.monitor.touching(d)
+        return WorldState(
+            time=float(d.time),
+            astrobee_pos=astrobee_pos,
             touching=touching,
             opposing_contact=opposing(touching),
-            module=w.layout.module_at(pos),
+            module=w.layout.module_at(astrobee_pos),
             wrench=Wrench(self._wrench.force.copy(), self._wrench.torque.copy()),
+            **poses,
         )
 
     def contacts(self) -> tuple[Contact, ...]:

@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import ctypes
 import logging
-import threading
 from collections.abc import Callable, Iterable
 
 import numpy as np
@@ -46,9 +45,6 @@ log = logging.getLogger(__name__)
 NUMPY_DGELSD = "scipy_dgelsd_64_"
 """LAPACK's ``dgelsd`` in the OpenBLAS numpy's wheels bundle (64-bit integers, Fortran
 calling convention): what numpy's ``lstsq`` runs."""
-
-MAX_COLUMNS = 32
-"""The most columns (nozzles in a facet's plane) the kernel takes; more go to numpy."""
 
 SOURCE = r"""
 #include <stdlib.h>
@@ -296,7 +292,6 @@ class CompiledFacetSolve:
         self._fn = fn
         self._functions = tuple(functions)
         self._bvls_tol = float(bvls_tol)
-        self._lock = threading.Lock()
 
     def __call__(
         self, a: np.ndarray, rest: np.ndarray, ub: np.ndarray, tol: float, same_rank: bool
@@ -313,13 +308,12 @@ class CompiledFacetSolve:
             and ub.shape == (n,)
         ):
             return None
-        sol = np.empty(n)
-        with self._lock:
-            failed = self._fn(
-                *self._functions, a.ctypes.data, layout[0] == native.CBLAS_COL_MAJOR, m, n,
-                rest.ctypes.data, ub.ctypes.data,
-                tol, self._bvls_tol, bool(same_rank), sol.ctypes.data,
-            )  # fmt: skip
+        sol = np.empty(n)  # each call's own: no state is shared between calls
+        failed = self._fn(
+            *self._functions, a.ctypes.data, layout[0] == native.CBLAS_COL_MAJOR, m, n,
+            rest.ctypes.data, ub.ctypes.data,
+            tol, self._bvls_tol, bool(same_rank), sol.ctypes.data,
+        )  # fmt: skip
         return None if failed else sol
 
 
@@ -327,13 +321,13 @@ Problem = tuple[np.ndarray, np.ndarray, np.ndarray, float, bool]
 """A facet solve's inputs: ``(a, rest, ub, tol, same_rank)``."""
 
 
-def random_problems(n: int, seed: int = 0) -> list[Problem]:
-    """Bounded least-squares problems like the facets' (6 rows, 2 to 12 columns, some of
-    them parallel, right-hand sides in and beyond reach), the self-check's probes."""
+def random_problems(n: int, columns: int, seed: int = 0) -> list[Problem]:
+    """Bounded least-squares problems like the facets' (6 rows, 2 to ``columns`` columns,
+    some of them parallel, right-hand sides in and beyond reach), the self-check's probes."""
     rng = np.random.default_rng(seed)
     out = []
     for i in range(n):
-        cols = int(rng.integers(2, 13))
+        cols = int(rng.integers(2, columns + 1))
         a = rng.normal(size=(6, cols))
         if i % 4 == 1:  # repeated columns: rank-deficient, as coplanar nozzles are
             a[:, cols - 1] = a[:, 0]
@@ -350,28 +344,24 @@ def compiled_facet_solve(
     reference: Callable[..., np.ndarray],
     problems: Iterable[Problem],
     bvls_tol: float,
+    columns: int,
 ) -> CompiledFacetSolve | None:
-    """The compiled facet solve, or None to run ``reference(a, rest, ub, tol,
-    same_rank)`` (the numpy solve): no compiler, no numpy OpenBLAS or ``dgelsd``,
-    ``PAYLOAD_NATIVE=0``, a failed build, or a self-check on ``problems`` (the
-    allocation's own facets) and :func:`random_problems` that differs in a single bit
-    (a problem the kernel leaves to numpy is not a difference, but at least some must be
-    its own)."""
-    functions = (
-        native.numpy_blas(NUMPY_DGELSD),
-        native.numpy_dgemv(),
-        native.numpy_blas(native.NUMPY_DDOT),
-    )
-    if any(f is None for f in functions):
+    """The compiled facet solve for up to ``columns`` in-plane nozzles (more go to numpy),
+    or None to run ``reference(a, rest, ub, tol, same_rank)`` (the numpy solve): no
+    compiler, no numpy OpenBLAS or ``dgelsd``, ``PAYLOAD_NATIVE=0``, a failed build, or a
+    self-check on ``problems`` (the allocation's own facets) and :func:`random_problems`
+    that differs in a single bit (a problem the kernel leaves to numpy is not a
+    difference, but at least some must be its own)."""
+    loaded = native.load_blas_kernel(
+        "facet", SOURCE, "the facet solve kernel", log, NUMPY_DGELSD, native.NUMPY_DGEMV,
+        native.NUMPY_DDOT, prelude=f"#define MAXN {columns}\n#define EPS {EPS!r}\n",
+    )  # fmt: skip
+    if loaded is None:
         return None
-    prelude = f"#define MAXN {MAX_COLUMNS}\n#define EPS {EPS!r}\n"
-    lib = native.load_kernel("facet", SOURCE, "the facet solve kernel", log, prelude=prelude)
-    if lib is None:
-        return None
-    kernel = CompiledFacetSolve(lib, functions, bvls_tol)  # type: ignore[arg-type]
+    kernel = CompiledFacetSolve(loaded[0], loaded[1:], bvls_tol)
     answered = 0
     with np.errstate(all="ignore"):
-        for problem in [*problems, *random_problems(300)]:
+        for problem in [*problems, *random_problems(300, columns)]:
             mine = kernel(*problem)
             if mine is None:
                 continue
@@ -387,7 +377,6 @@ def compiled_facet_solve(
 
 
 __all__ = [
-    "MAX_COLUMNS",
     "NUMPY_DGELSD",
     "SOURCE",
     "CompiledFacetSolve",

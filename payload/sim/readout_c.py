@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 
 from payload import native
+from payload.schema import Health
 
 log = logging.getLogger(__name__)
 
@@ -52,14 +53,9 @@ WORLD_SLICES: dict[str, slice] = {
 }
 """Each field's part of the world read-out's buffer."""
 
-OVERLOAD_BIT = 1
-"""The payload read-out's health bit: an actuator at its force bound."""
-
-LIMIT_BIT = 2
-"""The payload read-out's health bit: a coordinate at an end of its range."""
-
 SOURCE = r"""
-/* OFF_LINEAR, OFF_ANGULAR, OFF_CTB, OVERLOAD_BIT and LIMIT_BIT are defined by the loader */
+/* OFF_LINEAR, OFF_ANGULAR, OFF_CTB, and OVERLOAD and LIMIT (the Health flags) are defined by
+   the loader */
 typedef struct {
     dgemv_fn gemv;
     const double *qpos, *qvel, *xmat, *force;
@@ -87,11 +83,11 @@ int payload_read(const readout *r, double *out)
     int64_t n = r->nq;
     int health = 0;
     for (int64_t i = 0; i < r->nctrl; i++)
-        if (fabs(r->force[r->ctrl_idx[i]]) >= r->overload[i]) health |= OVERLOAD_BIT;
+        if (fabs(r->force[r->ctrl_idx[i]]) >= r->overload[i]) health |= OVERLOAD;
     for (int64_t i = 0; i < n; i++) {
         double q = r->qpos[r->q_idx[i]];
         out[i] = q;
-        if (q <= r->lo[i] || q >= r->hi[i]) health |= LIMIT_BIT;
+        if (q <= r->lo[i] || q >= r->hi[i]) health |= LIMIT;
     }
     out[n] = r->qpos[r->stage];
     for (int64_t i = 0; i < n; i++) out[n + 1 + i] = r->qvel[r->dof_idx[i]];
@@ -171,7 +167,6 @@ class CompiledReadout:
         last = "ctb_quat" if ctb_qpos >= 0 else "astrobee_angular"
         self.world_size = WORLD_SLICES[last].stop
         self.slices = WORLD_SLICES
-        self.overload_bit, self.limit_bit = OVERLOAD_BIT, LIMIT_BIT
         self._world = lib.payload_world
         self._world.restype = None
         self._world.argtypes = [ctypes.c_void_p, ctypes.c_void_p]
@@ -187,8 +182,8 @@ class CompiledReadout:
         return out
 
     def read(self) -> tuple[np.ndarray, int]:
-        """(q (N), deploy, dq (N), effort (N) as one fresh array; the health bits,
-        :data:`OVERLOAD_BIT` and :data:`LIMIT_BIT`)."""
+        """(q (N), deploy, dq (N), effort (N) as one fresh array; the health, as
+        :class:`~payload.schema.Health`'s ``OVERLOAD`` and ``LIMIT`` bits)."""
         out = np.empty(3 * self.n + 1)
         return out, self._read(self._ptr, out.ctypes.data)
 
@@ -196,40 +191,42 @@ class CompiledReadout:
 @native.reported("read-out")
 def compiled_readout(
     make: Callable[[ctypes.CDLL, int], CompiledReadout],
-    check: Callable[[CompiledReadout], bool],
+    check: Callable[[CompiledReadout, int], bool],
 ) -> CompiledReadout | None:
     """``make(lib, gemv)``'s read-out, or None to run the numpy read-outs: no compiler,
-    no numpy OpenBLAS, ``PAYLOAD_NATIVE=0``, a failed build, or ``check(kernel)`` (the
-    caller's comparison with its numpy read-outs on random states) False."""
-    gemv = native.numpy_dgemv()
-    if gemv is None:
-        return None
+    no numpy OpenBLAS, ``PAYLOAD_NATIVE=0``, a failed build, or ``check(kernel, probes)``
+    (the caller's comparison with its numpy read-outs on ``probes`` random states: 200, or
+    the first 20 once a read-out of the same shape passed in this process) False."""
     at = {name: part.start for name, part in WORLD_SLICES.items()}
     prelude = (
         f"#define OFF_LINEAR {at['astrobee_linear']}\n"
         f"#define OFF_ANGULAR {at['astrobee_angular']}\n"
         f"#define OFF_CTB {at['ctb_pos']}\n"
-        f"#define OVERLOAD_BIT {OVERLOAD_BIT}\n#define LIMIT_BIT {LIMIT_BIT}\n"
+        f"#define OVERLOAD {int(Health.OVERLOAD)}\n#define LIMIT {int(Health.LIMIT)}\n"
     )
-    if [at["astrobee_pos"], at["astrobee_quat"], at["ctb_quat"] - at["ctb_pos"]] != [0, 3, 3]:
-        return None  # pragma: no cover - the C copies pos and quat as one run of seven
-    lib = native.load_kernel("readout", SOURCE, "the read-out kernel", log, prelude=prelude)
-    if lib is None:
+    loaded = native.load_blas_kernel(
+        "readout", SOURCE, "the read-out kernel", log, native.NUMPY_DGEMV, prelude=prelude
+    )
+    if loaded is None:
         return None
+    lib = loaded[0]
     try:
-        kernel = make(lib, gemv)
+        kernel = make(lib, loaded[1])
     except ValueError as exc:
         log.warning("read-out: numpy (%s)", exc)
         return None
-    if not check(kernel):
+    shape = (kernel.n, kernel.world_size)
+    full = 200
+    probes = native.probes(lib, shape, full, full // 10)
+    if not check(kernel, probes):
         log.warning("read-out: numpy (the compiled read-out differs)")
         return None
+    if probes == full:
+        native.passed(lib, shape)
     return kernel
 
 
 __all__ = [
-    "LIMIT_BIT",
-    "OVERLOAD_BIT",
     "SOURCE",
     "WORLD_LAYOUT",
     "WORLD_SLICES",

@@ -135,9 +135,9 @@ class CompiledStationBound:
         s_lo: The station boxes' lower corners (S, 3) [m].
         s_hi: Their upper corners (S, 3) [m].
         cap: The clearance cap [m].
-        model: The MuJoCo model (for :meth:`clearance`; None: no clearance).
+        model: The MuJoCo model (for :meth:`clearance`).
         station: The station geoms of the boxes (S,).
-        geomdist: The address of MuJoCo's ``mj_geomDistance``.
+        geomdist: The address of MuJoCo's ``mj_geomDistance`` (None: no clearance).
     """
 
     def __init__(
@@ -149,9 +149,9 @@ class CompiledStationBound:
         s_lo: np.ndarray,
         s_hi: np.ndarray,
         cap: float,
-        model: Any = None,
-        station: np.ndarray | None = None,
-        geomdist: int | None = None,
+        model: Any,
+        station: np.ndarray,
+        geomdist: int | None,
     ) -> None:
         self.data = data
         self._keep = [
@@ -175,7 +175,7 @@ class CompiledStationBound:
             hi.ctypes.data, len(lo), cap,
         )  # fmt: skip
         self._clearance = None
-        if model is None or station is None or geomdist is None:
+        if geomdist is None:
             return
         aabb = model.geom_aabb
         if not (aabb.dtype == np.float64 and aabb.flags.c_contiguous):
@@ -224,14 +224,15 @@ def compiled_station_bound(
     cap: float,
     reference: Callable[[], bool],
     *,
-    model: Any = None,
-    station: np.ndarray | None = None,
-    clearance: Callable[[], float] | None = None,
-    boxes: Callable[[], tuple[np.ndarray, np.ndarray]] | None = None,
+    model: Any,
+    station: np.ndarray,
+    clearance: Callable[[], float],
+    boxes: Callable[[], tuple[np.ndarray, np.ndarray]],
 ) -> CompiledStationBound | None:
-    """The compiled bound (and, given ``model``, ``station``, ``clearance`` and
-    ``boxes``, the clearance) for ``data``, or None to run ``reference`` (the numpy test
-    of the data's current positions) and ``clearance`` (the numpy clearance): no
+    """The compiled bound and clearance (the bound alone without MuJoCo's
+    ``mj_geomDistance`` symbol) for ``data`` of ``model`` (``station``: the station geoms
+    of the boxes), or None to run ``reference`` (the numpy test of the data's current
+    positions) and ``clearance`` (the numpy clearance, ``boxes`` its moving boxes): no
     compiler, ``PAYLOAD_NATIVE=0``, a failed build, or a self-check that answers otherwise
     than ``reference`` or ``clearance``, or makes other moving boxes than ``boxes``, in a
     single bit, on random poses (written into the data's ``geom_xpos`` and ``geom_xmat``
@@ -243,8 +244,7 @@ def compiled_station_bound(
     if lib is None:
         return None
     geomdist = native.mujoco_function("mj_geomDistance")
-    if boxes is None or geomdist is None:
-        clearance = None  # checked with its boxes and MuJoCo's function, or not made
+    measures = geomdist is not None  # else the bound alone is made (and checked)
     try:
         kernel = CompiledStationBound(
             lib, data, geoms, reach, s_lo, s_hi, cap, model, station, geomdist
@@ -256,7 +256,7 @@ def compiled_station_bound(
     rng = np.random.default_rng(0)
     span_lo, span_hi = s_lo.min(axis=0) - 1.0, s_hi.max(axis=0) + 1.0
     measured = 0
-    shape = (len(geoms), 0 if station is None else len(station), clearance is not None)
+    shape = (len(geoms), len(station), measures)
     full = 400
     n = native.probes(lib, shape, full, full // 10)
     try:
@@ -272,9 +272,9 @@ def compiled_station_bound(
             if near != reference():
                 log.warning("station bound: numpy (the compiled bound differs)")
                 return None
-            if near and clearance is not None:
+            if near and measures:
                 mine, theirs = kernel.clearance(), clearance()
-                lo, hi = boxes()  # type: ignore[misc]
+                lo, hi = boxes()
                 if (
                     mine is None
                     or np.float64(mine).tobytes() != np.float64(theirs).tobytes()
@@ -286,7 +286,7 @@ def compiled_station_bound(
                 measured += theirs < cap
     finally:
         data.geom_xpos[:], data.geom_xmat[:] = saved
-    if n == full and clearance is not None and not measured:  # pragma: no cover
+    if n == full and measures and not measured:  # pragma: no cover
         log.warning("station bound: numpy (the clearance's self-check measured nothing)")
         return None
     if n == full:

@@ -336,12 +336,20 @@ def _same_update(a: tuple, b: tuple) -> bool:
     return aa.scale == ab.scale and all(x.tobytes() == y.tobytes() for x, y in arrays)
 
 
-def check_control(controller: Any, kernel: CompiledControl, steps: int = 160) -> bool:
-    """Run ``steps`` control steps of piecewise-constant random commands (four of them, each
-    moving and turning, at rest, within or beyond the mode's speed) from the same states
-    through the numpy code and the kernel; True if every wrench, allocation and profile
-    state has the same bits. The controller's profile state and allocation are restored
-    afterwards."""
+CHECK_STEPS = 160
+"""Control steps of the controller kernel's full self-check (:func:`check_control`)."""
+
+COMMAND_STEPS = 10
+"""Steps each of the self-check's commands is held: a shorter check is the start of the
+full one and still sees several commands."""
+
+
+def check_control(controller: Any, kernel: CompiledControl, steps: int = CHECK_STEPS) -> bool:
+    """Run ``steps`` control steps of piecewise-constant random commands (a new one every
+    :data:`COMMAND_STEPS`: moving and turning, at rest, within or beyond the mode's speed)
+    from the same states through the numpy code and the kernel; True if every wrench,
+    allocation and profile state has the same bits. The controller's profile state and
+    allocation are restored afterwards."""
     from payload.schema import VehicleTwist
 
     profile = controller.profile
@@ -351,7 +359,7 @@ def check_control(controller: Any, kernel: CompiledControl, steps: int = 160) ->
     command = VehicleTwist.zero()
     try:
         for i in range(steps):
-            if i % max(1, steps // 4) == 0:
+            if i % COMMAND_STEPS == 0:
                 scale = rng.choice((0.0, 0.5, 1.0, 2.0))
                 command = VehicleTwist(
                     rng.normal(size=3) * mode.speed * scale,
@@ -379,12 +387,13 @@ def check_control(controller: Any, kernel: CompiledControl, steps: int = 160) ->
 def compiled_control(controller: Any) -> CompiledControl | None:
     """The compiled control step for a nozzle ``controller``, or None to run the numpy
     code (no kernels, no numpy ``ddot``, or a self-check (:func:`check_control`) that
-    differs in a single bit: 160 steps, or their first 40 once a build for as many nozzles
-    passed in this process, :func:`payload.native.probes`)."""
+    differs in a single bit: :data:`CHECK_STEPS` steps, or their first quarter once a build
+    for as many nozzles passed in this process, :func:`payload.native.probes`)."""
     searches = controller.nozzles._kernels if controller.nozzles is not None else None
-    loaded = None
+    loaded = nozzles = None
     if searches is not None:
-        loaded = _load("controller kernel", len(controller.nozzles.thrust_max))
+        nozzles = len(controller.nozzles.thrust_max)
+        loaded = _load("controller kernel", nozzles)
     ddot = native.numpy_blas(native.NUMPY_DDOT)
     if loaded is None or ddot is None:
         return None
@@ -393,13 +402,11 @@ def compiled_control(controller: Any) -> CompiledControl | None:
     except SimError as exc:
         log.warning("controller kernel: numpy (%s)", exc)
         return None
-    nozzles = len(controller.nozzles.thrust_max)
-    full = 160
-    steps = native.probes(loaded[0], nozzles, full, full // 4)
+    steps = native.probes(loaded[0], nozzles, CHECK_STEPS, CHECK_STEPS // 4)
     if not check_control(controller, kernel, steps):
         log.warning("controller kernel: numpy (the compiled step differs)")
         return None
-    if steps == full:
+    if steps == CHECK_STEPS:
         native.passed(loaded[0], nozzles)
     return kernel
 
