@@ -426,7 +426,7 @@ def test_the_compiled_messages_are_the_protobuf_runtimes(foxglove_recording) -> 
         assert back.transforms[0].timestamp.ToNanoseconds() == ns
         values = rng.normal(size=len(JOINT_NAMES)) * (rng.random(len(JOINT_NAMES)) < 0.7)
         js = kernel.joint_states(values, split_ns(ns))
-        assert js == scene._joint_states(values, ns).SerializeToString()
+        assert js == scene.joint_states(values, ns).SerializeToString()
         back = JointStates.FromString(js)
         assert [j.name for j in back.joints] == list(JOINT_NAMES)
         assert np.array([j.position for j in back.joints]).tobytes() == values.tobytes()

@@ -154,7 +154,7 @@ def _channel_messages(log: Path) -> dict[str, list[bytes]]:
     from payload.trials.reading import read_messages
 
     try:
-        messages, _ = read_messages(log)
+        messages = read_messages(log)
     except RecordingError as exc:
         raise CompareError(str(exc)) from None
     decoders, hands = DecoderFactory(), StepCodec()

@@ -53,6 +53,7 @@ from google.protobuf.timestamp_pb2 import Timestamp
 from mcap_protobuf.schema import build_file_descriptor_set
 
 from payload.design import MANIPULATION_JOINTS
+from payload.trials.jointcodec import quantize_joints
 
 RATE_HZ = 10.0
 """Rate of the transform and joint-state channels [Hz] (every fifth 50 Hz step)."""
@@ -85,8 +86,8 @@ mantissa bytes zero so the chunks compress well."""
 
 
 def _view(x: np.ndarray) -> np.ndarray:
-    # rint is what round(decimals=0) calls on floats (the same bits, without its wrappers)
-    return np.rint(np.asarray(x, dtype=np.float64) / VIEW_RESOLUTION) * VIEW_RESOLUTION
+    """``x`` on the viewer's grid (:data:`VIEW_RESOLUTION`)."""
+    return quantize_joints(x, VIEW_RESOLUTION)
 
 
 def split_ns(ns: int) -> tuple[int, int]:
@@ -94,7 +95,8 @@ def split_ns(ns: int) -> tuple[int, int]:
     return ns // 1_000_000_000, ns % 1_000_000_000
 
 
-def _timestamp(ns: int) -> Timestamp:
+def timestamp(ns: int) -> Timestamp:
+    """A log time [ns] as a protobuf ``Timestamp``."""
     seconds, nanos = split_ns(ns)
     return Timestamp(seconds=seconds, nanos=nanos)
 
@@ -162,17 +164,16 @@ class FoxgloveScene:
             cmd = _view(np.append(step.q_cmd, step.deploy_cmd))
             meas = _view(np.append(step.q_meas, step.deploy_meas))
             stamp = split_ns(ns)
-            for topic, data in (
-                ("/tf", kernel and kernel.frame_transforms(poses, stamp)),
-                ("/payload/joints/commanded", kernel and kernel.joint_states(cmd, stamp)),
-                ("/payload/joints/measured", kernel and kernel.joint_states(meas, stamp)),
-            ):
+            for topic, data, message in (
+                ("/tf", kernel and kernel.frame_transforms(poses, stamp),
+                 lambda: self._frame_transforms(poses, ns)),
+                ("/payload/joints/commanded", kernel and kernel.joint_states(cmd, stamp),
+                 lambda: self.joint_states(cmd, ns)),
+                ("/payload/joints/measured", kernel and kernel.joint_states(meas, stamp),
+                 lambda: self.joint_states(meas, ns)),
+            ):  # fmt: skip
                 if data is None:  # the protobuf objects, serialised by the runtime
-                    data = (
-                        self._frame_transforms(poses, ns)
-                        if topic == "/tf"
-                        else self._joint_states(cmd if topic.endswith("commanded") else meas, ns)
-                    ).SerializeToString()
+                    data = message().SerializeToString()
                 self._emit_bytes(writer, topic, data, ns)
         self._k += 1
 
@@ -193,7 +194,7 @@ class FoxgloveScene:
             list(zip(self._parent_names, self._link_names)),
             list(JOINT_NAMES),
             lambda poses, ns: self._frame_transforms(poses, ns).SerializeToString(),
-            lambda positions, ns: self._joint_states(positions, ns).SerializeToString(),
+            lambda positions, ns: self.joint_states(positions, ns).SerializeToString(),
             split_ns,
         )
 
@@ -206,7 +207,7 @@ class FoxgloveScene:
             lines.append(f"opposing contact: {'on' if step.contact else 'off'}")
             self._last_contact = step.contact
         for text in lines:
-            msg = Log(timestamp=_timestamp(ns), level=Log.INFO, message=text, name="trial")
+            msg = Log(timestamp=timestamp(ns), level=Log.INFO, message=text, name="trial")
             self._emit(writer, "/trial/events", msg, ns)
 
     # -- messages ----------------------------------------------------------------------
@@ -236,7 +237,7 @@ class FoxgloveScene:
 
     def _frame_transforms(self, poses: np.ndarray, ns: int) -> FrameTransforms:
         """The transforms message of ``poses`` (N, 7: position, quaternion w x y z)."""
-        ts = _timestamp(ns)
+        ts = timestamp(ns)
         out = FrameTransforms()
         for parent, child, (x, y, z, qw, qx, qy, qz) in zip(
             self._parent_names, self._link_names, poses.tolist()
@@ -278,15 +279,12 @@ class FoxgloveScene:
             self._poses_numpy,
         )
 
-    def joint_states(self, values: np.ndarray, ns: int) -> JointStates:
-        """Named joint positions (17 manipulation coordinates and the stage)."""
-        return self._joint_states(_view(values), ns)
-
     @staticmethod
-    def _joint_states(positions: np.ndarray, ns: int) -> JointStates:
-        """The joint-states message of ``positions`` as they are (rounded by the caller)."""
+    def joint_states(positions: np.ndarray, ns: int) -> JointStates:
+        """Named joint positions (17 manipulation coordinates and the stage), as they are
+        (the caller puts them on the viewer's grid)."""
         return JointStates(
-            timestamp=_timestamp(ns),
+            timestamp=timestamp(ns),
             joints=[
                 JointState(name=n, position=v) for n, v in zip(JOINT_NAMES, positions.tolist())
             ],
@@ -316,7 +314,7 @@ class FoxgloveScene:
             )
             if frame_body not in entities:
                 entities[frame_body] = SceneEntity(
-                    timestamp=_timestamp(ns),
+                    timestamp=timestamp(ns),
                     frame_id=self.names[frame_body],
                     id=f"geoms/{self.names[frame_body]}",
                     frame_locked=True,

@@ -128,16 +128,15 @@ def compiled_frame_poses(
 
     if len(links) == 0:
         return None
-    functions = (
-        native.numpy_dgemv(),
-        native.mujoco_function("mju_negQuat"),
-        native.mujoco_function("mju_mulQuat"),
+    quats = native.mujoco_function("mju_negQuat"), native.mujoco_function("mju_mulQuat")
+    if None in quats:
+        return None
+    loaded = native.load_blas_kernel(
+        "frame_poses", SOURCE, "the frame poses kernel", log, native.NUMPY_DGEMV
     )
-    if any(f is None for f in functions):
+    if loaded is None:
         return None
-    lib = native.load_kernel("frame_poses", SOURCE, "the frame poses kernel", log)
-    if lib is None:
-        return None
+    lib, functions = loaded[0], (loaded[1], *quats)
     try:
         kernel = CompiledFramePoses(lib, data, links, parents, resolution, functions)
     except ValueError as exc:

@@ -379,13 +379,13 @@ def _finite_columns(rec: Recording) -> bool:
     return True
 
 
-def read_messages(path: str | Path) -> tuple[list[tuple[Channel, Schema | None, Message]], bool]:
+def read_messages(path: str | Path) -> list[tuple[Channel, Schema | None, Message]]:
     """Every message of every channel of a recording, in file order, with its channel and
     schema, read as :func:`read_recording` reads a file: a cut-short file up to its last
-    complete record (``complete`` False), a corrupt one refused.
+    complete record, a corrupt one refused.
 
     Returns:
-        (``(channel, schema or None, message)`` per message, ``complete``).
+        ``(channel, schema or None, message)`` per message.
 
     Raises:
         RecordingError: Unreadable or corrupt file.
@@ -409,7 +409,7 @@ def read_messages(path: str | Path) -> tuple[list[tuple[Channel, Schema | None, 
         pass  # the complete prefix of a cut-short file ends exactly here
     except McapError as exc:
         raise RecordingError(f"{path}: record {len(out)}: corrupt ({exc})") from None
-    return out, records.complete
+    return out
 
 
 def read_hand_frames(path: str | Path) -> tuple[dict[str, Any], list[Any]]:

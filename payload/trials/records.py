@@ -221,30 +221,25 @@ _FIELDS: tuple[tuple[str, tuple[int, ...], Any], ...] = tuple(
 # The array fields, NaN-allowed ones first, each with its place in one shared buffer: the
 # common case (float64 arrays of the right shapes, as the trial loop hands them) is copied
 # into that buffer in one go and checked with one sum per kind (see StepRecord.__post_init__)
-_ARRAY_FIELDS: tuple[tuple[str, tuple[int, ...]], ...] = tuple(
-    sorted(
-        (
-            (name, shape)
-            for name, shape, kind in _FIELDS
-            if shape and kind in ("float", "float_nan")
-        ),
-        key=lambda item: FIELD_SPECS[item[0]][1] != "float_nan",
-    )
-)
+_ARRAYS = sorted(
+    ((name, shape, kind) for name, shape, kind in _FIELDS
+     if shape and kind in ("float", "float_nan")),
+    key=lambda field: field[2] != "float_nan",
+)  # fmt: skip
 _ARRAY_SLICES: tuple[tuple[str, int, int, tuple[int, ...]], ...] = tuple(
     (name, start, start + math.prod(shape), shape)
-    for (name, shape), start in zip(
-        _ARRAY_FIELDS,
-        itertools.accumulate((math.prod(shape) for _, shape in _ARRAY_FIELDS), initial=0),
+    for (name, shape, _), start in zip(
+        _ARRAYS, itertools.accumulate((math.prod(f[1]) for f in _ARRAYS), initial=0)
     )
 )
-_NAN_END = sum(
-    math.prod(shape) for name, shape in _ARRAY_FIELDS if FIELD_SPECS[name][1] == "float_nan"
+_NAN_END = max(
+    (stop for (_, _, stop, _), (_, _, kind) in zip(_ARRAY_SLICES, _ARRAYS) if kind == "float_nan"),
+    default=0,
 )
 _OTHER_FIELDS: tuple[tuple[str, tuple[int, ...], Any, type], ...] = tuple(
     (name, shape, kind, str if isinstance(kind, tuple) else bool if kind == "bool" else float)
     for name, shape, kind in _FIELDS
-    if name not in dict(_ARRAY_FIELDS)
+    if not (shape and kind in ("float", "float_nan"))
 )
 """The scalar fields with the type they keep (a string of the allowed ones, a bool, a float)."""
 
@@ -254,7 +249,7 @@ _F64 = np.dtype(np.float64)
 
 def _common_arrays(arrays: list[Any]) -> bool:
     """Whether every array field is a float64 numpy array of its shape (the loop's case)."""
-    for a, (_, shape) in zip(arrays, _ARRAY_FIELDS):
+    for a, (_, _, _, shape) in zip(arrays, _ARRAY_SLICES):
         if type(a) is not np.ndarray or a.dtype != _F64 or a.shape != shape:
             return False
     return True
@@ -315,7 +310,7 @@ class StepRecord:
 
     def __post_init__(self) -> None:
         fields = self.__dict__  # a frozen dataclass's fields, set as object.__setattr__ does
-        arrays = [fields[name] for name, _ in _ARRAY_FIELDS]
+        arrays = [fields[name] for name, _, _, _ in _ARRAY_SLICES]
         if _common_arrays(arrays):
             # one copy of every array field into one read-only buffer, each field a view
             # of its part; a sum per kind that is not finite sends the fields through the

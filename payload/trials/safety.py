@@ -175,10 +175,10 @@ class SafetyScene:
 
     def boxes(self, ns: int) -> SceneUpdate:
         """The keep-in boxes (green) and keep-out boxes (red), translucent, frame ``world``."""
-        from google.protobuf.timestamp_pb2 import Timestamp
+        from payload.trials.foxglove import timestamp
 
         entity = SceneEntity(
-            timestamp=Timestamp(seconds=ns // 1_000_000_000, nanos=ns % 1_000_000_000),
+            timestamp=timestamp(ns),
             frame_id="world",
             id="safety/keepin",
             frame_locked=True,
