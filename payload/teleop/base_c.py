@@ -62,10 +62,11 @@ static int finite3(const double *v) { return isfinite(v[0]) && isfinite(v[1]) &&
 /* BaseChannel.step. cfg: sphere radius, full-speed offset, max speed, turn min speed, yaw
    gain, the yaw request's cap (BaseChannel.yaw_cap), yaw_matrix(heading0) (9, row-major).
    flags: 1 left wrist, 2 right wrist, 4 vehicle rotation (row-major 3x3), 8 right
-   neutral, 16 linear cap, 32 yaw cap. lin/yaw: each
+   neutral, 16 linear cap (a capped yaw limiter is left to numpy). lin/yaw: each
    limiter's value, rate and parameters (payload_limiter_step's). out: v_req (3), v (3),
-   yaw rate, twist linear (3), twist angular (3), outside. Returns the mode (0 brake,
-   1 drive, 2 hold), or -1, nothing changed, for a wrist that is not finite. */
+   yaw rate, twist linear (3), twist angular (3). Returns the mode (0 brake, 1 drive: the
+   left wrist outside its sphere, 2 hold), or -1, nothing changed, for a wrist that is not
+   finite. */
 int payload_base_step(const double *cfg, const double *neutral, const double *neutral_right,
     const double *left, const double *right, const double *rot, int flags,
     double *lin_value, double *lin_rate, const double *lin_p,
@@ -115,13 +116,12 @@ int payload_base_step(const double *cfg, const double *neutral, const double *ne
         const double lo = (g < cap) ? g : cap;           /* min(cap, g) */
         yaw_req = (lo > -cap) ? lo : -cap;               /* max(-cap, lo) */
     }
-    payload_limiter_step(&yaw_req, yaw_value, yaw_rate, 1, dt, yaw_p, (flags & 32) != 0);
+    payload_limiter_step(&yaw_req, yaw_value, yaw_rate, 1, dt, yaw_p, 0);
     out[6] = yaw_value[0];
     const double z[3] = {0.0, 0.0, out[6]};
     /* rot.T @ v: the transposed row-major matrix is a column-major one, as numpy passes it */
     mv(COL_MAJOR, NO_TRANS, 3, 3, 1.0, r, 3, out + 3, 1, 0.0, out + 7, 1);
     mv(COL_MAJOR, NO_TRANS, 3, 3, 1.0, r, 3, z, 1, 0.0, out + 10, 1);
-    out[13] = outside;
     return mode;
 }
 
@@ -194,7 +194,7 @@ class CompiledBase:
         )
         neutral_right = neutrals[1] if has_right else np.zeros(3)
         lin_p, yaw_p = limiter_c.limiter_params(lin), limiter_c.limiter_params(yaw)
-        left, right, rot, out = np.zeros(3), np.zeros(3), np.zeros((3, 3)), np.zeros(14)
+        left, right, rot, out = np.zeros(3), np.zeros(3), np.zeros((3, 3)), np.zeros(13)
         fixed = 8 * has_right + 16 * (lin.max_value is not None)
         args = np.zeros(14, dtype=np.int64)  # payload_base_packed's pointers and flags
         args[:6] = [a.ctypes.data for a in (cfg, neutrals[0], neutral_right, left, right, rot)]
@@ -267,8 +267,9 @@ class CompiledBase:
             if mode < 0:
                 return None
             twist = VehicleTwist(out[7:10].copy(), out[10:13].copy(), 0.0)
-            return (
-                out[0:3].copy(), out[3:6].copy(), float(out[6]), twist, bool(out[13]), MODES[mode]
+            return (  # outside: the drive mode (the left wrist outside its sphere)
+                out[0:3].copy(), out[3:6].copy(), float(out[6]), twist, MODES[mode] == "drive",
+                MODES[mode],
             )  # fmt: skip
 
         if not state():
