@@ -42,7 +42,27 @@ position-independent code calls every one of them through the PLT instead of inl
 @functools.cache
 def flags(compiler: str) -> tuple[str, ...]:
     """The compile flags for ``compiler``: :data:`CFLAGS` and those of
-    :data:`OPTIONAL_CFLAGS` it accepts (an older compiler without one still builds)."""
+    :data:`OPTIONAL_CFLAGS` it accepts (an older compiler without one still builds);
+    the answer is kept in the cache, named by the compiler's file and the flags tried."""
+    import hashlib
+
+    try:
+        seen = Path(compiler).resolve().stat()
+    except OSError:
+        seen = None
+    known = None
+    if seen is not None:
+        key = hashlib.sha256(
+            "\n".join(
+                [str(Path(compiler).resolve()), str(seen.st_size), str(seen.st_mtime_ns),
+                 *CFLAGS, "--", *OPTIONAL_CFLAGS]
+            ).encode()
+        ).hexdigest()[:20]  # fmt: skip
+        known = cache_dir() / f"flags_{key}.txt"
+        try:
+            return tuple(known.read_text().split("\n"))
+        except OSError:
+            pass
     import subprocess
     import tempfile
 
@@ -58,6 +78,14 @@ def flags(compiler: str) -> tuple[str, ...]:
             )
             if proc.returncode == 0:
                 out.append(flag)
+    if known is not None:
+        try:
+            known.parent.mkdir(parents=True, exist_ok=True)
+            with tempfile.NamedTemporaryFile("w", dir=known.parent, delete=False) as tmp_file:
+                tmp_file.write("\n".join(out))
+            os.replace(tmp_file.name, known)
+        except OSError:  # a read-only cache: asked again in the next process
+            pass
     return tuple(out)
 
 
@@ -151,10 +179,11 @@ def prune(directory: Path, name: str, keep: int = 8) -> None:
     """Delete all but the ``keep`` newest libraries of one name (older designs)."""
     libs = sorted(directory.glob(f"{name}_*.so"), key=lambda p: p.stat().st_mtime, reverse=True)
     for old in libs[keep:]:
-        try:
-            old.unlink()
-        except OSError:  # pragma: no cover - another process may have removed it
-            pass
+        for path in (old, *directory.glob(f"{old.stem}.*{CHECK_SUFFIX}")):
+            try:
+                path.unlink()
+            except OSError:  # pragma: no cover - another process may have removed it
+                pass
 
 
 NATIVE_ENV = "PAYLOAD_NATIVE"
@@ -261,16 +290,87 @@ _CHECKED: set[tuple[str, Hashable]] = set()
 def probes(lib: ctypes.CDLL, key: Hashable, full: int, again: int) -> int:
     """How many probes a kernel's self-check against the numpy code runs: ``full`` the
     first time the library ``lib`` is checked for ``key`` (what shapes the kernel's code
-    paths: counts, sizes, which parts are made) in this process, and ``again`` once such
-    a check passed (:func:`passed`): the first ``again`` of the same probes, which show
-    that a new build (a campaign worker's next trial, a driver's reset) reads its own
-    data and settings. Another library (changed C, another cache) is checked in full."""
-    return again if (str(lib._name), key) in _CHECKED else full
+    paths: counts, sizes, which parts are made), and ``again`` once such a check passed
+    (:func:`passed`) in this process or, with the same code, in an earlier one
+    (:func:`check_stamp`): the first ``again`` of the same probes, which show that a new
+    build (a campaign worker's next trial, a driver's reset, the next command) reads its
+    own data and settings. Another library (changed C, another cache) is checked in full."""
+    if (str(lib._name), key) in _CHECKED:
+        return again
+    if check_stamp(lib, key).is_file():
+        _CHECKED.add((str(lib._name), key))
+        return again
+    return full
 
 
 def passed(lib: ctypes.CDLL, key: Hashable) -> None:
-    """Record that ``lib``'s kernel passed its full self-check for ``key`` (:func:`probes`)."""
+    """Record that ``lib``'s kernel passed its full self-check for ``key`` (:func:`probes`),
+    for this process and, as a stamp file beside the library, for later ones."""
+    if (str(lib._name), key) in _CHECKED:
+        return
     _CHECKED.add((str(lib._name), key))
+    stamp = check_stamp(lib, key)
+    try:
+        stamp.touch()
+    except OSError as exc:  # a read-only cache: later processes check in full again
+        logging.getLogger(__name__).info("no check stamp %s (%s)", stamp, exc)
+
+
+def check_stamp(lib: ctypes.CDLL, key: Hashable) -> Path:
+    """The file that says ``lib``'s kernel passed its full self-check for ``key`` (it
+    exists then): beside the library, named by the library, ``key`` and what the check's
+    answer depends on besides the C (:func:`_checked_with`), so a change to any of them
+    asks for a full check again. :func:`prune` deletes it with its library."""
+    import hashlib
+
+    path = Path(lib._name)
+    digest = hashlib.sha256(f"{key!r}\n{_checked_with()}".encode()).hexdigest()[:20]
+    return path.with_name(f"{path.stem}.{digest}{CHECK_SUFFIX}")
+
+
+CHECK_SUFFIX = ".checked"
+
+
+@functools.cache
+def _checked_with() -> str:
+    """What a kernel's self-check answer depends on besides its C: the workbench's own
+    Python (the numpy code it is checked against: every module's text), Python's, numpy's
+    and (when loaded) MuJoCo's versions, and the processor (OpenBLAS picks its kernels by it)."""
+    import hashlib
+    import platform
+    import sys
+
+    import numpy
+
+    root = Path(__file__).parent
+    code = hashlib.sha256()
+    for source in sorted(root.rglob("*.py")):
+        code.update(str(source.relative_to(root)).encode() + b"\0" + source.read_bytes())
+    mujoco = sys.modules.get("mujoco")  # the simulator's kernels call its functions
+
+    return "\n".join(
+        [
+            code.hexdigest(),
+            sys.version,
+            numpy.__version__,
+            getattr(mujoco, "__version__", "no MuJoCo"),
+            platform.machine(),
+            _processor(),
+        ]
+    )
+
+
+def _processor() -> str:
+    """The processor's model and feature flags (``/proc/cpuinfo``), else the platform's
+    name for it."""
+    import platform
+
+    try:
+        lines = Path("/proc/cpuinfo").read_text().splitlines()
+    except OSError:
+        return platform.processor()
+    wanted = ("model name", "flags", "Features", "CPU part")
+    return "\n".join(dict.fromkeys(line for line in lines if line.split(":")[0].strip() in wanted))
 
 
 def kernel_status() -> dict[str, str]:
@@ -375,11 +475,13 @@ __all__ = [
     "CBLAS_NO_TRANS",
     "CBLAS_ROW_MAJOR",
     "CFLAGS",
+    "CHECK_SUFFIX",
     "NATIVE_ENV",
     "NUMPY_DDOT",
     "NUMPY_DGEMV",
     "OPTIONAL_CFLAGS",
     "build_library",
+    "check_stamp",
     "find_compiler",
     "flags",
     "gemv_layout",

@@ -92,6 +92,20 @@ def _isolated_payload_cache(tmp_path_factory):
 
 
 @pytest.fixture
+def fresh_checks(monkeypatch, tmp_path) -> Path:
+    """No kernel self-check has passed yet, in this process or an earlier one: the
+    kernels' check stamps go to a folder of their own (returned), empty to start with."""
+    from payload import native
+
+    stamps = tmp_path / "check-stamps"
+    stamps.mkdir()
+    real = native.check_stamp
+    monkeypatch.setattr(native, "_CHECKED", set())
+    monkeypatch.setattr(native, "check_stamp", lambda lib, key: stamps / real(lib, key).name)
+    return stamps
+
+
+@pytest.fixture
 def failing_compiler(monkeypatch, tmp_path) -> Path:
     """A C compiler that prints several lines on stderr and exits 1, made the one the
     retargeting solvers use, with a fresh solver cache in ``tmp_path``."""

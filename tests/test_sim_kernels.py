@@ -587,7 +587,9 @@ def test_a_clearance_with_other_boxes_is_refused(bare_driver, refused_kernel):
     )
 
 
-def test_a_second_station_bound_runs_the_short_check_and_it_still_refuses(bare_driver, monkeypatch):
+def test_a_second_station_bound_runs_the_short_check_and_it_still_refuses(
+    bare_driver, fresh_checks
+):
     """The first build in a process asks the numpy test on all 400 probe poses; a build of
     the same shape after it (a campaign's next trial) on the first 40, and is refused when
     the numpy test answers otherwise on one of them; another shape is checked in full."""
@@ -598,7 +600,9 @@ def test_a_second_station_bound_runs_the_short_check_and_it_still_refuses(bare_d
     monitor = StationMonitor(d.world)
     monitor.read(d.data)
     s_lo, s_hi = monitor._station_box
-    monkeypatch.setattr(native, "_CHECKED", set())  # no kernel checked in this process yet
+    native._CHECKED.clear()  # the read's own check forgotten: no kernel checked yet
+    for stamp in fresh_checks.iterdir():
+        stamp.unlink()
 
     def build(moving, lie_at=None):  # the monitor's own arguments for its kernel
         asked = []

@@ -3,9 +3,12 @@ step) give numpy's bits, and fall back when they cannot."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
+from payload import native
 from payload.retarget.errors import RetargetError
 from payload.teleop import filter_c, hand_c
 from payload.teleop.filters import OneEuroConfig, OneEuroFilter, _step_numpy
@@ -380,3 +383,44 @@ def test_compiled_steps_follow_settings_changed_after_binding():
             f.config = g.config = OneEuroConfig(1.0, 0.2, 2.5)
         x = rng.normal(scale=0.01, size=(25, 3))
         assert f(x, 0.02 * k).tobytes() == g(x, 0.02 * k).tobytes()
+
+
+def test_a_later_base_kernel_runs_the_short_check_and_it_still_refuses(fresh_checks):
+    """The base kernel's first check steps each of its three channels 600 times against
+    numpy; once that passed (stamped), a later process's check the first 200, and a
+    channel whose numpy step answers otherwise on one of them is refused."""
+    from payload.teleop import base_c
+    from payload.teleop.channels import _base_channel
+
+    asked: list[int] = []
+
+    def factory(neutral, heading, right, lie_at=None):
+        channel = _base_channel(neutral, heading, right)
+        numpy_step = channel._step_numpy
+
+        def counted(*args):
+            asked.append(1)
+            out = numpy_step(*args)
+            if len(asked) == lie_at:  # a yaw rate off by one ulp
+                out = dataclasses.replace(out, yaw_rate=float(np.nextafter(out.yaw_rate, 1.0)))
+            return out
+
+        channel._step_numpy = counted
+        return channel
+
+    def build(lie_at=None):
+        asked.clear()
+        base_c.compiled_base.cache_clear()
+        try:
+            return base_c.compiled_base(lambda *a: factory(*a, lie_at=lie_at)), len(asked)
+        finally:
+            base_c.compiled_base.cache_clear()
+
+    kernel, n = build()
+    assert kernel is not None and n == 3 * base_c.CHECK_STEPS
+    assert len(list(fresh_checks.iterdir())) == 1
+    native._CHECKED.clear()  # a later process
+    kernel, n = build()
+    assert kernel is not None and n == base_c.CHECK_STEPS
+    native._CHECKED.clear()
+    assert build(lie_at=base_c.CHECK_STEPS // 3 + 150) == (None, base_c.CHECK_STEPS // 3 + 150)

@@ -296,11 +296,14 @@ def compiled_base(factory: Callable[..., Any]) -> CompiledBase | None:
     """The process's compiled base step, or None to run the numpy step (no compiler, no
     numpy OpenBLAS, ``PAYLOAD_NATIVE=0``, a failed build, or a self-check that differs in a
     single bit from the numpy step of channels made by ``factory(neutral_left, heading0,
-    neutral_right)``, on random wrists in every mode)."""
+    neutral_right)``, on random wrists in every mode: :data:`CHECK_STEPS` steps of three
+    channels, or their first third once a full check passed, :func:`payload.native.probes`)."""
     loaded = _load()
     if loaded is None:
         return None
     kernel = CompiledBase(*loaded)
+    # each channel's steps, or its first third (every kind of leg) once a full check passed
+    steps = native.probes(loaded[0], "base channel", CHECK_STEPS, CHECK_STEPS // 3)
     rng = np.random.default_rng(0)
     for heading, with_right in ((0.0, True), (2.3, True), (-1.1, False)):
         neutral = rng.normal(scale=0.1, size=3)
@@ -312,7 +315,7 @@ def compiled_base(factory: Callable[..., Any]) -> CompiledBase | None:
             return None
         left, right = neutral.copy(), right_neutral.copy()
         q = rng.normal(size=4)
-        for k in range(600):
+        for k in range(steps):
             if k % 50 == 0:  # a new leg: push, hold with the right hand, let go, lose
                 aim = rng.normal(scale=(0.0, 0.03, 0.1, 0.3)[(k // 50) % 4], size=3)
                 q = rng.normal(size=4)
@@ -329,7 +332,15 @@ def compiled_base(factory: Callable[..., Any]) -> CompiledBase | None:
             if a is None or not _same(a, b) or not _same_state(mine, theirs):
                 log.warning("base channel: numpy (the compiled step differs)")
                 return None
+    if steps == CHECK_STEPS:
+        native.passed(loaded[0], "base channel")
     return kernel
+
+
+CHECK_STEPS = 600
+"""Steps of each of the three channels of the base kernel's full self-check; its first
+third already holds the four kinds of leg (aims of 0 to 0.3 m), the right hand's holds
+and lost hands and rotations."""
 
 
 def _fields(command: Any) -> tuple:
@@ -363,4 +374,4 @@ def _same_state(a: Any, b: Any) -> bool:
     )
 
 
-__all__ = ["MODES", "SOURCE", "CompiledBase", "compiled_base"]
+__all__ = ["CHECK_STEPS", "MODES", "SOURCE", "CompiledBase", "compiled_base"]

@@ -1,0 +1,97 @@
+"""The native-code cache: a kernel's full self-check, once passed, is remembered beside its
+library for later processes, and forgotten when anything it depends on changes."""
+
+from __future__ import annotations
+
+import ctypes
+from pathlib import Path
+
+import pytest
+
+from payload import native
+
+
+@pytest.fixture
+def library(monkeypatch, tmp_path) -> ctypes.CDLL:
+    """A small library built into a cache of its own, no check passed in this process."""
+    monkeypatch.setenv("PAYLOAD_CACHE_DIR", str(tmp_path / "cache"))
+    monkeypatch.setattr(native, "_CHECKED", set())
+    compiler = native.find_compiler()
+    assert compiler is not None  # the suite runs where kernels compile
+    path = native.build_library("probe", {"probe.c": "int probe(void) { return 7; }\n"}, compiler)
+    return ctypes.CDLL(str(path))
+
+
+def test_a_passed_full_check_lets_later_processes_run_the_short_one(library, monkeypatch):
+    assert native.probes(library, (3, 4), 100, 10) == 100
+    native.passed(library, (3, 4))
+    stamp = native.check_stamp(library, (3, 4))
+    assert stamp.is_file() and stamp.parent == Path(library._name).parent
+    assert native.probes(library, (3, 4), 100, 10) == 10  # this process
+    monkeypatch.setattr(native, "_CHECKED", set())  # the next process
+    assert native.probes(library, (3, 4), 100, 10) == 10
+    assert native.probes(library, (3, 5), 100, 10) == 100  # another shape
+    # anything the answer depends on besides the C changed: checked in full again
+    monkeypatch.setattr(native, "_CHECKED", set())
+    monkeypatch.setattr(native, "_checked_with", lambda: "other numpy")
+    assert native.probes(library, (3, 4), 100, 10) == 100
+
+
+def test_a_failed_or_short_check_leaves_no_stamp(library):
+    """Only :func:`native.passed` stamps, and a kernel calls it after a full check."""
+    assert native.probes(library, "k", 50, 5) == 50
+    assert not native.check_stamp(library, "k").exists()
+
+
+def test_the_stamp_follows_the_workbenchs_code(monkeypatch, tmp_path):
+    """Any change to a module's text (the numpy code the kernels are checked against)
+    changes what a stamp is named by."""
+    package = tmp_path / "pkg"
+    (package / "sub").mkdir(parents=True)
+    (package / "native.py").write_text("x = 1\n")
+    (package / "sub" / "mod.py").write_text("def f():\n    return 1.0\n")
+    monkeypatch.setattr(native, "__file__", str(package / "native.py"))
+    native._checked_with.cache_clear()
+    try:
+        before = native._checked_with()
+        (package / "sub" / "mod.py").write_text("def f():\n    return 1.0 + 0.0\n")
+        native._checked_with.cache_clear()
+        after = native._checked_with()
+    finally:
+        native._checked_with.cache_clear()
+    assert before != after
+    assert before.splitlines()[1:] == after.splitlines()[1:]  # versions, processor: the same
+
+
+def test_pruning_a_library_deletes_its_stamps(library):
+    native.passed(library, 1)
+    stamp = native.check_stamp(library, 1)
+    assert stamp.is_file()
+    native.prune(Path(library._name).parent, "probe", keep=0)
+    assert not Path(library._name).exists() and not stamp.exists()
+
+
+def test_the_compilers_flags_are_asked_once_per_cache(monkeypatch, tmp_path):
+    """The optional flags a compiler accepts are probed once (a compile per flag) and read
+    back from the cache by later processes."""
+    import subprocess
+
+    monkeypatch.setenv("PAYLOAD_CACHE_DIR", str(tmp_path))
+    compiler = native.find_compiler()
+    runs: list[list[str]] = []
+    real_run = subprocess.run
+
+    def run(args, **kwargs):
+        runs.append(list(args))
+        return real_run(args, **kwargs)
+
+    monkeypatch.setattr(subprocess, "run", run)
+    native.flags.cache_clear()
+    try:
+        first = native.flags(compiler)
+        assert len(runs) == len(native.OPTIONAL_CFLAGS)
+        assert first[: len(native.CFLAGS)] == native.CFLAGS
+        native.flags.cache_clear()  # the next process
+        assert native.flags(compiler) == first and len(runs) == len(native.OPTIONAL_CFLAGS)
+    finally:
+        native.flags.cache_clear()
