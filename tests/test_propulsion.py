@@ -67,6 +67,29 @@ def test_per_axis_force_maxima_are_the_published_ones(nozzles):
     np.testing.assert_allclose(hard.pure_force_max(), FLIGHT_MODES["difficult"].force, rtol=1e-8)
 
 
+def test_the_fitted_bounds_are_kept_in_the_cache_bit_for_bit(monkeypatch, tmp_path):
+    """The first Propulsion for a mode fits its bounds by linear programmes and keeps them;
+    the next (another process) reads the same bits back without a programme; a damaged
+    file is fitted again; other forces are another file."""
+    monkeypatch.setenv("PAYLOAD_CACHE_DIR", str(tmp_path))
+    first = Propulsion(NOMINAL.force)
+    assert len(list(tmp_path.glob("propulsion_bounds_*.json"))) == 1
+
+    def no_programme(*args, **kwargs):
+        raise AssertionError("a linear programme was solved")
+
+    with monkeypatch.context() as m:
+        m.setattr(Propulsion, "_lp", no_programme)
+        again = Propulsion(NOMINAL.force)
+    assert again.thrust_max.tobytes() == first.thrust_max.tobytes()
+    np.testing.assert_allclose(again.pure_force_max(), NOMINAL.force, rtol=1e-8)  # the LP's
+    (kept,) = tmp_path.glob("propulsion_bounds_*.json")
+    kept.write_text("[1.0, ")
+    assert Propulsion(NOMINAL.force).thrust_max.tobytes() == first.thrust_max.tobytes()
+    Propulsion(FLIGHT_MODES["difficult"].force)
+    assert len(list(tmp_path.glob("propulsion_bounds_*.json"))) == 2
+
+
 def test_force_and_torque_share_the_nozzles(nozzles):
     """Peak force and peak torque cannot be had together: not a box."""
     fx = NOMINAL.force[0]

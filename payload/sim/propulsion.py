@@ -32,15 +32,19 @@ from __future__ import annotations
 
 import functools
 import itertools
+import json
 import math
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from functools import cached_property
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from payload.cache import cache_dir
 from payload.errors import PayloadError
+from payload.safeio import replace_file
 from payload.sim.lsq import bvls
 from payload.sim.lsq import lstsq as _lstsq
 
@@ -217,6 +221,24 @@ class Propulsion:
 
     # -- bounds ------------------------------------------------------------------------
     def _fit_bounds(self) -> np.ndarray:
+        """The thrust bounds whose pure axis forces are :attr:`axis_force`: fitted by linear
+        programmes, or their earlier fit read back from the cache (the same bits)."""
+        known = _bounds_file(self)
+        try:
+            bounds = np.array([float.fromhex(v) for v in json.loads(known.read_text())])
+            if bounds.shape == (N_NOZZLES,):
+                return bounds
+        except (OSError, ValueError, TypeError):
+            pass
+        bounds = self._fit_bounds_lp()
+        try:
+            known.parent.mkdir(parents=True, exist_ok=True)
+            replace_file(known, json.dumps([float(v).hex() for v in bounds]))
+        except OSError:  # a read-only cache: fitted again by the next process
+            pass
+        return bounds
+
+    def _fit_bounds_lp(self) -> np.ndarray:
         scale = np.ones(3)
         for _ in range(50):
             self.thrust_max = scale[self.group] * self.shape
@@ -546,6 +568,24 @@ class Propulsion:
         """Body force and torque of nozzle thrusts (12,) [N] (the PMC simulator's map)."""
         out = self.matrix @ np.asarray(thrust, dtype=float)
         return out[:3], out[3:]
+
+
+def _bounds_file(propulsion: Propulsion) -> Path:
+    """Where the thrust bounds of ``propulsion``'s layout and forces are kept in the cache:
+    named by the fit's inputs, this module's code and SciPy's version (its HiGHS solves
+    the programmes)."""
+    import hashlib
+    from importlib import metadata
+
+    try:
+        scipy_version = metadata.version("scipy")
+    except metadata.PackageNotFoundError:  # pragma: no cover - a dependency of the workbench
+        scipy_version = "?"
+    key = hashlib.sha256()
+    for part in (propulsion.axis_force, propulsion.matrix, propulsion.group, propulsion.shape):
+        key.update(np.ascontiguousarray(part).tobytes())
+    key.update(Path(__file__).read_bytes() + scipy_version.encode())
+    return cache_dir() / f"propulsion_bounds_{key.hexdigest()[:20]}.json"
 
 
 @functools.lru_cache(maxsize=8)
