@@ -67,27 +67,35 @@ def test_per_axis_force_maxima_are_the_published_ones(nozzles):
     np.testing.assert_allclose(hard.pure_force_max(), FLIGHT_MODES["difficult"].force, rtol=1e-8)
 
 
-def test_the_fitted_bounds_are_kept_in_the_cache_bit_for_bit(monkeypatch, tmp_path):
-    """The first Propulsion for a mode fits its bounds by linear programmes and keeps them;
-    the next (another process) reads the same bits back without a programme; a damaged
-    file is fitted again; other forces are another file."""
+def test_the_programmes_answers_are_kept_in_the_cache_bit_for_bit(monkeypatch, tmp_path):
+    """The first Propulsion for a mode fits its bounds (and finds its pure torques) by
+    linear programmes and keeps their answers; the next process reads the same bits back
+    without a programme; a damaged file is worked out again."""
+    from payload.sim import propulsion
+
     monkeypatch.setenv("PAYLOAD_CACHE_DIR", str(tmp_path))
+    monkeypatch.setattr(propulsion._Extents, "_OPEN", {})
     first = Propulsion(NOMINAL.force)
-    assert len(list(tmp_path.glob("propulsion_bounds_*.json"))) == 1
+    torque = first.pure_torque_max()
+    (kept,) = tmp_path.glob("propulsion_extents_*.json")
 
     def no_programme(*args, **kwargs):
         raise AssertionError("a linear programme was solved")
 
+    monkeypatch.setattr(propulsion._Extents, "_OPEN", {})  # the next process
     with monkeypatch.context() as m:
         m.setattr(Propulsion, "_lp", no_programme)
         again = Propulsion(NOMINAL.force)
+        assert again.pure_torque_max().tobytes() == torque.tobytes()
     assert again.thrust_max.tobytes() == first.thrust_max.tobytes()
-    np.testing.assert_allclose(again.pure_force_max(), NOMINAL.force, rtol=1e-8)  # the LP's
-    (kept,) = tmp_path.glob("propulsion_bounds_*.json")
-    kept.write_text("[1.0, ")
+    np.testing.assert_allclose(again.pure_force_max(), NOMINAL.force, rtol=1e-8)
+    for i in range(3):  # the kept answers are the programme's (written here)
+        e = np.zeros(6)
+        e[i] = 1.0
+        assert again.max_along(e) == pytest.approx(_lp_extent(again, e), rel=1e-9)
+    kept.write_text("{")
+    monkeypatch.setattr(propulsion._Extents, "_OPEN", {})
     assert Propulsion(NOMINAL.force).thrust_max.tobytes() == first.thrust_max.tobytes()
-    Propulsion(FLIGHT_MODES["difficult"].force)
-    assert len(list(tmp_path.glob("propulsion_bounds_*.json"))) == 2
 
 
 def test_force_and_torque_share_the_nozzles(nozzles):

@@ -221,24 +221,6 @@ class Propulsion:
 
     # -- bounds ------------------------------------------------------------------------
     def _fit_bounds(self) -> np.ndarray:
-        """The thrust bounds whose pure axis forces are :attr:`axis_force`: fitted by linear
-        programmes, or their earlier fit read back from the cache (the same bits)."""
-        known = _bounds_file(self)
-        try:
-            bounds = np.array([float.fromhex(v) for v in json.loads(known.read_text())])
-            if bounds.shape == (N_NOZZLES,):
-                return bounds
-        except (OSError, ValueError, TypeError):
-            pass
-        bounds = self._fit_bounds_lp()
-        try:
-            known.parent.mkdir(parents=True, exist_ok=True)
-            replace_file(known, json.dumps([float(v).hex() for v in bounds]))
-        except OSError:  # a read-only cache: fitted again by the next process
-            pass
-        return bounds
-
-    def _fit_bounds_lp(self) -> np.ndarray:
         scale = np.ones(3)
         for _ in range(50):
             self.thrust_max = scale[self.group] * self.shape
@@ -253,13 +235,22 @@ class Propulsion:
 
     def max_along(self, direction: np.ndarray) -> float:
         """Largest ``lambda`` with the wrench ``lambda * direction`` (6,) reachable, by
-        linear programming (independent of :attr:`facets`)."""
+        linear programming (independent of :attr:`facets`), or its answer for the same
+        bounds and direction read back from the cache (:class:`_Extents`, the same bits)."""
+        w = np.asarray(direction, dtype=float)
+        known = _Extents.of(self.matrix)
+        key = known.key(self.thrust_max, w)
+        extent = known.get(key)
+        if extent is not None:
+            return extent
         most = np.zeros(N_NOZZLES + 1)
         most[-1] = -1.0
-        res = self._lp(most, np.asarray(direction, dtype=float), (0.0, None))
+        res = self._lp(most, w, (0.0, None))
         if res.status != 0:  # pragma: no cover - bounded thrusts bound lambda
             raise PropulsionError(f"polytope extent along {direction}: {res.message}")
-        return float(res.x[-1])
+        extent = float(res.x[-1])
+        known.put(key, extent)
+        return extent
 
     def pure_force_max(self) -> np.ndarray:
         """Per body axis, the largest pure force (zero torque), the weaker direction [N]."""
@@ -570,22 +561,62 @@ class Propulsion:
         return out[:3], out[3:]
 
 
-def _bounds_file(propulsion: Propulsion) -> Path:
-    """Where the thrust bounds of ``propulsion``'s layout and forces are kept in the cache:
-    named by the fit's inputs, this module's code and SciPy's version (its HiGHS solves
-    the programmes)."""
-    import hashlib
-    from importlib import metadata
+class _Extents:
+    """The answers of :meth:`Propulsion.max_along`'s linear programmes for one nozzle
+    layout, kept in the cache (one file per layout, float hex): a process after the first
+    solves none (nor imports ``scipy.optimize``). Named by the layout, this module's code
+    and SciPy's version (its HiGHS solves them); each answer by the bounds and direction
+    it was asked for."""
 
-    try:
-        scipy_version = metadata.version("scipy")
-    except metadata.PackageNotFoundError:  # pragma: no cover - a dependency of the workbench
-        scipy_version = "?"
-    key = hashlib.sha256()
-    for part in (propulsion.axis_force, propulsion.matrix, propulsion.group, propulsion.shape):
-        key.update(np.ascontiguousarray(part).tobytes())
-    key.update(Path(__file__).read_bytes() + scipy_version.encode())
-    return cache_dir() / f"propulsion_bounds_{key.hexdigest()[:20]}.json"
+    _OPEN: dict[bytes, _Extents] = {}
+
+    def __init__(self, matrix: np.ndarray) -> None:
+        import hashlib
+        from importlib import metadata
+
+        try:
+            scipy_version = metadata.version("scipy")
+        except metadata.PackageNotFoundError:  # pragma: no cover - a workbench dependency
+            scipy_version = "?"
+        name = hashlib.sha256(
+            np.ascontiguousarray(matrix).tobytes()
+            + Path(__file__).read_bytes()
+            + scipy_version.encode()
+        ).hexdigest()[:20]
+        self.path = cache_dir() / f"propulsion_extents_{name}.json"
+        try:
+            self.known = {str(k): str(v) for k, v in json.loads(self.path.read_text()).items()}
+        except (OSError, ValueError, TypeError, AttributeError):
+            self.known = {}
+
+    @classmethod
+    def of(cls, matrix: np.ndarray) -> _Extents:
+        """The process's answers for this layout, read from the cache the first time."""
+        index = np.ascontiguousarray(matrix).tobytes() + str(cache_dir()).encode()
+        if index not in cls._OPEN:
+            cls._OPEN[index] = cls(matrix)
+        return cls._OPEN[index]
+
+    @staticmethod
+    def key(bounds: np.ndarray, direction: np.ndarray) -> str:
+        import hashlib
+
+        data = np.ascontiguousarray(bounds, float).tobytes() + direction.tobytes()
+        return hashlib.sha256(data).hexdigest()[:32]
+
+    def get(self, key: str) -> float | None:
+        try:
+            return float.fromhex(self.known[key])
+        except (KeyError, ValueError):
+            return None
+
+    def put(self, key: str, extent: float) -> None:
+        self.known[key] = extent.hex()
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            replace_file(self.path, json.dumps(self.known, indent=0, sort_keys=True))
+        except OSError:  # a read-only cache: solved again by the next process
+            pass
 
 
 @functools.lru_cache(maxsize=8)
