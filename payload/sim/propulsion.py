@@ -38,7 +38,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -568,7 +568,7 @@ class _Extents:
     and SciPy's version (its HiGHS solves them); each answer by the bounds and direction
     it was asked for."""
 
-    _OPEN: dict[bytes, _Extents] = {}
+    _OPEN: ClassVar[dict[bytes, _Extents]] = {}
 
     def __init__(self, matrix: np.ndarray) -> None:
         import hashlib
