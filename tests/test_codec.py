@@ -19,6 +19,7 @@ from payload.teleop.hands import Hand, HandFrame
 from payload.trials.codec import (
     HAND_GRID_M,
     STEP_GRIDS,
+    HandSampleMsg,
     JointsCodec,
     JointsMsg,
     StepCodec,
@@ -561,7 +562,17 @@ def test_schema2_recordings_read_and_newer_versions_are_refused(
     old = tmp_path / "v2" / "log.mcap"
     with monkeypatch.context() as mp:  # what the version-2 recorder wrote
         mp.setattr(recorder_module, "SCHEMA_VERSION", 2)
-        mp.setattr(codec.StepCodec, "_grid_batch", lambda self, steps, walls: [None] * len(steps))
+        none = np.zeros(len(steps), dtype=bool)  # no step on the grid: all doubles
+        mp.setattr(
+            codec.StepCodec,
+            "_grid_batch",
+            lambda self, batch, walls: codec.GridRows(
+                none[: len(batch)],
+                none[: len(batch)],
+                np.zeros((len(batch), codec._GRID.size), np.int64),
+                None,
+            ),
+        )
         write(old)
     assert recording_version(old) == 2
     msgs = _step_messages(old)
@@ -654,3 +665,53 @@ def test_compare_channels_sees_every_message_but_the_clock(foxglove_recording, t
     (tmp_path / "b" / "trial-0001" / "metrics.json").write_text('{"success": true}')
     runs[1] = str(tmp_path / "b")
     assert main(["trials", "compare", *runs]) == 1
+
+
+def test_the_compiled_step_messages_are_the_protobuf_runtimes() -> None:
+    """A batch's hand-sample and step bytes written in C, against the runtime's
+    serialisation of the same messages built field by field (every kind of step: on the
+    grid and as doubles, pairs in the command or not, joints on the grid, raw, untracked
+    and in the hand sample, with and without a frame, zeros of both signs), and read back
+    by the runtime's parser to the same numbers."""
+    from payload.trials import codec
+
+    kernel = codec._steps_kernel()
+    assert kernel is not None  # a compiler is here
+    rng = np.random.default_rng(23)
+    compiled, runtime = StepCodec(), StepCodec()
+    for b in range(4):
+        items = [codec._probe_item(rng, int(k)) for k in rng.integers(0, 400, size=30)]
+        items = [(st, 30 * b + i, wall, frame) for i, (st, _, wall, frame) in enumerate(items)]
+        got = compiled.encode_batch(items)
+        want = runtime._serialize(items, runtime._rows(items))
+        assert got == want
+        for (step, seq, _, frame), (hands, data) in zip(items, got):
+            m = StepMsg.FromString(data)
+            assert m.seq == seq and m.contact == step.contact
+            if not m.pairs_in_cmd:
+                assert np.array(m.q_left).tobytes() == step.q_left.tobytes()
+            if frame is not None:
+                assert HandSampleMsg.FromString(hands).stamp == frame.stamp
+        if b % 2:
+            compiled.key()
+            runtime.key()
+
+
+def test_step_messages_with_other_bytes_are_refused(refused_kernel, monkeypatch) -> None:
+    """A kernel that writes the zero doubles the runtime leaves out fails its self-check,
+    and a batch's messages are built as protobuf objects (the same bytes); so with
+    PAYLOAD_NATIVE=0."""
+    from payload.trials import codec, codec_c
+
+    rng = np.random.default_rng(24)
+    items = [codec._probe_item(rng, k) for k in range(40)]
+    want = StepCodec().encode_batch(items)
+    with refused_kernel(codec_c, "if (!bits) return p;", "", forget=codec._steps_kernel):
+        assert codec._steps_kernel() is None
+        assert StepCodec().encode_batch(items) == want
+    monkeypatch.setenv("PAYLOAD_NATIVE", "0")
+    codec._steps_kernel.cache_clear()
+    try:
+        assert codec._steps_kernel() is None
+    finally:
+        codec._steps_kernel.cache_clear()

@@ -37,15 +37,19 @@ saw (stamp, tracked flags, joints), so a recording replays bit for bit.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import functools
+import math
+from collections.abc import Callable, Iterator
 from typing import Any, NamedTuple
 
 import numpy as np
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 
+from payload.trials.codec_c import IN_HANDS
 from payload.trials.jointcodec import (
     GRID_INT_LIMIT,
     HAND_GRID_M,
+    JointRows,
     JointsCodec,
     fill_joints,
     quantize_joints,
@@ -217,11 +221,9 @@ class StepCodec:
             c.key()
         self._prev = None
 
-    def _grid_batch(self, steps: list[Any], walls: list[float]) -> list[Any]:
-        """The grid numbers of a batch of steps in turn: per step ``(key, ints, values)``
-        or ``None`` (a non-finite number: stored as doubles, the next one a key);
-        ``values`` are the numbers as the decoder reads them back (the same integers
-        over the same grid steps per unit)."""
+    def _grid_batch(self, steps: list[Any], walls: list[float]) -> GridRows:
+        """The grid numbers of a batch of steps in turn (:class:`GridRows`): a step with a
+        non-finite number is stored as doubles, and the next one is a key."""
         n = len(steps)
         values = np.empty((n, len(_GRID)))
         for name, start, stop in _GRID_SLICES:
@@ -233,18 +235,21 @@ class StepCodec:
         ok = np.isfinite(k).all(axis=1) & ~(np.abs(k) >= GRID_INT_LIMIT).any(axis=1)
         ki = np.where(ok[:, None], k, 0.0).astype(np.int64)
         decoded = ki / _PER_UNIT
-        out: list[Any] = []
-        for i in range(n):
-            if not ok[i]:
-                self._prev = None
-                out.append(None)
-                continue
-            if self._prev is None:
-                out.append((True, ki[i].tolist(), decoded[i]))
-            else:
-                out.append((False, (ki[i] - self._prev).tolist(), decoded[i]))
-            self._prev = ki[i]
-        return out
+        # each stored row's integers less the previous row's, or themselves in a key row
+        # (the first after a flush or a row stored as doubles)
+        before = np.empty(n, dtype=bool)
+        before[1:] = ok[:-1]
+        if n:
+            before[0] = self._prev is not None
+        key = ok & ~before
+        ints = ki.copy()
+        ints[1:] -= ki[:-1]
+        if n and self._prev is not None:
+            ints[0] -= self._prev
+        ints[key] = ki[key]
+        if n:
+            self._prev = ki[-1] if ok[-1] else None
+        return GridRows(ok, key, ints, decoded)
 
     def encode_batch(
         self, items: list[tuple[Any, int, float, Any]], decoded: list[Decoded] | None = None
@@ -263,45 +268,56 @@ class StepCodec:
         Returns:
             Per step ``(hand sample bytes or None, step bytes)``.
         """
-        frames = [(i, f) for i, (_, _, _, f) in enumerate(items) if f is not None]
-        hands: dict[str, dict[int, Any]] = {}
-        hands_read: dict[str, dict[int, np.ndarray]] = {}
-        for side in ("left", "right"):
-            specs, values = self.joints[f"hands_{side}"].encode_many(
-                [getattr(f, side).joints for _, f in frames]
-            )
-            rows = [i for i, _ in frames]
-            hands[side] = dict(zip(rows, specs))
-            hands_read[side] = dict(zip(rows, values))
-        refs = []
-        for step, _, _, frame in items:
-            refs.append(
-                (False, False)
-                if frame is None
-                else (
-                    same_joints(frame.left.joints, step.left_joints),
-                    same_joints(frame.right.joints, step.right_joints),
-                )
-            )
-        own = {}
-        own_read: dict[str, dict[int, np.ndarray]] = {}
-        for name, side in (("left_joints", 0), ("right_joints", 1)):
-            rows = [i for i, ref in enumerate(refs) if not ref[side]]
-            specs, values = self.joints[name].encode_many(
-                [getattr(items[i][0], name) for i in rows]
-            )
-            own[name] = dict(zip(rows, specs))
-            own_read[name] = dict(zip(rows, values))
-        grids = self._grid_batch([it[0] for it in items], [it[2] for it in items])
+        batch = self._rows(items)
         if decoded is not None:
             for i, (step, _, wall_time, _) in enumerate(items):
-                joints = [
-                    own_read[name][i] if i in own_read[name] else hands_read[side][i]
-                    for name, side in (("left_joints", "left"), ("right_joints", "right"))
-                ]
+                grids = batch.grids
                 decoded.append(
-                    Decoded(step, None if grids[i] is None else grids[i][2], wall_time, *joints)
-                )
+                    Decoded(
+                        step,
+                        grids.values[i] if grids.ok[i] else None,
+                        wall_time,
+                        *(batch.joints(i, side).decoded[r] for side in (0, 1)
+                          for r in [batch.row(i, side)]),
+                    )
+                )  # fmt: skip
+        kernel = _steps_kernel() if items else None
+        if kernel is not None:
+            data = kernel(self._arrays(items, batch), self.grid)
+            return [
+                (data[2 * i] if frame is not None else None, data[2 * i + 1])
+                for i, (_, _, _, frame) in enumerate(items)
+            ]
+        return self._serialize(items, batch)
+
+    def _rows(self, items: list[tuple[Any, int, float, Any]]) -> _Batch:
+        """The numbers a batch stores (the grid and joint arithmetic, done for the batch);
+        each step's joints refer to its frame's where they are the same."""
+        frames = [(i, f) for i, (_, _, _, f) in enumerate(items) if f is not None]
+        hands = tuple(
+            self.joints[f"hands_{side}"].encode_many([getattr(f, side).joints for _, f in frames])
+            for side in ("left", "right")
+        )
+        refs = [
+            (False, False)
+            if frame is None
+            else (
+                same_joints(frame.left.joints, step.left_joints),
+                same_joints(frame.right.joints, step.right_joints),
+            )
+            for step, _, _, frame in items
+        ]
+        own = []
+        for name, side in (("left_joints", 0), ("right_joints", 1)):
+            rows = [i for i, ref in enumerate(refs) if not ref[side]]
+            coded = self.joints[name].encode_many([getattr(items[i][0], name) for i in rows])
+            own.append(({i: r for r, i in enumerate(rows)}, coded))
+        at = {i: r for r, (i, _) in enumerate(frames)}
+        grids = self._grid_batch([it[0] for it in items], [it[2] for it in items])
+        return _Batch(at, hands, (own[0], own[1]), grids)
+
+    def _serialize(self, items: list[tuple[Any, int, float, Any]], batch: _Batch) -> list:
+        """The batch's messages built as protobuf objects and serialised by the runtime."""
         out = []
         for i, (step, seq, wall_time, frame) in enumerate(items):
             data = None
@@ -309,22 +325,78 @@ class StepCodec:
                 h = HandSampleMsg(seq=seq, stamp=float(frame.stamp))
                 h.left_tracked = bool(frame.left.tracked)
                 h.right_tracked = bool(frame.right.tracked)
-                fill_joints(h.left, hands["left"][i], self.grid)
-                fill_joints(h.right, hands["right"][i], self.grid)
+                fill_joints(h.left, batch.hands[0], batch.at[i], self.grid)
+                fill_joints(h.right, batch.hands[1], batch.at[i], self.grid)
                 data = h.SerializeToString()
-            m = self._step_fields(step, seq, wall_time, grids[i])
-            for name in ("left_joints", "right_joints"):
+            m = self._step_fields(step, seq, wall_time, batch.grids, i)
+            for side, name in enumerate(("left_joints", "right_joints")):
                 sub = getattr(m, name)
-                if i in own[name]:
-                    fill_joints(sub, own[name][i], self.grid)
+                mine, coded = batch.own[side]
+                if i in mine:
+                    fill_joints(sub, coded, mine[i], self.grid)
                 else:
                     sub.in_hands = True
             out.append((data, m.SerializeToString()))
         return out
 
-    def _step_fields(self, step: Any, seq: int, wall_time: float, grid: Any) -> Any:
-        """A ``Step`` message with everything but the joints (``grid``: ``(key, ints, _)`` or
-        ``None`` for doubles), as :meth:`encode_step` fills it."""
+    def _arrays(self, items: list[tuple[Any, int, float, Any]], batch: _Batch) -> dict:
+        """The batch as the compiled serialiser takes it (:mod:`payload.trials.codec_c`)."""
+        n = len(items)
+        steps = [it[0] for it in items]
+        grids = batch.grids
+        flags = np.array(
+            [
+                (PHASE_NAMES.index(st.phase), MODULE_NAMES.index(st.ctb_module),
+                 bool(st.left_tracked), bool(st.right_tracked), bool(st.contact),
+                 _pairs_in_cmd(st), ok, key)
+                for st, ok, key in zip(steps, grids.ok.tolist(), grids.key.tolist())
+            ],
+            dtype=np.int64,
+        ).reshape(n, 8)  # fmt: skip
+        doubles = np.concatenate(
+            [np.array([getattr(st, name) for st in steps], dtype=np.float64).reshape(n, -1)
+             for name, _, _ in STEP_DOUBLES],
+            axis=1,
+        )  # fmt: skip
+        walls = np.array([it[2] for it in items], dtype=np.float64)
+        out = {
+            "seq": np.array([it[1] for it in items], dtype=np.int64),
+            "wall": np.where(grids.ok, 0.0, walls),
+            "flags": flags,
+            "doubles": doubles,
+            "grid": grids.ints,
+            "stamp": np.zeros(n),
+            "hand": np.full((n, 4), -1, dtype=np.int64),
+        }
+        for prefix, parts in (("", batch.own), ("h", None)):
+            code = np.full((n, 2), IN_HANDS, dtype=np.int64)
+            key = np.zeros((n, 2), dtype=np.int64)
+            ints = np.zeros((n, 2, 75), dtype=np.int64)
+            raw = np.zeros((n, 2, 75))
+            for side in (0, 1):
+                if parts is not None:
+                    mine, coded = parts[side]
+                    rows = list(mine)
+                    where = [mine[i] for i in rows]
+                else:
+                    coded = batch.hands[side]
+                    rows = list(batch.at)
+                    where = [batch.at[i] for i in rows]
+                code[rows, side] = coded.kind[where]
+                key[rows, side] = coded.key[where]
+                ints[rows, side] = coded.ints[where]
+                raw[rows, side] = coded.raw[where]
+            out.update({f"{prefix}code": code, f"{prefix}key": key, f"{prefix}ints": ints,
+                        f"{prefix}raw": raw})  # fmt: skip
+        for i in batch.at:
+            frame = items[i][3]
+            out["hand"][i, :2] = (bool(frame.left.tracked), bool(frame.right.tracked))
+            out["stamp"][i] = float(frame.stamp)
+        return out
+
+    def _step_fields(self, step: Any, seq: int, wall_time: float, grids: GridRows, i: int) -> Any:
+        """A ``Step`` message with everything but the joints (row ``i`` of ``grids``), as
+        :meth:`encode_step` fills it."""
         m = StepMsg(seq=seq, wall_time=wall_time)
         m.phase = PHASE_NAMES.index(step.phase)
         m.ctb_module = MODULE_NAMES.index(step.ctb_module)
@@ -333,10 +405,10 @@ class StepCodec:
         m.contact = step.contact
         pairs = _pairs_in_cmd(step)
         m.pairs_in_cmd = pairs
-        gridded = grid is not None
+        gridded = bool(grids.ok[i])
         if gridded:
-            m.grid_key = grid[0]
-            m.grid.extend(grid[1])
+            m.grid_key = bool(grids.key[i])
+            m.grid.extend(grids.ints[i].tolist())
             m.wall_time = 0.0
         for name, _, shape in STEP_DOUBLES:
             if pairs and name in _PAIR_FIELDS:
@@ -373,7 +445,7 @@ class StepCodec:
             in_hands: For each hand, whether the ``/trial/hands`` message of this sequence
                 number holds the same joints (they are then not repeated).
         """
-        m = self._step_fields(step, seq, wall_time, self._grid_batch([step], [wall_time])[0])
+        m = self._step_fields(step, seq, wall_time, self._grid_batch([step], [wall_time]), 0)
         for name, ref in zip(("left_joints", "right_joints"), in_hands):
             sub = getattr(m, name)
             if ref:
@@ -452,6 +524,130 @@ class StepCodec:
 
 _EMPTY = np.zeros(0)
 _EMPTY.setflags(write=False)
+
+
+@functools.cache
+def _steps_kernel() -> Any:
+    """The process's compiled serialiser of a batch's messages (checked on
+    :func:`_probe_batches`), or None: the protobuf runtime serialises them."""
+    from payload.trials.codec_c import compiled_steps
+
+    fields = [
+        (number, math.prod(shape) if shape else 0, name in _PAIR_FIELDS)
+        for name, number, shape in STEP_DOUBLES
+    ]
+    return compiled_steps(fields, len(_GRID), _probe_batches)
+
+
+def _probe_batches() -> Iterator[tuple[dict[str, np.ndarray], float, list[bytes]]]:
+    """Batches of every kind of step, as the compiled serialiser takes them, with the
+    bytes the protobuf runtime gives their messages (one codec, keyed now and then)."""
+    rng = np.random.default_rng(0)
+    codec = StepCodec()
+    for b in range(5):
+        items = [_probe_item(rng, 40 * b + k) for k in range(40)]
+        batch = codec._rows(items)
+        want = codec._serialize(items, batch)
+        yield codec._arrays(items, batch), codec.grid, [x for h, st in want for x in (h or b"", st)]
+        if b % 2:
+            codec.key()
+
+
+def _probe_item(rng: np.random.Generator, k: int) -> tuple[Any, int, float, Any]:
+    """A step of a probe batch (``k``: which kinds it is of), with a hand frame or not."""
+    from types import SimpleNamespace
+
+    def hand() -> np.ndarray:
+        return np.rint(rng.normal(scale=0.1, size=(25, 3)) / HAND_GRID_M) * HAND_GRID_M
+
+    def vector(size: int) -> np.ndarray:
+        v = rng.normal(size=size) * (rng.random(size) < 0.8)  # some zeros
+        v[rng.random(size) < 0.1] = -0.0
+        return v
+
+    tracked = (k % 11 != 5, k % 13 != 6)
+    joints = [hand() if tracked[0] else np.full((25, 3), np.nan), hand()]
+    if k % 7 == 3:
+        joints[0] = rng.normal(size=(25, 3))  # off the grid: raw
+    if not tracked[1]:
+        joints[1] = np.full((25, 3), np.nan)
+    q = vector(17)
+    pairs = k % 3 != 0
+    step = SimpleNamespace(
+        t=0.02 * k,
+        phase=PHASE_NAMES[k % len(PHASE_NAMES)],
+        ctb_module=MODULE_NAMES[k % len(MODULE_NAMES)],
+        left_joints=joints[0],
+        right_joints=hand() if k % 5 == 2 else joints[1],  # not the frame's
+        left_tracked=tracked[0],
+        right_tracked=tracked[1],
+        q_left=q[PAIR_L_INDEX] if pairs else vector(8),
+        q_right=q[PAIR_R_INDEX] if pairs else vector(8),
+        rail_cmd=float(q[-1]) if pairs else float(vector(1)[0]),
+        twist_cmd=vector(6),
+        q_cmd=q,
+        deploy_cmd=float(vector(1)[0]),
+        q_meas=vector(17),
+        deploy_meas=float(vector(1)[0]),
+        astrobee_pos=vector(3) * 10.0,
+        astrobee_quat=vector(4),
+        astrobee_twist=vector(6),
+        ctb_pos=vector(3),
+        ctb_quat=vector(4),
+        contact=k % 2 == 1,
+    )
+    if k % 17 == 9:  # not finite: stored as doubles, the next step a key
+        step.ctb_pos = np.array([np.nan, 0.0, 0.0])
+    if k % 19 == 4:  # too large for the grid's integers
+        step.astrobee_pos = np.array([1e300, 0.0, -1.0])
+    frame = None
+    if k % 9 != 4:
+        frame = SimpleNamespace(
+            stamp=0.02 * k - 1.0 * (k % 4 == 1),
+            left=SimpleNamespace(joints=joints[0], tracked=tracked[0]),
+            right=SimpleNamespace(joints=joints[1], tracked=tracked[1]),
+        )
+    return step, k, (1.7e9 + 0.02 * k) * (k % 8 != 0), frame
+
+
+class _Batch(NamedTuple):
+    """What a batch of steps stores besides their own fields (:meth:`StepCodec._rows`)."""
+
+    at: dict[int, int]  # a step with a hand frame: its row among the frames
+    hands: tuple[JointRows, JointRows]  # the frames' left and right joints
+    own: tuple[tuple[dict[int, int], JointRows], tuple[dict[int, int], JointRows]]
+    # per side, the steps whose joints are not their frame's: their rows, and the rows
+    grids: GridRows
+
+    def row(self, i: int, side: int) -> int:
+        """Step ``i``'s row in :meth:`joints` for ``side`` (0 left, 1 right)."""
+        mine = self.own[side][0]
+        return mine[i] if i in mine else self.at[i]
+
+    def joints(self, i: int, side: int) -> JointRows:
+        """The rows step ``i``'s joints of ``side`` are in (its own, or its frame's)."""
+        mine, coded = self.own[side]
+        return coded if i in mine else self.hands[side]
+
+
+class GridRows(NamedTuple):
+    """The grid numbers of a batch of steps (:meth:`StepCodec._grid_batch`), n rows.
+
+    Attributes:
+        ok: Per step whether it is stored on the grid (else as doubles: a number that is
+            not finite or too large).
+        key: Per step whether its integers are the multiples themselves (the first after a
+            flush or after a step stored as doubles), not deltas.
+        ints: The integers stored, (n, G) in :data:`STEP_GRIDS` order (zero rows where not
+            ``ok``).
+        values: The numbers as the decoder reads them back (the same integers over the same
+            grid steps per unit), (n, G).
+    """
+
+    ok: np.ndarray
+    key: np.ndarray
+    ints: np.ndarray
+    values: np.ndarray
 
 
 class Decoded(NamedTuple):

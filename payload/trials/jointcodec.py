@@ -12,7 +12,7 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -74,23 +74,20 @@ class JointsCodec:
         out.raw.extend(flat.tolist())
         self._prev = None
 
-    def encode_many(self, joints: list[np.ndarray]) -> tuple[list[tuple[Any, ...]], np.ndarray]:
-        """What :meth:`encode` would store for each of several joint arrays in turn, as
-        specs for :func:`fill_joints` (the arithmetic done once for the batch: the same
-        elementwise operations, so the same integers), and what :meth:`decode` reads back
-        from them.
+    def encode_many(self, joints: list[np.ndarray]) -> JointRows:
+        """What :meth:`encode` would store for each of several joint arrays in turn (the
+        arithmetic done once for the batch: the same elementwise operations, so the same
+        integers), for :func:`fill_joints`, and what :meth:`decode` reads back from them.
 
         Args:
             joints: Joint arrays (25, 3), in the order they are written.
-
-        Returns:
-            Per array ``("untracked",)``, ``("grid", key, deltas)`` or ``("raw", values)``;
-            and the decoded joints, (n, 25, 3): NaN where untracked, ``k * grid`` on the
-            grid (the decoder's product of the same integers), the values themselves raw.
         """
-        if not joints:
-            return [], np.zeros((0, 25, 3))
-        flat = np.array(joints, dtype=np.float64).reshape(len(joints), -1)
+        n = len(joints)
+        if not n:
+            empty = np.zeros((0, 75), dtype=np.int64)
+            return JointRows(empty[:, 0].copy(), empty[:, 0] > 0, empty, empty * 0.0,
+                             np.zeros((0, 25, 3)))  # fmt: skip
+        flat = np.array(joints, dtype=np.float64).reshape(n, -1)
         untracked = np.isnan(flat).all(axis=1)
         with np.errstate(invalid="ignore"):
             k = np.rint(flat / self.grid)
@@ -100,22 +97,23 @@ class JointsCodec:
                 & (k * self.grid == flat).all(axis=1)
             )
         ki = np.where(gridded[:, None], k, 0.0).astype(np.int64)
-        specs: list[tuple[Any, ...]] = []
-        for i in range(len(joints)):
-            if untracked[i]:
-                specs.append(("untracked",))
-            elif gridded[i]:
-                if self._prev is None:
-                    specs.append(("grid", True, ki[i].tolist()))
+        kind = np.where(untracked, UNTRACKED, np.where(gridded, ON_GRID, RAW))
+        key = np.zeros(n, dtype=bool)
+        ints = ki.copy()
+        prev = self._prev
+        for i in np.flatnonzero(~untracked).tolist():  # untracked rows leave the chain be
+            if gridded[i]:
+                if prev is None:
+                    key[i] = True
                 else:
-                    specs.append(("grid", False, (ki[i] - self._prev).tolist()))
-                self._prev = ki[i]
+                    ints[i] -= prev
+                prev = ki[i]
             else:
-                specs.append(("raw", flat[i].tolist()))
-                self._prev = None
+                prev = None
+        self._prev = prev
         decoded = np.where(gridded[:, None], ki * self.grid, flat)
         decoded[untracked] = np.nan
-        return specs, decoded.reshape(len(joints), 25, 3)
+        return JointRows(kind, key, ints, flat, decoded.reshape(n, 25, 3))
 
     def decode(self, msg: Any) -> np.ndarray:
         """Joints (25, 3) [m] from a ``Joints`` message (NaN when untracked)."""
@@ -135,18 +133,43 @@ class JointsCodec:
         return np.array(msg.raw, dtype=np.float64).reshape(25, 3)
 
 
-def fill_joints(out: Any, spec: tuple[Any, ...], grid: float) -> None:
-    """Fill a ``Joints`` message from a :meth:`JointsCodec.encode_many` spec, as
-    :meth:`JointsCodec.encode` fills it."""
-    if spec[0] == "untracked":
+UNTRACKED, ON_GRID, RAW = 0, 1, 2
+"""The forms of a ``Joints`` message (:attr:`JointRows.kind`)."""
+
+
+class JointRows(NamedTuple):
+    """What :meth:`JointsCodec.encode_many` stores for a batch of joint arrays (n rows).
+
+    Attributes:
+        kind: Per row its form: :data:`UNTRACKED`, :data:`ON_GRID` or :data:`RAW`.
+        key: Per row whether it is a key message (grid rows only).
+        ints: The grid rows' integers (the multiples, or their deltas), (n, 75).
+        raw: The values themselves (what a raw row stores), (n, 75).
+        decoded: What the decoder reads back, (n, 25, 3): NaN where untracked, ``k *
+            grid`` on the grid (the decoder's product of the same integers), the values
+            themselves raw.
+    """
+
+    kind: np.ndarray
+    key: np.ndarray
+    ints: np.ndarray
+    raw: np.ndarray
+    decoded: np.ndarray
+
+
+def fill_joints(out: Any, rows: JointRows, i: int, grid: float) -> None:
+    """Fill a ``Joints`` message from row ``i`` of :meth:`JointsCodec.encode_many`'s rows,
+    as :meth:`JointsCodec.encode` fills it."""
+    kind = rows.kind[i]
+    if kind == UNTRACKED:
         out.untracked = True
-    elif spec[0] == "grid":
+    elif kind == ON_GRID:
         out.grid = grid
-        if spec[1]:
+        if rows.key[i]:
             out.key = True
-        out.delta.extend(spec[2])
+        out.delta.extend(rows.ints[i].tolist())
     else:
-        out.raw.extend(spec[1])
+        out.raw.extend(rows.raw[i].tolist())
 
 
 def same_joints(a: np.ndarray, b: np.ndarray) -> bool:
@@ -159,6 +182,10 @@ def same_joints(a: np.ndarray, b: np.ndarray) -> bool:
 __all__ = [
     "GRID_INT_LIMIT",
     "HAND_GRID_M",
+    "ON_GRID",
+    "RAW",
+    "UNTRACKED",
+    "JointRows",
     "JointsCodec",
     "fill_joints",
     "quantize_joints",

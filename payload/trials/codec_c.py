@@ -1,0 +1,307 @@
+"""The recording's step and hand-sample messages serialised in C, byte for byte.
+
+At every flush the recorder encodes its batch of steps (:meth:`StepCodec.encode_batch
+<payload.trials.codec.StepCodec.encode_batch>`): the grid and joint arithmetic in numpy
+for the batch, then per step a ``payload.trials.HandSample`` and a ``payload.trials.Step``
+message. Building those as protobuf objects field by field (and their lists of integers)
+costs about 30 us a step in Python. Here the batch's messages are one C call that writes
+their bytes from the batch's arrays, in protobuf's wire format as the protobuf runtime
+writes these messages:
+
+* fields in field-number order; a scalar (a varint, a bool, a double) only when it is not
+  zero (a double: when its bits are not all zero, so ``-0.0`` is written); a packed
+  repeated field only when it has elements; a set sub-message (the joints) always;
+* ``sint64`` as zigzag varints.
+
+:func:`compiled_steps` checks the kernel against the runtime's bytes on probe batches (the
+caller's: every kind of step and joints) when it is built, and returns None (the protobuf
+objects are built) without a C compiler, with ``PAYLOAD_NATIVE=0``, or on a single
+differing byte.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import itertools
+import logging
+from collections.abc import Callable, Iterable
+from typing import Any
+
+import numpy as np
+
+from payload import native
+
+log = logging.getLogger(__name__)
+
+N_JOINT_VALUES = 75
+"""Numbers in one hand's joints (25 x 3)."""
+
+STEP_BYTES = 8192
+"""A bound on the bytes of one step's two messages (each at most about 2,400: two raw hands
+of 75 doubles, 80 doubles and 64 ten-byte varints, with their tags)."""
+
+IN_HANDS = 3
+"""The joints code of a step whose joints are its hand sample's (besides
+:mod:`~payload.trials.jointcodec`'s untracked 0, grid 1 and raw 2)."""
+
+SOURCE = r"""
+#include <string.h>
+
+/* N_JOINTS (75) and STEP_BYTES are defined by the loader */
+enum { UNTRACKED = 0, ON_GRID = 1, RAW = 2 };
+
+static unsigned char *varint(unsigned char *p, uint64_t v)
+{
+    while (v >= 0x80) { *p++ = (unsigned char)(v | 0x80); v >>= 7; }
+    *p++ = (unsigned char)v;
+    return p;
+}
+
+static unsigned char *tag(unsigned char *p, uint64_t number, unsigned wire)
+{
+    return varint(p, (number << 3) | wire);
+}
+
+/* a varint scalar (an enum, an unsigned integer, a bool) when not zero */
+static unsigned char *scalar(unsigned char *p, uint64_t number, uint64_t v)
+{
+    if (!v) return p;
+    return varint(tag(p, number, 0), v);
+}
+
+static unsigned char *le64(unsigned char *p, double x)
+{
+    uint64_t bits;
+    memcpy(&bits, &x, 8);
+    for (int i = 0; i < 8; i++) *p++ = (unsigned char)(bits >> (8 * i));  /* little-endian */
+    return p;
+}
+
+/* a double of implicit presence: written when its bits are not all zero */
+static unsigned char *dbl(unsigned char *p, uint64_t number, double x)
+{
+    uint64_t bits;
+    memcpy(&bits, &x, 8);
+    if (!bits) return p;
+    return le64(tag(p, number, 1), x);
+}
+
+static unsigned char *packed_doubles(unsigned char *p, uint64_t number, const double *v, int64_t n)
+{
+    if (n <= 0) return p;
+    p = varint(tag(p, number, 2), (uint64_t)(8 * n));
+    for (int64_t i = 0; i < n; i++) p = le64(p, v[i]);
+    return p;
+}
+
+static unsigned char *packed_sint64(unsigned char *p, uint64_t number, const int64_t *v, int64_t n)
+{
+    unsigned char body[10 * 128], *b = body;
+    if (n <= 0) return p;
+    for (int64_t i = 0; i < n; i++)
+        b = varint(b, ((uint64_t)v[i] << 1) ^ (uint64_t)(v[i] >> 63));  /* zigzag */
+    p = varint(tag(p, number, 2), (uint64_t)(b - body));
+    memcpy(p, body, (size_t)(b - body));
+    return p + (b - body);
+}
+
+/* a payload.trials.Joints sub-message (always present) */
+static unsigned char *joints(unsigned char *p, uint64_t number, int64_t kind, int64_t key,
+                             const int64_t *ints, const double *raw, double grid)
+{
+    unsigned char body[16 + 10 * N_JOINTS + 8], *b = body;
+    if (kind == ON_GRID) {
+        b = dbl(b, 1, grid);
+        b = packed_sint64(b, 2, ints, N_JOINTS);
+        b = scalar(b, 5, key != 0);
+    } else if (kind == RAW) {
+        b = packed_doubles(b, 3, raw, N_JOINTS);
+    } else if (kind == UNTRACKED) {
+        b = scalar(b, 4, 1);
+    } else {  /* IN_HANDS (3): the hand sample's joints */
+        b = scalar(b, 6, 1);
+    }
+    p = varint(tag(p, number, 2), (uint64_t)(b - body));
+    memcpy(p, body, (size_t)(b - body));
+    return p + (b - body);
+}
+
+/* Per step i of n: its HandSample (when hand[4 i] >= 0) and its Step, into out (cap
+   bytes); ends[2 i] and ends[2 i + 1] get the end offsets of the two (a step without a
+   hand sample: its HandSample ends where it starts). Returns the bytes written, or -1
+   (no room).
+
+   seq[i], wall[i]: the step's sequence number and wall_time (0 when gridded);
+   flags[8 i ..]: phase, ctb_module, left_tracked, right_tracked, contact, pairs_in_cmd,
+     gridded, grid_key;
+   doubles[nd i ..]: the packed double fields' values, field by field (numbers[f] and
+     sizes[f]; a size 0 a scalar double; pair[f]: a pair field, stored unless pairs_in_cmd,
+     the others unless gridded);
+   grid[ng i ..]: the grid integers (gridded steps);
+   joints code[2 i + s], key, ints[75 (2 i + s) ..], raw[..] of the step's hands;
+   hand[4 i ..]: left and right tracked of the hand sample, or -1: none; stamp[i] its
+     stamp; hcode, hkey, hints, hraw its joints as the step's. */
+int64_t payload_encode_steps(
+    int64_t n, const int64_t *seq, const double *wall, const int64_t *flags,
+    int64_t nf, const int64_t *numbers, const int64_t *sizes, const int64_t *pair,
+    int64_t nd, const double *doubles, int64_t ng, const int64_t *grid,
+    const int64_t *code, const int64_t *key, const int64_t *ints, const double *raw,
+    const int64_t *hand, const double *stamp, const int64_t *hcode, const int64_t *hkey,
+    const int64_t *hints, const double *hraw, double joint_grid,
+    unsigned char *out, int64_t cap, int64_t *ends)
+{
+    unsigned char *p = out;
+    for (int64_t i = 0; i < n; i++) {
+        if ((p - out) + STEP_BYTES > cap) return -1;
+        if (hand[4 * i] >= 0) {  /* payload.trials.HandSample */
+            p = scalar(p, 1, (uint64_t)seq[i]);
+            p = dbl(p, 2, stamp[i]);
+            p = scalar(p, 3, hand[4 * i] != 0);
+            p = scalar(p, 4, hand[4 * i + 1] != 0);
+            for (int s = 0; s < 2; s++) {
+                int64_t j = 2 * i + s;
+                p = joints(p, 5 + s, hcode[j], hkey[j], hints + N_JOINTS * j,
+                           hraw + N_JOINTS * j, joint_grid);
+            }
+        }
+        ends[2 * i] = p - out;
+        const int64_t *fl = flags + 8 * i;
+        int64_t pairs = fl[5], gridded = fl[6];
+        const double *v = doubles + nd * i;
+        p = scalar(p, 1, (uint64_t)seq[i]);
+        p = dbl(p, 2, wall[i]);
+        for (int pass = 0; pass < 2; pass++) {
+            /* the double fields numbered below 4 (t), then the enums and bools, then the
+               rest of the doubles: field-number order */
+            if (pass == 1) {
+                p = scalar(p, 4, (uint64_t)fl[0]);
+                p = scalar(p, 5, (uint64_t)fl[1]);
+                p = scalar(p, 6, fl[2] != 0);
+                p = scalar(p, 7, fl[3] != 0);
+                p = scalar(p, 8, fl[4] != 0);
+                p = scalar(p, 9, pairs != 0);
+            }
+            const double *x = v;
+            for (int64_t f = 0; f < nf; f++) {
+                int64_t size = sizes[f] ? sizes[f] : 1;
+                int stored = pair[f] ? !pairs : !gridded;
+                if ((numbers[f] < 4) == (pass == 0) && stored)
+                    p = sizes[f] ? packed_doubles(p, (uint64_t)numbers[f], x, sizes[f])
+                                 : dbl(p, (uint64_t)numbers[f], x[0]);
+                x += size;
+            }
+        }
+        for (int s = 0; s < 2; s++) {
+            int64_t j = 2 * i + s;
+            p = joints(p, 30 + s, code[j], key[j], ints + N_JOINTS * j, raw + N_JOINTS * j,
+                       joint_grid);
+        }
+        if (gridded) {
+            p = packed_sint64(p, 40, grid + ng * i, ng);
+            p = scalar(p, 41, fl[7] != 0);
+        }
+        ends[2 * i + 1] = p - out;
+    }
+    return p - out;
+}
+"""
+
+
+class CompiledSteps:
+    """The batch serialiser of :data:`SOURCE` for one step layout.
+
+    Args:
+        lib: The kernel's library.
+        fields: ``(number, size, pair)`` of each double field of a step, in order (size 0:
+            a scalar); the doubles a step hands over are these fields' values in turn.
+        grid_size: How many grid integers a gridded step stores.
+    """
+
+    def __init__(self, lib: ctypes.CDLL, fields: list[tuple[int, int, bool]], grid_size: int):
+        fn = lib.payload_encode_steps
+        fn.restype = ctypes.c_int64
+        ptr, i64, f64 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_double
+        fn.argtypes = [
+            i64, ptr, ptr, ptr, i64, ptr, ptr, ptr, i64, ptr, i64, ptr,
+            ptr, ptr, ptr, ptr, ptr, ptr, ptr, ptr, ptr, ptr, f64, ptr, i64, ptr,
+        ]  # fmt: skip
+        self._fn = fn
+        table = np.array(fields, dtype=np.int64).reshape(-1, 3)
+        self._numbers = np.ascontiguousarray(table[:, 0])
+        self._sizes = np.ascontiguousarray(table[:, 1])
+        self._pair = np.ascontiguousarray(table[:, 2])
+        self.n_doubles = int(np.maximum(self._sizes, 1).sum())
+        self.grid_size = int(grid_size)
+
+    def __call__(self, arrays: dict[str, np.ndarray], joint_grid: float) -> list[bytes]:
+        """The batch's messages: per step its hand sample's bytes (``b""``: none) and its
+        step's bytes, in turn (2 n items).
+
+        Args:
+            arrays: The batch as arrays (n steps): ``seq`` (n,), ``wall`` (n,), ``flags``
+                (n, 8), ``doubles`` (n, :attr:`n_doubles`), ``grid`` (n, grid size),
+                ``code``/``key`` (n, 2), ``ints``/``raw`` (n, 2, 75), ``hand`` (n, 4),
+                ``stamp`` (n,), ``hcode``/``hkey`` (n, 2), ``hints``/``hraw`` (n, 2, 75).
+            joint_grid: The joints' grid [m].
+
+        Raises:
+            ValueError: An array of another shape or type (the caller's error).
+        """
+        n = len(arrays["seq"])
+        shapes = {
+            "seq": (n,), "wall": (n,), "flags": (n, 8), "doubles": (n, self.n_doubles),
+            "grid": (n, self.grid_size), "code": (n, 2), "key": (n, 2),
+            "ints": (n, 2, N_JOINT_VALUES), "raw": (n, 2, N_JOINT_VALUES), "hand": (n, 4),
+            "stamp": (n,), "hcode": (n, 2), "hkey": (n, 2),
+            "hints": (n, 2, N_JOINT_VALUES), "hraw": (n, 2, N_JOINT_VALUES),
+        }  # fmt: skip
+        floats = ("wall", "doubles", "raw", "stamp", "hraw")
+        args = {}
+        for name, shape in shapes.items():
+            a = np.ascontiguousarray(arrays[name], np.float64 if name in floats else np.int64)
+            if a.shape != shape:
+                raise ValueError(f"encode_steps: {name} has shape {a.shape}, not {shape}")
+            args[name] = a
+        out = np.empty(max(1, n) * STEP_BYTES, dtype=np.uint8)
+        ends = np.zeros(2 * n, dtype=np.int64)
+        size = self._fn(
+            n, args["seq"].ctypes.data, args["wall"].ctypes.data, args["flags"].ctypes.data,
+            len(self._numbers), self._numbers.ctypes.data, self._sizes.ctypes.data,
+            self._pair.ctypes.data, self.n_doubles, args["doubles"].ctypes.data,
+            self.grid_size, args["grid"].ctypes.data, args["code"].ctypes.data,
+            args["key"].ctypes.data, args["ints"].ctypes.data, args["raw"].ctypes.data,
+            args["hand"].ctypes.data, args["stamp"].ctypes.data, args["hcode"].ctypes.data,
+            args["hkey"].ctypes.data, args["hints"].ctypes.data, args["hraw"].ctypes.data,
+            float(joint_grid), out.ctypes.data, len(out), ends.ctypes.data,
+        )  # fmt: skip
+        if size < 0:  # pragma: no cover - STEP_BYTES bounds a step's messages
+            raise ValueError("encode_steps: a step's messages overflow STEP_BYTES")
+        data = out[:size].tobytes()
+        cuts = [0, *ends.tolist()]
+        return [data[a:b] for a, b in itertools.pairwise(cuts)]
+
+
+@native.reported("recording steps")
+def compiled_steps(
+    fields: list[tuple[int, int, bool]],
+    grid_size: int,
+    probes: Callable[[], Iterable[tuple[dict[str, np.ndarray], float, list[bytes]]]],
+) -> CompiledSteps | None:
+    """The compiled serialiser, or None to build the messages as protobuf objects: no
+    compiler, ``PAYLOAD_NATIVE=0``, a failed build, or a self-check that differs in a byte
+    from the protobuf runtime's on ``probes()``: batches (as :meth:`CompiledSteps.__call__`
+    takes them, with the joints' grid) with the bytes the runtime gives them."""
+    prelude = f"#define N_JOINTS {N_JOINT_VALUES}\n#define STEP_BYTES {STEP_BYTES}\n"
+    lib = native.load_kernel("steps", SOURCE, "the step messages kernel", log, prelude=prelude)
+    if lib is None:
+        return None
+    kernel = CompiledSteps(lib, fields, grid_size)
+    for arrays, joint_grid, want in probes():
+        got: Any = kernel(arrays, joint_grid)
+        if got != want:
+            log.warning("recording steps: protobuf (the compiled bytes differ)")
+            return None
+    return kernel
+
+
+__all__ = ["IN_HANDS", "N_JOINT_VALUES", "SOURCE", "STEP_BYTES", "CompiledSteps", "compiled_steps"]
