@@ -566,10 +566,10 @@ def test_schema2_recordings_read_and_newer_versions_are_refused(
         mp.setattr(
             codec.StepCodec,
             "_grid_batch",
-            lambda self, batch, walls: codec.GridRows(
-                none[: len(batch)],
-                none[: len(batch)],
-                np.zeros((len(batch), codec._GRID.size), np.int64),
+            lambda self, fields, walls: codec.GridRows(
+                none[: len(walls)],
+                none[: len(walls)],
+                np.zeros((len(walls), codec._GRID.size), np.int64),
                 None,
             ),
         )

@@ -221,16 +221,17 @@ class StepCodec:
             c.key()
         self._prev = None
 
-    def _grid_batch(self, steps: list[Any], walls: list[float]) -> GridRows:
-        """The grid numbers of a batch of steps in turn (:class:`GridRows`): a step with a
-        non-finite number is stored as doubles, and the next one is a key."""
-        n = len(steps)
+    def _grid_batch(self, fields: dict[str, np.ndarray], walls: list[float]) -> GridRows:
+        """The grid numbers of a batch of steps in turn (:class:`GridRows`; ``fields``:
+        :func:`_gathered`): a step with a non-finite number is stored as doubles, and the
+        next one is a key."""
+        n = len(walls)
         values = np.empty((n, len(_GRID)))
         for name, start, stop in _GRID_SLICES:
             if name == "wall_time":
                 values[:, start] = walls
             else:
-                values[:, start:stop] = np.array([getattr(s, name) for s in steps]).reshape(n, -1)
+                values[:, start:stop] = fields[name]
         k = np.rint(values * _PER_UNIT)  # what round() calls on floats
         ok = np.isfinite(k).all(axis=1) & ~(np.abs(k) >= GRID_INT_LIMIT).any(axis=1)
         ki = np.where(ok[:, None], k, 0.0).astype(np.int64)
@@ -252,7 +253,9 @@ class StepCodec:
         return GridRows(ok, key, ints, decoded)
 
     def encode_batch(
-        self, items: list[tuple[Any, int, float, Any]], decoded: list[Decoded] | None = None
+        self,
+        items: list[tuple[Any, int, float, Any]],
+        columns: list[dict[str, np.ndarray]] | None = None,
     ) -> list[tuple[Any, bytes]]:
         """Several steps (and their hand samples) at once, in order: the bytes that
         :meth:`encode_hands` and :meth:`encode_step` give one at a time, with the grid and
@@ -262,25 +265,17 @@ class StepCodec:
             items: Per step ``(step, seq, wall_time, frame)``: ``frame`` the hand frame
                 recorded with it (``None``: none); the step's joints refer to the frame's
                 where they are the same (:func:`same_joints`).
-            decoded: If given, gets per step what :meth:`decode_step` will read back from
-                its bytes, as a :class:`Decoded` (without decoding them).
+            columns: If given, gets what the reader will read back from the batch's bytes
+                (without decoding them): the columns of a
+                :class:`~payload.trials.reading.Recording` (``seq``, ``wall_time`` and every
+                step field, one row per step), as :meth:`decode_step`'s rows give them.
 
         Returns:
             Per step ``(hand sample bytes or None, step bytes)``.
         """
         batch = self._rows(items)
-        if decoded is not None:
-            for i, (step, _, wall_time, _) in enumerate(items):
-                grids = batch.grids
-                decoded.append(
-                    Decoded(
-                        step,
-                        grids.values[i] if grids.ok[i] else None,
-                        wall_time,
-                        *(batch.joints(i, side).decoded[r] for side in (0, 1)
-                          for r in [batch.row(i, side)]),
-                    )
-                )  # fmt: skip
+        if columns is not None:
+            columns.append(self._columns(items, batch))
         kernel = _steps_kernel() if items else None
         if kernel is not None:
             data = kernel(self._arrays(items, batch), self.grid)
@@ -313,8 +308,46 @@ class StepCodec:
             coded = self.joints[name].encode_many([getattr(items[i][0], name) for i in rows])
             own.append(({i: r for r, i in enumerate(rows)}, coded))
         at = {i: r for r, (i, _) in enumerate(frames)}
-        grids = self._grid_batch([it[0] for it in items], [it[2] for it in items])
-        return _Batch(at, hands, (own[0], own[1]), grids)
+        fields = _gathered([it[0] for it in items])
+        grids = self._grid_batch(fields, [it[2] for it in items])
+        return _Batch(at, hands, (own[0], own[1]), grids, fields)
+
+    def _columns(
+        self, items: list[tuple[Any, int, float, Any]], batch: _Batch
+    ) -> dict[str, np.ndarray]:
+        """What the reader reads back from a batch, column by column: each step's own
+        values, its numbers on the grid as the grid's integers give them back, its pair
+        fields from its ``q_cmd`` when stored there, its joints as their rows decode."""
+        n = len(items)
+        steps = [it[0] for it in items]
+        cols: dict[str, np.ndarray] = {
+            "seq": np.array([it[1] for it in items], dtype=np.int64),
+            "wall_time": np.array([it[2] for it in items], dtype=np.float64),
+        }
+        for name, _, shape in STEP_DOUBLES:
+            cols[name] = batch.fields[name].reshape((n, *shape)).copy()
+        grids = batch.grids
+        ok = grids.ok
+        for name, start, stop in _GRID_SLICES:
+            cols[name][ok] = grids.values[ok, start:stop].reshape(cols[name][ok].shape)
+        pairs = np.array([_pairs_in_cmd(st) for st in steps], dtype=bool)
+        q = cols["q_cmd"][pairs]
+        cols["q_left"][pairs] = q[:, PAIR_L_INDEX]
+        cols["q_right"][pairs] = q[:, PAIR_R_INDEX]
+        cols["rail_cmd"][pairs] = q[:, -1]
+        for name in ("phase", "ctb_module"):
+            cols[name] = np.array([getattr(st, name) for st in steps], dtype=object).astype(str)
+        for name in ("left_tracked", "right_tracked", "contact"):
+            cols[name] = np.array([bool(getattr(st, name)) for st in steps], dtype=bool)
+        for side, name in enumerate(("left_joints", "right_joints")):
+            joints = np.empty((n, 25, 3))
+            mine, coded = batch.own[side]
+            rows = list(mine)
+            joints[rows] = coded.decoded[[mine[i] for i in rows]]
+            rest = [i for i in range(n) if i not in mine]
+            joints[rest] = batch.hands[side].decoded[[batch.at[i] for i in rest]]
+            cols[name] = joints
+        return cols
 
     def _serialize(self, items: list[tuple[Any, int, float, Any]], batch: _Batch) -> list:
         """The batch's messages built as protobuf objects and serialised by the runtime."""
@@ -353,11 +386,7 @@ class StepCodec:
             ],
             dtype=np.int64,
         ).reshape(n, 8)  # fmt: skip
-        doubles = np.concatenate(
-            [np.array([getattr(st, name) for st in steps], dtype=np.float64).reshape(n, -1)
-             for name, _, _ in STEP_DOUBLES],
-            axis=1,
-        )  # fmt: skip
+        doubles = np.concatenate([batch.fields[name] for name, _, _ in STEP_DOUBLES], axis=1)
         walls = np.array([it[2] for it in items], dtype=np.float64)
         out = {
             "seq": np.array([it[1] for it in items], dtype=np.int64),
@@ -445,7 +474,8 @@ class StepCodec:
             in_hands: For each hand, whether the ``/trial/hands`` message of this sequence
                 number holds the same joints (they are then not repeated).
         """
-        m = self._step_fields(step, seq, wall_time, self._grid_batch([step], [wall_time]), 0)
+        grids = self._grid_batch(_gathered([step]), [wall_time])
+        m = self._step_fields(step, seq, wall_time, grids, 0)
         for name, ref in zip(("left_joints", "right_joints"), in_hands):
             sub = getattr(m, name)
             if ref:
@@ -618,16 +648,16 @@ class _Batch(NamedTuple):
     own: tuple[tuple[dict[int, int], JointRows], tuple[dict[int, int], JointRows]]
     # per side, the steps whose joints are not their frame's: their rows, and the rows
     grids: GridRows
+    fields: dict[str, np.ndarray]  # :func:`_gathered`
 
-    def row(self, i: int, side: int) -> int:
-        """Step ``i``'s row in :meth:`joints` for ``side`` (0 left, 1 right)."""
-        mine = self.own[side][0]
-        return mine[i] if i in mine else self.at[i]
 
-    def joints(self, i: int, side: int) -> JointRows:
-        """The rows step ``i``'s joints of ``side`` are in (its own, or its frame's)."""
-        mine, coded = self.own[side]
-        return coded if i in mine else self.hands[side]
+def _gathered(steps: list[Any]) -> dict[str, np.ndarray]:
+    """Each double field of the steps (:data:`STEP_DOUBLES`), as an (n, size) array."""
+    n = len(steps)
+    return {
+        name: np.array([getattr(st, name) for st in steps], dtype=np.float64).reshape(n, -1)
+        for name, _, _ in STEP_DOUBLES
+    }
 
 
 class GridRows(NamedTuple):
@@ -648,46 +678,6 @@ class GridRows(NamedTuple):
     key: np.ndarray
     ints: np.ndarray
     values: np.ndarray
-
-
-class Decoded(NamedTuple):
-    """What the reader will decode from a step's message, known when it is encoded.
-
-    Attributes:
-        step: The :class:`~payload.trials.recorder.StepRecord` encoded.
-        grid: The numbers stored on their grids (:data:`STEP_GRIDS` order) as they read
-            back, or ``None`` when the step was stored as doubles (read back exactly).
-        wall_time: Its wall-clock time as stored (read back from ``grid`` when gridded).
-        left_joints: The left-hand joints (25, 3) as they read back.
-        right_joints: The right-hand joints.
-    """
-
-    step: Any
-    grid: np.ndarray | None
-    wall_time: float
-    left_joints: np.ndarray
-    right_joints: np.ndarray
-
-    def row(self) -> dict[str, Any]:
-        """The dict :meth:`StepCodec.decode_step` returns for this step (but ``seq``)."""
-        step = self.step
-        row: dict[str, Any] = {
-            "wall_time": float(self.wall_time),
-            "phase": step.phase,
-            "ctb_module": step.ctb_module,
-            "left_tracked": bool(step.left_tracked),
-            "right_tracked": bool(step.right_tracked),
-            "contact": bool(step.contact),
-        }
-        for name, _, _ in STEP_DOUBLES:
-            row[name] = getattr(step, name)
-        if self.grid is not None:
-            _grid_fields(row, self.grid)
-        if _pairs_in_cmd(step):
-            _pair_fields(row)
-        row["left_joints"] = self.left_joints
-        row["right_joints"] = self.right_joints
-        return row
 
 
 def _grid_fields(row: dict[str, Any], values: np.ndarray) -> None:
@@ -724,7 +714,6 @@ __all__ = [
     "PHASE_NAMES",
     "STEP_GRIDS",
     "STEP_MESSAGE",
-    "Decoded",
     "JointsCodec",
     "StepCodec",
     "quantize_joints",

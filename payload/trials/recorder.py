@@ -195,11 +195,10 @@ class TrialRecorder:
             return
         writer, pending = self._writer, self._pending
         self._pending = []
-        decoded: list[codec.Decoded] | None = [] if self._kept is not None else None
-        encoded = self._codec.encode_batch([p[:4] for p in pending], decoded)
-        if self._kept is not None and decoded is not None:
-            rows = [{**d.row(), "seq": p[1]} for d, p in zip(decoded, pending)]
-            self._kept.append(Recording.from_dicts(rows))
+        columns: list[dict[str, np.ndarray]] | None = [] if self._kept is not None else None
+        encoded = self._codec.encode_batch([p[:4] for p in pending], columns)
+        if self._kept is not None and columns:
+            self._kept.append(Recording(path=None, meta={}, complete=True, **columns[0]))
         for (step, seq, _, _, log_ns, stamp), (hands, data) in zip(pending, encoded):
             if hands is not None:
                 writer.add_message(
