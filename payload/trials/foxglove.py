@@ -136,6 +136,7 @@ class FoxgloveScene:
         self.channels: dict[str, int] = {}
         self._k = 0
         self._next_scene_ns = 0
+        self._scene_drawn: SceneUpdate | None = None
         self._last_phase: str | None = None
         self._last_contact: bool | None = None
         self.modules = list(modules or [])
@@ -291,7 +292,19 @@ class FoxgloveScene:
         )
 
     def scene(self, ns: int) -> SceneUpdate:
-        """The module walls, Astrobee, the payload's collision shapes and the CTB."""
+        """The module walls, Astrobee, the payload's collision shapes and the CTB, stamped
+        ``ns`` (:meth:`_scene` drawn once: it depends on the model alone)."""
+        if self._scene_drawn is None:
+            self._scene_drawn = self._scene(0)
+        out = SceneUpdate()
+        out.CopyFrom(self._scene_drawn)
+        stamp = timestamp(ns)
+        for entity in out.entities:
+            entity.timestamp.CopyFrom(stamp)
+        return out
+
+    def _scene(self, ns: int) -> SceneUpdate:
+        """:meth:`scene` drawn from the model (at its reference configuration)."""
         m = self.model
         d = mujoco.MjData(m)
         mujoco.mj_kinematics(m, d)
