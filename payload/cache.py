@@ -1,13 +1,18 @@
 """The workbench's disk cache: derived data kept outside the project, keyed by its source.
 
-Compiled retargeting solvers, span ranges and the generated models' fingerprints live
-here, each named by a hash of what it was derived from, so a stale entry is never read.
+Compiled retargeting solvers and kernels, span ranges, the generated models'
+fingerprints, the kernels' check stamps and the propulsion's linear programmes live here,
+each named by a hash of what it was derived from, so a stale entry is never read.
 """
 
 from __future__ import annotations
 
+import functools
+import hashlib
 import os
 from pathlib import Path
+
+_PACKAGE = Path(__file__).resolve().parent
 
 
 def cache_dir() -> Path:
@@ -19,4 +24,14 @@ def cache_dir() -> Path:
     return Path(base) / "astrobee-payload" / "retarget"
 
 
-__all__ = ["cache_dir"]
+@functools.cache
+def sources_digest(package: Path = _PACKAGE) -> str:
+    """SHA-256 (hex) of the workbench's Python sources: every module's path in the package
+    and its bytes. What names a cached answer that the workbench's own code shapes."""
+    h = hashlib.sha256()
+    for path in sorted(package.rglob("*.py")):
+        h.update(str(path.relative_to(package)).encode() + b"\0" + path.read_bytes())
+    return h.hexdigest()
+
+
+__all__ = ["cache_dir", "sources_digest"]

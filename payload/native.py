@@ -27,7 +27,7 @@ from collections.abc import Callable, Hashable, Sequence
 from pathlib import Path
 from typing import Any
 
-from payload.cache import cache_dir
+from payload.cache import cache_dir, sources_digest
 
 CFLAGS: tuple[str, ...] = ("-O3", "-ffp-contract=off", "-fPIC", "-shared")
 """No -ffast-math and no contraction: IEEE arithmetic, so -O3 gives the bits -O1 gave."""
@@ -336,21 +336,16 @@ def _checked_with() -> str:
     """What a kernel's self-check answer depends on besides its C: the workbench's own
     Python (the numpy code it is checked against: every module's text), Python's, numpy's
     and (when loaded) MuJoCo's versions, and the processor (OpenBLAS picks its kernels by it)."""
-    import hashlib
     import platform
     import sys
 
     import numpy
 
-    root = Path(__file__).parent
-    code = hashlib.sha256()
-    for source in sorted(root.rglob("*.py")):
-        code.update(str(source.relative_to(root)).encode() + b"\0" + source.read_bytes())
     mujoco = sys.modules.get("mujoco")  # the simulator's kernels call its functions
 
     return "\n".join(
         [
-            code.hexdigest(),
+            sources_digest(),
             sys.version,
             numpy.__version__,
             getattr(mujoco, "__version__", "no MuJoCo"),

@@ -43,24 +43,25 @@ def test_a_failed_or_short_check_leaves_no_stamp(library):
     assert not native.check_stamp(library, "k").exists()
 
 
-def test_the_stamp_follows_the_workbenchs_code(monkeypatch, tmp_path):
-    """Any change to a module's text (the numpy code the kernels are checked against)
-    changes what a stamp is named by."""
+def test_the_stamp_follows_the_workbenchs_code(tmp_path):
+    """Any change to a module's text (the numpy code the kernels are checked against), or
+    a module more, changes the sources' digest the stamps are named by."""
+    from payload.cache import sources_digest
+
     package = tmp_path / "pkg"
     (package / "sub").mkdir(parents=True)
     (package / "native.py").write_text("x = 1\n")
     (package / "sub" / "mod.py").write_text("def f():\n    return 1.0\n")
-    monkeypatch.setattr(native, "__file__", str(package / "native.py"))
-    native._checked_with.cache_clear()
-    try:
-        before = native._checked_with()
-        (package / "sub" / "mod.py").write_text("def f():\n    return 1.0 + 0.0\n")
-        native._checked_with.cache_clear()
-        after = native._checked_with()
-    finally:
-        native._checked_with.cache_clear()
-    assert before != after
-    assert before.splitlines()[1:] == after.splitlines()[1:]  # versions, processor: the same
+    digests = [sources_digest(package)]
+    (package / "sub" / "mod.py").write_text("def f():\n    return 1.0 + 0.0\n")
+    sources_digest.cache_clear()
+    digests.append(sources_digest(package))
+    (package / "extra.py").write_text("")
+    sources_digest.cache_clear()
+    digests.append(sources_digest(package))
+    sources_digest.cache_clear()
+    assert len(set(digests)) == 3
+    assert native._checked_with().splitlines()[0] == sources_digest()
 
 
 def test_pruning_a_library_deletes_its_stamps(library):

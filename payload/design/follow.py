@@ -16,11 +16,10 @@ import hashlib
 import json as json_module
 from pathlib import Path
 
-from payload.cache import cache_dir
+from payload.cache import cache_dir, sources_digest
 from payload.design.paths import MESH_DIR
 
 _FINGERPRINT_VERSION = "models-1"
-_PACKAGE = Path(__file__).resolve().parents[1]
 
 
 def _code_hash() -> str:
@@ -29,8 +28,7 @@ def _code_hash() -> str:
     from importlib.metadata import PackageNotFoundError, version
 
     h = hashlib.sha256(_FINGERPRINT_VERSION.encode())
-    for path in sorted(_PACKAGE.rglob("*.py")):
-        h.update(str(path.relative_to(_PACKAGE)).encode() + b"\0" + path.read_bytes())
+    h.update(sources_digest().encode())
     for lib in ("trimesh", "manifold3d", "numpy"):
         try:
             h.update(f"{lib}={version(lib)}".encode())
