@@ -6,11 +6,17 @@ kernels (:mod:`payload.sim.allocation_c`, :mod:`payload.sim.vehicle_c`,
 :mod:`payload.sim.contacts_c`, :mod:`payload.teleop.hand_c`, :mod:`payload.teleop.filter_c`,
 :mod:`payload.teleop.limiter_c`, :mod:`payload.teleop.safety_c`, :mod:`payload.teleop.base_c`,
 :mod:`payload.retarget.targets_c`, :mod:`payload.trials.foxglove_c`,
-:mod:`payload.trials.messages_c`) build their shared libraries here. A library is named
-by the hash of its code, the compiler, the flags, the machine and whatever else its caller
-says it depends on (``key_parts``; a kernel compiled against MuJoCo's headers, MuJoCo's
-version), so a stale one is never loaded; a failed compilation leaves its log beside the
-cache.
+:mod:`payload.trials.messages_c`, :mod:`payload.trials.codec_c`) build their shared
+libraries here. A library is named by the hash of its code, the compiler, the flags, the
+machine and whatever else its caller says it depends on (``key_parts``; a kernel compiled
+against MuJoCo's headers, MuJoCo's version), so a stale one is never loaded; a failed
+compilation leaves its log beside the cache.
+
+Each kernel checks itself against the numpy code when built: in full the first time
+(:func:`probes`), and on a short prefix of its probes once a full check passed, in this
+process or in an earlier one that left a stamp beside the library (:func:`check_stamp`:
+named by the library file, the check's key, the workbench's sources, the versions and the
+processor).
 
 The flags keep IEEE arithmetic (no ``-ffast-math``, no contraction into fused
 multiply-adds), so compiled code that does the same operations in the same order as
@@ -28,6 +34,7 @@ from pathlib import Path
 from typing import Any
 
 from payload.cache import cache_dir, sources_digest
+from payload.safeio import replace_file
 
 CFLAGS: tuple[str, ...] = ("-O3", "-ffp-contract=off", "-fPIC", "-shared")
 """No -ffast-math and no contraction: IEEE arithmetic, so -O3 gives the bits -O1 gave."""
@@ -60,7 +67,9 @@ def flags(compiler: str) -> tuple[str, ...]:
         ).hexdigest()[:20]  # fmt: skip
         known = cache_dir() / f"flags_{key}.txt"
         try:
-            return tuple(known.read_text().split("\n"))
+            kept = tuple(known.read_text().split("\n"))
+            if kept[: len(CFLAGS)] == CFLAGS and set(kept[len(CFLAGS) :]) <= set(OPTIONAL_CFLAGS):
+                return kept
         except OSError:
             pass
     import subprocess
@@ -81,9 +90,7 @@ def flags(compiler: str) -> tuple[str, ...]:
     if known is not None:
         try:
             known.parent.mkdir(parents=True, exist_ok=True)
-            with tempfile.NamedTemporaryFile("w", dir=known.parent, delete=False) as tmp_file:
-                tmp_file.write("\n".join(out))
-            os.replace(tmp_file.name, known)
+            replace_file(known, "\n".join(out))
         except OSError:  # a read-only cache: asked again in the next process
             pass
     return tuple(out)
@@ -312,6 +319,10 @@ def passed(lib: ctypes.CDLL, key: Hashable) -> None:
     stamp = check_stamp(lib, key)
     try:
         stamp.touch()
+        library, key_part = stamp.name.split(".")[:2]
+        for old in stamp.parent.glob(f"{library}.{key_part}.*{CHECK_SUFFIX}"):
+            if old != stamp:  # the same check in an earlier environment
+                old.unlink(missing_ok=True)
     except OSError as exc:  # a read-only cache: later processes check in full again
         logging.getLogger(__name__).info("no check stamp %s (%s)", stamp, exc)
 
@@ -319,38 +330,59 @@ def passed(lib: ctypes.CDLL, key: Hashable) -> None:
 def check_stamp(lib: ctypes.CDLL, key: Hashable) -> Path:
     """The file that says ``lib``'s kernel passed its full self-check for ``key`` (it
     exists then): beside the library, named by the library, ``key`` and what the check's
-    answer depends on besides the C (:func:`_checked_with`), so a change to any of them
-    asks for a full check again. :func:`prune` deletes it with its library."""
+    answer depends on besides the C source (:func:`_checked_with`, the library file's size
+    and time), so a change to any of them asks for a full check again. :func:`passed`
+    deletes the stamps of the same library and key it replaces, :func:`prune` all of a
+    library's with it."""
     import hashlib
 
     path = Path(lib._name)
-    digest = hashlib.sha256(f"{key!r}\n{_checked_with()}".encode()).hexdigest()[:20]
-    return path.with_name(f"{path.stem}.{digest}{CHECK_SUFFIX}")
+    try:
+        seen = path.stat()
+        built = f"{seen.st_size}:{seen.st_mtime_ns}"
+    except OSError:
+        built = "?"
+    key_part = hashlib.sha256(repr(key).encode()).hexdigest()[:12]
+    env_part = hashlib.sha256(f"{_checked_with()}\n{built}".encode()).hexdigest()[:16]
+    return path.with_name(f"{path.stem}.{key_part}.{env_part}{CHECK_SUFFIX}")
 
 
 CHECK_SUFFIX = ".checked"
+
+_SOURCES = sources_digest()
+"""The workbench's sources as this process imported them (the numpy code its kernels are
+checked against): taken at import, so a source edited while the process runs is not
+stamped as checked."""
+
+CHECK_ENVIRONMENT = ("NPY_DISABLE_CPU_FEATURES", "NPY_ENABLE_CPU_FEATURES", "OPENBLAS_CORETYPE")
+"""Environment variables that choose numpy's or OpenBLAS's machine code (part of a check
+stamp's name)."""
 
 
 @functools.cache
 def _checked_with() -> str:
     """What a kernel's self-check answer depends on besides its C: the workbench's own
     Python (the numpy code it is checked against: every module's text), Python's, numpy's
-    and (when loaded) MuJoCo's versions, and the processor (OpenBLAS picks its kernels by it)."""
+    and MuJoCo's versions, and the processor and the variables that pick numpy's and
+    OpenBLAS's machine code for it."""
     import platform
     import sys
+    from importlib import metadata
 
-    import numpy
-
-    mujoco = sys.modules.get("mujoco")  # the simulator's kernels call its functions
-
+    versions = []
+    for package in ("numpy", "mujoco"):
+        try:
+            versions.append(f"{package}={metadata.version(package)}")
+        except metadata.PackageNotFoundError:  # pragma: no cover - the workbench's own
+            versions.append(f"{package}=?")
     return "\n".join(
         [
-            sources_digest(),
+            _SOURCES,
             sys.version,
-            numpy.__version__,
-            getattr(mujoco, "__version__", "no MuJoCo"),
+            *versions,
             platform.machine(),
             _processor(),
+            *(f"{name}={os.environ.get(name, '')}" for name in CHECK_ENVIRONMENT),
         ]
     )
 
@@ -470,6 +502,7 @@ __all__ = [
     "CBLAS_NO_TRANS",
     "CBLAS_ROW_MAJOR",
     "CFLAGS",
+    "CHECK_ENVIRONMENT",
     "CHECK_SUFFIX",
     "NATIVE_ENV",
     "NUMPY_DDOT",

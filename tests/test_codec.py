@@ -729,3 +729,17 @@ def test_step_messages_with_other_bytes_are_refused(refused_kernel, monkeypatch)
         assert codec._steps_kernel() is None
     finally:
         codec._steps_kernel.cache_clear()
+
+
+def test_a_batch_with_a_negative_sequence_number_is_refused_as_the_runtime_refuses() -> None:
+    """The compiled serialiser leaves a negative sequence number to the runtime, which
+    refuses it (a uint64 field); an empty batch encodes to nothing."""
+    from payload.trials import codec
+
+    rng = np.random.default_rng(25)
+    items = [codec._probe_item(rng, k) for k in range(3)]
+    items[1] = (items[1][0], -1, items[1][2], items[1][3])
+    with pytest.raises(ValueError):
+        StepCodec().encode_batch(items)
+    columns: list = []
+    assert StepCodec().encode_batch([], columns) == [] and len(columns[0]["t"]) == 0

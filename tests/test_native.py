@@ -4,6 +4,7 @@ library for later processes, and forgotten when anything it depends on changes."
 from __future__ import annotations
 
 import ctypes
+import os
 from pathlib import Path
 
 import pytest
@@ -37,10 +38,22 @@ def test_a_passed_full_check_lets_later_processes_run_the_short_one(library, mon
     assert native.probes(library, (3, 4), 100, 10) == 100
 
 
-def test_a_failed_or_short_check_leaves_no_stamp(library):
-    """Only :func:`native.passed` stamps, and a kernel calls it after a full check."""
+def test_a_rebuilt_library_or_another_environment_asks_for_a_full_check(library, monkeypatch):
+    """A stamp names the library file as built (size and time): the same name rebuilt (a
+    new compiler, say) is checked in full; a stamp of another environment is replaced by
+    the new one, not kept beside it; another key's stamp stays."""
+    native.passed(library, "k")
+    native.passed(library, "other key")
+    first = native.check_stamp(library, "k")
+    path = Path(library._name)
+    stat = path.stat()
+    os.utime(path, ns=(stat.st_atime_ns, stat.st_mtime_ns + 10**9))  # rebuilt
+    monkeypatch.setattr(native, "_CHECKED", set())
     assert native.probes(library, "k", 50, 5) == 50
-    assert not native.check_stamp(library, "k").exists()
+    native.passed(library, "k")
+    second = native.check_stamp(library, "k")
+    assert second != first and second.is_file() and not first.exists()
+    assert len(list(path.parent.glob(f"{path.stem}.*{native.CHECK_SUFFIX}"))) == 2
 
 
 def test_the_stamp_follows_the_workbenchs_code(tmp_path):

@@ -322,3 +322,21 @@ def test_one_propulsion_per_flight_mode_gives_a_fresh_ones_bits():
         assert mine.scale == theirs[i].scale
         saturated += mine.scale < 1.0
     assert 0 < saturated < len(wrenches)  # both the facet and the basis solutions ran
+
+
+def test_the_kept_extents_are_bounded(monkeypatch, tmp_path):
+    """Past its bound the cache file of a layout starts afresh: the answers stay the
+    programme's."""
+    import json
+
+    from payload.sim import propulsion
+
+    monkeypatch.setenv("PAYLOAD_CACHE_DIR", str(tmp_path))
+    monkeypatch.setattr(propulsion._Extents, "_OPEN", {})
+    monkeypatch.setattr(propulsion, "MAX_KEPT_EXTENTS", 3)
+    p = Propulsion(NOMINAL.force)
+    e = np.zeros(6)
+    e[3] = 1.0
+    assert p.max_along(e) == pytest.approx(_lp_extent(p, e), rel=1e-9)
+    (kept,) = tmp_path.glob("propulsion_extents_*.json")
+    assert 1 <= len(json.loads(kept.read_text())) <= 3

@@ -423,4 +423,12 @@ def test_a_later_base_kernel_runs_the_short_check_and_it_still_refuses(fresh_che
     kernel, n = build()
     assert kernel is not None and n == base_c.CHECK_STEPS
     native._CHECKED.clear()
+    stamps = sorted(fresh_checks.iterdir())
     assert build(lie_at=base_c.CHECK_STEPS // 3 + 150) == (None, base_c.CHECK_STEPS // 3 + 150)
+    assert sorted(fresh_checks.iterdir()) == stamps  # a short check stamps nothing
+    # a failed full check leaves no stamp either
+    native._CHECKED.clear()
+    for stamp in stamps:
+        stamp.unlink()
+    assert build(lie_at=1000) == (None, 1000)
+    assert not list(fresh_checks.iterdir())

@@ -561,6 +561,11 @@ class Propulsion:
         return out[:3], out[3:]
 
 
+MAX_KEPT_EXTENTS = 4096
+"""The most polytope extents kept in the cache per nozzle layout (a design asks for a few
+dozen; a sweep over carried loads asks for six more per load)."""
+
+
 class _Extents:
     """The answers of :meth:`Propulsion.max_along`'s linear programmes for one nozzle
     layout, kept in the cache (one file per layout, float hex): a process after the first
@@ -611,6 +616,8 @@ class _Extents:
             return None
 
     def put(self, key: str, extent: float) -> None:
+        if len(self.known) >= MAX_KEPT_EXTENTS:  # a long sweep of designs: start afresh
+            self.known = {}
         self.known[key] = extent.hex()
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)

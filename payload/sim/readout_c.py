@@ -196,7 +196,8 @@ def compiled_readout(
     """``make(lib, gemv)``'s read-out, or None to run the numpy read-outs: no compiler,
     no numpy OpenBLAS, ``PAYLOAD_NATIVE=0``, a failed build, or ``check(kernel, probes)``
     (the caller's comparison with its numpy read-outs on ``probes`` random states: 200, or
-    the first 20 once a read-out of the same shape passed in this process) False."""
+    the first 20 once a read-out of the same shape passed, here or in an earlier process)
+    False."""
     at = {name: part.start for name, part in WORLD_SLICES.items()}
     prelude = (
         f"#define OFF_LINEAR {at['astrobee_linear']}\n"

@@ -388,7 +388,7 @@ def compiled_control(controller: Any) -> CompiledControl | None:
     """The compiled control step for a nozzle ``controller``, or None to run the numpy
     code (no kernels, no numpy ``ddot``, or a self-check (:func:`check_control`) that
     differs in a single bit: :data:`CHECK_STEPS` steps, or their first quarter once a build
-    for as many nozzles passed in this process, :func:`payload.native.probes`)."""
+    for as many nozzles passed, here or in an earlier process: :func:`payload.native.probes`)."""
     searches = controller.nozzles._kernels if controller.nozzles is not None else None
     loaded = nozzles = None
     if searches is not None:

@@ -304,8 +304,8 @@ def compiled_base(factory: Callable[..., Any]) -> CompiledBase | None:
     kernel = CompiledBase(*loaded)
     # each channel's steps, or its first third (every kind of leg) once a full check passed
     steps = native.probes(loaded[0], "base channel", CHECK_STEPS, CHECK_STEPS // 3)
-    rng = np.random.default_rng(0)
-    for heading, with_right in ((0.0, True), (2.3, True), (-1.1, False)):
+    for c, (heading, with_right) in enumerate(((0.0, True), (2.3, True), (-1.1, False))):
+        rng = np.random.default_rng(c)  # each channel's own draws: the short check a prefix
         neutral = rng.normal(scale=0.1, size=3)
         right_neutral = neutral + np.array([0.0, -0.3, 0.0])
         mine = factory(neutral, heading, right_neutral if with_right else None)

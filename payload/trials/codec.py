@@ -45,10 +45,12 @@ from typing import Any, NamedTuple
 import numpy as np
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 
-from payload.trials.codec_c import IN_HANDS
+from payload.trials.codec_c import compiled_steps
 from payload.trials.jointcodec import (
     GRID_INT_LIMIT,
     HAND_GRID_M,
+    IN_HANDS,
+    N_JOINT_VALUES,
     JointRows,
     JointsCodec,
     fill_joints,
@@ -248,6 +250,7 @@ class StepCodec:
         if n and self._prev is not None:
             ints[0] -= self._prev
         ints[key] = ki[key]
+        ints[~ok] = 0
         if n:
             self._prev = ki[-1] if ok[-1] else None
         return GridRows(ok, key, ints, decoded)
@@ -276,7 +279,8 @@ class StepCodec:
         batch = self._rows(items)
         if columns is not None:
             columns.append(self._columns(items, batch))
-        kernel = _steps_kernel() if items else None
+        # the runtime refuses a negative sequence number (ValueError): it serialises those
+        kernel = _steps_kernel() if items and min(it[1] for it in items) >= 0 else None
         if kernel is not None:
             data = kernel(self._arrays(items, batch), self.grid)
             return [
@@ -400,8 +404,8 @@ class StepCodec:
         for prefix, parts in (("", batch.own), ("h", None)):
             code = np.full((n, 2), IN_HANDS, dtype=np.int64)
             key = np.zeros((n, 2), dtype=np.int64)
-            ints = np.zeros((n, 2, 75), dtype=np.int64)
-            raw = np.zeros((n, 2, 75))
+            ints = np.zeros((n, 2, N_JOINT_VALUES), dtype=np.int64)
+            raw = np.zeros((n, 2, N_JOINT_VALUES))
             for side in (0, 1):
                 if parts is not None:
                     mine, coded = parts[side]
@@ -560,8 +564,6 @@ _EMPTY.setflags(write=False)
 def _steps_kernel() -> Any:
     """The process's compiled serialiser of a batch's messages (checked on
     :func:`_probe_batches`), or None: the protobuf runtime serialises them."""
-    from payload.trials.codec_c import compiled_steps
-
     fields = [
         (number, math.prod(shape) if shape else 0, name in _PAIR_FIELDS)
         for name, number, shape in STEP_DOUBLES
@@ -599,6 +601,8 @@ def _probe_item(rng: np.random.Generator, k: int) -> tuple[Any, int, float, Any]
     joints = [hand() if tracked[0] else np.full((25, 3), np.nan), hand()]
     if k % 7 == 3:
         joints[0] = rng.normal(size=(25, 3))  # off the grid: raw
+    if k % 7 == 5:
+        joints[1] = rng.normal(size=(25, 3))
     if not tracked[1]:
         joints[1] = np.full((25, 3), np.nan)
     q = vector(17)
@@ -607,8 +611,8 @@ def _probe_item(rng: np.random.Generator, k: int) -> tuple[Any, int, float, Any]
         t=0.02 * k,
         phase=PHASE_NAMES[k % len(PHASE_NAMES)],
         ctb_module=MODULE_NAMES[k % len(MODULE_NAMES)],
-        left_joints=joints[0],
-        right_joints=hand() if k % 5 == 2 else joints[1],  # not the frame's
+        left_joints=hand() if k % 6 == 1 else joints[0],  # not the frame's
+        right_joints=hand() if k % 5 == 2 else joints[1],
         left_tracked=tracked[0],
         right_tracked=tracked[1],
         q_left=q[PAIR_L_INDEX] if pairs else vector(8),
@@ -645,8 +649,9 @@ class _Batch(NamedTuple):
 
     at: dict[int, int]  # a step with a hand frame: its row among the frames
     hands: tuple[JointRows, JointRows]  # the frames' left and right joints
+    # per side (left, right): the steps whose joints are not their frame's (a step -> its
+    # row) and those joints' rows
     own: tuple[tuple[dict[int, int], JointRows], tuple[dict[int, int], JointRows]]
-    # per side, the steps whose joints are not their frame's: their rows, and the rows
     grids: GridRows
     fields: dict[str, np.ndarray]  # :func:`_gathered`
 
@@ -655,8 +660,10 @@ def _gathered(steps: list[Any]) -> dict[str, np.ndarray]:
     """Each double field of the steps (:data:`STEP_DOUBLES`), as an (n, size) array."""
     n = len(steps)
     return {
-        name: np.array([getattr(st, name) for st in steps], dtype=np.float64).reshape(n, -1)
-        for name, _, _ in STEP_DOUBLES
+        name: np.array([getattr(st, name) for st in steps], dtype=np.float64).reshape(
+            n, math.prod(shape)
+        )
+        for name, _, shape in STEP_DOUBLES
     }
 
 

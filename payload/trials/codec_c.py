@@ -30,25 +30,19 @@ from typing import Any
 import numpy as np
 
 from payload import native
+from payload.trials.jointcodec import IN_HANDS, N_JOINT_VALUES, ON_GRID, RAW, UNTRACKED
 
 log = logging.getLogger(__name__)
-
-N_JOINT_VALUES = 75
-"""Numbers in one hand's joints (25 x 3)."""
 
 STEP_BYTES = 8192
 """A bound on the bytes of one step's two messages (each at most about 2,400: two raw hands
 of 75 doubles, 80 doubles and 64 ten-byte varints, with their tags)."""
 
-IN_HANDS = 3
-"""The joints code of a step whose joints are its hand sample's (besides
-:mod:`~payload.trials.jointcodec`'s untracked 0, grid 1 and raw 2)."""
-
 SOURCE = r"""
 #include <string.h>
 
-/* N_JOINTS (75) and STEP_BYTES are defined by the loader */
-enum { UNTRACKED = 0, ON_GRID = 1, RAW = 2 };
+/* N_JOINTS, STEP_BYTES and the joints' forms (UNTRACKED, ON_GRID, RAW, IN_HANDS: those of
+   payload.trials.jointcodec) are defined by the loader */
 
 static unsigned char *varint(unsigned char *p, uint64_t v)
 {
@@ -118,7 +112,7 @@ static unsigned char *joints(unsigned char *p, uint64_t number, int64_t kind, in
         b = packed_doubles(b, 3, raw, N_JOINTS);
     } else if (kind == UNTRACKED) {
         b = scalar(b, 4, 1);
-    } else {  /* IN_HANDS (3): the hand sample's joints */
+    } else {  /* IN_HANDS: the hand sample's joints */
         b = scalar(b, 6, 1);
     }
     p = varint(tag(p, number, 2), (uint64_t)(b - body));
@@ -291,7 +285,11 @@ def compiled_steps(
     compiler, ``PAYLOAD_NATIVE=0``, a failed build, or a self-check that differs in a byte
     from the protobuf runtime's on ``probes()``: batches (as :meth:`CompiledSteps.__call__`
     takes them, with the joints' grid) with the bytes the runtime gives them."""
-    prelude = f"#define N_JOINTS {N_JOINT_VALUES}\n#define STEP_BYTES {STEP_BYTES}\n"
+    forms = {"UNTRACKED": UNTRACKED, "ON_GRID": ON_GRID, "RAW": RAW, "IN_HANDS": IN_HANDS}
+    prelude = "".join(
+        f"#define {name} {value}\n"
+        for name, value in {"N_JOINTS": N_JOINT_VALUES, "STEP_BYTES": STEP_BYTES, **forms}.items()
+    )
     lib = native.load_kernel("steps", SOURCE, "the step messages kernel", log, prelude=prelude)
     if lib is None:
         return None
@@ -304,4 +302,4 @@ def compiled_steps(
     return kernel
 
 
-__all__ = ["IN_HANDS", "N_JOINT_VALUES", "SOURCE", "STEP_BYTES", "CompiledSteps", "compiled_steps"]
+__all__ = ["SOURCE", "STEP_BYTES", "CompiledSteps", "compiled_steps"]

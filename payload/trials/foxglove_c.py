@@ -122,8 +122,8 @@ def compiled_frame_poses(
     the data's current kinematics): no compiler, ``PAYLOAD_NATIVE=0``, no numpy OpenBLAS or
     MuJoCo symbol, or a self-check on random configurations (written into the data's
     ``qpos`` and restored) that differs from ``reference`` in a single bit: 200 of them,
-    or their first 20 once a build for as many links passed in this process
-    (:func:`payload.native.probes`)."""
+    or their first 20 once a build for as many links passed (here or in an
+    earlier process: :func:`payload.native.probes`)."""
     import mujoco
 
     if len(links) == 0:

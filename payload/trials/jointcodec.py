@@ -84,7 +84,7 @@ class JointsCodec:
         """
         n = len(joints)
         if not n:
-            empty = np.zeros((0, 75), dtype=np.int64)
+            empty = np.zeros((0, N_JOINT_VALUES), dtype=np.int64)
             return JointRows(empty[:, 0].copy(), empty[:, 0] > 0, empty, empty * 0.0,
                              np.zeros((0, 25, 3)))  # fmt: skip
         flat = np.array(joints, dtype=np.float64).reshape(n, -1)
@@ -136,6 +136,13 @@ class JointsCodec:
 UNTRACKED, ON_GRID, RAW = 0, 1, 2
 """The forms of a ``Joints`` message (:attr:`JointRows.kind`)."""
 
+IN_HANDS = 3
+"""A step's joints stored as a reference to its hand sample's (a fourth form, of a step's
+joints only)."""
+
+N_JOINT_VALUES = 75
+"""Numbers in one hand's joints (25 x 3)."""
+
 
 class JointRows(NamedTuple):
     """What :meth:`JointsCodec.encode_many` stores for a batch of joint arrays (n rows).
@@ -143,8 +150,9 @@ class JointRows(NamedTuple):
     Attributes:
         kind: Per row its form: :data:`UNTRACKED`, :data:`ON_GRID` or :data:`RAW`.
         key: Per row whether it is a key message (grid rows only).
-        ints: The grid rows' integers (the multiples, or their deltas), (n, 75).
-        raw: The values themselves (what a raw row stores), (n, 75).
+        ints: The grid rows' integers (the multiples, or their deltas), (n,
+            :data:`N_JOINT_VALUES`).
+        raw: The values themselves (what a raw row stores), (n, :data:`N_JOINT_VALUES`).
         decoded: What the decoder reads back, (n, 25, 3): NaN where untracked, ``k *
             grid`` on the grid (the decoder's product of the same integers), the values
             themselves raw.
@@ -182,6 +190,8 @@ def same_joints(a: np.ndarray, b: np.ndarray) -> bool:
 __all__ = [
     "GRID_INT_LIMIT",
     "HAND_GRID_M",
+    "IN_HANDS",
+    "N_JOINT_VALUES",
     "ON_GRID",
     "RAW",
     "UNTRACKED",
