@@ -321,3 +321,19 @@ def test_the_compiled_targets_are_numpys(retargeting, refused_kernel):
         "c_robot[i] = c[4 + i] + alpha * (c[7 + i] - c[4 + i]);",
     ):
         assert targets_c.compiled_targets(pc, pc._to_targets_numpy) is None
+
+
+def test_the_operators_route_lengths_are_the_routes_remaining_length() -> None:
+    """What the operator keeps of its plan: from each waypoint, the route's remaining
+    length (against numpy's segment norms), and the wrists' centre and half span."""
+    rng = np.random.default_rng(4)
+    route = np.cumsum(rng.normal(size=(6, 3)), axis=0)
+    plan = OperatorPlan(route=route, heading0=0.7, rail_distance=0.3)
+    op = SyntheticOperator(plan, 3, CalibrationProcedure())
+    segments = np.linalg.norm(np.diff(route, axis=0), axis=1)
+    for w in range(len(route)):
+        assert op._route_left[w] == pytest.approx(segments[w:].sum(), rel=1e-12, abs=0.0)
+    centre, half = op._posture
+    np.testing.assert_allclose(centre + half, [0.35, 0.15, 1.05])
+    forward = op._to_operator @ [math.cos(0.7), math.sin(0.7), 0.0]  # the operator's forward
+    np.testing.assert_allclose(forward, [1.0, 0.0, 0.0], atol=1e-15)

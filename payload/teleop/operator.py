@@ -16,6 +16,7 @@ it judges the handle's position and how slowly it creeps while lining up.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections import deque
 from dataclasses import dataclass, field
@@ -252,7 +253,7 @@ class SyntheticOperator:
         speed = min(tr.creep_speed, math.sqrt(2 * p.brake_accel * max(0.0, dist - tr.align_tol)))
         if speed <= 1e-4:
             return np.zeros(3)
-        direction = yaw_matrix(p.heading0).T @ (error / dist)
+        direction = self._to_operator @ (error / dist)
         margin = tr.tremor_amp + 0.002  # far enough out that tremor keeps it outside
         return direction * (
             p.base.sphere_radius + margin + p.base.full_speed_offset * speed / p.base.max_speed
@@ -301,10 +302,30 @@ class SyntheticOperator:
             return offset, 0.5
         return offset, 0.5  # gave up: hands at rest
 
+    @functools.cached_property
+    def _posture(self) -> tuple[np.ndarray, np.ndarray]:
+        """The wrists' centre and half their separation (the plan is frozen)."""
+        p = self.plan
+        return 0.5 * (p.neutral_left + p.neutral_right), np.array([0.0, 0.5 * p.rail_distance, 0.0])
+
+    @functools.cached_property
+    def _route_left(self) -> list[float]:
+        """Per waypoint, the route's length from it to the arrival point [m], summed as the
+        task summed it at each step (segment by segment from zero)."""
+        route = self.plan.route
+        return [
+            sum(float(norm(route[k + 1] - route[k])) for k in range(w, len(route) - 1))
+            for w in range(len(route))
+        ]
+
+    @functools.cached_property
+    def _to_operator(self) -> np.ndarray:
+        """World -> operator frame rotation (the transpose of the operator's yaw)."""
+        return yaw_matrix(self.plan.heading0).T
+
     def _task_intent(self, t: float, seen: WorldView) -> tuple[dict[str, np.ndarray], float]:
         p, tr = self.plan, self.traits
-        centre = 0.5 * (p.neutral_left + p.neutral_right)
-        half = np.array([0.0, 0.5 * p.rail_distance, 0.0])
+        centre, half = self._posture
         offset = np.zeros(3)
         if self.phase == "acquisition":
             offset, aperture = self._acquire(t, seen)
@@ -322,9 +343,7 @@ class SyntheticOperator:
         dist = float(norm(to_target))
         last = self.waypoint == len(route) - 1
         if self.phase in ("translation", "turn"):
-            remaining = dist + sum(
-                float(norm(route[k + 1] - route[k])) for k in range(self.waypoint, len(route) - 1)
-            )
+            remaining = dist + self._route_left[self.waypoint]
             stop_speed = math.sqrt(2 * p.brake_accel * max(0.0, remaining - 0.3))
             corner = (
                 p.base.max_speed
@@ -341,7 +360,7 @@ class SyntheticOperator:
             if last and remaining < 0.45:
                 self.phase = "arrival"
             if dist > 1e-6 and self.phase != "arrival":
-                direction = yaw_matrix(p.heading0).T @ (to_target / dist)
+                direction = self._to_operator @ (to_target / dist)
                 reach = (
                     p.base.sphere_radius
                     + 0.01
