@@ -1,9 +1,9 @@
 """Typed, compact step and hand-frame messages for trial recordings (protobuf).
 
-The messages are declared in code as a ``FileDescriptorProto`` (no ``protoc`` needed) and
-their Python classes are generated at import. The schema stored in every recording is the
-``FileDescriptorSet`` of these messages (MCAP ``protobuf`` encoding), so any MCAP tool
-(``mcap cat``, Foxglove, ``mcap_protobuf.decoder``) decodes them.
+The messages are declared in :mod:`payload.trials.stepmsg` (re-exported here). The schema
+stored in every recording is the ``FileDescriptorSet`` of these messages (MCAP
+``protobuf`` encoding), so any MCAP tool (``mcap cat``, Foxglove,
+``mcap_protobuf.decoder``) decodes them.
 
 ``payload.trials.Step`` (channel ``/trial/step``): one message per 50 Hz control step.
 Phases and modules are enums. The numbers are stored at a stated resolution
@@ -43,7 +43,6 @@ from collections.abc import Callable, Iterator
 from typing import Any, NamedTuple
 
 import numpy as np
-from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 
 from payload.trials.codec_c import compiled_steps
 from payload.trials.jointcodec import (
@@ -57,41 +56,20 @@ from payload.trials.jointcodec import (
     quantize_joints,
     same_joints,
 )
-
-PACKAGE = "payload.trials"
-PHASE_NAMES: tuple[str, ...] = (
-    "calibration",
-    "acquisition",
-    "translation",
-    "turn",
-    "arrival",
-    "braking",
-)
-MODULE_NAMES: tuple[str, ...] = ("kibo", "hatch", "node2", "outside")
-
-PAIR_L_INDEX = np.array([0, 1, 2, 3, 8, 9, 10, 11])
-"""Positions of pair L's joints (A then C) in the 17 manipulation coordinates."""
-PAIR_R_INDEX = np.array([4, 5, 6, 7, 12, 13, 14, 15])
-"""Positions of pair R's joints (B then D)."""
-_PAIR_FIELDS = ("q_left", "q_right", "rail_cmd")
-
-# (name, number, shape) of the packed double arrays of a Step, in field-number order;
-# shape () = a scalar double.
-STEP_DOUBLES: tuple[tuple[str, int, tuple[int, ...]], ...] = (
-    ("t", 3, ()),
-    ("q_left", 10, (8,)),
-    ("q_right", 11, (8,)),
-    ("rail_cmd", 12, ()),
-    ("twist_cmd", 13, (6,)),
-    ("q_cmd", 14, (17,)),
-    ("deploy_cmd", 15, ()),
-    ("q_meas", 16, (17,)),
-    ("deploy_meas", 17, ()),
-    ("astrobee_pos", 18, (3,)),
-    ("astrobee_quat", 19, (4,)),
-    ("astrobee_twist", 20, (6,)),
-    ("ctb_pos", 21, (3,)),
-    ("ctb_quat", 22, (4,)),
+from payload.trials.stepmsg import (
+    FILE_DESCRIPTOR,
+    HANDS_MESSAGE,
+    MODULE_NAMES,
+    PAIR_FIELDS,
+    PAIR_L_INDEX,
+    PAIR_R_INDEX,
+    PHASE_NAMES,
+    STEP_DOUBLES,
+    STEP_MESSAGE,
+    HandSampleMsg,
+    JointsMsg,
+    StepMsg,
+    schema_data,
 )
 
 _SIZES = {"wall_time": 1, **{name: int(np.prod(shape)) for name, _, shape in STEP_DOUBLES}}
@@ -124,86 +102,6 @@ _GRID_SLICES: tuple[tuple[str, int, int], ...] = tuple(
     (name, int(start), int(start) + n)
     for (name, _, n), start in zip(STEP_GRIDS, np.concatenate([[0], _GRID_SPLITS]))
 )
-
-_F = descriptor_pb2.FieldDescriptorProto
-
-
-def _field(
-    msg: descriptor_pb2.DescriptorProto,
-    name: str,
-    number: int,
-    ftype: int,
-    *,
-    repeated: bool = False,
-    type_name: str | None = None,
-) -> None:
-    f = msg.field.add(name=name, number=number, type=ftype)
-    f.label = _F.LABEL_REPEATED if repeated else _F.LABEL_OPTIONAL
-    if type_name is not None:
-        f.type_name = type_name
-    if repeated:
-        f.options.packed = True
-
-
-def _enum(fd: descriptor_pb2.FileDescriptorProto, name: str, values: tuple[str, ...]) -> None:
-    e = fd.enum_type.add(name=name)
-    for i, v in enumerate(values):
-        e.value.add(name=f"{name.upper()}_{v.upper()}", number=i)
-
-
-def _file_descriptor() -> descriptor_pb2.FileDescriptorProto:
-    fd = descriptor_pb2.FileDescriptorProto(
-        name="payload/trials/step.proto", package=PACKAGE, syntax="proto3"
-    )
-    _enum(fd, "Phase", PHASE_NAMES)
-    _enum(fd, "Module", MODULE_NAMES)
-    j = fd.message_type.add(name="Joints")
-    _field(j, "grid", 1, _F.TYPE_DOUBLE)
-    _field(j, "delta", 2, _F.TYPE_SINT64, repeated=True)
-    _field(j, "raw", 3, _F.TYPE_DOUBLE, repeated=True)
-    _field(j, "untracked", 4, _F.TYPE_BOOL)
-    _field(j, "key", 5, _F.TYPE_BOOL)
-    _field(j, "in_hands", 6, _F.TYPE_BOOL)
-    s = fd.message_type.add(name="Step")
-    _field(s, "seq", 1, _F.TYPE_UINT64)
-    _field(s, "wall_time", 2, _F.TYPE_DOUBLE)
-    _field(s, "phase", 4, _F.TYPE_ENUM, type_name=f".{PACKAGE}.Phase")
-    _field(s, "ctb_module", 5, _F.TYPE_ENUM, type_name=f".{PACKAGE}.Module")
-    _field(s, "left_tracked", 6, _F.TYPE_BOOL)
-    _field(s, "right_tracked", 7, _F.TYPE_BOOL)
-    _field(s, "contact", 8, _F.TYPE_BOOL)
-    for name, number, shape in STEP_DOUBLES:
-        _field(s, name, number, _F.TYPE_DOUBLE, repeated=shape != ())
-    _field(s, "pairs_in_cmd", 9, _F.TYPE_BOOL)
-    _field(s, "left_joints", 30, _F.TYPE_MESSAGE, type_name=f".{PACKAGE}.Joints")
-    _field(s, "right_joints", 31, _F.TYPE_MESSAGE, type_name=f".{PACKAGE}.Joints")
-    _field(s, "grid", 40, _F.TYPE_SINT64, repeated=True)
-    _field(s, "grid_key", 41, _F.TYPE_BOOL)
-    h = fd.message_type.add(name="HandSample")
-    _field(h, "seq", 1, _F.TYPE_UINT64)
-    _field(h, "stamp", 2, _F.TYPE_DOUBLE)
-    _field(h, "left_tracked", 3, _F.TYPE_BOOL)
-    _field(h, "right_tracked", 4, _F.TYPE_BOOL)
-    _field(h, "left", 5, _F.TYPE_MESSAGE, type_name=f".{PACKAGE}.Joints")
-    _field(h, "right", 6, _F.TYPE_MESSAGE, type_name=f".{PACKAGE}.Joints")
-    return fd
-
-
-FILE_DESCRIPTOR = _file_descriptor()
-_POOL = descriptor_pool.DescriptorPool()
-_POOL.Add(FILE_DESCRIPTOR)
-StepMsg: Any = message_factory.GetMessageClass(_POOL.FindMessageTypeByName(f"{PACKAGE}.Step"))
-HandSampleMsg: Any = message_factory.GetMessageClass(
-    _POOL.FindMessageTypeByName(f"{PACKAGE}.HandSample")
-)
-JointsMsg: Any = message_factory.GetMessageClass(_POOL.FindMessageTypeByName(f"{PACKAGE}.Joints"))
-STEP_MESSAGE = f"{PACKAGE}.Step"
-HANDS_MESSAGE = f"{PACKAGE}.HandSample"
-
-
-def schema_data() -> bytes:
-    """The ``FileDescriptorSet`` of these messages (the MCAP schema data)."""
-    return descriptor_pb2.FileDescriptorSet(file=[FILE_DESCRIPTOR]).SerializeToString()
 
 
 class StepCodec:
@@ -444,9 +342,9 @@ class StepCodec:
             m.grid.extend(grids.ints[i].tolist())
             m.wall_time = 0.0
         for name, _, shape in STEP_DOUBLES:
-            if pairs and name in _PAIR_FIELDS:
+            if pairs and name in PAIR_FIELDS:
                 continue
-            if gridded and name not in _PAIR_FIELDS:
+            if gridded and name not in PAIR_FIELDS:
                 continue
             value = getattr(step, name)
             if shape == ():
@@ -565,7 +463,7 @@ def _steps_kernel() -> Any:
     """The process's compiled serialiser of a batch's messages (checked on
     :func:`_probe_batches`), or None: the protobuf runtime serialises them."""
     fields = [
-        (number, math.prod(shape) if shape else 0, name in _PAIR_FIELDS)
+        (number, math.prod(shape) if shape else 0, name in PAIR_FIELDS)
         for name, number, shape in STEP_DOUBLES
     ]
     return compiled_steps(fields, len(_GRID), _probe_batches)
@@ -718,11 +616,17 @@ __all__ = [
     "HANDS_MESSAGE",
     "HAND_GRID_M",
     "MODULE_NAMES",
+    "PAIR_L_INDEX",
+    "PAIR_R_INDEX",
     "PHASE_NAMES",
+    "STEP_DOUBLES",
     "STEP_GRIDS",
     "STEP_MESSAGE",
+    "HandSampleMsg",
     "JointsCodec",
+    "JointsMsg",
     "StepCodec",
+    "StepMsg",
     "quantize_joints",
     "same_joints",
     "schema_data",
