@@ -479,7 +479,7 @@ def test_messages_with_other_bytes_are_refused(foxglove_recording, refused_kerne
     from payload.trials.foxglove import FoxgloveScene
 
     _, _, world = foxglove_recording
-    with refused_kernel(messages_c, "if (!bits && !always) return p;", "(void)always;"):
+    with refused_kernel(messages_c, "if (!bits) return p;", "", attr="WRITER_C"):
         assert FoxgloveScene(world)._messages_kernel is None
 
 
@@ -720,7 +720,9 @@ def test_step_messages_with_other_bytes_are_refused(refused_kernel, monkeypatch)
     rng = np.random.default_rng(24)
     items = [codec._probe_item(rng, k) for k in range(40)]
     want = StepCodec().encode_batch(items)
-    with refused_kernel(codec_c, "if (!bits) return p;", "", forget=codec._steps_kernel):
+    with refused_kernel(
+        codec_c, "if (!bits) return p;", "", attr="WRITER_C", forget=codec._steps_kernel
+    ):
         assert codec._steps_kernel() is None
         assert StepCodec().encode_batch(items) == want
     monkeypatch.setenv("PAYLOAD_NATIVE", "0")

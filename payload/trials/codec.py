@@ -44,11 +44,12 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from payload.trials.codec_c import compiled_steps
+from payload.trials.codec_c import N_FLAGS, compiled_steps
 from payload.trials.jointcodec import (
     GRID_INT_LIMIT,
     HAND_GRID_M,
     IN_HANDS,
+    JOINTS_SHAPE,
     N_JOINT_VALUES,
     JointRows,
     JointsCodec,
@@ -64,6 +65,7 @@ from payload.trials.stepmsg import (
     PAIR_L_INDEX,
     PAIR_R_INDEX,
     PHASE_NAMES,
+    RAIL_INDEX,
     STEP_DOUBLES,
     STEP_MESSAGE,
     HandSampleMsg,
@@ -236,13 +238,13 @@ class StepCodec:
         q = cols["q_cmd"][pairs]
         cols["q_left"][pairs] = q[:, PAIR_L_INDEX]
         cols["q_right"][pairs] = q[:, PAIR_R_INDEX]
-        cols["rail_cmd"][pairs] = q[:, -1]
+        cols["rail_cmd"][pairs] = q[:, RAIL_INDEX]
         for name in ("phase", "ctb_module"):
             cols[name] = np.array([getattr(st, name) for st in steps], dtype=object).astype(str)
         for name in ("left_tracked", "right_tracked", "contact"):
             cols[name] = np.array([bool(getattr(st, name)) for st in steps], dtype=bool)
         for side, name in enumerate(("left_joints", "right_joints")):
-            joints = np.empty((n, 25, 3))
+            joints = np.empty((n, *JOINTS_SHAPE))
             mine, coded = batch.own[side]
             rows = list(mine)
             joints[rows] = coded.decoded[[mine[i] for i in rows]]
@@ -287,7 +289,7 @@ class StepCodec:
                 for st, ok, key in zip(steps, grids.ok.tolist(), grids.key.tolist())
             ],
             dtype=np.int64,
-        ).reshape(n, 8)  # fmt: skip
+        ).reshape(n, N_FLAGS)  # fmt: skip
         doubles = np.concatenate([batch.fields[name] for name, _, _ in STEP_DOUBLES], axis=1)
         walls = np.array([it[2] for it in items], dtype=np.float64)
         out = {
@@ -297,7 +299,7 @@ class StepCodec:
             "doubles": doubles,
             "grid": grids.ints,
             "stamp": np.zeros(n),
-            "hand": np.full((n, 4), -1, dtype=np.int64),
+            "hand": np.full((n, 2), -1, dtype=np.int64),
         }
         for prefix, parts in (("", batch.own), ("h", None)):
             code = np.full((n, 2), IN_HANDS, dtype=np.int64)
@@ -321,7 +323,7 @@ class StepCodec:
                         f"{prefix}raw": raw})  # fmt: skip
         for i in batch.at:
             frame = items[i][3]
-            out["hand"][i, :2] = (bool(frame.left.tracked), bool(frame.right.tracked))
+            out["hand"][i] = (bool(frame.left.tracked), bool(frame.right.tracked))
             out["stamp"][i] = float(frame.stamp)
         return out
 
@@ -488,7 +490,7 @@ def _probe_item(rng: np.random.Generator, k: int) -> tuple[Any, int, float, Any]
     from types import SimpleNamespace
 
     def hand() -> np.ndarray:
-        return np.rint(rng.normal(scale=0.1, size=(25, 3)) / HAND_GRID_M) * HAND_GRID_M
+        return np.rint(rng.normal(scale=0.1, size=JOINTS_SHAPE) / HAND_GRID_M) * HAND_GRID_M
 
     def vector(size: int) -> np.ndarray:
         v = rng.normal(size=size) * (rng.random(size) < 0.8)  # some zeros
@@ -496,13 +498,13 @@ def _probe_item(rng: np.random.Generator, k: int) -> tuple[Any, int, float, Any]
         return v
 
     tracked = (k % 11 != 5, k % 13 != 6)
-    joints = [hand() if tracked[0] else np.full((25, 3), np.nan), hand()]
+    joints = [hand() if tracked[0] else np.full(JOINTS_SHAPE, np.nan), hand()]
     if k % 7 == 3:
-        joints[0] = rng.normal(size=(25, 3))  # off the grid: raw
+        joints[0] = rng.normal(size=JOINTS_SHAPE)  # off the grid: raw
     if k % 7 == 5:
-        joints[1] = rng.normal(size=(25, 3))
+        joints[1] = rng.normal(size=JOINTS_SHAPE)
     if not tracked[1]:
-        joints[1] = np.full((25, 3), np.nan)
+        joints[1] = np.full(JOINTS_SHAPE, np.nan)
     q = vector(17)
     pairs = k % 3 != 0
     step = SimpleNamespace(
@@ -515,7 +517,7 @@ def _probe_item(rng: np.random.Generator, k: int) -> tuple[Any, int, float, Any]
         right_tracked=tracked[1],
         q_left=q[PAIR_L_INDEX] if pairs else vector(8),
         q_right=q[PAIR_R_INDEX] if pairs else vector(8),
-        rail_cmd=float(q[-1]) if pairs else float(vector(1)[0]),
+        rail_cmd=float(q[RAIL_INDEX]) if pairs else float(vector(1)[0]),
         twist_cmd=vector(6),
         q_cmd=q,
         deploy_cmd=float(vector(1)[0]),
@@ -594,7 +596,8 @@ def _grid_fields(row: dict[str, Any], values: np.ndarray) -> None:
 def _pair_fields(row: dict[str, Any]) -> None:
     """Set a decoded row's pair fields from its ``q_cmd`` (a step stored ``pairs_in_cmd``)."""
     q = row["q_cmd"]
-    row["q_left"], row["q_right"], row["rail_cmd"] = q[PAIR_L_INDEX], q[PAIR_R_INDEX], float(q[-1])
+    row["q_left"], row["q_right"] = q[PAIR_L_INDEX], q[PAIR_R_INDEX]
+    row["rail_cmd"] = float(q[RAIL_INDEX])
 
 
 def _pairs_in_cmd(step: Any) -> bool:
@@ -602,7 +605,7 @@ def _pairs_in_cmd(step: Any) -> bool:
     return bool(
         _equal(step.q_left, q[PAIR_L_INDEX])
         and _equal(step.q_right, q[PAIR_R_INDEX])
-        and step.rail_cmd == q[-1]
+        and step.rail_cmd == q[RAIL_INDEX]
     )
 
 

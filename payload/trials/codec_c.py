@@ -31,72 +31,32 @@ import numpy as np
 
 from payload import native
 from payload.trials.jointcodec import IN_HANDS, N_JOINT_VALUES, ON_GRID, RAW, UNTRACKED
+from payload.trials.stepmsg import HandSampleMsg, JointsMsg, StepMsg
+from payload.trials.wire_c import WRITER_C
 
 log = logging.getLogger(__name__)
+
+N_FLAGS = 8
+"""A step's small numbers the serialiser takes: phase, CTB module, left and right tracked,
+contact, pairs in the command, stored on the grid, a grid key."""
 
 STEP_BYTES = 8192
 """A bound on the bytes of one step's two messages (each at most about 2,400: two raw hands
 of 75 doubles, 80 doubles and 64 ten-byte varints, with their tags)."""
 
 SOURCE = r"""
-#include <string.h>
-
-/* N_JOINTS, STEP_BYTES and the joints' forms (UNTRACKED, ON_GRID, RAW, IN_HANDS: those of
-   payload.trials.jointcodec) are defined by the loader */
-
-static unsigned char *varint(unsigned char *p, uint64_t v)
-{
-    while (v >= 0x80) { *p++ = (unsigned char)(v | 0x80); v >>= 7; }
-    *p++ = (unsigned char)v;
-    return p;
-}
-
-static unsigned char *tag(unsigned char *p, uint64_t number, unsigned wire)
-{
-    return varint(p, (number << 3) | wire);
-}
-
-/* a varint scalar (an enum, an unsigned integer, a bool) when not zero */
-static unsigned char *scalar(unsigned char *p, uint64_t number, uint64_t v)
-{
-    if (!v) return p;
-    return varint(tag(p, number, 0), v);
-}
-
-static unsigned char *le64(unsigned char *p, double x)
-{
-    uint64_t bits;
-    memcpy(&bits, &x, 8);
-    for (int i = 0; i < 8; i++) *p++ = (unsigned char)(bits >> (8 * i));  /* little-endian */
-    return p;
-}
-
-/* a double of implicit presence: written when its bits are not all zero */
-static unsigned char *dbl(unsigned char *p, uint64_t number, double x)
-{
-    uint64_t bits;
-    memcpy(&bits, &x, 8);
-    if (!bits) return p;
-    return le64(tag(p, number, 1), x);
-}
-
-static unsigned char *packed_doubles(unsigned char *p, uint64_t number, const double *v, int64_t n)
-{
-    if (n <= 0) return p;
-    p = varint(tag(p, number, 2), (uint64_t)(8 * n));
-    for (int64_t i = 0; i < n; i++) p = le64(p, v[i]);
-    return p;
-}
+/* after payload.trials.wire_c's writers; defined by the loader: N_JOINTS, STEP_BYTES,
+   N_FLAGS, MAX_INTS (the longest packed integers), the joints' forms (UNTRACKED, ON_GRID,
+   RAW, IN_HANDS: payload.trials.jointcodec's) and every field's number (STEP_*, HAND_*,
+   JOINTS_*: payload.trials.stepmsg's messages) */
 
 static unsigned char *packed_sint64(unsigned char *p, uint64_t number, const int64_t *v, int64_t n)
 {
-    unsigned char body[10 * 128], *b = body;
+    unsigned char body[10 * MAX_INTS], *b = body;
     if (n <= 0) return p;
     for (int64_t i = 0; i < n; i++)
         b = varint(b, ((uint64_t)v[i] << 1) ^ (uint64_t)(v[i] >> 63));  /* zigzag */
-    p = varint(tag(p, number, 2), (uint64_t)(b - body));
-    memcpy(p, body, (size_t)(b - body));
-    return p + (b - body);
+    return field(p, number, body, b);
 }
 
 /* a payload.trials.Joints sub-message (always present) */
@@ -105,35 +65,33 @@ static unsigned char *joints(unsigned char *p, uint64_t number, int64_t kind, in
 {
     unsigned char body[16 + 10 * N_JOINTS + 8], *b = body;
     if (kind == ON_GRID) {
-        b = dbl(b, 1, grid);
-        b = packed_sint64(b, 2, ints, N_JOINTS);
-        b = scalar(b, 5, key != 0);
+        b = dbl(b, JOINTS_GRID, grid);
+        b = packed_sint64(b, JOINTS_DELTA, ints, N_JOINTS);
+        b = scalar(b, JOINTS_KEY, key != 0);
     } else if (kind == RAW) {
-        b = packed_doubles(b, 3, raw, N_JOINTS);
+        b = packed_doubles(b, JOINTS_RAW, raw, N_JOINTS);
     } else if (kind == UNTRACKED) {
-        b = scalar(b, 4, 1);
+        b = scalar(b, JOINTS_UNTRACKED, 1);
     } else {  /* IN_HANDS: the hand sample's joints */
-        b = scalar(b, 6, 1);
+        b = scalar(b, JOINTS_IN_HANDS, 1);
     }
-    p = varint(tag(p, number, 2), (uint64_t)(b - body));
-    memcpy(p, body, (size_t)(b - body));
-    return p + (b - body);
+    return field(p, number, body, b);
 }
 
-/* Per step i of n: its HandSample (when hand[4 i] >= 0) and its Step, into out (cap
+/* Per step i of n: its HandSample (when hand[2 i] >= 0) and its Step, into out (cap
    bytes); ends[2 i] and ends[2 i + 1] get the end offsets of the two (a step without a
    hand sample: its HandSample ends where it starts). Returns the bytes written, or -1
    (no room).
 
    seq[i], wall[i]: the step's sequence number and wall_time (0 when gridded);
-   flags[8 i ..]: phase, ctb_module, left_tracked, right_tracked, contact, pairs_in_cmd,
+   flags[N_FLAGS i ..]: phase, ctb_module, left_tracked, right_tracked, contact, pairs_in_cmd,
      gridded, grid_key;
    doubles[nd i ..]: the packed double fields' values, field by field (numbers[f] and
      sizes[f]; a size 0 a scalar double; pair[f]: a pair field, stored unless pairs_in_cmd,
      the others unless gridded);
    grid[ng i ..]: the grid integers (gridded steps);
    joints code[2 i + s], key, ints[75 (2 i + s) ..], raw[..] of the step's hands;
-   hand[4 i ..]: left and right tracked of the hand sample, or -1: none; stamp[i] its
+   hand[2 i ..]: left and right tracked of the hand sample, or -1: none; stamp[i] its
      stamp; hcode, hkey, hints, hraw its joints as the step's. */
 int64_t payload_encode_steps(
     int64_t n, const int64_t *seq, const double *wall, const int64_t *flags,
@@ -147,39 +105,39 @@ int64_t payload_encode_steps(
     unsigned char *p = out;
     for (int64_t i = 0; i < n; i++) {
         if ((p - out) + STEP_BYTES > cap) return -1;
-        if (hand[4 * i] >= 0) {  /* payload.trials.HandSample */
-            p = scalar(p, 1, (uint64_t)seq[i]);
-            p = dbl(p, 2, stamp[i]);
-            p = scalar(p, 3, hand[4 * i] != 0);
-            p = scalar(p, 4, hand[4 * i + 1] != 0);
+        if (hand[2 * i] >= 0) {  /* payload.trials.HandSample */
+            p = scalar(p, HAND_SEQ, (uint64_t)seq[i]);
+            p = dbl(p, HAND_STAMP, stamp[i]);
+            p = scalar(p, HAND_LEFT_TRACKED, hand[2 * i] != 0);
+            p = scalar(p, HAND_RIGHT_TRACKED, hand[2 * i + 1] != 0);
             for (int s = 0; s < 2; s++) {
                 int64_t j = 2 * i + s;
-                p = joints(p, 5 + s, hcode[j], hkey[j], hints + N_JOINTS * j,
-                           hraw + N_JOINTS * j, joint_grid);
+                p = joints(p, s ? HAND_RIGHT : HAND_LEFT, hcode[j], hkey[j],
+                           hints + N_JOINTS * j, hraw + N_JOINTS * j, joint_grid);
             }
         }
         ends[2 * i] = p - out;
-        const int64_t *fl = flags + 8 * i;
+        const int64_t *fl = flags + N_FLAGS * i;
         int64_t pairs = fl[5], gridded = fl[6];
         const double *v = doubles + nd * i;
-        p = scalar(p, 1, (uint64_t)seq[i]);
-        p = dbl(p, 2, wall[i]);
+        p = scalar(p, STEP_SEQ, (uint64_t)seq[i]);
+        p = dbl(p, STEP_WALL_TIME, wall[i]);
         for (int pass = 0; pass < 2; pass++) {
-            /* the double fields numbered below 4 (t), then the enums and bools, then the
-               rest of the doubles: field-number order */
+            /* the double fields numbered below the phase (t), then the enums and bools,
+               then the rest of the doubles: field-number order */
             if (pass == 1) {
-                p = scalar(p, 4, (uint64_t)fl[0]);
-                p = scalar(p, 5, (uint64_t)fl[1]);
-                p = scalar(p, 6, fl[2] != 0);
-                p = scalar(p, 7, fl[3] != 0);
-                p = scalar(p, 8, fl[4] != 0);
-                p = scalar(p, 9, pairs != 0);
+                p = scalar(p, STEP_PHASE, (uint64_t)fl[0]);
+                p = scalar(p, STEP_CTB_MODULE, (uint64_t)fl[1]);
+                p = scalar(p, STEP_LEFT_TRACKED, fl[2] != 0);
+                p = scalar(p, STEP_RIGHT_TRACKED, fl[3] != 0);
+                p = scalar(p, STEP_CONTACT, fl[4] != 0);
+                p = scalar(p, STEP_PAIRS_IN_CMD, pairs != 0);
             }
             const double *x = v;
             for (int64_t f = 0; f < nf; f++) {
                 int64_t size = sizes[f] ? sizes[f] : 1;
                 int stored = pair[f] ? !pairs : !gridded;
-                if ((numbers[f] < 4) == (pass == 0) && stored)
+                if ((numbers[f] < STEP_PHASE) == (pass == 0) && stored)
                     p = sizes[f] ? packed_doubles(p, (uint64_t)numbers[f], x, sizes[f])
                                  : dbl(p, (uint64_t)numbers[f], x[0]);
                 x += size;
@@ -187,12 +145,12 @@ int64_t payload_encode_steps(
         }
         for (int s = 0; s < 2; s++) {
             int64_t j = 2 * i + s;
-            p = joints(p, 30 + s, code[j], key[j], ints + N_JOINTS * j, raw + N_JOINTS * j,
-                       joint_grid);
+            p = joints(p, s ? STEP_RIGHT_JOINTS : STEP_LEFT_JOINTS, code[j], key[j],
+                       ints + N_JOINTS * j, raw + N_JOINTS * j, joint_grid);
         }
         if (gridded) {
-            p = packed_sint64(p, 40, grid + ng * i, ng);
-            p = scalar(p, 41, fl[7] != 0);
+            p = packed_sint64(p, STEP_GRID, grid + ng * i, ng);
+            p = scalar(p, STEP_GRID_KEY, fl[7] != 0);
         }
         ends[2 * i + 1] = p - out;
     }
@@ -233,8 +191,8 @@ class CompiledSteps:
 
         Args:
             arrays: The batch as arrays (n steps): ``seq`` (n,), ``wall`` (n,), ``flags``
-                (n, 8), ``doubles`` (n, :attr:`n_doubles`), ``grid`` (n, grid size),
-                ``code``/``key`` (n, 2), ``ints``/``raw`` (n, 2, 75), ``hand`` (n, 4),
+                (n, :data:`N_FLAGS`), ``doubles`` (n, :attr:`n_doubles`), ``grid`` (n, grid size),
+                ``code``/``key`` (n, 2), ``ints``/``raw`` (n, 2, joint values), ``hand`` (n, 2),
                 ``stamp`` (n,), ``hcode``/``hkey`` (n, 2), ``hints``/``hraw`` (n, 2, 75).
             joint_grid: The joints' grid [m].
 
@@ -243,9 +201,9 @@ class CompiledSteps:
         """
         n = len(arrays["seq"])
         shapes = {
-            "seq": (n,), "wall": (n,), "flags": (n, 8), "doubles": (n, self.n_doubles),
+            "seq": (n,), "wall": (n,), "flags": (n, N_FLAGS), "doubles": (n, self.n_doubles),
             "grid": (n, self.grid_size), "code": (n, 2), "key": (n, 2),
-            "ints": (n, 2, N_JOINT_VALUES), "raw": (n, 2, N_JOINT_VALUES), "hand": (n, 4),
+            "ints": (n, 2, N_JOINT_VALUES), "raw": (n, 2, N_JOINT_VALUES), "hand": (n, 2),
             "stamp": (n,), "hcode": (n, 2), "hkey": (n, 2),
             "hints": (n, 2, N_JOINT_VALUES), "hraw": (n, 2, N_JOINT_VALUES),
         }  # fmt: skip
@@ -285,12 +243,25 @@ def compiled_steps(
     compiler, ``PAYLOAD_NATIVE=0``, a failed build, or a self-check that differs in a byte
     from the protobuf runtime's on ``probes()``: batches (as :meth:`CompiledSteps.__call__`
     takes them, with the joints' grid) with the bytes the runtime gives them."""
-    forms = {"UNTRACKED": UNTRACKED, "ON_GRID": ON_GRID, "RAW": RAW, "IN_HANDS": IN_HANDS}
-    prelude = "".join(
-        f"#define {name} {value}\n"
-        for name, value in {"N_JOINTS": N_JOINT_VALUES, "STEP_BYTES": STEP_BYTES, **forms}.items()
+    defines = {
+        "N_JOINTS": N_JOINT_VALUES,
+        "STEP_BYTES": STEP_BYTES,
+        "N_FLAGS": N_FLAGS,
+        "MAX_INTS": max(N_JOINT_VALUES, grid_size),
+        "UNTRACKED": UNTRACKED,
+        "ON_GRID": ON_GRID,
+        "RAW": RAW,
+        "IN_HANDS": IN_HANDS,
+        **{
+            f"{prefix}_{field.name.upper()}": field.number
+            for prefix, msg in (("STEP", StepMsg), ("HAND", HandSampleMsg), ("JOINTS", JointsMsg))
+            for field in msg.DESCRIPTOR.fields
+        },
+    }
+    prelude = "".join(f"#define {name} {value}\n" for name, value in defines.items())
+    lib = native.load_kernel(
+        "steps", SOURCE, "the step messages kernel", log, prelude=prelude + WRITER_C
     )
-    lib = native.load_kernel("steps", SOURCE, "the step messages kernel", log, prelude=prelude)
     if lib is None:
         return None
     kernel = CompiledSteps(lib, fields, grid_size)
@@ -302,4 +273,4 @@ def compiled_steps(
     return kernel
 
 
-__all__ = ["SOURCE", "STEP_BYTES", "CompiledSteps", "compiled_steps"]
+__all__ = ["N_FLAGS", "SOURCE", "STEP_BYTES", "CompiledSteps", "compiled_steps"]

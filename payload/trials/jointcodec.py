@@ -16,6 +16,8 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from payload.trials.records import N_HAND_JOINTS
+
 HAND_GRID_M = 1e-5
 """Resolution of the synthetic headset's joint positions [m] (10 um; WebXR reports float32)."""
 
@@ -86,7 +88,7 @@ class JointsCodec:
         if not n:
             empty = np.zeros((0, N_JOINT_VALUES), dtype=np.int64)
             return JointRows(empty[:, 0].copy(), empty[:, 0] > 0, empty, empty * 0.0,
-                             np.zeros((0, 25, 3)))  # fmt: skip
+                             np.zeros((0, *JOINTS_SHAPE)))  # fmt: skip
         flat = np.array(joints, dtype=np.float64).reshape(n, -1)
         untracked = np.isnan(flat).all(axis=1)
         with np.errstate(invalid="ignore"):
@@ -113,12 +115,12 @@ class JointsCodec:
         self._prev = prev
         decoded = np.where(gridded[:, None], ki * self.grid, flat)
         decoded[untracked] = np.nan
-        return JointRows(kind, key, ints, flat, decoded.reshape(n, 25, 3))
+        return JointRows(kind, key, ints, flat, decoded.reshape(n, *JOINTS_SHAPE))
 
     def decode(self, msg: Any) -> np.ndarray:
         """Joints (25, 3) [m] from a ``Joints`` message (NaN when untracked)."""
         if msg.untracked:
-            return np.full((25, 3), np.nan)
+            return np.full(JOINTS_SHAPE, np.nan)
         if msg.grid > 0:
             d = np.array(msg.delta, dtype=np.int64)
             if msg.key or self._prev is None:
@@ -128,9 +130,9 @@ class JointsCodec:
             else:
                 k = self._prev + d
             self._prev = k
-            return (k * msg.grid).reshape(25, 3)
+            return (k * msg.grid).reshape(JOINTS_SHAPE)
         self._prev = None
-        return np.array(msg.raw, dtype=np.float64).reshape(25, 3)
+        return np.array(msg.raw, dtype=np.float64).reshape(JOINTS_SHAPE)
 
 
 UNTRACKED, ON_GRID, RAW = 0, 1, 2
@@ -140,8 +142,11 @@ IN_HANDS = 3
 """A step's joints stored as a reference to its hand sample's (a fourth form, of a step's
 joints only)."""
 
-N_JOINT_VALUES = 75
-"""Numbers in one hand's joints (25 x 3)."""
+JOINTS_SHAPE = (N_HAND_JOINTS, 3)
+"""One hand's joint positions: a row per WebXR joint."""
+
+N_JOINT_VALUES = N_HAND_JOINTS * 3
+"""Numbers in one hand's joints."""
 
 
 class JointRows(NamedTuple):
@@ -191,6 +196,7 @@ __all__ = [
     "GRID_INT_LIMIT",
     "HAND_GRID_M",
     "IN_HANDS",
+    "JOINTS_SHAPE",
     "N_JOINT_VALUES",
     "ON_GRID",
     "RAW",

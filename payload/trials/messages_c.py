@@ -30,9 +30,15 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
+from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
 from foxglove_schemas_protobuf.JointState_pb2 import JointState
+from foxglove_schemas_protobuf.JointStates_pb2 import JointStates
+from foxglove_schemas_protobuf.Quaternion_pb2 import Quaternion
+from foxglove_schemas_protobuf.Vector3_pb2 import Vector3
+from google.protobuf.timestamp_pb2 import Timestamp
 
 from payload import native
+from payload.trials.wire_c import WRITER_C
 
 log = logging.getLogger(__name__)
 
@@ -45,44 +51,14 @@ REST_BYTES = 124
 doubles: 88 at most): ``ITEM_BYTES - REST_BYTES`` is the room for the names."""
 
 SOURCE = r"""
-#include <string.h>
-
-/* ITEM_BYTES and REST_BYTES are defined by the loader */
-
-static unsigned char *varint(unsigned char *p, uint64_t v)
-{
-    while (v >= 0x80) { *p++ = (unsigned char)(v | 0x80); v >>= 7; }
-    *p++ = (unsigned char)v;
-    return p;
-}
-
-/* a double field (tag: its key byte); implicit presence skips all-zero bits */
-static unsigned char *dbl(unsigned char *p, unsigned char tag, double x, int always)
-{
-    uint64_t bits;
-    memcpy(&bits, &x, 8);
-    if (!bits && !always) return p;
-    *p++ = tag;
-    for (int i = 0; i < 8; i++) *p++ = (unsigned char)(bits >> (8 * i));  /* little-endian */
-    return p;
-}
-
-/* a length-delimited field from the body in [body, end) */
-static unsigned char *field(unsigned char *p, unsigned char tag, const unsigned char *body,
-                            const unsigned char *end)
-{
-    *p++ = tag;
-    p = varint(p, (uint64_t)(end - body));
-    memmove(p, body, (size_t)(end - body));
-    return p + (end - body);
-}
+/* after payload.trials.wire_c's writers; ITEM_BYTES, REST_BYTES and the messages' field
+   numbers (TS_*, TF_*, TFS_*, V_*, Q_*, JS_*, J_*: the schemas' own) are defined by the
+   loader */
 
 /* google.protobuf.Timestamp's body */
 static unsigned char *stamp(unsigned char *p, int64_t seconds, int64_t nanos)
 {
-    if (seconds) { *p++ = 0x08; p = varint(p, (uint64_t)seconds); }
-    if (nanos) { *p++ = 0x10; p = varint(p, (uint64_t)nanos); }
-    return p;
+    return scalar(scalar(p, TS_SECONDS, (uint64_t)seconds), TS_NANOS, (uint64_t)nanos);
 }
 
 /* foxglove.FrameTransforms: per transform i, the timestamp, the names (names[off[i],
@@ -99,14 +75,14 @@ int64_t payload_frame_transforms(int64_t n, const double *poses, const unsigned 
         const double *v = poses + 7 * i;
         int64_t len = off[i + 1] - off[i];
         if (len > ITEM_BYTES - REST_BYTES || (p - out) + len + REST_BYTES > cap) return -1;
-        unsigned char *b = field(body, 0x0a, ts, ts_end);
+        unsigned char *b = field(body, TF_TIMESTAMP, ts, ts_end);
         memcpy(b, names + off[i], (size_t)(off[i + 1] - off[i]));
         b += off[i + 1] - off[i];
-        unsigned char *s = dbl(dbl(dbl(sub, 0x09, v[0], 0), 0x11, v[1], 0), 0x19, v[2], 0);
-        b = field(b, 0x22, sub, s);
-        s = dbl(dbl(dbl(dbl(sub, 0x09, v[4], 0), 0x11, v[5], 0), 0x19, v[6], 0), 0x21, v[3], 0);
-        b = field(b, 0x2a, sub, s);
-        p = field(p, 0x0a, body, b);
+        unsigned char *s = dbl(dbl(dbl(sub, V_X, v[0]), V_Y, v[1]), V_Z, v[2]);
+        b = field(b, TF_TRANSLATION, sub, s);
+        s = dbl(dbl(dbl(dbl(sub, Q_X, v[4]), Q_Y, v[5]), Q_Z, v[6]), Q_W, v[3]);
+        b = field(b, TF_ROTATION, sub, s);
+        p = field(p, TFS_TRANSFORMS, body, b);
     }
     return p - out;
 }
@@ -119,13 +95,14 @@ int64_t payload_joint_states(int64_t n, const double *positions, const unsigned 
                              unsigned char *out, int64_t cap)
 {
     unsigned char ts[24], body[ITEM_BYTES], *p = out;
-    p = field(p, 0x0a, ts, stamp(ts, seconds, nanos));
+    p = field(p, JS_TIMESTAMP, ts, stamp(ts, seconds, nanos));
     for (int64_t i = 0; i < n; i++) {
         int64_t len = off[i + 1] - off[i];
         if (len > ITEM_BYTES - REST_BYTES || (p - out) + len + REST_BYTES > cap) return -1;
         memcpy(body, names + off[i], (size_t)(off[i + 1] - off[i]));
-        unsigned char *b = dbl(body + (off[i + 1] - off[i]), 0x11, positions[i], 1);
-        p = field(p, 0x12, body, b);
+        /* the position has explicit presence: written even when zero */
+        unsigned char *b = le64(tag(body + (off[i + 1] - off[i]), J_POSITION, 1), positions[i]);
+        p = field(p, JS_JOINTS, body, b);
     }
     return p - out;
 }
@@ -200,9 +177,20 @@ class CompiledMessages:
 def load_library() -> ctypes.CDLL | None:
     """The kernel's library (None: the protobuf objects are to be built; the log says
     why)."""
-    prelude = f"#define ITEM_BYTES {ITEM_BYTES}\n#define REST_BYTES {REST_BYTES}\n"
+    numbers = {
+        f"{prefix}_{field.name.upper()}": field.number
+        for prefix, message in (
+            ("TS", Timestamp), ("TF", FrameTransform), ("TFS", FrameTransforms),
+            ("V", Vector3), ("Q", Quaternion), ("JS", JointStates), ("J", JointState),
+        )
+        for field in message.DESCRIPTOR.fields
+    }  # fmt: skip
+    prelude = "".join(
+        f"#define {name} {value}\n"
+        for name, value in {"ITEM_BYTES": ITEM_BYTES, "REST_BYTES": REST_BYTES, **numbers}.items()
+    )
     return native.load_kernel(
-        "messages", SOURCE, "the Foxglove messages kernel", log, prelude=prelude
+        "messages", SOURCE, "the Foxglove messages kernel", log, prelude=prelude + WRITER_C
     )
 
 

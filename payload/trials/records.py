@@ -80,6 +80,7 @@ import numpy as np
 
 from payload.errors import PayloadError
 from payload.schema import N_MANIPULATION
+from payload.teleop.hands import XR_JOINTS
 
 PHASES: tuple[str, ...] = (
     "calibration",
@@ -94,7 +95,7 @@ PHASES: tuple[str, ...] = (
 MODULES: tuple[str, ...] = ("kibo", "hatch", "node2", "outside")
 """Where the CTB centre of mass is: a module, the hatch between them, or outside both."""
 
-N_HAND_JOINTS = 25
+N_HAND_JOINTS = len(XR_JOINTS)
 """WebXR XRHand joints per hand."""
 
 STEP_TOPIC = "/trial/step"

@@ -27,6 +27,8 @@ PAIR_L_INDEX = np.array([MANIPULATION_JOINTS.index(j) for j in pair_joints("L")]
 """Positions of pair L's joints (A then C) in the 17 manipulation coordinates."""
 PAIR_R_INDEX = np.array([MANIPULATION_JOINTS.index(j) for j in pair_joints("R")])
 """Positions of pair R's joints (B then D)."""
+RAIL_INDEX = MANIPULATION_JOINTS.index("rail")
+"""Position of the rail in the 17 manipulation coordinates."""
 PAIR_FIELDS = ("q_left", "q_right", "rail_cmd")
 """The step fields a ``Step`` leaves out when ``pairs_in_cmd`` is set."""
 
@@ -119,13 +121,12 @@ def _file_descriptor() -> descriptor_pb2.FileDescriptorProto:
 FILE_DESCRIPTOR = _file_descriptor()
 _POOL = descriptor_pool.DescriptorPool()
 _POOL.Add(FILE_DESCRIPTOR)
-StepMsg: Any = message_factory.GetMessageClass(_POOL.FindMessageTypeByName(f"{PACKAGE}.Step"))
-HandSampleMsg: Any = message_factory.GetMessageClass(
-    _POOL.FindMessageTypeByName(f"{PACKAGE}.HandSample")
-)
-JointsMsg: Any = message_factory.GetMessageClass(_POOL.FindMessageTypeByName(f"{PACKAGE}.Joints"))
 STEP_MESSAGE = f"{PACKAGE}.Step"
 HANDS_MESSAGE = f"{PACKAGE}.HandSample"
+JOINTS_MESSAGE = f"{PACKAGE}.Joints"
+StepMsg: Any = message_factory.GetMessageClass(_POOL.FindMessageTypeByName(STEP_MESSAGE))
+HandSampleMsg: Any = message_factory.GetMessageClass(_POOL.FindMessageTypeByName(HANDS_MESSAGE))
+JointsMsg: Any = message_factory.GetMessageClass(_POOL.FindMessageTypeByName(JOINTS_MESSAGE))
 
 
 def schema_data() -> bytes:
@@ -136,12 +137,14 @@ def schema_data() -> bytes:
 __all__ = [
     "FILE_DESCRIPTOR",
     "HANDS_MESSAGE",
+    "JOINTS_MESSAGE",
     "MODULE_NAMES",
     "PACKAGE",
     "PAIR_FIELDS",
     "PAIR_L_INDEX",
     "PAIR_R_INDEX",
     "PHASE_NAMES",
+    "RAIL_INDEX",
     "STEP_DOUBLES",
     "STEP_MESSAGE",
     "HandSampleMsg",
