@@ -369,17 +369,16 @@ def _checked_with() -> str:
     import sys
     from importlib import metadata
 
-    versions = []
-    for package in ("numpy", "mujoco"):
-        try:
-            versions.append(f"{package}={metadata.version(package)}")
-        except metadata.PackageNotFoundError:  # pragma: no cover - the workbench's own
-            versions.append(f"{package}=?")
+    try:
+        mujoco = metadata.version("mujoco")
+    except metadata.PackageNotFoundError:  # pragma: no cover - a workbench dependency
+        mujoco = "?"
     return "\n".join(
         [
             _SOURCES,
             sys.version,
-            *versions,
+            f"numpy={_numpy_version()}",
+            f"mujoco={mujoco}",
             platform.machine(),
             _processor(),
             *(f"{name}={os.environ.get(name, '')}" for name in CHECK_ENVIRONMENT),

@@ -124,16 +124,14 @@ def compiled_targets(
     numpy code): no compiler, no numpy OpenBLAS, ``PAYLOAD_NATIVE=0``, a failed build, or
     a self-check on 200 random features (pinch, open, beyond both) that differs from
     ``reference`` in a single bit."""
-    gemv = native.numpy_dgemv()
-    if gemv is None:
-        return None
-    lib = native.load_kernel(
-        "targets", SOURCE, "the targets kernel", log, prelude=f"#define N_FEATURES {N_FEATURES}\n"
-    )
-    if lib is None:
+    loaded = native.load_blas_kernel(
+        "targets", SOURCE, "the targets kernel", log, native.NUMPY_DGEMV,
+        prelude=f"#define N_FEATURES {N_FEATURES}\n",
+    )  # fmt: skip
+    if loaded is None:
         return None
     try:
-        kernel = CompiledTargets(calibration, lib, gemv)
+        kernel = CompiledTargets(calibration, *loaded)
     except ValueError as exc:
         log.warning("pair targets: numpy (%s)", exc)
         return None

@@ -49,9 +49,8 @@ calling convention): what numpy's ``lstsq`` runs."""
 SOURCE = r"""
 #include <stdlib.h>
 
-/* MAXN (the most columns) and EPS (float64's machine epsilon, numpy's lstsq cutoff
-   factor) are defined by the loader */
-#define MAXM 6
+/* MAXM (the rows: a wrench's), MAXN (the most columns) and EPS (float64's machine
+   epsilon, numpy's lstsq cutoff factor) are defined by the loader */
 
 typedef void (*dgelsd_fn)(const int64_t *m, const int64_t *n, const int64_t *nrhs,
                           double *a, const int64_t *lda, double *b, const int64_t *ldb,
@@ -321,14 +320,14 @@ Problem = tuple[np.ndarray, np.ndarray, np.ndarray, float, bool]
 """A facet solve's inputs: ``(a, rest, ub, tol, same_rank)``."""
 
 
-def random_problems(n: int, columns: int, seed: int = 0) -> list[Problem]:
-    """Bounded least-squares problems like the facets' (6 rows, 2 to ``columns`` columns,
+def random_problems(n: int, rows: int, columns: int, seed: int = 0) -> list[Problem]:
+    """Bounded least-squares problems like the facets' (``rows`` rows, 2 to ``columns`` columns,
     some of them parallel, right-hand sides in and beyond reach), the self-check's probes."""
     rng = np.random.default_rng(seed)
     out = []
     for i in range(n):
         cols = int(rng.integers(2, columns + 1))
-        a = rng.normal(size=(6, cols))
+        a = rng.normal(size=(rows, cols))
         if i % 4 == 1:  # repeated columns: rank-deficient, as coplanar nozzles are
             a[:, cols - 1] = a[:, 0]
         ub = rng.uniform(0.2, 1.0, size=cols)
@@ -345,23 +344,26 @@ def compiled_facet_solve(
     problems: Iterable[Problem],
     bvls_tol: float,
     columns: int,
+    rows: int,
 ) -> CompiledFacetSolve | None:
-    """The compiled facet solve for up to ``columns`` in-plane nozzles (more go to numpy),
+    """The compiled facet solve of ``rows`` wrench components for up to ``columns``
+    in-plane nozzles (more go to numpy),
     or None to run ``reference(a, rest, ub, tol, same_rank)`` (the numpy solve): no
     compiler, no numpy OpenBLAS or ``dgelsd``, ``PAYLOAD_NATIVE=0``, a failed build, or a
     self-check on ``problems`` (the allocation's own facets) and :func:`random_problems`
     that differs in a single bit (a problem the kernel leaves to numpy is not a
     difference, but at least some must be its own)."""
+    prelude = f"#define MAXM {rows}\n#define MAXN {columns}\n#define EPS {EPS!r}\n"
     loaded = native.load_blas_kernel(
         "facet", SOURCE, "the facet solve kernel", log, NUMPY_DGELSD, native.NUMPY_DGEMV,
-        native.NUMPY_DDOT, prelude=f"#define MAXN {columns}\n#define EPS {EPS!r}\n",
+        native.NUMPY_DDOT, prelude=prelude,
     )  # fmt: skip
     if loaded is None:
         return None
     kernel = CompiledFacetSolve(loaded[0], loaded[1:], bvls_tol)
     answered = 0
     with np.errstate(all="ignore"):
-        for problem in [*problems, *random_problems(300, columns)]:
+        for problem in [*problems, *random_problems(300, rows, columns)]:
             mine = kernel(*problem)
             if mine is None:
                 continue

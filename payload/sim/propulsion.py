@@ -410,10 +410,11 @@ class Propulsion:
             for k in range(0, len(offsets), max(1, len(offsets) // 40)):
                 out, _, a_free, ub, same_rank = self._facet_parts[k]
                 for scale in (1.0, 1.2, 2.0):  # on the facet and beyond it, pulled sideways
-                    w = normals[k] * offsets[k] * scale + rng.normal(scale=0.3, size=6)
+                    pull = rng.normal(scale=0.3, size=normals.shape[1])
+                    w = normals[k] * offsets[k] * scale + pull
                     yield a_free, w - self.matrix @ out, ub, self._facet_tol, same_rank
 
-        return compiled_facet_solve(_facet_solve, problems(), BVLS_TOL, N_NOZZLES)
+        return compiled_facet_solve(_facet_solve, problems(), BVLS_TOL, N_NOZZLES, len(self.matrix))
 
     @cached_property
     def _least_tol(self) -> float:

@@ -188,13 +188,13 @@ def compiled_hand_features(reference: Callable[[Any], Any]) -> CompiledHandFeatu
     compiler, no numpy OpenBLAS, ``PAYLOAD_NATIVE=0``, a failed build, or a self-check on
     :func:`random_hands` that differs in a single bit from ``reference``, the numpy code:
     :func:`~payload.teleop.pipeline.human_features`)."""
-    gemv, ddot = native.numpy_dgemv(), native.numpy_blas(native.NUMPY_DDOT)
-    if gemv is None or ddot is None:
+    loaded = native.load_blas_kernel(
+        "hand_features", SOURCE, "the hand features kernel", log,
+        native.NUMPY_DGEMV, native.NUMPY_DDOT,
+    )  # fmt: skip
+    if loaded is None:
         return None
-    lib = native.load_kernel("hand_features", SOURCE, "the hand features kernel", log)
-    if lib is None:
-        return None
-    kernel = CompiledHandFeatures(lib, gemv, ddot)
+    kernel = CompiledHandFeatures(*loaded)
     from payload.teleop.hands import Hand
 
     def want_of(joints: np.ndarray) -> np.ndarray | None:
