@@ -328,12 +328,16 @@ def test_the_operators_route_lengths_are_the_routes_remaining_length() -> None:
     length (against numpy's segment norms), and the wrists' centre and half span."""
     rng = np.random.default_rng(4)
     route = np.cumsum(rng.normal(size=(6, 3)), axis=0)
-    plan = OperatorPlan(route=route, heading0=0.7, rail_distance=0.3)
+    left, right = np.array([0.3, 0.2, 1.0]), np.array([0.4, -0.1, 1.1])
+    plan = OperatorPlan(
+        route=route, heading0=0.7, rail_distance=0.3, neutral_left=left, neutral_right=right
+    )
     op = SyntheticOperator(plan, 3, CalibrationProcedure())
     segments = np.linalg.norm(np.diff(route, axis=0), axis=1)
     for w in range(len(route)):
         assert op._route_left[w] == pytest.approx(segments[w:].sum(), rel=1e-12, abs=0.0)
     centre, half = op._posture
-    np.testing.assert_allclose(centre + half, [0.35, 0.15, 1.05])
+    np.testing.assert_allclose(centre + half, [0.35, 0.05 + 0.15, 1.05], rtol=1e-15)
+    np.testing.assert_allclose(centre - half, [0.35, 0.05 - 0.15, 1.05], rtol=1e-15)
     forward = op._to_operator @ [math.cos(0.7), math.sin(0.7), 0.0]  # the operator's forward
     np.testing.assert_allclose(forward, [1.0, 0.0, 0.0], atol=1e-15)
