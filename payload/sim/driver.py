@@ -179,13 +179,13 @@ class SimDriver:
     def _read_kernel(self, kernel: Any) -> PayloadState:
         """:meth:`read` through the read-out kernel."""
         out, health = kernel.read()
-        n = kernel.n
+        part = kernel.payload
         return PayloadState(
-            q=out[:n],
-            deploy=float(out[n]),
+            q=out[part["q"]],
+            deploy=float(out[part["deploy"].start]),
             stamp=float(self.data.time),
-            dq=out[n + 1 : 2 * n + 1],
-            effort=out[2 * n + 1 :],
+            dq=out[part["dq"]],
+            effort=out[part["effort"]],
             health=Health(health),
         )
 

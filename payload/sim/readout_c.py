@@ -53,9 +53,39 @@ WORLD_SLICES: dict[str, slice] = {
 }
 """Each field's part of the world read-out's buffer."""
 
+POSE_SIZE = WORLD_SLICES["astrobee_quat"].stop - WORLD_SLICES["astrobee_pos"].start
+"""A free joint's ``qpos`` (position, then quaternion): one copy into the buffer, so the
+layout keeps each body's position and quaternion side by side."""
+assert all(  # a body's position, then its quaternion, as its free joint's qpos has them
+    WORLD_SLICES[f"{body}_quat"].start == WORLD_SLICES[f"{body}_pos"].stop
+    and WORLD_SLICES[f"{body}_quat"].stop - WORLD_SLICES[f"{body}_pos"].start == POSE_SIZE
+    for body in ("astrobee", "ctb")
+)
+
+PAYLOAD_LAYOUT: tuple[tuple[str, int | None], ...] = (
+    ("q", None),
+    ("deploy", 1),
+    ("dq", None),
+    ("effort", None),
+)
+"""The payload read-out's fields in its buffer, in order (None: one per manipulation
+joint)."""
+
+
+def payload_slices(n: int) -> dict[str, slice]:
+    """Each field's part of the payload read-out's buffer, for ``n`` manipulation joints."""
+    out: dict[str, slice] = {}
+    at = 0
+    for name, size in PAYLOAD_LAYOUT:
+        width = n if size is None else size
+        out[name] = slice(at, at + width)
+        at += width
+    return out
+
+
 SOURCE = r"""
-/* OFF_LINEAR, OFF_ANGULAR, OFF_CTB, and OVERLOAD and LIMIT (the Health flags) are defined by
-   the loader */
+/* OFF_POS, POSE, OFF_LINEAR, OFF_ANGULAR, OFF_CTB (WORLD_LAYOUT), and OVERLOAD and LIMIT
+   (the Health flags) are defined by the loader */
 typedef struct {
     dgemv_fn gemv;
     const double *qpos, *qvel, *xmat, *force;
@@ -64,20 +94,21 @@ typedef struct {
     const int64_t *q_idx, *dof_idx, *effort_idx, *ctrl_idx;
     int64_t nctrl;
     const double *overload, *lo, *hi;          /* (nctrl), (nq), (nq) */
+    int64_t off_q, off_deploy, off_dq, off_effort;  /* PAYLOAD_LAYOUT */
 } readout;
 
-/* pos (3), quat (4), body linear (3), angular (3)[, CTB pos (3), quat (4)] */
+/* WORLD_LAYOUT: pose, body linear and angular velocity[, the CTB's pose] */
 void payload_world(const readout *r, double *out)
 {
     const double *q = r->qpos + r->a_qpos, *v = r->qvel + r->a_dof;
-    for (int i = 0; i < 7; i++) out[i] = q[i];
+    for (int i = 0; i < POSE; i++) out[OFF_POS + i] = q[i];
     r->gemv(COL_MAJOR, NO_TRANS, 3, 3, 1.0, r->xmat, 3, v, 1, 0.0, out + OFF_LINEAR, 1);
     for (int i = 0; i < 3; i++) out[OFF_ANGULAR + i] = v[3 + i];
     if (r->ctb_qpos >= 0)
-        for (int i = 0; i < 7; i++) out[OFF_CTB + i] = r->qpos[r->ctb_qpos + i];
+        for (int i = 0; i < POSE; i++) out[OFF_CTB + i] = r->qpos[r->ctb_qpos + i];
 }
 
-/* q (nq), deploy, dq (nq), effort (nq); returns the health bits (overload 1, limit 2) */
+/* PAYLOAD_LAYOUT: q, deploy, dq, effort; returns the health bits */
 int payload_read(const readout *r, double *out)
 {
     int64_t n = r->nq;
@@ -86,12 +117,12 @@ int payload_read(const readout *r, double *out)
         if (fabs(r->force[r->ctrl_idx[i]]) >= r->overload[i]) health |= OVERLOAD;
     for (int64_t i = 0; i < n; i++) {
         double q = r->qpos[r->q_idx[i]];
-        out[i] = q;
+        out[r->off_q + i] = q;
         if (q <= r->lo[i] || q >= r->hi[i]) health |= LIMIT;
     }
-    out[n] = r->qpos[r->stage];
-    for (int64_t i = 0; i < n; i++) out[n + 1 + i] = r->qvel[r->dof_idx[i]];
-    for (int64_t i = 0; i < n; i++) out[2 * n + 1 + i] = r->force[r->effort_idx[i]];
+    out[r->off_deploy] = r->qpos[r->stage];
+    for (int64_t i = 0; i < n; i++) out[r->off_dq + i] = r->qvel[r->dof_idx[i]];
+    for (int64_t i = 0; i < n; i++) out[r->off_effort + i] = r->force[r->effort_idx[i]];
     return health;
 }
 """
@@ -105,6 +136,7 @@ class _Readout(ctypes.Structure):
         *[(f, ctypes.c_void_p) for f in ("q_idx", "dof_idx", "effort_idx", "ctrl_idx")],
         ("nctrl", ctypes.c_int64),
         *[(f, ctypes.c_void_p) for f in ("overload", "lo", "hi")],
+        *[(f"off_{name}", ctypes.c_int64) for name, _ in PAYLOAD_LAYOUT],
     ]
 
 
@@ -156,14 +188,18 @@ class CompiledReadout:
         bounds = np.broadcast_to(np.asarray(overload, dtype=np.float64), ints[3].shape)
         reals = [np.ascontiguousarray(x, dtype=np.float64) for x in (bounds, lo, hi)]
         self._keep = (ints, reals)
+        self.payload = payload_slices(n)
+        """Each field's part of :meth:`read`'s buffer (:data:`PAYLOAD_LAYOUT`)."""
         self._ctx = _Readout(
             gemv, data.qpos.ctypes.data, data.qvel.ctypes.data,
             data.xmat[body].ctypes.data, data.actuator_force.ctypes.data,
             a_qpos, a_dof, ctb_qpos, n, stage,
             *[x.ctypes.data for x in ints], len(ints[3]),
             *[x.ctypes.data for x in reals],
+            *[self.payload[name].start for name, _ in PAYLOAD_LAYOUT],
         )  # fmt: skip
         self.n = n
+        self.payload_size = self.payload[PAYLOAD_LAYOUT[-1][0]].stop
         last = "ctb_quat" if ctb_qpos >= 0 else "astrobee_angular"
         self.world_size = WORLD_SLICES[last].stop
         self.slices = WORLD_SLICES
@@ -182,9 +218,9 @@ class CompiledReadout:
         return out
 
     def read(self) -> tuple[np.ndarray, int]:
-        """(q (N), deploy, dq (N), effort (N) as one fresh array; the health, as
-        :class:`~payload.schema.Health`'s ``OVERLOAD`` and ``LIMIT`` bits)."""
-        out = np.empty(3 * self.n + 1)
+        """(The payload read-out, a fresh array laid out as :attr:`payload`; the health,
+        as :class:`~payload.schema.Health`'s ``OVERLOAD`` and ``LIMIT`` bits)."""
+        out = np.empty(self.payload_size)
         return out, self._read(self._ptr, out.ctypes.data)
 
 
@@ -200,6 +236,7 @@ def compiled_readout(
     False."""
     at = {name: part.start for name, part in WORLD_SLICES.items()}
     prelude = (
+        f"#define OFF_POS {at['astrobee_pos']}\n#define POSE {POSE_SIZE}\n"
         f"#define OFF_LINEAR {at['astrobee_linear']}\n"
         f"#define OFF_ANGULAR {at['astrobee_angular']}\n"
         f"#define OFF_CTB {at['ctb_pos']}\n"
@@ -228,9 +265,12 @@ def compiled_readout(
 
 
 __all__ = [
+    "PAYLOAD_LAYOUT",
+    "POSE_SIZE",
     "SOURCE",
     "WORLD_LAYOUT",
     "WORLD_SLICES",
     "CompiledReadout",
     "compiled_readout",
+    "payload_slices",
 ]
