@@ -311,18 +311,24 @@ def probe_wrenches(prop: Any, n: int = _PROBES, seed: int = 0) -> np.ndarray:
 def compiled_searches(prop: Any) -> CompiledSearches | None:
     """The compiled searches for ``prop``, or None to run numpy's (no compiler, no numpy
     OpenBLAS, ``PAYLOAD_NATIVE=0``, a failed build, or a self-check that differs from the
-    numpy code in a single bit on :func:`probe_wrenches`)."""
-    loaded = load_with_searches("allocation kernels", len(prop.thrust_max))
+    numpy code in a single bit on :func:`probe_wrenches`: :data:`_PROBES`, or their first
+    tenth once a build for as many nozzles passed, here or in an earlier process:
+    :func:`payload.native.probes`)."""
+    nozzles = len(prop.thrust_max)
+    loaded = load_with_searches("allocation kernels", nozzles)
     if loaded is None:
         return None
     kernels = CompiledSearches(prop, *loaded)
-    for w in probe_wrenches(prop):
+    n = native.probes(loaded[0], nozzles, _PROBES, _PROBES // 10)
+    for w in probe_wrenches(prop, n):
         if not (
             _same(kernels.extent(w), prop._extent_numpy(w))
             and _same(kernels.least_thrust(w), prop._least_thrust_numpy(w))
         ):
             log.warning("allocation kernels: numpy (the compiled searches differ on %s)", w)
             return None
+    if n == _PROBES:
+        native.passed(loaded[0], nozzles)
     return kernels
 
 

@@ -320,6 +320,10 @@ Problem = tuple[np.ndarray, np.ndarray, np.ndarray, float, bool]
 """A facet solve's inputs: ``(a, rest, ub, tol, same_rank)``."""
 
 
+RANDOM_PROBES = 300
+"""Random problems of the facet solve's full self-check (:func:`compiled_facet_solve`)."""
+
+
 def random_problems(n: int, rows: int, columns: int, seed: int = 0) -> list[Problem]:
     """Bounded least-squares problems like the facets' (``rows`` rows, 2 to ``columns`` columns,
     some of them parallel, right-hand sides in and beyond reach), the self-check's probes."""
@@ -350,9 +354,11 @@ def compiled_facet_solve(
     in-plane nozzles (more go to numpy),
     or None to run ``reference(a, rest, ub, tol, same_rank)`` (the numpy solve): no
     compiler, no numpy OpenBLAS or ``dgelsd``, ``PAYLOAD_NATIVE=0``, a failed build, or a
-    self-check on ``problems`` (the allocation's own facets) and :func:`random_problems`
-    that differs in a single bit (a problem the kernel leaves to numpy is not a
-    difference, but at least some must be its own)."""
+    self-check on ``problems`` (the allocation's own facets) and :data:`RANDOM_PROBES` of
+    :func:`random_problems` that differs in a single bit (a problem the kernel leaves to
+    numpy is not a difference, but at least some must be its own); the first tenth of
+    each once a build of the same size passed, here or in an earlier process
+    (:func:`payload.native.probes`)."""
     prelude = f"#define MAXM {rows}\n#define MAXN {columns}\n#define EPS {EPS!r}\n"
     loaded = native.load_blas_kernel(
         "facet", SOURCE, "the facet solve kernel", log, NUMPY_DGELSD, native.NUMPY_DGEMV,
@@ -361,9 +367,14 @@ def compiled_facet_solve(
     if loaded is None:
         return None
     kernel = CompiledFacetSolve(loaded[0], loaded[1:], bvls_tol)
+    key = (rows, columns)
+    n = native.probes(loaded[0], key, RANDOM_PROBES, RANDOM_PROBES // 10)
+    own = list(problems)
+    if n < RANDOM_PROBES:
+        own = own[: max(1, len(own) // 10)]
     answered = 0
     with np.errstate(all="ignore"):
-        for problem in [*problems, *random_problems(300, rows, columns)]:
+        for problem in [*own, *random_problems(n, rows, columns)]:
             mine = kernel(*problem)
             if mine is None:
                 continue
@@ -375,11 +386,14 @@ def compiled_facet_solve(
     if not answered:
         log.warning("facet solve: numpy (the kernel answered none of its probes)")
         return None
+    if n == RANDOM_PROBES:
+        native.passed(loaded[0], key)
     return kernel
 
 
 __all__ = [
     "NUMPY_DGELSD",
+    "RANDOM_PROBES",
     "SOURCE",
     "CompiledFacetSolve",
     "compiled_facet_solve",
