@@ -340,3 +340,53 @@ def test_the_kept_extents_are_bounded(monkeypatch, tmp_path):
     assert p.max_along(e) == pytest.approx(_lp_extent(p, e), rel=1e-9)
     (kept,) = tmp_path.glob("propulsion_extents_*.json")
     assert 1 <= len(json.loads(kept.read_text())) <= 3
+
+
+def test_later_searches_and_facet_solves_run_the_short_check_and_still_refuse(
+    fresh_checks, monkeypatch
+):
+    """The allocation's compiled searches and facet solve are checked on all their probes
+    the first time (400 wrenches; 300 random problems), then, once a stamp says a build of
+    the same size passed, on the first tenth; a numpy answer that differs there still
+    refuses the kernel."""
+    from payload.sim import facet_c
+    from payload.sim.propulsion import N_NOZZLES, _facet_solve
+
+    real = Propulsion._extent_numpy
+    asked: list[int] = []
+    lie_at: list[int | None] = [None]
+
+    def extent(self, w):
+        asked.append(1)
+        lam, k = real(self, w)
+        return (2.0 * lam + 1.0, k) if len(asked) == lie_at[0] else (lam, k)
+
+    monkeypatch.setattr(Propulsion, "_extent_numpy", extent)
+
+    def searches(lie=None):
+        asked.clear()
+        lie_at[0] = lie
+        return Propulsion(FLIGHT_MODES["nominal"].force)._kernels, len(asked)
+
+    first, n = searches()
+    assert first is not None and n == 400
+    again, n = searches()
+    assert again is not None and n == 40
+    assert searches(lie=37) == (None, 37)
+
+    def facet(lie=None):
+        calls: list[int] = []
+
+        def reference(*problem):
+            calls.append(1)
+            x = _facet_solve(*problem)
+            return x + 1.0 if len(calls) == lie else x
+
+        made = facet_c.compiled_facet_solve(reference, [], BVLS_TOL, N_NOZZLES, 6)
+        return made, len(calls)
+
+    kernel, n = facet()
+    assert kernel is not None and 100 < n <= 300  # the problems it leaves to numpy are not asked
+    short, m = facet()
+    assert short is not None and 10 < m <= 30
+    assert facet(lie=m) == (None, m)
