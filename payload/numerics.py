@@ -3,13 +3,18 @@
 from __future__ import annotations
 
 import contextlib
+import os
 import threading
 from collections.abc import Iterator
 from typing import Any
 
+THREAD_VARIABLES: tuple[str, ...] = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+"""What OpenBLAS, OpenMP and MKL read their thread counts from when they load."""
+
 _LIMIT_LOCK = threading.Lock()
 _LIMIT_USERS = 0
 _LIMITER: Any = None
+_SAVED_VARIABLES: dict[str, str | None] = {}
 
 
 @contextlib.contextmanager
@@ -20,22 +25,24 @@ def single_threaded_numerics() -> Iterator[None]:
     bits with the thread count; trials and the retargeter's span ranges run under this so
     every process and machine gets the same numbers.
 
-    The limit covers the BLAS libraries loaded when the first user enters, so SciPy's
-    (which the trials and span ranges use: linear programs, SLSQP) is loaded here first.
+    The limit covers the BLAS libraries loaded when the first user enters; one loaded
+    later inside it (SciPy's, which a trial imports only on a cache miss: the
+    propulsion's linear programs, the span range's SLSQP) starts single-threaded, since
+    the variables its threads are read from when it loads (:data:`THREAD_VARIABLES`) say
+    1 meanwhile. So SciPy need not be loaded here (a tenth of a second a process).
 
     The limit is process-wide, so it is counted: the first trial to enter sets it and
     the last to leave restores it (a thread leaving early must not lift the limit under
     a trial still running in another thread).
     """
-    global _LIMIT_USERS, _LIMITER
-    # SciPy ships its own OpenBLAS, loaded with scipy.linalg; a library loaded after the
-    # limit is set escapes it, so it is loaded first (nothing imports SciPy at start-up)
-    import scipy.linalg  # noqa: F401
+    global _LIMIT_USERS, _LIMITER, _SAVED_VARIABLES
     from threadpoolctl import threadpool_limits
 
     with _LIMIT_LOCK:
         if _LIMIT_USERS == 0:
             _LIMITER = threadpool_limits(limits=1)
+            _SAVED_VARIABLES = {name: os.environ.get(name) for name in THREAD_VARIABLES}
+            os.environ.update(dict.fromkeys(THREAD_VARIABLES, "1"))
         _LIMIT_USERS += 1
     try:
         yield
@@ -45,6 +52,11 @@ def single_threaded_numerics() -> Iterator[None]:
             if _LIMIT_USERS == 0:
                 _LIMITER.restore_original_limits()
                 _LIMITER = None
+                for name, value in _SAVED_VARIABLES.items():
+                    if value is None:
+                        os.environ.pop(name, None)
+                    else:
+                        os.environ[name] = value
 
 
-__all__ = ["single_threaded_numerics"]
+__all__ = ["THREAD_VARIABLES", "single_threaded_numerics"]

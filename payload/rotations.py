@@ -71,4 +71,61 @@ def yaw_of_matrix(rot: np.ndarray) -> float:
     return math.atan2(rot[1, 0], rot[0, 0])
 
 
-__all__ = ["matrix_to_quat", "quat_to_matrix", "yaw_matrix", "yaw_of_matrix", "yaw_quat"]
+def rotate_by_quats(quats: np.ndarray, vectors: np.ndarray, inverse: bool = False) -> np.ndarray:
+    """Vectors rotated by quaternions, one each: what SciPy's
+    ``Rotation.from_quat(quats[:, [1, 2, 3, 0]]).apply(vectors)`` (``.inv().apply`` with
+    ``inverse``) computes, bit for bit, without importing SciPy (a quarter of a second in
+    a fresh process).
+
+    As SciPy does: each quaternion is divided by its norm (summed x, y, z, w), the inverse
+    is the conjugate, the matrix is the usual one of the products ``x * x``, ``x * y``, ...
+    and the vectors are multiplied with numpy's ``einsum("ijk,ik->ij")`` (what SciPy's
+    compiled ``apply`` calls).
+
+    Args:
+        quats: Quaternions (w, x, y, z), shape (N, 4), any non-zero norm.
+        vectors: Shape (N, 3), or (3,) for every quaternion.
+        inverse: Rotate by the inverses.
+
+    Returns:
+        Shape (N, 3).
+
+    Raises:
+        ValueError: A quaternion of zero or non-finite norm, or shapes that disagree.
+    """
+    q = np.asarray(quats, dtype=np.float64).reshape(-1, 4)
+    w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
+    norm = np.sqrt(x * x + y * y + z * z + w * w)
+    if not (np.isfinite(norm).all() and (norm > 0.0).all()):
+        raise ValueError("rotate_by_quats: a quaternion of zero or non-finite norm")
+    x, y, z, w = x / norm, y / norm, z / norm, w / norm
+    if inverse:
+        x, y, z = -x, -y, -z
+    x2, y2, z2, w2 = x * x, y * y, z * z, w * w
+    xy, zw, xz, yw, yz, xw = x * y, z * w, x * z, y * w, y * z, x * w
+    m = np.empty((len(q), 3, 3))
+    m[:, 0, 0] = x2 - y2 - z2 + w2
+    m[:, 1, 0] = 2 * (xy + zw)
+    m[:, 2, 0] = 2 * (xz - yw)
+    m[:, 0, 1] = 2 * (xy - zw)
+    m[:, 1, 1] = -x2 + y2 - z2 + w2
+    m[:, 2, 1] = 2 * (yz + xw)
+    m[:, 0, 2] = 2 * (xz + yw)
+    m[:, 1, 2] = 2 * (yz - xw)
+    m[:, 2, 2] = -x2 - y2 + z2 + w2
+    v = np.asarray(vectors, dtype=np.float64)
+    if v.shape == (3,):
+        v = np.broadcast_to(v, (len(q), 3))
+    if v.shape != (len(q), 3):
+        raise ValueError(f"rotate_by_quats: {len(q)} quaternions, vectors of shape {v.shape}")
+    return np.einsum("ijk,ik->ij", m, v)
+
+
+__all__ = [
+    "matrix_to_quat",
+    "quat_to_matrix",
+    "rotate_by_quats",
+    "yaw_matrix",
+    "yaw_of_matrix",
+    "yaw_quat",
+]

@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 
 from conftest import ROOT
+
+from payload.numerics import THREAD_VARIABLES
 
 
 def test_single_threaded_numerics_limit_the_blas_scipy_loads_after_start_up() -> None:
@@ -35,3 +38,29 @@ def test_single_threaded_numerics_limit_the_blas_scipy_loads_after_start_up() ->
     assert before and set(inside) == set(after) >= set(before)
     assert set(inside.values()) == {1}
     assert {path: after[path] for path in before} == before
+    # the control: SciPy imported outside the limit runs its BLAS on every core here
+    if (os.cpu_count() or 1) > 1:
+        plain = (
+            "import json, scipy.optimize\n"
+            "from threadpoolctl import threadpool_info\n"
+            "print(json.dumps({i['filepath']: i['num_threads'] for i in threadpool_info()}))\n"
+        )
+        env = {k: v for k, v in os.environ.items() if k not in THREAD_VARIABLES}
+        done = subprocess.run(
+            [sys.executable, "-c", plain], capture_output=True, text=True, cwd=ROOT,
+            check=True, env=env,
+        )  # fmt: skip
+        loaded_inside = set(inside) - set(before)
+        assert loaded_inside and all(json.loads(done.stdout)[p] > 1 for p in loaded_inside)
+
+
+def test_the_thread_variables_are_restored_after_the_last_user(monkeypatch) -> None:
+    from payload.numerics import single_threaded_numerics
+
+    monkeypatch.setenv("OMP_NUM_THREADS", "3")
+    monkeypatch.delenv("OPENBLAS_NUM_THREADS", raising=False)
+    with single_threaded_numerics():
+        with single_threaded_numerics():
+            assert all(os.environ[name] == "1" for name in THREAD_VARIABLES)
+        assert os.environ["OPENBLAS_NUM_THREADS"] == "1"  # the outer user still runs
+    assert os.environ["OMP_NUM_THREADS"] == "3" and "OPENBLAS_NUM_THREADS" not in os.environ

@@ -47,3 +47,28 @@ def test_a_repeated_quaternion_gives_a_fresh_matrix_of_the_same_bits():
         pass
     else:
         raise AssertionError("a (2, 2) array was taken for a quaternion")
+
+
+def test_rotating_by_quaternions_gives_scipys_bits():
+    """The metrics' and the route figure's rotations are SciPy's ``Rotation.from_quat``
+    then ``apply`` (or ``inv().apply``), bit for bit, on quaternions of any norm and
+    vectors of many scales; one vector is rotated by every quaternion; a zero quaternion
+    is refused, as SciPy refuses it."""
+    import pytest
+    from scipy.spatial.transform import Rotation
+
+    from payload.rotations import rotate_by_quats
+
+    rng = np.random.default_rng(7)
+    n = 20000
+    q = rng.normal(size=(n, 4)) * rng.choice((1e-3, 1.0, 1e3), size=(n, 1))
+    v = rng.normal(size=(n, 3)) * rng.choice((1e-4, 1.0, 30.0), size=(n, 1))
+    scipy_rot = Rotation.from_quat(q[:, [1, 2, 3, 0]])
+    for inverse, want in ((False, scipy_rot.apply(v)), (True, scipy_rot.inv().apply(v))):
+        assert rotate_by_quats(q, v, inverse=inverse).tobytes() == want.tobytes()
+    one = np.array([1.0, 0.0, 0.0])
+    np.testing.assert_allclose(rotate_by_quats(q[:50], one), scipy_rot[:50].apply(one), 0, 1e-15)
+    with pytest.raises(ValueError, match="zero or non-finite"):
+        rotate_by_quats(np.zeros((1, 4)), one)
+    with pytest.raises(ValueError):
+        Rotation.from_quat(np.zeros(4))

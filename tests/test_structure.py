@@ -220,3 +220,38 @@ def test_a_trial_worker_imports_only_what_a_trial_needs() -> None:
     assert {"numpy", "mujoco", "pinocchio", "casadi", "payload.sim.world"} <= loaded
     never = tuple(f"{name}." for name in WORKER_NEVER)
     assert sorted(m for m in loaded if m in WORKER_NEVER or m.startswith(never)) == []
+
+
+def test_a_whole_trial_scored_and_drawn_loads_no_scipy(tmp_path) -> None:
+    """A trial with its scoring and figures (a short one, past the calibration) runs
+    without SciPy: the metrics' rotations are the workbench's (SciPy's bits, tested in
+    test_rotations.py), the propulsion's programmes come from the cache and the numerics'
+    limit no longer loads SciPy's BLAS ahead. The cache is this process's, warmed here."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    from payload.cli import COMMAND_ENV
+    from payload.trials import runner
+
+    runner.run_trial(0, out_dir=tmp_path / "warm", max_time=16.0)  # the caches this one uses
+    code = (
+        "import json, sys\n"
+        "from pathlib import Path\n"
+        "from payload.trials import runner\n"
+        "r = runner.run_trial(0, out_dir=Path(sys.argv[1]), max_time=16.0)\n"
+        "print(json.dumps([sorted(sys.modules), r['steps']]))\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code, str(tmp_path / "trial")],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        env={**os.environ, **COMMAND_ENV},
+        check=True,
+    )
+    loaded, steps = json.loads(done.stdout.splitlines()[-1])
+    assert steps > 600 and (tmp_path / "trial" / "fig_ctb_body_frame.png").is_file()
+    assert "matplotlib" in loaded and "payload.trials.metrics" in loaded
+    assert sorted(m for m in loaded if m == "scipy" or m.startswith("scipy.")) == []

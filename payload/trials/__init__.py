@@ -3,8 +3,8 @@ on Dask and LeRobot export.
 
 Every name loads on first use (module ``__getattr__``): importing the package (or a
 command module inside it) costs no numerical library; the recorder and the metrics bring
-numpy, scipy and mcap, figures, campaigns and the LeRobot export matplotlib, Dask and
-pyarrow, when first used.
+numpy and mcap, figures, campaigns and the LeRobot export matplotlib, Dask and pyarrow,
+when first used.
 """
 
 from __future__ import annotations

@@ -15,9 +15,9 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.patches import Patch, Rectangle
-from scipy.spatial.transform import Rotation
 
 from payload.errors import PayloadError
+from payload.rotations import rotate_by_quats
 from payload.safeio import replacing
 from payload.trials.metrics import TrialMetrics, compute_metrics, ctb_in_body_frame
 from payload.trials.recorder import Recording
@@ -272,7 +272,7 @@ def plot_route(
     # heading arrows (body x axis) every ~10 % of the route
     q = recording.astrobee_quat
     idx = np.unique(np.linspace(0, len(recording) - 1, 11).astype(int))
-    heading = Rotation.from_quat(q[idx][:, [1, 2, 3, 0]]).apply([1.0, 0.0, 0.0])
+    heading = rotate_by_quats(q[idx], np.array([1.0, 0.0, 0.0]))
     ax.quiver(
         pb[idx, 0], pb[idx, 1], heading[:, 0], heading[:, 1], color="#08306b", width=0.004,
         scale=25, alpha=0.7,

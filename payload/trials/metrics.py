@@ -38,9 +38,9 @@ from dataclasses import asdict, dataclass
 from typing import Any
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from payload.errors import PayloadError
+from payload.rotations import rotate_by_quats
 from payload.trials.recorder import MODULES, Recording
 
 CONFIRM_MIN_S = 0.5
@@ -168,8 +168,7 @@ def ctb_in_body_frame(
     if not np.all(np.isfinite(norms)) or np.any(norms < 1e-9):
         bad = int(np.flatnonzero(~np.isfinite(norms) | (norms < 1e-9))[0])
         raise MetricsError(f"eq. 4: Astrobee quaternion at sample {bad} is zero or not finite")
-    rot = Rotation.from_quat(q[:, [1, 2, 3, 0]] / norms[:, None])  # scipy wants x y z w
-    return rot.inv().apply(pc - pb)
+    return rotate_by_quats(q / norms[:, None], pc - pb, inverse=True)
 
 
 def contact_runs(contact: np.ndarray) -> list[tuple[int, int]]:
