@@ -79,8 +79,9 @@ def rotate_by_quats(quats: np.ndarray, vectors: np.ndarray, inverse: bool = Fals
 
     As SciPy does: each quaternion is divided by its norm (summed x, y, z, w), the inverse
     is the conjugate, the matrix is the usual one of the products ``x * x``, ``x * y``, ...
-    and the vectors are multiplied with numpy's ``einsum("ijk,ik->ij")`` (what SciPy's
-    compiled ``apply`` calls).
+    and the vectors are multiplied with what SciPy's compiled ``apply`` calls: numpy's
+    ``matmul`` for a single vector (one step's, say), ``einsum("ijk,ik->ij")`` for one
+    vector each.
 
     Args:
         quats: Quaternions (w, x, y, z), shape (N, 4), any non-zero norm.
@@ -114,8 +115,8 @@ def rotate_by_quats(quats: np.ndarray, vectors: np.ndarray, inverse: bool = Fals
     m[:, 1, 2] = 2 * (yz - xw)
     m[:, 2, 2] = -x2 - y2 + z2 + w2
     v = np.asarray(vectors, dtype=np.float64)
-    if v.shape == (3,):
-        v = np.broadcast_to(v, (len(q), 3))
+    if v.shape in ((3,), (1, 3)):  # one vector for every quaternion: SciPy's matmul
+        return np.matmul(m, v.reshape(3))
     if v.shape != (len(q), 3):
         raise ValueError(f"rotate_by_quats: {len(q)} quaternions, vectors of shape {v.shape}")
     return np.einsum("ijk,ik->ij", m, v)

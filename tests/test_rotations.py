@@ -66,8 +66,12 @@ def test_rotating_by_quaternions_gives_scipys_bits():
     scipy_rot = Rotation.from_quat(q[:, [1, 2, 3, 0]])
     for inverse, want in ((False, scipy_rot.apply(v)), (True, scipy_rot.inv().apply(v))):
         assert rotate_by_quats(q, v, inverse=inverse).tobytes() == want.tobytes()
+    # a single vector (for every quaternion, or one step's) goes through numpy's matmul
     one = np.array([1.0, 0.0, 0.0])
-    np.testing.assert_allclose(rotate_by_quats(q[:50], one), scipy_rot[:50].apply(one), 0, 1e-15)
+    assert rotate_by_quats(q[:50], one).tobytes() == scipy_rot[:50].apply(one).tobytes()
+    for k in range(0, n, 7):
+        single = Rotation.from_quat(q[k : k + 1, [1, 2, 3, 0]]).inv().apply(v[k : k + 1])
+        assert rotate_by_quats(q[k : k + 1], v[k : k + 1], True).tobytes() == single.tobytes()
     with pytest.raises(ValueError, match="zero or non-finite"):
         rotate_by_quats(np.zeros((1, 4)), one)
     with pytest.raises(ValueError):
