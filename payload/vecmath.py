@@ -8,6 +8,19 @@ import math
 
 import numpy as np
 
+try:  # numpy 2
+    from numpy._core.umath import clip as _clip_ufunc
+except ImportError:  # numpy 1.26
+    from numpy.core.umath import clip as _clip_ufunc  # type: ignore[no-redef]
+
+add_reduce = np.add.reduce
+"""What ``ndarray.sum`` runs: ``add_reduce(a)`` is ``a.sum()`` of a 1-D array, the same
+pairwise sum, without the method's Python wrappers."""
+
+clip: np.ufunc = _clip_ufunc
+"""``np.clip(a, lo, hi)`` of arrays or floats: the ufunc ``np.clip`` ends in, without the
+1.4 us of its wrappers (the same bits: NaN, signed zeros and all)."""
+
 
 def norm(v: np.ndarray) -> float:
     """``np.linalg.norm(v)`` of a vector (no ``axis``): the square root of the flattened
@@ -26,4 +39,4 @@ def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     )
 
 
-__all__ = ["cross", "norm"]
+__all__ = ["add_reduce", "clip", "cross", "norm"]

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from payload.vecmath import cross, norm
+from payload.vecmath import add_reduce, clip, cross, norm
 
 
 def test_norm_and_cross_are_numpys_to_the_bit() -> None:
@@ -21,6 +21,25 @@ def test_norm_and_cross_are_numpys_to_the_bit() -> None:
     assert norm(np.array([3, 4])) == 5.0 == np.linalg.norm(np.array([3, 4]))
     f32 = rng.normal(size=3).astype(np.float32)
     assert norm(f32) == float(np.linalg.norm(f32))
+
+
+def test_clip_and_the_reductions_are_numpys_to_the_bit() -> None:
+    """``clip`` against ``np.clip`` and ``add_reduce`` against ``ndarray.sum`` on values
+    with signed zeros, NaN, infinities and bounds equal to the values; as arrays and
+    floats, array and scalar bounds."""
+    rng = np.random.default_rng(1)
+    special = np.array([0.0, -0.0, np.nan, np.inf, -np.inf, 1.0, -1.0, 0.5])
+    for _ in range(300):
+        x = np.concatenate([rng.normal(size=9), rng.choice(special, size=7)])
+        lo = np.concatenate([rng.normal(size=9) - 1.0, rng.choice(special, size=7)])
+        hi = lo + np.abs(rng.normal(size=16))
+        for args in ((x, lo, hi), (x, -0.5, 0.5), (x, 0.0, -0.0), (x, -0.0, 0.0)):
+            assert clip(*args).tobytes() == np.clip(*args).tobytes()
+        for v in x.tolist():
+            assert np.float64(clip(v, -0.0, 0.5)).tobytes() == np.clip(v, -0.0, 0.5).tobytes()
+        with np.errstate(invalid="ignore", over="ignore"):  # inf - inf; an overflowing sum
+            for part in (x[:9], x, x[::2], rng.normal(size=200) * 1e300):
+                assert np.float64(add_reduce(part)).tobytes() == np.float64(part.sum()).tobytes()
 
 
 def _profile_step_arrays(profile, target: np.ndarray, dt: float):

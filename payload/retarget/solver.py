@@ -24,6 +24,7 @@ from payload.retarget.objective import (
     collision_residual,
     cost_of_residuals,
 )
+from payload.vecmath import clip
 
 
 class SolveInfo(NamedTuple):
@@ -120,7 +121,7 @@ class Retargeter(ABC):
         solver, the collision groups' clearance bounds: they stay valid at the posture
         they were computed at, so the next answer is the same as after :meth:`reset`,
         sooner). The teleoperation pipeline holds what it actually commanded."""
-        self._command = np.clip(self.kinematics.check_q(q, "hold q"), self.lower, self.upper)
+        self._command = clip(self.kinematics.check_q(q, "hold q"), self.lower, self.upper)
 
     # ---------------------------------------------------------------- maths
     def features(self, q: np.ndarray) -> PairFeatures:

@@ -46,8 +46,10 @@ from payload.sim.world import (
     WorldConfig,
     build_world,
 )
+from payload.vecmath import clip
 
 _AT_LIMIT = 1e-4  # [rad or m] a coordinate this close to a range end is at its limit
+_max_reduce = np.maximum.reduce  # what ndarray.max runs
 _WARNING_NAMES = tuple(
     name
     for name, value in sorted(mujoco.mjtWarning.__members__.items(), key=lambda kv: int(kv[1]))
@@ -163,8 +165,8 @@ class SimDriver:
         self._check_open()
         if not isinstance(command, PayloadCommand):
             raise SimError(f"send: expected a PayloadCommand, got {type(command).__name__}")
-        goal = np.append(command.q, command.deploy)
-        self._goal = np.clip(goal, self._ctrl_range[:, 0], self._ctrl_range[:, 1])
+        goal = np.concatenate((command.q, (command.deploy,)))  # np.append's, sooner
+        self._goal = clip(goal, self._ctrl_range[:, 0], self._ctrl_range[:, 1])
 
     def read(self) -> PayloadState:
         """Measured positions, velocities and actuator efforts of the payload.
@@ -265,7 +267,7 @@ class SimDriver:
                     rot = d.xmat[w.astrobee].reshape(3, 3)
                     d.xfrc_applied[w.astrobee, :3] = rot @ self._wrench.force
                     d.xfrc_applied[w.astrobee, 3:] = rot @ self._wrench.torque
-            self._target += np.clip(self._goal - self._target, -self._step_max, self._step_max)
+            self._target += clip(self._goal - self._target, -self._step_max, self._step_max)
             d.ctrl[self._ctrl] = self._target
             self._watch_ctb()
             mujoco.mj_step(m, d, nstep=self._substeps)
@@ -401,9 +403,9 @@ class SimDriver:
         w, d = self.world, self.data
         if w.ctb < 0:
             return
-        ext = max(
-            float(np.abs(d.xfrc_applied[w.ctb]).max()),
-            float(np.abs(d.qfrc_applied[w.ctb_dof : w.ctb_dof + 6]).max()),
+        ext = max(  # ndarray.max's reduction, without its wrappers
+            float(_max_reduce(np.abs(d.xfrc_applied[w.ctb]), axis=None)),
+            float(_max_reduce(np.abs(d.qfrc_applied[w.ctb_dof : w.ctb_dof + 6]), axis=None)),
         )
         self.ctb_external_max = max(self.ctb_external_max, ext)
 

@@ -57,7 +57,7 @@ class OneEuroFilter:
     def __call__(self, x: np.ndarray, t: float) -> np.ndarray:
         """Filter sample ``x`` taken at time ``t`` [s]; returns the filtered sample."""
         x = np.asarray(x, dtype=np.float64)
-        if not np.isfinite(x).all():
+        if not np.logical_and.reduce(np.isfinite(x), axis=None):  # ndarray.all's, sooner
             raise ValueError("One Euro filter: non-finite sample")
         if self._x is None or self._t is None:
             self._x, self._dx, self._t = x.copy(), np.zeros_like(x), t

@@ -611,7 +611,7 @@ def _pairs_in_cmd(step: Any) -> bool:
 
 def _equal(a: np.ndarray, b: np.ndarray) -> bool:
     """``np.array_equal`` of two arrays (same shape, every element ==), sooner."""
-    return a.shape == b.shape and bool((a == b).all())
+    return a.shape == b.shape and bool(np.logical_and.reduce(a == b, axis=None))
 
 
 __all__ = [

@@ -81,6 +81,7 @@ import numpy as np
 from payload.errors import PayloadError
 from payload.schema import N_MANIPULATION
 from payload.teleop.hands import XR_JOINTS
+from payload.vecmath import add_reduce
 
 PHASES: tuple[str, ...] = (
     "calibration",
@@ -318,8 +319,8 @@ class StepRecord:
             # per-field checks below, which say what is wrong (or pass an overflowing sum)
             buf = np.concatenate([a.ravel() for a in arrays])
             untracked = buf[:_NAN_END]  # NaN allowed (not tracked), infinities not
-            if math.isfinite(buf[_NAN_END:].sum()) and (
-                math.isfinite(untracked.sum()) or not np.isinf(untracked).any()
+            if math.isfinite(add_reduce(buf[_NAN_END:])) and (  # ndarray.sum's reduction
+                math.isfinite(add_reduce(untracked)) or not np.isinf(untracked).any()
             ):
                 buf.setflags(write=False)
                 for name, start, stop, shape in _ARRAY_SLICES:
