@@ -18,7 +18,7 @@ $(STAMP): pyproject.toml
 # many containers and on the development machine, Python writes none: every process
 # compiled the workbench modules it imports again: a trial's hundred, about 0.15 s)
 bytecode: $(STAMP)
-	$(BIN)/python -m compileall -q -j 0 payload > /dev/null
+	$(BIN)/python -m compileall -q -j 0 payload
 
 demo: $(STAMP) bytecode
 	$(BIN)/payload build

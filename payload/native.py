@@ -3,8 +3,9 @@
 The retargeting solvers (:mod:`payload.retarget.compiled`) and the 50 Hz loop's compiled
 kernels (:mod:`payload.sim.allocation_c`, :mod:`payload.sim.vehicle_c`,
 :mod:`payload.sim.station_c`, :mod:`payload.sim.facet_c`, :mod:`payload.sim.readout_c`,
-:mod:`payload.sim.contacts_c`, :mod:`payload.teleop.hand_c`, :mod:`payload.teleop.filter_c`,
-:mod:`payload.teleop.limiter_c`, :mod:`payload.teleop.safety_c`, :mod:`payload.teleop.base_c`,
+:mod:`payload.sim.contacts_c`, :mod:`payload.sim.period_c`, :mod:`payload.teleop.hand_c`,
+:mod:`payload.teleop.filter_c`, :mod:`payload.teleop.limiter_c`,
+:mod:`payload.teleop.safety_c`, :mod:`payload.teleop.base_c`,
 :mod:`payload.retarget.targets_c`, :mod:`payload.trials.foxglove_c`,
 :mod:`payload.trials.messages_c`, :mod:`payload.trials.codec_c`) build their shared
 libraries here. A library is named by the hash of its code, the compiler, the flags, the
@@ -293,21 +294,62 @@ def reported(name: str) -> Callable[[Callable[..., Any]], Callable[..., Any]]:
 
 _CHECKED: set[tuple[str, Hashable]] = set()
 
+SHORT_SHARE = 10
+"""A short self-check runs the first 1/SHORT_SHARE of a full check's probes (unless the
+kernel says otherwise: :func:`probes`'s ``again``)."""
 
-def probes(lib: ctypes.CDLL, key: Hashable, full: int, again: int) -> int:
+
+def probes(lib: ctypes.CDLL, key: Hashable, full: int, again: int | None = None) -> int:
     """How many probes a kernel's self-check against the numpy code runs: ``full`` the
     first time the library ``lib`` is checked for ``key`` (what shapes the kernel's code
     paths: counts, sizes, which parts are made), and ``again`` once such a check passed
     (:func:`passed`) in this process or, with the same code, in an earlier one
     (:func:`check_stamp`): the first ``again`` of the same probes, which show that a new
     build (a campaign worker's next trial, a driver's reset, the next command) reads its
-    own data and settings. Another library (changed C, another cache) is checked in full."""
+    own data and settings (by default the first :data:`SHORT_SHARE`-th). Another library
+    (changed C, another cache) is checked in full."""
+    short = max(1, full // SHORT_SHARE) if again is None else again
     if (str(lib._name), key) in _CHECKED:
-        return again
+        return short
     if check_stamp(lib, key).is_file():
         _CHECKED.add((str(lib._name), key))
-        return again
+        return short
     return full
+
+
+def checked_blas_kernel(
+    name: str,
+    source: str,
+    what: str,
+    logger: logging.Logger,
+    make: Callable[..., Any],
+    check: Callable[[Any, int], bool],
+    key: Callable[[Any], Hashable],
+    full: int,
+    *functions: str,
+    prelude: str = "",
+) -> Any | None:
+    """A kernel built by ``make(library, *addresses)`` (:func:`load_blas_kernel` of
+    ``functions``) and checked by ``check(kernel, n)`` against the numpy code on ``n``
+    probes (:func:`probes`: ``full``, or the short check's once a full one passed for
+    ``key(kernel)``, which a full pass records: :func:`passed`); or None, logged as ``what``:
+    nothing to load, ``make`` refused the data (``ValueError``), or the check failed."""
+    loaded = load_blas_kernel(name, source, what, logger, *functions, prelude=prelude)
+    if loaded is None:
+        return None
+    try:
+        kernel = make(*loaded)
+    except ValueError as exc:
+        logger.warning("%s: numpy (%s)", what, exc)
+        return None
+    shape = key(kernel)
+    n = probes(loaded[0], shape, full)
+    if not check(kernel, n):
+        logger.warning("%s: numpy (the compiled kernel differs)", what)
+        return None
+    if n == full:
+        passed(loaded[0], shape)
+    return kernel
 
 
 def passed(lib: ctypes.CDLL, key: Hashable) -> None:
@@ -507,8 +549,10 @@ __all__ = [
     "NUMPY_DDOT",
     "NUMPY_DGEMV",
     "OPTIONAL_CFLAGS",
+    "SHORT_SHARE",
     "build_library",
     "check_stamp",
+    "checked_blas_kernel",
     "find_compiler",
     "flags",
     "gemv_layout",

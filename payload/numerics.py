@@ -8,8 +8,13 @@ import threading
 from collections.abc import Iterator
 from typing import Any
 
-THREAD_VARIABLES: tuple[str, ...] = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
-"""What OpenBLAS, OpenMP and MKL read their thread counts from when they load."""
+THREAD_VARIABLES: tuple[str, ...] = (
+    "OPENBLAS_NUM_THREADS",
+    "OMP_NUM_THREADS",
+    "MKL_NUM_THREADS",
+    "BLIS_NUM_THREADS",
+)
+"""What OpenBLAS, OpenMP, MKL and BLIS read their thread counts from when they load."""
 
 _LIMIT_LOCK = threading.Lock()
 _LIMIT_USERS = 0
@@ -29,7 +34,10 @@ def single_threaded_numerics() -> Iterator[None]:
     later inside it (SciPy's, which a trial imports only on a cache miss: the
     propulsion's linear programs, the span range's SLSQP) starts single-threaded, since
     the variables its threads are read from when it loads (:data:`THREAD_VARIABLES`) say
-    1 meanwhile. So SciPy need not be loaded here (a tenth of a second a process).
+    1 meanwhile. So SciPy need not be loaded here (a tenth of a second a process). Such a
+    library keeps its one thread after the limit (threadpoolctl restores the libraries it
+    limited on entry only); the variables are the process's, so a subprocess started
+    inside the limit inherits them (a Dask worker's trials are single-threaded anyway).
 
     The limit is process-wide, so it is counted: the first trial to enter sets it and
     the last to leave restores it (a thread leaving early must not lift the limit under

@@ -17,6 +17,12 @@ add_reduce = np.add.reduce
 """What ``ndarray.sum`` runs: ``add_reduce(a)`` is ``a.sum()`` of a 1-D array, the same
 pairwise sum, without the method's Python wrappers."""
 
+max_reduce = np.maximum.reduce
+"""What ``ndarray.max`` runs: ``max_reduce(a, axis=None)`` is ``a.max()`` (a NaN wins)."""
+
+all_reduce = np.logical_and.reduce
+"""What ``ndarray.all`` runs: ``all_reduce(a, axis=None)`` is ``a.all()`` of a boolean array."""
+
 clip: np.ufunc = _clip_ufunc
 """``np.clip(a, lo, hi)`` of arrays or floats: the ufunc ``np.clip`` ends in, without the
 1.4 us of its wrappers (the same bits: NaN, signed zeros and all)."""
@@ -39,4 +45,4 @@ def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     )
 
 
-__all__ = ["add_reduce", "clip", "cross", "norm"]
+__all__ = ["add_reduce", "all_reduce", "clip", "cross", "max_reduce", "norm"]

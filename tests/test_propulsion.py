@@ -349,7 +349,8 @@ def test_later_searches_and_facet_solves_run_the_short_check_and_still_refuse(
     the first time (400 wrenches; 300 random problems), then, once a stamp says a build of
     the same size passed, on the first tenth; a numpy answer that differs there still
     refuses the kernel."""
-    from payload.sim import facet_c
+    from payload import native
+    from payload.sim import allocation_c, facet_c
     from payload.sim.propulsion import N_NOZZLES, _facet_solve
 
     real = Propulsion._extent_numpy
@@ -369,10 +370,10 @@ def test_later_searches_and_facet_solves_run_the_short_check_and_still_refuse(
         return Propulsion(FLIGHT_MODES["nominal"].force)._kernels, len(asked)
 
     first, n = searches()
-    assert first is not None and n == 400
+    assert first is not None and n == allocation_c._PROBES == 400
     again, n = searches()
-    assert again is not None and n == 40
-    assert searches(lie=37) == (None, 37)
+    assert again is not None and n == 400 // native.SHORT_SHARE
+    assert searches(lie=n - 3) == (None, n - 3)
 
     def facet(lie=None):
         calls: list[int] = []
@@ -386,7 +387,8 @@ def test_later_searches_and_facet_solves_run_the_short_check_and_still_refuse(
         return made, len(calls)
 
     kernel, n = facet()
-    assert kernel is not None and 100 < n <= 300  # the problems it leaves to numpy are not asked
+    full = facet_c.RANDOM_PROBES
+    assert kernel is not None and full / 3 < n <= full  # what it leaves to numpy is not asked
     short, m = facet()
-    assert short is not None and 10 < m <= 30
+    assert short is not None and full / 3 / native.SHORT_SHARE < m <= full / native.SHORT_SHARE
     assert facet(lie=m) == (None, m)

@@ -319,7 +319,7 @@ def compiled_searches(prop: Any) -> CompiledSearches | None:
     if loaded is None:
         return None
     kernels = CompiledSearches(prop, *loaded)
-    n = native.probes(loaded[0], nozzles, _PROBES, _PROBES // 10)
+    n = native.probes(loaded[0], nozzles, _PROBES)
     for w in probe_wrenches(prop, n):
         if not (
             _same(kernels.extent(w), prop._extent_numpy(w))

@@ -368,10 +368,10 @@ def compiled_facet_solve(
         return None
     kernel = CompiledFacetSolve(loaded[0], loaded[1:], bvls_tol)
     key = (rows, columns)
-    n = native.probes(loaded[0], key, RANDOM_PROBES, RANDOM_PROBES // 10)
+    n = native.probes(loaded[0], key, RANDOM_PROBES)
     own = list(problems)
     if n < RANDOM_PROBES:
-        own = own[: max(1, len(own) // 10)]
+        own = own[: max(1, len(own) // native.SHORT_SHARE)]
     answered = 0
     with np.errstate(all="ignore"):
         for problem in [*own, *random_problems(n, rows, columns)]:

@@ -56,11 +56,12 @@ WORLD_SLICES: dict[str, slice] = {
 POSE_SIZE = WORLD_SLICES["astrobee_quat"].stop - WORLD_SLICES["astrobee_pos"].start
 """A free joint's ``qpos`` (position, then quaternion): one copy into the buffer, so the
 layout keeps each body's position and quaternion side by side."""
-assert all(  # a body's position, then its quaternion, as its free joint's qpos has them
+if not all(  # a body's position, then its quaternion, as its free joint's qpos has them
     WORLD_SLICES[f"{body}_quat"].start == WORLD_SLICES[f"{body}_pos"].stop
     and WORLD_SLICES[f"{body}_quat"].stop - WORLD_SLICES[f"{body}_pos"].start == POSE_SIZE
     for body in ("astrobee", "ctb")
-)
+):
+    raise ImportError("readout_c.WORLD_LAYOUT: each pose must be a position then a quaternion")
 
 PAYLOAD_LAYOUT: tuple[tuple[str, int | None], ...] = (
     ("q", None),
@@ -84,8 +85,9 @@ def payload_slices(n: int) -> dict[str, slice]:
 
 
 SOURCE = r"""
-/* OFF_POS, POSE, OFF_LINEAR, OFF_ANGULAR, OFF_CTB (WORLD_LAYOUT), and OVERLOAD and LIMIT
-   (the Health flags) are defined by the loader */
+/* OFF_POS, POSE, OFF_LINEAR, OFF_ANGULAR, OFF_CTB (WORLD_LAYOUT), PAYLOAD_OFFSETS (a field
+   per PAYLOAD_LAYOUT field, in its order), and OVERLOAD and LIMIT (the Health flags) are
+   defined by the loader */
 typedef struct {
     dgemv_fn gemv;
     const double *qpos, *qvel, *xmat, *force;
@@ -94,7 +96,7 @@ typedef struct {
     const int64_t *q_idx, *dof_idx, *effort_idx, *ctrl_idx;
     int64_t nctrl;
     const double *overload, *lo, *hi;          /* (nctrl), (nq), (nq) */
-    int64_t off_q, off_deploy, off_dq, off_effort;  /* PAYLOAD_LAYOUT */
+    PAYLOAD_OFFSETS                             /* PAYLOAD_LAYOUT's: off_q, off_deploy, ... */
 } readout;
 
 /* WORLD_LAYOUT: pose, body linear and angular velocity[, the CTB's pose] */
@@ -241,27 +243,19 @@ def compiled_readout(
         f"#define OFF_ANGULAR {at['astrobee_angular']}\n"
         f"#define OFF_CTB {at['ctb_pos']}\n"
         f"#define OVERLOAD {int(Health.OVERLOAD)}\n#define LIMIT {int(Health.LIMIT)}\n"
+        "#define PAYLOAD_OFFSETS "
+        + " ".join(f"int64_t off_{name};" for name, _ in PAYLOAD_LAYOUT)
+        + "\n"
     )
-    loaded = native.load_blas_kernel(
-        "readout", SOURCE, "the read-out kernel", log, native.NUMPY_DGEMV, prelude=prelude
-    )
-    if loaded is None:
-        return None
-    lib = loaded[0]
-    try:
-        kernel = make(lib, loaded[1])
-    except ValueError as exc:
-        log.warning("read-out: numpy (%s)", exc)
-        return None
-    shape = (kernel.n, kernel.world_size)
-    full = 200
-    probes = native.probes(lib, shape, full, full // 10)
-    if not check(kernel, probes):
-        log.warning("read-out: numpy (the compiled read-out differs)")
-        return None
-    if probes == full:
-        native.passed(lib, shape)
-    return kernel
+    return native.checked_blas_kernel(
+        "readout", SOURCE, "read-out", log, make, check, _shape, 200, native.NUMPY_DGEMV,
+        prelude=prelude,
+    )  # fmt: skip
+
+
+def _shape(kernel: CompiledReadout) -> tuple[int, int]:
+    """What shapes the read-out's code paths (its check stamp's key)."""
+    return (kernel.n, kernel.world_size)
 
 
 __all__ = [

@@ -258,7 +258,7 @@ def compiled_station_bound(
     measured = 0
     shape = (len(geoms), len(station), measures)
     full = 400
-    n = native.probes(lib, shape, full, full // 10)
+    n = native.probes(lib, shape, full)
     try:
         for i in range(n):
             # the moving geoms clustered somewhere around the station (some near a box),

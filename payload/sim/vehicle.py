@@ -370,8 +370,13 @@ class VehicleController:
     ) -> Wrench:
         """:meth:`_update_numpy` through the compiled step ``kernel``
         (:class:`~payload.sim.vehicle_c.CompiledControl`)."""
-        assert self.nozzles is not None
         code, *out = kernel.step(command, linear, angular, dt)
+        return self._finish_kernel(code, out)
+
+    def _finish_kernel(self, code: int, out: list) -> Wrench:
+        """The allocation and wrench of a kernel's control step that gave ``code`` and
+        ``out`` (:meth:`~payload.sim.vehicle_c.CompiledControl.step`'s result)."""
+        assert self.nozzles is not None
         if code == 0:
             self.allocation = Allocation(*out)
         elif code == 1:

@@ -17,6 +17,7 @@ from __future__ import annotations
 import ctypes
 import functools
 import logging
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -292,12 +293,23 @@ class CompiledControl:
         self._bound = (profile.velocity, profile.acceleration)
         self._state(self._handle, profile.velocity.ctypes.data, profile.acceleration.ctypes.data)
 
-    def step(self, command: Any, linear: np.ndarray, angular: np.ndarray, dt: float) -> tuple:
+    def step(
+        self,
+        command: Any,
+        linear: np.ndarray | None,
+        angular: np.ndarray | None,
+        dt: float,
+        call: Callable[[float], int] | None = None,
+    ) -> tuple:
         """One control step (the arguments of ``VehicleController.update``), the profile's
         state updated in place: ``(0, thrust, force, torque, scale)`` allocated; ``(1,)``
         a zero wrench; ``(2, w, lam, facet)`` outside the polytope and ``(3, w, lam,
         facet)`` without a basic solution (the numpy code finishes those); ``(4, w)`` a
-        non-finite wrench ``w`` (6,)."""
+        non-finite wrench ``w`` (6,).
+
+        ``call(dt)``, if given, makes the step instead of the kernel's own call: it writes
+        the measured twist into the inputs itself (``linear`` and ``angular`` unused) and
+        returns the step's code (:class:`~payload.sim.period_c.CompiledPeriod`)."""
         profile = self.controller.profile
         if profile.velocity is not self._bound[0] or profile.acceleration is not self._bound[1]:
             self._bind(profile)
@@ -305,9 +317,12 @@ class CompiledControl:
         with self.searches._lock:
             inp[0:3] = command.linear
             inp[3:6] = command.angular
-            inp[6:9] = linear
-            inp[9:12] = angular
-            code = self._step(dt)
+            if call is None:
+                inp[6:9] = linear
+                inp[9:12] = angular
+                code = self._step(dt)
+            else:
+                code = call(dt)
             if code == 0:
                 return (
                     0,
@@ -437,6 +452,7 @@ class CompiledThrusts:
         apply_ft: int,
     ) -> None:
         self.model, self.data = model, data
+        self.apply_ft = apply_ft
         self._dirs = np.ascontiguousarray(nozzles.directions, dtype=np.float64)
         self._pos = np.ascontiguousarray(nozzles.positions, dtype=np.float64)
         self.thrust = np.zeros(len(self._dirs))

@@ -8,6 +8,8 @@ from typing import Any
 
 import numpy as np
 
+from payload.vecmath import all_reduce
+
 
 @dataclass(frozen=True)
 class OneEuroConfig:
@@ -57,7 +59,7 @@ class OneEuroFilter:
     def __call__(self, x: np.ndarray, t: float) -> np.ndarray:
         """Filter sample ``x`` taken at time ``t`` [s]; returns the filtered sample."""
         x = np.asarray(x, dtype=np.float64)
-        if not np.logical_and.reduce(np.isfinite(x), axis=None):  # ndarray.all's, sooner
+        if not all_reduce(np.isfinite(x), axis=None):  # ndarray.all's, sooner
             raise ValueError("One Euro filter: non-finite sample")
         if self._x is None or self._t is None:
             self._x, self._dx, self._t = x.copy(), np.zeros_like(x), t

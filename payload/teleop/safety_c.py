@@ -159,7 +159,7 @@ def compiled_hand_check(
     centre = np.zeros(3) if neutral is None else np.asarray(neutral, dtype=np.float64)
     verdicts = set()
     full = 2000
-    n = native.probes(loaded[0], (joints, wrist), full, full // 10)
+    n = native.probes(loaded[0], (joints, wrist), full)
     for k in range(n):
         # hands around the neutral pose, some stretched to the reach limit, some far off
         wrist_at = centre + rng.normal(scale=(0.02, 0.2, 1.0)[k % 3] * max(radius, 0.1), size=3)

@@ -73,6 +73,7 @@ from payload.trials.stepmsg import (
     StepMsg,
     schema_data,
 )
+from payload.vecmath import all_reduce
 
 _SIZES = {"wall_time": 1, **{name: int(np.prod(shape)) for name, _, shape in STEP_DOUBLES}}
 STEP_GRIDS: tuple[tuple[str, float, int], ...] = tuple(
@@ -611,7 +612,7 @@ def _pairs_in_cmd(step: Any) -> bool:
 
 def _equal(a: np.ndarray, b: np.ndarray) -> bool:
     """``np.array_equal`` of two arrays (same shape, every element ==), sooner."""
-    return a.shape == b.shape and bool(np.logical_and.reduce(a == b, axis=None))
+    return a.shape == b.shape and bool(all_reduce(a == b, axis=None))
 
 
 __all__ = [

@@ -145,7 +145,7 @@ def compiled_frame_poses(
     saved = data.qpos.copy()
     rng = np.random.default_rng(0)
     full = 200
-    n = native.probes(lib, len(links), full, full // 10)
+    n = native.probes(lib, len(links), full)
     try:
         for _ in range(n):
             data.qpos[:] = rng.normal(scale=2.0, size=model.nq)
