@@ -432,3 +432,38 @@ def test_a_later_base_kernel_runs_the_short_check_and_it_still_refuses(fresh_che
         stamp.unlink()
     assert build(lie_at=1000) == (None, 1000)
     assert not list(fresh_checks.iterdir())
+
+
+def test_later_hand_features_and_filter_steps_run_the_short_check(fresh_checks):
+    """The hand features and the One Euro step are checked on all their probes in the
+    first process, then, once a stamp says a full check passed, on the first tenth (a new
+    process: their factories forgotten); a numpy answer that differs there still refuses
+    the kernel."""
+    asked: list[int] = []
+    lie_at: list[int | None] = [None]
+
+    def features(hand):
+        asked.append(1)
+        out = human_features(hand)
+        if len(asked) == lie_at[0]:
+            return out._replace(span=out.span + 1.0)
+        return out
+
+    def step(*args):
+        asked.append(1)
+        xs, ds = _step_numpy(*args)
+        return (xs + 1.0, ds) if len(asked) == lie_at[0] else (xs, ds)
+
+    for factory, reference, full in (
+        (hand_c.compiled_hand_features, features, hand_c.CHECK_HANDS),
+        (filter_c.compiled_one_euro, step, filter_c.CHECK_SAMPLES),
+    ):
+        counts = []
+        for lie in (None, None, full // native.SHORT_SHARE - 2):
+            factory.cache_clear()
+            asked.clear()
+            lie_at[0] = lie
+            counts.append((factory(reference) is not None, len(asked)))
+        factory.cache_clear()
+        short = full // native.SHORT_SHARE
+        assert counts == [(True, full), (True, short), (False, short - 2)]

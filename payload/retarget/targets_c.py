@@ -116,14 +116,19 @@ class CompiledTargets:
             return PairFeatures(float(out[0]), out[1:4].copy(), out[4:7].copy(), out[7:].copy())
 
 
+CHECK_FEATURES = 200
+"""Random features of the targets' full self-check (:func:`compiled_targets`)."""
+
+
 @native.reported("pair targets")
 def compiled_targets(
     calibration: Any, reference: Callable[[np.ndarray], PairFeatures]
 ) -> CompiledTargets | None:
     """The compiled ``to_targets`` of ``calibration``, or None to run ``reference`` (the
     numpy code): no compiler, no numpy OpenBLAS, ``PAYLOAD_NATIVE=0``, a failed build, or
-    a self-check on 200 random features (pinch, open, beyond both) that differs from
-    ``reference`` in a single bit."""
+    a self-check on :data:`CHECK_FEATURES` random features (pinch, open, beyond both;
+    their first tenth once a full check passed, here or in an earlier process:
+    :func:`payload.native.probes`) that differs from ``reference`` in a single bit."""
     loaded = native.load_blas_kernel(
         "targets", SOURCE, "the targets kernel", log, native.NUMPY_DGEMV,
         prelude=f"#define N_FEATURES {N_FEATURES}\n",
@@ -137,7 +142,8 @@ def compiled_targets(
         return None
     rng = np.random.default_rng(0)
     lo, hi = calibration.human_pinch.span, calibration.human_open.span
-    for _ in range(200):
+    n = native.probes(loaded[0], "pair targets", CHECK_FEATURES)
+    for _ in range(n):
         h = np.concatenate(
             [
                 [rng.uniform(lo - 0.3 * (hi - lo), hi + 0.3 * (hi - lo))],
@@ -152,7 +158,9 @@ def compiled_targets(
         ):
             log.warning("pair targets: numpy (the compiled targets differ)")
             return None
+    if n == CHECK_FEATURES:
+        native.passed(loaded[0], "pair targets")
     return kernel
 
 
-__all__ = ["SOURCE", "CompiledTargets", "compiled_targets"]
+__all__ = ["CHECK_FEATURES", "SOURCE", "CompiledTargets", "compiled_targets"]

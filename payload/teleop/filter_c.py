@@ -82,19 +82,26 @@ class CompiledOneEuro:
         return step
 
 
+CHECK_SAMPLES = 300
+"""Random samples of the filter step's full self-check (:func:`compiled_one_euro`)."""
+
+
 @functools.cache
 @native.reported("One Euro filter")
 def compiled_one_euro(reference: Callable[..., Any]) -> CompiledOneEuro | None:
     """The process's compiled filter step, or None to run the numpy step (no compiler,
     ``PAYLOAD_NATIVE=0``, a failed build, or a self-check that differs in a single bit from
-    ``reference(x, prev_x, prev_dx, dt, a_d, min_cutoff, beta)``, the numpy step, on 300
-    random samples, histories, periods and settings)."""
+    ``reference(x, prev_x, prev_dx, dt, a_d, min_cutoff, beta)``, the numpy step, on
+    :data:`CHECK_SAMPLES` random samples, histories, periods and settings, or their first
+    tenth once a full check passed, here or in an earlier process:
+    :func:`payload.native.probes`)."""
     lib = native.load_kernel("one_euro", SOURCE, "the One Euro filter kernel", log)
     if lib is None:
         return None
     kernel = CompiledOneEuro(lib)
     rng = np.random.default_rng(0)
-    for i in range(300):
+    n_probes = native.probes(lib, "One Euro filter", CHECK_SAMPLES)
+    for i in range(n_probes):
         n = (25, 1, 4)[i % 3]
         x, prev_x = rng.normal(scale=0.3, size=(2, n, 3))
         prev_dx = rng.normal(scale=0.5, size=(n, 3)) * (i % 7 != 0)
@@ -106,7 +113,9 @@ def compiled_one_euro(reference: Callable[..., Any]) -> CompiledOneEuro | None:
         if xs.tobytes() != want[0].tobytes() or ds.tobytes() != want[1].tobytes():
             log.warning("One Euro filter: numpy (the compiled step differs)")
             return None
+    if n_probes == CHECK_SAMPLES:
+        native.passed(lib, "One Euro filter")
     return kernel
 
 
-__all__ = ["SOURCE", "CompiledOneEuro", "compiled_one_euro"]
+__all__ = ["CHECK_SAMPLES", "SOURCE", "CompiledOneEuro", "compiled_one_euro"]

@@ -181,13 +181,19 @@ def random_hands(n: int, seed: int = 0) -> list[np.ndarray]:
     return out
 
 
+CHECK_HANDS = 300
+"""Random hands of the hand features' full self-check (:func:`compiled_hand_features`)."""
+
+
 @functools.cache
 @native.reported("hand features")
 def compiled_hand_features(reference: Callable[[Any], Any]) -> CompiledHandFeatures | None:
     """The process's compiled hand features, or None to run the numpy code (no
     compiler, no numpy OpenBLAS, ``PAYLOAD_NATIVE=0``, a failed build, or a self-check on
     :func:`random_hands` that differs in a single bit from ``reference``, the numpy code:
-    :func:`~payload.teleop.pipeline.human_features`)."""
+    :func:`~payload.teleop.pipeline.human_features`; :data:`CHECK_HANDS` hands, or their
+    first tenth once a full check passed, here or in an earlier process:
+    :func:`payload.native.probes`)."""
     loaded = native.load_blas_kernel(
         "hand_features", SOURCE, "the hand features kernel", log,
         native.NUMPY_DGEMV, native.NUMPY_DDOT,
@@ -203,15 +209,24 @@ def compiled_hand_features(reference: Callable[[Any], Any]) -> CompiledHandFeatu
         except RetargetError:
             return None
 
+    n = native.probes(loaded[0], "hand features", CHECK_HANDS)
     with np.errstate(all="ignore"):
-        for joints in random_hands(300):
+        for joints in random_hands(n):
             got, want = kernel(joints), want_of(joints)
             if (got is None) != (want is None) or (
                 got is not None and got.tobytes() != want.tobytes()
             ):
                 log.warning("hand features: numpy (the compiled features differ)")
                 return None
+    if n == CHECK_HANDS:
+        native.passed(loaded[0], "hand features")
     return kernel
 
 
-__all__ = ["SOURCE", "CompiledHandFeatures", "compiled_hand_features", "random_hands"]
+__all__ = [
+    "CHECK_HANDS",
+    "SOURCE",
+    "CompiledHandFeatures",
+    "compiled_hand_features",
+    "random_hands",
+]
