@@ -12,14 +12,17 @@ from payload.sim import SimDriver, WorldConfig
 
 def _drive(driver: SimDriver, steps: int) -> list[bytes]:
     """A run of piecewise-constant twists (at rest, within and beyond the mode's speed,
-    the controller switched off and on) and payload goals; every array a period writes,
-    after every step."""
+    the controller switched off and on) and payload goals, reset half-way; every array a
+    period writes, after every step."""
     rng = np.random.default_rng(9)
     d = driver.data
     q0 = driver.read().q.copy()
     out = []
     mode = driver.controller.mode
     for k in range(steps):
+        if k == steps // 2:  # a reset: new data, goals and targets, the period made again
+            driver.reset()
+            d = driver.data
         if k % 10 == 0:
             scale = (0.0, 0.5, 1.0, 3.0)[(k // 10) % 4]
             twist = VehicleTwist(
@@ -44,7 +47,9 @@ def test_the_compiled_period_is_the_drivers_python_to_the_bit(monkeypatch):
     applied forces, wrench, thrusts and CTB watch after every step."""
     with SimDriver(WorldConfig()) as compiled:
         assert compiled._period_kernel is not None  # a compiler and numpy's OpenBLAS here
+        first = compiled._period_kernel
         mine = _drive(compiled, 120)
+        assert compiled._period_kernel is not None and compiled._period_kernel is not first
     monkeypatch.setattr(SimDriver, "_period_kernel", property(lambda self: None))
     with SimDriver(WorldConfig()) as plain:
         theirs = _drive(plain, 120)

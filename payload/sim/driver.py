@@ -265,10 +265,10 @@ class SimDriver:
         twist filter) and its forces, the servo targets' slew and controls, the CTB watch."""
         d, w = self.data, self.world
         if self._twist is not None:
-            lin, ang = self._body_twist()
             twist = self._twist
             if self.twist_filter is not None:
                 twist = self.twist_filter(twist, d)
+            lin, ang = self._body_twist()
             self._wrench = self.controller.update(twist, lin, ang, CONTROL_DT)
             if self.controller.allocation is not None:
                 self.apply_thrusts(self.controller.allocation)
@@ -389,10 +389,11 @@ class SimDriver:
     def _check_period(self, kernel: Any, probes: int) -> bool:
         """Whether ``kernel``'s period does what :meth:`_control_python` does, to the bit, in
         ``probes`` random states (Astrobee's pose and velocity, the applied forces, the
-        controls, the servos' goals and targets, some equal or signed zeros, a CTB force
-        that is not a number, the controller's profile, commands at rest, within and beyond
-        the flight mode's speed, the controller off), compared on every array the period
-        writes and on the controller's allocation and wrench. Everything is restored."""
+        controls, the servos' goals and targets, some equal or signed zeros, CTB forces that
+        are not a number, the controller's profile, commands at rest, within and beyond the
+        flight mode's speed, a zero wrench, the controller off), compared on every array the
+        period writes and on the controller's allocation and wrench, or on the error both
+        raise. Everything is restored."""
         d, w, c = self.data, self.world, self.controller
         prof = c.profile
         arrays = (d.qvel, d.xmat, d.xipos, d.xfrc_applied, d.qfrc_applied, d.ctrl)
@@ -402,6 +403,13 @@ class SimDriver:
         twist, twist_filter = self._twist, self.twist_filter
         rng = np.random.default_rng(5)
         mode = c.mode
+
+        def run(control: Callable[[], None]) -> list[bytes]:
+            try:
+                control()
+            except Exception as exc:  # both alike, or the kernel is refused
+                return [type(exc).__name__.encode(), str(exc).encode()]
+            return outcome()
 
         def outcome() -> list[bytes]:
             alloc = c.allocation
@@ -429,8 +437,12 @@ class SimDriver:
                 if k % 5 == 2:  # at the goal, and signed zeros
                     self._goal[::2] = self._target[::2]
                     self._target[1::4], self._goal[1::4] = 0.0, -0.0
-                if w.ctb >= 0 and k % 11 == 7:
+                if w.ctb >= 0 and k % 11 == 7:  # a force not a number, beside others
+                    d.xfrc_applied[w.ctb] = rng.normal(size=6)
                     d.xfrc_applied[w.ctb, k % 6] = np.nan
+                if w.ctb >= 0 and k % 13 == 9:
+                    d.qfrc_applied[w.ctb_dof : w.ctb_dof + 6] = rng.normal(size=6)
+                    d.qfrc_applied[w.ctb_dof + k % 6] = np.nan
                 self._ctb_max[0] = abs(rng.normal())
                 prof.velocity[:] = rng.normal(scale=0.02, size=6)
                 prof.acceleration[:] = rng.normal(scale=0.005, size=6)
@@ -448,17 +460,19 @@ class SimDriver:
                         0.0,
                     )
                 )
+                if k % 17 == 4:  # at rest and asked for nothing: a zero wrench
+                    d.qvel[dof] = 0.0
+                    prof.velocity[:], prof.acceleration[:] = 0.0, 0.0
+                    self._twist = VehicleTwist.zero()
                 start = [a.copy() for a in arrays] + [prof.velocity.copy()]
                 start.append(prof.acceleration.copy())
                 held = (c.allocation, self._wrench)
-                self._control_python()
-                want = outcome()
+                want = run(self._control_python)
                 for a, b in zip(arrays, start):
                     a[:] = b
                 prof.velocity[:], prof.acceleration[:] = start[-2], start[-1]
                 c.allocation, self._wrench = held
-                self._control_compiled(kernel)
-                if outcome() != want:
+                if run(lambda: self._control_compiled(kernel)) != want:
                     return False
             return True
         finally:

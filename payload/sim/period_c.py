@@ -35,13 +35,13 @@ from typing import Any
 import numpy as np
 
 from payload import native
+from payload.sim.vehicle_c import ENTRY_TYPES
 
 log = logging.getLogger(__name__)
 
-SOURCE = r"""
-typedef int (*control_fn)(void *, double);
-typedef void (*thrusts_fn)(void *, void *, const void *, void *, const double *, const double *,
-                           const double *, const double *, const double *, int, double *);
+SOURCE = (
+    ENTRY_TYPES
+    + r"""
 
 typedef struct {
     control_fn control_step; void *control; double *in;   /* the controller's kernel */
@@ -100,6 +100,7 @@ void payload_period_servos(const period *p)
         *p->ctb_max = py_max2(*p->ctb_max, py_max2(max_abs6(p->ctb_xfrc), max_abs6(p->ctb_qfrc)));
 }
 """
+)
 
 
 class _Period(ctypes.Structure):
@@ -157,6 +158,8 @@ class CompiledPeriod:
             a = getattr(data, name)
             if not (a.dtype == np.float64 and a.flags.c_contiguous):
                 raise ValueError(f"{name} is not a C-contiguous float64 array")
+        if thrusts.data is not data or ctb_max.shape != (1,):
+            raise ValueError("the thrusts' kernel is for other data, or ctb_max is not (1,)")
         if not (len(goal) == len(target) == len(ctrl_idx) == len(step)):
             raise ValueError("the goals, targets and actuators differ in length")
         self.data, self.goal, self.target, self.ctb_max = data, goal, target, ctb_max
@@ -202,6 +205,10 @@ class CompiledPeriod:
         return control.step(command, None, None, dt, self._vehicle)
 
 
+CHECK_STATES = 120
+"""Random states of the period's full self-check (:func:`compiled_period`)."""
+
+
 @native.reported("control period")
 def compiled_period(
     make: Callable[[ctypes.CDLL, int], CompiledPeriod],
@@ -209,11 +216,13 @@ def compiled_period(
 ) -> CompiledPeriod | None:
     """``make(lib, gemv)``'s period, or None to run the driver's Python: no compiler, no
     numpy OpenBLAS, ``PAYLOAD_NATIVE=0``, a failed build, or ``check(kernel, probes)`` (the
-    driver's comparison with its Python on ``probes`` random states: 120, or the first 12
-    once a period of the same shape passed, here or in an earlier process) False."""
+    driver's comparison with its Python on ``probes`` random states: :data:`CHECK_STATES`,
+    or their first tenth once a period of the same shape passed, here or in an earlier
+    process) False."""
     return native.checked_blas_kernel(
-        "period", SOURCE, "control period", log, make, check, _shape, 120, native.NUMPY_DGEMV
-    )
+        "period", SOURCE, "control period", log, make, check, _shape, CHECK_STATES,
+        native.NUMPY_DGEMV,
+    )  # fmt: skip
 
 
 def _shape(kernel: CompiledPeriod) -> tuple[int, bool]:
@@ -221,4 +230,4 @@ def _shape(kernel: CompiledPeriod) -> tuple[int, bool]:
     return (len(kernel.goal), kernel.has_ctb)
 
 
-__all__ = ["SOURCE", "CompiledPeriod", "compiled_period"]
+__all__ = ["CHECK_STATES", "SOURCE", "CompiledPeriod", "compiled_period"]

@@ -29,7 +29,18 @@ from payload.sim.errors import SimError
 
 log = logging.getLogger(__name__)
 
-CONTROL_SOURCE = r"""
+ENTRY_TYPES = r"""
+typedef int (*control_fn)(void *, double);
+typedef void (*thrusts_fn)(void *, void *, const void *, void *, const double *, const double *,
+                           const double *, const double *, const double *, int, double *);
+"""
+"""The types of the controller's step and the thrusts' entry points
+(:mod:`payload.sim.period_c` calls them through their addresses; this library's C is
+compiled against them, so a change of either signature fails the build)."""
+
+CONTROL_SOURCE = (
+    ENTRY_TYPES
+    + r"""
 /* ---- the vehicle controller's step (payload.sim.vehicle.VehicleController.update) ---- */
 
 typedef struct {
@@ -184,6 +195,9 @@ int payload_control_step(void *p, double dt)
     return 0;
 }
 
+_Static_assert(__builtin_types_compatible_p(__typeof__(&payload_control_step), control_fn),
+               "payload_control_step is not a control_fn (ENTRY_TYPES)");
+
 /* ---- thrusts into MuJoCo (payload.sim.driver.SimDriver.apply_thrusts) ---- */
 typedef void (*applyft_fn)(const void *, void *, const double *, const double *, const double *,
                            int, double *);
@@ -205,7 +219,11 @@ void payload_apply_thrusts(void *gemv, void *apply, const void *m, void *d, cons
         ft(m, d, f, zero, pt, body, qfrc);
     }
 }
+
+_Static_assert(__builtin_types_compatible_p(__typeof__(&payload_apply_thrusts), thrusts_fn),
+               "payload_apply_thrusts is not a thrusts_fn (ENTRY_TYPES)");
 """
+)
 """The controller's and the thrusts' C, compiled after :data:`payload.sim.allocation_c.SOURCE`."""
 
 
@@ -501,6 +519,7 @@ def compiled_thrusts(
 
 __all__ = [
     "CONTROL_SOURCE",
+    "ENTRY_TYPES",
     "CompiledControl",
     "CompiledThrusts",
     "check_control",
