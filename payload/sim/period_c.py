@@ -168,12 +168,12 @@ class CompiledPeriod:
         idx = np.ascontiguousarray(ctrl_idx, dtype=np.int64)
         step = np.ascontiguousarray(step, dtype=np.float64)
         addr = functools.partial(ctypes.cast, typ=ctypes.c_void_p)
-        control_lib = control._step.func
+        control_step = control._step.func
         thrust_fn = thrusts._call.func
         d = data
         self._keep = (idx, step, control, thrusts)
         self._ctx = _Period(
-            addr(control_lib).value, control._handle.value, control._in.ctypes.data, gemv,
+            addr(control_step).value, control._handle.value, control._in.ctypes.data, gemv,
             d.xmat[body].ctypes.data, d.qvel[dof:].ctypes.data,
             d.xfrc_applied[body].ctypes.data, d.qfrc_applied[dof:].ctypes.data,
             addr(thrust_fn).value, thrusts.apply_ft, thrusts.model._address, d._address,
