@@ -30,6 +30,7 @@ import numpy as np
 from payload.schema import Health, PayloadCommand, PayloadState, SchemaError, VehicleTwist
 from payload.sim.contact import Contact, ContactMonitor, opposing
 from payload.sim.propulsion import Allocation
+from payload.sim.readout_c import WORLD_SLICES
 from payload.sim.vehicle import (
     DEFAULT_FLIGHT_MODE,
     DEFAULT_PROPULSION,
@@ -511,7 +512,7 @@ class SimDriver:
                 if not all(
                     np.asarray(getattr(mine, f), dtype=float).tobytes()
                     == np.asarray(getattr(theirs, f), dtype=float).tobytes()
-                    for f in ("time", *kernel.slices)
+                    for f in ("time", *WORLD_SLICES)
                     if getattr(mine, f) is not None or getattr(theirs, f) is not None
                 ):
                     return False
@@ -575,7 +576,7 @@ class SimDriver:
         ctb = self.world.ctb >= 0
         return self._world_state(
             **{name: out[part] if ctb or not name.startswith("ctb") else None
-               for name, part in kernel.slices.items()}
+               for name, part in WORLD_SLICES.items()}
         )  # fmt: skip
 
     def _world_state_numpy(self) -> WorldState:

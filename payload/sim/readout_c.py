@@ -204,7 +204,6 @@ class CompiledReadout:
         self.payload_size = self.payload[PAYLOAD_LAYOUT[-1][0]].stop
         last = "ctb_quat" if ctb_qpos >= 0 else "astrobee_angular"
         self.world_size = WORLD_SLICES[last].stop
-        self.slices = WORLD_SLICES
         self._world = lib.payload_world
         self._world.restype = None
         self._world.argtypes = [ctypes.c_void_p, ctypes.c_void_p]
