@@ -18,7 +18,7 @@ import numpy as np
 
 from payload.design.tree import MANIPULATION_JOINTS
 from payload.errors import PayloadError
-from payload.vecmath import add_reduce
+from payload.vecmath import all_finite
 
 N_MANIPULATION = len(MANIPULATION_JOINTS)  # 17
 
@@ -34,8 +34,7 @@ def _frozen_vector(values: object, n: int, what: str, allow_nan: bool = False) -
     arr = np.array(values, dtype=np.float64).reshape(-1)
     if arr.shape != (n,):
         raise SchemaError(f"{what}: expected {n} values, got {arr.size}")
-    # a finite sum means every value is finite; only otherwise are they checked one by one
-    if not allow_nan and not math.isfinite(add_reduce(arr)) and not np.isfinite(arr).all():
+    if not allow_nan and not all_finite(arr):
         bad = [MANIPULATION_JOINTS[i] for i in np.flatnonzero(~np.isfinite(arr))] if n == 17 else []
         raise SchemaError(f"{what}: non-finite value(s) {bad or arr.tolist()}")
     arr.setflags(write=False)

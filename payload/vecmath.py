@@ -23,6 +23,14 @@ max_reduce = np.maximum.reduce
 all_reduce = np.logical_and.reduce
 """What ``ndarray.all`` runs: ``all_reduce(a, axis=None)`` is ``a.all()`` of a boolean array."""
 
+
+def all_finite(a: np.ndarray) -> bool:
+    """Whether every value of the float array ``a`` is finite: a finite sum says so at
+    once (NaN and infinities propagate); only otherwise are the values checked one by one
+    (a sum of finite values that overflows)."""
+    return math.isfinite(add_reduce(a, axis=None)) or bool(np.isfinite(a).all())
+
+
 clip: np.ufunc = _clip_ufunc
 """``np.clip(a, lo, hi)`` of arrays or floats: the ufunc ``np.clip`` ends in, without the
 1.4 us of its wrappers (the same bits: NaN, signed zeros and all)."""
@@ -45,4 +53,4 @@ def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     )
 
 
-__all__ = ["add_reduce", "all_reduce", "clip", "cross", "max_reduce", "norm"]
+__all__ = ["add_reduce", "all_finite", "all_reduce", "clip", "cross", "max_reduce", "norm"]

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from payload.vecmath import add_reduce, clip, cross, norm
+from payload.vecmath import add_reduce, all_finite, clip, cross, norm
 
 
 def test_norm_and_cross_are_numpys_to_the_bit() -> None:
@@ -40,6 +40,23 @@ def test_clip_and_the_reductions_are_numpys_to_the_bit() -> None:
         with np.errstate(invalid="ignore", over="ignore"):  # inf - inf; an overflowing sum
             for part in (x[:9], x, x[::2], rng.normal(size=200) * 1e300):
                 assert np.float64(add_reduce(part)).tobytes() == np.float64(part.sum()).tobytes()
+
+
+def test_all_finite_is_numpys_isfinite_all() -> None:
+    """The finite-sum shortcut against ``np.isfinite(a).all()``: NaN, infinities of both
+    signs, both together (their sum is NaN), and finite values whose sum overflows."""
+    rng = np.random.default_rng(3)
+    cases = [rng.normal(size=17), rng.normal(size=(25, 3)), np.full(4, 1e308), np.zeros(0)]
+    for bad in (np.nan, np.inf, -np.inf):
+        for a in (rng.normal(size=17), rng.normal(size=(25, 3))):
+            a.flat[int(rng.integers(a.size))] = bad
+            cases.append(a)
+    both = rng.normal(size=9)
+    both[2], both[5] = np.inf, -np.inf
+    cases.append(both)
+    with np.errstate(invalid="ignore", over="ignore"):
+        for a in cases:
+            assert all_finite(a) == bool(np.isfinite(a).all())
 
 
 def _profile_step_arrays(profile, target: np.ndarray, dt: float):

@@ -12,7 +12,6 @@ Stacked as a vector the features are ``[l, d_hat (3), c (3), u (6)]``, shape (13
 
 from __future__ import annotations
 
-import math
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -20,6 +19,7 @@ import numpy as np
 from payload.kinematics import Kinematics
 from payload.retarget.errors import RetargetError
 from payload.retarget.hand import HandDescription, PairDescription, load_hand
+from payload.vecmath import all_finite
 from payload.vecmath import norm as vec_norm
 
 N_FEATURES = 13
@@ -246,8 +246,7 @@ class PairKinematics:
         q = np.asarray(q, dtype=float).reshape(-1)
         if q.shape != (self.n,):
             raise RetargetError(f"{what}: expected {self.n} joint values, got {q.size}")
-        # a finite sum means every value is finite; only otherwise are they checked one by one
-        if not math.isfinite(np.add.reduce(q)) and not np.isfinite(q).all():
+        if not all_finite(q):
             bad = [self.joints[i] for i in np.flatnonzero(~np.isfinite(q))]
             raise RetargetError(f"{what}: non-finite value for {', '.join(bad)}")
         return q
