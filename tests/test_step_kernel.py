@@ -11,10 +11,11 @@ from payload.trials.codec import HandSampleMsg, StepCodec, StepMsg
 
 def test_the_compiled_step_messages_are_the_protobuf_runtimes() -> None:
     """A batch's hand-sample and step bytes written in C, against the runtime's
-    serialisation of the same messages built field by field (every kind of step: on the
-    grid and as doubles, pairs in the command or not, joints on the grid, raw, untracked
-    and in the hand sample, with and without a frame, zeros of both signs), and read back
-    by the runtime's parser to the same numbers."""
+    serialisation of the same messages encoded one at a time (``encode_hands`` and
+    ``encode_step``, not the batch's arithmetic the kernel's own check compares with;
+    every kind of step: on the grid and as doubles, pairs in the command or not, joints
+    on the grid, raw, untracked and in the hand sample, with and without a frame, zeros
+    of both signs), and read back by the runtime's parser to the same numbers."""
     from payload.trials import codec
 
     kernel = codec._steps_kernel()
@@ -25,7 +26,16 @@ def test_the_compiled_step_messages_are_the_protobuf_runtimes() -> None:
         items = [codec._probe_item(rng, int(k)) for k in rng.integers(0, 400, size=30)]
         items = [(st, 30 * b + i, wall, frame) for i, (st, _, wall, frame) in enumerate(items)]
         got = compiled.encode_batch(items)
-        want = runtime._serialize(items, runtime._rows(items))
+        want = []
+        for step, seq, wall, frame in items:
+            refs = (False, False)
+            if frame is not None:
+                refs = (
+                    codec.same_joints(frame.left.joints, step.left_joints),
+                    codec.same_joints(frame.right.joints, step.right_joints),
+                )
+            hands = None if frame is None else runtime.encode_hands(frame, seq)
+            want.append((hands, runtime.encode_step(step, seq, wall, refs)))
         assert got == want
         for (step, seq, _, frame), (hands, data) in zip(items, got):
             m = StepMsg.FromString(data)
