@@ -334,12 +334,24 @@ def test_the_kept_extents_are_bounded(monkeypatch, tmp_path):
     monkeypatch.setenv("PAYLOAD_CACHE_DIR", str(tmp_path))
     monkeypatch.setattr(propulsion._Extents, "_OPEN", {})
     monkeypatch.setattr(propulsion, "MAX_KEPT_EXTENTS", 3)
+    solved: list[str] = []
+    put = propulsion._Extents.put
+
+    def counted(self, key, extent):
+        solved.append(key)
+        put(self, key, extent)
+
+    monkeypatch.setattr(propulsion._Extents, "put", counted)
     p = Propulsion(NOMINAL.force)
-    e = np.zeros(6)
-    e[3] = 1.0
-    assert p.max_along(e) == pytest.approx(_lp_extent(p, e), rel=1e-9)
+    for axis in range(3, 6):  # programmes beyond the construction's own
+        e = np.zeros(6)
+        e[axis] = 1.0
+        assert p.max_along(e) == pytest.approx(_lp_extent(p, e), rel=1e-9)
     (kept,) = tmp_path.glob("propulsion_extents_*.json")
-    assert 1 <= len(json.loads(kept.read_text())) <= 3
+    held = json.loads(kept.read_text())
+    # three kept at most, then afresh: after n answers, the last (n - 1) % 3 + 1 of them
+    n = len(solved)
+    assert n > 3 and sorted(held) == sorted(solved[n - ((n - 1) % 3 + 1) :])
 
 
 def test_later_searches_and_facet_solves_run_the_short_check_and_still_refuse(
