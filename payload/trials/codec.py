@@ -57,14 +57,13 @@ from payload.trials.jointcodec import (
     quantize_joints,
     same_joints,
 )
+from payload.trials.records import MODULES, PHASES
 from payload.trials.stepmsg import (
     FILE_DESCRIPTOR,
     HANDS_MESSAGE,
-    MODULE_NAMES,
     PAIR_FIELDS,
     PAIR_L_INDEX,
     PAIR_R_INDEX,
-    PHASE_NAMES,
     RAIL_INDEX,
     STEP_DOUBLES,
     STEP_MESSAGE,
@@ -284,7 +283,7 @@ class StepCodec:
         grids = batch.grids
         flags = np.array(
             [
-                (PHASE_NAMES.index(st.phase), MODULE_NAMES.index(st.ctb_module),
+                (PHASES.index(st.phase), MODULES.index(st.ctb_module),
                  bool(st.left_tracked), bool(st.right_tracked), bool(st.contact),
                  _pairs_in_cmd(st), ok, key)
                 for st, ok, key in zip(steps, grids.ok.tolist(), grids.key.tolist())
@@ -332,8 +331,8 @@ class StepCodec:
         """A ``Step`` message with everything but the joints (row ``i`` of ``grids``), as
         :meth:`encode_step` fills it."""
         m = StepMsg(seq=seq, wall_time=wall_time)
-        m.phase = PHASE_NAMES.index(step.phase)
-        m.ctb_module = MODULE_NAMES.index(step.ctb_module)
+        m.phase = PHASES.index(step.phase)
+        m.ctb_module = MODULES.index(step.ctb_module)
         m.left_tracked = step.left_tracked
         m.right_tracked = step.right_tracked
         m.contact = step.contact
@@ -427,8 +426,8 @@ class StepCodec:
         row: dict[str, Any] = {
             "seq": int(m.seq),
             "wall_time": float(m.wall_time),
-            "phase": PHASE_NAMES[m.phase],
-            "ctb_module": MODULE_NAMES[m.ctb_module],
+            "phase": PHASES[m.phase],
+            "ctb_module": MODULES[m.ctb_module],
             "left_tracked": bool(m.left_tracked),
             "right_tracked": bool(m.right_tracked),
             "contact": bool(m.contact),
@@ -510,8 +509,8 @@ def _probe_item(rng: np.random.Generator, k: int) -> tuple[Any, int, float, Any]
     pairs = k % 3 != 0
     step = SimpleNamespace(
         t=0.02 * k,
-        phase=PHASE_NAMES[k % len(PHASE_NAMES)],
-        ctb_module=MODULE_NAMES[k % len(MODULE_NAMES)],
+        phase=PHASES[k % len(PHASES)],
+        ctb_module=MODULES[k % len(MODULES)],
         left_joints=hand() if k % 6 == 1 else joints[0],  # not the frame's
         right_joints=hand() if k % 5 == 2 else joints[1],
         left_tracked=tracked[0],
@@ -619,10 +618,8 @@ __all__ = [
     "FILE_DESCRIPTOR",
     "HANDS_MESSAGE",
     "HAND_GRID_M",
-    "MODULE_NAMES",
     "PAIR_L_INDEX",
     "PAIR_R_INDEX",
-    "PHASE_NAMES",
     "STEP_DOUBLES",
     "STEP_GRIDS",
     "STEP_MESSAGE",

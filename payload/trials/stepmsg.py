@@ -18,10 +18,6 @@ from payload.schema import MANIPULATION_JOINTS
 from payload.trials.records import FIELD_SPECS, MODULES, PHASES
 
 PACKAGE = "payload.trials"
-PHASE_NAMES: tuple[str, ...] = PHASES
-"""The ``Phase`` enum's values, in number order (the record's phases)."""
-MODULE_NAMES: tuple[str, ...] = MODULES
-"""The ``Module`` enum's values, in number order (the record's modules)."""
 
 PAIR_L_INDEX = np.array([MANIPULATION_JOINTS.index(j) for j in pair_joints("L")])
 """Positions of pair L's joints (A then C) in the 17 manipulation coordinates."""
@@ -84,8 +80,8 @@ def _file_descriptor() -> descriptor_pb2.FileDescriptorProto:
     fd = descriptor_pb2.FileDescriptorProto(
         name="payload/trials/step.proto", package=PACKAGE, syntax="proto3"
     )
-    _enum(fd, "Phase", PHASE_NAMES)
-    _enum(fd, "Module", MODULE_NAMES)
+    _enum(fd, "Phase", PHASES)  # the enums' values in number order: the record's
+    _enum(fd, "Module", MODULES)
     j = fd.message_type.add(name="Joints")
     _field(j, "grid", 1, _F.TYPE_DOUBLE)
     _field(j, "delta", 2, _F.TYPE_SINT64, repeated=True)
@@ -138,12 +134,10 @@ __all__ = [
     "FILE_DESCRIPTOR",
     "HANDS_MESSAGE",
     "JOINTS_MESSAGE",
-    "MODULE_NAMES",
     "PACKAGE",
     "PAIR_FIELDS",
     "PAIR_L_INDEX",
     "PAIR_R_INDEX",
-    "PHASE_NAMES",
     "RAIL_INDEX",
     "STEP_DOUBLES",
     "STEP_MESSAGE",
