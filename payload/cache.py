@@ -34,4 +34,15 @@ def sources_digest(package: Path = _PACKAGE) -> str:
     return h.hexdigest()
 
 
-__all__ = ["cache_dir", "sources_digest"]
+def dist_version(name: str) -> str:
+    """The installed version of the distribution ``name`` (what a cached answer may depend
+    on), ``"?"`` when it is not installed."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version(name)
+    except PackageNotFoundError:
+        return "?"
+
+
+__all__ = ["cache_dir", "dist_version", "sources_digest"]

@@ -34,7 +34,7 @@ from collections.abc import Callable, Hashable, Sequence
 from pathlib import Path
 from typing import Any
 
-from payload.cache import cache_dir, sources_digest
+from payload.cache import cache_dir, dist_version, sources_digest
 from payload.safeio import replace_file
 
 CFLAGS: tuple[str, ...] = ("-O3", "-ffp-contract=off", "-fPIC", "-shared")
@@ -409,12 +409,8 @@ def _checked_with() -> str:
     OpenBLAS's machine code for it."""
     import platform
     import sys
-    from importlib import metadata
 
-    try:
-        mujoco = metadata.version("mujoco")
-    except metadata.PackageNotFoundError:  # pragma: no cover - a workbench dependency
-        mujoco = "?"
+    mujoco = dist_version("mujoco")
     return "\n".join(
         [
             _SOURCES,

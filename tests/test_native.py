@@ -128,3 +128,14 @@ def test_the_compilers_flags_are_asked_once_per_cache(monkeypatch, tmp_path):
         assert native.flags(compiler) == first and len(runs) == len(native.OPTIONAL_CFLAGS)
     finally:
         native.flags.cache_clear()
+
+
+def test_a_distributions_version_is_the_installed_one():
+    """What cached answers are named by: the installed distribution's version (numpy's
+    own ``__version__`` here), ``?`` for one not installed."""
+    import numpy as np
+
+    from payload.cache import dist_version
+
+    assert dist_version("numpy") == np.__version__
+    assert dist_version("no-such-distribution-anywhere") == "?"

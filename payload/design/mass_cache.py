@@ -19,19 +19,14 @@ from pathlib import Path
 import manifold3d as m3d
 import numpy as np
 
-from payload.cache import cache_dir
+from payload.cache import cache_dir, dist_version
 
 _VERSION = b"mass-props-1"
 
 
 @functools.cache
 def _trimesh_version() -> str:
-    from importlib.metadata import PackageNotFoundError, version
-
-    try:
-        return version("trimesh")
-    except PackageNotFoundError:
-        return "?"
+    return dist_version("trimesh")
 
 
 def _path(solid: m3d.Manifold, density: float) -> Path:

@@ -42,7 +42,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from payload.cache import cache_dir
+from payload.cache import cache_dir, dist_version
 from payload.errors import PayloadError
 from payload.safeio import replace_file
 from payload.sim.lsq import bvls
@@ -578,12 +578,8 @@ class _Extents:
 
     def __init__(self, matrix: np.ndarray) -> None:
         import hashlib
-        from importlib import metadata
 
-        try:
-            scipy_version = metadata.version("scipy")
-        except metadata.PackageNotFoundError:  # pragma: no cover - a workbench dependency
-            scipy_version = "?"
+        scipy_version = dist_version("scipy")
         name = hashlib.sha256(
             np.ascontiguousarray(matrix).tobytes()
             + Path(__file__).read_bytes()
