@@ -32,7 +32,7 @@ import numpy as np
 from payload import native
 from payload.trials.jointcodec import IN_HANDS, N_JOINT_VALUES, ON_GRID, RAW, UNTRACKED
 from payload.trials.stepmsg import HandSampleMsg, JointsMsg, StepMsg
-from payload.trials.wire_c import WRITER_C
+from payload.trials.wire_c import WRITER_C, defines
 
 log = logging.getLogger(__name__)
 
@@ -243,7 +243,7 @@ def compiled_steps(
     compiler, ``PAYLOAD_NATIVE=0``, a failed build, or a self-check that differs in a byte
     from the protobuf runtime's on ``probes()``: batches (as :meth:`CompiledSteps.__call__`
     takes them, with the joints' grid) with the bytes the runtime gives them."""
-    defines = {
+    values = {
         "N_JOINTS": N_JOINT_VALUES,
         "STEP_BYTES": STEP_BYTES,
         "N_FLAGS": N_FLAGS,
@@ -252,13 +252,8 @@ def compiled_steps(
         "ON_GRID": ON_GRID,
         "RAW": RAW,
         "IN_HANDS": IN_HANDS,
-        **{
-            f"{prefix}_{field.name.upper()}": field.number
-            for prefix, msg in (("STEP", StepMsg), ("HAND", HandSampleMsg), ("JOINTS", JointsMsg))
-            for field in msg.DESCRIPTOR.fields
-        },
     }
-    prelude = "".join(f"#define {name} {value}\n" for name, value in defines.items())
+    prelude = defines(values, {"STEP": StepMsg, "HAND": HandSampleMsg, "JOINTS": JointsMsg})
     lib = native.load_kernel(
         "steps", SOURCE, "the step messages kernel", log, prelude=prelude + WRITER_C
     )

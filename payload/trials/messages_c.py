@@ -38,7 +38,7 @@ from foxglove_schemas_protobuf.Vector3_pb2 import Vector3
 from google.protobuf.timestamp_pb2 import Timestamp
 
 from payload import native
-from payload.trials.wire_c import WRITER_C
+from payload.trials.wire_c import WRITER_C, defines
 
 log = logging.getLogger(__name__)
 
@@ -177,18 +177,13 @@ class CompiledMessages:
 def load_library() -> ctypes.CDLL | None:
     """The kernel's library (None: the protobuf objects are to be built; the log says
     why)."""
-    numbers = {
-        f"{prefix}_{field.name.upper()}": field.number
-        for prefix, message in (
-            ("TS", Timestamp), ("TF", FrameTransform), ("TFS", FrameTransforms),
-            ("V", Vector3), ("Q", Quaternion), ("JS", JointStates), ("J", JointState),
-        )
-        for field in message.DESCRIPTOR.fields
-    }  # fmt: skip
-    prelude = "".join(
-        f"#define {name} {value}\n"
-        for name, value in {"ITEM_BYTES": ITEM_BYTES, "REST_BYTES": REST_BYTES, **numbers}.items()
-    )
+    prelude = defines(
+        {"ITEM_BYTES": ITEM_BYTES, "REST_BYTES": REST_BYTES},
+        {
+            "TS": Timestamp, "TF": FrameTransform, "TFS": FrameTransforms, "V": Vector3,
+            "Q": Quaternion, "JS": JointStates, "J": JointState,
+        },
+    )  # fmt: skip
     return native.load_kernel(
         "messages", SOURCE, "the Foxglove messages kernel", log, prelude=prelude + WRITER_C
     )

@@ -9,6 +9,9 @@ of implicit presence only when its bits are not all zero (so ``-0.0`` is written
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from typing import Any
+
 WRITER_C = r"""
 #include <string.h>
 
@@ -68,4 +71,17 @@ static unsigned char *packed_doubles(unsigned char *p, uint64_t number, const do
 """
 """The shared writers (C; a kernel's source follows it)."""
 
-__all__ = ["WRITER_C"]
+
+def defines(values: Mapping[str, int], messages: Mapping[str, Any]) -> str:
+    """A kernel's ``#define`` lines: ``values`` as they are, then every field number of
+    ``messages`` (prefix -> protobuf message class) as ``PREFIX_FIELD``, from the
+    messages' descriptors."""
+    numbers = {
+        f"{prefix}_{field.name.upper()}": field.number
+        for prefix, message in messages.items()
+        for field in message.DESCRIPTOR.fields
+    }
+    return "".join(f"#define {name} {value}\n" for name, value in {**values, **numbers}.items())
+
+
+__all__ = ["WRITER_C", "defines"]
