@@ -44,7 +44,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from payload.trials.codec_c import N_FLAGS, compiled_steps
+from payload.trials.codec_c import N_FLAGS, STEP_FLAGS, compiled_steps
 from payload.trials.jointcodec import (
     GRID_INT_LIMIT,
     HAND_GRID_M,
@@ -57,7 +57,7 @@ from payload.trials.jointcodec import (
     quantize_joints,
     same_joints,
 )
-from payload.trials.records import MODULES, PHASES
+from payload.trials.records import FIELD_SPECS, MODULES, PHASES
 from payload.trials.stepmsg import (
     FILE_DESCRIPTOR,
     HANDS_MESSAGE,
@@ -74,6 +74,8 @@ from payload.trials.stepmsg import (
 )
 from payload.vecmath import all_reduce
 
+_BOOL_FLAGS = tuple(f for f in STEP_FLAGS if FIELD_SPECS.get(f, ((), None))[1] == "bool")
+"""The step's flags that are the record's booleans (tracked, contact)."""
 _SIZES = {"wall_time": 1, **{name: int(np.prod(shape)) for name, _, shape in STEP_DOUBLES}}
 STEP_GRIDS: tuple[tuple[str, float, int], ...] = tuple(
     (name, resolution, _SIZES[name])
@@ -281,15 +283,17 @@ class StepCodec:
         n = len(items)
         steps = [it[0] for it in items]
         grids = batch.grids
-        flags = np.array(
-            [
-                (PHASES.index(st.phase), MODULES.index(st.ctb_module),
-                 bool(st.left_tracked), bool(st.right_tracked), bool(st.contact),
-                 _pairs_in_cmd(st), ok, key)
-                for st, ok, key in zip(steps, grids.ok.tolist(), grids.key.tolist())
-            ],
-            dtype=np.int64,
-        ).reshape(n, N_FLAGS)  # fmt: skip
+        columns = {
+            "phase": [PHASES.index(st.phase) for st in steps],
+            "ctb_module": [MODULES.index(st.ctb_module) for st in steps],
+            **{f: [bool(getattr(st, f)) for st in steps] for f in _BOOL_FLAGS},
+            "pairs_in_cmd": [_pairs_in_cmd(st) for st in steps],
+            "gridded": grids.ok,
+            "grid_key": grids.key,
+        }
+        flags = np.ascontiguousarray(
+            np.array([columns[f] for f in STEP_FLAGS], dtype=np.int64).reshape(N_FLAGS, n).T
+        )
         doubles = np.concatenate([batch.fields[name] for name, _, _ in STEP_DOUBLES], axis=1)
         walls = np.array([it[2] for it in items], dtype=np.float64)
         out = {

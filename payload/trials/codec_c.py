@@ -36,9 +36,21 @@ from payload.trials.wire_c import WRITER_C, defines
 
 log = logging.getLogger(__name__)
 
-N_FLAGS = 8
-"""A step's small numbers the serialiser takes: phase, CTB module, left and right tracked,
-contact, pairs in the command, stored on the grid, a grid key."""
+STEP_FLAGS: tuple[str, ...] = (
+    "phase",
+    "ctb_module",
+    "left_tracked",
+    "right_tracked",
+    "contact",
+    "pairs_in_cmd",
+    "gridded",
+    "grid_key",
+)
+"""A step's small numbers the serialiser takes, in their order (the C reads each as
+``FLAG_<NAME>``): phase, CTB module, left and right tracked, contact, pairs in the
+command, stored on the grid, a grid key."""
+
+N_FLAGS = len(STEP_FLAGS)
 
 STEP_BYTES = 8192
 """A bound on the bytes of one step's two messages (each at most about 2,400: two raw hands
@@ -84,8 +96,7 @@ static unsigned char *joints(unsigned char *p, uint64_t number, int64_t kind, in
    (no room).
 
    seq[i], wall[i]: the step's sequence number and wall_time (0 when gridded);
-   flags[N_FLAGS i ..]: phase, ctb_module, left_tracked, right_tracked, contact, pairs_in_cmd,
-     gridded, grid_key;
+   flags[N_FLAGS i ..]: STEP_FLAGS, each at its FLAG_<NAME>;
    doubles[nd i ..]: the packed double fields' values, field by field (numbers[f] and
      sizes[f]; a size 0 a scalar double; pair[f]: a pair field, stored unless pairs_in_cmd,
      the others unless gridded);
@@ -118,7 +129,7 @@ int64_t payload_encode_steps(
         }
         ends[2 * i] = p - out;
         const int64_t *fl = flags + N_FLAGS * i;
-        int64_t pairs = fl[5], gridded = fl[6];
+        int64_t pairs = fl[FLAG_PAIRS_IN_CMD], gridded = fl[FLAG_GRIDDED];
         const double *v = doubles + nd * i;
         p = scalar(p, STEP_SEQ, (uint64_t)seq[i]);
         p = dbl(p, STEP_WALL_TIME, wall[i]);
@@ -126,11 +137,11 @@ int64_t payload_encode_steps(
             /* the double fields numbered below the phase (t), then the enums and bools,
                then the rest of the doubles: field-number order */
             if (pass == 1) {
-                p = scalar(p, STEP_PHASE, (uint64_t)fl[0]);
-                p = scalar(p, STEP_CTB_MODULE, (uint64_t)fl[1]);
-                p = scalar(p, STEP_LEFT_TRACKED, fl[2] != 0);
-                p = scalar(p, STEP_RIGHT_TRACKED, fl[3] != 0);
-                p = scalar(p, STEP_CONTACT, fl[4] != 0);
+                p = scalar(p, STEP_PHASE, (uint64_t)fl[FLAG_PHASE]);
+                p = scalar(p, STEP_CTB_MODULE, (uint64_t)fl[FLAG_CTB_MODULE]);
+                p = scalar(p, STEP_LEFT_TRACKED, fl[FLAG_LEFT_TRACKED] != 0);
+                p = scalar(p, STEP_RIGHT_TRACKED, fl[FLAG_RIGHT_TRACKED] != 0);
+                p = scalar(p, STEP_CONTACT, fl[FLAG_CONTACT] != 0);
                 p = scalar(p, STEP_PAIRS_IN_CMD, pairs != 0);
             }
             const double *x = v;
@@ -150,7 +161,7 @@ int64_t payload_encode_steps(
         }
         if (gridded) {
             p = packed_sint64(p, STEP_GRID, grid + ng * i, ng);
-            p = scalar(p, STEP_GRID_KEY, fl[7] != 0);
+            p = scalar(p, STEP_GRID_KEY, fl[FLAG_GRID_KEY] != 0);
         }
         ends[2 * i + 1] = p - out;
     }
@@ -252,6 +263,7 @@ def compiled_steps(
         "ON_GRID": ON_GRID,
         "RAW": RAW,
         "IN_HANDS": IN_HANDS,
+        **{f"FLAG_{name.upper()}": i for i, name in enumerate(STEP_FLAGS)},
     }
     prelude = defines(values, {"STEP": StepMsg, "HAND": HandSampleMsg, "JOINTS": JointsMsg})
     lib = native.load_kernel(
@@ -268,4 +280,4 @@ def compiled_steps(
     return kernel
 
 
-__all__ = ["N_FLAGS", "SOURCE", "STEP_BYTES", "CompiledSteps", "compiled_steps"]
+__all__ = ["N_FLAGS", "SOURCE", "STEP_BYTES", "STEP_FLAGS", "CompiledSteps", "compiled_steps"]
