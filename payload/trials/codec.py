@@ -216,7 +216,8 @@ class StepCodec:
         at = {i: r for r, (i, _) in enumerate(frames)}
         fields = _gathered([it[0] for it in items])
         grids = self._grid_batch(fields, [it[2] for it in items])
-        return _Batch(at, hands, (own[0], own[1]), grids, fields)
+        pairs = np.array([_pairs_in_cmd(it[0]) for it in items], dtype=bool).reshape(-1)
+        return _Batch(at, hands, (own[0], own[1]), grids, fields, pairs)
 
     def _columns(
         self, items: list[tuple[Any, int, float, Any]], batch: _Batch
@@ -236,7 +237,7 @@ class StepCodec:
         ok = grids.ok
         for name, start, stop in _GRID_SLICES:
             cols[name][ok] = grids.values[ok, start:stop].reshape(cols[name][ok].shape)
-        pairs = np.array([_pairs_in_cmd(st) for st in steps], dtype=bool)
+        pairs = batch.pairs
         q = cols["q_cmd"][pairs]
         cols["q_left"][pairs] = q[:, PAIR_L_INDEX]
         cols["q_right"][pairs] = q[:, PAIR_R_INDEX]
@@ -287,7 +288,7 @@ class StepCodec:
             "phase": [PHASES.index(st.phase) for st in steps],
             "ctb_module": [MODULES.index(st.ctb_module) for st in steps],
             **{f: [bool(getattr(st, f)) for st in steps] for f in _BOOL_FLAGS},
-            "pairs_in_cmd": [_pairs_in_cmd(st) for st in steps],
+            "pairs_in_cmd": batch.pairs,
             "gridded": grids.ok,
             "grid_key": grids.key,
         }
@@ -558,6 +559,7 @@ class _Batch(NamedTuple):
     own: tuple[tuple[dict[int, int], JointRows], tuple[dict[int, int], JointRows]]
     grids: GridRows
     fields: dict[str, np.ndarray]  # :func:`_gathered`
+    pairs: np.ndarray  # per step whether its pair fields are its command's (bool)
 
 
 def _gathered(steps: list[Any]) -> dict[str, np.ndarray]:
