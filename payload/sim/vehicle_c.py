@@ -377,7 +377,7 @@ COMMAND_STEPS = 10
 full one and still sees several commands."""
 
 
-def check_control(controller: Any, kernel: CompiledControl, steps: int = CHECK_STEPS) -> bool:
+def check_control(controller: Any, kernel: CompiledControl, steps: int) -> bool:
     """Run ``steps`` control steps of piecewise-constant random commands (a new one every
     :data:`COMMAND_STEPS`: moving and turning, at rest, within or beyond the mode's speed)
     from the same states through the numpy code and the kernel; True if every wrench,

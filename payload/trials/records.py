@@ -234,14 +234,11 @@ _ARRAY_SLICES: tuple[tuple[str, int, int, tuple[int, ...]], ...] = tuple(
         _ARRAYS, itertools.accumulate((math.prod(f[1]) for f in _ARRAYS), initial=0)
     )
 )
-_NAN_END = max(
-    (stop for (_, _, stop, _), (_, _, kind) in zip(_ARRAY_SLICES, _ARRAYS) if kind == "float_nan"),
-    default=0,
-)
+_NAN_END = sum(math.prod(shape) for _, shape, kind in _ARRAYS if kind == "float_nan")
 _OTHER_FIELDS: tuple[tuple[str, tuple[int, ...], Any, type], ...] = tuple(
     (name, shape, kind, str if isinstance(kind, tuple) else bool if kind == "bool" else float)
     for name, shape, kind in _FIELDS
-    if not (shape and kind in ("float", "float_nan"))
+    if (name, shape, kind) not in _ARRAYS
 )
 """The scalar fields with the type they keep (a string of the allowed ones, a bool, a float)."""
 
