@@ -417,14 +417,16 @@ def test_a_later_base_kernel_runs_the_short_check_and_it_still_refuses(fresh_che
             base_c.compiled_base.cache_clear()
 
     kernel, n = build()
-    assert kernel is not None and n == 3 * base_c.CHECK_STEPS
+    channels = len(base_c.CHECK_CHANNELS)
+    assert kernel is not None and n == channels * base_c.CHECK_STEPS
     assert len(list(fresh_checks.iterdir())) == 1
     native._CHECKED.clear()  # a later process
     kernel, n = build()
-    assert kernel is not None and n == base_c.CHECK_STEPS
+    assert kernel is not None and n == channels * base_c.SHORT_STEPS
     native._CHECKED.clear()
     stamps = sorted(fresh_checks.iterdir())
-    assert build(lie_at=base_c.CHECK_STEPS // 3 + 150) == (None, base_c.CHECK_STEPS // 3 + 150)
+    lie = base_c.SHORT_STEPS + 150  # in the second channel
+    assert build(lie_at=lie) == (None, lie)
     assert sorted(fresh_checks.iterdir()) == stamps  # a short check stamps nothing
     # a failed full check leaves no stamp either
     native._CHECKED.clear()

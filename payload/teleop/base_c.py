@@ -303,8 +303,8 @@ def compiled_base(factory: Callable[..., Any]) -> CompiledBase | None:
         return None
     kernel = CompiledBase(*loaded)
     # each channel's steps, or its first third (every kind of leg) once a full check passed
-    steps = native.probes(loaded[0], "base channel", CHECK_STEPS, CHECK_STEPS // 3)
-    for c, (heading, with_right) in enumerate(((0.0, True), (2.3, True), (-1.1, False))):
+    steps = native.probes(loaded[0], _CHECK_KEY, CHECK_STEPS, SHORT_STEPS)
+    for c, (heading, with_right) in enumerate(CHECK_CHANNELS):
         rng = np.random.default_rng(c)  # each channel's own draws: the short check a prefix
         neutral = rng.normal(scale=0.1, size=3)
         right_neutral = neutral + np.array([0.0, -0.3, 0.0])
@@ -333,14 +333,22 @@ def compiled_base(factory: Callable[..., Any]) -> CompiledBase | None:
                 log.warning("base channel: numpy (the compiled step differs)")
                 return None
     if steps == CHECK_STEPS:
-        native.passed(loaded[0], "base channel")
+        native.passed(loaded[0], _CHECK_KEY)
     return kernel
 
 
 CHECK_STEPS = 600
-"""Steps of each of the three channels of the base kernel's full self-check; its first
-third already holds the four kinds of leg (aims of 0 to 0.3 m), the right hand's holds
-and lost hands and rotations."""
+"""Steps of each channel (:data:`CHECK_CHANNELS`) of the base kernel's full self-check;
+its first third (:data:`SHORT_STEPS`) already holds the four kinds of leg (aims of 0 to
+0.3 m), the right hand's holds and lost hands and rotations."""
+
+SHORT_STEPS = CHECK_STEPS // 3
+"""Steps of each channel in the short check (every kind of leg)."""
+
+CHECK_CHANNELS: tuple[tuple[float, bool], ...] = ((0.0, True), (2.3, True), (-1.1, False))
+"""The self-check's channels: heading [rad], and whether a right-hand neutral is set."""
+
+_CHECK_KEY = "base channel"  # the check stamp's key
 
 
 def _fields(command: Any) -> tuple:
