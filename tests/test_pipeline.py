@@ -341,3 +341,89 @@ def test_the_operators_route_lengths_are_the_routes_remaining_length() -> None:
     np.testing.assert_allclose(centre - half, [0.35, 0.05 - 0.15, 1.05], rtol=1e-15)
     forward = op._to_operator @ [math.cos(0.7), math.sin(0.7), 0.0]  # the operator's forward
     np.testing.assert_allclose(forward, [1.0, 0.0, 0.0], atol=1e-15)
+
+
+def _solver_state(rt) -> list[bytes]:
+    """A retargeter's held command and its compiled solver's inputs (the anchor among
+    them), as bytes."""
+    _, inputs = rt.step_entry()
+    return [rt.held_command.tobytes(), *(a.tobytes() for a in inputs)]
+
+
+def test_the_finger_chain_is_the_python_path(retargeting, refused_kernel):
+    """Each pair's compiled finger chain (features, targets, posture, solve in one C call)
+    against the pipeline's Python path, one call each, from the same solver state on 300
+    random hands (degenerate and non-finite ones among them) and an operator's hands: the
+    same command, report, held command and solver inputs in every bit, or both refuse (the
+    chain then leaves the held command and the anchor as they were). A chain whose
+    posture is interpolated as p0 + w (p1 - p0) (the same in exact arithmetic) is refused."""
+    from payload.teleop import pair_c
+    from payload.teleop.hand_c import random_hands
+    from payload.teleop.pipeline import TRACKING_FAULTS
+
+    op, _proc, cal, _, t = _calibrated(3, retargeting, QUIET)
+    pipe = _pipeline(cal, retargeting)
+    hands = list(random_hands(300, seed=11))
+    for _ in range(60):
+        fr = op.act(_static_world(t))
+        hands += [fr.left.joints, fr.right.joints]
+        t += DT
+    solved = refused = 0
+    for pair, rt in pipe.retargeters.items():
+        chain = pipe._make_chain(pair)
+        assert chain is not None
+        for joints in hands:
+            before = _solver_state(rt)
+            try:
+                want = pipe._finger_python(pair, Hand(joints, True))
+            except TRACKING_FAULTS:
+                want = None
+            after_python = _solver_state(rt)
+            rt.hold(np.frombuffer(before[0]))
+            for a, b in zip(rt.step_entry()[1], before[1:]):
+                a[:] = np.frombuffer(b)
+            assert _solver_state(rt) == before
+            with np.errstate(all="ignore"):
+                got = chain(joints)
+            if want is None:
+                assert got is None
+                anchor = _solver_state(rt)[0:1] + _solver_state(rt)[4:]
+                assert anchor == before[0:1] + before[4:]
+                refused += 1
+                continue
+            solved += 1
+            assert got[0].tobytes() == want[0].tobytes()
+            assert repr(tuple(got[1])) == repr(tuple(want[1]))
+            assert _solver_state(rt) == after_python
+    assert solved > 300 and refused > 5
+    with refused_kernel(
+        pair_c,
+        "c->r_in[j] = (1.0 - w) * p0[j] + w * p1[j];",
+        "c->r_in[j] = p0[j] + w * (p1[j] - p0[j]);",
+    ):
+        assert pipe._make_chain("L") is None
+
+
+def test_a_pipeline_with_its_finger_chains_commands_as_one_without(retargeting):
+    """Two pipelines on the same calibration and hands, one with its pairs' finger chains
+    and one on the Python path alone: the same commands, twists and solve reports, bit for
+    bit, step after step."""
+    op, _, cal, _, t = _calibrated(9, retargeting)
+    frames = []
+    for _ in range(300):
+        frames.append(op.act(_static_world(t)))
+        t += DT
+
+    def stream(chains: bool) -> list[bytes]:
+        pipe = _pipeline(cal, retargeting)
+        if not chains:
+            pipe._chains = {"L": None, "R": None}
+        out = []
+        for fr in frames:
+            s = pipe.step(fr)
+            out.append(s.command.q.tobytes() + s.twist.linear.tobytes())
+            out.append(repr(sorted(s.solves.items())).encode())
+        assert all(c is not None for c in pipe._chains.values()) == chains
+        return out
+
+    assert stream(True) == stream(False)

@@ -92,6 +92,12 @@ class PairCalibration:
                     return out
         return self._to_targets_numpy(human)
 
+    @property
+    def targets_kernel(self) -> Any:
+        """The compiled :meth:`to_targets` (:mod:`payload.retarget.targets_c`, checked when
+        first asked for), or None (the numpy code runs)."""
+        return self._kernel
+
     @functools.cached_property
     def _kernel(self) -> Any:
         from payload.retarget.targets_c import compiled_targets

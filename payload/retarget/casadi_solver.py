@@ -217,6 +217,29 @@ class PairRetargeter(Retargeter):
         r_in[:] = self.kinematics.rest if q_ref is None else q_ref
         if not c.step():  # the finiteness check and the anchor update in C
             return super().solve(targets, q_prev, q_ref)  # raises, naming the value
+        return self.finish_step()
+
+    def step_entry(self) -> tuple[tuple[int, ...], list[np.ndarray]] | None:
+        """For a caller that fills the solve's inputs in C and runs its step entry there
+        (:mod:`payload.teleop.pair_c`): the entry and its arguments
+        (:meth:`_CompiledSolve.step_entry`) and the solver's inputs (command, targets,
+        posture reference, then the anchor the step updates), or None (no compiled step).
+        Such a caller writes :attr:`held_command` into the command input, and after a
+        step that returned 0 calls :meth:`finish_step`."""
+        c = self._compiled
+        entry = c.step_entry() if c is not None else None
+        return None if entry is None else (entry, c.inputs)
+
+    @property
+    def held_command(self) -> np.ndarray:
+        """The held command itself, the next solve's warm start (not a copy: read it,
+        don't change it; :attr:`command` is a copy)."""
+        return self._command
+
+    def finish_step(self) -> tuple[np.ndarray, SolveInfo]:
+        """The answer of the compiled step that just ran (:meth:`solve`'s): its command,
+        now held, and its report."""
+        c = self._compiled
         q = c.outputs[0].copy()
         self._command = q
         return q.copy(), _info(c.outputs[1], self.collisions)

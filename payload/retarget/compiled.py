@@ -158,6 +158,19 @@ class _CompiledSolve:
                 step, self._arg, self._res, self._iw, self._w, self._mem
             )
 
+    def step_entry(self) -> tuple[int, ...] | None:
+        """The step entry's address and its arguments (argument and result pointer
+        arrays, integer and real work, memory slot), for C that calls it (:meth:`step`
+        returns its codes' meaning), or None (no step entry)."""
+        if self._step_call is None:
+            return None
+        fn = self._step_call.func
+        return (
+            ctypes.cast(fn, ctypes.c_void_p).value,
+            *(ctypes.addressof(a) for a in (self._arg, self._res, self._iw, self._w)),
+            self._mem,
+        )
+
     def __call__(self) -> None:
         if self._fn(self._arg, self._res, self._iw, self._w, self._mem) != 0:
             raise RetargetError("the compiled retargeting solver reported an error")

@@ -99,10 +99,14 @@ class CompiledTargets:
         fn.restype = ctypes.c_int
         fn.argtypes = [ptr, ptr, ptr, cint, i64, ptr, cint, i64, ptr, ptr]
         (r_order, r_ld), (g_order, g_ld) = layouts
-        self._call = functools.partial(
-            fn, gemv, consts.ctypes.data, rot.ctypes.data, r_order, r_ld, grot.ctypes.data,
-            g_order, g_ld, self._in.ctypes.data, self._out.ctypes.data,
+        self.entry: tuple[int, ...] = (
+            ctypes.cast(fn, ptr).value, gemv, consts.ctypes.data, rot.ctypes.data, r_order,
+            r_ld, grot.ctypes.data, g_order, g_ld,
         )  # fmt: skip
+        """``payload_targets``'s address and its leading arguments, for C that calls it
+        (:mod:`payload.teleop.pair_c`): then the human features and the targets (13,) each."""
+        buffers = (self._in.ctypes.data, self._out.ctypes.data)
+        self._call = functools.partial(fn, *self.entry[1:], *buffers)
         self._lock = threading.Lock()  # one set of buffers; ctypes releases the GIL
 
     def __call__(self, human: np.ndarray) -> PairFeatures | None:

@@ -141,6 +141,15 @@ class CompiledHandFeatures:
         fn.argtypes = [ptr, ptr, ptr, ptr, ctypes.c_double, ptr]
         self._call = functools.partial(fn, gemv, ddot)
         self._args = (self._idx.ctypes.data, _EPS, self._out.ctypes.data)
+        self.entry: tuple[int, int, int, int, float] = (
+            ctypes.cast(fn, ptr).value,
+            gemv,
+            ddot,
+            self._idx.ctypes.data,
+            _EPS,
+        )
+        """``payload_hand_features``'s address and its leading arguments, for C that calls
+        it (:mod:`payload.teleop.pair_c`): then the joints (n, 3) and the output (13,)."""
         self._lock = threading.Lock()  # one output buffer; ctypes releases the GIL
 
     def __call__(self, joints: np.ndarray) -> np.ndarray | None:

@@ -236,6 +236,7 @@ class TeleopPipeline:
             r.reset(q0[self.index[pair]])
         self.rail_blend = Blender(np.array([q0[-1]]))
         self.events: list[SafetyEvent] = []
+        self._chains: dict[str, Any] = {}  # pair -> its finger chain (pair_c) or None
 
     def _filtered(self, side: str, hand: Hand | None, t: float) -> Hand | None:
         if hand is None:
@@ -244,6 +245,49 @@ class TeleopPipeline:
         if not self.config.filter_enabled:
             return hand
         return Hand(self.filters[side](hand.joints, t), True)
+
+    def _finger(self, pair: str, hand: Hand) -> tuple[np.ndarray, SolveInfo]:
+        """The pair's fresh command and solve report for a hand: the compiled chain
+        (:mod:`payload.teleop.pair_c`) when it takes the hand, else :meth:`_finger_python`.
+
+        Raises:
+            RetargetError, HandFrameError: The hand's features, targets or solve refused.
+        """
+        chain = self._chains.get(pair, self)
+        if chain is self:
+            chain = self._chains[pair] = self._make_chain(pair)
+        if chain is not None:
+            out = chain(hand.joints)
+            if out is not None:
+                return out
+        return self._finger_python(pair, hand)
+
+    def _finger_python(self, pair: str, hand: Hand) -> tuple[np.ndarray, SolveInfo]:
+        """Features, targets, posture reference and solve, one call each."""
+        targets, q_ref = self.calibration.pairs[pair].command(human_feature_vector(hand))
+        return self.retargeters[pair].solve(targets, q_ref=q_ref)
+
+    def _make_chain(self, pair: str) -> Any:
+        from payload.teleop.pair_c import compiled_finger_chain
+
+        calibration = self.calibration.pairs[pair]
+        retargeter = self.retargeters[pair]
+        if not hasattr(retargeter, "step_entry"):  # another solver: no compiled step
+            return None
+
+        def python(joints: np.ndarray) -> tuple[np.ndarray, SolveInfo] | None:
+            try:
+                return self._finger_python(pair, Hand(joints, True))
+            except TRACKING_FAULTS:
+                return None
+
+        return compiled_finger_chain(
+            compiled_hand_features(human_features),
+            calibration.targets_kernel,
+            calibration.range,
+            retargeter,
+            python,
+        )
 
     def step(self, frame: HandFrame, vehicle_rotation: np.ndarray | None = None) -> TeleopStep:
         """One 50 Hz step.
@@ -268,10 +312,7 @@ class TeleopPipeline:
             fresh = None
             if hand is not None:
                 try:
-                    targets, q_ref = self.calibration.pairs[pair].command(
-                        human_feature_vector(hand)
-                    )
-                    fresh, solves[pair] = self.retargeters[pair].solve(targets, q_ref=q_ref)
+                    fresh, solves[pair] = self._finger(pair, hand)
                 except TRACKING_FAULTS as exc:  # bad hand data holds the pair; a bug aborts
                     events.append(SafetyEvent(t, side, "invalid", f"finger channel: {exc}"))
                     log.warning("teleop: %s hand finger channel held: %s", side, exc)
