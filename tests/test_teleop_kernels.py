@@ -469,3 +469,55 @@ def test_later_hand_features_and_filter_steps_run_the_short_check(fresh_checks):
         factory.cache_clear()
         short = full // native.SHORT_SHARE
         assert counts == [(True, full), (True, short), (False, short - 2)]
+
+
+def test_the_compiled_held_hand_is_numpys(monkeypatch):
+    """The synthetic operator's hand through the compiled kernel and through the numpy
+    code (the model's joints times the identity, plus the wrist with its tremor, plus the
+    noise) on 3,000 random hands: the same bits, and only a wrist with a zero coordinate
+    is left to numpy. An operator draws the same frames with the kernel and without it."""
+    from payload.teleop import handmodel, handmodel_c
+    from payload.teleop.calibration import CalibrationProcedure
+    from payload.teleop.operator import OperatorPlan, SyntheticOperator, WorldView
+
+    kernel = handmodel._held_hand_kernel()
+    assert kernel is not None  # a compiler is here
+    refused = 0
+    for args in handmodel_c._probes(3000):
+        want = handmodel._held_hand_numpy(*args[:-1], args[-1].copy())
+        got = kernel(*args[:-1], args[-1].copy())
+        if got is None:
+            refused += 1
+            wrist = args[4] + args[5] * np.sin(args[6] + args[7])
+            assert not np.all(wrist != 0.0)
+            continue
+        assert got.tobytes() == want.tobytes()
+    assert refused == 3000 // 25
+
+    def frames() -> list[bytes]:
+        plan = OperatorPlan(route=np.array([[0.0, 0.0, 0.0], [5.0, 0.0, 0.0]]))
+        op = SyntheticOperator(plan, 4, CalibrationProcedure())
+        out = []
+        for k in range(400):
+            fr = op.act(
+                WorldView(k * 0.02, np.zeros(3), np.eye(3), np.zeros(3), np.zeros(3), False)
+            )
+            out += [fr.left.joints.tobytes(), fr.right.joints.tobytes()]
+        return out
+
+    compiled = frames()
+    monkeypatch.setattr(handmodel, "_held_hand_kernel", lambda: None)
+    assert frames() == compiled
+
+
+def test_a_held_hand_kernel_with_other_bits_is_refused(fresh_kernel, refused_kernel):
+    """A phalanx added as len cos(a) u + len sin(a) v (the same in exact arithmetic) is
+    refused."""
+    from payload.teleop import handmodel, handmodel_c
+
+    with refused_kernel(
+        handmodel_c,
+        "p[k] = p[k] + len * (cs * h->u[3 * r + k] + sn * h->v[3 * r + k]);",
+        "p[k] = p[k] + (len * cs * h->u[3 * r + k] + len * sn * h->v[3 * r + k]);",
+    ):
+        assert handmodel_c.compiled_held_hand(handmodel._TABLES, handmodel._held_hand_numpy) is None

@@ -11,9 +11,11 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
+from payload.teleop.handmodel_c import compiled_held_hand
 from payload.teleop.hands import JOINT_INDEX
 
 # knuckle (phalanx-proximal) positions and phalanx lengths of a size-1 hand [m]
@@ -57,6 +59,13 @@ _CHAIN_ROWS = np.array(
 _METACARPALS = np.array([[0.03, ky * 0.6, 0.0] for (_, ky), _ in _FINGERS.values()])
 _METACARPAL_ROWS = np.array([JOINT_INDEX[f"{name}-metacarpal"] for name in _FINGERS])
 assert next(iter(_FINGERS)) == "index-finger"  # the row whose angles follow the aperture
+# the joint angles of the chains: the index's a - b s for the aperture s, the thumb's
+# a + b (1 - s) (it starts along (forward, thumb side) and flexes across the palm toward
+# the index: the plane is chosen so that the tips are ~18 mm apart pinched, ~95 mm open),
+# the other three fingers' share of the curl
+_INDEX_ANGLES = np.array([[0.75, 0.65], [0.55, 0.45], [0.35, 0.3]])
+_THUMB_ANGLES = np.array([[0.2, 0.3], [0.2, 0.4], [0.1, 0.35]])
+_CURL_SHARES = np.array([1.0, 1.0, 0.6])
 
 
 @functools.lru_cache(maxsize=256)
@@ -69,16 +78,10 @@ def _local_joints(side: str, size: float, s: float, curl: float) -> np.ndarray:
     cumulated joint angles."""
     out = np.zeros((25, 3))
     c = 1 - s
+    ia, ta = _INDEX_ANGLES.tolist(), _THUMB_ANGLES.tolist()
+    fingers = [curl * k for k in _CURL_SHARES.tolist()]
     angles = np.array(
-        [
-            (0.75 - 0.65 * s, 0.55 - 0.45 * s, 0.35 - 0.3 * s),  # index: the aperture
-            (curl, curl, curl * 0.6),
-            (curl, curl, curl * 0.6),
-            (curl, curl, curl * 0.6),
-            # thumb: starts along (forward, thumb side), flexes across the palm toward the
-            # index (plane chosen so the tips are ~18 mm apart pinched, ~95 mm open)
-            (0.2 + 0.3 * c, 0.2 + 0.4 * c, 0.1 + 0.35 * c),
-        ]
+        [[a - b * s for a, b in ia], fingers, fingers, fingers, [a + b * c for a, b in ta]]
     )
     cum = np.cumsum(angles, axis=1)[:, :, None]  # (5, 3, 1)
     steps = _LENGTHS[:, :, None] * (np.cos(cum) * _U[:, None] + np.sin(cum) * _V[:, None])
@@ -127,3 +130,66 @@ class HandModel:
         s = min(max(float(aperture), 0.0), 1.0)
         local = _local_joints(self.side, float(self.size), s, float(curl))
         return local @ np.asarray(rotation).T + np.asarray(wrist)
+
+
+_IDENTITY = np.eye(3)
+_IDENTITY.setflags(write=False)
+
+_TABLES = {
+    "origins": _ORIGINS,
+    "lengths": _LENGTHS,
+    "u": _U,
+    "v": _V,
+    "chain_rows": _CHAIN_ROWS,
+    "metacarpals": _METACARPALS,
+    "metacarpal_rows": _METACARPAL_ROWS,
+    "index_angles": _INDEX_ANGLES,
+    "thumb_angles": _THUMB_ANGLES,
+    "curl_shares": _CURL_SHARES,
+}
+"""The model's tables, for its compiled form (:mod:`payload.teleop.handmodel_c`)."""
+
+
+def _held_hand_numpy(
+    left: bool,
+    size: float,
+    aperture: float,
+    curl: float,
+    wrist: np.ndarray,
+    amp: float,
+    arg: float,
+    phases: np.ndarray,
+    noise: np.ndarray,
+) -> np.ndarray:
+    """:func:`held_hand` in numpy."""
+    tremor = amp * np.sin(arg + phases)
+    model = HandModel("left" if left else "right", size)
+    return model.joints(wrist + tremor, _IDENTITY, aperture, curl) + noise
+
+
+@functools.cache
+def _held_hand_kernel() -> Any:
+    return compiled_held_hand(_TABLES, _held_hand_numpy)
+
+
+def held_hand(
+    model: HandModel,
+    wrist: np.ndarray,
+    amp: float,
+    arg: float,
+    phases: np.ndarray,
+    aperture: float,
+    noise: np.ndarray,
+    curl: float = 0.6,
+) -> np.ndarray:
+    """A tracked hand of the synthetic operator, shape (25, 3) [m]: ``model``'s joints,
+    unrotated, at the wrist ``wrist + amp sin(arg + phases)`` (its tremor), plus the
+    tracker's ``noise`` (25, 3) (a float64 array of the caller's own, which the compiled
+    form writes the joints over: :mod:`payload.teleop.handmodel_c`, the same bits)."""
+    left, size = model.side == "left", float(model.size)
+    kernel = _held_hand_kernel()
+    if kernel is not None:
+        out = kernel(left, size, float(aperture), float(curl), wrist, amp, arg, phases, noise)
+        if out is not None:
+            return out
+    return _held_hand_numpy(left, size, aperture, curl, wrist, amp, arg, phases, noise)

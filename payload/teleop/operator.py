@@ -27,12 +27,10 @@ from payload.rotations import yaw_matrix
 from payload.schema import CONTROL_DT
 from payload.teleop.calibration import CalibrationProcedure
 from payload.teleop.channels import BaseConfig
-from payload.teleop.handmodel import HandModel
+from payload.teleop.handmodel import HandModel, held_hand
+from payload.teleop.handmodel_c import JOINTS_SHAPE
 from payload.teleop.hands import Hand, HandFrame
 from payload.vecmath import norm
-
-_IDENTITY = np.eye(3)
-_IDENTITY.setflags(write=False)
 
 
 @dataclass(frozen=True)
@@ -405,11 +403,12 @@ class SyntheticOperator:
                 self._dropout_until[side] = t + self.rng.uniform(0.03, 0.08)
                 hands[side] = Hand.untracked()
                 continue
-            ph = self.phases[side]
-            tremor = tr.tremor_amp * np.sin(2 * math.pi * tr.tremor_freq * t + ph)
-            wrist = self.wrist[side] + tremor
-            joints = self.models[side].joints(wrist, _IDENTITY, self.aperture)
-            joints = joints + self.rng.normal(0.0, tr.noise, size=joints.shape)
+            noise = self.rng.normal(0.0, tr.noise, size=JOINTS_SHAPE)
+            arg = 2 * math.pi * tr.tremor_freq * t
+            model, phases = self.models[side], self.phases[side]
+            joints = held_hand(
+                model, self.wrist[side], tr.tremor_amp, arg, phases, self.aperture, noise
+            )
             hands[side] = Hand(joints)
         return HandFrame(t, hands["left"], hands["right"])
 
