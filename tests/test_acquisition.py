@@ -127,3 +127,29 @@ def test_a_trial_records_its_offset_from_its_first_step(tmp_path, ctb):
     np.testing.assert_allclose(body, nominal + offset, atol=2e-4)  # 20 ms of free drift
     rel = rot.T @ quat_to_matrix(rec.ctb_quat[0])
     np.testing.assert_allclose(rel, yaw_matrix(math.radians(yaw)), atol=1e-3)
+
+
+def test_the_handle_in_the_body_frame_is_mujocos():
+    """After Astrobee has turned and moved, the handle's centre in the body frame, with
+    and without the site and rotation given (the rotation of the world state's
+    quaternion): the site's position (as the last step's kinematics left it) less the
+    body's (the state's), taken into the body frame with MuJoCo's own matrix of the
+    state's quaternion (``mju_quat2Mat``)."""
+    import mujoco
+
+    from payload.schema import VehicleTwist
+    from payload.trials.acquisition import handle_in_body, handle_site
+
+    driver = SimDriver()
+    driver.command_twist(VehicleTwist(np.array([0.05, 0.02, 0.0]), np.array([0.0, 0.0, 0.2]), 0))
+    for _ in range(40):
+        state = driver.step()
+    site = handle_site(driver)
+    mat = np.zeros(9)
+    mujoco.mju_quat2Mat(mat, state.astrobee_quat)
+    want = mat.reshape(3, 3).T @ (driver.data.site_xpos[site] - state.astrobee_pos)
+    got = handle_in_body(driver)
+    given = handle_in_body(driver, site, quat_to_matrix(state.astrobee_quat))
+    assert given.tobytes() == got.tobytes()
+    np.testing.assert_allclose(got, want, atol=1e-12)
+    assert float(np.linalg.norm(got)) > 0.1  # the handle is away from the centre

@@ -86,14 +86,29 @@ def place_offset(
     raise RuntimeError(f"seed {seed}: no CTB offset without initial contact in 100 draws")
 
 
-def handle_in_body(driver: Any) -> np.ndarray:
-    """The CTB handle's centre in Astrobee's body frame, shape (3,) [m]."""
-    w, d = driver.world, driver.data
-    a = w.astrobee_qpos
-    rot = quat_to_matrix(d.qpos[a + 3 : a + 7])
+def handle_site(driver: Any) -> int:
+    """The index of the CTB handle's site in the driver's model.
+
+    Raises:
+        KeyError: The model has no CTB handle.
+    """
     site = mujoco.mj_name2id(driver.model, mujoco.mjtObj.mjOBJ_SITE, "ctb_handle")
     if site < 0:
         raise KeyError("ctb_handle")  # what d.site("ctb_handle") raises
+    return site
+
+
+def handle_in_body(
+    driver: Any, site: int | None = None, rotation: np.ndarray | None = None
+) -> np.ndarray:
+    """The CTB handle's centre in Astrobee's body frame, shape (3,) [m]; ``site``: the
+    handle's site (:func:`handle_site`), ``rotation``: Astrobee's body -> world rotation
+    now (of the data's quaternion), when the caller has them."""
+    w, d = driver.world, driver.data
+    a = w.astrobee_qpos
+    rot = quat_to_matrix(d.qpos[a + 3 : a + 7]) if rotation is None else rotation
+    if site is None:
+        site = handle_site(driver)
     return rot.T @ (d.site_xpos[site] - d.qpos[a : a + 3])
 
 
@@ -154,6 +169,7 @@ __all__ = [
     "OFFSET_RANGE_M",
     "YAW_RANGE_DEG",
     "handle_in_body",
+    "handle_site",
     "place_ctb_for_teleop",
     "place_offset",
     "sample_offset",

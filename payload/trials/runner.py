@@ -43,7 +43,12 @@ from payload.teleop.pipeline import (
     calibrate_operator,
     pair_index,
 )
-from payload.trials.acquisition import handle_in_body, place_ctb_for_teleop, place_offset
+from payload.trials.acquisition import (
+    handle_in_body,
+    handle_site,
+    place_ctb_for_teleop,
+    place_offset,
+)
 from payload.trials.retargeters import retargeting, single_threaded_numerics
 from payload.trials.sources import HeadsetSource, TrialError, _Source, load_replay, trial_setup
 
@@ -313,7 +318,9 @@ def _set_up(driver: Any, seed: int, source_spec: _Source, project: Project) -> _
 
 
 def _world_view(driver: Any) -> Callable[[Any, float], WorldView]:
-    """What the synthetic operator sees of the simulated world at each step."""
+    """What the synthetic operator sees of the simulated world at each step (``state``:
+    the driver's world state now, read from its data)."""
+    site = handle_site(driver)
 
     def view(state: Any, t: float) -> WorldView:
         rot = quat_to_matrix(state.astrobee_quat)
@@ -324,7 +331,7 @@ def _world_view(driver: Any) -> Callable[[Any, float], WorldView]:
             rot @ state.astrobee_linear,
             state.ctb_pos,
             bool(state.opposing_contact),
-            handle_in_body(driver),
+            handle_in_body(driver, site, rot),
         )
 
     return view
