@@ -298,18 +298,18 @@ def test_an_exception_in_the_finger_channel_aborts_the_trial_and_keeps_the_recor
     tmp_path, monkeypatch, capsys
 ):
     from payload.cli import main
-    from payload.retarget.casadi_solver import PairRetargeter
+    from payload.teleop.pipeline import TeleopPipeline
 
-    real = PairRetargeter.solve
+    real = TeleopPipeline._finger  # a pair's finger channel: compiled chain or Python path
     calls = []
 
-    def buggy(self, *args, **kwargs):
-        calls.append(self.pair)
+    def buggy(self, pair, hand):
+        calls.append(pair)
         if len(calls) > 20:
             raise TypeError("injected bug")
-        return real(self, *args, **kwargs)
+        return real(self, pair, hand)
 
-    monkeypatch.setattr(PairRetargeter, "solve", buggy)
+    monkeypatch.setattr(TeleopPipeline, "_finger", buggy)
     out = tmp_path / "t"
     assert main(["trial", "--seed", "3", "--out", str(out)]) == 1
     err = capsys.readouterr().err.strip().splitlines()
