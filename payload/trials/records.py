@@ -235,6 +235,12 @@ _ARRAY_SLICES: tuple[tuple[str, int, int, tuple[int, ...]], ...] = tuple(
     )
 )
 _NAN_END = sum(math.prod(shape) for _, shape, kind in _ARRAYS if kind == "float_nan")
+_VIEWS: tuple[tuple[str, slice, tuple[int, ...] | None], ...] = tuple(
+    (name, slice(start, stop), shape if len(shape) > 1 else None)
+    for name, start, stop, shape in _ARRAY_SLICES
+)
+"""Each array field's part of the shared buffer, and the shape to view it in (None: a
+vector, the part's own shape)."""
 _OTHER_FIELDS: tuple[tuple[str, tuple[int, ...], Any, type], ...] = tuple(
     (name, shape, kind, str if isinstance(kind, tuple) else bool if kind == "bool" else float)
     for name, shape, kind in _FIELDS
@@ -314,14 +320,14 @@ class StepRecord:
             # one copy of every array field into one read-only buffer, each field a view
             # of its part; a sum per kind that is not finite sends the fields through the
             # per-field checks below, which say what is wrong (or pass an overflowing sum)
-            buf = np.concatenate([a.ravel() for a in arrays])
+            buf = np.concatenate(arrays, axis=None)  # each flattened in C order
             untracked = buf[:_NAN_END]  # NaN allowed (not tracked), infinities not
             if math.isfinite(add_reduce(buf[_NAN_END:])) and (  # ndarray.sum's reduction
                 math.isfinite(add_reduce(untracked)) or not np.isinf(untracked).any()
             ):
                 buf.setflags(write=False)
-                for name, start, stop, shape in _ARRAY_SLICES:
-                    fields[name] = buf[start:stop].reshape(shape)
+                for name, part, shape in _VIEWS:
+                    fields[name] = buf[part] if shape is None else buf[part].reshape(shape)
                 for name, shape, kind, kept in _OTHER_FIELDS:
                     value = fields[name]
                     if type(value) is not kept or not (  # the loop's own types pass as they are
