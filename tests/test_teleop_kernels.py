@@ -492,7 +492,7 @@ def test_the_compiled_held_hand_is_numpys(monkeypatch):
             assert not np.all(wrist != 0.0)
             continue
         assert got.tobytes() == want.tobytes()
-    assert refused == 3000 // 25
+    assert refused == 3000 // handmodel_c.ZERO_WRIST_EVERY
 
     def frames() -> list[bytes]:
         plan = OperatorPlan(route=np.array([[0.0, 0.0, 0.0], [5.0, 0.0, 0.0]]))

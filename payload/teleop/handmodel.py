@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from payload.teleop.handmodel_c import compiled_held_hand
-from payload.teleop.hands import JOINT_INDEX
+from payload.teleop.hands import JOINT_INDEX, JOINTS_SHAPE
 
 # knuckle (phalanx-proximal) positions and phalanx lengths of a size-1 hand [m]
 _FINGERS = {
@@ -76,7 +76,7 @@ def _local_joints(side: str, size: float, s: float, curl: float) -> np.ndarray:
     Each chain starts at its origin along ``u`` and flexes toward ``v``: its points are
     the origin plus the cumulated phalanges ``length (cos(a) u + sin(a) v)``, ``a`` the
     cumulated joint angles."""
-    out = np.zeros((25, 3))
+    out = np.zeros(JOINTS_SHAPE)
     c = 1 - s
     ia, ta = _INDEX_ANGLES.tolist(), _THUMB_ANGLES.tolist()
     fingers = [curl * k for k in _CURL_SHARES.tolist()]

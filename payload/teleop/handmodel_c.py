@@ -28,12 +28,17 @@ from typing import Any
 import numpy as np
 
 from payload import native
-from payload.teleop.hands import XR_JOINTS
+from payload.teleop.hands import JOINTS_SHAPE
 
 log = logging.getLogger(__name__)
 
-JOINTS_SHAPE = (len(XR_JOINTS), 3)
-"""A hand's joints: one row per WebXR joint."""
+CHAINS, PHALANGES, METACARPALS = 5, 3, 4
+"""The hand model's planar chains (four fingers, then the thumb), the phalanges of each,
+and the fingers' metacarpals: the shapes of :data:`TABLES` the C is written for."""
+
+ZERO_WRIST_EVERY = 25
+"""Every so many probes of the self-check (:func:`_probes`) has a wrist coordinate that
+the tremor brings to zero exactly (a hand the C leaves to numpy)."""
 
 TABLES: tuple[tuple[str, str], ...] = (
     ("origins", "float64"),
@@ -48,9 +53,31 @@ TABLES: tuple[tuple[str, str], ...] = (
     ("curl_shares", "float64"),
 )
 """The hand model's tables the kernel reads (``struct tables`` of :data:`SOURCE`, in this
-order): the five chains' origins, phalanx lengths and flexion planes (5, 3), the joint
-rows their points fill (5, 4), the four metacarpals (4, 3) and their rows (4,), the index's
-and the thumb's angle coefficients (3, 2) and the curl's shares (3,)."""
+order): the chains' origins, phalanx lengths and flexion planes (chains, 3), the joint
+rows their points fill (chains, phalanges + 1), the metacarpals (metacarpals, 3) and their
+rows, the index's and the thumb's angle coefficients (phalanges, 2) and the curl's shares
+(phalanges,)."""
+
+_SIZES = {
+    "N_JOINTS": JOINTS_SHAPE[0],
+    "CHAINS": CHAINS,
+    "PHALANGES": PHALANGES,
+    "METACARPALS": METACARPALS,
+}
+"""The sizes the C is compiled with (its ``#define`` lines)."""
+
+_SHAPES: dict[str, tuple[int, ...]] = {
+    "origins": (CHAINS, 3),
+    "lengths": (CHAINS, PHALANGES),
+    "u": (CHAINS, 3),
+    "v": (CHAINS, 3),
+    "chain_rows": (CHAINS, PHALANGES + 1),
+    "metacarpals": (METACARPALS, 3),
+    "metacarpal_rows": (METACARPALS,),
+    "index_angles": (PHALANGES, 2),
+    "thumb_angles": (PHALANGES, 2),
+    "curl_shares": (PHALANGES,),
+}
 
 SOURCE = r"""
 #include <math.h>
@@ -64,11 +91,13 @@ struct tables {
 
 /* handmodel.held_hand: joints (25, 3) = the model's joints at the wrist
    w + amp sin(arg + phases), unrotated, plus the noise (25, 3), written over the noise.
-   1, nothing written, if a wrist coordinate is zero or not finite (the numpy code). */
+   1, nothing written, if a wrist coordinate is zero or not finite, or the size, aperture
+   or curl not finite (the numpy code). */
 int payload_held_hand(const struct tables *h, double size, int left, double aperture,
                       double curl, const double *w, double amp, double arg,
                       const double *phases, double *noise)
 {
+    if (!isfinite(size) || !isfinite(aperture) || !isfinite(curl)) return 1;
     double wrist[3];
     for (int k = 0; k < 3; k++) {
         wrist[k] = w[k] + amp * sin(arg + phases[k]);
@@ -77,26 +106,27 @@ int payload_held_hand(const struct tables *h, double size, int left, double aper
     double m = (0.0 > aperture) ? 0.0 : aperture; /* Python max(aperture, 0.0) */
     double s = (1.0 < m) ? 1.0 : m;               /* Python min(m, 1.0) */
     double c = 1.0 - s;
-    double angles[5][3];
-    for (int j = 0; j < 3; j++) {
+    double angles[CHAINS][PHALANGES]; /* the index, three fingers' curl, the thumb */
+    for (int j = 0; j < PHALANGES; j++) {
         angles[0][j] = h->index_angles[2 * j] - h->index_angles[2 * j + 1] * s;
-        angles[1][j] = angles[2][j] = angles[3][j] = curl * h->curl_shares[j];
-        angles[4][j] = h->thumb_angles[2 * j] + h->thumb_angles[2 * j + 1] * c;
+        for (int r = 1; r < CHAINS - 1; r++) angles[r][j] = curl * h->curl_shares[j];
+        angles[CHAINS - 1][j] = h->thumb_angles[2 * j] + h->thumb_angles[2 * j + 1] * c;
     }
     double out[N_JOINTS][3];
     for (int i = 0; i < N_JOINTS; i++) out[i][0] = out[i][1] = out[i][2] = 0.0;
-    for (int r = 0; r < 4; r++)
+    for (int r = 0; r < METACARPALS; r++)
         for (int k = 0; k < 3; k++) out[h->metacarpal_rows[r]][k] = h->metacarpals[3 * r + k];
-    for (int r = 0; r < 5; r++) {
+    for (int r = 0; r < CHAINS; r++) {
+        const int64_t *rows = h->chain_rows + (PHALANGES + 1) * r;
         double cum = 0.0, p[3];
         for (int k = 0; k < 3; k++) p[k] = h->origins[3 * r + k];
-        for (int k = 0; k < 3; k++) out[h->chain_rows[4 * r]][k] = p[k];
-        for (int j = 0; j < 3; j++) {
+        for (int k = 0; k < 3; k++) out[rows[0]][k] = p[k];
+        for (int j = 0; j < PHALANGES; j++) {
             cum = (j == 0) ? angles[r][0] : cum + angles[r][j]; /* cumsum */
-            double cs = cos(cum), sn = sin(cum), len = h->lengths[3 * r + j];
+            double cs = cos(cum), sn = sin(cum), len = h->lengths[PHALANGES * r + j];
             for (int k = 0; k < 3; k++) {
                 p[k] = p[k] + len * (cs * h->u[3 * r + k] + sn * h->v[3 * r + k]);
-                out[h->chain_rows[4 * r + j + 1]][k] = p[k];
+                out[rows[j + 1]][k] = p[k];
             }
         }
     }
@@ -127,6 +157,12 @@ class CompiledHeldHand:
 
     def __init__(self, lib: ctypes.CDLL, tables: Mapping[str, np.ndarray]) -> None:
         self._keep = [np.ascontiguousarray(tables[name], dtype=kind) for name, kind in TABLES]
+        for (name, _), a in zip(TABLES, self._keep):
+            if a.shape != _SHAPES[name]:
+                raise ValueError(f"the hand model's {name} are {a.shape}, not {_SHAPES[name]}")
+        rows = np.concatenate([self._keep[4].ravel(), self._keep[6]])
+        if rows.min() < 0 or rows.max() >= JOINTS_SHAPE[0]:
+            raise ValueError("the hand model's rows are not joints")
         self._tables = _Tables(*(a.ctypes.data for a in self._keep))
         fn = lib.payload_held_hand
         fn.restype = ctypes.c_int
@@ -171,15 +207,15 @@ CHECK_HANDS = 400
 
 def _probes(n: int) -> list[tuple[Any, ...]]:
     """``n`` random argument lists of ``held_hand`` (sides, sizes, apertures inside and
-    beyond [0, 1], curls, wrists, tremors, noise); every 25th with a wrist coordinate
-    that the tremor brings to zero (the numpy code's)."""
+    beyond [0, 1], curls, wrists, tremors, noise); every :data:`ZERO_WRIST_EVERY`-th with
+    a wrist coordinate that the tremor brings to zero (the numpy code's)."""
     rng = np.random.default_rng(0)
     out = []
     for i in range(n):
         phases = rng.uniform(0.0, 2 * np.pi, size=3)
         amp, arg = float(rng.uniform(0.0, 0.004)), float(rng.uniform(0.0, 3000.0))
         wrist = rng.normal(scale=0.5, size=3)
-        if i % 25 == 24:
+        if i % ZERO_WRIST_EVERY == ZERO_WRIST_EVERY - 1:
             wrist[i % 3] = -(amp * np.sin(arg + phases))[i % 3]
         aperture = float(rng.uniform(-0.2, 1.2)) if i % 7 else float(i % 2)
         curl = 0.6 if i % 3 else float(rng.uniform(0.0, 1.2))
@@ -201,11 +237,15 @@ def compiled_held_hand(
     or that it leaves to the numpy code though the wrist has no zero coordinate."""
     lib = native.load_kernel(
         "held_hand", SOURCE, "the held hand kernel", log,
-        prelude=f"#define N_JOINTS {JOINTS_SHAPE[0]}\n",
+        prelude="".join(f"#define {name} {value}\n" for name, value in _SIZES.items()),
     )  # fmt: skip
     if lib is None:
         return None
-    kernel = CompiledHeldHand(lib, tables)
+    try:
+        kernel = CompiledHeldHand(lib, tables)
+    except ValueError as exc:
+        log.warning("held hand: numpy (%s)", exc)
+        return None
     n = native.probes(lib, "held hand", CHECK_HANDS)
     for args in _probes(n):
         want = reference(*args[:-1], args[-1].copy())
@@ -222,10 +262,13 @@ def compiled_held_hand(
 
 
 __all__ = [
+    "CHAINS",
     "CHECK_HANDS",
-    "JOINTS_SHAPE",
+    "METACARPALS",
+    "PHALANGES",
     "SOURCE",
     "TABLES",
+    "ZERO_WRIST_EVERY",
     "CompiledHeldHand",
     "compiled_held_hand",
 ]

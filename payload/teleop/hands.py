@@ -36,6 +36,8 @@ XR_JOINTS: tuple[str, ...] = (
 """The 25 WebXR XRHand joint names in the specification's order."""
 
 JOINT_INDEX: dict[str, int] = {name: i for i, name in enumerate(XR_JOINTS)}
+JOINTS_SHAPE: tuple[int, int] = (len(XR_JOINTS), 3)
+"""A hand's joint positions: one row (x, y, z) per joint."""
 WRIST = JOINT_INDEX["wrist"]
 THUMB_TIP = JOINT_INDEX["thumb-tip"]
 THUMB_DISTAL = JOINT_INDEX["thumb-phalanx-distal"]

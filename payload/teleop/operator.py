@@ -28,8 +28,7 @@ from payload.schema import CONTROL_DT
 from payload.teleop.calibration import CalibrationProcedure
 from payload.teleop.channels import BaseConfig
 from payload.teleop.handmodel import HandModel, held_hand
-from payload.teleop.handmodel_c import JOINTS_SHAPE
-from payload.teleop.hands import Hand, HandFrame
+from payload.teleop.hands import JOINTS_SHAPE, Hand, HandFrame
 from payload.vecmath import norm
 
 

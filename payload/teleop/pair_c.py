@@ -35,7 +35,8 @@ from typing import Any
 import numpy as np
 
 from payload import native
-from payload.teleop.hands import XR_JOINTS
+from payload.retarget.features import N_FEATURES
+from payload.teleop.hands import JOINTS_SHAPE
 
 log = logging.getLogger(__name__)
 
@@ -57,9 +58,11 @@ struct chain {
     void *step; const double **arg; double **res; long long *iw; double *w; int64_t mem;
 };
 
-/* 0: solved (the solver's outputs and anchor updated); 1: the hand's features, 2: the
-   targets, 3: the solver's inputs not finite (or degenerate); 4: the solver failed.
-   Nothing but the solver's inputs is written before a code other than 0. */
+/* 0: solved (the solver's outputs and anchor updated); 1: the hand's features (not finite
+   or degenerate), 2: the targets, 3: the solver's inputs not finite; 4: the solver failed.
+   Before a code other than 0 the held command and the solver's anchor are as they were:
+   only the chain's own features, the solver's command, target and posture inputs (the
+   next solve writes them anew) and, with 4, its outputs and work are written. */
 int payload_pair_chain(const struct chain *c, const double *joints)
 {
     if (((features_fn)c->features)(c->f_gemv, c->f_ddot, joints, c->idx, c->eps, c->human))
@@ -91,7 +94,6 @@ int payload_pair_chain(const struct chain *c, const double *joints)
 """The chain's C (:func:`payload.native.build_library` compiles it)."""
 
 _P, _I, _D = ctypes.c_void_p, ctypes.c_int64, ctypes.c_double
-_JOINTS_SHAPE = (len(XR_JOINTS), 3)
 
 
 class _Chain(ctypes.Structure):
@@ -143,9 +145,11 @@ class FingerChain:
         postures = np.ascontiguousarray(pair_range.postures, dtype=np.float64)
         if postures.shape != (spans.size, r_in.size) or spans.size < 2:
             raise ValueError(f"posture table {postures.shape} for {r_in.size} joints")
+        if t_in.size != N_FEATURES:  # what the features and targets kernels write
+            raise ValueError(f"the solver takes {t_in.size} targets, not {N_FEATURES}")
         self.retargeter = retargeter
         self._q_in = q_in
-        self._human = np.zeros(t_in.size)
+        self._human = np.zeros(N_FEATURES)
         self._keep = (spans, postures, inputs, features, targets)
         self._chain = _Chain(
             *features.entry, self._human.ctypes.data, *targets.entry, spans.ctypes.data,
@@ -163,7 +167,7 @@ class FingerChain:
         held or anchored changed, and the Python path is to run (it raises the error of a
         hand it refuses)."""
         j = joints
-        if not (type(j) is np.ndarray and j.dtype == np.float64 and j.shape == _JOINTS_SHAPE):
+        if not (type(j) is np.ndarray and j.dtype == np.float64 and j.shape == JOINTS_SHAPE):
             return None
         if not j.flags.c_contiguous:
             return None
@@ -207,8 +211,8 @@ def compiled_finger_chain(
     whose command, report, held command or solver inputs differ from ``reference``'s in a
     single bit, or that one refuses and the other not. The retargeter's held command and
     solver inputs are as they were after the check."""
-    if features is None or targets is None:
-        return None
+    if features is None or targets is None or retargeter.step_entry() is None:
+        return None  # a part runs in numpy or CasADi's virtual machine: the Python path
     lib = native.load_kernel("pair_chain", SOURCE, "the finger chain", log)
     if lib is None:
         return None
