@@ -346,3 +346,24 @@ def _walked(path: Path) -> bool:
     except RecordingError:
         return False
     return reading._used_records(data) is not None
+
+
+def test_a_chunk_claiming_a_huge_size_is_refused_without_allocating_it():
+    """A chunk whose uncompressed-size field says 2**62 bytes (a flipped byte in a
+    recording) is a malformed chunk (ValueError), not a MemoryError: the decompression is
+    streamed, and what it gives is compared with the field afterwards."""
+    import struct
+    import zlib
+
+    import zstandard
+
+    from payload.trials.integrity import _open_chunk
+
+    raw = b"records " * 100
+    packed = zstandard.ZstdCompressor().compress(raw)
+    head = struct.pack("<QQQI", 0, 1, 2**62, zlib.crc32(raw))
+    body = head + struct.pack("<I", 4) + b"zstd" + struct.pack("<Q", len(packed)) + packed
+    with pytest.raises(ValueError, match="decompressed where it says"):
+        _open_chunk(body)
+    good = struct.pack("<QQQI", 0, 1, len(raw), zlib.crc32(raw)) + body[28:]
+    assert _open_chunk(good) == raw

@@ -102,8 +102,8 @@ def _open_chunk(body: bytes) -> bytes:
     if compression == "zstd":
         import zstandard
 
-        try:
-            raw = zstandard.ZstdDecompressor().decompress(records, max_output_size=size)
+        try:  # streamed: a corrupt size field must not make it allocate that much first
+            raw = zstandard.ZstdDecompressor().decompressobj().decompress(records)
         except zstandard.ZstdError as exc:
             raise ValueError(f"zstd: {exc}") from None
     elif compression == "":
