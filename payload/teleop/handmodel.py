@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from payload.teleop.handmodel_c import compiled_held_hand
+from payload.teleop.handmodel_c import compiled_held_hand, tremulous_wrist
 from payload.teleop.hands import JOINT_INDEX, JOINTS_SHAPE
 
 # knuckle (phalanx-proximal) positions and phalanx lengths of a size-1 hand [m]
@@ -162,9 +162,9 @@ def _held_hand_numpy(
     noise: np.ndarray,
 ) -> np.ndarray:
     """:func:`held_hand` in numpy."""
-    tremor = amp * np.sin(arg + phases)
     model = HandModel("left" if left else "right", size)
-    return model.joints(wrist + tremor, _IDENTITY, aperture, curl) + noise
+    at = tremulous_wrist(wrist, amp, arg, phases)
+    return model.joints(at, _IDENTITY, aperture, curl) + noise
 
 
 @functools.cache

@@ -201,6 +201,11 @@ class CompiledHeldHand:
         return noise
 
 
+def tremulous_wrist(wrist: np.ndarray, amp: float, arg: float, phases: np.ndarray) -> np.ndarray:
+    """The operator's wrist with its tremor: ``wrist + amp sin(arg + phases)`` (numpy)."""
+    return wrist + amp * np.sin(arg + phases)
+
+
 CHECK_HANDS = 400
 """Random hands of the kernel's full self-check (:func:`compiled_held_hand`)."""
 
@@ -216,7 +221,8 @@ def _probes(n: int) -> list[tuple[Any, ...]]:
         amp, arg = float(rng.uniform(0.0, 0.004)), float(rng.uniform(0.0, 3000.0))
         wrist = rng.normal(scale=0.5, size=3)
         if i % ZERO_WRIST_EVERY == ZERO_WRIST_EVERY - 1:
-            wrist[i % 3] = -(amp * np.sin(arg + phases))[i % 3]
+            wrist[i % 3] = 0.0
+            wrist[i % 3] = -tremulous_wrist(wrist, amp, arg, phases)[i % 3]
         aperture = float(rng.uniform(-0.2, 1.2)) if i % 7 else float(i % 2)
         curl = 0.6 if i % 3 else float(rng.uniform(0.0, 1.2))
         noise = rng.normal(0.0, 0.002, size=JOINTS_SHAPE)
@@ -250,7 +256,7 @@ def compiled_held_hand(
     for args in _probes(n):
         want = reference(*args[:-1], args[-1].copy())
         got = kernel(*args[:-1], args[-1].copy())
-        wrist = args[4] + args[5] * np.sin(args[6] + args[7])
+        wrist = tremulous_wrist(*args[4:8])
         if (got is None and bool(np.all(wrist != 0.0))) or (
             got is not None and got.tobytes() != want.tobytes()
         ):
@@ -271,4 +277,5 @@ __all__ = [
     "ZERO_WRIST_EVERY",
     "CompiledHeldHand",
     "compiled_held_hand",
+    "tremulous_wrist",
 ]
