@@ -21,6 +21,8 @@ from payload.errors import PayloadError
 from payload.vecmath import all_finite
 
 N_MANIPULATION = len(MANIPULATION_JOINTS)  # 17
+_SHAPE = (N_MANIPULATION,)
+_F64 = np.dtype(np.float64)
 
 CONTROL_DT = 0.02
 """Period of the teleoperation loop and of every command stream [s] (the paper's 50 Hz)."""
@@ -120,6 +122,31 @@ class PayloadState:
         object.__setattr__(
             self, "effort", _frozen_vector(self.effort, N_MANIPULATION, "PayloadState.effort", True)
         )
+
+    @classmethod
+    def of_frozen(
+        cls,
+        q: np.ndarray,
+        deploy: float,
+        stamp: float,
+        dq: np.ndarray,
+        effort: np.ndarray,
+        health: Health = Health.OK,
+    ) -> PayloadState:
+        """The state of vectors made for it: read-only float64 arrays of 17 that nothing
+        writes to again (a read-out's fresh buffer, frozen). They are taken as they are,
+        not copied; ``q`` is still checked finite. Anything else is built (and checked) as
+        the constructor does."""
+        for a in (q, dq, effort):
+            if type(a) is not np.ndarray or a.dtype != _F64 or a.shape != _SHAPE:
+                return cls(q, deploy, stamp, dq, effort, health)
+            if a.flags.writeable:
+                return cls(q, deploy, stamp, dq, effort, health)
+        if not all_finite(q):
+            return cls(q, deploy, stamp, dq, effort, health)  # says which are not
+        self = object.__new__(cls)
+        self.__dict__.update(q=q, deploy=deploy, stamp=stamp, dq=dq, effort=effort, health=health)
+        return self
 
 
 @dataclass(frozen=True)

@@ -15,7 +15,14 @@ import numpy as np
 import pytest
 
 from payload.design import FINGERS, MANIPULATION_JOINTS, design_from_dict
-from payload.schema import Health, PayloadCommand, PayloadDriver, PayloadState, VehicleTwist
+from payload.schema import (
+    Health,
+    PayloadCommand,
+    PayloadDriver,
+    PayloadState,
+    SchemaError,
+    VehicleTwist,
+)
 from payload.sim import (
     PAYLOAD_PREFIX,
     CtbSize,
@@ -761,3 +768,30 @@ def test_the_physics_step_is_1_ms_by_default_and_a_2_ms_world_is_derived_from_it
     for bad in (0.0, -0.001, 0.0015, float("nan")):
         with pytest.raises(SimError, match="physics_dt"):
             WorldConfig(physics_dt=bad)
+
+
+def test_a_payload_state_of_frozen_vectors_is_the_constructors():
+    """``PayloadState.of_frozen`` takes read-only vectors as they are, and anything else as
+    the constructor does: the same fields, the same refusals."""
+    rng = np.random.default_rng(3)
+    buf = rng.normal(size=3 * 17)
+    buf[17 + 4] = np.nan  # a velocity not measured
+    buf.setflags(write=False)
+    q, dq, effort = buf[:17], buf[17:34], buf[34:]
+    made = PayloadState.of_frozen(q, 0.01, 2.5, dq, effort, Health.LIMIT)
+    built = PayloadState(q.copy(), 0.01, 2.5, dq.copy(), effort.copy(), Health.LIMIT)
+    for name, given in (("q", q), ("dq", dq), ("effort", effort)):
+        assert getattr(made, name) is given  # taken, not copied
+        assert getattr(made, name).tobytes() == getattr(built, name).tobytes()
+        assert not getattr(made, name).flags.writeable
+    assert (made.deploy, made.stamp, made.health) == (built.deploy, built.stamp, built.health)
+    # writeable, a list or another length: built (copied and checked) as the constructor does
+    loose = PayloadState.of_frozen(q.copy(), 0.0, 0.0, list(dq), effort)
+    assert loose.q.tobytes() == q.tobytes() and not loose.q.flags.writeable
+    with pytest.raises(SchemaError, match="expected 17 values"):
+        PayloadState.of_frozen(buf[:16], 0.0, 0.0, dq, effort)
+    bad = buf.copy()
+    bad[2] = np.inf
+    bad.setflags(write=False)
+    with pytest.raises(SchemaError, match=MANIPULATION_JOINTS[2]):
+        PayloadState.of_frozen(bad[:17], 0.0, 0.0, dq, effort)

@@ -449,3 +449,26 @@ def test_one_dimensional_limiter_gives_the_vector_limiters_bits(max_value):
         expect = ref._step_vector(target, 0.02)
         assert out.tobytes() == expect.tobytes(), k
         assert fast.rate.tobytes() == np.asarray(ref.rate, float).tobytes(), k
+
+
+def test_the_base_twist_carries_the_step_stamp_in_both_steps():
+    """The stamp given to the step is the twist's (the compiled step and numpy's alike),
+    and the twist is the body-frame one of the world velocity and yaw rate."""
+    cfg = BaseConfig()
+    nl = np.array([0.35, 0.17, 1.05])
+    compiled, python = BaseChannel(cfg, nl), BaseChannel(cfg, nl)
+    python.__dict__["_compiled_step"] = None  # numpy's step
+    yaw = 0.4
+    rot = np.array(
+        [[math.cos(yaw), -math.sin(yaw), 0.0], [math.sin(yaw), math.cos(yaw), 0.0], [0.0, 0.0, 1.0]]
+    )
+    for k in range(120):
+        stamp = 3.0 + 0.02 * k
+        a = compiled.step(nl + np.array([0.2, 0.05, 0.0]), rot, None, stamp)
+        b = python.step(nl + np.array([0.2, 0.05, 0.0]), rot, None, stamp)
+        assert a.twist.stamp == b.twist.stamp == stamp
+        assert a.twist.linear.tobytes() == b.twist.linear.tobytes()
+        # body frame: the world velocity rotated back by the vehicle's heading
+        np.testing.assert_allclose(rot @ a.twist.linear, a.v_world, atol=1e-15)
+        np.testing.assert_allclose(a.twist.angular, [0.0, 0.0, a.yaw_rate], atol=1e-15)
+    assert compiled.step(nl, rot, None).twist.stamp == 0.0  # the default

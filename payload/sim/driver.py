@@ -179,14 +179,15 @@ class SimDriver:
     def _read_kernel(self, kernel: Any) -> PayloadState:
         """:meth:`read` through the read-out kernel."""
         out, health = kernel.read()
+        out.setflags(write=False)  # the read-out's own buffer: its parts are the state's
         part = kernel.payload
-        return PayloadState(
-            q=out[part["q"]],
-            deploy=float(out[part["deploy"].start]),
-            stamp=float(self.data.time),
-            dq=out[part["dq"]],
-            effort=out[part["effort"]],
-            health=Health(health),
+        return PayloadState.of_frozen(
+            out[part["q"]],
+            float(out[part["deploy"].start]),
+            float(self.data.time),
+            out[part["dq"]],
+            out[part["effort"]],
+            Health(health),
         )
 
     def _read_numpy(self) -> PayloadState:

@@ -222,7 +222,7 @@ class CompiledBase:
             args[10], args[11] = yaw.value.ctypes.data, yaw.rate.ctypes.data
             return True
 
-        def step(left_wrist: Any, rotation: Any, right_wrist: Any) -> Any:
+        def step(left_wrist: Any, rotation: Any, right_wrist: Any, stamp: float = 0.0) -> Any:
             if (
                 channel.config is not c
                 or channel.neutral is not n0
@@ -266,7 +266,7 @@ class CompiledBase:
             mode = call()
             if mode < 0:
                 return None
-            twist = VehicleTwist(out[7:10].copy(), out[10:13].copy(), 0.0)
+            twist = VehicleTwist(out[7:10].copy(), out[10:13].copy(), stamp)
             return (  # outside: the drive mode (the left wrist outside its sphere)
                 out[0:3].copy(), out[3:6].copy(), float(out[6]), twist, MODES[mode] == "drive",
                 MODES[mode],

@@ -363,6 +363,7 @@ class BaseChannel:
         left_wrist: np.ndarray | None,
         vehicle_rotation: np.ndarray | None = None,
         right_wrist: np.ndarray | None = None,
+        stamp: float = 0.0,
     ) -> BaseCommand:
         """One control step (:meth:`_step_numpy`, compiled when it can be:
         :mod:`payload.teleop.base_c`, the same bits; the settings, the neutral wrists and
@@ -373,13 +374,14 @@ class BaseChannel:
             vehicle_rotation: Vehicle body -> world rotation, shape (3, 3) (identity if None).
             right_wrist: Filtered right-wrist position (operator frame); with the left
                 wrist in neutral, the right one outside its sphere holds the velocity.
+            stamp: The twist's time stamp [s].
         """
         step = self._compiled_step
         if step is not None:
-            out = step(left_wrist, vehicle_rotation, right_wrist)
+            out = step(left_wrist, vehicle_rotation, right_wrist, stamp)
             if out is not None:
                 return BaseCommand(*out)
-        return self._step_numpy(left_wrist, vehicle_rotation, right_wrist)
+        return self._step_numpy(left_wrist, vehicle_rotation, right_wrist, stamp)
 
     @property
     def yaw_cap(self) -> float:
@@ -400,6 +402,7 @@ class BaseChannel:
         left_wrist: np.ndarray | None,
         vehicle_rotation: np.ndarray | None = None,
         right_wrist: np.ndarray | None = None,
+        stamp: float = 0.0,
     ) -> BaseCommand:
         """:meth:`step` in numpy."""
         c = self.config
@@ -418,7 +421,7 @@ class BaseChannel:
             cap = self.yaw_cap
             yaw_req = max(-cap, min(cap, c.yaw_gain * err))
         yaw_rate = float(self.yaw.step(np.array([yaw_req]), self.dt)[0])
-        twist = VehicleTwist(rot.T @ v, rot.T @ np.array([0.0, 0.0, yaw_rate]), 0.0)
+        twist = VehicleTwist(rot.T @ v, rot.T @ np.array([0.0, 0.0, yaw_rate]), stamp)
         return BaseCommand(v_req, v, yaw_rate, twist, outside, mode)
 
 

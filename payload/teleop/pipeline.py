@@ -330,18 +330,14 @@ class TeleopPipeline:
             rail = self.rail_blend.step(None, 0.0)
         left_wrist = hands["left"].wrist if both else None  # a lost hand brakes the vehicle
         right_wrist = hands["right"].wrist if both else None
-        base = self.base.step(left_wrist, vehicle_rotation, right_wrist)
+        stamp = float(frame.stamp) if math.isfinite(frame.stamp) else t
+        base = self.base.step(left_wrist, vehicle_rotation, right_wrist, stamp)
         q17 = np.zeros(len(MANIPULATION_JOINTS))
         for pair, q in q_pair.items():
             q17[self.index[pair]] = q
         q17[-1] = float(rail[0])
-        stamp = float(frame.stamp) if math.isfinite(frame.stamp) else t
         command = PayloadCommand(q17, self.config.deploy, stamp)
         self.events.extend(events)
-        twist = VehicleTwist(base.twist.linear, base.twist.angular, stamp)
-        base = BaseCommand(
-            base.v_request, base.v_world, base.yaw_rate, twist, base.outside, base.mode
-        )
         return TeleopStep(
             stamp,
             q_pair["L"].copy(),

@@ -49,6 +49,7 @@ from payload.trials.acquisition import (
     place_ctb_for_teleop,
     place_offset,
 )
+from payload.trials.records import StepRecord
 from payload.trials.retargeters import retargeting, single_threaded_numerics
 from payload.trials.sources import HeadsetSource, TrialError, _Source, load_replay, trial_setup
 
@@ -503,8 +504,6 @@ def base_filter_for(driver: Any, base: Any, zones: Any = None) -> Any:
 def step_record(ctx: StepContext, driver: Any, retargeters: dict[str, PairRetargeter]) -> Any:
     """The recorder's step from what the loop hands its observer (for any driver with
     ``module_at``: the simulator, the hardware-in-the-loop rig, the live session)."""
-    from payload.trials.recorder import StepRecord
-
     st, fr = ctx.state, ctx.frame
     step = ctx.step
     q = ctx.command.q
