@@ -5,7 +5,8 @@ kernels (:mod:`payload.sim.allocation_c`, :mod:`payload.sim.vehicle_c`,
 :mod:`payload.sim.station_c`, :mod:`payload.sim.facet_c`, :mod:`payload.sim.readout_c`,
 :mod:`payload.sim.contacts_c`, :mod:`payload.sim.period_c`, :mod:`payload.teleop.hand_c`,
 :mod:`payload.teleop.filter_c`, :mod:`payload.teleop.limiter_c`,
-:mod:`payload.teleop.safety_c`, :mod:`payload.teleop.base_c`,
+:mod:`payload.teleop.safety_c`, :mod:`payload.teleop.base_c`, :mod:`payload.teleop.pair_c`,
+:mod:`payload.teleop.handmodel_c`, :mod:`payload.teleop.intake_c`,
 :mod:`payload.retarget.targets_c`, :mod:`payload.trials.foxglove_c`,
 :mod:`payload.trials.messages_c`, :mod:`payload.trials.codec_c`) build their shared
 libraries here. A library is named by the hash of its code, the compiler, the flags, the

@@ -440,3 +440,85 @@ def test_a_pipeline_with_its_finger_chains_commands_as_one_without(retargeting):
 
     assert stream(True) == stream(False)
     assert sum(taken) > 400  # the chains solved (nearly) every step of both pairs
+
+
+def test_the_compiled_hand_intake_steps_as_the_python_path(retargeting):
+    """Two pipelines on the same calibration and hands, one taking the hands in through
+    the compiled intake (:mod:`payload.teleop.intake_c`) and one on the Python path alone,
+    over hands that drop out (bridged, then lost and blended back in), turn invalid (a NaN
+    joint, a wrist jump), come back in time or repeat it, and a hand a pair's chain
+    refuses: the same commands, twists, solve reports and safety events, and the same
+    supervisor and filter state, bit for bit, step after step."""
+    op, _, cal, _, t = _calibrated(9, retargeting)
+    frames = []
+    for k in range(420):
+        fr = op.act(_static_world(t))
+        left, right, stamp = fr.left, fr.right, t
+        if 60 <= k < 64:
+            left = Hand.untracked()  # a dropout, bridged
+        if 120 <= k < 140:
+            right = Hand.untracked()  # lost, then blended back in
+        if k == 200:
+            joints = left.joints.copy()
+            joints[3, 1] = np.nan
+            left = Hand(joints)
+        if k == 240:
+            right = Hand(right.joints + np.array([0.3, 0.0, 0.0]))  # the wrist jumps
+        if k == 300:
+            stamp = t - 2 * DT  # back in time
+        if k == 301:
+            stamp = frames[-2].stamp  # the same time again
+        frames.append(HandFrame(stamp, left, right))
+        t += DT
+
+    taken = []
+    seen = []
+    fell_back = []
+
+    def stream(intake: bool) -> list[bytes]:
+        pipe = _pipeline(cal, retargeting)
+        if intake:
+            step = pipe._intake_step
+
+            def counted(frame, t, step=step):
+                out = step(frame, t)
+                taken.append(out is not None)
+                return out
+
+            pipe._intake_step = counted
+        else:
+            pipe._intake_kernel = lambda: None
+        python = pipe._finger_python
+
+        def solved(pair, hand):
+            fell_back.append((intake, k, pair))
+            return python(pair, hand)
+
+        pipe._finger_python = solved
+        out = []
+        for k, fr in enumerate(frames):
+            chain = pipe._chains.get("R")
+            if k == 350:  # pair R's chain refuses any hand (no thumb axis is that long)
+                chain._chain.eps, eps = 1e9, chain._chain.eps
+            s = pipe.step(fr)
+            if k == 350:
+                chain._chain.eps = eps
+            out.append(s.command.q.tobytes() + s.twist.linear.tobytes() + s.twist.angular.tobytes())
+            out.append(repr((s.rail, sorted(s.solves.items()), s.events)).encode())
+            for side in ("left", "right"):
+                st, f = pipe.supervisor.status[side], pipe.filters[side]
+                out.append(repr((st.last_valid_stamp, st.lost, st.recovering_until)).encode())
+                out.append(b"-" if f._x is None else f._x.tobytes() + f._dx.tobytes())
+        if intake:
+            seen.extend(pipe.events)
+        return out
+
+    assert stream(True) == stream(False)
+    assert taken.count(True) > 300 and taken.count(False) > 20
+    # every case above happened: each kind of event, and the refused chain at step 350
+    kinds = {(e.hand, e.kind) for e in seen}
+    assert {("left", "invalid"), ("right", "lost"), ("right", "regained")} <= kinds
+    assert ("both", "time_backwards") in kinds
+    # step 350: taken in by the intake, the refused pair solved by the Python path
+    assert taken[350] is True
+    assert [f for f in fell_back if f[1] >= 340] == [(True, 350, "R"), (False, 350, "R")]

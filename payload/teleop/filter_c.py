@@ -58,7 +58,10 @@ class CompiledOneEuro:
         fn.restype = None
         fn.argtypes = [ptr, ptr, ptr, ctypes.c_int64, dbl, dbl, dbl, dbl, dbl]
         self._fn = fn
-        self._two_pi = 2.0 * math.pi
+        self.address = ctypes.cast(fn, ctypes.c_void_p).value
+        """The step's C function (for callers that run it from their own C)."""
+        self.two_pi = 2.0 * math.pi
+        """The step's ``2 pi`` argument."""
 
     def stepper(
         self, x_state: np.ndarray, dx_state: np.ndarray, min_cutoff: float, beta: float
@@ -72,13 +75,14 @@ class CompiledOneEuro:
         buf = np.empty_like(x_state)
         fixed = [ctypes.c_void_p(a.ctypes.data) for a in (buf, x_state, dx_state)]
         call = functools.partial(self._fn, *fixed, len(x_state))
-        two_pi = self._two_pi
+        two_pi = self.two_pi
 
         def step(x: np.ndarray, dt: float, a_d: float) -> None:
             np.copyto(buf, x)
             call(dt, a_d, two_pi, min_cutoff, beta)
 
         step.keep = (buf, x_state, dx_state)  # type: ignore[attr-defined]
+        step.kernel = self  # type: ignore[attr-defined]
         return step
 
 

@@ -56,6 +56,22 @@ class OneEuroFilter:
         """Forget the history: the next sample passes through unfiltered."""
         self._x = self._dx = self._t = None
 
+    def estimate(self) -> np.ndarray:
+        """The current estimate (what the last call returned), a copy.
+
+        Raises:
+            ValueError: No sample taken since the start or a reset.
+        """
+        if self._x is None:
+            raise ValueError("One Euro filter: no sample yet")
+        return self._x.copy()
+
+    def estimate_row(self, row: int) -> np.ndarray:
+        """Row ``row`` of the current estimate (a point of a point array), a copy."""
+        if self._x is None:
+            raise ValueError("One Euro filter: no sample yet")
+        return self._x[row].copy()
+
     def __call__(self, x: np.ndarray, t: float) -> np.ndarray:
         """Filter sample ``x`` taken at time ``t`` [s]; returns the filtered sample."""
         x = np.asarray(x, dtype=np.float64)

@@ -160,6 +160,14 @@ class FingerChain:
         fn.restype = ctypes.c_int
         fn.argtypes = [_P, _P]
         self._call = functools.partial(fn, ctypes.addressof(self._chain))
+        self.entry = (ctypes.cast(fn, _P).value, ctypes.addressof(self._chain))
+        """For a caller that runs the chain from its own C (after :meth:`load_held`): the
+        function and its chain's address; a hand's joints (25, 3) are its other argument."""
+
+    def load_held(self) -> None:
+        """Write the retargeter's held command into the solver's command input (the warm
+        start), as a chain's call does first."""
+        self._q_in[:] = self.retargeter.held_command
 
     def __call__(self, joints: np.ndarray) -> tuple[np.ndarray, Any] | None:
         """The pair's command and the solve's report for a hand's joints (25, 3), as
@@ -171,7 +179,7 @@ class FingerChain:
             return None
         if not j.flags.c_contiguous:
             return None
-        self._q_in[:] = self.retargeter.held_command
+        self.load_held()
         if self._call(j.ctypes.data):
             return None
         return self.retargeter.finish_step()

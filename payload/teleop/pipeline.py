@@ -34,7 +34,16 @@ from payload.teleop.calibration import CalibrationError, Captures
 from payload.teleop.channels import BaseChannel, BaseCommand, BaseConfig, RailConfig, rail_command
 from payload.teleop.filters import OneEuroConfig, OneEuroFilter
 from payload.teleop.hand_c import compiled_hand_features
-from payload.teleop.hands import Hand, HandFrame, HandFrameError, pinch_points, wrist_frame
+from payload.teleop.hands import (
+    WRIST,
+    Hand,
+    HandFrame,
+    HandFrameError,
+    pinch_points,
+    wrist_frame,
+)
+from payload.teleop.intake_c import compiled_hand_intake, intake_parts
+from payload.teleop.intake_c import ready as intake_ready
 from payload.teleop.safety import Blender, SafetyConfig, SafetyEvent, TrackingSupervisor
 
 log = logging.getLogger(__name__)
@@ -190,6 +199,17 @@ class TeleopStep:
         return self.base.twist
 
 
+_Intake = tuple[
+    list[SafetyEvent],
+    dict[str, float],
+    dict[str, "np.ndarray | None"],
+    dict[str, "np.ndarray | None"],
+    dict[str, SolveInfo],
+]
+"""A step's hands taken in: its events, each hand's blend weight and filtered wrist (None:
+lost), each pair's fresh command (None: held) and solve reports."""
+
+
 def pair_index(retargeter: PairRetargeter) -> np.ndarray:
     """Positions of a pair's joints in the 17 manipulation coordinates, shape (8,)."""
     return np.array([MANIPULATION_JOINTS.index(j) for j in retargeter.joints])
@@ -237,6 +257,7 @@ class TeleopPipeline:
         self.rail_blend = Blender(np.array([q0[-1]]))
         self.events: list[SafetyEvent] = []
         self._chains: dict[str, Any] = {}  # pair -> its finger chain (pair_c) or None
+        self._intake: tuple[tuple, Any] | None = None  # (its parts, the compiled intake)
 
     def _filtered(self, side: str, hand: Hand | None, t: float) -> Hand | None:
         if hand is None:
@@ -297,39 +318,29 @@ class TeleopPipeline:
             vehicle_rotation: Vehicle body -> world rotation (3, 3), for the body twist.
         """
         frame = frame.to_workbench()
-        sup = self.supervisor.step(frame)
-        events = list(sup.events)
         t = frame.stamp if math.isfinite(frame.stamp) else self.supervisor.last_stamp
-        hands = {
-            "left": self._filtered("left", sup.left, t),
-            "right": self._filtered("right", sup.right, t),
-        }
-        weights = {"left": sup.blend_left, "right": sup.blend_right}
-        solves: dict[str, SolveInfo] = {}
+        taken = self._intake_step(frame, t)
+        if taken is None:
+            taken = self._hands(frame, t)
+        events, weights, wrists, fresh, solves = taken
         q_pair: dict[str, np.ndarray] = {}
         for pair, side in HAND_OF_PAIR.items():
-            hand = hands[side]
-            fresh = None
-            if hand is not None:
-                try:
-                    fresh, solves[pair] = self._finger(pair, hand)
-                except TRACKING_FAULTS as exc:  # bad hand data holds the pair; a bug aborts
-                    events.append(SafetyEvent(t, side, "invalid", f"finger channel: {exc}"))
-                    log.warning("teleop: %s hand finger channel held: %s", side, exc)
-            q = self.blend[pair].step(fresh, weights[side] if fresh is not None else 0.0)
+            q = self.blend[pair].step(
+                fresh[pair], weights[side] if fresh[pair] is not None else 0.0
+            )
             q_pair[pair] = q
             # warm start from what is actually commanded (held or blended)
             self.retargeters[pair].hold(q)
-        both = hands["left"] is not None and hands["right"] is not None
+        both = wrists["left"] is not None and wrists["right"] is not None
         if both:
             rail_fresh = np.array(
-                [rail_command(self.calibration.rail, hands["left"].wrist, hands["right"].wrist)]
+                [rail_command(self.calibration.rail, wrists["left"], wrists["right"])]
             )
             rail = self.rail_blend.step(rail_fresh, min(weights["left"], weights["right"]))
         else:
             rail = self.rail_blend.step(None, 0.0)
-        left_wrist = hands["left"].wrist if both else None  # a lost hand brakes the vehicle
-        right_wrist = hands["right"].wrist if both else None
+        left_wrist = wrists["left"] if both else None  # a lost hand brakes the vehicle
+        right_wrist = wrists["right"] if both else None
         stamp = float(frame.stamp) if math.isfinite(frame.stamp) else t
         base = self.base.step(left_wrist, vehicle_rotation, right_wrist, stamp)
         q17 = np.zeros(len(MANIPULATION_JOINTS))
@@ -348,3 +359,80 @@ class TeleopPipeline:
             tuple(events),
             solves,
         )
+
+    def _hands(self, frame: HandFrame, t: float) -> _Intake:
+        """The supervisor's verdict, the filtered hands and each pair's fresh command (the
+        Python path)."""
+        sup = self.supervisor.step(frame)
+        events = list(sup.events)
+        hands = {
+            "left": self._filtered("left", sup.left, t),
+            "right": self._filtered("right", sup.right, t),
+        }
+        weights = {"left": sup.blend_left, "right": sup.blend_right}
+        solves: dict[str, SolveInfo] = {}
+        fresh: dict[str, np.ndarray | None] = {}
+        for pair, side in HAND_OF_PAIR.items():
+            hand = hands[side]
+            fresh[pair] = None if hand is None else self._fresh(pair, hand, t, events, solves)
+        wrists = {side: None if hand is None else hand.wrist for side, hand in hands.items()}
+        return events, weights, wrists, fresh, solves
+
+    def _fresh(
+        self,
+        pair: str,
+        hand: Hand,
+        t: float,
+        events: list[SafetyEvent],
+        solves: dict[str, SolveInfo],
+        chain: bool = True,
+    ) -> np.ndarray | None:
+        """A pair's fresh command for a hand (its solve report into ``solves``), or None:
+        bad hand data holds the pair (a safety event into ``events``); a bug aborts.
+        ``chain``: try the compiled chain first."""
+        side = HAND_OF_PAIR[pair]
+        try:
+            q, solves[pair] = self._finger(pair, hand) if chain else self._finger_python(pair, hand)
+            return q
+        except TRACKING_FAULTS as exc:
+            events.append(SafetyEvent(t, side, "invalid", f"finger channel: {exc}"))
+            log.warning("teleop: %s hand finger channel held: %s", side, exc)
+            return None
+
+    def _intake_step(self, frame: HandFrame, t: float) -> _Intake | None:
+        """:meth:`_hands` through the compiled intake (:mod:`payload.teleop.intake_c`), or
+        None (nothing changed) where the Python path is to run."""
+        intake = self._intake_kernel()
+        got = None if intake is None else intake(frame, t)
+        if got is None:
+            return None
+        sup, taken = got
+        weights = {"left": sup.blend_left, "right": sup.blend_right}
+        events: list[SafetyEvent] = []
+        solves: dict[str, SolveInfo] = {}
+        fresh: dict[str, np.ndarray | None] = {}
+        for bit, (pair, side) in enumerate(HAND_OF_PAIR.items()):
+            if taken >> bit & 1:
+                fresh[pair], solves[pair] = self.retargeters[pair].finish_step()
+            else:  # the chain refused the filtered hand: the Python path says why
+                hand = Hand(self.filters[side].estimate(), True)
+                fresh[pair] = self._fresh(pair, hand, t, events, solves, chain=False)
+        wrists = {side: self.filters[side].estimate_row(WRIST) for side in ("left", "right")}
+        return events, weights, wrists, fresh, solves
+
+    def _intake_kernel(self) -> Any:
+        """The compiled intake for the current parts (made when they are all there and
+        compiled), or None."""
+        if not self.config.filter_enabled:
+            return None
+        get = self._chains.get
+        chains = (get("L"), get("R"))  # the left hand's pair, the right hand's
+        parts = intake_parts(self.supervisor, self.filters, chains)
+        made = self._intake
+        if made is not None and made[0] == parts:
+            return made[1]
+        if not intake_ready(self.filters, chains):
+            return None
+        kernel = compiled_hand_intake(self.supervisor, self.filters, chains)
+        self._intake = (parts, kernel)
+        return kernel

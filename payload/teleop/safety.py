@@ -227,7 +227,7 @@ class TrackingSupervisor:
                     st.recovering_until = t + c.recovery_time
                     st.lost = False
                     st.lost_since = None
-                st.last_valid, st.last_valid_stamp, st.was_invalid = hand, t, False
+                _take(st, hand, t)
             else:
                 if not st.was_invalid and not st.lost:
                     events.append(self._event(t_eval, side, "invalid", why))
@@ -242,9 +242,32 @@ class TrackingSupervisor:
                 out[side], blend[side] = None, 0.0
             else:
                 out[side] = st.last_valid
-                remaining = st.recovering_until - t_eval
-                blend[side] = 1.0 if remaining <= 0 else 1.0 - remaining / c.recovery_time
+                blend[side] = self._weight(st, t_eval)
         return Supervised(out["left"], out["right"], blend["left"], blend["right"], tuple(events))
+
+    def accepted(self, frame: HandFrame) -> Supervised:
+        """What :meth:`step` does with a frame whose hands are both valid, neither lost
+        and its time not going backwards (a caller that checked them itself: the
+        pipeline's compiled intake, :mod:`payload.teleop.intake_c`): no events, each hand
+        its own, blended in while recovering."""
+        t = frame.stamp
+        self.last_stamp = t
+        left, right = self.status["left"], self.status["right"]
+        _take(left, frame.left, t)
+        _take(right, frame.right, t)
+        return Supervised(
+            frame.left, frame.right, self._weight(left, t), self._weight(right, t), ()
+        )
+
+    def _weight(self, st: HandStatus, t: float) -> float:
+        """The weight of a hand's fresh commands at ``t`` (1 unless recovering)."""
+        remaining = st.recovering_until - t
+        return 1.0 if remaining <= 0 else 1.0 - remaining / self.config.recovery_time
+
+
+def _take(st: HandStatus, hand: Hand, t: float) -> None:
+    """A valid hand at ``t`` is the last valid one."""
+    st.last_valid, st.last_valid_stamp, st.was_invalid = hand, t, False
 
 
 @dataclass

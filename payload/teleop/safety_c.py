@@ -120,6 +120,13 @@ class CompiledHandCheck:
             fn, ddot, self._joints.ctypes.data, joints, wrist, self._params.ctypes.data,
             self._neutral.ctypes.data, int(has_neutral), self._last.ctypes.data,
         )  # fmt: skip
+        self.entry = (
+            ctypes.cast(fn, ptr).value, ddot, joints, wrist, self._params,
+            self._neutral.ctypes.data, int(has_neutral),
+        )  # fmt: skip
+        """For a caller that runs the check from its own C: the function, numpy's ``ddot``,
+        the joints per hand, the wrist's row, the limits (max extent, radius, then the
+        jump's place), the neutral wrist's address and whether it is checked."""
 
     def __call__(self, joints: np.ndarray, last: np.ndarray | None, jump: float) -> int:
         """The first failing check's code (0: valid) for ``joints``, with ``last`` the
