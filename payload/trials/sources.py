@@ -20,6 +20,7 @@ from payload.teleop.link import DelayedLink
 from payload.teleop.loop import ReplaySource, SyntheticSource
 from payload.teleop.operator import OperatorPlan, SyntheticOperator, WorldView
 from payload.teleop.replay import read_hand_recording
+from payload.trials.jointcodec import quantize_joints
 
 
 class TrialError(PayloadError):
@@ -79,8 +80,6 @@ class HeadsetSource:
         self.grid = grid
 
     def frame(self, t: float, world: WorldView | None) -> HandFrame | None:
-        from payload.trials.codec import quantize_joints
-
         fr = self.source.frame(t, world)
         if fr is None:
             return None
