@@ -446,9 +446,10 @@ def test_the_compiled_hand_intake_steps_as_the_python_path(retargeting):
     """Two pipelines on the same calibration and hands, one taking the hands in through
     the compiled intake (:mod:`payload.teleop.intake_c`) and one on the Python path alone,
     over hands that drop out (bridged, then lost and blended back in), turn invalid (a NaN
-    joint, a wrist jump), come back in time or repeat it, and a hand a pair's chain
-    refuses: the same commands, twists, solve reports and safety events, and the same
-    supervisor and filter state, bit for bit, step after step."""
+    joint, a wrist jump), come back in time or repeat it, a hand that moved while the other
+    was away, and a hand a pair's chain refuses: the same commands, twists, solve reports
+    and safety events, and the same supervisor and filter state, bit for bit, step after
+    step."""
     op, _, cal, _, t = _calibrated(9, retargeting)
     frames = []
     for k in range(420):
@@ -456,6 +457,8 @@ def test_the_compiled_hand_intake_steps_as_the_python_path(retargeting):
         left, right, stamp = fr.left, fr.right, t
         if 60 <= k < 64:
             left = Hand.untracked()  # a dropout, bridged
+        if k >= 60:  # meanwhile the right hand moves 6 cm a step (10 allowed), 30 cm in all
+            right = Hand(right.joints + np.array([0.06 * min(k - 59, 5), 0.0, 0.0]))
         if 120 <= k < 140:
             right = Hand.untracked()  # lost, then blended back in
         if k == 200:
@@ -468,6 +471,8 @@ def test_the_compiled_hand_intake_steps_as_the_python_path(retargeting):
             stamp = t - 2 * DT  # back in time
         if k == 301:
             stamp = frames[-2].stamp  # the same time again
+        if k == 330:
+            stamp = frames[-1].stamp  # the same time again, on a steady step
         frames.append(HandFrame(stamp, left, right))
         t += DT
 
@@ -505,9 +510,13 @@ def test_the_compiled_hand_intake_steps_as_the_python_path(retargeting):
                 chain._chain.eps = eps
             out.append(s.command.q.tobytes() + s.twist.linear.tobytes() + s.twist.angular.tobytes())
             out.append(repr((s.rail, sorted(s.solves.items()), s.events)).encode())
+            sup = pipe.supervisor
+            out.append(repr(sup.last_stamp).encode())
             for side in ("left", "right"):
-                st, f = pipe.supervisor.status[side], pipe.filters[side]
-                out.append(repr((st.last_valid_stamp, st.lost, st.recovering_until)).encode())
+                st, f = sup.status[side], pipe.filters[side]
+                kept = (st.last_valid_stamp, st.lost, st.lost_since, st.recovering_until)
+                out.append(repr((*kept, st.was_invalid, f._t)).encode())
+                out.append(b"-" if st.last_valid is None else st.last_valid.joints.tobytes())
                 out.append(b"-" if f._x is None else f._x.tobytes() + f._dx.tobytes())
         if intake:
             seen.extend(pipe.events)
@@ -519,6 +528,11 @@ def test_the_compiled_hand_intake_steps_as_the_python_path(retargeting):
     kinds = {(e.hand, e.kind) for e in seen}
     assert {("left", "invalid"), ("right", "lost"), ("right", "regained")} <= kinds
     assert ("both", "time_backwards") in kinds
+    # step 64: the right wrist 30 cm from where the intake last took it in (step 59), 6 cm
+    # from where the Python path took it last (step 63): valid, taken in
+    assert taken[59] is taken[64] is True and not any(taken[60:64])
+    assert not any(e.stamp == frames[64].stamp for e in seen)
+    assert taken[330] is False  # the same time again: the Python path
     # step 350: taken in by the intake, the refused pair solved by the Python path
     assert taken[350] is True
     assert [f for f in fell_back if f[1] >= 340] == [(True, 350, "R"), (False, 350, "R")]

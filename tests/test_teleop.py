@@ -458,6 +458,7 @@ def test_the_base_twist_carries_the_step_stamp_in_both_steps():
     nl = np.array([0.35, 0.17, 1.05])
     compiled, python = BaseChannel(cfg, nl), BaseChannel(cfg, nl)
     python.__dict__["_compiled_step"] = None  # numpy's step
+    assert compiled._compiled_step is not None  # a compiler and numpy's OpenBLAS are here
     yaw = 0.4
     rot = np.array(
         [[math.cos(yaw), -math.sin(yaw), 0.0], [math.sin(yaw), math.cos(yaw), 0.0], [0.0, 0.0, 1.0]]

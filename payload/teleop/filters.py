@@ -43,6 +43,10 @@ class OneEuroFilter:
 
     The speed driving the adaptive cutoff is the per-row norm for (N, 3) point arrays
     (so each keypoint adapts to its own 3-D speed), else the element's own magnitude.
+
+    The pipeline's compiled intake (:mod:`payload.teleop.intake_c`) runs the compiled step
+    from its own C on the estimates (``_x``, ``_dx``, bound in ``_bound``) and sets the
+    clock (``_t``) as :meth:`__call__` does.
     """
 
     def __init__(self, config: OneEuroConfig | None = None) -> None:

@@ -14,8 +14,11 @@ runs and words the reason), both filter steps, both chains. Its own arithmetic i
 jump a wrist is allowed since its last valid frame and the filter's period and speed
 smoothing factor, the same operations as
 :meth:`~payload.teleop.safety.TrackingSupervisor._valid` and
-:func:`~payload.teleop.filters._alpha`; it is checked against them when built. The
-caller adopts the step as the Python path would (:meth:`TrackingSupervisor.accepted
+:func:`~payload.teleop.filters._alpha`; that arithmetic is checked against them when
+built (the kernels it calls check themselves when they are built; the whole intake is
+tested against the Python path: ``tests/test_pipeline.py``). Only a stamp that is a
+Python float (or numpy's float64) is taken in: another type's arithmetic is the Python
+path's. The caller adopts the step as the Python path would (:meth:`TrackingSupervisor.accepted
 <payload.teleop.safety.TrackingSupervisor.accepted>`, the filters' clocks) and finishes
 each pair whose chain took its hand; a chain that refused its hand leaves that pair to
 the Python path, which raises its error (the pipeline's safety event). Without a
@@ -125,23 +128,28 @@ class _Side(ctypes.Structure):
     ]
 
 
-def intake_parts(
+def intake_objects(
     supervisor: TrackingSupervisor,
     filters: dict[str, OneEuroFilter],
     chains: tuple[Any, Any],
-) -> tuple[int, ...]:
-    """What an intake is made for, each by identity (its ``id``; the intake keeps the
-    objects, so no other takes their ids while it lives): the supervisor's settings and
-    neutral wrists, each filter's settings, estimates and compiled step, each side's chain
-    (``chains``: the left hand's, the right hand's)."""
+) -> tuple:
+    """What an intake is made for: the supervisor, its settings and neutral wrists, each
+    filter's settings, estimates and compiled step, each side's chain (``chains``: the
+    left hand's, the right hand's)."""
     left, right = filters["left"], filters["right"]
     neutral = supervisor.neutral
     return (
-        id(supervisor.config), id(neutral.get("left")), id(neutral.get("right")),
-        id(left.config), id(left._x), id(left._dx), id(left._bound),
-        id(right.config), id(right._x), id(right._dx), id(right._bound),
-        id(chains[0]), id(chains[1]),
+        supervisor, supervisor.config, neutral.get("left"), neutral.get("right"),
+        left.config, left._x, left._dx, left._bound,
+        right.config, right._x, right._dx, right._bound,
+        chains[0], chains[1],
     )  # fmt: skip
+
+
+def intake_parts(objects: tuple) -> tuple[int, ...]:
+    """:func:`intake_objects` by identity (their ids: whoever keeps the objects keeps
+    their ids theirs), compared at every step."""
+    return tuple(map(id, objects))
 
 
 def ready(filters: dict[str, OneEuroFilter], chains: tuple[Any, Any]) -> bool:
@@ -182,12 +190,8 @@ class HandIntake:
     ) -> None:
         if not ready(filters, chains):
             raise ValueError("a filter or a chain is not compiled and running")
-        self.parts = intake_parts(supervisor, filters, chains)
-        """What it is made for (:func:`intake_parts`)."""
-        self._made_for = (  # alive while the intake is: their ids are theirs
-            supervisor.config, *supervisor.neutral.values(),
-            *(p for f in filters.values() for p in (f.config, f._x, f._dx, f._bound)),
-        )  # fmt: skip
+        self.made_for = intake_objects(supervisor, filters, chains)
+        """What it is made for (:func:`intake_objects`; kept alive with it)."""
         self._supervisor = supervisor
         self._filters = [filters[side] for side in SIDES]
         self._chains = list(chains)
@@ -239,6 +243,8 @@ class HandIntake:
         (no events: both hands valid) and which sides' chains took their hand (bit 0 the
         left, bit 1 the right; those pairs' solves wait in their retargeters:
         ``finish_step``); or None, nothing changed, where the Python path is to run."""
+        if not isinstance(t, float):  # another type's arithmetic: the Python path's
+            return None
         sup = self._supervisor
         status = sup.status
         st0, st1 = status["left"], status["right"]
@@ -313,4 +319,13 @@ def compiled_hand_intake(
     return intake
 
 
-__all__ = ["CHECK_TIMES", "SIDES", "SOURCE", "HandIntake", "compiled_hand_intake", "ready"]
+__all__ = [
+    "CHECK_TIMES",
+    "SIDES",
+    "SOURCE",
+    "HandIntake",
+    "compiled_hand_intake",
+    "intake_objects",
+    "intake_parts",
+    "ready",
+]

@@ -42,7 +42,7 @@ from payload.teleop.hands import (
     pinch_points,
     wrist_frame,
 )
-from payload.teleop.intake_c import compiled_hand_intake, intake_parts
+from payload.teleop.intake_c import compiled_hand_intake, intake_objects, intake_parts
 from payload.teleop.intake_c import ready as intake_ready
 from payload.teleop.safety import Blender, SafetyConfig, SafetyEvent, TrackingSupervisor
 
@@ -257,7 +257,7 @@ class TeleopPipeline:
         self.rail_blend = Blender(np.array([q0[-1]]))
         self.events: list[SafetyEvent] = []
         self._chains: dict[str, Any] = {}  # pair -> its finger chain (pair_c) or None
-        self._intake: tuple[tuple, Any] | None = None  # (its parts, the compiled intake)
+        self._intake: tuple[tuple, Any, tuple] | None = None  # (parts, intake, objects)
 
     def _filtered(self, side: str, hand: Hand | None, t: float) -> Hand | None:
         if hand is None:
@@ -312,6 +312,11 @@ class TeleopPipeline:
 
     def step(self, frame: HandFrame, vehicle_rotation: np.ndarray | None = None) -> TeleopStep:
         """One 50 Hz step.
+
+        Both hands are taken in first (:meth:`_intake_step` or :meth:`_hands`), then the
+        channels run. Bad hand data holds a pair (a safety event); any other exception is
+        a bug that aborts the session, and what the step did before it stands (the other
+        pair's solve, say).
 
         Args:
             frame: Hand frame (workbench or WebXR convention).
@@ -427,12 +432,13 @@ class TeleopPipeline:
             return None
         get = self._chains.get
         chains = (get("L"), get("R"))  # the left hand's pair, the right hand's
-        parts = intake_parts(self.supervisor, self.filters, chains)
+        objects = intake_objects(self.supervisor, self.filters, chains)
+        parts = intake_parts(objects)
         made = self._intake
         if made is not None and made[0] == parts:
             return made[1]
         if not intake_ready(self.filters, chains):
             return None
         kernel = compiled_hand_intake(self.supervisor, self.filters, chains)
-        self._intake = (parts, kernel)
+        self._intake = (parts, kernel, objects)  # the objects kept: their ids theirs
         return kernel
