@@ -94,6 +94,13 @@ class Health(IntFlag):
     LIMIT = 16  # a joint is at or beyond a position limit
 
 
+HEALTHS: tuple[Health, ...] = tuple(
+    Health(bits) for bits in range(1 << max(flag.value for flag in Health).bit_length())
+)
+"""Every combination of the flags, by its value (``HEALTHS[bits]`` is ``Health(bits)``,
+without the enum's call)."""
+
+
 @dataclass(frozen=True)
 class PayloadState:
     """Measured state of the payload.

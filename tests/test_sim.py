@@ -16,6 +16,7 @@ import pytest
 
 from payload.design import FINGERS, MANIPULATION_JOINTS, design_from_dict
 from payload.schema import (
+    HEALTHS,
     Health,
     PayloadCommand,
     PayloadDriver,
@@ -493,6 +494,40 @@ def test_vehicle_wrench_saturates_at_its_bounds_after_a_kick(bare_world):
 def test_opposing_indicator_logic():
     assert opposing({"A", "C"}) and opposing({"B", "D"}) and opposing({"A", "B", "C", "D"})
     assert not opposing({"A", "B"}) and not opposing({"C", "D"}) and not opposing(set())
+    # every set of touching fingers, as the monitor returns it (a frozenset, looked up) and
+    # as a list: opposing when a finger of each side (A, B: 1; C, D: 2) is among them
+    for bits in range(16):
+        fingers = [f for k, f in enumerate("ABCD") if bits >> k & 1]
+        both = bool({"A", "B"} & set(fingers)) and bool({"C", "D"} & set(fingers))
+        assert opposing(frozenset(fingers)) is opposing(fingers) is both
+
+
+def test_module_at_is_the_first_zone_containing_the_point():
+    """Points inside, outside and on the faces of the zones, as arrays, tuples and lists:
+    the module of the first zone (vestibule, Kibo, Node 2) whose box holds the point."""
+    layout = IssLayout()
+    kibo, vest, node2 = layout.zones()
+    rng = np.random.default_rng(5)
+    lo = np.min([z.lo for z in (kibo, vest, node2)], axis=0) - 0.5
+    hi = np.max([z.hi for z in (kibo, vest, node2)], axis=0) + 0.5
+    points = list(rng.uniform(lo, hi, size=(2000, 3)))
+    for zone in (kibo, vest, node2):  # the corners and face centres: on the boundary
+        for corner in itertools.product(*zip(zone.lo, zone.hi)):
+            points.append(np.array(corner))
+        points.append(np.array([zone.lo[0], *zone.centre[1:]]))
+    seen = set()
+    for p in points:
+        want = next((z.module for z in (vest, kibo, node2) if z.contains(p)), None)
+        for given in (p, tuple(p.tolist()), p.tolist()):
+            assert layout.module_at(given) is want
+        seen.add(want)
+    assert seen == {IssModule.KIBO, IssModule.VESTIBULE, IssModule.NODE2, None}
+
+
+def test_every_health_flag_combination_is_its_enum_value():
+    assert len(HEALTHS) == 32
+    for bits, health in enumerate(HEALTHS):
+        assert health is Health(bits) and int(health) == bits
 
 
 def test_one_side_touching_is_not_opposing(world):

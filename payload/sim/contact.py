@@ -33,11 +33,21 @@ _FINGER_SETS = tuple(
 )
 """The set of fingers of each bit pattern (bit k: ``FINGERS[k]``)."""
 
+_OPPOSING: dict[frozenset[str], bool] = {}
+""":func:`opposing` of each set of :data:`_FINGER_SETS` (filled below it: every set the
+contact monitor returns), looked up instead of worked out at every control step."""
+
 
 def opposing(fingers: Iterable[str]) -> bool:
     """True when ``fingers`` (those touching the cargo) include both sides of the array."""
+    known = _OPPOSING.get(fingers) if isinstance(fingers, frozenset) else None
+    if known is not None:
+        return known
     sides = {SIDE_OF[f] for f in fingers}
     return sides >= {1, 2}
+
+
+_OPPOSING.update((fingers, opposing(fingers)) for fingers in _FINGER_SETS)
 
 
 class Contact(NamedTuple):

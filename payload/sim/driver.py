@@ -27,7 +27,7 @@ from typing import Any, NamedTuple
 import mujoco
 import numpy as np
 
-from payload.schema import Health, PayloadCommand, PayloadState, SchemaError, VehicleTwist
+from payload.schema import HEALTHS, Health, PayloadCommand, PayloadState, SchemaError, VehicleTwist
 from payload.sim.contact import Contact, ContactMonitor, opposing
 from payload.sim.propulsion import Allocation
 from payload.sim.readout_c import WORLD_SLICES
@@ -187,7 +187,7 @@ class SimDriver:
             float(self.data.time),
             out[part["dq"]],
             out[part["effort"]],
-            Health(health),
+            HEALTHS[health] if 0 <= health < len(HEALTHS) else Health(health),
         )
 
     def _read_numpy(self) -> PayloadState:
@@ -574,11 +574,16 @@ class SimDriver:
     def _world_state_kernel(self, kernel: Any) -> WorldState:
         """:meth:`world_state` through the read-out kernel."""
         out = kernel.world()
-        ctb = self.world.ctb >= 0
+        parts = self.__dict__.get("_world_parts")
+        if parts is None:  # each field's part of the buffer (None: no CTB in this world)
+            ctb = self.world.ctb >= 0
+            parts = self._world_parts = tuple(
+                (name, part if ctb or not name.startswith("ctb") else None)
+                for name, part in WORLD_SLICES.items()
+            )
         return self._world_state(
-            **{name: out[part] if ctb or not name.startswith("ctb") else None
-               for name, part in WORLD_SLICES.items()}
-        )  # fmt: skip
+            **{name: None if part is None else out[part] for name, part in parts}
+        )
 
     def _world_state_numpy(self) -> WorldState:
         """:meth:`world_state` in numpy (what the read-out kernel is checked against)."""

@@ -174,8 +174,11 @@ class IssLayout:
         The vestibule wins on its shared faces with the modules (a point on the hatch
         plane counts as in the hatch).
         """
+        x, y, z = (point.tolist() if isinstance(point, np.ndarray) else point)[:3]
+        x, y, z = float(x), float(y), float(z)  # Zone.contains's numbers, converted once
         for zone in self._lookup_order:
-            if zone.contains(point):
+            lo, hi = zone.lo, zone.hi
+            if lo[0] <= x <= hi[0] and lo[1] <= y <= hi[1] and lo[2] <= z <= hi[2]:
                 return zone.module
         return None
 
