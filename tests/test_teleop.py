@@ -63,8 +63,29 @@ def test_webxr_to_workbench_maps_axes():
 def test_bad_hand_input_is_rejected():
     with pytest.raises(HandFrameError, match="shape"):
         Hand(np.zeros((24, 3)))
-    with pytest.raises(HandFrameError, match="not finite"):
-        HandFrame(float("nan"), Hand.untracked(), Hand.untracked())
+    with pytest.raises(HandFrameError, match="shape"):
+        Hand.taking(np.zeros((24, 3)))
+    for stamp in (float("nan"), float("inf"), np.float32("nan"), np.float64("-inf")):
+        with pytest.raises(HandFrameError, match="not finite"):
+            HandFrame(stamp, Hand.untracked(), Hand.untracked())
+
+
+def test_a_hand_taking_its_joints_is_the_constructors():
+    """``Hand.taking`` keeps an array of the caller's own (frozen, not copied) and copies
+    anything else as the constructor does: the same joints either way."""
+    rng = np.random.default_rng(2)
+    own = rng.normal(size=(25, 3))
+    want = own.copy()
+    taken = Hand.taking(own, tracked=False)
+    assert taken.joints is own and not own.flags.writeable
+    assert taken.joints.tobytes() == want.tobytes() and taken.tracked is False
+    assert taken.orientations is None
+    assert repr(taken) == repr(Hand(want, False))
+    bigger = rng.normal(size=(50, 3))
+    for other in (bigger[:25], bigger[::2], want.astype(np.float32), want.tolist(), own):
+        hand = Hand.taking(other)  # a view, strided, float32, a list, read-only: copied
+        assert hand.joints is not other and not hand.joints.flags.writeable
+        assert hand.joints.tobytes() == np.asarray(other, dtype=np.float64).tobytes()
 
 
 def test_wrist_frame_recovers_a_known_rotation():

@@ -15,6 +15,8 @@ from payload.errors import PayloadError
 from payload.rotations import matrix_to_quat, quat_to_matrix
 from payload.vecmath import cross
 
+_F64 = np.dtype(np.float64)
+
 XR_JOINTS: tuple[str, ...] = (
     "wrist",
     "thumb-metacarpal",
@@ -83,6 +85,26 @@ class Hand:
             o.setflags(write=False)
             object.__setattr__(self, "orientations", o)
 
+    @classmethod
+    def taking(cls, joints: np.ndarray, tracked: bool = True) -> Hand:
+        """A hand of joints made for it: a float64 array (25, 3) of the caller's own
+        (C-contiguous, owning its data, writeable, held by nothing else), frozen here and
+        kept instead of copied. Anything else is copied and checked as the constructor
+        does."""
+        if (
+            type(joints) is np.ndarray
+            and joints.dtype == _F64
+            and joints.shape == JOINTS_SHAPE
+            and joints.base is None
+            and joints.flags.c_contiguous
+            and joints.flags.writeable
+        ):
+            joints.setflags(write=False)
+            hand = object.__new__(cls)
+            hand.__dict__.update(joints=joints, tracked=tracked, orientations=None)
+            return hand
+        return cls(joints, tracked)
+
     @staticmethod
     def untracked() -> Hand:
         return Hand(np.full((25, 3), np.nan), tracked=False)
@@ -119,7 +141,8 @@ class HandFrame:
     frame: str = "workbench"
 
     def __post_init__(self) -> None:
-        if not np.isfinite(self.stamp):
+        stamp = self.stamp
+        if not (math.isfinite(stamp) if type(stamp) is float else np.isfinite(stamp)):
             raise HandFrameError(f"hand frame stamp is not finite: {self.stamp}")
         if self.frame not in ("workbench", "webxr"):
             raise HandFrameError(f"unknown hand frame convention {self.frame!r}")

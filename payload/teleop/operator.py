@@ -408,7 +408,7 @@ class SyntheticOperator:
             joints = held_hand(
                 model, self.wrist[side], tr.tremor_amp, arg, phases, self.aperture, noise
             )
-            hands[side] = Hand(joints)
+            hands[side] = Hand.taking(joints)  # the call's own array: kept, not copied
         return HandFrame(t, hands["left"], hands["right"])
 
     def reaction_end(self) -> float:

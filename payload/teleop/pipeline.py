@@ -265,7 +265,7 @@ class TeleopPipeline:
             return None
         if not self.config.filter_enabled:
             return hand
-        return Hand(self.filters[side](hand.joints, t), True)
+        return Hand.taking(self.filters[side](hand.joints, t))  # the filter's copy
 
     def _finger(self, pair: str, hand: Hand) -> tuple[np.ndarray, SolveInfo]:
         """The pair's fresh command and solve report for a hand: the compiled chain

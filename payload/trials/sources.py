@@ -84,7 +84,7 @@ class HeadsetSource:
         if fr is None:
             return None
         hands = [
-            Hand(quantize_joints(h.joints, self.grid), True) if h.tracked else h
+            Hand.taking(quantize_joints(h.joints, self.grid)) if h.tracked else h
             for h in (fr.left, fr.right)
         ]
         return HandFrame(fr.stamp, hands[0], hands[1], fr.frame)
