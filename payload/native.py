@@ -343,14 +343,28 @@ def checked_blas_kernel(
     except ValueError as exc:
         logger.warning("%s: numpy (%s)", what, exc)
         return None
-    shape = key(kernel)
-    n = probes(loaded[0], shape, full)
-    if not check(kernel, n):
+    if not self_checked(loaded[0], key(kernel), full, lambda n: check(kernel, n)):
         logger.warning("%s: numpy (the compiled kernel differs)", what)
         return None
-    if n == full:
-        passed(loaded[0], shape)
     return kernel
+
+
+def self_checked(
+    lib: ctypes.CDLL,
+    key: Hashable,
+    full: int,
+    check: Callable[[int], bool],
+    again: int | None = None,
+) -> bool:
+    """Whether ``lib``'s kernel passes ``check(n)``, its self-check against the numpy code
+    on ``n`` probes (:func:`probes` of ``full`` and ``again``); a full pass is recorded
+    (:func:`passed`)."""
+    n = probes(lib, key, full, again)
+    if not check(n):
+        return False
+    if n == full:
+        passed(lib, key)
+    return True
 
 
 def passed(lib: ctypes.CDLL, key: Hashable) -> None:
@@ -565,4 +579,5 @@ __all__ = [
     "probes",
     "prune",
     "reported",
+    "self_checked",
 ]

@@ -18,11 +18,10 @@ import numpy as np
 
 from payload.design.tree import MANIPULATION_JOINTS
 from payload.errors import PayloadError
-from payload.vecmath import all_finite
+from payload.vecmath import F64, all_finite
 
 N_MANIPULATION = len(MANIPULATION_JOINTS)  # 17
 _SHAPE = (N_MANIPULATION,)
-_F64 = np.dtype(np.float64)
 
 CONTROL_DT = 0.02
 """Period of the teleoperation loop and of every command stream [s] (the paper's 50 Hz)."""
@@ -145,7 +144,7 @@ class PayloadState:
         not copied; ``q`` is still checked finite. Anything else is built (and checked) as
         the constructor does."""
         for a in (q, dq, effort):
-            if type(a) is not np.ndarray or a.dtype != _F64 or a.shape != _SHAPE:
+            if type(a) is not np.ndarray or a.dtype != F64 or a.shape != _SHAPE:
                 return cls(q, deploy, stamp, dq, effort, health)
             if a.flags.writeable:
                 return cls(q, deploy, stamp, dq, effort, health)

@@ -13,6 +13,9 @@ try:  # numpy 2
 except ImportError:  # numpy 1.26
     from numpy.core.umath import clip as _clip_ufunc  # type: ignore[no-redef]
 
+F64 = np.dtype(np.float64)
+"""The loop's number type, to compare an array's ``dtype`` with (no new dtype per test)."""
+
 add_reduce = np.add.reduce
 """What ``ndarray.sum`` runs: ``add_reduce(a)`` is ``a.sum()`` of a 1-D array, the same
 pairwise sum, without the method's Python wrappers."""
@@ -53,4 +56,4 @@ def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     )
 
 
-__all__ = ["add_reduce", "all_finite", "all_reduce", "clip", "cross", "max_reduce", "norm"]
+__all__ = ["F64", "add_reduce", "all_finite", "all_reduce", "clip", "cross", "max_reduce", "norm"]

@@ -451,14 +451,16 @@ def test_the_compiled_hand_intake_steps_as_the_python_path(retargeting):
     and safety events, and the same supervisor and filter state, bit for bit, step after
     step."""
     op, _, cal, _, t = _calibrated(9, retargeting)
+    allowed = TeleopConfig.from_design().safety.max_wrist_speed * DT  # a step's move, at most
     frames = []
     for k in range(420):
         fr = op.act(_static_world(t))
         left, right, stamp = fr.left, fr.right, t
         if 60 <= k < 64:
             left = Hand.untracked()  # a dropout, bridged
-        if k >= 60:  # meanwhile the right hand moves 6 cm a step (10 allowed), 30 cm in all
-            right = Hand(right.joints + np.array([0.06 * min(k - 59, 5), 0.0, 0.0]))
+        if k >= 60:  # meanwhile the right hand moves 0.6 of that a step, 3 times it in all
+            moved = 0.6 * allowed * min(k - 59, 5)
+            right = Hand(right.joints + np.array([moved, 0.0, 0.0]))
         if 120 <= k < 140:
             right = Hand.untracked()  # lost, then blended back in
         if k == 200:
@@ -466,7 +468,7 @@ def test_the_compiled_hand_intake_steps_as_the_python_path(retargeting):
             joints[3, 1] = np.nan
             left = Hand(joints)
         if k == 240:
-            right = Hand(right.joints + np.array([0.3, 0.0, 0.0]))  # the wrist jumps
+            right = Hand(right.joints + np.array([3 * allowed, 0.0, 0.0]))  # the wrist jumps
         if k == 300:
             stamp = t - 2 * DT  # back in time
         if k == 301:
@@ -528,8 +530,8 @@ def test_the_compiled_hand_intake_steps_as_the_python_path(retargeting):
     kinds = {(e.hand, e.kind) for e in seen}
     assert {("left", "invalid"), ("right", "lost"), ("right", "regained")} <= kinds
     assert ("both", "time_backwards") in kinds
-    # step 64: the right wrist 30 cm from where the intake last took it in (step 59), 6 cm
-    # from where the Python path took it last (step 63): valid, taken in
+    # step 64: the right wrist 3 allowed moves from where the intake last took it in (step
+    # 59), 0.6 of one from where the Python path took it last (step 63): valid, taken in
     assert taken[59] is taken[64] is True and not any(taken[60:64])
     assert not any(e.stamp == frames[64].stamp for e in seen)
     assert taken[330] is False  # the same time again: the Python path

@@ -298,18 +298,21 @@ def test_an_exception_in_the_finger_channel_aborts_the_trial_and_keeps_the_recor
     tmp_path, monkeypatch, capsys
 ):
     from payload.cli import main
-    from payload.teleop.pipeline import TeleopPipeline
+    from payload.retarget.casadi_solver import PairRetargeter
 
-    real = TeleopPipeline._finger  # a pair's finger channel: compiled chain or Python path
     calls = []
 
-    def buggy(self, pair, hand):
-        calls.append(pair)
-        if len(calls) > 20:
-            raise TypeError("injected bug")
-        return real(self, pair, hand)
+    def buggy(real):  # a pair's solve, on every path: the compiled ones end in finish_step
+        def solve(self, *args, **kwargs):
+            calls.append(self.pair)
+            if len(calls) > 20:
+                raise TypeError("injected bug")
+            return real(self, *args, **kwargs)
 
-    monkeypatch.setattr(TeleopPipeline, "_finger", buggy)
+        return solve
+
+    for name in ("solve", "finish_step"):
+        monkeypatch.setattr(PairRetargeter, name, buggy(getattr(PairRetargeter, name)))
     out = tmp_path / "t"
     assert main(["trial", "--seed", "3", "--out", str(out)]) == 1
     err = capsys.readouterr().err.strip().splitlines()

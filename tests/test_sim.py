@@ -41,6 +41,7 @@ from payload.sim import (
     opposing,
 )
 from payload.sim.bench import RouteFollower
+from payload.sim.contact import SIDES
 
 # Figures from docs/sources.md, typed here independently of the code under test.
 XC330_STALL = 0.93  # [N m] at 5 V
@@ -495,10 +496,10 @@ def test_opposing_indicator_logic():
     assert opposing({"A", "C"}) and opposing({"B", "D"}) and opposing({"A", "B", "C", "D"})
     assert not opposing({"A", "B"}) and not opposing({"C", "D"}) and not opposing(set())
     # every set of touching fingers, as the monitor returns it (a frozenset, looked up) and
-    # as a list: opposing when a finger of each side (A, B: 1; C, D: 2) is among them
-    for bits in range(16):
-        fingers = [f for k, f in enumerate("ABCD") if bits >> k & 1]
-        both = bool({"A", "B"} & set(fingers)) and bool({"C", "D"} & set(fingers))
+    # as a list: opposing when a finger of each side of the array is among them
+    for bits in range(1 << len(FINGERS)):
+        fingers = [f for k, f in enumerate(FINGERS) if bits >> k & 1]
+        both = all(set(side) & set(fingers) for side in SIDES.values())
         assert opposing(frozenset(fingers)) is opposing(fingers) is both
 
 
@@ -525,7 +526,8 @@ def test_module_at_is_the_first_zone_containing_the_point():
 
 
 def test_every_health_flag_combination_is_its_enum_value():
-    assert len(HEALTHS) == 32
+    flags = [h for h in Health.__members__.values() if h]  # each flag, OK (0) aside
+    assert len(HEALTHS) == 2 ** len(flags) and Health(sum(flags)) is HEALTHS[-1]
     for bits, health in enumerate(HEALTHS):
         assert health is Health(bits) and int(health) == bits
 
@@ -808,11 +810,12 @@ def test_the_physics_step_is_1_ms_by_default_and_a_2_ms_world_is_derived_from_it
 def test_a_payload_state_of_frozen_vectors_is_the_constructors():
     """``PayloadState.of_frozen`` takes read-only vectors as they are, and anything else as
     the constructor does: the same fields, the same refusals."""
+    n = len(MANIPULATION_JOINTS)
     rng = np.random.default_rng(3)
-    buf = rng.normal(size=3 * 17)
-    buf[17 + 4] = np.nan  # a velocity not measured
+    buf = rng.normal(size=3 * n)
+    buf[n + 4] = np.nan  # a velocity not measured
     buf.setflags(write=False)
-    q, dq, effort = buf[:17], buf[17:34], buf[34:]
+    q, dq, effort = buf[:n], buf[n : 2 * n], buf[2 * n :]
     made = PayloadState.of_frozen(q, 0.01, 2.5, dq, effort, Health.LIMIT)
     built = PayloadState(q.copy(), 0.01, 2.5, dq.copy(), effort.copy(), Health.LIMIT)
     for name, given in (("q", q), ("dq", dq), ("effort", effort)):
@@ -823,10 +826,10 @@ def test_a_payload_state_of_frozen_vectors_is_the_constructors():
     # writeable, a list or another length: built (copied and checked) as the constructor does
     loose = PayloadState.of_frozen(q.copy(), 0.0, 0.0, list(dq), effort)
     assert loose.q.tobytes() == q.tobytes() and not loose.q.flags.writeable
-    with pytest.raises(SchemaError, match="expected 17 values"):
-        PayloadState.of_frozen(buf[:16], 0.0, 0.0, dq, effort)
+    with pytest.raises(SchemaError, match=f"expected {n} values"):
+        PayloadState.of_frozen(buf[: n - 1], 0.0, 0.0, dq, effort)
     bad = buf.copy()
     bad[2] = np.inf
     bad.setflags(write=False)
     with pytest.raises(SchemaError, match=MANIPULATION_JOINTS[2]):
-        PayloadState.of_frozen(bad[:17], 0.0, 0.0, dq, effort)
+        PayloadState.of_frozen(bad[:n], 0.0, 0.0, dq, effort)

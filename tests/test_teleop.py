@@ -64,7 +64,7 @@ def test_bad_hand_input_is_rejected():
     with pytest.raises(HandFrameError, match="shape"):
         Hand(np.zeros((24, 3)))
     with pytest.raises(HandFrameError, match="shape"):
-        Hand.taking(np.zeros((24, 3)))
+        Hand.taking(np.zeros((len(XR_JOINTS) - 1, 3)))
     for stamp in (float("nan"), float("inf"), np.float32("nan"), np.float64("-inf")):
         with pytest.raises(HandFrameError, match="not finite"):
             HandFrame(stamp, Hand.untracked(), Hand.untracked())
@@ -74,15 +74,16 @@ def test_a_hand_taking_its_joints_is_the_constructors():
     """``Hand.taking`` keeps an array of the caller's own (frozen, not copied) and copies
     anything else as the constructor does: the same joints either way."""
     rng = np.random.default_rng(2)
-    own = rng.normal(size=(25, 3))
+    n = len(XR_JOINTS)
+    own = rng.normal(size=(n, 3))
     want = own.copy()
     taken = Hand.taking(own, tracked=False)
     assert taken.joints is own and not own.flags.writeable
     assert taken.joints.tobytes() == want.tobytes() and taken.tracked is False
     assert taken.orientations is None
     assert repr(taken) == repr(Hand(want, False))
-    bigger = rng.normal(size=(50, 3))
-    for other in (bigger[:25], bigger[::2], want.astype(np.float32), want.tolist(), own):
+    bigger = rng.normal(size=(2 * n, 3))
+    for other in (bigger[:n], bigger[::2], want.astype(np.float32), want.tolist(), own):
         hand = Hand.taking(other)  # a view, strided, float32, a list, read-only: copied
         assert hand.joints is not other and not hand.joints.flags.writeable
         assert hand.joints.tobytes() == np.asarray(other, dtype=np.float64).tobytes()

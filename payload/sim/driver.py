@@ -152,6 +152,10 @@ class SimDriver:
         """Called with the requested twist and the data each control step, before the
         vehicle controller (the base safety filter, on the robot's side); None: none."""
         self._wrench = Wrench(np.zeros(3), np.zeros(3))
+        self._world_parts = tuple(  # the world read-out's fields (None: no CTB in this world)
+            (name, part if self.world.ctb >= 0 or not name.startswith("ctb") else None)
+            for name, part in WORLD_SLICES.items()
+        )
         self._closed = False
 
     # -- protocol ----------------------------------------------------------------------------
@@ -574,15 +578,8 @@ class SimDriver:
     def _world_state_kernel(self, kernel: Any) -> WorldState:
         """:meth:`world_state` through the read-out kernel."""
         out = kernel.world()
-        parts = self.__dict__.get("_world_parts")
-        if parts is None:  # each field's part of the buffer (None: no CTB in this world)
-            ctb = self.world.ctb >= 0
-            parts = self._world_parts = tuple(
-                (name, part if ctb or not name.startswith("ctb") else None)
-                for name, part in WORLD_SLICES.items()
-            )
         return self._world_state(
-            **{name: None if part is None else out[part] for name, part in parts}
+            **{name: None if part is None else out[part] for name, part in self._world_parts}
         )
 
     def _world_state_numpy(self) -> WorldState:

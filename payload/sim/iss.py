@@ -48,8 +48,11 @@ class Zone(NamedTuple):
 
     def contains(self, point: Sequence[float]) -> bool:
         """True when ``point`` (3,) [m] lies inside the box (boundary included)."""
+        return self.holds(float(point[0]), float(point[1]), float(point[2]))
+
+    def holds(self, x: float, y: float, z: float) -> bool:
+        """:meth:`contains` of the point (x, y, z) [m], its coordinates already floats."""
         lo, hi = self.lo, self.hi
-        x, y, z = float(point[0]), float(point[1]), float(point[2])
         return lo[0] <= x <= hi[0] and lo[1] <= y <= hi[1] and lo[2] <= z <= hi[2]
 
     @property
@@ -177,8 +180,7 @@ class IssLayout:
         x, y, z = (point.tolist() if isinstance(point, np.ndarray) else point)[:3]
         x, y, z = float(x), float(y), float(z)  # Zone.contains's numbers, converted once
         for zone in self._lookup_order:
-            lo, hi = zone.lo, zone.hi
-            if lo[0] <= x <= hi[0] and lo[1] <= y <= hi[1] and lo[2] <= z <= hi[2]:
+            if zone.holds(x, y, z):
                 return zone.module
         return None
 

@@ -70,12 +70,6 @@ class OneEuroFilter:
             raise ValueError("One Euro filter: no sample yet")
         return self._x.copy()
 
-    def estimate_row(self, row: int) -> np.ndarray:
-        """Row ``row`` of the current estimate (a point of a point array), a copy."""
-        if self._x is None:
-            raise ValueError("One Euro filter: no sample yet")
-        return self._x[row].copy()
-
     def __call__(self, x: np.ndarray, t: float) -> np.ndarray:
         """Filter sample ``x`` taken at time ``t`` [s]; returns the filtered sample."""
         x = np.asarray(x, dtype=np.float64)

@@ -252,18 +252,21 @@ def compiled_held_hand(
     except ValueError as exc:
         log.warning("held hand: numpy (%s)", exc)
         return None
-    n = native.probes(lib, "held hand", CHECK_HANDS)
-    for args in _probes(n):
-        want = reference(*args[:-1], args[-1].copy())
-        got = kernel(*args[:-1], args[-1].copy())
-        wrist = tremulous_wrist(*args[4:8])
-        if (got is None and bool(np.all(wrist != 0.0))) or (
-            got is not None and got.tobytes() != want.tobytes()
-        ):
-            log.warning("held hand: numpy (the compiled hand differs)")
-            return None
-    if n == CHECK_HANDS:
-        native.passed(lib, "held hand")
+
+    def check(n: int) -> bool:
+        for args in _probes(n):
+            want = reference(*args[:-1], args[-1].copy())
+            got = kernel(*args[:-1], args[-1].copy())
+            wrist = tremulous_wrist(*args[4:8])
+            if (got is None and bool(np.all(wrist != 0.0))) or (
+                got is not None and got.tobytes() != want.tobytes()
+            ):
+                return False
+        return True
+
+    if not native.self_checked(lib, "held hand", CHECK_HANDS, check):
+        log.warning("held hand: numpy (the compiled hand differs)")
+        return None
     return kernel
 
 

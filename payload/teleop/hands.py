@@ -13,9 +13,7 @@ import numpy as np
 
 from payload.errors import PayloadError
 from payload.rotations import matrix_to_quat, quat_to_matrix
-from payload.vecmath import cross
-
-_F64 = np.dtype(np.float64)
+from payload.vecmath import F64, cross
 
 XR_JOINTS: tuple[str, ...] = (
     "wrist",
@@ -93,7 +91,7 @@ class Hand:
         does."""
         if (
             type(joints) is np.ndarray
-            and joints.dtype == _F64
+            and joints.dtype == F64
             and joints.shape == JOINTS_SHAPE
             and joints.base is None
             and joints.flags.c_contiguous

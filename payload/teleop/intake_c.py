@@ -303,19 +303,22 @@ def compiled_hand_intake(
     except ValueError as exc:
         log.info("hand intake: Python (%s)", exc)
         return None
-    rng = np.random.default_rng(0)
-    n = native.probes(lib, "hand intake", CHECK_TIMES)
-    for k in range(n):
-        t = float(rng.uniform(0.0, 300.0))
-        tf = t - (0.02, float(rng.uniform(1e-6, 0.5)))[k % 2]
-        tv = t - float(rng.uniform(1e-6, 2.0))
-        speed, cutoff = float(rng.uniform(0.1, 10.0)), float(rng.uniform(0.05, 5.0))
-        want = np.array([speed * (t - tv), t - tf, _alpha(cutoff, t - tf)]).tobytes()
-        if intake.numbers(t, tf, tv, speed, cutoff) != want:
-            log.warning("hand intake: Python (the compiled numbers differ)")
-            return None
-    if n == CHECK_TIMES:
-        native.passed(lib, "hand intake")
+
+    def check(n: int) -> bool:
+        rng = np.random.default_rng(0)
+        for k in range(n):
+            t = float(rng.uniform(0.0, 300.0))
+            tf = t - (0.02, float(rng.uniform(1e-6, 0.5)))[k % 2]
+            tv = t - float(rng.uniform(1e-6, 2.0))
+            speed, cutoff = float(rng.uniform(0.1, 10.0)), float(rng.uniform(0.05, 5.0))
+            want = np.array([speed * (t - tv), t - tf, _alpha(cutoff, t - tf)]).tobytes()
+            if intake.numbers(t, tf, tv, speed, cutoff) != want:
+                return False
+        return True
+
+    if not native.self_checked(lib, "hand intake", CHECK_TIMES, check):
+        log.warning("hand intake: Python (the compiled numbers differ)")
+        return None
     return intake
 
 

@@ -416,13 +416,14 @@ class TeleopPipeline:
         events: list[SafetyEvent] = []
         solves: dict[str, SolveInfo] = {}
         fresh: dict[str, np.ndarray | None] = {}
+        filtered = {side: f.estimate() for side, f in self.filters.items()}
         for bit, (pair, side) in enumerate(HAND_OF_PAIR.items()):
             if taken >> bit & 1:
                 fresh[pair], solves[pair] = self.retargeters[pair].finish_step()
             else:  # the chain refused the filtered hand: the Python path says why
-                hand = Hand(self.filters[side].estimate(), True)
+                hand = Hand.taking(filtered[side])
                 fresh[pair] = self._fresh(pair, hand, t, events, solves, chain=False)
-        wrists = {side: self.filters[side].estimate_row(WRIST) for side in ("left", "right")}
+        wrists = {side: joints[WRIST] for side, joints in filtered.items()}
         return events, weights, wrists, fresh, solves
 
     def _intake_kernel(self) -> Any:

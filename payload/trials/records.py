@@ -81,7 +81,7 @@ import numpy as np
 from payload.errors import PayloadError
 from payload.schema import N_MANIPULATION
 from payload.teleop.hands import XR_JOINTS
-from payload.vecmath import add_reduce
+from payload.vecmath import F64, add_reduce
 
 PHASES: tuple[str, ...] = (
     "calibration",
@@ -249,13 +249,10 @@ _OTHER_FIELDS: tuple[tuple[str, tuple[int, ...], Any, type], ...] = tuple(
 """The scalar fields with the type they keep (a string of the allowed ones, a bool, a float)."""
 
 
-_F64 = np.dtype(np.float64)
-
-
 def _common_arrays(arrays: list[Any]) -> bool:
     """Whether every array field is a float64 numpy array of its shape (the loop's case)."""
     for a, (_, _, _, shape) in zip(arrays, _ARRAY_SLICES):
-        if type(a) is not np.ndarray or a.dtype != _F64 or a.shape != shape:
+        if type(a) is not np.ndarray or a.dtype != F64 or a.shape != shape:
             return False
     return True
 
