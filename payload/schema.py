@@ -36,7 +36,8 @@ def _frozen_vector(values: object, n: int, what: str, allow_nan: bool = False) -
     if arr.shape != (n,):
         raise SchemaError(f"{what}: expected {n} values, got {arr.size}")
     if not allow_nan and not all_finite(arr):
-        bad = [MANIPULATION_JOINTS[i] for i in np.flatnonzero(~np.isfinite(arr))] if n == 17 else []
+        names = MANIPULATION_JOINTS if n == N_MANIPULATION else ()
+        bad = [names[i] for i in np.flatnonzero(~np.isfinite(arr))] if names else []
         raise SchemaError(f"{what}: non-finite value(s) {bad or arr.tolist()}")
     arr.setflags(write=False)
     return arr

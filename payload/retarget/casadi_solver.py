@@ -39,6 +39,7 @@ conditional CasADi form.
 from __future__ import annotations
 
 import warnings
+from collections.abc import Callable
 from pathlib import Path
 
 import casadi as ca
@@ -229,6 +230,22 @@ class PairRetargeter(Retargeter):
         c = self._compiled
         entry = c.step_entry() if c is not None else None
         return None if entry is None else (entry, c.inputs)
+
+    def checkpoint(self) -> Callable[[], None]:
+        """A function that puts the held command and the compiled solver's inputs (the
+        anchor among them) back as they are now: for a check that solves and must leave
+        the retargeter as it found it (:mod:`payload.teleop.pair_c`'s self-check)."""
+        held = self._command.copy()
+        c = self._compiled
+        inputs = [] if c is None else c.inputs
+        saved = [a.copy() for a in inputs]
+
+        def restore() -> None:
+            self.hold(held)
+            for a, b in zip(inputs, saved):
+                a[:] = b
+
+        return restore
 
     @property
     def held_command(self) -> np.ndarray:

@@ -319,16 +319,19 @@ def compiled_searches(prop: Any) -> CompiledSearches | None:
     if loaded is None:
         return None
     kernels = CompiledSearches(prop, *loaded)
-    n = native.probes(loaded[0], nozzles, _PROBES)
-    for w in probe_wrenches(prop, n):
-        if not (
-            _same(kernels.extent(w), prop._extent_numpy(w))
-            and _same(kernels.least_thrust(w), prop._least_thrust_numpy(w))
-        ):
-            log.warning("allocation kernels: numpy (the compiled searches differ on %s)", w)
-            return None
-    if n == _PROBES:
-        native.passed(loaded[0], nozzles)
+
+    def check(n: int) -> bool:
+        for w in probe_wrenches(prop, n):
+            if not (
+                _same(kernels.extent(w), prop._extent_numpy(w))
+                and _same(kernels.least_thrust(w), prop._least_thrust_numpy(w))
+            ):
+                log.warning("allocation kernels: numpy (the compiled searches differ on %s)", w)
+                return False
+        return True
+
+    if not native.self_checked(loaded[0], nozzles, _PROBES, check):
+        return None
     return kernels
 
 

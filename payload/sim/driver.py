@@ -27,7 +27,15 @@ from typing import Any, NamedTuple
 import mujoco
 import numpy as np
 
-from payload.schema import HEALTHS, Health, PayloadCommand, PayloadState, SchemaError, VehicleTwist
+from payload.schema import (
+    HEALTHS,
+    N_MANIPULATION,
+    Health,
+    PayloadCommand,
+    PayloadState,
+    SchemaError,
+    VehicleTwist,
+)
 from payload.sim.contact import Contact, ContactMonitor, opposing
 from payload.sim.propulsion import Allocation
 from payload.sim.readout_c import WORLD_SLICES
@@ -145,8 +153,8 @@ class SimDriver:
         self._step_max = self.world.slew_rate * CONTROL_DT
         self._substeps = self.world.config.substeps
         self._overload = 0.999 * self.world.force_limit
-        self._limit_lo = self._ctrl_range[:17, 0] + _AT_LIMIT
-        self._limit_hi = self._ctrl_range[:17, 1] - _AT_LIMIT
+        self._limit_lo = self._ctrl_range[:N_MANIPULATION, 0] + _AT_LIMIT
+        self._limit_hi = self._ctrl_range[:N_MANIPULATION, 1] - _AT_LIMIT
         self._twist: VehicleTwist | None = None
         self.twist_filter: Callable[[VehicleTwist, mujoco.MjData], VehicleTwist] | None = None
         """Called with the requested twist and the data each control step, before the

@@ -368,26 +368,29 @@ def compiled_facet_solve(
         return None
     kernel = CompiledFacetSolve(loaded[0], loaded[1:], bvls_tol)
     key = (rows, columns)
-    n = native.probes(loaded[0], key, RANDOM_PROBES)
-    own = list(problems)
-    if n < RANDOM_PROBES:
-        own = own[: max(1, len(own) // native.SHORT_SHARE)]
-    answered = 0
-    with np.errstate(all="ignore"):
-        for problem in [*own, *random_problems(n, rows, columns)]:
-            mine = kernel(*problem)
-            if mine is None:
-                continue
-            theirs = reference(*problem)
-            if mine.tobytes() != np.asarray(theirs, dtype=np.float64).tobytes():
-                log.warning("facet solve: numpy (the compiled solve differs)")
-                return None
-            answered += 1
-    if not answered:
-        log.warning("facet solve: numpy (the kernel answered none of its probes)")
+
+    def check(n: int) -> bool:
+        own = list(problems)
+        if n < RANDOM_PROBES:
+            own = own[: max(1, len(own) // native.SHORT_SHARE)]
+        answered = 0
+        with np.errstate(all="ignore"):
+            for problem in [*own, *random_problems(n, rows, columns)]:
+                mine = kernel(*problem)
+                if mine is None:
+                    continue
+                theirs = reference(*problem)
+                if mine.tobytes() != np.asarray(theirs, dtype=np.float64).tobytes():
+                    log.warning("facet solve: numpy (the compiled solve differs)")
+                    return False
+                answered += 1
+        if not answered:
+            log.warning("facet solve: numpy (the kernel answered none of its probes)")
+            return False
+        return True
+
+    if not native.self_checked(loaded[0], key, RANDOM_PROBES, check):
         return None
-    if n == RANDOM_PROBES:
-        native.passed(loaded[0], key)
     return kernel
 
 

@@ -252,45 +252,47 @@ def compiled_station_bound(
     except ValueError as exc:
         log.warning("station bound: numpy (%s)", exc)
         return None
-    saved = data.geom_xpos.copy(), data.geom_xmat.copy()
-    rng = np.random.default_rng(0)
     span_lo, span_hi = s_lo.min(axis=0) - 1.0, s_hi.max(axis=0) + 1.0
-    measured = 0
     shape = (len(geoms), len(station), measures)
-    full = 400
-    n = native.probes(lib, shape, full)
-    try:
-        for i in range(n):
-            # the moving geoms clustered somewhere around the station (some near a box),
-            # turned every way
-            centre = rng.uniform(span_lo, span_hi)
-            data.geom_xpos[geoms] = centre + rng.normal(scale=0.2, size=(len(geoms), 3))
-            data.geom_xmat[geoms] = _rotations(rng, len(geoms))
-            if i % 97 == 5:
-                data.geom_xpos[geoms[i % len(geoms)], i % 3] = np.nan
-            near = kernel.near()
-            if near != reference():
-                log.warning("station bound: numpy (the compiled bound differs)")
-                return None
-            if near and measures:
-                mine, theirs = kernel.clearance(), clearance()
-                lo, hi = boxes()
-                if (
-                    mine is None
-                    or np.float64(mine).tobytes() != np.float64(theirs).tobytes()
-                    or lo.tobytes() != kernel.boxes[0].tobytes()
-                    or hi.tobytes() != kernel.boxes[1].tobytes()
-                ):
-                    log.warning("station bound: numpy (the compiled clearance differs)")
-                    return None
-                measured += theirs < cap
-    finally:
-        data.geom_xpos[:], data.geom_xmat[:] = saved
-    if measures and not measured:  # pragma: no cover - about half the probes come near
-        log.warning("station bound: numpy (the clearance's self-check measured nothing)")
+
+    def check(n: int) -> bool:
+        saved = data.geom_xpos.copy(), data.geom_xmat.copy()
+        rng = np.random.default_rng(0)
+        measured = 0
+        try:
+            for i in range(n):
+                # the moving geoms clustered somewhere around the station (some near a box),
+                # turned every way
+                centre = rng.uniform(span_lo, span_hi)
+                data.geom_xpos[geoms] = centre + rng.normal(scale=0.2, size=(len(geoms), 3))
+                data.geom_xmat[geoms] = _rotations(rng, len(geoms))
+                if i % 97 == 5:
+                    data.geom_xpos[geoms[i % len(geoms)], i % 3] = np.nan
+                near = kernel.near()
+                if near != reference():
+                    log.warning("station bound: numpy (the compiled bound differs)")
+                    return False
+                if near and measures:
+                    mine, theirs = kernel.clearance(), clearance()
+                    lo, hi = boxes()
+                    if (
+                        mine is None
+                        or np.float64(mine).tobytes() != np.float64(theirs).tobytes()
+                        or lo.tobytes() != kernel.boxes[0].tobytes()
+                        or hi.tobytes() != kernel.boxes[1].tobytes()
+                    ):
+                        log.warning("station bound: numpy (the compiled clearance differs)")
+                        return False
+                    measured += theirs < cap
+        finally:
+            data.geom_xpos[:], data.geom_xmat[:] = saved
+        if measures and not measured:  # pragma: no cover - about half the probes come near
+            log.warning("station bound: numpy (the clearance's self-check measured nothing)")
+            return False
+        return True
+
+    if not native.self_checked(lib, shape, 400, check):
         return None
-    if n == full:
-        native.passed(lib, shape)
     return kernel
 
 

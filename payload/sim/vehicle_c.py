@@ -435,12 +435,13 @@ def compiled_control(controller: Any) -> CompiledControl | None:
     except SimError as exc:
         log.warning("controller kernel: numpy (%s)", exc)
         return None
-    steps = native.probes(loaded[0], nozzles, CHECK_STEPS, CHECK_STEPS // 4)
-    if not check_control(controller, kernel, steps):
+
+    def check(n: int) -> bool:
+        return check_control(controller, kernel, n)
+
+    if not native.self_checked(loaded[0], nozzles, CHECK_STEPS, check, CHECK_STEPS // 4):
         log.warning("controller kernel: numpy (the compiled step differs)")
         return None
-    if steps == CHECK_STEPS:
-        native.passed(loaded[0], nozzles)
     return kernel
 
 

@@ -302,38 +302,41 @@ def compiled_base(factory: Callable[..., Any]) -> CompiledBase | None:
     if loaded is None:
         return None
     kernel = CompiledBase(*loaded)
+
     # each channel's steps, or its first third (every kind of leg) once a full check passed
-    steps = native.probes(loaded[0], _CHECK_KEY, CHECK_STEPS, SHORT_STEPS)
-    for c, (heading, with_right) in enumerate(CHECK_CHANNELS):
-        rng = np.random.default_rng(c)  # each channel's own draws: the short check a prefix
-        neutral = rng.normal(scale=0.1, size=3)
-        right_neutral = neutral + np.array([0.0, -0.3, 0.0])
-        mine = factory(neutral, heading, right_neutral if with_right else None)
-        theirs = factory(neutral, heading, right_neutral if with_right else None)
-        step = kernel.stepper(mine)
-        if step is None:
-            return None
-        left, right = neutral.copy(), right_neutral.copy()
-        q = rng.normal(size=4)
-        for k in range(steps):
-            if k % 50 == 0:  # a new leg: push, hold with the right hand, let go, lose
-                aim = rng.normal(scale=(0.0, 0.03, 0.1, 0.3)[(k // 50) % 4], size=3)
-                q = rng.normal(size=4)
-            left = left + 0.1 * (neutral + aim - left)
-            right = right_neutral + (rng.normal(scale=0.08, size=3) if k % 100 > 70 else 0.0)
-            q = q + rng.normal(scale=0.01, size=4)
-            rot = quat_to_matrix(q / np.linalg.norm(q))
-            args = (
-                None if k % 173 == 7 else left.copy(),
-                None if k % 61 == 3 else rot,
-                None if k % 89 == 5 else right.copy(),
-            )
-            a, b = step(*args), theirs._step_numpy(*args)
-            if a is None or not _same(a, b) or not _same_state(mine, theirs):
-                log.warning("base channel: numpy (the compiled step differs)")
-                return None
-    if steps == CHECK_STEPS:
-        native.passed(loaded[0], _CHECK_KEY)
+    def check(steps: int) -> bool:
+        for c, (heading, with_right) in enumerate(CHECK_CHANNELS):
+            rng = np.random.default_rng(c)  # each channel's own draws: the short check a prefix
+            neutral = rng.normal(scale=0.1, size=3)
+            right_neutral = neutral + np.array([0.0, -0.3, 0.0])
+            mine = factory(neutral, heading, right_neutral if with_right else None)
+            theirs = factory(neutral, heading, right_neutral if with_right else None)
+            step = kernel.stepper(mine)
+            if step is None:
+                return False
+            left, right = neutral.copy(), right_neutral.copy()
+            q = rng.normal(size=4)
+            for k in range(steps):
+                if k % 50 == 0:  # a new leg: push, hold with the right hand, let go, lose
+                    aim = rng.normal(scale=(0.0, 0.03, 0.1, 0.3)[(k // 50) % 4], size=3)
+                    q = rng.normal(size=4)
+                left = left + 0.1 * (neutral + aim - left)
+                right = right_neutral + (rng.normal(scale=0.08, size=3) if k % 100 > 70 else 0.0)
+                q = q + rng.normal(scale=0.01, size=4)
+                rot = quat_to_matrix(q / np.linalg.norm(q))
+                args = (
+                    None if k % 173 == 7 else left.copy(),
+                    None if k % 61 == 3 else rot,
+                    None if k % 89 == 5 else right.copy(),
+                )
+                a, b = step(*args), theirs._step_numpy(*args)
+                if a is None or not _same(a, b) or not _same_state(mine, theirs):
+                    log.warning("base channel: numpy (the compiled step differs)")
+                    return False
+        return True
+
+    if not native.self_checked(loaded[0], _CHECK_KEY, CHECK_STEPS, check, SHORT_STEPS):
+        return None
     return kernel
 
 

@@ -232,13 +232,7 @@ def compiled_finger_chain(
     from payload.teleop.hand_c import random_hands
 
     inputs = chain._keep[2]
-    held = retargeter.held_command.copy()
-    saved = [a.copy() for a in inputs]
-
-    def restore() -> None:
-        retargeter.hold(held)
-        for a, b in zip(inputs, saved):
-            a[:] = b
+    restore = retargeter.checkpoint()
 
     def check(n: int) -> bool:
         with np.errstate(all="ignore"):

@@ -162,29 +162,29 @@ def compiled_hand_check(
         kernel = CompiledHandCheck(*loaded, joints, wrist, max_extent, neutral, radius)
     except ValueError:
         return None  # a neutral the kernel cannot read in place: the numpy check
-    rng = np.random.default_rng(0)
     centre = np.zeros(3) if neutral is None else np.asarray(neutral, dtype=np.float64)
-    verdicts = set()
-    full = 2000
-    n = native.probes(loaded[0], (joints, wrist), full)
-    for k in range(n):
-        # hands around the neutral pose, some stretched to the reach limit, some far off
-        wrist_at = centre + rng.normal(scale=(0.02, 0.2, 1.0)[k % 3] * max(radius, 0.1), size=3)
-        hand = wrist_at + rng.normal(scale=max_extent * (0.2, 0.55)[k % 2], size=(joints, 3))
-        hand[wrist] = wrist_at
-        if k % 97 == 11:
-            hand[k % joints, k % 3] = (np.nan, np.inf)[k % 2]
-        last = None if k % 5 == 0 else wrist_at + rng.normal(scale=0.01, size=3)
-        jump = float(rng.uniform(0.0, 0.03))
-        mine = kernel(hand, last, jump) == 0
-        if mine != reference(hand, last, jump):
-            log.warning("hand check: numpy (the compiled check differs)")
-            return None
-        verdicts.add(mine)
-    if verdicts != {True, False}:  # the probes, short or full, met both verdicts
+
+    def check(n: int) -> bool:
+        rng = np.random.default_rng(0)
+        verdicts = set()
+        for k in range(n):
+            # hands around the neutral pose, some stretched to the reach limit, some far off
+            wrist_at = centre + rng.normal(scale=(0.02, 0.2, 1.0)[k % 3] * max(radius, 0.1), size=3)
+            hand = wrist_at + rng.normal(scale=max_extent * (0.2, 0.55)[k % 2], size=(joints, 3))
+            hand[wrist] = wrist_at
+            if k % 97 == 11:
+                hand[k % joints, k % 3] = (np.nan, np.inf)[k % 2]
+            last = None if k % 5 == 0 else wrist_at + rng.normal(scale=0.01, size=3)
+            jump = float(rng.uniform(0.0, 0.03))
+            mine = kernel(hand, last, jump) == 0
+            if mine != reference(hand, last, jump):
+                log.warning("hand check: numpy (the compiled check differs)")
+                return False
+            verdicts.add(mine)
+        return verdicts == {True, False}  # the probes, short or full, met both verdicts
+
+    if not native.self_checked(loaded[0], (joints, wrist), 2000, check):
         return None
-    if n == full:
-        native.passed(loaded[0], (joints, wrist))
     return kernel
 
 

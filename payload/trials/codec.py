@@ -44,6 +44,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from payload.schema import N_MANIPULATION
 from payload.trials.codec_c import N_FLAGS, STEP_FLAGS, compiled_steps
 from payload.trials.jointcodec import (
     GRID_INT_LIMIT,
@@ -510,7 +511,7 @@ def _probe_item(rng: np.random.Generator, k: int) -> tuple[Any, int, float, Any]
         joints[1] = rng.normal(size=JOINTS_SHAPE)
     if not tracked[1]:
         joints[1] = np.full(JOINTS_SHAPE, np.nan)
-    q = vector(17)
+    q = vector(N_MANIPULATION)
     pairs = k % 3 != 0
     step = SimpleNamespace(
         t=0.02 * k,
@@ -526,7 +527,7 @@ def _probe_item(rng: np.random.Generator, k: int) -> tuple[Any, int, float, Any]
         twist_cmd=vector(6),
         q_cmd=q,
         deploy_cmd=float(vector(1)[0]),
-        q_meas=vector(17),
+        q_meas=vector(N_MANIPULATION),
         deploy_meas=float(vector(1)[0]),
         astrobee_pos=vector(3) * 10.0,
         astrobee_quat=vector(4),

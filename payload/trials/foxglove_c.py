@@ -142,23 +142,25 @@ def compiled_frame_poses(
     except ValueError as exc:
         log.warning("frame poses: numpy (%s)", exc)
         return None
-    saved = data.qpos.copy()
-    rng = np.random.default_rng(0)
-    full = 200
-    n = native.probes(lib, len(links), full)
-    try:
-        for _ in range(n):
-            data.qpos[:] = rng.normal(scale=2.0, size=model.nq)
-            mujoco.mj_normalizeQuat(model, data.qpos)
+
+    def check(n: int) -> bool:
+        saved = data.qpos.copy()
+        rng = np.random.default_rng(0)
+        try:
+            for _ in range(n):
+                data.qpos[:] = rng.normal(scale=2.0, size=model.nq)
+                mujoco.mj_normalizeQuat(model, data.qpos)
+                mujoco.mj_kinematics(model, data)
+                if kernel().tobytes() != np.asarray(reference()).tobytes():
+                    log.warning("frame poses: numpy (the compiled poses differ)")
+                    return False
+        finally:
+            data.qpos[:] = saved
             mujoco.mj_kinematics(model, data)
-            if kernel().tobytes() != np.asarray(reference()).tobytes():
-                log.warning("frame poses: numpy (the compiled poses differ)")
-                return None
-    finally:
-        data.qpos[:] = saved
-        mujoco.mj_kinematics(model, data)
-    if n == full:
-        native.passed(lib, len(links))
+        return True
+
+    if not native.self_checked(lib, len(links), 200, check):
+        return None
     return kernel
 
 
