@@ -990,6 +990,8 @@ def test_cli_trial_and_campaign(tmp_path: Path, monkeypatch, capsys) -> None:
         (["trial", "--physics-dt", "0.0015"], "--physics-dt: the physics step 0.0015 s does"),
         (["trials", "run", "--n", "1", "--out", "x", "--physics-dt", "0"], "--physics-dt:"),
         (["bench", "trial", "--physics-dt", "-0.002"], "--physics-dt: the physics step must"),
+        (["bench", "trial", "--repeat", "0"], "--repeat must be >= 1, got 0"),
+        (["bench", "trial", "--repeat", "2", "--out", "x"], "--out keeps one trial's folder"),
     ],
 )
 def test_cli_bad_input_exits_2(argv: list[str], message: str, capsys) -> None:
@@ -1037,6 +1039,38 @@ def test_cli_bench_trial_accounts_for_its_time(tmp_path: Path, capsys) -> None:
     per_trial = {"vehicle controller", "thrusts", "station bound", "frame poses"}
     assert per_trial <= set(r["kernels"]), r["kernels"]
     assert all(r["kernels"][k] == "compiled" for k in per_trial), r["kernels"]
+
+
+def test_cli_bench_trial_repeated_reports_the_median_run(capsys) -> None:
+    """`--repeat 3`: three runs, each in a fresh process, said as they end; the result is
+    the run of the middle ratio, with each run's figures and the ratios' median and range
+    (worked out here from the runs); a run that fails says which and why."""
+    import statistics
+
+    from payload.cli import main
+    from payload.trials.bench import run_trial_bench_repeated
+
+    assert main(["bench", "trial", "--repeat", "3", "--seconds", "1", "--json"]) == 0
+    captured = capsys.readouterr()
+    r = json.loads(captured.out)
+    said = [ln for ln in captured.err.splitlines() if ln.startswith("bench run ")]
+    assert [ln.split(":")[0] for ln in said] == [f"bench run {i} of 3" for i in (1, 2, 3)]
+    assert r["repeat"] == 3 and len(r["runs"]) == 3
+    ratios = [run["wall_seconds"] / run["physics_floor_s"] for run in r["runs"]]
+    for run, ratio in zip(r["runs"], ratios):
+        assert run["overhead_ratio"] == pytest.approx(ratio)
+        assert len(run["load_average"]) == 3
+    middle = sorted(ratios)[1]
+    assert r["overhead_ratio"] == pytest.approx(middle)
+    assert r["overhead_ratio_median"] == pytest.approx(statistics.median(ratios))
+    assert (r["overhead_ratio_min"], r["overhead_ratio_max"]) == pytest.approx(
+        (min(ratios), max(ratios))
+    )
+    # the median run's own figures come with it (a whole result, not a mix of runs)
+    mine = next(run for run in r["runs"] if run["overhead_ratio"] == r["overhead_ratio"])
+    assert mine["wall_seconds"] == r["wall_seconds"] and r["steps"] == 51
+    with pytest.raises(RuntimeError, match=r"bench run 1 of 2 failed \(exit 1\): .*0\.0015"):
+        run_trial_bench_repeated(0, 2, max_time=1.0, physics_dt=0.0015)
 
 
 def test_cli_bench_trial_says_which_kernels_ran_in_numpy(tmp_path: Path, monkeypatch, capsys):

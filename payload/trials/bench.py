@@ -23,13 +23,19 @@ timed stage counts only there):
 
 Before the trial, ``worker_import_s``: how long a fresh interpreter takes to import a
 trial's modules, what each Dask worker of a campaign pays before its first trial.
+
+:func:`run_trial_bench_repeated` (``--repeat N``) runs the bench N times, each in a fresh
+process, and reports the median run with every run's figures: one run's ratio moves with
+the machine from run to run and from hour to hour (docs/speed.md).
 """
 
 from __future__ import annotations
 
 import functools
+import json
 import math
 import os
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -245,6 +251,80 @@ def _kernels() -> dict[str, str]:
     return kernel_status()
 
 
+RUN_FIELDS: tuple[str, ...] = (
+    "wall_seconds",
+    "cpu_seconds",
+    "physics_floor_s",
+    "overhead_ratio",
+    "overhead_ratio_cpu",
+    "load_average",
+)
+"""What :func:`run_trial_bench_repeated` keeps of each run (``runs``)."""
+
+
+def run_trial_bench_repeated(
+    seed: int = 0,
+    repeat: int = 3,
+    *,
+    pin: bool = False,
+    max_time: float | None = None,
+    physics_dt: float | None = None,
+    progress: Callable[[int, dict], None] | None = None,
+) -> dict:
+    """``repeat`` runs of :func:`run_trial_bench` one after the other, each in a fresh
+    process (the cold process a single ``payload bench trial`` is), each trial in a
+    temporary folder.
+
+    Args:
+        seed, pin, max_time, physics_dt: As :func:`run_trial_bench`'s.
+        repeat: How many runs (at least 1).
+        progress: Called with each run's index (from 0) and result as it ends.
+
+    Returns:
+        The median run's result (by ``overhead_ratio``; of an even count, the lower of the
+        two middle runs), with ``repeat``, ``runs`` (each run's :data:`RUN_FIELDS`, in
+        the order run) and ``overhead_ratio_median`` (the runs' median, the middle two
+        runs' mean for an even count), ``overhead_ratio_min`` and ``overhead_ratio_max``.
+
+    Raises:
+        ValueError: ``repeat`` < 1.
+        RuntimeError: A run failed (with the last line it wrote to its error stream).
+    """
+    if repeat < 1:
+        raise ValueError(f"repeat must be >= 1, got {repeat}")
+    kwargs = {"seed": seed, "pin": pin, "max_time": max_time, "physics_dt": physics_dt}
+    code = (
+        "import json, sys\n"
+        "from payload.trials.bench import run_trial_bench\n"
+        "print(json.dumps(run_trial_bench(**json.loads(sys.argv[1]))))\n"
+    )
+    env = _child_env()
+    runs: list[dict] = []
+    for i in range(repeat):
+        done = subprocess.run(
+            [sys.executable, "-c", code, json.dumps(kwargs)], capture_output=True, text=True,
+            env=env,
+        )  # fmt: skip
+        if done.returncode != 0:
+            said = done.stderr.strip().splitlines() or ["(nothing on its error stream)"]
+            raise RuntimeError(
+                f"bench run {i + 1} of {repeat} failed (exit {done.returncode}): {said[-1]}"
+            )
+        runs.append(json.loads(done.stdout.strip().splitlines()[-1]))
+        if progress is not None:
+            progress(i, runs[-1])
+    ratios = [r["overhead_ratio"] for r in runs]
+    middle = sorted(range(repeat), key=lambda i: ratios[i])[(repeat - 1) // 2]
+    return {
+        **runs[middle],
+        "repeat": repeat,
+        "runs": [{k: r.get(k) for k in RUN_FIELDS} for r in runs],
+        "overhead_ratio_median": statistics.median(ratios),
+        "overhead_ratio_min": min(ratios),
+        "overhead_ratio_max": max(ratios),
+    }
+
+
 WORKER_MODULES: tuple[str, ...] = ("payload.trials.runner", "payload.trials.campaign")
 """What a Dask worker imports to run its first trial (the campaign's trial function, then
 the runner it calls)."""
@@ -256,21 +336,35 @@ def worker_import_seconds() -> float:
     the ``payload`` command: ``MUJOCO_GL=disable``, as its Dask workers get) and with this
     process's ``payload`` package first on the path.
     """
-    import payload
-
     code = (
         "import time\n"
         "t = time.perf_counter()\n"
         f"import {', '.join(WORKER_MODULES)}\n"
         "print(time.perf_counter() - t)\n"
     )
-    env = dict(os.environ)
-    root = str(Path(payload.__file__).resolve().parents[1])
-    env["PYTHONPATH"] = os.pathsep.join(p for p in (root, env.get("PYTHONPATH")) if p)
     done = subprocess.run(
-        [sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True
-    )
+        [sys.executable, "-c", code], capture_output=True, text=True, env=_child_env(),
+        check=True,
+    )  # fmt: skip
     return float(done.stdout.split()[-1])
 
 
-__all__ = ["STAGES", "WORKER_MODULES", "run_trial_bench", "worker_import_seconds"]
+def _child_env() -> dict[str, str]:
+    """This process's environment for a fresh interpreter, with this process's ``payload``
+    package first on the path (wherever the command runs from)."""
+    import payload
+
+    env = dict(os.environ)
+    root = str(Path(payload.__file__).resolve().parents[1])
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (root, env.get("PYTHONPATH")) if p)
+    return env
+
+
+__all__ = [
+    "RUN_FIELDS",
+    "STAGES",
+    "WORKER_MODULES",
+    "run_trial_bench",
+    "run_trial_bench_repeated",
+    "worker_import_seconds",
+]

@@ -19,6 +19,7 @@ from payload.cliutil import (
     default_out,
     emit_json,
 )
+from payload.errors import RunAborted
 from payload.trials.setup_options import (
     _SETUP,
     TrialsCliError,
@@ -371,24 +372,48 @@ def _cmd_bench_recorder(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench_trial(args: argparse.Namespace) -> int:
-    from payload.trials.bench import run_trial_bench
+    from payload.trials.bench import run_trial_bench, run_trial_bench_repeated
 
     if args.seed < 0:
         raise TrialsCliError(f"--seed must be >= 0, got {args.seed}")
     out = Path(args.out) if args.out else None
     if args.seconds is not None and args.seconds <= 0:
         raise TrialsCliError(f"--seconds must be positive, got {args.seconds}")
+    if args.repeat < 1:
+        raise TrialsCliError(f"--repeat must be >= 1, got {args.repeat}")
+    if args.repeat > 1 and out is not None:
+        raise TrialsCliError("--out keeps one trial's folder: give it without --repeat")
     from payload.design import models_follow_design
 
     _check_physics_dt(args.physics_dt)
     project = command_project(args)  # the trial flies this project's models
     models_follow_design(project.design_path, project.root, json=args.json)
-    result = run_trial_bench(
-        args.seed, out_dir=out, pin=args.pin, max_time=args.seconds, physics_dt=args.physics_dt
-    )
+    options = {"pin": args.pin, "max_time": args.seconds, "physics_dt": args.physics_dt}
+    if args.repeat == 1:
+        result = run_trial_bench(args.seed, out_dir=out, **options)
+    else:
+
+        def said(i: int, run: dict) -> None:
+            print(
+                f"bench run {i + 1} of {args.repeat}: overhead ratio "
+                f"{run['overhead_ratio']:.3f}, {run['wall_seconds']:.2f} s wall, load average "
+                f"{run['load_average'][0]:.2f}",
+                file=sys.stderr,
+            )
+
+        try:
+            result = run_trial_bench_repeated(args.seed, args.repeat, progress=said, **options)
+        except RuntimeError as exc:
+            raise RunAborted(str(exc)) from None
     if args.json:
         emit_json(result)
         return 0
+    if args.repeat > 1:
+        print(
+            f"{args.repeat} runs, each in a fresh process: overhead ratio median "
+            f"{result['overhead_ratio_median']:.3f} (least {result['overhead_ratio_min']:.3f}, "
+            f"greatest {result['overhead_ratio_max']:.3f}); the median run:"
+        )
     print(
         f"trial seed {args.seed}: {result['sim_seconds']:.1f} s simulated in "
         f"{result['wall_seconds']:.1f} s wall ({result['realtime_factor']:.1f}x real time; "
@@ -595,6 +620,14 @@ def register(
         "--seconds", type=float, default=None, help="cap the trial [s] (default: a whole trial)"
     )
     bt.add_argument("--pin", action="store_true", help="restrict the run to one CPU core (Linux)")
+    bt.add_argument(
+        "--repeat",
+        type=int,
+        default=1,
+        metavar="N",
+        help="run the bench N times, each in a fresh process, and report the median run "
+        "with every run's ratio (default 1)",
+    )
     _physics_dt_argument(bt)
     bt.add_argument("--json", action="store_true", help="print one JSON object")
     bt.set_defaults(func=_cmd_bench_trial)
