@@ -412,7 +412,8 @@ def _cmd_bench_trial(args: argparse.Namespace) -> int:
         print(
             f"{args.repeat} runs, each in a fresh process: overhead ratio median "
             f"{result['overhead_ratio_median']:.3f} (least {result['overhead_ratio_min']:.3f}, "
-            f"greatest {result['overhead_ratio_max']:.3f}); the median run:"
+            f"greatest {result['overhead_ratio_max']:.3f}); "
+            + ("the median run:" if args.repeat % 2 else "the lower of the two middle runs:")
         )
     print(
         f"trial seed {args.seed}: {result['sim_seconds']:.1f} s simulated in "
