@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import functools
 import io
 import itertools
 import json
 import math
+import operator
 import time
 import warnings
 from contextlib import redirect_stderr, redirect_stdout
@@ -526,10 +528,12 @@ def test_module_at_is_the_first_zone_containing_the_point():
 
 
 def test_every_health_flag_combination_is_its_enum_value():
+    """``HEALTHS[bits]``: the flags whose bits are set, or-ed together (OK for none)."""
     flags = [h for h in Health.__members__.values() if h]  # each flag, OK (0) aside
     assert len(HEALTHS) == 2 ** len(flags) and Health(sum(flags)) is HEALTHS[-1]
     for bits, health in enumerate(HEALTHS):
-        assert health is Health(bits) and int(health) == bits
+        combined = functools.reduce(operator.or_, (f for f in flags if bits & f), Health.OK)
+        assert health is combined and int(health) == bits
 
 
 def test_one_side_touching_is_not_opposing(world):

@@ -435,10 +435,7 @@ def compiled_control(controller: Any) -> CompiledControl | None:
     except SimError as exc:
         log.warning("controller kernel: numpy (%s)", exc)
         return None
-
-    def check(n: int) -> bool:
-        return check_control(controller, kernel, n)
-
+    check = functools.partial(check_control, controller, kernel)
     if not native.self_checked(loaded[0], nozzles, CHECK_STEPS, check, CHECK_STEPS // 4):
         log.warning("controller kernel: numpy (the compiled step differs)")
         return None

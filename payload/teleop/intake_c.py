@@ -13,7 +13,7 @@ Python path's order: both hands' checks (nothing changes if one fails: the Pytho
 runs and words the reason), both filter steps, both chains. Its own arithmetic is the
 jump a wrist is allowed since its last valid frame and the filter's period and speed
 smoothing factor, the same operations as
-:meth:`~payload.teleop.safety.TrackingSupervisor._valid` and
+:func:`~payload.teleop.safety.allowed_jump` and
 :func:`~payload.teleop.filters._alpha`; that arithmetic is checked against them when
 built (the kernels it calls check themselves when they are built; the whole intake is
 tested against the Python path: ``tests/test_pipeline.py``). Only a stamp that is a
@@ -30,6 +30,7 @@ from __future__ import annotations
 import ctypes
 import functools
 import logging
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -38,12 +39,9 @@ from payload import native
 from payload.teleop.filters import OneEuroFilter, _alpha
 from payload.teleop.hands import JOINTS_SHAPE, HandFrame
 from payload.teleop.pair_c import FingerChain
-from payload.teleop.safety import Supervised, TrackingSupervisor
+from payload.teleop.safety import SIDES, Supervised, TrackingSupervisor, allowed_jump
 
 log = logging.getLogger(__name__)
-
-SIDES = ("left", "right")
-"""The hands in the order the supervisor judges them and the intake's bits name them."""
 
 SOURCE = r"""
 typedef int (*check_fn)(void *, const double *, int64_t, int64_t, const double *,
@@ -60,7 +58,7 @@ struct side {
     void *chain; const void *ctx; const double *raw;
 };
 
-/* TrackingSupervisor._valid's jump allowed since the last valid frame, and the filter's
+/* safety.allowed_jump: the jump allowed since the last valid frame, and the filter's
    period and speed smoothing factor (filters._alpha of d_cutoff), for a step at t */
 static double allowed(double speed, double t, double tv) { return speed * (t - tv); }
 static double alpha(double cutoff, double dt)
@@ -285,6 +283,22 @@ CHECK_TIMES = 200
 """Random times of the intake's full self-check (:func:`compiled_hand_intake`)."""
 
 
+def _times(n: int) -> Iterator[tuple[float, float, float, float, float]]:
+    """``n`` random (t, the filter's last time, the last valid frame's time, the wrist
+    speed limit, the filter's cutoff) of the self-check, the same ones for the same ``n``."""
+    rng = np.random.default_rng(0)
+    for k in range(n):
+        t = float(rng.uniform(0.0, 300.0))
+        tf = t - (0.02, float(rng.uniform(1e-6, 0.5)))[k % 2]
+        tv = t - float(rng.uniform(1e-6, 2.0))
+        yield t, tf, tv, float(rng.uniform(0.1, 10.0)), float(rng.uniform(0.05, 5.0))
+
+
+def _numbers(t: float, tf: float, tv: float, speed: float, cutoff: float) -> bytes:
+    """:meth:`HandIntake.numbers` by the Python path's own functions."""
+    return np.array([allowed_jump(speed, t - tv), t - tf, _alpha(cutoff, t - tf)]).tobytes()
+
+
 @native.reported("hand intake")
 def compiled_hand_intake(
     supervisor: TrackingSupervisor, filters: dict[str, OneEuroFilter], chains: tuple[Any, Any]
@@ -305,16 +319,7 @@ def compiled_hand_intake(
         return None
 
     def check(n: int) -> bool:
-        rng = np.random.default_rng(0)
-        for k in range(n):
-            t = float(rng.uniform(0.0, 300.0))
-            tf = t - (0.02, float(rng.uniform(1e-6, 0.5)))[k % 2]
-            tv = t - float(rng.uniform(1e-6, 2.0))
-            speed, cutoff = float(rng.uniform(0.1, 10.0)), float(rng.uniform(0.05, 5.0))
-            want = np.array([speed * (t - tv), t - tf, _alpha(cutoff, t - tf)]).tobytes()
-            if intake.numbers(t, tf, tv, speed, cutoff) != want:
-                return False
-        return True
+        return all(intake.numbers(*args) == _numbers(*args) for args in _times(n))
 
     if not native.self_checked(lib, "hand intake", CHECK_TIMES, check):
         log.warning("hand intake: Python (the compiled numbers differ)")
@@ -324,7 +329,6 @@ def compiled_hand_intake(
 
 __all__ = [
     "CHECK_TIMES",
-    "SIDES",
     "SOURCE",
     "HandIntake",
     "compiled_hand_intake",

@@ -20,6 +20,15 @@ from payload.vecmath import norm
 
 log = logging.getLogger(__name__)
 
+SIDES: tuple[str, str] = ("left", "right")
+"""The hands in the order the supervisor judges them (its events come in this order)."""
+
+
+def allowed_jump(max_speed: float, since: float) -> float:
+    """How far [m] a wrist may have moved in ``since`` [s] since its last valid frame, at
+    ``max_speed`` [m/s] (the compiled intake's C does the same operation)."""
+    return max_speed * since
+
 
 @dataclass(frozen=True)
 class SafetyConfig:
@@ -112,7 +121,7 @@ class TrackingSupervisor:
         if st.last_valid is not None and t > st.last_valid_stamp:
             since = t - st.last_valid_stamp
         last = None if since is None else st.last_valid.wrist
-        allowed = 0.0 if since is None else self.config.max_wrist_speed * since
+        allowed = 0.0 if since is None else allowed_jump(self.config.max_wrist_speed, since)
         joints = hand.joints
         kernel = self._check_kernel(side)
         if (
@@ -215,7 +224,7 @@ class TrackingSupervisor:
             t_eval = t
         out: dict[str, Hand | None] = {}
         blend: dict[str, float] = {}
-        for side in ("left", "right"):
+        for side in SIDES:
             st = self.status[side]
             hand = frame.hand(side)
             ok, why = (False, "time went backwards") if backwards else self._valid(side, hand, t)
