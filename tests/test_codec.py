@@ -622,6 +622,77 @@ def test_a_non_finite_typed_step_is_named_by_the_reader(tmp_path: Path) -> None:
         read_recording(path)
 
 
+def _recorded(path: Path, world: object, steps: list, frames: list, later: bool) -> bytes:
+    """The file a recorder with the Foxglove scene writes of these steps and hand frames on
+    a fixed clock, each step written now or made at the flush (``write_later``)."""
+    from payload.trials.foxglove import FoxgloveScene
+
+    ticks = iter(range(10**6))
+    with TrialRecorder(path, scene=FoxgloveScene(world), keep=True) as rec:
+        rec._clock = lambda: 1_700_000_000_000_000_000 + 20_000_000 * next(ticks)
+        for st, fr in zip(steps, frames):
+            if fr is not None:
+                rec.write_hands(fr)
+            if later:
+                rec.write_later(st.t, dataclasses.replace, st)  # a new StepRecord, made then
+            else:
+                rec.write(st)
+    return path.read_bytes()
+
+
+def test_a_step_made_at_the_flush_is_the_step_written_at_once(foxglove_recording, tmp_path):
+    """``write_later(t, build, *args)`` writes what ``write(build(*args))`` writes: the
+    same file, byte for byte, on the same clock (hand samples, steps whose joints are the
+    frame's and steps with their own, the Foxglove channels), and keeps the same columns."""
+    _, steps, world = foxglove_recording
+    rng = np.random.default_rng(8)
+    other = rng.normal(size=(len(steps), 25, 3))
+    frames = [  # every seventh step without a frame; the left hand the step's own joints
+        None if k % 7 == 3 else HandFrame(st.t, Hand(st.left_joints), Hand(other[k]))
+        for k, st in enumerate(steps)
+    ]
+    now = _recorded(tmp_path / "now.mcap", world, steps, frames, later=False)
+    assert _recorded(tmp_path / "later.mcap", world, steps, frames, later=True) == now
+    assert len(read_recording(tmp_path / "later.mcap")) == len(steps)
+
+
+def test_a_step_that_cannot_be_made_at_the_flush(tmp_path: Path) -> None:
+    """A deferred step that fails: the steps before it are in the file, the error names its
+    time, the recorder takes no more steps; the time order is checked when written."""
+    rng = np.random.default_rng(3)
+    steps = [random_step(rng, k * DT) for k in range(30)]
+    path = tmp_path / "log.mcap"
+
+    def bad(st):  # a step the recorder refuses: a non-finite measured joint
+        return dataclasses.replace(st, q_meas=np.full(17, np.nan))
+
+    with TrialRecorder(path) as rec:
+        rec.write(steps[0])  # the first step is flushed at once
+        with pytest.raises(RecordingError, match="not after"):
+            rec.write_later(0.0, dataclasses.replace, steps[0])
+        for st in steps[1:12]:
+            rec.write_later(st.t, dataclasses.replace, st)
+        rec.write_later(steps[12].t, bad, steps[12])
+        rec.write_later(steps[13].t, dataclasses.replace, steps[13])
+        with pytest.raises(RecordingError, match=rf"step at t = {steps[12].t} s: .*q_meas"):
+            rec.flush()
+        with pytest.raises(RecordingError, match="no more steps"):
+            rec.write(steps[14])
+        rec.write_meta({"after": True})  # metadata still goes in
+    back = read_recording(path)
+    assert len(back) == 12
+    want = np.array([st.q_meas for st in steps[:12]])
+    np.testing.assert_allclose(back.q_meas, want, rtol=0, atol=5e-9)  # on the 10 nrad grid
+    assert back.meta["after"] is True
+    # a build that makes another step than the time said, or no step, is refused too
+    for k, (build, said) in enumerate(
+        [(lambda: steps[3], "made the step at t = 0.06 s"), (lambda: {}, "made a dict")]
+    ):
+        with TrialRecorder(tmp_path / f"{k}.mcap") as rec:  # the first step flushes at once
+            with pytest.raises(RecordingError, match=f"step at t = 1.0 s: {said}"):
+                rec.write_later(1.0, build)
+
+
 def test_compare_channels_sees_every_message_but_the_clock(foxglove_recording, tmp_path):
     """Two recordings of the same steps and hand frames made at other wall-clock times
     compare identical on every channel; a different hand frame (its step the same) is

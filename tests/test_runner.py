@@ -283,6 +283,35 @@ def test_a_second_trial_into_an_existing_folder_is_refused_and_force_replaces(tm
     assert json.loads((out / "metrics.json").read_text())["seed"] == 2
 
 
+def test_the_station_figures_count_every_step_the_trial_recorded(tmp_path, monkeypatch):
+    """The trial's station contacts and least clearance (``metrics.json``, from the closing
+    metadata) are those of every recorded step's safety record, the steps after the
+    recorder's last flush included: a station monitor made to read contacts and the least
+    clearance at the end must show in the figures, as the file's records say."""
+    from mcap.reader import make_reader
+
+    from payload.sim.station import StationMonitor, StationReading
+    from payload.trials.safety import FILTER_TOPIC
+
+    seen = [0]
+
+    def read(self, data):  # every step reads nearer than the last; the last 3 touch
+        seen[0] += 1
+        return StationReading(seen[0] > 58, 0.2 - 1e-3 * seen[0])
+
+    monkeypatch.setattr(StationMonitor, "read", read)
+    out = tmp_path / "t"
+    result = run_trial(1, out_dir=out, max_time=1.2)  # 61 steps: the last 10 after a flush
+    with open(out / "log.mcap", "rb") as f:
+        records = [
+            json.loads(m.data) for _, _, m in make_reader(f).iter_messages(topics=[FILTER_TOPIC])
+        ]
+    assert len(records) == 61
+    assert result["station_contacts"] == sum(r["station_contact"] for r in records) == 3
+    least = min(r["station_clearance_m"] for r in records)
+    assert result["min_station_clearance_mm"] == round(least * 1e3, 1) == 139.0
+
+
 def test_default_trial_folders_are_new(tmp_path):
     # this checkout's design and models, with its runs/ moved to a temporary folder
     project = dataclasses.replace(Project.at(DESIGN.parents[1]), runs_dir=tmp_path / "runs")

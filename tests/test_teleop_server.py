@@ -454,16 +454,26 @@ def test_dropped_connection_brakes_and_holds_then_resumes_blended(live):
     assert math.isfinite(hub.status()["frame_age_ms"]["median"] or 0.0)
 
 
-def test_live_session_records_the_safety_channel_and_station_metrics(tmp_path):
+def test_live_session_records_the_safety_channel_and_station_metrics(tmp_path, monkeypatch):
     """A live session with the base filter (``teleop serve``'s default) records what a
     trial does: one ``/safety/filter`` record per recorded step, taken at that step, and
-    ``metrics.json``'s station figures, which agree with the records."""
+    ``metrics.json``'s station figures, which agree with the records, the steps after the
+    recorder's last flush included (the station monitor here reads nearer at every step
+    and a touch every seventh, so the last steps hold the least clearance)."""
     from mcap.reader import make_reader
 
-    from payload.sim.station import CLEARANCE_CAP
+    from payload.sim.station import CLEARANCE_CAP, StationMonitor, StationReading
     from payload.trials.live import LiveSession
     from payload.trials.recorder import read_recording
     from payload.trials.safety import FILTER_TOPIC, KEEPIN_TOPIC
+
+    seen = [0]
+
+    def read(self, data):
+        seen[0] += 1
+        return StationReading(seen[0] % 7 == 0, CLEARANCE_CAP - 1e-5 * seen[0])
+
+    monkeypatch.setattr(StationMonitor, "read", read)
 
     out = tmp_path / "session"
     hub = LiveHub()

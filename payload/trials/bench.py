@@ -142,7 +142,9 @@ def _patched(timers: _Timers) -> Iterator[None]:
         (TeleopPipeline, "step", "pipeline"),
         (StepRecord, "__post_init__", "recording"),
         (TrialRecorder, "write", "recording"),
+        (TrialRecorder, "write_later", "recording"),
         (TrialRecorder, "write_hands", "recording"),
+        (TrialRecorder, "flush", "recording"),
         (scoring, "finish_trial", "scoring"),  # the runner imports it at each trial
     ]
     saved = [(obj, name, getattr(obj, name)) for obj, name, _ in targets]

@@ -351,6 +351,7 @@ class LiveSession:
         self.driver.command_twist(None)
         result = None
         if self._recorder is not None:
+            self._recorder.flush()  # every step written: the scene's figures count them all
             self._recorder.write_meta(
                 {"steps": self.steps, "warnings": self.driver.warnings(), **self._scene.summary()}
             )

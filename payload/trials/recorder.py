@@ -12,6 +12,7 @@ import json
 import logging
 import math
 import time
+from collections.abc import Callable
 from pathlib import Path
 from types import TracebackType
 from typing import Any
@@ -101,9 +102,12 @@ class TrialRecorder:
         self._scene = scene
         self._t0_ns: int | None = None
         self._clock = time.time_ns
-        self._pending: list[tuple[Any, ...]] = []  # steps written, not yet encoded
+        # steps written, not yet encoded: (step or (build, args), seq, wall time [s], hand
+        # frame or None, log time [ns], publish time [ns], t [s])
+        self._pending: list[tuple[Any, ...]] = []
         self._kept: list[Recording] | None = [] if keep else None  # per flush, as read back
         self._meta: dict[str, Any] = {}  # the metadata as read back
+        self._failed = False  # a deferred step could not be made (write_later)
 
     # -- lifecycle ---------------------------------------------------------------------
     def open(self) -> TrialRecorder:
@@ -183,10 +187,12 @@ class TrialRecorder:
     def flush(self) -> None:
         """Push everything written so far to the operating system (survives SIGKILL)."""
         if self._writer is not None:
-            self._drain()
-            self._writer.flush()  # closes the chunk in progress and flushes the file
-            self._codec.key()
-            self._flush_wall = time.monotonic()
+            try:
+                self._drain()
+            finally:  # what was drained reaches the file, a step that failed or not
+                self._writer.flush()  # closes the chunk in progress and flushes the file
+                self._codec.key()
+                self._flush_wall = time.monotonic()
 
     def _drain(self) -> None:
         """Encode the steps written since the last flush, as one batch, and add their
@@ -195,11 +201,26 @@ class TrialRecorder:
             return
         writer, pending = self._writer, self._pending
         self._pending = []
+        failed = _built(pending)  # the deferred steps made, up to one that fails
+        if failed is not None:  # the steps before it are written; it and the rest are not
+            self._failed = True
+            pending = pending[: failed[0]]
+            discard = getattr(self._scene, "discard", None)
+            if discard is not None:
+                discard()  # their safety records (taken after the ones written)
+        self._add(writer, pending)
+        if failed is not None:
+            raise failed[1]
+
+    def _add(self, writer: Writer, pending: list[tuple[Any, ...]]) -> None:
+        """Encode these pending steps as one batch and add their messages."""
+        if not pending:
+            return
         columns: list[dict[str, np.ndarray]] | None = [] if self._kept is not None else None
         encoded = self._codec.encode_batch([p[:4] for p in pending], columns)
         if self._kept is not None and columns:
             self._kept.append(Recording(path=None, meta={}, complete=True, **columns[0]))
-        for (step, seq, _, _, log_ns, stamp), (hands, data) in zip(pending, encoded):
+        for (step, seq, _, _, log_ns, stamp, _), (hands, data) in zip(pending, encoded):
             if hands is not None:
                 writer.add_message(
                     channel_id=self._hands_channel,
@@ -229,13 +250,39 @@ class TrialRecorder:
         """
         if not isinstance(step, StepRecord):
             raise RecordingError(f"write() takes a StepRecord, got {type(step).__name__}")
-        if step.t <= self._last_t:
+        self._append(step.t, step)
+
+    def write_later(self, t: float, build: Callable[..., StepRecord], *args: Any) -> None:
+        """Append the control step at time ``t`` that ``build(*args)`` makes, made at the
+        next flush with the other steps of the batch (the trial runner's observer).
+
+        The same step as ``write(build(*args))``, in the same place in the file, with the
+        same wall-clock time (taken now): only the making waits. Made one after the other
+        at a flush, about 50 steps cost half what they cost made one at a time between the
+        loop's other work (docs/speed.md, item 19). ``args`` must stay as they are until
+        then: the loop's snapshots (frozen or fresh arrays), not buffers reused.
+
+        Raises:
+            RecordingError: ``t`` not after the previous step's, or closed; at a flush, a
+                step that ``build`` could not make (its error, naming the step's time),
+                after the steps before it were written; the steps after it are dropped and
+                the recorder takes no more steps (:meth:`write_meta` and :meth:`close`
+                still work).
+        """
+        self._append(float(t), (build, args))
+
+    def _append(self, t: float, step: Any) -> None:
+        """Append a step at time ``t`` (a :class:`StepRecord`, or ``(build, args)`` to make
+        it at the flush) to the batch, and flush when due."""
+        if self._failed:
+            raise RecordingError(f"{self.path}: a step could not be recorded; no more steps")
+        if t <= self._last_t:
             raise RecordingError(
-                f"step t = {step.t} s is not after the previous step (t = {self._last_t} s)"
+                f"step t = {t} s is not after the previous step (t = {self._last_t} s)"
             )
         self._require_open()
         wall_ns = self._clock()
-        stamp = max(0, round(step.t * 1e9))
+        stamp = max(0, round(t * 1e9))
         if self._t0_ns is None:
             self._t0_ns = wall_ns - stamp
         log_ns = max(0, self._t0_ns + stamp)
@@ -243,20 +290,20 @@ class TrialRecorder:
         self._hands = None
         # encoded and added at the next flush, in this order, as a batch (same messages)
         self._pending.append(
-            (step, self._seq, wall_ns * 1e-9, None if hands is None else hands[1], log_ns, stamp)
+            (step, self._seq, wall_ns * 1e-9, None if hands is None else hands[1], log_ns, stamp, t)
         )
         self._seq += 1
-        self._last_t = step.t
+        self._last_t = t
         if self._flush_t == -math.inf:
-            self._flush_t = step.t
+            self._flush_t = t
         now = time.monotonic()
         if (
             now - self._flush_wall >= self.flush_period_s
-            or step.t - self._flush_t >= self.flush_period_s
+            or t - self._flush_t >= self.flush_period_s
             or self._seq == 1
         ):
             self.flush()
-            self._flush_t = step.t
+            self._flush_t = t
 
     def write_hands(self, frame: Any) -> None:
         """Record the raw hand frame of the next step (call before :meth:`write`).
@@ -324,6 +371,31 @@ class TrialRecorder:
             self.open()
         assert self._writer is not None
         return self._writer
+
+
+def _built(pending: list[tuple[Any, ...]]) -> tuple[int, Exception] | None:
+    """Make the deferred steps of a batch (:meth:`TrialRecorder.write_later`) in place, in
+    order; at the first that fails, its index and the error (a :class:`RecordingError`
+    naming the step's time, or what ``build`` raised otherwise)."""
+    for i, item in enumerate(pending):
+        step = item[0]
+        if type(step) is not tuple:
+            continue
+        build, args = step
+        t = item[6]
+        try:
+            made = build(*args)
+        except RecordingError as exc:
+            return i, RecordingError(f"step at t = {t} s: {exc}")
+        except Exception as exc:  # raised again once the steps before it are written
+            return i, exc
+        if not isinstance(made, StepRecord):
+            what = type(made).__name__
+            return i, RecordingError(f"step at t = {t} s: made a {what}, not a StepRecord")
+        if made.t != t:
+            return i, RecordingError(f"step at t = {t} s: made the step at t = {made.t} s")
+        pending[i] = (made, *item[1:])
+    return None
 
 
 def _json_default(obj: Any) -> Any:

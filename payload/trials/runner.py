@@ -407,7 +407,8 @@ def _record_session(
             def on_step(ctx: StepContext) -> None:
                 recorder.write_hands(ctx.frame)
                 scene.observe(ctx.t)
-                recorder.write(step_record(ctx, driver, setup.retargeters))
+                # the step record is made at the recorder's next flush, with its batch
+                recorder.write_later(ctx.t, step_record, ctx, driver, setup.retargeters)
                 last_t[0] = ctx.t
                 if bar is not None:
                     bar.update(task, completed=ctx.t)
@@ -422,6 +423,7 @@ def _record_session(
                     on_step=on_step,
                     world_view=_world_view(driver),
                 )
+                recorder.flush()  # every step made and written: the scene's figures count all
             except Exception as exc:
                 what = f"{type(exc).__name__}: {exc}"
                 log.error("trial %s aborted at t = %.2f s", seed, last_t[0], exc_info=True)
