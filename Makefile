@@ -6,10 +6,11 @@ STAMP := $(VENV)/.installed
 
 .PHONY: demo test lint format build clean bytecode analyses-campaign validate-physics-dt bit-for-bit
 
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml constraints.txt
 	test -d $(VENV) || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e '.[dev]'
+	# the versions the committed results were made with (constraints.txt)
+	$(BIN)/python -m pip install --quiet -c constraints.txt -e '.[dev]'
 	# compile the reach check once now (Numba caches it beside the module)
 	$(BIN)/python -c 'from payload.envelope.overlap import compile_check; compile_check()'
 	touch $(STAMP)

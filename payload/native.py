@@ -473,6 +473,47 @@ NUMPY_DDOT = "scipy_cblas_ddot64_"
 """Its CBLAS ``ddot``, what numpy's ``dot`` of two float64 vectors runs."""
 
 
+NUMPY_BLAS_CORE = "scipy_openblas_get_corename64_"
+"""OpenBLAS's name for the kernels it picked for this processor (``SkylakeX``, ``Haswell``,
+...; ``OPENBLAS_CORETYPE`` forces others): numpy's ``dot`` and ``matmul`` run them, so a
+trial's last bits differ between processors that get different kernels."""
+
+RESULT_PACKAGES: tuple[tuple[str, str], ...] = (
+    ("numpy", "numpy"),
+    ("scipy", "scipy"),
+    ("mujoco", "mujoco"),
+    ("casadi", "casadi"),
+    ("pinocchio", "pin"),
+)
+"""The packages a simulated result's bits depend on (name, distribution), the versions
+:func:`environment` reports (``constraints.txt`` pins them for ``make``)."""
+
+
+def environment() -> dict[str, str | None]:
+    """What a simulated result's bits depend on besides the workbench's code and the design,
+    for its provenance: Python's version and :data:`RESULT_PACKAGES`' (``"?"`` when not
+    installed), the machine and the kernels numpy's OpenBLAS picked (:data:`NUMPY_BLAS_CORE`;
+    None when numpy links another BLAS or not on Linux). Trials that differ in any of these
+    may differ in their last bits, and a sensitive trial in its outcome (docs/results.md)."""
+    import platform
+
+    import numpy  # noqa: F401 - loads the OpenBLAS numpy links
+
+    core = None
+    for symbol in (NUMPY_BLAS_CORE, NUMPY_BLAS_CORE.removeprefix("scipy_")):
+        address = loaded_symbol("openblas", symbol)
+        if address is not None:
+            name = ctypes.CFUNCTYPE(ctypes.c_char_p)(address)()
+            core = name.decode() if name else None
+            break
+    return {
+        "python": platform.python_version(),
+        **{name: dist_version(dist) for name, dist in RESULT_PACKAGES},
+        "machine": platform.machine(),
+        "openblas_core": core,
+    }
+
+
 def loaded_symbol(library: str, symbol: str) -> int | None:
     """The address of ``symbol`` in a shared library this process has loaded whose path
     contains ``library`` (the very code the Python package calls), or None: not loaded,
@@ -557,13 +598,16 @@ __all__ = [
     "CHECK_ENVIRONMENT",
     "CHECK_SUFFIX",
     "NATIVE_ENV",
+    "NUMPY_BLAS_CORE",
     "NUMPY_DDOT",
     "NUMPY_DGEMV",
     "OPTIONAL_CFLAGS",
+    "RESULT_PACKAGES",
     "SHORT_SHARE",
     "build_library",
     "check_stamp",
     "checked_blas_kernel",
+    "environment",
     "find_compiler",
     "flags",
     "gemv_layout",

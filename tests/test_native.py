@@ -139,3 +139,55 @@ def test_a_distributions_version_is_the_installed_one():
 
     assert dist_version("numpy") == np.__version__
     assert dist_version("no-such-distribution-anywhere") == "?"
+
+
+def test_the_environment_names_the_versions_and_blas_kernels_a_result_ran_on():
+    """``native.environment()``: the packages' versions as the modules say them, and the
+    kernels OpenBLAS picked as threadpoolctl reads them (and forced ones in a process
+    started with ``OPENBLAS_CORETYPE``)."""
+    import platform
+    import subprocess
+    import sys
+
+    import casadi
+    import mujoco
+    import numpy as np
+    import pinocchio
+    import scipy
+    from threadpoolctl import threadpool_info
+
+    from payload.native import environment
+
+    env = environment()
+    modules = {"numpy": np, "scipy": scipy, "mujoco": mujoco, "casadi": casadi}
+    assert {k: env[k] for k in modules} == {k: m.__version__ for k, m in modules.items()}
+    assert env["pinocchio"] == pinocchio.__version__
+    assert env["python"] == platform.python_version() and env["machine"] == platform.machine()
+    blas = [i for i in threadpool_info() if i["internal_api"] == "openblas"]
+    assert env["openblas_core"] == blas[0]["architecture"]
+    if platform.machine() != "x86_64":  # the forced kernels below are x86-64's
+        return
+    code = "from payload.native import environment; print(environment()['openblas_core'])"
+    forced = subprocess.run(
+        [sys.executable, "-c", code],
+        env={**os.environ, "OPENBLAS_CORETYPE": "Nehalem"},  # SSE4.2: any x86-64 since 2008
+        capture_output=True, text=True, check=True,
+    )  # fmt: skip
+    assert forced.stdout.strip() == "Nehalem"
+
+
+def test_the_result_packages_are_pinned_and_run_as_pinned():
+    """``constraints.txt`` (what ``make`` installs with) pins every package a trial's
+    provenance names, and the suite runs on those versions: the committed results it
+    checks were made with them."""
+    from importlib.metadata import version
+
+    from conftest import ROOT
+
+    pins = {}
+    for line in (ROOT / "constraints.txt").read_text().splitlines():
+        name, sep, pinned = line.split("#")[0].strip().partition("==")
+        if sep:
+            pins[name.strip().lower()] = pinned.strip()
+    assert {dist for _, dist in native.RESULT_PACKAGES} <= set(pins)
+    assert {dist: version(dist) for dist in pins} == pins

@@ -290,6 +290,7 @@ def test_the_station_figures_count_every_step_the_trial_recorded(tmp_path, monke
     clearance at the end must show in the figures, as the file's records say."""
     from mcap.reader import make_reader
 
+    from payload.native import environment
     from payload.sim.station import StationMonitor, StationReading
     from payload.trials.safety import FILTER_TOPIC
 
@@ -310,6 +311,9 @@ def test_the_station_figures_count_every_step_the_trial_recorded(tmp_path, monke
     assert result["station_contacts"] == sum(r["station_contact"] for r in records) == 3
     least = min(r["station_clearance_m"] for r in records)
     assert result["min_station_clearance_mm"] == round(least * 1e3, 1) == 139.0
+    # what the trial ran on, for its provenance (docs/results.md: results differ by it)
+    assert result["provenance"]["environment"] == environment()
+    assert read_recording(out / "log.mcap").meta["provenance"]["environment"] == environment()
 
 
 def test_default_trial_folders_are_new(tmp_path):

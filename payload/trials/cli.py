@@ -128,6 +128,7 @@ def _cmd_trial(args: argparse.Namespace) -> int:
 
 def _cmd_trials_run(args: argparse.Namespace) -> int:
     from payload.design import models_follow_design
+    from payload.native import environment
     from payload.project import provenance
     from payload.trials.campaign import (
         default_workers,
@@ -151,7 +152,7 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
     _run_trial_fn()  # fail here, once, if the runner is missing
     project = command_project(args)
     models_follow_design(project.design_path, project.root, json=args.json)
-    prov = provenance(project)
+    prov = {**provenance(project), "environment": environment()}
     out = Path(args.out) if args.out else default_out(project, "campaign")
     seeds = list(range(args.seed, args.seed + args.n))
     if not args.force:

@@ -22,6 +22,7 @@ import numpy as np
 
 from payload.design.params import load_design
 from payload.errors import PayloadError, RunAborted
+from payload.native import environment
 from payload.project import Project, current_project, provenance
 from payload.retarget.calibration import PairRange
 from payload.retarget.casadi_solver import PairRetargeter
@@ -471,7 +472,7 @@ def _run_trial(
         cal = calibrate_operator(captures, setup.ranges, setup.config.rail_travel, heading)
         return TeleopPipeline(cal, setup.retargeters, setup.config, initial=q0)
 
-    prov = provenance(project, driver.world.config.design)
+    prov = {**provenance(project, driver.world.config.design), "environment": environment()}
     rec_path = out / "log.mcap"
     meta = _trial_meta(seed, source_spec, traits, prov, driver.world.layout, setup)
     stats, recording = _record_session(
