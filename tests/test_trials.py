@@ -1006,6 +1006,7 @@ def test_cli_bad_input_exits_2(argv: list[str], message: str, capsys) -> None:
 def test_cli_bench_trial_accounts_for_its_time(tmp_path: Path, capsys) -> None:
     """The stages add up to the measured total; sizes are the file's."""
     from payload.cli import main
+    from payload.native import environment
 
     out = tmp_path / "bench"
     start = time.perf_counter()
@@ -1039,6 +1040,7 @@ def test_cli_bench_trial_accounts_for_its_time(tmp_path: Path, capsys) -> None:
     per_trial = {"vehicle controller", "thrusts", "station bound", "frame poses"}
     assert per_trial <= set(r["kernels"]), r["kernels"]
     assert all(r["kernels"][k] == "compiled" for k in per_trial), r["kernels"]
+    assert r["environment"] == environment()  # what the figures were measured on
 
 
 def test_cli_bench_trial_repeated_reports_the_median_run(capsys) -> None:

@@ -180,7 +180,8 @@ def run_trial_bench(
         "mj_step_seconds", "mj_step_cpu_seconds", "mj_step_us" (per 1 ms physics step),
         "physics_only_realtime_factor", "log_bytes", "log_bytes_per_sim_minute", "steps",
         "seed", "success", "worker_import_s", "kernels" (each compiled kernel of the loop:
-        ``compiled`` or ``numpy``)}``.
+        ``compiled`` or ``numpy``), "environment" (the versions and BLAS kernels it ran on:
+        :func:`payload.native.environment`)}``.
     """
     imports = worker_import_seconds()  # first: no trial running beside it
     before = os.sched_getaffinity(0) if pin and hasattr(os, "sched_setaffinity") else None
@@ -199,6 +200,7 @@ def run_trial_bench(
 def _bench(
     seed: int, out: Path, pinned: bool, max_time: float | None, physics_dt: float | None
 ) -> dict:
+    from payload.native import environment
     from payload.schema import CONTROL_DT
 
     timers = _Timers()
@@ -243,6 +245,7 @@ def _bench(
         "pinned": pinned,
         "load_average": list(os.getloadavg()),
         "kernels": _kernels(),
+        "environment": environment(),
     }
 
 
