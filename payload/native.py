@@ -497,20 +497,13 @@ def environment() -> dict[str, str | None]:
     may differ in their last bits, and a sensitive trial in its outcome (docs/results.md)."""
     import platform
 
-    import numpy  # noqa: F401 - loads the OpenBLAS numpy links
-
-    core = None
-    for symbol in (NUMPY_BLAS_CORE, NUMPY_BLAS_CORE.removeprefix("scipy_")):
-        address = loaded_symbol("openblas", symbol)
-        if address is not None:
-            name = ctypes.CFUNCTYPE(ctypes.c_char_p)(address)()
-            core = name.decode() if name else None
-            break
+    address = numpy_blas(NUMPY_BLAS_CORE)
+    name = ctypes.CFUNCTYPE(ctypes.c_char_p)(address)() if address is not None else None
     return {
         "python": platform.python_version(),
         **{name: dist_version(dist) for name, dist in RESULT_PACKAGES},
         "machine": platform.machine(),
-        "openblas_core": core,
+        "openblas_core": name.decode() if name else None,
     }
 
 

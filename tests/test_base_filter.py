@@ -418,6 +418,9 @@ def test_recording_carries_the_filter_channel_and_the_keepin_boxes(world, graspe
             changes.append(sim.twist_filter.status.change)
             scene.observe(0.02 * k)
             rec.write(random_step(rng, 0.02 * k))
+        with pytest.raises(RecordingError, match=r"9 safety records .* \(flush the recorder"):
+            scene.summary()  # the steps after the last flush (t = 1.0 s) are not counted yet
+        rec.flush()
         with pytest.raises(RecordingError, match="not taken"):  # a step without its record
             rec.write(random_step(rng, 2.0))
             rec.flush()

@@ -684,6 +684,21 @@ def test_a_step_that_cannot_be_made_at_the_flush(tmp_path: Path) -> None:
     want = np.array([st.q_meas for st in steps[:12]])
     np.testing.assert_allclose(back.q_meas, want, rtol=0, atol=5e-9)  # on the 10 nrad grid
     assert back.meta["after"] is True
+
+    # a step that fails at the last flush, in close(): the file is finished, marked aborted;
+    # a build's own error (not the recorder's) is named with its step's time, and chained
+    def broken(st):
+        raise TypeError("a bug in the build")
+
+    with pytest.raises(RecordingError, match=r"t = 0.1 s: TypeError: a bug") as caught:
+        with TrialRecorder(tmp_path / "closing.mcap") as rec:
+            for st in steps[:5]:
+                rec.write_later(st.t, dataclasses.replace, st)
+            rec.write_later(steps[5].t, broken, steps[5])
+            rec.write_later(steps[6].t, dataclasses.replace, steps[6])
+    assert isinstance(caught.value.__cause__, TypeError)
+    back = read_recording(tmp_path / "closing.mcap")
+    assert back.complete and len(back) == 5 and "a bug in the build" in back.meta["aborted"]
     # a build that makes another step than the time said, or no step, is refused too
     for k, (build, said) in enumerate(
         [(lambda: steps[3], "made the step at t = 0.06 s"), (lambda: {}, "made a dict")]

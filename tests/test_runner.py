@@ -327,6 +327,41 @@ def test_default_trial_folders_are_new(tmp_path):
 
 
 # -- a bug is not a safety event -----------------------------------------------------------
+def test_a_step_record_that_cannot_be_made_aborts_the_trial_at_its_step(tmp_path, monkeypatch):
+    """A step record the recorder cannot make at its flush (made up to a second after its
+    step): the trial aborts naming that step's time and error, the file keeps every step
+    before it, each with its safety record, and says it was aborted after the last of them."""
+    from mcap.reader import make_reader
+
+    from payload.trials import runner
+    from payload.trials.runner import TrialAborted
+    from payload.trials.safety import FILTER_TOPIC
+
+    made = runner.step_record
+
+    def step_record(ctx, driver, retargeters):
+        step = made(ctx, driver, retargeters)
+        if abs(ctx.t - 0.5) < 1e-9:  # the 26th step, in the middle of the second batch
+            return dataclasses.replace(step, q_meas=np.full_like(step.q_meas, np.nan))
+        return step
+
+    monkeypatch.setattr(runner, "step_record", step_record)
+    out = tmp_path / "t"
+    with pytest.raises(TrialAborted, match=r"aborted at t = 0.48 s .*step at t = 0.5 s.*q_meas"):
+        run_trial(1, out_dir=out, max_time=1.2)
+    rec = read_recording(out / "log.mcap")
+    assert rec.complete and len(rec) == 25 and rec.t[-1] == pytest.approx(0.48)
+    assert rec.meta["aborted_at_s"] == pytest.approx(rec.t[-1])
+    assert "step at t = 0.5 s" in rec.meta["aborted_by"]
+    with open(out / "log.mcap", "rb") as f:
+        safety = [
+            json.loads(m.data)["t"]
+            for _, _, m in make_reader(f).iter_messages(topics=[FILTER_TOPIC])
+        ]
+    np.testing.assert_allclose(safety, rec.t, atol=1e-12)  # each step's own record
+    assert not (out / "metrics.json").exists()
+
+
 def test_an_exception_in_the_finger_channel_aborts_the_trial_and_keeps_the_recording(
     tmp_path, monkeypatch, capsys
 ):

@@ -1337,3 +1337,17 @@ def test_campaign_prints_a_line_per_trial_then_a_headline_off_a_terminal(
     out = capsys.readouterr().out
     assert json.loads(out)["out_dir"] == str(project / "runs" / "campaign-0002")
     assert len(out.strip().splitlines()) == 1
+
+
+def test_a_campaigns_environment_is_its_trials_own() -> None:
+    """The campaign summary's environment is what its trials' processes reported: one when
+    they agree, each distinct one (in order) when they do not, None when none reported."""
+    from payload.trials.summary import trials_environment
+
+    here = {"numpy": "2.4.6", "openblas_core": "SkylakeX"}
+    there = {"numpy": "2.4.6", "openblas_core": "Haswell"}
+    ran = [{"provenance": {"environment": e}} for e in (here, here, there, here)]
+    assert trials_environment(ran[:2]) == here
+    assert trials_environment(ran) == [here, there]
+    assert trials_environment([{"error": "x"}, {"provenance": {}}]) is None
+    assert trials_environment([{"error": "x"}, *ran[:1]]) == here

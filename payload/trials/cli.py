@@ -128,7 +128,6 @@ def _cmd_trial(args: argparse.Namespace) -> int:
 
 def _cmd_trials_run(args: argparse.Namespace) -> int:
     from payload.design import models_follow_design
-    from payload.native import environment
     from payload.project import provenance
     from payload.trials.campaign import (
         default_workers,
@@ -137,6 +136,7 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
         trial_dir,
         write_summary,
     )
+    from payload.trials.summary import trials_environment
     from payload.trials.terminal import summary_terminal, trial_line_printer
 
     if args.n < 1:
@@ -152,7 +152,7 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
     _run_trial_fn()  # fail here, once, if the runner is missing
     project = command_project(args)
     models_follow_design(project.design_path, project.root, json=args.json)
-    prov = {**provenance(project), "environment": environment()}
+    prov = provenance(project)
     out = Path(args.out) if args.out else default_out(project, "campaign")
     seeds = list(range(args.seed, args.seed + args.n))
     if not args.force:
@@ -201,6 +201,9 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
         f"{f', link delay {args.link_delay} s' if args.link_delay else ''}"
         f"{_physics_text(args.physics_dt)})"
     )
+    # what the trials ran on, as each trial's process reported it (a scheduler's workers
+    # may be other machines than this one)
+    prov = {**prov, "environment": trials_environment(results)}
     summary = write_summary(results, out, title=title, run=run, provenance=prov, force=args.force)
     if args.json:
         emit_json(

@@ -108,6 +108,7 @@ class TrialRecorder:
         self._kept: list[Recording] | None = [] if keep else None  # per flush, as read back
         self._meta: dict[str, Any] = {}  # the metadata as read back
         self._failed = False  # a deferred step could not be made (write_later)
+        self._written_t = -math.inf  # the time of the last step in the file
 
     # -- lifecycle ---------------------------------------------------------------------
     def open(self) -> TrialRecorder:
@@ -152,13 +153,23 @@ class TrialRecorder:
         return self
 
     def close(self) -> None:
-        """Write the summary and footer and close the file (idempotent)."""
+        """Write the summary and footer and close the file (idempotent).
+
+        A step that cannot be made at this last flush (:meth:`write_later`) is raised after
+        the file is finished, with the steps before it and an ``aborted`` metadata record
+        naming the error: nobody scores it as a finished trial."""
         if self._writer is not None:
-            self._drain()
-            self._writer.finish()
-            self._file.close()
-            self._writer = None
-            self._file = None
+            try:
+                self._drain()
+            except BaseException as exc:
+                self.write_meta({"aborted": f"{type(exc).__name__}: {exc}"})
+                raise
+            finally:
+                self._writer.finish()
+                self._file.close()
+                self._writer = None
+                self._file = None
+                self._closed = True
         self._closed = True
 
     def __enter__(self) -> TrialRecorder:
@@ -170,19 +181,27 @@ class TrialRecorder:
         exc: BaseException | None,
         tb: TracebackType | None,
     ) -> None:
-        if exc_type is not None and self._writer is not None:
-            # the run died: say so in the file, so nobody scores it as a finished trial
-            try:
-                self.write_meta({"aborted": f"{exc_type.__name__}: {exc}"})
-            except RecordingError:
-                pass
-        self.close()
+        try:
+            if exc_type is not None and self._writer is not None:
+                # the run died: say so in the file, so nobody scores it as a finished trial
+                try:
+                    self.write_meta({"aborted": f"{exc_type.__name__}: {exc}"})
+                except Exception as failed:  # the run's own error is the one to raise
+                    log.warning("%s: marking the recording aborted failed: %s", self.path, failed)
+        finally:
+            self.close()
 
     # -- writing -----------------------------------------------------------------------
     @property
     def n_steps(self) -> int:
-        """Steps written so far."""
+        """Steps written so far (those to be made at the next flush included)."""
         return self._seq
+
+    @property
+    def last_written_t(self) -> float:
+        """The time [s] of the last step in the file (``-inf`` before any): the steps
+        written since the last flush are not in it yet."""
+        return self._written_t
 
     def flush(self) -> None:
         """Push everything written so far to the operating system (survives SIGKILL)."""
@@ -202,15 +221,19 @@ class TrialRecorder:
         writer, pending = self._writer, self._pending
         self._pending = []
         failed = _built(pending)  # the deferred steps made, up to one that fails
-        if failed is not None:  # the steps before it are written; it and the rest are not
-            self._failed = True
-            pending = pending[: failed[0]]
+        if failed is None:
+            self._add(writer, pending)
+            return
+        # the steps before it are written; it and the steps after it are not
+        self._failed = True
+        self._seq = pending[failed[0]][1]
+        try:
+            self._add(writer, pending[: failed[0]])
+        finally:
             discard = getattr(self._scene, "discard", None)
             if discard is not None:
-                discard()  # their safety records (taken after the ones written)
-        self._add(writer, pending)
-        if failed is not None:
-            raise failed[1]
+                discard()  # the safety records of the steps not written
+        raise failed[1]
 
     def _add(self, writer: Writer, pending: list[tuple[Any, ...]]) -> None:
         """Encode these pending steps as one batch and add their messages."""
@@ -238,6 +261,7 @@ class TrialRecorder:
             )
             if self._scene is not None:
                 self._scene.write(writer, step, log_ns)
+        self._written_t = pending[-1][6]
 
     def write(self, step: StepRecord) -> None:
         """Append one control step.
@@ -336,11 +360,13 @@ class TrialRecorder:
                 data[key] = json.dumps(value, default=_json_default, allow_nan=False)
             except (TypeError, ValueError) as exc:
                 raise RecordingError(f"write_meta: value of {key!r} is not JSON: {exc}") from exc
-        self._meta.update({key: json.loads(text) for key, text in data.items()})
-        data[META_CRC_KEY] = metadata_crc(data)
-        self._drain()  # the steps before it stay before it in the file
-        writer.add_metadata(META_NAME, data)
-        self.flush()
+        try:
+            self._drain()  # the steps before it stay before it in the file
+        finally:  # a step that could not be made is raised after the metadata is in
+            self._meta.update({key: json.loads(text) for key, text in data.items()})
+            data[META_CRC_KEY] = metadata_crc(data)
+            writer.add_metadata(META_NAME, data)
+            self.flush()
 
     def recording(self) -> Recording:
         """What :func:`read_recording` reads back from the closed file, from what was
@@ -373,10 +399,18 @@ class TrialRecorder:
         return self._writer
 
 
-def _built(pending: list[tuple[Any, ...]]) -> tuple[int, Exception] | None:
+def _at(t: float, what: str, cause: BaseException | None = None) -> RecordingError:
+    """The error of the deferred step at time ``t`` that could not be made (its cause
+    chained)."""
+    error = RecordingError(f"step at t = {t} s: {what}")
+    error.__cause__ = cause
+    return error
+
+
+def _built(pending: list[tuple[Any, ...]]) -> tuple[int, RecordingError] | None:
     """Make the deferred steps of a batch (:meth:`TrialRecorder.write_later`) in place, in
-    order; at the first that fails, its index and the error (a :class:`RecordingError`
-    naming the step's time, or what ``build`` raised otherwise)."""
+    order; at the first that fails, its index and a :class:`RecordingError` naming the
+    step's time and what went wrong (``build``'s own error chained as its cause)."""
     for i, item in enumerate(pending):
         step = item[0]
         if type(step) is not tuple:
@@ -386,14 +420,13 @@ def _built(pending: list[tuple[Any, ...]]) -> tuple[int, Exception] | None:
         try:
             made = build(*args)
         except RecordingError as exc:
-            return i, RecordingError(f"step at t = {t} s: {exc}")
-        except Exception as exc:  # raised again once the steps before it are written
-            return i, exc
+            return i, _at(t, str(exc), exc)
+        except Exception as exc:  # raised once the steps before it are written
+            return i, _at(t, f"{type(exc).__name__}: {exc}", exc)
         if not isinstance(made, StepRecord):
-            what = type(made).__name__
-            return i, RecordingError(f"step at t = {t} s: made a {what}, not a StepRecord")
+            return i, _at(t, f"made a {type(made).__name__}, not a StepRecord")
         if made.t != t:
-            return i, RecordingError(f"step at t = {t} s: made the step at t = {made.t} s")
+            return i, _at(t, f"made the step at t = {made.t} s")
         pending[i] = (made, *item[1:])
     return None
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 import shutil
 import tempfile
@@ -427,10 +428,17 @@ def _record_session(
                 recorder.flush()  # every step made and written: the scene's figures count all
             except Exception as exc:
                 what = f"{type(exc).__name__}: {exc}"
-                log.error("trial %s aborted at t = %.2f s", seed, last_t[0], exc_info=True)
-                recorder.write_meta({"aborted_by": what, "aborted_at_s": last_t[0]})
+                try:
+                    recorder.flush()  # the steps made so far go into the file
+                except RecordingError:
+                    pass  # one that cannot be made: the steps before it are in the file
+                at = recorder.last_written_t  # the last step in the file
+                if not math.isfinite(at):  # none yet
+                    at = last_t[0]
+                log.error("trial %s aborted at t = %.2f s", seed, at, exc_info=True)
+                recorder.write_meta({"aborted_by": what, "aborted_at_s": at})
                 raise TrialAborted(
-                    f"trial {seed} aborted at t = {last_t[0]:.2f} s by {what}; recording "
+                    f"trial {seed} aborted at t = {at:.2f} s by {what}; recording "
                     f"kept (marked aborted, not scored): {rec_path}"
                 ) from exc
             recorder.write_meta(_closing_meta(driver, source, stats, scene))
@@ -506,7 +514,11 @@ def base_filter_for(driver: Any, base: Any, zones: Any = None) -> Any:
 
 def step_record(ctx: StepContext, driver: Any, retargeters: dict[str, PairRetargeter]) -> Any:
     """The recorder's step from what the loop hands its observer (for any driver with
-    ``module_at``: the simulator, the hardware-in-the-loop rig, the live session)."""
+    ``module_at``: the simulator, the hardware-in-the-loop rig, the live session).
+
+    It reads the context's snapshots (frozen or fresh arrays) and the driver's layout
+    alone, never the driver's live state: a trial's recorder makes it up to a second
+    after its step (:meth:`~payload.trials.recorder.TrialRecorder.write_later`)."""
     st, fr = ctx.state, ctx.frame
     step = ctx.step
     q = ctx.command.q

@@ -199,7 +199,18 @@ class SafetyScene:
         return SceneUpdate(entities=[entity])
 
     def summary(self) -> dict[str, Any]:
-        """The trial's station and filter figures (for ``metrics.json``)."""
+        """The trial's station and filter figures (for ``metrics.json``), over every step
+        written.
+
+        Raises:
+            RecordingError: Records taken and not written yet (flush the recorder first,
+                or :meth:`discard` them): the figures would leave those steps out.
+        """
+        if self._observed:
+            raise RecordingError(
+                f"summary(): {len(self._observed)} safety records taken and not written "
+                "yet (flush the recorder first)"
+            )
         return {
             "station_contacts": int(self.contacts),
             "min_station_clearance_mm": round(self.least * 1e3, 1),

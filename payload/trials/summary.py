@@ -376,6 +376,19 @@ def _run_lines(run: dict[str, Any] | None) -> list[str]:
     ]
 
 
+def trials_environment(results: list[dict[str, Any]]) -> dict[str, Any] | list | None:
+    """What a campaign's trials ran on, from their own provenance (``environment``: the
+    versions and BLAS kernels of the process that ran each, on whichever machine): the one
+    environment when they agree, every distinct one (in the trials' order) when they do
+    not, None when no trial reported one (every trial failed before scoring)."""
+    seen: list[dict[str, Any]] = []
+    for r in results:
+        env = (r.get("provenance") or {}).get("environment")
+        if env is not None and env not in seen:
+            seen.append(env)
+    return seen[0] if len(seen) == 1 else (seen or None)
+
+
 def write_summary(
     results: Sequence[dict[str, Any]],
     out_dir: str | Path,
