@@ -38,6 +38,10 @@ analyses-campaign: $(STAMP)
 	set -e; for spec in $(CAMPAIGNS); do \
 	  name=$${spec%%:*}; args=$$(echo $${spec#*:} | tr ':' ' '); \
 	  $(BIN)/payload trials run --n 10 --seed 0 --workers 2 $$args --out runs/analyses-$$name --force; \
+	done
+	# copied once every campaign has run: each ran on the tree as committed (git_dirty false)
+	set -e; for spec in $(CAMPAIGNS); do \
+	  name=$${spec%%:*}; \
 	  mkdir -p analyses/campaign/$$name; \
 	  cp runs/analyses-$$name/summary.md runs/analyses-$$name/summary.json analyses/campaign/$$name/; \
 	  for f in ctb_body_frame route; do \
