@@ -1084,6 +1084,14 @@ def test_cli_bench_trial_says_which_kernels_ran_in_numpy(tmp_path: Path, monkeyp
     line = next(x for x in text.splitlines() if "compiled kernels" in x)
     assert "vehicle controller" in line and "thrusts" in line and "station bound" in line
     assert "in numpy" in line and "(PAYLOAD_NATIVE=0)" in line
+    # and what it ran on, for comparing figures between machines
+    import numpy
+
+    from payload.native import environment
+
+    ran = next(x for x in text.splitlines() if "ran on" in x)
+    assert f"numpy {numpy.__version__}" in ran
+    assert f"OpenBLAS kernels {environment()['openblas_core']}" in ran
 
 
 def test_cli_bench_recorder(capsys) -> None:

@@ -446,6 +446,12 @@ def _cmd_bench_trial(args: argparse.Namespace) -> int:
         f"  compiled kernels: {len(kernels) - len(in_numpy)} of {len(kernels)}"
         + (f"; in numpy: {', '.join(in_numpy)} ({why})" if in_numpy else "")
     )
+    env = result.get("environment") or {}
+    print(
+        f"  ran on: Python {env.get('python')}, numpy {env.get('numpy')} (OpenBLAS kernels "
+        f"{env.get('openblas_core')}), MuJoCo {env.get('mujoco')}, load average "
+        f"{result['load_average'][0]:.2f}"
+    )
     return 0
 
 
