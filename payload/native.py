@@ -498,12 +498,12 @@ def environment() -> dict[str, str | None]:
     import platform
 
     address = numpy_blas(NUMPY_BLAS_CORE)
-    name = ctypes.CFUNCTYPE(ctypes.c_char_p)(address)() if address is not None else None
+    core = ctypes.CFUNCTYPE(ctypes.c_char_p)(address)() if address is not None else None
     return {
         "python": platform.python_version(),
-        **{name: dist_version(dist) for name, dist in RESULT_PACKAGES},
+        **{package: dist_version(dist) for package, dist in RESULT_PACKAGES},
         "machine": platform.machine(),
-        "openblas_core": name.decode() if name else None,
+        "openblas_core": core.decode() if core else None,
     }
 
 
@@ -533,9 +533,10 @@ def loaded_symbol(library: str, symbol: str) -> int | None:
 @functools.cache
 def numpy_blas(symbol: str) -> int | None:
     """The address of one of numpy's own CBLAS functions (:data:`NUMPY_DGEMV`,
-    :data:`NUMPY_DDOT`) in the OpenBLAS numpy loaded on import, or None (numpy built
-    against another BLAS, or not on Linux). Calling it as numpy does gives numpy's bits on
-    every machine (OpenBLAS picks its kernel by the processor, for both alike)."""
+    :data:`NUMPY_DDOT`), or of OpenBLAS's :data:`NUMPY_BLAS_CORE`, in the OpenBLAS numpy
+    loaded on import, or None (numpy built against another BLAS, or not on Linux). Calling
+    it as numpy does gives numpy's bits on every machine (OpenBLAS picks its kernel by the
+    processor, for both alike)."""
     import numpy  # noqa: F401 - loads the OpenBLAS numpy links
 
     found = loaded_symbol("openblas", symbol)
