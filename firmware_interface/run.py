@@ -368,6 +368,7 @@ def run_hardware_trial(
             commands = replay_session(driver, frames, max_time=max_time, pace=pace,
                                       on_step=on_step, rt=(retargeters, ranges))  # fmt: skip
             watchdog = watchdog_report(hardware.watchdog_trips[trips0:])
+            recorder.flush()  # every step written: the scene's figures count them all
             recorder.write_meta({"steps": len(commands), "warnings": driver.warnings(),
                                  "watchdog": watchdog, **scene.summary()})  # fmt: skip
     finally:
