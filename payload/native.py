@@ -419,20 +419,17 @@ stamp's name)."""
 @functools.cache
 def _checked_with() -> str:
     """What a kernel's self-check answer depends on besides its C: the workbench's own
-    Python (the numpy code it is checked against: every module's text), Python's, numpy's
-    and MuJoCo's versions, and the processor and the variables that pick numpy's and
-    OpenBLAS's machine code for it."""
-    import platform
+    Python (the numpy code it is checked against: every module's text), Python's build,
+    what a result's bits depend on (:func:`environment`: the packages' versions, the
+    machine, OpenBLAS's kernels), and the processor and the variables that pick numpy's
+    and OpenBLAS's machine code for it."""
     import sys
 
-    mujoco = dist_version("mujoco")
     return "\n".join(
         [
             _SOURCES,
             sys.version,
-            f"numpy={_numpy_version()}",
-            f"mujoco={mujoco}",
-            platform.machine(),
+            *(f"{name}={value}" for name, value in environment().items()),
             _processor(),
             *(f"{name}={os.environ.get(name, '')}" for name in CHECK_ENVIRONMENT),
         ]

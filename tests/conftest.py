@@ -22,6 +22,28 @@ if sys.version_info < (3, 11):  # pragma: no cover
     import tomli as tomllib
 
 
+def running_environment() -> dict[str, Any]:
+    """What ``payload.native.environment()`` should say of this process, worked out
+    another way: the modules' own ``__version__``, the platform's names and the kernels
+    OpenBLAS reports to threadpoolctl."""
+    import platform
+
+    import casadi
+    import mujoco
+    import numpy
+    import pinocchio
+    import scipy
+    from threadpoolctl import threadpool_info
+
+    blas = [i for i in threadpool_info() if i["internal_api"] == "openblas"]
+    return {
+        "python": platform.python_version(),
+        **{m.__name__: m.__version__ for m in (numpy, scipy, mujoco, casadi, pinocchio)},
+        "machine": platform.machine(),
+        "openblas_core": blas[0]["architecture"] if blas else None,
+    }
+
+
 @pytest.fixture(scope="session")
 def design_dict() -> dict[str, Any]:
     """The default design file as plain data (copy before editing)."""

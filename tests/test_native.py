@@ -149,22 +149,11 @@ def test_the_environment_names_the_versions_and_blas_kernels_a_result_ran_on():
     import subprocess
     import sys
 
-    import casadi
-    import mujoco
-    import numpy as np
-    import pinocchio
-    import scipy
-    from threadpoolctl import threadpool_info
+    from conftest import running_environment
 
     from payload.native import environment
 
-    env = environment()
-    modules = {"numpy": np, "scipy": scipy, "mujoco": mujoco, "casadi": casadi}
-    assert {k: env[k] for k in modules} == {k: m.__version__ for k, m in modules.items()}
-    assert env["pinocchio"] == pinocchio.__version__
-    assert env["python"] == platform.python_version() and env["machine"] == platform.machine()
-    blas = [i for i in threadpool_info() if i["internal_api"] == "openblas"]
-    assert env["openblas_core"] == blas[0]["architecture"]
+    assert environment() == running_environment()
     if platform.machine() != "x86_64":  # the forced kernels below are x86-64's
         return
     code = "from payload.native import environment; print(environment()['openblas_core'])"

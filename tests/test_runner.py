@@ -288,9 +288,9 @@ def test_the_station_figures_count_every_step_the_trial_recorded(tmp_path, monke
     metadata) are those of every recorded step's safety record, the steps after the
     recorder's last flush included: a station monitor made to read contacts and the least
     clearance at the end must show in the figures, as the file's records say."""
+    from conftest import running_environment
     from mcap.reader import make_reader
 
-    from payload.native import environment
     from payload.sim.station import StationMonitor, StationReading
     from payload.trials.safety import FILTER_TOPIC
 
@@ -312,8 +312,9 @@ def test_the_station_figures_count_every_step_the_trial_recorded(tmp_path, monke
     least = min(r["station_clearance_m"] for r in records)
     assert result["min_station_clearance_mm"] == round(least * 1e3, 1) == 139.0
     # what the trial ran on, for its provenance (docs/results.md: results differ by it)
-    assert result["provenance"]["environment"] == environment()
-    assert read_recording(out / "log.mcap").meta["provenance"]["environment"] == environment()
+    assert result["provenance"]["environment"] == running_environment()
+    recorded = read_recording(out / "log.mcap").meta["provenance"]["environment"]
+    assert recorded == running_environment()
 
 
 def test_default_trial_folders_are_new(tmp_path):

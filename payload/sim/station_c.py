@@ -214,6 +214,11 @@ def _rotations(rng: np.random.Generator, n: int) -> np.ndarray:
     return np.array([quat_to_matrix(v / np.linalg.norm(v)).ravel() for v in q])
 
 
+CHECK_POSES = 400
+"""Random poses of the moving geoms in the station bound's full self-check
+(:func:`compiled_station_bound`)."""
+
+
 @native.reported("station bound")
 def compiled_station_bound(
     data: Any,
@@ -291,7 +296,7 @@ def compiled_station_bound(
             return False
         return True
 
-    if not native.self_checked(lib, shape, 400, check):
+    if not native.self_checked(lib, shape, CHECK_POSES, check):
         return None
     return kernel
 

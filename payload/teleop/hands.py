@@ -105,7 +105,7 @@ class Hand:
 
     @staticmethod
     def untracked() -> Hand:
-        return Hand(np.full((25, 3), np.nan), tracked=False)
+        return Hand(np.full(JOINTS_SHAPE, np.nan), tracked=False)
 
     def joint(self, name: str) -> np.ndarray:
         """Position of a named joint, shape (3,) [m]."""

@@ -138,6 +138,10 @@ class CompiledHandCheck:
         return self._call(last is not None)
 
 
+CHECK_HANDS = 2000
+"""Random hands of the hand check's full self-check (:func:`compiled_hand_check`)."""
+
+
 @native.reported("hand check")
 def compiled_hand_check(
     joints: int,
@@ -183,7 +187,7 @@ def compiled_hand_check(
             verdicts.add(mine)
         return verdicts == {True, False}  # the probes, short or full, met both verdicts
 
-    if not native.self_checked(loaded[0], (joints, wrist), 2000, check):
+    if not native.self_checked(loaded[0], (joints, wrist), CHECK_HANDS, check):
         return None
     return kernel
 

@@ -130,7 +130,7 @@ def _patched(timers: _Timers) -> Iterator[None]:
     from payload.sim.driver import SimDriver
     from payload.teleop.pipeline import TeleopPipeline
     from payload.trials import runner, scoring
-    from payload.trials.recorder import StepRecord, TrialRecorder
+    from payload.trials.recorder import TrialRecorder
 
     targets = [
         (SimDriver, "__init__", "startup"),
@@ -140,9 +140,7 @@ def _patched(timers: _Timers) -> Iterator[None]:
         (SimDriver, "world_state", "contacts"),
         (runner.HeadsetSource, "frame", "operator"),
         (TeleopPipeline, "step", "pipeline"),
-        (StepRecord, "__post_init__", "recording"),
-        (TrialRecorder, "write", "recording"),
-        (TrialRecorder, "write_later", "recording"),
+        (TrialRecorder, "write_later", "recording"),  # the step records made at its flush
         (TrialRecorder, "write_hands", "recording"),
         (TrialRecorder, "flush", "recording"),
         (scoring, "finish_trial", "scoring"),  # the runner imports it at each trial

@@ -109,6 +109,10 @@ class CompiledFramePoses:
         return self.out.copy()
 
 
+CHECK_POSTURES = 200
+"""Random postures of the frame poses' full self-check (:func:`compiled_frame_poses`)."""
+
+
 @native.reported("frame poses")
 def compiled_frame_poses(
     model: Any,
@@ -159,7 +163,7 @@ def compiled_frame_poses(
             mujoco.mj_kinematics(model, data)
         return True
 
-    if not native.self_checked(lib, len(links), 200, check):
+    if not native.self_checked(lib, len(links), CHECK_POSTURES, check):
         return None
     return kernel
 

@@ -158,19 +158,19 @@ class TrialRecorder:
         A step that cannot be made at this last flush (:meth:`write_later`) is raised after
         the file is finished, with the steps before it and an ``aborted`` metadata record
         naming the error: nobody scores it as a finished trial."""
-        if self._writer is not None:
-            try:
-                self._drain()
-            except BaseException as exc:
-                self.write_meta({"aborted": f"{type(exc).__name__}: {exc}"})
-                raise
-            finally:
-                self._writer.finish()
-                self._file.close()
-                self._writer = None
-                self._file = None
-                self._closed = True
-        self._closed = True
+        self._closed = True  # the writer below is still open until finished
+        if self._writer is None:
+            return
+        try:
+            self._drain()
+        except BaseException as exc:
+            self.write_meta({"aborted": f"{type(exc).__name__}: {exc}"})
+            raise
+        finally:
+            self._writer.finish()
+            self._file.close()
+            self._writer = None
+            self._file = None
 
     def __enter__(self) -> TrialRecorder:
         return self.open()

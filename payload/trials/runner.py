@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 import os
 import shutil
 import tempfile
@@ -400,7 +399,6 @@ def _record_session(
         bar = Progress(transient=True)
         task = bar.add_task(f"trial {seed}", total=max_time)
         bar.start()
-    last_t = [0.0]
     try:
         scene = recording_scene(driver, module_rects(layout))
         with TrialRecorder(rec_path, scene=scene, keep=True) as recorder:
@@ -411,7 +409,6 @@ def _record_session(
                 scene.observe(ctx.t)
                 # the step record is made at the recorder's next flush, with its batch
                 recorder.write_later(ctx.t, step_record, ctx, driver, setup.retargeters)
-                last_t[0] = ctx.t
                 if bar is not None:
                     bar.update(task, completed=ctx.t)
 
@@ -432,9 +429,7 @@ def _record_session(
                     recorder.flush()  # the steps made so far go into the file
                 except RecordingError:
                     pass  # one that cannot be made: the steps before it are in the file
-                at = recorder.last_written_t  # the last step in the file
-                if not math.isfinite(at):  # none yet
-                    at = last_t[0]
+                at = max(0.0, recorder.last_written_t)  # the last step in the file (0: none)
                 log.error("trial %s aborted at t = %.2f s", seed, at, exc_info=True)
                 recorder.write_meta({"aborted_by": what, "aborted_at_s": at})
                 raise TrialAborted(
