@@ -7,8 +7,9 @@ kernels (:mod:`payload.sim.allocation_c`, :mod:`payload.sim.vehicle_c`,
 :mod:`payload.teleop.filter_c`, :mod:`payload.teleop.limiter_c`,
 :mod:`payload.teleop.safety_c`, :mod:`payload.teleop.base_c`, :mod:`payload.teleop.pair_c`,
 :mod:`payload.teleop.handmodel_c`, :mod:`payload.teleop.intake_c`,
-:mod:`payload.retarget.targets_c`, :mod:`payload.trials.foxglove_c`,
-:mod:`payload.trials.messages_c`, :mod:`payload.trials.codec_c`) build their shared
+:mod:`payload.teleop.operator_c`, :mod:`payload.retarget.targets_c`,
+:mod:`payload.trials.foxglove_c`, :mod:`payload.trials.messages_c`,
+:mod:`payload.trials.codec_c`) build their shared
 libraries here. A library is named by the hash of its code, the compiler, the flags, the
 machine and whatever else its caller says it depends on (``key_parts``; a kernel compiled
 against MuJoCo's headers, MuJoCo's version), so a stale one is never loaded; a failed
@@ -116,11 +117,12 @@ def build_library(
     error: Callable[[str], Exception] = RuntimeError,
     what: str = "native code",
     include_dirs: Sequence[str] = (),
+    link: Sequence[str] = (),
 ) -> Path:
     """C ``sources`` (file name -> code, each prefixed with ``prelude``) compiled into one
     shared library under :func:`~payload.cache.cache_dir`, or the cached one. Headers
-    are searched in ``include_dirs`` too (what they hold belongs in ``key_parts``: a
-    version).
+    are searched in ``include_dirs`` too, and the static libraries ``link`` (paths) are
+    linked in (what they hold belongs in ``key_parts``: a version).
 
     Raises:
         ``error(message)``: The compiler failed; the message names ``what`` and the log.
@@ -139,6 +141,7 @@ def build_library(
                 *flags(compiler),
                 platform.machine(),
                 *include_dirs,
+                *link,
                 *key_parts,
             ]
         ).encode()
@@ -162,6 +165,7 @@ def build_library(
                 "-o",
                 str(out),
                 *map(str, paths),
+                *link,
                 "-lm",
             ],
             capture_output=True,
@@ -225,6 +229,23 @@ enum {{
 the types of numpy's ``dgemv`` and ``ddot`` and CBLAS's layout codes."""
 
 
+PYMOD_C = """
+/* Python's float % (float_rem): fmod, moved to the divisor's sign; a zero takes it too */
+static double pymod(double x, double y)
+{
+    double m = fmod(x, y);
+    if (m != 0.0) {
+        if ((y < 0) != (m < 0)) m += y;
+    } else {
+        m = copysign(0.0, y);
+    }
+    return m;
+}
+"""
+"""Python's ``%`` of two floats in C (``pymod``), for the kernels whose numpy code uses it
+(a kernel's source puts it before its own)."""
+
+
 def load_kernel(
     name: str,
     source: str,
@@ -234,6 +255,7 @@ def load_kernel(
     prelude: str = "",
     key_parts: Sequence[str] = (),
     include_dirs: Sequence[str] = (),
+    link: Sequence[str] = (),
 ) -> ctypes.CDLL | None:
     """A compiled kernel's library (``source`` built by :func:`build_library` as
     ``name``), or None when the numpy code is to run: :data:`NATIVE_ENV` is ``0``, there
@@ -254,6 +276,7 @@ def load_kernel(
             key_parts=(*key_parts, _numpy_version()),
             what=what,
             include_dirs=include_dirs,
+            link=link,
         )
         return ctypes.CDLL(str(path))
     except (RuntimeError, OSError) as exc:
@@ -262,7 +285,14 @@ def load_kernel(
 
 
 def load_blas_kernel(
-    name: str, source: str, what: str, logger: logging.Logger, *functions: str, prelude: str = ""
+    name: str,
+    source: str,
+    what: str,
+    logger: logging.Logger,
+    *functions: str,
+    prelude: str = "",
+    include_dirs: Sequence[str] = (),
+    link: Sequence[str] = (),
 ) -> tuple[Any, ...] | None:
     """:func:`load_kernel` for a kernel that calls numpy's CBLAS (or LAPACK) ``functions``
     (e.g. :data:`NUMPY_DDOT`, :data:`NUMPY_DGEMV`): ``(library, *their addresses)``, or
@@ -270,7 +300,9 @@ def load_blas_kernel(
     addresses = [numpy_blas(f) for f in functions]
     if any(a is None for a in addresses):
         return None
-    lib = load_kernel(name, source, what, logger, prelude=prelude)
+    lib = load_kernel(
+        name, source, what, logger, prelude=prelude, include_dirs=include_dirs, link=link
+    )
     return None if lib is None else (lib, *addresses)
 
 
@@ -593,6 +625,7 @@ __all__ = [
     "NUMPY_DDOT",
     "NUMPY_DGEMV",
     "OPTIONAL_CFLAGS",
+    "PYMOD_C",
     "RESULT_PACKAGES",
     "SHORT_SHARE",
     "build_library",

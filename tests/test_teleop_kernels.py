@@ -520,4 +520,5 @@ def test_a_held_hand_kernel_with_other_bits_is_refused(fresh_kernel, refused_ker
         "p[k] = p[k] + len * (cs * h->u[3 * r + k] + sn * h->v[3 * r + k]);",
         "p[k] = p[k] + (len * cs * h->u[3 * r + k] + len * sn * h->v[3 * r + k]);",
     ):
-        assert handmodel_c.compiled_held_hand(handmodel._TABLES, handmodel._held_hand_numpy) is None
+        kernel = handmodel_c.compiled_held_hand(handmodel.MODEL_TABLES, handmodel._held_hand_numpy)
+        assert kernel is None

@@ -45,17 +45,6 @@ static dgemv_fn mv;
 void payload_base_init(void *ddot, void *gemv) { payload_limiter_init(ddot); mv = (dgemv_fn)gemv; }
 
 
-/* Python's float % */
-static double pymod(double x, double y)
-{
-    double m = fmod(x, y);
-    if (m != 0.0) {
-        if ((y < 0) != (m < 0)) m += y;
-    } else {
-        m = copysign(0.0, y);
-    }
-    return m;
-}
 
 static int finite3(const double *v) { return isfinite(v[0]) && isfinite(v[1]) && isfinite(v[2]); }
 
@@ -282,7 +271,7 @@ class CompiledBase:
 def _load() -> tuple[Any, ...] | None:
     return native.load_blas_kernel(
         "base",
-        limiter_c.SOURCE + SOURCE,
+        limiter_c.SOURCE + native.PYMOD_C + SOURCE,
         "the base channel kernel",
         log,
         native.NUMPY_DDOT,

@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from payload.teleop.handmodel_c import compiled_held_hand, tremulous_wrist
+from payload.teleop.handmodel_c import DEFAULT_CURL, compiled_held_hand, tremulous_wrist
 from payload.teleop.hands import JOINT_INDEX, JOINTS_SHAPE
 
 # knuckle (phalanx-proximal) positions and phalanx lengths of a size-1 hand [m]
@@ -106,7 +106,7 @@ class HandModel:
     side: str = "right"
     size: float = 1.0
 
-    def local_joints(self, aperture: float, curl: float = 0.6) -> np.ndarray:
+    def local_joints(self, aperture: float, curl: float = DEFAULT_CURL) -> np.ndarray:
         """Joint positions in the wrist frame, shape (25, 3) [m].
 
         Args:
@@ -117,7 +117,7 @@ class HandModel:
         return _local_joints(self.side, float(self.size), s, float(curl)).copy()
 
     def joints(
-        self, wrist: np.ndarray, rotation: np.ndarray, aperture: float, curl: float = 0.6
+        self, wrist: np.ndarray, rotation: np.ndarray, aperture: float, curl: float = DEFAULT_CURL
     ) -> np.ndarray:
         """Joint positions in the workbench frame, shape (25, 3) [m].
 
@@ -135,7 +135,7 @@ class HandModel:
 _IDENTITY = np.eye(3)
 _IDENTITY.setflags(write=False)
 
-_TABLES = {
+MODEL_TABLES = {
     "origins": _ORIGINS,
     "lengths": _LENGTHS,
     "u": _U,
@@ -169,7 +169,7 @@ def _held_hand_numpy(
 
 @functools.cache
 def _held_hand_kernel() -> Any:
-    return compiled_held_hand(_TABLES, _held_hand_numpy)
+    return compiled_held_hand(MODEL_TABLES, _held_hand_numpy)
 
 
 def held_hand(
@@ -180,7 +180,7 @@ def held_hand(
     phases: np.ndarray,
     aperture: float,
     noise: np.ndarray,
-    curl: float = 0.6,
+    curl: float = DEFAULT_CURL,
 ) -> np.ndarray:
     """A tracked hand of the synthetic operator, shape (25, 3) [m]: ``model``'s joints,
     unrotated, at the wrist ``wrist + amp sin(arg + phases)`` (its tremor), plus the

@@ -66,6 +66,13 @@ _SIZES = {
 }
 """The sizes the C is compiled with (its ``#define`` lines)."""
 
+PRELUDE = "".join(f"#define {name} {value}\n" for name, value in _SIZES.items())
+"""The sizes as the C's ``#define`` lines (what :data:`SOURCE` is compiled after)."""
+
+DEFAULT_CURL = 0.6
+"""How far the three fingers besides the index curl when nothing says otherwise (the hand
+model's default ``curl``, the synthetic operator's held hands')."""
+
 _SHAPES: dict[str, tuple[int, ...]] = {
     "origins": (CHAINS, 3),
     "lengths": (CHAINS, PHALANGES),
@@ -170,6 +177,11 @@ class CompiledHeldHand:
         self._fn = fn
         self._addr = ctypes.addressof(self._tables)
 
+    @property
+    def tables_address(self) -> int:
+        """The address of the tables' ``struct tables`` (kept while this object lives)."""
+        return self._addr
+
     def __call__(
         self,
         left: bool,
@@ -243,7 +255,7 @@ def compiled_held_hand(
     or that it leaves to the numpy code though the wrist has no zero coordinate."""
     lib = native.load_kernel(
         "held_hand", SOURCE, "the held hand kernel", log,
-        prelude="".join(f"#define {name} {value}\n" for name, value in _SIZES.items()),
+        prelude=PRELUDE,
     )  # fmt: skip
     if lib is None:
         return None
@@ -271,8 +283,10 @@ def compiled_held_hand(
 __all__ = [
     "CHAINS",
     "CHECK_HANDS",
+    "DEFAULT_CURL",
     "METACARPALS",
     "PHALANGES",
+    "PRELUDE",
     "SOURCE",
     "TABLES",
     "ZERO_WRIST_EVERY",

@@ -51,6 +51,13 @@ WEBXR_TO_WORKBENCH = np.array([[0.0, 0.0, -1.0], [-1.0, 0.0, 0.0], [0.0, 1.0, 0.
 """Rotation taking WebXR (Y up, -Z forward) vectors to workbench (REP-103) vectors."""
 
 
+def round_to_grid(joints: np.ndarray, grid: float) -> np.ndarray:
+    """Joint positions rounded to ``grid`` [m], a new array (what a headset reporting on
+    that grid gives: :func:`payload.trials.jointcodec.quantize_joints`). NaN stays NaN."""
+    # rint is what round(decimals=0) calls on floats (the same bits, without its wrappers)
+    return np.rint(np.asarray(joints, dtype=np.float64) / grid) * grid
+
+
 class HandFrameError(PayloadError):
     """A hand frame is malformed (wrong shape, unknown hand, non-finite timestamp)."""
 

@@ -44,10 +44,13 @@ class SyntheticSource:
     def __init__(self, operator: SyntheticOperator) -> None:
         self.operator = operator
 
-    def frame(self, t: float, world: WorldView | None) -> HandFrame | None:
+    def frame(
+        self, t: float, world: WorldView | None, grid: float | None = None
+    ) -> HandFrame | None:
+        """The operator's hands (``grid``: as a headset reporting on it gives them)."""
         if world is None:
             raise ValueError("the synthetic operator needs to see the world")
-        return self.operator.act(world)
+        return self.operator.act(world, grid)
 
     @property
     def finished(self) -> bool:

@@ -19,16 +19,19 @@ from __future__ import annotations
 import functools
 import math
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
-from payload.rotations import yaw_matrix
+from payload.rotations import quat_to_matrix, yaw_matrix
 from payload.schema import CONTROL_DT
 from payload.teleop.calibration import CalibrationProcedure
 from payload.teleop.channels import BaseConfig
 from payload.teleop.handmodel import HandModel, held_hand
-from payload.teleop.hands import JOINTS_SHAPE, Hand, HandFrame
+from payload.teleop.hands import JOINTS_SHAPE, Hand, HandFrame, round_to_grid
+from payload.teleop.operator_c import FLIGHT_PHASES, compiled_act
 from payload.vecmath import norm
 
 
@@ -376,12 +379,27 @@ class SyntheticOperator:
         return {"left": centre + half + offset, "right": centre - half + offset}, aperture
 
     # ------------------------------------------------------------------ output
-    def act(self, world: WorldView) -> HandFrame:
-        """The operator's hands at ``world.t``, given what it has seen until then."""
+    def act(self, world: WorldView, grid: float | None = None) -> HandFrame:
+        """The operator's hands at ``world.t``, given what it has seen until then; with a
+        ``grid`` [m], as a headset reporting on that grid gives them (each joint position
+        rounded to it: :func:`~payload.teleop.hands.round_to_grid`)."""
         t = world.t
         dt = CONTROL_DT if self._last_t is None else max(1e-3, t - self._last_t)
         self._last_t = t
         seen = self._perceive(world)
+        step = self._compiled_act if self.phase in FLIGHT_PHASES else None
+        joints = step(t, dt, seen, grid) if step is not None else None
+        if joints is None:
+            joints = self._act_numpy(t, dt, seen, grid)
+        left, right = (Hand.untracked() if j is None else Hand.taking(j) for j in joints)
+        return HandFrame(t, left, right)  # each hand's array its own: kept, not copied
+
+    def _act_numpy(
+        self, t: float, dt: float, seen: WorldView, grid: float | None = None
+    ) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """:meth:`act` after the perception, in Python (what the compiled flight steps
+        are checked against, :mod:`payload.teleop.operator_c`): the intent, the arm's lags
+        and each hand's joints, on the ``grid`` if one is given (None: lost this step)."""
         if self.phase == "calibration":
             intent, aperture = self._calibration_intent(t)
             if self.calibration.done and t - self.reaction_end() > 0:
@@ -393,14 +411,14 @@ class SyntheticOperator:
         for side in ("left", "right"):
             self.wrist[side] = self.wrist[side] + k * (intent[side] - self.wrist[side])
         self.aperture += (1.0 - math.exp(-dt / 0.15)) * (aperture - self.aperture)
-        hands = {}
+        hands: list[np.ndarray | None] = []
         for side in ("left", "right"):
             if t < self._dropout_until[side]:
-                hands[side] = Hand.untracked()
+                hands.append(None)
                 continue
             if self.rng.random() < tr.dropout_rate * dt:
                 self._dropout_until[side] = t + self.rng.uniform(0.03, 0.08)
-                hands[side] = Hand.untracked()
+                hands.append(None)
                 continue
             noise = self.rng.normal(0.0, tr.noise, size=JOINTS_SHAPE)
             arg = 2 * math.pi * tr.tremor_freq * t
@@ -408,9 +426,60 @@ class SyntheticOperator:
             joints = held_hand(
                 model, self.wrist[side], tr.tremor_amp, arg, phases, self.aperture, noise
             )
-            hands[side] = Hand.taking(joints)  # the call's own array: kept, not copied
-        return HandFrame(t, hands["left"], hands["right"])
+            hands.append(joints if grid is None else round_to_grid(joints, grid))
+        return hands[0], hands[1]
+
+    @functools.cached_property
+    def _compiled_act(self) -> Callable[..., Any] | None:
+        """:meth:`_act_numpy` in the flight phases, compiled for this operator, or None."""
+        kernel = compiled_act(_check_operators, _check_view)
+        return None if kernel is None else kernel.stepper(self)
 
     def reaction_end(self) -> float:
         """Time at which the operator notices the calibration has finished."""
         return self.calibration.t0 + self.calibration.duration + self.traits.reaction
+
+
+def _check_operators(k: int) -> tuple[SyntheticOperator, SyntheticOperator]:
+    """Two like operators in flight for the compiled flight's self-check
+    (:func:`payload.teleop.operator_c.compiled_act`): a random route of 1 to 6 waypoints
+    and heading, sampled traits (a high dropout rate for some), a random phase, waypoint,
+    wrists, aperture, grip, stop time and dropouts, all seeded by ``k``."""
+    rng = np.random.default_rng(k)
+    n = 1 + k % 6
+    route = np.cumsum(rng.normal(scale=1.5, size=(n, 3)), axis=0)
+    plan = OperatorPlan(
+        route=route,
+        heading0=float(rng.uniform(-math.pi, math.pi)),
+        corner_speed=(0.04, 0.07)[k % 2],
+    )
+    traits = OperatorTraits.sample(rng)
+    if k % 2:  # hands lost often: dropouts begin and end within the check
+        traits = OperatorTraits(**{**vars(traits), "dropout_rate": 5.0})
+    state = rng.integers(1 << 30)
+    pair = []
+    for _ in range(2):
+        op = SyntheticOperator(plan, k, CalibrationProcedure(), traits)
+        draw = np.random.default_rng(state)
+        op.phase = FLIGHT_PHASES[int(draw.integers(len(FLIGHT_PHASES)))]
+        op.waypoint = int(draw.integers(n))
+        op.wrist = {s: draw.normal(scale=0.5, size=3) for s in ("left", "right")}
+        op.aperture = float(draw.uniform(0.0, 1.0))
+        op.grip_aperture = None if k % 3 == 0 else float(draw.uniform(0.0, 0.04))
+        op.stopped_since = (None, 0.0, float(draw.uniform(0.0, 30.0)))[k % 3]
+        op._dropout_until = {s: float(draw.uniform(-1.0, 21.0)) for s in ("left", "right")}
+        pair.append(op)
+    return pair[0], pair[1]
+
+
+def _check_view(op: SyntheticOperator, rng: np.random.Generator, i: int, t: float) -> WorldView:
+    """A random view of the vehicle for the compiled flight's self-check: near one of the
+    operator's waypoints (within its radius at times, at the last one at times), turned
+    any way, moving or (for three seconds in every six) at rest."""
+    route = op.plan.route
+    near = route[int(rng.integers(len(route)))] if i % 4 else route[-1]
+    pos = near + rng.normal(scale=(0.05, 0.3, 1.0)[i % 3], size=3)
+    q = rng.normal(size=4)
+    rot = quat_to_matrix(q / np.linalg.norm(q))
+    vel = np.zeros(3) if (i // 150) % 2 else rng.normal(scale=(0.001, 0.05)[i % 2], size=3)
+    return WorldView(t, pos, rot, vel, pos + 0.3, bool(i % 2), None)

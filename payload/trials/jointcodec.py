@@ -16,6 +16,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from payload.teleop.hands import round_to_grid
 from payload.trials.records import N_HAND_JOINTS
 
 HAND_GRID_M = 1e-5
@@ -27,12 +28,12 @@ it and their deltas): such joints are stored raw, such steps as doubles."""
 
 
 def quantize_joints(joints: np.ndarray, grid: float = HAND_GRID_M) -> np.ndarray:
-    """Joint positions rounded to ``grid`` [m] (what the synthetic headset reports).
+    """Joint positions rounded to ``grid`` [m] (what the synthetic headset reports:
+    :func:`payload.teleop.hands.round_to_grid`).
 
     NaN stays NaN; the result is exactly representable by the ``grid`` form of ``Joints``.
     """
-    # rint is what round(decimals=0) calls on floats (the same bits, without its wrappers)
-    return np.rint(np.asarray(joints, dtype=np.float64) / grid) * grid
+    return round_to_grid(joints, grid)
 
 
 class JointsCodec:

@@ -80,6 +80,8 @@ class HeadsetSource:
         self.grid = grid
 
     def frame(self, t: float, world: WorldView | None) -> HandFrame | None:
+        if type(self.source) is SyntheticSource:  # it draws the hands on the grid itself
+            return self.source.frame(t, world, self.grid)
         fr = self.source.frame(t, world)
         if fr is None:
             return None

@@ -1,0 +1,570 @@
+"""The synthetic operator's flight steps as one compiled call, with numpy's bits.
+
+From the end of the acquisition to the trial's end (most of a trial's steps) the synthetic
+operator (:class:`payload.teleop.operator.SyntheticOperator`) does the same thing every
+control step (:meth:`~payload.teleop.operator.SyntheticOperator.act`): it advances along
+the route, works out the speed it wants (its preference, the distance it needs to stop,
+the corner ahead), turns or translates, offsets both wrists from their working posture to
+fly the vehicle that way, brakes and waits at the end; both wrists and the pinch follow
+that intent through the arm's lags; then each hand is lost for a moment or drawn: the
+tracker's noise, the hand model at the trembling wrist
+(:func:`payload.teleop.handmodel.held_hand`). In Python that is about sixty calls a step
+on 3-vectors, floats and numpy's generator; here it is one C call doing the same
+operations in the same order:
+
+* norms through numpy's own CBLAS ``ddot`` (:func:`payload.vecmath.norm`), the
+  operator-frame rotation through its ``dgemv`` as numpy's ``matmul`` passes the
+  transposed yaw matrix (column-major);
+* ``sqrt``, ``atan2``, ``exp``, ``sin`` and ``fmod`` of the C library Python's ``math``
+  calls (the corner speed's square is Python's, passed in), Python's ``%`` (``pymod``) and
+  its ``min``/``max`` tie rules (the first argument unless a later one is strictly
+  smaller/greater; a NaN never is), Python's truth of ``stopped_since`` (None or zero is
+  false);
+* the dropouts and the noise drawn by numpy's own generator functions
+  (``random_uniform``, ``random_normal`` of ``numpy/random/lib/libnpyrandom.a``, linked in,
+  and the bit generator's ``next_double``) on the operator's own generator, in the order
+  numpy draws them;
+* the held hand by the C of :mod:`payload.teleop.handmodel_c`, compiled in, and, for a
+  headset that reports on a grid, :func:`payload.teleop.hands.round_to_grid` (C's
+  ``rint``, numpy's for doubles).
+
+The calibration and the acquisition (their own random draws among them) stay in Python.
+A step whose held hand the compiled hand would leave to numpy (a wrist coordinate that is
+zero) goes to the Python before anything is drawn. Checked against the Python when built,
+on random routes, traits and views in every phase of the flight, hands and generator
+states compared to the bit; without a compiler, numpy's OpenBLAS or its ``libnpyrandom``,
+or with ``PAYLOAD_NATIVE=0`` the Python runs.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import functools
+import logging
+import math
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from payload import native
+from payload.teleop import handmodel_c
+from payload.teleop.handmodel import MODEL_TABLES
+from payload.teleop.hands import JOINTS_SHAPE
+
+log = logging.getLogger(__name__)
+
+FLIGHT_PHASES: tuple[str, ...] = ("translation", "turn", "arrival", "braking")
+"""The operator's phases the kernel steps (its phase codes, in order)."""
+
+CONFIG: tuple[str, ...] = (
+    "waypoint_radius",
+    "brake_accel",
+    "max_speed",
+    "speed_pref",
+    "corner_speed_squared",
+    "sphere_radius",
+    "full_speed_offset",
+    "wrist_lag",
+    "turn_threshold",
+)
+"""The flight's constants (``cfg`` of :data:`SOURCE`, in this order): the plan's, the base
+channel's, the traits' and the heading error [rad] above which the operator turns."""
+
+STATE: tuple[str, ...] = (
+    "phase",
+    "waypoint",
+    "stopped_since",
+    "finished",
+    "aperture",
+    "grip_aperture",
+    "dropout_left",
+    "dropout_right",
+)
+"""The operator's state the kernel reads and writes (``state`` of :data:`SOURCE`): the
+phase's code, the waypoint, ``stopped_since`` and ``grip_aperture`` (NaN: None), whether
+it finished, the aperture, and until when each hand is lost."""
+
+HANDS: tuple[str, ...] = (
+    "t",
+    "dt",
+    "hand_size",
+    "tremor_amp",
+    "tremor_freq",
+    "noise",
+    "dropout_rate",
+    "curl",
+    "dropout_low",
+    "dropout_range",
+    "grid",
+)
+"""The step's scalars (``s`` of :data:`SOURCE`, in this order): its time and period, the
+traits the hands are drawn with, the hand model's curl, the dropout's length (numpy's
+``uniform(0.03, 0.08)`` as its low end and range) and the grid the headset reports the
+joints on (0: none)."""
+
+SOURCE = r"""
+#include "numpy/random/bitgen.h"
+
+double random_normal(bitgen_t *bitgen_state, double loc, double scale);
+double random_uniform(bitgen_t *bitgen_state, double lower, double range);
+
+static ddot_fn dot;
+static dgemv_fn mv;
+void payload_operator_init(void *ddot, void *gemv) { dot = (ddot_fn)ddot; mv = (dgemv_fn)gemv; }
+
+
+static double pymax0(double x) { return (x > 0.0) ? x : 0.0; }  /* max(0.0, x) */
+
+enum { TRANSLATION, TURN, ARRIVAL, BRAKING };
+enum { S_PHASE, S_WAYPOINT, S_STOPPED, S_FINISHED, S_APERTURE, S_GRIP, S_DROP };
+enum { A_CFG, A_ROUTE, A_LEFT, A_N, A_YAW, A_CENTRE, A_HALF, A_VIEW, A_WL, A_WR, A_STATE,
+       A_TABLES, A_PHASES, A_BITGEN, A_OUT };
+enum { T, DT, SIZE, AMP, FREQ, NOISE, DROPOUT_RATE, CURL, DROP_LOW, DROP_RANGE, GRID };
+
+/* whether payload_held_hand draws this hand rather than leave it to numpy */
+static int held_ok(double size, double aperture, double curl, const double *w, double amp,
+                   double arg, const double *phases)
+{
+    if (!isfinite(size) || !isfinite(aperture) || !isfinite(curl)) return 0;
+    for (int k = 0; k < 3; k++) {
+        const double x = w[k] + amp * sin(arg + phases[k]);
+        if (!(x != 0.0) || !isfinite(x)) return 0;
+    }
+    return 1;
+}
+
+/* SyntheticOperator.act in a flight phase, after its perception: _task_intent, the arm's
+   lags, then each hand (lost, or drawn: noise, held hand). a: the pointers and the route's
+   length (A_*): cfg (CONFIG), route (n, 3), left (n, the route's length from each
+   waypoint), yaw (yaw_matrix(heading0), row-major; the operator frame's rotation is its
+   transpose), centre, half (the working posture), view (the seen position, rotation
+   row-major and velocity: 15), the wrists (updated in place), state (STATE, updated), the
+   held hand's tables, the tremor phases (left then right: 6), the bit generator, out (the
+   hands' joints: 2 x 25 x 3, on the grid when s[GRID] > 0). s: HANDS. Returns -1,
+   nothing changed and nothing drawn, for a step whose held hand numpy draws; else 1 if
+   the left hand is tracked plus 2 if the right one is. */
+int payload_operator_act(const int64_t *a, const double *s)
+{
+    const double *cfg = (const double *)a[A_CFG], *route = (const double *)a[A_ROUTE];
+    const double *left = (const double *)a[A_LEFT], *yaw = (const double *)a[A_YAW];
+    const double *centre = (const double *)a[A_CENTRE], *half = (const double *)a[A_HALF];
+    const double *view = (const double *)a[A_VIEW];
+    const double *pos = view, *rot = view + 3, *vel = view + 12;
+    double *wrists[2] = {(double *)a[A_WL], (double *)a[A_WR]};
+    double *state = (double *)a[A_STATE];
+    const int64_t n = a[A_N];
+    const double t = s[T], dt = s[DT];
+    const double radius = cfg[0], brake = cfg[1], max_speed = cfg[2], pref = cfg[3];
+    const double corner_sq = cfg[4], sphere = cfg[5], full = cfg[6], lag = cfg[7];
+    const double turn_threshold = cfg[8];
+    int phase = (int)state[S_PHASE];
+    int64_t w = (int64_t)state[S_WAYPOINT];
+    double stopped = state[S_STOPPED];
+    int finished = 0;
+    const double grip = state[S_GRIP];
+    double ap_now = state[S_APERTURE];
+    const double aperture = isnan(grip) ? ap_now : grip;  /* grip_aperture, unless None */
+    double d[3];
+    for (;;) {  /* advance along the route */
+        if (!(w < n - 1)) break;
+        for (int k = 0; k < 3; k++) d[k] = route[3 * w + k] - pos[k];
+        if (!(sqrt(dot(3, d, 1, d, 1)) < radius)) break;
+        w += 1;
+    }
+    double to_target[3];
+    for (int k = 0; k < 3; k++) to_target[k] = route[3 * w + k] - pos[k];
+    const double dist = sqrt(dot(3, to_target, 1, to_target, 1));
+    const int last = (w == n - 1);
+    double offset[3] = {0.0, 0.0, 0.0};
+    if (phase == TRANSLATION || phase == TURN) {
+        const double remaining = dist + left[w];
+        const double stop_speed = sqrt(2 * brake * pymax0(remaining - 0.3));
+        const double corner = last ? max_speed
+            : sqrt(corner_sq + 2 * brake * pymax0(dist - radius));
+        double speed = max_speed * pref;  /* min(..., stop_speed, corner) */
+        if (stop_speed < speed) speed = stop_speed;
+        if (corner < speed) speed = corner;
+        const double heading = atan2(rot[3], rot[0]);
+        const double desired = atan2(to_target[1], to_target[0]);
+        const double err = fabs(pymod(desired - heading + M_PI, 2 * M_PI) - M_PI);
+        phase = (err > turn_threshold) ? TURN : TRANSLATION;
+        if (last && remaining < 0.45) phase = ARRIVAL;
+        if (dist > 1e-6 && phase != ARRIVAL) {
+            double u[3], direction[3];
+            for (int k = 0; k < 3; k++) u[k] = to_target[k] / dist;
+            /* yaw.T @ u: the transposed row-major matrix is a column-major one */
+            mv(COL_MAJOR, NO_TRANS, 3, 3, 1.0, yaw, 3, u, 1, 0.0, direction, 1);
+            const double reach = sphere + 0.01 + full * speed / max_speed;
+            for (int k = 0; k < 3; k++) offset[k] = direction[k] * reach;
+        }
+    }
+    if (phase == ARRIVAL || phase == BRAKING) {
+        const double speed_now = sqrt(dot(3, vel, 1, vel, 1));
+        phase = BRAKING;
+        if (speed_now < 0.005) {
+            if (isnan(stopped) || stopped == 0.0) stopped = t;  /* None or 0.0: false */
+            if (t - stopped > 2.0) finished = 1;
+        } else {
+            stopped = NAN;
+        }
+    }
+    const double kw = 1.0 - exp(-dt / lag);
+    double wl[3], wr[3];
+    for (int k = 0; k < 3; k++) {
+        const double il = centre[k] + half[k] + offset[k];
+        const double ir = centre[k] - half[k] + offset[k];
+        wl[k] = wrists[0][k] + kw * (il - wrists[0][k]);
+        wr[k] = wrists[1][k] + kw * (ir - wrists[1][k]);
+    }
+    ap_now += (1.0 - exp(-dt / 0.15)) * (aperture - ap_now);
+    const double arg = 2 * M_PI * s[FREQ] * t;
+    const double *phases = (const double *)a[A_PHASES];
+    if (!held_ok(s[SIZE], ap_now, s[CURL], wl, s[AMP], arg, phases)
+        || !held_ok(s[SIZE], ap_now, s[CURL], wr, s[AMP], arg, phases + 3))
+        return -1;
+    for (int k = 0; k < 3; k++) { wrists[0][k] = wl[k]; wrists[1][k] = wr[k]; }
+    state[S_PHASE] = (double)phase;
+    state[S_WAYPOINT] = (double)w;
+    state[S_STOPPED] = stopped;
+    if (finished) state[S_FINISHED] = 1.0;
+    state[S_APERTURE] = ap_now;
+    bitgen_t *bitgen = (bitgen_t *)a[A_BITGEN];
+    double *out = (double *)a[A_OUT];
+    int tracked = 0;
+    for (int side = 0; side < 2; side++) {
+        if (t < state[S_DROP + side]) continue;
+        if (bitgen->next_double(bitgen->state) < s[DROPOUT_RATE] * dt) {
+            state[S_DROP + side] = t + random_uniform(bitgen, s[DROP_LOW], s[DROP_RANGE]);
+            continue;
+        }
+        double *joints = out + side * 3 * N_JOINTS;
+        for (int i = 0; i < 3 * N_JOINTS; i++) joints[i] = random_normal(bitgen, 0.0, s[NOISE]);
+        payload_held_hand((const struct tables *)a[A_TABLES], s[SIZE], side == 0, ap_now,
+                          s[CURL], wrists[side], s[AMP], arg, phases + 3 * side, joints);
+        const double grid = s[GRID];
+        if (grid > 0.0)  /* round_to_grid: numpy's rint of the quotient, times the grid */
+            for (int i = 0; i < 3 * N_JOINTS; i++) joints[i] = rint(joints[i] / grid) * grid;
+        tracked |= 1 << side;
+    }
+    return tracked;
+}
+"""
+"""The kernel's C (after :data:`payload.native.BLAS_C` and :data:`handmodel_c.SOURCE`)."""
+
+_VIEW = 15
+"""The view's values in the kernel's input: position (3), rotation (9), velocity (3)."""
+
+
+def _npyrandom() -> tuple[str, str] | None:
+    """numpy's headers' folder and its ``libnpyrandom.a`` (the generator's C functions,
+    built for extensions to link), or None when this numpy ships no such library."""
+    include = Path(np.get_include())
+    lib = Path(np.__file__).parent / "random" / "lib" / "libnpyrandom.a"
+    if not (include / "numpy" / "random" / "bitgen.h").is_file() or not lib.is_file():
+        return None
+    return str(include), str(lib)
+
+
+class CompiledAct:
+    """The flight step, compiled (:data:`SOURCE`), bound to operators by :meth:`stepper`.
+
+    Args:
+        lib: The kernel's library.
+        ddot, gemv: The addresses of numpy's CBLAS functions.
+        tables: The hand model's tables (:data:`payload.teleop.handmodel_c.TABLES`).
+    """
+
+    def __init__(self, lib: ctypes.CDLL, ddot: int, gemv: int, tables: Any) -> None:
+        init = lib.payload_operator_init
+        init.argtypes = [ctypes.c_void_p, ctypes.c_void_p]
+        init(ddot, gemv)
+        fn = lib.payload_operator_act
+        fn.restype = ctypes.c_int
+        fn.argtypes = [ctypes.c_void_p, ctypes.c_void_p]
+        self._fn = fn
+        self._hand = handmodel_c.CompiledHeldHand(lib, tables)  # its tables' struct
+
+    def stepper(self, operator: Any) -> Callable[..., Any] | None:
+        """``step(t, dt, seen, grid)`` of ``operator`` (a :class:`SyntheticOperator
+        <payload.teleop.operator.SyntheticOperator>` after its perception), its state
+        updated as its Python updates it: ``(left, right)``, each hand's joints (a (25, 3)
+        array of its own, rounded to ``grid`` unless it is None) or None for a lost hand;
+        or None, nothing changed, where the Python is to run (another phase, a view, wrists
+        or state of other types, a held hand numpy draws). None for an operator the kernel
+        does not take."""
+        plan, traits, rng = operator.plan, operator.traits, operator.rng
+        route = plan.route
+        if not (
+            type(route) is np.ndarray
+            and route.dtype == np.float64
+            and route.ndim == 2
+            and route.shape[1] == 3
+            and len(route) >= 1
+        ):
+            return None
+        models, phases = operator.models, operator.phases
+        if {models["left"].size, models["right"].size} != {traits.hand_size}:
+            return None
+        if any(np.shape(phases[side]) != (3,) for side in ("left", "right")):
+            return None
+        route = np.ascontiguousarray(route)  # read at every step: a copy of the plan's
+        left = np.array(operator._route_left, dtype=np.float64)
+        to_operator = operator._to_operator
+        if not (to_operator.flags.f_contiguous and not to_operator.flags.c_contiguous):
+            return None  # numpy's matmul passes this layout's transpose as column-major
+        yaw = np.ascontiguousarray(to_operator.T)
+        centre, half = (np.ascontiguousarray(a, dtype=np.float64) for a in operator._posture)
+        base = plan.base
+        cfg = np.array(
+            [
+                plan.waypoint_radius,
+                plan.brake_accel,
+                base.max_speed,
+                traits.speed_pref,
+                plan.corner_speed**2,  # Python's power, not the compiler's
+                base.sphere_radius,
+                base.full_speed_offset,
+                traits.wrist_lag,
+                math.radians(12),
+            ],
+            dtype=np.float64,
+        )
+        tremor = np.concatenate([phases["left"], phases["right"]]).astype(np.float64)
+        scalars = np.array(
+            [
+                0.0,
+                0.0,
+                float(traits.hand_size),
+                traits.tremor_amp,
+                traits.tremor_freq,
+                traits.noise,
+                traits.dropout_rate,
+                handmodel_c.DEFAULT_CURL,
+                0.03,
+                0.08 - 0.03,  # numpy's uniform(0.03, 0.08) draws low + (high - low) u
+                0.0,
+            ],
+            dtype=np.float64,
+        )
+        view = np.zeros(_VIEW)
+        pos, rot, vel = view[0:3], view[3:12].reshape(3, 3), view[12:15]
+        state = np.zeros(len(STATE))
+        out = np.zeros((2, *JOINTS_SHAPE))
+        args = np.zeros(15, dtype=np.int64)  # payload_operator_act's pointers (A_*)
+        args[:] = [
+            cfg.ctypes.data, route.ctypes.data, left.ctypes.data, len(route),
+            yaw.ctypes.data, centre.ctypes.data, half.ctypes.data, view.ctypes.data, 0, 0,
+            state.ctypes.data, self._hand.tables_address, tremor.ctypes.data,
+            rng.bit_generator.ctypes.bit_generator.value, out.ctypes.data,
+        ]  # fmt: skip
+        call = functools.partial(self._fn, args.ctypes.data, scalars.ctypes.data)
+        codes = {name: float(i) for i, name in enumerate(FLIGHT_PHASES)}
+        n = len(route)
+        bound: list[Any] = [None, None]
+        synced: list[Any] = [None]  # the attributes as the kernel last left them
+
+        def wrists() -> bool:
+            """Bind the operator's wrists (made arrays of its own first); False for wrists
+            that are not three numbers each (the Python says what is wrong)."""
+            wl, wr = operator.wrist["left"], operator.wrist["right"]
+            if np.shape(wl) != (3,) or np.shape(wr) != (3,):
+                return False
+            bound[:] = np.array(wl, float), np.array(wr, float)
+            operator.wrist["left"], operator.wrist["right"] = bound
+            args[8], args[9] = bound[0].ctypes.data, bound[1].ctypes.data
+            return True
+
+        def load(op: Any) -> bool:
+            """The operator's attributes into the kernel's state; False for values the
+            kernel does not take."""
+            waypoint, stopped, grip = op.waypoint, op.stopped_since, op.grip_aperture
+            drop = op._dropout_until
+            if type(waypoint) is not int or not 0 <= waypoint < n:
+                return False
+            for value in (stopped, grip):  # None is the kernel's NaN
+                if value is not None and not (type(value) is float and value == value):
+                    return False
+            if not all(type(drop[s]) is float for s in ("left", "right")):
+                return False
+            state[:] = (
+                codes[op.phase],
+                waypoint,
+                math.nan if stopped is None else stopped,
+                0.0,
+                op.aperture,
+                math.nan if grip is None else grip,
+                drop["left"],
+                drop["right"],
+            )
+            return True
+
+        def step(t: float, dt: float, seen: Any, grid: float | None) -> tuple[Any, Any] | None:
+            op = operator
+            if grid is not None and not (type(grid) is float and grid > 0.0):
+                return None
+            if op.plan is not plan or op.traits is not traits or op.rng is not rng:
+                return None
+            if op.phase not in codes or op.models is not models or op.phases is not phases:
+                return None
+            wl, wr = op.wrist["left"], op.wrist["right"]
+            if not (wl is bound[0] and wr is bound[1]) and not wrists():
+                return None
+            p, r, v = seen.astrobee_pos, seen.astrobee_rot, seen.astrobee_vel
+            if not (_real(p, (3,)) and _real(r, (3, 3)) and _real(v, (3,))):
+                return None
+            drop = op._dropout_until
+            now = (op.phase, op.waypoint, op.stopped_since, op.aperture, op.grip_aperture,
+                   drop["left"], drop["right"])  # fmt: skip
+            if now != synced[0] and not load(op):
+                return None
+            pos[:], rot[:], vel[:] = p, r, v
+            scalars[0], scalars[1], scalars[-1] = t, dt, 0.0 if grid is None else grid
+            tracked = call()
+            if tracked < 0:
+                synced[0] = None
+                return None
+            phase, waypoint, stopped, finished, aperture, _, dl, dr = state.tolist()
+            op.phase = FLIGHT_PHASES[int(phase)]
+            op.waypoint = int(waypoint)
+            op.stopped_since = None if stopped != stopped else stopped
+            if finished:
+                op.finished = True
+            op.aperture = aperture
+            drop["left"], drop["right"] = dl, dr
+            synced[0] = (op.phase, op.waypoint, op.stopped_since, aperture, op.grip_aperture,
+                         dl, dr)  # fmt: skip
+            return (
+                out[0].copy() if tracked & 1 else None,
+                out[1].copy() if tracked & 2 else None,
+            )
+
+        keep = (cfg, route, left, yaw, centre, half, tremor, scalars, view, state, out, args)
+        step.keep = keep  # type: ignore[attr-defined]
+        return step
+
+
+def _real(a: Any, shape: tuple[int, ...]) -> bool:
+    """A float64 numpy array of ``shape`` (copied into the kernel's input)."""
+    return type(a) is np.ndarray and a.dtype == np.float64 and a.shape == shape
+
+
+CHECK_OPERATORS = 6
+"""Operators (routes, traits) of the kernel's full self-check."""
+
+CHECK_STEPS = 400
+"""Flight steps of each operator in the full self-check (a short check: the first tenth
+of them, every operator)."""
+
+CHECK_GRIDS: tuple[float | None, ...] = (None, 1e-5, 3e-4)
+"""The headset grids of the self-check's steps, in turn (None: the joints as drawn)."""
+
+RESET_EVERY = 25
+"""Every so many steps the self-check puts both operators back in flight (translation or
+turn, at a random waypoint): a flight ends in braking for good."""
+
+
+@functools.cache
+@native.reported("operator")
+def compiled_act(
+    factory: Callable[[int], tuple[Any, Any]],
+    view: Callable[[Any, np.random.Generator, int, float], Any],
+) -> CompiledAct | None:
+    """The process's compiled flight step, or None to run the Python (no compiler, no
+    numpy OpenBLAS or ``libnpyrandom``, ``PAYLOAD_NATIVE=0``, a failed build, or a
+    self-check that differs in a single bit): ``factory(k)`` makes two like operators in
+    flight (random route, traits and state, seeded by ``k``), ``view(operator, rng, i,
+    t)`` a random view of the vehicle along its route at step ``i`` (at rest for
+    stretches); the kernel steps one of each pair and the Python the other
+    (``_act_numpy``), on the same views, and every hand, wrist, aperture, state value and
+    the generators' states must agree to the bit (:data:`CHECK_OPERATORS` of
+    :data:`CHECK_STEPS` steps, or their first tenth once a full check passed)."""
+    npy = _npyrandom()
+    if npy is None:
+        log.info("operator: numpy (this numpy has no libnpyrandom)")
+        return None
+    loaded = native.load_blas_kernel(
+        "operator_act", handmodel_c.SOURCE + native.PYMOD_C + SOURCE, "the operator's kernel", log,
+        native.NUMPY_DDOT, native.NUMPY_DGEMV, prelude=handmodel_c.PRELUDE,
+        include_dirs=(npy[0],), link=(npy[1],),
+    )  # fmt: skip
+    if loaded is None:
+        return None
+    try:
+        kernel = CompiledAct(*loaded, MODEL_TABLES)
+    except ValueError as exc:
+        log.warning("operator: numpy (%s)", exc)
+        return None
+
+    def check(steps: int) -> bool:
+        for k in range(CHECK_OPERATORS):
+            mine, theirs = factory(k)
+            step = kernel.stepper(mine)
+            if step is None:
+                return False
+            rng = np.random.default_rng(1000 + k)
+            for i in range(steps):
+                if i % RESET_EVERY == 0:  # back in flight (the operators brake for good)
+                    phase = FLIGHT_PHASES[int(rng.integers(len(FLIGHT_PHASES) + 2)) % 2]
+                    waypoint = int(rng.integers(len(mine.plan.route)))
+                    for op in (mine, theirs):
+                        op.phase, op.waypoint = phase, waypoint
+                t = 20.0 + 0.02 * i
+                dt = 0.02 if i % 37 else float(rng.uniform(1e-3, 0.1))
+                seen = view(mine, rng, i, t)
+                grid = CHECK_GRIDS[(k + i) % len(CHECK_GRIDS)]
+                hands = step(t, dt, seen, grid)
+                if hands is None:
+                    return False
+                want = theirs._act_numpy(t, dt, seen, grid)
+                if not (_same(mine, theirs) and _same_hands(hands, want)):
+                    log.warning("operator: numpy (the compiled step differs)")
+                    return False
+        return True
+
+    if not native.self_checked(loaded[0], "operator", CHECK_STEPS, check):
+        return None
+    return kernel
+
+
+def _same_hands(got: tuple[Any, Any], want: tuple[Any, Any]) -> bool:
+    """The kernel's hands and the Python's alike to the bit (None: lost)."""
+    for a, b in zip(got, want):
+        if (a is None) != (b is None):
+            return False
+        if a is not None and a.tobytes() != b.tobytes():
+            return False
+    return True
+
+
+def _same(a: Any, b: Any) -> bool:
+    """Two operators' state alike to the bit (their generators' too)."""
+    return (
+        a.wrist["left"].tobytes() == b.wrist["left"].tobytes()
+        and a.wrist["right"].tobytes() == b.wrist["right"].tobytes()
+        and np.float64(a.aperture).tobytes() == np.float64(b.aperture).tobytes()
+        and (a.phase, a.waypoint, a.finished, a.grip_aperture)
+        == (b.phase, b.waypoint, b.finished, b.grip_aperture)
+        and (a.stopped_since is None) == (b.stopped_since is None)
+        and np.float64(a.stopped_since or 0.0).tobytes()
+        == np.float64(b.stopped_since or 0.0).tobytes()
+        and np.array(list(a._dropout_until.values())).tobytes()
+        == np.array(list(b._dropout_until.values())).tobytes()
+        and a.rng.bit_generator.state == b.rng.bit_generator.state
+    )
+
+
+__all__ = [
+    "CHECK_GRIDS",
+    "CHECK_OPERATORS",
+    "CHECK_STEPS",
+    "CONFIG",
+    "FLIGHT_PHASES",
+    "HANDS",
+    "RESET_EVERY",
+    "SOURCE",
+    "STATE",
+    "CompiledAct",
+    "compiled_act",
+]
