@@ -13,6 +13,7 @@ from payload.rotations import yaw_matrix
 from payload.teleop import operator as operator_mod
 from payload.teleop import operator_c
 from payload.teleop.calibration import CalibrationProcedure
+from payload.teleop.channels import BaseConfig
 from payload.teleop.loop import SyntheticSource
 from payload.teleop.operator import OperatorPlan, SyntheticOperator, WorldView
 from payload.trials.jointcodec import HAND_GRID_M, quantize_joints
@@ -123,16 +124,19 @@ def test_the_self_check_reaches_every_phase_and_event():
 
 
 def test_what_the_kernel_does_not_take_goes_to_python():
-    """The acquisition, an operator whose plan was replaced, a grid that is not a positive
-    float and a trembling wrist the held hand leaves to numpy (an infinite tremor) run the
-    Python: the step says None and changes nothing, nothing drawn."""
+    """The acquisition, an operator whose plan or hand model was replaced, a grid that is
+    not a positive float, a wrist of another type and a trembling wrist the held hand
+    leaves to numpy (an infinite tremor) run the Python: the step says None and changes
+    nothing (not the wrist arrays either), nothing drawn."""
     kernel = _kernel()
     op, _ = operator_mod._check_operators(2)
     step = kernel.stepper(op)
     view = operator_mod._check_view(op, np.random.default_rng(0), 1, 3.0)
+    wrists = (op.wrist["left"], op.wrist["right"])
 
     def state() -> tuple:
-        return (op.phase, op.waypoint, op.aperture, op.wrist["left"].tobytes(),
+        return (op.phase, op.waypoint, op.aperture, op.stopped_since, op.finished,
+                dict(op._dropout_until), op.wrist["left"].tobytes(),
                 op.rng.bit_generator.state)  # fmt: skip
 
     before = state()
@@ -141,16 +145,66 @@ def test_what_the_kernel_does_not_take_goes_to_python():
     op.phase = "acquisition"
     assert step(3.0, 0.02, view, None) is None
     op.phase = before[0]
-    plan = op.plan
+    plan, models = op.plan, op.models["left"]
     op.plan = OperatorPlan(route=plan.route.copy())
     assert step(3.0, 0.02, view, None) is None
     op.plan = plan
+    op.models["left"] = dataclasses.replace(models)
+    assert step(3.0, 0.02, view, None) is None
+    op.models["left"] = models
+    op.wrist["left"] = wrists[0].astype(np.float32)
+    assert step(3.0, 0.02, view, None) is None
+    op.wrist["left"] = wrists[0]
     assert state() == before
+    assert op.wrist["left"] is wrists[0] and op.wrist["right"] is wrists[1]
     shaky, _ = operator_mod._check_operators(2)
     shaky.traits = dataclasses.replace(shaky.traits, tremor_amp=math.inf)
     drawn = shaky.rng.bit_generator.state
     assert kernel.stepper(shaky)(3.0, 0.02, view, None) is None
     assert shaky.rng.bit_generator.state == drawn
+
+
+@pytest.mark.parametrize(
+    ("traits", "plan"),
+    [
+        ({"wrist_lag": 0.0}, {}),
+        ({"noise": -0.0}, {}),
+        ({}, {"brake_accel": -0.001}),
+        ({}, {"base": BaseConfig(max_speed=0.0)}),
+    ],
+)
+def test_settings_the_python_refuses_are_not_compiled(traits, plan):
+    """An operator whose Python raises at a flight step (a zero arm lag or top speed, a
+    negative braking or noise) gets no compiled step: the Python raises as before."""
+    op, _ = operator_mod._check_operators(1)
+    op.traits = dataclasses.replace(op.traits, **traits)
+    op.plan = dataclasses.replace(op.plan, **plan)
+    assert _kernel().stepper(op) is None
+
+
+def test_the_kernel_follows_what_the_operator_is_told_between_steps(monkeypatch):
+    """State set on the operator between two compiled steps (it is told it has not
+    finished, it is put back on the first waypoint, its grip is released, it loses a hand
+    until later) is what the next compiled step starts from, as the Python's does."""
+    pair = operator_mod._check_operators(3)
+    steps = [_kernel().stepper(op) for op in pair]
+    rng = np.random.default_rng(5)
+    for i in range(400):
+        t = 2.0 + 0.02 * i
+        view = operator_mod._check_view(pair[0], rng, i, t)
+        got = steps[0](t, 0.02, view, None)
+        want = pair[1]._act_numpy(t, 0.02, view, None)
+        assert got is not None
+        assert operator_c._same(*pair) and operator_c._same_hands(got, want)
+        for op in pair:
+            if i % 10 == 9:  # alone: nothing else tells the kernel to look again
+                op.finished = False
+            if i % 50 == 49:
+                op.waypoint = 0
+                op.phase = "translation"
+                op.grip_aperture = None if i % 100 == 49 else 0.01
+                op._dropout_until["right"] = t + 0.1
+    assert pair[0].finished is pair[1].finished
 
 
 def test_the_headset_draws_the_operators_hands_on_its_grid():

@@ -480,7 +480,7 @@ def test_the_compiled_held_hand_is_numpys(monkeypatch):
     from payload.teleop.calibration import CalibrationProcedure
     from payload.teleop.operator import OperatorPlan, SyntheticOperator, WorldView
 
-    kernel = handmodel._held_hand_kernel()
+    kernel = handmodel.held_hand_kernel()
     assert kernel is not None  # a compiler is here
     refused = 0
     for args in handmodel_c._probes(3000):
@@ -506,7 +506,7 @@ def test_the_compiled_held_hand_is_numpys(monkeypatch):
         return out
 
     compiled = frames()
-    monkeypatch.setattr(handmodel, "_held_hand_kernel", lambda: None)
+    monkeypatch.setattr(handmodel, "held_hand_kernel", lambda: None)
     assert frames() == compiled
 
 

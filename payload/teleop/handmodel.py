@@ -168,7 +168,9 @@ def _held_hand_numpy(
 
 
 @functools.cache
-def _held_hand_kernel() -> Any:
+def held_hand_kernel() -> Any:
+    """The process's compiled :func:`held_hand` (:mod:`payload.teleop.handmodel_c`,
+    checked when built), or None: the numpy code draws the hands."""
     return compiled_held_hand(MODEL_TABLES, _held_hand_numpy)
 
 
@@ -187,7 +189,7 @@ def held_hand(
     tracker's ``noise`` (25, 3) (a float64 array of the caller's own, which the compiled
     form writes the joints over: :mod:`payload.teleop.handmodel_c`, the same bits)."""
     left, size = model.side == "left", float(model.size)
-    kernel = _held_hand_kernel()
+    kernel = held_hand_kernel()
     if kernel is not None:
         out = kernel(left, size, float(aperture), float(curl), wrist, amp, arg, phases, noise)
         if out is not None:

@@ -236,7 +236,7 @@ def _probes(n: int) -> list[tuple[Any, ...]]:
             wrist[i % 3] = 0.0
             wrist[i % 3] = -tremulous_wrist(wrist, amp, arg, phases)[i % 3]
         aperture = float(rng.uniform(-0.2, 1.2)) if i % 7 else float(i % 2)
-        curl = 0.6 if i % 3 else float(rng.uniform(0.0, 1.2))
+        curl = DEFAULT_CURL if i % 3 else float(rng.uniform(0.0, 1.2))
         noise = rng.normal(0.0, 0.002, size=JOINTS_SHAPE)
         left, size = bool(i % 2), float(rng.uniform(0.7, 1.3))
         out.append((left, size, aperture, curl, wrist, amp, arg, phases, noise))

@@ -31,7 +31,19 @@ from payload.teleop.calibration import CalibrationProcedure
 from payload.teleop.channels import BaseConfig
 from payload.teleop.handmodel import HandModel, held_hand
 from payload.teleop.hands import JOINTS_SHAPE, Hand, HandFrame, round_to_grid
-from payload.teleop.operator_c import FLIGHT_PHASES, compiled_act
+from payload.teleop.operator_c import (
+    AIMLESS_M,
+    ARRIVAL_M,
+    DROPOUT_S,
+    FLIGHT_PHASES,
+    PINCH_LAG_S,
+    REACH_MARGIN_M,
+    REST_S,
+    REST_SPEED,
+    STOP_SHORT_M,
+    TURN_ABOVE_RAD,
+    compiled_act,
+)
 from payload.vecmath import norm
 
 
@@ -344,7 +356,7 @@ class SyntheticOperator:
         last = self.waypoint == len(route) - 1
         if self.phase in ("translation", "turn"):
             remaining = dist + self._route_left[self.waypoint]
-            stop_speed = math.sqrt(2 * p.brake_accel * max(0.0, remaining - 0.3))
+            stop_speed = math.sqrt(2 * p.brake_accel * max(0.0, remaining - STOP_SHORT_M))
             corner = (
                 p.base.max_speed
                 if last
@@ -356,23 +368,23 @@ class SyntheticOperator:
             heading = math.atan2(seen.astrobee_rot[1, 0], seen.astrobee_rot[0, 0])
             desired = math.atan2(to_target[1], to_target[0])
             err = abs((desired - heading + math.pi) % (2 * math.pi) - math.pi)
-            self.phase = "turn" if err > math.radians(12) else "translation"
-            if last and remaining < 0.45:
+            self.phase = "turn" if err > TURN_ABOVE_RAD else "translation"
+            if last and remaining < ARRIVAL_M:
                 self.phase = "arrival"
-            if dist > 1e-6 and self.phase != "arrival":
+            if dist > AIMLESS_M and self.phase != "arrival":
                 direction = self._to_operator @ (to_target / dist)
                 reach = (
                     p.base.sphere_radius
-                    + 0.01
+                    + REACH_MARGIN_M
                     + p.base.full_speed_offset * speed / p.base.max_speed
                 )
                 offset = direction * reach
         if self.phase in ("arrival", "braking"):
             speed_now = float(norm(seen.astrobee_vel))
             self.phase = "braking"
-            if speed_now < 0.005:
+            if speed_now < REST_SPEED:
                 self.stopped_since = self.stopped_since if self.stopped_since else t
-                if t - self.stopped_since > 2.0:
+                if t - self.stopped_since > REST_S:
                     self.finished = True
             else:
                 self.stopped_since = None
@@ -410,14 +422,14 @@ class SyntheticOperator:
         k = 1.0 - math.exp(-dt / tr.wrist_lag)
         for side in ("left", "right"):
             self.wrist[side] = self.wrist[side] + k * (intent[side] - self.wrist[side])
-        self.aperture += (1.0 - math.exp(-dt / 0.15)) * (aperture - self.aperture)
+        self.aperture += (1.0 - math.exp(-dt / PINCH_LAG_S)) * (aperture - self.aperture)
         hands: list[np.ndarray | None] = []
         for side in ("left", "right"):
             if t < self._dropout_until[side]:
                 hands.append(None)
                 continue
             if self.rng.random() < tr.dropout_rate * dt:
-                self._dropout_until[side] = t + self.rng.uniform(0.03, 0.08)
+                self._dropout_until[side] = t + self.rng.uniform(*DROPOUT_S)
                 hands.append(None)
                 continue
             noise = self.rng.normal(0.0, tr.noise, size=JOINTS_SHAPE)

@@ -44,19 +44,41 @@ import logging
 import math
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from payload import native
 from payload.teleop import handmodel_c
-from payload.teleop.handmodel import MODEL_TABLES
+from payload.teleop.handmodel import MODEL_TABLES, held_hand_kernel
 from payload.teleop.hands import JOINTS_SHAPE
+
+if TYPE_CHECKING:
+    from payload.teleop.operator import SyntheticOperator
 
 log = logging.getLogger(__name__)
 
 FLIGHT_PHASES: tuple[str, ...] = ("translation", "turn", "arrival", "braking")
 """The operator's phases the kernel steps (its phase codes, in order)."""
+
+STOP_SHORT_M = 0.3
+"""The operator brakes to stop this far short of the route's end [m]."""
+ARRIVAL_M = 0.45
+"""Within this of the route's end (along it) the operator has arrived [m]."""
+TURN_ABOVE_RAD = math.radians(12)
+"""A heading error above this and the operator turns rather than translates [rad]."""
+AIMLESS_M = 1e-6
+"""A waypoint nearer than this gives the operator no direction to push [m]."""
+REACH_MARGIN_M = 0.01
+"""How far beyond the base channel's sphere the operator's wrist reaches at rest [m]."""
+REST_SPEED = 0.005
+"""The vehicle counts as at rest below this speed [m/s]."""
+REST_S = 2.0
+"""At rest this long at the end, the operator is done [s]."""
+PINCH_LAG_S = 0.15
+"""The time constant of the operator's pinch following its intent [s]."""
+DROPOUT_S: tuple[float, float] = (0.03, 0.08)
+"""How long a hand the tracker loses stays lost: uniform between these [s]."""
 
 CONFIG: tuple[str, ...] = (
     "waypoint_radius",
@@ -67,10 +89,20 @@ CONFIG: tuple[str, ...] = (
     "sphere_radius",
     "full_speed_offset",
     "wrist_lag",
-    "turn_threshold",
+    "turn_above",
+    "stop_short",
+    "arrival",
+    "aimless",
+    "reach_margin",
+    "rest_speed",
+    "rest_time",
+    "pinch_lag",
+    "dropout_low",
+    "dropout_range",
 )
-"""The flight's constants (``cfg`` of :data:`SOURCE`, in this order): the plan's, the base
-channel's, the traits' and the heading error [rad] above which the operator turns."""
+"""The kernel's constants (``cfg`` of :data:`SOURCE`, in this order): the plan's, the base
+channel's, the traits' and this module's (numpy's ``uniform`` of :data:`DROPOUT_S` as its
+low end and range, ``high - low``)."""
 
 STATE: tuple[str, ...] = (
     "phase",
@@ -84,7 +116,7 @@ STATE: tuple[str, ...] = (
 )
 """The operator's state the kernel reads and writes (``state`` of :data:`SOURCE`): the
 phase's code, the waypoint, ``stopped_since`` and ``grip_aperture`` (NaN: None), whether
-it finished, the aperture, and until when each hand is lost."""
+it finished at this step, the aperture, and until when each hand is lost."""
 
 HANDS: tuple[str, ...] = (
     "t",
@@ -95,14 +127,24 @@ HANDS: tuple[str, ...] = (
     "noise",
     "dropout_rate",
     "curl",
-    "dropout_low",
-    "dropout_range",
     "grid",
 )
 """The step's scalars (``s`` of :data:`SOURCE`, in this order): its time and period, the
-traits the hands are drawn with, the hand model's curl, the dropout's length (numpy's
-``uniform(0.03, 0.08)`` as its low end and range) and the grid the headset reports the
-joints on (0: none)."""
+traits the hands are drawn with, the hand model's curl and the grid the headset reports
+the joints on (0: none)."""
+
+INPUT: tuple[tuple[str, int], ...] = (
+    ("pos", 3),
+    ("rot", 9),
+    ("vel", 3),
+    ("wrist_left", 3),
+    ("wrist_right", 3),
+    ("phases_left", 3),
+    ("phases_right", 3),
+)
+"""The step's arrays (``in`` of :data:`SOURCE`, in this order, with their sizes): what the
+operator sees (position, rotation row-major, velocity), its wrists and its tremor's
+phases."""
 
 SOURCE = r"""
 #include "numpy/random/bitgen.h"
@@ -114,16 +156,20 @@ static ddot_fn dot;
 static dgemv_fn mv;
 void payload_operator_init(void *ddot, void *gemv) { dot = (ddot_fn)ddot; mv = (dgemv_fn)gemv; }
 
-
 static double pymax0(double x) { return (x > 0.0) ? x : 0.0; }  /* max(0.0, x) */
 
 enum { TRANSLATION, TURN, ARRIVAL, BRAKING };
 enum { S_PHASE, S_WAYPOINT, S_STOPPED, S_FINISHED, S_APERTURE, S_GRIP, S_DROP };
-enum { A_CFG, A_ROUTE, A_LEFT, A_N, A_YAW, A_CENTRE, A_HALF, A_VIEW, A_WL, A_WR, A_STATE,
-       A_TABLES, A_PHASES, A_BITGEN, A_OUT };
-enum { T, DT, SIZE, AMP, FREQ, NOISE, DROPOUT_RATE, CURL, DROP_LOW, DROP_RANGE, GRID };
+enum { C_RADIUS, C_BRAKE, C_MAX_SPEED, C_PREF, C_CORNER_SQ, C_SPHERE, C_FULL, C_LAG,
+       C_TURN_ABOVE, C_STOP_SHORT, C_ARRIVAL, C_AIMLESS, C_REACH, C_REST_SPEED, C_REST_S,
+       C_PINCH_LAG, C_DROP_LOW, C_DROP_RANGE };
+enum { A_CFG, A_ROUTE, A_LEFT, A_N, A_YAW, A_CENTRE, A_HALF, A_IN, A_STATE, A_TABLES,
+       A_BITGEN, A_OUT };
+enum { T, DT, SIZE, AMP, FREQ, NOISE, DROPOUT_RATE, CURL, GRID };
+enum { I_POS = 0, I_ROT = 3, I_VEL = 12, I_WL = 15, I_WR = 18, I_PHASES = 21 };
 
-/* whether payload_held_hand draws this hand rather than leave it to numpy */
+/* whether payload_held_hand draws this hand rather than leave it to numpy (its own
+   refusal, tested before anything is drawn) */
 static int held_ok(double size, double aperture, double curl, const double *w, double amp,
                    double arg, const double *phases)
 {
@@ -135,30 +181,26 @@ static int held_ok(double size, double aperture, double curl, const double *w, d
     return 1;
 }
 
-/* SyntheticOperator.act in a flight phase, after its perception: _task_intent, the arm's
-   lags, then each hand (lost, or drawn: noise, held hand). a: the pointers and the route's
-   length (A_*): cfg (CONFIG), route (n, 3), left (n, the route's length from each
+/* SyntheticOperator._act_numpy in a flight phase: _task_intent, the arm's lags, then each
+   hand (lost, or drawn: noise, held hand, the headset's grid). a: the pointers and the
+   route's length (A_*): cfg (CONFIG), route (n, 3), left (n, the route's length from each
    waypoint), yaw (yaw_matrix(heading0), row-major; the operator frame's rotation is its
-   transpose), centre, half (the working posture), view (the seen position, rotation
-   row-major and velocity: 15), the wrists (updated in place), state (STATE, updated), the
-   held hand's tables, the tremor phases (left then right: 6), the bit generator, out (the
-   hands' joints: 2 x 25 x 3, on the grid when s[GRID] > 0). s: HANDS. Returns -1,
-   nothing changed and nothing drawn, for a step whose held hand numpy draws; else 1 if
-   the left hand is tracked plus 2 if the right one is. */
+   transpose), centre, half (the working posture), in (INPUT), state (STATE, updated), the
+   held hand's tables, the bit generator, out (the new wrists, 6, then the hands' joints,
+   2 x 25 x 3). s: HANDS. Returns -1, nothing written and nothing drawn, for a step whose
+   held hand numpy draws; else 1 if the left hand is tracked plus 2 if the right one is. */
 int payload_operator_act(const int64_t *a, const double *s)
 {
     const double *cfg = (const double *)a[A_CFG], *route = (const double *)a[A_ROUTE];
     const double *left = (const double *)a[A_LEFT], *yaw = (const double *)a[A_YAW];
     const double *centre = (const double *)a[A_CENTRE], *half = (const double *)a[A_HALF];
-    const double *view = (const double *)a[A_VIEW];
-    const double *pos = view, *rot = view + 3, *vel = view + 12;
-    double *wrists[2] = {(double *)a[A_WL], (double *)a[A_WR]};
-    double *state = (double *)a[A_STATE];
+    const double *in = (const double *)a[A_IN];
+    const double *pos = in + I_POS, *rot = in + I_ROT, *vel = in + I_VEL;
+    const double *wrists[2] = {in + I_WL, in + I_WR};
+    double *state = (double *)a[A_STATE], *out = (double *)a[A_OUT];
     const int64_t n = a[A_N];
-    const double t = s[T], dt = s[DT];
-    const double radius = cfg[0], brake = cfg[1], max_speed = cfg[2], pref = cfg[3];
-    const double corner_sq = cfg[4], sphere = cfg[5], full = cfg[6], lag = cfg[7];
-    const double turn_threshold = cfg[8];
+    const double t = s[T], dt = s[DT], radius = cfg[C_RADIUS], brake = cfg[C_BRAKE];
+    const double max_speed = cfg[C_MAX_SPEED];
     int phase = (int)state[S_PHASE];
     int64_t w = (int64_t)state[S_WAYPOINT];
     double stopped = state[S_STOPPED];
@@ -180,69 +222,67 @@ int payload_operator_act(const int64_t *a, const double *s)
     double offset[3] = {0.0, 0.0, 0.0};
     if (phase == TRANSLATION || phase == TURN) {
         const double remaining = dist + left[w];
-        const double stop_speed = sqrt(2 * brake * pymax0(remaining - 0.3));
+        const double stop_speed = sqrt(2 * brake * pymax0(remaining - cfg[C_STOP_SHORT]));
         const double corner = last ? max_speed
-            : sqrt(corner_sq + 2 * brake * pymax0(dist - radius));
-        double speed = max_speed * pref;  /* min(..., stop_speed, corner) */
+            : sqrt(cfg[C_CORNER_SQ] + 2 * brake * pymax0(dist - radius));
+        double speed = max_speed * cfg[C_PREF];  /* min(..., stop_speed, corner) */
         if (stop_speed < speed) speed = stop_speed;
         if (corner < speed) speed = corner;
         const double heading = atan2(rot[3], rot[0]);
         const double desired = atan2(to_target[1], to_target[0]);
         const double err = fabs(pymod(desired - heading + M_PI, 2 * M_PI) - M_PI);
-        phase = (err > turn_threshold) ? TURN : TRANSLATION;
-        if (last && remaining < 0.45) phase = ARRIVAL;
-        if (dist > 1e-6 && phase != ARRIVAL) {
+        phase = (err > cfg[C_TURN_ABOVE]) ? TURN : TRANSLATION;
+        if (last && remaining < cfg[C_ARRIVAL]) phase = ARRIVAL;
+        if (dist > cfg[C_AIMLESS] && phase != ARRIVAL) {
             double u[3], direction[3];
             for (int k = 0; k < 3; k++) u[k] = to_target[k] / dist;
             /* yaw.T @ u: the transposed row-major matrix is a column-major one */
             mv(COL_MAJOR, NO_TRANS, 3, 3, 1.0, yaw, 3, u, 1, 0.0, direction, 1);
-            const double reach = sphere + 0.01 + full * speed / max_speed;
+            const double reach = cfg[C_SPHERE] + cfg[C_REACH] + cfg[C_FULL] * speed / max_speed;
             for (int k = 0; k < 3; k++) offset[k] = direction[k] * reach;
         }
     }
     if (phase == ARRIVAL || phase == BRAKING) {
         const double speed_now = sqrt(dot(3, vel, 1, vel, 1));
         phase = BRAKING;
-        if (speed_now < 0.005) {
+        if (speed_now < cfg[C_REST_SPEED]) {
             if (isnan(stopped) || stopped == 0.0) stopped = t;  /* None or 0.0: false */
-            if (t - stopped > 2.0) finished = 1;
+            if (t - stopped > cfg[C_REST_S]) finished = 1;
         } else {
             stopped = NAN;
         }
     }
-    const double kw = 1.0 - exp(-dt / lag);
-    double wl[3], wr[3];
+    const double kw = 1.0 - exp(-dt / cfg[C_LAG]);
+    double *wl = out, *wr = out + 3;
     for (int k = 0; k < 3; k++) {
         const double il = centre[k] + half[k] + offset[k];
         const double ir = centre[k] - half[k] + offset[k];
         wl[k] = wrists[0][k] + kw * (il - wrists[0][k]);
         wr[k] = wrists[1][k] + kw * (ir - wrists[1][k]);
     }
-    ap_now += (1.0 - exp(-dt / 0.15)) * (aperture - ap_now);
+    ap_now += (1.0 - exp(-dt / cfg[C_PINCH_LAG])) * (aperture - ap_now);
     const double arg = 2 * M_PI * s[FREQ] * t;
-    const double *phases = (const double *)a[A_PHASES];
+    const double *phases = in + I_PHASES;
     if (!held_ok(s[SIZE], ap_now, s[CURL], wl, s[AMP], arg, phases)
         || !held_ok(s[SIZE], ap_now, s[CURL], wr, s[AMP], arg, phases + 3))
         return -1;
-    for (int k = 0; k < 3; k++) { wrists[0][k] = wl[k]; wrists[1][k] = wr[k]; }
     state[S_PHASE] = (double)phase;
     state[S_WAYPOINT] = (double)w;
     state[S_STOPPED] = stopped;
-    if (finished) state[S_FINISHED] = 1.0;
+    state[S_FINISHED] = finished ? 1.0 : 0.0;
     state[S_APERTURE] = ap_now;
     bitgen_t *bitgen = (bitgen_t *)a[A_BITGEN];
-    double *out = (double *)a[A_OUT];
     int tracked = 0;
     for (int side = 0; side < 2; side++) {
         if (t < state[S_DROP + side]) continue;
         if (bitgen->next_double(bitgen->state) < s[DROPOUT_RATE] * dt) {
-            state[S_DROP + side] = t + random_uniform(bitgen, s[DROP_LOW], s[DROP_RANGE]);
+            state[S_DROP + side] = t + random_uniform(bitgen, cfg[C_DROP_LOW], cfg[C_DROP_RANGE]);
             continue;
         }
-        double *joints = out + side * 3 * N_JOINTS;
+        double *joints = out + 6 + side * 3 * N_JOINTS;
         for (int i = 0; i < 3 * N_JOINTS; i++) joints[i] = random_normal(bitgen, 0.0, s[NOISE]);
         payload_held_hand((const struct tables *)a[A_TABLES], s[SIZE], side == 0, ap_now,
-                          s[CURL], wrists[side], s[AMP], arg, phases + 3 * side, joints);
+                          s[CURL], out + 3 * side, s[AMP], arg, phases + 3 * side, joints);
         const double grid = s[GRID];
         if (grid > 0.0)  /* round_to_grid: numpy's rint of the quotient, times the grid */
             for (int i = 0; i < 3 * N_JOINTS; i++) joints[i] = rint(joints[i] / grid) * grid;
@@ -251,10 +291,11 @@ int payload_operator_act(const int64_t *a, const double *s)
     return tracked;
 }
 """
-"""The kernel's C (after :data:`payload.native.BLAS_C` and :data:`handmodel_c.SOURCE`)."""
+"""The kernel's C (after :data:`payload.native.BLAS_C`, :data:`handmodel_c.SOURCE` and
+:data:`payload.native.PYMOD_C`)."""
 
-_VIEW = 15
-"""The view's values in the kernel's input: position (3), rotation (9), velocity (3)."""
+_IN = sum(size for _, size in INPUT)
+"""The step's arrays' values in the kernel's input."""
 
 
 def _npyrandom() -> tuple[str, str] | None:
@@ -273,7 +314,8 @@ class CompiledAct:
     Args:
         lib: The kernel's library.
         ddot, gemv: The addresses of numpy's CBLAS functions.
-        tables: The hand model's tables (:data:`payload.teleop.handmodel_c.TABLES`).
+        tables: The hand model's tables by name
+            (:data:`payload.teleop.handmodel.MODEL_TABLES`).
     """
 
     def __init__(self, lib: ctypes.CDLL, ddot: int, gemv: int, tables: Any) -> None:
@@ -286,14 +328,16 @@ class CompiledAct:
         self._fn = fn
         self._hand = handmodel_c.CompiledHeldHand(lib, tables)  # its tables' struct
 
-    def stepper(self, operator: Any) -> Callable[..., Any] | None:
-        """``step(t, dt, seen, grid)`` of ``operator`` (a :class:`SyntheticOperator
-        <payload.teleop.operator.SyntheticOperator>` after its perception), its state
-        updated as its Python updates it: ``(left, right)``, each hand's joints (a (25, 3)
-        array of its own, rounded to ``grid`` unless it is None) or None for a lost hand;
-        or None, nothing changed, where the Python is to run (another phase, a view, wrists
-        or state of other types, a held hand numpy draws). None for an operator the kernel
-        does not take."""
+    def stepper(self, operator: SyntheticOperator) -> Callable[..., Any] | None:
+        """``step(t, dt, seen, grid)`` of ``operator`` after its perception, its state
+        updated as its Python (``_act_numpy``) updates it: ``(left, right)``, each hand's
+        joints (a (25, 3) array of its own, rounded to ``grid`` unless it is None) or None
+        for a lost hand; or None, nothing changed and nothing drawn, where the Python is to
+        run (another phase, a view, wrists, phases or state of other types, a held hand
+        numpy draws). None for an operator the kernel does not take: a route not of (n, 3)
+        floats, hands of another size than its traits', or settings the Python refuses
+        (a wrist lag that is not positive, no top speed, a negative braking, a negative
+        noise)."""
         plan, traits, rng = operator.plan, operator.traits, operator.rng
         route = plan.route
         if not (
@@ -304,19 +348,21 @@ class CompiledAct:
             and len(route) >= 1
         ):
             return None
-        models, phases = operator.models, operator.phases
-        if {models["left"].size, models["right"].size} != {traits.hand_size}:
+        base = plan.base
+        if not (traits.wrist_lag > 0.0 and base.max_speed != 0.0 and plan.brake_accel >= 0.0):
+            return None  # the Python divides by zero, or takes a negative square root
+        if math.copysign(1.0, traits.noise) < 0.0:
+            return None  # numpy's normal refuses a negative scale
+        models = (operator.models["left"], operator.models["right"])
+        if any(m.size != traits.hand_size for m in models):
             return None
-        if any(np.shape(phases[side]) != (3,) for side in ("left", "right")):
-            return None
-        route = np.ascontiguousarray(route)  # read at every step: a copy of the plan's
+        route = np.array(route)  # read at every step: a copy of the plan's
         left = np.array(operator._route_left, dtype=np.float64)
         to_operator = operator._to_operator
         if not (to_operator.flags.f_contiguous and not to_operator.flags.c_contiguous):
             return None  # numpy's matmul passes this layout's transpose as column-major
         yaw = np.ascontiguousarray(to_operator.T)
         centre, half = (np.ascontiguousarray(a, dtype=np.float64) for a in operator._posture)
-        base = plan.base
         cfg = np.array(
             [
                 plan.waypoint_radius,
@@ -327,11 +373,19 @@ class CompiledAct:
                 base.sphere_radius,
                 base.full_speed_offset,
                 traits.wrist_lag,
-                math.radians(12),
+                TURN_ABOVE_RAD,
+                STOP_SHORT_M,
+                ARRIVAL_M,
+                AIMLESS_M,
+                REACH_MARGIN_M,
+                REST_SPEED,
+                REST_S,
+                PINCH_LAG_S,
+                DROPOUT_S[0],
+                DROPOUT_S[1] - DROPOUT_S[0],  # numpy's uniform draws low + (high - low) u
             ],
             dtype=np.float64,
         )
-        tremor = np.concatenate([phases["left"], phases["right"]]).astype(np.float64)
         scalars = np.array(
             [
                 0.0,
@@ -342,39 +396,33 @@ class CompiledAct:
                 traits.noise,
                 traits.dropout_rate,
                 handmodel_c.DEFAULT_CURL,
-                0.03,
-                0.08 - 0.03,  # numpy's uniform(0.03, 0.08) draws low + (high - low) u
                 0.0,
             ],
             dtype=np.float64,
         )
-        view = np.zeros(_VIEW)
-        pos, rot, vel = view[0:3], view[3:12].reshape(3, 3), view[12:15]
+        inp = np.zeros(_IN)
+        views = []
+        start = 0
+        for _, size in INPUT:
+            views.append(inp[start : start + size])
+            start += size
+        pos, rot, vel, wl_in, wr_in, ph_l, ph_r = views
+        rot = rot.reshape(3, 3)
         state = np.zeros(len(STATE))
-        out = np.zeros((2, *JOINTS_SHAPE))
-        args = np.zeros(15, dtype=np.int64)  # payload_operator_act's pointers (A_*)
+        out = np.zeros(6 + 2 * math.prod(JOINTS_SHAPE))
+        new_l, new_r = out[0:3], out[3:6]
+        hands = out[6:].reshape(2, *JOINTS_SHAPE)
+        args = np.zeros(12, dtype=np.int64)  # payload_operator_act's pointers (A_*)
         args[:] = [
             cfg.ctypes.data, route.ctypes.data, left.ctypes.data, len(route),
-            yaw.ctypes.data, centre.ctypes.data, half.ctypes.data, view.ctypes.data, 0, 0,
-            state.ctypes.data, self._hand.tables_address, tremor.ctypes.data,
+            yaw.ctypes.data, centre.ctypes.data, half.ctypes.data, inp.ctypes.data,
+            state.ctypes.data, self._hand.tables_address,
             rng.bit_generator.ctypes.bit_generator.value, out.ctypes.data,
         ]  # fmt: skip
         call = functools.partial(self._fn, args.ctypes.data, scalars.ctypes.data)
         codes = {name: float(i) for i, name in enumerate(FLIGHT_PHASES)}
         n = len(route)
-        bound: list[Any] = [None, None]
         synced: list[Any] = [None]  # the attributes as the kernel last left them
-
-        def wrists() -> bool:
-            """Bind the operator's wrists (made arrays of its own first); False for wrists
-            that are not three numbers each (the Python says what is wrong)."""
-            wl, wr = operator.wrist["left"], operator.wrist["right"]
-            if np.shape(wl) != (3,) or np.shape(wr) != (3,):
-                return False
-            bound[:] = np.array(wl, float), np.array(wr, float)
-            operator.wrist["left"], operator.wrist["right"] = bound
-            args[8], args[9] = bound[0].ctypes.data, bound[1].ctypes.data
-            return True
 
         def load(op: Any) -> bool:
             """The operator's attributes into the kernel's state; False for values the
@@ -402,28 +450,30 @@ class CompiledAct:
 
         def step(t: float, dt: float, seen: Any, grid: float | None) -> tuple[Any, Any] | None:
             op = operator
-            if grid is not None and not (type(grid) is float and grid > 0.0):
-                return None
             if op.plan is not plan or op.traits is not traits or op.rng is not rng:
                 return None
-            if op.phase not in codes or op.models is not models or op.phases is not phases:
+            if op.phase not in codes or (
+                grid is not None and not (type(grid) is float and grid > 0.0)
+            ):
                 return None
-            wl, wr = op.wrist["left"], op.wrist["right"]
-            if not (wl is bound[0] and wr is bound[1]) and not wrists():
+            m, ph, wrist = op.models, op.phases, op.wrist
+            if m["left"] is not models[0] or m["right"] is not models[1]:
                 return None
             p, r, v = seen.astrobee_pos, seen.astrobee_rot, seen.astrobee_vel
+            wl, wr, pl, pr = wrist["left"], wrist["right"], ph["left"], ph["right"]
             if not (_real(p, (3,)) and _real(r, (3, 3)) and _real(v, (3,))):
                 return None
+            if not (_held(wl) and _held(wr) and _held(pl) and _held(pr)):
+                return None  # the held hand's Python would go to numpy
             drop = op._dropout_until
             now = (op.phase, op.waypoint, op.stopped_since, op.aperture, op.grip_aperture,
                    drop["left"], drop["right"])  # fmt: skip
             if now != synced[0] and not load(op):
                 return None
-            pos[:], rot[:], vel[:] = p, r, v
+            pos[:], rot[:], vel[:], wl_in[:], wr_in[:], ph_l[:], ph_r[:] = p, r, v, wl, wr, pl, pr
             scalars[0], scalars[1], scalars[-1] = t, dt, 0.0 if grid is None else grid
             tracked = call()
             if tracked < 0:
-                synced[0] = None
                 return None
             phase, waypoint, stopped, finished, aperture, _, dl, dr = state.tolist()
             op.phase = FLIGHT_PHASES[int(phase)]
@@ -433,16 +483,25 @@ class CompiledAct:
                 op.finished = True
             op.aperture = aperture
             drop["left"], drop["right"] = dl, dr
+            wrist["left"], wrist["right"] = new_l.copy(), new_r.copy()  # new arrays, as numpy
             synced[0] = (op.phase, op.waypoint, op.stopped_since, aperture, op.grip_aperture,
                          dl, dr)  # fmt: skip
             return (
-                out[0].copy() if tracked & 1 else None,
-                out[1].copy() if tracked & 2 else None,
+                hands[0].copy() if tracked & 1 else None,
+                hands[1].copy() if tracked & 2 else None,
             )
 
-        keep = (cfg, route, left, yaw, centre, half, tremor, scalars, view, state, out, args)
+        keep = (cfg, route, left, yaw, centre, half, scalars, inp, state, out, args)
         step.keep = keep  # type: ignore[attr-defined]
         return step
+
+
+def _held(a: Any) -> bool:
+    """A float64 (3,) C-ordered array: what the held hand's compiled form takes (else its
+    numpy code runs)."""
+    return (
+        type(a) is np.ndarray and a.dtype == np.float64 and a.shape == (3,) and a.flags.c_contiguous
+    )
 
 
 def _real(a: Any, shape: tuple[int, ...]) -> bool:
@@ -480,6 +539,9 @@ def compiled_act(
     (``_act_numpy``), on the same views, and every hand, wrist, aperture, state value and
     the generators' states must agree to the bit (:data:`CHECK_OPERATORS` of
     :data:`CHECK_STEPS` steps, or their first tenth once a full check passed)."""
+    if held_hand_kernel() is None:
+        log.info("operator: numpy (the held hand is numpy's)")
+        return None
     npy = _npyrandom()
     if npy is None:
         log.info("operator: numpy (this numpy has no libnpyrandom)")
