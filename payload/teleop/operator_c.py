@@ -44,7 +44,7 @@ import logging
 import math
 from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
@@ -52,9 +52,6 @@ from payload import native
 from payload.teleop import handmodel_c
 from payload.teleop.handmodel import MODEL_TABLES, held_hand_kernel
 from payload.teleop.hands import JOINTS_SHAPE
-
-if TYPE_CHECKING:
-    from payload.teleop.operator import SyntheticOperator
 
 log = logging.getLogger(__name__)
 
@@ -328,8 +325,9 @@ class CompiledAct:
         self._fn = fn
         self._hand = handmodel_c.CompiledHeldHand(lib, tables)  # its tables' struct
 
-    def stepper(self, operator: SyntheticOperator) -> Callable[..., Any] | None:
-        """``step(t, dt, seen, grid)`` of ``operator`` after its perception, its state
+    def stepper(self, operator: Any) -> Callable[..., Any] | None:
+        """``step(t, dt, seen, grid)`` of ``operator`` (a :class:`SyntheticOperator
+        <payload.teleop.operator.SyntheticOperator>`) after its perception, its state
         updated as its Python (``_act_numpy``) updates it: ``(left, right)``, each hand's
         joints (a (25, 3) array of its own, rounded to ``grid`` unless it is None) or None
         for a lost hand; or None, nothing changed and nothing drawn, where the Python is to
