@@ -562,6 +562,7 @@ def compiled_act(
             mine, theirs = factory(k)
             step = kernel.stepper(mine)
             if step is None:
+                log.warning("operator: numpy (the kernel refused a probe's operator)")
                 return False
             rng = np.random.default_rng(1000 + k)
             for i in range(steps):
@@ -576,6 +577,7 @@ def compiled_act(
                 grid = CHECK_GRIDS[(k + i) % len(CHECK_GRIDS)]
                 hands = step(t, dt, seen, grid)
                 if hands is None:
+                    log.warning("operator: numpy (the compiled step refused a probe)")
                     return False
                 want = theirs._act_numpy(t, dt, seen, grid)
                 if not (_same(mine, theirs) and _same_hands(hands, want)):
