@@ -165,21 +165,27 @@ def test_what_the_kernel_does_not_take_goes_to_python():
 
 
 @pytest.mark.parametrize(
-    ("traits", "plan"),
+    ("traits", "plan", "error"),
     [
-        ({"wrist_lag": 0.0}, {}),
-        ({"noise": -0.0}, {}),
-        ({}, {"brake_accel": -0.001}),
-        ({}, {"base": BaseConfig(max_speed=0.0)}),
+        ({"wrist_lag": 0.0}, {}, ZeroDivisionError),
+        ({"noise": -0.0}, {}, ValueError),
+        ({}, {"brake_accel": -0.001}, ValueError),
+        ({}, {"base": BaseConfig(max_speed=0.0)}, ZeroDivisionError),
     ],
 )
-def test_settings_the_python_refuses_are_not_compiled(traits, plan):
+def test_settings_the_python_refuses_are_not_compiled(traits, plan, error):
     """An operator whose Python raises at a flight step (a zero arm lag or top speed, a
-    negative braking or noise) gets no compiled step: the Python raises as before."""
-    op, _ = operator_mod._check_operators(1)
+    negative braking or noise) gets no compiled step, and its Python raises as before
+    (translating 3 m short of the route's end, both hands in view)."""
+    op, _ = operator_mod._check_operators(0)
     op.traits = dataclasses.replace(op.traits, **traits)
     op.plan = dataclasses.replace(op.plan, **plan)
     assert _kernel().stepper(op) is None
+    op.phase, op.waypoint = "translation", len(op.plan.route) - 1
+    op._dropout_until = {"left": -1.0, "right": -1.0}
+    pos = op.plan.route[-1] + [3.0, 0.0, 0.0]
+    with pytest.raises(error):
+        op._act_numpy(5.0, 0.02, WorldView(5.0, pos, np.eye(3), np.zeros(3), pos, True), None)
 
 
 def test_the_kernel_follows_what_the_operator_is_told_between_steps(monkeypatch):

@@ -100,16 +100,26 @@ struct tables {
    w + amp sin(arg + phases), unrotated, plus the noise (25, 3), written over the noise.
    1, nothing written, if a wrist coordinate is zero or not finite, or the size, aperture
    or curl not finite (the numpy code). */
+/* the trembling wrist w + amp sin(arg + phases) into wrist, and whether payload_held_hand
+   draws the hand there: 0 if a wrist coordinate is zero or not finite, or the size,
+   aperture or curl not finite (the numpy code draws it) */
+int payload_held_wrist(double size, double aperture, double curl, const double *w,
+                       double amp, double arg, const double *phases, double *wrist)
+{
+    if (!isfinite(size) || !isfinite(aperture) || !isfinite(curl)) return 0;
+    for (int k = 0; k < 3; k++) {
+        wrist[k] = w[k] + amp * sin(arg + phases[k]);
+        if (!(wrist[k] != 0.0) || !isfinite(wrist[k])) return 0;
+    }
+    return 1;
+}
+
 int payload_held_hand(const struct tables *h, double size, int left, double aperture,
                       double curl, const double *w, double amp, double arg,
                       const double *phases, double *noise)
 {
-    if (!isfinite(size) || !isfinite(aperture) || !isfinite(curl)) return 1;
     double wrist[3];
-    for (int k = 0; k < 3; k++) {
-        wrist[k] = w[k] + amp * sin(arg + phases[k]);
-        if (!(wrist[k] != 0.0) || !isfinite(wrist[k])) return 1;
-    }
+    if (!payload_held_wrist(size, aperture, curl, w, amp, arg, phases, wrist)) return 1;
     double m = (0.0 > aperture) ? 0.0 : aperture; /* Python max(aperture, 0.0) */
     double s = (1.0 < m) ? 1.0 : m;               /* Python min(m, 1.0) */
     double c = 1.0 - s;
@@ -196,11 +206,8 @@ class CompiledHeldHand:
     ) -> np.ndarray | None:
         """The hand's joints, written over ``noise`` (a float64 (25, 3) array of this
         call's own) and returned, or None (nothing written: the numpy code is to run)."""
-        for a, n in ((wrist, 3), (phases, 3)):
-            if not (type(a) is np.ndarray and a.dtype == np.float64 and a.shape == (n,)):
-                return None
-            if not a.flags.c_contiguous:
-                return None
+        if not (takes_vector(wrist) and takes_vector(phases)):
+            return None
         if not (noise.dtype == np.float64 and noise.shape == JOINTS_SHAPE):
             return None
         if not noise.flags.c_contiguous or not noise.flags.writeable:
@@ -211,6 +218,14 @@ class CompiledHeldHand:
         ):  # fmt: skip
             return None
         return noise
+
+
+def takes_vector(a: Any) -> bool:
+    """Whether the compiled held hand reads ``a`` (a wrist or the tremor's phases) as it is:
+    a C-ordered float64 numpy array of 3 (anything else goes to the numpy code)."""
+    return (
+        type(a) is np.ndarray and a.dtype == np.float64 and a.shape == (3,) and a.flags.c_contiguous
+    )
 
 
 def tremulous_wrist(wrist: np.ndarray, amp: float, arg: float, phases: np.ndarray) -> np.ndarray:
@@ -292,5 +307,6 @@ __all__ = [
     "ZERO_WRIST_EVERY",
     "CompiledHeldHand",
     "compiled_held_hand",
+    "takes_vector",
     "tremulous_wrist",
 ]

@@ -20,7 +20,7 @@ import functools
 import math
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -467,7 +467,7 @@ def _check_operators(k: int) -> tuple[SyntheticOperator, SyntheticOperator]:
     )
     traits = OperatorTraits.sample(rng)
     if k % 2:  # hands lost often: dropouts begin and end within the check
-        traits = OperatorTraits(**{**vars(traits), "dropout_rate": 5.0})
+        traits = replace(traits, dropout_rate=5.0)
     state = rng.integers(1 << 30)
     pair = []
     for _ in range(2):

@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import ctypes
 import functools
+import itertools
 import logging
 import math
 from collections.abc import Callable
@@ -143,6 +144,55 @@ INPUT: tuple[tuple[str, int], ...] = (
 operator sees (position, rotation row-major, velocity), its wrists and its tremor's
 phases."""
 
+OUTPUT: tuple[tuple[str, int], ...] = (
+    ("wrist_left", 3),
+    ("wrist_right", 3),
+    ("hands", 2 * math.prod(JOINTS_SHAPE)),
+)
+"""What the step writes (``out`` of :data:`SOURCE`, in this order, with their sizes): the
+wrists after the lag and both hands' joints (left then right)."""
+
+ARGS: tuple[str, ...] = (
+    "cfg",
+    "route",
+    "left",
+    "n",
+    "yaw",
+    "centre",
+    "half",
+    "in",
+    "state",
+    "tables",
+    "bitgen",
+    "out",
+)
+"""The step's pointers, and the route's length ``n`` (``a`` of :data:`SOURCE`, in this
+order)."""
+
+
+def _offsets(parts: tuple[tuple[str, int], ...]) -> dict[str, int]:
+    """Each part's place in its array (the parts one after the other)."""
+    return dict(zip((name for name, _ in parts), itertools.accumulate(
+        (size for _, size in parts), initial=0)))  # fmt: skip
+
+
+def _layout() -> str:
+    """The C's names for the places in its arrays, from the tuples above (each fact once):
+    ``PH_*`` the phase codes, ``CFG_*``, ``ST_*``, ``H_*`` and ``ARG_*`` the indices of
+    :data:`CONFIG`, :data:`STATE`, :data:`HANDS` and :data:`ARGS`, ``IN_*`` and ``OUT_*``
+    the offsets of :data:`INPUT` and :data:`OUTPUT`."""
+    names = [
+        *(f"PH_{name.upper()} = {i}" for i, name in enumerate(FLIGHT_PHASES)),
+        *(f"CFG_{name.upper()} = {i}" for i, name in enumerate(CONFIG)),
+        *(f"ST_{name.upper()} = {i}" for i, name in enumerate(STATE)),
+        *(f"H_{name.upper()} = {i}" for i, name in enumerate(HANDS)),
+        *(f"ARG_{name.upper()} = {i}" for i, name in enumerate(ARGS)),
+        *(f"IN_{name.upper()} = {i}" for name, i in _offsets(INPUT).items()),
+        *(f"OUT_{name.upper()} = {i}" for name, i in _offsets(OUTPUT).items()),
+    ]
+    return "enum {\n" + "".join(f"    {n},\n" for n in names) + "};\n"
+
+
 SOURCE = r"""
 #include "numpy/random/bitgen.h"
 
@@ -155,55 +205,35 @@ void payload_operator_init(void *ddot, void *gemv) { dot = (ddot_fn)ddot; mv = (
 
 static double pymax0(double x) { return (x > 0.0) ? x : 0.0; }  /* max(0.0, x) */
 
-enum { TRANSLATION, TURN, ARRIVAL, BRAKING };
-enum { S_PHASE, S_WAYPOINT, S_STOPPED, S_FINISHED, S_APERTURE, S_GRIP, S_DROP };
-enum { C_RADIUS, C_BRAKE, C_MAX_SPEED, C_PREF, C_CORNER_SQ, C_SPHERE, C_FULL, C_LAG,
-       C_TURN_ABOVE, C_STOP_SHORT, C_ARRIVAL, C_AIMLESS, C_REACH, C_REST_SPEED, C_REST_S,
-       C_PINCH_LAG, C_DROP_LOW, C_DROP_RANGE };
-enum { A_CFG, A_ROUTE, A_LEFT, A_N, A_YAW, A_CENTRE, A_HALF, A_IN, A_STATE, A_TABLES,
-       A_BITGEN, A_OUT };
-enum { T, DT, SIZE, AMP, FREQ, NOISE, DROPOUT_RATE, CURL, GRID };
-enum { I_POS = 0, I_ROT = 3, I_VEL = 12, I_WL = 15, I_WR = 18, I_PHASES = 21 };
-
-/* whether payload_held_hand draws this hand rather than leave it to numpy (its own
-   refusal, tested before anything is drawn) */
-static int held_ok(double size, double aperture, double curl, const double *w, double amp,
-                   double arg, const double *phases)
-{
-    if (!isfinite(size) || !isfinite(aperture) || !isfinite(curl)) return 0;
-    for (int k = 0; k < 3; k++) {
-        const double x = w[k] + amp * sin(arg + phases[k]);
-        if (!(x != 0.0) || !isfinite(x)) return 0;
-    }
-    return 1;
-}
+/* the places in the arrays (PH_*, CFG_*, ST_*, H_*, ARG_*, IN_*, OUT_*): _layout() */
 
 /* SyntheticOperator._act_numpy in a flight phase: _task_intent, the arm's lags, then each
    hand (lost, or drawn: noise, held hand, the headset's grid). a: the pointers and the
-   route's length (A_*): cfg (CONFIG), route (n, 3), left (n, the route's length from each
+   route's length (ARGS): cfg (CONFIG), route (n, 3), left (n, the route's length from each
    waypoint), yaw (yaw_matrix(heading0), row-major; the operator frame's rotation is its
    transpose), centre, half (the working posture), in (INPUT), state (STATE, updated), the
-   held hand's tables, the bit generator, out (the new wrists, 6, then the hands' joints,
-   2 x 25 x 3). s: HANDS. Returns -1, nothing written and nothing drawn, for a step whose
+   held hand's tables, the bit generator, out (OUTPUT: the new wrists, then the hands'
+   joints). s: HANDS. Returns -1, nothing written and nothing drawn, for a step whose
    held hand numpy draws; else 1 if the left hand is tracked plus 2 if the right one is. */
 int payload_operator_act(const int64_t *a, const double *s)
 {
-    const double *cfg = (const double *)a[A_CFG], *route = (const double *)a[A_ROUTE];
-    const double *left = (const double *)a[A_LEFT], *yaw = (const double *)a[A_YAW];
-    const double *centre = (const double *)a[A_CENTRE], *half = (const double *)a[A_HALF];
-    const double *in = (const double *)a[A_IN];
-    const double *pos = in + I_POS, *rot = in + I_ROT, *vel = in + I_VEL;
-    const double *wrists[2] = {in + I_WL, in + I_WR};
-    double *state = (double *)a[A_STATE], *out = (double *)a[A_OUT];
-    const int64_t n = a[A_N];
-    const double t = s[T], dt = s[DT], radius = cfg[C_RADIUS], brake = cfg[C_BRAKE];
-    const double max_speed = cfg[C_MAX_SPEED];
-    int phase = (int)state[S_PHASE];
-    int64_t w = (int64_t)state[S_WAYPOINT];
-    double stopped = state[S_STOPPED];
+    const double *cfg = (const double *)a[ARG_CFG], *route = (const double *)a[ARG_ROUTE];
+    const double *left = (const double *)a[ARG_LEFT], *yaw = (const double *)a[ARG_YAW];
+    const double *centre = (const double *)a[ARG_CENTRE], *half = (const double *)a[ARG_HALF];
+    const double *in = (const double *)a[ARG_IN];
+    const double *pos = in + IN_POS, *rot = in + IN_ROT, *vel = in + IN_VEL;
+    const double *wrists[2] = {in + IN_WRIST_LEFT, in + IN_WRIST_RIGHT};
+    double *state = (double *)a[ARG_STATE], *out = (double *)a[ARG_OUT];
+    const int64_t n = a[ARG_N];
+    const double t = s[H_T], dt = s[H_DT];
+    const double radius = cfg[CFG_WAYPOINT_RADIUS], brake = cfg[CFG_BRAKE_ACCEL];
+    const double max_speed = cfg[CFG_MAX_SPEED];
+    int phase = (int)state[ST_PHASE];
+    int64_t w = (int64_t)state[ST_WAYPOINT];
+    double stopped = state[ST_STOPPED_SINCE];
     int finished = 0;
-    const double grip = state[S_GRIP];
-    double ap_now = state[S_APERTURE];
+    const double grip = state[ST_GRIP_APERTURE];
+    double ap_now = state[ST_APERTURE];
     const double aperture = isnan(grip) ? ap_now : grip;  /* grip_aperture, unless None */
     double d[3];
     for (;;) {  /* advance along the route */
@@ -217,70 +247,74 @@ int payload_operator_act(const int64_t *a, const double *s)
     const double dist = sqrt(dot(3, to_target, 1, to_target, 1));
     const int last = (w == n - 1);
     double offset[3] = {0.0, 0.0, 0.0};
-    if (phase == TRANSLATION || phase == TURN) {
+    if (phase == PH_TRANSLATION || phase == PH_TURN) {
         const double remaining = dist + left[w];
-        const double stop_speed = sqrt(2 * brake * pymax0(remaining - cfg[C_STOP_SHORT]));
+        const double stop_speed = sqrt(2 * brake * pymax0(remaining - cfg[CFG_STOP_SHORT]));
         const double corner = last ? max_speed
-            : sqrt(cfg[C_CORNER_SQ] + 2 * brake * pymax0(dist - radius));
-        double speed = max_speed * cfg[C_PREF];  /* min(..., stop_speed, corner) */
+            : sqrt(cfg[CFG_CORNER_SPEED_SQUARED] + 2 * brake * pymax0(dist - radius));
+        double speed = max_speed * cfg[CFG_SPEED_PREF];  /* min(..., stop_speed, corner) */
         if (stop_speed < speed) speed = stop_speed;
         if (corner < speed) speed = corner;
         const double heading = atan2(rot[3], rot[0]);
         const double desired = atan2(to_target[1], to_target[0]);
         const double err = fabs(pymod(desired - heading + M_PI, 2 * M_PI) - M_PI);
-        phase = (err > cfg[C_TURN_ABOVE]) ? TURN : TRANSLATION;
-        if (last && remaining < cfg[C_ARRIVAL]) phase = ARRIVAL;
-        if (dist > cfg[C_AIMLESS] && phase != ARRIVAL) {
+        phase = (err > cfg[CFG_TURN_ABOVE]) ? PH_TURN : PH_TRANSLATION;
+        if (last && remaining < cfg[CFG_ARRIVAL]) phase = PH_ARRIVAL;
+        if (dist > cfg[CFG_AIMLESS] && phase != PH_ARRIVAL) {
             double u[3], direction[3];
             for (int k = 0; k < 3; k++) u[k] = to_target[k] / dist;
             /* yaw.T @ u: the transposed row-major matrix is a column-major one */
             mv(COL_MAJOR, NO_TRANS, 3, 3, 1.0, yaw, 3, u, 1, 0.0, direction, 1);
-            const double reach = cfg[C_SPHERE] + cfg[C_REACH] + cfg[C_FULL] * speed / max_speed;
+            const double reach = cfg[CFG_SPHERE_RADIUS] + cfg[CFG_REACH_MARGIN]
+                + cfg[CFG_FULL_SPEED_OFFSET] * speed / max_speed;
             for (int k = 0; k < 3; k++) offset[k] = direction[k] * reach;
         }
     }
-    if (phase == ARRIVAL || phase == BRAKING) {
+    if (phase == PH_ARRIVAL || phase == PH_BRAKING) {
         const double speed_now = sqrt(dot(3, vel, 1, vel, 1));
-        phase = BRAKING;
-        if (speed_now < cfg[C_REST_SPEED]) {
+        phase = PH_BRAKING;
+        if (speed_now < cfg[CFG_REST_SPEED]) {
             if (isnan(stopped) || stopped == 0.0) stopped = t;  /* None or 0.0: false */
-            if (t - stopped > cfg[C_REST_S]) finished = 1;
+            if (t - stopped > cfg[CFG_REST_TIME]) finished = 1;
         } else {
             stopped = NAN;
         }
     }
-    const double kw = 1.0 - exp(-dt / cfg[C_LAG]);
-    double *wl = out, *wr = out + 3;
+    const double kw = 1.0 - exp(-dt / cfg[CFG_WRIST_LAG]);
+    double *wl = out + OUT_WRIST_LEFT, *wr = out + OUT_WRIST_RIGHT;
     for (int k = 0; k < 3; k++) {
         const double il = centre[k] + half[k] + offset[k];
         const double ir = centre[k] - half[k] + offset[k];
         wl[k] = wrists[0][k] + kw * (il - wrists[0][k]);
         wr[k] = wrists[1][k] + kw * (ir - wrists[1][k]);
     }
-    ap_now += (1.0 - exp(-dt / cfg[C_PINCH_LAG])) * (aperture - ap_now);
-    const double arg = 2 * M_PI * s[FREQ] * t;
-    const double *phases = in + I_PHASES;
-    if (!held_ok(s[SIZE], ap_now, s[CURL], wl, s[AMP], arg, phases)
-        || !held_ok(s[SIZE], ap_now, s[CURL], wr, s[AMP], arg, phases + 3))
-        return -1;
-    state[S_PHASE] = (double)phase;
-    state[S_WAYPOINT] = (double)w;
-    state[S_STOPPED] = stopped;
-    state[S_FINISHED] = finished ? 1.0 : 0.0;
-    state[S_APERTURE] = ap_now;
-    bitgen_t *bitgen = (bitgen_t *)a[A_BITGEN];
+    ap_now += (1.0 - exp(-dt / cfg[CFG_PINCH_LAG])) * (aperture - ap_now);
+    const double arg = 2 * M_PI * s[H_TREMOR_FREQ] * t;
+    const double *phases[2] = {in + IN_PHASES_LEFT, in + IN_PHASES_RIGHT};
+    double trembling[3];  /* the held hand's own refusal, tested before anything is drawn */
+    for (int side = 0; side < 2; side++)
+        if (!payload_held_wrist(s[H_HAND_SIZE], ap_now, s[H_CURL], side ? wr : wl,
+                                s[H_TREMOR_AMP], arg, phases[side], trembling))
+            return -1;
+    state[ST_PHASE] = (double)phase;
+    state[ST_WAYPOINT] = (double)w;
+    state[ST_STOPPED_SINCE] = stopped;
+    state[ST_FINISHED] = finished ? 1.0 : 0.0;
+    state[ST_APERTURE] = ap_now;
+    bitgen_t *bitgen = (bitgen_t *)a[ARG_BITGEN];
     int tracked = 0;
     for (int side = 0; side < 2; side++) {
-        if (t < state[S_DROP + side]) continue;
-        if (bitgen->next_double(bitgen->state) < s[DROPOUT_RATE] * dt) {
-            state[S_DROP + side] = t + random_uniform(bitgen, cfg[C_DROP_LOW], cfg[C_DROP_RANGE]);
+        if (t < state[ST_DROPOUT_LEFT + side]) continue;
+        if (bitgen->next_double(bitgen->state) < s[H_DROPOUT_RATE] * dt) {
+            state[ST_DROPOUT_LEFT + side] =
+                t + random_uniform(bitgen, cfg[CFG_DROPOUT_LOW], cfg[CFG_DROPOUT_RANGE]);
             continue;
         }
-        double *joints = out + 6 + side * 3 * N_JOINTS;
-        for (int i = 0; i < 3 * N_JOINTS; i++) joints[i] = random_normal(bitgen, 0.0, s[NOISE]);
-        payload_held_hand((const struct tables *)a[A_TABLES], s[SIZE], side == 0, ap_now,
-                          s[CURL], out + 3 * side, s[AMP], arg, phases + 3 * side, joints);
-        const double grid = s[GRID];
+        double *joints = out + OUT_HANDS + side * 3 * N_JOINTS;
+        for (int i = 0; i < 3 * N_JOINTS; i++) joints[i] = random_normal(bitgen, 0.0, s[H_NOISE]);
+        payload_held_hand((const struct tables *)a[ARG_TABLES], s[H_HAND_SIZE], side == 0, ap_now,
+                          s[H_CURL], side ? wr : wl, s[H_TREMOR_AMP], arg, phases[side], joints);
+        const double grid = s[H_GRID];
         if (grid > 0.0)  /* round_to_grid: numpy's rint of the quotient, times the grid */
             for (int i = 0; i < 3 * N_JOINTS; i++) joints[i] = rint(joints[i] / grid) * grid;
         tracked |= 1 << side;
@@ -290,9 +324,6 @@ int payload_operator_act(const int64_t *a, const double *s)
 """
 """The kernel's C (after :data:`payload.native.BLAS_C`, :data:`handmodel_c.SOURCE` and
 :data:`payload.native.PYMOD_C`)."""
-
-_IN = sum(size for _, size in INPUT)
-"""The step's arrays' values in the kernel's input."""
 
 
 def _npyrandom() -> tuple[str, str] | None:
@@ -361,62 +392,63 @@ class CompiledAct:
             return None  # numpy's matmul passes this layout's transpose as column-major
         yaw = np.ascontiguousarray(to_operator.T)
         centre, half = (np.ascontiguousarray(a, dtype=np.float64) for a in operator._posture)
-        cfg = np.array(
-            [
-                plan.waypoint_radius,
-                plan.brake_accel,
-                base.max_speed,
-                traits.speed_pref,
-                plan.corner_speed**2,  # Python's power, not the compiler's
-                base.sphere_radius,
-                base.full_speed_offset,
-                traits.wrist_lag,
-                TURN_ABOVE_RAD,
-                STOP_SHORT_M,
-                ARRIVAL_M,
-                AIMLESS_M,
-                REACH_MARGIN_M,
-                REST_SPEED,
-                REST_S,
-                PINCH_LAG_S,
-                DROPOUT_S[0],
-                DROPOUT_S[1] - DROPOUT_S[0],  # numpy's uniform draws low + (high - low) u
-            ],
-            dtype=np.float64,
+        constants = {
+            "waypoint_radius": plan.waypoint_radius,
+            "brake_accel": plan.brake_accel,
+            "max_speed": base.max_speed,
+            "speed_pref": traits.speed_pref,
+            "corner_speed_squared": plan.corner_speed**2,  # Python's power, not the C's
+            "sphere_radius": base.sphere_radius,
+            "full_speed_offset": base.full_speed_offset,
+            "wrist_lag": traits.wrist_lag,
+            "turn_above": TURN_ABOVE_RAD,
+            "stop_short": STOP_SHORT_M,
+            "arrival": ARRIVAL_M,
+            "aimless": AIMLESS_M,
+            "reach_margin": REACH_MARGIN_M,
+            "rest_speed": REST_SPEED,
+            "rest_time": REST_S,
+            "pinch_lag": PINCH_LAG_S,
+            "dropout_low": DROPOUT_S[0],
+            "dropout_range": DROPOUT_S[1] - DROPOUT_S[0],  # numpy's uniform: low + range u
+        }
+        cfg = np.array([constants[name] for name in CONFIG], dtype=np.float64)
+        hand = {
+            "hand_size": float(traits.hand_size),
+            "tremor_amp": traits.tremor_amp,
+            "tremor_freq": traits.tremor_freq,
+            "noise": traits.noise,
+            "dropout_rate": traits.dropout_rate,
+            "curl": handmodel_c.DEFAULT_CURL,
+        }
+        scalars = np.array([hand.get(name, 0.0) for name in HANDS], dtype=np.float64)
+        t_at, dt_at, grid_at = (HANDS.index(name) for name in ("t", "dt", "grid"))
+        inp = np.zeros(sum(size for _, size in INPUT))
+        at = _offsets(INPUT)
+        pos, rot, vel, wl_in, wr_in, ph_l, ph_r = (
+            inp[at[name] : at[name] + size] for name, size in INPUT
         )
-        scalars = np.array(
-            [
-                0.0,
-                0.0,
-                float(traits.hand_size),
-                traits.tremor_amp,
-                traits.tremor_freq,
-                traits.noise,
-                traits.dropout_rate,
-                handmodel_c.DEFAULT_CURL,
-                0.0,
-            ],
-            dtype=np.float64,
-        )
-        inp = np.zeros(_IN)
-        views = []
-        start = 0
-        for _, size in INPUT:
-            views.append(inp[start : start + size])
-            start += size
-        pos, rot, vel, wl_in, wr_in, ph_l, ph_r = views
         rot = rot.reshape(3, 3)
         state = np.zeros(len(STATE))
-        out = np.zeros(6 + 2 * math.prod(JOINTS_SHAPE))
-        new_l, new_r = out[0:3], out[3:6]
-        hands = out[6:].reshape(2, *JOINTS_SHAPE)
-        args = np.zeros(12, dtype=np.int64)  # payload_operator_act's pointers (A_*)
-        args[:] = [
-            cfg.ctypes.data, route.ctypes.data, left.ctypes.data, len(route),
-            yaw.ctypes.data, centre.ctypes.data, half.ctypes.data, inp.ctypes.data,
-            state.ctypes.data, self._hand.tables_address,
-            rng.bit_generator.ctypes.bit_generator.value, out.ctypes.data,
-        ]  # fmt: skip
+        out = np.zeros(sum(size for _, size in OUTPUT))
+        at = _offsets(OUTPUT)
+        new_l, new_r = (out[at[name] : at[name] + 3] for name in ("wrist_left", "wrist_right"))
+        hands = out[at["hands"] :].reshape(2, *JOINTS_SHAPE)
+        pointers = {
+            "cfg": cfg.ctypes.data,
+            "route": route.ctypes.data,
+            "left": left.ctypes.data,
+            "n": len(route),
+            "yaw": yaw.ctypes.data,
+            "centre": centre.ctypes.data,
+            "half": half.ctypes.data,
+            "in": inp.ctypes.data,
+            "state": state.ctypes.data,
+            "tables": self._hand.tables_address,
+            "bitgen": rng.bit_generator.ctypes.bit_generator.value,
+            "out": out.ctypes.data,
+        }
+        args = np.array([pointers[name] for name in ARGS], dtype=np.int64)
         call = functools.partial(self._fn, args.ctypes.data, scalars.ctypes.data)
         codes = {name: float(i) for i, name in enumerate(FLIGHT_PHASES)}
         n = len(route)
@@ -434,16 +466,17 @@ class CompiledAct:
                     return False
             if not all(type(drop[s]) is float for s in ("left", "right")):
                 return False
-            state[:] = (
-                codes[op.phase],
-                waypoint,
-                math.nan if stopped is None else stopped,
-                0.0,
-                op.aperture,
-                math.nan if grip is None else grip,
-                drop["left"],
-                drop["right"],
-            )
+            values = {
+                "phase": codes[op.phase],
+                "waypoint": waypoint,
+                "stopped_since": math.nan if stopped is None else stopped,
+                "finished": 0.0,
+                "aperture": op.aperture,
+                "grip_aperture": math.nan if grip is None else grip,
+                "dropout_left": drop["left"],
+                "dropout_right": drop["right"],
+            }
+            state[:] = [values[name] for name in STATE]
             return True
 
         def step(t: float, dt: float, seen: Any, grid: float | None) -> tuple[Any, Any] | None:
@@ -461,7 +494,7 @@ class CompiledAct:
             wl, wr, pl, pr = wrist["left"], wrist["right"], ph["left"], ph["right"]
             if not (_real(p, (3,)) and _real(r, (3, 3)) and _real(v, (3,))):
                 return None
-            if not (_held(wl) and _held(wr) and _held(pl) and _held(pr)):
+            if not all(map(handmodel_c.takes_vector, (wl, wr, pl, pr))):
                 return None  # the held hand's Python would go to numpy
             drop = op._dropout_until
             now = (op.phase, op.waypoint, op.stopped_since, op.aperture, op.grip_aperture,
@@ -469,11 +502,11 @@ class CompiledAct:
             if now != synced[0] and not load(op):
                 return None
             pos[:], rot[:], vel[:], wl_in[:], wr_in[:], ph_l[:], ph_r[:] = p, r, v, wl, wr, pl, pr
-            scalars[0], scalars[1], scalars[-1] = t, dt, 0.0 if grid is None else grid
+            scalars[t_at], scalars[dt_at], scalars[grid_at] = t, dt, 0.0 if grid is None else grid
             tracked = call()
             if tracked < 0:
                 return None
-            phase, waypoint, stopped, finished, aperture, _, dl, dr = state.tolist()
+            phase, waypoint, stopped, finished, aperture, _, dl, dr = state.tolist()  # STATE
             op.phase = FLIGHT_PHASES[int(phase)]
             op.waypoint = int(waypoint)
             op.stopped_since = None if stopped != stopped else stopped
@@ -492,14 +525,6 @@ class CompiledAct:
         keep = (cfg, route, left, yaw, centre, half, scalars, inp, state, out, args)
         step.keep = keep  # type: ignore[attr-defined]
         return step
-
-
-def _held(a: Any) -> bool:
-    """A float64 (3,) C-ordered array: what the held hand's compiled form takes (else its
-    numpy code runs)."""
-    return (
-        type(a) is np.ndarray and a.dtype == np.float64 and a.shape == (3,) and a.flags.c_contiguous
-    )
 
 
 def _real(a: Any, shape: tuple[int, ...]) -> bool:
@@ -546,7 +571,7 @@ def compiled_act(
         return None
     loaded = native.load_blas_kernel(
         "operator_act", handmodel_c.SOURCE + native.PYMOD_C + SOURCE, "the operator's kernel", log,
-        native.NUMPY_DDOT, native.NUMPY_DGEMV, prelude=handmodel_c.PRELUDE,
+        native.NUMPY_DDOT, native.NUMPY_DGEMV, prelude=handmodel_c.PRELUDE + _layout(),
         include_dirs=(npy[0],), link=(npy[1],),
     )  # fmt: skip
     if loaded is None:
@@ -567,7 +592,7 @@ def compiled_act(
             rng = np.random.default_rng(1000 + k)
             for i in range(steps):
                 if i % RESET_EVERY == 0:  # back in flight (the operators brake for good)
-                    phase = FLIGHT_PHASES[int(rng.integers(len(FLIGHT_PHASES) + 2)) % 2]
+                    phase = FLIGHT_PHASES[int(rng.integers(2))]  # translation or turn
                     waypoint = int(rng.integers(len(mine.plan.route)))
                     for op in (mine, theirs):
                         op.phase, op.waypoint = phase, waypoint
@@ -618,12 +643,15 @@ def _same(a: Any, b: Any) -> bool:
 
 
 __all__ = [
+    "ARGS",
     "CHECK_GRIDS",
     "CHECK_OPERATORS",
     "CHECK_STEPS",
     "CONFIG",
     "FLIGHT_PHASES",
     "HANDS",
+    "INPUT",
+    "OUTPUT",
     "RESET_EVERY",
     "SOURCE",
     "STATE",
