@@ -22,6 +22,7 @@ from payload.vecmath import F64, all_finite
 
 N_MANIPULATION = len(MANIPULATION_JOINTS)  # 17
 _SHAPE = (N_MANIPULATION,)
+_SHAPE3 = (3,)
 
 CONTROL_DT = 0.02
 """Period of the teleoperation loop and of every command stream [s] (the paper's 50 Hz)."""
@@ -63,6 +64,25 @@ class PayloadCommand:
             raise SchemaError("PayloadCommand.deploy: not finite")
         if not math.isfinite(self.stamp):
             raise SchemaError("PayloadCommand.stamp: not finite")
+
+    @classmethod
+    def of_frozen(cls, q: np.ndarray, deploy: float, stamp: float) -> PayloadCommand:
+        """The command of a vector made for it (:meth:`PayloadState.of_frozen`'s
+        contract): a read-only float64 array of 17 that nothing writes to again, taken as
+        it is and checked finite with the two numbers; anything else is built (and
+        checked) as the constructor does."""
+        if (
+            type(q) is not np.ndarray
+            or q.dtype != F64
+            or q.shape != _SHAPE
+            or q.flags.writeable
+            or not all_finite(q)
+            or not (math.isfinite(deploy) and math.isfinite(stamp))
+        ):
+            return cls(q, deploy, stamp)  # says what is wrong
+        self = object.__new__(cls)
+        self.__dict__.update(q=q, deploy=deploy, stamp=stamp)
+        return self
 
     def as_dict(self) -> dict[str, float]:
         """Joint name -> value, the deployment coordinate under ``stage``."""
@@ -173,6 +193,20 @@ class VehicleTwist:
     def __post_init__(self) -> None:
         object.__setattr__(self, "linear", _frozen_vector(self.linear, 3, "VehicleTwist.linear"))
         object.__setattr__(self, "angular", _frozen_vector(self.angular, 3, "VehicleTwist.angular"))
+
+    @classmethod
+    def of_frozen(cls, linear: np.ndarray, angular: np.ndarray, stamp: float) -> VehicleTwist:
+        """The twist of vectors made for it (:meth:`PayloadState.of_frozen`'s contract):
+        read-only float64 arrays of 3 that nothing writes to again, taken as they are and
+        checked finite; anything else is built (and checked) as the constructor does."""
+        for a in (linear, angular):
+            if type(a) is not np.ndarray or a.dtype != F64 or a.shape != _SHAPE3:
+                return cls(linear, angular, stamp)
+            if a.flags.writeable or not all_finite(a):
+                return cls(linear, angular, stamp)  # says which are not finite
+        self = object.__new__(cls)
+        self.__dict__.update(linear=linear, angular=angular, stamp=stamp)
+        return self
 
     @staticmethod
     def zero(stamp: float = 0.0) -> VehicleTwist:

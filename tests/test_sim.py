@@ -837,3 +837,43 @@ def test_a_payload_state_of_frozen_vectors_is_the_constructors():
     bad.setflags(write=False)
     with pytest.raises(SchemaError, match=MANIPULATION_JOINTS[2]):
         PayloadState.of_frozen(bad[:n], 0.0, 0.0, dq, effort)
+
+
+def test_a_command_and_a_twist_of_frozen_vectors_are_the_constructors():
+    """``PayloadCommand.of_frozen`` and ``VehicleTwist.of_frozen`` take read-only float64
+    vectors as they are, and anything else as the constructors do: the same fields, the
+    same refusals (the loop's pipeline and base channel make theirs this way)."""
+    n = len(MANIPULATION_JOINTS)
+    q = np.random.default_rng(4).normal(size=n)
+    q.setflags(write=False)
+    made = PayloadCommand.of_frozen(q, 0.02, 1.5)
+    built = PayloadCommand(q.copy(), 0.02, 1.5)
+    assert made.q is q and made.q.tobytes() == built.q.tobytes()  # taken, not copied
+    assert (made.deploy, made.stamp) == (built.deploy, built.stamp)
+    loose = PayloadCommand.of_frozen(q.copy(), 0.0, 0.0)  # writeable: copied and frozen
+    assert loose.q.tobytes() == q.tobytes() and not loose.q.flags.writeable
+    bad = q.copy()
+    bad[5] = np.nan
+    bad.setflags(write=False)
+    with pytest.raises(SchemaError, match=MANIPULATION_JOINTS[5]):
+        PayloadCommand.of_frozen(bad, 0.0, 0.0)
+    for deploy, stamp in ((np.inf, 0.0), (0.0, np.nan)):
+        with pytest.raises(SchemaError, match="not finite"):
+            PayloadCommand.of_frozen(q, deploy, stamp)
+    with pytest.raises(SchemaError, match=f"expected {n} values"):
+        PayloadCommand.of_frozen(q[:-1], 0.0, 0.0)
+
+    vel = np.array([0.1, -0.2, 0.3, 0.0, 0.0, 0.05])
+    vel.setflags(write=False)
+    twist = VehicleTwist.of_frozen(vel[:3], vel[3:], 2.0)
+    assert np.shares_memory(twist.linear, vel)  # taken, not copied
+    assert twist.linear.tolist() == [0.1, -0.2, 0.3] and twist.angular.tolist() == [0, 0, 0.05]
+    assert twist.stamp == 2.0 and not twist.angular.flags.writeable
+    open_ = VehicleTwist.of_frozen(np.array([1.0, 2.0, 3.0]), vel[3:], 0.0)
+    assert open_.linear.tolist() == [1.0, 2.0, 3.0] and not open_.linear.flags.writeable
+    broken = np.array([0.0, np.inf, 0.0])
+    broken.setflags(write=False)
+    with pytest.raises(SchemaError, match=r"VehicleTwist\.linear"):
+        VehicleTwist.of_frozen(broken, vel[3:], 0.0)
+    with pytest.raises(SchemaError, match=r"VehicleTwist\.angular: expected 3"):
+        VehicleTwist.of_frozen(vel[:3], vel, 0.0)

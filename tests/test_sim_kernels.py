@@ -344,7 +344,7 @@ def test_the_compiled_read_out_is_numpys_and_mujocos():
     import mujoco
 
     from payload.schema import VehicleTwist
-    from payload.sim import SimDriver
+    from payload.sim import SimDriver, WorldConfig
 
     with SimDriver() as d:
         kernel = d._readout
@@ -358,6 +358,8 @@ def test_the_compiled_read_out_is_numpys_and_mujocos():
             for a, b in zip(mine[:7], theirs[:7]):
                 assert np.asarray(a).tobytes() == np.asarray(b).tobytes()
             assert mine[7:10] == theirs[7:10] and mine.time == theirs.time
+            for a, b in zip(mine.wrench, theirs.wrench):  # the wrench held, each its own copy
+                assert a.tobytes() == b.tobytes() and a is not b
             a, b = d._read_kernel(kernel), d._read_numpy()
             for x, y in ((a.q, b.q), (a.dq, b.dq), (a.effort, b.effort)):
                 assert x.tobytes() == y.tobytes()
@@ -367,6 +369,14 @@ def test_the_compiled_read_out_is_numpys_and_mujocos():
             np.testing.assert_allclose(mine.astrobee_linear, vel[3:], rtol=1e-9, atol=1e-12)
             np.testing.assert_allclose(mine.astrobee_angular, vel[:3], rtol=1e-9, atol=1e-12)
         assert np.linalg.norm(mine.astrobee_angular) > 1e-3  # it turned
+    with SimDriver(WorldConfig(ctb=None)) as bare:  # no CTB: its fields are None either way
+        bare.step(3)
+        assert bare._readout is not None  # the kernel's world state, against numpy's
+        mine, theirs = bare.world_state(), bare._world_state_numpy()
+        assert mine.ctb_pos is None and mine.ctb_quat is None and theirs.ctb_pos is None
+        for a, b in zip(mine[:5], theirs[:5]):
+            assert np.asarray(a).tobytes() == np.asarray(b).tobytes()
+        assert mine[7:10] == theirs[7:10]
 
 
 def test_the_read_out_flags_a_limit_and_an_overload(bare_driver):

@@ -161,8 +161,8 @@ class SimDriver:
         vehicle controller (the base safety filter, on the robot's side); None: none."""
         self._wrench = Wrench(np.zeros(3), np.zeros(3))
         self._world_parts = tuple(  # the world read-out's fields (None: no CTB in this world)
-            (name, part if self.world.ctb >= 0 or not name.startswith("ctb") else None)
-            for name, part in WORLD_SLICES.items()
+            None if name.startswith("ctb") and self.world.ctb < 0 else WORLD_SLICES[name]
+            for name in WorldState._fields[1:7]
         )
         self._closed = False
 
@@ -313,9 +313,16 @@ class SimDriver:
         controller (:func:`payload.sim.period_c.compiled_period`, checked when built), or
         None (the box propulsion model, no controller or thrusts kernel, or a refusal)."""
         made = self.__dict__.get("_period")
+        if made is not None:
+            data, goal, target, controller = made[0]
+            if (
+                data is self.data
+                and goal is self._goal
+                and target is self._target
+                and controller is self.controller
+            ):
+                return made[1]
         key = (self.data, self._goal, self._target, self.controller)
-        if made is not None and all(a is b for a, b in zip(made[0], key)):
-            return made[1]
         kernel = None
         control = self.controller._kernel if self.controller.nozzles is not None else None
         thrusts = self._thrust_kernel if control is not None else None
@@ -584,11 +591,19 @@ class SimDriver:
         return self._world_state_numpy() if kernel is None else self._world_state_kernel(kernel)
 
     def _world_state_kernel(self, kernel: Any) -> WorldState:
-        """:meth:`world_state` through the read-out kernel."""
+        """:meth:`world_state` through the read-out kernel (what :meth:`_world_state`
+        makes, its fields given in order: no keyword dict a step)."""
         out = kernel.world()
-        return self._world_state(
-            **{name: None if part is None else out[part] for name, part in self._world_parts}
-        )
+        pos, quat, lin, ang, ctb_pos, ctb_quat = self._world_parts
+        at = out[pos]
+        d, force, torque = self.data, self._wrench.force, self._wrench.torque
+        touching = self.monitor.touching(d)
+        return WorldState(
+            float(d.time), at, out[quat], out[lin], out[ang],
+            None if ctb_pos is None else out[ctb_pos], None if ctb_quat is None else out[ctb_quat],
+            touching, opposing(touching), self.world.layout.module_at(at),
+            Wrench(force.copy(), torque.copy()),
+        )  # fmt: skip
 
     def _world_state_numpy(self) -> WorldState:
         """:meth:`world_state` in numpy (what the read-out kernel is checked against)."""

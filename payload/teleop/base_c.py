@@ -255,7 +255,9 @@ class CompiledBase:
             mode = call()
             if mode < 0:
                 return None
-            twist = VehicleTwist(out[7:10].copy(), out[10:13].copy(), stamp)
+            vel = out[7:13].copy()  # the twist's own, frozen: taken as it is
+            vel.setflags(write=False)
+            twist = VehicleTwist.of_frozen(vel[:3], vel[3:], stamp)
             return (  # outside: the drive mode (the left wrist outside its sphere)
                 out[0:3].copy(), out[3:6].copy(), float(out[6]), twist, MODES[mode] == "drive",
                 MODES[mode],

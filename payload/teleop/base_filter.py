@@ -352,7 +352,10 @@ class BaseSafetyFilter:
             out = req
         self._last = out
         ang[2] = out[3]
-        filtered = VehicleTwist(rot.T @ out[:3], rot.T @ ang, twist.stamp)
+        lin, ang = rot.T @ out[:3], rot.T @ ang
+        lin.setflags(write=False)  # the twist's own: taken as they are
+        ang.setflags(write=False)
+        filtered = VehicleTwist.of_frozen(lin, ang, twist.stamp)
         change = out[:3] - req[:3]
         self.status = FilterStatus(
             True,

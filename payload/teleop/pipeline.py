@@ -352,7 +352,8 @@ class TeleopPipeline:
         for pair, q in q_pair.items():
             q17[self.index[pair]] = q
         q17[-1] = float(rail[0])
-        command = PayloadCommand(q17, self.config.deploy, stamp)
+        q17.setflags(write=False)  # the command's own: taken as it is
+        command = PayloadCommand.of_frozen(q17, self.config.deploy, stamp)
         self.events.extend(events)
         return TeleopStep(
             stamp,
