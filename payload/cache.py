@@ -34,9 +34,13 @@ def sources_digest(package: Path = _PACKAGE) -> str:
     return h.hexdigest()
 
 
+@functools.cache
 def dist_version(name: str) -> str:
     """The installed version of the distribution ``name`` (what a cached answer may depend
-    on), ``"?"`` when it is not installed."""
+    on), ``"?"`` when it is not installed. Read once a process (``importlib.metadata``
+    parses the distribution's metadata file each time, about 2 ms: a trial asks for a
+    dozen); a package installed over it while the process runs is not the one it
+    imported either."""
     from importlib.metadata import PackageNotFoundError, version
 
     try:
