@@ -327,6 +327,19 @@ def reported(name: str) -> Callable[[Callable[..., Any]], Callable[..., Any]]:
 
 _CHECKED: set[tuple[str, Hashable]] = set()
 
+_FULL_CHECKS: list[str] = []
+"""The libraries (their names' stems, the hash left off) whose kernels ran a full
+self-check in this process (:func:`full_checks`)."""
+
+
+def full_checks() -> tuple[str, ...]:
+    """The kernels that ran their full self-check in this process, in order (the name of
+    each one's library, the hash left off): their first use since a change to their C,
+    the workbench's sources or the environment (:func:`check_stamp`). A run that made
+    them spent longer than the next one will: ``payload bench trial`` says so."""
+    return tuple(_FULL_CHECKS)
+
+
 SHORT_SHARE = 10
 """A short self-check runs the first 1/SHORT_SHARE of a full check's probes (unless the
 kernel says otherwise: :func:`probes`'s ``again``)."""
@@ -347,6 +360,7 @@ def probes(lib: ctypes.CDLL, key: Hashable, full: int, again: int | None = None)
     if check_stamp(lib, key).is_file():
         _CHECKED.add((str(lib._name), key))
         return short
+    _FULL_CHECKS.append(Path(lib._name).stem.rsplit("_", 1)[0])  # a full check to run
     return full
 
 
@@ -634,6 +648,7 @@ __all__ = [
     "environment",
     "find_compiler",
     "flags",
+    "full_checks",
     "gemv_layout",
     "kernel_status",
     "load_blas_kernel",

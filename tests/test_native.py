@@ -38,6 +38,22 @@ def test_a_passed_full_check_lets_later_processes_run_the_short_one(library, mon
     assert native.probes(library, (3, 4), 100, 10) == 100
 
 
+def test_a_full_check_is_named_where_the_bench_reads_it(library, monkeypatch):
+    """``full_checks`` names a kernel each time it runs its full self-check in this process
+    (no stamp yet), not when it runs the short one: what ``payload bench trial`` reports
+    as time the next run will not spend."""
+    monkeypatch.setattr(native, "_FULL_CHECKS", [])
+    seen: list[int] = []
+    assert native.self_checked(library, "k", 40, lambda n: seen.append(n) or True)
+    assert native.self_checked(library, "k", 40, lambda n: seen.append(n) or True)
+    assert seen == [40, 4] and native.full_checks() == ("probe",)  # the hash left off
+    monkeypatch.setattr(native, "_CHECKED", set())  # the next process, the stamp made
+    assert native.self_checked(library, "k", 40, lambda n: seen.append(n) or True)
+    assert native.full_checks() == ("probe",) and seen[-1] == 4
+    assert not native.self_checked(library, "other", 40, lambda n: False)  # failed: named
+    assert native.full_checks() == ("probe", "probe")
+
+
 def test_a_rebuilt_library_or_another_environment_asks_for_a_full_check(library, monkeypatch):
     """A stamp names the library file as built (size and time): the same name rebuilt (a
     new compiler, say) is checked in full; a stamp of another environment is replaced by

@@ -1042,6 +1042,11 @@ def test_cli_bench_trial_accounts_for_its_time(tmp_path: Path, capsys) -> None:
     assert per_trial <= set(r["kernels"]), r["kernels"]
     assert all(r["kernels"][k] == "compiled" for k in per_trial), r["kernels"]
     assert r["environment"] == running_environment()  # what the figures were measured on
+    # the kernels that ran a full self-check in the run: each one's library in the cache
+    from payload.cache import cache_dir
+
+    built = {p.name.rsplit("_", 1)[0] for p in cache_dir().glob("*.so")}
+    assert isinstance(r["full_checks"], list) and set(r["full_checks"]) <= built
 
 
 def test_cli_bench_trial_repeated_reports_the_median_run(capsys) -> None:

@@ -178,8 +178,10 @@ def run_trial_bench(
         "mj_step_seconds", "mj_step_cpu_seconds", "mj_step_us" (per 1 ms physics step),
         "physics_only_realtime_factor", "log_bytes", "log_bytes_per_sim_minute", "steps",
         "seed", "success", "worker_import_s", "kernels" (each compiled kernel of the loop:
-        ``compiled`` or ``numpy``), "environment" (the versions and BLAS kernels it ran on:
-        :func:`payload.native.environment`)}``.
+        ``compiled`` or ``numpy``), "full_checks" (the kernels that ran their full
+        self-check in this run, :func:`payload.native.full_checks`: their first run since
+        a change, which the figures include), "environment" (the versions and BLAS kernels
+        it ran on: :func:`payload.native.environment`)}``.
     """
     imports = worker_import_seconds()  # first: no trial running beside it
     before = os.sched_getaffinity(0) if pin and hasattr(os, "sched_setaffinity") else None
@@ -198,7 +200,7 @@ def run_trial_bench(
 def _bench(
     seed: int, out: Path, pinned: bool, max_time: float | None, physics_dt: float | None
 ) -> dict:
-    from payload.native import environment
+    from payload.native import environment, full_checks
     from payload.schema import CONTROL_DT
 
     timers = _Timers()
@@ -243,6 +245,7 @@ def _bench(
         "pinned": pinned,
         "load_average": list(os.getloadavg()),
         "kernels": _kernels(),
+        "full_checks": list(full_checks()),
         "environment": environment(),
     }
 
@@ -261,6 +264,7 @@ RUN_FIELDS: tuple[str, ...] = (
     "overhead_ratio",
     "overhead_ratio_cpu",
     "load_average",
+    "full_checks",
 )
 """What :func:`run_trial_bench_repeated` keeps of each run (``runs``)."""
 

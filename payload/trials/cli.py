@@ -401,7 +401,8 @@ def _cmd_bench_trial(args: argparse.Namespace) -> int:
             print(
                 f"bench run {i + 1} of {args.repeat}: overhead ratio "
                 f"{run['overhead_ratio']:.3f}, {run['wall_seconds']:.2f} s wall, load average "
-                f"{run['load_average'][0]:.2f}",
+                f"{run['load_average'][0]:.2f}"
+                + (", with kernels' full self-checks" if run.get("full_checks") else ""),
                 file=sys.stderr,
             )
 
@@ -446,6 +447,13 @@ def _cmd_bench_trial(args: argparse.Namespace) -> int:
         f"  compiled kernels: {len(kernels) - len(in_numpy)} of {len(kernels)}"
         + (f"; in numpy: {', '.join(in_numpy)} ({why})" if in_numpy else "")
     )
+    full = result.get("full_checks") or []
+    if full:
+        print(
+            f"  {len(full)} kernels ran their full self-check in this run ({', '.join(full)}): "
+            "their first run since a change to the code or the environment, in the figures "
+            "above; the next run will not"
+        )
     env = result.get("environment") or {}
     print(
         f"  ran on: Python {env.get('python')}, numpy {env.get('numpy')} (OpenBLAS kernels "
