@@ -328,15 +328,17 @@ def reported(name: str) -> Callable[[Callable[..., Any]], Callable[..., Any]]:
 _CHECKED: set[tuple[str, Hashable]] = set()
 
 _FULL_CHECKS: list[str] = []
-"""The libraries (their names' stems, the hash left off) whose kernels ran a full
-self-check in this process (:func:`full_checks`)."""
+"""The libraries (their names' stems, the hash left off) whose kernels were given a full
+self-check in this process, one entry a check (:func:`full_checks`)."""
 
 
 def full_checks() -> tuple[str, ...]:
-    """The kernels that ran their full self-check in this process, in order (the name of
-    each one's library, the hash left off): their first use since a change to their C,
-    the workbench's sources or the environment (:func:`check_stamp`). A run that made
-    them spent longer than the next one will: ``payload bench trial`` says so."""
+    """The full self-checks this process has run so far, in order, each named by its
+    kernel's library (the hash left off; a library checked for two keys, or checked again
+    after a failure, is named twice): those with no check stamp yet (:func:`probes`), as
+    on the first use after a change to their C, the workbench's sources or the
+    environment. Once a check passes and its stamp is written, later processes run the
+    short check instead; ``payload bench trial`` says which a run included."""
     return tuple(_FULL_CHECKS)
 
 

@@ -17,6 +17,7 @@ def library(monkeypatch, tmp_path) -> ctypes.CDLL:
     """A small library built into a cache of its own, no check passed in this process."""
     monkeypatch.setenv("PAYLOAD_CACHE_DIR", str(tmp_path / "cache"))
     monkeypatch.setattr(native, "_CHECKED", set())
+    monkeypatch.setattr(native, "_FULL_CHECKS", [])  # this library's checks stay here
     compiler = native.find_compiler()
     assert compiler is not None  # the suite runs where kernels compile
     path = native.build_library("probe", {"probe.c": "int probe(void) { return 7; }\n"}, compiler)
@@ -42,7 +43,6 @@ def test_a_full_check_is_named_where_the_bench_reads_it(library, monkeypatch):
     """``full_checks`` names a kernel each time it runs its full self-check in this process
     (no stamp yet), not when it runs the short one: what ``payload bench trial`` reports
     as time the next run will not spend."""
-    monkeypatch.setattr(native, "_FULL_CHECKS", [])
     seen: list[int] = []
     assert native.self_checked(library, "k", 40, lambda n: seen.append(n) or True)
     assert native.self_checked(library, "k", 40, lambda n: seen.append(n) or True)

@@ -862,6 +862,11 @@ def test_a_command_and_a_twist_of_frozen_vectors_are_the_constructors():
             PayloadCommand.of_frozen(q, deploy, stamp)
     with pytest.raises(SchemaError, match=f"expected {n} values"):
         PayloadCommand.of_frozen(q[:-1], 0.0, 0.0)
+    single = q.astype(np.float32)  # read-only, another type: converted as the constructor does
+    single.setflags(write=False)
+    other = PayloadCommand.of_frozen(single, 0.0, 0.0)
+    assert other.q is not single and other.q.dtype == np.float64
+    assert other.q.tobytes() == single.astype(np.float64).tobytes()
 
     vel = np.array([0.1, -0.2, 0.3, 0.0, 0.0, 0.05])
     vel.setflags(write=False)
@@ -869,6 +874,10 @@ def test_a_command_and_a_twist_of_frozen_vectors_are_the_constructors():
     assert np.shares_memory(twist.linear, vel)  # taken, not copied
     assert twist.linear.tolist() == [0.1, -0.2, 0.3] and twist.angular.tolist() == [0, 0, 0.05]
     assert twist.stamp == 2.0 and not twist.angular.flags.writeable
+    ints = np.array([1, 2, 3])
+    ints.setflags(write=False)
+    converted = VehicleTwist.of_frozen(vel[:3], ints, 0.0)
+    assert converted.angular is not ints and converted.angular.dtype == np.float64
     open_ = VehicleTwist.of_frozen(np.array([1.0, 2.0, 3.0]), vel[3:], 0.0)
     assert open_.linear.tolist() == [1.0, 2.0, 3.0] and not open_.linear.flags.writeable
     broken = np.array([0.0, np.inf, 0.0])

@@ -369,6 +369,12 @@ def test_the_compiled_read_out_is_numpys_and_mujocos():
             np.testing.assert_allclose(mine.astrobee_linear, vel[3:], rtol=1e-9, atol=1e-12)
             np.testing.assert_allclose(mine.astrobee_angular, vel[:3], rtol=1e-9, atol=1e-12)
         assert np.linalg.norm(mine.astrobee_angular) > 1e-3  # it turned
+    # the read-out's layout is WorldState's fields after the time, in order (the driver
+    # builds the state from it by position)
+    from payload.sim.driver import WorldState
+    from payload.sim.readout_c import WORLD_LAYOUT
+
+    assert WorldState._fields[1 : 1 + len(WORLD_LAYOUT)] == tuple(n for n, _ in WORLD_LAYOUT)
     with SimDriver(WorldConfig(ctb=None)) as bare:  # no CTB: its fields are None either way
         bare.step(3)
         assert bare._readout is not None  # the kernel's world state, against numpy's

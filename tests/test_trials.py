@@ -1003,8 +1003,9 @@ def test_cli_bad_input_exits_2(argv: list[str], message: str, capsys) -> None:
     assert len(err) == 1 and message in err[0]
 
 
-def test_cli_bench_trial_accounts_for_its_time(tmp_path: Path, capsys) -> None:
-    """The stages add up to the measured total; sizes are the file's."""
+def test_cli_bench_trial_accounts_for_its_time(tmp_path: Path, capsys, fresh_checks) -> None:
+    """The stages add up to the measured total; sizes are the file's; with no check stamps
+    (``fresh_checks``) the run names the full self-checks it ran."""
     from conftest import running_environment
 
     from payload.cli import main
@@ -1042,11 +1043,13 @@ def test_cli_bench_trial_accounts_for_its_time(tmp_path: Path, capsys) -> None:
     assert per_trial <= set(r["kernels"]), r["kernels"]
     assert all(r["kernels"][k] == "compiled" for k in per_trial), r["kernels"]
     assert r["environment"] == running_environment()  # what the figures were measured on
-    # the kernels that ran a full self-check in the run: each one's library in the cache
+    # no stamps: the kernels each driver makes ran their full self-checks in the run, and
+    # each is a library in the cache; the stamps they left make the next run's checks short
     from payload.cache import cache_dir
 
     built = {p.name.rsplit("_", 1)[0] for p in cache_dir().glob("*.so")}
-    assert isinstance(r["full_checks"], list) and set(r["full_checks"]) <= built
+    assert {"period", "readout"} <= set(r["full_checks"]) <= built, r["full_checks"]
+    assert {p.name.split("_")[0] for p in fresh_checks.iterdir()} >= {"period", "readout"}
 
 
 def test_cli_bench_trial_repeated_reports_the_median_run(capsys) -> None:
@@ -1079,6 +1082,25 @@ def test_cli_bench_trial_repeated_reports_the_median_run(capsys) -> None:
     assert mine["wall_seconds"] == r["wall_seconds"] and r["steps"] == 51
     with pytest.raises(RuntimeError, match=r"bench run 1 of 2 failed \(exit 1\): .*0\.0015"):
         run_trial_bench_repeated(0, 2, max_time=1.0, physics_dt=0.0015)
+
+
+def test_cli_bench_trial_says_which_full_checks_it_ran(fresh_checks, capsys):
+    """The text output names the run's full self-checks (none once their stamps exist),
+    and ``--repeat`` says of each run whether it had any, as its JSON does."""
+    from payload.cli import main
+
+    assert main(["bench", "trial", "--seconds", "1"]) == 0
+    first = [x for x in capsys.readouterr().out.splitlines() if "full kernel self-checks" in x]
+    assert len(first) == 1 and "period" in first[0] and "readout" in first[0], first
+    assert main(["bench", "trial", "--seconds", "1"]) == 0  # stamped now: short checks
+    assert "full kernel self-checks" not in capsys.readouterr().out
+    assert main(["bench", "trial", "--repeat", "2", "--seconds", "1", "--json"]) == 0
+    captured = capsys.readouterr()
+    runs = json.loads(captured.out)["runs"]
+    said = [ln for ln in captured.err.splitlines() if ln.startswith("bench run ")]
+    assert len(said) == len(runs) == 2
+    for line, run in zip(said, runs):
+        assert ("full self-checks" in line) == bool(run["full_checks"]), (line, run)
 
 
 def test_cli_bench_trial_says_which_kernels_ran_in_numpy(tmp_path: Path, monkeypatch, capsys):

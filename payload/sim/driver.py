@@ -38,7 +38,7 @@ from payload.schema import (
 )
 from payload.sim.contact import Contact, ContactMonitor, opposing
 from payload.sim.propulsion import Allocation
-from payload.sim.readout_c import WORLD_SLICES
+from payload.sim.readout_c import WORLD_LAYOUT, WORLD_SLICES
 from payload.sim.vehicle import (
     DEFAULT_FLIGHT_MODE,
     DEFAULT_PROPULSION,
@@ -162,7 +162,7 @@ class SimDriver:
         self._wrench = Wrench(np.zeros(3), np.zeros(3))
         self._world_parts = tuple(  # the world read-out's fields (None: no CTB in this world)
             None if name.startswith("ctb") and self.world.ctb < 0 else WORLD_SLICES[name]
-            for name in WorldState._fields[1:7]
+            for name, _ in WORLD_LAYOUT  # WorldState's fields after the time, in order
         )
         self._closed = False
 

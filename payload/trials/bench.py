@@ -178,9 +178,9 @@ def run_trial_bench(
         "mj_step_seconds", "mj_step_cpu_seconds", "mj_step_us" (per 1 ms physics step),
         "physics_only_realtime_factor", "log_bytes", "log_bytes_per_sim_minute", "steps",
         "seed", "success", "worker_import_s", "kernels" (each compiled kernel of the loop:
-        ``compiled`` or ``numpy``), "full_checks" (the kernels that ran their full
-        self-check in this run, :func:`payload.native.full_checks`: their first run since
-        a change, which the figures include), "environment" (the versions and BLAS kernels
+        ``compiled`` or ``numpy``), "full_checks" (the kernels that ran a full self-check
+        during this run, :func:`payload.native.full_checks`: no check stamp yet, as after
+        a change; the figures include them), "environment" (the versions and BLAS kernels
         it ran on: :func:`payload.native.environment`)}``.
     """
     imports = worker_import_seconds()  # first: no trial running beside it
@@ -203,6 +203,7 @@ def _bench(
     from payload.native import environment, full_checks
     from payload.schema import CONTROL_DT
 
+    before = len(full_checks())  # the process's earlier ones are not this run's
     timers = _Timers()
     clock = _StepClock()
     w0, c0 = time.perf_counter(), time.process_time()
@@ -245,7 +246,7 @@ def _bench(
         "pinned": pinned,
         "load_average": list(os.getloadavg()),
         "kernels": _kernels(),
-        "full_checks": list(full_checks()),
+        "full_checks": list(full_checks()[before:]),
         "environment": environment(),
     }
 

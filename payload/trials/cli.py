@@ -449,10 +449,11 @@ def _cmd_bench_trial(args: argparse.Namespace) -> int:
     )
     full = result.get("full_checks") or []
     if full:
+        names = ", ".join(dict.fromkeys(full))
         print(
-            f"  {len(full)} kernels ran their full self-check in this run ({', '.join(full)}): "
-            "their first run since a change to the code or the environment, in the figures "
-            "above; the next run will not"
+            f"  {len(full)} full kernel self-checks in this run ({names}): no check stamp "
+            "yet, as after a change to the code or the environment; the figures above "
+            "include them (a run that lists none is the steady one)"
         )
     env = result.get("environment") or {}
     print(
