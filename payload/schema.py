@@ -12,7 +12,7 @@ import math
 from dataclasses import dataclass, field
 from enum import IntFlag
 from types import TracebackType
-from typing import Protocol, runtime_checkable
+from typing import Protocol, TypeVar, runtime_checkable
 
 import numpy as np
 
@@ -44,6 +44,23 @@ def _frozen_vector(values: object, n: int, what: str, allow_nan: bool = False) -
     return arr
 
 
+def _as_is(a: object, shape: tuple[int, ...]) -> bool:
+    """Whether ``a`` is a read-only float64 array of ``shape``: what an ``of_frozen``
+    constructor takes as it is (the constructor would copy it into just such an array)."""
+    return type(a) is np.ndarray and a.dtype == F64 and a.shape == shape and not a.flags.writeable
+
+
+_T = TypeVar("_T")
+
+
+def _taken(cls: type[_T], **fields: object) -> _T:
+    """An instance of the frozen dataclass ``cls`` with ``fields`` as they are (its
+    ``__post_init__`` not run: the ``of_frozen`` constructors checked them)."""
+    self = object.__new__(cls)
+    self.__dict__.update(fields)
+    return self
+
+
 @dataclass(frozen=True)
 class PayloadCommand:
     """Position command for the payload.
@@ -71,18 +88,9 @@ class PayloadCommand:
         contract): a read-only float64 array of 17 that nothing writes to again, taken as
         it is and checked finite with the two numbers; anything else is built (and
         checked) as the constructor does."""
-        if (
-            type(q) is not np.ndarray
-            or q.dtype != F64
-            or q.shape != _SHAPE
-            or q.flags.writeable
-            or not all_finite(q)
-            or not (math.isfinite(deploy) and math.isfinite(stamp))
-        ):
-            return cls(q, deploy, stamp)  # says what is wrong
-        self = object.__new__(cls)
-        self.__dict__.update(q=q, deploy=deploy, stamp=stamp)
-        return self
+        if _as_is(q, _SHAPE) and all_finite(q) and math.isfinite(deploy) and math.isfinite(stamp):
+            return _taken(cls, q=q, deploy=deploy, stamp=stamp)
+        return cls(q, deploy, stamp)  # says what is wrong
 
     def as_dict(self) -> dict[str, float]:
         """Joint name -> value, the deployment coordinate under ``stage``."""
@@ -164,16 +172,9 @@ class PayloadState:
         writes to again (a read-out's fresh buffer, frozen). They are taken as they are,
         not copied; ``q`` is still checked finite. Anything else is built (and checked) as
         the constructor does."""
-        for a in (q, dq, effort):
-            if type(a) is not np.ndarray or a.dtype != F64 or a.shape != _SHAPE:
-                return cls(q, deploy, stamp, dq, effort, health)
-            if a.flags.writeable:
-                return cls(q, deploy, stamp, dq, effort, health)
-        if not all_finite(q):
-            return cls(q, deploy, stamp, dq, effort, health)  # says which are not
-        self = object.__new__(cls)
-        self.__dict__.update(q=q, deploy=deploy, stamp=stamp, dq=dq, effort=effort, health=health)
-        return self
+        if _as_is(q, _SHAPE) and _as_is(dq, _SHAPE) and _as_is(effort, _SHAPE) and all_finite(q):
+            return _taken(cls, q=q, deploy=deploy, stamp=stamp, dq=dq, effort=effort, health=health)
+        return cls(q, deploy, stamp, dq, effort, health)  # says what is wrong
 
 
 @dataclass(frozen=True)
@@ -199,14 +200,10 @@ class VehicleTwist:
         """The twist of vectors made for it (:meth:`PayloadState.of_frozen`'s contract):
         read-only float64 arrays of 3 that nothing writes to again, taken as they are and
         checked finite; anything else is built (and checked) as the constructor does."""
-        for a in (linear, angular):
-            if type(a) is not np.ndarray or a.dtype != F64 or a.shape != _SHAPE3:
-                return cls(linear, angular, stamp)
-            if a.flags.writeable or not all_finite(a):
-                return cls(linear, angular, stamp)  # says which are not finite
-        self = object.__new__(cls)
-        self.__dict__.update(linear=linear, angular=angular, stamp=stamp)
-        return self
+        a, b = linear, angular
+        if _as_is(a, _SHAPE3) and _as_is(b, _SHAPE3) and all_finite(a) and all_finite(b):
+            return _taken(cls, linear=linear, angular=angular, stamp=stamp)
+        return cls(linear, angular, stamp)  # says what is wrong
 
     @staticmethod
     def zero(stamp: float = 0.0) -> VehicleTwist:

@@ -313,16 +313,9 @@ class SimDriver:
         controller (:func:`payload.sim.period_c.compiled_period`, checked when built), or
         None (the box propulsion model, no controller or thrusts kernel, or a refusal)."""
         made = self.__dict__.get("_period")
-        if made is not None:
-            data, goal, target, controller = made[0]
-            if (
-                data is self.data
-                and goal is self._goal
-                and target is self._target
-                and controller is self.controller
-            ):
-                return made[1]
         key = (self.data, self._goal, self._target, self.controller)
+        if made is not None and all(a is b for a, b in zip(made[0], key)):
+            return made[1]
         kernel = None
         control = self.controller._kernel if self.controller.nozzles is not None else None
         thrusts = self._thrust_kernel if control is not None else None
@@ -591,19 +584,11 @@ class SimDriver:
         return self._world_state_numpy() if kernel is None else self._world_state_kernel(kernel)
 
     def _world_state_kernel(self, kernel: Any) -> WorldState:
-        """:meth:`world_state` through the read-out kernel (what :meth:`_world_state`
-        makes, its fields given in order: no keyword dict a step)."""
+        """:meth:`world_state` through the read-out kernel."""
         out = kernel.world()
-        pos, quat, lin, ang, ctb_pos, ctb_quat = self._world_parts
-        at = out[pos]
-        d, force, torque = self.data, self._wrench.force, self._wrench.torque
-        touching = self.monitor.touching(d)
-        return WorldState(
-            float(d.time), at, out[quat], out[lin], out[ang],
-            None if ctb_pos is None else out[ctb_pos], None if ctb_quat is None else out[ctb_quat],
-            touching, opposing(touching), self.world.layout.module_at(at),
-            Wrench(force.copy(), torque.copy()),
-        )  # fmt: skip
+        return self._world_state(
+            *(None if part is None else out[part] for part in self._world_parts)
+        )
 
     def _world_state_numpy(self) -> WorldState:
         """:meth:`world_state` in numpy (what the read-out kernel is checked against)."""
@@ -611,28 +596,24 @@ class SimDriver:
         a, c = w.astrobee_qpos, w.ctb_qpos
         lin, ang = self._body_twist()
         return self._world_state(
-            astrobee_pos=d.qpos[a : a + 3].copy(),
-            astrobee_quat=d.qpos[a + 3 : a + 7].copy(),
-            astrobee_linear=lin,
-            astrobee_angular=ang,
-            ctb_pos=d.qpos[c : c + 3].copy() if w.ctb >= 0 else None,
-            ctb_quat=d.qpos[c + 3 : c + 7].copy() if w.ctb >= 0 else None,
+            d.qpos[a : a + 3].copy(),
+            d.qpos[a + 3 : a + 7].copy(),
+            lin,
+            ang,
+            d.qpos[c : c + 3].copy() if w.ctb >= 0 else None,
+            d.qpos[c + 3 : c + 7].copy() if w.ctb >= 0 else None,
         )
 
-    def _world_state(self, astrobee_pos: np.ndarray, **poses: np.ndarray | None) -> WorldState:
-        """The world state of these poses and velocities, with the data's time, contacts
-        and module and the wrench held."""
-        w, d = self.world, self.data
+    def _world_state(self, pos: np.ndarray, *rest: np.ndarray | None) -> WorldState:
+        """The world state of Astrobee's position and the other read-out fields
+        (:data:`~payload.sim.readout_c.WORLD_LAYOUT`'s order, WorldState's), with the
+        data's time, contacts and module and the wrench held."""
+        d, held = self.data, self._wrench
         touching = self.monitor.touching(d)
         return WorldState(
-            time=float(d.time),
-            astrobee_pos=astrobee_pos,
-            touching=touching,
-            opposing_contact=opposing(touching),
-            module=w.layout.module_at(astrobee_pos),
-            wrench=Wrench(self._wrench.force.copy(), self._wrench.torque.copy()),
-            **poses,
-        )
+            float(d.time), pos, *rest, touching, opposing(touching),
+            self.world.layout.module_at(pos), Wrench(held.force.copy(), held.torque.copy()),
+        )  # fmt: skip
 
     def contacts(self) -> tuple[Contact, ...]:
         """Every active contact now (geom names, point, normal force, distance)."""
