@@ -586,9 +586,11 @@ class SimDriver:
     def _world_state_kernel(self, kernel: Any) -> WorldState:
         """:meth:`world_state` through the read-out kernel."""
         out = kernel.world()
+        pos, quat, lin, ang, ctb_pos, ctb_quat = self._world_parts  # WORLD_LAYOUT's order
         return self._world_state(
-            *(None if part is None else out[part] for part in self._world_parts)
-        )
+            out[pos], out[quat], out[lin], out[ang],
+            None if ctb_pos is None else out[ctb_pos], None if ctb_quat is None else out[ctb_quat],
+        )  # fmt: skip
 
     def _world_state_numpy(self) -> WorldState:
         """:meth:`world_state` in numpy (what the read-out kernel is checked against)."""
