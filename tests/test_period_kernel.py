@@ -90,3 +90,48 @@ def test_the_period_is_made_for_its_data_goals_and_controller(ctb):
         assert second is not None and second is not first and second.data is driver.data
         driver.step(2)
         assert driver.ctb_external_max == 0.0
+
+
+SETTINGS = {
+    "gain_linear": 5.0,
+    "gain_angular": 5.0,
+    "reference_share": 0.5,
+    "mode": "quiet",
+    "propulsion": "box",
+    "nozzles": None,
+    "plant": None,
+    "torque_max": np.ones(3),
+    "force_max": np.ones(3),
+    "accel_max": np.ones(3),
+    "alpha_max": np.ones(3),
+    "jerk": np.ones(6),
+    "profile": None,
+}
+
+
+def test_the_controllers_settings_are_fixed_when_it_is_made():
+    """The compiled period copies the controller's settings when it is made, and numpy's
+    code derives its bounds from them then: a setting changed afterwards would reach one
+    and not the other, or not the bounds. So each refuses a new value, its arrays refuse
+    writes, and the driver goes on as before; the plant's arrays the caller gave stay the
+    caller's to write."""
+    from payload.sim.vehicle import MassProperties, VehicleController, VehicleError
+
+    with SimDriver() as driver:
+        c = driver.controller
+        driver.command_twist(VehicleTwist(np.array([0.03, 0.0, 0.0]), np.zeros(3), 0.0))
+        driver.step(3)
+        for name, value in SETTINGS.items():
+            with pytest.raises(VehicleError, match=rf"VehicleController\.{name} is fixed"):
+                setattr(c, name, value)
+        arrays = [c.torque_max, c.force_max, c.accel_max, c.alpha_max, c.jerk, c.plant.com]
+        arrays += [c.plant.inertia, c.profile.accel, c.profile.jerk]
+        for a in arrays:
+            with pytest.raises(ValueError, match="read-only"):
+                a[0] = 1.0
+        with pytest.raises(VehicleError, match=r"JerkLimitedProfile\.jerk is fixed"):
+            c.profile.jerk = np.ones(6)
+        assert c.gain_linear == 1.0 and driver.step(1).wrench.force.shape == (3,)
+    com, inertia = np.zeros(3), np.eye(3)
+    VehicleController(MassProperties(10.0, com, inertia))
+    com[0], inertia[0, 0] = 0.01, 2.0  # still the caller's arrays, still writeable

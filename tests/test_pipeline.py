@@ -4,6 +4,7 @@ replay reproducibility, and a synthetic operator flying the CTB in the simulator
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 import pytest
@@ -402,6 +403,25 @@ def test_the_finger_chain_is_the_python_path(retargeting, refused_kernel):
         assert pipe._make_chain("L") is None
 
 
+def _set_chain(pipe: TeleopPipeline, pair: str, chain: Any) -> None:
+    """Give ``pipe`` ``chain`` as pair ``pair``'s finger chain (None: the Python path), made
+    for its calibration and retargeter as they are."""
+    pipe._chains[pair] = (pipe.calibration.pairs[pair], pipe.retargeters[pair], chain)
+
+
+def _count_intake(pipe: TeleopPipeline, taken: list[bool]) -> None:
+    """Make ``pipe`` note in ``taken``, at each step, whether its compiled intake took the
+    hands in."""
+    step = pipe._intake_step
+
+    def counted(frame, t):
+        out = step(frame, t)
+        taken.append(out is not None)
+        return out
+
+    pipe._intake_step = counted
+
+
 def test_a_pipeline_with_its_finger_chains_commands_as_one_without(retargeting):
     """Two pipelines on the same calibration and hands, one with its pairs' finger chains
     and one on the Python path alone: the same commands, twists and solve reports, bit for
@@ -417,7 +437,8 @@ def test_a_pipeline_with_its_finger_chains_commands_as_one_without(retargeting):
     def stream(chains: bool) -> list[bytes]:
         pipe = _pipeline(cal, retargeting)
         if not chains:
-            pipe._chains = {"L": None, "R": None}
+            for pair in ("L", "R"):
+                _set_chain(pipe, pair, None)
         else:
             for pair in ("L", "R"):
                 chain = pipe._make_chain(pair)
@@ -428,7 +449,7 @@ def test_a_pipeline_with_its_finger_chains_commands_as_one_without(retargeting):
                     taken.append(out is not None)
                     return out
 
-                pipe._chains[pair] = counted
+                _set_chain(pipe, pair, counted)
         out = []
         for fr in frames:
             s = pipe.step(fr)
@@ -483,14 +504,7 @@ def test_the_compiled_hand_intake_steps_as_the_python_path(retargeting):
     def stream(intake: bool) -> list[bytes]:
         pipe = _pipeline(cal, retargeting)
         if intake:
-            step = pipe._intake_step
-
-            def counted(frame, t, step=step):
-                out = step(frame, t)
-                taken.append(out is not None)
-                return out
-
-            pipe._intake_step = counted
+            _count_intake(pipe, taken)
         else:
             pipe._intake_kernel = lambda: None
         python = pipe._finger_python
@@ -502,7 +516,7 @@ def test_the_compiled_hand_intake_steps_as_the_python_path(retargeting):
         pipe._finger_python = solved
         out = []
         for k, fr in enumerate(frames):
-            chain = pipe._chains.get("R")
+            chain = pipe._chain("R")
             if k == 350:  # pair R's chain refuses any hand (no thumb axis is that long)
                 chain._chain.eps, eps = 1e9, chain._chain.eps
             s = pipe.step(fr)
@@ -536,3 +550,50 @@ def test_the_compiled_hand_intake_steps_as_the_python_path(retargeting):
     # step 350: taken in by the intake, the refused pair solved by the Python path
     assert taken[350] is True
     assert [f for f in fell_back if f[1] >= 340] == [(True, 350, "R"), (False, 350, "R")]
+
+
+def test_a_calibration_or_retargeter_replaced_mid_session_is_followed_as_in_python(retargeting):
+    """``calibration`` and ``retargeters`` are the pipeline's public parts: one replaced
+    between steps (another operator's calibration, a fresh retargeter for a pair) is what
+    the next steps use, through the compiled chains and intake as on the Python path alone,
+    bit for bit (the chains bind the calibration's and the retargeter's buffers, so they
+    are made again for the new ones)."""
+    rts, _ = retargeting
+    op, _, cal_a, _, t = _calibrated(9, retargeting)
+    _, _, cal_b, _, _ = _calibrated(4, retargeting)
+    frames = []
+    for _ in range(90):
+        frames.append(op.act(_static_world(t)))
+        t += DT
+    taken: list[bool] = []
+
+    def stream(compiled: bool, swap: bool) -> list[bytes]:
+        for r in rts.values():
+            r.reset()
+        pipe = TeleopPipeline(cal_a, dict(rts), TeleopConfig.from_design())
+        if compiled:
+            _count_intake(pipe, taken)
+        else:
+            pipe._intake_kernel = lambda: None
+            for pair in ("L", "R"):
+                _set_chain(pipe, pair, None)
+        out = []
+        for k, fr in enumerate(frames):
+            if swap and k == 30:
+                pipe.calibration = cal_b
+            if swap and k == 60:
+                fresh = PairRetargeter(pair="L")
+                fresh.reset(pipe.retargeters["L"].held_command)
+                pipe.retargeters["L"] = fresh
+            if not compiled and k in (30, 60):
+                for pair in ("L", "R"):
+                    _set_chain(pipe, pair, None)  # the Python path stays the Python path
+            s = pipe.step(fr)
+            out.append(s.command.q.tobytes() + repr(sorted(s.solves.items())).encode())
+        return out
+
+    python = stream(False, True)
+    compiled = stream(True, True)
+    assert compiled == python
+    assert sum(taken[-25:]) >= 20  # the compiled intake ran again after both swaps
+    assert stream(True, False)[31:] != python[31:]  # the swaps changed the commands

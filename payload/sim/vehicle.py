@@ -51,6 +51,32 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     )
 
 
+class _Fixed:
+    """A setting given when its object is made and read-only afterwards (an array's values
+    too): the bounds derived from it and its compiled step (:mod:`payload.sim.vehicle_c`,
+    which copies what it needs when built) would otherwise go on with the old value while
+    numpy's code took the new one."""
+
+    def __set_name__(self, owner: type, name: str) -> None:
+        self.name, self.slot = name, "_" + name
+
+    def __get__(self, obj: Any, owner: type | None = None) -> Any:
+        if obj is None:
+            return self
+        return obj.__dict__[self.slot]
+
+    def __set__(self, obj: Any, value: Any) -> None:
+        if self.slot in obj.__dict__:
+            kind = type(obj).__name__
+            raise VehicleError(
+                f"{kind}.{self.name} is fixed when the {kind} is made (its bounds and its "
+                f"compiled step derive from it): make a new {kind}"
+            )
+        if isinstance(value, np.ndarray):
+            value.setflags(write=False)
+        obj.__dict__[self.slot] = value
+
+
 def flight_mode(mode: str | FlightMode) -> FlightMode:
     """The :class:`FlightMode` named ``mode`` (or ``mode`` itself)."""
     if isinstance(mode, FlightMode):
@@ -110,11 +136,16 @@ class JerkLimitedProfile:
         jerk: Jerk bound per axis, shape (n,).
     """
 
+    accel = _Fixed()
+    """Acceleration bound per axis (n,), fixed when the profile is made."""
+    jerk = _Fixed()
+    """Jerk bound per axis (n,), fixed when the profile is made."""
+
     def __init__(self, accel: np.ndarray, jerk: np.ndarray) -> None:
-        self.accel = np.asarray(accel, dtype=float).copy()
-        self.jerk = np.asarray(jerk, dtype=float).copy()
-        if self.accel.shape != self.jerk.shape or np.any(self.accel <= 0) or np.any(self.jerk <= 0):
+        accel, jerk = np.array(accel, dtype=float), np.array(jerk, dtype=float)
+        if accel.shape != jerk.shape or np.any(accel <= 0) or np.any(jerk <= 0):
             raise VehicleError("JerkLimitedProfile: positive accel and jerk of equal shape needed")
+        self.accel, self.jerk = accel, jerk
         self.velocity = np.zeros_like(self.accel)
         self.acceleration = np.zeros_like(self.accel)
 
@@ -205,7 +236,26 @@ class VehicleController:
             the largest pure torque per axis; the wrench is not clipped per axis but
             allocated to the nozzles (:attr:`allocation`), scaled down along its own
             direction when it lies outside the polytope.
+
+    The settings (the arguments, and the bounds and profile derived from them) are fixed
+    when the controller is made: setting one afterwards raises :class:`VehicleError`, and
+    their arrays are read-only (make a new controller for other settings). What moves is
+    the state: the profile's velocity and acceleration, and :attr:`allocation`.
     """
+
+    mode = _Fixed()
+    propulsion = _Fixed()
+    nozzles = _Fixed()
+    plant = _Fixed()
+    gain_linear = _Fixed()
+    gain_angular = _Fixed()
+    reference_share = _Fixed()
+    torque_max = _Fixed()
+    force_max = _Fixed()
+    accel_max = _Fixed()
+    alpha_max = _Fixed()
+    jerk = _Fixed()
+    profile = _Fixed()
 
     def __init__(
         self,
@@ -231,8 +281,8 @@ class VehicleController:
             shared_propulsion(tuple(self.mode.force)) if propulsion == "nozzles" else None
         )
         self.allocation: Allocation | None = None
-        inertia = np.asarray(plant.inertia, float)
-        com = np.asarray(plant.com, float)
+        inertia = np.array(plant.inertia, float)  # the controller's own: read-only below
+        com = np.array(plant.com, float)
         if not (math.isfinite(plant.mass) and plant.mass > 0):
             raise VehicleError(f"VehicleController: plant mass must be positive, got {plant.mass}")
         if com.shape != (3,) or inertia.shape != (3, 3) or not np.all(np.isfinite(inertia)):
@@ -253,6 +303,8 @@ class VehicleController:
         ):
             if not (math.isfinite(value) and value > 0):
                 raise VehicleError(f"VehicleController.{name}: must be positive, got {value}")
+        com.setflags(write=False)
+        inertia.setflags(write=False)
         self.plant = MassProperties(float(plant.mass), com, inertia)
         if self.nozzles is None:
             self.torque_max = np.array(self.mode.torque)

@@ -256,7 +256,9 @@ class TeleopPipeline:
             r.reset(q0[self.index[pair]])
         self.rail_blend = Blender(np.array([q0[-1]]))
         self.events: list[SafetyEvent] = []
-        self._chains: dict[str, Any] = {}  # pair -> its finger chain (pair_c) or None
+        # pair -> (the calibration and retargeter it was made for, its finger chain
+        # (pair_c) or None): a chain binds their buffers, so another of either needs another
+        self._chains: dict[str, tuple[Any, Any, Any]] = {}
         self._intake: tuple[tuple, Any, tuple] | None = None  # (parts, intake, objects)
 
     def _filtered(self, side: str, hand: Hand | None, t: float) -> Hand | None:
@@ -274,14 +276,30 @@ class TeleopPipeline:
         Raises:
             RetargetError, HandFrameError: The hand's features, targets or solve refused.
         """
-        chain = self._chains.get(pair, self)
-        if chain is self:
-            chain = self._chains[pair] = self._make_chain(pair)
+        chain = self._chain(pair, self)
+        if chain is self:  # not made yet for this calibration and retargeter
+            parts = (self.calibration.pairs[pair], self.retargeters[pair])
+            chain = self._make_chain(pair)
+            self._chains[pair] = (*parts, chain)
         if chain is not None:
             out = chain(hand.joints)
             if out is not None:
                 return out
         return self._finger_python(pair, hand)
+
+    def _chain(self, pair: str, missing: Any = None) -> Any:
+        """The pair's finger chain (None: the Python path) if it was made for the
+        pipeline's calibration and retargeter of the pair as they are now, else
+        ``missing`` (none made for them yet: the pipeline's ``calibration`` or a
+        retargeter replaced since, say)."""
+        made = self._chains.get(pair)
+        if (
+            made is None
+            or made[0] is not self.calibration.pairs[pair]
+            or made[1] is not self.retargeters[pair]
+        ):
+            return missing
+        return made[2]
 
     def _finger_python(self, pair: str, hand: Hand) -> tuple[np.ndarray, SolveInfo]:
         """Features, targets, posture reference and solve, one call each."""
@@ -432,8 +450,7 @@ class TeleopPipeline:
         compiled), or None."""
         if not self.config.filter_enabled:
             return None
-        get = self._chains.get
-        chains = (get("L"), get("R"))  # the left hand's pair, the right hand's
+        chains = (self._chain("L"), self._chain("R"))  # the left hand's pair, the right's
         objects = intake_objects(self.supervisor, self.filters, chains)
         parts = intake_parts(objects)
         made = self._intake
