@@ -39,6 +39,15 @@ clip: np.ufunc = _clip_ufunc
 1.4 us of its wrappers (the same bits: NaN, signed zeros and all)."""
 
 
+def read_only(a: object) -> np.ndarray:
+    """A read-only float64 copy of ``a``: a setting a compiled kernel copies or reads in
+    place when it is built, which must therefore stay as it was (numpy's code would take a
+    change the kernel did not, or the other way round)."""
+    out = np.array(a, dtype=np.float64)
+    out.setflags(write=False)
+    return out
+
+
 def norm(v: np.ndarray) -> float:
     """``np.linalg.norm(v)`` of a vector (no ``axis``): the square root of the flattened
     array's dot product with itself, as numpy computes it."""
@@ -56,4 +65,14 @@ def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     )
 
 
-__all__ = ["F64", "add_reduce", "all_finite", "all_reduce", "clip", "cross", "max_reduce", "norm"]
+__all__ = [
+    "F64",
+    "add_reduce",
+    "all_finite",
+    "all_reduce",
+    "clip",
+    "cross",
+    "max_reduce",
+    "norm",
+    "read_only",
+]

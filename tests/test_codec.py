@@ -374,7 +374,8 @@ def test_the_compiled_frame_poses_are_numpys(foxglove_recording) -> None:
     _, _, world = foxglove_recording
     compiled, python = FoxgloveScene(world), FoxgloveScene(world)
     assert compiled._poses_kernel is not None
-    python.__dict__["_poses_kernel"] = None  # the numpy loop
+    python.__dict__["_poses_made"] = (python.data, python.model, None)  # the numpy loop
+    assert python._poses_kernel is None
     rng = np.random.default_rng(21)
     lo, hi = world.model.jnt_range[world.model.dof_jntid[world.dof]].T
     for k in range(300):
@@ -388,6 +389,27 @@ def test_the_compiled_frame_poses_are_numpys(foxglove_recording) -> None:
             compiled.transforms(st, ns).SerializeToString()
             == python.transforms(st, ns).SerializeToString()
         )
+
+
+def test_the_frame_poses_follow_a_scene_given_other_data(foxglove_recording) -> None:
+    """A scene whose ``data`` is replaced poses the links of the new data, through a kernel
+    made for it as through the numpy loop (a kernel kept for the old data would read poses
+    nothing updates any more)."""
+    import mujoco
+
+    from payload.trials.foxglove import FoxgloveScene
+
+    _, _, world = foxglove_recording
+    rng = np.random.default_rng(4)
+    scene = FoxgloveScene(world)
+    st = random_step(rng, 0.0)
+    before = scene._poses(st).tobytes()
+    old = scene._poses_kernel
+    scene.data = mujoco.MjData(world.model)
+    moved = random_step(rng, DT)
+    poses = scene._poses(moved)
+    assert scene._poses_kernel is not old
+    assert poses.tobytes() == scene._poses_numpy().tobytes() != before
 
 
 def test_frame_poses_with_other_bits_are_refused(foxglove_recording, monkeypatch, refused_kernel):

@@ -114,7 +114,8 @@ def test_the_controllers_settings_are_fixed_when_it_is_made():
     code derives its bounds from them then: a setting changed afterwards would reach one
     and not the other, or not the bounds. So each refuses a new value, its arrays refuse
     writes, and the driver goes on as before; the plant's arrays the caller gave stay the
-    caller's to write."""
+    caller's to write. The propulsion model (shared by every controller of its flight
+    mode) refuses writes too."""
     from payload.sim.vehicle import MassProperties, VehicleController, VehicleError
 
     with SimDriver() as driver:
@@ -126,6 +127,7 @@ def test_the_controllers_settings_are_fixed_when_it_is_made():
                 setattr(c, name, value)
         arrays = [c.torque_max, c.force_max, c.accel_max, c.alpha_max, c.jerk, c.plant.com]
         arrays += [c.plant.inertia, c.profile.accel, c.profile.jerk]
+        arrays += [c.nozzles.matrix, c.nozzles.thrust_max, c.nozzles.positions]  # shared
         for a in arrays:
             with pytest.raises(ValueError, match="read-only"):
                 a[0] = 1.0

@@ -3,6 +3,7 @@ replay reproducibility, and a synthetic operator flying the CTB in the simulator
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Any
 
@@ -597,3 +598,25 @@ def test_a_calibration_or_retargeter_replaced_mid_session_is_followed_as_in_pyth
     assert compiled == python
     assert sum(taken[-25:]) >= 20  # the compiled intake ran again after both swaps
     assert stream(True, False)[31:] != python[31:]  # the swaps changed the commands
+
+
+def test_calibrations_ranges_and_plans_keep_their_arrays_to_themselves(retargeting):
+    """The arrays a compiled kernel copies or reads in place when it is made (a pair
+    calibration's rotation and features, a pair range's table and features, an operator
+    plan's route and wrists) are read-only copies: a write would reach the Python path and
+    not the kernel, or the other way round, so it raises; the arrays they were made from
+    stay the caller's to write."""
+    _, _, cal, _, _ = _calibrated(9, retargeting)
+    pair = cal.pairs["L"]
+    arrays = [pair.rotation, pair.human_pinch.centre, pair.human_open.direction]
+    arrays += [pair.range.spans, pair.range.postures, pair.range.pinch.distal]
+    route = np.array([[0.0, 0.0, 0.0], [5.0, 0.0, 0.0]])
+    plan = OperatorPlan(route=route, grasp_body=np.zeros(3))
+    arrays += [plan.route, plan.neutral_left, plan.grasp_body]
+    for a in arrays:
+        with pytest.raises(ValueError, match="read-only"):
+            a[0] = 1.0
+    rotation = pair.rotation.copy()
+    again = dataclasses.replace(pair, rotation=rotation)
+    rotation[0, 0], route[1, 0] = 2.0, 6.0  # the caller's, still writeable
+    assert again.rotation[0, 0] == pair.rotation[0, 0] and plan.route[1, 0] == 5.0

@@ -363,19 +363,35 @@ def test_a_hand_check_needs_a_neutral_it_can_read_in_place():
 
 
 def test_compiled_steps_follow_settings_changed_after_binding():
-    """A limiter whose jerk bound and a filter whose settings change after their first
-    compiled step: both step as numpy's code with the new settings."""
+    """A limiter whose jerk bound, cap and zero thresholds (class constants an instance may
+    set for itself), a base channel whose limiters' thresholds, and a filter whose settings
+    change after their first compiled step: each steps as numpy's code with the new
+    settings."""
+    from payload.teleop.base_c import _same, _same_state
     from payload.teleop.channels import JerkLimiter
 
     mine, theirs = JerkLimiter(3, 0.0175, 0.02, 0.19), JerkLimiter(3, 0.0175, 0.02, 0.19)
     rng = np.random.default_rng(43)
-    for k in range(200):
-        if k == 100:
+    for k in range(320):
+        if k == 80:
             mine.max_jerk = theirs.max_jerk = 0.05
+        if k == 160:  # values below 0.15 have no outward direction for the cap
+            mine.ZERO_VALUE = theirs.ZERO_VALUE = 0.15
+        if k == 200:  # every braked error counts as none
+            mine.ZERO_ERROR = theirs.ZERO_ERROR = 1.0
+        if k == 240:
             mine.max_value = theirs.max_value = None
         target = rng.normal(scale=0.2, size=3)
         assert mine.step(target, 0.02).tobytes() == theirs._step_vector(target, 0.02).tobytes()
     assert mine._bound is not None and mine._bound[2] is not None  # compiled, rebound
+    compiled, python, neutral, right = _base_pair(0.4, True)
+    for k in range(200):
+        if k == 100:
+            for ch in (compiled, python):
+                ch.linear.ZERO_ERROR = 1.0
+        left = neutral + np.array([0.3, 0.1, 0.0]) * min(k, 50) / 50
+        a, b = compiled.step(left, None, right), python.step(left, None, right)
+        assert _same(a, b) and _same_state(compiled, python), k
     f, g = OneEuroFilter(OneEuroConfig()), OneEuroFilter(OneEuroConfig())
     g.__dict__["_stepper"] = lambda x: None  # numpy's step
     for k in range(100):

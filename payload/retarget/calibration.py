@@ -36,6 +36,7 @@ from payload.retarget.span_range import (  # noqa: F401  (old import paths)
     _pair_range_cached,
     pair_range,
 )
+from payload.vecmath import read_only
 
 __all__ = ["PairCalibration", "PairRange", "calibrate", "pair_range", "wahba_rotation"]
 
@@ -70,6 +71,13 @@ class PairCalibration:
     human_open: PairFeatures
     rotation: np.ndarray
     centre_gain: float
+
+    def __post_init__(self) -> None:
+        # read-only copies: the compiled targets copy some of these when built and read
+        # the rest in place (a change afterwards would reach the two paths differently)
+        for name in ("human_pinch", "human_open"):
+            object.__setattr__(self, name, getattr(self, name).frozen())
+        object.__setattr__(self, "rotation", read_only(self.rotation))
 
     def opening(self, human_span: float) -> float:
         """Calibrated opening in [0, 1] of a human span [m] (0 = pinch, 1 = open)."""

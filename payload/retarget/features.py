@@ -19,7 +19,7 @@ import numpy as np
 from payload.kinematics import Kinematics
 from payload.retarget.errors import RetargetError
 from payload.retarget.hand import HandDescription, PairDescription, load_hand
-from payload.vecmath import all_finite
+from payload.vecmath import all_finite, read_only
 from payload.vecmath import norm as vec_norm
 
 N_FEATURES = 13
@@ -64,6 +64,14 @@ class PairFeatures(NamedTuple):
         if v.shape != (N_FEATURES,):
             raise RetargetError(f"pair features: expected {N_FEATURES} values, got {v.size}")
         return cls(float(v[0]), v[1:4].copy(), v[4:7].copy(), v[7:13].copy())
+
+    def frozen(self) -> PairFeatures:
+        """These features with read-only float64 copies of the vectors (a calibration's or
+        a pair range's, which the compiled targets copy when they are built)."""
+        return PairFeatures(
+            float(self.span), read_only(self.direction), read_only(self.centre),
+            read_only(self.distal),
+        )  # fmt: skip
 
 
 def as_feature_vector(targets: PairFeatures | np.ndarray, what: str = "targets") -> np.ndarray:

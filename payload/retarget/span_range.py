@@ -37,6 +37,7 @@ from payload.retarget.collision import register as register_collision_model
 from payload.retarget.errors import RetargetError
 from payload.retarget.features import PairFeatures, PairKinematics
 from payload.retarget.range_cache import load_or_compute
+from payload.vecmath import read_only
 
 __all__ = ["PairRange", "pair_range"]
 
@@ -67,6 +68,15 @@ class PairRange:
     postures: np.ndarray
     pinch: PairFeatures
     open: PairFeatures
+
+    def __post_init__(self) -> None:
+        # read-only copies: the compiled finger chain reads the table in place and the
+        # targets kernel copies the features when built, while the Python path caches the
+        # spans; a change afterwards would reach one and not the other
+        for name in ("spans", "postures"):
+            object.__setattr__(self, name, read_only(getattr(self, name)))
+        for name in ("pinch", "open"):
+            object.__setattr__(self, name, getattr(self, name).frozen())
 
     def posture(self, span: float) -> np.ndarray:
         """Posture reference ``q_ref`` for a commanded span [m] (clipped to the range), (n,)."""

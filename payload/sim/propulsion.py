@@ -205,7 +205,7 @@ class Propulsion:
     def __init__(
         self, axis_force: tuple[float, float, float], centre: np.ndarray | None = None
     ) -> None:
-        target = np.asarray(axis_force, dtype=float)
+        target = np.array(axis_force, dtype=float)
         if target.shape != (3,) or not np.all(np.isfinite(target)) or np.any(target <= 0):
             raise PropulsionError(f"Propulsion: axis forces must be 3 positive numbers: {target}")
         self.axis_force = target
@@ -218,6 +218,12 @@ class Propulsion:
         self.group = np.argmax(np.abs(NOZZLE_AXES), axis=1)  # 0 x, 1 y, 2 z
         self.shape = DISCHARGE_COEFFS**2 * NOZZLE_WIDTHS_IN  # relative thrust bounds
         self.thrust_max = self._fit_bounds()
+        # read-only: a propulsion model is shared (shared_propulsion), its tables cached
+        # and copied by the compiled allocation when built, so nothing may change it
+        for a in (target, self.positions, self.directions, self.matrix, self.group):
+            a.setflags(write=False)
+        self.shape.setflags(write=False)
+        self.thrust_max.setflags(write=False)
 
     # -- bounds ------------------------------------------------------------------------
     def _fit_bounds(self) -> np.ndarray:

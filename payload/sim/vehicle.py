@@ -22,7 +22,7 @@ from payload.design.vehicle import DEFAULT_FLIGHT_MODE, FLIGHT_MODES, FlightMode
 from payload.errors import PayloadError
 from payload.schema import VehicleTwist
 from payload.sim.propulsion import Allocation, shared_propulsion
-from payload.vecmath import norm
+from payload.vecmath import norm, read_only
 
 
 class VehicleError(PayloadError):
@@ -281,8 +281,7 @@ class VehicleController:
             shared_propulsion(tuple(self.mode.force)) if propulsion == "nozzles" else None
         )
         self.allocation: Allocation | None = None
-        inertia = np.array(plant.inertia, float)  # the controller's own: read-only below
-        com = np.array(plant.com, float)
+        inertia, com = read_only(plant.inertia), read_only(plant.com)  # the controller's own
         if not (math.isfinite(plant.mass) and plant.mass > 0):
             raise VehicleError(f"VehicleController: plant mass must be positive, got {plant.mass}")
         if com.shape != (3,) or inertia.shape != (3, 3) or not np.all(np.isfinite(inertia)):
@@ -303,8 +302,6 @@ class VehicleController:
         ):
             if not (math.isfinite(value) and value > 0):
                 raise VehicleError(f"VehicleController.{name}: must be positive, got {value}")
-        com.setflags(write=False)
-        inertia.setflags(write=False)
         self.plant = MassProperties(float(plant.mass), com, inertia)
         if self.nozzles is None:
             self.torque_max = np.array(self.mode.torque)

@@ -193,8 +193,7 @@ class CompiledBase:
         bound: list[Any] = [None, None, None, None]
         # what the step was made for: another setting, neutral, limiter or limit -> numpy
         n0, n1, h0, dt0 = neutrals[0], neutrals[1], channel.heading0, channel.dt
-        lr, lj, lv = lin.max_rate, lin.max_jerk, lin.max_value
-        yr, yj, yv = yaw.max_rate, yaw.max_jerk, yaw.max_value
+        made_for = (lin.settings(), yaw.settings())
 
         def state() -> bool:
             """Bind the limiters' arrays (made the limiters' own first); False for arrays
@@ -220,8 +219,7 @@ class CompiledBase:
                 or channel.yaw is not yaw
                 or channel.heading0 != h0
                 or channel.dt != dt0
-                or (lin.max_rate, lin.max_jerk, lin.max_value) != (lr, lj, lv)
-                or (yaw.max_rate, yaw.max_jerk, yaw.max_value) != (yr, yj, yv)
+                or (lin.settings(), yaw.settings()) != made_for
             ):
                 return None
             flags = fixed

@@ -126,6 +126,11 @@ class JerkLimiter:
         self.max_value = max_value
         self._bound: tuple[Any, Any, Any, Any] | None = None
 
+    def settings(self) -> tuple:
+        """The settings a compiled step is made for (a change to any makes it again): the
+        bounds and the two zero thresholds (class constants, or an instance's own)."""
+        return (self.max_rate, self.max_jerk, self.max_value, self.ZERO_ERROR, self.ZERO_VALUE)
+
     def reset(self, value: np.ndarray | None = None) -> None:
         self.value = np.zeros_like(self.value) if value is None else np.array(value, float)
         self.rate = np.zeros_like(self.rate)
@@ -144,7 +149,7 @@ class JerkLimiter:
         """The compiled vector step (:mod:`payload.teleop.limiter_c`) bound to this
         limiter's current value and rate arrays, or None to run :meth:`_step_vector`."""
         bound = self._bound
-        limits = (self.max_rate, self.max_jerk, self.max_value)
+        limits = self.settings()
         if (
             bound is not None
             and bound[0] is self.value

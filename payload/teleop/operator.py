@@ -44,7 +44,7 @@ from payload.teleop.operator_c import (
     TURN_ABOVE_RAD,
     compiled_act,
 )
-from payload.vecmath import norm
+from payload.vecmath import norm, read_only
 
 
 @dataclass(frozen=True)
@@ -177,6 +177,14 @@ class OperatorPlan:
     rail_distance: float = 0.34
     heading0: float = 0.0
     grasp_body: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        # read-only copies: the compiled flight step copies the route and reads the rest
+        # when it is made, the Python reads them at every step
+        for name in ("route", "neutral_left", "neutral_right", "grasp_body"):
+            value = getattr(self, name)
+            if value is not None:
+                object.__setattr__(self, name, read_only(value))
 
 
 class SyntheticOperator:

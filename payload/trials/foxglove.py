@@ -265,13 +265,17 @@ class FoxgloveScene:
             mujoco.mju_mulQuat(poses[i, 3:], inv, xquat[b])
         return _view(poses)
 
-    @functools.cached_property
+    @property
     def _poses_kernel(self) -> Any:
-        """:meth:`_poses_numpy` compiled (:mod:`payload.trials.foxglove_c`, checked when
-        built), or None."""
+        """:meth:`_poses_numpy` compiled for the scene's current data
+        (:mod:`payload.trials.foxglove_c`, checked when built; made again for other data
+        or another model), or None."""
+        made = self.__dict__.get("_poses_made")
+        if made is not None and made[0] is self.data and made[1] is self.model:
+            return made[2]
         from payload.trials.foxglove_c import compiled_frame_poses
 
-        return compiled_frame_poses(
+        kernel = compiled_frame_poses(
             self.model,
             self.data,
             np.array(self._links, dtype=np.int64),
@@ -279,6 +283,8 @@ class FoxgloveScene:
             VIEW_RESOLUTION,
             self._poses_numpy,
         )
+        self.__dict__["_poses_made"] = (self.data, self.model, kernel)
+        return kernel
 
     @staticmethod
     def joint_states(positions: np.ndarray, ns: int) -> JointStates:
