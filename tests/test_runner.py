@@ -440,6 +440,29 @@ def test_a_replay_honours_recorded_timestamps_and_records_its_source(tmp_path, r
     assert meta["seed"] == 7 and len(resampled) == len(rec)
 
 
+def test_a_live_sessions_webxr_hands_replay_as_their_workbench_frames(tmp_path):
+    """A live session records its hands in WebXR's convention (``hands.jsonl`` with
+    ``"frame": "webxr"``): replayed, they are recorded and commanded as the same frames in
+    the workbench convention, a signed permutation of the axes, so the same trial as a
+    replay of the workbench file, bit for bit (before, the recorder refused the frames)."""
+    from payload.teleop.hands import WEBXR_TO_WORKBENCH, Hand, HandFrame
+    from payload.teleop.replay import HandRecordingWriter
+
+    frames = _session(tmp_path / "wb" / "hands.jsonl", 72.0, 1.5, seed=3)
+    with HandRecordingWriter(
+        tmp_path / "xr" / "hands.jsonl", meta={"seed": 3}, frame="webxr"
+    ) as w:
+        for f in frames:  # workbench = webxr @ M.T, so webxr = workbench @ M
+            hands = [Hand(h.joints @ WEBXR_TO_WORKBENCH) for h in (f.left, f.right)]
+            w.write(HandFrame(f.stamp, hands[0], hands[1], "webxr"))
+    for name in ("wb", "xr"):
+        run_trial(operator="replay", replay=tmp_path / name / "hands.jsonl",
+                  out_dir=tmp_path / f"{name}-replay")  # fmt: skip
+    a, b = (read_recording(tmp_path / f"{n}-replay" / "log.mcap") for n in ("wb", "xr"))
+    for field in ("left_joints", "right_joints", "q_cmd", "astrobee_pos", "ctb_pos"):
+        assert getattr(a, field).tobytes() == getattr(b, field).tobytes(), field
+
+
 def test_the_trials_retargeters_are_rebuilt_when_only_the_designs_pre_shape_changes(
     tmp_path, monkeypatch
 ):

@@ -103,7 +103,9 @@ class HeadsetSource:
 
 def load_replay(path: str | Path) -> tuple[dict[str, Any], list[HandFrame]]:
     """``(header, frames)`` to replay: a trial's ``log.mcap`` (its ``/trial/hands``
-    channel) or a ``hands.jsonl``; the header's ``meta`` names the source's seed."""
+    channel) or a ``hands.jsonl``; the header's ``meta`` names the source's seed. The
+    frames are in the workbench convention, as a trial records them: a live session's
+    ``hands.jsonl`` (WebXR's convention) converted as the pipeline converts each frame."""
     from payload.trials.recorder import RecordingError, read_hand_frames
 
     if Path(path).suffix == ".mcap":
@@ -112,7 +114,8 @@ def load_replay(path: str | Path) -> tuple[dict[str, Any], list[HandFrame]]:
         except RecordingError as exc:
             raise TrialError(str(exc)) from None
         return {"meta": meta}, frames
-    return read_hand_recording(path)
+    header, frames = read_hand_recording(path)
+    return header, [frame.to_workbench() for frame in frames]
 
 
 class _Source:
