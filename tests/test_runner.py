@@ -449,9 +449,7 @@ def test_a_live_sessions_webxr_hands_replay_as_their_workbench_frames(tmp_path):
     from payload.teleop.replay import HandRecordingWriter
 
     frames = _session(tmp_path / "wb" / "hands.jsonl", 72.0, 1.5, seed=3)
-    with HandRecordingWriter(
-        tmp_path / "xr" / "hands.jsonl", meta={"seed": 3}, frame="webxr"
-    ) as w:
+    with HandRecordingWriter(tmp_path / "xr" / "hands.jsonl", meta={"seed": 3}, frame="webxr") as w:
         for f in frames:  # workbench = webxr @ M.T, so webxr = workbench @ M
             hands = [Hand(h.joints @ WEBXR_TO_WORKBENCH) for h in (f.left, f.right)]
             w.write(HandFrame(f.stamp, hands[0], hands[1], "webxr"))
