@@ -167,7 +167,9 @@ def _cmd_run(args: argparse.Namespace) -> int:
     far = "the emulator" if result["emulator"] else "hardware"
     print(f"hw run ({far} on {result['device']}), {result['steps']} steps -> {out}")
     print(f"  Bus Watchdog: {result['watchdog']['effect']}")
-    print_trial_summary(result, f" (from {replay.name})")
+    # the world and the CTB's placement are the recording's; the controller profile and
+    # the retargeting this session's own (real servos in the loop: `safe` by default)
+    print_trial_summary(result, f" (world and CTB placement from {replay.name})")
     return 0
 
 

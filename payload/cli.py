@@ -283,7 +283,12 @@ def run() -> NoReturn:
     and objects freed by reference counting are still finalized; the commands close
     their own files.
     """
-    code = main()
+    try:
+        code = main()
+    except BrokenPipeError:  # the reader of stdout went away (`payload ... | head`)
+        # quietly, as other command-line tools do; what the command wrote to its files stands
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        code = 1
     gc.freeze()
     sys.exit(code)
 

@@ -272,3 +272,26 @@ def test_commands_run_without_mujoco_rendering_unless_the_user_asks(monkeypatch)
     assert main([]) == 0
     assert seen == ["disable", "egl"]
     assert os.environ["MUJOCO_GL"] == "egl"
+
+
+def test_a_closed_stdout_ends_the_command_quietly() -> None:
+    """``payload ... | head``: the reader going away ends the command with exit 1 and no
+    traceback (the command's own error lines, if any, still go to stderr)."""
+    code = (
+        "import sys, payload.cli as cli\n"
+        "def main():\n"
+        "    for _ in range(100_000):\n"
+        "        print('a line of the report')\n"
+        "    return 0\n"
+        "cli.main = main\n"
+        "cli.run()\n"
+    )
+    proc = subprocess.Popen(
+        [sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE
+    )
+    assert proc.stdout is not None and proc.stderr is not None
+    proc.stdout.readline()
+    proc.stdout.close()  # as `head -1` does
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=60) == 1
+    assert "Traceback" not in err and "BrokenPipeError" not in err, err

@@ -123,3 +123,27 @@ def test_two_point_sweep_equals_the_commands_by_hand(tmp_path, capsys):
         assert p["below_vehicle_mm"] == reach["below_vehicle_mm"]
         assert p["span_max_mm"] == {k: reach["pairs"][k]["span_max_mm"] for k in "LR"}
         assert env["provenance"]["design_sha256"] == reach["provenance"]["design_sha256"]
+
+
+@pytest.mark.slow
+def test_a_sweep_runs_each_points_trials(tmp_path, capsys):
+    """``--trials N`` runs the campaign in each point's project: a point with the design's
+    own values runs the committed ``single`` campaign's first trial, the same to the last
+    bit (its RMS deviation), and no trial raised (before, every one raised a TypeError and
+    the sweep still exited 0 with 0 successes)."""
+    committed = json.loads(
+        (Path(__file__).parents[1] / "analyses/campaign/single/summary.json").read_text()
+    )["trials"][0]
+    travel = load_design(DESIGN).rail.travel
+    out = tmp_path / "sweep"
+    argv = ["sweep", "--set", f"rail.travel={travel}", "--trials", "1", "--samples", "2000"]
+    assert main([*argv, "--workers", "1", "--out", str(out), "--json"]) == 0
+    (point,) = json.loads(capsys.readouterr().out)["points"]
+    assert point["error"] is None
+    assert point["trials"] == {
+        "n": 1,
+        "success": int(committed["success"]),
+        "rms_mm_median": committed["rms_mm"],
+        "duration_s_median": committed["duration_s"],
+        "errors": 0,
+    }

@@ -1385,3 +1385,28 @@ def test_a_campaigns_environment_is_its_trials_own() -> None:
     assert trials_environment(ran) == [here, there]
     assert trials_environment([{"error": "x"}, {"provenance": {}}]) is None
     assert trials_environment([{"error": "x"}, *ran[:1]]) == here
+
+
+def test_a_trial_and_a_campaign_never_share_a_folder(tmp_path: Path, capsys) -> None:
+    """A trial's ``--out`` holding a campaign, or a campaign's holding a trial, is refused
+    with one line, ``--force`` or not (it replaces its own kind only); nothing written."""
+    from payload.cli import main
+
+    camp, trial = tmp_path / "campaign", tmp_path / "trial"
+    camp.mkdir()
+    trial.mkdir()
+    (camp / "summary.json").write_text("{}")
+    (trial / "log.mcap").write_bytes(b"recorded")
+    runs = [
+        (["trial", "--out", str(camp)], "holds a campaign (summary.json)"),
+        (["trial", "--out", str(camp), "--force"], "holds a campaign (summary.json)"),
+        (["trials", "run", "--n", "1", "--out", str(trial)], "holds a trial (log.mcap)"),
+        (["trials", "run", "--n", "1", "--out", str(trial), "--force"], "holds a trial"),
+    ]
+    for argv, message in runs:
+        assert main(argv) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and message in err[0], err
+    assert sorted(p.name for p in camp.iterdir()) == ["summary.json"]
+    assert sorted(p.name for p in trial.iterdir()) == ["log.mcap"]
+    assert (trial / "log.mcap").read_bytes() == b"recorded"

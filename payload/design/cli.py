@@ -19,6 +19,7 @@ def _cmd_build(args: argparse.Namespace) -> int:
         design, root = load_design(args.design), Path(args.root)
     else:
         if args.design and not args.check:
+            load_design(args.design)  # an invalid design says what is wrong first
             _check_own_design(Path(args.design))
         project = command_project(args, args.design)
         design, root = load_design(args.design or project.design_path), project.root

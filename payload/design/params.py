@@ -465,7 +465,8 @@ def _build(cls: type, data: Any, path: str) -> Any:
         if f.name not in data:
             if f.metadata.get("optional"):
                 continue
-            raise DesignError(where, "missing key")
+            table = dataclasses.is_dataclass(hints[f.name]) and hints[f.name] is not Range
+            raise DesignError(where, f"missing table [{where}]" if table else "missing key")
         kwargs[f.name] = _value(hints[f.name], data[f.name], where, f.metadata)
     return cls(**kwargs)
 

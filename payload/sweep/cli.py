@@ -10,7 +10,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from payload.cliutil import command_project, default_out, emit_json
+from payload.cliutil import CheckFailed, command_project, default_out, emit_json
 from payload.sweep.grid import SweepError, parse_set
 from payload.sweep.run import DEFAULT_SAMPLES
 
@@ -100,6 +100,10 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
     else:
         sys.stdout.write(sweep_markdown(data, command, []))
         print(f"wrote {paths['md']}, {paths['json']} and {len(paths) - 2} plot(s)")
+    raised = [p for p in results if (p.get("trials") or {}).get("errors")]
+    if raised:  # written and reported; then exit 1, as `payload trials run` does
+        names = ", ".join(Path(p["project"]).name for p in raised)
+        raise CheckFailed(f"trials raised an error in {names}: {raised[0]['error']}")
     return 0
 
 

@@ -205,6 +205,7 @@ def _trials(root: Path, trials: int, seed: int) -> dict[str, Any]:
     project: its summary (written into that folder)."""
     from payload.project import Project, provenance
     from payload.trials.campaign import run_campaign, runner_trial_fn, write_summary
+    from payload.trials.setup_options import RUN_SETTINGS
     from payload.trials.sources import trial_setup
 
     project = Project.at(root)
@@ -212,9 +213,8 @@ def _trials(root: Path, trials: int, seed: int) -> dict[str, Any]:
     setup = trial_setup()
     seeds = list(range(seed, seed + trials))
     t0 = time.perf_counter()
-    results = run_campaign(
-        runner_trial_fn("synthetic", project.root, **setup), seeds, out, workers=1, progress=False
-    )
+    trial = runner_trial_fn("synthetic", project.root, **{k: setup[k] for k in RUN_SETTINGS})
+    results = run_campaign(trial, seeds, out, workers=1, progress=False)
     run = {
         "workers": 1,
         "scheduler": None,
@@ -262,12 +262,19 @@ def _analyse(
             summary = _trials(root, trials, seed)
         except PayloadError as exc:
             return {**result, "error": f"trials run: {_first_line(exc)}"}
+        raised = [t for t in summary["trials"] if t.get("error")]
         result["trials"] = {
             "n": int(summary["n"]),
             "success": int(summary["success"]),
             "rms_mm_median": summary["rms_mm"]["median"],
             "duration_s_median": summary["duration_s"]["median"],
+            "errors": len(raised),
         }
+        if raised:  # a bug, not a design that fails: said, as `payload trials run` says it
+            result["error"] = (
+                f"trials run: {len(raised)} of {len(summary['trials'])} trial(s) raised an "
+                f"error (first: {raised[0]['error']}; tracebacks in runs/campaign/summary.json)"
+            )
     return result
 
 

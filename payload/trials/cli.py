@@ -155,6 +155,12 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
     prov = provenance(project)
     out = Path(args.out) if args.out else default_out(project, "campaign")
     seeds = list(range(args.seed, args.seed + args.n))
+    held = [n for n in ("log.mcap", "metrics.json") if (out / n).exists()]
+    if held:  # --force replaces a campaign, never a trial
+        raise TrialsCliError(
+            f"{out}: holds a trial ({', '.join(held)}); a campaign goes in a folder of its "
+            "own (choose another --out)"
+        )
     if not args.force:
         taken = [trial_dir(out, s) for s in seeds if any(trial_dir(out, s).glob("*"))]
         taken += [out / n for n in ("summary.json", "summary.md") if (out / n).exists()]
@@ -302,16 +308,24 @@ def _previous_summary(path: Path) -> dict[str, Any]:
 
 
 def _cmd_export_lerobot(args: argparse.Namespace) -> int:
-    from payload.trials.lerobot import export_lerobot
+    from payload.trials.lerobot import export_lerobot, resolve_runs
 
-    out = Path(args.out) if args.out else default_out(command_project(args), "lerobot")
-    info = export_lerobot(
-        [Path(r) for r in args.runs],
-        out,
-        task=args.task,
-        overwrite=args.force,
-        progress=not args.json and sys.stderr.isatty(),
-    )
+    runs = [Path(r) for r in args.runs]
+    made = None
+    if args.out:
+        out = Path(args.out)
+    else:
+        resolve_runs(runs)  # a run that is not there says so before a folder is numbered
+        out = made = default_out(command_project(args), "lerobot")
+    try:
+        info = export_lerobot(
+            runs, out, task=args.task, overwrite=args.force,
+            progress=not args.json and sys.stderr.isatty(),
+        )  # fmt: skip
+    except BaseException:
+        if made is not None and made.is_dir() and not any(made.iterdir()):
+            made.rmdir()  # the numbered folder made for it, left empty: not kept
+        raise
     if args.json:
         emit_json(info)
     else:

@@ -220,7 +220,9 @@ def _prepare_out(out: Path, overwrite: bool) -> Path:
     if out.exists() and not out.is_dir():
         raise LeRobotExportError(f"{out}: exists and is not a folder")
     if out.exists() and any(out.iterdir()) and not overwrite:
-        raise LeRobotExportError(f"{out}: not empty (pass overwrite / --force to replace)")
+        raise LeRobotExportError(
+            f"{out}: not empty (--force, or overwrite=True, replaces its dataset)"
+        )
     out.parent.mkdir(parents=True, exist_ok=True)
     return Path(tempfile.mkdtemp(prefix=f".{out.name}.new-", dir=out.parent))
 

@@ -235,6 +235,11 @@ def run_trial(
     out = Path(out_dir) if out_dir is not None else new_folder(project.runs_dir, stem)
     if replay is not None and out.resolve() == Path(replay).resolve().parent:
         raise TrialError(f"{out}: a replay never writes into the folder it reads from")
+    if (out / "summary.json").exists():  # --force replaces a trial, never a campaign
+        raise TrialError(
+            f"{out}: holds a campaign (summary.json); a trial goes in a folder of its own "
+            "(choose another --out)"
+        )
     existing = [out / name for name in TRIAL_FILES]
     try:
         check_new(existing, force=force, what="trial")

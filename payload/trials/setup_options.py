@@ -15,16 +15,22 @@ class TrialsCliError(PayloadError):
     """Bad arguments to a trials command, or the trial runner is not available."""
 
 
-_SETUP = (
+RUN_SETTINGS = (
     "ctb",
     "propulsion",
     "retarget_budget",
     "retarget_collisions",
     "physics_dt",
     "base_filter",
+    "link_delay",
     "controller",
 )
-"""The trial setup flags' attribute names."""
+"""The settings of :func:`payload.trials.sources.trial_setup` a trial runs with
+(``run_trial``'s keywords); the rest (``controller_overrides``) is what its record says of
+them."""
+
+_SETUP = tuple(name for name in RUN_SETTINGS if name != "link_delay")
+"""The trial setup flags' attribute names (the link delay's is parsed apart)."""
 
 
 def _setup_arguments(p: argparse.ArgumentParser, *, replay: bool = False) -> None:
