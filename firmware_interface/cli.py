@@ -206,6 +206,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
     if args.cycles < 1:
         raise HwUsageError(f"--cycles must be at least 1, got {args.cycles}")
+    command_project(args)  # the servo map is checked against this project's design
     result = bench_hw(args.device, args.cycles, args.servos, args.latency_ms)
     if args.json:
         emit_json(result)

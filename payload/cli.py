@@ -22,7 +22,7 @@ import sys
 from collections.abc import Callable, Iterable, Sequence
 from typing import NamedTuple, NoReturn
 
-from payload.cliutil import CheckFailed, command_project, emit_json
+from payload.cliutil import CheckFailed, command_project, emit_json, forget_project
 from payload.errors import PayloadError, RunAborted
 from payload.project import ENV_VAR
 
@@ -315,6 +315,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print("payload: interrupted", file=sys.stderr)
         return 130
     finally:  # command_project exported the project for this command only
+        forget_project()
         for k in added:
             os.environ.pop(k, None)
         if saved is None:

@@ -38,9 +38,23 @@ class UsageError(PayloadError):
     """Bad command-line input shared by every command (exit 2)."""
 
 
+_RESOLVED: dict[str, Path] = {}
+"""The design project the running command resolved (:func:`command_project`), until
+:func:`payload.cli.main` returns (:func:`forget_project`)."""
+
+
 def emit_json(obj: Any) -> None:
-    """Print exactly one JSON object on stdout."""
+    """Print exactly one JSON object on stdout; a command that works on a design project
+    (it resolved one with :func:`command_project`) carries its root as ``"project"``."""
+    root = _RESOLVED.get("project")
+    if root is not None and isinstance(obj, dict) and "project" not in obj:
+        obj = {**obj, "project": str(root)}
     sys.stdout.write(json.dumps(obj, sort_keys=False) + "\n")
+
+
+def forget_project() -> None:
+    """End of a command: the next one resolves its own project (:func:`command_project`)."""
+    _RESOLVED.clear()
 
 
 def command_project(args: argparse.Namespace, design: str | Path | None = None) -> Project:
@@ -72,6 +86,7 @@ def command_project(args: argparse.Namespace, design: str | Path | None = None) 
     else:
         project = find_project(explicit)
     args._project = project
+    _RESOLVED["project"] = project.root
     os.environ[ENV_VAR] = str(project.root)
     if not getattr(args, "json", False):
         print(f"project: {project.root}", flush=True)
@@ -175,6 +190,7 @@ __all__ = [
     "command_project",
     "default_out",
     "emit_json",
+    "forget_project",
     "need_device",
     "warn",
 ]

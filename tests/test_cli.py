@@ -295,3 +295,17 @@ def test_a_closed_stdout_ends_the_command_quietly() -> None:
     err = proc.stderr.read().decode()
     assert proc.wait(timeout=60) == 1
     assert "Traceback" not in err and "BrokenPipeError" not in err, err
+
+
+def test_a_command_on_a_project_names_it_in_its_json(capsys, monkeypatch) -> None:
+    """Every command that works on a design project carries ``"project"`` in its JSON
+    (docs/cli.md), those that build their objects without it too (``bench filter`` here);
+    the next command starts without the last one's project."""
+    monkeypatch.chdir(ROOT)
+    assert main(["bench", "filter", "--seconds", "0.3", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["project"] == str(ROOT.resolve()) and out["steps"] > 0
+    from payload.cliutil import emit_json
+
+    emit_json({"a": 1})  # outside a command: no project to name
+    assert json.loads(capsys.readouterr().out) == {"a": 1}

@@ -240,6 +240,7 @@ def bench_filter(args: argparse.Namespace) -> int:
 
     if not args.seconds > 0:
         raise TeleopCliError(f"--seconds must be positive, got {args.seconds}")
+    command_project(args)  # the stack it flies is this project's
     result = run_filter_bench(seconds=args.seconds)
     if args.json:
         emit_json(result)
