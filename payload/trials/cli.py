@@ -535,7 +535,7 @@ def register(
     add_deprecated(
         p,
         "--operator",
-        "--replay FILE",
+        "--replay FILE (or, for the synthetic operator, no option: it is the default)",
         "operator",
         nargs="+",
         metavar=("synthetic|replay", "F"),
