@@ -90,7 +90,8 @@ def bench_hw(
         "baud": smap.baud,
         "cycle_median_us": float(np.median(times)) * 1e6,
         "fallbacks": fallbacks,
-        "port": port or "emulator",
+        "device": port or "emulator",
+        "port": port or "emulator",  # the device's field name before --device (kept)
         "host_cpu_us": host_cpu * 1e6,
         "emulator_cpu_us": emu_cpu * 1e6 if emu_cpu is not None else None,
         "guard_us": guard_us,

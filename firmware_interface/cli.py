@@ -67,6 +67,8 @@ def _cmd_scan(args: argparse.Namespace) -> int:
                   f"{s['joint'] or '-'}")  # fmt: skip
         for s in missing:
             print(f"ID {s['id']:3d}  not answering ({s['joint']})")
+    if not servos:  # listed; but a bus where no servo answers is a failed look, as in check
+        raise CheckFailed(f"no servo answered on {device} (power, wiring, baud rate, IDs?)")
     return 0
 
 
@@ -120,19 +122,44 @@ def _cmd_check(args: argparse.Namespace) -> int:
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
-    from firmware_interface.driver import DynamixelDriver
-    from firmware_interface.run import run_hardware_trial
-
     project = command_project(args)
     from payload.design import models_follow_design
 
     models_follow_design(project.design_path, project.root, json=args.json)
     replay = _replay_of(args)
+    if args.out and Path(args.out).exists() and not Path(args.out).is_dir():
+        raise HwUsageError(f"--out {args.out}: not a folder")
     if args.out and (Path(args.out) / "log.mcap").exists():
         raise HwUsageError(f"--out {args.out}: already holds a recording; choose another folder")
-    out = Path(args.out) if args.out else default_out(project, "hw")
     if (getattr(args, "device", None) is None) == (not args.emulator):
         raise HwUsageError("give either --device DEV or --emulator")
+    existed = args.out is not None and Path(args.out).exists()
+    out = Path(args.out) if args.out else default_out(project, "hw")
+    try:
+        result = _run_hardware(args, out, replay)
+    except BaseException:
+        if not existed and out.is_dir() and not any(out.iterdir()):
+            out.rmdir()  # made for this run and left empty (the bus did not answer): not kept
+        raise
+    result["out"] = str(out)
+    if args.json:
+        emit_json(result)
+        return 0
+    from payload.trials.summary import print_trial_summary
+
+    far = "the emulator" if result["emulator"] else "hardware"
+    print(f"hw run ({far} on {result['device']}), {result['steps']} steps -> {out}")
+    print(f"  Bus Watchdog: {result['watchdog']['effect']}")
+    # the world and the CTB's placement are the recording's; the controller profile and
+    # the retargeting this session's own (real servos in the loop: `safe` by default)
+    print_trial_summary(result, f" (world and CTB placement from {replay.name})")
+    return 0
+
+
+def _run_hardware(args: argparse.Namespace, out: Path, replay: Path) -> dict[str, Any]:
+    """``hw run``'s session on the bus (``--device``, or an emulator started here)."""
+    from firmware_interface.driver import DynamixelDriver
+    from firmware_interface.run import run_hardware_trial
     from payload.profiles import SAFE, resolve
 
     prof, overrides = resolve(
@@ -158,19 +185,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
                                     controller=(prof.name, overrides),
                                     budget=prof.retarget_budget,
                                     collisions=prof.retarget_collisions)  # fmt: skip
-    result["out"] = str(out)
-    if args.json:
-        emit_json(result)
-        return 0
-    from payload.trials.summary import print_trial_summary
-
-    far = "the emulator" if result["emulator"] else "hardware"
-    print(f"hw run ({far} on {result['device']}), {result['steps']} steps -> {out}")
-    print(f"  Bus Watchdog: {result['watchdog']['effect']}")
-    # the world and the CTB's placement are the recording's; the controller profile and
-    # the retargeting this session's own (real servos in the loop: `safe` by default)
-    print_trial_summary(result, f" (world and CTB placement from {replay.name})")
-    return 0
+    return result
 
 
 def _replay_of(args: argparse.Namespace) -> Path:

@@ -356,6 +356,7 @@ def run_hardware_trial(
 
             def on_step(ctx: StepContext) -> None:
                 hands_out.write(ctx.frame)
+                recorder.write_hands(ctx.frame)  # as a trial's: its log.mcap replays too
                 scene.observe(ctx.t)
                 recorder.write(step_record(ctx, driver, retargeters))
                 steps[0] += 1

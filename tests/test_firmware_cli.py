@@ -102,3 +102,19 @@ def test_bench_hw_reports_the_cycle_against_the_wire_time(capsys):
     assert out["cycle_p99_us"] >= out["cycle_mean_us"] * 0.5 > 0
     # the driver's collision guard, part of every cycle: well inside the 20 ms of 50 Hz
     assert 0 < out["guard_cpu_us"] < 20_000 and out["guard_us"] > 0
+
+
+def test_scan_of_a_bus_where_nobody_answers_fails(capsys):
+    """``hw scan`` lists what answered; a bus where no servo does is a failed look (exit 1,
+    one line), as ``hw check`` says of it."""
+    import os
+
+    master, slave = os.openpty()
+    try:
+        code = main(["hw", "scan", "--device", os.ttyname(slave)])
+    finally:
+        os.close(master)
+        os.close(slave)
+    out, err = capsys.readouterr()
+    assert code == 1 and "not answering" in out
+    assert err.strip().splitlines()[-1].startswith("payload: check failed: no servo answered")

@@ -100,6 +100,13 @@ def test_hw_run_records_the_trial_like_the_simulator(session, tmp_path):
     _, replayed = read_hand_recording(out / "hands.jsonl")
     assert all(np.array_equal(a.left.joints, b.left.joints, equal_nan=True)
                for a, b in zip(frames, replayed))  # fmt: skip
+    # its log.mcap carries the hands as a trial's does, so it replays in turn
+    from payload.trials.recorder import read_hand_frames
+
+    _, in_log = read_hand_frames(out / "log.mcap")
+    assert len(in_log) == len(frames)
+    assert all(np.array_equal(a.right.joints, b.right.joints, equal_nan=True)
+               for a, b in zip(frames, in_log))  # fmt: skip
     # the safety channel a trial records, one record per step, and the station figures
     from payload.schema import CONTROL_DT
     from payload.trials.safety import FILTER_TOPIC
@@ -116,6 +123,33 @@ def test_hw_run_records_the_trial_like_the_simulator(session, tmp_path):
         argv = ["hw", "run", "--port", emu.port, "--source", "replay", str(session),
                 "--out", str(out)]  # fmt: skip
         assert main(argv) == 2
+
+
+def test_hw_run_refuses_a_file_for_out_and_keeps_no_folder_it_made_for_nothing(
+    session, tmp_path, capsys
+):
+    """``--out`` a regular file is one line and exit 2; a bus where nobody answers ends in
+    one line too, and the folder made for the run is not left behind, empty."""
+    import os
+
+    from payload.cli import main
+
+    afile = tmp_path / "afile"
+    afile.write_text("mine")
+    argv = ["hw", "run", "--replay", str(session), "--no-pace", "--max-time", "1"]
+    assert main([*argv, "--device", "/dev/null", "--out", str(afile)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "not a folder" in err[0] and afile.read_text() == "mine"
+    master, slave = os.openpty()  # a serial line nobody answers on
+    try:
+        fresh = tmp_path / "fresh"
+        code = main([*argv, "--device", os.ttyname(slave), "--out", str(fresh)])
+    finally:
+        os.close(master)
+        os.close(slave)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "not answering" in err[0], err
+    assert not fresh.exists()
 
 
 def test_hw_run_of_a_synthetic_trial_says_what_it_ran_on_and_places_the_ctb_as_its_source(

@@ -547,3 +547,22 @@ def test_a_2_ms_trial_records_its_step_and_compare_shows_what_changed(tmp_path, 
     assert "steps differ in: trial-0000" in capsys.readouterr().err
     assert main(["trials", "compare", str(runs[None]), str(tmp_path / "nope")]) == 2
     assert "no such trial or campaign folder" in capsys.readouterr().err
+
+
+def test_a_recording_without_hand_frames_is_refused_naming_it(tmp_path, capsys):
+    """A ``log.mcap`` whose ``/trial/hands`` channel is empty (a recording that kept its
+    hands elsewhere) cannot be replayed: one line naming it, and nothing written."""
+    from payload.cli import main
+    from payload.trials.recorder import TrialRecorder, random_step
+
+    src = tmp_path / "src" / "log.mcap"
+    src.parent.mkdir()
+    rng = np.random.default_rng(1)
+    with TrialRecorder(src) as rec:
+        for k in range(5):
+            rec.write(random_step(rng, (k + 1) * 0.02))
+    out = tmp_path / "replayed"
+    assert main(["trial", "--replay", str(src), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"{src}: no hand frames to replay" in err[0], err
+    assert not out.exists()

@@ -207,6 +207,8 @@ def serve(args: argparse.Namespace, make_session: SessionFactory) -> int:
     print("\n" + status_line(hub.status(), hub.latency()))
     if result is not None:
         print(f"recorded {record} ({result.get('steps')} steps)")
+    elif record is not None:  # asked for, and no session ran: said, not left to guess
+        print(f"nothing recorded in {record}: no session ran (no hands reached the server)")
     return 0
 
 

@@ -113,8 +113,17 @@ def load_replay(path: str | Path) -> tuple[dict[str, Any], list[HandFrame]]:
             meta, frames = read_hand_frames(path)
         except RecordingError as exc:
             raise TrialError(str(exc)) from None
-        return {"meta": meta}, frames
-    header, frames = read_hand_recording(path)
+        header = {"meta": meta}
+    else:
+        header, frames = read_hand_recording(path)
+    if not frames:
+        where = (
+            "its /trial/hands channel holds none: a `payload hw run` recording made before "
+            "this release, say; replay its hands.jsonl"
+            if Path(path).suffix == ".mcap"
+            else "the file holds none"
+        )
+        raise TrialError(f"{path}: no hand frames to replay ({where})")
     return header, [frame.to_workbench() for frame in frames]
 
 
