@@ -272,6 +272,19 @@ process to read the library's version), a tenth of a second or more in every pro
 that simulates, each Dask worker of a campaign included (they inherit it)."""
 
 
+def _stdout_gone() -> bool:
+    """Whether standard output is a pipe whose reader has gone (its write end polls as an
+    error)."""
+    import select
+
+    try:
+        poll = select.poll()
+        poll.register(sys.stdout.fileno(), select.POLLOUT)
+        return any(ev & (select.POLLERR | select.POLLHUP) for _, ev in poll.poll(0))
+    except (OSError, ValueError, AttributeError):  # no such stream, or no poll here
+        return False
+
+
 def run() -> NoReturn:
     """The ``payload`` console script and ``python -m payload``: :func:`main`, then exit.
 
@@ -285,10 +298,13 @@ def run() -> NoReturn:
     """
     try:
         code = main()
-    except BrokenPipeError:  # the reader of stdout went away (`payload ... | head`)
-        # quietly, as other command-line tools do; what the command wrote to its files stands
+    except BrokenPipeError:
+        if not _stdout_gone():  # another pipe broke: an error like any other
+            raise
+        # the reader of stdout went away (`payload ... | head`): end quietly, as a tool
+        # SIGPIPE ends (128 + 13); what the command wrote to its files stands
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
-        code = 1
+        code = 141
     gc.freeze()
     sys.exit(code)
 
@@ -297,6 +313,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     """The command line: parse ``argv`` (default ``sys.argv[1:]``), run the command, and
     return the exit code (the console script is :func:`run`)."""
     args = _parse(argv)
+    forget_project()  # this command resolves its own (command_project)
     saved = os.environ.get(ENV_VAR)
     added = [k for k in COMMAND_ENV if k not in os.environ]
     os.environ.update({k: COMMAND_ENV[k] for k in added})

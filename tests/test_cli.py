@@ -275,8 +275,8 @@ def test_commands_run_without_mujoco_rendering_unless_the_user_asks(monkeypatch)
 
 
 def test_a_closed_stdout_ends_the_command_quietly() -> None:
-    """``payload ... | head``: the reader going away ends the command with exit 1 and no
-    traceback (the command's own error lines, if any, still go to stderr)."""
+    """``payload ... | head``: the reader going away ends the command quietly, with the
+    exit status of a tool that SIGPIPE ended (141) and no traceback."""
     code = (
         "import sys, payload.cli as cli\n"
         "def main():\n"
@@ -293,8 +293,16 @@ def test_a_closed_stdout_ends_the_command_quietly() -> None:
     proc.stdout.readline()
     proc.stdout.close()  # as `head -1` does
     err = proc.stderr.read().decode()
-    assert proc.wait(timeout=60) == 1
+    assert proc.wait(timeout=60) == 141
     assert "Traceback" not in err and "BrokenPipeError" not in err, err
+    # another pipe breaking (a socket, a child process) is an error like any other
+    other = (
+        "import payload.cli as cli\n"
+        "cli.main = lambda: (_ for _ in ()).throw(BrokenPipeError())\n"
+        "cli.run()\n"
+    )
+    done = subprocess.run([sys.executable, "-c", other], capture_output=True, timeout=60)
+    assert done.returncode == 1 and b"BrokenPipeError" in done.stderr
 
 
 def test_a_command_on_a_project_names_it_in_its_json(capsys, monkeypatch) -> None:

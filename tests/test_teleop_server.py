@@ -495,6 +495,18 @@ def test_live_session_records_the_safety_channel_and_station_metrics(tmp_path, m
         server.stop()
     result = session.close()
     rec = read_recording(out / "log.mcap")
+    # the hands each step took, in log.mcap as a trial keeps them (so it replays): the
+    # hands.jsonl's WebXR frames in the workbench convention
+    from payload.teleop.replay import read_hand_recording
+    from payload.trials.recorder import read_hand_frames
+
+    _, in_log = read_hand_frames(out / "log.mcap")
+    _, in_jsonl = read_hand_recording(out / "hands.jsonl")
+    assert len(in_log) == len(rec) == len(in_jsonl)
+    assert all(
+        np.array_equal(a.right.joints, b.to_workbench().right.joints, equal_nan=True)
+        for a, b in zip(in_log, in_jsonl)
+    )
     with open(out / "log.mcap", "rb") as f:
         msgs = list(make_reader(f).iter_messages(topics=[FILTER_TOPIC, KEEPIN_TOPIC]))
     records = [json.loads(m.data) for _, c, m in msgs if c.topic == FILTER_TOPIC]

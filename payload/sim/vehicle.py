@@ -63,7 +63,10 @@ class _Fixed:
     def __get__(self, obj: Any, owner: type | None = None) -> Any:
         if obj is None:
             return self
-        return obj.__dict__[self.slot]
+        try:
+            return obj.__dict__[self.slot]
+        except KeyError:
+            raise AttributeError(f"{type(obj).__name__}.{self.name} is not set yet") from None
 
     def __set__(self, obj: Any, value: Any) -> None:
         if self.slot in obj.__dict__:
@@ -72,7 +75,8 @@ class _Fixed:
                 f"{kind}.{self.name} is fixed when the {kind} is made (its bounds and its "
                 f"compiled step derive from it): make a new {kind}"
             )
-        if isinstance(value, np.ndarray):
+        if isinstance(value, np.ndarray):  # a read-only copy: the caller's stays theirs
+            value = value.copy()
             value.setflags(write=False)
         obj.__dict__[self.slot] = value
 

@@ -127,7 +127,7 @@ def run_point(
         return {**result, "project": str(root)}
 
 
-def _first_line(exc: BaseException) -> str:
+def _first_line(exc: BaseException | str) -> str:
     lines = [ln for ln in str(exc).splitlines() if ln.strip()]
     return lines[0] if lines else type(exc).__name__
 
@@ -270,10 +270,11 @@ def _analyse(
             "duration_s_median": summary["duration_s"]["median"],
             "errors": len(raised),
         }
-        if raised:  # a bug, not a design that fails: said, as `payload trials run` says it
+        if raised:  # a trial that raised, not one that ran and failed: as `trials run` says
             result["error"] = (
                 f"trials run: {len(raised)} of {len(summary['trials'])} trial(s) raised an "
-                f"error (first: {raised[0]['error']}; tracebacks in runs/campaign/summary.json)"
+                f"error (first: {_first_line(raised[0]['error'])}; tracebacks in "
+                "runs/campaign/summary.json)"
             )
     return result
 

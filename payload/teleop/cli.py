@@ -208,7 +208,10 @@ def serve(args: argparse.Namespace, make_session: SessionFactory) -> int:
     if result is not None:
         print(f"recorded {record} ({result.get('steps')} steps)")
     elif record is not None:  # asked for, and no session ran: said, not left to guess
-        print(f"nothing recorded in {record}: no session ran (no hands reached the server)")
+        print(
+            f"nothing recorded in {record}: no session was recorded (a session is recorded "
+            "once its calibration is done)"
+        )
     return 0
 
 

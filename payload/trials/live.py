@@ -225,6 +225,7 @@ class LiveSession:
         if self._recorder is None:
             self._open_recording()
         for r, f in [*self._pending, (rec, fr)]:
+            self._recorder.write_hands(f.to_workbench())  # as a trial's: its log.mcap replays
             self._recorder.write(r)
             self._hands.write(f)
         self._pending.clear()

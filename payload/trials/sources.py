@@ -118,8 +118,8 @@ def load_replay(path: str | Path) -> tuple[dict[str, Any], list[HandFrame]]:
         header, frames = read_hand_recording(path)
     if not frames:
         where = (
-            "its /trial/hands channel holds none: a `payload hw run` recording made before "
-            "this release, say; replay its hands.jsonl"
+            "its /trial/hands channel holds none, as in a live session's or `payload hw "
+            "run`'s recording made before this release: replay the hands.jsonl beside it"
             if Path(path).suffix == ".mcap"
             else "the file holds none"
         )
