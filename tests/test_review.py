@@ -197,6 +197,10 @@ def test_a_design_that_does_not_fit_shows_the_offending_parts_red(tmp_path, desi
         assert (colour == OFFENDING_COLOUR) == (n in out), n
     labels = [p for p, _ in rv.scene.overlay.labels if "/findings/protrusion/" in p]
     assert sorted(p.rsplit("/", 1)[1] for p in labels) == sorted(out)
+    # the verdict says what failed, not only the tightest part: a protruding link named
+    verdict = rv.scene.overlay.subtitle
+    assert verdict.startswith("stowed fit: FAIL: ") and " protrudes " in verdict
+    assert verdict.split(": ", 2)[2].split(" protrudes ")[0] in out
 
 
 # -- trial replay ------------------------------------------------------------------------
@@ -522,3 +526,26 @@ def test_the_models_visuals_are_those_yourdfpy_reads(tmp_path):
                 scale = 1.0 if w.geometry.mesh.scale is None else w.geometry.mesh.scale
                 assert np.array_equal(v.scale, np.broadcast_to(np.asarray(scale, float), (3,)))
     assert not np.allclose(PayloadModel(other).visuals[model.links[0]][0].origin, np.eye(4))
+
+
+def test_the_replays_legend_names_each_colour_once() -> None:
+    """One row per colour and no name twice: the CTB's bag and handle, the station's walls
+    and handrails are told apart (the colours the world draws them in, read from the
+    model here)."""
+    from payload.review.trial_view import trial_legend
+    from payload.sim.world import build_world
+
+    world = build_world()
+    rows = trial_legend(world, keep_in=True)
+    names = [n for _, n in rows]
+    assert len(set(names)) == len(names), names
+    assert len({c for c, _ in rows}) == len(rows)
+    m = world.model
+    colour = {
+        n: "#%02x%02x%02x" % tuple(round(float(v) * 255) for v in m.geom_rgba[m.geom(n).id][:3])
+        for n in ("ctb_bag", "ctb_handle", "kibo_wall_x0_0", "kibo_handrail_0")
+    }
+    legend = {n: c for c, n in rows}
+    assert legend["CTB bag"] == colour["ctb_bag"] and legend["CTB handle"] == colour["ctb_handle"]
+    assert legend["ISS walls"] == colour["kibo_wall_x0_0"]
+    assert legend["ISS handrails"] == colour["kibo_handrail_0"]

@@ -799,3 +799,13 @@ def test_the_leaf_certificate_is_not_a_ca_and_names_the_bind_address(tmp_path):
         [cert_path.name, key_path.name, CA_NAME]
     )  # the CA's key is nowhere
     assert ensure_certificate("192.0.2.10", tmp_path)[2] is False  # kept for the next run
+
+
+def test_a_design_project_of_its_own_finds_the_workbenchs_iwer(tmp_path):
+    """``--desktop`` from a project made with ``payload new`` (no ``package.json``, no
+    ``node_modules``): the emulated headset comes from the workbench checkout's
+    ``npm ci`` (``make test`` runs it), not a demand the project cannot meet."""
+    from payload.teleop.emulate import WORKBENCH_ROOT, find_iwer
+
+    assert (WORKBENCH_ROOT / "package.json").is_file()
+    assert find_iwer(tmp_path) == WORKBENCH_ROOT / "node_modules" / "iwer" / "build" / "iwer.js"

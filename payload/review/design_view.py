@@ -313,6 +313,10 @@ def title(files: ProjectFiles, check: StowedCheck) -> tuple[str, str]:
     design = Path(files.design)
     name = f"{design.resolve().parents[1].name}/{design.parent.name}/{design.name}"
     verdict = "stowed fit: pass" if check.passed else "stowed fit: FAIL"
+    reasons = [] if check.passed else check.failures()
+    if reasons:  # what failed, as `payload report envelope` says it
+        more = f" (and {len(reasons) - 1} more: payload report envelope)" if reasons[1:] else ""
+        verdict += f": {reasons[0]}{more}"
     if check.parts:
         t = check.tightest
         verdict += f"; tightest {t.name} {t.clearance * 1e3:.1f} mm"

@@ -157,7 +157,11 @@
       const r = e.getBoundingClientRect();
       return { x: r.left, y: r.top, w: r.width, h: r.height };
     });
-    placed.push({ x: w - 250, y: 0, w: 250, h: 24 });
+    // meshcat's controls (dat.GUI): as large as they are now, open or closed
+    const gui = document.querySelector(".dg.main");
+    const g = gui && gui.offsetParent !== null ? gui.getBoundingClientRect() : null;
+    placed.push(g && g.width > 0 ? { x: g.left, y: g.top, w: g.width, h: g.height }
+      : { x: w - 250, y: 0, w: 250, h: 24 });
     items.sort((a, b) => a.y - b.y);
     for (const it of items) {
       const el = it.lab.el;

@@ -101,7 +101,8 @@ def page_html(data: dict[str, Any] | None) -> str:
         embedded = f'<script id="payload-data" type="application/json">{text}</script>'
     return f"""<!DOCTYPE html>
 <html>
-<head><meta charset="utf-8"><title>payload review</title><style>{STYLE}</style></head>
+<head><meta charset="utf-8"><title>payload review</title><link rel="icon" href="data:,">
+<style>{STYLE}</style></head>
 <body>
 <div id="meshcat-pane"></div>
 <script>{_meshcat_js()}</script>

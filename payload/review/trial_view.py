@@ -20,6 +20,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import meshcat.geometry as mg
+import mujoco
 import numpy as np
 from meshcat.animation import Animation
 
@@ -268,13 +269,24 @@ def trial_legend(world, keep_in: bool) -> list[tuple[str, str]]:
         out.append((colour_text(KEEP_IN_COLOUR), "keep-in boxes"))
     seen = {c for c, _ in out}
     m = world.model
-    for name, geoms in (("CTB", _ctb_geoms(world)), ("ISS racks and handrails", world.iss_geoms)):
+    for kind, geoms in (("CTB", _ctb_geoms(world)), ("ISS", world.iss_geoms)):
+        parts: dict[str, list[str]] = {}  # colour -> the geoms drawn in it, by name
         for g in geoms:
             c = colour_text(_rgb(m.geom_rgba[g]))
+            parts.setdefault(c, []).append(mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_GEOM, g) or "")
+        for c, names in parts.items():
             if c not in seen:
                 seen.add(c)
-                out.append((c, name))
+                out.append((c, _part_label(kind, names)))
     return out
+
+
+def _part_label(kind: str, names: list[str]) -> str:
+    """A legend row's words for the CTB's or the station's geoms of one colour (named as
+    the world names them): each colour its own row, so no name twice."""
+    if kind == "CTB":
+        return "CTB handle" if any("handle" in n for n in names) else "CTB bag"
+    return "ISS handrails" if all("handrail" in n for n in names) else "ISS walls"
 
 
 def _ctb_geoms(world) -> list[int]:

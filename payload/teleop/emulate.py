@@ -90,18 +90,29 @@ class EmulationError(PayloadError):
     """The emulated headset cannot run (no Chromium, no iwer, the page did not start)."""
 
 
+WORKBENCH_ROOT = Path(__file__).resolve().parents[2]
+"""The workbench's own checkout (its ``package.json`` pins iwer), where ``npm ci`` installs
+it: a design project made with ``payload new`` has no ``package.json`` of its own."""
+
+
 def find_iwer(start: Path | None = None) -> Path:
-    """iwer's browser build in the nearest ``node_modules`` from ``start`` (cwd) upward.
+    """iwer's browser build in the nearest ``node_modules`` from ``start`` (cwd) upward,
+    else in the workbench's own checkout (:data:`WORKBENCH_ROOT`).
 
     Raises:
-        EmulationError: Not installed (run ``npm ci`` at the project root).
+        EmulationError: Not installed (run ``npm ci`` in the workbench's checkout).
     """
     here = (start or Path.cwd()).resolve()
-    for d in (here, *here.parents):
+    for d in (here, *here.parents, WORKBENCH_ROOT):
         p = d / "node_modules" / "iwer" / "build" / "iwer.js"
         if p.is_file():
             return p
-    raise EmulationError("iwer is not installed: run `npm ci` at the project root")
+    where = (
+        f"in the workbench's checkout, {WORKBENCH_ROOT}"
+        if (WORKBENCH_ROOT / "package.json").is_file()
+        else "where a package.json pins it (the workbench's checkout)"
+    )
+    raise EmulationError(f"iwer is not installed: run `npm ci` {where}")
 
 
 def chromium_path() -> str:

@@ -134,6 +134,7 @@ export class Renderer {
     if (key === this.panelText) return;
     this.panelText = key;
     const c = this.panelCanvas.getContext('2d');
+    c.clearRect(0, 0, 1024, 256); // the last text gone, not showing through the new
     c.fillStyle = 'rgba(10, 16, 24, 0.85)';
     c.fillRect(0, 0, 1024, 256);
     c.fillStyle = color;
