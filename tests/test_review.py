@@ -541,10 +541,10 @@ def test_the_replays_legend_names_each_colour_once() -> None:
     assert len(set(names)) == len(names), names
     assert len({c for c, _ in rows}) == len(rows)
     m = world.model
-    colour = {
-        n: "#%02x%02x%02x" % tuple(round(float(v) * 255) for v in m.geom_rgba[m.geom(n).id][:3])
-        for n in ("ctb_bag", "ctb_handle", "kibo_wall_x0_0", "kibo_handrail_0")
-    }
+    colour = {}
+    for n in ("ctb_bag", "ctb_handle", "kibo_wall_x0_0", "kibo_handrail_0"):
+        r, g, b = (round(float(v) * 255) for v in m.geom_rgba[m.geom(n).id][:3])
+        colour[n] = f"#{r:02x}{g:02x}{b:02x}"
     legend = {n: c for c, n in rows}
     assert legend["CTB bag"] == colour["ctb_bag"] and legend["CTB handle"] == colour["ctb_handle"]
     assert legend["ISS walls"] == colour["kibo_wall_x0_0"]
