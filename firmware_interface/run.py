@@ -294,7 +294,9 @@ def run_hardware_trial(
         The metrics (as written to ``metrics.json``) with ``steps``, ``driver``,
         ``device``, ``emulator``, ``provenance``, the set-up and ``watchdog``.
     """
+    from payload.native import environment
     from payload.project import current_project, provenance
+    from payload.trials.metrics import confirmed_definition
     from payload.trials.recorder import TrialRecorder
     from payload.trials.runner import base_filter_for, module_rects, step_record
     from payload.trials.safety import recording_scene
@@ -315,7 +317,7 @@ def run_hardware_trial(
         retargeters, ranges = retargeting(project, budget, collisions)
     if base_filter:
         sim.twist_filter = base_filter_for(sim, TeleopConfig.from_design(load_design()).base)
-    prov = provenance(project, sim.world.config.design)
+    prov = {**provenance(project, sim.world.config.design), "environment": environment()}
     if not getattr(hardware, "homed", None):
         hardware.bring_up()
     move_to_home(hardware)
@@ -334,8 +336,8 @@ def run_hardware_trial(
         "traits": {"replay": str(replay)},
         "route": layout.route().tolist(),
         "modules": module_rects(layout),
-        **({"contact_definition": recorded["contact_definition"]}
-           if "contact_definition" in recorded else {}),
+        # scored as its source was, a source that stored none (a hands.jsonl) as a trial is
+        "contact_definition": recorded.get("contact_definition") or confirmed_definition(),
         **setup,
         "retarget_budget": budget,
         "retarget_collisions": collisions,

@@ -489,6 +489,17 @@ def test_the_report_follows_the_design_through_two_edits(tmp_path, capsys):
     code, lines, _ = _report(project.root, capsys)
     assert code == 0 and lines[1].startswith("verdict: fits") and "report unchanged" in lines[-1]
     assert {n: (out / n).stat().st_mtime_ns for n in names} == stamp
+    # a comment only: the figures stand, but the report names the design it follows
+    design.write_text(design.read_text() + "# a note\n")
+    sha_note = hashlib.sha256(design.read_bytes()).hexdigest()
+    code, lines, _ = _report(project.root, capsys)
+    noted = json.loads((out / "envelope.json").read_text())
+    assert code == 0 and noted["provenance"]["design_sha256"] == sha_note
+    assert {k: v for k, v in noted.items() if k != "provenance"} == {
+        k: v for k, v in first.items() if k != "provenance"
+    }
+    assert "changed since envelope.prev.json: the design file only" in "\n".join(lines)
+    first = noted
     # edit 2: a distal link 15 mm longer runs into the stage when curled
     sha2 = _edit_design(design, "distal = 0.044 ", "distal = 0.060 ")
     code, lines, err = _report(project.root, capsys)

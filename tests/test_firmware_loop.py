@@ -97,6 +97,10 @@ def test_hw_run_records_the_trial_like_the_simulator(session, tmp_path):
     assert len(rec) == len(frames)
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["steps"] == len(frames) and metrics["driver"] == "hardware"
+    # a bare hands.jsonl stores no contact definition: scored as a trial is (confirmed
+    # contact, docs/trials.md), with what it ran on
+    assert (metrics["min_interval_s"], metrics["max_gap_s"]) == (0.5, 0.1)
+    assert "environment" in metrics["provenance"]
     _, replayed = read_hand_recording(out / "hands.jsonl")
     assert all(np.array_equal(a.left.joints, b.left.joints, equal_nan=True)
                for a, b in zip(frames, replayed))  # fmt: skip

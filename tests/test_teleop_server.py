@@ -495,6 +495,12 @@ def test_live_session_records_the_safety_channel_and_station_metrics(tmp_path, m
         server.stop()
     result = session.close()
     rec = read_recording(out / "log.mcap")
+    # scored as a trial is (confirmed contact: held 0.5 s, dropouts of 0.1 s bridged,
+    # docs/trials.md), with what it ran on
+    assert rec.meta["contact_definition"] == {"min_interval_s": 0.5, "max_gap_s": 0.1}
+    assert (result["min_interval_s"], result["max_gap_s"]) == (0.5, 0.1)
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert "environment" in metrics["provenance"] and "design_sha256" in metrics["provenance"]
     # the hands each step took, in log.mcap as a trial keeps them (so it replays): the
     # hands.jsonl's WebXR frames in the workbench convention
     from payload.teleop.replay import read_hand_recording

@@ -116,6 +116,9 @@ def headline_changes(stem: str, before: dict[str, Any], after: dict[str, Any]) -
         if old != new:
             changed.append(f"{label} {_show(old, unit)} -> {_show(new, unit)}")
     if not changed:
+        figures = [{k: v for k, v in d.items() if k != "provenance"} for d in (before, after)]
+        if figures[0] == figures[1]:  # the design file changed (its hash), no figure did
+            return f"changed since {stem}.prev.json: the design file only (every figure as before)"
         return f"changed since {stem}.prev.json: other figures only (headline figures as before)"
     return f"changed since {stem}.prev.json: " + "; ".join(changed)
 

@@ -46,7 +46,8 @@ PROVENANCE_KEY = "provenance"
 
 def _same_figures(path: Path, text: str) -> bool:
     """Whether the file at ``path`` holds the same report as ``text``: byte for byte, or for
-    JSON the same apart from its provenance (a new commit alone changes no figure)."""
+    JSON the same apart from its provenance (a new commit alone changes no figure), of the
+    same design (a report follows its design file, its hash included)."""
     old = path.read_bytes()
     if old == text.encode():
         return True
@@ -59,9 +60,8 @@ def _same_figures(path: Path, text: str) -> bool:
     after = json.loads(text)
     if not isinstance(before, dict):
         return False
-    before.pop(PROVENANCE_KEY, None)
-    after.pop(PROVENANCE_KEY, None)
-    return before == after
+    design = [(d.pop(PROVENANCE_KEY, None) or {}).get("design_sha256") for d in (before, after)]
+    return before == after and design[0] == design[1]
 
 
 def _write_report(

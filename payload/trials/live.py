@@ -172,6 +172,7 @@ class LiveSession:
         self._pending: list[tuple[StepRecord, Any]] = []
         self._recorder: TrialRecorder | None = None
         self._hands: HandRecordingWriter | None = None
+        self._provenance: dict[str, Any] = {}  # the recording's, once it is opened
         # the trial's Foxglove and safety channels (the filter's record, station contacts)
         self._scene = (
             None
@@ -198,15 +199,24 @@ class LiveSession:
         self._hands = HandRecordingWriter(
             out / "hands.jsonl", frame="webxr", meta={"operator": "live", **setup}
         )
+        from payload.native import environment
+        from payload.project import current_project, provenance
+        from payload.trials.metrics import confirmed_definition
+
+        design = self.driver.world.config.design
+        prov = {**provenance(current_project(), design), "environment": environment()}
+        self._provenance = prov
         self._recorder.write_meta(
             {
                 "seed": 0,
                 "operator": "live",
                 "design_hash": design_hash(),
+                "provenance": prov,
                 "traits": {"live": True},
                 **setup,
                 "route": self.scene["route"],
                 "modules": module_rects(self.driver.world.layout),
+                "contact_definition": confirmed_definition(),  # scored as a trial is
             }
         )
 
@@ -363,6 +373,7 @@ class LiveSession:
             out = self.record
             result = finish_trial(out, out / "log.mcap")
             result["steps"] = self.steps
+            result["provenance"] = self._provenance  # as a trial's metrics.json has it
             (out / "metrics.json").write_text(json.dumps(result, indent=2) + "\n")
         self.driver.close()
         return result

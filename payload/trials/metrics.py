@@ -50,6 +50,14 @@ pads chatter for a few tenths of a second when they first land on a handle at 50
 CONFIRM_MAX_GAP_S = 0.1
 """Indicator dropouts at most this long are bridged inside a confirmed interval [s]."""
 
+
+def confirmed_definition() -> dict[str, float]:
+    """The confirmed-contact definition as a recording's metadata stores it (its
+    ``contact_definition``, what its scoring reads; a recording without one is scored
+    paper-literal, as recordings were before it was stored)."""
+    return {"min_interval_s": CONFIRM_MIN_S, "max_gap_s": CONFIRM_MAX_GAP_S}
+
+
 SUCCESS_CRITERION = (
     "the recording was not aborted AND "
     "CTB in the destination module at the end of the recording AND the first continuous "
@@ -356,6 +364,7 @@ __all__ = [
     "MetricsError",
     "TrialMetrics",
     "compute_metrics",
+    "confirmed_definition",
     "contact_runs",
     "ctb_in_body_frame",
     "first_contact_interval",

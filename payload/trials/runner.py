@@ -348,7 +348,7 @@ def _trial_meta(
     seed: int, source_spec: _Source, traits: dict, prov: dict, layout: Any, setup: _Setup
 ) -> dict[str, Any]:
     """The recording's opening metadata."""
-    from payload.trials.metrics import CONFIRM_MAX_GAP_S, CONFIRM_MIN_S
+    from payload.trials.metrics import confirmed_definition
 
     return {
         "seed": int(seed),
@@ -359,7 +359,7 @@ def _trial_meta(
         **source_spec.meta(),
         "route": layout.route().tolist(),
         "modules": module_rects(layout),
-        "contact_definition": {"min_interval_s": CONFIRM_MIN_S, "max_gap_s": CONFIRM_MAX_GAP_S},
+        "contact_definition": confirmed_definition(),
         **setup.recorded,
     }
 
