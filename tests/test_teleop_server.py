@@ -815,3 +815,13 @@ def test_a_design_project_of_its_own_finds_the_workbenchs_iwer(tmp_path):
 
     assert (WORKBENCH_ROOT / "package.json").is_file()
     assert find_iwer(tmp_path) == WORKBENCH_ROOT / "node_modules" / "iwer" / "build" / "iwer.js"
+
+
+def test_latency_figures_of_no_frames_are_json_nulls():
+    """No frames yet: the percentiles are None, which JSON can carry (a NaN would print
+    as bare ``NaN``, which is not JSON)."""
+    from payload.teleop.live import percentiles
+
+    assert percentiles([]) == {"median": None, "p99": None}
+    assert json.loads(json.dumps(percentiles([]), allow_nan=False)) == {"median": None, "p99": None}
+    assert percentiles([1.0, 3.0]) == {"median": 2.0, "p99": pytest.approx(2.98)}

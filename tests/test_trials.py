@@ -1410,3 +1410,19 @@ def test_a_trial_and_a_campaign_never_share_a_folder(tmp_path: Path, capsys) -> 
     assert sorted(p.name for p in camp.iterdir()) == ["summary.json"]
     assert sorted(p.name for p in trial.iterdir()) == ["log.mcap"]
     assert (trial / "log.mcap").read_bytes() == b"recorded"
+
+
+def test_a_campaign_whose_worker_died_still_gets_its_summary(tmp_path: Path) -> None:
+    """A trial lost with its worker (no result, no wall time: ``wall_s`` None) is a row of
+    the summary, which is written (JSON refuses a NaN wall time)."""
+    from payload.trials.summary import write_summary
+
+    ok = json.loads(
+        (Path(__file__).parents[1] / "analyses/campaign/single/summary.json").read_text()
+    )["trials"][0]
+    lost = {"seed": 1, "out_dir": str(tmp_path / "trial-0001"), "wall_s": None,
+            "error": "KilledWorker: the worker died"}  # fmt: skip
+    summary = write_summary([{**ok, "out_dir": str(tmp_path / "trial-0000")}, lost], tmp_path)
+    written = json.loads((tmp_path / "summary.json").read_text())
+    assert written["n"] == summary["n"] == 2
+    assert [t["error"] for t in written["trials"]] == [None, lost["error"]]

@@ -233,7 +233,7 @@ def bench(args: argparse.Namespace, make_session: SessionFactory) -> int:
     print(f"emulated Quest 3 (iwer, headless Chromium), {result['frames']} frames")
     for key in ("frame_age_ms", "latency_ms"):
         v = result[key]
-        print(f"  {key:<14} median {v['median']:6.2f}  p99 {v['p99']:6.2f}")
+        print(f"  {key:<14} median {_ms(v['median']):>6}  p99 {_ms(v['p99']):>6}")
     print(f"  loop overruns {result['loop_overruns']} of {result['steps']} steps")
     print(f"  load average {result['load']}")
     return 0

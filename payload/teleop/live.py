@@ -14,7 +14,6 @@ step; frames coming back blend the channels in again (no recalibration).
 
 from __future__ import annotations
 
-import math
 import threading
 import time
 from collections import deque
@@ -39,11 +38,11 @@ def now_ms() -> float:
     return time.perf_counter() * 1e3
 
 
-def percentiles(values: Any) -> dict[str, float]:
-    """``{"median", "p99"}`` of a sequence (NaN when empty)."""
+def percentiles(values: Any) -> dict[str, float | None]:
+    """``{"median", "p99"}`` of a sequence (None when empty: JSON has no NaN)."""
     arr = np.asarray(list(values), dtype=float)
     if arr.size == 0:
-        return {"median": float("nan"), "p99": float("nan")}
+        return {"median": None, "p99": None}
     return {"median": float(np.median(arr)), "p99": float(np.percentile(arr, 99))}
 
 
@@ -151,10 +150,7 @@ class LiveHub:
                 "clients": int(self.clients),
                 "frames": int(self.frames),
                 "dropped": {k: int(v) for k, v in self.dropped.items()},
-                "frame_age_ms": {
-                    k: (v if math.isfinite(v) else None)
-                    for k, v in percentiles(self.frame_age_ms).items()
-                },
+                "frame_age_ms": percentiles(self.frame_age_ms),
                 "loop_overruns": int(self.loop_overruns),
             }
 

@@ -15,7 +15,6 @@ called as ``trial_fn(seed, out_dir)`` and must be picklable (a module-level func
 from __future__ import annotations
 
 import functools
-import math
 import os
 import time
 import traceback
@@ -220,7 +219,7 @@ def _run_dask(
                 results[s] = {
                     "seed": s,
                     "out_dir": dirs[s],
-                    "wall_s": math.nan,
+                    "wall_s": None,  # not known (JSON has no NaN: the summary refuses it)
                     "error": f"{type(exc).__name__}: {exc}",
                 }
             bar.advance(results[s])
