@@ -1426,3 +1426,22 @@ def test_a_campaign_whose_worker_died_still_gets_its_summary(tmp_path: Path) -> 
     written = json.loads((tmp_path / "summary.json").read_text())
     assert written["n"] == summary["n"] == 2
     assert [t["error"] for t in written["trials"]] == [None, lost["error"]]
+
+
+def test_summarizing_trials_with_no_campaign_summary_keeps_their_provenance(
+    tmp_path: Path, capsys
+) -> None:
+    """``trials summarize`` of trial folders that no campaign summarized before writes the
+    provenance the trials themselves recorded (design, commit, environment), as every
+    summary has one."""
+    from payload.cli import main
+    from payload.trials.runner import run_trial
+
+    camp = tmp_path / "campaign"
+    run_trial(0, out_dir=camp / "trial-0000", max_time=2.0)
+    own = json.loads((camp / "trial-0000" / "metrics.json").read_text())["provenance"]
+    assert main(["trials", "summarize", str(camp), "--json"]) == 0
+    capsys.readouterr()
+    prov = json.loads((camp / "summary.json").read_text())["provenance"]
+    assert prov["design_sha256"] == own["design_sha256"]
+    assert prov["environment"] == own["environment"]

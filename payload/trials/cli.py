@@ -275,12 +275,18 @@ def _cmd_trials_summarize(args: argparse.Namespace) -> int:
             if not r.get("error")
         }
         tag = contact_tag(*defs.pop()) if len(defs) == 1 else "contact-mixed"
+    prov = previous.get("provenance")
+    if prov is None:  # no campaign summary before: what the trials themselves record
+        from payload.trials.summary import trials_environment
+
+        own = [r["provenance"] for r in results if isinstance(r.get("provenance"), dict)]
+        prov = {**own[0], "environment": trials_environment(results)} if own else None
     summary = write_summary(
         results,
         args.dir,
         title=previous.get("title"),
         run=previous.get("run"),
-        provenance=previous.get("provenance"),
+        provenance=prov,
         tag=tag,
         force=args.force,
     )
