@@ -200,11 +200,15 @@ class LiveSession:
             out / "hands.jsonl", frame="webxr", meta={"operator": "live", **setup}
         )
         from payload.native import environment
-        from payload.project import current_project, provenance
+        from payload.project import ProjectError, current_project, provenance
         from payload.trials.metrics import confirmed_definition
 
         design = self.driver.world.config.design
-        prov = {**provenance(current_project(), design), "environment": environment()}
+        try:  # the served project (teleop serve resolves it); a library caller may have none
+            project = current_project()
+        except ProjectError:
+            project = None
+        prov = {**provenance(project, design), "environment": environment()}
         self._provenance = prov
         self._recorder.write_meta(
             {
