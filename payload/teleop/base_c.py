@@ -37,6 +37,7 @@ from payload import native
 from payload.rotations import quat_to_matrix, yaw_matrix
 from payload.schema import VehicleTwist
 from payload.teleop import limiter_c
+from payload.vecmath import read_only
 
 log = logging.getLogger(__name__)
 
@@ -253,8 +254,7 @@ class CompiledBase:
             mode = call()
             if mode < 0:
                 return None
-            vel = out[7:13].copy()  # the twist's own, frozen: taken as it is
-            vel.setflags(write=False)
+            vel = read_only(out[7:13])  # the twist's own, frozen: taken as it is
             twist = VehicleTwist.of_frozen(vel[:3], vel[3:], stamp)
             return (  # outside: the drive mode (the left wrist outside its sphere)
                 out[0:3].copy(), out[3:6].copy(), float(out[6]), twist, MODES[mode] == "drive",
