@@ -22,6 +22,7 @@ from payload.cliutil import (
     command_project,
     default_out,
     emit_json,
+    kept_if_used,
     need_device,
 )
 from payload.errors import PayloadError
@@ -135,12 +136,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
         raise HwUsageError("give either --device DEV or --emulator")
     existed = args.out is not None and Path(args.out).exists()
     out = Path(args.out) if args.out else default_out(project, "hw")
-    try:
+    with kept_if_used(out, made=not existed):  # a bus that did not answer: no folder left
         result = _run_hardware(args, out, replay)
-    except BaseException:
-        if not existed and out.is_dir() and not any(out.iterdir()):
-            out.rmdir()  # made for this run and left empty (the bus did not answer): not kept
-        raise
     result["out"] = str(out)
     if args.json:
         emit_json(result)

@@ -19,10 +19,11 @@ command (``--help`` and ``--version`` included) starts without the numerical sta
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import sys
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -171,6 +172,19 @@ def add_replay(p: argparse.ArgumentParser, what: str) -> None:
     p.add_argument("--replay", metavar="FILE", default=None, help=what)
 
 
+@contextlib.contextmanager
+def kept_if_used(folder: Path, made: bool) -> Iterator[Path]:
+    """``folder``, the results' folder of a command; one made for it (``made``: a numbered
+    default, or an ``--out`` that did not exist) and still empty when the command fails
+    is removed, so a failed command leaves nothing behind (nor uses up a number)."""
+    try:
+        yield folder
+    except BaseException:
+        if made and folder.is_dir() and not any(folder.iterdir()):
+            folder.rmdir()
+        raise
+
+
 def default_out(project: Project, prefix: str) -> Path:
     """A new numbered folder ``runs/<prefix>-NNNN`` of ``project`` (created), for an
     ``--out`` left out."""
@@ -191,6 +205,7 @@ __all__ = [
     "default_out",
     "emit_json",
     "forget_project",
+    "kept_if_used",
     "need_device",
     "warn",
 ]

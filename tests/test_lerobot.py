@@ -226,3 +226,17 @@ def test_lerobot_loader_reads_the_export(dataset, runs) -> None:
     assert tuple(item["action"].shape) == (24,)
     assert item["task"] == "Hand the CTB over"
     assert math.isclose(float(item["timestamp"]), 10 / 50, abs_tol=1e-6)
+
+
+def test_an_export_of_nothing_leaves_no_numbered_folder(tmp_path, capsys):
+    """A run that is not there is one line and exit 2, and no ``runs/lerobot-NNNN`` is made
+    (nor its number used up) for it."""
+    from payload.cli import main
+    from payload.design.cli import new_project
+
+    project, _ = new_project(tmp_path / "p")
+    argv = ["--project", str(project.root), "export", "lerobot", str(tmp_path / "nothing")]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no such recording or folder" in err[0], err
+    assert not list(project.runs_dir.glob("lerobot-*"))

@@ -18,6 +18,7 @@ from payload.cliutil import (
     command_project,
     default_out,
     emit_json,
+    kept_if_used,
 )
 from payload.errors import RunAborted
 from payload.trials.setup_options import (
@@ -155,7 +156,9 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
     prov = provenance(project)
     out = Path(args.out) if args.out else default_out(project, "campaign")
     seeds = list(range(args.seed, args.seed + args.n))
-    held = [n for n in ("log.mcap", "metrics.json") if (out / n).exists()]
+    from payload.trials.runner import TRIAL_FILES
+
+    held = [n for n in TRIAL_FILES if (out / n).exists()]
     if held:  # --force replaces a campaign, never a trial
         raise TrialsCliError(
             f"{out}: holds a trial ({', '.join(held)}); a campaign goes in a folder of its "
@@ -311,21 +314,14 @@ def _cmd_export_lerobot(args: argparse.Namespace) -> int:
     from payload.trials.lerobot import export_lerobot, resolve_runs
 
     runs = [Path(r) for r in args.runs]
-    made = None
-    if args.out:
-        out = Path(args.out)
-    else:
+    if not args.out:
         resolve_runs(runs)  # a run that is not there says so before a folder is numbered
-        out = made = default_out(command_project(args), "lerobot")
-    try:
+    out = Path(args.out) if args.out else default_out(command_project(args), "lerobot")
+    with kept_if_used(out, made=not args.out):
         info = export_lerobot(
             runs, out, task=args.task, overwrite=args.force,
             progress=not args.json and sys.stderr.isatty(),
         )  # fmt: skip
-    except BaseException:
-        if made is not None and made.is_dir() and not any(made.iterdir()):
-            made.rmdir()  # the numbered folder made for it, left empty: not kept
-        raise
     if args.json:
         emit_json(info)
     else:
