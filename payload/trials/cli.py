@@ -156,9 +156,9 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
     prov = provenance(project)
     out = Path(args.out) if args.out else default_out(project, "campaign")
     seeds = list(range(args.seed, args.seed + args.n))
-    from payload.trials.runner import TRIAL_FILES
-
-    held = [n for n in TRIAL_FILES if (out / n).exists()]
+    # a trial's own files (not runner.TRIAL_FILES: this module runs without the runner,
+    # which tests replace, and a campaign names it only through _run_trial_fn)
+    held = [n for n in ("log.mcap", "metrics.json") if (out / n).exists()]
     if held:  # --force replaces a campaign, never a trial
         raise TrialsCliError(
             f"{out}: holds a trial ({', '.join(held)}); a campaign goes in a folder of its "
