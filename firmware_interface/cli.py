@@ -26,6 +26,7 @@ from payload.cliutil import (
     need_device,
 )
 from payload.errors import PayloadError
+from payload.folders import RECORDING
 
 
 class HwUsageError(PayloadError):
@@ -130,7 +131,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     replay = _replay_of(args)
     if args.out and Path(args.out).exists() and not Path(args.out).is_dir():
         raise HwUsageError(f"--out {args.out}: not a folder")
-    if args.out and (Path(args.out) / "log.mcap").exists():
+    if args.out and (Path(args.out) / RECORDING).exists():
         raise HwUsageError(f"--out {args.out}: already holds a recording; choose another folder")
     if (getattr(args, "device", None) is None) == (not args.emulator):
         raise HwUsageError("give either --device DEV or --emulator")

@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from payload.design.params import load_design
+from payload.folders import HANDS, METRICS, RECORDING
 from payload.schema import PayloadCommand, PayloadDriver, PayloadState, VehicleTwist
 from payload.sim.driver import SimDriver, WorldState
 from payload.teleop.calibration import CalibrationProcedure, Captures
@@ -324,7 +325,7 @@ def run_hardware_trial(
     hardware.set_watchdog(False)  # armed again once the 50 Hz loop runs (see on_step)
     driver = HardwareInTheLoop(hardware, sim, emulator=emulator)
     layout = sim.world.layout
-    rec_path = out / "log.mcap"
+    rec_path = out / RECORDING
     far_end = {"device": hardware.device, "emulator": bool(hardware.emulated)}
     meta = {
         "seed": int(recorded.get("seed") or 0),
@@ -351,7 +352,7 @@ def run_hardware_trial(
     try:
         with (
             TrialRecorder(rec_path, overwrite=True, scene=scene) as recorder,
-            HandRecordingWriter(out / "hands.jsonl", meta={"seed": meta["seed"]}) as hands_out,
+            HandRecordingWriter(out / HANDS, meta={"seed": meta["seed"]}) as hands_out,
         ):
             recorder.write_meta(meta)
             steps = [0]
@@ -379,7 +380,7 @@ def run_hardware_trial(
     result = finish_trial(out, rec_path)
     result.update(steps=len(commands), driver="hardware", **far_end, provenance=prov,
                   watchdog=watchdog)  # fmt: skip
-    (out / "metrics.json").write_text(json.dumps(result, indent=2) + "\n")
+    (out / METRICS).write_text(json.dumps(result, indent=2) + "\n")
     return result
 
 

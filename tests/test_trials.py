@@ -1392,16 +1392,18 @@ def test_a_trial_and_a_campaign_never_share_a_folder(tmp_path: Path, capsys) -> 
     with one line, ``--force`` or not (it replaces its own kind only); nothing written."""
     from payload.cli import main
 
-    camp, trial = tmp_path / "campaign", tmp_path / "trial"
-    camp.mkdir()
-    trial.mkdir()
+    camp, trial, live = tmp_path / "campaign", tmp_path / "trial", tmp_path / "live"
+    for folder in (camp, trial, live):
+        folder.mkdir()
     (camp / "summary.json").write_text("{}")
     (trial / "log.mcap").write_bytes(b"recorded")
+    (live / "hands.jsonl").write_text("{}\n")  # a live session's hands, its recording lost
     runs = [
         (["trial", "--out", str(camp)], "holds a campaign (summary.json)"),
         (["trial", "--out", str(camp), "--force"], "holds a campaign (summary.json)"),
         (["trials", "run", "--n", "1", "--out", str(trial)], "holds a trial (log.mcap)"),
         (["trials", "run", "--n", "1", "--out", str(trial), "--force"], "holds a trial"),
+        (["trials", "run", "--n", "1", "--out", str(live), "--force"], "holds a trial (hands"),
     ]
     for argv, message in runs:
         assert main(argv) == 2
@@ -1410,6 +1412,20 @@ def test_a_trial_and_a_campaign_never_share_a_folder(tmp_path: Path, capsys) -> 
     assert sorted(p.name for p in camp.iterdir()) == ["summary.json"]
     assert sorted(p.name for p in trial.iterdir()) == ["log.mcap"]
     assert (trial / "log.mcap").read_bytes() == b"recorded"
+    assert sorted(p.name for p in live.iterdir()) == ["hands.jsonl"]
+
+
+def test_a_rescorings_files_are_tagged_before_their_suffix() -> None:
+    """``folders.tagged``: the contact definition's tag goes between a file's stem and
+    its suffix (the names ``trials summarize --max-gap-s`` writes, spelled out here); no
+    tag leaves the name as it is."""
+    from payload.folders import METRICS, SUMMARY_TEXT, tagged
+
+    tag = "contact-min0s-gap0.1s"
+    assert tagged(METRICS, tag) == "metrics.contact-min0s-gap0.1s.json"
+    assert tagged(SUMMARY_TEXT, tag) == "summary.contact-min0s-gap0.1s.md"
+    assert tagged("fig_route.png", tag) == "fig_route.contact-min0s-gap0.1s.png"
+    assert tagged(METRICS, None) == tagged(METRICS, "") == "metrics.json"
 
 
 def test_a_campaign_whose_worker_died_still_gets_its_summary(tmp_path: Path) -> None:

@@ -26,6 +26,7 @@ from meshcat.animation import Animation
 
 from payload.design import FINGERS, MANIPULATION_JOINTS, load_design
 from payload.envelope.drawing import FINGER_COLOURS, STRUCTURE_COLOUR
+from payload.folders import RECORDING
 from payload.review.design_view import (
     BODY_COLOUR,
     colour_text,
@@ -57,7 +58,6 @@ CONTACT_COLOUR, FREE_COLOUR = 0x00C000, 0x303030
 KEEP_IN_COLOUR = 0x7F00FF
 """Colour of the station's keep-in boxes."""
 
-RECORDING = "log.mcap"
 STATION_DIRECTION = (0.6, -1.0, 0.8)
 """The whole-station view looks from starboard-aft and above."""
 CHASE_DIRECTION = (0.8, -1.0, 0.55)

@@ -45,6 +45,8 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+from payload.folders import RECORDING
+
 STAGES: tuple[str, ...] = (
     "startup",
     "physics",
@@ -221,7 +223,7 @@ def _bench(
     timers._switch()
     wall, cpu = timers._mark[0] - w0, timers._mark[1] - c0
     sim_seconds = result["steps"] * CONTROL_DT
-    size = (out / "log.mcap").stat().st_size
+    size = (out / RECORDING).stat().st_size
     return {
         "seed": seed,
         "success": bool(result.get("success")),

@@ -39,13 +39,6 @@ from payload.trials.summary import (
 TrialFn = Callable[[int, Path], dict]
 """``trial_fn(seed, out_dir) -> metrics dict`` (what :func:`finish_trial` returns)."""
 
-TRIAL_FILES: tuple[str, ...] = (
-    "log.mcap",
-    "metrics.json",
-    "fig_ctb_body_frame.png",
-    "fig_route.png",
-)
-
 
 def trial_dir(out_dir: str | Path, seed: int) -> Path:
     """The folder of the trial with this seed inside a campaign folder."""

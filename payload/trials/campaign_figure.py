@@ -14,10 +14,8 @@ from typing import Any
 import numpy as np
 from matplotlib.figure import Figure
 
+from payload.folders import CAMPAIGN_FIGURE, tagged
 from payload.trials.figures import save_figure
-
-CAMPAIGN_FIGURE = "fig_campaign.png"
-"""The campaign figure's file name (``fig_campaign.<tag>.png`` for a rescoring)."""
 
 OURS, PAPER = 0.0, 1.0
 """x positions of this campaign's column and the paper's in every panel."""
@@ -80,8 +78,7 @@ def _median_range(ax: Any, x: float, stat: dict[str, Any] | None, color: str) ->
 
 def campaign_figure_path(out_dir: str | Path, tag: str | None = None) -> Path:
     """``out_dir/fig_campaign.png``, or ``fig_campaign.<tag>.png`` for a rescoring."""
-    name = CAMPAIGN_FIGURE if tag is None else CAMPAIGN_FIGURE.replace(".png", f".{tag}.png")
-    return Path(out_dir) / name
+    return Path(out_dir) / tagged(CAMPAIGN_FIGURE, tag)
 
 
 def write_campaign_figure(

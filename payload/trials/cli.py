@@ -21,6 +21,7 @@ from payload.cliutil import (
     kept_if_used,
 )
 from payload.errors import RunAborted
+from payload.folders import CAMPAIGN_FILES, RECORDING, SUMMARY, SUMMARY_TEXT, TRIAL_FILES
 from payload.trials.setup_options import (
     _SETUP,
     TrialsCliError,
@@ -156,9 +157,7 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
     prov = provenance(project)
     out = Path(args.out) if args.out else default_out(project, "campaign")
     seeds = list(range(args.seed, args.seed + args.n))
-    # a trial's own files (not runner.TRIAL_FILES: this module runs without the runner,
-    # which tests replace, and a campaign names it only through _run_trial_fn)
-    held = [n for n in ("log.mcap", "metrics.json") if (out / n).exists()]
+    held = [n for n in TRIAL_FILES if (out / n).exists()]
     if held:  # --force replaces a campaign, never a trial
         raise TrialsCliError(
             f"{out}: holds a trial ({', '.join(held)}); a campaign goes in a folder of its "
@@ -166,7 +165,7 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
         )
     if not args.force:
         taken = [trial_dir(out, s) for s in seeds if any(trial_dir(out, s).glob("*"))]
-        taken += [out / n for n in ("summary.json", "summary.md") if (out / n).exists()]
+        taken += [out / n for n in CAMPAIGN_FILES if (out / n).exists()]
         if taken:
             raise TrialsCliError(
                 f"{out}: already holds a campaign ({', '.join(p.name for p in taken[:4])}"
@@ -214,8 +213,8 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
         )
     else:
         print(summary_terminal(summary, title))
-        print(f"wrote {out / 'summary.md'} (definitions, the paper-literal column, every "
-              f"trial) and {out / 'summary.json'}")  # fmt: skip
+        print(f"wrote {out / SUMMARY_TEXT} (definitions, the paper-literal column, every "
+              f"trial) and {out / SUMMARY}")  # fmt: skip
     errors = [r for r in results if r.get("error")]
     if errors:
         first = errors[0]
@@ -255,7 +254,7 @@ def _cmd_trials_summarize(args: argparse.Namespace) -> int:
         max_gap_s=args.max_gap_s,
         force=args.force,
     )
-    previous = _previous_summary(Path(args.dir) / "summary.json")
+    previous = _previous_summary(Path(args.dir) / SUMMARY)
     wall = {t.get("seed"): t.get("wall_s") for t in previous.get("trials", [])}
     budget = previous.get("retarget_budget")
     modelled = previous.get("retarget_collisions")
@@ -347,7 +346,7 @@ def _cmd_bench_recorder(args: argparse.Namespace) -> int:
     rng = np.random.default_rng(0)
     steps = [random_step(rng, k * CONTROL_DT) for k in range(n)]
     with tempfile.TemporaryDirectory() as tmp:
-        path = Path(tmp) / "log.mcap"
+        path = Path(tmp) / RECORDING
         per_step = np.empty(n)
         with TrialRecorder(path) as rec:
             for k, step in enumerate(steps):

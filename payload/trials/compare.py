@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from payload.errors import PayloadError
+from payload.folders import METRICS, RECORDING
 from payload.trials.records import FIELD_SPECS, HANDS_TOPIC, STEP_TOPIC, RecordingError
 from payload.trials.summary import METRIC_KEYS, METRIC_LABELS
 
@@ -36,7 +37,7 @@ def _trials(run: Path) -> dict[str, Path]:
     """Trial folders of a run by name (a campaign's ``trial-*``, or the folder itself)."""
     if not run.is_dir():
         raise CompareError(f"{run}: no such trial or campaign folder")
-    if (run / "metrics.json").is_file() or (run / "log.mcap").is_file():
+    if (run / METRICS).is_file() or (run / RECORDING).is_file():
         return {run.name: run}
     found = {p.name: p for p in sorted(run.glob("trial-*")) if p.is_dir()}
     if not found:
@@ -45,7 +46,7 @@ def _trials(run: Path) -> dict[str, Path]:
 
 
 def _metrics(trial: Path) -> dict[str, Any]:
-    path = trial / "metrics.json"
+    path = trial / METRICS
     try:
         return json.loads(path.read_text())
     except (OSError, ValueError) as exc:
@@ -256,7 +257,7 @@ def compare_runs(run_a: str | Path, run_b: str | Path, *, steps: bool = False) -
         if ma.get("success") != mb.get("success"):
             identical = False
         if steps:
-            log_a, log_b = ta[name_a] / "log.mcap", tb[name_b] / "log.mcap"
+            log_a, log_b = ta[name_a] / RECORDING, tb[name_b] / RECORDING
             row["steps"] = compare_steps(log_a, log_b)
             row["channels"] = compare_channels(log_a, log_b)
             row["other_metrics"] = sorted(

@@ -18,6 +18,7 @@ import os
 from pathlib import Path
 from typing import Any
 
+from payload.folders import HANDS, RECORDING
 from payload.trials.recorder import (
     SCHEMA_VERSION,
     STEP_TOPIC,
@@ -55,7 +56,7 @@ def convert_file(path: Path, *, force: bool = False) -> str:
         raise RecordingError(f"{backup}: exists; pass --force to convert {path} again")
     rec = read_recording(path)
     frames = None
-    hands_path = path.with_name("hands.jsonl")
+    hands_path = path.with_name(HANDS)
     if hands_path.is_file():
         try:
             frames = read_hand_recording(hands_path)[1]
@@ -99,7 +100,7 @@ def convert_dir(root: Path, *, force: bool = False) -> dict[str, Any]:
     root = Path(root)
     if not root.exists():
         raise RecordingError(f"{root}: no such file or folder")
-    paths = [root] if root.is_file() else sorted(root.rglob("log.mcap"))
+    paths = [root] if root.is_file() else sorted(root.rglob(RECORDING))
     if not paths:
         raise RecordingError(f"{root}: no log.mcap below it")
     out: dict[str, Any] = {"converted": [], "skipped": [], "messages": []}

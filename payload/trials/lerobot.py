@@ -37,6 +37,7 @@ from typing import Any
 import numpy as np
 
 from payload.errors import PayloadError
+from payload.folders import RECORDING
 from payload.trials.recorder import Recording, read_recording
 
 CODEBASE_VERSION = "v3.0"
@@ -118,10 +119,10 @@ def resolve_runs(runs: Sequence[str | Path]) -> list[Path]:
         p = Path(run)
         if p.is_file():
             out.append(p)
-        elif (p / "log.mcap").is_file():
-            out.append(p / "log.mcap")
+        elif (p / RECORDING).is_file():
+            out.append(p / RECORDING)
         elif p.is_dir():
-            found = sorted(p.glob("trial-*/log.mcap"))
+            found = sorted(p.glob(f"trial-*/{RECORDING}"))
             if not found:
                 raise LeRobotExportError(f"{p}: no log.mcap and no trial-*/log.mcap inside")
             out.extend(found)

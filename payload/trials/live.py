@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from payload.design.params import load_design
+from payload.folders import HANDS, METRICS, RECORDING
 from payload.rotations import quat_to_matrix, yaw_of_matrix
 from payload.schema import CONTROL_DT
 from payload.teleop.calibration import (
@@ -186,7 +187,7 @@ class LiveSession:
             return
         out = self.record
         out.mkdir(parents=True, exist_ok=True)
-        self._recorder = TrialRecorder(out / "log.mcap", scene=self._scene)
+        self._recorder = TrialRecorder(out / RECORDING, scene=self._scene)
         budget = self.retargeters["L"].config.budget
         setup: dict[str, Any] = {
             "retarget_budget": budget,
@@ -197,7 +198,7 @@ class LiveSession:
         if self.controller is not None:
             setup["controller"], setup["controller_overrides"] = self.controller
         self._hands = HandRecordingWriter(
-            out / "hands.jsonl", frame="webxr", meta={"operator": "live", **setup}
+            out / HANDS, frame="webxr", meta={"operator": "live", **setup}
         )
         from payload.native import environment
         from payload.project import ProjectError, current_project, provenance
@@ -375,9 +376,9 @@ class LiveSession:
             from payload.trials.campaign import finish_trial
 
             out = self.record
-            result = finish_trial(out, out / "log.mcap")
+            result = finish_trial(out, out / RECORDING)
             result["steps"] = self.steps
             result["provenance"] = self._provenance  # as a trial's metrics.json has it
-            (out / "metrics.json").write_text(json.dumps(result, indent=2) + "\n")
+            (out / METRICS).write_text(json.dumps(result, indent=2) + "\n")
         self.driver.close()
         return result

@@ -22,6 +22,7 @@ import numpy as np
 
 from payload.design.params import load_design
 from payload.errors import PayloadError, RunAborted
+from payload.folders import METRICS, RECORDING, SUMMARY, TRIAL_FILES
 from payload.native import environment
 from payload.project import Project, current_project, provenance
 from payload.retarget.calibration import PairRange
@@ -84,16 +85,6 @@ def module_rects(layout: Any) -> list[dict[str, float | str]]:
             }
         )
     return out
-
-
-TRIAL_FILES: tuple[str, ...] = (
-    "log.mcap",
-    "hands.jsonl",
-    "metrics.json",
-    "fig_ctb_body_frame.png",
-    "fig_route.png",
-)
-"""What a trial writes into its folder."""
 
 
 class TrialAborted(RunAborted):
@@ -235,9 +226,9 @@ def run_trial(
     out = Path(out_dir) if out_dir is not None else new_folder(project.runs_dir, stem)
     if replay is not None and out.resolve() == Path(replay).resolve().parent:
         raise TrialError(f"{out}: a replay never writes into the folder it reads from")
-    if (out / "summary.json").exists():  # --force replaces a trial, never a campaign
+    if (out / SUMMARY).exists():  # --force replaces a trial, never a campaign
         raise TrialError(
-            f"{out}: holds a campaign (summary.json); a trial goes in a folder of its own "
+            f"{out}: holds a campaign ({SUMMARY}); a trial goes in a folder of its own "
             "(choose another --out)"
         )
     existing = [out / name for name in TRIAL_FILES]
@@ -481,7 +472,7 @@ def _run_trial(
         return TeleopPipeline(cal, setup.retargeters, setup.config, initial=q0)
 
     prov = {**provenance(project, driver.world.config.design), "environment": environment()}
-    rec_path = out / "log.mcap"
+    rec_path = out / RECORDING
     meta = _trial_meta(seed, source_spec, traits, prov, driver.world.layout, setup)
     stats, recording = _record_session(
         driver,
@@ -499,7 +490,7 @@ def _run_trial(
     result = finish_trial(out, rec_path, recording=recording)
     result["steps"] = stats.steps
     result["provenance"] = prov
-    replace_file(out / "metrics.json", json.dumps(result, indent=2) + "\n")
+    replace_file(out / METRICS, json.dumps(result, indent=2) + "\n")
     return result
 
 

@@ -12,6 +12,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from payload.folders import CTB_FIGURE, METRICS, ROUTE_FIGURE, tagged
 from payload.safeio import write_unless_changed
 
 if TYPE_CHECKING:
@@ -89,12 +90,11 @@ def finish_trial(
     result["recording"] = (
         rec_path.name if rec_path.resolve().parent == out.resolve() else str(rec_path)
     )
-    tag = f".{contact_tag(min_interval_s, max_gap_s)}" if beside else ""
-    names = {k: f"{k}{tag}.{ext}" for k, ext in _OUTPUTS.items()}
+    tag = contact_tag(min_interval_s, max_gap_s) if beside else None
     changed = write_unless_changed(
-        out / names["metrics"], json.dumps(result, indent=2) + "\n", force=force
+        out / tagged(METRICS, tag), json.dumps(result, indent=2) + "\n", force=force
     )
-    figures = [out / names["fig_ctb_body_frame"], out / names["fig_route"]]
+    figures = [out / tagged(CTB_FIGURE, tag), out / tagged(ROUTE_FIGURE, tag)]
     if changed or not all(f.exists() for f in figures):
         plot_ctb_body_frame(rec, figures[0], metrics)
         plot_route(rec, figures[1], modules if modules is not None else rec.meta.get("modules"))
@@ -125,9 +125,6 @@ def _trial_setup(meta: dict[str, Any]) -> dict[str, Any]:
         "filter_active_s",
     )
     return {k: meta[k] for k in keys if k in meta}
-
-
-_OUTPUTS = {"metrics": "json", "fig_ctb_body_frame": "png", "fig_route": "png"}
 
 
 def contact_tag(min_interval_s: float, max_gap_s: float) -> str:

@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 
 from payload.errors import PayloadError
+from payload.folders import METRICS, RECORDING, SUMMARY, SUMMARY_TEXT, tagged
 from payload.safeio import OverwriteError, write_unless_changed
 from payload.trials.scoring import finish_trial
 
@@ -452,15 +453,15 @@ def write_summary(
         summary["provenance"] = provenance
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    stem = f"summary.{tag}" if tag else "summary"
     data = json.dumps(summary, indent=2, allow_nan=False) + "\n"
     text = summary_markdown(summary, title)
-    files = {out / f"{stem}.json": data, out / f"{stem}.md": text}
+    json_path, text_path = out / tagged(SUMMARY, tag), out / tagged(SUMMARY_TEXT, tag)
+    files = {json_path: data, text_path: text}
     for path, content in files.items():  # check both before writing either
         if not force and path.exists() and path.read_bytes() != content.encode():
             raise OverwriteError(f"{path}: exists with different content (pass --force to replace)")
-    changed = write_unless_changed(out / f"{stem}.json", data, force=force)
-    write_unless_changed(out / f"{stem}.md", text, force=force)
+    changed = write_unless_changed(json_path, data, force=force)
+    write_unless_changed(text_path, text, force=force)
     # the campaign figure follows the summary: drawn when the summary changed or it is missing
     # matplotlib only when a summary is written: a trial's worker never loads it
     from payload.trials.campaign_figure import campaign_figure_path, write_campaign_figure
@@ -508,17 +509,17 @@ def load_trial_results(
             seed: int | None = int(d.name.split("-", 1)[1])
         except ValueError:
             seed = None
-        metrics_path = d / "metrics.json"
+        metrics_path = d / METRICS
         if recompute or not metrics_path.exists():
-            if not (d / "log.mcap").exists():
+            if not (d / RECORDING).exists():
                 results.append(
-                    {"seed": seed, "out_dir": str(d), "error": "no log.mcap and no metrics.json"}
+                    {"seed": seed, "out_dir": str(d), "error": f"no {RECORDING} and no {METRICS}"}
                 )
                 continue
             try:
                 row = finish_trial(
                     d,
-                    d / "log.mcap",
+                    d / RECORDING,
                     min_interval_s=min_interval_s,
                     max_gap_s=max_gap_s,
                     beside=recompute,

@@ -1,0 +1,70 @@
+"""What the workbench's result folders hold, each file named once.
+
+A trial's folder (``payload trial``, a campaign's ``trial-NNNN``, a live session's, a
+hardware run's) holds the recording, the metrics and the two figures scored from it, and
+for a live session the raw hand frames; a campaign's folder holds its summary (JSON and
+Markdown) and the campaign figure beside its trials. A rescoring with another contact
+definition writes its files beside the originals under tagged names (:func:`tagged`).
+"""
+
+from __future__ import annotations
+
+from pathlib import PurePath
+
+RECORDING = "log.mcap"
+"""A trial's recording (MCAP: steps, hand frames, metadata, the Foxglove scene)."""
+
+HANDS = "hands.jsonl"
+"""The raw hand frames as the headset sent them (a live session; older trials)."""
+
+METRICS = "metrics.json"
+"""A trial's metrics, scored from its recording."""
+
+CTB_FIGURE = "fig_ctb_body_frame.png"
+"""A trial's figure of the CTB in Astrobee's body frame (the paper's Fig. 3)."""
+
+ROUTE_FIGURE = "fig_route.png"
+"""A trial's figure of its route through the station."""
+
+SCORED: tuple[str, ...] = (METRICS, CTB_FIGURE, ROUTE_FIGURE)
+"""What scoring a recording writes."""
+
+TRIAL_FILES: tuple[str, ...] = (RECORDING, HANDS, *SCORED)
+"""What a trial can write into its folder."""
+
+SUMMARY = "summary.json"
+"""A campaign's summary (what other tools read)."""
+
+SUMMARY_TEXT = "summary.md"
+"""A campaign's summary as a report: the definitions, the paper's column, every trial."""
+
+CAMPAIGN_FIGURE = "fig_campaign.png"
+"""A campaign's figure: each metric's spread over the trials beside the paper's."""
+
+CAMPAIGN_FILES: tuple[str, ...] = (SUMMARY, SUMMARY_TEXT)
+"""What marks a folder as a campaign's."""
+
+
+def tagged(name: str, tag: str | None) -> str:
+    """``name`` with ``tag`` before its suffix (``metrics.json`` and ``contact-min1s-gap0.2s``:
+    ``metrics.contact-min1s-gap0.2s.json``), or ``name`` itself without a tag."""
+    if not tag:
+        return name
+    path = PurePath(name)
+    return f"{path.stem}.{tag}{path.suffix}"
+
+
+__all__ = [
+    "CAMPAIGN_FIGURE",
+    "CAMPAIGN_FILES",
+    "CTB_FIGURE",
+    "HANDS",
+    "METRICS",
+    "RECORDING",
+    "ROUTE_FIGURE",
+    "SCORED",
+    "SUMMARY",
+    "SUMMARY_TEXT",
+    "TRIAL_FILES",
+    "tagged",
+]
