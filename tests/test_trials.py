@@ -1444,6 +1444,36 @@ def test_a_campaign_whose_worker_died_still_gets_its_summary(tmp_path: Path) -> 
     assert [t["error"] for t in written["trials"]] == [None, lost["error"]]
 
 
+def _dying_trial(seed: int, out_dir: Path) -> dict[str, Any]:
+    """A trial whose worker process dies under it (seed 1): nothing the trial's own
+    ``except`` can catch."""
+    if seed == 1:
+        os._exit(3)
+    return {"success": True, "duration_s": 10.0 + seed, "rms_mm": None}
+
+
+def test_a_campaign_whose_worker_process_dies_keeps_the_other_trials(tmp_path: Path) -> None:
+    """A Dask worker process that dies during a trial (the scheduler allowed no retry
+    here): that trial is a row with Dask's error and no wall time, the trials around it
+    stand with theirs, and the campaign's summary is written (JSON has no NaN)."""
+    import dask
+
+    from payload.trials.campaign import run_campaign
+    from payload.trials.summary import write_summary
+
+    with dask.config.set({"distributed.scheduler.allowed-failures": 0}):
+        results = run_campaign(_dying_trial, [0, 1, 2], tmp_path, workers=2, progress=False)
+    assert [r["seed"] for r in results] == [0, 1, 2]
+    lost = results[1]
+    assert lost["wall_s"] is None and lost["error"].startswith("KilledWorker"), lost
+    for kept in (results[0], results[2]):
+        assert kept["error"] is None and kept["wall_s"] > 0 and kept["success"] is True
+    write_summary(results, tmp_path)
+    written = json.loads((tmp_path / "summary.json").read_text())
+    assert (written["n"], written["success"], written["errors"]) == (3, 2, 1)
+    assert [t["wall_s"] for t in written["trials"]][1] is None
+
+
 def test_summarizing_trials_with_no_campaign_summary_keeps_their_provenance(
     tmp_path: Path, capsys
 ) -> None:
