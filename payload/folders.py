@@ -15,7 +15,7 @@ RECORDING = "log.mcap"
 """A trial's recording (MCAP: steps, hand frames, metadata, the Foxglove scene)."""
 
 HANDS = "hands.jsonl"
-"""The raw hand frames as the headset sent them (a live session; older trials)."""
+"""The raw hand frames as they came (a live session's, a hardware run's; older trials')."""
 
 METRICS = "metrics.json"
 """A trial's metrics, scored from its recording."""
