@@ -26,7 +26,7 @@ from payload.cliutil import (
     need_device,
 )
 from payload.errors import PayloadError
-from payload.folders import RECORDING
+from payload.folders import CAMPAIGN_FILES, HANDS, RECORDING, TRIAL_FILES
 
 
 class HwUsageError(PayloadError):
@@ -131,8 +131,14 @@ def _cmd_run(args: argparse.Namespace) -> int:
     replay = _replay_of(args)
     if args.out and Path(args.out).exists() and not Path(args.out).is_dir():
         raise HwUsageError(f"--out {args.out}: not a folder")
-    if args.out and (Path(args.out) / RECORDING).exists():
-        raise HwUsageError(f"--out {args.out}: already holds a recording; choose another folder")
+    held = [
+        n for n in (*TRIAL_FILES, *CAMPAIGN_FILES) if args.out and (Path(args.out) / n).exists()
+    ]
+    if held:
+        raise HwUsageError(
+            f"--out {args.out}: already holds {', '.join(held)}; choose another folder "
+            "(results are never overwritten)"
+        )
     if (getattr(args, "device", None) is None) == (not args.emulator):
         raise HwUsageError("give either --device DEV or --emulator")
     existed = args.out is not None and Path(args.out).exists()
@@ -207,7 +213,7 @@ def _replay_of(args: argparse.Namespace) -> Path:
     elif args.replay is not None:
         given, name = args.replay, "--replay"
     else:
-        raise HwUsageError("--replay FILE is required (a trial's log.mcap or a hands.jsonl)")
+        raise HwUsageError(f"--replay FILE is required (a trial's {RECORDING} or a {HANDS})")
     replay = Path(given)
     if not replay.is_file():
         raise HwUsageError(f"{name}: {replay} is not a file")

@@ -46,8 +46,9 @@ CAMPAIGN_FILES: tuple[str, ...] = (SUMMARY, SUMMARY_TEXT)
 
 
 def tagged(name: str, tag: str | None) -> str:
-    """``name`` with ``tag`` before its suffix (``metrics.json`` and ``contact-min1s-gap0.2s``:
-    ``metrics.contact-min1s-gap0.2s.json``), or ``name`` itself without a tag."""
+    """The bare file name ``name`` with ``tag`` before its suffix (``metrics.json`` and
+    ``contact-min1s-gap0.2s``: ``metrics.contact-min1s-gap0.2s.json``), or ``name`` itself
+    without a tag."""
     if not tag:
         return name
     path = PurePath(name)

@@ -132,8 +132,9 @@ def test_hw_run_records_the_trial_like_the_simulator(session, tmp_path):
 def test_hw_run_refuses_a_file_for_out_and_keeps_no_folder_it_made_for_nothing(
     session, tmp_path, capsys
 ):
-    """``--out`` a regular file is one line and exit 2; a bus where nobody answers ends in
-    one line too, and the folder made for the run is not left behind, empty."""
+    """``--out`` a regular file, or a folder holding a trial's or a campaign's files, is one
+    line and exit 2 (nothing touched); a bus where nobody answers ends in one line too, and
+    the folder made for the run is not left behind, empty."""
     import os
 
     from payload.cli import main
@@ -144,6 +145,14 @@ def test_hw_run_refuses_a_file_for_out_and_keeps_no_folder_it_made_for_nothing(
     assert main([*argv, "--device", "/dev/null", "--out", str(afile)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "not a folder" in err[0] and afile.read_text() == "mine"
+    for name in ("hands.jsonl", "metrics.json", "summary.json"):  # a trial's or a campaign's
+        held = tmp_path / f"held-{name}"
+        held.mkdir()
+        (held / name).write_text("mine")
+        assert main([*argv, "--device", "/dev/null", "--out", str(held)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and f"already holds {name}" in err[0], err
+        assert [p.name for p in held.iterdir()] == [name] and (held / name).read_text() == "mine"
     master, slave = os.openpty()  # a serial line nobody answers on
     try:
         fresh = tmp_path / "fresh"

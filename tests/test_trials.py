@@ -1393,8 +1393,10 @@ def test_a_trial_and_a_campaign_never_share_a_folder(tmp_path: Path, capsys) -> 
     from payload.cli import main
 
     camp, trial, live = tmp_path / "campaign", tmp_path / "trial", tmp_path / "live"
-    for folder in (camp, trial, live):
+    report = tmp_path / "report"  # a campaign's Markdown summary alone
+    for folder in (camp, trial, live, report):
         folder.mkdir()
+    (report / "summary.md").write_text("# a campaign")
     (camp / "summary.json").write_text("{}")
     (trial / "log.mcap").write_bytes(b"recorded")
     (live / "hands.jsonl").write_text("{}\n")  # a live session's hands, its recording lost
@@ -1404,6 +1406,7 @@ def test_a_trial_and_a_campaign_never_share_a_folder(tmp_path: Path, capsys) -> 
         (["trials", "run", "--n", "1", "--out", str(trial)], "holds a trial (log.mcap)"),
         (["trials", "run", "--n", "1", "--out", str(trial), "--force"], "holds a trial"),
         (["trials", "run", "--n", "1", "--out", str(live), "--force"], "holds a trial (hands"),
+        (["trial", "--out", str(report), "--force"], "holds a campaign (summary.md)"),
     ]
     for argv, message in runs:
         assert main(argv) == 2
@@ -1413,6 +1416,7 @@ def test_a_trial_and_a_campaign_never_share_a_folder(tmp_path: Path, capsys) -> 
     assert sorted(p.name for p in trial.iterdir()) == ["log.mcap"]
     assert (trial / "log.mcap").read_bytes() == b"recorded"
     assert sorted(p.name for p in live.iterdir()) == ["hands.jsonl"]
+    assert sorted(p.name for p in report.iterdir()) == ["summary.md"]
 
 
 def test_a_rescorings_files_are_tagged_before_their_suffix() -> None:
@@ -1452,25 +1456,27 @@ def _dying_trial(seed: int, out_dir: Path) -> dict[str, Any]:
     return {"success": True, "duration_s": 10.0 + seed, "rms_mm": None}
 
 
-def test_a_campaign_whose_worker_process_dies_keeps_the_other_trials(tmp_path: Path) -> None:
+def test_a_campaign_whose_worker_process_dies_keeps_the_other_trial(tmp_path: Path) -> None:
     """A Dask worker process that dies during a trial (the scheduler allowed no retry
-    here): that trial is a row with Dask's error and no wall time, the trials around it
-    stand with theirs, and the campaign's summary is written (JSON has no NaN)."""
+    here): that trial is a row with Dask's error and no wall time, the trial on the other
+    worker stands with its own, and the campaign's summary is written (JSON has no NaN).
+    Two trials on two workers: each worker gets one, so the dead worker held no other."""
     import dask
+    import distributed  # noqa: F401  (its defaults loaded first: leaving the set keeps them)
 
     from payload.trials.campaign import run_campaign
     from payload.trials.summary import write_summary
 
     with dask.config.set({"distributed.scheduler.allowed-failures": 0}):
-        results = run_campaign(_dying_trial, [0, 1, 2], tmp_path, workers=2, progress=False)
-    assert [r["seed"] for r in results] == [0, 1, 2]
-    lost = results[1]
-    assert lost["wall_s"] is None and lost["error"].startswith("KilledWorker"), lost
-    for kept in (results[0], results[2]):
-        assert kept["error"] is None and kept["wall_s"] > 0 and kept["success"] is True
+        results = run_campaign(_dying_trial, [0, 1], tmp_path, workers=2, progress=False)
+    assert dask.config.get("distributed.comm.timeouts.connect") is not None
+    kept, lost = results
+    assert lost["seed"] == 1 and lost["wall_s"] is None, lost
+    assert lost["error"].startswith("KilledWorker"), lost
+    assert kept["error"] is None and kept["wall_s"] > 0 and kept["success"] is True
     write_summary(results, tmp_path)
     written = json.loads((tmp_path / "summary.json").read_text())
-    assert (written["n"], written["success"], written["errors"]) == (3, 2, 1)
+    assert (written["n"], written["success"], written["errors"]) == (2, 1, 1)
     assert [t["wall_s"] for t in written["trials"]][1] is None
 
 

@@ -221,7 +221,7 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
         raise CheckFailed(
             f"{len(errors)} of {len(results)} trial(s) raised an error (seeds "
             f"{', '.join(str(r['seed']) for r in errors)}; first: {first['error']}; "
-            "tracebacks in summary.json)"
+            f"tracebacks in {SUMMARY})"
         )
     return 0
 

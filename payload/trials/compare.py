@@ -41,7 +41,7 @@ def _trials(run: Path) -> dict[str, Path]:
         return {run.name: run}
     found = {p.name: p for p in sorted(run.glob("trial-*")) if p.is_dir()}
     if not found:
-        raise CompareError(f"{run}: no metrics.json and no trial-* folders")
+        raise CompareError(f"{run}: no {METRICS} and no trial-* folders")
     return found
 
 

@@ -18,7 +18,7 @@ import os
 from pathlib import Path
 from typing import Any
 
-from payload.folders import HANDS, RECORDING
+from payload.folders import HANDS, RECORDING, tagged
 from payload.trials.recorder import (
     SCHEMA_VERSION,
     STEP_TOPIC,
@@ -30,7 +30,7 @@ from payload.trials.recorder import (
 
 log = logging.getLogger(__name__)
 
-BACKUP_NAME = "log.v1.mcap"
+BACKUP_NAME = tagged(RECORDING, "v1")
 
 
 def convert_file(path: Path, *, force: bool = False) -> str:
@@ -102,7 +102,7 @@ def convert_dir(root: Path, *, force: bool = False) -> dict[str, Any]:
         raise RecordingError(f"{root}: no such file or folder")
     paths = [root] if root.is_file() else sorted(root.rglob(RECORDING))
     if not paths:
-        raise RecordingError(f"{root}: no log.mcap below it")
+        raise RecordingError(f"{root}: no {RECORDING} below it")
     out: dict[str, Any] = {"converted": [], "skipped": [], "messages": []}
     for p in paths:
         msg = convert_file(p, force=force)

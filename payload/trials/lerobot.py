@@ -124,7 +124,7 @@ def resolve_runs(runs: Sequence[str | Path]) -> list[Path]:
         elif p.is_dir():
             found = sorted(p.glob(f"trial-*/{RECORDING}"))
             if not found:
-                raise LeRobotExportError(f"{p}: no log.mcap and no trial-*/log.mcap inside")
+                raise LeRobotExportError(f"{p}: no {RECORDING} and no trial-*/{RECORDING} inside")
             out.extend(found)
         else:
             raise LeRobotExportError(f"{p}: no such recording or folder")

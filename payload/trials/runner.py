@@ -22,7 +22,7 @@ import numpy as np
 
 from payload.design.params import load_design
 from payload.errors import PayloadError, RunAborted
-from payload.folders import METRICS, RECORDING, SUMMARY, TRIAL_FILES
+from payload.folders import CAMPAIGN_FILES, METRICS, RECORDING, TRIAL_FILES
 from payload.native import environment
 from payload.project import Project, current_project, provenance
 from payload.retarget.calibration import PairRange
@@ -226,9 +226,10 @@ def run_trial(
     out = Path(out_dir) if out_dir is not None else new_folder(project.runs_dir, stem)
     if replay is not None and out.resolve() == Path(replay).resolve().parent:
         raise TrialError(f"{out}: a replay never writes into the folder it reads from")
-    if (out / SUMMARY).exists():  # --force replaces a trial, never a campaign
+    campaign = [n for n in CAMPAIGN_FILES if (out / n).exists()]
+    if campaign:  # --force replaces a trial, never a campaign
         raise TrialError(
-            f"{out}: holds a campaign ({SUMMARY}); a trial goes in a folder of its own "
+            f"{out}: holds a campaign ({', '.join(campaign)}); a trial goes in a folder of its own "
             "(choose another --out)"
         )
     existing = [out / name for name in TRIAL_FILES]
