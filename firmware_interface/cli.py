@@ -24,6 +24,7 @@ from payload.cliutil import (
     emit_json,
     kept_if_used,
     need_device,
+    out_folder,
 )
 from payload.errors import PayloadError
 from payload.folders import CAMPAIGN_FILES, HANDS, RECORDING, TRIAL_FILES
@@ -129,16 +130,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
     models_follow_design(project.design_path, project.root, json=args.json)
     replay = _replay_of(args)
-    if args.out and Path(args.out).exists() and not Path(args.out).is_dir():
-        raise HwUsageError(f"--out {args.out}: not a folder")
-    held = [
-        n for n in (*TRIAL_FILES, *CAMPAIGN_FILES) if args.out and (Path(args.out) / n).exists()
-    ]
-    if held:
-        raise HwUsageError(
-            f"--out {args.out}: already holds {', '.join(held)}; choose another folder "
-            "(results are never overwritten)"
-        )
+    # a run never writes among other results, nor into a file
+    out_folder(args.out, holding=(*TRIAL_FILES, *CAMPAIGN_FILES))
     if (getattr(args, "device", None) is None) == (not args.emulator):
         raise HwUsageError("give either --device DEV or --emulator")
     existed = args.out is not None and Path(args.out).exists()

@@ -185,6 +185,27 @@ def kept_if_used(folder: Path, made: bool) -> Iterator[Path]:
         raise
 
 
+def out_folder(
+    value: str | Path | None, option: str = "--out", *, holding: tuple[str, ...] = ()
+) -> Path | None:
+    """A results folder option (``--out``) as given: None when left out. One line (a
+    :class:`UsageError`, exit 2) when it names something that is not a folder, or a folder
+    already holding any of the files ``holding`` (another command's results, which this
+    command must not write among)."""
+    if value is None or value == "":
+        return None
+    path = Path(value)
+    if path.exists() and not path.is_dir():
+        raise UsageError(f"{option} {value}: not a folder")
+    held = [name for name in holding if (path / name).exists()]
+    if held:
+        raise UsageError(
+            f"{option} {value}: already holds {', '.join(held)}; choose another folder "
+            "(results are never overwritten)"
+        )
+    return path
+
+
 def default_out(project: Project, prefix: str) -> Path:
     """A new numbered folder ``runs/<prefix>-NNNN`` of ``project`` (created), for an
     ``--out`` left out."""
@@ -207,5 +228,6 @@ __all__ = [
     "forget_project",
     "kept_if_used",
     "need_device",
+    "out_folder",
     "warn",
 ]

@@ -12,7 +12,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from payload.cliutil import CheckFailed, command_project, emit_json
+from payload.cliutil import CheckFailed, command_project, emit_json, out_folder
 
 if TYPE_CHECKING:
     from payload.design.params import Design
@@ -41,7 +41,7 @@ def _design_path(args: argparse.Namespace) -> Path:
 
 def _out_dir(args: argparse.Namespace) -> Path:
     """``--out``, else the project's ``analyses/``."""
-    return Path(args.out) if args.out else _project(args).analyses_dir
+    return out_folder(args.out) or _project(args).analyses_dir
 
 
 def _recorder(args: argparse.Namespace) -> Callable[[dict[str, Any]], dict[str, Any]]:
@@ -137,6 +137,7 @@ def run_envelope(args: argparse.Namespace) -> tuple[EnvelopeAnalysis, dict[str, 
             "--write-stowed writes the stowed-posture search's proposal: drop --no-search"
         )
     t0 = time.perf_counter()
+    _out_dir(args)  # an --out that cannot take the report says so before the analysis
     _models_follow(args)
     _, vehicle, geom = _load(args)
     search = True if args.write_stowed and args.search is None else args.search
@@ -259,6 +260,7 @@ def run_reach(args: argparse.Namespace) -> tuple[ReachAnalysis, dict[str, Path]]
     t0 = time.perf_counter()
     _project(args)
     _check_reach_args(args)
+    _out_dir(args)  # an --out that cannot take the report says so before the sampling
     _models_follow(args)
     _, vehicle, geom = _load(args)
     with _progress(not args.json and sys.stderr.isatty()) as progress:

@@ -90,6 +90,21 @@ def _cmd_watch(args: argparse.Namespace) -> int:
     return run(live, args.port, opener)
 
 
+def _check_static(out: Path) -> None:
+    """``--static FILE``: a new file, or an earlier page (HTML) to replace; never a folder,
+    nor any other file (a recording, a summary)."""
+    if out.is_dir():
+        raise ReviewError(f"--static {out}: is a folder, expected a file name")
+    if out.exists():
+        with out.open("rb") as fh:
+            head = fh.read(256).lstrip().lower()
+        if not head.startswith(b"<!doctype html"):
+            raise ReviewError(
+                f"--static {out}: exists and is not an HTML page; a review replaces only an "
+                "earlier page (choose another file name)"
+            )
+
+
 def _cmd_review(args: argparse.Namespace) -> int:
     from payload.review.page import static_html
     from payload.review.serve import check_server, open_viewer
@@ -102,8 +117,8 @@ def _cmd_review(args: argparse.Namespace) -> int:
         raise ReviewError(f"--rate must be > 0 Hz (got {args.rate})")
     if not 0 <= args.port <= 65535:
         raise ReviewError(f"--port must be 0..65535 (got {args.port})")
-    if args.static is not None and Path(args.static).is_dir():
-        raise ReviewError(f"--static {args.static}: is a folder, expected a file name")
+    if args.static is not None:
+        _check_static(Path(args.static))
 
     project = command_project(args, args.design)  # named first; library defaults use it
     if args.watch:

@@ -10,7 +10,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-from payload.cliutil import CheckFailed, command_project, default_out, emit_json
+from payload.cliutil import CheckFailed, command_project, default_out, emit_json, out_folder
+from payload.folders import CAMPAIGN_FILES, TRIAL_FILES
 from payload.sweep.grid import SweepError, parse_set
 from payload.sweep.run import DEFAULT_SAMPLES
 
@@ -46,6 +47,8 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
         raise SweepError(f"--seed must not be negative (got {args.seed})")
     if args.workers is not None and args.workers < 1:
         raise SweepError(f"--workers must be at least 1, got {args.workers}")
+    # a sweep never writes into a file, nor among a trial's or a campaign's files
+    out_folder(args.out, holding=(*TRIAL_FILES, *CAMPAIGN_FILES))
     if args.out and (Path(args.out) / "sweep.json").exists():
         raise SweepError(
             f"{Path(args.out).resolve() / 'sweep.json'} exists; choose a new --out (nothing "

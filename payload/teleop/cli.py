@@ -18,7 +18,7 @@ from typing import Any
 
 from payload.cliutil import add_device, add_json, command_project, emit_json
 from payload.errors import PayloadError
-from payload.folders import TRIAL_FILES
+from payload.folders import CAMPAIGN_FILES, TRIAL_FILES
 
 SessionFactory = Callable[..., Any]
 """Makes the live session: ``(hub, record, payload=..., collisions=...)``, an object with
@@ -68,7 +68,7 @@ def _status_printer(hub: Any, stop: threading.Event, interval: float) -> None:
 def _check_record(record: Path | None) -> None:
     if record is None:
         return
-    for name in TRIAL_FILES:
+    for name in (*TRIAL_FILES, *CAMPAIGN_FILES):
         if (record / name).exists():
             raise TeleopCliError(
                 f"--record {record}: {name} already exists (choose a new folder; recordings "

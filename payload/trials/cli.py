@@ -19,6 +19,7 @@ from payload.cliutil import (
     default_out,
     emit_json,
     kept_if_used,
+    out_folder,
 )
 from payload.errors import RunAborted
 from payload.folders import CAMPAIGN_FILES, RECORDING, SUMMARY, SUMMARY_TEXT, TRIAL_FILES
@@ -96,7 +97,7 @@ def _cmd_trial(args: argparse.Namespace) -> int:
         _check_ctb(args.ctb)
     project = command_project(args)
     models_follow_design(project.design_path, project.root, json=args.json)
-    out = Path(args.out) if args.out else None
+    out = out_folder(args.out)
     run_trial = _run_trial_fn()
     extra: dict[str, Any] = {"project": project, **_link_and_zones(args)}
     for name in _SETUP:
@@ -108,6 +109,13 @@ def _cmd_trial(args: argparse.Namespace) -> int:
         extra["max_time"] = args.max_time
     if args.force:
         extra["force"] = True
+    if out is not None and out.name.startswith("trial-"):
+        campaign = [n for n in CAMPAIGN_FILES if (out.parent / n).exists()]
+        if campaign:  # its summary and its rescorings describe the trial there
+            raise TrialsCliError(
+                f"--out {out}: a campaign's trial (beside {', '.join(campaign)}); a trial "
+                "goes in a folder of its own (rerun the campaign to replace its trials)"
+            )
     seed = args.seed if args.seed is not None or operator == "replay" else 0
     result = dict(run_trial(seed=seed, operator=operator, replay=replay, out_dir=out, **extra))
     out = Path(result.get("out_dir") or out)
@@ -155,7 +163,7 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
     project = command_project(args)
     models_follow_design(project.design_path, project.root, json=args.json)
     prov = provenance(project)
-    out = Path(args.out) if args.out else default_out(project, "campaign")
+    out = out_folder(args.out) or default_out(project, "campaign")
     seeds = list(range(args.seed, args.seed + args.n))
     held = [n for n in TRIAL_FILES if (out / n).exists()]
     if held:  # --force replaces a campaign, never a trial
@@ -315,7 +323,9 @@ def _cmd_export_lerobot(args: argparse.Namespace) -> int:
     runs = [Path(r) for r in args.runs]
     if not args.out:
         resolve_runs(runs)  # a run that is not there says so before a folder is numbered
-    out = Path(args.out) if args.out else default_out(command_project(args), "lerobot")
+    out = out_folder(args.out, holding=(*TRIAL_FILES, *CAMPAIGN_FILES)) or default_out(
+        command_project(args), "lerobot"
+    )
     with kept_if_used(out, made=not args.out):
         info = export_lerobot(
             runs, out, task=args.task, overwrite=args.force,
@@ -389,7 +399,7 @@ def _cmd_bench_trial(args: argparse.Namespace) -> int:
 
     if args.seed < 0:
         raise TrialsCliError(f"--seed must be >= 0, got {args.seed}")
-    out = Path(args.out) if args.out else None
+    out = out_folder(args.out)
     if args.seconds is not None and args.seconds <= 0:
         raise TrialsCliError(f"--seconds must be positive, got {args.seconds}")
     if args.repeat < 1:
@@ -485,15 +495,38 @@ def _cmd_trials_convert(args: argparse.Namespace) -> int:
     return 0
 
 
+def _check_comparison_out(out: Path, *, force: bool) -> None:
+    """``trials compare --out``: a new file, or with ``--force`` an earlier comparison
+    (its first line is a comparison's); never a folder, nor any other file."""
+    from payload.trials.compare import COMPARISON_OPENING
+
+    if out.is_dir():
+        raise TrialsCliError(f"--out {out}: is a folder; give the comparison's file name")
+    if not out.exists():
+        return
+    with out.open("rb") as fh:
+        earlier = fh.read(len(COMPARISON_OPENING)) == COMPARISON_OPENING.encode()
+    if not earlier:
+        raise TrialsCliError(
+            f"--out {out}: exists and is not a comparison; --force replaces only an earlier "
+            "comparison (choose another --out)"
+        )
+    if not force:
+        raise TrialsCliError(
+            f"--out {out}: holds an earlier comparison; pass --force to replace it or choose "
+            "another --out"
+        )
+
+
 def _cmd_trials_compare(args: argparse.Namespace) -> int:
-    from payload.safeio import check_new, replace_file
+    from payload.safeio import replace_file
     from payload.trials.compare import compare_markdown, compare_runs
 
     steps = args.steps or args.require_identical
     result = compare_runs(Path(args.run_a), Path(args.run_b), steps=steps)
     text = compare_markdown(result)
     if args.out:
-        check_new([Path(args.out)], force=args.force, what="comparison")
+        _check_comparison_out(Path(args.out), force=args.force)
         replace_file(Path(args.out), text)
     if args.json:
         emit_json(result)

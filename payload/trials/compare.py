@@ -294,13 +294,18 @@ def _num(value: Any) -> str:
     return f"{value:.3f}" if isinstance(value, (int, float)) else str(value)
 
 
+COMPARISON_OPENING = "Comparison of "
+"""How a comparison's Markdown begins (``trials compare --out F --force`` replaces only
+a file that begins so)."""
+
+
 def compare_markdown(result: dict[str, Any]) -> str:
     """The comparison as a Markdown table: per seed each metric's A, B and change, then
     the largest change of each metric (and the step comparison when it was made)."""
     keys = METRIC_KEYS
     head = ["trial", "success A/B", *(f"{k} A / B (change)" for k in keys)]
     lines = [
-        f"Comparison of `{result['b']}` (B) against `{result['a']}` (A), seed by seed.",
+        f"{COMPARISON_OPENING}`{result['b']}` (B) against `{result['a']}` (A), seed by seed.",
         "",
         "| " + " | ".join(head) + " |",
         "|" + "---|" * len(head),
@@ -355,4 +360,11 @@ def compare_markdown(result: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
-__all__ = ["CompareError", "compare_channels", "compare_markdown", "compare_runs", "compare_steps"]
+__all__ = [
+    "COMPARISON_OPENING",
+    "CompareError",
+    "compare_channels",
+    "compare_markdown",
+    "compare_runs",
+    "compare_steps",
+]

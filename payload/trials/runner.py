@@ -22,7 +22,7 @@ import numpy as np
 
 from payload.design.params import load_design
 from payload.errors import PayloadError, RunAborted
-from payload.folders import CAMPAIGN_FILES, METRICS, RECORDING, TRIAL_FILES
+from payload.folders import CAMPAIGN_FILES, HANDS, METRICS, RECORDING, TRIAL_FILES
 from payload.native import environment
 from payload.project import Project, current_project, provenance
 from payload.retarget.calibration import PairRange
@@ -232,6 +232,11 @@ def run_trial(
             f"{out}: holds a campaign ({', '.join(campaign)}); a trial goes in a folder of its own "
             "(choose another --out)"
         )
+    if force and (out / HANDS).exists():  # a trial records its hands in its log.mcap
+        raise TrialError(
+            f"{out}: holds a live session's or a hardware run's hands ({HANDS}); --force "
+            "replaces only a trial (choose another --out)"
+        )
     existing = [out / name for name in TRIAL_FILES]
     try:
         check_new(existing, force=force, what="trial")
@@ -254,17 +259,23 @@ def run_trial(
             )
             return {**result, "out_dir": str(out)}
         staging = Path(tempfile.mkdtemp(prefix=".trial-", dir=out))
+        made = False  # whether the new trial replaces the old one
         try:
             result = _run_trial(
                 seed, source, staging, max_time=max_time, progress=progress, project=project
             )
+            made = True
             return {**result, "out_dir": str(out)}
-        finally:  # the new trial, finished or aborted, replaces the old one file by file
-            for name in TRIAL_FILES:
-                if (staging / name).exists():
-                    os.replace(staging / name, out / name)
-                else:
-                    (out / name).unlink(missing_ok=True)
+        except Exception:  # aborted by its own error: its recording (marked) is the record
+            made = (staging / RECORDING).exists()
+            raise
+        finally:  # replaced file by file; an interrupt (Ctrl-C) keeps the old trial whole
+            if made:
+                for name in TRIAL_FILES:
+                    if (staging / name).exists():
+                        os.replace(staging / name, out / name)
+                    else:
+                        (out / name).unlink(missing_ok=True)
             shutil.rmtree(staging, ignore_errors=True)
 
 
