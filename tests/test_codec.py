@@ -556,7 +556,21 @@ def test_schema1_recordings_read_and_convert(tmp_path: Path, capsys) -> None:
     assert "already schema version 3" in capsys.readouterr().out
     _write_v1(path, steps)
     assert main(["trials", "convert", str(path)]) == 2
-    assert "log.v1.mcap: exists" in capsys.readouterr().err
+    err = capsys.readouterr().err.strip().splitlines()  # one line (no "convert it" notice)
+    assert len(err) == 1 and "log.v1.mcap: exists" in err[0], err
+    # --force never overwrites a backup that is another original; the same one, again
+    backup = trial / "log.v1.mcap"
+    original = backup.read_bytes()
+    _write_v1(path, steps[:30])
+    assert main(["trials", "convert", str(path), "--force"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "holds another recording" in err[0], err
+    assert backup.read_bytes() == original
+    assert recording_version(path) == 1 and len(read_recording(path)) == 30
+    path.write_bytes(original)
+    assert main(["trials", "convert", str(path), "--force"]) == 0
+    capsys.readouterr()
+    assert backup.read_bytes() == original and recording_version(path) == SCHEMA_VERSION
 
 
 def _step_messages(path: Path) -> list:

@@ -136,8 +136,9 @@ def _old_trial(out: Path) -> dict[Path, bytes]:
 
 def test_an_interrupted_or_failed_trial_force_keeps_the_old_trial(tmp_path, monkeypatch) -> None:
     """``run_trial(force=True)``: the old trial is replaced only by a new recording (a
-    finished trial, or one its own error aborted); an interrupt (Ctrl-C) or an error
-    before anything was recorded keeps the old trial whole and leaves no staging folder."""
+    finished trial, or one its own error aborted), its rescorings removed with it; an
+    interrupt (Ctrl-C) or an error before anything was recorded keeps the old trial whole
+    and leaves no staging folder."""
     from payload.trials import runner
 
     def interrupted(seed, source, out, **kwargs):
@@ -165,8 +166,12 @@ def test_an_interrupted_or_failed_trial_force_keeps_the_old_trial(tmp_path, monk
         )
     out = tmp_path / "aborted"
     _old_trial(out)
+    tag = "contact-min0s-gap0.1s"  # the old trial's rescoring, and a file of the user's
+    for name in (f"metrics.{tag}.json", f"fig_route.{tag}.png", "metrics.mine.json"):
+        (out / name).write_text("old")
     monkeypatch.setattr(runner, "_run_trial", aborted)
     with pytest.raises(runner.TrialAborted):
         runner.run_trial(0, out_dir=out, force=True, max_time=1.0)
-    assert sorted(p.name for p in out.iterdir()) == ["log.mcap"]  # the aborted run's record
+    # the aborted run's record, without the rescorings of the trial it replaced
+    assert sorted(p.name for p in out.iterdir()) == ["log.mcap", "metrics.mine.json"]
     assert (out / "log.mcap").read_bytes() == b"an aborted trial"

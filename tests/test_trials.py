@@ -975,6 +975,13 @@ def test_cli_trial_and_campaign(tmp_path: Path, monkeypatch, capsys) -> None:
     assert main([*args, "--json"]) == 2
     assert "already holds a campaign" in capsys.readouterr().err
     assert {p: p.read_bytes() for p in originals} == originals
+    # --force replaces the campaign: its rescorings (which described the old one) go too
+    assert sorted(p.name for p in camp.glob(f"*.{tag}.*")) == [
+        f"fig_campaign.{tag}.png", f"summary.{tag}.json", f"summary.{tag}.md"
+    ]  # fmt: skip
+    assert main([*args, "--force", "--json"]) == 0
+    capsys.readouterr()
+    assert list(camp.glob(f"*.{tag}.*")) == [] and (camp / "summary.json").is_file()
 
 
 @pytest.mark.parametrize(

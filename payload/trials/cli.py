@@ -22,7 +22,14 @@ from payload.cliutil import (
     out_folder,
 )
 from payload.errors import RunAborted
-from payload.folders import CAMPAIGN_FILES, RECORDING, SUMMARY, SUMMARY_TEXT, TRIAL_FILES
+from payload.folders import (
+    CAMPAIGN_FIGURE,
+    CAMPAIGN_FILES,
+    RECORDING,
+    SUMMARY,
+    SUMMARY_TEXT,
+    TRIAL_FILES,
+)
 from payload.trials.setup_options import (
     _SETUP,
     TrialsCliError,
@@ -180,6 +187,11 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
                 f"{', ...' if len(taken) > 4 else ''}); pass --force to replace it or choose "
                 "another --out"
             )
+    if args.force:  # the rescorings of the campaign replaced would describe it still
+        from payload.trials.scoring import rescorings
+
+        for stale in rescorings(out, (*CAMPAIGN_FILES, CAMPAIGN_FIGURE)):
+            stale.unlink()
     workers = default_workers(args.n) if args.workers is None else args.workers
     t0 = time.perf_counter()
     results = run_campaign(
@@ -248,6 +260,7 @@ def _cmd_trials_summarize(args: argparse.Namespace) -> int:
         summary_markdown,
         write_summary,
     )
+    from payload.trials.scoring import CONTACT_TAG
 
     for name in ("min_contact_s", "max_gap_s"):
         value = getattr(args, name)
@@ -284,7 +297,7 @@ def _cmd_trials_summarize(args: argparse.Namespace) -> int:
             for r in results
             if not r.get("error")
         }
-        tag = contact_tag(*defs.pop()) if len(defs) == 1 else "contact-mixed"
+        tag = contact_tag(*defs.pop()) if len(defs) == 1 else f"{CONTACT_TAG}mixed"
     prov = previous.get("provenance")
     if prov is None:  # no campaign summary before: what the trials themselves record
         from payload.trials.summary import trials_environment

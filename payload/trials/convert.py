@@ -13,8 +13,10 @@ every bit).
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -43,7 +45,8 @@ def convert_file(path: Path, *, force: bool = False) -> str:
     from payload.teleop.replay import ReplayError, read_hand_recording
     from payload.trials.foxglove import FoxgloveScene
 
-    version = recording_version(path)
+    with _no_schema1_notice():  # the reader's "convert it" notice, said while converting
+        version = recording_version(path)
     if version > SCHEMA_VERSION:
         raise RecordingError(
             f"{path}: schema version {version} is newer than this workbench's "
@@ -54,7 +57,13 @@ def convert_file(path: Path, *, force: bool = False) -> str:
     backup = path.with_name(BACKUP_NAME)
     if backup.exists() and not force:
         raise RecordingError(f"{backup}: exists; pass --force to convert {path} again")
-    rec = read_recording(path)
+    if backup.exists() and not _same_bytes(backup, path):  # the backup is another original
+        raise RecordingError(
+            f"{backup}: holds another recording than {path.name}; move it away to convert "
+            f"{path} (an original is never overwritten, --force or not)"
+        )
+    with _no_schema1_notice():
+        rec = read_recording(path)
     frames = None
     hands_path = path.with_name(HANDS)
     if hands_path.is_file():
@@ -86,6 +95,31 @@ def convert_file(path: Path, *, force: bool = False) -> str:
         f"({hands} hand frames); "
         f"the original is {backup.name}"
     )
+
+
+@contextlib.contextmanager
+def _no_schema1_notice() -> Iterator[None]:
+    """The reader's warnings off (its one: a schema-1 file, "convert it")."""
+    reader = logging.getLogger(read_recording.__module__)
+    level = reader.level
+    reader.setLevel(logging.ERROR)
+    try:
+        yield
+    finally:
+        reader.setLevel(level)
+
+
+def _same_bytes(a: Path, b: Path, block: int = 1 << 20) -> bool:
+    """Whether two files hold the same bytes."""
+    if a.stat().st_size != b.stat().st_size:
+        return False
+    with a.open("rb") as fa, b.open("rb") as fb:
+        while True:
+            x, y = fa.read(block), fb.read(block)
+            if x != y:
+                return False
+            if not x:
+                return True
 
 
 def convert_dir(root: Path, *, force: bool = False) -> dict[str, Any]:

@@ -22,7 +22,7 @@ import numpy as np
 
 from payload.design.params import load_design
 from payload.errors import PayloadError, RunAborted
-from payload.folders import CAMPAIGN_FILES, HANDS, METRICS, RECORDING, TRIAL_FILES
+from payload.folders import CAMPAIGN_FILES, HANDS, METRICS, RECORDING, SCORED, TRIAL_FILES
 from payload.native import environment
 from payload.project import Project, current_project, provenance
 from payload.retarget.calibration import PairRange
@@ -271,11 +271,15 @@ def run_trial(
             raise
         finally:  # replaced file by file; an interrupt (Ctrl-C) keeps the old trial whole
             if made:
+                from payload.trials.scoring import rescorings
+
                 for name in TRIAL_FILES:
                     if (staging / name).exists():
                         os.replace(staging / name, out / name)
                     else:
                         (out / name).unlink(missing_ok=True)
+                for stale in rescorings(out, SCORED):  # they scored the old recording
+                    stale.unlink()
             shutil.rmtree(staging, ignore_errors=True)
 
 

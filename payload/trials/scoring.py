@@ -127,9 +127,23 @@ def _trial_setup(meta: dict[str, Any]) -> dict[str, Any]:
     return {k: meta[k] for k in keys if k in meta}
 
 
+CONTACT_TAG = "contact-"
+"""How the file-name tag of a contact definition begins (:func:`contact_tag`)."""
+
+
 def contact_tag(min_interval_s: float, max_gap_s: float) -> str:
     """A file-name tag for a contact definition, e.g. ``contact-min0.5s-gap0.1s``."""
-    return f"contact-min{float(min_interval_s):g}s-gap{float(max_gap_s):g}s"
+    return f"{CONTACT_TAG}min{float(min_interval_s):g}s-gap{float(max_gap_s):g}s"
 
 
-__all__ = ["contact_tag", "finish_trial"]
+def rescorings(folder: Path, names: Sequence[str]) -> list[Path]:
+    """The files rescorings wrote in ``folder`` beside the files ``names`` (each with a
+    contact definition's tag: ``metrics.contact-min0s-gap0.1s.json``, ...)."""
+    found: list[Path] = []
+    for name in names:
+        stem, dot, suffix = name.rpartition(".")
+        found += sorted(folder.glob(f"{stem}.{CONTACT_TAG}*{dot}{suffix}"))
+    return found
+
+
+__all__ = ["CONTACT_TAG", "contact_tag", "finish_trial", "rescorings"]
