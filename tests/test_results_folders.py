@@ -175,3 +175,32 @@ def test_an_interrupted_or_failed_trial_force_keeps_the_old_trial(tmp_path, monk
     # the aborted run's record, without the rescorings of the trial it replaced
     assert sorted(p.name for p in out.iterdir()) == ["log.mcap", "metrics.mine.json"]
     assert (out / "log.mcap").read_bytes() == b"an aborted trial"
+
+
+@pytest.mark.parametrize(
+    ("argv", "words"),
+    [
+        (["new"], ("a file, not a folder",)),
+        (["trials", "summarize"], ("a file, not a campaign folder",)),
+    ],
+    ids=lambda v: " ".join(v) if isinstance(v, list) else "",
+)
+def test_a_file_where_a_folder_is_expected_is_named_so(argv, words, tmp_path, capsys) -> None:
+    """A regular file given where a folder is expected is called a file (it was "not an
+    empty folder" and "no such campaign folder"), one line, exit 2, the file untouched."""
+    afile = tmp_path / "notes.txt"
+    afile.write_text("mine")
+    assert main([*argv, str(afile)]) == 2
+    _one_line(capsys, str(afile), *words)
+    assert afile.read_text() == "mine"
+
+
+def test_bench_trial_never_writes_over_a_trial(tmp_path, capsys) -> None:
+    """``bench trial --out`` a folder holding a trial's files: one line naming them (the
+    bench has no ``--force``, so the runner's "pass --force" would mislead), exit 2."""
+    trial = tmp_path / "trial"
+    _old_trial(trial)
+    before = _snapshot(tmp_path)
+    assert main(["bench", "trial", "--seconds", "1", "--out", str(trial)]) == 2
+    assert "--force" not in _one_line(capsys, "already holds log.mcap")
+    assert _snapshot(tmp_path) == before

@@ -106,7 +106,9 @@ def new_project(directory: str | Path, source: str | Path | None = None) -> tupl
     from payload.project import default_design_text
 
     target = Path(directory)
-    if target.exists() and (not target.is_dir() or any(target.iterdir())):
+    if target.exists() and not target.is_dir():
+        raise ProjectError(f"{target}: a file, not a folder; `payload new` needs a new folder")
+    if target.exists() and any(target.iterdir()):
         raise ProjectError(f"{target}: not an empty folder; `payload new` needs a new one")
     text = default_design_text() if source is None else _source_design_text(source)
     created = not target.exists()

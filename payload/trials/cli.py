@@ -412,7 +412,8 @@ def _cmd_bench_trial(args: argparse.Namespace) -> int:
 
     if args.seed < 0:
         raise TrialsCliError(f"--seed must be >= 0, got {args.seed}")
-    out = out_folder(args.out)
+    # the bench writes a trial: never over one, nor among a campaign's files
+    out = out_folder(args.out, holding=(*TRIAL_FILES, *CAMPAIGN_FILES))
     if args.seconds is not None and args.seconds <= 0:
         raise TrialsCliError(f"--seconds must be positive, got {args.seconds}")
     if args.repeat < 1:

@@ -498,6 +498,8 @@ def load_trial_results(
         OverwriteError: A rescoring file exists with other content and ``force`` is false.
     """
     root = Path(out_dir)
+    if root.exists() and not root.is_dir():
+        raise CampaignError(f"{root}: a file, not a campaign folder")
     if not root.is_dir():
         raise CampaignError(f"{root}: no such campaign folder")
     dirs = sorted(p for p in root.glob("trial-*") if p.is_dir())
