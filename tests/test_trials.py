@@ -982,6 +982,15 @@ def test_cli_trial_and_campaign(tmp_path: Path, monkeypatch, capsys) -> None:
     assert main([*args, "--force", "--json"]) == 0
     capsys.readouterr()
     assert list(camp.glob(f"*.{tag}.*")) == [] and (camp / "summary.json").is_file()
+    # a --force run of other seeds keeps the earlier trials (recordings) and says so
+    other = ["trials", "run", "--n", "1", "--seed", "7", "--workers", "0", "--out", str(camp)]
+    assert main([*other, "--force", "--json"]) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "trial-0001, trial-0002, trial-0003 from an earlier" in err[0], err
+    assert json.loads((camp / "summary.json").read_text())["seeds"] == [7]
+    assert sorted(p.name for p in camp.glob("trial-*")) == [
+        "trial-0001", "trial-0002", "trial-0003", "trial-0007"
+    ]  # fmt: skip
 
 
 @pytest.mark.parametrize(

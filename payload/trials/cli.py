@@ -20,6 +20,7 @@ from payload.cliutil import (
     emit_json,
     kept_if_used,
     out_folder,
+    warn,
 )
 from payload.errors import RunAborted
 from payload.folders import (
@@ -227,6 +228,14 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
     # may be other machines than this one)
     prov = {**prov, "environment": trials_environment(results)}
     summary = write_summary(results, out, title=title, run=run, provenance=prov, force=args.force)
+    ours = {trial_dir(out, s).name for s in seeds}
+    earlier = sorted(p.name for p in out.glob("trial-*") if p.is_dir() and p.name not in ours)
+    if earlier:  # kept (recordings), but not this campaign's: said, not silently summarized
+        more = f" and {len(earlier) - 3} more" if len(earlier) > 3 else ""
+        warn(
+            f"{out} also holds {', '.join(earlier[:3])}{more} from an earlier run, left out of "
+            "this summary (`trials summarize` would take them in: move them away)"
+        )
     if args.json:
         emit_json(
             {**summary, "wall_s": run["wall_s"], "out_dir": str(out), "project": str(project.root)}
