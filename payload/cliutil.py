@@ -195,8 +195,10 @@ def out_folder(
     if value is None or value == "":
         return None
     path = Path(value)
-    if path.exists() and not path.is_dir():
-        raise UsageError(f"{option} {value}: not a folder")
+    for part in (path, *path.parents):  # a file on the way cannot hold a folder either
+        if part.exists() and not part.is_dir():
+            where = "" if part == path else f" ({part} is a file)"
+            raise UsageError(f"{option} {value}: not a folder{where}")
     held = [name for name in holding if (path / name).exists()]
     if held:
         raise UsageError(

@@ -799,3 +799,23 @@ def test_compare_channels_sees_every_message_but_the_clock(foxglove_recording, t
     (tmp_path / "b" / "trial-0001" / "metrics.json").write_text('{"success": true}')
     runs[1] = str(tmp_path / "b")
     assert main(["trials", "compare", *runs]) == 1
+
+
+def test_trial_force_replaces_a_schema1_trial_and_its_hands(tmp_path: Path, monkeypatch) -> None:
+    """A schema-1 trial kept its hands in ``hands.jsonl`` beside its ``log.mcap``: unlike a
+    live session's, that folder is a trial's, and ``trial --force`` replaces it whole."""
+    from payload.trials import runner
+
+    trial = tmp_path / "trial"
+    trial.mkdir()
+    _write_v1(trial / "log.mcap", [random_step(np.random.default_rng(0), 0.0)])
+    (trial / "hands.jsonl").write_text("{}\n")
+
+    def finished(seed: int, source: object, out: Path, **kwargs: object) -> dict:
+        (out / "log.mcap").write_bytes(b"new")
+        return {"seed": seed}
+
+    monkeypatch.setattr(runner, "_run_trial", finished)
+    runner.run_trial(0, out_dir=trial, force=True, max_time=1.0)
+    assert sorted(p.name for p in trial.iterdir()) == ["log.mcap"]
+    assert (trial / "log.mcap").read_bytes() == b"new"

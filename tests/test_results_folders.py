@@ -52,7 +52,7 @@ def test_an_out_that_is_a_file_is_one_line_and_exit_2(argv, tmp_path, capsys) ->
     [
         ["sweep", "--set", "rail.travel=0.04,0.05", "--out"],
         ["export", "lerobot", "analyses", "--force", "--out"],
-        ["teleop", "serve", "--port", "0", "--record"],
+        ["teleop", "serve", "--port", "0", "--seconds", "1", "--record"],
     ],
     ids=lambda argv: " ".join(argv[:2]),
 )
@@ -106,25 +106,54 @@ def test_review_static_replaces_only_an_earlier_page(tmp_path, capsys) -> None:
     assert recording.read_bytes() == b"\x89MCAP0\r\nrecorded"
 
 
-def test_trial_force_replaces_neither_a_live_session_nor_a_campaigns_trial(
-    tmp_path, capsys
-) -> None:
+def test_trial_force_replaces_a_trial_not_a_live_session(tmp_path, capsys, monkeypatch) -> None:
     """``trial --force`` replaces a trial only: a folder with a live session's or a
-    hardware run's ``hands.jsonl``, or a campaign's ``trial-NNNN``, is refused."""
+    hardware run's ``hands.jsonl`` beside a current recording is refused; an older
+    trial's (schema 1 wrote its hands there; converted, its backup is beside it) is
+    replaced, its ``hands.jsonl`` with it."""
+    from payload.trials import runner
+
     live = tmp_path / "live"
     live.mkdir()
     for name, data in (("log.mcap", b"rec"), ("hands.jsonl", b"{}\n"), ("metrics.json", b"{}")):
         (live / name).write_bytes(data)
-    camp = tmp_path / "campaign"
-    (camp / "trial-0000").mkdir(parents=True)
-    (camp / "summary.json").write_text("{}")
-    (camp / "trial-0000" / "log.mcap").write_bytes(b"the campaign's")
     before = _snapshot(tmp_path)
     assert main(["trial", "--max-time", "1", "--out", str(live), "--force"]) == 2
     _one_line(capsys, "hands.jsonl", "replaces only a trial")
-    assert main(["trial", "--max-time", "1", "--out", str(camp / "trial-0000"), "--force"]) == 2
-    _one_line(capsys, "a campaign's trial", "summary.json")
     assert _snapshot(tmp_path) == before
+    older = tmp_path / "older"
+    _old_trial(older)
+    (older / "hands.jsonl").write_text("{}\n")
+    (older / "log.v1.mcap").write_bytes(b"the schema-1 original")
+    monkeypatch.setattr(runner, "_run_trial", _finished)
+    runner.run_trial(0, out_dir=older, force=True, max_time=1.0)
+    assert sorted(p.name for p in older.iterdir()) == ["log.mcap", "log.v1.mcap"]
+
+
+def _finished(seed, source, out, **kwargs):
+    """A trial that ran (its recording a stand-in: the runner only moves it)."""
+    (out / "log.mcap").write_bytes(b"new")
+    return {"seed": seed}
+
+
+def test_rerunning_a_campaigns_trial_says_its_summary_no_longer_matches(
+    tmp_path, capsys, monkeypatch
+) -> None:
+    """``trial --out camp/trial-NNNN --force`` reruns one trial of a campaign (a crashed
+    one, say) and says, in one warning line, that the campaign's summary needs
+    ``trials summarize --force``."""
+    from payload.trials import runner
+
+    camp = tmp_path / "campaign"
+    camp.mkdir()
+    _old_trial(camp / "trial-0003")
+    (camp / "summary.json").write_text("{}")
+    monkeypatch.setattr(runner, "_run_trial", _finished)
+    argv = ["trial", "--seed", "3", "--out", str(camp / "trial-0003"), "--force", "--json"]
+    assert main(argv) == 0
+    warning = _one_line(capsys, "summary no longer matches", "trials summarize")
+    assert str(camp) in warning
+    assert (camp / "trial-0003" / "log.mcap").read_bytes() == b"new"
 
 
 def _old_trial(out: Path) -> dict[Path, bytes]:
@@ -134,47 +163,68 @@ def _old_trial(out: Path) -> dict[Path, bytes]:
     return _snapshot(out)
 
 
+def _recording(path: Path, steps: int) -> None:
+    """A recorder's file with ``steps`` steps (none: opened and closed, as by a trial that
+    failed before its first step)."""
+    import numpy as np
+
+    from payload.trials.recorder import TrialRecorder, random_step
+
+    rng = np.random.default_rng(1)
+    with TrialRecorder(path) as rec:
+        rec.write_meta({"seed": 0})
+        for k in range(steps):
+            rec.write(random_step(rng, 0.02 * k))
+
+
 def test_an_interrupted_or_failed_trial_force_keeps_the_old_trial(tmp_path, monkeypatch) -> None:
-    """``run_trial(force=True)``: the old trial is replaced only by a new recording (a
-    finished trial, or one its own error aborted), its rescorings removed with it; an
-    interrupt (Ctrl-C) or an error before anything was recorded keeps the old trial whole
-    and leaves no staging folder."""
+    """``run_trial(force=True)``: the old trial is replaced only by a new recording that
+    holds a step (a finished trial, or one its own error aborted: its message then names
+    the recording where it now is), its rescorings removed with it; an interrupt (Ctrl-C),
+    an error before the recorder opened, or one before the first step keeps the old trial
+    whole and leaves no staging folder."""
     from payload.trials import runner
+    from payload.trials.reading import read_recording
 
     def interrupted(seed, source, out, **kwargs):
-        (out / "log.mcap").write_bytes(b"half a trial")
+        _recording(out / "log.mcap", 3)
         raise KeyboardInterrupt
 
     def failed_early(seed, source, out, **kwargs):
         raise RuntimeError("no world")
 
+    def failed_at_first_step(seed, source, out, **kwargs):
+        _recording(out / "log.mcap", 0)
+        raise runner.TrialAborted(f"trial 0 aborted at t = 0.00 s; kept: {out / 'log.mcap'}")
+
     def aborted(seed, source, out, **kwargs):
-        (out / "log.mcap").write_bytes(b"an aborted trial")
-        raise runner.TrialAborted("aborted at t = 1 s")
+        _recording(out / "log.mcap", 3)
+        raise runner.TrialAborted(f"trial 0 aborted at t = 0.04 s; kept: {out / 'log.mcap'}")
 
     for name, fake, raised in (
         ("interrupted", interrupted, KeyboardInterrupt),
         ("failed", failed_early, RuntimeError),
+        ("first step", failed_at_first_step, runner.TrialAborted),
     ):
         out = tmp_path / name
         old = _old_trial(out)
         monkeypatch.setattr(runner, "_run_trial", fake)
         with pytest.raises(raised):
             runner.run_trial(0, out_dir=out, force=True, max_time=1.0)
-        assert _snapshot(out) == old and sorted(p.name for p in out.iterdir()) == sorted(
-            p.name for p in old
-        )
+        assert _snapshot(out) == old, name
+        assert sorted(out.iterdir()) == sorted(old), name
     out = tmp_path / "aborted"
     _old_trial(out)
     tag = "contact-min0s-gap0.1s"  # the old trial's rescoring, and a file of the user's
-    for name in (f"metrics.{tag}.json", f"fig_route.{tag}.png", "metrics.mine.json"):
+    for name in (f"metrics.{tag}.json", f"fig_route.{tag}.png", "metrics.contact-notes.json"):
         (out / name).write_text("old")
     monkeypatch.setattr(runner, "_run_trial", aborted)
-    with pytest.raises(runner.TrialAborted):
+    with pytest.raises(runner.TrialAborted) as caught:
         runner.run_trial(0, out_dir=out, force=True, max_time=1.0)
+    assert str(caught.value).endswith(f"kept: {out / 'log.mcap'}")  # not the staging folder
     # the aborted run's record, without the rescorings of the trial it replaced
-    assert sorted(p.name for p in out.iterdir()) == ["log.mcap", "metrics.mine.json"]
-    assert (out / "log.mcap").read_bytes() == b"an aborted trial"
+    assert sorted(p.name for p in out.iterdir()) == ["log.mcap", "metrics.contact-notes.json"]
+    assert len(read_recording(out / "log.mcap")) == 3
 
 
 @pytest.mark.parametrize(

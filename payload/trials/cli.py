@@ -117,17 +117,19 @@ def _cmd_trial(args: argparse.Namespace) -> int:
         extra["max_time"] = args.max_time
     if args.force:
         extra["force"] = True
+    campaign = None
     if out is not None and out.name.startswith("trial-"):
-        campaign = [n for n in CAMPAIGN_FILES if (out.parent / n).exists()]
-        if campaign:  # its summary and its rescorings describe the trial there
-            raise TrialsCliError(
-                f"--out {out}: a campaign's trial (beside {', '.join(campaign)}); a trial "
-                "goes in a folder of its own (rerun the campaign to replace its trials)"
-            )
+        campaign = [n for n in CAMPAIGN_FILES if (out.parent / n).exists()] or None
     seed = args.seed if args.seed is not None or operator == "replay" else 0
     result = dict(run_trial(seed=seed, operator=operator, replay=replay, out_dir=out, **extra))
     out = Path(result.get("out_dir") or out)
     seed = result.get("seed", seed)
+    if campaign:  # a campaign's trial, rerun: its summary describes what was there before
+        warn(
+            f"{out} is a trial of the campaign in {out.parent} ({', '.join(campaign)}), whose "
+            f"summary no longer matches it: `payload trials summarize {out.parent} --force` "
+            "brings it up to date"
+        )
     if args.json:
         emit_json({**result, "project": str(project.root)})
         return 0
@@ -188,11 +190,6 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
                 f"{', ...' if len(taken) > 4 else ''}); pass --force to replace it or choose "
                 "another --out"
             )
-    if args.force:  # the rescorings of the campaign replaced would describe it still
-        from payload.trials.scoring import rescorings
-
-        for stale in rescorings(out, (*CAMPAIGN_FILES, CAMPAIGN_FIGURE)):
-            stale.unlink()
     workers = default_workers(args.n) if args.workers is None else args.workers
     t0 = time.perf_counter()
     results = run_campaign(
@@ -228,6 +225,11 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
     # may be other machines than this one)
     prov = {**prov, "environment": trials_environment(results)}
     summary = write_summary(results, out, title=title, run=run, provenance=prov, force=args.force)
+    if args.force:  # the replaced campaign's rescorings would describe it still
+        from payload.trials.scoring import rescorings
+
+        for stale in rescorings(out, (*CAMPAIGN_FILES, CAMPAIGN_FIGURE)):
+            stale.unlink()
     ours = {trial_dir(out, s).name for s in seeds}
     earlier = sorted(p.name for p in out.glob("trial-*") if p.is_dir() and p.name not in ours)
     if earlier:  # kept (recordings), but not this campaign's: said, not silently summarized
@@ -269,7 +271,7 @@ def _cmd_trials_summarize(args: argparse.Namespace) -> int:
         summary_markdown,
         write_summary,
     )
-    from payload.trials.scoring import CONTACT_TAG
+    from payload.trials.scoring import MIXED_TAG
 
     for name in ("min_contact_s", "max_gap_s"):
         value = getattr(args, name)
@@ -306,7 +308,7 @@ def _cmd_trials_summarize(args: argparse.Namespace) -> int:
             for r in results
             if not r.get("error")
         }
-        tag = contact_tag(*defs.pop()) if len(defs) == 1 else f"{CONTACT_TAG}mixed"
+        tag = contact_tag(*defs.pop()) if len(defs) == 1 else MIXED_TAG
     prov = previous.get("provenance")
     if prov is None:  # no campaign summary before: what the trials themselves record
         from payload.trials.summary import trials_environment

@@ -97,16 +97,21 @@ def convert_file(path: Path, *, force: bool = False) -> str:
     )
 
 
+def _not_the_schema1_notice(record: logging.LogRecord) -> bool:
+    """A log filter: every record but the reader's "schema version 1, convert it" notice."""
+    return not str(record.msg).startswith("%s: schema version 1")
+
+
 @contextlib.contextmanager
 def _no_schema1_notice() -> Iterator[None]:
-    """The reader's warnings off (its one: a schema-1 file, "convert it")."""
+    """The reader's "convert it" notice left out while converting (a filter on the
+    reader's logger: its level, and any other message, stay as they are)."""
     reader = logging.getLogger(read_recording.__module__)
-    level = reader.level
-    reader.setLevel(logging.ERROR)
+    reader.addFilter(_not_the_schema1_notice)
     try:
         yield
     finally:
-        reader.setLevel(level)
+        reader.removeFilter(_not_the_schema1_notice)
 
 
 def _same_bytes(a: Path, b: Path, block: int = 1 << 20) -> bool:

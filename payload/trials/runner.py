@@ -232,7 +232,7 @@ def run_trial(
             f"{out}: holds a campaign ({', '.join(campaign)}); a trial goes in a folder of its own "
             "(choose another --out)"
         )
-    if force and (out / HANDS).exists():  # a trial records its hands in its log.mcap
+    if force and (out / HANDS).exists() and not _older_trial(out):
         raise TrialError(
             f"{out}: holds a live session's or a hardware run's hands ({HANDS}); --force "
             "replaces only a trial (choose another --out)"
@@ -266,8 +266,17 @@ def run_trial(
             )
             made = True
             return {**result, "out_dir": str(out)}
-        except Exception:  # aborted by its own error: its recording (marked) is the record
-            made = (staging / RECORDING).exists()
+        except TrialAborted as exc:  # its recording (marked aborted) is this run's record
+            made = _recorded_steps(staging / RECORDING)
+            if made:  # the recording's path once it is in place
+                moved = str(exc).replace(str(staging / RECORDING), str(out / RECORDING))
+                raise TrialAborted(moved) from exc.__cause__
+            what = str(exc).split("; recording kept")[0]  # before its first step
+            raise TrialAborted(
+                f"{what}; nothing recorded, the trial already in {out} is kept"
+            ) from exc.__cause__
+        except Exception:
+            made = _recorded_steps(staging / RECORDING)
             raise
         finally:  # replaced file by file; an interrupt (Ctrl-C) keeps the old trial whole
             if made:
@@ -281,6 +290,34 @@ def run_trial(
                 for stale in rescorings(out, SCORED):  # they scored the old recording
                     stale.unlink()
             shutil.rmtree(staging, ignore_errors=True)
+
+
+def _older_trial(out: Path) -> bool:
+    """Whether the ``hands.jsonl`` in ``out`` is an older trial's (schema version 1 wrote
+    its hands there: its ``log.mcap`` is of that version, or was converted and kept it as
+    its backup), not a live session's or a hardware run's (which record them beside a
+    current recording)."""
+    from payload.trials.convert import BACKUP_NAME
+    from payload.trials.reading import RecordingError, recording_version
+
+    if (out / BACKUP_NAME).exists():
+        return True
+    try:
+        return recording_version(out / RECORDING) == 1
+    except (OSError, RecordingError):
+        return False  # unreadable: not known to be a trial, so not replaced
+
+
+def _recorded_steps(path: Path) -> bool:
+    """Whether the recording at ``path`` holds a step (a recorder opened for a trial that
+    failed before its first step holds none, and the reader refuses it)."""
+    from payload.trials.reading import RecordingError, recording_version
+
+    try:
+        recording_version(path)
+    except (OSError, RecordingError):
+        return False
+    return True
 
 
 class _Setup(NamedTuple):

@@ -130,6 +130,9 @@ def _trial_setup(meta: dict[str, Any]) -> dict[str, Any]:
 CONTACT_TAG = "contact-"
 """How the file-name tag of a contact definition begins (:func:`contact_tag`)."""
 
+MIXED_TAG = f"{CONTACT_TAG}mixed"
+"""The tag of a campaign rescored with trials of more than one contact definition."""
+
 
 def contact_tag(min_interval_s: float, max_gap_s: float) -> str:
     """A file-name tag for a contact definition, e.g. ``contact-min0.5s-gap0.1s``."""
@@ -137,13 +140,16 @@ def contact_tag(min_interval_s: float, max_gap_s: float) -> str:
 
 
 def rescorings(folder: Path, names: Sequence[str]) -> list[Path]:
-    """The files rescorings wrote in ``folder`` beside the files ``names`` (each with a
-    contact definition's tag: ``metrics.contact-min0s-gap0.1s.json``, ...)."""
+    """The files rescorings wrote in ``folder`` beside the files ``names``, tagged with a
+    contact definition (``metrics.contact-min0s-gap0.1s.json``) or a campaign's mixed ones
+    (``summary.contact-mixed.md``); other files, a user's ``metrics.contact-notes.json``
+    say, are not theirs."""
     found: list[Path] = []
     for name in names:
         stem, dot, suffix = name.rpartition(".")
-        found += sorted(folder.glob(f"{stem}.{CONTACT_TAG}*{dot}{suffix}"))
+        for tag in (f"{CONTACT_TAG}min*s-gap*s", MIXED_TAG):
+            found += sorted(folder.glob(f"{stem}.{tag}{dot}{suffix}"))
     return found
 
 
-__all__ = ["CONTACT_TAG", "contact_tag", "finish_trial", "rescorings"]
+__all__ = ["CONTACT_TAG", "MIXED_TAG", "contact_tag", "finish_trial", "rescorings"]
