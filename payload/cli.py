@@ -91,10 +91,10 @@ COMMANDS: tuple[Command, ...] = (
         "payload.trials.live_cli",
         "latency of the live interface through an emulated Quest 3",
     ),
-    Command("bench recorder", "payload.trials.cli", "trial recorder cost and file size"),
+    Command("bench recorder", "payload.trials.bench_cli", "trial recorder cost and file size"),
     Command(
         "bench trial",
-        "payload.trials.cli",
+        "payload.trials.bench_cli",
         "a trial's real-time factor, time breakdown and log size",
     ),
     Command("bench hw", "firmware_interface.cli", "sync write + fast sync read cycle vs wire time"),

@@ -512,7 +512,7 @@ MODEL_READERS = {  # every command that reads the generated models -> its handle
     "trials run": ("payload.trials.cli", "_cmd_trials_run"),
     "bench retarget": ("payload.retarget.cli", "_cmd_bench"),
     "bench sim": ("payload.sim.cli", "_cmd_bench_sim"),
-    "bench trial": ("payload.trials.cli", "_cmd_bench_trial"),
+    "bench trial": ("payload.trials.bench_cli", "_cmd_bench_trial"),
     "bench teleop": ("payload.teleop.cli", "bench"),
     "teleop serve": ("payload.teleop.cli", "serve"),
     "sweep": ("payload.sweep.cli", "_cmd_sweep"),

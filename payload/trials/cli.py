@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 import time
 from pathlib import Path
@@ -22,11 +21,9 @@ from payload.cliutil import (
     out_folder,
     warn,
 )
-from payload.errors import RunAborted
 from payload.folders import (
     CAMPAIGN_FIGURE,
     CAMPAIGN_FILES,
-    RECORDING,
     SUMMARY,
     SUMMARY_TEXT,
     TRIAL_FILES,
@@ -36,7 +33,6 @@ from payload.trials.setup_options import (
     TrialsCliError,
     _check_physics_dt,
     _link_and_zones,
-    _physics_dt_argument,
     _setup_arguments,
     _setup_defaults,
 )
@@ -365,149 +361,6 @@ def _cmd_export_lerobot(args: argparse.Namespace) -> int:
     return 0
 
 
-def _cmd_bench_recorder(args: argparse.Namespace) -> int:
-    import tempfile
-
-    import numpy as np
-
-    from payload.schema import CONTROL_DT
-    from payload.trials.metrics import compute_metrics
-    from payload.trials.recorder import TrialRecorder, random_step, read_recording
-
-    if args.seconds <= 0:
-        raise TrialsCliError(f"--seconds must be positive, got {args.seconds}")
-    n = max(2, round(args.seconds / CONTROL_DT))
-    rng = np.random.default_rng(0)
-    steps = [random_step(rng, k * CONTROL_DT) for k in range(n)]
-    with tempfile.TemporaryDirectory() as tmp:
-        path = Path(tmp) / RECORDING
-        per_step = np.empty(n)
-        with TrialRecorder(path) as rec:
-            for k, step in enumerate(steps):
-                t0 = time.perf_counter()
-                rec.write(step)
-                per_step[k] = time.perf_counter() - t0
-        size = path.stat().st_size
-        t0 = time.perf_counter()
-        recording = read_recording(path)
-        read_s = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        compute_metrics(recording)
-        metrics_s = time.perf_counter() - t0
-    minutes = n / 50 / 60
-    result = {
-        "steps": n,
-        "recorded_s": n / 50,
-        "write_us_median": float(np.median(per_step) * 1e6),
-        "write_us_p99": float(np.quantile(per_step, 0.99) * 1e6),
-        "write_budget_fraction": float(np.median(per_step) / 0.02),
-        "file_mb_per_min": size / 1e6 / minutes,
-        "read_s_per_min": read_s / minutes,
-        "metrics_s": metrics_s,
-    }
-    if args.json:
-        emit_json(result)
-    else:
-        print(
-            f"recorder, {n} steps ({n / 50:.0f} s at 50 Hz): write {result['write_us_median']:.0f}"
-            f" us/step median ({result['write_us_p99']:.0f} us p99, "
-            f"{100 * result['write_budget_fraction']:.2f} % of the 20 ms step), "
-            f"{result['file_mb_per_min']:.1f} MB per minute, read "
-            f"{result['read_s_per_min']:.2f} s per minute, metrics {1e3 * metrics_s:.1f} ms"
-        )
-    return 0
-
-
-def _cmd_bench_trial(args: argparse.Namespace) -> int:
-    from payload.trials.bench import run_trial_bench, run_trial_bench_repeated
-
-    if args.seed < 0:
-        raise TrialsCliError(f"--seed must be >= 0, got {args.seed}")
-    # the bench writes a trial: never over one, nor among a campaign's files
-    out = out_folder(args.out, holding=(*TRIAL_FILES, *CAMPAIGN_FILES))
-    if args.seconds is not None and args.seconds <= 0:
-        raise TrialsCliError(f"--seconds must be positive, got {args.seconds}")
-    if args.repeat < 1:
-        raise TrialsCliError(f"--repeat must be >= 1, got {args.repeat}")
-    if args.repeat > 1 and out is not None:
-        raise TrialsCliError("--out keeps one trial's folder: give it without --repeat")
-    from payload.design import models_follow_design
-
-    _check_physics_dt(args.physics_dt)
-    project = command_project(args)  # the trial flies this project's models
-    models_follow_design(project.design_path, project.root, json=args.json)
-    options = {"pin": args.pin, "max_time": args.seconds, "physics_dt": args.physics_dt}
-    if args.repeat == 1:
-        result = run_trial_bench(args.seed, out_dir=out, **options)
-    else:
-
-        def said(i: int, run: dict) -> None:
-            print(
-                f"bench run {i + 1} of {args.repeat}: overhead ratio "
-                f"{run['overhead_ratio']:.3f}, {run['wall_seconds']:.2f} s wall, load average "
-                f"{run['load_average'][0]:.2f}"
-                + (", with kernels' full self-checks" if run.get("full_checks") else ""),
-                file=sys.stderr,
-            )
-
-        try:
-            result = run_trial_bench_repeated(args.seed, args.repeat, progress=said, **options)
-        except RuntimeError as exc:
-            raise RunAborted(str(exc)) from None
-    if args.json:
-        emit_json(result)
-        return 0
-    if args.repeat > 1:
-        print(
-            f"{args.repeat} runs, each in a fresh process: overhead ratio median "
-            f"{result['overhead_ratio_median']:.3f} (least {result['overhead_ratio_min']:.3f}, "
-            f"greatest {result['overhead_ratio_max']:.3f}); "
-            + ("the median run:" if args.repeat % 2 else "the lower of the two middle runs:")
-        )
-    print(
-        f"trial seed {args.seed}: {result['sim_seconds']:.1f} s simulated in "
-        f"{result['wall_seconds']:.1f} s wall ({result['realtime_factor']:.1f}x real time; "
-        f"{result['cpu_seconds']:.1f} CPU s, {result['cpu_realtime_factor']:.1f}x per CPU "
-        f"second), log {result['log_bytes_per_sim_minute'] / 1e6:.2f} MB per simulated minute"
-    )
-    for stage, wall in result["breakdown"].items():
-        print(f"  {stage:10s} {wall:7.2f} s wall {result['breakdown_cpu'][stage]:7.2f} s CPU")
-    if result["mj_step_us"] is not None:
-        print(
-            f"  of physics, mujoco.mj_step alone: {result['mj_step_seconds']:.2f} s wall "
-            f"({result['mj_step_us']:.1f} us per {1e3 * result['physics_dt']:g} ms step): at "
-            f"most {result['physics_only_realtime_factor']:.1f}x real time with nothing else"
-        )
-        print(
-            f"  physics floor {result['physics_floor_s']:.2f} s; overhead ratio "
-            f"{result['overhead_ratio']:.2f} (wall time over the physics floor)"
-        )
-    from payload.native import NATIVE_ENV
-
-    kernels = result.get("kernels") or {}
-    in_numpy = sorted(name for name, how in kernels.items() if how != "compiled")
-    why = f"{NATIVE_ENV}=0" if os.environ.get(NATIVE_ENV) == "0" else "the log says why"
-    print(
-        f"  compiled kernels: {len(kernels) - len(in_numpy)} of {len(kernels)}"
-        + (f"; in numpy: {', '.join(in_numpy)} ({why})" if in_numpy else "")
-    )
-    full = result.get("full_checks") or []
-    if full:
-        names = ", ".join(dict.fromkeys(full))
-        print(
-            f"  {len(full)} full kernel self-checks in this run ({names}): no check stamp "
-            "yet, as after a change to the code or the environment; the figures above "
-            "include them (a run that lists none is the steady one)"
-        )
-    env = result.get("environment") or {}
-    print(
-        f"  ran on: Python {env.get('python')}, numpy {env.get('numpy')} (OpenBLAS kernels "
-        f"{env.get('openblas_core')}), MuJoCo {env.get('mujoco')}, load average "
-        f"{result['load_average'][0]:.2f}"
-    )
-    return 0
-
-
 def _cmd_trials_convert(args: argparse.Namespace) -> int:
     from payload.trials.convert import convert_dir
 
@@ -574,8 +427,8 @@ def _cmd_trials_compare(args: argparse.Namespace) -> int:
 def register(
     sub: argparse._SubParsersAction, groups: dict[str, argparse._SubParsersAction]
 ) -> None:
-    """Add ``trial``, ``trials run|summarize|convert``, ``export lerobot``, ``bench recorder``
-    and ``bench trial``."""
+    """Add ``trial``, ``trials run|summarize|convert|compare`` and ``export lerobot`` (the
+    benches of the recorder and of a trial: :mod:`payload.trials.bench_cli`)."""
     p = sub.add_parser("trial", help="one ISS cargo-transport trial")
     p.add_argument(
         "--seed", type=int, default=None, help="trial seed (default 0; a replay: its source's)"
@@ -692,29 +545,3 @@ def register(
     e.add_argument("--force", action="store_true", help="replace an existing dataset")
     e.add_argument("--json", action="store_true", help="print one JSON object")
     e.set_defaults(func=_cmd_export_lerobot)
-
-    b = groups["bench"].add_parser("recorder", help="trial recorder cost and file size")
-    b.add_argument("--seconds", type=float, default=60.0, help="recorded seconds (default 60)")
-    b.add_argument("--json", action="store_true", help="print one JSON object")
-    b.set_defaults(func=_cmd_bench_recorder)
-
-    bt = groups["bench"].add_parser(
-        "trial", help="a trial's real-time factor, time breakdown and log size"
-    )
-    bt.add_argument("--seed", type=int, default=0, help="trial seed (default 0)")
-    bt.add_argument("--out", help="keep the trial folder here (default: a temporary one)")
-    bt.add_argument(
-        "--seconds", type=float, default=None, help="cap the trial [s] (default: a whole trial)"
-    )
-    bt.add_argument("--pin", action="store_true", help="restrict the run to one CPU core (Linux)")
-    bt.add_argument(
-        "--repeat",
-        type=int,
-        default=1,
-        metavar="N",
-        help="run the bench N times, each in a fresh process, and report the median run "
-        "with every run's ratio (default 1)",
-    )
-    _physics_dt_argument(bt)
-    bt.add_argument("--json", action="store_true", help="print one JSON object")
-    bt.set_defaults(func=_cmd_bench_trial)
