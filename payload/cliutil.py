@@ -28,6 +28,7 @@ from pathlib import Path
 from typing import Any
 
 from payload.errors import PayloadError
+from payload.folders import held
 from payload.project import ENV_VAR, Project, ProjectError, find_project, project_of
 
 
@@ -199,10 +200,10 @@ def out_folder(
         if part.exists() and not part.is_dir():
             where = "" if part == path else f" ({part} is a file)"
             raise UsageError(f"{option} {value}: not a folder{where}")
-    held = [name for name in holding if (path / name).exists()]
-    if held:
+    there = held(path, holding)
+    if there:
         raise UsageError(
-            f"{option} {value}: already holds {', '.join(held)}; choose another folder "
+            f"{option} {value}: already holds {', '.join(there)}; choose another folder "
             "(results are never overwritten)"
         )
     return path

@@ -9,7 +9,8 @@ definition writes its files beside the originals under tagged names (:func:`tagg
 
 from __future__ import annotations
 
-from pathlib import PurePath
+from collections.abc import Iterable
+from pathlib import Path, PurePath
 
 RECORDING = "log.mcap"
 """A trial's recording (MCAP: steps, hand frames, metadata, the Foxglove scene)."""
@@ -45,6 +46,11 @@ CAMPAIGN_FILES: tuple[str, ...] = (SUMMARY, SUMMARY_TEXT)
 """What marks a folder as a campaign's."""
 
 
+def held(folder: Path, names: Iterable[str]) -> list[str]:
+    """Those of the file names ``names`` that ``folder`` holds, in their order."""
+    return [name for name in names if (folder / name).exists()]
+
+
 def tagged(name: str, tag: str | None) -> str:
     """The bare file name ``name`` with ``tag`` before its suffix (``metrics.json`` and
     ``contact-min1s-gap0.2s``: ``metrics.contact-min1s-gap0.2s.json``), or ``name`` itself
@@ -67,5 +73,6 @@ __all__ = [
     "SUMMARY",
     "SUMMARY_TEXT",
     "TRIAL_FILES",
+    "held",
     "tagged",
 ]

@@ -27,6 +27,7 @@ from payload.folders import (
     SUMMARY,
     SUMMARY_TEXT,
     TRIAL_FILES,
+    held,
 )
 from payload.trials.setup_options import (
     _SETUP,
@@ -115,7 +116,7 @@ def _cmd_trial(args: argparse.Namespace) -> int:
         extra["force"] = True
     campaign = None
     if out is not None and out.name.startswith("trial-"):
-        campaign = [n for n in CAMPAIGN_FILES if (out.parent / n).exists()] or None
+        campaign = held(out.parent, CAMPAIGN_FILES) or None
     seed = args.seed if args.seed is not None or operator == "replay" else 0
     result = dict(run_trial(seed=seed, operator=operator, replay=replay, out_dir=out, **extra))
     out = Path(result.get("out_dir") or out)
@@ -171,15 +172,15 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
     prov = provenance(project)
     out = out_folder(args.out) or default_out(project, "campaign")
     seeds = list(range(args.seed, args.seed + args.n))
-    held = [n for n in TRIAL_FILES if (out / n).exists()]
-    if held:  # --force replaces a campaign, never a trial
+    trial = held(out, TRIAL_FILES)
+    if trial:  # --force replaces a campaign, never a trial
         raise TrialsCliError(
-            f"{out}: holds a trial ({', '.join(held)}); a campaign goes in a folder of its "
+            f"{out}: holds a trial ({', '.join(trial)}); a campaign goes in a folder of its "
             "own (choose another --out)"
         )
     if not args.force:
         taken = [trial_dir(out, s) for s in seeds if any(trial_dir(out, s).glob("*"))]
-        taken += [out / n for n in CAMPAIGN_FILES if (out / n).exists()]
+        taken += [out / n for n in held(out, CAMPAIGN_FILES)]
         if taken:
             raise TrialsCliError(
                 f"{out}: already holds a campaign ({', '.join(p.name for p in taken[:4])}"

@@ -22,7 +22,15 @@ import numpy as np
 
 from payload.design.params import load_design
 from payload.errors import PayloadError, RunAborted
-from payload.folders import CAMPAIGN_FILES, HANDS, METRICS, RECORDING, SCORED, TRIAL_FILES
+from payload.folders import (
+    CAMPAIGN_FILES,
+    HANDS,
+    METRICS,
+    RECORDING,
+    SCORED,
+    TRIAL_FILES,
+    held,
+)
 from payload.native import environment
 from payload.project import Project, current_project, provenance
 from payload.retarget.calibration import PairRange
@@ -226,7 +234,7 @@ def run_trial(
     out = Path(out_dir) if out_dir is not None else new_folder(project.runs_dir, stem)
     if replay is not None and out.resolve() == Path(replay).resolve().parent:
         raise TrialError(f"{out}: a replay never writes into the folder it reads from")
-    campaign = [n for n in CAMPAIGN_FILES if (out / n).exists()]
+    campaign = held(out, CAMPAIGN_FILES)
     if campaign:  # --force replaces a trial, never a campaign
         raise TrialError(
             f"{out}: holds a campaign ({', '.join(campaign)}); a trial goes in a folder of its own "
