@@ -690,6 +690,35 @@ def test_the_trial_figures_keep_every_text_on_the_canvas(tmp_path: Path, monkeyp
             assert box.y0 >= page.y0 - 0.5 and box.y1 <= page.y1 + 0.5, (box, page)
 
 
+def test_fig3_without_metrics_scores_as_the_recording_was_made_to(
+    tmp_path: Path, monkeypatch
+) -> None:
+    """Fig. 3 drawn without metrics states the contact time under the definition the
+    recording stores (as its trial's metrics.json does), and the paper's without one: a
+    contact from step 101 to the last (599) with a one-step dropout at step 300 is one
+    interval of about 10 s bridged (a 0.1 s gap), about 4 s paper-literal."""
+    import re
+
+    from payload.trials import figures
+
+    titles: list[str] = []
+    save = figures.save_figure
+
+    def keep(fig, path, dpi):
+        titles.append(fig._suptitle.get_text())
+        return save(fig, path, dpi)
+
+    monkeypatch.setattr(figures, "save_figure", keep)
+    n = 600
+    rec = recording_with_offsets([(0.0, 0.0, 0.0)] * n, [100 < i != 300 for i in range(n)])
+    figures.plot_ctb_body_frame(rec, tmp_path / "literal.png")
+    rec.meta["contact_definition"] = {"min_interval_s": 0.5, "max_gap_s": 0.1}
+    figures.plot_ctb_body_frame(rec, tmp_path / "recorded.png")
+    contact = [float(re.search(r"contact ([0-9.]+) s of", t).group(1)) for t in titles]
+    assert 3.9 <= contact[0] <= 4.1, titles[0]
+    assert 9.8 <= contact[1] <= 10.1, titles[1]
+
+
 def test_figures_reject_bad_modules(tmp_path: Path) -> None:
     from payload.trials.figures import FigureError, plot_route
 

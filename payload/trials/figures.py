@@ -19,7 +19,12 @@ from matplotlib.patches import Patch, Rectangle
 from payload.errors import PayloadError
 from payload.rotations import rotate_by_quats
 from payload.safeio import replacing
-from payload.trials.metrics import TrialMetrics, compute_metrics, ctb_in_body_frame
+from payload.trials.metrics import (
+    TrialMetrics,
+    compute_metrics,
+    ctb_in_body_frame,
+    recorded_definition,
+)
 from payload.trials.recorder import Recording
 
 PHASE_COLORS: dict[str, str] = {
@@ -163,7 +168,8 @@ def plot_ctb_body_frame(
     Args:
         recording: The trial recording.
         path: PNG file to write.
-        metrics: Precomputed metrics (computed here if ``None``).
+        metrics: Precomputed metrics (``None``: computed here with the contact
+            definition the recording was made with, as its trial scores it).
         dpi: Resolution [dots per inch].
 
     Returns:
@@ -171,7 +177,10 @@ def plot_ctb_body_frame(
     """
     if len(recording) == 0:
         raise FigureError("cannot plot an empty recording")
-    m = metrics if metrics is not None else compute_metrics(recording)
+    if metrics is None:  # scored as the trial is: the contact definition it was recorded with
+        min_interval, max_gap = recorded_definition(recording)
+        metrics = compute_metrics(recording, min_interval_s=min_interval, max_gap_s=max_gap)
+    m = metrics
     t = recording.t
     bp = 1e3 * ctb_in_body_frame(recording.astrobee_pos, recording.astrobee_quat, recording.ctb_pos)
     spans = phase_spans(t, recording.phase)
@@ -185,7 +194,7 @@ def plot_ctb_body_frame(
         ax.plot(t, bp[:, k], color="#08306b", lw=1.2)
         if has_contact:
             ax.axhline(1e3 * m.b_p_c_t0_m[k], color="#08306b", lw=0.8, ls="--", alpha=0.7)
-        ax.set_ylabel(f"{labels[k]}$_b$ [mm]")
+        ax.set_ylabel(f"body {labels[k]} [mm]")
         ax.grid(True, alpha=0.3)
     ax = axes[3]
     _shade(ax, spans)

@@ -58,6 +58,14 @@ def confirmed_definition() -> dict[str, float]:
     return {"min_interval_s": CONFIRM_MIN_S, "max_gap_s": CONFIRM_MAX_GAP_S}
 
 
+def recorded_definition(recording: Recording) -> tuple[float, float]:
+    """The contact definition a recording was made to be scored with, ``(min_interval_s,
+    max_gap_s)`` from its ``contact_definition`` metadata (:func:`confirmed_definition`);
+    ``(0, 0)``, the paper's, for a recording without one."""
+    recorded = recording.meta.get("contact_definition") or {}
+    return float(recorded.get("min_interval_s", 0.0)), float(recorded.get("max_gap_s", 0.0))
+
+
 SUCCESS_CRITERION = (
     "the recording was not aborted AND "
     "CTB in the destination module at the end of the recording AND the first continuous "
@@ -368,5 +376,6 @@ __all__ = [
     "contact_runs",
     "ctb_in_body_frame",
     "first_contact_interval",
+    "recorded_definition",
     "rms_deviation",
 ]

@@ -64,18 +64,18 @@ def finish_trial(
         definition, and the trial's set-up: ``ctb``, ``propulsion``, ``ctb_offset_m``...).
     """
     from payload.trials.figures import plot_ctb_body_frame, plot_route
-    from payload.trials.metrics import compute_metrics
+    from payload.trials.metrics import compute_metrics, recorded_definition
     from payload.trials.recorder import read_recording
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     rec = recording if recording is not None else read_recording(recording_path)
     # the contact definition the trial was recorded with, unless the caller overrides it
-    recorded = rec.meta.get("contact_definition") or {}
+    recorded = recorded_definition(rec)
     if min_interval_s is None:
-        min_interval_s = float(recorded.get("min_interval_s", 0.0))
+        min_interval_s = recorded[0]
     if max_gap_s is None:
-        max_gap_s = float(recorded.get("max_gap_s", 0.0))
+        max_gap_s = recorded[1]
     metrics = compute_metrics(
         rec, destination=destination, min_interval_s=min_interval_s, max_gap_s=max_gap_s
     )
