@@ -45,6 +45,15 @@ CAMPAIGN_FIGURE = "fig_campaign.png"
 CAMPAIGN_FILES: tuple[str, ...] = (SUMMARY, SUMMARY_TEXT)
 """What marks a folder as a campaign's."""
 
+SWEEP = "sweep.json"
+"""A design sweep's results (what other tools read)."""
+
+SWEEP_TEXT = "sweep.md"
+"""A design sweep's table and plots as a report."""
+
+SWEEP_FILES: tuple[str, ...] = (SWEEP, SWEEP_TEXT)
+"""What marks a folder as a design sweep's."""
+
 
 def held(folder: Path, names: Iterable[str]) -> list[str]:
     """Those of the file names ``names`` that ``folder`` holds, in their order."""
@@ -72,6 +81,9 @@ __all__ = [
     "SCORED",
     "SUMMARY",
     "SUMMARY_TEXT",
+    "SWEEP",
+    "SWEEP_FILES",
+    "SWEEP_TEXT",
     "TRIAL_FILES",
     "held",
     "tagged",

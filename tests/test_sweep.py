@@ -80,6 +80,13 @@ def test_bad_sweep_input_exits_2_and_writes_nothing(tmp_path, capsys):
     (out / "sweep.json").write_text("{}")
     assert main(["sweep", "--set", "rail.travel=0.04", "--out", str(out)]) == 2
     assert (out / "sweep.json").read_text() == "{}"  # recorded data never overwritten
+    capsys.readouterr()
+    (out / "sweep.json").unlink()
+    (out / "sweep.md").write_text("my notes")  # an earlier sweep's report, or the user's
+    assert main(["sweep", "--set", "rail.travel=0.04", "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert f"{(out / 'sweep.md').resolve()} exists" in err and "\n" not in err
+    assert (out / "sweep.md").read_text() == "my notes"
 
 
 @pytest.mark.slow

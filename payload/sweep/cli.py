@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from payload.cliutil import CheckFailed, command_project, default_out, emit_json, out_folder
-from payload.folders import CAMPAIGN_FILES, TRIAL_FILES
+from payload.folders import CAMPAIGN_FILES, SWEEP_FILES, TRIAL_FILES, held
 from payload.sweep.grid import SweepError, parse_set
 from payload.sweep.run import DEFAULT_SAMPLES
 
@@ -49,9 +49,10 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
         raise SweepError(f"--workers must be at least 1, got {args.workers}")
     # a sweep never writes into a file, nor among a trial's or a campaign's files
     out_folder(args.out, holding=(*TRIAL_FILES, *CAMPAIGN_FILES))
-    if args.out and (Path(args.out) / "sweep.json").exists():
+    earlier = held(Path(args.out), SWEEP_FILES) if args.out else []
+    if earlier:  # an earlier sweep's (or a report of the same name)
         raise SweepError(
-            f"{Path(args.out).resolve() / 'sweep.json'} exists; choose a new --out (nothing "
+            f"{Path(args.out).resolve() / earlier[0]} exists; choose a new --out (nothing "
             "overwritten)"
         )
     project = command_project(args)

@@ -8,6 +8,7 @@ import math
 from pathlib import Path
 from typing import Any
 
+from payload.folders import SWEEP, SWEEP_TEXT
 from payload.sweep.point import POINT_FIELDS
 
 FIGURES: dict[str, str] = {
@@ -188,7 +189,7 @@ def write_sweep(data: dict[str, Any], out: Path, command: str) -> dict[str, Path
     """Write ``sweep.json``, the plots and ``sweep.md`` into ``out``."""
     out.mkdir(parents=True, exist_ok=True)
     plots = sweep_plots(data, out)
-    paths = {"json": out / "sweep.json", "md": out / "sweep.md"}
+    paths = {"json": out / SWEEP, "md": out / SWEEP_TEXT}
     paths["json"].write_text(json.dumps(data, indent=2, allow_nan=False) + "\n")
     paths["md"].write_text(sweep_markdown(data, command, plots))
     paths.update({Path(p).stem: out / p for p in plots})
