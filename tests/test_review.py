@@ -395,6 +395,20 @@ def test_bad_reach_samples_and_static_folder_exit_2(tmp_path, capsys) -> None:
     assert "--watch" in err and "--trial" in err
 
 
+def test_a_port_in_use_exits_2_in_one_line(capsys) -> None:
+    """Another program (an earlier review) holds the port: one line, not a traceback."""
+    import socket
+
+    with socket.socket() as held:
+        held.bind(("127.0.0.1", 0))
+        held.listen()
+        port = str(held.getsockname()[1])
+        for watch in ([], ["--watch"]):
+            assert main(["review", *watch, "--port", port, "--reach-samples", "0"]) == 2
+            err = _err(capsys)
+            assert f"--port {port}" in err and "in use" in err and "--port 0" in err
+
+
 def _scene_paths(html: str) -> set[str]:
     """Paths of the set_object commands embedded in a meshcat static page."""
     import base64

@@ -12,6 +12,7 @@ invalid design keeps the last good scene and sends its one-line error instead.
 from __future__ import annotations
 
 import base64
+import errno
 import json
 import sys
 import threading
@@ -26,6 +27,7 @@ from urllib.parse import parse_qs, urlparse
 from meshcat.commands import Delete
 
 from payload.errors import PayloadError
+from payload.review.errors import ReviewError
 from payload.review.page import command_key, live_html, packed
 from payload.review.scene import Scene, mpath
 
@@ -194,8 +196,18 @@ def serve(live: LiveReview, port: int = 0, host: str = "127.0.0.1") -> Threading
 
     Returns:
         The server (``server.server_address`` has the port; ``shutdown()`` stops it).
+
+    Raises:
+        ReviewError: The address cannot be bound (the port is in use, say).
     """
-    server = ThreadingHTTPServer((host, port), _handler(live))
+    try:
+        server = ThreadingHTTPServer((host, port), _handler(live))
+    except OSError as exc:
+        why = "in use" if exc.errno == errno.EADDRINUSE else (exc.strerror or str(exc))
+        raise ReviewError(
+            f"--port {port}: cannot listen on {host}:{port}: {why} (another review? "
+            "choose another --port, or --port 0 for any free port)"
+        ) from None
     server.daemon_threads = True
     threading.Thread(target=server.serve_forever, daemon=True, name="review-http").start()
     return server
