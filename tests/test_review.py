@@ -409,6 +409,36 @@ def test_a_port_in_use_exits_2_in_one_line(capsys) -> None:
             assert f"--port {port}" in err and "in use" in err and "--port 0" in err
 
 
+def test_a_design_outside_a_projects_cad_folder_is_refused_and_nothing_written(tmp_path):
+    """``--design F`` where F is not a project's ``cad/design.toml``: the review has no
+    models of F, and ``--watch`` used to write F's models into F's grandparent folder."""
+    import os
+    import subprocess
+    import sys
+
+    alt = tmp_path / "drafts" / "alt.toml"
+    alt.parent.mkdir()
+    shutil.copyfile(DESIGN, alt)
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    for extra in (["--watch", "--port", "0"], ["--static", str(tmp_path / "r.html")]):
+        argv = ["review", "--design", str(alt), "--reach-samples", "0", *extra]
+        try:
+            run = subprocess.run(
+                [sys.executable, "-m", "payload", *argv],
+                capture_output=True,
+                text=True,
+                timeout=60,
+                env=env,
+            )
+        except subprocess.TimeoutExpired:
+            pytest.fail(f"{argv} kept serving a design that is in no project")
+        assert run.returncode == 2, run.stderr
+        err = run.stderr.strip()
+        assert len(err.splitlines()) == 1 and "not a design project's cad/design.toml" in err
+    assert [p.name for p in tmp_path.iterdir()] == ["drafts"]
+    assert [p.name for p in alt.parent.iterdir()] == ["alt.toml"]
+
+
 def _scene_paths(html: str) -> set[str]:
     """Paths of the set_object commands embedded in a meshcat static page."""
     import base64

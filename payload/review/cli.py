@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from payload.cliutil import command_project
+from payload.project import project_of
 from payload.review.errors import ReviewError
 from payload.review.project import DEFAULT_RATE
 
@@ -105,6 +106,19 @@ def _check_static(out: Path) -> None:
             )
 
 
+def _check_project_design(design: Path) -> None:
+    """``--design F``: the review shows F's generated models, which live in F's project
+    (``<project>/urdf``, ``<project>/cad/meshes``), so F must be a project's
+    ``cad/design.toml`` (as for ``payload build --design F``)."""
+    owner = project_of(design)
+    if owner is None or owner.design_path != design.expanduser().resolve():
+        raise ReviewError(
+            f"--design {design}: not a design project's cad/design.toml, so it has no "
+            "models to review; nothing written (make a project with `payload new DIR` and save "
+            "the design as DIR/cad/design.toml)"
+        )
+
+
 def _cmd_review(args: argparse.Namespace) -> int:
     from payload.review.page import static_html
     from payload.review.serve import check_server, open_viewer
@@ -121,6 +135,8 @@ def _cmd_review(args: argparse.Namespace) -> int:
         _check_static(Path(args.static))
 
     project = command_project(args, args.design)  # named first; library defaults use it
+    if args.design is not None:
+        _check_project_design(Path(args.design))
     if args.watch:
         return _cmd_watch(args)
     from payload.design import models_follow_design
