@@ -355,6 +355,73 @@ def test_watch_follows_the_saved_design_and_shows_an_invalid_one(tmp_path, desig
         server.server_close()
 
 
+def test_an_open_page_shows_the_design_of_a_review_restarted_on_its_port(
+    tmp_path, design_dict
+) -> None:
+    """Stop a live review, change the design, start a review on the same port: the page
+    left open shows the new design (it did keep the old one: both servers' first build is
+    version 0, so the page asked for nothing and cleared its 'server stopped' banner)."""
+    _require_browser()
+    import hashlib
+    import shutil
+
+    import tomli_w
+    from conftest import ROOT
+
+    from payload.review.browser import open_page
+    from payload.review.cli import live_review
+    from payload.review.live import serve
+
+    root = tmp_path / "project"
+    shutil.copytree(ROOT / "urdf", root / "urdf")
+    shutil.copytree(ROOT / "cad" / "meshes", root / "cad" / "meshes")
+    design = root / "cad" / "design.toml"
+    design.write_bytes(tomli_w.dumps(design_dict).encode())
+
+    def start(port: int):
+        live = live_review(str(design), 0)
+        assert live.rebuild() is None
+        return serve(live, port)
+
+    def stop(server) -> None:
+        server.shutdown()
+        server.server_close()
+
+    def shown(page, script: str):
+        """``script``'s value, or None while the page is (re)loading."""
+        from playwright.sync_api import Error
+
+        try:
+            return page.evaluate(script)
+        except Error:  # the page navigated away under the call (a reload)
+            return None
+
+    def title(page) -> str:
+        return shown(page, "() => document.getElementById('payload-title').textContent") or ""
+
+    server = start(0)
+    port = server.server_address[1]
+    try:
+        with open_page(f"http://127.0.0.1:{port}/") as page:
+            before = page.evaluate(_DISTAL)
+            old_hash = hashlib.sha256(design.read_bytes()).hexdigest()[:16]
+            assert old_hash in title(page)
+            stop(server)
+            _wait_for(page, lambda p: "stopped" in p.evaluate("() => payloadReview.error"), 3)
+            shorter = {**design_dict, "finger": {**design_dict["finger"]}}
+            lengths = dict(design_dict["finger"]["lengths"])
+            lengths["distal"] = lengths["distal"] - 0.006
+            shorter["finger"]["lengths"] = lengths
+            design.write_bytes(tomli_w.dumps(shorter).encode())
+            new_hash = hashlib.sha256(design.read_bytes()).hexdigest()[:16]
+            server = start(port)
+            _wait_for(page, lambda p: new_hash in title(p), 5.0)
+            _wait_for(page, lambda p: shown(p, _DISTAL) not in (None, before), 5.0)
+            assert shown(page, "() => payloadReview.error") == ""
+    finally:
+        stop(server)
+
+
 # ------------------------------------------------------------- the trial replay
 
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 import base64
 import errno
 import json
+import secrets
 import sys
 import threading
 import time
@@ -82,6 +83,9 @@ class LiveReview:
         self.error: str | None = None
         self.stamp: tuple[int, int] | None = None
         self._notes: list[str] = []
+        self.session = secrets.token_hex(8)
+        """This review's own name: a page that was open on another review (an earlier one
+        on the same port, whose versions count from 0 too) reloads when it changes."""
 
     def notes(self) -> list[str]:
         """The last good build's notes (design, verdict, findings)."""
@@ -116,14 +120,16 @@ class LiveReview:
         return self._stamp() not in (None, self.stamp)
 
     def update(self, have: int) -> dict[str, Any]:
-        """What a page holding build ``have`` (-1: none) needs to show the latest one."""
+        """What a page holding build ``have`` (-1: none) needs to show the latest one; its
+        ``session`` names this review (a page that held another's reloads)."""
         with self._lock:
             error, builds = self.error, list(self.builds)
+        none = {"commands": [], "overlay": None, "error": error, "session": self.session}
         if not builds:
-            return {"version": -1, "commands": [], "overlay": None, "error": error}
+            return {"version": -1, **none}
         last = builds[-1]
         if have == last.version:
-            return {"version": have, "commands": [], "overlay": None, "error": error}
+            return {"version": have, **none}
         old = next((b for b in builds if b.version == have), None)
         if old is None:
             commands = [blob for _, blob in last.commands]
@@ -142,6 +148,7 @@ class LiveReview:
             "commands": commands,
             "overlay": last.overlay,
             "error": error,
+            "session": self.session,
         }
 
     def watch(self, stop: threading.Event, log: Callable[[str], None] = print) -> None:

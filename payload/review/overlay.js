@@ -223,6 +223,10 @@
       const r = await fetch(`update?have=${state.version}`, { cache: "no-store" });
       if (r.ok) {
         const u = await r.json();
+        // another review now serves this address (its versions count from 0 too): start
+        // over from its page rather than keep a scene it does not know of
+        if (state.session === undefined) state.session = u.session;
+        else if (u.session !== state.session) return location.reload();
         if (u.version !== state.version || (u.error || "") !== error.textContent) apply(u);
       }
     } catch (e) {
