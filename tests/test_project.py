@@ -126,6 +126,18 @@ def test_new_refuses_a_non_empty_folder_and_copies_from(tmp_path, new_project, c
     assert Project.at(tmp_path / "copy").design_path.read_text() == edited
 
 
+def test_new_where_no_folder_can_be_made_is_one_line(tmp_path, capsys):
+    """A path below a regular file cannot become a folder (as a read-only or someone
+    else's folder cannot): one line naming the folder, exit 2, not a traceback."""
+    blocker = tmp_path / "notes.txt"
+    blocker.write_text("mine")
+    target = blocker / "variant"
+    assert main(["new", str(target)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and str(target) in err and "cannot" in err, err
+    assert blocker.read_text() == "mine" and sorted(tmp_path.iterdir()) == [blocker]
+
+
 # ------------------------------------------------- the project in front of the command
 def test_edited_project_is_stale_and_a_long_proximal_fails(
     new_project, tmp_path, monkeypatch, capsys, checkout_before

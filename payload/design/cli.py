@@ -113,8 +113,16 @@ def new_project(directory: str | Path, source: str | Path | None = None) -> tupl
     text = default_design_text() if source is None else _source_design_text(source)
     created = not target.exists()
     project = Project.at(target)
-    project.design_path.parent.mkdir(parents=True, exist_ok=True)
-    project.design_path.write_text(text, encoding="utf-8")
+    try:
+        project.design_path.parent.mkdir(parents=True, exist_ok=True)
+        project.design_path.write_text(text, encoding="utf-8")
+    except OSError as exc:  # a read-only or someone else's folder, a file on the way
+        if created:
+            shutil.rmtree(project.root, ignore_errors=True)
+        raise ProjectError(
+            f"{target}: cannot make the project there ({exc.strerror or exc}); "
+            "`payload new` needs a folder it can create and write"
+        ) from None
     try:
         result = write(load_design(project.design_path), project.root)
     except PayloadError:
