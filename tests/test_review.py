@@ -439,6 +439,16 @@ def test_a_design_outside_a_projects_cad_folder_is_refused_and_nothing_written(t
     assert [p.name for p in alt.parent.iterdir()] == ["alt.toml"]
 
 
+def test_a_static_page_that_cannot_be_written_is_one_line(tmp_path, capsys) -> None:
+    blocker = tmp_path / "notes.txt"
+    blocker.write_text("mine")
+    out = blocker / "review.html"  # below a regular file: no folder can be made there
+    assert main(["review", "--static", str(out), "--reach-samples", "0"]) == 2
+    err = _err(capsys)
+    assert f"--static {out}" in err and "cannot" in err
+    assert blocker.read_text() == "mine" and sorted(tmp_path.iterdir()) == [blocker]
+
+
 def _scene_paths(html: str) -> set[str]:
     """Paths of the set_object commands embedded in a meshcat static page."""
     import base64

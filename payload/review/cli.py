@@ -150,8 +150,11 @@ def _cmd_review(args: argparse.Namespace) -> int:
     if args.static is not None:
         out = Path(args.static)
         html = static_html(scene)
-        out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(html, encoding="utf-8")
+        try:
+            out.parent.mkdir(parents=True, exist_ok=True)
+            out.write_text(html, encoding="utf-8")
+        except OSError as exc:  # a read-only folder, a file on the way
+            raise ReviewError(f"--static {out}: cannot write it ({exc.strerror or exc})") from None
         print(f"wrote {out} ({len(html) / 1e6:.1f} MB)")
         if args.open:
             webbrowser.open(out.resolve().as_uri(), new=2)
