@@ -70,3 +70,21 @@ def test_command_parses_as_shown(parser, command: str, capsys):
         pytest.fail(f"`{command}` does not parse (exit {exc.code})")
     assert callable(getattr(args, "func", None)), command
     assert "deprecated" not in capsys.readouterr().err, f"`{command}`: an old spelling"
+
+
+def test_the_live_links_limits_table_states_the_servers_limits():
+    """docs/live.md's table of limits says what the server enforces (it said bursts of 24
+    after the burst became half a second of frames)."""
+    from payload.teleop.messages import MAX_MESSAGE_BYTES
+    from payload.teleop.server import MAX_CLIENTS, MIN_TOKEN_CHARS, RATE_BURST, RATE_LIMIT_HZ
+
+    text = (ROOT / "docs" / "live.md").read_text(encoding="utf-8")
+    rows = {
+        r.split("|")[1].strip(): r.split("|")[2] for r in text.splitlines() if r.count("|") == 4
+    }
+    rate = re.search(r"(\d+) a second .*bursts of (\d+)", rows["messages per connection"])
+    assert rate is not None
+    assert (float(rate[1]), float(rate[2])) == (RATE_LIMIT_HZ, RATE_BURST)
+    assert int(rows["open WebSocket connections"]) == MAX_CLIENTS
+    assert re.search(r"(\d+) KiB", rows["message size"])[1] == str(MAX_MESSAGE_BYTES // 1024)
+    assert re.search(r"at least (\d+) characters", rows["session token"])[1] == str(MIN_TOKEN_CHARS)
