@@ -157,15 +157,9 @@ def _run_hardware(args: argparse.Namespace, out: Path, replay: Path) -> dict[str
     """``hw run``'s session on the bus (``--device``, or an emulator started here)."""
     from firmware_interface.driver import DynamixelDriver
     from firmware_interface.run import run_hardware_trial
-    from payload.profiles import SAFE, resolve
+    from payload.profiles import SAFE, resolve_args
 
-    prof, overrides = resolve(
-        args.controller,
-        SAFE,
-        retarget_budget=args.retarget_budget,
-        retarget_collisions=args.retarget_collisions,
-        base_filter=args.base_filter,
-    )
+    prof, overrides = resolve_args(args, SAFE)
     with contextlib.ExitStack() as stack:
         emu = None
         if args.emulator:

@@ -13,6 +13,7 @@ This module imports nothing heavy: the command line reads it to build its option
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import Any
 
 from payload.errors import PayloadError
 
@@ -101,3 +102,16 @@ def resolve(name: str | None, default: str, **given: object) -> tuple[Controller
     prof = profile(default if name is None else name)
     overrides = sorted(k for k, v in given.items() if v is not None and getattr(prof, k) != v)
     return prof.override(**given), overrides  # type: ignore[arg-type]
+
+
+def resolve_args(args: Any, default: str) -> tuple[ControllerProfile, list[str]]:
+    """:func:`resolve` of a command's ``--controller`` and the finer flags that override a
+    profile (``--retarget-budget``, ``--[no-]retarget-collisions``, ``--[no-]base-filter``:
+    ``None`` when not given), ``default`` where no ``--controller`` is given."""
+    return resolve(
+        args.controller,
+        default,
+        retarget_budget=args.retarget_budget,
+        retarget_collisions=args.retarget_collisions,
+        base_filter=args.base_filter,
+    )

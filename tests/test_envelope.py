@@ -517,6 +517,37 @@ def test_the_report_follows_the_design_through_two_edits(tmp_path, capsys):
     assert run_cli("build", "--check", "--project", str(project.root)).returncode == 0
 
 
+def test_another_designs_report_needs_an_out_and_never_replaces_the_projects(tmp_path, capsys):
+    """``report envelope|reach --design F`` with F not the project's own design (outside any
+    project, or another file inside it) would write F's report over the project's in
+    analyses/ (which follows the project's design): one line, exit 2, nothing written;
+    a bad F still says what is wrong with it."""
+    from payload.cli import main
+
+    root = tmp_path / "p"
+    (root / "cad").mkdir(parents=True)
+    (root / "cad" / "design.toml").write_bytes(Path(DESIGN).read_bytes())
+    elsewhere = tmp_path / "loose" / "other.toml"
+    elsewhere.parent.mkdir()
+    elsewhere.write_bytes(Path(DESIGN).read_bytes())
+    inside = root / "variants" / "other.toml"
+    inside.parent.mkdir()
+    inside.write_bytes(Path(DESIGN).read_bytes())
+    for what in ("envelope", "reach"):
+        for design in (elsewhere, inside):
+            argv = ["--project", str(root), "report", what, "--design", str(design)]
+            assert main(argv) == 2
+            err = capsys.readouterr().err.strip().splitlines()
+            assert len(err) == 1 and f"--design {design} is not the project's design" in err[0]
+            assert "give --out DIR" in err[0]
+    assert not (root / "analyses").exists()
+    broken = tmp_path / "loose" / "broken.toml"
+    broken.write_text("[finger\n")
+    assert main(["--project", str(root), "report", "envelope", "--design", str(broken)]) == 2
+    err = capsys.readouterr().err
+    assert "is not the project's design" not in err and str(broken) in err
+
+
 def test_write_stowed_writes_the_proposal_into_the_stowed_table_and_nothing_else(geom, tmp_path):
     """``--write-stowed``: only ``[stowed] finger`` and its comment change, and the design
     then loads with the proposed posture (the proposal here is checked by check_stowed)."""

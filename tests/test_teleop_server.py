@@ -642,6 +642,40 @@ def test_serve_runs_the_base_filter_by_default(monkeypatch, flags, expected):
     assert seen == [expected]
 
 
+@pytest.mark.parametrize(
+    ("flags", "says"),
+    [
+        (["--link-delay", "soon"], "--link-delay"),
+        (["--device", "/dev/ttyUSB0"], "--device /dev/ttyUSB0: only with --driver hardware"),
+        (["--driver", "hardware"], "--driver hardware needs --device DEV"),
+        (["--cert", "c.pem"], "--cert and --key go together"),
+        (["--port", "{busy}"], "cannot listen on 127.0.0.1:{busy}"),
+    ],
+)
+def test_serve_refuses_a_bad_command_line_before_loading_anything(monkeypatch, capsys, flags, says):
+    """``payload teleop serve`` checks its whole command line (and that its port is free)
+    before the models and the simulator load, which takes seconds: one line, exit 2."""
+    import socket
+
+    import payload.design
+    from payload.cli import main
+
+    def started(*args, **kwargs):
+        raise AssertionError("the set-up started")
+
+    monkeypatch.setattr(payload.design, "models_follow_design", started)
+    with socket.socket() as busy:  # a port in use (listening, as another server's is)
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = str(busy.getsockname()[1])
+        argv = [f.format(busy=port) for f in flags]
+        assert main(["teleop", "serve", *argv]) == 2
+    err = capsys.readouterr()
+    lines = err.err.strip().splitlines()
+    assert len(lines) == 1 and says.format(busy=port) in lines[0], err.err
+    assert "loading" not in err.out
+
+
 def test_publish_sets_the_snapshot_and_the_state_together():
     """One lock for both, so a reader never sees a state beside another step's snapshot."""
     hub = LiveHub()

@@ -40,8 +40,24 @@ def _design_path(args: argparse.Namespace) -> Path:
 
 
 def _out_dir(args: argparse.Namespace) -> Path:
-    """``--out``, else the project's ``analyses/``."""
-    return out_folder(args.out) or _project(args).analyses_dir
+    """``--out``, else the project's ``analyses/`` when the design is the project's own: a
+    report follows its design, so another design's (``--design F``, F not the project's
+    ``cad/design.toml``) needs an ``--out`` and never replaces the project's report."""
+    out = out_folder(args.out)
+    if out is not None:
+        return out
+    project = _project(args)
+    if args.design and Path(args.design).expanduser().resolve() != project.design_path.resolve():
+        from payload.envelope.vehicle import load_design_and_vehicle
+        from payload.errors import PayloadError
+
+        load_design_and_vehicle(Path(args.design))  # a bad file says what is wrong with it
+        raise PayloadError(
+            f"--design {args.design} is not the project's design ({project.design_path}): "
+            f"its report would replace the project's own in {project.analyses_dir}; give "
+            "--out DIR"
+        )
+    return project.analyses_dir
 
 
 def _recorder(args: argparse.Namespace) -> Callable[[dict[str, Any]], dict[str, Any]]:

@@ -78,7 +78,7 @@ def _check_record(record: Path | None) -> None:
         raise TeleopCliError(f"--record {record}: not a folder")
 
 
-def _hardware_driver(device: str | None) -> Any:
+def _hardware_driver(device: str) -> Any:
     """The Dynamixel payload driver (``firmware_interface``), brought up on ``device`` (the
     rail and the stage homed), at the design's home posture where the simulated session
     starts, its Bus Watchdog disarmed until the session's loop runs (the simulator and the
@@ -86,8 +86,6 @@ def _hardware_driver(device: str | None) -> Any:
     from firmware_interface import DynamixelDriver
     from firmware_interface.run import move_to_home
 
-    if not device:
-        raise TeleopCliError("--driver hardware needs --device DEV (the servo bus's serial device)")
     driver = DynamixelDriver(device)
     try:
         driver.bring_up()
@@ -101,20 +99,41 @@ def _hardware_driver(device: str | None) -> Any:
 
 def serve(args: argparse.Namespace, make_session: SessionFactory) -> int:
     """``payload teleop serve``: the live page driving the session ``make_session`` makes."""
+    from payload.profiles import SAFE, resolve_args
     from payload.teleop.live import LiveHub
-    from payload.teleop.server import TeleopServer, is_local, new_token
+    from payload.teleop.server import TeleopServer, check_address, is_local, new_token
     from payload.teleop.tls import CA_NAME, ensure_certificate, fingerprint, server_context
 
+    # every check of the command line before the long set-up (the models, the simulator)
+    if args.device is not None and args.driver != "hardware":
+        raise TeleopCliError(f"--device {args.device}: only with --driver hardware")
+    if args.driver == "hardware" and not args.device:
+        raise TeleopCliError("--driver hardware needs --device DEV (the servo bus's serial device)")
+    link_delay = None
+    if args.link_delay is not None:
+        from payload.teleop.link import parse_link_delay
+
+        link_delay = parse_link_delay(args.link_delay)
+    prof, overrides = resolve_args(args, SAFE)
+    desktop = None
+    if args.desktop:
+        from payload.teleop.emulate import EmulationError, find_iwer
+
+        try:
+            desktop = find_iwer()
+        except EmulationError as exc:
+            raise TeleopCliError(f"--desktop: {exc}") from None
+    record = Path(args.record) if args.record else None
+    _check_record(record)
+    if (args.cert is None) != (args.key is None):
+        raise TeleopCliError("--cert and --key go together (a certificate and its key)")
+    check_address(args.host, args.port)
     project = command_project(args)  # the simulator and the retargeters read its models
     from payload.design import models_follow_design
 
     models_follow_design(project.design_path, project.root)  # the one rule for stale models
-    record = Path(args.record) if args.record else None
-    _check_record(record)
     local = is_local(args.host)
     ssl_context, token = None, None
-    if (args.cert is None) != (args.key is None):
-        raise TeleopCliError("--cert and --key go together (a certificate and its key)")
     if args.cert is not None:
         cert, key = Path(args.cert), Path(args.key)
         ssl_context = server_context(cert, key)
@@ -135,20 +154,6 @@ def serve(args: argparse.Namespace, make_session: SessionFactory) -> int:
     if payload is not None:
         hub.driver = f"hardware on {args.device}" + (" (emulator)" if payload.emulated else "")
     print("loading the simulator and the retargeters ...", flush=True)
-    link_delay = None
-    if args.link_delay is not None:
-        from payload.teleop.link import parse_link_delay
-
-        link_delay = parse_link_delay(args.link_delay)
-    from payload.profiles import SAFE, resolve
-
-    prof, overrides = resolve(
-        args.controller,
-        SAFE,
-        retarget_budget=args.retarget_budget,
-        retarget_collisions=args.retarget_collisions,
-        base_filter=args.base_filter,
-    )
     session = make_session(
         hub,
         record,
@@ -159,14 +164,6 @@ def serve(args: argparse.Namespace, make_session: SessionFactory) -> int:
         base_filter=prof.base_filter,
         link_delay=link_delay,
     )
-    desktop = None
-    if args.desktop:
-        from payload.teleop.emulate import EmulationError, find_iwer
-
-        try:
-            desktop = find_iwer()
-        except EmulationError as exc:
-            raise TeleopCliError(f"--desktop: {exc}") from None
     server = TeleopServer(
         hub,
         args.host,
@@ -277,7 +274,7 @@ def serve_arguments(p: argparse.ArgumentParser) -> None:
         help="TCP port the page, its WebSocket and /status are served on (default 8765; "
         "0: any free port)",
     )
-    p.add_argument("--record", help="record the session as a trial into this folder")
+    p.add_argument("--record", metavar="DIR", help="record the session as a trial into this folder")
     p.add_argument("--tls", action="store_true", help="use TLS on a local bind too")
     from payload.profiles import PROFILES, SAFE
 

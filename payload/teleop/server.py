@@ -34,6 +34,7 @@ import json
 import logging
 import mimetypes
 import secrets
+import socket
 import ssl
 import threading
 from collections.abc import Callable
@@ -79,6 +80,27 @@ MAX_CLIENTS = 4  # open WebSocket connections: an operator, a spare page, a few 
 
 class ServerError(PayloadError):
     """The server cannot be set up as asked (insecure bind, port in use)."""
+
+
+def check_address(host: str, port: int) -> None:
+    """Raise :class:`ServerError` now if ``host:port`` cannot be bound (a port in use, an
+    address not of this machine), as :meth:`TeleopServer.start` would: a command checks it
+    before its long set-up. Port 0 (any free port) always can be."""
+    if port == 0:
+        return
+    try:
+        infos = socket.getaddrinfo(
+            host or None, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE
+        )
+        for family, kind, proto, _, address in infos:
+            with socket.socket(family, kind, proto) as probe:
+                # as asyncio's server binds: SO_REUSEADDR (a closed port's TIME_WAIT is free)
+                probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+                if family == socket.AF_INET6:
+                    probe.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_V6ONLY, 1)
+                probe.bind(address)
+    except OSError as exc:
+        raise ServerError(f"cannot listen on {host}:{port}: {exc.strerror or exc}") from None
 
 
 def is_local(host: str) -> bool:
