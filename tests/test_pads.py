@@ -134,3 +134,28 @@ def test_scripted_closing_at_the_operators_rate_gives_one_continuous_contact():
     first = int(np.argmax(f))
     assert f[first:].all(), f"contact dropped {int((~f[first:]).sum())} times after first touch"
     assert sim.warnings() == {}
+
+
+def test_pad_contact_lands_on_hertz_at_the_design_load_and_half_way(design):
+    """MuJoCo's resting secant is ``F / r = m d^2 / ((1 - d) dmax^2 timeconst^2
+    dampratio^2)`` (the documentation's resting penetration ``a (1 - d) timeconst^2
+    dampratio^2`` at ``d = dmax``; reference/facts.md, MuJoCo contact guidance), so the
+    derived solref puts the design load at Hertz's indentation delta0 exactly, and
+    Hertz's force at delta0 / 2 (``0.5^1.5 F0``, the sigmoid's midpoint) at delta0 / 2.
+    The earlier law ``m d / (1 - d)`` left the pad 1 / dmax (5 %) too soft."""
+    c = pad_contact(design, str(MJCF), design.pinch.finger, 15.4, PHYSICS_DT)
+    load = design.finger.pad.load
+    pen = _penetration(c.solref, c.solimp, c.effective_mass, load)
+    assert pen == pytest.approx(c.indentation, rel=1e-6)
+    half = _penetration(c.solref, c.solimp, c.effective_mass, 0.5**1.5 * load)
+    assert half == pytest.approx(0.5 * c.indentation, rel=1e-6)
+
+
+@pytest.mark.parametrize("d", [0.5, 0.9, 0.95])
+def test_mujoco_resting_secant_goes_as_d_squared_over_one_minus_d(d):
+    """The secant law the pad derivation rests on, against MuJoCo with a constant
+    impedance (dmin = dmax = d)."""
+    tc, zeta, mass, force = 0.01, 1.5, 0.05, 1.0
+    pen = _penetration((tc, zeta), (d, d, 0.001, 0.5, 2.0), mass, force)
+    expected = mass * d * d / ((1 - d) * d * d * tc * tc * zeta * zeta)
+    assert force / pen == pytest.approx(expected, rel=1e-6)

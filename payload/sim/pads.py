@@ -17,23 +17,26 @@ thin-layer law ``F = E (pi a^2) delta / h`` with ``a^2 = 2 R delta`` assumed the
 ``int (E / h)(delta - r^2 / 2R) 2 pi r dr = pi E R delta^2 / h``.
 
 MuJoCo's contact is a mass-normalised spring-damper: ``solref = (timeconst, dampratio)``
-sets the reference stiffness ``1 / (dmax^2 timeconst^2 dampratio^2)`` and damping
-``2 / (dmax timeconst)``, and the impedance ``d(r)`` of ``solimp`` softens it: a contact
-of effective mass ``m`` pressed with force ``F`` settles at the penetration ``r`` with
-``F / r = m d / (1 - d) / (dmax^2 timeconst^2 dampratio^2)`` (a secant law, checked
-against MuJoCo in the tests), and ``dampratio = 1`` damps it critically. The effective
+sets ``K = 1 / (dmax^2 timeconst^2 dampratio^2)`` and the damping ``2 / (dmax
+timeconst)``, and the impedance ``d(r)`` of ``solimp`` enters twice (the reference
+acceleration is ``-b v - K d r`` and the constrained acceleration blends it in with
+weight ``d``: ``a1 = (1 - d) a0 + d a_ref``). So a contact of effective mass ``m``
+pressed with force ``F`` settles at the penetration ``r`` with
+``F / r = m d^2 / (1 - d) K`` (a secant law, checked against MuJoCo in the tests; at
+``d = dmax`` it is the resting penetration ``a (1 - d) timeconst^2 dampratio^2`` of the
+MuJoCo documentation), and ``dampratio = 1`` damps it critically. The effective
 mass of a pad contact along the closing direction is the finger's (``1 / (n J M^-1 J^T
 n)`` from the payload model at the pinch pre-shape, with its reflected servo inertia) in
 series with the CTB's. The pad's secant ``F0 / delta0`` at the design load (with
-``d = dmax``) gives ``timeconst = sqrt(m dmax / (1 - dmax) * delta0 / F0) / (dmax
-dampratio)``, ``dampratio`` the design's damping ratio (at least 1).
+``d = dmax``) gives ``timeconst = sqrt(m / (1 - dmax) * delta0 / F0) / dampratio``,
+``dampratio`` the design's damping ratio (at least 1).
 
 ``solimp`` follows Hertz's progressive stiffening: the impedance rises from ``dmin`` at
 first touch to ``dmax`` at the design-load indentation ``delta0`` (the transition width),
 with ``dmin`` chosen so that half-way in the secant ``F / delta`` is ``0.5^(1/2)`` of the
 design load's, as ``F ~ delta^(3/2)`` gives (midpoint of MuJoCo's sigmoid:
-``d = (dmin + dmax) / 2`` there). MuJoCo needs ``timeconst >= 2 dt``; a stiffer pad is
-clamped there (and said so).
+``d = (dmin + dmax) / 2`` there, where the secant goes as ``d^2 / (1 - d)``). MuJoCo needs
+``timeconst >= 2 dt``; a stiffer pad is clamped there (and said so).
 """
 
 from __future__ import annotations
@@ -56,15 +59,18 @@ HERTZ_EXPONENT = 1.5
 """``F ~ delta^HERTZ_EXPONENT`` (Hertz, sphere on a flat)."""
 
 
-def _odds(d: float) -> float:
-    return d / (1.0 - d)
+def _secant_factor(d: float) -> float:
+    """How MuJoCo's resting secant stiffness ``F / r`` scales with the impedance ``d``:
+    ``d^2 / (1 - d)`` (module docstring)."""
+    return d * d / (1.0 - d)
 
 
 def _midpoint_dmin(dmax: float) -> float:
-    """``dmin`` with ``odds((dmin + dmax) / 2) = odds(dmax) 0.5^(n - 1)``, n the Hertz
-    exponent: half-way to the design indentation the secant stiffness is that share."""
-    target = 0.5 ** (HERTZ_EXPONENT - 1.0) * _odds(dmax)
-    mid = target / (1.0 + target)
+    """``dmin`` with ``s((dmin + dmax) / 2) = s(dmax) 0.5^(n - 1)``, ``s`` the
+    :func:`_secant_factor` and n the Hertz exponent: half-way to the design indentation
+    the secant stiffness is that share."""
+    target = 0.5 ** (HERTZ_EXPONENT - 1.0) * _secant_factor(dmax)
+    mid = 0.5 * (math.sqrt(target * target + 4.0 * target) - target)  # d^2 = t (1 - d)
     return 2.0 * mid - dmax
 
 
@@ -167,7 +173,7 @@ def pad_contact(
     zeta = float(design.finger.pad.damping_ratio)
     dmax = SOLIMP_DMAX
     secant = design.finger.pad.load / delta0  # = k / HERTZ_EXPONENT
-    tc = math.sqrt(m_eff * _odds(dmax) / secant) / (dmax * zeta)
+    tc = math.sqrt(m_eff / ((1.0 - dmax) * secant)) / zeta
     least = 2.0 * timestep
     clamped = tc < least
     tc = max(tc, least)
