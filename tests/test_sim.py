@@ -886,3 +886,21 @@ def test_a_command_and_a_twist_of_frozen_vectors_are_the_constructors():
         VehicleTwist.of_frozen(broken, vel[3:], 0.0)
     with pytest.raises(SchemaError, match=r"VehicleTwist\.angular: expected 3"):
         VehicleTwist.of_frozen(vel[:3], vel, 0.0)
+
+
+def test_benches_read_the_control_period_and_the_flight_mode_not_retyped() -> None:
+    """The scripted operator of ``bench sim`` flies at the nominal flight mode's caps (the
+    paper's 0.20 m/s; reference/facts.md: nominal 0.1745 rad/s) and the retargeting bench
+    streams at the 50 Hz loop's period, each read from where the fact lives."""
+    import inspect
+
+    from payload.design.vehicle import DEFAULT_FLIGHT_MODE, FLIGHT_MODES
+    from payload.retarget import bench as retarget_bench
+    from payload.schema import CONTROL_DT
+    from payload.sim.bench import ScriptedOperator
+
+    params = inspect.signature(ScriptedOperator).parameters
+    mode = FLIGHT_MODES[DEFAULT_FLIGHT_MODE]
+    assert params["speed"].default == mode.speed == pytest.approx(0.20)
+    assert params["omega"].default == mode.omega == pytest.approx(0.1745)
+    assert retarget_bench.DT == CONTROL_DT == pytest.approx(1.0 / 50.0)

@@ -66,9 +66,10 @@ from payload.retarget.optimum import (
     best_known_cost,
 )
 from payload.retarget.reference import ReferenceRetargeter
+from payload.schema import CONTROL_DT
 
-DT = 0.02
-"""Control period of the target stream [s] (50 Hz)."""
+DT = CONTROL_DT
+"""Control period of the target stream [s] (the 50 Hz loop's)."""
 
 COST_TOLERANCE = 1e-3
 """A production cost counts as not worse when ``<= reference * (1 + COST_TOLERANCE)``."""

@@ -24,7 +24,7 @@ import numpy as np
 from payload.rotations import quat_to_matrix, yaw_of_matrix
 from payload.schema import PayloadCommand, VehicleTwist
 from payload.sim.driver import SimDriver, WorldState
-from payload.sim.vehicle import DEFAULT_PROPULSION
+from payload.sim.vehicle import DEFAULT_FLIGHT_MODE, DEFAULT_PROPULSION, FLIGHT_MODES
 from payload.sim.world import CONTROL_DT, PHYSICS_DT, SimError, World, WorldConfig, build_world
 
 
@@ -121,16 +121,16 @@ class ScriptedOperator:
     Args:
         world: The world (its pinch grasp and route are used).
         brake: Deceleration for stopping at the route's end [m/s^2].
-        speed: Cruise speed [m/s].
-        omega: Yaw-rate bound [rad/s].
+        speed: Cruise speed [m/s] (default: the default flight mode's speed cap).
+        omega: Yaw-rate bound [rad/s] (default: the default flight mode's rate cap).
     """
 
     def __init__(
         self,
         world: World,
         brake: float,
-        speed: float = 0.2,
-        omega: float = 0.1745,
+        speed: float = FLIGHT_MODES[DEFAULT_FLIGHT_MODE].speed,
+        omega: float = FLIGHT_MODES[DEFAULT_FLIGHT_MODE].omega,
         settle: float = 0.5,
         preshape: float = 1.0,
         close: float = 1.5,

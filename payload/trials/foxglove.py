@@ -53,6 +53,7 @@ from google.protobuf.timestamp_pb2 import Timestamp
 from mcap_protobuf.schema import build_file_descriptor_set
 
 from payload.design import MANIPULATION_JOINTS
+from payload.schema import CONTROL_DT
 from payload.trials.jointcodec import quantize_joints
 
 RATE_HZ = 10.0
@@ -132,7 +133,7 @@ class FoxgloveScene:
         self._parents = [int(m.body_parentid[b]) for b in self._links]
         self._link_names = [self.names[b] for b in self._links]
         self._parent_names = [self.names[p] for p in self._parents]
-        self.every = max(1, round(50.0 / RATE_HZ))
+        self.every = max(1, round(1.0 / (CONTROL_DT * RATE_HZ)))  # control steps a scene
         self.channels: dict[str, int] = {}
         self._k = 0
         self._next_scene_ns = 0
