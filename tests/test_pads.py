@@ -159,3 +159,22 @@ def test_mujoco_resting_secant_goes_as_d_squared_over_one_minus_d(d):
     pen = _penetration((tc, zeta), (d, d, 0.001, 0.5, 2.0), mass, force)
     expected = mass * d * d / ((1 - d) * d * d * tc * tc * zeta * zeta)
     assert force / pen == pytest.approx(expected, rel=1e-6)
+
+
+def test_the_pad_figures_quoted_in_docs_trials_are_the_derived_ones(design):
+    """docs/trials.md's pad paragraph quotes the indentation, tangent stiffness,
+    effective mass and time constant of the derived contact (single CTB, 1 ms)."""
+    import re
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parents[1] / "docs" / "trials.md").read_text()
+    para = text[text.index("Pads. The pad contact") :].split("\n\n")[0]
+    c = pad_contact(design, str(MJCF), design.pinch.finger, 15.4, PHYSICS_DT)
+
+    def quoted(pattern: str) -> float:
+        return float(re.search(pattern, para.replace("\n", " ")).group(1))
+
+    assert quoted(r"gives ([\d.]+) mm indentation") == pytest.approx(c.indentation * 1e3, abs=0.005)
+    assert quoted(r"stiffness of ([\d.]+) kN/m") == pytest.approx(c.stiffness / 1e3, abs=0.05)
+    assert quoted(r"about ([\d.]+) kg") == pytest.approx(c.effective_mass, abs=0.005)
+    assert quoted(r"constant \(([\d.]+) ms") == pytest.approx(c.timeconst * 1e3, abs=0.05)
