@@ -904,3 +904,15 @@ def test_benches_read_the_control_period_and_the_flight_mode_not_retyped() -> No
     assert params["speed"].default == mode.speed == pytest.approx(0.20)
     assert params["omega"].default == mode.omega == pytest.approx(0.1745)
     assert retarget_bench.DT == CONTROL_DT == pytest.approx(1.0 / 50.0)
+
+
+def test_the_jerk_bounds_reach_the_nominal_accelerations_in_half_a_second() -> None:
+    """The controller's default jerk bounds are the nominal flight mode's acceleration
+    limits (reference/facts.md: 0.0175 m/s^2, 0.1745 rad/s^2) reached in 0.5 s, the
+    documented assumption: 0.035 m/s^3 and 0.349 rad/s^3."""
+    from payload.sim.vehicle import MassProperties, VehicleController
+
+    plant = MassProperties(20.0, np.zeros(3), np.diag([0.3, 0.3, 0.3]))
+    ctl = VehicleController(plant, "nominal", propulsion="box")
+    assert ctl.jerk[:3] == pytest.approx([0.0175 / 0.5] * 3, rel=1e-12)
+    assert ctl.jerk[3:] == pytest.approx([0.1745 / 0.5] * 3, rel=1e-12)

@@ -36,12 +36,17 @@ clipped per axis independently."""
 
 DEFAULT_PROPULSION = "nozzles"
 
-JERK_LINEAR = 0.035
-"""Linear jerk bound [m/s^3]. ASSUMPTION (not published): the nominal acceleration reached
-in 0.5 s."""
+JERK_RISE_S = 0.5
+"""ASSUMPTION (not published): the jerk bounds reach the nominal flight mode's acceleration
+limits in this time [s]."""
 
-JERK_ANGULAR = 0.35
-"""Angular jerk bound [rad/s^3]. ASSUMPTION: the nominal angular acceleration in 0.5 s."""
+JERK_LINEAR = FLIGHT_MODES["nominal"].accel / JERK_RISE_S
+"""Linear jerk bound [m/s^3]: the nominal acceleration (0.0175 m/s^2) in
+:data:`JERK_RISE_S` (0.035)."""
+
+JERK_ANGULAR = FLIGHT_MODES["nominal"].alpha / JERK_RISE_S
+"""Angular jerk bound [rad/s^3]: the nominal angular acceleration (0.1745 rad/s^2) in
+:data:`JERK_RISE_S` (0.349; typed as 0.35 before)."""
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -473,6 +478,7 @@ __all__ = [
     "FLIGHT_MODES",
     "JERK_ANGULAR",
     "JERK_LINEAR",
+    "JERK_RISE_S",
     "PROPULSION_MODELS",
     "FlightMode",
     "JerkLimitedProfile",
