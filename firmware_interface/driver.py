@@ -436,7 +436,9 @@ class DynamixelDriver(FaultHandling):
             g = GroupSyncWrite(self.port, self.packet, ADDR["torque_enable"], 1)
             for i in self.ids:
                 g.addParam(i, [0])
-            g.txPacket()
+            result = g.txPacket()
+            if result != COMM_SUCCESS:
+                raise CommError(self.packet.getTxRxResult(result))
         except Exception as exc:  # the port may be gone: closing must still succeed
             log.warning("close: could not turn the torque off: %s", exc)
         finally:

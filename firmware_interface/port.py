@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import termios
+import threading
+
 from dynamixel_sdk import (
     BROADCAST_ID,
     COMM_RX_CORRUPT,
@@ -12,6 +15,8 @@ from dynamixel_sdk import (
     Protocol2PacketHandler,
 )
 
+from firmware_interface.errors import CommError
+
 
 class SdkPort(PortHandler):
     """The SDK's PortHandler with the packet timeout's latency allowance configurable.
@@ -19,11 +24,61 @@ class SdkPort(PortHandler):
     The SDK assumes a USB adapter latency timer of 16 ms (``LATENCY_TIMER``) and waits
     twice that plus the packet's bytes for a reply; a bus behind another latency (an
     adapter set to 1 ms, a busy host) sets its own.
+
+    The SDK marks the port in use (``is_using``) for the length of a transaction and
+    refuses a new one while it is set. An exception that cuts a transaction short (Ctrl-C
+    while a reply is awaited, a device that vanished) leaves the mark set, and every later
+    transaction, the torque-off of :meth:`DynamixelDriver.close` included, failed as
+    "Port is in use!". The mark here remembers the thread that set it: the SDK's calls
+    are not re-entrant, so a thread that starts a transaction while its own mark is set
+    is past a transaction that was cut short; the mark is cleared and the half-read reply
+    dropped. Another thread's transaction still holds the port.
+
+    A serial device that fails (unplugged, the emulator's pty gone) raises
+    :class:`CommError` naming the device, not the serial library's own exception.
     """
 
     def __init__(self, port_name: str, latency_timer_ms: float) -> None:
+        self._user: int | None = None  # the thread whose transaction holds the port
         super().__init__(port_name)
         self.latency_timer_ms = latency_timer_ms
+
+    @property
+    def is_using(self) -> bool:  # type: ignore[override]
+        if self._user is not None and self._user == threading.get_ident():
+            self._user = None  # this thread's last transaction was cut short: it is over
+            try:
+                if self.ser is not None:
+                    self.ser.reset_input_buffer()  # the rest of its reply, if any
+            except (OSError, termios.error):
+                pass
+        return self._user is not None
+
+    @is_using.setter
+    def is_using(self, value: bool) -> None:
+        self._user = threading.get_ident() if value else None
+
+    def _failed(self, exc: BaseException) -> CommError:
+        return CommError(f"{self.port_name}: the serial device failed ({exc}): unplugged, "
+                         "powered off, or the emulator ended?")  # fmt: skip
+
+    def readPort(self, length: int) -> bytes:
+        try:
+            return super().readPort(length)
+        except (OSError, termios.error) as exc:
+            raise self._failed(exc) from exc
+
+    def writePort(self, packet: list[int]) -> int:
+        try:
+            return super().writePort(packet)
+        except (OSError, termios.error) as exc:
+            raise self._failed(exc) from exc
+
+    def clearPort(self) -> None:
+        try:
+            super().clearPort()
+        except (OSError, termios.error) as exc:
+            raise self._failed(exc) from exc
 
     def setPacketTimeout(self, packet_length: int) -> None:
         self.packet_start_time = self.getCurrentTime()

@@ -290,6 +290,61 @@ def test_close_leaves_every_servo_torque_off_and_is_idempotent(smap):
         assert not any(s["torque"] for s in emu.servos().values())
 
 
+def test_ctrl_c_during_a_bus_reply_still_leaves_every_servo_torque_off(smap):
+    """Ctrl-C lands while the SDK awaits a reply (KeyboardInterrupt raised out of the
+    serial read, where Python raises it from the signal handler): the SDK left the port
+    marked in use, and close()'s torque-off used to fail as "Port is in use!" with every
+    servo left torqued. The next command still reaches the servos, and close() stops them."""
+    with EmulatorProcess() as emu:
+        drv = DynamixelDriver(emu.port, smap, latency_timer_ms=LAT, guard=False)
+        try:
+            drv.bring_up()
+            ser = drv.port.ser
+            read = ser.read
+
+            def interrupted(n):
+                ser.read = read  # once
+                raise KeyboardInterrupt
+
+            ser.read = interrupted
+            with pytest.raises(KeyboardInterrupt):
+                drv.read()
+            cmd = PayloadCommand(np.full(17, 0.1), 0.0, 0.0)
+            drv.send(cmd)  # as the loop's finally does: hold the last command
+            goals = [reg(emu.table(s.id), "goal_position") for s in smap.servos]
+            assert goals == smap.command_ticks(cmd)
+            assert drv.read().q.shape == (17,)
+            ser.read = interrupted
+            with pytest.raises(KeyboardInterrupt):
+                drv.read()
+        finally:
+            drv.close()
+        assert not any(s["torque"] for s in emu.servos().values())
+
+
+def test_a_vanished_device_is_a_comm_error_naming_it(smap, caplog):
+    """The emulator killed mid-session (a USB adapter pulled): the read and the command
+    after it each raise one CommError naming the device (not the serial library's
+    'Input/output error', nor "Port is in use!"); close() still returns."""
+    emu = EmulatorProcess()
+    try:
+        drv = DynamixelDriver(emu.port, smap, latency_timer_ms=LAT, guard=False)
+        drv.bring_up()
+        drv.read()
+        emu.proc.kill()
+        emu.proc.wait()
+        for action in (drv.read, lambda: drv.send(PayloadCommand(np.zeros(17), 0.0, 0.0))):
+            with pytest.raises(CommError) as err:
+                action()
+            text = str(err.value)
+            assert emu.port in text and "serial device failed" in text and "in use" not in text
+        with caplog.at_level(logging.WARNING, logger="firmware_interface.driver"):
+            drv.close()
+        assert "could not turn the torque off" in caplog.text
+    finally:
+        emu.close()
+
+
 HOST = textwrap.dedent(
     """
     import sys, time
