@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from payload.design.params import load_design
+from payload.errors import RunAborted
 from payload.folders import HANDS, METRICS, RECORDING
 from payload.schema import PayloadCommand, PayloadDriver, PayloadState, VehicleTwist
 from payload.sim.driver import SimDriver, WorldState
@@ -369,8 +370,18 @@ def run_hardware_trial(
                 if fault is not None:
                     raise fault
 
-            commands = replay_session(driver, frames, max_time=max_time, pace=pace,
-                                      on_step=on_step, rt=(retargeters, ranges))  # fmt: skip
+            try:
+                commands = replay_session(driver, frames, max_time=max_time, pace=pace,
+                                          on_step=on_step, rt=(retargeters, ranges))  # fmt: skip
+            except Exception as exc:  # a fault, the bus lost: a failed run, not bad input
+                what = f"{type(exc).__name__}: {exc}"
+                recorder.flush()  # the steps so far go into the file
+                at = max(0.0, recorder.last_written_t)
+                recorder.write_meta({"aborted_by": what, "aborted_at_s": at})
+                raise HardwareRunAborted(
+                    f"hw run aborted at t = {at:.2f} s by {what}; recording kept (marked "
+                    f"aborted, not scored): {rec_path}"
+                ) from exc
             watchdog = watchdog_report(hardware.watchdog_trips[trips0:])
             recorder.flush()  # every step written: the scene's figures count them all
             recorder.write_meta({"steps": len(commands), "warnings": driver.warnings(),
@@ -382,6 +393,11 @@ def run_hardware_trial(
                   watchdog=watchdog)  # fmt: skip
     (out / METRICS).write_text(json.dumps(result, indent=2) + "\n")
     return result
+
+
+class HardwareRunAborted(RunAborted):
+    """``hw run``'s session stopped mid-way (a hardware fault, the bus lost): exit 1, the
+    message names the recording kept (marked aborted, as a trial's)."""
 
 
 def watchdog_report(trips: list[dict[str, Any]]) -> dict[str, Any]:

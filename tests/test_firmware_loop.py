@@ -199,3 +199,47 @@ def _messages(path, topic):
 
     with open(path, "rb") as f:
         return [m for _, _, m in make_reader(f).iter_messages(topics=[topic])]
+
+
+def test_a_hardware_fault_mid_run_aborts_it_exit_1_naming_the_recording_kept(
+    session, tmp_path, capsys
+):
+    """A servo fault in the middle of ``hw run`` (overheating latched on servo 7 half a
+    second into the recorded session) is a failed run, not bad input: exit 1 (was 2, as
+    "error"), the last line says the run was aborted, by what, and where its recording
+    is; the recording keeps the steps up to the fault, marked aborted; nothing is scored;
+    the servos are left torque off."""
+    import threading
+    import time
+
+    from payload.cli import main
+    from payload.trials.recorder import read_recording
+
+    out = tmp_path / "trial"
+    with EmulatorProcess() as emu:
+
+        def inject():
+            deadline = time.monotonic() + 120
+            while not (out / "log.mcap").exists() and time.monotonic() < deadline:
+                time.sleep(0.01)
+            time.sleep(0.5)  # the session is running: about 25 steps in
+            emu.fault("error:7:overheating")
+
+        fault = threading.Thread(target=inject, daemon=True)
+        fault.start()
+        argv = ["hw", "run", "--device", emu.port, "--replay", str(session),
+                "--out", str(out), "--latency-ms", str(LAT)]  # fmt: skip
+        code = main(argv)
+        fault.join()
+        assert not any(s["torque"] for s in emu.servos().values())
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 1, err
+    last = err[-1]
+    assert last.startswith("payload: aborted: hw run aborted at t = ")
+    assert "servo 7 (B_pip): hardware error overheating" in last
+    assert str(out / "log.mcap") in last
+    rec = read_recording(out / "log.mcap")
+    assert rec.complete and 0 < len(rec) < len(read_hand_recording(session)[1])
+    assert "overheating" in rec.meta["aborted_by"] and "aborted" in rec.meta
+    assert rec.meta["aborted_at_s"] == pytest.approx(rec.t[-1])
+    assert not (out / "metrics.json").exists()
