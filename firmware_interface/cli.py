@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import math
 import sys
 from pathlib import Path
 from typing import Any
@@ -34,6 +35,21 @@ class HwUsageError(PayloadError):
     """Bad command-line input for the hardware commands."""
 
 
+def _check_numbers(args: argparse.Namespace) -> None:
+    """The numeric options, before anything is opened, moved or written (one line, exit 2).
+
+    Raises:
+        HwUsageError: ``--latency-ms`` not a finite number >= 0 (a NaN or infinite reply
+            timeout would wait forever on a silent servo), ``--max-time`` not positive.
+    """
+    lat = getattr(args, "latency_ms", None)
+    if lat is not None and not 0.0 <= lat < math.inf:
+        raise HwUsageError(f"--latency-ms must be a finite number of ms >= 0, got {lat}")
+    cap = getattr(args, "max_time", None)
+    if cap is not None and not cap > 0:
+        raise HwUsageError(f"--max-time must be positive, got {cap}")
+
+
 def _map(args: argparse.Namespace) -> Any:
     from firmware_interface.servo_map import load_servo_map
 
@@ -48,6 +64,7 @@ def _cmd_emulate(args: argparse.Namespace) -> int:
 
 
 def _cmd_scan(args: argparse.Namespace) -> int:
+    _check_numbers(args)
     from firmware_interface.driver import DynamixelDriver
 
     command_project(args)  # the servo map's joints are this project's
@@ -106,7 +123,7 @@ def check(port: str, smap: Any, latency_ms: float = 16.0) -> dict[str, Any]:
 
 
 def _cmd_check(args: argparse.Namespace) -> int:
-
+    _check_numbers(args)
     command_project(args)  # the servo map is validated against this project's design
     report = check(need_device(args), _map(args), args.latency_ms)
     if args.json:
@@ -125,6 +142,7 @@ def _cmd_check(args: argparse.Namespace) -> int:
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
+    _check_numbers(args)
     project = command_project(args)
     from payload.design import models_follow_design
 
@@ -208,6 +226,7 @@ def _replay_of(args: argparse.Namespace) -> Path:
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
+    _check_numbers(args)
     from firmware_interface.bench import bench_hw
 
     if args.cycles < 1:
@@ -228,6 +247,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
 
 def _cmd_identify(args: argparse.Namespace) -> int:
+    _check_numbers(args)
     from firmware_interface.driver import DynamixelDriver
     from firmware_interface.identify import identify, write_servo_values
 

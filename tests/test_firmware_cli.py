@@ -118,3 +118,31 @@ def test_scan_of_a_bus_where_nobody_answers_fails(capsys):
     out, err = capsys.readouterr()
     assert code == 1 and "not answering" in out
     assert err.strip().splitlines()[-1].startswith("payload: check failed: no servo answered")
+
+
+@pytest.mark.parametrize(
+    "argv, named",
+    [
+        (["hw", "scan", "--latency-ms", "nan"], "--latency-ms"),
+        (["hw", "check", "--latency-ms", "-5"], "--latency-ms"),
+        (["hw", "identify", "--latency-ms", "inf"], "--latency-ms"),
+        (["hw", "run", "--max-time", "-1"], "--max-time"),
+        (["hw", "run", "--max-time", "nan"], "--max-time"),
+    ],
+)
+def test_a_bad_number_is_one_line_before_the_bus_is_touched(argv, named, tmp_path, capsys):
+    """A reply timeout that is NaN, infinite (a silent servo waited on forever) or
+    negative, or a session cap that is not positive, is bad input: one line naming the
+    option, exit 2, before any packet reaches the bus or any folder is made (``hw run
+    --max-time -1`` used to home the payload, then fail on its own empty recording and
+    leave it behind)."""
+    from firmware_interface.emulator import EmulatorProcess
+
+    out = tmp_path / "run"
+    with EmulatorProcess() as emu:
+        extra = ["--replay", __file__, "--out", str(out)] if argv[1] == "run" else []
+        code = main([*argv, "--device", emu.port, *extra])
+        assert emu.stats()["packets"] == {}  # the bus never heard from it
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and err[0].startswith(f"payload: error: {named} ")
+    assert not out.exists()
