@@ -132,7 +132,7 @@ class HardwareInTheLoop:
         current, ID -> mA, signed in the servo's tick direction."""
         tau = self.sim.data.qfrc_constraint[self._dofs]  # [N m], joint direction
         hw = self.hardware
-        kt = hw.design.servo.stall_torque / hw.design.servo.stall_current  # [N m / A]
+        kt = hw.design.servo.kt  # [N m / A], the servo model's (the emulator's, the driver's)
         specs = hw.map.servos[: len(self._dofs)]
         return {sp.id: float(sp.direction * t / kt * 1e3) for sp, t in zip(specs, tau)}
 

@@ -243,3 +243,35 @@ def test_a_hardware_fault_mid_run_aborts_it_exit_1_naming_the_recording_kept(
     assert "overheating" in rec.meta["aborted_by"] and "aborted" in rec.meta
     assert rec.meta["aborted_at_s"] == pytest.approx(rec.t[-1])
     assert not (out / "metrics.json").exists()
+
+
+def test_the_grasps_load_on_a_servo_uses_the_designs_torque_constant():
+    """``hw identify --write`` puts a measured ``kt`` into the design; the emulated servo
+    and the driver then use it, and so must the grasp's load fed to the emulator: a
+    contact torque just under the design's blocked torque (Goal Current x kt,
+    ``joint_servo(...).torque_cap``) is a holding current under the servo's Goal Current,
+    just over it one over (with the datasheet's stall ratio, 0.517 N m/A, a torque up to
+    1.36x the blocked torque of a kt = 0.38 servo was taken as held)."""
+    import dataclasses
+
+    from payload.design.servo import joint_servo
+
+    base = load_design()
+    design = dataclasses.replace(base, servo=dataclasses.replace(base.servo, kt=0.38))
+    blocked = joint_servo(design, "finger").torque_cap  # [N m]
+    smap = load_servo_map()
+    with (
+        EmulatorProcess() as emu,
+        DynamixelDriver(emu.port, smap, design=design, latency_timer_ms=LAT, guard=False) as drv,
+        SimDriver() as sim,
+    ):
+        hil = HardwareInTheLoop(drv, sim)
+        dofs = hil._dofs
+        cap = BY_NAME["goal_current"]
+        drv.bring_up()  # Goal Current = the design's cap
+        cap_ma = decode(cap, emu.table(1)[cap.address : cap.address + cap.size])
+        for scale, held in ((0.97, True), (1.03, False)):
+            sim.data.qfrc_constraint[dofs] = scale * blocked
+            loads = hil.finger_loads()
+            assert len(loads) == 16
+            assert all((abs(ma) < cap_ma) == held for ma in loads.values()), (scale, loads)
