@@ -129,6 +129,8 @@ class DynamixelDriver(FaultHandling):
         self.alerts = 0  # reads whose status carried an alert bit
         self._linear = [sp for sp in self.map.servos if sp.joint in LINEAR_JOINTS]
         self._stopped = False
+        self._torque_on = False  # set once brought up: a servo then found torque off restarted
+        self._reset: set[int] = set()
         self._closed = True
         self._last_io = time.monotonic()
         self._gap = 0.0
@@ -228,6 +230,7 @@ class DynamixelDriver(FaultHandling):
             self._configure(spec)
         self.home()
         self._arm_watchdog(self.ids)
+        self._torque_on = True
         self._last_io = time.monotonic()
         if self.guard is not None:  # where the servos hold is the guard's last safe command
             self.guard.reset(self._direction * (self._present - self._zero) * self._units)
@@ -296,12 +299,12 @@ class DynamixelDriver(FaultHandling):
         self._check_open()
         if not isinstance(command, PayloadCommand):
             raise DynamixelError(f"send: expected a PayloadCommand, got {type(command).__name__}")
+        if self._stopped:  # nothing goes out (a reset servo is homed again by recover())
+            return
         unhomed = [sp.joint for sp in self._linear if sp.id not in self.homed]
         if unhomed:
             raise NotHomedError(f"{' and '.join(unhomed)} not homed: bring_up() homes them")
         values = np.clip(np.append(command.q, command.deploy), self._lower, self._upper)
-        if self._stopped:
-            return
         if self.guard is not None:  # the last line: no command inside a non-pad margin
             guarded = self.guard.filter(values)
             if guarded is None:

@@ -34,7 +34,8 @@ class HardwareFault(DynamixelError):
     Attributes:
         id: The servo.
         joint: Its joint.
-        bits: Names of the Hardware Error Status bits set.
+        bits: Names of the Hardware Error Status bits set (``["reset"]``: the servo was
+            found torque off with no error, restarted by a power loss or a REBOOT).
         others: Other servos with an error at the same time.
     """
 
@@ -46,9 +47,12 @@ class HardwareFault(DynamixelError):
         self.bits = list(bits)
         self.others = list(others or [])
         more = f" (also IDs {self.others})" if self.others else ""
-        super().__init__(
-            f"servo {dxl_id} ({joint}): hardware error {', '.join(bits) or 'unknown'}{more}"
+        what = (
+            "reset: torque off with no hardware error (power lost, or rebooted)"
+            if self.bits == ["reset"]
+            else f"hardware error {', '.join(bits) or 'unknown'}"
         )
+        super().__init__(f"servo {dxl_id} ({joint}): {what}{more}")
 
 
 class NotHomedError(DynamixelError):

@@ -34,6 +34,9 @@ class FaultHandling:
     faults: list[HardwareFault]
     health: dict[int, ServoHealth]
     _stopped: bool
+    _torque_on: bool  # every servo's torque should be on (brought up, not stopped torque off)
+    _reset: set[int]  # servos found restarted (torque off, no error): recover() reboots them
+    homed: set[int]
     _present: Any
     _gap: float
 
@@ -72,7 +75,8 @@ class FaultHandling:
 
         A hardware error stops the payload safely and is logged (see :meth:`safe_stop`).
         """
-        err = self._group_read(ADDR["hardware_error_status"], 1)
+        # Torque Enable (64) .. Hardware Error Status (70) in one read
+        err = self._group_read(ADDR["torque_enable"], 7)
         wd = self._group_read(ADDR["bus_watchdog"], 1)
         env = self._group_read(ADDR["present_input_voltage"], 3)
         out = {}
@@ -85,19 +89,24 @@ class FaultHandling:
                 float(env.getData(i, 146, 1)),
                 env.getData(i, 144, 2) * 0.1,
                 int(wd.getData(i, 98, 1)),
+                torque=bool(err.getData(i, 64, 1)),
             )
         self.health = out
         if any(h.watchdog == 0xFF for h in out.values()) and not self._stopped:
             self._rearm_watchdog(self._gap)
         faulted = [h for h in out.values() if h.hardware_error]
+        if self._torque_on:  # a servo found torque off restarted: its count (and homing) lost
+            reset = [h for h in out.values() if h.reset]
+            self._reset.update(h.id for h in reset)
+            self.homed.difference_update(h.id for h in reset)
+            faulted += reset
         if faulted and (self.fault is None or not self._stopped):
             self._on_hardware_error(faulted)
         return out
 
     def _on_hardware_error(self, faulted: list[ServoHealth]) -> None:
         h = faulted[0]
-        fault = HardwareFault(h.id, h.joint, hw_error_names(h.hardware_error),
-                              others=[x.id for x in faulted[1:]])  # fmt: skip
+        fault = HardwareFault(h.id, h.joint, h.bits, others=[x.id for x in faulted[1:]])
         self.fault = fault
         self.faults.append(fault)
         log.error("payload stopped (%s): %s", self.on_fault, fault)
@@ -107,6 +116,7 @@ class FaultHandling:
         """Stop the payload: hold every servo where it is, or turn the torque off."""
         self._stopped = True
         if self.on_fault == "torque_off":
+            self._torque_on = False
             g = GroupSyncWrite(self.port, self.packet, ADDR["torque_enable"], 1)
             for i in self.ids:
                 g.addParam(i, [0])
@@ -126,7 +136,7 @@ class FaultHandling:
         """
         self._check_open()
         self.check_health()
-        ids = [h.id for h in self.health.values() if h.hardware_error]
+        ids = [h.id for h in self.health.values() if h.hardware_error or h.id in self._reset]
         t0 = time.monotonic()
         for i in ids:
             self.packet.reboot(self.port, i)
@@ -152,6 +162,8 @@ class FaultHandling:
                     self._write(spec.id, "goal_position", present)
                     self._write(spec.id, "torque_enable", 1)
         self._stopped = False
+        self._torque_on = True
+        self._reset.clear()
         self.fault = None
         seconds = time.monotonic() - t0
         log.info("recovered %s in %.3f s", ", ".join(self._name(i) for i in ids), seconds)

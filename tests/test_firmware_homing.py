@@ -205,3 +205,33 @@ def test_injected_overload_at_a_random_cycle_stops_within_one_control_period(sma
                 assert reg(tables[spec.id], "goal_position") == held, spec.id
         assert reg(tables[victim], "torque_enable") == 0
         assert tables[victim][ADDR["hardware_error_status"]] == 1 << 5
+
+
+def test_a_power_loss_mid_session_stops_the_payload_and_recover_rehomes(smap):
+    """The bus's power drops and comes back mid-session (a brown-out, a loose supply
+    lead): every servo restarts torque off, its multi-turn count lost. The stowed stage,
+    homed from a count two turns away, then reads -7168 ticks, two turns from its true
+    1024 (the emulator's physical position); the driver used to read on, every servo
+    limp and the stage's position wrong, with no word. Now the next health read (every
+    ``health_every`` reads) sees torque off where the driver had it on: the payload is
+    stopped naming the servos, and ``recover()`` brings them back, the stage homed again."""
+    stage = smap.servos[17]
+    with (
+        EmulatorProcess() as emu,
+        DynamixelDriver(emu.port, smap, latency_timer_ms=LAT, health_every=5) as drv,
+    ):
+        drv.bring_up()  # homing leaves the stage stowed, at its stop
+        assert emu.servos()[18]["pos"] == stage.zero
+        hold = PayloadCommand(drv.read().q, drv.read().deploy, 0.0)
+        emu.power_cycle()
+        for _ in range(drv.health_every):
+            drv.send(hold)
+            drv.read()
+        assert isinstance(drv.fault, HardwareFault), "the reset went unseen"
+        assert {drv.fault.id, *drv.fault.others} == set(smap.ids)
+        assert "reset" in str(drv.fault)
+        rec = drv.recover()
+        assert set(rec.ids) == set(smap.ids) and 18 in drv.homed and drv.fault is None
+        servos = emu.servos()
+        assert all(s["torque"] for s in servos.values())
+        assert abs(_stage_reading(drv, smap) - servos[18]["pos"]) <= 1.0
