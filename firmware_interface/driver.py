@@ -32,6 +32,7 @@ from firmware_interface.control_table import (
     BY_NAME,
     CURRENT_UNIT_A,
     EMULATOR_MODEL_INFORMATION,
+    RAD_PER_TICK,
     VELOCITY_UNIT_RPM,
     hw_error_names,
     to_signed,
@@ -144,7 +145,7 @@ class DynamixelDriver(FaultHandling):
         self._lower = np.array([sp.lower for sp in specs])
         self._upper = np.array([sp.upper for sp in specs])
         # joint units per servo-shaft radian: 1 for the fingers, radius / gear for the drives
-        self._ratio = np.array([sp.units_per_tick / (2 * np.pi / 4096) for sp in self.map.servos])
+        self._ratio = np.array([sp.units_per_tick / RAD_PER_TICK for sp in self.map.servos])
         try:
             if not self.port.openPort():
                 raise DynamixelError(f"{port}: cannot open the serial port")
@@ -429,7 +430,8 @@ class DynamixelDriver(FaultHandling):
             raise DynamixelError("the driver is closed")
 
     def close(self) -> None:
-        """Leave the servos safe (hold where they are, then torque off) and close the port.
+        """Leave the servos safe (torque off on every servo, one sync write) and close the
+        port.
 
         Idempotent; never raises for a bus that stopped answering.
         """

@@ -328,6 +328,7 @@ class ServoModel:
         self._set("present_position", round(self.pos) + self.get("homing_offset"))
         self._set("present_velocity", round(self.vel / TICKS_PER_REV * 60.0 / VELOCITY_UNIT_RPM))
         self._set("present_current", round(self.current))
-        moving = abs(self.vel) > self.get("moving_threshold") * VELOCITY_UNIT_RPM / 60 * 4096
+        threshold = self.get("moving_threshold") * VELOCITY_UNIT_RPM / 60 * TICKS_PER_REV
+        moving = abs(self.vel) > threshold
         self.table[ADDR["moving"]] = int(moving)
         self._set("realtime_tick", int(self.t * 1000) % 32768)

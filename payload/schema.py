@@ -27,6 +27,10 @@ _SHAPE3 = (3,)
 CONTROL_DT = 0.02
 """Period of the teleoperation loop and of every command stream [s] (the paper's 50 Hz)."""
 
+PHYSICS_DT = 0.001
+"""Physics time step [s] (1 kHz, the paper's): the default of every command and the
+generated MJCF's ``timestep``."""
+
 
 class SchemaError(PayloadError):
     """A command or state does not satisfy the schema."""
@@ -236,6 +240,7 @@ class PayloadDriver(Protocol):
 __all__ = [
     "CONTROL_DT",
     "N_MANIPULATION",
+    "PHYSICS_DT",
     "Health",
     "PayloadCommand",
     "PayloadDriver",

@@ -8,13 +8,10 @@ from pathlib import Path
 from typing import Any
 
 from payload.project import Project, current_project, project_of
-from payload.schema import CONTROL_DT
+from payload.schema import CONTROL_DT, PHYSICS_DT
 from payload.sim.cargo import CTB_SIZES, CtbSize, Handle
 from payload.sim.errors import SimError
 from payload.sim.iss import IssLayout
-
-PHYSICS_DT = 0.001
-"""Physics time step [s] (1 kHz, the paper's): the default of every command."""
 
 
 def check_physics_dt(dt: float) -> str | None:

@@ -35,6 +35,7 @@ from payload.design import (
 from payload.envelope.vehicle import Vehicle
 from payload.rotations import yaw_quat
 from payload.schema import CONTROL_DT as SCHEMA_CONTROL_DT
+from payload.schema import PHYSICS_DT
 from payload.sim.astrobee import (
     ASTROBEE_INERTIA,
     ASTROBEE_MASS,
@@ -45,7 +46,7 @@ from payload.sim.astrobee import (
     payload_mount,
 )
 from payload.sim.cargo import CTB_MODELS, CTB_SIZES, DEFAULT_CTB, CtbSize, Handle, _add_ctb
-from payload.sim.config import PHYSICS_DT, WorldConfig
+from payload.sim.config import WorldConfig
 from payload.sim.errors import SimError
 from payload.sim.grasp import (
     PINCH_CLEARANCE,

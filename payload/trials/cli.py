@@ -256,7 +256,7 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
 
 def _physics_text(dt: float) -> str:
     """The title's note of a physics step other than the default (empty at 1 kHz)."""
-    from payload.sim.config import PHYSICS_DT
+    from payload.schema import PHYSICS_DT
 
     return "" if dt == PHYSICS_DT else f", physics step {1e3 * dt:g} ms"
 

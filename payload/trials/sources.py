@@ -11,7 +11,7 @@ import numpy as np
 
 from payload.errors import PayloadError
 from payload.profiles import PAPER, resolve
-from payload.sim.config import PHYSICS_DT
+from payload.schema import PHYSICS_DT
 from payload.sim.vehicle import DEFAULT_PROPULSION
 from payload.sim.world import DEFAULT_CTB
 from payload.teleop.calibration import CalibrationProcedure
