@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 
 class PayloadError(Exception):
     """Root of every error the workbench raises on purpose."""
@@ -19,6 +21,21 @@ class DesignError(PayloadError):
         self.parameter = parameter
         self.reason = reason
         super().__init__(f"{parameter}: {reason}")
+
+
+def as_toml(value: Any) -> str:
+    """``value`` as a TOML design file spells it (``true``, ``"text"``, ``[1, 2]``), for a
+    :class:`DesignError` about what the file holds (Python's ``True`` is not what the
+    designer typed)."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(as_toml(v) for v in value) + "]"
+    if isinstance(value, dict):
+        return "{" + ", ".join(f"{k} = {as_toml(v)}" for k, v in value.items()) + "}"
+    return repr(value)
 
 
 class BuildError(PayloadError):

@@ -367,6 +367,36 @@ def test_invalid_designs_are_rejected_naming_the_parameter(design_dict, path, va
     assert reason in str(info.value)
 
 
+@pytest.mark.parametrize(
+    ("path", "toml", "named", "says"),
+    [
+        ("finger.lengths.distal", "true", "finger.lengths.distal", "expected a number, got true"),
+        ("finger.lengths.distal", '"45 mm"', "finger.lengths.distal", 'got "45 mm"'),
+        ("finger.limits.pip", "[0, false]", "finger.limits.pip", "got [0, false]"),
+        ("vehicle.mass", "true", "vehicle.mass", "expected a number, got true"),
+        ("vehicle.mass", "-9.5", "vehicle.mass", "must be a positive, finite number (got -9.5)"),
+        ("vehicle.bay_size", "[0.2, true, 0.1]", "vehicle.bay_size", "got [0.2, true, 0.1]"),
+    ],
+)
+def test_a_wrong_value_is_named_as_the_design_file_spells_it(tmp_path, path, toml, named, says):
+    """What a design file holds is quoted in TOML (``true``, ``"45 mm"``), not Python's
+    ``True`` and ``'45 mm'``; a mass is not called a size. The file is written and read
+    as a designer's is."""
+    lines = Path(DESIGN).read_text().splitlines()  # a designer's file: comments and all
+    *parents, key = path.split(".")
+    table = "[" + ".".join(parents) + "]"
+    start = next(i for i, line in enumerate(lines) if line.split("#")[0].strip() == table)
+    at = next(i for i in range(start + 1, len(lines)) if lines[i].split("=")[0].strip() == key)
+    assert not any(line.startswith("[") for line in lines[start + 1 : at])  # in the table
+    lines[at] = f"{key} = {toml}"
+    design = tmp_path / "design.toml"
+    design.write_text("\n".join(lines) + "\n")
+    with pytest.raises(DesignError) as info:
+        load_design(design)
+    assert info.value.parameter == named
+    assert says in str(info.value), str(info.value)
+
+
 def test_cli_prints_one_line_and_exits_2_on_an_invalid_design(design_dict, tmp_path):
     bad = tmp_path / "bad.toml"
     bad.write_text(tomli_w.dumps(_edit(design_dict, "finger.lengths.middle", -0.002)))

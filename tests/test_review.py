@@ -548,6 +548,42 @@ def test_watch_serves_the_page_and_stops_cleanly_on_ctrl_c(tmp_path, design_dict
             proc.wait()
 
 
+def test_watch_says_the_new_verdict_after_each_rebuild(tmp_path, design_dict) -> None:
+    """``review --watch`` prints the stowed-fit verdict of every rebuild, not only that it
+    rebuilt: a save that shrinks the bay below the stowed payload (the bay test above)
+    turns pass into FAIL in the terminal."""
+    import threading
+    import time
+
+    from payload.review.cli import live_review
+
+    path = _copy_project(tmp_path, design_dict, design_dict["vehicle"]["bay_size"])
+    live = live_review(str(path), 0)
+    assert live.rebuild() is None
+    assert any(n.startswith("stowed fit: pass") for n in live.notes())
+    said: list[str] = []
+    stop = threading.Event()
+    watcher = threading.Thread(target=live.watch, args=(stop, said.append), daemon=True)
+    watcher.start()
+    try:
+        data = {
+            **design_dict,
+            "vehicle": {**design_dict["vehicle"], "bay_size": [0.18, 0.10, 0.085]},
+        }
+        time.sleep(0.05)
+        path.write_bytes(tomli_w.dumps(data).encode())
+        deadline = time.monotonic() + 60
+        while not any(s.startswith("stowed fit: FAIL") for s in said):
+            assert time.monotonic() < deadline, said
+            time.sleep(0.05)
+    finally:
+        stop.set()
+        watcher.join(5)
+    at = next(i for i, s in enumerate(said) if s.startswith("rebuilt in "))
+    assert said[at + 1].startswith("stowed fit: FAIL"), said
+    assert not any(s.startswith("design: ") for s in said)
+
+
 def test_the_models_visuals_are_those_yourdfpy_reads(tmp_path):
     """The review reads the URDF's mesh visuals itself (no trimesh): against yourdfpy, on
     the committed model and on one whose visuals have an origin and a scale."""

@@ -406,6 +406,7 @@ def test_an_open_page_shows_the_design_of_a_review_restarted_on_its_port(
             before = page.evaluate(_DISTAL)
             old_hash = hashlib.sha256(design.read_bytes()).hexdigest()[:16]
             assert old_hash in title(page)
+            assert old_hash in page.title() and page.title().endswith(" - payload review")
             stop(server)
             _wait_for(page, lambda p: "stopped" in p.evaluate("() => payloadReview.error"), 3)
             shorter = {**design_dict, "finger": {**design_dict["finger"]}}
@@ -416,6 +417,7 @@ def test_an_open_page_shows_the_design_of_a_review_restarted_on_its_port(
             new_hash = hashlib.sha256(design.read_bytes()).hexdigest()[:16]
             server = start(port)
             _wait_for(page, lambda p: new_hash in title(p), 5.0)
+            _wait_for(page, lambda p: new_hash in (shown(p, "() => document.title") or ""), 5.0)
             _wait_for(page, lambda p: shown(p, _DISTAL) not in (None, before), 5.0)
             assert shown(page, "() => payloadReview.error") == ""
     finally:

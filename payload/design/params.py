@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from payload.design.plausible import check_plausible
-from payload.errors import DesignError
+from payload.errors import DesignError, as_toml
 from payload.project import current_project, default_design_text
 
 if sys.version_info >= (3, 11):
@@ -476,7 +476,7 @@ def _value(tp: Any, v: Any, where: str, meta: Any) -> Any:
         return _build(tp, v, where)
     if tp is Range:
         if not (isinstance(v, list) and len(v) == 2 and all(_is_number(x) for x in v)):
-            raise DesignError(where, f"expected [lower, upper] numbers, got {v!r}")
+            raise DesignError(where, f"expected [lower, upper] numbers, got {as_toml(v)}")
         lo, hi = float(v[0]), float(v[1])
         if not (math.isfinite(lo) and math.isfinite(hi)):
             raise DesignError(where, "limits must be finite")
@@ -485,15 +485,15 @@ def _value(tp: Any, v: Any, where: str, meta: Any) -> Any:
     if origin is tuple:
         args = typing.get_args(tp)
         if not (isinstance(v, list) and len(v) == len(args) and all(_is_number(x) for x in v)):
-            raise DesignError(where, f"expected {len(args)} numbers, got {v!r}")
+            raise DesignError(where, f"expected {len(args)} numbers, got {as_toml(v)}")
         return tuple(float(x) for x in v)
     if tp is str:
         if not isinstance(v, str):
-            raise DesignError(where, f"expected a string, got {v!r}")
+            raise DesignError(where, f"expected a string, got {as_toml(v)}")
         return v
     if tp is float:
         if not _is_number(v):
-            raise DesignError(where, f"expected a number, got {v!r}")
+            raise DesignError(where, f"expected a number, got {as_toml(v)}")
         x = float(v)
         if not math.isfinite(x):
             raise DesignError(where, "must be finite")

@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from payload.errors import DesignError
+from payload.errors import DesignError, as_toml
 
 BAY_ASSUMPTION = (
     "Astrobee's payload-bay size is not public: one 1-U bay is assumed to be "
@@ -251,16 +251,26 @@ class Vehicle:
         }
 
 
+def _number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
 def _check_vector(where: str, value: Any, n: int, positive: bool) -> None:
-    ok = isinstance(value, (list, tuple)) and len(value) == n
-    ok = ok and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)
+    ok = isinstance(value, (list, tuple)) and len(value) == n and all(map(_number, value))
     if not ok:
-        raise VehicleError(where, f"expected {n} numbers, got {value!r}")
+        raise VehicleError(where, f"expected {n} numbers, got {as_toml(value)}")
     for v in value:
         if not math.isfinite(v):
             raise VehicleError(where, f"must be finite (got {v})")
         if positive and not v > 0:
             raise VehicleError(where, f"every size must be positive (got {v})")
+
+
+def _check_positive(where: str, value: Any) -> None:
+    if not _number(value):
+        raise VehicleError(where, f"expected a number, got {as_toml(value)}")
+    if not (math.isfinite(value) and value > 0):
+        raise VehicleError(where, f"must be a positive, finite number (got {value})")
 
 
 def vehicle_from_dict(data: Any, source: str = "<memory>") -> Vehicle:
@@ -283,7 +293,7 @@ def vehicle_from_dict(data: Any, source: str = "<memory>") -> Vehicle:
             _check_vector(f"vehicle.{key}", data[key], n, positive=key != "body_offset")
             kwargs[key] = tuple(float(v) for v in data[key])
     if "mass" in data:
-        _check_vector("vehicle.mass", [data["mass"]], 1, positive=True)
+        _check_positive("vehicle.mass", data["mass"])
         kwargs["mass"] = float(data["mass"])
     if "assumption" in data:
         kwargs["assumption"] = data["assumption"]

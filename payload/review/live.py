@@ -163,6 +163,9 @@ class LiveReview:
             else:
                 seconds = time.perf_counter() - t0
                 log(f"rebuilt in {seconds:.1f} s (version {self.builds[-1].version})")
+                for line in self.notes():  # the new verdict and findings (the file is known)
+                    if not line.startswith("design: "):
+                        log(line)
 
 
 def _handler(live: LiveReview) -> type[BaseHTTPRequestHandler]:

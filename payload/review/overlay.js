@@ -49,6 +49,8 @@
   }
 
   function setOverlay(o) {
+    // the browser's tab names the design (project, file and hash) as the title does
+    document.title = o.title ? `${o.title} - payload review` : "payload review";
     title.innerHTML = "";
     div(null, title).textContent = o.title || "";
     const sub = div(null, title);
