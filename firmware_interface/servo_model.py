@@ -94,7 +94,6 @@ class ServoModel:
         self.power_ups = 0
         self._power_up()
         self.dynamics = ServoDynamics(plant or default_plant(), self.pos)
-        self._set("present_input_voltage", round(self.dynamics.plant.voltage / VOLTAGE_UNIT_V))
         self._refresh()
 
     # -- table access ------------------------------------------------------------------------
@@ -324,7 +323,9 @@ class ServoModel:
         self.stall_time = 0.0
 
     def _refresh(self) -> None:
-        """Present registers from the state."""
+        """Present registers from the state (the supply's voltage too: a REBOOT's RAM
+        defaults do not change the supply)."""
+        self._set("present_input_voltage", round(self.dynamics.plant.voltage / VOLTAGE_UNIT_V))
         self._set("present_position", round(self.pos) + self.get("homing_offset"))
         self._set("present_velocity", round(self.vel / TICKS_PER_REV * 60.0 / VELOCITY_UNIT_RPM))
         self._set("present_current", round(self.current))

@@ -235,3 +235,20 @@ def test_a_power_loss_mid_session_stops_the_payload_and_recover_rehomes(smap):
         servos = emu.servos()
         assert all(s["torque"] for s in servos.values())
         assert abs(_stage_reading(drv, smap) - servos[18]["pos"]) <= 1.0
+
+
+def test_a_reboot_keeps_the_supply_voltage_the_servo_reads():
+    """Present Input Voltage is the supply's (0.1 V a unit, e-Manual), not a RAM default:
+    an emulated servo on an 11.1 V supply reads 111 before and after a REBOOT and a power
+    cycle (it read the register's default, 5.0 V, after either)."""
+    import dataclasses
+
+    from firmware_interface.servo_dynamics import default_plant
+
+    plant = dataclasses.replace(default_plant(), voltage=11.1)
+    s = ServoModel(1, plant=plant)
+    assert s.get("present_input_voltage") == 111
+    s.reboot()
+    assert s.get("present_input_voltage") == 111
+    s.power_cycle()
+    assert s.get("present_input_voltage") == 111
