@@ -531,6 +531,23 @@ def test_stale_extra_mesh_is_reported(design, tmp_path):
     assert stale_files(design, tmp_path) == ["urdf/payload.urdf", "cad/meshes/old_part.stl"]
 
 
+def test_build_says_which_meshes_it_removed(tmp_path, capsys):
+    """``payload build`` removes the meshes no part of the design makes (a renamed or
+    dropped part's) and says so; a build with none to remove says nothing of it."""
+    from payload.cli import main
+
+    root = tmp_path / "p"
+    (root / "cad").mkdir(parents=True)
+    (root / "cad" / "design.toml").write_bytes(Path(DESIGN).read_bytes())
+    assert main(["build", "--project", str(root)]) == 0
+    assert "removed" not in capsys.readouterr().out
+    (root / "cad" / "meshes" / "old_part.stl").write_bytes(b"x")
+    assert main(["build", "--project", str(root)]) == 0
+    out = capsys.readouterr().out
+    assert "removed cad/meshes/old_part.stl (no part of the design makes it)" in out
+    assert not (root / "cad" / "meshes" / "old_part.stl").exists()
+
+
 # ---------------------------------------------------------------- stale models (issue 30)
 
 MODEL_READERS = {  # every command that reads the generated models -> its handler

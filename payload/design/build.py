@@ -42,10 +42,13 @@ class BuildResult:
     Attributes:
         tree: The kinematic tree the files were generated from.
         files: Paths written, relative to the output root.
+        removed: Meshes removed from ``cad/meshes/`` that no part of the design makes
+            (a renamed or dropped part's), relative to the output root.
     """
 
     tree: KinematicTree
     files: tuple[str, ...]
+    removed: tuple[str, ...] = ()
 
 
 def generate(design: Design) -> tuple[KinematicTree, dict[str, bytes]]:
@@ -73,21 +76,26 @@ def write(design: Design, root: Path) -> BuildResult:
     """Regenerate the models under ``root`` (a project folder, e.g. ``Project.root``);
     stale meshes no longer produced are removed."""
     tree, files = generate(design)
-    _write_files(files, root)
-    return BuildResult(tree, tuple(files))
+    removed = _write_files(files, root)
+    return BuildResult(tree, tuple(files), removed)
 
 
-def _write_files(files: dict[str, bytes], root: Path) -> None:
+def _write_files(files: dict[str, bytes], root: Path) -> tuple[str, ...]:
+    """Write the stale ``files`` under ``root``; returns the meshes removed that no part
+    makes any more."""
     mesh_dir = root / MESH_DIR
     mesh_dir.mkdir(parents=True, exist_ok=True)
     (root / URDF_DIR).mkdir(parents=True, exist_ok=True)
-    for old in mesh_dir.glob("*.stl"):
+    removed = []
+    for old in sorted(mesh_dir.glob("*.stl")):
         if f"{MESH_DIR}/{old.name}" not in files:
             old.unlink()
+            removed.append(f"{MESH_DIR}/{old.name}")
     for rel, data in files.items():
         path = root / rel
         if not _holds(path, data):
             replace_file(path, data)  # atomic: a command reading the models sees old or new
+    return tuple(removed)
 
 
 def _stale(files: dict[str, bytes], root: Path) -> list[str]:

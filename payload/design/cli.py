@@ -36,6 +36,8 @@ def _cmd_build(args: argparse.Namespace) -> int:
     result = write(design, root)
     dt = time.perf_counter() - t0
     print(f"wrote {len(result.files)} files under {root} in {dt:.2f} s")
+    if result.removed:  # a renamed or dropped part's mesh: nothing reads it any more
+        print(f"removed {', '.join(result.removed)} (no part of the design makes it)")
     return 0
 
 
