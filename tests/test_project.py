@@ -138,6 +138,20 @@ def test_new_where_no_folder_can_be_made_is_one_line(tmp_path, capsys):
     assert blocker.read_text() == "mine" and sorted(tmp_path.iterdir()) == [blocker]
 
 
+def test_new_refuses_a_project_option_it_would_ignore(tmp_path, capsys):
+    """``payload new DIR --project P`` (or ``payload --project P new DIR``) made DIR and
+    ignored P; the user meant another project's design, which is ``--from``: one line,
+    exit 2, nothing made."""
+    for argv in (
+        ["new", str(tmp_path / "a"), "--project", str(ROOT)],
+        ["--project", str(ROOT), "new", str(tmp_path / "a")],
+    ):
+        assert main(argv) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and "use --from PROJECT" in err, err
+    assert not (tmp_path / "a").exists()
+
+
 # ------------------------------------------------- the project in front of the command
 def test_edited_project_is_stale_and_a_long_proximal_fails(
     new_project, tmp_path, monkeypatch, capsys, checkout_before

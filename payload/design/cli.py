@@ -138,6 +138,11 @@ def new_project(directory: str | Path, source: str | Path | None = None) -> tupl
 
 
 def _cmd_new(args: argparse.Namespace) -> int:
+    if getattr(args, "project", None) is not None:  # it would be ignored: say so instead
+        raise ProjectError(
+            f"--project {args.project}: `payload new` makes the project at DIR "
+            f"({args.dir}); to start from another project's design use --from PROJECT"
+        )
     t0 = time.perf_counter()
     project, n = new_project(args.dir, args.source)
     print(f"project: {project.root}")
