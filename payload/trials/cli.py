@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import time
 from pathlib import Path
@@ -272,8 +273,8 @@ def _cmd_trials_summarize(args: argparse.Namespace) -> int:
 
     for name in ("min_contact_s", "max_gap_s"):
         value = getattr(args, name)
-        if value is not None and value < 0:
-            raise TrialsCliError(f"--{name.replace('_', '-')} must be >= 0")
+        if value is not None and not (math.isfinite(value) and value >= 0):
+            raise TrialsCliError(f"--{name.replace('_', '-')} must be a number >= 0, got {value}")
     relaxed = args.min_contact_s is not None or args.max_gap_s is not None
     rescore = args.recompute or relaxed
     results = load_trial_results(

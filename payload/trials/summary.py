@@ -292,7 +292,13 @@ def summary_markdown(summary: dict[str, Any], title: str | None = None) -> str:
             cells.append(f"{_fmt(stat, d)}{note}")
         lines.append(f"| {METRIC_LABELS[key]} | {cells[0]} | {cells[1]} | {_fmt(paper[key], d)} |")
     if summary.get("errors"):
-        lines += ["", f"{summary['errors']} trial(s) raised an error (counted as failures)."]
+        lines += [
+            "",
+            f"{summary['errors']} trial(s) raised an error or left no finished recording "
+            "(counted as failures):",
+            "",
+            *(f"- seed {t['seed']}: {t['error']}" for t in summary["trials"] if t.get("error")),
+        ]
     lines += [
         "",
         "Contact definitions. Confirmed contact (the recorded one): "
@@ -472,6 +478,19 @@ def write_summary(
     return summary
 
 
+def _unfinished(aborted: Any, complete: bool) -> str | None:
+    """Why a trial's recording is not a finished trial's (``None`` if it is): the run was
+    aborted (an error or Ctrl-C, which the recorder notes), or the file was never closed
+    (the process was killed: the reader reads it up to its last whole step)."""
+    if aborted:
+        return f"{RECORDING} is an aborted trial's ({str(aborted).rstrip(': ')}); not scored"
+    if not complete:
+        return (
+            f"{RECORDING} was cut short (never closed: the run was killed or crashed); not scored"
+        )
+    return None
+
+
 def load_trial_results(
     out_dir: str | Path,
     recompute: bool = False,
@@ -487,7 +506,8 @@ def load_trial_results(
         recompute: Rescore every trial from its ``log.mcap`` instead of reading
             ``metrics.json``, writing the results beside the originals, named by the
             contact definition (see :func:`finish_trial`); a trial without
-            ``metrics.json`` is always scored.
+            ``metrics.json`` is scored, unless its recording is an aborted trial's or was
+            cut short (never closed): that trial is an ``error`` row, a failure.
         min_interval_s: Contact-interval definition used when rescoring (0 = paper;
             None = the one each recording was made with).
         max_gap_s: Same for the bridged indicator dropouts.
@@ -505,6 +525,8 @@ def load_trial_results(
     dirs = sorted(p for p in root.glob("trial-*") if p.is_dir())
     if not dirs:
         raise CampaignError(f"{root}: no trial-* folders")
+    from payload.trials.reading import read_recording
+
     results = []
     for d in dirs:
         try:
@@ -519,6 +541,11 @@ def load_trial_results(
                 )
                 continue
             try:
+                rec = read_recording(d / RECORDING)
+                unfinished = _unfinished(rec.meta.get("aborted"), rec.complete)
+                if unfinished:  # as the runner leaves it: a record, not a scored trial
+                    results.append({"seed": seed, "out_dir": str(d), "error": unfinished})
+                    continue
                 row = finish_trial(
                     d,
                     d / RECORDING,
@@ -526,6 +553,7 @@ def load_trial_results(
                     max_gap_s=max_gap_s,
                     beside=recompute,
                     force=force,
+                    recording=rec,
                 )
             except OverwriteError:
                 raise
@@ -534,6 +562,10 @@ def load_trial_results(
                 continue
         else:
             row = json.loads(metrics_path.read_text())
+            unfinished = _unfinished(None, row.get("complete", True))
+            if unfinished:  # scored before summaries checked (metrics.json says so)
+                results.append({"seed": seed, "out_dir": str(d), "error": unfinished})
+                continue
         row.setdefault("error", None)
         if row.get("seed") is None:
             row["seed"] = seed

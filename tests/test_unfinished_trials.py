@@ -1,0 +1,96 @@
+"""``payload trials summarize`` of a campaign holding a trial that did not finish: a
+recording cut short (its process killed: the file never closed) or marked aborted (an
+error, Ctrl-C) is a failed row that says so, never a scored trial; and rescoring options
+that are not numbers are bad input."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from test_trials import fixture_synthetic_trial
+
+from payload.cli import main
+from payload.trials.reading import read_recording
+from payload.trials.recorder import TrialRecorder
+
+
+def _campaign(root: Path, seeds: list[int]) -> Path:
+    for seed in seeds:
+        fixture_synthetic_trial(seed, root / f"trial-{seed:04d}")
+    return root
+
+
+def test_a_recording_cut_short_is_not_scored_as_a_trial(tmp_path: Path, capsys) -> None:
+    """A trial killed after its last step but before its file was closed: every step is
+    readable and would score as a success, but the summary counts it as a failure, names
+    it, and takes the medians over the finished trials only."""
+    camp = _campaign(tmp_path / "camp", [1, 2, 3])
+    torn = camp / "trial-0003"
+    log = torn / "log.mcap"
+    whole = read_recording(log)
+    data = log.read_bytes()
+    for name in ("metrics.json", "fig_ctb_body_frame.png", "fig_route.png"):
+        (torn / name).unlink()  # as a killed run leaves its folder
+    log.write_bytes(data[: len(data) - 40])  # the footer lost: the file was never closed
+    cut = read_recording(log)
+    assert not cut.complete and len(cut) == len(whole)  # every step is still there
+
+    assert main(["trials", "summarize", str(camp), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    finished = [json.loads((camp / f"trial-{s:04d}/metrics.json").read_text()) for s in (1, 2)]
+    assert all(m["success"] for m in finished)
+    assert (out["n"], out["success"], out["errors"]) == (3, 2, 1)
+    row = out["trials"][2]
+    assert row["seed"] == 3 and not row["success"] and "cut short" in row["error"]
+    for key in ("duration_s", "rms_mm", "peak_mm", "contact_s"):
+        values = [m[key] for m in finished]
+        assert out[key]["median"] == pytest.approx(float(np.median(values)), abs=0)
+        assert (out[key]["min"], out[key]["max"], out[key]["count"]) == (
+            min(values),
+            max(values),
+            2,
+        )
+    assert not (torn / "metrics.json").exists()  # nothing scored into the torn trial
+    text = (camp / "summary.md").read_text()
+    assert "- seed 3: log.mcap was cut short" in text
+    assert "| 3 | error |" in text
+
+
+def test_an_aborted_recording_is_not_scored_as_a_trial(tmp_path: Path, capsys) -> None:
+    """A run interrupted by Ctrl-C: its recorder marks the file aborted, the runner
+    leaves no metrics.json; the summary names it instead of scoring it."""
+    camp = _campaign(tmp_path / "camp", [1, 2])
+    src = read_recording(camp / "trial-0002" / "log.mcap")
+    shutil.rmtree(camp / "trial-0002")
+    path = camp / "trial-0002" / "log.mcap"
+    with pytest.raises(KeyboardInterrupt), TrialRecorder(path) as rec:
+        rec.write_meta({"seed": 2})
+        for k in range(120):  # the steps of the fixture trial, up to an interrupt
+            rec.write(src.step(k))
+        raise KeyboardInterrupt
+    assert read_recording(path).meta["aborted"].startswith("KeyboardInterrupt")
+
+    assert main(["trials", "summarize", str(camp), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert (out["n"], out["success"], out["errors"]) == (2, 1, 1)
+    assert "aborted trial's (KeyboardInterrupt)" in out["trials"][1]["error"]
+    one = json.loads((camp / "trial-0001/metrics.json").read_text())
+    assert out["duration_s"]["median"] == one["duration_s"]
+    assert not (camp / "trial-0002" / "metrics.json").exists()
+
+
+@pytest.mark.parametrize("option", ["--min-contact-s", "--max-gap-s"])
+@pytest.mark.parametrize("value", ["nan", "inf"])
+def test_summarize_refuses_a_contact_definition_that_is_not_a_number(
+    tmp_path: Path, capsys, option: str, value: str
+) -> None:
+    camp = _campaign(tmp_path / "camp", [1])
+    before = sorted(p.name for p in camp.iterdir())
+    assert main(["trials", "summarize", str(camp), option, value]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"{option} must be a number >= 0, got {value}" in err[0], err
+    assert sorted(p.name for p in camp.iterdir()) == before  # no summary written
