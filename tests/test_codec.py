@@ -573,6 +573,26 @@ def test_schema1_recordings_read_and_convert(tmp_path: Path, capsys) -> None:
     assert backup.read_bytes() == original and recording_version(path) == SCHEMA_VERSION
 
 
+def test_convert_json_counts_by_what_it_did_not_by_the_path(tmp_path: Path, capsys) -> None:
+    """A folder named ``converted`` (say, where converted campaigns are kept): a schema-1
+    file in it is converted, a current one left as it is, and ``--json`` lists each under
+    what was done to it, whatever the words in its path."""
+    from payload.cli import main
+
+    rng = np.random.default_rng(7)
+    root = tmp_path / "converted"
+    old, new = root / "trial-0001" / "log.mcap", root / "trial-0002" / "log.mcap"
+    old.parent.mkdir(parents=True)
+    new.parent.mkdir(parents=True)
+    _write_v1(old, [random_step(rng, k * DT) for k in range(10)])
+    with TrialRecorder(new) as rec:
+        for k in range(10):
+            rec.write(random_step(rng, k * DT))
+    assert main(["trials", "convert", str(root), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["converted"] == [str(old)] and info["skipped"] == [str(new)], info
+
+
 def _step_messages(path: Path) -> list:
     with path.open("rb") as f:
         return [

@@ -41,6 +41,11 @@ def convert_file(path: Path, *, force: bool = False) -> str:
     Raises:
         RecordingError: Unreadable file, or a backup exists and ``force`` is not set.
     """
+    return _convert_file(path, force=force)[1]
+
+
+def _convert_file(path: Path, *, force: bool = False) -> tuple[bool, str]:
+    """:func:`convert_file`, and whether it converted the file (or left it as it is)."""
     from payload.sim.world import build_world
     from payload.teleop.replay import ReplayError, read_hand_recording
     from payload.trials.foxglove import FoxgloveScene
@@ -53,7 +58,7 @@ def convert_file(path: Path, *, force: bool = False) -> str:
             f"({SCHEMA_VERSION}); update the workbench to read it"
         )
     if version != 1:  # versions 2 and up read as they are
-        return f"{path}: already schema version {version}, left as it is"
+        return False, f"{path}: already schema version {version}, left as it is"
     backup = path.with_name(BACKUP_NAME)
     if backup.exists() and not force:
         raise RecordingError(f"{backup}: exists; pass --force to convert {path} again")
@@ -90,7 +95,7 @@ def convert_file(path: Path, *, force: bool = False) -> str:
     os.replace(path, backup)
     os.replace(tmp, path)
     hands = "with" if frames is not None else "without"
-    return (
+    return True, (
         f"{path}: converted {len(rec)} steps to schema version {SCHEMA_VERSION} "
         f"({hands} hand frames); "
         f"the original is {backup.name}"
@@ -144,8 +149,8 @@ def convert_dir(root: Path, *, force: bool = False) -> dict[str, Any]:
         raise RecordingError(f"{root}: no {RECORDING} below it")
     out: dict[str, Any] = {"converted": [], "skipped": [], "messages": []}
     for p in paths:
-        msg = convert_file(p, force=force)
-        out["converted" if "converted" in msg else "skipped"].append(str(p))
+        converted, msg = _convert_file(p, force=force)
+        out["converted" if converted else "skipped"].append(str(p))
         out["messages"].append(msg)
     return out
 
