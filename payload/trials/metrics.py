@@ -101,7 +101,9 @@ class TrialMetrics:
         destination: The destination module scored against.
         n_samples: Samples in the recording.
         n_contact_samples: Samples N in the interval (bridged dropouts included).
-        contact_samples_total: Samples with confirmed contact anywhere in the recording.
+        contact_samples_total: Samples with the opposing-contact indicator set, anywhere
+            in the recording (raw samples: the same under every contact definition;
+            bridged dropouts not counted).
         contact_to_end: The interval lasts to the last sample.
         b_p_c_t0_m: eq. 4 at ``t0`` (the reference CTB position in the body frame),
             shape (3,) [m]; NaN without contact.
