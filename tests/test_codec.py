@@ -503,10 +503,10 @@ def test_messages_with_other_bytes_are_refused(foxglove_recording, refused_kerne
         assert FoxgloveScene(world)._messages_kernel is None
 
 
-def _write_v1(path: Path, steps: list) -> None:
+def _write_v1(path: Path, steps: list, chunk_size: int = 1024 * 1024) -> None:
     """A schema-1 recording as the previous recorder wrote it (JSON steps)."""
     with open(path, "wb") as f:
-        w = Writer(f)
+        w = Writer(f, chunk_size=chunk_size)
         w.start(profile="", library="payload-workbench")
         sid = w.register_schema(
             name="payload.trials.StepRecord",
@@ -591,6 +591,35 @@ def test_convert_json_counts_by_what_it_did_not_by_the_path(tmp_path: Path, caps
     assert main(["trials", "convert", str(root), "--json"]) == 0
     info = json.loads(capsys.readouterr().out)
     assert info["converted"] == [str(old)] and info["skipped"] == [str(new)], info
+
+
+def test_a_cut_short_schema1_recording_stays_unfinished_once_converted(
+    tmp_path: Path, capsys
+) -> None:
+    """A schema-1 recording whose writer was killed (no footer) converts to a closed file
+    that still reads as unfinished (``complete`` False, the ``cut_short`` metadata), so
+    ``trials summarize`` does not score it as a finished trial."""
+    from payload.cli import main
+    from payload.trials.reading import CUT_SHORT
+
+    rng = np.random.default_rng(5)
+    trial = tmp_path / "camp" / "trial-0004"
+    trial.mkdir(parents=True)
+    path = trial / "log.mcap"
+    _write_v1(path, [random_step(rng, k * DT) for k in range(40)], chunk_size=4096)
+    whole = path.read_bytes()
+    path.write_bytes(whole[: len(whole) * 2 // 3])  # killed: the summary and footer lost
+    torn = read_recording(path)
+    assert not torn.complete and 0 < len(torn) < 40
+    assert main(["trials", "convert", str(path)]) == 0
+    capsys.readouterr()
+    converted = read_recording(path)
+    assert recording_version(path) == SCHEMA_VERSION
+    assert not converted.complete and CUT_SHORT in converted.meta
+    assert len(converted) == len(torn)
+    assert main(["trials", "summarize", str(tmp_path / "camp"), "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["errors"] == 1 and "cut short" in summary["trials"][0]["error"]
 
 
 def _step_messages(path: Path) -> list:

@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from payload.folders import HANDS, RECORDING, tagged
+from payload.trials.reading import CUT_SHORT
 from payload.trials.recorder import (
     SCHEMA_VERSION,
     STEP_TOPIC,
@@ -90,8 +91,10 @@ def _convert_file(path: Path, *, force: bool = False) -> tuple[bool, str]:
             if frames is not None:
                 out.write_hands(frames[i])
             out.write(rec.step(i))
-    if not rec.complete:  # keep a cut-short recording's state visible
-        log.warning("%s: the original was cut short; the converted file is closed", path)
+        if not rec.complete:  # the converted file is closed; its run still was not finished
+            out.write_meta({CUT_SHORT: "the schema-1 original was cut short (never closed)"})
+    if not rec.complete:
+        log.warning("%s: the original was cut short; the converted file says so", path)
     os.replace(path, backup)
     os.replace(tmp, path)
     hands = "with" if frames is not None else "without"

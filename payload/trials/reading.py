@@ -331,6 +331,12 @@ def recording_version(path: str | Path) -> int:
     raise RecordingError(f"{path}: no {STEP_TOPIC} channel (not a trial recording)")
 
 
+CUT_SHORT = "cut_short"
+"""Metadata key of a recording converted from a cut-short original (``payload trials
+convert``): closed now, but the run it records was not finished, and it reads as
+``complete = False`` like its original."""
+
+
 def read_recording(path: str | Path) -> Recording:
     """Read a recording written by :class:`TrialRecorder`, complete or cut short.
 
@@ -341,7 +347,9 @@ def read_recording(path: str | Path) -> Recording:
         path: The ``.mcap`` file.
 
     Returns:
-        The recording, with ``complete`` telling whether the file was closed properly.
+        The recording, with ``complete`` telling whether the file was closed properly
+        (and is not the conversion of a file that was not: its :data:`CUT_SHORT`
+        metadata).
 
     Raises:
         RecordingError: The file is missing, is not MCAP, or is a closed MCAP file without a
@@ -349,9 +357,10 @@ def read_recording(path: str | Path) -> Recording:
             empty recording.)
     """
     path = Path(path)
-    channels, meta, rows, _, complete = _read_file(path)
-    if complete and not any(c.topic == STEP_TOPIC for c in channels.values()):
+    channels, meta, rows, _, closed = _read_file(path)
+    if closed and not any(c.topic == STEP_TOPIC for c in channels.values()):
         raise RecordingError(f"{path}: no {STEP_TOPIC} channel (not a trial recording)")
+    complete = closed and CUT_SHORT not in meta  # a converted cut-short file says so
     typed = any(c.topic == STEP_TOPIC and c.message_encoding != "json" for c in channels.values())
     if typed:  # the typed decoder's rows: right types, so shapes and finiteness, by column
         try:
