@@ -4,6 +4,7 @@ MuJoCo's own distance query (mj_geomDistance), independent of the filter's geome
 from __future__ import annotations
 
 import json
+import math
 import time
 
 import mujoco
@@ -175,6 +176,34 @@ def test_filter_respects_the_channel_bounds(world, grasped_state):
     assert np.linalg.norm(v, axis=1).max() <= base.max_speed + 1e-9
     assert np.linalg.norm(acc[1:], axis=1).max() <= base.max_accel * (1 + 1e-6)
     assert np.linalg.norm(jerk[1:], axis=1).max() <= base.max_jerk * (1 + 1e-6) + 1e-9
+
+
+def test_output_stage_stays_within_the_channel_caps_when_redirected(world, grasped_state):
+    """The QP's answer to a request beyond the caps is scaled to them; the output stage
+    (the filter's two limiters) then tracks it from the stack's motion along another
+    direction. Its speed and yaw rate never exceed the channel's caps (norms of the
+    outputs against BaseConfig's numbers; capped at the caps themselves, the limiters'
+    discrete landing overshot them by a few um/s and urad/s)."""
+    sim = _driver(world, grasped_state, (1.5, 7.0, 0.25), (0.0, 0.0, 0.0))
+    base = BaseConfig()
+    worst_speed = worst_yaw = 0.0
+    for v0, heading in ((0.15, 1.0), (0.19, 0.3), (0.195, 1.5)):
+        filt = _filter(sim)
+        rows, bounds = np.array([[1.0, 0.0, 0.0, 0.0]]), np.array([-1.0])  # never binding
+        # a translation, then a turn, each beyond its cap (scaled together, one at a time)
+        go = np.array([0.3 * math.cos(heading), 0.3 * math.sin(heading), 0.0, 0.0])
+        linear = filt._solve(go, rows, bounds)[:3]
+        turn = filt._solve(np.array([0.0, 0.0, 0.0, 0.3]), rows, bounds)[3:]
+        filt.linear.value = np.array([v0, 0.0, 0.0])  # moving along x, not accelerating
+        filt.yaw.value = np.array([v0 / 2.0])  # turning, not accelerating
+        for _ in range(1500):
+            v = filt.linear.step(linear, 0.02)
+            w = filt.yaw.step(turn, 0.02)[0]
+            worst_speed = max(worst_speed, float(np.sqrt(v @ v)))
+            worst_yaw = max(worst_yaw, abs(w))
+    assert worst_speed > base.max_speed - 1e-3 and worst_yaw > base.max_yaw_rate - 1e-3
+    assert worst_speed <= base.max_speed
+    assert worst_yaw <= base.max_yaw_rate
 
 
 def test_stop_speed_matches_a_simulated_brake():

@@ -385,6 +385,25 @@ def test_blender_holds_then_ramps():
     np.testing.assert_allclose(b.step(np.full(2, 3.0), 1.0), [3.0, 3.0])
 
 
+def test_blender_keeps_its_anchor_across_a_refused_step_mid_recovery():
+    """Recovering from 0 toward a fresh 1, one step without a fresh command (the pair's
+    solve refused) holds; the blend then goes on along the line from the command held at
+    its start: (1 - w) * 0 + w * 1 = w, each step moving by the weight's own increase
+    (before, the refused step became a new anchor and the next step jumped by 0.27)."""
+    b = Blender(np.zeros(1))
+    b.step(None, 0.0)  # lost: holding 0
+    weights = [0.1, 0.3, 0.5, None, 0.54, 0.7, 0.9, 1.0]
+    out, w_prev = [], 0.0
+    for w in weights:
+        q = b.step(None if w is None else np.ones(1), 0.5 if w is None else w)
+        out.append(float(q[0]))
+        if w is not None:
+            assert abs(out[-1] - w) < 1e-12
+            assert abs(out[-1] - (out[-2] if len(out) > 1 else 0.0)) <= w - w_prev + 1e-12
+            w_prev = w
+    assert out[3] == out[2]  # the refused step held
+
+
 # -- braking: the paper's rule (both wrists back in neutral) ------------------------------
 def _cruise(ch: BaseChannel, left: np.ndarray | None, right: np.ndarray, steps: int) -> BaseCommand:
     out = None

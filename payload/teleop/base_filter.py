@@ -264,8 +264,12 @@ class BaseSafetyFilter:
         self.jerk = min(base.max_jerk, vehicle_jerk)
         self.lag = 2.0 * CONTROL_DT + float(self.body_accel.max()) / vehicle_jerk
         self.weights = np.array([1.0, 1.0, 1.0, self.config.yaw_weight**2])
-        self.linear = JerkLimiter(3, base.max_accel, base.max_jerk, base.max_speed)
-        self.yaw = JerkLimiter(1, base.max_yaw_accel, base.max_yaw_jerk, base.max_yaw_rate)
+        # the channel's caps less its limiters' landing margins: capped at the channel's
+        # speed and yaw rate themselves, a limiter's discrete landing overshoots them
+        self.speed_cap = base.speed_cap(CONTROL_DT)
+        self.yaw_rate_cap = base.yaw_rate_cap(CONTROL_DT)
+        self.linear = JerkLimiter(3, base.max_accel, base.max_jerk, self.speed_cap)
+        self.yaw = JerkLimiter(1, base.max_yaw_accel, base.max_yaw_jerk, self.yaw_rate_cap)
         self.engaged = False
         self._last: np.ndarray | None = None
         self.status = FilterStatus(False, math.inf, "", "", 0.0, 0.0, 0, 0.0)
@@ -460,8 +464,8 @@ class BaseSafetyFilter:
         if flag != 1:
             return np.zeros(4)
         speed, rate = math.sqrt(x[:3] @ x[:3]), abs(float(x[3]))
-        scale = min(1.0, self.base.max_speed / max(speed, 1e-12))
-        scale = min(scale, self.base.max_yaw_rate / max(rate, 1e-12))
+        scale = min(1.0, self.speed_cap / max(speed, 1e-12))
+        scale = min(scale, self.yaw_rate_cap / max(rate, 1e-12))
         return x * scale  # scaling toward rest keeps every b <= 0 row met
 
     def reset(self) -> None:

@@ -101,6 +101,17 @@ class BaseConfig:
     yaw_gain: float = 0.4
     turn_min_speed: float = 0.02
 
+    def speed_cap(self, dt: float) -> float:
+        """The linear limiter's cap [m/s]: the speed cap less the limiter's landing margin
+        (20 jerk steps of ``dt`` [s]), so the limited speed never overshoots ``max_speed``."""
+        return self.max_speed - 20 * self.max_jerk * dt * dt
+
+    def yaw_rate_cap(self, dt: float) -> float:
+        """The yaw request's bound [rad/s]: the yaw-rate cap less the limiter's landing
+        margin (10 jerk steps of ``dt`` [s]), so the limited rate never overshoots
+        ``max_yaw_rate``."""
+        return self.max_yaw_rate - 10.0 * self.max_yaw_jerk * dt * dt
+
 
 class JerkLimiter:
     """Tracks a requested vector with bounded magnitude of rate and of rate change.
@@ -332,9 +343,7 @@ class BaseChannel:
         self.heading0 = heading0
         self.dt = dt
         # the limiter aims a hair below the cap so its discrete landing never overshoots it
-        self.linear = JerkLimiter(
-            3, config.max_accel, config.max_jerk, config.max_speed - 20 * config.max_jerk * dt * dt
-        )
+        self.linear = JerkLimiter(3, config.max_accel, config.max_jerk, config.speed_cap(dt))
         self.yaw = JerkLimiter(1, config.max_yaw_accel, config.max_yaw_jerk)
 
     def request(self, left_wrist: np.ndarray | None) -> tuple[np.ndarray, bool]:
@@ -392,8 +401,7 @@ class BaseChannel:
     def yaw_cap(self) -> float:
         """The yaw request's bound [rad/s]: the yaw-rate cap less the limiter's landing
         margin (10 jerk steps), so the limited rate never overshoots the cap."""
-        c = self.config
-        return c.max_yaw_rate - 10.0 * c.max_yaw_jerk * self.dt * self.dt
+        return self.config.yaw_rate_cap(self.dt)
 
     @functools.cached_property
     def _compiled_step(self) -> Any:

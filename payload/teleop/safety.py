@@ -287,9 +287,13 @@ class Blender:
     _anchor: np.ndarray | None = field(default=None, repr=False)
 
     def step(self, fresh: np.ndarray | None, weight: float) -> np.ndarray | None:
-        """Blend: ``weight`` 1 passes ``fresh``; 0 (or no fresh command) holds."""
+        """Blend: ``weight`` 1 passes ``fresh``; 0 (or no fresh command) holds. A blend
+        runs from the command held when it began (its anchor): a step without a fresh
+        command in the middle of it (a refused solve) holds without moving the anchor, so
+        the blend goes on where it was instead of jumping ahead."""
         if fresh is None or weight <= 0.0:
-            self._anchor = self.held
+            if weight <= 0.0 or self._anchor is None:
+                self._anchor = self.held
             return self.held
         if weight >= 1.0 or self.held is None:
             self.held = np.array(fresh, dtype=float)
