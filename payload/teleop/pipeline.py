@@ -348,9 +348,9 @@ class TeleopPipeline:
         events, weights, wrists, fresh, solves = taken
         q_pair: dict[str, np.ndarray] = {}
         for pair, side in HAND_OF_PAIR.items():
-            q = self.blend[pair].step(
-                fresh[pair], weights[side] if fresh[pair] is not None else 0.0
-            )
+            # the hand's weight even without a fresh command (a refused solve): mid-recovery
+            # the blend holds and goes on from where it began (a lost hand's weight is 0)
+            q = self.blend[pair].step(fresh[pair], weights[side])
             q_pair[pair] = q
             # warm start from what is actually commanded (held or blended)
             self.retargeters[pair].hold(q)
