@@ -240,3 +240,43 @@ def test_an_export_of_nothing_leaves_no_numbered_folder(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "no such recording or folder" in err[0], err
     assert not list(project.runs_dir.glob("lerobot-*"))
+
+
+def test_unfinished_runs_are_left_out_unless_asked_for(
+    runs, tmp_path: Path, capsys, caplog
+) -> None:
+    """An aborted run's recording (its ``aborted`` metadata) and a killed one's (never
+    closed: its summary and footer lost) end wherever the run stopped: the export leaves
+    them out, names each in a warning and under ``left_out``; ``--include-unfinished``
+    exports them; a set of unfinished runs alone exports nothing (exit 2)."""
+    from payload.cli import main
+
+    aborted = tmp_path / "aborted.mcap"
+    rng = np.random.default_rng(9)
+    with TrialRecorder(aborted) as rec:
+        for k in range(30):
+            rec.write(random_step(rng, k * DT, phase="translation"))
+        rec.write_meta({"aborted": "KeyboardInterrupt: "})
+    cut = _write_run(tmp_path / "cut.mcap", seed=4, n=200, n_cal=0)
+    whole = cut.read_bytes()
+    cut.write_bytes(whole[: len(whole) * 3 // 4])
+    assert not read_recording(cut).complete and len(read_recording(cut)) > 0
+    argv = ["export", "lerobot", str(runs[0]), str(aborted), str(cut), "--json"]
+    assert main([*argv, "--out", str(tmp_path / "ds")]) == 0
+    out = capsys.readouterr()
+    info = json.loads(out.out)
+    assert info["episodes"] == 1 and info["frames"] == 120 and info["sources"] == [str(runs[0])]
+    assert [x["source"] for x in info["left_out"]] == [str(aborted), str(cut)]
+    assert (
+        info["left_out"][0]["why"].startswith("aborted")
+        and "cut short" in info["left_out"][1]["why"]
+    )
+    warned = [r.getMessage() for r in caplog.records if "left out" in r.getMessage()]
+    assert len(warned) == 2 and str(aborted) in warned[0] and str(cut) in warned[1]
+    assert main([*argv, "--out", str(tmp_path / "all"), "--include-unfinished"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["episodes"] == 3 and info["left_out"] == []
+    assert info["frames"] == 120 + 30 + len(read_recording(cut))
+    assert main(["export", "lerobot", str(aborted), str(cut), "--out", str(tmp_path / "x")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert "--include-unfinished exports them" in err[-1] and not (tmp_path / "x").exists()

@@ -352,6 +352,7 @@ def _cmd_export_lerobot(args: argparse.Namespace) -> int:
         info = export_lerobot(
             runs, out, task=args.task, overwrite=args.force,
             progress=not args.json and sys.stderr.isatty(),
+            unfinished=args.include_unfinished,
         )  # fmt: skip
     if args.json:
         emit_json(info)
@@ -359,6 +360,7 @@ def _cmd_export_lerobot(args: argparse.Namespace) -> int:
         print(
             f"wrote LeRobot v3 dataset {info['path']}: {info['episodes']} episode(s), "
             f"{info['frames']} frames at {info['fps']} Hz ({info['duration_s']:.1f} s)"
+            + (f"; {len(info['left_out'])} unfinished run(s) left out" if info["left_out"] else "")
         )
     return 0
 
@@ -545,5 +547,11 @@ def register(
     e.add_argument("--out", help="dataset folder (default: a new runs/lerobot-NNNN in the project)")
     e.add_argument("--task", help="task text for every episode")
     e.add_argument("--force", action="store_true", help="replace an existing dataset")
+    e.add_argument(
+        "--include-unfinished",
+        action="store_true",
+        help="export the recordings of aborted or cut-short runs too (left out by default, "
+        "each named in a warning)",
+    )
     e.add_argument("--json", action="store_true", help="print one JSON object")
     e.set_defaults(func=_cmd_export_lerobot)

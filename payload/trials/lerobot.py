@@ -27,6 +27,7 @@ Frame features (float32 vectors; the names are in ``meta/info.json``):
 from __future__ import annotations
 
 import json
+import logging
 import os
 import shutil
 import tempfile
@@ -39,6 +40,8 @@ import numpy as np
 from payload.errors import PayloadError
 from payload.folders import RECORDING
 from payload.trials.recorder import Recording, read_recording
+
+log = logging.getLogger(__name__)
 
 CODEBASE_VERSION = "v3.0"
 FPS = 50
@@ -242,6 +245,17 @@ def _swap_in(stage: Path, out: Path) -> None:
     shutil.rmtree(stage, ignore_errors=True)
 
 
+def unfinished_reason(rec: Recording) -> str | None:
+    """Why ``rec`` is not a finished run's recording (``None`` if it is): aborted (an
+    error or Ctrl-C, which the recorder notes) or cut short (the file never closed)."""
+    aborted = rec.meta.get("aborted") or rec.meta.get("aborted_by")
+    if aborted:
+        return f"aborted: {aborted}"
+    if not rec.complete:
+        return "cut short: the recording was never closed"
+    return None
+
+
 def export_lerobot(
     runs: list[Path],
     out: Path,
@@ -250,8 +264,13 @@ def export_lerobot(
     fps: int = FPS,
     overwrite: bool = False,
     progress: bool = False,
+    unfinished: bool = False,
 ) -> dict[str, Any]:
     """Write recordings as a LeRobot v3 dataset (layout in the module docstring).
+
+    A recording of a run that did not finish (aborted by an error or Ctrl-C, or cut short
+    by a kill: :func:`unfinished_reason`) is left out with a warning naming it, unless
+    ``unfinished``: its episode would end wherever the run stopped.
 
     Args:
         runs: Recordings: ``.mcap`` files, trial folders or campaign folders (see
@@ -262,13 +281,15 @@ def export_lerobot(
         fps: Frame rate the recordings were taken at [Hz]; checked against them.
         overwrite: Replace ``meta/`` and ``data/`` of an existing dataset at ``out``.
         progress: Show a rich progress bar while reading recordings.
+        unfinished: Export the recordings of unfinished runs too.
 
     Returns:
-        ``{"path", "episodes", "frames", "fps", "tasks", "files", "sources"}``.
+        ``{"path", "episodes", "frames", "fps", "tasks", "files", "sources", "left_out"}``
+        (``left_out``: the unfinished recordings not exported, with why).
 
     Raises:
-        LeRobotExportError: A run is missing or empty, not at ``fps``, or ``out`` is not
-            empty.
+        LeRobotExportError: A run is missing or empty, not at ``fps``, every run is
+            unfinished (and ``unfinished`` is not set), or ``out`` is not empty.
     """
     import pyarrow as pa
     import pyarrow.parquet as pq
@@ -299,6 +320,23 @@ def export_lerobot(
         return [(s, read_recording(s)) for s in items]
 
     loaded = read_all()
+    left_out: list[dict[str, str]] = []
+    if not unfinished:
+        left_out = [
+            {"source": str(src), "why": why}
+            for src, rec in loaded
+            if (why := unfinished_reason(rec)) is not None
+        ]
+        if len(left_out) == len(loaded):
+            raise LeRobotExportError(
+                "every recording given is of an unfinished run (aborted or cut short); "
+                "--include-unfinished exports them"
+            )
+        for item in left_out:
+            log.warning(
+                "%s: left out (%s; --include-unfinished exports it)", item["source"], item["why"]
+            )
+        loaded = [(s, r) for s, r in loaded if unfinished_reason(r) is None]
     # check every recording before touching an existing dataset at ``out``
     frames = [_episode_frames(rec, src, fps) for src, rec in loaded]
     final, out = out, _prepare_out(out, overwrite)
@@ -414,7 +452,8 @@ def export_lerobot(
         "fps": fps,
         "tasks": tasks,
         "files": files,
-        "sources": [str(s) for s in sources],
+        "sources": [str(src) for src, _ in loaded],
+        "left_out": left_out,
         "duration_s": index / fps,
     }
 
@@ -430,4 +469,5 @@ __all__ = [
     "resolve_runs",
     "state_matrix",
     "state_names",
+    "unfinished_reason",
 ]
