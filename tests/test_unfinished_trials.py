@@ -94,3 +94,16 @@ def test_summarize_refuses_a_contact_definition_that_is_not_a_number(
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and f"{option} must be a number >= 0, got {value}" in err[0], err
     assert sorted(p.name for p in camp.iterdir()) == before  # no summary written
+
+
+def test_summarize_of_a_trials_own_folder_says_so(tmp_path: Path, capsys) -> None:
+    """A trial's folder given where a campaign's is wanted is named as such (one line,
+    exit 2); an empty folder still says it holds no trial-* folders."""
+    trial = tmp_path / "trial-0001"
+    fixture_synthetic_trial(1, trial)
+    assert main(["trials", "summarize", str(trial)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "a trial's folder, not a campaign's" in err[0], err
+    (tmp_path / "empty").mkdir()
+    assert main(["trials", "summarize", str(tmp_path / "empty")]) == 2
+    assert "no trial-* folders" in capsys.readouterr().err

@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 
 from payload.errors import PayloadError
-from payload.folders import METRICS, RECORDING, SUMMARY, SUMMARY_TEXT, tagged
+from payload.folders import METRICS, RECORDING, SUMMARY, SUMMARY_TEXT, held, tagged
 from payload.safeio import OverwriteError, write_unless_changed
 from payload.trials.scoring import finish_trial
 
@@ -524,6 +524,11 @@ def load_trial_results(
         raise CampaignError(f"{root}: no such campaign folder")
     dirs = sorted(p for p in root.glob("trial-*") if p.is_dir())
     if not dirs:
+        if held(root, (RECORDING, METRICS)):  # a trial's own folder, given for a campaign's
+            raise CampaignError(
+                f"{root}: a trial's folder, not a campaign's (no trial-* folders); give the "
+                "campaign folder that holds it"
+            )
         raise CampaignError(f"{root}: no trial-* folders")
     from payload.trials.reading import read_recording
 
