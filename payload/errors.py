@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import datetime
+import json
 from typing import Any
 
 
@@ -29,8 +31,10 @@ def as_toml(value: Any) -> str:
     designer typed)."""
     if isinstance(value, bool):
         return "true" if value else "false"
-    if isinstance(value, str):
-        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(value, str):  # a TOML basic string: JSON's escapes, newlines included
+        return json.dumps(value, ensure_ascii=False)
+    if isinstance(value, (datetime.date, datetime.time)):  # TOML dates and times
+        return value.isoformat()
     if isinstance(value, (list, tuple)):
         return "[" + ", ".join(as_toml(v) for v in value) + "]"
     if isinstance(value, dict):

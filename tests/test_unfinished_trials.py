@@ -56,7 +56,7 @@ def test_a_recording_cut_short_is_not_scored_as_a_trial(tmp_path: Path, capsys) 
         )
     assert not (torn / "metrics.json").exists()  # nothing scored into the torn trial
     text = (camp / "summary.md").read_text()
-    assert "- seed 3: log.mcap was cut short" in text
+    assert "- seed 3: log.mcap: cut short (never closed" in text
     assert "| 3 | error |" in text
 
 
@@ -77,10 +77,47 @@ def test_an_aborted_recording_is_not_scored_as_a_trial(tmp_path: Path, capsys) -
     assert main(["trials", "summarize", str(camp), "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert (out["n"], out["success"], out["errors"]) == (2, 1, 1)
-    assert "aborted trial's (KeyboardInterrupt)" in out["trials"][1]["error"]
+    assert "aborted (KeyboardInterrupt)" in out["trials"][1]["error"]
     one = json.loads((camp / "trial-0001/metrics.json").read_text())
     assert out["duration_s"]["median"] == one["duration_s"]
     assert not (camp / "trial-0002" / "metrics.json").exists()
+    # a metrics.json an earlier summarize scored into it (it does not say "aborted"; the
+    # recording's metadata does): still an error row, its figures out of the medians
+    stale = {**one, "seed": 2, "duration_s": one["duration_s"] + 50.0, "success": True}
+    (camp / "trial-0002" / "metrics.json").write_text(json.dumps(stale))
+    assert main(["trials", "summarize", str(camp), "--json", "--force"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert (out["success"], out["errors"]) == (1, 1)
+    assert "aborted (KeyboardInterrupt)" in out["trials"][1]["error"]
+    assert out["duration_s"]["median"] == one["duration_s"]
+
+
+def test_a_recording_marked_aborted_by_the_runner_alone_is_unfinished_everywhere(
+    tmp_path: Path,
+) -> None:
+    """A closed file whose only mark is the runner's ``aborted_by`` (the recorder's own
+    ``aborted`` note missing): not a success, an error row, left out of an export."""
+    from payload.trials.lerobot import export_lerobot
+    from payload.trials.metrics import compute_metrics, recorded_definition
+    from payload.trials.summary import load_trial_results
+
+    camp = _campaign(tmp_path / "camp", [1, 2])
+    src = read_recording(camp / "trial-0002" / "log.mcap")
+    assert compute_metrics(src, "node2", *recorded_definition(src)).success
+    shutil.rmtree(camp / "trial-0002")
+    path = camp / "trial-0002" / "log.mcap"
+    with TrialRecorder(path) as rec:
+        rec.write_meta(src.meta)
+        for k in range(len(src)):
+            rec.write(src.step(k))
+        rec.write_meta({"aborted_by": "SimError: unstable", "aborted_at_s": 5.9})
+    marked = read_recording(path)
+    assert "aborted" not in marked.meta and marked.complete
+    assert not compute_metrics(marked, "node2", *recorded_definition(marked)).success
+    rows = load_trial_results(camp)
+    assert "aborted (SimError: unstable)" in rows[1]["error"]
+    info = export_lerobot([camp], tmp_path / "ds")
+    assert info["episodes"] == 1 and info["left_out"][0]["source"] == str(path)
 
 
 @pytest.mark.parametrize("option", ["--min-contact-s", "--max-gap-s"])

@@ -36,7 +36,7 @@ def _project(args: argparse.Namespace) -> Project:
 
 
 def _design_path(args: argparse.Namespace) -> Path:
-    return Path(args.design) if args.design else _project(args).design_path
+    return Path(args.design).expanduser() if args.design else _project(args).design_path
 
 
 def _out_dir(args: argparse.Namespace) -> Path:

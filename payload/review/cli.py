@@ -111,7 +111,7 @@ def _check_project_design(design: Path) -> None:
     (``<project>/urdf``, ``<project>/cad/meshes``), so F must be a project's
     ``cad/design.toml`` (as for ``payload build --design F``)."""
     owner = project_of(design)
-    if owner is None or owner.design_path != design.expanduser().resolve():
+    if owner is None or owner.design_path.resolve() != design.expanduser().resolve():
         raise ReviewError(
             f"--design {design}: not a design project's cad/design.toml, so it has no "
             "models to review; nothing written (make a project with `payload new DIR` and save "

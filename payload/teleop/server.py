@@ -92,15 +92,24 @@ def check_address(host: str, port: int) -> None:
         infos = socket.getaddrinfo(
             host or None, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE
         )
+        probes = 0
         for family, kind, proto, _, address in infos:
-            with socket.socket(family, kind, proto) as probe:
+            try:
+                probe = socket.socket(family, kind, proto)
+            except OSError:  # a family this kernel lacks (IPv6): the server skips it too
+                continue
+            probes += 1
+            with probe:
                 # as asyncio's server binds: SO_REUSEADDR (a closed port's TIME_WAIT is free)
                 probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
                 if family == socket.AF_INET6:
                     probe.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_V6ONLY, 1)
                 probe.bind(address)
+        if not probes:
+            raise OSError(f"no address family of {host!r} can be used here")
     except OSError as exc:
-        raise ServerError(f"cannot listen on {host}:{port}: {exc.strerror or exc}") from None
+        where = f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
+        raise ServerError(f"cannot listen on {where}: {exc.strerror or exc}") from None
 
 
 def is_local(host: str) -> bool:

@@ -39,6 +39,7 @@ import numpy as np
 
 from payload.errors import PayloadError
 from payload.folders import RECORDING
+from payload.trials.reading import unfinished_reason
 from payload.trials.recorder import Recording, read_recording
 
 log = logging.getLogger(__name__)
@@ -245,17 +246,6 @@ def _swap_in(stage: Path, out: Path) -> None:
     shutil.rmtree(stage, ignore_errors=True)
 
 
-def unfinished_reason(rec: Recording) -> str | None:
-    """Why ``rec`` is not a finished run's recording (``None`` if it is): aborted (an
-    error or Ctrl-C, which the recorder notes) or cut short (the file never closed)."""
-    aborted = rec.meta.get("aborted") or rec.meta.get("aborted_by")
-    if aborted:
-        return f"aborted: {aborted}"
-    if not rec.complete:
-        return "cut short: the recording was never closed"
-    return None
-
-
 def export_lerobot(
     runs: list[Path],
     out: Path,
@@ -269,8 +259,8 @@ def export_lerobot(
     """Write recordings as a LeRobot v3 dataset (layout in the module docstring).
 
     A recording of a run that did not finish (aborted by an error or Ctrl-C, or cut short
-    by a kill: :func:`unfinished_reason`) is left out with a warning naming it, unless
-    ``unfinished``: its episode would end wherever the run stopped.
+    by a kill: :func:`~payload.trials.reading.unfinished_reason`) is left out with a
+    warning naming it, unless ``unfinished``: its episode would end where the run stopped.
 
     Args:
         runs: Recordings: ``.mcap`` files, trial folders or campaign folders (see
@@ -325,7 +315,7 @@ def export_lerobot(
         left_out = [
             {"source": str(src), "why": why}
             for src, rec in loaded
-            if (why := unfinished_reason(rec)) is not None
+            if (why := unfinished_reason(rec.meta, rec.complete)) is not None
         ]
         if len(left_out) == len(loaded):
             raise LeRobotExportError(
@@ -336,7 +326,7 @@ def export_lerobot(
             log.warning(
                 "%s: left out (%s; --include-unfinished exports it)", item["source"], item["why"]
             )
-        loaded = [(s, r) for s, r in loaded if unfinished_reason(r) is None]
+        loaded = [(s, r) for s, r in loaded if unfinished_reason(r.meta, r.complete) is None]
     # check every recording before touching an existing dataset at ``out``
     frames = [_episode_frames(rec, src, fps) for src, rec in loaded]
     final, out = out, _prepare_out(out, overwrite)
@@ -469,5 +459,4 @@ __all__ = [
     "resolve_runs",
     "state_matrix",
     "state_names",
-    "unfinished_reason",
 ]

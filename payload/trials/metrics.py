@@ -41,6 +41,7 @@ import numpy as np
 
 from payload.errors import PayloadError
 from payload.rotations import rotate_by_quats
+from payload.trials.reading import aborted_note
 from payload.trials.recorder import MODULES, Recording
 
 CONFIRM_MIN_S = 0.5
@@ -334,7 +335,7 @@ def compute_metrics(
         ref = (float(bp[0, 0]), float(bp[0, 1]), float(bp[0, 2]))
         to_end = b == n - 1
     success = bool(
-        not recording.meta.get("aborted")
+        aborted_note(recording.meta) is None
         and entry is not None
         and arrival is not None
         and interval is not None

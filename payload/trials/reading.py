@@ -10,7 +10,7 @@ import json
 import logging
 import math
 import struct
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -335,6 +335,46 @@ CUT_SHORT = "cut_short"
 """Metadata key of a recording converted from a cut-short original (``payload trials
 convert``): closed now, but the run it records was not finished, and it reads as
 ``complete = False`` like its original."""
+
+
+def aborted_note(meta: Mapping[str, Any]) -> str | None:
+    """What aborted the run a recording's metadata describes (``None``: not aborted): the
+    recorder's ``aborted`` note (an exception left its ``with`` block) or the runner's
+    ``aborted_by`` (what stopped the session), whichever is there."""
+    note = meta.get("aborted") or meta.get("aborted_by")
+    return None if not note else str(note)
+
+
+def unfinished_reason(meta: Mapping[str, Any], complete: bool) -> str | None:
+    """Why a recording is not a finished run's (``None`` if it is), from its metadata and
+    whether it reads complete: aborted (an error or Ctrl-C), cut short (its writer killed:
+    the file never closed), or converted from such a file (:data:`CUT_SHORT`). One
+    definition for scoring, summaries and exports."""
+    note = aborted_note(meta)
+    if note is not None:
+        return f"aborted ({note.rstrip(': ')})"
+    if meta.get(CUT_SHORT):
+        return "cut short (converted from a recording that was never closed)"
+    if not complete:
+        return "cut short (never closed: the run was killed or crashed)"
+    return None
+
+
+def recording_meta(path: str | Path) -> dict[str, Any] | None:
+    """A closed recording's metadata read through its summary's index (no step decoded,
+    a few milliseconds), or ``None`` when that cannot be done (no such file, no summary:
+    the file was never closed)."""
+    from mcap.reader import make_reader
+
+    try:
+        with open(path, "rb") as f:
+            meta: dict[str, Any] = {}
+            for record in make_reader(f).iter_metadata():
+                if record.name == META_NAME:
+                    meta.update(_decode_meta(record.metadata, Path(path)))
+            return meta
+    except (OSError, McapError, RecordingError, ValueError, struct.error):
+        return None
 
 
 def read_recording(path: str | Path) -> Recording:

@@ -478,17 +478,13 @@ def write_summary(
     return summary
 
 
-def _unfinished(aborted: Any, complete: bool) -> str | None:
-    """Why a trial's recording is not a finished trial's (``None`` if it is): the run was
-    aborted (an error or Ctrl-C, which the recorder notes), or the file was never closed
-    (the process was killed: the reader reads it up to its last whole step)."""
-    if aborted:
-        return f"{RECORDING} is an aborted trial's ({str(aborted).rstrip(': ')}); not scored"
-    if not complete:
-        return (
-            f"{RECORDING} was cut short (never closed: the run was killed or crashed); not scored"
-        )
-    return None
+def _unfinished(meta: dict[str, Any] | None, complete: bool) -> str | None:
+    """The error row's text of a trial whose recording is not a finished run's
+    (:func:`~payload.trials.reading.unfinished_reason`), or ``None``."""
+    from payload.trials.reading import unfinished_reason
+
+    why = unfinished_reason(meta or {}, complete)
+    return None if why is None else f"{RECORDING}: {why}; not scored"
 
 
 def load_trial_results(
@@ -530,7 +526,7 @@ def load_trial_results(
                 "campaign folder that holds it"
             )
         raise CampaignError(f"{root}: no trial-* folders")
-    from payload.trials.reading import read_recording
+    from payload.trials.reading import read_recording, recording_meta
 
     results = []
     for d in dirs:
@@ -547,7 +543,7 @@ def load_trial_results(
                 continue
             try:
                 rec = read_recording(d / RECORDING)
-                unfinished = _unfinished(rec.meta.get("aborted"), rec.complete)
+                unfinished = _unfinished(rec.meta, rec.complete)
                 if unfinished:  # as the runner leaves it: a record, not a scored trial
                     results.append({"seed": seed, "out_dir": str(d), "error": unfinished})
                     continue
@@ -567,8 +563,11 @@ def load_trial_results(
                 continue
         else:
             row = json.loads(metrics_path.read_text())
-            unfinished = _unfinished(None, row.get("complete", True))
-            if unfinished:  # scored before summaries checked (metrics.json says so)
+            # scored before summaries checked: an aborted run's metrics.json does not say
+            # so, its recording's metadata does (read through the file's index)
+            meta = recording_meta(d / RECORDING) if (d / RECORDING).is_file() else None
+            unfinished = _unfinished(meta, row.get("complete", True))
+            if unfinished:
                 results.append({"seed": seed, "out_dir": str(d), "error": unfinished})
                 continue
         row.setdefault("error", None)
