@@ -12,7 +12,13 @@ from typing import TYPE_CHECKING, Any
 
 from dynamixel_sdk import COMM_SUCCESS, GroupSyncRead, GroupSyncWrite
 
-from firmware_interface.control_table import ADDR, hw_error_names, to_signed
+from firmware_interface.control_table import (
+    ADDR,
+    BY_NAME,
+    VOLTAGE_UNIT_V,
+    hw_error_names,
+    to_signed,
+)
 from firmware_interface.errors import CommError, HardwareFault
 from firmware_interface.health import Recovery, ServoHealth
 
@@ -65,7 +71,7 @@ class FaultHandling:
             self.map.joint_of(dxl_id),
             self._read_reg(dxl_id, ADDR["hardware_error_status"], 1),
             float(self._read_reg(dxl_id, ADDR["present_temperature"], 1)),
-            self._read_reg(dxl_id, ADDR["present_input_voltage"], 2) * 0.1,
+            self._read_reg(dxl_id, ADDR["present_input_voltage"], 2) * VOLTAGE_UNIT_V,
             self._read_reg(dxl_id, ADDR["bus_watchdog"], 1),
             self._read_reg(dxl_id, ADDR["model_number"], 2),
         )
@@ -75,21 +81,26 @@ class FaultHandling:
 
         A hardware error stops the payload safely and is logged (see :meth:`safe_stop`).
         """
-        # Torque Enable (64) .. Hardware Error Status (70) in one read
-        err = self._group_read(ADDR["torque_enable"], 7)
-        wd = self._group_read(ADDR["bus_watchdog"], 1)
-        env = self._group_read(ADDR["present_input_voltage"], 3)
+        torque, error, dog, volts, temp = (
+            BY_NAME[n]
+            for n in ("torque_enable", "hardware_error_status", "bus_watchdog",
+                      "present_input_voltage", "present_temperature")
+        )  # fmt: skip
+        # Torque Enable .. Hardware Error Status in one read, voltage and temperature in one
+        err = self._group_read(torque.address, error.address + error.size - torque.address)
+        wd = self._group_read(dog.address, dog.size)
+        env = self._group_read(volts.address, temp.address + temp.size - volts.address)
         out = {}
         for spec in self.map.servos:
             i = spec.id
             out[i] = ServoHealth(
                 i,
                 spec.joint,
-                int(err.getData(i, 70, 1)),
-                float(env.getData(i, 146, 1)),
-                env.getData(i, 144, 2) * 0.1,
-                int(wd.getData(i, 98, 1)),
-                torque=bool(err.getData(i, 64, 1)),
+                int(err.getData(i, error.address, error.size)),
+                float(env.getData(i, temp.address, temp.size)),
+                env.getData(i, volts.address, volts.size) * VOLTAGE_UNIT_V,
+                int(wd.getData(i, dog.address, dog.size)),
+                torque=bool(err.getData(i, torque.address, torque.size)),
             )
         self.health = out
         if any(h.watchdog == 0xFF for h in out.values()) and not self._stopped:

@@ -25,6 +25,11 @@ class DesignError(PayloadError):
         super().__init__(f"{parameter}: {reason}")
 
 
+def is_number(value: Any) -> bool:
+    """A TOML number of a design file (an int or a float; a boolean is not one)."""
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
 def as_toml(value: Any) -> str:
     """``value`` as a TOML design file spells it (``true``, ``"text"``, ``[1, 2]``), for a
     :class:`DesignError` about what the file holds (Python's ``True`` is not what the

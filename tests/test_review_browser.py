@@ -301,23 +301,30 @@ def _wait_for(page, check, seconds: float) -> float:
     raise AssertionError(f"the page did not change within {seconds} s")
 
 
+def _watched_project(tmp_path, design_dict):
+    """A project of the committed models and ``design_dict`` as its design file."""
+    from test_review import _copy_project
+
+    return _copy_project(tmp_path, design_dict, design_dict["vehicle"]["bay_size"])
+
+
+def _with_distal(design_dict: dict, distal: float) -> dict:
+    """``design_dict`` with the distal link ``distal`` long [m]."""
+    lengths = {**design_dict["finger"]["lengths"], "distal": distal}
+    return {**design_dict, "finger": {**design_dict["finger"], "lengths": lengths}}
+
+
 def test_watch_follows_the_saved_design_and_shows_an_invalid_one(tmp_path, design_dict) -> None:
     _require_browser()
-    import shutil
     import threading
 
     import tomli_w
-    from conftest import ROOT
 
     from payload.review.browser import open_page
     from payload.review.cli import live_review
     from payload.review.live import serve
 
-    root = tmp_path / "project"
-    shutil.copytree(ROOT / "urdf", root / "urdf")
-    shutil.copytree(ROOT / "cad" / "meshes", root / "cad" / "meshes")
-    design = root / "cad" / "design.toml"
-    design.write_bytes(tomli_w.dumps(design_dict).encode())
+    design = _watched_project(tmp_path, design_dict)
     live = live_review(str(design), 0)
     assert live.rebuild() is None
     server = serve(live, 0)
@@ -329,11 +336,8 @@ def test_watch_follows_the_saved_design_and_shows_an_invalid_one(tmp_path, desig
         with open_page(url) as page:
             before = page.evaluate(_DISTAL)
             assert before is not None and before[0] > 0
-            shorter = {**design_dict, "finger": {**design_dict["finger"]}}
-            lengths = dict(design_dict["finger"]["lengths"])
-            lengths["distal"] = lengths["distal"] - 0.006
-            shorter["finger"]["lengths"] = lengths
-            design.write_bytes(tomli_w.dumps(shorter).encode())
+            distal = design_dict["finger"]["lengths"]["distal"]
+            design.write_bytes(tomli_w.dumps(_with_distal(design_dict, distal - 0.006)).encode())
             took = _wait_for(page, lambda p: p.evaluate(_DISTAL) != before, 3.0)
             after = page.evaluate(_DISTAL)
             # the distal mesh is shorter along the finger (its longest extent) by about 6 mm
@@ -343,8 +347,7 @@ def test_watch_follows_the_saved_design_and_shows_an_invalid_one(tmp_path, desig
             update = live.update(live.builds[-2].version)
             assert 0 < len(update["commands"]) < len(live.builds[-1].commands) / 2
 
-            lengths["distal"] = -0.01
-            design.write_bytes(tomli_w.dumps(shorter).encode())
+            design.write_bytes(tomli_w.dumps(_with_distal(design_dict, -0.01)).encode())
             _wait_for(page, lambda p: p.evaluate("() => payloadReview.error || ''") != "", 3.0)
             text = page.evaluate("() => document.getElementById('payload-error').textContent")
             assert "distal" in text and "\n" not in text
@@ -363,20 +366,14 @@ def test_an_open_page_shows_the_design_of_a_review_restarted_on_its_port(
     version 0, so the page asked for nothing and cleared its 'server stopped' banner)."""
     _require_browser()
     import hashlib
-    import shutil
 
     import tomli_w
-    from conftest import ROOT
 
     from payload.review.browser import open_page
     from payload.review.cli import live_review
     from payload.review.live import serve
 
-    root = tmp_path / "project"
-    shutil.copytree(ROOT / "urdf", root / "urdf")
-    shutil.copytree(ROOT / "cad" / "meshes", root / "cad" / "meshes")
-    design = root / "cad" / "design.toml"
-    design.write_bytes(tomli_w.dumps(design_dict).encode())
+    design = _watched_project(tmp_path, design_dict)
 
     def start(port: int):
         live = live_review(str(design), 0)
@@ -409,11 +406,8 @@ def test_an_open_page_shows_the_design_of_a_review_restarted_on_its_port(
             assert old_hash in page.title() and page.title().endswith(" - payload review")
             stop(server)
             _wait_for(page, lambda p: "stopped" in p.evaluate("() => payloadReview.error"), 3)
-            shorter = {**design_dict, "finger": {**design_dict["finger"]}}
-            lengths = dict(design_dict["finger"]["lengths"])
-            lengths["distal"] = lengths["distal"] - 0.006
-            shorter["finger"]["lengths"] = lengths
-            design.write_bytes(tomli_w.dumps(shorter).encode())
+            distal = design_dict["finger"]["lengths"]["distal"]
+            design.write_bytes(tomli_w.dumps(_with_distal(design_dict, distal - 0.006)).encode())
             new_hash = hashlib.sha256(design.read_bytes()).hexdigest()[:16]
             server = start(port)
             _wait_for(page, lambda p: new_hash in title(p), 5.0)

@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from payload.design.plausible import check_plausible
-from payload.errors import DesignError, as_toml
+from payload.errors import DesignError, as_toml, is_number
 from payload.project import current_project, default_design_text
 
 if sys.version_info >= (3, 11):
@@ -438,10 +438,6 @@ def _default_servo() -> dict[str, Any]:
     return dict(tomllib.loads(default_design_text())["servo"])
 
 
-def _is_number(v: Any) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool)
-
-
 def _build(cls: type, data: Any, path: str) -> Any:
     """Build dataclass ``cls`` from a TOML table, strictly."""
     if not isinstance(data, dict):
@@ -475,7 +471,7 @@ def _value(tp: Any, v: Any, where: str, meta: Any) -> Any:
     if dataclasses.is_dataclass(tp) and tp is not Range:
         return _build(tp, v, where)
     if tp is Range:
-        if not (isinstance(v, list) and len(v) == 2 and all(_is_number(x) for x in v)):
+        if not (isinstance(v, list) and len(v) == 2 and all(is_number(x) for x in v)):
             raise DesignError(where, f"expected [lower, upper] numbers, got {as_toml(v)}")
         lo, hi = float(v[0]), float(v[1])
         if not (math.isfinite(lo) and math.isfinite(hi)):
@@ -484,7 +480,7 @@ def _value(tp: Any, v: Any, where: str, meta: Any) -> Any:
     origin = typing.get_origin(tp)
     if origin is tuple:
         args = typing.get_args(tp)
-        if not (isinstance(v, list) and len(v) == len(args) and all(_is_number(x) for x in v)):
+        if not (isinstance(v, list) and len(v) == len(args) and all(is_number(x) for x in v)):
             raise DesignError(where, f"expected {len(args)} numbers, got {as_toml(v)}")
         return tuple(float(x) for x in v)
     if tp is str:
@@ -492,7 +488,7 @@ def _value(tp: Any, v: Any, where: str, meta: Any) -> Any:
             raise DesignError(where, f"expected a string, got {as_toml(v)}")
         return v
     if tp is float:
-        if not _is_number(v):
+        if not is_number(v):
             raise DesignError(where, f"expected a number, got {as_toml(v)}")
         x = float(v)
         if not math.isfinite(x):

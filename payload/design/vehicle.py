@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from payload.errors import DesignError, as_toml
+from payload.errors import DesignError, as_toml, is_number
 
 BAY_ASSUMPTION = (
     "Astrobee's payload-bay size is not public: one 1-U bay is assumed to be "
@@ -251,12 +251,8 @@ class Vehicle:
         }
 
 
-def _number(value: Any) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool)
-
-
 def _check_vector(where: str, value: Any, n: int, positive: bool) -> None:
-    ok = isinstance(value, (list, tuple)) and len(value) == n and all(map(_number, value))
+    ok = isinstance(value, (list, tuple)) and len(value) == n and all(map(is_number, value))
     if not ok:
         raise VehicleError(where, f"expected {n} numbers, got {as_toml(value)}")
     for v in value:
@@ -267,7 +263,7 @@ def _check_vector(where: str, value: Any, n: int, positive: bool) -> None:
 
 
 def _check_positive(where: str, value: Any) -> None:
-    if not _number(value):
+    if not is_number(value):
         raise VehicleError(where, f"expected a number, got {as_toml(value)}")
     if not (math.isfinite(value) and value > 0):
         raise VehicleError(where, f"must be a positive, finite number (got {value})")

@@ -108,8 +108,13 @@ def check_address(host: str, port: int) -> None:
         if not probes:
             raise OSError(f"no address family of {host!r} can be used here")
     except OSError as exc:
-        where = f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
-        raise ServerError(f"cannot listen on {where}: {exc.strerror or exc}") from None
+        raise _unbound(host, port, exc) from None
+
+
+def _unbound(host: str, port: int, exc: OSError) -> ServerError:
+    """The error of an address that cannot be bound (an IPv6 host in brackets)."""
+    where = f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
+    return ServerError(f"cannot listen on {where}: {exc.strerror or exc}")
 
 
 def is_local(host: str) -> bool:
@@ -410,7 +415,7 @@ class TeleopServer:
                 server_header=None,
             )
         except OSError as exc:
-            self._error = ServerError(f"cannot listen on {self.host}:{self.port}: {exc.strerror}")
+            self._error = _unbound(self.host, self.port, exc)
             self._ready.set()
             return
         sock = next(iter(self._server.sockets))

@@ -312,11 +312,8 @@ def export_lerobot(
     loaded = read_all()
     left_out: list[dict[str, str]] = []
     if not unfinished:
-        left_out = [
-            {"source": str(src), "why": why}
-            for src, rec in loaded
-            if (why := unfinished_reason(rec.meta, rec.complete)) is not None
-        ]
+        why = {src: unfinished_reason(rec.meta, rec.complete) for src, rec in loaded}
+        left_out = [{"source": str(src), "why": w} for src, w in why.items() if w is not None]
         if len(left_out) == len(loaded):
             raise LeRobotExportError(
                 "every recording given is of an unfinished run (aborted or cut short); "
@@ -326,7 +323,7 @@ def export_lerobot(
             log.warning(
                 "%s: left out (%s; --include-unfinished exports it)", item["source"], item["why"]
             )
-        loaded = [(s, r) for s, r in loaded if unfinished_reason(r.meta, r.complete) is None]
+        loaded = [(src, rec) for src, rec in loaded if why[src] is None]
     # check every recording before touching an existing dataset at ``out``
     frames = [_episode_frames(rec, src, fps) for src, rec in loaded]
     final, out = out, _prepare_out(out, overwrite)
