@@ -11,7 +11,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from payload.schema import VehicleTwist
+from payload.schema import CONTROL_DT, VehicleTwist
 from payload.sim.driver import SimDriver
 from payload.sim.stack import hold_ctb, place_stack
 from payload.sim.world import build_world
@@ -197,8 +197,8 @@ def test_output_stage_stays_within_the_channel_caps_when_redirected(world, grasp
         filt.linear.value = np.array([v0, 0.0, 0.0])  # moving along x, not accelerating
         filt.yaw.value = np.array([v0 / 2.0])  # turning, not accelerating
         for _ in range(1500):
-            v = filt.linear.step(linear, 0.02)
-            w = filt.yaw.step(turn, 0.02)[0]
+            v = filt.linear.step(linear, CONTROL_DT)
+            w = filt.yaw.step(turn, CONTROL_DT)[0]
             worst_speed = max(worst_speed, float(np.sqrt(v @ v)))
             worst_yaw = max(worst_yaw, abs(w))
     assert worst_speed > base.max_speed - 1e-3 and worst_yaw > base.max_yaw_rate - 1e-3
