@@ -111,6 +111,34 @@ def test_filter_keeps_the_margin(world, grasped_state, name, pos, v0, wanted, ya
     assert held, f"{name}: the bag left the pinch"
 
 
+@pytest.mark.parametrize(
+    "pos, v0, wanted, yaw",
+    [
+        ((1.818, 6.404, 0.384), (0.0062, -0.0011, 0.0), (0.197, -0.036, 0.022), 0.0),
+        ((1.504, 7.094, 0.292), (0.0467, -0.0163, 0.0), (0.189, -0.066, -0.011), 0.0),
+        ((1.504, 7.094, 0.292), (0.0467, -0.0163, 0.0), (0.189, -0.066, -0.011), -0.1),
+        ((1.562, 7.827, 0.237), (0.0294, 0.0033, 0.0), (0.199, 0.023, 0.046), 0.1),
+        ((1.769, 6.077, 0.202), (0.006, 0.0009, 0.0), (0.198, 0.029, -0.005), -0.1),
+    ],
+)
+def test_turning_buys_no_closer_approach(world, grasped_state, pos, v0, wanted, yaw):
+    """Starts inside the filter's safe set (no barrier row at the present velocity), then a
+    constant request at Kibo's +x wall, with or without a turn. A turn that swings a
+    point away from the wall must not pay for the vehicle closing in: the rotation ends
+    (and brings another corner round) long before the loaded stack, at about
+    0.004 m/s^2, has stopped. While the QP could trade the one for the other, it turned
+    the bag back and forth (unasked) and these runs struck the station or came within
+    16 mm of it."""
+    sim = _driver(world, grasped_state, pos, v0)
+    filt = _filter(sim)
+    rot = sim.data.xmat[world.astrobee].reshape(3, 3)
+    rows = filt._constraints(sim.data, rot, sim.data.xpos[world.astrobee], np.r_[v0, 0.0])
+    assert rows[2] >= 0.0, "the start is outside the safe set"
+    least, active, _ = fly(sim, filt, wanted, yaw, 15.0)
+    assert active > 0
+    assert least >= MARGIN - TOLERANCE, f"{least * 1e3:.1f} mm from the station"
+
+
 def test_unfiltered_request_strikes_the_wall(world, grasped_state):
     """The first scenario without the filter: the station is struck (so the test above
     measures something)."""

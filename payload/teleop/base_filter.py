@@ -12,12 +12,15 @@ asks that the point's closing speed be one the vehicle can still stop from::
 
     n . (v + w e_z x r)  >=  -v_stop(d - margin)
 
-``v`` the world linear velocity, ``w`` the yaw rate, ``r = p - c`` (``c`` Astrobee's
-centre), and ``v_stop(s)`` the largest speed from which the chain after the filter (the
-jerk-limited output stage at the base channel's bounds, then the vehicle controller's
-reference with the acceleration the nozzle polytope gives the loaded stack,
-:attr:`payload.sim.vehicle.VehicleController.accel_max`) stops within ``s``
-(:func:`stop_speed`). Inside the margin the point must move out at a small speed.
+and, in a second row, ``n . v >= -v_stop(d - margin)``: a turn that carries the point
+toward the obstacle adds to its closing speed, one that carries it away buys the vehicle
+no closer approach (the turn ends, or brings another corner round, long before the
+loaded stack has stopped). ``v`` the world linear velocity, ``w`` the yaw rate,
+``r = p - c`` (``c`` Astrobee's centre), and ``v_stop(s)`` the largest speed from which
+the chain after the filter (the jerk-limited output stage at the base channel's bounds,
+then the vehicle controller's reference with the acceleration the nozzle polytope gives
+the loaded stack, :attr:`payload.sim.vehicle.VehicleController.accel_max`) stops within
+``s`` (:func:`stop_speed`). Inside the margin the point must move out at a small speed.
 
 The filter solves ``min |x - x_req|_W`` over ``x = (v, w)`` under those constraints with
 DAQP (a dual active-set solver for small dense QPs). When the request already meets every
@@ -276,7 +279,7 @@ class BaseSafetyFilter:
         # constant per filter: the QP's cost and bounds, the shapes' bodies, the obstacles,
         # the braking constants, the output arrays of the compiled pass
         c = self.config
-        most = per_face * len(kinds) * len(self.obs_names)  # rows of one step, at most
+        most = 2 * per_face * len(kinds) * len(self.obs_names)  # rows of one step, at most
         self._hessian = np.diag(self.weights)
         self._minus_weights = -self.weights
         self._upper = np.full(most, _INF)

@@ -173,7 +173,7 @@ def barrier_rows(
                     pts, k, obs_lo, obs_hi, m, rot, centre, body_accel, params
                 )
                 least = min(least, d)
-                sk = req[0] * n0 + req[1] * n1 + req[2] * n2 + req[3] * arm - b
+                sk = req[0] * n0 + req[1] * n1 + req[2] * n2 + min(req[3] * arm, 0.0) - b
                 # keep the per_face least slack (ties: the earlier point first)
                 pos = kept
                 while pos > 0 and sel_slack[pos - 1] > sk:
@@ -188,11 +188,13 @@ def barrier_rows(
                 n0, n1, n2, arm, b, d = _barrier(
                     pts, sel[q], obs_lo, obs_hi, m, rot, centre, body_accel, params
                 )
-                rows[count, 0], rows[count, 1], rows[count, 2], rows[count, 3] = n0, n1, n2, arm
-                out[0, count] = b
-                out[1, count] = sel_slack[q]
+                for with_yaw in range(2):
+                    rows[count, 0], rows[count, 1], rows[count, 2] = n0, n1, n2
+                    rows[count, 3] = arm if with_yaw else 0.0
+                    out[0, count] = b
+                    out[1, count] = sel_slack[q]
+                    count += 1
                 least_slack = min(least_slack, sel_slack[q])
-                count += 1
     return count, least_slack
 
 
