@@ -88,3 +88,26 @@ def test_the_live_links_limits_table_states_the_servers_limits():
     assert int(rows["open WebSocket connections"]) == MAX_CLIENTS
     assert re.search(r"(\d+) KiB", rows["message size"])[1] == str(MAX_MESSAGE_BYTES // 1024)
     assert re.search(r"at least (\d+) characters", rows["session token"])[1] == str(MIN_TOKEN_CHARS)
+
+
+def test_the_retargeting_pages_budget_summary_states_the_budgets_starts():
+    """docs/retargeting.md's summary of the converged budget names its starts and its seed
+    table as payload.retarget.budget has them (it once said eight starts, six from a
+    512-posture table, after the code had moved to 14, 12 and 4096)."""
+    from payload.retarget import RetargetConfig
+    from payload.retarget.budget import SEEDS, TABLE_STARTS, budget_plan
+
+    text = " ".join((Path(__file__).parents[1] / "docs" / "retargeting.md").read_text().split())
+    said = re.search(
+        r"`converged` runs (\d+) starts, each to convergence or (\d+) iterations: the warm "
+        r"start, (\d+) postures of a fixed (\d+)-posture seed table",
+        text,
+    )
+    assert said, "the Budgets summary of docs/retargeting.md is not where it was"
+    config = RetargetConfig(budget="converged")
+    assert tuple(int(g) for g in said.groups()) == (
+        len(budget_plan(config)),
+        config.max_iterations,
+        TABLE_STARTS,
+        SEEDS,
+    )

@@ -113,13 +113,21 @@ def test_the_reach_model_is_the_committed_urdfs(tree, model):
 
 
 def test_the_reach_model_follows_the_given_design_not_the_project(design):
-    """A --design with another pad radius and distal length: its own URDF and pads."""
+    """A --design with another pad radius, distal length, pinch pre-shape and pad link: its
+    own URDF, pads, rest posture (the span range's posture family rests on it) and pad link,
+    also when the design was built in memory (no file to read them from)."""
     data = design_to_dict(design)
     data["finger"]["pad"]["radius"] = 0.012
     data["finger"]["lengths"]["distal"] += 0.005
+    data["pinch"]["finger"] = [-0.25, 0.05, 0.1, 0.8]
+    data["retarget"]["pad_link"] = "middle"
     other = build_tree(design_from_dict(data))
     model = design_kinematics(other)
     assert all(pk.desc.tip_radius == 0.012 for pk in model.pairs.values())
+    for pk in model.pairs.values():
+        assert pk.desc.rest == (-0.25, 0.05, 0.1, 0.8) * 2
+        np.testing.assert_array_equal(pk.rest, [-0.25, 0.05, 0.1, 0.8] * 2)
+        assert pk.hand.pad_link == "middle"
     q = sample_configurations(other, 5, np.random.default_rng(4))
     tips = fingertips(model.kin, q)
     for i, row in enumerate(q):

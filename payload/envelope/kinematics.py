@@ -10,6 +10,7 @@ hand description with the design's pad radius), whose span range is
 
 from __future__ import annotations
 
+import dataclasses
 import shutil
 import sys
 import tempfile
@@ -17,6 +18,7 @@ import weakref
 from pathlib import Path
 from typing import NamedTuple
 
+from payload.design.params import FINGER_JOINTS
 from payload.design.tree import KinematicTree
 from payload.design.urdf import to_urdf
 from payload.envelope.pairs import PAIRS
@@ -58,9 +60,15 @@ def design_kinematics(tree: KinematicTree) -> DesignKinematics:
     source = Path(tree.design.source)
     if source.is_file():
         raw["design"] = str(source.resolve())
-    else:  # a design built in memory
+    else:  # a design built in memory: what the hand would read from a design file
         raw.pop("design", None)
         raw["collision_margin"] = float(tree.design.retarget.collision_margin)
+        preshape = dict(zip(FINGER_JOINTS, tree.design.pinch.finger))
+        for pair in raw["pairs"].values():  # the rest posture: the pinch pre-shape
+            pair["rest"] = [
+                next(v for s, v in preshape.items() if j.endswith(f"_{s}"))
+                for j in (*pair["joints"][0], *pair["joints"][1])
+            ]
     # the URDF lives as long as the model: the span range's disk cache
     # (:mod:`payload.retarget.range_cache`) keys on its text, so a report run again on
     # the same design reads the range instead of solving it again
@@ -71,6 +79,8 @@ def design_kinematics(tree: KinematicTree) -> DesignKinematics:
     weakref.finalize(kin, shutil.rmtree, tmp, ignore_errors=True)
     raw["urdf"] = str(path)
     hand = hand_from_dict(raw, DEFAULT_HAND.parent, source=DEFAULT_HAND)
+    if hand.design is None:  # the pad link, too, is the given design's
+        hand = dataclasses.replace(hand, pad_link=tree.design.retarget.pad_link)
     pairs = {name: PairKinematics(hand, name, kin) for name in PAIRS}
     return DesignKinematics(kin, pairs)
 
