@@ -193,7 +193,8 @@ def _run_hardware(args: argparse.Namespace, out: Path, replay: Path) -> dict[str
                                     base_filter=prof.base_filter,
                                     controller=(prof.name, overrides),
                                     budget=prof.retarget_budget,
-                                    collisions=prof.retarget_collisions)  # fmt: skip
+                                    collisions=prof.retarget_collisions,
+                                    progress=not args.json and sys.stderr.isatty())  # fmt: skip
     return result
 
 

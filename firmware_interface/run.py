@@ -22,7 +22,13 @@ import numpy as np
 from payload.design.params import load_design
 from payload.errors import RunAborted
 from payload.folders import HANDS, METRICS, RECORDING
-from payload.schema import PayloadCommand, PayloadDriver, PayloadState, VehicleTwist
+from payload.schema import (
+    CONTROL_DT,
+    PayloadCommand,
+    PayloadDriver,
+    PayloadState,
+    VehicleTwist,
+)
 from payload.sim.driver import SimDriver, WorldState
 from payload.teleop.calibration import CalibrationProcedure, Captures
 from payload.teleop.loop import ReplaySource, StepContext, run_session
@@ -269,6 +275,7 @@ def run_hardware_trial(
     controller: tuple[str, list[str]] = ("safe", []),
     budget: str = "paper",
     collisions: bool = True,
+    progress: bool = False,
 ) -> dict[str, Any]:
     """Replay a hand recording on the hardware and record the trial like ``payload trial``.
 
@@ -291,6 +298,8 @@ def run_hardware_trial(
             (:func:`payload.profiles.resolve`), recorded.
         budget: The pair solves' evaluation budget.
         collisions: Self-collision modelled in the pair solves.
+        progress: Show a progress bar over the session's recorded time (a paced session
+            runs in real time, minutes for a whole trial's replay).
 
     Returns:
         The metrics (as written to ``metrics.json``) with ``steps``, ``driver``,
@@ -350,6 +359,14 @@ def run_hardware_trial(
     trips0 = len(hardware.watchdog_trips)
     # the trial's Foxglove and safety channels (the filter's record, station contacts)
     scene = recording_scene(sim, module_rects(layout))
+    bar = None
+    if progress and frames:
+        from rich.progress import Progress
+
+        span = float(frames[-1].stamp) - float(frames[0].stamp)
+        bar = Progress(transient=True)
+        task = bar.add_task("hw run", total=max(min(max_time, span), CONTROL_DT))
+        bar.start()
     try:
         with (
             TrialRecorder(rec_path, overwrite=True, scene=scene) as recorder,
@@ -366,6 +383,8 @@ def run_hardware_trial(
                 steps[0] += 1
                 if steps[0] == ARM_AFTER_STEPS:  # past the first steps' one-off set-up
                     hardware.set_watchdog(True)
+                if bar is not None:
+                    bar.update(task, completed=ctx.t)
                 fault = getattr(hardware, "fault", None)
                 if fault is not None:
                     raise fault
@@ -387,6 +406,8 @@ def run_hardware_trial(
             recorder.write_meta({"steps": len(commands), "warnings": driver.warnings(),
                                  "watchdog": watchdog, **scene.summary()})  # fmt: skip
     finally:
+        if bar is not None:
+            bar.stop()
         sim.close()
     result = finish_trial(out, rec_path)
     result.update(steps=len(commands), driver="hardware", **far_end, provenance=prov,

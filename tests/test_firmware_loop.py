@@ -129,6 +129,49 @@ def test_hw_run_records_the_trial_like_the_simulator(session, tmp_path):
         assert main(argv) == 2
 
 
+def test_hw_run_shows_its_progress_on_a_terminal(session, tmp_path, monkeypatch):
+    """A paced ``hw run`` takes the replay's length in real time (minutes for a trial's):
+    on a terminal it shows a progress bar over the session's recorded time, as
+    ``payload trial`` does."""
+    import sys
+
+    import rich.progress
+
+    from payload.cli import main
+
+    seen: list[tuple[str, float | None]] = []
+
+    class Bar:
+        def __init__(self, **kw):
+            pass
+
+        def add_task(self, name, total):
+            seen.append(("add", total))
+            return 0
+
+        def start(self):
+            seen.append(("start", None))
+
+        def update(self, task, completed):
+            seen.append(("update", completed))
+
+        def stop(self):
+            seen.append(("stop", None))
+
+    monkeypatch.setattr(rich.progress, "Progress", Bar)
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: True, raising=False)
+    out = tmp_path / "trial"
+    with EmulatorProcess() as emu:
+        argv = ["hw", "run", "--device", emu.port, "--replay", str(session),
+                "--out", str(out), "--no-pace", "--latency-ms", str(LAT)]  # fmt: skip
+        assert main(argv) == 0
+    _, frames = read_hand_recording(session)
+    assert seen[0] == ("add", pytest.approx(frames[-1].stamp - frames[0].stamp))
+    assert seen[1] == ("start", None) and seen[-1] == ("stop", None)
+    done = [v for k, v in seen if k == "update"]
+    assert len(done) == len(frames) and done == sorted(done)
+
+
 def test_hw_run_refuses_a_file_for_out_and_keeps_no_folder_it_made_for_nothing(
     session, tmp_path, capsys
 ):

@@ -869,6 +869,19 @@ def test_summary_of_trials_scored_without_literal_figures() -> None:
     assert s["literal"]["success"] == 0 and s["literal"]["contact_s"]["count"] == 0
 
 
+def test_summary_of_no_scored_trial_claims_no_contact_definition() -> None:
+    """A campaign whose every trial raised or was cut short (a Ctrl-C) scored nothing: its
+    summary names no definition for the confirmed contact, rather than the paper's."""
+    from payload.trials.campaign import summarize, summary_markdown
+
+    cut = "log.mcap: cut short (never closed: the run was killed or crashed); not scored"
+    s = summarize([{"seed": 5, "error": cut}, {"seed": 6, "error": cut}])
+    assert "contact_definition" not in s
+    md = summary_markdown(s)
+    assert "Confirmed contact (the recorded one): none (no trial was scored). " in md
+    assert "Paper-literal: the paper's: any single sample" in md
+
+
 def test_summarize_folder_rebuilds_and_rescores(tmp_path: Path) -> None:
     from payload.trials.campaign import load_trial_results, run_campaign
 

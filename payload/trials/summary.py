@@ -224,7 +224,9 @@ _DIGITS = {"duration_s": 1, "net_displacement_m": 2, "rms_mm": 1, "peak_mm": 1, 
 
 
 def _definition_text(definition: dict[str, Any] | None) -> str:
-    d = definition or {}
+    if definition is None:  # no trial was scored (each raised or left no finished recording)
+        return "none (no trial was scored)"
+    d = definition
     if "mixed" in d:
         return "mixed definitions across the trials"
     mi, mg = float(d.get("min_interval_s") or 0.0), float(d.get("max_gap_s") or 0.0)
@@ -304,7 +306,7 @@ def summary_markdown(summary: dict[str, Any], title: str | None = None) -> str:
         "Contact definitions. Confirmed contact (the recorded one): "
         + _definition_text(summary.get("contact_definition"))
         + ". Paper-literal: "
-        + _definition_text(lit.get("contact_definition") if lit else None)
+        + _definition_text((lit.get("contact_definition") if lit else None) or {})
         + ". Acquisition succeeds when a first contact interval exists under the definition.",
     ]
     prof = summary.get("controller")
