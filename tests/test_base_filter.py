@@ -139,6 +139,26 @@ def test_turning_buys_no_closer_approach(world, grasped_state, pos, v0, wanted, 
     assert least >= MARGIN - TOLERANCE, f"{least * 1e3:.1f} mm from the station"
 
 
+@pytest.mark.parametrize(
+    "pos, way, speed",
+    [
+        ((1.746, 2.602, 0.073), (0.39, -0.86, 0.34), 0.013),
+        ((1.298, 1.639, 0.4), (-0.23, -0.49, -0.84), 0.021),
+    ],
+)
+def test_the_chain_stops_within_the_margin(world, grasped_state, pos, way, speed):
+    """Starts in the safe set near the hatch, a constant request along the start's motion
+    (analyses/filter_sweep.py). The output stage, which follows the request at the
+    channel's 0.0175 m/s^2, runs ahead of the loaded stack (about 0.004 m/s^2), and takes
+    0.875 s to ramp its own acceleration down once the filter brakes; while the stop model
+    left that ramp out, these came 33 and 37 mm from the station."""
+    way = np.asarray(way) / np.linalg.norm(way)
+    sim = _driver(world, grasped_state, pos, speed * way)
+    least, active, _ = fly(sim, _filter(sim), 0.2 * way, 0.0, 15.0)
+    assert active > 0
+    assert least >= MARGIN - TOLERANCE, f"{least * 1e3:.1f} mm from the station"
+
+
 def test_unfiltered_request_strikes_the_wall(world, grasped_state):
     """The first scenario without the filter: the station is struck (so the test above
     measures something)."""

@@ -265,7 +265,14 @@ class BaseSafetyFilter:
         # braking: the output stage (channel bounds) and the controller (polytope bounds)
         self.body_accel = np.minimum(np.asarray(vehicle_accel, float), base.max_accel)
         self.jerk = min(base.max_jerk, vehicle_jerk)
-        self.lag = 2.0 * CONTROL_DT + float(self.body_accel.max()) / vehicle_jerk
+        # how long the chain may keep accelerating toward a wall once the filter brakes:
+        # two control periods, the output stage's own ramp down from the channel's
+        # acceleration, and the controller's reference's ramp down from the stack's
+        self.lag = (
+            2.0 * CONTROL_DT
+            + base.max_accel / base.max_jerk
+            + float(self.body_accel.max()) / vehicle_jerk
+        )
         self.weights = np.array([1.0, 1.0, 1.0, self.config.yaw_weight**2])
         # the channel's caps less its limiters' landing margins: capped at the channel's
         # speed and yaw rate themselves, a limiter's discrete landing overshoots them
