@@ -18,7 +18,9 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import multiprocessing
 import sys
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -63,35 +65,47 @@ def fly(world, held, pos, v0, want, yaw) -> tuple[float, int] | None:
     return least, touching
 
 
+Row = tuple[int, str, np.ndarray, np.ndarray, float, float, float, int]
+"""One run: seed, keep-in box, start, direction, start speed, yaw rate, least clearance,
+steps in contact."""
+
+
+def sweep(seed: int, runs: int) -> list[Row]:
+    """``runs`` runs from safe starts drawn with ``seed``."""
+    world = build_world()
+    held = hold_ctb(world)
+    zones = station_zones(world.layout)
+    rng = np.random.default_rng(seed)
+    rows: list[Row] = []
+    while len(rows) < runs:
+        box = int(rng.integers(len(zones.keepin)))
+        lo, hi = (np.asarray(v, float) for v in zones.keepin[box])
+        pos = lo + rng.uniform(0.25, 0.75, 3) * (hi - lo)
+        pos += rng.uniform(-0.4, 0.4, 3) * np.minimum(hi - lo, 1.0)
+        way = rng.normal(size=3)
+        way /= np.linalg.norm(way)
+        speed = rng.uniform(0.0, 0.06)
+        yaw = float(rng.choice([0.0, 0.1, -0.1]))
+        run = fly(world, held, pos, speed * way, 0.2 * way, yaw)
+        if run is None:
+            continue
+        rows.append((seed, zones.names[box], pos, way, speed, yaw, *run))
+        print(f"seed {seed} {len(rows)}/{runs}: least {run[0] * 1e3:.1f} mm", file=sys.stderr)
+    return rows
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--runs", type=int, default=200, help="runs per seed")
     parser.add_argument("--seed", type=int, nargs="+", default=[11, 12, 13, 14])
     parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--workers", type=int, default=2, help="processes (one seed each)")
     args = parser.parse_args(argv)
-    world = build_world()
-    held = hold_ctb(world)
-    zones = station_zones(world.layout)
     margin = SafetyConfig().margin
-    rows: list[tuple[int, str, np.ndarray, np.ndarray, float, float, float, int]] = []
-    for seed in args.seed:
-        rng = np.random.default_rng(seed)
-        done = 0
-        while done < args.runs:
-            box = int(rng.integers(len(zones.keepin)))
-            lo, hi = (np.asarray(v, float) for v in zones.keepin[box])
-            pos = lo + rng.uniform(0.25, 0.75, 3) * (hi - lo)
-            pos += rng.uniform(-0.4, 0.4, 3) * np.minimum(hi - lo, 1.0)
-            way = rng.normal(size=3)
-            way /= np.linalg.norm(way)
-            speed = rng.uniform(0.0, 0.06)
-            yaw = float(rng.choice([0.0, 0.1, -0.1]))
-            run = fly(world, held, pos, speed * way, 0.2 * way, yaw)
-            if run is None:
-                continue
-            done += 1
-            rows.append((seed, zones.names[box], pos, way, speed, yaw, *run))
-            print(f"seed {seed} {done}/{args.runs}: least {run[0] * 1e3:.1f} mm", file=sys.stderr)
+    spawn = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(max_workers=args.workers, mp_context=spawn) as pool:
+        parts = list(pool.map(sweep, args.seed, [args.runs] * len(args.seed)))
+    rows = [row for part in parts for row in part]
 
     def line(label: str, part: list) -> str:
         low = np.array([r[6] for r in part])

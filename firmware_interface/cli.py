@@ -355,7 +355,13 @@ def register(
     p.add_argument("--servos", metavar="MAP", help="servo map TOML")
     p.add_argument("--out", help="trial folder (default: a new runs/hw-NNNN in the project)")
     p.add_argument("--max-time", type=float, default=240.0, help="session cap [s]")
-    p.add_argument("--no-pace", action="store_true", help=argparse.SUPPRESS)
+    p.add_argument(
+        "--no-pace",
+        action="store_true",
+        help="send each step as soon as the last exchange ends instead of at the replay's "
+        "50 Hz (for the emulator and tests; a host stall over 100 ms trips the servos' "
+        "watchdog, docs/hardware.md)",
+    )
     from payload.profiles import PROFILES, SAFE
 
     p.add_argument(

@@ -65,6 +65,17 @@ def test_binary_input_files_give_one_line_and_exit_2(argv, message, capsys) -> N
     assert len(err) == 1 and message in err[0] and str(STL) in err[0]
 
 
+def test_replaying_a_json_file_that_is_not_a_hand_recording_says_so(tmp_path, capsys) -> None:
+    """A trial's metrics.json (pretty-printed JSON) given to --replay: the line says the
+    file is not a hand recording, not that its "header is not JSON"."""
+    metrics = tmp_path / "metrics.json"
+    metrics.write_text('{\n  "seed": 0,\n  "success": true\n}\n')
+    assert main(["trial", "--replay", str(metrics), "--out", str(tmp_path / "t")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"{metrics}: not a payload-hands recording" in err[0]
+    assert "log.mcap" in err[0] and not (tmp_path / "t").exists()
+
+
 def test_build_of_a_design_outside_a_project_writes_nothing(tmp_path: Path, capsys) -> None:
     variant = tmp_path / "variant.toml"
     variant.write_text((ROOT / "cad" / "design.toml").read_text())

@@ -236,6 +236,17 @@ def test_curled_fingers_sit_at_the_closed_form_height_above_the_bottom_face(desi
     assert curled.fits
 
 
+def test_the_figure_title_of_parts_that_fit_but_collide_says_fails(curled):
+    """The curled design's parts fit the bays and collide: its verdict fails, and the
+    figure's title says so rather than "fits"."""
+    from payload.envelope.envelope_figure import figure_title
+
+    assert curled.fits and curled.self_collision
+    title = figure_title(curled)
+    assert "(FAILS: the parts fit the bays but collide;" in title
+    assert title.endswith("self-collision: yes)")
+
+
 def test_curled_distal_pads_run_into_their_own_brackets_by_the_closed_form_depth(
     design, curled_geom, curled
 ):

@@ -882,6 +882,25 @@ def test_summary_of_no_scored_trial_claims_no_contact_definition() -> None:
     assert "Paper-literal: the paper's: any single sample" in md
 
 
+def test_a_rescoring_with_no_scored_trial_is_named_so(tmp_path: Path) -> None:
+    """Rescoring a campaign none of whose trials can be scored (here a recording cut in
+    half) writes its summary as ``contact-unscored``, not as a mix of definitions."""
+    from payload.cli import main
+    from payload.trials.campaign import run_campaign
+
+    run_campaign(fixture_synthetic_trial, [4], tmp_path, workers=0, progress=False)
+    log = tmp_path / "trial-0004" / "log.mcap"
+    log.write_bytes(log.read_bytes()[: log.stat().st_size // 2])
+    (tmp_path / "trial-0004" / "metrics.json").unlink()
+    assert main(["trials", "summarize", str(tmp_path), "--max-gap-s", "0.1", "--json"]) == 0
+    names = sorted(p.name for p in tmp_path.iterdir() if p.is_file())
+    assert names == [
+        "fig_campaign.contact-unscored.png",
+        "summary.contact-unscored.json",
+        "summary.contact-unscored.md",
+    ]
+
+
 def test_summarize_folder_rebuilds_and_rescores(tmp_path: Path) -> None:
     from payload.trials.campaign import load_trial_results, run_campaign
 

@@ -166,15 +166,23 @@ def envelope_figure(geom: PayloadGeometry, a: EnvelopeAnalysis, path: Path, dpi:
         legend_box("self-collision", facecolor="white", edgecolor="magenta", lw=1.6),
     ]
     fig.legend(handles=handles, loc="outside lower center", ncol=9, fontsize=8, frameon=False)
-    status = "fits" if check.fits else "DOES NOT FIT"
-    fig.suptitle(
-        f"Stowed payload in the two lower bays ({status}; min clearance "
-        f"{check.min_clearance * 1e3:.1f} mm; self-collision: "
-        f"{'yes' if check.self_collision else 'none'})",
-        fontsize=11,
-    )
+    fig.suptitle(figure_title(check), fontsize=11)
     fig.savefig(path, dpi=dpi)
     return path
+
+
+def figure_title(check: StowedCheck) -> str:
+    """The figure's title: whether the parts fit the bays, the least clearance and the
+    self-collision; a design whose parts fit but collide is said to fail, as its verdict
+    says."""
+    status = "fits" if check.fits else "DOES NOT FIT"
+    if check.fits and check.self_collision:
+        status = "FAILS: the parts fit the bays but collide"
+    return (
+        f"Stowed payload in the two lower bays ({status}; min clearance "
+        f"{check.min_clearance * 1e3:.1f} mm; self-collision: "
+        f"{'yes' if check.self_collision else 'none'})"
+    )
 
 
 def _deployment_panel(ax: Any, geom: PayloadGeometry, vehicle: Vehicle, check: StowedCheck) -> None:

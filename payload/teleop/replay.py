@@ -144,7 +144,11 @@ def read_hand_recording(path: str | Path) -> tuple[dict[str, Any], list[HandFram
     try:
         header = json.loads(lines[0])
     except json.JSONDecodeError as exc:
-        raise ReplayError(f"{p}:1: header is not JSON ({exc.msg})") from exc
+        raise ReplayError(
+            f"{p}: not a {FORMAT} recording (a JSON-lines file whose first line is its "
+            f"header; line 1 is not one JSON object: {exc.msg}); a trial's log.mcap "
+            "replays too"
+        ) from exc
     if not isinstance(header, dict) or header.get("format") != FORMAT:
         raise ReplayError(f"{p}:1: not a {FORMAT} recording")
     if header.get("version") != VERSION:

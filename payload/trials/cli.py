@@ -242,8 +242,10 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
         )
     else:
         print(summary_terminal(summary, title))
+        figure = out / "fig_campaign.png"
+        also = f", {figure}" if figure.is_file() else ""
         print(f"wrote {out / SUMMARY_TEXT} (definitions, the paper-literal column, every "
-              f"trial) and {out / SUMMARY}")  # fmt: skip
+              f"trial){also} and {out / SUMMARY}")  # fmt: skip
     errors = [r for r in results if r.get("error")]
     if errors:
         first = errors[0]
@@ -269,7 +271,7 @@ def _cmd_trials_summarize(args: argparse.Namespace) -> int:
         summary_markdown,
         write_summary,
     )
-    from payload.trials.scoring import MIXED_TAG
+    from payload.trials.scoring import MIXED_TAG, UNSCORED_TAG
 
     for name in ("min_contact_s", "max_gap_s"):
         value = getattr(args, name)
@@ -306,7 +308,7 @@ def _cmd_trials_summarize(args: argparse.Namespace) -> int:
             for r in results
             if not r.get("error")
         }
-        tag = contact_tag(*defs.pop()) if len(defs) == 1 else MIXED_TAG
+        tag = contact_tag(*defs.pop()) if len(defs) == 1 else MIXED_TAG if defs else UNSCORED_TAG
     prov = previous.get("provenance")
     if prov is None:  # no campaign summary before: what the trials themselves record
         from payload.trials.summary import trials_environment

@@ -132,6 +132,8 @@ CONTACT_TAG = "contact-"
 
 MIXED_TAG = f"{CONTACT_TAG}mixed"
 """The tag of a campaign rescored with trials of more than one contact definition."""
+UNSCORED_TAG = f"{CONTACT_TAG}unscored"
+"""The tag of a campaign rescored with no trial scored (each raised or was cut short)."""
 
 
 def contact_tag(min_interval_s: float, max_gap_s: float) -> str:
