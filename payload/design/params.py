@@ -139,7 +139,10 @@ class Array:
     pair_spacing: float = _pos("x distance from finger A to finger B with the rail at 0")
     a_x: float = _any("x of finger A's MCP flexion axis")
     finger_drop: float = _pos("distance from the stage plate underside down to the MCP axes")
-    bracket_thickness: float = _pos("thickness of the finger brackets along y")
+    bracket_thickness: float = _pos(
+        "thickness of the finger brackets along y (not used by the geometry yet: the "
+        "brackets are solid blocks sized by finger.section)"
+    )
 
 
 @dataclass(frozen=True)
