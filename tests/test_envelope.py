@@ -243,8 +243,27 @@ def test_the_figure_title_of_parts_that_fit_but_collide_says_fails(curled):
 
     assert curled.fits and curled.self_collision
     title = figure_title(curled)
-    assert "(FAILS: the parts fit the bays but collide;" in title
+    assert "(FAILS: the parts fit the bays but collide" in title
     assert title.endswith("self-collision: yes)")
+
+
+def test_the_figure_title_of_a_blocked_deployment_says_fails(stowed):
+    """Parts that fit without colliding but whose deployment sweep is not clear: the
+    verdict fails, and so does the title."""
+    import dataclasses
+
+    from payload.envelope.envelope_figure import figure_title
+
+    assert stowed.passed and figure_title(stowed).startswith(
+        "Stowed payload in the two lower bays (fits;"
+    )
+    blocked = dataclasses.replace(
+        stowed, sweep=stowed.sweep._replace(clear=False, vehicle_clear=False)
+    )
+    assert blocked.fits and not blocked.self_collision and not blocked.passed
+    assert "(FAILS: the parts fit the bays but the deployment path is not clear;" in (
+        figure_title(blocked)
+    )
 
 
 def test_curled_distal_pads_run_into_their_own_brackets_by_the_closed_form_depth(

@@ -173,11 +173,14 @@ def envelope_figure(geom: PayloadGeometry, a: EnvelopeAnalysis, path: Path, dpi:
 
 def figure_title(check: StowedCheck) -> str:
     """The figure's title: whether the parts fit the bays, the least clearance and the
-    self-collision; a design whose parts fit but collide is said to fail, as its verdict
-    says."""
+    self-collision; a design whose parts fit but collide, or whose deployment path is
+    not clear, is said to fail, as its verdict says."""
     status = "fits" if check.fits else "DOES NOT FIT"
-    if check.fits and check.self_collision:
-        status = "FAILS: the parts fit the bays but collide"
+    if check.fits and not check.passed:
+        why = ["collide"] if check.self_collision else []
+        if not check.sweep.clear:
+            why.append("the deployment path is not clear")
+        status = "FAILS: the parts fit the bays but " + " and ".join(why)
     return (
         f"Stowed payload in the two lower bays ({status}; min clearance "
         f"{check.min_clearance * 1e3:.1f} mm; self-collision: "

@@ -234,8 +234,8 @@ class BaseSafetyFilter:
         vehicle_jerk: The controller's linear jerk bound [m/s^3].
         zones: Keep-in and keep-out boxes (default: the world's layout).
         config: Filter settings.
-        per_face: Constraints kept per (shape, obstacle box) pair: the most binding at
-            the request.
+        per_face: Sample points kept per (shape, obstacle box) pair, the most binding
+            at the request; each gives two constraints (with and without the yaw term).
     """
 
     def __init__(

@@ -95,9 +95,11 @@ def barrier_rows(
         req: The request (v_x, v_y, v_z [m/s], yaw rate [rad/s]), world frame, (4,).
         params: (margin [m], jerk [m/s^3], lag [s], recovery gain [1/s], recovery
             speed [m/s], deceleration per body axis (3) [m/s^2]).
-        per_face: Rows kept per pair, those of least slack at the request.
+        per_face: Sample points kept per pair, those of least slack at the request; each
+            gives two rows, with and without the yaw term.
         rows: Out: the rows ``A`` (R, 4); pairs in shape-major order, least slack first.
-        out: Out: their bounds ``b`` [m/s] and their slack at the request [m/s], (2, R).
+        out: Out: their bounds ``b`` [m/s] and their point's slack at the request (the
+            lesser of its two rows') [m/s], (2, R).
         lower: Out: a lower bound of each pair's distance (S, M) [m]; the least sampled
             distance for the pairs checked point by point.
         pts: Scratch: world positions of the sample points (K, 3) [m].
