@@ -7,6 +7,7 @@ Without Chromium or iwer the test is skipped on a developer's machine and FAILS 
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import threading
@@ -265,6 +266,14 @@ def test_desktop_mode_drives_a_calibration_without_a_headset(tmp_path):
             page.wait_for_function("!document.getElementById('enter').disabled", timeout=30e3)
             page.click("#enter")
             page.wait_for_function("window.__teleop.xr", timeout=30e3)
+            # the keys stay in sight over the emulator's full-window view of the session
+            on_top = page.evaluate(
+                "() => { const h = document.getElementById('desktop-help'); "
+                "const r = h.getBoundingClientRect(); return r.height > 0 && "
+                "h.contains(document.elementsFromPoint(r.left + r.width / 2, "
+                "r.top + r.height / 2)[0]); }"
+            )
+            assert on_top, "the desktop mode's key help is hidden under the VR view"
             done, end = "", time.monotonic() + 120
             while time.monotonic() < end and hub.state != "teleop":
                 step = hub.snapshot.get("step") or ""
@@ -281,3 +290,37 @@ def test_desktop_mode_drives_a_calibration_without_a_headset(tmp_path):
         worker.join(30)
         server.stop()
         session.close()
+
+
+def test_a_refused_page_says_why_instead_of_retrying_in_silence():
+    """A server restarted under an open page has a new token, and a full server turns a
+    page away: both refuse the WebSocket, and the page says which (not just "retrying")."""
+    from websockets.sync.client import connect
+
+    from payload.teleop.server import MAX_CLIENTS
+
+    _need_browser()
+    old_token, new_token = "a" * 22, "b" * 22
+    first = TeleopServer(LiveHub(), port=0, token=old_token).start()
+    port = first.port
+    second = None
+    try:
+        with _Page(f"http://localhost:{port}/?token={old_token}", QUEST_BROWSER) as page:
+            page.wait_for_function("window.__teleop.open", timeout=30e3)
+            first.stop()  # the server restarts with a new token under the open page
+            first = None
+            second = TeleopServer(LiveHub(), port=port, token=new_token).start()
+            _wait(lambda: "token" in page.text_content("#status"), 30, "the token's notice")
+            status = page.text_content("#status")
+            assert "open the address it printed" in status, status
+    finally:
+        for server in (first, second):
+            if server is not None:
+                server.stop()
+    with TeleopServer(LiveHub(), port=0) as full, contextlib.ExitStack() as others:
+        origin = f"http://localhost:{full.port}"
+        for _ in range(MAX_CLIENTS):
+            others.enter_context(connect(f"ws://localhost:{full.port}/ws", origin=origin))
+        with _Page(f"{origin}/", QUEST_BROWSER) as page:
+            _wait(lambda: "at most" in page.text_content("#status"), 30, "the cap's notice")
+            assert f"at most {MAX_CLIENTS} pages" in page.text_content("#status")

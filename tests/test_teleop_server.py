@@ -266,8 +266,10 @@ def test_non_local_bind_checks_token_and_origin_over_tls(tmp_path):
             assert err.value.response.status_code == 403
         with pytest.raises(urllib.error.HTTPError):
             get_status(f"https://{base}/status", client)
-        with pytest.raises(urllib.error.HTTPError):
+        with pytest.raises(urllib.error.HTTPError) as refused:
             urllib.request.urlopen(f"https://{base}/", context=client, timeout=10)
+        # a person who typed the address without its token is told what opens the page
+        assert "open the address" in refused.value.read().decode()
         st = get_status(f"https://{base}/status?token={token}", client)
         assert st["dropped"]["unauthorized"] == 5
         with connect(f"wss://{base}/ws?token={token}", ssl=client, origin=origin) as ws:

@@ -76,6 +76,8 @@ RATE_BURST = 0.5 * RATE_LIMIT_HZ  # messages a connection may send at once (0.5 
 # once; a sustained flood above the rate is still dropped after half a second
 DESKTOP_SCRIPTS = b'<script src="/iwer.js"></script>\n<script src="/desktop.js"></script>\n'
 MAX_CLIENTS = 4  # open WebSocket connections: an operator, a spare page, a few watchers
+NO_TOKEN = "missing or wrong token"
+TOKEN_HINT = "open the address `payload teleop serve` printed, with its ?token= (new each run)"
 
 
 class ServerError(PayloadError):
@@ -267,7 +269,7 @@ class TeleopServer:
         if self.token:
             given = query.get("token", [""])[0]
             if not hmac.compare_digest(given.encode(), self.token.encode()):
-                return "missing or wrong token"
+                return NO_TOKEN
         return None
 
     def _origin_ok(self, request: Request) -> bool:
@@ -303,6 +305,8 @@ class TeleopServer:
             if why is not None:
                 self.hub.drop("unauthorized")
                 log.warning("teleop server: refused %s from %s: %s", path, _peer(connection), why)
+                if why == NO_TOKEN:  # a person typed the address: say what opens it
+                    return _text(403, f"forbidden: {NO_TOKEN}; {TOKEN_HINT}\n")
                 return _text(403, "forbidden\n")
             if path == "/status":
                 body = json.dumps(self.hub.status()).encode()

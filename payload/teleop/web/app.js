@@ -18,6 +18,7 @@ const token = new URLSearchParams(location.search).get('token');
 const wsUrl = `${location.protocol === 'https:' ? 'wss' : 'ws'}://${location.host}/ws` +
   (token ? `?token=${encodeURIComponent(token)}` : '');
 const $ = (id) => document.getElementById(id);
+const MAX_PAGES = 4;  // open WebSocket connections the server takes (server.MAX_CLIENTS)
 
 // what the browser test (and a curious developer) can look at
 const debug = {
@@ -37,8 +38,10 @@ class Link {
 
   connect() {
     const ws = new WebSocket(wsUrl);
+    let opened = false;
     this.ws = ws;
     ws.onopen = () => {
+      opened = true;
       this.retry = 250;
       debug.open = true;
       debug.connects += 1;
@@ -52,15 +55,41 @@ class Link {
       try { this.onMessage(JSON.parse(ev.data)); } catch (e) { console.error(e); }
     };
     ws.onclose = () => {
+      const wait = `retrying in ${(this.retry / 1000).toFixed(1)} s`;
       debug.open = false;
-      debug.link = `disconnected, retrying in ${(this.retry / 1000).toFixed(1)} s`;
+      debug.link = `disconnected, ${wait}`;
       debug.state = null;
       debug.role = null;
       showStatus();
+      if (!opened) this.explain(wait);  // refused, not dropped: say why when the server can
       setTimeout(() => this.connect(), this.retry);
       this.retry = Math.min(4000, this.retry * 2);
     };
     ws.onerror = () => ws.close();
+  }
+
+  // A WebSocket the server refused looks like any other failure to the page: ask /status
+  // (the page's own token) what it is. 403: the token is not this server's (a restarted
+  // server makes a new one); reachable: the server has as many pages as it takes.
+  async explain(wait) {
+    let why = null;
+    try {
+      const r = await fetch(`/status${token ? `?token=${encodeURIComponent(token)}` : ''}`,
+        { cache: 'no-store' });
+      if (r.status === 403) {
+        why = 'the server refused this page\'s token (a restarted server has a new one): ' +
+          'open the address it printed, with its ?token=';
+      } else if (r.ok) {
+        why = `the server turned this page away: it takes at most ${MAX_PAGES} pages at ` +
+          'once (close a spare one)';
+      }
+    } catch (e) {
+      why = null;  // the server is not reachable: "disconnected" says it
+    }
+    if (why && !debug.open) {
+      debug.link = `${why}; ${wait}`;
+      showStatus();
+    }
   }
 
   send(obj) {
