@@ -864,3 +864,33 @@ def test_latency_figures_of_no_frames_are_json_nulls():
     assert percentiles([]) == {"median": None, "p99": None}
     assert json.loads(json.dumps(percentiles([]), allow_nan=False)) == {"median": None, "p99": None}
     assert percentiles([1.0, 3.0]) == {"median": 2.0, "p99": pytest.approx(2.98)}
+
+
+def test_one_ctrl_c_while_a_session_is_scored_does_not_stop_the_scoring(tmp_path, capsys):
+    """`teleop serve` closes and scores a recorded session after the Ctrl-C that stops it
+    (a second or so); a second Ctrl-C in that time used to stop it without metrics.json
+    and figures, saying only "interrupted". Now it says what one more press would cost,
+    and only that one stops, naming what was not written."""
+    import os
+    import signal
+
+    from payload.teleop.cli import _press_twice_to_abandon
+
+    done = []
+    with _press_twice_to_abandon(tmp_path):
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(0.05)  # the handler runs between bytecodes of this thread
+        done.append("scored")
+    assert done == ["scored"]
+    assert "Ctrl-C again stops without its metrics.json" in capsys.readouterr().err
+    with pytest.raises(KeyboardInterrupt), _press_twice_to_abandon(tmp_path):
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(0.05)
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(0.05)
+        done.append("not reached")
+    assert done == ["scored"]
+    assert f"metrics.json and the figures of {tmp_path} were not written" in (
+        capsys.readouterr().err
+    )
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler

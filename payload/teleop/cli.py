@@ -9,10 +9,12 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
+import signal
 import sys
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -55,6 +57,39 @@ def status_line(status: dict[str, Any], lat: dict[str, float]) -> str:
         f"latency={_ms(lat['median'])}/{_ms(lat['p99'])} ms "
         f"overruns={status['loop_overruns']} dropped: {refused or 'none'}"
     )
+
+
+@contextlib.contextmanager
+def _press_twice_to_abandon(record: Path | None) -> Iterator[None]:
+    """While the server stops and the session is closed and scored (a second or so), a
+    Ctrl-C says what it would cost and only a second one stops."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    presses = []
+
+    def on_interrupt(signum: int, frame: Any) -> None:
+        presses.append(signum)
+        if len(presses) > 1:
+            raise KeyboardInterrupt
+        print(
+            "\nscoring the session: Ctrl-C again stops without its metrics.json and figures",
+            file=sys.stderr,
+        )
+
+    previous = signal.signal(signal.SIGINT, on_interrupt)
+    try:
+        yield
+    except KeyboardInterrupt:
+        if record is not None:
+            print(
+                f"stopped before scoring: metrics.json and the figures of {record} were "
+                "not written",
+                file=sys.stderr,
+            )
+        raise
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def _status_printer(hub: Any, stop: threading.Event, interval: float) -> None:
@@ -199,9 +234,10 @@ def serve(args: argparse.Namespace, make_session: SessionFactory) -> int:
         hub.stop.set()
         print("\nstopping", file=sys.stderr)
     finally:
-        stop_status.set()
-        server.stop()
-        result = session.close()
+        with _press_twice_to_abandon(record):
+            stop_status.set()
+            server.stop()
+            result = session.close()
     print("\n" + status_line(hub.status(), hub.latency()))
     if result is not None:
         print(f"recorded {record} ({result.get('steps')} steps)")
