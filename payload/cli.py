@@ -18,12 +18,13 @@ import argparse
 import gc
 import importlib
 import os
+import signal
 import sys
 from collections.abc import Callable, Iterable, Sequence
-from typing import NamedTuple, NoReturn
+from typing import Any, NamedTuple, NoReturn
 
 from payload.cliutil import CheckFailed, command_project, emit_json, forget_project
-from payload.errors import PayloadError, RunAborted
+from payload.errors import PayloadError, RunAborted, Terminated
 from payload.project import ENV_VAR
 
 
@@ -285,6 +286,11 @@ def _stdout_gone() -> bool:
         return False
 
 
+def _terminate(signum: int, frame: Any) -> None:
+    """SIGTERM or SIGHUP: stop as Ctrl-C stops, with every command's clean-up."""
+    raise Terminated(signum)
+
+
 def run() -> NoReturn:
     """The ``payload`` console script and ``python -m payload``: :func:`main`, then exit.
 
@@ -300,6 +306,9 @@ def run() -> NoReturn:
     first import of matplotlib, in the figure's frames, leaves such cycles holding the
     geometry's solids); the collection costs about 0.05 s there.
     """
+    for signum in (signal.SIGTERM, signal.SIGHUP):
+        if signal.getsignal(signum) is signal.SIG_DFL:  # not where it is ignored (nohup)
+            signal.signal(signum, _terminate)
     try:
         code = main()
     except BrokenPipeError:
@@ -334,6 +343,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except PayloadError as exc:
         print(f"payload: error: {exc}", file=sys.stderr)
         return 2
+    except Terminated as exc:
+        print(f"payload: terminated ({exc})", file=sys.stderr)
+        return 128 + exc.signum
     except KeyboardInterrupt:
         print("payload: interrupted", file=sys.stderr)
         return 130

@@ -56,3 +56,20 @@ class RunAborted(Exception):
 
     What it had recorded is kept; the message says where.
     """
+
+
+class Terminated(KeyboardInterrupt):
+    """The process was asked to stop by a signal other than Ctrl-C (SIGTERM from ``kill``
+    or a process manager, SIGHUP from a closed terminal). Raised in the main thread as a
+    :class:`KeyboardInterrupt`, so every command's Ctrl-C clean-up runs: a recording is
+    closed and marked aborted, the servos' torque is switched off.
+
+    Attributes:
+        signum: The signal's number (the exit code is ``128 + signum``).
+    """
+
+    def __init__(self, signum: int) -> None:
+        import signal
+
+        self.signum = signum
+        super().__init__(signal.Signals(signum).name)

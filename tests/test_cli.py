@@ -345,3 +345,41 @@ def test_a_command_on_a_project_names_it_in_its_json(capsys, monkeypatch) -> Non
 
     emit_json({"a": 1})  # outside a command: no project to name
     assert json.loads(capsys.readouterr().out) == {"a": 1}
+
+
+def test_sigterm_stops_a_trial_as_ctrl_c_does(tmp_path: Path) -> None:
+    """`kill` (SIGTERM) of a running `payload trial`: the recording is closed, reads
+    complete and is marked aborted (before, the process died with the file never closed:
+    cut short), the command says so in one line and exits 128 + 15."""
+    import os
+    import signal
+    import time
+
+    from payload.trials.reading import read_recording, unfinished_reason
+
+    out = tmp_path / "t"
+    code = "from payload.cli import run; run()"
+    proc = subprocess.Popen(
+        [sys.executable, "-c", code, "trial", "--seed", "0", "--out", str(out)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=ROOT,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+        preexec_fn=lambda: signal.signal(signal.SIGTERM, signal.SIG_DFL),
+    )
+    log = out / "log.mcap"
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and proc.poll() is None:
+        if log.is_file() and log.stat().st_size > 100_000:  # some steps flushed
+            break
+        time.sleep(0.05)
+    assert proc.poll() is None, proc.communicate()[1]
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 128 + signal.SIGTERM, err
+    assert err.strip().splitlines()[-1] == "payload: terminated (SIGTERM)"
+    rec = read_recording(log)
+    assert rec.complete and 0 < len(rec.t)
+    assert unfinished_reason(rec.meta, rec.complete) == "aborted (Terminated: SIGTERM)"
+    assert not (out / "metrics.json").exists()
