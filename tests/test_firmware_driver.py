@@ -25,6 +25,7 @@ from firmware_interface.emulator import EmulatorProcess
 from firmware_interface.errors import CommError, HardwareFault, MissingServoError
 from firmware_interface.port import SdkPort
 from firmware_interface.servo_map import load_servo_map
+from payload.errors import Terminated
 from payload.schema import Health, PayloadCommand
 
 LAT = 50.0  # [ms] reply timeout allowance: CI machines are busy; the emulator is honest
@@ -290,11 +291,13 @@ def test_close_leaves_every_servo_torque_off_and_is_idempotent(smap):
         assert not any(s["torque"] for s in emu.servos().values())
 
 
-def test_ctrl_c_during_a_bus_reply_still_leaves_every_servo_torque_off(smap):
-    """Ctrl-C lands while the SDK awaits a reply (KeyboardInterrupt raised out of the
-    serial read, where Python raises it from the signal handler): the SDK left the port
-    marked in use, and close()'s torque-off used to fail as "Port is in use!" with every
-    servo left torqued. The next command still reaches the servos, and close() stops them."""
+@pytest.mark.parametrize("stop", [KeyboardInterrupt, lambda: Terminated(15)])
+def test_ctrl_c_during_a_bus_reply_still_leaves_every_servo_torque_off(smap, stop):
+    """Ctrl-C (or SIGTERM, raised as its subclass) lands while the SDK awaits a reply
+    (raised out of the serial read, where Python raises it from the signal handler): the
+    SDK left the port marked in use, and close()'s torque-off used to fail as "Port is in
+    use!" with every servo left torqued. The next command still reaches the servos, and
+    close() stops them."""
     with EmulatorProcess() as emu:
         drv = DynamixelDriver(emu.port, smap, latency_timer_ms=LAT, guard=False)
         try:
@@ -304,7 +307,7 @@ def test_ctrl_c_during_a_bus_reply_still_leaves_every_servo_torque_off(smap):
 
             def interrupted(n):
                 ser.read = read  # once
-                raise KeyboardInterrupt
+                raise stop()
 
             ser.read = interrupted
             with pytest.raises(KeyboardInterrupt):
