@@ -171,6 +171,14 @@ class _Page:
         self._pw.stop()
 
 
+ON_TOP = (
+    "(sel) => { const e = document.querySelector(sel); const r = e.getBoundingClientRect(); "
+    "return !e.hidden && r.height > 0 && e.contains(document.elementsFromPoint("
+    "r.left + r.width / 2, r.top + r.height / 2)[0]); }"
+)
+"""Whether the element ``sel`` is shown and the topmost at its centre (a click reaches it)."""
+
+
 def _scrolls(page) -> dict:
     return page.evaluate(
         "() => { const e = document.documentElement; return {sw: e.scrollWidth, "
@@ -264,16 +272,16 @@ def test_desktop_mode_drives_a_calibration_without_a_headset(tmp_path):
     try:
         with _Page(server.url(), {"width": 480, "height": 360}) as page:
             page.wait_for_function("!document.getElementById('enter').disabled", timeout=30e3)
+            # outside VR a free page names the next step: Enter VR
+            _wait(lambda: "press Enter VR" in page.text_content("#status"), 30, "Enter VR")
             page.click("#enter")
             page.wait_for_function("window.__teleop.xr", timeout=30e3)
+            assert "press Enter VR" not in page.text_content("#status")
             # the keys stay in sight over the emulator's full-window view of the session
-            on_top = page.evaluate(
-                "() => { const h = document.getElementById('desktop-help'); "
-                "const r = h.getBoundingClientRect(); return r.height > 0 && "
-                "h.contains(document.elementsFromPoint(r.left + r.width / 2, "
-                "r.top + r.height / 2)[0]); }"
-            )
-            assert on_top, "the desktop mode's key help is hidden under the VR view"
+            assert page.evaluate(ON_TOP, "#desktop-help"), "the key help is under the VR view"
+            # and so does the header: its button leaves VR (the emulator's view covers all)
+            assert page.text_content("#enter") == "Exit VR"
+            assert page.evaluate(ON_TOP, "#enter"), "Exit VR is hidden under the VR view"
             done, end = "", time.monotonic() + 120
             while time.monotonic() < end and hub.state != "teleop":
                 step = hub.snapshot.get("step") or ""
@@ -285,6 +293,18 @@ def test_desktop_mode_drives_a_calibration_without_a_headset(tmp_path):
             assert hub.state == "teleop", hub.snapshot
             assert session.calibrated
             assert "you have control" in page.text_content("#status")
+            # Hand over control is within reach in VR too, and hands control over
+            assert page.evaluate(ON_TOP, "#handover"), "Hand over control is under the VR view"
+            released, release = [], hub.release
+            hub.release = lambda conn_id: released.append(release(conn_id)) or released[-1]
+            page.click("#handover")
+            _wait(lambda: released == [True], 10, "the hand-over")
+            del hub.release
+            page.click("#enter")  # Exit VR: the session ends, the page is back
+            page.wait_for_function("!window.__teleop.xr", timeout=30e3)
+            assert page.text_content("#enter") == "Enter VR"
+            assert not page.query_selector("[data-webxr_runtime]")  # the emulator's view
+            assert page.evaluate(ON_TOP, "#view"), "the page's own view is not back"
     finally:
         hub.stop.set()
         worker.join(30)
@@ -307,6 +327,8 @@ def test_a_refused_page_says_why_instead_of_retrying_in_silence():
     try:
         with _Page(f"http://localhost:{port}/?token={old_token}", QUEST_BROWSER) as page:
             page.wait_for_function("window.__teleop.open", timeout=30e3)
+            # a free page with no headset to enter VR with says where control is taken
+            _wait(lambda: "press Enter VR" in page.text_content("#status"), 30, "Enter VR")
             first.stop()  # the server restarts with a new token under the open page
             first = None
             second = TeleopServer(LiveHub(), port=port, token=new_token).start()

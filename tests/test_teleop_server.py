@@ -644,6 +644,36 @@ def test_serve_runs_the_base_filter_by_default(monkeypatch, flags, expected):
     assert seen == [expected]
 
 
+def test_serve_says_install_the_ca_again_only_when_one_was_there_before(
+    monkeypatch, capsys, tmp_path
+):
+    """``payload teleop serve --tls``: the first certificate is to be installed on the
+    headset (not "again"); a kept one asks nothing; a remade one is installed again."""
+    from payload.cli import main
+    from payload.teleop.tls import CERT_NAME
+    from payload.trials import live
+
+    class Stop(Exception):
+        pass
+
+    def session(*args, **kwargs):
+        raise Stop
+
+    monkeypatch.setattr(live, "LiveSession", session)
+    monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path))
+
+    def ca_line() -> str:
+        with pytest.raises(Stop):
+            main(["teleop", "serve", "--port", "0", "--tls"])
+        out = capsys.readouterr().out
+        return next(line for line in out.splitlines() if "through the CA" in line)
+
+    assert ca_line().endswith("(new: install it on the headset)")
+    assert "new" not in ca_line()  # kept for the next run
+    (tmp_path / "astrobee-payload" / CERT_NAME).unlink()  # remade, with a new CA
+    assert ca_line().endswith("(new: install it on the headset again)")
+
+
 @pytest.mark.parametrize(
     ("flags", "says"),
     [

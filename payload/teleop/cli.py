@@ -137,7 +137,14 @@ def serve(args: argparse.Namespace, make_session: SessionFactory) -> int:
     from payload.profiles import SAFE, resolve_args
     from payload.teleop.live import LiveHub
     from payload.teleop.server import TeleopServer, check_address, is_local, new_token
-    from payload.teleop.tls import CA_NAME, ensure_certificate, fingerprint, server_context
+    from payload.teleop.tls import (
+        CA_NAME,
+        CERT_NAME,
+        config_dir,
+        ensure_certificate,
+        fingerprint,
+        server_context,
+    )
 
     # every check of the command line before the long set-up (the models, the simulator)
     if args.device is not None and args.driver != "hardware":
@@ -175,12 +182,14 @@ def serve(args: argparse.Namespace, make_session: SessionFactory) -> int:
         print(f"TLS certificate (yours): {cert}")
         print(f"  SHA-256 fingerprint {fingerprint(cert)}")
     elif not local or args.tls:
+        # "again" only when the headset may have trusted an earlier one (not on a first run)
+        earlier = any((config_dir() / name).exists() for name in (CERT_NAME, CA_NAME))
         cert, key, made = ensure_certificate(args.host)
         ssl_context = server_context(cert, key)
         print(f"TLS certificate {'made' if made else 'kept'}: {cert}")
         print(f"  SHA-256 fingerprint {fingerprint(cert)}")
-        print(f"  the headset trusts it through the CA {cert.parent / CA_NAME}"
-              f"{' (new: install it on the headset again)' if made else ''}")  # fmt: skip
+        new = f" (new: install it on the headset{' again' if earlier else ''})" if made else ""
+        print(f"  the headset trusts it through the CA {cert.parent / CA_NAME}{new}")
     if not local:
         token = new_token()
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")

@@ -23,7 +23,7 @@ const MAX_PAGES = 4;  // open WebSocket connections the server takes (server.MAX
 // what the browser test (and a curious developer) can look at
 const debug = {
   sent: 0, received: 0, connects: 0, state: null, open: false, xr: false,
-  role: null, driver: null, link: 'connecting to the teleop server…',
+  role: null, driver: null, link: 'connecting to the teleop server…', canEnter: false,
 };
 window.__teleop = debug;
 
@@ -112,12 +112,19 @@ const ROLES = {
   free: 'control free: start calibrating to take it',
 };
 
+// a free page outside VR names the step before the calibration: Enter VR (where it can)
+function roleText() {
+  if (debug.role !== 'free' || debug.xr) return debug.role ? ROLES[debug.role] : null;
+  return debug.canEnter ? 'control free: press Enter VR, then calibrate to take it'
+    : 'control free: open this page in a WebXR headset, press Enter VR and calibrate to take it';
+}
+
 // the one status line, always rebuilt from what is current (link, role, session state)
 function statusLines() {
   const st = debug.state;
   if (!debug.open) return [debug.link];
   const head = [st ? st.state + (st.step ? `: ${st.step}` : '') : 'connected, waiting for ' +
-    'the session', debug.role ? ROLES[debug.role] : null].filter(Boolean).join(' · ');
+    'the session', roleText()].filter(Boolean).join(' · ');
   const lines = [head];
   if (st && st.safe_stop) lines.push(`SAFE STOP: ${st.safe_stop}`);
   if (st && st.vehicle) lines.push(`vehicle ${st.vehicle.speed.toFixed(3)} m/s  rail ` +
@@ -230,20 +237,31 @@ function onXRFrame(t, frame) {
   }
 }
 
+// In VR the button ends the session: a headset shows no page then, but the desktop
+// mode's emulator does (its full-window view lies under the header, see page.css).
 async function enterXR() {
+  const button = $('enter');
+  button.disabled = true;
   const session = await navigator.xr.requestSession('immersive-vr', {
     requiredFeatures: ['local-floor', 'hand-tracking'],
   });
+  debug.session = session;  // from here on the button ends it, whatever fails below
+  session.addEventListener('end', () => {
+    const drawing = debug.xr;  // the desktop view's loop stopped only once in VR
+    debug.xr = false;
+    debug.session = null;
+    button.textContent = 'Enter VR';
+    button.disabled = false;
+    showStatus();
+    if (drawing) requestAnimationFrame(drawDesktop);
+  });
+  button.textContent = 'Exit VR';
   await gl.makeXRCompatible();
   session.updateRenderState({ baseLayer: new XRWebGLLayer(session, gl) });
   debug.space = await session.requestReferenceSpace('local-floor');
   debug.xr = true;
-  session.addEventListener('end', () => {
-    debug.xr = false;
-    $('enter').disabled = false;
-    requestAnimationFrame(drawDesktop);
-  });
-  $('enter').disabled = true;
+  button.disabled = false;
+  showStatus();
   session.requestAnimationFrame(onXRFrame);
 }
 
@@ -256,10 +274,16 @@ async function setup() {
   const ok = await navigator.xr.isSessionSupported('immersive-vr');
   button.disabled = !ok;
   button.textContent = ok ? 'Enter VR' : 'immersive VR not supported here';
-  button.addEventListener('click', () => enterXR().catch((e) => {
-    console.error(e);
-    debug.link = `could not start VR: ${e.message}`;
-    $('status').textContent = debug.link;
-  }));
+  debug.canEnter = ok;
+  showStatus();
+  button.addEventListener('click', () => {
+    if (debug.session) { debug.session.end(); return; }
+    enterXR().catch((e) => {
+      console.error(e);
+      button.disabled = false;
+      debug.link = `could not start VR: ${e.message}`;
+      $('status').textContent = debug.link;
+    });
+  });
 }
 setup();

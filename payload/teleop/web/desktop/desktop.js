@@ -62,7 +62,8 @@
     const help = document.createElement('p');
     help.id = 'desktop-help';
     help.textContent = 'Desktop mode (emulated headset): Enter VR, then W/S/A/D/R/F move ' +
-      'the hands, Q pinch, E open, Z together, X apart, Space half open and centred.';
+      'the hands, Q pinch, E open, Z together, X apart, Space half open and centred; ' +
+      'Exit VR (top) leaves the session.';
     document.querySelector('main').appendChild(help);
   });
 })();
