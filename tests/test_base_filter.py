@@ -519,3 +519,27 @@ def test_recording_carries_the_filter_channel_and_the_keepin_boxes(world, graspe
         "min_station_clearance_mm": round(scene.least * 1e3, 1),
         "filter_active_s": 1.2,
     }
+
+
+def test_the_committed_sweeps_closest_run_flies_again(world, grasped_state):
+    """analyses/filter_sweep.py's closest run (seed 12, analyses/safety-filter/sweep.md:
+    24.6 mm, a full-rate turn), flown again by the script's own function from the report's
+    rounded start: the same approach, no contact (the script runs, and the report is what
+    it writes)."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).parents[1] / "analyses" / "filter_sweep.py"
+    spec = importlib.util.spec_from_file_location("filter_sweep", path)
+    sweep = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(sweep)
+    report = (path.parent / "safety-filter" / "sweep.md").read_text()
+    row = "| 12 | node2 | [-0.695, -0.539, 0.291] | [0.59, -0.04, 0.81] | 0.041 | +0.1 | 24.6 |"
+    assert row in report
+    way = np.array([0.59, -0.04, 0.81])
+    way /= np.linalg.norm(way)
+    run = sweep.fly(world, grasped_state, np.array([-0.695, -0.539, 0.291]), 0.041 * way,
+                    0.2 * way, 0.1)  # fmt: skip
+    assert run is not None
+    least, touching = run
+    assert touching == 0 and abs(least - 0.0246) < 0.002, least
