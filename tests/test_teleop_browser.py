@@ -346,3 +346,47 @@ def test_a_refused_page_says_why_instead_of_retrying_in_silence():
         with _Page(f"{origin}/", QUEST_BROWSER) as page:
             _wait(lambda: "at most" in page.text_content("#status"), 30, "the cap's notice")
             assert f"at most {MAX_CLIENTS} pages" in page.text_content("#status")
+
+
+def test_a_page_reconnecting_after_an_ended_calibration_shows_no_stale_prompt():
+    """A server restarted under a page that was calibrating (a dropped WebSocket is the
+    same): the attempt ended with the page gone and the hub says "waiting", but its
+    snapshot still holds the attempt's last step and prompt (what ``LiveSession.run``
+    leaves). The reconnected page shows "waiting" alone, not beside the calibration
+    prompt, until calibrating starts again."""
+    _need_browser()
+    hub = LiveHub()
+    neutral, pinch = BROWSER_STEPS[:2]
+
+    def calibrating(step: Step, remaining: float) -> None:
+        snap = {"t": 1.0, "phase": "calibration", "prompt": step.prompt, "step": step.name,
+                "remaining": remaining, "notice": ""}  # fmt: skip
+        hub.publish(snap, state="calibrating")
+
+    calibrating(neutral, 1.7)
+    first = TeleopServer(hub, port=0).start()
+    port = first.port
+    second = None
+    try:
+        viewer = _Page(f"http://localhost:{port}/", QUEST_BROWSER)
+        with viewer as page:
+            _wait(lambda: neutral.prompt in page.text_content("#prompt"), 30, "the prompt")
+            assert page.text_content("#status").startswith("calibrating: neutral")
+            first.stop()  # the server restarts under the open page
+            first = None
+            with hub.lock:  # the attempt ended with the page gone: LiveSession.run's "waiting"
+                hub.state = "waiting"
+            second = TeleopServer(hub, port=port).start()
+            back = "() => window.__teleop.connects === 2 && window.__teleop.state !== null"
+            _wait(lambda: page.evaluate(back), 30, "the page's first state after reconnecting")
+            status, prompt = page.text_content("#status"), page.text_content("#prompt")
+            assert status.startswith("waiting") and "neutral" not in status, (status, prompt)
+            assert prompt == "", (status, prompt)
+            calibrating(pinch, 1.5)  # a new attempt: its prompt is shown again
+            _wait(lambda: pinch.prompt in page.text_content("#prompt"), 30, "the next prompt")
+            assert page.text_content("#status").startswith("calibrating: pinch")
+            assert not [m for m in viewer.console if m.startswith("pageerror")], viewer.console
+    finally:
+        for server in (first, second):
+            if server is not None:
+                server.stop()

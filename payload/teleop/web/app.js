@@ -119,29 +119,39 @@ function roleText() {
     : 'control free: open this page in a WebXR headset, press Enter VR and calibrate to take it';
 }
 
+// The calibration prompt, only while the server says "calibrating": a state message after
+// an attempt ended (the page reconnected, control was handed over) still carries that
+// attempt's last step and prompt beside "waiting", and showing them would contradict it.
+function promptText() {
+  const st = debug.state;
+  if (!st || st.state !== 'calibrating' || !st.prompt) return '';
+  return `${st.prompt} (${st.remaining.toFixed(1)} s)`;
+}
+
 // the one status line, always rebuilt from what is current (link, role, session state)
 function statusLines() {
   const st = debug.state;
   if (!debug.open) return [debug.link];
-  const head = [st ? st.state + (st.step ? `: ${st.step}` : '') : 'connected, waiting for ' +
-    'the session', roleText()].filter(Boolean).join(' · ');
+  const step = st && st.state === 'calibrating' && st.step ? `: ${st.step}` : '';
+  const head = [st ? st.state + step : 'connected, waiting for the session', roleText()]
+    .filter(Boolean).join(' · ');
   const lines = [head];
   if (st && st.safe_stop) lines.push(`SAFE STOP: ${st.safe_stop}`);
   if (st && st.vehicle) lines.push(`vehicle ${st.vehicle.speed.toFixed(3)} m/s  rail ` +
     `${(st.rail * 1000).toFixed(0)} mm${st.contact ? '  CTB held' : ''}`);
-  if (st && st.notice && !st.prompt) lines.push(st.notice);
+  if (st && st.notice && !promptText()) lines.push(st.notice);
   return lines;
 }
 
 function showStatus() {
   const st = debug.state;
   const lines = statusLines();
+  const prompt = promptText();
   $('status').textContent = lines.join(' — ');
-  $('prompt').textContent = st && st.prompt ? `${st.prompt} (${st.remaining.toFixed(1)} s)` : '';
+  $('prompt').textContent = prompt;
   $('driver').textContent = debug.driver ? `driver: ${debug.driver}` : '';
   $('handover').hidden = debug.role !== 'holder';
-  const panel = st && st.prompt ? [lines[0], `${st.prompt} (${st.remaining.toFixed(1)} s)`,
-    ...lines.slice(1)] : lines;
+  const panel = prompt ? [lines[0], prompt, ...lines.slice(1)] : lines;
   if (debug.driver) panel.push(`driver: ${debug.driver}`);
   renderer.setPanel(panel.slice(0, 4), st && st.safe_stop ? '#f96' : '#7fd');
 }
