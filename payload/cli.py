@@ -291,6 +291,11 @@ def _terminate(signum: int, frame: Any) -> None:
     raise Terminated(signum)
 
 
+def _default(signals: list[signal.Signals]) -> None:
+    for signum in signals:
+        signal.signal(signum, signal.SIG_DFL)
+
+
 def run() -> NoReturn:
     """The ``payload`` console script and ``python -m payload``: :func:`main`, then exit.
 
@@ -306,11 +311,17 @@ def run() -> NoReturn:
     first import of matplotlib, in the figure's frames, leaves such cycles holding the
     geometry's solids); the collection costs about 0.05 s there.
     """
-    for signum in (signal.SIGTERM, signal.SIGHUP):
-        if signal.getsignal(signum) is signal.SIG_DFL:  # not where it is ignored (nohup)
-            signal.signal(signum, _terminate)
+    # not where they are ignored (nohup); a forked worker (a multiprocessing pool's) keeps
+    # the default: its pool ends it with SIGTERM
+    taken = [s for s in (signal.SIGTERM, signal.SIGHUP) if signal.getsignal(s) is signal.SIG_DFL]
+    for signum in taken:
+        signal.signal(signum, _terminate)
+    os.register_at_fork(after_in_child=lambda: _default(taken))
     try:
         code = main()
+    except Terminated as exc:  # outside the command's own handling: parsing the line
+        print(f"payload: terminated ({exc})", file=sys.stderr)
+        code = 128 + exc.signum
     except BrokenPipeError:
         if not _stdout_gone():  # another pipe broke: an error like any other
             raise
@@ -318,6 +329,7 @@ def run() -> NoReturn:
         # SIGPIPE ends (128 + 13); what the command wrote to its files stands
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         code = 141
+    _default(taken)  # a signal during the shutdown below ends the process as it would
     if "manifold3d" in sys.modules:
         gc.collect()
     gc.freeze()

@@ -383,3 +383,30 @@ def test_sigterm_stops_a_trial_as_ctrl_c_does(tmp_path: Path) -> None:
     assert rec.complete and 0 < len(rec.t)
     assert unfinished_reason(rec.meta, rec.complete) == "aborted (Terminated: SIGTERM)"
     assert not (out / "metrics.json").exists()
+
+
+def test_a_forked_worker_keeps_the_default_sigterm(tmp_path: Path) -> None:
+    """`run()` turns SIGTERM into a clean stop in the command's process, but a forked
+    worker (a multiprocessing pool's, which its pool ends with SIGTERM) keeps the default:
+    with the handler inherited, `report reach`'s pool workers printed `Terminated`
+    tracebacks on successful runs."""
+    script = tmp_path / "fork.py"
+    script.write_text(
+        "import os, signal\n"
+        "import payload.cli as cli\n"
+        "def fake():\n"
+        "    pid = os.fork()\n"
+        "    if pid == 0:\n"
+        "        os._exit(0 if signal.getsignal(signal.SIGTERM) is signal.SIG_DFL else 1)\n"
+        "    _, status = os.waitpid(pid, 0)\n"
+        "    mine = signal.getsignal(signal.SIGTERM) is cli._terminate\n"
+        "    print(os.waitstatus_to_exitcode(status), mine)\n"
+        "    return 0\n"
+        "cli.main = fake\n"
+        "cli.run()\n"
+    )
+    out = subprocess.run(
+        [sys.executable, str(script)], capture_output=True, text=True, cwd=ROOT, timeout=60
+    )
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["0", "True"]
