@@ -924,3 +924,72 @@ def test_one_ctrl_c_while_a_session_is_scored_does_not_stop_the_scoring(tmp_path
         capsys.readouterr().err
     )
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
+def test_a_stop_while_the_session_closes_still_closes_its_driver():
+    """A Ctrl-C or SIGTERM raised while a live session closes (its last command, the
+    recording, the scoring) used to skip the driver's close: with the hardware driver
+    the servos stayed torqued. The driver is closed however far the close got."""
+    from payload.trials.live import LiveSession
+
+    session = LiveSession(LiveHub(), None, steps=QUICK_STEPS)
+    real, closed = session.driver, []
+
+    class Interrupted:
+        def command_twist(self, twist):
+            raise KeyboardInterrupt
+
+        def close(self):
+            closed.append(True)
+            real.close()
+
+    session.driver = Interrupted()
+    with pytest.raises(KeyboardInterrupt):
+        session.close()
+    assert closed == [True]
+
+
+def test_serve_stopped_while_loading_leaves_the_servos_torque_off(tmp_path, monkeypatch):
+    """`teleop serve --driver hardware`: the servos are powered and homed before the
+    simulator and the retargeters load (seconds). A Ctrl-C (or SIGTERM) then used to leave
+    all 18 torqued, their watchdog off; the driver is closed now."""
+    from firmware_interface.emulator import EmulatorProcess
+    from payload.cli import _parse
+    from payload.teleop.cli import serve
+
+    monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path))
+
+    def loading(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    with EmulatorProcess() as emu:
+        argv = ["teleop", "serve", "--driver", "hardware", "--device", emu.port, "--port", "0"]
+        with pytest.raises(KeyboardInterrupt):
+            serve(_parse(argv), loading)
+        assert not any(s["torque"] for s in emu.servos().values())
+
+
+def test_a_sigterm_while_a_session_is_scored_counts_as_a_press(tmp_path, capsys):
+    """The command stops on SIGTERM as on Ctrl-C (payload.cli's handler): while the session
+    is scored, one SIGTERM says what the next would cost and the second stops, raising the
+    command's own stop (Terminated); the handler is the command's again after."""
+    import os
+    import signal
+
+    from payload.errors import Terminated
+    from payload.teleop.cli import _press_twice_to_abandon
+
+    def terminate(signum, frame):
+        raise Terminated(signum)
+
+    before = signal.signal(signal.SIGTERM, terminate)
+    try:
+        with pytest.raises(Terminated), _press_twice_to_abandon(tmp_path):
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(0.05)
+            assert "Ctrl-C again stops" in capsys.readouterr().err
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(0.05)
+        assert signal.getsignal(signal.SIGTERM) is terminate
+    finally:
+        signal.signal(signal.SIGTERM, before)

@@ -62,22 +62,30 @@ def status_line(status: dict[str, Any], lat: dict[str, float]) -> str:
 @contextlib.contextmanager
 def _press_twice_to_abandon(record: Path | None) -> Iterator[None]:
     """While the server stops and the session is closed and scored (a second or so), a
-    Ctrl-C says what it would cost and only a second one stops."""
+    Ctrl-C (or a SIGTERM or SIGHUP the command stops on as on Ctrl-C) says what it would
+    cost and only a second one stops."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
     presses = []
+    previous = {}
 
     def on_interrupt(signum: int, frame: Any) -> None:
         presses.append(signum)
         if len(presses) > 1:
+            handler = previous[signum]
+            if callable(handler) and signum != signal.SIGINT:
+                handler(signum, frame)  # the command's own stop (payload.cli's)
             raise KeyboardInterrupt
         print(
             "\nscoring the session: Ctrl-C again stops without its metrics.json and figures",
             file=sys.stderr,
         )
 
-    previous = signal.signal(signal.SIGINT, on_interrupt)
+    for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        handler = signal.getsignal(signum)
+        if signum == signal.SIGINT or callable(handler):  # not where ignored or default
+            previous[signum] = signal.signal(signum, on_interrupt)
     try:
         yield
     except KeyboardInterrupt:
@@ -89,7 +97,8 @@ def _press_twice_to_abandon(record: Path | None) -> Iterator[None]:
             )
         raise
     finally:
-        signal.signal(signal.SIGINT, previous)
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
 
 
 def _status_printer(hub: Any, stop: threading.Event, interval: float) -> None:
@@ -195,67 +204,71 @@ def serve(args: argparse.Namespace, make_session: SessionFactory) -> int:
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     hub = LiveHub()
     payload = _hardware_driver(args.device) if args.driver == "hardware" else None
-    if payload is not None:
-        hub.driver = f"hardware on {args.device}" + (" (emulator)" if payload.emulated else "")
-    print("loading the simulator and the retargeters ...", flush=True)
-    session = make_session(
-        hub,
-        record,
-        payload=payload,
-        collisions=prof.retarget_collisions,
-        budget=prof.retarget_budget,
-        controller=(prof.name, overrides),
-        base_filter=prof.base_filter,
-        link_delay=link_delay,
-    )
-    server = TeleopServer(
-        hub,
-        args.host,
-        args.port,
-        ssl_context=ssl_context,
-        token=token,
-        scene=session.scene,
-        desktop=desktop,
-    ).start()
-    if args.host in ("0.0.0.0", "::"):
-        from payload.teleop.tls import lan_addresses
-
-        for addr in lan_addresses():
-            print(f"serving the live Quest page on {server.url(addr)}")
-    else:
-        print(f"serving the live Quest page on {server.url()}")
-    if token:
-        print(f"session token: {token}")
-    if local:
-        print(f"Quest over USB: adb reverse tcp:{server.port} tcp:{server.port}, then open it")
-    stop_status = threading.Event()
-    printer = threading.Thread(
-        target=_status_printer, args=(hub, stop_status, args.status_interval), daemon=True
-    )
-    printer.start()
-    if args.seconds:  # a daemon: Ctrl-C before it fires must not wait for it
-        timer = threading.Timer(args.seconds, hub.stop.set)
-        timer.daemon = True
-        timer.start()
     try:
-        session.run()
-    except KeyboardInterrupt:
-        hub.stop.set()
-        print("\nstopping", file=sys.stderr)
-    finally:
-        with _press_twice_to_abandon(record):
-            stop_status.set()
-            server.stop()
-            result = session.close()
-    print("\n" + status_line(hub.status(), hub.latency()))
-    if result is not None:
-        print(f"recorded {record} ({result.get('steps')} steps)")
-    elif record is not None:  # asked for, and no session ran: said, not left to guess
-        print(
-            f"nothing recorded in {record}: no session was recorded (a session is recorded "
-            "once its calibration is done)"
+        if payload is not None:
+            hub.driver = f"hardware on {args.device}" + (" (emulator)" if payload.emulated else "")
+        print("loading the simulator and the retargeters ...", flush=True)
+        session = make_session(
+            hub,
+            record,
+            payload=payload,
+            collisions=prof.retarget_collisions,
+            budget=prof.retarget_budget,
+            controller=(prof.name, overrides),
+            base_filter=prof.base_filter,
+            link_delay=link_delay,
         )
-    return 0
+        server = TeleopServer(
+            hub,
+            args.host,
+            args.port,
+            ssl_context=ssl_context,
+            token=token,
+            scene=session.scene,
+            desktop=desktop,
+        ).start()
+        if args.host in ("0.0.0.0", "::"):
+            from payload.teleop.tls import lan_addresses
+
+            for addr in lan_addresses():
+                print(f"serving the live Quest page on {server.url(addr)}")
+        else:
+            print(f"serving the live Quest page on {server.url()}")
+        if token:
+            print(f"session token: {token}")
+        if local:
+            print(f"Quest over USB: adb reverse tcp:{server.port} tcp:{server.port}, then open it")
+        stop_status = threading.Event()
+        printer = threading.Thread(
+            target=_status_printer, args=(hub, stop_status, args.status_interval), daemon=True
+        )
+        printer.start()
+        if args.seconds:  # a daemon: Ctrl-C before it fires must not wait for it
+            timer = threading.Timer(args.seconds, hub.stop.set)
+            timer.daemon = True
+            timer.start()
+        try:
+            session.run()
+        except KeyboardInterrupt:
+            hub.stop.set()
+            print("\nstopping", file=sys.stderr)
+        finally:
+            with _press_twice_to_abandon(record):
+                stop_status.set()
+                server.stop()
+                result = session.close()
+        print("\n" + status_line(hub.status(), hub.latency()))
+        if result is not None:
+            print(f"recorded {record} ({result.get('steps')} steps)")
+        elif record is not None:  # asked for, and no session ran: said, not left to guess
+            print(
+                f"nothing recorded in {record}: no session was recorded (a session is recorded "
+                "once its calibration is done)"
+            )
+        return 0
+    finally:
+        if payload is not None:  # torque off, if stopped before the session closed it
+            payload.close()
 
 
 def bench(args: argparse.Namespace, make_session: SessionFactory) -> int:

@@ -364,21 +364,29 @@ class LiveSession:
         if self._closed:
             return None
         self._closed = True
-        self.driver.command_twist(None)
         result = None
-        if self._recorder is not None:
-            self._recorder.flush()  # every step written: the scene's figures count them all
-            self._recorder.write_meta(
-                {"steps": self.steps, "warnings": self.driver.warnings(), **self._scene.summary()}
-            )
-            self._recorder.close()
-            self._hands.close()
-            from payload.trials.campaign import finish_trial
+        try:  # the driver is closed (the servos' torque off) however far this gets
+            self.driver.command_twist(None)
+            if self._recorder is not None:
+                try:
+                    self._recorder.flush()  # every step written: the figures count them all
+                    self._recorder.write_meta(
+                        {
+                            "steps": self.steps,
+                            "warnings": self.driver.warnings(),
+                            **self._scene.summary(),
+                        }
+                    )
+                finally:  # a stop here leaves the files closed, not cut short
+                    self._recorder.close()
+                    self._hands.close()
+                from payload.trials.campaign import finish_trial
 
-            out = self.record
-            result = finish_trial(out, out / RECORDING)
-            result["steps"] = self.steps
-            result["provenance"] = self._provenance  # as a trial's metrics.json has it
-            (out / METRICS).write_text(json.dumps(result, indent=2) + "\n")
-        self.driver.close()
+                out = self.record
+                result = finish_trial(out, out / RECORDING)
+                result["steps"] = self.steps
+                result["provenance"] = self._provenance  # as a trial's metrics.json has it
+                (out / METRICS).write_text(json.dumps(result, indent=2) + "\n")
+        finally:
+            self.driver.close()
         return result
