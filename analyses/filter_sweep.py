@@ -25,20 +25,20 @@ from pathlib import Path
 
 import numpy as np
 
-from payload.schema import VehicleTwist
+from payload.schema import CONTROL_DT, VehicleTwist
 from payload.sim.stack import hold_ctb, place_stack
 from payload.sim.station import StationMonitor
 from payload.sim.world import build_world
 from payload.sim.zones import station_zones
-from payload.teleop.base_filter import BaseSafetyFilter, SafetyConfig
+from payload.teleop.base_filter import MARGIN_TOLERANCE, BaseSafetyFilter, SafetyConfig
 from payload.teleop.channels import BaseConfig
 
 SECONDS = 15.0
 """Length of each run [s]."""
+BASE = BaseConfig()
+"""The base channel's bounds: the request is its full speed, the turn its full rate."""
 START_CLEARANCE = 0.06
 """Least clearance of a start [m]."""
-TOLERANCE = 0.01
-"""What the tests allow below the margin [m] (tests/test_base_filter.py)."""
 
 
 def fly(world, held, pos, v0, want, yaw) -> tuple[float, int] | None:
@@ -46,7 +46,7 @@ def fly(world, held, pos, v0, want, yaw) -> tuple[float, int] | None:
     is not in the filter's safe set."""
     sim = place_stack(world, held, pos, v0)
     c = sim.controller
-    filt = BaseSafetyFilter(world, BaseConfig(), c.accel_max, float(c.jerk[0]))
+    filt = BaseSafetyFilter(world, BASE, c.accel_max, float(c.jerk[0]))
     monitor = StationMonitor(world)
     d = sim.data
     rot = d.xmat[world.astrobee].reshape(3, 3)
@@ -55,7 +55,7 @@ def fly(world, held, pos, v0, want, yaw) -> tuple[float, int] | None:
         return None
     sim.twist_filter = filt
     least, touching = np.inf, 0
-    for _ in range(round(SECONDS * 50)):
+    for _ in range(round(SECONDS / CONTROL_DT)):
         rot = d.xmat[world.astrobee].reshape(3, 3)
         sim.command_twist(VehicleTwist(rot.T @ want, rot.T @ np.array([0.0, 0.0, yaw]), 0.0))
         sim.step()
@@ -85,8 +85,8 @@ def sweep(seed: int, runs: int) -> list[Row]:
         way = rng.normal(size=3)
         way /= np.linalg.norm(way)
         speed = rng.uniform(0.0, 0.06)
-        yaw = float(rng.choice([0.0, 0.1, -0.1]))
-        run = fly(world, held, pos, speed * way, 0.2 * way, yaw)
+        yaw = float(rng.choice([0.0, BASE.max_yaw_rate, -BASE.max_yaw_rate]))
+        run = fly(world, held, pos, speed * way, BASE.max_speed * way, yaw)
         if run is None:
             continue
         rows.append((seed, zones.names[box], pos, way, speed, yaw, *run))
@@ -111,7 +111,7 @@ def main(argv: list[str] | None = None) -> int:
         low = np.array([r[6] for r in part])
         return (
             f"| {label} | {len(part)} | {sum(r[7] > 0 for r in part)} "
-            f"| {int((low < margin - TOLERANCE).sum())} | {int((low < margin).sum())} "
+            f"| {int((low < margin - MARGIN_TOLERANCE).sum())} | {int((low < margin).sum())} "
             f"| {low.min() * 1e3:.1f} mm |"
         )
 
@@ -119,9 +119,10 @@ def main(argv: list[str] | None = None) -> int:
     lines = [
         "# The base safety filter from safe starts (analyses/filter_sweep.py)",
         "",
-        f"{args.runs} runs per seed, each {SECONDS:.0f} s of a constant 0.2 m/s request "
+        f"{args.runs} runs per seed, each {SECONDS:.0f} s of a constant {BASE.max_speed:g} m/s "
+        "request "
         "with the CTB held, the filter's default settings; the clearance is MuJoCo's, not "
-        f"the filter's. Margin {margin * 1e3:.0f} mm, tolerance {TOLERANCE * 1e3:.0f} mm.",
+        f"the filter's. Margin {margin * 1e3:.0f} mm, tolerance {MARGIN_TOLERANCE * 1e3:.0f} mm.",
         "",
         "| seed | runs | in contact | below margin - tolerance | below margin | least clearance |",
         "| --- | --- | --- | --- | --- | --- |",

@@ -16,13 +16,15 @@ from payload.sim.driver import SimDriver
 from payload.sim.stack import hold_ctb, place_stack
 from payload.sim.world import build_world
 from payload.sim.zones import StationZones, ZoneError, station_zones
-from payload.teleop.base_filter import BaseSafetyFilter, SafetyConfig, stop_speed
+from payload.teleop.base_filter import (
+    MARGIN_TOLERANCE,
+    BaseSafetyFilter,
+    SafetyConfig,
+    stop_speed,
+)
 from payload.teleop.channels import BaseConfig
 
-TOLERANCE = 0.01
-"""What the least measured distance may fall below the margin [m]: the filter samples
-each box at 0.1 m, acts once per control step (4 mm at 0.2 m/s) and does not model the
-bag's swing in the pinch between two steps."""
+TOLERANCE = MARGIN_TOLERANCE
 
 
 @pytest.fixture(scope="module")
@@ -155,7 +157,7 @@ def test_the_chain_stops_within_the_margin(world, grasped_state, pos, way, speed
     station."""
     way = np.asarray(way) / np.linalg.norm(way)
     sim = _driver(world, grasped_state, pos, speed * way)
-    least, active, _ = fly(sim, _filter(sim), 0.2 * way, 0.0, 15.0)
+    least, active, _ = fly(sim, _filter(sim), BaseConfig().max_speed * way, 0.0, 15.0)
     assert active > 0
     assert least >= MARGIN - TOLERANCE, f"{least * 1e3:.1f} mm from the station"
 
@@ -539,7 +541,7 @@ def test_the_committed_sweeps_closest_run_flies_again(world, grasped_state):
     way = np.array([0.59, -0.04, 0.81])
     way /= np.linalg.norm(way)
     run = sweep.fly(world, grasped_state, np.array([-0.695, -0.539, 0.291]), 0.041 * way,
-                    0.2 * way, 0.1)  # fmt: skip
+                    sweep.BASE.max_speed * way, sweep.BASE.max_yaw_rate)  # fmt: skip
     assert run is not None
     least, touching = run
     assert touching == 0 and abs(least - 0.0246) < 0.002, least
