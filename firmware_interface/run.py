@@ -393,10 +393,7 @@ def run_hardware_trial(
                 commands = replay_session(driver, frames, max_time=max_time, pace=pace,
                                           on_step=on_step, rt=(retargeters, ranges))  # fmt: skip
             except Exception as exc:  # a fault, the bus lost: a failed run, not bad input
-                what = f"{type(exc).__name__}: {exc}"
-                recorder.flush()  # the steps so far go into the file
-                at = max(0.0, recorder.last_written_t)
-                recorder.write_meta({"aborted_by": what, "aborted_at_s": at})
+                what, at = recorder.mark_aborted(exc)
                 raise HardwareRunAborted(
                     f"hw run aborted at t = {at:.2f} s by {what}; recording kept (marked "
                     f"aborted, not scored): {rec_path}"

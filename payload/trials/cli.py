@@ -242,7 +242,7 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
         )
     else:
         print(summary_terminal(summary, title))
-        figure = out / "fig_campaign.png"
+        figure = out / CAMPAIGN_FIGURE
         also = f", {figure}" if figure.is_file() else ""
         print(f"wrote {out / SUMMARY_TEXT} (definitions, the paper-literal column, every "
               f"trial){also} and {out / SUMMARY}")  # fmt: skip

@@ -93,8 +93,7 @@ def _convert_file(path: Path, *, force: bool = False) -> tuple[bool, str]:
             out.write(rec.step(i))
         if not rec.complete:  # the converted file is closed; its run still was not finished
             out.write_meta({CUT_SHORT: "the schema-1 original was cut short (never closed)"})
-    if not rec.complete:
-        log.warning("%s: the original was cut short; the converted file says so", path)
+            log.warning("%s: the original was cut short; the converted file says so", path)
     os.replace(path, backup)
     os.replace(tmp, path)
     hands = "with" if frames is not None else "without"

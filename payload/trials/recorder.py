@@ -203,6 +203,23 @@ class TrialRecorder:
         written since the last flush are not in it yet."""
         return self._written_t
 
+    def mark_aborted(self, exc: BaseException) -> tuple[str, float]:
+        """Mark the recording aborted by ``exc``, after the steps made so far reach the
+        file (a step that cannot be made is left out: those before it are in the file).
+
+        Returns:
+            What aborted it (``"<type>: <message>"``) and the time [s] of the last step in
+            the file (0 when none).
+        """
+        what = f"{type(exc).__name__}: {exc}"
+        try:
+            self.flush()
+        except RecordingError:
+            pass
+        at = max(0.0, self.last_written_t)
+        self.write_meta({"aborted_by": what, "aborted_at_s": at})
+        return what, at
+
     def flush(self) -> None:
         """Push everything written so far to the operating system (survives SIGKILL)."""
         if self._writer is not None:

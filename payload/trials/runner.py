@@ -481,14 +481,8 @@ def _record_session(
                 )
                 recorder.flush()  # every step made and written: the scene's figures count all
             except Exception as exc:
-                what = f"{type(exc).__name__}: {exc}"
-                try:
-                    recorder.flush()  # the steps made so far go into the file
-                except RecordingError:
-                    pass  # one that cannot be made: the steps before it are in the file
-                at = max(0.0, recorder.last_written_t)  # the last step in the file (0: none)
+                what, at = recorder.mark_aborted(exc)
                 log.error("trial %s aborted at t = %.2f s", seed, at, exc_info=True)
-                recorder.write_meta({"aborted_by": what, "aborted_at_s": at})
                 raise TrialAborted(
                     f"trial {seed} aborted at t = {at:.2f} s by {what}; recording "
                     f"kept (marked aborted, not scored): {rec_path}"

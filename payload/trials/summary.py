@@ -567,7 +567,7 @@ def load_trial_results(
             row = json.loads(metrics_path.read_text())
             # scored before summaries checked: an aborted run's metrics.json does not say
             # so, its recording's metadata does (read through the file's index)
-            meta = recording_meta(d / RECORDING) if (d / RECORDING).is_file() else None
+            meta = recording_meta(d / RECORDING)
             unfinished = _unfinished(meta, row.get("complete", True))
             if unfinished:
                 results.append({"seed": seed, "out_dir": str(d), "error": unfinished})
