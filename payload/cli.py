@@ -291,6 +291,12 @@ def _terminate(signum: int, frame: Any) -> None:
     raise Terminated(signum)
 
 
+def _terminated(exc: Terminated) -> int:
+    """Say the command was stopped by a signal; its exit code (128 + the signal)."""
+    print(f"payload: terminated ({exc})", file=sys.stderr)
+    return 128 + exc.signum
+
+
 def _default(signals: list[signal.Signals]) -> None:
     for signum in signals:
         signal.signal(signum, signal.SIG_DFL)
@@ -320,8 +326,7 @@ def run() -> NoReturn:
     try:
         code = main()
     except Terminated as exc:  # outside the command's own handling: parsing the line
-        print(f"payload: terminated ({exc})", file=sys.stderr)
-        code = 128 + exc.signum
+        code = _terminated(exc)
     except BrokenPipeError:
         if not _stdout_gone():  # another pipe broke: an error like any other
             raise
@@ -356,8 +361,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"payload: error: {exc}", file=sys.stderr)
         return 2
     except Terminated as exc:
-        print(f"payload: terminated ({exc})", file=sys.stderr)
-        return 128 + exc.signum
+        return _terminated(exc)
     except KeyboardInterrupt:
         print("payload: interrupted", file=sys.stderr)
         return 130

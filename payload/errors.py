@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import datetime
 import json
+import signal
 from typing import Any
 
 
@@ -69,7 +70,5 @@ class Terminated(KeyboardInterrupt):
     """
 
     def __init__(self, signum: int) -> None:
-        import signal
-
         self.signum = signum
         super().__init__(signal.Signals(signum).name)

@@ -38,6 +38,7 @@ __all__ = [
     "current_project",
     "default_design_text",
     "find_project",
+    "is_project_design",
     "package_version",
     "project_of",
     "provenance",
@@ -157,6 +158,14 @@ def project_of(design_file: str | Path) -> Project | None:
     """The project containing ``design_file`` (its folder or the nearest parent holding
     ``cad/design.toml``), or ``None`` when it lies in no project."""
     return _search_up(Path(design_file).expanduser().resolve().parent)
+
+
+def is_project_design(design_file: str | Path) -> bool:
+    """Whether ``design_file`` is a project's own ``cad/design.toml`` (symlinks and ``~``
+    resolved), the one file whose models and reports go to that project."""
+    owner = project_of(design_file)
+    resolved = Path(design_file).expanduser().resolve()
+    return owner is not None and owner.design_path.resolve() == resolved
 
 
 def default_design_text() -> str:

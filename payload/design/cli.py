@@ -9,7 +9,7 @@ from pathlib import Path
 
 from payload.cliutil import CheckFailed, add_json, command_project, emit_json
 from payload.errors import PayloadError
-from payload.project import Project, ProjectError, project_of
+from payload.project import Project, ProjectError, is_project_design, project_of
 
 
 def _cmd_build(args: argparse.Namespace) -> int:
@@ -48,8 +48,7 @@ def _check_own_design(design: Path) -> None:
     Raises:
         PayloadError: The file is not a project's ``cad/design.toml``.
     """
-    owner = project_of(design)
-    if owner is None or owner.design_path != design.expanduser().resolve():
+    if not is_project_design(design):
         raise PayloadError(
             f"{design}: not a design project's cad/design.toml, so its models have no project "
             "to go to; nothing written (make one with `payload new DIR`, or compare with "

@@ -24,7 +24,7 @@ from payload.design.urdf import to_urdf
 from payload.envelope.pairs import PAIRS
 from payload.kinematics import Kinematics
 from payload.retarget.features import PairKinematics
-from payload.retarget.hand import DEFAULT_HAND, hand_from_dict
+from payload.retarget.hand import DEFAULT_HAND, design_rest, hand_from_dict
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -64,11 +64,9 @@ def design_kinematics(tree: KinematicTree) -> DesignKinematics:
         raw.pop("design", None)
         raw["collision_margin"] = float(tree.design.retarget.collision_margin)
         preshape = dict(zip(FINGER_JOINTS, tree.design.pinch.finger))
-        for pair in raw["pairs"].values():  # the rest posture: the pinch pre-shape
-            pair["rest"] = [
-                next(v for s, v in preshape.items() if j.endswith(f"_{s}"))
-                for j in (*pair["joints"][0], *pair["joints"][1])
-            ]
+        for name, pair in raw["pairs"].items():  # the rest posture: the pinch pre-shape
+            joints = (*pair["joints"][0], *pair["joints"][1])
+            pair["rest"] = list(design_rest(f"pairs.{name}", joints, preshape))
     # the URDF lives as long as the model: the span range's disk cache
     # (:mod:`payload.retarget.range_cache`) keys on its text, so a report run again on
     # the same design reads the range instead of solving it again

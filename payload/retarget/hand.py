@@ -143,7 +143,7 @@ def _str_list(where: str, value: Any, n: int) -> tuple[str, ...]:
     return tuple(value)
 
 
-def _design_rest(where: str, joints: tuple[str, ...], preshape: dict[str, float]) -> tuple:
+def design_rest(where: str, joints: tuple[str, ...], preshape: dict[str, float]) -> tuple:
     """The rest posture from the design's pinch pre-shape, matching joints by name suffix."""
     rest = []
     for j in joints:
@@ -200,7 +200,7 @@ def _pair_from_dict(
             raise RetargetError(f"{where}.rest: expected {len(flat)} numbers (one per joint)")
         rest = tuple(float(v) for v in rest)
     elif preshape is not None:
-        rest = _design_rest(where, flat, preshape)
+        rest = design_rest(where, flat, preshape)
     return PairDescription(
         name=name,
         base=raw["base"],

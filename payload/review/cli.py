@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from payload.cliutil import command_project
-from payload.project import project_of
+from payload.project import is_project_design
 from payload.review.errors import ReviewError
 from payload.review.project import DEFAULT_RATE
 
@@ -110,8 +110,7 @@ def _check_project_design(design: Path) -> None:
     """``--design F``: the review shows F's generated models, which live in F's project
     (``<project>/urdf``, ``<project>/cad/meshes``), so F must be a project's
     ``cad/design.toml`` (as for ``payload build --design F``)."""
-    owner = project_of(design)
-    if owner is None or owner.design_path.resolve() != design.expanduser().resolve():
+    if not is_project_design(design):
         raise ReviewError(
             f"--design {design}: not a design project's cad/design.toml, so it has no "
             "models to review; nothing written (make a project with `payload new DIR` and save "

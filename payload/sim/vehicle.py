@@ -41,12 +41,12 @@ JERK_RISE_S = 0.5
 limits in this time [s]."""
 
 JERK_LINEAR = FLIGHT_MODES["nominal"].accel / JERK_RISE_S
-"""Linear jerk bound [m/s^3]: the nominal acceleration (0.0175 m/s^2) in
-:data:`JERK_RISE_S` (0.035)."""
+"""Linear jerk bound [m/s^3]: the nominal flight mode's acceleration in
+:data:`JERK_RISE_S`."""
 
 JERK_ANGULAR = FLIGHT_MODES["nominal"].alpha / JERK_RISE_S
-"""Angular jerk bound [rad/s^3]: the nominal angular acceleration (0.1745 rad/s^2) in
-:data:`JERK_RISE_S` (0.349; typed as 0.35 before)."""
+"""Angular jerk bound [rad/s^3]: the nominal flight mode's angular acceleration in
+:data:`JERK_RISE_S`."""
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
