@@ -246,9 +246,10 @@ def test_a_reboot_keeps_the_supply_voltage_the_servo_reads():
     from firmware_interface.servo_dynamics import default_plant
 
     plant = dataclasses.replace(default_plant(), voltage=11.1)
+    reads = 111  # 11.1 V in the e-Manual's 0.1 V units
     s = ServoModel(1, plant=plant)
-    assert s.get("present_input_voltage") == 111
+    assert s.get("present_input_voltage") == reads
     s.reboot()
-    assert s.get("present_input_voltage") == 111
+    assert s.get("present_input_voltage") == reads
     s.power_cycle()
-    assert s.get("present_input_voltage") == 111
+    assert s.get("present_input_voltage") == reads

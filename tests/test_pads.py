@@ -14,9 +14,13 @@ from payload.design import load_design
 from payload.design.params import DesignError
 from payload.schema import PayloadCommand
 from payload.sim import SimDriver, WorldConfig, build_world
+from payload.sim.cargo import CTB_SIZES
 from payload.sim.pads import pad_contact, pad_stiffness, patch_radius
 from payload.sim.world import PHYSICS_DT
 from payload.teleop.operator import OperatorTraits
+
+SINGLE_CTB_KG = CTB_SIZES["single"].mass
+"""The single CTB's loaded mass [kg], the load the pads are sized for."""
 
 
 @pytest.fixture(scope="module")
@@ -66,7 +70,7 @@ def test_hertz_stiffness_against_the_integrated_pressure(design):
 
 
 def test_mujoco_contact_has_the_derived_stiffness_and_is_critically_damped(design):
-    c = pad_contact(design, str(MJCF), design.pinch.finger, 15.4, PHYSICS_DT)
+    c = pad_contact(design, str(MJCF), design.pinch.finger, SINGLE_CTB_KG, PHYSICS_DT)
     assert not c.clamped and c.dampratio >= 1.0
     # MuJoCo, not our formula: the indentation at the design load is the pad's
     pen = _penetration(c.solref, c.solimp, c.effective_mass, design.finger.pad.load)
@@ -102,7 +106,7 @@ def test_pad_design_is_validated(design):
 
 def test_world_pads_carry_the_derived_contact(design):
     w = build_world(WorldConfig(ctb="single"))
-    c = pad_contact(design, str(MJCF), design.pinch.finger, 15.4, PHYSICS_DT)
+    c = pad_contact(design, str(MJCF), design.pinch.finger, SINGLE_CTB_KG, PHYSICS_DT)
     for g in w.pad_geoms.values():
         np.testing.assert_allclose(w.model.geom_solref[g], c.solref)
         np.testing.assert_allclose(w.model.geom_solimp[g], c.solimp)
@@ -143,7 +147,7 @@ def test_pad_contact_lands_on_hertz_at_the_design_load_and_half_way(design):
     derived solref puts the design load at Hertz's indentation delta0 exactly, and
     Hertz's force at delta0 / 2 (``0.5^1.5 F0``, the sigmoid's midpoint) at delta0 / 2.
     The earlier law ``m d / (1 - d)`` left the pad 1 / dmax (5 %) too soft."""
-    c = pad_contact(design, str(MJCF), design.pinch.finger, 15.4, PHYSICS_DT)
+    c = pad_contact(design, str(MJCF), design.pinch.finger, SINGLE_CTB_KG, PHYSICS_DT)
     load = design.finger.pad.load
     pen = _penetration(c.solref, c.solimp, c.effective_mass, load)
     assert pen == pytest.approx(c.indentation, rel=1e-6)
@@ -169,7 +173,7 @@ def test_the_pad_figures_quoted_in_docs_trials_are_the_derived_ones(design):
 
     text = (Path(__file__).resolve().parents[1] / "docs" / "trials.md").read_text()
     para = text[text.index("Pads. The pad contact") :].split("\n\n")[0]
-    c = pad_contact(design, str(MJCF), design.pinch.finger, 15.4, PHYSICS_DT)
+    c = pad_contact(design, str(MJCF), design.pinch.finger, SINGLE_CTB_KG, PHYSICS_DT)
 
     def quoted(pattern: str) -> float:
         return float(re.search(pattern, para.replace("\n", " ")).group(1))

@@ -21,7 +21,7 @@ from payload.teleop.handmodel import HandModel
 from payload.teleop.hands import WEBXR_TO_WORKBENCH, XR_JOINTS
 from payload.teleop.live import LiveHub
 from payload.teleop.messages import MAX_MESSAGE_BYTES, MessageError, parse_message
-from payload.teleop.server import TeleopServer, page_files
+from payload.teleop.server import TOKEN_HINT, TeleopServer, page_files
 from payload.teleop.tls import CA_NAME, ensure_certificate, server_context
 
 STATUS_FIELDS = {"state", "driver", "operator", "clients", "frames", "dropped", "frame_age_ms",
@@ -269,7 +269,7 @@ def test_non_local_bind_checks_token_and_origin_over_tls(tmp_path):
         with pytest.raises(urllib.error.HTTPError) as refused:
             urllib.request.urlopen(f"https://{base}/", context=client, timeout=10)
         # a person who typed the address without its token is told what opens the page
-        assert "open the address" in refused.value.read().decode()
+        assert TOKEN_HINT in refused.value.read().decode()
         st = get_status(f"https://{base}/status?token={token}", client)
         assert st["dropped"]["unauthorized"] == 5
         with connect(f"wss://{base}/ws?token={token}", ssl=client, origin=origin) as ws:
@@ -650,7 +650,7 @@ def test_serve_says_install_the_ca_again_only_when_one_was_there_before(
     """``payload teleop serve --tls``: the first certificate is to be installed on the
     headset (not "again"); a kept one asks nothing; a remade one is installed again."""
     from payload.cli import main
-    from payload.teleop.tls import CERT_NAME
+    from payload.teleop.tls import CERT_NAME, config_dir
     from payload.trials import live
 
     class Stop(Exception):
@@ -670,7 +670,7 @@ def test_serve_says_install_the_ca_again_only_when_one_was_there_before(
 
     assert ca_line().endswith("(new: install it on the headset)")
     assert "new" not in ca_line()  # kept for the next run
-    (tmp_path / "astrobee-payload" / CERT_NAME).unlink()  # remade, with a new CA
+    (config_dir() / CERT_NAME).unlink()  # remade, with a new CA
     assert ca_line().endswith("(new: install it on the headset again)")
 
 
@@ -976,11 +976,9 @@ def test_a_sigterm_while_a_session_is_scored_counts_as_a_press(tmp_path, capsys)
     import os
     import signal
 
+    from payload.cli import _terminate as terminate
     from payload.errors import Terminated
     from payload.teleop.cli import _press_twice_to_abandon
-
-    def terminate(signum, frame):
-        raise Terminated(signum)
 
     before = signal.signal(signal.SIGTERM, terminate)
     try:
