@@ -90,6 +90,20 @@ def test_the_live_links_limits_table_states_the_servers_limits():
     assert re.search(r"at least (\d+) characters", rows["session token"])[1] == str(MIN_TOKEN_CHARS)
 
 
+def test_the_live_pages_status_fields_are_the_servers():
+    """docs/live.md's `GET /status` document names every field a hub's status has, and
+    every drop counter (it once left out the driver, the operator and three counters)."""
+    from payload.teleop.live import LiveHub
+
+    text = " ".join((ROOT / "docs" / "live.md").read_text(encoding="utf-8").split())
+    said = re.search(r"`GET /status` returns `(\{.*?\})`", text)
+    assert said is not None, "docs/live.md no longer shows the /status document"
+    status = LiveHub().status()
+    named = set(re.findall(r'"(\w+)"', said[1]))
+    nested = {k for v in status.values() if isinstance(v, dict) for k in v}
+    assert named == set(status) | nested
+
+
 def test_the_retargeting_pages_budget_summary_states_the_budgets_starts():
     """docs/retargeting.md's summary of the converged budget names its starts and its seed
     table as payload.retarget.budget has them (it once said eight starts, six from a

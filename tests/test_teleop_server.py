@@ -24,8 +24,8 @@ from payload.teleop.messages import MAX_MESSAGE_BYTES, MessageError, parse_messa
 from payload.teleop.server import TOKEN_HINT, TeleopServer, page_files
 from payload.teleop.tls import CA_NAME, ensure_certificate, server_context
 
-STATUS_FIELDS = {"state", "driver", "operator", "clients", "frames", "dropped", "frame_age_ms",
-                 "loop_overruns"}  # fmt: skip
+STATUS_FIELDS = {"state", "driver", "operator", "clients", "max_clients", "frames", "dropped",
+                 "frame_age_ms", "loop_overruns"}  # fmt: skip
 DROPPED_FIELDS = {"malformed", "oversized", "non_finite", "out_of_order", "unauthorized",
                   "rate_limited", "not_holder", "connection_cap"}  # fmt: skip
 NEUTRAL_WB = {"left": np.array([0.35, 0.15, 1.1]), "right": np.array([0.35, -0.15, 1.1])}

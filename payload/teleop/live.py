@@ -29,6 +29,9 @@ from payload.teleop.messages import DROP_KINDS, FrameMessage
 from payload.teleop.operator import WorldView
 from payload.teleop.pipeline import TeleopPipeline
 
+MAX_CLIENTS = 4
+"""Open WebSocket connections the server takes at once: an operator, a spare page, a few
+watchers (``/status`` says it as ``max_clients``, for the page)."""
 STALE_S = 0.1
 """A frame older than this is no longer the operator's hand [s] (the supervisor's timeout)."""
 
@@ -148,6 +151,7 @@ class LiveHub:
                 "driver": self.driver,
                 "operator": "holding" if self.active is not None else "none",
                 "clients": int(self.clients),
+                "max_clients": MAX_CLIENTS,
                 "frames": int(self.frames),
                 "dropped": {k: int(v) for k, v in self.dropped.items()},
                 "frame_age_ms": percentiles(self.frame_age_ms),

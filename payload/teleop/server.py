@@ -49,7 +49,7 @@ from websockets.exceptions import ConnectionClosed
 from websockets.http11 import Request, Response
 
 from payload.errors import PayloadError
-from payload.teleop.live import LiveHub, now_ms
+from payload.teleop.live import MAX_CLIENTS, LiveHub, now_ms
 from payload.teleop.messages import (
     MAX_MESSAGE_BYTES,
     FrameMessage,
@@ -75,7 +75,6 @@ RATE_BURST = 0.5 * RATE_LIMIT_HZ  # messages a connection may send at once (0.5 
 # a browser that stalled (a loaded machine, a Wi-Fi hiccup) flushes its queued frames at
 # once; a sustained flood above the rate is still dropped after half a second
 DESKTOP_SCRIPTS = b'<script src="/iwer.js"></script>\n<script src="/desktop.js"></script>\n'
-MAX_CLIENTS = 4  # open WebSocket connections: an operator, a spare page, a few watchers
 NO_TOKEN = "missing or wrong token"
 TOKEN_HINT = "open the address `payload teleop serve` printed, with its ?token= (new each run)"
 

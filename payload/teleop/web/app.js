@@ -18,7 +18,6 @@ const token = new URLSearchParams(location.search).get('token');
 const wsUrl = `${location.protocol === 'https:' ? 'wss' : 'ws'}://${location.host}/ws` +
   (token ? `?token=${encodeURIComponent(token)}` : '');
 const $ = (id) => document.getElementById(id);
-const MAX_PAGES = 4;  // open WebSocket connections the server takes (server.MAX_CLIENTS)
 
 // what the browser test (and a curious developer) can look at
 const debug = {
@@ -80,8 +79,9 @@ class Link {
         why = 'the server refused this page\'s token (a restarted server has a new one): ' +
           'open the address it printed, with its ?token=';
       } else if (r.ok) {
-        why = `the server turned this page away: it takes at most ${MAX_PAGES} pages at ` +
-          'once (close a spare one)';
+        const status = await r.json();
+        why = `the server turned this page away: it takes at most ${status.max_clients} ` +
+          'pages at once (close a spare one)';
       }
     } catch (e) {
       why = null;  // the server is not reachable: "disconnected" says it
