@@ -456,6 +456,48 @@ def test_dropped_connection_brakes_and_holds_then_resumes_blended(live):
     assert math.isfinite(hub.status()["frame_age_ms"]["median"] or 0.0)
 
 
+@pytest.mark.parametrize("theirs", ["log.mcap", "hands.jsonl"])
+def test_a_second_server_on_one_record_folder_refuses_and_keeps_the_firsts(tmp_path, theirs):
+    """Two ``teleop serve --record`` on one folder both pass the start-up check; the one
+    whose operator calibrates second finds the other's recording (or, an instant earlier,
+    only its hands' file) there: its session stops with an error, and every byte of the
+    other's files stays, with nothing of its own left beside them."""
+    from payload.errors import PayloadError
+    from payload.trials.live import LiveSession
+
+    out = tmp_path / "session"
+    hub = LiveHub()
+    session = LiveSession(hub, out, steps=QUICK_STEPS)
+    (out / theirs).parent.mkdir(parents=True, exist_ok=True)
+    (out / theirs).write_bytes(b"the other server's recording\n")  # made after the check
+    server = TeleopServer(hub, port=0, scene=session.scene).start()
+    failed: list[BaseException] = []
+
+    def run() -> None:
+        try:
+            session.run()
+        except BaseException as exc:  # what stopped it is what the test reads
+            failed.append(exc)
+
+    worker = threading.Thread(target=run, daemon=True)
+    worker.start()
+    page = Page(hub, server.port)
+    page.start()
+    try:
+        wait_for(lambda: bool(failed) or hub.state == "teleop", timeout=60)
+        wait_for(lambda: bool(failed), timeout=10)
+    finally:
+        page.halt.set()
+        page.join(10)
+        hub.stop.set()
+        worker.join(30)
+        server.stop()
+    assert session.close() is None
+    assert isinstance(failed[0], PayloadError) and "already exists" in str(failed[0])
+    assert [f.name for f in out.iterdir()] == [theirs]
+    assert (out / theirs).read_bytes() == b"the other server's recording\n"
+
+
 def test_live_session_records_the_safety_channel_and_station_metrics(tmp_path, monkeypatch):
     """A live session with the base filter (``teleop serve``'s default) records what a
     trial does: one ``/safety/filter`` record per recorded step, taken at that step, and

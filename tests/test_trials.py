@@ -470,6 +470,20 @@ def test_recorder_errors(tmp_path: Path) -> None:
         read_recording(tmp_path / "junk.mcap")
 
 
+def test_a_recorder_never_truncates_a_file_made_after_it_was_set_up(tmp_path: Path) -> None:
+    """Two recorders set up on one path before either opens it (two live servers on one
+    ``--record`` folder, say): the second to open refuses, and the first's steps stay."""
+    path = tmp_path / "log.mcap"
+    first, second = TrialRecorder(path), TrialRecorder(path)
+    with first:
+        for k in range(3):
+            first.write(make_step(0.02 * k))
+        first.flush()
+        with pytest.raises(RecordingError, match="already exists"):
+            second.open()
+    assert len(read_recording(path)) == 3
+
+
 def test_truncated_file_reads_whole_records_only(tmp_path: Path) -> None:
     path = tmp_path / "log.mcap"
     with TrialRecorder(path) as rec:

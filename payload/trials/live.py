@@ -187,7 +187,10 @@ class LiveSession:
             return
         out = self.record
         out.mkdir(parents=True, exist_ok=True)
-        self._recorder = TrialRecorder(out / RECORDING, scene=self._scene)
+        # the recording's file claimed first (created only if absent): a session that finds
+        # another's recording in its folder (two servers on one --record folder) refuses
+        # and takes nothing of it, the hands' file included
+        recorder = TrialRecorder(out / RECORDING, scene=self._scene).open()
         budget = self.retargeters["L"].config.budget
         setup: dict[str, Any] = {
             "retarget_budget": budget,
@@ -197,9 +200,15 @@ class LiveSession:
         }
         if self.controller is not None:
             setup["controller"], setup["controller_overrides"] = self.controller
-        self._hands = HandRecordingWriter(
-            out / HANDS, frame="webxr", meta={"operator": "live", **setup}
-        )
+        try:
+            hands = HandRecordingWriter(
+                out / HANDS, frame="webxr", meta={"operator": "live", **setup}
+            )
+        except BaseException:
+            recorder.close()
+            (out / RECORDING).unlink()  # this session's own file, with no step
+            raise
+        self._recorder, self._hands = recorder, hands
         from payload.native import environment
         from payload.project import ProjectError, current_project, provenance
         from payload.trials.metrics import confirmed_definition

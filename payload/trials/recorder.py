@@ -88,6 +88,7 @@ class TrialRecorder:
         if self.path.exists() and not overwrite:
             raise RecordingError(f"{self.path}: already exists (pass overwrite=True to replace)")
         self.flush_period_s = float(flush_period_s)
+        self._overwrite = bool(overwrite)
         self._file: Any = None
         self._writer: Writer | None = None
         self._channel = 0
@@ -118,8 +119,15 @@ class TrialRecorder:
         if self._closed:
             raise RecordingError(f"{self.path}: recorder already closed")
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        # a large buffer (few write calls); the flush deadline bounds what a crash loses
-        self._file = open(self.path, "wb", buffering=1 << 20)  # closed in close()
+        # a large buffer (few write calls); the flush deadline bounds what a crash loses.
+        # Created only if it is still not there (another recorder, another process, may
+        # have made it since this one was set up): never truncated unless ``overwrite``
+        try:
+            self._file = open(  # closed in close()
+                self.path, "wb" if self._overwrite else "xb", buffering=1 << 20
+            )
+        except FileExistsError:
+            raise RecordingError(f"{self.path}: already exists (not replaced)") from None
         # zstd chunks, one per flush (at most a second): a kill loses at most the open one
         self._writer = Writer(
             self._file,
