@@ -456,6 +456,15 @@ def test_dropped_connection_brakes_and_holds_then_resumes_blended(live):
     assert math.isfinite(hub.status()["frame_age_ms"]["median"] or 0.0)
 
 
+def _end_session(page: Page, hub: LiveHub, worker: threading.Thread, server) -> None:
+    """The page gone, the session's loop stopped and the server down (a test's cleanup)."""
+    page.halt.set()
+    page.join(10)
+    hub.stop.set()
+    worker.join(30)
+    server.stop()
+
+
 @pytest.mark.parametrize("theirs", ["log.mcap", "hands.jsonl"])
 def test_a_second_server_on_one_record_folder_refuses_and_keeps_the_firsts(tmp_path, theirs):
     """Two ``teleop serve --record`` on one folder both pass the start-up check; the one
@@ -487,11 +496,7 @@ def test_a_second_server_on_one_record_folder_refuses_and_keeps_the_firsts(tmp_p
         wait_for(lambda: bool(failed) or hub.state == "teleop", timeout=60)
         wait_for(lambda: bool(failed), timeout=10)
     finally:
-        page.halt.set()
-        page.join(10)
-        hub.stop.set()
-        worker.join(30)
-        server.stop()
+        _end_session(page, hub, worker, server)
     assert session.close() is None
     assert isinstance(failed[0], PayloadError) and "already exists" in str(failed[0])
     assert [f.name for f in out.iterdir()] == [theirs]
@@ -532,11 +537,7 @@ def test_live_session_records_the_safety_channel_and_station_metrics(tmp_path, m
         wait_for(lambda: (hub.snapshot.get("vehicle") or {}).get("speed", 0) > 1e-3, timeout=30)
         time.sleep(1.5)
     finally:
-        page.halt.set()
-        page.join(10)
-        hub.stop.set()
-        worker.join(30)
-        server.stop()
+        _end_session(page, hub, worker, server)
     result = session.close()
     rec = read_recording(out / "log.mcap")
     # scored as a trial is (confirmed contact: held 0.5 s, dropouts of 0.1 s bridged,
