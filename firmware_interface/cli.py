@@ -59,6 +59,8 @@ def _map(args: argparse.Namespace) -> Any:
 def _cmd_emulate(args: argparse.Namespace) -> int:
     from firmware_interface.emulator import bus_spec, serve
 
+    # the servos of this project's design; the pty path is the first line on stdout
+    command_project(args, announce=False)
     serve(bus_spec(args.servos, args.servo_params), args.fault, seed=args.seed)
     return 0
 

@@ -31,7 +31,7 @@ from payload.schema import (
 )
 from payload.sim.driver import SimDriver, WorldState
 from payload.teleop.calibration import CalibrationProcedure, Captures
-from payload.teleop.loop import ReplaySource, StepContext, run_session
+from payload.teleop.loop import ARM_AFTER_STEPS, ReplaySource, StepContext, run_session
 from payload.teleop.pipeline import TeleopConfig, TeleopPipeline, calibrate_operator
 from payload.teleop.replay import HandRecordingWriter
 
@@ -177,12 +177,14 @@ def replay_session(
     pace: bool = False,
     on_step: Any = None,
     rt: tuple[dict, dict] | None = None,
+    on_pipeline: Any = None,
 ) -> list[PayloadCommand]:
     """Run a recorded hand session through the 50 Hz loop on ``driver``.
 
     The same code for the simulator (``SimDriver``) and the hardware
     (:class:`HardwareInTheLoop`): calibration, pipeline, loop. ``rt``: the retargeters
-    and pair ranges to use (default: the paper's).
+    and pair ranges to use (default: the paper's). ``on_pipeline()`` is called once the
+    calibration has built the teleoperation pipeline, before its first step.
 
     ``budget`` and ``collisions`` set the pair solves (as ``payload trial``'s flags).
 
@@ -200,7 +202,10 @@ def replay_session(
 
     def make_pipeline(captures: Captures, heading: float) -> TeleopPipeline:
         cal = calibrate_operator(captures, ranges, config.rail_travel, heading)
-        return TeleopPipeline(cal, retargeters, config, initial=q0)
+        pipeline = TeleopPipeline(cal, retargeters, config, initial=q0)
+        if on_pipeline is not None:
+            on_pipeline()
+        return pipeline
 
     def observe(ctx: StepContext) -> None:
         commands.append(ctx.command)
@@ -217,13 +222,6 @@ def replay_session(
         pace=pace,
     )
     return commands
-
-
-ARM_AFTER_STEPS = 25
-"""The Bus Watchdog is armed after this many loop steps (half a second): the first steps
-of a session build what they use once (measured on the emulator rig: the third step
-~0.4 s, under load), longer than the watchdog's period, which would trip it on a
-healthy session."""
 
 
 def _replay_setup(sim_project: Any, recorded: dict[str, Any]) -> tuple[Any, dict, Any]:
@@ -373,7 +371,11 @@ def run_hardware_trial(
             HandRecordingWriter(out / HANDS, meta={"seed": meta["seed"]}) as hands_out,
         ):
             recorder.write_meta(meta)
-            steps = [0]
+            steps, arm_at = [0], [ARM_AFTER_STEPS]
+
+            def on_pipeline() -> None:  # its first step builds what it uses once
+                hardware.set_watchdog(False)
+                arm_at[0] = steps[0] + ARM_AFTER_STEPS
 
             def on_step(ctx: StepContext) -> None:
                 hands_out.write(ctx.frame)
@@ -381,7 +383,7 @@ def run_hardware_trial(
                 scene.observe(ctx.t)
                 recorder.write(step_record(ctx, driver, retargeters))
                 steps[0] += 1
-                if steps[0] == ARM_AFTER_STEPS:  # past the first steps' one-off set-up
+                if steps[0] == arm_at[0]:  # past the first steps' one-off set-up
                     hardware.set_watchdog(True)
                 if bar is not None:
                     bar.update(task, completed=ctx.t)
@@ -391,7 +393,8 @@ def run_hardware_trial(
 
             try:
                 commands = replay_session(driver, frames, max_time=max_time, pace=pace,
-                                          on_step=on_step, rt=(retargeters, ranges))  # fmt: skip
+                                          on_step=on_step, rt=(retargeters, ranges),
+                                          on_pipeline=on_pipeline)  # fmt: skip
             except Exception as exc:  # a fault, the bus lost: a failed run, not bad input
                 what, at = recorder.mark_aborted(exc)
                 raise HardwareRunAborted(

@@ -59,14 +59,17 @@ def forget_project() -> None:
     _RESOLVED.clear()
 
 
-def command_project(args: argparse.Namespace, design: str | Path | None = None) -> Project:
+def command_project(
+    args: argparse.Namespace, design: str | Path | None = None, *, announce: bool = True
+) -> Project:
     """The design project of this command, resolved once per command.
 
     ``design`` (a ``--design F``) selects the project holding F, so a command never
     writes another project's models; ``--project`` must then agree with it. A design
     file in no project applies to the project found as usual. Prints
-    ``project: <root>`` unless the command prints JSON (``args.json``), and exports it
-    as ``PAYLOAD_PROJECT`` until :func:`payload.cli.main` returns.
+    ``project: <root>`` unless the command prints JSON (``args.json``) or is told not to
+    (``announce``: ``hw emulate``, whose first line is its pty's path), and exports it as
+    ``PAYLOAD_PROJECT`` until :func:`payload.cli.main` returns.
 
     Raises:
         ProjectError: No project, or ``--design`` and ``--project`` disagree.
@@ -90,7 +93,7 @@ def command_project(args: argparse.Namespace, design: str | Path | None = None) 
     args._project = project
     _RESOLVED["project"] = project.root
     os.environ[ENV_VAR] = str(project.root)
-    if not getattr(args, "json", False):
+    if announce and not getattr(args, "json", False):
         print(f"project: {project.root}", flush=True)
     return project
 

@@ -146,3 +146,32 @@ def test_a_bad_number_is_one_line_before_the_bus_is_touched(argv, named, tmp_pat
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and err[0].startswith(f"payload: error: {named} ")
     assert not out.exists()
+
+
+def test_emulate_serves_the_servos_of_the_project_given(tmp_path, monkeypatch, capsys):
+    """``payload hw emulate --project DIR`` emulates DIR's servos (its ``[servo]`` model,
+    its travel ends), from anywhere, and still prints the pty path as its first stdout
+    line (no ``project:`` line before it). ``--project`` was accepted and ignored:
+    outside a project it failed ("not inside a design project ... use --project DIR"),
+    inside another it emulated that one's servos."""
+    import re
+
+    import firmware_interface.emulator as emulator
+
+    root = tmp_path / "scratch"
+    assert main(["new", str(root)]) == 0
+    path = root / "cad" / "design.toml"
+    text, n = re.subn(r"(?m)^armature = [0-9.eE+-]+", "armature = 3.5e-3", path.read_text())
+    assert n == 1
+    path.write_text(text)
+    served = []
+    monkeypatch.setattr(emulator, "serve", lambda spec, *a, **k: served.append(spec))
+    monkeypatch.delenv("PAYLOAD_PROJECT", raising=False)
+    monkeypatch.chdir(tmp_path)  # in no project
+    capsys.readouterr()
+    assert main(["hw", "emulate", "--project", str(root)]) == 0
+    (spec,) = served
+    # the unloaded abduction servo is the armature alone (the finger links beyond it
+    # add their inertia about the abduction axis): every plant includes 3.5e-3
+    assert min(p["inertia"] for p in spec["plants"].values()) >= 3.5e-3
+    assert capsys.readouterr().out == ""  # serve() prints the pty path first

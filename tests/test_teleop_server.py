@@ -624,6 +624,39 @@ def test_payload_rig_commands_both_drivers_and_reads_the_payload():
         assert rig.world is sim.world  # the vehicle and the world stay the simulator's
 
 
+def test_payload_rig_disarms_the_watchdog_over_the_pipelines_first_steps():
+    """``teleop serve --driver hardware``: the Bus Watchdog is armed 25 sends into the
+    loop, then disarmed when the calibration builds the pipeline (its first step builds
+    what it uses once: 99 ms measured on the emulator rig at load 2, beside the
+    watchdog's 100 ms) and armed again 25 sends later."""
+    from payload.schema import PayloadCommand
+    from payload.sim.driver import SimDriver
+    from payload.teleop.loop import ARM_AFTER_STEPS
+    from payload.trials.live import PayloadRig
+
+    class Bench:
+        def __init__(self):
+            self.sends, self.armed = 0, []
+
+        def send(self, command):
+            self.sends += 1
+
+        def set_watchdog(self, on):
+            self.armed.append((self.sends, on))
+
+    with SimDriver() as sim:
+        bench = Bench()
+        rig = PayloadRig(sim, bench)
+        hold = PayloadCommand(sim.read().q, sim.read().deploy, 0.0)
+        for _ in range(100):
+            rig.send(hold)
+        rig.pipeline_built()
+        for _ in range(100):
+            rig.send(hold)
+    first = ARM_AFTER_STEPS - 1  # armed just before its 25th send goes out
+    assert bench.armed == [(first, True), (100, False), (100 + first, True)]
+
+
 @pytest.mark.parametrize(
     ("flag", "modelled", "recorded"),
     [

@@ -26,6 +26,16 @@ from payload.vecmath import norm
 
 log = logging.getLogger(__name__)
 
+ARM_AFTER_STEPS = 25
+"""A hardware payload's Bus Watchdog is armed this many loop steps (half a second) after
+a session starts, and again this many steps after the calibration has built the
+teleoperation pipeline (disarmed meanwhile): the session's first steps, and the
+pipeline's first step (its compiled kernels' self-checks), build what they use once
+(measured on the emulator rig: the session's third step ~0.4 s under load; the
+pipeline's first step 85 to 290 ms at load 2), longer than the watchdog's 100 ms, which
+would trip it on a healthy session. The payload holds one command while the pipeline is
+built, as a tripped watchdog would hold it."""
+
 
 class HandSource(Protocol):
     """Where hand frames come from (synthetic operator, replay, live headset)."""

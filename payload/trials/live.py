@@ -36,7 +36,7 @@ from payload.teleop.calibration import (
 )
 from payload.teleop.link import DelayedLink, DelayLine
 from payload.teleop.live import LiveHub, LiveSource, TimedDriver
-from payload.teleop.loop import StepContext, run_session
+from payload.teleop.loop import ARM_AFTER_STEPS, StepContext, run_session
 from payload.teleop.pipeline import TeleopConfig, TeleopPipeline, calibrate_operator
 from payload.teleop.replay import HandRecordingWriter
 from payload.trials.recorder import StepRecord, TrialRecorder
@@ -84,19 +84,26 @@ class PayloadRig:
     simulator's.
     """
 
-    ARM_AFTER_SENDS = 25  # half a second of the loop: past its first steps' one-off set-up
-    """A payload whose Bus Watchdog was left disarmed while the session set up (see
-    ``payload teleop serve --driver hardware``) has it armed once the loop runs."""
-
     def __init__(self, sim: Any, payload: Any) -> None:
         self._sim = sim
         self.payload = payload
         self._sends = 0
+        # a payload whose Bus Watchdog was left disarmed while the session set up (see
+        # ``payload teleop serve --driver hardware``) has it armed once the loop runs
+        self._arm_at = ARM_AFTER_STEPS
+
+    def pipeline_built(self) -> None:
+        """The calibration built the teleoperation pipeline: the payload's Bus Watchdog is
+        disarmed over the pipeline's first steps (:data:`~payload.teleop.loop.
+        ARM_AFTER_STEPS`), which build what they use once."""
+        self._arm_at = self._sends + ARM_AFTER_STEPS
+        if hasattr(self.payload, "set_watchdog"):
+            self.payload.set_watchdog(False)
 
     def send(self, command: Any) -> None:
         self._sim.send(command)
         self._sends += 1
-        if self._sends == self.ARM_AFTER_SENDS and hasattr(self.payload, "set_watchdog"):
+        if self._sends == self._arm_at and hasattr(self.payload, "set_watchdog"):
             self.payload.set_watchdog(True)
         self.payload.send(command)
 
@@ -308,6 +315,8 @@ class LiveSession:
         def make_pipeline(captures: Captures, heading: float) -> TeleopPipeline:
             cal = calibrate_operator(captures, self.ranges, self.config.rail_travel, heading)
             pipeline = TeleopPipeline(cal, self.retargeters, self.config, initial=self.q0)
+            if isinstance(self.driver, PayloadRig):
+                self.driver.pipeline_built()
             source.pipeline = pipeline
             self.calibrated = True
             self.notice = "calibrated: fly with your left wrist"
