@@ -126,7 +126,10 @@ class DynamixelDriver(FaultHandling):
         self.homed: set[int] = set()
         self.device = port
         self.emulated = False  # the far end reports the emulator's Model Information
-        self.watchdog_trips: list[dict] = []  # {"t", "servos", "silence_s"} per trip
+        # per trip: "t" (the host's monotonic clock [s]) and "unix_s" (the wall clock) when
+        # the next command re-armed them, "servos", "silence_s" (the host's silence);
+        # ``hw run`` adds "session_t", the session time [s] of that command
+        self.watchdog_trips: list[dict] = []
         self.alerts = 0  # reads whose status carried an alert bit
         self._linear = [sp for sp in self.map.servos if sp.joint in LINEAR_JOINTS]
         self._stopped = False
@@ -327,7 +330,12 @@ class DynamixelDriver(FaultHandling):
         if not tripped:
             return
         self.watchdog_trips.append(
-            {"t": time.monotonic(), "servos": tripped, "silence_s": round(silence, 4)}
+            {
+                "t": time.monotonic(),
+                "unix_s": round(time.time(), 3),
+                "servos": tripped,
+                "silence_s": round(silence, 4),
+            }
         )
         log.warning("Bus Watchdog tripped on %d servo(s) after %.0f ms of host silence: "
                     "they held still until now; re-arming", len(tripped),

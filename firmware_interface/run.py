@@ -383,6 +383,8 @@ def run_hardware_trial(
                 scene.observe(ctx.t)
                 recorder.write(step_record(ctx, driver, retargeters))
                 steps[0] += 1
+                for trip in hardware.watchdog_trips[trips0:]:  # when, in the session's time
+                    trip.setdefault("session_t", round(ctx.t, 3))
                 if steps[0] == arm_at[0]:  # past the first steps' one-off set-up
                     hardware.set_watchdog(True)
                 if bar is not None:

@@ -320,6 +320,44 @@ def test_the_grasps_load_on_a_servo_uses_the_designs_torque_constant():
             assert all((abs(ma) < cap_ma) == held for ma in loads.values()), (scale, loads)
 
 
+def test_a_bus_watchdog_trip_is_recorded_at_its_session_time(session, tmp_path, monkeypatch):
+    """A host stall of 0.25 s mid-session (a pipeline step, well after the watchdog was
+    armed) trips the servos' 100 ms Bus Watchdog once; ``metrics.json`` says when, in the
+    session's time (the stalled step, whose command re-armed them) and on the wall clock
+    (inside the stall), not only on the host's monotonic clock."""
+    import time
+
+    from payload.cli import main
+    from payload.teleop.pipeline import TeleopPipeline
+    from payload.trials.recorder import read_recording
+
+    calls, step = [0], TeleopPipeline.step
+
+    def stall_once(self, *args, **kwargs):
+        calls[0] += 1
+        if calls[0] == 40:  # 15 steps after the watchdog was armed again
+            time.sleep(0.25)
+        return step(self, *args, **kwargs)
+
+    monkeypatch.setattr(TeleopPipeline, "step", stall_once)
+    out = tmp_path / "trial"
+    with EmulatorProcess() as emu:
+        argv = ["hw", "run", "--device", emu.port, "--replay", str(session),
+                "--out", str(out), "--no-pace", "--latency-ms", str(LAT), "--json"]  # fmt: skip
+        assert main(argv) == 0
+    assert calls[0] > 40
+    trips = json.loads((out / "metrics.json").read_text())["watchdog"]
+    assert trips["trips"] == 1, trips
+    trip = trips["events"][0]
+    rec = read_recording(out / "log.mcap")
+    wall = np.asarray(rec.wall_time)
+    first = next(i for i, p in enumerate(rec.phase) if str(p) != "calibration")
+    k = first + 39  # the pipeline's 40th step, the stalled one: its record came 0.25 s late
+    assert wall[k] - wall[k - 1] >= 0.25
+    assert trip["session_t"] == round(float(rec.t[k]), 3)
+    assert wall[k - 1] <= trip["unix_s"] <= wall[k] + 1e-3
+
+
 def test_the_first_teleoperation_step_does_not_trip_the_bus_watchdog(
     session, tmp_path, monkeypatch
 ):
