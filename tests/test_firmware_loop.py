@@ -4,6 +4,7 @@ emulated hardware (DynamixelDriver), and ``payload hw run`` recording it as a tr
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -320,6 +321,18 @@ def test_the_grasps_load_on_a_servo_uses_the_designs_torque_constant():
             assert all((abs(ma) < cap_ma) == held for ma in loads.values()), (scale, loads)
 
 
+def _hw_run_of(session: Path, out: Path) -> Path:
+    """``payload hw run`` of a recorded hand session on a fresh emulator, unpaced, into
+    ``out`` (its exit checked); returns ``out``."""
+    from payload.cli import main
+
+    with EmulatorProcess() as emu:
+        argv = ["hw", "run", "--device", emu.port, "--replay", str(session),
+                "--out", str(out), "--no-pace", "--latency-ms", str(LAT), "--json"]  # fmt: skip
+        assert main(argv) == 0
+    return out
+
+
 def test_a_bus_watchdog_trip_is_recorded_at_its_session_time(session, tmp_path, monkeypatch):
     """A host stall of 0.25 s mid-session (a pipeline step, well after the watchdog was
     armed) trips the servos' 100 ms Bus Watchdog once; ``metrics.json`` says when, in the
@@ -327,7 +340,6 @@ def test_a_bus_watchdog_trip_is_recorded_at_its_session_time(session, tmp_path, 
     (inside the stall), not only on the host's monotonic clock."""
     import time
 
-    from payload.cli import main
     from payload.teleop.pipeline import TeleopPipeline
     from payload.trials.recorder import read_recording
 
@@ -340,11 +352,7 @@ def test_a_bus_watchdog_trip_is_recorded_at_its_session_time(session, tmp_path, 
         return step(self, *args, **kwargs)
 
     monkeypatch.setattr(TeleopPipeline, "step", stall_once)
-    out = tmp_path / "trial"
-    with EmulatorProcess() as emu:
-        argv = ["hw", "run", "--device", emu.port, "--replay", str(session),
-                "--out", str(out), "--no-pace", "--latency-ms", str(LAT), "--json"]  # fmt: skip
-        assert main(argv) == 0
+    out = _hw_run_of(session, tmp_path / "trial")
     assert calls[0] > 40
     trips = json.loads((out / "metrics.json").read_text())["watchdog"]
     assert trips["trips"] == 1, trips
@@ -370,7 +378,6 @@ def test_the_first_teleoperation_step_does_not_trip_the_bus_watchdog(
     the check does not hang on whether this process has built those kernels already."""
     import time
 
-    from payload.cli import main
     from payload.teleop.pipeline import TeleopPipeline
 
     first, step = [True], TeleopPipeline.step
@@ -389,11 +396,7 @@ def test_the_first_teleoperation_step_does_not_trip_the_bus_watchdog(
         return arm(self, on)
 
     monkeypatch.setattr(DynamixelDriver, "set_watchdog", set_watchdog)
-    out = tmp_path / "trial"
-    with EmulatorProcess() as emu:
-        argv = ["hw", "run", "--device", emu.port, "--replay", str(session),
-                "--out", str(out), "--no-pace", "--latency-ms", str(LAT), "--json"]  # fmt: skip
-        assert main(argv) == 0
+    out = _hw_run_of(session, tmp_path / "trial")
     assert not first[0]  # the session reached teleoperation
     assert armed[-1] is True  # and the watchdog guarded it
     metrics = json.loads((out / "metrics.json").read_text())
