@@ -514,6 +514,7 @@ def load_trial_results(
     Raises:
         CampaignError: The folder does not exist or holds no trial folders.
         OverwriteError: A rescoring file exists with other content and ``force`` is false.
+        DamagedRecordingError: A recording read for scoring is damaged.
     """
     root = Path(out_dir)
     if root.exists() and not root.is_dir():
@@ -529,6 +530,7 @@ def load_trial_results(
             )
         raise CampaignError(f"{root}: no trial-* folders")
     from payload.trials.reading import read_recording, recording_meta
+    from payload.trials.records import DamagedRecordingError
 
     results = []
     for d in dirs:
@@ -558,8 +560,8 @@ def load_trial_results(
                     force=force,
                     recording=rec,
                 )
-            except OverwriteError:
-                raise
+            except (OverwriteError, DamagedRecordingError):
+                raise  # damage is not a trial's failure: nothing is scored from it
             except PayloadError as exc:
                 results.append({"seed": seed, "out_dir": str(d), "error": str(exc)})
                 continue
