@@ -171,3 +171,24 @@ def test_a_damaged_recording_stops_the_summary_with_one_line(tmp_path: Path, cap
         assert len(err) == 1 and err[0].startswith(f"payload: error: {log}: "), err
         assert "damaged" in err[0]
         assert not list(camp.glob("summary*")) and not list(camp.glob("fig_campaign*"))
+
+
+@pytest.mark.parametrize(
+    "content",
+    [b'{"seed": 2, "success": tr', b"\xc3\x28 not text", b"[1, 2]"],
+    ids=["cut-short", "binary", "not-an-object"],
+)
+def test_a_damaged_metrics_file_is_one_line_in_summarize_and_compare(
+    tmp_path: Path, capsys, content: bytes
+) -> None:
+    """A trial's metrics.json cut short, binary or not a JSON object: `trials summarize`
+    and `trials compare` name it in one line, exit 2, and write no summary."""
+    camp = _campaign(tmp_path / "camp", [1, 2])
+    metrics = camp / "trial-0002" / "metrics.json"
+    metrics.write_bytes(content)
+    capsys.readouterr()
+    for argv in (["trials", "summarize", str(camp)], ["trials", "compare", str(camp), str(camp)]):
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith(f"payload: error: {metrics}: "), err
+    assert not list(camp.glob("summary*"))

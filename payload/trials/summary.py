@@ -480,6 +480,22 @@ def write_summary(
     return summary
 
 
+def read_metrics(path: Path) -> dict[str, Any]:
+    """A trial's ``metrics.json``.
+
+    Raises:
+        CampaignError: Unreadable, not JSON (cut short, binary) or not a JSON object: one
+            line naming the file.
+    """
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:  # JSON and UTF-8 errors are ValueErrors
+        raise CampaignError(f"{path}: cannot read the trial's metrics ({exc})") from None
+    if not isinstance(data, dict):
+        raise CampaignError(f"{path}: cannot read the trial's metrics (not a JSON object)")
+    return data
+
+
 def _unfinished(meta: dict[str, Any] | None, complete: bool) -> str | None:
     """The error row's text of a trial whose recording is not a finished run's
     (:func:`~payload.trials.reading.unfinished_reason`), or ``None``."""
@@ -515,6 +531,7 @@ def load_trial_results(
         CampaignError: The folder does not exist or holds no trial folders.
         OverwriteError: A rescoring file exists with other content and ``force`` is false.
         DamagedRecordingError: A recording read for scoring is damaged.
+        CampaignError: A trial's ``metrics.json`` cannot be read (:func:`read_metrics`).
     """
     root = Path(out_dir)
     if root.exists() and not root.is_dir():
@@ -566,7 +583,7 @@ def load_trial_results(
                 results.append({"seed": seed, "out_dir": str(d), "error": str(exc)})
                 continue
         else:
-            row = json.loads(metrics_path.read_text())
+            row = read_metrics(metrics_path)
             # scored before summaries checked: an aborted run's metrics.json does not say
             # so, its recording's metadata does (read through the file's index)
             meta = recording_meta(d / RECORDING)
