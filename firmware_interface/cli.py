@@ -50,6 +50,16 @@ def _check_numbers(args: argparse.Namespace) -> None:
         raise HwUsageError(f"--max-time must be positive, got {cap}")
 
 
+def _models_follow(args: argparse.Namespace) -> None:
+    """The one rule for stale models (docs/design-loop.md): the project's generated models
+    rebuilt if they no longer match its design, saying so. Every command that makes a
+    driver applies it: the driver's collision guard reads the project's URDF."""
+    project = command_project(args)
+    from payload.design import models_follow_design
+
+    models_follow_design(project.design_path, project.root, json=getattr(args, "json", False))
+
+
 def _map(args: argparse.Namespace) -> Any:
     from firmware_interface.servo_map import load_servo_map
 
@@ -72,6 +82,7 @@ def _cmd_scan(args: argparse.Namespace) -> int:
     command_project(args)  # the servo map's joints are this project's
     device = need_device(args)
     smap = _map(args)
+    _models_follow(args)
     with DynamixelDriver(device, smap, latency_timer_ms=args.latency_ms) as drv:
         found = drv.scan()
     known = {s.id: s.joint for s in smap.servos}
@@ -127,7 +138,9 @@ def check(port: str, smap: Any, latency_ms: float = 16.0) -> dict[str, Any]:
 def _cmd_check(args: argparse.Namespace) -> int:
     _check_numbers(args)
     command_project(args)  # the servo map is validated against this project's design
-    report = check(need_device(args), _map(args), args.latency_ms)
+    device, smap = need_device(args), _map(args)
+    _models_follow(args)
+    report = check(device, smap, args.latency_ms)
     if args.json:
         emit_json(report)
     else:
@@ -146,9 +159,7 @@ def _cmd_check(args: argparse.Namespace) -> int:
 def _cmd_run(args: argparse.Namespace) -> int:
     _check_numbers(args)
     project = command_project(args)
-    from payload.design import models_follow_design
-
-    models_follow_design(project.design_path, project.root, json=args.json)
+    _models_follow(args)
     replay = _replay_of(args)
     # a run never writes among other results, nor into a file
     out_folder(args.out, holding=(*TRIAL_FILES, *CAMPAIGN_FILES))
@@ -235,6 +246,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     if args.cycles < 1:
         raise HwUsageError(f"--cycles must be at least 1, got {args.cycles}")
     command_project(args)  # the servo map is checked against this project's design
+    _models_follow(args)
     result = bench_hw(args.device, args.cycles, args.servos, args.latency_ms)
     if args.json:
         emit_json(result)
@@ -260,7 +272,9 @@ def _cmd_identify(args: argparse.Namespace) -> int:
     unknown = [j for j in args.joints or [] if j not in known]
     if unknown:
         raise HwUsageError(f"--joints: no servo drives {', '.join(unknown)}")
-    with DynamixelDriver(need_device(args), smap, latency_timer_ms=args.latency_ms) as drv:
+    device = need_device(args)
+    _models_follow(args)
+    with DynamixelDriver(device, smap, latency_timer_ms=args.latency_ms) as drv:
         report = identify(drv, args.joints)
         design_file = drv.design.source
     report["device"] = args.device

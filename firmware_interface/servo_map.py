@@ -23,7 +23,7 @@ import numpy as np
 from firmware_interface.control_table import RAD_PER_TICK
 from payload.design.params import FINGER_JOINTS, Design, load_design
 from payload.design.tree import ALL_JOINTS
-from payload.errors import PayloadError
+from payload.errors import PayloadError, not_text
 from payload.schema import PayloadCommand
 
 if sys.version_info >= (3, 11):
@@ -240,6 +240,8 @@ def load_servo_map(path: str | Path | None = None, design: Design | None = None)
             text = Path(path).read_text(encoding="utf-8")
         except OSError as exc:
             raise ServoMapError(f"{source}: cannot read ({exc.strerror})") from exc
+        except UnicodeDecodeError as exc:
+            raise ServoMapError(f"{source}: {not_text(exc, 'TOML')}") from None
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:

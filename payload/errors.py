@@ -26,6 +26,12 @@ class DesignError(PayloadError):
         super().__init__(f"{parameter}: {reason}")
 
 
+def not_text(exc: UnicodeDecodeError, kind: str) -> str:
+    """Why a binary file given where a text file of ``kind`` (``"TOML"``, ``"JSON"``) is
+    expected cannot be read: the reason of a one-line error that names the file."""
+    return f"not a text (UTF-8 {kind}) file: byte {exc.start} is 0x{exc.object[exc.start]:02x}"
+
+
 def is_number(value: Any) -> bool:
     """A TOML number of a design file (an int or a float; a boolean is not one)."""
     return isinstance(value, (int, float)) and not isinstance(value, bool)

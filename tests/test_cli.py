@@ -57,6 +57,10 @@ def test_a_wrong_option_prints_the_subcommands_usage(argv, usage, capsys) -> Non
         (["summary", "--design", str(STL)], "not a text (UTF-8 TOML) file"),
         (["report", "envelope", "--design", str(STL)], "not a text (UTF-8 TOML) file"),
         (["trial", "--replay", str(STL)], "not a payload-hands recording"),
+        (["trial", "--zones", str(STL)], "not a text (UTF-8 JSON) file"),
+        (["hw", "scan", "--device", "/dev/null", "--servos", str(STL)], "not a text (UTF-8"),
+        (["bench", "retarget", "--hand", str(STL)], "not a text (UTF-8 TOML) file"),
+        (["bench", "retarget", "--config", str(STL)], "not a text (UTF-8 TOML) file"),
     ],
 )
 def test_binary_input_files_give_one_line_and_exit_2(argv, message, capsys) -> None:

@@ -564,6 +564,11 @@ MODEL_READERS = {  # every command that reads the generated models -> its handle
     "teleop serve": ("payload.teleop.cli", "serve"),
     "sweep": ("payload.sweep.cli", "_cmd_sweep"),
     "hw run": ("firmware_interface.cli", "_cmd_run"),
+    "hw scan": ("firmware_interface.cli", "_cmd_scan"),  # the driver's guard reads the URDF
+    "hw check": ("firmware_interface.cli", "_cmd_check"),
+    "hw identify": ("firmware_interface.cli", "_cmd_identify"),
+    "bench hw": ("firmware_interface.cli", "_cmd_bench"),
+    "bench filter": ("payload.teleop.cli", "bench_filter"),  # flies the project's MJCF
 }
 
 
@@ -598,6 +603,32 @@ def test_stale_models_are_rebuilt_saying_so(tmp_path, capsys):
     with pytest.raises(DesignError, match=r"finger\.lengths\.middle"):
         models_follow_design(project.design_path, project.root)
     assert {p: p.read_bytes() for p in project.urdf_dir.iterdir()} == before
+
+
+def test_bench_filter_flies_models_that_follow_the_design(tmp_path, capsys, monkeypatch):
+    """``bench filter`` builds the world from the project's MJCF: stale models are rebuilt
+    (saying so) before the world is built, not flown with the new design's servos."""
+    import payload.teleop.bench as teleop_bench
+    from payload.cli import main
+    from payload.design import stale_files
+    from payload.design.cli import new_project
+
+    project, _ = new_project(tmp_path / "p")
+    text = project.design_path.read_text()
+    project.design_path.write_text(text.replace("middle = 0.0361 ", "middle = 0.0400 "))
+    capsys.readouterr()
+    seen = []
+
+    def bench(seconds):
+        seen.append(stale_files(load_design(project.design_path), project.root))
+        return {"steps": 1, "active_steps": 0, "median_us": 1.0, "p99_us": 1.0,
+                "constraints": 0, "load": [0.0, 0.0, 0.0]}  # fmt: skip
+
+    monkeypatch.setattr(teleop_bench, "run_filter_bench", bench)
+    assert main(["--project", str(project.root), "bench", "filter", "--seconds", "1"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0] == f"project: {project.root}" and lines[1].startswith("models: rebuilt ")
+    assert seen == [[]]
 
 
 def test_part_mass_properties_from_the_cache_are_trimeshs_own(design):

@@ -175,3 +175,38 @@ def test_emulate_serves_the_servos_of_the_project_given(tmp_path, monkeypatch, c
     # add their inertia about the abduction axis): every plant includes 3.5e-3
     assert min(p["inertia"] for p in spec["plants"].values()) >= 3.5e-3
     assert capsys.readouterr().out == ""  # serve() prints the pty path first
+
+
+@pytest.mark.parametrize(
+    "argv", [["hw", "scan"], ["hw", "check"], ["bench", "hw", "--cycles", "5"]]
+)
+def test_commands_whose_guard_reads_the_models_make_them_follow_the_design_first(
+    argv, emulate, tmp_path, monkeypatch, capsys
+):
+    """The driver's collision guard reads the project's URDF, so every command that makes
+    a driver applies the one rule for stale models (rebuild, saying so) before the guard
+    is built: it never checks commands against the geometry of an earlier design."""
+    import firmware_interface.driver as driver_module
+    from payload.design import load_design, stale_files
+    from payload.design.cli import new_project
+
+    project, _ = new_project(tmp_path / "p")
+    text = project.design_path.read_text()
+    project.design_path.write_text(text.replace("distal = 0.045 ", "distal = 0.044 "))
+    assert stale_files(load_design(project.design_path), project.root)
+    capsys.readouterr()
+    stale_at_guard = []
+    real = driver_module.default_guard
+
+    def guard():
+        stale_at_guard.append(stale_files(load_design(project.design_path), project.root))
+        return real()
+
+    monkeypatch.setattr(driver_module, "default_guard", guard)
+    device = [] if argv[0] == "bench" else ["--device", emulate]
+    code = main(["--project", str(project.root), *argv, *device, "--latency-ms", LAT])
+    out = capsys.readouterr().out.splitlines()
+    assert code in (0, 1)  # hw check: servo 7 is missing on this bus
+    assert out[0] == f"project: {project.root}"
+    assert out[1].startswith("models: rebuilt ") and "urdf/payload.urdf" in out[1]
+    assert stale_at_guard == [[]]

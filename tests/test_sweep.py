@@ -75,8 +75,8 @@ def test_bad_sweep_input_exits_2_and_writes_nothing(tmp_path, capsys):
     assert main(["sweep", "--set", "finger.lengths.thumb=1,2", "--out", str(out)]) == 2
     err = capsys.readouterr().err.strip()
     assert "finger.lengths.thumb: not a design key" in err and "\n" not in err
-    assert not out.exists() or not any(out.iterdir())
-    out.mkdir(exist_ok=True)
+    assert not out.exists()  # nothing made for a sweep that never started
+    out.mkdir()
     (out / "sweep.json").write_text("{}")
     assert main(["sweep", "--set", "rail.travel=0.04", "--out", str(out)]) == 2
     assert (out / "sweep.json").read_text() == "{}"  # recorded data never overwritten
@@ -87,6 +87,23 @@ def test_bad_sweep_input_exits_2_and_writes_nothing(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert f"{(out / 'sweep.md').resolve()} exists" in err and "\n" not in err
     assert (out / "sweep.md").read_text() == "my notes"
+
+
+def test_bad_sweep_input_leaves_no_numbered_folder_in_the_project(tmp_path, capsys):
+    """Without --out a sweep claims runs/sweep-NNNN; bad input found after that (a key
+    the design does not have, an invalid design) leaves no empty folder behind, nor uses
+    up a number."""
+    from payload.design.cli import new_project
+
+    project, _ = new_project(tmp_path / "p")
+    argv = ["--project", str(project.root), "sweep", "--set", "finger.lengths.thumb=1,2"]
+    assert main(argv) == 2
+    assert "not a design key" in capsys.readouterr().err
+    text = project.design_path.read_text()
+    project.design_path.write_text(text.replace("middle = 0.0361 ", "middle = 0.005 "))
+    assert main([*argv[:-1], "rail.travel=0.04,0.05"]) == 2
+    assert "finger.lengths.middle" in capsys.readouterr().err
+    assert not list(project.runs_dir.glob("sweep-*"))
 
 
 @pytest.mark.slow

@@ -144,3 +144,51 @@ def test_summarize_of_a_trials_own_folder_says_so(tmp_path: Path, capsys) -> Non
     (tmp_path / "empty").mkdir()
     assert main(["trials", "summarize", str(tmp_path / "empty")]) == 2
     assert "no trial-* folders" in capsys.readouterr().err
+
+
+def test_a_damaged_recording_stops_the_summary_with_one_line(tmp_path: Path, capsys) -> None:
+    """A rescoring (or a trial without ``metrics.json``) reads the recording: a damaged
+    one is bad input named in one line (exit 2, no summary written), never a trial
+    counted as a failure that the campaign did not have (issue 30)."""
+    from payload.trials.records import RecordingError
+
+    camp = _campaign(tmp_path / "camp", [1, 2])
+    log = camp / "trial-0002" / "log.mcap"
+    data = bytearray(log.read_bytes())
+    data[len(data) // 2] ^= 0x55
+    log.write_bytes(bytes(data))
+    with pytest.raises(RecordingError, match="damaged"):
+        read_recording(log)
+    capsys.readouterr()
+    for argv, drop_metrics in (
+        (["trials", "summarize", str(camp), "--recompute"], False),
+        (["trials", "summarize", str(camp)], True),  # no metrics.json: scored from the file
+    ):
+        if drop_metrics:
+            (log.parent / "metrics.json").unlink()
+        assert main(argv) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith(f"payload: error: {log}: "), err
+        assert "damaged" in err[0]
+        assert not list(camp.glob("summary*")) and not list(camp.glob("fig_campaign*"))
+
+
+@pytest.mark.parametrize(
+    "content",
+    [b'{"seed": 2, "success": tr', b"\xc3\x28 not text", b"[1, 2]"],
+    ids=["cut-short", "binary", "not-an-object"],
+)
+def test_a_damaged_metrics_file_is_one_line_in_summarize_and_compare(
+    tmp_path: Path, capsys, content: bytes
+) -> None:
+    """A trial's metrics.json cut short, binary or not a JSON object: `trials summarize`
+    and `trials compare` name it in one line, exit 2, and write no summary."""
+    camp = _campaign(tmp_path / "camp", [1, 2])
+    metrics = camp / "trial-0002" / "metrics.json"
+    metrics.write_bytes(content)
+    capsys.readouterr()
+    for argv in (["trials", "summarize", str(camp)], ["trials", "compare", str(camp), str(camp)]):
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith(f"payload: error: {metrics}: "), err
+    assert not list(camp.glob("summary*"))

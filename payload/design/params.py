@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from payload.design.plausible import check_plausible
-from payload.errors import DesignError, as_toml, is_number
+from payload.errors import DesignError, as_toml, is_number, not_text
 from payload.project import current_project, default_design_text
 
 if sys.version_info >= (3, 11):
@@ -556,10 +556,7 @@ def load_design(path: str | Path | None = None) -> Design:
     except OSError as exc:
         raise DesignError(str(p), f"cannot read design file ({exc.strerror})") from exc
     except UnicodeDecodeError as exc:
-        raise DesignError(
-            str(p),
-            f"not a text (UTF-8 TOML) file: byte {exc.start} is 0x{exc.object[exc.start]:02x}",
-        ) from None
+        raise DesignError(str(p), not_text(exc, "TOML")) from None
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:

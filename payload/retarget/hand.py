@@ -42,6 +42,7 @@ from typing import Any
 
 import numpy as np
 
+from payload.errors import not_text
 from payload.kinematics import Kinematics, KinematicsError
 from payload.project import Project, current_project
 from payload.retarget.errors import RetargetError
@@ -358,7 +359,9 @@ def load_hand(path: str | Path | None = None, project: Project | None = None) ->
     if not p.is_file():
         raise RetargetError(f"hand description not found: {p}")
     try:
-        raw = tomllib.loads(p.read_text())
+        raw = tomllib.loads(p.read_text(encoding="utf-8"))
+    except UnicodeDecodeError as exc:
+        raise RetargetError(f"{p}: {not_text(exc, 'TOML')}") from None
     except tomllib.TOMLDecodeError as exc:
         raise RetargetError(f"{p}: not valid TOML: {exc}") from exc
     return hand_from_dict(raw, p.resolve().parent, source=p, project=project)

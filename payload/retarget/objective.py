@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from payload.errors import not_text
 from payload.retarget.errors import RetargetError
 from payload.retarget.features import N_FEATURES
 
@@ -164,7 +165,9 @@ class RetargetConfig:
         if not p.is_file():
             raise RetargetError(f"retarget config not found: {p}")
         try:
-            raw = tomllib.loads(p.read_text())
+            raw = tomllib.loads(p.read_text(encoding="utf-8"))
+        except UnicodeDecodeError as exc:
+            raise RetargetError(f"{p}: {not_text(exc, 'TOML')}") from None
         except tomllib.TOMLDecodeError as exc:
             raise RetargetError(f"{p}: not valid TOML: {exc}") from exc
         if "retarget" in raw:

@@ -29,6 +29,7 @@ from typing import Any
 
 import numpy as np
 
+from payload.errors import not_text
 from payload.sim.errors import SimError
 from payload.sim.iss import IssLayout
 
@@ -128,9 +129,11 @@ class StationZones:
             ZoneError: Unreadable, not JSON, or not the zone form.
         """
         try:
-            data = json.loads(Path(path).read_text())
+            data = json.loads(Path(path).read_text(encoding="utf-8"))
         except OSError as exc:
             raise ZoneError(f"{path}: cannot read the zone file: {exc.strerror}") from None
+        except UnicodeDecodeError as exc:
+            raise ZoneError(f"{path}: {not_text(exc, 'JSON')}") from None
         except json.JSONDecodeError as exc:
             raise ZoneError(f"{path}: not JSON ({exc.msg}, line {exc.lineno})") from None
         return cls.from_json(data, str(path))

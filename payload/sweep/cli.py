@@ -10,7 +10,14 @@ import time
 from pathlib import Path
 from typing import Any
 
-from payload.cliutil import CheckFailed, command_project, default_out, emit_json, out_folder
+from payload.cliutil import (
+    CheckFailed,
+    command_project,
+    default_out,
+    emit_json,
+    kept_if_used,
+    out_folder,
+)
 from payload.folders import CAMPAIGN_FILES, SWEEP_FILES, TRIAL_FILES, held
 from payload.sweep.grid import SweepError, parse_set
 from payload.sweep.run import DEFAULT_SAMPLES
@@ -56,11 +63,13 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
             "overwritten)"
         )
     project = command_project(args)
-    out = Path(args.out).resolve() if args.out else default_out(project, "sweep")
     from payload.design import models_follow_design
 
     models_follow_design(project.design_path, project.root, json=args.json)
-    points = plan(project, axes, out)
+    existed = args.out is not None and Path(args.out).exists()
+    out = Path(args.out).resolve() if args.out else default_out(project, "sweep")
+    with kept_if_used(out, made=not existed):  # bad input found in plan: nothing left
+        points = plan(project, axes, out)
     workers = args.workers or max(1, min(len(points), os.cpu_count() or 1))
     t0 = time.perf_counter()
     with _progress(not args.json, len(points)) as bar:

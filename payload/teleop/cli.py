@@ -301,7 +301,10 @@ def bench_filter(args: argparse.Namespace) -> int:
 
     if not args.seconds > 0:
         raise TeleopCliError(f"--seconds must be positive, got {args.seconds}")
-    command_project(args)  # the stack it flies is this project's
+    project = command_project(args)  # the stack it flies is this project's
+    from payload.design import models_follow_design
+
+    models_follow_design(project.design_path, project.root, json=args.json)
     result = run_filter_bench(seconds=args.seconds)
     if args.json:
         emit_json(result)

@@ -26,7 +26,7 @@ import numpy as np
 from payload.errors import PayloadError
 from payload.folders import METRICS, RECORDING
 from payload.trials.records import FIELD_SPECS, HANDS_TOPIC, STEP_TOPIC, RecordingError
-from payload.trials.summary import METRIC_KEYS, METRIC_LABELS
+from payload.trials.summary import METRIC_KEYS, METRIC_LABELS, read_metrics
 
 
 class CompareError(PayloadError):
@@ -43,14 +43,6 @@ def _trials(run: Path) -> dict[str, Path]:
     if not found:
         raise CompareError(f"{run}: no {METRICS} and no trial-* folders")
     return found
-
-
-def _metrics(trial: Path) -> dict[str, Any]:
-    path = trial / METRICS
-    try:
-        return json.loads(path.read_text())
-    except (OSError, ValueError) as exc:
-        raise CompareError(f"{path}: cannot read the trial's metrics ({exc})") from None
 
 
 def _same_value(a: Any, b: Any) -> bool:
@@ -236,7 +228,7 @@ def compare_runs(run_a: str | Path, run_b: str | Path, *, steps: bool = False) -
     largest: dict[str, dict[str, Any]] = {}
     identical = True
     for name_a, name_b in common:
-        ma, mb = _metrics(ta[name_a]), _metrics(tb[name_b])
+        ma, mb = read_metrics(ta[name_a] / METRICS), read_metrics(tb[name_b] / METRICS)
         metrics = {}
         for key in METRIC_KEYS:
             change = _change(ma.get(key), mb.get(key))

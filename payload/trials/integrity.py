@@ -9,8 +9,8 @@ section's end: the summary section, which only repeats the data section, is not 
 file cut short by a kill (no ``DataEnd``, a torn last record) reads up to its last whole
 record, as before; a closed file whose records do not chain to its footer, a record type
 the recorder never writes, a chunk whose CRC or compression fails, a metadata record whose
-CRC fails, or steps missing between two good chunks raise :class:`RecordingError` naming
-what is damaged.
+CRC fails, or steps missing between two good chunks raise :class:`DamagedRecordingError`
+(a :class:`RecordingError`) naming what is damaged.
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from pathlib import Path
 
 from mcap.opcode import Opcode
 
-from payload.trials.records import STEP_TOPIC, RecordingError
+from payload.trials.records import STEP_TOPIC, DamagedRecordingError
 
 MAGIC = b"\x89MCAP0\r\n"
 """The MCAP magic at both ends of a file."""
@@ -173,11 +173,11 @@ def clean_records(data: bytes, path: str | Path) -> CleanRecords:
         path: The file, for messages.
 
     Raises:
-        RecordingError: Not an MCAP file, or damaged (one line: the file, the channels and
-            steps of a damaged chunk, or the byte range where the damage lies).
+        DamagedRecordingError: Not an MCAP file, or damaged (one line: the file, the
+            channels and steps of a damaged chunk, or the byte range where the damage lies).
     """
     if not data.startswith(MAGIC):
-        raise RecordingError(f"{path}: not an MCAP file (bad magic)")
+        raise DamagedRecordingError(f"{path}: not an MCAP file (bad magic)")
     closed_file = len(data) >= 2 * len(MAGIC) and data.endswith(MAGIC)
     out = [MAGIC]
     chunks: list[_Chunk] = []
@@ -232,7 +232,7 @@ def _check_chunks(
         if chunk.damage is None:
             if chunk.steps is not None:
                 if chunk.steps[0] != previous + 1:
-                    raise RecordingError(
+                    raise DamagedRecordingError(
                         f"{path}: {STEP_TOPIC}: steps {previous + 1}-{chunk.steps[0] - 1} "
                         f"missing before bytes {chunk.start}-{chunk.end}; the recording is "
                         "damaged"
@@ -244,7 +244,7 @@ def _check_chunks(
         ids = chunk.channels or _neighbour_channels(chunks, i)  # no message index: the
         topics = sorted(names.get(c, f"channel {c}") for c in ids)  # flush's channels
         where = ", ".join(topics) if topics else "its channels unreadable"
-        raise RecordingError(
+        raise DamagedRecordingError(
             f"{path}: {where}: {steps} (chunk at bytes {chunk.start}-{chunk.end}) damaged: "
             f"{chunk.damage}"
         )
@@ -265,4 +265,4 @@ def _damaged(path: str | Path, what: str, chunks: list[_Chunk]) -> None:
     """Raise for damage outside a chunk, naming the steps read before it."""
     last = next((c.steps[1] for c in reversed(chunks) if c.steps is not None), None)
     after = f" (after step {last})" if last is not None else ""
-    raise RecordingError(f"{path}: {what}{after}; the recording is damaged")
+    raise DamagedRecordingError(f"{path}: {what}{after}; the recording is damaged")

@@ -37,6 +37,7 @@ from payload.trials.records import (
     META_NAME,
     SCHEMA_VERSION,
     STEP_TOPIC,
+    DamagedRecordingError,
     RecordingError,
     StepRecord,
 )
@@ -232,7 +233,7 @@ def _read_file(
             if isinstance(exc, (json.JSONDecodeError, DecodeError))
             else "record"
         )
-        raise RecordingError(f"{path}: {where}: corrupt ({exc})") from None
+        raise DamagedRecordingError(f"{path}: {where}: corrupt ({exc})") from None
     return channels, meta, rows, samples, complete
 
 
@@ -457,7 +458,7 @@ def read_messages(path: str | Path) -> list[tuple[Channel, Schema | None, Messag
     except EndOfFile:
         pass  # the complete prefix of a cut-short file ends exactly here
     except McapError as exc:
-        raise RecordingError(f"{path}: record {len(out)}: corrupt ({exc})") from None
+        raise DamagedRecordingError(f"{path}: record {len(out)}: corrupt ({exc})") from None
     return out
 
 

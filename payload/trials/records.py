@@ -139,6 +139,11 @@ class RecordingError(PayloadError):
     """A step record is malformed, or a recording cannot be written or read."""
 
 
+class DamagedRecordingError(RecordingError):
+    """A recording's bytes are damaged (a CRC mismatch, a corrupt record, missing steps,
+    not MCAP): what it says cannot be trusted, so nothing is scored from it."""
+
+
 def _json_schema_for(shape: tuple[int, ...], kind: Any) -> dict[str, Any]:
     if isinstance(kind, tuple):
         return {"type": "string", "enum": list(kind)}

@@ -480,6 +480,22 @@ def write_summary(
     return summary
 
 
+def read_metrics(path: Path) -> dict[str, Any]:
+    """A trial's ``metrics.json``.
+
+    Raises:
+        CampaignError: Unreadable, not JSON (cut short, binary) or not a JSON object: one
+            line naming the file.
+    """
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:  # JSON and UTF-8 errors are ValueErrors
+        raise CampaignError(f"{path}: cannot read the trial's metrics ({exc})") from None
+    if not isinstance(data, dict):
+        raise CampaignError(f"{path}: cannot read the trial's metrics (not a JSON object)")
+    return data
+
+
 def _unfinished(meta: dict[str, Any] | None, complete: bool) -> str | None:
     """The error row's text of a trial whose recording is not a finished run's
     (:func:`~payload.trials.reading.unfinished_reason`), or ``None``."""
@@ -514,6 +530,8 @@ def load_trial_results(
     Raises:
         CampaignError: The folder does not exist or holds no trial folders.
         OverwriteError: A rescoring file exists with other content and ``force`` is false.
+        DamagedRecordingError: A recording read for scoring is damaged.
+        CampaignError: A trial's ``metrics.json`` cannot be read (:func:`read_metrics`).
     """
     root = Path(out_dir)
     if root.exists() and not root.is_dir():
@@ -529,6 +547,7 @@ def load_trial_results(
             )
         raise CampaignError(f"{root}: no trial-* folders")
     from payload.trials.reading import read_recording, recording_meta
+    from payload.trials.records import DamagedRecordingError
 
     results = []
     for d in dirs:
@@ -558,13 +577,13 @@ def load_trial_results(
                     force=force,
                     recording=rec,
                 )
-            except OverwriteError:
-                raise
+            except (OverwriteError, DamagedRecordingError):
+                raise  # damage is not a trial's failure: nothing is scored from it
             except PayloadError as exc:
                 results.append({"seed": seed, "out_dir": str(d), "error": str(exc)})
                 continue
         else:
-            row = json.loads(metrics_path.read_text())
+            row = read_metrics(metrics_path)
             # scored before summaries checked: an aborted run's metrics.json does not say
             # so, its recording's metadata does (read through the file's index)
             meta = recording_meta(d / RECORDING)
