@@ -569,7 +569,39 @@ MODEL_READERS = {  # every command that reads the generated models -> its handle
     "hw identify": ("firmware_interface.cli", "_cmd_identify"),
     "bench hw": ("firmware_interface.cli", "_cmd_bench"),
     "bench filter": ("payload.teleop.cli", "bench_filter"),  # flies the project's MJCF
+    "bench reach": ("payload.envelope.cli", "_cmd_bench_reach"),
 }
+MODEL_FREE = {  # every other command, and why the rule is not its
+    "new": "makes a project (its models built by its own build)",
+    "build": "is the rule itself: it regenerates the models",
+    "summary": "reads the design file, not the models",
+    "bench recorder": "writes synthetic steps, no model",
+    "trials summarize": "reads recordings and metrics",
+    "trials compare": "reads recordings and metrics",
+    "trials convert": "rewrites schema-1 recordings; its world refuses a stale model",
+    "export lerobot": "reads recordings",
+    "hw emulate": "serves the design's servo model, not the generated models",
+}
+
+
+def test_every_command_is_a_model_reader_or_says_why_not():
+    """A command added without a place in either table fails here (the hardware commands
+    once read a stale URDF unnoticed, because nothing listed them)."""
+    import argparse
+
+    from payload.cli import build_parser
+
+    def leaves(parser: argparse.ArgumentParser, path: str = ""):
+        subs = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+        if not subs:
+            yield path.strip()
+        for action in subs:
+            for name, child in action.choices.items():
+                yield from leaves(child, f"{path} {name}")
+
+    commands = set(leaves(build_parser()))
+    assert not set(MODEL_READERS) & set(MODEL_FREE)
+    assert commands == set(MODEL_READERS) | set(MODEL_FREE)
 
 
 def test_every_command_reading_the_models_applies_the_one_rule():
