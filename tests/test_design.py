@@ -431,6 +431,7 @@ PLAUSIBILITY = [  # edit, the parameter named, what the one line must say
     ("rail.length", 0.5, "rail.length", "longer than the vehicle"),
     ("finger.offsets.tip", 0.05, "finger.offsets.tip", "outside its link"),
     ("finger.lengths.distal", 0.012, "finger.lengths.distal", "cannot hold the DIP servo"),
+    ("finger.lengths.proximal", 2.45e-5, "finger.lengths.proximal", "0.0245 mm cannot hold"),
 ]
 
 

@@ -98,6 +98,13 @@ def _refuse(parameter: str, value: float, unit: str, small_unit: str, reason: st
     raise DesignError(parameter, f"{slip}{value:g} {unit} {reason}" + (")" if slip else ""))
 
 
+def _mm(length: float) -> str:
+    """A length [m] in mm for a message: one decimal, or three significant digits where
+    that would print a length that is not zero as 0.0 (a value 1000 times too small)."""
+    mm = length * 1e3
+    return f"{mm:.1f} mm" if mm == 0.0 or abs(mm) >= 0.05 else f"{mm:.3g} mm"
+
+
 def check_plausible(design: Any, data: dict[str, Any]) -> None:
     """Refuse a design outside the physical bounds above.
 
@@ -137,7 +144,7 @@ def check_plausible(design: Any, data: dict[str, Any]) -> None:
         if length < s.width:
             raise DesignError(
                 f"finger.lengths.{link}",
-                f"{length * 1e3:.1f} mm cannot hold the servos at its two joints (two "
+                f"{_mm(length)} cannot hold the servos at its two joints (two "
                 f"{s.model} bodies, {s.width * 1e3:.1f} mm across their output axes, need "
                 f"at least {s.width * 1e3:.1f} mm between the axes)",
             )
@@ -145,7 +152,7 @@ def check_plausible(design: Any, data: dict[str, Any]) -> None:
     if f.lengths.distal < least:
         raise DesignError(
             "finger.lengths.distal",
-            f"{f.lengths.distal * 1e3:.1f} mm cannot hold the DIP servo's half body "
+            f"{_mm(f.lengths.distal)} cannot hold the DIP servo's half body "
             f"({s.width / 2 * 1e3:.1f} mm) and the pad (radius {f.pad.radius * 1e3:.1f} mm): "
             f"at least {least * 1e3:.1f} mm",
         )
@@ -154,7 +161,7 @@ def check_plausible(design: Any, data: dict[str, Any]) -> None:
         if abs(offset) > f.section.depth:
             raise DesignError(
                 f"finger.offsets.{joint}",
-                f"{offset * 1e3:.1f} mm puts the joint outside its link (finger.section.depth "
+                f"{_mm(offset)} puts the joint outside its link (finger.section.depth "
                 f"{f.section.depth * 1e3:.1f} mm)",
             )
 
