@@ -393,6 +393,9 @@ def test_bad_reach_samples_and_static_folder_exit_2(tmp_path, capsys) -> None:
     assert main(["review", "--watch", "--trial", str(tmp_path)]) == 2
     err = _err(capsys)
     assert "--watch" in err and "--trial" in err
+    assert main(["review", "--watch", "--zmq-url", "tcp://127.0.0.1:1"]) == 2
+    err = _err(capsys)  # the combination refused, not a server looked for
+    assert "--watch" in err and "--zmq-url" in err
 
 
 def test_a_port_in_use_exits_2_in_one_line(capsys) -> None:

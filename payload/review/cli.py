@@ -122,7 +122,7 @@ def _cmd_review(args: argparse.Namespace) -> int:
     from payload.review.page import static_html
     from payload.review.serve import check_server, open_viewer
 
-    if args.zmq_url is not None:
+    if args.zmq_url is not None and not args.watch:  # --watch refuses it, below
         check_server(args.zmq_url)
     if args.reach_samples < 0:
         raise ReviewError(f"--reach-samples must be >= 0 (got {args.reach_samples})")
