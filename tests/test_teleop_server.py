@@ -465,6 +465,56 @@ def _end_session(page: Page, hub: LiveHub, worker: threading.Thread, server) -> 
     server.stop()
 
 
+def test_a_page_that_leaves_before_its_calibration_leaves_the_watchdog_disarmed():
+    """``teleop serve --driver hardware``: a page that goes away mid-calibration ends the
+    attempt, and nothing is sent until another page comes; the payload's Bus Watchdog,
+    armed 25 steps into the attempt, is disarmed when it ends (the servos hold their goal
+    either way) instead of tripping 100 ms later and logging a trip per page that left."""
+    from payload.sim.driver import SimDriver
+    from payload.teleop.loop import ARM_AFTER_STEPS
+    from payload.trials.live import LiveSession
+
+    armed_at = ARM_AFTER_STEPS - 1  # sends before the rig arms it (with its 25th send)
+
+    class Bench:  # the payload on the bench, as the rig sees it: a simulated one
+        def __init__(self):
+            self.sim, self.sends, self.armed = SimDriver(), 0, []
+
+        def read(self):
+            return self.sim.read()
+
+        def send(self, command):
+            self.sends += 1
+            self.sim.send(command)
+
+        def set_watchdog(self, on):
+            self.armed.append((self.sends, on))
+
+        def close(self):
+            self.sim.close()
+
+    bench = Bench()
+    hub = LiveHub()
+    session = LiveSession(hub, None, steps=QUICK_STEPS, payload=bench)
+    server = TeleopServer(hub, port=0, scene=session.scene).start()
+    worker = threading.Thread(target=session.run, daemon=True)
+    worker.start()
+    page = Page(hub, server.port)
+    page.start()
+    try:
+        wait_for(lambda: bench.armed[-1:] == [(armed_at, True)], timeout=60)
+        page.halt.set()  # gone mid-calibration (the prompts take 3.6 s)
+        page.join(10)
+        wait_for(lambda: hub.state == "waiting", timeout=10)
+        assert not session.calibrated
+        sent = bench.sends
+        time.sleep(0.3)  # nothing goes out while no page is there
+        assert bench.sends == sent and bench.armed[-1] == (sent, False)
+    finally:
+        _end_session(page, hub, worker, server)
+        session.close()
+
+
 @pytest.mark.parametrize("theirs", ["log.mcap", "hands.jsonl"])
 def test_a_second_server_on_one_record_folder_refuses_and_keeps_the_firsts(tmp_path, theirs):
     """Two ``teleop serve --record`` on one folder both pass the start-up check; the one
@@ -628,7 +678,9 @@ def test_payload_rig_disarms_the_watchdog_over_the_pipelines_first_steps():
     """``teleop serve --driver hardware``: the Bus Watchdog is armed 25 sends into the
     loop, then disarmed when the calibration builds the pipeline (its first step builds
     what it uses once: 99 ms measured on the emulator rig at load 2, beside the
-    watchdog's 100 ms) and armed again 25 sends later."""
+    watchdog's 100 ms) and armed again 25 sends later; disarmed too when an attempt ends
+    and nothing is sent (the page gone before its calibration), until the next attempt's
+    loop has run 25 steps."""
     from payload.schema import PayloadCommand
     from payload.sim.driver import SimDriver
     from payload.teleop.loop import ARM_AFTER_STEPS
@@ -653,8 +705,13 @@ def test_payload_rig_disarms_the_watchdog_over_the_pipelines_first_steps():
         rig.pipeline_built()
         for _ in range(100):
             rig.send(hold)
+        rig.idle()  # the attempt ended (a page gone before its calibration): none sent
+        for _ in range(100):
+            rig.send(hold)
     first = ARM_AFTER_STEPS - 1  # armed just before its 25th send goes out
-    assert bench.armed == [(first, True), (100, False), (100 + first, True)]
+    assert bench.armed == [
+        (first, True), (100, False), (100 + first, True), (200, False), (200 + first, True)
+    ]  # fmt: skip
 
 
 @pytest.mark.parametrize(

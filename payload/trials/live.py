@@ -96,6 +96,19 @@ class PayloadRig:
         """The calibration built the teleoperation pipeline: the payload's Bus Watchdog is
         disarmed over the pipeline's first steps (:data:`~payload.teleop.loop.
         ARM_AFTER_STEPS`), which build what they use once."""
+        self._disarm()
+
+    def idle(self) -> None:
+        """The loop stopped sending (an attempt ended: the page went away before its
+        calibration was done): the Bus Watchdog is disarmed until the next attempt's loop
+        has run :data:`~payload.teleop.loop.ARM_AFTER_STEPS` steps. The servos hold their
+        last goal either way (a tripped watchdog holds them too); this spares a trip, and
+        its warning, each time a page leaves."""
+        self._disarm()
+
+    def _disarm(self) -> None:
+        """The Bus Watchdog off until :data:`~payload.teleop.loop.ARM_AFTER_STEPS` more
+        commands have gone out."""
         self._arm_at = self._sends + ARM_AFTER_STEPS
         if hasattr(self.payload, "set_watchdog"):
             self.payload.set_watchdog(False)
@@ -355,6 +368,8 @@ class LiveSession:
         except CalibrationError as exc:
             self.notice = f"calibration failed ({exc}); starting again"
             log.warning("teleop: %s", self.notice)
+        if isinstance(self.driver, PayloadRig):  # nothing is sent until the next attempt
+            self.driver.idle()
         if not self.calibrated:
             self._pending.clear()
             if self._scene is not None:
