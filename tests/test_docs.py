@@ -125,3 +125,53 @@ def test_the_retargeting_pages_budget_summary_states_the_budgets_starts():
         TABLE_STARTS,
         SEEDS,
     )
+
+
+def _sentences(page: Path) -> list[str]:
+    """A page's text with its line breaks undone, cut into sentences."""
+    text = " ".join(page.read_text(encoding="utf-8").split())
+    return re.split(r"(?<=[.;])\s+(?=[A-Z`(])", text)
+
+
+def test_pages_on_the_base_channel_state_the_papers_braking_rule():
+    """A page that describes the base channel's neutral sphere says that braking needs both
+    wrists back in neutral, as the channel does (the paper's rule: with the left wrist back
+    and the right one still out, it holds its velocity). docs/simulator.md once said the
+    vehicle braked as soon as the left wrist alone was back inside its sphere."""
+    import numpy as np
+
+    from payload.teleop.channels import BaseChannel, BaseConfig
+
+    config = BaseConfig()
+    out = np.array([config.sphere_radius + config.full_speed_offset, 0.0, 0.0])
+    home = np.zeros(3)
+    channel = BaseChannel(config, home, neutral_right=home)
+    for _ in range(50):
+        assert channel.step(out, right_wrist=out).mode == "drive"
+    assert channel.step(home, right_wrist=out).mode == "hold"
+    assert channel.step(home, right_wrist=home).mode == "brake"
+    sphere = re.compile(r"virtual sphere|neutral left[- ]wrist", re.IGNORECASE)
+    describing = [p for p in PAGES if any(sphere.search(s) for s in _sentences(p))]
+    assert describing, "no page describes the base channel any more"
+    for page in describing:
+        text = " ".join(_sentences(page))
+        assert "both wrists" in text, f"{page.name}: braking described without both wrists"
+
+
+def test_a_page_that_bounds_the_wrench_per_axis_names_the_box_model():
+    """The vehicle flies on Astrobee's 12 nozzles unless ``--propulsion box`` is given: the
+    wrench is bounded by the nozzles' polytope, not per axis. A sentence that bounds or
+    clips the vehicle's wrench per axis is about the ``box`` model and says so
+    (docs/simulator.md once described the per-axis bound as the vehicle's, after the
+    default had become the nozzles)."""
+    from payload.sim.vehicle import DEFAULT_PROPULSION
+
+    assert DEFAULT_PROPULSION == "nozzles"
+    per_axis = re.compile(r"(bounded|clipped|limited) per axis", re.IGNORECASE)
+    wrong = [
+        f"{page.name}: {s[:100]}"
+        for page in PAGES
+        for s in _sentences(page)
+        if per_axis.search(s) and "box" not in s
+    ]
+    assert not wrong, wrong
