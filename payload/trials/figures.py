@@ -226,8 +226,8 @@ def plot_ctb_body_frame(
     fig.suptitle(
         f"CTB centre of mass in the Astrobee body frame (eq. 4) -- {verdict}, "
         f"contact {m.contact_s:.1f} s of {m.duration_s:.1f} s\n"
-        "solid: first confirmed contact (t0); dashed: its end; dash-dot: arrival in "
-        f"{m.destination}",
+        "vertical: first confirmed contact (t0) solid, its end dashed, arrival in "
+        f"{m.destination} dash-dot; horizontal dashed: the position at t0",
         fontsize=10,
         y=1.0 - _EDGE_IN / _CTB_SIZE_IN[1],
         va="top",

@@ -42,7 +42,7 @@ Step message fields (all SI, workbench frame)
 field              shape      meaning
 =================  =========  ============================================================
 ``seq``            int        step counter from 0 (added by the recorder)
-``wall_time``      float      wall clock at write [s since the Unix epoch] (added)
+``wall_time``      float      wall clock at write [s since the Unix epoch] (added; 1 us grid)
 ``t``              float      time since the start of teleoperation [s]
 ``phase``          str        one of :data:`PHASES`
 ``left_joints``    (25, 3)    raw WebXR hand-joint positions [m], ``null`` = not tracked
