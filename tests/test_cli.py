@@ -269,6 +269,24 @@ def test_new_from_a_non_project_names_from(tmp_path: Path, capsys) -> None:
     assert "--project" not in err[0] and not (tmp_path / "p").exists()
 
 
+def test_new_from_a_binary_design_is_one_line(tmp_path: Path, capsys) -> None:
+    """``--from`` a project's mesh (a file inside a project), or a project whose design
+    file is binary: one line naming it, exit 2, no new folder (before: a
+    UnicodeDecodeError traceback)."""
+    binary = tmp_path / "binary"
+    (binary / "cad").mkdir(parents=True)
+    (binary / "cad" / "design.toml").write_bytes(STL.read_bytes())
+    cases = [
+        (STL, f"--from {STL}: not a text (UTF-8 TOML) file"),
+        (binary, f"--from {binary / 'cad' / 'design.toml'}: not a text (UTF-8 TOML) file"),
+    ]
+    for source, message in cases:
+        assert main(["new", str(tmp_path / "p"), "--from", str(source)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and message in err[0], err
+        assert not (tmp_path / "p").exists()
+
+
 def test_commands_run_without_mujoco_rendering_unless_the_user_asks(monkeypatch) -> None:
     """A command runs with ``MUJOCO_GL=disable`` (nothing renders with MuJoCo, whose
     import then skips GLFW; Dask workers inherit it), removed after the command; a
