@@ -40,6 +40,20 @@ class UsageError(PayloadError):
     """Bad command-line input shared by every command (exit 2)."""
 
 
+def check_seconds(option: str, value: float | None, *, cap: bool = False) -> None:
+    """Refuse a duration option that is not a positive number of seconds (``None``: not
+    given). NaN and negative values are refused; infinity too, unless the option is a
+    cap (``cap``: no cap, the run ends by itself).
+
+    Raises:
+        UsageError: ``"<option> must be a positive number of seconds, got <value>"``.
+    """
+    if value is None or (value > 0 and (cap or value != float("inf"))):
+        return
+    finite = "" if cap else "finite "
+    raise UsageError(f"{option} must be a positive {finite}number of seconds, got {value}")
+
+
 _RESOLVED: dict[str, Path] = {}
 """The design project the running command resolved (:func:`command_project`), until
 :func:`payload.cli.main` returns (:func:`forget_project`)."""

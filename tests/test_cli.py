@@ -287,6 +287,40 @@ def test_new_from_a_binary_design_is_one_line(tmp_path: Path, capsys) -> None:
         assert not (tmp_path / "p").exists()
 
 
+@pytest.mark.parametrize(
+    ("argv", "finite"),
+    [
+        (["bench", "recorder", "--seconds", "nan"], True),
+        (["bench", "recorder", "--seconds", "inf"], True),
+        (["bench", "filter", "--seconds", "inf"], True),
+        (["bench", "teleop", "--seconds", "-1"], True),
+        (["bench", "trial", "--seconds", "nan"], False),
+    ],
+    ids=lambda v: " ".join(v) if isinstance(v, list) else str(v),
+)
+def test_a_duration_that_is_not_a_positive_number_is_one_line(argv, finite, monkeypatch, capsys):
+    """NaN, infinity (where nothing ends the run by itself) and negative seconds: one line
+    and exit 2 before anything runs (before: an OverflowError or ValueError traceback,
+    ``bench teleop`` slept a negative time, ``bench trial --seconds nan`` ran a trial)."""
+    import payload.teleop.bench
+    import payload.trials.bench
+
+    def never(*args, **kwargs):
+        raise AssertionError("the bench ran")
+
+    for module, name in (
+        (payload.trials.bench, "run_trial_bench"),
+        (payload.teleop.bench, "run_bench"),
+        (payload.teleop.bench, "run_filter_bench"),
+    ):
+        monkeypatch.setattr(module, name, never)
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    kind = "finite " if finite else ""
+    want = f"--seconds must be a positive {kind}number of seconds, got {float(argv[-1])}"
+    assert len(err) == 1 and want in err[0], err
+
+
 def test_commands_run_without_mujoco_rendering_unless_the_user_asks(monkeypatch) -> None:
     """A command runs with ``MUJOCO_GL=disable`` (nothing renders with MuJoCo, whose
     import then skips GLFW; Dask workers inherit it), removed after the command; a
