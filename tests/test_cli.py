@@ -32,6 +32,35 @@ def test_no_parser_accepts_abbreviations() -> None:
     assert [path for path, p in found.items() if p.allow_abbrev] == []
 
 
+def test_the_module_entry_points_accept_no_abbreviations(tmp_path, monkeypatch, capsys) -> None:
+    """The two other parsers a user runs (``python -m payload.review.browser``, documented
+    in docs/review.md, and ``python -m firmware_interface.emulator``, docs/hardware.md)
+    refuse an abbreviated option with their usage, exit 2, before doing anything; the
+    browser's missing page is one error too (was a Playwright traceback)."""
+    from firmware_interface import emulator
+    from payload.review import browser
+
+    def never(*args, **kwargs):
+        raise AssertionError("ran with an abbreviated option")
+
+    monkeypatch.setattr(browser, "screenshot", never)
+    monkeypatch.setattr(emulator, "serve", never)
+    monkeypatch.setattr(emulator, "bus_spec", never)
+    page = tmp_path / "review.html"
+    page.write_text("<html></html>")
+    cases = [
+        (browser.main, ["--tim", "0", str(page), str(tmp_path / "x.png")], "--tim"),
+        (emulator.main, ["--see", "3"], "--see"),
+        (browser.main, [str(tmp_path / "none.html"), str(tmp_path / "x.png")], "no such file"),
+    ]
+    for entry, argv, word in cases:
+        with pytest.raises(SystemExit) as info:
+            entry(argv)
+        assert info.value.code == 2
+        err = capsys.readouterr().err
+        assert err.startswith("usage: ") and word in err.splitlines()[-1], err
+
+
 @pytest.mark.parametrize(
     ("argv", "usage"),
     [
