@@ -7,7 +7,7 @@ helpers from here, never from :mod:`payload.cli` (the dispatcher at the top):
   prints exactly one JSON object);
 - :func:`command_project`: the design project of a command, resolved once, printed as the
   first line (``project: <root>``) and exported as ``PAYLOAD_PROJECT`` for the command;
-- the shared options of the vocabulary (DESIGN.md): :func:`add_json`, :func:`add_device`
+- the shared options of the vocabulary (docs/cli.md): :func:`add_json`, :func:`add_device`
   (a serial device), :func:`add_replay` (a recording), and :class:`DeprecatedAlias` for
   an old spelling kept for one release with a warning;
 - :func:`default_out`: the numbered default folder of an ``--out`` left out.

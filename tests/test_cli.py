@@ -230,7 +230,7 @@ def test_no_command_module_imports_the_dispatcher() -> None:
 
 # -- one vocabulary ----------------------------------------------------------------------
 FORBIDDEN = {"--serial", "--dev", "--tty", "--source", "--operator", "--input", "--recording"}
-"""Spellings outside the vocabulary (DESIGN.md), allowed only as deprecated aliases."""
+"""Spellings outside the vocabulary (docs/cli.md), allowed only as deprecated aliases."""
 
 
 def test_every_option_has_help_and_speaks_the_vocabulary() -> None:

@@ -1,5 +1,5 @@
 """Command line of the trials: ``payload trial``, ``payload trials run|summarize`` and
-``payload export lerobot`` (contract in DESIGN.md)."""
+``payload export lerobot`` (contract in docs/cli.md)."""
 
 from __future__ import annotations
 
