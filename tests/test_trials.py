@@ -781,7 +781,11 @@ def _worker_profiler_enabled() -> bool:
 def test_the_local_clusters_workers_run_without_the_dask_profiler() -> None:
     # the profiler samples the task's stack every 10 ms under the GIL (docs/speed.md);
     # asked of each worker process itself, not of this one's configuration
+    # distributed's defaults registered before the set below: else leaving the set removes
+    # the whole "distributed" table it found missing, and a later Client in this process
+    # fails on a KeyError
     import dask
+    import distributed  # noqa: F401
 
     from payload.trials.cluster import dask_client
 
@@ -1626,3 +1630,26 @@ def test_summarizing_trials_with_no_campaign_summary_keeps_their_provenance(
     prov = json.loads((camp / "summary.json").read_text())["provenance"]
     assert prov["design_sha256"] == own["design_sha256"]
     assert prov["environment"] == own["environment"]
+
+
+@pytest.mark.parametrize("address", ["nonsense", "foo://127.0.0.1:1", "tcp://:notaport"])
+def test_a_scheduler_that_is_not_an_address_is_one_line_and_leaves_no_folder(
+    tmp_path: Path, address: str, capsys
+) -> None:
+    """``--scheduler`` that Dask cannot parse: one line naming it, exit 2 (was a ValueError
+    traceback), for a campaign and a sweep; the campaign's folder it made for nothing is
+    gone again, a folder the user made is kept."""
+    from payload.cli import main
+
+    for argv in (
+        ["trials", "run", "--n", "1", "--out", str(tmp_path / "camp")],
+        ["sweep", "--set", "rail.travel=0.04", "--out", str(tmp_path / "sweep")],
+    ):
+        assert main([*argv, "--scheduler", address]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and f"--scheduler {address}: not a Dask scheduler address" in err[0]
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+    (tmp_path / "mine").mkdir()
+    assert main(["trials", "run", "--n", "1", "--out", str(tmp_path / "mine"), "--scheduler",
+                 address]) == 2  # fmt: skip
+    assert (tmp_path / "mine").is_dir()
