@@ -204,7 +204,7 @@ def serve(
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m firmware_interface.emulator")
+    ap = argparse.ArgumentParser(prog="python -m firmware_interface.emulator", allow_abbrev=False)
     ap.add_argument("--servos", help="servo map TOML (default: the packaged map)")
     ap.add_argument("--fault", action="append", default=[], help="fault spec (repeatable)")
     ap.add_argument("--seed", type=int, default=0)

@@ -22,6 +22,7 @@ import numpy as np
 from payload.design.params import load_design
 from payload.errors import RunAborted
 from payload.folders import HANDS, METRICS, RECORDING
+from payload.safeio import replace_file
 from payload.schema import (
     CONTROL_DT,
     PayloadCommand,
@@ -414,7 +415,7 @@ def run_hardware_trial(
     result = finish_trial(out, rec_path)
     result.update(steps=len(commands), driver="hardware", **far_end, provenance=prov,
                   watchdog=watchdog)  # fmt: skip
-    (out / METRICS).write_text(json.dumps(result, indent=2) + "\n")
+    replace_file(out / METRICS, json.dumps(result, indent=2) + "\n")
     return result
 
 

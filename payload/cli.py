@@ -1,4 +1,4 @@
-"""The ``payload`` command line (contract in DESIGN.md): the dispatcher at the top.
+"""The ``payload`` command line (contract in docs/cli.md): the dispatcher at the top.
 
 Every command lives in a command module's ``register(sub, groups)``; its handler returns
 the exit code. Errors print one line on stderr and exit 2 (bad input) or 1 (failed check).

@@ -7,7 +7,7 @@ helpers from here, never from :mod:`payload.cli` (the dispatcher at the top):
   prints exactly one JSON object);
 - :func:`command_project`: the design project of a command, resolved once, printed as the
   first line (``project: <root>``) and exported as ``PAYLOAD_PROJECT`` for the command;
-- the shared options of the vocabulary (DESIGN.md): :func:`add_json`, :func:`add_device`
+- the shared options of the vocabulary (docs/cli.md): :func:`add_json`, :func:`add_device`
   (a serial device), :func:`add_replay` (a recording), and :class:`DeprecatedAlias` for
   an old spelling kept for one release with a warning;
 - :func:`default_out`: the numbered default folder of an ``--out`` left out.
@@ -38,6 +38,20 @@ class CheckFailed(Exception):
 
 class UsageError(PayloadError):
     """Bad command-line input shared by every command (exit 2)."""
+
+
+def check_seconds(option: str, value: float | None, *, cap: bool = False) -> None:
+    """Refuse a duration option that is not a positive number of seconds (``None``: not
+    given). NaN and negative values are refused; infinity too, unless the option is a
+    cap (``cap``: no cap, the run ends by itself).
+
+    Raises:
+        UsageError: ``"<option> must be a positive number of seconds, got <value>"``.
+    """
+    if value is None or (value > 0 and (cap or value != float("inf"))):
+        return
+    finite = "" if cap else "finite "
+    raise UsageError(f"{option} must be a positive {finite}number of seconds, got {value}")
 
 
 _RESOLVED: dict[str, Path] = {}

@@ -1,4 +1,4 @@
-"""Controller profiles: what sits between the operator and the robot (DESIGN.md).
+"""Controller profiles: what sits between the operator and the robot (docs/safety-filter.md).
 
 ``paper`` is the paper's controller (the 20-evaluation pair solve, no self-collision
 model, no base safety filter): the default of ``payload trial`` and ``trials run`` so the

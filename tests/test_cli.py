@@ -32,6 +32,35 @@ def test_no_parser_accepts_abbreviations() -> None:
     assert [path for path, p in found.items() if p.allow_abbrev] == []
 
 
+def test_the_module_entry_points_accept_no_abbreviations(tmp_path, monkeypatch, capsys) -> None:
+    """The two other parsers a user runs (``python -m payload.review.browser``, documented
+    in docs/review.md, and ``python -m firmware_interface.emulator``, docs/hardware.md)
+    refuse an abbreviated option with their usage, exit 2, before doing anything; the
+    browser's missing page is one error too (was a Playwright traceback)."""
+    from firmware_interface import emulator
+    from payload.review import browser
+
+    def never(*args, **kwargs):
+        raise AssertionError("ran with an abbreviated option")
+
+    monkeypatch.setattr(browser, "screenshot", never)
+    monkeypatch.setattr(emulator, "serve", never)
+    monkeypatch.setattr(emulator, "bus_spec", never)
+    page = tmp_path / "review.html"
+    page.write_text("<html></html>")
+    cases = [
+        (browser.main, ["--tim", "0", str(page), str(tmp_path / "x.png")], "--tim"),
+        (emulator.main, ["--see", "3"], "--see"),
+        (browser.main, [str(tmp_path / "none.html"), str(tmp_path / "x.png")], "no such file"),
+    ]
+    for entry, argv, word in cases:
+        with pytest.raises(SystemExit) as info:
+            entry(argv)
+        assert info.value.code == 2
+        err = capsys.readouterr().err
+        assert err.startswith("usage: ") and word in err.splitlines()[-1], err
+
+
 @pytest.mark.parametrize(
     ("argv", "usage"),
     [
@@ -201,7 +230,7 @@ def test_no_command_module_imports_the_dispatcher() -> None:
 
 # -- one vocabulary ----------------------------------------------------------------------
 FORBIDDEN = {"--serial", "--dev", "--tty", "--source", "--operator", "--input", "--recording"}
-"""Spellings outside the vocabulary (DESIGN.md), allowed only as deprecated aliases."""
+"""Spellings outside the vocabulary (docs/cli.md), allowed only as deprecated aliases."""
 
 
 def test_every_option_has_help_and_speaks_the_vocabulary() -> None:
@@ -267,6 +296,58 @@ def test_new_from_a_non_project_names_from(tmp_path: Path, capsys) -> None:
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and f"--from {tmp_path}: not a design project" in err[0]
     assert "--project" not in err[0] and not (tmp_path / "p").exists()
+
+
+def test_new_from_a_binary_design_is_one_line(tmp_path: Path, capsys) -> None:
+    """``--from`` a project's mesh (a file inside a project), or a project whose design
+    file is binary: one line naming it, exit 2, no new folder (before: a
+    UnicodeDecodeError traceback)."""
+    binary = tmp_path / "binary"
+    (binary / "cad").mkdir(parents=True)
+    (binary / "cad" / "design.toml").write_bytes(STL.read_bytes())
+    cases = [
+        (STL, f"--from {STL}: not a text (UTF-8 TOML) file"),
+        (binary, f"--from {binary / 'cad' / 'design.toml'}: not a text (UTF-8 TOML) file"),
+    ]
+    for source, message in cases:
+        assert main(["new", str(tmp_path / "p"), "--from", str(source)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and message in err[0], err
+        assert not (tmp_path / "p").exists()
+
+
+@pytest.mark.parametrize(
+    ("argv", "finite"),
+    [
+        (["bench", "recorder", "--seconds", "nan"], True),
+        (["bench", "recorder", "--seconds", "inf"], True),
+        (["bench", "filter", "--seconds", "inf"], True),
+        (["bench", "teleop", "--seconds", "-1"], True),
+        (["bench", "trial", "--seconds", "nan"], False),
+    ],
+    ids=lambda v: " ".join(v) if isinstance(v, list) else str(v),
+)
+def test_a_duration_that_is_not_a_positive_number_is_one_line(argv, finite, monkeypatch, capsys):
+    """NaN, infinity (where nothing ends the run by itself) and negative seconds: one line
+    and exit 2 before anything runs (before: an OverflowError or ValueError traceback,
+    ``bench teleop`` slept a negative time, ``bench trial --seconds nan`` ran a trial)."""
+    import payload.teleop.bench
+    import payload.trials.bench
+
+    def never(*args, **kwargs):
+        raise AssertionError("the bench ran")
+
+    for module, name in (
+        (payload.trials.bench, "run_trial_bench"),
+        (payload.teleop.bench, "run_bench"),
+        (payload.teleop.bench, "run_filter_bench"),
+    ):
+        monkeypatch.setattr(module, name, never)
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    kind = "finite " if finite else ""
+    want = f"--seconds must be a positive {kind}number of seconds, got {float(argv[-1])}"
+    assert len(err) == 1 and want in err[0], err
 
 
 def test_commands_run_without_mujoco_rendering_unless_the_user_asks(monkeypatch) -> None:

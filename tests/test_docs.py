@@ -175,3 +175,26 @@ def test_a_page_that_bounds_the_wrench_per_axis_names_the_box_model():
         if per_axis.search(s) and "box" not in s
     ]
     assert not wrong, wrong
+
+
+def test_the_repository_cites_only_what_it_holds():
+    """Self-contained: no page, module, test, design file or build file cites a file that
+    is not in the repository (the reference facts, the design card, a path on the
+    machine it was written on); external numbers are cited from docs/sources.md.
+    CHANGELOG.md (history) and analyses/ (generated results) are left out."""
+    outside = re.compile(r"facts\.md|DESIGN\.md|/work/|/home/|/root/")
+    files = [ROOT / "README.md", ROOT / "Makefile", ROOT / "pyproject.toml"]
+    for folder in ("docs", "payload", "firmware_interface", "tests", "cad", "examples", ".ci"):
+        files += [p for p in sorted((ROOT / folder).rglob("*")) if p.is_file()]
+    found = []
+    for path in files:
+        if path.suffix in (".stl", ".png", ".pyc", ".so") or path == Path(__file__).resolve():
+            continue
+        try:
+            text = path.read_text(encoding="utf-8")
+        except UnicodeDecodeError:
+            continue
+        for n, line in enumerate(text.splitlines(), 1):
+            if outside.search(line):
+                found.append(f"{path.relative_to(ROOT)}:{n}: {line.strip()[:80]}")
+    assert found == []

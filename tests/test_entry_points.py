@@ -59,7 +59,7 @@ def test_every_command_module_registers_its_commands() -> None:
 
     parser = build_parser()
     sub = next(a for a in parser._actions if a.dest == "command")
-    # the contract's top-level commands (DESIGN.md), each from its own module
+    # the contract's top-level commands (docs/cli.md), each from its own module
     for command in ("build", "summary", "new", "sweep", "trial", "trials", "teleop", "review"):
         assert command in sub.choices, command
     for group, what in (("bench", "retarget"), ("bench", "sim"), ("bench", "trial")):

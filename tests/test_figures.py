@@ -35,16 +35,18 @@ def test_phase_legend_is_in_time_order_not_declaration_order() -> None:
 
 
 # -- the campaign figure (issue 30) ----------------------------------------------------
-FACTS = Path("/work/shared/reference/facts.md")
+SOURCES = Path(__file__).resolve().parents[1] / "docs" / "sources.md"
 
 
-def _paper_from_facts() -> list[tuple[float, float, float]]:
+def _paper_from_sources() -> list[tuple[float, float, float]]:
     """The paper's (median, min, max) per metric, in the paper's order, read from the
-    reference facts' results row (not from the package's own table)."""
+    results row of docs/sources.md (in this repository; not the package's own table)."""
     import re
 
-    row = next(ln for ln in FACTS.read_text().splitlines() if ln.startswith("| results, 10"))
-    found = re.findall(r"median ([\d.]+) \w+ \(([\d.]+) to ([\d.]+)\)", row)
+    lines = SOURCES.read_text(encoding="utf-8").splitlines()
+    row = next(ln for ln in lines if ln.startswith("| results of ten trials |"))
+    found = re.findall(r"([\d.]+) (?:s|m|mm) \(([\d.]+) to ([\d.]+)\)", row)
+    assert len(found) == 5, row
     return [tuple(float(v) for v in m) for m in found]
 
 
@@ -64,7 +66,7 @@ def test_the_campaign_figure_draws_every_trial_beside_the_papers_median_and_rang
     img = imread(tmp_path / "fig_campaign.png")
     assert img.shape[1] > 1000 and img[..., :3].std() > 0.05  # drawn, not a blank canvas
     per_trial = [json.loads(p.read_text()) for p in sorted(tmp_path.glob("trial-*/metrics.json"))]
-    paper = _paper_from_facts() if FACTS.exists() else None
+    paper = _paper_from_sources()
     fig = campaign_figure(summary, METRIC_LABELS)
     assert len(fig.axes) == len(METRIC_KEYS)
     for i, (ax, key) in enumerate(zip(fig.axes, METRIC_KEYS)):
@@ -78,8 +80,7 @@ def test_the_campaign_figure_draws_every_trial_beside_the_papers_median_and_rang
                 (x0, lo), (_, hi) = c.get_segments()[0]
                 bars[round(float(x0), 3)] = (lo, hi)
         assert np.allclose(bars[OURS], (min(want), max(want)))
-        if paper is not None:
-            assert np.allclose(bars[PAPER], paper[i][1:])
+        assert np.allclose(bars[PAPER], paper[i][1:])
     # the summary unchanged: the figure is left as it is
     stamp = (tmp_path / "fig_campaign.png").stat().st_mtime_ns
     write_summary(results, tmp_path)

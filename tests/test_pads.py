@@ -143,7 +143,7 @@ def test_scripted_closing_at_the_operators_rate_gives_one_continuous_contact():
 def test_pad_contact_lands_on_hertz_at_the_design_load_and_half_way(design):
     """MuJoCo's resting secant is ``F / r = m d^2 / ((1 - d) dmax^2 timeconst^2
     dampratio^2)`` (the documentation's resting penetration ``a (1 - d) timeconst^2
-    dampratio^2`` at ``d = dmax``; reference/facts.md, MuJoCo contact guidance), so the
+    dampratio^2`` at ``d = dmax``; docs/sources.md, "Pad contact"), so the
     derived solref puts the design load at Hertz's indentation delta0 exactly, and
     Hertz's force at delta0 / 2 (``0.5^1.5 F0``, the sigmoid's midpoint) at delta0 / 2.
     The earlier law ``m d / (1 - d)`` left the pad 1 / dmax (5 %) too soft."""

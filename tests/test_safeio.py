@@ -127,3 +127,30 @@ def test_the_generated_models_honour_the_umask(tmp_path: Path, umask: int, desig
 
     result = write(design, tmp_path)
     _expect([tmp_path / rel for rel in result.files], umask)
+
+
+def test_no_trial_file_is_written_in_place() -> None:
+    """A trial's scored files (``metrics.json``, written again by the runner, the live
+    session and the hardware run after scoring) are replaced through a temporary file
+    and a rename: no module writes one with ``Path.write_text``/``write_bytes``, which
+    truncate the file first (a crash there leaves half a ``metrics.json``)."""
+    import ast
+
+    from payload.folders import SCORED
+
+    root = Path(__file__).resolve().parents[1]
+    names = {"METRICS", "CTB_FIGURE", "ROUTE_FIGURE", "SCORED", *SCORED}
+    found = []
+    for package in ("payload", "firmware_interface"):
+        for path in sorted((root / package).rglob("*.py")):
+            for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+                if not (
+                    isinstance(node, ast.Call)
+                    and isinstance(node.func, ast.Attribute)
+                    and node.func.attr in ("write_text", "write_bytes")
+                ):
+                    continue
+                target = ast.unparse(node.func.value)
+                if any(name in target for name in names):
+                    found.append(f"{path.relative_to(root)}:{node.lineno}: {target}")
+    assert found == []

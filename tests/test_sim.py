@@ -890,7 +890,7 @@ def test_a_command_and_a_twist_of_frozen_vectors_are_the_constructors():
 
 def test_benches_read_the_control_period_and_the_flight_mode_not_retyped() -> None:
     """The scripted operator of ``bench sim`` flies at the nominal flight mode's caps (the
-    paper's 0.20 m/s; reference/facts.md: nominal 0.1745 rad/s) and the retargeting bench
+    paper's 0.20 m/s; docs/sources.md, "Vehicle": nominal 0.1745 rad/s) and the retargeting bench
     streams at the 50 Hz loop's period, each read from where the fact lives."""
     import inspect
 
@@ -908,7 +908,7 @@ def test_benches_read_the_control_period_and_the_flight_mode_not_retyped() -> No
 
 def test_the_jerk_bounds_reach_the_nominal_accelerations_in_half_a_second() -> None:
     """The controller's default jerk bounds are the nominal flight mode's acceleration
-    limits (reference/facts.md: 0.0175 m/s^2, 0.1745 rad/s^2) reached in 0.5 s, the
+    limits (docs/sources.md, "Vehicle": 0.0175 m/s^2, 0.1745 rad/s^2) reached in 0.5 s, the
     documented assumption: 0.035 m/s^3 and 0.349 rad/s^3."""
     from payload.sim.vehicle import MassProperties, VehicleController
 

@@ -140,7 +140,7 @@ def test_simulation_and_trials_do_not_load_the_mesh_libraries() -> None:
 
 
 def test_teleop_and_the_layers_below_never_import_the_trials_or_the_commands() -> None:
-    """design < kinematics < retarget, envelope, sim < teleop < trials < cli (DESIGN.md):
+    """design < kinematics < retarget, envelope, sim < teleop < trials < cli (docs/development.md):
     nothing in those lower packages imports payload.trials, payload.sweep, payload.review
     or the dispatcher payload.cli, not even inside a function (``teleop serve`` gets its
     trial-layer live session handed down by payload.trials.live_cli)."""

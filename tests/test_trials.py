@@ -781,7 +781,11 @@ def _worker_profiler_enabled() -> bool:
 def test_the_local_clusters_workers_run_without_the_dask_profiler() -> None:
     # the profiler samples the task's stack every 10 ms under the GIL (docs/speed.md);
     # asked of each worker process itself, not of this one's configuration
+    # distributed's defaults registered before the set below: else leaving the set removes
+    # the whole "distributed" table it found missing, and a later Client in this process
+    # fails on a KeyError
     import dask
+    import distributed  # noqa: F401
 
     from payload.trials.cluster import dask_client
 
@@ -1301,6 +1305,44 @@ def test_a_bad_step_in_the_middle_of_a_recording_gives_one_line_and_exit_2(
     assert not (tmp_path / "ds").exists()
 
 
+BAD_METRICS = [
+    ("rms_mm", "abc", "rms_mm: expected a number or null, got str 'abc'"),
+    ("success", "false", "success: expected true or false, got str 'false'"),
+    ("seed", "one", "seed: expected an integer >= 0 or null, got 'one'"),
+    ("min_interval_s", "x", "min_interval_s: expected a number or null, got str 'x'"),
+    ("final_module", 3, "final_module: expected text or null, got 3"),
+    ("literal", {"success": 1}, "literal: success: expected true or false, got int 1"),
+    ("success", None, "success: missing"),
+]
+
+
+@pytest.mark.parametrize(("field", "value", "message"), BAD_METRICS)
+def test_a_bad_field_in_a_trials_metrics_gives_one_line_and_exit_2(
+    tmp_path: Path, field: str, value: Any, message: str, capsys
+) -> None:
+    """A campaign's ``metrics.json`` with a field of the wrong kind (edited by hand, written
+    by another tool): summarize and compare name the file and the field, exit 2, and write
+    nothing (before: a traceback, or a string "false" counted as a success)."""
+    from payload.cli import main
+
+    camp = tmp_path / "camp"
+    for seed in (0, 1):
+        trial = camp / f"trial-{seed:04d}"
+        trial.mkdir(parents=True)
+        good = {"seed": seed, "success": True, "rms_mm": 30.0, "final_module": "node2"}
+        (trial / "metrics.json").write_text(json.dumps(good))
+    bad = camp / "trial-0001" / "metrics.json"
+    data = json.loads(bad.read_text())
+    data.pop(field) if value is None else data.update({field: value})
+    bad.write_text(json.dumps(data))
+    before = sorted(p.name for p in camp.rglob("*"))
+    for argv in (["trials", "summarize", str(camp)], ["trials", "compare", str(camp), str(camp)]):
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and f"{bad}: {message}" in err[0], err
+    assert sorted(p.name for p in camp.rglob("*")) == before
+
+
 def test_finish_trial_scores_both_contact_definitions(tmp_path: Path) -> None:
     from payload.trials.campaign import finish_trial
     from payload.trials.metrics import compute_metrics
@@ -1588,3 +1630,26 @@ def test_summarizing_trials_with_no_campaign_summary_keeps_their_provenance(
     prov = json.loads((camp / "summary.json").read_text())["provenance"]
     assert prov["design_sha256"] == own["design_sha256"]
     assert prov["environment"] == own["environment"]
+
+
+@pytest.mark.parametrize("address", ["nonsense", "foo://127.0.0.1:1", "tcp://:notaport"])
+def test_a_scheduler_that_is_not_an_address_is_one_line_and_leaves_no_folder(
+    tmp_path: Path, address: str, capsys
+) -> None:
+    """``--scheduler`` that Dask cannot parse: one line naming it, exit 2 (was a ValueError
+    traceback), for a campaign and a sweep; the campaign's folder it made for nothing is
+    gone again, a folder the user made is kept."""
+    from payload.cli import main
+
+    for argv in (
+        ["trials", "run", "--n", "1", "--out", str(tmp_path / "camp")],
+        ["sweep", "--set", "rail.travel=0.04", "--out", str(tmp_path / "sweep")],
+    ):
+        assert main([*argv, "--scheduler", address]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and f"--scheduler {address}: not a Dask scheduler address" in err[0]
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+    (tmp_path / "mine").mkdir()
+    assert main(["trials", "run", "--n", "1", "--out", str(tmp_path / "mine"), "--scheduler",
+                 address]) == 2  # fmt: skip
+    assert (tmp_path / "mine").is_dir()

@@ -8,7 +8,7 @@ import time
 from pathlib import Path
 
 from payload.cliutil import CheckFailed, add_json, command_project, emit_json
-from payload.errors import PayloadError
+from payload.errors import PayloadError, not_text
 from payload.project import Project, ProjectError, is_project_design, project_of
 
 
@@ -80,11 +80,18 @@ def _source_design_text(source: str | Path) -> str:
     if src.is_file():
         if project_of(src) is None:
             raise ProjectError(f"--from {source}: not a design project's design file")
-        return src.read_text(encoding="utf-8")
-    project = Project.at(src)
-    if not project.is_project():
-        raise ProjectError(f"--from {source}: not a design project (no cad/design.toml there)")
-    return project.design_path.read_text(encoding="utf-8")
+        path = src
+    else:
+        project = Project.at(src)
+        if not project.is_project():
+            raise ProjectError(f"--from {source}: not a design project (no cad/design.toml there)")
+        path = project.design_path
+    try:
+        return path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as exc:  # a mesh or another binary file of the project
+        raise ProjectError(f"--from {path}: {not_text(exc, 'TOML')}") from None
+    except OSError as exc:  # unreadable, or a folder named design.toml
+        raise ProjectError(f"--from {path}: cannot read it ({exc.strerror or exc})") from None
 
 
 def new_project(directory: str | Path, source: str | Path | None = None) -> tuple[Project, int]:

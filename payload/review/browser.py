@@ -160,12 +160,16 @@ def screenshot(
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description="Screenshot a static review page")
+    parser = argparse.ArgumentParser(
+        description="Screenshot a static review page", allow_abbrev=False
+    )
     parser.add_argument("html", type=Path)
     parser.add_argument("png", type=Path)
     parser.add_argument("--time", type=float, default=None, help="animation time [s]")
     parser.add_argument("--show", action="append", default=[], help="scene path to show")
     args = parser.parse_args(argv)
+    if not args.html.is_file():
+        parser.error(f"{args.html}: no such file (a page `payload review --static` wrote)")
     show = [[p for p in s.split("/") if p] for s in args.show]
     screenshot(args.html, args.png, time_s=args.time, show=show)
     print(f"wrote {args.png}")

@@ -5,8 +5,8 @@ Astrobee's flight software describes where the robot may fly as axis-aligned box
 
     {"sequence": [[xmin, ymin, zmin, xmax, ymax, zmax], ...], "safe": true}
 
-(``safe`` true: keep-in, false: keep-out; ``reference/facts.md``, "Astrobee keep-in /
-keep-out zones"). :func:`station_zones` derives the keep-in boxes from the ISS layout the
+(``safe`` true: keep-in, false: keep-out; docs/sources.md, "ISS and cargo": keep-in /
+keep-out zones). :func:`station_zones` derives the keep-in boxes from the ISS layout the
 simulator builds (:mod:`payload.sim.iss`): Kibo, the hatch vestibule and Node 2, each
 shrunk off its handrailed faces by the handrail layer (standoff plus half a section), the
 vestibule lengthened through that layer so it still joins Node 2. A zone file holds one

@@ -1,4 +1,4 @@
-"""``payload sweep``: a design sweep on Dask (contract in DESIGN.md and docs/design.md)."""
+"""``payload sweep``: a design sweep on Dask (contract in docs/cli.md and docs/design.md)."""
 
 from __future__ import annotations
 

@@ -18,7 +18,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
-from payload.cliutil import add_device, add_json, command_project, emit_json
+from payload.cliutil import add_device, add_json, check_seconds, command_project, emit_json
 from payload.errors import PayloadError
 from payload.folders import CAMPAIGN_FILES, TRIAL_FILES
 
@@ -276,6 +276,7 @@ def bench(args: argparse.Namespace, make_session: SessionFactory) -> int:
     makes."""
     from payload.teleop.bench import run_bench
 
+    check_seconds("--seconds", args.seconds)
     project = command_project(args)  # the session flies this project's models
     from payload.design import models_follow_design
 
@@ -299,8 +300,7 @@ def bench_filter(args: argparse.Namespace) -> int:
     """``payload bench filter``: the base safety filter's cost per step."""
     from payload.teleop.bench import run_filter_bench
 
-    if not args.seconds > 0:
-        raise TeleopCliError(f"--seconds must be positive, got {args.seconds}")
+    check_seconds("--seconds", args.seconds)
     project = command_project(args)  # the stack it flies is this project's
     from payload.design import models_follow_design
 

@@ -10,7 +10,7 @@ import sys
 import time
 from pathlib import Path
 
-from payload.cliutil import command_project, emit_json, out_folder
+from payload.cliutil import check_seconds, command_project, emit_json, out_folder
 from payload.errors import RunAborted
 from payload.folders import CAMPAIGN_FILES, RECORDING, TRIAL_FILES
 from payload.trials.setup_options import TrialsCliError, _check_physics_dt, _physics_dt_argument
@@ -25,8 +25,7 @@ def _cmd_bench_recorder(args: argparse.Namespace) -> int:
     from payload.trials.metrics import compute_metrics
     from payload.trials.recorder import TrialRecorder, random_step, read_recording
 
-    if args.seconds <= 0:
-        raise TrialsCliError(f"--seconds must be positive, got {args.seconds}")
+    check_seconds("--seconds", args.seconds)
     n = max(2, round(args.seconds / CONTROL_DT))
     rng = np.random.default_rng(0)
     steps = [random_step(rng, k * CONTROL_DT) for k in range(n)]
@@ -78,8 +77,7 @@ def _cmd_bench_trial(args: argparse.Namespace) -> int:
         raise TrialsCliError(f"--seed must be >= 0, got {args.seed}")
     # the bench writes a trial: never over one, nor among a campaign's files
     out = out_folder(args.out, holding=(*TRIAL_FILES, *CAMPAIGN_FILES))
-    if args.seconds is not None and args.seconds <= 0:
-        raise TrialsCliError(f"--seconds must be positive, got {args.seconds}")
+    check_seconds("--seconds", args.seconds, cap=True)
     if args.repeat < 1:
         raise TrialsCliError(f"--repeat must be >= 1, got {args.repeat}")
     if args.repeat > 1 and out is not None:

@@ -1,5 +1,5 @@
 """Command line of the trials: ``payload trial``, ``payload trials run|summarize`` and
-``payload export lerobot`` (contract in DESIGN.md)."""
+``payload export lerobot`` (contract in docs/cli.md)."""
 
 from __future__ import annotations
 
@@ -171,6 +171,7 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
     project = command_project(args)
     models_follow_design(project.design_path, project.root, json=args.json)
     prov = provenance(project)
+    made = args.out is None or not Path(args.out).exists()  # removed again if left empty
     out = out_folder(args.out) or default_out(project, "campaign")
     seeds = list(range(args.seed, args.seed + args.n))
     trial = held(out, TRIAL_FILES)
@@ -190,21 +191,22 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
             )
     workers = default_workers(args.n) if args.workers is None else args.workers
     t0 = time.perf_counter()
-    results = run_campaign(
-        runner_trial_fn(
-            "synthetic",
-            project.root,
-            force=args.force,
-            **{name: getattr(args, name) for name in _SETUP},
-            **link_zones,
-        ),
-        seeds,
-        out,
-        workers=workers,
-        scheduler=args.scheduler,
-        progress=not args.json and sys.stderr.isatty() and sys.stdout.isatty(),
-        on_trial=None if args.json or sys.stdout.isatty() else trial_line_printer(len(seeds)),
-    )
+    with kept_if_used(out, made=made):  # a scheduler not reached leaves no empty folder
+        results = run_campaign(
+            runner_trial_fn(
+                "synthetic",
+                project.root,
+                force=args.force,
+                **{name: getattr(args, name) for name in _SETUP},
+                **link_zones,
+            ),
+            seeds,
+            out,
+            workers=workers,
+            scheduler=args.scheduler,
+            progress=not args.json and sys.stderr.isatty() and sys.stdout.isatty(),
+            on_trial=None if args.json or sys.stdout.isatty() else trial_line_printer(len(seeds)),
+        )
     run = {
         "workers": None if args.scheduler else workers,
         "scheduler": args.scheduler,

@@ -42,6 +42,11 @@ def dask_client(workers: int, scheduler: str | None, error: type[Exception]) -> 
             client = Client(scheduler, timeout=10)
         except (OSError, TimeoutError) as exc:
             raise error(f"cannot reach Dask scheduler {scheduler}: {exc}") from None
+        except ValueError as exc:  # not an address: "missing port number", a bad protocol
+            raise error(
+                f"--scheduler {scheduler}: not a Dask scheduler address ({exc}); "
+                "expected e.g. tcp://host:8786"
+            ) from None
     try:
         with client:
             yield client

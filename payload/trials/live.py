@@ -26,6 +26,7 @@ import numpy as np
 from payload.design.params import load_design
 from payload.folders import HANDS, METRICS, RECORDING
 from payload.rotations import quat_to_matrix, yaw_of_matrix
+from payload.safeio import replace_file
 from payload.schema import CONTROL_DT
 from payload.teleop.calibration import (
     DEFAULT_STEPS,
@@ -419,7 +420,7 @@ class LiveSession:
                 result = finish_trial(out, out / RECORDING)
                 result["steps"] = self.steps
                 result["provenance"] = self._provenance  # as a trial's metrics.json has it
-                (out / METRICS).write_text(json.dumps(result, indent=2) + "\n")
+                replace_file(out / METRICS, json.dumps(result, indent=2) + "\n")
         finally:
             self.driver.close()
         return result

@@ -485,7 +485,9 @@ def read_metrics(path: Path) -> dict[str, Any]:
 
     Raises:
         CampaignError: Unreadable, not JSON (cut short, binary) or not a JSON object: one
-            line naming the file.
+            line naming the file; or a field a summary reads has a value of the wrong
+            kind (``success`` missing or not true or false, a figure that is not a number
+            or null...): one line naming the file, the field and what was expected.
     """
     try:
         data = json.loads(path.read_text(encoding="utf-8"))
@@ -493,7 +495,45 @@ def read_metrics(path: Path) -> dict[str, Any]:
         raise CampaignError(f"{path}: cannot read the trial's metrics ({exc})") from None
     if not isinstance(data, dict):
         raise CampaignError(f"{path}: cannot read the trial's metrics (not a JSON object)")
+    if "success" not in data:
+        raise CampaignError(f"{path}: success: missing (not a trial's metrics)")
+    _check_metrics(data, str(path))
+    _check_metrics(data.get("literal") or {}, f"{path}: literal")
     return data
+
+
+_METRIC_KINDS: dict[str, Any] = {
+    **dict.fromkeys(("success", "acquired", "complete"), "bool"),
+    **dict.fromkeys(
+        (*METRIC_KEYS, "min_interval_s", "max_gap_s", "physics_dt", "wall_s"), "float_nan"
+    ),
+    **dict.fromkeys(("final_module", "ctb", "propulsion", "error"), "text"),
+}
+"""The type of each field a summary or a comparison reads from ``metrics.json`` (null is
+allowed for every number and text; older files may leave any of them out)."""
+
+
+def _check_metrics(data: Any, where: str) -> None:
+    """Raise :class:`CampaignError` naming the file and field of the first value that a
+    summary cannot use (a metrics file edited by hand, or written by another tool)."""
+    from payload.trials.stepcheck import field_problem
+
+    if not isinstance(data, dict):
+        raise CampaignError(f"{where}: expected a JSON object, got {type(data).__name__}")
+    seed = data.get("seed")
+    if seed is not None and (not isinstance(seed, int) or isinstance(seed, bool) or seed < 0):
+        raise CampaignError(f"{where}: seed: expected an integer >= 0 or null, got {seed!r}")
+    for key, kind in _METRIC_KINDS.items():
+        value = data.get(key)
+        if value is None:
+            continue
+        if kind == "text":
+            problem = None if isinstance(value, str) else f"got {value!r}"
+            problem = problem and f"expected text or null, {problem}"
+        else:
+            problem = field_problem(value, (), kind)
+        if problem is not None:
+            raise CampaignError(f"{where}: {key}: {problem}")
 
 
 def _unfinished(meta: dict[str, Any] | None, complete: bool) -> str | None:
