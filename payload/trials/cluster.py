@@ -38,21 +38,43 @@ def dask_client(workers: int, scheduler: str | None, error: type[Exception]) -> 
             )
         client = Client(cluster)
     else:
+        bad = _address_fault(scheduler)
+        if bad is not None:
+            raise error(_not_an_address(scheduler, bad))
         try:
             client = Client(scheduler, timeout=10)
         except (OSError, TimeoutError) as exc:
             raise error(f"cannot reach Dask scheduler {scheduler}: {exc}") from None
-        except ValueError as exc:  # not an address: "missing port number", a bad protocol
-            raise error(
-                f"--scheduler {scheduler}: not a Dask scheduler address ({exc}); "
-                "expected e.g. tcp://host:8786"
-            ) from None
+        except ValueError as exc:  # an address Dask's parsers took and its client did not
+            raise error(_not_an_address(scheduler, str(exc))) from None
     try:
         with client:
             yield client
     finally:
         if cluster is not None:
             cluster.close()
+
+
+def _not_an_address(address: str, why: str) -> str:
+    return f"--scheduler {address}: not a Dask scheduler address ({why}); expected e.g. tcp://host:8786"
+
+
+def _address_fault(address: str) -> str | None:
+    """Why ``address`` is not a Dask scheduler address (None: it parses), found by Dask's
+    own parsers before any connection is tried: a client made for an unparsable address
+    raises only from its connection attempt, and in a process whose earlier client left
+    Dask's event loop behind it can wait there for good."""
+    from distributed.comm.addressing import parse_address, parse_host_port
+    from distributed.comm.registry import get_backend
+
+    try:
+        scheme, location = parse_address(address)
+        get_backend(scheme)
+        if scheme != "inproc":
+            parse_host_port(location)
+    except ValueError as exc:
+        return str(exc)
+    return None
 
 
 __all__ = ["WORKER_CONFIG", "dask_client"]
