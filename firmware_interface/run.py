@@ -368,7 +368,7 @@ def run_hardware_trial(
         bar.start()
     try:
         with (
-            TrialRecorder(rec_path, overwrite=True, scene=scene) as recorder,
+            TrialRecorder(rec_path, scene=scene) as recorder,  # never over another run's
             HandRecordingWriter(out / HANDS, meta={"seed": meta["seed"]}) as hands_out,
         ):
             recorder.write_meta(meta)

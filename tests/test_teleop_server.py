@@ -549,6 +549,7 @@ def test_a_second_server_on_one_record_folder_refuses_and_keeps_the_firsts(tmp_p
         _end_session(page, hub, worker, server)
     assert session.close() is None
     assert isinstance(failed[0], PayloadError) and "already exists" in str(failed[0])
+    assert "overwrite=True" not in str(failed[0])  # a command's line, not the API's advice
     assert [f.name for f in out.iterdir()] == [theirs]
     assert (out / theirs).read_bytes() == b"the other server's recording\n"
 

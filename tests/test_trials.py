@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -1649,6 +1650,14 @@ def test_a_scheduler_that_is_not_an_address_is_one_line_and_leaves_no_folder(
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and f"--scheduler {address}: not a Dask scheduler address" in err[0]
     assert sorted(p.name for p in tmp_path.iterdir()) == []
+    # nor a numbered default folder in the project (no --out)
+    project = tmp_path / "project"
+    assert main(["new", str(project)]) == 0
+    for argv in (["trials", "run", "--n", "1"], ["sweep", "--set", "rail.travel=0.04"]):
+        assert main([*argv, "--project", str(project), "--scheduler", address]) == 2
+        capsys.readouterr()
+    assert not (project / "runs").exists() or not any((project / "runs").iterdir())
+    shutil.rmtree(project)
     (tmp_path / "mine").mkdir()
     assert main(["trials", "run", "--n", "1", "--out", str(tmp_path / "mine"), "--scheduler",
                  address]) == 2  # fmt: skip

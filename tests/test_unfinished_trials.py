@@ -148,8 +148,9 @@ def test_summarize_of_a_trials_own_folder_says_so(tmp_path: Path, capsys) -> Non
 
 def test_a_damaged_recording_stops_the_summary_with_one_line(tmp_path: Path, capsys) -> None:
     """A rescoring (or a trial without ``metrics.json``) reads the recording: a damaged
-    one is bad input named in one line (exit 2, no summary written), never a trial
-    counted as a failure that the campaign did not have (issue 30)."""
+    one is bad input named in one line (exit 2, nothing written: no summary, nor a scoring
+    of another trial read before it), never a trial counted as a failure that the campaign
+    did not have (issue 30)."""
     from payload.trials.records import RecordingError
 
     camp = _campaign(tmp_path / "camp", [1, 2])
@@ -166,11 +167,28 @@ def test_a_damaged_recording_stops_the_summary_with_one_line(tmp_path: Path, cap
     ):
         if drop_metrics:
             (log.parent / "metrics.json").unlink()
+            (camp / "trial-0001" / "metrics.json").unlink()  # an undamaged one to score too
+        before = sorted(p.relative_to(camp) for p in camp.rglob("*"))
         assert main(argv) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and err[0].startswith(f"payload: error: {log}: "), err
         assert "damaged" in err[0]
-        assert not list(camp.glob("summary*")) and not list(camp.glob("fig_campaign*"))
+        # nothing written: no summary, and no scoring of the trial before the damaged one
+        assert sorted(p.relative_to(camp) for p in camp.rglob("*")) == before
+
+
+def test_an_empty_recording_is_a_trial_cut_short_not_damage(tmp_path: Path, capsys) -> None:
+    """A trial killed between creating its ``log.mcap`` and its first write leaves an empty
+    file: the summary lists it as that trial's error and goes on (exit 0), as a trial cut
+    short; only bytes that are there and wrong stop it as damage."""
+    camp = _campaign(tmp_path / "camp", [1, 2])
+    (camp / "trial-0002" / "metrics.json").unlink()
+    (camp / "trial-0002" / "log.mcap").write_bytes(b"")
+    capsys.readouterr()
+    assert main(["trials", "summarize", str(camp), "--json"]) == 0
+    rows = {r["seed"]: r for r in json.loads((camp / "summary.json").read_text())["trials"]}
+    assert "cut short before its first write" in rows[2]["error"]
+    assert rows[1]["error"] is None
 
 
 @pytest.mark.parametrize(

@@ -54,6 +54,9 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
         raise SweepError(f"--seed must not be negative (got {args.seed})")
     if args.workers is not None and args.workers < 1:
         raise SweepError(f"--workers must be at least 1, got {args.workers}")
+    from payload.trials.cluster import check_scheduler
+
+    check_scheduler(args.scheduler, SweepError)  # before any folder is made for the sweep
     # a sweep never writes into a file, nor among a trial's or a campaign's files
     out_folder(args.out, holding=(*TRIAL_FILES, *CAMPAIGN_FILES))
     earlier = held(Path(args.out), SWEEP_FILES) if args.out else []

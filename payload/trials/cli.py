@@ -163,6 +163,9 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
         raise TrialsCliError(f"--seed must be >= 0, got {args.seed}")
     if args.workers is not None and args.workers < 0:
         raise TrialsCliError(f"--workers must be >= 0, got {args.workers}")
+    from payload.trials.cluster import check_scheduler
+
+    check_scheduler(args.scheduler, TrialsCliError)
     _check_physics_dt(args.physics_dt)
     _setup_defaults(args)
     _check_ctb(args.ctb)

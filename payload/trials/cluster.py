@@ -38,9 +38,7 @@ def dask_client(workers: int, scheduler: str | None, error: type[Exception]) -> 
             )
         client = Client(cluster)
     else:
-        bad = _address_fault(scheduler)
-        if bad is not None:
-            raise error(_not_an_address(scheduler, bad))
+        check_scheduler(scheduler, error)
         try:
             client = Client(scheduler, timeout=10)
         except (OSError, TimeoutError) as exc:
@@ -53,6 +51,14 @@ def dask_client(workers: int, scheduler: str | None, error: type[Exception]) -> 
     finally:
         if cluster is not None:
             cluster.close()
+
+
+def check_scheduler(address: str | None, error: type[Exception]) -> None:
+    """Refuse (``error``, one line) a ``--scheduler`` that is not a Dask scheduler address,
+    before anything is made for the run (None: the local cluster)."""
+    bad = None if address is None else _address_fault(address)
+    if bad is not None:
+        raise error(_not_an_address(str(address), bad))
 
 
 def _not_an_address(address: str, why: str) -> str:
@@ -77,4 +83,4 @@ def _address_fault(address: str) -> str | None:
     return None
 
 
-__all__ = ["WORKER_CONFIG", "dask_client"]
+__all__ = ["WORKER_CONFIG", "check_scheduler", "dask_client"]

@@ -23,7 +23,7 @@ from pathlib import Path
 
 from mcap.opcode import Opcode
 
-from payload.trials.records import STEP_TOPIC, DamagedRecordingError
+from payload.trials.records import STEP_TOPIC, DamagedRecordingError, RecordingError
 
 MAGIC = b"\x89MCAP0\r\n"
 """The MCAP magic at both ends of a file."""
@@ -173,9 +173,15 @@ def clean_records(data: bytes, path: str | Path) -> CleanRecords:
         path: The file, for messages.
 
     Raises:
+        RecordingError: Empty (or cut inside the magic): nothing was ever written.
         DamagedRecordingError: Not an MCAP file, or damaged (one line: the file, the
             channels and steps of a damaged chunk, or the byte range where the damage lies).
     """
+    if MAGIC.startswith(data):  # empty, or cut inside the magic: a recorder killed
+        raise RecordingError(  # before its first write left nothing to read, not damage
+            f"{path}: holds no record ({len(data)} bytes): the recording was cut short "
+            "before its first write"
+        )
     if not data.startswith(MAGIC):
         raise DamagedRecordingError(f"{path}: not an MCAP file (bad magic)")
     closed_file = len(data) >= 2 * len(MAGIC) and data.endswith(MAGIC)

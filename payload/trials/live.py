@@ -40,7 +40,7 @@ from payload.teleop.live import LiveHub, LiveSource, TimedDriver
 from payload.teleop.loop import ARM_AFTER_STEPS, StepContext, run_session
 from payload.teleop.pipeline import TeleopConfig, TeleopPipeline, calibrate_operator
 from payload.teleop.replay import HandRecordingWriter
-from payload.trials.recorder import StepRecord, TrialRecorder
+from payload.trials.recorder import RecordingError, StepRecord, TrialRecorder
 from payload.trials.runner import (
     MODULE_NAMES,
     base_filter_for,
@@ -211,7 +211,15 @@ class LiveSession:
         # the recording's file claimed first (created only if absent): a session that finds
         # another's recording in its folder (two servers on one --record folder) refuses
         # and takes nothing of it, the hands' file included
-        recorder = TrialRecorder(out / RECORDING, scene=self._scene).open()
+        try:
+            recorder = TrialRecorder(out / RECORDING, scene=self._scene).open()
+        except RecordingError:
+            if not (out / RECORDING).exists():
+                raise
+            raise RecordingError(
+                f"--record {out}: {RECORDING} already exists (another session recorded "
+                "there since this one started?); not replaced: record into a new folder"
+            ) from None
         budget = self.retargeters["L"].config.budget
         setup: dict[str, Any] = {
             "retarget_budget": budget,

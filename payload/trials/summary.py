@@ -589,6 +589,17 @@ def load_trial_results(
     from payload.trials.reading import read_recording, recording_meta
     from payload.trials.records import DamagedRecordingError
 
+    # every recording to be scored is read first: a damaged one stops the summary before
+    # anything is written (a re-scoring beside an earlier trial's metrics, say)
+    reads: dict[Path, Any] = {}
+    for d in dirs:
+        if (recompute or not (d / METRICS).exists()) and (d / RECORDING).exists():
+            try:
+                reads[d] = read_recording(d / RECORDING)
+            except DamagedRecordingError:
+                raise  # damage is not a trial's failure: nothing is scored from it
+            except PayloadError as exc:
+                reads[d] = exc
     results = []
     for d in dirs:
         try:
@@ -602,8 +613,11 @@ def load_trial_results(
                     {"seed": seed, "out_dir": str(d), "error": f"no {RECORDING} and no {METRICS}"}
                 )
                 continue
+            rec = reads[d]
+            if isinstance(rec, PayloadError):
+                results.append({"seed": seed, "out_dir": str(d), "error": str(rec)})
+                continue
             try:
-                rec = read_recording(d / RECORDING)
                 unfinished = _unfinished(rec.meta, rec.complete)
                 if unfinished:  # as the runner leaves it: a record, not a scored trial
                     results.append({"seed": seed, "out_dir": str(d), "error": unfinished})
@@ -617,8 +631,8 @@ def load_trial_results(
                     force=force,
                     recording=rec,
                 )
-            except (OverwriteError, DamagedRecordingError):
-                raise  # damage is not a trial's failure: nothing is scored from it
+            except OverwriteError:
+                raise
             except PayloadError as exc:
                 results.append({"seed": seed, "out_dir": str(d), "error": str(exc)})
                 continue
