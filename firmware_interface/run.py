@@ -404,6 +404,8 @@ def run_hardware_trial(
                     f"hw run aborted at t = {at:.2f} s by {what}; recording kept (marked "
                     f"aborted, not scored): {rec_path}"
                 ) from exc
+            for trip in hardware.watchdog_trips[trips0:]:  # re-armed by the last command,
+                trip.setdefault("session_t", round(steps[0] * CONTROL_DT, 3))  # at the end
             watchdog = watchdog_report(hardware.watchdog_trips[trips0:])
             recorder.flush()  # every step written: the scene's figures count them all
             recorder.write_meta({"steps": len(commands), "warnings": driver.warnings(),
