@@ -257,6 +257,46 @@ def test_output_stage_stays_within_the_channel_caps_when_redirected(world, grasp
     assert worst_yaw <= base.max_yaw_rate
 
 
+def test_behind_the_base_channel_the_filter_keeps_its_bounds_through_engage_and_release(
+    world, grasped_state
+):
+    """The base channel's own stream (a left wrist held toward Kibo's +x wall, then back
+    in neutral, then away with a turn) through the filter into the simulator: the filter
+    takes over, hands back to the request (the identity again) and takes over once
+    more. Finite differences of every output, linear and yaw, including the steps where
+    it takes over and hands back, stay within the channel's bounds."""
+    from payload.teleop.channels import BaseChannel
+
+    sim = _driver(world, grasped_state, (1.3, 7.0, 0.25), (0.0, 0.0, 0.0))
+    filt = _filter(sim)
+    cfg = BaseConfig()
+    channel = BaseChannel(cfg, np.zeros(3))
+    wrists = [np.array([0.3, 0.0, 0.0])] * 1000 + [np.zeros(3)] * 1000
+    wrists += [np.array([-0.3, 0.1, 0.0])] * 1000
+    v, w, active = [], [], []
+    for wrist in wrists:
+        rot = sim.data.xmat[world.astrobee].reshape(3, 3).copy()
+        out = filt(channel.step(wrist, rot).twist, sim.data)
+        v.append(rot @ out.linear)
+        w.append(float((rot @ out.angular)[2]))
+        active.append(filt.status.active)
+        sim.command_twist(out)
+        sim.step()
+    switches = np.diff(np.array(active, dtype=int))
+    assert (switches == 1).sum() >= 2 and (switches == -1).sum() >= 1  # engaged, released
+    v, w = np.array(v), np.array(w)
+    acc = np.diff(v, axis=0) / CONTROL_DT
+    yaw_acc = np.diff(w) / CONTROL_DT
+    tol = 1e-6
+    assert np.linalg.norm(v, axis=1).max() <= cfg.max_speed
+    assert np.linalg.norm(acc, axis=1).max() <= cfg.max_accel * (1 + tol)
+    jerk = np.diff(acc, axis=0) / CONTROL_DT
+    assert np.linalg.norm(jerk, axis=1).max() <= cfg.max_jerk * (1 + tol)
+    assert np.abs(w).max() <= cfg.max_yaw_rate
+    assert np.abs(yaw_acc).max() <= cfg.max_yaw_accel * (1 + tol)
+    assert np.abs(np.diff(yaw_acc) / CONTROL_DT).max() <= cfg.max_yaw_jerk * (1 + tol)
+
+
 def test_stop_speed_matches_a_simulated_brake():
     """stop_speed against a brute-force jerk-limited brake from the worst case."""
     accel, jerk, lag, dt = 0.004, 0.02, 0.3, 1e-4

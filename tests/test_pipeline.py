@@ -111,13 +111,14 @@ def test_dropout_brakes_holds_fingers_and_recovers_without_a_jump(retargeting):
         fr = _wrist_shift(op.act(_static_world(t)), push)
         if k == 500:
             op.aperture = 0.95  # the hand opens while the tracker has lost it
-        if 500 <= k < 508:  # 160 ms without the left hand
-            fr = HandFrame(fr.stamp, Hand.untracked(), fr.right)
+        if 500 <= k < 508:  # 160 ms without the left hand; the right one moves apart
+            apart = np.array([0.0, -0.01 * (k - 499), 0.0])
+            fr = HandFrame(fr.stamp, Hand.untracked(), Hand(fr.right.joints + apart))
         outs.append(pipe.step(fr))
         t += DT
     speed = np.array([np.linalg.norm(o.base.v_world) for o in outs])
     q_left = np.array([o.q_left for o in outs])
-    np.array([o.command.q for o in outs])
+    rail = np.array([o.command.q[-1] for o in outs])
     assert speed[499] > 0.1  # flying before the dropout
     lost = [k for k, o in enumerate(outs) if any(e.kind == "lost" for e in o.events)]
     assert lost and 500 + 0.1 / DT <= lost[0] <= 500 + 0.1 / DT + 1
@@ -130,6 +131,7 @@ def test_dropout_brakes_holds_fingers_and_recovers_without_a_jump(retargeting):
     assert np.all(np.diff(accel[k_lost - 1 : 507]) < 0)
     held = q_left[k_lost:508]
     assert np.all(held == held[0])
+    assert np.all(rail[k_lost:508] == rail[k_lost])  # the rail holds too
     # base command stays smooth through loss and recovery: jerk bounded everywhere
     v = np.array([o.base.v_world for o in outs])
     jerk = np.diff(v, n=2, axis=0) / DT**2
