@@ -52,6 +52,12 @@ def test_a_replayed_trial_reproduces_the_recorded_trial_bit_for_bit(tmp_path):
     for name in FIELDS:
         # untracked hand joints are NaN: equal to NaN
         assert np.array_equal(getattr(a, name), getattr(b, name), equal_nan=True), name
+    # the whole comparison a user runs passes: every metric too, the acquisition state the
+    # replayed hands reached included (a replay once recorded none)
+    from payload.cli import main
+
+    assert main(["trials", "compare", str(first), str(again), "--require-identical"]) == 0
+    assert a.meta["acquisition_state"] == b.meta["acquisition_state"] is not None
     assert {k: b.meta[k] for k in ("ctb", "propulsion", "retarget_budget")} == {
         "ctb": "single",
         "propulsion": "nozzles",

@@ -416,9 +416,14 @@ def _trial_meta(
     }
 
 
-def _closing_meta(driver: Any, source: Any, stats: Any, scene: Any) -> dict[str, Any]:
+def _closing_meta(
+    driver: Any, source: Any, stats: Any, scene: Any, replayed: dict[str, Any]
+) -> dict[str, Any]:
     """The recording's closing metadata: how the session went (with the station
-    contacts, the least station clearance and the filter's active time)."""
+    contacts, the least station clearance and the filter's active time). The synthetic
+    operator's acquisition state is its own; a replay's is its recording's (``replayed``:
+    the replayed recording's metadata), whose hands it repeats."""
+    operator = getattr(source, "operator", None)
     return {
         **scene.summary(),
         "steps": stats.steps,
@@ -426,7 +431,9 @@ def _closing_meta(driver: Any, source: Any, stats: Any, scene: Any) -> dict[str,
         "warnings": driver.warnings(),
         "ctb_external_max": driver.ctb_external_max,
         "equality_constraints": int(driver.model.neq),
-        "acquisition_state": getattr(source, "operator", None) and source.operator.acquisition,
+        "acquisition_state": (
+            operator.acquisition if operator is not None else replayed.get("acquisition_state")
+        ),
     }
 
 
@@ -441,6 +448,7 @@ def _record_session(
     *,
     max_time: float,
     progress: bool,
+    replayed: dict[str, Any],
 ) -> tuple[LoopStats, Recording | None]:
     """Run the teleoperation session, recording every step into ``rec_path``; returns the
     session's statistics and the recording as the reader reads it back (``None`` when no
@@ -487,7 +495,7 @@ def _record_session(
                     f"trial {seed} aborted at t = {at:.2f} s by {what}; recording "
                     f"kept (marked aborted, not scored): {rec_path}"
                 ) from exc
-            recorder.write_meta(_closing_meta(driver, source, stats, scene))
+            recorder.write_meta(_closing_meta(driver, source, stats, scene, replayed))
     finally:
         if bar is not None:
             bar.stop()
@@ -539,6 +547,7 @@ def _run_trial(
         meta,
         max_time=max_time,
         progress=progress,
+        replayed=source_spec.recorded if source_spec.replay is not None else {},
     )
     # scored with the contact definition it recorded, from what was written (the arrays
     # the file reads back as, without reading it)
