@@ -201,18 +201,27 @@ def _git(root: Path, *args: str) -> str | None:
     return out.stdout.strip() if out.returncode == 0 else None
 
 
-def git_state(root: str | Path) -> tuple[str | None, bool | None]:
+def git_state(root: str | Path, design: str | Path | None = None) -> tuple[str | None, bool | None]:
     """``(commit, dirty)`` of the git work tree holding ``root``, or ``(None, None)``.
 
     ``dirty`` is true when a tracked file differs from the commit (untracked files,
-    such as ``runs/``, do not count).
+    such as ``runs/``, do not count), and when ``design``, the design file a result was
+    computed from, is not in the commit at all: a project made inside another's work
+    tree (a sweep's points under ``runs/``, ``payload new`` in a subfolder) or a design
+    file from outside it. The commit alone does not give that result back.
     """
     r = Path(root)
     if _git(r, "rev-parse", "--is-inside-work-tree") != "true":
         return None, None
     commit = _git(r, "rev-parse", "HEAD")
     status = _git(r, "status", "--porcelain", "--untracked-files=no")
-    return commit, (None if status is None else bool(status))
+    if status is None:
+        return commit, None
+    if design is not None and not status:
+        # in the commit, ls-tree names it; untracked or ignored: nothing; outside the
+        # work tree: an error
+        status = not _git(r, "ls-tree", "--name-only", "HEAD", "--", str(Path(design).resolve()))
+    return commit, bool(status)
 
 
 def provenance(project: Project | None, design_path: str | Path | None = None) -> dict[str, Any]:
@@ -237,7 +246,7 @@ def provenance(project: Project | None, design_path: str | Path | None = None) -
         digest = hashlib.sha256(path.read_bytes()).hexdigest()
     except OSError as exc:
         raise ProjectError(f"cannot read design file {path} ({exc.strerror})") from exc
-    commit, dirty = git_state(project.root) if project is not None else (None, None)
+    commit, dirty = git_state(project.root, path) if project is not None else (None, None)
     return {
         "project": str(project.root) if project is not None else None,
         "design": project.relative(path) if project is not None else str(path),

@@ -246,6 +246,49 @@ def test_provenance_of_a_git_checkout_and_of_a_plain_folder(new_project):
     assert (plain["git_commit"], plain["git_dirty"]) == (None, None)
 
 
+def test_a_design_the_commit_does_not_hold_is_dirty(new_project, tmp_path):
+    """A project made inside another's git work tree (a sweep's points under the ignored
+    ``runs/``) or a design file from outside it: the commit is the work tree's, but it
+    does not hold the design a result was computed from, so the result is dirty. Before,
+    such a point, with its own proximal length, claimed the clean commit of its parent."""
+
+    def git(*args: str) -> str:
+        return subprocess.run(
+            ["git", "-c", "user.name=t", "-c", "user.email=t@t", *args],
+            cwd=repo,
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout.strip()
+
+    repo = tmp_path / "repo"
+    assert main(["new", str(repo), "--from", str(new_project)]) == 0
+    (repo / ".gitignore").write_text("runs/\n")
+    git("init", "-q")
+    git("add", "-A")
+    git("commit", "-q", "-m", "a design project")
+    head = git("rev-parse", "HEAD")
+    tracked = provenance(Project.at(repo))
+    assert (tracked["git_commit"], tracked["git_dirty"]) == (head, False)
+
+    point = Project.at(repo / "runs" / "sweep-0001" / "point-000")
+    assert main(["new", str(point.root), "--from", str(repo)]) == 0
+    text = point.design_path.read_text()
+    proximal = tomllib.loads(text)["finger"]["lengths"]["proximal"]
+    point.design_path.write_text(_set(text, "finger.lengths", "proximal", proximal + 0.01))
+    assert git("status", "--porcelain", "--untracked-files=no") == ""  # the tree is clean
+    inner = provenance(point)
+    assert (inner["git_commit"], inner["git_dirty"]) == (head, True)
+    # the same file once committed is clean again
+    git("add", "-f", str(point.design_path))
+    git("commit", "-q", "-m", "the point's design")
+    assert provenance(point)["git_dirty"] is False
+    # a design file from outside the work tree, reported on in this project
+    outside = provenance(Project.at(repo), Path(new_project) / "cad" / "design.toml")
+    assert outside["git_dirty"] is True
+    assert provenance(Project.at(repo))["git_dirty"] is False
+
+
 def test_summary_names_the_project_first_and_in_json(new_project, capsys):
     assert main(["--project", str(new_project), "summary"]) == 0
     assert capsys.readouterr().out.splitlines()[0] == f"project: {Path(new_project).resolve()}"

@@ -505,15 +505,26 @@ def test_the_reach_models_urdf_lives_with_it_so_the_span_range_is_cached(tree):
 # ----------------------------------------------------------------- the analysis
 
 
-def test_reach_figures_against_closed_forms(design, small):
+def test_reach_figures_against_closed_forms(design, tree, small):
     st, mnt, a = design.stage, design.mounting, design.array
-    L = design.finger.lengths
+    L, off = design.finger.lengths, design.finger.offsets
     z_mcp = -(mnt.plate_thickness + st.stowed_gap + st.plate_thickness) - st.travel - a.finger_drop
     length = L.knuckle + L.proximal + L.middle + L.distal
     straight = VEHICLE.bottom_z - (z_mcp - length)
     assert small.home_below_vehicle == pytest.approx(straight, abs=1e-12)
-    # deepest: the MCP-to-tip vector (the pad sits off the axis) turned straight down
-    deepest = VEHICLE.bottom_z - (z_mcp - np.hypot(length, design.finger.offsets.tip))
+    # deepest: the knuckle, proximal and middle links straight down and the DIP turning the
+    # distal's own tip vector (the pad sits off its axis by offsets.tip) straight down; the
+    # whole MCP-to-tip vector turned down (hypot(length, tip)) is 0.28 mm short of it
+    assert off.mcp_abd == off.pip == off.dip == 0.0  # the closed form's premise
+    deepest = VEHICLE.bottom_z - (z_mcp - (length - L.distal + np.hypot(L.distal, off.tip)))
+    q = tree.posture("home")
+    q.update({f"A_{j}": 0.0 for j in FINGER_JOINTS}, stage=st.travel)
+    q["A_dip"] = -np.arctan2(off.tip, L.distal)
+    assert tree.joint_map["A_dip"].lower <= q["A_dip"] <= tree.joint_map["A_dip"].upper
+    # the tree's own kinematics attains it, and no sampled fingertip goes deeper
+    assert VEHICLE.bottom_z - tree.frame_positions(q)["A_tip"][2] == pytest.approx(
+        deepest, abs=1e-12
+    )
     assert deepest - 0.01 < small.below_vehicle <= deepest + 1e-12
     r = design.finger.pad.radius
     for p in small.pairs:
