@@ -404,6 +404,54 @@ def test_config_defaults_are_the_papers_constants():
     assert (c.w_d, c.w_f, c.w_p, c.w_t, c.max_nfev) == (0.35, 0.10, 3.0, 0.03, 20)
 
 
+@pytest.mark.parametrize("pair", PAIRS)
+def test_each_term_of_eq3_has_the_papers_weight_and_scale(prod, pair):
+    # Closed form, term by term: at q, with targets its own features and q_ref = q_prev = q,
+    # eq. 3 is zero; moving one target component by delta (or one joint's reference by a
+    # fraction of its range) leaves one residual, w delta / sigma, and the cost
+    # 1/2 rho(r^2), rho(z) = 2 (sqrt(1 + z) - 1). The expected residuals are worked out
+    # from the paper's constants (sigma_l 1.5 mm, sigma_c 25 mm, sigma_d = sigma_f = 0.15,
+    # w_d 0.35, w_f 0.10, w_p 3.0, w_t 0.03), not from the code's scale vector.
+    r = prod[pair]
+    pk = r.kinematics
+    fun = objective_function(pk, r.config.replace(collisions=False))
+    q = pk.lower + np.linspace(0.3, 0.7, pk.n) * pk.range
+    f = pk.features(q).as_vector()
+
+    def both_costs(t: np.ndarray, q_ref: np.ndarray, q_prev: np.ndarray) -> tuple[float, float]:
+        return r.cost(q, t, q_ref, q_prev), float(np.array(fun(q, t, q_ref, q_prev)[0]).item())
+
+    assert max(both_costs(f, q, q)) < 1e-20  # CasADi's kinematics: Pinocchio's to 1e-16 m
+    feature_cases = [  # (component, target displacement, the residual it leaves)
+        (0, 0.9e-3, 0.6),  # span: 0.9 mm / 1.5 mm
+        (2, 0.06, 0.14),  # direction: 0.35 * 0.06 / 0.15
+        (5, 0.01, 0.4),  # centre: 10 mm / 25 mm
+        (10, 0.3, 0.2),  # distal direction: 0.10 * 0.3 / 0.15
+    ]
+    expected_total = 0.0
+    t_all = f.copy()
+    for k, delta, residual in feature_cases:
+        t = f.copy()
+        t[k] += delta
+        t_all[k] += delta
+        want = np.sqrt(1.0 + residual**2) - 1.0  # 1/2 rho(r^2)
+        expected_total += want
+        for got in both_costs(t, q, q):
+            assert got == pytest.approx(want, rel=1e-9)
+    for got in both_costs(t_all, q, q):
+        assert got == pytest.approx(expected_total, rel=1e-9)
+    # posture and temporal terms: joints normalised by their own ranges
+    for j in (0, pk.n - 2):
+        q_ref = q.copy()
+        q_ref[j] += 0.1 * pk.range[j]  # posture residual 3.0 * 0.1
+        q_prev = q.copy()
+        q_prev[j] -= 0.2 * pk.range[j]  # temporal residual 0.03 * 0.2
+        for got in both_costs(f, q_ref, q):
+            assert got == pytest.approx(np.sqrt(1.0 + 0.3**2) - 1.0, rel=1e-9)
+        for got in both_costs(f, q, q_prev):
+            assert got == pytest.approx(np.sqrt(1.0 + 0.006**2) - 1.0, rel=1e-9)
+
+
 def test_config_overrides_from_toml(tmp_path):
     p = tmp_path / "c.toml"
     p.write_text("[retarget]\nw_p = 1.5\nmax_iterations = 12\n")
