@@ -370,9 +370,13 @@ class DynamixelDriver(FaultHandling):
             result = group.txRxPacket()
             if result == COMM_SUCCESS:
                 return
-        addr = group.start_address
-        silent = [i for i in self.ids if not group.isAvailable(i, addr, group.data_length)]
-        who = ", ".join(self._name(i) for i in silent) if silent else "the bus"
+        # a plain sync read reads the servos in turn and stops at the first that does not
+        # answer: name that one (the group's own isAvailable is False for all of them then)
+        silent = getattr(group, "silent_id", None)
+        if silent is None:  # the SDK's group: the first servo it holds no data of
+            n = group.data_length
+            silent = next((i for i in self.ids if len(group.data_dict.get(i, [])) != n), None)
+        who = f"{self._name(silent)} did not answer" if silent is not None else "the bus"
         raise CommError(f"reading {what} after {self.retries + 1} attempt(s): "
                         f"{self.packet.getTxRxResult(result)} ({who})")  # fmt: skip
 

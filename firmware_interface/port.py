@@ -98,14 +98,18 @@ class AlertSyncRead(GroupSyncRead):
     def __init__(self, port: PortHandler, ph: Protocol2PacketHandler, start: int, n: int) -> None:
         super().__init__(port, ph, start, n)
         self.errors: dict[int, int] = {}
+        self.silent_id: int | None = None
+        """The servo whose status the last plain sync read did not get (it stops there)."""
 
     def rxPacket(self) -> int:
         """Plain sync read: one status packet per servo, its error byte kept."""
         self.last_result = False
+        self.silent_id = None
         result = COMM_RX_FAIL
         for dxl_id in self.data_dict:
             data, result, error = self.ph.readRx(self.port, dxl_id, self.data_length)
             if result != COMM_SUCCESS:
+                self.silent_id = dxl_id
                 return result
             self.data_dict[dxl_id], self.errors[dxl_id] = data, int(error)
         self.last_result = result == COMM_SUCCESS

@@ -204,6 +204,33 @@ def test_corrupt_and_dropped_replies_are_retried_within_the_cycle(smap):
             drv.read()
 
 
+def _cycles(drv, cmd, n: int, pause: float = 0.0) -> None:
+    """``n`` control cycles (send, read), ``pause`` seconds apart."""
+    for _ in range(n):
+        drv.send(cmd)
+        drv.read()
+        time.sleep(pause)
+
+
+def test_a_servo_that_stops_answering_mid_session_is_named_alone(smap):
+    """The fast sync read fails, the plain sync read it falls back to stops at the servo
+    that does not answer: the error names that servo, not every servo on the bus."""
+    with (
+        EmulatorProcess() as emu,
+        DynamixelDriver(emu.port, smap, latency_timer_ms=LAT) as drv,
+    ):
+        drv.bring_up()
+        _cycles(drv, PayloadCommand(np.zeros(17), 0.07, 0.0), 3)
+        emu.fault("missing:7")
+        with pytest.raises(CommError) as info:
+            drv.read()
+        assert drv.fallbacks == 1
+        message = str(info.value)
+        assert "servo 7 (B_pip)" in message
+        others = [f"servo {s.id} ({s.joint})" for s in smap.servos if s.id != 7]
+        assert not [o for o in others if o in message], message
+
+
 def test_latency_delays_every_reply(smap):
     with EmulatorProcess(faults=["latency:8ms"]) as emu:
         port = SdkPort(emu.port, LAT)
@@ -428,10 +455,7 @@ def test_a_watchdog_trip_mid_session_is_recorded_with_what_it_did(smap):
     ):
         drv.bring_up()
         cmd = PayloadCommand(np.zeros(17), 0.0, 0.0)
-        for _ in range(5):
-            drv.send(cmd)
-            drv.read()
-            time.sleep(0.02)
+        _cycles(drv, cmd, 5, pause=0.02)
         assert drv.watchdog_trips == [] and watchdog_report([])["trips"] == 0
         time.sleep(0.25)  # the host falls silent for longer than the 100 ms watchdog
         assert all(s["watchdog_trip"] is not None for s in emu.servos().values())

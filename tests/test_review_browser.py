@@ -277,6 +277,35 @@ def test_the_legend_lists_every_colour_drawn(static_review) -> None:
     assert drawn <= legend, f"colours drawn but not in the legend: {drawn - legend}"
 
 
+_LOCAL = """(links) => links.map(n => viewer.scene_tree.find(["meshcat", "review", "payload", n])
+    .object.position.toArray())"""
+
+
+def test_the_deployment_shows_at_any_time_before_play_is_pressed(static_review) -> None:
+    """The page opens paused on the stowed payload; holding the animation at its end (as
+    ``payload.review.browser --time`` does) or dragging meshcat's time slider there shows
+    the deployed payload (stage down, fingers at home), without pressing Play first."""
+    _require_browser()
+    from payload.review.browser import open_page, pose_page
+
+    tree = build_tree(load_design(project_files().design))
+    links = ["stage", "A_distal", "carriage"]
+    want = {p: tree.link_poses(tree.posture(p)) for p in ("stowed", "home")}
+    with open_page(static_review) as page:
+        end = page.evaluate("() => Math.max(...viewer.animator.actions.map(a => a._clip.duration))")
+        assert end > 0
+        for t, posture in ((0.0, "stowed"), (end, "home"), (0.0, "stowed")):
+            pose_page(page, t)
+            got = page.evaluate(_LOCAL, links)
+            for n, xyz in zip(links, got):
+                np.testing.assert_allclose(xyz, want[posture][n][:3, 3], atol=1e-6, err_msg=n)
+    with open_page(static_review) as page:  # a person drags the slider of the opened page
+        page.evaluate(f"() => viewer.animator.time_scrubber.setValue({end})")
+        got = page.evaluate(_LOCAL, links)
+        for n, xyz in zip(links, got):
+            np.testing.assert_allclose(xyz, want["home"][n][:3, 3], atol=1e-6, err_msg=n)
+
+
 # ------------------------------------------------------------- the live review
 
 _DISTAL = """() => {

@@ -210,8 +210,19 @@
     requestAnimationFrame(frame);
   }
 
+  function armAnimation() {
+    // meshcat loads an animation that does not autoplay with its actions never started, and
+    // three.js's mixer skips such actions: seeking (the time slider) then moved nothing until
+    // Play was pressed once. Start them with the animator's clock stopped: the page stays
+    // paused where it is, and the slider shows any time of the animation.
+    const a = viewer.animator;
+    if (!a || a.playing) return;
+    for (const x of a.actions) if (!x.isScheduled()) x.play();
+  }
+
   function apply(update) {
     for (const c of update.commands || []) viewer.handle_command_bytearray(b64bytes(c));
+    armAnimation();
     if (update.overlay) setOverlay(update.overlay);
     error.textContent = update.error || "";
     error.style.display = update.error ? "block" : "none";
