@@ -30,7 +30,7 @@ from payload.review.trial_view import (
     build_trial_replay,
     phase_spans,
 )
-from payload.trials.recorder import TrialRecorder, random_step
+from payload.trials.recorder import TrialRecorder, random_step, read_recording
 
 
 def _quat_matrix(xyzw) -> np.ndarray:
@@ -377,6 +377,21 @@ def test_recording_of_another_design_exits_2(tmp_path, design_dict, capsys) -> N
     assert main(["review", "--trial", str(folder)]) == 2
     err = _err(capsys)
     assert "another design" in err and design_hash(other) in err and design_hash(DESIGN) in err
+
+
+def test_a_trial_cut_short_is_replayed_and_said_to_be(tmp_path, capsys) -> None:
+    """A recording whose writer was killed (never closed) replays the steps it holds, and
+    the review says it is not a finished run instead of showing it as one."""
+    folder = _record_trial(tmp_path / "trial")
+    log = folder / "log.mcap"
+    log.write_bytes(log.read_bytes()[: log.stat().st_size * 2 // 3])  # the file never closed
+    rec = read_recording(log)
+    assert not rec.complete and 0 < len(rec) < N_STEPS
+    out = tmp_path / "r.html"
+    assert main(["review", "--trial", str(folder), "--static", str(out), "--reach-samples",
+                 "0"]) == 0  # fmt: skip
+    printed = capsys.readouterr().out
+    assert f"({len(rec)} steps" in printed and "not a finished run: cut short" in printed
 
 
 def test_bad_reach_samples_and_static_folder_exit_2(tmp_path, capsys) -> None:

@@ -386,6 +386,11 @@ def build_trial_replay(
         follow=(root, f"{root}/astrobee", centre.tolist()),
     )
     scene.notes.append(f"trial: {Path(folder)} ({len(rec)} steps, shown at {fps:g} Hz)")
+    from payload.trials.reading import unfinished_reason
+
+    why = unfinished_reason(rec.meta, rec.complete)
+    if why is not None:  # a replay of what it holds, said as such
+        scene.notes.append(f"  not a finished run: {why}; the replay ends where it does")
     scene.notes += [f"  {ph}: {a:.2f} .. {b:.2f} s" for ph, a, b in spans]
     return TrialReplay(scene, rec, fps, centre, mount)
 
