@@ -572,3 +572,21 @@ def test_a_recording_without_hand_frames_is_refused_naming_it(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and f"{src}: no hand frames to replay" in err[0], err
     assert not out.exists()
+
+
+def test_a_trial_folder_given_to_replay_names_the_file_to_give(tmp_path, capsys):
+    """``--replay`` of a folder: one line saying it is a folder (and, for a trial's, which
+    file in it to give), not "no such file"; nothing written."""
+    from payload.cli import main
+
+    folder = tmp_path / "trial-0003"
+    folder.mkdir()
+    out = tmp_path / "replayed"
+    assert main(["trial", "--replay", str(folder), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "is a folder, not a recording" in err[0], err
+    (folder / "log.mcap").write_bytes(b"")
+    assert main(["trial", "--replay", str(folder), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].endswith(f"give {folder / 'log.mcap'}"), err
+    assert not out.exists()

@@ -25,6 +25,8 @@ from payload.cliutil import (
 from payload.folders import (
     CAMPAIGN_FIGURE,
     CAMPAIGN_FILES,
+    HANDS,
+    RECORDING,
     SUMMARY,
     SUMMARY_TEXT,
     TRIAL_FILES,
@@ -52,6 +54,18 @@ def _run_trial_fn() -> Any:
     return run_trial
 
 
+def _replay_file(option: str, replay: Path) -> Path:
+    """The recording a replay option names, or one line saying why it is not one (a
+    trial's folder names the file in it to give)."""
+    if replay.is_dir():
+        inside = [n for n in (RECORDING, HANDS) if (replay / n).is_file()]
+        hint = f": give {replay / inside[0]}" if inside else ""
+        raise TrialsCliError(f"{option}: {replay}: is a folder, not a recording{hint}")
+    if not replay.is_file():
+        raise TrialsCliError(f"{option}: {replay}: no such file")
+    return replay
+
+
 def _parse_operator(args: argparse.Namespace) -> tuple[str, Path | None]:
     """The operator of ``payload trial``: ``--replay FILE``, else synthetic; or the
     deprecated ``--operator synthetic|replay FILE``.
@@ -63,19 +77,13 @@ def _parse_operator(args: argparse.Namespace) -> tuple[str, Path | None]:
     if values is None:
         if args.replay is None:
             return "synthetic", None
-        replay = Path(args.replay)
-        if not replay.is_file():
-            raise TrialsCliError(f"--replay: {replay}: no such file")
-        return "replay", replay
+        return "replay", _replay_file("--replay", Path(args.replay))
     if args.replay is not None:
         raise TrialsCliError("--replay and --operator (its deprecated spelling): give one")
     if values == ["synthetic"]:
         return "synthetic", None
     if len(values) == 2 and values[0] == "replay":
-        replay = Path(values[1])
-        if not replay.is_file():
-            raise TrialsCliError(f"--operator replay: {replay}: no such file")
-        return "replay", replay
+        return "replay", _replay_file("--operator replay", Path(values[1]))
     raise TrialsCliError(
         f"--operator: expected 'synthetic' or 'replay FILE', got {' '.join(values)!r}"
     )
