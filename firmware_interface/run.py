@@ -32,7 +32,7 @@ from payload.schema import (
 )
 from payload.sim.driver import SimDriver, WorldState
 from payload.teleop.calibration import CalibrationProcedure, Captures
-from payload.teleop.loop import ARM_AFTER_STEPS, ReplaySource, StepContext, run_session
+from payload.teleop.loop import ReplaySource, StepContext, WatchdogArming, run_session
 from payload.teleop.pipeline import TeleopConfig, TeleopPipeline, calibrate_operator
 from payload.teleop.replay import HandRecordingWriter
 
@@ -372,22 +372,17 @@ def run_hardware_trial(
             HandRecordingWriter(out / HANDS, meta={"seed": meta["seed"]}) as hands_out,
         ):
             recorder.write_meta(meta)
-            steps, arm_at = [0], [ARM_AFTER_STEPS]
-
-            def on_pipeline() -> None:  # its first step builds what it uses once
-                hardware.set_watchdog(False)
-                arm_at[0] = steps[0] + ARM_AFTER_STEPS
+            # off while the pipeline's first steps build what they use once
+            arming = WatchdogArming(hardware.set_watchdog)
 
             def on_step(ctx: StepContext) -> None:
                 hands_out.write(ctx.frame)
                 recorder.write_hands(ctx.frame)  # as a trial's: its log.mcap replays too
                 scene.observe(ctx.t)
                 recorder.write(step_record(ctx, driver, retargeters))
-                steps[0] += 1
                 for trip in hardware.watchdog_trips[trips0:]:  # when, in the session's time
                     trip.setdefault("session_t", round(ctx.t, 3))
-                if steps[0] == arm_at[0]:  # past the first steps' one-off set-up
-                    hardware.set_watchdog(True)
+                arming.step()
                 if bar is not None:
                     bar.update(task, completed=ctx.t)
                 fault = getattr(hardware, "fault", None)
@@ -397,7 +392,7 @@ def run_hardware_trial(
             try:
                 commands = replay_session(driver, frames, max_time=max_time, pace=pace,
                                           on_step=on_step, rt=(retargeters, ranges),
-                                          on_pipeline=on_pipeline)  # fmt: skip
+                                          on_pipeline=arming.hold_off)  # fmt: skip
             except Exception as exc:  # a fault, the bus lost: a failed run, not bad input
                 what, at = recorder.mark_aborted(exc)
                 raise HardwareRunAborted(
@@ -405,7 +400,7 @@ def run_hardware_trial(
                     f"aborted, not scored): {rec_path}"
                 ) from exc
             for trip in hardware.watchdog_trips[trips0:]:  # re-armed by the last command,
-                trip.setdefault("session_t", round(steps[0] * CONTROL_DT, 3))  # at the end
+                trip.setdefault("session_t", round(arming.steps * CONTROL_DT, 3))  # at the end
             watchdog = watchdog_report(hardware.watchdog_trips[trips0:])
             recorder.flush()  # every step written: the scene's figures count them all
             recorder.write_meta({"steps": len(commands), "warnings": driver.warnings(),

@@ -37,6 +37,34 @@ would trip it on a healthy session. The payload holds one command while the pipe
 built, as a tripped watchdog would hold it."""
 
 
+class WatchdogArming:
+    """When a hardware payload's Bus Watchdog is on: armed :data:`ARM_AFTER_STEPS` steps
+    into a session, and again that many steps after each :meth:`hold_off` (off
+    meanwhile). One count for ``hw run`` and ``teleop serve --driver hardware``.
+
+    Args:
+        set_watchdog: The payload's ``set_watchdog(on)`` (None: a payload without one).
+    """
+
+    def __init__(self, set_watchdog: Callable[[bool], None] | None) -> None:
+        self._set = set_watchdog
+        self.steps = 0
+        self._arm_at = ARM_AFTER_STEPS
+
+    def hold_off(self) -> None:
+        """Off now, on again :data:`ARM_AFTER_STEPS` steps from here (the pipeline's
+        first steps, or no step at all until the next attempt)."""
+        self._arm_at = self.steps + ARM_AFTER_STEPS
+        if self._set is not None:
+            self._set(False)
+
+    def step(self) -> None:
+        """One more step (a command sent): armed when its step comes."""
+        self.steps += 1
+        if self.steps == self._arm_at and self._set is not None:
+            self._set(True)
+
+
 class HandSource(Protocol):
     """Where hand frames come from (synthetic operator, replay, live headset)."""
 

@@ -37,7 +37,7 @@ from payload.teleop.calibration import (
 )
 from payload.teleop.link import DelayedLink, DelayLine
 from payload.teleop.live import LiveHub, LiveSource, TimedDriver
-from payload.teleop.loop import ARM_AFTER_STEPS, StepContext, run_session
+from payload.teleop.loop import StepContext, WatchdogArming, run_session
 from payload.teleop.pipeline import TeleopConfig, TeleopPipeline, calibrate_operator
 from payload.teleop.replay import HandRecordingWriter
 from payload.trials.recorder import RecordingError, StepRecord, TrialRecorder
@@ -88,16 +88,15 @@ class PayloadRig:
     def __init__(self, sim: Any, payload: Any) -> None:
         self._sim = sim
         self.payload = payload
-        self._sends = 0
         # a payload whose Bus Watchdog was left disarmed while the session set up (see
         # ``payload teleop serve --driver hardware``) has it armed once the loop runs
-        self._arm_at = ARM_AFTER_STEPS
+        self._watchdog = WatchdogArming(getattr(payload, "set_watchdog", None))
 
     def pipeline_built(self) -> None:
         """The calibration built the teleoperation pipeline: the payload's Bus Watchdog is
         disarmed over the pipeline's first steps (:data:`~payload.teleop.loop.
         ARM_AFTER_STEPS`), which build what they use once."""
-        self._disarm()
+        self._watchdog.hold_off()
 
     def idle(self) -> None:
         """The loop stopped sending (an attempt ended: the page went away before its
@@ -105,20 +104,11 @@ class PayloadRig:
         has run :data:`~payload.teleop.loop.ARM_AFTER_STEPS` steps. The servos hold their
         last goal either way (a tripped watchdog holds them too); this spares a trip, and
         its warning, each time a page leaves."""
-        self._disarm()
-
-    def _disarm(self) -> None:
-        """The Bus Watchdog off until :data:`~payload.teleop.loop.ARM_AFTER_STEPS` more
-        commands have gone out."""
-        self._arm_at = self._sends + ARM_AFTER_STEPS
-        if hasattr(self.payload, "set_watchdog"):
-            self.payload.set_watchdog(False)
+        self._watchdog.hold_off()
 
     def send(self, command: Any) -> None:
         self._sim.send(command)
-        self._sends += 1
-        if self._sends == self._arm_at and hasattr(self.payload, "set_watchdog"):
-            self.payload.set_watchdog(True)
+        self._watchdog.step()
         self.payload.send(command)
 
     def read(self) -> Any:
