@@ -18,6 +18,7 @@ from payload.design.params import load_design
 from payload.schema import CONTROL_DT
 from payload.sim.driver import SimDriver
 from payload.teleop.calibration import CalibrationProcedure
+from payload.teleop.loop import ARM_AFTER_STEPS
 from payload.teleop.operator import OperatorPlan, OperatorTraits, SyntheticOperator, WorldView
 from payload.teleop.replay import HandRecordingWriter, read_hand_recording
 
@@ -344,16 +345,18 @@ def test_a_bus_watchdog_trip_is_recorded_at_its_session_time(session, tmp_path, 
     from payload.trials.recorder import read_recording
 
     calls, step = [0], TeleopPipeline.step
+    stalled = ARM_AFTER_STEPS + 15  # the pipeline's step 15 steps after the watchdog is armed
+    assert 0.25 > load_servo_map().watchdog_ms / 1e3  # a stall that trips it
 
     def stall_once(self, *args, **kwargs):
         calls[0] += 1
-        if calls[0] == 40:  # 15 steps after the watchdog was armed again
+        if calls[0] == stalled:
             time.sleep(0.25)
         return step(self, *args, **kwargs)
 
     monkeypatch.setattr(TeleopPipeline, "step", stall_once)
     out = _hw_run_of(session, tmp_path / "trial")
-    assert calls[0] > 40
+    assert calls[0] > stalled
     trips = json.loads((out / "metrics.json").read_text())["watchdog"]
     # the stall's trip (a loaded machine may add short ones of its own: not this test's)
     stalls = [e for e in trips.get("events", []) if e["silence_s"] >= 0.25]
@@ -362,7 +365,7 @@ def test_a_bus_watchdog_trip_is_recorded_at_its_session_time(session, tmp_path, 
     rec = read_recording(out / "log.mcap")
     wall = np.asarray(rec.wall_time)
     first = next(i for i, p in enumerate(rec.phase) if str(p) != "calibration")
-    k = first + 39  # the pipeline's 40th step, the stalled one: its record came 0.25 s late
+    k = first + stalled - 1  # the stalled step: its record came 0.25 s late
     assert wall[k] - wall[k - 1] >= 0.25
     assert trip["session_t"] == round(float(rec.t[k]), 3)
     assert wall[k - 1] <= trip["unix_s"] <= wall[k] + 1e-3
@@ -383,6 +386,7 @@ def test_the_first_teleoperation_step_does_not_trip_the_bus_watchdog(
     from payload.teleop.pipeline import TeleopPipeline
 
     first, step = [True], TeleopPipeline.step
+    assert 0.2 > load_servo_map().watchdog_ms / 1e3  # the slow step would trip it, armed
 
     def slow_first_step(self, *args, **kwargs):
         if first[0]:
