@@ -11,7 +11,6 @@ trial exactly as ``payload trial`` does (``log.mcap``, ``hands.jsonl``, ``metric
 
 from __future__ import annotations
 
-import json
 import logging
 from pathlib import Path
 from types import TracebackType
@@ -21,8 +20,7 @@ import numpy as np
 
 from payload.design.params import load_design
 from payload.errors import RunAborted
-from payload.folders import HANDS, METRICS, RECORDING
-from payload.safeio import replace_file
+from payload.folders import HANDS, RECORDING
 from payload.schema import (
     CONTROL_DT,
     PayloadCommand,
@@ -310,7 +308,7 @@ def run_hardware_trial(
     from payload.trials.recorder import TrialRecorder
     from payload.trials.runner import base_filter_for, module_rects, step_record
     from payload.trials.safety import recording_scene
-    from payload.trials.scoring import finish_trial
+    from payload.trials.scoring import finish_trial, write_metrics
     from payload.trials.sources import load_replay
 
     header, frames = load_replay(replay)  # a trial's log.mcap, or a hands.jsonl
@@ -412,7 +410,7 @@ def run_hardware_trial(
     result = finish_trial(out, rec_path)
     result.update(steps=len(commands), driver="hardware", **far_end, provenance=prov,
                   watchdog=watchdog)  # fmt: skip
-    replace_file(out / METRICS, json.dumps(result, indent=2) + "\n")
+    write_metrics(out, result)
     return result
 
 

@@ -24,7 +24,7 @@ from collections.abc import Callable, Iterable, Sequence
 from typing import Any, NamedTuple, NoReturn
 
 from payload.cliutil import CheckFailed, command_project, emit_json, forget_project
-from payload.errors import PayloadError, RunAborted, Terminated
+from payload.errors import STOP_SIGNALS, PayloadError, RunAborted, Terminated
 from payload.project import ENV_VAR
 
 
@@ -319,7 +319,7 @@ def run() -> NoReturn:
     """
     # not where they are ignored (nohup); a forked worker (a multiprocessing pool's) keeps
     # the default: its pool ends it with SIGTERM
-    taken = [s for s in (signal.SIGTERM, signal.SIGHUP) if signal.getsignal(s) is signal.SIG_DFL]
+    taken = [s for s in STOP_SIGNALS if signal.getsignal(s) is signal.SIG_DFL]
     for signum in taken:
         signal.signal(signum, _terminate)
     os.register_at_fork(after_in_child=lambda: _default(taken))

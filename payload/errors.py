@@ -65,6 +65,11 @@ class RunAborted(Exception):
     """
 
 
+STOP_SIGNALS = (signal.SIGTERM, signal.SIGHUP)
+"""The signals besides Ctrl-C's SIGINT that stop a ``payload`` command as Ctrl-C does
+(:class:`Terminated`)."""
+
+
 class Terminated(KeyboardInterrupt):
     """The process was asked to stop by a signal other than Ctrl-C (SIGTERM from ``kill``
     or a process manager, SIGHUP from a closed terminal). Raised in the main thread as a

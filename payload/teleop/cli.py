@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from payload.cliutil import add_device, add_json, check_seconds, command_project, emit_json
-from payload.errors import PayloadError
+from payload.errors import STOP_SIGNALS, PayloadError
 from payload.folders import CAMPAIGN_FILES, TRIAL_FILES
 
 SessionFactory = Callable[..., Any]
@@ -82,7 +82,7 @@ def _press_twice_to_abandon(record: Path | None) -> Iterator[None]:
             file=sys.stderr,
         )
 
-    for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+    for signum in (signal.SIGINT, *STOP_SIGNALS):
         handler = signal.getsignal(signum)
         if signum == signal.SIGINT or callable(handler):  # not where ignored or default
             previous[signum] = signal.signal(signum, on_interrupt)

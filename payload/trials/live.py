@@ -15,7 +15,6 @@ the vehicle and holds the fingers; the page coming back resumes control, blended
 
 from __future__ import annotations
 
-import json
 import logging
 import time
 from pathlib import Path
@@ -24,9 +23,8 @@ from typing import Any
 import numpy as np
 
 from payload.design.params import load_design
-from payload.folders import HANDS, METRICS, RECORDING
+from payload.folders import HANDS, RECORDING
 from payload.rotations import quat_to_matrix, yaw_of_matrix
-from payload.safeio import replace_file
 from payload.schema import CONTROL_DT
 from payload.teleop.calibration import (
     DEFAULT_STEPS,
@@ -413,12 +411,13 @@ class LiveSession:
                     self._recorder.close()
                     self._hands.close()
                 from payload.trials.campaign import finish_trial
+                from payload.trials.scoring import write_metrics
 
                 out = self.record
                 result = finish_trial(out, out / RECORDING)
                 result["steps"] = self.steps
                 result["provenance"] = self._provenance  # as a trial's metrics.json has it
-                replace_file(out / METRICS, json.dumps(result, indent=2) + "\n")
+                write_metrics(out, result)
         finally:
             self.driver.close()
         return result

@@ -9,7 +9,6 @@ into ``hands.jsonl`` (so any trial can be replayed bit for bit), then scores it.
 
 from __future__ import annotations
 
-import json
 import logging
 import os
 import shutil
@@ -25,7 +24,6 @@ from payload.errors import PayloadError, RunAborted
 from payload.folders import (
     CAMPAIGN_FILES,
     HANDS,
-    METRICS,
     RECORDING,
     SCORED,
     TRIAL_FILES,
@@ -36,7 +34,7 @@ from payload.project import Project, current_project, provenance
 from payload.retarget.calibration import PairRange
 from payload.retarget.casadi_solver import PairRetargeter
 from payload.rotations import quat_to_matrix
-from payload.safeio import OverwriteError, check_new, new_folder, replace_file
+from payload.safeio import OverwriteError, check_new, new_folder
 from payload.sim.config import check_physics_dt
 from payload.sim.vehicle import PROPULSION_MODELS
 from payload.sim.world import CTB_MODELS, WorldConfig
@@ -518,7 +516,7 @@ def _run_trial(
     """Run one trial and write its folder ``out`` (arguments: :func:`run_trial`): set up
     the world and the operator, record the session, score the recording."""
     from payload.sim.driver import SimDriver
-    from payload.trials.scoring import finish_trial
+    from payload.trials.scoring import finish_trial, write_metrics
 
     driver = SimDriver(
         WorldConfig.for_project(project, ctb=source_spec.ctb, physics_dt=source_spec.physics_dt),
@@ -547,14 +545,14 @@ def _run_trial(
         meta,
         max_time=max_time,
         progress=progress,
-        replayed=source_spec.recorded if source_spec.replay is not None else {},
+        replayed=source_spec.recorded,
     )
     # scored with the contact definition it recorded, from what was written (the arrays
     # the file reads back as, without reading it)
     result = finish_trial(out, rec_path, recording=recording)
     result["steps"] = stats.steps
     result["provenance"] = prov
-    replace_file(out / METRICS, json.dumps(result, indent=2) + "\n")
+    write_metrics(out, result)
     return result
 
 

@@ -154,4 +154,21 @@ def rescorings(folder: Path, names: Sequence[str]) -> list[Path]:
     return found
 
 
-__all__ = ["CONTACT_TAG", "MIXED_TAG", "contact_tag", "finish_trial", "rescorings"]
+def write_metrics(out: str | Path, result: dict[str, Any]) -> Path:
+    """A run's ``metrics.json`` in ``out`` (its final form, after the runner's additions),
+    replaced through a temporary file and a rename, never written in place."""
+    from payload.safeio import replace_file
+
+    path = Path(out) / METRICS
+    replace_file(path, json.dumps(result, indent=2) + "\n")
+    return path
+
+
+__all__ = [
+    "CONTACT_TAG",
+    "MIXED_TAG",
+    "contact_tag",
+    "finish_trial",
+    "rescorings",
+    "write_metrics",
+]

@@ -15,8 +15,8 @@ export const JOINTS = [
 ];
 
 const token = new URLSearchParams(location.search).get('token');
-const wsUrl = `${location.protocol === 'https:' ? 'wss' : 'ws'}://${location.host}/ws` +
-  (token ? `?token=${encodeURIComponent(token)}` : '');
+const tokenQuery = token ? `?token=${encodeURIComponent(token)}` : '';  // the WebSocket's, /status'
+const wsUrl = `${location.protocol === 'https:' ? 'wss' : 'ws'}://${location.host}/ws${tokenQuery}`;
 const $ = (id) => document.getElementById(id);
 
 // what the browser test (and a curious developer) can look at
@@ -73,8 +73,7 @@ class Link {
   async explain(wait) {
     let why = null;
     try {
-      const r = await fetch(`/status${token ? `?token=${encodeURIComponent(token)}` : ''}`,
-        { cache: 'no-store' });
+      const r = await fetch(`/status${tokenQuery}`, { cache: 'no-store' });
       if (r.status === 403) {
         why = 'the server refused this page\'s token (a restarted server has a new one): ' +
           'open the address it printed, with its ?token=';
