@@ -22,6 +22,15 @@ if sys.version_info < (3, 11):  # pragma: no cover
     import tomli as tomllib
 
 
+def replace_once(text: str, old: str, new: str) -> str:
+    """``text`` with its one occurrence of ``old`` replaced by ``new``: a test that edits a
+    design or hand file this way fails if the text it means to change is not there (a
+    silent no-op edit would let it pass against the unedited file)."""
+    count = text.count(old)
+    assert count == 1, f"expected {old!r} once in the text, found it {count} times"
+    return text.replace(old, new)
+
+
 def running_environment() -> dict[str, Any]:
     """What ``payload.native.environment()`` should say of this process, worked out
     another way: the modules' own ``__version__``, the platform's names and the kernels

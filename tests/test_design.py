@@ -16,7 +16,7 @@ import pytest
 import tomli_w
 import trimesh
 import yourdfpy
-from conftest import DESIGN, MJCF, ROOT, SCENE, URDF
+from conftest import DESIGN, MJCF, ROOT, SCENE, URDF, replace_once
 
 from payload.design import (
     ALL_JOINTS,
@@ -173,8 +173,8 @@ def test_the_pinch_pre_shape_has_one_source(design_dict, tmp_path):
     assert pinch_grasp(changed, WorldConfig(ctb=None)).open == (-0.3, 0.05, 0.0, 1.0)
     hand = tmp_path / "hand.toml"
     text = DEFAULT_HAND.read_text()
-    text = text.replace('"{project}/urdf/payload.urdf"', f'"{URDF}"')
-    hand.write_text(text.replace('"{project}/cad/design.toml"', f'"{path}"'))
+    text = replace_once(text, '"{project}/urdf/payload.urdf"', f'"{URDF}"')
+    hand.write_text(replace_once(text, '"{project}/cad/design.toml"', f'"{path}"'))
     for pair in load_hand(hand).pairs.values():
         assert pair.rest == (-0.3, 0.05, 0.0, 1.0) * 2
     del data["pinch"]
@@ -622,7 +622,7 @@ def test_stale_models_are_rebuilt_saying_so(tmp_path, capsys):
     assert models_follow_design(project.design_path, project.root) == []
     assert capsys.readouterr().out == ""  # models that match: nothing to say
     text = project.design_path.read_text()
-    project.design_path.write_text(text.replace("middle = 0.0361 ", "middle = 0.0400 "))
+    project.design_path.write_text(replace_once(text, "middle = 0.0361 ", "middle = 0.0400 "))
     expected = stale_files(load_design(project.design_path), project.root)
     assert expected  # the edit made the models stale
     assert models_follow_design(project.design_path, project.root, json=True) == expected
@@ -632,7 +632,7 @@ def test_stale_models_are_rebuilt_saying_so(tmp_path, capsys):
     assert stale_files(load_design(project.design_path), project.root) == []
     # an invalid design rebuilds nothing: the models stay those of the last valid design
     before = {p: p.read_bytes() for p in project.urdf_dir.iterdir()}
-    project.design_path.write_text(text.replace("middle = 0.0361 ", "middle = 0.005 "))
+    project.design_path.write_text(replace_once(text, "middle = 0.0361 ", "middle = 0.005 "))
     with pytest.raises(DesignError, match=r"finger\.lengths\.middle"):
         models_follow_design(project.design_path, project.root)
     assert {p: p.read_bytes() for p in project.urdf_dir.iterdir()} == before
@@ -648,7 +648,7 @@ def test_bench_filter_flies_models_that_follow_the_design(tmp_path, capsys, monk
 
     project, _ = new_project(tmp_path / "p")
     text = project.design_path.read_text()
-    project.design_path.write_text(text.replace("middle = 0.0361 ", "middle = 0.0400 "))
+    project.design_path.write_text(replace_once(text, "middle = 0.0361 ", "middle = 0.0400 "))
     capsys.readouterr()
     seen = []
 

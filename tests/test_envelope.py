@@ -15,7 +15,7 @@ import manifold3d as m3d
 import numpy as np
 import pytest
 import tomli_w
-from conftest import DESIGN, ROOT
+from conftest import DESIGN, ROOT, replace_once
 
 from payload.design import build_tree, design_from_dict
 from payload.design.solids import SEGMENTS
@@ -492,8 +492,7 @@ def _report(project, capsys, *extra):
 
 def _edit_design(path, old, new):
     text = path.read_text()
-    assert text.count(old) == 1
-    path.write_text(text.replace(old, new))
+    path.write_text(replace_once(text, old, new))
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 

@@ -8,6 +8,7 @@ import subprocess
 import sys
 
 import pytest
+from conftest import replace_once
 
 from payload.cli import main
 
@@ -192,7 +193,7 @@ def test_commands_whose_guard_reads_the_models_make_them_follow_the_design_first
 
     project, _ = new_project(tmp_path / "p")
     text = project.design_path.read_text()
-    project.design_path.write_text(text.replace("distal = 0.045 ", "distal = 0.044 "))
+    project.design_path.write_text(replace_once(text, "distal = 0.045 ", "distal = 0.044 "))
     assert stale_files(load_design(project.design_path), project.root)
     capsys.readouterr()
     stale_at_guard = []

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import DESIGN
+from conftest import DESIGN, replace_once
 
 from payload.cache import cache_dir
 from payload.cli import main
@@ -246,7 +246,7 @@ def test_a_hand_resting_on_its_design_names_a_joint_the_design_has_no_rest_for(t
         'joints = [["A_mcp_flex", "A_mcp_abd", "A_pip", "A_dip"], '
         '["rail", "B_mcp_flex", "B_mcp_abd", "B_pip", "B_dip"]]',
     )
-    text = path.read_text().replace("[pairs.L]", f'design = "{DESIGN}"\n[pairs.L]')
+    text = replace_once(path.read_text(), "[pairs.L]", f'design = "{DESIGN}"\n[pairs.L]')
     path.write_text(text)
     with pytest.raises(RetargetError, match=r"hand\.toml: pairs\.L\.rest: joint 'rail' is not"):
         load_hand(path)

@@ -16,6 +16,7 @@ import casadi as ca
 import numpy as np
 import pinocchio as pin
 import pytest
+from conftest import replace_once
 from scipy.spatial.transform import Rotation
 
 from payload.design.params import load_design
@@ -117,13 +118,13 @@ def test_margin_and_pad_radius_come_from_the_design(tmp_path, hand):
     assert all(p.tip_radius == design.finger.pad.radius for p in hand.pairs.values())
     # A hand naming another design follows it: edit both keys in a copy.
     text = current_project().design_path.read_text()
-    text = text.replace("collision_margin = 0.002", "collision_margin = 0.0035")
-    text = text.replace("radius = 0.011 ", "radius = 0.0125 ")
+    text = replace_once(text, "collision_margin = 0.002", "collision_margin = 0.0035")
+    text = replace_once(text, "radius = 0.011 ", "radius = 0.0125 ")
     (tmp_path / "design.toml").write_text(text)
     shutil.copy(hand.urdf, tmp_path / "payload.urdf")
     toml = (HANDS_DIR / "payload.toml").read_text()
-    toml = toml.replace("{project}/urdf/payload.urdf", "payload.urdf")
-    toml = toml.replace("{project}/cad/design.toml", "design.toml")
+    toml = replace_once(toml, "{project}/urdf/payload.urdf", "payload.urdf")
+    toml = replace_once(toml, "{project}/cad/design.toml", "design.toml")
     (tmp_path / "hand.toml").write_text(toml)
     other = load_hand(tmp_path / "hand.toml")
     assert other.collision_margin == 0.0035
@@ -133,7 +134,7 @@ def test_margin_and_pad_radius_come_from_the_design(tmp_path, hand):
 def test_a_bad_margin_in_the_design_is_named(tmp_path):
     text = current_project().design_path.read_text()
     (tmp_path / "d.toml").write_text(
-        text.replace("collision_margin = 0.002", "collision_margin = -1")
+        replace_once(text, "collision_margin = 0.002", "collision_margin = -1")
     )
     with pytest.raises(DesignError, match=r"retarget\.collision_margin"):
         load_design(tmp_path / "d.toml")
@@ -601,7 +602,7 @@ def test_a_hand_without_its_meshes_retargets_without_the_model_and_names_the_fil
     # our URDF copied alone: every collision mesh it names is missing
     shutil.copy(current_project().root / "urdf" / "payload.urdf", tmp_path / "payload.urdf")
     text = (HANDS_DIR / "payload.toml").read_text()
-    text = text.replace("{project}/urdf/payload.urdf", "payload.urdf")
+    text = replace_once(text, "{project}/urdf/payload.urdf", "payload.urdf")
     text = text.replace("{project}/", f"{current_project().root}/")  # the design, in place
     (tmp_path / "hand.toml").write_text(text)
     bare = load_hand(tmp_path / "hand.toml")

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import tomllib
-from conftest import DESIGN
+from conftest import DESIGN, replace_once
 
 from payload.cli import main
 from payload.design import load_design
@@ -100,7 +100,7 @@ def test_bad_sweep_input_leaves_no_numbered_folder_in_the_project(tmp_path, caps
     assert main(argv) == 2
     assert "not a design key" in capsys.readouterr().err
     text = project.design_path.read_text()
-    project.design_path.write_text(text.replace("middle = 0.0361 ", "middle = 0.005 "))
+    project.design_path.write_text(replace_once(text, "middle = 0.0361 ", "middle = 0.005 "))
     assert main([*argv[:-1], "rail.travel=0.04,0.05"]) == 2
     assert "finger.lengths.middle" in capsys.readouterr().err
     assert not list(project.runs_dir.glob("sweep-*"))
