@@ -36,14 +36,16 @@ import pinocchio as pin
 from payload.design.tree import MANIPULATION_JOINTS
 from payload.retarget.collision import (
     _points,
-    _segment_distance_ca,
     enclosing_capsule,
     link_geometry,
     pad_links,
+    structure_boxes,
+)
+from payload.retarget.collision_distance import (
+    _segment_distance_ca,
     segment_box_distance_expr,
     segment_box_distances,
     segment_distances,
-    structure_boxes,
 )
 from payload.retarget.features import PairKinematics
 from payload.retarget.hand import HandDescription, load_hand

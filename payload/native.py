@@ -1,4 +1,4 @@
-"""Native code: C sources compiled with the system compiler, cached on disk, loaded by ctypes.
+"""Native kernels: C loaded by ctypes, checked against the numpy code, and the check stamps.
 
 The retargeting solvers (:mod:`payload.retarget.compiled`) and the 50 Hz loop's compiled
 kernels (:mod:`payload.sim.allocation_c`, :mod:`payload.sim.vehicle_c`,
@@ -10,20 +10,16 @@ kernels (:mod:`payload.sim.allocation_c`, :mod:`payload.sim.vehicle_c`,
 :mod:`payload.teleop.operator_c`, :mod:`payload.retarget.targets_c`,
 :mod:`payload.trials.foxglove_c`, :mod:`payload.trials.messages_c`,
 :mod:`payload.trials.codec_c`) build their shared
-libraries here. A library is named by the hash of its code, the compiler, the flags, the
-machine and whatever else its caller says it depends on (``key_parts``; a kernel compiled
-against MuJoCo's headers, MuJoCo's version), so a stale one is never loaded; a failed
-compilation leaves its log beside the cache.
+libraries through here: compiled and cached by :mod:`payload.native_build` (named by the
+hash of their code, the compiler, the flags, the machine and whatever else their caller
+says they depend on), calling numpy's CBLAS and MuJoCo's functions at the addresses
+:mod:`payload.native_symbols` finds. Both modules' names are importable from here too.
 
 Each kernel checks itself against the numpy code when built: in full the first time
 (:func:`probes`), and on a short prefix of its probes once a full check passed, in this
 process or in an earlier one that left a stamp beside the library (:func:`check_stamp`:
 named by the library file, the check's key, the workbench's sources, the versions and the
 processor).
-
-The flags keep IEEE arithmetic (no ``-ffast-math``, no contraction into fused
-multiply-adds), so compiled code that does the same operations in the same order as
-numpy gives numpy's bits.
 """
 
 from __future__ import annotations
@@ -36,180 +32,35 @@ from collections.abc import Callable, Hashable, Sequence
 from pathlib import Path
 from typing import Any
 
-from payload.cache import cache_dir, dist_version, sources_digest
-from payload.safeio import replace_file
-
-CFLAGS: tuple[str, ...] = ("-O3", "-ffp-contract=off", "-fPIC", "-shared")
-"""No -ffast-math and no contraction: IEEE arithmetic, so -O3 gives the bits -O1 gave."""
-
-OPTIONAL_CFLAGS: tuple[str, ...] = ("-fno-semantic-interposition",)
-"""Added when the compiler accepts them (:func:`flags`). ``-fno-semantic-interposition``:
-generated code's helpers (``casadi_sq``, ...) are global functions; without it,
-position-independent code calls every one of them through the PLT instead of inlining it
-(a paper-budget solve with collisions took about 1.2 to 1.3 times as long)."""
-
-
-@functools.cache
-def flags(compiler: str) -> tuple[str, ...]:
-    """The compile flags for ``compiler``: :data:`CFLAGS` and those of
-    :data:`OPTIONAL_CFLAGS` it accepts (an older compiler without one still builds);
-    the answer is kept in the cache, named by the compiler's file and the flags tried."""
-    import hashlib
-
-    try:
-        seen = Path(compiler).resolve().stat()
-    except OSError:
-        seen = None
-    known = None
-    if seen is not None:
-        key = hashlib.sha256(
-            "\n".join(
-                [str(Path(compiler).resolve()), str(seen.st_size), str(seen.st_mtime_ns),
-                 *CFLAGS, "--", *OPTIONAL_CFLAGS]
-            ).encode()
-        ).hexdigest()[:20]  # fmt: skip
-        known = cache_dir() / f"flags_{key}.txt"
-        try:
-            kept = tuple(known.read_text().split("\n"))
-            if kept[: len(CFLAGS)] == CFLAGS and set(kept[len(CFLAGS) :]) <= set(OPTIONAL_CFLAGS):
-                return kept
-        except OSError:
-            pass
-    import subprocess
-    import tempfile
-
-    out = list(CFLAGS)
-    with tempfile.TemporaryDirectory() as tmp:
-        src = Path(tmp) / "probe.c"
-        src.write_text("int payload_probe(void) { return 0; }\n")
-        for flag in OPTIONAL_CFLAGS:
-            proc = subprocess.run(
-                [compiler, *out, flag, "-o", str(Path(tmp) / "probe.so"), str(src)],
-                capture_output=True,
-                check=False,
-            )
-            if proc.returncode == 0:
-                out.append(flag)
-    if known is not None:
-        try:
-            known.parent.mkdir(parents=True, exist_ok=True)
-            replace_file(known, "\n".join(out))
-        except OSError:  # a read-only cache: asked again in the next process
-            pass
-    return tuple(out)
-
-
-def find_compiler() -> str | None:
-    """The C compiler: ``$CC``, else ``cc``, ``gcc`` or ``clang`` on the path (None: none)."""
-    import shutil
-
-    cc = os.environ.get("CC") or "cc"
-    return shutil.which(cc) or shutil.which("gcc") or shutil.which("clang")
-
-
-def build_library(
-    name: str,
-    sources: dict[str, str],
-    compiler: str,
-    *,
-    prelude: str = "",
-    key_parts: Sequence[str] = (),
-    error: Callable[[str], Exception] = RuntimeError,
-    what: str = "native code",
-    include_dirs: Sequence[str] = (),
-    link: Sequence[str] = (),
-) -> Path:
-    """C ``sources`` (file name -> code, each prefixed with ``prelude``) compiled into one
-    shared library under :func:`~payload.cache.cache_dir`, or the cached one. Headers
-    are searched in ``include_dirs`` too, and the static libraries ``link`` (paths) are
-    linked in (what they hold belongs in ``key_parts``: a version).
-
-    Raises:
-        ``error(message)``: The compiler failed; the message names ``what`` and the log.
-    """
-    import hashlib
-    import platform
-    import subprocess
-    import tempfile
-
-    key = hashlib.sha256(
-        "\n".join(
-            [
-                prelude,
-                *(f"{k}\n{v}" for k, v in sorted(sources.items())),
-                compiler,
-                *flags(compiler),
-                platform.machine(),
-                *include_dirs,
-                *link,
-                *key_parts,
-            ]
-        ).encode()
-    ).hexdigest()[:20]
-    directory = cache_dir()
-    lib_path = directory / f"{name}_{key}.so"
-    if lib_path.is_file():
-        return lib_path
-    directory.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory(dir=directory) as tmp:
-        paths = []
-        for file_name, code in sources.items():
-            paths.append(Path(tmp) / file_name)
-            paths[-1].write_text(prelude + code)
-        out = Path(tmp) / "lib.so"
-        proc = subprocess.run(
-            [
-                compiler,
-                *flags(compiler),
-                *(f"-I{d}" for d in include_dirs),
-                "-o",
-                str(out),
-                *map(str, paths),
-                *link,
-                "-lm",
-            ],
-            capture_output=True,
-            text=True,
-            check=False,
-        )
-        if proc.returncode != 0:
-            log = directory / f"{name}_{key}.log"
-            log.write_text(
-                f"$ {' '.join(proc.args)}\nexit {proc.returncode}\n"
-                f"--- stdout\n{proc.stdout}--- stderr\n{proc.stderr}"
-            )
-            raise error(
-                f"compiling {what} failed ({Path(compiler).name} "
-                f"exit {proc.returncode}); log: {log}"
-            )
-        os.replace(out, lib_path)
-    (directory / f"{name}_{key}.log").unlink(missing_ok=True)  # an older failure's
-    prune(directory, name)
-    return lib_path
-
-
-def prune(directory: Path, name: str, keep: int = 8) -> None:
-    """Delete all but the ``keep`` newest libraries of one name (older designs)."""
-    libs = sorted(directory.glob(f"{name}_*.so"), key=lambda p: p.stat().st_mtime, reverse=True)
-    for old in libs[keep:]:
-        for path in (old, *directory.glob(f"{old.stem}.*{CHECK_SUFFIX}")):
-            try:
-                path.unlink()
-            except OSError:  # pragma: no cover - another process may have removed it
-                pass
-
+from payload.cache import dist_version, sources_digest
+from payload.native_build import (
+    CFLAGS,
+    CHECK_SUFFIX,
+    OPTIONAL_CFLAGS,
+    build_library,
+    find_compiler,
+    flags,
+    prune,
+)
+from payload.native_symbols import (
+    CBLAS_COL_MAJOR,
+    CBLAS_NO_TRANS,
+    CBLAS_ROW_MAJOR,
+    NUMPY_BLAS_CORE,
+    NUMPY_DDOT,
+    NUMPY_DGEMV,
+    gemv_layout,
+    loaded_symbol,
+    mujoco_function,
+    mujoco_headers,
+    numpy_blas,
+    numpy_dgemv,
+)
 
 NATIVE_ENV = "PAYLOAD_NATIVE"
 """Set to ``0`` to run the numpy code of every kernel loaded by :func:`load_kernel` (the
 50 Hz loop's; the same results). The retargeting solvers' generated C is not affected."""
 
-
-CBLAS_ROW_MAJOR = 101
-"""CBLAS's ``CblasRowMajor``."""
-CBLAS_COL_MAJOR = 102
-"""CBLAS's ``CblasColMajor``."""
-CBLAS_NO_TRANS = 111
-"""CBLAS's ``CblasNoTrans``."""
 
 BLAS_C = f"""#include <math.h>
 #include <stdint.h>
@@ -257,10 +108,11 @@ def load_kernel(
     include_dirs: Sequence[str] = (),
     link: Sequence[str] = (),
 ) -> ctypes.CDLL | None:
-    """A compiled kernel's library (``source`` built by :func:`build_library` as
-    ``name``), or None when the numpy code is to run: :data:`NATIVE_ENV` is ``0``, there
-    is no C compiler, or the build fails (said on ``logger``, the compiler's log kept).
-    The kernel's caller still checks it against the numpy code before using it."""
+    """A compiled kernel's library (``source`` built by
+    :func:`~payload.native_build.build_library` as ``name``), or None when the numpy code
+    is to run: :data:`NATIVE_ENV` is ``0``, there is no C compiler, or the build fails
+    (said on ``logger``, the compiler's log kept). The kernel's caller still checks it
+    against the numpy code before using it."""
     if os.environ.get(NATIVE_ENV, "1") == "0":
         return None
     compiler = find_compiler()
@@ -437,8 +289,8 @@ def check_stamp(lib: ctypes.CDLL, key: Hashable) -> Path:
     exists then): beside the library, named by the library, ``key`` and what the check's
     answer depends on besides the C source (:func:`_checked_with`, the library file's size
     and time), so a change to any of them asks for a full check again. :func:`passed`
-    deletes the stamps of the same library and key it replaces, :func:`prune` all of a
-    library's with it."""
+    deletes the stamps of the same library and key it replaces,
+    :func:`~payload.native_build.prune` all of a library's with it."""
     import hashlib
 
     path = Path(lib._name)
@@ -451,8 +303,6 @@ def check_stamp(lib: ctypes.CDLL, key: Hashable) -> Path:
     env_part = hashlib.sha256(f"{_checked_with()}\n{built}".encode()).hexdigest()[:16]
     return path.with_name(f"{path.stem}.{key_part}.{env_part}{CHECK_SUFFIX}")
 
-
-CHECK_SUFFIX = ".checked"
 
 _SOURCES = sources_digest()
 """The workbench's sources as this process imported them (the numpy code its kernels are
@@ -509,20 +359,6 @@ def _numpy_version() -> str:
     return numpy.__version__
 
 
-NUMPY_DGEMV = "scipy_cblas_dgemv64_"
-"""The CBLAS ``dgemv`` of the OpenBLAS numpy's wheels bundle (64-bit integers), the kernel
-numpy's ``matmul`` runs for a contiguous matrix times a vector (numpy 2's wheels; numpy
-1.26's name it without the ``scipy_`` prefix, :func:`numpy_blas` tries both)."""
-
-NUMPY_DDOT = "scipy_cblas_ddot64_"
-"""Its CBLAS ``ddot``, what numpy's ``dot`` of two float64 vectors runs."""
-
-
-NUMPY_BLAS_CORE = "scipy_openblas_get_corename64_"
-"""OpenBLAS's name for the kernels it picked for this processor (``SkylakeX``, ``Haswell``,
-...; ``OPENBLAS_CORETYPE`` forces others): numpy's ``dot`` and ``matmul`` run them, so a
-trial's last bits differ between processors that get different kernels."""
-
 RESULT_PACKAGES: tuple[tuple[str, str], ...] = (
     ("numpy", "numpy"),
     ("scipy", "scipy"),
@@ -550,82 +386,6 @@ def environment() -> dict[str, str | None]:
         "machine": platform.machine(),
         "openblas_core": core.decode() if core else None,
     }
-
-
-def loaded_symbol(library: str, symbol: str) -> int | None:
-    """The address of ``symbol`` in a shared library this process has loaded whose path
-    contains ``library`` (the very code the Python package calls), or None: not loaded,
-    no such symbol, or no ``/proc/self/maps`` (not Linux)."""
-    try:
-        maps = Path("/proc/self/maps").read_text().splitlines()
-    except OSError:
-        return None
-    seen: set[str] = set()
-    for line in maps:
-        fields = line.split(maxsplit=5)  # the path, the sixth field, may hold spaces
-        path = fields[5].strip() if len(fields) == 6 else ""
-        if library not in Path(path).name or path in seen or not path.startswith("/"):
-            continue
-        seen.add(path)
-        try:
-            fn = getattr(ctypes.CDLL(path), symbol)
-        except (OSError, AttributeError):
-            continue
-        return ctypes.cast(fn, ctypes.c_void_p).value
-    return None
-
-
-@functools.cache
-def numpy_blas(symbol: str) -> int | None:
-    """The address of one of numpy's own CBLAS functions (:data:`NUMPY_DGEMV`,
-    :data:`NUMPY_DDOT`), or of OpenBLAS's :data:`NUMPY_BLAS_CORE`, in the OpenBLAS numpy
-    loaded on import, or None (numpy built against another BLAS, or not on Linux). Calling
-    it as numpy does gives numpy's bits on every machine (OpenBLAS picks its kernel by the
-    processor, for both alike)."""
-    import numpy  # noqa: F401 - loads the OpenBLAS numpy links
-
-    found = loaded_symbol("openblas", symbol)
-    if found is None and symbol.startswith("scipy_"):  # numpy 1.26's wheels
-        found = loaded_symbol("openblas", symbol.removeprefix("scipy_"))
-    return found
-
-
-def numpy_dgemv() -> int | None:
-    """:func:`numpy_blas` of :data:`NUMPY_DGEMV`."""
-    return numpy_blas(NUMPY_DGEMV)
-
-
-def gemv_layout(a: Any) -> tuple[int, int] | None:
-    """How numpy's ``matmul`` hands the float64 matrix ``a`` (m, n) to ``dgemv``: (CBLAS
-    order, leading dimension), row-major for C order and column-major for Fortran order
-    (numpy passes the memory as it lies), or None for other layouts."""
-    if a.dtype != "float64" or a.ndim != 2:
-        return None
-    if a.flags.c_contiguous:
-        return CBLAS_ROW_MAJOR, a.shape[1]
-    if a.flags.f_contiguous:
-        return CBLAS_COL_MAJOR, a.shape[0]
-    return None
-
-
-def mujoco_headers() -> tuple[str, str] | None:
-    """MuJoCo's C headers as its Python package ships them (the directory to include
-    ``<mujoco/mujoco.h>`` from) and the package's version (what they describe), or None."""
-    import mujoco
-
-    include = Path(mujoco.__file__).parent / "include"
-    if not (include / "mujoco" / "mujoco.h").is_file():
-        return None
-    return str(include), mujoco.__version__
-
-
-@functools.cache
-def mujoco_function(name: str) -> int | None:
-    """The address of MuJoCo's C function ``name`` in the library its Python bindings
-    loaded (``libmujoco``), or None."""
-    import mujoco  # noqa: F401 - loads libmujoco
-
-    return loaded_symbol("libmujoco", name)
 
 
 __all__ = [

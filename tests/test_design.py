@@ -552,8 +552,8 @@ def test_build_says_which_meshes_it_removed(tmp_path, capsys):
 # ---------------------------------------------------------------- stale models (issue 30)
 
 MODEL_READERS = {  # every command that reads the generated models -> its handler
-    "report envelope": ("payload.envelope.cli", "run_envelope"),
-    "report reach": ("payload.envelope.cli", "run_reach"),
+    "report envelope": ("payload.envelope.cli_runs", "run_envelope"),
+    "report reach": ("payload.envelope.cli_runs", "run_reach"),
     "report all": ("payload.envelope.cli", "_cmd_all"),
     "review": ("payload.review.cli", "_cmd_review"),
     "trial": ("payload.trials.cli", "_cmd_trial"),

@@ -584,7 +584,7 @@ def test_write_stowed_writes_the_proposal_into_the_stowed_table_and_nothing_else
     import dataclasses
 
     from payload.design import load_design
-    from payload.envelope.cli import _write_stowed
+    from payload.envelope.cli_runs import _write_stowed
     from payload.envelope.fit_results import PostureSearch
 
     design = tmp_path / "design.toml"

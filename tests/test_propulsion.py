@@ -8,13 +8,12 @@ import pytest
 from scipy.optimize import linprog, lsq_linear
 
 from payload.sim import SimDriver, WorldConfig, build_world
+from payload.sim.allocation import _bvls, _lstsq
 from payload.sim.propulsion import (
     BVLS_TOL,
     INCH,
     Propulsion,
     PropulsionError,
-    _bvls,
-    _lstsq,
     shared_propulsion,
 )
 from payload.sim.vehicle import FLIGHT_MODES, MassProperties, VehicleController, VehicleError
@@ -363,7 +362,8 @@ def test_later_searches_and_facet_solves_run_the_short_check_and_still_refuse(
     refuses the kernel."""
     from payload import native
     from payload.sim import allocation_c, facet_c
-    from payload.sim.propulsion import N_NOZZLES, _facet_solve
+    from payload.sim.allocation import _facet_solve
+    from payload.sim.nozzles import N_NOZZLES
 
     real = Propulsion._extent_numpy
     asked: list[int] = []

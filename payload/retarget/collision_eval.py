@@ -44,7 +44,7 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-from payload.retarget.collision import (
+from payload.retarget.collision_distance import (
     _TINY,
     _point_segment_ca,
     _point_segment_np,

@@ -37,7 +37,7 @@ _CACHE_VERSION = "pair-range-1"
 
 def disk_key(pk: PairKinematics, seed: int, collisions: bool, sources: Sequence[ModuleType]) -> str:
     """The cache key of one range: the model, the settings and the computing code."""
-    from payload.retarget import collision
+    from payload.retarget import collision, collision_distance
 
     parts = [
         _CACHE_VERSION,
@@ -49,6 +49,7 @@ def disk_key(pk: PairKinematics, seed: int, collisions: bool, sources: Sequence[
         # the code that computes it: a change of it or of the collision model is a new key
         *(inspect.getsource(m) for m in sources),
         inspect.getsource(collision),
+        inspect.getsource(collision_distance),
     ]
     if pk.hand.design is not None:
         parts.append(Path(pk.hand.design).read_text())

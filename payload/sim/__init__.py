@@ -17,7 +17,7 @@ _LAZY: dict[str, str] = {
     "ContactMonitor": "payload.sim.contact",
     "opposing": "payload.sim.contact",
     "SimDriver": "payload.sim.driver",
-    "WorldState": "payload.sim.driver",
+    "WorldState": "payload.sim.readout",
     "DEFAULT_FLIGHT_MODE": "payload.sim.vehicle",
     "FLIGHT_MODES": "payload.sim.vehicle",
     "FlightMode": "payload.sim.vehicle",

@@ -1,4 +1,4 @@
-"""The simulator's error type."""
+"""The simulator's error types."""
 
 from __future__ import annotations
 
@@ -7,3 +7,7 @@ from payload.errors import PayloadError
 
 class SimError(PayloadError):
     """The simulated world cannot be built or driven as asked."""
+
+
+class PropulsionError(PayloadError):
+    """Bad propulsion parameters or wrench requests."""

@@ -31,7 +31,8 @@ from payload.teleop.calibration import CalibrationProcedure
 from payload.teleop.channels import BaseConfig
 from payload.teleop.handmodel import HandModel, held_hand
 from payload.teleop.hands import JOINTS_SHAPE, Hand, HandFrame, round_to_grid
-from payload.teleop.operator_c import (
+from payload.teleop.operator_c import compiled_act
+from payload.teleop.operator_layout import (
     AIMLESS_M,
     ARRIVAL_M,
     DROPOUT_S,
@@ -42,7 +43,6 @@ from payload.teleop.operator_c import (
     REST_SPEED,
     STOP_SHORT_M,
     TURN_ABOVE_RAD,
-    compiled_act,
 )
 from payload.vecmath import norm, read_only
 

@@ -1,0 +1,309 @@
+"""What ``payload report envelope`` and ``payload report reach`` run, from the parsed
+arguments to the written report: the project, the design and the output folder, the
+report's provenance, the loaded geometry, the progress bar and the models that follow the
+design, then the analysis, its report and the lines a command prints after its verdict.
+
+The commands themselves (their options, verdicts, JSON and exit codes) are
+:mod:`payload.envelope.cli`, which re-exports :func:`run_envelope`, :func:`run_reach`,
+:func:`reach_lines` and :func:`written_lines`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from payload.cliutil import command_project, out_folder
+
+if TYPE_CHECKING:
+    from payload.design.params import Design
+    from payload.envelope.fit import EnvelopeAnalysis
+    from payload.envelope.geometry import PayloadGeometry
+    from payload.envelope.grasp import GraspFeature
+    from payload.envelope.reach import ReachAnalysis
+    from payload.envelope.vehicle import Vehicle
+    from payload.project import Project
+
+
+def _project(args: argparse.Namespace) -> Project:
+
+    return command_project(args, args.design)
+
+
+def _design_path(args: argparse.Namespace) -> Path:
+    return Path(args.design).expanduser() if args.design else _project(args).design_path
+
+
+def _out_dir(args: argparse.Namespace) -> Path:
+    """``--out``, else the project's ``analyses/`` when the design is the project's own: a
+    report follows its design, so another design's (``--design F``, F not the project's
+    ``cad/design.toml``) needs an ``--out`` and never replaces the project's report."""
+    out = out_folder(args.out)
+    if out is not None:
+        return out
+    project = _project(args)
+    if args.design and Path(args.design).expanduser().resolve() != project.design_path.resolve():
+        from payload.envelope.vehicle import load_design_and_vehicle
+        from payload.errors import PayloadError
+
+        load_design_and_vehicle(Path(args.design))  # a bad file says what is wrong with it
+        raise PayloadError(
+            f"--design {args.design} is not the project's design ({project.design_path}): "
+            f"its report would replace the project's own in {project.analyses_dir}; give "
+            "--out DIR"
+        )
+    return project.analyses_dir
+
+
+def _recorder(args: argparse.Namespace) -> Callable[[dict[str, Any]], dict[str, Any]]:
+    """Adds ``provenance`` (what the report was computed from) to a report's JSON. The
+    files inside the project omit the project's absolute path; stdout adds ``project``."""
+    from payload.project import provenance
+
+    prov = provenance(_project(args), _design_path(args))
+    prov.pop("project")
+    return lambda data: {**data, "provenance": prov}
+
+
+def _stdout_json(args: argparse.Namespace, data: dict[str, Any]) -> dict[str, Any]:
+    return {**data, "project": str(_project(args).root)}
+
+
+def _load(args: argparse.Namespace) -> tuple[Design, Vehicle, PayloadGeometry]:
+    from payload.design import build_tree
+    from payload.envelope.geometry import PayloadGeometry
+    from payload.envelope.vehicle import load_design_and_vehicle, with_bay_size
+
+    design, vehicle = load_design_and_vehicle(_design_path(args))
+    if args.bay_size is not None:
+        vehicle = with_bay_size(vehicle, args.bay_size)
+    return design, vehicle, PayloadGeometry(build_tree(design))
+
+
+@contextmanager
+def _progress(enabled: bool) -> Iterator[Callable[[str, float], None]]:
+    """A rich progress bar on stderr; yields ``update(stage, fraction)``."""
+    if not enabled:
+        yield lambda stage, fraction: None
+        return
+    from rich.console import Console
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    console = Console(stderr=True)
+    with Progress(
+        TextColumn("{task.description:<24}"),
+        BarColumn(),
+        TextColumn("{task.percentage:>3.0f}%"),
+        TimeElapsedColumn(),
+        console=console,
+        transient=True,
+    ) as bar:
+        tasks: dict[str, int] = {}
+
+        def update(stage: str, fraction: float) -> None:
+            if stage not in tasks:
+                tasks[stage] = bar.add_task(stage, total=1.0)
+            bar.update(tasks[stage], completed=min(max(fraction, 0.0), 1.0))
+
+        yield update
+
+
+def _command(args: argparse.Namespace, name: str) -> str:
+    parts = ["payload report", name]
+    if args.design:
+        parts.append(f"--design {args.design}")
+    if args.bay_size is not None:
+        parts.append("--bay-size " + " ".join(f"{v:g}" for v in args.bay_size))
+    if name == "reach":
+        parts.append(f"--samples {args.samples}")
+        if args.seed:
+            parts.append(f"--seed {args.seed}")
+        if args.thickness:
+            parts.append("--thickness " + " ".join(f"{v:g}" for v in args.thickness))
+    if name == "envelope" and args.search is not None:
+        parts.append("--search" if args.search else "--no-search")
+    return " ".join(parts)
+
+
+def _models_follow(args: argparse.Namespace) -> None:
+    """The one rule for stale models (docs/design-loop.md): rebuild them, saying so."""
+    from payload.design import models_follow_design
+
+    project = _project(args)
+    models_follow_design(project.design_path, project.root, json=args.json)
+
+
+def run_envelope(args: argparse.Namespace) -> tuple[EnvelopeAnalysis, dict[str, Path], list[str]]:
+    """Analyse the stowed payload (after ``--write-stowed``'s write) and write its report.
+
+    Returns:
+        The analysis, the paths written, and the lines to print after the verdict.
+    """
+    from payload.envelope.fit import analyse_envelope
+    from payload.envelope.report import write_envelope
+    from payload.errors import PayloadError
+
+    if args.write_stowed and args.search is False:
+        raise PayloadError(
+            "--write-stowed writes the stowed-posture search's proposal: drop --no-search"
+        )
+    t0 = time.perf_counter()
+    _out_dir(args)  # an --out that cannot take the report says so before the analysis
+    _models_follow(args)
+    _, vehicle, geom = _load(args)
+    search = True if args.write_stowed and args.search is None else args.search
+    with _progress(not args.json and sys.stderr.isatty()) as progress:
+        analysis = analyse_envelope(geom, vehicle, search=search, progress=progress)
+    lines = [_search_line(analysis)] if analysis.search is not None else []
+    if args.write_stowed:
+        written = _write_stowed(args, analysis)
+        lines.append(written)
+        if written.startswith("wrote"):  # the models, then the report, follow the design
+            _models_follow(args)
+            _, vehicle, geom = _load(args)
+            analysis = analyse_envelope(geom, vehicle, search=False)
+    analysis.seconds = time.perf_counter() - t0
+    paths = write_envelope(
+        geom, analysis, _out_dir(args), _command(args, "envelope"), _recorder(args),
+        force=args.force,
+    )  # fmt: skip
+    return analysis, paths, lines
+
+
+def _search_line(analysis: EnvelopeAnalysis) -> str:
+    s, c = analysis.search, analysis.suggested
+    assert s is not None and c is not None
+    fing = ", ".join(f"{v:.4f}" for v in s.finger)
+    return (
+        f"stowed-posture search: finger [{fing}] rad -> min clearance "
+        f"{s.clearance * 1e3:.2f} mm ({s.limited_by}); {'passes' if c.passed else 'fails'}"
+    )
+
+
+def _write_stowed(args: argparse.Namespace, analysis: EnvelopeAnalysis) -> str:
+    """Write the search's proposed finger posture into the design's ``[stowed]`` table
+    (only that value and its comment change); returns the line to print."""
+    from payload.design.edit import set_in_text
+    from payload.safeio import replace_file
+
+    s, c = analysis.search, analysis.suggested
+    assert s is not None and c is not None
+    path = _design_path(args)
+    if not c.passed:
+        return f"not written into {path}: the proposed posture fails too"
+    finger = [round(v, 4) + 0.0 for v in s.finger]  # + 0.0: no "-0.0" in the file
+    comment = (
+        "written by `payload report envelope --write-stowed` (stowed-posture search, "
+        f"min clearance {s.clearance * 1e3:.2f} mm)"
+    )
+    text = path.read_text(encoding="utf-8")
+    edited = set_in_text(text, "stowed.finger", finger, comment)
+    if edited == text:
+        return f"{path} already holds the proposed posture"
+    replace_file(path, edited)
+    return f"wrote [stowed] finger = {finger} into {path}"
+
+
+def written_lines(paths: dict[str, Path], stem: str) -> list[str]:
+    """What a report wrote: the change of its headline figures, then the files."""
+    from payload.envelope.verdict import headline_changes
+
+    if set(paths) == {"timing"}:
+        return [f"report unchanged (figures as before); timings in {paths['timing']}"]
+    lines = []
+    if "prev" in paths:
+        before = json.loads(paths["prev"].read_text())
+        lines.append(headline_changes(stem, before, json.loads(paths["json"].read_text())))
+    return [*lines, "wrote " + ", ".join(str(p) for p in paths.values())]
+
+
+def _check_reach_args(args: argparse.Namespace) -> None:
+    """Bad numbers raise :class:`ReachError` (exit 2)."""
+    from payload.envelope.pairs import MIN_SAMPLES, ReachError
+
+    if args.samples < MIN_SAMPLES:
+        raise ReachError(f"--samples must be at least {MIN_SAMPLES} (got {args.samples})")
+    if args.seed < 0:
+        raise ReachError(f"--seed must not be negative (got {args.seed})")
+    if args.workers is not None and args.workers < 1:
+        raise ReachError(f"--workers must be at least 1 (got {args.workers})")
+    for t in args.thickness or ():
+        if not t >= 0 or t > 1.0:
+            raise ReachError(f"--thickness must be between 0 and 1 m (got {t})")
+
+
+def _grasp_features(args: argparse.Namespace) -> list[GraspFeature]:
+    """The CTB's features and the ``--thickness`` ones (checked by :func:`_check_reach_args`)."""
+    from payload.envelope.reach import CTB_FEATURES, GraspFeature
+
+    features = list(CTB_FEATURES)
+    for t in args.thickness or ():
+        features.append(GraspFeature(f"given thickness {t * 1e3:.1f} mm", t, "command line"))
+    return features
+
+
+def run_reach(args: argparse.Namespace) -> tuple[ReachAnalysis, dict[str, Path]]:
+    """Sample the deployed workspace and write the reach report; (analysis, paths).
+
+    The collision check starts in forked workers before the rest of the analysis is
+    imported (:mod:`payload.envelope.reach_start`), so that those imports overlap it."""
+    from payload.envelope.reach_start import start_check
+
+    t0 = time.perf_counter()
+    _project(args)
+    _check_reach_args(args)
+    _out_dir(args)  # an --out that cannot take the report says so before the sampling
+    _models_follow(args)
+    _, vehicle, geom = _load(args)
+    with _progress(not args.json and sys.stderr.isatty()) as progress:
+        started = start_check(geom, vehicle, args.samples, args.seed, args.workers, progress)
+        from payload.envelope.reach import analyse_reach
+
+        analysis = analyse_reach(
+            geom,
+            vehicle,
+            samples=args.samples,
+            seed=args.seed,
+            features=_grasp_features(args),
+            workers=args.workers,
+            progress=progress,
+            started=started,
+        )
+    from payload.envelope.report import write_reach
+
+    command = _command(args, "reach")
+    paths = write_reach(
+        geom, analysis, _out_dir(args), command, t_start=t0, record=_recorder(args),
+        force=args.force,
+    )  # fmt: skip
+    return analysis, paths
+
+
+def reach_lines(analysis: ReachAnalysis) -> list[str]:
+    """The reach report's figures as terminal lines (after its verdict)."""
+    lines = [
+        f"assumption: {analysis.vehicle.assumption}",
+        f"{analysis.samples:,} samples in {analysis.seconds:.1f} s; fingertips reach "
+        f"{analysis.below_vehicle * 1e3:.1f} mm below the vehicle; self-collision-free "
+        f"{analysis.collision_free_fraction:.1%}",
+    ]
+    for pr in analysis.pairs:
+        closes = [g.feature.name for g in pr.grasps if g.closes]
+        lines.append(
+            f"pair {pr.name}: span {pr.span_min * 1e3:.1f} .. {pr.span.maximum * 1e3:.1f} mm; "
+            f"closes on: {', '.join(closes) if closes else 'nothing checked'}"
+        )
+    lines.append(
+        f"rail spacing {analysis.rail_spacing[0] * 1e3:.1f} .. "
+        f"{analysis.rail_spacing[1] * 1e3:.1f} mm"
+    )
+    return lines
+
+
+__all__ = ["reach_lines", "run_envelope", "run_reach", "written_lines"]
