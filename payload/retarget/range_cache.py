@@ -37,7 +37,7 @@ _CACHE_VERSION = "pair-range-1"
 
 def disk_key(pk: PairKinematics, seed: int, collisions: bool, sources: Sequence[ModuleType]) -> str:
     """The cache key of one range: the model, the settings and the computing code."""
-    from payload.retarget import collision, collision_distance
+    from payload.retarget import collision, collision_distance, collision_geometry
 
     parts = [
         _CACHE_VERSION,
@@ -50,6 +50,7 @@ def disk_key(pk: PairKinematics, seed: int, collisions: bool, sources: Sequence[
         *(inspect.getsource(m) for m in sources),
         inspect.getsource(collision),
         inspect.getsource(collision_distance),
+        inspect.getsource(collision_geometry),
     ]
     if pk.hand.design is not None:
         parts.append(Path(pk.hand.design).read_text())
