@@ -21,11 +21,10 @@ from payload.cliutil import (
     add_json,
     add_replay,
     command_project,
-    default_out,
     emit_json,
-    kept_if_used,
     need_device,
     out_folder,
+    results_folder,
 )
 from payload.errors import PayloadError
 from payload.folders import CAMPAIGN_FILES, HANDS, RECORDING, TRIAL_FILES
@@ -165,10 +164,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
     out_folder(args.out, holding=(*TRIAL_FILES, *CAMPAIGN_FILES))
     if (getattr(args, "device", None) is None) == (not args.emulator):
         raise HwUsageError("give either --device DEV or --emulator")
-    existed = args.out is not None and Path(args.out).exists()
-    out = Path(args.out) if args.out else default_out(project, "hw")
-    with kept_if_used(out, made=not existed):  # a bus that did not answer: no folder left
-        result = _run_hardware(args, out, replay)
+    with results_folder(args.out, project, "hw") as out:
+        result = _run_hardware(args, out, replay)  # a bus that did not answer: no folder left
     result["out"] = str(out)
     if args.json:
         emit_json(result)

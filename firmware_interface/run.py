@@ -305,11 +305,12 @@ def run_hardware_trial(
     from payload.native import environment
     from payload.project import current_project, provenance
     from payload.trials.metrics import confirmed_definition
+    from payload.trials.preparation import base_filter_for, module_rects
     from payload.trials.recorder import TrialRecorder
-    from payload.trials.runner import base_filter_for, module_rects, step_record
     from payload.trials.safety import recording_scene
     from payload.trials.scoring import finish_trial, write_metrics
     from payload.trials.sources import load_replay
+    from payload.trials.stepobserver import step_record
 
     header, frames = load_replay(replay)  # a trial's log.mcap, or a hands.jsonl
     recorded = header.get("meta") or {}

@@ -10,7 +10,9 @@ helpers from here, never from :mod:`payload.cli` (the dispatcher at the top):
 - the shared options of the vocabulary (docs/cli.md): :func:`add_json`, :func:`add_device`
   (a serial device), :func:`add_replay` (a recording), and :class:`DeprecatedAlias` for
   an old spelling kept for one release with a warning;
-- :func:`default_out`: the numbered default folder of an ``--out`` left out.
+- :func:`default_out`: the numbered default folder of an ``--out`` left out;
+  :func:`results_folder`: a command's results folder (its ``--out``, or that default),
+  removed again when the command made it and fails before writing in it.
 
 This module imports only the standard library and :mod:`payload.project`, so every
 command (``--help`` and ``--version`` included) starts without the numerical stack.
@@ -234,6 +236,24 @@ def default_out(project: Project, prefix: str) -> Path:
     return numbered_folder(project.runs_dir, prefix)
 
 
+@contextlib.contextmanager
+def results_folder(
+    value: str | Path | None, project: Project, prefix: str, *, resolve: bool = False
+) -> Iterator[Path]:
+    """The results folder of a command: its ``--out`` (``value``; ``resolve``: as an
+    absolute path) or, left out, a new numbered ``runs/<prefix>-NNNN`` of ``project``
+    (:func:`default_out`), kept only if used (:func:`kept_if_used`: a folder made for the
+    command, the default or an ``--out`` that did not exist, is removed if the command
+    fails while it is still empty). An ``--out`` is checked first with :func:`out_folder`."""
+    made = value is None or not Path(value).exists()
+    if value:
+        out = Path(value).resolve() if resolve else Path(value)
+    else:
+        out = default_out(project, prefix)
+    with kept_if_used(out, made=made):
+        yield out
+
+
 __all__ = [
     "CheckFailed",
     "DeprecatedAlias",
@@ -249,5 +269,6 @@ __all__ = [
     "kept_if_used",
     "need_device",
     "out_folder",
+    "results_folder",
     "warn",
 ]

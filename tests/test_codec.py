@@ -638,7 +638,7 @@ def test_schema2_recordings_read_and_newer_versions_are_refused(
     a version-2 file (every number a lossless double) reads exactly as written; a file
     newer than the reader is refused with one line, by the reader and by convert."""
     from payload.cli import main
-    from payload.trials import codec
+    from payload.trials import codec, stepgrid
     from payload.trials import recorder as recorder_module
 
     rng = np.random.default_rng(5)
@@ -663,10 +663,10 @@ def test_schema2_recordings_read_and_newer_versions_are_refused(
         mp.setattr(
             codec.StepCodec,
             "_grid_batch",
-            lambda self, fields, walls: codec.GridRows(
+            lambda self, fields, walls: stepgrid.GridRows(
                 none[: len(walls)],
                 none[: len(walls)],
-                np.zeros((len(walls), codec._GRID.size), np.int64),
+                np.zeros((len(walls), stepgrid.GRID.size), np.int64),
                 None,
             ),
         )

@@ -13,10 +13,9 @@ from typing import Any
 from payload.cliutil import (
     CheckFailed,
     command_project,
-    default_out,
     emit_json,
-    kept_if_used,
     out_folder,
+    results_folder,
 )
 from payload.folders import CAMPAIGN_FILES, SWEEP_FILES, TRIAL_FILES, held
 from payload.sweep.grid import SweepError, parse_set
@@ -69,10 +68,8 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
     from payload.design import models_follow_design
 
     models_follow_design(project.design_path, project.root, json=args.json)
-    existed = args.out is not None and Path(args.out).exists()
-    out = Path(args.out).resolve() if args.out else default_out(project, "sweep")
-    with kept_if_used(out, made=not existed):  # bad input found in plan: nothing left
-        points = plan(project, axes, out)
+    with results_folder(args.out, project, "sweep", resolve=True) as out:
+        points = plan(project, axes, out)  # bad input found in plan: nothing left
     workers = args.workers or max(1, min(len(points), os.cpu_count() or 1))
     t0 = time.perf_counter()
     with _progress(not args.json, len(points)) as bar:

@@ -131,13 +131,13 @@ def _patched(timers: _Timers) -> Iterator[None]:
     """Wrap the stage functions (class attributes) for the duration."""
     from payload.sim.driver import SimDriver
     from payload.teleop.pipeline import TeleopPipeline
-    from payload.trials import runner, scoring
+    from payload.trials import preparation, runner, scoring
     from payload.trials.recorder import TrialRecorder
 
     targets = [
         (SimDriver, "__init__", "startup"),
-        (runner, "retargeting", "startup"),
-        (runner, "place_ctb_for_teleop", "startup"),
+        (preparation, "retargeting", "startup"),
+        (preparation, "place_ctb_for_teleop", "startup"),
         (SimDriver, "step", "physics"),
         (SimDriver, "world_state", "contacts"),
         (runner.HeadsetSource, "frame", "operator"),

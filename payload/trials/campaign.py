@@ -25,16 +25,10 @@ from typing import Any
 from payload.project import Project
 from payload.trials.cluster import dask_client
 from payload.trials.scoring import contact_tag, finish_trial
-from payload.trials.summary import (
-    METRIC_KEYS,
-    METRIC_LABELS,
-    PAPER_RESULTS,
-    CampaignError,
-    load_trial_results,
-    summarize,
-    summary_markdown,
-    write_summary,
-)
+from payload.trials.summary import summarize, write_summary
+from payload.trials.summary_fields import METRIC_KEYS, METRIC_LABELS, PAPER_RESULTS, CampaignError
+from payload.trials.summary_markdown import summary_markdown
+from payload.trials.trial_results import load_trial_results
 
 TrialFn = Callable[[int, Path], dict]
 """``trial_fn(seed, out_dir) -> metrics dict`` (what :func:`finish_trial` returns)."""

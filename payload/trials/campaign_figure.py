@@ -1,6 +1,6 @@
 """The campaign figure: each metric's spread over the trials beside the paper's.
 
-One panel per metric the paper summarises (:data:`~payload.trials.summary.METRIC_LABELS`):
+One panel per metric the paper summarises (:data:`~payload.trials.summary_fields.METRIC_LABELS`):
 every trial as a dot, this campaign's median as a bar with its range as a whisker, and
 beside it the paper's median and range (Sec. IV, ten trials). Written by the campaign
 summary as ``fig_campaign.png`` beside ``summary.md``.
@@ -30,7 +30,7 @@ def campaign_figure(
         summary: The summary: ``trials`` (per-trial values), a ``{"median", "min",
             "max"}`` per metric, and ``paper`` (the paper's figures).
         labels: Metric key -> panel title, in panel order
-            (:data:`~payload.trials.summary.METRIC_LABELS`).
+            (:data:`~payload.trials.summary_fields.METRIC_LABELS`).
         title: The figure's title (default: the summary's ``title``, else "Campaign").
 
     Returns:

@@ -3,7 +3,9 @@
 The messages are declared in :mod:`payload.trials.stepmsg` (re-exported here). The schema
 stored in every recording is the ``FileDescriptorSet`` of these messages (MCAP
 ``protobuf`` encoding), so any MCAP tool (``mcap cat``, Foxglove,
-``mcap_protobuf.decoder``) decodes them.
+``mcap_protobuf.decoder``) decodes them. The grid arithmetic of the step numbers is
+:mod:`payload.trials.stepgrid`, the building of a batch's messages (protobuf objects, or
+the compiled serialiser's arrays) :mod:`payload.trials.stepbuild`.
 
 ``payload.trials.Step`` (channel ``/trial/step``): one message per 50 Hz control step.
 Phases and modules are enums. The numbers are stored at a stated resolution
@@ -40,25 +42,38 @@ from __future__ import annotations
 import functools
 import math
 from collections.abc import Callable, Iterator
-from typing import Any, NamedTuple
+from typing import Any
 
 import numpy as np
 
 from payload.schema import N_MANIPULATION
-from payload.trials.codec_c import N_FLAGS, STEP_FLAGS, compiled_steps
+from payload.trials.codec_c import compiled_steps
 from payload.trials.jointcodec import (
-    GRID_INT_LIMIT,
     HAND_GRID_M,
-    IN_HANDS,
     JOINTS_SHAPE,
-    N_JOINT_VALUES,
-    JointRows,
     JointsCodec,
-    fill_joints,
     quantize_joints,
     same_joints,
 )
-from payload.trials.records import FIELD_SPECS, MODULES, PHASES
+from payload.trials.records import MODULES, PHASES
+from payload.trials.stepbuild import (
+    StepBatch,
+    kernel_arrays,
+    pair_fields,
+    pairs_in_cmd,
+    serialize,
+    step_fields,
+)
+from payload.trials.stepgrid import (
+    GRID,
+    GRID_SLICES,
+    PER_UNIT,
+    STEP_GRIDS,
+    GridRows,
+    gathered,
+    grid_fields,
+    grid_rows,
+)
 from payload.trials.stepmsg import (
     FILE_DESCRIPTOR,
     HANDS_MESSAGE,
@@ -72,40 +87,6 @@ from payload.trials.stepmsg import (
     JointsMsg,
     StepMsg,
     schema_data,
-)
-from payload.vecmath import all_reduce
-
-_BOOL_FLAGS = tuple(f for f in STEP_FLAGS if FIELD_SPECS.get(f, ((), None))[1] == "bool")
-"""The step's flags that are the record's booleans (tracked, contact)."""
-_SIZES = {"wall_time": 1, **{name: int(np.prod(shape)) for name, _, shape in STEP_DOUBLES}}
-STEP_GRIDS: tuple[tuple[str, float, int], ...] = tuple(
-    (name, resolution, _SIZES[name])
-    for name, resolution in (
-        ("wall_time", 1e-6),
-        ("t", 1e-9),
-        ("twist_cmd", 1e-9),
-        ("q_cmd", 1e-8),
-        ("deploy_cmd", 1e-8),
-        ("q_meas", 1e-8),
-        ("deploy_meas", 1e-8),
-        ("astrobee_pos", 1e-8),
-        ("astrobee_quat", 1e-10),
-        ("astrobee_twist", 1e-9),
-        ("ctb_pos", 1e-8),
-        ("ctb_quat", 1e-10),
-    )
-)
-"""(field, resolution, size) of the numbers a step stores on a grid, in storage order (sizes
-from :data:`STEP_DOUBLES`; ``wall_time`` is a scalar); resolutions in the field's unit
-(s, m, rad, m/s, rad/s, quaternion components)."""
-
-_GRID = np.concatenate([np.full(n, g) for _, g, n in STEP_GRIDS])
-_PER_UNIT = np.round(1.0 / _GRID)  # grid steps per unit, exact integers: decoded values are
-# k / steps, the double nearest the decimal k * grid (0.24 s reads back as 0.24)
-_GRID_SPLITS = np.cumsum([n for _, _, n in STEP_GRIDS])[:-1]
-_GRID_SLICES: tuple[tuple[str, int, int], ...] = tuple(
-    (name, int(start), int(start) + n)
-    for (name, _, n), start in zip(STEP_GRIDS, np.concatenate([[0], _GRID_SPLITS]))
 )
 
 
@@ -127,36 +108,10 @@ class StepCodec:
         self._prev = None
 
     def _grid_batch(self, fields: dict[str, np.ndarray], walls: list[float]) -> GridRows:
-        """The grid numbers of a batch of steps in turn (:class:`GridRows`; ``fields``:
-        :func:`_gathered`): a step with a non-finite number is stored as doubles, and the
-        next one is a key."""
-        n = len(walls)
-        values = np.empty((n, len(_GRID)))
-        for name, start, stop in _GRID_SLICES:
-            if name == "wall_time":
-                values[:, start] = walls
-            else:
-                values[:, start:stop] = fields[name]
-        k = np.rint(values * _PER_UNIT)  # what round() calls on floats
-        ok = np.isfinite(k).all(axis=1) & ~(np.abs(k) >= GRID_INT_LIMIT).any(axis=1)
-        ki = np.where(ok[:, None], k, 0.0).astype(np.int64)
-        decoded = ki / _PER_UNIT
-        # each stored row's integers less the previous row's, or themselves in a key row
-        # (the first after a flush or a row stored as doubles)
-        before = np.empty(n, dtype=bool)
-        before[1:] = ok[:-1]
-        if n:
-            before[0] = self._prev is not None
-        key = ok & ~before
-        ints = ki.copy()
-        ints[1:] -= ki[:-1]
-        if n and self._prev is not None:
-            ints[0] -= self._prev
-        ints[key] = ki[key]
-        ints[~ok] = 0
-        if n:
-            self._prev = ki[-1] if ok[-1] else None
-        return GridRows(ok, key, ints, decoded)
+        """The grid numbers of a batch of steps in turn (:func:`grid_rows`), carrying the
+        last step's multiples on to the next batch."""
+        rows, self._prev = grid_rows(fields, walls, self._prev)
+        return rows
 
     def encode_batch(
         self,
@@ -185,14 +140,14 @@ class StepCodec:
         # the runtime refuses a negative sequence number (ValueError): it serialises those
         kernel = _steps_kernel() if items and min(it[1] for it in items) >= 0 else None
         if kernel is not None:
-            data = kernel(self._arrays(items, batch), self.grid)
+            data = kernel(kernel_arrays(items, batch), self.grid)
             return [
                 (data[2 * i] if frame is not None else None, data[2 * i + 1])
                 for i, (_, _, _, frame) in enumerate(items)
             ]
-        return self._serialize(items, batch)
+        return serialize(items, batch, self.grid)
 
-    def _rows(self, items: list[tuple[Any, int, float, Any]]) -> _Batch:
+    def _rows(self, items: list[tuple[Any, int, float, Any]]) -> StepBatch:
         """The numbers a batch stores (the grid and joint arithmetic, done for the batch);
         each step's joints refer to its frame's where they are the same."""
         frames = [(i, f) for i, (_, _, _, f) in enumerate(items) if f is not None]
@@ -215,13 +170,13 @@ class StepCodec:
             coded = self.joints[name].encode_many([getattr(items[i][0], name) for i in rows])
             own.append(({i: r for r, i in enumerate(rows)}, coded))
         at = {i: r for r, (i, _) in enumerate(frames)}
-        fields = _gathered([it[0] for it in items])
+        fields = gathered([it[0] for it in items])
         grids = self._grid_batch(fields, [it[2] for it in items])
-        pairs = np.array([_pairs_in_cmd(it[0]) for it in items], dtype=bool).reshape(-1)
-        return _Batch(at, hands, (own[0], own[1]), grids, fields, pairs)
+        pairs = np.array([pairs_in_cmd(it[0]) for it in items], dtype=bool).reshape(-1)
+        return StepBatch(at, hands, (own[0], own[1]), grids, fields, pairs)
 
     def _columns(
-        self, items: list[tuple[Any, int, float, Any]], batch: _Batch
+        self, items: list[tuple[Any, int, float, Any]], batch: StepBatch
     ) -> dict[str, np.ndarray]:
         """What the reader reads back from a batch, column by column: each step's own
         values, its numbers on the grid as the grid's integers give them back, its pair
@@ -236,7 +191,7 @@ class StepCodec:
             cols[name] = batch.fields[name].reshape((n, *shape)).copy()
         grids = batch.grids
         ok = grids.ok
-        for name, start, stop in _GRID_SLICES:
+        for name, start, stop in GRID_SLICES:
             cols[name][ok] = grids.values[ok, start:stop].reshape(cols[name][ok].shape)
         pairs = batch.pairs
         q = cols["q_cmd"][pairs]
@@ -257,110 +212,6 @@ class StepCodec:
             cols[name] = joints
         return cols
 
-    def _serialize(self, items: list[tuple[Any, int, float, Any]], batch: _Batch) -> list:
-        """The batch's messages built as protobuf objects and serialised by the runtime."""
-        out = []
-        for i, (step, seq, wall_time, frame) in enumerate(items):
-            data = None
-            if frame is not None:
-                h = HandSampleMsg(seq=seq, stamp=float(frame.stamp))
-                h.left_tracked = bool(frame.left.tracked)
-                h.right_tracked = bool(frame.right.tracked)
-                fill_joints(h.left, batch.hands[0], batch.at[i], self.grid)
-                fill_joints(h.right, batch.hands[1], batch.at[i], self.grid)
-                data = h.SerializeToString()
-            m = self._step_fields(step, seq, wall_time, batch.grids, i)
-            for side, name in enumerate(("left_joints", "right_joints")):
-                sub = getattr(m, name)
-                mine, coded = batch.own[side]
-                if i in mine:
-                    fill_joints(sub, coded, mine[i], self.grid)
-                else:
-                    sub.in_hands = True
-            out.append((data, m.SerializeToString()))
-        return out
-
-    def _arrays(self, items: list[tuple[Any, int, float, Any]], batch: _Batch) -> dict:
-        """The batch as the compiled serialiser takes it (:mod:`payload.trials.codec_c`)."""
-        n = len(items)
-        steps = [it[0] for it in items]
-        grids = batch.grids
-        columns = {
-            "phase": [PHASES.index(st.phase) for st in steps],
-            "ctb_module": [MODULES.index(st.ctb_module) for st in steps],
-            **{f: [bool(getattr(st, f)) for st in steps] for f in _BOOL_FLAGS},
-            "pairs_in_cmd": batch.pairs,
-            "gridded": grids.ok,
-            "grid_key": grids.key,
-        }
-        flags = np.ascontiguousarray(
-            np.array([columns[f] for f in STEP_FLAGS], dtype=np.int64).reshape(N_FLAGS, n).T
-        )
-        doubles = np.concatenate([batch.fields[name] for name, _, _ in STEP_DOUBLES], axis=1)
-        walls = np.array([it[2] for it in items], dtype=np.float64)
-        out = {
-            "seq": np.array([it[1] for it in items], dtype=np.int64),
-            "wall": np.where(grids.ok, 0.0, walls),
-            "flags": flags,
-            "doubles": doubles,
-            "grid": grids.ints,
-            "stamp": np.zeros(n),
-            "hand": np.full((n, 2), -1, dtype=np.int64),
-        }
-        for prefix, parts in (("", batch.own), ("h", None)):
-            code = np.full((n, 2), IN_HANDS, dtype=np.int64)
-            key = np.zeros((n, 2), dtype=np.int64)
-            ints = np.zeros((n, 2, N_JOINT_VALUES), dtype=np.int64)
-            raw = np.zeros((n, 2, N_JOINT_VALUES))
-            for side in (0, 1):
-                if parts is not None:
-                    mine, coded = parts[side]
-                    rows = list(mine)
-                    where = [mine[i] for i in rows]
-                else:
-                    coded = batch.hands[side]
-                    rows = list(batch.at)
-                    where = [batch.at[i] for i in rows]
-                code[rows, side] = coded.kind[where]
-                key[rows, side] = coded.key[where]
-                ints[rows, side] = coded.ints[where]
-                raw[rows, side] = coded.raw[where]
-            out.update({f"{prefix}code": code, f"{prefix}key": key, f"{prefix}ints": ints,
-                        f"{prefix}raw": raw})  # fmt: skip
-        for i in batch.at:
-            frame = items[i][3]
-            out["hand"][i] = (bool(frame.left.tracked), bool(frame.right.tracked))
-            out["stamp"][i] = float(frame.stamp)
-        return out
-
-    def _step_fields(self, step: Any, seq: int, wall_time: float, grids: GridRows, i: int) -> Any:
-        """A ``Step`` message with everything but the joints (row ``i`` of ``grids``), as
-        :meth:`encode_step` fills it."""
-        m = StepMsg(seq=seq, wall_time=wall_time)
-        m.phase = PHASES.index(step.phase)
-        m.ctb_module = MODULES.index(step.ctb_module)
-        m.left_tracked = step.left_tracked
-        m.right_tracked = step.right_tracked
-        m.contact = step.contact
-        pairs = _pairs_in_cmd(step)
-        m.pairs_in_cmd = pairs
-        gridded = bool(grids.ok[i])
-        if gridded:
-            m.grid_key = bool(grids.key[i])
-            m.grid.extend(grids.ints[i].tolist())
-            m.wall_time = 0.0
-        for name, _, shape in STEP_DOUBLES:
-            if pairs and name in PAIR_FIELDS:
-                continue
-            if gridded and name not in PAIR_FIELDS:
-                continue
-            value = getattr(step, name)
-            if shape == ():
-                setattr(m, name, value)
-            else:
-                getattr(m, name).extend(value.tolist())
-        return m
-
     def _decode_grid(self, m: Any, row: dict[str, Any]) -> None:
         d = np.array(m.grid, dtype=np.int64)
         if m.grid_key:
@@ -370,7 +221,7 @@ class StepCodec:
         else:
             k = self._prev + d
         self._prev = k
-        _grid_fields(row, k / _PER_UNIT)
+        grid_fields(row, k / PER_UNIT)
 
     def encode_step(
         self, step: Any, seq: int, wall_time: float, in_hands: tuple[bool, bool] = (False, False)
@@ -384,8 +235,8 @@ class StepCodec:
             in_hands: For each hand, whether the ``/trial/hands`` message of this sequence
                 number holds the same joints (they are then not repeated).
         """
-        grids = self._grid_batch(_gathered([step]), [wall_time])
-        m = self._step_fields(step, seq, wall_time, grids, 0)
+        grids = self._grid_batch(gathered([step]), [wall_time])
+        m = step_fields(step, seq, wall_time, grids, 0)
         for name, ref in zip(("left_joints", "right_joints"), in_hands):
             sub = getattr(m, name)
             if ref:
@@ -449,7 +300,7 @@ class StepCodec:
         else:
             self._prev = None
         if m.pairs_in_cmd:
-            _pair_fields(row)
+            pair_fields(row)
         for name, side in (("left_joints", "left"), ("right_joints", "right")):
             sub = getattr(m, name)
             if sub.in_hands:
@@ -474,7 +325,7 @@ def _steps_kernel() -> Any:
         (number, math.prod(shape) if shape else 0, name in PAIR_FIELDS)
         for name, number, shape in STEP_DOUBLES
     ]
-    return compiled_steps(fields, len(_GRID), _probe_batches)
+    return compiled_steps(fields, len(GRID), _probe_batches)
 
 
 def _probe_batches() -> Iterator[tuple[dict[str, np.ndarray], float, list[bytes]]]:
@@ -485,8 +336,8 @@ def _probe_batches() -> Iterator[tuple[dict[str, np.ndarray], float, list[bytes]
     for b in range(5):
         items = [_probe_item(rng, 40 * b + k) for k in range(40)]
         batch = codec._rows(items)
-        want = codec._serialize(items, batch)
-        yield codec._arrays(items, batch), codec.grid, [x for h, st in want for x in (h or b"", st)]
+        want = serialize(items, batch, codec.grid)
+        yield kernel_arrays(items, batch), codec.grid, [x for h, st in want for x in (h or b"", st)]
         if b % 2:
             codec.key()
 
@@ -548,77 +399,6 @@ def _probe_item(rng: np.random.Generator, k: int) -> tuple[Any, int, float, Any]
             right=SimpleNamespace(joints=joints[1], tracked=tracked[1]),
         )
     return step, k, (1.7e9 + 0.02 * k) * (k % 8 != 0), frame
-
-
-class _Batch(NamedTuple):
-    """What a batch of steps stores besides their own fields (:meth:`StepCodec._rows`)."""
-
-    at: dict[int, int]  # a step with a hand frame: its row among the frames
-    hands: tuple[JointRows, JointRows]  # the frames' left and right joints
-    # per side (left, right): the steps whose joints are not their frame's (a step -> its
-    # row) and those joints' rows
-    own: tuple[tuple[dict[int, int], JointRows], tuple[dict[int, int], JointRows]]
-    grids: GridRows
-    fields: dict[str, np.ndarray]  # :func:`_gathered`
-    pairs: np.ndarray  # per step whether its pair fields are its command's (bool)
-
-
-def _gathered(steps: list[Any]) -> dict[str, np.ndarray]:
-    """Each double field of the steps (:data:`STEP_DOUBLES`), as an (n, size) array."""
-    n = len(steps)
-    return {
-        name: np.array([getattr(st, name) for st in steps], dtype=np.float64).reshape(
-            n, math.prod(shape)
-        )
-        for name, _, shape in STEP_DOUBLES
-    }
-
-
-class GridRows(NamedTuple):
-    """The grid numbers of a batch of steps (:meth:`StepCodec._grid_batch`), n rows.
-
-    Attributes:
-        ok: Per step whether it is stored on the grid (else as doubles: a number that is
-            not finite or too large).
-        key: Per step whether its integers are the multiples themselves (the first after a
-            flush or after a step stored as doubles), not deltas.
-        ints: The integers stored, (n, G) in :data:`STEP_GRIDS` order (zero rows where not
-            ``ok``).
-        values: The numbers as the decoder reads them back (the same integers over the same
-            grid steps per unit), (n, G).
-    """
-
-    ok: np.ndarray
-    key: np.ndarray
-    ints: np.ndarray
-    values: np.ndarray
-
-
-def _grid_fields(row: dict[str, Any], values: np.ndarray) -> None:
-    """Set a decoded row's gridded fields from their values, in :data:`STEP_GRIDS` order."""
-    for name, start, stop in _GRID_SLICES:  # np.split's views, without its overhead
-        row[name] = float(values[start]) if stop == start + 1 else values[start:stop]
-
-
-def _pair_fields(row: dict[str, Any]) -> None:
-    """Set a decoded row's pair fields from its ``q_cmd`` (a step stored ``pairs_in_cmd``)."""
-    q = row["q_cmd"]
-    row["q_left"], row["q_right"] = q[PAIR_L_INDEX], q[PAIR_R_INDEX]
-    row["rail_cmd"] = float(q[RAIL_INDEX])
-
-
-def _pairs_in_cmd(step: Any) -> bool:
-    q = step.q_cmd
-    return bool(
-        _equal(step.q_left, q[PAIR_L_INDEX])
-        and _equal(step.q_right, q[PAIR_R_INDEX])
-        and step.rail_cmd == q[RAIL_INDEX]
-    )
-
-
-def _equal(a: np.ndarray, b: np.ndarray) -> bool:
-    """``np.array_equal`` of two arrays (same shape, every element ==), sooner."""
-    return a.shape == b.shape and bool(all_reduce(a == b, axis=None))
 
 
 __all__ = [

@@ -26,7 +26,8 @@ import numpy as np
 from payload.errors import PayloadError
 from payload.folders import METRICS, RECORDING
 from payload.trials.records import FIELD_SPECS, HANDS_TOPIC, STEP_TOPIC, RecordingError
-from payload.trials.summary import METRIC_KEYS, METRIC_LABELS, read_metrics
+from payload.trials.summary_fields import METRIC_KEYS, METRIC_LABELS
+from payload.trials.trial_results import read_metrics
 
 
 class CompareError(PayloadError):

@@ -7,7 +7,7 @@ recorder (protobuf steps, zstd chunks, the Foxglove channels); the hand frames o
 one for one. Nothing recorded is lost: the original is kept as ``log.v1.mcap`` (and
 ``hands.jsonl`` stays), and a folder that already holds a ``log.v1.mcap`` is refused
 unless ``force``. Steps, metadata and wall times are carried over, the step numbers at
-the recorder's resolution (:data:`payload.trials.codec.STEP_GRIDS`; the original keeps
+the recorder's resolution (:data:`payload.trials.stepgrid.STEP_GRIDS`; the original keeps
 every bit).
 """
 

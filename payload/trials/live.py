@@ -38,16 +38,12 @@ from payload.teleop.live import LiveHub, LiveSource, TimedDriver
 from payload.teleop.loop import StepContext, WatchdogArming, run_session
 from payload.teleop.pipeline import TeleopConfig, TeleopPipeline, calibrate_operator
 from payload.teleop.replay import HandRecordingWriter
+from payload.trials.acquisition import place_ctb_for_teleop
+from payload.trials.preparation import base_filter_for, design_hash, module_rects
 from payload.trials.recorder import RecordingError, StepRecord, TrialRecorder
-from payload.trials.runner import (
-    MODULE_NAMES,
-    base_filter_for,
-    design_hash,
-    module_rects,
-    place_ctb_for_teleop,
-    retargeting,
-)
+from payload.trials.retargeters import retargeting
 from payload.trials.safety import recording_scene
+from payload.trials.stepobserver import MODULE_NAMES
 
 log = logging.getLogger(__name__)
 
@@ -254,7 +250,7 @@ class LiveSession:
     def _record(self, ctx: StepContext) -> None:
         if self.record is None:
             return
-        from payload.trials.runner import step_record
+        from payload.trials.stepobserver import step_record
 
         fr = ctx.frame
         self._scene.observe(ctx.t)

@@ -13,7 +13,7 @@ File layout (``log.mcap``, schema version 3)
   The summary holds chunk indexes, so indexed readers (Foxglove) seek without a scan.
 * Channel ``/trial/step``, encoding ``protobuf``, schema ``payload.trials.Step`` (declared
   in :mod:`payload.trials.codec`): one message per control step, every field below,
-  the numbers on the grids of :data:`payload.trials.codec.STEP_GRIDS` (10 nm, 1 ns, ...).
+  the numbers on the grids of :data:`payload.trials.stepgrid.STEP_GRIDS` (10 nm, 1 ns, ...).
 * Channel ``/trial/hands``, schema ``payload.trials.HandSample``: the raw hand frame the
   pipeline saw at that step (stamp, tracked flags, 25 x 3 joints, lossless), written by
   :meth:`TrialRecorder.write_hands`; the step then refers to it instead of repeating the

@@ -15,11 +15,8 @@ import shutil
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, NamedTuple
+from typing import TYPE_CHECKING, Any
 
-import numpy as np
-
-from payload.design.params import load_design
 from payload.errors import PayloadError, RunAborted
 from payload.folders import (
     CAMPAIGN_FILES,
@@ -31,66 +28,40 @@ from payload.folders import (
 )
 from payload.native import environment
 from payload.project import Project, current_project, provenance
-from payload.retarget.calibration import PairRange
-from payload.retarget.casadi_solver import PairRetargeter
-from payload.rotations import quat_to_matrix
 from payload.safeio import OverwriteError, check_new, new_folder
 from payload.sim.config import check_physics_dt
 from payload.sim.vehicle import PROPULSION_MODELS
 from payload.sim.world import CTB_MODELS, WorldConfig
-from payload.teleop.calibration import CalibrationProcedure, Captures
+from payload.teleop.calibration import Captures
 from payload.teleop.loop import (
     LoopStats,
     StepContext,
     run_session,
 )
-from payload.teleop.operator import OperatorPlan, WorldView
 from payload.teleop.pipeline import (
-    TeleopConfig,
     TeleopPipeline,
     calibrate_operator,
-    pair_index,
 )
-from payload.trials.acquisition import (
-    handle_in_body,
-    handle_site,
-    place_ctb_for_teleop,
-    place_offset,
+from payload.trials.acquisition import place_ctb_for_teleop
+from payload.trials.preparation import (
+    TrialSetup,
+    base_filter_for,
+    closing_meta,
+    design_hash,
+    module_rects,
+    set_up_trial,
+    trial_meta,
 )
-from payload.trials.records import StepRecord
 from payload.trials.retargeters import retargeting, single_threaded_numerics
 from payload.trials.sources import HeadsetSource, TrialError, _Source, load_replay, trial_setup
+from payload.trials.stepobserver import MODULE_NAMES, step_record, world_view
 
 if TYPE_CHECKING:
     from payload.trials.reading import Recording
 
 log = logging.getLogger(__name__)
 
-MODULE_NAMES = {"kibo": "kibo", "vestibule": "hatch", "node2": "node2"}
 MAX_TRIAL_S = 240.0
-
-
-def design_hash(project: Project | None = None) -> str:
-    """SHA-256 of ``project``'s design file (first 16 hex digits; default: the current
-    project). :func:`payload.project.provenance` gives the full record."""
-    return provenance(project or current_project())["design_sha256"][:16]
-
-
-def module_rects(layout: Any) -> list[dict[str, float | str]]:
-    """The ISS layout's module zones as the recording's metadata lists them (name and
-    x, y extents [m]), for the route figure and replays."""
-    out = []
-    for zone in layout.zones():
-        out.append(
-            {
-                "name": MODULE_NAMES.get(zone.module.value, zone.module.value),
-                "x_min": float(zone.lo[0]),
-                "y_min": float(zone.lo[1]),
-                "x_max": float(zone.hi[0]),
-                "y_max": float(zone.hi[1]),
-            }
-        )
-    return out
 
 
 class TrialAborted(RunAborted):
@@ -326,120 +297,11 @@ def _recorded_steps(path: Path) -> bool:
     return True
 
 
-class _Setup(NamedTuple):
-    """What a trial is set up with before the session starts."""
-
-    retargeters: dict[str, PairRetargeter]
-    ranges: dict[str, PairRange]
-    config: TeleopConfig
-    plan: OperatorPlan
-    calibration: CalibrationProcedure
-    recorded: dict[str, Any]  # the figures of the set-up, recorded in the metadata
-
-
-def _set_up(driver: Any, seed: int, source_spec: _Source, project: Project) -> _Setup:
-    """Retargeters, the CTB under the teleoperated pinch (with the seeded acquisition
-    offset), the teleoperation config and the operator's plan."""
-    layout = driver.world.layout
-    retargeters, ranges = retargeting(
-        project, source_spec.retarget_budget, source_spec.retarget_collisions
-    )
-    grasp_body = place_ctb_for_teleop(driver, retargeters, ranges)
-    recorded = source_spec.recorded
-    offset, yaw = place_offset(
-        driver, seed, recorded.get("ctb_offset_m"), recorded.get("ctb_yaw_deg")
-    )
-    setup = {
-        "retarget_budget": source_spec.retarget_budget,
-        "retarget_collisions": source_spec.retarget_collisions,
-        "controller": source_spec.controller,
-        "controller_overrides": source_spec.controller_overrides,
-        "ctb": source_spec.ctb,
-        "propulsion": source_spec.propulsion,
-        "physics_dt": source_spec.physics_dt,
-        "base_filter": source_spec.base_filter,
-        "link_delay": source_spec.link_delay,
-        "ctb_offset_m": [float(v) for v in offset],
-        "ctb_yaw_deg": float(yaw),
-        "grasp_body_m": [float(v) for v in grasp_body],
-    }
-    calibration = CalibrationProcedure()
-    config = TeleopConfig.from_design(load_design(driver.world.config.design))
-    plan = OperatorPlan(
-        route=layout.route(),
-        heading0=layout.start_yaw(),
-        base=config.base,
-        grasp_body=grasp_body,
-    )
-    return _Setup(retargeters, ranges, config, plan, calibration, setup)
-
-
-def _world_view(driver: Any) -> Callable[[Any, float], WorldView]:
-    """What the synthetic operator sees of the simulated world at each step (``state``:
-    the driver's world state now, read from its data)."""
-    site = handle_site(driver)
-
-    def view(state: Any, t: float) -> WorldView:
-        rot = quat_to_matrix(state.astrobee_quat)
-        return WorldView(
-            t,
-            state.astrobee_pos,
-            rot,
-            rot @ state.astrobee_linear,
-            state.ctb_pos,
-            bool(state.opposing_contact),
-            handle_in_body(driver, site, rot),
-        )
-
-    return view
-
-
-def _trial_meta(
-    seed: int, source_spec: _Source, traits: dict, prov: dict, layout: Any, setup: _Setup
-) -> dict[str, Any]:
-    """The recording's opening metadata."""
-    from payload.trials.metrics import confirmed_definition
-
-    return {
-        "seed": int(seed),
-        "operator": source_spec.operator,
-        "design_hash": prov["design_sha256"][:16],
-        "provenance": prov,
-        "traits": traits,
-        **source_spec.meta(),
-        "route": layout.route().tolist(),
-        "modules": module_rects(layout),
-        "contact_definition": confirmed_definition(),
-        **setup.recorded,
-    }
-
-
-def _closing_meta(
-    driver: Any, source: Any, stats: Any, scene: Any, replayed: dict[str, Any]
-) -> dict[str, Any]:
-    """The recording's closing metadata: how the session went (with the station
-    contacts, the least station clearance and the filter's active time). The synthetic
-    operator's acquisition state is its own; a replay's is its recording's (``replayed``:
-    the replayed recording's metadata), whose hands it repeats."""
-    operator = getattr(source, "operator", None)
-    return {
-        **scene.summary(),
-        "steps": stats.steps,
-        "pipeline_median_us": float(np.median(stats.pipeline_us)) if stats.pipeline_us else None,
-        "warnings": driver.warnings(),
-        "ctb_external_max": driver.ctb_external_max,
-        "equality_constraints": int(driver.model.neq),
-        "acquisition_state": (
-            operator.acquisition if operator is not None else replayed.get("acquisition_state")
-        ),
-    }
-
-
 def _record_session(
     driver: Any,
     seed: int,
     source: Any,
-    setup: _Setup,
+    setup: TrialSetup,
     make_pipeline: Callable[[Captures, float], TeleopPipeline],
     rec_path: Path,
     meta: dict[str, Any],
@@ -483,7 +345,7 @@ def _record_session(
                     make_pipeline,
                     max_time=max_time,
                     on_step=on_step,
-                    world_view=_world_view(driver),
+                    world_view=world_view(driver),
                 )
                 recorder.flush()  # every step made and written: the scene's figures count all
             except Exception as exc:
@@ -493,7 +355,7 @@ def _record_session(
                     f"trial {seed} aborted at t = {at:.2f} s by {what}; recording "
                     f"kept (marked aborted, not scored): {rec_path}"
                 ) from exc
-            recorder.write_meta(_closing_meta(driver, source, stats, scene, replayed))
+            recorder.write_meta(closing_meta(driver, source, stats, scene, replayed))
     finally:
         if bar is not None:
             bar.stop()
@@ -522,7 +384,7 @@ def _run_trial(
         WorldConfig.for_project(project, ctb=source_spec.ctb, physics_dt=source_spec.physics_dt),
         propulsion=source_spec.propulsion,
     )
-    setup = _set_up(driver, seed, source_spec, project)
+    setup = set_up_trial(driver, seed, source_spec, project)
     if source_spec.base_filter:
         driver.twist_filter = base_filter_for(driver, setup.config.base, source_spec.zones)
     source, traits = source_spec.make(setup.plan, setup.calibration)
@@ -534,7 +396,7 @@ def _run_trial(
 
     prov = {**provenance(project, driver.world.config.design), "environment": environment()}
     rec_path = out / RECORDING
-    meta = _trial_meta(seed, source_spec, traits, prov, driver.world.layout, setup)
+    meta = trial_meta(seed, source_spec, traits, prov, driver.world.layout, setup)
     stats, recording = _record_session(
         driver,
         seed,
@@ -554,55 +416,6 @@ def _run_trial(
     result["provenance"] = prov
     write_metrics(out, result)
     return result
-
-
-def base_filter_for(driver: Any, base: Any, zones: Any = None) -> Any:
-    """The base safety filter for a simulator driver: the base channel's bounds and the
-    deceleration its vehicle controller gives the loaded stack."""
-    from payload.teleop.base_filter import BaseSafetyFilter
-
-    c = driver.controller
-    return BaseSafetyFilter(driver.world, base, c.accel_max, float(c.jerk[0]), zones)
-
-
-def step_record(ctx: StepContext, driver: Any, retargeters: dict[str, PairRetargeter]) -> Any:
-    """The recorder's step from what the loop hands its observer (for any driver with
-    ``module_at``: the simulator, the hardware-in-the-loop rig, the live session).
-
-    It reads the context's snapshots (frozen or fresh arrays) and the driver's layout
-    alone, never the driver's live state: a trial's recorder makes it up to a second
-    after its step (:meth:`~payload.trials.recorder.TrialRecorder.write_later`)."""
-    st, fr = ctx.state, ctx.frame
-    step = ctx.step
-    q = ctx.command.q
-    twist = np.concatenate([ctx.twist.linear, ctx.twist.angular])
-    rot = quat_to_matrix(st.astrobee_quat)
-    ctb_module = driver.module_at(st.ctb_pos)
-    return StepRecord(
-        t=ctx.t,
-        phase=ctx.phase,
-        left_joints=fr.left.joints,
-        right_joints=fr.right.joints,
-        left_tracked=bool(fr.left.tracked),
-        right_tracked=bool(fr.right.tracked),
-        q_left=step.q_left if step else q[pair_index(retargeters["L"])],
-        q_right=step.q_right if step else q[pair_index(retargeters["R"])],
-        rail_cmd=float(q[-1]),
-        twist_cmd=twist,
-        q_cmd=q,
-        deploy_cmd=float(ctx.command.deploy),
-        q_meas=ctx.payload.q,
-        deploy_meas=float(ctx.payload.deploy),
-        astrobee_pos=st.astrobee_pos,
-        astrobee_quat=st.astrobee_quat,
-        astrobee_twist=np.concatenate([rot @ st.astrobee_linear, st.astrobee_angular]),
-        ctb_pos=st.ctb_pos,
-        ctb_quat=st.ctb_quat,
-        contact=bool(st.opposing_contact),
-        ctb_module=MODULE_NAMES.get(ctb_module.value, "outside")
-        if ctb_module is not None
-        else "outside",
-    )
 
 
 __all__ = [

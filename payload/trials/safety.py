@@ -225,7 +225,7 @@ def recording_scene(driver: Any, module_rects: list[dict[str, Any]]) -> SafetySc
 
     Args:
         driver: The simulator driver.
-        module_rects: The modules' rectangles (:func:`payload.trials.runner.module_rects`).
+        module_rects: The modules' rectangles (:func:`payload.trials.preparation.module_rects`).
     """
     from payload.trials.foxglove import FoxgloveScene
 

@@ -1,7 +1,8 @@
 """The trial setup options shared by ``payload trial``, ``trials run`` and ``bench trial``
 (CTB, propulsion, controller profile and its overrides, physics step, base filter, zones,
-link delay), and the resolution of the ones left out (:func:`payload.trials.sources.
-trial_setup`)."""
+link delay), their checks, and the resolution of the ones left out
+(:func:`payload.trials.sources.trial_setup`); the trial runner those commands call
+(:func:`_run_trial_fn`)."""
 
 from __future__ import annotations
 
@@ -146,3 +147,22 @@ def _setup_defaults(args: argparse.Namespace) -> None:
     for name, value in setup.items():
         if name in _SETUP:
             setattr(args, name, value)
+
+
+def _run_trial_fn() -> Any:
+    try:
+        from payload.trials.runner import run_trial
+    except ModuleNotFoundError as exc:
+        if exc.name != "payload.trials.runner":
+            raise
+        raise TrialsCliError(
+            "payload.trials.runner (the teleoperation trial loop, issue 6) is not installed yet"
+        ) from None
+    return run_trial
+
+
+def _check_ctb(ctb: str) -> None:
+    from payload.sim.world import CTB_MODELS
+
+    if ctb not in CTB_MODELS:
+        raise TrialsCliError(f"--ctb: expected one of {', '.join(CTB_MODELS)}, got {ctb!r}")

@@ -4,7 +4,7 @@
 output is not a terminal (a pipe, a log, CI), and :func:`summary_terminal` at the end: one
 headline line (:func:`summary_headline`), then each metric's median and range beside the
 paper's. The definitions and the per-trial table stay in ``summary.md``
-(:func:`payload.trials.summary.summary_markdown`).
+(:func:`payload.trials.summary_markdown.summary_markdown`).
 """
 
 from __future__ import annotations
@@ -13,14 +13,8 @@ import math
 from collections.abc import Callable
 from typing import Any
 
-from payload.trials.summary import (
-    _DIGITS,
-    METRIC_KEYS,
-    METRIC_LABELS,
-    PAPER_RESULTS,
-    _fmt,
-    _run_lines,
-)
+from payload.trials.summary_fields import METRIC_KEYS, METRIC_LABELS, PAPER_RESULTS
+from payload.trials.summary_markdown import _DIGITS, _fmt, _run_lines
 
 _SHORT = {
     "duration_s": ("duration", "s"),

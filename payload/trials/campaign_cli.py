@@ -1,0 +1,242 @@
+"""``payload trials run|summarize``: a campaign of seeded trials and its summary, and the
+summary rebuilt (or rescored) from a campaign's folders (contract in docs/cli.md;
+registered by :mod:`payload.trials.cli`)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from payload.cliutil import (
+    CheckFailed,
+    command_project,
+    emit_json,
+    out_folder,
+    results_folder,
+    warn,
+)
+from payload.folders import (
+    CAMPAIGN_FIGURE,
+    CAMPAIGN_FILES,
+    SUMMARY,
+    SUMMARY_TEXT,
+    TRIAL_FILES,
+    held,
+)
+from payload.trials.setup_options import (
+    _SETUP,
+    TrialsCliError,
+    _check_ctb,
+    _check_physics_dt,
+    _link_and_zones,
+    _run_trial_fn,
+    _setup_defaults,
+)
+
+
+def _cmd_trials_run(args: argparse.Namespace) -> int:
+    from payload.design import models_follow_design
+    from payload.project import provenance
+    from payload.trials.campaign import (
+        default_workers,
+        run_campaign,
+        runner_trial_fn,
+        trial_dir,
+        write_summary,
+    )
+    from payload.trials.summary import trials_environment
+    from payload.trials.terminal import summary_terminal, trial_line_printer
+
+    if args.n < 1:
+        raise TrialsCliError(f"--n must be >= 1, got {args.n}")
+    if args.seed < 0:
+        raise TrialsCliError(f"--seed must be >= 0, got {args.seed}")
+    if args.workers is not None and args.workers < 0:
+        raise TrialsCliError(f"--workers must be >= 0, got {args.workers}")
+    from payload.trials.cluster import check_scheduler
+
+    check_scheduler(args.scheduler, TrialsCliError)
+    _check_physics_dt(args.physics_dt)
+    _setup_defaults(args)
+    _check_ctb(args.ctb)
+    link_zones = _link_and_zones(args)
+    _run_trial_fn()  # fail here, once, if the runner is missing
+    project = command_project(args)
+    models_follow_design(project.design_path, project.root, json=args.json)
+    prov = provenance(project)
+    out_folder(args.out)  # an --out that is not a folder: one line, before any folder is made
+    seeds = list(range(args.seed, args.seed + args.n))
+    # a scheduler not reached leaves no empty folder (the checks below never refuse one
+    # made here: it is new, or empty)
+    with results_folder(args.out, project, "campaign") as out:
+        trial = held(out, TRIAL_FILES)
+        if trial:  # --force replaces a campaign, never a trial
+            raise TrialsCliError(
+                f"{out}: holds a trial ({', '.join(trial)}); a campaign goes in a folder of "
+                "its own (choose another --out)"
+            )
+        if not args.force:
+            taken = [trial_dir(out, s) for s in seeds if any(trial_dir(out, s).glob("*"))]
+            taken += [out / n for n in held(out, CAMPAIGN_FILES)]
+            if taken:
+                raise TrialsCliError(
+                    f"{out}: already holds a campaign ({', '.join(p.name for p in taken[:4])}"
+                    f"{', ...' if len(taken) > 4 else ''}); pass --force to replace it or "
+                    "choose another --out"
+                )
+        workers = default_workers(args.n) if args.workers is None else args.workers
+        t0 = time.perf_counter()
+        results = run_campaign(
+            runner_trial_fn(
+                "synthetic",
+                project.root,
+                force=args.force,
+                **{name: getattr(args, name) for name in _SETUP},
+                **link_zones,
+            ),
+            seeds,
+            out,
+            workers=workers,
+            scheduler=args.scheduler,
+            progress=not args.json and sys.stderr.isatty() and sys.stdout.isatty(),
+            on_trial=None if args.json or sys.stdout.isatty() else trial_line_printer(len(seeds)),
+        )
+    run = {
+        "workers": None if args.scheduler else workers,
+        "scheduler": args.scheduler,
+        "wall_s": time.perf_counter() - t0,
+        "trial_wall_s": float(sum(r.get("wall_s") or 0.0 for r in results)),
+    }
+    title = (
+        f"Cargo-transport campaign ({args.n} trials, CTB {args.ctb}, {args.propulsion}, "
+        f"controller {args.controller}, retargeting budget {args.retarget_budget}"
+        f"{', self-collision modelled' if args.retarget_collisions else ''}"
+        f"{', base filter' if args.base_filter else ''}"
+        f"{f', link delay {args.link_delay} s' if args.link_delay else ''}"
+        f"{_physics_text(args.physics_dt)})"
+    )
+    # what the trials ran on, as each trial's process reported it (a scheduler's workers
+    # may be other machines than this one)
+    prov = {**prov, "environment": trials_environment(results)}
+    summary = write_summary(results, out, title=title, run=run, provenance=prov, force=args.force)
+    if args.force:  # the replaced campaign's rescorings would describe it still
+        from payload.trials.scoring import rescorings
+
+        for stale in rescorings(out, (*CAMPAIGN_FILES, CAMPAIGN_FIGURE)):
+            stale.unlink()
+    ours = {trial_dir(out, s).name for s in seeds}
+    earlier = sorted(p.name for p in out.glob("trial-*") if p.is_dir() and p.name not in ours)
+    if earlier:  # kept (recordings), but not this campaign's: said, not silently summarized
+        more = f" and {len(earlier) - 3} more" if len(earlier) > 3 else ""
+        warn(
+            f"{out} also holds {', '.join(earlier[:3])}{more} from an earlier run, left out of "
+            "this summary (`trials summarize` would take them in: move them away)"
+        )
+    if args.json:
+        emit_json(
+            {**summary, "wall_s": run["wall_s"], "out_dir": str(out), "project": str(project.root)}
+        )
+    else:
+        print(summary_terminal(summary, title))
+        figure = out / CAMPAIGN_FIGURE
+        also = f", {figure}" if figure.is_file() else ""
+        print(f"wrote {out / SUMMARY_TEXT} (definitions, the paper-literal column, every "
+              f"trial){also} and {out / SUMMARY}")  # fmt: skip
+    errors = [r for r in results if r.get("error")]
+    if errors:
+        first = errors[0]
+        raise CheckFailed(
+            f"{len(errors)} of {len(results)} trial(s) raised an error (seeds "
+            f"{', '.join(str(r['seed']) for r in errors)}; first: {first['error']}; "
+            f"tracebacks in {SUMMARY})"
+        )
+    return 0
+
+
+def _physics_text(dt: float) -> str:
+    """The title's note of a physics step other than the default (empty at 1 kHz)."""
+    from payload.schema import PHYSICS_DT
+
+    return "" if dt == PHYSICS_DT else f", physics step {1e3 * dt:g} ms"
+
+
+def _cmd_trials_summarize(args: argparse.Namespace) -> int:
+    from payload.trials.campaign import (
+        contact_tag,
+        load_trial_results,
+        summary_markdown,
+        write_summary,
+    )
+    from payload.trials.scoring import MIXED_TAG, UNSCORED_TAG
+
+    for name in ("min_contact_s", "max_gap_s"):
+        value = getattr(args, name)
+        if value is not None and not (math.isfinite(value) and value >= 0):
+            raise TrialsCliError(f"--{name.replace('_', '-')} must be a number >= 0, got {value}")
+    relaxed = args.min_contact_s is not None or args.max_gap_s is not None
+    rescore = args.recompute or relaxed
+    results = load_trial_results(
+        args.dir,
+        recompute=rescore,
+        min_interval_s=args.min_contact_s,
+        max_gap_s=args.max_gap_s,
+        force=args.force,
+    )
+    previous = _previous_summary(Path(args.dir) / SUMMARY)
+    wall = {t.get("seed"): t.get("wall_s") for t in previous.get("trials", [])}
+    budget = previous.get("retarget_budget")
+    modelled = previous.get("retarget_collisions")
+    for r in results:  # how long each trial took is known only from the campaign run
+        if r.get("wall_s") is None and wall.get(r.get("seed")) is not None:
+            r["wall_s"] = wall[r.get("seed")]
+        # trials whose metrics.json lacks these: the campaign's summary says
+        if isinstance(budget, str):
+            r.setdefault("retarget_budget", budget)
+        if isinstance(modelled, bool):
+            r.setdefault("retarget_collisions", modelled)
+        if isinstance(previous.get("controller"), str):
+            r.setdefault("controller", previous["controller"])
+            r.setdefault("controller_overrides", previous.get("controller_overrides") or [])
+    tag = None
+    if rescore:  # a rescoring is written beside the originals, named by its definition
+        defs = {
+            (float(r.get("min_interval_s") or 0.0), float(r.get("max_gap_s") or 0.0))
+            for r in results
+            if not r.get("error")
+        }
+        tag = contact_tag(*defs.pop()) if len(defs) == 1 else MIXED_TAG if defs else UNSCORED_TAG
+    prov = previous.get("provenance")
+    if prov is None:  # no campaign summary before: what the trials themselves record
+        from payload.trials.summary import trials_environment
+
+        own = [r["provenance"] for r in results if isinstance(r.get("provenance"), dict)]
+        prov = {**own[0], "environment": trials_environment(results)} if own else None
+    summary = write_summary(
+        results,
+        args.dir,
+        title=previous.get("title"),
+        run=previous.get("run"),
+        provenance=prov,
+        tag=tag,
+        force=args.force,
+    )
+    if args.json:
+        emit_json({**summary, "out_dir": str(args.dir)})
+    else:
+        print(summary_markdown(summary, previous.get("title")))
+    return 0
+
+
+def _previous_summary(path: Path) -> dict[str, Any]:
+    if not path.is_file():
+        return {}
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError):
+        return {}
+    return data if isinstance(data, dict) else {}

@@ -1,0 +1,49 @@
+"""What a campaign's summary is made of: the per-trial figures it summarises (in the
+paper's order, with their labels), the paper's own results beside them, and the error of
+a campaign that cannot run or be summarised.
+
+The summary itself: :mod:`payload.trials.summary`; its Markdown:
+:mod:`payload.trials.summary_markdown`; the trial folders it is made from:
+:mod:`payload.trials.trial_results`.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from payload.errors import PayloadError
+
+METRIC_KEYS: tuple[str, ...] = (
+    "duration_s",
+    "net_displacement_m",
+    "rms_mm",
+    "peak_mm",
+    "contact_s",
+)
+"""The per-trial figures the paper summarises, in its order."""
+
+METRIC_LABELS: dict[str, str] = {
+    "duration_s": "Teleoperation duration after calibration [s]",
+    "net_displacement_m": "CTB net world-frame displacement [m]",
+    "rms_mm": "RMS deviation in the body frame, eq. 5 [mm]",
+    "peak_mm": "Peak deviation in the body frame [mm]",
+    "contact_s": "First confirmed-contact interval [s]",
+}
+
+PAPER_RESULTS: dict[str, Any] = {
+    "n": 10,
+    "success": 10,
+    "duration_s": {"median": 77.5, "min": 67.3, "max": 97.5},
+    "net_displacement_m": {"median": 9.30, "min": 7.87, "max": 9.46},
+    "rms_mm": {"median": 35.6, "min": 16.4, "max": 79.0},
+    "peak_mm": {"median": 67.7, "min": 26.8, "max": 176.6},
+    "contact_s": {"median": 75.1, "min": 65.7, "max": 94.5},
+}
+"""The paper's ten-trial results (Sec. IV; docs/sources.md), for comparison."""
+
+
+class CampaignError(PayloadError):
+    """A campaign cannot run or be summarised (bad arguments, no trials, no scheduler)."""
+
+
+__all__ = ["METRIC_KEYS", "METRIC_LABELS", "PAPER_RESULTS", "CampaignError"]

@@ -1,0 +1,112 @@
+"""``payload trial``: one trial, synthetic or a replay of a recording's hands (contract in
+docs/cli.md; registered by :mod:`payload.trials.cli`)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Any
+
+from payload.cliutil import command_project, emit_json, out_folder, warn
+from payload.folders import CAMPAIGN_FILES, HANDS, RECORDING, held
+from payload.trials.setup_options import (
+    _SETUP,
+    TrialsCliError,
+    _check_ctb,
+    _check_physics_dt,
+    _link_and_zones,
+    _run_trial_fn,
+    _setup_defaults,
+)
+
+
+def _replay_file(option: str, replay: Path) -> Path:
+    """The recording a replay option names, or one line saying why it is not one (a
+    trial's folder names the file in it to give)."""
+    if replay.is_dir():
+        inside = [n for n in (RECORDING, HANDS) if (replay / n).is_file()]
+        hint = f": give {replay / inside[0]}" if inside else ""
+        raise TrialsCliError(f"{option}: {replay}: is a folder, not a recording{hint}")
+    if not replay.is_file():
+        raise TrialsCliError(f"{option}: {replay}: no such file")
+    return replay
+
+
+def _parse_operator(args: argparse.Namespace) -> tuple[str, Path | None]:
+    """The operator of ``payload trial``: ``--replay FILE``, else synthetic; or the
+    deprecated ``--operator synthetic|replay FILE``.
+
+    Raises:
+        TrialsCliError: Both spellings, a bad ``--operator`` or no such file.
+    """
+    values = getattr(args, "operator", None)
+    if values is None:
+        if args.replay is None:
+            return "synthetic", None
+        return "replay", _replay_file("--replay", Path(args.replay))
+    if args.replay is not None:
+        raise TrialsCliError("--replay and --operator (its deprecated spelling): give one")
+    if values == ["synthetic"]:
+        return "synthetic", None
+    if len(values) == 2 and values[0] == "replay":
+        return "replay", _replay_file("--operator replay", Path(values[1]))
+    raise TrialsCliError(
+        f"--operator: expected 'synthetic' or 'replay FILE', got {' '.join(values)!r}"
+    )
+
+
+def _cmd_trial(args: argparse.Namespace) -> int:
+    from payload.design import models_follow_design
+
+    if args.seed is not None and args.seed < 0:
+        raise TrialsCliError(f"--seed must be >= 0, got {args.seed}")
+    if args.max_time is not None and not args.max_time > 0:
+        raise TrialsCliError(f"--max-time must be positive, got {args.max_time}")
+    _check_physics_dt(args.physics_dt)
+    operator, replay = _parse_operator(args)
+    if operator == "synthetic":
+        _setup_defaults(args)
+    if args.ctb is not None:
+        _check_ctb(args.ctb)
+    project = command_project(args)
+    models_follow_design(project.design_path, project.root, json=args.json)
+    out = out_folder(args.out)
+    run_trial = _run_trial_fn()
+    extra: dict[str, Any] = {"project": project, **_link_and_zones(args)}
+    for name in _SETUP:
+        if getattr(args, name) is not None:  # a replay: the others are its recording's
+            extra[name] = getattr(args, name)
+    if not args.json and sys.stderr.isatty():
+        extra["progress"] = True
+    if args.max_time is not None:
+        extra["max_time"] = args.max_time
+    if args.force:
+        extra["force"] = True
+    campaign = None
+    if out is not None and out.name.startswith("trial-"):
+        campaign = held(out.parent, CAMPAIGN_FILES) or None
+    seed = args.seed if args.seed is not None or operator == "replay" else 0
+    result = dict(run_trial(seed=seed, operator=operator, replay=replay, out_dir=out, **extra))
+    out = Path(result.get("out_dir") or out)
+    seed = result.get("seed", seed)
+    if campaign:  # a campaign's trial, rerun: its summary describes what was there before
+        warn(
+            f"{out} is a trial of the campaign in {out.parent} ({', '.join(campaign)}), whose "
+            f"summary no longer matches it: `payload trials summarize {out.parent} --force` "
+            "brings it up to date"
+        )
+    if args.json:
+        emit_json({**result, "project": str(project.root)})
+        return 0
+    print(f"trial seed {seed} ({operator}) -> {out}")
+    given = ""
+    if operator == "replay":
+        names = [n for n in _SETUP if getattr(args, n) is not None]
+        given = " (the recording's)"
+        if names:
+            given = f" (given: {', '.join(names)}; the rest the recording's)"
+    from payload.trials.summary import print_trial_summary
+
+    print_trial_summary(result, given)
+    return 0
