@@ -799,6 +799,33 @@ def test_the_local_clusters_workers_run_without_the_dask_profiler() -> None:
     assert len(seen) == 2 and not any(seen.values())
 
 
+def test_a_local_cluster_beside_another_takes_a_free_port_without_a_warning() -> None:
+    # a second campaign or sweep while one runs: Dask's default HTTP port (8787) is held
+    import socket
+    import warnings
+
+    import distributed  # noqa: F401
+
+    from payload.trials.cluster import dask_client
+
+    holder = socket.socket()
+    try:
+        holder.bind(("", 8787))
+        holder.listen()
+    except OSError:
+        pass  # something already holds it: the same situation
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            with dask_client(1, None, RuntimeError) as client:
+                assert client.submit(sum, [40, 2]).result() == 42
+                port = client.scheduler_info()["services"].get("dashboard")
+    finally:
+        holder.close()
+    assert not [w for w in caught if "already in use" in str(w.message)]
+    assert port is not None and port != 8787
+
+
 def test_campaign_on_existing_scheduler_matches_serial(tmp_path: Path) -> None:
     from distributed import LocalCluster
 

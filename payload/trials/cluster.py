@@ -34,6 +34,11 @@ def dask_client(workers: int, scheduler: str | None, error: type[Exception]) -> 
                 threads_per_worker=1,
                 processes=True,
                 dashboard_address=None,
+                # no dashboard, but the scheduler still serves its HTTP routes (health,
+                # metrics): on any free port, not Dask's default 8787, which another
+                # campaign or sweep running at the same time holds (Dask then warns that
+                # the port is in use and takes another one anyway)
+                scheduler_kwargs={"dashboard_address": ":0"},
                 silence_logs=logging.ERROR,
             )
         client = Client(cluster)
