@@ -244,8 +244,9 @@ def results_folder(
     absolute path) or, left out, a new numbered ``runs/<prefix>-NNNN`` of ``project``
     (:func:`default_out`), kept only if used (:func:`kept_if_used`: a folder made for the
     command, the default or an ``--out`` that did not exist, is removed if the command
-    fails while it is still empty). An ``--out`` is checked first with :func:`out_folder`."""
-    made = value is None or not Path(value).exists()
+    fails while it is still empty; an empty ``value`` is an ``--out`` left out). Callers
+    check an ``--out`` with :func:`out_folder` first."""
+    made = not value or not Path(value).exists()
     if value:
         out = Path(value).resolve() if resolve else Path(value)
     else:

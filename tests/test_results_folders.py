@@ -254,3 +254,36 @@ def test_bench_trial_never_writes_over_a_trial(tmp_path, capsys) -> None:
     assert main(["bench", "trial", "--seconds", "1", "--out", str(trial)]) == 2
     assert "--force" not in _one_line(capsys, "already holds log.mcap")
     assert _snapshot(tmp_path) == before
+
+
+def test_a_results_folder_made_for_a_failing_command_is_removed_again(tmp_path) -> None:
+    """``cliutil.results_folder``: a folder the command made (the numbered default, for an
+    ``--out`` left out or empty, or a new ``--out``) is removed when the command fails
+    before writing in it, and kept once written in; a folder that was there stays."""
+    from payload.cliutil import results_folder
+    from payload.design.cli import new_project
+
+    project, _ = new_project(tmp_path / "p")
+
+    def fails(value: object) -> Path:
+        with pytest.raises(RuntimeError), results_folder(value, project, "demo") as out:
+            made = out
+            out.mkdir(parents=True, exist_ok=True)  # what the command makes of an --out
+            raise RuntimeError("the command failed")
+        return made
+
+    for value in (None, ""):  # left out, and given empty: the numbered default
+        made = fails(value)
+        assert made.parent == project.runs_dir and not made.exists()
+    new = tmp_path / "new" / "out"
+    assert fails(str(new)) == new and not new.exists()
+    there = tmp_path / "there"
+    there.mkdir()
+    assert fails(str(there)) == there and there.is_dir()
+    with pytest.raises(RuntimeError), results_folder(None, project, "demo") as out:
+        (out / "summary.md").write_text("written")
+        raise RuntimeError("failed after writing")
+    assert (out / "summary.md").read_text() == "written"
+    with results_folder("", project, "demo") as ok:  # a command that succeeds keeps it
+        pass
+    assert ok.is_dir() and ok.parent == project.runs_dir

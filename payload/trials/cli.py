@@ -17,10 +17,9 @@ from payload.cliutil import (
     add_deprecated,
     add_replay,
     command_project,
-    default_out,
     emit_json,
-    kept_if_used,
     out_folder,
+    results_folder,
 )
 from payload.folders import CAMPAIGN_FILES, TRIAL_FILES
 from payload.trials.campaign_cli import _cmd_trials_run, _cmd_trials_summarize
@@ -34,10 +33,8 @@ def _cmd_export_lerobot(args: argparse.Namespace) -> int:
     runs = [Path(r) for r in args.runs]
     if not args.out:
         resolve_runs(runs)  # a run that is not there says so before a folder is numbered
-    out = out_folder(args.out, holding=(*TRIAL_FILES, *CAMPAIGN_FILES)) or default_out(
-        command_project(args), "lerobot"
-    )
-    with kept_if_used(out, made=not args.out):
+    out_folder(args.out, holding=(*TRIAL_FILES, *CAMPAIGN_FILES))
+    with results_folder(args.out, command_project(args), "lerobot") as out:
         info = export_lerobot(
             runs, out, task=args.task, overwrite=args.force,
             progress=not args.json and sys.stderr.isatty(),
