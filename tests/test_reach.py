@@ -502,6 +502,36 @@ def test_the_reach_models_urdf_lives_with_it_so_the_span_range_is_cached(tree):
     assert not urdf.exists()
 
 
+def test_the_span_ranges_cache_key_follows_the_code_the_range_is_measured_with(tree, monkeypatch):
+    """A change to the features, forward kinematics or self-collision code a pair range is
+    computed with is a new key: the range is computed anew, not read from an old cache."""
+    import inspect
+
+    from payload import kinematics
+    from payload.retarget import (
+        collision,
+        collision_distance,
+        collision_geometry,
+        features,
+        range_cache,
+        symbolic,
+    )
+
+    pk = design_kinematics(tree).pairs["L"]
+    base = range_cache.disk_key(pk, 0, False, [])
+    source = inspect.getsource
+    for changed in (features, symbolic, kinematics, collision, collision_distance,
+                    collision_geometry):  # fmt: skip
+
+        def edited(obj, changed=changed):
+            return source(obj) + ("\n# edited" if obj is changed else "")
+
+        monkeypatch.setattr(range_cache.inspect, "getsource", edited)
+        assert range_cache.disk_key(pk, 0, False, []) != base, changed.__name__
+    monkeypatch.setattr(range_cache.inspect, "getsource", source)
+    assert range_cache.disk_key(pk, 0, False, []) == base
+
+
 # ----------------------------------------------------------------- the analysis
 
 

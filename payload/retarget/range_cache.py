@@ -37,7 +37,14 @@ _CACHE_VERSION = "pair-range-1"
 
 def disk_key(pk: PairKinematics, seed: int, collisions: bool, sources: Sequence[ModuleType]) -> str:
     """The cache key of one range: the model, the settings and the computing code."""
-    from payload.retarget import collision, collision_distance, collision_geometry
+    from payload import kinematics
+    from payload.retarget import (
+        collision,
+        collision_distance,
+        collision_geometry,
+        features,
+        symbolic,
+    )
 
     parts = [
         _CACHE_VERSION,
@@ -51,6 +58,10 @@ def disk_key(pk: PairKinematics, seed: int, collisions: bool, sources: Sequence[
         inspect.getsource(collision),
         inspect.getsource(collision_distance),
         inspect.getsource(collision_geometry),
+        # and the features and forward kinematics it is measured with
+        inspect.getsource(features),
+        inspect.getsource(symbolic),
+        inspect.getsource(kinematics),
     ]
     if pk.hand.design is not None:
         parts.append(Path(pk.hand.design).read_text())
