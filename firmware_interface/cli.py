@@ -20,6 +20,7 @@ from payload.cliutil import (
     add_device,
     add_json,
     add_replay,
+    check_seconds,
     command_project,
     emit_json,
     need_device,
@@ -39,14 +40,14 @@ def _check_numbers(args: argparse.Namespace) -> None:
 
     Raises:
         HwUsageError: ``--latency-ms`` not a finite number >= 0 (a NaN or infinite reply
-            timeout would wait forever on a silent servo), ``--max-time`` not positive.
+            timeout would wait forever on a silent servo).
+        UsageError: ``--max-time`` not a positive number of seconds
+            (:func:`payload.cliutil.check_seconds`).
     """
     lat = getattr(args, "latency_ms", None)
     if lat is not None and not 0.0 <= lat < math.inf:
         raise HwUsageError(f"--latency-ms must be a finite number of ms >= 0, got {lat}")
-    cap = getattr(args, "max_time", None)
-    if cap is not None and not cap > 0:
-        raise HwUsageError(f"--max-time must be positive, got {cap}")
+    check_seconds("--max-time", getattr(args, "max_time", None), cap=True)
 
 
 def _models_follow(args: argparse.Namespace) -> None:

@@ -495,3 +495,15 @@ def test_a_forked_worker_keeps_the_default_sigterm(tmp_path: Path) -> None:
     )
     assert out.returncode == 0, out.stderr
     assert out.stdout.split() == ["0", "True"]
+
+
+@pytest.mark.parametrize("value", ["-1", "0", "nan"])
+def test_a_trial_cap_that_is_not_a_positive_time_is_one_line(value, tmp_path, capsys) -> None:
+    """``trial --max-time`` takes what ``hw run --max-time`` takes (``cliutil.check_seconds``
+    with no upper bound): anything but a positive number of seconds is one line naming
+    the option, exit 2, before any folder is made."""
+    out = tmp_path / "t"
+    assert main(["trial", "--max-time", value, "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--max-time" in err[0] and "positive" in err[0], err
+    assert not out.exists()

@@ -68,14 +68,8 @@ def _runner_trial(
     force: bool = False,
     **setup: Any,
 ) -> dict[str, Any]:
-    try:
-        from payload.trials.runner import run_trial
-    except ModuleNotFoundError as exc:
-        if exc.name != "payload.trials.runner":
-            raise
-        raise CampaignError(
-            "payload.trials.runner (the teleoperation trial loop, issue 6) is not installed yet"
-        ) from None
+    from payload.trials.runner import run_trial
+
     extra: dict[str, Any] = {"force": True} if force else {}
     if max_time is not None:
         extra["max_time"] = max_time

@@ -34,7 +34,6 @@ from payload.trials.setup_options import (
     _check_ctb,
     _check_physics_dt,
     _link_and_zones,
-    _run_trial_fn,
     _setup_defaults,
 )
 
@@ -65,7 +64,6 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
     _setup_defaults(args)
     _check_ctb(args.ctb)
     link_zones = _link_and_zones(args)
-    _run_trial_fn()  # fail here, once, if the runner is missing
     project = command_project(args)
     models_follow_design(project.design_path, project.root, json=args.json)
     prov = provenance(project)

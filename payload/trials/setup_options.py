@@ -1,8 +1,7 @@
 """The trial setup options shared by ``payload trial``, ``trials run`` and ``bench trial``
 (CTB, propulsion, controller profile and its overrides, physics step, base filter, zones,
 link delay), their checks, and the resolution of the ones left out
-(:func:`payload.trials.sources.trial_setup`); the trial runner those commands call
-(:func:`_run_trial_fn`)."""
+(:func:`payload.trials.sources.trial_setup`)."""
 
 from __future__ import annotations
 
@@ -147,18 +146,6 @@ def _setup_defaults(args: argparse.Namespace) -> None:
     for name, value in setup.items():
         if name in _SETUP:
             setattr(args, name, value)
-
-
-def _run_trial_fn() -> Any:
-    try:
-        from payload.trials.runner import run_trial
-    except ModuleNotFoundError as exc:
-        if exc.name != "payload.trials.runner":
-            raise
-        raise TrialsCliError(
-            "payload.trials.runner (the teleoperation trial loop, issue 6) is not installed yet"
-        ) from None
-    return run_trial
 
 
 def _check_ctb(ctb: str) -> None:

@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from payload.cliutil import command_project, emit_json, out_folder, warn
+from payload.cliutil import check_seconds, command_project, emit_json, out_folder, warn
 from payload.folders import CAMPAIGN_FILES, HANDS, RECORDING, held
 from payload.trials.setup_options import (
     _SETUP,
@@ -16,7 +16,6 @@ from payload.trials.setup_options import (
     _check_ctb,
     _check_physics_dt,
     _link_and_zones,
-    _run_trial_fn,
     _setup_defaults,
 )
 
@@ -58,11 +57,11 @@ def _parse_operator(args: argparse.Namespace) -> tuple[str, Path | None]:
 
 def _cmd_trial(args: argparse.Namespace) -> int:
     from payload.design import models_follow_design
+    from payload.trials.runner import run_trial
 
     if args.seed is not None and args.seed < 0:
         raise TrialsCliError(f"--seed must be >= 0, got {args.seed}")
-    if args.max_time is not None and not args.max_time > 0:
-        raise TrialsCliError(f"--max-time must be positive, got {args.max_time}")
+    check_seconds("--max-time", args.max_time, cap=True)
     _check_physics_dt(args.physics_dt)
     operator, replay = _parse_operator(args)
     if operator == "synthetic":
@@ -72,7 +71,6 @@ def _cmd_trial(args: argparse.Namespace) -> int:
     project = command_project(args)
     models_follow_design(project.design_path, project.root, json=args.json)
     out = out_folder(args.out)
-    run_trial = _run_trial_fn()
     extra: dict[str, Any] = {"project": project, **_link_and_zones(args)}
     for name in _SETUP:
         if getattr(args, name) is not None:  # a replay: the others are its recording's
