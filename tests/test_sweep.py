@@ -171,3 +171,25 @@ def test_a_sweep_runs_each_points_trials(tmp_path, capsys):
         "duration_s_median": by_hand["duration_s"],
         "errors": 0,
     }
+
+
+@pytest.mark.parametrize(
+    ("option", "value", "says"),
+    [
+        ("--samples", "10", "--samples must be at least 1000 (got 10)"),
+        ("--seed", "-1", "--seed must not be negative (got -1)"),
+        ("--workers", "0", "--workers must be at least 1 (got 0)"),
+    ],
+)
+def test_a_sweeps_reach_numbers_are_refused_as_the_reach_report_refuses_them(
+    option, value, says, tmp_path, capsys
+):
+    """The sweep runs the reach analysis of every point: its numbers are refused with the
+    words ``payload report reach`` uses for them, before any folder is made."""
+    out = tmp_path / "s"
+    assert main(["sweep", "--set", "rail.travel=0.04,0.05", option, value, "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == f"payload: error: {says}"
+    assert main(["report", "reach", option, value, "--out", str(tmp_path / "r")]) == 2
+    assert capsys.readouterr().err.strip() == err
+    assert not out.exists()

@@ -225,14 +225,9 @@ def written_lines(paths: dict[str, Path], stem: str) -> list[str]:
 
 def _check_reach_args(args: argparse.Namespace) -> None:
     """Bad numbers raise :class:`ReachError` (exit 2)."""
-    from payload.envelope.pairs import MIN_SAMPLES, ReachError
+    from payload.envelope.pairs import ReachError, check_reach_numbers
 
-    if args.samples < MIN_SAMPLES:
-        raise ReachError(f"--samples must be at least {MIN_SAMPLES} (got {args.samples})")
-    if args.seed < 0:
-        raise ReachError(f"--seed must not be negative (got {args.seed})")
-    if args.workers is not None and args.workers < 1:
-        raise ReachError(f"--workers must be at least 1 (got {args.workers})")
+    check_reach_numbers(args.samples, args.seed, args.workers)
     for t in args.thickness or ():
         if not t >= 0 or t > 1.0:
             raise ReachError(f"--thickness must be between 0 and 1 m (got {t})")

@@ -23,6 +23,21 @@ class ReachError(PayloadError):
     """Bad input to the reach analysis (a sample count, a thickness, a pair)."""
 
 
+def check_reach_numbers(
+    samples: int, seed: int, workers: int | None, error: type[Exception] = ReachError
+) -> None:
+    """Refuse a reach analysis's ``--samples`` below :data:`MIN_SAMPLES`, a negative
+    ``--seed`` or ``--workers`` below 1 (``None``: the default) with one line, as
+    ``error`` (``payload report reach``'s, or a command that runs the analysis, e.g.
+    ``payload sweep``)."""
+    if samples < MIN_SAMPLES:
+        raise error(f"--samples must be at least {MIN_SAMPLES} (got {samples})")
+    if seed < 0:
+        raise error(f"--seed must not be negative (got {seed})")
+    if workers is not None and workers < 1:
+        raise error(f"--workers must be at least 1 (got {workers})")
+
+
 def pair_joints(pair: str) -> list[str]:
     """The 8 joints of a pair: finger 1's four, then finger 2's."""
     if pair not in PAIRS:
@@ -58,6 +73,7 @@ __all__ = [
     "OPPOSITION_CONE",
     "PAIRS",
     "ReachError",
+    "check_reach_numbers",
     "finger_link_names",
     "grasp_base",
     "pair_joints",

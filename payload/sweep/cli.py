@@ -39,7 +39,7 @@ def _progress(enabled: bool, total: int) -> Any:
 
 
 def _cmd_sweep(args: argparse.Namespace) -> int:
-    from payload.envelope.pairs import MIN_SAMPLES
+    from payload.envelope.pairs import check_reach_numbers
     from payload.project import provenance
     from payload.sweep.report import sweep_json, sweep_markdown, write_sweep
     from payload.sweep.run import plan, run_points
@@ -47,12 +47,7 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
     axes = [parse_set(s) for s in args.set]
     if args.trials < 0:
         raise SweepError(f"--trials must be >= 0, got {args.trials}")
-    if args.samples < MIN_SAMPLES:
-        raise SweepError(f"--samples must be at least {MIN_SAMPLES} (got {args.samples})")
-    if args.seed < 0:
-        raise SweepError(f"--seed must not be negative (got {args.seed})")
-    if args.workers is not None and args.workers < 1:
-        raise SweepError(f"--workers must be at least 1, got {args.workers}")
+    check_reach_numbers(args.samples, args.seed, args.workers, SweepError)
     from payload.trials.cluster import check_scheduler
 
     check_scheduler(args.scheduler, SweepError)  # before any folder is made for the sweep
