@@ -138,6 +138,7 @@ class DynamixelDriver(FaultHandling):
         self._closed = True
         self._last_io = time.monotonic()
         self._gap = 0.0
+        self._longest_gap = 0.0  # the host's longest silence on the bus since a health check
         self._present = np.zeros(len(self.ids), dtype=np.int64)
         s = self.design.servo
         self._kt = s.kt  # [N m / A], output-side
@@ -236,6 +237,7 @@ class DynamixelDriver(FaultHandling):
         self._arm_watchdog(self.ids)
         self._torque_on = True
         self._last_io = time.monotonic()
+        self._longest_gap = 0.0  # the watchdog is armed from here
         if self.guard is not None:  # where the servos hold is the guard's last safe command
             self.guard.reset(self._direction * (self._present - self._zero) * self._units)
 
@@ -315,31 +317,44 @@ class DynamixelDriver(FaultHandling):
                 return
             values = guarded
         ticks = np.rint(self._zero + self._direction * values / self._units).astype(np.int64)
-        if self.map.watchdog_ms and time.monotonic() - self._last_io > self.map.watchdog_ms / 1e3:
+        silence = time.monotonic() - self._last_io
+        self._longest_gap = max(self._longest_gap, silence)
+        if self.map.watchdog_ms and silence > self.map.watchdog_ms / 1e3:
             # silent for longer than the Bus Watchdog: servos that stopped refuse goals
             # until it is cleared, so re-arm them first
-            self._rearm_watchdog(time.monotonic() - self._last_io)
+            self._rearm_watchdog(silence)
         self._sync_write_goals(ticks)
         self._last_io = time.monotonic()
 
     def _rearm_watchdog(self, silence: float) -> None:
         """Clear and re-arm the servos whose Bus Watchdog tripped (two sync writes);
-        ``silence``: how long the host had been silent [s] (recorded with the trip)."""
+        ``silence``: the host's longest silence on the bus that could have tripped it [s]
+        (recorded with the trip; shorter than the watchdog's time when the host was never
+        silent that long and the far end missed or delayed its packets)."""
         wd = self._group_read(ADDR["bus_watchdog"], 1)
         tripped = [i for i in self.ids if wd.getData(i, ADDR["bus_watchdog"], 1) == 0xFF]
         if not tripped:
             return
+        limit_ms = self.map.watchdog_ms
+        host = not limit_ms or silence * 1e3 >= limit_ms
         self.watchdog_trips.append(
             {
                 "t": time.monotonic(),
                 "unix_s": round(time.time(), 3),
                 "servos": tripped,
                 "silence_s": round(silence, 4),
+                "host_silent_long_enough": host,
             }
         )
-        log.warning("Bus Watchdog tripped on %d servo(s) after %.0f ms of host silence: "
-                    "they held still until now; re-arming", len(tripped),
-                    silence * 1e3)  # fmt: skip
+        if host:
+            log.warning("Bus Watchdog tripped on %d servo(s) after %.0f ms of host silence: "
+                        "they held still until now; re-arming", len(tripped),
+                        silence * 1e3)  # fmt: skip
+        else:
+            log.warning("Bus Watchdog tripped on %d servo(s) although the host was silent "
+                        "for at most %.0f ms (its time: %d ms): the bus or the servos missed "
+                        "or delayed packets; they held still until now; re-arming",
+                        len(tripped), silence * 1e3, limit_ms)  # fmt: skip
         clear = GroupSyncWrite(self.port, self.packet, ADDR["bus_watchdog"], 1)
         for i in tripped:
             clear.addParam(i, [0])
@@ -389,6 +404,7 @@ class DynamixelDriver(FaultHandling):
         self._feedback()
         now = time.monotonic()
         self._gap = now - self._last_io  # the host's silence before this read [s]
+        self._longest_gap = max(self._longest_gap, self._gap)
         self._last_io = now
         return np.frombuffer(
             b"".join(bytes(self._reader.data_dict[i]) for i in self.ids), dtype=_FEEDBACK

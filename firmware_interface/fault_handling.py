@@ -45,6 +45,7 @@ class FaultHandling:
     homed: set[int]
     _present: Any
     _gap: float
+    _longest_gap: float
 
     def _check_alerted(self, ids: list[int]) -> None:
         """Hardware Error Status of the servos whose status carried the alert bit."""
@@ -104,7 +105,9 @@ class FaultHandling:
             )
         self.health = out
         if any(h.watchdog == 0xFF for h in out.values()) and not self._stopped:
-            self._rearm_watchdog(self._gap)
+            # the longest silence since the last check could have tripped it, not the last
+            self._rearm_watchdog(self._longest_gap)
+        self._longest_gap = 0.0
         faulted = [h for h in out.values() if h.hardware_error]
         if self._torque_on:  # a servo found torque off restarted: its count (and homing) lost
             reset = [h for h in out.values() if h.reset]

@@ -426,12 +426,18 @@ def watchdog_report(trips: list[dict[str, Any]]) -> dict[str, Any]:
     if not trips:
         return {"trips": 0, "effect": "none: the watchdog never tripped"}
     longest = max(t["silence_s"] for t in trips)
+    not_host = sum(1 for t in trips if not t.get("host_silent_long_enough", True))
+    cause = (
+        f"after host silences up to {longest * 1e3:.0f} ms"
+        if not not_host
+        else f"{not_host} of them with the host silent for less than the watchdog's time "
+        f"(at most {longest * 1e3:.0f} ms: packets missed or delayed on the bus)"
+    )
     return {
         "trips": len(trips),
         "events": trips,
         "effect": (
-            f"the servos stopped and held where they were {len(trips)} time(s), after host "
-            f"silences up to {longest * 1e3:.0f} ms, until the next command re-armed them; "
-            "the session continued"
+            f"the servos stopped and held where they were {len(trips)} time(s), {cause}, "
+            "until the next command re-armed them; the session continued"
         ),
     }

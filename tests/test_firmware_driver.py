@@ -447,6 +447,36 @@ def test_every_hardware_error_bit_is_named_and_recovered(smap):
         ] == [1] * 5
 
 
+def test_a_watchdog_trip_found_by_a_health_check_records_the_silence_that_tripped_it(smap):
+    """The host falls silent (no send) for longer than the watchdog, then reads twice: the
+    trip is found by the health check after the second read, whose own gap is a few ms;
+    the trip records the 250 ms silence that tripped it, not the last read's gap."""
+    from firmware_interface.run import watchdog_report
+
+    with (
+        EmulatorProcess() as emu,
+        DynamixelDriver(emu.port, smap, latency_timer_ms=LAT) as drv,
+    ):
+        drv.bring_up()
+        cmd = PayloadCommand(np.zeros(17), 0.0, 0.0)
+        _cycles(drv, cmd, 3, pause=0.02)
+        drv.check_health()  # the longest silence counts from here
+        time.sleep(0.25)
+        drv.read()
+        drv.read()  # a short gap before this one
+        assert all(s["watchdog_trip"] is not None for s in emu.servos().values())
+        assert drv.watchdog_trips == []
+        drv.check_health()
+        assert len(drv.watchdog_trips) == 1
+        trip = drv.watchdog_trips[0]
+        assert trip["silence_s"] >= 0.25 and trip["host_silent_long_enough"] is True
+        assert "host silences up to" in watchdog_report(drv.watchdog_trips)["effect"]
+        # a trip with the host never silent that long says so (the far end's doing)
+        short = {**trip, "silence_s": 0.004, "host_silent_long_enough": False}
+        effect = watchdog_report([short])["effect"]
+        assert "less than the watchdog's time" in effect and "at most 4 ms" in effect
+
+
 def test_a_watchdog_trip_mid_session_is_recorded_with_what_it_did(smap):
     from firmware_interface.run import watchdog_report
 
