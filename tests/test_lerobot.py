@@ -184,8 +184,16 @@ def test_export_errors(runs, tmp_path: Path) -> None:
     export_lerobot([runs[1]], out)
     with pytest.raises(LeRobotExportError, match="not empty"):
         export_lerobot([runs[1]], out)
-    info = export_lerobot([runs[1], runs[1]], out, overwrite=True, task="Task X")
+    info = export_lerobot([runs[1], runs[2]], out, overwrite=True, task="Task X")
     assert info["episodes"] == 2 and info["tasks"] == ["Task X"]
+    # a recording given twice (here as a file and inside its campaign folder, and by a
+    # path with a detour) would be two identical episodes: refused, the dataset kept
+    before = sorted(p.relative_to(out) for p in out.rglob("*"))
+    detour = runs[1].parent / "camp" / ".." / runs[1].name
+    for twice in ([runs[2], runs[2].parent.parent], [runs[1], detour]):
+        with pytest.raises(LeRobotExportError, match="given twice"):
+            export_lerobot(twice, out, overwrite=True)
+    assert sorted(p.relative_to(out) for p in out.rglob("*")) == before
     with pytest.raises(LeRobotExportError, match="no such recording"):
         export_lerobot([tmp_path / "missing"], tmp_path / "ds2")
     slow = _write_run(tmp_path / "slow.mcap", seed=3, n=20, n_cal=0, dt=0.1)

@@ -114,7 +114,8 @@ def resolve_runs(runs: Sequence[str | Path]) -> list[Path]:
     folder whose ``trial-*/log.mcap`` files are taken in name order.
 
     Raises:
-        LeRobotExportError: A run does not exist or holds no recording.
+        LeRobotExportError: A run does not exist or holds no recording, or a recording is
+            given twice (as a file and in its trial or campaign folder, say).
     """
     if not runs:
         raise LeRobotExportError("no runs given")
@@ -132,6 +133,13 @@ def resolve_runs(runs: Sequence[str | Path]) -> list[Path]:
             out.extend(found)
         else:
             raise LeRobotExportError(f"{p}: no such recording or folder")
+    seen: dict[Path, Path] = {}
+    for path in out:  # one episode a recording: the same one twice would train on it twice
+        first = seen.setdefault(path.resolve(), path)
+        if first is not path:
+            raise LeRobotExportError(
+                f"{path}: the recording {first} is given twice (each recording is one episode)"
+            )
     return out
 
 
@@ -226,7 +234,7 @@ def _prepare_out(out: Path, overwrite: bool) -> Path:
         raise LeRobotExportError(f"{out}: exists and is not a folder")
     if out.exists() and any(out.iterdir()) and not overwrite:
         raise LeRobotExportError(
-            f"{out}: not empty (--force, or overwrite=True, replaces its dataset)"
+            f"{out}: not empty (--force replaces the dataset in it)"
         )
     out.parent.mkdir(parents=True, exist_ok=True)
     return Path(tempfile.mkdtemp(prefix=f".{out.name}.new-", dir=out.parent))
