@@ -442,8 +442,35 @@ def test_a_replay_honours_recorded_timestamps_and_records_its_source(tmp_path, r
     assert rec.meta["replay"]["file"] == str(src / "hands.jsonl")
     assert rec.meta["replay"]["seed"] == 7
     assert rec.meta["replay"]["rate_hz"] == pytest.approx(rate)
+    assert rec.meta["replay"]["source_unfinished"] is None
     meta, resampled = read_hand_frames(out / "log.mcap")
     assert meta["seed"] == 7 and len(resampled) == len(rec)
+
+
+def test_a_replay_of_a_run_that_did_not_finish_says_so(tmp_path, caplog):
+    """A recording cut short (its writer killed: the footer never written) replays up to
+    where it stops, with a warning naming why and how far, and the replay's recording
+    names it as its source's state; a finished run's replay does neither."""
+    first = tmp_path / "first"
+    run_trial(2, out_dir=first, max_time=2.0)
+    data = (first / "log.mcap").read_bytes()
+    torn = tmp_path / "torn.mcap"
+    torn.write_bytes(data[: len(data) - 40])  # the footer lost: the file never closed
+    whole_frames = read_hand_frames(first / "log.mcap")[1]
+    with caplog.at_level(logging.WARNING, logger="payload.trials.sources"):
+        run_trial(operator="replay", replay=torn, out_dir=tmp_path / "of-torn")
+    seconds = whole_frames[-1].stamp - whole_frames[0].stamp
+    warned = [r.getMessage() for r in caplog.records if "did not finish" in r.getMessage()]
+    assert len(warned) == 1 and "cut short (never closed" in warned[0]
+    assert f"{seconds:.1f} s in" in warned[0]
+    rec = read_recording(tmp_path / "of-torn" / "log.mcap")
+    assert rec.meta["replay"]["source_unfinished"].startswith("cut short (never closed")
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="payload.trials.sources"):
+        run_trial(operator="replay", replay=first / "log.mcap", out_dir=tmp_path / "of-whole")
+    assert not [r for r in caplog.records if "did not finish" in r.getMessage()]
+    again = read_recording(tmp_path / "of-whole" / "log.mcap")
+    assert again.meta["replay"]["source_unfinished"] is None
 
 
 def test_a_live_sessions_webxr_hands_replay_as_their_workbench_frames(tmp_path):

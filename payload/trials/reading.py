@@ -472,10 +472,17 @@ def read_hand_frames(path: str | Path) -> tuple[dict[str, Any], list[Any]]:
         RecordingError: Unreadable file, or no hand channel (a recording from before
             schema version 2: replay its ``hands.jsonl`` instead).
     """
+    meta, frames, _ = read_hand_frames_of_run(path)
+    return meta, frames
+
+
+def read_hand_frames_of_run(path: str | Path) -> tuple[dict[str, Any], list[Any], str | None]:
+    """:func:`read_hand_frames`, and why the run it recorded did not finish
+    (:func:`unfinished_reason`; None: it did): a replay of it ends where the run stopped."""
     from payload.teleop.hands import Hand, HandFrame
 
     path = Path(path)
-    channels, meta, _, samples, _ = _read_file(path)
+    channels, meta, _, samples, complete = _read_file(path)
     if not any(c.topic == HANDS_TOPIC for c in channels.values()):
         raise RecordingError(
             f"{path}: no {HANDS_TOPIC} channel (an older recording: replay its hands.jsonl)"
@@ -492,4 +499,4 @@ def read_hand_frames(path: str | Path) -> tuple[dict[str, Any], list[Any]]:
         )
         for s in samples
     ]
-    return meta, frames
+    return meta, frames, unfinished_reason(meta, complete)

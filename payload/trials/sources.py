@@ -4,6 +4,7 @@ reports on the recorder's grid, or a replayed recording."""
 from __future__ import annotations
 
 import hashlib
+import logging
 from pathlib import Path
 from typing import Any
 
@@ -21,6 +22,8 @@ from payload.teleop.loop import ReplaySource, SyntheticSource
 from payload.teleop.operator import OperatorPlan, SyntheticOperator, WorldView
 from payload.teleop.replay import read_hand_recording
 from payload.trials.jointcodec import quantize_joints
+
+log = logging.getLogger(__name__)
 
 
 class TrialError(PayloadError):
@@ -106,14 +109,24 @@ def load_replay(path: str | Path) -> tuple[dict[str, Any], list[HandFrame]]:
     channel) or a ``hands.jsonl``; the header's ``meta`` names the source's seed. The
     frames are in the workbench convention, as a trial records them: a live session's
     ``hands.jsonl`` (WebXR's convention) converted as the pipeline converts each frame."""
-    from payload.trials.recorder import RecordingError, read_hand_frames
+    from payload.trials.reading import read_hand_frames_of_run
+    from payload.trials.recorder import RecordingError
 
     if Path(path).suffix == ".mcap":
         try:
-            meta, frames = read_hand_frames(path)
+            meta, frames, unfinished = read_hand_frames_of_run(path)
         except RecordingError as exc:
             raise TrialError(str(exc)) from None
         header = {"meta": meta}
+        if unfinished is not None and frames:
+            # replayed as asked, but not as if it were a whole run's hands
+            header["unfinished"] = unfinished
+            log.warning(
+                "%s: a run that did not finish, %s; the replay ends where it stopped, %.1f s in",
+                path,
+                unfinished,
+                frames[-1].stamp - frames[0].stamp,
+            )
     else:
         header, frames = read_hand_recording(path)
     if not frames:
@@ -193,6 +206,8 @@ class _Source:
                 "seed": self.header.get("meta", {}).get("seed"),
                 "frames": len(self.frames),
                 "rate_hz": _rate(self.frames),
+                # why the source run did not finish (None: it did)
+                "source_unfinished": self.header.get("unfinished"),
             }
         }
 
