@@ -507,3 +507,19 @@ def test_a_trial_cap_that_is_not_a_positive_time_is_one_line(value, tmp_path, ca
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--max-time" in err[0] and "positive" in err[0], err
     assert not out.exists()
+
+
+def test_a_trial_cut_off_by_its_cap_says_so(tmp_path, capsys) -> None:
+    """A trial stopped by ``--max-time`` before the operator finished prints that, with
+    the simulated time it ran (51 control steps of 20 ms for a 1 s cap: t = 0 .. 1 s),
+    and its ``metrics.json`` says what ended it."""
+    out = tmp_path / "t"
+    assert main(["trial", "--max-time", "1", "--out", str(out)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert "  success: no" in lines
+    assert (
+        "  stopped by the session-length cap (--max-time) after 1.0 s, before the "
+        "operator finished" in lines
+    )
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert (metrics["ended_by"], metrics["steps"]) == ("max_time", 51)

@@ -57,6 +57,11 @@ def test_a_replayed_trial_reproduces_the_recorded_trial_bit_for_bit(tmp_path):
     from payload.cli import main
 
     assert main(["trials", "compare", str(first), str(again), "--require-identical"]) == 0
+    # the first was cut off by the cap, its replay ended with the hands it had: the same
+    # steps, and each says what ended it (not compared: the steps say where it ended)
+    ended = [json.loads((d / "metrics.json").read_text())["ended_by"] for d in (first, again)]
+    assert ended == ["max_time", "source"]
+    assert (a.meta["ended_by"], b.meta["ended_by"]) == ("max_time", "source")
     assert a.meta["acquisition_state"] == b.meta["acquisition_state"] is not None
     assert {k: b.meta[k] for k in ("ctb", "propulsion", "retarget_budget")} == {
         "ctb": "single",
@@ -421,7 +426,7 @@ def _session(path: Path, rate: float, seconds: float, seed: int) -> list:
 
 
 @pytest.mark.parametrize("rate", [72.0, 90.0])
-def test_a_replay_honours_recorded_timestamps_and_records_its_source(tmp_path, rate):
+def test_a_replay_honours_recorded_timestamps_and_records_its_source(tmp_path, rate, capsys):
     from payload.trials.runner import TrialError
 
     src = tmp_path / "session"
@@ -430,7 +435,17 @@ def test_a_replay_honours_recorded_timestamps_and_records_its_source(tmp_path, r
     with pytest.raises(TrialError, match="folder it reads from"):
         run_trial(operator="replay", replay=src / "hands.jsonl", out_dir=src)
     out = tmp_path / "replayed"
-    run_trial(operator="replay", replay=src / "hands.jsonl", out_dir=out)
+    result = run_trial(operator="replay", replay=src / "hands.jsonl", out_dir=out)
+    assert result["replay_setup_recorded"] == []  # a bare hands.jsonl names no setup
+    if rate == 72.0:  # the terminal's setup line says the defaults ran, not the recording's
+        from payload.cli import main
+
+        cli = ["trial", "--replay", str(src / "hands.jsonl"), "--out", str(tmp_path / "cli")]
+        assert main([*cli, "--max-time", "0.5"]) == 0
+        setup = [x for x in capsys.readouterr().out.splitlines() if "setup:" in x]
+        assert len(setup) == 1 and setup[0].endswith(
+            "self-collision off (the defaults: the recording names none)"
+        )
     rec = read_recording(out / "log.mcap")
     # 50 Hz steps over the session's own duration, not one step per recorded frame
     assert len(rec) == round(seconds / 0.02) + 1

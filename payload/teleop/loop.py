@@ -175,11 +175,15 @@ class LoopStats:
         steps: Control steps run.
         pipeline_us: Per-step pipeline time [us].
         overruns: Steps whose work took longer than the period (live pacing only).
+        ended_by: What ended the session: ``"source"`` (the hand source finished: the
+            synthetic operator's route, a replay's last frame) or ``"max_time"`` (the
+            session-length cap); empty while it runs or when an exception ended it.
     """
 
     steps: int = 0
     pipeline_us: list[float] = field(default_factory=list)
     overruns: int = 0
+    ended_by: str = ""
 
 
 @dataclass
@@ -245,10 +249,12 @@ def run_session(
         while True:
             t = k * CONTROL_DT
             if t > max_time + 1e-9:
+                stats.ended_by = "max_time"
                 break
             view = world_view(state, t) if world_view is not None else None
             frame = source.frame(t, view)
             if frame is None:
+                stats.ended_by = "source"
                 break
             step: TeleopStep | None = None
             calibrating = not calibration.done
@@ -281,6 +287,7 @@ def run_session(
                 else:
                     time.sleep(-lag)
             if source.finished:
+                stats.ended_by = "source"
                 break
     finally:
         # whatever ended the session (source finished, time cap, an exception), leave the

@@ -121,7 +121,12 @@ def register(
     benches of the recorder and of a trial: :mod:`payload.trials.bench_cli`)."""
     p = sub.add_parser("trial", help="one ISS cargo-transport trial")
     p.add_argument(
-        "--seed", type=int, default=None, help="trial seed (default 0; a replay: its source's)"
+        "--seed",
+        type=int,
+        default=None,
+        help="trial seed (default 0; a replay: its source's); given with --replay it labels "
+        "the run and seeds only what the recording does not fix (a bare hands.jsonl's CTB "
+        "offset, --link-delay's jitter)",
     )
     add_replay(
         p,

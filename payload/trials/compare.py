@@ -7,7 +7,8 @@ every recorded step of both recordings compared field by field (every field of
 :data:`~payload.trials.records.FIELD_SPECS`; ``seq`` and ``wall_time`` are not
 compared), counting the steps that differ in any bit, every message of the other
 channels (hand frames, Foxglove, safety records; the wall-clock timestamps aside) and
-every other metric of ``metrics.json`` but the provenance.
+every other metric of ``metrics.json`` but the provenance and what ended the session
+(:data:`NOT_RESULTS`).
 
 Uses: the validation of ``--physics-dt 0.002`` (the ``single`` campaign at 2 ms against
 1 ms), and the bit-for-bit check of a speed change (the same seeds before and after).
@@ -28,6 +29,11 @@ from payload.folders import METRICS, RECORDING
 from payload.trials.records import FIELD_SPECS, HANDS_TOPIC, STEP_TOPIC, RecordingError
 from payload.trials.summary_fields import METRIC_KEYS, METRIC_LABELS
 from payload.trials.trial_results import read_metrics
+
+NOT_RESULTS = ("provenance", "ended_by")
+"""``metrics.json`` fields a step comparison leaves out: where and with what a run was
+made, and what ended its session (a replay of a trial cut off by ``--max-time`` ends
+with its source's last frame at the same step: the recorded steps say where it ended)."""
 
 
 class CompareError(PayloadError):
@@ -202,7 +208,7 @@ def compare_runs(run_a: str | Path, run_b: str | Path, *, steps: bool = False) -
         run_b: Campaign or trial folder (the one compared with it).
         steps: Also compare every recorded step (:func:`compare_steps`), every message of
             the recordings' other channels (:func:`compare_channels`) and every metric
-            in ``metrics.json`` but the provenance.
+            in ``metrics.json`` but :data:`NOT_RESULTS`.
 
     Returns:
         ``{"a", "b", "trials": [{"trial", "success_a", "success_b", "physics_dt_a",
@@ -255,7 +261,7 @@ def compare_runs(run_a: str | Path, run_b: str | Path, *, steps: bool = False) -
             row["channels"] = compare_channels(log_a, log_b)
             row["other_metrics"] = sorted(
                 key
-                for key in (set(ma) | set(mb)) - {"provenance", *METRIC_KEYS}
+                for key in (set(ma) | set(mb)) - {*NOT_RESULTS, *METRIC_KEYS}
                 if not _same_value(ma.get(key), mb.get(key))
             )
             identical = (

@@ -124,6 +124,8 @@ def closing_meta(
     return {
         **scene.summary(),
         "steps": stats.steps,
+        # "max_time": the session-length cap ended it before the operator finished
+        "ended_by": stats.ended_by or None,
         "pipeline_median_us": float(np.median(stats.pipeline_us)) if stats.pipeline_us else None,
         "warnings": driver.warnings(),
         "ctb_external_max": driver.ctb_external_max,

@@ -53,6 +53,7 @@ from payload.trials.preparation import (
     trial_meta,
 )
 from payload.trials.retargeters import retargeting, single_threaded_numerics
+from payload.trials.setup_options import RUN_SETTINGS
 from payload.trials.sources import HeadsetSource, TrialError, _Source, load_replay, trial_setup
 from payload.trials.stepobserver import MODULE_NAMES, step_record, world_view
 
@@ -146,11 +147,14 @@ def run_trial(
     project = project or current_project()
     header: dict[str, Any] = {}
     frames: list[Any] = []
+    named: list[str] = []
     if operator == "replay":
         if replay is None:
             raise TrialError("operator 'replay' needs a hand recording file")
         header, frames = load_replay(replay)
         recorded = header.get("meta") or {}
+        # the settings the replayed recording names (a bare hands.jsonl: none)
+        named = [name for name in RUN_SETTINGS if name in recorded]
         ctb = recorded.get("ctb") if ctb is None else ctb
         propulsion = recorded.get("propulsion") if propulsion is None else propulsion
         if controller is None and isinstance(recorded.get("controller"), str):
@@ -229,12 +233,13 @@ def run_trial(
         **setup,
     )
     source.zones = zones
+    replayed = {"replay_setup_recorded": named} if operator == "replay" else {}
     with single_threaded_numerics():
         if not force:
             result = _run_trial(
                 seed, source, out, max_time=max_time, progress=progress, project=project
             )
-            return {**result, "out_dir": str(out)}
+            return {**result, "out_dir": str(out), **replayed}
         staging = Path(tempfile.mkdtemp(prefix=".trial-", dir=out))
         made = False  # whether the new trial replaces the old one
         try:
@@ -242,7 +247,7 @@ def run_trial(
                 seed, source, staging, max_time=max_time, progress=progress, project=project
             )
             made = True
-            return {**result, "out_dir": str(out)}
+            return {**result, "out_dir": str(out), **replayed}
         except TrialAborted as exc:  # its recording (marked aborted) is this run's record
             made = _recorded_steps(staging / RECORDING)
             if made:  # the recording's path once it is in place

@@ -86,6 +86,8 @@ def finish_trial(
     )
     result["literal"] = {k: v for k, v in literal.as_dict().items() if k != "criterion"}
     result.update(_trial_setup(rec.meta))
+    if "ended_by" in rec.meta:  # what ended the session ("max_time": the cap, before the end)
+        result["ended_by"] = rec.meta["ended_by"]
     rec_path = Path(recording_path)
     result["recording"] = (
         rec_path.name if rec_path.resolve().parent == out.resolve() else str(rec_path)

@@ -18,6 +18,7 @@ import numpy as np
 
 from payload.folders import SUMMARY, SUMMARY_TEXT, tagged
 from payload.safeio import OverwriteError, write_unless_changed
+from payload.schema import CONTROL_DT
 from payload.trials.summary_fields import METRIC_KEYS, METRIC_LABELS, PAPER_RESULTS, CampaignError
 from payload.trials.summary_markdown import summary_markdown
 from payload.trials.trial_results import load_trial_results
@@ -276,7 +277,12 @@ def print_trial_summary(result: dict[str, Any], given: str = "") -> None:
         f"controller {result.get('controller')}, retargeting budget "
         f"{result.get('retarget_budget')}, self-collision {modelled}{given}"
     )
-    print(f"  success: {bool(result.get('success'))}")
+    print(f"  success: {'yes' if result.get('success') else 'no'}")
+    if result.get("ended_by") == "max_time":
+        print(
+            f"  stopped by the session-length cap (--max-time) after "
+            f"{result.get('steps', 0) * CONTROL_DT:.1f} s, before the operator finished"
+        )
     if "station_contacts" in result:
         delay = result.get("link_delay")
         jitter = f" +-{delay[1]:g}" if delay and len(delay) > 1 and delay[1] else ""

@@ -101,9 +101,14 @@ def _cmd_trial(args: argparse.Namespace) -> int:
     given = ""
     if operator == "replay":
         names = [n for n in _SETUP if getattr(args, n) is not None]
-        given = " (the recording's)"
-        if names:
-            given = f" (given: {', '.join(names)}; the rest the recording's)"
+        named = result.get("replay_setup_recorded", _SETUP)
+        defaults = [n for n in _SETUP if n not in names and n not in named]
+        rest = "the recording's"
+        if defaults and any(n not in names and n in named for n in _SETUP):
+            rest = f"the recording's; {', '.join(defaults)}: the defaults (not in the recording)"
+        elif defaults:
+            rest = "the defaults: the recording names none"
+        given = f" (given: {', '.join(names)}; the rest {rest})" if names else f" ({rest})"
     from payload.trials.summary import print_trial_summary
 
     print_trial_summary(result, given)
