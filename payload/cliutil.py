@@ -225,7 +225,29 @@ def out_folder(
             f"{option} {value}: already holds {', '.join(there)}; choose another folder "
             "(results are never overwritten)"
         )
+    problem = _cannot_make(path)
+    if problem is not None:
+        raise UsageError(f"{option} {value}: cannot make the folder ({problem})")
     return path
+
+
+def _cannot_make(path: Path) -> str | None:
+    """Why the folder ``path`` could not be made (None: it exists, or it can be): tried
+    before the work whose results go there, by making the missing folders and removing
+    them again (the file system's own answer: permissions, read-only or virtual file
+    systems, a name too long)."""
+    missing = [p for p in (path, *path.parents) if not p.exists()]
+    if not missing:
+        return None
+    try:
+        path.mkdir(parents=True)
+    except OSError as exc:
+        return exc.strerror or str(exc)
+    finally:
+        for made in missing:  # deepest first; only what this probe made (and left empty)
+            with contextlib.suppress(OSError):
+                made.rmdir()
+    return None
 
 
 def default_out(project: Project, prefix: str) -> Path:

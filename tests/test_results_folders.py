@@ -50,6 +50,40 @@ def test_an_out_that_is_a_file_is_one_line_and_exit_2(argv, tmp_path, capsys) ->
 @pytest.mark.parametrize(
     "argv",
     [
+        ["trial", "--max-time", "1"],
+        ["trials", "run", "--n", "1", "--workers", "0"],
+        ["report", "envelope"],
+        ["report", "reach", "--samples", "1000"],
+        ["sweep", "--set", "rail.travel=0.04,0.05"],
+        ["export", "lerobot", "analyses"],
+    ],
+    ids=lambda argv: " ".join(argv[:2]),
+)
+def test_an_out_that_cannot_be_made_is_one_line_before_the_work(argv, capsys) -> None:
+    """``--out`` where no folder can be made (``/proc`` takes none, even from root): one
+    line naming it and why, exit 2, before any work (the reports failed with a traceback
+    after their analysis)."""
+    where = "/proc/payload-no-such/results"
+    assert main([*argv, "--out", where]) == 2
+    _one_line(capsys, where, "cannot make the folder")
+
+
+def test_an_out_checked_for_being_makeable_is_left_as_it_was(tmp_path) -> None:
+    """The check makes the missing folders and removes them again: nothing is left, and
+    a folder that was there stays with what it holds."""
+    from payload.cliutil import out_folder
+
+    deep = tmp_path / "a" / "b" / "c"
+    assert out_folder(str(deep)) == deep and sorted(tmp_path.iterdir()) == []
+    (tmp_path / "kept").mkdir()
+    (tmp_path / "kept" / "notes.txt").write_text("mine")
+    assert out_folder(str(tmp_path / "kept" / "new")) == tmp_path / "kept" / "new"
+    assert sorted(p.name for p in (tmp_path / "kept").iterdir()) == ["notes.txt"]
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
         ["sweep", "--set", "rail.travel=0.04,0.05", "--out"],
         ["export", "lerobot", "analyses", "--force", "--out"],
         ["teleop", "serve", "--port", "0", "--seconds", "1", "--record"],
@@ -287,3 +321,38 @@ def test_a_results_folder_made_for_a_failing_command_is_removed_again(tmp_path) 
     with results_folder("", project, "demo") as ok:  # a command that succeeds keeps it
         pass
     assert ok.is_dir() and ok.parent == project.runs_dir
+
+
+def test_a_sweep_that_fails_before_its_first_point_leaves_no_folder(
+    tmp_path, monkeypatch, capsys
+) -> None:
+    """A sweep whose points cannot run (here: the scheduler does not answer, raised where
+    ``run_points`` raises it) removes the numbered folder it made: the failing sweeps of a
+    wrong ``--scheduler`` left an empty ``runs/sweep-NNNN`` each."""
+    from payload.design.cli import new_project
+    from payload.sweep import run
+    from payload.sweep.grid import SweepError
+
+    project, _ = new_project(tmp_path / "p")
+
+    def unreachable(*args: object, **kwargs: object) -> list:
+        raise SweepError("cannot reach Dask scheduler tcp://127.0.0.1:1: timed out")
+
+    monkeypatch.setattr(run, "run_points", unreachable)
+    argv = ["--project", str(project.root), "sweep", "--set", "rail.travel=0.04,0.05"]
+    assert main(argv) == 2
+    _one_line(capsys, "cannot reach Dask scheduler")
+    assert not project.runs_dir.exists() or list(project.runs_dir.iterdir()) == []
+
+
+def test_a_sweep_never_writes_into_a_design_project(tmp_path, capsys) -> None:
+    """``sweep --out`` naming a design project's folder (its own, say): one line, exit 2,
+    nothing written (its points, projects themselves, went among the project's files)."""
+    from payload.design.cli import new_project
+
+    project, _ = new_project(tmp_path / "p")
+    before = _snapshot(project.root)
+    argv = ["--project", str(project.root), "sweep", "--set", "rail.travel=0.04,0.05"]
+    assert main([*argv, "--out", str(project.root)]) == 2
+    _one_line(capsys, "already holds cad/design.toml")
+    assert _snapshot(project.root) == before

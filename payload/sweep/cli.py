@@ -18,6 +18,7 @@ from payload.cliutil import (
     results_folder,
 )
 from payload.folders import CAMPAIGN_FILES, SWEEP_FILES, TRIAL_FILES, held
+from payload.project import DESIGN_FILE
 from payload.sweep.grid import SweepError, parse_set
 from payload.sweep.run import DEFAULT_SAMPLES
 
@@ -51,8 +52,9 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
     from payload.trials.cluster import check_scheduler
 
     check_scheduler(args.scheduler, SweepError)  # before any folder is made for the sweep
-    # a sweep never writes into a file, nor among a trial's or a campaign's files
-    out_folder(args.out, holding=(*TRIAL_FILES, *CAMPAIGN_FILES))
+    # a sweep never writes into a file, nor among a trial's, a campaign's or a design
+    # project's files (its points are projects of their own)
+    out_folder(args.out, holding=(*TRIAL_FILES, *CAMPAIGN_FILES, DESIGN_FILE))
     earlier = held(Path(args.out), SWEEP_FILES) if args.out else []
     if earlier:  # an earlier sweep's (or a report of the same name)
         raise SweepError(
@@ -64,45 +66,47 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
 
     models_follow_design(project.design_path, project.root, json=args.json)
     with results_folder(args.out, project, "sweep", resolve=True) as out:
-        points = plan(project, axes, out)  # bad input found in plan: nothing left
-    workers = args.workers or max(1, min(len(points), os.cpu_count() or 1))
-    t0 = time.perf_counter()
-    with _progress(not args.json, len(points)) as bar:
-        task = bar.add_task("points", total=len(points), note="")
-        counts = {"fits": 0, "fails": 0, "invalid": 0}
+        # the folder made for the sweep is removed again if it fails while still empty
+        # (bad input found in plan, a scheduler that does not answer)
+        points = plan(project, axes, out)
+        workers = args.workers or max(1, min(len(points), os.cpu_count() or 1))
+        t0 = time.perf_counter()
+        with _progress(not args.json, len(points)) as bar:
+            task = bar.add_task("points", total=len(points), note="")
+            counts = {"fits": 0, "fails": 0, "invalid": 0}
 
-        def advance(result: dict[str, Any]) -> None:
-            kind = "invalid" if not result["valid"] else ("fits" if result["fits"] else "fails")
-            counts[kind] += 1
-            note = ", ".join(f"{v} {k}" for k, v in counts.items() if v)
-            bar.update(task, advance=1, note=note)
+            def advance(result: dict[str, Any]) -> None:
+                kind = "invalid" if not result["valid"] else ("fits" if result["fits"] else "fails")
+                counts[kind] += 1
+                note = ", ".join(f"{v} {k}" for k, v in counts.items() if v)
+                bar.update(task, advance=1, note=note)
 
-        results = run_points(
-            points,
-            samples=args.samples,
-            seed=args.seed,
-            trials=args.trials,
-            workers=workers,
-            scheduler=args.scheduler,
-            on_result=advance,
+            results = run_points(
+                points,
+                samples=args.samples,
+                seed=args.seed,
+                trials=args.trials,
+                workers=workers,
+                scheduler=args.scheduler,
+                on_result=advance,
+            )
+        run = {
+            "workers": None if args.scheduler else workers,
+            "scheduler": args.scheduler,
+            "samples": args.samples,
+            "seed": args.seed,
+            "trials_per_point": args.trials,
+            "wall_s": round(time.perf_counter() - t0, 2),
+        }
+        data = sweep_json([a.key for a in axes], results, provenance=provenance(project), run=run)
+        command = "payload sweep " + " ".join(
+            [*(f"--set {shlex.quote(s)}" for s in args.set)]
+            + ([f"--trials {args.trials}"] if args.trials else [])
+            + ([f"--samples {args.samples}"] if args.samples != DEFAULT_SAMPLES else [])
+            + ([f"--seed {args.seed}"] if args.seed else [])
+            + [f"--out {args.out or out}"]
         )
-    run = {
-        "workers": None if args.scheduler else workers,
-        "scheduler": args.scheduler,
-        "samples": args.samples,
-        "seed": args.seed,
-        "trials_per_point": args.trials,
-        "wall_s": round(time.perf_counter() - t0, 2),
-    }
-    data = sweep_json([a.key for a in axes], results, provenance=provenance(project), run=run)
-    command = "payload sweep " + " ".join(
-        [*(f"--set {shlex.quote(s)}" for s in args.set)]
-        + ([f"--trials {args.trials}"] if args.trials else [])
-        + ([f"--samples {args.samples}"] if args.samples != DEFAULT_SAMPLES else [])
-        + ([f"--seed {args.seed}"] if args.seed else [])
-        + [f"--out {args.out or out}"]
-    )
-    paths = write_sweep(data, out, command)
+        paths = write_sweep(data, out, command)
     if args.json:
         emit_json({**data, "project": str(project.root), "out_dir": str(out)})
     else:
