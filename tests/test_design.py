@@ -637,6 +637,20 @@ def test_stale_models_are_rebuilt_saying_so(tmp_path, capsys):
         models_follow_design(project.design_path, project.root)
     assert {p: p.read_bytes() for p in project.urdf_dir.iterdir()} == before
 
+    # a mesh no part makes (one put there by hand) is removed, and the line says removed,
+    # not rebuilt, with the rebuilt files on a line of their own
+    project.design_path.write_text(text)
+    mine = project.root / "cad" / "meshes" / "my_bracket.stl"
+    mine.write_text("solid mine\n")
+    rebuilt = stale_files(load_design(project.design_path), project.root)
+    assert "cad/meshes/my_bracket.stl" in rebuilt and len(rebuilt) > 1
+    models_follow_design(project.design_path, project.root)
+    lines = capsys.readouterr().out.splitlines()
+    assert len(lines) == 2 and lines[0].startswith("models: rebuilt ")
+    assert "my_bracket" not in lines[0]
+    assert lines[1].startswith("models: removed cad/meshes/my_bracket.stl (no part of ")
+    assert not mine.exists()
+
 
 def test_bench_filter_flies_models_that_follow_the_design(tmp_path, capsys, monkeypatch):
     """``bench filter`` builds the world from the project's MJCF: stale models are rebuilt

@@ -123,6 +123,17 @@ def stale_files(design: Design, root: Path) -> list[str]:
 MODELS_LINE = "models: rebuilt {files} from {design} (the models follow the design)"
 """What every command that reads the generated models prints after rebuilding stale ones."""
 
+REMOVED_LINE = (
+    "models: removed {files} (no part of {design} makes it; {mesh_dir}/ holds the "
+    "generated meshes only)"
+)
+"""Printed after :data:`MODELS_LINE` (or alone) for meshes no part makes any more, a
+file put there by hand among them."""
+
+
+def _shown(paths: list[str]) -> str:
+    return ", ".join(paths[:3]) + (f" and {len(paths) - 3} more" if len(paths) > 3 else "")
+
 
 def follow_design(
     design_path: Path, root: Path, *, json: bool = False
@@ -142,8 +153,14 @@ def follow_design(
     _, files = generate(load_design(design_path))
     stale = _stale(files, root)
     if stale:
-        _write_files(files, root)
-        shown = ", ".join(stale[:3]) + (f" and {len(stale) - 3} more" if len(stale) > 3 else "")
-        line = MODELS_LINE.format(files=shown, design=design_path)
-        print(line, file=sys.stderr if json else sys.stdout, flush=True)
+        removed = _write_files(files, root)
+        rebuilt = [rel for rel in stale if rel not in removed]
+        lines = [MODELS_LINE.format(files=_shown(rebuilt), design=design_path)] if rebuilt else []
+        if removed:
+            lines.append(
+                REMOVED_LINE.format(
+                    files=_shown(list(removed)), mesh_dir=MESH_DIR, design=design_path
+                )
+            )
+        print("\n".join(lines), file=sys.stderr if json else sys.stdout, flush=True)
     return stale, files
