@@ -515,6 +515,55 @@ def test_a_page_that_leaves_before_its_calibration_leaves_the_watchdog_disarmed(
         session.close()
 
 
+def test_a_payload_lost_while_no_page_drives_it_stops_the_server_saying_so():
+    """``teleop serve --driver hardware`` with no page: the payload's health is read about
+    once a second (``IDLE_CHECK_S``), so a bus that stops answering ends the server with
+    one line naming it (exit 1: :class:`RunAborted`) instead of a status that goes on
+    saying the hardware waits, as it did until the server was stopped."""
+    from payload.errors import PayloadError, RunAborted
+    from payload.sim.driver import SimDriver
+    from payload.trials.live import IDLE_CHECK_S, LiveSession
+
+    class BusGone(PayloadError):
+        pass
+
+    class Bench:  # the payload on the bench: answers twice, then its bus is gone
+        def __init__(self):
+            self.sim, self.checks = SimDriver(), []
+
+        def read(self):
+            return self.sim.read()
+
+        def send(self, command):
+            self.sim.send(command)
+
+        def check_health(self):
+            self.checks.append(time.monotonic())
+            if len(self.checks) > 2:
+                raise BusGone("/dev/ttyUSB0: the serial device failed (unplugged?)")
+
+        def close(self):
+            self.sim.close()
+
+    bench = Bench()
+    hub = LiveHub()
+    session = LiveSession(hub, None, steps=QUICK_STEPS, payload=bench)
+    guard = threading.Timer(20.0, hub.stop.set)  # the test's own bound, never reached
+    guard.start()
+    try:
+        t0 = time.monotonic()
+        with pytest.raises(RunAborted, match="while no page drove it: /dev/ttyUSB0: the serial"):
+            session.run()
+        took = time.monotonic() - t0
+    finally:
+        guard.cancel()
+        session.close()
+    assert len(bench.checks) == 3 and hub.state == "stopped"
+    gaps = np.diff([t0, *bench.checks])
+    assert np.all(gaps >= IDLE_CHECK_S - 0.01) and np.all(gaps < IDLE_CHECK_S + 0.5), gaps
+    assert took < 3 * IDLE_CHECK_S + 1.0
+
+
 @pytest.mark.parametrize("theirs", ["log.mcap", "hands.jsonl"])
 def test_a_second_server_on_one_record_folder_refuses_and_keeps_the_firsts(tmp_path, theirs):
     """Two ``teleop serve --record`` on one folder both pass the start-up check; the one

@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from payload.design.params import load_design
+from payload.errors import PayloadError, RunAborted
 from payload.folders import HANDS, RECORDING
 from payload.rotations import quat_to_matrix, yaw_of_matrix
 from payload.schema import CONTROL_DT
@@ -46,6 +47,10 @@ from payload.trials.safety import recording_scene
 from payload.trials.stepobserver import MODULE_NAMES
 
 log = logging.getLogger(__name__)
+
+IDLE_CHECK_S = 1.0
+"""How often the hardware payload's health is read while no page drives it [s]
+(:meth:`PayloadRig.check`): a lost bus is said within about this long."""
 
 FINGERS = ("A", "B", "C", "D")
 SESSION_CAP_S = 24 * 3600.0
@@ -99,6 +104,15 @@ class PayloadRig:
         last goal either way (a tripped watchdog holds them too); this spares a trip, and
         its warning, each time a page leaves."""
         self._watchdog.hold_off()
+
+    def check(self) -> None:
+        """Read the payload's health while no page drives it (between attempts), as the
+        loop's reads do during one: a bus that stopped answering raises (``CommError``)
+        instead of the status saying the hardware waits, and a servo's hardware error
+        stops the payload safely (its log line)."""
+        check = getattr(self.payload, "check_health", None)
+        if check is not None:
+            check()
 
     def send(self, command: Any) -> None:
         self._sim.send(command)
@@ -370,12 +384,24 @@ class LiveSession:
 
     def run(self) -> None:
         """Serve attempts until ``hub.stop`` is set (Ctrl-C in the terminal)."""
+        checked = time.monotonic()
         try:
             while not self.hub.stop.is_set():
                 with self.hub.lock:
                     self.hub.state = "waiting" if not self.calibrated else self.hub.state
                     connected = self.hub.latest is not None
                 if not connected:
+                    if isinstance(self.driver, PayloadRig) and (
+                        time.monotonic() - checked >= IDLE_CHECK_S
+                    ):
+                        try:  # the bench's payload is still there
+                            self.driver.check()
+                        except PayloadError as exc:
+                            raise RunAborted(
+                                f"teleop serve stopped: the payload failed while no page "
+                                f"drove it: {exc}"
+                            ) from exc
+                        checked = time.monotonic()
                     time.sleep(0.05)
                     continue
                 if not self.calibrated:
