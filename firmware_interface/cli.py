@@ -205,8 +205,14 @@ def _run_hardware(args: argparse.Namespace, out: Path, replay: Path) -> dict[str
                                     controller=(prof.name, overrides),
                                     budget=prof.retarget_budget,
                                     collisions=prof.retarget_collisions,
-                                    progress=not args.json and sys.stderr.isatty())  # fmt: skip
+                                    progress=not args.json and sys.stderr.isatty(),
+                                    say=_say)  # fmt: skip
     return result
+
+
+def _say(line: str) -> None:
+    """A set-up stage's line on stderr (stdout keeps the result, or ``--json``'s object)."""
+    print(f"{line} ...", file=sys.stderr, flush=True)
 
 
 def _replay_of(args: argparse.Namespace) -> Path:

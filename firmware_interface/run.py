@@ -12,6 +12,7 @@ trial exactly as ``payload trial`` does (``log.mcap``, ``hands.jsonl``, ``metric
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from pathlib import Path
 from types import TracebackType
 from typing import Any
@@ -273,6 +274,7 @@ def run_hardware_trial(
     budget: str = "paper",
     collisions: bool = True,
     progress: bool = False,
+    say: Callable[[str], None] | None = None,
 ) -> dict[str, Any]:
     """Replay a hand recording on the hardware and record the trial like ``payload trial``.
 
@@ -297,6 +299,8 @@ def run_hardware_trial(
         collisions: Self-collision modelled in the pair solves.
         progress: Show a progress bar over the session's recorded time (a paced session
             runs in real time, minutes for a whole trial's replay).
+        say: Called with a line before each set-up stage that takes seconds (the
+            bring-up and homing, the move to the home posture), or None.
 
     Returns:
         The metrics (as written to ``metrics.json``) with ``steps``, ``driver``,
@@ -328,7 +332,11 @@ def run_hardware_trial(
         sim.twist_filter = base_filter_for(sim, TeleopConfig.from_design(load_design()).base)
     prov = {**provenance(project, sim.world.config.design), "environment": environment()}
     if not getattr(hardware, "homed", None):
+        if say is not None:
+            say(f"bringing up the servos on {hardware.device} and homing the rail and the stage")
         hardware.bring_up()
+    if say is not None:
+        say("moving to the design's home posture")
     move_to_home(hardware)
     hardware.set_watchdog(False)  # armed again once the 50 Hz loop runs (see on_step)
     driver = HardwareInTheLoop(hardware, sim, emulator=emulator)

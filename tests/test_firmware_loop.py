@@ -84,7 +84,7 @@ def test_sim_and_hardware_get_the_same_commands_from_the_same_session(session):
     assert got == smap.command_ticks(on_hw[-1])
 
 
-def test_hw_run_records_the_trial_like_the_simulator(session, tmp_path):
+def test_hw_run_records_the_trial_like_the_simulator(session, tmp_path, capsys):
     from payload.cli import main
     from payload.trials.recorder import read_recording
 
@@ -94,6 +94,13 @@ def test_hw_run_records_the_trial_like_the_simulator(session, tmp_path):
                 "--out", str(out), "--no-pace", "--latency-ms", str(LAT), "--json"]  # fmt: skip
         assert main(argv) == 0
         assert not any(s["torque"] for s in emu.servos().values())  # left safe
+    # the seconds of set-up before the session are said, on stderr (stdout: the JSON)
+    said = capsys.readouterr()
+    json.loads(said.out)
+    assert (
+        f"bringing up the servos on {emu.port} and homing the rail and the stage ...\n"
+        "moving to the design's home posture ...\n" in said.err
+    )
     rec = read_recording(out / "log.mcap")
     _, frames = read_hand_recording(session)
     assert len(rec) == len(frames)
