@@ -69,9 +69,19 @@ def _map(args: argparse.Namespace) -> Any:
 def _cmd_emulate(args: argparse.Namespace) -> int:
     from firmware_interface.emulator import bus_spec, serve
 
-    # the servos of this project's design; the pty path is the first line on stdout
+    # the servos of this project's design; the pty path (or --device's) is the first line
     command_project(args, announce=False)
-    serve(bus_spec(args.servos, args.servo_params), args.fault, seed=args.seed)
+    link = args.device
+    if link is not None:
+        path = Path(link)
+        what = "exists" if path.is_symlink() or path.exists() else None
+        if what is None and not path.absolute().parent.is_dir():
+            what = "is not in a folder that exists"
+        if what is not None:
+            raise HwUsageError(
+                f"--device {link}: {what} (the emulator links a new path to its pty)"
+            )
+    serve(bus_spec(args.servos, args.servo_params), args.fault, seed=args.seed, link=link)
     return 0
 
 
@@ -327,6 +337,11 @@ def register(
         help="missing:ID, corrupt:P, latency:3ms, drop:P, error:ID:BIT, block:ID",
     )
     p.add_argument("--seed", type=int, default=0, help="seed of the fault dice")
+    add_device(
+        p,
+        "serve the bus on this new path too (a link to the pty, removed when it stops), "
+        "printed instead of the pty's",
+    )
     p.add_argument(
         "--servo-params",
         metavar="FILE",

@@ -192,15 +192,30 @@ def make_bus(spec: dict[str, Any], faults: list[str], seed: int = 0) -> Bus:
 
 
 def serve(
-    spec: dict[str, Any], faults: list[str], control_fd: int | None = None, seed: int = 0
+    spec: dict[str, Any],
+    faults: list[str],
+    control_fd: int | None = None,
+    seed: int = 0,
+    link: str | None = None,
 ) -> None:
-    """Build the bus, print the port path (first stdout line) and serve until interrupted."""
+    """Build the bus, print the port path (first stdout line) and serve until interrupted.
+
+    ``link``: a path made a symbolic link to the pty for the time it serves (the device
+    path a client is given: ``hw emulate --device DEV``), printed instead of the pty's;
+    never made over anything that exists (:class:`FileExistsError`), removed at the end.
+    """
     bus = make_bus(spec, faults, seed)
     ctl = socket.socket(fileno=control_fd) if control_fd is not None else None
     server = _Server(bus, ctl)
-    sys.stdout.write(server.port + "\n")
-    sys.stdout.flush()
-    server.serve()
+    if link is not None:
+        os.symlink(server.port, link)  # FileExistsError: something is there already
+    try:
+        sys.stdout.write((link or server.port) + "\n")
+        sys.stdout.flush()
+        server.serve()
+    finally:
+        if link is not None and os.path.islink(link) and os.readlink(link) == server.port:
+            os.unlink(link)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -36,6 +36,36 @@ def test_emulate_prints_the_port_path_first(emulate):
     assert emulate.startswith("/dev/") and os.path.exists(emulate)
 
 
+def test_emulate_serves_on_the_device_path_it_is_given(tmp_path, capsys):
+    """``hw emulate --device DEV`` (the CLI contract's spelling): DEV is made a link to
+    the pty, printed first, scanned through like a device, and removed when the emulator
+    stops; a DEV that exists is refused, one line, exit 2, left as it was."""
+    dev = tmp_path / "ttyPAYLOAD"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "payload", "hw", "emulate", "--device", str(dev)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert proc.stdout.readline().strip() == str(dev)
+        assert dev.is_symlink() and os.readlink(dev).startswith("/dev/pts/")
+        assert main(["hw", "scan", "--device", str(dev), "--json", "--latency-ms", LAT]) == 0
+        found = json.loads(capsys.readouterr().out)
+        assert len(found["servos"]) == 18 and found["missing"] == []
+    finally:
+        proc.terminate()
+        proc.wait(timeout=10)
+        proc.stdout.close()
+        proc.stderr.close()
+    assert not dev.exists() and not dev.is_symlink()
+    dev.write_text("mine")
+    assert main(["hw", "emulate", "--device", str(dev)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"--device {dev}: exists" in err[0]
+    assert dev.read_text() == "mine"
+
+
 def test_scan_lists_ids_models_and_firmware(emulate, capsys):
     assert main(["hw", "scan", "--device", emulate, "--json", "--latency-ms", LAT]) == 0
     out = json.loads(capsys.readouterr().out)
