@@ -142,7 +142,11 @@ def register(
         metavar=("synthetic|replay", "F"),
         help="'synthetic' or 'replay FILE'",
     )
-    p.add_argument("--out", help="trial folder (default: a new runs/trial-NNNN[-k] in the project)")
+    p.add_argument(
+        "--out",
+        help="trial folder (default: a new runs/trial-NNNN[-k] in the project; a replay: "
+        "runs/replay-NNNN[-k])",
+    )
     p.add_argument(
         "--max-time",
         type=float,
