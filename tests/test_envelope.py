@@ -638,3 +638,22 @@ def test_report_all_runs_everything_and_leads_with_one_verdict(tmp_path, capsys)
         "R",
     }
     assert data["summary"]["dof"] == summarize(load_design(DESIGN))["dof"]
+
+
+def test_a_reach_run_with_other_settings_says_so_before_its_figures() -> None:
+    """``report reach --samples 1000`` after a 100,000-sample report: the changed line
+    names the sample count first (the figures moved with it, not with the design); a
+    rerun with the same settings names figures only."""
+    from payload.envelope.verdict import headline_changes
+
+    before = {"samples": 100000, "seed": 0, "below_vehicle_mm": 202.52}
+    after = {"samples": 1000, "seed": 0, "below_vehicle_mm": 201.42}
+    line = headline_changes("reach", before, after)
+    assert line == (
+        "changed since reach.prev.json: run with other settings (samples 100000 -> 1000); "
+        "fingertips below the vehicle 202.52 mm -> 201.42 mm"
+    )
+    same = headline_changes("reach", {**before, "samples": 1000}, after)
+    assert (
+        same == "changed since reach.prev.json: fingertips below the vehicle 202.52 mm -> 201.42 mm"
+    )

@@ -32,6 +32,10 @@ HEADLINES: dict[str, tuple[tuple[str, str, str], ...]] = {
 }
 """Per report: (dotted JSON key, label, unit) of the figures whose change is printed."""
 
+SETTINGS: dict[str, tuple[str, ...]] = {"envelope": (), "reach": ("samples", "seed")}
+"""Per report: the run's settings (JSON keys) that move its figures without any change to
+the design (a reach sampled 1,000 times against 100,000): named first when they changed."""
+
 
 def _failures(failures: list[str]) -> str:
     more = f" (+{len(failures) - 3} more)" if len(failures) > 3 else ""
@@ -109,7 +113,22 @@ def _show(value: Any, unit: str) -> str:
 
 
 def headline_changes(stem: str, before: dict[str, Any], after: dict[str, Any]) -> str:
-    """One line: each headline figure of report ``stem`` that changed, ``old -> new``."""
+    """One line: each headline figure of report ``stem`` that changed, ``old -> new``,
+    after the run's settings that changed (:data:`SETTINGS`: the figures moved with them
+    too, not only with the design)."""
+    settings = [
+        f"{key} {_show(before.get(key), '')} -> {_show(after.get(key), '')}"
+        for key in SETTINGS.get(stem, ())
+        if before.get(key) != after.get(key)
+    ]
+    line = _figure_changes(stem, before, after)
+    if settings:
+        head = f"changed since {stem}.prev.json: "
+        return f"{head}run with other settings ({', '.join(settings)}); {line[len(head) :]}"
+    return line
+
+
+def _figure_changes(stem: str, before: dict[str, Any], after: dict[str, Any]) -> str:
     changed = []
     for key, label, unit in HEADLINES[stem]:
         old, new = _get(before, key), _get(after, key)
