@@ -285,7 +285,10 @@ def _cmd_identify(args: argparse.Namespace) -> int:
     known = {s.joint for s in smap.servos}
     unknown = [j for j in args.joints or [] if j not in known]
     if unknown:
-        raise HwUsageError(f"--joints: no servo drives {', '.join(unknown)}")
+        raise HwUsageError(
+            f"--joints: no servo drives {', '.join(unknown)} (the servo map's joints: "
+            f"{', '.join(s.joint for s in smap.servos)})"
+        )
     device = need_device(args)
     _models_follow(args)
     with DynamixelDriver(device, smap, latency_timer_ms=args.latency_ms) as drv:

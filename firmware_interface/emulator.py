@@ -26,7 +26,7 @@ from types import TracebackType
 from typing import Any
 
 from firmware_interface.bus import Bus
-from firmware_interface.faults import parse_fault
+from firmware_interface.faults import FaultSpecError, parse_fault
 from firmware_interface.servo_dynamics import plants_from_spec
 
 TICK_S = 0.005  # dynamics and watchdog update period while idle [s]
@@ -183,6 +183,10 @@ def make_bus(spec: dict[str, Any], faults: list[str], seed: int = 0) -> Bus:
     """A bus from :func:`bus_spec` with the faults applied."""
     parsed = [parse_fault(f) for f in faults]  # validate before opening anything
     positions = {int(k): int(v) for k, v in spec["positions"].items()}
+    for text, f in zip(faults, parsed):
+        if f.id is not None and f.id not in positions:  # a typo's fault would do nothing
+            ids = ", ".join(map(str, sorted(positions)))
+            raise FaultSpecError(f"fault {text!r}: no servo {f.id} on this bus (IDs {ids})")
     stops = {int(k): (float(v[0]), float(v[1])) for k, v in spec.get("stops", {}).items()}
     bus = Bus(positions, int(spec["baud"]), seed=seed, now=time.monotonic(), stops=stops,
               plants=plants_from_spec(spec))  # fmt: skip

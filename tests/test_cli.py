@@ -523,3 +523,18 @@ def test_a_trial_cut_off_by_its_cap_says_so(tmp_path, capsys) -> None:
     )
     metrics = json.loads((out / "metrics.json").read_text())
     assert (metrics["ended_by"], metrics["steps"]) == ("max_time", 51)
+
+
+@pytest.mark.parametrize(
+    ("argv", "words"),
+    [
+        (["trial", "--replay", "/dev/null"], ["--replay: /dev/null: not a regular file"]),
+        (["trial", "--zones", "/no/such/zones.toml"], ["--zones: /no/such/zones.toml:"]),
+    ],
+)
+def test_a_trials_bad_file_option_names_the_option_and_what_is_wrong(argv, words, capsys):
+    """A replay that exists but is no file (``/dev/null``) is not said to be missing; a
+    zone file that cannot be read is named with its option: one line, exit 2."""
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and all(w in err[0] for w in words), err

@@ -108,15 +108,18 @@ def test_check_fails_naming_the_missing_servo(emulate, capsys):
     assert s["model_number"] == 1240 and s["voltage_v"] == pytest.approx(5.0)
 
 
-def test_a_bad_fault_spec_is_one_line_and_exit_2():
+@pytest.mark.parametrize("spec", ["drop:7", "missing:99", "error:77:overload"])
+def test_a_bad_fault_spec_is_one_line_and_exit_2(spec):
+    """A spec that does not parse, and one naming a servo the bus does not have (a typo's
+    fault would do nothing): one line naming it, exit 2, no bus served."""
     r = subprocess.run(
-        [sys.executable, "-m", "payload.cli", "hw", "emulate", "--fault", "drop:7"],
+        [sys.executable, "-m", "payload.cli", "hw", "emulate", "--fault", spec],
         capture_output=True,
         text=True,
         timeout=120,
     )
     assert r.returncode == 2 and r.stdout == ""
-    assert r.stderr.strip().count("\n") == 0 and "drop:7" in r.stderr
+    assert r.stderr.strip().count("\n") == 0 and spec in r.stderr
 
 
 def test_bench_hw_reports_the_cycle_against_the_wire_time(capsys):

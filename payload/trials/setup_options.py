@@ -131,7 +131,10 @@ def _link_and_zones(args: argparse.Namespace) -> dict[str, Any]:
     if args.link_delay is not None:
         extra["link_delay"] = parse_link_delay(args.link_delay)
     if args.zones is not None:
-        extra["zones"] = StationZones.read(args.zones)
+        try:
+            extra["zones"] = StationZones.read(args.zones)
+        except PayloadError as exc:  # the file's own line, naming the option it came from
+            raise TrialsCliError(f"--zones: {exc}") from None
     return extra
 
 

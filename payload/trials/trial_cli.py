@@ -27,8 +27,10 @@ def _replay_file(option: str, replay: Path) -> Path:
         inside = [n for n in (RECORDING, HANDS) if (replay / n).is_file()]
         hint = f": give {replay / inside[0]}" if inside else ""
         raise TrialsCliError(f"{option}: {replay}: is a folder, not a recording{hint}")
-    if not replay.is_file():
+    if not replay.exists():
         raise TrialsCliError(f"{option}: {replay}: no such file")
+    if not replay.is_file():
+        raise TrialsCliError(f"{option}: {replay}: not a regular file (a recording is one)")
     return replay
 
 
