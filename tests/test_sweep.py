@@ -193,3 +193,27 @@ def test_a_sweeps_reach_numbers_are_refused_as_the_reach_report_refuses_them(
     assert main(["report", "reach", option, value, "--out", str(tmp_path / "r")]) == 2
     assert capsys.readouterr().err.strip() == err
     assert not out.exists()
+
+
+@pytest.mark.parametrize(
+    ("key", "unit"),
+    [
+        ("finger.lengths.distal", "m"),  # the table's doc: "... along the straight finger [m]"
+        ("rail.travel", "m"),  # the field's doc: "carriage travel [m]"
+        ("servo.kt", "N m/A"),
+        ("finger.lengths", None),  # a table, not a value
+        ("finger.lengths.nope", None),
+    ],
+)
+def test_a_swept_keys_unit_is_the_one_its_design_doc_states(key, unit) -> None:
+    """The sweep figures' axes name the swept key's unit, read from the design's own
+    field and table docs (none invented where the docs state none)."""
+    import dataclasses
+
+    from payload.design.param_types import FingerLengths, Rail
+    from payload.sweep.grid import key_unit
+
+    assert key_unit(key) == unit
+    # the docs it reads do say so
+    assert FingerLengths.__doc__.rstrip().endswith("[m].")
+    assert {f.name: f.metadata["doc"] for f in dataclasses.fields(Rail)}["travel"].endswith("[m]")

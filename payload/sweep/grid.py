@@ -125,6 +125,34 @@ def check_axes(axes: list[Axis], base: Design) -> None:
         raise SweepError(f"the grid has {total:,} points, more than {MAX_POINTS:,}")
 
 
+def key_unit(key: str) -> str | None:
+    """The unit of design key ``key`` (``finger.lengths.distal``: ``m``), from the design's
+    own field and table docs (the ``[unit]`` each states), or None (not a design key, or
+    none stated)."""
+    import dataclasses
+    import re
+    import typing
+
+    table: Any = Design
+    for part in key.split("."):
+        if not dataclasses.is_dataclass(table):
+            return None
+        fields = {f.name: f for f in dataclasses.fields(table)}
+        if part not in fields:
+            return None
+        kind = typing.get_type_hints(table).get(part)
+        if dataclasses.is_dataclass(kind):
+            table = kind
+            continue
+        docs = (fields[part].metadata.get("doc", ""), (table.__doc__ or "").split("\n")[0])
+        for doc in docs:
+            found = re.search(r"\[([^\]]+)\]", doc)
+            if found:
+                return found.group(1)
+        return None
+    return None
+
+
 def grid(axes: list[Axis]) -> list[dict[str, float]]:
     """Every combination of the axes' values, as ``{key: value}`` (last key fastest)."""
     keys = [a.key for a in axes]

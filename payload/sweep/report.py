@@ -146,6 +146,9 @@ def sweep_plots(data: dict[str, Any], out: Path) -> list[str]:
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
+    from matplotlib.ticker import MaxNLocator
+
+    from payload.sweep.grid import key_unit
 
     points, keys = data["points"], data["keys"]
     names = [n for n in FIGURES if any(figure(p, n) is not None for p in points)]
@@ -172,12 +175,19 @@ def sweep_plots(data: dict[str, Any], out: Path) -> list[str]:
                 (line,) = ax.plot(xs, ys, "-", label=text)
                 for x, y, passed in pts:
                     ax.plot(x, y, "o" if passed else "x", color=line.get_color())
-            ax.set_xlabel(key)
+            unit = key_unit(key)
+            ax.set_xlabel(f"{key} [{unit}]" if unit else key)
+            ax.xaxis.set_major_locator(MaxNLocator(5))  # long values: labels that do not run on
+            ax.ticklabel_format(axis="x", style="plain", useOffset=False)
             ax.set_ylabel(FIGURES[name])
             ax.grid(True, alpha=0.3)
             if others and series:
                 ax.legend(fontsize=6)
-        fig.suptitle(f"sweep against {key} (o: envelope check passes, x: fails)", fontsize=9)
+        title = f"sweep against {key} (o: envelope check passes, x: fails)"
+        invalid = sorted({p["params"][key] for p in points if not p.get("valid", True)})
+        if invalid:  # no figure to draw: said, not left out silently
+            title += f"\nnot drawn, invalid designs: {key} = {', '.join(f'{v:g}' for v in invalid)}"
+        fig.suptitle(title, fontsize=9)
         fig.tight_layout()
         name = f"sweep_{key.replace('.', '_')}.png"
         fig.savefig(out / name, dpi=110)
