@@ -292,9 +292,16 @@ def _terminate(signum: int, frame: Any) -> None:
 
 
 def _terminated(exc: Terminated) -> int:
-    """Say the command was stopped by a signal; its exit code (128 + the signal)."""
-    print(f"payload: terminated ({exc})", file=sys.stderr)
+    """Say the command was stopped by a signal, and what it kept (the notes its clean-up
+    added: a recording marked aborted, say); its exit code (128 + the signal)."""
+    print(f"payload: terminated ({exc}){_kept(exc)}", file=sys.stderr)
     return 128 + exc.signum
+
+
+def _kept(exc: BaseException) -> str:
+    """What the command's clean-up said it kept (the exception's notes), after a "; "."""
+    notes = getattr(exc, "__notes__", None) or []
+    return "".join(f"; {note}" for note in notes)
 
 
 def _default(signals: list[signal.Signals]) -> None:
@@ -362,8 +369,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     except Terminated as exc:
         return _terminated(exc)
-    except KeyboardInterrupt:
-        print("payload: interrupted", file=sys.stderr)
+    except KeyboardInterrupt as exc:
+        print(f"payload: interrupted{_kept(exc)}", file=sys.stderr)
         return 130
     finally:  # command_project exported the project for this command only
         forget_project()

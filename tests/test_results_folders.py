@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from payload.cli import main
@@ -200,7 +201,6 @@ def _old_trial(out: Path) -> dict[Path, bytes]:
 def _recording(path: Path, steps: int) -> None:
     """A recorder's file with ``steps`` steps (none: opened and closed, as by a trial that
     failed before its first step)."""
-    import numpy as np
 
     from payload.trials.recorder import TrialRecorder, random_step
 
@@ -243,10 +243,14 @@ def test_an_interrupted_or_failed_trial_force_keeps_the_old_trial(tmp_path, monk
         out = tmp_path / name
         old = _old_trial(out)
         monkeypatch.setattr(runner, "_run_trial", fake)
-        with pytest.raises(raised):
+        with pytest.raises(raised) as caught:
             runner.run_trial(0, out_dir=out, force=True, max_time=1.0)
         assert _snapshot(out) == old, name
         assert sorted(out.iterdir()) == sorted(old), name
+        if raised is KeyboardInterrupt:  # the CLI's "payload: interrupted" line says so
+            assert caught.value.__notes__ == [
+                f"nothing recorded: the trial already in {out} is kept whole"
+            ]
     out = tmp_path / "aborted"
     _old_trial(out)
     tag = "contact-min0s-gap0.1s"  # the old trial's rescoring, and a file of the user's
@@ -356,3 +360,27 @@ def test_a_sweep_never_writes_into_a_design_project(tmp_path, capsys) -> None:
     assert main([*argv, "--out", str(project.root)]) == 2
     _one_line(capsys, "already holds cad/design.toml")
     assert _snapshot(project.root) == before
+
+
+def test_an_interrupted_recording_says_it_was_kept(tmp_path) -> None:
+    """Ctrl-C or SIGTERM inside a recording: the file is kept, marked aborted, and the
+    interrupt carries a note naming it (printed by the CLI after "payload: interrupted"
+    or "payload: terminated (SIGTERM)"); other errors get no such note (their own
+    messages name the recording)."""
+    from payload.errors import Terminated
+    from payload.trials.reading import read_recording, unfinished_reason
+    from payload.trials.recorder import TrialRecorder, random_step
+
+    rng = np.random.default_rng(2)
+    path = tmp_path / "log.mcap"
+    with pytest.raises(Terminated) as caught, TrialRecorder(path) as rec:
+        rec.write(random_step(rng, 0.0))
+        raise Terminated(15)
+    assert caught.value.__notes__ == [f"recording kept, marked aborted (not scored): {path}"]
+    kept = read_recording(path)
+    assert len(kept) == 1 and unfinished_reason(kept.meta, kept.complete).startswith("aborted")
+    other = tmp_path / "other.mcap"
+    with pytest.raises(RuntimeError) as failed, TrialRecorder(other) as rec:
+        rec.write(random_step(rng, 0.0))
+        raise RuntimeError("a bug")
+    assert not getattr(failed.value, "__notes__", None)

@@ -194,6 +194,8 @@ class TrialRecorder:
                 # the run died: say so in the file, so nobody scores it as a finished trial
                 try:
                     self.write_meta({"aborted": f"{exc_type.__name__}: {exc}"})
+                    if isinstance(exc, KeyboardInterrupt):  # Ctrl-C, SIGTERM: said by the CLI
+                        exc.add_note(f"recording kept, marked aborted (not scored): {self.path}")
                 except Exception as failed:  # the run's own error is the one to raise
                     log.warning("%s: marking the recording aborted failed: %s", self.path, failed)
         finally:

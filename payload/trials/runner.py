@@ -260,6 +260,9 @@ def run_trial(
         except Exception:
             made = _recorded_steps(staging / RECORDING)
             raise
+        except KeyboardInterrupt as exc:  # the interrupted run's recording goes with staging
+            exc.__notes__ = [f"nothing recorded: the trial already in {out} is kept whole"]
+            raise
         finally:  # replaced file by file; an interrupt (Ctrl-C) keeps the old trial whole
             if made:
                 from payload.trials.scoring import rescorings
