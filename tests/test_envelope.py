@@ -569,6 +569,9 @@ def test_another_designs_report_needs_an_out_and_never_replaces_the_projects(tmp
             err = capsys.readouterr().err.strip().splitlines()
             assert len(err) == 1 and f"--design {design} is not the project's design" in err[0]
             assert "give --out DIR" in err[0]
+            # nor with --out naming the project's own analyses/ (the default's folder)
+            assert main([*argv, "--out", str(root / "analyses")]) == 2
+            assert "is not the project's design" in capsys.readouterr().err
     assert not (root / "analyses").exists()
     broken = tmp_path / "loose" / "broken.toml"
     broken.write_text("[finger\n")

@@ -44,19 +44,25 @@ def _out_dir(args: argparse.Namespace) -> Path:
     """``--out``, else the project's ``analyses/`` when the design is the project's own: a
     report follows its design, so another design's (``--design F``, F not the project's
     ``cad/design.toml``) needs an ``--out`` and never replaces the project's report."""
+    from payload.errors import PayloadError
+
     out = out_folder(args.out)
-    if out is not None:
-        return out
-    project = _project(args)
+    try:
+        project = _project(args)
+    except PayloadError:
+        if out is None:
+            raise
+        return out  # a design outside any project, its report where --out says
+    if out is not None and out.resolve() != project.analyses_dir.resolve():
+        return out  # (--out naming the project's analyses/ is the default: checked below)
     if args.design and Path(args.design).expanduser().resolve() != project.design_path.resolve():
         from payload.envelope.vehicle import load_design_and_vehicle
-        from payload.errors import PayloadError
 
         load_design_and_vehicle(Path(args.design))  # a bad file says what is wrong with it
         raise PayloadError(
             f"--design {args.design} is not the project's design ({project.design_path}): "
             f"its report would replace the project's own in {project.analyses_dir}; give "
-            "--out DIR"
+            "--out DIR (another folder)"
         )
     return project.analyses_dir
 
