@@ -217,3 +217,18 @@ def test_a_swept_keys_unit_is_the_one_its_design_doc_states(key, unit) -> None:
     # the docs it reads do say so
     assert FingerLengths.__doc__.rstrip().endswith("[m].")
     assert {f.name: f.metadata["doc"] for f in dataclasses.fields(Rail)}["travel"].endswith("[m]")
+
+
+def test_a_sweep_without_a_terminal_says_each_point_as_it_ends(tmp_path, capsys):
+    """No progress bar is drawn without a terminal (a pipe, a log, CI): each point's line
+    goes to stderr as it ends, so a long sweep is not silent; stdout keeps the report."""
+    out = tmp_path / "sweep"
+    argv = ["sweep", "--set", "finger.lengths.distal=0.01,0.02", "--samples", "1000"]
+    assert main([*argv, "--workers", "1", "--out", str(out)]) == 0
+    got = capsys.readouterr()
+    lines = [x for x in got.err.splitlines() if x.startswith("point ")]
+    assert lines == [
+        "point 1/2 (finger.lengths.distal=0.01): invalid",
+        "point 2/2 (finger.lengths.distal=0.02): invalid",
+    ]
+    assert "point 1/2" not in got.out and "# Design sweep" in got.out

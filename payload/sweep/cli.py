@@ -75,11 +75,21 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
             task = bar.add_task("points", total=len(points), note="")
             counts = {"fits": 0, "fails": 0, "invalid": 0}
 
+            lines = not args.json and not sys.stderr.isatty()  # no bar drawn: a line a point
+
             def advance(result: dict[str, Any]) -> None:
                 kind = "invalid" if not result["valid"] else ("fits" if result["fits"] else "fails")
                 counts[kind] += 1
                 note = ", ".join(f"{v} {k}" for k, v in counts.items() if v)
                 bar.update(task, advance=1, note=note)
+                if lines:
+                    params = ", ".join(f"{k}={v:g}" for k, v in result["params"].items())
+                    done = sum(counts.values())
+                    print(
+                        f"point {done}/{len(points)} ({params}): {kind}",
+                        file=sys.stderr,
+                        flush=True,
+                    )
 
             results = run_points(
                 points,
