@@ -826,6 +826,31 @@ def test_a_local_cluster_beside_another_takes_a_free_port_without_a_warning() ->
     assert port is not None and port != 8787
 
 
+def _ignores_ctrl_c() -> bool:
+    import signal
+
+    return signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+
+
+def test_a_local_clusters_workers_leave_ctrl_c_to_the_command() -> None:
+    """A Ctrl-C in the terminal reaches every process of the group: the local cluster's
+    workers ignore it (each printed a KeyboardInterrupt traceback while the command
+    stopped the campaign or sweep and closed them), and this process takes it again
+    once the cluster is up."""
+    import signal
+
+    import distributed  # noqa: F401
+
+    from payload.trials.cluster import dask_client
+
+    before = signal.getsignal(signal.SIGINT)
+    assert before is not signal.SIG_IGN
+    with dask_client(1, None, RuntimeError) as client:
+        seen = client.run(_ignores_ctrl_c)
+        assert signal.getsignal(signal.SIGINT) is before
+    assert len(seen) == 1 and all(seen.values())
+
+
 def test_campaign_on_existing_scheduler_matches_serial(tmp_path: Path) -> None:
     from distributed import LocalCluster
 

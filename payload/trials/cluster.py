@@ -12,6 +12,25 @@ WORKER_CONFIG: dict[str, Any] = {"distributed.worker.profile.enabled": False}
 
 
 @contextmanager
+def _workers_ignore_ctrl_c() -> Iterator[None]:
+    """Start the local cluster's processes with Ctrl-C ignored (inherited by the processes
+    started meanwhile, kept across their interpreter's start): a Ctrl-C in the terminal
+    reaches the whole process group, and each worker printed a KeyboardInterrupt
+    traceback while this process stopped the campaign or sweep, which closes them."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield  # signal dispositions are the main thread's to change
+        return
+    saved = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, saved)
+
+
+@contextmanager
 def dask_client(workers: int, scheduler: str | None, error: type[Exception]) -> Iterator[Any]:
     """A Dask client: on a local cluster of ``workers`` one-thread processes, or on the
     existing ``scheduler`` (e.g. ``tcp://host:8786``). Closed, with its local cluster, on
@@ -28,7 +47,7 @@ def dask_client(workers: int, scheduler: str | None, error: type[Exception]) -> 
         # The workers' statistical profiler samples the running task's stack every 10 ms
         # while holding the GIL: 19.3/18.3 s against 15.8/16.1 s a trial on this 2-core
         # machine (docs/speed.md, item 9). Nothing here reads its profiles, so it is off.
-        with dask.config.set(WORKER_CONFIG):
+        with dask.config.set(WORKER_CONFIG), _workers_ignore_ctrl_c():
             cluster = LocalCluster(
                 n_workers=workers,
                 threads_per_worker=1,
