@@ -138,7 +138,7 @@ class DynamixelDriver(FaultHandling):
         self._closed = True
         self._last_io = time.monotonic()
         self._gap = 0.0
-        self._longest_gap = 0.0  # the host's longest silence on the bus since a health check
+        self._longest_gap = 0.0  # the host's longest bus silence since a check or an arming
         self._present = np.zeros(len(self.ids), dtype=np.int64)
         s = self.design.servo
         self._kt = s.kt  # [N m / A], output-side
@@ -279,6 +279,8 @@ class DynamixelDriver(FaultHandling):
         result = g.txPacket()
         if result != COMM_SUCCESS:
             raise CommError(f"arming the Bus Watchdog: {self.packet.getTxRxResult(result)}")
+        if armed:  # a later trip: only a silence from here on could have caused it
+            self._longest_gap = 0.0
 
     def _configure(self, spec: ServoSpec) -> None:
         i = spec.id

@@ -28,6 +28,7 @@ from typing import Any
 from firmware_interface.bus import Bus
 from firmware_interface.faults import FaultSpecError, parse_fault
 from firmware_interface.servo_dynamics import plants_from_spec
+from payload.errors import PayloadError
 
 TICK_S = 0.005  # dynamics and watchdog update period while idle [s]
 SPIN_S = 0.0  # spin this long before a due reply instead of sleeping [s]
@@ -195,6 +196,10 @@ def make_bus(spec: dict[str, Any], faults: list[str], seed: int = 0) -> Bus:
     return bus
 
 
+class EmulatorLinkError(PayloadError):
+    """The path ``hw emulate --device`` names cannot be made a link to the pty."""
+
+
 def serve(
     spec: dict[str, Any],
     faults: list[str],
@@ -212,7 +217,10 @@ def serve(
     ctl = socket.socket(fileno=control_fd) if control_fd is not None else None
     server = _Server(bus, ctl)
     if link is not None:
-        os.symlink(server.port, link)  # FileExistsError: something is there already
+        try:
+            os.symlink(server.port, link)
+        except OSError as exc:  # there already, a folder not writable: one line
+            raise EmulatorLinkError(f"{link}: cannot link it to the pty ({exc.strerror})") from None
     try:
         sys.stdout.write((link or server.port) + "\n")
         sys.stdout.flush()

@@ -433,14 +433,17 @@ def watchdog_report(trips: list[dict[str, Any]]) -> dict[str, Any]:
     re-armed by the next command; the host's silence that caused it)."""
     if not trips:
         return {"trips": 0, "effect": "none: the watchdog never tripped"}
-    longest = max(t["silence_s"] for t in trips)
-    not_host = sum(1 for t in trips if not t.get("host_silent_long_enough", True))
-    cause = (
-        f"after host silences up to {longest * 1e3:.0f} ms"
-        if not not_host
-        else f"{not_host} of them with the host silent for less than the watchdog's time "
-        f"(at most {longest * 1e3:.0f} ms: packets missed or delayed on the bus)"
-    )
+    host = [t["silence_s"] for t in trips if t.get("host_silent_long_enough", True)]
+    other = [t["silence_s"] for t in trips if not t.get("host_silent_long_enough", True)]
+    causes = []
+    if host:
+        causes.append(f"{len(host)} after host silences up to {max(host) * 1e3:.0f} ms")
+    if other:
+        causes.append(
+            f"{len(other)} with the host silent for less than the watchdog's time (at most "
+            f"{max(other) * 1e3:.0f} ms: packets missed or delayed on the bus)"
+        )
+    cause = " and ".join(causes)
     return {
         "trips": len(trips),
         "events": trips,

@@ -235,7 +235,10 @@ def _cannot_make(path: Path) -> str | None:
     """Why the folder ``path`` could not be made (None: it exists, or it can be): tried
     before the work whose results go there, by making the missing folders and removing
     them again (the file system's own answer: permissions, read-only or virtual file
-    systems, a name too long)."""
+    systems, a name too long). Only folders that were not there are removed, and only
+    while empty (another command making the same folder in that instant keeps it if it
+    wrote in it)."""
+    path = Path(os.path.abspath(path))  # "new/.." is the folder it names, no parent made
     missing = [p for p in (path, *path.parents) if not p.exists()]
     if not missing:
         return None

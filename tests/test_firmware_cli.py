@@ -59,6 +59,10 @@ def test_emulate_serves_on_the_device_path_it_is_given(tmp_path, capsys):
         proc.stdout.close()
         proc.stderr.close()
     assert not dev.exists() and not dev.is_symlink()
+    # a path no link can be made at (/proc takes none): one line, exit 2
+    assert main(["hw", "emulate", "--device", "/proc/payload-ttyX"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "/proc/payload-ttyX: cannot link it to the pty" in err[0]
     dev.write_text("mine")
     assert main(["hw", "emulate", "--device", str(dev)]) == 2
     err = capsys.readouterr().err.strip().splitlines()

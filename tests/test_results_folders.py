@@ -251,6 +251,13 @@ def test_an_interrupted_or_failed_trial_force_keeps_the_old_trial(tmp_path, monk
             assert caught.value.__notes__ == [
                 f"nothing recorded: the trial already in {out} is kept whole"
             ]
+    # into a folder holding no trial, the note does not speak of one
+    monkeypatch.setattr(runner, "_run_trial", interrupted)
+    with pytest.raises(KeyboardInterrupt) as caught:
+        runner.run_trial(0, out_dir=tmp_path / "fresh", force=True, max_time=1.0)
+    assert caught.value.__notes__ == [
+        "nothing recorded (an interrupted --force run keeps no partial recording)"
+    ]
     out = tmp_path / "aborted"
     _old_trial(out)
     tag = "contact-min0s-gap0.1s"  # the old trial's rescoring, and a file of the user's

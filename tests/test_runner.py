@@ -446,6 +446,16 @@ def test_a_replay_honours_recorded_timestamps_and_records_its_source(tmp_path, r
         assert len(setup) == 1 and setup[0].endswith(
             "self-collision off (the defaults: the recording names none)"
         )
+        # a profile given: its defaults for what the recording does not name (the safe
+        # profile's self-collision model and base filter), not the paper's
+        safe = run_trial(
+            operator="replay",
+            replay=src / "hands.jsonl",
+            out_dir=tmp_path / "safe",
+            controller="safe",
+            max_time=0.5,
+        )
+        assert (safe["retarget_collisions"], safe["base_filter"]) == (True, True)
     rec = read_recording(out / "log.mcap")
     # 50 Hz steps over the session's own duration, not one step per recorded frame
     assert len(rec) == round(seconds / 0.02) + 1

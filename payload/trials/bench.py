@@ -192,7 +192,12 @@ def run_trial_bench(
     try:
         with tempfile.TemporaryDirectory() as tmp:
             out = Path(out_dir) if out_dir is not None else Path(tmp) / "trial"
-            result = _bench(seed, out, before is not None, max_time, physics_dt)
+            try:
+                result = _bench(seed, out, before is not None, max_time, physics_dt)
+            except KeyboardInterrupt as exc:
+                if out_dir is None:  # not the recorder's "kept": the folder goes with tmp
+                    exc.__notes__ = ["nothing kept: the bench's trial ran in a temporary folder"]
+                raise
             return {**result, "worker_import_s": imports}
     finally:
         if before is not None:

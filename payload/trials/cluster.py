@@ -16,7 +16,10 @@ def _workers_ignore_ctrl_c() -> Iterator[None]:
     """Start the local cluster's processes with Ctrl-C ignored (inherited by the processes
     started meanwhile, kept across their interpreter's start): a Ctrl-C in the terminal
     reaches the whole process group, and each worker printed a KeyboardInterrupt
-    traceback while this process stopped the campaign or sweep, which closes them."""
+    traceback while this process stopped the campaign or sweep, which closes them. A
+    Ctrl-C in the second or two the cluster takes to start is not seen (ignored, as the
+    workers must inherit it; blocking it instead would not reach the processes the
+    cluster's own loop thread starts): the next one is."""
     import signal
     import threading
 

@@ -154,7 +154,8 @@ def run_trial(
         header, frames = load_replay(replay)
         recorded = header.get("meta") or {}
         # the settings the replayed recording names (a bare hands.jsonl: none)
-        named = [name for name in RUN_SETTINGS if name in recorded]
+        # (the link delay is never taken from it: a replay is what the robot received)
+        named = [name for name in RUN_SETTINGS if name in recorded and name != "link_delay"]
         ctb = recorded.get("ctb") if ctb is None else ctb
         propulsion = recorded.get("propulsion") if propulsion is None else propulsion
         if controller is None and isinstance(recorded.get("controller"), str):
@@ -162,8 +163,9 @@ def run_trial(
         if retarget_budget is None:
             retarget_budget = recorded.get("retarget_budget")
         if retarget_collisions is None:
-            retarget_collisions = recorded.get("retarget_collisions", False)
-            if not isinstance(retarget_collisions, bool):
+            # not recorded (a bare hands.jsonl): the controller profile's default
+            retarget_collisions = recorded.get("retarget_collisions")
+            if retarget_collisions is not None and not isinstance(retarget_collisions, bool):
                 raise TrialError(
                     f"{replay}: retarget_collisions must be true or false, "
                     f"got {retarget_collisions!r}"
@@ -174,8 +176,8 @@ def run_trial(
                 isinstance(physics_dt, bool) or not isinstance(physics_dt, (int, float))
             ):
                 raise TrialError(f"{replay}: physics_dt must be a number, got {physics_dt!r}")
-        if base_filter is None:
-            base_filter = bool(recorded.get("base_filter", False))
+        if base_filter is None and "base_filter" in recorded:  # else the profile's default
+            base_filter = bool(recorded["base_filter"])
         if seed is None:
             source_seed = header.get("meta", {}).get("seed")
             seed = source_seed if isinstance(source_seed, int) and source_seed >= 0 else 0
@@ -261,7 +263,11 @@ def run_trial(
             made = _recorded_steps(staging / RECORDING)
             raise
         except KeyboardInterrupt as exc:  # the interrupted run's recording goes with staging
-            exc.__notes__ = [f"nothing recorded: the trial already in {out} is kept whole"]
+            exc.__notes__ = [
+                f"nothing recorded: the trial already in {out} is kept whole"
+                if any(p.exists() for p in existing)
+                else "nothing recorded (an interrupted --force run keeps no partial recording)"
+            ]
             raise
         finally:  # replaced file by file; an interrupt (Ctrl-C) keeps the old trial whole
             if made:
