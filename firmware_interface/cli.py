@@ -342,8 +342,8 @@ def register(
     p.add_argument("--seed", type=int, default=0, help="seed of the fault dice")
     add_device(
         p,
-        "serve the bus on this new path too (a link to the pty, removed when it stops), "
-        "printed instead of the pty's",
+        "the serial device path to serve the bus on too (a new link to the pty, removed "
+        "when it stops), printed instead of the pty's",
     )
     p.add_argument(
         "--servo-params",

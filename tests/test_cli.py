@@ -463,7 +463,9 @@ def test_sigterm_stops_a_trial_as_ctrl_c_does(tmp_path: Path) -> None:
     proc.send_signal(signal.SIGTERM)
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 128 + signal.SIGTERM, err
-    assert err.strip().splitlines()[-1] == "payload: terminated (SIGTERM)"
+    assert err.strip().splitlines()[-1] == (
+        f"payload: terminated (SIGTERM); recording kept, marked aborted (not scored): {log}"
+    )
     rec = read_recording(log)
     assert rec.complete and 0 < len(rec.t)
     assert unfinished_reason(rec.meta, rec.complete) == "aborted (Terminated: SIGTERM)"
