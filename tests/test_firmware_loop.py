@@ -206,14 +206,17 @@ def test_hw_run_refuses_a_file_for_out_and_keeps_no_folder_it_made_for_nothing(
         assert len(err) == 1 and f"already holds {name}" in err[0], err
         assert [p.name for p in held.iterdir()] == [name] and (held / name).read_text() == "mine"
     master, slave = os.openpty()  # a serial line nobody answers on
+    device = os.ttyname(slave)
     try:
         fresh = tmp_path / "fresh"
-        code = main([*argv, "--device", os.ttyname(slave), "--out", str(fresh)])
+        code = main([*argv, "--device", device, "--out", str(fresh)])
     finally:
         os.close(master)
         os.close(slave)
     err = capsys.readouterr().err.strip().splitlines()
-    assert code == 2 and len(err) == 1 and "not answering" in err[0], err
+    # the stage it had begun (said before its seconds of bring-up), then one error line
+    assert err[:-1] == [f"bringing up the servos on {device} and homing the rail and the stage ..."]
+    assert code == 2 and "not answering" in err[-1], err
     assert not fresh.exists()
 
 
