@@ -342,9 +342,12 @@ def test_ctrl_c_during_a_bus_reply_still_leaves_every_servo_torque_off(smap, sto
                 drv.read()
             cmd = PayloadCommand(np.full(17, 0.1), 0.0, 0.0)
             drv.send(cmd)  # as the loop's finally does: hold the last command
+            # a read's round trip first: the bus's packets are served in order, so the
+            # sync write (no reply) has been applied when the emulator's tables are asked
+            # (over its control channel, which a loaded machine may serve sooner)
+            assert drv.read().q.shape == (17,)
             goals = [reg(emu.table(s.id), "goal_position") for s in smap.servos]
             assert goals == smap.command_ticks(cmd)
-            assert drv.read().q.shape == (17,)
             ser.read = interrupted
             with pytest.raises(KeyboardInterrupt):
                 drv.read()
