@@ -137,7 +137,6 @@ class DynamixelDriver(FaultHandling):
         self._reset: set[int] = set()
         self._closed = True
         self._last_io = time.monotonic()
-        self._gap = 0.0
         self._longest_gap = 0.0  # the host's longest bus silence since a check or an arming
         self._present = np.zeros(len(self.ids), dtype=np.int64)
         s = self.design.servo
@@ -237,7 +236,6 @@ class DynamixelDriver(FaultHandling):
         self._arm_watchdog(self.ids)
         self._torque_on = True
         self._last_io = time.monotonic()
-        self._longest_gap = 0.0  # the watchdog is armed from here
         if self.guard is not None:  # where the servos hold is the guard's last safe command
             self.guard.reset(self._direction * (self._present - self._zero) * self._units)
 
@@ -319,14 +317,20 @@ class DynamixelDriver(FaultHandling):
                 return
             values = guarded
         ticks = np.rint(self._zero + self._direction * values / self._units).astype(np.int64)
-        silence = time.monotonic() - self._last_io
-        self._longest_gap = max(self._longest_gap, silence)
+        silence = self._silence_until(time.monotonic())
         if self.map.watchdog_ms and silence > self.map.watchdog_ms / 1e3:
             # silent for longer than the Bus Watchdog: servos that stopped refuse goals
             # until it is cleared, so re-arm them first
             self._rearm_watchdog(silence)
         self._sync_write_goals(ticks)
         self._last_io = time.monotonic()
+
+    def _silence_until(self, now: float) -> float:
+        """The host's silence on the bus until ``now`` [s], kept as the longest since the
+        last health check or arming of the watchdog (what a trip found later is put down to)."""
+        silence = now - self._last_io
+        self._longest_gap = max(self._longest_gap, silence)
+        return silence
 
     def _rearm_watchdog(self, silence: float) -> None:
         """Clear and re-arm the servos whose Bus Watchdog tripped (two sync writes);
@@ -405,8 +409,7 @@ class DynamixelDriver(FaultHandling):
         """One feedback read as a record array (current, velocity, position), shape (n,)."""
         self._feedback()
         now = time.monotonic()
-        self._gap = now - self._last_io  # the host's silence before this read [s]
-        self._longest_gap = max(self._longest_gap, self._gap)
+        self._silence_until(now)
         self._last_io = now
         return np.frombuffer(
             b"".join(bytes(self._reader.data_dict[i]) for i in self.ids), dtype=_FEEDBACK

@@ -44,7 +44,6 @@ class FaultHandling:
     _reset: set[int]  # servos found restarted (torque off, no error): recover() reboots them
     homed: set[int]
     _present: Any
-    _gap: float
     _longest_gap: float
 
     def _check_alerted(self, ids: list[int]) -> None:
