@@ -177,6 +177,30 @@ def test_table_seeds_alternate_full_and_geometric_picks(pk, collisions):
             np.testing.assert_allclose(np.array(got).ravel(), qs[order[0]], rtol=0, atol=1e-12)
 
 
+def test_paper_seed_table_is_the_first_margin_keeping_candidates(pk):
+    """The paper budget's table (its first :data:`PAPER_SEEDS`, found a chunk of candidates
+    at a time) is the same postures, in order, as filtering every candidate by its
+    clearance: here each candidate's clearance from the numpy and Pinocchio distances
+    (``PairCollision.clearance``), not the compiled ones the table uses."""
+    from payload.retarget.budget import PAPER_SEEDS, SEED_CHUNK, SEEDS, seed_table
+
+    qs, fs = seed_table(pk, True, PAPER_SEEDS)
+    rng = np.random.default_rng(12345)  # the table's candidates, drawn as it draws them
+    cands = np.vstack([pk.rest, pk.lower + rng.random((4 * SEEDS, pk.n)) * pk.range])
+    want = []
+    for q in cands:
+        if pk.collision.clearance(q) >= 0.0:
+            want.append(q)
+            if len(want) == PAPER_SEEDS:
+                break
+    assert len(want) == PAPER_SEEDS
+    np.testing.assert_array_equal(qs, np.array(want))
+    np.testing.assert_array_equal(fs, pk.features_batch(qs))
+    # what the early stop saves: the table is found well before the last candidate
+    last = next(i for i, q in enumerate(cands) if np.array_equal(q, want[-1]))
+    assert last + SEED_CHUNK < cands.shape[0]
+
+
 def test_budget_setting_is_validated():
     assert RetargetConfig().budget == "paper"
     assert RetargetConfig(budget="converged").budget == "converged"
