@@ -1,8 +1,9 @@
 """The workbench's disk cache: derived data kept outside the project, keyed by its source.
 
-Compiled retargeting solvers and kernels, span ranges, the generated models'
-fingerprints, the kernels' check stamps and the propulsion's linear programmes live here,
-each named by a hash of what it was derived from, so a stale entry is never read.
+Compiled retargeting solvers and kernels, span ranges, the pairs' self-collision
+geometry, the generated models' fingerprints, the kernels' check stamps and the
+propulsion's linear programmes live here, each named by a hash of what it was derived
+from, so a stale entry is never read.
 """
 
 from __future__ import annotations

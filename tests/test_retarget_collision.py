@@ -111,6 +111,69 @@ def _free_postures(pk, k, seed):
     return qs[dist.min(axis=0) >= pk.collision.margin][:k]
 
 
+# ------------------------------------------------------------- the shape kept on disk
+def test_the_shape_kept_on_disk_gives_the_derived_model(pks, tmp_path, monkeypatch):
+    """A pair's model built from the disk cache has the capsules, boxes, pad links and
+    terms of the one derived from the URDF, and the same distances to the bit; a model
+    built from the cache reads no collision geometry and fits no capsule."""
+    from payload.retarget import collision, collision_cache
+
+    monkeypatch.setattr(collision_cache, "cache_dir", lambda: tmp_path)
+    for pair in PAIRS:
+        derived = collision.PairCollision(pks[pair])
+        assert len(list(tmp_path.glob("pair_collision_*.npz"))) == PAIRS.index(pair) + 1
+        with monkeypatch.context() as m:
+            for name in ("link_geometry", "enclosing_capsule", "structure_boxes"):
+                m.setattr(collision, name, lambda *a, **k: pytest.fail("derived, not loaded"))
+            loaded = collision.PairCollision(pks[pair])
+        assert loaded.terms and len(loaded.terms) < len(loaded.all_terms)  # pruned
+        assert (loaded.all_terms, loaded.terms) == (derived.all_terms, derived.terms)
+        assert (loaded.finger_of, loaded.pads) == (derived.finger_of, derived.pads)
+        for a, b in zip(loaded.capsules, derived.capsules, strict=True):
+            assert (a.link, a.radius) == (b.link, b.radius)
+            assert a.a.tobytes() == b.a.tobytes() and a.b.tobytes() == b.b.tobytes()
+        for a, b in zip(loaded.boxes, derived.boxes, strict=True):
+            assert a.link == b.link
+            for x, y in ((a.centre, b.centre), (a.rotation, b.rotation), (a.half, b.half)):
+                assert x.tobytes() == y.tobytes()
+        qs = pks[pair].lower + np.random.default_rng(3).random((50, 8)) * pks[pair].range
+        assert loaded.distances_many(qs).tobytes() == derived.distances_many(qs).tobytes()
+        assert [loaded.clearance(q) for q in qs] == [derived.clearance(q) for q in qs]
+
+
+def test_the_shape_is_keyed_by_the_meshes_the_design_and_the_margin(tmp_path):
+    """The cache key changes with a byte of a collision mesh the URDF names, the design
+    and the margin, and not with a file the URDF does not name."""
+    from payload.retarget.collision_cache import shape_key
+
+    project = current_project().root
+    shutil.copytree(project / "cad", tmp_path / "cad")
+    shutil.copytree(project / "urdf", tmp_path / "urdf")
+    toml = (HANDS_DIR / "payload.toml").read_text()
+    toml = replace_once(toml, "{project}/urdf/payload.urdf", "urdf/payload.urdf")
+    toml = replace_once(toml, "{project}/cad/design.toml", "cad/design.toml")
+    (tmp_path / "hand.toml").write_text(toml)
+
+    def key(margin: float = 0.002) -> str:
+        pk = PairKinematics(load_hand(tmp_path / "hand.toml"), "L")
+        got = shape_key(pk, margin)
+        assert got is not None
+        return got
+
+    first = key()
+    assert key() == first and key(0.003) != first
+    (tmp_path / "cad" / "meshes" / "unused.stl").write_bytes(b"not named")
+    assert key() == first
+    mesh = tmp_path / "cad" / "meshes" / "stage.stl"
+    mesh.write_bytes(mesh.read_bytes() + b"\0")
+    assert key() != first
+    mesh.write_bytes(mesh.read_bytes()[:-1])
+    assert key() == first
+    design = tmp_path / "cad" / "design.toml"
+    design.write_text(design.read_text() + "\n# a comment\n")
+    assert key() != first
+
+
 # ------------------------------------------------------------- one source
 def test_margin_and_pad_radius_come_from_the_design(tmp_path, hand):
     design = load_design(current_project().design_path)

@@ -34,7 +34,7 @@ distances' closed forms are :mod:`payload.retarget.collision_distance` (re-expor
 from __future__ import annotations
 
 import xml.etree.ElementTree as ET
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import casadi as ca
@@ -42,6 +42,7 @@ import numpy as np
 import pinocchio as pin
 
 from payload.retarget import features as _features
+from payload.retarget.collision_cache import CollisionShape, load_shape, shape_key, store_shape
 from payload.retarget.collision_distance import (
     _segment_distance_ca,
     box_sdf,
@@ -104,6 +105,38 @@ class PairCollision:
     def __init__(self, pk: PairKinematics, margin: float | None = None) -> None:
         self.pk = pk
         self.margin = float(pk.hand.collision_margin if margin is None else margin)
+        key = shape_key(pk, self.margin)
+        shape = load_shape(key) if key is not None else None
+        derived = shape is None
+        if shape is None:
+            shape = self._derive()
+        self.capsules: tuple[Capsule, ...] = shape.capsules
+        self.finger_of: tuple[int, ...] = shape.finger_of
+        self.boxes: tuple[Box, ...] = shape.boxes
+        self.pads: tuple[str | None, ...] = shape.pads
+        self.all_terms: tuple[Term, ...] = tuple(Term(*t) for t in shape.all_terms)
+        self.terms: tuple[Term, ...] = self.all_terms
+        self._chains = [
+            (frame_point_chain(pk, c.link, c.a), frame_point_chain(pk, c.link, c.b))
+            for c in self.capsules
+        ]
+        model = pk.kin.model
+        self._data = model.createData()
+        self._batch: dict[tuple, tuple] = {}
+        self._fids = [model.getFrameId(c.link, pin.FrameType.BODY) for c in self.capsules]
+        if not derived:
+            self.terms = tuple(t for t, k in zip(self.all_terms, shape.kept) if k)
+            return
+        if self.all_terms:
+            self._prune()
+        if key is not None:
+            kept = tuple(t in self.terms for t in self.all_terms)
+            store_shape(key, replace(shape, kept=kept))
+
+    def _derive(self) -> CollisionShape:
+        """The capsules, structure boxes, pad links and candidate terms, from the URDF's
+        collision geometry and the design (every term kept: :meth:`_prune` follows)."""
+        pk = self.pk
         kin, d = pk.kin, pk.desc
         model = kin.model
         geometry = link_geometry(Path(kin.urdf))
@@ -124,8 +157,6 @@ class PairCollision:
                 pts = np.vstack([_points(k, g, o) for k, g, o in geometry[n]])
                 caps.append(enclosing_capsule(n, pts))
                 finger_of.append(i)
-        self.capsules: tuple[Capsule, ...] = tuple(caps)
-        self.finger_of: tuple[int, ...] = tuple(finger_of)
         structure = [n for n in links if not ancestors(n) & all_pair_joints]
         local = structure_boxes(pk.hand.design, geometry, structure)
         q0 = kin.neutral()
@@ -136,30 +167,23 @@ class PairCollision:
             rot, tr = np.array(pl.rotation), np.array(pl.translation)
             for bx in local[n]:
                 boxes.append(Box(n, rot @ bx.centre + tr, rot @ bx.rotation, bx.half))
-        self.boxes: tuple[Box, ...] = tuple(boxes)
         joint_parent = {j.get("name"): j.find("parent").get("link") for j in _joints(kin.urdf)}
         joint_child = {j.get("name"): j.find("child").get("link") for j in _joints(kin.urdf)}
         mounted = {(joint_parent[fj[0]], joint_child[fj[0]]) for fj in d.finger_joints if fj}
-        self.pads: tuple[str | None, ...] = pad_links(pk, frozenset(links))
-        pad_pair = set(self.pads) if None not in self.pads else set()
-        terms: list[Term] = []
+        pads = pad_links(pk, frozenset(links))
+        pad_pair = set(pads) if None not in pads else set()
+        terms: list[tuple[int, int, bool]] = []
         for i, ci in enumerate(caps):
             for j in range(i + 1, len(caps)):
                 if finger_of[i] != finger_of[j] and {ci.link, caps[j].link} != pad_pair:
-                    terms.append(Term(i, j, False))
+                    terms.append((i, j, False))
             for bi, bx in enumerate(boxes):
                 if (bx.link, ci.link) not in mounted:
-                    terms.append(Term(i, bi, True))
-        self._chains = [
-            (frame_point_chain(pk, c.link, c.a), frame_point_chain(pk, c.link, c.b)) for c in caps
-        ]
-        self.all_terms: tuple[Term, ...] = tuple(terms)
-        self.terms: tuple[Term, ...] = self.all_terms
-        self._data = model.createData()
-        self._batch: dict[tuple, tuple] = {}
-        self._fids = [model.getFrameId(c.link, pin.FrameType.BODY) for c in caps]
-        if terms:
-            self._prune()
+                    terms.append((i, bi, True))
+        return CollisionShape(
+            tuple(caps), tuple(finger_of), tuple(boxes), pads, tuple(terms),
+            (True,) * len(terms),
+        )  # fmt: skip
 
     def __getstate__(self) -> dict:
         state = self.__dict__.copy()

@@ -73,7 +73,9 @@ def _sphere_points(radius: float, n: int = 24) -> np.ndarray:
     return np.vstack(pts) * (1.0 / np.cos(np.pi / n))
 
 
-def _mesh_path(name: str, urdf_dir: Path) -> Path:
+def mesh_path(name: str, urdf_dir: Path) -> Path:
+    """The file a URDF ``<mesh filename=...>`` names (relative to the URDF's folder,
+    ``package://`` and ``file://`` stripped)."""
     if name.startswith("package://") or name.startswith("file://"):
         name = name.split("://", 1)[1]
     return Path(name) if Path(name).is_absolute() else urdf_dir / name
@@ -88,7 +90,7 @@ def load_collision_mesh(filename: str, urdf_dir: Path) -> Any:
     """
     import trimesh
 
-    path = _mesh_path(filename, urdf_dir)
+    path = mesh_path(filename, urdf_dir)
     if not path.is_file():
         raise RetargetError(
             f"collision mesh not found: {path} (the self-collision model and the mesh check "

@@ -1,0 +1,150 @@
+"""The on-disk cache of a pair's self-collision geometry (:class:`~payload.retarget.collision.
+PairCollision`): its capsules, structure boxes, pad links and clearance terms, pruned.
+
+Deriving them reads every collision mesh of the URDF with trimesh, fits a capsule to each
+finger link with SciPy's Nelder-Mead and evaluates every candidate term at
+:data:`~payload.retarget.collision.PRUNE_SAMPLES` postures: about 1.5 s and 0.9 s of
+imports at every start with the model (a ``safe`` trial, ``teleop serve``, ``hw run``),
+for an answer that changes only with its inputs. It is kept beside the compiled solvers
+(:func:`payload.cache.cache_dir`), named by a hash of everything it is derived from: the
+URDF and every mesh file it names (their bytes), the design file, the pair's and hand's
+descriptions, the margin, the workbench's code (:func:`payload.cache.sources_digest`), the
+versions of the libraries that compute it (numpy, SciPy, trimesh, CasADi, Pinocchio) and
+the C compiler that evaluates the pruning's distances. A stale entry is never read; an
+unreadable or torn one is derived again and rewritten.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import threading
+import xml.etree.ElementTree as ET
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from payload.cache import cache_dir, dist_version, sources_digest
+from payload.native import find_compiler
+from payload.retarget.collision_geometry import Box, Capsule, mesh_path
+from payload.retarget.features import PairKinematics
+
+_CACHE_VERSION = "pair-collision-1"
+
+LIBRARIES: tuple[str, ...] = ("numpy", "scipy", "trimesh", "casadi", "pin")
+"""The distributions whose code computes the geometry (their versions are in the key)."""
+
+
+@dataclass(frozen=True)
+class CollisionShape:
+    """What :class:`~payload.retarget.collision.PairCollision` derives from the model.
+
+    Attributes:
+        capsules: The finger links' capsules.
+        finger_of: Per capsule, 0 or 1.
+        boxes: The structure's boxes in the pair's base frame.
+        pads: Per finger, its pad link or ``None``.
+        all_terms: Every candidate term, ``(capsule, other, box)``.
+        kept: Per candidate term, whether the pruning kept it.
+    """
+
+    capsules: tuple[Capsule, ...]
+    finger_of: tuple[int, ...]
+    boxes: tuple[Box, ...]
+    pads: tuple[str | None, ...]
+    all_terms: tuple[tuple[int, int, bool], ...]
+    kept: tuple[bool, ...]
+
+
+def shape_key(pk: PairKinematics, margin: float) -> str | None:
+    """The cache key of a pair's shape, or None when a file it is derived from cannot be
+    read (a temporary URDF gone, a mesh missing: derived, and its error raised, there)."""
+    urdf = Path(pk.kin.urdf)
+    h = hashlib.sha256()
+
+    def part(data: bytes | str) -> None:
+        data = data.encode() if isinstance(data, str) else data
+        h.update(len(data).to_bytes(8, "little") + data)
+
+    try:
+        text = urdf.read_bytes()
+        part(_CACHE_VERSION)
+        part(sources_digest())
+        for name in LIBRARIES:
+            part(f"{name}={dist_version(name)}")
+        part(str(find_compiler()))
+        part(text)
+        for mesh in ET.fromstring(text).iter("mesh"):  # collision and visual: both named
+            path = mesh_path(mesh.get("filename", ""), urdf.parent)
+            part(str(path))
+            part(path.read_bytes())
+        design = pk.hand.design
+        part(Path(design).read_bytes() if design is not None else b"")
+    except (OSError, ET.ParseError):
+        return None
+    part(repr(pk.desc))
+    part(repr(pk.hand))
+    part(repr(float(margin)))
+    return h.hexdigest()[:24]
+
+
+def load_shape(key: str) -> CollisionShape | None:
+    """The shape stored under ``key``, or None (none, or unreadable)."""
+    try:
+        with np.load(cache_dir() / f"pair_collision_{key}.npz") as z:
+            links = [str(s) for s in z["capsule_links"]]
+            ends, radii = z["capsule_ends"], z["capsule_radii"]
+            capsules = tuple(
+                Capsule(n, ends[i, 0].copy(), ends[i, 1].copy(), float(radii[i]))
+                for i, n in enumerate(links)
+            )
+            boxes = tuple(
+                Box(str(n), c.copy(), r.copy(), s.copy())
+                for n, c, r, s in zip(
+                    z["box_links"], z["box_centres"], z["box_rotations"], z["box_halves"]
+                )
+            )
+            pads = tuple(str(p) or None for p in z["pads"])
+            terms = tuple((int(a), int(b), bool(c)) for a, b, c in z["terms"].reshape(-1, 3))
+            return CollisionShape(
+                capsules,
+                tuple(int(i) for i in z["finger_of"]),
+                boxes,
+                pads,
+                terms,
+                tuple(bool(k) for k in z["kept"]),
+            )
+    except (OSError, KeyError, ValueError, IndexError, EOFError, zipfile.BadZipFile):
+        return None  # missing or unreadable (a torn write): derived again and rewritten
+
+
+def store_shape(key: str, shape: CollisionShape) -> None:
+    """Keep ``shape`` under ``key`` (a read-only cache only costs the next derivation)."""
+    path = cache_dir() / f"pair_collision_{key}.npz"
+    caps, boxes = shape.capsules, shape.boxes
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        # one writer per process and thread (campaign workers build retargeters per thread)
+        tmp = path.with_suffix(f".{os.getpid()}.{threading.get_ident()}.tmp.npz")
+        np.savez(
+            tmp,
+            capsule_links=np.array([c.link for c in caps], dtype=str),
+            capsule_ends=np.array([[c.a, c.b] for c in caps], dtype=float).reshape(-1, 2, 3),
+            capsule_radii=np.array([c.radius for c in caps], dtype=float),
+            finger_of=np.array(shape.finger_of, dtype=np.int64),
+            box_links=np.array([b.link for b in boxes], dtype=str),
+            box_centres=np.array([b.centre for b in boxes], dtype=float).reshape(-1, 3),
+            box_rotations=np.array([b.rotation for b in boxes], dtype=float).reshape(-1, 3, 3),
+            box_halves=np.array([b.half for b in boxes], dtype=float).reshape(-1, 3),
+            pads=np.array([p or "" for p in shape.pads], dtype=str),
+            terms=np.array(shape.all_terms, dtype=np.int64).reshape(-1, 3),
+            kept=np.array(shape.kept, dtype=bool),
+        )
+        os.replace(tmp, path)
+    except OSError:  # pragma: no cover - a read-only cache
+        pass
+
+
+__all__ = ["LIBRARIES", "CollisionShape", "load_shape", "shape_key", "store_shape"]
