@@ -122,9 +122,17 @@ def rotate_by_quats(quats: np.ndarray, vectors: np.ndarray, inverse: bool = Fals
     return np.einsum("ijk,ik->ij", m, v)
 
 
+def random_rotations(rng: np.random.Generator, n: int) -> np.ndarray:
+    """``n`` random rotation matrices, row-major (n, 9): unit quaternions from normal
+    draws (the kernels' self-checks' poses)."""
+    q = rng.normal(size=(n, 4))
+    return np.array([quat_to_matrix(v / np.linalg.norm(v)).ravel() for v in q])
+
+
 __all__ = [
     "matrix_to_quat",
     "quat_to_matrix",
+    "random_rotations",
     "rotate_by_quats",
     "yaw_matrix",
     "yaw_of_matrix",

@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 
 from payload import native
-from payload.rotations import quat_to_matrix
+from payload.rotations import random_rotations
 
 log = logging.getLogger(__name__)
 
@@ -208,12 +208,6 @@ class CompiledStationBound:
         return None if self._clearance is None else self._clearance()
 
 
-def _rotations(rng: np.random.Generator, n: int) -> np.ndarray:
-    """``n`` random rotation matrices, row-major (n, 9)."""
-    q = rng.normal(size=(n, 4))
-    return np.array([quat_to_matrix(v / np.linalg.norm(v)).ravel() for v in q])
-
-
 CHECK_POSES = 400
 """Random poses of the moving geoms in the station bound's full self-check
 (:func:`compiled_station_bound`)."""
@@ -270,7 +264,7 @@ def compiled_station_bound(
                 # turned every way
                 centre = rng.uniform(span_lo, span_hi)
                 data.geom_xpos[geoms] = centre + rng.normal(scale=0.2, size=(len(geoms), 3))
-                data.geom_xmat[geoms] = _rotations(rng, len(geoms))
+                data.geom_xmat[geoms] = random_rotations(rng, len(geoms))
                 if i % 97 == 5:
                     data.geom_xpos[geoms[i % len(geoms)], i % 3] = np.nan
                 near = kernel.near()

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
@@ -44,8 +45,9 @@ import numpy as np
 from payload.schema import CONTROL_DT, VehicleTwist
 from payload.sim.contact import ContactMonitor
 from payload.sim.zones import StationZones, station_zones
+from payload.teleop.barrier_c import geometry_kernels
 from payload.teleop.channels import BaseConfig, JerkLimiter
-from payload.teleop.filter_kernel import barrier_rows, enclosing_box, stop_speed_many
+from payload.teleop.filter_kernel import stop_speed_many
 
 _INF = 1e30
 
@@ -147,14 +149,18 @@ class _Shape:
     """One box moving with the vehicle: the oriented box enclosing the collision geoms of
     Astrobee, of the payload, or of the CTB, in the frame of its reference body."""
 
-    def __init__(self, world: Any, kind: str, spacing: float) -> None:
+    def __init__(
+        self, world: Any, kind: str, spacing: float, enclosing_box: Callable[..., tuple]
+    ) -> None:
         m = world.model
+        self._enclosing_box = enclosing_box  # filter_kernel.enclosing_box, compiled
         self.kind = kind
         self.body = world.ctb if kind == "ctb" else world.astrobee
         self.geoms = _moving_geoms(world, kind)
         signs = np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1], indexing="ij")).reshape(3, -1).T
         aabb = m.geom_aabb[self.geoms]  # (G, 6): centre, half-extent in the geom frame
-        self.corners = (aabb[:, None, :3] + signs[None] * aabb[:, None, 3:]).reshape(-1, 3)
+        corners = (aabb[:, None, :3] + signs[None] * aabb[:, None, 3:]).reshape(-1, 3)
+        self.corners = np.ascontiguousarray(corners)  # as the compiled pass reads them
         self.corner_geom = np.repeat(self.geoms, 8)  # the geom of each corner
         self.spacing = spacing
         self.unit: np.ndarray | None = None
@@ -165,7 +171,7 @@ class _Shape:
 
     def refresh(self, data: mujoco.MjData) -> None:
         """Measure the enclosing box in the reference body's frame from the geoms' poses."""
-        lo, hi = enclosing_box(
+        lo, hi = self._enclosing_box(
             data.geom_xpos,
             data.geom_xmat,
             self.corner_geom,
@@ -260,7 +266,9 @@ class BaseSafetyFilter:
         self.zones = zones or station_zones(world.layout)
         self.obs_lo, self.obs_hi, self.obs_names = self.zones.obstacles()
         kinds = ("astrobee", "payload", "ctb") if world.ctb >= 0 else ("astrobee", "payload")
-        self.all_shapes = [_Shape(world, k, self.config.spacing) for k in kinds]
+        # the geometry's compiled pass: C, else Numba (payload.teleop.barrier_c)
+        self._barrier_rows, box = geometry_kernels()
+        self.all_shapes = [_Shape(world, k, self.config.spacing, box) for k in kinds]
         self.shapes = self.all_shapes
         # the CTB moves with the vehicle only while the pinch holds it: it counts from the
         # first opposing contact until ``release_s`` after the last one
@@ -312,12 +320,13 @@ class BaseSafetyFilter:
         self._warm_up()
 
     def _warm_up(self) -> None:
-        """Load the compiled functions now (from Numba's disk cache, or compile them), with
-        empty inputs of the step's types, so that the first control step does not wait."""
+        """Call the compiled functions once with empty inputs of the step's types, so that
+        the first control step does not wait (Numba's load them from its disk cache, or
+        compile them, at their first call)."""
         empty, none = np.zeros((0, 3)), np.zeros(0, dtype=np.int64)
         rot = np.eye(3)
-        enclosing_box(empty, np.zeros((0, 9)), none, empty, np.zeros(3), rot)
-        barrier_rows(
+        self.all_shapes[0]._enclosing_box(empty, np.zeros((0, 9)), none, empty, np.zeros(3), rot)
+        self._barrier_rows(
             rot.reshape(1, 9),
             np.zeros((1, 3)),
             0,
@@ -441,7 +450,7 @@ class BaseSafetyFilter:
         n = len(self.shapes)
         self._measure(data, n)
         lower = self._lower[n]
-        count, least = barrier_rows(
+        count, least = self._barrier_rows(
             data.xmat,
             data.xpos,
             self.world.astrobee,

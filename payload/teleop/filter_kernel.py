@@ -1,19 +1,29 @@
-"""The base safety filter's geometry, compiled: every (shape, obstacle) pair's bound, and the
+"""The base safety filter's geometry: every (shape, obstacle) pair's bound, and the
 barrier rows of the pairs that could bind, in one pass.
 
 :class:`~payload.teleop.base_filter.BaseSafetyFilter` calls :func:`barrier_rows` once per
 control step. It is the same arithmetic as the filter's description (the module docstring
-of :mod:`payload.teleop.base_filter`), written as loops and compiled by Numba (LLVM, IEEE
-arithmetic: no fast-math), because in NumPy the step is a few hundred small array calls
-whose fixed cost alone exceeds the filter's 200 us budget. The compiled function is cached
-on disk next to this module (``cache=True``), so only the first process compiles it.
+of :mod:`payload.teleop.base_filter`), written as loops over scalars. The functions here
+are plain Python, the reference: in NumPy the step is a few hundred small array calls
+whose fixed cost alone exceeds the filter's 200 us budget, so the filter runs them
+compiled, as C (:mod:`payload.teleop.barrier_c`, checked against these functions to the
+bit when built) or, without a C compiler or with ``PAYLOAD_NATIVE=0``, by Numba
+(:func:`numba_kernels`: LLVM, IEEE arithmetic, no fast-math; cached on disk next to this
+module, so only the first process compiles them). Numba is imported only then: loading
+it and its cached functions took about 0.8 s of every start with the filter.
+
+The divisions are by the filter's positive settings and by norms kept above 1e-12, and
+the square root is of a non-negative number, so Python, C and Numba (``error_model=
+"numpy"``) meet no division by zero or negative root on the filter's inputs.
 """
 
 from __future__ import annotations
 
+import functools
 import math
+import types
+from collections.abc import Callable
 
-import numba
 import numpy as np
 
 
@@ -27,13 +37,13 @@ def _stop_speed(distance: float, accel: float, jerk: float, lag: float) -> float
     return max(u - accel * lag - accel * accel / (2.0 * jerk), 0.0)
 
 
-stop_speed_one = numba.njit(cache=True, error_model="numpy")(_stop_speed)
-""":func:`_stop_speed` compiled (called by :func:`barrier_rows`)."""
+stop_speed_one = _stop_speed
+""":func:`_stop_speed`, as :func:`barrier_rows` calls it (Numba's compiled copy in
+:func:`numba_kernels`)."""
 stop_speed_many = np.vectorize(_stop_speed, otypes=[float])
 """:func:`_stop_speed` over arrays (broadcast), uncompiled: for checks and figures."""
 
 
-@numba.njit(cache=True, error_model="numpy", inline="always")
 def _barrier(
     pts: np.ndarray,
     k: int,
@@ -61,7 +71,6 @@ def _barrier(
     return n0, n1, n2, arm, b, d
 
 
-@numba.njit(cache=True, error_model="numpy")
 def barrier_rows(
     xmat: np.ndarray,
     xpos: np.ndarray,
@@ -200,7 +209,6 @@ def barrier_rows(
     return count, least_slack
 
 
-@numba.njit(cache=True, error_model="numpy")
 def enclosing_box(
     geom_xpos: np.ndarray,
     geom_xmat: np.ndarray,
@@ -239,7 +247,6 @@ def enclosing_box(
     return lo, hi
 
 
-@numba.njit(cache=True, error_model="numpy", inline="always")
 def _normal(
     pts: np.ndarray, k: int, obs_lo: np.ndarray, obs_hi: np.ndarray, m: int
 ) -> tuple[float, float, float, float]:
@@ -267,4 +274,39 @@ def _normal(
     )
 
 
-__all__ = ["barrier_rows", "enclosing_box", "stop_speed_many", "stop_speed_one"]
+NUMBA_INLINE: tuple[str, ...] = ("_normal", "_barrier")
+"""The helpers Numba inlines into :func:`barrier_rows` (as C's ``static`` functions)."""
+
+
+@functools.cache
+def numba_kernels() -> tuple[Callable[..., tuple[int, float]], Callable[..., tuple]]:
+    """:func:`barrier_rows` and :func:`enclosing_box` compiled by Numba (``cache=True``:
+    loaded from its disk cache after the first process): the filter's kernels where the
+    C is not built. The functions are copies of this module's, whose globals name the
+    compiled helpers, so the module's own functions stay plain Python."""
+    import numba
+
+    scope = dict(globals())
+
+    def jit(name: str, **options: str) -> None:
+        fn = globals()[name]
+        copy = types.FunctionType(fn.__code__, scope, fn.__name__, fn.__defaults__)
+        scope[name] = numba.njit(cache=True, error_model="numpy", **options)(copy)
+
+    jit("_stop_speed")
+    scope["stop_speed_one"] = scope["_stop_speed"]
+    for name in NUMBA_INLINE:
+        jit(name, inline="always")
+    jit("barrier_rows")
+    jit("enclosing_box")
+    return scope["barrier_rows"], scope["enclosing_box"]
+
+
+__all__ = [
+    "NUMBA_INLINE",
+    "barrier_rows",
+    "enclosing_box",
+    "numba_kernels",
+    "stop_speed_many",
+    "stop_speed_one",
+]

@@ -1,0 +1,111 @@
+"""The base safety filter's compiled geometry (payload.teleop.barrier_c) gives the bits of
+the Python functions it is written from and of Numba's compilation of them, is refused
+when it does not, and spares a start with the filter Numba's import."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+
+from payload.teleop import barrier_c
+from payload.teleop import filter_kernel as ref
+
+
+def test_the_c_answers_as_the_python_and_numba_on_other_scenes():
+    """Scenes past the self-check's (120 to 419), every array written compared to the bit
+    with the plain Python functions and with Numba's compilation of them (a second
+    compiler of the same code); some scenes have no rows, some fill many."""
+    kernel = barrier_c.compiled_barrier()
+    assert kernel is not None  # a C compiler is here
+    numba_rows, numba_box = ref.numba_kernels()
+    counts = []
+    for k in range(barrier_c.CHECK_PROBES, barrier_c.CHECK_PROBES + 300):
+        scene = barrier_c.probe_scene(k)
+        got = barrier_c.run_rows(kernel.barrier_rows, scene)
+        assert got == barrier_c.run_rows(ref.barrier_rows, scene), k
+        assert got == barrier_c.run_rows(numba_rows, scene), k
+        box = barrier_c.run_box(kernel.enclosing_box, scene)
+        assert (
+            box
+            == barrier_c.run_box(ref.enclosing_box, scene)
+            == barrier_c.run_box(numba_box, scene)
+        )
+        counts.append(int(np.frombuffer(got[0], np.int64)[0]))
+    assert min(counts) == 0 and max(counts) >= 20
+
+
+def test_the_rows_of_a_point_inside_a_box_against_a_closed_form():
+    """One shape of one sample point 1 cm inside a 1 m box's +x face, the vehicle at
+    rest and unrotated: one pair, whose rows are the face's normal (+x), the recovery
+    bound min(gain * (1 cm + margin), recovery speed) and the distance -1 cm."""
+    kernel = barrier_c.compiled_barrier()
+    assert kernel is not None
+    margin, gain, recovery = 0.05, 2.0, 0.02
+    xmat, xpos = np.eye(3).reshape(1, 9).copy(), np.zeros((1, 3))
+    obs = np.array([[[-1.0, -0.5, -0.5]], [[0.0, 0.5, 0.5]]])  # the face at x = 0
+    local = np.array([[-0.01, 0.0, 0.0]])
+    params = np.array([margin, 1.0, 0.1, gain, recovery, 0.1, 0.1, 0.1])
+    rows, out, lower, pts = np.zeros((2, 4)), np.zeros((2, 2)), np.zeros((1, 1)), np.zeros((1, 3))
+    boxes = np.array([[[-0.01, 0.0, 0.0]], [[0.0, 0.0, 0.0]]])
+    count, least = kernel.barrier_rows(
+        xmat, xpos, 0, np.zeros(1, np.int64), boxes, local, np.array([0, 1]), obs,
+        np.zeros(4), params, 1, rows, out, lower, pts,
+    )  # fmt: skip
+    assert count == 2  # with and without the yaw term
+    np.testing.assert_allclose(rows, [[1.0, 0.0, 0.0, 0.0]] * 2, atol=0)
+    bound = min(gain * (0.01 + margin), recovery)
+    np.testing.assert_allclose(out[0], [bound, bound], rtol=1e-15)
+    np.testing.assert_allclose(lower, [[-0.01]], rtol=1e-12)
+    assert least == out[1, 0] == -bound  # the slack at rest: 0 - b
+
+
+def test_a_kernel_with_other_bits_is_refused(refused_kernel):
+    """The stopping speed's product distributed (the same in exact arithmetic) is
+    refused, and the filter takes Numba's functions."""
+    with refused_kernel(
+        barrier_c,
+        "double u = accel * (sqrt(b * b + 2.0 * d / accel) - b);",
+        "double u = accel * sqrt(b * b + 2.0 * d / accel) - accel * b;",
+        says="differs",
+    ):
+        assert barrier_c.compiled_barrier() is None
+        rows, _ = barrier_c.geometry_kernels()
+        assert type(rows).__module__.startswith("numba")
+
+
+def test_without_the_c_the_filter_runs_numbas(monkeypatch):
+    """``PAYLOAD_NATIVE=0``: Numba's compilation of the Python, the same rows."""
+    kernel = barrier_c.compiled_barrier()
+    monkeypatch.setenv("PAYLOAD_NATIVE", "0")
+    rows, box = barrier_c.geometry_kernels()
+    assert (rows, box) == ref.numba_kernels()
+    scene = barrier_c.probe_scene(7)
+    assert barrier_c.run_rows(rows, scene) == barrier_c.run_rows(kernel.barrier_rows, scene)
+
+
+def test_a_filter_is_made_without_importing_numba():
+    """A base safety filter made and stepped in a fresh process: its geometry is the C,
+    and making it imports neither Numba nor llvmlite nor the SciPy Numba loads."""
+    code = (
+        "import sys\n"
+        "import numpy as np\n"
+        "from payload.schema import VehicleTwist\n"
+        "from payload.sim.driver import SimDriver\n"
+        "from payload.sim.world import build_world\n"
+        "sim = SimDriver(build_world())\n"
+        "c = sim.controller\n"
+        "before = set(sys.modules)\n"
+        "from payload.teleop.base_filter import BaseSafetyFilter\n"
+        "from payload.teleop.channels import BaseConfig\n"
+        "f = BaseSafetyFilter(sim.world, BaseConfig(), c.accel_max, float(c.jerk[0]))\n"
+        "f(VehicleTwist(np.array([0.1, 0.0, 0.0]), np.zeros(3), 0.0), sim.data)\n"
+        "print(type(f._barrier_rows).__qualname__)\n"
+        "new = set(sys.modules) - before\n"
+        "print(sorted(m for m in new if m.split('.')[0] in ('numba', 'scipy', 'llvmlite')))\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    kind, loaded = done.stdout.split("\n")[:2]
+    assert kind == "method" and loaded == "[]"
