@@ -7,7 +7,8 @@ kernels (:mod:`payload.sim.allocation_c`, :mod:`payload.sim.vehicle_c`,
 :mod:`payload.teleop.filter_c`, :mod:`payload.teleop.limiter_c`,
 :mod:`payload.teleop.safety_c`, :mod:`payload.teleop.base_c`, :mod:`payload.teleop.pair_c`,
 :mod:`payload.teleop.handmodel_c`, :mod:`payload.teleop.intake_c`,
-:mod:`payload.teleop.operator_c`, :mod:`payload.retarget.targets_c`,
+:mod:`payload.teleop.operator_c`, :mod:`payload.teleop.barrier_c`,
+:mod:`payload.retarget.targets_c`,
 :mod:`payload.trials.foxglove_c`, :mod:`payload.trials.messages_c`,
 :mod:`payload.trials.codec_c`) build their shared
 libraries through here: compiled and cached by :mod:`payload.native_build` (named by the
@@ -334,6 +335,14 @@ def _checked_with() -> str:
     )
 
 
+def result_environment() -> str:
+    """What a computed answer's bits depend on besides its own code and inputs: the text
+    :func:`check_stamp` names a kernel's check by (the workbench's sources, Python's build,
+    :func:`environment`, the processor and the variables that pick numpy's and OpenBLAS's
+    machine code), for the disk cache's keys of other derived answers."""
+    return _checked_with()
+
+
 def _processor() -> str:
     """The processor's model and feature flags (``/proc/cpuinfo``), else the platform's
     name for it."""
@@ -424,5 +433,6 @@ __all__ = [
     "probes",
     "prune",
     "reported",
+    "result_environment",
     "self_checked",
 ]

@@ -8,6 +8,7 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 
 from payload.teleop import barrier_c
 from payload.teleop import filter_kernel as ref
@@ -36,17 +37,19 @@ def test_the_c_answers_as_the_python_and_numba_on_other_scenes():
     assert min(counts) == 0 and max(counts) >= 20
 
 
-def test_the_rows_of_a_point_inside_a_box_against_a_closed_form():
-    """One shape of one sample point 1 cm inside a 1 m box's +x face, the vehicle at
-    rest and unrotated: one pair, whose rows are the face's normal (+x), the recovery
-    bound min(gain * (1 cm + margin), recovery speed) and the distance -1 cm."""
+@pytest.mark.parametrize(("gain", "bound"), [(2.0, 0.02), (0.1, 0.006)])
+def test_the_rows_of_a_point_inside_a_box_against_a_closed_form(gain, bound):
+    """One shape of one sample point 1 cm inside a 1 m box's +x face, with a 5 cm margin,
+    the vehicle unrotated and asked for nothing: one pair, whose two rows are the face's
+    normal (+x), bound by the recovery speed out of the margin: 2 cm/s when the gain
+    asks for more (2/s x 6 cm = 12 cm/s), 0.1/s x 6 cm = 6 mm/s when less; the distance
+    is -1 cm and the slack at rest -bound."""
     kernel = barrier_c.compiled_barrier()
     assert kernel is not None
-    margin, gain, recovery = 0.05, 2.0, 0.02
     xmat, xpos = np.eye(3).reshape(1, 9).copy(), np.zeros((1, 3))
     obs = np.array([[[-1.0, -0.5, -0.5]], [[0.0, 0.5, 0.5]]])  # the face at x = 0
     local = np.array([[-0.01, 0.0, 0.0]])
-    params = np.array([margin, 1.0, 0.1, gain, recovery, 0.1, 0.1, 0.1])
+    params = np.array([0.05, 1.0, 0.1, gain, 0.02, 0.1, 0.1, 0.1])
     rows, out, lower, pts = np.zeros((2, 4)), np.zeros((2, 2)), np.zeros((1, 1)), np.zeros((1, 3))
     boxes = np.array([[[-0.01, 0.0, 0.0]], [[0.0, 0.0, 0.0]]])
     count, least = kernel.barrier_rows(
@@ -54,11 +57,10 @@ def test_the_rows_of_a_point_inside_a_box_against_a_closed_form():
         np.zeros(4), params, 1, rows, out, lower, pts,
     )  # fmt: skip
     assert count == 2  # with and without the yaw term
-    np.testing.assert_allclose(rows, [[1.0, 0.0, 0.0, 0.0]] * 2, atol=0)
-    bound = min(gain * (0.01 + margin), recovery)
-    np.testing.assert_allclose(out[0], [bound, bound], rtol=1e-15)
+    np.testing.assert_array_equal(rows, [[1.0, 0.0, 0.0, 0.0]] * 2)
+    np.testing.assert_allclose(out[0], [bound, bound], rtol=1e-12)
     np.testing.assert_allclose(lower, [[-0.01]], rtol=1e-12)
-    assert least == out[1, 0] == -bound  # the slack at rest: 0 - b
+    assert least == out[1, 0] == -out[0, 0]
 
 
 def test_a_kernel_with_other_bits_is_refused(refused_kernel):
@@ -109,3 +111,32 @@ def test_a_filter_is_made_without_importing_numba():
     assert done.returncode == 0, done.stderr
     kind, loaded = done.stdout.split("\n")[:2]
     assert kind == "method" and loaded == "[]"
+
+
+def test_an_index_out_of_range_raises_as_the_python_does():
+    """A body index past the bodies, a sample point past the points, a geom past the geoms,
+    or fewer rows than the pass fills: the Python raises IndexError, and the C raises it
+    too instead of reading or writing past an array."""
+    kernel = barrier_c.compiled_barrier()
+    assert kernel is not None
+    scene = barrier_c.probe_scene(4)
+    bad_body = dict(scene, bodies=scene["bodies"] + scene["xmat"].shape[0])
+    bad_point = dict(scene, first_point=scene["first_point"] + 1)
+    full = int(np.frombuffer(barrier_c.run_rows(kernel.barrier_rows, scene)[0], np.int64)[0])
+    assert full >= 4
+    short = dict(scene, most=full - 2)
+    for bad in (bad_body, bad_point, short):
+        for fn in (ref.barrier_rows, kernel.barrier_rows):
+            try:
+                barrier_c.run_rows(fn, bad)
+            except IndexError:
+                continue
+            raise AssertionError(f"{fn} took {bad}")
+    geoms = np.array([0, scene["xmat"].shape[0]], dtype=np.int64)
+    corners = np.zeros((2, 3))
+    for fn in (ref.enclosing_box, kernel.enclosing_box):
+        try:
+            fn(scene["xpos"], scene["xmat"], geoms, corners, np.zeros(3), np.eye(3))
+        except IndexError:
+            continue
+        raise AssertionError(f"{fn} took a geom past the geoms")

@@ -706,12 +706,13 @@ def test_batched_fingertips_match_pinocchio_on_the_generated_urdf(design) -> Non
 def test_a_compile_of_the_check_is_said_and_left_out_of_the_reports_time(monkeypatch, capsys):
     """A check that takes longer than COMPILING_AFTER_S to load (as Numba's compile after
     a change to its code does) is said on stderr once, and its seconds are returned for
-    the report's time to leave out; a quick load says nothing and returns 0."""
+    the report's time to leave out; a quick load says nothing, then or later, and
+    returns 0."""
     import time
 
     from payload.envelope import cli_runs, overlap
 
-    slow = cli_runs.COMPILING_AFTER_S + 0.5
+    slow = cli_runs.COMPILING_AFTER_S + 2.0
     monkeypatch.setattr(overlap, "compile_check", lambda: time.sleep(slow))
     took = cli_runs._load_check()
     assert capsys.readouterr().err == cli_runs.COMPILING_LINE + "\n"

@@ -182,7 +182,7 @@ def test_paper_seed_table_is_the_first_margin_keeping_candidates(pk):
     at a time) is the same postures, in order, as filtering every candidate by its
     clearance: here each candidate's clearance from the numpy and Pinocchio distances
     (``PairCollision.clearance``), not the compiled ones the table uses."""
-    from payload.retarget.budget import PAPER_SEEDS, SEED_CHUNK, SEEDS, seed_table
+    from payload.retarget.budget import PAPER_SEEDS, SEEDS, seed_table
 
     qs, fs = seed_table(pk, True, PAPER_SEEDS)
     rng = np.random.default_rng(12345)  # the table's candidates, drawn as it draws them
@@ -196,9 +196,32 @@ def test_paper_seed_table_is_the_first_margin_keeping_candidates(pk):
     assert len(want) == PAPER_SEEDS
     np.testing.assert_array_equal(qs, np.array(want))
     np.testing.assert_array_equal(fs, pk.features_batch(qs))
-    # what the early stop saves: the table is found well before the last candidate
-    last = next(i for i, q in enumerate(cands) if np.array_equal(q, want[-1]))
-    assert last + SEED_CHUNK < cands.shape[0]
+
+
+@pytest.mark.parametrize("chunk", [1, 7, 300])
+def test_the_seed_table_stops_when_full_whatever_the_chunk(pk, monkeypatch, chunk):
+    """Any chunk size gives the table all candidates filtered at once would (the compiled
+    distances of every candidate, the first PAPER_SEEDS kept), and evaluates no more
+    candidates than the chunk holding the last posture taken."""
+    from payload.retarget import budget
+
+    col = pk.collision
+    rng = np.random.default_rng(12345)
+    cands = np.vstack([pk.rest, pk.lower + rng.random((4 * budget.SEEDS, pk.n)) * pk.range])
+    clear = np.flatnonzero(col.distances_many(cands).min(axis=0) >= col.margin)
+    want = cands[clear[: budget.PAPER_SEEDS]]
+    evaluated = []
+    real = type(col).distances_many
+    monkeypatch.setattr(budget, "SEED_CHUNK", chunk)
+    monkeypatch.setattr(
+        type(col),
+        "distances_many",
+        lambda self, qs, *a: evaluated.append(len(qs)) or real(self, qs, *a),
+    )
+    qs, _ = budget.seed_table(pk, True, budget.PAPER_SEEDS)
+    np.testing.assert_array_equal(qs, want)
+    last = int(clear[budget.PAPER_SEEDS - 1])
+    assert sum(evaluated) == (last // chunk + 1) * chunk
 
 
 def test_budget_setting_is_validated():

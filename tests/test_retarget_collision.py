@@ -125,6 +125,7 @@ def test_the_shape_kept_on_disk_gives_the_derived_model(pks, tmp_path, monkeypat
         with monkeypatch.context() as m:
             for name in ("link_geometry", "enclosing_capsule", "structure_boxes"):
                 m.setattr(collision, name, lambda *a, **k: pytest.fail("derived, not loaded"))
+            m.setattr(collision.PairCollision, "_prune", lambda self: pytest.fail("pruned"))
             loaded = collision.PairCollision(pks[pair])
         assert loaded.terms and len(loaded.terms) < len(loaded.all_terms)  # pruned
         assert (loaded.all_terms, loaded.terms) == (derived.all_terms, derived.terms)
@@ -142,8 +143,9 @@ def test_the_shape_kept_on_disk_gives_the_derived_model(pks, tmp_path, monkeypat
 
 
 def test_the_shape_is_keyed_by_the_meshes_the_design_and_the_margin(tmp_path):
-    """The cache key changes with a byte of a collision mesh the URDF names, the design
-    and the margin, and not with a file the URDF does not name."""
+    """The cache key changes with a byte of a collision mesh the URDF names, of the URDF,
+    of the design, and with the margin, and not with a file the URDF does not name; with
+    a named mesh missing there is no key (the model is derived, and says why)."""
     from payload.retarget.collision_cache import shape_key
 
     project = current_project().root
@@ -169,9 +171,19 @@ def test_the_shape_is_keyed_by_the_meshes_the_design_and_the_margin(tmp_path):
     assert key() != first
     mesh.write_bytes(mesh.read_bytes()[:-1])
     assert key() == first
+    urdf = tmp_path / "urdf" / "payload.urdf"
+    text = urdf.read_text()
+    urdf.write_text(text + "<!-- a comment -->\n")
+    assert key() != first
+    urdf.write_text(text)
+    assert key() == first
     design = tmp_path / "cad" / "design.toml"
     design.write_text(design.read_text() + "\n# a comment\n")
-    assert key() != first
+    second = key()
+    assert second != first
+    mesh.rename(mesh.with_suffix(".gone"))  # a named mesh missing: no key, no cache
+    pk = PairKinematics(load_hand(tmp_path / "hand.toml"), "L")
+    assert shape_key(pk, 0.002) is None
 
 
 # ------------------------------------------------------------- one source

@@ -288,29 +288,35 @@ def run_reach(args: argparse.Namespace) -> tuple[ReachAnalysis, dict[str, Path]]
 
 
 COMPILING_AFTER_S = 1.0
-"""How long loading the reach check may take before ``report reach`` says it is compiling."""
+"""How long loading the reach check may take before ``report reach`` says what it is
+doing."""
 
 COMPILING_LINE = (
-    "compiling the reach check with Numba (once after its code or Numba changes; "
+    "loading the reach check (Numba compiles it once after its code or Numba changes, "
     "about 5 s) ..."
 )
-"""What ``report reach`` says on stderr when the check is being compiled, not loaded."""
+"""What ``report reach`` says on stderr when loading the check takes long: a compile."""
 
 
 def _load_check() -> float:
     """Load the reach check from Numba's cache, or compile it, before the sampling starts;
-    a compile (the first run after its code changed, seconds of silence otherwise) is
-    said on stderr once it has taken :data:`COMPILING_AFTER_S`. Returns the seconds a
-    compile took (0: loaded), which the report's time leaves out."""
+    a load that takes :data:`COMPILING_AFTER_S` (a compile: the first run after its code
+    changed, seconds of silence otherwise) is said on stderr, never after this returns.
+    Returns the seconds such a load took (0 for a quick one), which the report's time
+    leaves out."""
     import threading
 
     from payload.envelope.overlap import compile_check
 
-    said = threading.Event()
+    lock = threading.Lock()
+    state = {"done": False, "said": False}
 
     def say() -> None:
-        said.set()
-        print(COMPILING_LINE, file=sys.stderr, flush=True)
+        with lock:
+            if state["done"]:
+                return
+            state["said"] = True
+            print(COMPILING_LINE, file=sys.stderr, flush=True)
 
     notice = threading.Timer(COMPILING_AFTER_S, say)
     notice.daemon = True
@@ -320,7 +326,9 @@ def _load_check() -> float:
         compile_check()
     finally:
         notice.cancel()
-    return time.perf_counter() - t if said.is_set() else 0.0
+        with lock:
+            state["done"] = True
+    return time.perf_counter() - t if state["said"] else 0.0
 
 
 def reach_lines(analysis: ReachAnalysis) -> list[str]:

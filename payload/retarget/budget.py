@@ -112,8 +112,9 @@ SEED_CHUNK = 512
 def _clear_first(pk: PairKinematics, qs: np.ndarray, count: int) -> np.ndarray:
     """The postures of ``qs`` (in order) that keep the collision margin, at least the first
     ``count`` of them: their distances computed :data:`SEED_CHUNK` postures at a time,
-    stopping once ``count`` are found (the ``paper`` budget's 256 need about a tenth of
-    the candidates; a posture's distances do not depend on the others')."""
+    stopping once ``count`` are found (the ``paper`` budget's 256 need a quarter to a
+    third of the candidates for our pairs; a posture's distances do not depend on the
+    others')."""
     col = pk.collision
     kept: list[np.ndarray] = []
     found = 0

@@ -41,6 +41,7 @@ import casadi as ca
 import numpy as np
 import pinocchio as pin
 
+from payload.native import find_compiler
 from payload.retarget import features as _features
 from payload.retarget.collision_cache import CollisionShape, load_shape, shape_key, store_shape
 from payload.retarget.collision_distance import (
@@ -129,9 +130,17 @@ class PairCollision:
             return
         if self.all_terms:
             self._prune()
-        if key is not None:
+        # kept only when derived from the bytes keyed (no file changed meanwhile) and, with
+        # a compiler, pruned by the compiled distances (not CasADi's virtual machine)
+        if key is not None and shape_key(pk, self.margin) == key and self._pruned_compiled():
             kept = tuple(t in self.terms for t in self.all_terms)
             store_shape(key, replace(shape, kept=kept))
+
+    def _pruned_compiled(self) -> bool:
+        """Whether the pruning's distances were the compiled ones, or there is no C
+        compiler to compile them (the virtual machine's are then every process's)."""
+        made = self._batch.get(tuple(self.all_terms))
+        return made is None or made[1] is not None or find_compiler() is None
 
     def _derive(self) -> CollisionShape:
         """The capsules, structure boxes, pad links and candidate terms, from the URDF's

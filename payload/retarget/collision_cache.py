@@ -9,9 +9,14 @@ for an answer that changes only with its inputs. It is kept beside the compiled 
 (:func:`payload.cache.cache_dir`), named by a hash of everything it is derived from: the
 URDF and every mesh file it names (their bytes), the design file, the pair's and hand's
 descriptions, the margin, the workbench's code (:func:`payload.cache.sources_digest`), the
-versions of the libraries that compute it (numpy, SciPy, trimesh, CasADi, Pinocchio) and
-the C compiler that evaluates the pruning's distances. A stale entry is never read; an
-unreadable or torn one is derived again and rewritten.
+versions of the libraries that compute it (numpy, SciPy, trimesh, CasADi, Pinocchio),
+Python's build, the machine, the processor and numpy's BLAS kernels
+(:func:`payload.native.result_environment`), and the C compiler and its flags that
+evaluate the pruning's distances. A stale entry is never read; an unreadable or torn one
+is derived again and rewritten. :class:`~payload.retarget.collision.PairCollision` stores
+only what it derived from the same bytes it keyed (the key is taken again after the
+derivation) and with the compiled distances when there is a compiler. The newest
+:data:`KEEP` entries are kept.
 """
 
 from __future__ import annotations
@@ -27,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from payload.cache import cache_dir, dist_version, sources_digest
-from payload.native import find_compiler
+from payload.native import find_compiler, flags, result_environment
 from payload.retarget.collision_geometry import Box, Capsule, mesh_path
 from payload.retarget.features import PairKinematics
 
@@ -35,6 +40,9 @@ _CACHE_VERSION = "pair-collision-1"
 
 LIBRARIES: tuple[str, ...] = ("numpy", "scipy", "trimesh", "casadi", "pin")
 """The distributions whose code computes the geometry (their versions are in the key)."""
+
+KEEP = 16
+"""Pair shapes kept in the cache (the newest; two a design, one a pair)."""
 
 
 @dataclass(frozen=True)
@@ -72,9 +80,12 @@ def shape_key(pk: PairKinematics, margin: float) -> str | None:
         text = urdf.read_bytes()
         part(_CACHE_VERSION)
         part(sources_digest())
+        part(result_environment())
         for name in LIBRARIES:
             part(f"{name}={dist_version(name)}")
-        part(str(find_compiler()))
+        compiler = find_compiler()
+        part(str(compiler))
+        part(" ".join(flags(compiler)) if compiler is not None else "")
         part(text)
         for mesh in ET.fromstring(text).iter("mesh"):  # collision and visual: both named
             path = mesh_path(mesh.get("filename", ""), urdf.parent)
@@ -124,10 +135,10 @@ def store_shape(key: str, shape: CollisionShape) -> None:
     """Keep ``shape`` under ``key`` (a read-only cache only costs the next derivation)."""
     path = cache_dir() / f"pair_collision_{key}.npz"
     caps, boxes = shape.capsules, shape.boxes
+    # one writer per process and thread (campaign workers build retargeters per thread)
+    tmp = path.with_suffix(f".{os.getpid()}.{threading.get_ident()}.tmp.npz")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        # one writer per process and thread (campaign workers build retargeters per thread)
-        tmp = path.with_suffix(f".{os.getpid()}.{threading.get_ident()}.tmp.npz")
         np.savez(
             tmp,
             capsule_links=np.array([c.link for c in caps], dtype=str),
@@ -143,8 +154,21 @@ def store_shape(key: str, shape: CollisionShape) -> None:
             kept=np.array(shape.kept, dtype=bool),
         )
         os.replace(tmp, path)
-    except OSError:  # pragma: no cover - a read-only cache
+    except OSError:  # a read-only or full cache: derived again next time
+        tmp.unlink(missing_ok=True)
+        return
+    _prune_shapes(path.parent)
+
+
+def _prune_shapes(folder: Path) -> None:
+    """Delete all but the newest :data:`KEEP` pair shapes (each change to the workbench's
+    code keys new ones)."""
+    try:
+        found = sorted(folder.glob("pair_collision_*.npz"), key=lambda p: p.stat().st_mtime_ns)
+        for old in found[:-KEEP]:
+            old.unlink(missing_ok=True)
+    except OSError:  # another process pruned them first
         pass
 
 
-__all__ = ["LIBRARIES", "CollisionShape", "load_shape", "shape_key", "store_shape"]
+__all__ = ["KEEP", "LIBRARIES", "CollisionShape", "load_shape", "shape_key", "store_shape"]

@@ -96,17 +96,26 @@ static void barrier(const double *p, const double *lo, const double *hi, const d
     r[4] = b; r[5] = d;
 }
 
-/* filter_kernel.barrier_rows (its arguments in order; n_shapes, n_boxes, n_obs, n_rows
-   the sizes of bodies, boxes (2, n_boxes, 3), obs and rows; sel and sel_slack scratch of
-   per_face); returns the count of rows and writes the least slack */
+/* filter_kernel.barrier_rows (its arguments in order; n_body, n_shapes, n_boxes, n_local,
+   n_obs, n_rows the sizes of xmat and xpos, bodies, boxes (2, n_boxes, 3), local and
+   pts, obs and rows; sel and sel_slack scratch of per_face); returns the count of rows
+   and writes the least slack, or -1 (nothing written) for a body or point index out of
+   range, -2 (rows written up to the end) for more rows than rows holds: where the Python
+   raises IndexError */
 int64_t payload_barrier_rows(
-    const double *xmat, const double *xpos, int64_t vehicle, const int64_t *bodies,
-    int64_t n_shapes, const double *boxes, int64_t n_boxes, const double *local,
-    const int64_t *first_point,
+    const double *xmat, const double *xpos, int64_t n_body, int64_t vehicle,
+    const int64_t *bodies, int64_t n_shapes, const double *boxes, int64_t n_boxes,
+    const double *local, int64_t n_local, const int64_t *first_point,
     const double *obs, int64_t n_obs, const double *req, const double *params,
     int64_t per_face, double *rows, double *out, int64_t n_rows, double *lower, double *pts,
     int64_t *sel, double *sel_slack, double *least_out)
 {
+    if (vehicle < 0 || vehicle >= n_body || first_point[0] < 0
+        || first_point[n_shapes] > n_local)
+        return -1;
+    for (int64_t s = 0; s < n_shapes; s++)
+        if (bodies[s] < 0 || bodies[s] >= n_body || first_point[s + 1] < first_point[s])
+            return -1;
     double margin = params[0], jerk = params[1], lag = params[2];
     const double *body_accel = params + 5;
     const double *rot = xmat + 9 * vehicle, *centre = xpos + 3 * vehicle;
@@ -185,6 +194,7 @@ int64_t payload_barrier_rows(
             lower[n_obs * s + m] = least;
             for (int64_t q = 0; q < kept; q++) {
                 barrier(pts + 3 * sel[q], lo, hi, rot, centre, body_accel, params, r);
+                if (count + 2 > n_rows) return -2;
                 for (int with_yaw = 0; with_yaw < 2; with_yaw++) {
                     rows[4 * count] = r[0];
                     rows[4 * count + 1] = r[1];
@@ -202,11 +212,14 @@ int64_t payload_barrier_rows(
     return count;
 }
 
-/* filter_kernel.enclosing_box: lo (3) then hi (3) into box */
-void payload_enclosing_box(const double *geom_xpos, const double *geom_xmat,
-                           const int64_t *corner_geom, int64_t n, const double *corners,
-                           const double *origin, const double *frame, double *box)
+/* filter_kernel.enclosing_box: lo (3) then hi (3) into box; -1 (nothing written) for a
+   geom index out of range (n_geom: the geoms of geom_xpos and geom_xmat) */
+int payload_enclosing_box(const double *geom_xpos, const double *geom_xmat, int64_t n_geom,
+                          const int64_t *corner_geom, int64_t n, const double *corners,
+                          const double *origin, const double *frame, double *box)
 {
+    for (int64_t k = 0; k < n; k++)
+        if (corner_geom[k] < 0 || corner_geom[k] >= n_geom) return -1;
     double lo[3] = {INFINITY, INFINITY, INFINITY}, hi[3] = {-INFINITY, -INFINITY, -INFINITY};
     double r[3];
     for (int64_t k = 0; k < n; k++) {
@@ -222,6 +235,7 @@ void payload_enclosing_box(const double *geom_xpos, const double *geom_xmat,
         }
     }
     for (int j = 0; j < 3; j++) { box[j] = lo[j]; box[3 + j] = hi[j]; }
+    return 0;
 }
 """
 
@@ -247,12 +261,13 @@ class CompiledBarrier:
         ptr, i64 = ctypes.c_void_p, ctypes.c_int64
         rows = lib.payload_barrier_rows
         rows.restype = i64
-        rows.argtypes = [ptr, ptr, i64, ptr, i64, ptr, i64, ptr, ptr, ptr, i64, ptr, ptr, i64]
+        rows.argtypes = [ptr, ptr, i64, i64, ptr, i64, ptr, i64, ptr, i64, ptr, ptr, i64]
+        rows.argtypes += [ptr, ptr, i64]
         rows.argtypes += [ptr, ptr, i64, ptr, ptr, ptr, ptr, ptr]
         self._rows = rows
         box = lib.payload_enclosing_box
-        box.restype = None
-        box.argtypes = [ptr, ptr, ptr, i64, ptr, ptr, ptr, ptr]
+        box.restype = ctypes.c_int
+        box.argtypes = [ptr, ptr, i64, ptr, i64, ptr, ptr, ptr, ptr]
         self._box = box
         self._least = np.zeros(1)
         self._scratch: tuple[np.ndarray, np.ndarray] = (np.zeros(1, np.int64), np.zeros(1))
@@ -291,6 +306,16 @@ class CompiledBarrier:
         """:func:`payload.teleop.filter_kernel.barrier_rows`, in C."""
         n_shapes, n_obs, n_rows = bodies.shape[0], obs.shape[1], rows.shape[0]
         if (
+            obs.shape != (2, n_obs, 3)
+            or rows.shape != (n_rows, 4)
+            or req.shape[0] < 4
+            or per_face < 0
+            or bodies.ndim != 1
+            or first_point.ndim != 1
+            or local.shape[1:] != (3,)
+        ):
+            raise ValueError("barrier_rows: arrays of other shapes than the filter's")
+        if (
             boxes.ndim != 3
             or boxes.shape[0] != 2
             or boxes.shape[1] < n_shapes
@@ -299,7 +324,6 @@ class CompiledBarrier:
             or lower.shape != (n_shapes, n_obs)
             or out.shape != (2, n_rows)
             or params.shape[0] < 8
-            or local.shape[0] < (first_point[n_shapes] if n_shapes else 0)
             or pts.shape != local.shape
             or xmat.shape[1:] != (9,)
             or xpos.shape != (xmat.shape[0], 3)
@@ -311,15 +335,19 @@ class CompiledBarrier:
             self._scratch = sel, sel_slack = np.zeros(per_face, np.int64), np.zeros(per_face)
         at = self._address
         count = self._rows(
-            at(xmat, _F64, "xmat"), at(xpos, _F64, "xpos"), vehicle,
+            at(xmat, _F64, "xmat"), at(xpos, _F64, "xpos"), xmat.shape[0], vehicle,
             at(bodies, _I64, "bodies"), n_shapes, at(boxes, _F64, "boxes"),
-            boxes.shape[1], at(local, _F64, "local"), at(first_point, _I64, "first_point"),
+            boxes.shape[1], at(local, _F64, "local"), local.shape[0],
+            at(first_point, _I64, "first_point"),
             at(obs, _F64, "obs"), n_obs, at(req, _F64, "req"),
             at(params, _F64, "params"), per_face, at(rows, _F64, "rows"),
             at(out, _F64, "out"), n_rows, at(lower, _F64, "lower"),
             at(pts, _F64, "pts"), at(sel, _I64, "sel"), at(sel_slack, _F64, "sel_slack"),
             at(self._least, _F64, "least"),
         )  # fmt: skip
+        if count < 0:
+            what = "a body or sample point index" if count == -1 else "more rows than rows holds"
+            raise IndexError(f"barrier_rows: {what} out of range")
         return int(count), float(self._least[0])
 
     def enclosing_box(
@@ -343,11 +371,13 @@ class CompiledBarrier:
             raise ValueError("enclosing_box: arrays of other shapes than the filter's")
         box = np.empty(6)
         at = self._address
-        self._box(
+        if self._box(
             at(geom_xpos, _F64, "geom_xpos"), at(geom_xmat, _F64, "geom_xmat"),
-            at(corner_geom, _I64, "corner_geom"), n, at(corners, _F64, "corners"),
-            at(origin, _F64, "origin"), at(frame, _F64, "frame"), box.ctypes.data,
-        )  # fmt: skip
+            geom_xmat.shape[0], at(corner_geom, _I64, "corner_geom"), n,
+            at(corners, _F64, "corners"), at(origin, _F64, "origin"), at(frame, _F64, "frame"),
+            box.ctypes.data,
+        ) != 0:  # fmt: skip
+            raise IndexError("enclosing_box: a geom index out of range")
         return box[:3], box[3:]
 
 
@@ -356,8 +386,9 @@ CHECK_PROBES = 120
 
 
 def probe_scene(k: int) -> dict[str, Any]:
-    """The ``k``-th random scene of the self-check: three to five bodies (the vehicle
-    first), two or three shapes with four to twelve sample points each, two to five
+    """The ``k``-th random scene of the self-check: three to five bodies (the vehicle any
+    of them), two or three shapes (and every other scene a box more than shapes, as the
+    filter's without the CTB) with four to twelve sample points each, two to five
     obstacle boxes near them (some around a point, so points lie inside one), a request
     and the filter's settings; ``per_face`` from one to four. The same scene for the
     same ``k``."""
@@ -370,8 +401,9 @@ def probe_scene(k: int) -> dict[str, Any]:
     xpos = rng.normal(scale=0.5, size=(n_bodies, 3))
     n_shapes = int(rng.integers(2, 4))
     bodies = rng.integers(0, n_bodies, size=n_shapes).astype(np.int64)
-    boxes = np.stack([rng.normal(scale=0.1, size=(n_shapes, 3)),
-                      rng.uniform(0.02, 0.2, size=(n_shapes, 3))])  # fmt: skip
+    n_boxes = n_shapes + k % 2  # as the filter's, a box for a shape not passed (the CTB)
+    boxes = np.stack([rng.normal(scale=0.1, size=(n_boxes, 3)),
+                      rng.uniform(0.02, 0.2, size=(n_boxes, 3))])  # fmt: skip
     counts = rng.integers(4, 13, size=n_shapes)
     first_point = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
     local = rng.normal(scale=0.15, size=(int(first_point[-1]), 3))
@@ -401,7 +433,8 @@ def probe_scene(k: int) -> dict[str, Any]:
     per_face = int(rng.integers(1, 5))
     most = 2 * per_face * n_shapes * n_obs
     return {
-        "xmat": xmat, "xpos": xpos, "vehicle": 0, "bodies": bodies, "boxes": boxes,
+        "xmat": xmat, "xpos": xpos, "vehicle": int(rng.integers(0, n_bodies)),
+        "bodies": bodies, "boxes": boxes,
         "local": local, "first_point": first_point, "obs": obs, "req": req,
         "params": params, "per_face": per_face, "most": most,
     }  # fmt: skip
