@@ -142,6 +142,31 @@ def test_the_shape_kept_on_disk_gives_the_derived_model(pks, tmp_path, monkeypat
         assert [loaded.clearance(q) for q in qs] == [derived.clearance(q) for q in qs]
 
 
+@pytest.mark.parametrize("damage", ["torn", "short"])
+def test_a_damaged_shape_on_disk_is_derived_again(pks, tmp_path, monkeypatch, damage):
+    """A cache file cut short (a torn write) or whose verdicts do not match its terms is
+    not read: the model is derived again, equal to the first, and the file rewritten."""
+    from payload.retarget import collision, collision_cache
+
+    monkeypatch.setattr(collision_cache, "cache_dir", lambda: tmp_path)
+    first = collision.PairCollision(pks["L"])
+    (path,) = tmp_path.glob("pair_collision_*.npz")
+    if damage == "torn":
+        path.write_bytes(path.read_bytes()[:200])
+    else:
+        with np.load(path) as z:
+            parts = {k: z[k] for k in z.files}
+        parts["kept"] = parts["kept"][:-1]
+        np.savez(path, **parts)
+    derived = []
+    real = collision.link_geometry
+    monkeypatch.setattr(collision, "link_geometry", lambda u: derived.append(u) or real(u))
+    again = collision.PairCollision(pks["L"])
+    assert len(derived) == 1
+    assert (again.all_terms, again.terms) == (first.all_terms, first.terms)
+    assert collision_cache.load_shape(path.stem.removeprefix("pair_collision_")) is not None
+
+
 def test_the_shape_is_keyed_by_the_meshes_the_design_and_the_margin(tmp_path):
     """The cache key changes with a byte of a collision mesh the URDF names, of the URDF,
     of the design, and with the margin, and not with a file the URDF does not name; with

@@ -119,7 +119,7 @@ def load_shape(key: str) -> CollisionShape | None:
             )
             pads = tuple(str(p) or None for p in z["pads"])
             terms = tuple((int(a), int(b), bool(c)) for a, b, c in z["terms"].reshape(-1, 3))
-            return CollisionShape(
+            shape = CollisionShape(
                 capsules,
                 tuple(int(i) for i in z["finger_of"]),
                 boxes,
@@ -129,6 +129,21 @@ def load_shape(key: str) -> CollisionShape | None:
             )
     except (OSError, KeyError, ValueError, IndexError, EOFError, zipfile.BadZipFile):
         return None  # missing or unreadable (a torn write): derived again and rewritten
+    return shape if _whole(shape) else None
+
+
+def _whole(shape: CollisionShape) -> bool:
+    """Whether a loaded shape's parts fit each other (a file that does not is derived
+    again): a finger per capsule, a verdict per term, every term's indices in range."""
+    n_caps, n_boxes = len(shape.capsules), len(shape.boxes)
+    return (
+        len(shape.finger_of) == n_caps
+        and len(shape.kept) == len(shape.all_terms)
+        and all(
+            0 <= a < n_caps and 0 <= b < (n_boxes if box else n_caps)
+            for a, b, box in shape.all_terms
+        )
+    )
 
 
 def store_shape(key: str, shape: CollisionShape) -> None:
