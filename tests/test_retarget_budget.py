@@ -199,12 +199,16 @@ def test_paper_seed_table_is_the_first_margin_keeping_candidates(pk):
 
 
 @pytest.mark.parametrize("chunk", [1, 7, 300])
-def test_the_seed_table_stops_when_full_whatever_the_chunk(pk, monkeypatch, chunk):
+def test_the_seed_table_stops_when_full_whatever_the_chunk(pk, monkeypatch, tmp_path, chunk):
     """Any chunk size gives the table all candidates filtered at once would (the compiled
     distances of every candidate, the first PAPER_SEEDS kept), and evaluates no more
-    candidates than the chunk holding the last posture taken."""
-    from payload.retarget import budget
+    candidates than the chunk holding the last posture taken (a cache of its own: the
+    table is computed)."""
+    from payload.retarget import budget, collision_cache
+    from payload.retarget.collision import register
 
+    register()
+    monkeypatch.setattr(collision_cache, "cache_dir", lambda: tmp_path)
     col = pk.collision
     rng = np.random.default_rng(12345)
     cands = np.vstack([pk.rest, pk.lower + rng.random((4 * budget.SEEDS, pk.n)) * pk.range])
@@ -222,6 +226,29 @@ def test_the_seed_table_stops_when_full_whatever_the_chunk(pk, monkeypatch, chun
     np.testing.assert_array_equal(qs, want)
     last = int(clear[budget.PAPER_SEEDS - 1])
     assert sum(evaluated) == (last // chunk + 1) * chunk
+
+
+def test_the_seed_table_kept_on_disk_is_the_computed_one(monkeypatch, tmp_path):
+    """A pair whose collision geometry is cached keeps its seed table beside it: the next
+    pair built from the same model loads the same postures, to the bit, without
+    evaluating a distance; another table size is another entry."""
+    from payload.retarget import budget, collision_cache
+    from payload.retarget.collision import register
+
+    register()
+    monkeypatch.setattr(collision_cache, "cache_dir", lambda: tmp_path)
+    first = PairKinematics(load_hand(), "R")
+    qs, fs = budget.seed_table(first, True, budget.PAPER_SEEDS)
+    assert first.collision.key is not None
+    assert len(list(tmp_path.glob("pair_postures_*.npz"))) == 1
+    second = PairKinematics(load_hand(), "R")
+    monkeypatch.setattr(budget, "_clear_first", lambda *a: pytest.fail("computed, not loaded"))
+    again, fs_again = budget.seed_table(second, True, budget.PAPER_SEEDS)
+    assert again.tobytes() == qs.tobytes() and fs_again.tobytes() == fs.tobytes()
+    monkeypatch.undo()
+    monkeypatch.setattr(collision_cache, "cache_dir", lambda: tmp_path)
+    budget.seed_table(second, True, 100)
+    assert len(list(tmp_path.glob("pair_postures_*.npz"))) == 2
 
 
 def test_budget_setting_is_validated():

@@ -15,6 +15,7 @@ import casadi as ca
 import numpy as np
 
 from payload.retarget.collision import register as register_collision_model
+from payload.retarget.collision_cache import load_postures, postures_key, store_postures
 from payload.retarget.features import PairKinematics
 from payload.retarget.objective import RetargetConfig
 
@@ -100,9 +101,26 @@ def seed_table(
     count = SEEDS if size is None else size
     if collisions:  # collision-free seeds only (the solver's own geometry)
         register_collision_model()
-        qs = _clear_first(pk, qs, count)
+        qs = _margin_keeping(pk, qs, count)
     qs = qs[:count]
     return qs, pk.features_batch(qs)
+
+
+def _margin_keeping(pk: PairKinematics, qs: np.ndarray, count: int) -> np.ndarray:
+    """The first ``count`` postures of the candidates ``qs`` that keep the margin
+    (:func:`_clear_first`), kept in the disk cache under the pair's collision geometry's
+    key (:mod:`payload.retarget.collision_cache`: the candidates, the geometry and the
+    code that picks them are all in it), when the geometry is cached and the distances
+    were the compiled ones."""
+    col = pk.collision
+    key = postures_key(col.key, "seed-table", count) if col.key is not None else None
+    kept = load_postures(key) if key is not None else None
+    if kept is not None and kept.shape[1] == qs.shape[1]:
+        return kept
+    kept = _clear_first(pk, qs, count)[:count]
+    if key is not None and col.compiled_distances(col.terms):
+        store_postures(key, kept)
+    return kept
 
 
 SEED_CHUNK = 512

@@ -107,6 +107,9 @@ class PairCollision:
         self.pk = pk
         self.margin = float(pk.hand.collision_margin if margin is None else margin)
         key = shape_key(pk, self.margin)
+        self.key: str | None = key
+        """The disk cache's key of this geometry (None: not cached), which what is derived
+        from it (the seed table's postures) is keyed by too."""
         shape = load_shape(key) if key is not None else None
         derived = shape is None
         if shape is None:
@@ -132,14 +135,18 @@ class PairCollision:
             self._prune()
         # kept only when derived from the bytes keyed (no file changed meanwhile) and, with
         # a compiler, pruned by the compiled distances (not CasADi's virtual machine)
-        if key is not None and shape_key(pk, self.margin) == key and self._pruned_compiled():
+        if key is not None and shape_key(pk, self.margin) == key and self.compiled_distances():
             kept = tuple(t in self.terms for t in self.all_terms)
             store_shape(key, replace(shape, kept=kept))
+        else:
+            self.key = None  # not stored: nothing derived from it is either
 
-    def _pruned_compiled(self) -> bool:
-        """Whether the pruning's distances were the compiled ones, or there is no C
-        compiler to compile them (the virtual machine's are then every process's)."""
-        made = self._batch.get(tuple(self.all_terms))
+    def compiled_distances(self, terms: tuple[Term, ...] | None = None) -> bool:
+        """Whether :meth:`distances_many` of ``terms`` (default: every candidate term, the
+        pruning's) evaluated the compiled distances, or there is no C compiler to compile
+        them (the virtual machine's are then every process's): what the disk cache keeps
+        is only what every process with the same key computes."""
+        made = self._batch.get(tuple(self.all_terms if terms is None else terms))
         return made is None or made[1] is not None or find_compiler() is None
 
     def _derive(self) -> CollisionShape:

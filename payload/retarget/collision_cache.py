@@ -15,8 +15,10 @@ Python's build, the machine, the processor and numpy's BLAS kernels
 evaluate the pruning's distances. A stale entry is never read; an unreadable or torn one
 is derived again and rewritten. :class:`~payload.retarget.collision.PairCollision` stores
 only what it derived from the same bytes it keyed (the key is taken again after the
-derivation) and with the compiled distances when there is a compiler. The newest
-:data:`KEEP` entries are kept.
+derivation) and with the compiled distances when there is a compiler. Postures derived
+from the geometry (the retargeting's seed table, :func:`payload.retarget.budget.
+seed_table`) are kept under keys made from its key (:func:`postures_key`). The newest
+:data:`KEEP` entries of each kind are kept.
 """
 
 from __future__ import annotations
@@ -175,15 +177,55 @@ def store_shape(key: str, shape: CollisionShape) -> None:
     _prune_shapes(path.parent)
 
 
-def _prune_shapes(folder: Path) -> None:
-    """Delete all but the newest :data:`KEEP` pair shapes (each change to the workbench's
-    code keys new ones)."""
+def _prune_shapes(folder: Path, pattern: str = "pair_collision_*.npz") -> None:
+    """Delete all but the newest :data:`KEEP` files of ``pattern`` (each change to the
+    workbench's code keys new ones)."""
     try:
-        found = sorted(folder.glob("pair_collision_*.npz"), key=lambda p: p.stat().st_mtime_ns)
+        found = sorted(folder.glob(pattern), key=lambda p: p.stat().st_mtime_ns)
         for old in found[:-KEEP]:
             old.unlink(missing_ok=True)
     except OSError:  # another process pruned them first
         pass
 
 
-__all__ = ["KEEP", "LIBRARIES", "CollisionShape", "load_shape", "shape_key", "store_shape"]
+def postures_key(key: str, what: str, count: int) -> str:
+    """The cache key of postures derived from a pair's shape (``key``: its
+    :func:`shape_key`), e.g. the retargeting's seed table (``what``) of ``count``."""
+    return hashlib.sha256(f"{key}\n{what}\n{count}".encode()).hexdigest()[:24]
+
+
+def load_postures(key: str) -> np.ndarray | None:
+    """The postures stored under ``key`` (:func:`postures_key`), or None."""
+    try:
+        with np.load(cache_dir() / f"pair_postures_{key}.npz") as z:
+            qs = z["postures"]
+    except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile):
+        return None
+    return qs if qs.ndim == 2 and qs.dtype == np.float64 else None
+
+
+def store_postures(key: str, postures: np.ndarray) -> None:
+    """Keep ``postures`` under ``key`` (best effort, as :func:`store_shape`)."""
+    path = cache_dir() / f"pair_postures_{key}.npz"
+    tmp = path.with_suffix(f".{os.getpid()}.{threading.get_ident()}.tmp.npz")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        np.savez(tmp, postures=np.asarray(postures, dtype=np.float64))
+        os.replace(tmp, path)
+    except OSError:
+        tmp.unlink(missing_ok=True)
+        return
+    _prune_shapes(path.parent, "pair_postures_*.npz")
+
+
+__all__ = [
+    "KEEP",
+    "LIBRARIES",
+    "CollisionShape",
+    "load_postures",
+    "load_shape",
+    "postures_key",
+    "shape_key",
+    "store_postures",
+    "store_shape",
+]
