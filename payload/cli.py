@@ -98,6 +98,11 @@ COMMANDS: tuple[Command, ...] = (
         "payload.trials.bench_cli",
         "a trial's real-time factor, time breakdown and log size",
     ),
+    Command(
+        "bench start",
+        "payload.trials.bench_cli",
+        "how quickly commands start, each in fresh processes",
+    ),
     Command("bench hw", "firmware_interface.cli", "sync write + fast sync read cycle vs wire time"),
 )
 """Every command: one line each (see docs/cli.md, "Adding a command")."""

@@ -174,6 +174,8 @@ def test_only_the_entry_points_import_the_dispatcher() -> None:
 # those a trial needs only once it runs (SciPy, MCAP, protobuf, figures) and MuJoCo's GLFW
 # renderer, which nothing uses (the command line turns it off, its workers inherit that).
 WORKER_NEVER = (
+    "numba",  # the base filter's geometry is C (payload.teleop.barrier_c); Numba only without
+    "llvmlite",  # a compiler, imported then
     "scipy",
     "matplotlib",
     "PIL",

@@ -12,7 +12,7 @@ differs, the filter runs Numba's compilation of the Python
 (:func:`~payload.teleop.filter_kernel.numba_kernels`).
 
 The C replaces Numba in the filter because loading Numba and its cached functions cost
-about 0.8 s of every start with the filter (``teleop serve``, ``hw run``, a ``safe``
+about 0.4 s of every start with the filter (``teleop serve``, ``hw run``, a ``safe``
 trial), and compiling them in a fresh checkout about 5 s; the C is one small library,
 built once and checked in a few milliseconds.
 """

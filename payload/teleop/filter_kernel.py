@@ -10,7 +10,7 @@ compiled, as C (:mod:`payload.teleop.barrier_c`, checked against these functions
 bit when built) or, without a C compiler or with ``PAYLOAD_NATIVE=0``, by Numba
 (:func:`numba_kernels`: LLVM, IEEE arithmetic, no fast-math; cached on disk next to this
 module, so only the first process compiles them). Numba is imported only then: loading
-it and its cached functions took about 0.8 s of every start with the filter.
+it and its cached functions took about 0.4 s of every start with the filter.
 
 The divisions are by the filter's positive settings and by norms kept above 1e-12, and
 the square root is of a non-negative number, so Python, C and Numba (``error_model=

@@ -313,7 +313,7 @@ def run_trial_bench_repeated(
         "from payload.trials.bench import run_trial_bench\n"
         "print(json.dumps(run_trial_bench(**json.loads(sys.argv[1]))))\n"
     )
-    env = _child_env()
+    env = child_env()
     runs: list[dict] = []
     for i in range(repeat):
         done = subprocess.run(
@@ -358,13 +358,13 @@ def worker_import_seconds() -> float:
         "print(time.perf_counter() - t)\n"
     )
     done = subprocess.run(
-        [sys.executable, "-c", code], capture_output=True, text=True, env=_child_env(),
+        [sys.executable, "-c", code], capture_output=True, text=True, env=child_env(),
         check=True,
     )  # fmt: skip
     return float(done.stdout.split()[-1])
 
 
-def _child_env() -> dict[str, str]:
+def child_env() -> dict[str, str]:
     """This process's environment for a fresh interpreter, with this process's ``payload``
     package first on the path (wherever the command runs from)."""
     import payload
@@ -379,6 +379,7 @@ __all__ = [
     "RUN_FIELDS",
     "STAGES",
     "WORKER_MODULES",
+    "child_env",
     "run_trial_bench",
     "run_trial_bench_repeated",
     "worker_import_seconds",

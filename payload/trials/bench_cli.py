@@ -1,6 +1,7 @@
 """Command line of the trial benches: ``payload bench recorder`` (the recorder's cost and
-file size) and ``payload bench trial`` (a whole trial's real-time factor, where its time
-goes and its overhead over the physics; docs/speed.md)."""
+file size), ``payload bench trial`` (a whole trial's real-time factor, where its time
+goes and its overhead over the physics) and ``payload bench start`` (how quickly the
+commands start; docs/speed.md)."""
 
 from __future__ import annotations
 
@@ -159,10 +160,56 @@ def _cmd_bench_trial(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_bench_start(args: argparse.Namespace) -> int:
+    from payload.trials.startbench import StartBenchError, check_names, run_start_bench
+
+    if args.repeat < 1:
+        raise TrialsCliError(f"--repeat must be >= 1, got {args.repeat}")
+    only = tuple(n.strip() for n in args.only.split(",") if n.strip()) if args.only else None
+    try:
+        check_names(only)
+    except ValueError as exc:
+        raise TrialsCliError(f"--only: {exc}") from None
+    project = command_project(args)
+    if not args.json:
+        print(
+            f"each measure in fresh processes, after one untimed run, {args.repeat} times ...",
+            file=sys.stderr,
+        )
+    say = None if args.json else (lambda line: print(f"  {line}", file=sys.stderr))
+    try:
+        result = run_start_bench(project.root, args.repeat, say, only)
+    except StartBenchError as exc:
+        raise RunAborted(str(exc)) from None
+    if args.json:
+        emit_json(result)
+        return 0
+    labels = {
+        "version_s": "payload --version (whole process)",
+        "help_s": "payload --help (whole process)",
+        "worker_import_s": "a campaign worker's imports",
+        "retargeters_s": "the retargeters (paper profile)",
+        "retargeters_collisions_s": "the retargeters with the self-collision model",
+        "safety_filter_s": "the base safety filter",
+        "teleop_serve_s": "teleop serve, start to serving",
+    }
+    for name, label in labels.items():
+        if name not in result["runs"]:
+            continue
+        runs = result["runs"][name]
+        aim = result["aims"].get(name)
+        print(
+            f"{label:48s} {result[name]:6.3f} s (median; {min(runs):.3f} to {max(runs):.3f})"
+            + (f", aim < {aim:g} s" if aim is not None else "")
+        )
+    print(f"load average {result['load'][0][0]:.2f} before, {result['load'][1][0]:.2f} after")
+    return 0
+
+
 def register(
     sub: argparse._SubParsersAction, groups: dict[str, argparse._SubParsersAction]
 ) -> None:
-    """Add ``bench recorder`` and ``bench trial``."""
+    """Add ``bench recorder``, ``bench trial`` and ``bench start``."""
     b = groups["bench"].add_parser("recorder", help="trial recorder cost and file size")
     b.add_argument("--seconds", type=float, default=60.0, help="recorded seconds (default 60)")
     b.add_argument("--json", action="store_true", help="print one JSON object")
@@ -188,6 +235,25 @@ def register(
     _physics_dt_argument(bt)
     bt.add_argument("--json", action="store_true", help="print one JSON object")
     bt.set_defaults(func=_cmd_bench_trial)
+
+    bs = groups["bench"].add_parser(
+        "start", help="how quickly commands start, each in fresh processes"
+    )
+    bs.add_argument(
+        "--repeat",
+        type=int,
+        default=3,
+        metavar="N",
+        help="timed runs of each measure, after one untimed run (default 3)",
+    )
+    bs.add_argument(
+        "--only",
+        metavar="NAMES",
+        help="measure only these, comma-separated (version_s, help_s, worker_import_s, "
+        "retargeters_s, retargeters_collisions_s, safety_filter_s, teleop_serve_s)",
+    )
+    bs.add_argument("--json", action="store_true", help="print one JSON object")
+    bs.set_defaults(func=_cmd_bench_start)
 
 
 __all__ = ["register"]
