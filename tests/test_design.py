@@ -561,6 +561,7 @@ MODEL_READERS = {  # every command that reads the generated models -> its handle
     "bench retarget": ("payload.retarget.cli", "_cmd_bench"),
     "bench sim": ("payload.sim.cli", "_cmd_bench_sim"),
     "bench trial": ("payload.trials.bench_cli", "_cmd_bench_trial"),
+    "bench start": ("payload.trials.bench_cli", "_cmd_bench_start"),  # its starts read them
     "bench teleop": ("payload.teleop.cli", "bench"),
     "teleop serve": ("payload.teleop.cli", "serve"),
     "sweep": ("payload.sweep.cli", "_cmd_sweep"),

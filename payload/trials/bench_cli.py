@@ -170,7 +170,10 @@ def _cmd_bench_start(args: argparse.Namespace) -> int:
         check_names(only)
     except ValueError as exc:
         raise TrialsCliError(f"--only: {exc}") from None
-    project = command_project(args)
+    project = command_project(args)  # its models are what the measured starts read
+    from payload.design import models_follow_design
+
+    models_follow_design(project.design_path, project.root, json=args.json)
     if not args.json:
         print(
             f"each measure in fresh processes, after one untimed run, {args.repeat} times ...",
