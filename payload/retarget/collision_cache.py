@@ -24,8 +24,6 @@ seed_table`) are kept under keys made from its key (:func:`postures_key`). The n
 from __future__ import annotations
 
 import hashlib
-import os
-import threading
 import xml.etree.ElementTree as ET
 import zipfile
 from dataclasses import dataclass
@@ -37,6 +35,7 @@ from payload.cache import cache_dir, dist_version, sources_digest
 from payload.native import find_compiler, flags, result_environment
 from payload.retarget.collision_geometry import Box, Capsule, mesh_path
 from payload.retarget.features import PairKinematics
+from payload.safeio import replacing
 
 _CACHE_VERSION = "pair-collision-1"
 
@@ -150,41 +149,37 @@ def _whole(shape: CollisionShape) -> bool:
 
 def store_shape(key: str, shape: CollisionShape) -> None:
     """Keep ``shape`` under ``key`` (a read-only cache only costs the next derivation)."""
-    path = cache_dir() / f"pair_collision_{key}.npz"
     caps, boxes = shape.capsules, shape.boxes
-    # one writer per process and thread (campaign workers build retargeters per thread)
-    tmp = path.with_suffix(f".{os.getpid()}.{threading.get_ident()}.tmp.npz")
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        np.savez(
-            tmp,
-            capsule_links=np.array([c.link for c in caps], dtype=str),
-            capsule_ends=np.array([[c.a, c.b] for c in caps], dtype=float).reshape(-1, 2, 3),
-            capsule_radii=np.array([c.radius for c in caps], dtype=float),
-            finger_of=np.array(shape.finger_of, dtype=np.int64),
-            box_links=np.array([b.link for b in boxes], dtype=str),
-            box_centres=np.array([b.centre for b in boxes], dtype=float).reshape(-1, 3),
-            box_rotations=np.array([b.rotation for b in boxes], dtype=float).reshape(-1, 3, 3),
-            box_halves=np.array([b.half for b in boxes], dtype=float).reshape(-1, 3),
-            pads=np.array([p or "" for p in shape.pads], dtype=str),
-            terms=np.array(shape.all_terms, dtype=np.int64).reshape(-1, 3),
-            kept=np.array(shape.kept, dtype=bool),
-        )
-        os.replace(tmp, path)
-    except OSError:  # a read-only or full cache: derived again next time
-        tmp.unlink(missing_ok=True)
-        return
-    _prune_shapes(path.parent)
+    _store(
+        f"pair_collision_{key}.npz",
+        capsule_links=np.array([c.link for c in caps], dtype=str),
+        capsule_ends=np.array([[c.a, c.b] for c in caps], dtype=float).reshape(-1, 2, 3),
+        capsule_radii=np.array([c.radius for c in caps], dtype=float),
+        finger_of=np.array(shape.finger_of, dtype=np.int64),
+        box_links=np.array([b.link for b in boxes], dtype=str),
+        box_centres=np.array([b.centre for b in boxes], dtype=float).reshape(-1, 3),
+        box_rotations=np.array([b.rotation for b in boxes], dtype=float).reshape(-1, 3, 3),
+        box_halves=np.array([b.half for b in boxes], dtype=float).reshape(-1, 3),
+        pads=np.array([p or "" for p in shape.pads], dtype=str),
+        terms=np.array(shape.all_terms, dtype=np.int64).reshape(-1, 3),
+        kept=np.array(shape.kept, dtype=bool),
+    )
 
 
-def _prune_shapes(folder: Path, pattern: str = "pair_collision_*.npz") -> None:
-    """Delete all but the newest :data:`KEEP` files of ``pattern`` (each change to the
-    workbench's code keys new ones)."""
+def _store(name: str, **arrays: np.ndarray) -> None:
+    """Write ``arrays`` as the cache's file ``name`` (through a temporary file and an
+    atomic rename: :func:`payload.safeio.replacing`), then keep the newest :data:`KEEP`
+    files of its kind (the name up to the key; each change to the workbench's code keys
+    new ones). A read-only or full cache writes nothing: derived again next time."""
+    path = cache_dir() / name
     try:
-        found = sorted(folder.glob(pattern), key=lambda p: p.stat().st_mtime_ns)
+        with replacing(path) as tmp:
+            np.savez(tmp, **arrays)
+        kind = name.rsplit("_", 1)[0]
+        found = sorted(path.parent.glob(f"{kind}_*.npz"), key=lambda p: p.stat().st_mtime_ns)
         for old in found[:-KEEP]:
             old.unlink(missing_ok=True)
-    except OSError:  # another process pruned them first
+    except OSError:  # nothing written, or another process pruned them first
         pass
 
 
@@ -206,16 +201,7 @@ def load_postures(key: str) -> np.ndarray | None:
 
 def store_postures(key: str, postures: np.ndarray) -> None:
     """Keep ``postures`` under ``key`` (best effort, as :func:`store_shape`)."""
-    path = cache_dir() / f"pair_postures_{key}.npz"
-    tmp = path.with_suffix(f".{os.getpid()}.{threading.get_ident()}.tmp.npz")
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        np.savez(tmp, postures=np.asarray(postures, dtype=np.float64))
-        os.replace(tmp, path)
-    except OSError:
-        tmp.unlink(missing_ok=True)
-        return
-    _prune_shapes(path.parent, "pair_postures_*.npz")
+    _store(f"pair_postures_{key}.npz", postures=np.asarray(postures, dtype=np.float64))
 
 
 __all__ = [
