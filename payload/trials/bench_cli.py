@@ -161,7 +161,7 @@ def _cmd_bench_trial(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench_start(args: argparse.Namespace) -> int:
-    from payload.trials.startbench import StartBenchError, check_names, run_start_bench
+    from payload.trials.startbench import LABELS, StartBenchError, check_names, run_start_bench
 
     if args.repeat < 1:
         raise TrialsCliError(f"--repeat must be >= 1, got {args.repeat}")
@@ -187,16 +187,7 @@ def _cmd_bench_start(args: argparse.Namespace) -> int:
     if args.json:
         emit_json(result)
         return 0
-    labels = {
-        "version_s": "payload --version (whole process)",
-        "help_s": "payload --help (whole process)",
-        "worker_import_s": "a campaign worker's imports",
-        "retargeters_s": "the retargeters (paper profile)",
-        "retargeters_collisions_s": "the retargeters with the self-collision model",
-        "safety_filter_s": "the base safety filter",
-        "teleop_serve_s": "teleop serve, start to serving",
-    }
-    for name, label in labels.items():
+    for name, label in LABELS.items():
         if name not in result["runs"]:
             continue
         runs = result["runs"][name]
@@ -249,11 +240,12 @@ def register(
         metavar="N",
         help="timed runs of each measure, after one untimed run (default 3)",
     )
+    from payload.trials.startbench import NAMES  # light: the standard library's modules
+
     bs.add_argument(
         "--only",
         metavar="NAMES",
-        help="measure only these, comma-separated (version_s, help_s, worker_import_s, "
-        "retargeters_s, retargeters_collisions_s, safety_filter_s, teleop_serve_s)",
+        help=f"measure only these, comma-separated ({', '.join(NAMES)})",
     )
     bs.add_argument("--json", action="store_true", help="print one JSON object")
     bs.set_defaults(func=_cmd_bench_start)

@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -39,16 +38,20 @@ START_AIM_S = 0.3
 WORKER_AIM_S = 0.5
 """Issue 31's aim for a Dask worker's imports [s]."""
 
-NAMES: tuple[str, ...] = (
-    "version_s",
-    "help_s",
-    "worker_import_s",
-    "retargeters_s",
-    "retargeters_collisions_s",
-    "safety_filter_s",
-    "teleop_serve_s",
-)
-"""The measures, in the order they are taken (:func:`measures`)."""
+LABELS: dict[str, str] = {
+    "version_s": "payload --version (whole process)",
+    "help_s": "payload --help (whole process)",
+    "worker_import_s": "a campaign worker's imports",
+    "retargeters_s": "the retargeters (paper profile)",
+    "retargeters_collisions_s": "the retargeters with the self-collision model",
+    "safety_filter_s": "the base safety filter",
+    "teleop_serve_s": "teleop serve, start to serving",
+}
+"""Each measure's name (its JSON field) and what the text output calls it, in the order
+they are taken (:func:`measures`)."""
+
+NAMES: tuple[str, ...] = tuple(LABELS)
+"""The measures' names, in order."""
 
 AIMS: dict[str, float] = {
     "version_s": START_AIM_S,
@@ -117,19 +120,12 @@ def _printed(code: str, env: dict[str, str], what: str, *argv: str) -> float:
     return float(_run(["-c", code, *argv], env, what).split()[-1])
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 def serve_ready_seconds(env: dict[str, str]) -> float:
     """Wall time from starting ``payload teleop serve`` (the simulator) to its "serving"
-    line; the server is then stopped as Ctrl-C stops it."""
-    port = _free_port()
+    line (on any free port); the server is then stopped as Ctrl-C stops it."""
     t = time.perf_counter()
     proc = subprocess.Popen(
-        [sys.executable, "-m", "payload", "teleop", "serve", "--port", str(port)],
+        [sys.executable, "-m", "payload", "teleop", "serve", "--port", "0"],
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env,
         start_new_session=True,
     )  # fmt: skip
@@ -213,6 +209,7 @@ def run_start_bench(
 
 __all__ = [
     "AIMS",
+    "LABELS",
     "NAMES",
     "SERVE_TIMEOUT_S",
     "START_AIM_S",
