@@ -182,11 +182,10 @@ def test_paper_seed_table_is_the_first_margin_keeping_candidates(pk):
     at a time) is the same postures, in order, as filtering every candidate by its
     clearance: here each candidate's clearance from the numpy and Pinocchio distances
     (``PairCollision.clearance``), not the compiled ones the table uses."""
-    from payload.retarget.budget import PAPER_SEEDS, SEEDS, seed_table
+    from payload.retarget.budget import PAPER_SEEDS, seed_candidates, seed_table
 
     qs, fs = seed_table(pk, True, PAPER_SEEDS)
-    rng = np.random.default_rng(12345)  # the table's candidates, drawn as it draws them
-    cands = np.vstack([pk.rest, pk.lower + rng.random((4 * SEEDS, pk.n)) * pk.range])
+    cands = seed_candidates(pk)
     want = []
     for q in cands:
         if pk.collision.clearance(q) >= 0.0:
@@ -210,8 +209,7 @@ def test_the_seed_table_stops_when_full_whatever_the_chunk(pk, monkeypatch, tmp_
     register()
     monkeypatch.setattr(collision_cache, "cache_dir", lambda: tmp_path)
     col = pk.collision
-    rng = np.random.default_rng(12345)
-    cands = np.vstack([pk.rest, pk.lower + rng.random((4 * budget.SEEDS, pk.n)) * pk.range])
+    cands = budget.seed_candidates(pk)
     clear = np.flatnonzero(col.distances_many(cands).min(axis=0) >= col.margin)
     want = cands[clear[: budget.PAPER_SEEDS]]
     evaluated = []

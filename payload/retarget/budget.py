@@ -96,8 +96,7 @@ def seed_table(
     """The first ``size`` (default :data:`SEEDS`) seed postures, shape (k, n), and their
     features, shape (k, 13); with ``collisions`` (the solve keeps the margin), only those
     that keep it."""
-    rng = np.random.default_rng(12345)
-    qs = np.vstack([pk.rest, pk.lower + rng.random((4 * SEEDS, pk.n)) * pk.range])
+    qs = seed_candidates(pk)
     count = SEEDS if size is None else size
     if collisions:  # collision-free seeds only (the solver's own geometry)
         register_collision_model()
@@ -121,6 +120,13 @@ def _margin_keeping(pk: PairKinematics, qs: np.ndarray, count: int) -> np.ndarra
     if key is not None and col.compiled_distances(col.terms):
         store_postures(key, kept)
     return kept
+
+
+def seed_candidates(pk: PairKinematics) -> np.ndarray:
+    """The candidates of :func:`seed_table`, in order: the rest posture, then four times
+    :data:`SEEDS` postures uniform in the joint box (seeded), shape (4 SEEDS + 1, n)."""
+    rng = np.random.default_rng(12345)
+    return np.vstack([pk.rest, pk.lower + rng.random((4 * SEEDS, pk.n)) * pk.range])
 
 
 SEED_CHUNK = 512
