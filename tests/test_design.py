@@ -549,6 +549,31 @@ def test_build_says_which_meshes_it_removed(tmp_path, capsys):
     assert not (root / "cad" / "meshes" / "old_part.stl").exists()
 
 
+def test_build_says_how_many_files_it_wrote_and_leaves_matching_ones_alone(tmp_path, capsys):
+    """A first build writes every file; a second finds them all matching the design and
+    says it wrote none (their modification times unchanged); a damaged model is the one
+    file the next build writes."""
+    from payload.cli import main
+
+    root = tmp_path / "p"
+    (root / "cad").mkdir(parents=True)
+    (root / "cad" / "design.toml").write_bytes(Path(DESIGN).read_bytes())
+    assert main(["build", "--project", str(root)]) == 0
+    made = sorted(p for p in root.rglob("*") if p.is_file() and p.name != "design.toml")
+    first = capsys.readouterr().out
+    assert f"wrote {len(made)} of {len(made)} files under {root}" in first
+    stamps = {p: p.stat().st_mtime_ns for p in made}
+    assert main(["build", "--project", str(root)]) == 0
+    assert f"the {len(made)} generated files under {root} already match" in capsys.readouterr().out
+    assert {p: p.stat().st_mtime_ns for p in made} == stamps
+    (root / "urdf" / "payload.urdf").write_text("edited")
+    assert main(["build", "--project", str(root)]) == 0
+    out = capsys.readouterr().out
+    assert f"wrote 1 of {len(made)} files under {root}" in out
+    assert f"the other {len(made) - 1} already matched it" in out
+    assert "<robot" in (root / "urdf" / "payload.urdf").read_text()
+
+
 # ---------------------------------------------------------------- stale models (issue 30)
 
 MODEL_READERS = {  # every command that reads the generated models -> its handler

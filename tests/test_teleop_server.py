@@ -141,6 +141,7 @@ def test_only_the_page_files_are_served(local_server):
     for path in ("/server.py", "/../server.py", "/web/app.js", "/%2e%2e/live.py", "/etc/passwd"):
         with pytest.raises(urllib.error.HTTPError) as err:
             urllib.request.urlopen(base + path, timeout=10)
+        err.value.close()  # else its connection stays open and the server's stop waits on it
         assert err.value.code == 404, path
 
 

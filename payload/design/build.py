@@ -41,14 +41,18 @@ class BuildResult:
 
     Attributes:
         tree: The kinematic tree the files were generated from.
-        files: Paths written, relative to the output root.
+        files: Every generated path, relative to the output root (what the root now
+            holds from the design).
         removed: Meshes removed from ``cad/meshes/`` that no part of the design makes
             (a renamed or dropped part's), relative to the output root.
+        written: The paths of ``files`` written, those that were missing or differed (a
+            file that already held its bytes is left as it is).
     """
 
     tree: KinematicTree
     files: tuple[str, ...]
     removed: tuple[str, ...] = ()
+    written: tuple[str, ...] = ()
 
 
 def generate(design: Design) -> tuple[KinematicTree, dict[str, bytes]]:
@@ -76,13 +80,13 @@ def write(design: Design, root: Path) -> BuildResult:
     """Regenerate the models under ``root`` (a project folder, e.g. ``Project.root``);
     stale meshes no longer produced are removed."""
     tree, files = generate(design)
-    removed = _write_files(files, root)
-    return BuildResult(tree, tuple(files), removed)
+    written, removed = _write_files(files, root)
+    return BuildResult(tree, tuple(files), removed, written)
 
 
-def _write_files(files: dict[str, bytes], root: Path) -> tuple[str, ...]:
-    """Write the stale ``files`` under ``root``; returns the meshes removed that no part
-    makes any more."""
+def _write_files(files: dict[str, bytes], root: Path) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """Write the stale ``files`` under ``root``; returns the paths written and the meshes
+    removed that no part makes any more."""
     mesh_dir = root / MESH_DIR
     mesh_dir.mkdir(parents=True, exist_ok=True)
     (root / URDF_DIR).mkdir(parents=True, exist_ok=True)
@@ -91,11 +95,13 @@ def _write_files(files: dict[str, bytes], root: Path) -> tuple[str, ...]:
         if f"{MESH_DIR}/{old.name}" not in files:
             old.unlink()
             removed.append(f"{MESH_DIR}/{old.name}")
+    written = []
     for rel, data in files.items():
         path = root / rel
         if not _holds(path, data):
             replace_file(path, data)  # atomic: a command reading the models sees old or new
-    return tuple(removed)
+            written.append(rel)
+    return tuple(written), tuple(removed)
 
 
 def _stale(files: dict[str, bytes], root: Path) -> list[str]:
@@ -153,7 +159,7 @@ def follow_design(
     _, files = generate(load_design(design_path))
     stale = _stale(files, root)
     if stale:
-        removed = _write_files(files, root)
+        _, removed = _write_files(files, root)
         rebuilt = [rel for rel in stale if rel not in removed]
         lines = [MODELS_LINE.format(files=_shown(rebuilt), design=design_path)] if rebuilt else []
         if removed:

@@ -35,7 +35,12 @@ def _cmd_build(args: argparse.Namespace) -> int:
         return 0
     result = write(design, root)
     dt = time.perf_counter() - t0
-    print(f"wrote {len(result.files)} files under {root} in {dt:.2f} s")
+    n, written = len(result.files), len(result.written)
+    if written:
+        kept = f"; the other {n - written} already matched it" if written < n else ""
+        print(f"wrote {written} of {n} files under {root} from {design.source} in {dt:.2f} s{kept}")
+    else:
+        print(f"the {n} generated files under {root} already match {design.source}: none written")
     if result.removed:  # a renamed or dropped part's mesh: nothing reads it any more
         print(f"removed {', '.join(result.removed)} (no part of the design makes it)")
     return 0
