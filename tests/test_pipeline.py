@@ -21,6 +21,7 @@ from payload.teleop.operator import OperatorPlan, OperatorTraits, SyntheticOpera
 from payload.teleop.pipeline import (
     TeleopConfig,
     TeleopPipeline,
+    TeleopStep,
     calibrate_operator,
     human_features,
 )
@@ -412,17 +413,33 @@ def _set_chain(pipe: TeleopPipeline, pair: str, chain: Any) -> None:
     pipe._chains[pair] = (pipe.calibration.pairs[pair], pipe.retargeters[pair], chain)
 
 
-def _count_intake(pipe: TeleopPipeline, taken: list[bool]) -> None:
+def _count_intake(pipe: TeleopPipeline, taken: list[bool], steady: list | None = None) -> None:
     """Make ``pipe`` note in ``taken``, at each step, whether its compiled intake took the
-    hands in."""
+    hands in (and in ``steady`` whether its call ran the channels too)."""
     step = pipe._intake_step
 
-    def counted(frame, t):
-        out = step(frame, t)
+    def counted(frame, t, *rest):
+        out = step(frame, t, *rest)
         taken.append(out is not None)
+        if steady is not None:
+            steady.append(isinstance(out, TeleopStep))
         return out
 
     pipe._intake_step = counted
+
+
+def _channel_state(pipe: TeleopPipeline) -> list[bytes]:
+    """What the channels keep between steps: each pair's held command and blend, the
+    rail's blend, the base channel's limiters."""
+    out = []
+    for blend in (pipe.blend["L"], pipe.blend["R"], pipe.rail_blend):
+        for a in (blend.held, blend._anchor):
+            out.append(b"-" if a is None else np.asarray(a, float).tobytes())
+    for pair in ("L", "R"):
+        out.append(pipe.retargeters[pair].held_command.tobytes())
+    for lim in (pipe.base.linear, pipe.base.yaw):
+        out.append(np.asarray(lim.value, float).tobytes() + np.asarray(lim.rate, float).tobytes())
+    return out
 
 
 def test_a_pipeline_with_its_finger_chains_commands_as_one_without(retargeting):
@@ -501,13 +518,14 @@ def test_the_compiled_hand_intake_steps_as_the_python_path(retargeting):
         t += DT
 
     taken = []
+    steady: list[bool] = []
     seen = []
     fell_back = []
 
     def stream(intake: bool) -> list[bytes]:
         pipe = _pipeline(cal, retargeting)
         if intake:
-            _count_intake(pipe, taken)
+            _count_intake(pipe, taken, steady)
         else:
             pipe._intake_kernel = lambda: None
         python = pipe._finger_python
@@ -527,6 +545,11 @@ def test_the_compiled_hand_intake_steps_as_the_python_path(retargeting):
                 chain._chain.eps = eps
             out.append(s.command.q.tobytes() + s.twist.linear.tobytes() + s.twist.angular.tobytes())
             out.append(repr((s.rail, sorted(s.solves.items()), s.events)).encode())
+            out.append(s.q_left.tobytes() + s.q_right.tobytes() + repr(s.command.stamp).encode())
+            b = s.base
+            out.append(b.v_request.tobytes() + b.v_world.tobytes())
+            out.append(repr((b.yaw_rate, b.outside, b.mode, b.twist.stamp)).encode())
+            out += _channel_state(pipe)
             sup = pipe.supervisor
             out.append(repr(sup.last_stamp).encode())
             for side in ("left", "right"):
@@ -541,6 +564,8 @@ def test_the_compiled_hand_intake_steps_as_the_python_path(retargeting):
 
     assert stream(True) == stream(False)
     assert taken.count(True) > 300 and taken.count(False) > 20
+    # the channels ran in the intake's call on most steps, not while a hand blended back in
+    assert steady.count(True) > 250 and not any(steady[140:150])
     # every case above happened: each kind of event, and the refused chain at step 350
     kinds = {(e.hand, e.kind) for e in seen}
     assert {("left", "invalid"), ("right", "lost"), ("right", "regained")} <= kinds

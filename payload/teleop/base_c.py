@@ -211,8 +211,10 @@ class CompiledBase:
             args[10], args[11] = yaw.value.ctypes.data, yaw.rate.ctypes.data
             return True
 
-        def step(left_wrist: Any, rotation: Any, right_wrist: Any, stamp: float = 0.0) -> Any:
-            if (
+        def unchanged() -> bool:
+            """The channel's settings, neutrals, limiters and limits as the step was made
+            for."""
+            return not (
                 channel.config is not c
                 or channel.neutral is not n0
                 or channel.neutral_right is not n1
@@ -221,7 +223,41 @@ class CompiledBase:
                 or channel.heading0 != h0
                 or channel.dt != dt0
                 or (lin.settings(), yaw.settings()) != made_for
+            )
+
+        def ready(rotation: Any, flags: int) -> bool:
+            """The rotation copied in (flag 4) and the limiters' arrays bound, the flags
+            set: the kernel may run; False where the numpy step is to run."""
+            if rotation is not None:
+                # numpy's rot.T @ v takes its BLAS layout from the memory: row-major only
+                if not (_real(rotation, (3, 3)) and rotation.flags.c_contiguous):
+                    return False
+                np.copyto(rot, rotation)
+                flags |= 4
+            if (
+                not (
+                    bound[0] is lin.value
+                    and bound[1] is lin.rate
+                    and bound[2] is yaw.value
+                    and bound[3] is yaw.rate
+                )
+                and not state()
             ):
+                return False
+            args[6] = flags
+            return True
+
+        def finish(mode: int, stamp: float) -> tuple:
+            """The fields of the step's command from what the kernel wrote."""
+            vel = read_only(out[7:13])  # the twist's own, frozen: taken as it is
+            twist = VehicleTwist.of_frozen(vel[:3], vel[3:], stamp)
+            return (  # outside: the drive mode (the left wrist outside its sphere)
+                out[0:3].copy(), out[3:6].copy(), float(out[6]), twist, MODES[mode] == "drive",
+                MODES[mode],
+            )  # fmt: skip
+
+        def step(left_wrist: Any, rotation: Any, right_wrist: Any, stamp: float = 0.0) -> Any:
+            if not unchanged():
                 return None
             flags = fixed
             if left_wrist is not None:
@@ -234,37 +270,35 @@ class CompiledBase:
                     return None
                 np.copyto(right, right_wrist)
                 flags |= 2
-            if rotation is not None:
-                # numpy's rot.T @ v takes its BLAS layout from the memory: row-major only
-                if not (_real(rotation, (3, 3)) and rotation.flags.c_contiguous):
-                    return None
-                np.copyto(rot, rotation)
-                flags |= 4
-            if (
-                not (
-                    bound[0] is lin.value
-                    and bound[1] is lin.rate
-                    and bound[2] is yaw.value
-                    and bound[3] is yaw.rate
-                )
-                and not state()
-            ):
+            if not ready(rotation, flags):
                 return None
-            args[6] = flags
             mode = call()
             if mode < 0:
                 return None
-            vel = read_only(out[7:13])  # the twist's own, frozen: taken as it is
-            twist = VehicleTwist.of_frozen(vel[:3], vel[3:], stamp)
-            return (  # outside: the drive mode (the left wrist outside its sphere)
-                out[0:3].copy(), out[3:6].copy(), float(out[6]), twist, MODES[mode] == "drive",
-                MODES[mode],
-            )  # fmt: skip
+            return finish(mode, stamp)
+
+        def prepare(rotation: Any) -> bool:
+            """For a caller that writes both wrists into :attr:`entry`'s buffers and runs
+            the kernel itself (:mod:`payload.teleop.intake_c`): what :func:`step` does
+            before its call with both wrists given; False where the numpy step is to run.
+            A kernel's mode >= 0 then goes to ``finish(mode, stamp)``, a mode < 0 changed
+            nothing."""
+            return unchanged() and ready(rotation, fixed | 3)
 
         if not state():
             return None
         keep = (cfg, *neutrals, neutral_right, lin_p, yaw_p, left, right, rot, out, args, scalars)
         step.keep = keep  # type: ignore[attr-defined]
+        step.prepare = prepare  # type: ignore[attr-defined]
+        step.finish = finish  # type: ignore[attr-defined]
+        # the packed step, its two arguments, and the wrists' buffers it reads
+        step.entry = (  # type: ignore[attr-defined]
+            ctypes.cast(self._fn, ctypes.c_void_p).value,
+            args.ctypes.data,
+            scalars.ctypes.data,
+            left.ctypes.data,
+            right.ctypes.data,
+        )
         return step
 
 

@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 
 from payload import native
+from payload.teleop.channels import ChannelError, RailConfig, rail_command
 from payload.teleop.filters import OneEuroFilter, _alpha
 from payload.teleop.hands import JOINTS_SHAPE, HandFrame
 from payload.teleop.pair_c import FingerChain
@@ -106,6 +107,61 @@ int payload_intake(const struct side *h, double t, double tf0, double tv0, int h
     }
     return taken;
 }
+
+typedef int (*base_fn)(const int64_t *, const double *);
+
+/* every field 8 bytes: the ctypes structure _Tail, in this order */
+struct tail {
+    const double *fresh0, *fresh1; int64_t n; void *ddot;
+    void *base; const int64_t *base_args; const double *base_scalars;
+    double *base_left, *base_right;
+    double d_min, d_max, travel; double *rail;
+};
+
+/* channels.rail_command of two wrists: the distance as vecmath.norm of their difference
+   (numpy's ddot), then Python's float arithmetic and min/max tie rules. 0, or -1 for a
+   distance that is not finite (nothing written). */
+int payload_tail_rail(const double *left, const double *right, const struct tail *p,
+                      double *rail)
+{
+    double d3[3];
+    for (int k = 0; k < 3; k++) d3[k] = right[k] - left[k];
+    const double d = sqrt(((ddot_fn)p->ddot)(3, d3, 1, d3, 1));
+    if (!isfinite(d)) return -1;
+    const double s = (d - p->d_min) / (p->d_max - p->d_min);
+    const double lo = (s > 0.0) ? s : 0.0;                /* max(0.0, s) */
+    *rail = p->travel * ((lo < 1.0) ? lo : 1.0);          /* travel * min(1.0, ...) */
+    return 0;
+}
+
+/* The pipeline's channels after a steady intake (both chains took their hands, neither
+   hand recovering): both solved commands finite, the rail command of the filtered wrists
+   and the base channel's step on them. Returns the base's mode, or -1 where the Python
+   path is to run (a command or a distance that is not finite, or a base step refused:
+   nothing it keeps changed). */
+static int tail_step(const struct side *h, const struct tail *p)
+{
+    for (int64_t k = 0; k < p->n; k++)
+        if (!isfinite(p->fresh0[k]) || !isfinite(p->fresh1[k])) return -1;
+    const double *wl = h[0].x + 3 * h[0].wrist, *wr = h[1].x + 3 * h[1].wrist;
+    if (payload_tail_rail(wl, wr, p, p->rail)) return -1;
+    for (int k = 0; k < 3; k++) {
+        p->base_left[k] = wl[k];
+        p->base_right[k] = wr[k];
+    }
+    return ((base_fn)p->base)(p->base_args, p->base_scalars);
+}
+
+/* payload_intake, then with ``tail`` on a step both chains took, tail_step: bits 0 and 1
+   as payload_intake's, bit 2 set where the tail ran, bits 3 and 4 the base's mode. */
+int payload_intake_step(const struct side *h, const struct tail *p, int tail, double t,
+                        double tf0, double tv0, int has0, double tf1, double tv1, int has1)
+{
+    const int taken = payload_intake(h, t, tf0, tv0, has0, tf1, tv1, has1);
+    if (taken != 3 || !tail) return taken;
+    const int mode = tail_step(h, p);
+    return mode < 0 ? taken : taken | 4 | mode << 3;
+}
 """
 """The intake's C (:func:`payload.native.build_library` compiles it)."""
 
@@ -123,6 +179,22 @@ class _Side(ctypes.Structure):
     _fields_ = [
         (name, {"p": _P, "i": _I, "d": _D}[kind])
         for name, kind in (field.split(":") for field in _SIDE_FIELDS.split())
+    ]
+
+
+_TAIL_FIELDS = (
+    "fresh0:p fresh1:p n:i ddot:p base:p base_args:p base_scalars:p base_left:p "
+    "base_right:p d_min:d d_max:d travel:d rail:p"
+)
+"""``struct tail`` of :data:`SOURCE`, field by field."""
+
+
+class _Tail(ctypes.Structure):
+    """``struct tail`` of :data:`SOURCE`."""
+
+    _fields_ = [
+        (name, {"p": _P, "i": _I, "d": _D}[kind])
+        for name, kind in (field.split(":") for field in _TAIL_FIELDS.split())
     ]
 
 
@@ -220,14 +292,77 @@ class HandIntake:
                 )
             )  # fmt: skip
         self._sides = (_Side * 2)(*(_Side(*s) for s in sides))
-        fn = lib.payload_intake
+        self._ddot = sides[0][1]  # numpy's ddot, as the hand checks call it
+        fn = lib.payload_intake_step
         fn.restype = ctypes.c_int
-        fn.argtypes = [_P, _D, _D, _D, ctypes.c_int, _D, _D, ctypes.c_int]
-        self._call = functools.partial(fn, ctypes.addressof(self._sides))
+        fn.argtypes = [_P, _P, ctypes.c_int, _D, _D, _D, ctypes.c_int, _D, _D, ctypes.c_int]
+        self._fn = fn
+        self._tail: _Tail | None = None
+        self.rail = np.zeros(1)
+        """The rail command the last tail wrote (:meth:`bind_tail`)."""
+        self._call = functools.partial(fn, ctypes.addressof(self._sides), None, 0)
+        self._call_tail = self._call
         numbers = lib.payload_intake_numbers
         numbers.restype = None
         numbers.argtypes = [_D, _D, _D, _D, _D, _P]
         self._numbers = numbers
+        rail = lib.payload_tail_rail
+        rail.restype = ctypes.c_int
+        rail.argtypes = [_P, _P, _P, _P]
+        self._rail_fn = rail
+
+    def bind_tail(self, fresh: tuple[np.ndarray, np.ndarray], base: Any, rail: RailConfig) -> None:
+        """The channels after a steady intake, run in the same call when :meth:`__call__`
+        is asked for them: both pairs' solved commands ``fresh`` (the arrays the chains'
+        solves write, the left hand's pair first) checked finite, the rail command of the
+        filtered wrists (:func:`~payload.teleop.channels.rail_command` with the settings
+        ``rail``, checked against it on :data:`RAIL_CHECKS` random wrists here; the
+        result in :attr:`rail`) and the base channel's compiled step ``base`` (its
+        ``entry``: the kernel, its arguments and its wrists' buffers) on them.
+
+        Raises:
+            ValueError: A part it cannot take (settings that are not floats, arrays of
+                other layouts) or a rail command that differs from the Python's.
+        """
+        numbers = (rail.d_min, rail.d_max, rail.travel)
+        if not all(type(v) is float for v in numbers):
+            raise ValueError("the rail settings are not floats")
+        for a in fresh:
+            if not (a.dtype == np.float64 and a.ndim == 1 and a.flags.c_contiguous):
+                raise ValueError("a solved command is not a contiguous float64 vector")
+        if fresh[0].shape != fresh[1].shape:
+            raise ValueError("the pairs' commands differ in length")
+        fn, args, scalars, left, right = base.entry
+        self._tail = _Tail(
+            fresh[0].ctypes.data, fresh[1].ctypes.data, fresh[0].shape[0], self._ddot,
+            fn, args, scalars, left, right, *numbers, self.rail.ctypes.data,
+        )  # fmt: skip
+        self._tail_kept = (fresh, base)  # the arrays its pointers address
+        for left, right in _rail_probes(rail, RAIL_CHECKS):
+            try:
+                want: float | None = rail_command(rail, left, right)
+            except ChannelError:
+                want = None
+            got = self.rail_command(left, right)
+            if (got is None) != (want is None) or (
+                got is not None and np.float64(got).tobytes() != np.float64(want).tobytes()
+            ):
+                self._tail = None
+                raise ValueError("the compiled rail command differs from the Python's")
+        self._call_tail = functools.partial(
+            self._fn, ctypes.addressof(self._sides), ctypes.addressof(self._tail), 1
+        )
+
+    def rail_command(self, left: np.ndarray, right: np.ndarray) -> float | None:
+        """The tail's rail command of two wrists (its self-check's side; None: the
+        distance is not finite), with the bound rail settings."""
+        if self._tail is None:
+            raise ValueError("no tail bound")
+        out = np.zeros(1)
+        a, b = np.array(left, dtype=np.float64), np.array(right, dtype=np.float64)
+        got = self._rail_fn(a.ctypes.data, b.ctypes.data, ctypes.addressof(self._tail),
+                            out.ctypes.data)  # fmt: skip
+        return None if got else float(out[0])
 
     def numbers(self, t: float, tf: float, tv: float, speed: float, cutoff: float) -> bytes:
         """The C's jump allowed, filter period and smoothing factor for these times (its
@@ -236,11 +371,16 @@ class HandIntake:
         self._numbers(t, tf, tv, speed, cutoff, out.ctypes.data)
         return out.tobytes()
 
-    def __call__(self, frame: HandFrame, t: float) -> tuple[Supervised, int] | None:
+    def __call__(
+        self, frame: HandFrame, t: float, tail: bool = False
+    ) -> tuple[Supervised, int] | None:
         """Take both hands of ``frame`` in at ``t`` (its stamp): the supervisor's verdict
         (no events: both hands valid) and which sides' chains took their hand (bit 0 the
         left, bit 1 the right; those pairs' solves wait in their retargeters:
-        ``finish_step``); or None, nothing changed, where the Python path is to run."""
+        ``finish_step``); or None, nothing changed, where the Python path is to run.
+        With ``tail`` (the caller made the bound base step ready: :meth:`bind_tail`), a
+        step both chains took runs the tail as well: bit 2 set where it did (its rail
+        command in :attr:`rail`), bits 3 and 4 the base kernel's mode."""
         if not isinstance(t, float):  # another type's arithmetic: the Python path's
             return None
         sup = self._supervisor
@@ -262,7 +402,7 @@ class HandIntake:
                 accepted[k] = st.last_valid
         for chain in self._chains:
             chain.load_held()
-        taken = self._call(
+        taken = (self._call_tail if tail else self._call)(
             t,
             f0._t,
             st0.last_valid_stamp,
@@ -281,6 +421,26 @@ class HandIntake:
 
 CHECK_TIMES = 200
 """Random times of the intake's full self-check (:func:`compiled_hand_intake`)."""
+
+RAIL_CHECKS = 200
+"""Random wrist pairs the tail's rail command is checked on when bound
+(:meth:`HandIntake.bind_tail`)."""
+
+
+def _rail_probes(rail: RailConfig, n: int) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """``n`` wrist pairs for the rail's check: apart by distances around and beyond the
+    settings' range (both clamps, the ends themselves), one not finite."""
+    rng = np.random.default_rng(0)
+    lo, hi = rail.d_min, rail.d_max
+    for k in range(n):
+        left = rng.normal(scale=0.3, size=3)
+        u = rng.normal(size=3)
+        u /= np.linalg.norm(u)
+        d = (lo, hi, 0.0)[k % 3] if k < 9 else float(rng.uniform(lo - 0.2, hi + 0.2))
+        right = left + abs(d) * u
+        if k == n - 1:
+            right[1] = np.nan
+        yield left, right
 
 
 def _times(n: int) -> Iterator[tuple[float, float, float, float, float]]:

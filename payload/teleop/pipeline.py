@@ -260,6 +260,9 @@ class TeleopPipeline:
         # (pair_c) or None): a chain binds their buffers, so another of either needs another
         self._chains: dict[str, tuple[Any, Any, Any]] = {}
         self._intake: tuple[tuple, Any, tuple] | None = None  # (parts, intake, objects)
+        # the intake, base step, rail settings and pairs' retargeters the intake's tail was
+        # bound to, and whether it took them
+        self._tail: tuple[Any, ...] | None = None
 
     def _filtered(self, side: str, hand: Hand | None, t: float) -> Hand | None:
         if hand is None:
@@ -342,7 +345,10 @@ class TeleopPipeline:
         """
         frame = frame.to_workbench()
         t = frame.stamp if math.isfinite(frame.stamp) else self.supervisor.last_stamp
-        taken = self._intake_step(frame, t)
+        stamp = float(frame.stamp) if math.isfinite(frame.stamp) else t
+        taken = self._intake_step(frame, t, vehicle_rotation, stamp)
+        if type(taken) is TeleopStep:  # a steady step, its channels run with the intake
+            return taken
         if taken is None:
             taken = self._hands(frame, t)
         events, weights, wrists, fresh, solves = taken
@@ -364,7 +370,6 @@ class TeleopPipeline:
             rail = self.rail_blend.step(None, 0.0)
         left_wrist = wrists["left"] if both else None  # a lost hand brakes the vehicle
         right_wrist = wrists["right"] if both else None
-        stamp = float(frame.stamp) if math.isfinite(frame.stamp) else t
         base = self.base.step(left_wrist, vehicle_rotation, right_wrist, stamp)
         q17 = np.zeros(len(MANIPULATION_JOINTS))
         for pair, q in q_pair.items():
@@ -423,14 +428,26 @@ class TeleopPipeline:
             log.warning("teleop: %s hand finger channel held: %s", side, exc)
             return None
 
-    def _intake_step(self, frame: HandFrame, t: float) -> _Intake | None:
+    def _intake_step(
+        self,
+        frame: HandFrame,
+        t: float,
+        vehicle_rotation: np.ndarray | None = None,
+        stamp: float = 0.0,
+    ) -> _Intake | TeleopStep | None:
         """:meth:`_hands` through the compiled intake (:mod:`payload.teleop.intake_c`), or
-        None (nothing changed) where the Python path is to run."""
+        None (nothing changed) where the Python path is to run; on a steady step (both
+        hands taken, neither recovering) the whole step, its channels run in the same
+        compiled call (:meth:`_steady`)."""
         intake = self._intake_kernel()
-        got = None if intake is None else intake(frame, t)
+        if intake is None:
+            return None
+        got = intake(frame, t, self._tail_ready(intake, frame.stamp, vehicle_rotation))
         if got is None:
             return None
         sup, taken = got
+        if taken & 4:
+            return self._steady(intake, taken >> 3, stamp)
         weights = {"left": sup.blend_left, "right": sup.blend_right}
         events: list[SafetyEvent] = []
         solves: dict[str, SolveInfo] = {}
@@ -444,6 +461,64 @@ class TeleopPipeline:
                 fresh[pair] = self._fresh(pair, hand, t, events, solves, chain=False)
         wrists = {side: joints[WRIST] for side, joints in filtered.items()}
         return events, weights, wrists, fresh, solves
+
+    def _tail_ready(self, intake: Any, t: float, vehicle_rotation: Any) -> bool:
+        """Whether the intake's call is to run the channels too (:meth:`HandIntake.bind_tail
+        <payload.teleop.intake_c.HandIntake.bind_tail>`): neither hand recovering at the
+        frame's time ``t`` (the weights the supervisor's verdict gives: each blend takes
+        its fresh command, as :class:`Blender` does at weight 1), the tail
+        bound to the pipeline's retargeters, base channel and rail settings as they are
+        now, and the base channel's compiled step ready for this rotation."""
+        sup = self.supervisor
+        status = sup.status
+        if not (sup._weight(status["left"], t) >= 1.0 and sup._weight(status["right"], t) >= 1.0):
+            return False
+        base = self.base._compiled_step
+        rail = self.calibration.rail
+        left, right = self.retargeters["L"], self.retargeters["R"]
+        bound = self._tail
+        if (
+            bound is None
+            or bound[0] is not intake
+            or bound[1] is not base
+            or bound[2] is not rail
+            or bound[3] is not left
+            or bound[4] is not right
+        ):
+            ok = base is not None
+            try:
+                if ok:
+                    intake.bind_tail((left.step_output, right.step_output), base, rail)
+            except ValueError as exc:
+                log.info("pipeline: the channels after the intake in Python (%s)", exc)
+                ok = False
+            bound = self._tail = (intake, base, rail, left, right, ok)
+        return bound[5] and base.prepare(vehicle_rotation)
+
+    def _steady(self, intake: Any, mode: int, stamp: float) -> TeleopStep:
+        """The step whose channels the intake's call ran (:meth:`_tail_ready`): what the
+        Python path makes of it (each pair's solve taken, held and blended in at weight 1,
+        the rail command, the base channel's command, the payload command)."""
+        solves: dict[str, SolveInfo] = {}
+        q_pair: dict[str, np.ndarray] = {}
+        for pair in HAND_OF_PAIR:
+            # the solve's command (checked finite in C), held as hold() clips it
+            fresh, solves[pair] = self.retargeters[pair].finish_step_held()
+            blend = self.blend[pair]
+            blend.held, blend._anchor = fresh, None  # Blender.step at weight 1
+            q_pair[pair] = fresh
+        rail = float(intake.rail[0])
+        self.rail_blend.held, self.rail_blend._anchor = np.array([rail]), None
+        base = BaseCommand(*self.base._compiled_step.finish(mode, stamp))
+        q17 = np.zeros(len(MANIPULATION_JOINTS))
+        for pair, q in q_pair.items():
+            q17[self.index[pair]] = q
+        q17[-1] = rail
+        q17.setflags(write=False)  # the command's own: taken as it is
+        command = PayloadCommand.of_frozen(q17, self.config.deploy, stamp)
+        return TeleopStep(
+            stamp, q_pair["L"].copy(), q_pair["R"].copy(), rail, base, command, (), solves
+        )
 
     def _intake_kernel(self) -> Any:
         """The compiled intake for the current parts (made when they are all there and
