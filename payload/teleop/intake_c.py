@@ -166,36 +166,33 @@ int payload_intake_step(const struct side *h, const struct tail *p, int tail, do
 """The intake's C (:func:`payload.native.build_library` compiles it)."""
 
 _P, _I, _D = ctypes.c_void_p, ctypes.c_int64, ctypes.c_double
-_SIDE_FIELDS = (
-    "check:p ddot:p n:i wrist:i params:p neutral:p has_neutral:i last:p max_speed:d "
-    "euro:p x:p dx:p two_pi:d min_cutoff:d beta:d d_cutoff:d chain:p ctx:p raw:p"
-)
-"""``struct side`` of :data:`SOURCE`, field by field (p: pointer, i: int64, d: double)."""
+
+
+def _fields(spec: str) -> list[tuple[str, Any]]:
+    """A C structure's fields for ctypes from ``name:kind`` words (p: pointer, i: int64,
+    d: double), in order."""
+    return [
+        (name, {"p": _P, "i": _I, "d": _D}[kind])
+        for name, kind in (field.split(":") for field in spec.split())
+    ]
 
 
 class _Side(ctypes.Structure):
     """``struct side`` of :data:`SOURCE`."""
 
-    _fields_ = [
-        (name, {"p": _P, "i": _I, "d": _D}[kind])
-        for name, kind in (field.split(":") for field in _SIDE_FIELDS.split())
-    ]
-
-
-_TAIL_FIELDS = (
-    "fresh0:p fresh1:p n:i ddot:p base:p base_args:p base_scalars:p base_left:p "
-    "base_right:p d_min:d d_max:d travel:d rail:p"
-)
-"""``struct tail`` of :data:`SOURCE`, field by field."""
+    _fields_ = _fields(
+        "check:p ddot:p n:i wrist:i params:p neutral:p has_neutral:i last:p max_speed:d "
+        "euro:p x:p dx:p two_pi:d min_cutoff:d beta:d d_cutoff:d chain:p ctx:p raw:p"
+    )
 
 
 class _Tail(ctypes.Structure):
     """``struct tail`` of :data:`SOURCE`."""
 
-    _fields_ = [
-        (name, {"p": _P, "i": _I, "d": _D}[kind])
-        for name, kind in (field.split(":") for field in _TAIL_FIELDS.split())
-    ]
+    _fields_ = _fields(
+        "fresh0:p fresh1:p n:i ddot:p base:p base_args:p base_scalars:p base_left:p "
+        "base_right:p d_min:d d_max:d travel:d rail:p"
+    )
 
 
 def intake_objects(
