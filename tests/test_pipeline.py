@@ -580,6 +580,62 @@ def test_the_compiled_hand_intake_steps_as_the_python_path(retargeting):
     assert [f for f in fell_back if f[1] >= 340] == [(True, 350, "R"), (False, 350, "R")]
 
 
+def test_the_compiled_rail_command_is_the_channels_on_any_wrists(retargeting):
+    """The rail command the intake's tail computes (:meth:`HandIntake.rail_command`) is
+    :func:`~payload.teleop.channels.rail_command`'s, bit for bit, on 3,000 random wrist
+    pairs (inside the range, at its ends, beyond both), and both refuse a wrist that is
+    not finite."""
+    from payload.teleop.channels import ChannelError, rail_command
+
+    op, _, cal, _, t = _calibrated(9, retargeting)
+    pipe = _pipeline(cal, retargeting)
+    for k in range(60):  # past the first commands' blend
+        pipe.step(op.act(_static_world(t + k * DT)))
+    intake = pipe._intake_kernel()
+    assert intake is not None and pipe._tail is not None and pipe._tail[-1]
+    rail = cal.rail
+    rng = np.random.default_rng(11)
+    for k in range(3000):
+        left = rng.normal(scale=0.4, size=3)
+        d = (rail.d_min, rail.d_max)[k % 2] if k < 40 else rng.uniform(0.0, 2 * rail.d_max)
+        u = rng.normal(size=3)
+        right = left + d * u / np.linalg.norm(u)
+        want = rail_command(rail, left, right)
+        assert np.float64(intake.rail_command(left, right)).tobytes() == np.float64(want).tobytes()
+    bad = np.array([0.1, np.inf, 0.0])
+    with pytest.raises(ChannelError):
+        rail_command(rail, np.zeros(3), bad)
+    assert intake.rail_command(np.zeros(3), bad) is None
+
+
+def test_a_tail_that_cannot_be_bound_leaves_the_channels_to_python(retargeting):
+    """Rail settings that are not floats (integers pass the calibration's checks) are
+    not taken by the intake's tail: every step's channels run in Python, and the commands
+    and twists are those of a pipeline that never tried, bit for bit."""
+    op, _, cal, _, t = _calibrated(9, retargeting)
+    frames = []
+    for _ in range(120):
+        frames.append(op.act(_static_world(t)))
+        t += DT
+    ints = dataclasses.replace(cal, rail=dataclasses.replace(cal.rail, d_min=0, travel=1))
+
+    def stream(tail: bool) -> tuple[list[bytes], list[bool]]:
+        pipe = _pipeline(ints, retargeting)
+        if not tail:
+            pipe._tail_ready = lambda *args: False
+        steady: list[bool] = []
+        _count_intake(pipe, [], steady)
+        out = []
+        for fr in frames:
+            s = pipe.step(fr, np.eye(3))
+            out.append(s.command.q.tobytes() + s.twist.linear.tobytes() + s.twist.angular.tobytes())
+            out += _channel_state(pipe)
+        return out, steady
+
+    tried, steady = stream(True)
+    assert not any(steady) and stream(False)[0] == tried
+
+
 def test_a_calibration_or_retargeter_replaced_mid_session_is_followed_as_in_python(retargeting):
     """``calibration`` and ``retargeters`` are the pipeline's public parts: one replaced
     between steps (another operator's calibration, a fresh retargeter for a pair) is what
