@@ -14,6 +14,7 @@ from payload.design import load_design
 from payload.retarget.calibration import pair_range
 from payload.retarget.casadi_solver import PairRetargeter
 from payload.retarget.errors import RetargetError
+from payload.rotations import quat_to_matrix
 from payload.schema import CONTROL_DT
 from payload.teleop.calibration import CalibrationProcedure
 from payload.teleop.hands import Hand, HandFrame
@@ -495,6 +496,8 @@ def test_the_compiled_hand_intake_steps_as_the_python_path(retargeting):
     for k in range(420):
         fr = op.act(_static_world(t))
         left, right, stamp = fr.left, fr.right, t
+        if k >= 150:  # the left wrist pushed out of its sphere and held there: drive
+            left = Hand(left.joints + np.array([0.003 * min(k - 149, 40), 0.0, 0.0]))
         if 60 <= k < 64:
             left = Hand.untracked()  # a dropout, bridged
         if k >= 60:  # meanwhile the right hand moves 0.6 of that a step, 3 times it in all
@@ -519,8 +522,12 @@ def test_the_compiled_hand_intake_steps_as_the_python_path(retargeting):
 
     taken = []
     steady: list[bool] = []
+    modes: list[str] = []
     seen = []
     fell_back = []
+    rng = np.random.default_rng(3)
+    quats = rng.normal(size=(len(frames), 4))  # the vehicle turning, as the loop hands it
+    rots = [quat_to_matrix(q / np.linalg.norm(q)) for q in quats]
 
     def stream(intake: bool) -> list[bytes]:
         pipe = _pipeline(cal, retargeting)
@@ -540,9 +547,11 @@ def test_the_compiled_hand_intake_steps_as_the_python_path(retargeting):
             chain = pipe._chain("R")
             if k == 350:  # pair R's chain refuses any hand (no thumb axis is that long)
                 chain._chain.eps, eps = 1e9, chain._chain.eps
-            s = pipe.step(fr)
+            s = pipe.step(fr, rots[k])
             if k == 350:
                 chain._chain.eps = eps
+            if intake:
+                modes.append(s.base.mode)
             out.append(s.command.q.tobytes() + s.twist.linear.tobytes() + s.twist.angular.tobytes())
             out.append(repr((s.rail, sorted(s.solves.items()), s.events)).encode())
             out.append(s.q_left.tobytes() + s.q_right.tobytes() + repr(s.command.stamp).encode())
@@ -564,8 +573,10 @@ def test_the_compiled_hand_intake_steps_as_the_python_path(retargeting):
 
     assert stream(True) == stream(False)
     assert taken.count(True) > 300 and taken.count(False) > 20
-    # the channels ran in the intake's call on most steps, not while a hand blended back in
+    # the channels ran in the intake's call on most steps, not while a hand blended back in,
+    # with the base channel in each of its modes
     assert steady.count(True) > 250 and not any(steady[140:150])
+    assert {m for m, fast in zip(modes, steady) if fast} == {"brake", "drive", "hold"}
     # every case above happened: each kind of event, and the refused chain at step 350
     kinds = {(e.hand, e.kind) for e in seen}
     assert {("left", "invalid"), ("right", "lost"), ("right", "regained")} <= kinds
@@ -608,32 +619,69 @@ def test_the_compiled_rail_command_is_the_channels_on_any_wrists(retargeting):
     assert intake.rail_command(np.zeros(3), bad) is None
 
 
+def _tail_stream(cal, retargeting, frames, rots, tail: bool, before=None):
+    """A pipeline's steps over ``frames`` (with the vehicle rotations ``rots``), its
+    channels in the intake's call where they can be (``tail``) or always in Python: per
+    step its commands, twists, rail, solve reports, base mode and channel states, and
+    whether the step's channels ran compiled. ``before(pipe, k)`` runs before step k."""
+    pipe = _pipeline(cal, retargeting)
+    if not tail:
+        pipe._tail_ready = lambda *args: False
+    steady: list[bool] = []
+    _count_intake(pipe, [], steady)
+    out = []
+    for k, fr in enumerate(frames):
+        if before is not None:
+            before(pipe, k)
+        s = pipe.step(fr, rots[k])
+        out.append(s.command.q.tobytes() + s.twist.linear.tobytes() + s.twist.angular.tobytes())
+        out.append(repr((s.rail, sorted(s.solves.items()), s.base.mode)).encode())
+        out += _channel_state(pipe)
+    return out, steady
+
+
+def _operator_frames(retargeting, n: int):
+    """A calibration and ``n`` frames of its operator after it, with ``n`` random vehicle
+    rotations."""
+    op, _, cal, _, t = _calibrated(9, retargeting)
+    frames = [op.act(_static_world(t + k * DT)) for k in range(n)]
+    rng = np.random.default_rng(4)
+    rots = [quat_to_matrix(q / np.linalg.norm(q)) for q in rng.normal(size=(n, 4))]
+    return cal, frames, rots
+
+
+def test_a_tail_that_refuses_after_the_intake_leaves_the_step_to_python(retargeting):
+    """When the channels' C refuses after the intake already took the hands in (here: a
+    pair's solved command read as not finite on every third step, by pointing the tail at
+    an array of NaN), nothing it keeps has changed and the Python path makes the step
+    from the intake's results: the same commands, twists and channel states as a pipeline
+    whose channels always run in Python, bit for bit."""
+    cal, frames, rots = _operator_frames(retargeting, 150)
+    nan = np.full(8, np.nan)
+
+    def refuse(pipe, k):
+        intake = pipe._intake
+        bound = None if intake is None else intake[1]._tail
+        if bound is not None:  # the left hand's pair's command, as the C reads it
+            real = pipe.retargeters["L"].step_output
+            bound.fresh0 = (nan if k % 3 == 0 else real).ctypes.data
+
+    refused, steady = _tail_stream(cal, retargeting, frames, rots, True, refuse)
+    assert refused == _tail_stream(cal, retargeting, frames, rots, False)[0]
+    fast = [k for k, f in enumerate(steady) if f]
+    assert len(fast) > 60 and all(k % 3 for k in fast)  # every third step refused
+
+
 def test_a_tail_that_cannot_be_bound_leaves_the_channels_to_python(retargeting):
     """Rail settings that are not floats (integers pass the calibration's checks) are
     not taken by the intake's tail: every step's channels run in Python, and the commands
     and twists are those of a pipeline that never tried, bit for bit."""
-    op, _, cal, _, t = _calibrated(9, retargeting)
-    frames = []
-    for _ in range(120):
-        frames.append(op.act(_static_world(t)))
-        t += DT
+    cal, frames, rots = _operator_frames(retargeting, 120)
     ints = dataclasses.replace(cal, rail=dataclasses.replace(cal.rail, d_min=0, travel=1))
-
-    def stream(tail: bool) -> tuple[list[bytes], list[bool]]:
-        pipe = _pipeline(ints, retargeting)
-        if not tail:
-            pipe._tail_ready = lambda *args: False
-        steady: list[bool] = []
-        _count_intake(pipe, [], steady)
-        out = []
-        for fr in frames:
-            s = pipe.step(fr, np.eye(3))
-            out.append(s.command.q.tobytes() + s.twist.linear.tobytes() + s.twist.angular.tobytes())
-            out += _channel_state(pipe)
-        return out, steady
-
-    tried, steady = stream(True)
-    assert not any(steady) and stream(False)[0] == tried
+    tried, steady = _tail_stream(ints, retargeting, frames, rots, True)
+    assert not any(steady) and _tail_stream(ints, retargeting, frames, rots, False)[0] == tried
+    # the same with float settings: the channels run compiled on most steps
+    assert sum(_tail_stream(cal, retargeting, frames, rots, True)[1]) > 60
 
 
 def test_a_calibration_or_retargeter_replaced_mid_session_is_followed_as_in_python(retargeting):

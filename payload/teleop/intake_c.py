@@ -295,6 +295,7 @@ class HandIntake:
         fn.argtypes = [_P, _P, ctypes.c_int, _D, _D, _D, ctypes.c_int, _D, _D, ctypes.c_int]
         self._fn = fn
         self._tail: _Tail | None = None
+        self._tail_kept: tuple | None = None
         self.rail = np.zeros(1)
         """The rail command the last tail wrote (:meth:`bind_tail`)."""
         self._call = functools.partial(fn, ctypes.addressof(self._sides), None, 0)
@@ -321,6 +322,8 @@ class HandIntake:
             ValueError: A part it cannot take (settings that are not floats, arrays of
                 other layouts) or a rail command that differs from the Python's.
         """
+        # unbound until the new parts pass: a call never runs a tail that failed
+        self._tail, self._tail_kept, self._call_tail = None, None, self._call
         numbers = (rail.d_min, rail.d_max, rail.travel)
         if not all(type(v) is float for v in numbers):
             raise ValueError("the rail settings are not floats")
@@ -330,36 +333,43 @@ class HandIntake:
         if fresh[0].shape != fresh[1].shape:
             raise ValueError("the pairs' commands differ in length")
         fn, args, scalars, left, right = base.entry
-        self._tail = _Tail(
+        made = _Tail(
             fresh[0].ctypes.data, fresh[1].ctypes.data, fresh[0].shape[0], self._ddot,
             fn, args, scalars, left, right, *numbers, self.rail.ctypes.data,
         )  # fmt: skip
-        self._tail_kept = (fresh, base)  # the arrays its pointers address
         for left, right in _rail_probes(rail, RAIL_CHECKS):
             try:
                 want: float | None = rail_command(rail, left, right)
             except ChannelError:
                 want = None
-            got = self.rail_command(left, right)
+            got = self._rail(made, left, right)
             if (got is None) != (want is None) or (
                 got is not None and np.float64(got).tobytes() != np.float64(want).tobytes()
             ):
-                self._tail = None
                 raise ValueError("the compiled rail command differs from the Python's")
+        # taken together: the call, the structure it points to and the arrays it addresses
+        self._tail, self._tail_kept = made, (fresh, base)
         self._call_tail = functools.partial(
-            self._fn, ctypes.addressof(self._sides), ctypes.addressof(self._tail), 1
+            self._fn, ctypes.addressof(self._sides), ctypes.addressof(made), 1
         )
 
-    def rail_command(self, left: np.ndarray, right: np.ndarray) -> float | None:
-        """The tail's rail command of two wrists (its self-check's side; None: the
-        distance is not finite), with the bound rail settings."""
-        if self._tail is None:
-            raise ValueError("no tail bound")
+    def _rail(self, tail: _Tail, left: np.ndarray, right: np.ndarray) -> float | None:
+        """``tail``'s rail command of two wrists (None: the distance is not finite)."""
         out = np.zeros(1)
         a, b = np.array(left, dtype=np.float64), np.array(right, dtype=np.float64)
-        got = self._rail_fn(a.ctypes.data, b.ctypes.data, ctypes.addressof(self._tail),
-                            out.ctypes.data)  # fmt: skip
+        got = self._rail_fn(a.ctypes.data, b.ctypes.data, ctypes.addressof(tail), out.ctypes.data)
         return None if got else float(out[0])
+
+    def rail_command(self, left: np.ndarray, right: np.ndarray) -> float | None:
+        """The bound tail's rail command of two wrists (its check's side; None: the
+        distance is not finite).
+
+        Raises:
+            ValueError: No tail bound.
+        """
+        if self._tail is None:
+            raise ValueError("no tail bound")
+        return self._rail(self._tail, left, right)
 
     def numbers(self, t: float, tf: float, tv: float, speed: float, cutoff: float) -> bytes:
         """The C's jump allowed, filter period and smoothing factor for these times (its

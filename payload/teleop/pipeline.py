@@ -466,17 +466,19 @@ class TeleopPipeline:
         """Whether the intake's call is to run the channels too (:meth:`HandIntake.bind_tail
         <payload.teleop.intake_c.HandIntake.bind_tail>`): neither hand recovering at the
         frame's time ``t`` (the weights the supervisor's verdict gives: each blend takes
-        its fresh command, as :class:`Blender` does at weight 1), the tail
-        bound to the pipeline's retargeters, base channel and rail settings as they are
-        now, and the base channel's compiled step ready for this rotation."""
+        its fresh command, as :class:`Blender` does at weight 1), the tail bound to the
+        pipeline's retargeters, blenders, base channel and rail settings as they are now
+        (:meth:`_tail_takes`), and the base channel's compiled step ready for this
+        rotation."""
         sup = self.supervisor
         status = sup.status
         if not (sup._weight(status["left"], t) >= 1.0 and sup._weight(status["right"], t) >= 1.0):
             return False
-        base = self.base._compiled_step
+        base = getattr(self.base, "_compiled_step", None)
         rail = self.calibration.rail
         left, right = self.retargeters["L"], self.retargeters["R"]
         bound = self._tail
+        blends = (self.blend["L"], self.blend["R"], self.rail_blend)
         if (
             bound is None
             or bound[0] is not intake
@@ -484,16 +486,31 @@ class TeleopPipeline:
             or bound[2] is not rail
             or bound[3] is not left
             or bound[4] is not right
+            or bound[5][0] is not blends[0]
+            or bound[5][1] is not blends[1]
+            or bound[5][2] is not blends[2]
         ):
-            ok = base is not None
+            ok = self._tail_takes(base, left, right, blends)
             try:
                 if ok:
                     intake.bind_tail((left.step_output, right.step_output), base, rail)
             except ValueError as exc:
                 log.info("pipeline: the channels after the intake in Python (%s)", exc)
                 ok = False
-            bound = self._tail = (intake, base, rail, left, right, ok)
-        return bound[5] and base.prepare(vehicle_rotation)
+            bound = self._tail = (intake, base, rail, left, right, blends, ok)
+        return bound[6] and base.prepare(vehicle_rotation)
+
+    def _tail_takes(self, base: Any, left: Any, right: Any, blends: tuple) -> bool:
+        """Whether :meth:`_steady` makes what the Python path's objects would: the base
+        channel's compiled step there, and the retargeters, blenders and base channel of
+        the classes whose methods it stands for (a subclass's own ``hold``, ``step`` or
+        ``finish_step`` runs on the Python path)."""
+        return (
+            base is not None
+            and all(type(r) is PairRetargeter for r in (left, right))
+            and all(type(b) is Blender for b in blends)
+            and type(self.base) is BaseChannel
+        )
 
     def _steady(self, intake: Any, mode: int, stamp: float) -> TeleopStep:
         """The step whose channels the intake's call ran (:meth:`_tail_ready`): what the
