@@ -260,8 +260,8 @@ class TeleopPipeline:
         # (pair_c) or None): a chain binds their buffers, so another of either needs another
         self._chains: dict[str, tuple[Any, Any, Any]] = {}
         self._intake: tuple[tuple, Any, tuple] | None = None  # (parts, intake, objects)
-        # the intake, base step, rail settings and pairs' retargeters the intake's tail was
-        # bound to, and whether it took them
+        # the intake, base step, rail settings, pairs' retargeters and blenders the intake's
+        # tail was bound to, and whether it took them (_tail_ready)
         self._tail: tuple[Any, ...] | None = None
 
     def _filtered(self, side: str, hand: Hand | None, t: float) -> Hand | None:
@@ -335,7 +335,8 @@ class TeleopPipeline:
         """One 50 Hz step.
 
         Both hands are taken in first (:meth:`_intake_step` or :meth:`_hands`), then the
-        channels run. Bad hand data holds a pair (a safety event); any other exception is
+        channels run (on a steady step, in the intake's compiled call: :meth:`_steady`,
+        the same commands). Bad hand data holds a pair (a safety event); any other exception is
         a bug that aborts the session, and what the step did before it stands (the other
         pair's solve, say).
 
