@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from payload.trials.startbench import START_AIM_S, measures
+from payload.trials.startbench import NAMES, START_AIM_S, measures
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -58,8 +58,6 @@ def test_the_bench_reports_the_measures_asked_for_with_their_runs():
 
 def test_every_measure_is_named_in_the_help():
     """The measures the bench takes are the ones its --only help lists."""
-    from payload.trials.startbench import NAMES, measures
-
     assert tuple(measures(ROOT)) == NAMES == MEASURES
     done = subprocess.run(
         [sys.executable, "-m", "payload", "bench", "start", "--help"],

@@ -9,6 +9,7 @@ import itertools
 import json
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pinocchio as pin
@@ -708,8 +709,6 @@ def test_a_compile_of_the_check_is_said_and_left_out_of_the_reports_time(monkeyp
     a change to its code does) is said on stderr once, and its seconds are returned for
     the report's time to leave out; a quick load says nothing, then or later, and
     returns 0."""
-    import time
-
     from payload.envelope import cli_runs, overlap
 
     monkeypatch.setattr(cli_runs, "COMPILING_AFTER_S", 0.2)  # the test's own, shorter wait
@@ -722,3 +721,27 @@ def test_a_compile_of_the_check_is_said_and_left_out_of_the_reports_time(monkeyp
     assert cli_runs._load_check() == 0.0
     time.sleep(cli_runs.COMPILING_AFTER_S + 0.2)  # no notice comes after the load ended
     assert capsys.readouterr().err == ""
+
+
+def test_report_reach_starts_its_time_after_the_checks_load(monkeypatch, tmp_path):
+    """``report reach`` moves its report's start past the seconds the check's load
+    returns: a load that says it took a minute puts the start a minute after the
+    command's own (the report is stopped there)."""
+    from payload.cli import main
+    from payload.envelope import cli_runs, report
+
+    class Stop(BaseException):
+        pass
+
+    starts = []
+
+    def write_reach(*args, t_start, **kwargs):
+        starts.append(t_start)
+        raise Stop
+
+    monkeypatch.setattr(cli_runs, "_load_check", lambda: 60.0)
+    monkeypatch.setattr(report, "write_reach", write_reach)
+    before = time.perf_counter()
+    with pytest.raises(Stop):
+        main(["report", "reach", "--samples", "1000", "--json", "--out", str(tmp_path)])
+    assert before + 60.0 <= starts[0] <= time.perf_counter() + 60.0

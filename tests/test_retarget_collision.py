@@ -137,7 +137,8 @@ def test_the_shape_kept_on_disk_gives_the_derived_model(pks, tmp_path, monkeypat
             assert a.link == b.link
             for x, y in ((a.centre, b.centre), (a.rotation, b.rotation), (a.half, b.half)):
                 assert x.tobytes() == y.tobytes()
-        qs = pks[pair].lower + np.random.default_rng(3).random((50, 8)) * pks[pair].range
+        pk = pks[pair]
+        qs = pk.lower + np.random.default_rng(3).random((50, pk.n)) * pk.range
         assert loaded.distances_many(qs).tobytes() == derived.distances_many(qs).tobytes()
         assert [loaded.clearance(q) for q in qs] == [derived.clearance(q) for q in qs]
 
@@ -176,19 +177,16 @@ def test_the_shape_is_keyed_by_the_meshes_the_design_and_the_margin(tmp_path):
     project = current_project().root
     shutil.copytree(project / "cad", tmp_path / "cad")
     shutil.copytree(project / "urdf", tmp_path / "urdf")
-    toml = (HANDS_DIR / "payload.toml").read_text()
-    toml = replace_once(toml, "{project}/urdf/payload.urdf", "urdf/payload.urdf")
-    toml = replace_once(toml, "{project}/cad/design.toml", "cad/design.toml")
-    (tmp_path / "hand.toml").write_text(toml)
+    hand = _hand_on(tmp_path, "urdf/payload.urdf", "cad/design.toml")
 
-    def key(margin: float = 0.002) -> str:
-        pk = PairKinematics(load_hand(tmp_path / "hand.toml"), "L")
-        got = shape_key(pk, margin)
+    def key(scale: float = 1.0) -> str:
+        pk = PairKinematics(load_hand(hand), "L")
+        got = shape_key(pk, scale * pk.hand.collision_margin)
         assert got is not None
         return got
 
     first = key()
-    assert key() == first and key(0.003) != first
+    assert key() == first and key(1.5) != first
     (tmp_path / "cad" / "meshes" / "unused.stl").write_bytes(b"not named")
     assert key() == first
     mesh = tmp_path / "cad" / "meshes" / "stage.stl"
@@ -207,8 +205,18 @@ def test_the_shape_is_keyed_by_the_meshes_the_design_and_the_margin(tmp_path):
     second = key()
     assert second != first
     mesh.rename(mesh.with_suffix(".gone"))  # a named mesh missing: no key, no cache
-    pk = PairKinematics(load_hand(tmp_path / "hand.toml"), "L")
-    assert shape_key(pk, 0.002) is None
+    pk = PairKinematics(load_hand(hand), "L")
+    assert shape_key(pk, pk.hand.collision_margin) is None
+
+
+def _hand_on(folder: Path, urdf: str, design: str) -> Path:
+    """Our hand's description written into ``folder``, naming the URDF and the design at
+    those paths (relative to it)."""
+    toml = (HANDS_DIR / "payload.toml").read_text()
+    toml = replace_once(toml, "{project}/urdf/payload.urdf", urdf)
+    toml = replace_once(toml, "{project}/cad/design.toml", design)
+    (folder / "hand.toml").write_text(toml)
+    return folder / "hand.toml"
 
 
 # ------------------------------------------------------------- one source
@@ -222,11 +230,7 @@ def test_margin_and_pad_radius_come_from_the_design(tmp_path, hand):
     text = replace_once(text, "radius = 0.011 ", "radius = 0.0125 ")
     (tmp_path / "design.toml").write_text(text)
     shutil.copy(hand.urdf, tmp_path / "payload.urdf")
-    toml = (HANDS_DIR / "payload.toml").read_text()
-    toml = replace_once(toml, "{project}/urdf/payload.urdf", "payload.urdf")
-    toml = replace_once(toml, "{project}/cad/design.toml", "design.toml")
-    (tmp_path / "hand.toml").write_text(toml)
-    other = load_hand(tmp_path / "hand.toml")
+    other = load_hand(_hand_on(tmp_path, "payload.urdf", "design.toml"))
     assert other.collision_margin == 0.0035
     assert all(p.tip_radius == 0.0125 for p in other.pairs.values())
 

@@ -8,14 +8,14 @@ imports at every start with the model (a ``safe`` trial, ``teleop serve``, ``hw 
 for an answer that changes only with its inputs. It is kept beside the compiled solvers
 (:func:`payload.cache.cache_dir`), named by a hash of everything it is derived from: the
 URDF and every mesh file it names (their bytes), the design file, the pair's and hand's
-descriptions, the margin, the workbench's code (:func:`payload.cache.sources_digest`), the
-versions of the libraries that compute it (numpy, SciPy, trimesh, CasADi, Pinocchio),
-Python's build, the machine, the processor and numpy's BLAS kernels
-(:func:`payload.native.result_environment`), and the C compiler and its flags that
-evaluate the pruning's distances. A stale entry is never read; an unreadable or torn one
-is derived again and rewritten. :class:`~payload.retarget.collision.PairCollision` stores
-only what it derived from the same bytes it keyed (the key is taken again after the
-derivation) and with the compiled distances when there is a compiler. Postures derived
+descriptions, the margin, what :func:`payload.native.result_environment` names (the
+workbench's code, the versions of numpy, SciPy, CasADi and Pinocchio, Python's build, the
+machine, the processor and numpy's BLAS kernels), trimesh's version, and the C compiler
+and its flags that evaluate the pruning's distances. A stale entry is never read; an
+unreadable or torn one is derived again and rewritten.
+:class:`~payload.retarget.collision.PairCollision` stores only what it derived from the
+same bytes it keyed (the key is taken again after the derivation) and with the compiled
+distances when there is a compiler. Postures derived
 from the geometry (the retargeting's seed table, :func:`payload.retarget.budget.
 seed_table`) are kept under keys made from its key (:func:`postures_key`). The newest
 :data:`KEEP` entries of each kind are kept.
@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from payload.cache import cache_dir, dist_version, sources_digest
+from payload.cache import cache_dir, dist_version
 from payload.native import find_compiler, flags, result_environment
 from payload.retarget.collision_geometry import Box, Capsule, mesh_path
 from payload.retarget.features import PairKinematics
@@ -39,8 +39,10 @@ from payload.safeio import replacing
 
 _CACHE_VERSION = "pair-collision-1"
 
-LIBRARIES: tuple[str, ...] = ("numpy", "scipy", "trimesh", "casadi", "pin")
-"""The distributions whose code computes the geometry (their versions are in the key)."""
+MESH_LIBRARY = "trimesh"
+"""The distribution that reads the meshes, whose version is in the key beside those of
+:data:`payload.native.RESULT_PACKAGES` (numpy, SciPy, CasADi, Pinocchio: in
+:func:`payload.native.result_environment`)."""
 
 KEEP = 16
 """Pair shapes kept in the cache (the newest; two a design, one a pair)."""
@@ -80,10 +82,8 @@ def shape_key(pk: PairKinematics, margin: float) -> str | None:
     try:
         text = urdf.read_bytes()
         part(_CACHE_VERSION)
-        part(sources_digest())
-        part(result_environment())
-        for name in LIBRARIES:
-            part(f"{name}={dist_version(name)}")
+        part(result_environment())  # the workbench's sources among them
+        part(f"{MESH_LIBRARY}={dist_version(MESH_LIBRARY)}")
         compiler = find_compiler()
         part(str(compiler))
         part(" ".join(flags(compiler)) if compiler is not None else "")
@@ -206,7 +206,7 @@ def store_postures(key: str, postures: np.ndarray) -> None:
 
 __all__ = [
     "KEEP",
-    "LIBRARIES",
+    "MESH_LIBRARY",
     "CollisionShape",
     "load_postures",
     "load_shape",

@@ -267,8 +267,10 @@ class BaseSafetyFilter:
         self.obs_lo, self.obs_hi, self.obs_names = self.zones.obstacles()
         kinds = ("astrobee", "payload", "ctb") if world.ctb >= 0 else ("astrobee", "payload")
         # the geometry's compiled pass: C, else Numba (payload.teleop.barrier_c)
-        self._barrier_rows, box = geometry_kernels()
-        self.all_shapes = [_Shape(world, k, self.config.spacing, box) for k in kinds]
+        self._barrier_rows, self._enclosing_box = geometry_kernels()
+        self.all_shapes = [
+            _Shape(world, k, self.config.spacing, self._enclosing_box) for k in kinds
+        ]
         self.shapes = self.all_shapes
         # the CTB moves with the vehicle only while the pinch holds it: it counts from the
         # first opposing contact until ``release_s`` after the last one
@@ -325,7 +327,7 @@ class BaseSafetyFilter:
         compile them, at their first call)."""
         empty, none = np.zeros((0, 3)), np.zeros(0, dtype=np.int64)
         rot = np.eye(3)
-        self.all_shapes[0]._enclosing_box(empty, np.zeros((0, 9)), none, empty, np.zeros(3), rot)
+        self._enclosing_box(empty, np.zeros((0, 9)), none, empty, np.zeros(3), rot)
         self._barrier_rows(
             rot.reshape(1, 9),
             np.zeros((1, 3)),

@@ -75,12 +75,11 @@ _FILTER = (
     "import time\n"
     "from payload.sim.driver import SimDriver\n"
     "from payload.sim.world import build_world\n"
-    "sim = SimDriver(build_world())\n"
-    "c = sim.controller\n"
-    "t = time.perf_counter()\n"
-    "from payload.teleop.base_filter import BaseSafetyFilter\n"
     "from payload.teleop.channels import BaseConfig\n"
-    "BaseSafetyFilter(sim.world, BaseConfig(), c.accel_max, float(c.jerk[0]))\n"
+    "from payload.trials.preparation import base_filter_for\n"
+    "sim = SimDriver(build_world())\n"
+    "t = time.perf_counter()\n"
+    "base_filter_for(sim, BaseConfig())  # imports the filter's module\n"
     "print(time.perf_counter() - t)\n"
 )
 
