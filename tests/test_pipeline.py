@@ -491,13 +491,16 @@ def test_the_compiled_hand_intake_steps_as_the_python_path(retargeting):
     and safety events, and the same supervisor and filter state, bit for bit, step after
     step."""
     op, _, cal, _, t = _calibrated(9, retargeting)
-    allowed = TeleopConfig.from_design().safety.max_wrist_speed * DT  # a step's move, at most
+    config = TeleopConfig.from_design()
+    allowed = config.safety.max_wrist_speed * DT  # a step's move, at most
+    base = config.base
     frames = []
     for k in range(420):
         fr = op.act(_static_world(t))
         left, right, stamp = fr.left, fr.right, t
-        if k >= 150:  # the left wrist pushed out of its sphere and held there: drive
-            left = Hand(left.joints + np.array([0.003 * min(k - 149, 40), 0.0, 0.0]))
+        if k >= 150:  # the left wrist pushed out of its sphere over 40 steps, then held: drive
+            push = base.sphere_radius + base.full_speed_offset
+            left = Hand(left.joints + np.array([push * min(k - 149, 40) / 40, 0.0, 0.0]))
         if 60 <= k < 64:
             left = Hand.untracked()  # a dropout, bridged
         if k >= 60:  # meanwhile the right hand moves 0.6 of that a step, 3 times it in all
@@ -525,9 +528,7 @@ def test_the_compiled_hand_intake_steps_as_the_python_path(retargeting):
     modes: list[str] = []
     seen = []
     fell_back = []
-    rng = np.random.default_rng(3)
-    quats = rng.normal(size=(len(frames), 4))  # the vehicle turning, as the loop hands it
-    rots = [quat_to_matrix(q / np.linalg.norm(q)) for q in quats]
+    rots = _rotations(len(frames), 3)  # the vehicle turning
 
     def stream(intake: bool) -> list[bytes]:
         pipe = _pipeline(cal, retargeting)
@@ -552,8 +553,8 @@ def test_the_compiled_hand_intake_steps_as_the_python_path(retargeting):
                 chain._chain.eps = eps
             if intake:
                 modes.append(s.base.mode)
-            out.append(s.command.q.tobytes() + s.twist.linear.tobytes() + s.twist.angular.tobytes())
-            out.append(repr((s.rail, sorted(s.solves.items()), s.events)).encode())
+            out += _record(s)
+            out.append(repr(s.events).encode())
             out.append(s.q_left.tobytes() + s.q_right.tobytes() + repr(s.command.stamp).encode())
             b = s.base
             out.append(b.v_request.tobytes() + b.v_world.tobytes())
@@ -573,9 +574,11 @@ def test_the_compiled_hand_intake_steps_as_the_python_path(retargeting):
 
     assert stream(True) == stream(False)
     assert taken.count(True) > 300 and taken.count(False) > 20
-    # the channels ran in the intake's call on most steps, not while a hand blended back in,
-    # with the base channel in each of its modes
-    assert steady.count(True) > 250 and not any(steady[140:150])
+    # the channels ran in the intake's call on most steps, the right hand's blend back in
+    # after step 140 among them (the steps of the recovery time), with the base channel in
+    # each of its modes
+    blending = round(config.safety.recovery_time / DT)
+    assert steady.count(True) > 250 and all(steady[142 : 140 + blending])
     assert {m for m, fast in zip(modes, steady) if fast} == {"brake", "drive", "hold"}
     # every case above happened: each kind of event, and the refused chain at step 350
     kinds = {(e.hand, e.kind) for e in seen}
@@ -619,25 +622,38 @@ def test_the_compiled_rail_command_is_the_channels_on_any_wrists(retargeting):
     assert intake.rail_command(np.zeros(3), bad) is None
 
 
+def _rotations(n: int, seed: int) -> list[np.ndarray]:
+    """``n`` random vehicle rotations, as the loop hands the pipeline its vehicle's."""
+    quats = np.random.default_rng(seed).normal(size=(n, 4))
+    return [quat_to_matrix(q / np.linalg.norm(q)) for q in quats]
+
+
+def _record(s: TeleopStep) -> list[bytes]:
+    """A step's commands, twist, rail, solve reports and base mode, as bytes."""
+    return [
+        s.command.q.tobytes() + s.twist.linear.tobytes() + s.twist.angular.tobytes(),
+        repr((s.rail, sorted(s.solves.items()), s.base.mode)).encode(),
+    ]
+
+
 def _tail_stream(cal, retargeting, frames, rots, tail: bool, before=None):
     """A pipeline's steps over ``frames`` (with the vehicle rotations ``rots``), its
     channels in the intake's call where they can be (``tail``) or always in Python: per
     step its commands, twists, rail, solve reports, base mode and channel states, and
-    whether the step's channels ran compiled. ``before(pipe, k)`` runs before step k."""
+    whether the intake took the step's hands in and whether its channels ran compiled.
+    ``before(pipe, k)`` runs before step k."""
     pipe = _pipeline(cal, retargeting)
     if not tail:
         pipe._tail_ready = lambda *args: False
+    taken: list[bool] = []
     steady: list[bool] = []
-    _count_intake(pipe, [], steady)
+    _count_intake(pipe, taken, steady)
     out = []
     for k, fr in enumerate(frames):
         if before is not None:
             before(pipe, k)
-        s = pipe.step(fr, rots[k])
-        out.append(s.command.q.tobytes() + s.twist.linear.tobytes() + s.twist.angular.tobytes())
-        out.append(repr((s.rail, sorted(s.solves.items()), s.base.mode)).encode())
-        out += _channel_state(pipe)
-    return out, steady
+        out += _record(pipe.step(fr, rots[k])) + _channel_state(pipe)
+    return out, taken, steady
 
 
 def _operator_frames(retargeting, n: int):
@@ -645,9 +661,7 @@ def _operator_frames(retargeting, n: int):
     rotations."""
     op, _, cal, _, t = _calibrated(9, retargeting)
     frames = [op.act(_static_world(t + k * DT)) for k in range(n)]
-    rng = np.random.default_rng(4)
-    rots = [quat_to_matrix(q / np.linalg.norm(q)) for q in rng.normal(size=(n, 4))]
-    return cal, frames, rots
+    return cal, frames, _rotations(n, 4)
 
 
 def test_a_tail_that_refuses_after_the_intake_leaves_the_step_to_python(retargeting):
@@ -657,16 +671,17 @@ def test_a_tail_that_refuses_after_the_intake_leaves_the_step_to_python(retarget
     from the intake's results: the same commands, twists and channel states as a pipeline
     whose channels always run in Python, bit for bit."""
     cal, frames, rots = _operator_frames(retargeting, 150)
-    nan = np.full(8, np.nan)
+    nans = {}
 
     def refuse(pipe, k):
         intake = pipe._intake
         bound = None if intake is None else intake[1]._tail
         if bound is not None:  # the left hand's pair's command, as the C reads it
             real = pipe.retargeters["L"].step_output
+            nan = nans.setdefault(id(real), np.full_like(real, np.nan))
             bound.fresh0 = (nan if k % 3 == 0 else real).ctypes.data
 
-    refused, steady = _tail_stream(cal, retargeting, frames, rots, True, refuse)
+    refused, _, steady = _tail_stream(cal, retargeting, frames, rots, True, refuse)
     assert refused == _tail_stream(cal, retargeting, frames, rots, False)[0]
     fast = [k for k, f in enumerate(steady) if f]
     assert len(fast) > 60 and all(k % 3 for k in fast)  # every third step refused
@@ -678,10 +693,11 @@ def test_a_tail_that_cannot_be_bound_leaves_the_channels_to_python(retargeting):
     and twists are those of a pipeline that never tried, bit for bit."""
     cal, frames, rots = _operator_frames(retargeting, 120)
     ints = dataclasses.replace(cal, rail=dataclasses.replace(cal.rail, d_min=0, travel=1))
-    tried, steady = _tail_stream(ints, retargeting, frames, rots, True)
+    tried, taken, steady = _tail_stream(ints, retargeting, frames, rots, True)
     assert not any(steady) and _tail_stream(ints, retargeting, frames, rots, False)[0] == tried
+    assert sum(taken) > 100  # the intake took the hands in all the same
     # the same with float settings: the channels run compiled on most steps
-    assert sum(_tail_stream(cal, retargeting, frames, rots, True)[1]) > 60
+    assert sum(_tail_stream(cal, retargeting, frames, rots, True)[2]) > 100
 
 
 def test_a_calibration_or_retargeter_replaced_mid_session_is_followed_as_in_python(retargeting):

@@ -71,7 +71,6 @@ from payload.retarget.lm_graph import (  # noqa: F401  (old import paths)
 )
 from payload.retarget.objective import RetargetConfig
 from payload.retarget.solver import Retargeter, SolveInfo
-from payload.vecmath import clip
 
 BACKENDS = ("auto", "compiled", "vm")
 """``compiled``: generated C through ctypes; ``vm``: CasADi's virtual machine; ``auto``:
@@ -274,16 +273,6 @@ class PairRetargeter(Retargeter):
         q = c.outputs[0].copy()
         self._command = q
         return q.copy(), _info(c.outputs[1], self.collisions)
-
-    def finish_step_held(self) -> tuple[np.ndarray, SolveInfo]:
-        """:meth:`finish_step`, then :meth:`hold` of its command, for a caller that checked
-        the command finite (the pipeline's compiled channels, :mod:`payload.teleop.intake_c`):
-        the command (a copy of its own) and the report, the held command its clip to the
-        limits, as ``hold`` makes it."""
-        c = self._compiled
-        q = c.outputs[0].copy()
-        self._command = clip(q, self.lower, self.upper)
-        return q, _info(c.outputs[1], self.collisions)
 
     def _solve(
         self, targets: np.ndarray, q_prev: np.ndarray, q_ref: np.ndarray

@@ -134,8 +134,8 @@ int payload_tail_rail(const double *left, const double *right, const struct tail
     return 0;
 }
 
-/* The pipeline's channels after a steady intake (both chains took their hands, neither
-   hand recovering): both solved commands finite, the rail command of the filtered wrists
+/* The pipeline's channels after a steady intake (both chains took their hands): both
+   solved commands finite, the rail command of the filtered wrists
    and the base channel's step on them. Returns the base's mode, or -1 where the Python
    path is to run (a command or a distance that is not finite, or a base step refused:
    nothing it keeps changed). */

@@ -44,7 +44,13 @@ from payload.teleop.hands import (
 )
 from payload.teleop.intake_c import compiled_hand_intake, intake_objects, intake_parts
 from payload.teleop.intake_c import ready as intake_ready
-from payload.teleop.safety import Blender, SafetyConfig, SafetyEvent, TrackingSupervisor
+from payload.teleop.safety import (
+    Blender,
+    SafetyConfig,
+    SafetyEvent,
+    Supervised,
+    TrackingSupervisor,
+)
 
 log = logging.getLogger(__name__)
 
@@ -260,8 +266,8 @@ class TeleopPipeline:
         # (pair_c) or None): a chain binds their buffers, so another of either needs another
         self._chains: dict[str, tuple[Any, Any, Any]] = {}
         self._intake: tuple[tuple, Any, tuple] | None = None  # (parts, intake, objects)
-        # the intake, base step, rail settings, pairs' retargeters and blenders the intake's
-        # tail was bound to, and whether it took them (_tail_ready)
+        # the intake, base step, rail settings and pairs' retargeters the intake's tail was
+        # bound to, and whether it took them (_tail_ready)
         self._tail: tuple[Any, ...] | None = None
 
     def _filtered(self, side: str, hand: Hand | None, t: float) -> Hand | None:
@@ -372,22 +378,28 @@ class TeleopPipeline:
         left_wrist = wrists["left"] if both else None  # a lost hand brakes the vehicle
         right_wrist = wrists["right"] if both else None
         base = self.base.step(left_wrist, vehicle_rotation, right_wrist, stamp)
+        self.events.extend(events)
+        return self._made(q_pair, float(rail[0]), base, tuple(events), solves, stamp)
+
+    def _made(
+        self,
+        q_pair: dict[str, np.ndarray],
+        rail: float,
+        base: BaseCommand,
+        events: tuple[SafetyEvent, ...],
+        solves: dict[str, SolveInfo],
+        stamp: float,
+    ) -> TeleopStep:
+        """The step of the channels' commands: the payload command of both pairs' and the
+        rail's, and the step with its own copies of the pairs'."""
         q17 = np.zeros(len(MANIPULATION_JOINTS))
         for pair, q in q_pair.items():
             q17[self.index[pair]] = q
-        q17[-1] = float(rail[0])
+        q17[-1] = rail
         q17.setflags(write=False)  # the command's own: taken as it is
         command = PayloadCommand.of_frozen(q17, self.config.deploy, stamp)
-        self.events.extend(events)
         return TeleopStep(
-            stamp,
-            q_pair["L"].copy(),
-            q_pair["R"].copy(),
-            float(rail[0]),
-            base,
-            command,
-            tuple(events),
-            solves,
+            stamp, q_pair["L"].copy(), q_pair["R"].copy(), rail, base, command, events, solves
         )
 
     def _hands(self, frame: HandFrame, t: float) -> _Intake:
@@ -443,12 +455,12 @@ class TeleopPipeline:
         intake = self._intake_kernel()
         if intake is None:
             return None
-        got = intake(frame, t, self._tail_ready(intake, frame.stamp, vehicle_rotation))
+        got = intake(frame, t, self._tail_ready(intake, vehicle_rotation))
         if got is None:
             return None
         sup, taken = got
         if taken & 4:
-            return self._steady(intake, taken >> 3, stamp)
+            return self._steady(intake, sup, taken >> 3, stamp)
         weights = {"left": sup.blend_left, "right": sup.blend_right}
         events: list[SafetyEvent] = []
         solves: dict[str, SolveInfo] = {}
@@ -463,23 +475,16 @@ class TeleopPipeline:
         wrists = {side: joints[WRIST] for side, joints in filtered.items()}
         return events, weights, wrists, fresh, solves
 
-    def _tail_ready(self, intake: Any, t: float, vehicle_rotation: Any) -> bool:
+    def _tail_ready(self, intake: Any, vehicle_rotation: Any) -> bool:
         """Whether the intake's call is to run the channels too (:meth:`HandIntake.bind_tail
-        <payload.teleop.intake_c.HandIntake.bind_tail>`): neither hand recovering at the
-        frame's time ``t`` (the weights the supervisor's verdict gives: each blend takes
-        its fresh command, as :class:`Blender` does at weight 1), the tail bound to the
-        pipeline's retargeters, blenders, base channel and rail settings as they are now
+        <payload.teleop.intake_c.HandIntake.bind_tail>`): the tail bound to the pipeline's
+        retargeters, base channel and rail settings as they are now
         (:meth:`_tail_takes`), and the base channel's compiled step ready for this
         rotation."""
-        sup = self.supervisor
-        status = sup.status
-        if not (sup._weight(status["left"], t) >= 1.0 and sup._weight(status["right"], t) >= 1.0):
-            return False
         base = getattr(self.base, "_compiled_step", None)
         rail = self.calibration.rail
         left, right = self.retargeters["L"], self.retargeters["R"]
         bound = self._tail
-        blends = (self.blend["L"], self.blend["R"], self.rail_blend)
         if (
             bound is None
             or bound[0] is not intake
@@ -487,56 +492,44 @@ class TeleopPipeline:
             or bound[2] is not rail
             or bound[3] is not left
             or bound[4] is not right
-            or bound[5][0] is not blends[0]
-            or bound[5][1] is not blends[1]
-            or bound[5][2] is not blends[2]
         ):
-            ok = self._tail_takes(base, left, right, blends)
+            ok = self._tail_takes(base, left, right)
             try:
                 if ok:
                     intake.bind_tail((left.step_output, right.step_output), base, rail)
             except ValueError as exc:
                 log.info("pipeline: the channels after the intake in Python (%s)", exc)
                 ok = False
-            bound = self._tail = (intake, base, rail, left, right, blends, ok)
-        return bound[6] and base.prepare(vehicle_rotation)
+            bound = self._tail = (intake, base, rail, left, right, ok)
+        return bound[5] and base.prepare(vehicle_rotation)
 
-    def _tail_takes(self, base: Any, left: Any, right: Any, blends: tuple) -> bool:
+    def _tail_takes(self, base: Any, left: Any, right: Any) -> bool:
         """Whether :meth:`_steady` makes what the Python path's objects would: the base
-        channel's compiled step there, and the retargeters, blenders and base channel of
-        the classes whose methods it stands for (a subclass's own ``hold``, ``step`` or
-        ``finish_step`` runs on the Python path)."""
+        channel's compiled step there, and the retargeters and base channel of the classes
+        whose compiled parts it calls (a subclass's own ``step_output`` or ``step`` runs
+        on the Python path)."""
         return (
             base is not None
             and all(type(r) is PairRetargeter for r in (left, right))
-            and all(type(b) is Blender for b in blends)
             and type(self.base) is BaseChannel
         )
 
-    def _steady(self, intake: Any, mode: int, stamp: float) -> TeleopStep:
-        """The step whose channels the intake's call ran (:meth:`_tail_ready`): what the
-        Python path makes of it (each pair's solve taken, held and blended in at weight 1,
-        the rail command, the base channel's command, the payload command)."""
+    def _steady(self, intake: Any, sup: Supervised, mode: int, stamp: float) -> TeleopStep:
+        """The step whose channels the intake's call ran (:meth:`_tail_ready`; ``sup``: the
+        supervisor's verdict): what the Python path makes of it, each pair's solve blended
+        in and held, the rail command blended in, the base channel's command, the payload
+        command."""
         solves: dict[str, SolveInfo] = {}
         q_pair: dict[str, np.ndarray] = {}
-        for pair in HAND_OF_PAIR:
-            # the solve's command (checked finite in C), held as hold() clips it
-            fresh, solves[pair] = self.retargeters[pair].finish_step_held()
-            blend = self.blend[pair]
-            blend.held, blend._anchor = fresh, None  # Blender.step at weight 1
-            q_pair[pair] = fresh
-        rail = float(intake.rail[0])
-        self.rail_blend.held, self.rail_blend._anchor = np.array([rail]), None
+        weights = {"left": sup.blend_left, "right": sup.blend_right}
+        for pair, side in HAND_OF_PAIR.items():
+            retargeter = self.retargeters[pair]
+            fresh, solves[pair] = retargeter.finish_step()
+            q = q_pair[pair] = self.blend[pair].step(fresh, weights[side])
+            retargeter.hold(q)
+        rail = self.rail_blend.step(intake.rail.copy(), min(weights["left"], weights["right"]))
         base = BaseCommand(*self.base._compiled_step.finish(mode, stamp))
-        q17 = np.zeros(len(MANIPULATION_JOINTS))
-        for pair, q in q_pair.items():
-            q17[self.index[pair]] = q
-        q17[-1] = rail
-        q17.setflags(write=False)  # the command's own: taken as it is
-        command = PayloadCommand.of_frozen(q17, self.config.deploy, stamp)
-        return TeleopStep(
-            stamp, q_pair["L"].copy(), q_pair["R"].copy(), rail, base, command, (), solves
-        )
+        return self._made(q_pair, float(rail[0]), base, (), solves, stamp)
 
     def _intake_kernel(self) -> Any:
         """The compiled intake for the current parts (made when they are all there and
