@@ -632,6 +632,47 @@ def test_compiled_solver_is_cached_on_disk(prod, monkeypatch, tmp_path):
 
 
 @needs_cc
+def test_a_solver_the_cache_names_is_loaded_without_building_its_graph(
+    prod, prod_converged, ranges, monkeypatch
+):
+    """A retargeter whose compiled solver the cache names (its pair, compiler, settings)
+    loads that library without building the CasADi graph, and answers to the bit as the
+    retargeter that built it, for each budget; its function is built when asked for and
+    agrees with the library; a named library that does not load is built again."""
+    import payload.retarget.casadi_solver as cs
+    from payload.retarget import collision_cache
+
+    graphs: list[str] = []
+    real = cs.solve_parts
+    monkeypatch.setattr(cs, "solve_parts", lambda *a, **k: graphs.append("built") or real(*a, **k))
+    rng = np.random.default_rng(31)
+    pk = prod["L"].kinematics
+    for built in (prod["L"], prod_converged["L"]):
+        loaded = PairRetargeter(kinematics=pk, config=built.config)
+        assert graphs == [] and loaded.library == built.library, loaded.backend_reason
+        for q_true in random_q(pk, rng, 3):
+            t = pk.features(q_true)
+            q_prev = random_q(pk, rng, 1)[0]
+            q_ref = ranges["L"].posture(t.span)
+            built.reset(), loaded.reset()
+            want, got = built.solve(t, q_prev, q_ref), loaded.solve(t, q_prev, q_ref)
+            assert got[0].tobytes() == want[0].tobytes() and got[1] == want[1]
+    out = loaded.function(q_prev, t.as_vector(), q_ref, pk.rest, np.zeros(0))
+    assert graphs == ["built"]
+    np.testing.assert_allclose(np.array(out[0]).reshape(-1), got[0], atol=1e-9)
+    # a library named but not loadable (gone, foreign): the graph again, and the real one
+    monkeypatch.setattr(cs, "load_solver", lambda key: (cache_dir() / "gone.so", [8], [8]))
+    again = PairRetargeter(kinematics=pk)
+    assert graphs == ["built", "built"] and again.library == prod["L"].library
+    # the cache names a library only while it is there
+    key = "0" * 24
+    collision_cache.store_solver(key, cache_dir() / "payload_gone_0.so", [1], [2])
+    assert collision_cache.load_solver(key) is None
+    collision_cache.store_solver(key, prod["L"].library, [1], [2])
+    assert collision_cache.load_solver(key) == (prod["L"].library, [1], [2])
+
+
+@needs_cc
 def test_a_compiler_without_the_optional_flag_builds_and_fmax_fmin_give_libms_bits(
     tmp_path, monkeypatch
 ):

@@ -666,6 +666,7 @@ def test_the_trial_figures_keep_every_text_on_the_canvas(tmp_path: Path, monkeyp
     """The fixed margins (no layout engine) leave room for wide tick labels, every phase in
     the legend and two-line titles: each axes' drawn extent (tick labels, axis labels,
     titles) and each legend lie inside the figure, read from the drawn figure."""
+    from matplotlib.image import imread
     from matplotlib.legend import Legend
 
     from payload.trials import figures
@@ -673,9 +674,9 @@ def test_the_trial_figures_keep_every_text_on_the_canvas(tmp_path: Path, monkeyp
     drawn = []
     save = figures.save_figure
 
-    def keep(fig, path, dpi):
-        drawn.append(fig)
-        return save(fig, path, dpi)
+    def keep(fig, path, dpi, *rest):
+        drawn.append((fig, path, dpi))
+        return save(fig, path, dpi, *rest)
 
     monkeypatch.setattr(figures, "save_figure", keep)
     n = 600
@@ -692,7 +693,11 @@ def test_the_trial_figures_keep_every_text_on_the_canvas(tmp_path: Path, monkeyp
     figures.plot_ctb_body_frame(rec, tmp_path / "ctb.png")
     figures.plot_route(rec, tmp_path / "route.png", modules)
     assert len(drawn) == 2
-    for fig in drawn:
+    for fig, path, dpi in drawn:
+        # written faster than Pillow's default zlib level, to the same pixels
+        default = save(fig, tmp_path / f"default-{path.name}", dpi)
+        assert default.read_bytes() != path.read_bytes()
+        assert np.array_equal(imread(default), imread(path))
         fig.canvas.draw()
         renderer = fig.canvas.get_renderer()
         page = fig.bbox
@@ -719,9 +724,9 @@ def test_fig3_without_metrics_scores_as_the_recording_was_made_to(
     titles: list[str] = []
     save = figures.save_figure
 
-    def keep(fig, path, dpi):
+    def keep(fig, path, dpi, *rest):
         titles.append(fig._suptitle.get_text())
-        return save(fig, path, dpi)
+        return save(fig, path, dpi, *rest)
 
     monkeypatch.setattr(figures, "save_figure", keep)
     n = 600

@@ -41,6 +41,7 @@ from __future__ import annotations
 import warnings
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import casadi as ca
 import numpy as np
@@ -48,6 +49,7 @@ import numpy as np
 from payload.cache import cache_dir  # noqa: F401  (old import path)
 from payload.retarget import compiled as _compiled_mod
 from payload.retarget.collision_c import NativeCollision
+from payload.retarget.collision_cache import load_solver, solver_key, store_solver
 from payload.retarget.collision_eval import CollisionGroups
 from payload.retarget.compiled import (  # noqa: F401  (old import paths)
     _CFLAGS,
@@ -134,21 +136,16 @@ class PairRetargeter(Retargeter):
                     RuntimeWarning,
                     stacklevel=2,
                 )
-        penalty = self.native.penalty_function() if self.native is not None else None
-        parts = solve_parts(self.kinematics, self.config, penalty, prefix=f"{name}_")
-        self.function: ca.Function = build_solve_function(
-            self.kinematics, self.config, name, parts=parts
-        )
+        self._name = name
+        self._function: ca.Function | None = None  # built on first use (the property)
         if compiler is not None:
             try:
-                extra = {f"{self.native.name}.c": self.native.source} if self.native else None
-                code = driver_source(parts, name)
-                self._compiled = _CompiledSolve(self.function, compiler, extra, code)
+                self._compiled = self._solver(compiler)
                 self.library = self._compiled.path
             except (RetargetError, OSError) as exc:
                 if self.native is not None:  # the virtual machine: the conditional form
                     self.native = None
-                    self.function = build_solve_function(self.kinematics, self.config, name)
+                    self._function = None
                 reason = _one_line(exc)
                 if backend == "compiled":
                     if isinstance(exc, RetargetError):
@@ -164,8 +161,54 @@ class PairRetargeter(Retargeter):
         elif backend == "auto":
             self.backend_reason = "no C compiler found (set CC or install gcc)"
         self.backend: str = "compiled" if self._compiled is not None else "vm"
-        self._groups = int(self.function.nnz_in(4))  # carried bounds, one per group
+        c = self._compiled  # carried bounds, one per group
+        self._groups = c.inputs[4].size if c is not None else int(self.function.nnz_in(4))
         self._forget_bounds()
+
+    @property
+    def function(self) -> ca.Function:
+        """The CasADi function of one pair solve (:func:`~payload.retarget.lm_graph.
+        build_solve_function`; with the collision loop in C when :attr:`native`), built
+        on first use: a compiled solver found in the cache needs none."""
+        if self._function is None:
+            self._function = build_solve_function(
+                self.kinematics, self.config, self._name, parts=self._parts()
+            )
+        return self._function
+
+    def _parts(self) -> Any:
+        """The solve's pieces (:func:`~payload.retarget.lm_graph.solve_parts`), named for
+        this solver's library."""
+        penalty = self.native.penalty_function() if self.native is not None else None
+        return solve_parts(self.kinematics, self.config, penalty, prefix=f"{self._name}_")
+
+    def _solver(self, compiler: str) -> _CompiledSolve:
+        """The compiled solve: the library the cache names for this pair, compiler, settings
+        and collision loop (:func:`~payload.retarget.collision_cache.solver_key`), loaded
+        without building the CasADi graph; else the graph built, generated, compiled (or
+        found by its code's hash) and named in the cache for the next retargeter."""
+        name = self._name
+        extra = {f"{self.native.name}.c": self.native.source} if self.native else {}
+        key = solver_key(
+            self.kinematics,
+            compiler,
+            " ".join(_compiled_mod._flags(compiler)),
+            repr(self.config),
+            name,
+            *(f"{k}\n{v}" for k, v in extra.items()),
+        )
+        stored = load_solver(key) if key is not None else None
+        if stored is not None:
+            try:
+                return _CompiledSolve.loaded(name, *stored)
+            except (RetargetError, OSError, AttributeError):  # torn or foreign: built again
+                pass
+        parts = self._parts()
+        self._function = build_solve_function(self.kinematics, self.config, name, parts=parts)
+        made = _CompiledSolve(self._function, compiler, extra or None, driver_source(parts, name))
+        if key is not None:
+            store_solver(key, made.path, *made.sizes)
+        return made
 
     def _forget_bounds(self) -> None:
         """No carried collision bounds: the groups' clearance bounds and the posture they

@@ -17,8 +17,13 @@ unreadable or torn one is derived again and rewritten.
 same bytes it keyed (the key is taken again after the derivation) and with the compiled
 distances when there is a compiler. Postures derived
 from the geometry (the retargeting's seed table, :func:`payload.retarget.budget.
-seed_table`) are kept under keys made from its key (:func:`postures_key`). The newest
-:data:`KEEP` entries of each kind are kept.
+seed_table`) are kept under keys made from its key (:func:`postures_key`).
+
+The same model key names a pair's compiled retargeting solver (:func:`solver_key`, with
+the solve's settings): which cached library it is, so a retargeter whose solver was built
+before loads it without building its CasADi graph again (about 0.15 s a pair;
+:class:`~payload.retarget.casadi_solver.PairRetargeter`). The newest :data:`KEEP` entries
+of each kind are kept.
 """
 
 from __future__ import annotations
@@ -38,6 +43,7 @@ from payload.retarget.features import PairKinematics
 from payload.safeio import replacing
 
 _CACHE_VERSION = "pair-collision-1"
+_SOLVER_VERSION = "pair-solver-1"
 
 MESH_LIBRARY = "trimesh"
 """The distribution that reads the meshes, whose version is in the key beside those of
@@ -72,6 +78,15 @@ class CollisionShape:
 def shape_key(pk: PairKinematics, margin: float) -> str | None:
     """The cache key of a pair's shape, or None when a file it is derived from cannot be
     read (a temporary URDF gone, a mesh missing: derived, and its error raised, there)."""
+    return model_key(pk, _CACHE_VERSION, repr(float(margin)))
+
+
+def model_key(pk: PairKinematics, kind: str, *settings: str) -> str | None:
+    """A cache key of something derived from a pair's model: ``kind`` (what it is, with
+    its format's version), what :func:`payload.native.result_environment` names (the
+    workbench's code among it), trimesh's version, the C compiler and its flags, the URDF
+    and every mesh file it names (their bytes), the design file, the pair's and hand's
+    descriptions, and ``settings``. None when a file cannot be read."""
     urdf = Path(pk.kin.urdf)
     h = hashlib.sha256()
 
@@ -81,7 +96,7 @@ def shape_key(pk: PairKinematics, margin: float) -> str | None:
 
     try:
         text = urdf.read_bytes()
-        part(_CACHE_VERSION)
+        part(kind)
         part(result_environment())  # the workbench's sources among them
         part(f"{MESH_LIBRARY}={dist_version(MESH_LIBRARY)}")
         compiler = find_compiler()
@@ -98,7 +113,8 @@ def shape_key(pk: PairKinematics, margin: float) -> str | None:
         return None
     part(repr(pk.desc))
     part(repr(pk.hand))
-    part(repr(float(margin)))
+    for setting in settings:
+        part(setting)
     return h.hexdigest()[:24]
 
 
@@ -204,14 +220,51 @@ def store_postures(key: str, postures: np.ndarray) -> None:
     _store(f"pair_postures_{key}.npz", postures=np.asarray(postures, dtype=np.float64))
 
 
+def solver_key(pk: PairKinematics, *settings: str) -> str | None:
+    """The cache key of a pair's compiled retargeting solver (:func:`load_solver`): the
+    pair's model (:func:`model_key`) and ``settings`` (the solve's configuration, its
+    symbol, the C of its collision loop)."""
+    return model_key(pk, _SOLVER_VERSION, *settings)
+
+
+def load_solver(key: str) -> tuple[Path, list[int], list[int]] | None:
+    """The compiled solver stored under ``key`` (:func:`store_solver`): its library and
+    its inputs' and outputs' sizes, or None (none, unreadable, or its library gone)."""
+    try:
+        with np.load(cache_dir() / f"pair_solver_{key}.npz") as z:
+            library = cache_dir() / str(z["library"])
+            inputs = [int(k) for k in z["inputs"]]
+            outputs = [int(k) for k in z["outputs"]]
+    except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile):
+        return None
+    return (library, inputs, outputs) if library.is_file() else None
+
+
+def store_solver(key: str, library: Path, inputs: list[int], outputs: list[int]) -> None:
+    """Keep which library (in the cache's folder) is the solver keyed ``key``, and its
+    inputs' and outputs' sizes (best effort, as :func:`store_shape`)."""
+    if library.parent != cache_dir():
+        return
+    _store(
+        f"pair_solver_{key}.npz",
+        library=np.array(library.name),
+        inputs=np.array(inputs, dtype=np.int64),
+        outputs=np.array(outputs, dtype=np.int64),
+    )
+
+
 __all__ = [
     "KEEP",
     "MESH_LIBRARY",
     "CollisionShape",
     "load_postures",
     "load_shape",
+    "load_solver",
+    "model_key",
     "postures_key",
     "shape_key",
+    "solver_key",
     "store_postures",
     "store_shape",
+    "store_solver",
 ]

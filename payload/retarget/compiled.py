@@ -113,6 +113,25 @@ class _CompiledSolve:
             cg.add(fn)
             code = cg.dump()
         lib_path = build_library(name, {f"{name}.c": code, **(extra or {})}, compiler)
+        sizes_in = [fn.nnz_in(i) for i in range(fn.n_in())]
+        self._load(name, lib_path, sizes_in, [fn.nnz_out(i) for i in range(fn.n_out())])
+
+    @classmethod
+    def loaded(
+        cls, name: str, path: Path, sizes_in: list[int], sizes_out: list[int]
+    ) -> _CompiledSolve:
+        """The function ``name`` of a library built before (its inputs' and outputs'
+        sizes as its function gave them), loaded without its CasADi function."""
+        made = cls.__new__(cls)
+        made._load(name, path, sizes_in, sizes_out)
+        return made
+
+    @property
+    def sizes(self) -> tuple[list[int], list[int]]:
+        """The inputs' and outputs' sizes."""
+        return [a.size for a in self.inputs], [a.size for a in self.outputs]
+
+    def _load(self, name: str, lib_path: Path, sizes_in: list[int], sizes_out: list[int]) -> None:
         self.path = lib_path
         self._lib = ctypes.CDLL(str(lib_path))
         ll = ctypes.c_longlong
@@ -122,11 +141,10 @@ class _CompiledSolve:
         if work(*[ctypes.byref(s) for s in sizes]) != 0:
             raise RetargetError("the compiled retargeting solver did not report its work sizes")
         sz_arg, sz_res, sz_iw, sz_w = (s.value for s in sizes)
-        sizes_in = [fn.nnz_in(i) for i in range(fn.n_in())]
         self.input = np.zeros(sum(sizes_in))  # all inputs: one finiteness check covers them
         ends = np.cumsum(sizes_in)
         self.inputs = [self.input[e - k : e] for e, k in zip(ends, sizes_in)]
-        self.outputs = [np.zeros(fn.nnz_out(i)) for i in range(fn.n_out())]
+        self.outputs = [np.zeros(k) for k in sizes_out]
         dp = ctypes.POINTER(ctypes.c_double)
         self._arg = (dp * max(sz_arg, len(self.inputs)))(
             *[a.ctypes.data_as(dp) for a in self.inputs]

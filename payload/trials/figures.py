@@ -142,13 +142,25 @@ def _margins(size_in: tuple[float, float], margins_in: dict[str, float]) -> dict
     return out
 
 
-def save_figure(fig: Figure, path: Path, dpi: int) -> Path:
-    """Save ``fig`` to ``path`` (format from the suffix) through a temporary file."""
+TRIAL_PNG_COMPRESSION = 1
+"""zlib's level for a trial's two PNG figures (Pillow's default is 6): the same pixels,
+written in about 0.04 s less each (0.25 -> 0.21 s and 0.14 -> 0.09 s on seed 0's) for
+files 8 % and 30 % larger; a trial writes them every time it is scored, a campaign's
+committed figure keeps the default."""
+
+
+def save_figure(fig: Figure, path: Path, dpi: int, png_compression: int | None = None) -> Path:
+    """Save ``fig`` to ``path`` (format from the suffix) through a temporary file; a PNG
+    at zlib level ``png_compression`` (None: Pillow's default)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     FigureCanvasAgg(fig)
+    fmt = path.suffix.lstrip(".") or "png"
+    extra: dict[str, Any] = {}
+    if png_compression is not None and fmt == "png":
+        extra["pil_kwargs"] = {"compress_level": png_compression}
     with replacing(path) as tmp:  # a crash never leaves half a figure
-        fig.savefig(tmp, dpi=dpi, format=path.suffix.lstrip(".") or "png")
+        fig.savefig(tmp, dpi=dpi, format=fmt, **extra)
     return path
 
 
@@ -232,7 +244,7 @@ def plot_ctb_body_frame(
         y=1.0 - _EDGE_IN / _CTB_SIZE_IN[1],
         va="top",
     )
-    return save_figure(fig, Path(path), dpi)
+    return save_figure(fig, Path(path), dpi, TRIAL_PNG_COMPRESSION)
 
 
 def plot_route(
@@ -293,11 +305,12 @@ def plot_route(
     ax.legend(loc="best", fontsize=8)
     net = float(np.linalg.norm(pc[-1] - pc[0]))
     ax.set_title(f"Route, top view (CTB net displacement {net:.2f} m)", fontsize=10)
-    return save_figure(fig, Path(path), dpi)
+    return save_figure(fig, Path(path), dpi, TRIAL_PNG_COMPRESSION)
 
 
 __all__ = [
     "PHASE_COLORS",
+    "TRIAL_PNG_COMPRESSION",
     "FigureError",
     "ModuleRect",
     "phase_spans",
