@@ -30,6 +30,7 @@ from payload.trials.recorder import (
     SCHEMA_VERSION,
     STEP_SCHEMA,
     RecordingError,
+    StepRecord,
     TrialRecorder,
     random_step,
     read_hand_frames,
@@ -707,9 +708,26 @@ def test_a_non_finite_typed_step_is_named_by_the_reader(tmp_path: Path) -> None:
         read_recording(path)
 
 
-def _recorded(path: Path, world: object, steps: list, frames: list, later: bool) -> bytes:
+def _fields(step: StepRecord) -> dict:
+    """A step's fields, as the loop hands them to a step's making: writable copies."""
+    return {
+        f.name: (lambda v: v.copy() if isinstance(v, np.ndarray) else v)(getattr(step, f.name))
+        for f in dataclasses.fields(StepRecord)
+    }
+
+
+def _remade(step: StepRecord) -> StepRecord:
+    """The step made again from its fields (a build the recorder calls at a flush)."""
+    return StepRecord(**_fields(step))
+
+
+_remade.many = lambda calls: StepRecord.many([_fields(st) for (st,) in calls])  # type: ignore[attr-defined]
+
+
+def _recorded(path: Path, world: object, steps: list, frames: list, later: object) -> bytes:
     """The file a recorder with the Foxglove scene writes of these steps and hand frames on
-    a fixed clock, each step written now or made at the flush (``write_later``)."""
+    a fixed clock, each step written now or made at the flush (``write_later``; ``later``
+    "many": by a build that makes a flush's steps as a batch)."""
     from payload.trials.foxglove import FoxgloveScene
 
     ticks = iter(range(10**6))
@@ -718,11 +736,118 @@ def _recorded(path: Path, world: object, steps: list, frames: list, later: bool)
         for st, fr in zip(steps, frames):
             if fr is not None:
                 rec.write_hands(fr)
-            if later:
+            if later == "many":
+                rec.write_later(st.t, _remade, st)
+            elif later:
                 rec.write_later(st.t, dataclasses.replace, st)  # a new StepRecord, made then
             else:
                 rec.write(st)
     return path.read_bytes()
+
+
+def _same_steps(got: list, want: list) -> None:
+    """The same steps to the bit: each field's type, and each array's dtype, shape, bytes
+    and read-only flag."""
+    assert len(got) == len(want)
+    for a, b in zip(got, want):
+        for f in dataclasses.fields(StepRecord):
+            x, y = getattr(a, f.name), getattr(b, f.name)
+            assert type(x) is type(y), f.name
+            if isinstance(x, np.ndarray):
+                assert (x.dtype, x.shape, x.tobytes()) == (y.dtype, y.shape, y.tobytes()), f.name
+                assert not x.flags.writeable and not y.flags.writeable
+            else:
+                assert x == y, f.name
+
+
+def test_steps_made_as_a_batch_are_the_steps_made_one_at_a_time(monkeypatch) -> None:
+    """``StepRecord.many`` makes what ``StepRecord(**fields)`` makes of each, to the bit, or
+    raises its error: the loop's steps in one buffer without a step's own checks (NaN in an
+    untracked hand allowed); steps to convert (lists, integers, float32) and a quaternion
+    near zero made one at a time; a bad field anywhere in the batch raises as that step
+    alone does."""
+    rng = np.random.default_rng(12)
+    steps = [random_step(rng, k * DT) for k in range(12)]
+    fields = [_fields(st) for st in steps]
+    fields[3]["left_joints"][4] = np.nan  # an untracked joint: allowed
+    fields[3]["left_tracked"] = False
+    one = [StepRecord(**f) for f in fields]
+    own_checks = []
+    made_alone = StepRecord.__post_init__
+    monkeypatch.setattr(
+        StepRecord, "__post_init__", lambda self: own_checks.append(1) or made_alone(self)
+    )
+    _same_steps(StepRecord.many(fields), one)
+    assert own_checks == []  # the batch, not the steps one by one
+    assert StepRecord.many([]) == []
+    small = np.array([1e-8, 0.0, 0.0, 0.0])  # a norm the check passes, near its threshold
+    for name, value in [
+        ("ctb_pos", [1.0, 2.0, 3.0]),
+        ("q_meas", np.arange(17)),
+        ("astrobee_pos", np.ones(3, dtype=np.float32) / 3),
+        ("astrobee_quat", small),
+        ("rail_cmd", 1),
+        ("left_tracked", np.bool_(True)),
+    ]:
+        changed = [dict(f) for f in fields]
+        changed[5][name] = value
+        own_checks.clear()
+        _same_steps(StepRecord.many(changed), [StepRecord(**f) for f in changed])
+        assert own_checks, name  # made one at a time
+    for name, value in [
+        ("right_joints", np.full((25, 3), np.inf)),
+        ("q_meas", np.full(17, np.nan)),
+        ("twist_cmd", np.zeros(5)),
+        ("ctb_quat", np.zeros(4)),
+        ("phase", "lunch"),
+        ("ctb_module", "columbus"),
+        ("deploy_cmd", float("nan")),
+        ("contact", 1),
+    ]:
+        bad = [dict(f) for f in fields]
+        bad[7][name] = value
+        with pytest.raises(RecordingError) as alone:
+            StepRecord(**bad[7])
+        with pytest.raises(RecordingError) as batch:
+            StepRecord.many(bad)
+        assert str(batch.value) == str(alone.value), name
+    extra, missing = [dict(f) for f in fields], [dict(f) for f in fields]
+    extra[2]["extra"] = 1.0
+    del missing[2]["t"]
+    for bad in (extra, missing):
+        with pytest.raises(TypeError):
+            StepRecord.many(bad)
+
+
+def test_a_flush_made_as_a_batch_writes_what_steps_made_one_at_a_time_write(
+    foxglove_recording, tmp_path
+) -> None:
+    """A build that makes a flush's steps as a batch (its ``many``) writes the file that
+    steps written at once write, byte for byte; if the batch fails, the steps are made one
+    at a time, and the one that fails is named, the steps before it written."""
+    _, steps, world = foxglove_recording
+    frames = [
+        None if k % 5 == 1 else HandFrame(st.t, Hand(st.left_joints), Hand(st.right_joints))
+        for k, st in enumerate(steps)
+    ]
+    now = _recorded(tmp_path / "now.mcap", world, steps, frames, later=False)
+    assert _recorded(tmp_path / "many.mcap", world, steps, frames, later="many") == now
+
+    def bad(st: StepRecord) -> StepRecord:
+        return dataclasses.replace(st, q_meas=np.full(17, np.nan))
+
+    def build(st: StepRecord) -> StepRecord:
+        return bad(st) if st.t == steps[9].t else _remade(st)
+
+    build.many = lambda calls: [build(st) for (st,) in calls]  # type: ignore[attr-defined]
+    with TrialRecorder(tmp_path / "bad.mcap") as rec:
+        rec.write(steps[0])
+        for st in steps[1:15]:
+            rec.write_later(st.t, build, st)
+        with pytest.raises(RecordingError, match=rf"step at t = {steps[9].t} s: .*q_meas"):
+            rec.flush()
+    back = read_recording(tmp_path / "bad.mcap")
+    assert len(back) == 9
 
 
 def test_a_step_made_at_the_flush_is_the_step_written_at_once(foxglove_recording, tmp_path):

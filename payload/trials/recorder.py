@@ -437,7 +437,27 @@ def _at(t: float, what: str, cause: BaseException | None = None) -> RecordingErr
 def _built(pending: list[tuple[Any, ...]]) -> tuple[int, RecordingError] | None:
     """Make the deferred steps of a batch (:meth:`TrialRecorder.write_later`) in place, in
     order; at the first that fails, its index and a :class:`RecordingError` naming the
-    step's time and what went wrong (``build``'s own error chained as its cause)."""
+    step's time and what went wrong (``build``'s own error chained as its cause).
+
+    A ``build`` with a ``many`` attribute (``many(calls) -> steps``, each call's
+    ``build(*args)`` in order: :func:`payload.trials.stepobserver.step_records`) makes a
+    run of its steps at once; if it raises, or makes other than those steps, they are
+    made one at a time, which finds the one that fails."""
+    runs: dict[Any, list[int]] = {}
+    for i, item in enumerate(pending):
+        step = item[0]
+        if type(step) is tuple and getattr(step[0], "many", None) is not None:
+            runs.setdefault(step[0], []).append(i)
+    for build, where in runs.items():
+        try:
+            made = build.many([pending[i][0][1] for i in where])
+        except Exception:  # made one at a time below, which says which step and why
+            continue
+        if len(made) != len(where):
+            continue
+        if all(isinstance(m, StepRecord) and m.t == pending[i][6] for m, i in zip(made, where)):
+            for m, i in zip(made, where):
+                pending[i] = (m, *pending[i][1:])
     for i, item in enumerate(pending):
         step = item[0]
         if type(step) is not tuple:
