@@ -516,6 +516,32 @@ def test_the_vm_agrees_with_the_compiled_solver_with_collisions_on(pks, solvers)
     assert near > 0  # some answers end in the band, where the collision terms act
 
 
+def test_a_solver_with_collisions_the_cache_names_loads_without_its_loop_or_graph(
+    hand, pks, solvers, monkeypatch
+):
+    """With self-collision, a retargeter whose solver the cache names builds neither the
+    collision loop's C nor the graph, and answers to the bit as the one that built them,
+    over a sequence that carries the groups' bounds; its loop is built when asked for."""
+    import payload.retarget.casadi_solver as cs
+
+    built: list[str] = []
+    for name in ("NativeCollision", "solve_parts"):
+        real = getattr(cs, name)
+        monkeypatch.setattr(
+            cs, name, lambda *a, _n=name, _f=real, **k: built.append(_n) or _f(*a, **k)
+        )
+    pk, first = pks["L"], solvers["L"]
+    again = PairRetargeter(hand, "L", first.config, pk)
+    assert built == [] and again.library == first.library, again.backend_reason
+    first.reset(), again.reset()
+    for q_true in _free_postures(pk, 6, 43):
+        t = pk.features(q_true).as_vector()
+        want, got = first.solve(t, None, pk.rest), again.solve(t, None, pk.rest)
+        assert got[0].tobytes() == want[0].tobytes() and got[1] == want[1]
+    assert again.native is not None and built == ["NativeCollision"]
+    assert again.native.source == first.native.source  # the C the library was built with
+
+
 @pytest.mark.parametrize(
     ("collisions", "budget"), [(True, "converged"), (True, "paper"), (False, "paper")]
 )

@@ -122,20 +122,10 @@ class PairRetargeter(Retargeter):
             raise RetargetError("backend 'compiled' needs a C compiler (set CC or install gcc)")
         # With a compiler, the collision part is a C loop over the groups linked into the
         # solver (payload.retarget.collision_c); the virtual machine runs the conditional
-        # CasADi form of the same computation.
-        self.native: NativeCollision | None = None
-        if compiler is not None and self.collisions:
-            try:
-                self.native = NativeCollision(
-                    CollisionGroups(self.kinematics), self.config, f"{name}_collision", compiler
-                )
-            except (RetargetError, OSError, RuntimeError) as exc:
-                warnings.warn(
-                    f"collision loop not compiled ({_one_line(exc)}); using the conditional "
-                    "CasADi form",
-                    RuntimeWarning,
-                    stacklevel=2,
-                )
+        # CasADi form of the same computation. The loop is built when first needed (the
+        # property): a solver found in the cache has it already.
+        self._native: NativeCollision | None = None
+        self._native_compiler = compiler if self.collisions else None
         self._name = name
         self._function: ca.Function | None = None  # built on first use (the property)
         if compiler is not None:
@@ -143,9 +133,8 @@ class PairRetargeter(Retargeter):
                 self._compiled = self._solver(compiler)
                 self.library = self._compiled.path
             except (RetargetError, OSError) as exc:
-                if self.native is not None:  # the virtual machine: the conditional form
-                    self.native = None
-                    self._function = None
+                self.native = None  # the virtual machine: the conditional form
+                self._function = None
                 reason = _one_line(exc)
                 if backend == "compiled":
                     if isinstance(exc, RetargetError):
@@ -166,6 +155,37 @@ class PairRetargeter(Retargeter):
         self._forget_bounds()
 
     @property
+    def native(self) -> NativeCollision | None:
+        """The collision part of an evaluation as a C loop
+        (:class:`~payload.retarget.collision_c.NativeCollision`), compiled into the solver;
+        None without self-collision, without a C compiler, or when it could not be made
+        (said in a warning: the conditional CasADi form is used). Built on first use: a
+        solver the cache names was built with it."""
+        compiler = self._native_compiler
+        if compiler is not None:
+            self._native_compiler = None
+            try:
+                self._native = NativeCollision(
+                    CollisionGroups(self.kinematics),
+                    self.config,
+                    f"{self._name}_collision",
+                    compiler,
+                )
+            except (RetargetError, OSError, RuntimeError) as exc:
+                warnings.warn(
+                    f"collision loop not compiled ({_one_line(exc)}); using the conditional "
+                    "CasADi form",
+                    RuntimeWarning,
+                    stacklevel=2,
+                )
+        return self._native
+
+    @native.setter
+    def native(self, value: NativeCollision | None) -> None:
+        self._native_compiler = None
+        self._native = value
+
+    @property
     def function(self) -> ca.Function:
         """The CasADi function of one pair solve (:func:`~payload.retarget.lm_graph.
         build_solve_function`; with the collision loop in C when :attr:`native`), built
@@ -183,19 +203,19 @@ class PairRetargeter(Retargeter):
         return solve_parts(self.kinematics, self.config, penalty, prefix=f"{self._name}_")
 
     def _solver(self, compiler: str) -> _CompiledSolve:
-        """The compiled solve: the library the cache names for this pair, compiler, settings
-        and collision loop (:func:`~payload.retarget.collision_cache.solver_key`), loaded
+        """The compiled solve: the library the cache names for this pair, compiler and
+        settings (:func:`~payload.retarget.collision_cache.solver_key`), loaded
         without building the CasADi graph; else the graph built, generated, compiled (or
         found by its code's hash) and named in the cache for the next retargeter."""
         name = self._name
-        extra = {f"{self.native.name}.c": self.native.source} if self.native else {}
+        # the collision loop's C follows from the model and the settings in the key (its
+        # geometry is derived from the same files, the code from the workbench's sources)
         key = solver_key(
             self.kinematics,
             compiler,
             " ".join(_compiled_mod._flags(compiler)),
             repr(self.config),
             name,
-            *(f"{k}\n{v}" for k, v in extra.items()),
         )
         stored = load_solver(key) if key is not None else None
         if stored is not None:
@@ -203,6 +223,10 @@ class PairRetargeter(Retargeter):
                 return _CompiledSolve.loaded(name, *stored)
             except (RetargetError, OSError, AttributeError):  # torn or foreign: built again
                 pass
+        native = self.native
+        extra = {f"{native.name}.c": native.source} if native is not None else {}
+        if self.collisions and native is None:
+            key = None  # the conditional form compiled: not the solver the key names
         parts = self._parts()
         self._function = build_solve_function(self.kinematics, self.config, name, parts=parts)
         made = _CompiledSolve(self._function, compiler, extra or None, driver_source(parts, name))
