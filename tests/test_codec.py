@@ -716,12 +716,21 @@ def _fields(step: StepRecord) -> dict:
     }
 
 
+MADE: list[str] = []  # how the steps of _remade were made: "one" or "many"
+
+
 def _remade(step: StepRecord) -> StepRecord:
     """The step made again from its fields (a build the recorder calls at a flush)."""
+    MADE.append("one")
     return StepRecord(**_fields(step))
 
 
-_remade.many = lambda calls: StepRecord.many([_fields(st) for (st,) in calls])  # type: ignore[attr-defined]
+def _remade_many(calls: list) -> list:
+    MADE.append("many")
+    return StepRecord.many([_fields(st) for (st,) in calls])
+
+
+_remade.many = _remade_many  # type: ignore[attr-defined]
 
 
 def _recorded(path: Path, world: object, steps: list, frames: list, later: object) -> bytes:
@@ -780,25 +789,25 @@ def test_steps_made_as_a_batch_are_the_steps_made_one_at_a_time(monkeypatch) -> 
     _same_steps(StepRecord.many(fields), one)
     assert own_checks == []  # the batch, not the steps one by one
     assert StepRecord.many([]) == []
-    small = np.array([1e-8, 0.0, 0.0, 0.0])  # a norm the check passes, near its threshold
-    for name, value in [
-        ("ctb_pos", [1.0, 2.0, 3.0]),
-        ("q_meas", np.arange(17)),
-        ("astrobee_pos", np.ones(3, dtype=np.float32) / 3),
-        ("astrobee_quat", small),
-        ("rail_cmd", 1),
-        ("left_tracked", np.bool_(True)),
-    ]:
+    # numbers numpy converts for the batch as a step's own conversion does: the batch
+    convert = [("ctb_pos", [1.0, 2.0, 3.0]), ("q_meas", np.arange(17)),
+               ("astrobee_pos", np.ones(3, dtype=np.float32) / 3)]  # fmt: skip
+    # scalars of another type, a quaternion within ten times the check's threshold: alone
+    alone = [("rail_cmd", 1), ("left_tracked", np.bool_(True)), ("t", np.float64(0.1)),
+             ("astrobee_quat", np.array([5e-9, 0.0, 0.0, 0.0]))]  # fmt: skip
+    for (name, value), batch in [(c, True) for c in convert] + [(c, False) for c in alone]:
         changed = [dict(f) for f in fields]
         changed[5][name] = value
+        want = [StepRecord(**f) for f in changed]
         own_checks.clear()
-        _same_steps(StepRecord.many(changed), [StepRecord(**f) for f in changed])
-        assert own_checks, name  # made one at a time
+        _same_steps(StepRecord.many(changed), want)
+        assert own_checks == ([] if batch else [1] * len(changed)), name
     for name, value in [
         ("right_joints", np.full((25, 3), np.inf)),
         ("q_meas", np.full(17, np.nan)),
         ("twist_cmd", np.zeros(5)),
         ("ctb_quat", np.zeros(4)),
+        ("ctb_quat", np.array([0.0, 5e-10, 0.0, 0.0])),
         ("phase", "lunch"),
         ("ctb_module", "columbus"),
         ("deploy_cmd", float("nan")),
@@ -806,11 +815,11 @@ def test_steps_made_as_a_batch_are_the_steps_made_one_at_a_time(monkeypatch) -> 
     ]:
         bad = [dict(f) for f in fields]
         bad[7][name] = value
-        with pytest.raises(RecordingError) as alone:
+        with pytest.raises(RecordingError) as alone_error:
             StepRecord(**bad[7])
-        with pytest.raises(RecordingError) as batch:
+        with pytest.raises(RecordingError) as batch_error:
             StepRecord.many(bad)
-        assert str(batch.value) == str(alone.value), name
+        assert str(batch_error.value) == str(alone_error.value), name
     extra, missing = [dict(f) for f in fields], [dict(f) for f in fields]
     extra[2]["extra"] = 1.0
     del missing[2]["t"]
@@ -831,15 +840,19 @@ def test_a_flush_made_as_a_batch_writes_what_steps_made_one_at_a_time_write(
         for k, st in enumerate(steps)
     ]
     now = _recorded(tmp_path / "now.mcap", world, steps, frames, later=False)
+    MADE.clear()
     assert _recorded(tmp_path / "many.mcap", world, steps, frames, later="many") == now
+    assert "many" in MADE and "one" not in MADE  # each flush's steps as one batch
 
-    def bad(st: StepRecord) -> StepRecord:
-        return dataclasses.replace(st, q_meas=np.full(17, np.nan))
+    def bad(st: StepRecord) -> dict:
+        return {**_fields(st), "q_meas": np.full(17, np.nan)}
 
     def build(st: StepRecord) -> StepRecord:
-        return bad(st) if st.t == steps[9].t else _remade(st)
+        return StepRecord(**(bad(st) if st.t == steps[9].t else _fields(st)))
 
-    build.many = lambda calls: [build(st) for (st,) in calls]  # type: ignore[attr-defined]
+    build.many = lambda calls: StepRecord.many(  # type: ignore[attr-defined]
+        [bad(st) if st.t == steps[9].t else _fields(st) for (st,) in calls]
+    )
     with TrialRecorder(tmp_path / "bad.mcap") as rec:
         rec.write(steps[0])
         for st in steps[1:15]:
@@ -848,6 +861,14 @@ def test_a_flush_made_as_a_batch_writes_what_steps_made_one_at_a_time_write(
             rec.flush()
     back = read_recording(tmp_path / "bad.mcap")
     assert len(back) == 9
+    # a batch that makes a step at another time than said: the steps made one at a time
+    _remade.many = lambda calls: [dataclasses.replace(st, t=st.t + 1) for (st,) in calls]
+    try:
+        MADE.clear()
+        assert _recorded(tmp_path / "late.mcap", world, steps, frames, later="many") == now
+        assert MADE.count("one") == len(steps)
+    finally:
+        _remade.many = _remade_many
 
 
 def test_a_step_made_at_the_flush_is_the_step_written_at_once(foxglove_recording, tmp_path):

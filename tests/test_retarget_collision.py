@@ -542,6 +542,38 @@ def test_a_solver_with_collisions_the_cache_names_loads_without_its_loop_or_grap
     assert again.native.source == first.native.source  # the C the library was built with
 
 
+def test_a_solver_is_named_in_the_cache_only_when_built_from_what_the_cache_keeps(
+    hand, pks, solvers, monkeypatch
+):
+    """A compiled solver with self-collision is named in the cache only when its collision
+    geometry is one the cache keeps (its key, the compiled distances) and it holds the
+    collision loop's C; and only under the key it was built under."""
+    import payload.retarget.casadi_solver as cs
+    from payload.retarget import compiled
+
+    named: list[str] = []
+    monkeypatch.setattr(cs, "store_solver", lambda key, *rest: named.append(key))
+    r, compiler = solvers["L"], compiled._compiler()
+    key = r._solver_key(compiler)
+    assert key is not None
+    r._store_solver(key, compiler)
+    assert named == [key]
+    r._store_solver("0" * 24, compiler)  # not the key it was built under
+    col = pks["L"].collision
+    monkeypatch.setattr(col, "key", None)  # a geometry the cache did not keep
+    r._store_solver(key, compiler)
+    monkeypatch.undo()
+    monkeypatch.setattr(cs, "store_solver", lambda key, *rest: named.append(key))
+    monkeypatch.setattr(type(col), "compiled_distances", lambda self, terms=None: False)
+    r._store_solver(key, compiler)
+    monkeypatch.undo()
+    monkeypatch.setattr(cs, "store_solver", lambda key, *rest: named.append(key))
+    monkeypatch.setattr(r, "_native", None)  # compiled without its collision loop
+    monkeypatch.setattr(r, "_native_compiler", None)
+    r._store_solver(key, compiler)
+    assert named == [key]
+
+
 @pytest.mark.parametrize(
     ("collisions", "budget"), [(True, "converged"), (True, "paper"), (False, "paper")]
 )

@@ -129,12 +129,23 @@ class PairRetargeter(Retargeter):
         self._name = name
         self._function: ca.Function | None = None  # built on first use (the property)
         if compiler is not None:
+            key = self._solver_key(compiler)
+            self._compiled = self._cached_solver(key)
+        if compiler is not None and self._compiled is None:
+            # the graph (and the collision loop) outside the try, as a missing compiler
+            # leaves them: an error building them is raised as it is
+            parts = self._parts()
+            self._function = build_solve_function(self.kinematics, self.config, name, parts=parts)
             try:
-                self._compiled = self._solver(compiler)
-                self.library = self._compiled.path
+                native = self.native
+                extra = {f"{native.name}.c": native.source} if native is not None else None
+                self._compiled = _CompiledSolve(
+                    self._function, compiler, extra, driver_source(parts, name)
+                )
             except (RetargetError, OSError) as exc:
-                self.native = None  # the virtual machine: the conditional form
-                self._function = None
+                if self.native is not None:  # the virtual machine: the conditional form
+                    self.native = None
+                    self._function = None
                 reason = _one_line(exc)
                 if backend == "compiled":
                     if isinstance(exc, RetargetError):
@@ -147,7 +158,11 @@ class PairRetargeter(Retargeter):
                     stacklevel=2,
                 )
                 self._compiled = None
-        elif backend == "auto":
+            else:
+                self._store_solver(key, compiler)
+        if self._compiled is not None:
+            self.library = self._compiled.path
+        elif compiler is None and backend == "auto":
             self.backend_reason = "no C compiler found (set CC or install gcc)"
         self.backend: str = "compiled" if self._compiled is not None else "vm"
         c = self._compiled  # carried bounds, one per group
@@ -202,37 +217,43 @@ class PairRetargeter(Retargeter):
         penalty = self.native.penalty_function() if self.native is not None else None
         return solve_parts(self.kinematics, self.config, penalty, prefix=f"{self._name}_")
 
-    def _solver(self, compiler: str) -> _CompiledSolve:
-        """The compiled solve: the library the cache names for this pair, compiler and
-        settings (:func:`~payload.retarget.collision_cache.solver_key`), loaded
-        without building the CasADi graph; else the graph built, generated, compiled (or
-        found by its code's hash) and named in the cache for the next retargeter."""
-        name = self._name
-        # the collision loop's C follows from the model and the settings in the key (its
-        # geometry is derived from the same files, the code from the workbench's sources)
-        key = solver_key(
-            self.kinematics,
-            compiler,
-            " ".join(_compiled_mod._flags(compiler)),
-            repr(self.config),
-            name,
-        )
+    def _solver_key(self, compiler: str) -> str | None:
+        """The disk cache's key of this pair's compiled solver
+        (:func:`~payload.retarget.collision_cache.solver_key`): the pair's model, the
+        compiler, its flags, the settings and the symbol (the collision loop's C follows
+        from the model, its geometry's files and the workbench's sources, all in the key)."""
+        flags = " ".join(_compiled_mod._flags(compiler))
+        return solver_key(self.kinematics, compiler, flags, repr(self.config), self._name)
+
+    def _cached_solver(self, key: str | None) -> _CompiledSolve | None:
+        """The compiled solver the cache names under ``key``, loaded without building the
+        CasADi graph, or None (none named; its library gone, foreign or of other sizes)."""
         stored = load_solver(key) if key is not None else None
-        if stored is not None:
-            try:
-                return _CompiledSolve.loaded(name, *stored)
-            except (RetargetError, OSError, AttributeError):  # torn or foreign: built again
-                pass
-        native = self.native
-        extra = {f"{native.name}.c": native.source} if native is not None else {}
-        if self.collisions and native is None:
-            key = None  # the conditional form compiled: not the solver the key names
-        parts = self._parts()
-        self._function = build_solve_function(self.kinematics, self.config, name, parts=parts)
-        made = _CompiledSolve(self._function, compiler, extra or None, driver_source(parts, name))
-        if key is not None:
-            store_solver(key, made.path, *made.sizes)
-        return made
+        if stored is None:
+            return None
+        _, sizes_in, sizes_out = stored
+        n, groups = self.n, sizes_in[-1] if sizes_in else -1
+        info = len(SolveInfo._fields)  # the report output, a value per field
+        if sizes_in != [n, N_FEATURES, n, n, groups] or sizes_out != [n, info, groups]:
+            return None
+        try:
+            return _CompiledSolve.loaded(self._name, *stored)
+        except (RetargetError, OSError, AttributeError):  # torn or foreign: built again
+            return None
+
+    def _store_solver(self, key: str | None, compiler: str) -> None:
+        """Name the solver just compiled in the cache under ``key``: not when its collision
+        geometry was not one the cache keeps (derived without the compiled distances, or
+        from files that changed meanwhile), nor one compiled without its collision loop,
+        nor when the key changed while it was built."""
+        c = self._compiled
+        if key is None or c is None or key != self._solver_key(compiler):
+            return
+        if self.collisions:
+            col = self.kinematics.collision
+            if self.native is None or col.key is None or not col.compiled_distances(col.terms):
+                return
+        store_solver(key, c.path, *c.sizes)
 
     def _forget_bounds(self) -> None:
         """No carried collision bounds: the groups' clearance bounds and the posture they

@@ -222,8 +222,9 @@ def store_postures(key: str, postures: np.ndarray) -> None:
 
 def solver_key(pk: PairKinematics, *settings: str) -> str | None:
     """The cache key of a pair's compiled retargeting solver (:func:`load_solver`): the
-    pair's model (:func:`model_key`) and ``settings`` (the solve's configuration, its
-    symbol, the C of its collision loop)."""
+    pair's model (:func:`model_key`: its files, the workbench's sources, the packages'
+    versions, the compiler) and ``settings`` (the compiler and flags the solver is built
+    with, the solve's configuration, its symbol)."""
     return model_key(pk, _SOLVER_VERSION, *settings)
 
 

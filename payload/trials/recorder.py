@@ -443,19 +443,19 @@ def _built(pending: list[tuple[Any, ...]]) -> tuple[int, RecordingError] | None:
     ``build(*args)`` in order: :func:`payload.trials.stepobserver.step_records`) makes a
     run of its steps at once; if it raises, or makes other than those steps, they are
     made one at a time, which finds the one that fails."""
-    runs: dict[Any, list[int]] = {}
+    runs: dict[int, tuple[Any, list[int]]] = {}  # by the build's identity
     for i, item in enumerate(pending):
         step = item[0]
         if type(step) is tuple and getattr(step[0], "many", None) is not None:
-            runs.setdefault(step[0], []).append(i)
-    for build, where in runs.items():
+            runs.setdefault(id(step[0]), (step[0], []))[1].append(i)
+    for build, where in runs.values():
         try:
-            made = build.many([pending[i][0][1] for i in where])
+            made = list(build.many([pending[i][0][1] for i in where]))
         except Exception:  # made one at a time below, which says which step and why
             continue
-        if len(made) != len(where):
-            continue
-        if all(isinstance(m, StepRecord) and m.t == pending[i][6] for m, i in zip(made, where)):
+        if len(made) == len(where) and all(
+            isinstance(m, StepRecord) and m.t == pending[i][6] for m, i in zip(made, where)
+        ):
             for m, i in zip(made, where):
                 pending[i] = (m, *pending[i][1:])
     for i, item in enumerate(pending):
