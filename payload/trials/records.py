@@ -399,7 +399,7 @@ class StepRecord:
                         value in kind if kept is str else kept is bool or math.isfinite(value)
                     ):
                         raise TypeError(name)
-        except (TypeError, ValueError, KeyError):
+        except Exception:  # anything the batch cannot take: each step as it would be made
             return [cls(**fields) for fields in steps]  # converted, or its error raised
         buf.setflags(write=False)
         # each field's rows as views (the step's read-only arrays), a column at a time
