@@ -159,9 +159,10 @@ def follow_design(
     _, files = generate(load_design(design_path))
     stale = _stale(files, root)
     if stale:
-        _, removed = _write_files(files, root)
-        rebuilt = [rel for rel in stale if rel not in removed]
-        lines = [MODELS_LINE.format(files=_shown(rebuilt), design=design_path)] if rebuilt else []
+        rebuilt, removed = _write_files(files, root)
+        lines = []
+        if rebuilt:
+            lines.append(MODELS_LINE.format(files=_shown(list(rebuilt)), design=design_path))
         if removed:
             lines.append(
                 REMOVED_LINE.format(

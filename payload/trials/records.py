@@ -255,8 +255,15 @@ _OTHER_FIELDS: tuple[tuple[str, tuple[int, ...], Any, type], ...] = tuple(
 
 
 _FIELD_NAMES = frozenset(FIELD_SPECS)
+_QUATERNION_FIELDS = ("astrobee_quat", "ctb_quat")
+"""The fields a step checks are not a zero quaternion."""
+QUAT_MIN_NORM = 1e-9
+"""A step's quaternion with a smaller norm is refused as zero."""
+_QUAT_BATCH_MIN = (10 * QUAT_MIN_NORM) ** 2
+"""The squared norm every quaternion of a batch (:meth:`StepRecord.many`) must exceed:
+ten times the check's norm, so that no rounding of the batch's sum decides it."""
 _QUATERNIONS = tuple(
-    (start, stop) for name, start, stop, _ in _ARRAY_SLICES if name in ("astrobee_quat", "ctb_quat")
+    (start, stop) for name, start, stop, _ in _ARRAY_SLICES if name in _QUATERNION_FIELDS
 )
 """The quaternion fields' parts of the buffer (:meth:`StepRecord._check_quaternions`)."""
 
@@ -350,9 +357,9 @@ class StepRecord:
         self._check_quaternions()
 
     def _check_quaternions(self) -> None:
-        for name in ("astrobee_quat", "ctb_quat"):
+        for name in _QUATERNION_FIELDS:
             q = self.__dict__[name]
-            if math.sqrt(q.dot(q)) < 1e-9:  # np.linalg.norm's own formula
+            if math.sqrt(q.dot(q)) < QUAT_MIN_NORM:  # np.linalg.norm's own formula
                 raise RecordingError(f"StepRecord.{name}: zero quaternion")
 
     @classmethod
@@ -363,7 +370,7 @@ class StepRecord:
 
         When every step is the loop's common case (each array field numbers of its shape,
         every value finite where it must be, each scalar of the type it keeps, each
-        quaternion's squared norm above 1e-16, far from the check's 1e-9 norm), the arrays
+        quaternion's norm above ten times :data:`QUAT_MIN_NORM`, the check's), the arrays
         are copied into one buffer, a row a step, and checked with one sum per kind and
         row; otherwise each step is made on its own, which converts what
         :class:`StepRecord` converts and raises what it raises.
@@ -387,8 +394,8 @@ class StepRecord:
             )
             if not whole:
                 raise ValueError("not finite")
-            for start, stop in _QUATERNIONS:  # clear of the check's 1e-9 on every row
-                if not (add_reduce(buf[:, start:stop] ** 2, axis=1) > 1e-16).all():
+            for start, stop in _QUATERNIONS:  # clear of the check's threshold on every row
+                if not (add_reduce(buf[:, start:stop] ** 2, axis=1) > _QUAT_BATCH_MIN).all():
                     raise ValueError("a quaternion near zero")
             for fields in steps:
                 if fields.keys() != _FIELD_NAMES:
