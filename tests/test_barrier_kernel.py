@@ -52,13 +52,15 @@ def test_the_rows_of_a_point_inside_a_box_against_a_closed_form(gain, bound):
     local = np.array([[-0.01, 0.2, 0.0]])
     params = np.array([0.05, 1.0, 0.1, gain, 0.02, 0.1, 0.1, 0.1])
     rows, out, lower, pts = np.zeros((2, 4)), np.zeros((2, 2)), np.zeros((1, 1)), np.zeros((1, 3))
-    boxes = np.array([[[-0.01, 0.2, 0.0]], [[0.0, 0.0, 0.0]]])
+    boxes = np.array([local, np.zeros_like(local)])  # the point's box, of no extent
     count, least = kernel.barrier_rows(
         xmat, xpos, 0, np.zeros(1, np.int64), boxes, local, np.array([0, 1]), obs,
         np.zeros(4), params, 1, rows, out, lower, pts,
     )  # fmt: skip
     assert count == 2  # with and without the yaw term
-    np.testing.assert_array_equal(rows, [[1.0, 0.0, 0.0, 0.0], [1.0, 0.0, 0.0, -0.2]])
+    # the face's normal n = (1, 0, 0); the yaw term n . (e_z x r) of the point's lever r
+    yaw = np.dot([1.0, 0.0, 0.0], np.cross([0.0, 0.0, 1.0], local[0]))
+    np.testing.assert_array_equal(rows, [[1.0, 0.0, 0.0, 0.0], [1.0, 0.0, 0.0, yaw]])
     np.testing.assert_allclose(out[0], [bound, bound], rtol=1e-12)
     np.testing.assert_allclose(lower, [[-0.01]], rtol=1e-12)
     assert least == out[1, 0] == -out[0, 0]

@@ -7,7 +7,9 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import mujoco
 import numpy as np
@@ -37,6 +39,7 @@ from payload.trials.recorder import (
     read_recording,
     recording_version,
 )
+from payload.trials.records import FIELD_SPECS, QUAT_MIN_NORM
 
 DT = 0.02
 
@@ -710,33 +713,29 @@ def test_a_non_finite_typed_step_is_named_by_the_reader(tmp_path: Path) -> None:
 
 def _fields(step: StepRecord) -> dict:
     """A step's fields, as the loop hands them to a step's making: writable copies."""
-    return {
-        f.name: (lambda v: v.copy() if isinstance(v, np.ndarray) else v)(getattr(step, f.name))
-        for f in dataclasses.fields(StepRecord)
-    }
+    return {k: v.copy() if isinstance(v, np.ndarray) else v for k, v in vars(step).items()}
 
 
-MADE: list[str] = []  # how the steps of _remade were made: "one" or "many"
+def _remaking(made: list[str]) -> Callable[[StepRecord], StepRecord]:
+    """A build that makes a step again from its fields, and makes a flush's steps as one
+    batch (``many``); ``made`` gets "one" or "many" at each call."""
+
+    def remade(step: StepRecord) -> StepRecord:
+        made.append("one")
+        return StepRecord(**_fields(step))
+
+    def many(calls: list) -> list:
+        made.append("many")
+        return StepRecord.many([_fields(st) for (st,) in calls])
+
+    remade.many = many  # type: ignore[attr-defined]
+    return remade
 
 
-def _remade(step: StepRecord) -> StepRecord:
-    """The step made again from its fields (a build the recorder calls at a flush)."""
-    MADE.append("one")
-    return StepRecord(**_fields(step))
-
-
-def _remade_many(calls: list) -> list:
-    MADE.append("many")
-    return StepRecord.many([_fields(st) for (st,) in calls])
-
-
-_remade.many = _remade_many  # type: ignore[attr-defined]
-
-
-def _recorded(path: Path, world: object, steps: list, frames: list, later: object) -> bytes:
+def _recorded(path: Path, world: object, steps: list, frames: list, build: Any) -> bytes:
     """The file a recorder with the Foxglove scene writes of these steps and hand frames on
-    a fixed clock, each step written now or made at the flush (``write_later``; ``later``
-    "many": by a build that makes a flush's steps as a batch)."""
+    a fixed clock, each step written now (``build`` None) or made at the flush by
+    ``build(step)`` (``write_later``)."""
     from payload.trials.foxglove import FoxgloveScene
 
     ticks = iter(range(10**6))
@@ -745,36 +744,30 @@ def _recorded(path: Path, world: object, steps: list, frames: list, later: objec
         for st, fr in zip(steps, frames):
             if fr is not None:
                 rec.write_hands(fr)
-            if later == "many":
-                rec.write_later(st.t, _remade, st)
-            elif later:
-                rec.write_later(st.t, dataclasses.replace, st)  # a new StepRecord, made then
-            else:
+            if build is None:
                 rec.write(st)
+            else:
+                rec.write_later(st.t, build, st)
     return path.read_bytes()
 
 
 def _same_steps(got: list, want: list) -> None:
-    """The same steps to the bit: each field's type, and each array's dtype, shape, bytes
-    and read-only flag."""
+    """The same steps to the bit (:func:`_same_arrays`), each field of the same type and
+    each array read-only."""
     assert len(got) == len(want)
     for a, b in zip(got, want):
-        for f in dataclasses.fields(StepRecord):
-            x, y = getattr(a, f.name), getattr(b, f.name)
-            assert type(x) is type(y), f.name
-            if isinstance(x, np.ndarray):
-                assert (x.dtype, x.shape, x.tobytes()) == (y.dtype, y.shape, y.tobytes()), f.name
-                assert not x.flags.writeable and not y.flags.writeable
-            else:
-                assert x == y, f.name
+        assert _same_arrays(a, b) == []
+        for x, y in zip(vars(a).values(), vars(b).values()):
+            assert type(x) is type(y)
+            assert not isinstance(x, np.ndarray) or not (x.flags.writeable or y.flags.writeable)
 
 
 def test_steps_made_as_a_batch_are_the_steps_made_one_at_a_time(monkeypatch) -> None:
     """``StepRecord.many`` makes what ``StepRecord(**fields)`` makes of each, to the bit, or
     raises its error: the loop's steps in one buffer without a step's own checks (NaN in an
-    untracked hand allowed); steps to convert (lists, integers, float32) and a quaternion
-    near zero made one at a time; a bad field anywhere in the batch raises as that step
-    alone does."""
+    untracked hand allowed); numbers numpy converts (lists, integers, float32) in the
+    batch; scalars of another type and a quaternion near zero made one at a time; a bad
+    field anywhere in the batch raises as that step alone does."""
     rng = np.random.default_rng(12)
     steps = [random_step(rng, k * DT) for k in range(12)]
     fields = [_fields(st) for st in steps]
@@ -789,12 +782,14 @@ def test_steps_made_as_a_batch_are_the_steps_made_one_at_a_time(monkeypatch) -> 
     _same_steps(StepRecord.many(fields), one)
     assert own_checks == []  # the batch, not the steps one by one
     assert StepRecord.many([]) == []
+    shape = {name: spec[0] for name, spec in FIELD_SPECS.items()}
+    small = QUAT_MIN_NORM * np.eye(4)[1]  # a quaternion of a norm times this
     # numbers numpy converts for the batch as a step's own conversion does: the batch
-    convert = [("ctb_pos", [1.0, 2.0, 3.0]), ("q_meas", np.arange(17)),
+    convert = [("ctb_pos", [1.0, 2.0, 3.0]), ("q_meas", np.arange(shape["q_meas"][0])),
                ("astrobee_pos", np.ones(3, dtype=np.float32) / 3)]  # fmt: skip
-    # scalars of another type, a quaternion within ten times the check's threshold: alone
+    # scalars of another type, a quaternion within ten times the check's norm: alone
     alone = [("rail_cmd", 1), ("left_tracked", np.bool_(True)), ("t", np.float64(0.1)),
-             ("astrobee_quat", np.array([5e-9, 0.0, 0.0, 0.0]))]  # fmt: skip
+             ("astrobee_quat", 5 * small)]  # fmt: skip
     for (name, value), batch in [(c, True) for c in convert] + [(c, False) for c in alone]:
         changed = [dict(f) for f in fields]
         changed[5][name] = value
@@ -803,11 +798,11 @@ def test_steps_made_as_a_batch_are_the_steps_made_one_at_a_time(monkeypatch) -> 
         _same_steps(StepRecord.many(changed), want)
         assert own_checks == ([] if batch else [1] * len(changed)), name
     for name, value in [
-        ("right_joints", np.full((25, 3), np.inf)),
-        ("q_meas", np.full(17, np.nan)),
-        ("twist_cmd", np.zeros(5)),
+        ("right_joints", np.full(shape["right_joints"], np.inf)),
+        ("q_meas", np.full(shape["q_meas"], np.nan)),
+        ("twist_cmd", np.zeros(shape["twist_cmd"][0] - 1)),
         ("ctb_quat", np.zeros(4)),
-        ("ctb_quat", np.array([0.0, 5e-10, 0.0, 0.0])),
+        ("ctb_quat", 0.5 * small),
         ("phase", "lunch"),
         ("ctb_module", "columbus"),
         ("deploy_cmd", float("nan")),
@@ -824,35 +819,40 @@ def test_steps_made_as_a_batch_are_the_steps_made_one_at_a_time(monkeypatch) -> 
     extra[2]["extra"] = 1.0
     del missing[2]["t"]
     for bad in (extra, missing):
-        with pytest.raises(TypeError):
+        with pytest.raises(TypeError) as alone_type:
+            StepRecord(**bad[2])
+        with pytest.raises(TypeError) as batch_type:
             StepRecord.many(bad)
+        assert str(batch_type.value) == str(alone_type.value)
 
 
 def test_a_flush_made_as_a_batch_writes_what_steps_made_one_at_a_time_write(
-    foxglove_recording, tmp_path
+    foxglove_recording, tmp_path, monkeypatch
 ) -> None:
     """A build that makes a flush's steps as a batch (its ``many``) writes the file that
     steps written at once write, byte for byte; if the batch fails, the steps are made one
-    at a time, and the one that fails is named, the steps before it written."""
+    at a time, and the one that fails is named, the steps before it written; a batch that
+    makes its steps at other times than said is not taken."""
     _, steps, world = foxglove_recording
     frames = [
         None if k % 5 == 1 else HandFrame(st.t, Hand(st.left_joints), Hand(st.right_joints))
         for k, st in enumerate(steps)
     ]
-    now = _recorded(tmp_path / "now.mcap", world, steps, frames, later=False)
-    MADE.clear()
-    assert _recorded(tmp_path / "many.mcap", world, steps, frames, later="many") == now
-    assert "many" in MADE and "one" not in MADE  # each flush's steps as one batch
+    now = _recorded(tmp_path / "now.mcap", world, steps, frames, None)
+    made: list[str] = []
+    remade = _remaking(made)
+    assert _recorded(tmp_path / "many.mcap", world, steps, frames, remade) == now
+    assert "many" in made and "one" not in made  # each flush's steps as one batch
 
-    def bad(st: StepRecord) -> dict:
-        return {**_fields(st), "q_meas": np.full(17, np.nan)}
+    nan_joints = np.full(FIELD_SPECS["q_meas"][0], np.nan)
+
+    def fields_of(st: StepRecord) -> dict:  # the tenth step's measured joints not finite
+        return {**_fields(st), "q_meas": nan_joints} if st.t == steps[9].t else _fields(st)
 
     def build(st: StepRecord) -> StepRecord:
-        return StepRecord(**(bad(st) if st.t == steps[9].t else _fields(st)))
+        return StepRecord(**fields_of(st))
 
-    build.many = lambda calls: StepRecord.many(  # type: ignore[attr-defined]
-        [bad(st) if st.t == steps[9].t else _fields(st) for (st,) in calls]
-    )
+    build.many = lambda calls: StepRecord.many([fields_of(st) for (st,) in calls])  # type: ignore[attr-defined]
     with TrialRecorder(tmp_path / "bad.mcap") as rec:
         rec.write(steps[0])
         for st in steps[1:15]:
@@ -860,15 +860,14 @@ def test_a_flush_made_as_a_batch_writes_what_steps_made_one_at_a_time_write(
         with pytest.raises(RecordingError, match=rf"step at t = {steps[9].t} s: .*q_meas"):
             rec.flush()
     back = read_recording(tmp_path / "bad.mcap")
-    assert len(back) == 9
+    assert back.t.tolist() == [st.t for st in steps[:9]]
     # a batch that makes a step at another time than said: the steps made one at a time
-    _remade.many = lambda calls: [dataclasses.replace(st, t=st.t + 1) for (st,) in calls]
-    try:
-        MADE.clear()
-        assert _recorded(tmp_path / "late.mcap", world, steps, frames, later="many") == now
-        assert MADE.count("one") == len(steps)
-    finally:
-        _remade.many = _remade_many
+    monkeypatch.setattr(
+        remade, "many", lambda calls: [dataclasses.replace(st, t=st.t + 1) for (st,) in calls]
+    )
+    made.clear()
+    assert _recorded(tmp_path / "late.mcap", world, steps, frames, remade) == now
+    assert made == ["one"] * len(steps)
 
 
 def test_a_step_made_at_the_flush_is_the_step_written_at_once(foxglove_recording, tmp_path):
@@ -882,8 +881,9 @@ def test_a_step_made_at_the_flush_is_the_step_written_at_once(foxglove_recording
         None if k % 7 == 3 else HandFrame(st.t, Hand(st.left_joints), Hand(other[k]))
         for k, st in enumerate(steps)
     ]
-    now = _recorded(tmp_path / "now.mcap", world, steps, frames, later=False)
-    assert _recorded(tmp_path / "later.mcap", world, steps, frames, later=True) == now
+    now = _recorded(tmp_path / "now.mcap", world, steps, frames, None)
+    # a new StepRecord, made at the flush
+    assert _recorded(tmp_path / "later.mcap", world, steps, frames, dataclasses.replace) == now
     assert len(read_recording(tmp_path / "later.mcap")) == len(steps)
 
 

@@ -495,18 +495,21 @@ def test_the_compiled_hand_intake_steps_as_the_python_path(retargeting):
     allowed = config.safety.max_wrist_speed * DT  # a step's move, at most
     base = config.base
     frames = []
+    push_from, push_steps = 150, 40
+    lost = range(120, 140)  # the steps the right hand is lost
     for k in range(420):
         fr = op.act(_static_world(t))
         left, right, stamp = fr.left, fr.right, t
-        if k >= 150:  # the left wrist pushed out of its sphere over 40 steps, then held: drive
+        if k >= push_from:  # the left wrist pushed out of its sphere, then held: drive
             push = base.sphere_radius + base.full_speed_offset
-            left = Hand(left.joints + np.array([push * min(k - 149, 40) / 40, 0.0, 0.0]))
+            step = push * min(k - push_from + 1, push_steps) / push_steps
+            left = Hand(left.joints + np.array([step, 0.0, 0.0]))
         if 60 <= k < 64:
             left = Hand.untracked()  # a dropout, bridged
         if k >= 60:  # meanwhile the right hand moves 0.6 of that a step, 3 times it in all
             moved = 0.6 * allowed * min(k - 59, 5)
             right = Hand(right.joints + np.array([moved, 0.0, 0.0]))
-        if 120 <= k < 140:
+        if k in lost:
             right = Hand.untracked()  # lost, then blended back in
         if k == 200:
             joints = left.joints.copy()
@@ -575,10 +578,10 @@ def test_the_compiled_hand_intake_steps_as_the_python_path(retargeting):
     assert stream(True) == stream(False)
     assert taken.count(True) > 300 and taken.count(False) > 20
     # the channels ran in the intake's call on most steps, the right hand's blend back in
-    # after step 140 among them (the steps of the recovery time), with the base channel in
-    # each of its modes
+    # among them (from the third step back to the end of the recovery time), with the base
+    # channel in each of its modes
     blending = round(config.safety.recovery_time / DT)
-    assert steady.count(True) > 250 and all(steady[142 : 140 + blending])
+    assert steady.count(True) > 250 and all(steady[lost.stop + 2 : lost.stop + blending])
     assert {m for m, fast in zip(modes, steady) if fast} == {"brake", "drive", "hold"}
     # every case above happened: each kind of event, and the refused chain at step 350
     kinds = {(e.hand, e.kind) for e in seen}

@@ -657,13 +657,22 @@ def test_a_solver_the_cache_names_is_loaded_without_building_its_graph(
             built.reset(), loaded.reset()
             want, got = built.solve(t, q_prev, q_ref), loaded.solve(t, q_prev, q_ref)
             assert got[0].tobytes() == want[0].tobytes() and got[1] == want[1]
-    out = loaded.function(q_prev, t.as_vector(), q_ref, pk.rest, np.zeros(0))
+    # the anchor the reset left for that solve: the rest posture, no carried bounds
+    out = loaded.function(q_prev, t.as_vector(), q_ref, pk.rest, np.full(loaded._groups, -np.inf))
     assert graphs == ["built"]
     np.testing.assert_allclose(np.array(out[0]).reshape(-1), got[0], atol=1e-9)
-    # a library named but not loadable (gone, foreign): the graph again, and the real one
-    monkeypatch.setattr(cs, "load_solver", lambda key: (cache_dir() / "gone.so", [8], [8]))
-    again = PairRetargeter(kinematics=pk)
-    assert graphs == ["built", "built"] and again.library == prod["L"].library
+    # a library named but gone, foreign (another pair's), or of other sizes than the
+    # solve's: the graph again, and the real library
+    sizes = prod["L"]._compiled.sizes
+    for named in [
+        (cache_dir() / "gone.so", *sizes),
+        (prod["R"].library, *sizes),
+        (prod["L"].library, [pk.n], [pk.n]),
+    ]:
+        monkeypatch.setattr(cs, "load_solver", lambda key, named=named: named)
+        graphs.clear()
+        again = PairRetargeter(kinematics=pk)
+        assert graphs == ["built"] and again.library == prod["L"].library
     # the cache names a library only while it is there
     key = "0" * 24
     collision_cache.store_solver(key, cache_dir() / "payload_gone_0.so", [1], [2])

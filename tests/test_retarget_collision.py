@@ -531,6 +531,7 @@ def test_a_solver_with_collisions_the_cache_names_loads_without_its_loop_or_grap
             cs, name, lambda *a, _n=name, _f=real, **k: built.append(_n) or _f(*a, **k)
         )
     pk, first = pks["L"], solvers["L"]
+    assert first.backend == "compiled", first.backend_reason
     again = PairRetargeter(hand, "L", first.config, pk)
     assert built == [] and again.library == first.library, again.backend_reason
     first.reset(), again.reset()
@@ -554,23 +555,22 @@ def test_a_solver_is_named_in_the_cache_only_when_built_from_what_the_cache_keep
     named: list[str] = []
     monkeypatch.setattr(cs, "store_solver", lambda key, *rest: named.append(key))
     r, compiler = solvers["L"], compiled._compiler()
+    assert r.backend == "compiled", r.backend_reason
+    assert r.native is not None  # built now, if the solver came from the cache
     key = r._solver_key(compiler)
     assert key is not None
     r._store_solver(key, compiler)
     assert named == [key]
     r._store_solver("0" * 24, compiler)  # not the key it was built under
     col = pks["L"].collision
-    monkeypatch.setattr(col, "key", None)  # a geometry the cache did not keep
-    r._store_solver(key, compiler)
-    monkeypatch.undo()
-    monkeypatch.setattr(cs, "store_solver", lambda key, *rest: named.append(key))
-    monkeypatch.setattr(type(col), "compiled_distances", lambda self, terms=None: False)
-    r._store_solver(key, compiler)
-    monkeypatch.undo()
-    monkeypatch.setattr(cs, "store_solver", lambda key, *rest: named.append(key))
-    monkeypatch.setattr(r, "_native", None)  # compiled without its collision loop
-    monkeypatch.setattr(r, "_native_compiler", None)
-    r._store_solver(key, compiler)
+    for obj, attr, value in [
+        (col, "key", None),  # a geometry the cache did not keep
+        (type(col), "compiled_distances", lambda self, terms=None: False),
+        (r, "_native", None),  # compiled without its collision loop
+    ]:
+        with monkeypatch.context() as m:
+            m.setattr(obj, attr, value)
+            r._store_solver(key, compiler)
     assert named == [key]
 
 
