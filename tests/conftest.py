@@ -31,6 +31,18 @@ def replace_once(text: str, old: str, new: str) -> str:
     return text.replace(old, new)
 
 
+def hand_file(folder: Path, urdf: str | Path, design: str | Path) -> Path:
+    """The default hand description written into ``folder`` as ``hand.toml``, naming the
+    URDF and the design at those paths (absolute, or relative to ``folder``)."""
+    from payload.retarget.hand import DEFAULT_HAND
+
+    toml = DEFAULT_HAND.read_text()
+    toml = replace_once(toml, "{project}/urdf/payload.urdf", str(urdf))
+    toml = replace_once(toml, "{project}/cad/design.toml", str(design))
+    (folder / "hand.toml").write_text(toml)
+    return folder / "hand.toml"
+
+
 def running_environment() -> dict[str, Any]:
     """What ``payload.native.environment()`` should say of this process, worked out
     another way: the modules' own ``__version__``, the platform's names and the kernels

@@ -16,7 +16,7 @@ import pytest
 import tomli_w
 import trimesh
 import yourdfpy
-from conftest import DESIGN, MJCF, ROOT, SCENE, URDF, replace_once
+from conftest import DESIGN, MJCF, ROOT, SCENE, URDF, hand_file, replace_once
 
 from payload.design import (
     ALL_JOINTS,
@@ -161,7 +161,7 @@ def test_the_pinch_pre_shape_has_one_source(design_dict, tmp_path):
     """The simulator's scripted pinch and the retargeter's rest posture both read the
     design's ``[pinch]``; a design file written before it existed takes the packaged
     default's; a value outside the joint limits is refused by name."""
-    from payload.retarget.hand import DEFAULT_HAND, load_hand
+    from payload.retarget.hand import load_hand
     from payload.sim.config import WorldConfig
     from payload.sim.grasp import pinch_grasp
 
@@ -171,11 +171,7 @@ def test_the_pinch_pre_shape_has_one_source(design_dict, tmp_path):
     path.write_text(tomli_w.dumps(data))
     changed = design_from_dict(data)
     assert pinch_grasp(changed, WorldConfig(ctb=None)).open == (-0.3, 0.05, 0.0, 1.0)
-    hand = tmp_path / "hand.toml"
-    text = DEFAULT_HAND.read_text()
-    text = replace_once(text, '"{project}/urdf/payload.urdf"', f'"{URDF}"')
-    hand.write_text(replace_once(text, '"{project}/cad/design.toml"', f'"{path}"'))
-    for pair in load_hand(hand).pairs.values():
+    for pair in load_hand(hand_file(tmp_path, URDF, path)).pairs.values():
         assert pair.rest == (-0.3, 0.05, 0.0, 1.0) * 2
     del data["pinch"]
     assert design_from_dict(data).pinch == load_design(DESIGN).pinch

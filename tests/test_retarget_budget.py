@@ -15,7 +15,7 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 import pytest
-from conftest import replace_once
+from conftest import hand_file, replace_once
 from scipy.optimize import least_squares
 
 from payload.project import current_project
@@ -320,12 +320,7 @@ def test_converged_starts_reach_a_many_start_optimum_on_a_hand_not_ours(tmp_path
     (tmp_path / "design.toml").write_text(
         replace_once(text, "collision_margin = 0.002", "collision_margin = 0.0035")
     )
-    toml = (HANDS_DIR / "payload.toml").read_text()
-    toml = replace_once(toml, "{project}/urdf/payload.urdf", str(load_hand().urdf))
-    (tmp_path / "hand.toml").write_text(
-        replace_once(toml, "{project}/cad/design.toml", "design.toml")
-    )
-    hand = load_hand(tmp_path / "hand.toml")
+    hand = load_hand(hand_file(tmp_path, load_hand().urdf, "design.toml"))
     assert hand.collision_margin == 0.0035
     pk = PairKinematics(hand, "R")
     r = PairRetargeter(hand, "R", RetargetConfig(budget="converged", collisions=True), pk)

@@ -16,7 +16,7 @@ import casadi as ca
 import numpy as np
 import pinocchio as pin
 import pytest
-from conftest import replace_once
+from conftest import hand_file, replace_once
 from scipy.spatial.transform import Rotation
 
 from payload.design.params import load_design
@@ -177,7 +177,7 @@ def test_the_shape_is_keyed_by_the_meshes_the_design_and_the_margin(tmp_path):
     project = current_project().root
     shutil.copytree(project / "cad", tmp_path / "cad")
     shutil.copytree(project / "urdf", tmp_path / "urdf")
-    hand = _hand_on(tmp_path, "urdf/payload.urdf", "cad/design.toml")
+    hand = hand_file(tmp_path, "urdf/payload.urdf", "cad/design.toml")
 
     def key(scale: float = 1.0) -> str:
         pk = PairKinematics(load_hand(hand), "L")
@@ -209,16 +209,6 @@ def test_the_shape_is_keyed_by_the_meshes_the_design_and_the_margin(tmp_path):
     assert shape_key(pk, pk.hand.collision_margin) is None
 
 
-def _hand_on(folder: Path, urdf: str, design: str) -> Path:
-    """Our hand's description written into ``folder``, naming the URDF and the design at
-    those paths (relative to it)."""
-    toml = (HANDS_DIR / "payload.toml").read_text()
-    toml = replace_once(toml, "{project}/urdf/payload.urdf", urdf)
-    toml = replace_once(toml, "{project}/cad/design.toml", design)
-    (folder / "hand.toml").write_text(toml)
-    return folder / "hand.toml"
-
-
 # ------------------------------------------------------------- one source
 def test_margin_and_pad_radius_come_from_the_design(tmp_path, hand):
     design = load_design(current_project().design_path)
@@ -230,7 +220,7 @@ def test_margin_and_pad_radius_come_from_the_design(tmp_path, hand):
     text = replace_once(text, "radius = 0.011 ", "radius = 0.0125 ")
     (tmp_path / "design.toml").write_text(text)
     shutil.copy(hand.urdf, tmp_path / "payload.urdf")
-    other = load_hand(_hand_on(tmp_path, "payload.urdf", "design.toml"))
+    other = load_hand(hand_file(tmp_path, "payload.urdf", "design.toml"))
     assert other.collision_margin == 0.0035
     assert all(p.tip_radius == 0.0125 for p in other.pairs.values())
 
@@ -718,6 +708,7 @@ def test_random_human_pinches_over_the_full_opening_never_command_a_collision(pk
 
 # --------------------------------------------------------------- other hands
 def test_hands_with_and_without_collision_geometry(tmp_path):
+    register()  # the pair's .collision below, before any retargeter registers it
     offset = load_hand(HANDS_DIR / "offset_distal.toml")
     pk = PairKinematics(offset)
     assert pk.collision.available and offset.collision_margin == 0.002
@@ -763,11 +754,7 @@ def test_a_hand_without_its_meshes_retargets_without_the_model_and_names_the_fil
 ):
     # our URDF copied alone: every collision mesh it names is missing
     shutil.copy(current_project().root / "urdf" / "payload.urdf", tmp_path / "payload.urdf")
-    text = (HANDS_DIR / "payload.toml").read_text()
-    text = replace_once(text, "{project}/urdf/payload.urdf", "payload.urdf")
-    text = text.replace("{project}/", f"{current_project().root}/")  # the design, in place
-    (tmp_path / "hand.toml").write_text(text)
-    bare = load_hand(tmp_path / "hand.toml")
+    bare = load_hand(hand_file(tmp_path, "payload.urdf", current_project().design_path))
     pk = PairKinematics(bare, "L")
     off = PairRetargeter(bare, "L", RetargetConfig(collisions=False), pk)
     cal = calibrate(*human_pinch_and_open(), pair_range(pk, collisions=False))
