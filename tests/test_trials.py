@@ -1217,6 +1217,43 @@ def test_cli_bench_trial_accounts_for_its_time(tmp_path: Path, capsys, fresh_che
     assert {p.name.split("_")[0] for p in fresh_checks.iterdir()} >= {"period", "readout"}
 
 
+def test_cli_bench_trial_warm_measures_the_trials_second_run(
+    tmp_path: Path, capsys, monkeypatch
+) -> None:
+    """``--warm``: the same trial runs once first in the same process, untimed, into a
+    temporary folder that is gone afterwards; the measured run is the second, into
+    ``--out``, and it is the same trial (every metric the first run scored); the text
+    output says it was warm."""
+    from payload.cli import main
+    from payload.trials import runner
+
+    runs: list[tuple[Path, dict]] = []
+    real = runner.run_trial
+
+    def counted(seed, **kwargs):
+        metrics = real(seed, **kwargs)
+        runs.append((Path(kwargs["out_dir"]), metrics))
+        return metrics
+
+    monkeypatch.setattr(runner, "run_trial", counted)
+    out = tmp_path / "bench"
+    assert main(["bench", "trial", "--warm", "--seconds", "2", "--out", str(out), "--json"]) == 0
+    r = json.loads(capsys.readouterr().out)
+    assert r["warm"] is True and r["steps"] == 101
+    assert [o for o, _ in runs][1:] == [out] and runs[0][0] != out
+    assert not runs[0][0].exists() and (out / "log.mcap").is_file()
+    same = ("out_dir", "provenance")
+    first, second = ({k: v for k, v in m.items() if k not in same} for _, m in runs)
+    assert first == second
+    assert json.loads((out / "metrics.json").read_text())["steps"] == r["steps"]
+    # the default is the cold run, and the text output says which it measured
+    runs.clear()
+    assert main(["bench", "trial", "--seconds", "1"]) == 0
+    assert len(runs) == 1 and "warm:" not in capsys.readouterr().out
+    assert main(["bench", "trial", "--warm", "--seconds", "1"]) == 0
+    assert len(runs) == 3 and "warm: the trial's second run" in capsys.readouterr().out
+
+
 def test_cli_bench_trial_repeated_reports_the_median_run(capsys) -> None:
     """`--repeat 3`: three runs, each in a fresh process, said as they end; the result is
     the run of the middle ratio, with each run's figures and the ratios' median and range

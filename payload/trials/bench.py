@@ -27,6 +27,12 @@ trial's modules, what each Dask worker of a campaign pays before its first trial
 :func:`run_trial_bench_repeated` (``--repeat N``) runs the bench N times, each in a fresh
 process, and reports the median run with every run's figures: one run's ratio moves with
 the machine from run to run and from hour to hour (docs/speed.md).
+
+``warm`` (``--warm``) first runs the same trial once, untimed, in the same process, and
+then measures it again: what a campaign's Dask worker pays for its later trials (the
+imports done, the kernels loaded and checked, the retargeters' solvers and the world's
+compile in the process's caches). The cold run, the default, is what ``payload trial``
+costs and what issue 31's aim is measured on.
 """
 
 from __future__ import annotations
@@ -164,6 +170,7 @@ def run_trial_bench(
     pin: bool = False,
     max_time: float | None = None,
     physics_dt: float | None = None,
+    warm: bool = False,
 ) -> dict:
     """Run one synthetic trial and report its speed, time breakdown and log size.
 
@@ -173,13 +180,15 @@ def run_trial_bench(
         pin: Restrict the process to one CPU core (Linux).
         max_time: Cap on the session length [s] (default: the runner's, a whole trial).
         physics_dt: Physics time step [s] (default: the runner's, 1 ms).
+        warm: Run the same trial once first, untimed, in this process (into a temporary
+            folder, removed), and measure the second: a campaign worker's later trial.
 
     Returns:
         ``{"sim_seconds", "wall_seconds", "cpu_seconds", "realtime_factor",
         "cpu_realtime_factor", "breakdown" (wall [s] per stage), "breakdown_cpu",
         "mj_step_seconds", "mj_step_cpu_seconds", "mj_step_us" (per 1 ms physics step),
         "physics_only_realtime_factor", "log_bytes", "log_bytes_per_sim_minute", "steps",
-        "seed", "success", "worker_import_s", "kernels" (each compiled kernel of the loop:
+        "seed", "success", "warm", "worker_import_s", "kernels" (each compiled kernel of the loop:
         ``compiled`` or ``numpy``), "full_checks" (the kernels that ran a full self-check
         during this run, :func:`payload.native.full_checks`: no check stamp yet, as after
         a change; the figures include them), "environment" (the versions and BLAS kernels
@@ -193,15 +202,33 @@ def run_trial_bench(
         with tempfile.TemporaryDirectory() as tmp:
             out = Path(out_dir) if out_dir is not None else Path(tmp) / "trial"
             try:
+                if warm:
+                    _warm_up(seed, Path(tmp) / "warm-up", max_time, physics_dt)
                 result = _bench(seed, out, before is not None, max_time, physics_dt)
             except KeyboardInterrupt as exc:
                 if out_dir is None:  # not the recorder's "kept": the folder goes with tmp
                     exc.__notes__ = ["nothing kept: the bench's trial ran in a temporary folder"]
                 raise
-            return {**result, "worker_import_s": imports}
+            return {**result, "warm": warm, "worker_import_s": imports}
     finally:
         if before is not None:
             os.sched_setaffinity(0, before)
+
+
+def _trial_options(max_time: float | None, physics_dt: float | None) -> dict[str, Any]:
+    """The runner's keyword arguments for the bench's options (its defaults when None)."""
+    extra: dict[str, Any] = {} if max_time is None else {"max_time": max_time}
+    if physics_dt is not None:
+        extra["physics_dt"] = physics_dt
+    return extra
+
+
+def _warm_up(seed: int, out: Path, max_time: float | None, physics_dt: float | None) -> None:
+    """The trial run once, untimed, in this process (``warm``): what a campaign worker
+    has done before its later trials."""
+    from payload.trials import runner
+
+    runner.run_trial(seed, out_dir=out, **_trial_options(max_time, physics_dt))
 
 
 def _bench(
@@ -221,10 +248,7 @@ def _bench(
 
         timers._switch()
         timers._stack[-1] = "other"
-        extra: dict[str, Any] = {} if max_time is None else {"max_time": max_time}
-        if physics_dt is not None:
-            extra["physics_dt"] = physics_dt
-        result = runner.run_trial(seed, out_dir=out, **extra)
+        result = runner.run_trial(seed, out_dir=out, **_trial_options(max_time, physics_dt))
     timers._switch()
     wall, cpu = timers._mark[0] - w0, timers._mark[1] - c0
     sim_seconds = result["steps"] * CONTROL_DT
@@ -284,6 +308,7 @@ def run_trial_bench_repeated(
     pin: bool = False,
     max_time: float | None = None,
     physics_dt: float | None = None,
+    warm: bool = False,
     progress: Callable[[int, dict], None] | None = None,
 ) -> dict:
     """``repeat`` runs of :func:`run_trial_bench` one after the other, each in a fresh
@@ -291,7 +316,8 @@ def run_trial_bench_repeated(
     temporary folder.
 
     Args:
-        seed, pin, max_time, physics_dt: As :func:`run_trial_bench`'s.
+        seed, pin, max_time, physics_dt, warm: As :func:`run_trial_bench`'s (``warm``:
+            each fresh process runs the trial once before the measured one).
         repeat: How many runs (at least 1).
         progress: Called with each run's index (from 0) and result as it ends.
 
@@ -308,6 +334,7 @@ def run_trial_bench_repeated(
     if repeat < 1:
         raise ValueError(f"repeat must be >= 1, got {repeat}")
     kwargs = {"seed": seed, "pin": pin, "max_time": max_time, "physics_dt": physics_dt}
+    kwargs["warm"] = warm
     code = (
         "import json, sys\n"
         "from payload.trials.bench import run_trial_bench\n"

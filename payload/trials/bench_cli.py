@@ -89,6 +89,7 @@ def _cmd_bench_trial(args: argparse.Namespace) -> int:
     project = command_project(args)  # the trial flies this project's models
     models_follow_design(project.design_path, project.root, json=args.json)
     options = {"pin": args.pin, "max_time": args.seconds, "physics_dt": args.physics_dt}
+    options["warm"] = args.warm
     if args.repeat == 1:
         result = run_trial_bench(args.seed, out_dir=out, **options)
     else:
@@ -115,6 +116,12 @@ def _cmd_bench_trial(args: argparse.Namespace) -> int:
             f"{result['overhead_ratio_median']:.3f} (least {result['overhead_ratio_min']:.3f}, "
             f"greatest {result['overhead_ratio_max']:.3f}); "
             + ("the median run:" if args.repeat % 2 else "the lower of the two middle runs:")
+        )
+    if args.warm:
+        print(
+            "warm: the trial's second run in this process (the first, untimed, did the "
+            "imports, the kernels' loads and checks and the caches, as a campaign worker's "
+            "earlier trials have)"
         )
     print(
         f"trial seed {args.seed}: {result['sim_seconds']:.1f} s simulated in "
@@ -218,6 +225,13 @@ def register(
         "--seconds", type=float, default=None, help="cap the trial [s] (default: a whole trial)"
     )
     bt.add_argument("--pin", action="store_true", help="restrict the run to one CPU core (Linux)")
+    bt.add_argument(
+        "--warm",
+        action="store_true",
+        help="run the trial once first, untimed, in the same process, and measure the "
+        "second run: a campaign worker's later trial (default: the cold process "
+        "`payload trial` is)",
+    )
     bt.add_argument(
         "--repeat",
         type=int,
