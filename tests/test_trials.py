@@ -1220,30 +1220,45 @@ def test_cli_bench_trial_accounts_for_its_time(tmp_path: Path, capsys, fresh_che
 def test_cli_bench_trial_warm_measures_the_trials_second_run(
     tmp_path: Path, capsys, monkeypatch
 ) -> None:
-    """``--warm``: the same trial runs once first in the same process, untimed, into a
-    temporary folder that is gone afterwards; the measured run is the second, into
-    ``--out``, and it is the same trial (every metric the first run scored); the text
-    output says it was warm."""
+    """``--warm``: the same trial runs once first in the same process, untimed (no stage
+    timer and no ``mj_step`` clock around it), into a temporary folder that is gone
+    afterwards; the measured run is the second, into ``--out``, and it is the same trial
+    (every metric the first run scored, over 16 s: past the calibration, so the pipeline's
+    retargeters, kept between trials, solved in both); the text output says it was warm,
+    and ``--repeat`` takes it to each fresh process."""
+    import mujoco
+
     from payload.cli import main
+    from payload.teleop.pipeline import TeleopPipeline
     from payload.trials import runner
 
-    runs: list[tuple[Path, dict]] = []
-    real = runner.run_trial
+    runs: list[tuple[Path, dict, bool, int]] = []
+    real, real_step, real_pipeline = runner.run_trial, mujoco.mj_step, TeleopPipeline.step
+    solves = [0]
+
+    def pipeline_step(self, *args, **kwargs):
+        solves[0] += 1
+        return real_pipeline(self, *args, **kwargs)
 
     def counted(seed, **kwargs):
+        timed = mujoco.mj_step is not real_step  # the bench's clock wraps it
+        solves[0] = 0
         metrics = real(seed, **kwargs)
-        runs.append((Path(kwargs["out_dir"]), metrics))
+        runs.append((Path(kwargs["out_dir"]), metrics, timed, solves[0]))
         return metrics
 
     monkeypatch.setattr(runner, "run_trial", counted)
+    monkeypatch.setattr(TeleopPipeline, "step", pipeline_step)
     out = tmp_path / "bench"
-    assert main(["bench", "trial", "--warm", "--seconds", "2", "--out", str(out), "--json"]) == 0
+    assert main(["bench", "trial", "--warm", "--seconds", "16", "--out", str(out), "--json"]) == 0
     r = json.loads(capsys.readouterr().out)
-    assert r["warm"] is True and r["steps"] == 101
-    assert [o for o, _ in runs][1:] == [out] and runs[0][0] != out
+    assert r["warm"] is True
+    assert [o for o, *_ in runs][1:] == [out] and runs[0][0] != out
+    assert [timed for *_, timed, _ in runs] == [False, True]
+    assert runs[0][3] > 0 and runs[0][3] == runs[1][3]  # the pipeline ran in both
     assert not runs[0][0].exists() and (out / "log.mcap").is_file()
     same = ("out_dir", "provenance")
-    first, second = ({k: v for k, v in m.items() if k not in same} for _, m in runs)
+    first, second = ({k: v for k, v in m.items() if k not in same} for _, m, *_ in runs)
     assert first == second
     assert json.loads((out / "metrics.json").read_text())["steps"] == r["steps"]
     # the default is the cold run, and the text output says which it measured
@@ -1252,6 +1267,37 @@ def test_cli_bench_trial_warm_measures_the_trials_second_run(
     assert len(runs) == 1 and "warm:" not in capsys.readouterr().out
     assert main(["bench", "trial", "--warm", "--seconds", "1"]) == 0
     assert len(runs) == 3 and "warm: the trial's second run" in capsys.readouterr().out
+    # each fresh process of --repeat warms up too (the run reported is a child's)
+    assert main(["bench", "trial", "--warm", "--repeat", "2", "--seconds", "1", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["warm"] is True
+
+
+def test_bench_trial_interrupted_while_warming_up_says_nothing_was_kept(
+    tmp_path: Path, monkeypatch
+) -> None:
+    """Ctrl-C in ``--warm``'s untimed first run: the recorder's "recording kept" would
+    name a file in the bench's temporary folder, gone with it; the bench says instead that
+    nothing was kept and ``--out`` was not written."""
+    from payload.sim.driver import SimDriver
+    from payload.trials.bench import run_trial_bench
+
+    real = SimDriver.step
+    calls = [0]
+
+    def interrupted(self, *args, **kwargs):
+        calls[0] += 1
+        if calls[0] == 20:
+            raise KeyboardInterrupt
+        return real(self, *args, **kwargs)
+
+    monkeypatch.setattr(SimDriver, "step", interrupted)
+    out = tmp_path / "bench"
+    with pytest.raises(KeyboardInterrupt) as caught:
+        run_trial_bench(0, out_dir=out, warm=True, max_time=1.0)
+    notes = getattr(caught.value, "__notes__", [])
+    assert len(notes) == 1 and "untimed first run" in notes[0], notes
+    assert "--out not written" in notes[0] and not out.exists()
+    assert calls[0] == 20  # interrupted in the first run: the measured one never began
 
 
 def test_cli_bench_trial_repeated_reports_the_median_run(capsys) -> None:

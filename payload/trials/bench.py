@@ -201,12 +201,20 @@ def run_trial_bench(
     try:
         with tempfile.TemporaryDirectory() as tmp:
             out = Path(out_dir) if out_dir is not None else Path(tmp) / "trial"
+            warming = warm
             try:
                 if warm:
                     _warm_up(seed, Path(tmp) / "warm-up", max_time, physics_dt)
+                warming = False
                 result = _bench(seed, out, before is not None, max_time, physics_dt)
             except KeyboardInterrupt as exc:
-                if out_dir is None:  # not the recorder's "kept": the folder goes with tmp
+                # not the recorder's "kept": the folder goes with tmp
+                if warming:
+                    exc.__notes__ = [
+                        "nothing kept: interrupted in the bench's untimed first run (--warm), "
+                        "in a temporary folder" + ("; --out not written" if out_dir else "")
+                    ]
+                elif out_dir is None:
                     exc.__notes__ = ["nothing kept: the bench's trial ran in a temporary folder"]
                 raise
             return {**result, "warm": warm, "worker_import_s": imports}
@@ -333,8 +341,9 @@ def run_trial_bench_repeated(
     """
     if repeat < 1:
         raise ValueError(f"repeat must be >= 1, got {repeat}")
-    kwargs = {"seed": seed, "pin": pin, "max_time": max_time, "physics_dt": physics_dt}
-    kwargs["warm"] = warm
+    kwargs = {
+        "seed": seed, "pin": pin, "max_time": max_time, "physics_dt": physics_dt, "warm": warm,
+    }  # fmt: skip
     code = (
         "import json, sys\n"
         "from payload.trials.bench import run_trial_bench\n"

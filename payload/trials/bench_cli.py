@@ -88,8 +88,10 @@ def _cmd_bench_trial(args: argparse.Namespace) -> int:
     _check_physics_dt(args.physics_dt)
     project = command_project(args)  # the trial flies this project's models
     models_follow_design(project.design_path, project.root, json=args.json)
-    options = {"pin": args.pin, "max_time": args.seconds, "physics_dt": args.physics_dt}
-    options["warm"] = args.warm
+    options = {
+        "pin": args.pin, "max_time": args.seconds, "physics_dt": args.physics_dt,
+        "warm": args.warm,
+    }  # fmt: skip
     if args.repeat == 1:
         result = run_trial_bench(args.seed, out_dir=out, **options)
     else:
@@ -229,8 +231,8 @@ def register(
         "--warm",
         action="store_true",
         help="run the trial once first, untimed, in the same process, and measure the "
-        "second run: a campaign worker's later trial (default: the cold process "
-        "`payload trial` is)",
+        "second run: a campaign worker's later trial (default: a cold process, as "
+        "`payload trial` runs)",
     )
     bt.add_argument(
         "--repeat",
