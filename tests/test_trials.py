@@ -1180,6 +1180,7 @@ def test_cli_bench_trial_accounts_for_its_time(tmp_path: Path, capsys, fresh_che
     assert main(["bench", "trial", "--seconds", "3", "--out", str(out), "--json"]) == 0
     outside = time.perf_counter() - start
     r = json.loads(capsys.readouterr().out)
+    assert r["warm"] is False  # the default: a cold process's only run
     assert r["steps"] == 151 and r["sim_seconds"] == pytest.approx(3.02)
     assert set(r["breakdown"]) >= {"physics", "pipeline", "operator", "recording", "startup"}
     assert sum(r["breakdown"].values()) == pytest.approx(r["wall_seconds"], rel=1e-6)
@@ -1223,7 +1224,7 @@ def test_cli_bench_trial_warm_measures_the_trials_second_run(
     """``--warm``: the same trial runs once first in the same process, untimed (no stage
     timer and no ``mj_step`` clock around it), into a temporary folder that is gone
     afterwards; the measured run is the second, into ``--out``, and it is the same trial
-    (every metric the first run scored, over 16 s: past the calibration, so the pipeline's
+    (every metric the first run scored, over 13 s: past the calibration, so the pipeline's
     retargeters, kept between trials, solved in both); the text output says it was warm,
     and ``--repeat`` takes it to each fresh process."""
     import mujoco
@@ -1231,6 +1232,7 @@ def test_cli_bench_trial_warm_measures_the_trials_second_run(
     from payload.cli import main
     from payload.teleop.pipeline import TeleopPipeline
     from payload.trials import runner
+    from payload.trials.bench import run_trial_bench_repeated
 
     runs: list[tuple[Path, dict, bool, int]] = []
     real, real_step, real_pipeline = runner.run_trial, mujoco.mj_step, TeleopPipeline.step
@@ -1250,7 +1252,7 @@ def test_cli_bench_trial_warm_measures_the_trials_second_run(
     monkeypatch.setattr(runner, "run_trial", counted)
     monkeypatch.setattr(TeleopPipeline, "step", pipeline_step)
     out = tmp_path / "bench"
-    assert main(["bench", "trial", "--warm", "--seconds", "16", "--out", str(out), "--json"]) == 0
+    assert main(["bench", "trial", "--warm", "--seconds", "13", "--out", str(out), "--json"]) == 0
     r = json.loads(capsys.readouterr().out)
     assert r["warm"] is True
     assert [o for o, *_ in runs][1:] == [out] and runs[0][0] != out
@@ -1261,15 +1263,12 @@ def test_cli_bench_trial_warm_measures_the_trials_second_run(
     first, second = ({k: v for k, v in m.items() if k not in same} for _, m, *_ in runs)
     assert first == second
     assert json.loads((out / "metrics.json").read_text())["steps"] == r["steps"]
-    # the default is the cold run, and the text output says which it measured
+    # the text output says it measured a warm run
     runs.clear()
-    assert main(["bench", "trial", "--seconds", "1"]) == 0
-    assert len(runs) == 1 and "warm:" not in capsys.readouterr().out
-    assert main(["bench", "trial", "--warm", "--seconds", "1"]) == 0
-    assert len(runs) == 3 and "warm: the trial's second run" in capsys.readouterr().out
+    assert main(["bench", "trial", "--warm", "--seconds", "0.5"]) == 0
+    assert len(runs) == 2 and "warm: the trial's second run" in capsys.readouterr().out
     # each fresh process of --repeat warms up too (the run reported is a child's)
-    assert main(["bench", "trial", "--warm", "--repeat", "2", "--seconds", "1", "--json"]) == 0
-    assert json.loads(capsys.readouterr().out)["warm"] is True
+    assert run_trial_bench_repeated(0, 1, max_time=0.5, warm=True)["warm"] is True
 
 
 def test_bench_trial_interrupted_while_warming_up_says_nothing_was_kept(
