@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import struct
 import sys
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -137,7 +138,7 @@ REMOVED_LINE = (
 file put there by hand among them."""
 
 
-def _shown(paths: list[str]) -> str:
+def _shown(paths: Sequence[str]) -> str:
     return ", ".join(paths[:3]) + (f" and {len(paths) - 3} more" if len(paths) > 3 else "")
 
 
@@ -162,12 +163,10 @@ def follow_design(
         rebuilt, removed = _write_files(files, root)
         lines = []
         if rebuilt:
-            lines.append(MODELS_LINE.format(files=_shown(list(rebuilt)), design=design_path))
+            lines.append(MODELS_LINE.format(files=_shown(rebuilt), design=design_path))
         if removed:
             lines.append(
-                REMOVED_LINE.format(
-                    files=_shown(list(removed)), mesh_dir=MESH_DIR, design=design_path
-                )
+                REMOVED_LINE.format(files=_shown(removed), mesh_dir=MESH_DIR, design=design_path)
             )
         print("\n".join(lines), file=sys.stderr if json else sys.stdout, flush=True)
     return stale, files

@@ -201,20 +201,20 @@ def run_trial_bench(
     try:
         with tempfile.TemporaryDirectory() as tmp:
             out = Path(out_dir) if out_dir is not None else Path(tmp) / "trial"
-            warming = warm
-            try:
-                if warm:
+            # on Ctrl-C, not the recorder's "kept": a folder in tmp goes with it
+            if warm:
+                try:
                     _warm_up(seed, Path(tmp) / "warm-up", max_time, physics_dt)
-                warming = False
-                result = _bench(seed, out, before is not None, max_time, physics_dt)
-            except KeyboardInterrupt as exc:
-                # not the recorder's "kept": the folder goes with tmp
-                if warming:
+                except KeyboardInterrupt as exc:
                     exc.__notes__ = [
                         "nothing kept: interrupted in the bench's untimed first run (--warm), "
                         "in a temporary folder" + ("; --out not written" if out_dir else "")
                     ]
-                elif out_dir is None:
+                    raise
+            try:
+                result = _bench(seed, out, before is not None, max_time, physics_dt)
+            except KeyboardInterrupt as exc:
+                if out_dir is None:
                     exc.__notes__ = ["nothing kept: the bench's trial ran in a temporary folder"]
                 raise
             return {**result, "warm": warm, "worker_import_s": imports}

@@ -15,7 +15,7 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 from types import TracebackType
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from mcap.writer import CompressionType, IndexType, Writer
@@ -103,9 +103,7 @@ class TrialRecorder:
         self._scene = scene
         self._t0_ns: int | None = None
         self._clock = time.time_ns
-        # steps written, not yet encoded: (step or (build, args), seq, wall time [s], hand
-        # frame or None, log time [ns], publish time [ns], t [s])
-        self._pending: list[tuple[Any, ...]] = []
+        self._pending: list[_Pending] = []  # steps written, not yet encoded
         self._kept: list[Recording] | None = [] if keep else None  # per flush, as read back
         self._meta: dict[str, Any] = {}  # the metadata as read back
         self._failed = False  # a deferred step could not be made (write_later)
@@ -253,7 +251,7 @@ class TrialRecorder:
             return
         # the steps before it are written; it and the steps after it are not
         self._failed = True
-        self._seq = pending[failed[0]][1]
+        self._seq = pending[failed[0]].seq
         try:
             self._add(writer, pending[: failed[0]])
         finally:
@@ -262,7 +260,7 @@ class TrialRecorder:
                 discard()  # the safety records of the steps not written
         raise failed[1]
 
-    def _add(self, writer: Writer, pending: list[tuple[Any, ...]]) -> None:
+    def _add(self, writer: Writer, pending: list[_Pending]) -> None:
         """Encode these pending steps as one batch and add their messages."""
         if not pending:
             return
@@ -288,7 +286,7 @@ class TrialRecorder:
             )
             if self._scene is not None:
                 self._scene.write(writer, step, log_ns)
-        self._written_t = pending[-1][6]
+        self._written_t = pending[-1].t
 
     def write(self, step: StepRecord) -> None:
         """Append one control step.
@@ -340,9 +338,8 @@ class TrialRecorder:
         hands = self._hands if self._hands is not None and self._hands[0] == self._seq else None
         self._hands = None
         # encoded and added at the next flush, in this order, as a batch (same messages)
-        self._pending.append(
-            (step, self._seq, wall_ns * 1e-9, None if hands is None else hands[1], log_ns, stamp, t)
-        )
+        held = None if hands is None else hands[1]
+        self._pending.append(_Pending(step, self._seq, wall_ns * 1e-9, held, log_ns, stamp, t))
         self._seq += 1
         self._last_t = t
         if self._flush_t == -math.inf:
@@ -434,7 +431,20 @@ def _at(t: float, what: str, cause: BaseException | None = None) -> RecordingErr
     return error
 
 
-def _built(pending: list[tuple[Any, ...]]) -> tuple[int, RecordingError] | None:
+class _Pending(NamedTuple):
+    """A step written and not yet encoded (:meth:`TrialRecorder.write`, ``write_later``);
+    its first four fields are what the codec's batch takes."""
+
+    step: Any  # a StepRecord, or (build, args) to make one at the flush
+    seq: int
+    wall_s: float  # the wall clock when written [s]
+    hands: Any  # the raw hand frame recorded with it, or None
+    log_ns: int  # MCAP log time [ns]
+    stamp: int  # MCAP publish time: the step's time [ns]
+    t: float  # the step's time [s]
+
+
+def _built(pending: list[_Pending]) -> tuple[int, RecordingError] | None:
     """Make the deferred steps of a batch (:meth:`TrialRecorder.write_later`) in place, in
     order; at the first that fails, its index and a :class:`RecordingError` naming the
     step's time and what went wrong (``build``'s own error chained as its cause).
@@ -445,25 +455,24 @@ def _built(pending: list[tuple[Any, ...]]) -> tuple[int, RecordingError] | None:
     made one at a time, which finds the one that fails."""
     runs: dict[int, tuple[Any, list[int]]] = {}  # by the build's identity
     for i, item in enumerate(pending):
-        step = item[0]
+        step = item.step
         if type(step) is tuple and getattr(step[0], "many", None) is not None:
             runs.setdefault(id(step[0]), (step[0], []))[1].append(i)
     for build, where in runs.values():
         try:
-            made = list(build.many([pending[i][0][1] for i in where]))
+            made = list(build.many([pending[i].step[1] for i in where]))
         except Exception:  # made one at a time below, which says which step and why
             continue
         if len(made) == len(where) and all(
-            isinstance(m, StepRecord) and m.t == pending[i][6] for m, i in zip(made, where)
+            isinstance(m, StepRecord) and m.t == pending[i].t for m, i in zip(made, where)
         ):
             for m, i in zip(made, where):
-                pending[i] = (m, *pending[i][1:])
+                pending[i] = pending[i]._replace(step=m)
     for i, item in enumerate(pending):
-        step = item[0]
+        step, t = item.step, item.t
         if type(step) is not tuple:
             continue
         build, args = step
-        t = item[6]
         try:
             made = build(*args)
         except RecordingError as exc:
@@ -474,7 +483,7 @@ def _built(pending: list[tuple[Any, ...]]) -> tuple[int, RecordingError] | None:
             return i, _at(t, f"made a {type(made).__name__}, not a StepRecord")
         if made.t != t:
             return i, _at(t, f"made the step at t = {made.t} s")
-        pending[i] = (made, *item[1:])
+        pending[i] = item._replace(step=made)
     return None
 
 
