@@ -1281,11 +1281,11 @@ def test_bench_trial_interrupted_while_warming_up_says_nothing_was_kept(
     from payload.trials.bench import run_trial_bench
 
     real = SimDriver.step
-    calls = [0]
+    calls, stop_at = [0], 20  # control steps of the first run, then Ctrl-C
 
     def interrupted(self, *args, **kwargs):
         calls[0] += 1
-        if calls[0] == 20:
+        if calls[0] == stop_at:
             raise KeyboardInterrupt
         return real(self, *args, **kwargs)
 
@@ -1296,7 +1296,7 @@ def test_bench_trial_interrupted_while_warming_up_says_nothing_was_kept(
     notes = getattr(caught.value, "__notes__", [])
     assert len(notes) == 1 and "untimed first run" in notes[0], notes
     assert "--out not written" in notes[0] and not out.exists()
-    assert calls[0] == 20  # interrupted in the first run: the measured one never began
+    assert calls[0] == stop_at  # interrupted in the first run: the measured one never began
 
 
 def test_cli_bench_trial_repeated_reports_the_median_run(capsys) -> None:
