@@ -85,8 +85,9 @@ node_modules/.package-lock.json: package-lock.json
 test: $(STAMP) bytecode node_modules/.package-lock.json
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
-	$(BIN)/python -m pytest -q -n 2 --dist loadfile -m "not serial"
-	$(BIN)/python -m pytest -q -m serial
+	cache=$$(mktemp -d) && trap 'rm -rf "$$cache"' EXIT && \
+	PAYLOAD_TEST_CACHE_DIR=$$cache $(BIN)/python -m pytest -q -n 2 --dist loadfile -m "not serial" && \
+	PAYLOAD_TEST_CACHE_DIR=$$cache $(BIN)/python -m pytest -q -m serial
 
 lint: $(STAMP)
 	$(BIN)/ruff check .

@@ -119,9 +119,15 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
 @pytest.fixture(scope="session", autouse=True)
 def _isolated_payload_cache(tmp_path_factory):
     """Compiled solvers go to a temporary ``PAYLOAD_CACHE_DIR``, not the user's cache; the
-    workers of one parallel run share it (the cache writes each library atomically)."""
+    workers of one parallel run share it (the cache writes each library atomically).
+    ``make test`` names one empty folder for both of its runs (``PAYLOAD_TEST_CACHE_DIR``),
+    so the serial part loads what the parallel part compiled instead of compiling it
+    again; the first compile of each library is still a test's."""
     old = os.environ.get("PAYLOAD_CACHE_DIR")
-    if os.environ.get("PYTEST_XDIST_WORKER"):
+    given = os.environ.get("PAYLOAD_TEST_CACHE_DIR")
+    if given:
+        os.environ["PAYLOAD_CACHE_DIR"] = given
+    elif os.environ.get("PYTEST_XDIST_WORKER"):
         shared = tmp_path_factory.getbasetemp().parent / "payload-cache"
         shared.mkdir(exist_ok=True)
         os.environ["PAYLOAD_CACHE_DIR"] = str(shared)
