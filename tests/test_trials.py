@@ -1315,9 +1315,12 @@ def test_cli_bench_trial_repeated_reports_the_median_run(capsys) -> None:
     assert [ln.split(":")[0] for ln in said] == [f"bench run {i} of 3" for i in (1, 2, 3)]
     assert r["repeat"] == 3 and len(r["runs"]) == 3
     ratios = [run["wall_seconds"] / run["physics_floor_s"] for run in r["runs"]]
-    for run, ratio in zip(r["runs"], ratios):
+    for run, ratio, line in zip(r["runs"], ratios, said):
         assert run["overhead_ratio"] == pytest.approx(ratio)
         assert len(run["load_average"]) == 3
+        # each run's core speed beside its ratio: its floor over its 1 ms steps
+        assert run["physics_floor_s"] / (run["mj_step_us"] * 1e-6) == pytest.approx(20 * r["steps"])
+        assert f"mj_step {run['mj_step_us']:.1f} us a step" in line
     middle = sorted(ratios)[1]
     assert r["overhead_ratio"] == pytest.approx(middle)
     assert r["overhead_ratio_median"] == pytest.approx(statistics.median(ratios))

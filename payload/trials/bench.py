@@ -303,10 +303,12 @@ RUN_FIELDS: tuple[str, ...] = (
     "physics_floor_s",
     "overhead_ratio",
     "overhead_ratio_cpu",
+    "mj_step_us",
     "load_average",
     "full_checks",
 )
-"""What :func:`run_trial_bench_repeated` keeps of each run (``runs``)."""
+"""What :func:`run_trial_bench_repeated` keeps of each run (``runs``): ``mj_step_us``, the
+core's speed of that run, beside its ratio (the ratio moves with it, docs/speed.md)."""
 
 
 def run_trial_bench_repeated(

@@ -99,8 +99,8 @@ def _cmd_bench_trial(args: argparse.Namespace) -> int:
         def said(i: int, run: dict) -> None:
             print(
                 f"bench run {i + 1} of {args.repeat}: overhead ratio "
-                f"{run['overhead_ratio']:.3f}, {run['wall_seconds']:.2f} s wall, load average "
-                f"{run['load_average'][0]:.2f}"
+                f"{run['overhead_ratio']:.3f}, {run['wall_seconds']:.2f} s wall, mj_step "
+                f"{run['mj_step_us']:.1f} us a step, load average {run['load_average'][0]:.2f}"
                 + (", with kernels' full self-checks" if run.get("full_checks") else ""),
                 file=sys.stderr,
             )
