@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from payload.schema import CONTROL_DT
 from payload.trials.codec import STEP_GRIDS
 from payload.trials.metrics import (
     MetricsError,
@@ -1191,9 +1192,10 @@ def test_cli_bench_trial_accounts_for_its_time(tmp_path: Path, capsys, fresh_che
     assert r["realtime_factor"] >= r["sim_seconds"] / outside
     size = (out / "log.mcap").stat().st_size
     assert r["log_bytes_per_sim_minute"] == pytest.approx(size / (r["sim_seconds"] / 60))
-    # mj_step alone: inside the physics stage, 20 steps of 1 ms per control step
+    # mj_step alone: inside the physics stage, a control period's steps of 1 ms each
     assert 0 < r["mj_step_seconds"] < r["breakdown"]["physics"]
-    assert r["mj_step_seconds"] / (r["mj_step_us"] * 1e-6) == pytest.approx(20 * r["steps"])
+    physics_steps = round(CONTROL_DT / r["physics_dt"]) * r["steps"]
+    assert r["mj_step_seconds"] / (r["mj_step_us"] * 1e-6) == pytest.approx(physics_steps)
     assert r["physics_only_realtime_factor"] == pytest.approx(
         r["sim_seconds"] / r["mj_step_seconds"]
     )
@@ -1318,8 +1320,9 @@ def test_cli_bench_trial_repeated_reports_the_median_run(capsys) -> None:
     for run, ratio, line in zip(r["runs"], ratios, said):
         assert run["overhead_ratio"] == pytest.approx(ratio)
         assert len(run["load_average"]) == 3
-        # each run's core speed beside its ratio: its floor over its 1 ms steps
-        assert run["physics_floor_s"] / (run["mj_step_us"] * 1e-6) == pytest.approx(20 * r["steps"])
+        # each run's core speed beside its ratio: its floor over its physics steps
+        physics_steps = round(CONTROL_DT / r["physics_dt"]) * r["steps"]
+        assert run["physics_floor_s"] / (run["mj_step_us"] * 1e-6) == pytest.approx(physics_steps)
         assert f"mj_step {run['mj_step_us']:.1f} us a step" in line
     middle = sorted(ratios)[1]
     assert r["overhead_ratio"] == pytest.approx(middle)

@@ -204,7 +204,7 @@ def run_trial_bench(
             # on Ctrl-C, not the recorder's "kept": a folder in tmp goes with it
             if warm:
                 try:
-                    _warm_up(seed, Path(tmp) / "warm-up", max_time, physics_dt)
+                    _trial(seed, Path(tmp) / "warm-up", max_time, physics_dt)
                 except KeyboardInterrupt as exc:
                     exc.__notes__ = [
                         "nothing kept: interrupted in the bench's untimed first run (--warm), "
@@ -223,20 +223,15 @@ def run_trial_bench(
             os.sched_setaffinity(0, before)
 
 
-def _trial_options(max_time: float | None, physics_dt: float | None) -> dict[str, Any]:
-    """The runner's keyword arguments for the bench's options (its defaults when None)."""
+def _trial(seed: int, out: Path, max_time: float | None, physics_dt: float | None) -> dict:
+    """The bench's trial, run by the runner with the bench's options (the runner's
+    defaults where None): untimed as ``warm``'s first run, timed inside :func:`_bench`."""
+    from payload.trials import runner
+
     extra: dict[str, Any] = {} if max_time is None else {"max_time": max_time}
     if physics_dt is not None:
         extra["physics_dt"] = physics_dt
-    return extra
-
-
-def _warm_up(seed: int, out: Path, max_time: float | None, physics_dt: float | None) -> None:
-    """The trial run once, untimed, in this process (``warm``): what a campaign worker
-    has done before its later trials."""
-    from payload.trials import runner
-
-    runner.run_trial(seed, out_dir=out, **_trial_options(max_time, physics_dt))
+    return runner.run_trial(seed, out_dir=out, **extra)
 
 
 def _bench(
@@ -252,11 +247,9 @@ def _bench(
     timers._stack.append("startup")  # the imports below count as start-up
     timers._mark = (w0, c0)
     with _patched(timers), _stepping_timed(clock):
-        from payload.trials import runner
-
         timers._switch()
         timers._stack[-1] = "other"
-        result = runner.run_trial(seed, out_dir=out, **_trial_options(max_time, physics_dt))
+        result = _trial(seed, out, max_time, physics_dt)
     timers._switch()
     wall, cpu = timers._mark[0] - w0, timers._mark[1] - c0
     sim_seconds = result["steps"] * CONTROL_DT
