@@ -798,7 +798,7 @@ def _worker_profiler_enabled() -> bool:
 
 
 def test_the_local_clusters_workers_run_without_the_dask_profiler() -> None:
-    # the profiler samples the task's stack every 10 ms under the GIL (docs/speed.md);
+    # the profiler samples the task's stack every 10 ms under the GIL (docs/speed-log.md, item 9);
     # asked of each worker process itself, not of this one's configuration
     # distributed's defaults registered before the set below: else leaving the set removes
     # the whole "distributed" table it found missing, and a later Client in this process

@@ -18,7 +18,8 @@ timed stage counts only there):
 * ``operator``: the synthetic operator producing hand frames;
 * ``pipeline``: the teleoperation pipeline (filters, retargeting, rail and base channels);
 * ``recording``: building the step records and writing the MCAP file;
-* ``scoring``: reading the recording back, the metrics and the two figures;
+* ``scoring``: the metrics (from the recording the recorder kept, or read back from its
+  file) and the two figures;
 * ``other``: the rest of the loop (phase labels, world views, bookkeeping).
 
 Before the trial, ``worker_import_s``: how long a fresh interpreter takes to import a

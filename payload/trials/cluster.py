@@ -49,7 +49,7 @@ def dask_client(workers: int, scheduler: str | None, error: type[Exception]) -> 
     if scheduler is None:
         # The workers' statistical profiler samples the running task's stack every 10 ms
         # while holding the GIL: 19.3/18.3 s against 15.8/16.1 s a trial on this 2-core
-        # machine (docs/speed.md, item 9). Nothing here reads its profiles, so it is off.
+        # machine (docs/speed-log.md, item 9). Nothing here reads its profiles, so it is off.
         with dask.config.set(WORKER_CONFIG), _workers_ignore_ctrl_c():
             cluster = LocalCluster(
                 n_workers=workers,

@@ -308,7 +308,7 @@ class TrialRecorder:
         The same step as ``write(build(*args))``, in the same place in the file, with the
         same wall-clock time (taken now): only the making waits. Made one after the other
         at a flush, about 50 steps cost half what they cost made one at a time between the
-        loop's other work (docs/speed.md, item 19). ``args`` must stay as they are until
+        loop's other work (docs/speed-log.md, item 19). ``args`` must stay as they are until
         then: the loop's snapshots (frozen or fresh arrays), not buffers reused.
 
         Raises:
