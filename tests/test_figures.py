@@ -85,3 +85,41 @@ def test_the_campaign_figure_draws_every_trial_beside_the_papers_median_and_rang
     stamp = (tmp_path / "fig_campaign.png").stat().st_mtime_ns
     write_summary(results, tmp_path)
     assert (tmp_path / "fig_campaign.png").stat().st_mtime_ns == stamp
+
+
+def _title_on_page(summary: dict, labels: dict) -> str:
+    """The campaign figure's title as drawn, after checking that it lies inside the page,
+    above every panel's own title, with every word of the summary's title."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    from payload.trials.campaign_figure import campaign_figure
+
+    fig = campaign_figure(summary, labels)
+    FigureCanvasAgg(fig).draw()
+    renderer = fig.canvas.get_renderer()
+    title = fig._suptitle
+    box, page = title.get_window_extent(renderer), fig.bbox
+    assert page.x0 <= box.x0 and box.x1 <= page.x1, (box, page)
+    assert page.y0 <= box.y0 and box.y1 <= page.y1, (box, page)
+    for ax in fig.axes:
+        assert box.y0 >= ax.title.get_window_extent(renderer).y1 - 0.5, ax.get_title()
+    assert " ".join(title.get_text().split()).startswith(" ".join(summary["title"].split()))
+    return title.get_text()
+
+
+def test_a_long_campaign_title_stays_on_the_page_above_the_panels() -> None:
+    """The committed campaigns' titles (their setups in words) ran past both edges of the
+    `safe` ones' figures: wrapped, each drawn title lies inside its page, above the
+    panels' titles; on a one-panel figure the same title wraps over several lines."""
+    import json
+
+    from payload.trials.summary import METRIC_LABELS
+
+    root = SOURCES.parents[1] / "analyses" / "campaign"
+    summaries = sorted(root.glob("*/summary.json"))
+    assert len(summaries) >= 6
+    for path in summaries:
+        _title_on_page(json.loads(path.read_text(encoding="utf-8")), METRIC_LABELS)
+    summary = json.loads((root / "single-safe-delay1s" / "summary.json").read_text())
+    one = dict(list(METRIC_LABELS.items())[:1])
+    assert len(_title_on_page(summary, one).splitlines()) >= 4

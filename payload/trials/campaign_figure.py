@@ -8,11 +8,14 @@ summary as ``fig_campaign.png`` beside ``summary.md``.
 
 from __future__ import annotations
 
+import textwrap
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
+from matplotlib.text import Text
 
 from payload.folders import CAMPAIGN_FIGURE, tagged
 from payload.trials.figures import save_figure
@@ -42,10 +45,12 @@ def campaign_figure(
     fig = Figure(figsize=(3.0 * len(labels), 4.2), layout="constrained")
     axes = fig.subplots(1, len(labels))
     n_ok = summary.get("success", 0)
-    fig.suptitle(
-        f"{title or summary.get('title') or 'Campaign'}: {n_ok}/{summary.get('n', 0)} "
-        f"succeeded (paper {summary['paper']['success']}/{summary['paper']['n']}); "
-        "dots: trials, bar: median, whisker: range"
+    _fit_width(
+        fig.suptitle(
+            f"{title or summary.get('title') or 'Campaign'}\n{n_ok}/{summary.get('n', 0)} "
+            f"succeeded (paper {summary['paper']['success']}/{summary['paper']['n']}); "
+            "dots: trials, bar: median, whisker: range"
+        )
     )
     rng = np.random.default_rng(0)  # a fixed jitter: the same summary draws the same figure
     for ax, (key, label) in zip(np.atleast_1d(axes), labels.items()):
@@ -59,6 +64,22 @@ def campaign_figure(
         ax.set_title(label, fontsize=9, wrap=True)
         ax.grid(axis="y", alpha=0.3)
     return fig
+
+
+TITLE_WIDTH = 0.96
+"""The share of the figure's width a title may take."""
+
+
+def _fit_width(text: Text) -> None:
+    """Wrap ``text``'s lines at spaces until its rendered width is within
+    :data:`TITLE_WIDTH` of its figure's (a long setup's title ran past both edges)."""
+    fig = text.get_figure()
+    renderer = FigureCanvasAgg(fig).get_renderer()
+    lines = text.get_text().split("\n")
+    chars = max(len(line) for line in lines)
+    while chars > 20 and text.get_window_extent(renderer).width > TITLE_WIDTH * fig.bbox.width:
+        chars = int(chars * 0.9)
+        text.set_text("\n".join(textwrap.fill(line, chars) for line in lines))
 
 
 def _finite(value: Any) -> bool:
