@@ -518,6 +518,7 @@ def test_recording_carries_the_filter_channel_and_the_keepin_boxes(world, graspe
     from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
     from mcap.reader import make_reader
 
+    from payload.sim.station import CLEARANCE_CAP
     from payload.trials.foxglove import FoxgloveScene
     from payload.trials.recorder import RecordingError, TrialRecorder
     from payload.trials.records import random_step
@@ -560,6 +561,7 @@ def test_recording_carries_the_filter_channel_and_the_keepin_boxes(world, graspe
         "station_contacts": 0,
         "min_station_clearance_mm": round(scene.least * 1e3, 1),
         "filter_active_s": 1.2,
+        "station_clearance_cap_mm": 1e3 * CLEARANCE_CAP,  # the monitor's, whatever it is
     }
 
 

@@ -328,6 +328,43 @@ def test_the_station_figures_count_every_step_the_trial_recorded(tmp_path, monke
     assert recorded == running_environment()
 
 
+def test_a_trial_that_never_came_within_the_monitors_cap_says_so(
+    tmp_path, monkeypatch, capsys
+) -> None:
+    """A trial whose station monitor never measured a distance (nothing within its cap:
+    the reading it gives then, the cap itself) records the cap beside the least clearance,
+    and its printout says the clearance is over the cap, not that it was the cap (a user
+    read "least clearance 300.0 mm" as a distance); a campaign's summary names the cap."""
+    from payload.sim.station import CLEARANCE_CAP, StationMonitor, StationReading
+    from payload.trials.summary import print_trial_summary, station_summary, summarize
+    from payload.trials.summary_markdown import summary_markdown
+
+    monkeypatch.setattr(
+        StationMonitor, "read", lambda self, data: StationReading(False, CLEARANCE_CAP)
+    )
+    result = run_trial(1, out_dir=tmp_path / "t", max_time=0.5)
+    cap = result["station_clearance_cap_mm"]
+    assert cap == result["min_station_clearance_mm"] == pytest.approx(1e3 * CLEARANCE_CAP)
+    print_trial_summary(result)
+    line = next(ln for ln in capsys.readouterr().out.splitlines() if "least clearance" in ln)
+    assert f"least clearance over {cap:g} mm" in line, line
+    near = {**result, "min_station_clearance_mm": 12.5}
+    print_trial_summary(near)
+    assert "least clearance 12.5 mm," in capsys.readouterr().out
+    station = station_summary([result, near])
+    assert (
+        station["station_clearance_cap_mm"] == cap and station["min_station_clearance_mm"] == 12.5
+    )
+    text = " ".join(summary_markdown(summarize([result, near])).split())
+    assert f"least clearance 12.5 mm (measured up to {cap:g} mm);" in text
+    text = " ".join(summary_markdown(summarize([result, result])).split())
+    assert f"least clearance over {cap:g} mm (measured up to {cap:g} mm);" in text
+    older = [
+        {k: v for k, v in r.items() if k != "station_clearance_cap_mm"} for r in (result, near)
+    ]
+    assert "station_clearance_cap_mm" not in station_summary(older)  # older trials do not say
+
+
 def test_default_trial_folders_are_new(tmp_path):
     # this checkout's design and models, with its runs/ moved to a temporary folder
     project = dataclasses.replace(Project.at(DESIGN.parents[1]), runs_dir=tmp_path / "runs")

@@ -6,7 +6,9 @@ Foxglove: the filter's clearance, the binding shape and obstacle face, how much 
 the command, and the station contact and clearance measured by
 :class:`~payload.sim.station.StationMonitor`), and the keep-in boxes as a
 ``foxglove.SceneUpdate`` on ``/safety/keepin``. :meth:`SafetyScene.summary` gives the
-trial's ``station_contacts``, ``min_station_clearance_mm`` and ``filter_active_s``.
+trial's ``station_contacts``, ``min_station_clearance_mm`` (at most
+``station_clearance_cap_mm``, the distance beyond which none is measured) and
+``filter_active_s``.
 
 The recorder writes its messages in batches, up to a second after the step, so each
 step's record is taken at the step (:meth:`SafetyScene.observe`, called by whoever runs
@@ -215,6 +217,7 @@ class SafetyScene:
             "station_contacts": int(self.contacts),
             "min_station_clearance_mm": round(self.least * 1e3, 1),
             "filter_active_s": round(self.active_steps * CONTROL_DT, 2),
+            "station_clearance_cap_mm": round(CLEARANCE_CAP * 1e3, 1),
         }
 
 

@@ -125,6 +125,7 @@ def _trial_setup(meta: dict[str, Any]) -> dict[str, Any]:
         "station_contacts",
         "min_station_clearance_mm",
         "filter_active_s",
+        "station_clearance_cap_mm",
     )
     return {k: meta[k] for k in keys if k in meta}
 

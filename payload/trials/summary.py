@@ -19,7 +19,13 @@ import numpy as np
 from payload.folders import SUMMARY, SUMMARY_TEXT, tagged
 from payload.safeio import OverwriteError, write_unless_changed
 from payload.schema import CONTROL_DT
-from payload.trials.summary_fields import METRIC_KEYS, METRIC_LABELS, PAPER_RESULTS, CampaignError
+from payload.trials.summary_fields import (
+    METRIC_KEYS,
+    METRIC_LABELS,
+    PAPER_RESULTS,
+    CampaignError,
+    least_clearance_text,
+)
 from payload.trials.summary_markdown import summary_markdown
 from payload.trials.trial_results import load_trial_results
 
@@ -137,7 +143,12 @@ def summarize(results: Sequence[dict[str, Any]]) -> dict[str, Any]:
     return summary
 
 
-STATION_KEYS = ("station_contacts", "min_station_clearance_mm", "filter_active_s")
+STATION_KEYS = (
+    "station_contacts",
+    "min_station_clearance_mm",
+    "filter_active_s",
+    "station_clearance_cap_mm",
+)
 """The per-trial station figures (:mod:`payload.trials.safety`)."""
 
 
@@ -151,6 +162,9 @@ def station_summary(rows: Sequence[dict[str, Any]]) -> dict[str, Any]:
         "base_filter": _one_value(rows, "base_filter"),
         "link_delay": _one_value(rows, "link_delay"),
     }
+    caps = {r["station_clearance_cap_mm"] for r in ok if r.get("station_clearance_cap_mm")}
+    if len(caps) == 1:  # older trials do not say
+        out["station_clearance_cap_mm"] = caps.pop()
     if not ok:
         return out
     contacts = [int(r["station_contacts"]) for r in ok]
@@ -285,13 +299,14 @@ def print_trial_summary(result: dict[str, Any], given: str = "") -> None:
         )
     if "station_contacts" in result:
         delay = result.get("link_delay")
+        mm = result.get("min_station_clearance_mm")
         jitter = f" +-{delay[1]:g}" if delay and len(delay) > 1 and delay[1] else ""
         print(
             f"  base filter {'on' if result.get('base_filter') else 'off'}"
             f"{f', link delay {delay[0]:g}{jitter} s' if delay else ''}; "
             f"station contacts: {result.get('station_contacts')} steps, least clearance "
-            f"{result.get('min_station_clearance_mm')} mm, filter active "
-            f"{result.get('filter_active_s')} s"
+            f"{least_clearance_text(mm, result.get('station_clearance_cap_mm'))}, "
+            f"filter active {result.get('filter_active_s')} s"
         )
     for key in METRIC_KEYS:
         value = result.get(key)

@@ -46,4 +46,24 @@ class CampaignError(PayloadError):
     """A campaign cannot run or be summarised (bad arguments, no trials, no scheduler)."""
 
 
-__all__ = ["METRIC_KEYS", "METRIC_LABELS", "PAPER_RESULTS", "CampaignError"]
+def least_clearance_text(mm: Any, cap_mm: Any, *, always_cap: bool = False) -> str:
+    """The least station clearance as said to a reader: ``"5.8 mm"``, or, at the cap the
+    monitor measures up to (``station_clearance_cap_mm``), ``"over 300 mm (measured up to
+    300 mm)"``: the cap is not a distance that was seen. ``always_cap``: name the cap
+    below it too. Without a cap (older trials) the figure alone."""
+    if mm is None:
+        return "n/a"
+    if not isinstance(cap_mm, (int, float)):
+        return f"{mm} mm"
+    if mm >= cap_mm:
+        return f"over {cap_mm:g} mm (measured up to {cap_mm:g} mm)"
+    return f"{mm} mm (measured up to {cap_mm:g} mm)" if always_cap else f"{mm} mm"
+
+
+__all__ = [
+    "METRIC_KEYS",
+    "METRIC_LABELS",
+    "PAPER_RESULTS",
+    "CampaignError",
+    "least_clearance_text",
+]

@@ -8,7 +8,12 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from payload.trials.summary_fields import METRIC_KEYS, METRIC_LABELS, PAPER_RESULTS
+from payload.trials.summary_fields import (
+    METRIC_KEYS,
+    METRIC_LABELS,
+    PAPER_RESULTS,
+    least_clearance_text,
+)
 
 
 def _station_lines(station: dict[str, Any] | None) -> list[str]:
@@ -16,13 +21,15 @@ def _station_lines(station: dict[str, Any] | None) -> list[str]:
         return []
     active = station.get("filter_active_s") or {}
     delay = station.get("link_delay")
+    mm = station.get("min_station_clearance_mm")
     on = {"True": "on", "False": "off"}.get(str(station.get("base_filter")), "mixed")
     return [
         "",
         f"Station contacts: {station['trials_with_contacts']} of {station['measured']} "
         f"trials touched the station ({station['station_contacts']['total']} control steps "
-        f"in all); least clearance {station['min_station_clearance_mm']} mm (measured up to "
-        f"300 mm); base filter {on}, active "
+        f"in all); least clearance "
+        f"{least_clearance_text(mm, station.get('station_clearance_cap_mm'), always_cap=True)}"
+        f"; base filter {on}, active "
         f"{active.get('median', 0.0):.1f} s median per trial"
         f"{f'; link delay (delay, jitter) {delay} s' if delay else ''}.",
     ]
