@@ -336,7 +336,12 @@ def test_a_trial_that_never_came_within_the_monitors_cap_says_so(
     and its printout says the clearance is over the cap, not that it was the cap (a user
     read "least clearance 300.0 mm" as a distance); a campaign's summary names the cap."""
     from payload.sim.station import CLEARANCE_CAP, StationMonitor, StationReading
-    from payload.trials.summary import print_trial_summary, station_summary, summarize
+    from payload.trials.summary import (
+        METRIC_LABELS,
+        print_trial_summary,
+        station_summary,
+        summarize,
+    )
     from payload.trials.summary_markdown import summary_markdown
 
     monkeypatch.setattr(
@@ -346,8 +351,12 @@ def test_a_trial_that_never_came_within_the_monitors_cap_says_so(
     cap = result["station_clearance_cap_mm"]
     assert cap == result["min_station_clearance_mm"] == pytest.approx(1e3 * CLEARANCE_CAP)
     print_trial_summary(result)
-    line = next(ln for ln in capsys.readouterr().out.splitlines() if "least clearance" in ln)
+    out = capsys.readouterr().out.splitlines()
+    line = next(ln for ln in out if "least clearance" in ln)
     assert f"least clearance over {cap:g} mm" in line, line
+    # half a second has no contact interval: its metric's 0 is said to be none
+    assert result["n_contact_samples"] == 0 and result["contact_s"] == 0
+    assert f"  {METRIC_LABELS['contact_s']}: 0.000 (no confirmed contact)" in out
     near = {**result, "min_station_clearance_mm": 12.5}
     print_trial_summary(near)
     assert "least clearance 12.5 mm," in capsys.readouterr().out

@@ -237,7 +237,7 @@ def plot_ctb_body_frame(
     verdict = "success" if m.success else "failure"
     fig.suptitle(
         f"CTB centre of mass in the Astrobee body frame (eq. 4) -- {verdict}, "
-        f"contact {m.contact_s:.1f} s of {m.duration_s:.1f} s\n"
+        f"contact {m.contact_s:.1f} s of the {m.duration_s:.1f} s after calibration\n"
         "vertical: first confirmed contact (t0) solid, its end dashed, arrival in "
         f"{m.destination} dash-dot; horizontal dashed: the position at t0",
         fontsize=10,
@@ -284,7 +284,9 @@ def plot_route(
                 lw=1.2,
             )
         )
-        ax.text(r.x_min, r.y_max, f" {r.name}", va="top", fontsize=9, color=f"C{i % 10}")
+        # outside the module's left edge: the route runs through narrow modules' insides
+        color = f"C{i % 10}"
+        ax.text(r.x_min, r.y_max, f"{r.name} ", ha="right", va="top", fontsize=9, color=color)
     pb, pc = recording.astrobee_pos, recording.ctb_pos
     ax.plot(pb[:, 0], pb[:, 1], color="#08306b", lw=1.5, label="Astrobee")
     ax.plot(pc[:, 0], pc[:, 1], color="#a50f15", lw=1.0, ls="--", label="CTB centre of mass")
@@ -298,6 +300,8 @@ def plot_route(
         pb[idx, 0], pb[idx, 1], heading[:, 0], heading[:, 1], color="#08306b", width=0.004,
         scale=25, alpha=0.7,
     )  # fmt: skip
+    # the arrows' legend entry (a quiver has none)
+    ax.plot([], [], ">", color="#08306b", alpha=0.7, ms=6, label="Astrobee heading (body x)")
     ax.set_aspect("equal", adjustable="datalim")
     ax.set_xlabel("world x [m]")
     ax.set_ylabel("world y [m]")

@@ -311,6 +311,8 @@ def print_trial_summary(result: dict[str, Any], given: str = "") -> None:
     for key in METRIC_KEYS:
         value = result.get(key)
         shown = "n/a" if value is None else f"{value:.3f}"
+        if key == "contact_s" and result.get("n_contact_samples") == 0:
+            shown += " (no confirmed contact)"  # the metric's 0 when there is no interval
         print(f"  {METRIC_LABELS[key]}: {shown}")
 
 
