@@ -155,7 +155,11 @@ class DynamixelDriver(FaultHandling):
             if not self.port.setBaudRate(self.map.baud):
                 raise DynamixelError(f"{port}: cannot set {self.map.baud} baud")
         except OSError as exc:
-            raise DynamixelError(f"{port}: cannot open the serial port ({exc})") from exc
+            # pyserial's error repeats the system's ("[Errno 2] could not open port P:
+            # [Errno 2] No such file or directory: 'P'"): say the system's reason once
+            cause = exc.__context__ if isinstance(exc.__context__, OSError) else exc
+            reason = cause.strerror or str(cause)
+            raise DynamixelError(f"{port}: cannot open the serial port ({reason})") from exc
         self._closed = False
         if poll_timeout > 0 and getattr(self.port, "ser", None) is not None:
             self.port.ser.timeout = poll_timeout

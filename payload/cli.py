@@ -246,11 +246,22 @@ def _add_project_option(parser: argparse.ArgumentParser) -> None:
             _add_project_option(child)
 
 
+FOLDER_METAVAR = "DIR"
+"""How the help names a folder: the contract's ``--out DIR`` (docs/cli.md, "One
+vocabulary"), and a positional folder argument (``dir``)."""
+
+
 def _strict(parser: argparse.ArgumentParser) -> None:
     """No abbreviated options anywhere (``--sample`` is not ``--samples``), and every
-    (sub)command remembers its parser, so a wrong option prints that command's usage."""
+    (sub)command remembers its parser, so a wrong option prints that command's usage.
+    An ``--out`` or a ``dir`` argument without a metavar of its own is shown as
+    :data:`FOLDER_METAVAR` (argparse's default read ``--out OUT``, ``dir``)."""
     parser.allow_abbrev = False
     for action in parser._actions:
+        if action.metavar is None and (
+            "--out" in action.option_strings or (not action.option_strings and action.dest == "dir")
+        ):
+            action.metavar = FOLDER_METAVAR
         if isinstance(action, argparse._SubParsersAction):
             for child in action.choices.values():
                 child.set_defaults(_parser=child)

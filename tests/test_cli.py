@@ -237,8 +237,9 @@ FORBIDDEN = {"--serial", "--dev", "--tty", "--source", "--operator", "--input", 
 def test_every_option_has_help_and_speaks_the_vocabulary() -> None:
     """The whole tree (every subcommand, built through the registry): every option and
     positional has help text; ``--device`` is a serial device, ``--port`` a TCP port,
-    ``--replay`` a recording, ``--out`` never required; other spellings only as
-    deprecated aliases of the vocabulary's."""
+    ``--replay`` a recording, ``--out`` never required and shown as ``--out DIR`` (or
+    ``FILE``), positionals in capitals as the usage lines write them; other spellings only
+    as deprecated aliases of the vocabulary's."""
     problems = []
     for path, parser in _parsers(build_parser()):
         for action in parser._actions:
@@ -266,6 +267,11 @@ def test_every_option_has_help_and_speaks_the_vocabulary() -> None:
                     problems.append(f"{where}: --replay should say which recordings it takes")
                 if opt == "--out" and action.required:
                     problems.append(f"{where}: --out must be optional")
+                if opt == "--out" and action.metavar not in ("DIR", "FILE"):
+                    problems.append(f"{where}: shown as --out {action.metavar}, not DIR (a folder)")
+            shown = action.metavar or action.dest
+            if not action.option_strings and isinstance(shown, str) and shown != shown.upper():
+                problems.append(f"{where}: a positional shown in lower case ({shown})")
     assert problems == []
 
 

@@ -99,6 +99,19 @@ def test_hw_commands_without_a_device_say_so(capsys):
     assert len(err) == 1 and "--device DEV is required" in err[0]
 
 
+def test_a_device_that_is_not_there_is_one_line_with_the_systems_reason(tmp_path, capsys):
+    """The reason is the system's own for opening that path (``os.strerror`` of the errno
+    an ``open`` of it raises), said once (pyserial's message carried it twice)."""
+    missing = tmp_path / "ttyUSB9"
+    with pytest.raises(OSError) as opened:
+        open(missing, "rb")  # the system's own answer for this path
+    assert main(["hw", "scan", "--device", str(missing)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    reason = os.strerror(opened.value.errno)
+    assert len(err) == 1 and f"{missing}: cannot open the serial port ({reason})" in err[0], err
+    assert err[0].count(reason) == 1 and "Errno" not in err[0], err
+
+
 def test_check_fails_naming_the_missing_servo(emulate, capsys):
     assert main(["hw", "check", "--device", emulate, "--json", "--latency-ms", LAT]) == 1
     captured = capsys.readouterr()

@@ -150,6 +150,11 @@ def test_new_refuses_a_project_option_it_would_ignore(tmp_path, capsys):
         err = capsys.readouterr().err.strip()
         assert len(err.splitlines()) == 1 and "use --from PROJECT" in err, err
     assert not (tmp_path / "a").exists()
+    # and its help does not offer it (it listed `--project DIR  design project to work on`)
+    with pytest.raises(SystemExit):
+        main(["new", "--help"])
+    shown = capsys.readouterr().out
+    assert "--from PROJECT" in shown and "--project" not in shown, shown
 
 
 # ------------------------------------------------- the project in front of the command

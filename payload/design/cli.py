@@ -178,6 +178,8 @@ def register(
         metavar="PROJECT",
         help="copy this project's design (default: the packaged default design)",
     )
+    # taken only to say why it does not apply (the project is DIR): not in the help
+    p.add_argument("--project", metavar="DIR", default=argparse.SUPPRESS, help=argparse.SUPPRESS)
     p.set_defaults(func=_cmd_new)
 
     p = sub.add_parser("build", help="regenerate urdf/ and cad/meshes/ from the design")

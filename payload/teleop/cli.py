@@ -327,7 +327,13 @@ def serve_arguments(p: argparse.ArgumentParser) -> None:
         "payload on --device beside the simulated scene",
     )
     add_device(p, "serial device of the servo bus (--driver hardware)")
-    p.add_argument("--host", default="127.0.0.1", help="bind address (non-local needs TLS)")
+    p.add_argument(
+        "--host",
+        default="127.0.0.1",
+        help="bind address (default 127.0.0.1); any other is served over TLS with a "
+        "session token, on a certificate the workbench makes and keeps unless --cert is "
+        "given (docs/live.md)",
+    )
     p.add_argument(
         "--port",
         type=_port,

@@ -224,7 +224,11 @@ def register(
     bt.add_argument("--seed", type=int, default=0, help="trial seed (default 0)")
     bt.add_argument("--out", help="keep the trial folder here (default: a temporary one)")
     bt.add_argument(
-        "--seconds", type=float, default=None, help="cap the trial [s] (default: a whole trial)"
+        "--seconds",
+        type=float,
+        default=None,
+        metavar="S",
+        help="cap the trial [s] (default: a whole trial; `payload trial`'s --max-time)",
     )
     bt.add_argument("--pin", action="store_true", help="restrict the run to one CPU core (Linux)")
     bt.add_argument(

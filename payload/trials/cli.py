@@ -136,11 +136,12 @@ def register(
     add_deprecated(
         p,
         "--operator",
-        "--replay FILE (or, for the synthetic operator, no option: it is the default)",
+        "--replay FILE",
         "operator",
         nargs="+",
         metavar=("synthetic|replay", "F"),
-        help="'synthetic' or 'replay FILE'",
+        help="`--operator replay F` is `--replay F`; `--operator synthetic` is the default, "
+        "with no option",
     )
     p.add_argument(
         "--out",
@@ -151,6 +152,7 @@ def register(
         "--max-time",
         type=float,
         default=None,
+        metavar="S",
         help="cap on the session length [s] (default: the runner's, 240 s)",
     )
     p.add_argument("--force", action="store_true", help="replace the trial already in --out")
@@ -193,6 +195,7 @@ def register(
         "--min-contact-s",
         type=float,
         default=None,
+        metavar="S",
         help="rescore, skipping contact runs shorter than this [s] (paper: 0; default: "
         "as recorded)",
     )
@@ -200,6 +203,7 @@ def register(
         "--max-gap-s",
         type=float,
         default=None,
+        metavar="S",
         help="rescore, bridging contact-indicator dropouts up to this long [s] (paper: 0; "
         "default: as recorded)",
     )
@@ -232,7 +236,7 @@ def register(
         "with the same metrics, recorded steps and other channels' messages (their "
         "wall-clock timestamps aside) in every bit",
     )
-    cm.add_argument("--out", help="also write the Markdown table to this file")
+    cm.add_argument("--out", metavar="FILE", help="also write the Markdown table to this file")
     cm.add_argument("--force", action="store_true", help="replace --out if it exists")
     cm.add_argument("--json", action="store_true", help="print one JSON object")
     cm.set_defaults(func=_cmd_trials_compare)
