@@ -154,6 +154,27 @@ def test_bay_size_override_is_validated_and_named():
         with_bay_size(VEHICLE, [0.3, 0.0, 0.1])
 
 
+def test_a_bay_size_typed_in_mm_is_named_as_the_option_with_the_sizes_meant():
+    """``--bay-size 200 100 100`` (mm where metres are meant) named the design file's
+    ``vehicle.bay_size`` and gave no hint: the error names the option, and the sizes it
+    suggests are accepted as they are printed; a size too large in metres gets no hint."""
+    import re
+
+    typed = [1e3 * v for v in VEHICLE.bay_size]
+    with pytest.raises(VehicleError) as err:
+        with_bay_size(VEHICLE, typed)
+    assert err.value.parameter == "--bay-size"
+    meant = re.search(
+        r"did you mean .* = --bay-size ([0-9.e-]+) ([0-9.e-]+) ([0-9.e-]+)\?", str(err.value)
+    )
+    assert meant, str(err.value)
+    accepted = with_bay_size(VEHICLE, [float(v) for v in meant.groups()])
+    assert accepted.bay_size == pytest.approx(VEHICLE.bay_size)
+    with pytest.raises(VehicleError) as err:
+        with_bay_size(VEHICLE, [2 * VEHICLE.body_size[0], *VEHICLE.bay_size[1:]])
+    assert err.value.parameter == "--bay-size" and "did you mean" not in str(err.value)
+
+
 # ----------------------------------------------------------------- known boxes
 
 

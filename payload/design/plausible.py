@@ -68,14 +68,18 @@ def lengths(data: dict[str, Any]) -> Iterator[tuple[str, float]]:
             yield f"{table}.{key}", float(values[key])
 
 
+def is_slip(value: float, reference: float | None) -> bool:
+    """Whether ``value`` is about :data:`SLIP_FACTOR` times ``reference`` (a value of that
+    parameter in its own unit): a small unit typed where the large one is meant."""
+    if not reference or not value:
+        return False
+    return 1 / _SLIP_TOLERANCE <= abs(value / reference) / SLIP_FACTOR <= _SLIP_TOLERANCE
+
+
 def _slip(parameter: str, value: float, unit: str, small_unit: str) -> str:
     """``45 m: did you mean 45 mm = 0.045? (`` when ``value`` is ~1000 times the packaged
     default of ``parameter``, else ``""``."""
-    default = _packaged_default(parameter)
-    if not default or not value:
-        return ""
-    ratio = abs(value / default) / SLIP_FACTOR
-    if not 1 / _SLIP_TOLERANCE <= ratio <= _SLIP_TOLERANCE:
+    if not is_slip(value, _packaged_default(parameter)):
         return ""
     return f"{value:g} {unit}: did you mean {value:g} {small_unit} = {value / SLIP_FACTOR:g}? ("
 
@@ -166,4 +170,4 @@ def check_plausible(design: Any, data: dict[str, Any]) -> None:
             )
 
 
-__all__ = ["LENGTH_TABLES", "SLIP_FACTOR", "check_plausible", "lengths"]
+__all__ = ["LENGTH_TABLES", "SLIP_FACTOR", "check_plausible", "is_slip", "lengths"]

@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from payload.design.plausible import SLIP_FACTOR, is_slip
 from payload.errors import DesignError, as_toml, is_number
 
 BAY_ASSUMPTION = (
@@ -302,6 +303,20 @@ def with_bay_size(vehicle: Vehicle, bay_size: Any) -> Vehicle:
     """``vehicle`` with its bay envelope replaced (e.g. from ``--bay-size X Y Z``) [m]."""
     _check_vector("--bay-size", bay_size, 3, positive=True)
     size = tuple(float(v) for v in bay_size)
+    try:
+        return _bays(vehicle, size)
+    except VehicleError as exc:  # named as the user gave it, with a unit slip's hint
+        in_m = tuple(v / SLIP_FACTOR for v in size)
+        slips = all(is_slip(v, ref) for v, ref in zip(size, vehicle.bay_size))
+        if not (slips and _fits(vehicle, in_m)):
+            raise VehicleError("--bay-size", exc.reason) from exc
+        given, meant = (" ".join(f"{v:g}" for v in s) for s in (size, in_m))
+        raise VehicleError(
+            "--bay-size", f"{given} m: did you mean {given} mm = --bay-size {meant}? ({exc.reason})"
+        ) from exc
+
+
+def _bays(vehicle: Vehicle, size: tuple[float, ...]) -> Vehicle:
     return dataclasses.replace(
         vehicle,
         bay_size=size,
@@ -309,6 +324,14 @@ def with_bay_size(vehicle: Vehicle, bay_size: Any) -> Vehicle:
         f"{vehicle.assumption})",
         source="--bay-size",
     )
+
+
+def _fits(vehicle: Vehicle, size: tuple[float, ...]) -> bool:
+    try:
+        _bays(vehicle, size)
+    except VehicleError:
+        return False
+    return True
 
 
 def _mm(size: tuple[float, ...]) -> str:
