@@ -24,6 +24,7 @@ import sys
 from collections.abc import Iterator
 from typing import Any
 
+from payload.design.slip import SLIP_FACTOR, is_slip
 from payload.errors import DesignError
 from payload.project import default_design_text
 
@@ -31,12 +32,6 @@ if sys.version_info >= (3, 11):
     import tomllib
 else:  # pragma: no cover
     import tomli as tomllib
-
-SLIP_FACTOR = 1000.0
-"""The unit slip recognised: mm typed as m, g typed as kg."""
-
-_SLIP_TOLERANCE = 10**0.5
-"""A value within this factor of 1000 times its default counts as a slip (~316x..3162x)."""
 
 LENGTH_TABLES: dict[str, tuple[str, ...] | None] = {
     "finger.lengths": None,
@@ -66,14 +61,6 @@ def lengths(data: dict[str, Any]) -> Iterator[tuple[str, float]]:
         values = _get(data, table)
         for key in keys or [k for k, v in values.items() if isinstance(v, (int, float))]:
             yield f"{table}.{key}", float(values[key])
-
-
-def is_slip(value: float, reference: float | None) -> bool:
-    """Whether ``value`` is about :data:`SLIP_FACTOR` times ``reference`` (a value of that
-    parameter in its own unit): a small unit typed where the large one is meant."""
-    if not reference or not value:
-        return False
-    return 1 / _SLIP_TOLERANCE <= abs(value / reference) / SLIP_FACTOR <= _SLIP_TOLERANCE
 
 
 def _slip(parameter: str, value: float, unit: str, small_unit: str) -> str:
@@ -170,4 +157,4 @@ def check_plausible(design: Any, data: dict[str, Any]) -> None:
             )
 
 
-__all__ = ["LENGTH_TABLES", "SLIP_FACTOR", "check_plausible", "is_slip", "lengths"]
+__all__ = ["LENGTH_TABLES", "check_plausible", "lengths"]

@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from payload.design.plausible import SLIP_FACTOR, is_slip
+from payload.design.slip import SLIP_FACTOR, is_slip
 from payload.errors import DesignError, as_toml, is_number
 
 BAY_ASSUMPTION = (
