@@ -647,6 +647,9 @@ def test_report_all_runs_everything_and_leads_with_one_verdict(tmp_path, capsys)
     assert lines[0].startswith("project: ") and lines[1].startswith("verdict: ")
     assert sum(x.startswith("verdict: ") for x in lines) == 3  # overall, envelope, reach
     assert lines.index("-- envelope") < lines.index("-- reach") < lines.index("-- design summary")
+    # the bay-size assumption both reports rest on, said once, before them
+    said = [i for i, x in enumerate(lines) if x.startswith("assumption: ")]
+    assert len(said) == 1 and said[0] < lines.index("-- envelope"), lines
     env = json.loads((out / "envelope.json").read_text())
     reach = json.loads((out / "reach.json").read_text())
     grasps = all(any(g["closes"] for g in p["grasp"]) for p in reach["pairs"].values())

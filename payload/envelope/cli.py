@@ -134,6 +134,7 @@ def _cmd_all(args: argparse.Namespace) -> int:
         print(verdict)
         where = project.relative(project.design_path)
         print(f"models: {'rebuilt (above)' if rebuilt else 'match ' + where}")
+        print(f"assumption: {envelope.vehicle.assumption}")  # both reports' (the bays)
         print("-- envelope")
         print(envelope_verdict(envelope))
         for line in [*env_lines, *written_lines(env_paths, "envelope")]:
@@ -141,7 +142,7 @@ def _cmd_all(args: argparse.Namespace) -> int:
         print("-- reach")
         print(reach_verdict(reach))
         for line in [
-            *reach_lines(reach),
+            *reach_lines(reach, assumption=False),
             *written_lines(reach_paths, "reach"),
         ]:
             print(line)

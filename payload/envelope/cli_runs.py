@@ -331,10 +331,12 @@ def _load_check() -> float:
     return time.perf_counter() - t if state["said"] else 0.0
 
 
-def reach_lines(analysis: ReachAnalysis) -> list[str]:
-    """The reach report's figures as terminal lines (after its verdict)."""
+def reach_lines(analysis: ReachAnalysis, assumption: bool = True) -> list[str]:
+    """The reach report's figures as terminal lines (after its verdict); ``assumption``:
+    lead with the vehicle's assumption line (``report all`` says it once for both
+    reports)."""
     lines = [
-        f"assumption: {analysis.vehicle.assumption}",
+        *([f"assumption: {analysis.vehicle.assumption}"] if assumption else []),
         f"{analysis.samples:,} samples in {analysis.seconds:.1f} s; fingertips reach "
         f"{analysis.below_vehicle * 1e3:.1f} mm below the vehicle; self-collision-free "
         f"{analysis.collision_free_fraction:.1%}",
