@@ -142,7 +142,8 @@ def check(port: str, smap: Any, latency_ms: float = 16.0) -> dict[str, Any]:
                            "voltage_v": h.voltage_v})  # fmt: skip
             if h.hardware_error:
                 errors.append(f"servo {i} ({h.joint}): hardware error {', '.join(h.bits)}")
-    return {"ok": not errors, "servos": servos, "errors": errors}
+    # the bring-up's fault and the health read's are one fault, said once
+    return {"ok": not errors, "servos": servos, "errors": list(dict.fromkeys(errors))}
 
 
 def _cmd_check(args: argparse.Namespace) -> int:
@@ -156,7 +157,7 @@ def _cmd_check(args: argparse.Namespace) -> int:
     else:
         for s in report["servos"]:
             print(f"ID {s['id']:3d} {s['joint']:<11s} model {s['model_number']}  "
-                  f"error {s['hardware_error']}  {s['temperature_c']:.0f} C  "
+                  f"error {s['hardware_error']:3d}  {s['temperature_c']:3.0f} C  "
                   f"{s['voltage_v']:.1f} V")  # fmt: skip
     if not report["ok"]:
         if args.json:

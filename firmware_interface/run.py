@@ -178,13 +178,16 @@ def replay_session(
     on_step: Any = None,
     rt: tuple[dict, dict] | None = None,
     on_pipeline: Any = None,
+    on_end: Any = None,
 ) -> list[PayloadCommand]:
     """Run a recorded hand session through the 50 Hz loop on ``driver``.
 
     The same code for the simulator (``SimDriver``) and the hardware
     (:class:`HardwareInTheLoop`): calibration, pipeline, loop. ``rt``: the retargeters
     and pair ranges to use (default: the paper's). ``on_pipeline()`` is called once the
-    calibration has built the teleoperation pipeline, before its first step.
+    calibration has built the teleoperation pipeline, before its first step;
+    ``on_end(stats)`` with the session's :class:`~payload.teleop.loop.LoopStats` when it
+    ends (``ended_by``: the source finished, or the ``max_time`` cap).
 
     ``budget`` and ``collisions`` set the pair solves (as ``payload trial``'s flags).
 
@@ -212,7 +215,7 @@ def replay_session(
         if on_step is not None:
             on_step(ctx)
 
-    run_session(
+    stats = run_session(
         driver,
         ReplaySource(list(frames)),
         CalibrationProcedure(),
@@ -221,6 +224,8 @@ def replay_session(
         on_step=observe,
         pace=pace,
     )
+    if on_end is not None:
+        on_end(stats)
     return commands
 
 
@@ -363,6 +368,7 @@ def run_hardware_trial(
         "controller_overrides": controller[1],
     }  # fmt: skip
     trips0 = len(hardware.watchdog_trips)
+    ended: list[Any] = []  # the session's LoopStats, when it ends (replay_session's on_end)
     # the trial's Foxglove and safety channels (the filter's record, station contacts)
     scene = recording_scene(sim, module_rects(layout))
     bar = None
@@ -399,7 +405,8 @@ def run_hardware_trial(
             try:
                 commands = replay_session(driver, frames, max_time=max_time, pace=pace,
                                           on_step=on_step, rt=(retargeters, ranges),
-                                          on_pipeline=arming.hold_off)  # fmt: skip
+                                          on_pipeline=arming.hold_off,
+                                          on_end=ended.append)  # fmt: skip
             except Exception as exc:  # a fault, the bus lost: a failed run, not bad input
                 what, at = recorder.mark_aborted(exc)
                 raise HardwareRunAborted(
@@ -410,8 +417,10 @@ def run_hardware_trial(
                 trip.setdefault("session_t", round(arming.steps * CONTROL_DT, 3))  # at the end
             watchdog = watchdog_report(hardware.watchdog_trips[trips0:])
             recorder.flush()  # every step written: the scene's figures count them all
+            # "max_time": the session-length cap ended it, as a trial's closing metadata says
             recorder.write_meta({"steps": len(commands), "warnings": driver.warnings(),
-                                 "watchdog": watchdog, **scene.summary()})  # fmt: skip
+                                 "watchdog": watchdog, **scene.summary(),
+                                 "ended_by": ended[0].ended_by or None})  # fmt: skip
     finally:
         if bar is not None:
             bar.stop()

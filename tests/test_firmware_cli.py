@@ -127,6 +127,27 @@ def test_check_fails_naming_the_missing_servo(emulate, capsys):
     assert s["model_number"] == 1240 and s["voltage_v"] == pytest.approx(5.0)
 
 
+def test_check_says_a_servos_hardware_error_once(capsys):
+    """A servo in overload from the start: the bring-up refuses it and its health read
+    shows it; the report lists the fault once (it listed it twice) and exits 1."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "payload.cli", "hw", "emulate", "--fault", "error:12:overload"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        port = proc.stdout.readline().strip()
+        assert main(["hw", "check", "--device", port, "--json", "--latency-ms", LAT]) == 1
+        report = json.loads(capsys.readouterr().out)
+    finally:
+        proc.terminate()
+        proc.wait(timeout=10)
+        proc.stdout.close()
+        proc.stderr.close()
+    flagged = [s for s in report["servos"] if s["hardware_error"]]
+    assert [s["id"] for s in flagged] == [12]
+    assert report["errors"] == [f"servo 12 ({flagged[0]['joint']}): hardware error overload"]
+
+
 @pytest.mark.parametrize("spec", ["drop:7", "missing:99", "error:77:overload"])
 def test_a_bad_fault_spec_is_one_line_and_exit_2(spec):
     """A spec that does not parse, and one naming a servo the bus does not have (a typo's

@@ -246,6 +246,14 @@ def test_hw_run_of_a_synthetic_trial_says_what_it_ran_on_and_places_the_ctb_as_i
     # the CTB where the source trial had it (both from rest: the first recorded step)
     assert np.linalg.norm(a.ctb_pos[0] - b.ctb_pos[0]) < 1e-4
     assert "success:" in printed and "emulator" in printed  # the trial's summary, its far end
+    assert metrics["ended_by"] == "source" and "session-length cap" not in printed
+    # capped before the recording's end: said as `payload trial` says it
+    capped = tmp_path / "capped"
+    argv[argv.index(str(out))] = str(capped)
+    assert main([*argv, "--max-time", "1"]) == 0
+    printed = capsys.readouterr().out
+    assert json.loads((capped / "metrics.json").read_text())["ended_by"] == "max_time"
+    assert "stopped by the session-length cap (--max-time) after 1.0 s" in printed, printed
 
 
 def _messages(path, topic):
