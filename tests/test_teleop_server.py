@@ -865,6 +865,9 @@ def test_serve_says_install_the_ca_again_only_when_one_was_there_before(
         (["--driver", "hardware"], "--driver hardware needs --device DEV"),
         (["--cert", "c.pem"], "--cert and --key go together"),
         (["--port", "{busy}"], "cannot listen on 127.0.0.1:{busy}"),
+        (["--port", "{busy}"], "choose another --port, or --port 0"),
+        (["--link-delay", "nan"], "--link-delay nan: not a number"),
+        (["--host", "0.0.0.0", "--cert", "{missing}", "--key", "{missing}"], "no such file"),
     ],
 )
 def test_serve_refuses_a_bad_command_line_before_loading_anything(monkeypatch, capsys, flags, says):
@@ -883,11 +886,13 @@ def test_serve_refuses_a_bad_command_line_before_loading_anything(monkeypatch, c
         busy.bind(("127.0.0.1", 0))
         busy.listen()
         port = str(busy.getsockname()[1])
-        argv = [f.format(busy=port) for f in flags]
+        missing = "/nonexistent/cert.pem"
+        argv = [f.format(busy=port, missing=missing) for f in flags]
         assert main(["teleop", "serve", *argv]) == 2
     err = capsys.readouterr()
     lines = err.err.strip().splitlines()
     assert len(lines) == 1 and says.format(busy=port) in lines[0], err.err
+    assert "Errno" not in lines[0], lines[0]
     assert "loading" not in err.out
 
 
@@ -1174,3 +1179,43 @@ def test_a_sigterm_while_a_session_is_scored_counts_as_a_press(tmp_path, capsys)
         assert signal.getsignal(signal.SIGTERM) is terminate
     finally:
         signal.signal(signal.SIGTERM, before)
+
+
+def test_a_warning_under_the_status_line_starts_a_line_of_its_own(caplog):
+    """On a terminal the status line is redrawn in place (``\\r`` ... ``\\033[K``, no
+    newline); a warning logged then ran on from it ("...dropped: noneWARNING ..."). The
+    handler clears the line first on a terminal (read back through a pseudo-terminal),
+    and writes the record alone elsewhere; a safety event names its hand, kind and reason
+    ("left hand lost: page disconnected")."""
+    import io
+    import logging
+    import os
+
+    from payload.teleop.cli import _BesideStatusLine
+    from payload.teleop.safety import SafetyConfig, TrackingSupervisor
+
+    master, slave = os.openpty()
+    try:
+        with os.fdopen(os.dup(slave), "w") as tty:
+            handler = _BesideStatusLine(tty)
+            handler.setFormatter(logging.Formatter("%(levelname)s %(message)s"))
+            tty.write("\rlive: 50 Hz, dropped: none\033[K")
+            record = logging.LogRecord("x", logging.WARNING, __file__, 1, "a warning", (), None)
+            handler.emit(record)
+        seen = ""
+        while "a warning" not in seen or not seen.endswith("\n"):
+            seen += os.read(master, 4096).decode()  # the terminal's lines, as written
+    finally:
+        os.close(master)
+        os.close(slave)
+    status_end = seen.index("\x1b[K") + len("\x1b[K")
+    assert seen[status_end:].startswith("\r\x1b[KWARNING a warning"), repr(seen)
+    plain = io.StringIO()
+    handler = _BesideStatusLine(plain)
+    handler.emit(record)
+    assert plain.getvalue() == "a warning\n"
+    supervisor = TrackingSupervisor(SafetyConfig(), {"left": np.zeros(3), "right": np.zeros(3)})
+    with caplog.at_level(logging.WARNING, logger="payload.teleop.safety"):
+        supervisor._event(1.5, "left", "lost", "page disconnected")  # what force_lost logs
+    said = [r.getMessage() for r in caplog.records]
+    assert any(m.endswith("left hand lost: page disconnected") for m in said), said

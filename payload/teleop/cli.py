@@ -101,6 +101,17 @@ def _press_twice_to_abandon(record: Path | None) -> Iterator[None]:
             signal.signal(signum, handler)
 
 
+class _BesideStatusLine(logging.StreamHandler):
+    """Log records on stderr, each on a line of its own: on a terminal the status line
+    (:func:`_status_printer`, redrawn in place) is cleared first, so a warning does not
+    run on from it; the next status redraws below the record."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if self.stream.isatty():
+            self.stream.write("\r\033[K")
+        super().emit(record)
+
+
 def _status_printer(hub: Any, stop: threading.Event, interval: float) -> None:
     tty = sys.stderr.isatty()
     while not stop.wait(interval):
@@ -178,6 +189,10 @@ def serve(args: argparse.Namespace, make_session: SessionFactory) -> int:
     _check_record(record)
     if (args.cert is None) != (args.key is None):
         raise TeleopCliError("--cert and --key go together (a certificate and its key)")
+    for option, given in (("--cert", args.cert), ("--key", args.key)):
+        if given is not None and not Path(given).is_file():
+            what = "a folder, not a PEM file" if Path(given).is_dir() else "no such file"
+            raise TeleopCliError(f"{option} {given}: {what}")
     check_address(args.host, args.port)
     project = command_project(args)  # the simulator and the retargeters read its models
     from payload.design import models_follow_design
@@ -201,7 +216,10 @@ def serve(args: argparse.Namespace, make_session: SessionFactory) -> int:
         print(f"  the headset trusts it through the CA {cert.parent / CA_NAME}{new}")
     if not local:
         token = new_token()
-    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    # the messages name their part ("teleop safety: ..."), so not the logger's name again
+    beside = _BesideStatusLine(sys.stderr)
+    beside.setFormatter(logging.Formatter("%(levelname)s %(message)s"))
+    logging.basicConfig(level=logging.WARNING, handlers=[beside])
     hub = LiveHub()
     payload = _hardware_driver(args.device) if args.driver == "hardware" else None
     try:

@@ -45,7 +45,9 @@ def parse_link_delay(text: str) -> tuple[float, float]:
         jitter = float(parts[1]) if len(parts) == 2 else 0.0
     except ValueError:
         raise LinkError(f"--link-delay: expected S or S:JITTER in seconds, got {text!r}") from None
-    if not (math.isfinite(delay) and math.isfinite(jitter) and delay >= 0 and jitter >= 0):
+    if not (math.isfinite(delay) and math.isfinite(jitter)):
+        raise LinkError(f"--link-delay {text}: not a number of seconds (a finite S[:JITTER])")
+    if not (delay >= 0 and jitter >= 0):
         raise LinkError(f"--link-delay: delay and jitter must be >= 0 s, got {text!r}")
     if jitter > delay:
         raise LinkError(f"--link-delay: jitter {jitter} s exceeds the delay {delay} s")

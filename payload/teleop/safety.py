@@ -191,7 +191,7 @@ class TrackingSupervisor:
         routine = kind in ("acquired", "regained") or detail == "not tracked"
         log.log(
             logging.INFO if routine else logging.WARNING,
-            "teleop safety: t=%.3f %s hand %s %s",
+            "teleop safety: t=%.3f %s hand %s: %s",
             stamp,
             side,
             kind,

@@ -29,6 +29,7 @@ reasons).
 from __future__ import annotations
 
 import asyncio
+import errno
 import hmac
 import json
 import logging
@@ -115,7 +116,13 @@ def check_address(host: str, port: int) -> None:
 def _unbound(host: str, port: int, exc: OSError) -> ServerError:
     """The error of an address that cannot be bound (an IPv6 host in brackets)."""
     where = f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
-    return ServerError(f"cannot listen on {where}: {exc.strerror or exc}")
+    hint = ""
+    if exc.errno == errno.EADDRINUSE:  # the likeliest: a server still running
+        hint = (
+            " (another `payload teleop serve`? choose another --port, or --port 0 for any "
+            "free port)"
+        )
+    return ServerError(f"cannot listen on {where}: {exc.strerror or exc}{hint}")
 
 
 def is_local(host: str) -> bool:

@@ -208,8 +208,10 @@ def server_context(cert_path: Path, key_path: Path) -> ssl.SSLContext:
     ctx.minimum_version = ssl.TLSVersion.TLSv1_2
     try:
         ctx.load_cert_chain(cert_path, key_path)
-    except (OSError, ssl.SSLError) as exc:
-        raise TlsError(f"TLS certificate {cert_path}: {exc}") from exc
+    except ssl.SSLError as exc:  # not a certificate and its key
+        raise TlsError(f"TLS certificate {cert_path}: {exc.reason or exc}") from exc
+    except OSError as exc:  # unreadable ("[Errno 13] ..." said as the system's reason)
+        raise TlsError(f"TLS certificate {cert_path}: {exc.strerror or exc}") from exc
     return ctx
 
 
