@@ -441,7 +441,7 @@ def watchdog_report(trips: list[dict[str, Any]]) -> dict[str, Any]:
     """What Bus Watchdog trips did to a session (each: the servos stopped and held until
     re-armed by the next command; the host's silence that caused it)."""
     if not trips:
-        return {"trips": 0, "effect": "none: the watchdog never tripped"}
+        return {"trips": 0, "effect": "never tripped"}
     host = [t["silence_s"] for t in trips if t.get("host_silent_long_enough", True)]
     other = [t["silence_s"] for t in trips if not t.get("host_silent_long_enough", True)]
     causes = []

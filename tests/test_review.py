@@ -399,6 +399,9 @@ def test_bad_reach_samples_and_static_folder_exit_2(tmp_path, capsys) -> None:
     assert "--reach-samples" in _err(capsys)
     assert main(["review", "--static", str(tmp_path)]) == 2
     assert "is a folder" in _err(capsys)
+    typo = tmp_path / "no-such-dir" / "review.html"
+    assert main(["review", "--static", str(typo), "--reach-samples", "0"]) == 2
+    assert f"no folder {typo.parent}" in _err(capsys) and not typo.parent.exists()
     assert main(["review", "--zmq-url", "tcp://127.0.0.1:1", "--reach-samples", "0"]) == 2
     assert "no meshcat server" in _err(capsys)
     assert main(["review", "--rate", "0"]) == 2

@@ -96,6 +96,8 @@ def _check_static(out: Path) -> None:
     nor any other file (a recording, a summary)."""
     if out.is_dir():
         raise ReviewError(f"--static {out}: is a folder, expected a file name")
+    if not out.parent.is_dir():  # a typo's folder is not made (it was, at the root even)
+        raise ReviewError(f"--static {out}: no folder {out.parent} (make it first)")
     if out.exists():
         with out.open("rb") as fh:
             head = fh.read(256).lstrip().lower()
@@ -150,7 +152,6 @@ def _cmd_review(args: argparse.Namespace) -> int:
         out = Path(args.static)
         html = static_html(scene)
         try:
-            out.parent.mkdir(parents=True, exist_ok=True)
             out.write_text(html, encoding="utf-8")
         except OSError as exc:  # a read-only folder, a file on the way
             raise ReviewError(f"--static {out}: cannot write it ({exc.strerror or exc})") from None

@@ -256,6 +256,8 @@ def serve(args: argparse.Namespace, make_session: SessionFactory) -> int:
             print(f"session token: {token}")
         if local:
             print(f"Quest over USB: adb reverse tcp:{server.port} tcp:{server.port}, then open it")
+        if record is not None:
+            print(f"recording each session's steps into {record} (scored when you stop)")
         stop_status = threading.Event()
         printer = threading.Thread(
             target=_status_printer, args=(hub, stop_status, args.status_interval), daemon=True
