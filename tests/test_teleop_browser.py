@@ -300,8 +300,16 @@ def test_desktop_mode_drives_a_calibration_without_a_headset(tmp_path):
             page.click("#handover")
             _wait(lambda: released == [True], 10, "the hand-over")
             del hub.release
+            # still in VR, its frames take control again (the first to send them takes it)
+            _wait(lambda: hub.active is not None, 10, "control taken again")
             page.click("#enter")  # Exit VR: the session ends, the page is back
             page.wait_for_function("!window.__teleop.xr", timeout=30e3)
+            # and leaving VR hands control over: a page out of VR no longer blocks others
+            _wait(lambda: hub.active is None, 10, "control handed over on leaving VR")
+            page.wait_for_function("window.__teleop.role === 'free'", timeout=10e3)
+            # the session is calibrated: the next holder only enters VR (no "calibrate")
+            kept = "press Enter VR to take it (the calibration is kept)"
+            _wait(lambda: kept in page.text_content("#status"), 10, "the kept calibration")
             assert page.text_content("#enter") == "Enter VR"
             assert not page.query_selector("[data-webxr_runtime]")  # the emulator's view
             assert page.evaluate(ON_TOP, "#view"), "the page's own view is not back"

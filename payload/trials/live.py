@@ -315,6 +315,8 @@ class LiveSession:
             "rail": round(float(ctx.command.q[-1]), 4),
             "contact": bool(st.opposing_contact),
             "safe_stop": source.lost_reason if self.calibrated else None,
+            # the next holder drives with this calibration (a page says so, not "calibrate")
+            "calibrated": self.calibrated,
             "events": events,
             "notice": self.notice,
         }

@@ -111,9 +111,19 @@ const ROLES = {
   free: 'control free: start calibrating to take it',
 };
 
-// a free page outside VR names the step before the calibration: Enter VR (where it can)
+// a free page outside VR names the step before the calibration: Enter VR (where it can);
+// once the session is calibrated the next holder drives with that calibration
 function roleText() {
+  const kept = debug.state && debug.state.calibrated;
+  if (debug.role === 'free' && debug.xr && kept) {
+    return 'control free: your hands take it (the calibration is kept)';
+  }
   if (debug.role !== 'free' || debug.xr) return debug.role ? ROLES[debug.role] : null;
+  if (kept) {
+    return debug.canEnter ? 'control free: press Enter VR to take it (the calibration is kept)'
+      : 'control free: open this page in a WebXR headset and press Enter VR to take it ' +
+        '(the calibration is kept)';
+  }
   return debug.canEnter ? 'control free: press Enter VR, then calibrate to take it'
     : 'control free: open this page in a WebXR headset, press Enter VR and calibrate to take it';
 }
@@ -256,6 +266,9 @@ async function enterXR() {
   });
   debug.session = session;  // from here on the button ends it, whatever fails below
   session.addEventListener('end', () => {
+    // leaving VR is leaving the controls: hand them over (the vehicle is braked until the
+    // next holder's frames, this page's own if it enters VR again)
+    if (debug.role === 'holder') link.send({ type: 'release' });
     const drawing = debug.xr;  // the desktop view's loop stopped only once in VR
     debug.xr = false;
     debug.session = null;
