@@ -9,8 +9,9 @@ spec                     effect
 ``drop:0.02``            each reply is lost with probability 0.02
 ``error:12:overload``    servo 12 latches a hardware error bit (``input_voltage``,
                          ``overheating``, ``encoder``, ``electrical_shock``, ``overload``)
-``block:12``             servo 12's output is blocked: its current saturates at the cap
-                         and the overload bit trips after a second
+``block:12``             servo 12's shaft is blocked: while a command drives its current to
+                         the cap it stays there, and after a second at the cap in all the
+                         overload bit trips (a servo held at its goal never trips)
 =======================  ==============================================================
 """
 
