@@ -1219,3 +1219,31 @@ def test_a_warning_under_the_status_line_starts_a_line_of_its_own(caplog):
         supervisor._event(1.5, "left", "lost", "page disconnected")  # what force_lost logs
     said = [r.getMessage() for r in caplog.records]
     assert any(m.endswith("left hand lost: page disconnected") for m in said), said
+
+
+def test_a_page_sees_the_vehicle_and_the_bag_before_anyone_drives():
+    """Before any page sends hands the session publishes the world as it stands ("waiting"):
+    a page drew the modules' walls alone until a calibration began. The vehicle, the bag
+    and the fingertips are MuJoCo's own positions (read from its data, rounded as sent)."""
+    from payload.trials.live import LiveSession
+
+    hub = LiveHub()
+    session = LiveSession(hub, None, steps=QUICK_STEPS)
+    worker = threading.Thread(target=session.run, daemon=True)
+    worker.start()
+    try:
+        end = time.monotonic() + 30
+        while time.monotonic() < end and not hub.snapshot.get("vehicle"):
+            time.sleep(0.02)
+        snap, state = dict(hub.snapshot), hub.state
+    finally:
+        hub.stop.set()
+        worker.join(30)
+        session.close()
+    assert state == "waiting" and snap["phase"] == "waiting" and snap["prompt"] == ""
+    world, data = session.driver.world, session.driver.data
+    np.testing.assert_allclose(snap["vehicle"]["pos"], data.xpos[world.astrobee], atol=1e-5)
+    np.testing.assert_allclose(snap["ctb"]["pos"], data.xpos[world.ctb], atol=1e-5)
+    tip = data.site("payload/A_tip").xpos
+    np.testing.assert_allclose(snap["fingers"]["A"], tip, atol=1e-5)
+    assert snap["calibrated"] is False and snap["safe_stop"] is None

@@ -282,10 +282,35 @@ class LiveSession:
         self._pending.clear()
 
     # -- state for the page ----------------------------------------------------------------
+    def _world(self, st: Any, heading0: float, rail: float) -> dict[str, Any]:
+        """What the page draws of the world: the vehicle, the CTB, the fingertips."""
+        data = self.driver.data
+        return {
+            "vehicle": {
+                "pos": _v(st.astrobee_pos),
+                "quat": _v(st.astrobee_quat),
+                "speed": round(float(np.linalg.norm(st.astrobee_linear)), 4),
+            },
+            "ctb": {"pos": _v(st.ctb_pos), "quat": _v(st.ctb_quat)},
+            "fingers": {f: _v(data.site(f"payload/{f}_tip").xpos) for f in FINGERS},
+            "heading0": round(heading0, 5),
+            "rail": round(float(rail), 4),
+            "contact": bool(st.opposing_contact),
+        }
+
+    def waiting_snapshot(self) -> dict[str, Any]:
+        """The snapshot before any page drives the session: the world as it stands, so a
+        page shows the vehicle and the CTB from its first moment (it showed the modules'
+        walls alone until a calibration began)."""
+        st = self.driver.world_state()
+        return {
+            "t": 0.0, "phase": "waiting", "prompt": "", "step": "", "remaining": 0.0,
+            **self._world(st, float(yaw_of_matrix(quat_to_matrix(st.astrobee_quat))), self.q0[-1]),
+            "safe_stop": None, "calibrated": False, "events": [], "notice": "",
+        }  # fmt: skip
+
     def _snapshot(self, ctx: StepContext, source: LiveSource, calibration: Any) -> dict:
         st = ctx.state
-        data = self.driver.data
-        tips = {f: _v(data.site(f"payload/{f}_tip").xpos) for f in FINGERS}
         prompt, step_name, remaining = "", "", 0.0
         if not calibration.done and calibration.current is not None:
             step = calibration.current
@@ -304,16 +329,7 @@ class LiveSession:
             "prompt": prompt,
             "step": step_name,
             "remaining": round(remaining, 2),
-            "vehicle": {
-                "pos": _v(st.astrobee_pos),
-                "quat": _v(st.astrobee_quat),
-                "speed": round(float(np.linalg.norm(st.astrobee_linear)), 4),
-            },
-            "ctb": {"pos": _v(st.ctb_pos), "quat": _v(st.ctb_quat)},
-            "fingers": tips,
-            "heading0": round(heading0, 5),
-            "rail": round(float(ctx.command.q[-1]), 4),
-            "contact": bool(st.opposing_contact),
+            **self._world(st, heading0, ctx.command.q[-1]),
             "safe_stop": source.lost_reason if self.calibrated else None,
             # the next holder drives with this calibration (a page says so, not "calibrate")
             "calibrated": self.calibrated,
@@ -386,6 +402,8 @@ class LiveSession:
 
     def run(self) -> None:
         """Serve attempts until ``hub.stop`` is set (Ctrl-C in the terminal)."""
+        if not self.hub.snapshot.get("vehicle"):  # nothing drawn yet
+            self.hub.publish(self.waiting_snapshot(), state="waiting")
         checked = time.monotonic()
         try:
             while not self.hub.stop.is_set():
