@@ -127,8 +127,11 @@ def check(port: str, smap: Any, latency_ms: float = 16.0) -> dict[str, Any]:
         try:
             drv.bring_up()
         except MissingServoError as exc:
-            errors += [f"servo {i} ({j}): not answering" for i, j in zip(exc.ids, exc.joints)]
             present = [i for i in smap.ids if i not in exc.ids]
+            if not present:  # the bus, not the servos: as `hw scan` says it
+                errors.append(f"no servo answered on {port} (power, wiring, baud rate, IDs?)")
+            else:
+                errors += [f"servo {i} ({j}): not answering" for i, j in zip(exc.ids, exc.joints)]
         except DynamixelError as exc:
             errors.append(str(exc))
         for i in present:

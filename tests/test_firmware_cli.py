@@ -186,12 +186,17 @@ def test_scan_of_a_bus_where_nobody_answers_fails(capsys):
     master, slave = os.openpty()
     try:
         code = main(["hw", "scan", "--device", os.ttyname(slave)])
+        out, err = capsys.readouterr()
+        # and `hw check` says the same of it, not eighteen servos "not answering" in a row
+        checked = main(["hw", "check", "--device", os.ttyname(slave), "--latency-ms", LAT])
+        said = capsys.readouterr().err.strip().splitlines()
     finally:
         os.close(master)
         os.close(slave)
-    out, err = capsys.readouterr()
     assert code == 1 and "not answering" in out
     assert err.strip().splitlines()[-1].startswith("payload: check failed: no servo answered")
+    assert checked == 1 and len(said) == 1 and "not answering" not in said[0], said
+    assert said[0].startswith("payload: check failed: no servo answered on "), said
 
 
 @pytest.mark.parametrize(
