@@ -265,16 +265,18 @@ def test_the_legend_lists_every_colour_drawn(static_review) -> None:
     from payload.review.browser import open_page, pose_page
 
     with open_page(static_review) as page:
-        legend = set(
-            page.evaluate(
-                "() => [...document.querySelectorAll('.payload-legend-row')]"
-                ".map(r => r.dataset.colour)"
-            )
+        rows = page.evaluate(
+            "() => [...document.querySelectorAll('.payload-legend-row')]"
+            ".map(r => [r.dataset.colour, r.textContent])"
         )
+        legend = {colour for colour, _ in rows}
         pose_page(page, 0.0, show=[["meshcat", "review", "reach"]])
         drawn = set(page.evaluate(_COLOURS))
     assert len(drawn) >= 6  # fingers, structure, body, bays, segments
     assert drawn <= legend, f"colours drawn but not in the legend: {drawn - legend}"
+    # a colour listed as "(none here)" (the verdict's, on a passing design) is drawn nowhere
+    absent = {colour for colour, text in rows if text.rstrip().endswith("(none here)")}
+    assert absent and not absent & drawn, (absent, drawn)
 
 
 _LOCAL = """(links) => links.map(n => viewer.scene_tree.find(["meshcat", "review", "payload", n])

@@ -275,15 +275,21 @@ def part_colours(model: PayloadModel, check: StowedCheck, bad: frozenset[str]) -
 
 
 def legend(colours: Mapping[str, int], reach: bool) -> list[tuple[str, str]]:
-    """The legend: every colour the design review draws, with what it means."""
+    """The legend: every colour the design review draws, with what it means; the verdict's
+    two colours always, marked "none here" when no part is drawn in them (a reviewer
+    reads that nothing fails or is tight, not a colour missing)."""
     used = set(colours.values())
+
+    def verdict(colour: int, meaning: str) -> tuple[str, str]:
+        return colour_text(colour), meaning + ("" if colour in used else " (none here)")
+
     out = [
         (FINGER_COLOURS[f], f"finger {f}" + (" and its reach" if reach else "")) for f in FINGERS
     ]
     out += [
         (STRUCTURE_COLOUR, "structure: base, stage, carriage"),
-        (colour_text(OFFENDING_COLOUR), "fails: outside the bays or colliding"),
-        (colour_text(TIGHT), f"tight: under {TIGHT_CLEARANCE * 1e3:.1f} mm to a bay wall"),
+        verdict(OFFENDING_COLOUR, "fails: outside the bays or colliding"),
+        verdict(TIGHT, f"tight: under {TIGHT_CLEARANCE * 1e3:.1f} mm to a bay wall"),
         (colour_text(BODY_COLOUR), "Astrobee's body"),
         (colour_text(BAY_COLOUR), "payload bays (the stowed envelope)"),
         (colour_text(SEGMENT_COLOUR), "clearance measured (stowed)"),
