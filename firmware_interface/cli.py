@@ -81,7 +81,11 @@ def _cmd_emulate(args: argparse.Namespace) -> int:
             raise HwUsageError(
                 f"--device {link}: {what} (the emulator links a new path to its pty)"
             )
-    serve(bus_spec(args.servos, args.servo_params), args.fault, seed=args.seed, link=link)
+    try:  # its normal end, as for `teleop serve` and `review` (docs/cli.md): exit 0
+        serve(bus_spec(args.servos, args.servo_params), args.fault, seed=args.seed, link=link)
+    except KeyboardInterrupt:  # Ctrl-C, and SIGTERM or SIGHUP (payload.errors.Terminated)
+        pass
+    print("stopped", file=sys.stderr)
     return 0
 
 

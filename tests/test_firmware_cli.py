@@ -58,9 +58,12 @@ def test_emulate_serves_on_the_device_path_it_is_given(tmp_path, capsys):
     finally:
         proc.terminate()
         proc.wait(timeout=10)
+        said = proc.stderr.read()
         proc.stdout.close()
         proc.stderr.close()
     assert not dev.exists() and not dev.is_symlink()
+    # stopping is its normal end (as for `teleop serve`): "stopped", exit 0, not 143
+    assert proc.returncode == 0 and said.strip().splitlines()[-1] == "stopped", said
     # a path no link can be made at (/proc takes none): one line, exit 2
     assert main(["hw", "emulate", "--device", "/proc/payload-ttyX"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
