@@ -115,14 +115,19 @@ def _cmd_scan(args: argparse.Namespace) -> int:
         for s in missing:
             print(f"ID {s['id']:3d}  not answering ({s['joint']})")
     if not servos:  # listed; but a bus where no servo answers is a failed look, as in check
-        raise CheckFailed(f"no servo answered on {device} (power, wiring, baud rate, IDs?)")
+        raise CheckFailed(_nobody_answered(device))
     return 0
+
+
+def _nobody_answered(device: str) -> str:
+    """What ``hw scan`` and ``hw check`` say of a bus where no servo answers."""
+    return f"no servo answered on {device} (power, wiring, baud rate, IDs?)"
 
 
 def check(port: str, smap: Any, latency_ms: float = 16.0) -> dict[str, Any]:
     """Bring-up and health of every servo: ``{"ok", "servos", "errors"}``."""
     from firmware_interface.driver import DynamixelDriver
-    from firmware_interface.errors import DynamixelError, MissingServoError
+    from firmware_interface.errors import DynamixelError, HardwareFault, MissingServoError
 
     errors: list[str] = []
     servos = []
@@ -133,9 +138,14 @@ def check(port: str, smap: Any, latency_ms: float = 16.0) -> dict[str, Any]:
         except MissingServoError as exc:
             present = [i for i in smap.ids if i not in exc.ids]
             if not present:  # the bus, not the servos: as `hw scan` says it
-                errors.append(f"no servo answered on {port} (power, wiring, baud rate, IDs?)")
+                errors.append(_nobody_answered(port))
             else:
                 errors += [f"servo {i} ({j}): not answering" for i, j in zip(exc.ids, exc.joints)]
+        except HardwareFault as exc:
+            # a latched error bit is each faulted servo's health read's to say (below), once;
+            # a reset (torque off with no error bit) is not in the health read
+            if exc.bits == ["reset"]:
+                errors.append(str(exc))
         except DynamixelError as exc:
             errors.append(str(exc))
         for i in present:
@@ -148,9 +158,8 @@ def check(port: str, smap: Any, latency_ms: float = 16.0) -> dict[str, Any]:
                            "hardware_error": h.hardware_error, "temperature_c": h.temperature_c,
                            "voltage_v": h.voltage_v})  # fmt: skip
             if h.hardware_error:
-                errors.append(f"servo {i} ({h.joint}): hardware error {', '.join(h.bits)}")
-    # the bring-up's fault and the health read's are one fault, said once
-    return {"ok": not errors, "servos": servos, "errors": list(dict.fromkeys(errors))}
+                errors.append(str(HardwareFault(i, h.joint, list(h.bits))))  # its own words
+    return {"ok": not errors, "servos": servos, "errors": errors}
 
 
 def _cmd_check(args: argparse.Namespace) -> int:

@@ -1198,9 +1198,10 @@ def test_a_warning_under_the_status_line_starts_a_line_of_its_own(caplog):
     try:
         with os.fdopen(os.dup(slave), "w") as tty:
             handler = _BesideStatusLine(tty)
-            handler.setFormatter(logging.Formatter("%(levelname)s %(message)s"))
             tty.write("\rlive: 50 Hz, dropped: none\033[K")
-            record = logging.LogRecord("x", logging.WARNING, __file__, 1, "a warning", (), None)
+            record = logging.LogRecord(
+                "payload.teleop.x", logging.WARNING, __file__, 1, "a warning", (), None
+            )
             handler.emit(record)
         seen = ""
         while "a warning" not in seen or not seen.endswith("\n"):
@@ -1213,7 +1214,10 @@ def test_a_warning_under_the_status_line_starts_a_line_of_its_own(caplog):
     plain = io.StringIO()
     handler = _BesideStatusLine(plain)
     handler.emit(record)
-    assert plain.getvalue() == "a warning\n"
+    # off a terminal: the record alone; another library's record names its logger
+    other = logging.LogRecord("websockets", logging.WARNING, __file__, 1, "closed", (), None)
+    handler.emit(other)
+    assert plain.getvalue() == "WARNING a warning\nWARNING websockets: closed\n"
     supervisor = TrackingSupervisor(SafetyConfig(), {"left": np.zeros(3), "right": np.zeros(3)})
     with caplog.at_level(logging.WARNING, logger="payload.teleop.safety"):
         supervisor._event(1.5, "left", "lost", "page disconnected")  # what force_lost logs
@@ -1247,3 +1251,18 @@ def test_a_page_sees_the_vehicle_and_the_bag_before_anyone_drives():
     tip = data.site("payload/A_tip").xpos
     np.testing.assert_allclose(snap["fingers"]["A"], tip, atol=1e-5)
     assert snap["calibrated"] is False and snap["safe_stop"] is None
+
+
+def test_a_certificate_with_another_certificates_key_is_said_plainly(tmp_path):
+    """Two certificates made as `teleop serve` makes them; the first with the second's key
+    is refused naming the key ("KEY_VALUES_MISMATCH", OpenSSL's constant, was the whole
+    reason); each with its own key loads."""
+    from payload.teleop.tls import TlsError
+
+    (c1, k1, _), (c2, k2, _) = (
+        ensure_certificate("127.0.0.1", tmp_path / name) for name in ("one", "two")
+    )
+    server_context(c1, k1), server_context(c2, k2)
+    with pytest.raises(TlsError) as err:
+        server_context(c1, k2)
+    assert str(err.value) == f"TLS certificate {c1}: the key {k2} is not this certificate's"

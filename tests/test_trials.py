@@ -1070,6 +1070,10 @@ def test_cli_trial_and_campaign(tmp_path: Path, monkeypatch, capsys) -> None:
     warning = capsys.readouterr().err.strip().splitlines()
     assert len(warning) == 1 and "--operator is deprecated" in warning[0]
     assert "--replay FILE" in warning[0]
+    # its synthetic use is advised to give no option (not a recording to replay)
+    assert main(["trial", "--operator", "synthetic", "--out", str(tmp_path / "s0")]) == 0
+    warning = capsys.readouterr().err.strip().splitlines()
+    assert len(warning) == 1 and "for the synthetic operator, no option" in warning[0], warning
     # a synthetic trial gets the defaults, spelled out
     assert main(["trial", "--out", str(tmp_path / "s")]) == 0
     assert calls[-1]["ctb"] == "single" and calls[-1]["propulsion"] == "nozzles"

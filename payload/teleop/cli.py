@@ -101,23 +101,39 @@ def _press_twice_to_abandon(record: Path | None) -> Iterator[None]:
             signal.signal(signum, handler)
 
 
+_STDERR = threading.RLock()
+"""Held while the status line or a log record is written to stderr (never interleaved)."""
+
+
 class _BesideStatusLine(logging.StreamHandler):
     """Log records on stderr, each on a line of its own: on a terminal the status line
     (:func:`_status_printer`, redrawn in place) is cleared first, so a warning does not
-    run on from it; the next status redraws below the record."""
+    run on from it; the next status redraws below the record. The workbench's messages
+    name their part ("teleop safety: ..."); another library's record is prefixed with its
+    logger's name."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        text = f"{record.levelname} {record.getMessage()}"
+        if not record.name.startswith("payload"):
+            text = f"{record.levelname} {record.name}: {record.getMessage()}"
+        if record.exc_info:
+            text += "\n" + logging.Formatter().formatException(record.exc_info)
+        return text
 
     def emit(self, record: logging.LogRecord) -> None:
-        if self.stream.isatty():
-            self.stream.write("\r\033[K")
-        super().emit(record)
+        with _STDERR:
+            if self.stream.isatty():
+                self.stream.write("\r\033[K")
+            super().emit(record)
 
 
 def _status_printer(hub: Any, stop: threading.Event, interval: float) -> None:
     tty = sys.stderr.isatty()
     while not stop.wait(interval):
         line = status_line(hub.status(), hub.latency())
-        sys.stderr.write(f"\r{line}\033[K" if tty else line + "\n")
-        sys.stderr.flush()
+        with _STDERR:
+            sys.stderr.write(f"\r{line}\033[K" if tty else line + "\n")
+            sys.stderr.flush()
 
 
 def _check_record(record: Path | None) -> None:
@@ -190,9 +206,9 @@ def serve(args: argparse.Namespace, make_session: SessionFactory) -> int:
     if (args.cert is None) != (args.key is None):
         raise TeleopCliError("--cert and --key go together (a certificate and its key)")
     for option, given in (("--cert", args.cert), ("--key", args.key)):
-        if given is not None and not Path(given).is_file():
+        if given is not None and (not Path(given).exists() or Path(given).is_dir()):
             what = "a folder, not a PEM file" if Path(given).is_dir() else "no such file"
-            raise TeleopCliError(f"{option} {given}: {what}")
+            raise TeleopCliError(f"{option} {given}: {what}")  # the rest: the TLS load says
     check_address(args.host, args.port)
     project = command_project(args)  # the simulator and the retargeters read its models
     from payload.design import models_follow_design
@@ -216,10 +232,7 @@ def serve(args: argparse.Namespace, make_session: SessionFactory) -> int:
         print(f"  the headset trusts it through the CA {cert.parent / CA_NAME}{new}")
     if not local:
         token = new_token()
-    # the messages name their part ("teleop safety: ..."), so not the logger's name again
-    beside = _BesideStatusLine(sys.stderr)
-    beside.setFormatter(logging.Formatter("%(levelname)s %(message)s"))
-    logging.basicConfig(level=logging.WARNING, handlers=[beside])
+    logging.basicConfig(level=logging.WARNING, handlers=[_BesideStatusLine(sys.stderr)])
     hub = LiveHub()
     payload = _hardware_driver(args.device) if args.driver == "hardware" else None
     try:

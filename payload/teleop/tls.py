@@ -209,7 +209,12 @@ def server_context(cert_path: Path, key_path: Path) -> ssl.SSLContext:
     try:
         ctx.load_cert_chain(cert_path, key_path)
     except ssl.SSLError as exc:  # not a certificate and its key
-        raise TlsError(f"TLS certificate {cert_path}: {exc.reason or exc}") from exc
+        why = (
+            f"the key {key_path} is not this certificate's"
+            if exc.reason == "KEY_VALUES_MISMATCH"
+            else exc.reason or str(exc)
+        )
+        raise TlsError(f"TLS certificate {cert_path}: {why}") from exc
     except OSError as exc:  # unreadable ("[Errno 13] ..." said as the system's reason)
         raise TlsError(f"TLS certificate {cert_path}: {exc.strerror or exc}") from exc
     return ctx

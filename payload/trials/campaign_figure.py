@@ -79,7 +79,12 @@ def _fit_width(text: Text) -> None:
     chars = max(len(line) for line in lines)
     while chars > 20 and text.get_window_extent(renderer).width > TITLE_WIDTH * fig.bbox.width:
         chars = int(chars * 0.9)
-        text.set_text("\n".join(textwrap.fill(line, chars) for line in lines))
+        text.set_text(
+            "\n".join(
+                textwrap.fill(line, chars, break_long_words=False, break_on_hyphens=False)
+                for line in lines
+            )
+        )
 
 
 def _finite(value: Any) -> bool:

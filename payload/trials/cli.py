@@ -136,12 +136,11 @@ def register(
     add_deprecated(
         p,
         "--operator",
-        "--replay FILE",
+        # what the warning advises too: both of the old spelling's uses
+        "--replay FILE (or, for the synthetic operator, no option: it is the default)",
         "operator",
         nargs="+",
         metavar=("synthetic|replay", "F"),
-        help="`--operator replay F` is `--replay F`; `--operator synthetic` is the default, "
-        "with no option",
     )
     p.add_argument(
         "--out",

@@ -1,6 +1,6 @@
 """How quickly the workbench's commands start (``payload bench start``): each measured in
-fresh interpreters, as a user or a campaign worker meets it (docs/speed.md, "A start with
-the safety layers").
+fresh interpreters, as a user or a campaign worker meets it (docs/speed.md, "How a start
+is kept quick"; the measurements: docs/speed-log.md, "A start with the safety layers").
 
 What is measured, each the wall time of a fresh process (or of the part named), after
 one untimed run that fills the caches (compiled kernels, the models' fingerprint, the
