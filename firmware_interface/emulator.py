@@ -92,6 +92,11 @@ class _Server:
         self.ctl_buf += chunk
         while b"\n" in self.ctl_buf:
             line, self.ctl_buf = self.ctl_buf.split(b"\n", 1)
+            # what the host wrote on the bus before it asked is taken in first: its state
+            # then answers for every packet sent before the question (a reply-less sync
+            # write, the torque-off at a close, was answered as not yet there under load)
+            if select.select([self.master], [], [], 0)[0]:
+                self._read_bus(time.monotonic())
             try:
                 reply = control(self.bus, json.loads(line))
             except Exception as exc:  # report to the caller, keep serving
