@@ -26,6 +26,11 @@ class DesignError(PayloadError):
         super().__init__(f"{parameter}: {reason}")
 
 
+def port_in_use_hint(server: str) -> str:
+    """The advice beside a port that cannot be listened on (``review``, ``teleop serve``)."""
+    return f"(another {server}? choose another --port, or --port 0 for any free port)"
+
+
 def not_text(exc: UnicodeDecodeError, kind: str) -> str:
     """Why a binary file given where a text file of ``kind`` (``"TOML"``, ``"JSON"``) is
     expected cannot be read: the reason of a one-line error that names the file."""

@@ -27,7 +27,7 @@ from urllib.parse import parse_qs, urlparse
 
 from meshcat.commands import Delete
 
-from payload.errors import PayloadError
+from payload.errors import PayloadError, port_in_use_hint
 from payload.review.errors import ReviewError
 from payload.review.page import command_key, live_html, packed
 from payload.review.scene import Scene, mpath
@@ -215,8 +215,7 @@ def serve(live: LiveReview, port: int = 0, host: str = "127.0.0.1") -> Threading
     except OSError as exc:
         why = "in use" if exc.errno == errno.EADDRINUSE else (exc.strerror or str(exc))
         raise ReviewError(
-            f"--port {port}: cannot listen on {host}:{port}: {why} (another review? "
-            "choose another --port, or --port 0 for any free port)"
+            f"--port {port}: cannot listen on {host}:{port}: {why} {port_in_use_hint('review')}"
         ) from None
     server.daemon_threads = True
     threading.Thread(target=server.serve_forever, daemon=True, name="review-http").start()

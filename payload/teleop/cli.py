@@ -112,13 +112,12 @@ class _BesideStatusLine(logging.StreamHandler):
     name their part ("teleop safety: ..."); another library's record is prefixed with its
     logger's name."""
 
+    OURS = logging.Formatter("%(levelname)s %(message)s")
+    THEIRS = logging.Formatter("%(levelname)s %(name)s: %(message)s")
+
     def format(self, record: logging.LogRecord) -> str:
-        text = f"{record.levelname} {record.getMessage()}"
-        if not record.name.startswith("payload"):
-            text = f"{record.levelname} {record.name}: {record.getMessage()}"
-        if record.exc_info:
-            text += "\n" + logging.Formatter().formatException(record.exc_info)
-        return text
+        mine = record.name == "payload" or record.name.startswith("payload.")
+        return (self.OURS if mine else self.THEIRS).format(record)
 
     def emit(self, record: logging.LogRecord) -> None:
         with _STDERR:
@@ -206,8 +205,9 @@ def serve(args: argparse.Namespace, make_session: SessionFactory) -> int:
     if (args.cert is None) != (args.key is None):
         raise TeleopCliError("--cert and --key go together (a certificate and its key)")
     for option, given in (("--cert", args.cert), ("--key", args.key)):
-        if given is not None and (not Path(given).exists() or Path(given).is_dir()):
-            what = "a folder, not a PEM file" if Path(given).is_dir() else "no such file"
+        path = None if given is None else Path(given)
+        if path is not None and (path.is_dir() or not path.exists()):
+            what = "a folder, not a PEM file" if path.is_dir() else "no such file"
             raise TeleopCliError(f"{option} {given}: {what}")  # the rest: the TLS load says
     check_address(args.host, args.port)
     project = command_project(args)  # the simulator and the retargeters read its models

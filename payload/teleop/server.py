@@ -49,7 +49,7 @@ from websockets.datastructures import Headers
 from websockets.exceptions import ConnectionClosed
 from websockets.http11 import Request, Response
 
-from payload.errors import PayloadError
+from payload.errors import PayloadError, port_in_use_hint
 from payload.teleop.live import MAX_CLIENTS, LiveHub, now_ms
 from payload.teleop.messages import (
     MAX_MESSAGE_BYTES,
@@ -118,10 +118,7 @@ def _unbound(host: str, port: int, exc: OSError) -> ServerError:
     where = f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
     hint = ""
     if exc.errno == errno.EADDRINUSE:  # the likeliest: a server still running
-        hint = (
-            " (another `payload teleop serve`? choose another --port, or --port 0 for any "
-            "free port)"
-        )
+        hint = " " + port_in_use_hint("`payload teleop serve`")
     return ServerError(f"cannot listen on {where}: {exc.strerror or exc}{hint}")
 
 

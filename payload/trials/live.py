@@ -282,8 +282,11 @@ class LiveSession:
         self._pending.clear()
 
     # -- state for the page ----------------------------------------------------------------
-    def _world(self, st: Any, heading0: float, rail: float) -> dict[str, Any]:
-        """What the page draws of the world: the vehicle, the CTB, the fingertips."""
+    def _world(self, st: Any, rail: float, heading0: float | None = None) -> dict[str, Any]:
+        """What the page draws of the world: the vehicle, the CTB, the fingertips;
+        ``heading0`` the calibration's (None: the vehicle's own yaw, before one)."""
+        if heading0 is None:
+            heading0 = float(yaw_of_matrix(quat_to_matrix(st.astrobee_quat)))
         data = self.driver.data
         return {
             "vehicle": {
@@ -305,7 +308,7 @@ class LiveSession:
         st = self.driver.world_state()
         return {
             "t": 0.0, "phase": "waiting", "prompt": "", "step": "", "remaining": 0.0,
-            **self._world(st, float(yaw_of_matrix(quat_to_matrix(st.astrobee_quat))), self.q0[-1]),
+            **self._world(st, self.q0[-1]),
             "safe_stop": None, "calibrated": False, "events": [], "notice": "",
         }  # fmt: skip
 
@@ -319,17 +322,15 @@ class LiveSession:
             end = calibration.t0 + sum(s.hold for s in calibration.steps[: i + 1])
             remaining = max(0.0, end - ctx.t)
         events = [] if ctx.step is None else [e.detail for e in ctx.step.events]
-        if source.pipeline is not None:
-            heading0 = float(source.pipeline.calibration.heading0)
-        else:
-            heading0 = float(yaw_of_matrix(quat_to_matrix(st.astrobee_quat)))
+        pipeline = source.pipeline
+        heading0 = None if pipeline is None else float(pipeline.calibration.heading0)
         return {
             "t": round(ctx.t, 3),
             "phase": ctx.phase,
             "prompt": prompt,
             "step": step_name,
             "remaining": round(remaining, 2),
-            **self._world(st, heading0, ctx.command.q[-1]),
+            **self._world(st, ctx.command.q[-1], heading0),
             "safe_stop": source.lost_reason if self.calibrated else None,
             # the next holder drives with this calibration (a page says so, not "calibrate")
             "calibrated": self.calibrated,
