@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import math
 import os
+import re
 import threading
 import time
 from pathlib import Path
@@ -272,11 +273,11 @@ def test_desktop_mode_drives_a_calibration_without_a_headset(tmp_path):
     try:
         with _Page(server.url(), {"width": 480, "height": 360}) as page:
             page.wait_for_function("!document.getElementById('enter').disabled", timeout=30e3)
-            # outside VR a free page names the next step: Enter VR
-            _wait(lambda: "press Enter VR" in page.text_content("#status"), 30, "Enter VR")
+            # outside VR a free page names the next step, under the header: Enter VR
+            _wait(lambda: "press Enter VR" in page.text_content("#hint"), 30, "Enter VR")
             page.click("#enter")
             page.wait_for_function("window.__teleop.xr", timeout=30e3)
-            assert "press Enter VR" not in page.text_content("#status")
+            assert "press Enter VR" not in page.text_content("#hint")
             # the keys stay in sight over the emulator's full-window view of the session
             assert page.evaluate(ON_TOP, "#desktop-help"), "the key help is under the VR view"
             # and so does the header: its button leaves VR (the emulator's view covers all)
@@ -311,7 +312,7 @@ def test_desktop_mode_drives_a_calibration_without_a_headset(tmp_path):
             _wait(lambda: page.evaluate(role) == "free", 10, "the page told control is free")
             # the session is calibrated: the next holder only enters VR (no "calibrate")
             kept = "press Enter VR to take it (the calibration is kept)"
-            _wait(lambda: kept in page.text_content("#status"), 10, "the kept calibration")
+            _wait(lambda: kept in page.text_content("#hint"), 10, "the kept calibration")
             assert page.text_content("#enter") == "Enter VR"
             assert not page.query_selector("[data-webxr_runtime]")  # the emulator's view
             assert page.evaluate(ON_TOP, "#view"), "the page's own view is not back"
@@ -320,6 +321,13 @@ def test_desktop_mode_drives_a_calibration_without_a_headset(tmp_path):
         worker.join(30)
         server.stop()
         session.close()
+
+
+STATUS_AND_HINT = (
+    "() => document.getElementById('status').textContent + ' | ' + "
+    "document.getElementById('hint').textContent"
+)
+"""The status line and the hint under it, read at once (the page rewrites both together)."""
 
 
 def test_a_refused_page_says_why_instead_of_retrying_in_silence():
@@ -338,17 +346,18 @@ def test_a_refused_page_says_why_instead_of_retrying_in_silence():
         with _Page(f"http://localhost:{port}/?token={old_token}", QUEST_BROWSER) as page:
             page.wait_for_function("window.__teleop.open", timeout=30e3)
             # a free page with no headset to enter VR with says where control is taken
-            _wait(lambda: "press Enter VR" in page.text_content("#status"), 30, "Enter VR")
+            _wait(lambda: "press Enter VR" in page.text_content("#hint"), 30, "Enter VR")
             first.stop()  # the server restarts with a new token under the open page
             first = None
             second = TeleopServer(LiveHub(), port=port, token=new_token).start()
-            seen = []  # each retry resets the line before its reason comes: read it once
+            seen = []  # each retry resets the lines before its reason comes: read them once
 
             def says(text: str) -> bool:
-                seen.append(page.text_content("#status"))
+                seen.append(page.evaluate(STATUS_AND_HINT))
                 return text in seen[-1]
 
             _wait(lambda: says("token"), 30, "the token's notice")
+            assert "refused by the server" in seen[-1], seen[-1]  # the status line, in short
             assert "open the address it printed" in seen[-1], seen[-1]
     finally:
         for server in (first, second):
@@ -362,10 +371,11 @@ def test_a_refused_page_says_why_instead_of_retrying_in_silence():
             seen = []
 
             def says(text: str) -> bool:
-                seen.append(page.text_content("#status"))
+                seen.append(page.evaluate(STATUS_AND_HINT))
                 return text in seen[-1]
 
             _wait(lambda: says("at most"), 30, "the cap's notice")
+            assert "turned away by the server" in seen[-1], seen[-1]
             assert f"at most {MAX_CLIENTS} pages" in seen[-1], seen[-1]
 
 
@@ -401,7 +411,7 @@ def test_a_page_reconnecting_after_an_ended_calibration_shows_no_stale_prompt():
             back = "() => window.__teleop.connects === 2 && window.__teleop.state !== null"
             _wait(lambda: page.evaluate(back), 30, "the page's first state after reconnecting")
             status, prompt = page.text_content("#status"), page.text_content("#prompt")
-            assert status.startswith("waiting") and "neutral" not in status, (status, prompt)
+            assert status.startswith("waiting") and "relaxed" not in status, (status, prompt)
             assert prompt == "", (status, prompt)
             calibrating(pinch, 1.5)  # a new attempt: its prompt is shown again
             _wait(lambda: pinch.prompt in page.text_content("#prompt"), 30, "the next prompt")
@@ -411,3 +421,122 @@ def test_a_page_reconnecting_after_an_ended_calibration_shows_no_stale_prompt():
         for server in (first, second):
             if server is not None:
                 server.stop()
+
+
+IDENTIFIER = re.compile(r"\b[a-z0-9]+_[a-z0-9_]+\b")
+"""A raw identifier as the messages name things (``safe_stop``, ``not_holder``): the page
+shows words instead."""
+
+HEADER = """() => {
+  const h = document.querySelector('header'), s = document.getElementById('status');
+  const shown = [...h.children].filter((e) => e.getClientRects().length && e.textContent);
+  const box = (e) => e.getBoundingClientRect();
+  const pad = parseFloat(getComputedStyle(h).paddingTop) +
+    parseFloat(getComputedStyle(h).paddingBottom);
+  const range = document.createRange();
+  range.selectNodeContents(s);
+  return {
+    text: h.innerText.replace(/\\s+/g, ' '),
+    height: box(h).height,
+    row: Math.max(...shown.filter((e) => e !== s).map((e) => box(e).height)) + pad,
+    mids: shown.map((e) => box(e).top + box(e).height / 2),
+    status_lines: new Set([...range.getClientRects()].map((r) => Math.round(r.top))).size,
+    status_cut: s.scrollWidth > s.clientWidth,
+    page: document.body.innerText,
+    panel: window.__teleop.panel || [],
+    state: window.__teleop.state && window.__teleop.state.state,
+    role: window.__teleop.role,
+  };
+}"""
+"""What the header and the page show: the header's height against one row of its items
+(the status aside), its items' vertical centres, the status line's text lines; the page's
+visible text and the 3D panel's lines (``window.__teleop.panel``)."""
+
+
+def _shows(page, state: str, role: str, what: str) -> dict:
+    """The page's :data:`HEADER` reading once it shows ``state`` with ``role``."""
+    seen: list[dict] = []
+
+    def there() -> bool:
+        seen.append(page.evaluate(HEADER))
+        return seen[-1]["state"] == state and seen[-1]["role"] == role
+
+    _wait(there, 30, what)
+    page.wait_for_timeout(300)  # a frame drawn, the labels placed
+    return page.evaluate(HEADER)
+
+
+def _one_line_in_words(shown: dict, what: str) -> None:
+    # the header is one row of its items (their centres level), as tall as its tallest
+    # one-line item
+    assert max(shown["mids"]) - min(shown["mids"]) < 2, (what, shown)
+    assert shown["height"] <= shown["row"] + 0.5, (what, shown)
+    # the status line is one line of text, whole (not cut short by the ellipsis)
+    assert shown["status_lines"] == 1 and not shown["status_cut"], (what, shown)
+    # words, not the messages' identifiers, on the page and on the 3D panel
+    for text in (shown["page"], *shown["panel"]):
+        assert not IDENTIFIER.findall(text), (what, text)
+        assert not re.search(r"\bteleop\b|\bnode2\b", text), (what, text)
+
+
+def test_the_header_is_one_line_at_1280_and_the_page_shows_words(tmp_path):
+    """At 1280 px the header stays one line (before a session, calibrating, running, in a
+    safe stop; outside VR and in VR with both buttons), the 3D panel does not repeat it,
+    and the page says the server's identifiers (``safe_stop``, ``teleop``, ``node2``) in
+    words."""
+    from payload.trials.live import LiveSession
+
+    iwer = _need_browser()
+    hub = LiveHub()
+    hub.driver = "hardware on /dev/ttyUSB0"  # the longer driver's name in the header
+    session = LiveSession(hub, None, steps=BROWSER_STEPS)  # its scene and world, not run
+    world = session.waiting_snapshot()
+    together = BROWSER_STEPS[3]
+    reason = "left hand not tracked by the headset; right hand not tracked by the headset"
+    snaps = {
+        "waiting": world,
+        "calibrating": {**world, "phase": "calibration", "step": together.name,
+                        "prompt": together.prompt, "remaining": 1.2},
+        "teleop": {**world, "phase": "acquisition", "calibrated": True,
+                   "vehicle": {**world["vehicle"], "speed": 0.0421}, "contact": True,
+                   "notice": "calibrated: fly with your left wrist"},
+        "safe_stop": {**world, "phase": "acquisition", "calibrated": True,
+                      "safe_stop": reason},
+    }  # fmt: skip
+    view = {"width": 1280, "height": 800}
+    server = TeleopServer(hub, port=0, scene=session.scene).start()
+    try:
+        with _Page(server.url(), view) as page:  # a desktop browser, no WebXR
+            for state, snap in snaps.items():
+                with hub.lock:  # before a session control is free; then another holds it
+                    hub.active = None if state == "waiting" else -1
+                hub.publish(snap, state=state)
+                role = "free" if state == "waiting" else "watching"
+                shown = _shows(page, state, role, f"the page in {state}")
+                page.screenshot(path=str(tmp_path / f"desktop-{state}.png"))
+                _one_line_in_words(shown, state)
+                # the 3D panel shows the live numbers, nothing of the header
+                assert len(shown["panel"]) == 1 and "m/s" in shown["panel"][0], shown
+                assert shown["panel"][0] not in shown["text"], shown
+                assert "m/s" not in shown["text"], shown
+                if state == "teleop":
+                    assert shown["panel"] == ["vehicle 0.042 m/s · rail 25 mm · CTB held"]
+            assert "safe stop" in shown["text"] and reason in shown["page"], shown
+            labels = page.evaluate("() => document.getElementById('labels').innerText")
+            assert "Node 2" in labels and "Kibo" in labels, labels
+        with hub.lock:
+            hub.active = None  # the emulated headset's frames take control
+        with EmulatedQuest(server.url(), iwer_js=iwer) as quest:
+            page = quest.page
+            page.set_viewport_size(view)
+            for state in ("calibrating", "safe_stop"):  # in VR: Exit VR, Hand over control
+                hub.publish(snaps[state], state=state)
+                shown = _shows(page, state, "holder", f"the headset's page in {state}")
+                page.screenshot(path=str(tmp_path / f"vr-{state}.png"))
+                _one_line_in_words(shown, f"VR {state}")
+                assert "you have control" in shown["text"], shown
+            # a headset shows no page: its panel says the safe stop, in words
+            assert f"safe stop: {reason}" in shown["panel"], shown
+    finally:
+        server.stop()
+        session.close()

@@ -38,6 +38,18 @@ class IssModule(str, enum.Enum):
     VESTIBULE = "vestibule"
     NODE2 = "node2"
 
+    @property
+    def title(self) -> str:
+        """The module's name in words, for labels and reports."""
+        return _MODULE_TITLES[self]
+
+
+_MODULE_TITLES = {
+    IssModule.KIBO: "Kibo (JEM)",
+    IssModule.VESTIBULE: "hatch vestibule",
+    IssModule.NODE2: "Node 2 (Harmony)",
+}
+
 
 class Zone(NamedTuple):
     """An axis-aligned box of open interior, world frame [m]."""

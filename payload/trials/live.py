@@ -62,7 +62,12 @@ def scene_of(driver: Any) -> dict[str, Any]:
     size = w.config.ctb_size
     return {
         "modules": [
-            {"name": MODULE_NAMES.get(z.module.value, z.module.value), "lo": z.lo, "hi": z.hi}
+            {
+                "name": MODULE_NAMES.get(z.module.value, z.module.value),
+                "title": z.module.title,
+                "lo": z.lo,
+                "hi": z.hi,
+            }
             for z in w.layout.zones()
         ],
         "vehicle_size": 0.32,

@@ -4,6 +4,13 @@
 // sends {"type": "frame", "seq", "t", "hands"} (see payload/teleop/messages.py). It answers
 // the server's clock pings, shows the calibration prompts and the scene, and reconnects by
 // itself when the WebSocket drops (the server brakes the vehicle meanwhile).
+//
+// What it shows, where: the header's one status line says what is current in a few words
+// (the link, or the session state and this page's role); #prompt and #hint over the view
+// say what to do and why (the calibration prompt, how to take control, a safe stop's
+// reason, the server's notice); the 3D panel shows the live numbers, and in VR, where a
+// headset shows no page, also the prompt, the safe stop and the role. The server's
+// identifiers (state, step, module names) are shown as words, never as they are sent.
 
 import { Renderer, lookAt, perspective, ANCHOR } from './render.js';
 
@@ -23,6 +30,7 @@ const $ = (id) => document.getElementById(id);
 const debug = {
   sent: 0, received: 0, connects: 0, state: null, open: false, xr: false,
   role: null, driver: null, link: 'connecting to the teleop server…', canEnter: false,
+  why: null, vrError: null, panel: [],
 };
 window.__teleop = debug;
 
@@ -45,6 +53,7 @@ class Link {
       debug.open = true;
       debug.connects += 1;
       debug.link = 'connected';
+      debug.why = null;
       debug.state = null;  // nothing of the last connection's session is current any more
       debug.role = null;
       showStatus();
@@ -57,6 +66,7 @@ class Link {
       const wait = `retrying in ${(this.retry / 1000).toFixed(1)} s`;
       debug.open = false;
       debug.link = `disconnected, ${wait}`;
+      debug.why = null;
       debug.state = null;
       debug.role = null;
       showStatus();
@@ -69,24 +79,28 @@ class Link {
 
   // A WebSocket the server refused looks like any other failure to the page: ask /status
   // (the page's own token) what it is. 403: the token is not this server's (a restarted
-  // server makes a new one); reachable: the server has as many pages as it takes.
+  // server makes a new one); reachable: the server has as many pages as it takes. The
+  // status line says it in a few words, #hint why and what to do.
   async explain(wait) {
-    let why = null;
+    let link = null, why = null;
     try {
       const r = await fetch(`/status${tokenQuery}`, { cache: 'no-store' });
       if (r.status === 403) {
-        why = 'the server refused this page\'s token (a restarted server has a new one): ' +
+        link = `refused by the server, ${wait}`;
+        why = 'The server refused this page\'s token (a restarted server has a new one): ' +
           'open the address it printed, with its ?token=';
       } else if (r.ok) {
         const status = await r.json();
-        why = `the server turned this page away: it takes at most ${status.max_clients} ` +
-          'pages at once (close a spare one)';
+        link = `turned away by the server, ${wait}`;
+        why = `The server turned this page away: it takes at most ${status.max_clients} ` +
+          'pages at once (close a spare one).';
       }
     } catch (e) {
       why = null;  // the server is not reachable: "disconnected" says it
     }
     if (why && !debug.open) {
-      debug.link = `${why}; ${wait}`;
+      debug.link = link;
+      debug.why = why;
       showStatus();
     }
   }
@@ -100,32 +114,51 @@ class Link {
   }
 }
 
+// ---- words for the server's identifiers --------------------------------------------------
+// The messages name states, calibration steps and modules by identifiers (a contract with the
+// server and the recordings, kept as they are); the page shows words instead: the states'
+// below, a module's title as the server sends it, and any other identifier's parts spaced.
+const STATE_WORDS = {
+  waiting: 'waiting for an operator',
+  calibrating: 'calibrating',
+  teleop: 'teleoperating',
+  safe_stop: 'safe stop',
+  stopped: 'server stopped',
+};
+
+// an identifier without words of its own (or a newer server's state): its parts, spaced
+export function words(id) { return String(id).replace(/[_-]+/g, ' ').trim(); }
+const say = (table, id) => (Object.hasOwn(table, id) ? table[id] : words(id));
+
+const ROLES = {
+  holder: 'you have control',
+  watching: 'another operator has control',
+  free: 'control free',
+};
+
 // ---- drawing ---------------------------------------------------------------------------
 const canvas = $('view');
 const gl = canvas.getContext('webgl', { xrCompatible: true, antialias: true });
 const renderer = new Renderer(gl);
 
-const ROLES = {
-  holder: 'you have control',
-  watching: 'watching: another operator has control',
-  free: 'control free: start calibrating to take it',
-};
-
-// a free page outside VR names the step before the calibration: Enter VR (where it can);
-// once the session is calibrated the next holder drives with that calibration
-function roleText() {
+// What takes control, for a free page: outside VR, the step before the calibration, Enter
+// VR (where it can); once the session is calibrated the next holder drives with that
+// calibration. Null when this page is not free.
+function roleHint() {
+  if (debug.role !== 'free') return null;
   const kept = debug.state && debug.state.calibrated;
-  if (debug.role === 'free' && debug.xr && kept) {
-    return 'control free: your hands take it (the calibration is kept)';
+  if (debug.xr) {
+    return kept ? 'Control is free: your hands take it (the calibration is kept).'
+      : 'Control is free: calibrate to take it.';
   }
-  if (debug.role !== 'free' || debug.xr) return debug.role ? ROLES[debug.role] : null;
   if (kept) {
-    return debug.canEnter ? 'control free: press Enter VR to take it (the calibration is kept)'
-      : 'control free: open this page in a WebXR headset and press Enter VR to take it ' +
-        '(the calibration is kept)';
+    return debug.canEnter ? 'Control is free: press Enter VR to take it (the calibration is kept).'
+      : 'Control is free: open this page in a WebXR headset and press Enter VR to take it ' +
+        '(the calibration is kept).';
   }
-  return debug.canEnter ? 'control free: press Enter VR, then calibrate to take it'
-    : 'control free: open this page in a WebXR headset, press Enter VR and calibrate to take it';
+  return debug.canEnter ? 'Control is free: press Enter VR, then calibrate to take it.'
+    : 'Control is free: open this page in a WebXR headset, press Enter VR and calibrate to ' +
+      'take it.';
 }
 
 // The calibration prompt, only while the server says "calibrating": a state message after
@@ -134,42 +167,86 @@ function roleText() {
 function promptText() {
   const st = debug.state;
   if (!st || st.state !== 'calibrating' || !st.prompt) return '';
-  return `${st.prompt} (${st.remaining.toFixed(1)} s)`;
+  return `${st.prompt}\u00a0(${st.remaining.toFixed(1)}\u00a0s)`;  // the countdown kept in one piece
 }
 
-// the one status line, always rebuilt from what is current (link, role, session state)
-function statusLines() {
+// the header's one status line, in a few words: the link, or the session state and the role
+function statusText() {
   const st = debug.state;
-  if (!debug.open) return [debug.link];
-  const step = st && st.state === 'calibrating' && st.step ? `: ${st.step}` : '';
-  const head = [st ? st.state + step : 'connected, waiting for the session', roleText()]
-    .filter(Boolean).join(' · ');
-  const lines = [head];
-  if (st && st.safe_stop) lines.push(`SAFE STOP: ${st.safe_stop}`);
-  if (st && st.vehicle) lines.push(`vehicle ${st.vehicle.speed.toFixed(3)} m/s  rail ` +
-    `${(st.rail * 1000).toFixed(0)} mm${st.contact ? '  CTB held' : ''}`);
-  if (st && st.notice && !promptText()) lines.push(st.notice);
+  if (!debug.open) return debug.link;
+  let state = 'connected, waiting for the session';
+  if (st) {
+    state = say(STATE_WORDS, st.state);
+    if (st.state === 'calibrating' && st.step) state += `: ${words(st.step)}`;
+  }
+  return [state, debug.role ? ROLES[debug.role] : null].filter(Boolean).join(' · ');
+}
+
+// what to do and why, below the prompt: [{text, alert}]
+function hintLines() {
+  const st = debug.open ? debug.state : null;
+  const lines = [];
+  if (debug.vrError) lines.push({ text: `Could not start VR: ${debug.vrError}`, alert: true });
+  if (!debug.open) {
+    if (debug.why) lines.push({ text: debug.why, alert: true });
+    return lines;
+  }
+  if (st && st.safe_stop) {
+    lines.push({ text: `Safe stop: ${st.safe_stop}. The vehicle brakes and the fingers hold ` +
+      'until the hands are back.', alert: true });
+  }
+  const role = roleHint();
+  if (role) lines.push({ text: role, alert: false });
+  if (st && st.notice && !promptText()) lines.push({ text: st.notice, alert: false });
   return lines;
 }
 
-function showStatus() {
-  const st = debug.state;
-  const lines = statusLines();
+// the live numbers, which nothing else on the page shows
+function numbersText(st) {
+  return `vehicle ${st.vehicle.speed.toFixed(3)} m/s · rail ${(st.rail * 1000).toFixed(0)} mm` +
+    (st.contact ? ' · CTB held' : '');
+}
+
+// The 3D panel: the live numbers; in VR (a headset shows no page, only this panel) also
+// the prompt, a safe stop, the role when it is not control, the notice, or the link.
+function panelLines() {
+  const st = debug.open ? debug.state : null;
+  const numbers = st && st.vehicle ? [numbersText(st)] : [];
+  if (!debug.xr) return numbers;  // the header, the prompt and the hint say the rest
+  if (!debug.open) return [debug.link, debug.why].filter(Boolean);
   const prompt = promptText();
-  $('status').textContent = lines.join(' — ');
-  $('prompt').textContent = prompt;
+  const role = debug.role === 'holder' ? null : roleHint() || ROLES[debug.role];
+  return [prompt, st && st.safe_stop ? `safe stop: ${st.safe_stop}` : null, role, ...numbers,
+    st && st.notice && !prompt ? st.notice : null].filter(Boolean);
+}
+
+function showStatus() {
+  const st = debug.open ? debug.state : null;
+  const status = statusText();
+  $('status').textContent = status;
+  $('status').title = status;  // the whole line, should a narrow window cut it short
+  $('status').classList.toggle('alert', Boolean(st && st.safe_stop));
+  $('prompt').textContent = promptText();
+  const hint = $('hint');
+  hint.replaceChildren(...hintLines().map(({ text, alert }) => {
+    const p = document.createElement('p');
+    p.textContent = text;
+    if (alert) p.className = 'alert';
+    return p;
+  }));
   $('driver').textContent = debug.driver ? `driver: ${debug.driver}` : '';
   $('handover').hidden = debug.role !== 'holder';
-  const panel = prompt ? [lines[0], prompt, ...lines.slice(1)] : lines;
-  if (debug.driver) panel.push(`driver: ${debug.driver}`);
-  renderer.setPanel(panel.slice(0, 4), st && st.safe_stop ? '#f96' : '#7fd');
+  debug.panel = panelLines();
+  renderer.setPanel(debug.panel, st && st.safe_stop ? '#f96' : '#7fd');
 }
 
 const link = new Link((msg) => {
   if (msg.type === 'ping') {
     link.send({ type: 'pong', id: msg.id, t: performance.now() });
   } else if (msg.type === 'hello') {
-    renderer.scene = msg.scene;
+    const scene = msg.scene || {};  // the modules labelled by their titles, not identifiers
+    renderer.scene = { ...scene, modules: (scene.modules || []).map((m) => (
+      { ...m, name: m.title || words(m.name) })) };
     debug.driver = msg.driver || null;
     showStatus();
   } else if (msg.type === 'state') {
@@ -278,6 +355,7 @@ async function enterXR() {
     if (drawing) requestAnimationFrame(drawDesktop);
   });
   button.textContent = 'Exit VR';
+  debug.vrError = null;
   await gl.makeXRCompatible();
   session.updateRenderState({ baseLayer: new XRWebGLLayer(session, gl) });
   debug.space = await session.requestReferenceSpace('local-floor');
@@ -303,8 +381,8 @@ async function setup() {
     enterXR().catch((e) => {
       console.error(e);
       button.disabled = false;
-      debug.link = `could not start VR: ${e.message}`;
-      $('status').textContent = debug.link;
+      debug.vrError = e.message;  // said in #hint until VR starts
+      showStatus();
     });
   });
 }

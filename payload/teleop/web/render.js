@@ -87,8 +87,10 @@ const CUBE = (() => {
 
 const LINE_VS = `attribute vec3 p; uniform mat4 mvp; void main() { gl_Position = mvp * vec4(p, 1.0); }`;
 const LINE_FS = `precision mediump float; uniform vec4 color; void main() { gl_FragColor = color; }`;
-const TEX_VS = `attribute vec3 p; varying vec2 uv; uniform mat4 mvp;
-  void main() { uv = vec2(p.x * 0.5 + 0.5, 0.5 - p.y * 0.5); gl_Position = mvp * vec4(p, 1.0); }`;
+// vmax: the part of the texture, from its top, that the quad shows (the panel's used rows)
+const TEX_VS = `attribute vec3 p; varying vec2 uv; uniform mat4 mvp; uniform float vmax;
+  void main() { uv = vec2(p.x * 0.5 + 0.5, (0.5 - p.y * 0.5) * vmax);
+    gl_Position = mvp * vec4(p, 1.0); }`;
 const TEX_FS = `precision mediump float; varying vec2 uv; uniform sampler2D tex;
   void main() { gl_FragColor = texture2D(tex, uv); }`;
 
@@ -105,6 +107,26 @@ function program(gl, vs, fs) {
   gl.linkProgram(prog);
   if (!gl.getProgramParameter(prog, gl.LINK_STATUS)) throw new Error(gl.getProgramInfoLog(prog));
   return prog;
+}
+
+const PANEL_ROWS = 4;
+
+// one line of text as rows no wider than `width` pixels, broken at spaces (a single word
+// wider than that stays one row, squeezed by fillText's maxWidth)
+function wrap(c, text, width) {
+  const rows = [];
+  let row = '';
+  for (const word of String(text).split(' ')) {
+    const next = row ? `${row} ${word}` : word;
+    if (row && c.measureText(next).width > width) {
+      rows.push(row);
+      row = word;
+    } else {
+      row = next;
+    }
+  }
+  if (row) rows.push(row);
+  return rows;
 }
 
 export class Renderer {
@@ -125,21 +147,27 @@ export class Renderer {
     this.panelCanvas.height = 256;
     this.panelTex = gl.createTexture();
     this.panelText = null;
+    this.panelRows = 0;
     this.scene = null;
     this.state = null;
   }
 
+  // The panel's text: each line wrapped at spaces to the panel's width, at most
+  // PANEL_ROWS rows (the first lines kept); the panel is as tall as its rows, and not drawn
+  // without any.
   setPanel(lines, color = '#7fd') {
     const key = lines.join('\n') + color;
     if (key === this.panelText) return;
     this.panelText = key;
     const c = this.panelCanvas.getContext('2d');
+    c.font = '44px sans-serif';
+    const rows = lines.flatMap((l) => wrap(c, l, 976)).slice(0, PANEL_ROWS);
+    this.panelRows = rows.length;
     c.clearRect(0, 0, 1024, 256); // the last text gone, not showing through the new
     c.fillStyle = 'rgba(10, 16, 24, 0.85)';
     c.fillRect(0, 0, 1024, 256);
     c.fillStyle = color;
-    c.font = '44px sans-serif';
-    lines.slice(0, 4).forEach((l, i) => c.fillText(l, 24, 62 + i * 58, 976));
+    rows.forEach((l, i) => c.fillText(l, 24, 62 + i * 58, 976));
     const gl = this.gl;
     gl.bindTexture(gl.TEXTURE_2D, this.panelTex);
     gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGBA, gl.RGBA, gl.UNSIGNED_BYTE, this.panelCanvas);
@@ -207,10 +235,16 @@ export class Renderer {
       this.segments(vp, tips.flatMap((p) => [base, p]), [1, 0.5, 0.3, 1]);
       for (const p of tips) this.box(vp, p, id, [0.02, 0.02, 0.02], [1, 0.4, 0.2, 1]);
     }
-    // the text panel floats above the vehicle, facing the operator
+    // the text panel floats above the vehicle, facing the operator: its top edge fixed, as
+    // tall as its rows (the texture's top part)
+    if (!this.panelRows) return;
     gl.useProgram(this.tex);
-    const panel = mul(translation([0, ANCHOR[1] + 0.5, ANCHOR[2] + 0.1]), scaling([0.48, 0.12, 1]));
+    const used = Math.min(1, (24 + this.panelRows * 58) / 256);
+    const top = ANCHOR[1] + 0.5 + 0.12;
+    const panel = mul(translation([0, top - 0.12 * used, ANCHOR[2] + 0.1]),
+      scaling([0.48, 0.12 * used, 1]));
     gl.uniformMatrix4fv(gl.getUniformLocation(this.tex, 'mvp'), false, mul(vpXr, panel));
+    gl.uniform1f(gl.getUniformLocation(this.tex, 'vmax'), used);
     gl.activeTexture(gl.TEXTURE0);
     gl.bindTexture(gl.TEXTURE_2D, this.panelTex);
     gl.uniform1i(gl.getUniformLocation(this.tex, 'tex'), 0);
