@@ -6,7 +6,9 @@ kinematic tree (numpy) and against Pinocchio called here directly on the generat
 
 from __future__ import annotations
 
+import html
 import json
+import re
 import shutil
 import xml.etree.ElementTree as ET
 from pathlib import Path
@@ -207,10 +209,14 @@ def test_a_design_that_does_not_fit_shows_the_offending_parts_red(tmp_path, desi
 N_STEPS = 40
 
 
-def _record_trial(folder: Path, design_file: Path = DESIGN) -> Path:
-    """A short recording with moving joints, vehicle and CTB (test fixture)."""
+def _record_trial(
+    folder: Path, design_file: Path = DESIGN, start: tuple[float, float, float] = (1.5, 5.0, 0.25)
+) -> Path:
+    """A short recording with moving joints, vehicle and CTB (test fixture): the vehicle
+    starts at ``start`` (world frame [m], in Kibo) and moves aft along Kibo's axis (-y)."""
     rng = np.random.default_rng(3)
     d = load_design(design_file)
+    x, y, z = start
     with TrialRecorder(folder / "log.mcap") as rec:
         rec.write_meta({"seed": 3, "design_hash": design_hash(design_file)})
         for k in range(N_STEPS):
@@ -227,9 +233,9 @@ def _record_trial(folder: Path, design_file: Path = DESIGN) -> Path:
                     phase="acquisition" if k < N_STEPS // 2 else "translation",
                     q_meas=q,
                     deploy_meas=d.stage.travel * (0.8 + 0.2 * np.cos(t)),
-                    astrobee_pos=np.array([1.5, 5.0 - 0.2 * t, 0.25]),
+                    astrobee_pos=np.array([x, y - 0.2 * t, z]),
                     astrobee_quat=quat,
-                    ctb_pos=np.array([1.5, 5.0 - 0.2 * t, -0.3]),
+                    ctb_pos=np.array([x, y - 0.2 * t, z - 0.55]),
                     ctb_quat=quat,
                     contact=bool(k % 7 < 3),
                 )
@@ -264,6 +270,35 @@ def test_a_replay_at_10_hz_shows_the_step_at_each_tenth_of_a_second(trial_folder
         since = rec.contact[(want[i - 1] + 1 if i else 0) : k + 1]
         value = values[int(np.searchsorted(keys, t[k] * 10.0 + 1e-9, side="right")) - 1]
         assert value == since.any(), (i, k)
+
+
+_TITLE = re.compile(
+    r"(?P<what>design review|trial replay) — (?P<subject>\S+) \(design (?P<hash>\w+)\)"
+)
+_SUBTITLE = re.compile(
+    r"(?P<aspect>stowed fit|recording): (?P<verdict>pass|FAIL|finished|not finished)\b.*"
+)
+
+
+def test_the_design_review_and_a_trial_replay_are_titled_alike(review, replay, trial_folder):
+    """Both pages: "<what> — <subject> (design <hash>)" over "<aspect>: <verdict>...", and
+    the page's <title> (the browser tab) is that title too."""
+    from payload.review.page import static_html
+
+    want_hash = design_hash(project_files().design)
+    subjects = {}
+    for what, scene in (("design review", review.scene), ("trial replay", replay.scene)):
+        head = _TITLE.fullmatch(scene.overlay.title)
+        assert head is not None, scene.overlay.title
+        assert (head["what"], head["hash"]) == (what, want_hash)
+        subjects[what] = head["subject"]
+        assert _SUBTITLE.fullmatch(scene.overlay.subtitle), scene.overlay.subtitle
+        tab = html.escape(f"{scene.overlay.title} - payload review")
+        assert f"<title>{tab}</title>" in static_html(scene)
+    assert subjects["design review"].endswith("/cad/design.toml")
+    folder = Path(trial_folder)
+    assert subjects["trial replay"] == f"{folder.parent.name}/{folder.name}"
+    assert replay.scene.overlay.subtitle.startswith("recording: finished; ")
 
 
 def test_the_replay_draws_the_keep_in_boxes_around_the_route(replay) -> None:
@@ -392,6 +427,7 @@ def test_a_trial_cut_short_is_replayed_and_said_to_be(tmp_path, capsys) -> None:
                  "0"]) == 0  # fmt: skip
     printed = capsys.readouterr().out
     assert f"({len(rec)} steps" in printed and "not a finished run: cut short" in printed
+    assert "recording: not finished: cut short" in out.read_text()  # the page's subtitle
 
 
 def test_bad_reach_samples_and_static_folder_exit_2(tmp_path, capsys) -> None:

@@ -30,6 +30,7 @@ from payload.review.browser import CONTROLS_BAR, VIEWPORT, chromium_path
 from payload.review.design_view import build_design_review
 from payload.review.project import project_files
 from payload.review.scene import BACKGROUND, CAMERA_FOV_DEG
+from payload.sim.iss import IssModule
 
 
 def _require_browser() -> None:
@@ -487,4 +488,104 @@ def test_a_trial_replay_follows_the_vehicle_from_first_to_last_frame(tmp_path) -
         page.evaluate("() => payloadReview.toggleView()")  # the whole-station view
         pose_page(page, 0.0)
         names |= {b["text"] for b in page.evaluate("() => payloadReview.labelBoxes()")}
-    assert names & {"Kibo (JEM)", "Node 2", "vestibule"}
+    assert names & {module.title for module in IssModule}
+
+
+def _apart(a: dict, b: dict) -> bool:
+    """Two screen rectangles (x, y, w, h) do not intersect."""
+    return (
+        a["x"] + a["w"] <= b["x"]
+        or b["x"] + b["w"] <= a["x"]
+        or a["y"] + a["h"] <= b["y"]
+        or b["y"] + b["h"] <= a["y"]
+    )
+
+
+def _trial_at_the_route_start(tmp_path: Path):
+    """A short trial starting where the route does, mid-Kibo (Kibo's centre then lies among
+    the payload's fingers), its replay page, and its recording."""
+    from test_review import _record_trial
+
+    from payload.cli import main
+    from payload.sim.iss import IssLayout
+    from payload.trials.recorder import read_recording
+
+    folder = _record_trial(tmp_path / "trial", start=tuple(IssLayout().route()[0]))
+    html = tmp_path / "replay.html"
+    assert main(["review", "--trial", str(folder), "--static", str(html)]) == 0
+    return html, read_recording(folder / "log.mcap")
+
+
+def _vehicle_screen_box(page, rec, k: int) -> dict:
+    """Screen rectangle of Astrobee's body box and its payload's meshes at step ``k``: the
+    recorded pose and joints, the meshes posed by the design tree, projected through the
+    page's camera (x, y, w, h) [px]."""
+    from payload.design import MANIPULATION_JOINTS
+    from payload.envelope.vehicle import vehicle_from_dict
+    from payload.review.trial_view import pose
+    from payload.sim.astrobee import payload_mount
+
+    design = load_design(project_files().design)
+    tree = build_tree(design)
+    geom = PayloadGeometry(tree)
+    vehicle = vehicle_from_dict(design.vehicle or {})
+    half = np.asarray(vehicle.body_size) / 2
+    body_box = np.array([np.where(c, half, -half) for c in itertools.product((0, 1), repeat=3)])
+    values = dict(zip(MANIPULATION_JOINTS, (float(v) for v in rec.q_meas[k])))
+    values["stage"] = float(rec.deploy_meas[k])
+    posed = _posed(geom, tree.link_poses(values), geom.links)
+    payload = np.vstack(list(posed.values())) + payload_mount(vehicle)  # body frame
+    body = pose(rec.astrobee_pos[k], rec.astrobee_quat[k])
+    pts = np.vstack([body_box, payload]) @ body[:3, :3].T + body[:3, 3]  # ISS frame
+    m, size = page_projection(page, "trial")
+    uv = to_pixels(pts, m, size)
+    lo, hi = uv.min(axis=0), uv.max(axis=0)
+    return {"x": lo[0], "y": lo[1], "w": hi[0] - lo[0], "h": hi[1] - lo[1]}
+
+
+@pytest.mark.parametrize("viewport", [VIEWPORT, (1280, 800)])
+def test_the_module_labels_keep_off_the_vehicle_and_its_payload(tmp_path, viewport) -> None:
+    """At the first and last frames of a trial starting mid-Kibo, in the chase and the
+    whole station view, no label's box meets the screen box of Astrobee's body and its
+    payload; and the opening view still names Kibo."""
+    _require_browser()
+    from payload.review.browser import open_page, pose_page
+
+    html, rec = _trial_at_the_route_start(tmp_path)
+    seen = {}
+    with open_page(html, viewport) as page:
+        end = page.evaluate("() => Math.max(...viewer.animator.actions.map(a => a._clip.duration))")
+        for view in ("chase", "station"):
+            for k, t in ((0, 0.0), (len(rec) - 1, end)):
+                pose_page(page, t)
+                vehicle = _vehicle_screen_box(page, rec, k)
+                boxes = page.evaluate("() => payloadReview.labelBoxes()")
+                seen[view, k] = {b["text"] for b in boxes}
+                for b in boxes:
+                    assert _apart(b, vehicle), f"{view} view, step {k}: {b} on {vehicle}"
+            page.evaluate("() => payloadReview.toggleView()")  # the whole-station view
+    assert "Kibo (JEM)" in seen["chase", 0], seen
+
+
+_RELABEL = """([clear]) => payloadReview.apply({overlay: {
+    title: "t", labels: [["/meshcat/trial/astrobee/payload/A_tip", "A_tip"]], clear}})"""
+
+
+def test_a_label_is_placed_off_the_nodes_its_overlay_keeps_clear(tmp_path) -> None:
+    """A label pointing at the payload's fingertip sits beside the tip, on the vehicle's
+    screen box; with the vehicle named in the overlay's ``clear`` list, the layout places
+    it off that box (the box projected here, independently of the page's)."""
+    _require_browser()
+    from payload.review.browser import open_page, pose_page, settle
+
+    html, rec = _trial_at_the_route_start(tmp_path)
+    with open_page(html) as page:
+        pose_page(page, 0.0)
+        vehicle = _vehicle_screen_box(page, rec, 0)
+        placed = {}
+        for clear in ([], ["/meshcat/trial/astrobee"]):
+            page.evaluate(_RELABEL, [clear])
+            settle(page)
+            (placed[bool(clear)],) = page.evaluate("() => payloadReview.labelBoxes()")
+    assert not _apart(placed[False], vehicle), (placed[False], vehicle)
+    assert _apart(placed[True], vehicle), (placed[True], vehicle)

@@ -36,7 +36,7 @@ from payload.envelope.fit import StowedCheck, check_stowed, wall_gaps
 from payload.envelope.geometry import PayloadGeometry
 from payload.envelope.vehicle import Vehicle, vehicle_from_dict
 from payload.review.model import PayloadModel
-from payload.review.project import ProjectFiles, design_hash
+from payload.review.project import ProjectFiles, page_title
 from payload.review.scene import (
     ROOT,
     Overlay,
@@ -315,7 +315,8 @@ def frame_points(
 
 
 def title(files: ProjectFiles, check: StowedCheck) -> tuple[str, str]:
-    """The title (project, design file, hash) and the verdict line."""
+    """The title (:func:`~payload.review.project.page_title`: the project, design file and
+    hash) and the verdict line (``stowed fit: pass; ...``)."""
     design = Path(files.design)
     name = f"{design.resolve().parents[1].name}/{design.parent.name}/{design.name}"
     verdict = "stowed fit: pass" if check.passed else "stowed fit: FAIL"
@@ -326,7 +327,7 @@ def title(files: ProjectFiles, check: StowedCheck) -> tuple[str, str]:
     if check.parts:
         t = check.tightest
         verdict += f"; tightest {t.name} {t.clearance * 1e3:.1f} mm"
-    return f"{name}  (design {design_hash(design)})", verdict
+    return page_title("design review", name, design), verdict
 
 
 def build_design_review(

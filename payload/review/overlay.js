@@ -14,7 +14,9 @@
   const legend = div("payload-legend", layer);
   const phase = div("payload-phase", layer);
   const error = div("payload-error", layer);
-  const state = { labels: [], phases: [], follow: null, chase: true, views: {}, version: -1 };
+  const state = {
+    labels: [], phases: [], follow: null, chase: true, views: {}, clear: [], version: -1,
+  };
 
   function div(id, parent) {
     const el = document.createElement("div");
@@ -49,7 +51,7 @@
   }
 
   function setOverlay(o) {
-    // the browser's tab names the design (project, file and hash) as the title does
+    // the browser's tab says what the title says (page.py's tab_title writes the same)
     document.title = o.title ? `${o.title} - payload review` : "payload review";
     title.innerHTML = "";
     div(null, title).textContent = o.title || "";
@@ -83,6 +85,7 @@
     state.phases = o.phases || [];
     state.follow = o.follow || null;
     state.views = o.views || {};
+    state.clear = o.clear || [];
     if (state.follow && !state.controlAdded) {
       viewer.set_control("whole station view", "() => payloadReview.toggleView()");
       state.controlAdded = true;
@@ -112,8 +115,12 @@
     const vehicle = node(vehiclePath);
     if (!root || !vehicle) return;
     const c = state.chase ? vehicle.position : { x: centre[0], y: centre[1], z: centre[2] };
-    root.position.set(-c.x, -c.y, -c.z);
+    const p = root.position;
+    if (p.x === -c.x && p.y === -c.y && p.z === -c.z) return;
+    p.set(-c.x, -c.y, -c.z);
     root.updateMatrixWorld(true);
+    // meshcat renders before this runs (and, paused, only when dirty): draw the moved root
+    viewer.set_dirty();
   }
 
   function animationTime() {
@@ -131,6 +138,28 @@
     for (const p of state.phases) if (p[1] <= t + 1e-9) now = p;
     phase.style.display = "block";
     phase.textContent = `phase: ${now[0]}   t = ${t.toFixed(1)} s`;
+  }
+
+  // Screen box of a shown node's meshes (the 8 corners of its world bounds, projected), or
+  // null: not shown, empty, or partly behind the camera (no box bounds it there).
+  function screenBox(path, cam, w, h) {
+    const obj = node(path);
+    if (!obj || !shown(obj)) return null;
+    obj.updateWorldMatrix(true, true);
+    const box = new MeshCat.THREE.Box3().setFromObject(obj);
+    if (box.isEmpty()) return null;
+    const [lo, hi] = [box.min, box.max];
+    let x0 = Infinity, y0 = Infinity, x1 = -Infinity, y1 = -Infinity;
+    for (let i = 0; i < 8; i++) {
+      const p = new MeshCat.THREE.Vector3(
+        i & 1 ? hi.x : lo.x, i & 2 ? hi.y : lo.y, i & 4 ? hi.z : lo.z);
+      p.project(cam);
+      if (p.z > 1 || p.z < -1) return null;
+      const x = ((p.x + 1) / 2) * w;
+      const y = ((1 - p.y) / 2) * h;
+      x0 = Math.min(x0, x); y0 = Math.min(y0, y); x1 = Math.max(x1, x); y1 = Math.max(y1, y);
+    }
+    return { x: x0, y: y0, w: x1 - x0, h: y1 - y0 };
   }
 
   function overlaps(a, b) {
@@ -164,6 +193,11 @@
     const g = gui && gui.offsetParent !== null ? gui.getBoundingClientRect() : null;
     placed.push(g && g.width > 0 ? { x: g.left, y: g.top, w: g.width, h: g.height }
       : { x: w - 250, y: 0, w: 250, h: 24 });
+    // what the labels must not hide (a replay's vehicle, payload and CTB), as projected now
+    for (const path of state.clear) {
+      const b = screenBox(path, cam, w, h);
+      if (b) placed.push(b);
+    }
     items.sort((a, b) => a.y - b.y);
     for (const it of items) {
       const el = it.lab.el;

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import base64
 import hashlib
+import html
 import json
 import re
 from functools import cache
@@ -92,16 +93,24 @@ def scene_blobs(scene: Scene) -> list[bytes]:
     return [packed(c) for c in scene.all_commands()]
 
 
+def tab_title(title: str) -> str:
+    """The browser tab's text for a page titled ``title`` (``overlay.js`` sets the same
+    when a live page receives its overlay)."""
+    return f"{title} - payload review" if title else "payload review"
+
+
 def page_html(data: dict[str, Any] | None) -> str:
     """The page, with ``data`` (``commands``, ``overlay``, ``error``) embedded or, with
     ``None``, fetching it from the server that sent the page."""
-    embedded = ""
+    embedded, title = "", ""
     if data is not None:
         text = json.dumps(data, separators=(",", ":")).replace("</", "<\\/")
         embedded = f'<script id="payload-data" type="application/json">{text}</script>'
+        title = (data.get("overlay") or {}).get("title", "")
     return f"""<!DOCTYPE html>
 <html>
-<head><meta charset="utf-8"><title>payload review</title><link rel="icon" href="data:,">
+<head><meta charset="utf-8"><title>{html.escape(tab_title(title))}</title>
+<link rel="icon" href="data:,">
 <style>{STYLE}</style></head>
 <body>
 <div id="meshcat-pane"></div>
@@ -134,4 +143,5 @@ __all__ = [
     "page_html",
     "scene_blobs",
     "static_html",
+    "tab_title",
 ]

@@ -56,4 +56,11 @@ def design_hash(path: str | Path) -> str:
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()[:16]
 
 
-__all__ = ["DEFAULT_RATE", "ProjectFiles", "design_hash", "project_files"]
+def page_title(what: str, subject: str, design: str | Path) -> str:
+    """A review page's title, one form for every page: ``<what> — <subject> (design
+    <hash>)``, e.g. ``design review — <project>/cad/design.toml (design ...)`` or
+    ``trial replay — <folder>/trial-0003 (design ...)``; the browser tab shows it too."""
+    return f"{what} — {subject} (design {design_hash(design)})"
+
+
+__all__ = ["DEFAULT_RATE", "ProjectFiles", "design_hash", "page_title", "project_files"]

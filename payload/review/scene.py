@@ -62,8 +62,9 @@ class Overlay:
     """What the page draws over the 3D view (see :mod:`payload.review.page`).
 
     Attributes:
-        title: First line of the title (the design's name and hash).
-        subtitle: Second line (the verdict, the trial).
+        title: First line of the title, ``<what> — <subject> (design <hash>)``
+            (:func:`payload.review.project.page_title`); the browser tab shows it too.
+        subtitle: Second line, ``<aspect>: <verdict>; ...`` (the stowed fit, the recording).
         legend: ``(#rrggbb, meaning)`` for every colour the scene uses.
         labels: ``(anchor node path, text)``: a label pointing at the node's origin, shown
             while the node is (so a label belongs to the state its node is shown in).
@@ -71,6 +72,8 @@ class Overlay:
         views: Camera positions by name (``default``, ``station``), world frame [m].
         follow: ``(root path, vehicle path, station centre)``: the chase camera keeps the
             vehicle node at the origin by moving the root; ``None``: no chase camera.
+        clear: Nodes the labels keep off: each frame, the screen box of each shown node
+            (its meshes' bounds, projected) is a box no label may cover, as the title is.
     """
 
     title: str = ""
@@ -80,6 +83,7 @@ class Overlay:
     phases: list[tuple[str, float, float]] = field(default_factory=list)
     views: dict[str, list[float]] = field(default_factory=dict)
     follow: tuple[str, str, list[float]] | None = None
+    clear: list[str] = field(default_factory=list)
 
     def as_json(self) -> dict[str, Any]:
         """The overlay as the page's script reads it."""
@@ -91,6 +95,7 @@ class Overlay:
             "phases": [list(e) for e in self.phases],
             "views": self.views,
             "follow": None if self.follow is None else list(self.follow),
+            "clear": list(self.clear),
         }
 
 

@@ -16,6 +16,7 @@ Scene tree (under :data:`TRIAL`): ``iss/<geom>``, ``astrobee`` (animated) with `
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -36,7 +37,7 @@ from payload.review.design_view import (
     set_visibility,
 )
 from payload.review.model import PayloadModel
-from payload.review.project import DEFAULT_RATE, ProjectFiles, design_hash
+from payload.review.project import DEFAULT_RATE, ProjectFiles, design_hash, page_title
 from payload.review.scene import (
     ROOT,
     Overlay,
@@ -231,16 +232,40 @@ def any_since_last(flags: np.ndarray, idx: np.ndarray) -> np.ndarray:
     return np.array([flags[a : b + 1].any() for a, b in zip(starts, idx)])
 
 
-MODULE_NAMES = {"kibo": "Kibo (JEM)", "vestibule": "vestibule", "node2": "Node 2"}
-"""How the replay labels the ISS modules along the route."""
+def _to_polyline(points: np.ndarray, line: np.ndarray) -> np.ndarray:
+    """Distance of each point (n, 3) to the polyline ``line`` (k, 3), shape (n,) [m]."""
+    out = np.full(len(points), np.inf)
+    for a, b in itertools.pairwise(line):
+        ab = b - a
+        s = np.clip((points - a) @ ab / max(float(ab @ ab), 1e-12), 0.0, 1.0)
+        out = np.minimum(out, np.linalg.norm(points - (a + s[:, None] * ab), axis=1))
+    return out
+
+
+def module_anchor(zone, route: np.ndarray) -> np.ndarray:
+    """Where a module's label points: at ceiling height, the middle of the module's wall
+    (side or end) farthest from the cargo route ``route`` (k, 3) [m]: Kibo's far end,
+    Node 2's aft end, a side of the vestibule. Both views look from above, so a point on the
+    ceiling stays clear of the vehicle flying the route below it. Shape (3,) [m]."""
+    half = zone.size / 2
+    tops = []
+    for axis in (0, 1):  # the walls: x and y faces
+        for side in (-1.0, 1.0):
+            p = zone.centre.copy()
+            p[axis] += side * half[axis]
+            p[2] = zone.hi[2]
+            tops.append(p)
+    tops = np.array(tops)
+    return tops[int(np.argmax(_to_polyline(tops, np.asarray(route, dtype=float))))]
 
 
 def draw_modules(scene: Scene, world, root: str) -> None:
-    """A label anchor at the centre of each module along the route."""
+    """A label anchor in each module along the route (:func:`module_anchor`)."""
+    route = world.layout.route()
     for zone in world.layout.zones():
         path = f"{root}/modules/{zone.module.value}"
-        scene.transform(path, translation(zone.centre))
-        scene.overlay.labels.append((path, MODULE_NAMES.get(zone.module.value, zone.module.value)))
+        scene.transform(path, translation(module_anchor(zone, route)))
+        scene.overlay.labels.append((path, zone.module.title))
 
 
 def draw_pads(scene: Scene, anim: Animation, root: str, radius: float, frames, contact) -> None:
@@ -301,6 +326,18 @@ def _ctb_geoms(world) -> list[int]:
 def _rgb(rgba: np.ndarray) -> int:
     r, g, b = (round(float(v) * 255) for v in rgba[:3])
     return (r << 16) | (g << 8) | b
+
+
+def trial_title(folder: str | Path, files: ProjectFiles, rec, why: str | None) -> tuple[str, str]:
+    """The title (:func:`~payload.review.project.page_title`: the trial folder, named with
+    its parent as the design review names its project, and the design's hash) and the
+    recording's status line (``recording: finished; 144.6 s in 7233 steps``), the design
+    review's verdict line's counterpart. ``why``: why the run is not finished, or None."""
+    folder = Path(folder).resolve()
+    state = "finished" if why is None else f"not finished: {why}"
+    span = float(rec.t[-1] - rec.t[0])
+    status = f"recording: {state}; {span:.1f} s in {len(rec)} steps"
+    return page_title("trial replay", f"{folder.parent.name}/{folder.name}", files.design), status
 
 
 def build_trial_replay(
@@ -374,21 +411,21 @@ def build_trial_replay(
     station = framing(np.vstack([extent, [[0.8, 0.8, 0.8]]]), STATION_DIRECTION)
     chase = framing(np.array([[CHASE_RADIUS, 0.0, 0.0]]), CHASE_DIRECTION)
     scene.camera = (chase, np.zeros(3))
-    design_id = f"{Path(files.design).name} (design {design_hash(files.design)})"
+    from payload.trials.reading import unfinished_reason
+
+    why = unfinished_reason(rec.meta, rec.complete)
+    head, status = trial_title(folder, files, rec, why)
     scene.overlay = Overlay(
-        title=f"trial {Path(folder).name}: {design_id}",
-        subtitle=f"{len(rec)} steps shown at {fps:g} Hz; chase view "
-        "(Open Controls: whole station view)",
+        title=head,
+        subtitle=f"{status}; shown at {fps:g} Hz, chase view (Open Controls: whole station view)",
         legend=trial_legend(world, bool(keep_in)),
         labels=scene.overlay.labels,
         phases=[(ph, a - t0, b - t0) for ph, a, b in spans],
         views={"default": chase.tolist(), "station": station.tolist()},
         follow=(root, f"{root}/astrobee", centre.tolist()),
+        clear=[f"{root}/astrobee", f"{root}/ctb"],
     )
     scene.notes.append(f"trial: {Path(folder)} ({len(rec)} steps, shown at {fps:g} Hz)")
-    from payload.trials.reading import unfinished_reason
-
-    why = unfinished_reason(rec.meta, rec.complete)
     if why is not None:  # a replay of what it holds, said as such
         scene.notes.append(f"  not a finished run: {why}; the replay ends where it does")
     scene.notes += [f"  {ph}: {a:.2f} .. {b:.2f} s" for ph, a, b in spans]
