@@ -19,7 +19,14 @@ import numpy as np
 import pytest
 
 from payload.teleop.calibration import Step
-from payload.teleop.emulate import NEUTRAL, EmulatedQuest, EmulationError, chromium_path, find_iwer
+from payload.teleop.emulate import (
+    NEUTRAL,
+    EmulatedQuest,
+    EmulationError,
+    chromium_path,
+    find_iwer,
+    wait_on_page,
+)
 from payload.teleop.live import LiveHub
 from payload.teleop.server import TeleopServer
 
@@ -219,10 +226,8 @@ def test_page_with_the_hardware_driver_over_the_emulator_says_hardware_and_fits(
                     break
             assert url, proc.stderr.read()
             with _Page(url, {"width": 1280, "height": 800}) as page:
-                page.wait_for_function(
-                    "document.getElementById('driver').textContent.includes('hardware')",
-                    timeout=60e3,
-                )
+                named = "() => document.getElementById('driver').textContent.includes('hardware')"
+                wait_on_page(page, named, 60.0, "the driver's name")
                 driver = page.text_content("#driver")
                 assert driver == f"driver: hardware on {emu.port} (emulator)"
                 status = page.text_content("#status")
@@ -272,11 +277,11 @@ def test_desktop_mode_drives_a_calibration_without_a_headset(tmp_path):
     worker.start()
     try:
         with _Page(server.url(), {"width": 480, "height": 360}) as page:
-            page.wait_for_function("!document.getElementById('enter').disabled", timeout=30e3)
+            wait_on_page(page, "() => !document.getElementById('enter').disabled", 30.0, "Enter VR")
             # outside VR a free page names the next step, under the header: Enter VR
             _wait(lambda: "press Enter VR" in page.text_content("#hint"), 30, "Enter VR")
             page.click("#enter")
-            page.wait_for_function("window.__teleop.xr", timeout=30e3)
+            wait_on_page(page, "() => window.__teleop.xr", 30.0, "VR")
             assert "press Enter VR" not in page.text_content("#hint")
             # the keys stay in sight over the emulator's full-window view of the session
             assert page.evaluate(ON_TOP, "#desktop-help"), "the key help is under the VR view"
@@ -304,7 +309,7 @@ def test_desktop_mode_drives_a_calibration_without_a_headset(tmp_path):
             # still in VR, its frames take control again (the first to send them takes it)
             _wait(lambda: hub.active is not None, 10, "control taken again")
             page.click("#enter")  # Exit VR: the session ends, the page is back
-            page.wait_for_function("!window.__teleop.xr", timeout=30e3)
+            wait_on_page(page, "() => !window.__teleop.xr", 30.0, "VR left")
             # and leaving VR hands control over: a page out of VR no longer blocks others
             _wait(lambda: hub.active is None, 10, "control handed over on leaving VR")
             # polled from here: an in-page poll of a string is an eval the page's CSP refuses
@@ -344,7 +349,7 @@ def test_a_refused_page_says_why_instead_of_retrying_in_silence():
     second = None
     try:
         with _Page(f"http://localhost:{port}/?token={old_token}", QUEST_BROWSER) as page:
-            page.wait_for_function("window.__teleop.open", timeout=30e3)
+            wait_on_page(page, "() => window.__teleop.open", 30.0, "the link open")
             # a free page with no headset to enter VR with says where control is taken
             _wait(lambda: "press Enter VR" in page.text_content("#hint"), 30, "Enter VR")
             first.stop()  # the server restarts with a new token under the open page

@@ -127,6 +127,23 @@ def chromium_path() -> str:
     return path
 
 
+def wait_on_page(page: Any, condition: str, timeout: float, what: str) -> None:
+    """Poll a page until the JavaScript function ``condition`` (``"() => ..."``) is truthy.
+
+    Polled from Python: Playwright's own ``wait_for_function`` re-evaluates a condition
+    given as text with an ``eval`` that the live page's Content-Security-Policy refuses.
+
+    Raises:
+        EmulationError: The condition did not hold within ``timeout`` [s] (``what`` says
+            what was awaited).
+    """
+    end = time.monotonic() + timeout
+    while not page.evaluate(condition):
+        if time.monotonic() > end:
+            raise EmulationError(f"timed out after {timeout:.0f} s waiting for {what}")
+        time.sleep(0.05)
+
+
 class EmulatedQuest:
     """The product page in headless Chromium with an emulated Quest 3 and hands.
 
@@ -177,9 +194,11 @@ class EmulatedQuest:
             self.page.on("console", lambda m: self.console.append(f"{m.type}: {m.text}"))
             self.page.on("pageerror", lambda e: self.console.append(f"pageerror: {e}"))
             self.page.goto(self.url)
-            self.page.wait_for_function("!document.getElementById('enter').disabled", timeout=30e3)
+            enabled = "() => !document.getElementById('enter').disabled"
+            wait_on_page(self.page, enabled, 30.0, "Enter VR to be offered")
             self.page.click("#enter")
-            self.page.wait_for_function("window.__teleop && window.__teleop.xr", timeout=30e3)
+            in_vr = "() => Boolean(window.__teleop && window.__teleop.xr)"
+            wait_on_page(self.page, in_vr, 30.0, "the page to enter VR")
         except Exception:
             self.__exit__(None, None, None)
             raise
