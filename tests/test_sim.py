@@ -9,6 +9,7 @@ import json
 import math
 import operator
 import time
+import types
 import warnings
 from contextlib import redirect_stderr, redirect_stdout
 
@@ -170,6 +171,11 @@ def test_vehicle_geometry_comes_from_the_design(world):
     assert m2.body_quat[base2] == pytest.approx(m.body_quat[base])
     assert other.mount == pytest.approx(expected, abs=1e-12)
     assert 2 * m2.geom_size[box] == pytest.approx([0.34, 0.30, 0.30])
+    # the live page draws the same box (scene_of sends it to the page)
+    from payload.trials.live import scene_of
+
+    sent = scene_of(types.SimpleNamespace(world=other))
+    assert sent["vehicle_body_size"] == pytest.approx(2 * m2.geom_size[box])
     assert m2.geom_pos[box] == pytest.approx([0.0, 0.0, 0.0])
     # the CTB starts under the moved payload: its offset moves with the mount
     d, d2 = world.make_data(), other.make_data()

@@ -70,7 +70,8 @@ def scene_of(driver: Any) -> dict[str, Any]:
             }
             for z in w.layout.zones()
         ],
-        "vehicle_size": 0.32,
+        "vehicle_size": float(w.vehicle.body_size[0]),  # the first field: a cube's edge
+        "vehicle_body_size": [float(v) for v in w.vehicle.body_size],
         "ctb_size": None if size is None else [size.length, size.width, size.height],
         "route": w.layout.route().tolist(),
     }

@@ -223,8 +223,10 @@ export class Renderer {
     }
     const st = this.state;
     if (st && st.vehicle) {
-      const vs = (this.scene && this.scene.vehicle_size) || 0.32;
-      this.box(vp, st.vehicle.pos, st.vehicle.quat, [vs, vs, vs], [0.95, 0.8, 0.2, 1],
+      // the design's body box (an older server sends only a cube's edge)
+      const sc = this.scene || {};
+      const vs = sc.vehicle_body_size || Array(3).fill(sc.vehicle_size);
+      this.box(vp, st.vehicle.pos, st.vehicle.quat, vs, [0.95, 0.8, 0.2, 1],
         'Astrobee + payload');
       if (st.ctb && st.ctb.pos && this.scene && this.scene.ctb_size) {
         this.box(vp, st.ctb.pos, st.ctb.quat, this.scene.ctb_size,
