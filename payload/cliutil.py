@@ -14,7 +14,8 @@ helpers from here, never from :mod:`payload.cli` (the dispatcher at the top):
   :func:`results_folder`: a command's results folder (its ``--out``, or that default),
   removed again when the command made it and fails before writing in it.
 
-This module imports only the standard library and :mod:`payload.project`, so every
+This module imports only the standard library, :mod:`payload.errors`,
+:mod:`payload.folders` and :mod:`payload.project`, so every
 command (``--help`` and ``--version`` included) starts without the numerical stack.
 """
 
