@@ -48,6 +48,9 @@ def runs(tmp_path_factory) -> list[Path]:
     b = _write_run(root / "b.mcap", seed=1, n=75, n_cal=0, task="Hand the CTB over")
     (root / "camp" / "trial-0002").mkdir(parents=True)
     c = _write_run(root / "camp" / "trial-0002" / "log.mcap", seed=2, n=60, n_cal=10)
+    # the trials' scores beside their recordings (the bare file has none)
+    (root / "trial-0000" / "metrics.json").write_text('{"success": true}')
+    (root / "camp" / "trial-0002" / "metrics.json").write_text('{"success": false}')
     return [a, b, c]
 
 
@@ -140,6 +143,8 @@ def test_episodes_tasks_and_stats(dataset, runs) -> None:
     assert [e["dataset_to_index"] for e in eps] == [120, 195, 245]
     assert eps[1]["tasks"] == ["Hand the CTB over"] and eps[0]["tasks"] == [DEFAULT_TASK]
     assert [e["payload/seed"] for e in eps] == [0, 1, 2]
+    assert [e["payload/success"] for e in eps] == [True, None, False]
+    assert [e["payload/ended_by"] for e in eps] == [None, None, None]  # none recorded
     assert all(e["data/chunk_index"] == 0 and e["data/file_index"] == 0 for e in eps)
 
     states = [_expected_rows(p)[0].astype(np.float64) for p in runs]
@@ -269,22 +274,37 @@ def test_unfinished_runs_are_left_out_unless_asked_for(
     whole = cut.read_bytes()
     cut.write_bytes(whole[: len(whole) * 3 // 4])
     assert not read_recording(cut).complete and len(read_recording(cut)) > 0
-    argv = ["export", "lerobot", str(runs[0]), str(aborted), str(cut), "--json"]
+    # closed recordings whose sessions stopped early: the --max-time cap, and a replay of
+    # an aborted run's hands
+    capped, replayed = tmp_path / "capped.mcap", tmp_path / "replayed.mcap"
+    for path, meta in (
+        (capped, {"ended_by": "max_time"}),
+        (replayed, {"ended_by": "source", "replay": {"source_unfinished": "aborted (x)"}}),
+    ):
+        with TrialRecorder(path) as rec:
+            for k in range(40):
+                rec.write(random_step(rng, k * DT, phase="translation"))
+            rec.write_meta(meta)
+        assert read_recording(path).complete
+    unfinished = [aborted, cut, capped, replayed]
+    argv = ["export", "lerobot", str(runs[0]), *map(str, unfinished), "--json"]
     assert main([*argv, "--out", str(tmp_path / "ds")]) == 0
     out = capsys.readouterr()
     info = json.loads(out.out)
     assert info["episodes"] == 1 and info["frames"] == 120 and info["sources"] == [str(runs[0])]
-    assert [x["source"] for x in info["left_out"]] == [str(aborted), str(cut)]
-    assert (
-        info["left_out"][0]["why"].startswith("aborted")
-        and "cut short" in info["left_out"][1]["why"]
-    )
+    assert [x["source"] for x in info["left_out"]] == list(map(str, unfinished))
+    why = [x["why"] for x in info["left_out"]]
+    assert why[0].startswith("aborted") and "cut short" in why[1], why
+    assert "--max-time" in why[2] and "replay of an unfinished run" in why[3], why
     warned = [r.getMessage() for r in caplog.records if "left out" in r.getMessage()]
-    assert len(warned) == 2 and str(aborted) in warned[0] and str(cut) in warned[1]
+    assert len(warned) == 4 and all(str(p) in w for p, w in zip(unfinished, warned))
     assert main([*argv, "--out", str(tmp_path / "all"), "--include-unfinished"]) == 0
     info = json.loads(capsys.readouterr().out)
-    assert info["episodes"] == 3 and info["left_out"] == []
-    assert info["frames"] == 120 + 30 + len(read_recording(cut))
+    assert info["episodes"] == 5 and info["left_out"] == []
+    assert info["frames"] == 120 + 30 + len(read_recording(cut)) + 40 + 40
+    eps = pq.read_table(tmp_path / "all" / "meta" / "episodes" / "chunk-000" / "file-000.parquet")
+    ended = eps.to_pydict()["payload/ended_by"]
+    assert ended == [None, None, None, "max_time", "source"]
     assert main(["export", "lerobot", str(aborted), str(cut), "--out", str(tmp_path / "x")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert "--include-unfinished exports them" in err[-1] and not (tmp_path / "x").exists()

@@ -210,15 +210,19 @@ N_STEPS = 40
 
 
 def _record_trial(
-    folder: Path, design_file: Path = DESIGN, start: tuple[float, float, float] = (1.5, 5.0, 0.25)
+    folder: Path,
+    design_file: Path = DESIGN,
+    start: tuple[float, float, float] = (1.5, 5.0, 0.25),
+    meta: dict | None = None,
 ) -> Path:
     """A short recording with moving joints, vehicle and CTB (test fixture): the vehicle
-    starts at ``start`` (world frame [m], in Kibo) and moves aft along Kibo's axis (-y)."""
+    starts at ``start`` (world frame [m], in Kibo) and moves aft along Kibo's axis (-y);
+    ``meta``: more metadata."""
     rng = np.random.default_rng(3)
     d = load_design(design_file)
     x, y, z = start
     with TrialRecorder(folder / "log.mcap") as rec:
-        rec.write_meta({"seed": 3, "design_hash": design_hash(design_file)})
+        rec.write_meta({"seed": 3, "design_hash": design_hash(design_file), **(meta or {})})
         for k in range(N_STEPS):
             t = 0.02 * k
             q = np.zeros(17)
@@ -696,3 +700,14 @@ def test_the_replays_legend_names_each_colour_once() -> None:
     assert legend["CTB bag"] == colour["ctb_bag"] and legend["CTB handle"] == colour["ctb_handle"]
     assert legend["ISS walls"] == colour["kibo_wall_x0_0"]
     assert legend["ISS handrails"] == colour["kibo_handrail_0"]
+
+
+def test_a_session_the_cap_stopped_is_said_to_have_stopped_early(tmp_path) -> None:
+    """A closed recording of a session the --max-time cap stopped is a finished recording
+    of a session that did not reach its task's end: the page's subtitle says both."""
+    folder = _record_trial(tmp_path / "trial", meta={"ended_by": "max_time"})
+    out = tmp_path / "r.html"
+    assert main(["review", "--trial", str(folder), "--static", str(out), "--reach-samples",
+                 "0"]) == 0  # fmt: skip
+    page = out.read_text()
+    assert "recording: finished, the session stopped early: stopped by the session" in page

@@ -328,13 +328,20 @@ def _rgb(rgba: np.ndarray) -> int:
     return (r << 16) | (g << 8) | b
 
 
-def trial_title(folder: str | Path, files: ProjectFiles, rec, why: str | None) -> tuple[str, str]:
+def trial_title(
+    folder: str | Path, files: ProjectFiles, rec, why: str | None, cut: str | None = None
+) -> tuple[str, str]:
     """The title (:func:`~payload.review.project.page_title`: the trial folder, named with
     its parent as the design review names its project, and the design's hash) and the
     recording's status line (``recording: finished; 144.6 s in 7233 steps``), the design
-    review's verdict line's counterpart. ``why``: why the run is not finished, or None."""
+    review's verdict line's counterpart. ``why``: why the run is not finished, or None;
+    ``cut``: why a finished recording's session stopped before its task's end (the
+    ``--max-time`` cap, a replay of an unfinished run: ``reading.cut_reason``), or None."""
     folder = Path(folder).resolve()
-    state = "finished" if why is None else f"not finished: {why}"
+    if why is not None:
+        state = f"not finished: {why}"
+    else:
+        state = "finished" if cut is None else f"finished, the session stopped early: {cut}"
     span = float(rec.t[-1] - rec.t[0])
     status = f"recording: {state}; {span:.1f} s in {len(rec)} steps"
     return page_title("trial replay", f"{folder.parent.name}/{folder.name}", files.design), status
@@ -411,10 +418,10 @@ def build_trial_replay(
     station = framing(np.vstack([extent, [[0.8, 0.8, 0.8]]]), STATION_DIRECTION)
     chase = framing(np.array([[CHASE_RADIUS, 0.0, 0.0]]), CHASE_DIRECTION)
     scene.camera = (chase, np.zeros(3))
-    from payload.trials.reading import unfinished_reason
+    from payload.trials.reading import cut_reason, unfinished_reason
 
     why = unfinished_reason(rec.meta, rec.complete)
-    head, status = trial_title(folder, files, rec, why)
+    head, status = trial_title(folder, files, rec, why, cut_reason(rec.meta, rec.complete))
     scene.overlay = Overlay(
         title=head,
         subtitle=f"{status}; shown at {fps:g} Hz, chase view (Open Controls: whole station view)",

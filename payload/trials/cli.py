@@ -248,8 +248,9 @@ def register(
     e.add_argument(
         "--include-unfinished",
         action="store_true",
-        help="export the recordings of aborted or cut-short runs too (left out by default, "
-        "each named in a warning)",
+        help="export the recordings of unfinished runs too: aborted, cut short, stopped by "
+        "the --max-time cap, or replays of such runs (left out by default, each named in a "
+        "warning)",
     )
     e.add_argument("--json", action="store_true", help="print one JSON object")
     e.set_defaults(func=_cmd_export_lerobot)

@@ -38,8 +38,8 @@ from typing import Any
 import numpy as np
 
 from payload.errors import PayloadError
-from payload.folders import RECORDING
-from payload.trials.reading import unfinished_reason
+from payload.folders import METRICS, RECORDING
+from payload.trials.reading import cut_reason
 from payload.trials.recorder import Recording, read_recording
 
 log = logging.getLogger(__name__)
@@ -252,6 +252,17 @@ def _swap_in(stage: Path, out: Path) -> None:
     shutil.rmtree(stage, ignore_errors=True)
 
 
+def _trial_success(recording: Path) -> bool | None:
+    """The trial's success from the ``metrics.json`` beside its recording, or None (no
+    such file, or not a trial's: a replay's file given alone, an unscored run)."""
+    try:
+        data = json.loads((Path(recording).parent / METRICS).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    success = data.get("success") if isinstance(data, dict) else None
+    return success if isinstance(success, bool) else None
+
+
 def export_lerobot(
     runs: list[Path],
     out: Path,
@@ -264,9 +275,13 @@ def export_lerobot(
 ) -> dict[str, Any]:
     """Write recordings as a LeRobot v3 dataset (layout in the module docstring).
 
-    A recording of a run that did not finish (aborted by an error or Ctrl-C, or cut short
-    by a kill: :func:`~payload.trials.reading.unfinished_reason`) is left out with a
-    warning naming it, unless ``unfinished``: its episode would end where the run stopped.
+    A recording whose session ended before its task did (aborted by an error or Ctrl-C,
+    cut short by a kill, stopped by the ``--max-time`` cap, or a replay of such a run's
+    hands: :func:`~payload.trials.reading.cut_reason`) is left out with a warning naming
+    it, unless ``unfinished``: its episode would end where the session stopped. Each
+    episode carries ``payload/ended_by`` (``"source"``, ``"max_time"``, or null: not
+    recorded) and ``payload/success`` (the trial's ``metrics.json`` beside the recording;
+    null where there is none).
 
     Args:
         runs: Recordings: ``.mcap`` files, trial folders or campaign folders (see
@@ -318,11 +333,12 @@ def export_lerobot(
     loaded = read_all()
     left_out: list[dict[str, str]] = []
     if not unfinished:
-        why = {src: unfinished_reason(rec.meta, rec.complete) for src, rec in loaded}
+        why = {src: cut_reason(rec.meta, rec.complete) for src, rec in loaded}
         left_out = [{"source": str(src), "why": w} for src, w in why.items() if w is not None]
         if len(left_out) == len(loaded):
             raise LeRobotExportError(
-                "every recording given is of an unfinished run (aborted or cut short); "
+                "every recording given is of an unfinished run (aborted, cut short or "
+                "stopped early); "
                 "--include-unfinished exports them"
             )
         for item in left_out:
@@ -381,6 +397,8 @@ def export_lerobot(
             "meta/episodes/file_index": 0,
             "payload/source": str(src),
             "payload/seed": rec.meta.get("seed"),
+            "payload/ended_by": rec.meta.get("ended_by"),
+            "payload/success": _trial_success(src),
         }
         for feat, st in ep_stats.items():
             for key, val in st.items():

@@ -361,6 +361,24 @@ def unfinished_reason(meta: Mapping[str, Any], complete: bool) -> str | None:
     return None
 
 
+def cut_reason(meta: Mapping[str, Any], complete: bool) -> str | None:
+    """Why a recording's session ends before its operator's task did (``None`` if it runs
+    to its end): :func:`unfinished_reason`, or a finished recording of a session the
+    ``--max-time`` cap stopped (``ended_by``), or a replay of an unfinished run's hands
+    (``replay.source_unfinished``). Such a recording is scored, but its episode ends
+    wherever the session stopped: the exports and the replay page say so."""
+    why = unfinished_reason(meta, complete)
+    if why is not None:
+        return why
+    if meta.get("ended_by") == "max_time":
+        return "stopped by the session-length cap (--max-time)"
+    replay = meta.get("replay")
+    source = replay.get("source_unfinished") if isinstance(replay, Mapping) else None
+    if source:
+        return f"a replay of an unfinished run's hands ({source})"
+    return None
+
+
 def recording_meta(path: str | Path) -> dict[str, Any] | None:
     """A closed recording's metadata read through its summary's index (no step decoded,
     a few milliseconds), or ``None`` when that cannot be done (no such file, no summary:
