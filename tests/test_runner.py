@@ -642,6 +642,7 @@ def test_a_2_ms_trial_records_its_step_and_compare_shows_what_changed(tmp_path, 
     assert main(["trials", "compare", str(runs[None]), str(runs[0.002])]) == 0
     table = capsys.readouterr().out
     assert "trial-0000" in table and "largest change" in table
+    assert "Setup, A / B, where it differs: physics_dt 0.001 / 0.002." in table
     same_run = [str(runs[None]), str(runs[None]), "--require-identical", "--json"]
     assert main(["trials", "compare", *same_run]) == 0
     assert json.loads(capsys.readouterr().out)["identical"]

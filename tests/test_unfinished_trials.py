@@ -210,3 +210,34 @@ def test_a_damaged_metrics_file_is_one_line_in_summarize_and_compare(
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and err[0].startswith(f"payload: error: {metrics}: "), err
     assert not list(camp.glob("summary*"))
+
+
+def test_compare_says_why_a_trial_cannot_be_compared_and_when_seeds_differ(
+    tmp_path: Path, capsys
+) -> None:
+    """`trials compare`: a killed trial (a recording, no metrics) is named as unfinished in
+    one line, not as a missing file; a trial's file given for its folder names the folder
+    to give; two single trials of different seeds are compared, but the table and a
+    warning say the sessions differ."""
+    camp = _campaign(tmp_path / "camp", [1, 2])
+    one, two = camp / "trial-0001", camp / "trial-0002"
+    killed = tmp_path / "killed"
+    shutil.copytree(one, killed)
+    (killed / "metrics.json").unlink()
+    log = killed / "log.mcap"
+    log.write_bytes(log.read_bytes()[:-40])  # never closed
+    capsys.readouterr()
+    assert main(["trials", "compare", str(killed), str(one)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "an unfinished run (cut short" in err[0], err
+    assert main(["trials", "compare", str(one / "log.mcap"), str(one)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"give its folder, {one}" in err[0], err
+    assert main(["trials", "compare", str(one), str(two)]) == 0
+    out = capsys.readouterr()
+    assert "seed 2 in B and seed 1 in A" in out.out
+    assert "warning: trial-0002: seed 1 in A and seed 2 in B" in out.err
+    # the same seed: no such note
+    assert main(["trials", "compare", str(one), str(one)]) == 0
+    out = capsys.readouterr()
+    assert "seed" not in out.err and "different operator sessions" not in out.out

@@ -20,6 +20,7 @@ from payload.cliutil import (
     emit_json,
     out_folder,
     results_folder,
+    warn,
 )
 from payload.folders import CAMPAIGN_FILES, TRIAL_FILES
 from payload.trials.campaign_cli import _cmd_trials_run, _cmd_trials_summarize
@@ -93,6 +94,10 @@ def _cmd_trials_compare(args: argparse.Namespace) -> int:
     steps = args.steps or args.require_identical
     result = compare_runs(Path(args.run_a), Path(args.run_b), steps=steps)
     text = compare_markdown(result)
+    for row in result["trials"]:  # said on stderr too: a --json reader sees no table
+        a, b = row["seed_a"], row["seed_b"]
+        if a is not None and b is not None and a != b:
+            warn(f"{row['trial']}: seed {a} in A and seed {b} in B: different sessions")
     if args.out:
         _check_comparison_out(Path(args.out), force=args.force)
         replace_file(Path(args.out), text)

@@ -42,6 +42,8 @@ class CompareError(PayloadError):
 
 def _trials(run: Path) -> dict[str, Path]:
     """Trial folders of a run by name (a campaign's ``trial-*``, or the folder itself)."""
+    if run.is_file() and run.name in (METRICS, RECORDING):
+        raise CompareError(f"{run}: a trial's file; give its folder, {run.parent}")
     if not run.is_dir():
         raise CompareError(f"{run}: no such trial or campaign folder")
     if (run / METRICS).is_file() or (run / RECORDING).is_file():
@@ -50,6 +52,38 @@ def _trials(run: Path) -> dict[str, Path]:
     if not found:
         raise CompareError(f"{run}: no {METRICS} and no trial-* folders")
     return found
+
+
+def _trial_metrics(trial: Path) -> dict[str, Any]:
+    """A trial's ``metrics.json``; a trial that has none but a recording is said to be
+    unscored, with why (aborted, killed) where its recording says.
+
+    Raises:
+        CompareError: No metrics to compare (one line naming the trial and why).
+        CampaignError: The metrics file is unreadable (:func:`read_metrics`).
+    """
+    if not (trial / METRICS).is_file() and (trial / RECORDING).is_file():
+        from payload.trials.reading import recording_meta, unfinished_reason
+
+        meta = recording_meta(trial / RECORDING)
+        why = unfinished_reason(meta or {}, meta is not None)
+        state = f"an unfinished run ({why})" if why else "a run not scored"
+        raise CompareError(f"{trial}: {state}: it has no {METRICS} to compare")
+    return read_metrics(trial / METRICS)
+
+
+SETUP_KEYS = (
+    "controller",
+    "ctb",
+    "propulsion",
+    "retarget_budget",
+    "retarget_collisions",
+    "base_filter",
+    "physics_dt",
+    "link_delay",
+)
+"""What a trial's ``metrics.json`` records of the setup it ran on, as the comparison
+shows it where the two runs differ."""
 
 
 def _same_value(a: Any, b: Any) -> bool:
@@ -235,7 +269,7 @@ def compare_runs(run_a: str | Path, run_b: str | Path, *, steps: bool = False) -
     largest: dict[str, dict[str, Any]] = {}
     identical = True
     for name_a, name_b in common:
-        ma, mb = read_metrics(ta[name_a] / METRICS), read_metrics(tb[name_b] / METRICS)
+        ma, mb = _trial_metrics(ta[name_a]), _trial_metrics(tb[name_b])
         metrics = {}
         for key in METRIC_KEYS:
             change = _change(ma.get(key), mb.get(key))
@@ -247,6 +281,13 @@ def compare_runs(run_a: str | Path, run_b: str | Path, *, steps: bool = False) -
                 largest[key] = {"change": change, "trial": name_b}
         row: dict[str, Any] = {
             "trial": name_b,
+            "seed_a": ma.get("seed"),
+            "seed_b": mb.get("seed"),
+            "setup_differs": {
+                k: [ma.get(k), mb.get(k)]
+                for k in SETUP_KEYS
+                if (k in ma or k in mb) and not _same_value(ma.get(k), mb.get(k))
+            },
             "success_a": ma.get("success"),
             "success_b": mb.get("success"),
             "physics_dt_a": ma.get("physics_dt"),
@@ -298,6 +339,28 @@ COMPARISON_OPENING = "Comparison of "
 a file that begins so)."""
 
 
+def comparison_notes(result: dict[str, Any]) -> list[str]:
+    """What a reader must know before the table: trials of different seeds put side by
+    side (two single trials are compared whatever their names), and the settings the two
+    runs' trials ran with where they differ (``setting A / B``)."""
+    notes = []
+    for row in result["trials"]:
+        a, b = row.get("seed_a"), row.get("seed_b")
+        if a is not None and b is not None and a != b:
+            notes.append(
+                f"Trial `{row['trial']}` is seed {b} in B and seed {a} in A: different "
+                "operator sessions, so its changes are not the setup's alone."
+            )
+    differ: dict[str, set[str]] = {}
+    for row in result["trials"]:
+        for key, (a, b) in row.get("setup_differs", {}).items():
+            differ.setdefault(key, set()).add(f"{_num(a)} / {_num(b)}")
+    if differ:
+        said = "; ".join(f"{k} {', '.join(sorted(v))}" for k, v in differ.items())
+        notes.append(f"Setup, A / B, where it differs: {said}.")
+    return notes
+
+
 def compare_markdown(result: dict[str, Any]) -> str:
     """The comparison as a Markdown table: per seed each metric's A, B and change, then
     the largest change of each metric (and the step comparison when it was made)."""
@@ -306,6 +369,7 @@ def compare_markdown(result: dict[str, Any]) -> str:
     lines = [
         f"{COMPARISON_OPENING}`{result['b']}` (B) against `{result['a']}` (A), seed by seed.",
         "",
+        *(f"{note}\n" for note in comparison_notes(result)),
         "| " + " | ".join(head) + " |",
         "|" + "---|" * len(head),
     ]
