@@ -15,7 +15,7 @@ from test_trials import fixture_synthetic_trial
 
 from payload.cli import main
 from payload.trials.reading import read_recording
-from payload.trials.recorder import TrialRecorder
+from payload.trials.recorder import TrialRecorder, random_step
 
 
 def _campaign(root: Path, seeds: list[int]) -> Path:
@@ -241,3 +241,52 @@ def test_compare_says_why_a_trial_cannot_be_compared_and_when_seeds_differ(
     assert main(["trials", "compare", str(one), str(one)]) == 0
     out = capsys.readouterr()
     assert "seed" not in out.err and "different operator sessions" not in out.out
+
+
+def test_an_interrupted_campaign_says_what_it_kept_and_summarises_with_its_setup(
+    tmp_path: Path, capsys, monkeypatch
+) -> None:
+    """Ctrl-C during `trials run` names the finished trials it kept and the command that
+    summarises them; that summary (no campaign summary before it) is titled with the setup
+    the scored trials record, and the aborted trial, which records none, does not make
+    the self-collision setting "mixed"."""
+    import payload.trials.campaign as campaign
+    from payload.design.cli import new_project
+
+    project, _ = new_project(tmp_path / "p")
+    out = tmp_path / "camp"
+    setup = {
+        "ctb": "single",
+        "propulsion": "nozzles",
+        "controller": "paper",
+        "retarget_budget": "paper",
+        "retarget_collisions": False,
+        "base_filter": False,
+        "link_delay": None,
+        "physics_dt": 0.001,
+    }
+
+    def interrupted(trial_fn, seeds, out_dir, **kw):  # trial 0 ends, then Ctrl-C in trial 1
+        fixture_synthetic_trial(seeds[0], out_dir / f"trial-{seeds[0]:04d}")
+        metrics = out_dir / f"trial-{seeds[0]:04d}" / "metrics.json"
+        metrics.write_text(json.dumps({**json.loads(metrics.read_text()), **setup}))
+        rng = np.random.default_rng(1)
+        with TrialRecorder(out_dir / f"trial-{seeds[1]:04d}" / "log.mcap") as rec:
+            for k in range(10):
+                rec.write(random_step(rng, k * 0.02))
+            rec.write_meta({"seed": seeds[1], "aborted": "KeyboardInterrupt: "})
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(campaign, "run_campaign", interrupted)
+    argv = ["--project", str(project.root), "trials", "run", "--n", "2", "--out", str(out)]
+    assert main(argv) == 130
+    err = capsys.readouterr().err
+    assert f"1 finished trial(s) kept in {out}: `payload trials summarize {out}`" in err, err
+    assert main(["trials", "summarize", str(out)]) == 0
+    text = (out / "summary.md").read_text()
+    assert text.startswith(
+        "# Cargo-transport campaign (2 trials, CTB single, nozzles, controller paper, "
+        "retargeting budget paper)\n"
+    ), text[:200]
+    assert json.loads((out / "summary.json").read_text())["retarget_collisions"] is False
+    assert "mixed" not in text

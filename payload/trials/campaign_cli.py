@@ -23,6 +23,7 @@ from payload.cliutil import (
 from payload.folders import (
     CAMPAIGN_FIGURE,
     CAMPAIGN_FILES,
+    METRICS,
     SUMMARY,
     SUMMARY_TEXT,
     TRIAL_FILES,
@@ -89,35 +90,39 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
                 )
         workers = default_workers(args.n) if args.workers is None else args.workers
         t0 = time.perf_counter()
-        results = run_campaign(
-            runner_trial_fn(
-                "synthetic",
-                project.root,
-                force=args.force,
-                **{name: getattr(args, name) for name in _SETUP},
-                **link_zones,
-            ),
-            seeds,
-            out,
-            workers=workers,
-            scheduler=args.scheduler,
-            progress=not args.json and sys.stderr.isatty() and sys.stdout.isatty(),
-            on_trial=None if args.json or sys.stdout.isatty() else trial_line_printer(len(seeds)),
-        )
+        try:
+            results = run_campaign(
+                runner_trial_fn(
+                    "synthetic",
+                    project.root,
+                    force=args.force,
+                    **{name: getattr(args, name) for name in _SETUP},
+                    **link_zones,
+                ),
+                seeds,
+                out,
+                workers=workers,
+                scheduler=args.scheduler,
+                progress=not args.json and sys.stderr.isatty() and sys.stdout.isatty(),
+                on_trial=None
+                if args.json or sys.stdout.isatty()
+                else trial_line_printer(len(seeds)),
+            )
+        except KeyboardInterrupt as exc:  # what is kept, and how to use it
+            done = sorted(out.glob("trial-*/" + METRICS))
+            if done:
+                exc.add_note(
+                    f"{len(done)} finished trial(s) kept in {out}: `payload trials summarize "
+                    f"{out}` summarises them"
+                )
+            raise
     run = {
         "workers": None if args.scheduler else workers,
         "scheduler": args.scheduler,
         "wall_s": time.perf_counter() - t0,
         "trial_wall_s": float(sum(r.get("wall_s") or 0.0 for r in results)),
     }
-    title = (
-        f"Cargo-transport campaign ({args.n} trials, CTB {args.ctb}, {args.propulsion}, "
-        f"controller {args.controller}, retargeting budget {args.retarget_budget}"
-        f"{', self-collision modelled' if args.retarget_collisions else ''}"
-        f"{', base filter' if args.base_filter else ''}"
-        f"{f', link delay {args.link_delay} s' if args.link_delay else ''}"
-        f"{_physics_text(args.physics_dt)})"
-    )
+    title = campaign_title(args.n, {name: getattr(args, name) for name in _TITLE_SETTINGS})
     # what the trials ran on, as each trial's process reported it (a scheduler's workers
     # may be other machines than this one)
     prov = {**prov, "environment": trials_environment(results)}
@@ -156,11 +161,46 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _physics_text(dt: float) -> str:
-    """The title's note of a physics step other than the default (empty at 1 kHz)."""
+_TITLE_SETTINGS = (
+    "ctb",
+    "propulsion",
+    "controller",
+    "retarget_budget",
+    "retarget_collisions",
+    "base_filter",
+    "link_delay",
+    "physics_dt",
+)
+"""The settings a campaign's title names."""
+
+
+def campaign_title(n: int, setup: dict[str, Any]) -> str:
+    """A campaign summary's title: how many trials and the setup they ran (``setup``: the
+    :data:`_TITLE_SETTINGS`; a setting None is not known and left out)."""
     from payload.schema import PHYSICS_DT
 
-    return "" if dt == PHYSICS_DT else f", physics step {1e3 * dt:g} ms"
+    parts = [f"{n} trials"]
+    if setup.get("ctb") is not None:
+        parts.append(f"CTB {setup['ctb']}")
+    if setup.get("propulsion") is not None:
+        parts.append(str(setup["propulsion"]))
+    if setup.get("controller") is not None:
+        parts.append(f"controller {setup['controller']}")
+    if setup.get("retarget_budget") is not None:
+        parts.append(f"retargeting budget {setup['retarget_budget']}")
+    if setup.get("retarget_collisions"):
+        parts.append("self-collision modelled")
+    if setup.get("base_filter"):
+        parts.append("base filter")
+    delay = setup.get("link_delay")
+    if isinstance(delay, (list, tuple)):  # as a trial records it: [delay, jitter] [s]
+        delay = f"{delay[0]}" + (f":{delay[1]}" if delay[1] else "") if delay[0] else None
+    if delay:  # as --link-delay gives it, S[:JITTER]
+        parts.append(f"link delay {delay} s")
+    dt = setup.get("physics_dt")
+    if dt is not None and dt != PHYSICS_DT:
+        parts.append(f"physics step {1e3 * dt:g} ms")
+    return f"Cargo-transport campaign ({', '.join(parts)})"
 
 
 def _cmd_trials_summarize(args: argparse.Namespace) -> int:
@@ -214,10 +254,18 @@ def _cmd_trials_summarize(args: argparse.Namespace) -> int:
 
         own = [r["provenance"] for r in results if isinstance(r.get("provenance"), dict)]
         prov = {**own[0], "environment": trials_environment(results)} if own else None
+    title = previous.get("title")
+    if title is None:  # no campaign summary before (an interrupted run): the trials say
+        scored = [r for r in results if not r.get("error")]
+        setup = {}
+        for name in _TITLE_SETTINGS:
+            values = {json.dumps(r.get(name)) for r in scored}
+            setup[name] = scored[0].get(name) if len(values) == 1 else None
+        title = campaign_title(len(results), setup) if scored else None
     summary = write_summary(
         results,
         args.dir,
-        title=previous.get("title"),
+        title=title,
         run=previous.get("run"),
         provenance=prov,
         tag=tag,
@@ -226,7 +274,7 @@ def _cmd_trials_summarize(args: argparse.Namespace) -> int:
     if args.json:
         emit_json({**summary, "out_dir": str(args.dir)})
     else:
-        print(summary_markdown(summary, previous.get("title")))
+        print(summary_markdown(summary, title))
     return 0
 
 

@@ -243,9 +243,10 @@ def write_summary(
         summary["controller_overrides"] = (
             list(overrides[0]) if len(overrides) == 1 else [list(o) for o in overrides]
         )
-    # whether the pair solves modelled self-collision: one bool when every trial says the
-    # same, else the values seen (None: a trial that does not say)
-    seen = {r.get("retarget_collisions") for r in results}
+    # whether the pair solves modelled self-collision: one bool when every scored trial
+    # says the same, else the values seen (None: a trial that does not say); an unscored
+    # trial (aborted, killed) says nothing of it
+    seen = {r.get("retarget_collisions") for r in results if not r.get("error")}
     seen = {v if isinstance(v, bool) else None for v in seen}
     if seen != {None}:
         summary["retarget_collisions"] = (
