@@ -750,6 +750,18 @@ def test_fig3_without_metrics_scores_as_the_recording_was_made_to(
     contact = [float(re.search(r"contact ([0-9.]+) s of", t).group(1)) for t in titles]
     assert 3.9 <= contact[0] <= 4.1, titles[0]
     assert 9.8 <= contact[1] <= 10.1, titles[1]
+    # each figure names the definition it scored, and the trial's seed once it has one
+    assert "first contact (>= 0 s, gaps <= 0 s) (t0)" in titles[0], titles[0]
+    assert "first confirmed contact (t0)" in titles[1] and "seed" not in titles[1], titles[1]
+    rec.meta.update(seed=7, ended_by="max_time")
+    drawn = []
+    monkeypatch.setattr(figures, "save_figure", lambda fig, *a: drawn.append(fig))
+    figures.plot_ctb_body_frame(rec, tmp_path / "capped.png")
+    assert "), seed 7 -- " in drawn[0]._suptitle.get_text()
+    top = [t.get_text() for t in drawn[0].axes[0].texts]  # the title has no room for it
+    assert "session stopped by the --max-time cap" in top, top
+    figures.plot_route(rec, tmp_path / "route.png")
+    assert drawn[1].axes[0].get_title().startswith("Route, top view, seed 7 (")
 
 
 def test_figures_reject_bad_modules(tmp_path: Path) -> None:

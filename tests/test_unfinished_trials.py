@@ -283,6 +283,8 @@ def test_an_interrupted_campaign_says_what_it_kept_and_summarises_with_its_setup
     err = capsys.readouterr().err
     assert f"1 finished trial(s) kept in {out}: `payload trials summarize {out}`" in err, err
     assert main(["trials", "summarize", str(out)]) == 0
+    last = capsys.readouterr().out.strip().splitlines()[-1]
+    assert last.startswith(f"wrote {out / 'summary.md'}, ") and str(out / "summary.json") in last
     text = (out / "summary.md").read_text()
     assert text.startswith(
         "# Cargo-transport campaign (2 trials, CTB single, nozzles, controller paper, "

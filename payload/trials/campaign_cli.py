@@ -28,6 +28,7 @@ from payload.folders import (
     SUMMARY_TEXT,
     TRIAL_FILES,
     held,
+    tagged,
 )
 from payload.trials.setup_options import (
     _SETUP,
@@ -275,6 +276,10 @@ def _cmd_trials_summarize(args: argparse.Namespace) -> int:
         emit_json({**summary, "out_dir": str(args.dir)})
     else:
         print(summary_markdown(summary, title))
+        out = Path(args.dir)
+        written = [out / tagged(name, tag) for name in (SUMMARY_TEXT, CAMPAIGN_FIGURE, SUMMARY)]
+        rescored = " and each trial's metrics and figures beside theirs" if rescore else ""
+        print(f"wrote {', '.join(str(p) for p in written if p.is_file())}{rescored}")
     return 0
 
 

@@ -20,6 +20,8 @@ from payload.errors import PayloadError
 from payload.rotations import rotate_by_quats
 from payload.safeio import replacing
 from payload.trials.metrics import (
+    CONFIRM_MAX_GAP_S,
+    CONFIRM_MIN_S,
     TrialMetrics,
     compute_metrics,
     ctb_in_body_frame,
@@ -164,6 +166,21 @@ def save_figure(fig: Figure, path: Path, dpi: int, png_compression: int | None =
     return path
 
 
+def _seed_text(recording: Recording) -> str:
+    """ ", seed N" for a recording of a seeded trial (a figure copied out of its folder
+    still says which trial it is), else ""."""
+    seed = recording.meta.get("seed")
+    return f", seed {seed}" if isinstance(seed, int) and not isinstance(seed, bool) else ""
+
+
+def _contact_text(m: TrialMetrics) -> str:
+    """The contact definition's name in a figure: "confirmed contact" under the recorded
+    default, else the definition itself (a rescoring's figures say what they scored)."""
+    if (m.min_interval_s, m.max_gap_s) == (CONFIRM_MIN_S, CONFIRM_MAX_GAP_S):
+        return "confirmed contact"
+    return f"contact (>= {m.min_interval_s:g} s, gaps <= {m.max_gap_s:g} s)"
+
+
 def plot_ctb_body_frame(
     recording: Recording,
     path: str | Path,
@@ -235,11 +252,17 @@ def plot_ctb_body_frame(
         handles=handles, loc="lower center", ncols=max(1, len(handles)), bbox_to_anchor=(0.5, 0.0)
     )
     verdict = "success" if m.success else "failure"
+    if recording.meta.get("ended_by") == "max_time":  # said where the title has no room
+        axes[0].text(
+            0.99, 0.95, "session stopped by the --max-time cap", transform=axes[0].transAxes,
+            ha="right", va="top", fontsize=8, color="#a50f15",
+            bbox={"facecolor": "white", "alpha": 0.8, "edgecolor": "none"},
+        )  # fmt: skip
     fig.suptitle(
-        f"CTB centre of mass in the Astrobee body frame (eq. 4) -- {verdict}, "
-        f"contact {m.contact_s:.1f} s of the {m.duration_s:.1f} s after calibration\n"
-        "vertical: first confirmed contact (t0) solid, its end dashed, arrival in "
-        f"{m.destination} dash-dot; horizontal dashed: the position at t0",
+        f"CTB centre of mass in the Astrobee body frame (eq. 4){_seed_text(recording)} -- "
+        f"{verdict}, contact {m.contact_s:.1f} s of the {m.duration_s:.1f} s after "
+        f"calibration\nvertical: first {_contact_text(m)} (t0) solid, its end dashed, "
+        "arrival dash-dot; horizontal dashed: the position at t0",
         fontsize=10,
         y=1.0 - _EDGE_IN / _CTB_SIZE_IN[1],
         va="top",
@@ -308,7 +331,9 @@ def plot_route(
     ax.grid(True, alpha=0.3)
     ax.legend(loc="best", fontsize=8)
     net = float(np.linalg.norm(pc[-1] - pc[0]))
-    ax.set_title(f"Route, top view (CTB net displacement {net:.2f} m)", fontsize=10)
+    ax.set_title(
+        f"Route, top view{_seed_text(recording)} (CTB net displacement {net:.2f} m)", fontsize=10
+    )
     return save_figure(fig, Path(path), dpi, TRIAL_PNG_COMPRESSION)
 
 
