@@ -308,3 +308,15 @@ def test_unfinished_runs_are_left_out_unless_asked_for(
     assert main(["export", "lerobot", str(aborted), str(cut), "--out", str(tmp_path / "x")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert "--include-unfinished exports them" in err[-1] and not (tmp_path / "x").exists()
+
+
+def test_an_empty_task_text_is_refused(runs, tmp_path: Path, capsys) -> None:
+    """A LeRobot episode's task is the policy's instruction: `--task ""` is one line, exit
+    2, and no dataset."""
+    from payload.cli import main
+
+    out = tmp_path / "ds"
+    assert main(["export", "lerobot", str(runs[0]), "--task", " ", "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--task" in err[0] and "empty" in err[0], err
+    assert not out.exists()

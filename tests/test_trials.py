@@ -706,6 +706,8 @@ def test_the_trial_figures_keep_every_text_on_the_canvas(tmp_path: Path, monkeyp
     figures.plot_ctb_body_frame(rec, tmp_path / "ctb.png")
     figures.plot_route(rec, tmp_path / "route.png", modules)
     assert len(drawn) == 2
+    # a module is labelled by its title, not the recorded identifier
+    assert [t.get_text().strip() for t in drawn[1][0].axes[0].texts] == ["Kibo (JEM)"]
     for fig, path, dpi in drawn:
         # written at zlib's fastest level (not Pillow's default), to the same pixels
         default = save(fig, tmp_path / f"default-{path.name}", dpi)

@@ -32,6 +32,8 @@ def _cmd_export_lerobot(args: argparse.Namespace) -> int:
     from payload.trials.lerobot import export_lerobot, resolve_runs
 
     runs = [Path(r) for r in args.runs]
+    if args.task is not None and not args.task.strip():
+        raise TrialsCliError("--task: an episode's task text cannot be empty")
     if not args.out:
         resolve_runs(runs)  # a run that is not there says so before a folder is numbered
     out_folder(args.out, holding=(*TRIAL_FILES, *CAMPAIGN_FILES))

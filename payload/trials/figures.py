@@ -28,6 +28,7 @@ from payload.trials.metrics import (
     recorded_definition,
 )
 from payload.trials.recorder import Recording
+from payload.trials.records import MODULE_NAMES
 
 PHASE_COLORS: dict[str, str] = {
     "calibration": "#d9d9d9",
@@ -293,6 +294,9 @@ def plot_route(
     if len(recording) == 0:
         raise FigureError("cannot plot an empty recording")
     rects = [_as_rect(m) for m in (modules or [])]
+    from payload.sim.iss import IssModule  # the modules' titles (a trial has loaded it)
+
+    titles = {MODULE_NAMES[m.value]: m.title for m in IssModule}  # by recorded name
     fig = Figure(figsize=_ROUTE_SIZE_IN)
     ax = fig.subplots(gridspec_kw=_margins(_ROUTE_SIZE_IN, _ROUTE_MARGINS_IN))
     for i, r in enumerate(rects):
@@ -309,7 +313,8 @@ def plot_route(
         )
         # outside the module's left edge: the route runs through narrow modules' insides
         color = f"C{i % 10}"
-        ax.text(r.x_min, r.y_max, f"{r.name} ", ha="right", va="top", fontsize=9, color=color)
+        label = titles.get(r.name, r.name)
+        ax.text(r.x_min, r.y_max, f"{label} ", ha="right", va="top", fontsize=9, color=color)
     pb, pc = recording.astrobee_pos, recording.ctb_pos
     ax.plot(pb[:, 0], pb[:, 1], color="#08306b", lw=1.5, label="Astrobee")
     ax.plot(pc[:, 0], pc[:, 1], color="#a50f15", lw=1.0, ls="--", label="CTB centre of mass")

@@ -96,6 +96,10 @@ PHASES: tuple[str, ...] = (
 MODULES: tuple[str, ...] = ("kibo", "hatch", "node2", "outside")
 """Where the CTB centre of mass is: a module, the hatch between them, or outside both."""
 
+MODULE_NAMES = {"kibo": "kibo", "vestibule": "hatch", "node2": "node2"}
+"""The recorded name (:data:`MODULES`) of each ISS module (``payload.sim.iss.IssModule``'s
+values), in the steps' ``ctb_module`` and the trial metadata's ``modules``."""
+
 N_HAND_JOINTS = len(XR_JOINTS)
 """WebXR XRHand joints per hand."""
 

@@ -17,10 +17,7 @@ from payload.teleop.loop import StepContext
 from payload.teleop.operator import WorldView
 from payload.teleop.pipeline import pair_index
 from payload.trials.acquisition import handle_in_body, handle_site
-from payload.trials.records import StepRecord
-
-MODULE_NAMES = {"kibo": "kibo", "vestibule": "hatch", "node2": "node2"}
-"""The recorded names of the station's modules (the ISS layout's own names as keys)."""
+from payload.trials.records import MODULE_NAMES, StepRecord
 
 
 def world_view(driver: Any) -> Callable[[Any, float], WorldView]:
