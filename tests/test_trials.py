@@ -1133,6 +1133,10 @@ def test_cli_trial_and_campaign(tmp_path: Path, monkeypatch, capsys) -> None:
     assert (camp / "trial-0002" / f"fig_route.{tag}.png").is_file()
     assert "NOT the paper's definition" in (camp / f"summary.{tag}.md").read_text()
     assert "NOT the paper" not in (camp / "summary.md").read_text()
+    # the rescoring's column names its own definition, not "confirmed contact"
+    text = (camp / f"summary.{tag}.md").read_text()
+    assert "| this campaign, contact (>= 0 s, gaps <= 0.1 s) |" in text, text
+    assert "confirmed contact |" not in text
     assert json.loads((camp / f"summary.{tag}.json").read_text())["contact_definition"] == {
         "min_interval_s": 0.0,
         "max_gap_s": 0.1,

@@ -8,6 +8,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
+from payload.trials.metrics import CONFIRM_MAX_GAP_S, CONFIRM_MIN_S
 from payload.trials.summary_fields import (
     METRIC_KEYS,
     METRIC_LABELS,
@@ -102,10 +103,15 @@ def summary_markdown(summary: dict[str, Any], title: str | None = None) -> str:
         v = s.get("acquisition_success")
         return "n/a" if v is None else f"{100 * v:.0f} %"
 
+    definition = summary.get("contact_definition") or {}
+    lo, gap = definition.get("min_interval_s"), definition.get("max_gap_s")
+    # the debounced definition is "confirmed contact"; any other (a rescoring, or trials
+    # recorded under another) is named by its numbers
+    confirmed = (lo, gap) in ((None, None), (CONFIRM_MIN_S, CONFIRM_MAX_GAP_S))
+    first = "confirmed contact" if confirmed else f"contact (>= {lo:g} s, gaps <= {gap:g} s)"
     lines = [
         *_header_lines(summary, title),
-        "| metric | this campaign, confirmed contact | this campaign, paper-literal contact "
-        "| paper |",
+        f"| metric | this campaign, {first} | this campaign, paper-literal contact | paper |",
         "| --- | --- | --- | --- |",
         f"| task success | {summary['success']}/{n} | {lit.get('success', 'n/a')}/{n} "
         f"| {paper['success']}/{paper['n']} |",
@@ -130,7 +136,11 @@ def summary_markdown(summary: dict[str, Any], title: str | None = None) -> str:
         ]
     lines += [
         "",
-        "Contact definitions. Confirmed contact (the recorded one): "
+        (
+            "Contact definitions. Confirmed contact (the recorded one): "
+            if confirmed
+            else f"Contact definitions. This campaign's {first}: "
+        )
         + _definition_text(summary.get("contact_definition"))
         + ". Paper-literal: "
         + _definition_text((lit.get("contact_definition") if lit else None) or {})
