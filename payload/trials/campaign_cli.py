@@ -32,6 +32,7 @@ from payload.folders import (
 )
 from payload.trials.setup_options import (
     _SETUP,
+    RUN_SETTINGS,
     TrialsCliError,
     _check_ctb,
     _check_physics_dt,
@@ -123,7 +124,7 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
         "wall_s": time.perf_counter() - t0,
         "trial_wall_s": float(sum(r.get("wall_s") or 0.0 for r in results)),
     }
-    title = campaign_title(args.n, {name: getattr(args, name) for name in _TITLE_SETTINGS})
+    title = campaign_title(args.n, {name: getattr(args, name) for name in RUN_SETTINGS})
     # what the trials ran on, as each trial's process reported it (a scheduler's workers
     # may be other machines than this one)
     prov = {**prov, "environment": trials_environment(results)}
@@ -162,22 +163,10 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
     return 0
 
 
-_TITLE_SETTINGS = (
-    "ctb",
-    "propulsion",
-    "controller",
-    "retarget_budget",
-    "retarget_collisions",
-    "base_filter",
-    "link_delay",
-    "physics_dt",
-)
-"""The settings a campaign's title names."""
-
-
 def campaign_title(n: int, setup: dict[str, Any]) -> str:
     """A campaign summary's title: how many trials and the setup they ran (``setup``: the
-    :data:`_TITLE_SETTINGS`; a setting None is not known and left out)."""
+    :data:`~payload.trials.setup_options.RUN_SETTINGS`; a setting None is not known and
+    left out)."""
     from payload.schema import PHYSICS_DT
 
     parts = [f"{n} trials"]
@@ -259,7 +248,7 @@ def _cmd_trials_summarize(args: argparse.Namespace) -> int:
     if title is None:  # no campaign summary before (an interrupted run): the trials say
         scored = [r for r in results if not r.get("error")]
         setup = {}
-        for name in _TITLE_SETTINGS:
+        for name in RUN_SETTINGS:
             values = {json.dumps(r.get(name)) for r in scored}
             setup[name] = scored[0].get(name) if len(values) == 1 else None
         title = campaign_title(len(results), setup) if scored else None

@@ -27,6 +27,7 @@ import numpy as np
 from payload.errors import PayloadError
 from payload.folders import METRICS, RECORDING
 from payload.trials.records import FIELD_SPECS, HANDS_TOPIC, STEP_TOPIC, RecordingError
+from payload.trials.setup_options import RUN_SETTINGS
 from payload.trials.summary_fields import METRIC_KEYS, METRIC_LABELS
 from payload.trials.trial_results import read_metrics
 
@@ -70,20 +71,6 @@ def _trial_metrics(trial: Path) -> dict[str, Any]:
         state = f"an unfinished run ({why})" if why else "a run not scored"
         raise CompareError(f"{trial}: {state}: it has no {METRICS} to compare")
     return read_metrics(trial / METRICS)
-
-
-SETUP_KEYS = (
-    "controller",
-    "ctb",
-    "propulsion",
-    "retarget_budget",
-    "retarget_collisions",
-    "base_filter",
-    "physics_dt",
-    "link_delay",
-)
-"""What a trial's ``metrics.json`` records of the setup it ran on, as the comparison
-shows it where the two runs differ."""
 
 
 def _same_value(a: Any, b: Any) -> bool:
@@ -285,7 +272,7 @@ def compare_runs(run_a: str | Path, run_b: str | Path, *, steps: bool = False) -
             "seed_b": mb.get("seed"),
             "setup_differs": {
                 k: [ma.get(k), mb.get(k)]
-                for k in SETUP_KEYS
+                for k in RUN_SETTINGS
                 if (k in ma or k in mb) and not _same_value(ma.get(k), mb.get(k))
             },
             "success_a": ma.get("success"),

@@ -8,7 +8,6 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from payload.trials.metrics import CONFIRM_MAX_GAP_S, CONFIRM_MIN_S
 from payload.trials.summary_fields import (
     METRIC_KEYS,
     METRIC_LABELS,
@@ -102,6 +101,8 @@ def summary_markdown(summary: dict[str, Any], title: str | None = None) -> str:
     def acq(s: dict[str, Any]) -> str:
         v = s.get("acquisition_success")
         return "n/a" if v is None else f"{100 * v:.0f} %"
+
+    from payload.trials.metrics import CONFIRM_MAX_GAP_S, CONFIRM_MIN_S  # (loads MCAP)
 
     definition = summary.get("contact_definition") or {}
     lo, gap = definition.get("min_interval_s"), definition.get("max_gap_s")
