@@ -378,7 +378,8 @@ def compare_markdown(result: dict[str, Any]) -> str:
     if with_steps:
         lines += [
             "",
-            "| trial | steps A / B | differing steps | first | fields (largest difference) |",
+            "| trial | steps A / B | differing steps | first "
+            "| fields (largest difference; text and flags: differing steps) |",
             "|---|---|---|---|---|",
         ]
         for r in with_steps:
