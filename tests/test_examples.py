@@ -46,7 +46,7 @@ def readme_blocks() -> list[str]:
     return re.findall(r"```python\n(.*?)```", _docs_text(), flags=re.S)
 
 
-@pytest.mark.parametrize("name", ["retarget_pair.py", "simulate_ctb.py"])
+@pytest.mark.parametrize("name", ["retarget_pair.py", "simulate_ctb.py", "read_recording.py"])
 def test_readme_snippet_is_a_run_of_the_examples_lines(name):
     script = code_lines((EXAMPLES / name).read_text())
     cited = [b for b in readme_blocks() if f"examples/{name}" in _after(b)]
@@ -109,3 +109,43 @@ def test_simulate_example_velocities_against_finite_differences_and_the_flight_m
     assert np.all(np.diff(speed) > 0) and speed.max() <= out["commanded_speed"] + 1e-6
     accel = np.diff(np.concatenate([[0.0], speed])) / 0.5
     assert accel.max() <= FLIGHT_MODES[DEFAULT_FLIGHT_MODE].accel + 1e-6
+
+
+def test_read_recording_example_against_the_files_own_messages(tmp_path):
+    """examples/read_recording.py on a 1 s trial: its step count is the step channel's
+    message count (read with mcap, record by record), every 10 Hz Foxglove joint state is
+    a step's measured joints by name (within half the viewer's grid, on which that channel
+    keeps them, and the step channel's 10 nm grid), and the safety channel has a record a
+    step."""
+    from mcap.stream_reader import StreamReader
+
+    from payload.design import MANIPULATION_JOINTS
+    from payload.trials.foxglove import VIEW_RESOLUTION
+    from payload.trials.runner import run_trial
+
+    log = tmp_path / "t" / "log.mcap"
+    run_trial(0, out_dir=log.parent, force=True, max_time=1.0)
+    res = subprocess.run(
+        [sys.executable, str(EXAMPLES / "read_recording.py"), str(log)],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=600,
+    )
+    assert res.returncode == 0, res.stderr
+    out = json.loads(res.stdout)
+    channels, steps = {}, 0
+    for record in StreamReader(str(log)).records:
+        if type(record).__name__ == "Channel":
+            channels[record.id] = record.topic
+        elif type(record).__name__ == "Message":
+            steps += channels[record.channel_id] == "/trial/step"
+    assert out["steps"] == steps > 40 and out["seed"] == 0 and out["complete"] is True
+    q = np.array(out["q_meas"])
+    assert q.shape == (steps, len(MANIPULATION_JOINTS))
+    assert len(out["measured"]) >= steps // 5 - 1
+    for state in out["measured"]:
+        row = np.array([state[name] for name in MANIPULATION_JOINTS])
+        off = np.abs(q - row).max(axis=1).min()
+        assert off <= VIEW_RESOLUTION / 2 + 1e-8, f"a joint state no step has ({off})"
+    assert len(out["safety"]) == steps and all("station_clearance_m" in r for r in out["safety"])
