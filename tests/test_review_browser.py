@@ -589,3 +589,30 @@ def test_a_label_is_placed_off_the_nodes_its_overlay_keeps_clear(tmp_path) -> No
             (placed[bool(clear)],) = page.evaluate("() => payloadReview.labelBoxes()")
     assert not _apart(placed[False], vehicle), (placed[False], vehicle)
     assert _apart(placed[True], vehicle), (placed[True], vehicle)
+
+
+def test_a_long_replay_subtitle_wraps_short_of_the_phase_box(tmp_path) -> None:
+    """A replay's title and subtitle (e.g. a run not finished, with why) never run under
+    the phase box at the top right, at the tests' 960 px width and at 1280 px; the design
+    review, which has no phase box, keeps its one-line title."""
+    _require_browser()
+    from payload.review.browser import open_page, pose_page
+
+    html, _ = _trial_at_the_route_start(tmp_path)
+    long = "recording: not finished: aborted (KeyboardInterrupt); " * 3
+    rect = "(id) => { const r = document.getElementById(id).getBoundingClientRect(); " \
+        "return {x: r.x, y: r.y, w: r.width, h: r.height}; }"  # fmt: skip
+    for viewport in (VIEWPORT, (1280, 800)):
+        with open_page(html, viewport) as page:
+            pose_page(page, 0.0)
+            page.evaluate(
+                """(sub) => { const d = JSON.parse(
+                    document.getElementById('payload-data').textContent);
+                    d.overlay.subtitle = sub; payloadReview.apply(d); }""",
+                long,
+            )
+            pose_page(page, 0.0)
+            title = page.evaluate(rect, "payload-title")
+            phase = page.evaluate(rect, "payload-phase")
+            assert phase["w"] > 0 and title["h"] > 0
+            assert _apart(title, phase), (viewport, title, phase)

@@ -129,6 +129,9 @@
   }
 
   function showPhase() {
+    // a replay's title wraps short of the phase box at the top right (a long subtitle ran
+    // under it in a narrow window)
+    layer.classList.toggle("payload-has-phase", state.phases.length > 0);
     if (!state.phases.length) {
       phase.style.display = "none";
       return;

@@ -34,6 +34,7 @@ body { margin: 0; }
 #payload-title { position: absolute; left: 10px; top: 8px; font-size: 16px; font-weight: 600;
   background: rgba(255,255,255,0.85); padding: 2px 6px; }
 .payload-subtitle { font-size: 12px; font-weight: 400; color: #333; }
+#payload-overlay.payload-has-phase #payload-title { max-width: calc(100% - 380px); }
 #payload-legend { position: absolute; left: 10px; bottom: 10px; font-size: 12px;
   background: rgba(255,255,255,0.85); padding: 4px 6px; border: 1px solid #ccc; }
 .payload-legend-row { display: flex; align-items: center; gap: 6px; }
