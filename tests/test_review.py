@@ -297,8 +297,10 @@ def test_the_design_review_and_a_trial_replay_are_titled_alike(review, replay, t
         assert (head["what"], head["hash"]) == (what, want_hash)
         subjects[what] = head["subject"]
         assert _SUBTITLE.fullmatch(scene.overlay.subtitle), scene.overlay.subtitle
-        tab = html.escape(f"{scene.overlay.title} - payload review")
-        assert f"<title>{tab}</title>" in static_html(scene)
+        page = static_html(scene)
+        tab = page[page.index("<title>") + 7 : page.index("</title>")]
+        assert html.unescape(tab) == scene.overlay.title + " - payload review", tab
+        assert scene.overlay.as_json()["tab"] == html.unescape(tab)  # the live page's too
     assert subjects["design review"].endswith("/cad/design.toml")
     folder = Path(trial_folder)
     assert subjects["trial replay"] == f"{folder.parent.name}/{folder.name}"

@@ -521,7 +521,8 @@ def test_a_replay_honours_recorded_timestamps_and_records_its_source(tmp_path, r
 def test_a_replay_of_a_run_that_did_not_finish_says_so(tmp_path, caplog):
     """A recording cut short (its writer killed: the footer never written) replays up to
     where it stops, with a warning naming why and how far, and the replay's recording
-    names it as its source's state; a finished run's replay does neither."""
+    names it as its source's state; so does a replay of a run the --max-time cap stopped (a
+    finished run's replay does neither: the hands.jsonl replay above)."""
     first = tmp_path / "first"
     run_trial(2, out_dir=first, max_time=2.0)
     data = (first / "log.mcap").read_bytes()
@@ -536,12 +537,15 @@ def test_a_replay_of_a_run_that_did_not_finish_says_so(tmp_path, caplog):
     assert f"{seconds:.1f} s in" in warned[0]
     rec = read_recording(tmp_path / "of-torn" / "log.mcap")
     assert rec.meta["replay"]["source_unfinished"].startswith("cut short (never closed")
+    # a closed recording of a session the --max-time cap stopped (first's 2 s) ended before
+    # its task too: its replay says so, and names it as its source's state
     caplog.clear()
     with caplog.at_level(logging.WARNING, logger="payload.trials.sources"):
-        run_trial(operator="replay", replay=first / "log.mcap", out_dir=tmp_path / "of-whole")
-    assert not [r for r in caplog.records if "did not finish" in r.getMessage()]
-    again = read_recording(tmp_path / "of-whole" / "log.mcap")
-    assert again.meta["replay"]["source_unfinished"] is None
+        run_trial(operator="replay", replay=first / "log.mcap", out_dir=tmp_path / "of-capped")
+    warned = [r.getMessage() for r in caplog.records if "did not finish" in r.getMessage()]
+    assert len(warned) == 1 and "session-length cap (--max-time)" in warned[0], warned
+    again = read_recording(tmp_path / "of-capped" / "log.mcap")
+    assert again.meta["replay"]["source_unfinished"].startswith("stopped by the session-length")
 
 
 def test_a_live_sessions_webxr_hands_replay_as_their_workbench_frames(tmp_path):

@@ -540,8 +540,10 @@ def test_the_header_is_one_line_at_1280_and_the_page_shows_words(tmp_path):
                 page.screenshot(path=str(tmp_path / f"vr-{state}.png"))
                 _one_line_in_words(shown, f"VR {state}")
                 assert "you have control" in shown["text"], shown
-            # a headset shows no page: its panel says the safe stop, in words
+            # a headset shows no page: its panel says the safe stop, in words, and first
+            # that it drives the servos
             assert f"safe stop: {reason}" in shown["panel"], shown
+            assert shown["panel"][0] == "driver: hardware on /dev/ttyUSB0", shown
     finally:
         server.stop()
         session.close()

@@ -292,3 +292,23 @@ def test_an_interrupted_campaign_says_what_it_kept_and_summarises_with_its_setup
     ), text[:200]
     assert json.loads((out / "summary.json").read_text())["retarget_collisions"] is False
     assert "mixed" not in text
+
+
+def test_a_campaign_of_unscored_trials_claims_no_setting_and_mixed_definitions_say_so(
+    tmp_path: Path,
+) -> None:
+    """A summary whose every trial raised says nothing of the self-collision setting (no
+    trial recorded one); a summary of trials scored under different contact definitions
+    heads its column "mixed", not "confirmed contact"."""
+    from payload.trials.summary import write_summary
+    from payload.trials.summary_markdown import summary_markdown
+
+    failed = write_summary([{"seed": 0, "success": False, "error": "boom"}], tmp_path / "a")
+    assert "retarget_collisions" not in failed
+    camp = _campaign(tmp_path / "camp", [1, 2])
+    assert main(["trials", "summarize", str(camp), "--json"]) == 0
+    mixed = {**json.loads((camp / "summary.json").read_text())}
+    mixed["contact_definition"] = {"mixed": [[0.5, 0.1], [0.0, 0.0]]}
+    text = summary_markdown(mixed)
+    assert "| this campaign, mixed contact definitions |" in text
+    assert "confirmed contact |" not in text

@@ -51,8 +51,8 @@
   }
 
   function setOverlay(o) {
-    // the browser's tab says what the title says (page.py's tab_title writes the same)
-    document.title = o.title ? `${o.title} - payload review` : "payload review";
+    // the browser's tab, as the server words it (scene.tab_title; an older overlay: none)
+    document.title = o.tab || "payload review";
     title.innerHTML = "";
     div(null, title).textContent = o.title || "";
     const sub = div(null, title);

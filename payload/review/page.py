@@ -20,7 +20,7 @@ from functools import cache
 from pathlib import Path
 from typing import Any
 
-from payload.review.scene import Scene
+from payload.review.scene import Scene, tab_title
 
 OVERLAY_JS = Path(__file__).with_name("overlay.js")
 
@@ -94,12 +94,6 @@ def scene_blobs(scene: Scene) -> list[bytes]:
     return [packed(c) for c in scene.all_commands()]
 
 
-def tab_title(title: str) -> str:
-    """The browser tab's text for a page titled ``title`` (``overlay.js`` sets the same
-    when a live page receives its overlay)."""
-    return f"{title} - payload review" if title else "payload review"
-
-
 def page_html(data: dict[str, Any] | None) -> str:
     """The page, with ``data`` (``commands``, ``overlay``, ``error``) embedded or, with
     ``None``, fetching it from the server that sent the page."""
@@ -144,5 +138,4 @@ __all__ = [
     "page_html",
     "scene_blobs",
     "static_html",
-    "tab_title",
 ]

@@ -57,6 +57,12 @@ class StlGeometry(mg.MeshGeometry):
         return {**super().lower(object_data), "type": "_meshfile_geometry"}
 
 
+def tab_title(title: str) -> str:
+    """The browser tab's text for a page titled ``title`` (the static page's ``<title>``,
+    and the live page's script sets it from the overlay's ``tab``)."""
+    return f"{title} - payload review" if title else "payload review"
+
+
 @dataclass
 class Overlay:
     """What the page draws over the 3D view (see :mod:`payload.review.page`).
@@ -96,6 +102,7 @@ class Overlay:
             "views": self.views,
             "follow": None if self.follow is None else list(self.follow),
             "clear": list(self.clear),
+            "tab": tab_title(self.title),
         }
 
 
@@ -247,6 +254,7 @@ __all__ = [
     "hex_colour",
     "mpath",
     "segment",
+    "tab_title",
     "translation",
     "viewer_settings",
 ]

@@ -207,6 +207,7 @@ def _trials(root: Path, trials: int, seed: int) -> dict[str, Any]:
     from payload.trials.campaign import run_campaign, runner_trial_fn, write_summary
     from payload.trials.setup_options import RUN_SETTINGS
     from payload.trials.sources import trial_setup
+    from payload.trials.summary import campaign_title
 
     project = Project.at(root)
     out = root / "runs" / "campaign"
@@ -221,10 +222,7 @@ def _trials(root: Path, trials: int, seed: int) -> dict[str, Any]:
         "wall_s": time.perf_counter() - t0,
         "trial_wall_s": float(sum(r.get("wall_s") or 0.0 for r in results)),
     }
-    title = (
-        f"Cargo-transport campaign ({trials} trials, CTB {setup['ctb']}, {setup['propulsion']}, "
-        f"retargeting budget {setup['retarget_budget']})"
-    )
+    title = campaign_title(trials, setup)
     # a trial that raised counts as a failure in the summary, as in the command's JSON
     return write_summary(results, out, title=title, run=run, provenance=provenance(project))
 

@@ -51,7 +51,7 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
         trial_dir,
         write_summary,
     )
-    from payload.trials.summary import trials_environment
+    from payload.trials.summary import campaign_title, trials_environment
     from payload.trials.terminal import summary_terminal, trial_line_printer
 
     if args.n < 1:
@@ -91,7 +91,7 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
                     "choose another --out"
                 )
         workers = default_workers(args.n) if args.workers is None else args.workers
-        t0 = time.perf_counter()
+        t0, started = time.perf_counter(), time.time()
         try:
             results = run_campaign(
                 runner_trial_fn(
@@ -111,7 +111,12 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
                 else trial_line_printer(len(seeds)),
             )
         except KeyboardInterrupt as exc:  # what is kept, and how to use it
-            done = sorted(out.glob("trial-*/" + METRICS))
+            done = [  # this run's trials only (a --force run's folder may hold others)
+                trial_dir(out, s) / METRICS
+                for s in seeds
+                if (trial_dir(out, s) / METRICS).is_file()
+                and (trial_dir(out, s) / METRICS).stat().st_mtime >= started
+            ]
             if done:
                 exc.add_note(
                     f"{len(done)} finished trial(s) kept in {out}: `payload trials summarize "
@@ -163,36 +168,6 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
     return 0
 
 
-def campaign_title(n: int, setup: dict[str, Any]) -> str:
-    """A campaign summary's title: how many trials and the setup they ran (``setup``: the
-    :data:`~payload.trials.setup_options.RUN_SETTINGS`; a setting None is not known and
-    left out)."""
-    from payload.schema import PHYSICS_DT
-
-    parts = [f"{n} trials"]
-    if setup.get("ctb") is not None:
-        parts.append(f"CTB {setup['ctb']}")
-    if setup.get("propulsion") is not None:
-        parts.append(str(setup["propulsion"]))
-    if setup.get("controller") is not None:
-        parts.append(f"controller {setup['controller']}")
-    if setup.get("retarget_budget") is not None:
-        parts.append(f"retargeting budget {setup['retarget_budget']}")
-    if setup.get("retarget_collisions"):
-        parts.append("self-collision modelled")
-    if setup.get("base_filter"):
-        parts.append("base filter")
-    delay = setup.get("link_delay")
-    if isinstance(delay, (list, tuple)):  # as a trial records it: [delay, jitter] [s]
-        delay = f"{delay[0]}" + (f":{delay[1]}" if delay[1] else "") if delay[0] else None
-    if delay:  # as --link-delay gives it, S[:JITTER]
-        parts.append(f"link delay {delay} s")
-    dt = setup.get("physics_dt")
-    if dt is not None and dt != PHYSICS_DT:
-        parts.append(f"physics step {1e3 * dt:g} ms")
-    return f"Cargo-transport campaign ({', '.join(parts)})"
-
-
 def _cmd_trials_summarize(args: argparse.Namespace) -> int:
     from payload.trials.campaign import (
         contact_tag,
@@ -201,6 +176,7 @@ def _cmd_trials_summarize(args: argparse.Namespace) -> int:
         write_summary,
     )
     from payload.trials.scoring import MIXED_TAG, UNSCORED_TAG
+    from payload.trials.summary import campaign_title
 
     for name in ("min_contact_s", "max_gap_s"):
         value = getattr(args, name)

@@ -232,7 +232,8 @@ def compare_runs(run_a: str | Path, run_b: str | Path, *, steps: bool = False) -
             in ``metrics.json`` but :data:`NOT_RESULTS`.
 
     Returns:
-        ``{"a", "b", "trials": [{"trial", "success_a", "success_b", "physics_dt_a",
+        ``{"a", "b", "trials": [{"trial", "seed_a", "seed_b", "setup_differs" ({setting:
+        [a, b]} where the two differ), "success_a", "success_b", "physics_dt_a",
         "physics_dt_b", "metrics": {key: {"a", "b", "change"}}, "steps"?}],
         "largest_change": {key: {"change" (signed, largest in size), "trial"}},
         "only_a", "only_b" (trial names in one run only), "identical" (with ``steps``:

@@ -296,7 +296,7 @@ def plot_route(
     rects = [_as_rect(m) for m in (modules or [])]
     from payload.sim.iss import IssModule  # the modules' titles (a trial has loaded it)
 
-    titles = {MODULE_NAMES[m.value]: m.title for m in IssModule}  # by recorded name
+    titles = {MODULE_NAMES.get(m.value, m.value): m.title for m in IssModule}  # by recorded name
     fig = Figure(figsize=_ROUTE_SIZE_IN)
     ax = fig.subplots(gridspec_kw=_margins(_ROUTE_SIZE_IN, _ROUTE_MARGINS_IN))
     for i, r in enumerate(rects):

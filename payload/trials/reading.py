@@ -495,8 +495,9 @@ def read_hand_frames(path: str | Path) -> tuple[dict[str, Any], list[Any]]:
 
 
 def read_hand_frames_of_run(path: str | Path) -> tuple[dict[str, Any], list[Any], str | None]:
-    """:func:`read_hand_frames`, and why the run it recorded did not finish
-    (:func:`unfinished_reason`; None: it did): a replay of it ends where the run stopped."""
+    """:func:`read_hand_frames`, and why the run it recorded ended before its task did
+    (:func:`cut_reason`: aborted, killed, stopped by the ``--max-time`` cap, itself a
+    replay of such a run; None: it did not): a replay of it ends where the run stopped."""
     from payload.teleop.hands import Hand, HandFrame
 
     path = Path(path)
@@ -517,4 +518,4 @@ def read_hand_frames_of_run(path: str | Path) -> tuple[dict[str, Any], list[Any]
         )
         for s in samples
     ]
-    return meta, frames, unfinished_reason(meta, complete)
+    return meta, frames, cut_reason(meta, complete)

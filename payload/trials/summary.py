@@ -194,6 +194,36 @@ def trials_environment(results: list[dict[str, Any]]) -> dict[str, Any] | list |
     return seen[0] if len(seen) == 1 else (seen or None)
 
 
+def campaign_title(n: int, setup: dict[str, Any]) -> str:
+    """A campaign summary's title: how many trials and the setup they ran (``setup``: the
+    :data:`~payload.trials.setup_options.RUN_SETTINGS`; a setting None is not known and
+    left out)."""
+    from payload.schema import PHYSICS_DT
+
+    parts = [f"{n} trials"]
+    if setup.get("ctb") is not None:
+        parts.append(f"CTB {setup['ctb']}")
+    if setup.get("propulsion") is not None:
+        parts.append(str(setup["propulsion"]))
+    if setup.get("controller") is not None:
+        parts.append(f"controller {setup['controller']}")
+    if setup.get("retarget_budget") is not None:
+        parts.append(f"retargeting budget {setup['retarget_budget']}")
+    if setup.get("retarget_collisions"):
+        parts.append("self-collision modelled")
+    if setup.get("base_filter"):
+        parts.append("base filter")
+    delay = setup.get("link_delay")
+    if isinstance(delay, (list, tuple)):  # as a trial records it: [delay, jitter] [s]
+        delay = f"{delay[0]}" + (f":{delay[1]}" if delay[1] else "") if delay[0] else None
+    if delay:  # as --link-delay gives it, S[:JITTER]
+        parts.append(f"link delay {delay} s")
+    dt = setup.get("physics_dt")
+    if dt is not None and dt != PHYSICS_DT:
+        parts.append(f"physics step {1e3 * dt:g} ms")
+    return f"Cargo-transport campaign ({', '.join(parts)})"
+
+
 def write_summary(
     results: Sequence[dict[str, Any]],
     out_dir: str | Path,
@@ -248,7 +278,7 @@ def write_summary(
     # trial (aborted, killed) says nothing of it
     seen = {r.get("retarget_collisions") for r in results if not r.get("error")}
     seen = {v if isinstance(v, bool) else None for v in seen}
-    if seen != {None}:
+    if seen and seen != {None}:
         summary["retarget_collisions"] = (
             seen.pop() if len(seen) == 1 else sorted(seen, key=lambda v: (v is not None, v))
         )
@@ -323,6 +353,7 @@ __all__ = [
     "PAPER_RESULTS",
     "STATION_KEYS",
     "CampaignError",
+    "campaign_title",
     "load_trial_results",
     "print_trial_summary",
     "station_summary",

@@ -108,8 +108,16 @@ def summary_markdown(summary: dict[str, Any], title: str | None = None) -> str:
     lo, gap = definition.get("min_interval_s"), definition.get("max_gap_s")
     # the debounced definition is "confirmed contact"; any other (a rescoring, or trials
     # recorded under another) is named by its numbers
-    confirmed = (lo, gap) in ((None, None), (CONFIRM_MIN_S, CONFIRM_MAX_GAP_S))
-    first = "confirmed contact" if confirmed else f"contact (>= {lo:g} s, gaps <= {gap:g} s)"
+    confirmed = "mixed" not in definition and (lo, gap) in (
+        (None, None),
+        (CONFIRM_MIN_S, CONFIRM_MAX_GAP_S),
+    )
+    if confirmed:
+        first = "confirmed contact"
+    elif "mixed" in definition or lo is None or gap is None:
+        first = "mixed contact definitions"
+    else:
+        first = f"contact (>= {lo:g} s, gaps <= {gap:g} s)"
     lines = [
         *_header_lines(summary, title),
         f"| metric | this campaign, {first} | this campaign, paper-literal contact | paper |",
@@ -140,7 +148,7 @@ def summary_markdown(summary: dict[str, Any], title: str | None = None) -> str:
         (
             "Contact definitions. Confirmed contact (the recorded one): "
             if confirmed
-            else f"Contact definitions. This campaign's {first}: "
+            else "Contact definitions. This campaign's contact: "
         )
         + _definition_text(summary.get("contact_definition"))
         + ". Paper-literal: "

@@ -216,7 +216,10 @@ function panelLines() {
   if (!debug.open) return [debug.link, debug.why].filter(Boolean);
   const prompt = promptText();
   const role = debug.role === 'holder' ? null : roleHint() || ROLES[debug.role];
-  return [prompt, st && st.safe_stop ? `safe stop: ${st.safe_stop}` : null, role, ...numbers,
+  // a headset shows no header: the one driving real servos is told so first
+  const hardware = debug.driver && debug.driver.startsWith('hardware') ? debug.driver : null;
+  return [hardware && `driver: ${hardware}`, prompt,
+    st && st.safe_stop ? `safe stop: ${st.safe_stop}` : null, role, ...numbers,
     st && st.notice && !prompt ? st.notice : null].filter(Boolean);
 }
 
@@ -246,7 +249,7 @@ const link = new Link((msg) => {
   } else if (msg.type === 'hello') {
     const scene = msg.scene || {};  // the modules labelled by their titles, not identifiers
     renderer.scene = { ...scene, modules: (scene.modules || []).map((m) => (
-      { ...m, name: m.title || words(m.name) })) };
+      { ...m, name: m.title || words(m.name || '') })) };
     debug.driver = msg.driver || null;
     showStatus();
   } else if (msg.type === 'state') {

@@ -223,11 +223,14 @@ export class Renderer {
     }
     const st = this.state;
     if (st && st.vehicle) {
-      // the design's body box (an older server sends only a cube's edge)
+      // the design's body box (an older server sends only a cube's edge; a scene with
+      // neither draws no box rather than one of no size)
       const sc = this.scene || {};
-      const vs = sc.vehicle_body_size || Array(3).fill(sc.vehicle_size);
-      this.box(vp, st.vehicle.pos, st.vehicle.quat, vs, [0.95, 0.8, 0.2, 1],
-        'Astrobee + payload');
+      const vs = sc.vehicle_body_size || (sc.vehicle_size ? Array(3).fill(sc.vehicle_size) : null);
+      if (vs) {
+        this.box(vp, st.vehicle.pos, st.vehicle.quat, vs, [0.95, 0.8, 0.2, 1],
+          'Astrobee + payload');
+      }
       if (st.ctb && st.ctb.pos && this.scene && this.scene.ctb_size) {
         this.box(vp, st.ctb.pos, st.ctb.quat, this.scene.ctb_size,
           st.contact ? [0.3, 1, 0.4, 1] : [0.9, 0.9, 0.9, 1], st.contact ? 'CTB (held)' : 'CTB');
