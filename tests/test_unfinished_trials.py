@@ -312,3 +312,27 @@ def test_a_campaign_of_unscored_trials_claims_no_setting_and_mixed_definitions_s
     text = summary_markdown(mixed)
     assert "| this campaign, mixed contact definitions |" in text
     assert "confirmed contact |" not in text
+
+
+def test_ctrl_c_counts_only_the_interrupted_runs_trials(tmp_path: Path, capsys, monkeypatch):
+    """A --force run into a folder of an earlier campaign, interrupted before any of its
+    own trials ended: the earlier trials (other seeds, and its own seed's older result)
+    are not said to be this run's."""
+    import os
+
+    import payload.trials.campaign as campaign
+    from payload.design.cli import new_project
+
+    project, _ = new_project(tmp_path / "p")
+    out = _campaign(tmp_path / "camp", [0, 5])  # an earlier campaign's trials
+    old = out / "trial-0000" / "metrics.json"
+    os.utime(old, (old.stat().st_atime - 60, old.stat().st_mtime - 60))
+
+    def interrupted(trial_fn, seeds, out_dir, **kw):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(campaign, "run_campaign", interrupted)
+    argv = ["--project", str(project.root), "trials", "run", "--n", "2", "--out", str(out)]
+    assert main([*argv, "--force"]) == 130
+    err = capsys.readouterr().err
+    assert "interrupted" in err and "finished trial(s) kept" not in err, err
