@@ -255,12 +255,15 @@ def _swap_in(stage: Path, out: Path) -> None:
 def _trial_success(recording: Path) -> bool | None:
     """The trial's success from the ``metrics.json`` beside its recording, or None (no
     such file, or not a trial's: a replay's file given alone, an unscored run)."""
-    try:
-        data = json.loads((Path(recording).parent / METRICS).read_text(encoding="utf-8"))
-    except (OSError, ValueError):
+    from payload.trials.trial_results import read_metrics  # checks `success` is a bool
+
+    path = Path(recording).parent / METRICS
+    if not path.is_file():
         return None
-    success = data.get("success") if isinstance(data, dict) else None
-    return success if isinstance(success, bool) else None
+    try:
+        return read_metrics(path)["success"]
+    except PayloadError:  # unreadable, or not a trial's metrics
+        return None
 
 
 def export_lerobot(

@@ -42,9 +42,9 @@ from payload.teleop.replay import HandRecordingWriter
 from payload.trials.acquisition import place_ctb_for_teleop
 from payload.trials.preparation import base_filter_for, design_hash, module_rects
 from payload.trials.recorder import RecordingError, StepRecord, TrialRecorder
+from payload.trials.records import MODULE_NAMES
 from payload.trials.retargeters import retargeting
 from payload.trials.safety import recording_scene
-from payload.trials.stepobserver import MODULE_NAMES
 
 log = logging.getLogger(__name__)
 

@@ -17,9 +17,9 @@ from payload.teleop.calibration import CalibrationProcedure
 from payload.teleop.operator import OperatorPlan
 from payload.teleop.pipeline import TeleopConfig
 from payload.trials.acquisition import place_ctb_for_teleop, place_offset
+from payload.trials.records import MODULE_NAMES
 from payload.trials.retargeters import retargeting
 from payload.trials.sources import _Source
-from payload.trials.stepobserver import MODULE_NAMES
 
 
 def design_hash(project: Project | None = None) -> str:
