@@ -87,7 +87,7 @@ test: $(STAMP) bytecode node_modules/.package-lock.json
 	$(BIN)/ruff format --check .
 	cache=$$(mktemp -d) && trap 'rm -rf "$$cache"' EXIT && \
 	PAYLOAD_TEST_CACHE_DIR=$$cache $(BIN)/python -m pytest -q -n 2 --dist loadfile -m "not serial" && \
-	PAYLOAD_TEST_CACHE_DIR=$$cache $(BIN)/python -m pytest -q -m serial
+	PAYLOAD_TEST_CACHE_DIR=$$cache $(BIN)/python -m pytest -q -n 2 --dist loadgroup -m serial
 
 lint: $(STAMP)
 	$(BIN)/ruff check .

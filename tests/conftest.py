@@ -91,29 +91,33 @@ def _checkout_is_the_project():
         os.environ["PAYLOAD_PROJECT"] = old
 
 
-SERIAL_FILES = frozenset(
-    {
-        "test_firmware_cli.py",
-        "test_firmware_driver.py",
-        "test_firmware_guard.py",
-        "test_firmware_homing.py",
-        "test_firmware_identify.py",
-        "test_firmware_loop.py",
-        "test_review.py",
-        "test_review_browser.py",
-        "test_teleop_browser.py",
-        "test_teleop_server.py",
-    }
-)
-"""Tests that run against the wall clock (the servo-bus emulator integrates in real time
-on a pty, headless Chromium, live servers with latency and watch deadlines): ``make test``
-runs them after the parallel part, one at a time, so no other test steals their core."""
+SERIAL_STREAMS: dict[str, str] = {
+    "test_firmware_cli.py": "bus",
+    "test_firmware_driver.py": "bus",
+    "test_firmware_guard.py": "bus",
+    "test_firmware_homing.py": "bus",
+    "test_firmware_identify.py": "bus",
+    "test_firmware_loop.py": "bus",
+    "test_review.py": "web",
+    "test_review_browser.py": "web",
+    "test_teleop_browser.py": "web",
+    "test_teleop_server.py": "web",
+}
+"""Tests that run against the wall clock, by stream: ``bus``, the servo-bus emulator
+integrating in real time on a pty; ``web``, headless Chromium and live servers with
+latency and watch deadlines. ``make test`` runs them after the parallel part, in two
+streams side by side (``-n 2 --dist loadgroup``: one process a stream, each of its tests
+one at a time), so no CPU-heavy test steals their core. The two streams are light (about
+half a core together) and share nothing: ptys on one side, loopback ports and Chromium on
+the other."""
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     for item in items:
-        if item.path.name in SERIAL_FILES:
+        stream = SERIAL_STREAMS.get(item.path.name)
+        if stream is not None:
             item.add_marker(pytest.mark.serial)
+            item.add_marker(pytest.mark.xdist_group(stream))
 
 
 @pytest.fixture(scope="session", autouse=True)

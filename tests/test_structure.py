@@ -257,3 +257,20 @@ def test_a_whole_trial_scored_and_drawn_loads_no_scipy(tmp_path) -> None:
     assert steps > 600 and (tmp_path / "trial" / "fig_ctb_body_frame.png").is_file()
     assert "matplotlib" in loaded and "payload.trials.metrics" in loaded
     assert sorted(m for m in loaded if m == "scipy" or m.startswith("scipy.")) == []
+
+
+def test_every_test_file_on_the_wall_clock_runs_in_its_serial_stream():
+    """A test file that drives headless Chromium runs in ``make test``'s serial part
+    (``SERIAL_STREAMS``), in the ``web`` stream; the stream names are the two of the
+    Makefile's ``--dist loadgroup`` run, and every file named exists."""
+    from conftest import SERIAL_STREAMS
+
+    tests = ROOT / "tests"
+    assert set(SERIAL_STREAMS.values()) == {"bus", "web"}
+    assert all((tests / name).is_file() for name in SERIAL_STREAMS)
+    for path in sorted(tests.glob("test_*.py")):
+        text = path.read_text(encoding="utf-8")
+        if path.name != Path(__file__).name and ("playwright" in text or "chromium_path" in text):
+            assert SERIAL_STREAMS.get(path.name) == "web", path.name
+    makefile = (ROOT / "Makefile").read_text(encoding="utf-8")
+    assert "-n 2 --dist loadgroup -m serial" in makefile
