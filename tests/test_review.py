@@ -412,6 +412,36 @@ def test_trial_folder_without_a_readable_recording_exits_2(tmp_path, capsys) -> 
     assert "no readable recording" in _err(capsys)
 
 
+def test_a_trial_folder_named_alone_is_replayed_as_with_trial(tmp_path, capsys) -> None:
+    """``payload review TRIAL`` replays the trial as ``--trial TRIAL`` does (the same notes,
+    the same page's title and size); a project, a campaign's folder, a folder without a
+    recording and a trial given twice are each one line and exit 2."""
+    folder = _record_trial(tmp_path / "campaign" / "trial-0003")
+    by_option, alone = tmp_path / "a.html", tmp_path / "b.html"
+    assert main(["review", "--trial", str(folder), "--static", str(by_option),
+                 "--reach-samples", "0"]) == 0  # fmt: skip
+    said = capsys.readouterr().out.splitlines()
+    assert main(["review", str(folder), "--static", str(alone), "--reach-samples", "0"]) == 0
+    assert capsys.readouterr().out.splitlines()[:-1] == said[:-1]  # but "wrote <file>"
+    assert any("trial-0003" in line for line in said)
+    pages = [page.read_text() for page in (by_option, alone)]
+    assert [len(page) for page in pages] == [len(pages[0])] * 2
+    titles = [re.search(r"<title>(.*?)</title>", page).group(1) for page in pages]
+    assert titles[0] == titles[1] and "trial-0003" in titles[0]
+    assert main(["review", str(ROOT), "--reach-samples", "0"]) == 2
+    assert f"is a design project, not a trial; review it with --project {ROOT}" in _err(capsys)
+    assert main(["review", str(tmp_path / "campaign"), "--reach-samples", "0"]) == 2
+    err = _err(capsys)
+    assert "is a campaign's folder (1 recorded); name one of its trials, e.g. " in err
+    assert err.endswith(str(folder))
+    assert main(["review", str(tmp_path), "--reach-samples", "0"]) == 2
+    assert "not a trial folder (no log.mcap in it)" in _err(capsys)
+    assert main(["review", str(tmp_path / "none")]) == 2
+    assert "not a folder" in _err(capsys)
+    assert main(["review", str(folder), "--trial", str(folder)]) == 2
+    assert "give the trial once" in _err(capsys)
+
+
 def test_recording_of_another_design_exits_2(tmp_path, design_dict, capsys) -> None:
     other = _copy_project(tmp_path, design_dict, [0.21, 0.10, 0.10])
     folder = _record_trial(tmp_path / "trial", other)

@@ -488,7 +488,8 @@ def test_the_header_is_one_line_at_1280_and_the_page_shows_words(tmp_path):
     """At 1280 px the header stays one line (before a session, calibrating, running, in a
     safe stop; outside VR and in VR with both buttons), the 3D panel does not repeat it,
     and the page says the server's identifiers (``safe_stop``, ``teleop``, ``node2``) in
-    words."""
+    words. The operator's notice ("fly with your left wrist") shows on the holder's page
+    alone, not on a watcher's."""
     from payload.trials.live import LiveSession
 
     iwer = _need_browser()
@@ -504,7 +505,7 @@ def test_the_header_is_one_line_at_1280_and_the_page_shows_words(tmp_path):
                         "prompt": together.prompt, "remaining": 1.2},
         "teleop": {**world, "phase": "acquisition", "calibrated": True,
                    "vehicle": {**world["vehicle"], "speed": 0.0421}, "contact": True,
-                   "notice": "calibrated: fly with your left wrist"},
+                   "notice": "calibrated: fly with your left wrist", "notice_to": "holder"},
         "safe_stop": {**world, "phase": "acquisition", "calibrated": True,
                       "safe_stop": reason},
     }  # fmt: skip
@@ -526,6 +527,7 @@ def test_the_header_is_one_line_at_1280_and_the_page_shows_words(tmp_path):
                 assert "m/s" not in shown["text"], shown
                 if state == "teleop":
                     assert shown["panel"] == ["vehicle 0.042 m/s · rail 25 mm · CTB held"]
+                    assert "left wrist" not in shown["page"], shown  # the holder's notice
             assert "safe stop" in shown["text"] and reason in shown["page"], shown
             labels = page.evaluate("() => document.getElementById('labels').innerText")
             assert "Node 2" in labels and "Kibo" in labels, labels
@@ -534,12 +536,15 @@ def test_the_header_is_one_line_at_1280_and_the_page_shows_words(tmp_path):
         with EmulatedQuest(server.url(), iwer_js=iwer) as quest:
             page = quest.page
             page.set_viewport_size(view)
-            for state in ("calibrating", "safe_stop"):  # in VR: Exit VR, Hand over control
+            for state in ("calibrating", "teleop", "safe_stop"):  # in VR: Exit VR, Hand over
                 hub.publish(snaps[state], state=state)
                 shown = _shows(page, state, "holder", f"the headset's page in {state}")
                 page.screenshot(path=str(tmp_path / f"vr-{state}.png"))
                 _one_line_in_words(shown, f"VR {state}")
                 assert "you have control" in shown["text"], shown
+                if state == "teleop":  # the notice is the holder's: on its page and panel
+                    assert "calibrated: fly with your left wrist" in shown["page"], shown
+                    assert "calibrated: fly with your left wrist" in shown["panel"], shown
             # a headset shows no page: its panel says the safe stop, in words, and first
             # that it drives the servos
             assert f"safe stop: {reason}" in shown["panel"], shown

@@ -397,6 +397,11 @@ def test_dropped_connection_brakes_and_holds_then_resumes_blended(live):
     page.start()
     wait_for(lambda: hub.state in ("teleop", "safe_stop"), timeout=60)
     wait_for(driven, timeout=30)
+    # calibrated: the operator's instruction, addressed to the page that holds control
+    assert (hub.snapshot["notice"], hub.snapshot["notice_to"]) == (
+        "calibrated: fly with your left wrist",
+        "holder",
+    )
     time.sleep(1.0)
     page.halt.set()  # the page goes away mid-flight
     page.join(10)

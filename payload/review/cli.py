@@ -9,7 +9,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from payload.cliutil import command_project
-from payload.project import is_project_design
+from payload.folders import RECORDING
+from payload.project import DESIGN_FILE, is_project_design
 from payload.review.errors import ReviewError
 from payload.review.project import DEFAULT_RATE
 
@@ -120,10 +121,38 @@ def _check_project_design(design: Path) -> None:
         )
 
 
+def _trial_folder(args: argparse.Namespace) -> None:
+    """``payload review TRIAL``: a trial folder named without ``--trial`` is replayed as
+    with it; a design project, a campaign's folder or a folder without a recording is
+    refused naming what to give instead."""
+    folder = args.trial_folder
+    if folder is None:
+        return
+    if args.trial is not None:
+        raise ReviewError(f"{folder}: give the trial once, as TRIAL or as --trial DIR")
+    path = Path(folder)
+    if not path.is_dir():
+        raise ReviewError(f"{folder}: not a folder (a trial folder, holding {RECORDING})")
+    if not (path / RECORDING).is_file():
+        if (path / DESIGN_FILE).is_file():
+            raise ReviewError(
+                f"{folder}: is a design project, not a trial; review it with --project {folder}"
+            )
+        trials = sorted(p.parent.name for p in path.glob(f"trial-*/{RECORDING}"))
+        if trials:
+            raise ReviewError(
+                f"{folder}: is a campaign's folder ({len(trials)} recorded); name one of its "
+                f"trials, e.g. {path / trials[0]}"
+            )
+        raise ReviewError(f"{folder}: not a trial folder (no {RECORDING} in it)")
+    args.trial = folder
+
+
 def _cmd_review(args: argparse.Namespace) -> int:
     from payload.review.page import static_html
     from payload.review.serve import check_server, open_viewer
 
+    _trial_folder(args)
     if args.zmq_url is not None and not args.watch:  # --watch refuses it, below
         check_server(args.zmq_url)
     if args.reach_samples < 0:
@@ -178,6 +207,12 @@ def register(
     sub: argparse._SubParsersAction, groups: dict[str, argparse._SubParsersAction]
 ) -> None:
     p = sub.add_parser("review", help="Meshcat design review (and trial replay) in the browser")
+    p.add_argument(
+        "trial_folder",
+        nargs="?",
+        metavar="TRIAL",
+        help="a trial folder to replay (the same as --trial TRIAL)",
+    )
     p.add_argument("--design", help="design TOML (default: the project's cad/design.toml)")
     p.add_argument("--trial", metavar="DIR", help="replay the trial recorded in DIR")
     p.add_argument("--static", metavar="FILE", help="write a standalone HTML file and exit")

@@ -192,6 +192,9 @@ class LiveSession:
         self.scene = scene_of(self.driver)
         self.calibrated = False
         self.notice = ""
+        self.notice_to = ""
+        """Whose page the notice is for: ``holder`` (the operator's instruction) or ``""``
+        (every page)."""
         self.steps = 0
         self.source: LiveSource | None = None
         self._closed = False
@@ -316,6 +319,7 @@ class LiveSession:
             "t": 0.0, "phase": "waiting", "prompt": "", "step": "", "remaining": 0.0,
             **self._world(st, self.q0[-1]),
             "safe_stop": None, "calibrated": False, "events": [], "notice": "",
+            "notice_to": "",
         }  # fmt: skip
 
     def _snapshot(self, ctx: StepContext, source: LiveSource, calibration: Any) -> dict:
@@ -342,6 +346,7 @@ class LiveSession:
             "calibrated": self.calibrated,
             "events": events,
             "notice": self.notice,
+            "notice_to": self.notice_to,
         }
 
     # -- running ---------------------------------------------------------------------------
@@ -365,6 +370,7 @@ class LiveSession:
             source.pipeline = pipeline
             self.calibrated = True
             self.notice = "calibrated: fly with your left wrist"
+            self.notice_to = "holder"  # the operator's instruction, not the watchers'
             return pipeline
 
         def on_step(ctx: StepContext) -> None:
@@ -398,7 +404,7 @@ class LiveSession:
                 pace=True,
             )
         except CalibrationError as exc:
-            self.notice = f"calibration failed ({exc}); starting again"
+            self.notice, self.notice_to = f"calibration failed ({exc}); starting again", ""
             log.warning("teleop: %s", self.notice)
         if isinstance(self.driver, PayloadRig):  # nothing is sent until the next attempt
             self.driver.idle()
@@ -432,7 +438,7 @@ class LiveSession:
                     time.sleep(0.05)
                     continue
                 if not self.calibrated:
-                    self.notice = ""
+                    self.notice, self.notice_to = "", ""
                 self._attempt()
         finally:
             with self.hub.lock:

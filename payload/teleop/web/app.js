@@ -182,6 +182,13 @@ function statusText() {
   return [state, debug.role ? ROLES[debug.role] : null].filter(Boolean).join(' · ');
 }
 
+// the server's notice, when it is for this page: one for the holder ("fly with your left
+// wrist") is the operator's instruction, not the watchers'
+function noticeText(st) {
+  if (!st || !st.notice) return null;
+  return st.notice_to && st.notice_to !== debug.role ? null : st.notice;
+}
+
 // what to do and why, below the prompt: [{text, alert}]
 function hintLines() {
   const st = debug.open ? debug.state : null;
@@ -197,7 +204,8 @@ function hintLines() {
   }
   const role = roleHint();
   if (role) lines.push({ text: role, alert: false });
-  if (st && st.notice && !promptText()) lines.push({ text: st.notice, alert: false });
+  const notice = noticeText(st);
+  if (notice && !promptText()) lines.push({ text: notice, alert: false });
   return lines;
 }
 
@@ -220,7 +228,7 @@ function panelLines() {
   const hardware = debug.driver && debug.driver.startsWith('hardware') ? debug.driver : null;
   return [hardware && `driver: ${hardware}`, prompt,
     st && st.safe_stop ? `safe stop: ${st.safe_stop}` : null, role, ...numbers,
-    st && st.notice && !prompt ? st.notice : null].filter(Boolean);
+    prompt ? null : noticeText(st)].filter(Boolean);
 }
 
 function showStatus() {
