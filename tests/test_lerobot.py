@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -320,3 +321,48 @@ def test_an_empty_task_text_is_refused(runs, tmp_path: Path, capsys) -> None:
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--task" in err[0] and "empty" in err[0], err
     assert not out.exists()
+
+
+def test_a_damaged_recording_is_left_out_and_the_rest_exported(
+    runs, tmp_path: Path, capsys, caplog
+) -> None:
+    """In a campaign whose one trial's file is damaged (not MCAP at all), the export writes
+    the other trials' episodes and names the damaged file in a warning and under
+    ``left_out`` (``--include-unfinished`` or not); the episodes are those of the good
+    files exported alone. Nothing readable given: one line, exit 2, no dataset."""
+    from payload.cli import main
+
+    camp = tmp_path / "camp"
+    for i, src in enumerate(runs):
+        (camp / f"trial-000{i}").mkdir(parents=True)
+        shutil.copy(src, camp / f"trial-000{i}" / "log.mcap")
+    bad = camp / "trial-0001" / "log.mcap"
+    bad.write_bytes(b"not an mcap file at all")
+    for extra in ([], ["--include-unfinished"]):
+        out = tmp_path / f"ds{len(extra)}"
+        assert main(["export", "lerobot", str(camp), "--out", str(out), "--json", *extra]) == 0
+        info = json.loads(capsys.readouterr().out)
+        assert info["episodes"] == 2 and info["frames"] == 120 + 50, info
+        assert [x["source"] for x in info["left_out"]] == [str(bad)], info["left_out"]
+        assert info["left_out"][0]["why"].startswith("unreadable: "), info["left_out"]
+        assert str(bad) not in info["left_out"][0]["why"]  # the path said once
+        warned = [r.getMessage() for r in caplog.records if "left out" in r.getMessage()]
+        assert warned[-1].startswith(f"{bad}: left out (unreadable: "), warned
+        assert "--include-unfinished" not in warned[-1]  # it would not export this one
+    assert export_lerobot([runs[0], runs[2]], tmp_path / "good")["episodes"] == 2
+    frames = "data/chunk-000/file-000.parquet"  # the same frames as the good files alone
+    assert pq.read_table(tmp_path / "ds0" / frames).equals(
+        pq.read_table(tmp_path / "good" / frames)
+    )
+    assert main(["export", "lerobot", str(camp), "--out", str(tmp_path / "ds2")]) == 0
+    assert capsys.readouterr().out.rstrip().endswith("; 1 unreadable run(s) left out")
+    other = tmp_path / "other.mcap"
+    other.write_bytes(b"\x89MCAP0\r\n but torn")
+    for given, says in (
+        ([bad], f"{bad}: unreadable: "),
+        ([bad, other], "no recording to export: all 2 given are unreadable (the first: "),
+    ):
+        assert main(["export", "lerobot", *map(str, given), "--out", str(tmp_path / "x")]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and says in err[0], err
+        assert not (tmp_path / "x").exists()

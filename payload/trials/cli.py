@@ -49,9 +49,19 @@ def _cmd_export_lerobot(args: argparse.Namespace) -> int:
         print(
             f"wrote LeRobot v3 dataset {info['path']}: {info['episodes']} episode(s), "
             f"{info['frames']} frames at {info['fps']} Hz ({info['duration_s']:.1f} s)"
-            + (f"; {len(info['left_out'])} unfinished run(s) left out" if info["left_out"] else "")
+            + _left_out_words(info["left_out"])
         )
     return 0
+
+
+def _left_out_words(left_out: list[dict[str, str]]) -> str:
+    """The export line's tail: how many runs were left out, unfinished and unreadable."""
+    from payload.trials.lerobot import UNREADABLE
+
+    bad = sum(item["why"].startswith(UNREADABLE) for item in left_out)
+    parts = [f"{n} {what} run(s)" for n, what in ((len(left_out) - bad, "unfinished"),
+                                                   (bad, UNREADABLE)) if n]  # fmt: skip
+    return f"; {' and '.join(parts)} left out" if parts else ""
 
 
 def _cmd_trials_convert(args: argparse.Namespace) -> int:

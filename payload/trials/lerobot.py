@@ -40,7 +40,7 @@ import numpy as np
 from payload.errors import PayloadError
 from payload.folders import METRICS, RECORDING
 from payload.trials.reading import cut_reason
-from payload.trials.recorder import Recording, read_recording
+from payload.trials.recorder import Recording, RecordingError, read_recording
 
 log = logging.getLogger(__name__)
 
@@ -266,6 +266,31 @@ def _trial_success(recording: Path) -> bool | None:
         return None
 
 
+UNREADABLE = "unreadable"
+"""How a ``left_out`` entry's ``why`` starts for a recording that could not be read."""
+
+
+def _nothing_to_export(given: int, unreadable: dict[Path, str]) -> str:
+    """Why an export of ``given`` recordings has none left: every one unfinished, or
+    ``unreadable`` (source -> why) among them."""
+    unfinished = "--include-unfinished exports them"
+    if not unreadable:
+        return (
+            "every recording given is of an unfinished run (aborted, cut short or stopped "
+            f"early); {unfinished}"
+        )
+    src, why = next(iter(unreadable.items()))
+    if given == 1:
+        return f"{src}: {why}"
+    first = f"the first: {src}: {why}"
+    if len(unreadable) == given:
+        return f"no recording to export: all {given} given are unreadable ({first})"
+    return (
+        f"no recording to export: {len(unreadable)} of {given} unreadable ({first}), the "
+        f"others of unfinished runs ({unfinished})"
+    )
+
+
 def export_lerobot(
     runs: list[Path],
     out: Path,
@@ -281,7 +306,9 @@ def export_lerobot(
     A recording whose session ended before its task did (aborted by an error or Ctrl-C,
     cut short by a kill, stopped by the ``--max-time`` cap, or a replay of such a run's
     hands: :func:`~payload.trials.reading.cut_reason`) is left out with a warning naming
-    it, unless ``unfinished``: its episode would end where the session stopped. Each
+    it, unless ``unfinished``: its episode would end where the session stopped. A
+    recording that cannot be read (damaged, not a trial recording) is left out the same
+    way, ``unfinished`` or not, so one bad file does not stop a campaign's export. Each
     episode carries ``payload/ended_by`` (``"source"``, ``"max_time"``, or null: not
     recorded) and ``payload/success`` (the trial's ``metrics.json`` beside the recording;
     null where there is none).
@@ -299,11 +326,13 @@ def export_lerobot(
 
     Returns:
         ``{"path", "episodes", "frames", "fps", "tasks", "files", "sources", "left_out"}``
-        (``left_out``: the unfinished recordings not exported, with why).
+        (``left_out``: the unfinished and unreadable recordings not exported, with why, in
+        the order given).
 
     Raises:
         LeRobotExportError: A run is missing or empty, not at ``fps``, every run is
-            unfinished (and ``unfinished`` is not set), or ``out`` is not empty.
+            unfinished (and ``unfinished`` is not set) or unreadable, or ``out`` is not
+            empty.
     """
     import pyarrow as pa
     import pyarrow.parquet as pq
@@ -324,31 +353,37 @@ def export_lerobot(
     }
     n_state, n_action = len(state_names()), len(action_names())
 
-    def read_all() -> list[tuple[Path, Recording]]:
-        if not progress:
-            return [(s, read_recording(s)) for s in sources]
-        from rich.console import Console
-        from rich.progress import track
+    unreadable: dict[Path, str] = {}
 
-        items = track(sources, description="reading runs", console=Console(stderr=True))
-        return [(s, read_recording(s)) for s in items]
+    def read_all() -> list[tuple[Path, Recording]]:
+        items: Any = sources
+        if progress:
+            from rich.console import Console
+            from rich.progress import track
+
+            items = track(sources, description="reading runs", console=Console(stderr=True))
+        loaded = []
+        for src in items:
+            try:
+                loaded.append((src, read_recording(src)))
+            except RecordingError as exc:  # one damaged file does not stop the others
+                unreadable[src] = f"{UNREADABLE}: {str(exc).removeprefix(f'{src}: ')}"
+        return loaded
 
     loaded = read_all()
-    left_out: list[dict[str, str]] = []
-    if not unfinished:
-        why = {src: cut_reason(rec.meta, rec.complete) for src, rec in loaded}
-        left_out = [{"source": str(src), "why": w} for src, w in why.items() if w is not None]
-        if len(left_out) == len(loaded):
-            raise LeRobotExportError(
-                "every recording given is of an unfinished run (aborted, cut short or "
-                "stopped early); "
-                "--include-unfinished exports them"
-            )
-        for item in left_out:
-            log.warning(
-                "%s: left out (%s; --include-unfinished exports it)", item["source"], item["why"]
-            )
-        loaded = [(src, rec) for src, rec in loaded if why[src] is None]
+    why = {src: cut_reason(rec.meta, rec.complete) for src, rec in loaded}
+    if unfinished:
+        why = dict.fromkeys(why)
+    why.update(unreadable)
+    left_out = [
+        {"source": str(src), "why": why[src]} for src in sources if why.get(src) is not None
+    ]
+    if len(left_out) == len(sources):
+        raise LeRobotExportError(_nothing_to_export(len(sources), unreadable))
+    for item in left_out:
+        hint = "" if item["why"].startswith(UNREADABLE) else "; --include-unfinished exports it"
+        log.warning("%s: left out (%s%s)", item["source"], item["why"], hint)
+    loaded = [(src, rec) for src, rec in loaded if why[src] is None]
     # check every recording before touching an existing dataset at ``out``
     frames = [_episode_frames(rec, src, fps) for src, rec in loaded]
     final, out = out, _prepare_out(out, overwrite)
