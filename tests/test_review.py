@@ -432,7 +432,7 @@ def test_a_trial_folder_named_alone_is_replayed_as_with_trial(tmp_path, capsys) 
     assert f"is a design project, not a trial; review it with --project {ROOT}" in _err(capsys)
     assert main(["review", str(tmp_path / "campaign"), "--reach-samples", "0"]) == 2
     err = _err(capsys)
-    assert "is a campaign's folder (1 recorded); name one of its trials, e.g. " in err
+    assert "holds 1 recorded run(s), each in its own folder; name one, e.g. " in err
     assert err.endswith(str(folder))
     assert main(["review", str(tmp_path), "--reach-samples", "0"]) == 2
     assert "not a trial folder (no log.mcap in it)" in _err(capsys)

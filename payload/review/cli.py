@@ -124,7 +124,8 @@ def _check_project_design(design: Path) -> None:
 def _trial_folder(args: argparse.Namespace) -> None:
     """``payload review TRIAL``: a trial folder named without ``--trial`` is replayed as
     with it; a design project, a campaign's folder or a folder without a recording is
-    refused naming what to give instead."""
+    refused naming what to give instead (a campaign's folder, or a project's ``runs/``:
+    one of the runs in it)."""
     folder = args.trial_folder
     if folder is None:
         return
@@ -138,11 +139,11 @@ def _trial_folder(args: argparse.Namespace) -> None:
             raise ReviewError(
                 f"{folder}: is a design project, not a trial; review it with --project {folder}"
             )
-        trials = sorted(p.parent.name for p in path.glob(f"trial-*/{RECORDING}"))
-        if trials:
+        runs = sorted(p.parent.name for p in path.glob(f"*/{RECORDING}"))
+        if runs:  # a campaign's folder, or a project's runs/
             raise ReviewError(
-                f"{folder}: is a campaign's folder ({len(trials)} recorded); name one of its "
-                f"trials, e.g. {path / trials[0]}"
+                f"{folder}: holds {len(runs)} recorded run(s), each in its own folder; name "
+                f"one, e.g. {path / runs[0]}"
             )
         raise ReviewError(f"{folder}: not a trial folder (no {RECORDING} in it)")
     args.trial = folder
