@@ -309,7 +309,7 @@ def _cmd_identify(args: argparse.Namespace) -> int:
     device = need_device(args)
     _models_follow(args)
     with DynamixelDriver(device, smap, latency_timer_ms=args.latency_ms) as drv:
-        report = identify(drv, args.joints)
+        report = identify(drv, args.joints, say=_say)
         design_file = drv.design.source
     report["device"] = args.device
     report["written"] = None

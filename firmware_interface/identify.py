@@ -32,6 +32,7 @@ import math
 import re
 import struct
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -211,19 +212,31 @@ def fit(rec: Record, volts: float, p_gain: float) -> dict[str, Any]:
     }
 
 
-def identify(drv: DynamixelDriver, joints: list[str] | None = None) -> dict[str, Any]:
-    """Bring up, excite and fit each named servo (default: all); the report as plain data."""
+def identify(
+    drv: DynamixelDriver,
+    joints: list[str] | None = None,
+    say: Callable[[str], None] | None = None,
+) -> dict[str, Any]:
+    """Bring up, excite and fit each named servo (default: all); the report as plain data.
+
+    ``say``: told each stage as it starts (the bring-up, then each servo's excitation, which
+    moves its joint across its range: about 15 s a servo), for a terminal's progress."""
     specs = [s for s in drv.map.servos if joints is None or s.joint in joints]
     design = drv.design
     tree = build_tree(design)
+    if say is not None:
+        say(f"bringing up the servos on {drv.device} and homing the rail and the stage")
     drv.bring_up()
     for i in drv.ids:
         # one servo is talked to at a time: the others would trip their Bus Watchdog (and
         # hold, as they do anyway); without it, a pause of the host cannot stop the test
         drv._write(i, "bus_watchdog", 0)
     out = []
-    for spec in specs:
+    for n, spec in enumerate(specs, 1):
         kind = kind_of(spec.joint)
+        if say is not None:
+            say(f"servo {n} of {len(specs)}: {spec.joint} (ID {spec.id}), steps and a chirp "
+                "across its range")  # fmt: skip
         rec, volts = excite(drv, spec)
         p_gain = drv._read_reg(spec.id, ADDR["position_p_gain"], 2)
         got = fit(rec, volts, p_gain)

@@ -27,8 +27,14 @@ def test_identify_recovers_hidden_emulator_parameters_within_10_percent(tmp_path
         code = main(["hw", "identify", "--device", emu.port, "--joints", "A_mcp_flex",
                      "--json", "--latency-ms", "50"])  # fmt: skip
     assert code == 0
-    report = json.loads(capsys.readouterr().out)
+    said = capsys.readouterr()
+    report = json.loads(said.out)
     (servo,) = report["servos"]
+    # each stage said as it starts, on stderr (a whole bus takes minutes, each joint moving)
+    assert said.err.splitlines()[-2:] == [
+        f"bringing up the servos on {emu.port} and homing the rail and the stage ...",
+        f"servo 1 of 1: A_mcp_flex (ID {servo['id']}), steps and a chirp across its range ...",
+    ], said.err
     got = servo["fit"]
     for key, value in HIDDEN.items():
         assert got[key] == pytest.approx(value, rel=0.10), key
