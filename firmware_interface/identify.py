@@ -220,7 +220,7 @@ def identify(
     """Bring up, excite and fit each named servo (default: all); the report as plain data.
 
     ``say``: told each stage as it starts (the bring-up, then each servo's excitation, which
-    moves its joint across its range: about 15 s a servo), for a terminal's progress."""
+    moves its joint across its range: 15 to 20 s a servo), for a terminal's progress."""
     specs = [s for s in drv.map.servos if joints is None or s.joint in joints]
     design = drv.design
     tree = build_tree(design)

@@ -104,20 +104,42 @@ SERIAL_STREAMS: dict[str, str] = {
     "test_teleop_server.py": "web",
 }
 """Tests that run against the wall clock, by stream: ``bus``, the servo-bus emulator
-integrating in real time on a pty; ``web``, headless Chromium and live servers with
-latency and watch deadlines. ``make test`` runs them after the parallel part, in two
-streams side by side (``-n 2 --dist loadgroup``: one process a stream, each of its tests
-one at a time), so no CPU-heavy test steals their core. The two streams are light (about
-half a core together) and share nothing: ptys on one side, loopback ports and Chromium on
-the other."""
+integrating in real time on a pty; ``web``, headless Chromium and the live servers with
+latency and watch deadlines (some of them with an emulator behind the server). ``make
+test`` runs them after the parallel part, in two streams side by side (``-n 2 --dist
+loadgroup``, scheduled by :func:`pytest_xdist_make_scheduler`: one worker a stream, each
+running its tests one at a time), so no CPU-heavy test of the first part takes their
+core. Nothing is shared between the streams: every server binds a free port, every
+emulator its own pty, every file goes under the test's ``tmp_path``."""
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     for item in items:
-        stream = SERIAL_STREAMS.get(item.path.name)
-        if stream is not None:
+        if item.path.name in SERIAL_STREAMS:
             item.add_marker(pytest.mark.serial)
-            item.add_marker(pytest.mark.xdist_group(stream))
+
+
+def stream_of(nodeid: str) -> str:
+    """The serial stream of a test (``SERIAL_STREAMS``), or its own id outside them."""
+    return SERIAL_STREAMS.get(nodeid.split("::", 1)[0].rpartition("/")[2], nodeid)
+
+
+@pytest.hookimpl(tryfirst=True, optionalhook=True)
+def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
+    """``--dist loadgroup``: each stream of ``SERIAL_STREAMS`` is one unit of work, so one
+    worker runs all of it, one test at a time. (xdist's own ``xdist_group`` marks do not
+    reach its scheduler under pytest 9.2: the group suffix it puts on a test's id is no
+    longer read, and the tests were handed out one by one.) Other ``--dist`` modes keep
+    xdist's schedulers."""
+    if config.getvalue("dist") != "loadgroup":
+        return None
+    from xdist.scheduler import LoadScopeScheduling
+
+    class StreamScheduling(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            return stream_of(nodeid)
+
+    return StreamScheduling(config, log)
 
 
 @pytest.fixture(scope="session", autouse=True)

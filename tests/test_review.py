@@ -434,8 +434,17 @@ def test_a_trial_folder_named_alone_is_replayed_as_with_trial(tmp_path, capsys) 
     err = _err(capsys)
     assert "holds 1 recorded run(s), each in its own folder; name one, e.g. " in err
     assert err.endswith(str(folder))
+    # a folder of campaigns (a project's runs/): one of the trials in them is named
     assert main(["review", str(tmp_path), "--reach-samples", "0"]) == 2
+    assert _err(capsys).endswith(f"holds 1 recorded run(s), each in its own folder; name one, "
+                                 f"e.g. {folder}")  # fmt: skip
+    (tmp_path / "empty").mkdir()
+    assert main(["review", str(tmp_path / "empty"), "--reach-samples", "0"]) == 2
     assert "not a trial folder (no log.mcap in it)" in _err(capsys)
+    # the recording itself names its trial
+    assert main(["review", str(folder / "log.mcap"), "--static", str(alone), "--reach-samples",
+                 "0"]) == 0  # fmt: skip
+    assert capsys.readouterr().out.splitlines()[:-1] == said[:-1]
     assert main(["review", str(tmp_path / "none")]) == 2
     assert "not a folder" in _err(capsys)
     assert main(["review", str(folder), "--trial", str(folder)]) == 2

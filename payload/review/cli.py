@@ -122,31 +122,33 @@ def _check_project_design(design: Path) -> None:
 
 
 def _trial_folder(args: argparse.Namespace) -> None:
-    """``payload review TRIAL``: a trial folder named without ``--trial`` is replayed as
-    with it; a design project, a campaign's folder or a folder without a recording is
-    refused naming what to give instead (a campaign's folder, or a project's ``runs/``:
-    one of the runs in it)."""
-    folder = args.trial_folder
-    if folder is None:
+    """``payload review TRIAL``: a trial folder (or its ``log.mcap``) named without
+    ``--trial`` is replayed as with it. A design project, a folder of runs (a campaign's,
+    a project's ``runs/``) or a folder without a recording is refused naming what to give
+    instead."""
+    if args.trial_folder is None:
         return
+    path = Path(args.trial_folder)
     if args.trial is not None:
-        raise ReviewError(f"{folder}: give the trial once, as TRIAL or as --trial DIR")
-    path = Path(folder)
+        raise ReviewError(f"{path}: give the trial once, as TRIAL or as --trial DIR")
+    if path.name == RECORDING and path.is_file():  # the recording itself: its trial folder
+        path = path.parent
     if not path.is_dir():
-        raise ReviewError(f"{folder}: not a folder (a trial folder, holding {RECORDING})")
+        raise ReviewError(f"{path}: not a folder (a trial folder, holding {RECORDING})")
     if not (path / RECORDING).is_file():
         if (path / DESIGN_FILE).is_file():
             raise ReviewError(
-                f"{folder}: is a design project, not a trial; review it with --project {folder}"
+                f"{path}: is a design project, not a trial; review it with --project {path}"
             )
-        runs = sorted(p.parent.name for p in path.glob(f"*/{RECORDING}"))
-        if runs:  # a campaign's folder, or a project's runs/
+        runs = sorted(p.parent for p in path.glob(f"*/{RECORDING}"))
+        runs = runs or sorted(p.parent for p in path.glob(f"*/*/{RECORDING}"))
+        if runs:  # a campaign's folder, or a project's runs/ (of campaigns, perhaps)
             raise ReviewError(
-                f"{folder}: holds {len(runs)} recorded run(s), each in its own folder; name "
-                f"one, e.g. {path / runs[0]}"
+                f"{path}: holds {len(runs)} recorded run(s), each in its own folder; name "
+                f"one, e.g. {runs[0]}"
             )
-        raise ReviewError(f"{folder}: not a trial folder (no {RECORDING} in it)")
-    args.trial = folder
+        raise ReviewError(f"{path}: not a trial folder (no {RECORDING} in it)")
+    args.trial = str(path)
 
 
 def _cmd_review(args: argparse.Namespace) -> int:
