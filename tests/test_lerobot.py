@@ -295,6 +295,7 @@ def test_unfinished_runs_are_left_out_unless_asked_for(
     assert info["episodes"] == 1 and info["frames"] == 120 and info["sources"] == [str(runs[0])]
     assert [x["source"] for x in info["left_out"]] == list(map(str, unfinished))
     why = [x["why"] for x in info["left_out"]]
+    assert [x["kind"] for x in info["left_out"]] == ["unfinished"] * 4
     assert why[0].startswith("aborted") and "cut short" in why[1], why
     assert "--max-time" in why[2] and "replay of an unfinished run" in why[3], why
     warned = [r.getMessage() for r in caplog.records if "left out" in r.getMessage()]
@@ -345,6 +346,7 @@ def test_a_damaged_recording_is_left_out_and_the_rest_exported(
         assert info["episodes"] == 2 and info["frames"] == 120 + 50, info
         assert [x["source"] for x in info["left_out"]] == [str(bad)], info["left_out"]
         assert info["left_out"][0]["why"].startswith("unreadable: "), info["left_out"]
+        assert info["left_out"][0]["kind"] == "unreadable", info["left_out"]
         assert str(bad) not in info["left_out"][0]["why"]  # the path said once
         warned = [r.getMessage() for r in caplog.records if "left out" in r.getMessage()]
         assert warned[-1].startswith(f"{bad}: left out (unreadable: "), warned
@@ -356,11 +358,18 @@ def test_a_damaged_recording_is_left_out_and_the_rest_exported(
     )
     assert main(["export", "lerobot", str(camp), "--out", str(tmp_path / "ds2")]) == 0
     assert capsys.readouterr().out.rstrip().endswith("; 1 unreadable run(s) left out")
+    cut = tmp_path / "cut.mcap"  # a killed run's file: unfinished, not unreadable
+    cut.write_bytes(runs[0].read_bytes()[: runs[0].stat().st_size * 3 // 4])
+    argv = ["export", "lerobot", str(runs[2]), str(cut), str(bad), "--out"]
+    assert main([*argv, str(tmp_path / "ds3")]) == 0
+    said = capsys.readouterr().out.rstrip()
+    assert said.endswith("; 1 unfinished run(s) and 1 unreadable run(s) left out"), said
     other = tmp_path / "other.mcap"
     other.write_bytes(b"\x89MCAP0\r\n but torn")
     for given, says in (
         ([bad], f"{bad}: unreadable: "),
         ([bad, other], "no recording to export: all 2 given are unreadable (the first: "),
+        ([cut, bad], "no recording to export: 1 of 2 unreadable (the first: "),
     ):
         assert main(["export", "lerobot", *map(str, given), "--out", str(tmp_path / "x")]) == 2
         err = capsys.readouterr().err.strip().splitlines()

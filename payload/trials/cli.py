@@ -56,11 +56,10 @@ def _cmd_export_lerobot(args: argparse.Namespace) -> int:
 
 def _left_out_words(left_out: list[dict[str, str]]) -> str:
     """The export line's tail: how many runs were left out, unfinished and unreadable."""
-    from payload.trials.lerobot import UNREADABLE
+    from payload.trials.lerobot import UNFINISHED, UNREADABLE
 
-    bad = sum(item["why"].startswith(UNREADABLE) for item in left_out)
-    parts = [f"{n} {what} run(s)" for n, what in ((len(left_out) - bad, "unfinished"),
-                                                   (bad, UNREADABLE)) if n]  # fmt: skip
+    kinds = [item["kind"] for item in left_out]
+    parts = [f"{n} {kind} run(s)" for kind in (UNFINISHED, UNREADABLE) if (n := kinds.count(kind))]
     return f"; {' and '.join(parts)} left out" if parts else ""
 
 

@@ -266,8 +266,12 @@ def _trial_success(recording: Path) -> bool | None:
         return None
 
 
+UNFINISHED = "unfinished"
+"""A ``left_out`` entry's ``kind`` for the recording of a run that ended before its task."""
+
 UNREADABLE = "unreadable"
-"""How a ``left_out`` entry's ``why`` starts for a recording that could not be read."""
+"""A ``left_out`` entry's ``kind`` (and how its ``why`` starts) for a recording that could
+not be read."""
 
 
 def _nothing_to_export(given: int, unreadable: dict[Path, str]) -> str:
@@ -326,8 +330,9 @@ def export_lerobot(
 
     Returns:
         ``{"path", "episodes", "frames", "fps", "tasks", "files", "sources", "left_out"}``
-        (``left_out``: the unfinished and unreadable recordings not exported, with why, in
-        the order given).
+        (``left_out``: the unfinished and unreadable recordings not exported, in the order
+        given, each ``{"source", "why", "kind"}``, ``kind`` :data:`UNFINISHED` or
+        :data:`UNREADABLE`).
 
     Raises:
         LeRobotExportError: A run is missing or empty, not at ``fps``, every run is
@@ -376,12 +381,18 @@ def export_lerobot(
         why = dict.fromkeys(why)
     why.update(unreadable)
     left_out = [
-        {"source": str(src), "why": why[src]} for src in sources if why.get(src) is not None
+        {
+            "source": str(src),
+            "why": why[src],
+            "kind": UNREADABLE if src in unreadable else UNFINISHED,
+        }
+        for src in sources
+        if why.get(src) is not None
     ]
     if len(left_out) == len(sources):
         raise LeRobotExportError(_nothing_to_export(len(sources), unreadable))
     for item in left_out:
-        hint = "" if item["why"].startswith(UNREADABLE) else "; --include-unfinished exports it"
+        hint = "" if item["kind"] == UNREADABLE else "; --include-unfinished exports it"
         log.warning("%s: left out (%s%s)", item["source"], item["why"], hint)
     loaded = [(src, rec) for src, rec in loaded if why[src] is None]
     # check every recording before touching an existing dataset at ``out``
