@@ -367,7 +367,7 @@ def test_a_damaged_recording_is_left_out_and_the_rest_exported(
     other = tmp_path / "other.mcap"
     other.write_bytes(b"\x89MCAP0\r\n but torn")
     for given, says in (
-        ([bad], f"{bad}: unreadable: "),
+        ([bad], f"{bad}: "),  # the one recording given: its own error
         ([bad, other], "no recording to export: all 2 given are unreadable (the first: "),
         ([cut, bad], "no recording to export: 1 of 2 unreadable (the first: "),
     ):

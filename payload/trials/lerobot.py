@@ -284,8 +284,6 @@ def _nothing_to_export(given: int, unreadable: dict[Path, str]) -> str:
             f"early); {unfinished}"
         )
     src, why = next(iter(unreadable.items()))
-    if given == 1:
-        return f"{src}: {why}"
     first = f"the first: {src}: {why}"
     if len(unreadable) == given:
         return f"no recording to export: all {given} given are unreadable ({first})"
@@ -372,6 +370,8 @@ def export_lerobot(
             try:
                 loaded.append((src, read_recording(src)))
             except RecordingError as exc:  # one damaged file does not stop the others
+                if len(sources) == 1:
+                    raise  # the one recording given: its own error
                 unreadable[src] = f"{UNREADABLE}: {str(exc).removeprefix(f'{src}: ')}"
         return loaded
 
