@@ -64,6 +64,14 @@ class Received:
     xr_server_ms: float | None
 
 
+SIMULATOR = "simulator"
+"""The driver's name when the loop drives the simulator alone (:attr:`LiveHub.driver`)."""
+
+HOLDER = "holder"
+"""A page's role when it holds control (:meth:`LiveHub.role`); the page compares a state
+message's ``notice_to`` with it."""
+
+
 @dataclass
 class LiveHub:
     """State shared by the server thread and the loop thread (all access under ``lock``)."""
@@ -71,7 +79,7 @@ class LiveHub:
     lock: threading.Lock = field(default_factory=threading.Lock)
     clients: int = 0
     active: int | None = None  # id of the connection that holds control (drives)
-    driver: str = "simulator"  # what the loop drives: "simulator" / "hardware on DEVICE"
+    driver: str = SIMULATOR  # what the loop drives: "simulator" / "hardware on DEVICE"
     latest: Received | None = None
     frames: int = 0
     dropped: dict[str, int] = field(default_factory=lambda: dict.fromkeys(DROP_KINDS, 0))
@@ -107,12 +115,17 @@ class LiveHub:
             self.latest = None
             return True
 
+    @property
+    def drives_hardware(self) -> bool:
+        """Whether the loop drives real servos (or an emulated bus) besides the simulator."""
+        return self.driver != SIMULATOR
+
     def role(self, conn_id: int) -> str:
         """``holder``, ``watching`` (another connection holds control) or ``free``."""
         with self.lock:
             if self.active is None:
                 return "free"
-            return "holder" if self.active == conn_id else "watching"
+            return HOLDER if self.active == conn_id else "watching"
 
     def put(self, conn_id: int, message: FrameMessage, offset_ms: float | None) -> bool:
         """Store a validated frame; ``offset_ms`` = page clock - server clock.

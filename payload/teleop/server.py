@@ -334,7 +334,8 @@ class TeleopServer:
         self.hub.connect(conn_id)
         log.info("teleop server: page connected from %s", _peer(ws))
         hello = {"type": "hello", "scene": self.scene, "max_message_bytes": MAX_MESSAGE_BYTES,
-                 "driver": self.hub.status()["driver"]}  # fmt: skip
+                 "driver": self.hub.status()["driver"],
+                 "hardware": self.hub.drives_hardware}  # fmt: skip
         tasks = []
         try:
             await ws.send(json.dumps(hello))

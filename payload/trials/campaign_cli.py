@@ -111,12 +111,9 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
                 else trial_line_printer(len(seeds)),
             )
         except KeyboardInterrupt as exc:  # what is kept, and how to use it
-            done = [  # this run's trials only (a --force run's folder may hold others)
-                trial_dir(out, s) / METRICS
-                for s in seeds
-                if (trial_dir(out, s) / METRICS).is_file()
-                and (trial_dir(out, s) / METRICS).stat().st_mtime >= started
-            ]
+            scored = (trial_dir(out, s) / METRICS for s in seeds)
+            # this run's trials only (a --force run's folder may hold others)
+            done = [m for m in scored if m.is_file() and m.stat().st_mtime >= started]
             if done:
                 exc.add_note(
                     f"{len(done)} finished trial(s) kept in {out}: `payload trials summarize "

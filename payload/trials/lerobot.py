@@ -356,29 +356,26 @@ def export_lerobot(
     }
     n_state, n_action = len(state_names()), len(action_names())
 
-    unreadable: dict[Path, str] = {}
+    def read(src: Path) -> Recording | str:
+        """The recording, or why it cannot be read (one damaged file does not stop the
+        others; the one recording given alone raises its own error)."""
+        try:
+            return read_recording(src)
+        except RecordingError as exc:
+            if len(sources) == 1:
+                raise
+            return f"{UNREADABLE}: {str(exc).removeprefix(f'{src}: ')}"
 
-    def read_all() -> list[tuple[Path, Recording]]:
-        items: Any = sources
-        if progress:
-            from rich.console import Console
-            from rich.progress import track
+    items: Any = sources
+    if progress:
+        from rich.console import Console
+        from rich.progress import track
 
-            items = track(sources, description="reading runs", console=Console(stderr=True))
-        loaded = []
-        for src in items:
-            try:
-                loaded.append((src, read_recording(src)))
-            except RecordingError as exc:  # one damaged file does not stop the others
-                if len(sources) == 1:
-                    raise  # the one recording given: its own error
-                unreadable[src] = f"{UNREADABLE}: {str(exc).removeprefix(f'{src}: ')}"
-        return loaded
-
-    loaded = read_all()
-    why = {src: cut_reason(rec.meta, rec.complete) for src, rec in loaded}
-    if unfinished:
-        why = dict.fromkeys(why)
+        items = track(sources, description="reading runs", console=Console(stderr=True))
+    read_out = {src: read(src) for src in items}
+    unreadable = {src: r for src, r in read_out.items() if isinstance(r, str)}
+    loaded = [(src, r) for src, r in read_out.items() if not isinstance(r, str)]
+    why = {src: None if unfinished else cut_reason(rec.meta, rec.complete) for src, rec in loaded}
     why.update(unreadable)
     left_out = [
         {

@@ -35,7 +35,7 @@ from payload.teleop.calibration import (
     Step,
 )
 from payload.teleop.link import DelayedLink, DelayLine
-from payload.teleop.live import LiveHub, LiveSource, TimedDriver
+from payload.teleop.live import HOLDER, LiveHub, LiveSource, TimedDriver
 from payload.teleop.loop import StepContext, WatchdogArming, run_session
 from payload.teleop.pipeline import TeleopConfig, TeleopPipeline, calibrate_operator
 from payload.teleop.replay import HandRecordingWriter
@@ -370,7 +370,7 @@ class LiveSession:
             source.pipeline = pipeline
             self.calibrated = True
             self.notice = "calibrated: fly with your left wrist"
-            self.notice_to = "holder"  # the operator's instruction, not the watchers'
+            self.notice_to = HOLDER  # the operator's instruction, not the watchers'
             return pipeline
 
         def on_step(ctx: StepContext) -> None:

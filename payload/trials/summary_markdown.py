@@ -108,13 +108,11 @@ def summary_markdown(summary: dict[str, Any], title: str | None = None) -> str:
     lo, gap = definition.get("min_interval_s"), definition.get("max_gap_s")
     # the debounced definition is "confirmed contact"; any other (a rescoring, or trials
     # recorded under another) is named by its numbers
-    confirmed = "mixed" not in definition and (lo, gap) in (
-        (None, None),
-        (CONFIRM_MIN_S, CONFIRM_MAX_GAP_S),
-    )
+    mixed = "mixed" in definition
+    confirmed = not mixed and (lo, gap) in ((None, None), (CONFIRM_MIN_S, CONFIRM_MAX_GAP_S))
     if confirmed:
         first = "confirmed contact"
-    elif "mixed" in definition or lo is None or gap is None:
+    elif mixed or lo is None or gap is None:
         first = "mixed contact definitions"
     else:
         first = f"contact (>= {lo:g} s, gaps <= {gap:g} s)"

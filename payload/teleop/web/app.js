@@ -29,7 +29,7 @@ const $ = (id) => document.getElementById(id);
 // what the browser test (and a curious developer) can look at
 const debug = {
   sent: 0, received: 0, connects: 0, state: null, open: false, xr: false,
-  role: null, driver: null, link: 'connecting to the teleop server…', canEnter: false,
+  role: null, driver: null, hardware: false, link: 'connecting to the teleop server…', canEnter: false,
   why: null, vrError: null, panel: [],
 };
 window.__teleop = debug;
@@ -225,7 +225,7 @@ function panelLines() {
   const prompt = promptText();
   const role = debug.role === 'holder' ? null : roleHint() || ROLES[debug.role];
   // a headset shows no header: the one driving real servos is told so first
-  const hardware = debug.driver && debug.driver.startsWith('hardware') ? debug.driver : null;
+  const hardware = debug.hardware ? debug.driver : null;
   return [hardware && `driver: ${hardware}`, prompt,
     st && st.safe_stop ? `safe stop: ${st.safe_stop}` : null, role, ...numbers,
     prompt ? null : noticeText(st)].filter(Boolean);
@@ -259,6 +259,7 @@ const link = new Link((msg) => {
     renderer.scene = { ...scene, modules: (scene.modules || []).map((m) => (
       { ...m, name: m.title || words(m.name || '') })) };
     debug.driver = msg.driver || null;
+    debug.hardware = Boolean(msg.hardware);  // the server says whether it drives servos
     showStatus();
   } else if (msg.type === 'state') {
     debug.state = msg;
