@@ -367,3 +367,66 @@ def test_a_chunk_claiming_a_huge_size_is_refused_without_allocating_it():
         _open_chunk(body)
     good = struct.pack("<QQQI", 0, 1, len(raw), zlib.crc32(raw)) + body[28:]
     assert _open_chunk(good) == raw
+
+
+def _rewritten(src: Path, dst: Path, change: dict[int, dict[str, int]]) -> None:
+    """``src`` copied record for record by mcap's own reader and writer (valid chunks and
+    CRCs), with the step messages of the sequence numbers in ``change`` re-serialised with
+    those fields set: what another writer's well-formed file could hold."""
+    from mcap.reader import make_reader
+    from mcap.writer import Writer
+
+    from payload.trials.stepmsg import StepMsg
+
+    with open(src, "rb") as f_in, open(dst, "wb") as f_out:
+        reader = make_reader(f_in)
+        header = reader.get_header()
+        w = Writer(f_out)
+        w.start(profile=header.profile, library=header.library)
+        schemas: dict[int, int] = {}
+        channels: dict[int, int] = {}
+        for schema, channel, message in reader.iter_messages(log_time_order=False):
+            if schema is not None and schema.id not in schemas:
+                schemas[schema.id] = w.register_schema(schema.name, schema.encoding, schema.data)
+            if channel.id not in channels:
+                channels[channel.id] = w.register_channel(
+                    channel.topic,
+                    channel.message_encoding,
+                    schemas.get(channel.schema_id, 0),
+                    channel.metadata,
+                )
+            data = message.data
+            if channel.topic == STEP_TOPIC and message.sequence in change:
+                m = StepMsg.FromString(data)
+                for name, value in change[message.sequence].items():
+                    setattr(m, name, value)
+                data = m.SerializeToString()
+            w.add_message(
+                channels[channel.id], message.log_time, data, message.publish_time,
+                message.sequence,
+            )  # fmt: skip
+        for meta in reader.iter_metadata():
+            w.add_metadata(meta.name, meta.metadata)
+        w.finish()
+
+
+@pytest.mark.parametrize(
+    ("field", "value"), [("phase", 9), ("phase", -2), ("ctb_module", 4), ("ctb_module", -1)]
+)
+def test_a_step_whose_enum_is_out_of_range_is_named(
+    recording: Path, tmp_path: Path, field: str, value: int
+):
+    """Protobuf's enums are open: a well-formed file (valid chunks and CRCs) can hold any
+    32-bit number in a step's phase or module. The reader names the step and the field
+    (before: an IndexError's traceback, and a negative number read silently as a name
+    counted from the end)."""
+    same = tmp_path / "same.mcap"
+    _rewritten(recording, same, {})
+    assert _same(read_recording(same), read_recording(recording))  # the copy reads alike
+    bad = tmp_path / "bad.mcap"
+    _rewritten(recording, bad, {40: {field: value}})
+    with pytest.raises(RecordingError) as info:
+        read_recording(bad)
+    text = str(info.value)
+    assert "\n" not in text and text.startswith(f"{bad}: step 40: "), text
+    assert f"{field}: {value} is not a number from 0 to" in text, text

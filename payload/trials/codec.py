@@ -45,6 +45,7 @@ from collections.abc import Callable, Iterator
 from typing import Any
 
 import numpy as np
+from google.protobuf.message import DecodeError
 
 from payload.schema import N_MANIPULATION
 from payload.trials.codec_c import compiled_steps
@@ -278,13 +279,16 @@ class StepCodec:
 
         Raises:
             ValueError: The message refers to a hand sample that is not in the file.
+            DecodeError: Its phase or module is a number outside its enum (protobuf's
+                enums are open: another writer's file can hold any 32-bit number, and a
+                negative one would otherwise index the names from their end).
         """
         m = StepMsg.FromString(data)
         row: dict[str, Any] = {
             "seq": int(m.seq),
             "wall_time": float(m.wall_time),
-            "phase": PHASES[m.phase],
-            "ctb_module": MODULES[m.ctb_module],
+            "phase": _enum_name(PHASES, m.phase, "phase"),
+            "ctb_module": _enum_name(MODULES, m.ctb_module, "ctb_module"),
             "left_tracked": bool(m.left_tracked),
             "right_tracked": bool(m.right_tracked),
             "contact": bool(m.contact),
@@ -311,6 +315,13 @@ class StepCodec:
             else:
                 row[name] = self.joints[name].decode(sub)
         return row
+
+
+def _enum_name(names: tuple[str, ...], number: int, field: str) -> str:
+    """``names[number]``, or a :class:`DecodeError` naming the field and the number."""
+    if 0 <= number < len(names):
+        return names[number]
+    raise DecodeError(f"{field}: {number} is not a number from 0 to {len(names) - 1}")
 
 
 _EMPTY = np.zeros(0)
