@@ -409,7 +409,12 @@ def test_trial_folder_without_a_readable_recording_exits_2(tmp_path, capsys) -> 
     assert "no readable recording" in _err(capsys)
     (tmp_path / "log.mcap").write_bytes(b"not an mcap file")
     assert main(["review", "--trial", str(tmp_path)]) == 2
-    assert "no readable recording" in _err(capsys)
+    assert f": --trial {tmp_path}: no readable recording" in _err(capsys)
+    # named alone (``payload review TRIAL``), the line names the folder, not an option
+    # the user did not type
+    assert main(["review", str(tmp_path)]) == 2
+    err = _err(capsys)
+    assert f": {tmp_path}: no readable recording" in err and "--trial" not in err, err
 
 
 def test_a_trial_folder_named_alone_is_replayed_as_with_trial(tmp_path, capsys) -> None:

@@ -12,7 +12,7 @@ from payload.cliutil import command_project
 from payload.folders import RECORDING
 from payload.project import DESIGN_FILE, is_project_design
 from payload.review.errors import ReviewError
-from payload.review.project import DEFAULT_RATE
+from payload.review.project import DEFAULT_RATE, TRIAL_OPTION
 
 if TYPE_CHECKING:
     from payload.review.live import LiveReview
@@ -29,12 +29,15 @@ def build_review(
     reach_samples: int = DEFAULT_REACH_SAMPLES,
     check_models: bool = True,
     rate: float = DEFAULT_RATE,
+    trial_option: str | None = TRIAL_OPTION,
 ) -> Scene:
     """The review scene: the design review, and the trial replay when ``trial`` is given.
 
     With a trial, the replay is what shows (the design review stays in the scene tree,
     hidden) and its animation is the trial's. ``check_models`` False skips the check that
     the generated models match the design (for a caller that has just written them).
+    ``trial_option`` is the option that named the trial, which its errors begin with
+    (None: it was named alone, as ``payload review TRIAL``).
     """
     from payload.review.design_view import REVIEW, build_design_review
     from payload.review.project import project_files
@@ -45,7 +48,7 @@ def build_review(
         from payload.review.trial_view import read_trial
 
         files.check()
-        rec = read_trial(trial, files)  # bad input fails before the slow work
+        rec = read_trial(trial, files, trial_option)  # bad input fails before the slow work
     review = build_design_review(files, reach_samples, check_models=check_models).scene
     if trial is None:
         return review
@@ -130,7 +133,7 @@ def _trial_folder(args: argparse.Namespace) -> None:
         return
     path = Path(args.trial_folder)
     if args.trial is not None:
-        raise ReviewError(f"{path}: give the trial once, as TRIAL or as --trial DIR")
+        raise ReviewError(f"{path}: give the trial once, as TRIAL or as {TRIAL_OPTION} DIR")
     if path.name == RECORDING and path.is_file():  # the recording itself: its trial folder
         path = path.parent
     if not path.is_dir():
@@ -176,8 +179,9 @@ def _cmd_review(args: argparse.Namespace) -> int:
 
     models_follow_design(project.design_path, project.root)  # the one rule for stale models
     scene = build_review(  # the models have just been made to follow the design
-        args.design, args.trial, args.reach_samples, check_models=False, rate=args.rate
-    )
+        args.design, args.trial, args.reach_samples, check_models=False, rate=args.rate,
+        trial_option=None if args.trial_folder is not None else TRIAL_OPTION,
+    )  # fmt: skip
     for line in scene.notes:
         print(line)
     if args.static is not None:
@@ -217,7 +221,7 @@ def register(
         help="a trial folder to replay (the same as --trial TRIAL)",
     )
     p.add_argument("--design", help="design TOML (default: the project's cad/design.toml)")
-    p.add_argument("--trial", metavar="DIR", help="replay the trial recorded in DIR")
+    p.add_argument(TRIAL_OPTION, metavar="DIR", help="replay the trial recorded in DIR")
     p.add_argument("--static", metavar="FILE", help="write a standalone HTML file and exit")
     p.add_argument("--zmq-url", metavar="URL", help="use the meshcat server at URL")
     p.add_argument("--open", action="store_true", help="open the review in a browser")

@@ -11,6 +11,9 @@ from payload.review.errors import ReviewError
 DEFAULT_RATE = 10.0
 """Frames per second of trial time a trial replay shows by default [Hz] (``--rate``)."""
 
+TRIAL_OPTION = "--trial"
+"""The option that names a trial folder to replay (``payload review --trial DIR``)."""
+
 
 @dataclass(frozen=True)
 class ProjectFiles:

@@ -37,7 +37,13 @@ from payload.review.design_view import (
     set_visibility,
 )
 from payload.review.model import PayloadModel
-from payload.review.project import DEFAULT_RATE, ProjectFiles, design_hash, page_title
+from payload.review.project import (
+    DEFAULT_RATE,
+    TRIAL_OPTION,
+    ProjectFiles,
+    design_hash,
+    page_title,
+)
 from payload.review.scene import (
     ROOT,
     Overlay,
@@ -87,8 +93,15 @@ class TrialReplay:
     mount: np.ndarray
 
 
-def read_trial(folder: str | Path, files: ProjectFiles):
+def read_trial(folder: str | Path, files: ProjectFiles, option: str | None = TRIAL_OPTION):
     """The recording of a trial folder, checked to be of this design project.
+
+    Args:
+        folder: The trial folder.
+        files: The design project's files.
+        option: The option that named the folder, which the errors begin with (``--trial
+            DIR: ...``); None when it was named alone (``payload review TRIAL``): the
+            errors begin with the folder.
 
     Raises:
         ReviewError: No folder, no readable recording, no steps, or another design's.
@@ -96,21 +109,22 @@ def read_trial(folder: str | Path, files: ProjectFiles):
     from payload.trials.recorder import RecordingError, read_recording
 
     folder = Path(folder)
+    named = f"{folder}" if option is None else f"{option} {folder}"
     if not folder.is_dir():
-        raise ReviewError(f"--trial {folder}: not a folder")
+        raise ReviewError(f"{named}: not a folder")
     try:
         rec = read_recording(folder / RECORDING)
     except RecordingError as exc:
-        raise ReviewError(f"--trial {folder}: no readable recording ({exc})") from None
+        raise ReviewError(f"{named}: no readable recording ({exc})") from None
     if len(rec) == 0:
-        raise ReviewError(f"--trial {folder}: the recording holds no control steps")
+        raise ReviewError(f"{named}: the recording holds no control steps")
     recorded = rec.meta.get("design_hash")
     mine = design_hash(files.design)
     if recorded is None:
-        raise ReviewError(f"--trial {folder}: the recording names no design (no design_hash)")
+        raise ReviewError(f"{named}: the recording names no design (no design_hash)")
     if recorded != mine:
         raise ReviewError(
-            f"--trial {folder}: recording of another design (design hash {recorded}, "
+            f"{named}: recording of another design (design hash {recorded}, "
             f"{files.design} has {mine})"
         )
     return rec
