@@ -190,8 +190,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     replay = _replay_of(args)
     # a run never writes among other results, nor into a file
     out_folder(args.out, holding=(*TRIAL_FILES, *CAMPAIGN_FILES))
-    if (getattr(args, "device", None) is None) == (not args.emulator):
-        raise HwUsageError("give either --device DEV or --emulator")
+    _emulated_or_device(args)
     with results_folder(args.out, project, "hw") as out:
         result = _run_hardware(args, out, replay)  # a bus that did not answer: no folder left
     result["out"] = str(out)
@@ -235,6 +234,21 @@ def _run_hardware(args: argparse.Namespace, out: Path, replay: Path) -> dict[str
                                     progress=not args.json and sys.stderr.isatty(),
                                     say=_say)  # fmt: skip
     return result
+
+
+def _emulated_or_device(args: argparse.Namespace) -> None:
+    """One bus: ``--device DEV`` or ``--emulator`` (started by the command).
+
+    Raises:
+        HwUsageError: Both or neither; ``--servo-params`` without ``--emulator``.
+    """
+    if (getattr(args, "device", None) is None) == (not args.emulator):
+        raise HwUsageError("give either --device DEV or --emulator")
+    if getattr(args, "servo_params", None) is not None and not args.emulator:
+        raise HwUsageError(
+            "--servo-params sets an emulated bus's servos: give it with --emulator (or to "
+            "`payload hw emulate`)"
+        )
 
 
 def _say(line: str) -> None:
@@ -306,12 +320,21 @@ def _cmd_identify(args: argparse.Namespace) -> int:
             f"--joints: no servo drives {', '.join(unknown)} (the servo map's joints: "
             f"{', '.join(s.joint for s in smap.servos)})"
         )
-    device = need_device(args)
+    _emulated_or_device(args)
     _models_follow(args)
-    with DynamixelDriver(device, smap, latency_timer_ms=args.latency_ms) as drv:
+    with contextlib.ExitStack() as stack:
+        emu = None
+        if args.emulator:
+            from firmware_interface.emulator import EmulatorProcess
+
+            _say("starting an emulated bus")
+            emu = stack.enter_context(EmulatorProcess(args.servos, servo_params=args.servo_params))
+        device = emu.port if emu is not None else need_device(args)
+        drv = stack.enter_context(DynamixelDriver(device, smap, latency_timer_ms=args.latency_ms))
         report = identify(drv, args.joints, say=_say)
         design_file = drv.design.source
-    report["device"] = args.device
+    report["device"] = device
+    report["emulator"] = emu is not None
     report["written"] = None
     if args.write:
         write_servo_values(design_file, report["suggested"])
@@ -330,6 +353,10 @@ def _cmd_identify(args: argparse.Namespace) -> int:
     print(f"written to {report['written']}" if report["written"] else
           "(not written: --write puts the suggested values into the design)")  # fmt: skip
     return 0
+
+
+def _emulator_option(p: argparse.ArgumentParser, text: str) -> None:
+    p.add_argument("--emulator", action="store_true", help=text)
 
 
 def _latency(p: argparse.ArgumentParser) -> None:
@@ -387,7 +414,13 @@ def register(
         help="fit each servo's armature, friction and torque constant from step and chirp "
         "responses (moves every named joint across its range)",
     )
-    add_device(p, "serial device of the servo bus or an emulator's pty (required)")
+    add_device(p, "serial device of the servo bus or an emulator's pty (or --emulator)")
+    _emulator_option(p, "start an emulated bus here instead of --device")
+    p.add_argument(
+        "--servo-params",
+        metavar="FILE",
+        help="with --emulator: the emulated servos' plant values (as `hw emulate --servo-params`)",
+    )
     p.add_argument("--servos", metavar="MAP", help="servo map TOML")
     p.add_argument("--joints", nargs="+", metavar="JOINT", help="joints to identify (default all)")
     p.add_argument("--write", action="store_true",
@@ -399,10 +432,8 @@ def register(
     p = hws.add_parser("run", help="the 50 Hz teleoperation loop on the hardware")
     add_device(p, "serial device of the servo bus or an emulator's pty (or --emulator)",
                old_port=True)  # fmt: skip
-    p.add_argument(
-        "--emulator",
-        action="store_true",
-        help="start an emulated bus here instead of --device (it takes the grasp's load)",
+    _emulator_option(
+        p, "start an emulated bus here instead of --device (it takes the grasp's load)"
     )
     add_replay(p, "the recorded hands to replay (required): a trial's log.mcap or a hands.jsonl")
     add_deprecated(p, "--source", "--replay FILE", "source", nargs="+", metavar="SRC",

@@ -6,7 +6,6 @@ import json
 
 import pytest
 
-from firmware_interface.emulator import EmulatorProcess
 from firmware_interface.identify import write_servo_values
 from payload.cli import main
 from payload.design import load_design
@@ -17,27 +16,29 @@ HIDDEN_INERTIA = 0.0032  # [kg m^2] finger flexion servo with its load
 
 def test_identify_recovers_hidden_emulator_parameters_within_10_percent(tmp_path, capsys):
     """The emulator's finger servos hold kt, R, friction and inertia 13-35 % off the
-    design's; identify, through the driver on the pty, recovers each within 10 %."""
+    design's; identify, through the driver on the pty of the emulator it starts
+    (``--emulator --servo-params``), recovers each within 10 %."""
     design = load_design()
     for key, value in HIDDEN.items():
         assert abs(value / getattr(design.servo, key) - 1) > 0.1, key  # really hidden
     params = tmp_path / "hidden.json"
     params.write_text(json.dumps({"*": HIDDEN, "finger": {"inertia": HIDDEN_INERTIA}}))
-    with EmulatorProcess(servo_params=str(params)) as emu:
-        code = main(["hw", "identify", "--device", emu.port, "--joints", "A_mcp_flex",
-                     "--json", "--latency-ms", "50"])  # fmt: skip
+    code = main(["hw", "identify", "--emulator", "--servo-params", str(params),
+                 "--joints", "A_mcp_flex", "--json", "--latency-ms", "50"])  # fmt: skip
     assert code == 0
     said = capsys.readouterr()
     report = json.loads(said.out)
     (servo,) = report["servos"]
+    assert report["emulator"] is True and report["device"].startswith("/dev/pts/")
     # each stage said as it starts, on stderr (a whole bus takes minutes, each joint moving)
     lines = said.err.splitlines()
     stages = [
-        f"bringing up the servos on {emu.port} and homing the rail and the stage ...",
+        "starting an emulated bus ...",
+        f"bringing up the servos on {report['device']} and homing the rail and the stage ...",
         f"servo 1 of 1: A_mcp_flex (ID {servo['id']}), steps and a chirp across its range ...",
     ]
     assert all(line in lines for line in stages), said.err
-    assert lines.index(stages[0]) < lines.index(stages[1]), said.err
+    assert [lines.index(line) for line in stages] == sorted(lines.index(x) for x in stages)
     got = servo["fit"]
     for key, value in HIDDEN.items():
         assert got[key] == pytest.approx(value, rel=0.10), key
@@ -65,3 +66,19 @@ def test_a_bad_servo_params_file_is_refused_in_one_line(tmp_path, capsys):
     bad.write_text(json.dumps({"*": {"stiffness": 1.0}}))
     assert main(["hw", "emulate", "--servo-params", str(bad)]) == 2
     assert "*.stiffness: unknown" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("extra", "message"),
+    [
+        (["--device", "/dev/null", "--emulator"], "give either --device DEV or --emulator"),
+        ([], "give either --device DEV or --emulator"),
+        (["--device", "/dev/null", "--servo-params", "p.json"], "give it with --emulator"),
+    ],
+)
+def test_identify_takes_one_bus(extra: list[str], message: str, capsys) -> None:
+    """A device and an emulator, neither, or an emulated servo's values for a real bus:
+    one line and exit 2 before anything is opened."""
+    assert main(["hw", "identify", *extra]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and message in err, err
