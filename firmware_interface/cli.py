@@ -327,7 +327,6 @@ def _cmd_identify(args: argparse.Namespace) -> int:
         if args.emulator:
             from firmware_interface.emulator import EmulatorProcess
 
-            _say("starting an emulated bus")
             emu = stack.enter_context(EmulatorProcess(args.servos, servo_params=args.servo_params))
         device = emu.port if emu is not None else need_device(args)
         drv = stack.enter_context(DynamixelDriver(device, smap, latency_timer_ms=args.latency_ms))

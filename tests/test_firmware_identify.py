@@ -33,7 +33,6 @@ def test_identify_recovers_hidden_emulator_parameters_within_10_percent(tmp_path
     # each stage said as it starts, on stderr (a whole bus takes minutes, each joint moving)
     lines = said.err.splitlines()
     stages = [
-        "starting an emulated bus ...",
         f"bringing up the servos on {report['device']} and homing the rail and the stage ...",
         f"servo 1 of 1: A_mcp_flex (ID {servo['id']}), steps and a chirp across its range ...",
     ]
@@ -82,3 +81,12 @@ def test_identify_takes_one_bus(extra: list[str], message: str, capsys) -> None:
     assert main(["hw", "identify", *extra]) == 2
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and message in err, err
+
+
+def test_identify_refuses_a_bad_servo_params_file_before_starting_a_bus(tmp_path, capsys):
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"finger": {"kt": 0.0}}))
+    args = ["hw", "identify", "--emulator", "--servo-params", str(bad), "--joints", "A_pip"]
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and f"{bad}: finger.kt: expected a number > 0" in err, err
