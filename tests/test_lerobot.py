@@ -377,3 +377,17 @@ def test_a_damaged_recording_is_left_out_and_the_rest_exported(
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and says in err[0], err
         assert not (tmp_path / "x").exists()
+
+
+def test_a_seed_beyond_64_bits_is_refused_and_the_largest_exported(tmp_path: Path) -> None:
+    """A recording whose seed does not fit a signed 64-bit integer (the commands refuse
+    such seeds now; an older recording may hold one) is one error naming it, nothing
+    written; the largest seed that fits is exported and reads back exact."""
+    big = _write_run(tmp_path / "big.mcap", seed=2**63, n=12, n_cal=2)
+    with pytest.raises(LeRobotExportError, match=f"{big}: seed {2**63} does not fit"):
+        export_lerobot([big], tmp_path / "ds")
+    assert not (tmp_path / "ds").exists()
+    edge = _write_run(tmp_path / "edge.mcap", seed=2**63 - 1, n=12, n_cal=2)
+    export_lerobot([edge], tmp_path / "ds2")
+    (episodes,) = (tmp_path / "ds2" / "meta" / "episodes").rglob("*.parquet")
+    assert pq.read_table(episodes).column("payload/seed").to_pylist() == [2**63 - 1]

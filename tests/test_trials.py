@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -922,6 +923,10 @@ def test_campaign_records_a_crashed_trial_as_failure(tmp_path: Path) -> None:
         run_campaign(_broken_trial, [0, 0], tmp_path, workers=0, progress=False)
     with pytest.raises(CampaignError, match="no seeds"):
         run_campaign(_broken_trial, [], tmp_path, workers=0, progress=False)
+    for seeds, problem in (([3, -1], "seeds must be >= 0, got -1"), ([1, 2**63], "at most")):
+        with pytest.raises(CampaignError, match=re.escape(problem)):
+            run_campaign(_broken_trial, seeds, tmp_path / "x", workers=0, progress=False)
+    assert not (tmp_path / "x").exists()  # refused before anything is made
 
 
 def test_summary_table_against_hand_values() -> None:
@@ -1171,6 +1176,12 @@ def test_cli_trial_and_campaign(tmp_path: Path, monkeypatch, capsys) -> None:
         (["trial", "--replay", "/nonexistent/hands.mcap"], "--replay: /nonexistent/hands.mcap: no"),
         (["trial", "--replay", "a.mcap", "--operator", "synthetic"], "give one"),
         (["trial", "--seed", "-1"], "--seed must be >= 0"),
+        (["trial", "--seed", str(2**63)], "--seed must be at most 9223372036854775807 (2^63"),
+        (
+            ["trials", "run", "--n", "2", "--seed", str(2**63 - 1), "--out", "x"],
+            "(its 2 trials' seeds run to 9223372036854775808)",
+        ),
+        (["bench", "trial", "--seed", str(2**64)], "--seed must be at most 9223372036854775807"),
         (["trial", "--ctb", "soft"], "--ctb: expected one of single, rigid"),
         (["trials", "run", "--n", "2", "--ctb", "double", "--out", "x"], "--ctb: expected"),
         (["trials", "run", "--n", "0", "--out", "x"], "--n must be >= 1"),

@@ -14,7 +14,12 @@ from pathlib import Path
 from payload.cliutil import check_seconds, command_project, emit_json, out_folder
 from payload.errors import RunAborted
 from payload.folders import CAMPAIGN_FILES, RECORDING, TRIAL_FILES
-from payload.trials.setup_options import TrialsCliError, _check_physics_dt, _physics_dt_argument
+from payload.trials.setup_options import (
+    TrialsCliError,
+    _check_physics_dt,
+    _physics_dt_argument,
+    seed_problem,
+)
 
 
 def _cmd_bench_recorder(args: argparse.Namespace) -> int:
@@ -74,8 +79,8 @@ def _cmd_bench_recorder(args: argparse.Namespace) -> int:
 def _cmd_bench_trial(args: argparse.Namespace) -> int:
     from payload.trials.bench import run_trial_bench, run_trial_bench_repeated
 
-    if args.seed < 0:
-        raise TrialsCliError(f"--seed must be >= 0, got {args.seed}")
+    if (problem := seed_problem(args.seed)) is not None:
+        raise TrialsCliError(f"--seed {problem}")
     # the bench writes a trial: never over one, nor among a campaign's files
     out = out_folder(args.out, holding=(*TRIAL_FILES, *CAMPAIGN_FILES))
     check_seconds("--seconds", args.seconds, cap=True)

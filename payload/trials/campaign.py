@@ -25,6 +25,7 @@ from typing import Any
 from payload.project import Project
 from payload.trials.cluster import dask_client
 from payload.trials.scoring import contact_tag, finish_trial
+from payload.trials.setup_options import seed_problem
 from payload.trials.summary import summarize, write_summary
 from payload.trials.summary_fields import METRIC_KEYS, METRIC_LABELS, PAPER_RESULTS, CampaignError
 from payload.trials.summary_markdown import summary_markdown
@@ -156,8 +157,9 @@ def run_campaign(
         raise CampaignError("no seeds: a campaign needs at least one trial")
     if len(set(seeds)) != len(seeds):
         raise CampaignError(f"duplicate seeds in {seeds}")
-    if min(seeds) < 0:
-        raise CampaignError(f"seeds must be >= 0, got {min(seeds)}")
+    for seed in (min(seeds), max(seeds)):
+        if (problem := seed_problem(seed)) is not None:
+            raise CampaignError(f"seeds {problem}")
     if workers is not None and workers < 0:
         raise CampaignError(f"workers must be >= 0, got {workers}")
     out = Path(out_dir).resolve()

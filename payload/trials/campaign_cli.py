@@ -38,6 +38,7 @@ from payload.trials.setup_options import (
     _check_physics_dt,
     _link_and_zones,
     _setup_defaults,
+    seed_problem,
 )
 
 
@@ -56,8 +57,8 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
 
     if args.n < 1:
         raise TrialsCliError(f"--n must be >= 1, got {args.n}")
-    if args.seed < 0:
-        raise TrialsCliError(f"--seed must be >= 0, got {args.seed}")
+    if (problem := seed_problem(args.seed, args.n)) is not None:
+        raise TrialsCliError(f"--seed {problem}")
     if args.workers is not None and args.workers < 0:
         raise TrialsCliError(f"--workers must be >= 0, got {args.workers}")
     from payload.trials.cluster import check_scheduler

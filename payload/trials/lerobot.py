@@ -41,6 +41,7 @@ from payload.errors import PayloadError
 from payload.folders import METRICS, RECORDING
 from payload.trials.reading import cut_reason
 from payload.trials.recorder import Recording, RecordingError, read_recording
+from payload.trials.setup_options import MAX_SEED
 
 log = logging.getLogger(__name__)
 
@@ -394,6 +395,13 @@ def export_lerobot(
     loaded = [(src, rec) for src, rec in loaded if why[src] is None]
     # check every recording before touching an existing dataset at ``out``
     frames = [_episode_frames(rec, src, fps) for src, rec in loaded]
+    for src, rec in loaded:  # a seed beyond int64 (typed before the commands refused it)
+        seed = rec.meta.get("seed")
+        if isinstance(seed, int) and not 0 <= seed <= MAX_SEED:
+            raise LeRobotExportError(
+                f"{src}: seed {seed} does not fit the dataset's seed column (0 to "
+                f"{MAX_SEED}, 64-bit); nothing written"
+            )
     final, out = out, _prepare_out(out, overwrite)
     for ep, ((src, rec), (state, action)) in enumerate(zip(loaded, frames)):
         n = state.shape[0]

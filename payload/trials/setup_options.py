@@ -1,6 +1,6 @@
 """The trial setup options shared by ``payload trial``, ``trials run`` and ``bench trial``
 (CTB, propulsion, controller profile and its overrides, physics step, base filter, zones,
-link delay), their checks, and the resolution of the ones left out
+link delay), their checks and the seeds', and the resolution of the ones left out
 (:func:`payload.trials.sources.trial_setup`)."""
 
 from __future__ import annotations
@@ -9,6 +9,21 @@ import argparse
 from typing import Any
 
 from payload.errors import PayloadError
+
+MAX_SEED = 2**63 - 1
+"""The largest trial seed: seeds are 64-bit signed integers, as the LeRobot export's seed
+column (Parquet's int64) stores them."""
+
+
+def seed_problem(seed: int, count: int = 1) -> str | None:
+    """What is wrong with the ``count`` trial seeds ``seed, seed + 1, ...``, or None: each
+    must be an integer from 0 to :data:`MAX_SEED`."""
+    if seed < 0:
+        return f"must be >= 0, got {seed}"
+    if seed + count - 1 > MAX_SEED:
+        which = "" if count == 1 else f" (its {count} trials' seeds run to {seed + count - 1})"
+        return f"must be at most {MAX_SEED} (2^63 - 1), got {seed}{which}"
+    return None
 
 
 class TrialsCliError(PayloadError):

@@ -17,6 +17,7 @@ from payload.trials.setup_options import (
     _check_physics_dt,
     _link_and_zones,
     _setup_defaults,
+    seed_problem,
 )
 
 
@@ -61,8 +62,8 @@ def _cmd_trial(args: argparse.Namespace) -> int:
     from payload.design import models_follow_design
     from payload.trials.runner import run_trial
 
-    if args.seed is not None and args.seed < 0:
-        raise TrialsCliError(f"--seed must be >= 0, got {args.seed}")
+    if args.seed is not None and (problem := seed_problem(args.seed)) is not None:
+        raise TrialsCliError(f"--seed {problem}")
     check_seconds("--max-time", args.max_time, cap=True)
     _check_physics_dt(args.physics_dt)
     operator, replay = _parse_operator(args)
