@@ -26,6 +26,7 @@ import contextlib
 import json
 import os
 import sys
+import tempfile
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
@@ -229,7 +230,24 @@ def out_folder(
     problem = _cannot_make(path)
     if problem is not None:
         raise UsageError(f"{option} {value}: cannot make the folder ({problem})")
+    problem = cannot_write_in(path) if path.is_dir() else None
+    if problem is not None:
+        raise UsageError(f"{option} {value}: cannot write in the folder ({problem})")
     return path
+
+
+def cannot_write_in(folder: Path) -> str | None:
+    """Why a file could not be written in the existing ``folder`` (None: it can): the file
+    system's own answer (permissions, a read-only mount) to making and removing an empty
+    file there, asked before the work whose results go there."""
+    try:
+        fd, probe = tempfile.mkstemp(prefix=".payload-write-probe-", dir=folder)
+    except OSError as exc:
+        return exc.strerror or str(exc)
+    os.close(fd)
+    with contextlib.suppress(OSError):
+        os.unlink(probe)
+    return None
 
 
 def _cannot_make(path: Path) -> str | None:
@@ -289,6 +307,7 @@ __all__ = [
     "add_device",
     "add_json",
     "add_replay",
+    "cannot_write_in",
     "command_project",
     "default_out",
     "emit_json",

@@ -69,6 +69,45 @@ def test_an_out_that_cannot_be_made_is_one_line_before_the_work(argv, capsys) ->
     _one_line(capsys, where, "cannot make the folder")
 
 
+UNWRITABLE = "/sys"
+"""A folder that exists and takes no new file, even from root (sysfs)."""
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["trial", "--max-time", "1", "--out", UNWRITABLE],
+        ["trials", "run", "--n", "1", "--workers", "0", "--out", UNWRITABLE],
+        ["bench", "trial", "--seconds", "1", "--out", UNWRITABLE],
+        ["report", "envelope", "--out", UNWRITABLE],
+        ["sweep", "--set", "rail.travel=0.04,0.05", "--out", UNWRITABLE],
+        ["export", "lerobot", "analyses", "--out", UNWRITABLE],
+        ["hw", "run", "--emulator", "--replay", __file__, "--out", UNWRITABLE],
+        [
+            "trials",
+            "compare",
+            "analyses/campaign/single",
+            "analyses/campaign/single",
+            "--out",
+            f"{UNWRITABLE}/c.md",
+        ],
+        ["review", "--static", f"{UNWRITABLE}/review.html", "--reach-samples", "0"],
+    ],
+    ids=lambda argv: " ".join(argv[:2]),
+)
+def test_an_out_that_takes_no_file_is_one_line_before_the_work(argv, capsys) -> None:
+    """An ``--out`` folder (or a file's folder) that exists but takes no file (a
+    read-only mount, another user's folder): one line naming it and why, exit 2, before
+    any work (they failed with a traceback, a trial after its session, a hardware run
+    after the servos' bring-up)."""
+    import tempfile
+
+    with pytest.raises(OSError):  # the premise: nothing can be written there
+        tempfile.mkstemp(dir=UNWRITABLE)
+    assert main(argv) == 2
+    _one_line(capsys, UNWRITABLE, "cannot write in")
+
+
 def test_an_out_checked_for_being_makeable_is_left_as_it_was(tmp_path) -> None:
     """The check makes the missing folders and removes them again: nothing is left, and
     a folder that was there stays with what it holds."""

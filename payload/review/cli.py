@@ -8,7 +8,7 @@ import webbrowser
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from payload.cliutil import command_project
+from payload.cliutil import cannot_write_in, command_project
 from payload.folders import RECORDING
 from payload.project import DESIGN_FILE, is_project_design
 from payload.review.errors import ReviewError
@@ -102,6 +102,9 @@ def _check_static(out: Path) -> None:
         raise ReviewError(f"--static {out}: is a folder, expected a file name")
     if not out.parent.is_dir():  # a typo's folder is not made (it was, at the root even)
         raise ReviewError(f"--static {out}: no folder {out.parent} (make it first)")
+    problem = cannot_write_in(out.parent)
+    if problem is not None:  # before the page is built (a replay's takes seconds)
+        raise ReviewError(f"--static {out}: cannot write in {out.parent} ({problem})")
     if out.exists():
         with out.open("rb") as fh:
             head = fh.read(256).lstrip().lower()

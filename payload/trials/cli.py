@@ -16,6 +16,7 @@ from payload.cliutil import (
     CheckFailed,
     add_deprecated,
     add_replay,
+    cannot_write_in,
     command_project,
     emit_json,
     out_folder,
@@ -82,6 +83,9 @@ def _check_comparison_out(out: Path, *, force: bool) -> None:
 
     if out.is_dir():
         raise TrialsCliError(f"--out {out}: is a folder; give the comparison's file name")
+    problem = cannot_write_in(out.parent) if out.parent.is_dir() else None
+    if problem is not None:
+        raise TrialsCliError(f"--out {out}: cannot write in {out.parent} ({problem})")
     if not out.exists():
         return
     with out.open("rb") as fh:
@@ -103,6 +107,8 @@ def _cmd_trials_compare(args: argparse.Namespace) -> int:
     from payload.trials.compare import compare_markdown, compare_runs
 
     steps = args.steps or args.require_identical
+    if args.out:  # before the comparison (--steps reads every recording)
+        _check_comparison_out(Path(args.out), force=args.force)
     result = compare_runs(Path(args.run_a), Path(args.run_b), steps=steps)
     text = compare_markdown(result)
     for row in result["trials"]:  # said on stderr too: a --json reader sees no table
@@ -110,7 +116,6 @@ def _cmd_trials_compare(args: argparse.Namespace) -> int:
         if a is not None and b is not None and a != b:
             warn(f"{row['trial']}: seed {a} in A and seed {b} in B: different sessions")
     if args.out:
-        _check_comparison_out(Path(args.out), force=args.force)
         replace_file(Path(args.out), text)
     if args.json:
         emit_json(result)
