@@ -406,7 +406,7 @@ def test_trial_folder_without_a_readable_recording_exits_2(tmp_path, capsys) -> 
     assert main(["review", "--trial", str(tmp_path / "none")]) == 2
     assert "not a folder" in _err(capsys)
     assert main(["review", "--trial", str(tmp_path)]) == 2
-    assert "no readable recording" in _err(capsys)
+    assert f"--trial {tmp_path}: not a trial folder (no log.mcap in it)" in _err(capsys)
     (tmp_path / "log.mcap").write_bytes(b"not an mcap file")
     assert main(["review", "--trial", str(tmp_path)]) == 2
     assert f": --trial {tmp_path}: no readable recording" in _err(capsys)
@@ -454,6 +454,15 @@ def test_a_trial_folder_named_alone_is_replayed_as_with_trial(tmp_path, capsys) 
     assert "not a folder" in _err(capsys)
     assert main(["review", str(folder), "--trial", str(folder)]) == 2
     assert "give the trial once" in _err(capsys)
+    # --trial DIR is checked as TRIAL is, its lines beginning with the option: a
+    # campaign's folder names a trial in it, and the recording names its trial
+    camp = tmp_path / "campaign"
+    assert main(["review", "--trial", str(camp), "--reach-samples", "0"]) == 2
+    assert _err(capsys).endswith(f"--trial {camp}: holds 1 recorded run(s), each in its own "
+                                 f"folder; name one, e.g. {folder}")  # fmt: skip
+    assert main(["review", "--trial", str(folder / "log.mcap"), "--static", str(alone),
+                 "--reach-samples", "0"]) == 0  # fmt: skip
+    assert capsys.readouterr().out.splitlines()[:-1] == said[:-1]
 
 
 def test_recording_of_another_design_exits_2(tmp_path, design_dict, capsys) -> None:
@@ -497,6 +506,9 @@ def test_bad_reach_samples_and_static_folder_exit_2(tmp_path, capsys) -> None:
     assert main(["review", "--watch", "--trial", str(tmp_path)]) == 2
     err = _err(capsys)
     assert "--watch" in err and "--trial" in err
+    assert main(["review", "--watch", str(tmp_path)]) == 2  # the combination, not the folder
+    err = _err(capsys)
+    assert f"it does not take a trial (TRIAL {tmp_path})" in err, err
     assert main(["review", "--watch", "--zmq-url", "tcp://127.0.0.1:1"]) == 2
     err = _err(capsys)  # the combination refused, not a server looked for
     assert "--watch" in err and "--zmq-url" in err

@@ -78,13 +78,24 @@ def live_review(design: str | None, reach_samples: int) -> LiveReview:
     return LiveReview(files.design, build)
 
 
-def _cmd_watch(args: argparse.Namespace) -> int:
-    from payload.review.live import run
-
+def _watch_alone(args: argparse.Namespace) -> None:
+    """``--watch`` serves its own page of the design: it takes no page file, trial or
+    Meshcat server (one line, before anything else is checked)."""
+    if not args.watch:
+        return
     for option in ("static", "trial", "zmq_url"):
         if getattr(args, option) is not None:
             flag = "--" + option.replace("_", "-")
             raise ReviewError(f"--watch serves its own page; it does not take {flag}")
+    if args.trial_folder is not None:
+        raise ReviewError(
+            f"--watch serves its own page; it does not take a trial (TRIAL {args.trial_folder})"
+        )
+
+
+def _cmd_watch(args: argparse.Namespace) -> int:
+    from payload.review.live import run
+
     live = live_review(args.design, args.reach_samples)
     error = live.rebuild()
     if error is not None:
@@ -128,32 +139,37 @@ def _check_project_design(design: Path) -> None:
 
 
 def _trial_folder(args: argparse.Namespace) -> None:
-    """``payload review TRIAL``: a trial folder (or its ``log.mcap``) named without
-    ``--trial`` is replayed as with it. A design project, a folder of runs (a campaign's,
-    a project's ``runs/``) or a folder without a recording is refused naming what to give
-    instead."""
-    if args.trial_folder is None:
+    """The trial to replay, named alone (``payload review TRIAL``) or by ``--trial DIR``:
+    a trial folder or its ``log.mcap`` (set as ``args.trial``, the folder). A design
+    project, a folder of runs (a campaign's, a project's ``runs/``) or a folder without a
+    recording is refused naming what to give instead (the line begins with the option
+    when the trial was named by it)."""
+    if args.trial_folder is not None and args.trial is not None:
+        raise ReviewError(
+            f"{args.trial_folder}: give the trial once, as TRIAL or as {TRIAL_OPTION} DIR"
+        )
+    given = args.trial_folder if args.trial_folder is not None else args.trial
+    if given is None:
         return
-    path = Path(args.trial_folder)
-    if args.trial is not None:
-        raise ReviewError(f"{path}: give the trial once, as TRIAL or as {TRIAL_OPTION} DIR")
+    path = Path(given)
+    named = f"{path}" if args.trial_folder is not None else f"{TRIAL_OPTION} {path}"
     if path.name == RECORDING and path.is_file():  # the recording itself: its trial folder
         path = path.parent
     if not path.is_dir():
-        raise ReviewError(f"{path}: not a folder (a trial folder, holding {RECORDING})")
+        raise ReviewError(f"{named}: not a folder (a trial folder, holding {RECORDING})")
     if not (path / RECORDING).is_file():
         if (path / DESIGN_FILE).is_file():
             raise ReviewError(
-                f"{path}: is a design project, not a trial; review it with --project {path}"
+                f"{named}: is a design project, not a trial; review it with --project {path}"
             )
         runs = sorted(p.parent for p in path.glob(f"*/{RECORDING}"))
         runs = runs or sorted(p.parent for p in path.glob(f"*/*/{RECORDING}"))
         if runs:  # a campaign's folder, or a project's runs/ (of campaigns, perhaps)
             raise ReviewError(
-                f"{path}: holds {len(runs)} recorded run(s), each in its own folder; name "
+                f"{named}: holds {len(runs)} recorded run(s), each in its own folder; name "
                 f"one, e.g. {runs[0]}"
             )
-        raise ReviewError(f"{path}: not a trial folder (no {RECORDING} in it)")
+        raise ReviewError(f"{named}: not a trial folder (no {RECORDING} in it)")
     args.trial = str(path)
 
 
@@ -161,6 +177,7 @@ def _cmd_review(args: argparse.Namespace) -> int:
     from payload.review.page import static_html
     from payload.review.serve import check_server, open_viewer
 
+    _watch_alone(args)
     _trial_folder(args)
     if args.zmq_url is not None and not args.watch:  # --watch refuses it, below
         check_server(args.zmq_url)
