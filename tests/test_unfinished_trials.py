@@ -336,3 +336,27 @@ def test_ctrl_c_counts_only_the_interrupted_runs_trials(tmp_path: Path, capsys, 
     assert main([*argv, "--force"]) == 130
     err = capsys.readouterr().err
     assert "interrupted" in err and "finished trial(s) kept" not in err, err
+
+
+def test_ctrl_c_after_the_last_trial_names_the_trials_kept(tmp_path: Path, capsys, monkeypatch):
+    """Ctrl-C after every trial ended, while the summary is being written (its figure
+    takes a moment): the finished trials are named as kept, with the command that
+    summarises them (only "interrupted" was said before)."""
+    import payload.trials.campaign as campaign
+    from payload.design.cli import new_project
+
+    project, _ = new_project(tmp_path / "p")
+    out = tmp_path / "camp"
+
+    def finished(trial_fn, seeds, out_dir, **kw):
+        return [fixture_synthetic_trial(seed, out_dir / f"trial-{seed:04d}") for seed in seeds]
+
+    def interrupted_summary(*args, **kw):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(campaign, "run_campaign", finished)
+    monkeypatch.setattr(campaign, "write_summary", interrupted_summary)
+    argv = ["--project", str(project.root), "trials", "run", "--n", "2", "--out", str(out)]
+    assert main(argv) == 130
+    err = capsys.readouterr().err
+    assert f"2 finished trial(s) kept in {out}: `payload trials summarize {out}`" in err, err

@@ -111,7 +111,21 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
                 if args.json or sys.stdout.isatty()
                 else trial_line_printer(len(seeds)),
             )
-        except KeyboardInterrupt as exc:  # what is kept, and how to use it
+            run = {
+                "workers": None if args.scheduler else workers,
+                "scheduler": args.scheduler,
+                "wall_s": time.perf_counter() - t0,
+                "trial_wall_s": float(sum(r.get("wall_s") or 0.0 for r in results)),
+            }
+            title = campaign_title(args.n, {name: getattr(args, name) for name in RUN_SETTINGS})
+            # what the trials ran on, as each trial's process reported it (a scheduler's
+            # workers may be other machines than this one)
+            prov = {**prov, "environment": trials_environment(results)}
+            summary = write_summary(
+                results, out, title=title, run=run, provenance=prov, force=args.force
+            )
+        except KeyboardInterrupt as exc:  # what is kept, and how to use it (the trials
+            # finished, the summary not written: during the trials or after the last)
             scored = (trial_dir(out, s) / METRICS for s in seeds)
             # this run's trials only (a --force run's folder may hold others)
             done = [m for m in scored if m.is_file() and m.stat().st_mtime >= started]
@@ -121,17 +135,6 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
                     f"{out}` summarises them"
                 )
             raise
-    run = {
-        "workers": None if args.scheduler else workers,
-        "scheduler": args.scheduler,
-        "wall_s": time.perf_counter() - t0,
-        "trial_wall_s": float(sum(r.get("wall_s") or 0.0 for r in results)),
-    }
-    title = campaign_title(args.n, {name: getattr(args, name) for name in RUN_SETTINGS})
-    # what the trials ran on, as each trial's process reported it (a scheduler's workers
-    # may be other machines than this one)
-    prov = {**prov, "environment": trials_environment(results)}
-    summary = write_summary(results, out, title=title, run=run, provenance=prov, force=args.force)
     if args.force:  # the replaced campaign's rescorings would describe it still
         from payload.trials.scoring import rescorings
 
