@@ -430,3 +430,18 @@ def test_a_step_whose_enum_is_out_of_range_is_named(
     text = str(info.value)
     assert "\n" not in text and text.startswith(f"{bad}: step 40: "), text
     assert f"{field}: {value} is not a number from 0 to" in text, text
+
+
+def test_a_recording_cut_before_its_hands_channel_says_so(recording: Path, tmp_path: Path):
+    """A file cut before the hands' channel was written (a recorder killed in its first
+    second, a copy cut short) is said to be cut short, not an older recording."""
+    data = recording.read_bytes()
+    channel = data.index(HANDS_TOPIC.encode())  # where the channel record names its topic
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: min(100, channel)])
+    with pytest.raises(RecordingError) as info:
+        read_hand_frames(cut)
+    assert str(info.value) == (
+        f"{cut}: cut short ({min(100, channel)} bytes) before its {HANDS_TOPIC} channel was "
+        "written: no hands to replay"
+    )

@@ -503,6 +503,11 @@ def read_hand_frames_of_run(path: str | Path) -> tuple[dict[str, Any], list[Any]
     path = Path(path)
     channels, meta, _, samples, complete = _read_file(path)
     if not any(c.topic == HANDS_TOPIC for c in channels.values()):
+        if not complete:  # a recorder killed (or a copy cut) before the channel was written
+            raise RecordingError(
+                f"{path}: cut short ({path.stat().st_size} bytes) before its {HANDS_TOPIC} "
+                "channel was written: no hands to replay"
+            )
         raise RecordingError(
             f"{path}: no {HANDS_TOPIC} channel (an older recording: replay its hands.jsonl)"
         )
