@@ -282,17 +282,20 @@ def default_out(project: Project, prefix: str) -> Path:
 
 @contextlib.contextmanager
 def results_folder(
-    value: str | Path | None, project: Project, prefix: str, *, resolve: bool = False
+    value: str | Path | None, project: Project | None, prefix: str, *, resolve: bool = False
 ) -> Iterator[Path]:
     """The results folder of a command: its ``--out`` (``value``; ``resolve``: as an
     absolute path) or, left out, a new numbered ``runs/<prefix>-NNNN`` of ``project``
-    (:func:`default_out`), kept only if used (:func:`kept_if_used`: a folder made for the
-    command, the default or an ``--out`` that did not exist, is removed if the command
-    fails while it is still empty; an empty ``value`` is an ``--out`` left out). Callers
-    check an ``--out`` with :func:`out_folder` first."""
+    (:func:`default_out`; ``project`` may be None only with an ``--out``), kept only if
+    used (:func:`kept_if_used`: a folder made for the command, the default or an ``--out``
+    that did not exist, is removed if the command fails while it is still empty; an empty
+    ``value`` is an ``--out`` left out). Callers check an ``--out`` with
+    :func:`out_folder` first."""
     made = not value or not Path(value).exists()
     if value:
         out = Path(value).resolve() if resolve else Path(value)
+    elif project is None:
+        raise ValueError("results_folder: no --out and no project to number a folder in")
     else:
         out = default_out(project, prefix)
     with kept_if_used(out, made=made):

@@ -391,3 +391,24 @@ def test_a_seed_beyond_64_bits_is_refused_and_the_largest_exported(tmp_path: Pat
     export_lerobot([edge], tmp_path / "ds2")
     (episodes,) = (tmp_path / "ds2" / "meta" / "episodes").rglob("*.parquet")
     assert pq.read_table(episodes).column("payload/seed").to_pylist() == [2**63 - 1]
+
+
+def test_an_export_to_a_named_folder_needs_no_project(
+    runs, tmp_path: Path, monkeypatch, capsys
+) -> None:
+    """``export lerobot RUNS --out DIR`` from a folder in no project: the recordings and
+    the dataset are named, so it exports (it failed, "not inside a design project"); left
+    without ``--out``, the numbered folder needs a project, and that is the one line."""
+    from payload.cli import main
+
+    nowhere = tmp_path / "nowhere"
+    nowhere.mkdir()
+    monkeypatch.delenv("PAYLOAD_PROJECT", raising=False)
+    monkeypatch.chdir(nowhere)
+    out = tmp_path / "named"
+    assert main(["export", "lerobot", str(runs[0]), "--out", str(out), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["episodes"] == 1
+    assert main(["export", "lerobot", str(runs[0])]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "not inside a design project" in err, err
+    assert sorted(nowhere.iterdir()) == []

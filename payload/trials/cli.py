@@ -38,7 +38,10 @@ def _cmd_export_lerobot(args: argparse.Namespace) -> int:
     if not args.out:
         resolve_runs(runs)  # a run that is not there says so before a folder is numbered
     out_folder(args.out, holding=(*TRIAL_FILES, *CAMPAIGN_FILES))
-    with results_folder(args.out, command_project(args), "lerobot") as out:
+    # a dataset's --out needs no project (the recordings are named); without it the
+    # numbered folder goes in the project's runs/
+    project = command_project(args) if not args.out else None
+    with results_folder(args.out, project, "lerobot") as out:
         info = export_lerobot(
             runs, out, task=args.task, overwrite=args.force,
             progress=not args.json and sys.stderr.isatty(),
