@@ -360,3 +360,36 @@ def test_ctrl_c_after_the_last_trial_names_the_trials_kept(tmp_path: Path, capsy
     assert main(argv) == 130
     err = capsys.readouterr().err
     assert f"2 finished trial(s) kept in {out}: `payload trials summarize {out}`" in err, err
+
+
+def test_compare_names_the_trials_only_one_side_has(tmp_path: Path, capsys) -> None:
+    """Two campaigns of partly different seeds: the trials compared are the shared ones,
+    and the table ends naming the others by side (it printed Python lists, an empty one
+    included)."""
+    a = _campaign(tmp_path / "a", [1, 2])
+    b = tmp_path / "b"
+    shutil.copytree(a / "trial-0002", b / "trial-0002")
+    _campaign(b, [3])
+    assert main(["trials", "compare", str(a), str(b)]) == 0
+    out = capsys.readouterr().out
+    assert out.rstrip().endswith("Not compared, only in A: trial-0001; only in B: trial-0003.")
+    shutil.rmtree(b / "trial-0003")  # one side's extra alone: no empty list beside it
+    assert main(["trials", "compare", str(a), str(b)]) == 0
+    assert capsys.readouterr().out.rstrip().endswith("Not compared, only in A: trial-0001.")
+
+
+def test_compare_steps_of_a_cut_trial_says_over_which_steps(tmp_path: Path, capsys) -> None:
+    """A trial against a copy cut short: no step of the shorter one differs, and the
+    table says that is over the first steps only (it read "differing steps 0" beside two
+    step counts)."""
+    a = _campaign(tmp_path / "a", [1])
+    b = tmp_path / "b"
+    shutil.copytree(a, b)
+    log = b / "trial-0001" / "log.mcap"
+    data = log.read_bytes()
+    log.write_bytes(data[: len(data) * 2 // 3])
+    n_a, n_b = len(read_recording(a / "trial-0001" / "log.mcap")), len(read_recording(log))
+    assert 0 < n_b < n_a
+    assert main(["trials", "compare", str(a), str(b), "--steps"]) == 0
+    out = capsys.readouterr().out
+    assert f"| trial-0001 | {n_a} / {n_b} | 0 of the first {n_b} | - |" in out, out

@@ -386,8 +386,11 @@ def compare_markdown(result: dict[str, Any]) -> str:
         for r in with_steps:
             s = r["steps"]
             fields = ", ".join(f"{k} {v:.3g}" for k, v in s["fields"].items()) or "none"
+            differing = f"{s['differing_steps']}"
+            if s["steps_a"] != s["steps_b"]:  # compared over the shorter run's steps only
+                differing += f" of the first {min(s['steps_a'], s['steps_b'])}"
             lines.append(
-                f"| {r['trial']} | {s['steps_a']} / {s['steps_b']} | {s['differing_steps']} | "
+                f"| {r['trial']} | {s['steps_a']} / {s['steps_b']} | {differing} | "
                 f"{s['first_differing_step'] if s['first_differing_step'] is not None else '-'}"
                 f" | {fields} |"
             )
@@ -408,7 +411,12 @@ def compare_markdown(result: dict[str, Any]) -> str:
                 f" | {', '.join(r['other_metrics']) or 'none'} |"
             )
     if result["only_a"] or result["only_b"]:
-        lines += ["", f"Only in A: {result['only_a']}; only in B: {result['only_b']}."]
+        only = [
+            f"only in {side}: {', '.join(result[key])}"
+            for side, key in (("A", "only_a"), ("B", "only_b"))
+            if result[key]
+        ]
+        lines += ["", f"Not compared, {'; '.join(only)}."]
     return "\n".join(lines) + "\n"
 
 
