@@ -11,6 +11,9 @@ import re
 from typing import Any
 
 _HEADER = re.compile(r"^\s*\[\s*([A-Za-z0-9_.\- ]+?)\s*\]\s*(#.*)?$")
+_REST = r"([^#\r\n]*?)([ \t]*(?:#[^\r\n]*)?)(\r?\n?)$"
+"""The rest of a line after ``key =``: the value's text, its blanks and comment, its end."""
+_LINE = re.compile(_REST)
 
 
 def toml_value(value: Any) -> str:
@@ -36,7 +39,8 @@ def set_in_text(text: str, key: str, value: Any, comment: str | None = None) -> 
     """
     *table, leaf = key.split(".")
     lines = text.splitlines(keepends=True)
-    assign = re.compile(rf"^(\s*{re.escape(leaf)}\s*=\s*)([^#\n]*?)(\s*(#.*)?)(\r?\n?)$")
+    # within one line: blanks are spaces and tabs, never the line's end (which is kept)
+    assign = re.compile(rf"^([ \t]*{re.escape(leaf)}[ \t]*=[ \t]*)" + _REST)
     written = toml_value(value)
     current: list[str] = []
     end_of_table = None
@@ -50,8 +54,9 @@ def set_in_text(text: str, key: str, value: Any, comment: str | None = None) -> 
         if current == table:
             a = assign.match(line)
             if a:
-                tail = a.group(3) if comment is None else f"  # {comment}"
-                lines[i] = f"{a.group(1)}{written}{tail}{a.group(5)}"
+                last, tail, end = _value_end(lines, i, a)
+                tail = tail if comment is None else f"  # {comment}"
+                lines[i : last + 1] = [f"{a.group(1)}{written}{tail}{end}"]
                 return "".join(lines)
     addition = f"{leaf} = {written}" + ("" if comment is None else f"  # {comment}") + "\n"
     if current == table and end_of_table is None:  # the table is the last one
@@ -62,6 +67,35 @@ def set_in_text(text: str, key: str, value: Any, comment: str | None = None) -> 
         return "".join(lines)
     sep = "" if not lines or lines[-1].endswith("\n") else "\n"
     return "".join(lines) + sep + f"\n[{'.'.join(table)}]\n" + addition
+
+
+def _value_end(lines: list[str], i: int, assign: re.Match[str]) -> tuple[int, str, str]:
+    """Where the value assigned on line ``i`` ends (an array may run over several lines,
+    with comments among its items): its last line, and that line's blanks and comment
+    and its line end, which follow the new value."""
+    depth, j, rest = _depth(assign.group(2)), i, assign
+    while depth > 0 and j + 1 < len(lines):
+        j += 1
+        rest = _LINE.match(lines[j])  # matches any one line
+        assert rest is not None
+        depth += _depth(rest.group(1))
+    *_, tail, end = rest.groups()
+    return j, tail, end
+
+
+def _depth(value: str) -> int:
+    """How many more brackets ``value`` opens than it closes, outside quoted text."""
+    depth, quote = 0, ""
+    for ch in value:
+        if quote:
+            quote = "" if ch == quote else quote
+        elif ch in "\"'":
+            quote = ch
+        elif ch == "[":
+            depth += 1
+        elif ch == "]":
+            depth -= 1
+    return depth
 
 
 __all__ = ["set_in_text", "toml_value"]
