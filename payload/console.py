@@ -10,6 +10,16 @@ PIPED_WIDTH = 200
 """Columns a console assumes when its stream is not a terminal (a file or a pipe)."""
 
 
+class _Console(Console):
+    """rich's console, but a reader that went away (``payload ... | head``) ends the
+    command as any other output does: rich's own answer is ``SystemExit(1)``, the exit
+    code of a failed check; :func:`payload.cli.run` ends it as SIGPIPE would (141)."""
+
+    def on_broken_pipe(self) -> None:
+        self.quiet = True
+        raise BrokenPipeError(32, "the reader of the console's stream went away")
+
+
 def console(stderr: bool = False) -> Console:
     """A rich console on stdout (or stderr).
 
@@ -19,4 +29,4 @@ def console(stderr: bool = False) -> Console:
     """
     stream = sys.stderr if stderr else sys.stdout
     width = None if stream.isatty() else PIPED_WIDTH
-    return Console(stderr=stderr, width=width)
+    return _Console(stderr=stderr, width=width)

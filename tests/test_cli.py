@@ -4,7 +4,9 @@ subcommand's usage, and bad input files give one line and exit 2."""
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -361,7 +363,6 @@ def test_commands_run_without_mujoco_rendering_unless_the_user_asks(monkeypatch)
     """A command runs with ``MUJOCO_GL=disable`` (nothing renders with MuJoCo, whose
     import then skips GLFW; Dask workers inherit it), removed after the command; a
     user's own setting is kept."""
-    import os
 
     import payload.cli as cli
 
@@ -443,7 +444,6 @@ def test_sigterm_stops_a_trial_as_ctrl_c_does(tmp_path: Path) -> None:
     """`kill` (SIGTERM) of a running `payload trial`: the recording is closed, reads
     complete and is marked aborted (before, the process died with the file never closed:
     cut short), the command says so in one line and exits 128 + 15."""
-    import os
     import signal
     import time
 
@@ -547,3 +547,26 @@ def test_a_trials_bad_file_option_names_the_option_and_what_is_wrong(argv, words
     assert main(argv) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and all(w in err[0] for w in words), err
+
+
+def test_a_rich_table_to_a_closed_stdout_ends_as_any_output_does(monkeypatch) -> None:
+    """The commands' rich tables (``payload summary``, the reports): a reader that went
+    away raises ``BrokenPipeError``, which :func:`payload.cli.run` ends with 141 as above
+    (rich's own answer was ``SystemExit(1)``: ``payload summary | head -1`` exited 1, the
+    code of a failed check)."""
+    from rich.table import Table
+
+    from payload.console import console
+
+    read, write = os.pipe()
+    os.close(read)
+    stream = os.fdopen(write, "w")
+    monkeypatch.setattr(sys, "stdout", stream)
+    table = Table("key", "value")
+    table.add_row("a", "1")
+    try:
+        with pytest.raises(BrokenPipeError):
+            console().print(table)
+    finally:
+        with contextlib.suppress(BrokenPipeError):  # what is left in its buffer
+            stream.close()
