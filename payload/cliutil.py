@@ -14,7 +14,7 @@ helpers from here, never from :mod:`payload.cli` (the dispatcher at the top):
   :func:`results_folder`: a command's results folder (its ``--out``, or that default),
   removed again when the command made it and fails before writing in it.
 
-This module imports only the standard library, :mod:`payload.errors`,
+This module imports only the standard library, :mod:`payload.errors`, :mod:`payload.safeio`,
 :mod:`payload.folders` and :mod:`payload.project`, so every
 command (``--help`` and ``--version`` included) starts without the numerical stack.
 """
@@ -26,7 +26,6 @@ import contextlib
 import json
 import os
 import sys
-import tempfile
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
@@ -34,6 +33,7 @@ from typing import Any
 from payload.errors import PayloadError
 from payload.folders import held
 from payload.project import ENV_VAR, Project, ProjectError, find_project, project_of
+from payload.safeio import cannot_write_in
 
 
 class CheckFailed(Exception):
@@ -236,20 +236,6 @@ def out_folder(
     return path
 
 
-def cannot_write_in(folder: Path) -> str | None:
-    """Why a file could not be written in the existing ``folder`` (None: it can): the file
-    system's own answer (permissions, a read-only mount) to making and removing an empty
-    file there, asked before the work whose results go there."""
-    try:
-        fd, probe = tempfile.mkstemp(prefix=".payload-write-probe-", dir=folder)
-    except OSError as exc:
-        return exc.strerror or str(exc)
-    os.close(fd)
-    with contextlib.suppress(OSError):
-        os.unlink(probe)
-    return None
-
-
 def _cannot_make(path: Path) -> str | None:
     """Why the folder ``path`` could not be made (None: it exists, or it can be): tried
     before the work whose results go there, by making the missing folders and removing
@@ -310,7 +296,6 @@ __all__ = [
     "add_device",
     "add_json",
     "add_replay",
-    "cannot_write_in",
     "command_project",
     "default_out",
     "emit_json",

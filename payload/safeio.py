@@ -22,6 +22,20 @@ from pathlib import Path
 from payload.errors import PayloadError
 
 
+def cannot_write_in(folder: Path) -> str | None:
+    """Why a file could not be written in the existing ``folder`` (None: it can): the file
+    system's own answer (permissions, a read-only mount) to making and removing an empty
+    file there, asked before the work whose results go there."""
+    try:
+        fd, probe = tempfile.mkstemp(prefix=".payload-write-probe-", dir=folder)
+    except OSError as exc:
+        return exc.strerror or str(exc)
+    os.close(fd)
+    with contextlib.suppress(OSError):
+        os.unlink(probe)
+    return None
+
+
 def umask_mode() -> int:
     """The mode a new file gets from ``open()`` under the current umask (0o644 at 022).
 
@@ -132,6 +146,7 @@ def numbered_folder(parent: str | Path, prefix: str) -> Path:
 
 __all__ = [
     "OverwriteError",
+    "cannot_write_in",
     "check_new",
     "new_folder",
     "numbered_folder",

@@ -430,3 +430,34 @@ def test_an_interrupted_recording_says_it_was_kept(tmp_path) -> None:
         rec.write(random_step(rng, 0.0))
         raise RuntimeError("a bug")
     assert not getattr(failed.value, "__notes__", None)
+
+
+def test_models_or_reports_that_cannot_be_written_are_one_line_and_nothing_written(
+    tmp_path, capsys
+) -> None:
+    """A project whose ``urdf/`` or ``analyses/`` takes no file (here a link to sysfs,
+    which refuses even root; a read-only mount alike): ``build`` and ``report envelope``
+    say so in one line, exit 2, before writing anything (they failed with a traceback,
+    the build after rewriting the meshes, the report after its analysis)."""
+    import shutil
+
+    root = tmp_path / "p"
+    assert main(["new", str(root)]) == 0
+    design = root / "cad" / "design.toml"
+    text = design.read_text()
+    design.write_text(text.replace("\ndistal = 0.0", "\ndistal = 0.04", 1))
+    assert design.read_text() != text  # a change: the models are stale
+    meshes = _snapshot(root / "cad" / "meshes")
+    shutil.rmtree(root / "urdf")
+    (root / "urdf").symlink_to(UNWRITABLE)
+    capsys.readouterr()
+    assert main(["--project", str(root), "build"]) == 2
+    _one_line(capsys, f"{root / 'urdf'}: cannot write the generated models there", "nothing")
+    assert _snapshot(root / "cad" / "meshes") == meshes
+    (root / "urdf").unlink()
+    assert main(["--project", str(root), "build"]) == 0  # the models follow the design
+    shutil.rmtree(root / "analyses", ignore_errors=True)
+    (root / "analyses").symlink_to(UNWRITABLE)
+    capsys.readouterr()
+    assert main(["--project", str(root), "report", "envelope", "--no-search"]) == 2
+    _one_line(capsys, f"{root / 'analyses'}: cannot write the report there", "--out DIR")

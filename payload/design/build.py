@@ -17,7 +17,8 @@ from payload.design.paths import MESH_DIR, URDF_DIR
 from payload.design.solids import check_solid
 from payload.design.tree import KinematicTree, build_tree
 from payload.design.urdf import to_urdf
-from payload.safeio import replace_file
+from payload.errors import BuildError
+from payload.safeio import cannot_write_in, replace_file
 
 
 def stl_bytes(mesh: trimesh.Trimesh, name: str) -> bytes:
@@ -91,6 +92,15 @@ def _write_files(files: dict[str, bytes], root: Path) -> tuple[tuple[str, ...], 
     mesh_dir = root / MESH_DIR
     mesh_dir.mkdir(parents=True, exist_ok=True)
     (root / URDF_DIR).mkdir(parents=True, exist_ok=True)
+    # every folder written in must take the files before any is written: a build that
+    # stopped half-way would leave meshes that no longer match the URDF
+    stale = [root / rel for rel, data in files.items() if not _holds(root / rel, data)]
+    for folder in sorted({path.parent for path in stale}):
+        problem = cannot_write_in(folder)
+        if problem is not None:
+            raise BuildError(
+                f"{folder}: cannot write the generated models there ({problem}); nothing written"
+            )
     removed = []
     for old in sorted(mesh_dir.glob("*.stl")):
         if f"{MESH_DIR}/{old.name}" not in files:

@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from payload.cliutil import command_project, out_folder
+from payload.safeio import cannot_write_in
 
 if TYPE_CHECKING:
     from payload.design.params import Design
@@ -64,7 +65,11 @@ def _out_dir(args: argparse.Namespace) -> Path:
             f"its report would replace the project's own in {project.analyses_dir}; give "
             "--out DIR (another folder)"
         )
-    return project.analyses_dir
+    analyses = project.analyses_dir
+    problem = cannot_write_in(analyses) if analyses.is_dir() else None
+    if problem is not None:  # before the analysis, not after it (a traceback)
+        raise PayloadError(f"{analyses}: cannot write the report there ({problem}); give --out DIR")
+    return analyses
 
 
 def _recorder(args: argparse.Namespace) -> Callable[[dict[str, Any]], dict[str, Any]]:

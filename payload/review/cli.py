@@ -8,11 +8,12 @@ import webbrowser
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from payload.cliutil import cannot_write_in, command_project
+from payload.cliutil import command_project
 from payload.folders import RECORDING
 from payload.project import DESIGN_FILE, is_project_design
 from payload.review.errors import ReviewError
 from payload.review.project import DEFAULT_RATE, TRIAL_OPTION
+from payload.safeio import cannot_write_in
 
 if TYPE_CHECKING:
     from payload.review.live import LiveReview

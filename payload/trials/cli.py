@@ -16,7 +16,6 @@ from payload.cliutil import (
     CheckFailed,
     add_deprecated,
     add_replay,
-    cannot_write_in,
     command_project,
     emit_json,
     out_folder,
@@ -24,6 +23,7 @@ from payload.cliutil import (
     warn,
 )
 from payload.folders import CAMPAIGN_FILES, TRIAL_FILES
+from payload.safeio import cannot_write_in
 from payload.trials.campaign_cli import _cmd_trials_run, _cmd_trials_summarize
 from payload.trials.setup_options import TrialsCliError, _setup_arguments
 from payload.trials.trial_cli import _cmd_trial
