@@ -461,3 +461,22 @@ def test_models_or_reports_that_cannot_be_written_are_one_line_and_nothing_writt
     capsys.readouterr()
     assert main(["--project", str(root), "report", "envelope", "--no-search"]) == 2
     _one_line(capsys, f"{root / 'analyses'}: cannot write the report there", "--out DIR")
+
+
+@pytest.mark.parametrize("command", ["envelope", "reach"])
+def test_a_bad_bay_size_writes_nothing_not_even_the_models(command, tmp_path, capsys) -> None:
+    """A report's bad ``--bay-size`` is refused before the stale models are rebuilt (the
+    models were rebuilt, then the error said; "nothing written" held only for the
+    report)."""
+    root = tmp_path / "p"
+    assert main(["new", str(root)]) == 0
+    design = root / "cad" / "design.toml"
+    text = design.read_text()
+    design.write_text(text.replace("\ndistal = 0.0", "\ndistal = 0.04", 1))
+    assert design.read_text() != text  # a change: the models are stale
+    before = _snapshot(root)
+    capsys.readouterr()
+    argv = ["--project", str(root), "report", command, "--bay-size", "0.2", "0.1", "-0.1"]
+    assert main(argv) == 2
+    _one_line(capsys, "bay")
+    assert _snapshot(root) == before

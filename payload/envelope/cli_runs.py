@@ -166,8 +166,8 @@ def run_envelope(args: argparse.Namespace) -> tuple[EnvelopeAnalysis, dict[str, 
         )
     t0 = time.perf_counter()
     _out_dir(args)  # an --out that cannot take the report says so before the analysis
+    _, vehicle, geom = _load(args)  # a bad --bay-size too, before the models are rebuilt
     _models_follow(args)
-    _, vehicle, geom = _load(args)
     search = True if args.write_stowed and args.search is None else args.search
     with _progress(not args.json and sys.stderr.isatty()) as progress:
         analysis = analyse_envelope(geom, vehicle, search=search, progress=progress)
@@ -265,8 +265,8 @@ def run_reach(args: argparse.Namespace) -> tuple[ReachAnalysis, dict[str, Path]]
     _project(args)
     _check_reach_args(args)
     _out_dir(args)  # an --out that cannot take the report says so before the sampling
+    _, vehicle, geom = _load(args)  # a bad --bay-size too, before the models are rebuilt
     _models_follow(args)
-    _, vehicle, geom = _load(args)
     t0 += _load_check()  # a compile is not the report's time
     with _progress(not args.json and sys.stderr.isatty()) as progress:
         started = start_check(geom, vehicle, args.samples, args.seed, args.workers, progress)
