@@ -308,16 +308,23 @@ def test_new_from_a_non_project_names_from(tmp_path: Path, capsys) -> None:
 
 
 def test_new_from_a_binary_design_is_one_line(tmp_path: Path, capsys) -> None:
-    """``--from`` a project's mesh (a file inside a project), or a project whose design
-    file is binary: one line naming it, exit 2, no new folder (before: a
-    UnicodeDecodeError traceback)."""
+    """``--from`` a project's mesh (a file inside a project), a project whose design
+    file is binary, or one whose design holds an invalid value: one line naming it, exit
+    2, no new folder (before: a UnicodeDecodeError traceback)."""
     binary = tmp_path / "binary"
     (binary / "cad").mkdir(parents=True)
     (binary / "cad" / "design.toml").write_bytes(STL.read_bytes())
+    invalid = tmp_path / "invalid"
+    (invalid / "cad").mkdir(parents=True)
+    text = (ROOT / "cad" / "design.toml").read_text()
+    (invalid / "cad" / "design.toml").write_text(text.replace("\ndistal = ", "\ndistal = -", 1))
     cases = [
         (STL, f"--from {STL}: not a text (UTF-8 TOML) file"),
         (binary, f"--from {binary / 'cad' / 'design.toml'}: not a text (UTF-8 TOML) file"),
-    ]
+        # an invalid value: the line names the design it is in (it named the key alone)
+        (invalid, f"--from {invalid / 'cad' / 'design.toml'}: its design is not valid: "
+                  "finger.lengths.distal: must be positive"),
+    ]  # fmt: skip
     for source, message in cases:
         assert main(["new", str(tmp_path / "p"), "--from", str(source)]) == 2
         err = capsys.readouterr().err.strip().splitlines()

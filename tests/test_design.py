@@ -482,6 +482,12 @@ def test_unreadable_and_malformed_files_are_design_errors(tmp_path):
     broken.write_text("[finger\nlength = ")
     with pytest.raises(DesignError, match="not valid TOML"):
         load_design(broken)
+    # the committed design saved with a byte-order mark (as some Windows editors save):
+    # named as such, not "Invalid statement (at line 1, column 1)"
+    marked = tmp_path / "bom.toml"
+    marked.write_bytes(b"\xef\xbb\xbf" + DESIGN.read_bytes())
+    with pytest.raises(DesignError, match="starts with a byte-order mark"):
+        load_design(marked)
 
 
 # ---------------------------------------------------------------- build

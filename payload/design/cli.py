@@ -8,7 +8,7 @@ import time
 from pathlib import Path
 
 from payload.cliutil import CheckFailed, add_json, command_project, emit_json
-from payload.errors import PayloadError, not_text
+from payload.errors import DesignError, PayloadError, not_text
 from payload.project import Project, ProjectError, is_project_design, project_of
 
 
@@ -92,11 +92,18 @@ def _source_design_text(source: str | Path) -> str:
             raise ProjectError(f"--from {source}: not a design project (no cad/design.toml there)")
         path = project.design_path
     try:
-        return path.read_text(encoding="utf-8")
+        text = path.read_text(encoding="utf-8")
     except UnicodeDecodeError as exc:  # a mesh or another binary file of the project
         raise ProjectError(f"--from {path}: {not_text(exc, 'TOML')}") from None
     except OSError as exc:  # unreadable, or a folder named design.toml
         raise ProjectError(f"--from {path}: cannot read it ({exc.strerror or exc})") from None
+    from payload.design import load_design
+
+    try:  # the copy would fail to build: said of the design it came from
+        load_design(path)
+    except DesignError as exc:
+        raise ProjectError(f"--from {path}: its design is not valid: {exc}") from None
+    return text
 
 
 def new_project(directory: str | Path, source: str | Path | None = None) -> tuple[Project, int]:

@@ -195,6 +195,12 @@ def load_design(path: str | Path | None = None) -> Design:
         raise DesignError(str(p), f"cannot read design file ({exc.strerror})") from exc
     except UnicodeDecodeError as exc:
         raise DesignError(str(p), not_text(exc, "TOML")) from None
+    if text.startswith("\ufeff"):  # TOML has no byte-order mark; tomllib's line 1 error
+        raise DesignError(
+            str(p),
+            "starts with a byte-order mark (U+FEFF, which some Windows editors add): save it "
+            "as UTF-8 without one",
+        )
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
