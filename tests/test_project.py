@@ -314,3 +314,24 @@ def test_cli_subprocess_in_a_project_folder(new_project):
     )
     assert out.returncode == 0, out.stderr
     assert out.stdout.splitlines()[0] == f"project: {Path(new_project).resolve()}"
+
+
+def test_a_design_in_no_project_is_reported_into_its_out_from_anywhere(outside, capsys):
+    """``report envelope --design F --out DIR`` with F in no project, from a folder in no
+    project: the report needs none (no models on disk to follow), so it is written into
+    DIR with F's provenance (it failed, "not inside a design project"); without ``--out``
+    one line says to give one."""
+    loose = outside / "variant.toml"
+    loose.write_bytes(DESIGN.read_bytes())
+    out = outside / "report"
+    argv = ["report", "envelope", "--design", str(loose), "--no-search", "--json"]
+    assert main([*argv, "--out", str(out)]) == 0
+    data = json.loads(capsys.readouterr().out)
+    assert data["project"] is None and data["provenance"]["design"] == str(loose)
+    assert data["provenance"]["design_sha256"] == hashlib.sha256(DESIGN.read_bytes()).hexdigest()
+    assert json.loads((out / "envelope.json").read_text())["passed"] == data["passed"]
+    assert sorted(p.name for p in outside.iterdir()) == ["report", "variant.toml"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and f"--design {loose}: in no design project" in err, err
+    assert "give --out DIR" in err

@@ -37,6 +37,26 @@ def _project(args: argparse.Namespace) -> Project:
     return command_project(args, args.design)
 
 
+def _project_or_none(args: argparse.Namespace) -> Project | None:
+    """The command's project, or None for a design file in no project (``--design F``)
+    reported into ``--out DIR`` from a folder in no project: such a report needs none
+    (its models are not on disk to follow, its provenance names the file)."""
+    from payload.project import ProjectError, project_of
+
+    try:
+        return _project(args)
+    except ProjectError:
+        loose = args.design and project_of(Path(args.design).expanduser()) is None
+        if loose and args.out:
+            return None
+        if loose:  # the report has no project's analyses/ to go in
+            raise ProjectError(
+                f"--design {args.design}: in no design project, nor is this folder; give "
+                "--out DIR for its report"
+            ) from None
+        raise
+
+
 def _design_path(args: argparse.Namespace) -> Path:
     return Path(args.design).expanduser() if args.design else _project(args).design_path
 
@@ -49,11 +69,14 @@ def _out_dir(args: argparse.Namespace) -> Path:
 
     out = out_folder(args.out)
     try:
-        project = _project(args)
+        project = _project_or_none(args)
     except PayloadError:
         if out is None:
             raise
         return out  # a design outside any project, its report where --out says
+    if project is None:  # (the same: _project_or_none's None comes with an --out)
+        assert out is not None
+        return out
     if out is not None and out.resolve() != project.analyses_dir.resolve():
         return out  # (--out naming the project's analyses/ is the default: checked below)
     if args.design and Path(args.design).expanduser().resolve() != project.design_path.resolve():
@@ -77,13 +100,14 @@ def _recorder(args: argparse.Namespace) -> Callable[[dict[str, Any]], dict[str, 
     files inside the project omit the project's absolute path; stdout adds ``project``."""
     from payload.project import provenance
 
-    prov = provenance(_project(args), _design_path(args))
+    prov = provenance(_project_or_none(args), _design_path(args))
     prov.pop("project")
     return lambda data: {**data, "provenance": prov}
 
 
 def _stdout_json(args: argparse.Namespace, data: dict[str, Any]) -> dict[str, Any]:
-    return {**data, "project": str(_project(args).root)}
+    project = _project_or_none(args)
+    return {**data, "project": str(project.root) if project is not None else None}
 
 
 def _load(args: argparse.Namespace) -> tuple[Design, Vehicle, PayloadGeometry]:
@@ -146,7 +170,9 @@ def _models_follow(args: argparse.Namespace) -> None:
     """The one rule for stale models (docs/design-loop.md): rebuild them, saying so."""
     from payload.design import models_follow_design
 
-    project = _project(args)
+    project = _project_or_none(args)
+    if project is None:  # a design file in no project: no models on disk to follow
+        return
     models_follow_design(project.design_path, project.root, json=args.json)
 
 
@@ -262,7 +288,7 @@ def run_reach(args: argparse.Namespace) -> tuple[ReachAnalysis, dict[str, Path]]
     from payload.envelope.reach_start import start_check
 
     t0 = time.perf_counter()
-    _project(args)
+    _project_or_none(args)
     _check_reach_args(args)
     _out_dir(args)  # an --out that cannot take the report says so before the sampling
     _, vehicle, geom = _load(args)  # a bad --bay-size too, before the models are rebuilt
