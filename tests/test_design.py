@@ -524,6 +524,13 @@ def test_build_check_fails_after_a_design_edit(design_dict, tmp_path):
     assert len(lines) == 1
     stale = lines[0].split("stale: ")[1].split(" (")[0].split(", ")
     assert set(stale) == {"urdf/payload.urdf", "urdf/payload.xml", "cad/meshes/finger_middle.stl"}
+    # a design that is not the project's: `payload build` would not make its models match
+    # (it builds the project's own), so the line does not tell to run it
+    assert "run `payload build`" not in lines[0]
+    assert lines[0].endswith(
+        "it is not a project's design, and the project's models follow its own "
+        "cad/design.toml: give it a project of its own to build it)"
+    ), lines[0]
 
 
 def test_stale_extra_mesh_is_reported(design, tmp_path):

@@ -173,6 +173,7 @@ def test_edited_project_is_stale_and_a_long_proximal_fails(
     captured = capsys.readouterr()
     assert captured.out.splitlines()[0] == f"project: {p.root}"
     assert "stale: " in captured.err and "urdf/payload.urdf" in captured.err
+    assert captured.err.rstrip().endswith("; run `payload build`)")  # the project's own design
     assert main(["build"]) == 0
     assert main(["build", "--check"]) == 0
     capsys.readouterr()

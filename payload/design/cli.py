@@ -27,9 +27,16 @@ def _cmd_build(args: argparse.Namespace) -> int:
     if args.check:
         stale = stale_files(design, root)
         if stale:
+            own = args.root or not args.design or is_project_design(Path(args.design))
+            hint = (
+                "run `payload build`"
+                if own
+                else "it is not a project's design, and the project's models follow its own "
+                "cad/design.toml: give it a project of its own to build it"
+            )
             raise CheckFailed(
                 f"stale: {', '.join(stale)} ({len(stale)} generated file(s) do not match "
-                f"{design.source}; run `payload build`)"
+                f"{design.source}; {hint})"
             )
         print(f"generated files match {design.source} ({time.perf_counter() - t0:.2f} s)")
         return 0
