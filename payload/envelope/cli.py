@@ -61,8 +61,13 @@ def _cmd_reach(args: argparse.Namespace) -> int:
     from payload.envelope.report import reach_json
     from payload.envelope.verdict import reach_passed, reach_verdict
 
-    if args.json:
-        emit_json(_stdout_json(args, _recorder(args)(reach_json(analysis))))
+    if args.json:  # the verdict as the envelope's JSON gives its own (stdout only: the
+        # report file is the analysis, and the verdict is read from it the same way)
+        verdict = {
+            "passed": reach_passed(analysis),
+            "verdict": reach_verdict(analysis).removeprefix("verdict: "),
+        }
+        emit_json(_stdout_json(args, {**_recorder(args)(reach_json(analysis)), **verdict}))
     else:
         print(reach_verdict(analysis))
         for line in [*reach_lines(analysis), *written_lines(paths, "reach")]:
