@@ -223,12 +223,18 @@ def test_a_sweep_without_a_terminal_says_each_point_as_it_ends(tmp_path, capsys)
     """No progress bar is drawn without a terminal (a pipe, a log, CI): each point's line
     goes to stderr as it ends, so a long sweep is not silent; stdout keeps the report."""
     out = tmp_path / "sweep"
-    argv = ["sweep", "--set", "finger.lengths.distal=0.01,0.02", "--samples", "1000"]
+    argv = ["sweep", "--set", "finger.lengths.distal=0.01,0.02,0.06", "--samples", "1000"]
     assert main([*argv, "--workers", "1", "--out", str(out)]) == 0
     got = capsys.readouterr()
     lines = [x for x in got.err.splitlines() if x.startswith("point ")]
+    # a 60 mm distal fits the bays but fails the envelope check (its tip runs into the
+    # stage): the line says the check's verdict, as the table's two columns do (it said
+    # "fits" alone)
+    (last,) = json.loads((out / "sweep.json").read_text())["points"][2:]
+    assert (last["valid"], last["fits"], last["passed"]) == (True, True, False)
     assert lines == [
-        "point 1/2 (finger.lengths.distal=0.01): invalid",
-        "point 2/2 (finger.lengths.distal=0.02): invalid",
+        "point 1/3 (finger.lengths.distal=0.01): invalid",
+        "point 2/3 (finger.lengths.distal=0.02): invalid",
+        "point 3/3 (finger.lengths.distal=0.06): envelope check FAILS (fits the bays)",
     ]
-    assert "point 1/2" not in got.out and "# Design sweep" in got.out
+    assert "point 1/3" not in got.out and "# Design sweep" in got.out

@@ -73,12 +73,19 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
         t0 = time.perf_counter()
         with _progress(not args.json, len(points)) as bar:
             task = bar.add_task("points", total=len(points), note="")
-            counts = {"fits": 0, "fails": 0, "invalid": 0}
+            # counted by the envelope check as a whole (the table's "envelope check"): a
+            # point that fits the bays can still fail it (a self-collision, the deployment)
+            counts = {"pass": 0, "fail": 0, "invalid": 0}
 
             lines = not args.json and not sys.stderr.isatty()  # no bar drawn: a line a point
 
             def advance(result: dict[str, Any]) -> None:
-                kind = "invalid" if not result["valid"] else ("fits" if result["fits"] else "fails")
+                if not result["valid"]:
+                    kind, said = "invalid", "invalid"
+                else:
+                    kind = "pass" if result.get("passed") else "fail"
+                    fit = "fits the bays" if result["fits"] else "does not fit the bays"
+                    said = f"envelope check {'passes' if kind == 'pass' else 'FAILS'} ({fit})"
                 counts[kind] += 1
                 note = ", ".join(f"{v} {k}" for k, v in counts.items() if v)
                 bar.update(task, advance=1, note=note)
@@ -86,7 +93,7 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
                     params = ", ".join(f"{k}={v:g}" for k, v in result["params"].items())
                     done = sum(counts.values())
                     print(
-                        f"point {done}/{len(points)} ({params}): {kind}",
+                        f"point {done}/{len(points)} ({params}): {said}",
                         file=sys.stderr,
                         flush=True,
                     )
