@@ -1271,3 +1271,21 @@ def test_a_certificate_with_another_certificates_key_is_said_plainly(tmp_path):
     with pytest.raises(TlsError) as err:
         server_context(c1, k2)
     assert str(err.value) == f"TLS certificate {c1}: the key {k2} is not this certificate's"
+
+
+def test_a_file_that_is_not_pem_is_named(tmp_path):
+    """A certificate or key file holding no PEM block (a DER file, a wrong file given):
+    the file is named, with what it lacks (OpenSSL's "[SSL] PEM lib (_ssl.c:...)" was the
+    whole reason)."""
+    from payload.teleop.tls import TlsError
+
+    cert, key, _ = ensure_certificate("127.0.0.1", tmp_path / "made")
+    notes = tmp_path / "notes.txt"
+    notes.write_text("not a certificate\n")
+    for c, k, lacking in ((notes, key, "certificate"), (cert, notes, "private key")):
+        with pytest.raises(TlsError) as err:
+            server_context(c, k)
+        assert str(err.value) == (
+            f"TLS certificate {c}: {notes} holds no PEM {lacking} "
+            f"(-----BEGIN ... {lacking.upper()}-----)"
+        )

@@ -202,6 +202,19 @@ def ensure_certificate(host: str, folder: Path | None = None) -> tuple[Path, Pat
     return cert_path, key_path, True
 
 
+def _not_pem(cert_path: Path, key_path: Path) -> str | None:
+    """Which of the two files holds no PEM block of its kind (OpenSSL says only "PEM
+    lib"), or None."""
+    for path, block in ((cert_path, "CERTIFICATE"), (key_path, "PRIVATE KEY")):
+        try:
+            text = Path(path).read_bytes()
+        except OSError:
+            continue  # said by the OSError branch's reading
+        if b"-----BEGIN " not in text or block.encode() not in text:
+            return f"{path} holds no PEM {block.lower()} (-----BEGIN ... {block}-----)"
+    return None
+
+
 def server_context(cert_path: Path, key_path: Path) -> ssl.SSLContext:
     """A TLS server context for the certificate."""
     ctx = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
@@ -212,7 +225,7 @@ def server_context(cert_path: Path, key_path: Path) -> ssl.SSLContext:
         why = (
             f"the key {key_path} is not this certificate's"
             if exc.reason == "KEY_VALUES_MISMATCH"
-            else exc.reason or str(exc)
+            else _not_pem(cert_path, key_path) or exc.reason or str(exc)
         )
         raise TlsError(f"TLS certificate {cert_path}: {why}") from exc
     except OSError as exc:  # unreadable ("[Errno 13] ..." said as the system's reason)
