@@ -393,3 +393,22 @@ def test_compare_steps_of_a_cut_trial_says_over_which_steps(tmp_path: Path, caps
     assert main(["trials", "compare", str(a), str(b), "--steps"]) == 0
     out = capsys.readouterr().out
     assert f"| trial-0001 | {n_a} / {n_b} | 0 of the first {n_b} | - |" in out, out
+
+
+def test_a_campaign_capped_by_max_time_says_so(tmp_path: Path, capsys) -> None:
+    """``trials run --max-time S`` caps each trial's session as ``payload trial
+    --max-time`` does (it had no such option): each trial records the cap as its end, its
+    line says so, and the summary states the cap."""
+    out = tmp_path / "camp"
+    argv = ["trials", "run", "--n", "1", "--seed", "3", "--workers", "0", "--max-time", "1"]
+    assert main([*argv, "--out", str(out)]) == 0
+    said = capsys.readouterr().out
+    metrics = json.loads((out / "trial-0003" / "metrics.json").read_text())
+    assert metrics["ended_by"] == "max_time" and metrics["steps"] == 51  # 0 to 1 s at 50 Hz
+    assert "[1/1] seed 3: failed (stopped by the --max-time cap)" in said
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["run"]["max_time_s"] == 1.0
+    line = "Each trial's session was capped at 1 s (--max-time)"
+    assert line in said and line in (out / "summary.md").read_text()
+    assert main([*argv[:-2], "--max-time", "nan", "--out", str(tmp_path / "x")]) == 2
+    assert "--max-time" in capsys.readouterr().err and not (tmp_path / "x").exists()

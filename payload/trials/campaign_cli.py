@@ -14,6 +14,7 @@ from typing import Any
 
 from payload.cliutil import (
     CheckFailed,
+    check_seconds,
     command_project,
     emit_json,
     out_folder,
@@ -61,6 +62,7 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
         raise TrialsCliError(f"--seed {problem}")
     if args.workers is not None and args.workers < 0:
         raise TrialsCliError(f"--workers must be >= 0, got {args.workers}")
+    check_seconds("--max-time", args.max_time, cap=True)
     from payload.trials.cluster import check_scheduler
 
     check_scheduler(args.scheduler, TrialsCliError)
@@ -98,6 +100,7 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
                 runner_trial_fn(
                     "synthetic",
                     project.root,
+                    max_time=args.max_time,
                     force=args.force,
                     **{name: getattr(args, name) for name in _SETUP},
                     **link_zones,
@@ -114,6 +117,8 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
             run = {
                 "workers": None if args.scheduler else workers,
                 "scheduler": args.scheduler,
+                # a cap given says so (a default run's summary is as it was)
+                **({"max_time_s": args.max_time} if args.max_time is not None else {}),
                 "wall_s": time.perf_counter() - t0,
                 "trial_wall_s": float(sum(r.get("wall_s") or 0.0 for r in results)),
             }

@@ -25,7 +25,7 @@ from payload.cliutil import (
 from payload.folders import CAMPAIGN_FILES, TRIAL_FILES
 from payload.safeio import cannot_write_in
 from payload.trials.campaign_cli import _cmd_trials_run, _cmd_trials_summarize
-from payload.trials.setup_options import TrialsCliError, _setup_arguments
+from payload.trials.setup_options import TrialsCliError, _max_time_argument, _setup_arguments
 from payload.trials.trial_cli import _cmd_trial
 
 
@@ -171,13 +171,7 @@ def register(
         help="trial folder (default: a new runs/trial-NNNN[-k] in the project; a replay: "
         "runs/replay-NNNN[-k])",
     )
-    p.add_argument(
-        "--max-time",
-        type=float,
-        default=None,
-        metavar="S",
-        help="cap on the session length [s] (default: the runner's, 240 s)",
-    )
+    _max_time_argument(p, "the session's")
     p.add_argument("--force", action="store_true", help="replace the trial already in --out")
     _setup_arguments(p, replay=True)
     p.add_argument("--json", action="store_true", help="print one JSON object")
@@ -195,6 +189,7 @@ def register(
         help="local Dask worker processes (default: one per core; 0 or 1: serial)",
     )
     r.add_argument("--scheduler", help="existing Dask scheduler, e.g. tcp://host:8786")
+    _max_time_argument(r, "each trial's session")
     r.add_argument(
         "--out", help="campaign folder (default: a new runs/campaign-NNNN in the project)"
     )

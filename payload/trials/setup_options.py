@@ -26,6 +26,21 @@ def seed_problem(seed: int, count: int = 1) -> str | None:
     return None
 
 
+def _seconds_argument(p: argparse.ArgumentParser, flag: str, text: str) -> None:
+    """An optional ``flag S`` option in seconds (None when left out)."""
+    p.add_argument(flag, type=float, default=None, metavar="S", help=text)
+
+
+def _max_time_argument(p: argparse.ArgumentParser, what: str = "session") -> None:
+    """``--max-time S``: a cap on each trial's session (``payload trial``, ``trials run``)."""
+    _seconds_argument(
+        p,
+        "--max-time",
+        f"cap on {what} length [s] (default: the runner's, 240 s; a capped trial is "
+        "recorded as stopped by the cap)",
+    )
+
+
 class TrialsCliError(PayloadError):
     """Bad arguments to a trials command, or the trial runner is not available."""
 
@@ -117,12 +132,10 @@ def _setup_arguments(p: argparse.ArgumentParser, *, replay: bool = False) -> Non
 
 
 def _physics_dt_argument(p: argparse.ArgumentParser, mine: str = "") -> None:
-    p.add_argument(
+    _seconds_argument(
+        p,
         "--physics-dt",
-        type=float,
-        default=None,
-        metavar="S",
-        help="physics time step [s]: 0.001 (default, the paper's 1 kHz"
+        "physics time step [s]: 0.001 (default, the paper's 1 kHz"
         f"{mine}) or an opt-in faster step that divides the 20 ms control period, e.g. "
         "0.002 (the pad contact is derived from the step; results differ from 1 kHz)",
     )

@@ -221,11 +221,21 @@ def _run_lines(run: dict[str, Any] | None) -> list[str]:
         where = f"on {run['workers']} local Dask workers"
     else:
         where = "serially"
+    cap = run.get("max_time_s")
+    capped = (
+        []
+        if cap is None
+        else [
+            f"Each trial's session was capped at {cap:g} s (--max-time): a trial stopped by "
+            "the cap ended before its task did."
+        ]
+    )
     return [
         "",
         f"Ran {where} in {run['wall_s']:.1f} s; the trials took "
         f"{run.get('trial_wall_s', 0.0):.1f} s added up "
         f"(speed-up {run.get('trial_wall_s', 0.0) / run['wall_s']:.2f}x).",
+        *capped,
     ]
 
 

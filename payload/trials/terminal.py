@@ -77,6 +77,8 @@ def trial_line(result: dict[str, Any], done: int, total: int) -> str:
     if result.get("error"):
         return head + f"error: {str(result['error']).splitlines()[0]}{tail}"
     parts = ["succeeded" if result.get("success") else "failed"]
+    if result.get("ended_by") == "max_time":  # why, when a cap cut the session short
+        parts[0] += " (stopped by the --max-time cap)"
     for key in ("rms_mm", "duration_s"):
         name, unit = _SHORT[key]
         value = result.get(key)
