@@ -439,7 +439,9 @@ def register(
                    help="'replay FILE'")  # fmt: skip
     p.add_argument("--servos", metavar="MAP", help="servo map TOML")
     p.add_argument("--out", help="trial folder (default: a new runs/hw-NNNN in the project)")
-    p.add_argument("--max-time", type=float, default=240.0, help="session cap [s]")
+    p.add_argument(
+        "--max-time", type=float, default=240.0, metavar="S", help="session cap [s] (default 240)"
+    )
     p.add_argument(
         "--no-pace",
         action="store_true",
