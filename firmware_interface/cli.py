@@ -29,6 +29,7 @@ from payload.cliutil import (
 )
 from payload.errors import PayloadError
 from payload.folders import CAMPAIGN_FILES, HANDS, RECORDING, TRIAL_FILES
+from payload.trials.setup_options import MAX_TRIAL_S
 
 
 class HwUsageError(PayloadError):
@@ -321,6 +322,12 @@ def _cmd_identify(args: argparse.Namespace) -> int:
             f"{', '.join(s.joint for s in smap.servos)})"
         )
     _emulated_or_device(args)
+    if args.write and args.emulator:  # the emulator's values are the design's (or FILE's)
+        raise HwUsageError(
+            "--write puts an identification into the design: one of an emulated bus gives "
+            "back the emulator's values, not your servos' (identify the hardware with "
+            "--device DEV to write)"
+        )
     _models_follow(args)
     with contextlib.ExitStack() as stack:
         emu = None
@@ -440,7 +447,11 @@ def register(
     p.add_argument("--servos", metavar="MAP", help="servo map TOML")
     p.add_argument("--out", help="trial folder (default: a new runs/hw-NNNN in the project)")
     p.add_argument(
-        "--max-time", type=float, default=240.0, metavar="S", help="session cap [s] (default 240)"
+        "--max-time",
+        type=float,
+        default=MAX_TRIAL_S,
+        metavar="S",
+        help=f"session cap [s] (default {MAX_TRIAL_S:g})",
     )
     p.add_argument(
         "--no-pace",

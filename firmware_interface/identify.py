@@ -29,7 +29,6 @@ the joint); they are written into the design only with ``--write``.
 from __future__ import annotations
 
 import math
-import re
 import struct
 import time
 from collections.abc import Callable
@@ -44,8 +43,15 @@ from firmware_interface.control_table import ADDR, VELOCITY_UNIT_RPM, VOLTAGE_UN
 from firmware_interface.driver import FEEDBACK_ADDR, FEEDBACK_LEN, DynamixelDriver
 from firmware_interface.errors import CommError
 from firmware_interface.servo_map import ServoSpec
+from payload.design.edit import set_in_text
 from payload.design.servo import CURRENT_UNIT_A, KPP_DIV, TICKS_PER_RAD, kind_of
 from payload.design.tree import build_tree, load_inertia
+from payload.safeio import replace_file
+
+try:
+    import tomllib
+except ModuleNotFoundError:  # Python 3.10
+    import tomli as tomllib
 
 WINDOW_S = 0.04
 """Integration window of the dynamics fit [s]."""
@@ -252,28 +258,22 @@ def identify(
 
 
 def write_servo_values(design_path: str | Path, values: dict[str, float]) -> None:
-    """Replace ``key = number`` lines of the ``[servo]`` table (comments kept).
+    """Set ``key = number`` in the design's ``[servo]`` table, to six significant digits
+    (every other byte kept, comments included: :func:`payload.design.edit.set_in_text`),
+    replacing the file whole (:func:`payload.safeio.replace_file`).
 
     Raises:
-        ValueError: A key is not in the table.
+        ValueError: A key is not in the table (nothing written).
     """
     p = Path(design_path)
-    lines = p.read_text(encoding="utf-8").splitlines(keepends=True)
-    table = None
-    done = set()
-    for n, line in enumerate(lines):
-        head = re.match(r"\s*\[([^\]]+)\]", line)
-        if head:
-            table = head.group(1).strip()
-            continue
-        m = re.match(r"(\s*)([A-Za-z_]+)(\s*=\s*)([-+0-9.eE]+)(.*)", line, re.S)
-        if table == "servo" and m and m.group(2) in values:
-            lines[n] = f"{m.group(1)}{m.group(2)}{m.group(3)}{values[m.group(2)]:.6g}{m.group(5)}"
-            done.add(m.group(2))
-    missing = set(values) - done
+    text = p.read_text(encoding="utf-8")
+    servo = tomllib.loads(text).get("servo", {})
+    missing = sorted(set(values) - set(servo))
     if missing:
-        raise ValueError(f"{p}: [servo] has no {', '.join(sorted(missing))}")
-    p.write_text("".join(lines), encoding="utf-8")
+        raise ValueError(f"{p}: [servo] has no {', '.join(missing)}")
+    for key, value in values.items():
+        text = set_in_text(text, f"servo.{key}", float(f"{value:.6g}"))
+    replace_file(p, text)
 
 
 __all__ = ["Record", "excite", "fit", "identify", "write_servo_values"]

@@ -91,3 +91,21 @@ def test_write_stowed_keeps_a_design_without_the_comment_valid(tmp_path) -> None
     assert main(argv) in (0, 1)  # the verdict's exit; the design must stay valid
     stowed = tomllib.loads(design.read_text())["stowed"]
     assert set(stowed) == {"finger", "rail", "stage"} and len(stowed["finger"]) == 4
+
+
+@pytest.mark.parametrize("newline", ["\n", "\r\n"], ids=["LF", "CRLF"])
+def test_a_key_added_after_a_nested_array_lands_in_its_table(newline) -> None:
+    """A key the table lacks is added at the table's end: the lines of another key's
+    value over several lines (``[0.5],`` items) are not read as table headers, and the
+    added line ends as the file's lines do."""
+    text = "[stowed]\nfinger = [\n  [0.5],  # one\n  [1.0],\n]\nrail = 0.0\n[home]\nx = 1\n"
+    text = text.replace("\n", newline)
+    out = set_in_text(text, "stowed.stage", 0.25)
+    assert tomllib.loads(out) == {
+        "stowed": {"finger": [[0.5], [1.0]], "rail": 0.0, "stage": 0.25},
+        "home": {"x": 1},
+    }
+    assert out == text.replace(f"rail = 0.0{newline}", f"rail = 0.0{newline}stage = 0.25{newline}")
+    added = set_in_text(text, "extra.k", 1.5)  # a table the file lacks, at its end
+    assert tomllib.loads(added)["extra"] == {"k": 1.5}
+    assert added.startswith(text) and added.count(newline) == added.count("\n")

@@ -73,6 +73,7 @@ def test_a_bad_servo_params_file_is_refused_in_one_line(tmp_path, capsys):
         (["--device", "/dev/null", "--emulator"], "give either --device DEV or --emulator"),
         ([], "give either --device DEV or --emulator"),
         (["--device", "/dev/null", "--servo-params", "p.json"], "give it with --emulator"),
+        (["--emulator", "--write"], "not your servos' (identify the hardware"),
     ],
 )
 def test_identify_takes_one_bus(extra: list[str], message: str, capsys) -> None:

@@ -203,6 +203,13 @@ def test_build_design_f_writes_fs_project(new_project, tmp_path, capsys, checkou
     assert capsys.readouterr().out.splitlines()[0] == f"project: {p.root}"
     assert p.urdf.read_bytes() != before
     assert 'upper="0.04"' in p.urdf.read_text() or "0.04" in p.urdf.read_text()
+    # stale again, checked from here: the hint builds that project's, not this one's
+    p.design_path.write_text(_set(p.design_path.read_text(), "rail", "travel", 0.045))
+    capsys.readouterr()
+    assert main(["build", "--check", "--design", str(p.design_path)]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.endswith(f"; run `payload build --design {p.design_path}`)"), err
+    assert main(["build", "--design", str(p.design_path)]) == 0
     assert main(["build", "--design", str(p.design_path), "--project", str(ROOT)]) == 2
     assert "belongs to project" in capsys.readouterr().err
     # a design file in no project is checked against the project found as usual
@@ -325,14 +332,20 @@ def test_a_design_in_no_project_is_reported_into_its_out_from_anywhere(outside, 
     loose = outside / "variant.toml"
     loose.write_bytes(DESIGN.read_bytes())
     out = outside / "report"
-    argv = ["report", "envelope", "--design", str(loose), "--no-search", "--json"]
+    # named as typed, relative: the provenance names it absolute, traceable from anywhere
+    argv = ["report", "envelope", "--design", "variant.toml", "--no-search", "--json"]
     assert main([*argv, "--out", str(out)]) == 0
     data = json.loads(capsys.readouterr().out)
-    assert data["project"] is None and data["provenance"]["design"] == str(loose)
+    assert data["project"] is None and data["provenance"]["design"] == str(loose.resolve())
     assert data["provenance"]["design_sha256"] == hashlib.sha256(DESIGN.read_bytes()).hexdigest()
     assert json.loads((out / "envelope.json").read_text())["passed"] == data["passed"]
     assert sorted(p.name for p in outside.iterdir()) == ["report", "variant.toml"]
     assert main(argv) == 2
     err = capsys.readouterr().err.strip()
-    assert err.count("\n") == 0 and f"--design {loose}: in no design project" in err, err
+    assert err.count("\n") == 0 and "--design variant.toml: in no design project" in err, err
     assert "give --out DIR" in err
+    # a --project that is wrong is said, not passed over because --out was given
+    typo = outside / "typo"
+    assert main(["--project", str(typo), *argv, "--out", str(outside / "r2")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and f"--project {typo}: not a design project" in err, err

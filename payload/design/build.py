@@ -90,22 +90,25 @@ def _write_files(files: dict[str, bytes], root: Path) -> tuple[tuple[str, ...], 
     """Write the stale ``files`` under ``root``; returns the paths written and the meshes
     removed that no part makes any more."""
     mesh_dir = root / MESH_DIR
-    mesh_dir.mkdir(parents=True, exist_ok=True)
-    (root / URDF_DIR).mkdir(parents=True, exist_ok=True)
-    # every folder written in must take the files before any is written: a build that
-    # stopped half-way would leave meshes that no longer match the URDF
     stale = [root / rel for rel, data in files.items() if not _holds(root / rel, data)]
-    for folder in sorted({path.parent for path in stale}):
-        problem = cannot_write_in(folder)
+    extra = [old for old in sorted(mesh_dir.glob("*.stl")) if f"{MESH_DIR}/{old.name}" not in files]
+    # every folder written in (or made, or removed from) must take it before anything is
+    # written: a build that stopped half-way would leave meshes that no longer match the URDF
+    for folder in sorted({path.parent for path in (*stale, *extra)}):
+        where = folder
+        while not where.exists() and where != where.parent:  # made: its first existing parent
+            where = where.parent
+        problem = cannot_write_in(where)
         if problem is not None:
             raise BuildError(
-                f"{folder}: cannot write the generated models there ({problem}); nothing written"
+                f"{where}: cannot write the generated models there ({problem}); nothing written"
             )
+    mesh_dir.mkdir(parents=True, exist_ok=True)
+    (root / URDF_DIR).mkdir(parents=True, exist_ok=True)
     removed = []
-    for old in sorted(mesh_dir.glob("*.stl")):
-        if f"{MESH_DIR}/{old.name}" not in files:
-            old.unlink()
-            removed.append(f"{MESH_DIR}/{old.name}")
+    for old in extra:
+        old.unlink()
+        removed.append(f"{MESH_DIR}/{old.name}")
     written = []
     for rel, data in files.items():
         path = root / rel

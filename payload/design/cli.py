@@ -27,13 +27,15 @@ def _cmd_build(args: argparse.Namespace) -> int:
     if args.check:
         stale = stale_files(design, root)
         if stale:
-            own = args.root or not args.design or is_project_design(Path(args.design))
-            hint = (
-                "run `payload build`"
-                if own
-                else "it is not a project's design, and the project's models follow its own "
-                "cad/design.toml: give it a project of its own to build it"
-            )
+            if args.root or not args.design:
+                hint = "run `payload build`"
+            elif is_project_design(Path(args.design)):  # its own project's, wherever run
+                hint = f"run `payload build --design {args.design}`"
+            else:
+                hint = (
+                    "it is not a project's design, and the project's models follow its own "
+                    "cad/design.toml: give it a project of its own to build it"
+                )
             raise CheckFailed(
                 f"stale: {', '.join(stale)} ({len(stale)} generated file(s) do not match "
                 f"{design.source}; {hint})"

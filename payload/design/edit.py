@@ -14,6 +14,8 @@ _HEADER = re.compile(r"^\s*\[\s*([A-Za-z0-9_.\- ]+?)\s*\]\s*(#.*)?$")
 _REST = r"([^#\r\n]*?)([ \t]*(?:#[^\r\n]*)?)(\r?\n?)$"
 """The rest of a line after ``key =``: the value's text, its blanks and comment, its end."""
 _LINE = re.compile(_REST)
+_ANY_KEY = re.compile(r"^([ \t]*[A-Za-z0-9_\-\"'.]+[ \t]*=[ \t]*)" + _REST)
+"""Any ``key = value`` line (bare, quoted or dotted key)."""
 
 
 def toml_value(value: Any) -> str:
@@ -39,34 +41,39 @@ def set_in_text(text: str, key: str, value: Any, comment: str | None = None) -> 
     """
     *table, leaf = key.split(".")
     lines = text.splitlines(keepends=True)
+    eol = "\r\n" if "\r\n" in text else "\n"  # a key added ends its line as the file does
     # within one line: blanks are spaces and tabs, never the line's end (which is kept)
     assign = re.compile(rf"^([ \t]*{re.escape(leaf)}[ \t]*=[ \t]*)" + _REST)
     written = toml_value(value)
     current: list[str] = []
     end_of_table = None
-    for i, line in enumerate(lines):
+    i = 0
+    while i < len(lines):
+        line = lines[i]
         m = _HEADER.match(line)
         if m and not line.lstrip().startswith("[["):
             if current == table and end_of_table is None:
                 end_of_table = i
             current = [p.strip() for p in m.group(1).split(".")]
+            i += 1
             continue
-        if current == table:
-            a = assign.match(line)
-            if a:
-                last, tail, end = _value_end(lines, i, a)
-                tail = tail if comment is None else f"  # {comment}"
-                lines[i : last + 1] = [f"{a.group(1)}{written}{tail}{end}"]
-                return "".join(lines)
-    addition = f"{leaf} = {written}" + ("" if comment is None else f"  # {comment}") + "\n"
+        a = assign.match(line) if current == table else None
+        if a:
+            last, tail, end = _value_end(lines, i, a)
+            tail = tail if comment is None else f"  # {comment}"
+            lines[i : last + 1] = [f"{a.group(1)}{written}{tail}{end}"]
+            return "".join(lines)
+        other = _ANY_KEY.match(line)  # another key's value: its lines are not headers
+        i = (_value_end(lines, i, other)[0] if other else i) + 1
+    addition = f"{leaf} = {written}" + ("" if comment is None else f"  # {comment}") + eol
     if current == table and end_of_table is None:  # the table is the last one
-        sep = "" if not lines or lines[-1].endswith("\n") else "\n"
+        sep = "" if not lines or lines[-1].endswith("\n") else eol
         return "".join(lines) + sep + addition
     if end_of_table is not None:
         lines.insert(end_of_table, addition)
         return "".join(lines)
-    sep = "" if not lines or lines[-1].endswith("\n") else "\n"
-    return "".join(lines) + sep + f"\n[{'.'.join(table)}]\n" + addition
+    sep = "" if not lines or lines[-1].endswith("\n") else eol
+    return "".join(lines) + sep + f"{eol}[{'.'.join(table)}]{eol}" + addition
 
 
 def _value_end(lines: list[str], i: int, assign: re.Match[str]) -> tuple[int, str, str]:

@@ -61,13 +61,9 @@ def _cmd_reach(args: argparse.Namespace) -> int:
     from payload.envelope.report import reach_json
     from payload.envelope.verdict import reach_passed, reach_verdict
 
-    if args.json:  # the verdict as the envelope's JSON gives its own (stdout only: the
-        # report file is the analysis, and the verdict is read from it the same way)
-        verdict = {
-            "passed": reach_passed(analysis),
-            "verdict": reach_verdict(analysis).removeprefix("verdict: "),
-        }
-        emit_json(_stdout_json(args, {**_recorder(args)(reach_json(analysis)), **verdict}))
+    if args.json:
+        data = {**_recorder(args)(reach_json(analysis)), **_reach_verdict_fields(analysis)}
+        emit_json(_stdout_json(args, data))
     else:
         print(reach_verdict(analysis))
         for line in [*reach_lines(analysis), *written_lines(paths, "reach")]:
@@ -75,6 +71,18 @@ def _cmd_reach(args: argparse.Namespace) -> int:
     if not reach_passed(analysis):
         raise CheckFailed("reach: " + reach_verdict(analysis).split("FAILS: ", 1)[1])
     return 0
+
+
+def _reach_verdict_fields(reach: ReachAnalysis) -> dict[str, Any]:
+    """The reach's verdict in its ``--json`` objects (``report reach``, ``report all``'s
+    ``reach``): ``passed`` (what the exit code says) and ``verdict`` (the line's text). The
+    report file holds the analysis only, as before."""
+    from payload.envelope.verdict import reach_passed, reach_verdict
+
+    return {
+        "passed": reach_passed(reach),
+        "verdict": reach_verdict(reach).removeprefix("verdict: "),
+    }
 
 
 def _all_verdict(envelope: EnvelopeAnalysis, reach: ReachAnalysis) -> str:
@@ -131,7 +139,7 @@ def _cmd_all(args: argparse.Namespace) -> int:
             "verdict": verdict.removeprefix("verdict: "),
             "models": {"rebuilt": rebuilt},
             "envelope": record(envelope_json(envelope)),
-            "reach": record(reach_json(reach)),
+            "reach": {**record(reach_json(reach)), **_reach_verdict_fields(reach)},
             "summary": summary,
         }
         emit_json(_stdout_json(args, data))

@@ -41,11 +41,16 @@ def _project_or_none(args: argparse.Namespace) -> Project | None:
     """The command's project, or None for a design file in no project (``--design F``)
     reported into ``--out DIR`` from a folder in no project: such a report needs none
     (its models are not on disk to follow, its provenance names the file)."""
-    from payload.project import ProjectError, project_of
+    import os
+
+    from payload.project import ENV_VAR, ProjectError, project_of
 
     try:
         return _project(args)
     except ProjectError:
+        named = getattr(args, "project", None) is not None or os.environ.get(ENV_VAR)
+        if named:  # a --project or PAYLOAD_PROJECT that is wrong says so, as everywhere
+            raise
         loose = args.design and project_of(Path(args.design).expanduser()) is None
         if loose and args.out:
             return None
@@ -59,6 +64,13 @@ def _project_or_none(args: argparse.Namespace) -> Project | None:
 
 def _design_path(args: argparse.Namespace) -> Path:
     return Path(args.design).expanduser() if args.design else _project(args).design_path
+
+
+def _provenance_design(args: argparse.Namespace, project: Project | None) -> Path:
+    """The design file a report's provenance names: as given inside a project (made
+    relative to it), absolute for a design in no project (traceable from anywhere)."""
+    path = _design_path(args)
+    return path if project is not None else path.resolve()
 
 
 def _out_dir(args: argparse.Namespace) -> Path:
@@ -100,7 +112,8 @@ def _recorder(args: argparse.Namespace) -> Callable[[dict[str, Any]], dict[str, 
     files inside the project omit the project's absolute path; stdout adds ``project``."""
     from payload.project import provenance
 
-    prov = provenance(_project_or_none(args), _design_path(args))
+    project = _project_or_none(args)
+    prov = provenance(project, _provenance_design(args, project))
     prov.pop("project")
     return lambda data: {**data, "provenance": prov}
 

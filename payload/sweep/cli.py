@@ -21,6 +21,7 @@ from payload.folders import CAMPAIGN_FILES, SWEEP_FILES, TRIAL_FILES, held
 from payload.project import DESIGN_FILE
 from payload.sweep.grid import SweepError, parse_set
 from payload.sweep.run import DEFAULT_SAMPLES
+from payload.trials.setup_options import seed_problem
 
 
 def _progress(enabled: bool, total: int) -> Any:
@@ -49,6 +50,8 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
     if args.trials < 0:
         raise SweepError(f"--trials must be >= 0, got {args.trials}")
     check_reach_numbers(args.samples, args.seed, args.workers, SweepError)
+    if args.trials and (problem := seed_problem(args.seed, args.trials)) is not None:
+        raise SweepError(f"--seed {problem}")  # each point's trials: seeds S to S + N - 1
     from payload.trials.cluster import check_scheduler
 
     check_scheduler(args.scheduler, SweepError)  # before any folder is made for the sweep

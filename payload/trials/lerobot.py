@@ -397,10 +397,10 @@ def export_lerobot(
     frames = [_episode_frames(rec, src, fps) for src, rec in loaded]
     for src, rec in loaded:  # a seed beyond int64 (typed before the commands refused it)
         seed = rec.meta.get("seed")
-        if isinstance(seed, int) and not 0 <= seed <= MAX_SEED:
+        if isinstance(seed, int) and seed > MAX_SEED:
             raise LeRobotExportError(
-                f"{src}: seed {seed} does not fit the dataset's seed column (0 to "
-                f"{MAX_SEED}, 64-bit); nothing written"
+                f"{src}: seed {seed} does not fit the dataset's seed column (a signed "
+                f"64-bit integer, at most {MAX_SEED}); nothing written"
             )
     final, out = out, _prepare_out(out, overwrite)
     for ep, ((src, rec), (state, action)) in enumerate(zip(loaded, frames)):

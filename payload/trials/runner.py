@@ -53,7 +53,7 @@ from payload.trials.preparation import (
     trial_meta,
 )
 from payload.trials.retargeters import retargeting, single_threaded_numerics
-from payload.trials.setup_options import RUN_SETTINGS
+from payload.trials.setup_options import MAX_TRIAL_S, RUN_SETTINGS
 from payload.trials.sources import HeadsetSource, TrialError, _Source, load_replay, trial_setup
 from payload.trials.stepobserver import MODULE_NAMES, step_record, world_view
 
@@ -61,8 +61,6 @@ if TYPE_CHECKING:
     from payload.trials.reading import Recording
 
 log = logging.getLogger(__name__)
-
-MAX_TRIAL_S = 240.0
 
 
 class TrialAborted(RunAborted):

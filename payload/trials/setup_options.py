@@ -10,6 +10,9 @@ from typing import Any
 
 from payload.errors import PayloadError
 
+MAX_TRIAL_S = 240.0
+"""A trial session's default length cap [s] (``--max-time``)."""
+
 MAX_SEED = 2**63 - 1
 """The largest trial seed: seeds are 64-bit signed integers, as the LeRobot export's seed
 column (Parquet's int64) stores them."""
@@ -36,8 +39,8 @@ def _max_time_argument(p: argparse.ArgumentParser, what: str = "session") -> Non
     _seconds_argument(
         p,
         "--max-time",
-        f"cap on {what} length [s] (default: the runner's, 240 s; a capped trial is "
-        "recorded as stopped by the cap)",
+        f"cap on {what} length [s] (default {MAX_TRIAL_S:g}; a capped trial is recorded "
+        "as stopped by the cap)",
     )
 
 
