@@ -1,4 +1,5 @@
-"""Retarget one hand's thumb and index to finger pair L: the README's retargeting example.
+"""Retarget one hand's thumb and index to finger pair L: the retargeting example of
+docs/retargeting.md.
 
 Run it from the project root (``python examples/retarget_pair.py``; a few seconds, about
 20 s more the first time, while the solver compiles). The operator's

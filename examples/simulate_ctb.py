@@ -1,4 +1,4 @@
-"""Fly Astrobee with the payload deployed over a CTB: the README's simulator example.
+"""Fly Astrobee with the payload deployed over a CTB: the simulator example of docs/simulator.md.
 
 Run it from the project root (``python examples/simulate_ctb.py``; about 5 s). The
 fingers hold their measured posture while the vehicle is asked for 5 cm/s forward for

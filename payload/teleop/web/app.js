@@ -151,14 +151,17 @@ function roleHint() {
     return kept ? 'Control is free: your hands take it (the calibration is kept).'
       : 'Control is free: calibrate to take it.';
   }
+  // no WebXR here: where a headset is, and how to try it without one
+  const noHeadset = ' No headset? Start the server with --desktop to emulate one in this ' +
+    'browser.';
   if (kept) {
     return debug.canEnter ? 'Control is free: press Enter VR to take it (the calibration is kept).'
       : 'Control is free: open this page in a WebXR headset and press Enter VR to take it ' +
-        '(the calibration is kept).';
+        '(the calibration is kept).' + noHeadset;
   }
   return debug.canEnter ? 'Control is free: press Enter VR, then calibrate to take it.'
     : 'Control is free: open this page in a WebXR headset, press Enter VR and calibrate to ' +
-      'take it.';
+      'take it.' + noHeadset;
 }
 
 // The calibration prompt, only while the server says "calibrating": a state message after
