@@ -530,6 +530,15 @@ def test_the_header_is_one_line_at_1280_and_the_page_shows_words(tmp_path):
                     assert "left wrist" not in shown["page"], shown  # the holder's notice
                 if state == "waiting":  # free, and no WebXR here: how to try without one
                     assert "Start the server with --desktop to emulate one" in shown["page"], shown
+                    # a line from the body's underside to each fingertip: the world's
+                    # vehicle position less half the scene's body height (the lines were
+                    # not a number once the body became a box, and none was drawn)
+                    lines = page.evaluate("() => window.__teleop.fingerLines")
+                    pos, tips = world["vehicle"]["pos"], world["fingers"]
+                    below = [pos[0], pos[1], pos[2] - session.scene["vehicle_body_size"][2] / 2]
+                    assert len(lines) == len(tips) == 4, lines
+                    for (base, tip), want in zip(lines, tips.values()):
+                        assert base == pytest.approx(below) and tip == pytest.approx(want)
             assert "safe stop" in shown["text"] and reason in shown["page"], shown
             labels = page.evaluate("() => document.getElementById('labels').innerText")
             assert "Node 2" in labels and "Kibo" in labels, labels

@@ -30,7 +30,7 @@ const $ = (id) => document.getElementById(id);
 const debug = {
   sent: 0, received: 0, connects: 0, state: null, open: false, xr: false,
   role: null, driver: null, hardware: false, link: 'connecting to the teleop server…', canEnter: false,
-  why: null, vrError: null, panel: [],
+  why: null, vrError: null, panel: [], fingerLines: [],
 };
 window.__teleop = debug;
 
@@ -302,6 +302,7 @@ function drawDesktop() {
   gl.clear(gl.COLOR_BUFFER_BIT | gl.DEPTH_BUFFER_BIT);
   const eye = [0, 1.6, 0.8];
   renderer.draw(perspective(1.0, w / Math.max(h, 1), 0.05, 60), lookAt(eye, ANCHOR, [0, 1, 0]));
+  debug.fingerLines = renderer.fingerLines || [];
   placeLabels(w, h);
   requestAnimationFrame(drawDesktop);
 }

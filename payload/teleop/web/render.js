@@ -235,9 +235,12 @@ export class Renderer {
         this.box(vp, st.ctb.pos, st.ctb.quat, this.scene.ctb_size,
           st.contact ? [0.3, 1, 0.4, 1] : [0.9, 0.9, 0.9, 1], st.contact ? 'CTB (held)' : 'CTB');
       }
+      // a line from the body's underside (its centre less half its height) to each tip
       const tips = Object.values(st.fingers || {});
-      const base = [st.vehicle.pos[0], st.vehicle.pos[1], st.vehicle.pos[2] - vs / 2];
-      this.segments(vp, tips.flatMap((p) => [base, p]), [1, 0.5, 0.3, 1]);
+      const below = vs ? vs[2] / 2 : 0;
+      const base = [st.vehicle.pos[0], st.vehicle.pos[1], st.vehicle.pos[2] - below];
+      this.fingerLines = tips.map((p) => [base, p]);  // what was drawn (the page's debug)
+      this.segments(vp, this.fingerLines.flat(), [1, 0.5, 0.3, 1]);
       for (const p of tips) this.box(vp, p, id, [0.02, 0.02, 0.02], [1, 0.4, 0.2, 1]);
     }
     // the text panel floats above the vehicle, facing the operator: its top edge fixed, as
