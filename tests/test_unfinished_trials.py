@@ -235,8 +235,12 @@ def test_compare_says_why_a_trial_cannot_be_compared_and_when_seeds_differ(
     assert len(err) == 1 and f"give its folder, {one}" in err[0], err
     assert main(["trials", "compare", str(one), str(two)]) == 0
     out = capsys.readouterr()
-    assert "seed 2 in B and seed 1 in A" in out.out
-    assert "warning: trial-0002: seed 1 in A and seed 2 in B" in out.err
+    assert "Trial `trial-0001 / trial-0002` is seed 2 in B and seed 1 in A" in out.out
+    assert "warning: trial-0001 / trial-0002: seed 1 in A and seed 2 in B" in out.err
+    assert "\n| trial-0001 / trial-0002 | " in out.out  # the row names both trials
+    assert main(["trials", "compare", str(one), str(two), "--json"]) == 0
+    row = json.loads(capsys.readouterr().out)["trials"][0]
+    assert (row["trial_a"], row["trial"]) == ("trial-0001", "trial-0002")
     # the same seed: no such note
     assert main(["trials", "compare", str(one), str(one)]) == 0
     out = capsys.readouterr()

@@ -107,7 +107,7 @@ def _check_comparison_out(out: Path, *, force: bool) -> None:
 
 def _cmd_trials_compare(args: argparse.Namespace) -> int:
     from payload.safeio import replace_file
-    from payload.trials.compare import compare_markdown, compare_runs
+    from payload.trials.compare import compare_markdown, compare_runs, shown_name
 
     steps = args.steps or args.require_identical
     if args.out:  # before the comparison (--steps reads every recording)
@@ -117,7 +117,7 @@ def _cmd_trials_compare(args: argparse.Namespace) -> int:
     for row in result["trials"]:  # said on stderr too: a --json reader sees no table
         a, b = row["seed_a"], row["seed_b"]
         if a is not None and b is not None and a != b:
-            warn(f"{row['trial']}: seed {a} in A and seed {b} in B: different sessions")
+            warn(f"{shown_name(row)}: seed {a} in A and seed {b} in B: different sessions")
     if args.out:
         replace_file(Path(args.out), text)
     if args.json:

@@ -269,6 +269,7 @@ def compare_runs(run_a: str | Path, run_b: str | Path, *, steps: bool = False) -
                 largest[key] = {"change": change, "trial": name_b}
         row: dict[str, Any] = {
             "trial": name_b,
+            "trial_a": name_a,  # another name only when two single trials are compared
             "seed_a": ma.get("seed"),
             "seed_b": mb.get("seed"),
             "setup_differs": {
@@ -336,7 +337,7 @@ def comparison_notes(result: dict[str, Any]) -> list[str]:
         a, b = row.get("seed_a"), row.get("seed_b")
         if a is not None and b is not None and a != b:
             notes.append(
-                f"Trial `{row['trial']}` is seed {b} in B and seed {a} in A: different "
+                f"Trial `{shown_name(row)}` is seed {b} in B and seed {a} in A: different "
                 "operator sessions, so its changes are not the setup's alone."
             )
     differ: dict[str, set[str]] = {}
@@ -347,6 +348,13 @@ def comparison_notes(result: dict[str, Any]) -> list[str]:
         said = "; ".join(f"{k} {', '.join(sorted(v))}" for k, v in differ.items())
         notes.append(f"Setup, A / B, where it differs: {said}.")
     return notes
+
+
+def shown_name(row: dict[str, Any]) -> str:
+    """A row's trial as the tables show it: its name, or ``A's / B's`` where two single
+    trials of different names are compared."""
+    a = row.get("trial_a", row["trial"])
+    return row["trial"] if a == row["trial"] else f"{a} / {row['trial']}"
 
 
 def compare_markdown(result: dict[str, Any]) -> str:
@@ -362,7 +370,7 @@ def compare_markdown(result: dict[str, Any]) -> str:
         "|" + "---|" * len(head),
     ]
     for row in result["trials"]:
-        cells = [row["trial"], f"{_num(row['success_a'])} / {_num(row['success_b'])}"]
+        cells = [shown_name(row), f"{_num(row['success_a'])} / {_num(row['success_b'])}"]
         for k in keys:
             m = row["metrics"][k]
             change = "n/a" if m["change"] is None else f"{m['change']:+.3f}"
@@ -390,7 +398,7 @@ def compare_markdown(result: dict[str, Any]) -> str:
             if s["steps_a"] != s["steps_b"]:  # compared over the shorter run's steps only
                 differing += f" of the first {min(s['steps_a'], s['steps_b'])}"
             lines.append(
-                f"| {r['trial']} | {s['steps_a']} / {s['steps_b']} | {differing} | "
+                f"| {shown_name(r)} | {s['steps_a']} / {s['steps_b']} | {differing} | "
                 f"{s['first_differing_step'] if s['first_differing_step'] is not None else '-'}"
                 f" | {fields} |"
             )
@@ -406,9 +414,9 @@ def compare_markdown(result: dict[str, Any]) -> str:
                 if c["differing"]
             )
             total = sum(max(c["messages_a"], c["messages_b"]) for c in chans.values())
+            counts = counts or f"none ({len(chans)} channels, {total} messages)"
             lines.append(
-                f"| {r['trial']} | {counts or f'none ({len(chans)} channels, {total} messages)'}"
-                f" | {', '.join(r['other_metrics']) or 'none'} |"
+                f"| {shown_name(r)} | {counts} | {', '.join(r['other_metrics']) or 'none'} |"
             )
     if result["only_a"] or result["only_b"]:
         only = [
@@ -427,4 +435,5 @@ __all__ = [
     "compare_markdown",
     "compare_runs",
     "compare_steps",
+    "shown_name",
 ]
