@@ -377,6 +377,8 @@ def _latency(p: argparse.ArgumentParser) -> None:
 def register(
     sub: argparse._SubParsersAction, groups: dict[str, argparse._SubParsersAction]
 ) -> None:
+    from firmware_interface.control_table import HW_ERROR_BITS  # the fault help's names
+
     hw = sub.add_parser("hw", help="the Dynamixel hardware and its emulator")
     hws = hw.add_subparsers(dest="hw_command", required=True, metavar="WHAT")
 
@@ -387,7 +389,8 @@ def register(
         metavar="SPEC",
         action="append",
         default=[],
-        help="missing:ID, corrupt:P, latency:3ms, drop:P, error:ID:BIT, block:ID",
+        help="missing:ID, corrupt:P, latency:3ms, drop:P, error:ID:NAME (NAME one of "
+        f"{', '.join(HW_ERROR_BITS)}), block:ID",
     )
     p.add_argument("--seed", type=int, default=0, help="seed of the fault dice")
     add_device(

@@ -32,8 +32,19 @@ from typing import Any
 
 from payload.errors import PayloadError
 from payload.folders import held
-from payload.project import ENV_VAR, Project, ProjectError, find_project, project_of
+from payload.project import (
+    DESIGN_FILE,
+    ENV_VAR,
+    Project,
+    ProjectError,
+    find_project,
+    is_project_design,
+    project_of,
+)
 from payload.safeio import cannot_write_in
+
+DESIGN_NAME = Path(DESIGN_FILE).name
+"""The design file's name in a project's ``cad/`` folder."""
 
 
 class CheckFailed(Exception):
@@ -227,6 +238,12 @@ def out_folder(
             f"{option} {value}: already holds {', '.join(there)}; choose another folder "
             "(results are never overwritten)"
         )
+    for design, what in ((path / DESIGN_FILE, "folder"), (path / DESIGN_NAME, "cad/ folder")):
+        if design.is_file() and is_project_design(design):  # a project's own files
+            raise UsageError(
+                f"{option} {value}: is a design project's {what}; results go in a folder of "
+                "their own (left out: a new numbered one in the project's runs/)"
+            )
     problem = _cannot_make(path)
     if problem is not None:
         raise UsageError(f"{option} {value}: cannot make the folder ({problem})")

@@ -340,6 +340,7 @@ def test_new_from_a_binary_design_is_one_line(tmp_path: Path, capsys) -> None:
         (["bench", "filter", "--seconds", "inf"], True),
         (["bench", "teleop", "--seconds", "-1"], True),
         (["bench", "trial", "--seconds", "nan"], False),
+        (["teleop", "serve", "--port", "0", "--seconds", "-5"], True),  # served, then ended
     ],
     ids=lambda v: " ".join(v) if isinstance(v, list) else str(v),
 )
@@ -577,3 +578,11 @@ def test_a_rich_table_to_a_closed_stdout_ends_as_any_output_does(monkeypatch) ->
     finally:
         with contextlib.suppress(BrokenPipeError):  # what is left in its buffer
             stream.close()
+
+
+def test_bench_start_only_naming_nothing_is_one_line(capsys) -> None:
+    """``bench start --only ,`` names no measure: one line, exit 2 (it measured nothing and
+    exited 0)."""
+    assert main(["bench", "start", "--only", ","]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "--only ',': names no measure (there are: version_s" in err

@@ -484,3 +484,30 @@ def test_a_bad_bay_size_writes_nothing_not_even_the_models(command, tmp_path, ca
     assert main(argv) == 2
     _one_line(capsys, "bay")
     assert _snapshot(root) == before
+
+
+@pytest.mark.parametrize("where", ["root", "cad"])
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["trial", "--max-time", "1"],
+        ["trials", "run", "--n", "1", "--workers", "0"],
+        ["bench", "trial", "--seconds", "1"],
+        ["report", "envelope"],
+        ["export", "lerobot", "analyses"],
+        ["hw", "run", "--emulator", "--replay", __file__],
+    ],
+    ids=lambda argv: " ".join(argv[:2]),
+)
+def test_no_command_writes_its_results_among_a_projects_own_files(argv, where, tmp_path, capsys):
+    """An ``--out`` naming a design project's folder or its ``cad/`` (beside its
+    ``design.toml``): one line, exit 2, nothing written (``bench trial --out proj/cad``
+    wrote a trial beside the design)."""
+    root = tmp_path / "p"
+    assert main(["new", str(root)]) == 0
+    out = root if where == "root" else root / "cad"
+    before = _snapshot(root)
+    capsys.readouterr()
+    assert main([*argv, "--out", str(out)]) == 2
+    _one_line(capsys, f"--out {out}: is a design project's", "folder of their own")
+    assert _snapshot(root) == before

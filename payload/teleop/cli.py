@@ -210,6 +210,8 @@ def serve(args: argparse.Namespace, make_session: SessionFactory) -> int:
             what = "a folder, not a PEM file" if path.is_dir() else "no such file"
             raise TeleopCliError(f"{option} {given}: {what}")  # the rest: the TLS load says
     check_address(args.host, args.port)
+    if args.seconds:  # the hidden time limit (tests, scripts); 0: none
+        check_seconds("--seconds", args.seconds)
     project = command_project(args)  # the simulator and the retargeters read its models
     from payload.design import models_follow_design
 
@@ -428,7 +430,9 @@ def serve_arguments(p: argparse.ArgumentParser) -> None:
 
 def bench_arguments(p: argparse.ArgumentParser) -> None:
     """The options of ``payload bench teleop``."""
-    p.add_argument("--seconds", type=float, default=20.0, help="teleoperation time to measure")
+    p.add_argument(
+        "--seconds", type=float, default=20.0, help="teleoperation time to measure (default 20)"
+    )
     add_json(p)
 
 

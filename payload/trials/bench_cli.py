@@ -175,11 +175,21 @@ def _cmd_bench_trial(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench_start(args: argparse.Namespace) -> int:
-    from payload.trials.startbench import LABELS, StartBenchError, check_names, run_start_bench
+    from payload.trials.startbench import (
+        LABELS,
+        NAMES,
+        StartBenchError,
+        check_names,
+        run_start_bench,
+    )
 
     if args.repeat < 1:
         raise TrialsCliError(f"--repeat must be >= 1, got {args.repeat}")
     only = tuple(n.strip() for n in args.only.split(",") if n.strip()) if args.only else None
+    if args.only and not only:  # "," names nothing: a run that measures nothing
+        raise TrialsCliError(
+            f"--only {args.only!r}: names no measure (there are: {', '.join(NAMES)})"
+        )
     try:
         check_names(only)
     except ValueError as exc:
