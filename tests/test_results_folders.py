@@ -25,19 +25,19 @@ def _one_line(capsys: pytest.CaptureFixture[str], *words: str) -> str:
     return err[0]
 
 
-@pytest.mark.parametrize(
-    "argv",
-    [
-        ["trial", "--max-time", "1"],
-        ["trials", "run", "--n", "1", "--workers", "0"],
-        ["bench", "trial", "--seconds", "1"],
-        ["report", "envelope"],
-        ["report", "reach", "--samples", "1000"],
-        ["sweep", "--set", "rail.travel=0.04,0.05"],
-        ["export", "lerobot", "analyses"],
-    ],
-    ids=lambda argv: " ".join(argv[:2]),
-)
+OUT_COMMANDS = [
+    ["trial", "--max-time", "1"],
+    ["trials", "run", "--n", "1", "--workers", "0"],
+    ["bench", "trial", "--seconds", "1"],
+    ["report", "envelope"],
+    ["report", "reach", "--samples", "1000"],
+    ["sweep", "--set", "rail.travel=0.04,0.05"],
+    ["export", "lerobot", "analyses"],
+]
+"""Commands that write their results into an ``--out`` folder (short settings)."""
+
+
+@pytest.mark.parametrize("argv", OUT_COMMANDS, ids=lambda argv: " ".join(argv[:2]))
 def test_an_out_that_is_a_file_is_one_line_and_exit_2(argv, tmp_path, capsys) -> None:
     """``--out`` naming a regular file: one line naming it, exit 2, the file untouched
     (the commands used to fail with a traceback, most after their work)."""
@@ -489,12 +489,9 @@ def test_a_bad_bay_size_writes_nothing_not_even_the_models(command, tmp_path, ca
 @pytest.mark.parametrize("where", ["root", "cad"])
 @pytest.mark.parametrize(
     "argv",
+    # (a sweep refuses a project's folder as holding cad/design.toml, said its own way)
     [
-        ["trial", "--max-time", "1"],
-        ["trials", "run", "--n", "1", "--workers", "0"],
-        ["bench", "trial", "--seconds", "1"],
-        ["report", "envelope"],
-        ["export", "lerobot", "analyses"],
+        *(a for a in OUT_COMMANDS if a[0] != "sweep"),
         ["hw", "run", "--emulator", "--replay", __file__],
     ],
     ids=lambda argv: " ".join(argv[:2]),
