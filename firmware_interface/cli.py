@@ -168,7 +168,7 @@ def _cmd_check(args: argparse.Namespace) -> int:
     command_project(args)  # the servo map is validated against this project's design
     device, smap = need_device(args), _map(args)
     _models_follow(args)
-    report = check(device, smap, args.latency_ms)
+    report = {"device": device, **check(device, smap, args.latency_ms)}  # as scan's says it
     if args.json:
         emit_json(report)
     else:

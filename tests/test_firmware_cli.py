@@ -119,7 +119,7 @@ def test_check_fails_naming_the_missing_servo(emulate, capsys):
     assert main(["hw", "check", "--device", emulate, "--json", "--latency-ms", LAT]) == 1
     captured = capsys.readouterr()
     report = json.loads(captured.out)
-    assert report["ok"] is False
+    assert report["ok"] is False and report["device"] == emulate  # the bus, as scan says it
     assert report["errors"] == ["servo 7 (B_pip): not answering"]
     assert "servo 7 (B_pip)" in captured.err
     ids = [s["id"] for s in report["servos"]]

@@ -27,6 +27,11 @@ SessionFactory = Callable[..., Any]
 ``scene``, ``steps``, ``run()`` and ``close()`` (:class:`payload.trials.live.LiveSession`)."""
 
 
+def _load_text(load: list[float]) -> str:
+    """The 1, 5 and 15 min load averages as a line says them (``0.97, 1.64, 1.59``)."""
+    return ", ".join(f"{v:.2f}" for v in load)
+
+
 class TeleopCliError(PayloadError):
     """Bad arguments to a teleop command."""
 
@@ -327,7 +332,7 @@ def bench(args: argparse.Namespace, make_session: SessionFactory) -> int:
         v = result[key]
         print(f"  {key:<14} median {_ms(v['median']):>6}  p99 {_ms(v['p99']):>6}")
     print(f"  loop overruns {result['loop_overruns']} of {result['steps']} steps")
-    print(f"  load average {result['load']}")
+    print(f"  load average {_load_text(result['load'])}")
     return 0
 
 
@@ -347,7 +352,7 @@ def bench_filter(args: argparse.Namespace) -> int:
     print(
         f"base safety filter, {result['steps']} steps ({result['active_steps']} acting): "
         f"median {result['median_us']:.0f} us, p99 {result['p99_us']:.0f} us, at most "
-        f"{result['constraints']} constraints; load average {result['load']}"
+        f"{result['constraints']} constraints; load average {_load_text(result['load'])}"
     )
     return 0
 

@@ -171,6 +171,8 @@ def _cmd_bench_trial(args: argparse.Namespace) -> int:
         f"{env.get('openblas_core')}), MuJoCo {env.get('mujoco')}, load average "
         f"{result['load_average'][0]:.2f}"
     )
+    if out is not None:  # where the measured trial was kept (otherwise a temporary folder)
+        print(f"  the trial kept in {out}")
     return 0
 
 
