@@ -454,7 +454,7 @@ def register(
         type=float,
         default=MAX_TRIAL_S,
         metavar="S",
-        help=f"session cap [s] (default {MAX_TRIAL_S:g})",
+        help="session cap [s] (default %(default)g)",
     )
     p.add_argument(
         "--no-pace",

@@ -31,6 +31,10 @@ PHYSICS_DT = 0.001
 """Physics time step [s] (1 kHz, the paper's): the default of every command and the
 generated MJCF's ``timestep``."""
 
+ENDED_BY_CAP = "max_time"
+"""A session's ``ended_by`` (the loop's statistics, a recording's metadata, a trial's
+metrics) when the ``--max-time`` cap stopped it; ``"source"`` when its hands ran out."""
+
 
 class SchemaError(PayloadError):
     """A command or state does not satisfy the schema."""

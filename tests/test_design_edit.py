@@ -31,13 +31,20 @@ def _leaves(tree: dict[str, Any], prefix: str = "") -> dict[str, Any]:
     return out
 
 
-STOWED = "finger = [1.66, 0.0, 1.398, 1.805]  # found by `payload report envelope --search`\n"
-LAYOUTS = {
+def _stowed_line(text: str) -> str:
+    """The design's ``[stowed]`` ``finger = [...]`` line as committed, whole."""
+    table = text[text.index("\n[stowed]") :]
+    return re.search(r"^finger\s*=.*\n", table, re.M).group(0)
+
+
+STOWED = _stowed_line(DESIGN.read_text())
+_A, _B, _C, _D = (repr(v) for v in tomllib.loads(DESIGN.read_text())["stowed"]["finger"])
+LAYOUTS = {  # the design's own four values, laid out as a designer might
     "as committed": STOWED,
-    "no comment": "finger = [1.66, 0.0, 1.398, 1.805]\n",
-    "no blank before the comment": "finger = [1.66, 0.0, 1.398, 1.805]# found\n",
-    "over several lines": "finger = [\n  1.66, 0.0,  # A, B\n  1.398, 1.805,\n]  # found\n",
-    "tabs": "finger\t=\t[1.66, 0.0, 1.398, 1.805]\t# found\n",
+    "no comment": f"finger = [{_A}, {_B}, {_C}, {_D}]\n",
+    "no blank before the comment": f"finger = [{_A}, {_B}, {_C}, {_D}]# found\n",
+    "over several lines": f"finger = [\n  {_A}, {_B},  # A, B\n  {_C}, {_D},\n]  # found\n",
+    "tabs": f"finger\t=\t[{_A}, {_B}, {_C}, {_D}]\t# found\n",
 }
 
 

@@ -432,6 +432,21 @@ def test_an_interrupted_recording_says_it_was_kept(tmp_path) -> None:
     assert not getattr(failed.value, "__notes__", None)
 
 
+def _project_with_stale_models(tmp_path: Path) -> Path:
+    """A new project whose design's distal link was then made 2 mm shorter (its own value
+    less 2 mm, written as a designer would): its models no longer match it."""
+    from payload.design import load_design, stale_files
+    from payload.design.edit import set_in_text
+
+    root = tmp_path / "p"
+    assert main(["new", str(root)]) == 0
+    design = root / "cad" / "design.toml"
+    distal = load_design(design).finger.lengths.distal
+    design.write_text(set_in_text(design.read_text(), "finger.lengths.distal", distal - 0.002))
+    assert stale_files(load_design(design), root)  # the premise: the models are stale
+    return root
+
+
 def test_models_or_reports_that_cannot_be_written_are_one_line_and_nothing_written(
     tmp_path, capsys
 ) -> None:
@@ -441,12 +456,7 @@ def test_models_or_reports_that_cannot_be_written_are_one_line_and_nothing_writt
     the build after rewriting the meshes, the report after its analysis)."""
     import shutil
 
-    root = tmp_path / "p"
-    assert main(["new", str(root)]) == 0
-    design = root / "cad" / "design.toml"
-    text = design.read_text()
-    design.write_text(text.replace("\ndistal = 0.0", "\ndistal = 0.04", 1))
-    assert design.read_text() != text  # a change: the models are stale
+    root = _project_with_stale_models(tmp_path)
     meshes = _snapshot(root / "cad" / "meshes")
     shutil.rmtree(root / "urdf")
     (root / "urdf").symlink_to(UNWRITABLE)
@@ -472,12 +482,7 @@ def test_a_bad_bay_size_writes_nothing_not_even_the_models(command, tmp_path, ca
     """A report's bad ``--bay-size`` is refused before the stale models are rebuilt (the
     models were rebuilt, then the error said; "nothing written" held only for the
     report)."""
-    root = tmp_path / "p"
-    assert main(["new", str(root)]) == 0
-    design = root / "cad" / "design.toml"
-    text = design.read_text()
-    design.write_text(text.replace("\ndistal = 0.0", "\ndistal = 0.04", 1))
-    assert design.read_text() != text  # a change: the models are stale
+    root = _project_with_stale_models(tmp_path)
     before = _snapshot(root)
     capsys.readouterr()
     argv = ["--project", str(root), "report", command, "--bay-size", "0.2", "0.1", "-0.1"]

@@ -14,6 +14,7 @@ import pytest
 from test_trials import fixture_synthetic_trial
 
 from payload.cli import main
+from payload.schema import CONTROL_DT, ENDED_BY_CAP
 from payload.trials.reading import read_recording
 from payload.trials.recorder import TrialRecorder, random_step
 
@@ -408,7 +409,8 @@ def test_a_campaign_capped_by_max_time_says_so(tmp_path: Path, capsys) -> None:
     assert main([*argv, "--out", str(out)]) == 0
     said = capsys.readouterr().out
     metrics = json.loads((out / "trial-0003" / "metrics.json").read_text())
-    assert metrics["ended_by"] == "max_time" and metrics["steps"] == 51  # 0 to 1 s at 50 Hz
+    # the control steps of 0 to 1 s, both ends included
+    assert metrics["ended_by"] == ENDED_BY_CAP and metrics["steps"] == round(1 / CONTROL_DT) + 1
     assert "[1/1] seed 3: failed (stopped by the --max-time cap)" in said
     summary = json.loads((out / "summary.json").read_text())
     assert summary["run"]["max_time_s"] == 1.0

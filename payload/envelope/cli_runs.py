@@ -80,14 +80,9 @@ def _out_dir(args: argparse.Namespace) -> Path:
     from payload.errors import PayloadError
 
     out = out_folder(args.out)
-    try:
-        project = _project_or_none(args)
-    except PayloadError:
-        if out is None:
-            raise
-        return out  # a design outside any project, its report where --out says
-    if project is None:  # (the same: _project_or_none's None comes with an --out)
-        assert out is not None
+    project = _project_or_none(args)
+    if project is None:  # a design outside any project: its report where --out says
+        assert out is not None  # (_project_or_none's None comes with an --out)
         return out
     if out is not None and out.resolve() != project.analyses_dir.resolve():
         return out  # (--out naming the project's analyses/ is the default: checked below)

@@ -436,7 +436,10 @@ def serve_arguments(p: argparse.ArgumentParser) -> None:
 def bench_arguments(p: argparse.ArgumentParser) -> None:
     """The options of ``payload bench teleop``."""
     p.add_argument(
-        "--seconds", type=float, default=20.0, help="teleoperation time to measure (default 20)"
+        "--seconds",
+        type=float,
+        default=20.0,
+        help="teleoperation time to measure (default %(default)g)",
     )
     add_json(p)
 

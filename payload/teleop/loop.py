@@ -17,7 +17,7 @@ from typing import Protocol
 import numpy as np
 
 from payload.rotations import quat_to_matrix, yaw_of_matrix
-from payload.schema import CONTROL_DT, PayloadCommand, VehicleTwist
+from payload.schema import CONTROL_DT, ENDED_BY_CAP, PayloadCommand, VehicleTwist
 from payload.teleop.calibration import CalibrationProcedure, Captures
 from payload.teleop.hands import HandFrame
 from payload.teleop.operator import SyntheticOperator, WorldView
@@ -249,7 +249,7 @@ def run_session(
         while True:
             t = k * CONTROL_DT
             if t > max_time + 1e-9:
-                stats.ended_by = "max_time"
+                stats.ended_by = ENDED_BY_CAP
                 break
             view = world_view(state, t) if world_view is not None else None
             frame = source.frame(t, view)

@@ -207,7 +207,7 @@ def _not_pem(cert_path: Path, key_path: Path) -> str | None:
     lib"), or None."""
     for path, block in ((cert_path, "CERTIFICATE"), (key_path, "PRIVATE KEY")):
         try:
-            text = Path(path).read_bytes()
+            text = path.read_bytes()
         except OSError:
             continue  # said by the OSError branch's reading
         if b"-----BEGIN " not in text or block.encode() not in text:

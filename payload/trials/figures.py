@@ -19,6 +19,7 @@ from matplotlib.patches import Patch, Rectangle
 from payload.errors import PayloadError
 from payload.rotations import rotate_by_quats
 from payload.safeio import replacing
+from payload.schema import ENDED_BY_CAP
 from payload.trials.metrics import (
     CONFIRM_MAX_GAP_S,
     CONFIRM_MIN_S,
@@ -253,7 +254,7 @@ def plot_ctb_body_frame(
         handles=handles, loc="lower center", ncols=max(1, len(handles)), bbox_to_anchor=(0.5, 0.0)
     )
     verdict = "success" if m.success else "failure"
-    if recording.meta.get("ended_by") == "max_time":  # said where the title has no room
+    if recording.meta.get("ended_by") == ENDED_BY_CAP:  # said where the title has no room
         axes[0].text(
             0.99, 0.95, "session stopped by the --max-time cap", transform=axes[0].transAxes,
             ha="right", va="top", fontsize=8, color="#a50f15",

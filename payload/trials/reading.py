@@ -23,6 +23,7 @@ from mcap.opcode import Opcode
 from mcap.records import Channel, McapRecord, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 
+from payload.schema import ENDED_BY_CAP
 from payload.trials import codec
 from payload.trials.integrity import (
     MAGIC,
@@ -370,7 +371,7 @@ def cut_reason(meta: Mapping[str, Any], complete: bool) -> str | None:
     why = unfinished_reason(meta, complete)
     if why is not None:
         return why
-    if meta.get("ended_by") == "max_time":
+    if meta.get("ended_by") == ENDED_BY_CAP:
         return "stopped by the session-length cap (--max-time)"
     replay = meta.get("replay")
     source = replay.get("source_unfinished") if isinstance(replay, Mapping) else None

@@ -18,7 +18,7 @@ import numpy as np
 
 from payload.folders import SUMMARY, SUMMARY_TEXT, tagged
 from payload.safeio import OverwriteError, write_unless_changed
-from payload.schema import CONTROL_DT
+from payload.schema import CONTROL_DT, ENDED_BY_CAP
 from payload.trials.summary_fields import (
     METRIC_KEYS,
     METRIC_LABELS,
@@ -323,7 +323,7 @@ def print_trial_summary(result: dict[str, Any], given: str = "") -> None:
         f"{result.get('retarget_budget')}, self-collision {modelled}{given}"
     )
     print(f"  success: {'yes' if result.get('success') else 'no'}")
-    if result.get("ended_by") == "max_time":
+    if result.get("ended_by") == ENDED_BY_CAP:
         print(
             f"  stopped by the session-length cap (--max-time) after "
             f"{result.get('steps', 0) * CONTROL_DT:.1f} s, before the operator finished"

@@ -13,6 +13,7 @@ import math
 from collections.abc import Callable
 from typing import Any
 
+from payload.schema import ENDED_BY_CAP
 from payload.trials.summary_fields import METRIC_KEYS, METRIC_LABELS, PAPER_RESULTS
 from payload.trials.summary_markdown import _DIGITS, _fmt, _run_lines
 
@@ -77,7 +78,7 @@ def trial_line(result: dict[str, Any], done: int, total: int) -> str:
     if result.get("error"):
         return head + f"error: {str(result['error']).splitlines()[0]}{tail}"
     parts = ["succeeded" if result.get("success") else "failed"]
-    if result.get("ended_by") == "max_time":  # why, when a cap cut the session short
+    if result.get("ended_by") == ENDED_BY_CAP:  # why, when a cap cut the session short
         parts[0] += " (stopped by the --max-time cap)"
     for key in ("rms_mm", "duration_s"):
         name, unit = _SHORT[key]
