@@ -297,6 +297,14 @@ def test_an_interrupted_campaign_says_what_it_kept_and_summarises_with_its_setup
     ), text[:200]
     assert json.loads((out / "summary.json").read_text())["retarget_collisions"] is False
     assert "mixed" not in text
+    # summarised again with nothing changed: no file is said to be written
+    files = {p: (p.read_bytes(), p.stat().st_mtime_ns) for p in out.glob("summary*")}
+    assert main(["trials", "summarize", str(out)]) == 0
+    last = capsys.readouterr().out.strip().splitlines()[-1]
+    assert {p: (p.read_bytes(), p.stat().st_mtime_ns) for p in out.glob("summary*")} == files
+    assert last.startswith("unchanged (already what the trials give): "), last
+    assert all(str(p) in last for p in files if p.suffix in (".md", ".json")), last
+    assert not any(line.startswith("wrote") for line in capsys.readouterr().out.splitlines())
 
 
 def test_a_campaign_of_unscored_trials_claims_no_setting_and_mixed_definitions_say_so(

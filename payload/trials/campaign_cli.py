@@ -211,7 +211,8 @@ def _cmd_trials_summarize(args: argparse.Namespace) -> int:
             r.setdefault("retarget_collisions", modelled)
         if isinstance(previous.get("controller"), str):
             r.setdefault("controller", previous["controller"])
-            r.setdefault("controller_overrides", previous.get("controller_overrides") or [])
+        if isinstance(previous.get("controller_overrides"), list):
+            r.setdefault("controller_overrides", previous["controller_overrides"])
     tag = None
     if rescore:  # a rescoring is written beside the originals, named by its definition
         defs = {
@@ -234,6 +235,9 @@ def _cmd_trials_summarize(args: argparse.Namespace) -> int:
             values = {json.dumps(r.get(name)) for r in scored}
             setup[name] = scored[0].get(name) if len(values) == 1 else None
         title = campaign_title(len(results), setup) if scored else None
+    out = Path(args.dir)
+    named = [out / tagged(name, tag) for name in (SUMMARY_TEXT, CAMPAIGN_FIGURE, SUMMARY)]
+    before = {p: p.read_bytes() if p.is_file() else None for p in named}
     summary = write_summary(
         results,
         args.dir,
@@ -247,10 +251,16 @@ def _cmd_trials_summarize(args: argparse.Namespace) -> int:
         emit_json({**summary, "out_dir": str(args.dir)})
     else:
         print(summary_markdown(summary, title))
-        out = Path(args.dir)
-        written = [out / tagged(name, tag) for name in (SUMMARY_TEXT, CAMPAIGN_FIGURE, SUMMARY)]
+        present = [p for p in named if p.is_file()]
+        written = [p for p in present if p.read_bytes() != before[p]]
+        kept = [p for p in present if p not in written]
         rescored = " and each trial's metrics and figures beside theirs" if rescore else ""
-        print(f"wrote {', '.join(str(p) for p in written if p.is_file())}{rescored}")
+        if written:
+            print(f"wrote {', '.join(str(p) for p in written)}{rescored}")
+        elif rescore:
+            print("wrote each trial's metrics and figures beside theirs")
+        if kept:
+            print(f"unchanged (already what the trials give): {', '.join(str(p) for p in kept)}")
     return 0
 
 
