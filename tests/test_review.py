@@ -503,6 +503,17 @@ def test_bad_reach_samples_and_static_folder_exit_2(tmp_path, capsys) -> None:
     assert "--rate must be > 0 Hz" in _err(capsys)
     assert main(["review", "--port", "70000"]) == 2
     assert "--port" in _err(capsys)
+    # each where it does nothing: a rate without a replay, a port of no served page
+    page = tmp_path / "r.html"
+    for argv, words in (
+        (["--rate", "10"], "--rate is a trial replay's frame rate"),
+        (["--static", str(page), "--port", "7071"], "--static writes a file"),
+        (["--zmq-url", "tcp://127.0.0.1:1", "--port", "7071"], "--zmq-url uses that"),
+    ):
+        assert main(["review", *argv, "--reach-samples", "0"]) == 2
+        err = _err(capsys)
+        assert words in err and len(err.strip().splitlines()) == 1, err
+    assert not page.exists()
     assert main(["review", "--watch", "--trial", str(tmp_path)]) == 2
     err = _err(capsys)
     assert "--watch" in err and "--trial" in err

@@ -174,20 +174,40 @@ def _trial_folder(args: argparse.Namespace) -> None:
     args.trial = str(path)
 
 
+def _rate_and_port(args: argparse.Namespace) -> None:
+    """``--rate`` and ``--port`` in range, and only where they act: the rate is a trial
+    replay's, the port the served page's (not a ``--static`` file's nor another Meshcat
+    server's). Their defaults are set here."""
+    if args.rate is not None and not (math.isfinite(args.rate) and args.rate > 0):
+        raise ReviewError(f"--rate must be > 0 Hz (got {args.rate})")
+    if args.port is not None and not 0 <= args.port <= 65535:
+        raise ReviewError(f"--port must be 0..65535 (got {args.port})")
+    if args.rate is not None and args.trial is None:
+        raise ReviewError(
+            "--rate is a trial replay's frame rate; give the trial (TRIAL or --trial DIR) "
+            "or leave --rate out"
+        )
+    if args.port is not None and not args.watch:
+        elsewhere = "--static writes a file" if args.static is not None else None
+        if args.zmq_url is not None:
+            elsewhere = "--zmq-url uses that Meshcat server's page"
+        if elsewhere is not None:
+            raise ReviewError(f"--port is the served page's port, but {elsewhere}; leave it out")
+    args.rate = DEFAULT_RATE if args.rate is None else args.rate
+    args.port = DEFAULT_PORT if args.port is None else args.port
+
+
 def _cmd_review(args: argparse.Namespace) -> int:
     from payload.review.page import static_html
     from payload.review.serve import check_server, open_viewer
 
     _watch_alone(args)
     _trial_folder(args)
+    _rate_and_port(args)
     if args.zmq_url is not None and not args.watch:  # --watch refuses it, below
         check_server(args.zmq_url)
     if args.reach_samples < 0:
         raise ReviewError(f"--reach-samples must be >= 0 (got {args.reach_samples})")
-    if not (math.isfinite(args.rate) and args.rate > 0):
-        raise ReviewError(f"--rate must be > 0 Hz (got {args.rate})")
-    if not 0 <= args.port <= 65535:
-        raise ReviewError(f"--port must be 0..65535 (got {args.port})")
     if args.static is not None:
         _check_static(Path(args.static))
 
@@ -249,7 +269,6 @@ def register(
     p.add_argument(
         "--rate",
         type=float,
-        default=DEFAULT_RATE,
         metavar="HZ",
         help=f"frames per second of trial time in a --trial replay (default {DEFAULT_RATE:g})",
     )
@@ -262,7 +281,6 @@ def register(
     p.add_argument(
         "--port",
         type=int,
-        default=DEFAULT_PORT,
         help=f"TCP port of the served page (default {DEFAULT_PORT}; 0: any free port)",
     )
     p.add_argument(
