@@ -97,6 +97,7 @@ def test_clearance_segments_measure_the_envelope_reports_clearances(review) -> N
     fits = {p.name: p for p in review.check.parts}
     segments = [p for p in objects if p.startswith(f"{REVIEW}/findings/clearance/")]
     assert len([p for p in segments if p.endswith("/segment")]) == 6
+    named = []
     for path in segments:
         if not path.endswith("/segment"):
             continue
@@ -111,7 +112,12 @@ def test_clearance_segments_measure_the_envelope_reports_clearances(review) -> N
         np.testing.assert_allclose(anchor, (a + b) / 2, atol=1e-6)  # points at its segment
         assert np.linalg.norm(a - b) == pytest.approx(fits[part].wall_clearance[wall], abs=2e-6)
         assert float(mm) == pytest.approx(fits[part].wall_clearance[wall] * 1e3, abs=0.051)
+        named.append((fits[part].wall_clearance[wall], part))
     assert not review.offending
+    # the tightest wall's label names the part the verdict calls tightest (two parts tie
+    # at that wall in the default design: the first in the parts' order, as the verdict)
+    tight = review.check.tightest
+    assert min(named, key=lambda c: c[0]) == (tight.clearance, tight.name)
 
 
 _WALL_NAMES = (

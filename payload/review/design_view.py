@@ -181,7 +181,7 @@ def draw_findings(
         ]
         if not cands:
             continue
-        d, name = min(cands)
+        d, name = min(cands, key=lambda c: c[0])  # a tie: the first part, as ``tightest``
         pts = geom.hull_vertices(name, poses[name])
         k = int(np.argmin(wall_gaps(pts, lo, hi)[:, w]))
         a = pts[k]
