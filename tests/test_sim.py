@@ -773,12 +773,11 @@ def test_bench_sim_json():
     assert 0 < result["wall_seconds"] <= outside
     assert result["realtime_factor"] >= result["sim_seconds"] / outside
     assert result["propulsion"] == "nozzles"
-    out = io.StringIO()
-    with redirect_stdout(out), redirect_stderr(io.StringIO()):
-        code = main(
-            ["bench", "sim", "--seconds", "0.2", "--json", "--no-progress", "--propulsion", "box"]
-        )
+    out, err = io.StringIO(), io.StringIO()
+    with redirect_stdout(out), redirect_stderr(err):  # no bar to a pipe: not even a newline
+        code = main(["bench", "sim", "--seconds", "0.2", "--json", "--propulsion", "box"])
     assert code == 0 and json.loads(out.getvalue())["propulsion"] == "box"
+    assert err.getvalue() == ""
 
 
 def test_bench_sim_bad_input_exits_2():

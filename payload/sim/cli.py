@@ -37,7 +37,7 @@ def _cmd_bench_sim(args: argparse.Namespace) -> int:
         TimeElapsedColumn(),
         console=console,
         transient=True,
-        disable=args.no_progress,
+        disable=args.no_progress or not console.is_terminal,  # no bar, no stray newline
     ) as bar:
         task = bar.add_task("sim", total=args.seconds)
         result = run_bench(
