@@ -645,7 +645,7 @@ def test_report_reach_json_fields_and_files(tmp_path):
 @pytest.mark.parametrize(
     ("args", "message"),
     [
-        (["--samples", "10"], "payload: error: --samples must be at least 1000 (got 10)"),
+        (["--samples", "10"], "payload: error: --samples must be >= 1000, got 10"),
         (["--thickness", "-0.01"], "payload: error: --thickness must be between 0 and 1 m"),
         (["--bay-size", "0.2", "0.1", "0"], "payload: error: --bay-size: every size must be"),
     ],

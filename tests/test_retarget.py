@@ -953,7 +953,7 @@ def test_bench_cli_with_a_failing_compiler_prints_one_line(capsys, failing_compi
 @pytest.mark.parametrize(
     ("argv", "message"),
     [
-        (["--steps", "1"], "--steps: need at least 2 steps"),
+        (["--steps", "1"], "--steps must be >= 2, got 1"),
         (["--hand", "/nonexistent/hand.toml"], "hand description not found"),
     ],
 )

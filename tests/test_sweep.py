@@ -30,7 +30,7 @@ def test_parse_set_lists_and_ranges():
         ("rail.travel=a,b", "not a number"),
         ("rail.travel=0.1:0.2", "A:B:N"),
         ("rail.travel=0.1:0.2:x", "integer"),
-        ("rail.travel=0.1:0.2:0", "at least 1"),
+        ("rail.travel=0.1:0.2:0", "N must be >= 1, got 0"),
         ("rail.travel=0.1,0.1", "twice"),
         ("rail.travel=nan", "finite"),
     ]:
@@ -183,9 +183,9 @@ def test_a_sweep_runs_each_points_trials(tmp_path, capsys):
 @pytest.mark.parametrize(
     ("option", "value", "says"),
     [
-        ("--samples", "10", "--samples must be at least 1000 (got 10)"),
-        ("--seed", "-1", "--seed must not be negative (got -1)"),
-        ("--workers", "0", "--workers must be at least 1 (got 0)"),
+        ("--samples", "10", "--samples must be >= 1000, got 10"),
+        ("--seed", "-1", "--seed must be >= 0, got -1"),
+        ("--workers", "0", "--workers must be >= 1, got 0"),
     ],
 )
 def test_a_sweeps_reach_numbers_are_refused_as_the_reach_report_refuses_them(

@@ -174,9 +174,9 @@ def _cmd_bench_reach(args: argparse.Namespace) -> int:
 
     _check_reach_args(args)  # --samples, --seed
     if args.check_samples < 1:
-        raise ReachError(f"--check-samples must be at least 1 (got {args.check_samples})")
+        raise ReachError(f"--check-samples must be >= 1, got {args.check_samples}")
     if args.runs < 1:
-        raise ReachError(f"--runs must be at least 1 (got {args.runs})")
+        raise ReachError(f"--runs must be >= 1, got {args.runs}")
     project = _project(args)
     _models_follow(args)
     _, vehicle, geom = _load(args)

@@ -275,7 +275,7 @@ def _check_reach_args(args: argparse.Namespace) -> None:
     check_reach_numbers(args.samples, args.seed, args.workers)
     for t in args.thickness or ():
         if not t >= 0 or t > 1.0:
-            raise ReachError(f"--thickness must be between 0 and 1 m (got {t})")
+            raise ReachError(f"--thickness must be between 0 and 1 m, got {t}")
 
 
 def _grasp_features(args: argparse.Namespace) -> list[GraspFeature]:

@@ -31,11 +31,11 @@ def check_reach_numbers(
     ``error`` (``payload report reach``'s, or a command that runs the analysis, e.g.
     ``payload sweep``)."""
     if samples < MIN_SAMPLES:
-        raise error(f"--samples must be at least {MIN_SAMPLES} (got {samples})")
+        raise error(f"--samples must be >= {MIN_SAMPLES}, got {samples}")
     if seed < 0:
-        raise error(f"--seed must not be negative (got {seed})")
+        raise error(f"--seed must be >= 0, got {seed}")
     if workers is not None and workers < 1:
-        raise error(f"--workers must be at least 1 (got {workers})")
+        raise error(f"--workers must be >= 1, got {workers}")
 
 
 def pair_joints(pair: str) -> list[str]:

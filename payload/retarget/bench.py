@@ -367,7 +367,7 @@ def run_bench(
         RetargetError: ``steps`` below 2, or an invalid hand or setting.
     """
     if steps < 2:
-        raise RetargetError(f"--steps: need at least 2 steps, got {steps}")
+        raise RetargetError(f"--steps must be >= 2, got {steps}")
     hand = hand if hand is not None else load_hand()
     config = config or RetargetConfig()
     kin = hand.kinematics()

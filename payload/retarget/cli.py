@@ -101,7 +101,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     from payload.retarget.objective import RetargetConfig
 
     if args.steps < 2:
-        raise RetargetError(f"--steps: need at least 2 steps, got {args.steps}")
+        raise RetargetError(f"--steps must be >= 2, got {args.steps}")
     project = command_project(args)
     from payload.design import models_follow_design
 

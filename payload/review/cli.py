@@ -179,9 +179,9 @@ def _rate_and_port(args: argparse.Namespace) -> None:
     replay's, the port the served page's (not a ``--static`` file's nor another Meshcat
     server's). Their defaults are set here."""
     if args.rate is not None and not (math.isfinite(args.rate) and args.rate > 0):
-        raise ReviewError(f"--rate must be > 0 Hz (got {args.rate})")
+        raise ReviewError(f"--rate must be > 0 Hz, got {args.rate}")
     if args.port is not None and not 0 <= args.port <= 65535:
-        raise ReviewError(f"--port must be 0..65535 (got {args.port})")
+        raise ReviewError(f"--port must be 0..65535, got {args.port}")
     if args.rate is not None and args.trial is None:
         raise ReviewError(
             "--rate is a trial replay's frame rate; give the trial (TRIAL or --trial DIR) "
@@ -207,7 +207,7 @@ def _cmd_review(args: argparse.Namespace) -> int:
     if args.zmq_url is not None and not args.watch:  # --watch refuses it, below
         check_server(args.zmq_url)
     if args.reach_samples < 0:
-        raise ReviewError(f"--reach-samples must be >= 0 (got {args.reach_samples})")
+        raise ReviewError(f"--reach-samples must be >= 0, got {args.reach_samples}")
     if args.static is not None:
         _check_static(Path(args.static))
 

@@ -385,7 +385,7 @@ def build_trial_replay(
     from payload.sim.world import WorldConfig, build_world
 
     if not (np.isfinite(rate) and rate > 0):
-        raise ReviewError(f"--rate must be > 0 Hz (got {rate})")
+        raise ReviewError(f"--rate must be > 0 Hz, got {rate}")
     files.check()
     rec = read_trial(folder, files) if recording is None else recording
     design = load_design(files.design)

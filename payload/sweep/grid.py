@@ -81,7 +81,7 @@ def parse_set(text: str) -> Axis:
         except ValueError:
             raise SweepError(f"--set {key}: N must be an integer, got {parts[2]!r}") from None
         if n < 1:
-            raise SweepError(f"--set {key}: N must be at least 1, got {n}")
+            raise SweepError(f"--set {key}: N must be >= 1, got {n}")
         values = [a] if n == 1 else [_tidy(v) for v in np.linspace(a, b, n)]
     else:
         values = [_number(key, v.strip()) for v in spec.split(",")]
