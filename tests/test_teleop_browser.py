@@ -510,6 +510,12 @@ def test_the_header_is_one_line_at_1280_and_the_page_shows_words(tmp_path):
                       "safe_stop": reason},
     }  # fmt: skip
     view = {"width": 1280, "height": 800}
+    pos = world["vehicle"]["pos"]
+    (here,) = [  # the module holding the vehicle: named in the numbers, not labelled
+        m["title"]
+        for m in session.scene["modules"]
+        if all(lo <= x <= hi for lo, x, hi in zip(m["lo"], pos, m["hi"]))
+    ]
     server = TeleopServer(hub, port=0, scene=session.scene).start()
     try:
         with _Page(server.url(), view) as page:  # a desktop browser, no WebXR
@@ -525,8 +531,10 @@ def test_the_header_is_one_line_at_1280_and_the_page_shows_words(tmp_path):
                 assert len(shown["panel"]) == 1 and "m/s" in shown["panel"][0], shown
                 assert shown["panel"][0] not in shown["text"], shown
                 assert "m/s" not in shown["text"], shown
-                if state == "teleop":
-                    assert shown["panel"] == ["vehicle 0.042 m/s · rail 25 mm · CTB held"]
+                if state == "teleop":  # the module the vehicle is in named first
+                    assert shown["panel"] == [
+                        f"in {here} · vehicle 0.042 m/s · rail 25 mm · CTB held"
+                    ]
                     assert "left wrist" not in shown["page"], shown  # the holder's notice
                 if state == "waiting":  # free, and no WebXR here: how to try without one
                     assert "Start the server with --desktop to emulate one" in shown["page"], shown
@@ -541,7 +549,9 @@ def test_the_header_is_one_line_at_1280_and_the_page_shows_words(tmp_path):
                         assert base == pytest.approx(below) and tip == pytest.approx(want)
             assert "safe stop" in shown["text"] and reason in shown["page"], shown
             labels = page.evaluate("() => document.getElementById('labels').innerText")
-            assert "Node 2" in labels and "Kibo" in labels, labels
+            assert "Node 2" in labels and here not in labels, (here, labels)
+            others = [m["title"] for m in session.scene["modules"] if m["title"] != here]
+            assert all(title in labels for title in others), (others, labels)
         with hub.lock:
             hub.active = None  # the emulated headset's frames take control
         with EmulatedQuest(server.url(), iwer_js=iwer) as quest:

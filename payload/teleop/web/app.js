@@ -12,7 +12,7 @@
 // headset shows no page, also the prompt, the safe stop and the role. The server's
 // identifiers (state, step, module names) are shown as words, never as they are sent.
 
-import { Renderer, lookAt, perspective, ANCHOR } from './render.js';
+import { Renderer, lookAt, moduleHolding, perspective, ANCHOR } from './render.js';
 
 export const JOINTS = [
   'wrist', 'thumb-metacarpal', 'thumb-phalanx-proximal', 'thumb-phalanx-distal', 'thumb-tip',
@@ -214,7 +214,9 @@ function hintLines() {
 
 // the live numbers, which nothing else on the page shows
 function numbersText(st) {
-  return `vehicle ${st.vehicle.speed.toFixed(3)} m/s · rail ${(st.rail * 1000).toFixed(0)} mm` +
+  const here = moduleHolding(renderer.scene, st.vehicle.pos);
+  return (here ? `in ${here.name} · ` : '') +
+    `vehicle ${st.vehicle.speed.toFixed(3)} m/s · rail ${(st.rail * 1000).toFixed(0)} mm` +
     (st.contact ? ' · CTB held' : '');
 }
 

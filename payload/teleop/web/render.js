@@ -129,6 +129,13 @@ function wrap(c, text, width) {
   return rows;
 }
 
+// the scene's module (name, lo, hi: a box in the workbench's world frame) holding the
+// point p, or null
+export function moduleHolding(scene, p) {
+  return ((scene && scene.modules) || []).find(
+    (m) => m.lo.every((lo, i) => lo <= p[i] && p[i] <= m.hi[i])) || null;
+}
+
 export class Renderer {
   constructor(gl) {
     this.gl = gl;
@@ -217,11 +224,14 @@ export class Renderer {
     gl.useProgram(this.line);
     gl.enableVertexAttribArray(0);
     const id = [1, 0, 0, 0];
+    const st = this.state;
+    // the module the vehicle is in is all around the view, its centre near the vehicle's:
+    // the live numbers name it instead of a label on the vehicle
+    const here = st && st.vehicle ? moduleHolding(this.scene, st.vehicle.pos) : null;
     for (const m of (this.scene && this.scene.modules) || []) {
       const c = m.lo.map((lo, i) => (lo + m.hi[i]) / 2), s = m.lo.map((lo, i) => m.hi[i] - lo);
-      this.box(vp, c, id, s, [0.45, 0.55, 0.7, 1], m.name);
+      this.box(vp, c, id, s, [0.45, 0.55, 0.7, 1], m === here ? null : m.name);
     }
-    const st = this.state;
     if (st && st.vehicle) {
       // the design's body box (an older server sends only a cube's edge; a scene with
       // neither draws no box rather than one of no size)
