@@ -26,6 +26,7 @@ from payload.cliutil import (
     need_device,
     out_folder,
     results_folder,
+    say_stage,
 )
 from payload.errors import PayloadError
 from payload.folders import CAMPAIGN_FILES, HANDS, RECORDING, TRIAL_FILES
@@ -233,7 +234,7 @@ def _run_hardware(args: argparse.Namespace, out: Path, replay: Path) -> dict[str
                                     budget=prof.retarget_budget,
                                     collisions=prof.retarget_collisions,
                                     progress=not args.json and sys.stderr.isatty(),
-                                    say=_say)  # fmt: skip
+                                    say=say_stage)  # fmt: skip
     return result
 
 
@@ -250,11 +251,6 @@ def _emulated_or_device(args: argparse.Namespace) -> None:
             "--servo-params sets an emulated bus's servos: give it with --emulator (or to "
             "`payload hw emulate`)"
         )
-
-
-def _say(line: str) -> None:
-    """A set-up stage's line on stderr (stdout keeps the result, or ``--json``'s object)."""
-    print(f"{line} ...", file=sys.stderr, flush=True)
 
 
 def _replay_of(args: argparse.Namespace) -> Path:
@@ -337,7 +333,7 @@ def _cmd_identify(args: argparse.Namespace) -> int:
             emu = stack.enter_context(EmulatorProcess(args.servos, servo_params=args.servo_params))
         device = emu.port if emu is not None else need_device(args)
         drv = stack.enter_context(DynamixelDriver(device, smap, latency_timer_ms=args.latency_ms))
-        report = identify(drv, args.joints, say=_say)
+        report = identify(drv, args.joints, say=say_stage)
         design_file = drv.design.source
     report["device"] = device
     report["emulator"] = emu is not None

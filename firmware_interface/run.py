@@ -38,6 +38,21 @@ from payload.teleop.replay import HandRecordingWriter
 log = logging.getLogger(__name__)
 
 
+def ready_at_home(hardware: Any, say: Callable[[str], None] | None = None) -> None:
+    """Bring the payload up (the rail and the stage homed) unless it is, drive it to the
+    design's home posture (:func:`move_to_home`) and disarm its Bus Watchdog until a 50 Hz
+    loop runs (what comes before the loop takes seconds). ``say`` is called with a line
+    before each stage: the servos move, and whoever is beside them is told so first."""
+    if not getattr(hardware, "homed", None):
+        if say is not None:
+            say(f"bringing up the servos on {hardware.device} and homing the rail and the stage")
+        hardware.bring_up()
+    if say is not None:
+        say("moving to the design's home posture")
+    move_to_home(hardware)
+    hardware.set_watchdog(False)
+
+
 def move_to_home(hardware: Any, timeout: float = 6.0) -> PayloadState:
     """Drive the brought-up (homed) payload to the design's home posture, where every
     simulated trial starts (homing leaves the rail and the stage stowed), and wait until
@@ -336,14 +351,7 @@ def run_hardware_trial(
     if base_filter:
         sim.twist_filter = base_filter_for(sim, TeleopConfig.from_design(load_design()).base)
     prov = {**provenance(project, sim.world.config.design), "environment": environment()}
-    if not getattr(hardware, "homed", None):
-        if say is not None:
-            say(f"bringing up the servos on {hardware.device} and homing the rail and the stage")
-        hardware.bring_up()
-    if say is not None:
-        say("moving to the design's home posture")
-    move_to_home(hardware)
-    hardware.set_watchdog(False)  # armed again once the 50 Hz loop runs (see on_step)
+    ready_at_home(hardware, say)  # the watchdog armed again once the loop runs (on_step)
     driver = HardwareInTheLoop(hardware, sim, emulator=emulator)
     layout = sim.world.layout
     rec_path = out / RECORDING

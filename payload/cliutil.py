@@ -127,6 +127,12 @@ def command_project(
     return project
 
 
+def say_stage(line: str) -> None:
+    """A set-up stage's line on stderr, before a stage that takes seconds or moves the
+    servos (stdout keeps the result, or ``--json``'s object)."""
+    print(f"{line} ...", file=sys.stderr, flush=True)
+
+
 def warn(message: str) -> None:
     """One warning line on stderr (``payload: warning: ...``)."""
     print(f"payload: warning: {message}", file=sys.stderr, flush=True)

@@ -1142,10 +1142,11 @@ def test_a_stop_while_the_session_closes_still_closes_its_driver():
     assert closed == [True]
 
 
-def test_serve_stopped_while_loading_leaves_the_servos_torque_off(tmp_path, monkeypatch):
+def test_serve_stopped_while_loading_leaves_the_servos_torque_off(tmp_path, monkeypatch, capsys):
     """`teleop serve --driver hardware`: the servos are powered and homed before the
-    simulator and the retargeters load (seconds). A Ctrl-C (or SIGTERM) then used to leave
-    all 18 torqued, their watchdog off; the driver is closed now."""
+    simulator and the retargeters load (seconds), each stage said first on stderr, as `hw
+    run` says them (the servos moved without a word before). A Ctrl-C (or SIGTERM) then
+    used to leave all 18 torqued, their watchdog off; the driver is closed now."""
     from firmware_interface.emulator import EmulatorProcess
     from payload.cli import _parse
     from payload.teleop.cli import serve
@@ -1160,6 +1161,11 @@ def test_serve_stopped_while_loading_leaves_the_servos_torque_off(tmp_path, monk
         with pytest.raises(KeyboardInterrupt):
             serve(_parse(argv), loading)
         assert not any(s["torque"] for s in emu.servos().values())
+    said = capsys.readouterr().err.splitlines()
+    assert said[:2] == [
+        f"bringing up the servos on {emu.port} and homing the rail and the stage ...",
+        "moving to the design's home posture ...",
+    ], said
 
 
 def test_a_sigterm_while_a_session_is_scored_counts_as_a_press(tmp_path, capsys):

@@ -18,7 +18,14 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
-from payload.cliutil import add_device, add_json, check_seconds, command_project, emit_json
+from payload.cliutil import (
+    add_device,
+    add_json,
+    check_seconds,
+    command_project,
+    emit_json,
+    say_stage,
+)
 from payload.errors import STOP_SIGNALS, PayloadError
 from payload.folders import CAMPAIGN_FILES, TRIAL_FILES
 
@@ -159,13 +166,11 @@ def _hardware_driver(device: str) -> Any:
     starts, its Bus Watchdog disarmed until the session's loop runs (the simulator and the
     retargeters load for seconds first)."""
     from firmware_interface import DynamixelDriver
-    from firmware_interface.run import move_to_home
+    from firmware_interface.run import ready_at_home
 
     driver = DynamixelDriver(device)
-    try:
-        driver.bring_up()
-        move_to_home(driver)
-        driver.set_watchdog(False)
+    try:  # the servos move: said first, on stderr (stdout names the page), as `hw run` does
+        ready_at_home(driver, say_stage)
     except BaseException:
         driver.close()
         raise
