@@ -427,8 +427,18 @@ PLAUSIBILITY = [  # edit, the parameter named, what the one line must say
     ("rail.length", 0.5, "rail.length", "longer than the vehicle"),
     ("finger.offsets.tip", 0.05, "finger.offsets.tip", "outside its link"),
     ("finger.lengths.distal", 0.012, "finger.lengths.distal", "cannot hold the DIP servo"),
-    ("finger.lengths.proximal", 2.45e-5, "finger.lengths.proximal", "0.0245 mm cannot hold"),
-]
+    ("finger.lengths.proximal", 1e-6, "finger.lengths.proximal", "0.001 mm cannot hold"),
+    # a thousandth of the packaged value: the slip the other way, named before the bounds
+    # it breaks further on (a section this thin put the tip offset "outside its link")
+    ("finger.lengths.proximal", 2.45e-5, "finger.lengths.proximal",
+     "2.45e-05 m = 0.0245 mm is about a thousandth of its packaged value (24.5 mm): did you "
+     "mean 0.0245?"),
+    ("finger.section.depth", 2.8e-5, "finger.section.depth", "(28.0 mm): did you mean 0.028?"),
+    ("servo.length", 3.4e-5, "servo.length", "(34.0 mm): did you mean 0.034?"),
+    ("finger.pad.thickness", 3e-6, "finger.pad.thickness", "(3.0 mm): did you mean 0.003?"),
+    ("servo.mass", 2.3e-5, "servo.mass", "0.023 g is about a thousandth of its packaged value "
+     "(23 g): did you mean 0.023? (the design file is in kg)"),
+]  # fmt: skip
 
 
 @pytest.mark.parametrize(("path", "value", "named", "says"), PLAUSIBILITY)

@@ -14,7 +14,10 @@ build:
 - a joint offset lies within the link: ``|offset| <= finger.section.depth``.
 
 A value refused here that is about 1000 times its packaged default names the probable
-unit slip (``45 m: did you mean 45 mm = 0.045?``): the design file is SI throughout.
+unit slip (``45 m: did you mean 45 mm = 0.045?``): the design file is SI throughout. A
+length or mass about a thousandth of its packaged default (a servo 0.034 mm long, a
+conversion to metres made twice) is refused as the slip the other way, before the
+bounds that it would break further on name another parameter for it.
 """
 
 from __future__ import annotations
@@ -89,6 +92,24 @@ def _refuse(parameter: str, value: float, unit: str, small_unit: str, reason: st
     raise DesignError(parameter, f"{slip}{value:g} {unit} {reason}" + (")" if slip else ""))
 
 
+def _refuse_small_slip(parameter: str, value: float) -> None:
+    """Refuse ``value`` when its packaged default is about :data:`SLIP_FACTOR` times it (a
+    length in metres divided again, a mass in kg)."""
+    default = _packaged_default(parameter)
+    if not is_slip(default or 0.0, value):
+        return
+    mass = parameter == "servo.mass"
+    shown, packaged = (
+        (f"{value * 1e3:.3g} g", f"{default * 1e3:g} g") if mass else (_mm(value), _mm(default))
+    )
+    raise DesignError(
+        parameter,
+        f"{value:g} {'kg' if mass else 'm'} = {shown} is about a thousandth of its packaged "
+        f"value ({packaged}): did you mean {value * SLIP_FACTOR:g}? (the design file is in "
+        f"{'kg' if mass else 'metres'})",
+    )
+
+
 def _mm(length: float) -> str:
     """A length [m] in mm for a message: one decimal, or three significant digits where
     that would print a length that is not zero as 0.0 (a value 1000 times too small)."""
@@ -129,6 +150,8 @@ def check_plausible(design: Any, data: dict[str, Any]) -> None:
             "g",
             f"is heavier than the vehicle ({vehicle.mass:g} kg), and the design file is in kg",
         )
+    for parameter, value in [*lengths(data), ("servo.mass", s.mass)]:
+        _refuse_small_slip(parameter, value)
     f = design.finger
     for link in ("knuckle", "proximal", "middle"):
         length = getattr(f.lengths, link)
