@@ -446,9 +446,13 @@ def test_the_station_monitors_quick_bound_never_changes_a_reading(world, grasped
     assert 50 < len(went_on) < 550, len(went_on)  # both ways of answering, many times
 
 
-def test_cli_controller_filter_zones_and_delay_reach_the_runner(tmp_path, monkeypatch, capsys):
+def test_cli_controller_filter_zones_and_delay_reach_the_runner(
+    world, tmp_path, monkeypatch, capsys
+):
     """``--controller safe`` turns the filter on (``--no-base-filter`` overrides it);
-    ``--zones`` and ``--link-delay`` are parsed and passed on; bad values exit 2."""
+    ``--zones`` and ``--link-delay`` are parsed and passed on; bad values exit 2: among
+    them zones with the filter off (they were ignored), and zones whose free space does
+    not hold the vehicle where the simulated world starts it (the filter never acted)."""
     import sys
     import types
 
@@ -480,9 +484,26 @@ def test_cli_controller_filter_zones_and_delay_reach_the_runner(tmp_path, monkey
     assert main([*base, "--link-delay", "soon"]) == 2
     assert "--link-delay" in capsys.readouterr().err
     (tmp_path / "bad.json").write_text('{"sequence": [[0, 0, 0, 1, 1]], "safe": true}')
-    assert main([*base, "--zones", str(tmp_path / "bad.json")]) == 2
+    safe = [*base, "--controller", "safe"]
+    assert main([*safe, "--zones", str(tmp_path / "bad.json")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "6 numbers" in err[0]
+    assert f"{tmp_path / 'bad.json'}: sequence[0]: " in err[0], err  # not "bad.json.sequence"
+    n = len(calls)
+    for argv in (base, [*safe, "--no-base-filter"]):  # the filter off: the zones refused
+        assert main([*argv, "--zones", str(zones)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "the zones are the base filter's, and it is off" in err[0]
+    # a keep-in box away from where the world starts the vehicle (a 1 m cube at the origin)
+    tiny = tmp_path / "tiny.json"
+    tiny.write_text('{"sequence": [[0, 0, 0, 1, 1, 1]], "safe": true}')
+    start = world.make_data("home").qpos[world.astrobee_qpos : world.astrobee_qpos + 3]
+    assert not np.all((start >= 0) & (start <= 1))  # the test's own premise
+    assert main([*safe, "--zones", str(tiny)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    where = "({:.2f}, {:.2f}, {:.2f}) m".format(*start)
+    assert len(err) == 1 and f"the vehicle starts at {where}, outside" in err[0], err
+    assert len(calls) == n  # no trial ran
 
 
 def test_summary_aggregates_station_contacts():

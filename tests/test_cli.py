@@ -89,7 +89,7 @@ def test_a_wrong_option_prints_the_subcommands_usage(argv, usage, capsys) -> Non
         (["summary", "--design", str(STL)], "not a text (UTF-8 TOML) file"),
         (["report", "envelope", "--design", str(STL)], "not a text (UTF-8 TOML) file"),
         (["trial", "--replay", str(STL)], "not a payload-hands recording"),
-        (["trial", "--zones", str(STL)], "not a text (UTF-8 JSON) file"),
+        (["trial", "--controller", "safe", "--zones", str(STL)], "not a text (UTF-8 JSON) file"),
         (["hw", "scan", "--device", "/dev/null", "--servos", str(STL)], "not a text (UTF-8"),
         (["bench", "retarget", "--hand", str(STL)], "not a text (UTF-8 TOML) file"),
         (["bench", "retarget", "--config", str(STL)], "not a text (UTF-8 TOML) file"),
@@ -546,7 +546,10 @@ def test_a_trial_cut_off_by_its_cap_says_so(tmp_path, capsys) -> None:
     ("argv", "words"),
     [
         (["trial", "--replay", "/dev/null"], ["--replay: /dev/null: not a regular file"]),
-        (["trial", "--zones", "/no/such/zones.toml"], ["--zones: /no/such/zones.toml:"]),
+        (
+            ["trial", "--base-filter", "--zones", "/no/such/zones.toml"],
+            ["--zones: /no/such/zones.toml:"],
+        ),
     ],
 )
 def test_a_trials_bad_file_option_names_the_option_and_what_is_wrong(argv, words, capsys):

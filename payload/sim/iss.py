@@ -206,6 +206,10 @@ class IssLayout:
         end = (self.hatch_x - self.route_aft, 0.0, z)
         return np.array([start, turn, end], dtype=float)
 
+    def start(self) -> np.ndarray:
+        """Where the vehicle starts, the route's first waypoint, shape (3,) [m]."""
+        return self.route()[0]
+
     def route_length(self) -> float:
         """Length of the route polyline [m]."""
         return float(np.sum(np.linalg.norm(np.diff(self.route(), axis=0), axis=1)))

@@ -223,7 +223,7 @@ def build_spec(config: WorldConfig | None = None, design: Design | None = None) 
 
     layout = config.layout
     _add_iss(spec, layout)
-    start = layout.route()[0]
+    start = layout.start()
     quat = yaw_quat(layout.start_yaw())
     vehicle = design_vehicle(design)
     astrobee = _add_astrobee(spec, vehicle, start, quat)

@@ -106,19 +106,22 @@ class StationZones:
         keepout: list[Box] = []
         for i, obj in enumerate(objects):
             at = f"{where}[{i}]" if isinstance(data, list) else where
+            named = at or "the zone object"
             if not isinstance(obj, dict) or "sequence" not in obj or "safe" not in obj:
-                raise ZoneError(f'{at}: expected {{"sequence": [[6 numbers], ...], "safe": bool}}')
+                form = '{"sequence": [[6 numbers], ...], "safe": bool}'
+                raise ZoneError(f"{named}: expected {form}")
             if not isinstance(obj["safe"], bool):
-                raise ZoneError(f"{at}: 'safe' must be true (keep-in) or false (keep-out)")
+                raise ZoneError(f"{named}: 'safe' must be true (keep-in) or false (keep-out)")
             if not isinstance(obj["sequence"], list):
-                raise ZoneError(f"{at}: 'sequence' must be a list of zones")
+                raise ZoneError(f"{named}: 'sequence' must be a list of zones")
             target = keepin if obj["safe"] else keepout
             for j, values in enumerate(obj["sequence"]):
+                zone = f"{at}.sequence[{j}]" if at else f"sequence[{j}]"
                 if not isinstance(values, list):
-                    raise ZoneError(f"{at}.sequence[{j}]: a zone is a list of 6 numbers")
-                target.append(_box(values, f"{at}.sequence[{j}]"))
+                    raise ZoneError(f"{zone}: a zone is a list of 6 numbers")
+                target.append(_box(values, zone))
         if not keepin:
-            raise ZoneError(f'{where}: no keep-in zone (an object with "safe": true)')
+            raise ZoneError(f'{where or "the file"}: no keep-in zone (an object with "safe": true)')
         return cls(tuple(keepin), tuple(keepout))
 
     @classmethod
@@ -136,7 +139,10 @@ class StationZones:
             raise ZoneError(f"{path}: {not_text(exc, 'JSON')}") from None
         except json.JSONDecodeError as exc:
             raise ZoneError(f"{path}: not JSON ({exc.msg}, line {exc.lineno})") from None
-        return cls.from_json(data, str(path))
+        try:  # the file, then where in it: "zones.json: sequence[0]: ..."
+            return cls.from_json(data, "")
+        except ZoneError as exc:
+            raise ZoneError(f"{path}: {exc}") from None
 
     # -- geometry -------------------------------------------------------------------------
     def contains(self, point: Sequence[float]) -> bool:

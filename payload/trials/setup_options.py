@@ -154,7 +154,10 @@ def _check_physics_dt(dt: float | None) -> None:
 
 def _link_and_zones(args: argparse.Namespace) -> dict[str, Any]:
     """The parsed ``--link-delay`` and ``--zones`` as run_trial arguments (bad input: one
-    line, exit 2)."""
+    line, exit 2). The zones are the base filter's: refused with the filter off (a
+    replay's setting, None here, is its recording's), and when the vehicle's start is not
+    in their free space (the filter would keep it from nothing)."""
+    from payload.sim.iss import IssLayout
     from payload.sim.zones import StationZones
     from payload.teleop.link import parse_link_delay
 
@@ -162,10 +165,24 @@ def _link_and_zones(args: argparse.Namespace) -> dict[str, Any]:
     if args.link_delay is not None:
         extra["link_delay"] = parse_link_delay(args.link_delay)
     if args.zones is not None:
+        if args.base_filter is False:
+            raise TrialsCliError(
+                f"--zones {args.zones}: the zones are the base filter's, and it is off in "
+                "this run: add --base-filter (or --controller safe), or leave --zones out"
+            )
         try:
-            extra["zones"] = StationZones.read(args.zones)
+            zones = StationZones.read(args.zones)
         except PayloadError as exc:  # the file's own line, naming the option it came from
             raise TrialsCliError(f"--zones: {exc}") from None
+        start = IssLayout().start()
+        if not zones.contains(start):
+            x, y, z = start.tolist()
+            raise TrialsCliError(
+                f"--zones {args.zones}: the vehicle starts at ({x:.2f}, {y:.2f}, {z:.2f}) m, "
+                "outside the file's keep-in boxes or inside a keep-out box: the base filter "
+                "would keep it from nothing"
+            )
+        extra["zones"] = zones
     return extra
 
 
