@@ -718,6 +718,17 @@ def test_watch_says_the_new_verdict_after_each_rebuild(tmp_path, design_dict) ->
     at = next(i for i, s in enumerate(said) if s.startswith("rebuilt in "))
     assert said[at + 1].startswith("stowed fit: FAIL"), said
     assert not any(s.startswith("design: ") for s in said)
+    # a save that is not TOML: its line names the file once (it said "F: F: not valid")
+    path.write_text(path.read_text() + "[[[broken\n")
+    error = live.rebuild()
+    assert error is not None and error.count(str(path)) == 1, error
+    assert error.startswith(f"{path}: ") and "not valid TOML" in error, error
+    # a parameter's error is named after the file, once too
+    fingers = {**design_dict["finger"], "lengths": {**design_dict["finger"]["lengths"]}}
+    fingers["lengths"]["distal"] = -0.01
+    path.write_bytes(tomli_w.dumps({**design_dict, "finger": fingers}).encode())
+    error = live.rebuild()
+    assert error.startswith(f"{path}: finger.lengths.distal: ") and error.count(str(path)) == 1
 
 
 def test_the_models_visuals_are_those_yourdfpy_reads(tmp_path):

@@ -104,8 +104,10 @@ class LiveReview:
         try:
             scene = self._build()
         except (PayloadError, ValueError, OSError) as exc:
+            text = str(exc)  # a design file error names the file itself: once, not twice
+            named = text.startswith(f"{self.design}: ")
             with self._lock:
-                self.error = f"{self.design}: {exc}"
+                self.error = text if named else f"{self.design}: {text}"
             return self.error
         version = self.builds[-1].version + 1 if self.builds else 0
         build = Build(version, encode(scene), scene.overlay.as_json())
