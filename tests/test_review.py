@@ -786,6 +786,28 @@ def test_the_replays_legend_names_each_colour_once() -> None:
     assert legend["CTB bag"] == colour["ctb_bag"] and legend["CTB handle"] == colour["ctb_handle"]
     assert legend["ISS walls"] == colour["kibo_wall_x0_0"]
     assert legend["ISS handrails"] == colour["kibo_handrail_0"]
+    # the contact indicator stands out from every other colour of the replay (CIE76 colour
+    # difference, from sRGB through XYZ to CIELAB, D65): the pads in contact were a green
+    # beside finger C's green
+    contact = legend["pads in opposing contact"]
+    apart = min(_cie76(contact, c) for c, n in rows if n != "pads in opposing contact")
+    assert apart >= 40.0, (contact, apart)
+
+
+def _cie76(a: str, b: str) -> float:
+    """The CIE76 colour difference of two ``#rrggbb`` sRGB colours."""
+
+    def lab(text: str) -> np.ndarray:
+        c = np.array([int(text[i : i + 2], 16) / 255 for i in (1, 3, 5)])
+        c = np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+        to_xyz = np.array(
+            [[0.4124, 0.3576, 0.1805], [0.2126, 0.7152, 0.0722], [0.0193, 0.1192, 0.9505]]
+        )
+        t = to_xyz @ c / np.array([0.95047, 1.0, 1.08883])
+        f = np.where(t > (6 / 29) ** 3, np.cbrt(t), t / (3 * (6 / 29) ** 2) + 4 / 29)
+        return np.array([116 * f[1] - 16, 500 * (f[0] - f[1]), 200 * (f[1] - f[2])])
+
+    return float(np.linalg.norm(lab(a) - lab(b)))
 
 
 def test_a_session_the_cap_stopped_is_said_to_have_stopped_early(tmp_path) -> None:

@@ -2,7 +2,7 @@
 
 The recording sampled at a stated rate (``--rate``, default :data:`DEFAULT_RATE`): Astrobee's
 pose, every payload link placed by Pinocchio forward kinematics of the recorded (measured)
-joints and deployment, the CTB's pose, the fingertip pads green while the recording's
+joints and deployment, the CTB's pose, the fingertip pads orange-red while the recording's
 opposing-contact indicator is set (at any step since the previous frame), the task phase
 as text over the view, the ISS modules named, the keep-in boxes when the world has them.
 The camera follows the vehicle (a chase view); the whole-station view is a click away.
@@ -59,8 +59,9 @@ from payload.schema import CONTROL_DT
 TRIAL = f"{ROOT}/trial"
 """Root node of the trial replay."""
 
-CONTACT_COLOUR, FREE_COLOUR = 0x00C000, 0x303030
-"""Pad colour with the opposing-contact indicator set, and without."""
+CONTACT_COLOUR, FREE_COLOUR = 0xFF4500, 0x303030
+"""Pad colour with the opposing-contact indicator set (orange-red: far from every finger's
+colour, finger C's green among them, and from the station's), and without."""
 
 KEEP_IN_COLOUR = 0x7F00FF
 """Colour of the station's keep-in boxes."""
