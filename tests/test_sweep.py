@@ -202,6 +202,27 @@ def test_a_sweeps_reach_numbers_are_refused_as_the_reach_report_refuses_them(
     assert not out.exists()
 
 
+def test_a_sweep_of_invalid_designs_only_is_refused_and_runs_nothing(tmp_path, capsys):
+    """Every value a unit slip: one line naming the first point's design error, exit 2,
+    no folder made (it wrote a table of "invalid" rows and exited 0). A grid with one
+    valid point among invalid ones is a sweep that maps a limit: it is not refused."""
+    from payload.design.cli import new_project
+    from payload.sweep.grid import parse_set
+    from payload.sweep.run import plan
+
+    project, _ = new_project(tmp_path / "p")
+    out = tmp_path / "s"
+    argv = ["--project", str(project.root), "sweep", "--set", "finger.lengths.distal=45,60"]
+    assert main([*argv, "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "every point of the sweep is an invalid design" in err[0], err
+    assert "finger.lengths.distal=45: finger.lengths.distal: 45 m: did you mean" in err[0]
+    assert not out.exists() and not list(project.runs_dir.glob("sweep-*"))
+    distal = load_design(project.design_path).finger.lengths.distal
+    axes = [parse_set(f"finger.lengths.distal=45,{distal}")]
+    assert len(plan(project, axes, tmp_path / "mixed")) == 2
+
+
 @pytest.mark.parametrize(
     ("key", "unit"),
     [

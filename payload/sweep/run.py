@@ -7,7 +7,7 @@ from pathlib import Path
 from typing import Any
 
 from payload.project import Project
-from payload.sweep.grid import Axis, SweepError, check_axes, edit_design, grid
+from payload.sweep.grid import Axis, SweepError, check_axes, edit_design, grid, validate_point
 from payload.sweep.point import run_point
 from payload.trials.cluster import dask_client
 
@@ -24,19 +24,33 @@ def plan(base: Project, axes: list[Axis], out: Path) -> list[tuple[Path, dict[st
     """The points of a sweep: ``(folder, params, design text)`` each.
 
     Raises:
-        SweepError: Bad axes, or a point folder that already exists and is not empty
-            (a sweep never overwrites earlier results).
+        SweepError: Bad axes, a point folder that already exists and is not empty
+            (a sweep never overwrites earlier results), or a grid whose every point is an
+            invalid design (a unit slip in every value: nothing to run).
     """
     from payload.design import load_design
+    from payload.errors import DesignError
 
     check_axes(axes, load_design(base.design_path))
     text = base.design_path.read_text(encoding="utf-8")
     points = []
+    invalid = []
     for i, params in enumerate(grid(axes)):
         folder = point_dir(out, i)
         if folder.exists() and any(folder.iterdir()):
             raise SweepError(f"{folder}: exists and is not empty; choose a new --out")
         points.append((folder, params, edit_design(text, params)))
+        try:
+            validate_point(points[-1][2])
+        except DesignError as exc:
+            invalid.append((params, exc))
+    if invalid and len(invalid) == len(points):
+        params, exc = invalid[0]
+        which = ", ".join(f"{k}={v:g}" for k, v in params.items())
+        raise SweepError(
+            f"every point of the sweep is an invalid design, nothing run (the first, {which}: "
+            f"{exc})"
+        )
     return points
 
 
