@@ -435,7 +435,7 @@ def run_hardware_trial(
         sim.close()
     result = finish_trial(out, rec_path)
     result.update(steps=len(commands), driver="hardware", **far_end, provenance=prov,
-                  watchdog=watchdog)  # fmt: skip
+                  watchdog=watchdog, replay=str(Path(replay).resolve()))  # fmt: skip
     write_metrics(out, result)
     return result
 

@@ -231,13 +231,14 @@ def test_hw_run_of_a_synthetic_trial_says_what_it_ran_on_and_places_the_ctb_as_i
     run_trial(3, "synthetic", out_dir=src, max_time=2.0)  # a short synthetic trial
     source = json.loads((src / "metrics.json").read_text())
     out = tmp_path / "hw"
-    argv = ["hw", "run", "--emulator", "--source", "replay", str(src / "log.mcap"),
+    argv = ["hw", "run", "--emulator", "--replay", str(src / "log.mcap"),
             "--out", str(out), "--no-pace", "--latency-ms", str(LAT)]  # fmt: skip
     assert main(argv) == 0
     printed = capsys.readouterr().out
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["driver"] == "hardware" and metrics["emulator"] is True
     assert metrics["device"].startswith("/dev/pts/")
+    assert metrics["replay"] == str((src / "log.mcap").resolve())  # what it replayed
     assert metrics["provenance"]["design_sha256"] == source["provenance"]["design_sha256"]
     for key in ("ctb", "propulsion", "retarget_budget", "ctb_offset_m", "ctb_yaw_deg"):
         assert metrics[key] == source[key], key
