@@ -23,6 +23,7 @@ from payload.cliutil import (
     check_seconds,
     command_project,
     emit_json,
+    load_average,
     need_device,
     out_folder,
     results_folder,
@@ -286,12 +287,12 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     from firmware_interface.bench import bench_hw
 
     if args.cycles < 1:
-        raise HwUsageError(f"--cycles must be at least 1, got {args.cycles}")
+        raise HwUsageError(f"--cycles must be >= 1, got {args.cycles}")
     command_project(args)  # the servo map is checked against this project's design
     _models_follow(args)
     result = bench_hw(args.device, args.cycles, args.servos, args.latency_ms)
     if args.json:
-        emit_json(result)
+        emit_json({**result, "load_average": load_average()})
     else:
         print(f"{result['cycles']} cycles at {result['baud']} baud: mean "
               f"{result['cycle_mean_us']:.0f} us, p99 {result['cycle_p99_us']:.0f} us, wire "

@@ -127,6 +127,12 @@ def command_project(
     return project
 
 
+def load_average() -> list[float]:
+    """The machine's 1, 5 and 15 min load averages now, to two decimals: every bench's
+    JSON carries them as ``load_average`` (a figure is read beside the load it ran at)."""
+    return [round(x, 2) for x in os.getloadavg()]
+
+
 def say_stage(line: str) -> None:
     """A set-up stage's line on stderr, before a stage that takes seconds or moves the
     servos (stdout keeps the result, or ``--json``'s object)."""

@@ -448,6 +448,24 @@ def test_a_command_on_a_project_names_it_in_its_json(capsys, monkeypatch) -> Non
     assert json.loads(capsys.readouterr().out) == {"a": 1}
 
 
+def test_every_quick_bench_states_the_load_average_it_ran_at(capsys, monkeypatch) -> None:
+    """Each bench's JSON carries ``load_average`` (the 1, 5 and 15 min averages at its
+    end), as ``bench trial`` did: a figure is read beside the load (some said ``load`` in
+    other shapes, some nothing). Checked against the kernel's own figures read after."""
+    import os
+
+    monkeypatch.chdir(ROOT)
+    for argv in (
+        ["bench", "filter", "--seconds", "0.3"],
+        ["bench", "recorder", "--seconds", "1"],
+        ["bench", "sim", "--seconds", "0.2", "--no-progress"],
+    ):
+        assert main([*argv, "--json"]) == 0
+        load = json.loads(capsys.readouterr().out)["load_average"]
+        now = os.getloadavg()
+        assert len(load) == 3 and all(abs(a - b) < 1.0 for a, b in zip(load, now)), (argv, load)
+
+
 def test_sigterm_stops_a_trial_as_ctrl_c_does(tmp_path: Path) -> None:
     """`kill` (SIGTERM) of a running `payload trial`: the recording is closed, reads
     complete and is marked aborted (before, the process died with the file never closed:

@@ -11,7 +11,7 @@ import argparse
 import statistics
 from typing import TYPE_CHECKING, Any
 
-from payload.cliutil import CheckFailed, emit_json
+from payload.cliutil import CheckFailed, emit_json, load_average
 from payload.envelope.cli_runs import (
     _check_reach_args,
     _design_path,
@@ -186,7 +186,7 @@ def _cmd_bench_reach(args: argparse.Namespace) -> int:
         aim_samples=DEFAULT_SAMPLES,
     )  # fmt: skip
     if args.json:
-        emit_json(r)
+        emit_json({**r, "load_average": load_average()})
         return 0
     same = "identical" if r["identical"] else (
         f"{r['rows_only_overlap']} only in the compiled check, "

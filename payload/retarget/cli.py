@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from payload.cliutil import CheckFailed, command_project, emit_json
+from payload.cliutil import CheckFailed, command_project, emit_json, load_average
 from payload.retarget.errors import RetargetError
 
 FLOORS = {
@@ -117,7 +117,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         progress=not args.json,
     )
     if args.json:
-        emit_json({**result, "project": str(project.root)})
+        emit_json({**result, "project": str(project.root), "load_average": load_average()})
     else:
         _print_table(result)
     if args.check:

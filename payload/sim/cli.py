@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from payload.cliutil import command_project, emit_json
+from payload.cliutil import command_project, emit_json, load_average
 from payload.sim.vehicle import (
     DEFAULT_FLIGHT_MODE,
     DEFAULT_PROPULSION,
@@ -49,7 +49,9 @@ def _cmd_bench_sim(args: argparse.Namespace) -> int:
             propulsion=args.propulsion,
         )
     if args.json:
-        emit_json({**result.as_dict(), "project": str(project.root)})
+        emit_json(
+            {**result.as_dict(), "project": str(project.root), "load_average": load_average()}
+        )
         return 0
     print(
         f"{result.sim_seconds:.1f} s simulated in {result.wall_seconds:.2f} s wall: "

@@ -11,7 +11,7 @@ import sys
 import time
 from pathlib import Path
 
-from payload.cliutil import check_seconds, command_project, emit_json, out_folder
+from payload.cliutil import check_seconds, command_project, emit_json, load_average, out_folder
 from payload.errors import RunAborted
 from payload.folders import CAMPAIGN_FILES, RECORDING, TRIAL_FILES
 from payload.trials.setup_options import (
@@ -61,6 +61,7 @@ def _cmd_bench_recorder(args: argparse.Namespace) -> int:
         "file_mb_per_min": size / 1e6 / minutes,
         "read_s_per_min": read_s / minutes,
         "metrics_s": metrics_s,
+        "load_average": load_average(),
     }
     if args.json:
         emit_json(result)
@@ -211,7 +212,7 @@ def _cmd_bench_start(args: argparse.Namespace) -> int:
     except StartBenchError as exc:
         raise RunAborted(str(exc)) from None
     if args.json:
-        emit_json(result)
+        emit_json({**result, "load_average": load_average()})
         return 0
     for name, label in LABELS.items():
         if name not in result["runs"]:
