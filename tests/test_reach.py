@@ -647,6 +647,11 @@ def test_report_reach_json_fields_and_files(tmp_path):
     [
         (["--samples", "10"], "payload: error: --samples must be >= 1000, got 10"),
         (["--thickness", "-0.01"], "payload: error: --thickness must be between 0 and 1 m"),
+        (  # a thickness in mm: the unit slip named, as the design file's are
+            ["--thickness", "25"],
+            "payload: error: --thickness must be between 0 and 1 m, got 25.0: did you mean "
+            "25 mm = 0.025?",
+        ),
         (["--bay-size", "0.2", "0.1", "0"], "payload: error: --bay-size: every size must be"),
     ],
 )

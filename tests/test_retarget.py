@@ -971,3 +971,27 @@ def test_package_api_is_exported():
         # every public name is defined in the package itself, not re-exported from elsewhere
         if callable(obj):
             assert obj.__module__.startswith("payload.retarget."), (name, obj.__module__)
+
+
+def test_the_bench_check_says_why_the_paper_budget_misses_the_cost_floor() -> None:
+    """``bench retarget --check`` under the paper's 20-evaluation budget misses the first
+    retargeting issue's cost floor on the stream's random jumps (docs/retargeting.md): the
+    failure says so, with each kind of step's fraction, instead of a bare number."""
+    from payload.retarget.cli import FLOORS, _failures
+
+    result = {
+        "speedup_median": FLOORS["speedup_median"] * 10,
+        "production": {"p99_us": 30.0, "budget": "paper"},
+        "cost_not_worse_fraction": 0.9815,
+        "bound_violations": 0,
+        "by_kind": {
+            "trajectory": {"cost_not_worse_fraction": 1.0},
+            "random": {"cost_not_worse_fraction": 0.963},
+        },
+    }
+    (failure,) = _failures(result)
+    assert failure.startswith("cost_not_worse_fraction 0.9815 < 0.99 (trajectory 1.0, random 0.963")
+    assert "paper's evaluation budget" in failure and "docs/retargeting.md" in failure
+    converged = {**result, "production": {"p99_us": 30.0, "budget": "converged"}}
+    assert _failures(converged) == ["cost_not_worse_fraction 0.9815 < 0.99"]
+    assert _failures({**result, "cost_not_worse_fraction": 0.995}) == []

@@ -254,15 +254,22 @@ def test_a_sweep_without_a_terminal_says_each_point_as_it_ends(tmp_path, capsys)
     argv = ["sweep", "--set", "finger.lengths.distal=0.01,0.02,0.06", "--samples", "1000"]
     assert main([*argv, "--workers", "1", "--out", str(out)]) == 0
     got = capsys.readouterr()
-    lines = [x for x in got.err.splitlines() if x.startswith("point ")]
+    lines = [x for x in got.err.splitlines() if " done: point-" in x]
     # a 60 mm distal fits the bays but fails the envelope check (its tip runs into the
-    # stage): the line says the check's verdict, as the table's two columns do (it said
-    # "fits" alone)
+    # stage): the line says the check's verdict and what failed, as the envelope report
+    # does (it said "fits" alone, then "FAILS (fits the bays)"); each line names its
+    # point's folder, the table's row (the points may end in any order)
     (last,) = json.loads((out / "sweep.json").read_text())["points"][2:]
     assert (last["valid"], last["fits"], last["passed"]) == (True, True, False)
-    assert lines == [
-        "point 1/3 (finger.lengths.distal=0.01): invalid",
-        "point 2/3 (finger.lengths.distal=0.02): invalid",
-        "point 3/3 (finger.lengths.distal=0.06): envelope check FAILS (fits the bays)",
+    assert lines[:2] == [
+        "1/3 done: point-000 (finger.lengths.distal=0.01): invalid",
+        "2/3 done: point-001 (finger.lengths.distal=0.02): invalid",
     ]
-    assert "point 1/3" not in got.out and "# Design sweep" in got.out
+    assert main(["--project", str(out / "point-002"), "report", "envelope", "--json"]) == 1
+    failures = json.loads(capsys.readouterr().out)["failures"]
+    assert lines[2] == (
+        "3/3 done: point-002 (finger.lengths.distal=0.06): envelope check FAILS: "
+        + failures[0]
+        + (f" (+{len(failures) - 1})" if failures[1:] else "")
+    ), lines
+    assert "done: point-" not in got.out and "# Design sweep" in got.out

@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from payload.cliutil import command_project, out_folder
+from payload.design.slip import SLIP_FACTOR
 from payload.safeio import cannot_write_in
 
 if TYPE_CHECKING:
@@ -275,7 +276,10 @@ def _check_reach_args(args: argparse.Namespace) -> None:
     check_reach_numbers(args.samples, args.seed, args.workers)
     for t in args.thickness or ():
         if not t >= 0 or t > 1.0:
-            raise ReachError(f"--thickness must be between 0 and 1 m, got {t}")
+            slip = (  # a thickness in mm typed as metres, as the design's values are checked
+                f": did you mean {t:g} mm = {t / SLIP_FACTOR:g}?" if 1.0 < t <= SLIP_FACTOR else ""
+            )
+            raise ReachError(f"--thickness must be between 0 and 1 m, got {t}{slip}")
 
 
 def _grasp_features(args: argparse.Namespace) -> list[GraspFeature]:

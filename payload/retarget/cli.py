@@ -25,9 +25,18 @@ def _failures(result: dict) -> list[str]:
             f"production.p99_us {result['production']['p99_us']} >= {FLOORS['production_p99_us']}"
         )
     if result["cost_not_worse_fraction"] < FLOORS["cost_not_worse_fraction"]:
+        why = ""
+        kinds = result.get("by_kind") or {}
+        if result["production"].get("budget") == "paper" and kinds:
+            # a known limit, not a fault: said where the check says it failed
+            parts = ", ".join(f"{k} {v['cost_not_worse_fraction']}" for k, v in kinds.items())
+            why = (
+                f" ({parts}: the paper's evaluation budget on the stream's random jumps; "
+                "docs/retargeting.md, 'Against the first retargeting issue's floor')"
+            )
         out.append(
             f"cost_not_worse_fraction {result['cost_not_worse_fraction']} < "
-            f"{FLOORS['cost_not_worse_fraction']}"
+            f"{FLOORS['cost_not_worse_fraction']}{why}"
         )
     if result["bound_violations"] != FLOORS["bound_violations"]:
         out.append(f"bound_violations {result['bound_violations']} != 0")
@@ -135,7 +144,13 @@ def register(
         "retarget", help="production (CasADi) against reference (scipy) retargeting, same run"
     )
     p.add_argument("--hand", help="hand description TOML (default: the payload's)")
-    p.add_argument("--steps", type=int, default=1000, help="control steps (default 1000)")
+    p.add_argument(
+        "--steps",
+        type=int,
+        default=1000,
+        help="control steps (default 1000; with scipy's reference and the optimum searched "
+        "from many starts for every solve, that takes minutes: about 4 on 2 cores)",
+    )
     p.add_argument("--seed", type=int, default=0, help="seed of the target stream (default 0)")
     p.add_argument("--config", help="TOML overriding the eq. 3 settings")
     p.add_argument(

@@ -87,16 +87,21 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
                     kind, said = "invalid", "invalid"
                 else:
                     kind = "pass" if result.get("passed") else "fail"
-                    fit = "fits the bays" if result["fits"] else "does not fit the bays"
-                    said = f"envelope check {'passes' if kind == 'pass' else 'FAILS'} ({fit})"
+                    said = "envelope check passes" if kind == "pass" else "envelope check FAILS"
+                    failed = result.get("failures") or []
+                    if kind == "fail" and failed:  # what failed (a fit can fail it too)
+                        said += f": {failed[0]}" + (f" (+{len(failed) - 1})" if failed[1:] else "")
+                    elif kind == "fail":
+                        said += " (does not fit the bays)" if not result["fits"] else ""
                 counts[kind] += 1
                 note = ", ".join(f"{v} {k}" for k, v in counts.items() if v)
                 bar.update(task, advance=1, note=note)
-                if lines:
+                if lines:  # the points finish in any order: each named by its folder
                     params = ", ".join(f"{k}={v:g}" for k, v in result["params"].items())
                     done = sum(counts.values())
                     print(
-                        f"point {done}/{len(points)} ({params}): {said}",
+                        f"{done}/{len(points)} done: {Path(result['project']).name} ({params}): "
+                        f"{said}",
                         file=sys.stderr,
                         flush=True,
                     )
