@@ -270,6 +270,6 @@ def test_a_sweep_without_a_terminal_says_each_point_as_it_ends(tmp_path, capsys)
     assert lines[2] == (
         "3/3 done: point-002 (finger.lengths.distal=0.06): envelope check FAILS: "
         + failures[0]
-        + (f" (+{len(failures) - 1})" if failures[1:] else "")
+        + (f" (and {len(failures) - 1} more)" if failures[1:] else "")
     ), lines
     assert "done: point-" not in got.out and "# Design sweep" in got.out

@@ -90,7 +90,8 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
                     said = "envelope check passes" if kind == "pass" else "envelope check FAILS"
                     failed = result.get("failures") or []
                     if kind == "fail" and failed:  # what failed (a fit can fail it too)
-                        said += f": {failed[0]}" + (f" (+{len(failed) - 1})" if failed[1:] else "")
+                        more = f" (and {len(failed) - 1} more)" if failed[1:] else ""
+                        said += f": {failed[0]}{more}"
                     elif kind == "fail":
                         said += " (does not fit the bays)" if not result["fits"] else ""
                 counts[kind] += 1
