@@ -33,6 +33,12 @@ SCORED: tuple[str, ...] = (METRICS, CTB_FIGURE, ROUTE_FIGURE)
 TRIAL_FILES: tuple[str, ...] = (RECORDING, HANDS, *SCORED)
 """What a trial can write into its folder."""
 
+
+def trial_dir(out_dir: str | PurePath, seed: int) -> Path:
+    """The folder of the trial with this seed inside a campaign folder, ``trial-NNNN``."""
+    return Path(out_dir) / f"trial-{int(seed):04d}"
+
+
 SUMMARY = "summary.json"
 """A campaign's summary (what other tools read)."""
 
@@ -87,4 +93,5 @@ __all__ = [
     "TRIAL_FILES",
     "held",
     "tagged",
+    "trial_dir",
 ]

@@ -391,6 +391,39 @@ def test_compare_names_the_trials_only_one_side_has(tmp_path: Path, capsys) -> N
     assert capsys.readouterr().out.rstrip().endswith("Not compared, only in A: trial-0001.")
 
 
+def test_compare_takes_a_campaign_kept_as_its_summary_and_a_trial_by_its_seed(
+    tmp_path: Path, capsys
+) -> None:
+    """``analyses/campaign/*`` keeps a campaign's summary without its trials: compare reads
+    its per-trial rows (it said "no metrics.json and no trial-* folders"), matches a single
+    trial folder to the campaign's trial of its seed, and refuses --steps for the summary
+    in one line (no recordings). The rows are the trials' own metrics (each metrics.json,
+    read here), so the comparison with the trials themselves finds no change."""
+    from payload.trials.campaign import load_trial_results, write_summary
+
+    camp = _campaign(tmp_path / "camp", [1, 2])
+    kept = tmp_path / "kept"
+    write_summary(load_trial_results(camp), kept)
+    assert sorted(p.name for p in kept.iterdir() if p.is_dir()) == []  # the summary alone
+    assert main(["trials", "compare", str(camp), str(kept), "--json"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert [r["trial"] for r in result["trials"]] == ["trial-0001", "trial-0002"]
+    for row in result["trials"]:
+        own = json.loads((camp / row["trial"] / "metrics.json").read_text())
+        for key, m in row["metrics"].items():
+            assert m["a"] == own[key] and m["b"] == own[key] and m["change"] == 0.0, key
+        assert row["setup_differs"] == {}, row
+    # one trial against the kept campaign: matched by its seed, whatever its folder's name
+    single = tmp_path / "mine"
+    shutil.copytree(camp / "trial-0002", single)
+    assert main(["trials", "compare", str(kept), str(single), "--json"]) == 0
+    (row,) = json.loads(capsys.readouterr().out)["trials"]
+    assert (row["trial_a"], row["trial"]) == ("trial-0002", "mine")
+    assert main(["trials", "compare", str(kept), str(camp), "--steps"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "its steps cannot be compared" in err[0], err
+
+
 def test_compare_steps_of_a_cut_trial_says_over_which_steps(tmp_path: Path, capsys) -> None:
     """A trial against a copy cut short: no step of the shorter one differs, and the
     table says that is over the first steps only (it read "differing steps 0" beside two

@@ -22,6 +22,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+from payload.folders import trial_dir
 from payload.project import Project
 from payload.trials.cluster import dask_client
 from payload.trials.scoring import contact_tag, finish_trial
@@ -33,11 +34,6 @@ from payload.trials.trial_results import load_trial_results
 
 TrialFn = Callable[[int, Path], dict]
 """``trial_fn(seed, out_dir) -> metrics dict`` (what :func:`finish_trial` returns)."""
-
-
-def trial_dir(out_dir: str | Path, seed: int) -> Path:
-    """The folder of the trial with this seed inside a campaign folder."""
-    return Path(out_dir) / f"trial-{int(seed):04d}"
 
 
 # -- running ---------------------------------------------------------------------------

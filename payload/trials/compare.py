@@ -1,7 +1,9 @@
 """``payload trials compare RUN_A RUN_B``: two runs of the same seeds, seed by seed.
 
-A run is a campaign folder (``trial-NNNN`` folders) or one trial folder. Trials are
-matched by folder name (the seed). Per seed the change ``B - A`` of every metric the
+A run is a campaign folder (``trial-NNNN`` folders), one trial folder, or a campaign's
+summary kept without its trials (``summary.json`` alone, as ``analyses/campaign/*``
+commits it: its per-trial rows, at full precision, and its set-up). Trials are matched
+by folder name (the seed). Per seed the change ``B - A`` of every metric the
 paper summarises, and per metric the largest change over the seeds; with ``steps``,
 every recorded step of both recordings compared field by field (every field of
 :data:`~payload.trials.records.FIELD_SPECS`; ``seq`` and ``wall_time`` are not
@@ -25,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from payload.errors import PayloadError
-from payload.folders import METRICS, RECORDING
+from payload.folders import METRICS, RECORDING, SUMMARY, trial_dir
 from payload.trials.records import FIELD_SPECS, HANDS_TOPIC, STEP_TOPIC, RecordingError
 from payload.trials.setup_options import RUN_SETTINGS
 from payload.trials.summary_fields import METRIC_KEYS, METRIC_LABELS
@@ -41,28 +43,66 @@ class CompareError(PayloadError):
     """A run to compare is missing or unreadable, or two runs share no seed."""
 
 
-def _trials(run: Path) -> dict[str, Path]:
-    """Trial folders of a run by name (a campaign's ``trial-*``, or the folder itself)."""
+def _trials(run: Path) -> dict[str, Path | dict[str, Any]]:
+    """Trials of a run by name: a campaign's ``trial-*`` folders, the folder itself, or a
+    summary's rows (each its metrics, with the summary's set-up) where the campaign's
+    folder holds its ``summary.json`` without trial folders."""
     if run.is_file() and run.name in (METRICS, RECORDING):
         raise CompareError(f"{run}: a trial's file; give its folder, {run.parent}")
+    if run.is_file() and run.name == SUMMARY:
+        raise CompareError(f"{run}: a campaign's summary; give its folder, {run.parent}")
     if not run.is_dir():
         raise CompareError(f"{run}: no such trial or campaign folder")
     if (run / METRICS).is_file() or (run / RECORDING).is_file():
         return {run.name: run}
-    found = {p.name: p for p in sorted(run.glob("trial-*")) if p.is_dir()}
+    found: dict[str, Path | dict[str, Any]] = {
+        p.name: p for p in sorted(run.glob("trial-*")) if p.is_dir()
+    }
+    if not found and (run / SUMMARY).is_file():
+        found = _summary_rows(run / SUMMARY)
     if not found:
-        raise CompareError(f"{run}: no {METRICS} and no trial-* folders")
+        raise CompareError(f"{run}: no {METRICS}, no trial-* folders and no {SUMMARY}")
     return found
 
 
-def _trial_metrics(trial: Path) -> dict[str, Any]:
-    """A trial's ``metrics.json``; a trial that has none but a recording is said to be
-    unscored, with why (aborted, killed) where its recording says.
+def _summary_rows(path: Path) -> dict[str, dict[str, Any]]:
+    """A campaign summary's trials as metrics by trial folder name: each row (the metrics
+    at full precision) with the campaign's set-up (:data:`RUN_SETTINGS`, the summary's)."""
+    try:
+        summary = json.loads(path.read_text(encoding="utf-8"))
+        rows = summary["trials"]
+        setup = {k: summary[k] for k in RUN_SETTINGS if k in summary}
+        station = summary.get("station") or {}
+        for key in ("base_filter", "link_delay"):  # the station block's, written as text
+            if key not in setup and isinstance(station.get(key), str):
+                setup[key] = _setting(station[key])
+        return {trial_dir("", int(r["seed"])).name: {**setup, **r} for r in rows}
+    except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError) as exc:
+        why = exc.strerror if isinstance(exc, OSError) else f"not a campaign summary ({exc!r})"
+        raise CompareError(f"{path}: {why}") from None
+
+
+def _setting(text: str) -> Any:
+    """A setting a summary's station block writes as the text of its value (``"False"``,
+    ``"[1.0, 0.2]"``) as that value; a mixed one as its text."""
+    if text in ("True", "False"):
+        return text == "True"
+    try:
+        return json.loads(text)
+    except ValueError:
+        return text
+
+
+def _trial_metrics(trial: Path | dict[str, Any]) -> dict[str, Any]:
+    """A trial's ``metrics.json`` (or its summary row); a trial that has none but a
+    recording is said to be unscored, with why (aborted, killed) where its recording says.
 
     Raises:
         CompareError: No metrics to compare (one line naming the trial and why).
         CampaignError: The metrics file is unreadable (:func:`read_metrics`).
     """
+    if isinstance(trial, dict):
+        return trial
     if not (trial / METRICS).is_file() and (trial / RECORDING).is_file():
         from payload.trials.reading import recording_meta, unfinished_reason
 
@@ -247,10 +287,23 @@ def compare_runs(run_a: str | Path, run_b: str | Path, *, steps: bool = False) -
     """
     a_dir, b_dir = Path(run_a), Path(run_b)
     ta, tb = _trials(a_dir), _trials(b_dir)
+    for run, trials in ((a_dir, ta), (b_dir, tb)):
+        if steps and any(isinstance(t, dict) for t in trials.values()):
+            raise CompareError(
+                f"{run}: a campaign's summary without its trials' recordings: its steps "
+                "cannot be compared (compare its metrics: leave out --steps)"
+            )
     if len(ta) == 1 and len(tb) == 1:  # two single trials: compare them whatever their names
         common = [(next(iter(ta)), next(iter(tb)))]
     else:
         common = [(name, name) for name in ta if name in tb]
+        if not common and 1 in (len(ta), len(tb)):  # one trial against a campaign: its seed's
+            one, many = (ta, tb) if len(ta) == 1 else (tb, ta)
+            alone = next(iter(one))
+            seed = _trial_metrics(one[alone]).get("seed")
+            name = trial_dir("", seed).name if isinstance(seed, int) else None
+            if name in many:
+                common = [(alone, name) if one is ta else (name, alone)]
     if not common:
         raise CompareError(f"{a_dir} and {b_dir} have no trial (seed) in common")
     rows = []
@@ -286,7 +339,7 @@ def compare_runs(run_a: str | Path, run_b: str | Path, *, steps: bool = False) -
         if ma.get("success") != mb.get("success"):
             identical = False
         if steps:
-            log_a, log_b = ta[name_a] / RECORDING, tb[name_b] / RECORDING
+            log_a, log_b = Path(ta[name_a]) / RECORDING, Path(tb[name_b]) / RECORDING  # type: ignore[arg-type]
             row["steps"] = compare_steps(log_a, log_b)
             row["channels"] = compare_channels(log_a, log_b)
             row["other_metrics"] = sorted(
