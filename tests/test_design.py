@@ -456,6 +456,21 @@ def test_an_implausible_design_gives_one_line_naming_the_parameter_and_exit_2(
     assert not (tmp_path / "out").exists()
 
 
+def test_a_coordinate_offset_or_gap_near_zero_is_no_unit_slip(design_dict):
+    """The "thousandth of its default" slip is a size's (a field that must be positive):
+    a coordinate, an offset or a gap may be zero, and a value near it (a thousandth of its
+    default, of either sign) builds as zero does; a sweep across zero had holes at
+    +-0.0002 (array.a_x, default -0.066)."""
+    for path in ("array.a_x", "finger.offsets.tip", "stage.stowed_gap"):
+        default = design_dict
+        for part in path.split("."):
+            default = default[part]
+        for value in (0.0, default / 1000, abs(default) / 500):
+            design_from_dict(_edit(design_dict, path, value))
+    with pytest.raises(DesignError, match="about a thousandth"):  # a size, the same ratio
+        design_from_dict(_edit(design_dict, "servo.length", design_dict["servo"]["length"] / 1e3))
+
+
 def test_the_bounds_come_from_the_design_itself(design_dict):
     """A link exactly one servo width long holds its servos, a hair shorter does not; a
     bigger servo raises the bound; a bigger vehicle admits a longer part."""

@@ -15,13 +15,16 @@ build:
 
 A value refused here that is about 1000 times its packaged default names the probable
 unit slip (``45 m: did you mean 45 mm = 0.045?``): the design file is SI throughout. A
-length or mass about a thousandth of its packaged default (a servo 0.034 mm long, a
-conversion to metres made twice) is refused as the slip the other way, before the
-bounds that it would break further on name another parameter for it.
+size (a field that must be positive: a length, a thickness, the servo's mass) about a
+thousandth of its packaged default (a servo 0.034 mm long, a conversion to metres made
+twice) is refused as the slip the other way, before the bounds that it would break
+further on name another parameter for it. A coordinate, an offset or a gap may be zero,
+and is not checked so: a thousandth of its default is a value near zero like any other.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import sys
 from collections.abc import Iterator
@@ -92,6 +95,20 @@ def _refuse(parameter: str, value: float, unit: str, small_unit: str, reason: st
     raise DesignError(parameter, f"{slip}{value:g} {unit} {reason}" + (")" if slip else ""))
 
 
+def _must_be_positive(design: Any, parameter: str) -> bool:
+    """Whether the design's field ``parameter`` (dotted) is a size, marked ``positive``
+    (a coordinate, an offset or a gap may be zero, and near it a thousandth of its default
+    is no slip)."""
+    *tables, name = parameter.split(".")
+    table = design
+    for part in tables:
+        table = getattr(table, part, None)
+    if not dataclasses.is_dataclass(table):
+        return False
+    found = {f.name: f for f in dataclasses.fields(table)}.get(name)
+    return bool(found is not None and found.metadata.get("positive"))
+
+
 def _refuse_small_slip(parameter: str, value: float) -> None:
     """Refuse ``value`` when its packaged default is about :data:`SLIP_FACTOR` times it (a
     length in metres divided again, a mass in kg)."""
@@ -151,7 +168,8 @@ def check_plausible(design: Any, data: dict[str, Any]) -> None:
             f"is heavier than the vehicle ({vehicle.mass:g} kg), and the design file is in kg",
         )
     for parameter, value in [*lengths(data), ("servo.mass", s.mass)]:
-        _refuse_small_slip(parameter, value)
+        if _must_be_positive(design, parameter):  # a size; not a coordinate, offset or gap
+            _refuse_small_slip(parameter, value)
     f = design.finger
     for link in ("knuckle", "proximal", "middle"):
         length = getattr(f.lengths, link)
