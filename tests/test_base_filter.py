@@ -610,3 +610,19 @@ def test_the_committed_sweeps_closest_run_flies_again(world, grasped_state):
     assert run is not None
     least, touching = run
     assert touching == 0 and abs(least - 0.0246) < 0.002, least
+
+
+def test_zones_on_a_replay_without_the_filter_are_refused_before_any_folder(tmp_path):
+    """A replay takes its recording's filter setting (off in a paper trial's), which the
+    command line cannot see: the runner refuses the zones it would ignore, before it makes
+    a folder (``payload trial --replay F --zones Z`` ran without a word)."""
+    from payload.trials.runner import run_trial
+    from payload.trials.sources import TrialError
+
+    src = tmp_path / "src"
+    run_trial(3, "synthetic", out_dir=src, max_time=1.0)  # a paper trial: no filter
+    assert json.loads((src / "metrics.json").read_text())["base_filter"] is False
+    out = tmp_path / "out"
+    with pytest.raises(TrialError, match="the zones are the base filter's, and it is off"):
+        run_trial(None, "replay", src / "log.mcap", out, zones=station_zones())
+    assert not out.exists()

@@ -193,6 +193,12 @@ def run_trial(
         )
     except PayloadError as exc:
         raise TrialError(str(exc)) from None
+    if zones is not None and not setup["base_filter"]:  # a replay's setting is known here
+        raise TrialError(
+            "--zones: the zones are the base filter's, and it is off in this run (the "
+            "replayed recording's setting, or the profile's): add --base-filter, or leave "
+            "--zones out"
+        )
     problem = check_physics_dt(setup["physics_dt"])
     if problem is not None:
         raise TrialError(f"physics_dt: {problem}")
