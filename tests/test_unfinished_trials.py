@@ -419,6 +419,13 @@ def test_compare_takes_a_campaign_kept_as_its_summary_and_a_trial_by_its_seed(
     assert main(["trials", "compare", str(kept), str(single), "--json"]) == 0
     (row,) = json.loads(capsys.readouterr().out)["trials"]
     assert (row["trial_a"], row["trial"]) == ("trial-0002", "mine")
+    # a setting the campaign's trials did not share is no trial's: not a difference
+    summary = json.loads((kept / "summary.json").read_text())
+    (kept / "summary.json").write_text(
+        json.dumps({**summary, "ctb": {"mixed": ["rigid", "single"]}, "propulsion": None})
+    )
+    assert main(["trials", "compare", str(kept), str(camp), "--json"]) == 0
+    assert all(r["setup_differs"] == {} for r in json.loads(capsys.readouterr().out)["trials"])
     assert main(["trials", "compare", str(kept), str(camp), "--steps"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "its steps cannot be compared" in err[0], err

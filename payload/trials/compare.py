@@ -67,11 +67,13 @@ def _trials(run: Path) -> dict[str, Path | dict[str, Any]]:
 
 def _summary_rows(path: Path) -> dict[str, dict[str, Any]]:
     """A campaign summary's trials as metrics by trial folder name: each row (the metrics
-    at full precision) with the campaign's set-up (:data:`RUN_SETTINGS`, the summary's)."""
+    at full precision) with the campaign's set-up (:data:`RUN_SETTINGS`, the summary's;
+    a setting the trials did not share, or none recorded, is left out: no row's own)."""
     try:
         summary = json.loads(path.read_text(encoding="utf-8"))
         rows = summary["trials"]
-        setup = {k: summary[k] for k in RUN_SETTINGS if k in summary}
+        known = (k for k in RUN_SETTINGS if k in summary)  # a mixed or unknown one is no row's
+        setup = {k: summary[k] for k in known if not isinstance(summary[k], (dict, type(None)))}
         station = summary.get("station") or {}
         for key in ("base_filter", "link_delay"):  # the station block's, written as text
             if key not in setup and isinstance(station.get(key), str):
