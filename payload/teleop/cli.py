@@ -24,7 +24,6 @@ from payload.cliutil import (
     check_seconds,
     command_project,
     emit_json,
-    load_average,
     say_stage,
 )
 from payload.errors import STOP_SIGNALS, PayloadError
@@ -331,7 +330,7 @@ def bench(args: argparse.Namespace, make_session: SessionFactory) -> int:
     logging.getLogger("payload.teleop.safety").setLevel(logging.ERROR)
     result = run_bench(make_session, seconds=args.seconds)
     if args.json:
-        emit_json({**result, "load_average": load_average()})
+        emit_json(result)
         return 0
     print(f"emulated Quest 3 (iwer, headless Chromium), {result['frames']} frames")
     for key in ("frame_age_ms", "latency_ms"):
@@ -353,7 +352,7 @@ def bench_filter(args: argparse.Namespace) -> int:
     models_follow_design(project.design_path, project.root, json=args.json)
     result = run_filter_bench(seconds=args.seconds)
     if args.json:
-        emit_json({**result, "load_average": load_average()})
+        emit_json(result)
         return 0
     print(
         f"base safety filter, {result['steps']} steps ({result['active_steps']} acting): "

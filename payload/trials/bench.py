@@ -52,6 +52,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+from payload.cliutil import load_average
 from payload.folders import RECORDING
 
 STAGES: tuple[str, ...] = (
@@ -277,7 +278,7 @@ def _bench(
         "log_bytes": size,
         "log_bytes_per_sim_minute": size / (sim_seconds / 60.0),
         "pinned": pinned,
-        "load_average": list(os.getloadavg()),
+        "load_average": load_average(),
         "kernels": _kernels(),
         "full_checks": list(full_checks()[before:]),
         "environment": environment(),
