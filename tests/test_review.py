@@ -513,6 +513,7 @@ def test_bad_reach_samples_and_static_folder_exit_2(tmp_path, capsys) -> None:
     page = tmp_path / "r.html"
     for argv, words in (
         (["--rate", "10"], "--rate is a trial replay's frame rate"),
+        (["--watch", "--rate", "10"], "--watch serves the design review, no replay"),
         (["--static", str(page), "--port", "7071"], "--static writes a file"),
         (["--zmq-url", "tcp://127.0.0.1:1", "--port", "7071"], "--zmq-url uses that"),
     ):

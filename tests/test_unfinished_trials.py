@@ -466,3 +466,21 @@ def test_a_campaign_capped_by_max_time_says_so(tmp_path: Path, capsys) -> None:
     assert line in said and line in (out / "summary.md").read_text()
     assert main([*argv[:-2], "--max-time", "nan", "--out", str(tmp_path / "x")]) == 2
     assert "--max-time" in capsys.readouterr().err and not (tmp_path / "x").exists()
+
+
+def test_compare_steps_leaves_out_where_a_hardware_run_ran_and_what_it_read(
+    tmp_path: Path, capsys
+) -> None:
+    """Two hardware runs of one recording, kept in different places and run on different
+    serial devices, are the same run: ``device`` and ``replay`` (paths) are where it ran
+    and what it read, as ``provenance`` is, not results that differ."""
+    a = tmp_path / "a"
+    fixture_synthetic_trial(4, a)
+    b = tmp_path / "b"
+    shutil.copytree(a, b)
+    for folder, device in ((a, "/dev/pts/3"), (b, "/dev/ttyUSB0")):
+        metrics = folder / "metrics.json"
+        extra = {"device": device, "replay": str(folder / "src" / "log.mcap")}
+        metrics.write_text(json.dumps({**json.loads(metrics.read_text()), **extra}))
+    assert main(["trials", "compare", str(a), str(b), "--steps", "--require-identical"]) == 0
+    capsys.readouterr()

@@ -182,6 +182,8 @@ def _rate_and_port(args: argparse.Namespace) -> None:
         raise ReviewError(f"--rate must be > 0 Hz, got {args.rate}")
     if args.port is not None and not 0 <= args.port <= 65535:
         raise ReviewError(f"--port must be 0..65535, got {args.port}")
+    if args.rate is not None and args.watch:
+        raise ReviewError("--watch serves the design review, no replay; it takes no --rate")
     if args.rate is not None and args.trial is None:
         raise ReviewError(
             "--rate is a trial replay's frame rate; give the trial (TRIAL or --trial DIR) "
