@@ -1,6 +1,6 @@
 """Fly Astrobee with the payload deployed over a CTB: the simulator example of docs/simulator.md.
 
-Run it from the project root (``python examples/simulate_ctb.py``; about 5 s). The
+Run it from the project root (``python examples/simulate_ctb.py``; about a second). The
 fingers hold their measured posture while the vehicle is asked for 5 cm/s forward for
 6.5 s (the vehicle controller bounds the acceleration by the flight mode and the
 propulsion). It prints one JSON object with a sample every 0.5 s: time, Astrobee's
