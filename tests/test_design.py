@@ -348,7 +348,8 @@ INVALID = [
     ("finger.section.width", 0.015, "servo.width", "does not fit"),
     ("finger.section.depth", 0.02, "servo.height", "does not fit"),
     ("finger.lengths.knuckle", 0.02, "servo.length", "does not fit"),
-    ("finger.lengths.bogus", 0.02, "finger.lengths.bogus", "unknown key"),
+    ("finger.lengths.bogus", 0.02, "finger.lengths.bogus", "unknown key (expected one of"),
+    ("finger.lengths.distl", 0.02, "finger.lengths.distl", "unknown key (did you mean distal?"),
     ("stage.travel", _DELETE, "stage.travel", "missing key"),
     ("materials.finger", "heavy", "materials.finger", "expected a number"),
     ("stage.travel", 0.2, "stage.travel", "guide columns"),
@@ -454,6 +455,26 @@ def test_an_implausible_design_gives_one_line_naming_the_parameter_and_exit_2(
     assert len(err) == 1 and err[0].startswith(f"payload: error: {named}: ")
     assert says in err[0]
     assert not (tmp_path / "out").exists()
+
+
+def test_an_exact_fit_fits_and_a_micrometre_more_does_not(design_dict):
+    """The rail's travel plus its carriage exactly the rail's length fits (0.054 + 0.05
+    is 0.10400000000000001 in binary and was refused as longer than 0.104); a micrometre
+    more does not. The guide columns on the plate and the distal link's least length
+    compare the same way."""
+    rail = design_dict["rail"]
+    typed = round(rail["length"] - rail["carriage_length"], 6)  # the decimal one types
+    assert typed + rail["carriage_length"] > rail["length"]  # the rounding that bit (premise)
+    design_from_dict(_edit(design_dict, "rail.travel", typed))
+    with pytest.raises(DesignError, match="longer than the rail"):
+        design_from_dict(_edit(design_dict, "rail.travel", typed + 1e-6))
+
+
+def test_a_retargeting_margin_in_mm_is_a_unit_slip(design_dict):
+    """``retarget.collision_margin = 2`` (meant 2 mm) built silently: it is a length like
+    the design's others, refused with the slip named."""
+    with pytest.raises(DesignError, match=r"2 m: did you mean 2 mm = 0\.002\?"):
+        design_from_dict(_edit(design_dict, "retarget.collision_margin", 2))
 
 
 def test_a_coordinate_offset_or_gap_near_zero_is_no_unit_slip(design_dict):

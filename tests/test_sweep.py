@@ -273,3 +273,22 @@ def test_a_sweep_without_a_terminal_says_each_point_as_it_ends(tmp_path, capsys)
         + (f" (and {len(failures) - 1} more)" if failures[1:] else "")
     ), lines
     assert "done: point-" not in got.out and "# Design sweep" in got.out
+
+
+def test_a_sweep_rows_note_counts_the_failures_it_leaves_out() -> None:
+    """The table's note shows a point's first two failures; more were dropped without a
+    word (a point with four collisions read as one with two)."""
+    from payload.sweep.report import sweep_markdown
+
+    failures = [f"part{i} and stage collide ({i}.0 mm deep, 1 mm^3)" for i in range(4)]
+    point = {
+        "params": {"finger.lengths.distal": 0.05}, "valid": True, "fits": True,
+        "passed": False, "min_clearance_mm": 1.0, "below_vehicle_mm": 200.0, "error": None,
+        "failures": failures,
+    }  # fmt: skip
+    text = sweep_markdown({"keys": ["finger.lengths.distal"], "points": [point]}, "cmd", [])
+    (row,) = [line for line in text.splitlines() if line.startswith("| 0 |")]
+    assert row.endswith(f"| {failures[0]}; {failures[1]} (and 2 more) |"), row
+    two = {**point, "failures": failures[:2]}
+    text = sweep_markdown({"keys": ["finger.lengths.distal"], "points": [two]}, "cmd", [])
+    assert "more)" not in text

@@ -419,6 +419,13 @@ def test_compare_takes_a_campaign_kept_as_its_summary_and_a_trial_by_its_seed(
     assert main(["trials", "compare", str(kept), str(single), "--json"]) == 0
     (row,) = json.loads(capsys.readouterr().out)["trials"]
     assert (row["trial_a"], row["trial"]) == ("trial-0002", "mine")
+    # a trial the --max-time cap cut short is said to be so before the table
+    metrics = single / "metrics.json"
+    metrics.write_text(json.dumps({**json.loads(metrics.read_text()), "ended_by": ENDED_BY_CAP}))
+    assert main(["trials", "compare", str(kept), str(single)]) == 0
+    out = capsys.readouterr().out
+    said = "Trial `trial-0002 / mine` was stopped by the --max-time cap in B: a session cut"
+    assert said in out.split("| trial |")[0], out
     # a setting the campaign's trials did not share is no trial's: not a difference
     summary = json.loads((kept / "summary.json").read_text())
     (kept / "summary.json").write_text(

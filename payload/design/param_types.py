@@ -14,7 +14,7 @@ import dataclasses
 from dataclasses import dataclass, field
 from typing import Any
 
-from payload.design.plausible import check_plausible
+from payload.design.plausible import FIT_TOLERANCE, check_plausible
 from payload.errors import DesignError
 
 FINGERS: tuple[str, ...] = ("A", "B", "C", "D")
@@ -299,7 +299,7 @@ class Design:
                     f"finger.limits.{j}",
                     f"lower limit {lim.lower} is not below upper limit {lim.upper}",
                 )
-        if r.travel + r.carriage_length > r.length:
+        if r.travel + r.carriage_length > r.length + FIT_TOLERANCE:  # an exact fit is one
             raise DesignError(
                 "rail.travel",
                 f"travel {r.travel} m plus carriage length {r.carriage_length} m is longer "
@@ -328,7 +328,7 @@ class Design:
                 "stage.travel",
                 f"travel {st.travel} m is longer than the guide columns ({st.guide_length} m)",
             )
-        if st.guide_x + st.guide_radius > self.mounting.plate_length / 2:
+        if st.guide_x + st.guide_radius > self.mounting.plate_length / 2 + FIT_TOLERANCE:
             raise DesignError("stage.guide_x", "guide columns stand outside the mounting plate")
         if abs(self.array.ac_stagger) < f.section.width:
             raise DesignError(
@@ -417,6 +417,7 @@ __all__ = [
     "FINGERS",
     "FINGER_JOINTS",
     "FINGER_LINKS",
+    "FIT_TOLERANCE",
     "GAIN_MAX",
     "SIDE_OF",
     "Array",

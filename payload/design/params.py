@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import difflib
 import functools
 import math
 import sys
@@ -89,7 +90,11 @@ def _build(cls: type, data: Any, path: str) -> Any:
     for key in data:
         if key not in known:
             where = f"{path}.{key}" if path else key
-            raise DesignError(where, f"unknown key (expected one of: {', '.join(sorted(known))})")
+            near = difflib.get_close_matches(key, known, n=1)  # a typo: the key it was
+            hint = f"did you mean {near[0]}? " if near else ""
+            raise DesignError(
+                where, f"unknown key ({hint}expected one of: {', '.join(sorted(known))})"
+            )
     kwargs: dict[str, Any] = {}
     for f in fields:
         where = f"{path}.{f.name}" if path else f.name

@@ -39,6 +39,11 @@ if sys.version_info >= (3, 11):
 else:  # pragma: no cover
     import tomli as tomllib
 
+FIT_TOLERANCE = 1e-9
+"""[m] How far a sum of lengths may pass the length it must fit in and still fit: the
+rounding of decimal lengths in binary (0.054 + 0.05 is 0.10400000000000001), a
+nanometre, far below any machining tolerance."""
+
 LENGTH_TABLES: dict[str, tuple[str, ...] | None] = {
     "finger.lengths": None,
     "finger.offsets": None,
@@ -51,6 +56,7 @@ LENGTH_TABLES: dict[str, tuple[str, ...] | None] = {
               "guide_length", "guide_x", "stowed_gap", "drive_radius"),
     "mounting": None,
     "servo": ("width", "length", "height"),
+    "retarget": ("collision_margin",),
 }  # fmt: skip
 """The design's lengths [m]: a table and its length keys (``None``: every number in it)."""
 
@@ -181,7 +187,7 @@ def check_plausible(design: Any, data: dict[str, Any]) -> None:
                 f"at least {s.width * 1e3:.1f} mm between the axes)",
             )
     least = s.width / 2 + f.pad.radius
-    if f.lengths.distal < least:
+    if f.lengths.distal < least - FIT_TOLERANCE:  # an exact fit holds them
         raise DesignError(
             "finger.lengths.distal",
             f"{_mm(f.lengths.distal)} cannot hold the DIP servo's half body "
@@ -198,4 +204,4 @@ def check_plausible(design: Any, data: dict[str, Any]) -> None:
             )
 
 
-__all__ = ["LENGTH_TABLES", "check_plausible", "lengths"]
+__all__ = ["FIT_TOLERANCE", "LENGTH_TABLES", "check_plausible", "lengths"]

@@ -115,7 +115,9 @@ def sweep_markdown(data: dict[str, Any], command: str, plots: list[str]) -> str:
                 if t
                 else ["n/a"] * 3
             )
-        note = p["error"] or "; ".join((p.get("failures") or [])[:2])
+        failed = p.get("failures") or []
+        more = f" (and {len(failed) - 2} more)" if len(failed) > 2 else ""
+        note = p["error"] or "; ".join(failed[:2]) + more
         row.append(note.replace("|", "/").replace("\n", " "))
         lines.append("| " + " | ".join(row) + " |")
     prov = data.get("provenance") or {}

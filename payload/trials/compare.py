@@ -28,6 +28,7 @@ import numpy as np
 
 from payload.errors import PayloadError
 from payload.folders import METRICS, RECORDING, SUMMARY, trial_dir
+from payload.schema import ENDED_BY_CAP
 from payload.trials.records import FIELD_SPECS, HANDS_TOPIC, STEP_TOPIC, RecordingError
 from payload.trials.setup_options import RUN_SETTINGS
 from payload.trials.summary_fields import METRIC_KEYS, METRIC_LABELS
@@ -337,6 +338,8 @@ def compare_runs(run_a: str | Path, run_b: str | Path, *, steps: bool = False) -
             "success_b": mb.get("success"),
             "physics_dt_a": ma.get("physics_dt"),
             "physics_dt_b": mb.get("physics_dt"),
+            "ended_by_a": ma.get("ended_by"),
+            "ended_by_b": mb.get("ended_by"),
             "metrics": metrics,
         }
         if ma.get("success") != mb.get("success"):
@@ -386,8 +389,9 @@ a file that begins so)."""
 
 def comparison_notes(result: dict[str, Any]) -> list[str]:
     """What a reader must know before the table: trials of different seeds put side by
-    side (two single trials are compared whatever their names), and the settings the two
-    runs' trials ran with where they differ (``setting A / B``)."""
+    side (two single trials are compared whatever their names), trials the ``--max-time``
+    cap cut short, and the settings the two runs' trials ran with where they differ
+    (``setting A / B``)."""
     notes = []
     for row in result["trials"]:
         a, b = row.get("seed_a"), row.get("seed_b")
@@ -395,6 +399,14 @@ def comparison_notes(result: dict[str, Any]) -> list[str]:
             notes.append(
                 f"Trial `{shown_name(row)}` is seed {b} in B and seed {a} in A: different "
                 "operator sessions, so its changes are not the setup's alone."
+            )
+    for row in result["trials"]:
+        cut = [side for side in ("A", "B") if row.get(f"ended_by_{side.lower()}") == ENDED_BY_CAP]
+        if cut:
+            notes.append(
+                f"Trial `{shown_name(row)}` was stopped by the --max-time cap in "
+                f"{' and '.join(cut)}: a session cut short, so its metrics are not a whole "
+                "trial's."
             )
     differ: dict[str, set[str]] = {}
     for row in result["trials"]:
