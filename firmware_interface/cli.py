@@ -11,6 +11,7 @@ import argparse
 import contextlib
 import math
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -94,7 +95,7 @@ def _cmd_emulate(args: argparse.Namespace) -> int:
 
 def _cmd_scan(args: argparse.Namespace) -> int:
     _check_numbers(args)
-    from firmware_interface.driver import DynamixelDriver
+    from firmware_interface.driver import DynamixelDriver, nobody_answered
 
     command_project(args)  # the servo map's joints are this project's
     device = need_device(args)
@@ -118,18 +119,16 @@ def _cmd_scan(args: argparse.Namespace) -> int:
         for s in missing:
             print(f"ID {s['id']:3d}  not answering ({s['joint']})")
     if not servos:  # listed; but a bus where no servo answers is a failed look, as in check
-        raise CheckFailed(_nobody_answered(device))
+        raise CheckFailed(nobody_answered(device))
     return 0
 
 
-def _nobody_answered(device: str) -> str:
-    """What ``hw scan`` and ``hw check`` say of a bus where no servo answers."""
-    return f"no servo answered on {device} (power, wiring, baud rate, IDs?)"
-
-
-def check(port: str, smap: Any, latency_ms: float = 16.0) -> dict[str, Any]:
-    """Bring-up and health of every servo: ``{"ok", "servos", "errors"}``."""
-    from firmware_interface.driver import DynamixelDriver
+def check(
+    port: str, smap: Any, latency_ms: float = 16.0, say: Callable[[str], None] | None = None
+) -> dict[str, Any]:
+    """Bring-up and health of every servo: ``{"ok", "servos", "errors"}``. The bring-up
+    homes the rail and the stage (they move to their hard stops): ``say`` is told first."""
+    from firmware_interface.driver import DynamixelDriver, bring_up_notice, nobody_answered
     from firmware_interface.errors import DynamixelError, HardwareFault, MissingServoError
 
     errors: list[str] = []
@@ -137,11 +136,13 @@ def check(port: str, smap: Any, latency_ms: float = 16.0) -> dict[str, Any]:
     with DynamixelDriver(port, smap, latency_timer_ms=latency_ms) as drv:
         present = list(smap.ids)
         try:
+            if say is not None:
+                say(bring_up_notice(port))
             drv.bring_up()
         except MissingServoError as exc:
             present = [i for i in smap.ids if i not in exc.ids]
             if not present:  # the bus, not the servos: as `hw scan` says it
-                errors.append(_nobody_answered(port))
+                errors.append(nobody_answered(port))
             else:
                 errors += [f"servo {i} ({j}): not answering" for i, j in zip(exc.ids, exc.joints)]
         except HardwareFault as exc:
@@ -170,7 +171,7 @@ def _cmd_check(args: argparse.Namespace) -> int:
     command_project(args)  # the servo map is validated against this project's design
     device, smap = need_device(args), _map(args)
     _models_follow(args)
-    report = {"device": device, **check(device, smap, args.latency_ms)}  # as scan's says it
+    report = {"device": device, **check(device, smap, args.latency_ms, say_stage)}
     if args.json:
         emit_json(report)
     else:

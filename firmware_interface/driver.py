@@ -67,6 +67,27 @@ FEEDBACK_LEN = 10
 _FEEDBACK = np.dtype([("current", "<i2"), ("velocity", "<i4"), ("position", "<i4")])
 
 
+def bring_up_notice(device: str) -> str:
+    """What a command says before :meth:`DynamixelDriver.bring_up` on ``device``: the
+    servos are powered and the rail and the stage driven to their hard stops to home."""
+    return f"bringing up the servos on {device} and homing the rail and the stage"
+
+
+def nobody_answered(device: str) -> str:
+    """What the commands say of a bus where no servo answers."""
+    return f"no servo answered on {device} (power, wiring, baud rate, IDs?)"
+
+
+def bring_up_failure(device: str, exc: Exception) -> str:
+    """Why bringing the payload up on ``device`` failed, in one line (a bus where no servo
+    answers said as ``hw scan`` and ``hw check`` say it, not as eighteen missing IDs)."""
+    from firmware_interface.errors import MissingServoError
+
+    if isinstance(exc, MissingServoError) and exc.everyone:
+        return nobody_answered(device)
+    return f"bring-up on {device} failed: {exc}"
+
+
 class DynamixelDriver(FaultHandling):
     """The hardware payload (see the module docstring).
 
@@ -228,7 +249,8 @@ class DynamixelDriver(FaultHandling):
         found = self.scan()
         missing = [i for i in self.ids if i not in found]
         if missing:
-            raise MissingServoError(missing, [self.map.joint_of(i) for i in missing])
+            joints = [self.map.joint_of(i) for i in missing]
+            raise MissingServoError(missing, joints, everyone=len(missing) == len(self.ids))
         info = self._read_reg(self.ids[0], ADDR["model_information"], 4)
         self.emulated = info == EMULATOR_MODEL_INFORMATION
         for spec in self.map.servos:

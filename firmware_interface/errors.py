@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from payload.errors import PayloadError
+from payload.errors import PayloadError, RunAborted
 
 
 class DynamixelError(PayloadError):
@@ -21,9 +21,10 @@ class MissingServoError(DynamixelError):
         joints: Their joints.
     """
 
-    def __init__(self, ids: list[int], joints: list[str]) -> None:
+    def __init__(self, ids: list[int], joints: list[str], everyone: bool = False) -> None:
         self.ids = list(ids)
         self.joints = list(joints)
+        self.everyone = everyone  # no servo of the map answered
         names = ", ".join(f"ID {i} ({j})" for i, j in zip(ids, joints))
         super().__init__(f"servo(s) not answering: {names}")
 
@@ -61,3 +62,10 @@ class NotHomedError(DynamixelError):
 
 class HomingError(DynamixelError):
     """Homing did not find the hard stop (the message names the servo)."""
+
+
+class BringUpFailed(RunAborted):
+    """The payload could not be brought up or driven home (a servo missing or faulted,
+    homing or the home posture failed): a failed start of the hardware (exit 1, ``payload:
+    aborted: ...``), not bad input. The servos are left as the driver's close leaves them
+    (torque off)."""

@@ -140,7 +140,12 @@ def test_check_says_a_servos_hardware_error_once(capsys):
     try:
         port = proc.stdout.readline().strip()
         assert main(["hw", "check", "--device", port, "--json", "--latency-ms", LAT]) == 1
-        report = json.loads(capsys.readouterr().out)
+        said = capsys.readouterr()
+        report = json.loads(said.out)
+        # the bring-up homes the rail and the stage: said first, as `hw run` says it
+        assert said.err.splitlines()[0] == (
+            f"bringing up the servos on {port} and homing the rail and the stage ..."
+        ), said.err
     finally:
         proc.terminate()
         proc.wait(timeout=10)
@@ -198,8 +203,9 @@ def test_scan_of_a_bus_where_nobody_answers_fails(capsys):
         os.close(slave)
     assert code == 1 and "not answering" in out
     assert err.strip().splitlines()[-1].startswith("payload: check failed: no servo answered")
-    assert checked == 1 and len(said) == 1 and "not answering" not in said[0], said
-    assert said[0].startswith("payload: check failed: no servo answered on "), said
+    assert said[0].startswith("bringing up the servos on "), said  # its stage, first
+    assert checked == 1 and len(said) == 2 and "not answering" not in said[1], said
+    assert said[1].startswith("payload: check failed: no servo answered on "), said
 
 
 @pytest.mark.parametrize(

@@ -185,8 +185,10 @@ def test_hw_run_refuses_a_file_for_out_and_keeps_no_folder_it_made_for_nothing(
     session, tmp_path, capsys
 ):
     """``--out`` a regular file, or a folder holding a trial's or a campaign's files, is one
-    line and exit 2 (nothing touched); a bus where nobody answers ends in one line too, and
-    the folder made for the run is not left behind, empty."""
+    line and exit 2 (nothing touched); a bus where nobody answers ends in one line too, as
+    a failed start of the hardware (exit 1, as `hw check` says it: it was exit 2, bad
+    input, and named eighteen servos), and the folder made for the run is not left
+    behind, empty."""
     import os
 
     from payload.cli import main
@@ -216,7 +218,11 @@ def test_hw_run_refuses_a_file_for_out_and_keeps_no_folder_it_made_for_nothing(
     err = capsys.readouterr().err.strip().splitlines()
     # the stage it had begun (said before its seconds of bring-up), then one error line
     assert err[:-1] == [f"bringing up the servos on {device} and homing the rail and the stage ..."]
-    assert code == 2 and "not answering" in err[-1], err
+    assert code == 1, err
+    assert (
+        err[-1] == f"payload: aborted: no servo answered on {device} (power, wiring, baud "
+        "rate, IDs?)"
+    ), err
     assert not fresh.exists()
 
 
@@ -427,3 +433,26 @@ def test_the_first_teleoperation_step_does_not_trip_the_bus_watchdog(
     watchdog = json.loads((out / "metrics.json").read_text())["watchdog"]
     # no trip from the slow first step (a loaded machine may add short ones of its own)
     assert [e for e in watchdog.get("events", []) if e["silence_s"] >= 0.2] == [], watchdog
+
+
+def test_a_servo_faulted_at_bring_up_aborts_the_run_as_a_failed_start(session, tmp_path, capsys):
+    """A servo in overload when `hw run` brings the bus up: one line naming it, exit 1 (a
+    failed start of the hardware, as `hw check` fails it), not exit 2 (bad input), and no
+    folder left for the run."""
+    from firmware_interface.emulator import EmulatorProcess
+    from firmware_interface.servo_map import load_servo_map
+    from payload.cli import main
+
+    out = tmp_path / "run"
+    with EmulatorProcess(faults=["error:12:overload"]) as emu:
+        argv = ["hw", "run", "--device", emu.port, "--replay", str(session), "--no-pace",
+                "--max-time", "1", "--out", str(out), "--latency-ms", str(LAT)]  # fmt: skip
+        code = main(argv)
+    joint = load_servo_map().joint_of(12)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 1, err
+    assert err[-1] == (
+        f"payload: aborted: bring-up on {emu.port} failed: servo 12 ({joint}): hardware error "
+        "overload"
+    ), err
+    assert not out.exists()
