@@ -251,6 +251,9 @@ def test_page_with_the_hardware_driver_over_the_emulator_says_hardware_and_fits(
                 _, err = proc.communicate()
     # the terminal's status line names the live driver too
     assert f"[hardware on {emu.port} (emulator)]" in err, err[-2000:]
+    # Ctrl-C, the server's normal end: "stopping", then "stopped" once the session closed
+    lines = err.splitlines()
+    assert "stopping" in lines and "stopped" in lines[lines.index("stopping") :], err[-2000:]
 
 
 KEYS = {"neutral": " ", "pinch": "q", "open": "e", "together": "z", "apart": "x",

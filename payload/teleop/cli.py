@@ -292,9 +292,11 @@ def serve(args: argparse.Namespace, make_session: SessionFactory) -> int:
             timer = threading.Timer(args.seconds, hub.stop.set)
             timer.daemon = True
             timer.start()
+        interrupted = False
         try:
             session.run()
         except KeyboardInterrupt:
+            interrupted = True
             hub.stop.set()
             print("\nstopping", file=sys.stderr)
         finally:
@@ -302,6 +304,8 @@ def serve(args: argparse.Namespace, make_session: SessionFactory) -> int:
                 stop_status.set()
                 server.stop()
                 result = session.close()
+        if interrupted:  # the session closed (and scored): the command's normal end
+            print("stopped", file=sys.stderr)
         print("\n" + status_line(hub.status(), hub.latency()))
         if result is not None:
             print(f"recorded {record} ({result.get('steps')} steps)")
