@@ -19,8 +19,10 @@ it to service. The rail and the stage are homed at bring-up and after a reboot o
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import time
+from collections.abc import Iterator
 from types import TracebackType
 
 import numpy as np
@@ -38,6 +40,7 @@ from firmware_interface.control_table import (
     to_signed,
 )
 from firmware_interface.errors import (
+    BringUpFailed,
     CommError,
     DynamixelError,
     HardwareFault,
@@ -78,14 +81,18 @@ def nobody_answered(device: str) -> str:
     return f"no servo answered on {device} (power, wiring, baud rate, IDs?)"
 
 
-def bring_up_failure(device: str, exc: Exception) -> str:
-    """Why bringing the payload up on ``device`` failed, in one line (a bus where no servo
-    answers said as ``hw scan`` and ``hw check`` say it, not as eighteen missing IDs)."""
-    from firmware_interface.errors import MissingServoError
-
-    if isinstance(exc, MissingServoError) and exc.everyone:
-        return nobody_answered(device)
-    return f"bring-up on {device} failed: {exc}"
+@contextlib.contextmanager
+def failed_start(device: str) -> Iterator[None]:
+    """A hardware error inside (the bring-up, the drive home) as a failed start of the
+    payload on ``device``: :class:`~firmware_interface.errors.BringUpFailed` (exit 1), in
+    one line, a bus where no servo answers said as ``hw scan`` and ``hw check`` say it,
+    not as eighteen missing IDs; the hardware's state, not the command line's input."""
+    try:
+        yield
+    except DynamixelError as exc:
+        everyone = isinstance(exc, MissingServoError) and exc.everyone
+        why = nobody_answered(device) if everyone else f"bring-up on {device} failed: {exc}"
+        raise BringUpFailed(why) from None
 
 
 class DynamixelDriver(FaultHandling):

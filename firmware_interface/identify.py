@@ -44,10 +44,10 @@ from firmware_interface.driver import (
     FEEDBACK_ADDR,
     FEEDBACK_LEN,
     DynamixelDriver,
-    bring_up_failure,
     bring_up_notice,
+    failed_start,
 )
-from firmware_interface.errors import BringUpFailed, CommError, DynamixelError
+from firmware_interface.errors import CommError
 from firmware_interface.servo_map import ServoSpec
 from payload.design.edit import set_in_text
 from payload.design.servo import CURRENT_UNIT_A, KPP_DIV, TICKS_PER_RAD, kind_of
@@ -238,10 +238,8 @@ def identify(
     tree = build_tree(design)
     if say is not None:
         say(bring_up_notice(drv.device))
-    try:
+    with failed_start(drv.device):
         drv.bring_up()
-    except DynamixelError as exc:  # the hardware's state, not the command line's input
-        raise BringUpFailed(bring_up_failure(drv.device, exc)) from None
     for i in drv.ids:
         # one servo is talked to at a time: the others would trip their Bus Watchdog (and
         # hold, as they do anyway); without it, a pause of the host cannot stop the test

@@ -43,10 +43,9 @@ def ready_at_home(hardware: Any, say: Callable[[str], None] | None = None) -> No
     design's home posture (:func:`move_to_home`) and disarm its Bus Watchdog until a 50 Hz
     loop runs (what comes before the loop takes seconds). ``say`` is called with a line
     before each stage: the servos move, and whoever is beside them is told so first."""
-    from firmware_interface.driver import bring_up_failure, bring_up_notice
-    from firmware_interface.errors import BringUpFailed, DynamixelError
+    from firmware_interface.driver import bring_up_notice, failed_start
 
-    try:
+    with failed_start(hardware.device):
         if not getattr(hardware, "homed", None):
             if say is not None:
                 say(bring_up_notice(hardware.device))
@@ -54,8 +53,6 @@ def ready_at_home(hardware: Any, say: Callable[[str], None] | None = None) -> No
         if say is not None:
             say("moving to the design's home posture")
         move_to_home(hardware)
-    except DynamixelError as exc:  # the hardware's state, not the command line's input
-        raise BringUpFailed(bring_up_failure(hardware.device, exc)) from None
     hardware.set_watchdog(False)
 
 
