@@ -53,7 +53,7 @@ from payload.trials.preparation import (
     trial_meta,
 )
 from payload.trials.retargeters import retargeting, single_threaded_numerics
-from payload.trials.setup_options import MAX_TRIAL_S, RUN_SETTINGS
+from payload.trials.setup_options import MAX_TRIAL_S, RUN_SETTINGS, ZONES_WITHOUT_FILTER
 from payload.trials.sources import HeadsetSource, TrialError, _Source, load_replay, trial_setup
 from payload.trials.stepobserver import MODULE_NAMES, step_record, world_view
 
@@ -194,11 +194,7 @@ def run_trial(
     except PayloadError as exc:
         raise TrialError(str(exc)) from None
     if zones is not None and not setup["base_filter"]:  # a replay's setting is known here
-        raise TrialError(
-            "--zones: the zones are the base filter's, and it is off in this run (the "
-            "replayed recording's setting, or the profile's): add --base-filter, or leave "
-            "--zones out"
-        )
+        raise TrialError(f"--zones: {ZONES_WITHOUT_FILTER}")
     problem = check_physics_dt(setup["physics_dt"])
     if problem is not None:
         raise TrialError(f"physics_dt: {problem}")

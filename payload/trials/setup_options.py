@@ -152,6 +152,14 @@ def _check_physics_dt(dt: float | None) -> None:
         raise TrialsCliError(f"--physics-dt: {problem}")
 
 
+ZONES_WITHOUT_FILTER = (
+    "the zones are the base filter's, and it is off in this run (the profile's setting, or "
+    "a replayed recording's): add --base-filter (or --controller safe), or leave --zones out"
+)
+"""Why ``--zones`` is refused with the base filter off (the command line's check, and the
+runner's for a replay, whose setting only its recording says)."""
+
+
 def _link_and_zones(args: argparse.Namespace) -> dict[str, Any]:
     """The parsed ``--link-delay`` and ``--zones`` as run_trial arguments (bad input: one
     line, exit 2). The zones are the base filter's: refused with the filter off (a
@@ -166,10 +174,7 @@ def _link_and_zones(args: argparse.Namespace) -> dict[str, Any]:
         extra["link_delay"] = parse_link_delay(args.link_delay)
     if args.zones is not None:
         if args.base_filter is False:
-            raise TrialsCliError(
-                f"--zones {args.zones}: the zones are the base filter's, and it is off in "
-                "this run: add --base-filter (or --controller safe), or leave --zones out"
-            )
+            raise TrialsCliError(f"--zones {args.zones}: {ZONES_WITHOUT_FILTER}")
         try:
             zones = StationZones.read(args.zones)
         except PayloadError as exc:  # the file's own line, naming the option it came from
