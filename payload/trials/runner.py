@@ -25,6 +25,7 @@ from payload.folders import (
     SCORED,
     TRIAL_FILES,
     held,
+    trial_dir,
 )
 from payload.native import environment
 from payload.project import Project, current_project, provenance
@@ -205,7 +206,7 @@ def run_trial(
         raise TrialError(
             f"propulsion must be one of {', '.join(PROPULSION_MODELS)}, got {propulsion!r}"
         )
-    stem = f"trial-{seed:04d}" if operator == "synthetic" else f"replay-{seed:04d}"
+    stem = trial_dir("", seed).name if operator == "synthetic" else f"replay-{seed:04d}"
     out = Path(out_dir) if out_dir is not None else new_folder(project.runs_dir, stem)
     if replay is not None and out.resolve() == Path(replay).resolve().parent:
         raise TrialError(f"{out}: a replay never writes into the folder it reads from")
