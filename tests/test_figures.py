@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from payload.trials.figures import phase_spans, phases_in_time_order
 
@@ -123,3 +125,71 @@ def test_a_long_campaign_title_stays_on_the_page_above_the_panels() -> None:
     summary = json.loads((root / "single-safe-delay1s" / "summary.json").read_text())
     one = dict(list(METRIC_LABELS.items())[:1])
     assert len(_title_on_page(summary, one).splitlines()) >= 4
+
+
+# -- the --max-time cap's label (a new user's capped trial: the label sat on the curve) --
+def _fig3(rec, monkeypatch):
+    """Fig. 3 of ``rec`` as drawn (not written), on an Agg canvas."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    from payload.trials import figures
+
+    drawn = []
+    monkeypatch.setattr(figures, "save_figure", lambda fig, *a: drawn.append(fig))
+    figures.plot_ctb_body_frame(rec, "unused.png")
+    FigureCanvasAgg(drawn[0]).draw()
+    return drawn[0]
+
+
+def _covers(box, line) -> bool:
+    """Whether the line, as drawn (its data through the axes' transform to pixels, each
+    segment sampled every 0.1 px or finer), enters the text's box."""
+    xy = line.get_transform().transform(line.get_xydata())
+    steps = max(2, int(np.ceil(np.abs(np.diff(xy, axis=0)).max() / 0.1)) + 1)
+    s = np.linspace(0.0, 1.0, steps)[:, None, None]
+    pts = (xy[:-1] + s * (xy[1:] - xy[:-1])).reshape(-1, 2)
+    inside = (pts[:, 0] >= box.x0) & (pts[:, 0] <= box.x1)
+    return bool(np.any(inside & (pts[:, 1] >= box.y0) & (pts[:, 1] <= box.y1)))
+
+
+@pytest.mark.parametrize(
+    ("shape", "contact_from"),
+    [
+        ("rises to the top right", 100),  # the old label's corner, with the t0 line
+        ("fills the panel", None),  # no corner is free
+    ],
+)
+def test_the_cap_label_never_covers_the_curve(tmp_path: Path, monkeypatch, shape, contact_from):
+    """A trial the --max-time cap stopped says so in Fig. 3's top panel: the label's box
+    (matplotlib's window extent) meets no point of the body-x curve nor of the t0 line as
+    drawn (their data through the axes' transform), and lies inside the panel. The rising
+    curve crosses the top right corner, where the label used to be."""
+    from test_trials import recording_with_offsets
+
+    from payload.trials.figures import CAP_LABEL
+
+    n = 600
+    if shape == "rises to the top right":
+        x = [0.0 if i < 400 else 40.0 * (i - 400) / 200 for i in range(n)]
+    else:
+        x = [20.0 * math.sin(1.3 * i) for i in range(n)]
+    contact = [contact_from is not None and i >= contact_from for i in range(n)]
+    rec = recording_with_offsets([(v, 0.0, 0.0) for v in x], contact)
+    rec.meta["ended_by"] = "max_time"
+    fig = _fig3(rec, monkeypatch)
+    ax = fig.axes[0]
+    renderer = fig.canvas.get_renderer()
+    (label,) = [t for t in ax.texts if t.get_text() == CAP_LABEL]
+    box = label.get_window_extent(renderer)
+    curve, *marks = ax.get_lines()
+    assert len(curve.get_xdata()) == n
+    assert ax.bbox.x0 <= box.x0 and box.x1 <= ax.bbox.x1, (box, ax.bbox)
+    assert ax.bbox.y0 <= box.y0 and box.y1 <= ax.bbox.y1, (box, ax.bbox)
+    assert not _covers(box, curve), (shape, box)
+    if contact_from is not None:  # the position at t0, a horizontal line across the panel
+        (t0_line,) = [ln for ln in marks if list(ln.get_xdata()) == [0, 1]]  # axes' width
+        assert not _covers(box, t0_line), box
+    if shape == "rises to the top right":  # the test sees an overlap where there is one
+        spot = {"ha": "right", "va": "top", "fontsize": 8}  # the old label's
+        old = ax.text(0.99, 0.95, CAP_LABEL, transform=ax.transAxes, **spot)
+        assert _covers(old.get_window_extent(renderer), curve)

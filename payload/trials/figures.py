@@ -14,7 +14,10 @@ from typing import Any, NamedTuple
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
 from matplotlib.patches import Patch, Rectangle
+from matplotlib.text import Text
+from matplotlib.transforms import Bbox
 
 from payload.errors import PayloadError
 from payload.rotations import rotate_by_quats
@@ -168,6 +171,63 @@ def save_figure(fig: Figure, path: Path, dpi: int, png_compression: int | None =
     return path
 
 
+CAP_LABEL = "session stopped by the --max-time cap"
+"""Fig. 3's note on a trial the ``--max-time`` cap stopped (the title has no room for it)."""
+
+_LABEL_SPOTS: tuple[tuple[float, float, str, str], ...] = (
+    (0.99, 0.95, "right", "top"),
+    (0.01, 0.95, "left", "top"),
+    (0.99, 0.05, "right", "bottom"),
+    (0.01, 0.05, "left", "bottom"),
+    (0.5, 0.95, "center", "top"),
+    (0.5, 0.05, "center", "bottom"),
+)
+"""Where :func:`place_clear_of` tries a label, in order: ``(x, y, ha, va)`` in axes
+fractions (the four corners, then the middles of the top and bottom edges)."""
+
+
+def _crosses(box: Any, lines: Sequence[Line2D]) -> bool:
+    """Whether any of ``lines``, as drawn (display coordinates), enters ``box``."""
+    for line in lines:
+        path = line.get_transform().transform_path(line.get_path())
+        if path.intersects_bbox(box, filled=False):
+            return True
+    return False
+
+
+def place_clear_of(text: Text, lines: Sequence[Line2D]) -> None:
+    """Put ``text`` (placed in its axes' fractions) where its box, white padding included,
+    meets none of ``lines``: the first of :data:`_LABEL_SPOTS` that is free. When every
+    spot is taken (a curve filling the panel), the axes' y range grows upward until the
+    lines leave room under the first spot, so the label never hides data.
+
+    Args:
+        text: A text artist whose transform is its axes' ``transAxes``.
+        lines: The lines it must not cover (their data as drawn).
+    """
+    ax = text.axes
+    renderer = FigureCanvasAgg(ax.figure).get_renderer()
+
+    def box_at(spot: tuple[float, float, str, str]) -> Any:
+        x, y, ha, va = spot
+        text.set_position((x, y))
+        text.set_horizontalalignment(ha)
+        text.set_verticalalignment(va)
+        box = text.get_window_extent(renderer)
+        if text.get_bbox_patch() is None:
+            return box
+        text.update_bbox_position_size(renderer)  # the padded box drawn behind the text
+        return Bbox.union([box, text.get_bbox_patch().get_window_extent(renderer)])
+
+    lo, _ = ax.get_ylim()  # the autoscaled limits, which the lines are drawn in
+    for spot in _LABEL_SPOTS:
+        if not _crosses(box_at(spot), lines):
+            return
+    room = (box_at(_LABEL_SPOTS[0]).y0 - ax.bbox.y0) / ax.bbox.height  # axes fraction
+    top = max(float(np.nanmax(line.get_ydata())) for line in lines)
+    ax.set_ylim(lo, lo + (top - lo) / (0.97 * room))
+
+
 def _seed_text(recording: Recording) -> str:
     """ ", seed N" for a recording of a seeded trial (a figure copied out of its folder
     still says which trial it is), else ""."""
@@ -220,11 +280,13 @@ def plot_ctb_body_frame(
     axes = fig.subplots(4, 1, sharex=True, gridspec_kw=_margins(_CTB_SIZE_IN, _CTB_MARGINS_IN))
     labels = ("x", "y", "z")
     has_contact = math.isfinite(m.t0_s)
+    data: list[list[Line2D]] = []  # each panel's curve, and the position at t0
     for k, ax in enumerate(axes[:3]):
         _shade(ax, spans)
-        ax.plot(t, bp[:, k], color="#08306b", lw=1.2)
+        data.append(ax.plot(t, bp[:, k], color="#08306b", lw=1.2))
         if has_contact:
-            ax.axhline(1e3 * m.b_p_c_t0_m[k], color="#08306b", lw=0.8, ls="--", alpha=0.7)
+            y0 = 1e3 * m.b_p_c_t0_m[k]
+            data[k].append(ax.axhline(y0, color="#08306b", lw=0.8, ls="--", alpha=0.7))
         ax.set_ylabel(f"body {labels[k]} [mm]")
         ax.grid(True, alpha=0.3)
     ax = axes[3]
@@ -255,11 +317,11 @@ def plot_ctb_body_frame(
     )
     verdict = "success" if m.success else "failure"
     if recording.meta.get("ended_by") == ENDED_BY_CAP:  # said where the title has no room
-        axes[0].text(
-            0.99, 0.95, "session stopped by the --max-time cap", transform=axes[0].transAxes,
-            ha="right", va="top", fontsize=8, color="#a50f15",
+        label = axes[0].text(
+            0, 0, CAP_LABEL, transform=axes[0].transAxes, fontsize=8, color="#a50f15",
             bbox={"facecolor": "white", "alpha": 0.8, "edgecolor": "none"},
         )  # fmt: skip
+        place_clear_of(label, data[0])
     fig.suptitle(
         f"CTB centre of mass in the Astrobee body frame (eq. 4){_seed_text(recording)} -- "
         f"{verdict}, contact {m.contact_s:.1f} s of the {m.duration_s:.1f} s after "
@@ -344,12 +406,14 @@ def plot_route(
 
 
 __all__ = [
+    "CAP_LABEL",
     "PHASE_COLORS",
     "TRIAL_PNG_COMPRESSION",
     "FigureError",
     "ModuleRect",
     "phase_spans",
     "phases_in_time_order",
+    "place_clear_of",
     "plot_ctb_body_frame",
     "plot_route",
     "save_figure",
