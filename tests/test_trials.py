@@ -23,6 +23,8 @@ import pytest
 from payload.schema import CONTROL_DT
 from payload.trials.codec import STEP_GRIDS
 from payload.trials.metrics import (
+    CONFIRM_MAX_GAP_S,
+    CONFIRM_MIN_S,
     MetricsError,
     compute_metrics,
     ctb_in_body_frame,
@@ -593,9 +595,14 @@ def test_sigkilled_recording_is_read_back(tmp_path: Path, dt_rec: float, pace: f
 
 
 # -- test fixture: a seeded synthetic trial through the recorder ------------------------
-def fixture_synthetic_trial(seed: int, out_dir: Path) -> dict[str, Any]:
+def fixture_synthetic_trial(
+    seed: int, out_dir: Path, contact: str = "held", **score: float
+) -> dict[str, Any]:
     """Test fixture (not a product feature): synthesise a seeded 6 s trial recording
-    through the recorder, then score it with ``finish_trial``."""
+    through the recorder, then score it with ``finish_trial`` (``score``: its contact
+    definition, ``min_interval_s`` and ``max_gap_s``). ``contact``: the opposing-contact
+    indicator set from a seeded step to the end (``held``), at that step alone (``blip``),
+    or never (``none``)."""
     from payload.trials.campaign import finish_trial
 
     rng = np.random.default_rng(seed)
@@ -632,12 +639,12 @@ def fixture_synthetic_trial(seed: int, out_dir: Path) -> dict[str, Any]:
                     astrobee_pos=p,
                     astrobee_quat=q,
                     ctb_pos=p + rot_z(yaw) @ body,
-                    contact=k >= start,
+                    contact={"held": k >= start, "blip": k == start, "none": False}[contact],
                     ctb_module=module,
                 )
             )
     modules = [("kibo", -1, -1, 1.0, 1), ("node2", 1.3, -2, 3, 2)]
-    return finish_trial(out_dir, path, modules)
+    return finish_trial(out_dir, path, modules, **score)
 
 
 def _metric_view(results: list[dict[str, Any]]) -> list[dict[str, Any]]:
@@ -963,6 +970,68 @@ def test_summary_table_against_hand_values() -> None:
     assert "| 1 | no | 90.0 | 10.00 | 10.0 | 20.0 | 89.0 | node2 | no | 1.0 | 0.2 |" in md
     assert "any single sample" in md and "0.50 s skipped" in md
     assert "CTB model `rigid`" in md
+
+
+def test_a_campaign_without_contact_says_its_contact_interval_is_none(tmp_path, capsys) -> None:
+    """A campaign none of whose trials held a contact (a new user's first, short runs)
+    said "First confirmed-contact interval 0.0 (0.0 to 0.0)" beside an RMS of n/a: the
+    0 s is the metric's value for no interval, which summary.json keeps, but summary.md,
+    the command's output and the terminal summary say n/a, as for the RMS. A single
+    contact sample is a paper-literal interval that lasted 0 s: said as 0.0."""
+    from payload.cli import main
+    from payload.trials.campaign import trial_dir
+    from payload.trials.summary_fields import METRIC_LABELS
+    from payload.trials.terminal import summary_terminal
+
+    camp = tmp_path / "camp"
+    confirmed = {"min_interval_s": CONFIRM_MIN_S, "max_gap_s": CONFIRM_MAX_GAP_S}
+    for seed, contact in ((1, "none"), (2, "blip")):
+        fixture_synthetic_trial(seed, trial_dir(camp, seed), contact, **confirmed)
+    samples = {  # the recordings' own indicator, not the metrics
+        s: int(read_recording(trial_dir(camp, s) / "log.mcap").contact.sum()) for s in (1, 2)
+    }
+    assert samples == {1: 0, 2: 1}
+    assert main(["trials", "summarize", str(camp)]) == 0
+    out = capsys.readouterr().out
+    md = (camp / "summary.md").read_text()
+    assert out.startswith(md), out  # the command prints what it wrote
+    row = next(ln for ln in md.splitlines() if ln.startswith(f"| {METRIC_LABELS['contact_s']}"))
+    rms = next(ln for ln in md.splitlines() if ln.startswith(f"| {METRIC_LABELS['rms_mm']}"))
+    # confirmed: no trial has an interval; paper-literal: trial 2's one sample, 0 s long
+    assert row.split(" | ")[1:3] == ["n/a (no confirmed contact)", "0.0 (0.0 to 0.0)"], row
+    assert rms.split(" | ")[1:3] == ["n/a [0 of 2 trials]", "0.0 (0.0 to 0.0) [1 of 2 trials]"]
+    cells = {  # per trial: RMS [mm], contact [s], then the literal RMS and contact
+        ln[2]: [ln.strip("| ").split(" | ")[i] for i in (4, 6, 9, 10)]
+        for ln in md.splitlines()
+        if ln.startswith(("| 1 |", "| 2 |"))
+    }
+    assert cells == {"1": ["n/a"] * 4, "2": ["n/a", "n/a", "0.0", "0.0"]}, cells
+    # the figures themselves are as they were: 0 s for no interval (a contract)
+    summary = json.loads((camp / "summary.json").read_text())
+    assert summary["contact_s"] == {"median": 0.0, "min": 0.0, "max": 0.0, "count": 2}
+    assert [t["contact_s"] for t in summary["trials"]] == [0.0, 0.0]
+    terminal = summary_terminal(summary, summary.get("title"))
+    line = next(ln for ln in terminal.splitlines() if METRIC_LABELS["contact_s"] in ln)
+    assert "n/a (no confirmed contact)" in line and "0.0 (0.0" not in line, line
+
+
+def test_the_committed_campaign_summaries_follow_their_summary_json() -> None:
+    """Each ``analyses/campaign/*/summary.md`` is what the summary's Markdown makes of the
+    ``summary.json`` beside it (``payload trials summarize`` writes both from one summary),
+    line for line, but for the station line: these campaigns' trials predate the recorded
+    station_clearance_cap_mm, and their summary.md still says the 300 mm typed then."""
+    from payload.trials.summary_markdown import summary_markdown
+
+    paths = sorted((ROOT / "analyses" / "campaign").glob("*/summary.json"))
+    assert len(paths) >= 6
+    for path in paths:
+        summary = json.loads(path.read_text(encoding="utf-8"))
+        made = summary_markdown(summary, summary.get("title")).splitlines()
+        kept = (path.parent / "summary.md").read_text(encoding="utf-8").splitlines()
+        assert len(made) == len(kept), path
+        for a, b in zip(made, kept, strict=True):
+            if not a.startswith("Station contacts:"):
+                assert a == b, (path, a, b)
 
 
 def test_summary_of_trials_scored_without_literal_figures() -> None:

@@ -22,9 +22,11 @@ from payload.schema import CONTROL_DT, ENDED_BY_CAP
 from payload.trials.summary_fields import (
     METRIC_KEYS,
     METRIC_LABELS,
+    NO_CONTACT,
     PAPER_RESULTS,
     CampaignError,
     least_clearance_text,
+    without_contact,
 )
 from payload.trials.summary_markdown import summary_markdown
 from payload.trials.trial_results import load_trial_results
@@ -342,8 +344,8 @@ def print_trial_summary(result: dict[str, Any], given: str = "") -> None:
     for key in METRIC_KEYS:
         value = result.get(key)
         shown = "n/a" if value is None else f"{value:.3f}"
-        if key == "contact_s" and result.get("n_contact_samples") == 0:
-            shown += " (no confirmed contact)"  # the metric's 0 when there is no interval
+        if key == "contact_s" and without_contact(result):
+            shown += f" ({NO_CONTACT})"  # the metric's 0 when there is no interval
         print(f"  {METRIC_LABELS[key]}: {shown}")
 
 

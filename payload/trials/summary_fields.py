@@ -9,6 +9,8 @@ The summary itself: :mod:`payload.trials.summary`; its Markdown:
 
 from __future__ import annotations
 
+import math
+from collections.abc import Mapping
 from typing import Any
 
 from payload.errors import PayloadError
@@ -42,6 +44,24 @@ PAPER_RESULTS: dict[str, Any] = {
 """The paper's ten-trial results (Sec. IV; docs/sources.md), for comparison."""
 
 
+NO_CONTACT = "no confirmed contact"
+"""Said beside a first contact interval where a trial has none: its ``contact_s`` is the
+metric's 0 by definition, not a contact that lasted 0 s (its RMS and peak are n/a)."""
+
+
+def without_contact(row: Mapping[str, Any]) -> bool:
+    """Whether a scored trial has no first contact interval: ``n_contact_samples`` 0 in
+    a trial's metrics; in a summary's row of it (which leaves the count out), ``acquired``
+    false and no RMS (a trial that has an interval has its RMS). A trial that raised is
+    not scored, so not said to be without contact."""
+    if row.get("error"):
+        return False
+    if "n_contact_samples" in row:
+        return row["n_contact_samples"] == 0
+    rms = row.get("rms_mm")
+    return row.get("acquired") is False and (rms is None or not math.isfinite(rms))
+
+
 class CampaignError(PayloadError):
     """A campaign cannot run or be summarised (bad arguments, no trials, no scheduler)."""
 
@@ -63,7 +83,9 @@ def least_clearance_text(mm: Any, cap_mm: Any, *, always_cap: bool = False) -> s
 __all__ = [
     "METRIC_KEYS",
     "METRIC_LABELS",
+    "NO_CONTACT",
     "PAPER_RESULTS",
     "CampaignError",
     "least_clearance_text",
+    "without_contact",
 ]

@@ -11,8 +11,10 @@ from typing import Any
 from payload.trials.summary_fields import (
     METRIC_KEYS,
     METRIC_LABELS,
+    NO_CONTACT,
     PAPER_RESULTS,
     least_clearance_text,
+    without_contact,
 )
 
 
@@ -48,6 +50,25 @@ def _cell(value: Any, digits: int) -> str:
 
 
 _DIGITS = {"duration_s": 1, "net_displacement_m": 2, "rms_mm": 1, "peak_mm": 1, "contact_s": 1}
+
+
+def _stat_text(summary: dict[str, Any], key: str) -> str:
+    """A metric's median and range in a summary (or its ``literal`` part); the first
+    contact interval n/a, as the RMS is, when no scored trial has one (each trial's 0 s is
+    the metric's value for none, which ``summary.json`` keeps)."""
+    stat = summary.get(key)
+    scored = [t for t in summary.get("trials", []) if not t.get("error")]
+    if key == "contact_s" and scored and all(without_contact(t) for t in scored):
+        return f"n/a ({NO_CONTACT})"
+    return _fmt(stat, _DIGITS[key])
+
+
+def _trial_cell(row: dict[str, Any], key: str) -> str:
+    """A metric of one trial in the per-trial table (its contact interval n/a when it has
+    none, as its RMS is)."""
+    if key == "contact_s" and without_contact(row):
+        return "n/a"
+    return _cell(row.get(key), _DIGITS[key])
 
 
 def _definition_text(definition: dict[str, Any] | None) -> str:
@@ -125,14 +146,14 @@ def summary_markdown(summary: dict[str, Any], title: str | None = None) -> str:
         f"| acquisition success | {acq(summary)} | {acq(lit)} | n/a |",
     ]
     for key in METRIC_KEYS:
-        d = _DIGITS[key]
         cells = []
         for s in (summary, lit):
             stat = s.get(key)
             count = stat.get("count", n) if stat else 0
             note = "" if count == n else f" [{count} of {n} trials]"
-            cells.append(f"{_fmt(stat, d)}{note}")
-        lines.append(f"| {METRIC_LABELS[key]} | {cells[0]} | {cells[1]} | {_fmt(paper[key], d)} |")
+            cells.append(f"{_stat_text(s, key)}{note}")
+        paper_cell = _fmt(paper[key], _DIGITS[key])
+        lines.append(f"| {METRIC_LABELS[key]} | {cells[0]} | {cells[1]} | {paper_cell} |")
     if summary.get("errors"):
         lines += [
             "",
@@ -202,12 +223,12 @@ def summary_markdown(summary: dict[str, Any], title: str | None = None) -> str:
     literal_rows = {r.get("seed"): r for r in lit.get("trials", [])}
     for row in summary.get("trials", []):
         ok = "error" if row.get("error") else ("yes" if row["success"] else "no")
-        cells = " | ".join(_cell(row.get(k), _DIGITS[k]) for k in METRIC_KEYS)
+        cells = " | ".join(_trial_cell(row, k) for k in METRIC_KEYS)
         lr = literal_rows.get(row["seed"], {})
         lok = "error" if row.get("error") else ("yes" if lr.get("success") else "no")
         lines.append(
             f"| {row['seed']} | {ok} | {cells} | {row.get('final_module') or 'n/a'} | {lok} "
-            f"| {_cell(lr.get('rms_mm'), 1)} | {_cell(lr.get('contact_s'), 1)} |"
+            f"| {_trial_cell(lr, 'rms_mm')} | {_trial_cell(lr, 'contact_s')} |"
         )
     return "\n".join(lines) + "\n"
 

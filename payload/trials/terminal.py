@@ -15,7 +15,7 @@ from typing import Any
 
 from payload.schema import ENDED_BY_CAP
 from payload.trials.summary_fields import METRIC_KEYS, METRIC_LABELS, PAPER_RESULTS
-from payload.trials.summary_markdown import _DIGITS, _fmt, _run_lines
+from payload.trials.summary_markdown import _DIGITS, _fmt, _run_lines, _stat_text
 
 _SHORT = {
     "duration_s": ("duration", "s"),
@@ -61,10 +61,8 @@ def summary_terminal(summary: dict[str, Any], title: str | None = None) -> str:
     lines = [summary_headline(summary), title or "Cargo-transport campaign"]
     lines.append(f"  {'':{width}}  {'this campaign (confirmed contact)':<36}paper")
     for key in METRIC_KEYS:
-        d = _DIGITS[key]
-        lines.append(
-            f"  {METRIC_LABELS[key]:{width}}  {_fmt(summary.get(key), d):<36}{_fmt(paper[key], d)}"
-        )
+        ours, theirs = _stat_text(summary, key), _fmt(paper[key], _DIGITS[key])
+        lines.append(f"  {METRIC_LABELS[key]:{width}}  {ours:<36}{theirs}")
     lines += [ln for ln in _run_lines(summary.get("run")) if ln]
     return "\n".join(lines)
 
