@@ -206,10 +206,23 @@ def _cmd_run(args: argparse.Namespace) -> int:
     far = "the emulator" if result["emulator"] else "hardware"
     print(f"hw run ({far} on {result['device']}), {result['steps']} steps -> {out}")
     print(f"  Bus Watchdog: {result['watchdog']['effect']}")
+    print(f"  ended: {_ended(result)}; every servo's torque turned off")
     # the world and the CTB's placement are the recording's; the controller profile and
     # the retargeting this session's own (real servos in the loop: `safe` by default)
     print_trial_summary(result, f" (world and CTB placement from {replay.name})")
     return 0
+
+
+def _ended(result: dict[str, Any]) -> str:
+    """What ended an ``hw run`` session, with the time it ran (its ``ended_by``)."""
+    from payload.schema import CONTROL_DT, ENDED_BY_CAP, ENDED_BY_SOURCE
+
+    ran = f"{result.get('steps', 0) * CONTROL_DT:.1f} s in"
+    if result.get("ended_by") == ENDED_BY_CAP:
+        return f"the session-length cap (--max-time), {ran}"
+    if result.get("ended_by") == ENDED_BY_SOURCE:
+        return f"the replayed recording's end, {ran}"
+    return f"the session's end, {ran}"
 
 
 def _run_hardware(args: argparse.Namespace, out: Path, replay: Path) -> dict[str, Any]:

@@ -33,7 +33,11 @@ generated MJCF's ``timestep``."""
 
 ENDED_BY_CAP = "max_time"
 """A session's ``ended_by`` (the loop's statistics, a recording's metadata, a trial's
-metrics) when the ``--max-time`` cap stopped it; ``"source"`` when its hands ran out."""
+metrics) when the ``--max-time`` cap stopped it."""
+
+ENDED_BY_SOURCE = "source"
+"""A session's ``ended_by`` when its hands ran out: the operator finished, or a replay's
+recording ended."""
 
 
 class SchemaError(PayloadError):

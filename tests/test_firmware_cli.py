@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import subprocess
 import sys
+from collections.abc import Iterator
 
 import pytest
 from conftest import replace_once
@@ -130,15 +132,26 @@ def test_check_fails_naming_the_missing_servo(emulate, capsys):
     assert s["model_number"] == 1240 and s["voltage_v"] == pytest.approx(5.0)
 
 
-def test_check_says_a_servos_hardware_error_once(capsys):
-    """A servo in overload from the start: the bring-up refuses it and its health read
-    shows it; the report lists the fault once (it listed it twice) and exits 1."""
+@contextlib.contextmanager
+def _emulating(fault: str) -> Iterator[str]:
+    """``payload hw emulate --fault FAULT`` in its own process; yields its port."""
     proc = subprocess.Popen(
-        [sys.executable, "-m", "payload.cli", "hw", "emulate", "--fault", "error:12:overload"],
+        [sys.executable, "-m", "payload.cli", "hw", "emulate", "--fault", fault],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
     try:
-        port = proc.stdout.readline().strip()
+        yield proc.stdout.readline().strip()
+    finally:
+        proc.terminate()
+        proc.wait(timeout=10)
+        proc.stdout.close()
+        proc.stderr.close()
+
+
+def test_check_says_a_servos_hardware_error_once(capsys):
+    """A servo in overload from the start: the bring-up refuses it and its health read
+    shows it; the report lists the fault once (it listed it twice) and exits 1."""
+    with _emulating("error:12:overload") as port:
         assert main(["hw", "check", "--device", port, "--json", "--latency-ms", LAT]) == 1
         said = capsys.readouterr()
         report = json.loads(said.out)
@@ -146,14 +159,24 @@ def test_check_says_a_servos_hardware_error_once(capsys):
         assert said.err.splitlines()[0] == (
             f"bringing up the servos on {port} and homing the rail and the stage ..."
         ), said.err
-    finally:
-        proc.terminate()
-        proc.wait(timeout=10)
-        proc.stdout.close()
-        proc.stderr.close()
     flagged = [s for s in report["servos"] if s["hardware_error"]]
     assert [s["id"] for s in flagged] == [12]
     assert report["errors"] == [f"servo 12 ({flagged[0]['joint']}): hardware error overload"]
+
+
+def test_check_fails_on_a_blocked_rail(capsys):
+    """A blocked rail used to pass `hw check`: homing took the stalled shaft for the hard
+    stop. The check now fails (exit 1) with the homing's refusal naming the rail, and
+    every servo's health is still read and listed."""
+    with _emulating("block:17") as port:
+        assert main(["hw", "check", "--device", port, "--json", "--latency-ms", LAT]) == 1
+        said = capsys.readouterr()
+    report = json.loads(said.out)
+    assert report["ok"] is False and len(report["errors"]) == 1, report["errors"]
+    assert report["errors"][0].startswith("homing: rail ("), report["errors"]
+    assert "blocked" in report["errors"][0]
+    assert [s["id"] for s in report["servos"]] == sorted(load_servo_map().ids)
+    assert "homing: rail (" in said.err.splitlines()[-1]
 
 
 @pytest.mark.parametrize("spec", ["drop:7", "missing:99", "error:77:overload"])

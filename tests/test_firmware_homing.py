@@ -9,6 +9,7 @@ that physical position, read through the emulator's control channel.
 from __future__ import annotations
 
 import random
+import threading
 import time
 
 import numpy as np
@@ -17,8 +18,8 @@ import pytest
 from firmware_interface.control_table import ADDR, BY_NAME, TICKS_PER_REV, decode
 from firmware_interface.driver import DynamixelDriver
 from firmware_interface.emulator import EmulatorProcess
-from firmware_interface.errors import HardwareFault, NotHomedError
-from firmware_interface.servo_map import load_servo_map
+from firmware_interface.errors import HardwareFault, HomingError, NotHomedError
+from firmware_interface.servo_map import load_servo_map, travel_ticks
 from firmware_interface.servo_model import OVERLOAD_S, ServoModel
 from payload.schema import PayloadCommand
 
@@ -144,6 +145,71 @@ def test_power_cycle_mid_travel_homes_within_one_tick_before_any_deploy(smap):
             true = emu.servos()[18]["pos"]
             assert abs(true - stage.to_ticks(0.06)) <= _band_ticks(drv.design)
             assert abs(_stage_reading(drv, smap) - true) <= 1.0
+
+
+@pytest.mark.parametrize("where", ["at the stop", "mid-travel"])
+def test_a_blocked_rail_is_refused_not_homed(smap, where):
+    """A rail whose shaft is blocked stalls at once under the homing current, which alone
+    reads as the hard stop: the rail was homed wherever it stood, and mid-travel that
+    made the driver read 0 m where the rail was 30 mm out. The free-travel check (driven
+    off the stall, it must move) refuses it, naming the rail and how far it went, and
+    leaves its torque off; the stage, free, is not named."""
+    rail = smap.servos[16]
+    at = {} if where == "at the stop" else {17: rail.to_ticks(0.03)}
+    with (
+        EmulatorProcess(faults=["block:17"], positions=at) as emu,
+        DynamixelDriver(emu.port, smap, latency_timer_ms=LAT) as drv,
+    ):
+        start = emu.servos()[17]["pos"]
+        with pytest.raises(HomingError) as refused:
+            drv.bring_up()
+        said = str(refused.value)
+        assert said.startswith("homing: rail (0.0 of ") and "stage" not in said, said
+        assert "blocked" in said
+        s17 = emu.servos()[17]
+        assert s17["pos"] == start and not s17["torque"]
+        assert 17 not in drv.homed
+
+
+def test_homing_drives_each_linear_servo_off_its_stop_and_back(smap):
+    """The free-travel check moves a free rail and stage off the stop, by half to all of a
+    tenth of their travel (seen on the emulator's physical position while the bring-up
+    runs, after each first reached its stop), and still leaves both exactly at their
+    stops, homed."""
+    rail, stage = smap.servos[16], smap.servos[17]
+    with (
+        EmulatorProcess() as emu,
+        DynamixelDriver(emu.port, smap, latency_timer_ms=LAT) as drv,
+    ):
+        seen = {17: 0.0, 18: 0.0}
+        stopped: set[int] = set()
+        done = threading.Event()
+
+        def watch() -> None:
+            while not done.is_set():
+                servos = emu.servos()
+                for i, spec in ((17, rail), (18, stage)):
+                    off = spec.direction * (servos[i]["pos"] - spec.zero)
+                    if i in stopped:  # how far off the stop, once it has been there
+                        seen[i] = max(seen[i], off)
+                    elif off == 0:
+                        stopped.add(i)
+                time.sleep(0.005)
+
+        watcher = threading.Thread(target=watch)
+        watcher.start()
+        try:
+            drv.bring_up()
+        finally:
+            done.set()
+            watcher.join()
+        spans = travel_ticks(smap, drv.design)
+        for i in (17, 18):
+            span = spans[i][1] - spans[i][0]
+            assert 0.05 * span <= seen[i] <= 0.11 * span, (i, seen[i], span)
+        servos = emu.servos()
+        assert servos[17]["pos"] == rail.zero and servos[18]["pos"] == stage.zero
+        assert {17, 18} <= drv.homed
 
 
 def test_recover_of_the_stage_rehomes_it(smap):

@@ -254,6 +254,9 @@ def test_hw_run_of_a_synthetic_trial_says_what_it_ran_on_and_places_the_ctb_as_i
     assert np.linalg.norm(a.ctb_pos[0] - b.ctb_pos[0]) < 1e-4
     assert "success:" in printed and "emulator" in printed  # the trial's summary, its far end
     assert metrics["ended_by"] == "source" and "session-length cap" not in printed
+    # how it ended, said (it was not): the source trial was capped at 2 s, so is its replay
+    ended = "  ended: the replayed recording's end, 2.0 s in; every servo's torque turned off"
+    assert ended in printed.splitlines(), printed
     # capped before the recording's end: said as `payload trial` says it
     capped = tmp_path / "capped"
     argv[argv.index(str(out))] = str(capped)
@@ -261,6 +264,10 @@ def test_hw_run_of_a_synthetic_trial_says_what_it_ran_on_and_places_the_ctb_as_i
     printed = capsys.readouterr().out
     assert json.loads((capped / "metrics.json").read_text())["ended_by"] == "max_time"
     assert "stopped by the session-length cap (--max-time) after 1.0 s" in printed, printed
+    assert (
+        "  ended: the session-length cap (--max-time), 1.0 s in; every servo's torque turned off"
+        in printed.splitlines()
+    )
 
 
 def _messages(path, topic):

@@ -17,7 +17,7 @@ from typing import Protocol
 import numpy as np
 
 from payload.rotations import quat_to_matrix, yaw_of_matrix
-from payload.schema import CONTROL_DT, ENDED_BY_CAP, PayloadCommand, VehicleTwist
+from payload.schema import CONTROL_DT, ENDED_BY_CAP, ENDED_BY_SOURCE, PayloadCommand, VehicleTwist
 from payload.teleop.calibration import CalibrationProcedure, Captures
 from payload.teleop.hands import HandFrame
 from payload.teleop.operator import SyntheticOperator, WorldView
@@ -254,7 +254,7 @@ def run_session(
             view = world_view(state, t) if world_view is not None else None
             frame = source.frame(t, view)
             if frame is None:
-                stats.ended_by = "source"
+                stats.ended_by = ENDED_BY_SOURCE
                 break
             step: TeleopStep | None = None
             calibrating = not calibration.done
@@ -287,7 +287,7 @@ def run_session(
                 else:
                     time.sleep(-lag)
             if source.finished:
-                stats.ended_by = "source"
+                stats.ended_by = ENDED_BY_SOURCE
                 break
     finally:
         # whatever ended the session (source finished, time cap, an exception), leave the
