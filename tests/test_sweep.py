@@ -137,6 +137,9 @@ def test_two_point_sweep_equals_the_commands_by_hand(tmp_path, capsys):
     assert (out / "sweep.md").read_text().count("| **no** |") == 1
     assert (out / "sweep_finger_lengths_proximal.png").stat().st_size > 10_000
 
+    md = (out / "sweep.md").read_text()
+    (header,) = [ln for ln in md.splitlines() if ln.startswith("| # |")]
+    head = [c.strip() for c in header.strip("|").split("|")]
     for p in data["points"]:
         root = Path(p["project"])
         design = tomllib.loads((root / "cad" / "design.toml").read_text())
@@ -151,6 +154,11 @@ def test_two_point_sweep_equals_the_commands_by_hand(tmp_path, capsys):
         assert main(["report", "reach", "--samples", "2000", *by_hand]) == 0
         reach = json.loads(capsys.readouterr().out)
         assert (p["fits"], p["min_clearance_mm"]) == (env["fits"], env["min_clearance_mm"])
+        # the least gap between two parts, as the report by hand has it (the sweep had none)
+        assert p["min_self_clearance_mm"] == env["min_self_clearance_mm"] is not None
+        (row,) = [ln for ln in md.splitlines() if ln.startswith(f"| {int(root.name[-3:])} |")]
+        cells = dict(zip(head, (c.strip() for c in row.strip("|").split("|"))))
+        assert cells["min self-clearance [mm]"] == f"{env['min_self_clearance_mm']:.2f}"
         assert p["below_vehicle_mm"] == reach["below_vehicle_mm"]
         assert p["span_max_mm"] == {k: reach["pairs"][k]["span_max_mm"] for k in "LR"}
         assert env["provenance"]["design_sha256"] == reach["provenance"]["design_sha256"]

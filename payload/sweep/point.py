@@ -107,7 +107,9 @@ def run_point(
 
     Returns:
         The point as in ``sweep.json`` (:data:`POINT_FIELDS`), plus ``project``,
-        ``passed`` (the envelope check as a whole), ``span_min_mm`` and ``failures``.
+        ``passed`` (the envelope check as a whole), ``min_self_clearance_mm`` (the
+        least gap between two payload parts, stowed, as the envelope report's),
+        ``span_min_mm`` and ``failures``.
     """
     from payload.sweep.grid import validate_point
 
@@ -244,6 +246,7 @@ def _analyse(
         fits=bool(env["fits"]),
         passed=bool(env["passed"]),
         min_clearance_mm=env["min_clearance_mm"],
+        min_self_clearance_mm=env["min_self_clearance_mm"],
         failures=env["failures"],
     )
     try:

@@ -13,6 +13,7 @@ from payload.sweep.point import POINT_FIELDS
 
 FIGURES: dict[str, str] = {
     "min_clearance_mm": "minimum stowed clearance [mm]",
+    "min_self_clearance_mm": "minimum self-clearance, stowed [mm]",
     "below_vehicle_mm": "fingertip depth below the vehicle [mm]",
     "span_max_mm.L": "pair L maximum span [mm]",
     "span_max_mm.R": "pair R maximum span [mm]",
@@ -85,6 +86,7 @@ def sweep_markdown(data: dict[str, Any], command: str, plots: list[str]) -> str:
         "fits",
         "envelope check",
         "min clearance [mm]",
+        "min self-clearance [mm]",
         "below vehicle [mm]",
         "span L [mm]",
         "span R [mm]",
@@ -99,14 +101,17 @@ def sweep_markdown(data: dict[str, Any], command: str, plots: list[str]) -> str:
         "under this folder (`point-NNN/`), built, envelope-checked and reach-analysed with "
         "the same commands one would type there (`point_commands` in payload/sweep/point.py). "
         "*fits*: every part inside the bays in the stowed posture; *envelope check*: that "
-        "and no self-collision and a clear deployment path (`payload report envelope`).",
+        "and no self-collision and a clear deployment path (`payload report envelope`); "
+        "*min self-clearance*: the least gap between two payload parts, stowed (negative: "
+        "the deepest overlap).",
         "",
         "| " + " | ".join(head) + " |",
         "|" + "|".join("---" for _ in head) + "|",
     ]
     for i, p in enumerate(data["points"]):
         row = [str(i), *(f"{p['params'][k]:g}" for k in keys), _fits(p), _passed(p)]
-        row += [_num(p["min_clearance_mm"], 2), _num(p["below_vehicle_mm"])]
+        row += [_num(p["min_clearance_mm"], 2), _num(p.get("min_self_clearance_mm"), 2)]
+        row.append(_num(p["below_vehicle_mm"]))
         row += [_span(p, "L"), _span(p, "R")]
         if with_trials:
             t = p.get("trials")
