@@ -18,18 +18,12 @@ import numpy as np
 
 from payload.design.tree import MANIPULATION_JOINTS
 from payload.errors import PayloadError
+from payload.rates import CONTROL_DT, PHYSICS_DT
 from payload.vecmath import F64, all_finite
 
 N_MANIPULATION = len(MANIPULATION_JOINTS)  # 17
 _SHAPE = (N_MANIPULATION,)
 _SHAPE3 = (3,)
-
-CONTROL_DT = 0.02
-"""Period of the teleoperation loop and of every command stream [s] (the paper's 50 Hz)."""
-
-PHYSICS_DT = 0.001
-"""Physics time step [s] (1 kHz, the paper's): the default of every command and the
-generated MJCF's ``timestep``."""
 
 ENDED_BY_CAP = "max_time"
 """A session's ``ended_by`` (the loop's statistics, a recording's metadata, a trial's

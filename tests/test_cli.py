@@ -164,6 +164,26 @@ def test_version_and_help_import_no_numerical_library(argv: list[str]) -> None:
     assert heavy == set(), heavy
 
 
+def test_the_shared_trial_options_load_no_numpy() -> None:
+    """The trial options every trial command shares quote the physics step and the control
+    period from :mod:`payload.rates` (they typed 0.001 and 20 ms, since the schema that
+    held them loads numpy): the options' module stays numpy-free, so `bench trial --help`
+    loads none, and the help quotes the two clocks' values."""
+    code = (
+        "import sys\nimport payload.trials.setup_options\n"
+        "from payload.cli import main\ntry:\n    main(sys.argv[1:])\nexcept SystemExit:\n"
+        "    pass\nprint('numpy' in sys.modules, file=sys.stderr)\n"
+    )
+    res = subprocess.run(
+        [sys.executable, "-c", code, "bench", "trial", "--help"],
+        capture_output=True, text=True, check=True,
+    )  # fmt: skip
+    assert res.stderr.strip().splitlines()[-1] == "False", res.stderr
+    text = " ".join(res.stdout.split())
+    assert "physics time step [s]: 0.001 (default, the paper's 1 kHz)" in text, text
+    assert "divides the 20 ms control period, e.g. 0.002" in text, text
+
+
 def test_help_lists_every_command_of_the_table_with_its_help() -> None:
     """Top level and every shared group list their commands (from the table, no module
     loaded), each with the help its module registers."""

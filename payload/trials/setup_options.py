@@ -9,6 +9,7 @@ import argparse
 from typing import Any
 
 from payload.errors import PayloadError
+from payload.rates import CONTROL_DT, PHYSICS_DT
 
 MAX_TRIAL_S = 240.0
 """A trial session's default length cap [s] (``--max-time``)."""
@@ -138,9 +139,10 @@ def _physics_dt_argument(p: argparse.ArgumentParser, mine: str = "") -> None:
     _seconds_argument(
         p,
         "--physics-dt",
-        "physics time step [s]: 0.001 (default, the paper's 1 kHz"
-        f"{mine}) or an opt-in faster step that divides the 20 ms control period, e.g. "
-        "0.002 (the pad contact is derived from the step; results differ from 1 kHz)",
+        f"physics time step [s]: {PHYSICS_DT:g} (default, the paper's "
+        f"{1e-3 / PHYSICS_DT:g} kHz{mine}) or an opt-in faster step that divides the "
+        f"{1e3 * CONTROL_DT:g} ms control period, e.g. {2 * PHYSICS_DT:g} (the pad contact "
+        "is derived from the step; results differ from the default)",
     )
 
 
