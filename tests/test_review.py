@@ -24,7 +24,7 @@ from payload.design import MANIPULATION_JOINTS, build_tree, load_design
 from payload.envelope.geometry import PayloadGeometry
 from payload.review.design_view import OFFENDING_COLOUR, REVIEW, build_design_review, link_colour
 from payload.review.project import design_hash, project_files
-from payload.review.scene import frame_values
+from payload.review.scene import FAIL, PASS, frame_values
 from payload.review.trial_view import (
     CONTACT_COLOUR,
     FREE_COLOUR,
@@ -208,6 +208,7 @@ def test_a_design_that_does_not_fit_shows_the_offending_parts_red(tmp_path, desi
     # the verdict says what failed, not only the tightest part: a protruding link named
     verdict = rv.scene.overlay.subtitle
     assert verdict.startswith("stowed fit: FAIL: ") and " protrudes " in verdict
+    assert rv.scene.overlay.as_json()["outcome"] == FAIL  # the page draws it as a failure
     assert verdict.split(": ", 2)[2].split(" protrudes ")[0] in out
 
 
@@ -311,6 +312,8 @@ def test_the_design_review_and_a_trial_replay_are_titled_alike(review, replay, t
     folder = Path(trial_folder)
     assert subjects["trial replay"] == f"{folder.parent.name}/{folder.name}"
     assert replay.scene.overlay.subtitle.startswith("recording: finished; ")
+    # the design review's line is a verdict (drawn by its outcome), the replay's a status
+    assert (review.scene.overlay.outcome, replay.scene.overlay.outcome) == (PASS, None)
 
 
 def test_the_replay_draws_the_keep_in_boxes_around_the_route(replay) -> None:

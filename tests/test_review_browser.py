@@ -280,6 +280,54 @@ def test_the_legend_lists_every_colour_drawn(static_review) -> None:
     assert absent and not absent & drawn, (absent, drawn)
 
 
+_VERDICT = """() => {
+    const style = (el) => getComputedStyle(el);
+    const verdict = document.querySelector("#payload-title .payload-subtitle");
+    const body = [document.getElementById("payload-overlay"),
+                  ...document.querySelectorAll(".payload-legend-row, .payload-label")];
+    return {text: verdict.textContent, colour: style(verdict).color,
+            size: parseFloat(style(verdict).fontSize),
+            weight: parseInt(style(verdict).fontWeight, 10),
+            title: parseFloat(style(document.getElementById("payload-title")).fontSize),
+            body: Math.max(...body.map((el) => parseFloat(style(el).fontSize)))};
+}"""
+
+
+def _rgb(colour: str) -> str:
+    """``#rrggbb`` as a browser's computed colour, ``rgb(r, g, b)``."""
+    return "rgb({}, {}, {})".format(*(int(colour[i : i + 2], 16) for i in (1, 3, 5)))
+
+
+def test_the_verdict_is_drawn_large_bold_and_in_its_outcomes_colour(
+    static_review, tmp_path, design_dict
+) -> None:
+    """The verdict, the first thing a reviewer reads, was a small grey line: as the browser
+    draws it (its computed style), a failing design's is the fail colour and a passing
+    one's the pass colour, both bold and larger than the title and the body text (the
+    overlay's, the legend's and the labels'), and it says pass or FAIL in words too."""
+    _require_browser()
+    from test_review import _copy_project
+
+    from payload.envelope.drawing import FAIL_COLOUR, PASS_COLOUR
+    from payload.review.browser import open_page
+    from payload.review.page import static_html
+
+    failing = _copy_project(tmp_path, design_dict, [0.18, 0.10, 0.085])  # bays too small
+    html = tmp_path / "failing.html"
+    html.write_text(static_html(build_design_review(project_files(failing), reach_samples=0).scene))
+    seen = {}
+    for outcome, page_file in (("pass", static_review), ("fail", html)):
+        with open_page(page_file) as page:
+            seen[outcome] = page.evaluate(_VERDICT)
+    assert seen["pass"]["text"].startswith("stowed fit: pass"), seen["pass"]
+    assert seen["fail"]["text"].startswith("stowed fit: FAIL: "), seen["fail"]
+    assert seen["pass"]["colour"] == _rgb(PASS_COLOUR), seen["pass"]
+    assert seen["fail"]["colour"] == _rgb(FAIL_COLOUR), seen["fail"]
+    for outcome, got in seen.items():
+        assert got["weight"] >= 700, (outcome, got)
+        assert got["size"] > max(got["body"], got["title"]), (outcome, got)
+
+
 _LOCAL = """(links) => links.map(n => viewer.scene_tree.find(["meshcat", "review", "payload", n])
     .object.position.toArray())"""
 

@@ -18,7 +18,11 @@ FINGER_COLOURS = {"A": "#1f77b4", "B": "#9467bd", "C": "#2ca02c", "D": "#e377c2"
 """One colour per finger, none of them the pass/fail colours below."""
 STRUCTURE_COLOUR = "#8c8c8c"
 FAIL_COLOUR = "#e00000"
-"""A part that protrudes from the bays or collides: red, and nothing else is."""
+"""A part that protrudes from the bays or collides: red, and nothing else is (but the
+review's verdict on a design that fails)."""
+PASS_COLOUR = "#1a7f37"
+"""The review's verdict on a design that passes: dark green, on white as legible as the
+red (contrast about 5:1); no part is drawn in it."""
 TIGHT_COLOUR = "#ffb000"
 """A part inside the bays with little clearance: amber, and nothing else is."""
 
@@ -114,6 +118,7 @@ __all__ = [
     "BAY_STYLE",
     "FAIL_COLOUR",
     "FINGER_COLOURS",
+    "PASS_COLOUR",
     "STRUCTURE_COLOUR",
     "TIGHT_COLOUR",
     "VEHICLE_STYLE",

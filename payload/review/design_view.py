@@ -38,6 +38,8 @@ from payload.envelope.vehicle import Vehicle, vehicle_from_dict
 from payload.review.model import PayloadModel
 from payload.review.project import ProjectFiles, page_title
 from payload.review.scene import (
+    FAIL,
+    PASS,
     ROOT,
     Overlay,
     ReviewError,
@@ -395,6 +397,7 @@ def build_design_review(
     scene.overlay = Overlay(
         title=head,
         subtitle=verdict,
+        outcome=PASS if check.passed else FAIL,
         legend=legend(colours, bool(clouds)),
         labels=scene.overlay.labels,
         views={"default": [float(v) for v in scene.camera[0]]},

@@ -57,6 +57,8 @@
     div(null, title).textContent = o.title || "";
     const sub = div(null, title);
     sub.className = "payload-subtitle";
+    // a verdict (the design review's pass or fail) is drawn large, bold, in its colour
+    if (o.outcome) sub.classList.add("payload-verdict", `payload-verdict-${o.outcome}`);
     sub.textContent = o.subtitle || "";
     legend.innerHTML = "";
     for (const [colour, text] of o.legend || []) {

@@ -20,9 +20,14 @@ from functools import cache
 from pathlib import Path
 from typing import Any
 
-from payload.review.scene import Scene, tab_title
+from payload.envelope.drawing import FAIL_COLOUR, PASS_COLOUR
+from payload.review.scene import FAIL, PASS, Scene, tab_title
 
 OVERLAY_JS = Path(__file__).with_name("overlay.js")
+
+VERDICT_FONT_PX = 18
+"""The verdict line's size [px]: the first thing a reviewer reads, larger than the title
+(16 px) and the body text (13 px), bold, in its outcome's colour."""
 
 STYLE = """
 body { margin: 0; }
@@ -32,7 +37,7 @@ body { margin: 0; }
 #payload-leaders { position: absolute; inset: 0; width: 100%; height: 100%; }
 #payload-leaders line { stroke: #222; stroke-width: 1; }
 #payload-title { position: absolute; left: 10px; top: 8px; font-size: 16px; font-weight: 600;
-  background: rgba(255,255,255,0.85); padding: 2px 6px; }
+  background: rgba(255,255,255,0.85); padding: 2px 6px; max-width: calc(100% - 290px); }
 .payload-subtitle { font-size: 12px; font-weight: 400; color: #333; }
 #payload-overlay.payload-has-phase #payload-title { max-width: calc(100% - 380px); }
 #payload-legend { position: absolute; left: 10px; bottom: 10px; font-size: 12px;
@@ -46,7 +51,13 @@ body { margin: 0; }
   display: none; }
 #payload-error { position: absolute; left: 10px; right: 260px; top: 56px; display: none;
   background: #b00020; color: white; padding: 4px 8px; font-size: 14px; }
-"""
+""" + (
+    f".payload-verdict {{ font-size: {VERDICT_FONT_PX}px; font-weight: 700; color: #111; }}\n"
+    f".payload-verdict-{PASS} {{ color: {PASS_COLOUR}; }}\n"
+    f".payload-verdict-{FAIL} {{ color: {FAIL_COLOUR}; }}\n"
+)
+"""The page's style: the overlay's boxes, and the verdict styled by its outcome (its
+colours the envelope report's pass and fail colours)."""
 
 _UUID = re.compile(rb"[0-9a-f]{8}-[0-9a-f]{4}-[0-9a-f]{4}-[0-9a-f]{4}-[0-9a-f]{12}")
 
@@ -132,6 +143,8 @@ def live_html() -> str:
 
 __all__ = [
     "OVERLAY_JS",
+    "STYLE",
+    "VERDICT_FONT_PX",
     "command_key",
     "live_html",
     "packed",

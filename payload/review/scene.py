@@ -57,6 +57,11 @@ class StlGeometry(mg.MeshGeometry):
         return {**super().lower(object_data), "type": "_meshfile_geometry"}
 
 
+PASS, FAIL = "pass", "fail"
+"""The outcomes of an overlay's verdict (:attr:`Overlay.outcome`); the page styles the
+verdict by them (``payload-verdict-pass``, ``payload-verdict-fail``)."""
+
+
 def tab_title(title: str) -> str:
     """The browser tab's text for a page titled ``title`` (the static page's ``<title>``,
     and the live page's script sets it from the overlay's ``tab``)."""
@@ -71,6 +76,9 @@ class Overlay:
         title: First line of the title, ``<what> — <subject> (design <hash>)``
             (:func:`payload.review.project.page_title`); the browser tab shows it too.
         subtitle: Second line, ``<aspect>: <verdict>; ...`` (the stowed fit, the recording).
+        outcome: What the subtitle judges, :data:`PASS` or :data:`FAIL` (the design review's
+            verdict, drawn large, bold and in the outcome's colour); ``None``: a status,
+            not a verdict (a trial replay's), drawn as plain text.
         legend: ``(#rrggbb, meaning)`` for every colour the scene uses.
         labels: ``(anchor node path, text)``: a label pointing at the node's origin, shown
             while the node is (so a label belongs to the state its node is shown in).
@@ -84,6 +92,7 @@ class Overlay:
 
     title: str = ""
     subtitle: str = ""
+    outcome: str | None = None
     legend: list[tuple[str, str]] = field(default_factory=list)
     labels: list[tuple[str, str]] = field(default_factory=list)
     phases: list[tuple[str, float, float]] = field(default_factory=list)
@@ -96,6 +105,7 @@ class Overlay:
         return {
             "title": self.title,
             "subtitle": self.subtitle,
+            "outcome": self.outcome,
             "legend": [list(e) for e in self.legend],
             "labels": [list(e) for e in self.labels],
             "phases": [list(e) for e in self.phases],
@@ -242,6 +252,8 @@ def frame_values(animation: Animation, path: str, prop: str) -> tuple[list[float
 __all__ = [
     "BACKGROUND",
     "CAMERA_FOV_DEG",
+    "FAIL",
+    "PASS",
     "ROOT",
     "Overlay",
     "ReviewError",
