@@ -305,7 +305,7 @@ def test_desktop_mode_drives_a_calibration_without_a_headset(tmp_path):
             # Hand over control is within reach in VR too, and hands control over
             assert page.evaluate(ON_TOP, "#handover"), "Hand over control is under the VR view"
             released, release = [], hub.release
-            hub.release = lambda conn_id: released.append(release(conn_id)) or released[-1]
+            hub.release = lambda *a: released.append(release(*a)) or released[-1]
             page.click("#handover")
             _wait(lambda: released == [True], 10, "the hand-over")
             del hub.release
@@ -315,6 +315,12 @@ def test_desktop_mode_drives_a_calibration_without_a_headset(tmp_path):
             wait_on_page(page, "() => !window.__teleop.xr", 30.0, "VR left")
             # and leaving VR hands control over: a page out of VR no longer blocks others
             _wait(lambda: hub.active is None, 10, "control handed over on leaving VR")
+            # the vehicle brakes, and the safe stop says why: the operator left VR (the page
+            # is still connected), in the server's state and on the page
+            _wait(lambda: hub.state == "safe_stop", 10, "the safe stop on leaving VR")
+            assert hub.snapshot["safe_stop"] == "operator left VR", hub.snapshot["safe_stop"]
+            said = "Safe stop: operator left VR."
+            _wait(lambda: said in page.text_content("#hint"), 10, "the page saying why")
             # polled from here: an in-page poll of a string is an eval the page's CSP refuses
             role = "() => window.__teleop.role"
             _wait(lambda: page.evaluate(role) == "free", 10, "the page told control is free")
@@ -431,6 +437,61 @@ def test_a_page_reconnecting_after_an_ended_calibration_shows_no_stale_prompt():
                 server.stop()
 
 
+def test_a_refused_calibration_says_why_in_vr_and_on_the_desktop_while_it_restarts(tmp_path):
+    """The headset loses the left hand all through the calibration: its captures are
+    unusable and it starts again. The operator, in VR, sees why on the 3D panel under the
+    new prompt; a desktop page watching shows it under the prompt too ("calibration
+    restarted: <why>")."""
+    from payload.trials.live import LiveSession
+
+    iwer = _need_browser()
+    hub = LiveHub()
+    session = LiveSession(hub, None, steps=BROWSER_STEPS)
+    server = TeleopServer(hub, port=0, scene=session.scene).start()
+    worker = threading.Thread(target=session.run, daemon=True)
+    worker.start()
+    prompts = [step.prompt for step in BROWSER_STEPS]
+    try:
+        with EmulatedQuest(server.url(), iwer_js=iwer) as quest:
+            quest.connect("left", False)  # lost from the first prompt on
+            _wait(lambda: hub.state == "calibrating", 30, "the calibration")
+            # a page beside it outside VR (one browser: Playwright's sync API runs one)
+            desktop = quest.page.context.new_page()
+            desktop.set_viewport_size({"width": 1280, "height": 800})
+            desktop.goto(server.url())
+
+            def restarted() -> bool:
+                with hub.lock:
+                    return hub.state == "calibrating" and bool(
+                        hub.snapshot.get("calibration_failure")
+                    )
+
+            _wait(restarted, 60, "the calibration to restart")
+            reason = hub.snapshot["calibration_failure"]
+            assert "no left hand" in reason, reason
+            line = f"calibration restarted: {reason}"
+            # the watcher's desktop view: under the new attempt's prompt, in orange
+            shown = """() => ({prompt: document.getElementById('prompt').textContent,
+              hint: [...document.querySelectorAll('#hint p')].map((p) => [p.textContent,
+                p.className])})"""
+            _wait(lambda: [line, "alert"] in desktop.evaluate(shown)["hint"], 10, "the line")
+            prompt = desktop.evaluate(shown)["prompt"]
+            assert any(prompt.startswith(p) for p in prompts), prompt
+            desktop.screenshot(path=str(tmp_path / "desktop-restarted.png"))
+            # the operator's headset: the panel, right under the prompt
+            panel = "() => window.__teleop.panel"
+            _wait(lambda: line in quest.page.evaluate(panel), 10, "the panel's line")
+            lines = quest.page.evaluate(panel)
+            assert any(lines[0].startswith(p) for p in prompts) and lines[1] == line, lines
+            quest.page.screenshot(path=str(tmp_path / "vr-restarted.png"))
+            assert not [m for m in quest.console if m.startswith("pageerror")], quest.console
+    finally:
+        hub.stop.set()
+        worker.join(30)
+        server.stop()
+        session.close()
+
+
 IDENTIFIER = re.compile(r"\b[a-z0-9]+_[a-z0-9_]+\b")
 """A raw identifier as the messages name things (``safe_stop``, ``not_holder``): the page
 shows words instead."""
@@ -472,6 +533,49 @@ def _shows(page, state: str, role: str, what: str) -> dict:
     _wait(there, 30, what)
     page.wait_for_timeout(300)  # a frame drawn, the labels placed
     return page.evaluate(HEADER)
+
+
+LABELS_AND_PANEL = """() => {
+  const box = (r) => ({left: r.left, top: r.top, right: r.right, bottom: r.bottom});
+  const labels = document.getElementById('labels');
+  const shown = [...labels.children].filter((e) => !e.hidden && e.getClientRects().length);
+  // on top where it stands: a click there would reach it (the labels take none: let them,
+  // for the look)
+  const onTop = (e) => {
+    const r = e.getBoundingClientRect();
+    labels.style.pointerEvents = e.style.pointerEvents = 'auto';
+    const top = document.elementFromPoint(r.left + r.width / 2, r.top + r.height / 2);
+    labels.style.pointerEvents = e.style.pointerEvents = '';
+    return top === e;
+  };
+  return {
+    panel: window.__teleop.panelBox,
+    labels: shown.map((e) => ({text: e.textContent, on_top: onTop(e),
+                               ...box(e.getBoundingClientRect())})),
+  };
+}"""
+"""The boxes' labels shown (their bounding boxes, whether each is the topmost at its
+centre) and the 3D panel's box on the page (``window.__teleop.panelBox``)."""
+
+
+def _labels_clear_of_the_panel(page, what: str) -> list[str]:
+    """Assert the labels are in sight (on top, in the window) and none overlaps the panel;
+    returns their texts."""
+    seen = page.evaluate(LABELS_AND_PANEL)
+    p = seen["panel"]
+    assert p and seen["labels"], (what, seen)
+    w, h = page.viewport_size["width"], page.viewport_size["height"]
+    assert 0 <= p["left"] < p["right"] <= w and 0 <= p["top"] < p["bottom"] <= h, (what, p)
+    for label in seen["labels"]:
+        assert label["on_top"], (what, label)
+        apart = (
+            label["right"] <= p["left"]
+            or p["right"] <= label["left"]
+            or label["bottom"] <= p["top"]
+            or p["bottom"] <= label["top"]
+        )
+        assert apart, (what, label, p)
+    return [label["text"] for label in seen["labels"]]
 
 
 def _one_line_in_words(shown: dict, what: str) -> None:
@@ -530,6 +634,8 @@ def test_the_header_is_one_line_at_1280_and_the_page_shows_words(tmp_path):
                 shown = _shows(page, state, role, f"the page in {state}")
                 page.screenshot(path=str(tmp_path / f"desktop-{state}.png"))
                 _one_line_in_words(shown, state)
+                # the live numbers' panel covers no label
+                assert "Astrobee + payload" in _labels_clear_of_the_panel(page, state)
                 # the 3D panel shows the live numbers, nothing of the header
                 assert len(shown["panel"]) == 1 and "m/s" in shown["panel"][0], shown
                 assert shown["panel"][0] not in shown["text"], shown
@@ -565,6 +671,10 @@ def test_the_header_is_one_line_at_1280_and_the_page_shows_words(tmp_path):
                 shown = _shows(page, state, "holder", f"the headset's page in {state}")
                 page.screenshot(path=str(tmp_path / f"vr-{state}.png"))
                 _one_line_in_words(shown, f"VR {state}")
+                # the labels name the boxes in the emulated headset's view, clear of the
+                # panel (over it they would cross its text, under it they are not seen)
+                named = _labels_clear_of_the_panel(page, f"VR {state}")
+                assert "Astrobee + payload" in named and "Node 2 (Harmony)" in named, named
                 assert "you have control" in shown["text"], shown
                 if state == "teleop":  # the notice is the holder's: on its page and panel
                     assert "calibrated: fly with your left wrist" in shown["page"], shown

@@ -40,13 +40,18 @@ def xr_hand(side: str, wrist_wb: np.ndarray, aperture: float) -> list[list[float
     return xr.tolist()
 
 
-def frame_msg(seq: int, t: float, aperture: float = 0.5, left=None, right=None) -> str:
+def frame_msg(
+    seq: int, t: float, aperture: float = 0.5, left=None, right=None, untracked=()
+) -> str:
+    """A frame as the page sends it; the hands in ``untracked`` as the headset's lost ones."""
     left = NEUTRAL_WB["left"] if left is None else left
     right = NEUTRAL_WB["right"] if right is None else right
     hands = {
         "left": {"tracked": True, "joints": xr_hand("left", left, aperture)},
         "right": {"tracked": True, "joints": xr_hand("right", right, aperture)},
     }
+    for side in untracked:
+        hands[side] = {"tracked": False, "joints": None}
     return json.dumps({"type": "frame", "seq": seq, "t": t, "hands": hands})
 
 
@@ -303,14 +308,24 @@ GESTURE = {  # step -> (aperture, half inter-wrist distance change [m])
 
 
 class Page(threading.Thread):
-    """A scripted page: follows the prompts, then flies the left wrist forward."""
+    """A scripted page: follows the prompts, then flies the left wrist forward.
 
-    def __init__(self, hub, port, forward: float = 0.0):
+    ``hide_left``: the headset has lost the left hand until the page is told why the
+    calibration restarted (``calibration_failure``); ``quiet``: set, the page sends no
+    frames (it left VR); ``outbox``: messages it sends once; ``states``: the ``state``
+    messages it was sent.
+    """
+
+    def __init__(self, hub, port, forward: float = 0.0, hide_left: bool = False):
         super().__init__(daemon=True)
         self.hub, self.port = hub, port
         self.forward = forward
+        self.hide_left = hide_left
         self.seq = 0
         self.halt = threading.Event()
+        self.quiet = threading.Event()
+        self.outbox: list[str] = []
+        self.states: list[dict] = []
         self.left = NEUTRAL_WB["left"].copy()
         self.right = NEUTRAL_WB["right"].copy()
         self.aperture = 0.5
@@ -340,11 +355,20 @@ class Page(threading.Thread):
                     n = float(np.linalg.norm(d))
                     if n > 0:
                         cur += d * min(1.0, 0.5 * 0.0125 / n)
-                ws.send(frame_msg(self.seq, self.seq * 12.5, self.aperture, self.left, self.right))
+                while self.outbox:
+                    ws.send(self.outbox.pop(0))
+                hidden = ("left",) if self.hide_left else ()
+                if not self.quiet.is_set():
+                    ws.send(frame_msg(self.seq, self.seq * 12.5, self.aperture, self.left,
+                                      self.right, untracked=hidden))  # fmt: skip
                 self.seq += 1
                 try:
                     while True:
-                        ws.recv(timeout=0)
+                        msg = json.loads(ws.recv(timeout=0))
+                        if msg["type"] == "state":
+                            self.states.append(msg)
+                            if msg.get("calibration_failure"):
+                                self.hide_left = False  # told why: the hand is back
                 except TimeoutError:
                     pass
                 time.sleep(0.0125)
@@ -469,6 +493,114 @@ def _end_session(page: Page, hub: LiveHub, worker: threading.Thread, server) -> 
     hub.stop.set()
     worker.join(30)
     server.stop()
+
+
+def _serving(steps=QUICK_STEPS):
+    """A live session without a recording, its server and its loop's thread, running."""
+    from payload.trials.live import LiveSession
+
+    hub = LiveHub()
+    session = LiveSession(hub, None, steps=steps)
+    server = TeleopServer(hub, port=0, scene=session.scene).start()
+    worker = threading.Thread(target=session.run, daemon=True)
+    worker.start()
+    return hub, session, server, worker
+
+
+def test_a_refused_calibration_says_why_on_every_page_while_the_next_one_runs(caplog):
+    """The headset loses the left hand all through a calibration: the captures are
+    unusable and the calibration starts again. Every page (the operator's, a watcher's) is
+    told why in the state messages' ``calibration_failure`` from the next attempt's first
+    prompt to its end, in the terminal's words; once that attempt calibrates, no more."""
+    import logging
+
+    hub, session, server, worker = _serving()
+    watcher = Page(hub, server.port)
+    watcher.quiet.set()  # connected, sending nothing: it watches
+    watcher.start()
+    page = Page(hub, server.port, hide_left=True)
+    try:
+        with caplog.at_level(logging.WARNING, logger="payload.trials.live"):
+            wait_for(lambda: hub.status()["clients"] == 1, timeout=10)
+            page.start()
+            wait_for(lambda: hub.state == "teleop", timeout=60)
+            wait_for(lambda: any(m["state"] == "teleop" for m in watcher.states), timeout=5)
+    finally:
+        watcher.halt.set()
+        watcher.join(10)
+        _end_session(page, hub, worker, server)
+        session.close()
+    said = [r.getMessage() for r in caplog.records if r.name == "payload.trials.live"]
+    assert len(said) == 1 and said[0].startswith("teleop: calibration restarted: "), said
+    reason = said[0].removeprefix("teleop: calibration restarted: ")
+    assert "no left hand" in reason and "'neutral'" in reason, reason
+    for who, states in (("operator", page.states), ("watcher", watcher.states)):
+        calibrating = [m for m in states if m["state"] == "calibrating"]
+        told = [k for k, m in enumerate(calibrating) if m["calibration_failure"]]
+        assert told, (who, calibrating[-1])
+        # not during the first attempt; from the second's first prompt to its end
+        first = calibrating[told[0]]
+        assert told[0] > 0 and told == list(range(told[0], len(calibrating))), who
+        assert (first["step"], first["prompt"]) == ("neutral", QUICK_STEPS[0].prompt), first
+        assert {m["calibration_failure"] for m in calibrating[told[0] :]} == {reason}, who
+        # calibrated: nothing is said any more
+        assert all(m["calibration_failure"] == "" for m in states if m["state"] == "teleop")
+
+
+def test_leaving_vr_brakes_saying_so_not_that_the_page_disconnected(caplog):
+    """Exit VR ends the page's XR session; the page stays connected and sends ``xr_end``:
+    the safe stop's reason is "operator left VR" on the page and in the terminal (the
+    safety supervisor's lines), not "page disconnected", which stays the reason of a
+    closed socket; a hand-over (``release``) is said as such too."""
+    import logging
+
+    hub, session, server, worker = _serving()
+    page = Page(hub, server.port, forward=0.12)
+    page.start()
+
+    def driving() -> bool:  # both hands tracked by the supervisor (a loss is then said)
+        with hub.lock:
+            pipeline = session.source.pipeline if session.source else None
+        return pipeline is not None and not any(
+            st.lost for st in pipeline.supervisor.status.values()
+        )
+
+    def stop_for(message: str) -> str:
+        """The page leaves the controls by ``message``: the safe stop's reason."""
+        wait_for(driving, timeout=10)
+        page.quiet.set()  # no more frames from it: it is out of VR
+        page.outbox.append(json.dumps({"type": message}))
+        wait_for(lambda: hub.state == "safe_stop", timeout=5)
+        reason = hub.snapshot["safe_stop"]
+        told = len(page.states)
+        wait_for(lambda: any(m["state"] == "safe_stop" for m in page.states[told:]))
+        assert {m["safe_stop"] for m in page.states[told:] if m["state"] == "safe_stop"} == {reason}
+        page.quiet.clear()  # back in VR: its frames take control again
+        wait_for(lambda: hub.state == "teleop", timeout=10)
+        return reason
+
+    try:
+        with caplog.at_level(logging.WARNING, logger="payload.teleop.safety"):
+            wait_for(lambda: hub.state == "teleop", timeout=60)
+            left_vr = stop_for("xr_end")
+            handed_over = stop_for("release")
+            wait_for(driving, timeout=10)
+            page.halt.set()  # the socket closes
+            page.join(10)
+            wait_for(lambda: hub.state == "safe_stop", timeout=5)
+            closed = hub.snapshot["safe_stop"]
+    finally:
+        _end_session(page, hub, worker, server)
+        session.close()
+    assert (left_vr, handed_over, closed) == (
+        "operator left VR",
+        "operator handed control over",
+        "page disconnected",
+    )
+    said = [r.getMessage() for r in caplog.records if r.name == "payload.teleop.safety"]
+    for reason in (left_vr, handed_over, closed):
+        for side in ("left", "right"):
+            assert sum(m.endswith(f"{side} hand lost: {reason}") for m in said) == 1, said
 
 
 def test_a_page_that_leaves_before_its_calibration_leaves_the_watchdog_disarmed():

@@ -36,6 +36,10 @@ CHROMIUM_FLAGS = (
 
 # operator poses in local-floor [m]: wrists at chest height, about 35 cm in front
 NEUTRAL = {"left": (-0.15, 1.1, -0.35), "right": (0.15, 1.1, -0.35)}
+HEAD_PITCH_DEG = -25.0
+"""The emulated head looks this far down [deg], at the vehicle (it floats at hand height a
+metre ahead), as an operator does and as the desktop mode's does (``web/desktop/desktop.js``):
+the view shows the scene and the panel above it. The hands do not depend on it."""
 GESTURES: dict[str, dict[str, Any]] = {
     "neutral": {"offset": (0.0, 0.0, 0.0), "spread": 0.0, "pinch": 0.5},
     "pinch": {"offset": (0.0, 0.0, 0.0), "spread": 0.0, "pinch": 1.0},
@@ -50,6 +54,8 @@ _SETUP_JS = """
   const device = new IWER.XRDevice(IWER.metaQuest3);
   device.installRuntime({ forceInstall: true });
   device.primaryInputMode = 'hand';
+  const pitch = PITCH_DEG * Math.PI / 180;
+  device.quaternion.set(Math.sin(pitch / 2), 0, 0, Math.cos(pitch / 2));
   const targets = {};
   const hands = device.hands;
   for (const side of ['left', 'right']) {
@@ -188,7 +194,10 @@ class EmulatedQuest:
             )
             self._browser = ctx
             ctx.add_init_script(path=str(self.iwer_js))
-            consts = f"const NEUTRAL = {_js(NEUTRAL)}; const SPEED = {self.speed};"
+            consts = (
+                f"const NEUTRAL = {_js(NEUTRAL)}; const SPEED = {self.speed}; "
+                f"const PITCH_DEG = {HEAD_PITCH_DEG};"
+            )
             ctx.add_init_script(script=consts + _SETUP_JS)
             self.page = ctx.pages[0] if ctx.pages else ctx.new_page()
             self.page.on("console", lambda m: self.console.append(f"{m.type}: {m.text}"))

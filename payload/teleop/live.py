@@ -6,10 +6,12 @@ teleoperation loop (another thread) takes the newest one at every control step
 period old). The hub also holds what both sides report: counters for ``/status``, the
 frame ages, the end-to-end latencies and the session state the page shows.
 
-Safety: when the page is disconnected, or its newest frame is older than ``stale_s``, or
-it reports a hand as not tracked, that hand is declared lost to the pipeline's tracking
-supervisor at once, so the vehicle brakes and the fingers hold from that very control
-step; frames coming back blend the channels in again (no recalibration).
+Safety: when no page holds control (it disconnected, handed control over or left VR), or
+its newest frame is older than ``stale_s``, or it reports a hand as not tracked, that hand
+is declared lost to the pipeline's tracking supervisor at once, so the vehicle brakes and
+the fingers hold from that very control step; frames coming back blend the channels in
+again (no recalibration). The reason says which (:data:`DISCONNECTED`,
+:data:`HANDED_OVER`, :data:`LEFT_VR`, a stale link or an untracked hand).
 """
 
 from __future__ import annotations
@@ -67,6 +69,13 @@ class Received:
 SIMULATOR = "simulator"
 """The driver's name when the loop drives the simulator alone (:attr:`LiveHub.driver`)."""
 
+DISCONNECTED = "page disconnected"
+"""Why control was given up when the holder's WebSocket closed (a safe stop's reason)."""
+HANDED_OVER = "operator handed control over"
+"""Why, when the holder pressed Hand over control (``release``)."""
+LEFT_VR = "operator left VR"
+"""Why, when the holder's XR session ended (Exit VR, ``xr_end``): the page stays connected."""
+
 HOLDER = "holder"
 """A page's role when it holds control (:meth:`LiveHub.role`); the page compares a state
 message's ``notice_to`` with it."""
@@ -79,6 +88,7 @@ class LiveHub:
     lock: threading.Lock = field(default_factory=threading.Lock)
     clients: int = 0
     active: int | None = None  # id of the connection that holds control (drives)
+    released: str = DISCONNECTED  # why the last holder gave control up (while none holds it)
     driver: str = SIMULATOR  # what the loop drives: "simulator" / "hardware on DEVICE"
     latest: Received | None = None
     frames: int = 0
@@ -102,17 +112,20 @@ class LiveHub:
 
     def disconnect(self, conn_id: int) -> None:
         """A connection closed: control is free again if it held it."""
-        self.release(conn_id)
+        self.release(conn_id, DISCONNECTED)
         with self.lock:
             self.clients -= 1
 
-    def release(self, conn_id: int) -> bool:
-        """The holder hands control over; returns whether ``conn_id`` held it."""
+    def release(self, conn_id: int, why: str = HANDED_OVER) -> bool:
+        """The holder gives control up (``why``: :data:`HANDED_OVER`, :data:`LEFT_VR`,
+        :data:`DISCONNECTED`, the safe stop's reason until another page takes control);
+        returns whether ``conn_id`` held it."""
         with self.lock:
             if self.active != conn_id:
                 return False
             self.active = None
             self.latest = None
+            self.released = why
             return True
 
     @property
@@ -202,12 +215,13 @@ class LiveSource:
         with self.hub.lock:
             connected = self.hub.active is not None
             latest = self.hub.latest
+            released = self.hub.released
         if self.hub.stop.is_set() or (not self.calibration.done and not connected):
             self._ended = True
             return None
         reason = None
         if not connected:
-            reason = "page disconnected"
+            reason = released  # disconnected, handed over or left VR
         elif latest is None or now_ms() - latest.arrival_ms > self.stale_s * 1e3:
             reason = f"no frame from the page for > {self.stale_s * 1e3:.0f} ms"
         if reason is not None:

@@ -8,8 +8,10 @@ The page sends JSON text, one message per XR frame::
 
 joints in WebXR's XRHand order and the ``local-floor`` reference space (metres, Y up), and
 answers the server's clock pings with ``{"type": "pong", "id": int, "t": float}`` (page
-clock [ms]); ``{"type": "release"}`` hands control over (the page's button). Anything
-else is rejected with one of the :data:`DROP_KINDS`, never raised past the server.
+clock [ms]); ``{"type": "release"}`` hands control over (the page's button), and
+``{"type": "xr_end"}`` says the page's XR session ended (Exit VR) and hands control over
+too (a safe stop then says the operator left VR, not that the page disconnected).
+Anything else is rejected with one of the :data:`DROP_KINDS`, never raised past the server.
 """
 
 from __future__ import annotations
@@ -144,6 +146,12 @@ class ReleaseMessage:
     """The page hands control over (its operator leaves the controls)."""
 
 
+@dataclass(frozen=True)
+class XrEndMessage:
+    """The page's XR session ended (the operator pressed Exit VR): control is handed over,
+    the page stays connected."""
+
+
 def message_bytes(data: str | bytes) -> int:
     """A message's size on the wire [bytes] (UTF-8 for text)."""
     if isinstance(data, bytes):
@@ -151,7 +159,9 @@ def message_bytes(data: str | bytes) -> int:
     return len(data.encode("utf-8", "surrogatepass"))
 
 
-def parse_message(data: str | bytes) -> FrameMessage | PongMessage | ReleaseMessage:
+def parse_message(
+    data: str | bytes,
+) -> FrameMessage | PongMessage | ReleaseMessage | XrEndMessage:
     """Validate one message from the page.
 
     Args:
@@ -178,6 +188,10 @@ def parse_message(data: str | bytes) -> FrameMessage | PongMessage | ReleaseMess
         if set(obj) != {"type"}:
             raise MessageError("malformed", "release has only a type")
         return ReleaseMessage()
+    if kind == "xr_end":
+        if set(obj) != {"type"}:
+            raise MessageError("malformed", "xr_end has only a type")
+        return XrEndMessage()
     if kind == "pong":
         if set(obj) != {"type", "id", "t"}:
             raise MessageError("malformed", "pong needs exactly type, id, t")

@@ -15,7 +15,8 @@ status document, through ``process_request``) and the WebSocket. Security:
   or short one is refused, never taken as "no authentication");
 - one operator at a time: the first connection to send hand frames (the one that
   calibrates) holds control; the others watch read-only (their frames are refused and
-  counted ``not_holder``) until the holder disconnects or hands over (``release``);
+  counted ``not_holder``) until the holder disconnects, hands over (``release``) or leaves
+  VR (``xr_end``; a safe stop's reason says which);
   every connection is told its role (``control`` messages) whenever it changes;
 - each connection may send at most :data:`RATE_LIMIT_HZ` messages a second (twice the
   fastest headset's frame rate; the excess is dropped before parsing and counted
@@ -50,12 +51,13 @@ from websockets.exceptions import ConnectionClosed
 from websockets.http11 import Request, Response
 
 from payload.errors import PayloadError, port_in_use_hint
-from payload.teleop.live import MAX_CLIENTS, LiveHub, now_ms
+from payload.teleop.live import HANDED_OVER, LEFT_VR, MAX_CLIENTS, LiveHub, now_ms
 from payload.teleop.messages import (
     MAX_MESSAGE_BYTES,
     FrameMessage,
     MessageError,
     ReleaseMessage,
+    XrEndMessage,
     parse_message,
 )
 
@@ -371,9 +373,10 @@ class TeleopServer:
             link.last_seq, link.last_t = msg.seq, msg.t
             self.hub.put(conn_id, msg, link.offset_ms)
             return
-        if isinstance(msg, ReleaseMessage):
-            if self.hub.release(conn_id):
-                log.info("teleop server: the operator handed control over")
+        if isinstance(msg, (ReleaseMessage, XrEndMessage)):
+            why = LEFT_VR if isinstance(msg, XrEndMessage) else HANDED_OVER
+            if self.hub.release(conn_id, why):
+                log.info("teleop server: %s: control is free", why)
             return
         sent = link.pings.pop(msg.id, None)
         if sent is None:

@@ -9,8 +9,10 @@ at the end by the same code as any trial (``metrics.json``).
 
 A session attempt starts when a page connects; if the page goes away before the
 calibration is done, or the calibration captures are unusable, the attempt is dropped
-and calibration starts again with the next page. Once calibrated, a dropped page brakes
-the vehicle and holds the fingers; the page coming back resumes control, blended in.
+and calibration starts again with the next page (the state messages'
+``calibration_failure`` says why the last attempt was refused, while the next one runs).
+Once calibrated, a dropped page brakes the vehicle and holds the fingers; the page coming
+back resumes control, blended in.
 """
 
 from __future__ import annotations
@@ -195,6 +197,9 @@ class LiveSession:
         self.notice_to = ""
         """Whose page the notice is for: ``holder`` (the operator's instruction) or ``""``
         (every page)."""
+        self.calibration_failure = ""
+        """Why the last calibration attempt was refused (its captures unusable), "" when it
+        was not: kept while the next attempt runs, so every page says why it restarted."""
         self.steps = 0
         self.source: LiveSource | None = None
         self._closed = False
@@ -319,7 +324,7 @@ class LiveSession:
             "t": 0.0, "phase": "waiting", "prompt": "", "step": "", "remaining": 0.0,
             **self._world(st, self.q0[-1]),
             "safe_stop": None, "calibrated": False, "events": [], "notice": "",
-            "notice_to": "",
+            "notice_to": "", "calibration_failure": self.calibration_failure,
         }  # fmt: skip
 
     def _snapshot(self, ctx: StepContext, source: LiveSource, calibration: Any) -> dict:
@@ -347,6 +352,7 @@ class LiveSession:
             "events": events,
             "notice": self.notice,
             "notice_to": self.notice_to,
+            "calibration_failure": self.calibration_failure,
         }
 
     # -- running ---------------------------------------------------------------------------
@@ -369,6 +375,7 @@ class LiveSession:
                 self.driver.pipeline_built()
             source.pipeline = pipeline
             self.calibrated = True
+            self.calibration_failure = ""
             self.notice = "calibrated: fly with your left wrist"
             self.notice_to = HOLDER  # the operator's instruction, not the watchers'
             return pipeline
@@ -404,8 +411,13 @@ class LiveSession:
                 pace=True,
             )
         except CalibrationError as exc:
-            self.notice, self.notice_to = f"calibration failed ({exc}); starting again", ""
-            log.warning("teleop: %s", self.notice)
+            # said on every page while the next attempt's prompts run (the notice is
+            # cleared when it starts), and in the terminal, in the same words
+            self.calibration_failure = str(exc)
+            log.warning("teleop: calibration restarted: %s", exc)
+        else:
+            if not self.calibrated:  # the page went away: the last attempt was not refused
+                self.calibration_failure = ""
         if isinstance(self.driver, PayloadRig):  # nothing is sent until the next attempt
             self.driver.idle()
         if not self.calibrated:

@@ -7,10 +7,11 @@
 //
 // What it shows, where: the header's one status line says what is current in a few words
 // (the link, or the session state and this page's role); #prompt and #hint over the view
-// say what to do and why (the calibration prompt, how to take control, a safe stop's
-// reason, the server's notice); the 3D panel shows the live numbers, and in VR, where a
-// headset shows no page, also the prompt, the safe stop and the role. The server's
-// identifiers (state, step, module names) are shown as words, never as they are sent.
+// say what to do and why (the calibration prompt and why the last attempt was refused, how
+// to take control, a safe stop's reason, the server's notice); the 3D panel shows the live
+// numbers, and in VR, where a headset shows no page, also the prompt, the refusal, the safe
+// stop and the role. The server's identifiers (state, step, module names) are shown as
+// words, never as they are sent.
 
 import { Renderer, lookAt, moduleHolding, perspective, ANCHOR } from './render.js';
 
@@ -30,7 +31,7 @@ const $ = (id) => document.getElementById(id);
 const debug = {
   sent: 0, received: 0, connects: 0, state: null, open: false, xr: false,
   role: null, driver: null, hardware: false, link: 'connecting to the teleop server…', canEnter: false,
-  why: null, vrError: null, panel: [], fingerLines: [],
+  why: null, vrError: null, panel: [], fingerLines: [], panelBox: null,
 };
 window.__teleop = debug;
 
@@ -173,6 +174,14 @@ function promptText() {
   return `${st.prompt}\u00a0(${st.remaining.toFixed(1)}\u00a0s)`;  // the countdown kept in one piece
 }
 
+// Why the last calibration attempt was refused, while the next one's prompt shows: the
+// operator sees the prompts start again, and this says why.
+function restartText() {
+  const st = debug.state;
+  return promptText() && st.calibration_failure
+    ? `calibration restarted: ${st.calibration_failure}` : null;
+}
+
 // the header's one status line, in a few words: the link, or the session state and the role
 function statusText() {
   const st = debug.state;
@@ -201,6 +210,8 @@ function hintLines() {
     if (debug.why) lines.push({ text: debug.why, alert: true });
     return lines;
   }
+  const restart = restartText();
+  if (restart) lines.push({ text: restart, alert: true });
   if (st && st.safe_stop) {
     lines.push({ text: `Safe stop: ${st.safe_stop}. The vehicle brakes and the fingers hold ` +
       'until the hands are back.', alert: true });
@@ -221,7 +232,8 @@ function numbersText(st) {
 }
 
 // The 3D panel: the live numbers; in VR (a headset shows no page, only this panel) also
-// the prompt, a safe stop, the role when it is not control, the notice, or the link.
+// the prompt and why the calibration restarted, a safe stop, the role when it is not
+// control, the notice, or the link.
 function panelLines() {
   const st = debug.open ? debug.state : null;
   const numbers = st && st.vehicle ? [numbersText(st)] : [];
@@ -231,7 +243,7 @@ function panelLines() {
   const role = debug.role === 'holder' ? null : roleHint() || ROLES[debug.role];
   // a headset shows no header: the one driving real servos is told so first
   const hardware = debug.hardware ? debug.driver : null;
-  return [hardware && `driver: ${hardware}`, prompt,
+  return [hardware && `driver: ${hardware}`, prompt, restartText(),
     st && st.safe_stop ? `safe stop: ${st.safe_stop}` : null, role, ...numbers,
     prompt ? null : noticeText(st)].filter(Boolean);
 }
@@ -279,18 +291,49 @@ const link = new Link((msg) => {
 $('handover').addEventListener('click', () => link.send({ type: 'release' }));
 showStatus();
 
-// the boxes' labels over the desktop view (normalised device coordinates -> pixels)
-function placeLabels(w, h) {
+const overlap = (a, b) => a.left < b.right && b.left < a.right && a.top < b.bottom &&
+  b.top < a.bottom;
+
+// The boxes' labels over the view. `region` is where the drawn view lies on the page (CSS
+// pixels, as getBoundingClientRect gives them: the canvas outside VR, the emulator's view
+// of the first eye in the desktop mode); `labels` and `panel` are in that view's normalised
+// device coordinates. A label the 3D panel would cover is put just under the panel (the
+// panel stands in front of the scene, and a label over it would cross its text), below
+// any label already there.
+function placeLabels(region, labels, panel) {
   const box = $('labels');
-  const labels = renderer.labels || [];
+  const origin = box.getBoundingClientRect();
+  const px = (x, y) => [region.left + ((x + 1) / 2) * region.width,
+    region.top + ((1 - y) / 2) * region.height];
+  let covered = null;  // the panel on the page
+  if (panel) {
+    const [left, top] = px(panel.x0, panel.y1), [right, bottom] = px(panel.x1, panel.y0);
+    covered = { left, top, right, bottom };
+  }
+  debug.panelBox = covered;
   while (box.children.length < labels.length) box.appendChild(document.createElement('span'));
+  const placed = [];
   [...box.children].forEach((el, i) => {
     const l = labels[i];
     el.hidden = !l || Math.abs(l.x) > 1 || Math.abs(l.y) > 1;
     if (el.hidden) return;
     el.textContent = l.text;
-    el.style.left = `${((l.x + 1) / 2) * w}px`;
-    el.style.top = `${((1 - l.y) / 2) * h}px`;
+    const [x, y] = px(l.x, l.y);
+    el.style.left = `${x - origin.left}px`;
+    el.style.top = `${y - origin.top}px`;
+    let r = el.getBoundingClientRect();
+    if (covered && overlap(r, covered)) {
+      let top = covered.bottom + 2;
+      for (let moved = true; moved;) {  // down past every label in the way
+        const at = { left: r.left, right: r.right, top, bottom: top + r.height };
+        const hit = placed.find((o) => overlap(at, o));
+        moved = Boolean(hit);
+        if (hit) top = hit.bottom + 2;
+      }
+      el.style.top = `${top + r.height / 2 - origin.top}px`;
+      r = el.getBoundingClientRect();
+    }
+    placed.push(r);
   });
 }
 
@@ -305,7 +348,7 @@ function drawDesktop() {
   const eye = [0, 1.6, 0.8];
   renderer.draw(perspective(1.0, w / Math.max(h, 1), 0.05, 60), lookAt(eye, ANCHOR, [0, 1, 0]));
   debug.fingerLines = renderer.fingerLines || [];
-  placeLabels(w, h);
+  placeLabels(canvas.getBoundingClientRect(), renderer.labels || [], renderer.panelBox);
   requestAnimationFrame(drawDesktop);
 }
 requestAnimationFrame(drawDesktop);
@@ -344,11 +387,22 @@ function onXRFrame(t, frame) {
   gl.clearColor(0.02, 0.03, 0.05, 1);
   gl.clear(gl.COLOR_BUFFER_BIT | gl.DEPTH_BUFFER_BIT);
   if (!pose) return;
+  let first = null;
   for (const view of pose.views) {
     const vp = layer.getViewport(view);
     gl.viewport(vp.x, vp.y, vp.width, vp.height);
     renderer.draw(view.projectionMatrix, view.transform.inverse.matrix);
+    if (!first) first = { vp, labels: renderer.labels, panel: renderer.panelBox };
   }
+  // the labels over the first eye's view where the page shows it (the desktop mode's
+  // emulator: its view of the session covers the window; a headset shows no page)
+  const r = canvas.getBoundingClientRect();
+  const fw = layer.framebufferWidth || canvas.width, fh = layer.framebufferHeight || canvas.height;
+  const { vp } = first;
+  placeLabels({
+    left: r.left + (vp.x / fw) * r.width, width: (vp.width / fw) * r.width,
+    top: r.top + ((fh - vp.y - vp.height) / fh) * r.height, height: (vp.height / fh) * r.height,
+  }, first.labels, first.panel);
 }
 
 // In VR the button ends the session: a headset shows no page then, but the desktop
@@ -361,11 +415,14 @@ async function enterXR() {
   });
   debug.session = session;  // from here on the button ends it, whatever fails below
   session.addEventListener('end', () => {
-    // leaving VR is leaving the controls: hand them over (the vehicle is braked until the
-    // next holder's frames, this page's own if it enters VR again)
-    if (debug.role === 'holder') link.send({ type: 'release' });
+    // leaving VR is leaving the controls: hand them over, saying so (the vehicle is braked
+    // until the next holder's frames, this page's own if it enters VR again, and the safe
+    // stop says the operator left VR, not that the page disconnected). Sent whatever role
+    // the page was last told: the server acts on it only from the page holding control.
+    link.send({ type: 'xr_end' });
     const drawing = debug.xr;  // the desktop view's loop stopped only once in VR
     debug.xr = false;
+    document.body.classList.remove('xr');
     debug.session = null;
     button.textContent = 'Enter VR';
     button.disabled = false;
@@ -378,6 +435,7 @@ async function enterXR() {
   session.updateRenderState({ baseLayer: new XRWebGLLayer(session, gl) });
   debug.space = await session.requestReferenceSpace('local-floor');
   debug.xr = true;
+  document.body.classList.add('xr');  // the labels over the emulator's view (page.css)
   button.disabled = false;
   showStatus();
   session.requestAnimationFrame(onXRFrame);

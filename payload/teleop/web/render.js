@@ -109,7 +109,10 @@ function program(gl, vs, fs) {
   return prog;
 }
 
-const PANEL_ROWS = 4;
+// the panel's texture [px] and its rows: room for the prompt, why the calibration
+// restarted and the live numbers in VR, the hardware driver above them; 0.96 m wide in
+// the scene, so a row (58 px) is 5.4 cm
+const PANEL_W = 1024, PANEL_H = 384, PANEL_ROWS = 6, ROW = 58, PANEL_M_PER_PX = 0.96 / PANEL_W;
 
 // one line of text as rows no wider than `width` pixels, broken at spaces (a single word
 // wider than that stays one row, squeezed by fillText's maxWidth)
@@ -127,6 +130,19 @@ function wrap(c, text, width) {
   }
   if (row) rows.push(row);
   return rows;
+}
+
+// Where the quad [-1, 1]^2 (z = 0) drawn with `mvp` lands in normalised device
+// coordinates: {x0, x1, y0, y1} around its corners, or null when a corner is behind the eye.
+function screenBox(mvp) {
+  const xs = [], ys = [];
+  for (const [x, y] of [[-1, -1], [1, -1], [-1, 1], [1, 1]]) {
+    const w = mvp[3] * x + mvp[7] * y + mvp[15];
+    if (w <= 0) return null;
+    xs.push((mvp[0] * x + mvp[4] * y + mvp[12]) / w);
+    ys.push((mvp[1] * x + mvp[5] * y + mvp[13]) / w);
+  }
+  return { x0: Math.min(...xs), x1: Math.max(...xs), y0: Math.min(...ys), y1: Math.max(...ys) };
 }
 
 // the scene's module (name, lo, hi: a box in the workbench's world frame) holding the
@@ -150,11 +166,12 @@ export class Renderer {
       gl.STATIC_DRAW);
     this.dyn = gl.createBuffer();
     this.panelCanvas = document.createElement('canvas');
-    this.panelCanvas.width = 1024;
-    this.panelCanvas.height = 256;
+    this.panelCanvas.width = PANEL_W;
+    this.panelCanvas.height = PANEL_H;
     this.panelTex = gl.createTexture();
     this.panelText = null;
     this.panelRows = 0;
+    this.panelBox = null;  // where the last draw put the panel (normalised device coords)
     this.scene = null;
     this.state = null;
   }
@@ -168,13 +185,13 @@ export class Renderer {
     this.panelText = key;
     const c = this.panelCanvas.getContext('2d');
     c.font = '44px sans-serif';
-    const rows = lines.flatMap((l) => wrap(c, l, 976)).slice(0, PANEL_ROWS);
+    const rows = lines.flatMap((l) => wrap(c, l, PANEL_W - 48)).slice(0, PANEL_ROWS);
     this.panelRows = rows.length;
-    c.clearRect(0, 0, 1024, 256); // the last text gone, not showing through the new
+    c.clearRect(0, 0, PANEL_W, PANEL_H); // the last text gone, not showing through the new
     c.fillStyle = 'rgba(10, 16, 24, 0.85)';
-    c.fillRect(0, 0, 1024, 256);
+    c.fillRect(0, 0, PANEL_W, PANEL_H);
     c.fillStyle = color;
-    rows.forEach((l, i) => c.fillText(l, 24, 62 + i * 58, 976));
+    rows.forEach((l, i) => c.fillText(l, 24, 62 + i * ROW, PANEL_W - 48));
     const gl = this.gl;
     gl.bindTexture(gl.TEXTURE_2D, this.panelTex);
     gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGBA, gl.RGBA, gl.UNSIGNED_BYTE, this.panelCanvas);
@@ -255,14 +272,17 @@ export class Renderer {
     }
     // the text panel floats above the vehicle, facing the operator: its top edge fixed, as
     // tall as its rows (the texture's top part)
+    this.panelBox = null;
     if (!this.panelRows) return;
     gl.useProgram(this.tex);
-    const used = Math.min(1, (24 + this.panelRows * 58) / 256);
+    const used = Math.min(PANEL_H, 24 + this.panelRows * ROW);  // [px]
+    const half = (used * PANEL_M_PER_PX) / 2;  // half the panel's height [m]
     const top = ANCHOR[1] + 0.5 + 0.12;
-    const panel = mul(translation([0, top - 0.12 * used, ANCHOR[2] + 0.1]),
-      scaling([0.48, 0.12 * used, 1]));
-    gl.uniformMatrix4fv(gl.getUniformLocation(this.tex, 'mvp'), false, mul(vpXr, panel));
-    gl.uniform1f(gl.getUniformLocation(this.tex, 'vmax'), used);
+    const panel = mul(vpXr, mul(translation([0, top - half, ANCHOR[2] + 0.1]),
+      scaling([(PANEL_W * PANEL_M_PER_PX) / 2, half, 1])));
+    this.panelBox = screenBox(panel);
+    gl.uniformMatrix4fv(gl.getUniformLocation(this.tex, 'mvp'), false, panel);
+    gl.uniform1f(gl.getUniformLocation(this.tex, 'vmax'), used / PANEL_H);
     gl.activeTexture(gl.TEXTURE0);
     gl.bindTexture(gl.TEXTURE_2D, this.panelTex);
     gl.uniform1i(gl.getUniformLocation(this.tex, 'tex'), 0);

@@ -11,6 +11,11 @@
   const device = new IWER.XRDevice(IWER.metaQuest3);
   device.installRuntime({ forceInstall: true });
   device.primaryInputMode = 'hand';
+  // the head looks down at the vehicle, as an operator does (it floats at hand height a
+  // metre ahead), not at the horizon: the view is the scene, the panel above it (the tests'
+  // emulated headset looks as far down: payload/teleop/emulate.py, HEAD_PITCH_DEG)
+  const PITCH = -25 * Math.PI / 180;
+  device.quaternion.set(Math.sin(PITCH / 2), 0, 0, Math.cos(PITCH / 2));
   const NEUTRAL = { left: [-0.15, 1.1, -0.35], right: [0.15, 1.1, -0.35] };
   const SPEED = 0.4;  // [m/s] how fast a hand moves toward its target
   const STEP = 0.05;  // [m] one key press of W/A/S/D/R/F
