@@ -96,6 +96,7 @@ NULL = '"hands": {"left": null, "right": null}'
         ('{"type": "frame", "seq": 1, "t": 0, "extra": 1, ' + NULL + "}", "malformed"),
         ('{"type": "frame", "seq": 1, "t": 0, "hands": {"left": 3, "right": null}}', "malformed"),
         ('{"type": "hello"}', "malformed"),
+        ('{"type": "xr_end", "reason": "exit"}', "malformed"),
         ("x" * (MAX_MESSAGE_BYTES + 1), "oversized"),
     ],
 )
