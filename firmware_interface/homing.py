@@ -35,8 +35,9 @@ FREE_CHECK_FRACTION = 0.1
 """The free-travel check: each servo found stalled is driven off it by this fraction of
 its joint's travel, under the homing current, and must cover at least half of it
 (ASSUMPTION: a tenth of the travel is far enough to tell a free drive from a blocked one
-and short enough not to matter where the payload stands). A stall alone cannot tell the hard stop from a blocked shaft or an obstacle short of the
-stop: a drive that stalls and then does not move off it is refused, not homed."""
+and short enough not to matter where the payload stands). A stall alone cannot tell the
+hard stop from a blocked shaft or an obstacle short of the stop: a drive that stalls and
+then does not move off it is refused, not homed."""
 FREE_CHECK_S = 0.5
 """The longest wait for the free-travel move [s] (ASSUMPTION: the move is 0.13 to 0.2
 of a turn, about 0.1 s at the XC330's speed; a blocked servo stops pushing at its cap
