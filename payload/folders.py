@@ -60,6 +60,10 @@ SWEEP_TEXT = "sweep.md"
 SWEEP_FILES: tuple[str, ...] = (SWEEP, SWEEP_TEXT)
 """What marks a folder as a design sweep's."""
 
+REPORT_FILES: tuple[str, ...] = ("envelope.json", "reach.json")
+"""What marks a folder as the design reports' (``payload report envelope`` and ``reach``:
+a project's ``analyses/``, or their ``--out``)."""
+
 
 def held(folder: Path, names: Iterable[str]) -> list[str]:
     """Those of the file names ``names`` that ``folder`` holds, in their order."""
@@ -83,6 +87,7 @@ __all__ = [
     "HANDS",
     "METRICS",
     "RECORDING",
+    "REPORT_FILES",
     "ROUTE_FIGURE",
     "SCORED",
     "SUMMARY",

@@ -4,12 +4,13 @@ LocalCluster whose figures equal the same commands run by hand in each point."""
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
 import tomllib
-from conftest import DESIGN, replace_once
+from conftest import DESIGN, ROOT, replace_once
 
 from payload.cli import main
 from payload.design import load_design
@@ -94,6 +95,15 @@ def test_bad_sweep_input_exits_2_and_writes_nothing(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert f"{(out / 'sweep.md').resolve()} exists" in err and "\n" not in err
     assert (out / "sweep.md").read_text() == "my notes"
+    # a folder of the design reports (a project's analyses/): the sweep's point projects
+    # and table were written among them
+    reports = tmp_path / "analyses"
+    reports.mkdir()
+    shutil.copy(ROOT / "analyses" / "envelope.json", reports)
+    assert main(["sweep", "--set", "rail.travel=0.04", "--out", str(reports)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "already holds envelope.json" in err and "\n" not in err
+    assert [p.name for p in reports.iterdir()] == ["envelope.json"]
 
 
 def test_bad_sweep_input_leaves_no_numbered_folder_in_the_project(tmp_path, capsys):

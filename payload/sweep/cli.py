@@ -17,7 +17,7 @@ from payload.cliutil import (
     out_folder,
     results_folder,
 )
-from payload.folders import CAMPAIGN_FILES, SWEEP_FILES, TRIAL_FILES, held
+from payload.folders import CAMPAIGN_FILES, REPORT_FILES, SWEEP_FILES, TRIAL_FILES, held
 from payload.project import DESIGN_FILE
 from payload.sweep.grid import SweepError, parse_set
 from payload.sweep.run import DEFAULT_SAMPLES
@@ -55,9 +55,9 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
     from payload.trials.cluster import check_scheduler
 
     check_scheduler(args.scheduler, SweepError)  # before any folder is made for the sweep
-    # a sweep never writes into a file, nor among a trial's, a campaign's or a design
-    # project's files (its points are projects of their own)
-    out_folder(args.out, holding=(*TRIAL_FILES, *CAMPAIGN_FILES, DESIGN_FILE))
+    # a sweep never writes into a file, nor among a trial's, a campaign's, the design
+    # reports' or a design project's files (its points are projects of their own)
+    out_folder(args.out, holding=(*TRIAL_FILES, *CAMPAIGN_FILES, *REPORT_FILES, DESIGN_FILE))
     earlier = held(Path(args.out), SWEEP_FILES) if args.out else []
     if earlier:  # an earlier sweep's (or a report of the same name)
         raise SweepError(
