@@ -9,12 +9,12 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import math
 import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from firmware_interface.options import LATENCY_MS, add_latency, add_servo_map, latency_problem
 from payload.cliutil import (
     CheckFailed,
     add_deprecated,
@@ -48,9 +48,9 @@ def _check_numbers(args: argparse.Namespace) -> None:
         UsageError: ``--max-time`` not a positive number of seconds
             (:func:`payload.cliutil.check_seconds`).
     """
-    lat = getattr(args, "latency_ms", None)
-    if lat is not None and not 0.0 <= lat < math.inf:
-        raise HwUsageError(f"--latency-ms must be a finite number of ms >= 0, got {lat}")
+    problem = latency_problem(getattr(args, "latency_ms", None))
+    if problem is not None:
+        raise HwUsageError(problem)
     check_seconds("--max-time", getattr(args, "max_time", None), cap=True)
 
 
@@ -101,8 +101,13 @@ def _cmd_scan(args: argparse.Namespace) -> int:
     device = need_device(args)
     smap = _map(args)
     _models_follow(args)
+    from firmware_interface.errors import DynamixelError
+
     with DynamixelDriver(device, smap, latency_timer_ms=args.latency_ms) as drv:
-        found = drv.scan()
+        try:
+            found = drv.scan()
+        except DynamixelError as exc:  # replies that come too late: the bus's state
+            raise CheckFailed(str(exc)) from None
     known = {s.id: s.joint for s in smap.servos}
     servos = [
         {"id": i, "model_number": m, "firmware": fw, "joint": known.get(i)}
@@ -124,15 +129,21 @@ def _cmd_scan(args: argparse.Namespace) -> int:
 
 
 def check(
-    port: str, smap: Any, latency_ms: float = 16.0, say: Callable[[str], None] | None = None
+    port: str, smap: Any, latency_ms: float = LATENCY_MS, say: Callable[[str], None] | None = None
 ) -> dict[str, Any]:
     """Bring-up and health of every servo: ``{"ok", "servos", "errors"}``. The bring-up
     homes the rail and the stage (they move to their hard stops): ``say`` is told first."""
     from firmware_interface.driver import DynamixelDriver, bring_up_notice, nobody_answered
-    from firmware_interface.errors import DynamixelError, HardwareFault, MissingServoError
+    from firmware_interface.errors import (
+        CommError,
+        DynamixelError,
+        HardwareFault,
+        MissingServoError,
+    )
 
     errors: list[str] = []
     servos = []
+    lost = False  # the bring-up lost replies: a health read that loses them too ends the look
     with DynamixelDriver(port, smap, latency_timer_ms=latency_ms) as drv:
         present = list(smap.ids)
         try:
@@ -151,12 +162,15 @@ def check(
             if exc.bits == ["reset"]:
                 errors.append(str(exc))
         except DynamixelError as exc:
+            lost = isinstance(exc, CommError)
             errors.append(str(exc))
         for i in present:
             try:
                 h = drv.read_health(i)
             except DynamixelError as exc:
                 errors.append(str(exc))
+                if lost and isinstance(exc, CommError):  # not one error per servo
+                    break
                 continue
             servos.append({"id": i, "joint": h.joint, "model_number": h.model_number,
                            "hardware_error": h.hardware_error, "temperature_c": h.temperature_c,
@@ -376,15 +390,6 @@ def _emulator_option(p: argparse.ArgumentParser, text: str) -> None:
     p.add_argument("--emulator", action="store_true", help=text)
 
 
-def _latency(p: argparse.ArgumentParser) -> None:
-    p.add_argument(
-        "--latency-ms",
-        type=float,
-        default=16.0,
-        help="reply timeout allowance per packet [ms] (the SDK's LATENCY_TIMER)",
-    )
-
-
 def register(
     sub: argparse._SubParsersAction, groups: dict[str, argparse._SubParsersAction]
 ) -> None:
@@ -394,7 +399,7 @@ def register(
     hws = hw.add_subparsers(dest="hw_command", required=True, metavar="WHAT")
 
     p = hws.add_parser("emulate", help="serve an emulated servo bus on a pty (prints its path)")
-    p.add_argument("--servos", metavar="MAP", help="servo map TOML (default: the packaged map)")
+    add_servo_map(p, "servo map TOML (default: the packaged map)")
     p.add_argument(
         "--fault",
         metavar="SPEC",
@@ -424,9 +429,9 @@ def register(
         p = hws.add_parser(name, help=text)
         add_device(p, "serial device of the servo bus or an emulator's pty (required)",
                    old_port=True)  # fmt: skip
-        p.add_argument("--servos", metavar="MAP", help="servo map TOML")
+        add_servo_map(p)
         add_json(p)
-        _latency(p)
+        add_latency(p)
         p.set_defaults(func=fn)
 
     p = hws.add_parser(
@@ -441,12 +446,12 @@ def register(
         metavar="FILE",
         help="with --emulator: the emulated servos' plant values (as `hw emulate --servo-params`)",
     )
-    p.add_argument("--servos", metavar="MAP", help="servo map TOML")
+    add_servo_map(p)
     p.add_argument("--joints", nargs="+", metavar="JOINT", help="joints to identify (default all)")
     p.add_argument("--write", action="store_true",
                    help="write the suggested [servo] values into the design file")  # fmt: skip
     p.add_argument("--json", action="store_true", help="print one JSON object")
-    _latency(p)
+    add_latency(p)
     p.set_defaults(func=_cmd_identify)
 
     p = hws.add_parser("run", help="the 50 Hz teleoperation loop on the hardware")
@@ -458,7 +463,7 @@ def register(
     add_replay(p, "the recorded hands to replay (required): a trial's log.mcap or a hands.jsonl")
     add_deprecated(p, "--source", "--replay FILE", "source", nargs="+", metavar="SRC",
                    help="'replay FILE'")  # fmt: skip
-    p.add_argument("--servos", metavar="MAP", help="servo map TOML")
+    add_servo_map(p)
     p.add_argument("--out", help="trial folder (default: a new runs/hw-NNNN in the project)")
     p.add_argument(
         "--max-time",
@@ -503,7 +508,7 @@ def register(
         "profile's, on in 'safe')",
     )
     add_json(p)
-    _latency(p)
+    add_latency(p)
     p.set_defaults(func=_cmd_run)
 
     p = groups["bench"].add_parser("hw", help="sync write + fast sync read cycle vs wire time")
@@ -512,7 +517,7 @@ def register(
     p.add_argument(
         "--cycles", type=int, default=2000, help="write/read cycles to time (default 2000)"
     )
-    p.add_argument("--servos", metavar="MAP", help="servo map TOML")
+    add_servo_map(p)
     add_json(p)
-    _latency(p)
+    add_latency(p)
     p.set_defaults(func=_cmd_bench)

@@ -5,17 +5,22 @@ from __future__ import annotations
 import contextlib
 import json
 import math
+import re
 import socket
 import ssl
 import threading
 import time
 import urllib.request
+from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import replace_once
 from websockets.exceptions import InvalidStatus
 from websockets.sync.client import connect
 
+import firmware_interface
+from firmware_interface.control_table import BY_NAME, decode
 from payload.teleop.calibration import Step
 from payload.teleop.handmodel import HandModel
 from payload.teleop.hands import WEBXR_TO_WORKBENCH, XR_JOINTS
@@ -1001,6 +1006,11 @@ def test_serve_says_install_the_ca_again_only_when_one_was_there_before(
         (["--link-delay", "soon"], "--link-delay"),
         (["--device", "/dev/ttyUSB0"], "--device /dev/ttyUSB0: only with --driver hardware"),
         (["--driver", "hardware"], "--driver hardware needs --device DEV"),
+        (["--servos", "mine.toml"], "--servos mine.toml: only with --driver hardware"),
+        (["--latency-ms", "1"], "--latency-ms 1.0: only with --driver hardware"),
+        (["--emulator"], "--emulator: only with --driver hardware"),
+        (["--driver", "hardware", "--emulator", "--device", "/dev/x"], "give one bus"),
+        (["--driver", "hardware", "--emulator", "--latency-ms", "nan"], "got nan"),
         (["--cert", "c.pem"], "--cert and --key go together"),
         (["--port", "{busy}"], "cannot listen on 127.0.0.1:{busy}"),
         (["--port", "{busy}"], "choose another --port, or --port 0"),
@@ -1299,6 +1309,66 @@ def test_serve_stopped_while_loading_leaves_the_servos_torque_off(tmp_path, monk
         f"bringing up the servos on {emu.port} and homing the rail and the stage ...",
         "moving to the design's home posture ...",
     ], said
+
+
+def test_serve_drives_the_hardware_with_its_servo_map_and_latency(tmp_path, monkeypatch, capsys):
+    """`teleop serve --driver hardware` opened the bus with the packaged servo map and a
+    16 ms latency allowance whatever the user's rig (hardware.md's steps 1 and 2 set both
+    for `hw run`): a mirrored joint of the user's map would have run the wrong way. Now
+    `--servos` and `--latency-ms` are the hw commands': the home posture is reached in
+    the given map's ticks, and a reply timeout the bus cannot meet fails the bring-up."""
+    from firmware_interface.emulator import EmulatorProcess
+    from firmware_interface.servo_map import home_ticks, load_servo_map
+    from payload.cli import _parse
+    from payload.errors import RunAborted
+    from payload.teleop.cli import serve
+
+    monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path))
+    packaged = Path(firmware_interface.__file__).with_name("servos.toml")
+    mine = tmp_path / "mine.toml"  # servo 1's horn fitted 100 ticks round from the packaged
+    servo1 = 'id = 1\njoint = "A_mcp_flex"\ndirection = 1\nzero = 2048\n'
+    mine.write_text(replace_once(packaged.read_text(), servo1, servo1.replace("2048", "2148")))
+
+    def loading(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    expected = home_ticks(load_servo_map(str(mine)))[1]
+    assert expected != home_ticks(load_servo_map())[1]
+    base = ["teleop", "serve", "--driver", "hardware", "--port", "0", "--servos", str(mine)]
+    with EmulatorProcess(str(mine)) as emu:
+        with pytest.raises(KeyboardInterrupt):
+            serve(_parse([*base, "--device", emu.port]), loading)
+        table = emu.table(1)
+    r = BY_NAME["goal_position"]
+    assert decode(r, table[r.address : r.address + r.size]) == expected
+    capsys.readouterr()
+    # replies 10 ms late: inside 16 ms's allowance, past 0 ms's
+    with EmulatorProcess(str(mine), faults=["latency:10ms"]) as emu:
+        with pytest.raises(RunAborted):
+            serve(_parse([*base, "--device", emu.port, "--latency-ms", "0"]), loading)
+
+
+def test_serve_with_the_emulator_starts_and_stops_its_own_bus(tmp_path, monkeypatch, capsys):
+    """`teleop serve --driver hardware --emulator` (as `hw run --emulator`): a bus
+    emulated for the session, brought up and homed, and gone when the command ends."""
+    from payload.cli import _parse
+    from payload.teleop.cli import serve
+
+    monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path))
+
+    def loading(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    argv = ["teleop", "serve", "--driver", "hardware", "--emulator", "--port", "0"]
+    with pytest.raises(KeyboardInterrupt):
+        serve(_parse(argv), loading)
+    said = capsys.readouterr().err.splitlines()
+    first = re.fullmatch(
+        r"bringing up the servos on (/dev/pts/\d+) and homing the rail and the stage \.\.\.",
+        said[0],
+    )
+    assert first is not None and said[1] == "moving to the design's home posture ...", said
+    assert not Path(first.group(1)).exists()  # the emulator's pty closed with it
 
 
 def test_a_sigterm_while_a_session_is_scored_counts_as_a_press(tmp_path, capsys):

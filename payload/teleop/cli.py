@@ -18,6 +18,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
+from firmware_interface.options import add_latency, add_servo_map
 from payload.cliutil import (
     add_device,
     add_json,
@@ -160,15 +161,49 @@ def _check_record(record: Path | None) -> None:
         raise TeleopCliError(f"--record {record}: not a folder")
 
 
-def _hardware_driver(device: str) -> Any:
-    """The Dynamixel payload driver (``firmware_interface``), brought up on ``device`` (the
-    rail and the stage homed), at the design's home posture where the simulated session
-    starts, its Bus Watchdog disarmed until the session's loop runs (the simulator and the
-    retargeters load for seconds first)."""
-    from firmware_interface import DynamixelDriver
-    from firmware_interface.run import ready_at_home
+def _check_bus_options(args: argparse.Namespace) -> None:
+    """``--device``, ``--emulator``, ``--servos`` and ``--latency-ms`` go with ``--driver
+    hardware`` (one bus: a device or the emulator); one line, exit 2, before anything."""
+    from firmware_interface.options import latency_problem
 
-    driver = DynamixelDriver(device)
+    if args.driver != "hardware":
+        given = {"--device": args.device, "--emulator": args.emulator or None,
+                 "--servos": args.servos, "--latency-ms": args.latency_ms}  # fmt: skip
+        for option, value in given.items():
+            if value is not None:
+                shown = option if value is True else f"{option} {value}"
+                raise TeleopCliError(f"{shown}: only with --driver hardware")
+        return
+    if args.device and args.emulator:
+        raise TeleopCliError("--device and --emulator: give one bus")
+    if not args.device and not args.emulator:
+        raise TeleopCliError(
+            "--driver hardware needs --device DEV (the servo bus's serial device), or --emulator"
+        )
+    problem = latency_problem(args.latency_ms)
+    if problem is not None:
+        raise TeleopCliError(problem)
+
+
+def _hardware_driver(args: argparse.Namespace, stack: contextlib.ExitStack) -> Any:
+    """The Dynamixel payload driver (``firmware_interface``) on ``--device`` (or on an
+    emulator started here, stopped with ``stack``), with ``--servos``' map and
+    ``--latency-ms``, brought up (the rail and the stage homed), at the design's home
+    posture where the simulated session starts, its Bus Watchdog disarmed until the
+    session's loop runs (the simulator and the retargeters load for seconds first)."""
+    from firmware_interface import DynamixelDriver
+    from firmware_interface.options import LATENCY_MS
+    from firmware_interface.run import ready_at_home
+    from firmware_interface.servo_map import load_servo_map
+
+    smap = load_servo_map(args.servos)  # a bad map: one line, before the bus is opened
+    device = args.device
+    if args.emulator:
+        from firmware_interface.emulator import EmulatorProcess
+
+        device = stack.enter_context(EmulatorProcess(args.servos)).port
+    latency = LATENCY_MS if args.latency_ms is None else args.latency_ms
+    driver = DynamixelDriver(device, smap, latency_timer_ms=latency)
     try:  # the servos move: said first, on stderr (stdout names the page), as `hw run` does
         ready_at_home(driver, say_stage)
     except BaseException:
@@ -192,10 +227,7 @@ def serve(args: argparse.Namespace, make_session: SessionFactory) -> int:
     )
 
     # every check of the command line before the long set-up (the models, the simulator)
-    if args.device is not None and args.driver != "hardware":
-        raise TeleopCliError(f"--device {args.device}: only with --driver hardware")
-    if args.driver == "hardware" and not args.device:
-        raise TeleopCliError("--driver hardware needs --device DEV (the servo bus's serial device)")
+    _check_bus_options(args)
     link_delay = None
     if args.link_delay is not None:
         from payload.teleop.link import parse_link_delay
@@ -246,10 +278,17 @@ def serve(args: argparse.Namespace, make_session: SessionFactory) -> int:
         token = new_token()
     logging.basicConfig(level=logging.WARNING, handlers=[_BesideStatusLine(sys.stderr)])
     hub = LiveHub()
-    payload = _hardware_driver(args.device) if args.driver == "hardware" else None
+    bus = contextlib.ExitStack()  # the emulator of --emulator, stopped last
+    try:
+        payload = _hardware_driver(args, bus) if args.driver == "hardware" else None
+    except BaseException:
+        bus.close()
+        raise
     try:
         if payload is not None:
-            hub.driver = f"hardware on {args.device}" + (" (emulator)" if payload.emulated else "")
+            hub.driver = f"hardware on {payload.device}" + (
+                " (emulator)" if payload.emulated else ""
+            )
         print("loading the simulator and the retargeters ...", flush=True)
         session = make_session(
             hub,
@@ -316,8 +355,9 @@ def serve(args: argparse.Namespace, make_session: SessionFactory) -> int:
             )
         return 0
     finally:
-        if payload is not None:  # torque off, if stopped before the session closed it
-            payload.close()
+        with bus:
+            if payload is not None:  # torque off, if stopped before the session closed it
+                payload.close()
 
 
 def bench(args: argparse.Namespace, make_session: SessionFactory) -> int:
@@ -376,6 +416,14 @@ def serve_arguments(p: argparse.ArgumentParser) -> None:
         "payload on --device beside the simulated scene",
     )
     add_device(p, "serial device of the servo bus (--driver hardware)")
+    p.add_argument(
+        "--emulator",
+        action="store_true",
+        help="with --driver hardware: drive an emulated servo bus started here (as `payload "
+        "hw emulate` serves one), instead of --device",
+    )
+    add_servo_map(p, "servo map TOML (--driver hardware; default: the packaged map)")
+    add_latency(p, "; --driver hardware", default=None)
     p.add_argument(
         "--host",
         default="127.0.0.1",
