@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import copy
 import math
+import re
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import manifold3d as m3d
 import mujoco
@@ -14,6 +16,7 @@ import numpy as np
 import pinocchio as pin
 import pytest
 import tomli_w
+import tomllib
 import trimesh
 import yourdfpy
 from conftest import DESIGN, MJCF, ROOT, SCENE, URDF, hand_file, replace_once
@@ -31,6 +34,7 @@ from payload.design import (
 )
 from payload.design.solids import SEGMENTS
 from payload.errors import DesignError
+from payload.project import default_design_text
 
 
 def pin_q(model: pin.Model, values: dict[str, float]) -> np.ndarray:
@@ -373,8 +377,10 @@ def test_invalid_designs_are_rejected_naming_the_parameter(design_dict, path, va
         ("vehicle.mass", "true", "vehicle.mass", "expected a number, got true"),
         ("vehicle.mass", "-9.5", "vehicle.mass", "must be a positive, finite number (got -9.5)"),
         ("vehicle.bay_size", "[0.2, true, 0.1]", "vehicle.bay_size", "got [0.2, true, 0.1]"),
+        ("vehicle.inertia", "[0.15, 0, 0.16]", "vehicle.inertia",
+         "every principal moment of inertia must be positive (got 0"),
     ],
-)
+)  # fmt: skip
 def test_a_wrong_value_is_named_as_the_design_file_spells_it(tmp_path, path, toml, named, says):
     """What a design file holds is quoted in TOML (``true``, ``"45 mm"``), not Python's
     ``True`` and ``'45 mm'``; a mass is not called a size. The file is written and read
@@ -392,6 +398,7 @@ def test_a_wrong_value_is_named_as_the_design_file_spells_it(tmp_path, path, tom
         load_design(design)
     assert info.value.parameter == named
     assert says in str(info.value), str(info.value)
+    assert "size" not in says or "size" in path  # an inertia or a mass is not a size
 
 
 def test_cli_prints_one_line_and_exits_2_on_an_invalid_design(design_dict, tmp_path):
@@ -439,6 +446,13 @@ PLAUSIBILITY = [  # edit, the parameter named, what the one line must say
     ("finger.pad.thickness", 3e-6, "finger.pad.thickness", "(3.0 mm): did you mean 0.003?"),
     ("servo.mass", 2.3e-5, "servo.mass", "0.023 g is about a thousandth of its packaged value "
      "(23 g): did you mean 0.023? (the design file is in kg)"),
+    # the vehicle's own sizes, which the bounds above are taken from; angles in degrees
+    ("vehicle.bay_size", [200, 100, 100], "vehicle.bay_size",
+     "[200, 100, 100] m: did you mean [200, 100, 100] mm = [0.2, 0.1, 0.1]?"),
+    ("vehicle.mass", 9583.8, "vehicle.mass", "9583.8 kg: did you mean 9583.8 g = 9.5838?"),
+    ("finger.limits.mcp_flex", [-18, 127.8], "finger.limits.mcp_flex",
+     "[-18, 127.8] rad: did you mean [-0.314, 2.231] (degrees given)?"),
+    ("home.rail", 25, "home.rail", "25 m: did you mean 25 mm = 0.025?"),
 ]  # fmt: skip
 
 
@@ -506,6 +520,121 @@ def test_the_bounds_come_from_the_design_itself(design_dict):
     with pytest.raises(DesignError, match="Astrobee's body is 320 mm"):
         design_from_dict(long_rail)
     design_from_dict(_edit(long_rail, "vehicle", {"body_size": [0.4, 0.4, 0.4]}))
+
+
+def _packaged(dotted: str) -> Any:
+    """A value of the packaged default design (``payload new``'s)."""
+    value: Any = tomllib.loads(default_design_text())
+    for part in dotted.split("."):
+        value = value[part]
+    return value
+
+
+def _meant(message: str) -> Any:
+    """The value a refusal's "did you mean X?" suggests, read as a design file reads it."""
+    found = re.search(
+        r"did you mean (?:.* = )?(\[[^\]]*\]|[-0-9.e]+)(?: \(degrees given\))?\?", message
+    )
+    assert found, message
+    return tomllib.loads(f"x = {found.group(1)}")["x"]
+
+
+@pytest.mark.parametrize("key", ["body_size", "bay_size", "mass", "inertia"])
+@pytest.mark.parametrize("factor", [1000, 1 / 1000])
+def test_a_unit_slip_in_the_vehicle_table_names_the_packaged_value_meant(design_dict, key, factor):
+    """``vehicle.body_size = [320, 320, 320]`` (mm typed for metres) built, and every other
+    bound, taken from the vehicle, let a 45 m finger through after it; a thousandth of a
+    size (a conversion made twice) named another parameter. Both are refused first, naming
+    the vehicle's key, and what they suggest is the packaged value and builds."""
+    packaged = _packaged(f"vehicle.{key}")
+    typed = [v * factor for v in packaged] if isinstance(packaged, list) else packaged * factor
+    with pytest.raises(DesignError) as info:
+        design_from_dict(_edit(design_dict, f"vehicle.{key}", typed))
+    assert info.value.parameter == f"vehicle.{key}", str(info.value)
+    assert ("about a thousandth" in str(info.value)) == (factor < 1), str(info.value)
+    meant = _meant(str(info.value))
+    assert meant == pytest.approx(packaged)
+    design_from_dict(_edit(design_dict, f"vehicle.{key}", meant))
+
+
+def test_a_vehicle_slip_is_named_before_the_bounds_it_would_widen(design_dict):
+    """A vehicle a thousand times too large admitted a 45 m finger and a 23 kg servo; the
+    vehicle is named, whatever else the file holds. The bay size the file's refusal
+    suggests is the one ``--bay-size`` suggests for the same sizes."""
+    from payload.design.vehicle import Vehicle, with_bay_size
+
+    big_body = _edit(design_dict, "vehicle.body_size", [320, 320, 320])
+    with pytest.raises(DesignError) as info:
+        design_from_dict(_edit(big_body, "finger.lengths.distal", 45))
+    assert info.value.parameter == "vehicle.body_size"
+    heavy = _edit(design_dict, "vehicle.mass", 1000 * _packaged("vehicle.mass"))
+    with pytest.raises(DesignError) as info:
+        design_from_dict(_edit(heavy, "servo.mass", 23))
+    assert info.value.parameter == "vehicle.mass"
+    typed = [200, 100, 100]
+    with pytest.raises(DesignError) as file_said:
+        design_from_dict(_edit(design_dict, "vehicle.bay_size", typed))
+    with pytest.raises(DesignError) as option_said:
+        with_bay_size(Vehicle(), typed)
+    option = re.search(r"--bay-size ([0-9. ]+)\?", str(option_said.value))
+    assert option, str(option_said.value)
+    assert _meant(str(file_said.value)) == [float(v) for v in option.group(1).split()]
+
+
+@pytest.mark.parametrize("joint", FINGER_JOINTS)
+def test_joint_limits_in_degrees_are_refused_with_the_radians_meant(design_dict, joint):
+    """``mcp_flex = [-18, 127.8]`` built, and the summary showed -1031.3 deg .. 7322.4 deg:
+    no finger joint turns more than a turn, and a limit beyond one was typed in degrees."""
+    typed = [round(math.degrees(v), 1) for v in _packaged(f"finger.limits.{joint}")]
+    with pytest.raises(DesignError) as info:
+        design_from_dict(_edit(design_dict, f"finger.limits.{joint}", typed))
+    assert info.value.parameter == f"finger.limits.{joint}"
+    assert "(degrees given)" in str(info.value)
+    assert _meant(str(info.value)) == pytest.approx([math.radians(v) for v in typed], abs=5e-4)
+
+
+def test_a_limit_within_a_turn_is_no_degrees_slip(design_dict):
+    """The line is one turn: a limit just inside it is radians (and refused, if at all, for
+    something else), just outside it is degrees."""
+    design_from_dict(_edit(design_dict, "finger.limits.mcp_abd", [-6.28, 6.28]))
+    with pytest.raises(DesignError, match=r"\(degrees given\)"):
+        design_from_dict(_edit(design_dict, "finger.limits.mcp_abd", [-6.29, 6.29]))
+
+
+@pytest.mark.parametrize(
+    ("posture", "degrees"),
+    [
+        ("stowed.finger", None),  # the packaged stowed posture, in degrees
+        ("pinch.finger", None),
+        ("home.finger", [0, 0, 30, 10]),  # the packaged home posture is straight: zeros
+    ],
+)
+def test_a_posture_in_degrees_is_refused_with_the_radians_meant(design_dict, posture, degrees):
+    """``stowed.finger = [95, 0, 80.1, 103.4]`` said "95.0 rad is outside its limits" with
+    no word of the degrees it was typed in."""
+    typed = degrees or [round(math.degrees(v), 1) for v in _packaged(posture)]
+    with pytest.raises(DesignError) as info:
+        design_from_dict(_edit(design_dict, posture, typed))
+    assert info.value.parameter == posture
+    assert "(degrees given)" in str(info.value) and "outside its limits" in str(info.value)
+    meant = _meant(str(info.value))
+    assert meant == pytest.approx([math.radians(v) for v in typed], abs=5e-4)
+    design_from_dict(_edit(design_dict, posture, meant))
+
+
+@pytest.mark.parametrize("position", ["home.rail", "home.stage"])
+def test_a_posture_position_in_mm_is_refused_with_the_metres_meant(design_dict, position):
+    """``home.rail = 25`` said "25.0 m is outside [0, 0.05]"; it names the slip, and a
+    position just past its travel (no slip) is refused without a hint."""
+    packaged = _packaged(position)
+    with pytest.raises(DesignError) as info:
+        design_from_dict(_edit(design_dict, position, 1000 * packaged))
+    assert info.value.parameter == position
+    assert _meant(str(info.value)) == pytest.approx(packaged)
+    travel = _packaged(position.replace("home", "").strip(".") + ".travel")
+    with pytest.raises(DesignError) as info:
+        design_from_dict(_edit(design_dict, position, 1.2 * travel))
+    assert "outside" in str(info.value) and "did you mean" not in str(info.value)
 
 
 def test_an_empty_design_file_says_it_is_empty(tmp_path, capsys):

@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from payload.design.plausible import FIT_TOLERANCE, check_plausible
+from payload.design.slip import SLIP_FACTOR, as_radians, in_degrees, is_slip_into, spell
 from payload.errors import DesignError
 
 FINGERS: tuple[str, ...] = ("A", "B", "C", "D")
@@ -346,18 +347,44 @@ class Design:
                 "retarget.pad_link",
                 f"expected one of {', '.join(FINGER_LINKS)}, got {self.retarget.pad_link!r}",
             )
-        for j, v in zip(FINGER_JOINTS, self.pinch.finger):
-            if not f.limit(j).contains(v):
-                raise DesignError("pinch.finger", f"{j} = {v} rad is outside its limits")
+        _check_finger_posture("pinch", self.pinch.finger, f)
         for name, posture in (("stowed", self.stowed), ("home", self.home)):
-            for j, v in zip(FINGER_JOINTS, posture.finger):
-                if not f.limit(j).contains(v):
-                    raise DesignError(f"{name}.finger", f"{j} = {v} rad is outside its limits")
-            if not 0.0 <= posture.rail <= r.travel:
-                raise DesignError(f"{name}.rail", f"{posture.rail} m is outside [0, {r.travel}]")
-            if not 0.0 <= posture.stage <= st.travel:
-                raise DesignError(f"{name}.stage", f"{posture.stage} m is outside [0, {st.travel}]")
+            _check_finger_posture(name, posture.finger, f)
+            for axis, travel in (("rail", r.travel), ("stage", st.travel)):
+                _check_position(f"{name}.{axis}", getattr(posture, axis), travel)
         return self
+
+
+def _check_finger_posture(name: str, angles: tuple[float, ...], f: Finger) -> None:
+    """Refuse a posture's finger joint outside its limits; one typed in degrees says what
+    was meant (``[95, 0, 80.1, 103.4] rad: did you mean [1.658, 0, 1.398, 1.805] (degrees
+    given)?``)."""
+    for j, v in zip(FINGER_JOINTS, angles):
+        if f.limit(j).contains(v):
+            continue
+        outside = f"{j} = {v} rad is outside its limits"
+        if in_degrees(angles):
+            raise DesignError(
+                f"{name}.finger",
+                f"{spell(angles)} rad: did you mean {as_radians(angles)} (degrees given)? "
+                f"({outside}, and the design file is in radians)",
+            )
+        raise DesignError(f"{name}.finger", outside)
+
+
+def _check_position(parameter: str, value: float, travel: float) -> None:
+    """Refuse a posture's rail or stage position outside ``[0, travel]``; one typed in mm
+    says what was meant (``25 m: did you mean 25 mm = 0.025?``)."""
+    if 0.0 <= value <= travel:
+        return
+    outside = f"{value} m is outside [0, {travel}]"
+    if is_slip_into(value, travel):
+        raise DesignError(
+            parameter,
+            f"{value:g} m: did you mean {value:g} mm = {value / SLIP_FACTOR:g}? ({outside}, "
+            "and the design file is in metres)",
+        )
+    raise DesignError(parameter, outside)
 
 
 GAIN_MAX = 16383

@@ -11,7 +11,9 @@ build:
   proximal, middle) is at least one servo body width long (two bodies, each
   ``servo.width`` across its output axis, cannot stand closer without intersecting);
   the distal link holds the DIP servo's half body and the pad sphere;
-- a joint offset lies within the link: ``|offset| <= finger.section.depth``.
+- a joint offset lies within the link: ``|offset| <= finger.section.depth``;
+- no finger joint turns more than a turn: a limit beyond ``2 pi`` was typed in degrees
+  (``[-18, 127.8] rad: did you mean [-0.314, 2.231] (degrees given)?``).
 
 A value refused here that is about 1000 times its packaged default names the probable
 unit slip (``45 m: did you mean 45 mm = 0.045?``): the design file is SI throughout. A
@@ -20,6 +22,8 @@ thousandth of its packaged default (a servo 0.034 mm long, a conversion to metre
 twice) is refused as the slip the other way, before the bounds that it would break
 further on name another parameter for it. A coordinate, an offset or a gap may be zero,
 and is not checked so: a thousandth of its default is a value near zero like any other.
+The ``[vehicle]`` table's sizes, which the bounds above are taken from, are checked for
+both slips first (:func:`payload.design.vehicle.vehicle_from_dict`).
 """
 
 from __future__ import annotations
@@ -30,7 +34,7 @@ import sys
 from collections.abc import Iterator
 from typing import Any
 
-from payload.design.slip import SLIP_FACTOR, is_slip
+from payload.design.slip import SLIP_FACTOR, TURN, as_radians, in_degrees, is_slip, spell
 from payload.errors import DesignError
 from payload.project import default_design_text
 
@@ -201,6 +205,15 @@ def check_plausible(design: Any, data: dict[str, Any]) -> None:
                 f"finger.offsets.{joint}",
                 f"{_mm(offset)} puts the joint outside its link (finger.section.depth "
                 f"{f.section.depth * 1e3:.1f} mm)",
+            )
+    for joint in dataclasses.fields(f.limits):
+        typed = (getattr(f.limits, joint.name).lower, getattr(f.limits, joint.name).upper)
+        if in_degrees(typed):
+            raise DesignError(
+                f"finger.limits.{joint.name}",
+                f"{spell(typed)} rad: did you mean {as_radians(typed)} (degrees "
+                f"given)? (no finger joint turns more than a turn, {TURN:.3f} rad, and the "
+                "design file is in radians)",
             )
 
 

@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from payload.design.slip import SLIP_FACTOR, is_slip
+from payload.design.slip import SLIP_FACTOR, is_slip, spell
 from payload.errors import DesignError, as_toml, is_number
 
 BAY_ASSUMPTION = (
@@ -106,6 +106,15 @@ the price of louder, hungrier 2800 rpm impellers."""
 
 
 _KEYS = ("body_size", "body_offset", "bay_size", "mass", "inertia", "assumption")
+_UNITS = {
+    "body_size": ("m", "mm", "metres"),
+    "bay_size": ("m", "mm", "metres"),
+    "mass": ("kg", "g", "kg"),
+    "inertia": ("kg m^2", "g m^2", "kg m^2"),
+}
+"""The ``[vehicle]`` sizes checked for a unit slip: their unit, the small unit a slip types
+and the design file's unit named in full (``body_offset`` is a coordinate: it may be
+zero, and near it a thousandth of its default is no slip)."""
 _WALLS = ("-x (aft)", "+x (forward)", "-y (right)", "+y (left)", "-z (bottom face)", "+z (mount)")
 
 
@@ -145,8 +154,8 @@ class Vehicle:
         _check_vector("vehicle.body_size", self.body_size, 3, positive=True)
         _check_vector("vehicle.body_offset", self.body_offset, 2, positive=False)
         _check_vector("vehicle.bay_size", self.bay_size, 3, positive=True)
-        _check_vector("vehicle.inertia", self.inertia, 3, positive=True)
-        _check_vector("vehicle.mass", (self.mass,), 1, positive=True)
+        _check_vector("vehicle.inertia", self.inertia, 3, positive=True, size="moment")
+        _check_positive("vehicle.mass", self.mass)
         if not isinstance(self.assumption, str):
             raise VehicleError("vehicle.assumption", f"expected a string, got {self.assumption!r}")
         for i, axis in enumerate("xy"):
@@ -252,7 +261,9 @@ class Vehicle:
         }
 
 
-def _check_vector(where: str, value: Any, n: int, positive: bool) -> None:
+def _check_vector(where: str, value: Any, n: int, positive: bool, size: str = "size") -> None:
+    """Refuse ``value`` unless it is ``n`` finite numbers, every one (``size``: what one is,
+    in the message) positive where ``positive``."""
     ok = isinstance(value, (list, tuple)) and len(value) == n and all(map(is_number, value))
     if not ok:
         raise VehicleError(where, f"expected {n} numbers, got {as_toml(value)}")
@@ -260,7 +271,7 @@ def _check_vector(where: str, value: Any, n: int, positive: bool) -> None:
         if not math.isfinite(v):
             raise VehicleError(where, f"must be finite (got {v})")
         if positive and not v > 0:
-            raise VehicleError(where, f"every size must be positive (got {v})")
+            raise VehicleError(where, f"every {size} must be positive (got {v})")
 
 
 def _check_positive(where: str, value: Any) -> None:
@@ -287,16 +298,52 @@ def vehicle_from_dict(data: Any, source: str = "<memory>") -> Vehicle:
     for key in ("body_size", "body_offset", "bay_size", "inertia"):
         if key in data:
             n = 2 if key == "body_offset" else 3
-            _check_vector(f"vehicle.{key}", data[key], n, positive=key != "body_offset")
+            size = "principal moment of inertia" if key == "inertia" else "size"
+            _check_vector(f"vehicle.{key}", data[key], n, key != "body_offset", size)
             kwargs[key] = tuple(float(v) for v in data[key])
     if "mass" in data:
         _check_positive("vehicle.mass", data["mass"])
         kwargs["mass"] = float(data["mass"])
+    for key in _UNITS:  # first: a slip is named before the bounds it breaks (the bays)
+        if key in kwargs:
+            _refuse_slip(key, kwargs[key])
     if "assumption" in data:
         kwargs["assumption"] = data["assumption"]
     elif "bay_size" in data:
         kwargs["assumption"] = f"bay size {_mm(kwargs['bay_size'])} given in {source}"
     return Vehicle(**kwargs)
+
+
+def _refuse_slip(key: str, value: float | tuple[float, ...]) -> None:
+    """Refuse a ``[vehicle]`` size about :data:`SLIP_FACTOR` times its default (a body of
+    320 m, mm typed for metres), or about a thousandth of it (a conversion made twice),
+    saying what was meant: every other bound of the design is taken from these values,
+    and a vehicle a thousand times too large admits a finger a thousand times too long."""
+    unit, small, named = _UNITS[key]
+    default = getattr(Vehicle, key)
+    given, packaged = (v if isinstance(v, tuple) else (v,) for v in (value, default))
+    vector = isinstance(value, tuple)
+
+    def show(values: list[float] | tuple[float, ...]) -> str:  # the mass as one number
+        return spell(values) if vector else f"{values[0]:g}"
+
+    large = [is_slip(v, d) for v, d in zip(given, packaged)]
+    if any(large):
+        meant = show([v / SLIP_FACTOR if s else v for v, s in zip(given, large)])
+        said = f"{show(given)} {small} = {meant}" if all(large) else meant
+        raise VehicleError(
+            f"vehicle.{key}",
+            f"{show(given)} {unit}: did you mean {said}? (about {SLIP_FACTOR:g} times its "
+            f"packaged value, {show(packaged)} {unit}, and the design file is in {named})",
+        )
+    tiny = [is_slip(d, v) for v, d in zip(given, packaged)]
+    if any(tiny):
+        meant = show([v * SLIP_FACTOR if s else v for v, s in zip(given, tiny)])
+        raise VehicleError(
+            f"vehicle.{key}",
+            f"{show(given)} {unit} is about a thousandth of its packaged value "
+            f"({show(packaged)} {unit}): did you mean {meant}? (the design file is in {named})",
+        )
 
 
 def with_bay_size(vehicle: Vehicle, bay_size: Any) -> Vehicle:
