@@ -437,8 +437,11 @@ def run_hardware_trial(
             bar.stop()
         sim.close()
     result = finish_trial(out, rec_path)
+    # the steps that ended later than their 20 ms period (paced only: unpaced, none is due)
+    overruns = ended[0].overruns if pace and ended else None
     result.update(steps=len(commands), driver="hardware", **far_end, provenance=prov,
-                  watchdog=watchdog, replay=str(Path(replay).resolve()))  # fmt: skip
+                  watchdog=watchdog, replay=str(Path(replay).resolve()),
+                  loop_overruns=overruns)  # fmt: skip
     write_metrics(out, result)
     return result
 

@@ -270,6 +270,32 @@ def test_hw_run_of_a_synthetic_trial_says_what_it_ran_on_and_places_the_ctb_as_i
     )
 
 
+def test_hw_run_says_when_its_paced_loop_fell_behind_50_hz(tmp_path, capsys):
+    """Every reply 25 ms late (the emulator's latency fault, longer than the 20 ms period
+    by itself): each paced step ends after its period. `hw run` said nothing of it (the
+    loop counted its overruns, and nothing read them): `metrics.json` has
+    `loop_overruns` (every step here) and the summary a line saying it fell behind; an
+    unpaced run has none due (null)."""
+    from payload.cli import main
+    from payload.trials.runner import run_trial
+
+    src = tmp_path / "src"
+    run_trial(3, "synthetic", out_dir=src, max_time=1.0)
+    with EmulatorProcess(faults=["latency:25ms"]) as emu:
+        argv = ["hw", "run", "--device", emu.port, "--replay", str(src / "log.mcap"),
+                "--max-time", "0.5", "--latency-ms", "30"]  # fmt: skip
+        assert main([*argv, "--out", str(tmp_path / "paced")]) == 0
+        printed = capsys.readouterr().out
+        assert main([*argv, "--no-pace", "--out", str(tmp_path / "unpaced")]) == 0
+        capsys.readouterr()
+    paced = json.loads((tmp_path / "paced" / "metrics.json").read_text())
+    assert paced["loop_overruns"] == paced["steps"] > 0
+    said = f"  fell behind 50 Hz: {paced['steps']} of {paced['steps']} steps ended after"
+    assert any(line.startswith(said) for line in printed.splitlines()), printed
+    unpaced = json.loads((tmp_path / "unpaced" / "metrics.json").read_text())
+    assert unpaced["loop_overruns"] is None
+
+
 def _messages(path, topic):
     """The messages of one topic of an MCAP file, read with the mcap library itself."""
     from mcap.reader import make_reader

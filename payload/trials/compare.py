@@ -34,10 +34,11 @@ from payload.trials.setup_options import RUN_SETTINGS
 from payload.trials.summary_fields import METRIC_KEYS, METRIC_LABELS
 from payload.trials.trial_results import read_metrics
 
-NOT_RESULTS = ("provenance", "ended_by", "device", "replay")
+NOT_RESULTS = ("provenance", "ended_by", "device", "replay", "loop_overruns")
 """``metrics.json`` fields a step comparison leaves out: where and with what a run was
 made (a hardware run's serial device and the path of the recording it replayed among
-them), and what ended its session (a replay of a trial cut off by ``--max-time`` ends
+them, and how often its paced loop ran late: the host's timing), and what ended its
+session (a replay of a trial cut off by ``--max-time`` ends
 with its source's last frame at the same step: the recorded steps say where it ended)."""
 
 
