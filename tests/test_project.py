@@ -222,6 +222,41 @@ def test_build_design_f_writes_fs_project(new_project, tmp_path, capsys, checkou
     assert _digest(ROOT) == checkout_before
 
 
+def test_build_notes_reports_made_from_another_version_of_the_design(tmp_path, capsys):
+    """`build` follows the models only; a report made before a design edit then carried
+    the old design's digest while `build --check` said all matched. `build` and `build
+    --check` now say which reports were made from another version of the design file
+    (their provenance's digest against the file's own, by hashlib), and stop once the
+    report is run again."""
+    p = Project.at(tmp_path / "p")
+    assert main(["new", str(p.root)]) == 0
+    assert main(["--project", str(p.root), "report", "envelope", "--no-search"]) == 0
+    capsys.readouterr()
+    note = "note: analyses/envelope.json made from another version of"
+
+    def made_from_the_file() -> bool:
+        made = json.loads((p.analyses_dir / "envelope.json").read_text())
+        return made["provenance"]["design_sha256"] == (
+            hashlib.sha256(p.design_path.read_bytes()).hexdigest()
+        )
+
+    assert made_from_the_file()
+    assert main(["--project", str(p.root), "build", "--check"]) == 0
+    assert note not in capsys.readouterr().out
+    p.design_path.write_text(_set(p.design_path.read_text(), "rail", "travel", 0.045))
+    assert not made_from_the_file()
+    for argv in (["build"], ["build", "--check"]):
+        assert main(["--project", str(p.root), *argv]) == 0
+        out = capsys.readouterr().out
+        assert f"{note} {p.design_path}: `payload report all`" in out, out
+        assert "reach.json" not in out  # never made: nothing to follow
+    assert main(["--project", str(p.root), "report", "envelope", "--no-search"]) == 0
+    assert made_from_the_file()
+    capsys.readouterr()
+    assert main(["--project", str(p.root), "build", "--check"]) == 0
+    assert note not in capsys.readouterr().out
+
+
 def test_models_come_from_the_project(new_project, monkeypatch):
     from payload.kinematics import Kinematics
     from payload.retarget.hand import load_hand

@@ -41,6 +41,7 @@ def _cmd_build(args: argparse.Namespace) -> int:
                 f"{design.source}; {hint})"
             )
         print(f"generated files match {design.source} ({time.perf_counter() - t0:.2f} s)")
+        _say_stale_reports(args)
         return 0
     result = write(design, root)
     dt = time.perf_counter() - t0
@@ -52,7 +53,43 @@ def _cmd_build(args: argparse.Namespace) -> int:
         print(f"the {n} generated files under {root} already match {design.source}: none written")
     if result.removed:  # a renamed or dropped part's mesh: nothing reads it any more
         print(f"removed {', '.join(result.removed)} (no part of the design makes it)")
+    _say_stale_reports(args)
     return 0
+
+
+def stale_reports(analyses: Path, design: Path) -> list[str]:
+    """The reports in ``analyses`` (``envelope.json``, ``reach.json``) made from another
+    version of the design file ``design`` (their provenance's ``design_sha256`` is not the
+    file's): derived files that no longer follow their source. An unreadable report, or
+    one without a digest, is not counted (nothing says what it was made from)."""
+    import hashlib
+    import json
+
+    from payload.folders import REPORT_FILES
+
+    digest = hashlib.sha256(design.read_bytes()).hexdigest()
+    stale = []
+    for name in REPORT_FILES:
+        try:
+            made = json.loads((analyses / name).read_text())["provenance"]["design_sha256"]
+        except (OSError, ValueError, KeyError, TypeError):
+            continue
+        if made != digest:
+            stale.append(name)
+    return stale
+
+
+def _say_stale_reports(args: argparse.Namespace) -> None:
+    """A note when the project's reports were made from another version of its design
+    file (``build`` follows the models only; the reports follow it when they are run)."""
+    if args.root:
+        return
+    project = command_project(args, args.design, announce=False)
+    stale = stale_reports(project.analyses_dir, project.design_path)
+    if stale:
+        names = ", ".join(f"analyses/{name}" for name in stale)
+        print(f"note: {names} made from another version of {project.design_path}: `payload "
+              "report all` brings the reports up to date")  # fmt: skip
 
 
 def _check_own_design(design: Path) -> None:
