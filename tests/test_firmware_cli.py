@@ -133,10 +133,11 @@ def test_check_fails_naming_the_missing_servo(emulate, capsys):
 
 
 @contextlib.contextmanager
-def _emulating(fault: str) -> Iterator[str]:
-    """``payload hw emulate --fault FAULT`` in its own process; yields its port."""
+def _emulating(*faults: str) -> Iterator[str]:
+    """``payload hw emulate [--fault F ...]`` in its own process; yields its port."""
+    given = [arg for fault in faults for arg in ("--fault", fault)]
     proc = subprocess.Popen(
-        [sys.executable, "-m", "payload.cli", "hw", "emulate", "--fault", fault],
+        [sys.executable, "-m", "payload.cli", "hw", "emulate", *given],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
     try:
@@ -146,6 +147,17 @@ def _emulating(fault: str) -> Iterator[str]:
         proc.wait(timeout=10)
         proc.stdout.close()
         proc.stderr.close()
+
+
+def test_a_passing_check_says_so(capsys):
+    """`hw check` on a healthy bus listed the servos and ended without a word on the
+    outcome; it now ends with one line saying it passed, counting the map's servos."""
+    with _emulating() as port:
+        assert main(["hw", "check", "--device", port, "--latency-ms", LAT]) == 0
+    out = capsys.readouterr().out.strip().splitlines()
+    n = len(load_servo_map().ids)
+    assert len([line for line in out if line.startswith("ID ")]) == n
+    assert out[-1].startswith(f"check passed: {n} servos answering, the rail and the stage "), out
 
 
 def test_check_says_a_servos_hardware_error_once(capsys):
