@@ -77,6 +77,10 @@ def test_bad_sweep_input_exits_2_and_writes_nothing(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert "finger.lengths.thumb: not a design key" in err and "\n" not in err
     assert not out.exists()  # nothing made for a sweep that never started
+    # a typo names the key it was, as the design file's loader does
+    assert main(["sweep", "--set", "finger.lenghts.distal=0.04", "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.endswith("not a design key (did you mean finger.lengths.distal?)"), err
     # each point's trials run seeds S to S + N - 1: past 2^63 - 1, refused before the
     # points (it was each point's error, after its build, envelope and reach)
     argv = ["sweep", "--set", "rail.travel=0.04", "--trials", "2", "--seed", str(2**63 - 1)]

@@ -8,6 +8,7 @@ from ``A`` to ``B``. The grid is every combination, in the order the keys were g
 
 from __future__ import annotations
 
+import difflib
 import itertools
 import math
 import sys
@@ -99,6 +100,15 @@ def _lookup(data: dict[str, Any], key: str) -> Any:
     return node
 
 
+def _number_keys(node: Any, prefix: str = "") -> list[str]:
+    """The dotted keys of the numbers in a design's plain dict (what can be swept)."""
+    if isinstance(node, dict):
+        return [k for name, v in node.items() for k in _number_keys(v, f"{prefix}{name}.")]
+    if isinstance(node, (int, float)) and not isinstance(node, bool):
+        return [prefix[:-1]]
+    return []
+
+
 def check_axes(axes: list[Axis], base: Design) -> None:
     """Every key names a number of the design, once.
 
@@ -117,7 +127,9 @@ def check_axes(axes: list[Axis], base: Design) -> None:
         try:
             value = _lookup(plain, axis.key)
         except KeyError:
-            raise SweepError(f"--set {axis.key}: not a design key") from None
+            near = difflib.get_close_matches(axis.key, _number_keys(plain), n=1)
+            hint = f" (did you mean {near[0]}?)" if near else ""
+            raise SweepError(f"--set {axis.key}: not a design key{hint}") from None
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise SweepError(f"--set {axis.key}: not a number in the design (it is {value!r})")
     total = math.prod(len(a.values) for a in axes)
