@@ -30,7 +30,7 @@ from payload.cliutil import (
     results_folder,
     say_stage,
 )
-from payload.errors import PayloadError
+from payload.errors import PayloadError, counted
 from payload.folders import CAMPAIGN_FILES, HANDS, RECORDING, TRIAL_FILES
 from payload.trials.setup_options import MAX_TRIAL_S
 
@@ -227,7 +227,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     from payload.trials.summary import print_trial_summary
 
     far = "the emulator" if result["emulator"] else "hardware"
-    print(f"hw run ({far} on {result['device']}), {result['steps']} steps -> {out}")
+    print(f"hw run ({far} on {result['device']}), {counted(result['steps'], 'step')} -> {out}")
     print(f"  Bus Watchdog: {result['watchdog']['effect']}")
     print(f"  ended: {_ended(result)}; every servo's torque turned off")
     if result.get("loop_overruns"):  # the servos ran behind the recording's 50 Hz

@@ -37,6 +37,12 @@ def not_text(exc: UnicodeDecodeError, kind: str) -> str:
     return f"not a text (UTF-8 {kind}) file: byte {exc.start} is 0x{exc.object[exc.start]:02x}"
 
 
+def counted(n: int, noun: str) -> str:
+    """``n`` and ``noun``, plural but for one (``1 point``, ``2 points``; nouns taking
+    ``-s``)."""
+    return f"{n} {noun}" if n == 1 else f"{n} {noun}s"
+
+
 def is_number(value: Any) -> bool:
     """A TOML number of a design file (an int or a float; a boolean is not one)."""
     return isinstance(value, (int, float)) and not isinstance(value, bool)
