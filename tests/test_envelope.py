@@ -684,3 +684,95 @@ def test_a_reach_run_with_other_settings_says_so_before_its_figures() -> None:
     assert (
         same == "changed since reach.prev.json: fingertips below the vehicle 202.52 mm -> 201.42 mm"
     )
+
+
+def test_an_out_holding_another_designs_report_or_other_files_is_refused(tmp_path, capsys):
+    """``--out`` into another project's analyses/ (its report of its own design) or into a
+    folder holding files that are no report (a hand-written ``envelope.md``, a JSON
+    without provenance): one line, exit 2, every file as it was, unless ``--force``. A
+    report written there names the project it came from, so it is recognised as its
+    own on the next run."""
+    from payload.cli import main
+    from payload.design.cli import new_project
+
+    a, _ = new_project(tmp_path / "a")
+    b, _ = new_project(tmp_path / "b")
+    _edit_design(b.design_path, "distal = 0.045 ", "distal = 0.044 ")
+    assert _report(b.root, capsys)[0] == 0
+    theirs = {p.name: p.read_bytes() for p in b.analyses_dir.iterdir()}
+    code, _, err = _report(a.root, capsys, "--out", str(b.analyses_dir))
+    assert code == 2 and len(err) == 1
+    assert err[0] == (
+        f"payload: error: --out {b.analyses_dir}: envelope.json there is the report of "
+        f"{b.design_path}, not of {a.design_path}; give another --out, or --force to "
+        "replace it"
+    )
+    assert {p.name: p.read_bytes() for p in b.analyses_dir.iterdir()} == theirs
+    other = tmp_path / "otherres"
+    other.mkdir()
+    (other / "envelope.md").write_text("my notes\n")
+    code, _, err = _report(a.root, capsys, "--out", str(other))
+    assert code == 2 and len(err) == 1 and "envelope.md there is no report of " in err[0]
+    # nor the reach report, refused before it samples anything
+    (other / "reach.md").write_text("my notes\n")
+    argv = ["--project", str(a.root), "report", "reach", "--samples", "1000", "--out", str(other)]
+    assert main(argv) == 2
+    assert "reach.md there is no report of " in capsys.readouterr().err
+    (other / "envelope.json").write_text('{"mine": 1}\n')
+    code, _, err = _report(a.root, capsys, "--out", str(other))
+    assert code == 2 and "envelope.json there is no report (no provenance" in err[0]
+    assert (other / "envelope.md").read_text() == "my notes\n"
+    assert (other / "envelope.json").read_text() == '{"mine": 1}\n'
+    assert sorted(p.name for p in other.iterdir()) == ["envelope.json", "envelope.md", "reach.md"]
+    # --force replaces them; the report then names its project and is its own next time
+    code, lines, _ = _report(a.root, capsys, "--out", str(other), "--force")
+    assert code == 0 and lines[-1].startswith("wrote ")
+    prov = json.loads((other / "envelope.json").read_text())["provenance"]
+    assert prov["project"] == str(a.root) and prov["design"] == "cad/design.toml"
+    assert Path(prov["project"], prov["design"]) == a.design_path
+    code, lines, _ = _report(a.root, capsys, "--out", str(other))
+    assert code == 0 and "report unchanged" in lines[-1]
+    # the project's own analyses/ (no project in its files' provenance) is its own too
+    assert _report(b.root, capsys)[0] == 0
+    assert "project" not in json.loads((b.analyses_dir / "envelope.json").read_text())["provenance"]
+
+
+def test_wall_labels_name_the_least_clearance_over_every_part(design_dict):
+    """envelope.png's wall labels against envelope.json's per-part clearances (python-fcl,
+    per wall): with the sides 90 mm apart some parts stick out sideways, and each other
+    wall's label still shows the least clearance over every part, inside or not (the
+    stage, outside, is the nearest to the mount face at 6.0 mm; the knuckles, outside, to
+    the bottom face at 5.1 mm)."""
+    from matplotlib.figure import Figure
+
+    from payload.envelope.drawing import AXES
+    from payload.envelope.envelope_figure import _annotate_clearances
+    from payload.envelope.report_json import envelope_json
+
+    data = copy.deepcopy(design_dict)
+    data["array"]["side_gap"] = 0.090
+    analysis = analyse_envelope(geometry_of(data), VEHICLE, search=False)
+    parts = envelope_json(analysis)["parts"]
+    assert not all(p["inside"] for p in parts)
+    fig = Figure()
+    seen = set()
+    for axis, ax in enumerate(fig.subplots(1, 3)):
+        _annotate_clearances(ax, analysis.given, VEHICLE, axis)
+        walls = [w for w in range(6) if w // 2 in AXES[axis]]
+        texts = [t.get_text() for t in ax.texts]
+        assert len(texts) == len(walls)
+        for w, text in zip(walls, texts):
+            wall = VEHICLE.walls[w]
+            out = [p for p in parts if not p["inside"] and p["wall"] == wall]
+            if out:
+                far = max(out, key=lambda p: p["protrusion_mm"])
+                assert text == f"{far['name']}: {far['protrusion_mm']:.1f} mm out"
+                continue
+            values = {p["name"]: p["wall_clearance_mm"][w] for p in parts}
+            least = min(v for v in values.values() if v is not None)
+            mm, name = text.removesuffix(")").split(" mm (")
+            assert float(mm) == pytest.approx(least, abs=0.051), (wall, text)
+            assert values[name] == pytest.approx(least, abs=0.01), (wall, text)
+            seen.add((wall, text))
+    assert ("+z (mount)", "6.0 mm (stage)") in seen
+    assert any(w.startswith("-z") and t.startswith("5.1 mm (") for w, t in seen), seen

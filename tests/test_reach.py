@@ -754,3 +754,81 @@ def test_report_reach_starts_its_time_after_the_checks_load(monkeypatch, tmp_pat
     with pytest.raises(Stop):
         main(["report", "reach", "--samples", "1000", "--json", "--out", str(tmp_path)])
     assert before + load_s <= starts[0] <= time.perf_counter() + load_s
+
+
+def test_a_design_whose_fingers_almost_never_move_free_fails_with_a_report(tmp_path, capsys):
+    """Links 49 mm deep (the default 28 mm) leave fingers A, B and D free in 2 of 2,000
+    samples: too few for a workspace is a result about the design and the sampling (exit
+    1, the report written, saying why and to sample more), not bad input (exit 2); the
+    pairs' line says how many features it checked."""
+    from payload.cli import main
+    from payload.design.cli import new_project
+
+    project, _ = new_project(tmp_path / "p")
+    text = project.design_path.read_text()
+    project.design_path.write_text(text.replace("\ndepth = 0.028 ", "\ndepth = 0.049 ", 1))
+    code = main(["--project", str(project.root), "report", "reach", "--samples", "2000"])
+    out = capsys.readouterr()
+    assert code == 1, out.err
+    data = json.loads((project.analyses_dir / "reach.json").read_text())
+    assert data["passed"] is False and data["samples"] == 2000
+    # the fingers the verdict names are those the JSON counts under 4 free samples
+    few = {f: round(w["reachable_fraction"] * 2000) for f, w in data["fingers"].items()}
+    assert {f for f, n in few.items() if n < 4} == {"A", "B", "D"}
+    err = out.err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("payload: check failed: reach: fingers A (2), ")
+    assert "sample more (--samples)" in err[0]
+    lines = out.out.splitlines()
+    assert lines[2].startswith("verdict: FAILS: fingers A (2), B (2), D (2) moved free in ")
+    assert "sample more (--samples)" in (project.analyses_dir / "reach.md").read_text()
+    for pair in ("L", "R"):
+        checked = len(data["pairs"][pair]["grasp"])
+        assert not any(g["closes"] for g in data["pairs"][pair]["grasp"])
+        assert any(
+            x.startswith(f"pair {pair}: ")
+            and x.endswith(f"closes on none of the {checked} features checked")
+            for x in lines
+        ), lines
+
+
+def test_the_reach_change_line_names_a_flipped_verdict_first() -> None:
+    """The reach report records ``passed`` and its change line names it, as the
+    envelope's does ("passes yes -> no")."""
+    from payload.envelope.verdict import headline_changes
+
+    before = {"samples": 2000, "seed": 0, "passed": True, "below_vehicle_mm": 202.5}
+    after = {**before, "passed": False, "below_vehicle_mm": 197.3}
+    assert headline_changes("reach", before, after) == (
+        "changed since reach.prev.json: passes yes -> no; "
+        "fingertips below the vehicle 202.50 mm -> 197.30 mm"
+    )
+
+
+def test_the_pairs_grasp_markers_sit_on_rows_of_their_own(small, geom) -> None:
+    """reach.png's span panel: each pair's marker for a feature at the same thickness
+    is drawn at another height (pair L's no longer hidden under pair R's), both inside
+    the panel's lower edge."""
+    from matplotlib.figure import Figure
+
+    from payload.envelope.reach_figure import _span_panel
+
+    fig = Figure()
+    ax = fig.subplots()
+    _span_panel(ax, small, geom.tree.design.finger.pad.radius)
+    fig.canvas.draw()
+    marks: dict[float, list[tuple[str, float]]] = {}
+    for line in ax.get_lines():
+        if line.get_marker() in ("^", "x") and len(line.get_xdata()) == 1:
+            x, y = ax.transData.inverted().transform(
+                line.get_transform().transform((line.get_xdata()[0], line.get_ydata()[0]))
+            )
+            marks.setdefault(round(float(x), 6), []).append((line.get_marker(), float(y)))
+    features = len(small.pairs[0].grasps)
+    assert len(marks) == features  # one thickness per feature, a marker per pair
+    bottom, top = ax.get_ylim()
+    for ys in marks.values():
+        assert len(ys) == 2
+        (_, y_l), (_, y_r) = ys  # drawn pair L first
+        rows = [ax.transData.transform((0, y))[1] for y in (y_l, y_r)]
+        assert rows[1] - rows[0] > 10  # pixels: more than a 7-point marker apart, R above L
+        assert bottom <= y_l < y_r < top

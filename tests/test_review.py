@@ -22,6 +22,7 @@ from conftest import DESIGN, ROOT, URDF
 from payload.cli import main
 from payload.design import MANIPULATION_JOINTS, build_tree, load_design
 from payload.envelope.geometry import PayloadGeometry
+from payload.envelope.vehicle import Vehicle
 from payload.review.design_view import OFFENDING_COLOUR, REVIEW, build_design_review, link_colour
 from payload.review.project import design_hash, project_files
 from payload.review.scene import FAIL, PASS, frame_values
@@ -823,3 +824,41 @@ def test_a_session_the_cap_stopped_is_said_to_have_stopped_early(tmp_path) -> No
                  "0"]) == 0  # fmt: skip
     page = out.read_text()
     assert "recording: finished, the session stopped early: stopped by the session" in page
+
+
+def test_clearance_labels_take_every_part_as_the_envelope_report_does(
+    tmp_path, design_dict, capsys
+):
+    """With the sides 90 mm apart some parts stick out sideways: a wall's clearance label
+    is still the least clearance to it over every part, inside the bays or not, as the
+    envelope report's JSON gives per part (``report envelope --json``, python-fcl per wall);
+    a wall a part crosses has its protrusion labelled instead."""
+    root = tmp_path / "project"
+    shutil.copytree(ROOT / "urdf", root / "urdf")
+    shutil.copytree(ROOT / "cad" / "meshes", root / "cad" / "meshes")
+    data = {**design_dict, "array": {**design_dict["array"], "side_gap": 0.090}}
+    (root / "cad" / "design.toml").write_bytes(tomli_w.dumps(data).encode())
+    capsys.readouterr()  # (the report rebuilds the models first)
+    assert main(["--project", str(root), "report", "envelope", "--no-search", "--json"]) == 1
+    parts = json.loads(capsys.readouterr().out)["parts"]
+    rv = build_design_review(project_files(root / "cad" / "design.toml"), reach_samples=0)
+    crossed = {p["wall"] for p in parts if not p["inside"]}
+    assert crossed and len(crossed) < 6
+    labels = dict(rv.scene.overlay.labels)
+    walls = Vehicle().walls  # the design keeps the default bays
+    drawn = set()
+    for w in range(6):
+        label = labels.get(f"{REVIEW}/findings/clearance/{_wall_key(w)}/label")
+        if label is None:
+            continue
+        drawn.add(walls[w])
+        part, _, rest = label.partition(" - ")
+        mm = float(rest.removesuffix(" mm").rsplit(" ", 1)[1])
+        least = min(
+            p["wall_clearance_mm"][w] for p in parts if p["wall_clearance_mm"][w] is not None
+        )
+        assert mm == pytest.approx(least, abs=0.051), label
+        named = next(p for p in parts if p["name"] == part)
+        assert named["wall_clearance_mm"][w] == pytest.approx(least, abs=0.01), label
+    assert drawn == set(walls) - crossed
+    assert labels[f"{REVIEW}/findings/clearance/plus_z/label"] == "stage - bay mount 6.0 mm"

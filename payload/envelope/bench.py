@@ -33,6 +33,7 @@ from payload.envelope.collisions import CollisionModel
 from payload.envelope.geometry import PayloadGeometry
 from payload.envelope.overlap import compile_check
 from payload.envelope.pairs import ReachError
+from payload.envelope.report_files import PROVENANCE_KEY
 from payload.envelope.sampling import sample_configurations
 from payload.envelope.vehicle import Vehicle
 
@@ -93,6 +94,19 @@ def compare_checks(
     }
 
 
+def _name_the_project(report: Path, root: Path) -> None:
+    """Give a copy of a project's report the project it came from, as a report written
+    outside its project's ``analyses/`` carries it (the copy is then that design's report
+    there, which the timed command replaces only when its figures change)."""
+    if not report.exists():
+        return
+    data = json.loads(report.read_text())
+    prov = data.get(PROVENANCE_KEY)
+    if isinstance(prov, dict) and "project" not in prov:
+        data[PROVENANCE_KEY] = {"project": str(root), **prov}
+        report.write_text(json.dumps(data, indent=2) + "\n")
+
+
 def time_report(
     root: Path, analyses: Path, samples: int, runs: int, aim_samples: int
 ) -> dict[str, Any]:
@@ -103,6 +117,7 @@ def time_report(
         for f in analyses.glob("reach.*"):
             if f.suffix in (".json", ".md", ".png") and not f.name.endswith(".timing.json"):
                 shutil.copy2(f, Path(tmp) / f.name)
+        _name_the_project(Path(tmp) / "reach.json", root)
         cmd = [sys.executable, "-m", "payload", "report", "reach", "--samples", str(samples)]
         cmd += ["--json", "--out", tmp, "--project", str(root)]
         for _ in range(runs):

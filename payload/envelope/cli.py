@@ -19,6 +19,7 @@ from payload.envelope.cli_runs import (
     _models_follow,
     _project,
     _recorder,
+    _refuse_foreign_reports,
     _stdout_json,
     reach_lines,
     run_envelope,
@@ -125,6 +126,7 @@ def _cmd_all(args: argparse.Namespace) -> int:
 
     project = _project(args)
     _check_reach_args(args)  # bad numbers: exit 2 before any work
+    _refuse_foreign_reports(args, "envelope", "reach")  # and another's reports, before both
     rebuilt = models_follow_design(project.design_path, project.root, json=args.json)
     envelope, env_paths, env_lines = run_envelope(args)
     reach, reach_paths = run_reach(args)
@@ -242,7 +244,8 @@ def register(
         "--force",
         action="store_true",
         help="rewrite the report even when its figures did not change (a report whose "
-        "figures changed is always replaced: reports follow the design)",
+        "figures changed is always replaced: reports follow the design), or replace files "
+        "in --out that are not this design's report",
     )
 
     p = groups["report"].add_parser(

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import time
 from collections.abc import Callable, Iterator
@@ -67,11 +68,10 @@ def _design_path(args: argparse.Namespace) -> Path:
     return Path(args.design).expanduser() if args.design else _project(args).design_path
 
 
-def _provenance_design(args: argparse.Namespace, project: Project | None) -> Path:
-    """The design file a report's provenance names: as given inside a project (made
-    relative to it), absolute for a design in no project (traceable from anywhere)."""
-    path = _design_path(args)
-    return path if project is not None else path.resolve()
+def _provenance_design(args: argparse.Namespace) -> Path:
+    """The design file a report's provenance names, absolute (the provenance makes it
+    relative to the project when inside it)."""
+    return _design_path(args).resolve()
 
 
 def _out_dir(args: argparse.Namespace) -> Path:
@@ -104,14 +104,36 @@ def _out_dir(args: argparse.Namespace) -> Path:
 
 
 def _recorder(args: argparse.Namespace) -> Callable[[dict[str, Any]], dict[str, Any]]:
-    """Adds ``provenance`` (what the report was computed from) to a report's JSON. The
-    files inside the project omit the project's absolute path; stdout adds ``project``."""
+    """Adds ``provenance`` (what the report was computed from) to a report's JSON. A
+    report in its project's own ``analyses/`` omits the project's absolute path (the folder
+    says it); one anywhere else (``--out``) keeps ``project`` (null for a design in no
+    project, whose ``design`` is then absolute), so it says what it came from wherever it
+    is read; stdout adds ``project``."""
+    from payload.envelope.report_files import PROVENANCE_KEY
     from payload.project import provenance
 
     project = _project_or_none(args)
-    prov = provenance(project, _provenance_design(args, project))
-    prov.pop("project")
-    return lambda data: {**data, "provenance": prov}
+    prov = provenance(project, _provenance_design(args))
+    if project is not None and _out_dir(args).resolve() == project.analyses_dir.resolve():
+        prov.pop("project")
+    return lambda data: {**data, PROVENANCE_KEY: prov}
+
+
+def _refuse_foreign_reports(args: argparse.Namespace, *stems: str) -> None:
+    """One line (exit 2) before any work when the output folder holds report files that are
+    not this command's reports of this design, unless ``--force``: a report follows its
+    own design, never replaces another's (or a file of the user's)."""
+    from payload.envelope.report_files import foreign_report
+    from payload.errors import PayloadError
+
+    if args.force:
+        return
+    out = _out_dir(args)
+    for stem in stems:
+        why = foreign_report(out, stem, _design_path(args))
+        if why is not None:
+            where = f"--out {args.out}" if args.out else str(out)
+            raise PayloadError(f"{where}: {why}; give another --out, or --force to replace it")
 
 
 def _stdout_json(args: argparse.Namespace, data: dict[str, Any]) -> dict[str, Any]:
@@ -201,6 +223,7 @@ def run_envelope(args: argparse.Namespace) -> tuple[EnvelopeAnalysis, dict[str, 
         )
     t0 = time.perf_counter()
     _out_dir(args)  # an --out that cannot take the report says so before the analysis
+    _refuse_foreign_reports(args, "envelope")
     _, vehicle, geom = _load(args)  # a bad --bay-size too, before the models are rebuilt
     _models_follow(args)
     search = True if args.write_stowed and args.search is None else args.search
@@ -303,6 +326,7 @@ def run_reach(args: argparse.Namespace) -> tuple[ReachAnalysis, dict[str, Path]]
     _project_or_none(args)
     _check_reach_args(args)
     _out_dir(args)  # an --out that cannot take the report says so before the sampling
+    _refuse_foreign_reports(args, "reach")
     _, vehicle, geom = _load(args)  # a bad --bay-size too, before the models are rebuilt
     _models_follow(args)
     t0 += _load_check()  # a compile is not the report's time
@@ -378,17 +402,26 @@ def reach_lines(analysis: ReachAnalysis, assumption: bool = True) -> list[str]:
     """The reach report's figures as terminal lines (after its verdict); ``assumption``:
     lead with the vehicle's assumption line (``report all`` says it once for both
     reports)."""
+    depth = analysis.below_vehicle
     lines = [
         *([f"assumption: {analysis.vehicle.assumption}"] if assumption else []),
-        f"{analysis.samples:,} samples in {analysis.seconds:.1f} s; fingertips reach "
-        f"{analysis.below_vehicle * 1e3:.1f} mm below the vehicle; self-collision-free "
-        f"{analysis.collision_free_fraction:.1%}",
+        f"{analysis.samples:,} samples in {analysis.seconds:.1f} s; "
+        + (
+            f"fingertips reach {depth * 1e3:.1f} mm below the vehicle"
+            if math.isfinite(depth)
+            else "no finger moved free in any sample"
+        )
+        + f"; self-collision-free {analysis.collision_free_fraction:.1%}",
     ]
     for pr in analysis.pairs:
         closes = [g.feature.name for g in pr.grasps if g.closes]
         lines.append(
             f"pair {pr.name}: span {pr.span_min * 1e3:.1f} .. {pr.span.maximum * 1e3:.1f} mm; "
-            f"closes on: {', '.join(closes) if closes else 'nothing checked'}"
+            + (
+                f"closes on: {', '.join(closes)}"
+                if closes
+                else f"closes on none of the {len(pr.grasps)} features checked"
+            )
         )
     lines.append(
         f"rail spacing {analysis.rail_spacing[0] * 1e3:.1f} .. "

@@ -7,7 +7,6 @@ from pathlib import Path
 from typing import Any
 
 import manifold3d as m3d
-import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
@@ -82,25 +81,19 @@ def _section_panel(
 
 
 def _annotate_clearances(ax: Any, check: StowedCheck, vehicle: Vehicle, axis: int) -> None:
-    """Mark, for each wall seen in this view, the smallest clearance and its part."""
+    """Mark, for each wall seen in this view, the part sticking out farthest beyond it, else
+    the smallest clearance to it over every part (inside the bays or not) and its part."""
     h, v = AXES[axis]
     lo, hi = vehicle.bay_lower * 1e3, vehicle.bay_upper * 1e3
     for w, wall in enumerate(vehicle.walls):
         ax_i = w // 2
         if ax_i not in (h, v):
             continue
-        vals = [
-            (p.wall_clearance[w], p.name)
-            for p in check.parts
-            if p.inside and np.isfinite(p.wall_clearance[w])
-        ]
-        outs = [(p.protrusion, p.name) for p in check.parts if not p.inside and p.wall == wall]
-        if outs:
-            d, name = max(outs)
-            text, colour = f"{name}: {d * 1e3:.1f} mm out", "red"
-        elif vals:
-            d, name = min(vals)
-            text, colour = f"{d * 1e3:.1f} mm ({name})", "black"
+        out, near = check.protruding_beyond(wall), check.nearest_to_wall(w)
+        if out is not None:
+            text, colour = f"{out.name}: {out.protrusion * 1e3:.1f} mm out", "red"
+        elif near is not None:
+            text, colour = f"{near.wall_clearance[w] * 1e3:.1f} mm ({near.name})", "black"
         else:
             continue
         side = w % 2

@@ -133,6 +133,21 @@ class StowedCheck:
     def tightest(self) -> PartFit:
         return min(self.parts, key=lambda p: p.clearance)
 
+    def nearest_to_wall(self, w: int) -> PartFit | None:
+        """The part with the least clearance to wall ``w`` (0..5, -x .. +z) over every part
+        that has one, inside the bays or not (a part touching or crossing it: 0; the
+        mounted part's mount face: none); a tie: the first in the parts' order, as
+        :attr:`tightest`. None when no part has one."""
+        has = [p for p in self.parts if np.isfinite(p.wall_clearance[w])]
+        return min(has, key=lambda p: p.wall_clearance[w], default=None)
+
+    def protruding_beyond(self, wall: str) -> PartFit | None:
+        """The part sticking out farthest beyond ``wall`` (a name of
+        :attr:`Vehicle.walls <payload.envelope.vehicle.Vehicle.walls>`, the wall each
+        outside part crosses most), or None."""
+        out = [p for p in self.parts if not p.inside and p.wall == wall]
+        return max(out, key=lambda p: p.protrusion, default=None)
+
     @property
     def collisions(self) -> list[PairContact]:
         return [c for c in self.self_contacts if c.colliding]

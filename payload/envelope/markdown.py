@@ -13,6 +13,7 @@ from payload.envelope.pairs import OPPOSITION_CONE
 from payload.envelope.reach import ReachAnalysis
 from payload.envelope.report_json import reach_json
 from payload.envelope.vehicle import display_path
+from payload.envelope.verdict import too_few_reachable
 
 
 def _assumption_block(lines: Sequence[str]) -> list[str]:
@@ -228,8 +229,13 @@ def reach_markdown(a: ReachAnalysis, command: str, figure: str) -> str:
         *_assumption_block(a.assumptions()),
         "## Summary",
         "",
-        f"- Fingertips reach **{a.below_vehicle * 1e3:.1f} mm** below the vehicle's bottom face "
-        f"(home posture, fingers straight: {a.home_below_vehicle * 1e3:.1f} mm; the pads reach "
+        (
+            f"- Fingertips reach **{a.below_vehicle * 1e3:.1f} mm** below the vehicle's bottom "
+            "face "
+            if np.isfinite(a.below_vehicle)
+            else "- No finger moved free in any sample: no depth below the bottom face measured "
+        )
+        + f"(home posture, fingers straight: {a.home_below_vehicle * 1e3:.1f} mm; the pads reach "
         f"{a.pairs[0].pad_contact / 2 * 1e3:.0f} mm further).",
         f"- Pair spacing over the rail: **{a.rail_spacing[0] * 1e3:.1f} .. "
         f"{a.rail_spacing[1] * 1e3:.1f} mm** (x distance between the pairs' MCP centres).",
@@ -363,12 +369,22 @@ def _workspace_section(a: ReachAnalysis) -> list[str]:
         ("below bottom face [mm]", "r"),
     ]
     rows = [
-        [w.finger, f"{w.reachable:.1%}", f"{w.hull_volume * 1e6:.0f}"]
-        + [f"{lo * 1e3:.0f} .. {hi * 1e3:.0f}" for lo, hi in zip(w.lower, w.upper)]
-        + [f"{w.below_vehicle * 1e3:.1f}"]
+        [w.finger, f"{w.reachable:.1%}", "-" if w.too_few else f"{w.hull_volume * 1e6:.0f}"]
+        + [
+            f"{lo * 1e3:.0f} .. {hi * 1e3:.0f}" if np.isfinite(lo) else "-"
+            for lo, hi in zip(w.lower, w.upper)
+        ]
+        + [_mm1(w.below_vehicle)]
         for w in a.workspaces
     ]
-    return out + _table(columns, rows)
+    few = too_few_reachable(a)
+    note = ["", f"**The reach fails: {few}.**"] if few is not None else []
+    return out + _table(columns, rows) + note
+
+
+def _mm1(x: float) -> str:
+    """A length in mm to 0.1 mm; ``-`` when not measured (NaN)."""
+    return f"{x * 1e3:.1f}" if np.isfinite(x) else "-"
 
 
 def _rng(r: tuple[float, float]) -> str:

@@ -130,8 +130,10 @@ class ReachAnalysis:
 
     @property
     def below_vehicle(self) -> float:
-        """Largest fingertip depth below the vehicle's bottom face over all samples [m]."""
-        return max(w.below_vehicle for w in self.workspaces)
+        """Largest fingertip depth below the vehicle's bottom face over all reachable
+        samples [m] (NaN when no finger reached in any)."""
+        depths = [w.below_vehicle for w in self.workspaces if np.isfinite(w.below_vehicle)]
+        return max(depths, default=float("nan"))
 
     def assumptions(self) -> list[str]:
         v = self.vehicle

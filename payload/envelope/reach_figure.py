@@ -59,12 +59,23 @@ def reach_figure(
     ]
     fig.legend(handles=handles, loc="outside lower center", ncol=4, fontsize=8, frameon=False)
     fig.suptitle(
-        f"Reach of the deployed fingers ({a.samples:,} samples; below the bottom face up to "
-        f"{a.below_vehicle * 1e3:.0f} mm; self-collision-free {a.collision_free_fraction:.1%})",
+        f"Reach of the deployed fingers ({a.samples:,} samples; {_depth(a.below_vehicle)}; "
+        f"self-collision-free {a.collision_free_fraction:.1%})",
         fontsize=11,
     )
     fig.savefig(path, dpi=dpi)
     return path
+
+
+MARKER_ROWS = {"L": 0.025, "R": 0.07}
+"""Height of each pair's row of grasp markers in the span panel (fraction of the axes)."""
+
+
+def _depth(x: float) -> str:
+    """The fingertips' depth below the bottom face (NaN: no finger moved free)."""
+    if not np.isfinite(x):
+        return "no finger moved free in any sample"
+    return f"below the bottom face up to {x * 1e3:.0f} mm"
 
 
 def _cloud_panel(
@@ -104,10 +115,11 @@ def _cloud_panel(
             zorder=3,
             rasterized=True,
         )
-    allp = np.vstack([w.points for w in workspaces]) * 1e3
     blo, bhi = vehicle.body_lower * 1e3, vehicle.body_upper * 1e3
-    lo = np.minimum(allp.min(axis=0), blo) - 15
-    hi = np.maximum(allp.max(axis=0), bhi) + 15
+    shaded = [np.reshape(solid.bounding_box(), (2, 3)) * 1e3 for solid in home.values()]
+    allp = np.vstack([blo, bhi, *shaded, *(w.points * 1e3 for w in workspaces)])
+    lo = allp.min(axis=0) - 15
+    hi = allp.max(axis=0) + 15
     if axis != 2:
         hi[2] = min(hi[2], vehicle.bottom_z * 1e3 + 80)
     ax.set_xlim(lo[h], hi[h])
@@ -139,23 +151,39 @@ def _span_panel(ax: Any, a: ReachAnalysis, pad_radius: float) -> None:
         style = {"ls": "--", "lw": 2.4} if p.name == "L" else {"ls": ":", "lw": 1.2}
         ax.axvline(p.span_min * 1e3, color=colour, label=f"pair {p.name}: span range", **style)
         ax.axvline(p.span.maximum * 1e3, color=colour, **style)
+        # each pair's markers on a row of its own (L lower, R upper), so neither hides the
+        # other's at the same thickness
+        row = MARKER_ROWS[p.name]
         for g in p.grasps:
             x = (g.feature.thickness + 2 * r) * 1e3
             ax.plot(
                 [x],
-                [0],
+                [row],
                 marker="^" if g.closes else "x",
                 color="green" if g.closes else "red",
                 ms=7,
                 clip_on=False,
                 zorder=4,
+                transform=ax.get_xaxis_transform(),
             )
+        ax.annotate(
+            p.name,
+            (0, row),
+            xycoords="axes fraction",
+            xytext=(-4, 0),
+            textcoords="offset points",
+            ha="right",
+            va="center",
+            fontsize=7,
+            color=colour,
+        )
     ax.plot([], [], ls="none", marker="^", color="green", label="CTB feature: pair closes on it")
     ax.plot([], [], ls="none", marker="x", color="red", label="CTB feature: no witness")
     ax.set_xlabel("fingertip separation l [mm] (vertical lines: span range)")
     ax.set_ylabel("samples")
     ax.set_title(
-        "pair spans; markers: CTB thicknesses + pad diameter (green: closes, red: no witness)",
+        "pair spans; markers: CTB thicknesses + pad diameter (green: closes, red: no witness;\n"
+        "lower row pair L, upper row pair R)",
         fontsize=9,
     )
     ax.legend(fontsize=8)

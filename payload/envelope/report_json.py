@@ -9,6 +9,7 @@ import numpy as np
 from payload.envelope.fit_results import EnvelopeAnalysis, StowedCheck
 from payload.envelope.reach import ReachAnalysis
 from payload.envelope.vehicle import display_path
+from payload.envelope.verdict import reach_passed
 
 
 def _mm(x: float) -> float | None:
@@ -60,7 +61,9 @@ def reach_json(a: ReachAnalysis) -> dict[str, Any]:
         "home_below_vehicle_mm": mm(a.home_below_vehicle),
         "fingers": {
             w.finger: {
-                "hull_volume_cm3": round(w.hull_volume * 1e6, 1),
+                "hull_volume_cm3": round(w.hull_volume * 1e6, 1)
+                if np.isfinite(w.hull_volume)
+                else None,
                 "bbox_min_mm": [mm(v) for v in w.lower],
                 "bbox_max_mm": [mm(v) for v in w.upper],
                 "below_vehicle_mm": mm(w.below_vehicle),
@@ -74,6 +77,7 @@ def reach_json(a: ReachAnalysis) -> dict[str, Any]:
         ],
         "timings_s": {k: round(v, 2) for k, v in a.timings.items()},
         "assumptions": a.assumptions(),
+        "passed": reach_passed(a),
     }
 
 

@@ -12,6 +12,7 @@ from typing import Any
 
 from payload.envelope.fit_results import EnvelopeAnalysis
 from payload.envelope.reach import ReachAnalysis
+from payload.envelope.workspace import MIN_HULL_POINTS
 
 HEADLINES: dict[str, tuple[tuple[str, str, str], ...]] = {
     "envelope": (
@@ -23,6 +24,7 @@ HEADLINES: dict[str, tuple[tuple[str, str, str], ...]] = {
         ("deploy_path_clear", "deployment path clear", ""),
     ),
     "reach": (
+        ("passed", "passes", ""),
         ("below_vehicle_mm", "fingertips below the vehicle", "mm"),
         ("collision_free_fraction", "self-collision-free fraction", ""),
         ("pairs.L.span_max_mm", "pair L widest span", "mm"),
@@ -56,10 +58,28 @@ def envelope_verdict(a: EnvelopeAnalysis) -> str:
 
 
 def reach_passed(a: ReachAnalysis) -> bool:
-    """Whether the deployed fingertips reach below the vehicle and every pair closes on
-    at least one of the CTB features checked (a sampled search: with few ``--samples`` a
-    grasp can be missed; the default 100,000 is what the committed report uses)."""
-    return a.below_vehicle > 0 and all(_closes_on(p) for p in a.pairs)
+    """Whether every finger reached in enough samples to measure its workspace, the
+    deployed fingertips reach below the vehicle and every pair closes on at least one of
+    the CTB features checked (a sampled search: with few ``--samples`` a grasp can be
+    missed; the default 100,000 is what the committed report uses)."""
+    return (
+        too_few_reachable(a) is None and a.below_vehicle > 0 and all(_closes_on(p) for p in a.pairs)
+    )
+
+
+def too_few_reachable(a: ReachAnalysis) -> str | None:
+    """What is wrong when a finger's links touched nothing in too few samples to measure
+    its workspace (a finger that almost never moves free, or too sparse a sampling), with
+    what to do; None when every finger reached often enough."""
+    few = [w for w in a.workspaces if w.too_few]
+    if not few:
+        return None
+    which = ", ".join(f"{w.finger} ({len(w.points)})" for w in few)
+    return (
+        f"finger{'s' if len(few) > 1 else ''} {which} moved free in fewer than "
+        f"{MIN_HULL_POINTS} of the {a.samples:,} samples, too few to measure a workspace: "
+        "sample more (--samples), or the design leaves the finger almost no free posture"
+    )
 
 
 def _closes_on(pair: Any) -> list[str]:
@@ -87,8 +107,11 @@ def reach_verdict(a: ReachAnalysis) -> str:
         for p in a.pairs
         if not _closes_on(p)
     ]
-    if a.below_vehicle <= 0:
+    if a.below_vehicle <= 0:  # (NaN: no finger reached at all, said below)
         bad.insert(0, "the deployed fingertips do not reach below the vehicle")
+    few = too_few_reachable(a)
+    if few is not None:
+        bad.insert(0, few)
     return "verdict: FAILS: " + _failures(bad)
 
 
@@ -148,4 +171,5 @@ __all__ = [
     "headline_changes",
     "reach_passed",
     "reach_verdict",
+    "too_few_reachable",
 ]

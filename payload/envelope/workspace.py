@@ -7,11 +7,11 @@ from typing import NamedTuple
 import numpy as np
 
 from payload.design.params import FINGERS
-from payload.envelope.pairs import (
-    PAIRS,
-    ReachError,
-)
+from payload.envelope.pairs import PAIRS
 from payload.kinematics import Kinematics
+
+MIN_HULL_POINTS = 4
+"""Reachable samples a workspace needs for its hull (four points span a volume)."""
 
 
 class Workspace(NamedTuple):
@@ -20,10 +20,12 @@ class Workspace(NamedTuple):
     Attributes:
         finger: Finger name.
         points: Reachable fingertip positions, shape (k, 3), payload frame [m].
-        hull_volume: Volume of the points' convex hull [m^3].
-        lower: Lower bounding-box corner, shape (3,) [m].
-        upper: Upper bounding-box corner, shape (3,) [m].
-        below_vehicle: Largest depth of the fingertip below the vehicle's bottom face [m].
+        hull_volume: Volume of the points' convex hull [m^3] (NaN with fewer than
+            :data:`MIN_HULL_POINTS` points: see :attr:`too_few`).
+        lower: Lower bounding-box corner, shape (3,) [m] (NaN without points).
+        upper: Upper bounding-box corner, shape (3,) [m] (NaN without points).
+        below_vehicle: Largest depth of the fingertip below the vehicle's bottom face [m]
+            (NaN without points).
         reachable: Fraction of the samples kept (the finger touching nothing).
     """
 
@@ -35,11 +37,20 @@ class Workspace(NamedTuple):
     below_vehicle: float
     reachable: float
 
+    @property
+    def too_few(self) -> bool:
+        """Whether too few samples reached (fewer than :data:`MIN_HULL_POINTS`) to measure
+        the workspace: the finger almost never moves free, or the sampling is too sparse."""
+        return len(self.points) < MIN_HULL_POINTS
+
 
 def workspace(
     finger: str, points: np.ndarray, bottom_z: float, keep: np.ndarray | None = None
 ) -> Workspace:
     """Hull volume, bounds and depth below the vehicle of a fingertip cloud.
+
+    Too few points for a hull (a finger that almost never moves free) is a result, not an
+    error: the workspace says so (:attr:`Workspace.too_few`) and the reach fails on it.
 
     Args:
         finger: Finger name.
@@ -51,13 +62,14 @@ def workspace(
 
     frac = 1.0 if keep is None else float(np.mean(keep))
     pts = points if keep is None else points[keep]
-    if len(pts) < 4:
-        raise ReachError(f"finger {finger}: fewer than 4 reachable samples; sample more")
-    hull = ConvexHull(pts)
+    if len(pts) == 0:
+        nan = np.full(3, np.nan)
+        return Workspace(finger, pts, float("nan"), nan, nan.copy(), float("nan"), frac)
+    volume = float(ConvexHull(pts).volume) if len(pts) >= MIN_HULL_POINTS else float("nan")
     return Workspace(
         finger,
         pts,
-        float(hull.volume),
+        volume,
         pts.min(axis=0),
         pts.max(axis=0),
         float(bottom_z - pts[:, 2].min()),
@@ -92,6 +104,7 @@ def value_range(values: np.ndarray) -> tuple[float, float]:
 
 
 __all__ = [
+    "MIN_HULL_POINTS",
     "Workspace",
     "rail_spacing",
     "value_range",

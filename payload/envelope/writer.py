@@ -18,6 +18,7 @@ from payload.envelope.fit_results import EnvelopeAnalysis
 from payload.envelope.geometry import PayloadGeometry
 from payload.envelope.markdown import envelope_markdown, reach_markdown
 from payload.envelope.reach import ReachAnalysis
+from payload.envelope.report_files import PROVENANCE_KEY
 from payload.envelope.report_json import envelope_json, reach_json
 from payload.safeio import replace_file, replacing
 
@@ -38,10 +39,6 @@ def _split_timings(obj: Any, path: str = "") -> tuple[Any, dict[str, Any]]:
             kept[key], inner = _split_timings(value, where)
             timings.update(inner)
     return kept, timings
-
-
-PROVENANCE_KEY = "provenance"
-"""What a report was computed from (commit, version): recorded, but not a figure."""
 
 
 def _same_figures(path: Path, text: str) -> bool:

@@ -165,7 +165,9 @@ def wall_name(wall: str) -> str:
 def draw_findings(
     scene: Scene, geom: PayloadGeometry, check: StowedCheck, vehicle: Vehicle, root: str
 ) -> list[tuple[str, float, np.ndarray, np.ndarray]]:
-    """The tightest clearance to each bay wall as a labelled segment, and each protrusion.
+    """The tightest clearance to each bay wall as a labelled segment (over every part,
+    inside the bays or not, as the envelope report's per-part clearances), and each
+    protrusion (a wall a part crosses gets that label instead of a clearance).
 
     Labels name the part, the wall and the distance (``stage - bay bottom face 6.0 mm``).
 
@@ -176,14 +178,10 @@ def draw_findings(
     poses = geom.poses(check.q)
     drawn = []
     for w, wall in enumerate(vehicle.walls):
-        cands = [
-            (p.wall_clearance[w], p.name)
-            for p in check.parts
-            if p.inside and np.isfinite(p.wall_clearance[w])
-        ]
-        if not cands:
-            continue
-        d, name = min(cands, key=lambda c: c[0])  # a tie: the first part, as ``tightest``
+        near = check.nearest_to_wall(w)  # over every part, inside or not
+        if near is None or check.protruding_beyond(wall) is not None:
+            continue  # a wall a part crosses: its protrusion is labelled below
+        d, name = near.wall_clearance[w], near.name
         pts = geom.hull_vertices(name, poses[name])
         k = int(np.argmin(wall_gaps(pts, lo, hi)[:, w]))
         a = pts[k]
