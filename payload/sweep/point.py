@@ -83,6 +83,7 @@ def _empty(params: dict[str, float], error: str | None, valid: bool) -> dict[str
         "below_vehicle_mm": None,
         "span_max_mm": None,
         "trials": None,
+        "passed": None,  # not checked (an extra field: after the contract's in sweep.json)
     }
 
 
