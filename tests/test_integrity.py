@@ -445,3 +445,24 @@ def test_a_recording_cut_before_its_hands_channel_says_so(recording: Path, tmp_p
         f"{cut}: cut short ({min(100, channel)} bytes) before its {HANDS_TOPIC} channel was "
         "written: no hands to replay"
     )
+
+
+def test_another_tools_mcap_is_said_not_to_be_a_recording_of_ours(tmp_path: Path):
+    """An MCAP file of another tool (written here with the mcap library itself: one JSON
+    channel of its own) was called "an older recording: replay its hands.jsonl"; it is
+    said not to be this workbench's recording, naming what is, in one line."""
+    from mcap.writer import Writer
+
+    other = tmp_path / "other.mcap"
+    with other.open("wb") as f:
+        writer = Writer(f)
+        writer.start()
+        schema = writer.register_schema("pose", "jsonschema", b"{}")
+        channel = writer.register_channel("/robot/pose", "json", schema)
+        writer.add_message(channel, log_time=0, data=b"{}", publish_time=0)
+        writer.finish()
+    with pytest.raises(RecordingError) as info:
+        read_hand_frames(other)
+    text = str(info.value)
+    assert "\n" not in text and text.startswith(f"{other}: not a recording of this workbench")
+    assert STEP_TOPIC in text and HANDS_TOPIC in text and "older" not in text

@@ -509,6 +509,12 @@ def read_hand_frames_of_run(path: str | Path) -> tuple[dict[str, Any], list[Any]
                 f"{path}: cut short ({path.stat().st_size} bytes) before its {HANDS_TOPIC} "
                 "channel was written: no hands to replay"
             )
+        if not any(c.topic == STEP_TOPIC for c in channels.values()):  # none of ours
+            raise RecordingError(
+                f"{path}: not a recording of this workbench (no {STEP_TOPIC} or "
+                f"{HANDS_TOPIC} channel): replay a trial's or a live session's log.mcap, "
+                "or a hands.jsonl"
+            )
         raise RecordingError(
             f"{path}: no {HANDS_TOPIC} channel (an older recording: replay its hands.jsonl)"
         )
