@@ -173,6 +173,9 @@ def test_two_point_sweep_equals_the_commands_by_hand(tmp_path, capsys):
         (row,) = [ln for ln in md.splitlines() if ln.startswith(f"| {int(root.name[-3:])} |")]
         cells = dict(zip(head, (c.strip() for c in row.strip("|").split("|"))))
         assert cells["min self-clearance [mm]"] == f"{env['min_self_clearance_mm']:.2f}"
+        # the reach report's verdict beside the envelope's (the sweep gave the envelope's)
+        assert p["reach_passed"] == reach["passed"] is not None
+        assert cells["reach check"] == ("passes" if reach["passed"] else "**fails**")
         assert p["below_vehicle_mm"] == reach["below_vehicle_mm"]
         assert p["span_max_mm"] == {k: reach["pairs"][k]["span_max_mm"] for k in "LR"}
         assert env["provenance"]["design_sha256"] == reach["provenance"]["design_sha256"]

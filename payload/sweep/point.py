@@ -108,7 +108,8 @@ def run_point(
 
     Returns:
         The point as in ``sweep.json`` (:data:`POINT_FIELDS`), plus ``project``,
-        ``passed`` (the envelope check as a whole), ``min_self_clearance_mm`` (the
+        ``passed`` (the envelope check as a whole), ``reach_passed`` (the reach report's
+        verdict: the pairs close on the CTB's features), ``min_self_clearance_mm`` (the
         least gap between two payload parts, stowed, as the envelope report's),
         ``span_min_mm`` and ``failures``.
     """
@@ -255,6 +256,7 @@ def _analyse(
     except PayloadError as exc:
         return {**result, "error": f"report reach: {_first_line(exc)}"}
     result.update(
+        reach_passed=reach.get("passed"),
         below_vehicle_mm=reach["below_vehicle_mm"],
         span_max_mm={p: reach["pairs"][p]["span_max_mm"] for p in ("L", "R")},
         span_min_mm={p: reach["pairs"][p]["span_min_mm"] for p in ("L", "R")},

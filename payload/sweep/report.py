@@ -71,10 +71,10 @@ def _fits(point: dict[str, Any]) -> str:
     return "yes" if point["fits"] else "**no**"
 
 
-def _passed(point: dict[str, Any]) -> str:
-    if point.get("passed") is None:
+def _passed(point: dict[str, Any], key: str = "passed") -> str:
+    if point.get(key) is None:
         return "n/a"
-    return "passes" if point["passed"] else "**fails**"
+    return "passes" if point[key] else "**fails**"
 
 
 def sweep_markdown(data: dict[str, Any], command: str, plots: list[str]) -> str:
@@ -86,6 +86,7 @@ def sweep_markdown(data: dict[str, Any], command: str, plots: list[str]) -> str:
         *keys,
         "fits",
         "envelope check",
+        "reach check",
         "min clearance [mm]",
         "min self-clearance [mm]",
         "below vehicle [mm]",
@@ -103,6 +104,7 @@ def sweep_markdown(data: dict[str, Any], command: str, plots: list[str]) -> str:
         "the same commands one would type there (`point_commands` in payload/sweep/point.py). "
         "*fits*: every part inside the bays in the stowed posture; *envelope check*: that "
         "and no self-collision and a clear deployment path (`payload report envelope`); "
+        "*reach check*: both pairs close on the cargo bag's features (`payload report reach`); "
         "*min self-clearance*: the least gap between two payload parts, stowed (negative: "
         "the deepest overlap).",
         "",
@@ -110,7 +112,13 @@ def sweep_markdown(data: dict[str, Any], command: str, plots: list[str]) -> str:
         "|" + "|".join("---" for _ in head) + "|",
     ]
     for i, p in enumerate(data["points"]):
-        row = [str(i), *(f"{p['params'][k]:g}" for k in keys), _fits(p), _passed(p)]
+        row = [
+            str(i),
+            *(f"{p['params'][k]:g}" for k in keys),
+            _fits(p),
+            _passed(p),
+            _passed(p, "reach_passed"),
+        ]
         row += [_num(p["min_clearance_mm"], 2), _num(p.get("min_self_clearance_mm"), 2)]
         row.append(_num(p["below_vehicle_mm"]))
         row += [_span(p, "L"), _span(p, "R")]
