@@ -13,7 +13,7 @@ import random
 from dataclasses import dataclass, field
 
 from firmware_interface import protocol as P
-from firmware_interface.control_table import ADDR, BAUD_RATES, FIRMWARE_VERSION, MODEL_NUMBER
+from firmware_interface.control_table import ADDR, BAUD_RATES
 from firmware_interface.faults import Fault
 from firmware_interface.servo_dynamics import Plant
 from firmware_interface.servo_model import ServoModel
@@ -92,6 +92,8 @@ class Bus:
             self.servos[int(fault.id)].set_error(str(fault.bit))
         elif fault.kind == "block":
             self.servos[int(fault.id)].blocked = True
+        elif fault.kind == "model":  # a read-only EEPROM register: kept over reboots
+            self.servos[int(fault.id)].table[0:2] = int(fault.value).to_bytes(2, "little")
 
     def power_cycle(self) -> None:
         """Every servo off and on again (EEPROM kept, multi-turn counts lost)."""
@@ -194,9 +196,9 @@ class Bus:
         return replies
 
     def _unicast(self, s: ServoModel, inst: int, prm: bytes) -> bytes | None:
-        if inst == P.PING:
-            model = MODEL_NUMBER.to_bytes(2, "little")
-            return P.status(s.id, s.alert(), model + bytes([FIRMWARE_VERSION]))
+        if inst == P.PING:  # Model Number and Firmware Version, from the control table
+            model = bytes(s.table[ADDR["model_number"] : ADDR["model_number"] + 2])
+            return P.status(s.id, s.alert(), model + bytes([s.table[ADDR["firmware_version"]]]))
         if inst == P.READ:
             if len(prm) != 4:
                 return P.status(s.id, P.ERR_DATA_LENGTH | s.alert())

@@ -330,7 +330,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         raise HwUsageError(f"--cycles must be >= 1, got {args.cycles}")
     command_project(args)  # the servo map is checked against this project's design
     _models_follow(args)
-    result = bench_hw(args.device, args.cycles, args.servos, args.latency_ms)
+    result = bench_hw(args.device, args.cycles, args.servos, args.latency_ms, say_stage)
     if args.json:
         emit_json({**result, "load_average": load_average()})
     else:

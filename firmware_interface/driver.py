@@ -26,11 +26,18 @@ from collections.abc import Iterator
 from types import TracebackType
 
 import numpy as np
-from dynamixel_sdk import COMM_SUCCESS, GroupSyncRead, GroupSyncWrite, PacketHandler
+from dynamixel_sdk import (
+    COMM_RX_CORRUPT,
+    COMM_RX_TIMEOUT,
+    COMM_SUCCESS,
+    GroupSyncRead,
+    GroupSyncWrite,
+)
 
 from firmware_interface import protocol as P
 from firmware_interface.control_table import (
     ADDR,
+    BY_ADDRESS,
     BY_NAME,
     CURRENT_UNIT_A,
     EMULATOR_MODEL_INFORMATION,
@@ -46,12 +53,13 @@ from firmware_interface.errors import (
     HardwareFault,
     MissingServoError,
     NotHomedError,
+    WrongModelError,
 )
 from firmware_interface.fault_handling import FaultHandling
 from firmware_interface.guard import CommandGuard, default_guard
 from firmware_interface.health import ServoHealth
 from firmware_interface.homing import home_linear
-from firmware_interface.port import AlertSyncRead, SdkPort
+from firmware_interface.port import AlertSyncRead, CheckedPacketHandler, SdkPort
 from firmware_interface.servo_map import (
     LINEAR_JOINTS,
     ServoMap,
@@ -68,6 +76,17 @@ log = logging.getLogger(__name__)
 FEEDBACK_ADDR = ADDR["present_current"]  # 126: current (2), velocity (4), position (4)
 FEEDBACK_LEN = 10
 _FEEDBACK = np.dtype([("current", "<i2"), ("velocity", "<i4"), ("position", "<i4")])
+TORQUE_OFF_TRIES = 3
+"""close(): reads of Torque Enable per servo (and re-sends of the torque-off to a servo
+still on) before it warns that the servo's torque off is not confirmed."""
+
+
+_LATE_HINT = ("the bus answers later than the driver allows (an adapter's latency timer "
+              "above latency_timer_ms, --latency-ms?)")  # fmt: skip
+
+
+def _also(ids: list[int]) -> str:
+    return f" (also IDs {', '.join(map(str, ids[1:]))})" if len(ids) > 1 else ""
 
 
 def bring_up_notice(device: str) -> str:
@@ -138,8 +157,9 @@ class DynamixelDriver(FaultHandling):
         self.on_fault = on_fault or self.map.on_fault
         self.fast = fast
         self.port = SdkPort(port, latency_timer_ms)
-        self.packet = PacketHandler(2.0)
+        self.packet = CheckedPacketHandler()  # the SDK's, every status's length checked
         self.ids = self.map.ids
+        self.heard: set[int] = set()  # servos that answered a scan
         self.retry_count = 0
         self.fallbacks = 0
         self.reads = 0
@@ -201,6 +221,24 @@ class DynamixelDriver(FaultHandling):
     def _name(self, dxl_id: int) -> str:
         return f"servo {dxl_id} ({self.map.joint_of(dxl_id)})"
 
+    def _why(self, result: int, dxl_id: int | None = None) -> str:
+        """A failed transaction's result in the driver's words (not the SDK's), with the
+        replies that came after their timeout (from ``dxl_id``, or from any servo)."""
+        if result == COMM_RX_TIMEOUT:
+            words = "no reply"
+        elif result == COMM_RX_CORRUPT:
+            words = "a corrupt reply (bad CRC, or not the length asked for)"
+        else:
+            words = self.packet.getTxRxResult(result).removeprefix("[TxRxResult] ")
+        self.port.settle()  # what is still on its way is counted as late
+        late = self.port.late
+        n = late.get(dxl_id, 0) if dxl_id is not None else sum(late.values())
+        if n:
+            words += (f"; {n} repl{'y' if n == 1 else 'ies'} came after the "
+                      f"{self.port.reply_allowance_ms:.0f} ms reply timeout: "
+                      f"{_LATE_HINT}")  # fmt: skip
+        return words
+
     def _write(self, dxl_id: int, name: str, value: int) -> None:
         """Write one register and check the status (retried on a timeout or CRC error)."""
         addr, size = ADDR[name], BY_NAME[name].size
@@ -217,9 +255,8 @@ class DynamixelDriver(FaultHandling):
                 return
             if attempt < self.retries:
                 self.retry_count += 1
-        raise CommError(
-            f"{self._name(dxl_id)}: writing {name}: {self.packet.getTxRxResult(result)}"
-        )
+        raise CommError(f"{self._name(dxl_id)}: writing {name} after {self.retries + 1} "
+                        f"attempt(s): {self._why(result, dxl_id)}")  # fmt: skip
 
     def _read_reg(self, dxl_id: int, address: int, size: int) -> int:
         fn = {1: self.packet.read1ByteTxRx, 2: self.packet.read2ByteTxRx,
@@ -230,12 +267,18 @@ class DynamixelDriver(FaultHandling):
                 return int(value)
             if attempt < self.retries:
                 self.retry_count += 1
-        raise CommError(f"{self._name(dxl_id)}: reading address {address}: "
-                        f"{self.packet.getTxRxResult(result)}")  # fmt: skip
+        reg = BY_ADDRESS[address].name if address in BY_ADDRESS else f"address {address}"
+        raise CommError(f"{self._name(dxl_id)}: reading {reg} after {self.retries + 1} "
+                        f"attempt(s): {self._why(result, dxl_id)}")  # fmt: skip
 
     # -- bring-up ----------------------------------------------------------------------------
     def scan(self) -> dict[int, tuple[int, int]]:
-        """Ping every mapped ID: ID -> (model number, firmware version) of those answering."""
+        """Ping every mapped ID: ID -> (model number, firmware version) of those answering.
+
+        Raises:
+            CommError: A servo whose replies come, but after the reply timeout (not a
+                missing servo: the bus's latency is above the driver's allowance).
+        """
         found = {}
         for i in self.ids:
             for _ in range(self.retries + 1):
@@ -244,20 +287,43 @@ class DynamixelDriver(FaultHandling):
                     fw = self._read_reg(i, ADDR["firmware_version"], 1)
                     found[i] = (int(model), fw)
                     break
+        self.heard.update(found)
+        late = [i for i in self.ids if i not in found and self._late(i)]
+        if late:
+            raise CommError(f"{self._name(late[0])}: no reply to a ping within the "
+                            f"{self.port.reply_allowance_ms:.0f} ms reply timeout, but "
+                            f"{self._late(late[0])} late one(s) came{_also(late)}: "
+                            f"{_LATE_HINT}")  # fmt: skip
         return found
+
+    def _late(self, dxl_id: int) -> int:
+        """Replies of ``dxl_id`` that came after their timeout (the line drained first)."""
+        self.port.settle()
+        return self.port.late.get(dxl_id, 0)
 
     def bring_up(self) -> None:
         """Configure every servo and enable torque (LEAP hand's sequence, see the module).
 
         Raises:
             MissingServoError: Servos that did not answer, named by ID and joint.
+            WrongModelError: A servo that is not the map's model (named).
             HardwareFault: A servo reports a hardware error at bring-up.
+            CommError: Replies lost, corrupt or late after the retries.
         """
+        late = dict(self.port.late)
         found = self.scan()
         missing = [i for i in self.ids if i not in found]
         if missing:
             joints = [self.map.joint_of(i) for i in missing]
             raise MissingServoError(missing, joints, everyone=len(missing) == len(self.ids))
+        for i, (model, _) in found.items():
+            if model != self.map.model_number:
+                raise WrongModelError(i, self.map.joint_of(i), model, self.map.model_number)
+        came = [i for i in self.ids if self._late(i) > late.get(i, 0)]
+        if came:  # a bus whose replies come late: a later one could answer the wrong read
+            raise CommError(f"{self._name(came[0])}: replies came after the "
+                            f"{self.port.reply_allowance_ms:.0f} ms reply timeout"
+                            f"{_also(came)}: {_LATE_HINT}")  # fmt: skip
         info = self._read_reg(self.ids[0], ADDR["model_information"], 4)
         self.emulated = info == EMULATOR_MODEL_INFORMATION
         for spec in self.map.servos:
@@ -350,6 +416,8 @@ class DynamixelDriver(FaultHandling):
                 return
             values = guarded
         ticks = np.rint(self._zero + self._direction * values / self._units).astype(np.int64)
+        # a failed reply's drain first: the silence it adds may trip the Bus Watchdog
+        self.port.settle()
         silence = self._silence_until(time.monotonic())
         if self.map.watchdog_ms and silence > self.map.watchdog_ms / 1e3:
             # silent for longer than the Bus Watchdog: servos that stopped refuse goals
@@ -496,8 +564,11 @@ class DynamixelDriver(FaultHandling):
             raise DynamixelError("the driver is closed")
 
     def close(self) -> None:
-        """Leave the servos safe (torque off on every servo, one sync write) and close the
-        port.
+        """Leave the servos safe and close the port: torque off on every servo (one sync
+        write), confirmed by reading Torque Enable back from each servo that answered a
+        scan, re-sent to a servo still on, :data:`TORQUE_OFF_TRIES` times at most; a
+        servo left unconfirmed is named in a warning. A driver no servo ever answered
+        only sends the sync write.
 
         Idempotent; never raises for a bus that stopped answering.
         """
@@ -509,7 +580,12 @@ class DynamixelDriver(FaultHandling):
                 g.addParam(i, [0])
             result = g.txPacket()
             if result != COMM_SUCCESS:
-                raise CommError(self.packet.getTxRxResult(result))
+                raise CommError(self._why(result))
+            unconfirmed = self._confirm_torque_off() if self.heard else {}
+            if unconfirmed:
+                log.warning("close: could not confirm the torque off of %s",
+                            "; ".join(f"{self._name(i)} ({why})"
+                                      for i, why in unconfirmed.items()))  # fmt: skip
         except Exception as exc:  # the port may be gone: closing must still succeed
             log.warning("close: could not turn the torque off: %s", exc)
         finally:
@@ -518,6 +594,26 @@ class DynamixelDriver(FaultHandling):
                 self.port.closePort()
             except Exception:
                 pass
+
+    def _confirm_torque_off(self) -> dict[int, str]:
+        """Read Torque Enable of every servo, re-send the torque-off to those still on;
+        returns the servos not confirmed off, with why."""
+        addr = ADDR["torque_enable"]
+        pending = {i: "" for i in self.ids}
+        for attempt in range(TORQUE_OFF_TRIES):
+            for i in list(pending):
+                value, result, _ = self.packet.read1ByteTxRx(self.port, i, addr)
+                if result == COMM_SUCCESS and value == 0:
+                    del pending[i]
+                elif result == COMM_SUCCESS:
+                    pending[i] = "still on"
+                else:
+                    pending[i] = self._why(result, i)
+            if not pending or attempt == TORQUE_OFF_TRIES - 1:
+                break
+            for i in pending:  # one write each, with its status; read back on the next pass
+                self.packet.write1ByteTxRx(self.port, i, addr, 0)
+        return pending
 
     def __enter__(self) -> DynamixelDriver:
         return self

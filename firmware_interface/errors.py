@@ -47,13 +47,30 @@ class HardwareFault(DynamixelError):
         self.joint = joint
         self.bits = list(bits)
         self.others = list(others or [])
-        more = f" (also IDs {self.others})" if self.others else ""
+        more = f" (also IDs {', '.join(map(str, self.others))})" if self.others else ""
         what = (
             "reset: torque off with no hardware error (power lost, or rebooted)"
             if self.bits == ["reset"]
             else f"hardware error {', '.join(bits) or 'unknown'}"
         )
         super().__init__(f"servo {dxl_id} ({joint}): {what}{more}")
+
+
+class WrongModelError(DynamixelError):
+    """A servo that reports another model number than the servo map's (refused at
+    bring-up: its control table, units and limits are not the ones the driver writes).
+
+    Attributes:
+        id: The servo.
+        joint: Its joint.
+        model: The model number it reported.
+        expected: The map's.
+    """
+
+    def __init__(self, dxl_id: int, joint: str, model: int, expected: int) -> None:
+        self.id, self.joint, self.model, self.expected = dxl_id, joint, model, expected
+        super().__init__(f"servo {dxl_id} ({joint}): model number {model}, not the servo "
+                         f"map's {expected}: another servo on this ID?")  # fmt: skip
 
 
 class NotHomedError(DynamixelError):

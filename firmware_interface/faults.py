@@ -4,7 +4,7 @@
 spec                     effect
 =======================  ==============================================================
 ``missing:7``            servo 7 is absent from the bus (never answers)
-``corrupt:0.01``         each reply has one byte flipped with probability 0.01
+``corrupt:0.01``         each reply has one bit flipped with probability 0.01
 ``latency:3ms``          every reply comes 3 ms late (``us``, ``ms``, ``s``)
 ``drop:0.02``            each reply is lost with probability 0.02
 ``error:12:overload``    servo 12 latches a hardware error bit (``input_voltage``,
@@ -12,6 +12,8 @@ spec                     effect
 ``block:12``             servo 12's shaft is blocked: while a command drives its current to
                          the cap it stays there, and after a second at the cap in all the
                          overload bit trips (a servo held at its goal never trips)
+``model:12:1060``        servo 12 reports model number 1060 (another Dynamixel model on
+                         the map's ID) in its ping and its Model Number register
 =======================  ==============================================================
 """
 
@@ -33,9 +35,10 @@ class Fault:
     """One parsed fault.
 
     Attributes:
-        kind: ``missing``, ``corrupt``, ``latency``, ``drop``, ``error`` or ``block``.
-        id: Servo ID (missing, error, block).
-        value: Probability (corrupt, drop) or delay [s] (latency).
+        kind: ``missing``, ``corrupt``, ``latency``, ``drop``, ``error``, ``block`` or
+            ``model``.
+        id: Servo ID (missing, error, block, model).
+        value: Probability (corrupt, drop), delay [s] (latency) or model number (model).
         bit: Hardware error bit name (error).
     """
 
@@ -87,7 +90,11 @@ def parse_fault(spec: str) -> Fault:
                 f"fault {spec!r}: error bit must be one of {', '.join(HW_ERROR_BITS)}"
             )
         return Fault(kind, id=_servo_id(parts[1], spec), bit=parts[2])
+    if kind == "model" and len(parts) == 3:
+        if not parts[2].isdigit() or int(parts[2]) > 0xFFFF:
+            raise FaultSpecError(f"fault {spec!r}: model number must be 0..65535")
+        return Fault(kind, id=_servo_id(parts[1], spec), value=float(parts[2]))
     raise FaultSpecError(
         f"fault {spec!r}: expected missing:ID, corrupt:P, latency:3ms, drop:P, "
-        "error:ID:BIT or block:ID"
+        "error:ID:BIT, block:ID or model:ID:NUMBER"
     )

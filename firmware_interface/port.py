@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import termios
 import threading
+import time
 
 from dynamixel_sdk import (
     BROADCAST_ID,
@@ -15,7 +16,12 @@ from dynamixel_sdk import (
     Protocol2PacketHandler,
 )
 
+from firmware_interface import protocol as P
 from firmware_interface.errors import CommError
+
+DRAIN_LIMIT_WINDOWS = 20
+"""A drain gives up (:class:`CommError`) when the line is not quiet within this many
+quiet windows: something keeps talking (another master on the bus, a wrong baud rate)."""
 
 
 class SdkPort(PortHandler):
@@ -36,23 +42,54 @@ class SdkPort(PortHandler):
 
     A serial device that fails (unplugged, the emulator's pty gone) raises
     :class:`CommError` naming the device, not the serial library's own exception.
+
+    A reply that is not there when its timeout ends may still be on its way: the SDK's
+    next transaction (the retry, or the next read) would take it as its own answer (the
+    status packet names the servo, not the register it answers). After a failed reply (a
+    timeout, a corrupt packet, a parameter length other than the one asked for: see
+    :class:`CheckedPacketHandler`) the port is ``unsettled``, and the next transaction
+    first drains the line until it has been quiet for :attr:`quiet_window_ms`: the reply
+    allowance of the timeout itself (twice the latency timer plus 2 ms), the time the SDK
+    already gives the adapter and the host to pass a reply on, so a reply up to one more
+    allowance late is drained, not taken. Whole status packets drained are counted per
+    servo in ``late`` (ID -> count): replies that came after their timeout (with the status
+    packets of servos not asked that a later request skipped, see
+    :class:`CheckedPacketHandler`).
     """
 
     def __init__(self, port_name: str, latency_timer_ms: float) -> None:
         self._user: int | None = None  # the thread whose transaction holds the port
         super().__init__(port_name)
         self.latency_timer_ms = latency_timer_ms
+        self.unsettled = False  # a reply failed: what is left of it may still arrive
+        self.late: dict[int, int] = {}  # servo ID -> status packets drained after a timeout
+
+    @property
+    def reply_allowance_ms(self) -> float:
+        """What the reply timeout allows beyond the packet's bytes [ms]: twice the
+        adapter's latency timer plus 2 ms (the SDK's rule)."""
+        return self.latency_timer_ms * 2.0 + 2.0
+
+    @property
+    def quiet_window_ms(self) -> float:
+        """How long the line must be quiet after a failed reply before the next
+        transaction [ms]: one more reply allowance (see the class docstring)."""
+        return self.reply_allowance_ms
 
     @property
     def is_using(self) -> bool:  # type: ignore[override]
+        self._end_cut_short()
+        return self._user is not None
+
+    def _end_cut_short(self) -> None:
         if self._user is not None and self._user == threading.get_ident():
             self._user = None  # this thread's last transaction was cut short: it is over
+            self.unsettled = True  # and its reply may still come
             try:
                 if self.ser is not None:
                     self.ser.reset_input_buffer()  # the rest of its reply, if any
             except (OSError, termios.error):
                 pass
-        return self._user is not None
 
     @is_using.setter
     def is_using(self, value: bool) -> None:
@@ -75,16 +112,143 @@ class SdkPort(PortHandler):
             raise self._failed(exc) from exc
 
     def clearPort(self) -> None:
+        """Called by the SDK before every packet it sends: after a failed reply, drain the
+        line until quiet (see the class docstring), then drop what is buffered."""
+        if self.unsettled and self.ser is not None:  # (inside its own transaction)
+            self._drain()
         try:
             super().clearPort()
         except (OSError, termios.error) as exc:
             raise self._failed(exc) from exc
 
+    def settle(self) -> None:
+        """Drain the line now if a reply failed (what is still on its way is counted in
+        ``late``); nothing when the last reply was whole. Outside a transaction only."""
+        self._end_cut_short()
+        if self.unsettled and self.ser is not None:
+            self._drain()
+
+    def _drain(self) -> None:
+        window = self.quiet_window_ms / 1e3
+        drained = bytearray()
+        now = time.monotonic()
+        quiet_since, deadline = now, now + DRAIN_LIMIT_WINDOWS * window
+        while now - quiet_since < window:
+            got = self.readPort(4096)  # what came within the port's read timeout
+            now = time.monotonic()
+            if got:
+                drained += got
+                quiet_since = now
+                if now > deadline:
+                    raise CommError(
+                        f"{self.port_name}: the line was not quiet for "
+                        f"{self.quiet_window_ms:.0f} ms within {DRAIN_LIMIT_WINDOWS} windows "
+                        "after a failed reply: another master on the bus, or a wrong baud rate?"
+                    )
+            elif not self.ser.timeout:  # a non-blocking port: do not spin
+                time.sleep(0.0005)
+        self.unsettled = False
+        for dxl_id in _status_ids(drained):
+            self.late[dxl_id] = self.late.get(dxl_id, 0) + 1
+
+    def isPacketTimeout(self) -> bool:
+        if super().isPacketTimeout():
+            self.unsettled = True  # the reply may still be on its way
+            return True
+        return False
+
     def setPacketTimeout(self, packet_length: int) -> None:
         self.packet_start_time = self.getCurrentTime()
-        self.packet_timeout = (
-            self.tx_time_per_byte * packet_length + self.latency_timer_ms * 2.0 + 2.0
-        )
+        self.packet_timeout = self.tx_time_per_byte * packet_length + self.reply_allowance_ms
+
+
+def _status_ids(data: bytes | bytearray) -> list[int]:
+    """IDs of the whole status packets (CRC good) in ``data``, in order."""
+    ids = []
+    buf = bytearray(data)
+    while buf:
+        try:
+            pkt, used = P.split(buf)
+        except P.CrcMismatch as exc:
+            del buf[: exc.size]
+            continue
+        if pkt is None:
+            break
+        del buf[:used]
+        if pkt.instruction == P.STATUS:
+            ids.append(pkt.id)
+    return ids
+
+
+class CheckedPacketHandler(Protocol2PacketHandler):
+    """The SDK's Protocol 2.0 packet handler, with the length of every status checked.
+
+    The SDK takes any status packet from the servo it asked as the answer: a late reply
+    to an earlier request (a ping's three bytes as a one-byte read, a two-byte Model Number
+    as a four-byte position) was read as the answer to this one. Here a status whose
+    parameter count differs from what the request asks for (PING 3, READ its length,
+    WRITE and REBOOT none; a fast sync read (n + 4) per servo) is a corrupt reply
+    (``COMM_RX_CORRUPT``): the driver retries it, the port drains the line first.
+    """
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._last: list[int] = []
+        self._asked: int | None = None  # the servo whose status is awaited
+
+    def rxPacket(self, port: PortHandler, fast_option: bool) -> tuple[list[int], int]:
+        rx, result = super().rxPacket(port, fast_option)
+        self._last = rx
+        if result != COMM_SUCCESS:
+            port.unsettled = True
+        elif self._asked is not None and rx[4] != self._asked and hasattr(port, "late"):
+            # one master on the bus: a status from a servo not asked answers an earlier
+            # request (the SDK skips it and waits on)
+            port.late[rx[4]] = port.late.get(rx[4], 0) + 1
+        return rx, result
+
+    @staticmethod
+    def _refuse(port: PortHandler) -> int:
+        port.unsettled = True  # the answer asked for may still come: drain it
+        return COMM_RX_CORRUPT
+
+    def txRxPacket(self, port: PortHandler, txpacket: list[int]) -> tuple[list[int], int, int]:
+        self._asked = txpacket[4]
+        try:
+            rx, result, error = super().txRxPacket(port, txpacket)
+        finally:
+            self._asked = None
+        if result != COMM_SUCCESS or rx is None or txpacket[4] == BROADCAST_ID:
+            return rx, result, error
+        inst = txpacket[7]
+        if inst == P.PING:
+            want = 3  # model number (2), firmware version
+        elif inst == P.READ:
+            want = txpacket[10] | (txpacket[11] << 8)
+        else:
+            want = 0
+        if len(rx) - 11 != want:  # header 4, ID, LEN 2, instruction, error, params, CRC 2
+            return rx, self._refuse(port), 0
+        return rx, result, error
+
+    def readRx(self, port: PortHandler, dxl_id: int, length: int) -> tuple[list[int], int, int]:
+        self._asked = dxl_id
+        try:
+            data, result, error = super().readRx(port, dxl_id, length)
+        finally:
+            self._asked = None
+        if result == COMM_SUCCESS and len(self._last) - 11 != length:
+            return [], self._refuse(port), 0
+        return data, result, error
+
+    def fastSyncReadRx(
+        self, port: PortHandler, dxl_id: int, length: int
+    ) -> tuple[list[int], int, int]:
+        data, result, error = super().fastSyncReadRx(port, dxl_id, length)
+        # from the first servo's error byte to the CRC: ``length`` bytes
+        if result == COMM_SUCCESS and len(self._last) - 8 != length:
+            return [], self._refuse(port), 0
+        return data, result, error
 
 
 class AlertSyncRead(GroupSyncRead):

@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from firmware_interface.control_table import RAD_PER_TICK
+from firmware_interface.control_table import MODEL_NUMBER, RAD_PER_TICK
 from payload.design.params import FINGER_JOINTS, Design, load_design
 from payload.design.tree import ALL_JOINTS
 from payload.errors import PayloadError, not_text
@@ -85,6 +85,8 @@ class ServoMap:
         on_fault: ``hold`` or ``torque_off``.
         current_limit_ma: Goal Current cap [mA] (the design's ``servo.current_limit``).
         source: Where the map came from.
+        model_number: The model number every servo must report (the XC330-M288-T's:
+            the control table the driver writes is that servo's).
     """
 
     servos: tuple[ServoSpec, ...]
@@ -94,6 +96,7 @@ class ServoMap:
     on_fault: str
     current_limit_ma: int
     source: str
+    model_number: int = MODEL_NUMBER
 
     @property
     def ids(self) -> list[int]:

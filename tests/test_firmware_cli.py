@@ -333,3 +333,69 @@ def test_commands_whose_guard_reads_the_models_make_them_follow_the_design_first
     assert out[0] == f"project: {project.root}"
     assert out[1].startswith("models: rebuilt ") and "urdf/payload.urdf" in out[1]
     assert stale_at_guard == [[]]
+
+
+@pytest.mark.parametrize("late", ["latency:50ms", "latency:36ms"])
+def test_check_never_passes_on_replies_that_come_after_their_timeout(late, capsys):
+    """Replies later than the 34 ms reply timeout of a 16 ms latency timer: `hw check`
+    passed on them with rows like "model 21248 ... 0 C 3689.6 V" (late replies taken as
+    the answers to later reads). Now each row shown is what the emulator's tables hold,
+    or the check fails, saying the replies came late."""
+    from firmware_interface.control_table import BY_NAME, VOLTAGE_UNIT_V, decode
+    from firmware_interface.emulator import EmulatorProcess
+
+    def value(table: bytes, name: str) -> int:
+        r = BY_NAME[name]
+        return decode(r, table[r.address : r.address + r.size])
+
+    with EmulatorProcess(faults=[late]) as emu:
+        code = main(["hw", "check", "--device", emu.port, "--json", "--latency-ms", "16"])
+        tables = emu.tables()
+    out, err = capsys.readouterr()
+    report = json.loads(out)
+    for s in report["servos"]:
+        t = tables[s["id"]]
+        assert s["model_number"] == value(t, "model_number") == 1240
+        assert s["temperature_c"] == value(t, "present_temperature")
+        assert s["voltage_v"] == pytest.approx(value(t, "present_input_voltage") * VOLTAGE_UNIT_V)
+    if code == 0:
+        assert report["ok"] and len(report["servos"]) == 18
+    else:
+        assert code == 1 and not report["ok"]
+        assert "came after the 34 ms reply timeout" in err or "late" in err, err
+
+
+@pytest.mark.parametrize(
+    ("fault", "named"),
+    [("missing:7", "ID 7 (B_pip)"), ("error:12:overload", "servo 12 (C_dip): hardware error")],
+)
+def test_bench_hw_says_it_homes_and_fails_a_bring_up_as_a_failed_start(fault, named, capsys):
+    """`bench hw` on a bus with a servo missing or faulted: the notice that the rail and
+    the stage are homed first, then `payload: aborted: ...` naming the servo, exit 1 (the
+    hardware's state), not exit 2 (bad input), as every other hw command."""
+    from firmware_interface.emulator import EmulatorProcess
+
+    with EmulatorProcess(faults=[fault]) as emu:
+        code = main(["bench", "hw", "--device", emu.port, "--cycles", "5", "--latency-ms", LAT])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 1, err
+    assert f"bringing up the servos on {emu.port} and homing the rail and the stage ..." in err
+    assert err[-1].startswith(f"payload: aborted: bring-up on {emu.port} failed: "), err
+    assert named in err[-1], err
+
+
+def test_bench_hw_on_a_bus_where_nobody_answers_is_a_failed_start(capsys):
+    import os
+
+    master, slave = os.openpty()
+    try:
+        device = os.ttyname(slave)
+        code = main(["bench", "hw", "--device", device, "--cycles", "5", "--latency-ms", "5"])
+    finally:
+        os.close(master)
+        os.close(slave)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 1, err
+    assert err[-1] == (
+        f"payload: aborted: no servo answered on {device} (power, wiring, baud rate, IDs?)"
+    ), err

@@ -24,7 +24,7 @@ from firmware_interface import protocol as P
 from firmware_interface.control_table import ADDR, BY_NAME, decode
 from firmware_interface.driver import DynamixelDriver
 from firmware_interface.emulator import EmulatorProcess
-from firmware_interface.errors import CommError, HardwareFault, MissingServoError
+from firmware_interface.errors import CommError, DynamixelError, HardwareFault, MissingServoError
 from firmware_interface.port import SdkPort
 from firmware_interface.servo_map import load_servo_map
 from payload.errors import Terminated
@@ -519,3 +519,97 @@ def test_a_watchdog_trip_mid_session_is_recorded_with_what_it_did(smap):
         assert report["trips"] == 1 and "held" in report["effect"]
         assert "the session continued" in report["effect"]
         assert all(s["watchdog_trip"] is None for s in emu.servos().values())
+
+
+# -- late, lost and wrong replies ------------------------------------------------------------
+@pytest.mark.parametrize("late", ["latency:50ms", "latency:36ms"])
+def test_a_reply_after_its_timeout_is_never_taken_as_a_later_requests_answer(smap, late):
+    """Replies later than the reply timeout (2 x 16 ms + 2 ms at the SDK's latency timer):
+    the SDK's retry, or the next read, took the late reply as its own, and the scan said
+    firmware 216 (the low byte of model 1240: a ping's reply read as the firmware's). Now
+    the scan either reads what the emulator's tables hold or fails naming the late replies."""
+    with EmulatorProcess(faults=[late]) as emu:
+        tables = emu.tables()
+        with DynamixelDriver(emu.port, smap, latency_timer_ms=16.0) as drv:
+            try:
+                found = drv.scan()
+            except CommError as exc:
+                assert "34 ms reply timeout" in str(exc) and "late" in str(exc), exc
+                return
+        for i, (model, firmware) in found.items():
+            assert model == reg(tables[i], "model_number")
+            assert firmware == reg(tables[i], "firmware_version")
+
+
+def test_a_servo_of_another_model_is_refused_at_bring_up_by_name(smap):
+    """A servo reporting another model number on a mapped ID (here 1060, an XL430) is
+    refused before anything is written to it, naming it; the emulator's own table says
+    which model it is."""
+    with EmulatorProcess(faults=["model:5:1060"]) as emu:
+        assert reg(emu.table(5), "model_number") == 1060
+        assert reg(emu.table(4), "model_number") == 1240  # the e-Manual's XC330-M288-T
+        with DynamixelDriver(emu.port, smap, latency_timer_ms=LAT) as drv:
+            with pytest.raises(DynamixelError, match=r"servo 5 \(B_mcp_flex\): model number 1060"):
+                drv.bring_up()
+        assert not any(s["torque"] for s in emu.servos().values())
+
+
+def test_a_failed_read_names_the_servo_and_the_register_in_the_drivers_words(rig):
+    emu, drv = rig
+    emu.fault("drop:1.0")
+    try:
+        with pytest.raises(CommError) as info:
+            drv.read_health(3)
+    finally:
+        emu.clear()
+    text = str(info.value)
+    assert text.startswith("servo 3 (A_pip): reading hardware_error_status after 3 attempt")
+    assert "no reply" in text and "TxRxResult" not in text and "address" not in text
+
+
+def _lose_the_next_sync_write(drv) -> None:
+    """The host's next SYNC_WRITE never reaches the bus (a packet lost on the wire)."""
+    ser = drv.port.ser
+    write = ser.write
+
+    def lossy(data):
+        if len(data) > 7 and data[7] == P.SYNC_WRITE:
+            ser.write = write  # once
+            return len(data)
+        return write(data)
+
+    ser.write = lossy
+
+
+def test_close_confirms_the_torque_off_and_resends_it_to_a_servo_still_on(smap, caplog):
+    """The torque-off sync write lost on the line, and replies dropped: close reads Torque
+    Enable back and turns off each servo still on; the emulator's servos end torque off."""
+    with EmulatorProcess() as emu:
+        drv = DynamixelDriver(emu.port, smap, latency_timer_ms=LAT, guard=False)
+        drv.bring_up()
+        assert all(s["torque"] for s in emu.servos().values())
+        emu.fault("drop:0.3")
+        _lose_the_next_sync_write(drv)
+        with caplog.at_level(logging.WARNING, logger="firmware_interface.driver"):
+            drv.close()
+        assert not any(s["torque"] for s in emu.servos().values())
+
+
+def test_close_names_a_servo_it_could_not_confirm_without_raising(smap, caplog):
+    with EmulatorProcess() as emu:
+        drv = DynamixelDriver(emu.port, smap, latency_timer_ms=LAT, guard=False)
+        drv.bring_up()
+        emu.fault("missing:7")
+        with caplog.at_level(logging.WARNING, logger="firmware_interface.driver"):
+            drv.close()
+        servos = emu.servos()
+        assert servos[7]["torque"] and not any(s["torque"] for i, s in servos.items() if i != 7)
+    warned = [r.getMessage() for r in caplog.records if "close:" in r.getMessage()]
+    assert len(warned) == 1 and "servo 7 (B_pip)" in warned[0], warned
+    others = [f"servo {s.id} ({s.joint})" for s in smap.servos if s.id != 7]
+    assert not [o for o in others if o in warned[0]], warned
+
+
+def test_a_fault_of_several_servos_lists_the_others_as_ids():
+    fault = HardwareFault(3, "A_pip", ["overload"], others=[2, 5])
+    assert str(fault) == "servo 3 (A_pip): hardware error overload (also IDs 2, 5)"
