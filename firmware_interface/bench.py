@@ -12,6 +12,7 @@ import numpy as np
 from firmware_interface import protocol as P
 from firmware_interface.driver import FEEDBACK_LEN, bring_up_notice, failed_start
 from firmware_interface.errors import DynamixelError
+from firmware_interface.options import LATENCY_MS
 from payload.errors import RunAborted
 from payload.schema import PayloadCommand
 
@@ -28,7 +29,7 @@ def bench_hw(
     port: str | None,
     cycles: int,
     servos: str | None = None,
-    latency_ms: float = 16.0,
+    latency_ms: float = LATENCY_MS,
     say: Callable[[str], None] | None = None,
 ) -> dict[str, Any]:
     """Time ``cycles`` cycles (send + read) after bring-up.

@@ -59,6 +59,7 @@ from firmware_interface.fault_handling import FaultHandling
 from firmware_interface.guard import CommandGuard, default_guard
 from firmware_interface.health import ServoHealth
 from firmware_interface.homing import home_linear
+from firmware_interface.options import LATENCY_MS
 from firmware_interface.port import AlertSyncRead, CheckedPacketHandler, SdkPort
 from firmware_interface.servo_map import (
     LINEAR_JOINTS,
@@ -147,7 +148,7 @@ class DynamixelDriver(FaultHandling):
         on_fault: str | None = None,
         fast: bool = True,
         poll_timeout: float = 0.002,
-        latency_timer_ms: float = 16.0,
+        latency_timer_ms: float = LATENCY_MS,
         guard: bool | CommandGuard = True,
     ) -> None:
         self.design = design if design is not None else load_design()
