@@ -1018,8 +1018,7 @@ def test_a_campaign_without_contact_says_its_contact_interval_is_none(tmp_path, 
 def test_the_committed_campaign_summaries_follow_their_summary_json() -> None:
     """Each ``analyses/campaign/*/summary.md`` is what the summary's Markdown makes of the
     ``summary.json`` beside it (``payload trials summarize`` writes both from one summary),
-    line for line, but for the station line: these campaigns' trials predate the recorded
-    station_clearance_cap_mm, and their summary.md still says the 300 mm typed then."""
+    line for line."""
     from payload.trials.summary_markdown import summary_markdown
 
     paths = sorted((ROOT / "analyses" / "campaign").glob("*/summary.json"))
@@ -1030,8 +1029,7 @@ def test_the_committed_campaign_summaries_follow_their_summary_json() -> None:
         kept = (path.parent / "summary.md").read_text(encoding="utf-8").splitlines()
         assert len(made) == len(kept), path
         for a, b in zip(made, kept, strict=True):
-            if not a.startswith("Station contacts:"):
-                assert a == b, (path, a, b)
+            assert a == b, (path, a, b)
 
 
 def test_summary_of_trials_scored_without_literal_figures() -> None:
