@@ -5,6 +5,7 @@ from __future__ import annotations
 import datetime
 import json
 import signal
+from collections.abc import Sequence
 from typing import Any
 
 
@@ -41,6 +42,14 @@ def counted(n: int, noun: str) -> str:
     """``n`` and ``noun``, plural but for one (``1 point``, ``2 points``; nouns taking
     ``-s``)."""
     return f"{n} {noun}" if n == 1 else f"{n} {noun}s"
+
+
+def first_of(items: Sequence[str], shown: int, where: str = "") -> str:
+    """The first ``shown`` of ``items`` joined by "; ", and "(and N more)" when some are
+    left out (``where``: where the rest are, "(and N more: payload report envelope)")."""
+    left = len(items) - shown
+    more = f" (and {left} more{': ' + where if where else ''})" if left > 0 else ""
+    return "; ".join(items[:shown]) + more
 
 
 def is_number(value: Any) -> bool:

@@ -776,3 +776,16 @@ def test_wall_labels_name_the_least_clearance_over_every_part(design_dict):
             seen.add((wall, text))
     assert ("+z (mount)", "6.0 mm (stage)") in seen
     assert any(w.startswith("-z") and t.startswith("5.1 mm (") for w, t in seen), seen
+
+
+def test_the_search_line_prints_no_negative_zero() -> None:
+    """A search angle that rounds to zero from below printed "-0.0000" (the design file
+    already got 0.0)."""
+    from types import SimpleNamespace
+
+    from payload.envelope.cli_runs import _search_line
+
+    search = SimpleNamespace(finger=[1.66006, -1e-6, -0.0, 1.80481], clearance=1.06e-3,
+                             limited_by="A_knuckle / +y (left) wall")  # fmt: skip
+    line = _search_line(SimpleNamespace(search=search, suggested=SimpleNamespace(passed=True)))
+    assert line.startswith("stowed-posture search: finger [1.6601, 0.0000, 0.0000, 1.8048] rad")

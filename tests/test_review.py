@@ -211,6 +211,8 @@ def test_a_design_that_does_not_fit_shows_the_offending_parts_red(tmp_path, desi
     assert verdict.startswith("stowed fit: FAIL: ") and " protrudes " in verdict
     assert rv.scene.overlay.as_json()["outcome"] == FAIL  # the page draws it as a failure
     assert verdict.split(": ", 2)[2].split(" protrudes ")[0] in out
+    # no "tightest stage -9.0 mm" after it: a negative clearance is the protrusion named
+    assert "tightest" not in verdict, verdict
 
 
 # -- trial replay ------------------------------------------------------------------------

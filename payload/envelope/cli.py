@@ -26,6 +26,7 @@ from payload.envelope.cli_runs import (
     run_reach,
     written_lines,
 )
+from payload.errors import first_of
 
 if TYPE_CHECKING:
     from payload.envelope.fit import EnvelopeAnalysis
@@ -52,8 +53,7 @@ def _cmd_envelope(args: argparse.Namespace) -> int:
             print(line)
     if not analysis.passed:
         failures = analysis.given.failures()
-        more = f" (+{len(failures) - 3} more)" if len(failures) > 3 else ""
-        raise CheckFailed("stowed payload: " + "; ".join(failures[:3]) + more)
+        raise CheckFailed("stowed payload: " + first_of(failures, 3))
     return 0
 
 

@@ -248,7 +248,7 @@ def run_envelope(args: argparse.Namespace) -> tuple[EnvelopeAnalysis, dict[str, 
 def _search_line(analysis: EnvelopeAnalysis) -> str:
     s, c = analysis.search, analysis.suggested
     assert s is not None and c is not None
-    fing = ", ".join(f"{v:.4f}" for v in s.finger)
+    fing = ", ".join(f"{round(v, 4) + 0.0:.4f}" for v in s.finger)  # no "-0.0000"
     return (
         f"stowed-posture search: finger [{fing}] rad -> min clearance "
         f"{s.clearance * 1e3:.2f} mm ({s.limited_by}); {'passes' if c.passed else 'fails'}"

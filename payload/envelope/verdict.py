@@ -13,6 +13,7 @@ from typing import Any
 from payload.envelope.fit_results import EnvelopeAnalysis
 from payload.envelope.reach import ReachAnalysis
 from payload.envelope.workspace import MIN_HULL_POINTS
+from payload.errors import first_of
 
 HEADLINES: dict[str, tuple[tuple[str, str, str], ...]] = {
     "envelope": (
@@ -40,8 +41,7 @@ the design (a reach sampled 1,000 times against 100,000): named first when they 
 
 
 def _failures(failures: list[str]) -> str:
-    more = f" (+{len(failures) - 3} more)" if len(failures) > 3 else ""
-    return "; ".join(failures[:3]) + more
+    return first_of(failures, 3)
 
 
 def envelope_verdict(a: EnvelopeAnalysis) -> str:

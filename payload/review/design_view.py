@@ -35,6 +35,7 @@ from payload.envelope.drawing import (
 from payload.envelope.fit import StowedCheck, check_stowed, wall_gaps
 from payload.envelope.geometry import PayloadGeometry
 from payload.envelope.vehicle import Vehicle, vehicle_from_dict
+from payload.errors import first_of
 from payload.review.model import PayloadModel
 from payload.review.project import ProjectFiles, page_title
 from payload.review.scene import (
@@ -322,9 +323,8 @@ def title(files: ProjectFiles, check: StowedCheck) -> tuple[str, str]:
     verdict = "stowed fit: pass" if check.passed else "stowed fit: FAIL"
     reasons = [] if check.passed else check.failures()
     if reasons:  # what failed, as `payload report envelope` says it
-        more = f" (and {len(reasons) - 1} more: payload report envelope)" if reasons[1:] else ""
-        verdict += f": {reasons[0]}{more}"
-    if check.parts:
+        verdict += f": {first_of(reasons, 1, 'payload report envelope')}"
+    if check.parts and check.tightest.clearance >= 0:  # (one sticking out leads the reasons)
         t = check.tightest
         verdict += f"; tightest {t.name} {t.clearance * 1e3:.1f} mm"
     return page_title("design review", name, design), verdict

@@ -17,6 +17,7 @@ from payload.cliutil import (
     out_folder,
     results_folder,
 )
+from payload.errors import first_of
 from payload.folders import CAMPAIGN_FILES, REPORT_FILES, SWEEP_FILES, TRIAL_FILES, held
 from payload.project import DESIGN_FILE
 from payload.sweep.grid import SweepError, parse_set
@@ -90,8 +91,7 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
                     said = "envelope check passes" if kind == "pass" else "envelope check FAILS"
                     failed = result.get("failures") or []
                     if kind == "fail" and failed:  # what failed (a fit can fail it too)
-                        more = f" (and {len(failed) - 1} more)" if failed[1:] else ""
-                        said += f": {failed[0]}{more}"
+                        said += f": {first_of(failed, 1)}"
                     elif kind == "fail":
                         said += " (does not fit the bays)" if not result["fits"] else ""
                 counts[kind] += 1

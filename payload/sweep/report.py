@@ -8,7 +8,7 @@ import math
 from pathlib import Path
 from typing import Any
 
-from payload.errors import counted
+from payload.errors import counted, first_of
 from payload.folders import SWEEP, SWEEP_TEXT
 from payload.sweep.point import POINT_FIELDS
 
@@ -130,8 +130,7 @@ def sweep_markdown(data: dict[str, Any], command: str, plots: list[str]) -> str:
                 else ["n/a"] * 3
             )
         failed = p.get("failures") or []
-        more = f" (and {len(failed) - 2} more)" if len(failed) > 2 else ""
-        note = p["error"] or "; ".join(failed[:2]) + more
+        note = p["error"] or first_of(failed, 2)
         row.append(note.replace("|", "/").replace("\n", " "))
         lines.append("| " + " | ".join(row) + " |")
     prov = data.get("provenance") or {}
