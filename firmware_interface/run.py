@@ -436,7 +436,11 @@ def run_hardware_trial(
         if bar is not None:
             bar.stop()
         sim.close()
-    result = finish_trial(out, rec_path)
+    try:
+        result = finish_trial(out, rec_path)
+    except KeyboardInterrupt as exc:  # while scoring: the session itself was whole
+        exc.add_note(f"the session's recording is kept whole, not scored: {rec_path}")
+        raise
     # the steps that ended later than their 20 ms period (paced only: unpaced, none is due)
     overruns = ended[0].overruns if pace and ended else None
     result.update(steps=len(commands), driver="hardware", **far_end, provenance=prov,

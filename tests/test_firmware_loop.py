@@ -296,6 +296,34 @@ def test_hw_run_says_when_its_paced_loop_fell_behind_50_hz(tmp_path, capsys):
     assert unpaced["loop_overruns"] is None
 
 
+def test_a_ctrl_c_while_hw_run_scores_names_the_recording_kept(
+    session, tmp_path, capsys, monkeypatch
+):
+    """Ctrl-C after the session ended, while it is scored: `hw run` said only "payload:
+    interrupted"; it now names the recording it kept whole (its metrics not written)."""
+    import payload.trials.scoring
+    from payload.cli import main
+    from payload.trials.recorder import read_recording
+
+    def scoring(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(payload.trials.scoring, "finish_trial", scoring)
+    out = tmp_path / "run"
+    with EmulatorProcess() as emu:
+        argv = ["hw", "run", "--device", emu.port, "--replay", str(session),
+                "--out", str(out), "--no-pace", "--latency-ms", str(LAT)]  # fmt: skip
+        assert main(argv) == 130
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    recording = out / "log.mcap"
+    assert last == (
+        f"payload: interrupted; the session's recording is kept whole, not scored: {recording}"
+    ), last
+    _, frames = read_hand_recording(session)
+    assert len(read_recording(recording)) == len(frames)  # every step, readable
+    assert not (out / "metrics.json").exists()
+
+
 def _messages(path, topic):
     """The messages of one topic of an MCAP file, read with the mcap library itself."""
     from mcap.reader import make_reader
