@@ -12,6 +12,7 @@ trial exactly as ``payload trial`` does (``log.mcap``, ``hands.jsonl``, ``metric
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Callable
 from pathlib import Path
 from types import TracebackType
@@ -36,6 +37,10 @@ from payload.teleop.pipeline import TeleopConfig, TeleopPipeline, calibrate_oper
 from payload.teleop.replay import HandRecordingWriter
 
 log = logging.getLogger(__name__)
+
+
+PROGRESS_LINE_S = 10.0
+"""``hw run`` without a terminal says how far the session is this often [s of session]."""
 
 
 def ready_at_home(hardware: Any, say: Callable[[str], None] | None = None) -> None:
@@ -383,13 +388,16 @@ def run_hardware_trial(
     # the trial's Foxglove and safety channels (the filter's record, station contacts)
     scene = recording_scene(sim, module_rects(layout))
     bar = None
+    span = float(frames[-1].stamp) - float(frames[0].stamp) if frames else 0.0
+    total = max(min(max_time, span), CONTROL_DT)  # the session's length [s]
     if progress and frames:
         from rich.progress import Progress
 
-        span = float(frames[-1].stamp) - float(frames[0].stamp)
         bar = Progress(transient=True)
-        task = bar.add_task("hw run", total=max(min(max_time, span), CONTROL_DT))
+        task = bar.add_task("hw run", total=total)
         bar.start()
+    # without a bar (no terminal: a log, a pipe), a line every PROGRESS_LINE_S instead
+    said = {"next": PROGRESS_LINE_S if bar is None and say is not None else math.inf}
     try:
         with (
             TrialRecorder(rec_path, scene=scene) as recorder,  # never over another run's
@@ -409,6 +417,9 @@ def run_hardware_trial(
                 arming.step()
                 if bar is not None:
                     bar.update(task, completed=ctx.t)
+                elif ctx.t >= said["next"] and say is not None:
+                    said["next"] += PROGRESS_LINE_S
+                    say(f"hw run: {ctx.t:.0f} of {total:.0f} s of the session run")
                 fault = getattr(hardware, "fault", None)
                 if fault is not None:
                     raise fault

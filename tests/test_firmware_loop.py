@@ -324,6 +324,28 @@ def test_a_ctrl_c_while_hw_run_scores_names_the_recording_kept(
     assert not (out / "metrics.json").exists()
 
 
+def test_hw_run_without_a_terminal_says_how_far_the_session_is(
+    session, tmp_path, capsys, monkeypatch
+):
+    """No progress bar without a terminal (a log, a pipe): a paced replay of a whole trial
+    ran minutes without a word. A line now goes to stderr every PROGRESS_LINE_S of the
+    session (shortened here), counting up to the recording's length."""
+    import firmware_interface.run
+    from payload.cli import main
+
+    monkeypatch.setattr(firmware_interface.run, "PROGRESS_LINE_S", 1.0)
+    _, frames = read_hand_recording(session)
+    length = float(frames[-1].stamp) - float(frames[0].stamp)
+    with EmulatorProcess() as emu:
+        argv = ["hw", "run", "--device", emu.port, "--replay", str(session),
+                "--out", str(tmp_path / "run"), "--no-pace", "--latency-ms", str(LAT)]  # fmt: skip
+        assert main(argv) == 0
+    said = [x for x in capsys.readouterr().err.splitlines() if x.startswith("hw run: ")]
+    assert len(said) == int(length // 1.0), said
+    for k, line in enumerate(said, 1):
+        assert line == f"hw run: {k} of {length:.0f} s of the session run ...", line
+
+
 def _messages(path, topic):
     """The messages of one topic of an MCAP file, read with the mcap library itself."""
     from mcap.reader import make_reader
