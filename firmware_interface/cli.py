@@ -230,9 +230,12 @@ def _cmd_run(args: argparse.Namespace) -> int:
     print(f"hw run ({far} on {result['device']}), {counted(result['steps'], 'step')} -> {out}")
     print(f"  Bus Watchdog: {result['watchdog']['effect']}")
     print(f"  ended: {_ended(result)}; every servo's torque turned off")
-    if result.get("loop_overruns"):  # the servos ran behind the recording's 50 Hz
-        print(f"  fell behind 50 Hz: {result['loop_overruns']} of {result['steps']} steps ended "
-              "after their 20 ms period (a slow bus or a busy host; docs/hardware.md)")  # fmt: skip
+    if result.get("loop_overruns"):  # the servos ran behind the recording's control rate
+        from payload.rates import CONTROL_DT
+
+        print(f"  fell behind {1 / CONTROL_DT:g} Hz: {result['loop_overruns']} of "
+              f"{result['steps']} steps ended after their {1e3 * CONTROL_DT:g} ms period (a "
+              "slow bus or a busy host; docs/hardware.md)")  # fmt: skip
     # the world and the CTB's placement are the recording's; the controller profile and
     # the retargeting this session's own (real servos in the loop: `safe` by default)
     print_trial_summary(result, f" (world and CTB placement from {replay.name})")
