@@ -36,8 +36,9 @@ FREE_CHECK_FRACTION = 0.1
 its joint's travel, under the homing current, and must cover at least half of it
 (ASSUMPTION: a tenth of the travel is far enough to tell a free drive from a blocked one
 and short enough not to matter where the payload stands). A stall alone cannot tell the
-hard stop from a blocked shaft or an obstacle short of the stop: a drive that stalls and
-then does not move off it is refused, not homed."""
+hard stop from a jammed drive: a drive that stalls and then does not move off it is
+refused, not homed. An obstacle short of the stop on the stowed side, which the drive can
+back away from, still reads as the stop (docs/hardware.md)."""
 FREE_CHECK_S = 0.5
 """The longest wait for the free-travel move [s] (ASSUMPTION: the move is 0.13 to 0.2
 of a turn, about 0.1 s at the XC330's speed; a blocked servo stops pushing at its cap
@@ -189,6 +190,6 @@ def _free_check(
             for s in stuck
         )
         raise HomingError(
-            f"homing: {said} did not move off where it stalled when driven out: blocked, "
-            f"or an obstacle short of the hard stop; check the drive, then bring up again"
+            f"homing: {said} did not move off where it stalled when driven out: the drive "
+            f"is jammed, or blocked on its way out; check the drive, then bring up again"
         )

@@ -186,7 +186,7 @@ def test_check_fails_on_a_blocked_rail(capsys):
     report = json.loads(said.out)
     assert report["ok"] is False and len(report["errors"]) == 1, report["errors"]
     assert report["errors"][0].startswith("homing: rail ("), report["errors"]
-    assert "blocked" in report["errors"][0]
+    assert "the drive is jammed" in report["errors"][0]
     assert [s["id"] for s in report["servos"]] == sorted(load_servo_map().ids)
     assert "homing: rail (" in said.err.splitlines()[-1]
 
