@@ -289,6 +289,8 @@ def test_a_sweep_without_a_terminal_says_each_point_as_it_ends(tmp_path, capsys)
     # an invalid design was never checked: its `passed` is null, as docs/design.md lists
     # it (the key was missing)
     assert [(p["valid"], p["passed"]) for p in invalid] == [(False, None), (False, None)]
+    for p in invalid:  # and so were its other verdicts and figures: null, not missing
+        assert p["reach_passed"] is None and p["min_self_clearance_mm"] is None
     assert lines[:2] == [
         "1/3 done: point-000 (finger.lengths.distal=0.01): invalid",
         "2/3 done: point-001 (finger.lengths.distal=0.02): invalid",

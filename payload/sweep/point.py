@@ -83,7 +83,10 @@ def _empty(params: dict[str, float], error: str | None, valid: bool) -> dict[str
         "below_vehicle_mm": None,
         "span_max_mm": None,
         "trials": None,
-        "passed": None,  # not checked (an extra field: after the contract's in sweep.json)
+        # not checked (extra fields: after the contract's in sweep.json)
+        "passed": None,
+        "reach_passed": None,
+        "min_self_clearance_mm": None,
     }
 
 
@@ -109,7 +112,7 @@ def run_point(
     Returns:
         The point as in ``sweep.json`` (:data:`POINT_FIELDS`), plus ``project``,
         ``passed`` (the envelope check as a whole), ``reach_passed`` (the reach report's
-        verdict: the pairs close on the CTB's features), ``min_self_clearance_mm`` (the
+        verdict), ``min_self_clearance_mm`` (the
         least gap between two payload parts, stowed, as the envelope report's),
         ``span_min_mm`` and ``failures``.
     """

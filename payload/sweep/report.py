@@ -104,7 +104,9 @@ def sweep_markdown(data: dict[str, Any], command: str, plots: list[str]) -> str:
         "the same commands one would type there (`point_commands` in payload/sweep/point.py). "
         "*fits*: every part inside the bays in the stowed posture; *envelope check*: that "
         "and no self-collision and a clear deployment path (`payload report envelope`); "
-        "*reach check*: both pairs close on the cargo bag's features (`payload report reach`); "
+        "*reach check*: the reach report's verdict (`payload report reach`: the fingertips "
+        "reach below the vehicle, every finger has a measurable workspace, both pairs close "
+        "on the cargo bag's features); "
         "*min self-clearance*: the least gap between two payload parts, stowed (negative: "
         "the deepest overlap).",
         "",
