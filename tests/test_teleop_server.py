@@ -1348,6 +1348,21 @@ def test_serve_drives_the_hardware_with_its_servo_map_and_latency(tmp_path, monk
             serve(_parse([*base, "--device", emu.port, "--latency-ms", "0"]), loading)
 
 
+def test_a_bad_servo_map_is_refused_before_any_certificate_is_made(tmp_path, monkeypatch, capsys):
+    """`--servos` names a map that cannot be read: one line, exit 2, before the TLS
+    certificate a LAN bind makes (the map was read only when the bus was opened)."""
+    from payload.cli import main
+
+    monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path / "config"))
+    missing = tmp_path / "nowhere.toml"
+    argv = ["teleop", "serve", "--driver", "hardware", "--emulator", "--host", "0.0.0.0",
+            "--port", "0", "--servos", str(missing)]  # fmt: skip
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(missing) in err[0], err
+    assert not (tmp_path / "config").exists() or not any((tmp_path / "config").rglob("*.pem"))
+
+
 def test_serve_with_the_emulator_starts_and_stops_its_own_bus(tmp_path, monkeypatch, capsys):
     """`teleop serve --driver hardware --emulator` (as `hw run --emulator`): a bus
     emulated for the session, brought up and homed, and gone when the command ends."""

@@ -185,18 +185,16 @@ def _check_bus_options(args: argparse.Namespace) -> None:
         raise TeleopCliError(problem)
 
 
-def _hardware_driver(args: argparse.Namespace, stack: contextlib.ExitStack) -> Any:
+def _hardware_driver(args: argparse.Namespace, smap: Any, stack: contextlib.ExitStack) -> Any:
     """The Dynamixel payload driver (``firmware_interface``) on ``--device`` (or on an
-    emulator started here, stopped with ``stack``), with ``--servos``' map and
+    emulator started here, stopped with ``stack``), with the servo map ``smap`` and
     ``--latency-ms``, brought up (the rail and the stage homed), at the design's home
     posture where the simulated session starts, its Bus Watchdog disarmed until the
     session's loop runs (the simulator and the retargeters load for seconds first)."""
     from firmware_interface import DynamixelDriver
     from firmware_interface.options import LATENCY_MS
     from firmware_interface.run import ready_at_home
-    from firmware_interface.servo_map import load_servo_map
 
-    smap = load_servo_map(args.servos)  # a bad map: one line, before the bus is opened
     device = args.device
     if args.emulator:
         from firmware_interface.emulator import EmulatorProcess
@@ -258,6 +256,11 @@ def serve(args: argparse.Namespace, make_session: SessionFactory) -> int:
     from payload.design import models_follow_design
 
     models_follow_design(project.design_path, project.root)  # the one rule for stale models
+    smap = None
+    if args.driver == "hardware":  # a bad --servos map: one line, before anything is made
+        from firmware_interface.servo_map import load_servo_map
+
+        smap = load_servo_map(args.servos)
     local = is_local(args.host)
     ssl_context, token = None, None
     if args.cert is not None:
@@ -280,7 +283,7 @@ def serve(args: argparse.Namespace, make_session: SessionFactory) -> int:
     hub = LiveHub()
     bus = contextlib.ExitStack()  # the emulator of --emulator, stopped last
     try:
-        payload = _hardware_driver(args, bus) if args.driver == "hardware" else None
+        payload = _hardware_driver(args, smap, bus) if smap is not None else None
     except BaseException:
         bus.close()
         raise
