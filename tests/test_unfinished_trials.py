@@ -419,6 +419,13 @@ def test_compare_takes_a_campaign_kept_as_its_summary_and_a_trial_by_its_seed(
     assert main(["trials", "compare", str(kept), str(single), "--json"]) == 0
     (row,) = json.loads(capsys.readouterr().out)["trials"]
     assert (row["trial_a"], row["trial"]) == ("trial-0002", "mine")
+    # a folder named as a campaign's trial but holding another seed (a --force rerun of
+    # runs/trial-0001 with seed 2) is matched by its seed, not by its name
+    renamed = tmp_path / "runs" / "trial-0001"
+    shutil.copytree(camp / "trial-0002", renamed)
+    assert main(["trials", "compare", str(kept), str(renamed), "--json"]) == 0
+    (row,) = json.loads(capsys.readouterr().out)["trials"]
+    assert (row["trial_a"], row["seed_a"], row["seed_b"]) == ("trial-0002", 2, 2), row
     # a trial the --max-time cap cut short is said to be so before the table
     metrics = single / "metrics.json"
     metrics.write_text(json.dumps({**json.loads(metrics.read_text()), "ended_by": ENDED_BY_CAP}))
@@ -491,3 +498,13 @@ def test_compare_steps_leaves_out_where_a_hardware_run_ran_and_what_it_read(
         metrics.write_text(json.dumps({**json.loads(metrics.read_text()), **extra}))
     assert main(["trials", "compare", str(a), str(b), "--steps", "--require-identical"]) == 0
     capsys.readouterr()
+
+
+def test_compare_says_a_differing_setting_as_it_was_given() -> None:
+    """A 0.1 ms physics step against 1 ms read "physics_dt 0.000 / 0.001" (three decimals,
+    as the metrics are shown); a setting is said as given."""
+    from payload.trials.compare import comparison_notes
+
+    row = {"trial": "trial-0000", "setup_differs": {"physics_dt": [0.0001, 0.001]}}
+    notes = comparison_notes({"trials": [row], "only_a": [], "only_b": []})
+    assert "Setup, A / B, where it differs: physics_dt 0.0001 / 0.001." in notes, notes

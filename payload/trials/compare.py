@@ -300,15 +300,14 @@ def compare_runs(run_a: str | Path, run_b: str | Path, *, steps: bool = False) -
             )
     if len(ta) == 1 and len(tb) == 1:  # two single trials: compare them whatever their names
         common = [(next(iter(ta)), next(iter(tb)))]
+    elif 1 in (len(ta), len(tb)):  # one trial against a campaign: its seed's, whatever the
+        one, many = (ta, tb) if len(ta) == 1 else (tb, ta)  # folder's name (a --force rerun
+        alone = next(iter(one))  # of runs/trial-0003 may hold another seed)
+        seed = _trial_metrics(one[alone]).get("seed")
+        name = trial_dir("", seed).name if isinstance(seed, int) else None
+        common = [(alone, name) if one is ta else (name, alone)] if name in many else []
     else:
         common = [(name, name) for name in ta if name in tb]
-        if not common and 1 in (len(ta), len(tb)):  # one trial against a campaign: its seed's
-            one, many = (ta, tb) if len(ta) == 1 else (tb, ta)
-            alone = next(iter(one))
-            seed = _trial_metrics(one[alone]).get("seed")
-            name = trial_dir("", seed).name if isinstance(seed, int) else None
-            if name in many:
-                common = [(alone, name) if one is ta else (name, alone)]
     if not common:
         raise CompareError(f"{a_dir} and {b_dir} have no trial (seed) in common")
     rows = []
@@ -383,6 +382,13 @@ def _num(value: Any) -> str:
     return f"{value:.3f}" if isinstance(value, (int, float)) else str(value)
 
 
+def _setting(value: Any) -> str:
+    """A setup setting as given (a physics step of 0.0001 s is not "0.000")."""
+    if isinstance(value, float):
+        return f"{value:g}"
+    return _num(value)
+
+
 COMPARISON_OPENING = "Comparison of "
 """How a comparison's Markdown begins (``trials compare --out F --force`` replaces only
 a file that begins so)."""
@@ -412,7 +418,7 @@ def comparison_notes(result: dict[str, Any]) -> list[str]:
     differ: dict[str, set[str]] = {}
     for row in result["trials"]:
         for key, (a, b) in row.get("setup_differs", {}).items():
-            differ.setdefault(key, set()).add(f"{_num(a)} / {_num(b)}")
+            differ.setdefault(key, set()).add(f"{_setting(a)} / {_setting(b)}")
     if differ:
         said = "; ".join(f"{k} {', '.join(sorted(v))}" for k, v in differ.items())
         notes.append(f"Setup, A / B, where it differs: {said}.")
