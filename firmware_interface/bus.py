@@ -13,7 +13,7 @@ import random
 from dataclasses import dataclass, field
 
 from firmware_interface import protocol as P
-from firmware_interface.control_table import ADDR, BAUD_RATES
+from firmware_interface.control_table import ADDR, BAUD_RATES, BY_NAME
 from firmware_interface.faults import Fault
 from firmware_interface.servo_dynamics import Plant
 from firmware_interface.servo_model import ServoModel
@@ -93,7 +93,9 @@ class Bus:
         elif fault.kind == "block":
             self.servos[int(fault.id)].blocked = True
         elif fault.kind == "model":  # a read-only EEPROM register: kept over reboots
-            self.servos[int(fault.id)].table[0:2] = int(fault.value).to_bytes(2, "little")
+            reg = BY_NAME["model_number"]
+            span = slice(reg.address, reg.address + reg.size)
+            self.servos[int(fault.id)].table[span] = int(fault.value).to_bytes(reg.size, "little")
 
     def power_cycle(self) -> None:
         """Every servo off and on again (EEPROM kept, multi-turn counts lost)."""

@@ -80,6 +80,11 @@ _FEEDBACK = np.dtype([("current", "<i2"), ("velocity", "<i4"), ("position", "<i4
 TORQUE_OFF_TRIES = 3
 """close(): reads of Torque Enable per servo (and re-sends of the torque-off to a servo
 still on) before it warns that the servo's torque off is not confirmed."""
+TORQUE_OFF_CONFIRM_S = 1.0
+"""close(): no read of Torque Enable starts later than this after the first [s] (a silent
+servo costs a reply timeout and a quiet window, about 70 ms at the default latency, so a
+close on a silent bus returns within about 1.1 s); the servos not read by then are left
+unconfirmed."""
 
 
 _LATE_HINT = ("the bus answers later than the driver allows (an adapter's latency timer "
@@ -185,6 +190,7 @@ class DynamixelDriver(FaultHandling):
         self._torque_on = False  # set once brought up: a servo then found torque off restarted
         self._reset: set[int] = set()
         self._closed = True
+        self.torque_unconfirmed: list[int] = []  # servos close() could not confirm off
         self._last_io = time.monotonic()
         self._longest_gap = 0.0  # the host's longest bus silence since a check or an arming
         self._present = np.zeros(len(self.ids), dtype=np.int64)
@@ -376,7 +382,7 @@ class DynamixelDriver(FaultHandling):
             g.addParam(i, [self.map.watchdog_ms // 20 if armed else 0])
         result = g.txPacket()
         if result != COMM_SUCCESS:
-            raise CommError(f"arming the Bus Watchdog: {self.packet.getTxRxResult(result)}")
+            raise CommError(f"arming the Bus Watchdog: {self._why(result)}")
         if armed:  # a later trip: only a silence from here on could have caused it
             self._longest_gap = 0.0
 
@@ -475,8 +481,7 @@ class DynamixelDriver(FaultHandling):
             self._writer.changeParam(i, b)
         result = self._writer.txPacket()
         if result != COMM_SUCCESS:
-            raise CommError(f"sync write of the goal positions: "
-                            f"{self.packet.getTxRxResult(result)}")  # fmt: skip
+            raise CommError(f"sync write of the goal positions: {self._why(result)}")
 
     def _sync_read(self, group: GroupSyncRead, what: str) -> None:
         """Fast sync read with retries, then a plain sync read; raises CommError."""
@@ -501,7 +506,7 @@ class DynamixelDriver(FaultHandling):
             silent = next((i for i in self.ids if len(group.data_dict.get(i, [])) != n), None)
         who = f"{self._name(silent)} did not answer" if silent is not None else "the bus"
         raise CommError(f"reading {what} after {self.retries + 1} attempt(s): "
-                        f"{self.packet.getTxRxResult(result)} ({who})")  # fmt: skip
+                        f"{self._why(result, silent)} ({who})")  # fmt: skip
 
     def _feedback(self) -> None:
         """One fast sync read (or a sync read) of current, velocity and position."""
@@ -567,9 +572,9 @@ class DynamixelDriver(FaultHandling):
     def close(self) -> None:
         """Leave the servos safe and close the port: torque off on every servo (one sync
         write), confirmed by reading Torque Enable back from each servo that answered a
-        scan, re-sent to a servo still on, :data:`TORQUE_OFF_TRIES` times at most; a
-        servo left unconfirmed is named in a warning. A driver no servo ever answered
-        only sends the sync write.
+        scan (see :meth:`_confirm_torque_off`); the servos left unconfirmed are named in a
+        warning and kept in ``torque_unconfirmed`` (every servo heard when the sync write
+        itself failed). A driver no servo ever answered only sends the sync write.
 
         Idempotent; never raises for a bus that stopped answering.
         """
@@ -583,11 +588,16 @@ class DynamixelDriver(FaultHandling):
             if result != COMM_SUCCESS:
                 raise CommError(self._why(result))
             unconfirmed = self._confirm_torque_off() if self.heard else {}
+            self.torque_unconfirmed = sorted(unconfirmed)
             if unconfirmed:
+                by_why: dict[str, list[int]] = {}
+                for i, why in unconfirmed.items():
+                    by_why.setdefault(why, []).append(i)
                 log.warning("close: could not confirm the torque off of %s",
-                            "; ".join(f"{self._name(i)} ({why})"
-                                      for i, why in unconfirmed.items()))  # fmt: skip
+                            "; ".join(f"{', '.join(map(self._name, ids))} ({why})"
+                                      for why, ids in by_why.items()))  # fmt: skip
         except Exception as exc:  # the port may be gone: closing must still succeed
+            self.torque_unconfirmed = sorted(self.heard)
             log.warning("close: could not turn the torque off: %s", exc)
         finally:
             self._closed = True
@@ -597,23 +607,38 @@ class DynamixelDriver(FaultHandling):
                 pass
 
     def _confirm_torque_off(self) -> dict[int, str]:
-        """Read Torque Enable of every servo, re-send the torque-off to those still on;
-        returns the servos not confirmed off, with why."""
+        """Read Torque Enable of each servo heard, up to :data:`TORQUE_OFF_TRIES` passes
+        within :data:`TORQUE_OFF_CONFIRM_S`; returns the servos not confirmed off, with
+        why. After a pass the torque-off goes again to the servos not confirmed, as one
+        sync write (no reply awaited: a servo whose reply was lost costs no timeout).
+        When no servo answered the first pass (a bus gone silent) the passes stop there."""
         addr = ADDR["torque_enable"]
-        pending = {i: "" for i in self.ids}
+        pending = {i: "" for i in self.ids if i in self.heard}
+        deadline = time.monotonic() + TORQUE_OFF_CONFIRM_S
         for attempt in range(TORQUE_OFF_TRIES):
+            answered = False
             for i in list(pending):
+                if time.monotonic() > deadline:
+                    pending[i] = pending[i] or (
+                        f"not read within the {TORQUE_OFF_CONFIRM_S:g} s of the confirmation"
+                    )
+                    continue
                 value, result, _ = self.packet.read1ByteTxRx(self.port, i, addr)
+                answered |= result == COMM_SUCCESS
                 if result == COMM_SUCCESS and value == 0:
                     del pending[i]
                 elif result == COMM_SUCCESS:
                     pending[i] = "still on"
                 else:
                     pending[i] = self._why(result, i)
-            if not pending or attempt == TORQUE_OFF_TRIES - 1:
+            if not pending or (attempt == 0 and not answered):
                 break
-            for i in pending:  # one write each, with its status; read back on the next pass
-                self.packet.write1ByteTxRx(self.port, i, addr, 0)
+            again = GroupSyncWrite(self.port, self.packet, addr, 1)
+            for i in pending:
+                again.addParam(i, [0])
+            again.txPacket()  # read back on the next pass
+            if time.monotonic() > deadline:
+                break
         return pending
 
     def __enter__(self) -> DynamixelDriver:

@@ -11,6 +11,7 @@ from dynamixel_sdk import (
     COMM_RX_CORRUPT,
     COMM_RX_FAIL,
     COMM_SUCCESS,
+    DXL_MAKEWORD,
     GroupSyncRead,
     PortHandler,
     Protocol2PacketHandler,
@@ -163,21 +164,33 @@ class SdkPort(PortHandler):
 
 
 def _status_ids(data: bytes | bytearray) -> list[int]:
-    """IDs of the whole status packets (CRC good) in ``data``, in order."""
+    """IDs of the whole status packets (CRC good) in ``data``, in order. A header that
+    starts no whole packet (a bogus one, a packet cut off, a bad CRC) is skipped and the
+    scan goes on after it: a whole packet behind it is still found."""
     ids = []
     buf = bytearray(data)
     while buf:
         try:
             pkt, used = P.split(buf)
-        except P.CrcMismatch as exc:
-            del buf[: exc.size]
+        except P.CrcMismatch:
+            pkt, used = None, 0
+        if pkt is not None:
+            del buf[:used]
+            if pkt.instruction == P.STATUS:
+                ids.append(pkt.id)
             continue
-        if pkt is None:
+        start = buf.find(P.HEADER[:3])
+        if start < 0:
             break
-        del buf[:used]
-        if pkt.instruction == P.STATUS:
-            ids.append(pkt.id)
+        del buf[: start + 1]  # past this header: what it started is not a whole packet
     return ids
+
+
+def _params(rx: list[int]) -> int:
+    """A status packet's parameter count after its error byte, from its LEN field
+    (instruction, error, parameters, CRC 2): the SDK's ``removeStuffing`` sets LEN to
+    the unstuffed length but leaves the list as long as the stuffed packet."""
+    return DXL_MAKEWORD(rx[5], rx[6]) - 4
 
 
 class CheckedPacketHandler(Protocol2PacketHandler):
@@ -188,24 +201,41 @@ class CheckedPacketHandler(Protocol2PacketHandler):
     as a four-byte position) was read as the answer to this one. Here a status whose
     parameter count differs from what the request asks for (PING 3, READ its length,
     WRITE and REBOOT none; a fast sync read (n + 4) per servo) is a corrupt reply
-    (``COMM_RX_CORRUPT``): the driver retries it, the port drains the line first.
+    (``COMM_RX_CORRUPT``): the driver retries it, the port drains the line first. The
+    count is the one the LEN field gives (see :func:`_params`), a byte-stuffed reply's too.
+
+    A status from a servo not asked is counted late, but not one from a servo of the plain
+    sync read under way (``group``, the IDs its packet names): it answers that read,
+    on time, while the SDK still waits for a servo before it that went silent.
     """
 
     def __init__(self) -> None:
         super().__init__()
         self._last: list[int] = []
         self._asked: int | None = None  # the servo whose status is awaited
+        self.group: frozenset[int] = frozenset()  # the servos of the sync read under way
 
     def rxPacket(self, port: PortHandler, fast_option: bool) -> tuple[list[int], int]:
         rx, result = super().rxPacket(port, fast_option)
         self._last = rx
         if result != COMM_SUCCESS:
             port.unsettled = True
-        elif self._asked is not None and rx[4] != self._asked and hasattr(port, "late"):
+        elif (
+            self._asked is not None
+            and rx[4] != self._asked
+            and rx[4] not in self.group
+            and hasattr(port, "late")
+        ):
             # one master on the bus: a status from a servo not asked answers an earlier
             # request (the SDK skips it and waits on)
             port.late[rx[4]] = port.late.get(rx[4], 0) + 1
         return rx, result
+
+    def txPacket(self, port: PortHandler, txpacket: list[int]) -> int:
+        # a plain sync read: PARAMS are the start address (2), the length (2), the IDs
+        is_sync = txpacket[7] == P.SYNC_READ
+        self.group = frozenset(txpacket[12:-2]) if is_sync else frozenset()
+        return super().txPacket(port, txpacket)
 
     @staticmethod
     def _refuse(port: PortHandler) -> int:
@@ -227,7 +257,7 @@ class CheckedPacketHandler(Protocol2PacketHandler):
             want = txpacket[10] | (txpacket[11] << 8)
         else:
             want = 0
-        if len(rx) - 11 != want:  # header 4, ID, LEN 2, instruction, error, params, CRC 2
+        if _params(rx) != want:
             return rx, self._refuse(port), 0
         return rx, result, error
 
@@ -237,7 +267,7 @@ class CheckedPacketHandler(Protocol2PacketHandler):
             data, result, error = super().readRx(port, dxl_id, length)
         finally:
             self._asked = None
-        if result == COMM_SUCCESS and len(self._last) - 11 != length:
+        if result == COMM_SUCCESS and _params(self._last) != length:
             return [], self._refuse(port), 0
         return data, result, error
 
@@ -245,8 +275,9 @@ class CheckedPacketHandler(Protocol2PacketHandler):
         self, port: PortHandler, dxl_id: int, length: int
     ) -> tuple[list[int], int, int]:
         data, result, error = super().fastSyncReadRx(port, dxl_id, length)
-        # from the first servo's error byte to the CRC: ``length`` bytes
-        if result == COMM_SUCCESS and len(self._last) - 8 != length:
+        # from the first servo's error byte to the CRC (LEN less the instruction): the
+        # records of ``length`` bytes in all (AlertSyncRead parses them by their lengths)
+        if result == COMM_SUCCESS and DXL_MAKEWORD(self._last[5], self._last[6]) - 1 != length:
             return [], self._refuse(port), 0
         return data, result, error
 

@@ -613,3 +613,77 @@ def test_close_names_a_servo_it_could_not_confirm_without_raising(smap, caplog):
 def test_a_fault_of_several_servos_lists_the_others_as_ids():
     fault = HardwareFault(3, "A_pip", ["overload"], others=[2, 5])
     assert str(fault) == "servo 3 (A_pip): hardware error overload (also IDs 2, 5)"
+
+
+# -- review of the late-reply protection -----------------------------------------------------
+def test_a_byte_stuffed_reply_is_read_whole_not_refused_as_corrupt(smap):
+    """A value whose bytes hold FF FF FD (Homing Offset -131073: FF FF FD FF) comes back
+    byte-stuffed, as a real servo sends it (an FD inserted after FF FF FD); the SDK
+    unstuffs it and fixes LEN but leaves the list one byte long. The length check counted
+    the list: a corrupt reply, retried, then a CommError. The value read is the one in the
+    emulator's own table."""
+    value = -131073
+    raw = value.to_bytes(4, "little", signed=True)
+    assert b"\xff\xff\xfd" in raw
+    with (
+        EmulatorProcess() as emu,
+        DynamixelDriver(emu.port, smap, latency_timer_ms=LAT, guard=False) as drv,
+    ):
+        drv._write(3, "homing_offset", value)  # torque off: the EEPROM area is writable
+        held = emu.table(3)[ADDR["homing_offset"] : ADDR["homing_offset"] + 4]
+        assert held == raw
+        got = drv._read_reg(3, ADDR["homing_offset"], 4)
+        rx = drv.packet._last  # the reply as the SDK read it off the wire
+        assert got.to_bytes(4, "little") == held and drv.retry_count == 0
+    # stuffed on the wire: the SDK's removeStuffing shortened LEN by the byte it dropped
+    assert len(rx) - (rx[5] | rx[6] << 8) - 7 == 1
+
+
+def test_replies_of_a_sync_read_past_a_silent_servo_are_not_counted_late(smap):
+    """Servo 5 goes silent: the plain sync read waits on it while servos 6..18 answer on
+    time. Those replies were counted late (each servo once per read), and every later
+    error blamed the bus's latency. Now the read names servo 5 alone, nothing is late, and
+    the error is the driver's own words, not the SDK's."""
+    with (
+        EmulatorProcess() as emu,
+        DynamixelDriver(emu.port, smap, latency_timer_ms=LAT, guard=False) as drv,
+    ):
+        drv.bring_up()
+        emu.fault("missing:5")
+        with pytest.raises(CommError) as info:
+            drv.read()
+        drv.port.settle()
+        assert drv.port.late == {}
+    text = str(info.value)
+    assert text.startswith("reading feedback after 3 attempt(s): no reply (servo 5"), text
+    assert "TxRxResult" not in text and "latency" not in text
+
+
+def test_close_on_a_silent_bus_returns_soon_and_warns_of_what_it_heard(smap, caplog):
+    """Every reply lost: close read Torque Enable of every servo three times (6.4 s at
+    16 ms latency); now it stops after a pass with no answer and within its time cap,
+    and keeps the servos it could not confirm."""
+    with EmulatorProcess() as emu:
+        drv = DynamixelDriver(emu.port, smap, latency_timer_ms=16.0, guard=False)
+        drv.bring_up()
+        emu.fault("drop:1.0")
+        t0 = time.monotonic()
+        with caplog.at_level(logging.WARNING, logger="firmware_interface.driver"):
+            drv.close()
+        took = time.monotonic() - t0
+        assert not any(s["torque"] for s in emu.servos().values())  # the sync write came
+    assert took < 2.0, took
+    assert drv.torque_unconfirmed == sorted(smap.ids)
+
+
+def test_close_does_not_check_a_servo_that_never_answered(smap, caplog):
+    """A servo missing at bring-up is reported there; close read it anyway and warned of
+    it again. Now close reads only the servos heard, and confirms them all."""
+    with EmulatorProcess(faults=["missing:5"]) as emu:
+        drv = DynamixelDriver(emu.port, smap, latency_timer_ms=LAT, guard=False)
+        with pytest.raises(MissingServoError):
+            drv.bring_up()
+        with caplog.at_level(logging.WARNING, logger="firmware_interface.driver"):
+            drv.close()
+    warned = [r.getMessage() for r in caplog.records if "close:" in r.getMessage()]
+    assert warned == [] and drv.torque_unconfirmed == []
