@@ -205,6 +205,13 @@ def test_export_errors(runs, tmp_path: Path) -> None:
     slow = _write_run(tmp_path / "slow.mcap", seed=3, n=20, n_cal=0, dt=0.1)
     with pytest.raises(LeRobotExportError, match="not at 50 Hz"):
         export_lerobot([slow], tmp_path / "ds3")
+    # a folder of runs takes every run's recording in it, a replay's and a hw run's too
+    folder = tmp_path / "runs"
+    for name, seed in (("trial-0000", 5), ("replay-0001", 6), ("hw-0001", 7)):
+        (folder / name).mkdir(parents=True)
+        _write_run(folder / name / "log.mcap", seed=seed, n=30, n_cal=5)
+    info = export_lerobot([folder], tmp_path / "ds5")
+    assert info["episodes"] == 3
     cal_only = _write_run(tmp_path / "cal.mcap", seed=4, n=10, n_cal=10)
     with pytest.raises(LeRobotExportError, match="no steps after calibration"):
         export_lerobot([cal_only], tmp_path / "ds4")

@@ -111,8 +111,9 @@ def action_matrix(rec: Recording) -> np.ndarray:
 def resolve_runs(runs: Sequence[str | Path]) -> list[Path]:
     """Recording files for the given runs.
 
-    Each run is a ``.mcap`` file, a trial folder holding ``log.mcap``, or a campaign
-    folder whose ``trial-*/log.mcap`` files are taken in name order.
+    Each run is a ``.mcap`` file, a trial folder holding ``log.mcap``, or a folder of
+    runs (a campaign's, or a project's ``runs/``) whose subfolders' ``log.mcap`` files
+    (``trial-*``, ``replay-*``, ``hw-*``) are taken in name order.
 
     Raises:
         LeRobotExportError: A run does not exist or holds no recording, or a recording is
@@ -128,9 +129,9 @@ def resolve_runs(runs: Sequence[str | Path]) -> list[Path]:
         elif (p / RECORDING).is_file():
             out.append(p / RECORDING)
         elif p.is_dir():
-            found = sorted(p.glob(f"trial-*/{RECORDING}"))
-            if not found:
-                raise LeRobotExportError(f"{p}: no {RECORDING} and no trial-*/{RECORDING} inside")
+            found = sorted(p.glob(f"*/{RECORDING}"))  # a replay's or hw run's too (only trial-*
+            if not found:  # were taken: `export lerobot runs` left replays out without a word)
+                raise LeRobotExportError(f"{p}: no {RECORDING} and no */{RECORDING} inside")
             out.extend(found)
         else:
             raise LeRobotExportError(f"{p}: no such recording or folder")
