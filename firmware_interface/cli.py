@@ -229,7 +229,13 @@ def _cmd_run(args: argparse.Namespace) -> int:
     far = "the emulator" if result["emulator"] else "hardware"
     print(f"hw run ({far} on {result['device']}), {counted(result['steps'], 'step')} -> {out}")
     print(f"  Bus Watchdog: {result['watchdog']['effect']}")
-    print(f"  ended: {_ended(result)}; every servo's torque turned off")
+    unconfirmed = result.get("torque_off_unconfirmed")
+    if unconfirmed:  # close() sent the torque-off but could not read it back from these
+        who = f"servo{'s' if len(unconfirmed) > 1 else ''} {', '.join(map(str, unconfirmed))}"
+        print(f"  ended: {_ended(result)}; torque off sent, not confirmed on {who}: "
+              "check them before handling the hand")  # fmt: skip
+    else:
+        print(f"  ended: {_ended(result)}; every servo's torque turned off")
     if result.get("loop_overruns"):  # the servos ran behind the recording's control rate
         from payload.rates import CONTROL_DT
 
@@ -279,6 +285,11 @@ def _run_hardware(args: argparse.Namespace, out: Path, replay: Path) -> dict[str
                                     collisions=prof.retarget_collisions,
                                     progress=not args.json and sys.stderr.isatty(),
                                     say=say_stage)  # fmt: skip
+    # the driver is closed: the servos whose torque off it could not read back, recorded
+    from payload.trials.scoring import write_metrics
+
+    result["torque_off_unconfirmed"] = list(drv.torque_unconfirmed)
+    write_metrics(out, result)
     return result
 
 

@@ -55,7 +55,8 @@ class SdkPort(PortHandler):
     allowance late is drained, not taken. Whole status packets drained are counted per
     servo in ``late`` (ID -> count): replies that came after their timeout (with the status
     packets of servos not asked that a later request skipped, see
-    :class:`CheckedPacketHandler`).
+    :class:`CheckedPacketHandler`), but not those of the servos of a plain sync read that
+    failed (``excused``): they answer that read, on time.
     """
 
     def __init__(self, port_name: str, latency_timer_ms: float) -> None:
@@ -64,6 +65,9 @@ class SdkPort(PortHandler):
         self.latency_timer_ms = latency_timer_ms
         self.unsettled = False  # a reply failed: what is left of it may still arrive
         self.late: dict[int, int] = {}  # servo ID -> status packets drained after a timeout
+        # the servos of a plain sync read that failed: their statuses drained next are that
+        # read's answers, sent on time, that the SDK stopped waiting for (not counted late)
+        self.excused: frozenset[int] = frozenset()
 
     @property
     def reply_allowance_ms(self) -> float:
@@ -150,7 +154,9 @@ class SdkPort(PortHandler):
                 time.sleep(0.0005)
         self.unsettled = False
         for dxl_id in _status_ids(drained):
-            self.late[dxl_id] = self.late.get(dxl_id, 0) + 1
+            if dxl_id not in self.excused:
+                self.late[dxl_id] = self.late.get(dxl_id, 0) + 1
+        self.excused = frozenset()
 
     def isPacketTimeout(self) -> bool:
         if super().isPacketTimeout():
@@ -220,6 +226,8 @@ class CheckedPacketHandler(Protocol2PacketHandler):
         self._last = rx
         if result != COMM_SUCCESS:
             port.unsettled = True
+            if hasattr(port, "excused"):
+                port.excused = self.group
         elif (
             self._asked is not None
             and rx[4] != self._asked

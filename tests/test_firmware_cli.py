@@ -399,3 +399,38 @@ def test_bench_hw_on_a_bus_where_nobody_answers_is_a_failed_start(capsys):
     assert err[-1] == (
         f"payload: aborted: no servo answered on {device} (power, wiring, baud rate, IDs?)"
     ), err
+
+
+def test_check_names_a_servo_gone_silent_in_a_sync_read_without_blaming_latency(
+    monkeypatch, capsys
+):
+    """Servo 5 goes silent after the scan, before the homing's sync reads: the plain sync
+    read waits on it while servos 6..18 answer on time. Those replies were counted late,
+    and `hw check` failed with "N replies came after the reply timeout (--latency-ms?)",
+    every row hidden. Now it names servo 5, blames no latency, and shows the rows read
+    (each as the emulator's own table holds it)."""
+    from firmware_interface.control_table import BY_NAME, decode
+    from firmware_interface.driver import DynamixelDriver
+    from firmware_interface.emulator import EmulatorProcess
+
+    home = DynamixelDriver.home
+    with EmulatorProcess() as emu:
+
+        def silent_then_home(drv, *args, **kwargs):
+            emu.fault("missing:5")
+            return home(drv, *args, **kwargs)
+
+        monkeypatch.setattr(DynamixelDriver, "home", silent_then_home)
+        code = main(["hw", "check", "--device", emu.port, "--json", "--latency-ms", LAT])
+        tables = emu.tables()
+    out, err = capsys.readouterr()
+    report = json.loads(out)
+    assert code == 1 and not report["ok"]
+    assert any("servo 5 (B_mcp_flex)" in e for e in report["errors"]), report["errors"]
+    assert not any("latency" in e or "came after" in e for e in report["errors"]), err
+    assert report["servos"], report  # the rows read before servo 5's own read failed
+    model = BY_NAME["model_number"]
+    for s in report["servos"]:
+        assert s["id"] != 5
+        held = tables[s["id"]][model.address : model.address + model.size]
+        assert s["model_number"] == decode(model, held)

@@ -687,3 +687,24 @@ def test_close_does_not_check_a_servo_that_never_answered(smap, caplog):
             drv.close()
     warned = [r.getMessage() for r in caplog.records if "close:" in r.getMessage()]
     assert warned == [] and drv.torque_unconfirmed == []
+
+
+def _sdk_status(dxl_id: int, params: bytes) -> bytes:
+    """A status packet (error 0, no byte to stuff) built by hand, its CRC the SDK's."""
+    body = bytes([0xFF, 0xFF, 0xFD, 0x00, dxl_id, len(params) + 4, 0, 0x55, 0]) + params
+    crc = PacketHandler(2.0).updateCRC(0, list(body), len(body))
+    return body + bytes([crc & 0xFF, crc >> 8])
+
+
+def test_the_late_replies_drained_are_counted_past_a_bogus_header_or_a_cut_off_packet():
+    """What a drain took off the line: a bogus header (FF FF FD 05) or a packet cut off
+    before a whole late status stopped the count, and that status went uncounted."""
+    from firmware_interface.port import _status_ids
+
+    whole = _sdk_status(9, b"\x01\x02")
+    cut = _sdk_status(4, b"\x10\x20\x30\x40")[:9]
+    bad_crc = whole[:-1] + bytes([whole[-1] ^ 0xFF])
+    assert _status_ids(whole) == [9]
+    assert _status_ids(b"\xff\xff\xfd\x05" + whole) == [9]
+    assert _status_ids(cut + whole) == [9]
+    assert _status_ids(bad_crc + cut + whole + whole) == [9, 9]

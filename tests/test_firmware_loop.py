@@ -249,6 +249,7 @@ def test_hw_run_of_a_synthetic_trial_says_what_it_ran_on_and_places_the_ctb_as_i
     for key in ("ctb", "propulsion", "retarget_budget", "ctb_offset_m", "ctb_yaw_deg"):
         assert metrics[key] == source[key], key
     assert metrics["watchdog"]["trips"] == 0  # a healthy session never trips it
+    assert metrics["torque_off_unconfirmed"] == []  # close read every torque off back
     a, b = read_recording(src / "log.mcap"), read_recording(out / "log.mcap")
     # the CTB where the source trial had it (both from rest: the first recorded step)
     assert np.linalg.norm(a.ctb_pos[0] - b.ctb_pos[0]) < 1e-4
@@ -539,3 +540,38 @@ def test_a_servo_faulted_at_bring_up_aborts_the_run_as_a_failed_start(session, t
         "overload"
     ), err
     assert not out.exists()
+
+
+def test_hw_run_says_the_torque_off_is_unconfirmed_when_close_could_not_read_it_back(
+    session, tmp_path, capsys, monkeypatch
+):
+    """Every reply lost once the session ended (the emulator's drop fault): close sends
+    the torque-off but cannot read it back. `hw run` still said "every servo's torque
+    turned off"; now it names the servos left unconfirmed, and `metrics.json` lists them."""
+    import firmware_interface.run
+    from payload.cli import main
+
+    trial = firmware_interface.run.run_hardware_trial
+    with EmulatorProcess() as emu:
+
+        def then_silent(*args, **kwargs):
+            result = trial(*args, **kwargs)
+            emu.fault("drop:1.0")  # before the driver's close
+            return result
+
+        monkeypatch.setattr(firmware_interface.run, "run_hardware_trial", then_silent)
+        out = tmp_path / "run"
+        argv = ["hw", "run", "--device", emu.port, "--replay", str(session),
+                "--out", str(out), "--no-pace", "--max-time", "0.5",
+                "--latency-ms", str(LAT)]  # fmt: skip
+        assert main(argv) == 0
+        torque = {i: s["torque"] for i, s in emu.servos().items()}
+    printed = capsys.readouterr().out
+    metrics = json.loads((out / "metrics.json").read_text())
+    unconfirmed = metrics["torque_off_unconfirmed"]
+    assert unconfirmed and set(unconfirmed) <= set(torque), unconfirmed
+    ended = [line for line in printed.splitlines() if line.startswith("  ended: ")]
+    assert len(ended) == 1 and "every servo's torque turned off" not in ended[0], ended
+    assert ended[0].endswith(f"not confirmed on servos {', '.join(map(str, unconfirmed))}: "
+                             "check them before handling the hand")  # fmt: skip
+    assert not any(torque.values())  # the torque-off itself reached every servo
