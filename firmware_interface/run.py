@@ -336,16 +336,19 @@ def run_hardware_trial(
     """
     from payload.native import environment
     from payload.project import current_project, provenance
+    from payload.sim.zones import zones_record
     from payload.trials.metrics import confirmed_definition
     from payload.trials.preparation import base_filter_for, module_rects
     from payload.trials.recorder import TrialRecorder
     from payload.trials.safety import recording_scene
     from payload.trials.scoring import finish_trial, write_metrics
-    from payload.trials.sources import load_replay
+    from payload.trials.sources import load_replay, replay_zones
     from payload.trials.stepobserver import step_record
 
     header, frames = load_replay(replay)  # a trial's log.mcap, or a hands.jsonl
     recorded = header.get("meta") or {}
+    # the filter keeps the vehicle in the zones its source trial ran (None: the station's)
+    zones = replay_zones(header, replay) if base_filter else None
     project = current_project()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -357,7 +360,7 @@ def run_hardware_trial(
 
         retargeters, ranges = retargeting(project, budget, collisions)
     if base_filter:
-        sim.twist_filter = base_filter_for(sim, TeleopConfig.from_design(load_design()).base)
+        sim.twist_filter = base_filter_for(sim, TeleopConfig.from_design(load_design()).base, zones)
     prov = {**provenance(project, sim.world.config.design), "environment": environment()}
     ready_at_home(hardware, say)  # the watchdog armed again once the loop runs (on_step)
     driver = HardwareInTheLoop(hardware, sim, emulator=emulator)
@@ -380,6 +383,7 @@ def run_hardware_trial(
         "retarget_budget": budget,
         "retarget_collisions": collisions,
         "base_filter": bool(base_filter),
+        **zones_record(zones),
         "controller": controller[0],
         "controller_overrides": controller[1],
     }  # fmt: skip

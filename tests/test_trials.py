@@ -1919,3 +1919,85 @@ def test_a_scheduler_that_is_not_an_address_is_one_line_and_leaves_no_folder(
     assert main(["trials", "run", "--n", "1", "--out", str(tmp_path / "mine"), "--scheduler",
                  address]) == 2  # fmt: skip
     assert (tmp_path / "mine").is_dir()
+
+
+def _drawn_zones(path: Path) -> list[tuple[float, ...]]:
+    """The zone boxes a recording's /safety/keepin channel draws (centre and size, from the
+    filter the run had), sorted: what the vehicle was kept in and out of."""
+    from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
+    from mcap.reader import make_reader
+
+    from payload.trials.safety import KEEPIN_TOPIC
+
+    with open(path, "rb") as f:
+        first = next(iter(make_reader(f).iter_messages(topics=[KEEPIN_TOPIC])))
+    cubes = SceneUpdate.FromString(first[2].data).entities[0].cubes
+    return sorted(
+        tuple(round(v, 6) for v in (c.pose.position.x, c.pose.position.y, c.pose.position.z,
+                                    c.size.x, c.size.y, c.size.z))
+        for c in cubes
+    )  # fmt: skip
+
+
+def _zones_trial(tmp_path: Path) -> tuple[Path, Path, Path]:
+    """A short ``safe`` trial run with a keep-out box across Kibo (``--zones keepout.json``):
+    ``(its folder, keepout.json, other.json)`` (another keep-out box)."""
+    from payload.sim.zones import StationZones, station_zones
+    from payload.trials.runner import run_trial
+
+    keepout, other = tmp_path / "keepout.json", tmp_path / "other.json"
+    station_zones(keepout=[((1.2, 5.6, -0.9), (1.8, 5.9, 0.9))]).write(keepout)
+    station_zones(keepout=[((1.0, 4.0, -0.5), (2.0, 4.5, 0.5))]).write(other)
+    src = tmp_path / "src"
+    run_trial(4, out_dir=src, max_time=0.5, controller="safe", zones=StationZones.read(keepout))
+    return src, keepout, other
+
+
+def test_a_trial_records_the_zones_it_ran(tmp_path):
+    """``--zones`` was not recorded: neither the recording's metadata nor ``metrics.json``
+    said a keep-out box had stopped the vehicle. Both hold the zones as data (the file's
+    Astrobee zone objects) and the file's name."""
+    from payload.trials.runner import run_trial
+    from payload.trials.sources import load_replay
+
+    src, keepout, _ = _zones_trial(tmp_path)
+    for record in (
+        load_replay(src / "log.mcap")[0]["meta"],
+        json.loads((src / "metrics.json").read_text()),
+    ):
+        assert record["zones"] == json.loads(keepout.read_text()), record.get("zones")
+        assert record["zones_file"] == str(keepout)
+    station = tmp_path / "station"
+    run_trial(4, out_dir=station, max_time=0.5, controller="safe")  # the station's: null
+    metrics = json.loads((station / "metrics.json").read_text())
+    assert (metrics["zones"], metrics["zones_file"]) == (None, None)
+
+
+def test_a_replay_runs_its_recordings_zones_unless_given_others(tmp_path, capsys):
+    """A replay ran the station's zones while saying it ran the recording's setup (a
+    keep-out box across Kibo stopped the trial; its replay flew through it). Without
+    ``--zones`` it runs the recording's (the filter's boxes, drawn on /safety/keepin, are
+    the file's, even with the file gone), with ``--zones`` the given ones; the setup line
+    names them."""
+    from payload.cli import main
+    from payload.sim.zones import StationZones
+    from payload.trials.runner import run_trial
+
+    src, keepout, other = _zones_trial(tmp_path)
+    drawn = _drawn_zones(src / "log.mcap")
+    assert len(drawn) == 4 and (1.5, 5.75, 0.0, 0.6, 0.3, 1.8) in drawn
+    keepout.unlink()  # the recording's zones are its own: the file may go
+    capsys.readouterr()
+    same = tmp_path / "same"
+    argv = ["trial", "--replay", str(src / "log.mcap"), "--max-time", "0.5", "--out", str(same)]
+    assert main(argv) == 0
+    assert _drawn_zones(same / "log.mcap") == drawn
+    setup = [x for x in capsys.readouterr().out.splitlines() if "setup:" in x]
+    assert f"zones {keepout} (3 keep-in, 1 keep-out boxes) (the recording's)" in setup[0], setup
+
+    given = tmp_path / "given"
+    run_trial(None, "replay", src / "log.mcap", given, max_time=0.5,
+              zones=StationZones.read(other))  # fmt: skip
+    assert (1.5, 4.25, 0.0, 1.0, 0.5, 1.0) in _drawn_zones(given / "log.mcap")
+    assert len(_drawn_zones(given / "log.mcap")) == 4
+    assert (1.5, 5.75, 0.0, 0.6, 0.3, 1.8) not in _drawn_zones(given / "log.mcap")

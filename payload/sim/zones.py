@@ -23,7 +23,7 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -68,11 +68,14 @@ class StationZones:
         keepout: Keep-out boxes, each (lo, hi) [m].
         names: A name per keep-in box (``kibo``, ``vestibule``, ``node2`` for the
             station's; ``keepin<i>`` for a loaded file's).
+        source: The file the zones were read from (``None``: not read from a file); a
+            label, not part of the zones (equal zones from two files compare equal).
     """
 
     keepin: tuple[Box, ...]
     keepout: tuple[Box, ...] = ()
     names: tuple[str, ...] = ()
+    source: str | None = field(default=None, compare=False)
 
     def __post_init__(self) -> None:
         if not self.keepin:
@@ -140,9 +143,28 @@ class StationZones:
         except json.JSONDecodeError as exc:
             raise ZoneError(f"{path}: not JSON ({exc.msg}, line {exc.lineno})") from None
         try:  # the file, then where in it: "zones.json: sequence[0]: ..."
-            return cls.from_json(data, "")
+            return replace(cls.from_json(data, ""), source=str(path))
         except ZoneError as exc:
             raise ZoneError(f"{path}: {exc}") from None
+
+    # -- a trial's record -----------------------------------------------------------------
+    def record(self) -> dict[str, Any]:
+        """The zones as a trial records them (:func:`zones_record`)."""
+        return {"zones": self.as_json(), "zones_file": self.source}
+
+    @classmethod
+    def recorded(cls, meta: dict[str, Any]) -> StationZones | None:
+        """The zones a trial's metadata records (:func:`zones_record`); ``None``: the
+        station's (recorded as null, or by a recording older than the record).
+
+        Raises:
+            ZoneError: The recorded zones are not the zone form.
+        """
+        data = meta.get("zones")
+        if data is None:
+            return None
+        source = meta.get("zones_file")
+        return replace(cls.from_json(data), source=source if isinstance(source, str) else None)
 
     # -- geometry -------------------------------------------------------------------------
     def contains(self, point: Sequence[float]) -> bool:
@@ -250,4 +272,20 @@ def station_zones(layout: IssLayout | None = None, keepout: Iterable[Box] = ()) 
     )
 
 
-__all__ = ["SLAB", "Box", "StationZones", "ZoneError", "handrail_depth", "station_zones"]
+def zones_record(zones: StationZones | None) -> dict[str, Any]:
+    """What a trial's metadata and ``metrics.json`` say of its base filter's zones:
+    ``zones``, their Astrobee zone objects (:meth:`StationZones.as_json`: the data, so a
+    replay runs them wherever the file went), and ``zones_file``, the file they were read
+    from; both null for the station's (``zones`` None)."""
+    return {"zones": None, "zones_file": None} if zones is None else zones.record()
+
+
+__all__ = [
+    "SLAB",
+    "Box",
+    "StationZones",
+    "ZoneError",
+    "handrail_depth",
+    "station_zones",
+    "zones_record",
+]

@@ -13,6 +13,7 @@ from payload.design.params import load_design
 from payload.project import Project, current_project, provenance
 from payload.retarget.calibration import PairRange
 from payload.retarget.casadi_solver import PairRetargeter
+from payload.sim.zones import zones_record
 from payload.teleop.calibration import CalibrationProcedure
 from payload.teleop.operator import OperatorPlan
 from payload.teleop.pipeline import TeleopConfig
@@ -78,6 +79,7 @@ def set_up_trial(driver: Any, seed: int, source_spec: _Source, project: Project)
         "physics_dt": source_spec.physics_dt,
         "base_filter": source_spec.base_filter,
         "link_delay": source_spec.link_delay,
+        **zones_record(source_spec.zones),
         "ctb_offset_m": [float(v) for v in offset],
         "ctb_yaw_deg": float(yaw),
         "grasp_body_m": [float(v) for v in grasp_body],

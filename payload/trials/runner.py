@@ -55,7 +55,14 @@ from payload.trials.preparation import (
 )
 from payload.trials.retargeters import retargeting, single_threaded_numerics
 from payload.trials.setup_options import MAX_TRIAL_S, RUN_SETTINGS, ZONES_WITHOUT_FILTER
-from payload.trials.sources import HeadsetSource, TrialError, _Source, load_replay, trial_setup
+from payload.trials.sources import (
+    HeadsetSource,
+    TrialError,
+    _Source,
+    load_replay,
+    replay_zones,
+    trial_setup,
+)
 from payload.trials.stepobserver import MODULE_NAMES, step_record, world_view
 
 if TYPE_CHECKING:
@@ -129,7 +136,8 @@ def run_trial(
             and the robot (:mod:`payload.teleop.link`); never taken from a replay (its
             recorded frames are what the robot received).
         zones: Keep-in and keep-out boxes of the filter
-            (:class:`~payload.sim.zones.StationZones`; default: the station's).
+            (:class:`~payload.sim.zones.StationZones`; default: the station's, or for a
+            replay with the filter on, the zones its recording ran), recorded with the trial.
         force: Replace the trial in ``out_dir`` (each file through a temporary file and a
             rename, after the new trial has run).
 
@@ -196,6 +204,10 @@ def run_trial(
         raise TrialError(str(exc)) from None
     if zones is not None and not setup["base_filter"]:  # a replay's setting is known here
         raise TrialError(f"--zones: {ZONES_WITHOUT_FILTER}")
+    if zones is None and setup["base_filter"]:  # a replay's recorded zones (None: the station's)
+        zones = replay_zones(header, replay)
+    if "zones" in (header.get("meta") or {}):  # the recording says which zones it ran
+        named.append("zones")
     problem = check_physics_dt(setup["physics_dt"])
     if problem is not None:
         raise TrialError(f"physics_dt: {problem}")

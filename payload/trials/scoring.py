@@ -122,6 +122,8 @@ def _trial_setup(meta: dict[str, Any]) -> dict[str, Any]:
         "acquisition_state",
         "base_filter",
         "link_delay",
+        "zones",
+        "zones_file",
         "station_contacts",
         "min_station_clearance_mm",
         "filter_active_s",

@@ -15,6 +15,7 @@ from payload.profiles import PAPER, resolve
 from payload.schema import PHYSICS_DT
 from payload.sim.vehicle import DEFAULT_PROPULSION
 from payload.sim.world import DEFAULT_CTB
+from payload.sim.zones import StationZones, ZoneError
 from payload.teleop.calibration import CalibrationProcedure
 from payload.teleop.hands import Hand, HandFrame
 from payload.teleop.link import DelayedLink
@@ -140,6 +141,19 @@ def load_replay(path: str | Path) -> tuple[dict[str, Any], list[HandFrame]]:
     return header, [frame.to_workbench() for frame in frames]
 
 
+def replay_zones(header: dict[str, Any], replay: Path | None) -> StationZones | None:
+    """The base filter's zones a replayed recording ran (``None``: the station's, or a
+    recording that does not say).
+
+    Raises:
+        TrialError: The recorded zones are not the zone form.
+    """
+    try:
+        return StationZones.recorded(header.get("meta") or {})
+    except ZoneError as exc:
+        raise TrialError(f"{replay}: recorded {exc}") from None
+
+
 class _Source:
     """Where a trial's hand frames come from, and what its recording says about it."""
 
@@ -164,7 +178,7 @@ class _Source:
         self.physics_dt = physics_dt
         self.base_filter = base_filter
         self.link_delay = link_delay
-        self.zones: Any = None  # the filter's zones (None: the station's)
+        self.zones: StationZones | None = None  # the filter's zones (None: the station's)
         self.retarget_budget = retarget_budget
         self.retarget_collisions = retarget_collisions
         self.controller = controller

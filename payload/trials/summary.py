@@ -309,6 +309,21 @@ def write_summary(
     return summary
 
 
+def zones_text(result: dict[str, Any]) -> str:
+    """Which zones a trial's base filter ran, as its set-up line says it (``""``: the
+    filter off, or a run recorded before the zones were)."""
+    if not result.get("base_filter") or "zones" not in result:
+        return ""
+    zones = result["zones"]
+    if zones is None:
+        return ", the station's zones"
+    count = {True: 0, False: 0}
+    for obj in zones:
+        count[bool(obj.get("safe"))] += len(obj.get("sequence") or [])
+    named = result.get("zones_file") or "recorded"
+    return f", zones {named} ({count[True]} keep-in, {count[False]} keep-out boxes)"
+
+
 def print_trial_summary(result: dict[str, Any], given: str = "") -> None:
     """Print a trial's set-up, success and metrics (``payload trial``, ``payload hw run``).
 
@@ -322,7 +337,7 @@ def print_trial_summary(result: dict[str, Any], given: str = "") -> None:
     print(
         f"  setup: CTB {result.get('ctb')}, {result.get('propulsion')} propulsion, {physics}"
         f"controller {result.get('controller')}, retargeting budget "
-        f"{result.get('retarget_budget')}, self-collision {modelled}{given}"
+        f"{result.get('retarget_budget')}, self-collision {modelled}{zones_text(result)}{given}"
     )
     print(f"  success: {'yes' if result.get('success') else 'no'}")
     if result.get("ended_by") == ENDED_BY_CAP:

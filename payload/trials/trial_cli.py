@@ -104,6 +104,7 @@ def _cmd_trial(args: argparse.Namespace) -> int:
     given = ""
     if operator == "replay":
         names = [n for n in _SETUP if getattr(args, n) is not None]
+        names += ["zones"] if args.zones is not None else []  # else the recording's
         named = result.get("replay_setup_recorded", _SETUP)
         defaults = [n for n in _SETUP if n not in names and n not in named]
         rest = "the recording's"
