@@ -64,6 +64,11 @@ class ControllerProfile:
         }
 
 
+PROFILE_SETTINGS = ("retarget_budget", "retarget_collisions", "base_filter")
+"""The settings a controller profile sets (:class:`ControllerProfile`'s but its name): a
+replay given ``--controller`` takes them from that profile, not from its recording."""
+
+
 PROFILES: dict[str, ControllerProfile] = {
     "paper": ControllerProfile("paper", "paper", False, False),
     "safe": ControllerProfile("safe", "paper", True, True),

@@ -518,6 +518,43 @@ def test_a_replay_honours_recorded_timestamps_and_records_its_source(tmp_path, r
     assert meta["seed"] == 7 and len(resampled) == len(rec)
 
 
+def test_a_replay_given_a_controller_runs_that_profile_not_the_recordings(tmp_path, capsys):
+    """`trial --replay X --controller safe` of a `paper` trial was labelled `safe` and ran
+    the recording's settings (no self-collision model, no base filter), and then refused
+    `--zones` saying the filter was off. The given profile's settings are its own now
+    (the safe profile models self-collision and runs the base filter, docs/trials.md);
+    the recording's stay for what no profile sets (the CTB, propulsion, physics step)."""
+    from payload.cli import main
+
+    first = tmp_path / "paper"
+    run_trial(2, out_dir=first, max_time=0.5)
+    source = json.loads((first / "metrics.json").read_text())
+    assert (source["controller"], source["retarget_collisions"], source["base_filter"]) == (
+        "paper",
+        False,
+        False,
+    )
+    capsys.readouterr()
+    argv = ["trial", "--replay", str(first / "log.mcap"), "--controller", "safe",
+            "--out", str(tmp_path / "safe")]  # fmt: skip
+    assert main(argv) == 0
+    setup = [x for x in capsys.readouterr().out.splitlines() if "setup:" in x]
+    replayed = json.loads((tmp_path / "safe" / "metrics.json").read_text())
+    assert (replayed["controller"], replayed["retarget_collisions"], replayed["base_filter"]) == (
+        "safe",
+        True,
+        True,
+    )
+    assert {k: replayed[k] for k in ("ctb", "propulsion", "physics_dt")} == {
+        k: source[k] for k in ("ctb", "propulsion", "physics_dt")
+    }
+    assert len(setup) == 1 and "self-collision modelled" in setup[0], setup
+    assert setup[0].endswith(
+        "(given: controller (retarget_budget, retarget_collisions, base_filter: its own); "
+        "the rest the recording's)"
+    ), setup
+
+
 def test_a_replay_of_a_run_that_did_not_finish_says_so(tmp_path, caplog):
     """A recording cut short (its writer killed: the footer never written) replays up to
     where it stops, with a warning naming why and how far, and the replay's recording

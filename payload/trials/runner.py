@@ -28,6 +28,7 @@ from payload.folders import (
     trial_dir,
 )
 from payload.native import environment
+from payload.profiles import PROFILE_SETTINGS
 from payload.project import Project, current_project, provenance
 from payload.safeio import OverwriteError, check_new, new_folder
 from payload.sim.config import check_physics_dt
@@ -163,13 +164,18 @@ def run_trial(
         # the settings the replayed recording names (a bare hands.jsonl: none)
         # (the link delay is never taken from it: a replay is what the robot received)
         named = [name for name in RUN_SETTINGS if name in recorded and name != "link_delay"]
+        if controller is not None:  # the given profile's settings are its own
+            named = [name for name in named if name not in PROFILE_SETTINGS]
         ctb = recorded.get("ctb") if ctb is None else ctb
         propulsion = recorded.get("propulsion") if propulsion is None else propulsion
+        # a controller given replays the hands on that profile's settings (those of its
+        # settings given as well aside); none given: the recording's profile and settings
+        profile_given = controller is not None  # (so named leaves its settings out)
         if controller is None and isinstance(recorded.get("controller"), str):
             controller = recorded["controller"]
-        if retarget_budget is None:
+        if retarget_budget is None and not profile_given:
             retarget_budget = recorded.get("retarget_budget")
-        if retarget_collisions is None:
+        if retarget_collisions is None and not profile_given:
             # not recorded (a bare hands.jsonl): the controller profile's default
             retarget_collisions = recorded.get("retarget_collisions")
             if retarget_collisions is not None and not isinstance(retarget_collisions, bool):
@@ -183,7 +189,7 @@ def run_trial(
                 isinstance(physics_dt, bool) or not isinstance(physics_dt, (int, float))
             ):
                 raise TrialError(f"{replay}: physics_dt must be a number, got {physics_dt!r}")
-        if base_filter is None and "base_filter" in recorded:  # else the profile's default
+        if base_filter is None and "base_filter" in recorded and not profile_given:
             base_filter = bool(recorded["base_filter"])
         if seed is None:
             source_seed = header.get("meta", {}).get("seed")

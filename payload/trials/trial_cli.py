@@ -10,6 +10,7 @@ from typing import Any
 
 from payload.cliutil import check_seconds, command_project, emit_json, out_folder, warn
 from payload.folders import CAMPAIGN_FILES, HANDS, RECORDING, held
+from payload.profiles import PROFILE_SETTINGS
 from payload.trials.setup_options import (
     _SETUP,
     TrialsCliError,
@@ -106,7 +107,12 @@ def _cmd_trial(args: argparse.Namespace) -> int:
         names = [n for n in _SETUP if getattr(args, n) is not None]
         names += ["zones"] if args.zones is not None else []  # else the recording's
         named = result.get("replay_setup_recorded", _SETUP)
-        defaults = [n for n in _SETUP if n not in names and n not in named]
+        # a controller given: its profile's settings not given apart are the profile's own
+        own = [n for n in PROFILE_SETTINGS if "controller" in names and n not in names]
+        defaults = [n for n in _SETUP if n not in names and n not in named and n not in own]
+        if own:
+            names = [f"controller ({', '.join(own)}: its own)" if n == "controller" else n
+                     for n in names]  # fmt: skip
         rest = "the recording's"
         if defaults and any(n not in names and n in named for n in _SETUP):
             rest = f"the recording's; {', '.join(defaults)}: the defaults (not in the recording)"
