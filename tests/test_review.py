@@ -349,6 +349,27 @@ def test_the_replay_draws_the_keep_in_boxes_around_the_route(replay) -> None:
     assert not any(inside(d.geom_xpos[g]) for g in station)
 
 
+def test_the_replay_draws_the_zones_its_trial_ran(tmp_path) -> None:
+    """A trial run with `--zones` records them (as data); its replay drew the station's
+    keep-in boxes whatever it had run. It draws the recorded ones now, a keep-out box
+    among them (in the legend too), where the JSON put it."""
+    from payload.sim.world import build_world
+    from payload.sim.zones import station_zones
+
+    keepout = ([1.5, 5.6, -0.3], [2.1, 5.9, 0.3])  # across Kibo [m], world frame
+    zones = station_zones(build_world().layout, keepout=[keepout])
+    folder = _record_trial(tmp_path / "zoned", meta={"zones": zones.as_json()})
+    replay = build_trial_replay(folder, project_files(), rate=10.0)
+    objects, transforms = replay.scene.objects(), replay.scene.transforms()
+    (path,) = [p for p in objects if "/keep_out/" in p]
+    size = np.asarray(objects[path].geometry.lengths, dtype=float)
+    centre = transforms[path][:3, 3]
+    np.testing.assert_allclose(centre - size / 2, keepout[0], atol=1e-12)
+    np.testing.assert_allclose(centre + size / 2, keepout[1], atol=1e-12)
+    assert len([p for p in objects if "/keep_in/" in p]) == len(zones.keepin)
+    assert any("keep-out" in label for _, label in replay.scene.overlay.legend)
+
+
 def test_one_animation_frame_per_recorded_step_at_the_recorded_rate(replay) -> None:
     rec, anim = replay.recording, replay.scene.animation
     assert replay.fps == pytest.approx(50.0)

@@ -19,6 +19,7 @@ from __future__ import annotations
 import itertools
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import meshcat.geometry as mg
 import mujoco
@@ -64,7 +65,10 @@ CONTACT_COLOUR, FREE_COLOUR = 0xFF4500, 0x303030
 colour, finger C's green among them, and from the station's), and without."""
 
 KEEP_IN_COLOUR = 0x7F00FF
-"""Colour of the station's keep-in boxes."""
+"""Colour of the keep-in boxes."""
+
+KEEP_OUT_COLOUR = 0xFF0000
+"""Colour of the keep-out boxes (a trial's ``--zones``)."""
 
 STATION_DIRECTION = (0.6, -1.0, 0.8)
 """The whole-station view looks from starboard-aft and above."""
@@ -210,22 +214,43 @@ def phase_spans(rec) -> list[tuple[str, float, float]]:
     return out
 
 
-def keep_in_boxes(world) -> list[tuple[np.ndarray, np.ndarray]]:
-    """The station's keep-in boxes (:func:`payload.sim.zones.station_zones` of the world's
-    ISS layout, what the base safety filter keeps the vehicle in), world frame
-    ``(lower, upper)`` corners [m]."""
-    from payload.sim.zones import station_zones
-
-    zones = station_zones(world.layout)
-    return [(np.asarray(lo, dtype=float), np.asarray(hi, dtype=float)) for lo, hi in zones.keepin]
+Boxes = list[tuple[np.ndarray, np.ndarray]]
 
 
-def draw_keep_in(scene: Scene, boxes: list[tuple[np.ndarray, np.ndarray]], root: str) -> None:
-    """Keep-in boxes as translucent boxes under ``root/keep_in/<i>``."""
+def keep_in_boxes(world, meta: dict | None = None) -> Boxes:
+    """The keep-in boxes the trial's base filter kept the vehicle in, world frame
+    ``(lower, upper)`` corners [m]: its recorded zones (``meta["zones"]``, a trial run
+    with ``--zones``), else the station's (:func:`payload.sim.zones.station_zones` of the
+    world's ISS layout)."""
+    return _boxes(_zones(world, meta).keepin)
+
+
+def keep_out_boxes(world, meta: dict | None = None) -> Boxes:
+    """The keep-out boxes of the trial's recorded zones (none for the station's)."""
+    return _boxes(_zones(world, meta).keepout)
+
+
+def _zones(world, meta: dict | None) -> Any:
+    from payload.sim.zones import StationZones, station_zones
+
+    recorded = (meta or {}).get("zones")
+    if recorded is not None:  # a trial run with --zones records them (as data)
+        return StationZones.from_json(recorded, "the recording's zones")
+    return station_zones(world.layout)
+
+
+def _boxes(boxes: Any) -> Boxes:
+    return [(np.asarray(lo, dtype=float), np.asarray(hi, dtype=float)) for lo, hi in boxes]
+
+
+def draw_keep_in(scene: Scene, boxes: Boxes, root: str, kind: str = "keep_in") -> None:
+    """Keep-in (``kind`` ``keep_in``) or keep-out (``keep_out``) boxes as translucent boxes
+    under ``root/<kind>/<i>``."""
+    colour = KEEP_IN_COLOUR if kind == "keep_in" else KEEP_OUT_COLOUR
     for i, (lo, hi) in enumerate(boxes):
         size, centre = box_pose(lo, hi)
-        path = f"{root}/keep_in/{i}"
-        scene.object(path, mg.Box(size), mg.MeshLambertMaterial(color=KEEP_IN_COLOUR, opacity=0.08))
+        path = f"{root}/{kind}/{i}"
+        scene.object(path, mg.Box(size), mg.MeshLambertMaterial(color=colour, opacity=0.08))
         scene.transform(path, centre)
 
 
@@ -295,7 +320,7 @@ def draw_pads(scene: Scene, anim: Animation, root: str, radius: float, frames, c
             set_visibility(anim, path, frames, list(on))
 
 
-def trial_legend(world, keep_in: bool) -> list[tuple[str, str]]:
+def trial_legend(world, keep_in: bool, keep_out: bool = False) -> list[tuple[str, str]]:
     """The replay's colours: fingers, structure, pads, the vehicle, the CTB, the station
     (and the keep-in boxes when drawn)."""
     out = [(FINGER_COLOURS[f], f"finger {f}") for f in FINGERS]
@@ -307,6 +332,8 @@ def trial_legend(world, keep_in: bool) -> list[tuple[str, str]]:
     ]
     if keep_in:
         out.append((colour_text(KEEP_IN_COLOUR), "keep-in boxes"))
+    if keep_out:
+        out.append((colour_text(KEEP_OUT_COLOUR), "keep-out boxes (the trial's zones)"))
     seen = {c for c, _ in out}
     m = world.model
     for kind, geoms in (("CTB", _ctb_geoms(world)), ("ISS", world.iss_geoms)):
@@ -404,8 +431,10 @@ def build_trial_replay(
     scene.transform(root, translation(-centre))
     draw_world(scene, world, root)
     draw_modules(scene, world, root)
-    keep_in = keep_in_boxes(world)
+    keep_in = keep_in_boxes(world, rec.meta)
     draw_keep_in(scene, keep_in, root)
+    keep_out = keep_out_boxes(world, rec.meta)
+    draw_keep_in(scene, keep_out, root, "keep_out")
     mount = translation(world.mount)
     scene.transform(f"{root}/astrobee/payload", mount)
     placements = []
@@ -440,7 +469,7 @@ def build_trial_replay(
     scene.overlay = Overlay(
         title=head,
         subtitle=f"{status}; shown at {fps:g} Hz, chase view (Open Controls: whole station view)",
-        legend=trial_legend(world, bool(keep_in)),
+        legend=trial_legend(world, bool(keep_in), bool(keep_out)),
         labels=scene.overlay.labels,
         phases=[(ph, a - t0, b - t0) for ph, a, b in spans],
         views={"default": chase.tolist(), "station": station.tolist()},

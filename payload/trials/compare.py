@@ -302,10 +302,13 @@ def compare_runs(run_a: str | Path, run_b: str | Path, *, steps: bool = False) -
         common = [(next(iter(ta)), next(iter(tb)))]
     elif 1 in (len(ta), len(tb)):  # one trial against a campaign: its seed's, whatever the
         one, many = (ta, tb) if len(ta) == 1 else (tb, ta)  # folder's name (a --force rerun
-        alone = next(iter(one))  # of runs/trial-0003 may hold another seed)
+        alone = next(iter(one))  # of runs/trial-0003 may hold another seed); no seed: its name
         seed = _trial_metrics(one[alone]).get("seed")
         name = trial_dir("", seed).name if isinstance(seed, int) else None
-        common = [(alone, name) if one is ta else (name, alone)] if name in many else []
+        if name in many:
+            common = [(alone, name) if one is ta else (name, alone)]
+        else:
+            common = [(n, n) for n in ta if n in tb]
     else:
         common = [(name, name) for name in ta if name in tb]
     if not common:
