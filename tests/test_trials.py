@@ -2001,3 +2001,23 @@ def test_a_replay_runs_its_recordings_zones_unless_given_others(tmp_path, capsys
     assert (1.5, 4.25, 0.0, 1.0, 0.5, 1.0) in _drawn_zones(given / "log.mcap")
     assert len(_drawn_zones(given / "log.mcap")) == 4
     assert (1.5, 5.75, 0.0, 0.6, 0.3, 1.8) not in _drawn_zones(given / "log.mcap")
+
+
+def test_a_link_delay_on_some_trials_only_is_said_to_differ() -> None:
+    """Trials with a delayed link and trials without were summarised as if the campaign
+    had the delay (a recorded null was taken as "not recorded"); the summary says they
+    differ, and a campaign without any delay says none."""
+    from payload.trials.campaign import summarize, summary_markdown
+
+    base = {"success": True, "acquired": True, "station_contacts": 0, "base_filter": True}
+    rows = [{**base, "seed": 0, "link_delay": [1.0, 0.1]}, {**base, "seed": 1, "link_delay": None}]
+    s = summarize(rows)
+    assert s["station"]["link_delay"] == {"mixed": ["None", "[1.0, 0.1]"]}
+    assert "link delay (delay, jitter) differs between the trials: none, [1.0, 0.1] s" in (
+        summary_markdown(s)
+    )
+    same = summarize([{**r, "link_delay": None} for r in rows])
+    assert same["station"]["link_delay"] is None
+    assert "link delay" not in summary_markdown(same)
+    delayed = summarize([{**r, "link_delay": [1.0, 0.1]} for r in rows])
+    assert "link delay (delay, jitter) [1.0, 0.1] s." in summary_markdown(delayed)

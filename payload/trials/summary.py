@@ -54,9 +54,15 @@ def _literal_row(r: dict[str, Any]) -> dict[str, Any]:
     return {**base, "final_module": r.get("final_module")}
 
 
-def _one_value(rows: Sequence[dict[str, Any]], key: str) -> Any:
+def _one_value(rows: Sequence[dict[str, Any]], key: str, none_is_a_value: bool = False) -> Any:
     """The value every trial records under ``key``; ``{"mixed": [...]}`` if they differ,
-    ``None`` if none records it."""
+    ``None`` if none records it. ``none_is_a_value``: a recorded null is a setting (no link
+    delay), so trials with and without one are mixed."""
+    if none_is_a_value:
+        values = sorted({str(r[key]) for r in rows if key in r and not r.get("error")})
+        if values in ([], ["None"]):
+            return None
+        return values[0] if len(values) == 1 else {"mixed": values}
     values = sorted({str(r[key]) for r in rows if r.get(key) is not None})
     if not values:
         return None
@@ -162,7 +168,7 @@ def station_summary(rows: Sequence[dict[str, Any]]) -> dict[str, Any]:
     out: dict[str, Any] = {
         "measured": len(ok),
         "base_filter": _one_value(rows, "base_filter"),
-        "link_delay": _one_value(rows, "link_delay"),
+        "link_delay": _one_value(rows, "link_delay", none_is_a_value=True),
     }
     caps = {r["station_clearance_cap_mm"] for r in ok if r.get("station_clearance_cap_mm")}
     if len(caps) == 1:  # older trials do not say

@@ -18,6 +18,16 @@ from payload.trials.summary_fields import (
 )
 
 
+def _delay_text(delay: Any) -> str:
+    """The campaign's link delay, or that its trials differ in it."""
+    if not delay:
+        return ""
+    if isinstance(delay, dict):  # {"mixed": [...]}: "None" for the trials without one
+        said = ", ".join("none" if v == "None" else f"{v} s" for v in delay.get("mixed", []))
+        return f"; link delay (delay, jitter) differs between the trials: {said}"
+    return f"; link delay (delay, jitter) {delay} s"
+
+
 def _station_lines(station: dict[str, Any] | None) -> list[str]:
     if not station or not station.get("measured"):
         return []
@@ -33,7 +43,7 @@ def _station_lines(station: dict[str, Any] | None) -> list[str]:
         f"{least_clearance_text(mm, station.get('station_clearance_cap_mm'), always_cap=True)}"
         f"; base filter {on}, active "
         f"{active.get('median', 0.0):.1f} s median per trial"
-        f"{f'; link delay (delay, jitter) {delay} s' if delay else ''}.",
+        f"{_delay_text(delay)}.",
     ]
 
 
