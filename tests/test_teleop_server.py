@@ -382,14 +382,8 @@ class Page(threading.Thread):
 
 @pytest.fixture(scope="module")
 def live(tmp_path_factory):
-    from payload.trials.live import LiveSession
-
     out = tmp_path_factory.mktemp("live") / "session"
-    hub = LiveHub()
-    session = LiveSession(hub, out, steps=QUICK_STEPS)
-    server = TeleopServer(hub, port=0, scene=session.scene).start()
-    worker = threading.Thread(target=session.run, daemon=True)
-    worker.start()
+    hub, session, server, worker = _serving(out=out)
     yield hub, server, session, out
     hub.stop.set()
     worker.join(30)
@@ -501,12 +495,13 @@ def _end_session(page: Page, hub: LiveHub, worker: threading.Thread, server) -> 
     server.stop()
 
 
-def _serving(steps=QUICK_STEPS):
-    """A live session without a recording, its server and its loop's thread, running."""
+def _serving(steps=QUICK_STEPS, out=None):
+    """A live session (recording into ``out``, or none), its server and its loop's
+    thread, running."""
     from payload.trials.live import LiveSession
 
     hub = LiveHub()
-    session = LiveSession(hub, None, steps=steps)
+    session = LiveSession(hub, out, steps=steps)
     server = TeleopServer(hub, port=0, scene=session.scene).start()
     worker = threading.Thread(target=session.run, daemon=True)
     worker.start()

@@ -217,26 +217,19 @@ def phase_spans(rec) -> list[tuple[str, float, float]]:
 Boxes = list[tuple[np.ndarray, np.ndarray]]
 
 
-def keep_in_boxes(world, meta: dict | None = None) -> Boxes:
-    """The keep-in boxes the trial's base filter kept the vehicle in, world frame
-    ``(lower, upper)`` corners [m]: its recorded zones (``meta["zones"]``, a trial run
-    with ``--zones``), else the station's (:func:`payload.sim.zones.station_zones` of the
-    world's ISS layout)."""
-    return _boxes(_zones(world, meta).keepin)
-
-
-def keep_out_boxes(world, meta: dict | None = None) -> Boxes:
-    """The keep-out boxes of the trial's recorded zones (none for the station's)."""
-    return _boxes(_zones(world, meta).keepout)
-
-
-def _zones(world, meta: dict | None) -> Any:
+def zone_boxes(world, meta: dict | None = None) -> tuple[Boxes, Boxes]:
+    """The keep-in and keep-out boxes the trial's base filter ran, world frame ``(lower,
+    upper)`` corners [m]: its recorded zones (``meta["zones"]``, a trial run with
+    ``--zones``), else the station's (:func:`payload.sim.zones.station_zones` of the
+    world's ISS layout; no keep-out)."""
     from payload.sim.zones import StationZones, station_zones
 
     recorded = (meta or {}).get("zones")
     if recorded is not None:  # a trial run with --zones records them (as data)
-        return StationZones.from_json(recorded, "the recording's zones")
-    return station_zones(world.layout)
+        zones = StationZones.from_json(recorded, "the recording's zones")
+    else:
+        zones = station_zones(world.layout)
+    return _boxes(zones.keepin), _boxes(zones.keepout)
 
 
 def _boxes(boxes: Any) -> Boxes:
@@ -431,9 +424,8 @@ def build_trial_replay(
     scene.transform(root, translation(-centre))
     draw_world(scene, world, root)
     draw_modules(scene, world, root)
-    keep_in = keep_in_boxes(world, rec.meta)
+    keep_in, keep_out = zone_boxes(world, rec.meta)
     draw_keep_in(scene, keep_in, root)
-    keep_out = keep_out_boxes(world, rec.meta)
     draw_keep_in(scene, keep_out, root, "keep_out")
     mount = translation(world.mount)
     scene.transform(f"{root}/astrobee/payload", mount)
