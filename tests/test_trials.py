@@ -958,7 +958,7 @@ def test_summary_table_against_hand_values() -> None:
     assert s["ctb"] == "rigid" and s["propulsion"] == "nozzles"
     lit = s["literal"]
     assert s["physics_dt"] is None  # rows from before the option: no step recorded
-    assert set(s) - {"literal", "ctb", "propulsion", "physics_dt", "station"} == set(lit)
+    assert set(s) - {"literal", "ctb", "propulsion", "physics_dt", "station", "capped"} == set(lit)
     assert lit["success"] == 0 and lit["contact_s"]["median"] == 0.2
     assert lit["contact_definition"] == {"min_interval_s": 0.0, "max_gap_s": 0.0}
     assert s["contact_definition"] == {"min_interval_s": 0.5, "max_gap_s": 0.1}
@@ -2021,3 +2021,28 @@ def test_a_link_delay_on_some_trials_only_is_said_to_differ() -> None:
     assert "link delay" not in summary_markdown(same)
     delayed = summarize([{**r, "link_delay": [1.0, 0.1]} for r in rows])
     assert "link delay (delay, jitter) [1.0, 0.1] s." in summary_markdown(delayed)
+
+
+def test_a_campaign_summary_names_the_zones_its_trials_ran() -> None:
+    """The summary's station part names the zones the filtered trials ran (the station's, or
+    a zones file's with its box counts, counted here from the boxes given), says when they
+    differ, and says nothing for trials without the filter or recorded before the zones."""
+    from payload.trials.campaign import summarize
+    from payload.trials.summary_markdown import summary_markdown
+
+    def row(seed: int, **extra: Any) -> dict[str, Any]:
+        return {"seed": seed, "success": True, "station_contacts": 0, **extra}
+
+    box = {"position": [0, 0, 0], "orientation": [1, 0, 0, 0], "size": [1, 1, 1]}
+    mine = [{"safe": True, "sequence": [box, box]}, {"safe": False, "sequence": [box]}]
+    station = [row(0, base_filter=True, zones=None), row(1, base_filter=True, zones=None)]
+    s = summarize(station)
+    assert s["station"]["zones"] == "the station's"
+    assert "base filter on (zones: the station's)" in summary_markdown(s)
+    both = summarize([*station, row(2, base_filter=True, zones=mine, zones_file="lab.json")])
+    assert both["station"]["zones"] == {
+        "mixed": ["lab.json (2 keep-in, 1 keep-out boxes)", "the station's"]
+    }
+    assert "zones differ between the trials: lab.json (2 keep-in" in summary_markdown(both)
+    for rows in ([row(0, base_filter=False, zones=None)], [row(0, base_filter=True)]):
+        assert "zones" not in summarize(rows)["station"]

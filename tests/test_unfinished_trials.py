@@ -478,6 +478,17 @@ def test_a_campaign_capped_by_max_time_says_so(tmp_path: Path, capsys) -> None:
     assert summary["run"]["max_time_s"] == 1.0
     line = "Each trial's session was capped at 1 s (--max-time)"
     assert line in said and line in (out / "summary.md").read_text()
+    # the summary counts and flags the capped trial: its row, the headline, the figures
+    assert summary["capped"] == 1 and summary["trials"][0]["ended_by"] == ENDED_BY_CAP
+    table = (out / "summary.md").read_text()
+    assert "| 3 | no (capped) |" in table
+    assert "1 of the trials was stopped by the --max-time cap" in table
+    assert "; 1 stopped by the --max-time cap" in said
+    from payload.trials.campaign_figure import campaign_figure
+    from payload.trials.summary_fields import METRIC_LABELS
+
+    fig = campaign_figure(summary, METRIC_LABELS)
+    assert "succeeded, 1 stopped by the --max-time cap" in fig.get_suptitle()
     assert main([*argv[:-2], "--max-time", "nan", "--out", str(tmp_path / "x")]) == 2
     assert "--max-time" in capsys.readouterr().err and not (tmp_path / "x").exists()
 
@@ -508,3 +519,20 @@ def test_compare_says_a_differing_setting_as_it_was_given() -> None:
     row = {"trial": "trial-0000", "setup_differs": {"physics_dt": [0.0001, 0.001]}}
     notes = comparison_notes({"trials": [row], "only_a": [], "only_b": []})
     assert "Setup, A / B, where it differs: physics_dt 0.0001 / 0.001." in notes, notes
+
+
+def test_the_route_figure_of_a_capped_trial_says_so(tmp_path: Path, monkeypatch) -> None:
+    """``fig_route.png``'s title says when the ``--max-time`` cap stopped the session (Fig.
+    3 says it in a label); a trial that ran to its end says nothing of a cap."""
+    from payload.trials import figures
+
+    fixture_synthetic_trial(4, tmp_path / "t")
+    rec = read_recording(tmp_path / "t" / "log.mcap")
+    titles: list[str] = []
+    monkeypatch.setattr(
+        figures, "save_figure", lambda fig, path, *a: titles.append(fig.axes[0].get_title())
+    )
+    figures.plot_route(rec, tmp_path / "a.png")
+    rec.meta["ended_by"] = ENDED_BY_CAP
+    figures.plot_route(rec, tmp_path / "b.png")
+    assert figures.CAP_LABEL not in titles[0] and titles[1].endswith(f"; {figures.CAP_LABEL})")

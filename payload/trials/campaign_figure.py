@@ -45,10 +45,12 @@ def campaign_figure(
     fig = Figure(figsize=(3.0 * len(labels), 4.2), layout="constrained")
     axes = fig.subplots(1, len(labels))
     n_ok = summary.get("success", 0)
+    n_capped = int(summary.get("capped") or 0)
+    capped = f", {n_capped} stopped by the --max-time cap" if n_capped else ""
     _fit_width(
         fig.suptitle(
             f"{title or summary.get('title') or 'Campaign'}\n{n_ok}/{summary.get('n', 0)} "
-            f"succeeded (paper {summary['paper']['success']}/{summary['paper']['n']}); "
+            f"succeeded{capped} (paper {summary['paper']['success']}/{summary['paper']['n']}); "
             "dots: trials, bar: median, whisker: range"
         )
     )

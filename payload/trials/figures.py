@@ -399,8 +399,10 @@ def plot_route(
     ax.grid(True, alpha=0.3)
     ax.legend(loc="best", fontsize=8)
     net = float(np.linalg.norm(pc[-1] - pc[0]))
+    capped = f"; {CAP_LABEL}" if recording.meta.get("ended_by") == ENDED_BY_CAP else ""
     ax.set_title(
-        f"Route, top view{_seed_text(recording)} (CTB net displacement {net:.2f} m)", fontsize=10
+        f"Route, top view{_seed_text(recording)} (CTB net displacement {net:.2f} m{capped})",
+        fontsize=10,
     )
     return save_figure(fig, Path(path), dpi, TRIAL_PNG_COMPRESSION)
 

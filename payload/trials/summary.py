@@ -27,6 +27,7 @@ from payload.trials.summary_fields import (
     CampaignError,
     least_clearance_text,
     without_contact,
+    zones_name,
 )
 from payload.trials.summary_markdown import summary_markdown
 from payload.trials.trial_results import load_trial_results
@@ -106,6 +107,7 @@ def _summary_core(rows: list[dict[str, Any]]) -> dict[str, Any]:
             **{k: r.get(k) for k in METRIC_KEYS},
             "final_module": r.get("final_module"),
             **{k: r.get(k) for k in STATION_KEYS if k in r},
+            **({"ended_by": r["ended_by"]} if r.get("ended_by") else {}),
             "error": r.get("error"),
             **({"traceback": r["traceback"]} if r.get("traceback") else {}),
             "wall_s": r.get("wall_s"),
@@ -136,7 +138,9 @@ def summarize(results: Sequence[dict[str, Any]]) -> dict[str, Any]:
     Returns:
         ``{"n", "success", "errors", "acquisition_success", <metric>: {"median", "min",
         "max", "count"}, "contact_definition", "seeds", "trials", "paper", "ctb",
-        "propulsion", "physics_dt", "literal"}``.
+        "propulsion", "physics_dt", "capped", "literal", "station"}``; ``capped`` counts
+        the trials the ``--max-time`` cap stopped before their operator finished (each
+        one's row says ``"ended_by": "max_time"``).
     """
     if not results:
         raise CampaignError("no trial results to summarise")
@@ -146,6 +150,7 @@ def summarize(results: Sequence[dict[str, Any]]) -> dict[str, Any]:
     summary["propulsion"] = _one_value(rows, "propulsion")
     steps = sorted({float(r["physics_dt"]) for r in rows if r.get("physics_dt") is not None})
     summary["physics_dt"] = (steps[0] if len(steps) == 1 else {"mixed": steps}) if steps else None
+    summary["capped"] = sum(1 for r in rows if r.get("ended_by") == ENDED_BY_CAP)
     summary["literal"] = _summary_core([_literal_row(r) for r in rows])
     summary["station"] = station_summary(rows)
     return summary
@@ -163,13 +168,18 @@ STATION_KEYS = (
 def station_summary(rows: Sequence[dict[str, Any]]) -> dict[str, Any]:
     """Station contacts over the trials that measured them: how many trials touched the
     station, the contact steps in all and at most, the least clearance [mm], the filter's
-    active time [s] (median, max), and the base-filter and link-delay settings."""
+    active time [s] (median, max), and the base-filter, link-delay and zones settings
+    (``zones``: :func:`~payload.trials.summary_fields.zones_name` of the filtered trials,
+    ``{"mixed": [...]}`` if they differ, absent when none records them)."""
     ok = [r for r in rows if not r.get("error") and r.get("station_contacts") is not None]
     out: dict[str, Any] = {
         "measured": len(ok),
         "base_filter": _one_value(rows, "base_filter"),
         "link_delay": _one_value(rows, "link_delay", none_is_a_value=True),
     }
+    zones = sorted({name for r in rows if not r.get("error") and (name := zones_name(r))})
+    if zones:  # trials recorded before the zones were, or with the filter off, say none
+        out["zones"] = zones[0] if len(zones) == 1 else {"mixed": zones}
     caps = {r["station_clearance_cap_mm"] for r in ok if r.get("station_clearance_cap_mm")}
     if len(caps) == 1:  # older trials do not say
         out["station_clearance_cap_mm"] = caps.pop()
@@ -318,16 +328,10 @@ def write_summary(
 def zones_text(result: dict[str, Any]) -> str:
     """Which zones a trial's base filter ran, as its set-up line says it (``""``: the
     filter off, or a run recorded before the zones were)."""
-    if not result.get("base_filter") or "zones" not in result:
+    name = zones_name(result)
+    if name is None:
         return ""
-    zones = result["zones"]
-    if zones is None:
-        return ", the station's zones"
-    count = {True: 0, False: 0}
-    for obj in zones:
-        count[bool(obj.get("safe"))] += len(obj.get("sequence") or [])
-    named = result.get("zones_file") or "recorded"
-    return f", zones {named} ({count[True]} keep-in, {count[False]} keep-out boxes)"
+    return ", the station's zones" if name == "the station's" else f", zones {name}"
 
 
 def print_trial_summary(result: dict[str, Any], given: str = "") -> None:

@@ -80,7 +80,30 @@ def least_clearance_text(mm: Any, cap_mm: Any, *, always_cap: bool = False) -> s
     return f"{mm} mm (measured up to {cap_mm:g} mm)" if always_cap else f"{mm} mm"
 
 
+CAPPED = "capped"
+"""A per-trial row's note beside its success when the ``--max-time`` cap ended its session
+before the operator finished (``ended_by`` ``"max_time"``: success is still scored on what
+was recorded)."""
+
+
+def zones_name(result: Mapping[str, Any]) -> str | None:
+    """Which zones a trial's base filter ran: ``"the station's"``, or the zones file's name
+    (``"recorded"`` for zones without one) with its keep-in and keep-out box counts;
+    ``None`` with the filter off or for a trial recorded before the zones were."""
+    if not result.get("base_filter") or "zones" not in result:
+        return None
+    zones = result["zones"]
+    if zones is None:
+        return "the station's"
+    count = {True: 0, False: 0}
+    for obj in zones:
+        count[bool(obj.get("safe"))] += len(obj.get("sequence") or [])
+    named = result.get("zones_file") or "recorded"
+    return f"{named} ({count[True]} keep-in, {count[False]} keep-out boxes)"
+
+
 __all__ = [
+    "CAPPED",
     "METRIC_KEYS",
     "METRIC_LABELS",
     "NO_CONTACT",
@@ -88,4 +111,5 @@ __all__ = [
     "CampaignError",
     "least_clearance_text",
     "without_contact",
+    "zones_name",
 ]

@@ -8,7 +8,9 @@ from __future__ import annotations
 import math
 from typing import Any
 
+from payload.schema import ENDED_BY_CAP
 from payload.trials.summary_fields import (
+    CAPPED,
     METRIC_KEYS,
     METRIC_LABELS,
     NO_CONTACT,
@@ -35,6 +37,11 @@ def _station_lines(station: dict[str, Any] | None) -> list[str]:
     delay = station.get("link_delay")
     mm = station.get("min_station_clearance_mm")
     on = {"True": "on", "False": "off"}.get(str(station.get("base_filter")), "mixed")
+    zones = station.get("zones")
+    if isinstance(zones, dict):
+        on += f" (zones differ between the trials: {'; '.join(zones.get('mixed', []))})"
+    elif zones:
+        on += f" (zones: {zones})"
     return [
         "",
         f"Station contacts: {station['trials_with_contacts']} of {station['measured']} "
@@ -213,6 +220,7 @@ def summary_markdown(summary: dict[str, Any], title: str | None = None) -> str:
         ]
     lines += _station_lines(summary.get("station"))
     lines += _run_lines(summary.get("run"))
+    lines += _capped_lines(int(summary.get("capped") or 0))
     lines += [
         "",
         "Success: the CTB is in the destination module at the end, and the first continuous "
@@ -233,6 +241,8 @@ def summary_markdown(summary: dict[str, Any], title: str | None = None) -> str:
     literal_rows = {r.get("seed"): r for r in lit.get("trials", [])}
     for row in summary.get("trials", []):
         ok = "error" if row.get("error") else ("yes" if row["success"] else "no")
+        if row.get("ended_by") == ENDED_BY_CAP:
+            ok += f" ({CAPPED})"
         cells = " | ".join(_trial_cell(row, k) for k in METRIC_KEYS)
         lr = literal_rows.get(row["seed"], {})
         lok = "error" if row.get("error") else ("yes" if lr.get("success") else "no")
@@ -241,6 +251,18 @@ def summary_markdown(summary: dict[str, Any], title: str | None = None) -> str:
             f"| {_trial_cell(lr, 'rms_mm')} | {_trial_cell(lr, 'contact_s')} |"
         )
     return "\n".join(lines) + "\n"
+
+
+def _capped_lines(n_capped: int) -> list[str]:
+    """How many trials the ``--max-time`` cap stopped (none: no line)."""
+    if not n_capped:
+        return []
+    return [
+        "",
+        f"{n_capped} of the trials {'was' if n_capped == 1 else 'were'} stopped by the "
+        f'--max-time cap before the operator finished ("{CAPPED}" in the table below); '
+        "success is scored on what was recorded.",
+    ]
 
 
 def _run_lines(run: dict[str, Any] | None) -> list[str]:
@@ -261,6 +283,7 @@ def _run_lines(run: dict[str, Any] | None) -> list[str]:
             "the cap ended before its task did."
         ]
     )
+
     return [
         "",
         f"Ran {where} in {run['wall_s']:.1f} s; the trials took "

@@ -42,6 +42,8 @@ def summary_headline(summary: dict[str, Any]) -> str:
     parts.append(f"paper {paper['success']}/{paper['n']}")
     if summary.get("errors"):
         parts.append(f"{summary['errors']} error(s)")
+    if summary.get("capped"):
+        parts.append(f"{summary['capped']} stopped by the --max-time cap")
     for key in ("rms_mm", "peak_mm", "duration_s"):
         name, unit = _SHORT[key]
         stat, d = summary.get(key), _DIGITS[key]
