@@ -23,7 +23,7 @@ import sys
 from collections.abc import Callable, Iterable, Sequence
 from typing import Any, NamedTuple, NoReturn
 
-from payload.cliutil import CheckFailed, command_project, emit_json, forget_project
+from payload.cliutil import CheckFailed, command_project, emit_json, forget_project, log_lines
 from payload.errors import STOP_SIGNALS, PayloadError, RunAborted, Terminated
 from payload.project import ENV_VAR
 
@@ -373,7 +373,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     added = [k for k in COMMAND_ENV if k not in os.environ]
     os.environ.update({k: COMMAND_ENV[k] for k in added})
     try:
-        return int(args.func(args) or 0)
+        with log_lines():
+            return int(args.func(args) or 0)
     except CheckFailed as exc:
         print(f"payload: check failed: {exc}", file=sys.stderr)
         return 1

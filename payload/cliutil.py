@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import logging
 import os
 import sys
 from collections.abc import Iterator, Sequence
@@ -142,6 +143,59 @@ def say_stage(line: str) -> None:
 def warn(message: str) -> None:
     """One warning line on stderr (``payload: warning: ...``)."""
     print(f"payload: warning: {message}", file=sys.stderr, flush=True)
+
+
+OUR_LOGGERS = ("payload", "firmware_interface")
+"""The workbench's loggers: their records name their part themselves ("finger chain:
+..."); another library's record is prefixed with its logger's name."""
+
+
+class _CommandLines(logging.Handler):
+    """A command's log records on the stderr of the moment, as the command line's own
+    lines: a warning as ``payload: warning: ...`` (:func:`warn`'s form), an error as
+    ``payload: ...`` with its traceback when it carries one."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.WARNING)
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            ours = record.name.split(".", 1)[0] in OUR_LOGGERS
+            text = record.getMessage() if ours else f"{record.name}: {record.getMessage()}"
+            head = "payload: warning: " if record.levelno < logging.ERROR else "payload: "
+            if record.exc_info:
+                text += "\n" + logging.Formatter().formatException(record.exc_info)
+            print(head + text, file=sys.stderr, flush=True)
+        except Exception:  # a logging handler never raises into the command
+            self.handleError(record)
+
+
+@contextlib.contextmanager
+def log_lines() -> Iterator[None]:
+    """For one command: log records of WARNING and above on stderr as the command line's
+    lines (:class:`_CommandLines`; without it Python prints a bare message, with no
+    ``payload: warning:``). A command that sets up its own logging (``teleop serve``'s
+    status line) takes it off first (:func:`drop_log_lines`); the root logger's handlers
+    are as before afterwards."""
+    root = logging.getLogger()
+    before = root.handlers[:]
+    handler = _CommandLines()
+    root.addHandler(handler)
+    try:
+        yield
+    finally:
+        for added in [h for h in root.handlers if h not in before]:
+            root.removeHandler(added)
+            if added is not handler:
+                added.close()
+
+
+def drop_log_lines() -> None:
+    """Take :func:`log_lines`' handler off the root logger, for a command that formats its
+    own records (then ``logging.basicConfig`` installs its handler)."""
+    root = logging.getLogger()
+    for handler in [h for h in root.handlers if isinstance(h, _CommandLines)]:
+        root.removeHandler(handler)
 
 
 class DeprecatedAlias(argparse.Action):
@@ -327,9 +381,11 @@ __all__ = [
     "add_replay",
     "command_project",
     "default_out",
+    "drop_log_lines",
     "emit_json",
     "forget_project",
     "kept_if_used",
+    "log_lines",
     "need_device",
     "out_folder",
     "results_folder",

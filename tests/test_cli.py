@@ -627,3 +627,35 @@ def test_bench_start_only_naming_nothing_is_one_line(capsys) -> None:
     assert main(["bench", "start", "--only", ","]) == 2
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "--only ',': names no measure (there are: version_s" in err
+
+
+def test_a_commands_log_records_are_the_command_lines_own(monkeypatch, capsys) -> None:
+    """A warning logged during a command (a kernel falling back, say) is one
+    ``payload: warning:`` line, another library's names its logger, an error's traceback
+    follows it; Python alone printed the bare message. Afterwards the root logger has
+    the handlers it had."""
+    import argparse
+    import logging
+
+    from payload import cli
+
+    def command(args: argparse.Namespace) -> int:
+        logging.getLogger("payload.teleop.pair_c").warning("finger chain: Python (%s)", "why")
+        logging.getLogger("someone.else").warning("their note")
+        try:
+            raise ValueError("inner")
+        except ValueError:
+            logging.getLogger("payload.trials.runner").error("trial 3 aborted", exc_info=True)
+        return 0
+
+    before = logging.getLogger().handlers[:]
+    monkeypatch.setattr(cli, "_parse", lambda argv: argparse.Namespace(func=command))
+    assert cli.main([]) == 0
+    err = capsys.readouterr().err.splitlines()
+    assert err[:3] == [
+        "payload: warning: finger chain: Python (why)",
+        "payload: warning: someone.else: their note",
+        "payload: trial 3 aborted",
+    ]
+    assert err[3] == "Traceback (most recent call last):" and err[-1] == "ValueError: inner"
+    assert logging.getLogger().handlers == before

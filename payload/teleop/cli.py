@@ -24,6 +24,7 @@ from payload.cliutil import (
     add_json,
     check_seconds,
     command_project,
+    drop_log_lines,
     emit_json,
     say_stage,
 )
@@ -279,6 +280,7 @@ def serve(args: argparse.Namespace, make_session: SessionFactory) -> int:
         print(f"  the headset trusts it through the CA {cert.parent / CA_NAME}{new}")
     if not local:
         token = new_token()
+    drop_log_lines()  # the records go beside the status line instead
     logging.basicConfig(level=logging.WARNING, handlers=[_BesideStatusLine(sys.stderr)])
     hub = LiveHub()
     bus = contextlib.ExitStack()  # the emulator of --emulator, stopped last

@@ -383,7 +383,8 @@ def _record_session(
                 recorder.flush()  # every step made and written: the scene's figures count all
             except Exception as exc:
                 what, at = recorder.mark_aborted(exc)
-                log.error("trial %s aborted at t = %.2f s", seed, at, exc_info=True)
+                # the traceback is in the recording; a command says the one line raised below
+                log.info("trial %s aborted at t = %.2f s", seed, at, exc_info=True)
                 raise TrialAborted(
                     f"trial {seed} aborted at t = {at:.2f} s by {what}; recording "
                     f"kept (marked aborted, not scored): {rec_path}"
