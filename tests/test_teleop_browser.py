@@ -8,6 +8,7 @@ Without Chromium or iwer the test is skipped on a developer's machine and FAILS 
 from __future__ import annotations
 
 import contextlib
+import json
 import math
 import os
 import re
@@ -20,6 +21,7 @@ import pytest
 
 from payload.teleop.calibration import Step
 from payload.teleop.emulate import (
+    HEAD_PITCH_DEG,
     NEUTRAL,
     EmulatedQuest,
     EmulationError,
@@ -279,6 +281,15 @@ def test_desktop_mode_drives_a_calibration_without_a_headset(tmp_path):
     worker = threading.Thread(target=session.run, daemon=True)
     worker.start()
     try:
+        # the desktop operator's pose is the emulated headset's (one fact: emulate.py's),
+        # read back from the script as served: the wrists' places and the head's pitch
+        base, _, query = server.url().partition("?")
+        served = urllib.request.urlopen(f"{base}desktop.js?{query}", timeout=10).read()
+        first = served.decode().splitlines()[0]
+        assert first.startswith("const DESKTOP_POSE = ") and first.endswith(";"), first
+        pose = json.loads(first.removeprefix("const DESKTOP_POSE = ")[:-1])
+        assert pose == {"neutral": {k: list(v) for k, v in NEUTRAL.items()},
+                        "headPitchDeg": HEAD_PITCH_DEG}  # fmt: skip
         with _Page(server.url(), {"width": 480, "height": 360}) as page:
             wait_on_page(page, "() => !document.getElementById('enter').disabled", 30.0, "Enter VR")
             # outside VR a free page names the next step, under the header: Enter VR

@@ -38,7 +38,8 @@ CHROMIUM_FLAGS = (
 NEUTRAL = {"left": (-0.15, 1.1, -0.35), "right": (0.15, 1.1, -0.35)}
 HEAD_PITCH_DEG = -25.0
 """The emulated head looks this far down [deg], at the vehicle (it floats at hand height a
-metre ahead), as an operator does and as the desktop mode's does (``web/desktop/desktop.js``):
+metre ahead), as an operator does and as the desktop mode's does (the server puts it before
+``web/desktop/desktop.js``, :func:`payload.teleop.server.desktop_pose`):
 the view shows the scene and the panel above it. The hands do not depend on it."""
 GESTURES: dict[str, dict[str, Any]] = {
     "neutral": {"offset": (0.0, 0.0, 0.0), "spread": 0.0, "pinch": 0.5},

@@ -51,6 +51,7 @@ from websockets.exceptions import ConnectionClosed
 from websockets.http11 import Request, Response
 
 from payload.errors import PayloadError, port_in_use_hint
+from payload.teleop.emulate import HEAD_PITCH_DEG, NEUTRAL
 from payload.teleop.live import HANDED_OVER, LEFT_VR, MAX_CLIENTS, LiveHub, now_ms
 from payload.teleop.messages import (
     MAX_MESSAGE_BYTES,
@@ -78,6 +79,14 @@ RATE_BURST = 0.5 * RATE_LIMIT_HZ  # messages a connection may send at once (0.5 
 # a browser that stalled (a loaded machine, a Wi-Fi hiccup) flushes its queued frames at
 # once; a sustained flood above the rate is still dropped after half a second
 DESKTOP_SCRIPTS = b'<script src="/iwer.js"></script>\n<script src="/desktop.js"></script>\n'
+
+
+def desktop_pose() -> bytes:
+    """The desktop mode's emulated operator, prepended to ``desktop.js`` as it is served:
+    the wrists' neutral places and the head's pitch, the tests' emulated headset's
+    (:mod:`payload.teleop.emulate`), so the two are one fact."""
+    pose = {"neutral": NEUTRAL, "headPitchDeg": HEAD_PITCH_DEG}
+    return f"const DESKTOP_POSE = {json.dumps(pose)};\n".encode()
 NO_TOKEN = "missing or wrong token"
 TOKEN_HINT = "open the address `payload teleop serve` printed, with its ?token= (new each run)"
 
@@ -323,6 +332,8 @@ class TeleopServer:
         if file.suffix == ".js":
             ctype = "text/javascript"
         body = file.read_bytes()
+        if self.desktop and path == "/desktop.js":
+            body = desktop_pose() + body
         if self.desktop and file.name == "index.html":  # the emulated headset first
             body = body.replace(
                 b'<script type="module"', DESKTOP_SCRIPTS + b'<script type="module"'

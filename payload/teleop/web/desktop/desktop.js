@@ -12,11 +12,12 @@
   device.installRuntime({ forceInstall: true });
   device.primaryInputMode = 'hand';
   // the head looks down at the vehicle, as an operator does (it floats at hand height a
-  // metre ahead), not at the horizon: the view is the scene, the panel above it (the tests'
-  // emulated headset looks as far down: payload/teleop/emulate.py, HEAD_PITCH_DEG)
-  const PITCH = -25 * Math.PI / 180;
+  // metre ahead), not at the horizon: the view is the scene, the panel above it.
+  // DESKTOP_POSE: put before this file by the server, the tests' emulated headset's pose
+  // (payload/teleop/emulate.py: NEUTRAL, HEAD_PITCH_DEG)
+  const PITCH = DESKTOP_POSE.headPitchDeg * Math.PI / 180;
   device.quaternion.set(Math.sin(PITCH / 2), 0, 0, Math.cos(PITCH / 2));
-  const NEUTRAL = { left: [-0.15, 1.1, -0.35], right: [0.15, 1.1, -0.35] };
+  const NEUTRAL = DESKTOP_POSE.neutral;
   const SPEED = 0.4;  // [m/s] how fast a hand moves toward its target
   const STEP = 0.05;  // [m] one key press of W/A/S/D/R/F
   const pose = { offset: [0, 0, 0], spread: 0, pinch: 0.5 };
