@@ -1269,6 +1269,22 @@ def test_cli_bad_input_exits_2(argv: list[str], message: str, capsys) -> None:
     assert len(err) == 1 and message in err[0]
 
 
+def test_a_physics_step_outside_the_validated_two_says_what_it_costs(capsys) -> None:
+    """A usable --physics-dt that is neither the paper's 1 ms nor the validated 2 ms runs,
+    with one warning: 0.1 ms is ten times the steps (slower, nothing else); 5 ms was never
+    validated. The two validated steps say nothing."""
+    from payload.trials.setup_options import _check_physics_dt
+
+    for dt in (None, 0.001, 0.002):
+        _check_physics_dt(dt)
+    assert capsys.readouterr().err == ""
+    _check_physics_dt(0.0001)
+    _check_physics_dt(0.005)
+    slower, unvalidated = capsys.readouterr().err.splitlines()
+    assert slower.startswith("payload: warning: --physics-dt 0.0001: 10 times the paper's 1 kHz")
+    assert unvalidated.startswith("payload: warning: --physics-dt 0.005: not validated")
+
+
 def test_cli_bench_trial_accounts_for_its_time(tmp_path: Path, capsys, fresh_checks) -> None:
     """The stages add up to the measured total; sizes are the file's; with no check stamps
     (``fresh_checks``) the run names the full self-checks it ran."""

@@ -87,6 +87,8 @@ def desktop_pose() -> bytes:
     (:mod:`payload.teleop.emulate`), so the two are one fact."""
     pose = {"neutral": NEUTRAL, "headPitchDeg": HEAD_PITCH_DEG}
     return f"const DESKTOP_POSE = {json.dumps(pose)};\n".encode()
+
+
 NO_TOKEN = "missing or wrong token"
 TOKEN_HINT = "open the address `payload teleop serve` printed, with its ?token= (new each run)"
 

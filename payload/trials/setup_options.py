@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+from payload.cliutil import warn
 from payload.errors import PayloadError
 from payload.rates import CONTROL_DT, PHYSICS_DT
 
@@ -146,12 +147,38 @@ def _physics_dt_argument(p: argparse.ArgumentParser, mine: str = "") -> None:
     )
 
 
+VALIDATED_PHYSICS_DT = 2 * PHYSICS_DT
+"""The largest step validated against the paper's (``make validate-physics-dt``,
+``analyses/physics-dt/compare.md``)."""
+
+
+def physics_dt_note(dt: float) -> str | None:
+    """What a user should know of a usable step that is not one of the two validated ones
+    (None: the paper's or the validated faster one): a smaller one only costs time, a
+    larger one was never checked against the paper's."""
+    if dt < PHYSICS_DT:
+        return (
+            f"--physics-dt {dt:g}: {PHYSICS_DT / dt:g} times the paper's {1e-3 / PHYSICS_DT:g} "
+            "kHz steps, so the physics takes about as many times longer"
+        )
+    if dt > VALIDATED_PHYSICS_DT:
+        return (
+            f"--physics-dt {dt:g}: not validated (only {VALIDATED_PHYSICS_DT:g} s was, "
+            "analyses/physics-dt/compare.md); contact and the trial's results may differ "
+            "from the paper's step by more than that table shows"
+        )
+    return None
+
+
 def _check_physics_dt(dt: float | None) -> None:
     from payload.sim.config import check_physics_dt
 
     problem = None if dt is None else check_physics_dt(dt)
     if problem is not None:
         raise TrialsCliError(f"--physics-dt: {problem}")
+    note = None if dt is None else physics_dt_note(dt)
+    if note is not None:
+        warn(note)
 
 
 ZONES_WITHOUT_FILTER = (
