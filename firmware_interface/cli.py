@@ -128,6 +128,11 @@ def _cmd_scan(args: argparse.Namespace) -> int:
     return 0
 
 
+SILENT_RUN = 2
+"""Health reads lost in a row, after a bring-up that lost replies, that end ``hw check``'s
+look: a bus that stopped answering, not one servo (each read waits out its retries)."""
+
+
 def check(
     port: str, smap: Any, latency_ms: float = LATENCY_MS, say: Callable[[str], None] | None = None
 ) -> dict[str, Any]:
@@ -143,7 +148,8 @@ def check(
 
     errors: list[str] = []
     servos = []
-    lost = False  # the bring-up lost replies: a health read that loses them too ends the look
+    lost = False  # the bring-up lost replies: the health reads' losses are said in one line
+    silent: list[str] = []  # servos whose health read was lost after that
     with DynamixelDriver(port, smap, latency_timer_ms=latency_ms) as drv:
         present = list(smap.ids)
         try:
@@ -164,19 +170,30 @@ def check(
         except DynamixelError as exc:
             lost = isinstance(exc, CommError)
             errors.append(str(exc))
-        for i in present:
+        run = 0  # health reads lost in a row
+        for k, i in enumerate(present):
             try:
                 h = drv.read_health(i)
             except DynamixelError as exc:
-                errors.append(str(exc))
-                if lost and isinstance(exc, CommError):  # not one error per servo
+                if not (lost and isinstance(exc, CommError)):
+                    errors.append(str(exc))
+                    continue
+                silent.append(f"{i} ({smap.joint_of(i)})")
+                run += 1
+                if run >= SILENT_RUN and k + 1 < len(present):
+                    # the bus, not a servo: the rest would each wait out their retries
+                    silent.append(f"and the {len(present) - k - 1} after it not read")
                     break
                 continue
+            run = 0
             servos.append({"id": i, "joint": h.joint, "model_number": h.model_number,
                            "hardware_error": h.hardware_error, "temperature_c": h.temperature_c,
                            "voltage_v": h.voltage_v})  # fmt: skip
             if h.hardware_error:
                 errors.append(str(HardwareFault(i, h.joint, list(h.bits))))  # its own words
+        if silent:
+            servo = "servo" if len(silent) == 1 else "servos"
+            errors.append(f"no reply to the health read from {servo} {', '.join(silent)}")
         drv.port.settle()
         late = sum(drv.port.late.values())
     if late:  # a late reply can be taken as the answer to a later read of the same length

@@ -429,8 +429,46 @@ def test_check_names_a_servo_gone_silent_in_a_sync_read_without_blaming_latency(
     assert any("servo 5 (B_mcp_flex)" in e for e in report["errors"]), report["errors"]
     assert not any("latency" in e or "came after" in e for e in report["errors"]), err
     assert report["servos"], report  # the rows read before servo 5's own read failed
+    # and after it: one silent servo does not end the look (the rows stopped at 5)
+    assert max(s["id"] for s in report["servos"]) > 5, report["servos"]
+    assert "no reply to the health read from servo 5 (B_mcp_flex)" in report["errors"]
     model = BY_NAME["model_number"]
     for s in report["servos"]:
         assert s["id"] != 5
         held = tables[s["id"]][model.address : model.address + model.size]
         assert s["model_number"] == decode(model, held)
+
+
+def test_check_on_a_bus_gone_silent_reads_two_servos_then_says_the_rest_were_not(
+    monkeypatch, capsys
+):
+    """Every reply lost from the homing on (the emulator's drop fault at probability 1):
+    the health reads stop after two lost in a row, in one line naming them and how many
+    were left unread (each further read would wait out its retries)."""
+    from firmware_interface.cli import SILENT_RUN
+    from firmware_interface.driver import DynamixelDriver
+    from firmware_interface.emulator import EmulatorProcess
+
+    home, reads = DynamixelDriver.home, []
+    read_health = DynamixelDriver.read_health
+    with EmulatorProcess() as emu:
+
+        def gone_then_home(drv, *args, **kwargs):
+            emu.fault("drop:1")
+            return home(drv, *args, **kwargs)
+
+        monkeypatch.setattr(DynamixelDriver, "home", gone_then_home)
+        monkeypatch.setattr(
+            DynamixelDriver, "read_health", lambda drv, i: reads.append(i) or read_health(drv, i)
+        )
+        code = main(["hw", "check", "--device", emu.port, "--json", "--latency-ms", LAT])
+    report = json.loads(capsys.readouterr().out)
+    assert code == 1 and report["servos"] == []
+    assert len(reads) == SILENT_RUN == 2
+    said = [e for e in report["errors"] if e.startswith("no reply to the health read")]
+    smap = load_servo_map()
+    first, second = smap.ids[0], smap.ids[1]
+    assert said == [
+        f"no reply to the health read from servos {first} ({smap.joint_of(first)}), "
+        f"{second} ({smap.joint_of(second)}), and the {len(smap.ids) - 2} after it not read"
+    ], report["errors"]
