@@ -8,6 +8,7 @@ import os
 import subprocess
 import sys
 from collections.abc import Iterator
+from typing import Any
 
 import pytest
 from conftest import replace_once
@@ -401,6 +402,20 @@ def test_bench_hw_on_a_bus_where_nobody_answers_is_a_failed_start(capsys):
     ), err
 
 
+def _fault_at_homing(monkeypatch: Any, emu: Any, spec: str) -> None:
+    """The emulator's fault ``spec`` starts as the bring-up's homing does (after the scan
+    and the first reads)."""
+    from firmware_interface.driver import DynamixelDriver
+
+    home = DynamixelDriver.home
+
+    def fault_then_home(drv: Any, *args: Any, **kwargs: Any) -> Any:
+        emu.fault(spec)
+        return home(drv, *args, **kwargs)
+
+    monkeypatch.setattr(DynamixelDriver, "home", fault_then_home)
+
+
 def test_check_names_a_servo_gone_silent_in_a_sync_read_without_blaming_latency(
     monkeypatch, capsys
 ):
@@ -410,17 +425,10 @@ def test_check_names_a_servo_gone_silent_in_a_sync_read_without_blaming_latency(
     every row hidden. Now it names servo 5, blames no latency, and shows the rows read
     (each as the emulator's own table holds it)."""
     from firmware_interface.control_table import BY_NAME, decode
-    from firmware_interface.driver import DynamixelDriver
     from firmware_interface.emulator import EmulatorProcess
 
-    home = DynamixelDriver.home
     with EmulatorProcess() as emu:
-
-        def silent_then_home(drv, *args, **kwargs):
-            emu.fault("missing:5")
-            return home(drv, *args, **kwargs)
-
-        monkeypatch.setattr(DynamixelDriver, "home", silent_then_home)
+        _fault_at_homing(monkeypatch, emu, "missing:5")
         code = main(["hw", "check", "--device", emu.port, "--json", "--latency-ms", LAT])
         tables = emu.tables()
     out, err = capsys.readouterr()
@@ -449,15 +457,9 @@ def test_check_on_a_bus_gone_silent_reads_two_servos_then_says_the_rest_were_not
     from firmware_interface.driver import DynamixelDriver
     from firmware_interface.emulator import EmulatorProcess
 
-    home, reads = DynamixelDriver.home, []
-    read_health = DynamixelDriver.read_health
+    reads, read_health = [], DynamixelDriver.read_health
     with EmulatorProcess() as emu:
-
-        def gone_then_home(drv, *args, **kwargs):
-            emu.fault("drop:1")
-            return home(drv, *args, **kwargs)
-
-        monkeypatch.setattr(DynamixelDriver, "home", gone_then_home)
+        _fault_at_homing(monkeypatch, emu, "drop:1")
         monkeypatch.setattr(
             DynamixelDriver, "read_health", lambda drv, i: reads.append(i) or read_health(drv, i)
         )
