@@ -2019,6 +2019,26 @@ def test_a_replay_runs_its_recordings_zones_unless_given_others(tmp_path, capsys
     assert (1.5, 5.75, 0.0, 0.6, 0.3, 1.8) not in _drawn_zones(given / "log.mcap")
 
 
+def test_hw_run_keeps_the_vehicle_in_its_source_trials_zones(tmp_path, capsys):
+    """``payload hw run`` of a trial run with ``--zones`` (on the emulated bus): its base
+    filter runs the recording's zones, drawn on /safety/keepin as the source's were, and
+    records them (data and file name) in its metrics; its setup line names them."""
+    from payload.cli import main
+
+    src, keepout, _ = _zones_trial(tmp_path)
+    out = tmp_path / "hw"
+    argv = ["hw", "run", "--emulator", "--replay", str(src / "log.mcap"), "--out", str(out),
+            "--no-pace", "--latency-ms", "50"]  # fmt: skip
+    assert main(argv) == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["base_filter"] is True  # hw run's default profile, safe
+    assert metrics["zones"] == json.loads(keepout.read_text())
+    assert metrics["zones_file"] == str(keepout)
+    assert _drawn_zones(out / "log.mcap") == _drawn_zones(src / "log.mcap")
+    setup = [x for x in capsys.readouterr().out.splitlines() if "setup:" in x]
+    assert f"zones {keepout} (3 keep-in, 1 keep-out boxes)" in setup[0], setup
+
+
 def test_a_link_delay_on_some_trials_only_is_said_to_differ() -> None:
     """Trials with a delayed link and trials without were summarised as if the campaign
     had the delay (a recorded null was taken as "not recorded"); the summary says they
