@@ -28,6 +28,7 @@ from typing import Any
 from firmware_interface.bus import Bus
 from firmware_interface.faults import FaultSpecError, parse_fault
 from firmware_interface.servo_dynamics import plants_from_spec
+from payload.cliutil import OneLineParser
 from payload.errors import PayloadError
 
 TICK_S = 0.005  # dynamics and watchdog update period while idle [s]
@@ -236,7 +237,7 @@ def serve(
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m firmware_interface.emulator", allow_abbrev=False)
+    ap = OneLineParser(prog="python -m firmware_interface.emulator", allow_abbrev=False)
     ap.add_argument("--servos", help="servo map TOML (default: the packaged map)")
     ap.add_argument("--fault", action="append", default=[], help="fault spec (repeatable)")
     ap.add_argument("--seed", type=int, default=0)

@@ -23,7 +23,14 @@ import sys
 from collections.abc import Callable, Iterable, Sequence
 from typing import Any, NamedTuple, NoReturn
 
-from payload.cliutil import CheckFailed, command_project, emit_json, forget_project, log_lines
+from payload.cliutil import (
+    CheckFailed,
+    OneLineParser,
+    command_project,
+    emit_json,
+    forget_project,
+    log_lines,
+)
 from payload.errors import STOP_SIGNALS, PayloadError, RunAborted, Terminated
 from payload.project import ENV_VAR
 
@@ -169,9 +176,7 @@ def build_parser(modules: Iterable[str] | None = None) -> argparse.ArgumentParse
     """
     from payload import __version__
 
-    parser = argparse.ArgumentParser(
-        prog="payload", description="Four-finger Astrobee payload workbench"
-    )
+    parser = OneLineParser(prog="payload", description="Four-finger Astrobee payload workbench")
     parser.add_argument("--version", action="version", version=f"payload {__version__}")
     parser.add_argument(
         "--project",

@@ -29,7 +29,7 @@ import os
 import sys
 from collections.abc import Iterator, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 from payload.errors import PayloadError
 from payload.folders import held
@@ -143,6 +143,38 @@ def say_stage(line: str) -> None:
 def warn(message: str) -> None:
     """One warning line on stderr (``payload: warning: ...``)."""
     print(f"payload: warning: {message}", file=sys.stderr, flush=True)
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """An argument parser whose refusals are one line on stderr and exit 2, as every other
+    bad input's (``payload trial: error: unrecognized arguments: --sede 3 (did you mean
+    --seed?); see payload trial --help``): argparse printed the command's whole usage
+    above it. A misspelt option or choice is matched against the parser's own."""
+
+    def error(self, message: str) -> NoReturn:
+        hint = self._did_you_mean(message)
+        self.exit(2, f"{self.prog}: error: {message}{hint}; see {self.prog} --help\n")
+
+    def _did_you_mean(self, message: str) -> str:
+        import difflib
+        import re
+
+        choice = re.search(r"invalid choice: '([^']*)' \(choose from (.*)\)$", message)
+        if choice:
+            options = [c.strip().strip("'") for c in choice.group(2).split(",")]
+            close = difflib.get_close_matches(choice.group(1), options, n=1)
+            return f" (did you mean {close[0]!r}?)" if close else ""
+        if not message.startswith("unrecognized arguments: "):
+            return ""
+        known = [o for o in self._option_string_actions if o.startswith("--")]
+        said = []
+        for word in message.removeprefix("unrecognized arguments: ").split():
+            name = word.split("=", 1)[0]
+            if name.startswith("--"):
+                said += [f"{m} for {name}" for m in difflib.get_close_matches(name, known, n=1)]
+        if len(said) == 1:
+            return f" (did you mean {said[0].split(' for ')[0]}?)"
+        return f" (did you mean {', '.join(said)}?)" if said else ""
 
 
 OUR_LOGGERS = ("payload", "firmware_interface")
@@ -374,6 +406,7 @@ def results_folder(
 __all__ = [
     "CheckFailed",
     "DeprecatedAlias",
+    "OneLineParser",
     "UsageError",
     "add_deprecated",
     "add_device",

@@ -9,7 +9,6 @@ Only a system Chromium is driven (``executable_path``); no browser is ever downl
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import os
 import shutil
@@ -17,6 +16,8 @@ import tempfile
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
+
+from payload.cliutil import OneLineParser
 
 CHROMIUM = "/usr/bin/chromium"
 FLAGS = (
@@ -160,8 +161,10 @@ def screenshot(
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
-        description="Screenshot a static review page", allow_abbrev=False
+    parser = OneLineParser(
+        prog="python -m payload.review.browser",
+        description="Screenshot a static review page",
+        allow_abbrev=False,
     )
     parser.add_argument("html", type=Path)
     parser.add_argument("png", type=Path)
