@@ -320,8 +320,23 @@ def test_desktop_mode_drives_a_calibration_without_a_headset(tmp_path):
             page.click("#handover")
             _wait(lambda: released == [True], 10, "the hand-over")
             del hub.release
-            # still in VR, its frames take control again (the first to send them takes it)
+            # and it stays handed over: the page's hands no longer take it straight back
+            # (the next page to send frames takes control; this one was it, so pressing
+            # the button did nothing but brake the vehicle for a moment)
+            sent = page.evaluate("() => window.__teleop.sent")
+            _wait(lambda: page.evaluate("() => window.__teleop.role") == "free", 10, "free")
+            time.sleep(1.0)
+            assert hub.active is None and page.evaluate("() => window.__teleop.sent") == sent
+            stop = "operator handed control over"
+            _wait(lambda: hub.snapshot.get("safe_stop") == stop, 10, "the hand-over's stop")
+            said = "You handed control over: the next operator's hands take it"
+            _wait(lambda: said in page.text_content("#hint"), 10, "the hand-over said")
+            assert page.text_content("#handover") == "Take control"
+            assert page.evaluate(ON_TOP, "#handover"), "Take control is under the VR view"
+            page.click("#handover")  # Take control: its frames take control again
             _wait(lambda: hub.active is not None, 10, "control taken again")
+            back = "Hand over control"
+            _wait(lambda: page.text_content("#handover") == back, 10, "the button back")
             page.click("#enter")  # Exit VR: the session ends, the page is back
             wait_on_page(page, "() => !window.__teleop.xr", 30.0, "VR left")
             # and leaving VR hands control over: a page out of VR no longer blocks others

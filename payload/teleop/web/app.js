@@ -32,6 +32,7 @@ const debug = {
   sent: 0, received: 0, connects: 0, state: null, open: false, xr: false,
   role: null, driver: null, hardware: false, link: 'connecting to the teleop server…', canEnter: false,
   why: null, vrError: null, panel: [], fingerLines: [], panelBox: null,
+  handedOver: false,  // this page handed control over: it sends no hands until taken back
 };
 window.__teleop = debug;
 
@@ -148,6 +149,10 @@ const renderer = new Renderer(gl);
 function roleHint() {
   if (debug.role !== 'free') return null;
   const kept = debug.state && debug.state.calibrated;
+  if (debug.xr && debug.handedOver) {
+    return 'You handed control over: the next operator\'s hands take it; press Take control ' +
+      'to take it back.';
+  }
   if (debug.xr) {
     return kept ? 'Control is free: your hands take it (the calibration is kept).'
       : 'Control is free: calibrate to take it.';
@@ -263,7 +268,10 @@ function showStatus() {
     return p;
   }));
   $('driver').textContent = debug.driver ? `driver: ${debug.driver}` : '';
-  $('handover').hidden = debug.role !== 'holder';
+  // Hand over control while holding it; Take control back after handing it over in VR
+  const takeBack = debug.handedOver && debug.xr && debug.role === 'free';
+  $('handover').hidden = !(debug.role === 'holder' || takeBack);
+  $('handover').textContent = debug.role === 'holder' ? 'Hand over control' : 'Take control';
   debug.panel = panelLines();
   renderer.setPanel(debug.panel, st && st.safe_stop ? '#f96' : '#7fd');
 }
@@ -288,7 +296,17 @@ const link = new Link((msg) => {
     showStatus();
   }
 });
-$('handover').addEventListener('click', () => link.send({ type: 'release' }));
+$('handover').addEventListener('click', () => {
+  if (debug.role === 'holder') {
+    // this page's hands stop here: they would take control straight back (the next page
+    // to send frames takes it), and the hand-over would be no hand-over
+    debug.handedOver = true;
+    link.send({ type: 'release' });
+  } else {
+    debug.handedOver = false;  // Take control: this page's hands take it again
+  }
+  showStatus();
+});
 showStatus();
 
 const overlap = (a, b) => a.left < b.right && b.left < a.right && a.top < b.bottom &&
@@ -378,8 +396,10 @@ function onXRFrame(t, frame) {
       hands[source.handedness] = readHand(frame, source, space);
     }
   }
-  // a watching page sends no frames (the server would refuse them); a free one takes control
-  if (debug.role !== 'watching' && link.send({ type: 'frame', seq, t, hands })) debug.sent += 1;
+  // a watching page sends no frames (the server would refuse them); a free one takes
+  // control, unless it has just handed it over
+  const sending = debug.role !== 'watching' && !debug.handedOver;
+  if (sending && link.send({ type: 'frame', seq, t, hands })) debug.sent += 1;
   seq += 1;
   const pose = frame.getViewerPose(space);
   const layer = session.renderState.baseLayer;
@@ -414,6 +434,7 @@ async function enterXR() {
     requiredFeatures: ['local-floor', 'hand-tracking'],
   });
   debug.session = session;  // from here on the button ends it, whatever fails below
+  debug.handedOver = false;  // entering VR is taking control when it is free
   session.addEventListener('end', () => {
     // leaving VR is leaving the controls: hand them over, saying so (the vehicle is braked
     // until the next holder's frames, this page's own if it enters VR again, and the safe
