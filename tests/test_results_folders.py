@@ -92,6 +92,7 @@ UNWRITABLE = "/sys"
             f"{UNWRITABLE}/c.md",
         ],
         ["review", "--static", f"{UNWRITABLE}/review.html", "--reach-samples", "0"],
+        ["teleop", "serve", "--port", "0", "--seconds", "1", "--record", UNWRITABLE],
     ],
     ids=lambda argv: " ".join(argv[:2]),
 )
@@ -513,3 +514,25 @@ def test_no_command_writes_its_results_among_a_projects_own_files(argv, where, t
     assert main([*argv, "--out", str(out)]) == 2
     _one_line(capsys, f"--out {out}: is a design project's", "folder of their own")
     assert _snapshot(root) == before
+
+
+def test_a_live_sessions_record_folder_is_checked_before_the_server_starts(
+    tmp_path, capsys
+) -> None:
+    """``teleop serve --record`` under a file (``review.html/x``) or in a sweep's folder
+    started the server, and the first the operator heard was a traceback after their
+    calibration (``NotADirectoryError``): one line, exit 2, nothing served or written."""
+    page = tmp_path / "review.html"
+    page.write_text("<html></html>")
+    sweep = tmp_path / "sweep-0001"
+    sweep.mkdir()
+    (sweep / "sweep.json").write_text("{}")
+    before = _snapshot(tmp_path)
+    for record, words in (
+        (page / "x", (f"{page} is a file",)),
+        (sweep, ("already holds sweep.json",)),
+    ):
+        argv = ["teleop", "serve", "--port", "0", "--seconds", "1", "--record", str(record)]
+        assert main(argv) == 2
+        _one_line(capsys, f"--record {record}", *words)
+    assert _snapshot(tmp_path) == before

@@ -26,10 +26,11 @@ from payload.cliutil import (
     command_project,
     drop_log_lines,
     emit_json,
+    out_folder,
     say_stage,
 )
 from payload.errors import STOP_SIGNALS, PayloadError
-from payload.folders import CAMPAIGN_FILES, TRIAL_FILES
+from payload.folders import CAMPAIGN_FILES, REPORT_FILES, SWEEP_FILES, TRIAL_FILES
 
 SessionFactory = Callable[..., Any]
 """Makes the live session: ``(hub, record, payload=..., collisions=...)``, an object with
@@ -158,8 +159,9 @@ def _check_record(record: Path | None) -> None:
                 f"--record {record}: {name} already exists (choose a new folder; recordings "
                 "are never overwritten)"
             )
-    if record.exists() and not record.is_dir():
-        raise TeleopCliError(f"--record {record}: not a folder")
+    # a file on the way, a folder that cannot be made or written in, another command's
+    # results: one line now, not a traceback once the operator has calibrated
+    out_folder(record, "--record", holding=(*SWEEP_FILES, *REPORT_FILES))
 
 
 def _check_bus_options(args: argparse.Namespace) -> None:
