@@ -1508,3 +1508,29 @@ def test_a_file_that_is_not_pem_is_named(tmp_path):
             f"TLS certificate {c}: {notes} holds no PEM {lacking} "
             f"(-----BEGIN ... {lacking.upper()}-----)"
         )
+
+
+def test_a_recorded_live_session_says_what_its_scoring_found(tmp_path, monkeypatch, capsys):
+    """``teleop serve --record`` said only "recorded DIR (N steps)" when it stopped: it now
+    says what the scoring wrote and prints the trial's summary as ``payload trial`` does
+    (the serve command hands its scored result to the trials' printer)."""
+    from test_trials import fixture_synthetic_trial
+
+    from payload.cli import main
+    from payload.trials import live_cli
+
+    result = fixture_synthetic_trial(2, tmp_path / "t")
+    capsys.readouterr()
+    handed: list = []
+
+    def serve(args, make_session, report=None):
+        handed.append(report)
+        report(result)
+        return 0
+
+    monkeypatch.setattr(live_cli, "serve", serve)
+    assert main(["teleop", "serve", "--port", "0", "--record", str(tmp_path / "s")]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert "  scored: metrics.json, fig_ctb_body_frame.png, fig_route.png written" in out
+    assert f"  success: {'yes' if result['success'] else 'no'}" in out
+    assert any(line.startswith("  RMS deviation") for line in out), out

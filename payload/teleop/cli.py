@@ -213,7 +213,11 @@ def _hardware_driver(args: argparse.Namespace, smap: Any, stack: contextlib.Exit
     return driver
 
 
-def serve(args: argparse.Namespace, make_session: SessionFactory) -> int:
+def serve(
+    args: argparse.Namespace,
+    make_session: SessionFactory,
+    report: Callable[[dict[str, Any]], None] | None = None,
+) -> int:
     """``payload teleop serve``: the live page driving the session ``make_session`` makes."""
     from payload.profiles import SAFE, resolve_args
     from payload.teleop.live import LiveHub
@@ -355,6 +359,8 @@ def serve(args: argparse.Namespace, make_session: SessionFactory) -> int:
         print("\n" + status_line(hub.status(), hub.latency()))
         if result is not None:
             print(f"recorded {record} ({result.get('steps')} steps)")
+            if report is not None:  # what the scoring found and wrote (the trials' words)
+                report(result)
         elif record is not None:  # asked for, and no session ran: said, not left to guess
             print(
                 f"nothing recorded in {record}: no session was recorded (a session is recorded "

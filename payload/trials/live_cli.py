@@ -27,8 +27,18 @@ def _live_session(*args: Any, **kwargs: Any) -> Any:
     return LiveSession(*args, **kwargs)
 
 
+def _scored(result: dict[str, Any]) -> None:
+    """A recorded live session once scored: what was written, and the trial's summary as
+    ``payload trial`` prints it."""
+    from payload.folders import SCORED
+    from payload.trials.summary import print_trial_summary
+
+    print(f"  scored: {', '.join(SCORED)} written")
+    print_trial_summary(result)
+
+
 def _cmd_serve(args: argparse.Namespace) -> int:
-    return serve(args, _live_session)
+    return serve(args, _live_session, _scored)
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
