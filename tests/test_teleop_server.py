@@ -1534,3 +1534,30 @@ def test_a_recorded_live_session_says_what_its_scoring_found(tmp_path, monkeypat
     assert "  scored: metrics.json, fig_ctb_body_frame.png, fig_route.png written" in out
     assert f"  success: {'yes' if result['success'] else 'no'}" in out
     assert any(line.startswith("  RMS deviation") for line in out), out
+
+
+def test_the_status_line_to_a_log_is_written_on_change_not_every_second(monkeypatch, capsys):
+    """Without a terminal, ``teleop serve`` wrote its status line once a second, filling a
+    log with the same waiting line. It writes it when the session's state or operator
+    changes, and else every STATUS_LOG_S."""
+    from payload.teleop import cli
+
+    hub = LiveHub()
+    stop = threading.Event()
+    printer = threading.Thread(target=cli._status_printer, args=(hub, stop, 0.01))
+    printer.start()
+    time.sleep(0.5)  # about 50 status reads, one state
+    hub.state = "calibrating"
+    time.sleep(0.5)
+    stop.set()
+    printer.join()
+    lines = capsys.readouterr().err.splitlines()
+    assert len(lines) == 2 and "waiting" in lines[0] and "calibrating" in lines[1], lines
+    monkeypatch.setattr(cli, "STATUS_LOG_S", 0.1)  # the same state, again after this long
+    stop.clear()
+    printer = threading.Thread(target=cli._status_printer, args=(hub, stop, 0.01))
+    printer.start()
+    time.sleep(0.6)
+    stop.set()
+    printer.join()
+    assert 2 <= len(capsys.readouterr().err.splitlines()) <= 7

@@ -11,9 +11,11 @@ from __future__ import annotations
 import argparse
 import contextlib
 import logging
+import math
 import signal
 import sys
 import threading
+import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -141,10 +143,23 @@ class _BesideStatusLine(logging.StreamHandler):
             super().emit(record)
 
 
+STATUS_LOG_S = 10.0
+"""Without a terminal (a log, a pipe), the status line is written when the session's state
+or its operator changes, else this often [s]: a line a second filled the log."""
+
+
 def _status_printer(hub: Any, stop: threading.Event, interval: float) -> None:
     tty = sys.stderr.isatty()
+    said: tuple[Any, ...] | None = None
+    said_at = -math.inf
     while not stop.wait(interval):
-        line = status_line(hub.status(), hub.latency())
+        status = hub.status()
+        line = status_line(status, hub.latency())
+        if not tty:
+            now, what = time.monotonic(), (status.get("state"), status.get("operator"))
+            if what == said and now - said_at < STATUS_LOG_S:
+                continue
+            said, said_at = what, now
         with _STDERR:
             sys.stderr.write(f"\r{line}\033[K" if tty else line + "\n")
             sys.stderr.flush()
