@@ -290,7 +290,8 @@ def test_desktop_mode_drives_a_calibration_without_a_headset(tmp_path):
         pose = json.loads(first.removeprefix("const DESKTOP_POSE = ")[:-1])
         assert pose == {"neutral": {k: list(v) for k, v in NEUTRAL.items()},
                         "headPitchDeg": HEAD_PITCH_DEG}  # fmt: skip
-        with _Page(server.url(), {"width": 480, "height": 360}) as page:
+        desktop = _Page(server.url(), {"width": 480, "height": 360})
+        with desktop as page:
             wait_on_page(page, "() => !document.getElementById('enter').disabled", 30.0, "Enter VR")
             # outside VR a free page names the next step, under the header: Enter VR
             _wait(lambda: "press Enter VR" in page.text_content("#hint"), 30, "Enter VR")
@@ -302,15 +303,25 @@ def test_desktop_mode_drives_a_calibration_without_a_headset(tmp_path):
             # and so does the header: its button leaves VR (the emulator's view covers all)
             assert page.text_content("#enter") == "Exit VR"
             assert page.evaluate(ON_TOP, "#enter"), "Exit VR is hidden under the VR view"
-            done, end = "", time.monotonic() + 120
+            # each step's prompt names the key of its gesture; pressing it calibrates
+            done, end, named = "", time.monotonic() + 120, {}
             while time.monotonic() < end and hub.state != "teleop":
-                step = hub.snapshot.get("step") or ""
-                if hub.state == "calibrating" and step in KEYS and step != done:
+                shown = page.evaluate(  # the step and the prompt the page shows, together
+                    "() => [(window.__teleop.state || {}).step || '', "
+                    "document.getElementById('prompt').textContent]"
+                )
+                step, said = shown[0], re.search(r"desktop: press (\w+)$", shown[1])
+                if hub.state == "calibrating" and said and step in KEYS and step != done:
+                    named[step] = said.group(1)
                     page.keyboard.press(" ")  # back to half open and centred, then the gesture
-                    page.keyboard.press(KEYS[step])
+                    page.keyboard.press(" " if said.group(1) == "Space" else said.group(1))
                     done = step
                 time.sleep(0.05)
             assert hub.state == "teleop", hub.snapshot
+            # the keys named are the footer's (KEYS: the help's words), every step's
+            assert {s: " " if k == "Space" else k.lower() for s, k in named.items()} == KEYS
+            # and the emulated pinch never left its range (a first frame stepped backwards)
+            assert not [m for m in desktop.console if "Out-of-range" in m], desktop.console
             assert session.calibrated
             assert "you have control" in page.text_content("#status")
             # Hand over control is within reach in VR too, and hands control over

@@ -67,7 +67,7 @@ _SETUP_JS = """
   }
   let last = performance.now();
   function follow(now) {
-    const dt = Math.min(0.1, (now - last) / 1000);
+    const dt = Math.max(0, Math.min(0.1, (now - last) / 1000));  // never backwards
     last = now;
     for (const side of ['left', 'right']) {
       const h = hands[side], t = targets[side];

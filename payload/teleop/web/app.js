@@ -176,7 +176,10 @@ function roleHint() {
 function promptText() {
   const st = debug.state;
   if (!st || st.state !== 'calibrating' || !st.prompt) return '';
-  return `${st.prompt}\u00a0(${st.remaining.toFixed(1)}\u00a0s)`;  // the countdown kept in one piece
+  // the desktop mode's emulated hands make each gesture on a key: the prompt names it
+  const key = window.__desktop && window.__desktop.stepKeys[st.step];
+  const press = key ? ` \u2014 desktop: press ${key}` : '';
+  return `${st.prompt}\u00a0(${st.remaining.toFixed(1)}\u00a0s)${press}`;  // countdown in one piece
 }
 
 // Why the last calibration attempt was refused, while the next one's prompt shows: the

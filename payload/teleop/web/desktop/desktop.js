@@ -46,7 +46,8 @@
   });
   let last = performance.now();
   function follow(now) {
-    const dt = Math.min(0.1, (now - last) / 1000);
+    // a frame's time can be before the script's start: never a step backwards
+    const dt = Math.max(0, Math.min(0.1, (now - last) / 1000));
     last = now;
     for (const side of ['left', 'right']) {
       const h = hands[side], t = target(side);
@@ -63,7 +64,10 @@
   }
   requestAnimationFrame(follow);
   const at = (s) => [hands[s].position.x, hands[s].position.y, hands[s].position.z];
-  window.__desktop = { pose, wrist: at };
+  // the key that makes each calibration step's gesture (named in the page's prompt)
+  const stepKeys = { neutral: 'Space', pinch: 'Q', open: 'E', together: 'Z', apart: 'X',
+    release: 'Space' };
+  window.__desktop = { pose, wrist: at, stepKeys };
   window.addEventListener('DOMContentLoaded', () => {
     const help = document.createElement('p');
     help.id = 'desktop-help';
