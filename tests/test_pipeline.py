@@ -770,3 +770,32 @@ def test_calibrations_ranges_and_plans_keep_their_arrays_to_themselves(retargeti
     again = dataclasses.replace(pair, rotation=rotation)
     rotation[0, 0], route[1, 0] = 2.0, 6.0  # the caller's, still writeable
     assert again.rotation[0, 0] == pair.rotation[0, 0] and plan.route[1, 0] == 5.0
+
+
+def test_a_refused_calibration_says_what_the_operator_did(retargeting):
+    """A calibration whose wrists did not move apart for 'apart', or whose hand did not
+    open for 'open', is refused in the operator's terms (the distances they held, what to
+    do), not the channel's ("open distance 0.418 m must exceed closed distance 0.418 m"),
+    the restart reason the live page shows."""
+    from payload.teleop.calibration import CalibrationError
+
+    _, proc, _, _, _ = _calibrated(3, retargeting, QUIET)
+    _, ranges = retargeting
+    hands = {step: dict(sides) for step, sides in proc.captures.hands.items()}
+    same = type(proc.captures)({**hands, "apart": hands["together"]})
+    gap = np.linalg.norm(hands["together"]["left"][0] - hands["together"]["right"][0])
+    with pytest.raises(CalibrationError) as info:
+        calibrate_operator(same, ranges, TRAVEL)
+    cm = f"{100 * gap:.1f} cm"  # the wrists' distance (joint 0 of each hand), both times
+    assert str(info.value) == (
+        f"calibration 'together'/'apart': the wrists were {cm} apart for 'apart' and {cm} "
+        "for 'together': hold them wider apart for 'apart'"
+    )
+    closed = type(proc.captures)(
+        {**hands, "open": {**hands["open"], "left": hands["pinch"]["left"]}}
+    )
+    with pytest.raises(CalibrationError) as info:
+        calibrate_operator(closed, ranges, TRAVEL)
+    said = str(info.value)
+    assert said.startswith("calibration of the left hand: its thumb and index were "), said
+    assert said.endswith("open them wide for 'open' and pinch them for 'pinch'"), said

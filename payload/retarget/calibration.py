@@ -38,7 +38,14 @@ from payload.retarget.span_range import (  # noqa: F401  (old import paths)
 )
 from payload.vecmath import read_only
 
-__all__ = ["PairCalibration", "PairRange", "calibrate", "pair_range", "wahba_rotation"]
+__all__ = [
+    "MIN_OPENING",
+    "PairCalibration",
+    "PairRange",
+    "calibrate",
+    "pair_range",
+    "wahba_rotation",
+]
 
 
 def wahba_rotation(human: np.ndarray, robot: np.ndarray) -> np.ndarray:
@@ -134,6 +141,11 @@ class PairCalibration:
         return targets, self.posture_reference(targets.span)
 
 
+MIN_OPENING = 1e-3
+"""How much wider [m] the human's open span must be than their pinch span for a pair's
+calibration (a smaller difference would map noise onto the whole finger range)."""
+
+
 def calibrate(
     pinch: PairFeatures | np.ndarray,
     open_: PairFeatures | np.ndarray,
@@ -159,10 +171,10 @@ def calibrate(
     """
     hp = PairFeatures.from_vector(as_feature_vector(pinch, "pinch features"))
     ho = PairFeatures.from_vector(as_feature_vector(open_, "open features"))
-    if ho.span < hp.span + 1e-3:
+    if ho.span < hp.span + MIN_OPENING:
         raise RetargetError(
             f"calibration: the open span ({ho.span * 1e3:.1f} mm) must exceed the pinch span "
-            f"({hp.span * 1e3:.1f} mm) by at least 1 mm"
+            f"({hp.span * 1e3:.1f} mm) by at least {MIN_OPENING * 1e3:g} mm"
         )
     if rotation is None:
         human = np.vstack(

@@ -24,7 +24,7 @@ import numpy as np
 from payload.design.params import Design, load_design
 from payload.design.tree import MANIPULATION_JOINTS
 from payload.errors import PayloadError
-from payload.retarget.calibration import PairCalibration, PairRange, calibrate
+from payload.retarget.calibration import MIN_OPENING, PairCalibration, PairRange, calibrate
 from payload.retarget.casadi_solver import PairRetargeter
 from payload.retarget.errors import RetargetError
 from payload.retarget.features import PairFeatures, features_from_points
@@ -161,6 +161,13 @@ def calibrate_operator(
     d_max = float(
         np.linalg.norm(captures.get("apart", "left").wrist - captures.get("apart", "right").wrist)
     )
+    if math.isfinite(d_min) and math.isfinite(d_max) and not d_max > d_min:
+        # said as the operator did it: the rail's own error speaks of its distances
+        raise CalibrationError(
+            f"calibration 'together'/'apart': the wrists were {100 * d_max:.1f} cm apart for "
+            f"'apart' and {100 * d_min:.1f} cm for 'together': hold them wider apart for "
+            "'apart'"
+        )
     try:
         rail = RailConfig(d_min, d_max, rail_travel)
     except PayloadError as exc:
@@ -170,6 +177,12 @@ def calibrate_operator(
         try:
             pinch = human_features(captures.get("pinch", side))
             opened = human_features(captures.get("open", side))
+            if opened.span < pinch.span + MIN_OPENING:  # as the operator did it
+                raise CalibrationError(
+                    f"calibration of the {side} hand: its thumb and index were "
+                    f"{1e3 * opened.span:.0f} mm apart for 'open' and {1e3 * pinch.span:.0f} "
+                    "mm for 'pinch': open them wide for 'open' and pinch them for 'pinch'"
+                )
             pairs[pair] = calibrate(pinch, opened, ranges[pair])
         except RetargetError as exc:
             raise CalibrationError(f"calibration of the {side} hand: {exc}") from exc
