@@ -885,3 +885,12 @@ def test_clearance_labels_take_every_part_as_the_envelope_report_does(
         assert named["wall_clearance_mm"][w] == pytest.approx(least, abs=0.01), label
     assert drawn == set(walls) - crossed
     assert labels[f"{REVIEW}/findings/clearance/plus_z/label"] == "stage - bay mount 6.0 mm"
+
+
+def test_a_review_of_a_design_file_that_is_not_there_says_so(tmp_path, capsys) -> None:
+    """``review --design F`` with no file F said F was "not a design project's
+    cad/design.toml"; a file that is not there, or a folder, is said to be that."""
+    for given, said in ((tmp_path / "none.toml", "no such file"), (tmp_path, "a folder")):
+        assert main(["review", "--design", str(given), "--reach-samples", "0"]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert err == [f"payload: error: --design {given}: {said}"], err

@@ -131,6 +131,8 @@ def _check_project_design(design: Path) -> None:
     """``--design F``: the review shows F's generated models, which live in F's project
     (``<project>/urdf``, ``<project>/cad/meshes``), so F must be a project's
     ``cad/design.toml`` (as for ``payload build --design F``)."""
+    if not design.is_file():
+        raise ReviewError(f"--design {design}: {'a folder' if design.is_dir() else 'no such file'}")
     if not is_project_design(design):
         raise ReviewError(
             f"--design {design}: not a design project's cad/design.toml, so it has no "
