@@ -894,3 +894,22 @@ def test_a_review_of_a_design_file_that_is_not_there_says_so(tmp_path, capsys) -
         assert main(["review", "--design", str(given), "--reach-samples", "0"]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert err == [f"payload: error: --design {given}: {said}"], err
+
+
+def test_open_without_a_browser_says_so(monkeypatch, capsys) -> None:
+    """``review --open`` where no browser can be started (a server, a container) opened
+    nothing without a word; it says so, naming the page to open."""
+    import webbrowser
+
+    from payload.review import cli
+
+    opened: list[str] = []
+    monkeypatch.setattr(webbrowser, "open", lambda url, new=0: opened.append(url) or False)
+    cli._open_in_browser("http://127.0.0.1:7000/")
+    assert opened == ["http://127.0.0.1:7000/"]
+    err = capsys.readouterr().err.splitlines()
+    assert err == ["payload: warning: --open: no browser to open here; open "
+                   "http://127.0.0.1:7000/ in one"]  # fmt: skip
+    monkeypatch.setattr(webbrowser, "open", lambda url, new=0: True)
+    cli._open_in_browser("http://127.0.0.1:7000/")
+    assert capsys.readouterr().err == ""

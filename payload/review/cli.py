@@ -8,7 +8,7 @@ import webbrowser
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from payload.cliutil import command_project
+from payload.cliutil import command_project, warn
 from payload.folders import RECORDING
 from payload.project import DESIGN_FILE, is_project_design
 from payload.review.errors import ReviewError
@@ -103,8 +103,14 @@ def _cmd_watch(args: argparse.Namespace) -> int:
         raise ReviewError(error)
     for line in live.notes():
         print(line)
-    opener = (lambda url: webbrowser.open(url, new=2)) if args.open else None
-    return run(live, args.port, opener)
+    return run(live, args.port, _open_in_browser if args.open else None)
+
+
+def _open_in_browser(url: str) -> None:
+    """``--open``: the page in a new tab of the user's browser, or one warning line when
+    there is none to open it in (a server, a container: the page is still served)."""
+    if not webbrowser.open(url, new=2):
+        warn(f"--open: no browser to open here; open {url} in one")
 
 
 def _check_static(out: Path) -> None:
@@ -238,9 +244,9 @@ def _cmd_review(args: argparse.Namespace) -> int:
             raise ReviewError(f"--static {out}: cannot write it ({exc.strerror or exc})") from None
         print(f"wrote {out} ({len(html) / 1e6:.1f} MB)")
         if args.open:
-            webbrowser.open(out.resolve().as_uri(), new=2)
+            _open_in_browser(out.resolve().as_uri())
         return 0
-    opener = (lambda url: webbrowser.open(url, new=2)) if args.open else None
+    opener = _open_in_browser if args.open else None
     if args.zmq_url is None:  # the review's own page: title, legend, labels, chase camera
         from payload.review.live import LiveReview, run
 
