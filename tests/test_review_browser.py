@@ -664,3 +664,9 @@ def test_a_long_replay_subtitle_wraps_short_of_the_phase_box(tmp_path) -> None:
             phase = page.evaluate(rect, "payload-phase")
             assert phase["w"] > 0 and title["h"] > 0
             assert _apart(title, phase), (viewport, title, phase)
+            # an error banner goes below the wrapped lines, not over them (it lay at a
+            # fixed height, over a verdict's second line)
+            page.evaluate("() => payloadReview.apply({error: 'the design does not load'})")
+            banner = page.evaluate(rect, "payload-error")
+            assert banner["h"] > 0 and banner["y"] >= title["y"] + title["h"], (title, banner)
+            assert _apart(banner, phase), (viewport, banner, phase)

@@ -10,10 +10,13 @@
   const svg = document.createElementNS("http://www.w3.org/2000/svg", "svg");
   svg.id = "payload-leaders";
   layer.appendChild(svg);
-  const title = div("payload-title", layer);
+  // the title (with the verdict) and the error banner in one column: a verdict that
+  // wraps pushes the banner down instead of lying under it
+  const head = div("payload-head", layer);
+  const title = div("payload-title", head);
   const legend = div("payload-legend", layer);
   const phase = div("payload-phase", layer);
-  const error = div("payload-error", layer);
+  const error = div("payload-error", head);
   const state = {
     labels: [], phases: [], follow: null, chase: true, views: {}, clear: [], version: -1,
   };

@@ -36,10 +36,12 @@ body { margin: 0; }
   font: 13px/1.3 sans-serif; color: #111; }
 #payload-leaders { position: absolute; inset: 0; width: 100%; height: 100%; }
 #payload-leaders line { stroke: #222; stroke-width: 1; }
-#payload-title { position: absolute; left: 10px; top: 8px; font-size: 16px; font-weight: 600;
-  background: rgba(255,255,255,0.85); padding: 2px 6px; max-width: calc(100% - 290px); }
+#payload-head { position: absolute; left: 10px; top: 8px; right: 270px;
+  display: flex; flex-direction: column; align-items: flex-start; gap: 4px; }
+#payload-title { font-size: 16px; font-weight: 600;
+  background: rgba(255,255,255,0.85); padding: 2px 6px; max-width: calc(100% - 12px); }
 .payload-subtitle { font-size: 12px; font-weight: 400; color: #333; }
-#payload-overlay.payload-has-phase #payload-title { max-width: calc(100% - 380px); }
+#payload-overlay.payload-has-phase #payload-head { right: 370px; }
 #payload-legend { position: absolute; left: 10px; bottom: 10px; font-size: 12px;
   background: rgba(255,255,255,0.85); padding: 4px 6px; border: 1px solid #ccc; }
 .payload-legend-row { display: flex; align-items: center; gap: 6px; }
@@ -49,7 +51,7 @@ body { margin: 0; }
 #payload-phase { position: absolute; right: 10px; top: 32px;
   font-size: 20px; font-weight: 600; background: rgba(255,255,255,0.85); padding: 2px 8px;
   display: none; }
-#payload-error { position: absolute; left: 10px; right: 260px; top: 56px; display: none;
+#payload-error { align-self: stretch; display: none;
   background: #b00020; color: white; padding: 4px 8px; font-size: 14px; }
 """ + (
     f".payload-verdict {{ font-size: {VERDICT_FONT_PX}px; font-weight: 700; color: #111; }}\n"
