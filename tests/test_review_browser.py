@@ -236,7 +236,18 @@ def test_no_two_labels_overlap_and_each_names_what_it_measures(static_review) ->
     texts = sorted(t for _, t in review.scene.overlay.labels)
     with open_page(static_review) as page:
         boxes = page.evaluate("() => payloadReview.labelBoxes()")
+        m, size = page_projection(page)
     assert sorted(b["text"] for b in boxes) == texts  # every stowed label shown
+    # beside the stowed payload, not over its parts (a failing design's red ones were hidden
+    # under its labels): the payload's screen box, its meshes projected here
+    tree = build_tree(load_design(project_files().design))
+    geom = PayloadGeometry(tree)
+    posed = _posed(geom, tree.link_poses(review.check.q), geom.links)
+    uv = to_pixels(np.vstack(list(posed.values())), m, size)
+    (x0, y0), (x1, y1) = uv.min(axis=0), uv.max(axis=0)
+    payload = {"x": x0, "y": y0, "w": x1 - x0, "h": y1 - y0}
+    for b in boxes:
+        assert _apart(b, payload), (b, payload)
     for a, b in itertools.combinations(boxes, 2):
         apart = (
             a["x"] + a["w"] <= b["x"]

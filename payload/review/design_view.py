@@ -399,6 +399,8 @@ def build_design_review(
         legend=legend(colours, bool(clouds)),
         labels=scene.overlay.labels,
         views={"default": [float(v) for v in scene.camera[0]]},
+        # the labels go beside the payload, not over its parts (a failing one's red parts)
+        clear=[f"{root}/payload"],
     )
 
     anim = Animation(default_framerate=DEPLOY_FPS)
