@@ -405,7 +405,10 @@ def _cmd_identify(args: argparse.Namespace) -> int:
             emu = stack.enter_context(EmulatorProcess(args.servos, servo_params=args.servo_params))
         device = emu.port if emu is not None else need_device(args)
         drv = stack.enter_context(DynamixelDriver(device, smap, latency_timer_ms=args.latency_ms))
-        report = identify(drv, args.joints, say=say_stage)
+        # --write on a --device that turns out to be the emulator: refused before any servo
+        # moves (its values are the emulator's, not the servos' the design describes)
+        refuse = "--write takes real servos' values, not written" if args.write else None
+        report = identify(drv, args.joints, say=say_stage, refuse_emulated=refuse)
         design_file = drv.design.source
     report["device"] = device
     report["emulator"] = emu is not None

@@ -177,7 +177,7 @@ def bus_spec(servos: str | None, servo_params: str | None = None) -> dict[str, A
     design = load_design()
     smap = load_servo_map(servos, design)
     kinds = {s.id: kind_of(s.joint) for s in smap.servos}
-    plants = apply_overrides(design_plants(design, kinds), kinds, overrides)
+    plants = apply_overrides(design_plants(design, kinds), kinds, overrides, str(servo_params))
     return {
         "positions": home_ticks(smap, design),
         "baud": smap.baud,

@@ -52,6 +52,7 @@ from firmware_interface.servo_map import ServoSpec
 from payload.design.edit import set_in_text
 from payload.design.servo import CURRENT_UNIT_A, KPP_DIV, TICKS_PER_RAD, kind_of
 from payload.design.tree import build_tree, load_inertia
+from payload.errors import PayloadError
 from payload.safeio import replace_file
 
 try:
@@ -224,15 +225,23 @@ def fit(rec: Record, volts: float, p_gain: float) -> dict[str, Any]:
     }
 
 
+class EmulatedBusError(PayloadError):
+    """An identification meant for real servos found the emulator at the far end."""
+
+
 def identify(
     drv: DynamixelDriver,
     joints: list[str] | None = None,
     say: Callable[[str], None] | None = None,
+    refuse_emulated: str | None = None,
 ) -> dict[str, Any]:
     """Bring up, excite and fit each named servo (default: all); the report as plain data.
 
     ``say``: told each stage as it starts (the bring-up, then each servo's excitation, which
-    moves its joint across its range: 15 to 20 s a servo), for a terminal's progress."""
+    moves its joint across its range: 15 to 20 s a servo), for a terminal's progress.
+    ``refuse_emulated``: a bus that answers as the emulator (its servos' Model Information)
+    raises :class:`EmulatedBusError` with this text after the bring-up, before any servo
+    moves (an identification to be written into a design must be of real servos)."""
     specs = [s for s in drv.map.servos if joints is None or s.joint in joints]
     design = drv.design
     tree = build_tree(design)
@@ -240,6 +249,8 @@ def identify(
         say(bring_up_notice(drv.device))
     with failed_start(drv.device):
         drv.bring_up()
+    if refuse_emulated is not None and drv.emulated:
+        raise EmulatedBusError(f"{drv.device} answers as the emulator: {refuse_emulated}")
     for i in drv.ids:
         # one servo is talked to at a time: the others would trip their Bus Watchdog (and
         # hold, as they do anyway); without it, a pause of the host cannot stop the test

@@ -125,15 +125,42 @@ def load_plant_overrides(path: str | Path) -> dict[str, dict[str, float]]:
     return data
 
 
+OVERRIDE_FACTOR = 10.0
+"""How far an emulated servo's override may lie from the design's value, either way: a
+real servo's identified constants differ from its datasheet's by tens of percent, so a
+value ten times off is a unit slip (mA for A, mm for m), and it drives the emulated shaft
+past what its registers hold."""
+
+
 def apply_overrides(
-    plants: dict[int, Plant], kinds: dict[int, str], overrides: dict[str, dict[str, float]]
+    plants: dict[int, Plant],
+    kinds: dict[int, str],
+    overrides: dict[str, dict[str, float]],
+    source: str = "servo parameters",
 ) -> dict[int, Plant]:
-    """Plants with overrides applied: ``*`` first, then the joint kind, then the ID."""
+    """Plants with overrides applied: ``*`` first, then the joint kind, then the ID.
+
+    Raises:
+        PayloadError: An override more than :data:`OVERRIDE_FACTOR` times above or below
+            the design's value of a servo it applies to (one line naming ``source``).
+    """
     out = {}
     for i, plant in plants.items():
         for key in ("*", kinds.get(i, ""), str(i)):
-            if key in overrides:
-                plant = replace(plant, **{k: float(v) for k, v in overrides[key].items()})
+            if key not in overrides:
+                continue
+            for name, value in overrides[key].items():
+                base = getattr(plant, name)
+                if base > 0 and not (
+                    (value >= base / OVERRIDE_FACTOR or name in _MAY_BE_ZERO)
+                    and value <= base * OVERRIDE_FACTOR
+                ):
+                    raise PayloadError(
+                        f"{source}: {key}.{name}: {value:g} is {value / base:.3g} times the "
+                        f"design's {base:g} for servo {i} (more than {OVERRIDE_FACTOR:g} "
+                        "times off: the file holds SI values, e.g. kt in N m/A)"
+                    )
+            plant = replace(plant, **{k: float(v) for k, v in overrides[key].items()})
         out[i] = plant
     return out
 

@@ -65,6 +65,12 @@ def test_a_bad_servo_params_file_is_refused_in_one_line(tmp_path, capsys):
     bad.write_text(json.dumps({"*": {"stiffness": 1.0}}))
     assert main(["hw", "emulate", "--servo-params", str(bad)]) == 2
     assert "*.stiffness: unknown" in capsys.readouterr().err
+    # a unit slip (kt in mN m/A): refused, it drove the emulated shaft past its registers
+    kt = load_design().servo.kt
+    bad.write_text(json.dumps({"*": {"kt": 450}}))
+    assert main(["hw", "emulate", "--servo-params", str(bad)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and f"*.kt: 450 is {450 / kt:.3g} times the design's" in err
 
 
 @pytest.mark.parametrize(
@@ -91,3 +97,27 @@ def test_identify_refuses_a_bad_servo_params_file_before_starting_a_bus(tmp_path
     assert main(args) == 2
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and f"{bad}: finger.kt: expected a number > 0" in err, err
+
+
+def test_identify_write_on_a_device_that_is_the_emulator_is_refused(tmp_path, capsys):
+    """``--write`` is refused with ``--emulator``; given the emulator's device path as
+    ``--device``, identify wrote the emulator's values into the design. The bus says it is
+    the emulator (its servos' Model Information): refused after the bring-up, before any
+    servo moves, the design file as it was."""
+    from firmware_interface.emulator import EmulatorProcess
+
+    project = tmp_path / "proj"
+    assert main(["new", str(project)]) == 0
+    design = project / "cad" / "design.toml"
+    before = design.read_bytes()
+    capsys.readouterr()
+    with EmulatorProcess() as emu:
+        argv = ["hw", "identify", "--device", emu.port, "--write", "--joints", "A_pip",
+                "--project", str(project), "--latency-ms", "50"]  # fmt: skip
+        assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1] == (
+        f"payload: error: {emu.port} answers as the emulator: --write takes real servos' "
+        "values, not written"
+    ), err
+    assert design.read_bytes() == before

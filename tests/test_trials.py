@@ -1574,7 +1574,11 @@ def test_a_bad_step_in_the_middle_of_a_recording_gives_one_line_and_exit_2(
     with pytest.raises(RecordingError, match=f"step 30: {field}"):
         read_recording(path)
     assert main(["export", "lerobot", str(path), "--out", str(tmp_path / "ds")]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
+    lines = capsys.readouterr().err.strip().splitlines()
+    # the file's old schema is said first, as a warning; the error is one line
+    warned = [ln for ln in lines if ln.startswith("payload: warning: ")]
+    assert len(warned) == 1 and "schema version 1 (JSON steps)" in warned[0], lines
+    err = [ln for ln in lines if ln not in warned]
     assert len(err) == 1 and f"{path}: step 30: {message}" in err[0], err
     assert not (tmp_path / "ds").exists()
 
