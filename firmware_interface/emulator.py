@@ -282,8 +282,16 @@ class EmulatorProcess:
                "--control-fd", str(theirs.fileno()), "--bus", json.dumps(spec)]  # fmt: skip
         for f in faults or []:
             cmd += ["--fault", f]
+        # a session of its own: a terminal's Ctrl-C goes to the command's process group,
+        # and an emulator that took it too ended before the command's close could turn the
+        # servos' torque off ("could not turn the torque off"); the command stops it, and it
+        # ends on its own when the command's end of the control socket closes
         self.proc = subprocess.Popen(
-            cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, pass_fds=(theirs.fileno(),)
+            cmd,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            pass_fds=(theirs.fileno(),),
+            start_new_session=True,
         )
         theirs.close()
         self._sock = ours

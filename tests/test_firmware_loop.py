@@ -575,3 +575,37 @@ def test_hw_run_says_the_torque_off_is_unconfirmed_when_close_could_not_read_it_
     assert ended[0].endswith(f"not confirmed on servos {', '.join(map(str, unconfirmed))}: "
                              "check them before handling the hand")  # fmt: skip
     assert not any(torque.values())  # the torque-off itself reached every servo
+
+
+def test_ctrl_c_at_a_terminal_stops_hw_run_emulator_with_the_torque_turned_off(tmp_path):
+    """A terminal's Ctrl-C reaches the whole process group: the emulator that ``hw run
+    --emulator`` starts took it too and ended first, so every such stop warned "close:
+    could not turn the torque off". The emulator has a session of its own: the run stops
+    as Ctrl-C stops it (exit 130, the recording kept), the torque off confirmed."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from payload.trials.runner import run_trial
+
+    src = tmp_path / "src"
+    run_trial(3, "synthetic", out_dir=src, max_time=4.0)
+    out = tmp_path / "hw"
+    code = "import sys; from payload.cli import main; sys.exit(main(sys.argv[1:]))"
+    argv = [sys.executable, "-c", code, "hw", "run", "--emulator", "--replay",
+            str(src / "log.mcap"), "--out", str(out), "--latency-ms", str(LAT)]  # fmt: skip
+    proc = subprocess.Popen(
+        argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True
+    )
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and not (out / "log.mcap").exists():
+        time.sleep(0.05)
+    time.sleep(0.5)  # the paced session under way
+    assert proc.poll() is None, proc.communicate()
+    os.killpg(proc.pid, signal.SIGINT)  # as a terminal's Ctrl-C: the whole group
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err
+    assert "could not turn the torque off" not in err, err
+    assert "payload: interrupted" in err.strip().splitlines()[-1], err
