@@ -31,7 +31,7 @@ from payload.cliutil import (
     say_stage,
 )
 from payload.errors import PayloadError, counted
-from payload.folders import CAMPAIGN_FILES, HANDS, RECORDING, TRIAL_FILES
+from payload.folders import HANDS, RECORDING, other_results
 from payload.trials.setup_options import MAX_TRIAL_S
 
 
@@ -233,7 +233,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     _models_follow(args)
     replay = _replay_of(args)
     # a run never writes among other results, nor into a file
-    out_folder(args.out, holding=(*TRIAL_FILES, *CAMPAIGN_FILES))
+    out_folder(args.out, holding=other_results())
     _emulated_or_device(args)
     with results_folder(args.out, project, "hw") as out:
         result = _run_hardware(args, out, replay)  # a bus that did not answer: no folder left

@@ -65,6 +65,22 @@ REPORT_FILES: tuple[str, ...] = ("envelope.json", "reach.json")
 a project's ``analyses/``, or their ``--out``)."""
 
 
+RESULT_FILES: dict[str, tuple[str, ...]] = {
+    "trial": TRIAL_FILES,
+    "campaign": CAMPAIGN_FILES,
+    "sweep": SWEEP_FILES,
+    "report": REPORT_FILES,
+}
+"""What marks a folder as each kind of command's results."""
+
+
+def other_results(*own: str) -> tuple[str, ...]:
+    """The files that mark the results of every kind in :data:`RESULT_FILES` but ``own``:
+    what a command's ``--out`` must not hold (a trial written into a campaign's or the
+    reports' folder would be mixed with them)."""
+    return tuple(f for kind, files in RESULT_FILES.items() if kind not in own for f in files)
+
+
 def held(folder: Path, names: Iterable[str]) -> list[str]:
     """Those of the file names ``names`` that ``folder`` holds, in their order."""
     return [name for name in names if (folder / name).exists()]

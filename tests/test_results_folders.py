@@ -536,3 +536,30 @@ def test_a_live_sessions_record_folder_is_checked_before_the_server_starts(
         assert main(argv) == 2
         _one_line(capsys, f"--record {record}", *words)
     assert _snapshot(tmp_path) == before
+
+
+@pytest.mark.parametrize(
+    ("argv", "held"),
+    [
+        (["trial", "--max-time", "1", "--out"], "envelope.json"),
+        (["trial", "--max-time", "1", "--out"], "summary.json"),
+        (["trial", "--max-time", "1", "--out"], "sweep.md"),
+        (["trials", "run", "--n", "1", "--workers", "0", "--out"], "metrics.json"),
+        (["trials", "run", "--n", "1", "--workers", "0", "--out"], "reach.json"),
+        (["report", "envelope", "--out"], "log.mcap"),
+        (["report", "reach", "--samples", "1000", "--out"], "summary.md"),
+        (["report", "envelope", "--out"], "sweep.json"),
+    ],
+    ids=lambda v: v if isinstance(v, str) else " ".join(v[:2]),
+)
+def test_no_command_writes_among_another_kind_of_results(argv, held, tmp_path, capsys):
+    """A trial into the reports' folder (``payload trial --out analyses``), a report into a
+    trial's or a campaign's: each wrote its files beside the others'. One line naming what
+    the folder holds, exit 2, nothing written."""
+    folder = tmp_path / "results"
+    folder.mkdir()
+    (folder / held).write_text("recorded")
+    before = _snapshot(tmp_path)
+    assert main([*argv, str(folder)]) == 2
+    _one_line(capsys, f"already holds {held}")
+    assert _snapshot(tmp_path) == before

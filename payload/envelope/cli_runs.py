@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING, Any
 
 from payload.cliutil import command_project, out_folder
 from payload.design.slip import SLIP_FACTOR
+from payload.folders import other_results
 from payload.safeio import cannot_write_in
 
 if TYPE_CHECKING:
@@ -80,7 +81,7 @@ def _out_dir(args: argparse.Namespace) -> Path:
     ``cad/design.toml``) needs an ``--out`` and never replaces the project's report."""
     from payload.errors import PayloadError
 
-    out = out_folder(args.out)
+    out = out_folder(args.out, holding=other_results("report"))
     project = _project_or_none(args)
     if project is None:  # a design outside any project: its report where --out says
         assert out is not None  # (_project_or_none's None comes with an --out)

@@ -18,7 +18,11 @@ from payload.cliutil import (
     results_folder,
 )
 from payload.errors import first_of
-from payload.folders import CAMPAIGN_FILES, REPORT_FILES, SWEEP_FILES, TRIAL_FILES, held
+from payload.folders import (
+    SWEEP_FILES,
+    held,
+    other_results,
+)
 from payload.project import DESIGN_FILE
 from payload.sweep.grid import SweepError, parse_set
 from payload.sweep.run import DEFAULT_SAMPLES
@@ -58,7 +62,7 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
     check_scheduler(args.scheduler, SweepError)  # before any folder is made for the sweep
     # a sweep never writes into a file, nor among a trial's, a campaign's, the design
     # reports' or a design project's files (its points are projects of their own)
-    out_folder(args.out, holding=(*TRIAL_FILES, *CAMPAIGN_FILES, *REPORT_FILES, DESIGN_FILE))
+    out_folder(args.out, holding=(*other_results("sweep"), DESIGN_FILE))
     earlier = held(Path(args.out), SWEEP_FILES) if args.out else []
     if earlier:  # an earlier sweep's (or a report of the same name)
         raise SweepError(

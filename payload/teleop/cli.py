@@ -32,7 +32,7 @@ from payload.cliutil import (
     say_stage,
 )
 from payload.errors import STOP_SIGNALS, PayloadError
-from payload.folders import CAMPAIGN_FILES, REPORT_FILES, SWEEP_FILES, TRIAL_FILES
+from payload.folders import CAMPAIGN_FILES, TRIAL_FILES, other_results
 
 SessionFactory = Callable[..., Any]
 """Makes the live session: ``(hub, record, payload=..., collisions=...)``, an object with
@@ -176,7 +176,7 @@ def _check_record(record: Path | None) -> None:
             )
     # a file on the way, a folder that cannot be made or written in, another command's
     # results: one line now, not a traceback once the operator has calibrated
-    out_folder(record, "--record", holding=(*SWEEP_FILES, *REPORT_FILES))
+    out_folder(record, "--record", holding=other_results("trial", "campaign"))
 
 
 def _check_bus_options(args: argparse.Namespace) -> None:

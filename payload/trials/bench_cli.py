@@ -13,7 +13,7 @@ from pathlib import Path
 
 from payload.cliutil import check_seconds, command_project, emit_json, load_average, out_folder
 from payload.errors import RunAborted
-from payload.folders import CAMPAIGN_FILES, RECORDING, TRIAL_FILES
+from payload.folders import RECORDING, other_results
 from payload.trials.setup_options import (
     TrialsCliError,
     _check_physics_dt,
@@ -83,7 +83,7 @@ def _cmd_bench_trial(args: argparse.Namespace) -> int:
     if (problem := seed_problem(args.seed)) is not None:
         raise TrialsCliError(f"--seed {problem}")
     # the bench writes a trial: never over one, nor among a campaign's files
-    out = out_folder(args.out, holding=(*TRIAL_FILES, *CAMPAIGN_FILES))
+    out = out_folder(args.out, holding=other_results())
     check_seconds("--seconds", args.seconds, cap=True)
     if args.repeat < 1:
         raise TrialsCliError(f"--repeat must be >= 1, got {args.repeat}")

@@ -29,6 +29,7 @@ from payload.folders import (
     SUMMARY_TEXT,
     TRIAL_FILES,
     held,
+    other_results,
     tagged,
 )
 from payload.trials.setup_options import (
@@ -73,7 +74,9 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
     project = command_project(args)
     models_follow_design(project.design_path, project.root, json=args.json)
     prov = provenance(project)
-    out_folder(args.out)  # an --out that is not a folder: one line, before any folder is made
+    # an --out that is not a folder, or another command's results: one line, before any
+    # folder is made
+    out_folder(args.out, holding=other_results("campaign"))
     seeds = list(range(args.seed, args.seed + args.n))
     # a scheduler not reached leaves no empty folder (the checks below never refuse one
     # made here: it is new, or empty)

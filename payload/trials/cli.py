@@ -22,7 +22,7 @@ from payload.cliutil import (
     results_folder,
     warn,
 )
-from payload.folders import CAMPAIGN_FILES, TRIAL_FILES
+from payload.folders import other_results
 from payload.safeio import cannot_write_in
 from payload.trials.campaign_cli import _cmd_trials_run, _cmd_trials_summarize
 from payload.trials.setup_options import TrialsCliError, _max_time_argument, _setup_arguments
@@ -37,7 +37,7 @@ def _cmd_export_lerobot(args: argparse.Namespace) -> int:
         raise TrialsCliError("--task: an episode's task text cannot be empty")
     if not args.out:
         resolve_runs(runs)  # a run that is not there says so before a folder is numbered
-    out_folder(args.out, holding=(*TRIAL_FILES, *CAMPAIGN_FILES))
+    out_folder(args.out, holding=other_results())
     # a dataset's --out needs no project (the recordings are named); without it the
     # numbered folder goes in the project's runs/
     project = command_project(args) if not args.out else None

@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from payload.cliutil import check_seconds, command_project, emit_json, out_folder, warn
-from payload.folders import CAMPAIGN_FILES, HANDS, RECORDING, held
+from payload.folders import CAMPAIGN_FILES, HANDS, RECORDING, held, other_results
 from payload.profiles import PROFILE_SETTINGS
 from payload.trials.setup_options import (
     _SETUP,
@@ -74,7 +74,7 @@ def _cmd_trial(args: argparse.Namespace) -> int:
         _check_ctb(args.ctb)
     project = command_project(args)
     models_follow_design(project.design_path, project.root, json=args.json)
-    out = out_folder(args.out)
+    out = out_folder(args.out, holding=other_results("trial"))  # its own: --force
     extra: dict[str, Any] = {"project": project, **_link_and_zones(args)}
     for name in _SETUP:
         if getattr(args, name) is not None:  # a replay: the others are its recording's
