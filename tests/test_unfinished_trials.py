@@ -536,3 +536,27 @@ def test_the_route_figure_of_a_capped_trial_says_so(tmp_path: Path, monkeypatch)
     rec.meta["ended_by"] = ENDED_BY_CAP
     figures.plot_route(rec, tmp_path / "b.png")
     assert figures.CAP_LABEL not in titles[0] and titles[1].endswith(f"; {figures.CAP_LABEL})")
+
+
+def test_compare_reads_a_summarys_station_settings_as_values(tmp_path: Path) -> None:
+    """A campaign kept as its summary writes its filter setting as text in the station
+    block (``"False"``); compare read it back through the wrong of two functions of one
+    name (the table's formatter), so every trial with the filter off was said to differ:
+    "base_filter False / no". Read as the value, only a real difference is said."""
+    from payload.trials.compare import compare_runs, comparison_notes
+
+    camp = tmp_path / "camp"
+    camp.mkdir()
+    row = {"seed": 0, "success": True, "rms_mm": 30.0, "duration_s": 80.0}
+    summary = {"n": 1, "trials": [row], "station": {"base_filter": "False", "link_delay": None}}
+    (camp / "summary.json").write_text(json.dumps(summary))
+    for name, on in (("off", False), ("on", True)):
+        trial = tmp_path / name / "trial-0000"
+        trial.mkdir(parents=True)
+        (trial / "metrics.json").write_text(json.dumps({**row, "base_filter": on}))
+    same = compare_runs(camp, tmp_path / "off")
+    assert same["trials"][0]["setup_differs"] == {}
+    assert not [n for n in comparison_notes(same) if n.startswith("Setup")]
+    other = compare_runs(camp, tmp_path / "on")
+    assert other["trials"][0]["setup_differs"] == {"base_filter": [False, True]}
+    assert "Setup, A / B, where it differs: base_filter no / yes." in comparison_notes(other)

@@ -80,14 +80,14 @@ def _summary_rows(path: Path) -> dict[str, dict[str, Any]]:
         station = summary.get("station") or {}
         for key in ("base_filter", "link_delay"):  # the station block's, written as text
             if key not in setup and isinstance(station.get(key), str):
-                setup[key] = _setting(station[key])
+                setup[key] = _setting_value(station[key])
         return {trial_dir("", int(r["seed"])).name: {**setup, **r} for r in rows}
     except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError) as exc:
         why = exc.strerror if isinstance(exc, OSError) else f"not a campaign summary ({exc!r})"
         raise CompareError(f"{path}: {why}") from None
 
 
-def _setting(text: str) -> Any:
+def _setting_value(text: str) -> Any:
     """A setting a summary's station block writes as the text of its value (``"False"``,
     ``"[1.0, 0.2]"``) as that value; a mixed one as its text."""
     if text in ("True", "False"):
