@@ -342,7 +342,7 @@ def run_hardware_trial(
     from payload.trials.recorder import TrialRecorder
     from payload.trials.safety import recording_scene
     from payload.trials.scoring import finish_trial, write_metrics
-    from payload.trials.sources import load_replay, replay_zones
+    from payload.trials.sources import load_replay, replay_meta, replay_zones
     from payload.trials.stepobserver import step_record
 
     header, frames = load_replay(replay)  # a trial's log.mcap, or a hands.jsonl
@@ -375,6 +375,8 @@ def run_hardware_trial(
         "design_hash": prov["design_sha256"][:16],
         "provenance": prov,
         "traits": {"replay": str(replay)},
+        # what it replays (a cut-short source marks this run as cut short too)
+        **replay_meta(replay, header, frames),
         "route": layout.route().tolist(),
         "modules": module_rects(layout),
         # scored as its source was, a source that stored none (a hands.jsonl) as a trial is

@@ -253,6 +253,12 @@ def test_hw_run_of_a_synthetic_trial_says_what_it_ran_on_and_places_the_ctb_as_i
     a, b = read_recording(src / "log.mcap"), read_recording(out / "log.mcap")
     # the CTB where the source trial had it (both from rest: the first recorded step)
     assert np.linalg.norm(a.ctb_pos[0] - b.ctb_pos[0]) < 1e-4
+    # what it replayed, as a trial's replay records it: a capped source marks it cut short
+    # (the exports leave it out; it was taken for a whole run)
+    from payload.trials.reading import cut_reason
+
+    assert b.meta["replay"]["file"] == str(src / "log.mcap")
+    assert "replay of an unfinished run" in (cut_reason(b.meta, b.complete) or ""), b.meta
     assert "success:" in printed and "emulator" in printed  # the trial's summary, its far end
     assert metrics["ended_by"] == "source" and "session-length cap" not in printed
     # how it ended, said (it was not): the source trial was capped at 2 s, so is its replay

@@ -319,6 +319,33 @@ def test_unfinished_runs_are_left_out_unless_asked_for(
     assert "--include-unfinished exports them" in err[-1] and not (tmp_path / "x").exists()
 
 
+def test_a_session_that_ended_in_its_calibration_is_left_out(runs, tmp_path: Path, capsys):
+    """A recording with no step after its calibration (an ``hw run`` of a trial capped
+    early) stopped a whole folder's export ("no steps after calibration", exit 2). It has
+    no episode: left out with why, with or without ``--include-unfinished``; given alone it
+    is still that one line."""
+    from payload.cli import main
+
+    rng = np.random.default_rng(3)
+    calibrating = tmp_path / "calibrating.mcap"
+    with TrialRecorder(calibrating) as rec:
+        for k in range(20):
+            rec.write(random_step(rng, k * DT, phase="calibration"))
+        rec.write_meta({})
+    for extra in ([], ["--include-unfinished"]):
+        out = tmp_path / f"ds{len(extra)}"
+        argv = ["export", "lerobot", str(runs[0]), str(calibrating), "--json", "--out", str(out)]
+        assert main([*argv, *extra]) == 0
+        info = json.loads(capsys.readouterr().out)
+        assert info["episodes"] == 1 and info["sources"] == [str(runs[0])]
+        assert info["left_out"] == [
+            {"source": str(calibrating), "why": "no steps after calibration", "kind": "empty"}
+        ]
+    assert main(["export", "lerobot", str(calibrating), "--out", str(tmp_path / "x")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"payload: error: {calibrating}: no steps after calibration"], err
+
+
 def test_an_empty_task_text_is_refused(runs, tmp_path: Path, capsys) -> None:
     """A LeRobot episode's task is the policy's instruction: `--task ""` is one line, exit
     2, and no dataset."""

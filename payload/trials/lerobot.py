@@ -41,6 +41,7 @@ from payload.errors import PayloadError
 from payload.folders import METRICS, RECORDING
 from payload.trials.reading import cut_reason
 from payload.trials.recorder import Recording, RecordingError, read_recording
+from payload.trials.records import PHASES
 from payload.trials.setup_options import MAX_SEED
 
 log = logging.getLogger(__name__)
@@ -145,10 +146,18 @@ def resolve_runs(runs: Sequence[str | Path]) -> list[Path]:
     return out
 
 
+CAL = PHASES[0]
+"""The phase of a recording's steps before teleoperation (``calibration``: no episode's
+frames)."""
+
+NO_STEPS = "no steps after calibration"
+"""Why a recording whose session ended during its calibration has no episode."""
+
+
 def _episode_frames(rec: Recording, source: Path, fps: int) -> tuple[np.ndarray, np.ndarray]:
-    keep = rec.phase != "calibration"
+    keep = rec.phase != CAL
     if not np.any(keep):
-        raise LeRobotExportError(f"{source}: no steps after calibration")
+        raise LeRobotExportError(f"{source}: {NO_STEPS}")
     first = int(np.flatnonzero(keep)[0])
     sel = np.arange(first, len(rec))
     t = rec.t[sel]
@@ -271,6 +280,9 @@ def _trial_success(recording: Path) -> bool | None:
 UNFINISHED = "unfinished"
 """A ``left_out`` entry's ``kind`` for the recording of a run that ended before its task."""
 
+EMPTY = "empty"
+"""A ``left_out`` entry's ``kind`` for a recording with no step after its calibration."""
+
 UNREADABLE = "unreadable"
 """A ``left_out`` entry's ``kind`` (and how its ``why`` starts) for a recording that could
 not be read."""
@@ -379,11 +391,15 @@ def export_lerobot(
     loaded = [(src, r) for src, r in read_out.items() if not isinstance(r, str)]
     why = {src: None if unfinished else cut_reason(rec.meta, rec.complete) for src, rec in loaded}
     why.update(unreadable)
+    # a session that ended during its calibration has no episode, unfinished or not (one
+    # such recording given alone raises its own error, below)
+    empty = {src for src, rec in loaded if len(sources) > 1 and not np.any(rec.phase != CAL)}
+    why.update({src: NO_STEPS for src in empty})
     left_out = [
         {
             "source": str(src),
             "why": why[src],
-            "kind": UNREADABLE if src in unreadable else UNFINISHED,
+            "kind": UNREADABLE if src in unreadable else EMPTY if src in empty else UNFINISHED,
         }
         for src in sources
         if why.get(src) is not None
@@ -391,7 +407,7 @@ def export_lerobot(
     if len(left_out) == len(sources):
         raise LeRobotExportError(_nothing_to_export(len(sources), unreadable))
     for item in left_out:
-        hint = "" if item["kind"] == UNREADABLE else "; --include-unfinished exports it"
+        hint = "; --include-unfinished exports it" if item["kind"] == UNFINISHED else ""
         log.warning("%s: left out (%s%s)", item["source"], item["why"], hint)
     loaded = [(src, rec) for src, rec in loaded if why[src] is None]
     # check every recording before touching an existing dataset at ``out``

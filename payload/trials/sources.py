@@ -212,18 +212,25 @@ class _Source:
         """Recording metadata naming a replay's source file and seed."""
         if self.replay is None:
             return {}
-        data = Path(self.replay).read_bytes()
-        return {
-            "replay": {
-                "file": str(self.replay),
-                "sha256": hashlib.sha256(data).hexdigest(),
-                "seed": self.header.get("meta", {}).get("seed"),
-                "frames": len(self.frames),
-                "rate_hz": _rate(self.frames),
-                # why the source run did not finish (None: it did)
-                "source_unfinished": self.header.get("unfinished"),
-            }
+        return replay_meta(self.replay, self.header, self.frames)
+
+
+def replay_meta(replay: str | Path, header: dict[str, Any], frames: list[Any]) -> dict[str, Any]:
+    """A replay's recording metadata (``payload trial --replay``, ``hw run``): the source
+    file, its hash and seed, its hand frames and their rate, and why the source run did not
+    finish (``source_unfinished``, None: it did), which marks the replay as cut short too
+    (:func:`payload.trials.reading.cut_reason`)."""
+    data = Path(replay).read_bytes()
+    return {
+        "replay": {
+            "file": str(replay),
+            "sha256": hashlib.sha256(data).hexdigest(),
+            "seed": header.get("meta", {}).get("seed"),
+            "frames": len(frames),
+            "rate_hz": _rate(frames),
+            "source_unfinished": header.get("unfinished"),
         }
+    }
 
 
 def _rate(frames: list[Any]) -> float | None:
