@@ -474,3 +474,25 @@ def test_check_on_a_bus_gone_silent_reads_two_servos_then_says_the_rest_were_not
         f"no reply to the health read from servos {first} ({smap.joint_of(first)}), "
         f"{second} ({smap.joint_of(second)}), and the {len(smap.ids) - 2} after it not read"
     ], report["errors"]
+
+
+def test_check_of_a_device_that_goes_away_is_a_failed_check_not_bad_input(monkeypatch, capsys):
+    """The serial device gone during the bring-up (unplugged; here the emulator ended):
+    ``hw check`` said ``payload: error:`` and exit 2, bad input, where ``hw run`` and ``hw
+    identify`` say the hardware's state (``aborted``, exit 1). A failed check, exit 1."""
+    from firmware_interface.driver import DynamixelDriver
+    from firmware_interface.emulator import EmulatorProcess
+
+    home = DynamixelDriver.home
+    with EmulatorProcess() as emu:
+
+        def gone_then_home(drv, *args, **kwargs):
+            emu.proc.kill()
+            emu.proc.wait()
+            return home(drv, *args, **kwargs)
+
+        monkeypatch.setattr(DynamixelDriver, "home", gone_then_home)
+        code = main(["hw", "check", "--device", emu.port, "--latency-ms", LAT])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 1, err
+    assert err[-1].startswith("payload: check failed: ") and "serial device" in err[-1], err
