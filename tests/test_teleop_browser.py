@@ -209,9 +209,11 @@ def test_page_with_the_hardware_driver_over_the_emulator_says_hardware_and_fits(
     _need_browser()
     code = "import sys; from payload.cli import main; sys.exit(main(sys.argv[1:]))"
     with EmulatorProcess() as emu:
+        # the emulator shares the host's two cores with the test's workers: a reply
+        # allowance of 50 ms, as the other emulated-bus tests give it
         argv = [sys.executable, "-c", code, "teleop", "serve", "--driver", "hardware",
                 "--device", emu.port, "--port", "0", "--seconds", "120",
-                "--status-interval", "0.5"]  # fmt: skip
+                "--status-interval", "0.5", "--latency-ms", "50"]  # fmt: skip
         # Ctrl-C reaches it even when this process ignores SIGINT (a background job)
         proc = subprocess.Popen(
             argv,

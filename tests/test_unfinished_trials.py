@@ -560,3 +560,25 @@ def test_compare_reads_a_summarys_station_settings_as_values(tmp_path: Path) -> 
     other = compare_runs(camp, tmp_path / "on")
     assert other["trials"][0]["setup_differs"] == {"base_filter": [False, True]}
     assert "Setup, A / B, where it differs: base_filter no / yes." in comparison_notes(other)
+
+
+def test_summarize_refuses_a_folder_of_separate_runs(tmp_path: Path, capsys) -> None:
+    """``trials summarize runs`` summarised a project's runs/ as a campaign: two trials of
+    seed 0 (``trial-0000`` and a ``payload trial --out runs/trial-35``) as "seeds 0 to 0",
+    writing the summary and its figure there. A folder with one seed twice is not one
+    campaign: one line naming them, exit 2, nothing written."""
+    from payload.cli import main
+
+    runs = tmp_path / "runs"
+    fixture_synthetic_trial(0, runs / "trial-0000")
+    fixture_synthetic_trial(0, runs / "trial-35")
+    fixture_synthetic_trial(1, runs / "trial-0001")
+    before = sorted(p.name for p in runs.iterdir())
+    assert main(["trials", "summarize", str(runs)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [
+        f"payload: error: {runs}: not one campaign: trial-0000 and trial-35 are both seed 0 (a "
+        "campaign runs each seed once; give a campaign's folder, or set runs side by side "
+        "with `payload trials compare`)"
+    ], err
+    assert sorted(p.name for p in runs.iterdir()) == before

@@ -82,6 +82,38 @@ def _check_metrics(data: Any, where: str) -> None:
             raise CampaignError(f"{where}: {key}: {problem}")
 
 
+def _one_campaign(root: Path, dirs: list[Path], recording_meta: Any) -> None:
+    """Refuse a folder whose trials are not one campaign's: two of them of one seed (a
+    campaign runs each seed once; a project's ``runs/`` holds separate runs, and their
+    summary would say "seeds 0 to 0" of a mix). Each trial's seed as it recorded it
+    (``metrics.json``, else its recording's metadata), else its folder's number."""
+    seen: dict[int, list[str]] = {}
+    for d in dirs:
+        seed: Any = None
+        if (d / METRICS).is_file():
+            try:
+                seed = json.loads((d / METRICS).read_text(encoding="utf-8")).get("seed")
+            except (OSError, ValueError, AttributeError):
+                seed = None  # read (and refused) with its own words below
+        elif (d / RECORDING).is_file():
+            seed = (recording_meta(d / RECORDING) or {}).get("seed")
+        if not isinstance(seed, int) or isinstance(seed, bool):
+            number = d.name.split("-", 1)[1]
+            seed = int(number) if number.isdigit() else None
+        if seed is not None:
+            seen.setdefault(seed, []).append(d.name)
+    twice = sorted((s, names) for s, names in seen.items() if len(names) > 1)
+    if twice:
+        seed, names = twice[0]
+        named = f"{', '.join(names[:-1])} and {names[-1]}"
+        raise CampaignError(
+            f"{root}: not one campaign: {named} are {'both' if len(names) == 2 else 'all'} "
+            f"seed {seed} (a campaign "
+            "runs each seed once; give a campaign's folder, or set runs side by side with "
+            "`payload trials compare`)"
+        )
+
+
 def load_trial_results(
     out_dir: str | Path,
     recompute: bool = False,
@@ -125,6 +157,8 @@ def load_trial_results(
         raise CampaignError(f"{root}: no trial-* folders")
     from payload.trials.reading import read_recording, recording_meta
     from payload.trials.records import DamagedRecordingError
+
+    _one_campaign(root, dirs, recording_meta)
 
     # every recording to be scored is read first: a damaged one stops the summary before
     # anything is written (a re-scoring beside an earlier trial's metrics, say)
