@@ -217,10 +217,13 @@ def _cmd_check(args: argparse.Namespace) -> int:
     if args.json:
         emit_json(report)
     else:
-        for s in report["servos"]:
+        from firmware_interface.control_table import hw_error_names
+
+        for s in report["servos"]:  # the error bits by name (the e-Manual's), not a number
+            bits = ", ".join(hw_error_names(s["hardware_error"])) or "none"
             print(f"ID {s['id']:3d} {s['joint']:<11s} model {s['model_number']}  "
-                  f"error {s['hardware_error']:3d}  {s['temperature_c']:3.0f} C  "
-                  f"{s['voltage_v']:.1f} V")  # fmt: skip
+                  f"{s['temperature_c']:3.0f} C  {s['voltage_v']:.1f} V  "
+                  f"hardware error: {bits}")  # fmt: skip
     if not report["ok"]:
         if args.json:
             print(f"payload: check failed: {'; '.join(report['errors'])}", file=sys.stderr)
@@ -445,6 +448,7 @@ def register(
     sub: argparse._SubParsersAction, groups: dict[str, argparse._SubParsersAction]
 ) -> None:
     from firmware_interface.control_table import HW_ERROR_BITS  # the fault help's names
+    from firmware_interface.faults import FAULT_FORMS
 
     hw = sub.add_parser("hw", help="the Dynamixel hardware and its emulator")
     hws = hw.add_subparsers(dest="hw_command", required=True, metavar="WHAT")
@@ -456,8 +460,7 @@ def register(
         metavar="SPEC",
         action="append",
         default=[],
-        help="missing:ID, corrupt:P, latency:3ms, drop:P, error:ID:NAME (NAME one of "
-        f"{', '.join(HW_ERROR_BITS)}), block:ID",
+        help=f"{', '.join(FAULT_FORMS)} (BIT one of {', '.join(HW_ERROR_BITS)}; docs/hardware.md)",
     )
     p.add_argument("--seed", type=int, default=0, help="seed of the fault dice")
     add_device(

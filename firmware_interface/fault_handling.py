@@ -122,7 +122,7 @@ class FaultHandling:
         fault = HardwareFault(h.id, h.joint, h.bits, others=[x.id for x in faulted[1:]])
         self.fault = fault
         self.faults.append(fault)
-        log.error("payload stopped (%s): %s", self.on_fault, fault)
+        log.error("servo fault, the payload stopped (%s): %s", self.on_fault, fault)
         self.safe_stop()
 
     def safe_stop(self) -> None:

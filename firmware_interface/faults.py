@@ -25,6 +25,17 @@ from dataclasses import dataclass
 from firmware_interface.control_table import HW_ERROR_BITS
 from payload.errors import PayloadError
 
+FAULT_FORMS: tuple[str, ...] = (
+    "missing:ID",
+    "corrupt:P",
+    "latency:3ms",
+    "drop:P",
+    "error:ID:BIT",
+    "block:ID",
+    "model:ID:NUMBER",
+)
+"""The forms of a fault spec (the table above), as the help and the errors list them."""
+
 
 class FaultSpecError(PayloadError):
     """A fault spec that cannot be parsed; the message names it."""
@@ -95,6 +106,5 @@ def parse_fault(spec: str) -> Fault:
             raise FaultSpecError(f"fault {spec!r}: model number must be 0..65535")
         return Fault(kind, id=_servo_id(parts[1], spec), value=float(parts[2]))
     raise FaultSpecError(
-        f"fault {spec!r}: expected missing:ID, corrupt:P, latency:3ms, drop:P, "
-        "error:ID:BIT, block:ID or model:ID:NUMBER"
+        f"fault {spec!r}: expected {', '.join(FAULT_FORMS[:-1])} or {FAULT_FORMS[-1]}"
     )

@@ -172,9 +172,16 @@ def test_check_says_a_servos_hardware_error_once(capsys):
         assert said.err.splitlines()[0] == (
             f"bringing up the servos on {port} and homing the rail and the stage ..."
         ), said.err
+        # the table names the bit (it printed "error  32"), and every other servo's none
+        assert main(["hw", "check", "--device", port, "--latency-ms", LAT]) == 1
+        rows = [x for x in capsys.readouterr().out.splitlines() if x.startswith("ID ")]
     flagged = [s for s in report["servos"] if s["hardware_error"]]
     assert [s["id"] for s in flagged] == [12]
     assert report["errors"] == [f"servo 12 ({flagged[0]['joint']}): hardware error overload"]
+    assert len(rows) == len(report["servos"])
+    for row in rows:
+        named = "overload" if row.startswith("ID  12 ") else "none"
+        assert row.endswith(f"  hardware error: {named}"), row
 
 
 def test_check_fails_on_a_blocked_rail(capsys):
