@@ -27,6 +27,7 @@ from payload.cliutil import (
     load_average,
     need_device,
     out_folder,
+    replay_file,
     results_folder,
     say_stage,
 )
@@ -355,10 +356,7 @@ def _replay_of(args: argparse.Namespace) -> Path:
         given, name = args.replay, "--replay"
     else:
         raise HwUsageError(f"--replay FILE is required (a trial's {RECORDING} or a {HANDS})")
-    replay = Path(given)
-    if not replay.is_file():
-        raise HwUsageError(f"{name}: {replay} is not a file")
-    return replay
+    return replay_file(name, Path(given))
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:

@@ -32,7 +32,7 @@ from pathlib import Path
 from typing import Any, NoReturn
 
 from payload.errors import PayloadError
-from payload.folders import held
+from payload.folders import HANDS, RECORDING, held
 from payload.project import (
     DESIGN_FILE,
     ENV_VAR,
@@ -303,6 +303,20 @@ def add_replay(p: argparse.ArgumentParser, what: str) -> None:
     p.add_argument("--replay", metavar="FILE", default=None, help=what)
 
 
+def replay_file(option: str, replay: Path) -> Path:
+    """The recording a replay option names, or one line saying why it is not one (a
+    trial's folder names the file in it to give)."""
+    if replay.is_dir():
+        inside = [n for n in (RECORDING, HANDS) if (replay / n).is_file()]
+        hint = f": give {replay / inside[0]}" if inside else ""
+        raise UsageError(f"{option}: {replay}: is a folder, not a recording{hint}")
+    if not replay.exists():
+        raise UsageError(f"{option}: {replay}: no such file")
+    if not replay.is_file():
+        raise UsageError(f"{option}: {replay}: not a regular file (a recording is one)")
+    return replay
+
+
 @contextlib.contextmanager
 def kept_if_used(folder: Path, made: bool) -> Iterator[Path]:
     """``folder``, the results' folder of a command; one made for it (``made``: a numbered
@@ -421,6 +435,7 @@ __all__ = [
     "log_lines",
     "need_device",
     "out_folder",
+    "replay_file",
     "results_folder",
     "warn",
 ]

@@ -503,3 +503,17 @@ def test_check_of_a_device_that_goes_away_is_a_failed_check_not_bad_input(monkey
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 1, err
     assert err[-1].startswith("payload: check failed: ") and "serial device" in err[-1], err
+
+
+def test_hw_run_given_a_trials_folder_names_the_recording_in_it(tmp_path, capsys) -> None:
+    """``hw run --replay runs/trial-0000`` said only "is not a file"; it says what the
+    folder is and which file in it to give, as ``payload trial --replay`` does."""
+    trial = tmp_path / "trial-0000"
+    trial.mkdir()
+    (trial / "log.mcap").write_bytes(b"")
+    assert main(["hw", "run", "--emulator", "--replay", str(trial)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [
+        f"payload: error: --replay: {trial}: is a folder, not a recording: give "
+        f"{trial / 'log.mcap'}"
+    ], err

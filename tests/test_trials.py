@@ -1812,12 +1812,12 @@ def test_a_trial_and_a_campaign_never_share_a_folder(tmp_path: Path, capsys) -> 
     (trial / "log.mcap").write_bytes(b"recorded")
     (live / "hands.jsonl").write_text("{}\n")  # a live session's hands, its recording lost
     runs = [
-        (["trial", "--out", str(camp)], "holds a campaign (summary.json)"),
-        (["trial", "--out", str(camp), "--force"], "holds a campaign (summary.json)"),
-        (["trials", "run", "--n", "1", "--out", str(trial)], "holds a trial (log.mcap)"),
-        (["trials", "run", "--n", "1", "--out", str(trial), "--force"], "holds a trial"),
-        (["trials", "run", "--n", "1", "--out", str(live), "--force"], "holds a trial (hands"),
-        (["trial", "--out", str(report), "--force"], "holds a campaign (summary.md)"),
+        (["trial", "--out", str(camp)], "already holds summary.json"),
+        (["trial", "--out", str(camp), "--force"], "already holds summary.json"),
+        (["trials", "run", "--n", "1", "--out", str(trial)], "already holds log.mcap"),
+        (["trials", "run", "--n", "1", "--out", str(trial), "--force"], "already holds log"),
+        (["trials", "run", "--n", "1", "--out", str(live), "--force"], "already holds hands"),
+        (["trial", "--out", str(report), "--force"], "already holds summary.md"),
     ]
     for argv, message in runs:
         assert main(argv) == 2

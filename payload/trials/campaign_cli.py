@@ -27,7 +27,6 @@ from payload.folders import (
     METRICS,
     SUMMARY,
     SUMMARY_TEXT,
-    TRIAL_FILES,
     held,
     other_results,
     tagged,
@@ -81,12 +80,6 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
     # a scheduler not reached leaves no empty folder (the checks below never refuse one
     # made here: it is new, or empty)
     with results_folder(args.out, project, "campaign") as out:
-        trial = held(out, TRIAL_FILES)
-        if trial:  # --force replaces a campaign, never a trial
-            raise TrialsCliError(
-                f"{out}: holds a trial ({', '.join(trial)}); a campaign goes in a folder of "
-                "its own (choose another --out)"
-            )
         if not args.force:
             taken = [trial_dir(out, s) for s in seeds if any(trial_dir(out, s).glob("*"))]
             taken += [out / n for n in held(out, CAMPAIGN_FILES)]

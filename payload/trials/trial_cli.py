@@ -8,8 +8,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from payload.cliutil import check_seconds, command_project, emit_json, out_folder, warn
-from payload.folders import CAMPAIGN_FILES, HANDS, RECORDING, held, other_results
+from payload.cliutil import check_seconds, command_project, emit_json, out_folder, replay_file, warn
+from payload.folders import CAMPAIGN_FILES, held, other_results
 from payload.profiles import PROFILE_SETTINGS
 from payload.trials.setup_options import (
     _SETUP,
@@ -20,20 +20,6 @@ from payload.trials.setup_options import (
     _setup_defaults,
     seed_problem,
 )
-
-
-def _replay_file(option: str, replay: Path) -> Path:
-    """The recording a replay option names, or one line saying why it is not one (a
-    trial's folder names the file in it to give)."""
-    if replay.is_dir():
-        inside = [n for n in (RECORDING, HANDS) if (replay / n).is_file()]
-        hint = f": give {replay / inside[0]}" if inside else ""
-        raise TrialsCliError(f"{option}: {replay}: is a folder, not a recording{hint}")
-    if not replay.exists():
-        raise TrialsCliError(f"{option}: {replay}: no such file")
-    if not replay.is_file():
-        raise TrialsCliError(f"{option}: {replay}: not a regular file (a recording is one)")
-    return replay
 
 
 def _parse_operator(args: argparse.Namespace) -> tuple[str, Path | None]:
@@ -47,13 +33,13 @@ def _parse_operator(args: argparse.Namespace) -> tuple[str, Path | None]:
     if values is None:
         if args.replay is None:
             return "synthetic", None
-        return "replay", _replay_file("--replay", Path(args.replay))
+        return "replay", replay_file("--replay", Path(args.replay))
     if args.replay is not None:
         raise TrialsCliError("--replay and --operator (its deprecated spelling): give one")
     if values == ["synthetic"]:
         return "synthetic", None
     if len(values) == 2 and values[0] == "replay":
-        return "replay", _replay_file("--operator replay", Path(values[1]))
+        return "replay", replay_file("--operator replay", Path(values[1]))
     raise TrialsCliError(
         f"--operator: expected 'synthetic' or 'replay FILE', got {' '.join(values)!r}"
     )
