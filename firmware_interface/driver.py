@@ -106,6 +106,15 @@ def nobody_answered(device: str) -> str:
     return f"no servo answered on {device} (power, wiring, baud rate, IDs?)"
 
 
+LATCHED_HINT = (
+    "a hardware error stays latched until the servo restarts: remove its cause (a blocked "
+    "joint for overload, the supply for input_voltage, time to cool for overheating), then "
+    "power-cycle the servos; `payload hw check` shows every servo's state"
+)
+"""What to do about a hardware error the bring-up found (the e-Manual's Hardware Error
+Status: cleared by a reboot only)."""
+
+
 @contextlib.contextmanager
 def failed_start(device: str) -> Iterator[None]:
     """A hardware error inside (the bring-up, the drive home) as a failed start of the
@@ -117,6 +126,8 @@ def failed_start(device: str) -> Iterator[None]:
     except DynamixelError as exc:
         everyone = isinstance(exc, MissingServoError) and exc.everyone
         why = nobody_answered(device) if everyone else f"bring-up on {device} failed: {exc}"
+        if isinstance(exc, HardwareFault) and exc.bits != ["reset"]:
+            why += f" ({LATCHED_HINT})"
         raise BringUpFailed(why) from None
 
 
@@ -214,6 +225,8 @@ class DynamixelDriver(FaultHandling):
             # [Errno 2] No such file or directory: 'P'"): say the system's reason once
             cause = exc.__context__ if isinstance(exc.__context__, OSError) else exc
             reason = cause.strerror or str(cause)
+            if "Inappropriate ioctl" in str(exc):  # ENOTTY from the port's configuration
+                reason = "not a serial device: give the USB adapter's, e.g. /dev/ttyUSB0"
             raise DynamixelError(f"{port}: cannot open the serial port ({reason})") from exc
         self._closed = False
         if poll_timeout > 0 and getattr(self.port, "ser", None) is not None:

@@ -116,6 +116,12 @@ def test_a_device_that_is_not_there_is_one_line_with_the_systems_reason(tmp_path
     reason = os.strerror(opened.value.errno)
     assert len(err) == 1 and f"{missing}: cannot open the serial port ({reason})" in err[0], err
     assert err[0].count(reason) == 1 and "Errno" not in err[0], err
+    # a file that is there but no terminal (the system refuses a tty's ioctl: ENOTTY) is
+    # said to be no serial device, not in pyserial's words ("Could not configure port")
+    assert main(["hw", "scan", "--device", os.devnull]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"payload: error: {os.devnull}: cannot open the serial port (not a serial "
+                   "device: give the USB adapter's, e.g. /dev/ttyUSB0)"], err  # fmt: skip
 
 
 def test_check_fails_naming_the_missing_servo(emulate, capsys):

@@ -541,9 +541,13 @@ def test_a_servo_faulted_at_bring_up_aborts_the_run_as_a_failed_start(session, t
     joint = load_servo_map().joint_of(12)
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 1, err
+    # and what to do: the error is latched until the servo restarts (it said no more)
     assert err[-1] == (
         f"payload: aborted: bring-up on {emu.port} failed: servo 12 ({joint}): hardware error "
-        "overload"
+        "overload (a hardware error stays latched until the servo restarts: remove its cause "
+        "(a blocked joint for overload, the supply for input_voltage, time to cool for "
+        "overheating), then power-cycle the servos; `payload hw check` shows every servo's "
+        "state)"
     ), err
     assert not out.exists()
 
