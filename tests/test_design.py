@@ -454,6 +454,11 @@ PLAUSIBILITY = [  # edit, the parameter named, what the one line must say
     ("finger.limits.mcp_flex", [-18, 127.8], "finger.limits.mcp_flex",
      "[-18, 127.8] rad: did you mean [-0.314, 2.231] (degrees given)?"),
     ("home.rail", 25, "home.rail", "25 m: did you mean 25 mm = 0.025?"),
+    # a pad modulus in MPa (the silicone's 1 MPa typed as 1.0), or far beyond any pad's
+    ("finger.pad.modulus", 1.0, "finger.pad.modulus",
+     "1 Pa is softer than any pad material (1000 to 1e+10 Pa, a gel to a hard plastic): did "
+     "you mean 1 MPa = 1e+06? (the design file is in Pa)"),
+    ("finger.pad.modulus", 2e11, "finger.pad.modulus", "2e+11 Pa is stiffer than any pad"),
 ]  # fmt: skip
 
 

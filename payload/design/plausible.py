@@ -12,6 +12,8 @@ build:
   ``servo.width`` across its output axis, cannot stand closer without intersecting);
   the distal link holds the DIP servo's half body and the pad sphere;
 - a joint offset lies within the link: ``|offset| <= finger.section.depth``;
+- a pad's Young's modulus lies between a gel's and a hard plastic's
+  (:data:`PAD_MODULUS_PA`; ``1.0`` typed for 1 MPa: ``did you mean 1 MPa = 1e+06?``);
 - no finger joint turns more than a turn: a limit beyond ``2 pi`` was typed in degrees
   (``[-18, 127.8] rad: did you mean [-0.314, 2.231] (degrees given)?``).
 
@@ -47,6 +49,11 @@ FIT_TOLERANCE = 1e-9
 """[m] How far a sum of lengths may pass the length it must fit in and still fit: the
 rounding of decimal lengths in binary (0.054 + 0.05 is 0.10400000000000001), a
 nanometre, far below any machining tolerance."""
+
+PAD_MODULUS_PA = (1e3, 1e10)
+"""[Pa] The Young's moduli a fingertip pad can have: from a soft gel (kPa) to a hard
+plastic (a few GPa), with room either way; a modulus outside was typed in another unit
+(``1.0`` for 1 MPa)."""
 
 LENGTH_TABLES: dict[str, tuple[str, ...] | None] = {
     "finger.lengths": None,
@@ -206,6 +213,16 @@ def check_plausible(design: Any, data: dict[str, Any]) -> None:
                 f"{_mm(offset)} puts the joint outside its link (finger.section.depth "
                 f"{f.section.depth * 1e3:.1f} mm)",
             )
+    modulus = f.pad.modulus
+    if not PAD_MODULUS_PA[0] <= modulus <= PAD_MODULUS_PA[1]:
+        soft = modulus < PAD_MODULUS_PA[0]
+        raise DesignError(
+            "finger.pad.modulus",
+            f"{modulus:g} Pa is {'softer' if soft else 'stiffer'} than any pad material "
+            f"({PAD_MODULUS_PA[0]:g} to {PAD_MODULUS_PA[1]:g} Pa, a gel to a hard plastic)"
+            + (f": did you mean {modulus:g} MPa = {modulus * 1e6:g}?" if soft else "")
+            + " (the design file is in Pa)",
+        )
     for joint in dataclasses.fields(f.limits):
         typed = (getattr(f.limits, joint.name).lower, getattr(f.limits, joint.name).upper)
         if in_degrees(typed):
@@ -217,4 +234,4 @@ def check_plausible(design: Any, data: dict[str, Any]) -> None:
             )
 
 
-__all__ = ["FIT_TOLERANCE", "LENGTH_TABLES", "check_plausible", "lengths"]
+__all__ = ["FIT_TOLERANCE", "LENGTH_TABLES", "PAD_MODULUS_PA", "check_plausible", "lengths"]
