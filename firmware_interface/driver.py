@@ -88,7 +88,7 @@ unconfirmed."""
 
 
 _LATE_HINT = ("the bus answers later than the driver allows (an adapter's latency timer "
-              "above latency_timer_ms, --latency-ms?)")  # fmt: skip
+              "above the one given: --latency-ms?)")  # fmt: skip
 
 
 def _also(ids: list[int]) -> str:

@@ -146,7 +146,7 @@ def _number(entry: dict[str, Any], key: str, where: str, default: Any = None) ->
 
 
 def _servo(entry: Any, k: int, design: Design, source: str) -> ServoSpec:
-    where = f"{source}: servo[{k}]"
+    where = f"{source}: [[servo]] table {k + 1}"  # counted as a reader counts, from 1
     if not isinstance(entry, dict):
         raise ServoMapError(f"{where}: expected a table")
     unknown = set(entry) - _SERVO_KEYS
@@ -154,7 +154,11 @@ def _servo(entry: Any, k: int, design: Design, source: str) -> ServoSpec:
         raise ServoMapError(f"{where}: unknown key(s) {sorted(unknown)}")
     joint = entry.get("joint")
     if joint not in ALL_JOINTS:
-        raise ServoMapError(f"{where}.joint: {joint!r} is not a joint of the design")
+        import difflib
+
+        close = difflib.get_close_matches(str(joint), ALL_JOINTS, n=1)
+        hint = f" (did you mean {close[0]!r}?)" if close else ""
+        raise ServoMapError(f"{where}.joint: {joint!r} is not a joint of the design{hint}")
     where = f"{source}: servo {joint}"
     dxl_id = entry.get("id")
     if isinstance(dxl_id, bool) or not isinstance(dxl_id, int) or not 0 <= dxl_id <= 252:

@@ -77,6 +77,12 @@ def test_commands_are_clamped_to_the_limits_before_conversion(design):
         (lambda d: d["servo"][3].update(joint="A_pip"), "A_pip is mapped twice"),
         (lambda d: d["servo"][3].update(id=1), "ID 1 is used by A_mcp_flex and A_dip"),
         (lambda d: d["servo"][0].update(joint="E_pip"), "'E_pip' is not a joint"),
+        # counted from 1, and the joint a misspelling is closest to named
+        (
+            lambda d: d["servo"][2].update(joint="A_pipp"),
+            r"m.toml: \[\[servo\]\] table 3.joint: 'A_pipp' is not a joint of the design "
+            r"\(did you mean 'A_pip'\?\)",
+        ),
         (lambda d: d["servo"][0].update(upper=3.0), "not inside the design's"),
         (lambda d: d["servo"][16].update(upper=0.2), "not inside the design's"),
         (lambda d: d["servo"][0].update(direction=2), "direction: expected 1 or -1"),
