@@ -155,7 +155,7 @@ def test_trials_compare_force_replaces_only_an_earlier_comparison(tmp_path, caps
         runs.append(str(tmp_path / name))
     table = tmp_path / "compare.md"
     assert main(["trials", "compare", *runs, "--out", str(table)]) == 0
-    capsys.readouterr()
+    assert capsys.readouterr().out.splitlines()[-1] == f"wrote {table}"  # said where it went
     first = table.read_text()
     assert main(["trials", "compare", *runs, "--out", str(table)]) == 2  # exists: --force
     _one_line(capsys, str(table))

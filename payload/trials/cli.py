@@ -124,6 +124,8 @@ def _cmd_trials_compare(args: argparse.Namespace) -> int:
         emit_json(result)
     else:
         print(text, end="")
+        if args.out:  # where the table went, below it
+            print(f"wrote {args.out}")
     if args.require_identical and not result["identical"]:
         rows = result["trials"]
         differ = [r["trial"] for r in rows if not r["steps"]["identical"]]
