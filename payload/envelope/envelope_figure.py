@@ -13,7 +13,9 @@ from matplotlib.figure import Figure
 from payload.envelope.drawing import (
     AXES,
     AXIS_LABEL,
+    FAIL_COLOUR,
     FINGER_COLOURS,
+    PASS_COLOUR,
     STRUCTURE_COLOUR,
     draw_vehicle,
     legend_box,
@@ -159,7 +161,10 @@ def envelope_figure(geom: PayloadGeometry, a: EnvelopeAnalysis, path: Path, dpi:
         legend_box("self-collision", facecolor="white", edgecolor="magenta", lw=1.6),
     ]
     fig.legend(handles=handles, loc="outside lower center", ncol=9, fontsize=8, frameon=False)
-    fig.suptitle(figure_title(check), fontsize=11)
+    # the verdict in its colour, as the review's and the reach figure's
+    fig.suptitle(
+        figure_title(check), fontsize=11, color=PASS_COLOUR if check.passed else FAIL_COLOUR
+    )
     fig.savefig(path, dpi=dpi)
     return path
 

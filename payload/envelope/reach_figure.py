@@ -15,7 +15,9 @@ from payload.design.params import FINGERS
 from payload.envelope.drawing import (
     AXES,
     AXIS_LABEL,
+    FAIL_COLOUR,
     FINGER_COLOURS,
+    PASS_COLOUR,
     STRUCTURE_COLOUR,
     draw_vehicle,
     legend_box,
@@ -29,6 +31,7 @@ from payload.envelope.drawing import (
 from payload.envelope.geometry import PayloadGeometry
 from payload.envelope.reach import ReachAnalysis
 from payload.envelope.vehicle import Vehicle
+from payload.envelope.verdict import reach_passed
 from payload.envelope.workspace import Workspace
 
 
@@ -58,10 +61,13 @@ def reach_figure(
         *vehicle_legend(),
     ]
     fig.legend(handles=handles, loc="outside lower center", ncol=4, fontsize=8, frameon=False)
+    passed = reach_passed(a)  # the verdict first, in its colour, as the review's
     fig.suptitle(
-        f"Reach of the deployed fingers ({a.samples:,} samples; {_depth(a.below_vehicle)}; "
-        f"self-collision-free {a.collision_free_fraction:.1%})",
+        f"Reach of the deployed fingers: {'passes' if passed else 'FAILS'} "
+        f"({a.samples:,} samples; {_depth(a.below_vehicle)}; "
+        f"{a.collision_free_fraction:.1%} of them free of self-collision)",
         fontsize=11,
+        color=PASS_COLOUR if passed else FAIL_COLOUR,
     )
     fig.savefig(path, dpi=dpi)
     return path
