@@ -560,6 +560,14 @@ def test_compare_reads_a_summarys_station_settings_as_values(tmp_path: Path) -> 
     other = compare_runs(camp, tmp_path / "on")
     assert other["trials"][0]["setup_differs"] == {"base_filter": [False, True]}
     assert "Setup, A / B, where it differs: base_filter no / yes." in comparison_notes(other)
+    # a hardware run against a simulated trial: the driver differs (a trial records none)
+    hw = tmp_path / "hw" / "trial-0000"
+    hw.mkdir(parents=True)
+    (hw / "metrics.json").write_text(
+        json.dumps({**row, "base_filter": False, "driver": "hardware"})
+    )
+    against = compare_runs(tmp_path / "off", tmp_path / "hw")
+    assert against["trials"][0]["setup_differs"] == {"driver": ["simulator", "hardware"]}
 
 
 def test_summarize_refuses_a_folder_of_separate_runs(tmp_path: Path, capsys) -> None:

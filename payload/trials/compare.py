@@ -118,6 +118,14 @@ def _trial_metrics(trial: Path | dict[str, Any]) -> dict[str, Any]:
     return read_metrics(trial / METRICS)
 
 
+def _setup_value(metrics: dict[str, Any], key: str) -> Any:
+    """A trial's setting as compared: its recorded value; the driver of a trial that
+    records none is the simulator's (only a hardware run records one)."""
+    if key == "driver":
+        return metrics.get("driver") or "simulator"
+    return metrics.get(key)
+
+
 def _same_value(a: Any, b: Any) -> bool:
     """Two metric values alike as written (so -0.0 differs from 0.0)."""
     return json.dumps(a, sort_keys=True) == json.dumps(b, sort_keys=True)
@@ -333,9 +341,10 @@ def compare_runs(run_a: str | Path, run_b: str | Path, *, steps: bool = False) -
             "seed_a": ma.get("seed"),
             "seed_b": mb.get("seed"),
             "setup_differs": {
-                k: [ma.get(k), mb.get(k)]
-                for k in RUN_SETTINGS
-                if (k in ma or k in mb) and not _same_value(ma.get(k), mb.get(k))
+                k: [_setup_value(ma, k), _setup_value(mb, k)]
+                for k in (*RUN_SETTINGS, "driver")
+                if (k in ma or k in mb)
+                and not _same_value(_setup_value(ma, k), _setup_value(mb, k))
             },
             "success_a": ma.get("success"),
             "success_b": mb.get("success"),
