@@ -209,11 +209,12 @@ def _cmd_check(args: argparse.Namespace) -> int:
     command_project(args)  # the servo map is validated against this project's design
     device, smap = need_device(args), _map(args)
     _models_follow(args)
-    from firmware_interface.errors import DynamixelError
+    from firmware_interface.errors import CommError
 
     try:
         report = {"device": device, **check(device, smap, args.latency_ms, say_stage)}
-    except DynamixelError as exc:  # the device itself failed (gone): its state, exit 1
+    except CommError as exc:  # the open device failed (gone): its state, exit 1; one that
+        # cannot be opened (a typo, not a serial device) stays bad input, exit 2
         report = {"device": device, "ok": False, "servos": [], "errors": [str(exc)]}
     if args.json:
         emit_json(report)

@@ -146,11 +146,12 @@ def apply_overrides(
     """
     out = {}
     for i, plant in plants.items():
+        design = plant  # each override is weighed against the design's value
         for key in ("*", kinds.get(i, ""), str(i)):
             if key not in overrides:
                 continue
             for name, value in overrides[key].items():
-                base = getattr(plant, name)
+                base = getattr(design, name)
                 if base > 0 and not (
                     (value >= base / OVERRIDE_FACTOR or name in _MAY_BE_ZERO)
                     and value <= base * OVERRIDE_FACTOR

@@ -78,6 +78,9 @@ def other_results(*own: str) -> tuple[str, ...]:
     """The files that mark the results of every kind in :data:`RESULT_FILES` but ``own``:
     what a command's ``--out`` must not hold (a trial written into a campaign's or the
     reports' folder would be mixed with them)."""
+    unknown = [kind for kind in own if kind not in RESULT_FILES]
+    if unknown:  # a typo would refuse the command's own kind
+        raise ValueError(f"no such kind of results: {', '.join(unknown)}")
     return tuple(f for kind, files in RESULT_FILES.items() if kind not in own for f in files)
 
 

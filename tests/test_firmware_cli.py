@@ -509,6 +509,11 @@ def test_check_of_a_device_that_goes_away_is_a_failed_check_not_bad_input(monkey
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 1, err
     assert err[-1].startswith("payload: check failed: ") and "serial device" in err[-1], err
+    # a device that cannot be opened at all is still bad input, as `hw scan` says it
+    for device in (os.devnull, "/dev/ttyUSB-no-such"):
+        assert main(["hw", "check", "--device", device, "--latency-ms", LAT]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert err[-1].startswith(f"payload: error: {device}: cannot open the serial port"), err
 
 
 def test_hw_run_given_a_trials_folder_names_the_recording_in_it(tmp_path, capsys) -> None:

@@ -66,11 +66,18 @@ def test_a_bad_servo_params_file_is_refused_in_one_line(tmp_path, capsys):
     assert main(["hw", "emulate", "--servo-params", str(bad)]) == 2
     assert "*.stiffness: unknown" in capsys.readouterr().err
     # a unit slip (kt in mN m/A): refused, it drove the emulated shaft past its registers
-    kt = load_design().servo.kt
+    assert load_design().servo.kt == 0.517  # the datasheet's 0.93 N m / 1.80 A
     bad.write_text(json.dumps({"*": {"kt": 450}}))
     assert main(["hw", "emulate", "--servo-params", str(bad)]) == 2
     err = capsys.readouterr().err.strip()
-    assert err.count("\n") == 0 and f"*.kt: 450 is {450 / kt:.3g} times the design's" in err
+    assert err.count("\n") == 0 and "*.kt: 450 is 870 times the design's 0.517" in err
+    # each layer is weighed against the design, not the layer before it: 0.2 for all and
+    # 2.5 for servo 12 are each within ten times 0.517 (12.5 times 0.2 was refused)
+    from firmware_interface.emulator import bus_spec
+
+    bad.write_text(json.dumps({"*": {"kt": 0.2}, "12": {"kt": 2.5}}))
+    plants = bus_spec(None, str(bad))["plants"]
+    assert plants["12"]["kt"] == 2.5 and plants["1"]["kt"] == 0.2
 
 
 @pytest.mark.parametrize(

@@ -344,6 +344,18 @@ def test_a_session_that_ended_in_its_calibration_is_left_out(runs, tmp_path: Pat
     assert main(["export", "lerobot", str(calibrating), "--out", str(tmp_path / "x")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err == [f"payload: error: {calibrating}: no steps after calibration"], err
+    # two such, with or without --include-unfinished: said as what they are (it advised
+    # --include-unfinished, which exports nothing of them)
+    twice = tmp_path / "calibrating2.mcap"
+    twice.write_bytes(calibrating.read_bytes())
+    for extra in ([], ["--include-unfinished"]):
+        argv = ["export", "lerobot", str(calibrating), str(twice), "--out", str(tmp_path / "y")]
+        assert main([*argv, *extra]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert err[-1] == (
+            "payload: error: no recording to export: all 2 given are without steps after "
+            "calibration"
+        ), err
 
 
 def test_an_empty_task_text_is_refused(runs, tmp_path: Path, capsys) -> None:
@@ -405,7 +417,7 @@ def test_a_damaged_recording_is_left_out_and_the_rest_exported(
     for given, says in (
         ([bad], f"{bad}: "),  # the one recording given: its own error
         ([bad, other], "no recording to export: all 2 given are unreadable (the first: "),
-        ([cut, bad], "no recording to export: 1 of 2 unreadable (the first: "),
+        ([cut, bad], "no recording to export: of the 2 given, 1 unreadable (the first: "),
     ):
         assert main(["export", "lerobot", *map(str, given), "--out", str(tmp_path / "x")]) == 2
         err = capsys.readouterr().err.strip().splitlines()

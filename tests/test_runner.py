@@ -447,6 +447,10 @@ def test_an_exception_in_the_finger_channel_aborts_the_trial_and_keeps_the_recor
     rec = read_recording(out / "log.mcap")
     assert rec.complete and rec.meta["aborted_by"] == "TypeError: injected bug"
     assert "injected bug" in rec.meta["aborted"]
+    # the command says one line; where the bug is stays in the recording
+    where = rec.meta["aborted_traceback"]
+    assert where.startswith("Traceback (most recent call last):")
+    assert where.rstrip().endswith("TypeError: injected bug") and "solve" in where, where
     assert rec.meta["aborted_at_s"] == pytest.approx(rec.t[-1])
     # every step up to the fault is kept, with its hand frame; nothing was scored
     _, frames = read_hand_frames(out / "log.mcap")

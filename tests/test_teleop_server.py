@@ -1521,14 +1521,18 @@ def test_a_recorded_live_session_says_what_its_scoring_found(tmp_path, monkeypat
 
     result = fixture_synthetic_trial(2, tmp_path / "t")
     capsys.readouterr()
-    handed: list = []
 
-    def serve(args, make_session, report=None):
-        handed.append(report)
-        report(result)
-        return 0
+    class Scored:  # the session as the real one ends: run returns, close scores it
+        def __init__(self, *args, **kwargs) -> None:
+            self.scene: dict = {}
 
-    monkeypatch.setattr(live_cli, "serve", serve)
+        def run(self) -> None:
+            pass
+
+        def close(self) -> dict:
+            return result
+
+    monkeypatch.setattr(live_cli, "_live_session", Scored)
     assert main(["teleop", "serve", "--port", "0", "--record", str(tmp_path / "s")]) == 0
     out = capsys.readouterr().out.splitlines()
     assert "  scored: metrics.json, fig_ctb_body_frame.png, fig_route.png written" in out

@@ -1280,9 +1280,11 @@ def test_a_physics_step_outside_the_validated_two_says_what_it_costs(capsys) -> 
     assert capsys.readouterr().err == ""
     _check_physics_dt(0.0001)
     _check_physics_dt(0.005)
-    slower, unvalidated = capsys.readouterr().err.splitlines()
+    _check_physics_dt(0.00125)  # between the two, dividing 20 ms (16 steps): not validated
+    slower, unvalidated, between = capsys.readouterr().err.splitlines()
     assert slower.startswith("payload: warning: --physics-dt 0.0001: 10 times the paper's 1 kHz")
     assert unvalidated.startswith("payload: warning: --physics-dt 0.005: not validated")
+    assert between.startswith("payload: warning: --physics-dt 0.00125: not validated")
 
 
 def test_cli_bench_trial_accounts_for_its_time(tmp_path: Path, capsys, fresh_checks) -> None:

@@ -220,7 +220,11 @@ def check_plausible(design: Any, data: dict[str, Any]) -> None:
             "finger.pad.modulus",
             f"{modulus:g} Pa is {'softer' if soft else 'stiffer'} than any pad material "
             f"({PAD_MODULUS_PA[0]:g} to {PAD_MODULUS_PA[1]:g} Pa, a gel to a hard plastic)"
-            + (f": did you mean {modulus:g} MPa = {modulus * 1e6:g}?" if soft else "")
+            + (
+                f": did you mean {modulus:g} MPa = {modulus * 1e6:g}?"
+                if soft and PAD_MODULUS_PA[0] <= modulus * 1e6 <= PAD_MODULUS_PA[1]
+                else ""
+            )
             + " (the design file is in Pa)",
         )
     for joint in dataclasses.fields(f.limits):

@@ -32,7 +32,7 @@ from payload.cliutil import (
     say_stage,
 )
 from payload.errors import STOP_SIGNALS, PayloadError
-from payload.folders import CAMPAIGN_FILES, TRIAL_FILES, other_results
+from payload.folders import other_results
 
 SessionFactory = Callable[..., Any]
 """Makes the live session: ``(hub, record, payload=..., collisions=...)``, an object with
@@ -168,15 +168,10 @@ def _status_printer(hub: Any, stop: threading.Event, interval: float) -> None:
 def _check_record(record: Path | None) -> None:
     if record is None:
         return
-    for name in (*TRIAL_FILES, *CAMPAIGN_FILES):
-        if (record / name).exists():
-            raise TeleopCliError(
-                f"--record {record}: {name} already exists (choose a new folder; recordings "
-                "are never overwritten)"
-            )
-    # a file on the way, a folder that cannot be made or written in, another command's
-    # results: one line now, not a traceback once the operator has calibrated
-    out_folder(record, "--record", holding=other_results("trial", "campaign"))
+    # a file on the way, a folder that cannot be made or written in, any command's results
+    # (a trial's recordings are never replaced): one line now, not a traceback once the
+    # operator has calibrated
+    out_folder(record, "--record", holding=other_results())
 
 
 def _check_bus_options(args: argparse.Namespace) -> None:

@@ -288,23 +288,27 @@ UNREADABLE = "unreadable"
 not be read."""
 
 
-def _nothing_to_export(given: int, unreadable: dict[Path, str]) -> str:
-    """Why an export of ``given`` recordings has none left: every one unfinished, or
-    ``unreadable`` (source -> why) among them."""
+def _nothing_to_export(given: int, unreadable: dict[Path, str], empty: int = 0) -> str:
+    """Why an export of ``given`` recordings has none left: every one unfinished, ``empty``
+    of them with no step after calibration, or ``unreadable`` (source -> why) among them."""
     unfinished = "--include-unfinished exports them"
-    if not unreadable:
+    left = given - len(unreadable) - empty  # of unfinished runs
+    parts = []
+    if unreadable:
+        src, why = next(iter(unreadable.items()))
+        parts.append(f"{len(unreadable)} unreadable (the first: {src}: {why})")
+    if empty:
+        parts.append(f"{empty} without steps after calibration")
+    if left:
+        parts.append(f"{left} of unfinished runs ({unfinished})")
+    if parts == [f"{left} of unfinished runs ({unfinished})"]:
         return (
             "every recording given is of an unfinished run (aborted, cut short or stopped "
             f"early); {unfinished}"
         )
-    src, why = next(iter(unreadable.items()))
-    first = f"the first: {src}: {why}"
-    if len(unreadable) == given:
-        return f"no recording to export: all {given} given are unreadable ({first})"
-    return (
-        f"no recording to export: {len(unreadable)} of {given} unreadable ({first}), the "
-        f"others of unfinished runs ({unfinished})"
-    )
+    if len(parts) == 1:
+        return f"no recording to export: all {given} given are {parts[0].split(' ', 1)[1]}"
+    return f"no recording to export: of the {given} given, {', '.join(parts)}"
 
 
 def export_lerobot(
@@ -405,7 +409,7 @@ def export_lerobot(
         if why.get(src) is not None
     ]
     if len(left_out) == len(sources):
-        raise LeRobotExportError(_nothing_to_export(len(sources), unreadable))
+        raise LeRobotExportError(_nothing_to_export(len(sources), unreadable, len(empty)))
     for item in left_out:
         hint = "; --include-unfinished exports it" if item["kind"] == UNFINISHED else ""
         log.warning("%s: left out (%s%s)", item["source"], item["why"], hint)

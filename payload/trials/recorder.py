@@ -215,17 +215,24 @@ class TrialRecorder:
         """Mark the recording aborted by ``exc``, after the steps made so far reach the
         file (a step that cannot be made is left out: those before it are in the file).
 
+        The metadata gains ``aborted_by``, ``aborted_at_s`` and ``aborted_traceback`` (the
+        exception's traceback as Python prints it).
+
         Returns:
             What aborted it (``"<type>: <message>"``) and the time [s] of the last step in
             the file (0 when none).
         """
+        import traceback
+
         what = f"{type(exc).__name__}: {exc}"
         try:
             self.flush()
         except RecordingError:
             pass
         at = max(0.0, self.last_written_t)
-        self.write_meta({"aborted_by": what, "aborted_at_s": at})
+        # where it came from, for the bug report (a command prints only the line above)
+        where = "".join(traceback.format_exception(exc))
+        self.write_meta({"aborted_by": what, "aborted_at_s": at, "aborted_traceback": where})
         return what, at
 
     def flush(self) -> None:

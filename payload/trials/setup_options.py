@@ -6,6 +6,7 @@ link delay), their checks and the seeds', and the resolution of the ones left ou
 from __future__ import annotations
 
 import argparse
+import math
 from typing import Any
 
 from payload.cliutil import warn
@@ -154,14 +155,14 @@ VALIDATED_PHYSICS_DT = 2 * PHYSICS_DT
 
 def physics_dt_note(dt: float) -> str | None:
     """What a user should know of a usable step that is not one of the two validated ones
-    (None: the paper's or the validated faster one): a smaller one only costs time, a
-    larger one was never checked against the paper's."""
+    (None: the paper's or the validated faster one): a smaller one only costs time, any
+    other larger one was never checked against the paper's."""
     if dt < PHYSICS_DT:
         return (
             f"--physics-dt {dt:g}: {PHYSICS_DT / dt:g} times the paper's {1e-3 / PHYSICS_DT:g} "
             "kHz steps, so the physics takes about as many times longer"
         )
-    if dt > VALIDATED_PHYSICS_DT:
+    if not (math.isclose(dt, PHYSICS_DT) or math.isclose(dt, VALIDATED_PHYSICS_DT)):
         return (
             f"--physics-dt {dt:g}: not validated (only {VALIDATED_PHYSICS_DT:g} s was, "
             "analyses/physics-dt/compare.md); contact and the trial's results may differ "
