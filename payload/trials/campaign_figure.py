@@ -19,6 +19,7 @@ from matplotlib.text import Text
 
 from payload.folders import CAMPAIGN_FIGURE, tagged
 from payload.trials.figures import save_figure
+from payload.trials.summary_fields import CAP_STOPPED
 
 OURS, PAPER = 0.0, 1.0
 """x positions of this campaign's column and the paper's in every panel."""
@@ -46,7 +47,7 @@ def campaign_figure(
     axes = fig.subplots(1, len(labels))
     n_ok = summary.get("success", 0)
     n_capped = int(summary.get("capped") or 0)
-    capped = f", {n_capped} stopped by the --max-time cap" if n_capped else ""
+    capped = f", {n_capped} {CAP_STOPPED}" if n_capped else ""
     _fit_width(
         fig.suptitle(
             f"{title or summary.get('title') or 'Campaign'}\n{n_ok}/{summary.get('n', 0)} "

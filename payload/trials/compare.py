@@ -31,7 +31,7 @@ from payload.folders import METRICS, RECORDING, SUMMARY, trial_dir
 from payload.schema import ENDED_BY_CAP
 from payload.trials.records import FIELD_SPECS, HANDS_TOPIC, STEP_TOPIC, RecordingError
 from payload.trials.setup_options import RUN_SETTINGS
-from payload.trials.summary_fields import METRIC_KEYS, METRIC_LABELS
+from payload.trials.summary_fields import CAP_STOPPED, METRIC_KEYS, METRIC_LABELS
 from payload.trials.trial_results import read_metrics
 
 NOT_RESULTS = ("provenance", "ended_by", "device", "replay", "loop_overruns")
@@ -423,7 +423,7 @@ def comparison_notes(result: dict[str, Any]) -> list[str]:
         cut = [side for side in ("A", "B") if row.get(f"ended_by_{side.lower()}") == ENDED_BY_CAP]
         if cut:
             notes.append(
-                f"Trial `{shown_name(row)}` was stopped by the --max-time cap in "
+                f"Trial `{shown_name(row)}` was {CAP_STOPPED} in "
                 f"{' and '.join(cut)}: a session cut short, so its metrics are not a whole "
                 "trial's."
             )

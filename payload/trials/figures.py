@@ -33,6 +33,7 @@ from payload.trials.metrics import (
 )
 from payload.trials.recorder import Recording
 from payload.trials.records import MODULE_NAMES
+from payload.trials.summary_fields import CAP_STOPPED
 
 PHASE_COLORS: dict[str, str] = {
     "calibration": "#d9d9d9",
@@ -171,7 +172,7 @@ def save_figure(fig: Figure, path: Path, dpi: int, png_compression: int | None =
     return path
 
 
-CAP_LABEL = "session stopped by the --max-time cap"
+CAP_LABEL = f"session {CAP_STOPPED}"
 """Fig. 3's note on a trial the ``--max-time`` cap stopped (the title has no room for it)."""
 
 _LABEL_SPOTS: tuple[tuple[float, float, str, str], ...] = (

@@ -24,6 +24,7 @@ from payload.trials.summary_fields import (
     METRIC_LABELS,
     NO_CONTACT,
     PAPER_RESULTS,
+    STATION_ZONES,
     CampaignError,
     least_clearance_text,
     without_contact,
@@ -331,7 +332,7 @@ def zones_text(result: dict[str, Any]) -> str:
     name = zones_name(result)
     if name is None:
         return ""
-    return ", the station's zones" if name == "the station's" else f", zones {name}"
+    return f", {STATION_ZONES} zones" if name == STATION_ZONES else f", zones {name}"
 
 
 def print_trial_summary(result: dict[str, Any], given: str = "") -> None:

@@ -80,6 +80,12 @@ def least_clearance_text(mm: Any, cap_mm: Any, *, always_cap: bool = False) -> s
     return f"{mm} mm (measured up to {cap_mm:g} mm)" if always_cap else f"{mm} mm"
 
 
+CAP_STOPPED = "stopped by the --max-time cap"
+"""How a trial the ``--max-time`` cap ended is said, in lines, tables and figures."""
+
+STATION_ZONES = "the station's"
+"""What :func:`zones_name` calls the station's own zones (a trial run without ``--zones``)."""
+
 CAPPED = "capped"
 """A per-trial row's note beside its success when the ``--max-time`` cap ended its session
 before the operator finished (``ended_by`` ``"max_time"``: success is still scored on what
@@ -94,7 +100,7 @@ def zones_name(result: Mapping[str, Any]) -> str | None:
         return None
     zones = result["zones"]
     if zones is None:
-        return "the station's"
+        return STATION_ZONES
     count = {True: 0, False: 0}
     for obj in zones:
         count[bool(obj.get("safe"))] += len(obj.get("sequence") or [])
@@ -104,10 +110,12 @@ def zones_name(result: Mapping[str, Any]) -> str | None:
 
 __all__ = [
     "CAPPED",
+    "CAP_STOPPED",
     "METRIC_KEYS",
     "METRIC_LABELS",
     "NO_CONTACT",
     "PAPER_RESULTS",
+    "STATION_ZONES",
     "CampaignError",
     "least_clearance_text",
     "without_contact",

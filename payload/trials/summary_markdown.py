@@ -10,6 +10,7 @@ from typing import Any
 
 from payload.schema import ENDED_BY_CAP
 from payload.trials.summary_fields import (
+    CAP_STOPPED,
     CAPPED,
     METRIC_KEYS,
     METRIC_LABELS,
@@ -259,9 +260,9 @@ def _capped_lines(n_capped: int) -> list[str]:
         return []
     return [
         "",
-        f"{n_capped} of the trials {'was' if n_capped == 1 else 'were'} stopped by the "
-        f'--max-time cap before the operator finished ("{CAPPED}" in the table below); '
-        "success is scored on what was recorded.",
+        f"{n_capped} of the trials {'was' if n_capped == 1 else 'were'} {CAP_STOPPED} "
+        f'before the operator finished ("{CAPPED}" in the table below); success is scored '
+        "on what was recorded.",
     ]
 
 

@@ -14,7 +14,7 @@ from collections.abc import Callable
 from typing import Any
 
 from payload.schema import ENDED_BY_CAP
-from payload.trials.summary_fields import METRIC_KEYS, METRIC_LABELS, PAPER_RESULTS
+from payload.trials.summary_fields import CAP_STOPPED, METRIC_KEYS, METRIC_LABELS, PAPER_RESULTS
 from payload.trials.summary_markdown import _DIGITS, _fmt, _run_lines, _stat_text
 
 _SHORT = {
@@ -43,7 +43,7 @@ def summary_headline(summary: dict[str, Any]) -> str:
     if summary.get("errors"):
         parts.append(f"{summary['errors']} error(s)")
     if summary.get("capped"):
-        parts.append(f"{summary['capped']} stopped by the --max-time cap")
+        parts.append(f"{summary['capped']} {CAP_STOPPED}")
     for key in ("rms_mm", "peak_mm", "duration_s"):
         name, unit = _SHORT[key]
         stat, d = summary.get(key), _DIGITS[key]
@@ -79,7 +79,7 @@ def trial_line(result: dict[str, Any], done: int, total: int) -> str:
         return head + f"error: {str(result['error']).splitlines()[0]}{tail}"
     parts = ["succeeded" if result.get("success") else "failed"]
     if result.get("ended_by") == ENDED_BY_CAP:  # why, when a cap cut the session short
-        parts[0] += " (stopped by the --max-time cap)"
+        parts[0] += f" ({CAP_STOPPED})"
     for key in ("rms_mm", "duration_s"):
         name, unit = _SHORT[key]
         value = result.get(key)
