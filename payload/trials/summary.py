@@ -108,7 +108,8 @@ def _summary_core(rows: list[dict[str, Any]]) -> dict[str, Any]:
             **{k: r.get(k) for k in METRIC_KEYS},
             "final_module": r.get("final_module"),
             **{k: r.get(k) for k in STATION_KEYS if k in r},
-            **({"ended_by": r["ended_by"]} if r.get("ended_by") else {}),
+            # a trial the cap stopped says so (the others' ends are their tasks')
+            **({"ended_by": ENDED_BY_CAP} if r.get("ended_by") == ENDED_BY_CAP else {}),
             "error": r.get("error"),
             **({"traceback": r["traceback"]} if r.get("traceback") else {}),
             "wall_s": r.get("wall_s"),
