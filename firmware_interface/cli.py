@@ -120,13 +120,30 @@ def _cmd_scan(args: argparse.Namespace) -> int:
         emit_json({"device": device, "port": device, "servos": servos, "missing": missing})
     else:
         for s in servos:
+            other = s["model_number"] != smap.model_number and s["joint"] is not None
+            note = f"  (not the map's {smap.model_number})" if other else ""
             print(f"ID {s['id']:3d}  model {s['model_number']}  firmware {s['firmware']}  "
-                  f"{s['joint'] or '-'}")  # fmt: skip
+                  f"{s['joint'] or '-'}{note}")  # fmt: skip
         for s in missing:
             print(f"ID {s['id']:3d}  not answering ({s['joint']})")
+        if servos:  # a look, not a check: what it found, and what `hw check` would refuse
+            print(_scan_summary(servos, missing, smap))
     if not servos:  # listed; but a bus where no servo answers is a failed look, as in check
         raise CheckFailed(nobody_answered(device))
     return 0
+
+
+def _scan_summary(servos: list[dict[str, Any]], missing: list[dict[str, Any]], smap: Any) -> str:
+    """``hw scan``'s last line: how many of the map's servos answered, and those that
+    ``hw check`` would refuse (missing, another model on a mapped ID)."""
+    mapped = [s for s in servos if s["joint"] is not None]
+    other = [s for s in mapped if s["model_number"] != smap.model_number]
+    head = f"{len(mapped)} of the map's {len(smap.ids)} servos answering"
+    if not (missing or other):
+        return head
+    said = [f"{len(missing)} not answering"] if missing else []
+    said += [f"{len(other)} of another model"] if other else []
+    return f"{head}; {', '.join(said)}: `payload hw check` refuses this bus"
 
 
 SILENT_RUN = 2

@@ -528,3 +528,19 @@ def test_hw_run_given_a_trials_folder_names_the_recording_in_it(tmp_path, capsys
         f"payload: error: --replay: {trial}: is a folder, not a recording: give "
         f"{trial / 'log.mcap'}"
     ], err
+
+
+def test_scan_ends_with_what_it_found_and_what_check_would_refuse(capsys):
+    """``hw scan`` listed the IDs and stopped: a missing servo and one of another model on
+    a mapped ID (model 1060, said without comment) read like a bus ready to run. Its last
+    line counts the map's servos answering and names what ``hw check`` refuses (the look
+    itself still exits 0, as documented); the other model's row says so."""
+    with _emulating("missing:7", "model:5:1060") as port:
+        assert main(["hw", "scan", "--device", port, "--latency-ms", LAT]) == 0
+        lines = capsys.readouterr().out.splitlines()
+    row = next(x for x in lines if x.startswith("ID   5 "))
+    assert row.endswith("B_mcp_flex  (not the map's 1240)"), row
+    assert lines[-1] == (
+        "17 of the map's 18 servos answering; 1 not answering, 1 of another model: "
+        "`payload hw check` refuses this bus"
+    ), lines
