@@ -115,29 +115,31 @@ def _cmd_scan(args: argparse.Namespace) -> int:
         for i, (m, fw) in sorted(found.items())
     ]
     missing = [{"id": i, "joint": j} for i, j in known.items() if i not in found]
+    # a mapped ID answering as another model: `hw check` refuses it (WrongModelError)
+    other = {s["id"] for s in servos if s["joint"] and s["model_number"] != smap.model_number}
     if args.json:
         # "port": the device's field name before --device (kept: JSON fields are never renamed)
         emit_json({"device": device, "port": device, "servos": servos, "missing": missing})
     else:
         for s in servos:
-            other = s["model_number"] != smap.model_number and s["joint"] is not None
-            note = f"  (not the map's {smap.model_number})" if other else ""
+            note = f"  (not the map's {smap.model_number})" if s["id"] in other else ""
             print(f"ID {s['id']:3d}  model {s['model_number']}  firmware {s['firmware']}  "
                   f"{s['joint'] or '-'}{note}")  # fmt: skip
         for s in missing:
             print(f"ID {s['id']:3d}  not answering ({s['joint']})")
         if servos:  # a look, not a check: what it found, and what `hw check` would refuse
-            print(_scan_summary(servos, missing, smap))
+            print(_scan_summary(servos, missing, other, smap))
     if not servos:  # listed; but a bus where no servo answers is a failed look, as in check
         raise CheckFailed(nobody_answered(device))
     return 0
 
 
-def _scan_summary(servos: list[dict[str, Any]], missing: list[dict[str, Any]], smap: Any) -> str:
+def _scan_summary(
+    servos: list[dict[str, Any]], missing: list[dict[str, Any]], other: set[int], smap: Any
+) -> str:
     """``hw scan``'s last line: how many of the map's servos answered, and those that
-    ``hw check`` would refuse (missing, another model on a mapped ID)."""
+    ``hw check`` would refuse (``missing``, ``other``: the IDs of another model)."""
     mapped = [s for s in servos if s["joint"] is not None]
-    other = [s for s in mapped if s["model_number"] != smap.model_number]
     head = f"{len(mapped)} of the map's {len(smap.ids)} servos answering"
     if not (missing or other):
         return head

@@ -23,7 +23,7 @@ import numpy as np
 from firmware_interface.control_table import MODEL_NUMBER, RAD_PER_TICK
 from payload.design.params import FINGER_JOINTS, Design, load_design
 from payload.design.tree import ALL_JOINTS
-from payload.errors import PayloadError, not_text
+from payload.errors import PayloadError, closest, not_text
 from payload.schema import PayloadCommand
 
 if sys.version_info >= (3, 11):
@@ -154,10 +154,8 @@ def _servo(entry: Any, k: int, design: Design, source: str) -> ServoSpec:
         raise ServoMapError(f"{where}: unknown key(s) {sorted(unknown)}")
     joint = entry.get("joint")
     if joint not in ALL_JOINTS:
-        import difflib
-
-        close = difflib.get_close_matches(str(joint), ALL_JOINTS, n=1)
-        hint = f" (did you mean {close[0]!r}?)" if close else ""
+        close = closest(str(joint), ALL_JOINTS)
+        hint = f" (did you mean {close!r}?)" if close else ""
         raise ServoMapError(f"{where}.joint: {joint!r} is not a joint of the design{hint}")
     where = f"{source}: servo {joint}"
     dxl_id = entry.get("id")

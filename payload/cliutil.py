@@ -31,7 +31,7 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any, NoReturn
 
-from payload.errors import PayloadError
+from payload.errors import PayloadError, closest
 from payload.folders import HANDS, RECORDING, held
 from payload.project import (
     DESIGN_FILE,
@@ -156,25 +156,22 @@ class OneLineParser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message}{hint}; see {self.prog} --help\n")
 
     def _did_you_mean(self, message: str) -> str:
-        import difflib
         import re
 
         choice = re.search(r"invalid choice: '([^']*)' \(choose from (.*)\)$", message)
         if choice:
             options = [c.strip().strip("'") for c in choice.group(2).split(",")]
-            close = difflib.get_close_matches(choice.group(1), options, n=1)
-            return f" (did you mean {close[0]!r}?)" if close else ""
+            close = closest(choice.group(1), options)
+            return f" (did you mean {close!r}?)" if close else ""
         if not message.startswith("unrecognized arguments: "):
             return ""
         known = [o for o in self._option_string_actions if o.startswith("--")]
-        said = []
-        for word in message.removeprefix("unrecognized arguments: ").split():
-            name = word.split("=", 1)[0]
-            if name.startswith("--"):
-                said += [f"{m} for {name}" for m in difflib.get_close_matches(name, known, n=1)]
-        if len(said) == 1:
-            return f" (did you mean {said[0].split(' for ')[0]}?)"
-        return f" (did you mean {', '.join(said)}?)" if said else ""
+        names = [w.split("=", 1)[0] for w in message.split(": ", 1)[1].split()]
+        near = {n: m for n in names if n.startswith("--") and (m := closest(n, known))}
+        if len(near) == 1:
+            return f" (did you mean {next(iter(near.values()))}?)"
+        said = ", ".join(f"{m} for {n}" for n, m in near.items())
+        return f" (did you mean {said}?)" if near else ""
 
 
 OUR_LOGGERS = ("payload", "firmware_interface")

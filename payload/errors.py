@@ -38,6 +38,15 @@ def not_text(exc: UnicodeDecodeError, kind: str) -> str:
     return f"not a text (UTF-8 {kind}) file: byte {exc.start} is 0x{exc.object[exc.start]:02x}"
 
 
+def closest(word: str, options: Any) -> str | None:
+    """The one of ``options`` a misspelt ``word`` is closest to (difflib's ratio, its
+    default cutoff), for a "did you mean" in a one-line error; None when none is close."""
+    import difflib
+
+    near = difflib.get_close_matches(word, list(options), n=1)
+    return near[0] if near else None
+
+
 def counted(n: int, noun: str) -> str:
     """``n`` and ``noun``, plural but for one (``1 point``, ``2 points``; nouns taking
     ``-s``)."""

@@ -228,3 +228,12 @@ def refused_kernel(monkeypatch, caplog, tmp_path) -> Callable[..., Any]:
                 forget.cache_clear()
 
     return refused
+
+
+def reg(table: bytes, name: str) -> int:
+    """The register ``name``'s value in a servo's control table (the emulator's bytes),
+    decoded from the table layout: what a row the driver read must show."""
+    from firmware_interface.control_table import BY_NAME, decode
+
+    r = BY_NAME[name]
+    return decode(r, table[r.address : r.address + r.size])

@@ -14,8 +14,9 @@ import time
 
 import numpy as np
 import pytest
+from conftest import reg
 
-from firmware_interface.control_table import ADDR, BY_NAME, TICKS_PER_REV, decode
+from firmware_interface.control_table import ADDR, TICKS_PER_REV
 from firmware_interface.driver import DynamixelDriver
 from firmware_interface.emulator import EmulatorProcess
 from firmware_interface.errors import HardwareFault, HomingError, NotHomedError
@@ -24,11 +25,6 @@ from firmware_interface.servo_model import OVERLOAD_S, ServoModel
 from payload.schema import PayloadCommand
 
 LAT = 50.0  # [ms] reply timeout allowance on a busy machine
-
-
-def reg(table: bytes, name: str) -> int:
-    r = BY_NAME[name]
-    return decode(r, table[r.address : r.address + r.size])
 
 
 @pytest.fixture(scope="module")

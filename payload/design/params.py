@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-import difflib
 import functools
 import math
 import sys
@@ -32,7 +31,7 @@ from payload.design.param_types import (
     Range,
     design_to_dict,
 )
-from payload.errors import DesignError, as_toml, is_number, not_text
+from payload.errors import DesignError, as_toml, closest, is_number, not_text
 from payload.project import current_project, default_design_text
 
 if sys.version_info >= (3, 11):
@@ -90,8 +89,8 @@ def _build(cls: type, data: Any, path: str) -> Any:
     for key in data:
         if key not in known:
             where = f"{path}.{key}" if path else key
-            near = difflib.get_close_matches(key, known, n=1)  # a typo: the key it was
-            hint = f"did you mean {near[0]}? " if near else ""
+            near = closest(key, known)  # a typo: the key it was
+            hint = f"did you mean {near}? " if near else ""
             raise DesignError(
                 where, f"unknown key ({hint}expected one of: {', '.join(sorted(known))})"
             )

@@ -224,11 +224,8 @@ def zone_boxes(world, meta: dict | None = None) -> tuple[Boxes, Boxes]:
     world's ISS layout; no keep-out)."""
     from payload.sim.zones import StationZones, station_zones
 
-    recorded = (meta or {}).get("zones")
-    if recorded is not None:  # a trial run with --zones records them (as data)
-        zones = StationZones.from_json(recorded, "the recording's zones")
-    else:
-        zones = station_zones(world.layout)
+    # a trial run with --zones records them (as data); null or none: the station's
+    zones = StationZones.recorded(meta or {}) or station_zones(world.layout)
     return _boxes(zones.keepin), _boxes(zones.keepout)
 
 

@@ -8,7 +8,6 @@ from ``A`` to ``B``. The grid is every combination, in the order the keys were g
 
 from __future__ import annotations
 
-import difflib
 import itertools
 import math
 import sys
@@ -19,7 +18,7 @@ import numpy as np
 
 from payload.design.edit import set_in_text
 from payload.design.params import Design, design_from_dict, design_to_dict
-from payload.errors import PayloadError
+from payload.errors import PayloadError, closest
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -127,8 +126,8 @@ def check_axes(axes: list[Axis], base: Design) -> None:
         try:
             value = _lookup(plain, axis.key)
         except KeyError:
-            near = difflib.get_close_matches(axis.key, _number_keys(plain), n=1)
-            hint = f" (did you mean {near[0]}?)" if near else ""
+            near = closest(axis.key, _number_keys(plain))
+            hint = f" (did you mean {near}?)" if near else ""
             raise SweepError(f"--set {axis.key}: not a design key{hint}") from None
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise SweepError(f"--set {axis.key}: not a number in the design (it is {value!r})")

@@ -29,6 +29,7 @@ import numpy as np
 from payload.errors import PayloadError
 from payload.folders import METRICS, RECORDING, SUMMARY, trial_dir
 from payload.schema import ENDED_BY_CAP
+from payload.teleop.live import SIMULATOR
 from payload.trials.records import FIELD_SPECS, HANDS_TOPIC, STEP_TOPIC, RecordingError
 from payload.trials.setup_options import RUN_SETTINGS
 from payload.trials.summary_fields import CAP_STOPPED, METRIC_KEYS, METRIC_LABELS
@@ -122,7 +123,7 @@ def _setup_value(metrics: dict[str, Any], key: str) -> Any:
     """A trial's setting as compared: its recorded value; the driver of a trial that
     records none is the simulator's (only a hardware run records one)."""
     if key == "driver":
-        return metrics.get("driver") or "simulator"
+        return metrics.get("driver") or SIMULATOR
     return metrics.get(key)
 
 

@@ -41,7 +41,7 @@ from payload.errors import PayloadError
 from payload.folders import METRICS, RECORDING
 from payload.trials.reading import cut_reason
 from payload.trials.recorder import Recording, RecordingError, read_recording
-from payload.trials.records import PHASES
+from payload.trials.records import CALIBRATION
 from payload.trials.setup_options import MAX_SEED
 
 log = logging.getLogger(__name__)
@@ -146,16 +146,12 @@ def resolve_runs(runs: Sequence[str | Path]) -> list[Path]:
     return out
 
 
-CAL = PHASES[0]
-"""The phase of a recording's steps before teleoperation (``calibration``: no episode's
-frames)."""
-
 NO_STEPS = "no steps after calibration"
 """Why a recording whose session ended during its calibration has no episode."""
 
 
 def _episode_frames(rec: Recording, source: Path, fps: int) -> tuple[np.ndarray, np.ndarray]:
-    keep = rec.phase != CAL
+    keep = rec.phase != CALIBRATION
     if not np.any(keep):
         raise LeRobotExportError(f"{source}: {NO_STEPS}")
     first = int(np.flatnonzero(keep)[0])
@@ -293,22 +289,23 @@ def _nothing_to_export(given: int, unreadable: dict[Path, str], empty: int = 0) 
     of them with no step after calibration, or ``unreadable`` (source -> why) among them."""
     unfinished = "--include-unfinished exports them"
     left = given - len(unreadable) - empty  # of unfinished runs
-    parts = []
-    if unreadable:
-        src, why = next(iter(unreadable.items()))
-        parts.append(f"{len(unreadable)} unreadable (the first: {src}: {why})")
-    if empty:
-        parts.append(f"{empty} without steps after calibration")
-    if left:
-        parts.append(f"{left} of unfinished runs ({unfinished})")
-    if parts == [f"{left} of unfinished runs ({unfinished})"]:
+    if not (unreadable or empty):
         return (
             "every recording given is of an unfinished run (aborted, cut short or stopped "
             f"early); {unfinished}"
         )
-    if len(parts) == 1:
-        return f"no recording to export: all {given} given are {parts[0].split(' ', 1)[1]}"
-    return f"no recording to export: of the {given} given, {', '.join(parts)}"
+    kinds = []  # (how many, what they are)
+    if unreadable:
+        src, why = next(iter(unreadable.items()))
+        kinds.append((len(unreadable), f"unreadable (the first: {src}: {why})"))
+    if empty:
+        kinds.append((empty, "without steps after calibration"))
+    if left:
+        kinds.append((left, f"of unfinished runs ({unfinished})"))
+    if len(kinds) == 1:
+        return f"no recording to export: all {given} given are {kinds[0][1]}"
+    listed = ", ".join(f"{n} {what}" for n, what in kinds)
+    return f"no recording to export: of the {given} given, {listed}"
 
 
 def export_lerobot(
@@ -397,7 +394,9 @@ def export_lerobot(
     why.update(unreadable)
     # a session that ended during its calibration has no episode, unfinished or not (one
     # such recording given alone raises its own error, below)
-    empty = {src for src, rec in loaded if len(sources) > 1 and not np.any(rec.phase != CAL)}
+    empty = {
+        src for src, rec in loaded if len(sources) > 1 and not np.any(rec.phase != CALIBRATION)
+    }
     why.update({src: NO_STEPS for src in empty})
     left_out = [
         {

@@ -43,6 +43,7 @@ from payload.errors import PayloadError
 from payload.rotations import rotate_by_quats
 from payload.trials.reading import aborted_note
 from payload.trials.recorder import MODULES, Recording
+from payload.trials.records import CALIBRATION
 
 CONFIRM_MIN_S = 0.5
 """The workbench's *confirmed* contact: opposing contact held at least this long [s]. The
@@ -305,7 +306,7 @@ def compute_metrics(
         i = int(np.flatnonzero(np.diff(t) <= 0)[0])
         raise MetricsError(f"step times do not increase at sample {i + 1} (t = {t[i + 1]} s)")
 
-    after_cal = np.flatnonzero(recording.phase != "calibration")
+    after_cal = np.flatnonzero(recording.phase != CALIBRATION)
     duration = float(t[-1] - t[after_cal[0]]) if after_cal.size else 0.0
     net = float(np.linalg.norm(recording.ctb_pos[-1] - recording.ctb_pos[0]))
 

@@ -93,6 +93,9 @@ PHASES: tuple[str, ...] = (
 )
 """Task phases a step can be in (the paper's four plus calibration and braking)."""
 
+CALIBRATION = PHASES[0]
+"""The phase before teleoperation (``calibration``): no metric's or episode's steps."""
+
 MODULES: tuple[str, ...] = ("kibo", "hatch", "node2", "outside")
 """Where the CTB centre of mass is: a module, the hatch between them, or outside both."""
 

@@ -92,9 +92,9 @@ def _one_campaign(root: Path, dirs: list[Path], recording_meta: Any) -> None:
         seed: Any = None
         if (d / METRICS).is_file():
             try:
-                seed = json.loads((d / METRICS).read_text(encoding="utf-8")).get("seed")
-            except (OSError, ValueError, AttributeError):
-                seed = None  # read (and refused) with its own words below
+                seed = read_metrics(d / METRICS).get("seed")
+            except CampaignError:
+                seed = None  # refused with its own words below
         elif (d / RECORDING).is_file():
             seed = (recording_meta(d / RECORDING) or {}).get("seed")
         if not isinstance(seed, int) or isinstance(seed, bool):
