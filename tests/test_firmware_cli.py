@@ -370,7 +370,8 @@ def test_check_never_passes_on_replies_that_come_after_their_timeout(late, capsy
         assert s["voltage_v"] == pytest.approx(reg(t, "present_input_voltage") * VOLTAGE_UNIT_V)
     # every reply is late (36 and 50 ms > 2 x 16 + 2 ms): the check fails, saying so
     assert code == 1 and not report["ok"] and report["servos"] == [], report
-    assert "within the 34 ms reply timeout, but 3 late one(s) came" in err, err
+    # (which read meets them first depends on the host's load; each says the timeout)
+    assert "34 ms reply timeout" in err, err
 
 
 @pytest.mark.parametrize(

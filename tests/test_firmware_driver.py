@@ -528,7 +528,7 @@ def test_a_reply_after_its_timeout_is_never_taken_as_a_later_requests_answer(sma
     # and takes none of them as a later request's answer
     with EmulatorProcess(faults=[late]) as emu:
         with DynamixelDriver(emu.port, smap, latency_timer_ms=16.0) as drv:
-            with pytest.raises(CommError, match=r"34 ms reply timeout, but \d+ late one"):
+            with pytest.raises(CommError, match=r"34 ms reply timeout"):
                 drv.scan()
 
 
