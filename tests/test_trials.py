@@ -1076,6 +1076,43 @@ def test_a_rescoring_with_no_scored_trial_is_named_so(tmp_path: Path) -> None:
     ]
 
 
+def test_a_rescoring_as_recorded_writes_only_what_differs(tmp_path: Path, capsys) -> None:
+    """``--recompute`` with the definition each trial was recorded with gives a trial's own
+    ``metrics.json`` again: no tagged copy of it, nor of a summary that would equal the
+    campaign's (nothing written, and said). A trial whose ``metrics.json`` no longer says
+    what its recording scores to (here its RMS edited, as an older scoring would leave it)
+    gets its rescoring beside it, and the tagged summary; the other trial does not."""
+    from payload.cli import main
+    from payload.trials.campaign import run_campaign
+
+    run_campaign(fixture_synthetic_trial, [4, 6], tmp_path, workers=0, progress=False)
+    before = {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()}
+    assert main(["trials", "summarize", str(tmp_path), "--recompute", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["rescored_as_recorded"] == [4, 6] and out["n"] == 2
+    assert {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()} == before
+    assert main(["trials", "summarize", str(tmp_path), "--recompute"]) == 0
+    said = capsys.readouterr().out
+    assert "rescored 2 trial(s)" in said and "nothing written" in said
+
+    older = tmp_path / "trial-0006" / "metrics.json"
+    kept = json.loads(older.read_text())
+    older.write_text(json.dumps({**kept, "rms_mm": kept["rms_mm"] + 1.0}))
+    assert main(["trials", "summarize", str(tmp_path), "--recompute"]) == 0
+    said = capsys.readouterr().out
+    assert "of the 1 trial(s) whose scoring differs" in said and "the other 1" in said
+    tag = "contact-min0s-gap0s"  # the fixture's recorded definition: the paper's
+    new = sorted(p.relative_to(tmp_path).as_posix() for p in tmp_path.rglob(f"*.{tag}.*"))
+    assert new == [
+        f"fig_campaign.{tag}.png", f"summary.{tag}.json", f"summary.{tag}.md",
+        f"trial-0006/fig_ctb_body_frame.{tag}.png", f"trial-0006/fig_route.{tag}.png",
+        f"trial-0006/metrics.{tag}.json",
+    ]  # fmt: skip
+    assert json.loads((tmp_path / "trial-0006" / f"metrics.{tag}.json").read_text())[
+        "rms_mm"
+    ] == pytest.approx(kept["rms_mm"])
+
+
 def test_summarize_folder_rebuilds_and_rescores(tmp_path: Path) -> None:
     from payload.trials.campaign import load_trial_results, run_campaign
 

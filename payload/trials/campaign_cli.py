@@ -25,6 +25,7 @@ from payload.folders import (
     CAMPAIGN_FIGURE,
     CAMPAIGN_FILES,
     METRICS,
+    RECORDING,
     SUMMARY,
     SUMMARY_TEXT,
     held,
@@ -177,8 +178,8 @@ def _cmd_trials_summarize(args: argparse.Namespace) -> int:
         summary_markdown,
         write_summary,
     )
-    from payload.trials.scoring import MIXED_TAG, UNSCORED_TAG
-    from payload.trials.summary import campaign_title
+    from payload.trials.scoring import AS_RECORDED, MIXED_TAG, RESCORING, UNSCORED_TAG
+    from payload.trials.summary import campaign_summary, campaign_title
 
     for name in ("min_contact_s", "max_gap_s"):
         value = getattr(args, name)
@@ -232,6 +233,21 @@ def _cmd_trials_summarize(args: argparse.Namespace) -> int:
             setup[name] = scored[0].get(name) if len(values) == 1 else None
         title = campaign_title(len(results), setup) if scored else None
     out = Path(args.dir)
+    scored = [r for r in results if not r.get("error")]
+    again = [r for r in scored if r.get(RESCORING) == AS_RECORDED]
+    if rescore and scored and len(again) == len(scored):
+        # every trial's own scoring again: a tagged copy of each would say nothing new
+        summary = campaign_summary(results, title, previous.get("run"), prov)
+        said = {"out_dir": str(args.dir), "rescored_as_recorded": [r["seed"] for r in again]}
+        if args.json:
+            emit_json({**summary, **said})
+        else:
+            print(summary_markdown(summary, title))
+            print(f"rescored {len(again)} trial(s) from their {RECORDING} with the contact "
+                  f"definition each was recorded with: every figure as its {METRICS} says; "
+                  "nothing written (--min-contact-s or --max-gap-s rescores with another "
+                  "definition)")  # fmt: skip
+        return 0
     named = [out / tagged(name, tag) for name in (SUMMARY_TEXT, CAMPAIGN_FIGURE, SUMMARY)]
     before = {p: p.read_bytes() if p.is_file() else None for p in named}
     summary = write_summary(
@@ -244,17 +260,24 @@ def _cmd_trials_summarize(args: argparse.Namespace) -> int:
         force=args.force,
     )
     if args.json:
-        emit_json({**summary, "out_dir": str(args.dir)})
+        same = {"rescored_as_recorded": [r["seed"] for r in again]} if rescore else {}
+        emit_json({**summary, "out_dir": str(args.dir), **same})
     else:
         print(summary_markdown(summary, title))
         present = [p for p in named if p.is_file()]
         written = [p for p in present if p.read_bytes() != before[p]]
         kept = [p for p in present if p not in written]
-        rescored = " and each trial's metrics and figures beside theirs" if rescore else ""
+        trials = "each trial's metrics and figures beside theirs" if rescore else ""
+        if again:  # some trials' scoring came out as recorded, others' did not
+            trials = (
+                f"the metrics and figures of the {len(scored) - len(again)} trial(s) whose "
+                f"scoring differs from their {METRICS}, beside theirs (the other "
+                f"{len(again)} as recorded: not written)"
+            )
         if written:
-            print(f"wrote {', '.join(str(p) for p in written)}{rescored}")
+            print(f"wrote {', '.join(str(p) for p in written)}{' and ' * bool(trials)}{trials}")
         elif rescore:
-            print("wrote each trial's metrics and figures beside theirs")
+            print(f"wrote {trials}")
         if kept:
             print(f"unchanged (already what the trials give): {', '.join(str(p) for p in kept)}")
     return 0

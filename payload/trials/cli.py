@@ -206,7 +206,7 @@ def register(
         "--recompute",
         action="store_true",
         help="rescore every trial from its log.mcap (written beside the originals, named by "
-        "the contact definition)",
+        "the contact definition; a trial scored as its metrics.json says: not written)",
     )
     s.add_argument(
         "--force", action="store_true", help="replace summary or rescoring files that differ"

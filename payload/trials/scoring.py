@@ -36,7 +36,9 @@ def finish_trial(
     Writes ``metrics.json``, ``fig_ctb_body_frame.png`` and ``fig_route.png`` into
     ``out_dir``. The runner calls this after its loop ends. A rescoring (``beside``)
     writes them beside the originals, named by the contact definition
-    (``metrics.contact-min0.5s-gap0.1s.json``, ...), never over them. A file that exists
+    (``metrics.contact-min0.5s-gap0.1s.json``, ...), never over them; one with the
+    definition the trial was recorded with that gives every figure of its ``metrics.json``
+    again writes nothing (the result says ``RESCORING: AS_RECORDED``). A file that exists
     with other content is replaced only with ``force`` (through a temporary file and a
     rename); an identical one is left alone.
 
@@ -93,6 +95,9 @@ def finish_trial(
         rec_path.name if rec_path.resolve().parent == out.resolve() else str(rec_path)
     )
     tag = contact_tag(min_interval_s, max_gap_s) if beside else None
+    if beside and (min_interval_s, max_gap_s) == recorded and says(out / METRICS, result):
+        # the trial's own scoring again (its definition, the same figures): nothing new
+        return {**result, RESCORING: AS_RECORDED}
     changed = write_unless_changed(
         out / tagged(METRICS, tag), json.dumps(result, indent=2) + "\n", force=force
     )
@@ -101,6 +106,29 @@ def finish_trial(
         plot_ctb_body_frame(rec, figures[0], metrics)
         plot_route(rec, figures[1], modules if modules is not None else rec.meta.get("modules"))
     return result
+
+
+RESCORING = "rescoring"
+"""A rescored trial's key (not written to any file) for how it came out: :data:`AS_RECORDED`."""
+AS_RECORDED = "as recorded"
+"""A rescoring with the trial's recorded definition that gave its ``metrics.json`` again."""
+
+
+def says(path: Path, result: dict[str, Any]) -> bool:
+    """Whether the metrics file ``path`` holds every field of ``result`` with the same value
+    (compared as JSON writes them, so a value not a number equals itself); False when the
+    file is missing or not a JSON object."""
+    try:
+        held = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return False
+    if not isinstance(held, dict):
+        return False
+
+    def text(value: Any) -> str:
+        return json.dumps(value, sort_keys=True)
+
+    return all(k in held and text(held[k]) == text(v) for k, v in result.items())
 
 
 def _trial_setup(meta: dict[str, Any]) -> dict[str, Any]:
@@ -170,10 +198,13 @@ def write_metrics(out: str | Path, result: dict[str, Any]) -> Path:
 
 
 __all__ = [
+    "AS_RECORDED",
     "CONTACT_TAG",
     "MIXED_TAG",
+    "RESCORING",
     "contact_tag",
     "finish_trial",
     "rescorings",
+    "says",
     "write_metrics",
 ]

@@ -244,37 +244,14 @@ def campaign_title(n: int, setup: dict[str, Any]) -> str:
     return f"Cargo-transport campaign ({', '.join(parts)})"
 
 
-def write_summary(
+def campaign_summary(
     results: Sequence[dict[str, Any]],
-    out_dir: str | Path,
     title: str | None = None,
     run: dict[str, Any] | None = None,
     provenance: dict[str, Any] | None = None,
-    *,
-    tag: str | None = None,
-    force: bool = False,
 ) -> dict[str, Any]:
-    """Write ``summary.md``, ``summary.json`` and the campaign figure ``fig_campaign.png``
-    (:mod:`payload.trials.campaign_figure`) into ``out_dir`` and return the summary.
-
-    With ``tag`` (a rescoring's contact definition) the files are ``summary.<tag>.md``
-    and ``summary.<tag>.json``, beside the originals. Files that exist with other content
-    are replaced only with ``force``; identical ones are left alone.
-
-    Args:
-        results: Per-trial dicts.
-        out_dir: The campaign folder.
-        title: Heading of ``summary.md``.
-        run: How the campaign ran, stored under ``run`` (e.g. ``workers``, ``scheduler``,
-            ``wall_s`` of the whole campaign and ``trial_wall_s``, the sum over trials).
-        provenance: What the trials ran on (:func:`payload.project.provenance`), stored
-            under ``provenance``.
-        tag: Name the files by this tag.
-        force: Replace files that exist with other content.
-
-    Raises:
-        OverwriteError: A summary file exists with other content and ``force`` is false.
-    """
+    """The summary :func:`write_summary` writes (its arguments of the same names), made and
+    not written."""
     summary = summarize(results)
     if title is not None:
         summary["title"] = title
@@ -306,6 +283,41 @@ def write_summary(
         summary["run"] = run
     if provenance is not None:
         summary["provenance"] = provenance
+    return summary
+
+
+def write_summary(
+    results: Sequence[dict[str, Any]],
+    out_dir: str | Path,
+    title: str | None = None,
+    run: dict[str, Any] | None = None,
+    provenance: dict[str, Any] | None = None,
+    *,
+    tag: str | None = None,
+    force: bool = False,
+) -> dict[str, Any]:
+    """Write ``summary.md``, ``summary.json`` and the campaign figure ``fig_campaign.png``
+    (:mod:`payload.trials.campaign_figure`) into ``out_dir`` and return the summary.
+
+    With ``tag`` (a rescoring's contact definition) the files are ``summary.<tag>.md``
+    and ``summary.<tag>.json``, beside the originals. Files that exist with other content
+    are replaced only with ``force``; identical ones are left alone.
+
+    Args:
+        results: Per-trial dicts.
+        out_dir: The campaign folder.
+        title: Heading of ``summary.md``.
+        run: How the campaign ran, stored under ``run`` (e.g. ``workers``, ``scheduler``,
+            ``wall_s`` of the whole campaign and ``trial_wall_s``, the sum over trials).
+        provenance: What the trials ran on (:func:`payload.project.provenance`), stored
+            under ``provenance``.
+        tag: Name the files by this tag.
+        force: Replace files that exist with other content.
+
+    Raises:
+        OverwriteError: A summary file exists with other content and ``force`` is false.
+    """
+    summary = campaign_summary(results, title, run, provenance)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     data = json.dumps(summary, indent=2, allow_nan=False) + "\n"
@@ -382,6 +394,7 @@ __all__ = [
     "PAPER_RESULTS",
     "STATION_KEYS",
     "CampaignError",
+    "campaign_summary",
     "campaign_title",
     "load_trial_results",
     "print_trial_summary",
