@@ -176,20 +176,20 @@ def check(
             if say is not None:
                 say(bring_up_notice(port))
             drv.bring_up()
-        except MissingServoError as exc:
-            present = [i for i in smap.ids if i not in exc.ids]
-            if not present:  # the bus, not the servos: as `hw scan` says it
-                errors.append(nobody_answered(port))
-            else:
-                errors += [f"servo {i} ({j}): not answering" for i, j in zip(exc.ids, exc.joints)]
-        except HardwareFault as exc:
-            # a latched error bit is each faulted servo's health read's to say (below), once;
-            # a reset (torque off with no error bit) is not in the health read
-            if exc.bits == ["reset"]:
-                errors.append(str(exc))
         except DynamixelError as exc:
             lost = isinstance(exc, CommError)
-            errors.append(str(exc))
+            for fault in (exc, *exc.also):  # every servo the bring-up found at fault, once
+                if isinstance(fault, MissingServoError):
+                    present = [i for i in smap.ids if i not in fault.ids]
+                    if not present:  # the bus, not the servos: as `hw scan` says it
+                        errors.append(nobody_answered(port))
+                    else:
+                        errors += [f"servo {i} ({j}): not answering"
+                                   for i, j in zip(fault.ids, fault.joints)]  # fmt: skip
+                # a latched error bit is each faulted servo's health read's to say (below),
+                # once; a reset (torque off with no error bit) is not in the health read
+                elif not isinstance(fault, HardwareFault) or fault.bits == ["reset"]:
+                    errors.append(fault.alone)
         run = 0  # health reads lost in a row
         for k, i in enumerate(present):
             try:

@@ -126,7 +126,7 @@ def failed_start(device: str) -> Iterator[None]:
     except DynamixelError as exc:
         everyone = isinstance(exc, MissingServoError) and exc.everyone
         why = nobody_answered(device) if everyone else f"bring-up on {device} failed: {exc}"
-        if isinstance(exc, HardwareFault) and exc.bits != ["reset"]:
+        if any(isinstance(f, HardwareFault) and f.bits != ["reset"] for f in (exc, *exc.also)):
             why += f" ({LATCHED_HINT})"
         raise BringUpFailed(why) from None
 
@@ -324,32 +324,45 @@ class DynamixelDriver(FaultHandling):
     def bring_up(self) -> None:
         """Configure every servo and enable torque (LEAP hand's sequence, see the module).
 
+        Every servo is looked at before any is configured: the error raised names every
+        servo at fault, its type the first kind found of missing, another model, a
+        hardware error (the others in its ``also``).
+
         Raises:
             MissingServoError: Servos that did not answer, named by ID and joint.
             WrongModelError: A servo that is not the map's model (named).
-            HardwareFault: A servo reports a hardware error at bring-up.
+            HardwareFault: A servo reports a hardware error at bring-up (``others``: the
+                other servos that do).
             CommError: Replies lost, corrupt or late after the retries.
         """
         late = dict(self.port.late)
         found = self.scan()
+        faults: list[DynamixelError] = []  # the most severe kind first
         missing = [i for i in self.ids if i not in found]
         if missing:
             joints = [self.map.joint_of(i) for i in missing]
-            raise MissingServoError(missing, joints, everyone=len(missing) == len(self.ids))
-        for i, (model, _) in found.items():
-            if model != self.map.model_number:
-                raise WrongModelError(i, self.map.joint_of(i), model, self.map.model_number)
+            everyone = len(missing) == len(self.ids)
+            faults.append(MissingServoError(missing, joints, everyone=everyone))
+        wrong = {i for i, (model, _) in found.items() if model != self.map.model_number}
+        faults += [WrongModelError(i, self.map.joint_of(i), found[i][0], self.map.model_number)
+                   for i in self.ids if i in wrong]  # fmt: skip
         came = [i for i in self.ids if self._late(i) > late.get(i, 0)]
         if came:  # a bus whose replies come late: a later one could answer the wrong read
-            raise CommError(f"{self._name(came[0])}: replies came after the "
-                            f"{self.port.reply_allowance_ms:.0f} ms reply timeout"
-                            f"{_also(came)}: {_LATE_HINT}")  # fmt: skip
+            if not faults:
+                raise CommError(f"{self._name(came[0])}: replies came after the "
+                                f"{self.port.reply_allowance_ms:.0f} ms reply timeout"
+                                f"{_also(came)}: {_LATE_HINT}")  # fmt: skip
+        else:  # each servo's latched error bits (another model's register there is not them)
+            for spec in self.map.servos:
+                if spec.id in found and spec.id not in wrong:
+                    err = self._read_reg(spec.id, ADDR["hardware_error_status"], 1)
+                    if err:
+                        faults.append(HardwareFault(spec.id, spec.joint, hw_error_names(err)))
+        if faults:
+            raise faults[0].joined(faults[1:])
         info = self._read_reg(self.ids[0], ADDR["model_information"], 4)
         self.emulated = info == EMULATOR_MODEL_INFORMATION
         for spec in self.map.servos:
-            err = self._read_reg(spec.id, ADDR["hardware_error_status"], 1)
-            if err:
-                raise HardwareFault(spec.id, spec.joint, hw_error_names(err))
             self._configure(spec)
         self.home()
         self._arm_watchdog(self.ids)

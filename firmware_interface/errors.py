@@ -2,11 +2,34 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 from payload.errors import PayloadError, RunAborted
 
 
 class DynamixelError(PayloadError):
-    """Root of the hardware interface's errors."""
+    """Root of the hardware interface's errors.
+
+    Attributes:
+        also: The other faults found with this one (a bring-up looks at every servo
+            before it refuses them): each its own error, named in this one's message
+            after its own words.
+    """
+
+    also: tuple[DynamixelError, ...] = ()
+
+    @property
+    def alone(self) -> str:
+        """Its own message, without the faults found with it."""
+        return getattr(self, "_alone", str(self))
+
+    def joined(self, also: Sequence[DynamixelError]) -> DynamixelError:
+        """This error with ``also``, the faults found with it: its message names each,
+        its own words first (the most severe fault's type and attributes are the error's)."""
+        self._alone = self.alone
+        self.also = tuple(also)
+        self.args = ("; ".join([self._alone, *(f.alone for f in self.also)]),)
+        return self
 
 
 class CommError(DynamixelError):
@@ -54,6 +77,12 @@ class HardwareFault(DynamixelError):
             else f"hardware error {', '.join(bits) or 'unknown'}"
         )
         super().__init__(f"servo {dxl_id} ({joint}): {what}{more}")
+
+    def joined(self, also: Sequence[DynamixelError]) -> DynamixelError:
+        """As :meth:`DynamixelError.joined`, the hardware faults among ``also`` being its
+        ``others`` too (named once: by their own words, not as IDs)."""
+        self.others = [f.id for f in also if isinstance(f, HardwareFault)]
+        return super().joined(also)
 
 
 class WrongModelError(DynamixelError):

@@ -190,6 +190,23 @@ def test_check_says_a_servos_hardware_error_once(capsys):
         assert row.endswith(f"  hardware error: {named}"), row
 
 
+def test_check_names_every_fault_the_bring_up_found_once(capsys):
+    """A missing servo, one of another model and two with latched errors: the check named
+    the missing one and the two errors (their health rows) but not the other model (the
+    bring-up stopped at the missing one); it now names each once."""
+    faults = ("error:3:overheating", "error:7:overload", "missing:9", "model:5:1060")
+    with _emulating(*faults) as port:
+        assert main(["hw", "check", "--device", port, "--json", "--latency-ms", LAT]) == 1
+    report = json.loads(capsys.readouterr().out)
+    assert report["errors"] == [
+        "servo 9 (C_mcp_flex): not answering",
+        "servo 5 (B_mcp_flex): model number 1060, not the servo map's 1240: another servo "
+        "on this ID?",
+        "servo 3 (A_pip): hardware error overheating",
+        "servo 7 (B_pip): hardware error overload",
+    ], report["errors"]
+
+
 def test_check_fails_on_a_blocked_rail(capsys):
     """A blocked rail used to pass `hw check`: homing took the stalled shaft for the hard
     stop. The check now fails (exit 1) with the homing's refusal naming the rail, and

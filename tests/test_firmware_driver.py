@@ -23,9 +23,16 @@ from dynamixel_sdk import PacketHandler
 
 from firmware_interface import protocol as P
 from firmware_interface.control_table import ADDR
-from firmware_interface.driver import TORQUE_OFF_CONFIRM_S, DynamixelDriver
+from firmware_interface.driver import TORQUE_OFF_CONFIRM_S, DynamixelDriver, failed_start
 from firmware_interface.emulator import EmulatorProcess
-from firmware_interface.errors import CommError, DynamixelError, HardwareFault, MissingServoError
+from firmware_interface.errors import (
+    BringUpFailed,
+    CommError,
+    DynamixelError,
+    HardwareFault,
+    MissingServoError,
+    WrongModelError,
+)
 from firmware_interface.port import SdkPort
 from firmware_interface.servo_map import load_servo_map
 from payload.errors import Terminated
@@ -181,6 +188,58 @@ def test_missing_servo_at_bring_up_names_its_id_and_joint(smap):
         with pytest.raises(MissingServoError, match=r"ID 7 \(B_pip\)") as info:
             drv.bring_up()
         assert info.value.ids == [7]
+
+
+def _untouched(emu) -> bool:
+    """No servo of the emulator was configured: each keeps its factory Return Delay Time
+    (250, the e-Manual's; the map's is 0) and Operating Mode (3), its torque off."""
+    tables = emu.tables()
+    return all(
+        reg(t, "return_delay_time") == 250 and reg(t, "operating_mode") == 3
+        and not reg(t, "torque_enable")
+        for t in tables.values()
+    )  # fmt: skip
+
+
+def test_a_bring_up_names_every_servo_at_fault_not_only_the_first(smap):
+    """A missing servo, one of another model and two with latched hardware errors: the
+    bring-up named the missing one only; it now looks at every servo before it configures
+    any and names all four, the missing one deciding the error's type."""
+    faults = ["error:3:overheating", "error:7:overload", "missing:9", "model:5:1060"]
+    with EmulatorProcess(faults=faults) as emu:
+        with DynamixelDriver(emu.port, smap, latency_timer_ms=LAT) as drv:
+            with pytest.raises(BringUpFailed) as info, failed_start(emu.port):
+                drv.bring_up()
+            cause = info.value.__context__
+        assert _untouched(emu)
+    assert isinstance(cause, MissingServoError) and cause.ids == [9]
+    assert [(type(f), f.id) for f in cause.also] == [
+        (WrongModelError, 5), (HardwareFault, 3), (HardwareFault, 7)]  # fmt: skip
+    assert [f.bits for f in cause.also[1:]] == [["overheating"], ["overload"]]
+    assert str(info.value) == (
+        f"bring-up on {emu.port} failed: servo(s) not answering: ID 9 (C_mcp_flex); "
+        "servo 5 (B_mcp_flex): model number 1060, not the servo map's 1240: another servo "
+        "on this ID?; servo 3 (A_pip): hardware error overheating; servo 7 (B_pip): "
+        "hardware error overload (a hardware error stays latched until the servo restarts: "
+        "remove its cause (a blocked joint for overload, the supply for input_voltage, "
+        "time to cool for overheating), then power-cycle the servos; `payload hw check` "
+        "shows every servo's state)"
+    )
+
+
+def test_a_bring_up_reads_every_servos_error_bits_before_configuring_any(smap):
+    """Two servos with latched errors and no other fault: the bring-up configured servos
+    1 and 2 and stopped at 3, naming it alone; it now configures none and names both, the
+    first a HardwareFault with the other in its ``others``."""
+    with EmulatorProcess(faults=["error:7:overload", "error:3:input_voltage"]) as emu:
+        with DynamixelDriver(emu.port, smap, latency_timer_ms=LAT) as drv:
+            with pytest.raises(HardwareFault) as info:
+                drv.bring_up()
+        assert _untouched(emu)
+    fault = info.value
+    assert (fault.id, fault.joint, fault.bits, fault.others) == (3, "A_pip", ["input_voltage"], [7])
+    assert str(fault) == ("servo 3 (A_pip): hardware error input_voltage; "
+                          "servo 7 (B_pip): hardware error overload")  # fmt: skip
 
 
 def test_corrupt_and_dropped_replies_are_retried_within_the_cycle(smap):
