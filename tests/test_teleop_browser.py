@@ -21,6 +21,8 @@ import pytest
 
 from payload.teleop.calibration import Step
 from payload.teleop.emulate import (
+    GESTURES,
+    HAND_SPEED,
     HEAD_PITCH_DEG,
     NEUTRAL,
     EmulatedQuest,
@@ -284,14 +286,17 @@ def test_desktop_mode_drives_a_calibration_without_a_headset(tmp_path):
     worker.start()
     try:
         # the desktop operator's pose is the emulated headset's (one fact: emulate.py's),
-        # read back from the script as served: the wrists' places and the head's pitch
+        # read back from the hands' script as served: the wrists' places, the head's pitch,
+        # the gestures and the hands' speed
         base, _, query = server.url().partition("?")
-        served = urllib.request.urlopen(f"{base}desktop.js?{query}", timeout=10).read()
+        served = urllib.request.urlopen(f"{base}hands.js?{query}", timeout=10).read()
         first = served.decode().splitlines()[0]
-        assert first.startswith("const DESKTOP_POSE = ") and first.endswith(";"), first
-        pose = json.loads(first.removeprefix("const DESKTOP_POSE = ")[:-1])
+        assert first.startswith("const EMULATED_POSE = ") and first.endswith(";"), first
+        pose = json.loads(first.removeprefix("const EMULATED_POSE = ")[:-1])
         assert pose == {"neutral": {k: list(v) for k, v in NEUTRAL.items()},
-                        "headPitchDeg": HEAD_PITCH_DEG}  # fmt: skip
+                        "headPitchDeg": HEAD_PITCH_DEG, "speed": HAND_SPEED,
+                        "gestures": {name: {**g, "offset": list(g["offset"])}
+                                     for name, g in GESTURES.items()}}  # fmt: skip
         desktop = _Page(server.url(), {"width": 480, "height": 360})
         with desktop as page:
             wait_on_page(page, "() => !document.getElementById('enter').disabled", 30.0, "Enter VR")

@@ -50,47 +50,33 @@ GESTURES: dict[str, dict[str, Any]] = {
     "release": {"offset": (0.0, 0.0, 0.0), "spread": 0.0, "pinch": 0.5},
 }
 
-_SETUP_JS = """
+HAND_SPEED = 0.4
+"""How fast the emulated hands move toward their targets [m/s] (a human's; a jump would be
+a tracking glitch to the server)."""
+
+HANDS_JS = Path(__file__).resolve().parent / "web" / "desktop" / "hands.js"
+"""The emulated Quest 3 and its hands (``window.emulatedQuest``), the desktop mode's and the
+tests' headset's: after iwer's browser build and :func:`emulated_pose`."""
+
+_QUEST_JS = """
 (() => {
-  const device = new IWER.XRDevice(IWER.metaQuest3);
-  device.installRuntime({ forceInstall: true });
-  device.primaryInputMode = 'hand';
-  const pitch = PITCH_DEG * Math.PI / 180;
-  device.quaternion.set(Math.sin(pitch / 2), 0, 0, Math.cos(pitch / 2));
-  const targets = {};
-  const hands = device.hands;
-  for (const side of ['left', 'right']) {
-    const p = NEUTRAL[side];
-    hands[side].position.set(p[0], p[1], p[2]);
-    hands[side].updatePinchValue(0.5);
-    targets[side] = { pos: p.slice(), pinch: 0.5 };
-  }
-  let last = performance.now();
-  function follow(now) {
-    const dt = Math.max(0, Math.min(0.1, (now - last) / 1000));  // never backwards
-    last = now;
-    for (const side of ['left', 'right']) {
-      const h = hands[side], t = targets[side];
-      const d = [t.pos[0] - h.position.x, t.pos[1] - h.position.y, t.pos[2] - h.position.z];
-      const n = Math.hypot(...d), step = Math.min(n, SPEED * dt);
-      if (n > 1e-6) {
-        h.position.set(h.position.x + d[0] / n * step, h.position.y + d[1] / n * step,
-          h.position.z + d[2] / n * step);
-      }
-      const dp = t.pinch - h.pinchValue;
-      h.updatePinchValue(h.pinchValue + Math.sign(dp) * Math.min(Math.abs(dp), 2 * dt));
-    }
-    requestAnimationFrame(follow);
-  }
-  requestAnimationFrame(follow);
+  const quest = window.emulatedQuest;
   window.__quest = {
-    device,
-    target(side, pos, pinch) { targets[side] = { pos, pinch }; },
-    connect(side, on) { hands[side].connected = on; },
-    wrist(side) { const p = hands[side].position; return [p.x, p.y, p.z]; },
+    device: quest.device,
+    target: quest.target,
+    connect: quest.connect,
+    wrist: quest.wrist,
+    gesture(name, forward) { quest.pose(quest.gestures[name], { left: [0, 0, -forward] }); },
   };
 })();
 """
+
+
+def emulated_pose(speed: float = HAND_SPEED) -> str:
+    """The JavaScript line ``hands.js`` reads (``EMULATED_POSE``): the wrists' neutral
+    places, the head's pitch, the calibration gestures and the hands' speed [m/s]."""
+    pose = {"neutral": NEUTRAL, "headPitchDeg": HEAD_PITCH_DEG, "gestures": GESTURES}
+    return f"const EMULATED_POSE = {_js({**pose, 'speed': speed})};\n"
 
 
 class EmulationError(PayloadError):
@@ -157,7 +143,8 @@ class EmulatedQuest:
     Args:
         url: The page's address (with its token).
         iwer_js: iwer's browser build (default: :func:`find_iwer`).
-        speed: How fast the hands move toward their targets [m/s].
+        speed: How fast the hands move toward their targets [m/s] (default
+            :data:`HAND_SPEED`).
         ignore_https_errors: Accept the server's self-signed certificate.
     """
 
@@ -165,7 +152,7 @@ class EmulatedQuest:
         self,
         url: str,
         iwer_js: Path | None = None,
-        speed: float = 0.4,
+        speed: float = HAND_SPEED,
         ignore_https_errors: bool = False,
     ) -> None:
         self.url = url
@@ -195,11 +182,8 @@ class EmulatedQuest:
             )
             self._browser = ctx
             ctx.add_init_script(path=str(self.iwer_js))
-            consts = (
-                f"const NEUTRAL = {_js(NEUTRAL)}; const SPEED = {self.speed}; "
-                f"const PITCH_DEG = {HEAD_PITCH_DEG};"
-            )
-            ctx.add_init_script(script=consts + _SETUP_JS)
+            hands = HANDS_JS.read_text(encoding="utf-8")
+            ctx.add_init_script(script=emulated_pose(self.speed) + hands + _QUEST_JS)
             self.page = ctx.pages[0] if ctx.pages else ctx.new_page()
             self.page.on("console", lambda m: self.console.append(f"{m.type}: {m.text}"))
             self.page.on("pageerror", lambda e: self.console.append(f"pageerror: {e}"))
@@ -240,12 +224,9 @@ class EmulatedQuest:
 
     def gesture(self, name: str, forward: float = 0.0) -> None:
         """Both hands to a calibration gesture (:data:`GESTURES`), left wrist ``forward`` [m]."""
-        g = GESTURES[name]
-        for side, sign in (("left", -1.0), ("right", 1.0)):
-            x, y, z = NEUTRAL[side]
-            ox, oy, oz = g["offset"]
-            pos = (x + sign * g["spread"] + ox, y + oy, z + oz - (forward if side == "left" else 0))
-            self.target(side, pos, g["pinch"])
+        if name not in GESTURES:
+            raise EmulationError(f"no gesture {name!r}; one of {', '.join(GESTURES)}")
+        self.page.evaluate("([g, f]) => window.__quest.gesture(g, f)", [name, forward])
 
     def debug(self) -> dict[str, Any]:
         """The page's ``window.__teleop`` (frames sent, last state, link)."""

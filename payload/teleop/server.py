@@ -51,7 +51,7 @@ from websockets.exceptions import ConnectionClosed
 from websockets.http11 import Request, Response
 
 from payload.errors import PayloadError, port_in_use_hint
-from payload.teleop.emulate import HEAD_PITCH_DEG, NEUTRAL
+from payload.teleop.emulate import HANDS_JS, emulated_pose
 from payload.teleop.live import HANDED_OVER, LEFT_VR, MAX_CLIENTS, LiveHub, now_ms
 from payload.teleop.messages import (
     MAX_MESSAGE_BYTES,
@@ -78,15 +78,12 @@ RATE_LIMIT_HZ = 2.0 * HEADSET_MAX_HZ
 RATE_BURST = 0.5 * RATE_LIMIT_HZ  # messages a connection may send at once (0.5 s worth):
 # a browser that stalled (a loaded machine, a Wi-Fi hiccup) flushes its queued frames at
 # once; a sustained flood above the rate is still dropped after half a second
-DESKTOP_SCRIPTS = b'<script src="/iwer.js"></script>\n<script src="/desktop.js"></script>\n'
-
-
-def desktop_pose() -> bytes:
-    """The desktop mode's emulated operator, prepended to ``desktop.js`` as it is served:
-    the wrists' neutral places and the head's pitch, the tests' emulated headset's
-    (:mod:`payload.teleop.emulate`), so the two are one fact."""
-    pose = {"neutral": NEUTRAL, "headPitchDeg": HEAD_PITCH_DEG}
-    return f"const DESKTOP_POSE = {json.dumps(pose)};\n".encode()
+DESKTOP_SCRIPTS = b"".join(
+    b'<script src="/%s"></script>\n' % name for name in (b"iwer.js", b"hands.js", b"desktop.js")
+)
+"""The desktop mode's scripts, before the page's: iwer, the emulated Quest and its hands
+(the tests' emulated headset's, with :func:`~payload.teleop.emulate.emulated_pose` put
+before it as it is served), the keys."""
 
 
 NO_TOKEN = "missing or wrong token"
@@ -252,6 +249,7 @@ class TeleopServer:
         self.desktop = desktop is not None
         if desktop is not None:
             self.files["/iwer.js"] = desktop
+            self.files["/hands.js"] = web_dir / "desktop" / HANDS_JS.name
             self.files["/desktop.js"] = web_dir / "desktop" / "desktop.js"
         self._server: Server | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -334,8 +332,8 @@ class TeleopServer:
         if file.suffix == ".js":
             ctype = "text/javascript"
         body = file.read_bytes()
-        if self.desktop and path == "/desktop.js":
-            body = desktop_pose() + body
+        if self.desktop and path == "/hands.js":
+            body = emulated_pose().encode() + body
         if self.desktop and file.name == "index.html":  # the emulated headset first
             body = body.replace(
                 b'<script type="module"', DESKTOP_SCRIPTS + b'<script type="module"'
