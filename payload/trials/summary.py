@@ -60,13 +60,11 @@ def _one_value(rows: Sequence[dict[str, Any]], key: str, none_is_a_value: bool =
     """The value every trial records under ``key``; ``{"mixed": [...]}`` if they differ,
     ``None`` if none records it. ``none_is_a_value``: a recorded null is a setting (no link
     delay), so trials with and without one are mixed."""
-    if none_is_a_value:
+    if none_is_a_value:  # each scored trial that records the key, its null too
         values = sorted({str(r[key]) for r in rows if key in r and not r.get("error")})
-        if values in ([], ["None"]):
-            return None
-        return values[0] if len(values) == 1 else {"mixed": values}
-    values = sorted({str(r[key]) for r in rows if r.get(key) is not None})
-    if not values:
+    else:
+        values = sorted({str(r[key]) for r in rows if r.get(key) is not None})
+    if values in ([], ["None"]):
         return None
     return values[0] if len(values) == 1 else {"mixed": values}
 
