@@ -832,3 +832,73 @@ def test_the_pairs_grasp_markers_sit_on_rows_of_their_own(small, geom) -> None:
         rows = [ax.transData.transform((0, y))[1] for y in (y_l, y_r)]
         assert rows[1] - rows[0] > 10  # pixels: more than a 7-point marker apart, R above L
         assert bottom <= y_l < y_r < top
+
+
+@pytest.fixture
+def reach_png(small, geom, monkeypatch, tmp_path):
+    """reach.png of the small analysis as :func:`reach_figure` lays it out and saves it,
+    drawn (the figure kept as it is saved); and its span panel."""
+    from matplotlib.figure import Figure
+
+    from payload.envelope.reach_figure import reach_figure
+
+    saved = []
+    monkeypatch.setattr(Figure, "savefig", lambda fig, *args, **kw: saved.append(fig))
+    reach_figure(geom, small, tmp_path / "reach.png", points=200)
+    (fig,) = saved
+    fig.canvas.draw()
+    (ax,) = [ax for ax in fig.axes if ax.get_title().startswith("pair spans")]
+    return fig, ax
+
+
+def _along(xy: np.ndarray, n: int = 50) -> np.ndarray:
+    """Points along the polyline through ``xy`` (display coordinates), ``n`` a segment."""
+    t = np.linspace(0.0, 1.0, n)[:, None]
+    return np.vstack([a + t * (b - a) for a, b in itertools.pairwise(xy)] or [xy])
+
+
+def test_the_span_panels_legend_covers_no_data(reach_png) -> None:
+    """reach.png's span panel: its legend lies over no histogram bar (each bin read back
+    from the drawn step outlines as the bar from 0 to its count) and no line or marker
+    (it covered the top of the histograms and the span lines)."""
+    from matplotlib.transforms import Bbox
+
+    fig, ax = reach_png
+    legend = ax.get_legend()
+    assert legend is not None
+    box = legend.get_window_extent(fig.canvas.get_renderer())
+    bars = 0
+    for patch in ax.patches:  # the histograms: outlines through (edge, count) corners
+        xy = patch.get_path().vertices
+        for (x0, y0), (x1, y1) in itertools.pairwise(xy):
+            if y0 == y1 > 0 and x1 != x0:  # the top of a bin
+                corners = ax.transData.transform([(min(x0, x1), 0.0), (max(x0, x1), y0)])
+                bars += 1
+                assert not box.overlaps(Bbox(corners)), (x0, x1, y0)
+    assert bars >= 40  # both pairs' histograms were read
+    for line in ax.get_lines():
+        xy = _along(line.get_transform().transform(line.get_xydata()))
+        assert not any(box.contains(x, y) for x, y in xy), line.get_label()
+
+
+def test_the_pairs_span_ranges_are_told_apart(reach_png, small) -> None:
+    """reach.png's span panel: each pair's span range is one line from its narrowest to
+    its widest span, and the two pairs' lines, which span the same range here, lie apart
+    (pair L's was hidden under pair R's)."""
+    fig, ax = reach_png
+    lo, hi = (small.pairs[0].span_min, small.pairs[0].span.maximum)
+    assert all(
+        (p.span_min, p.span.maximum) == pytest.approx((lo, hi), abs=1e-3) for p in small.pairs
+    )  # the premise: equal ranges, which two lines at the same place would hide
+    spans = {
+        p.name: [x for x in ax.get_lines() if x.get_label().startswith(f"pair {p.name}: span")]
+        for p in small.pairs
+    }
+    assert [len(lines) for lines in spans.values()] == [1, 1]
+    renderer = fig.canvas.get_renderer()
+    extents = [spans[n][0].get_window_extent(renderer) for n in ("L", "R")]
+    assert not extents[0].overlaps(extents[1]), extents
+    for p in small.pairs:
+        x = np.asarray(spans[p.name][0].get_xdata(), dtype=float)
+        assert x.min() == pytest.approx(p.span_min * 1e3)
+        assert x.max() == pytest.approx(p.span.maximum * 1e3)

@@ -73,8 +73,13 @@ def reach_figure(
     return path
 
 
-MARKER_ROWS = {"L": 0.025, "R": 0.07}
-"""Height of each pair's row of grasp markers in the span panel (fraction of the axes)."""
+PAIR_ROWS = {"L": 0.035, "R": 0.085}
+"""Height of each pair's row in the span panel (its span range, its grasp markers), as a
+fraction of the axes: in a band of :data:`ROWS_BAND` under the histograms."""
+ROWS_BAND = 0.12
+"""Fraction of the span panel's height under the histograms' zero: the pairs' rows."""
+PAIR_COLOURS = {"L": "#1f77b4", "R": "#ff7f0e"}
+"""One colour per pair in the span panel."""
 
 
 def _depth(x: float) -> str:
@@ -137,10 +142,12 @@ def _cloud_panel(
 
 
 def _span_panel(ax: Any, a: ReachAnalysis, pad_radius: float) -> None:
-    """Histograms of the pairs' fingertip separations, their span ranges, the CTB features."""
+    """Histograms of the pairs' fingertip separations and, under them, a row per pair: its
+    span range and the CTB features (their thickness plus the pad diameter) it closes on."""
     r = pad_radius
     bins = np.linspace(0, max(p.span.maximum for p in a.pairs) * 1e3, 80)
-    for p, colour in zip(a.pairs, ("#1f77b4", "#ff7f0e")):
+    for p in a.pairs:
+        colour = PAIR_COLOURS[p.name]
         f1, f2 = p.fingers
         i1, i2 = FINGERS.index(f1), FINGERS.index(f2)
         ell = np.linalg.norm(a.tips[:, i2] - a.tips[:, i1], axis=1) * 1e3
@@ -153,13 +160,26 @@ def _span_panel(ax: Any, a: ReachAnalysis, pad_radius: float) -> None:
             alpha=0.3,
             label=f"pair {p.name}: pair touching nothing",
         )
-        # pair L wide and dashed under pair R thin and dotted: equal ranges stay visible
-        style = {"ls": "--", "lw": 2.4} if p.name == "L" else {"ls": ":", "lw": 1.2}
-        ax.axvline(p.span_min * 1e3, color=colour, label=f"pair {p.name}: span range", **style)
-        ax.axvline(p.span.maximum * 1e3, color=colour, **style)
-        # each pair's markers on a row of its own (L lower, R upper), so neither hides the
-        # other's at the same thickness
-        row = MARKER_ROWS[p.name]
+    # the pairs' rows in a band of their own under the histograms: equal span ranges and
+    # markers at the same thickness stay apart, and none of them hides a bin
+    top = ax.get_ylim()[1]
+    ax.set_ylim(-top * ROWS_BAND / (1 - ROWS_BAND), top)
+    ax.set_yticks([t for t in ax.get_yticks() if 0 <= t <= top])
+    ax.axhline(0, color="black", lw=0.5)
+    for p in a.pairs:
+        colour, row = PAIR_COLOURS[p.name], PAIR_ROWS[p.name]
+        lo, hi = p.span_min * 1e3, p.span.maximum * 1e3
+        ax.plot(
+            [lo, hi],
+            [row, row],
+            color=colour,
+            lw=2.0,
+            marker="|",
+            ms=9,
+            mew=2.0,
+            transform=ax.get_xaxis_transform(),
+            label=f"pair {p.name}: span range {lo:.1f} .. {hi:.1f} mm",
+        )
         for g in p.grasps:
             x = (g.feature.thickness + 2 * r) * 1e3
             ax.plot(
@@ -180,19 +200,20 @@ def _span_panel(ax: Any, a: ReachAnalysis, pad_radius: float) -> None:
             textcoords="offset points",
             ha="right",
             va="center",
-            fontsize=7,
+            fontsize=8,
             color=colour,
         )
     ax.plot([], [], ls="none", marker="^", color="green", label="CTB feature: pair closes on it")
     ax.plot([], [], ls="none", marker="x", color="red", label="CTB feature: no witness")
-    ax.set_xlabel("fingertip separation l [mm] (vertical lines: span range)")
+    ax.set_xlabel("fingertip separation l [mm]")
     ax.set_ylabel("samples")
     ax.set_title(
-        "pair spans; markers: CTB thicknesses + pad diameter (green: closes, red: no witness;\n"
-        "lower row pair L, upper row pair R)",
+        "pair spans; under them a row per pair (L lower, R upper): its span range and the\n"
+        "CTB thicknesses + pad diameter (green: the pair closes on it, red: no witness)",
         fontsize=9,
     )
-    ax.legend(fontsize=8)
+    # beside the panel, where it covers no bin, line or marker
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0)
 
 
 __all__ = [
