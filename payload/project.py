@@ -30,9 +30,14 @@ DESIGN_FILE = "cad/design.toml"
 
 DISTRIBUTION = "astrobee-payload"
 
+SOURCES = "docs/sources.md"
+"""Where the workbench cites the figures it takes from outside (papers, NASA's data),
+relative to its source tree's root; its default design and its reports cite it so."""
+
 __all__ = [
     "DESIGN_FILE",
     "ENV_VAR",
+    "SOURCES",
     "Project",
     "ProjectError",
     "current_project",
@@ -42,6 +47,7 @@ __all__ = [
     "package_version",
     "project_of",
     "provenance",
+    "workbench_root",
 ]
 
 
@@ -173,6 +179,13 @@ def default_design_text() -> str:
     from importlib import resources  # loaded here: every command imports this module
 
     return resources.files("payload").joinpath("data", "design.toml").read_text(encoding="utf-8")
+
+
+def workbench_root() -> Path | None:
+    """The workbench's source tree, whose :data:`SOURCES` its reports cite (the checkout
+    of an editable install), or ``None`` when the package is installed without it."""
+    root = Path(__file__).resolve().parent.parent
+    return root if (root / SOURCES).is_file() else None
 
 
 def package_version() -> str:

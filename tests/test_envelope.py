@@ -567,6 +567,36 @@ def test_the_report_follows_the_design_through_two_edits(tmp_path, capsys):
     assert run_cli("build", "--check", "--project", str(project.root)).returncode == 0
 
 
+def test_a_projects_reports_cite_sources_the_reader_can_open(tmp_path, capsys):
+    """A project outside the checkout has no docs/sources.md: its reports (the default
+    design's assumption, the CTB features' sources) cited one all the same. Every
+    citation now is a link that, read from the report's folder, opens the workbench's
+    file (its section kept); the checkout's own report cites it as before."""
+    import re
+
+    from payload.cli import main
+    from payload.design.cli import new_project
+
+    project, _ = new_project(tmp_path / "p")
+    assert not (project.root / "docs" / "sources.md").exists()
+    for args in (["envelope", "--no-search"], ["reach", "--samples", "2000"]):
+        assert main(["--project", str(project.root), "report", *args]) == 0
+    capsys.readouterr()
+    sources = (ROOT / "docs" / "sources.md").resolve()
+    for name, cited in (("envelope.md", 1), ("reach.md", 3)):
+        md = project.analyses_dir / name
+        text = md.read_text()
+        links = re.findall(r"\[[^\]]*\]\(([^)#]*)(#[^)]*)?\)", text)
+        opened = [t for t, _ in links if (md.parent / t).resolve() == sources]
+        assert len(opened) >= cited, (name, links)
+        rest = re.sub(r"\[[^\]]*\]\([^)]*\)", "", text)
+        assert "sources.md" not in rest, name  # no citation left that opens nothing
+    checkout = tmp_path / "checkout"
+    assert main(["report", "envelope", "--no-search", "--out", str(checkout)]) == 0
+    [line] = [x for x in (checkout / "envelope.md").read_text().splitlines() if "sources" in x]
+    assert "(docs/sources.md)" in line and "workbench" not in line
+
+
 def test_another_designs_report_needs_an_out_and_never_replaces_the_projects(tmp_path, capsys):
     """``report envelope|reach --design F`` with F not the project's own design (outside any
     project, or another file inside it) would write F's report over the project's in

@@ -23,11 +23,12 @@ import numpy as np
 
 from payload.design.slip import SLIP_FACTOR, is_slip, spell
 from payload.errors import DesignError, as_toml, is_number
+from payload.project import SOURCES
 
 BAY_ASSUMPTION = (
     "Astrobee's payload-bay size is not public: one 1-U bay is assumed to be "
     "100 x 100 x 100 mm and the two lower bays, side by side fore-aft, a combined "
-    "200 x 100 x 100 mm envelope (docs/sources.md#vehicle). Replace it with a [vehicle] "
+    f"200 x 100 x 100 mm envelope ({SOURCES}#vehicle). Replace it with a [vehicle] "
     "table in the design file."
 )
 
@@ -148,7 +149,7 @@ class Vehicle:
     mass: float = 9.5838
     inertia: tuple[float, float, float] = (0.15343, 0.14271, 0.16230)
     assumption: str = BAY_ASSUMPTION
-    source: str = "defaults (docs/sources.md#vehicle)"
+    source: str = f"defaults ({SOURCES}#vehicle)"
 
     def __post_init__(self) -> None:
         _check_vector("vehicle.body_size", self.body_size, 3, positive=True)

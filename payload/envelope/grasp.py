@@ -19,6 +19,7 @@ from payload.envelope.pairs import (
 from payload.envelope.sampling import frame_positions
 from payload.envelope.vehicle import Vehicle
 from payload.kinematics import Kinematics
+from payload.project import SOURCES
 
 
 class GraspFeature(NamedTuple):
@@ -40,8 +41,8 @@ CTB_FEATURES: tuple[GraspFeature, ...] = (
     GraspFeature("handle strap folded double", 0.006, "ASSUMPTION"),
     GraspFeature("bag edge: fabric wall with piping", 0.010, "ASSUMPTION"),
     GraspFeature("bag edge: two walls at a seam", 0.020, "ASSUMPTION"),
-    GraspFeature("half CTB across its 23.5 cm side", 0.235, "docs/sources.md (NASA packing data)"),
-    GraspFeature("rigid CTB model across its 25 cm side", 0.25, "docs/sources.md (pyastrobee)"),
+    GraspFeature("half CTB across its 23.5 cm side", 0.235, f"{SOURCES} (NASA packing data)"),
+    GraspFeature("rigid CTB model across its 25 cm side", 0.25, f"{SOURCES} (pyastrobee)"),
 )
 """Default features checked by the grasp check (``--thickness`` adds more)."""
 

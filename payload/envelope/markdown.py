@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import os
+import re
 from collections.abc import Iterable, Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -14,6 +17,33 @@ from payload.envelope.reach import ReachAnalysis
 from payload.envelope.report_json import reach_json
 from payload.envelope.vehicle import display_path
 from payload.envelope.verdict import too_few_reachable
+from payload.project import DISTRIBUTION, SOURCES, project_of, workbench_root
+
+_CITED = re.compile(re.escape(SOURCES) + r"(#[\w-]+)?")
+"""A citation of the workbench's sources, with its section (``docs/sources.md#vehicle``)."""
+
+
+def cite_sources(text: str, design_source: str, report_dir: Path) -> str:
+    """``text`` (a report) with its citations of the workbench's :data:`SOURCES` readable
+    where the report is.
+
+    The workbench's own project has the file where the report names it, from the
+    project's root as it names the design (``cad/design.toml``): there the text stays as
+    it is. A project elsewhere has no such file (the design it was made from cites it
+    too): each citation becomes a link relative to the report into the workbench's docs,
+    named as the workbench's, or the name alone when the package is installed without
+    its docs.
+    """
+    root = workbench_root()
+    project = project_of(design_source)
+    if root is not None and project is not None and project.root == root:
+        return text
+    if root is None:
+        return _CITED.sub(lambda m: f"the {DISTRIBUTION} workbench's {m[0]}", text)
+    target = Path(os.path.relpath(root / SOURCES, Path(report_dir).resolve())).as_posix()
+    return _CITED.sub(
+        lambda m: f"the {DISTRIBUTION} workbench's [{SOURCES}]({target}{m[1] or ''})", text
+    )
 
 
 def _assumption_block(lines: Sequence[str]) -> list[str]:
@@ -394,6 +424,7 @@ def _rng(r: tuple[float, float]) -> str:
 
 
 __all__ = [
+    "cite_sources",
     "envelope_markdown",
     "reach_markdown",
 ]

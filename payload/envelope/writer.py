@@ -16,7 +16,7 @@ from typing import Any
 
 from payload.envelope.fit_results import EnvelopeAnalysis
 from payload.envelope.geometry import PayloadGeometry
-from payload.envelope.markdown import envelope_markdown, reach_markdown
+from payload.envelope.markdown import cite_sources, envelope_markdown, reach_markdown
 from payload.envelope.reach import ReachAnalysis
 from payload.envelope.report_files import PROVENANCE_KEY
 from payload.envelope.report_json import envelope_json, reach_json
@@ -134,7 +134,7 @@ def write_envelope(
     return _write_report(
         out_dir,
         "envelope",
-        envelope_markdown(a, command, "envelope.png"),
+        cite_sources(envelope_markdown(a, command, "envelope.png"), a.design_source, out_dir),
         envelope_json(a) if record is None else record(envelope_json(a)),
         lambda path: _draw_envelope(geom, a, path),
         force,
@@ -169,7 +169,7 @@ def write_reach(
     return _write_report(
         out_dir,
         "reach",
-        reach_markdown(a, command, "reach.png"),
+        cite_sources(reach_markdown(a, command, "reach.png"), a.design_source, out_dir),
         reach_json(a) if record is None else record(reach_json(a)),
         lambda path: _draw_reach(geom, a, path),
         force,
