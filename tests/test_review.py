@@ -370,6 +370,23 @@ def test_the_replay_draws_the_zones_its_trial_ran(tmp_path) -> None:
     assert any("keep-out" in label for _, label in replay.scene.overlay.legend)
 
 
+def test_the_replays_keep_out_boxes_are_the_failure_red() -> None:
+    """One red: the keep-out boxes (a trial's ``--zones``) are drawn, and listed in the
+    legend, in the colour of a part that fails (they were a second red, #ff0000 beside
+    #e00000, the same to the eye)."""
+    from payload.envelope.drawing import FAIL_COLOUR
+    from payload.review.scene import Scene
+    from payload.review.trial_view import draw_keep_in, trial_legend
+    from payload.sim.world import build_world
+
+    scene = Scene()
+    draw_keep_in(scene, [(np.zeros(3), np.ones(3))], TRIAL, "keep_out")
+    (box,) = scene.objects().values()
+    assert f"#{box.material.color:06x}" == FAIL_COLOUR.lower()
+    legend = {n: c for c, n in trial_legend(build_world(), keep_in=False, keep_out=True)}
+    assert legend["keep-out boxes (the trial's zones)"] == FAIL_COLOUR.lower()
+
+
 def test_one_animation_frame_per_recorded_step_at_the_recorded_rate(replay) -> None:
     rec, anim = replay.recording, replay.scene.animation
     assert replay.fps == pytest.approx(50.0)

@@ -19,7 +19,8 @@ FINGER_COLOURS = {"A": "#1f77b4", "B": "#9467bd", "C": "#2ca02c", "D": "#e377c2"
 STRUCTURE_COLOUR = "#8c8c8c"
 FAIL_COLOUR = "#e00000"
 """A part that protrudes from the bays or collides: red, and nothing else is (but the
-review's verdict on a design that fails)."""
+review's verdict on a design that fails, and the trial replay's keep-out boxes, where the
+vehicle must not be)."""
 PASS_COLOUR = "#1a7f37"
 """The review's verdict on a design that passes: dark green, on white as legible as the
 red (contrast about 5:1); no part is drawn in it."""

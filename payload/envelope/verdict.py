@@ -40,10 +40,6 @@ SETTINGS: dict[str, tuple[str, ...]] = {"envelope": (), "reach": ("samples", "se
 the design (a reach sampled 1,000 times against 100,000): named first when they changed."""
 
 
-def _failures(failures: list[str]) -> str:
-    return first_of(failures, 3)
-
-
 def envelope_verdict(a: EnvelopeAnalysis) -> str:
     """``verdict: fits ...`` or ``verdict: FAILS ...`` for the stowed payload."""
     g = a.given
@@ -54,7 +50,7 @@ def envelope_verdict(a: EnvelopeAnalysis) -> str:
             f"{t.clearance * 1e3:.2f} mm ({t.name}, {t.wall} wall); no self-collision; "
             "deployment path clear"
         )
-    return "verdict: FAILS: " + _failures(g.failures())
+    return "verdict: FAILS: " + first_of(g.failures(), 3)
 
 
 def reach_passed(a: ReachAnalysis) -> bool:
@@ -112,7 +108,7 @@ def reach_verdict(a: ReachAnalysis) -> str:
     few = too_few_reachable(a)
     if few is not None:
         bad.insert(0, few)
-    return "verdict: FAILS: " + _failures(bad)
+    return "verdict: FAILS: " + first_of(bad, 3)
 
 
 def _get(data: dict[str, Any], dotted: str) -> Any:
