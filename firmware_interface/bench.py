@@ -12,7 +12,7 @@ import numpy as np
 from firmware_interface import protocol as P
 from firmware_interface.driver import FEEDBACK_LEN, bring_up_notice, failed_start
 from firmware_interface.errors import DynamixelError
-from firmware_interface.options import LATENCY_MS
+from firmware_interface.options import latency_of
 from payload.errors import RunAborted
 from payload.schema import PayloadCommand
 
@@ -29,7 +29,7 @@ def bench_hw(
     port: str | None,
     cycles: int,
     servos: str | None = None,
-    latency_ms: float = LATENCY_MS,
+    latency_ms: float | None = None,
     say: Callable[[str], None] | None = None,
 ) -> dict[str, Any]:
     """Time ``cycles`` cycles (send + read) after bring-up.
@@ -38,7 +38,8 @@ def bench_hw(
         port: The bus; None starts an emulator in its own process.
         cycles: Cycles to time.
         servos: Servo map file.
-        latency_ms: Reply timeout allowance (the SDK's LATENCY_TIMER) [ms].
+        latency_ms: Reply timeout allowance (the SDK's LATENCY_TIMER) [ms]; default the
+            adapter's, or the emulator's it starts (:func:`~firmware_interface.options.latency_of`).
         say: Told :func:`~firmware_interface.driver.bring_up_notice` before the bring-up
             (the rail and the stage move to their hard stops).
 
@@ -62,9 +63,10 @@ def bench_hw(
 
     smap = load_servo_map(servos)
     emu = EmulatorProcess(servos) if port is None else None
+    latency = latency_of(latency_ms, emu is not None)
     try:
         with DynamixelDriver(
-            port or emu.port, smap, health_every=cycles + 10, latency_timer_ms=latency_ms
+            port or emu.port, smap, health_every=cycles + 10, latency_timer_ms=latency
         ) as drv:
             if say is not None:
                 say(bring_up_notice(drv.device))

@@ -14,7 +14,13 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from firmware_interface.options import LATENCY_MS, add_latency, add_servo_map, latency_problem
+from firmware_interface.options import (
+    LATENCY_MS,
+    add_latency,
+    add_servo_map,
+    latency_of,
+    latency_problem,
+)
 from payload.cliutil import (
     CheckFailed,
     add_deprecated,
@@ -320,9 +326,8 @@ def _run_hardware(args: argparse.Namespace, out: Path, replay: Path) -> dict[str
 
             emu = stack.enter_context(EmulatorProcess(args.servos))
         device = emu.port if emu is not None else need_device(args)
-        drv = stack.enter_context(
-            DynamixelDriver(device, _map(args), latency_timer_ms=args.latency_ms)
-        )
+        latency = latency_of(args.latency_ms, emu is not None)
+        drv = stack.enter_context(DynamixelDriver(device, _map(args), latency_timer_ms=latency))
         result = run_hardware_trial(drv, replay, out, max_time=args.max_time,
                                     pace=not args.no_pace, emulator=emu,
                                     base_filter=prof.base_filter,
@@ -430,7 +435,8 @@ def _cmd_identify(args: argparse.Namespace) -> int:
 
             emu = stack.enter_context(EmulatorProcess(args.servos, servo_params=args.servo_params))
         device = emu.port if emu is not None else need_device(args)
-        drv = stack.enter_context(DynamixelDriver(device, smap, latency_timer_ms=args.latency_ms))
+        latency = latency_of(args.latency_ms, emu is not None)
+        drv = stack.enter_context(DynamixelDriver(device, smap, latency_timer_ms=latency))
         # --write on a --device that turns out to be the emulator: refused before any servo
         # moves (its values are the emulator's, not the servos' the design describes)
         refuse = "--write takes real servos' values, not written" if args.write else None
@@ -523,7 +529,7 @@ def register(
     p.add_argument("--write", action="store_true",
                    help="write the suggested [servo] values into the design file")  # fmt: skip
     p.add_argument("--json", action="store_true", help="print one JSON object")
-    add_latency(p)
+    add_latency(p, emulator="with --emulator")
     p.set_defaults(func=_cmd_identify)
 
     p = hws.add_parser("run", help="the 50 Hz teleoperation loop on the hardware")
@@ -580,7 +586,7 @@ def register(
         "profile's, on in 'safe')",
     )
     add_json(p)
-    add_latency(p)
+    add_latency(p, emulator="with --emulator")
     p.set_defaults(func=_cmd_run)
 
     p = groups["bench"].add_parser("hw", help="sync write + fast sync read cycle vs wire time")
@@ -591,5 +597,5 @@ def register(
     )
     add_servo_map(p)
     add_json(p)
-    add_latency(p)
+    add_latency(p, emulator="on the emulator it starts without --device")
     p.set_defaults(func=_cmd_bench)

@@ -207,6 +207,41 @@ def test_check_names_every_fault_the_bring_up_found_once(capsys):
     ], report["errors"]
 
 
+@pytest.mark.parametrize(
+    "argv, allowance",
+    [
+        (["hw", "run", "--emulator"], 50.0),
+        (["hw", "run", "--emulator", "--latency-ms", "20"], 20.0),
+        (["hw", "run", "--device", "DEV"], 16.0),
+        (["hw", "identify", "--emulator"], 50.0),
+        (["bench", "hw"], 50.0),
+        (["bench", "hw", "--latency-ms", "5"], 5.0),
+    ],
+)
+def test_an_emulator_the_command_starts_gets_a_50_ms_reply_allowance(
+    argv, allowance, tmp_path, monkeypatch, capsys
+):
+    """On an emulated bus it starts itself a command gave the driver the USB adapter's
+    16 ms latency allowance, which the emulator on a loaded host does not meet; it now
+    gives 50 ms unless --latency-ms says otherwise; a --device keeps the adapter's 16."""
+    from firmware_interface import driver
+    from payload.errors import RunAborted
+
+    given = []
+
+    def spy(device, smap, **kwargs):
+        given.append(kwargs["latency_timer_ms"])
+        raise RunAborted("the spy stops here")
+
+    monkeypatch.setattr(driver, "DynamixelDriver", spy)
+    hands = tmp_path / "hands.jsonl"
+    hands.write_text("")
+    extra = ["--replay", str(hands), "--out", str(tmp_path / "run")] if argv[1] == "run" else []
+    assert main([*argv, *extra]) == 1
+    assert given == [allowance]
+    assert "the spy stops here" in capsys.readouterr().err
+
+
 def test_check_fails_on_a_blocked_rail(capsys):
     """A blocked rail used to pass `hw check`: homing took the stalled shaft for the hard
     stop. The check now fails (exit 1) with the homing's refusal naming the rail, and

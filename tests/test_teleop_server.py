@@ -1343,6 +1343,34 @@ def test_serve_drives_the_hardware_with_its_servo_map_and_latency(tmp_path, monk
             serve(_parse([*base, "--device", emu.port, "--latency-ms", "0"]), loading)
 
 
+@pytest.mark.parametrize("given, allowance", [([], 50.0), (["--latency-ms", "20"], 20.0)])
+def test_serve_on_its_own_emulator_gets_a_50_ms_reply_allowance(
+    given, allowance, tmp_path, monkeypatch
+):
+    """`teleop serve --driver hardware --emulator` gave the driver the USB adapter's 16 ms
+    latency allowance, which the emulator on a loaded host does not meet; it now gives
+    50 ms unless --latency-ms says otherwise."""
+    from payload.cli import _parse
+    from payload.errors import RunAborted
+    from payload.teleop.cli import serve
+
+    monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path))
+    seen = []
+
+    def spy(device, smap, **kwargs):
+        seen.append(kwargs["latency_timer_ms"])
+        raise RunAborted("the spy stops here")
+
+    def loading(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(firmware_interface, "DynamixelDriver", spy)
+    argv = ["teleop", "serve", "--driver", "hardware", "--emulator", "--port", "0", *given]
+    with pytest.raises(RunAborted, match="the spy stops here"):
+        serve(_parse(argv), loading)
+    assert seen == [allowance]
+
+
 def test_a_bad_servo_map_is_refused_before_any_certificate_is_made(tmp_path, monkeypatch, capsys):
     """`--servos` names a map that cannot be read: one line, exit 2, before the TLS
     certificate a LAN bind makes (the map was read only when the bus was opened)."""

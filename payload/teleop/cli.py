@@ -205,7 +205,7 @@ def _hardware_driver(args: argparse.Namespace, smap: Any, stack: contextlib.Exit
     posture where the simulated session starts, its Bus Watchdog disarmed until the
     session's loop runs (the simulator and the retargeters load for seconds first)."""
     from firmware_interface import DynamixelDriver
-    from firmware_interface.options import LATENCY_MS
+    from firmware_interface.options import latency_of
     from firmware_interface.run import ready_at_home
 
     device = args.device
@@ -213,7 +213,7 @@ def _hardware_driver(args: argparse.Namespace, smap: Any, stack: contextlib.Exit
         from firmware_interface.emulator import EmulatorProcess
 
         device = stack.enter_context(EmulatorProcess(args.servos)).port
-    latency = LATENCY_MS if args.latency_ms is None else args.latency_ms
+    latency = latency_of(args.latency_ms, args.emulator)
     driver = DynamixelDriver(device, smap, latency_timer_ms=latency)
     try:  # the servos move: said first, on stderr (stdout names the page), as `hw run` does
         ready_at_home(driver, say_stage)
@@ -446,7 +446,7 @@ def serve_arguments(p: argparse.ArgumentParser) -> None:
         "hw emulate` serves one), instead of --device",
     )
     add_servo_map(p, "servo map TOML (--driver hardware; default: the packaged map)")
-    add_latency(p, "; --driver hardware", default=None)
+    add_latency(p, "; --driver hardware", emulator="with --emulator")
     p.add_argument(
         "--host",
         default="127.0.0.1",
