@@ -40,6 +40,7 @@ from payload.vecmath import read_only
 
 __all__ = [
     "MIN_OPENING",
+    "OpeningError",
     "PairCalibration",
     "PairRange",
     "calibrate",
@@ -146,6 +147,22 @@ MIN_OPENING = 1e-3
 calibration (a smaller difference would map noise onto the whole finger range)."""
 
 
+class OpeningError(RetargetError):
+    """An open span not :data:`MIN_OPENING` wider than the pinch span.
+
+    Attributes:
+        pinch_span: The pinch's thumb-index span [m].
+        open_span: The opening's [m].
+    """
+
+    def __init__(self, pinch_span: float, open_span: float) -> None:
+        self.pinch_span, self.open_span = pinch_span, open_span
+        super().__init__(
+            f"calibration: the open span ({open_span * 1e3:.1f} mm) must exceed the pinch span "
+            f"({pinch_span * 1e3:.1f} mm) by at least {MIN_OPENING * 1e3:g} mm"
+        )
+
+
 def calibrate(
     pinch: PairFeatures | np.ndarray,
     open_: PairFeatures | np.ndarray,
@@ -166,16 +183,14 @@ def calibrate(
             ``(l_max - l_min) / (l_open - l_pinch)``.
 
     Raises:
-        RetargetError: Non-finite features, an open span not larger than the pinch
-            span by 1 mm, or a rotation that is not a rotation matrix.
+        OpeningError: An open span not larger than the pinch span by
+            :data:`MIN_OPENING`.
+        RetargetError: Non-finite features, or a rotation that is not a rotation matrix.
     """
     hp = PairFeatures.from_vector(as_feature_vector(pinch, "pinch features"))
     ho = PairFeatures.from_vector(as_feature_vector(open_, "open features"))
     if ho.span < hp.span + MIN_OPENING:
-        raise RetargetError(
-            f"calibration: the open span ({ho.span * 1e3:.1f} mm) must exceed the pinch span "
-            f"({hp.span * 1e3:.1f} mm) by at least {MIN_OPENING * 1e3:g} mm"
-        )
+        raise OpeningError(hp.span, ho.span)
     if rotation is None:
         human = np.vstack(
             [v.reshape(-1, 3) for v in (hp.direction, hp.distal, ho.direction, ho.distal)]

@@ -37,6 +37,22 @@ class ChannelError(PayloadError):
     """A channel was given an invalid input (non-finite wrist, bad calibration)."""
 
 
+class RailOrderError(ChannelError):
+    """A rail calibration whose open distance is not larger than its closed one.
+
+    Attributes:
+        d_min: The closed (together) inter-wrist distance [m].
+        d_max: The open (apart) one [m].
+    """
+
+    def __init__(self, d_min: float, d_max: float) -> None:
+        self.d_min, self.d_max = d_min, d_max
+        super().__init__(
+            f"rail calibration: open distance {d_max:.3f} m must exceed closed "
+            f"distance {d_min:.3f} m"
+        )
+
+
 @dataclass(frozen=True)
 class RailConfig:
     """Rail channel mapping.
@@ -55,10 +71,7 @@ class RailConfig:
         if not (math.isfinite(self.d_min) and math.isfinite(self.d_max)):
             raise ChannelError("rail calibration: distances must be finite")
         if not self.d_max > self.d_min:
-            raise ChannelError(
-                f"rail calibration: open distance {self.d_max:.3f} m must exceed closed "
-                f"distance {self.d_min:.3f} m"
-            )
+            raise RailOrderError(self.d_min, self.d_max)
         if not self.travel > 0:
             raise ChannelError("rail travel must be positive")
 

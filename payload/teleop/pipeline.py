@@ -24,14 +24,21 @@ import numpy as np
 from payload.design.params import Design, load_design
 from payload.design.tree import MANIPULATION_JOINTS
 from payload.errors import PayloadError
-from payload.retarget.calibration import MIN_OPENING, PairCalibration, PairRange, calibrate
+from payload.retarget.calibration import OpeningError, PairCalibration, PairRange, calibrate
 from payload.retarget.casadi_solver import PairRetargeter
 from payload.retarget.errors import RetargetError
 from payload.retarget.features import PairFeatures, features_from_points
 from payload.retarget.solver import SolveInfo
 from payload.schema import CONTROL_DT, PayloadCommand, VehicleTwist
 from payload.teleop.calibration import CalibrationError, Captures
-from payload.teleop.channels import BaseChannel, BaseCommand, BaseConfig, RailConfig, rail_command
+from payload.teleop.channels import (
+    BaseChannel,
+    BaseCommand,
+    BaseConfig,
+    RailConfig,
+    RailOrderError,
+    rail_command,
+)
 from payload.teleop.filters import OneEuroConfig, OneEuroFilter
 from payload.teleop.hand_c import compiled_hand_features
 from payload.teleop.hands import (
@@ -161,15 +168,14 @@ def calibrate_operator(
     d_max = float(
         np.linalg.norm(captures.get("apart", "left").wrist - captures.get("apart", "right").wrist)
     )
-    if math.isfinite(d_min) and math.isfinite(d_max) and not d_max > d_min:
-        # said as the operator did it: the rail's own error speaks of its distances
-        raise CalibrationError(
-            f"calibration 'together'/'apart': the wrists were {100 * d_max:.1f} cm apart for "
-            f"'apart' and {100 * d_min:.1f} cm for 'together': hold them wider apart for "
-            "'apart'"
-        )
     try:
         rail = RailConfig(d_min, d_max, rail_travel)
+    except RailOrderError as exc:  # said as the operator did it, not in the rail's terms
+        raise CalibrationError(
+            f"calibration 'together'/'apart': the wrists were {100 * exc.d_max:.1f} cm apart "
+            f"for 'apart' and {100 * exc.d_min:.1f} cm for 'together': hold them wider apart "
+            "for 'apart'"
+        ) from exc
     except PayloadError as exc:
         raise CalibrationError(f"calibration 'together'/'apart': {exc}") from exc
     pairs = {}
@@ -177,13 +183,13 @@ def calibrate_operator(
         try:
             pinch = human_features(captures.get("pinch", side))
             opened = human_features(captures.get("open", side))
-            if opened.span < pinch.span + MIN_OPENING:  # as the operator did it
-                raise CalibrationError(
-                    f"calibration of the {side} hand: its thumb and index were "
-                    f"{1e3 * opened.span:.0f} mm apart for 'open' and {1e3 * pinch.span:.0f} "
-                    "mm for 'pinch': open them wide for 'open' and pinch them for 'pinch'"
-                )
             pairs[pair] = calibrate(pinch, opened, ranges[pair])
+        except OpeningError as exc:  # as the operator did it
+            raise CalibrationError(
+                f"calibration of the {side} hand: its thumb and index were "
+                f"{1e3 * exc.open_span:.0f} mm apart for 'open' and {1e3 * exc.pinch_span:.0f} "
+                "mm for 'pinch': open them wide for 'open' and pinch them for 'pinch'"
+            ) from exc
         except RetargetError as exc:
             raise CalibrationError(f"calibration of the {side} hand: {exc}") from exc
     return TeleopCalibration(neutral["left"], neutral["right"], heading0, rail, pairs)
