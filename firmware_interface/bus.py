@@ -19,6 +19,9 @@ from firmware_interface.servo_dynamics import Plant
 from firmware_interface.servo_model import ServoModel
 
 ADVANCE_S = 0.0005  # servo state is integrated at least this finely [s]
+_MODEL_NUMBER = BY_NAME["model_number"]
+_MODEL_SPAN = slice(_MODEL_NUMBER.address, _MODEL_NUMBER.address + _MODEL_NUMBER.size)
+"""Where a servo's control table holds its Model Number (a PING reply's first bytes)."""
 
 
 @dataclass
@@ -93,9 +96,8 @@ class Bus:
         elif fault.kind == "block":
             self.servos[int(fault.id)].blocked = True
         elif fault.kind == "model":  # a read-only EEPROM register: kept over reboots
-            reg = BY_NAME["model_number"]
-            span = slice(reg.address, reg.address + reg.size)
-            self.servos[int(fault.id)].table[span] = int(fault.value).to_bytes(reg.size, "little")
+            value = int(fault.value).to_bytes(_MODEL_NUMBER.size, "little")
+            self.servos[int(fault.id)].table[_MODEL_SPAN] = value
 
     def power_cycle(self) -> None:
         """Every servo off and on again (EEPROM kept, multi-turn counts lost)."""
@@ -199,7 +201,7 @@ class Bus:
 
     def _unicast(self, s: ServoModel, inst: int, prm: bytes) -> bytes | None:
         if inst == P.PING:  # Model Number and Firmware Version, from the control table
-            model = bytes(s.table[ADDR["model_number"] : ADDR["model_number"] + 2])
+            model = bytes(s.table[_MODEL_SPAN])
             return P.status(s.id, s.alert(), model + bytes([s.table[ADDR["firmware_version"]]]))
         if inst == P.READ:
             if len(prm) != 4:

@@ -254,10 +254,16 @@ class DynamixelDriver(FaultHandling):
         late = self.port.late
         n = late.get(dxl_id, 0) if dxl_id is not None else sum(late.values())
         if n:
-            words += (f"; {n} repl{'y' if n == 1 else 'ies'} came after the "
-                      f"{self.port.reply_allowance_ms:.0f} ms reply timeout: "
-                      f"{_LATE_HINT}")  # fmt: skip
+            words += f"; {self._late_words(n)}"
         return words
+
+    def _late_words(self, n: int | None = None, ids: list[int] | None = None) -> str:
+        """What the driver says of replies that came after their timeout: ``n`` of them
+        (None: some), of ``ids`` (the first named before these words, the others after
+        them), and what to try."""
+        many = "replies" if n is None else f"{n} repl{'y' if n == 1 else 'ies'}"
+        return (f"{many} came after the {self.port.reply_allowance_ms:.0f} ms reply "
+                f"timeout{_also(ids or [])}: {_LATE_HINT}")  # fmt: skip
 
     def _write(self, dxl_id: int, name: str, value: int) -> None:
         """Write one register and check the status (retried on a timeout or CRC error)."""
@@ -310,10 +316,8 @@ class DynamixelDriver(FaultHandling):
         self.heard.update(found)
         late = [i for i in self.ids if i not in found and self._late(i)]
         if late:
-            raise CommError(f"{self._name(late[0])}: no reply to a ping within the "
-                            f"{self.port.reply_allowance_ms:.0f} ms reply timeout, but "
-                            f"{self._late(late[0])} late one(s) came{_also(late)}: "
-                            f"{_LATE_HINT}")  # fmt: skip
+            raise CommError(f"{self._name(late[0])}: no reply to a ping, but "
+                            f"{self._late_words(self._late(late[0]), late)}")  # fmt: skip
         return found
 
     def _late(self, dxl_id: int) -> int:
@@ -349,9 +353,7 @@ class DynamixelDriver(FaultHandling):
         came = [i for i in self.ids if self._late(i) > late.get(i, 0)]
         if came:  # a bus whose replies come late: a later one could answer the wrong read
             if not faults:
-                raise CommError(f"{self._name(came[0])}: replies came after the "
-                                f"{self.port.reply_allowance_ms:.0f} ms reply timeout"
-                                f"{_also(came)}: {_LATE_HINT}")  # fmt: skip
+                raise CommError(f"{self._name(came[0])}: {self._late_words(ids=came)}")
         else:  # each servo's latched error bits (another model's register there is not them)
             for spec in self.map.servos:
                 if spec.id in found and spec.id not in wrong:

@@ -213,6 +213,8 @@ class CheckedPacketHandler(Protocol2PacketHandler):
     A status from a servo not asked is counted late, but not one from a servo of the plain
     sync read under way (``group``, the IDs its packet names): it answers that read,
     on time, while the SDK still waits for a servo before it that went silent.
+
+    Its port is the driver's :class:`SdkPort` (``unsettled``, ``late``, ``excused``).
     """
 
     def __init__(self) -> None:
@@ -226,14 +228,8 @@ class CheckedPacketHandler(Protocol2PacketHandler):
         self._last = rx
         if result != COMM_SUCCESS:
             port.unsettled = True
-            if hasattr(port, "excused"):
-                port.excused = self.group
-        elif (
-            self._asked is not None
-            and rx[4] != self._asked
-            and rx[4] not in self.group
-            and hasattr(port, "late")
-        ):
+            port.excused = self.group
+        elif self._asked is not None and rx[4] != self._asked and rx[4] not in self.group:
             # one master on the bus: a status from a servo not asked answers an earlier
             # request (the SDK skips it and waits on)
             port.late[rx[4]] = port.late.get(rx[4], 0) + 1
@@ -283,9 +279,10 @@ class CheckedPacketHandler(Protocol2PacketHandler):
         self, port: PortHandler, dxl_id: int, length: int
     ) -> tuple[list[int], int, int]:
         data, result, error = super().fastSyncReadRx(port, dxl_id, length)
-        # from the first servo's error byte to the CRC (LEN less the instruction): the
-        # records of ``length`` bytes in all (AlertSyncRead parses them by their lengths)
-        if result == COMM_SUCCESS and DXL_MAKEWORD(self._last[5], self._last[6]) - 1 != length:
+        # the records of ``length`` bytes in all (AlertSyncRead parses them by their
+        # lengths): the first servo's error byte and the last one's CRC stand where a
+        # servo's own status has its error and CRC, the rest are the parameters
+        if result == COMM_SUCCESS and _params(self._last) != length - 3:
             return [], self._refuse(port), 0
         return data, result, error
 

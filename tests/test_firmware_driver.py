@@ -19,7 +19,7 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 from conftest import reg
-from dynamixel_sdk import PacketHandler
+from dynamixel_sdk import COMM_RX_TIMEOUT, PacketHandler
 
 from firmware_interface import protocol as P
 from firmware_interface.control_table import ADDR
@@ -631,18 +631,39 @@ def _lose_the_next_sync_write(drv) -> None:
     ser.write = lossy
 
 
+def _lose_the_first_reply_of(drv, dxl_id: int) -> None:
+    """The first read of ``dxl_id``'s Torque Enable gets no reply (a reply lost on the
+    wire), whatever the bus's load."""
+    read = drv.packet.read1ByteTxRx
+    lost = []
+
+    def lossy(port, i, address):
+        if i == dxl_id and address == ADDR["torque_enable"] and not lost:
+            lost.append(i)
+            return 0, COMM_RX_TIMEOUT, 0
+        return read(port, i, address)
+
+    drv.packet.read1ByteTxRx = lossy
+
+
 def test_close_confirms_the_torque_off_and_resends_it_to_a_servo_still_on(smap, caplog):
-    """The torque-off sync write lost on the line, and replies dropped: close reads Torque
-    Enable back and turns off each servo still on; the emulator's servos end torque off."""
+    """The torque-off sync write lost on the line, and servo 5's first reply lost: close
+    reads Torque Enable back, sends the torque-off again to the servos still on (and to 5,
+    not read) and confirms each on its second pass; the emulator's servos end torque
+    off, and close warns of nothing (every servo confirmed)."""
     with EmulatorProcess() as emu:
         drv = DynamixelDriver(emu.port, smap, latency_timer_ms=LAT, guard=False)
         drv.bring_up()
         assert all(s["torque"] for s in emu.servos().values())
-        emu.fault("drop:0.3")
+        writes = emu.stats()["packets"]["sync_write"]
         _lose_the_next_sync_write(drv)
+        _lose_the_first_reply_of(drv, 5)
         with caplog.at_level(logging.WARNING, logger="firmware_interface.driver"):
             drv.close()
         assert not any(s["torque"] for s in emu.servos().values())
+        assert emu.stats()["packets"]["sync_write"] == writes + 1  # the re-send, once
+    assert drv.torque_unconfirmed == []
+    assert [r.getMessage() for r in caplog.records] == []
 
 
 def test_close_names_a_servo_it_could_not_confirm_without_raising(smap, caplog):
