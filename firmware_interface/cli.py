@@ -164,7 +164,12 @@ def check(
 ) -> dict[str, Any]:
     """Bring-up and health of every servo: ``{"ok", "servos", "errors"}``. The bring-up
     homes the rail and the stage (they move to their hard stops): ``say`` is told first."""
-    from firmware_interface.driver import DynamixelDriver, bring_up_notice, nobody_answered
+    from firmware_interface.driver import (
+        DynamixelDriver,
+        bring_up_notice,
+        late_words,
+        nobody_answered,
+    )
     from firmware_interface.errors import (
         CommError,
         DynamixelError,
@@ -222,9 +227,10 @@ def check(
             errors.append(f"no reply to the health read from {servo} {', '.join(silent)}")
         drv.port.settle()
         late = sum(drv.port.late.values())
+        allowance = drv.port.reply_allowance_ms
     if late:  # a late reply can be taken as the answer to a later read of the same length
-        errors.append(f"{late} repl{'y' if late == 1 else 'ies'} came after the reply "
-                      "timeout: no value read on this bus is shown (--latency-ms?)")  # fmt: skip
+        errors.append(late_words(late, allowance, "no value read on this bus is shown "
+                                 "(--latency-ms?)"))  # fmt: skip
         servos = []
     return {"ok": not errors, "servos": servos, "errors": errors}
 

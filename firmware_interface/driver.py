@@ -91,6 +91,19 @@ _LATE_HINT = ("the bus answers later than the driver allows (an adapter's latenc
               "above the one given: --latency-ms?)")  # fmt: skip
 
 
+def late_words(
+    n: int | None, allowance_ms: float | None, then: str, ids: list[int] | None = None
+) -> str:
+    """How the hardware layer says that replies came after their timeout: ``n`` of them
+    (None: some), the ``allowance_ms`` timeout (None: not said), of ``ids`` (the first
+    named before these words, the others after them), then ``then`` (what it means or what
+    to try)."""
+    many = "replies" if n is None else f"{n} repl{'y' if n == 1 else 'ies'}"
+    timeout = "the reply timeout" if allowance_ms is None else (
+        f"the {allowance_ms:.0f} ms reply timeout")  # fmt: skip
+    return f"{many} came after {timeout}{_also(ids or [])}: {then}"
+
+
 def _also(ids: list[int]) -> str:
     return f" (also IDs {', '.join(map(str, ids[1:]))})" if len(ids) > 1 else ""
 
@@ -261,9 +274,7 @@ class DynamixelDriver(FaultHandling):
         """What the driver says of replies that came after their timeout: ``n`` of them
         (None: some), of ``ids`` (the first named before these words, the others after
         them), and what to try."""
-        many = "replies" if n is None else f"{n} repl{'y' if n == 1 else 'ies'}"
-        return (f"{many} came after the {self.port.reply_allowance_ms:.0f} ms reply "
-                f"timeout{_also(ids or [])}: {_LATE_HINT}")  # fmt: skip
+        return late_words(n, self.port.reply_allowance_ms, _LATE_HINT, ids)
 
     def _write(self, dxl_id: int, name: str, value: int) -> None:
         """Write one register and check the status (retried on a timeout or CRC error)."""
@@ -315,9 +326,9 @@ class DynamixelDriver(FaultHandling):
                     break
         self.heard.update(found)
         late = [i for i in self.ids if i not in found and self._late(i)]
-        if late:
-            raise CommError(f"{self._name(late[0])}: no reply to a ping, but "
-                            f"{self._late_words(self._late(late[0]), late)}")  # fmt: skip
+        if late:  # the count is the first servo's, named before it (the others after it)
+            raise CommError(f"{self._name(late[0])}{_also(late)}: no reply to a ping, but "
+                            f"{self._late_words(self._late(late[0]))}")  # fmt: skip
         return found
 
     def _late(self, dxl_id: int) -> int:
@@ -351,15 +362,21 @@ class DynamixelDriver(FaultHandling):
         faults += [WrongModelError(i, self.map.joint_of(i), found[i][0], self.map.model_number)
                    for i in self.ids if i in wrong]  # fmt: skip
         came = [i for i in self.ids if self._late(i) > late.get(i, 0)]
-        if came:  # a bus whose replies come late: a later one could answer the wrong read
-            if not faults:
-                raise CommError(f"{self._name(came[0])}: {self._late_words(ids=came)}")
+        if came:  # a bus whose replies come late: a later one could answer the wrong read,
+            # so no error bits are read; the late replies are said with the rest
+            faults.append(CommError(f"{self._name(came[0])}: {self._late_words(ids=came)}"))
         else:  # each servo's latched error bits (another model's register there is not them)
+            lost: list[DynamixelError] = []  # a read that failed: said after the faults found
             for spec in self.map.servos:
                 if spec.id in found and spec.id not in wrong:
-                    err = self._read_reg(spec.id, ADDR["hardware_error_status"], 1)
+                    try:
+                        err = self._read_reg(spec.id, ADDR["hardware_error_status"], 1)
+                    except CommError as exc:
+                        lost.append(exc)
+                        continue
                     if err:
                         faults.append(HardwareFault(spec.id, spec.joint, hw_error_names(err)))
+            faults += lost
         if faults:
             raise faults[0].joined(faults[1:])
         info = self._read_reg(self.ids[0], ADDR["model_information"], 4)

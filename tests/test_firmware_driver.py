@@ -242,6 +242,61 @@ def test_a_bring_up_reads_every_servos_error_bits_before_configuring_any(smap):
                           "servo 7 (B_pip): hardware error overload")  # fmt: skip
 
 
+def test_a_lost_error_read_at_bring_up_is_said_after_the_faults_found(smap, monkeypatch):
+    """A servo missing, and servo 7's error-status read lost after its retries (a loose
+    cable): the lost read raised at once and the missing servo went unsaid; now the
+    missing servo decides the error and the lost read is named after it, and nothing is
+    configured."""
+    lost = CommError("servo 7 (B_pip): reading hardware_error_status after 3 attempt(s)")
+    read = DynamixelDriver._read_reg
+
+    def lose_7(drv: DynamixelDriver, dxl_id: int, address: int, size: int) -> int:
+        if dxl_id == 7 and address == ADDR["hardware_error_status"]:
+            raise lost
+        return read(drv, dxl_id, address, size)
+
+    monkeypatch.setattr(DynamixelDriver, "_read_reg", lose_7)
+    with EmulatorProcess(faults=["missing:9", "error:3:overload"]) as emu:
+        with DynamixelDriver(emu.port, smap, latency_timer_ms=LAT) as drv:
+            with pytest.raises(MissingServoError) as info:
+                drv.bring_up()
+        assert _untouched(emu)
+    assert info.value.ids == [9]
+    assert [type(f) for f in info.value.also] == [HardwareFault, CommError]
+    assert info.value.also[1] is lost
+    assert str(info.value).endswith(
+        "servo 3 (A_pip): hardware error overload; servo 7 (B_pip): reading "
+        "hardware_error_status after 3 attempt(s)"
+    )
+
+
+def test_late_replies_at_bring_up_are_said_with_a_missing_servo(smap, monkeypatch):
+    """Servo 9 missing and a reply of servo 3 counted late during the scan: the late
+    replies were dropped from the error (only the missing servo named, though the bus's
+    latency is the likelier cause); now they are named after it, and no error bits are
+    read on that bus."""
+    scan = DynamixelDriver.scan
+
+    def late_3(drv: DynamixelDriver) -> dict[int, tuple[int, int]]:
+        found = scan(drv)
+        drv.port.late[3] = drv.port.late.get(3, 0) + 1
+        return found
+
+    monkeypatch.setattr(DynamixelDriver, "scan", late_3)
+    with EmulatorProcess(faults=["missing:9", "error:4:overload"]) as emu:
+        with DynamixelDriver(emu.port, smap, latency_timer_ms=LAT) as drv:
+            with pytest.raises(MissingServoError) as info:
+                drv.bring_up()
+            allowance = drv.port.reply_allowance_ms
+        assert _untouched(emu)
+    assert [type(f) for f in info.value.also] == [CommError]  # servo 4's bits not read
+    assert str(info.value) == (
+        "servo(s) not answering: ID 9 (C_mcp_flex); servo 3 (A_pip): replies came after "
+        f"the {allowance:.0f} ms reply timeout: the bus answers later than the driver allows "
+        "(an adapter's latency timer above the one given: --latency-ms?)"
+    )
+
+
 def test_corrupt_and_dropped_replies_are_retried_within_the_cycle(smap):
     with (
         EmulatorProcess(faults=["corrupt:0.05", "drop:0.03"], seed=3) as emu,

@@ -1112,6 +1112,19 @@ def test_a_rescoring_as_recorded_writes_only_what_differs(tmp_path: Path, capsys
         "rms_mm"
     ] == pytest.approx(kept["rms_mm"])
 
+    # a trial scored before whose recording is gone is news, not "nothing written": its
+    # row says so in the tagged summary; trial 6's tagged copy, there now, is kept equal
+    older.write_text(json.dumps(kept))
+    (tmp_path / "trial-0004" / "log.mcap").unlink()
+    again = ["trials", "summarize", str(tmp_path), "--recompute", "--json"]
+    assert main(again) == 2  # the tagged summary would change: not without --force
+    assert "exists with different content" in capsys.readouterr().err
+    assert main([*again, "--force"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["rescored_as_recorded"] == [] and out["errors"] == 1
+    rows = json.loads((tmp_path / f"summary.{tag}.json").read_text())["trials"]
+    assert [r["error"] for r in rows] == ["no log.mcap to rescore", None]
+
 
 def test_summarize_folder_rebuilds_and_rescores(tmp_path: Path) -> None:
     from payload.trials.campaign import load_trial_results, run_campaign

@@ -38,10 +38,10 @@ VEHICLE_TOML = (
     "# in the payload frame (origin at the top centre of the bays; the bays reach\n"
     "# down to the vehicle's bottom face, where they are open).\n"
     "[vehicle]\n"
-    "body_size = [0.32, 0.32, 0.32]   # [m] x, y, z (docs/sources.md: about a 0.32 m cube)\n"
+    f"body_size = [0.32, 0.32, 0.32]   # [m] x, y, z ({SOURCES}: about a 0.32 m cube)\n"
     "body_offset = [0.0, 0.0]         # [m] x, y of the body centre from the bays' centre\n"
     "bay_size = [0.20, 0.10, 0.10]    # [m] two lower bays combined (ASSUMPTION, not public)\n"
-    "mass = 9.5838                    # [kg] no payloads, four batteries (docs/sources.md)\n"
+    f"mass = 9.5838                    # [kg] no payloads, four batteries ({SOURCES})\n"
     "inertia = [0.15343, 0.14271, 0.16230]  # [kg m^2] principal, about the centre of mass\n"
     f'assumption = "{BAY_ASSUMPTION}"\n'
 )

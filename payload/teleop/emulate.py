@@ -1,12 +1,14 @@
 """An emulated Quest 3 with hands: headless Chromium + Meta's ``iwer``, for tests and the bench.
 
-The product page is loaded unchanged from the server; before it runs, two scripts are
-injected into the browser (never served by the product server): iwer's browser build
-from the project's ``node_modules`` (installed by ``npm ci`` from ``package-lock.json``)
-and a few lines that create ``new XRDevice(metaQuest3)``, install it as
-``navigator.xr`` (``forceInstall``) and switch it to hand input. Hands then move toward
-targets at a human speed (a jump would be rejected by the tracking supervisor as a
-glitch), in WebXR's local-floor space (metres, Y up, -Z forward).
+The product page is loaded unchanged from the server; before it runs, scripts are
+injected into the browser: iwer's browser build from the project's ``node_modules``
+(installed by ``npm ci`` from ``package-lock.json``), then :func:`emulated_pose` and
+``web/desktop/hands.js`` (:data:`HANDS_JS`, which ``payload teleop serve --desktop`` also
+serves), which create ``new XRDevice(metaQuest3)``, install it as ``navigator.xr``
+(``forceInstall``) and switch it to hand input, and a few lines that hand its controls to
+this module. Hands then move toward targets at a human speed (a jump would be rejected by
+the tracking supervisor as a glitch), in WebXR's local-floor space (metres, Y up, -Z
+forward).
 """
 
 from __future__ import annotations
@@ -38,9 +40,9 @@ CHROMIUM_FLAGS = (
 NEUTRAL = {"left": (-0.15, 1.1, -0.35), "right": (0.15, 1.1, -0.35)}
 HEAD_PITCH_DEG = -25.0
 """The emulated head looks this far down [deg], at the vehicle (it floats at hand height a
-metre ahead), as an operator does and as the desktop mode's does (the server puts it before
-``web/desktop/desktop.js``, :func:`payload.teleop.server.desktop_pose`):
-the view shows the scene and the panel above it. The hands do not depend on it."""
+metre ahead), as an operator does and as the desktop mode's does (both read it from
+:func:`emulated_pose`, put before ``web/desktop/hands.js``): the view shows the scene and
+the panel above it. The hands do not depend on it."""
 GESTURES: dict[str, dict[str, Any]] = {
     "neutral": {"offset": (0.0, 0.0, 0.0), "spread": 0.0, "pinch": 0.5},
     "pinch": {"offset": (0.0, 0.0, 0.0), "spread": 0.0, "pinch": 1.0},

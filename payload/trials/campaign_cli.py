@@ -235,7 +235,9 @@ def _cmd_trials_summarize(args: argparse.Namespace) -> int:
     out = Path(args.dir)
     scored = [r for r in results if not r.get("error")]
     again = [r for r in scored if r.get(RESCORING) == AS_RECORDED]
-    if rescore and scored and len(again) == len(scored):
+    # a trial scored before that no longer scores (its recording gone or unreadable) is news
+    lost = [r for r in results if r.get("error") and (Path(r["out_dir"]) / METRICS).is_file()]
+    if rescore and scored and len(again) == len(scored) and not lost:
         # every trial's own scoring again: a tagged copy of each would say nothing new
         summary = campaign_summary(results, title, previous.get("run"), prov)
         said = {"out_dir": str(args.dir), "rescored_as_recorded": [r["seed"] for r in again]}

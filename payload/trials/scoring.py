@@ -38,7 +38,8 @@ def finish_trial(
     writes them beside the originals, named by the contact definition
     (``metrics.contact-min0.5s-gap0.1s.json``, ...), never over them; one with the
     definition the trial was recorded with that gives every figure of its ``metrics.json``
-    again writes nothing (the result says ``RESCORING: AS_RECORDED``). A file that exists
+    again writes nothing (the result says ``RESCORING: AS_RECORDED``), unless an earlier
+    rescoring's copy is there to follow it. A file that exists
     with other content is replaced only with ``force`` (through a temporary file and a
     rename); an identical one is left alone.
 
@@ -95,8 +96,12 @@ def finish_trial(
         rec_path.name if rec_path.resolve().parent == out.resolve() else str(rec_path)
     )
     tag = contact_tag(min_interval_s, max_gap_s) if beside else None
-    if beside and (min_interval_s, max_gap_s) == recorded and says(out / METRICS, result):
-        # the trial's own scoring again (its definition, the same figures): nothing new
+    if (
+        beside
+        and (min_interval_s, max_gap_s) == recorded
+        and says(out / METRICS, result)
+        and not (out / tagged(METRICS, tag)).exists()  # an earlier copy follows its source
+    ):  # the trial's own scoring again (its definition, the same figures): nothing new
         return {**result, RESCORING: AS_RECORDED}
     changed = write_unless_changed(
         out / tagged(METRICS, tag), json.dumps(result, indent=2) + "\n", force=force

@@ -180,9 +180,9 @@ def load_trial_results(
         metrics_path = d / METRICS
         if recompute or not metrics_path.exists():
             if not (d / RECORDING).exists():
-                results.append(
-                    {"seed": seed, "out_dir": str(d), "error": f"no {RECORDING} and no {METRICS}"}
-                )
+                why = f"no {RECORDING} to rescore" if metrics_path.exists() else (
+                    f"no {RECORDING} and no {METRICS}")  # fmt: skip
+                results.append({"seed": seed, "out_dir": str(d), "error": why})
                 continue
             rec = reads[d]
             if isinstance(rec, PayloadError):
