@@ -618,10 +618,7 @@ def test_a_trial_cut_off_by_its_cap_says_so(tmp_path, capsys) -> None:
     assert main(["trial", "--max-time", "1", "--out", str(out)]) == 0
     lines = capsys.readouterr().out.splitlines()
     assert "  success: no" in lines
-    assert (
-        "  stopped by the session-length cap (--max-time) after 1.0 s, before the "
-        "operator finished" in lines
-    )
+    assert "  stopped by the --max-time cap after 1.0 s, before the operator finished" in lines
     metrics = json.loads((out / "metrics.json").read_text())
     assert (metrics["ended_by"], metrics["steps"]) == ("max_time", round(1.0 / CONTROL_DT) + 1)
 

@@ -270,7 +270,7 @@ def test_hw_run_of_a_synthetic_trial_says_what_it_ran_on_and_places_the_ctb_as_i
     assert main([*argv, "--max-time", "1"]) == 0
     printed = capsys.readouterr().out
     assert json.loads((capped / "metrics.json").read_text())["ended_by"] == "max_time"
-    assert "stopped by the session-length cap (--max-time) after 1.0 s" in printed, printed
+    assert "stopped by the --max-time cap after 1.0 s" in printed, printed
     assert (
         "  ended: the session-length cap (--max-time), 1.0 s in; every servo's torque turned off"
         in printed.splitlines()

@@ -584,7 +584,7 @@ def test_a_replay_of_a_run_that_did_not_finish_says_so(tmp_path, caplog):
     with caplog.at_level(logging.WARNING, logger="payload.trials.sources"):
         run_trial(operator="replay", replay=first / "log.mcap", out_dir=tmp_path / "of-capped")
     warned = [r.getMessage() for r in caplog.records if "did not finish" in r.getMessage()]
-    assert len(warned) == 1 and "session-length cap (--max-time)" in warned[0], warned
+    assert len(warned) == 1 and "stopped by the --max-time cap" in warned[0], warned
     again = read_recording(tmp_path / "of-capped" / "log.mcap")
     assert again.meta["replay"]["source_unfinished"].startswith("stopped by the session-length")
 

@@ -1100,7 +1100,8 @@ def test_a_rescoring_as_recorded_writes_only_what_differs(tmp_path: Path, capsys
     older.write_text(json.dumps({**kept, "rms_mm": kept["rms_mm"] + 1.0}))
     assert main(["trials", "summarize", str(tmp_path), "--recompute"]) == 0
     said = capsys.readouterr().out
-    assert "of the 1 trial(s) whose scoring differs" in said and "the other 1" in said
+    assert "wrote the rescored metrics and figures of trial-0006, beside theirs" in said
+    assert "1 trial(s) scored as their metrics.json says" in said
     tag = "contact-min0s-gap0s"  # the fixture's recorded definition: the paper's
     new = sorted(p.relative_to(tmp_path).as_posix() for p in tmp_path.rglob(f"*.{tag}.*"))
     assert new == [
@@ -1111,6 +1112,11 @@ def test_a_rescoring_as_recorded_writes_only_what_differs(tmp_path: Path, capsys
     assert json.loads((tmp_path / "trial-0006" / f"metrics.{tag}.json").read_text())[
         "rms_mm"
     ] == pytest.approx(kept["rms_mm"])
+    # the same again writes nothing, and says so (it said it wrote each trial's rescoring)
+    assert main(["trials", "summarize", str(tmp_path), "--recompute"]) == 0
+    said = capsys.readouterr().out
+    assert "wrote" not in said, said
+    assert "the rescorings of 1 trial(s)" in said and "1 trial(s) scored as their" in said
 
     # a trial scored before whose recording is gone is news, not "nothing written": its
     # row says so in the tagged summary; trial 6's tagged copy, there now, is kept equal
@@ -1170,6 +1176,26 @@ def _fake_runner(monkeypatch: pytest.MonkeyPatch) -> list[dict[str, Any]]:
     module.budgets = budgets  # type: ignore[attr-defined]
     module.modelled = modelled  # type: ignore[attr-defined]
     return calls
+
+
+def test_a_cap_before_the_calibrations_end_is_warned_of(tmp_path: Path, monkeypatch, capsys):
+    """``--max-time`` at or under the calibration's length (its six prompts, 2.5 + 4 x 2 +
+    1.5 = 12 s) leaves a trial with no teleoperation at all: a new user's ``--max-time 10``
+    gave empty trials without a word. Now one warning line; 12.5 s runs without one."""
+    from payload.cli import main
+
+    _fake_runner(monkeypatch)
+    run = ["trials", "run", "--n", "1", "--workers", "0", "--out", str(tmp_path / "c")]
+    for argv, cap in (
+        (["trial", "--out", str(tmp_path / "a")], "12"),
+        (["trial", "--out", str(tmp_path / "b")], "12.5"),
+        (run, "10"),
+    ):
+        assert main([*argv, "--max-time", cap, "--json"]) == 0
+        err = [line for line in capsys.readouterr().err.splitlines() if "warning" in line]
+        want = [f"payload: warning: --max-time {cap} s ends each session before the "
+                "operator's calibration does (12 s): no teleoperation is recorded"]  # fmt: skip
+        assert err == ([] if cap == "12.5" else want), err
 
 
 def test_cli_trial_and_campaign(tmp_path: Path, monkeypatch, capsys) -> None:

@@ -26,6 +26,7 @@ from payload.folders import (
     CAMPAIGN_FILES,
     METRICS,
     RECORDING,
+    SCORED,
     SUMMARY,
     SUMMARY_TEXT,
     held,
@@ -40,6 +41,7 @@ from payload.trials.setup_options import (
     _check_physics_dt,
     _link_and_zones,
     _setup_defaults,
+    cap_before_teleoperation,
     seed_problem,
 )
 
@@ -64,6 +66,7 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
     if args.workers is not None and args.workers < 0:
         raise TrialsCliError(f"--workers must be >= 0, got {args.workers}")
     check_seconds("--max-time", args.max_time, cap=True)
+    cap_before_teleoperation(args.max_time)
     from payload.trials.cluster import check_scheduler
 
     check_scheduler(args.scheduler, TrialsCliError)
@@ -187,6 +190,8 @@ def _cmd_trials_summarize(args: argparse.Namespace) -> int:
             raise TrialsCliError(f"--{name.replace('_', '-')} must be a number >= 0, got {value}")
     relaxed = args.min_contact_s is not None or args.max_gap_s is not None
     rescore = args.recompute or relaxed
+    # the trials' rescorings as they were: what this one writes is said, not assumed
+    earlier = _rescorings_held(Path(args.dir)) if rescore else {}
     results = load_trial_results(
         args.dir,
         recompute=rescore,
@@ -269,20 +274,39 @@ def _cmd_trials_summarize(args: argparse.Namespace) -> int:
         present = [p for p in named if p.is_file()]
         written = [p for p in present if p.read_bytes() != before[p]]
         kept = [p for p in present if p not in written]
-        trials = "each trial's metrics and figures beside theirs" if rescore else ""
-        if again:  # some trials' scoring came out as recorded, others' did not
-            trials = (
-                f"the metrics and figures of the {len(scored) - len(again)} trial(s) whose "
-                f"scoring differs from their {METRICS}, beside theirs (the other "
-                f"{len(again)} as recorded: not written)"
-            )
+        now = _rescorings_held(out) if rescore else {}
+        changed = sorted({p.parent.name for p, data in now.items() if earlier.get(p) != data})
         if written:
-            print(f"wrote {', '.join(str(p) for p in written)}{' and ' * bool(trials)}{trials}")
-        elif rescore:
-            print(f"wrote {trials}")
+            print(f"wrote {', '.join(str(p) for p in written)}")
+        if changed:
+            print(f"wrote the rescored metrics and figures of {_trial_names(changed)}, "
+                  "beside theirs")  # fmt: skip
+        if again:  # some trials' scoring came out as recorded: theirs are not written
+            print(f"{len(again)} trial(s) scored as their {METRICS} says: no rescoring "
+                  "written for them")  # fmt: skip
+        if rescore and len(scored) > len(again) + len(changed):
+            print("unchanged (already what the recordings give): the rescorings of "
+                  f"{len(scored) - len(again) - len(changed)} trial(s)")  # fmt: skip
         if kept:
             print(f"unchanged (already what the trials give): {', '.join(str(p) for p in kept)}")
     return 0
+
+
+def _rescorings_held(root: Path) -> dict[Path, bytes]:
+    """The rescorings' files in a campaign's trial folders now, with their bytes."""
+    from payload.trials.scoring import rescorings
+
+    return {
+        p: p.read_bytes()
+        for d in sorted(root.glob("trial-*"))
+        if d.is_dir()
+        for p in rescorings(d, SCORED)
+    }
+
+
+def _trial_names(names: list[str]) -> str:
+    """``trial-0001`` or ``3 trials (trial-0001 to trial-0003)``."""
+    return names[0] if len(names) == 1 else f"{len(names)} trials ({names[0]} to {names[-1]})"
 
 
 def _previous_summary(path: Path) -> dict[str, Any]:

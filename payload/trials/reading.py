@@ -43,6 +43,7 @@ from payload.trials.records import (
     StepRecord,
 )
 from payload.trials.stepcheck import StepError, check_step
+from payload.trials.summary_fields import CAP_STOPPED
 
 log = logging.getLogger(__name__)
 
@@ -372,7 +373,7 @@ def cut_reason(meta: Mapping[str, Any], complete: bool) -> str | None:
     if why is not None:
         return why
     if meta.get("ended_by") == ENDED_BY_CAP:
-        return "stopped by the session-length cap (--max-time)"
+        return CAP_STOPPED
     replay = meta.get("replay")
     source = replay.get("source_unfinished") if isinstance(replay, Mapping) else None
     if source:

@@ -47,6 +47,21 @@ def _max_time_argument(p: argparse.ArgumentParser, what: str = "session") -> Non
     )
 
 
+def cap_before_teleoperation(max_time: float | None) -> None:
+    """Warn when ``--max-time`` ends each session before its operator's calibration does
+    (the default calibration's prompts): such a trial records no teleoperation at all."""
+    if max_time is None:
+        return
+    from payload.teleop.calibration import DEFAULT_STEPS
+
+    calibration = sum(step.hold for step in DEFAULT_STEPS)
+    if max_time <= calibration:
+        warn(
+            f"--max-time {max_time:g} s ends each session before the operator's calibration "
+            f"does ({calibration:g} s): no teleoperation is recorded"
+        )
+
+
 class TrialsCliError(PayloadError):
     """Bad arguments to a trials command, or the trial runner is not available."""
 

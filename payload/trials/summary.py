@@ -20,6 +20,7 @@ from payload.folders import SUMMARY, SUMMARY_TEXT, tagged
 from payload.safeio import OverwriteError, write_unless_changed
 from payload.schema import CONTROL_DT, ENDED_BY_CAP
 from payload.trials.summary_fields import (
+    CAP_STOPPED,
     METRIC_KEYS,
     METRIC_LABELS,
     NO_CONTACT,
@@ -364,7 +365,7 @@ def print_trial_summary(result: dict[str, Any], given: str = "") -> None:
     print(f"  success: {'yes' if result.get('success') else 'no'}")
     if result.get("ended_by") == ENDED_BY_CAP:
         print(
-            f"  stopped by the session-length cap (--max-time) after "
+            f"  {CAP_STOPPED} after "
             f"{result.get('steps', 0) * CONTROL_DT:.1f} s, before the operator finished"
         )
     if "station_contacts" in result:

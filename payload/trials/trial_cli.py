@@ -18,6 +18,7 @@ from payload.trials.setup_options import (
     _check_physics_dt,
     _link_and_zones,
     _setup_defaults,
+    cap_before_teleoperation,
     seed_problem,
 )
 
@@ -53,6 +54,7 @@ def _cmd_trial(args: argparse.Namespace) -> int:
         raise TrialsCliError(f"--seed {problem}")
     check_seconds("--max-time", args.max_time, cap=True)
     _check_physics_dt(args.physics_dt)
+    cap_before_teleoperation(args.max_time)
     operator, replay = _parse_operator(args)
     if operator == "synthetic":
         _setup_defaults(args)
