@@ -127,6 +127,29 @@ def test_a_long_campaign_title_stays_on_the_page_above_the_panels() -> None:
     assert len(_title_on_page(summary, one).splitlines()) >= 4
 
 
+def test_a_trial_figure_without_contact_names_the_contact_it_was_scored_with(
+    tmp_path: Path, monkeypatch
+) -> None:
+    """Fig. 3 of a trial without a contact interval said "no confirmed contact" whatever
+    the definition it was scored with: a rescoring's figure (here: runs of at least 1 s,
+    no gaps bridged) names that definition's contact, as its title already does."""
+    from test_trials import fixture_synthetic_trial
+
+    from payload.trials import figures
+    from payload.trials.metrics import CONFIRM_MAX_GAP_S, CONFIRM_MIN_S, compute_metrics
+    from payload.trials.recorder import read_recording
+
+    fixture_synthetic_trial(3, tmp_path, "none")
+    rec = read_recording(tmp_path / "log.mcap")
+    drawn = []
+    monkeypatch.setattr(figures, "save_figure", lambda fig, *a: drawn.append(fig))
+    for lo, gap in ((1.0, 0.0), (CONFIRM_MIN_S, CONFIRM_MAX_GAP_S)):
+        metrics = compute_metrics(rec, min_interval_s=lo, max_gap_s=gap)
+        figures.plot_ctb_body_frame(rec, "unused.png", metrics)
+    said = [[t.get_text() for t in fig.axes[3].texts] for fig in drawn]
+    assert said == [["no contact (>= 1 s, gaps <= 0 s)"], ["no confirmed contact"]]
+
+
 # -- the --max-time cap's label (a new user's capped trial: the label sat on the curve) --
 def _fig3(rec, monkeypatch):
     """Fig. 3 of ``rec`` as drawn (not written), on an Agg canvas."""

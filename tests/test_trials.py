@@ -1015,6 +1015,93 @@ def test_a_campaign_without_contact_says_its_contact_interval_is_none(tmp_path, 
     assert "n/a (no confirmed contact)" in line and "0.0 (0.0" not in line, line
 
 
+def _drawn_campaign_figures(monkeypatch) -> list[Any]:
+    """The campaign figures a summary writes from now on, as drawn (and still written)."""
+    from payload.trials import campaign_figure
+
+    drawn: list[Any] = []
+    save = campaign_figure.save_figure
+
+    def keep(fig, *rest):
+        drawn.append(fig)
+        return save(fig, *rest)
+
+    monkeypatch.setattr(campaign_figure, "save_figure", keep)
+    return drawn
+
+
+def test_a_campaign_without_contact_draws_no_contact_interval(tmp_path, monkeypatch) -> None:
+    """A new user's capped first campaign, no trial of which held a contact: its summary.md
+    said "First confirmed-contact interval n/a (no confirmed contact)" but its figure drew
+    that panel as "this run (n = 2)", both dots and the median bar at 0 s (each trial's
+    metric is 0 without an interval). The panel is now empty, n = 0, as the RMS panel
+    beside it is; and the paper-literal column, where no trial has a contact either, says
+    so of the paper-literal contact, not of the confirmed one."""
+    from matplotlib.collections import LineCollection, PathCollection
+
+    from payload.cli import main
+    from payload.trials.campaign import trial_dir
+
+    camp = tmp_path / "camp"
+    confirmed = {"min_interval_s": CONFIRM_MIN_S, "max_gap_s": CONFIRM_MAX_GAP_S}
+    for seed in (1, 2):
+        fixture_synthetic_trial(seed, trial_dir(camp, seed), "none", **confirmed)
+    drawn = _drawn_campaign_figures(monkeypatch)
+    assert main(["trials", "summarize", str(camp)]) == 0
+    md = (camp / "summary.md").read_text()
+    row = next(ln for ln in md.splitlines() if ln.startswith("| First confirmed-contact interval"))
+    assert row.split(" | ")[1:3] == ["n/a (no confirmed contact)", "n/a (no paper-literal contact)"]
+    (fig,) = drawn
+    titles = [ax.get_title() for ax in fig.axes]
+    rms = "RMS deviation in the body frame, eq. 5 [mm]"
+    for panel in ("First confirmed-contact interval [s]", rms):
+        ax = fig.axes[titles.index(panel)]
+        dots = next(c for c in ax.collections if isinstance(c, PathCollection))
+        assert len(dots.get_offsets()) == 0, panel
+        bars = [c for c in ax.collections if isinstance(c, LineCollection)]
+        assert len(bars) == 1, panel  # the paper's alone
+        assert ax.get_xticklabels()[0].get_text() == "this run\n(n = 0)", panel
+    # the duration is known for both trials: drawn
+    ax = fig.axes[titles.index("Teleoperation duration after calibration [s]")]
+    assert ax.get_xticklabels()[0].get_text() == "this run\n(n = 2)"
+
+
+def test_a_rescored_summary_names_its_own_contact_everywhere(tmp_path, monkeypatch) -> None:
+    """Rescoring a campaign with the paper's definition (``--min-contact-s 0 --max-gap-s
+    0``) wrote a summary whose header named that definition but whose contact-interval row,
+    success paragraph and per-trial note still said "confirmed", and a figure that did not
+    say how it was scored. Each now names the rescoring's contact; the campaign's own
+    summary and figure, under the recorded (confirmed) definition, read as before."""
+    from payload.cli import main
+    from payload.trials.campaign import trial_dir
+
+    camp = tmp_path / "camp"
+    confirmed = {"min_interval_s": CONFIRM_MIN_S, "max_gap_s": CONFIRM_MAX_GAP_S}
+    for seed in (4, 6):
+        fixture_synthetic_trial(seed, trial_dir(camp, seed), **confirmed)
+    drawn = _drawn_campaign_figures(monkeypatch)
+    assert main(["trials", "summarize", str(camp)]) == 0
+    rescore = ["--recompute", "--min-contact-s", "0", "--max-gap-s", "0"]
+    assert main(["trials", "summarize", str(camp), *rescore]) == 0
+    numbers = "(>= 0 s, gaps <= 0 s)"
+    md = (camp / "summary.contact-min0s-gap0s.md").read_text()
+    assert "confirmed" not in md.lower()
+    assert f"\n| First contact interval {numbers} [s] | " in md
+    assert f"the first continuous contact interval {numbers} carries it there" in md
+    assert f"Per trial, contact {numbers}, then the paper-literal success" in md
+    recorded = (camp / "summary.md").read_text()
+    assert "\n| First confirmed-contact interval [s] | " in recorded
+    assert "the first continuous confirmed-contact interval carries it there" in recorded
+    assert "Per trial, confirmed contact, then the paper-literal success" in recorded
+    ours, rescored = drawn
+    said = " ".join(rescored.get_suptitle().split())
+    assert f"2/2 succeeded, scored with contact {numbers} (paper 10/10)" in said, said
+    panels = " ".join(" ".join(ax.get_title().split()) for ax in rescored.axes)
+    assert "confirmed" not in panels and f"First contact interval {numbers} [s]" in panels
+    assert "2/2 succeeded (paper 10/10)" in " ".join(ours.get_suptitle().split())
+    assert ours.axes[-1].get_title() == "First confirmed-contact interval [s]"
+
+
 def test_the_committed_campaign_summaries_follow_their_summary_json() -> None:
     """Each ``analyses/campaign/*/summary.md`` is what the summary's Markdown makes of the
     ``summary.json`` beside it (``payload trials summarize`` writes both from one summary),

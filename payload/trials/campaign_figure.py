@@ -19,7 +19,12 @@ from matplotlib.text import Text
 
 from payload.folders import CAMPAIGN_FIGURE, tagged
 from payload.trials.figures import save_figure
-from payload.trials.summary_fields import CAP_STOPPED
+from payload.trials.summary_fields import (
+    CAP_STOPPED,
+    CONFIRMED_WORDS,
+    definition_words,
+    no_contact_interval,
+)
 
 OURS, PAPER = 0.0, 1.0
 """x positions of this campaign's column and the paper's in every panel."""
@@ -34,13 +39,17 @@ def campaign_figure(
         summary: The summary: ``trials`` (per-trial values), a ``{"median", "min",
             "max"}`` per metric, and ``paper`` (the paper's figures).
         labels: Metric key -> panel title, in panel order
-            (:data:`~payload.trials.summary_fields.METRIC_LABELS`).
+            (:data:`~payload.trials.summary_fields.METRIC_LABELS`, or
+            :func:`~payload.trials.summary_fields.metric_labels` of the summary's
+            contact definition).
         title: The figure's title (default: the summary's ``title``, else "Campaign").
 
     Returns:
         The figure: one axis per metric; in each, the trials' values are the first
         scatter collection (x = :data:`OURS`), the paper's median and range the error bar
-        at x = :data:`PAPER`.
+        at x = :data:`PAPER`. The first contact interval of a summary none of whose
+        trials has one is not drawn (n = 0), as its table says n/a; the title names a
+        contact definition other than the confirmed one (a rescoring's).
     """
     trials = [t for t in summary.get("trials", []) if not t.get("error")]
     fig = Figure(figsize=(3.0 * len(labels), 4.2), layout="constrained")
@@ -48,23 +57,30 @@ def campaign_figure(
     n_ok = summary.get("success", 0)
     n_capped = int(summary.get("capped") or 0)
     capped = f", {n_capped} {CAP_STOPPED}" if n_capped else ""
+    words = definition_words(summary.get("contact_definition"))
+    scored = "" if words == CONFIRMED_WORDS else f", scored with {words.contact}"
     _fit_width(
         fig.suptitle(
             f"{title or summary.get('title') or 'Campaign'}\n{n_ok}/{summary.get('n', 0)} "
-            f"succeeded{capped} (paper {summary['paper']['success']}/{summary['paper']['n']}); "
-            "dots: trials, bar: median, whisker: range"
+            f"succeeded{scored}{capped} (paper {summary['paper']['success']}/"
+            f"{summary['paper']['n']}); dots: trials, bar: median, whisker: range"
         )
     )
     rng = np.random.default_rng(0)  # a fixed jitter: the same summary draws the same figure
     for ax, (key, label) in zip(np.atleast_1d(axes), labels.items()):
-        values = np.array([t[key] for t in trials if _finite(t.get(key))], dtype=float)
+        # no interval in any trial: each one's 0 s is no contact, n/a as in the table
+        shown = [] if key == "contact_s" and no_contact_interval(summary) else trials
+        values = np.array([t[key] for t in shown if _finite(t.get(key))], dtype=float)
         jitter = rng.uniform(-0.12, 0.12, len(values))
         ax.scatter(OURS + jitter, values, s=18, color="#1f77b4", zorder=3, label="trials")
-        _median_range(ax, OURS, summary.get(key), "#1f77b4")
+        if shown:
+            _median_range(ax, OURS, summary.get(key), "#1f77b4")
         _median_range(ax, PAPER, summary["paper"].get(key), "#d62728")
         ax.set_xticks([OURS, PAPER], [f"this run\n(n = {len(values)})", "paper\n(n = 10)"])
         ax.set_xlim(-0.6, 1.6)
-        ax.set_title(label, fontsize=9, wrap=True)
+        # a contact definition's numbers on a line of their own (not wrapped between a
+        # number and its unit)
+        ax.set_title(label.replace(" (", "\n(", 1), fontsize=9, wrap=True)
         ax.grid(axis="y", alpha=0.3)
     return fig
 

@@ -24,10 +24,9 @@ from payload.rotations import rotate_by_quats
 from payload.safeio import replacing
 from payload.schema import ENDED_BY_CAP
 from payload.trials.metrics import (
-    CONFIRM_MAX_GAP_S,
-    CONFIRM_MIN_S,
     TrialMetrics,
     compute_metrics,
+    contact_words,
     ctb_in_body_frame,
     recorded_definition,
 )
@@ -236,14 +235,6 @@ def _seed_text(recording: Recording) -> str:
     return f", seed {seed}" if isinstance(seed, int) and not isinstance(seed, bool) else ""
 
 
-def _contact_text(m: TrialMetrics) -> str:
-    """The contact definition's name in a figure: "confirmed contact" under the recorded
-    default, else the definition itself (a rescoring's figures say what they scored)."""
-    if (m.min_interval_s, m.max_gap_s) == (CONFIRM_MIN_S, CONFIRM_MAX_GAP_S):
-        return "confirmed contact"
-    return f"contact (>= {m.min_interval_s:g} s, gaps <= {m.max_gap_s:g} s)"
-
-
 def plot_ctb_body_frame(
     recording: Recording,
     path: str | Path,
@@ -273,6 +264,8 @@ def plot_ctb_body_frame(
         min_interval, max_gap = recorded_definition(recording)
         metrics = compute_metrics(recording, min_interval_s=min_interval, max_gap_s=max_gap)
     m = metrics
+    # the contact definition's name: a rescoring's figures say what they scored
+    words = contact_words(m.min_interval_s, m.max_gap_s)
     t = recording.t
     bp = 1e3 * ctb_in_body_frame(recording.astrobee_pos, recording.astrobee_quat, recording.ctb_pos)
     spans = phase_spans(t, recording.phase)
@@ -306,7 +299,7 @@ def plot_ctb_body_frame(
                 a.axvline(m.arrival_s, color="#a50f15", lw=0.8, ls="-.")
         ax.legend(loc="best", fontsize=7, ncols=2)
     else:
-        ax.text(0.5, 0.5, "no confirmed contact", transform=ax.transAxes, ha="center")
+        ax.text(0.5, 0.5, words.none, transform=ax.transAxes, ha="center")
     ax.set_ylabel("deviation [mm]")
     ax.set_xlabel("time since start of teleoperation [s]")
     ax.grid(True, alpha=0.3)
@@ -326,7 +319,7 @@ def plot_ctb_body_frame(
     fig.suptitle(
         f"CTB centre of mass in the Astrobee body frame (eq. 4){_seed_text(recording)} -- "
         f"{verdict}, contact {m.contact_s:.1f} s of the {m.duration_s:.1f} s after "
-        f"calibration\nvertical: first {_contact_text(m)} (t0) solid, its end dashed, "
+        f"calibration\nvertical: first {words.contact} (t0) solid, its end dashed, "
         "arrival dash-dot; horizontal dashed: the position at t0",
         fontsize=10,
         y=1.0 - _EDGE_IN / _CTB_SIZE_IN[1],

@@ -44,6 +44,7 @@ from payload.rotations import rotate_by_quats
 from payload.trials.reading import aborted_note
 from payload.trials.recorder import MODULES, Recording
 from payload.trials.records import CALIBRATION
+from payload.trials.summary_fields import CONFIRMED_WORDS, ContactWords
 
 CONFIRM_MIN_S = 0.5
 """The workbench's *confirmed* contact: opposing contact held at least this long [s]. The
@@ -66,6 +67,19 @@ def recorded_definition(recording: Recording) -> tuple[float, float]:
     ``(0, 0)``, the paper's, for a recording without one."""
     recorded = recording.meta.get("contact_definition") or {}
     return float(recorded.get("min_interval_s", 0.0)), float(recorded.get("max_gap_s", 0.0))
+
+
+def contact_words(min_interval_s: float, max_gap_s: float) -> ContactWords:
+    """How the contact definition ``(min_interval_s, max_gap_s)`` is named to a reader:
+    the confirmed contact (:func:`confirmed_definition`), else by its numbers, e.g.
+    ``contact (>= 0 s, gaps <= 0 s)`` (a rescoring's figures and summaries say what they
+    scored)."""
+    if (min_interval_s, max_gap_s) == (CONFIRM_MIN_S, CONFIRM_MAX_GAP_S):
+        return CONFIRMED_WORDS
+    numbers = f"(>= {min_interval_s:g} s, gaps <= {max_gap_s:g} s)"
+    return ContactWords(
+        f"contact {numbers}", f"contact interval {numbers}", f"no contact {numbers}"
+    )
 
 
 SUCCESS_CRITERION = (
@@ -378,6 +392,7 @@ __all__ = [
     "compute_metrics",
     "confirmed_definition",
     "contact_runs",
+    "contact_words",
     "ctb_in_body_frame",
     "first_contact_interval",
     "recorded_definition",

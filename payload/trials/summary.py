@@ -28,6 +28,7 @@ from payload.trials.summary_fields import (
     STATION_ZONES,
     CampaignError,
     least_clearance_text,
+    metric_labels,
     without_contact,
     zones_name,
 )
@@ -334,7 +335,8 @@ def write_summary(
 
     figure = campaign_figure_path(out, tag)
     if changed or force or not figure.exists():
-        write_campaign_figure(summary, METRIC_LABELS, out, tag)
+        labels = metric_labels(summary.get("contact_definition"))
+        write_campaign_figure(summary, labels, out, tag)
     return summary
 
 

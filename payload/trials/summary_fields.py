@@ -11,9 +11,31 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from typing import Any
+from typing import Any, NamedTuple
 
 from payload.errors import PayloadError
+
+
+class ContactWords(NamedTuple):
+    """How a contact definition is named to a reader: the contact itself, its first
+    interval, and a trial's lack of one."""
+
+    contact: str
+    interval: str
+    none: str
+
+
+CONFIRMED_WORDS = ContactWords(
+    "confirmed contact", "confirmed-contact interval", "no confirmed contact"
+)
+"""The workbench's confirmed contact (:func:`~payload.trials.metrics.confirmed_definition`)
+as named to a reader; any other definition is named by its numbers
+(:func:`~payload.trials.metrics.contact_words`)."""
+
+MIXED_WORDS = ContactWords(
+    "mixed contact definitions", "contact interval (mixed definitions)", "no contact"
+)
+"""The contact of trials scored with different definitions, as named to a reader."""
 
 METRIC_KEYS: tuple[str, ...] = (
     "duration_s",
@@ -29,7 +51,7 @@ METRIC_LABELS: dict[str, str] = {
     "net_displacement_m": "CTB net world-frame displacement [m]",
     "rms_mm": "RMS deviation in the body frame, eq. 5 [mm]",
     "peak_mm": "Peak deviation in the body frame [mm]",
-    "contact_s": "First confirmed-contact interval [s]",
+    "contact_s": f"First {CONFIRMED_WORDS.interval} [s]",
 }
 
 PAPER_RESULTS: dict[str, Any] = {
@@ -44,9 +66,43 @@ PAPER_RESULTS: dict[str, Any] = {
 """The paper's ten-trial results (Sec. IV; docs/sources.md), for comparison."""
 
 
-NO_CONTACT = "no confirmed contact"
+NO_CONTACT = CONFIRMED_WORDS.none
 """Said beside a first contact interval where a trial has none: its ``contact_s`` is the
 metric's 0 by definition, not a contact that lasted 0 s (its RMS and peak are n/a)."""
+
+
+def definition_words(definition: Mapping[str, Any] | None) -> ContactWords:
+    """How a summary names the contact its trials were scored with, from its
+    ``contact_definition``: :data:`CONFIRMED_WORDS` for the confirmed definition (and for
+    a summary that has none: no trial was scored), :data:`MIXED_WORDS` for trials scored
+    with different ones, any other by its numbers (a rescoring's, or trials recorded
+    under another)."""
+    d = definition or {}
+    lo, gap = d.get("min_interval_s"), d.get("max_gap_s")
+    if "mixed" not in d and lo is None and gap is None:
+        return CONFIRMED_WORDS
+    if "mixed" in d or lo is None or gap is None:
+        return MIXED_WORDS
+    from payload.trials.metrics import contact_words  # (loads MCAP)
+
+    return contact_words(float(lo), float(gap))
+
+
+def metric_labels(definition: Mapping[str, Any] | None) -> dict[str, str]:
+    """:data:`METRIC_LABELS` of a summary whose trials were scored with ``definition``
+    (its ``contact_definition``): the first contact interval named after it."""
+    interval = definition_words(definition).interval
+    return {**METRIC_LABELS, "contact_s": f"First {interval} [s]"}
+
+
+def no_contact_interval(summary: Mapping[str, Any]) -> bool:
+    """Whether no scored trial of a summary (or of its ``literal`` part) has a first
+    contact interval: its first contact interval is then n/a in the summary's table and
+    figure, as the RMS is (each trial's 0 s is the metric's value for none, which
+    ``summary.json`` keeps); a summary with no scored trial is not said to be without
+    contact."""
+    scored = [t for t in summary.get("trials", []) if not t.get("error")]
+    return bool(scored) and all(without_contact(t) for t in scored)
 
 
 def without_contact(row: Mapping[str, Any]) -> bool:
@@ -111,13 +167,19 @@ def zones_name(result: Mapping[str, Any]) -> str | None:
 __all__ = [
     "CAPPED",
     "CAP_STOPPED",
+    "CONFIRMED_WORDS",
     "METRIC_KEYS",
     "METRIC_LABELS",
+    "MIXED_WORDS",
     "NO_CONTACT",
     "PAPER_RESULTS",
     "STATION_ZONES",
     "CampaignError",
+    "ContactWords",
+    "definition_words",
     "least_clearance_text",
+    "metric_labels",
+    "no_contact_interval",
     "without_contact",
     "zones_name",
 ]

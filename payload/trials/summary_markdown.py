@@ -12,11 +12,13 @@ from payload.schema import ENDED_BY_CAP
 from payload.trials.summary_fields import (
     CAP_STOPPED,
     CAPPED,
+    CONFIRMED_WORDS,
     METRIC_KEYS,
-    METRIC_LABELS,
-    NO_CONTACT,
     PAPER_RESULTS,
+    definition_words,
     least_clearance_text,
+    metric_labels,
+    no_contact_interval,
     without_contact,
 )
 
@@ -70,15 +72,17 @@ def _cell(value: Any, digits: int) -> str:
 _DIGITS = {"duration_s": 1, "net_displacement_m": 2, "rms_mm": 1, "peak_mm": 1, "contact_s": 1}
 
 
-def _stat_text(summary: dict[str, Any], key: str) -> str:
+LITERAL_NONE = "no paper-literal contact"
+"""Said of a summary's paper-literal column where no trial has a contact interval."""
+
+
+def _stat_text(summary: dict[str, Any], key: str, none: str = CONFIRMED_WORDS.none) -> str:
     """A metric's median and range in a summary (or its ``literal`` part); the first
-    contact interval n/a, as the RMS is, when no scored trial has one (each trial's 0 s is
-    the metric's value for none, which ``summary.json`` keeps)."""
-    stat = summary.get(key)
-    scored = [t for t in summary.get("trials", []) if not t.get("error")]
-    if key == "contact_s" and scored and all(without_contact(t) for t in scored):
-        return f"n/a ({NO_CONTACT})"
-    return _fmt(stat, _DIGITS[key])
+    contact interval n/a, as the RMS is, when no scored trial has one
+    (:func:`~payload.trials.summary_fields.no_contact_interval`), said as ``none``."""
+    if key == "contact_s" and no_contact_interval(summary):
+        return f"n/a ({none})"
+    return _fmt(summary.get(key), _DIGITS[key])
 
 
 def _trial_cell(row: dict[str, Any], key: str) -> str:
@@ -141,23 +145,15 @@ def summary_markdown(summary: dict[str, Any], title: str | None = None) -> str:
         v = s.get("acquisition_success")
         return "n/a" if v is None else f"{100 * v:.0f} %"
 
-    from payload.trials.metrics import CONFIRM_MAX_GAP_S, CONFIRM_MIN_S  # (loads MCAP)
-
-    definition = summary.get("contact_definition") or {}
-    lo, gap = definition.get("min_interval_s"), definition.get("max_gap_s")
     # the debounced definition is "confirmed contact"; any other (a rescoring, or trials
-    # recorded under another) is named by its numbers
-    mixed = "mixed" in definition
-    confirmed = not mixed and (lo, gap) in ((None, None), (CONFIRM_MIN_S, CONFIRM_MAX_GAP_S))
-    if confirmed:
-        first = "confirmed contact"
-    elif mixed or lo is None or gap is None:
-        first = "mixed contact definitions"
-    else:
-        first = f"contact (>= {lo:g} s, gaps <= {gap:g} s)"
+    # recorded under another) is named by its numbers, in every place the summary names it
+    words = definition_words(summary.get("contact_definition"))
+    confirmed = words == CONFIRMED_WORDS
+    labels = metric_labels(summary.get("contact_definition"))
     lines = [
         *_header_lines(summary, title),
-        f"| metric | this campaign, {first} | this campaign, paper-literal contact | paper |",
+        f"| metric | this campaign, {words.contact} | this campaign, paper-literal contact "
+        "| paper |",
         "| --- | --- | --- | --- |",
         f"| task success | {summary['success']}/{n} | {lit.get('success', 'n/a')}/{n} "
         f"| {paper['success']}/{paper['n']} |",
@@ -165,13 +161,13 @@ def summary_markdown(summary: dict[str, Any], title: str | None = None) -> str:
     ]
     for key in METRIC_KEYS:
         cells = []
-        for s in (summary, lit):
+        for s, none in ((summary, words.none), (lit, LITERAL_NONE)):
             stat = s.get(key)
             count = stat.get("count", n) if stat else 0
             note = "" if count == n else f" [{count} of {n} trials]"
-            cells.append(f"{_stat_text(s, key)}{note}")
+            cells.append(f"{_stat_text(s, key, none)}{note}")
         paper_cell = _fmt(paper[key], _DIGITS[key])
-        lines.append(f"| {METRIC_LABELS[key]} | {cells[0]} | {cells[1]} | {paper_cell} |")
+        lines.append(f"| {labels[key]} | {cells[0]} | {cells[1]} | {paper_cell} |")
     if summary.get("errors"):
         lines += [
             "",
@@ -225,7 +221,7 @@ def summary_markdown(summary: dict[str, Any], title: str | None = None) -> str:
     lines += [
         "",
         "Success: the CTB is in the destination module at the end, and the first continuous "
-        "confirmed-contact interval carries it there and holds it until arrival (the later "
+        f"{words.interval} carries it there and holds it until arrival (the later "
         "of its entry and the start of the operator's arrival phase; without that phase, "
         "the end of the recording). RMS and peak deviation: eq. 5 "
         "over that interval, from the CTB position in the Astrobee body frame (eq. 4) at "
@@ -233,7 +229,7 @@ def summary_markdown(summary: dict[str, Any], title: str | None = None) -> str:
         "",
         "## Trials",
         "",
-        "Per trial, confirmed contact, then the paper-literal success, RMS and contact interval.",
+        f"Per trial, {words.contact}, then the paper-literal success, RMS and contact interval.",
         "",
         "| seed | success | duration [s] | net displacement [m] | RMS [mm] | peak [mm] "
         "| contact [s] | CTB ends in | literal success | literal RMS [mm] | literal contact [s] |",
