@@ -817,5 +817,192 @@ def test_the_search_line_prints_no_negative_zero() -> None:
 
     search = SimpleNamespace(finger=[1.66006, -1e-6, -0.0, 1.80481], clearance=1.06e-3,
                              limited_by="A_knuckle / +y (left) wall")  # fmt: skip
-    line = _search_line(SimpleNamespace(search=search, suggested=SimpleNamespace(passed=True)))
-    assert line.startswith("stowed-posture search: finger [1.6601, 0.0000, 0.0000, 1.8048] rad")
+    passing = SimpleNamespace(passed=True, tight=False)
+    line = _search_line(SimpleNamespace(search=search, suggested=passing))
+    assert line.startswith("stowed-posture search: proposes finger [1.6601, 0.0000, 0.0000, 1.80")
+
+
+# ----------------------------------------------------------------- tight fits, one formatting
+
+
+def test_a_clearance_prints_two_decimals_under_1_mm_and_one_from_1_mm() -> None:
+    """The CLI said 0.06 mm where envelope.md, envelope.png and the review said 0.1 mm:
+    one formatting of a clearance now, two decimals under 1 mm."""
+    from payload.envelope.fit_results import clearance_text
+
+    assert clearance_text(0.06e-3) == "0.06 mm"
+    assert clearance_text(0.5e-3) == "0.50 mm"
+    assert clearance_text(-0.3e-3) == "-0.30 mm"
+    assert clearance_text(0.996e-3) == "1.0 mm"  # rounds to 1 mm: one decimal
+    assert clearance_text(1.06e-3) == "1.1 mm"
+    assert clearance_text(6e-3) == "6.0 mm"
+
+
+@pytest.fixture(scope="module")
+def narrow_fit(design, geom):
+    """The default design in bays 1.4 mm narrower across y (the stage's and the
+    carriage's side, 1.0 mm from each wall): 0.3 mm to the y walls, still a pass."""
+    a = design.array
+    reach_y = a.side_gap / 2 + design.finger.section.depth / 2  # closed form: 49.0 mm
+    narrow = with_bay_size(VEHICLE, [0.2, 2 * (reach_y + 0.3e-3), 0.1])
+    return analyse_envelope(geom, narrow, search=False)
+
+
+def test_a_pass_under_the_tight_clearance_is_said_tight_in_every_verdict(narrow_fit):
+    """A stowed fit with 0.3 mm to a wall (under the review's 0.5 mm, a printed part's
+    tolerance) passed as plainly as one with 10 mm: it still passes (exit 0), but the
+    terminal's, ``report all``'s, envelope.md's and the figure's verdicts say it is
+    tight, and the JSON lists what is."""
+    from types import SimpleNamespace
+
+    from payload.envelope.cli import _all_verdict
+    from payload.envelope.envelope_figure import figure_title
+    from payload.envelope.markdown import envelope_markdown
+    from payload.envelope.report_json import envelope_json
+    from payload.envelope.verdict import envelope_verdict
+
+    a = narrow_fit
+    assert a.passed, a.given.failures()
+    parts = {p.name: p for p in a.given.parts}
+    assert parts["stage"].clearance == pytest.approx(0.3e-3, abs=1e-7)  # the closed form
+    line = envelope_verdict(a)
+    assert line.startswith("verdict: fits, tight: every part inside the bays, min clearance 0.30")
+    assert "under 0.50 mm" in line and "stage 0.30 mm to the" in line
+    reach = SimpleNamespace(  # a reach that passes: only the envelope's words are asked
+        workspaces=[], below_vehicle=0.1, samples=1,
+        pairs=[SimpleNamespace(name="L", grasps=[
+            SimpleNamespace(closes=True, feature=SimpleNamespace(thickness=0.003, name="strap"))
+        ])],
+    )  # fmt: skip
+    both = _all_verdict(a, reach)
+    assert both.startswith("verdict: passes: the stowed payload fits, tight (min clearance 0.30 mm")
+    assert "under 0.50 mm" in both
+    md = envelope_markdown(a, "payload report envelope", "envelope.png")
+    assert "**0.30 mm** of clearance" in md and "**A tight fit:**" in md
+    assert "under 0.50 mm" in md.split("## Parts")[0]
+    assert "(fits, tight: under 0.50 mm; min clearance 0.30 mm;" in figure_title(a.given)
+    data = envelope_json(a)
+    assert data["passed"] is True and data["tight_clearance_mm"] == 0.5
+    tight = {t["part"]: t["clearance_mm"] for t in data["tight"] if "part" in t}
+    # every part the JSON measures under 0.5 mm from a wall, and only those
+    assert tight == {p["name"]: p["clearance_mm"] for p in data["parts"]
+                     if p["inside"] and p["clearance_mm"] < 0.5}  # fmt: skip
+    assert tight["stage"] == tight["carriage"] == pytest.approx(0.3, abs=0.01)
+
+
+def test_a_pass_with_room_to_spare_is_not_tight(stowed, geom):
+    """The committed design: 1.0 mm at its tightest, links 1.06 mm apart: no "tight"
+    anywhere (its committed reports keep their words)."""
+    from payload.envelope.envelope_figure import figure_title
+    from payload.envelope.report_json import envelope_json
+    from payload.envelope.verdict import envelope_verdict
+
+    a = analyse_envelope(geom, VEHICLE, search=False)
+    assert a.passed and stowed.min_clearance >= 0.5e-3
+    said = envelope_verdict(a)
+    assert said.startswith("verdict: fits: every part inside the bays, min clearance 1.0 mm ")
+    assert "tight" not in envelope_verdict(a) and "tight" not in figure_title(a.given)
+    assert envelope_json(a)["tight"] == []
+
+
+def test_links_closer_than_the_tight_clearance_make_a_tight_fit_too(design_dict):
+    """A distal link of 46 mm stows in the packaged posture 1.0 mm from every wall, but
+    its pad passes 0.28 mm under the stage: tight, said, and still a pass."""
+    from payload.envelope.report_json import envelope_json
+    from payload.envelope.verdict import envelope_verdict
+
+    data = copy.deepcopy(design_dict)
+    data["finger"]["lengths"]["distal"] = 0.046
+    g = geometry_of(data)
+    a = analyse_envelope(g, VEHICLE, search=False)
+    assert a.passed and a.given.min_clearance == pytest.approx(0.001, abs=1e-6)
+    # a second route to the links' distances: the pairwise check on the posed links
+    near = {
+        frozenset((c.a, c.b)): c.distance
+        for c in self_contacts(g, g.poses(a.given.q))
+        if c.distance < 0.5e-3
+    }
+    assert near  # (0.28 mm: stage / A_distal and its three mirror images)
+    listed = {frozenset(t["links"]) for t in envelope_json(a)["tight"] if "links" in t}
+    assert listed == set(near)
+    line = envelope_verdict(a)
+    closest = min(near, key=near.get)
+    assert line.startswith("verdict: fits, tight: ") and "min clearance 1.0 mm" in line
+    assert f"{near[closest] * 1e3:.2f} mm apart" in line
+
+
+def test_the_search_line_is_a_proposal_that_names_write_stowed() -> None:
+    """A failing design's line said "...; passes" under "verdict: FAILS": nothing said the
+    search only proposes a posture, nor that --write-stowed applies it."""
+    from types import SimpleNamespace
+
+    from payload.envelope.cli_runs import _search_line
+
+    search = SimpleNamespace(finger=[1.6723, -0.2085, 1.3891, 1.8479], clearance=0.06e-3,
+                             limited_by="stage / C_distal")  # fmt: skip
+    passing = SimpleNamespace(search=search, suggested=SimpleNamespace(passed=True, tight=True))
+    line = _search_line(passing)
+    assert line.startswith("stowed-posture search: proposes finger [1.6723, -0.2085, 1.3891, "
+                           "1.8479] rad, min clearance 0.06 mm (stage / C_distal)")  # fmt: skip
+    assert "not applied" in line and "`payload report envelope --write-stowed`" in line
+    assert "tight (under 0.50 mm)" in line and "; passes" not in line
+    written = _search_line(passing, writing=True)  # --write-stowed's own line follows
+    assert "not applied" not in written and written.endswith("; it passes, tight (under 0.50 mm)")
+    failing = SimpleNamespace(search=search, suggested=SimpleNamespace(passed=False, tight=False))
+    assert "--write-stowed" not in _search_line(failing)
+    assert "fails too" in _search_line(failing)
+
+
+def test_the_reports_search_section_calls_a_passing_posture_a_proposal(geom):
+    import dataclasses
+
+    from payload.envelope.fit_results import PostureSearch
+    from payload.envelope.markdown import envelope_markdown
+
+    finger = (1.65, 0.0, 1.40, 1.80)
+    q = with_finger_posture(geom.tree.posture("stowed"), finger)
+    suggested = check_stowed(geom, VEHICLE, q)
+    assert suggested.passed, suggested.failures()
+    analysis = dataclasses.replace(
+        analyse_envelope(geom, VEHICLE, search=False),
+        search=PostureSearch(finger, suggested.min_clearance, "test", 1, 0.0),
+        suggested=suggested,
+    )
+    section = envelope_markdown(analysis, "payload report envelope", "envelope.png")
+    section = section.split("## Stowed-posture search")[1].split("## Method")[0]
+    assert "A proposal only" in section and "`payload report envelope --write-stowed`" in section
+
+
+def test_the_design_files_distal_comment_states_the_bound_that_holds(design_dict):
+    """The comment said the curled distal stows up to 47.5 mm; with the packaged posture
+    47 mm collides. The lengths it names now: the longest that stows in the packaged
+    posture does, the one it says collides does."""
+    import re
+
+    text = DESIGN.read_text()
+    comment = text.split("\ndistal = ", 1)[1].split("\n[", 1)[0]
+    up_to = re.search(r"posture below up to (\d+\.\d) mm", comment)
+    collides = re.search(r"(\d+\.\d) mm collides", comment)
+    assert up_to and collides, comment
+    for mm, passes in ((float(up_to[1]), True), (float(collides[1]), False)):
+        data = copy.deepcopy(design_dict)
+        data["finger"]["lengths"]["distal"] = mm / 1e3
+        g = geometry_of(data)
+        check = check_stowed(g, VEHICLE, g.tree.posture("stowed"))
+        assert check.passed is passes, (mm, check.failures())
+        if not passes:
+            assert check.self_collision and any("_distal" in f for f in check.failures())
+    packaged = ROOT / "payload" / "data" / "design.toml"
+    assert packaged.read_text() == text  # the packaged default is the same file
+
+
+def test_the_design_review_words_a_tight_clearance_as_the_report_does(narrow_fit):
+    """The review said "tightest stage 0.3 mm" where the CLI said 0.30 mm."""
+    from payload.review.design_view import legend, title
+    from payload.review.project import ProjectFiles
+
+    files = ProjectFiles(DESIGN, ROOT / "urdf" / "payload.urdf", ROOT / "urdf" / "payload.xml")
+    _, verdict = title(files, narrow_fit.given)
+    assert verdict == "stowed fit: pass; tightest stage 0.30 mm"
+    said = [text for _, text in legend({}, reach=False) if text.startswith("tight:")]
+    assert said == ["tight: under 0.50 mm to a bay wall (none here)"]

@@ -88,19 +88,22 @@ def _reach_verdict_fields(reach: ReachAnalysis) -> dict[str, Any]:
 
 def _all_verdict(envelope: EnvelopeAnalysis, reach: ReachAnalysis) -> str:
     """The one verdict line: ``verdict: passes: ...`` or ``verdict: FAILS: ...``."""
+    from payload.envelope.fit_results import clearance_text
     from payload.envelope.verdict import envelope_verdict, reach_passed, reach_verdict
 
     env_ok, reach_ok = envelope.passed, reach_passed(reach)
     if env_ok and reach_ok:
-        tight = envelope.given.tightest
+        given = envelope.given
+        tightest = given.tightest
         thinnest = {
             p.name: min(g.feature.thickness for g in p.grasps if g.closes) for p in reach.pairs
         }
         closes = ", ".join(f"{name} down to {t * 1e3:.1f} mm" for name, t in thinnest.items())
+        tight = f"; {given.tight_phrase()}" if given.tight else ""
         return (
-            f"verdict: passes: the stowed payload fits (min clearance "
-            f"{tight.clearance * 1e3:.2f} mm, {tight.name}); every pair closes on a CTB "
-            f"feature ({closes})"
+            f"verdict: passes: the stowed payload fits{', tight' if given.tight else ''} (min "
+            f"clearance {clearance_text(tightest.clearance)}, {tightest.name}{tight}); every "
+            f"pair closes on a CTB feature ({closes})"
         )
     failing = [] if env_ok else [f"stowed: {envelope_verdict(envelope).split(': ', 2)[2]}"]
     if not reach_ok:

@@ -230,7 +230,7 @@ def run_envelope(args: argparse.Namespace) -> tuple[EnvelopeAnalysis, dict[str, 
     search = True if args.write_stowed and args.search is None else args.search
     with _progress(not args.json and sys.stderr.isatty()) as progress:
         analysis = analyse_envelope(geom, vehicle, search=search, progress=progress)
-    lines = [_search_line(analysis)] if analysis.search is not None else []
+    lines = [_search_line(analysis, args.write_stowed)] if analysis.search is not None else []
     if args.write_stowed:
         written = _write_stowed(args, analysis)
         lines.append(written)
@@ -246,13 +246,27 @@ def run_envelope(args: argparse.Namespace) -> tuple[EnvelopeAnalysis, dict[str, 
     return analysis, paths, lines
 
 
-def _search_line(analysis: EnvelopeAnalysis) -> str:
+def _search_line(analysis: EnvelopeAnalysis, writing: bool = False) -> str:
+    """The search's line: a proposal, checked like the design's posture; not applied
+    unless ``writing`` (``--write-stowed``, whose own line follows), and the verdict above
+    is the design's own posture's."""
+    from payload.envelope.fit_results import TIGHT_CLEARANCE, clearance_text
+
     s, c = analysis.search, analysis.suggested
     assert s is not None and c is not None
     fing = ", ".join(f"{round(v, 4) + 0.0:.4f}" for v in s.finger)  # no "-0.0000"
+    head = (
+        f"stowed-posture search: proposes finger [{fing}] rad, min clearance "
+        f"{clearance_text(s.clearance)} ({s.limited_by})"
+    )
+    if not c.passed:
+        return f"{head}; it fails too: the search found no posture that stows this design"
+    tight = f", tight (under {clearance_text(TIGHT_CLEARANCE)})" if c.tight else ""
+    if writing:
+        return f"{head}; it passes{tight}"
     return (
-        f"stowed-posture search: finger [{fing}] rad -> min clearance "
-        f"{s.clearance * 1e3:.2f} mm ({s.limited_by}); {'passes' if c.passed else 'fails'}"
+        f"{head}; it would pass{tight}; not applied (the verdict above is the design's own "
+        "[stowed] posture's): `payload report envelope --write-stowed` writes it into the design"
     )
 
 
@@ -260,6 +274,7 @@ def _write_stowed(args: argparse.Namespace, analysis: EnvelopeAnalysis) -> str:
     """Write the search's proposed finger posture into the design's ``[stowed]`` table
     (only that value and its comment change); returns the line to print."""
     from payload.design.edit import set_in_text
+    from payload.envelope.fit_results import clearance_text
     from payload.safeio import replace_file
 
     s, c = analysis.search, analysis.suggested
@@ -270,7 +285,7 @@ def _write_stowed(args: argparse.Namespace, analysis: EnvelopeAnalysis) -> str:
     finger = [round(v, 4) + 0.0 for v in s.finger]  # + 0.0: no "-0.0" in the file
     comment = (
         "written by `payload report envelope --write-stowed` (stowed-posture search, "
-        f"min clearance {s.clearance * 1e3:.2f} mm)"
+        f"min clearance {clearance_text(s.clearance)})"
     )
     text = path.read_text(encoding="utf-8")
     edited = set_in_text(text, "stowed.finger", finger, comment)

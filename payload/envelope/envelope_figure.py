@@ -26,7 +26,12 @@ from payload.envelope.drawing import (
     to_view,
     vehicle_legend,
 )
-from payload.envelope.fit_results import EnvelopeAnalysis, StowedCheck
+from payload.envelope.fit_results import (
+    TIGHT_CLEARANCE,
+    EnvelopeAnalysis,
+    StowedCheck,
+    clearance_text,
+)
 from payload.envelope.geometry import PayloadGeometry
 from payload.envelope.vehicle import Vehicle
 
@@ -95,7 +100,7 @@ def _annotate_clearances(ax: Any, check: StowedCheck, vehicle: Vehicle, axis: in
         if out is not None:
             text, colour = f"{out.name}: {out.protrusion * 1e3:.1f} mm out", "red"
         elif near is not None:
-            text, colour = f"{near.wall_clearance[w] * 1e3:.1f} mm ({near.name})", "black"
+            text, colour = f"{clearance_text(near.wall_clearance[w])} ({near.name})", "black"
         else:
             continue
         side = w % 2
@@ -174,15 +179,21 @@ def figure_title(check: StowedCheck) -> str:
     self-collision; a design whose parts fit but collide, or whose deployment path is
     not clear, is said to fail, as its verdict says."""
     status = "fits" if check.fits else "DOES NOT FIT"
+    if check.passed and check.tight:
+        status = f"fits, tight: under {clearance_text(TIGHT_CLEARANCE)}"
     if check.fits and not check.passed:
         why = ["collide"] if check.self_collision else []
         if not check.sweep.clear:
             why.append("the deployment path is not clear")
         status = "FAILS: the parts fit the bays but " + " and ".join(why)
+    # a tight pair is named by its distance (the min clearance above is the walls')
+    close = check.min_self_clearance if check.passed and check.tight_pairs else None
     return (
         f"Stowed payload in the two lower bays ({status}; min clearance "
-        f"{check.min_clearance * 1e3:.1f} mm; self-collision: "
-        f"{'yes' if check.self_collision else 'none'})"
+        f"{clearance_text(check.min_clearance)}; self-collision: "
+        f"{'yes' if check.self_collision else 'none'}"
+        + (f", closest {clearance_text(close.distance)}" if close is not None else "")
+        + ")"
     )
 
 
@@ -221,7 +232,7 @@ def _deployment_panel(ax: Any, geom: PayloadGeometry, vehicle: Vehicle, check: S
     )
     ax.set_title(
         f"deployment sweep, stage 0 -> {stage.upper * 1e3:.0f} mm (dashed: stowed): {verdict}\n"
-        f"closest {sweep.min_distance * 1e3:.1f} mm, {sweep.between[0]} / {sweep.between[1]}",
+        f"closest {clearance_text(sweep.min_distance)}, {sweep.between[0]} / {sweep.between[1]}",
         fontsize=9,
     )
 

@@ -11,6 +11,23 @@ from payload.envelope.vehicle import Vehicle
 
 VOLUME_TOL = 1e-12
 """Volume (1e-3 mm^3) below which an overlap or an outside part counts as nil [m^3]."""
+TIGHT_CLEARANCE = 0.5e-3
+"""Clearance below which a stowed fit that passes is tight [m]: a part this close to a bay
+wall, or two links this close to each other (ASSUMPTION: about the dimensional tolerance
+of a printed part, so a tighter fit is worth a second look). The verdicts say it; the
+design review draws such parts amber."""
+
+
+def clearance_text(metres: float) -> str:
+    """A clearance as the reports print it: ``0.06 mm`` under 1 mm (two decimals: a tight
+    fit's hundredths matter), ``1.0 mm`` from 1 mm on (one decimal), ``-0.30 mm`` for a
+    negative one; the one formatting of a clearance in every verdict, report, figure and
+    the design review."""
+    mm = metres * 1e3
+    text = f"{mm:.2f}"
+    if abs(float(text)) >= 1.0:  # 0.996 mm reads 1.0 mm, not 1.00 mm
+        text = f"{mm:.1f}"
+    return f"{text} mm"
 
 
 class PartFit(NamedTuple):
@@ -164,6 +181,42 @@ class StowedCheck:
     def passed(self) -> bool:
         return self.fits and not self.self_collision and self.sweep.clear
 
+    @property
+    def tight_parts(self) -> list[PartFit]:
+        """Parts inside the bays with less than :data:`TIGHT_CLEARANCE` to a wall,
+        tightest first."""
+        tight = [p for p in self.parts if p.inside and p.clearance < TIGHT_CLEARANCE]
+        return sorted(tight, key=lambda p: p.clearance)
+
+    @property
+    def tight_pairs(self) -> list[PairContact]:
+        """Non-adjacent links that do not collide but are less than
+        :data:`TIGHT_CLEARANCE` apart, closest first."""
+        return [c for c in self.self_contacts if not c.colliding and c.distance < TIGHT_CLEARANCE]
+
+    @property
+    def tight(self) -> bool:
+        """Whether a part is under :data:`TIGHT_CLEARANCE` from a wall or two links are
+        under it apart (a fit that passes all the same, but said)."""
+        return bool(self.tight_parts or self.tight_pairs)
+
+    def tight_phrase(self) -> str:
+        """What is tight, for a verdict: ``C_distal 0.06 mm to the +y (left) wall,
+        stage / A_distal 0.06 mm apart: under 0.50 mm, about a printed part's tolerance``
+        (the tightest part's wall clearance and the closest pair, each when under
+        :data:`TIGHT_CLEARANCE`); empty when nothing is."""
+        said = [
+            f"{p.name} {clearance_text(p.clearance)} to the {p.wall} wall"
+            for p in self.tight_parts[:1]
+        ]
+        said += [f"{c.a} / {c.b} {clearance_text(c.distance)} apart" for c in self.tight_pairs[:1]]
+        if not said:
+            return ""
+        return (
+            f"{', '.join(said)}: under {clearance_text(TIGHT_CLEARANCE)}, about a printed "
+            "part's tolerance"
+        )
+
     def failures(self) -> list[str]:
         """One phrase per failed check, naming parts and millimetres."""
         out = []
@@ -235,6 +288,7 @@ class EnvelopeAnalysis:
 
 
 __all__ = [
+    "TIGHT_CLEARANCE",
     "VOLUME_TOL",
     "EnvelopeAnalysis",
     "PairContact",
@@ -242,4 +296,5 @@ __all__ = [
     "PostureSearch",
     "StowedCheck",
     "SweepResult",
+    "clearance_text",
 ]

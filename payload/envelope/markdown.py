@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from payload.envelope.fit_results import EnvelopeAnalysis, StowedCheck
+from payload.envelope.fit_results import EnvelopeAnalysis, StowedCheck, clearance_text
 from payload.envelope.grasp import GraspResult
 from payload.envelope.pairs import OPPOSITION_CONE
 from payload.envelope.reach import ReachAnalysis
@@ -80,15 +80,21 @@ def envelope_markdown(a: EnvelopeAnalysis, command: str, figure: str) -> str:
     if g.passed:
         out.append(
             f"**The stowed payload fits** the {_size(a.vehicle.bay_size)} envelope with "
-            f"**{tight.clearance * 1e3:.1f} mm** of clearance at its tightest ({tight.name}, "
+            f"**{clearance_text(tight.clearance)}** of clearance at its tightest ({tight.name}, "
             f"{tight.wall} wall); no self-collision; the deployment path is clear."
         )
+        if g.tight:
+            out += [
+                "",
+                f"**A tight fit:** {g.tight_phrase()} (ASSUMPTION). It passes, but a printed "
+                "part may not stow this close: worth a second look.",
+            ]
     else:
         status = "fits inside" if g.fits else "does **not** fit inside"
         out.append(
             f"**The stowed configuration fails the envelope check.** Every part {status} the "
             f"envelope"
-            + (f" (tightest {tight.clearance * 1e3:.1f} mm, {tight.name})" if g.fits else "")
+            + (f" (tightest {clearance_text(tight.clearance)}, {tight.name})" if g.fits else "")
             + ", but:"
         )
         out.append("")
@@ -221,13 +227,21 @@ def _search_section(a: EnvelopeAnalysis) -> list[str]:
             "6^4 grid, then Nelder-Mead from the 3 best):",
             "",
             f"- finger [mcp_flex, mcp_abd, pip, dip] = [{fing}] rad",
-            f"- smallest clearance {sr.clearance * 1e3:.2f} mm, limited by {sr.limited_by}",
+            f"- smallest clearance {clearance_text(sr.clearance)}, limited by {sr.limited_by}",
             f"- checked like the given posture: fits {'yes' if sc.fits else 'no'}, min clearance "
-            f"{sc.min_clearance * 1e3:.2f} mm, self-collision "
+            f"{clearance_text(sc.min_clearance)}, self-collision "
             f"{'yes' if sc.self_collision else 'no'}, deployment path "
             f"{'clear' if sc.sweep.clear else 'blocked'}: "
-            f"**{'passes' if sc.passed else 'fails'}**",
+            f"**{'passes' if sc.passed else 'fails'}**"
+            + (f", tight: {sc.tight_phrase()}" if sc.passed and sc.tight else ""),
         ]
+        if sc.passed:
+            out += [
+                "",
+                "A proposal only: the verdict above is of the design's own `[stowed]` posture. "
+                "`payload report envelope --write-stowed` writes this posture into the design's "
+                "`[stowed]` table and reports on the edited design.",
+            ]
         if not sc.passed:
             out += [
                 "",

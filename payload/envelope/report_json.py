@@ -6,7 +6,7 @@ from typing import Any
 
 import numpy as np
 
-from payload.envelope.fit_results import EnvelopeAnalysis, StowedCheck
+from payload.envelope.fit_results import TIGHT_CLEARANCE, EnvelopeAnalysis, StowedCheck
 from payload.envelope.reach import ReachAnalysis
 from payload.envelope.vehicle import display_path
 from payload.envelope.verdict import reach_passed
@@ -127,6 +127,14 @@ def _check_json(check: StowedCheck) -> dict[str, Any]:
         },
         "passed": check.passed,
         "failures": check.failures(),
+        "tight_clearance_mm": _mm(TIGHT_CLEARANCE),
+        "tight": [
+            *(
+                {"part": p.name, "wall": p.wall, "clearance_mm": _mm(p.clearance)}
+                for p in check.tight_parts
+            ),
+            *({"links": [c.a, c.b], "clearance_mm": _mm(c.distance)} for c in check.tight_pairs),
+        ],
     }
 
 

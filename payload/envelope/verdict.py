@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from payload.envelope.fit_results import EnvelopeAnalysis
+from payload.envelope.fit_results import EnvelopeAnalysis, clearance_text
 from payload.envelope.reach import ReachAnalysis
 from payload.envelope.workspace import MIN_HULL_POINTS
 from payload.errors import first_of
@@ -41,15 +41,18 @@ the design (a reach sampled 1,000 times against 100,000): named first when they 
 
 
 def envelope_verdict(a: EnvelopeAnalysis) -> str:
-    """``verdict: fits ...`` or ``verdict: FAILS ...`` for the stowed payload."""
+    """``verdict: fits ...`` (``verdict: fits, tight ...`` when a clearance is under
+    :data:`~payload.envelope.fit_results.TIGHT_CLEARANCE`: a pass all the same) or
+    ``verdict: FAILS ...`` for the stowed payload."""
     g = a.given
     if a.passed:
         t = g.tightest
-        return (
-            f"verdict: fits: every part inside the bays, min clearance "
-            f"{t.clearance * 1e3:.2f} mm ({t.name}, {t.wall} wall); no self-collision; "
-            "deployment path clear"
+        line = (
+            f"verdict: fits{', tight' if g.tight else ''}: every part inside the bays, min "
+            f"clearance {clearance_text(t.clearance)} ({t.name}, {t.wall} wall); no "
+            "self-collision; deployment path clear"
         )
+        return line + (f"; {g.tight_phrase()}" if g.tight else "")
     return "verdict: FAILS: " + first_of(g.failures(), 3)
 
 

@@ -33,6 +33,7 @@ from payload.envelope.drawing import (
     TIGHT_COLOUR,
 )
 from payload.envelope.fit import StowedCheck, check_stowed, wall_gaps
+from payload.envelope.fit_results import TIGHT_CLEARANCE, clearance_text
 from payload.envelope.geometry import PayloadGeometry
 from payload.envelope.vehicle import Vehicle, vehicle_from_dict
 from payload.errors import first_of
@@ -60,10 +61,9 @@ REVIEW = f"{ROOT}/review"
 OFFENDING_COLOUR = hex_colour(FAIL_COLOUR)
 """Colour of a part that protrudes from the bays or collides."""
 TIGHT = hex_colour(TIGHT_COLOUR)
-"""Colour of a part inside the bays with less than :data:`TIGHT_CLEARANCE` to a wall."""
-TIGHT_CLEARANCE = 0.5e-3
-"""Clearance below which a stowed part is drawn amber [m] (ASSUMPTION: about the
-dimensional tolerance of a printed part, so a tighter fit is worth a second look)."""
+"""Colour of a part inside the bays with less than
+:data:`~payload.envelope.fit_results.TIGHT_CLEARANCE` to a wall (the envelope verdict's
+"tight")."""
 
 BODY_COLOUR, BAY_COLOUR, SEGMENT_COLOUR = 0xB8BCC8, 0x17BECF, 0x000000
 DEPLOY_FPS = 30
@@ -190,7 +190,7 @@ def draw_findings(
         b[w // 2] = lo[w // 2] if w % 2 == 0 else hi[w // 2]
         key = wall.split()[0].replace("+", "plus_").replace("-", "minus_")
         scene.object(f"{root}/clearance/{key}/segment", segment(a, b))
-        text = f"{name} - {wall_name(wall)} {d * 1e3:.1f} mm"
+        text = f"{name} - {wall_name(wall)} {clearance_text(d)}"
         _label(scene, f"{root}/clearance/{key}/label", text, (a + b) / 2)
         drawn.append((wall, float(d), a, b))
     for p in check.parts:
@@ -268,7 +268,7 @@ def deployment_configurations(
 
 def part_colours(model: PayloadModel, check: StowedCheck, bad: frozenset[str]) -> dict[str, int]:
     """Each link's colour: red failing, amber tight, else its finger's colour or grey."""
-    tight = {p.name for p in check.parts if p.inside and p.clearance < TIGHT_CLEARANCE}
+    tight = {p.name for p in check.tight_parts}
     return {
         n: OFFENDING_COLOUR if n in bad else TIGHT if n in tight else link_colour(n)
         for n in model.links
@@ -290,7 +290,7 @@ def legend(colours: Mapping[str, int], reach: bool) -> list[tuple[str, str]]:
     out += [
         (STRUCTURE_COLOUR, "structure: base, stage, carriage"),
         verdict(OFFENDING_COLOUR, "fails: outside the bays or colliding"),
-        verdict(TIGHT, f"tight: under {TIGHT_CLEARANCE * 1e3:.1f} mm to a bay wall"),
+        verdict(TIGHT, f"tight: under {clearance_text(TIGHT_CLEARANCE)} to a bay wall"),
         (colour_text(BODY_COLOUR), "Astrobee's body"),
         (colour_text(BAY_COLOUR), "payload bays (the stowed envelope)"),
         (colour_text(SEGMENT_COLOUR), "clearance measured (stowed)"),
@@ -326,7 +326,7 @@ def title(files: ProjectFiles, check: StowedCheck) -> tuple[str, str]:
         verdict += f": {first_of(reasons, 1, 'payload report envelope')}"
     if check.parts and check.tightest.clearance >= 0:  # (one sticking out leads the reasons)
         t = check.tightest
-        verdict += f"; tightest {t.name} {t.clearance * 1e3:.1f} mm"
+        verdict += f"; tightest {t.name} {clearance_text(t.clearance)}"
     return page_title("design review", name, design), verdict
 
 
@@ -427,7 +427,6 @@ def set_visibility(animation: Animation, path: str, frames: list[float], on: lis
 __all__ = [
     "OFFENDING_COLOUR",
     "REVIEW",
-    "TIGHT_CLEARANCE",
     "DesignReview",
     "build_design_review",
     "deployment_configurations",
