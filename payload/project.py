@@ -137,7 +137,15 @@ def find_project(explicit: str | Path | None = None, *, cwd: str | Path | None =
             continue
         project = Project.at(value)
         if not project.is_project():
-            raise ProjectError(f"{what} {value}: not a design project (no {DESIGN_FILE} there)")
+            where = Path(value).expanduser()
+            why = (
+                "no such folder"
+                if not where.exists()
+                else "a file, not a folder"
+                if not where.is_dir()
+                else f"not a design project (no {DESIGN_FILE} there)"
+            )
+            raise ProjectError(f"{what} {value}: {why}")
         return project
     start = Path(cwd) if cwd is not None else Path.cwd()
     found = _search_up(start.resolve())

@@ -260,7 +260,8 @@ def test_hw_run_of_a_synthetic_trial_says_what_it_ran_on_and_places_the_ctb_as_i
     assert b.meta["replay"]["file"] == str(src / "log.mcap")
     assert "replay of an unfinished run" in (cut_reason(b.meta, b.complete) or ""), b.meta
     assert "success:" in printed and "emulator" in printed  # the trial's summary, its far end
-    assert metrics["ended_by"] == "source" and "session-length cap" not in printed
+    assert metrics["ended_by"] == "source" and "--max-time cap after" not in printed
+    assert "session-length cap" not in printed
     # how it ended, said (it was not): the source trial was capped at 2 s, so is its replay
     ended = "  ended: the replayed recording's end, 2.0 s in; every servo's torque turned off"
     assert ended in printed.splitlines(), printed

@@ -383,4 +383,4 @@ def test_a_design_in_no_project_is_reported_into_its_out_from_anywhere(outside, 
     typo = outside / "typo"
     assert main(["--project", str(typo), *argv, "--out", str(outside / "r2")]) == 2
     err = capsys.readouterr().err.strip()
-    assert err.count("\n") == 0 and f"--project {typo}: not a design project" in err, err
+    assert err.count("\n") == 0 and f"--project {typo}: no such folder" in err, err

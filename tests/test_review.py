@@ -547,6 +547,10 @@ def test_bad_reach_samples_and_static_folder_exit_2(tmp_path, capsys) -> None:
     typo = tmp_path / "no-such-dir" / "review.html"
     assert main(["review", "--static", str(typo), "--reach-samples", "0"]) == 2
     assert f"no folder {typo.parent}" in _err(capsys) and not typo.parent.exists()
+    # a page named as a picture (a new user's review.png) is refused, nothing written
+    picture = tmp_path / "review.png"
+    assert main(["review", "--static", str(picture), "--reach-samples", "0"]) == 2
+    assert "the name ends in .html" in _err(capsys) and not picture.exists()
     assert main(["review", "--zmq-url", "tcp://127.0.0.1:1", "--reach-samples", "0"]) == 2
     assert "no meshcat server" in _err(capsys)
     assert main(["review", "--rate", "0"]) == 2
@@ -863,7 +867,7 @@ def test_a_session_the_cap_stopped_is_said_to_have_stopped_early(tmp_path) -> No
     assert main(["review", "--trial", str(folder), "--static", str(out), "--reach-samples",
                  "0"]) == 0  # fmt: skip
     page = out.read_text()
-    assert "recording: finished, the session stopped early: stopped by the session" in page
+    assert "recording: finished, the session stopped early: stopped by the --max-time cap" in page
 
 
 def test_clearance_labels_take_every_part_as_the_envelope_report_does(

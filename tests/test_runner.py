@@ -586,7 +586,7 @@ def test_a_replay_of_a_run_that_did_not_finish_says_so(tmp_path, caplog):
     warned = [r.getMessage() for r in caplog.records if "did not finish" in r.getMessage()]
     assert len(warned) == 1 and "stopped by the --max-time cap" in warned[0], warned
     again = read_recording(tmp_path / "of-capped" / "log.mcap")
-    assert again.meta["replay"]["source_unfinished"].startswith("stopped by the session-length")
+    assert again.meta["replay"]["source_unfinished"].startswith("stopped by the --max-time cap")
 
 
 def test_a_live_sessions_webxr_hands_replay_as_their_workbench_frames(tmp_path):

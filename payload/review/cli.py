@@ -113,6 +113,10 @@ def _open_in_browser(url: str) -> None:
         warn(f"--open: no browser to open here; open {url} in one")
 
 
+HTML_SUFFIXES = (".html", ".htm")
+"""What a ``--static`` page's file name may end in."""
+
+
 def _check_static(out: Path) -> None:
     """``--static FILE``: a new file, or an earlier page (HTML) to replace; never a folder,
     nor any other file (a recording, a summary)."""
@@ -131,6 +135,11 @@ def _check_static(out: Path) -> None:
                 f"--static {out}: exists and is not an HTML page; a review replaces only an "
                 "earlier page (choose another file name)"
             )
+    if out.suffix.lower() not in HTML_SUFFIXES:  # review.png: a page, not a picture
+        raise ReviewError(
+            f"--static {out}: writes an HTML page, so the name ends in .html (its picture: "
+            "python -m payload.review.browser PAGE PNG)"
+        )
 
 
 def _check_project_design(design: Path) -> None:

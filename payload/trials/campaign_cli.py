@@ -66,7 +66,6 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
     if args.workers is not None and args.workers < 0:
         raise TrialsCliError(f"--workers must be >= 0, got {args.workers}")
     check_seconds("--max-time", args.max_time, cap=True)
-    cap_before_teleoperation(args.max_time)
     from payload.trials.cluster import check_scheduler
 
     check_scheduler(args.scheduler, TrialsCliError)
@@ -114,6 +113,7 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
                 if args.json or sys.stdout.isatty()
                 else trial_line_printer(len(seeds)),
             )
+            cap_before_teleoperation(args.max_time)  # after the trials: no bad input follows
             run = {
                 "workers": None if args.scheduler else workers,
                 "scheduler": args.scheduler,

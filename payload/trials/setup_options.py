@@ -49,7 +49,8 @@ def _max_time_argument(p: argparse.ArgumentParser, what: str = "session") -> Non
 
 def cap_before_teleoperation(max_time: float | None) -> None:
     """Warn when ``--max-time`` ends each session before its operator's calibration does
-    (the default calibration's prompts): such a trial records no teleoperation at all."""
+    (the default calibration's prompts): such a trial records no teleoperation at all.
+    Said after the run, so that no bad input's one line follows it."""
     if max_time is None:
         return
     from payload.teleop.calibration import DEFAULT_STEPS

@@ -54,7 +54,6 @@ def _cmd_trial(args: argparse.Namespace) -> int:
         raise TrialsCliError(f"--seed {problem}")
     check_seconds("--max-time", args.max_time, cap=True)
     _check_physics_dt(args.physics_dt)
-    cap_before_teleoperation(args.max_time)
     operator, replay = _parse_operator(args)
     if operator == "synthetic":
         _setup_defaults(args)
@@ -80,6 +79,7 @@ def _cmd_trial(args: argparse.Namespace) -> int:
     result = dict(run_trial(seed=seed, operator=operator, replay=replay, out_dir=out, **extra))
     out = Path(result.get("out_dir") or out)
     seed = result.get("seed", seed)
+    cap_before_teleoperation(args.max_time)  # after the run: no bad input follows it
     if campaign:  # a campaign's trial, rerun: its summary describes what was there before
         warn(
             f"{out} is a trial of the campaign in {out.parent} ({', '.join(campaign)}), whose "
