@@ -28,6 +28,9 @@ _SHAPE3 = (3,)
 ENDED_BY_CAP = "max_time"
 """A session's ``ended_by`` (the loop's statistics, a recording's metadata, a trial's
 metrics) when the ``--max-time`` cap stopped it."""
+CAP_STOPPED = "stopped by the --max-time cap"
+"""How a trial the ``--max-time`` cap ended (:data:`ENDED_BY_CAP`) is said, in lines,
+tables and figures."""
 
 ENDED_BY_SOURCE = "source"
 """A session's ``ended_by`` when its hands ran out: the operator finished, or a replay's

@@ -41,17 +41,10 @@ import numpy as np
 
 from payload.errors import PayloadError
 from payload.rotations import rotate_by_quats
+from payload.trials.definition import CONFIRM_MAX_GAP_S, CONFIRM_MIN_S, contact_words
 from payload.trials.reading import aborted_note
 from payload.trials.recorder import MODULES, Recording
 from payload.trials.records import CALIBRATION
-from payload.trials.summary_fields import CONFIRMED_WORDS, ContactWords
-
-CONFIRM_MIN_S = 0.5
-"""The workbench's *confirmed* contact: opposing contact held at least this long [s]. The
-pads chatter for a few tenths of a second when they first land on a handle at 50 Hz."""
-
-CONFIRM_MAX_GAP_S = 0.1
-"""Indicator dropouts at most this long are bridged inside a confirmed interval [s]."""
 
 
 def confirmed_definition() -> dict[str, float]:
@@ -67,19 +60,6 @@ def recorded_definition(recording: Recording) -> tuple[float, float]:
     ``(0, 0)``, the paper's, for a recording without one."""
     recorded = recording.meta.get("contact_definition") or {}
     return float(recorded.get("min_interval_s", 0.0)), float(recorded.get("max_gap_s", 0.0))
-
-
-def contact_words(min_interval_s: float, max_gap_s: float) -> ContactWords:
-    """How the contact definition ``(min_interval_s, max_gap_s)`` is named to a reader:
-    the confirmed contact (:func:`confirmed_definition`), else by its numbers, e.g.
-    ``contact (>= 0 s, gaps <= 0 s)`` (a rescoring's figures and summaries say what they
-    scored)."""
-    if (min_interval_s, max_gap_s) == (CONFIRM_MIN_S, CONFIRM_MAX_GAP_S):
-        return CONFIRMED_WORDS
-    numbers = f"(>= {min_interval_s:g} s, gaps <= {max_gap_s:g} s)"
-    return ContactWords(
-        f"contact {numbers}", f"contact interval {numbers}", f"no contact {numbers}"
-    )
 
 
 SUCCESS_CRITERION = (

@@ -23,7 +23,7 @@ from mcap.opcode import Opcode
 from mcap.records import Channel, McapRecord, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 
-from payload.schema import ENDED_BY_CAP
+from payload.schema import CAP_STOPPED, ENDED_BY_CAP
 from payload.trials import codec
 from payload.trials.integrity import (
     MAGIC,
@@ -43,7 +43,6 @@ from payload.trials.records import (
     StepRecord,
 )
 from payload.trials.stepcheck import StepError, check_step
-from payload.trials.summary_fields import CAP_STOPPED
 
 log = logging.getLogger(__name__)
 

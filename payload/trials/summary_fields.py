@@ -11,31 +11,11 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from typing import Any, NamedTuple
+from typing import Any
 
 from payload.errors import PayloadError
-
-
-class ContactWords(NamedTuple):
-    """How a contact definition is named to a reader: the contact itself, its first
-    interval, and a trial's lack of one."""
-
-    contact: str
-    interval: str
-    none: str
-
-
-CONFIRMED_WORDS = ContactWords(
-    "confirmed contact", "confirmed-contact interval", "no confirmed contact"
-)
-"""The workbench's confirmed contact (:func:`~payload.trials.metrics.confirmed_definition`)
-as named to a reader; any other definition is named by its numbers
-(:func:`~payload.trials.metrics.contact_words`)."""
-
-MIXED_WORDS = ContactWords(
-    "mixed contact definitions", "contact interval (mixed definitions)", "no contact"
-)
-"""The contact of trials scored with different definitions, as named to a reader."""
+from payload.schema import CAP_STOPPED
+from payload.trials.definition import CONFIRMED_WORDS, MIXED_WORDS, ContactWords, contact_words
 
 METRIC_KEYS: tuple[str, ...] = (
     "duration_s",
@@ -83,8 +63,6 @@ def definition_words(definition: Mapping[str, Any] | None) -> ContactWords:
         return CONFIRMED_WORDS
     if "mixed" in d or lo is None or gap is None:
         return MIXED_WORDS
-    from payload.trials.metrics import contact_words  # (loads MCAP)
-
     return contact_words(float(lo), float(gap))
 
 
@@ -135,9 +113,6 @@ def least_clearance_text(mm: Any, cap_mm: Any, *, always_cap: bool = False) -> s
         return f"over {cap_mm:g} mm (measured up to {cap_mm:g} mm)"
     return f"{mm} mm (measured up to {cap_mm:g} mm)" if always_cap else f"{mm} mm"
 
-
-CAP_STOPPED = "stopped by the --max-time cap"
-"""How a trial the ``--max-time`` cap ended is said, in lines, tables and figures."""
 
 STATION_ZONES = "the station's"
 """What :func:`zones_name` calls the station's own zones (a trial run without ``--zones``)."""
