@@ -579,10 +579,14 @@ def test_a_projects_reports_cite_sources_the_reader_can_open(tmp_path, capsys):
 
     project, _ = new_project(tmp_path / "p")
     assert not (project.root / "docs" / "sources.md").exists()
+    sources = (ROOT / "docs" / "sources.md").resolve()
     for args in (["envelope", "--no-search"], ["reach", "--samples", "2000"]):
         assert main(["--project", str(project.root), "report", *args]) == 0
-    capsys.readouterr()
-    sources = (ROOT / "docs" / "sources.md").resolve()
+        # the terminal's assumption line names the file a reader can open from anywhere
+        said = [x for x in capsys.readouterr().out.splitlines() if "sources.md" in x]
+        paths = [Path(p) for p in re.findall(r"\((/[^)#]*sources\.md)", " ".join(said))]
+        assert said and paths and all(p.resolve() == sources for p in paths), said
+        assert not [x for x in said if "(docs/sources.md" in x], said
     for name, cited in (("envelope.md", 1), ("reach.md", 3)):
         md = project.analyses_dir / name
         text = md.read_text()

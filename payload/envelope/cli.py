@@ -40,6 +40,7 @@ BENCH_RUNS = 3
 
 
 def _cmd_envelope(args: argparse.Namespace) -> int:
+    from payload.envelope.markdown import cite_sources_here
     from payload.envelope.report import envelope_json
     from payload.envelope.verdict import envelope_verdict
 
@@ -48,7 +49,8 @@ def _cmd_envelope(args: argparse.Namespace) -> int:
         emit_json(_stdout_json(args, _recorder(args)(envelope_json(analysis))))
     else:
         print(envelope_verdict(analysis))
-        print(f"assumption: {analysis.vehicle.assumption}")
+        print(cite_sources_here(f"assumption: {analysis.vehicle.assumption}",
+                                analysis.design_source))  # fmt: skip
         for line in [*lines, *written_lines(paths, "envelope")]:
             print(line)
     if not analysis.passed:
@@ -152,7 +154,10 @@ def _cmd_all(args: argparse.Namespace) -> int:
         print(verdict)
         where = project.relative(project.design_path)
         print(f"models: {'rebuilt (above)' if rebuilt else 'match ' + where}")
-        print(f"assumption: {envelope.vehicle.assumption}")  # both reports' (the bays)
+        from payload.envelope.markdown import cite_sources_here
+
+        assumption = f"assumption: {envelope.vehicle.assumption}"  # both reports' (the bays)
+        print(cite_sources_here(assumption, envelope.design_source))
         print("-- envelope")
         print(envelope_verdict(envelope))
         for line in [*env_lines, *written_lines(env_paths, "envelope")]:

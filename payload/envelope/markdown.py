@@ -34,9 +34,8 @@ def cite_sources(text: str, design_source: str, report_dir: Path) -> str:
     named as the workbench's, or the name alone when the package is installed without
     its docs.
     """
-    root = workbench_root()
-    project = project_of(design_source)
-    if root is not None and project is not None and project.root == root:
+    root = _sources_elsewhere(design_source)
+    if root is False:
         return text
     if root is None:
         return _CITED.sub(lambda m: f"the {DISTRIBUTION} workbench's {m[0]}", text)
@@ -44,6 +43,28 @@ def cite_sources(text: str, design_source: str, report_dir: Path) -> str:
     return _CITED.sub(
         lambda m: f"the {DISTRIBUTION} workbench's [{SOURCES}]({target}{m[1] or ''})", text
     )
+
+
+def cite_sources_here(text: str, design_source: str) -> str:
+    """``text`` (a terminal line) with its citations of the workbench's :data:`SOURCES` as
+    :func:`cite_sources` decides, a project elsewhere's given as the file's own path."""
+    root = _sources_elsewhere(design_source)
+    if root is False:
+        return text
+    if root is None:
+        return _CITED.sub(lambda m: f"the {DISTRIBUTION} workbench's {m[0]}", text)
+    return _CITED.sub(lambda m: f"{root / SOURCES}{m[1] or ''}", text)
+
+
+def _sources_elsewhere(design_source: str) -> Path | bool | None:
+    """Where the workbench's sources are for a report of ``design_source``: False, where
+    the report names them (the workbench's own project); the workbench's root (another
+    project); None, nowhere (the package installed without its docs)."""
+    root = workbench_root()
+    project = project_of(design_source)
+    if root is not None and project is not None and project.root == root:
+        return False
+    return root
 
 
 def _assumption_block(lines: Sequence[str]) -> list[str]:
@@ -439,6 +460,7 @@ def _rng(r: tuple[float, float]) -> str:
 
 __all__ = [
     "cite_sources",
+    "cite_sources_here",
     "envelope_markdown",
     "reach_markdown",
 ]
