@@ -131,8 +131,8 @@ def _cloud_panel(
     allp = np.vstack([blo, bhi, *shaded, *(w.points * 1e3 for w in workspaces)])
     lo = allp.min(axis=0) - 15
     hi = allp.max(axis=0) + 15
-    if axis != 2:
-        hi[2] = min(hi[2], vehicle.bottom_z * 1e3 + 80)
+    if axis != 2:  # the body's lower part only, and the whole bay envelope (its top too)
+        hi[2] = min(hi[2], max(vehicle.bottom_z * 1e3 + 80, vehicle.bay_upper[2] * 1e3 + 15))
     ax.set_xlim(lo[h], hi[h])
     ax.set_ylim(lo[v], hi[v])
     ax.set_aspect("equal")
