@@ -13,7 +13,7 @@ import random
 from dataclasses import dataclass, field
 
 from firmware_interface import protocol as P
-from firmware_interface.control_table import ADDR, BAUD_RATES, BY_NAME
+from firmware_interface.control_table import ADDR, BAUD_RATES, BY_NAME, encode
 from firmware_interface.faults import Fault
 from firmware_interface.servo_dynamics import Plant
 from firmware_interface.servo_model import ServoModel
@@ -96,8 +96,7 @@ class Bus:
         elif fault.kind == "block":
             self.servos[int(fault.id)].blocked = True
         elif fault.kind == "model":  # a read-only EEPROM register: kept over reboots
-            value = int(fault.value).to_bytes(_MODEL_NUMBER.size, "little")
-            self.servos[int(fault.id)].table[_MODEL_SPAN] = value
+            self.servos[int(fault.id)].table[_MODEL_SPAN] = encode(_MODEL_NUMBER, int(fault.value))
 
     def power_cycle(self) -> None:
         """Every servo off and on again (EEPROM kept, multi-turn counts lost)."""

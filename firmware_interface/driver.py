@@ -91,17 +91,12 @@ _LATE_HINT = ("the bus answers later than the driver allows (an adapter's latenc
               "above the one given: --latency-ms?)")  # fmt: skip
 
 
-def late_words(
-    n: int | None, allowance_ms: float | None, then: str, ids: list[int] | None = None
-) -> str:
+def late_words(n: int | None, allowance_ms: float, then: str, ids: list[int] | None = None) -> str:
     """How the hardware layer says that replies came after their timeout: ``n`` of them
-    (None: some), the ``allowance_ms`` timeout (None: not said), of ``ids`` (the first
-    named before these words, the others after them), then ``then`` (what it means or what
-    to try)."""
+    (None: some), the ``allowance_ms`` timeout, of ``ids`` (the first named before these
+    words, the others after them), then ``then`` (what it means or what to try)."""
     many = "replies" if n is None else f"{n} repl{'y' if n == 1 else 'ies'}"
-    timeout = "the reply timeout" if allowance_ms is None else (
-        f"the {allowance_ms:.0f} ms reply timeout")  # fmt: skip
-    return f"{many} came after {timeout}{_also(ids or [])}: {then}"
+    return f"{many} came after the {allowance_ms:.0f} ms reply timeout{_also(ids or [])}: {then}"
 
 
 def _also(ids: list[int]) -> str:

@@ -24,23 +24,17 @@ def add_servo_map(p: argparse.ArgumentParser, text: str = "servo map TOML") -> N
     p.add_argument("--servos", metavar="MAP", help=text)
 
 
-def add_latency(
-    p: argparse.ArgumentParser,
-    when: str = "",
-    default: float | None = LATENCY_MS,
-    emulator: str | None = None,
-) -> None:
-    """``--latency-ms MS`` (default :data:`LATENCY_MS`; ``default=None`` where the option
-    is refused unless it applies, ``when`` saying when it does). ``emulator``: when the
-    command starts an emulated bus itself ("with --emulator"), where the default is
-    :data:`EMULATOR_LATENCY_MS` instead: the option's default is then None, the command's
-    allowance :func:`latency_of` the option."""
+def add_latency(p: argparse.ArgumentParser, when: str = "", emulator: str | None = None) -> None:
+    """``--latency-ms MS`` (default :data:`LATENCY_MS`; ``when`` saying when it applies).
+    ``emulator``: when the command starts an emulated bus itself ("with --emulator"), where
+    the default is :data:`EMULATOR_LATENCY_MS` instead: the option's default is then None,
+    the command's allowance :func:`latency_of` the option."""
     on_emulator = f", {EMULATOR_LATENCY_MS:g} {emulator}" if emulator else ""
     p.add_argument(
         "--latency-ms",
         type=float,
         metavar="MS",
-        default=None if emulator else default,
+        default=None if emulator else LATENCY_MS,
         help=f"reply timeout allowance per packet [ms] (the SDK's LATENCY_TIMER{when}; "
         f"default {LATENCY_MS:g}, a USB adapter's{on_emulator})",
     )

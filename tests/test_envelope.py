@@ -40,6 +40,7 @@ from payload.envelope.fit import (
     with_finger_posture,
 )
 from payload.envelope.vehicle import BAY_ASSUMPTION, VEHICLE_TOML
+from payload.project import SOURCES
 
 VEHICLE = Vehicle()
 LO, HI = VEHICLE.bay_lower, VEHICLE.bay_upper
@@ -578,15 +579,15 @@ def test_a_projects_reports_cite_sources_the_reader_can_open(tmp_path, capsys):
     from payload.design.cli import new_project
 
     project, _ = new_project(tmp_path / "p")
-    assert not (project.root / "docs" / "sources.md").exists()
-    sources = (ROOT / "docs" / "sources.md").resolve()
+    assert not (project.root / SOURCES).exists()
+    sources = (ROOT / SOURCES).resolve()
     for args in (["envelope", "--no-search"], ["reach", "--samples", "2000"]):
         assert main(["--project", str(project.root), "report", *args]) == 0
         # the terminal's assumption line names the file a reader can open from anywhere
-        said = [x for x in capsys.readouterr().out.splitlines() if "sources.md" in x]
+        said = [x for x in capsys.readouterr().out.splitlines() if Path(SOURCES).name in x]
         paths = [Path(p) for p in re.findall(r"\((/[^)#]*sources\.md)", " ".join(said))]
         assert said and paths and all(p.resolve() == sources for p in paths), said
-        assert not [x for x in said if "(docs/sources.md" in x], said
+        assert not [x for x in said if f"({SOURCES}" in x], said
     for name, cited in (("envelope.md", 1), ("reach.md", 3)):
         md = project.analyses_dir / name
         text = md.read_text()
@@ -594,11 +595,11 @@ def test_a_projects_reports_cite_sources_the_reader_can_open(tmp_path, capsys):
         opened = [t for t, _ in links if (md.parent / t).resolve() == sources]
         assert len(opened) >= cited, (name, links)
         rest = re.sub(r"\[[^\]]*\]\([^)]*\)", "", text)
-        assert "sources.md" not in rest, name  # no citation left that opens nothing
+        assert Path(SOURCES).name not in rest, name  # no citation left that opens nothing
     checkout = tmp_path / "checkout"
     assert main(["report", "envelope", "--no-search", "--out", str(checkout)]) == 0
     [line] = [x for x in (checkout / "envelope.md").read_text().splitlines() if "sources" in x]
-    assert "(docs/sources.md)" in line and "workbench" not in line
+    assert f"({SOURCES})" in line and "workbench" not in line
 
 
 def test_another_designs_report_needs_an_out_and_never_replaces_the_projects(tmp_path, capsys):
@@ -996,8 +997,6 @@ def test_the_design_files_distal_comment_states_the_bound_that_holds(design_dict
         assert check.passed is passes, (mm, check.failures())
         if not passes:
             assert check.self_collision and any("_distal" in f for f in check.failures())
-    packaged = ROOT / "payload" / "data" / "design.toml"
-    assert packaged.read_text() == text  # the packaged default is the same file
 
 
 def test_the_design_review_words_a_tight_clearance_as_the_report_does(narrow_fit):

@@ -13,6 +13,7 @@ from typing import Any
 import pytest
 from conftest import reg, replace_once
 
+from firmware_interface.options import EMULATOR_LATENCY_MS, LATENCY_MS
 from firmware_interface.servo_map import load_servo_map
 from payload.cli import main
 
@@ -210,11 +211,11 @@ def test_check_names_every_fault_the_bring_up_found_once(capsys):
 @pytest.mark.parametrize(
     "argv, allowance",
     [
-        (["hw", "run", "--emulator"], 50.0),
+        (["hw", "run", "--emulator"], EMULATOR_LATENCY_MS),
         (["hw", "run", "--emulator", "--latency-ms", "20"], 20.0),
-        (["hw", "run", "--device", "DEV"], 16.0),
-        (["hw", "identify", "--emulator"], 50.0),
-        (["bench", "hw"], 50.0),
+        (["hw", "run", "--device", "DEV"], LATENCY_MS),
+        (["hw", "identify", "--emulator"], EMULATOR_LATENCY_MS),
+        (["bench", "hw"], EMULATOR_LATENCY_MS),
         (["bench", "hw", "--latency-ms", "5"], 5.0),
     ],
 )

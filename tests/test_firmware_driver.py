@@ -22,7 +22,7 @@ from conftest import reg
 from dynamixel_sdk import COMM_RX_TIMEOUT, PacketHandler
 
 from firmware_interface import protocol as P
-from firmware_interface.control_table import ADDR
+from firmware_interface.control_table import ADDR, BY_NAME
 from firmware_interface.driver import TORQUE_OFF_CONFIRM_S, DynamixelDriver, failed_start
 from firmware_interface.emulator import EmulatorProcess
 from firmware_interface.errors import (
@@ -194,8 +194,9 @@ def _untouched(emu) -> bool:
     """No servo of the emulator was configured: each keeps its factory Return Delay Time
     (250, the e-Manual's; the map's is 0) and Operating Mode (3), its torque off."""
     tables = emu.tables()
+    factory = {name: BY_NAME[name].default for name in ("return_delay_time", "operating_mode")}
     return all(
-        reg(t, "return_delay_time") == 250 and reg(t, "operating_mode") == 3
+        all(reg(t, name) == value for name, value in factory.items())
         and not reg(t, "torque_enable")
         for t in tables.values()
     )  # fmt: skip

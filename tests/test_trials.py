@@ -1266,23 +1266,27 @@ def _fake_runner(monkeypatch: pytest.MonkeyPatch) -> list[dict[str, Any]]:
 
 
 def test_a_cap_before_the_calibrations_end_is_warned_of(tmp_path: Path, monkeypatch, capsys):
-    """``--max-time`` at or under the calibration's length (its six prompts, 2.5 + 4 x 2 +
-    1.5 = 12 s) leaves a trial with no teleoperation at all: a new user's ``--max-time 10``
-    gave empty trials without a word. Now one warning line; 12.5 s runs without one."""
+    """``--max-time`` at or under the calibration's length (its prompts' holds added up)
+    leaves a trial with no teleoperation at all: a new user's
+    ``--max-time 10`` gave empty trials without a word. Now one warning line; half a
+    second more runs without one."""
     from payload.cli import main
+    from payload.teleop.calibration import DEFAULT_STEPS
 
+    calibration = sum(step.hold for step in DEFAULT_STEPS)
     _fake_runner(monkeypatch)
     run = ["trials", "run", "--n", "1", "--workers", "0", "--out", str(tmp_path / "c")]
     for argv, cap in (
-        (["trial", "--out", str(tmp_path / "a")], "12"),
-        (["trial", "--out", str(tmp_path / "b")], "12.5"),
-        (run, "10"),
+        (["trial", "--out", str(tmp_path / "a")], calibration),
+        (["trial", "--out", str(tmp_path / "b")], calibration + 0.5),
+        (run, calibration - 2.0),
     ):
-        assert main([*argv, "--max-time", cap, "--json"]) == 0
+        assert main([*argv, "--max-time", f"{cap:g}", "--json"]) == 0
         err = [line for line in capsys.readouterr().err.splitlines() if "warning" in line]
-        want = [f"payload: warning: --max-time {cap} s ends each session before the "
-                "operator's calibration does (12 s): no teleoperation is recorded"]  # fmt: skip
-        assert err == ([] if cap == "12.5" else want), err
+        want = [f"payload: warning: --max-time {cap:g} s ends each session before the "
+                f"operator's calibration does ({calibration:g} s): no teleoperation is "
+                "recorded"]  # fmt: skip
+        assert err == ([] if cap > calibration else want), err
 
 
 def test_cli_trial_and_campaign(tmp_path: Path, monkeypatch, capsys) -> None:

@@ -40,7 +40,7 @@ BENCH_RUNS = 3
 
 
 def _cmd_envelope(args: argparse.Namespace) -> int:
-    from payload.envelope.markdown import cite_sources_here
+    from payload.envelope.markdown import assumption_line
     from payload.envelope.report import envelope_json
     from payload.envelope.verdict import envelope_verdict
 
@@ -49,8 +49,7 @@ def _cmd_envelope(args: argparse.Namespace) -> int:
         emit_json(_stdout_json(args, _recorder(args)(envelope_json(analysis))))
     else:
         print(envelope_verdict(analysis))
-        print(cite_sources_here(f"assumption: {analysis.vehicle.assumption}",
-                                analysis.design_source))  # fmt: skip
+        print(assumption_line(analysis))
         for line in [*lines, *written_lines(paths, "envelope")]:
             print(line)
     if not analysis.passed:
@@ -154,10 +153,9 @@ def _cmd_all(args: argparse.Namespace) -> int:
         print(verdict)
         where = project.relative(project.design_path)
         print(f"models: {'rebuilt (above)' if rebuilt else 'match ' + where}")
-        from payload.envelope.markdown import cite_sources_here
+        from payload.envelope.markdown import assumption_line
 
-        assumption = f"assumption: {envelope.vehicle.assumption}"  # both reports' (the bays)
-        print(cite_sources_here(assumption, envelope.design_source))
+        print(assumption_line(envelope))  # both reports' (the bays)
         print("-- envelope")
         print(envelope_verdict(envelope))
         for line in [*env_lines, *written_lines(env_paths, "envelope")]:

@@ -418,12 +418,11 @@ def reach_lines(analysis: ReachAnalysis, assumption: bool = True) -> list[str]:
     """The reach report's figures as terminal lines (after its verdict); ``assumption``:
     lead with the vehicle's assumption line (``report all`` says it once for both
     reports)."""
-    from payload.envelope.markdown import cite_sources_here
+    from payload.envelope.markdown import assumption_line
 
-    said = f"assumption: {analysis.vehicle.assumption}"
     depth = analysis.below_vehicle
     lines = [
-        *([cite_sources_here(said, analysis.design_source)] if assumption else []),
+        *([assumption_line(analysis)] if assumption else []),
         f"{analysis.samples:,} samples in {analysis.seconds:.1f} s; "
         + (
             f"fingertips reach {depth * 1e3:.1f} mm below the vehicle"

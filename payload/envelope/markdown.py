@@ -23,48 +23,34 @@ _CITED = re.compile(re.escape(SOURCES) + r"(#[\w-]+)?")
 """A citation of the workbench's sources, with its section (``docs/sources.md#vehicle``)."""
 
 
-def cite_sources(text: str, design_source: str, report_dir: Path) -> str:
-    """``text`` (a report) with its citations of the workbench's :data:`SOURCES` readable
-    where the report is.
+def cite_sources(text: str, design_source: str, report_dir: Path | None = None) -> str:
+    """``text`` with its citations of the workbench's :data:`SOURCES` readable where it
+    is read: a report in ``report_dir``, or a terminal line (None).
 
-    The workbench's own project has the file where the report names it, from the
-    project's root as it names the design (``cad/design.toml``): there the text stays as
-    it is. A project elsewhere has no such file (the design it was made from cites it
-    too): each citation becomes a link relative to the report into the workbench's docs,
-    named as the workbench's, or the name alone when the package is installed without
-    its docs.
+    The workbench's own project has the file where the text names it, from the project's
+    root as it names the design (``cad/design.toml``): there the text stays as it is. A
+    project elsewhere has no such file (the design it was made from cites it too): each
+    citation becomes the workbench's file, a link relative to the report (a terminal
+    line: its path), or the name alone when the package is installed without its docs.
     """
-    root = _sources_elsewhere(design_source)
-    if root is False:
+    root = workbench_root()
+    project = project_of(design_source)
+    if root is not None and project is not None and project.root == root:
         return text
     if root is None:
         return _CITED.sub(lambda m: f"the {DISTRIBUTION} workbench's {m[0]}", text)
+    if report_dir is None:
+        return _CITED.sub(lambda m: f"{root / SOURCES}{m[1] or ''}", text)
     target = Path(os.path.relpath(root / SOURCES, Path(report_dir).resolve())).as_posix()
     return _CITED.sub(
         lambda m: f"the {DISTRIBUTION} workbench's [{SOURCES}]({target}{m[1] or ''})", text
     )
 
 
-def cite_sources_here(text: str, design_source: str) -> str:
-    """``text`` (a terminal line) with its citations of the workbench's :data:`SOURCES` as
-    :func:`cite_sources` decides, a project elsewhere's given as the file's own path."""
-    root = _sources_elsewhere(design_source)
-    if root is False:
-        return text
-    if root is None:
-        return _CITED.sub(lambda m: f"the {DISTRIBUTION} workbench's {m[0]}", text)
-    return _CITED.sub(lambda m: f"{root / SOURCES}{m[1] or ''}", text)
-
-
-def _sources_elsewhere(design_source: str) -> Path | bool | None:
-    """Where the workbench's sources are for a report of ``design_source``: False, where
-    the report names them (the workbench's own project); the workbench's root (another
-    project); None, nowhere (the package installed without its docs)."""
-    root = workbench_root()
-    project = project_of(design_source)
-    if root is not None and project is not None and project.root == root:
-        return False
-    return root
+def assumption_line(analysis: EnvelopeAnalysis | ReachAnalysis) -> str:
+    """The terminal's ``assumption:`` line of a report (the vehicle's bays), its sources
+    cited where the terminal is (:func:`cite_sources`)."""
+    return cite_sources(f"assumption: {analysis.vehicle.assumption}", analysis.design_source)
 
 
 def _assumption_block(lines: Sequence[str]) -> list[str]:
@@ -459,8 +445,8 @@ def _rng(r: tuple[float, float]) -> str:
 
 
 __all__ = [
+    "assumption_line",
     "cite_sources",
-    "cite_sources_here",
     "envelope_markdown",
     "reach_markdown",
 ]

@@ -73,6 +73,9 @@ def reach_figure(
     return path
 
 
+VIEW_MARGIN_MM = 15
+"""Margin of the side, front and top views around what they show [mm]."""
+
 PAIR_ROWS = {"L": 0.035, "R": 0.085}
 """Height of each pair's row in the span panel (its span range, its grasp markers), as a
 fraction of the axes: in a band of :data:`ROWS_BAND` under the histograms."""
@@ -129,10 +132,11 @@ def _cloud_panel(
     blo, bhi = vehicle.body_lower * 1e3, vehicle.body_upper * 1e3
     shaded = [np.reshape(solid.bounding_box(), (2, 3)) * 1e3 for solid in home.values()]
     allp = np.vstack([blo, bhi, *shaded, *(w.points * 1e3 for w in workspaces)])
-    lo = allp.min(axis=0) - 15
-    hi = allp.max(axis=0) + 15
+    lo = allp.min(axis=0) - VIEW_MARGIN_MM
+    hi = allp.max(axis=0) + VIEW_MARGIN_MM
     if axis != 2:  # the body's lower part only, and the whole bay envelope (its top too)
-        hi[2] = min(hi[2], max(vehicle.bottom_z * 1e3 + 80, vehicle.bay_upper[2] * 1e3 + 15))
+        top = max(vehicle.bottom_z * 1e3 + 80, vehicle.bay_upper[2] * 1e3 + VIEW_MARGIN_MM)
+        hi[2] = min(hi[2], top)
     ax.set_xlim(lo[h], hi[h])
     ax.set_ylim(lo[v], hi[v])
     ax.set_aspect("equal")

@@ -27,10 +27,11 @@ import numpy as np
 from meshcat.animation import Animation
 
 from payload.design import FINGERS, MANIPULATION_JOINTS, load_design
-from payload.envelope.drawing import FAIL_COLOUR, FINGER_COLOURS, STRUCTURE_COLOUR
+from payload.envelope.drawing import FINGER_COLOURS, STRUCTURE_COLOUR
 from payload.folders import RECORDING
 from payload.review.design_view import (
     BODY_COLOUR,
+    OFFENDING_COLOUR,
     colour_text,
     draw_links,
     link_colour,
@@ -52,7 +53,6 @@ from payload.review.scene import (
     Scene,
     box_pose,
     framing,
-    hex_colour,
     translation,
 )
 from payload.rotations import quat_to_matrix
@@ -68,7 +68,7 @@ colour, finger C's green among them, and from the station's), and without."""
 KEEP_IN_COLOUR = 0x7F00FF
 """Colour of the keep-in boxes."""
 
-KEEP_OUT_COLOUR = hex_colour(FAIL_COLOUR)
+KEEP_OUT_COLOUR = OFFENDING_COLOUR
 """Colour of the keep-out boxes (a trial's ``--zones``), places the vehicle must not be:
 the failure red (:data:`~payload.envelope.drawing.FAIL_COLOUR`), the one red."""
 

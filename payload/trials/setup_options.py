@@ -53,9 +53,9 @@ def cap_before_teleoperation(max_time: float | None) -> None:
     Said after the run, so that no bad input's one line follows it."""
     if max_time is None:
         return
-    from payload.teleop.calibration import DEFAULT_STEPS
+    from payload.teleop.calibration import CalibrationProcedure
 
-    calibration = sum(step.hold for step in DEFAULT_STEPS)
+    calibration = CalibrationProcedure().duration
     if max_time <= calibration:
         warn(
             f"--max-time {max_time:g} s ends each session before the operator's calibration "
