@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from firmware_interface.options import EMULATOR_LATENCY_MS
 from payload.teleop.calibration import Step
 from payload.teleop.emulate import (
     GESTURES,
@@ -215,7 +216,7 @@ def test_page_with_the_hardware_driver_over_the_emulator_says_hardware_and_fits(
         # allowance of 50 ms, as the other emulated-bus tests give it
         argv = [sys.executable, "-c", code, "teleop", "serve", "--driver", "hardware",
                 "--device", emu.port, "--port", "0", "--seconds", "120",
-                "--status-interval", "0.5", "--latency-ms", "50"]  # fmt: skip
+                "--status-interval", "0.5", "--latency-ms", f"{EMULATOR_LATENCY_MS:g}"]  # fmt: skip
         # Ctrl-C reaches it even when this process ignores SIGINT (a background job)
         proc = subprocess.Popen(
             argv,

@@ -21,6 +21,7 @@ from websockets.sync.client import connect
 
 import firmware_interface
 from firmware_interface.control_table import BY_NAME, decode
+from firmware_interface.options import EMULATOR_LATENCY_MS
 from payload.teleop.calibration import Step
 from payload.teleop.handmodel import HandModel
 from payload.teleop.hands import WEBXR_TO_WORKBENCH, XR_JOINTS
@@ -1343,7 +1344,9 @@ def test_serve_drives_the_hardware_with_its_servo_map_and_latency(tmp_path, monk
             serve(_parse([*base, "--device", emu.port, "--latency-ms", "0"]), loading)
 
 
-@pytest.mark.parametrize("given, allowance", [([], 50.0), (["--latency-ms", "20"], 20.0)])
+@pytest.mark.parametrize(
+    "given, allowance", [([], EMULATOR_LATENCY_MS), (["--latency-ms", "20"], 20.0)]
+)
 def test_serve_on_its_own_emulator_gets_a_50_ms_reply_allowance(
     given, allowance, tmp_path, monkeypatch
 ):

@@ -78,9 +78,9 @@ RATE_LIMIT_HZ = 2.0 * HEADSET_MAX_HZ
 RATE_BURST = 0.5 * RATE_LIMIT_HZ  # messages a connection may send at once (0.5 s worth):
 # a browser that stalled (a loaded machine, a Wi-Fi hiccup) flushes its queued frames at
 # once; a sustained flood above the rate is still dropped after half a second
-DESKTOP_SCRIPTS = b"".join(
-    b'<script src="/%s"></script>\n' % name for name in (b"iwer.js", b"hands.js", b"desktop.js")
-)
+DESKTOP_FILES = ("iwer.js", HANDS_JS.name, "desktop.js")
+"""The desktop mode's scripts, as served (``/iwer.js``, ...), in their loading order."""
+DESKTOP_SCRIPTS = b"".join(f'<script src="/{name}"></script>\n'.encode() for name in DESKTOP_FILES)
 """The desktop mode's scripts, before the page's: iwer, the emulated Quest and its hands
 (the tests' emulated headset's, with :func:`~payload.teleop.emulate.emulated_pose` put
 before it as it is served), the keys."""
@@ -248,9 +248,9 @@ class TeleopServer:
         self.files = page_files(web_dir)
         self.desktop = desktop is not None
         if desktop is not None:
-            self.files["/iwer.js"] = desktop
-            self.files["/hands.js"] = web_dir / "desktop" / HANDS_JS.name
-            self.files["/desktop.js"] = web_dir / "desktop" / "desktop.js"
+            iwer, *ours = DESKTOP_FILES
+            self.files[f"/{iwer}"] = desktop
+            self.files.update({f"/{name}": web_dir / "desktop" / name for name in ours})
         self._server: Server | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._thread: threading.Thread | None = None
@@ -332,7 +332,7 @@ class TeleopServer:
         if file.suffix == ".js":
             ctype = "text/javascript"
         body = file.read_bytes()
-        if self.desktop and path == "/hands.js":
+        if self.desktop and path == f"/{HANDS_JS.name}":
             body = emulated_pose().encode() + body
         if self.desktop and file.name == "index.html":  # the emulated headset first
             body = body.replace(

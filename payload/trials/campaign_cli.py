@@ -26,7 +26,6 @@ from payload.folders import (
     CAMPAIGN_FILES,
     METRICS,
     RECORDING,
-    SCORED,
     SUMMARY,
     SUMMARY_TEXT,
     held,
@@ -181,7 +180,7 @@ def _cmd_trials_summarize(args: argparse.Namespace) -> int:
         summary_markdown,
         write_summary,
     )
-    from payload.trials.scoring import AS_RECORDED, MIXED_TAG, RESCORING, UNSCORED_TAG
+    from payload.trials.scoring import AS_RECORDED, MIXED_TAG, RESCORING, UNSCORED_TAG, WRITTEN
     from payload.trials.summary import campaign_summary, campaign_title
 
     for name in ("min_contact_s", "max_gap_s"):
@@ -190,8 +189,6 @@ def _cmd_trials_summarize(args: argparse.Namespace) -> int:
             raise TrialsCliError(f"--{name.replace('_', '-')} must be a number >= 0, got {value}")
     relaxed = args.min_contact_s is not None or args.max_gap_s is not None
     rescore = args.recompute or relaxed
-    # the trials' rescorings as they were: what this one writes is said, not assumed
-    earlier = _rescorings_held(Path(args.dir)) if rescore else {}
     results = load_trial_results(
         args.dir,
         recompute=rescore,
@@ -229,16 +226,15 @@ def _cmd_trials_summarize(args: argparse.Namespace) -> int:
 
         own = [r["provenance"] for r in results if isinstance(r.get("provenance"), dict)]
         prov = {**own[0], "environment": trials_environment(results)} if own else None
+    scored = [r for r in results if not r.get("error")]
     title = previous.get("title")
     if title is None:  # no campaign summary before (an interrupted run): the trials say
-        scored = [r for r in results if not r.get("error")]
         setup = {}
         for name in RUN_SETTINGS:
             values = {json.dumps(r.get(name)) for r in scored}
             setup[name] = scored[0].get(name) if len(values) == 1 else None
         title = campaign_title(len(results), setup) if scored else None
     out = Path(args.dir)
-    scored = [r for r in results if not r.get("error")]
     again = [r for r in scored if r.get(RESCORING) == AS_RECORDED]
     # a trial scored before that no longer scores (its recording gone or unreadable) is news
     lost = [r for r in results if r.get("error") and (Path(r["out_dir"]) / METRICS).is_file()]
@@ -274,8 +270,7 @@ def _cmd_trials_summarize(args: argparse.Namespace) -> int:
         present = [p for p in named if p.is_file()]
         written = [p for p in present if p.read_bytes() != before[p]]
         kept = [p for p in present if p not in written]
-        now = _rescorings_held(out) if rescore else {}
-        changed = sorted({p.parent.name for p, data in now.items() if earlier.get(p) != data})
+        changed = [Path(r["out_dir"]).name for r in scored if r.get(RESCORING) == WRITTEN]
         if written:
             print(f"wrote {', '.join(str(p) for p in written)}")
         if changed:
@@ -290,18 +285,6 @@ def _cmd_trials_summarize(args: argparse.Namespace) -> int:
         if kept:
             print(f"unchanged (already what the trials give): {', '.join(str(p) for p in kept)}")
     return 0
-
-
-def _rescorings_held(root: Path) -> dict[Path, bytes]:
-    """The rescorings' files in a campaign's trial folders now, with their bytes."""
-    from payload.trials.scoring import rescorings
-
-    return {
-        p: p.read_bytes()
-        for d in sorted(root.glob("trial-*"))
-        if d.is_dir()
-        for p in rescorings(d, SCORED)
-    }
 
 
 def _trial_names(names: list[str]) -> str:

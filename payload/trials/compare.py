@@ -31,6 +31,7 @@ from payload.folders import METRICS, RECORDING, SUMMARY, trial_dir
 from payload.schema import ENDED_BY_CAP
 from payload.teleop.live import SIMULATOR
 from payload.trials.records import FIELD_SPECS, HANDS_TOPIC, STEP_TOPIC, RecordingError
+from payload.trials.scoring import same_value
 from payload.trials.setup_options import RUN_SETTINGS
 from payload.trials.summary_fields import CAP_STOPPED, METRIC_KEYS, METRIC_LABELS
 from payload.trials.trial_results import read_metrics
@@ -125,11 +126,6 @@ def _setup_value(metrics: dict[str, Any], key: str) -> Any:
     if key == "driver":
         return metrics.get("driver") or SIMULATOR
     return metrics.get(key)
-
-
-def _same_value(a: Any, b: Any) -> bool:
-    """Two metric values alike as written (so -0.0 differs from 0.0)."""
-    return json.dumps(a, sort_keys=True) == json.dumps(b, sort_keys=True)
 
 
 def _change(a: Any, b: Any) -> float | None:
@@ -331,7 +327,7 @@ def compare_runs(run_a: str | Path, run_b: str | Path, *, steps: bool = False) -
         for key in METRIC_KEYS:
             change = _change(ma.get(key), mb.get(key))
             metrics[key] = {"a": ma.get(key), "b": mb.get(key), "change": change}
-            if not _same_value(ma.get(key), mb.get(key)):
+            if not same_value(ma.get(key), mb.get(key)):
                 identical = False
             best = largest.get(key)
             if change is not None and (best is None or abs(change) > abs(best["change"])):
@@ -344,8 +340,7 @@ def compare_runs(run_a: str | Path, run_b: str | Path, *, steps: bool = False) -
             "setup_differs": {
                 k: [_setup_value(ma, k), _setup_value(mb, k)]
                 for k in (*RUN_SETTINGS, "driver")
-                if (k in ma or k in mb)
-                and not _same_value(_setup_value(ma, k), _setup_value(mb, k))
+                if (k in ma or k in mb) and not same_value(_setup_value(ma, k), _setup_value(mb, k))
             },
             "success_a": ma.get("success"),
             "success_b": mb.get("success"),
@@ -364,7 +359,7 @@ def compare_runs(run_a: str | Path, run_b: str | Path, *, steps: bool = False) -
             row["other_metrics"] = sorted(
                 key
                 for key in (set(ma) | set(mb)) - {*NOT_RESULTS, *METRIC_KEYS}
-                if not _same_value(ma.get(key), mb.get(key))
+                if not same_value(ma.get(key), mb.get(key))
             )
             identical = (
                 identical

@@ -107,16 +107,24 @@ def finish_trial(
         out / tagged(METRICS, tag), json.dumps(result, indent=2) + "\n", force=force
     )
     figures = [out / tagged(CTB_FIGURE, tag), out / tagged(ROUTE_FIGURE, tag)]
-    if changed or not all(f.exists() for f in figures):
+    drawn = changed or not all(f.exists() for f in figures)
+    if drawn:
         plot_ctb_body_frame(rec, figures[0], metrics)
         plot_route(rec, figures[1], modules if modules is not None else rec.meta.get("modules"))
+    if beside:  # what the rescoring did with its files
+        return {**result, RESCORING: WRITTEN if drawn else UNCHANGED}
     return result
 
 
 RESCORING = "rescoring"
-"""A rescored trial's key (not written to any file) for how it came out: :data:`AS_RECORDED`."""
+"""A rescored trial's key (not written to any file) for how it came out:
+:data:`AS_RECORDED`, :data:`WRITTEN` or :data:`UNCHANGED`."""
 AS_RECORDED = "as recorded"
 """A rescoring with the trial's recorded definition that gave its ``metrics.json`` again."""
+WRITTEN = "written"
+"""A rescoring whose files were written (new, or replacing others)."""
+UNCHANGED = "unchanged"
+"""A rescoring whose files were there already, as it would write them."""
 
 
 def says(path: Path, result: dict[str, Any]) -> bool:
@@ -129,11 +137,13 @@ def says(path: Path, result: dict[str, Any]) -> bool:
         return False
     if not isinstance(held, dict):
         return False
+    return all(k in held and same_value(held[k], v) for k, v in result.items())
 
-    def text(value: Any) -> str:
-        return json.dumps(value, sort_keys=True)
 
-    return all(k in held and text(held[k]) == text(v) for k, v in result.items())
+def same_value(a: Any, b: Any) -> bool:
+    """Two metric values alike as written (so -0.0 differs from 0.0, and a value not a
+    number equals itself)."""
+    return json.dumps(a, sort_keys=True) == json.dumps(b, sort_keys=True)
 
 
 def _trial_setup(meta: dict[str, Any]) -> dict[str, Any]:
@@ -207,9 +217,12 @@ __all__ = [
     "CONTACT_TAG",
     "MIXED_TAG",
     "RESCORING",
+    "UNCHANGED",
+    "WRITTEN",
     "contact_tag",
     "finish_trial",
     "rescorings",
+    "same_value",
     "says",
     "write_metrics",
 ]

@@ -26,12 +26,18 @@ METRIC_KEYS: tuple[str, ...] = (
 )
 """The per-trial figures the paper summarises, in its order."""
 
+
+def contact_label(interval: str) -> str:
+    """The first contact interval's label, its interval named ``interval``."""
+    return f"First {interval} [s]"
+
+
 METRIC_LABELS: dict[str, str] = {
     "duration_s": "Teleoperation duration after calibration [s]",
     "net_displacement_m": "CTB net world-frame displacement [m]",
     "rms_mm": "RMS deviation in the body frame, eq. 5 [mm]",
     "peak_mm": "Peak deviation in the body frame [mm]",
-    "contact_s": f"First {CONFIRMED_WORDS.interval} [s]",
+    "contact_s": contact_label(CONFIRMED_WORDS.interval),
 }
 
 PAPER_RESULTS: dict[str, Any] = {
@@ -70,7 +76,7 @@ def metric_labels(definition: Mapping[str, Any] | None) -> dict[str, str]:
     """:data:`METRIC_LABELS` of a summary whose trials were scored with ``definition``
     (its ``contact_definition``): the first contact interval named after it."""
     interval = definition_words(definition).interval
-    return {**METRIC_LABELS, "contact_s": f"First {interval} [s]"}
+    return {**METRIC_LABELS, "contact_s": contact_label(interval)}
 
 
 def no_contact_interval(summary: Mapping[str, Any]) -> bool:

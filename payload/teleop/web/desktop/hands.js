@@ -19,10 +19,11 @@ window.emulatedQuest = (() => {
   const PINCH_RATE = 2;  // [1/s] how fast the pinch value follows its target
   const hands = device.hands;
   const targets = {};
+  const HALF_OPEN = EMULATED_POSE.gestures.neutral.pinch;
   for (const side of ['left', 'right']) {
     hands[side].position.set(...NEUTRAL[side]);
-    hands[side].updatePinchValue(0.5);
-    targets[side] = { pos: NEUTRAL[side].slice(), pinch: 0.5 };
+    hands[side].updatePinchValue(HALF_OPEN);
+    targets[side] = { pos: NEUTRAL[side].slice(), pinch: HALF_OPEN };
   }
   // where a side's wrist goes for a gesture (its spread outward from the middle, and an
   // offset of both wrists), and its pinch value
