@@ -12,7 +12,7 @@ import contextlib
 import sys
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from firmware_interface.options import (
     LATENCY_MS,
@@ -40,6 +40,9 @@ from payload.cliutil import (
 from payload.errors import PayloadError, counted
 from payload.folders import HANDS, RECORDING, other_results
 from payload.trials.setup_options import MAX_TRIAL_S
+
+if TYPE_CHECKING:
+    from firmware_interface.errors import WrongModelError
 
 
 class HwUsageError(PayloadError):
@@ -163,7 +166,9 @@ def check(
     port: str, smap: Any, latency_ms: float = LATENCY_MS, say: Callable[[str], None] | None = None
 ) -> dict[str, Any]:
     """Bring-up and health of every servo: ``{"ok", "servos", "errors"}``. The bring-up
-    homes the rail and the stage (they move to their hard stops): ``say`` is told first."""
+    homes the rail and the stage (they move to their hard stops): ``say`` is told first.
+    A servo of another model than the map's gets a row without health values (none of
+    its registers is read, :func:`_unread_row`)."""
     from firmware_interface.driver import (
         DynamixelDriver,
         bring_up_notice,
@@ -175,10 +180,12 @@ def check(
         DynamixelError,
         HardwareFault,
         MissingServoError,
+        WrongModelError,
     )
 
     errors: list[str] = []
     servos = []
+    other: dict[int, WrongModelError] = {}  # servos of another model: no register read
     lost = False  # the bring-up lost replies: the health reads' losses are said in one line
     silent: list[str] = []  # servos whose health read was lost after that
     with DynamixelDriver(port, smap, latency_timer_ms=latency_ms) as drv:
@@ -190,6 +197,8 @@ def check(
         except DynamixelError as exc:
             lost = isinstance(exc, CommError)
             for fault in (exc, *exc.also):  # every servo the bring-up found at fault, once
+                if isinstance(fault, WrongModelError):
+                    other[fault.id] = fault
                 if isinstance(fault, MissingServoError):
                     present = [i for i in smap.ids if i not in fault.ids]
                     if not present:  # the bus, not the servos: as `hw scan` says it
@@ -203,6 +212,9 @@ def check(
                     errors.append(fault.alone)
         run = 0  # health reads lost in a row
         for k, i in enumerate(present):
+            if i in other:  # another family may keep other registers at these addresses
+                servos.append(_unread_row(other[i]))
+                continue
             try:
                 h = drv.read_health(i)
             except DynamixelError as exc:
@@ -235,6 +247,17 @@ def check(
     return {"ok": not errors, "servos": servos, "errors": errors}
 
 
+def _unread_row(fault: WrongModelError) -> dict[str, Any]:
+    """``hw check``'s row of a servo of another model than the map's (``fault``, as the
+    bring-up refused it): its model number from its ping, no health value (another
+    model's control table may hold other registers at the X series' health addresses, so
+    none is read), and ``not_read`` saying why."""
+    return {"id": fault.id, "joint": fault.joint, "model_number": fault.model,
+            "hardware_error": None, "temperature_c": None, "voltage_v": None,
+            "not_read": f"health registers not read: it is model {fault.model}, "
+                        f"not the map's {fault.expected}"}  # fmt: skip
+
+
 def _cmd_check(args: argparse.Namespace) -> int:
     _check_numbers(args)
     command_project(args)  # the servo map is validated against this project's design
@@ -253,9 +276,12 @@ def _cmd_check(args: argparse.Namespace) -> int:
         from firmware_interface.control_table import hw_error_names
 
         for s in report["servos"]:  # the error bits by name (the e-Manual's), not a number
+            head = f"ID {s['id']:3d} {s['joint']:<11s} model {s['model_number']}  "
+            if "not_read" in s:  # a servo of another model: why its values are not shown
+                print(head + s["not_read"])
+                continue
             bits = ", ".join(hw_error_names(s["hardware_error"])) or "none"
-            print(f"ID {s['id']:3d} {s['joint']:<11s} model {s['model_number']}  "
-                  f"{s['temperature_c']:3.0f} C  {s['voltage_v']:.1f} V  "
+            print(f"{head}{s['temperature_c']:3.0f} C  {s['voltage_v']:.1f} V  "
                   f"hardware error: {bits}")  # fmt: skip
     if not report["ok"]:
         if args.json:

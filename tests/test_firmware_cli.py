@@ -13,6 +13,7 @@ from typing import Any
 import pytest
 from conftest import reg, replace_once
 
+from firmware_interface.control_table import BY_NAME
 from firmware_interface.options import EMULATOR_LATENCY_MS, LATENCY_MS
 from firmware_interface.servo_map import load_servo_map
 from payload.cli import main
@@ -206,6 +207,54 @@ def test_check_names_every_fault_the_bring_up_found_once(capsys):
         "servo 3 (A_pip): hardware error overheating",
         "servo 7 (B_pip): hardware error overload",
     ], report["errors"]
+
+
+def test_check_reads_no_health_register_of_a_servo_of_another_model(monkeypatch, capsys):
+    """Servo 5 answers as model 1060 with its overload bit set where an X-series servo
+    keeps Hardware Error Status: `hw check` read its health registers anyway (another
+    family's control table may hold anything there) and reported that bit as a hardware
+    error. Now no read of a health register goes to it (the host's packets on the wire
+    say so), its row says in words why it has no values, the other servos' rows are read
+    and the check still fails naming the model, exit 1."""
+    from firmware_interface import protocol as P
+    from firmware_interface.port import SdkPort
+
+    # what the driver itself reads of every servo that answered: Firmware Version after
+    # the scan's ping, Torque Enable as its close confirms the torque off
+    driver_reads = {BY_NAME["firmware_version"].address, BY_NAME["torque_enable"].address}
+    asked: dict[int, set[int]] = {}  # servo ID -> every address the host read of it
+    write = SdkPort.writePort
+
+    def seen(port: Any, packet: list[int]) -> int:
+        pkt = P.parse(bytes(packet))
+        if pkt.instruction in (P.READ, P.SYNC_READ, P.FAST_SYNC_READ):
+            addr, n = (int.from_bytes(pkt.params[k : k + 2], "little") for k in (0, 2))
+            for i in [pkt.id] if pkt.instruction == P.READ else list(pkt.params[4:]):
+                asked.setdefault(i, set()).update(range(addr, addr + n))
+        return write(port, packet)
+
+    monkeypatch.setattr(SdkPort, "writePort", seen)
+    with _emulating("model:5:1060", "error:5:overload") as port:
+        assert main(["hw", "check", "--device", port, "--json", "--latency-ms", LAT]) == 1
+        report = json.loads(capsys.readouterr().out)
+        assert main(["hw", "check", "--device", port, "--latency-ms", LAT]) == 1
+        rows = [x for x in capsys.readouterr().out.splitlines() if x.startswith("ID ")]
+    assert asked[5] <= driver_reads, sorted(asked[5])  # no other register of servo 5 read
+    # the spy sees the health reads of a servo of the map's model
+    assert BY_NAME["present_temperature"].address in asked[4], sorted(asked[4])
+    why = "health registers not read: it is model 1060, not the map's 1240"
+    assert report["errors"] == [
+        "servo 5 (B_mcp_flex): model number 1060, not the servo map's 1240: another servo "
+        "on this ID?"
+    ], report["errors"]
+    (row,) = [s for s in report["servos"] if s["id"] == 5]
+    assert row == {"id": 5, "joint": "B_mcp_flex", "model_number": 1060, "hardware_error": None,
+                   "temperature_c": None, "voltage_v": None, "not_read": why}  # fmt: skip
+    others = [s for s in report["servos"] if s["id"] != 5]
+    assert [s["id"] for s in others] == [i for i in load_servo_map().ids if i != 5]
+    assert all(s["hardware_error"] == 0 and s["model_number"] == 1240 for s in others)
+    assert len(rows) == len(report["servos"])
+    assert next(x for x in rows if x.startswith("ID   5 ")).endswith(f"model 1060  {why}"), rows
 
 
 @pytest.mark.parametrize(
