@@ -998,7 +998,10 @@ def test_a_campaign_without_contact_says_its_contact_interval_is_none(tmp_path, 
     row = next(ln for ln in md.splitlines() if ln.startswith(f"| {METRIC_LABELS['contact_s']}"))
     rms = next(ln for ln in md.splitlines() if ln.startswith(f"| {METRIC_LABELS['rms_mm']}"))
     # confirmed: no trial has an interval; paper-literal: trial 2's one sample, 0 s long
-    assert row.split(" | ")[1:3] == ["n/a (no confirmed contact)", "0.0 (0.0 to 0.0)"], row
+    assert row.split(" | ")[1:3] == [
+        "n/a (no confirmed contact) [0 of 2 trials]",
+        "0.0 (0.0 to 0.0) [1 of 2 trials]",
+    ], row
     assert rms.split(" | ")[1:3] == ["n/a [0 of 2 trials]", "0.0 (0.0 to 0.0) [1 of 2 trials]"]
     cells = {  # per trial: RMS [mm], contact [s], then the literal RMS and contact
         ln[2]: [ln.strip("| ").split(" | ")[i] for i in (4, 6, 9, 10)]
@@ -1006,13 +1009,56 @@ def test_a_campaign_without_contact_says_its_contact_interval_is_none(tmp_path, 
         if ln.startswith(("| 1 |", "| 2 |"))
     }
     assert cells == {"1": ["n/a"] * 4, "2": ["n/a", "n/a", "0.0", "0.0"]}, cells
-    # the figures themselves are as they were: 0 s for no interval (a contract)
+    # each trial's figure is as it was: 0 s for no interval (a contract); the statistics
+    # are over the trials with an interval (none here), as the RMS's are
     summary = json.loads((camp / "summary.json").read_text())
-    assert summary["contact_s"] == {"median": 0.0, "min": 0.0, "max": 0.0, "count": 2}
+    assert summary["contact_s"] == {"median": None, "min": None, "max": None, "count": 0}
     assert [t["contact_s"] for t in summary["trials"]] == [0.0, 0.0]
+    assert summary["literal"]["contact_s"]["count"] == 1  # trial 2's 0 s literal interval
     terminal = summary_terminal(summary, summary.get("title"))
     line = next(ln for ln in terminal.splitlines() if METRIC_LABELS["contact_s"] in ln)
     assert "n/a (no confirmed contact)" in line and "0.0 (0.0" not in line, line
+
+
+def test_a_campaign_some_of_whose_trials_held_no_contact_times_only_those_that_did(
+    tmp_path, monkeypatch
+) -> None:
+    """The committed 1 s link-delay campaign, two of whose ten trials held the handle, said
+    "First confirmed-contact interval 0.0 (0.0 to 124.0)": the eight trials without an
+    interval, each "n/a" in the per-trial table, went into the median as 0 s, while the
+    RMS beside it was over the two that had one ("[2 of 10 trials]"). The interval's
+    median, range and count (summary.json, summary.md, the figure) are now over the trials
+    that have one; each trial's own 0 s stays in its row."""
+    import statistics
+
+    from matplotlib.collections import PathCollection
+
+    from payload.cli import main
+    from payload.trials.campaign import trial_dir
+
+    camp = tmp_path / "camp"
+    confirmed = {"min_interval_s": CONFIRM_MIN_S, "max_gap_s": CONFIRM_MAX_GAP_S}
+    kinds = {1: "none", 2: "held", 3: "held"}
+    metrics = {
+        s: fixture_synthetic_trial(s, trial_dir(camp, s), k, **confirmed) for s, k in kinds.items()
+    }
+    held = [float(metrics[s]["contact_s"]) for s in (2, 3)]
+    assert min(held) > 0 and float(metrics[1]["contact_s"]) == 0.0
+    drawn = _drawn_campaign_figures(monkeypatch)
+    assert main(["trials", "summarize", str(camp)]) == 0
+    summary = json.loads((camp / "summary.json").read_text())
+    want = {"median": statistics.median(held), "min": min(held), "max": max(held), "count": 2}
+    assert summary["contact_s"] == pytest.approx(want)
+    assert [t["contact_s"] for t in summary["trials"]] == [0.0, *held]
+    md = (camp / "summary.md").read_text()
+    row = next(ln for ln in md.splitlines() if ln.startswith("| First confirmed-contact interval"))
+    cell = f"{statistics.median(held):.1f} ({min(held):.1f} to {max(held):.1f}) [2 of 3 trials]"
+    assert row.split(" | ")[1] == cell, row
+    (fig,) = drawn
+    ax = fig.axes[[a.get_title() for a in fig.axes].index("First confirmed-contact interval [s]")]
+    dots = next(c for c in ax.collections if isinstance(c, PathCollection))
+    assert sorted(dots.get_offsets()[:, 1]) == pytest.approx(sorted(held))
+    assert ax.get_xticklabels()[0].get_text() == "this run\n(n = 2)"
 
 
 def _drawn_campaign_figures(monkeypatch) -> list[Any]:
@@ -1050,7 +1096,10 @@ def test_a_campaign_without_contact_draws_no_contact_interval(tmp_path, monkeypa
     assert main(["trials", "summarize", str(camp)]) == 0
     md = (camp / "summary.md").read_text()
     row = next(ln for ln in md.splitlines() if ln.startswith("| First confirmed-contact interval"))
-    assert row.split(" | ")[1:3] == ["n/a (no confirmed contact)", "n/a (no paper-literal contact)"]
+    assert row.split(" | ")[1:3] == [
+        "n/a (no confirmed contact) [0 of 2 trials]",
+        "n/a (no paper-literal contact) [0 of 2 trials]",
+    ]
     (fig,) = drawn
     titles = [ax.get_title() for ax in fig.axes]
     rms = "RMS deviation in the body frame, eq. 5 [mm]"

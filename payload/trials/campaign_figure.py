@@ -23,7 +23,7 @@ from payload.trials.summary_fields import (
     CAP_STOPPED,
     CONFIRMED_WORDS,
     definition_words,
-    no_contact_interval,
+    without_contact,
 )
 
 OURS, PAPER = 0.0, 1.0
@@ -68,8 +68,8 @@ def campaign_figure(
     )
     rng = np.random.default_rng(0)  # a fixed jitter: the same summary draws the same figure
     for ax, (key, label) in zip(np.atleast_1d(axes), labels.items()):
-        # no interval in any trial: each one's 0 s is no contact, n/a as in the table
-        shown = [] if key == "contact_s" and no_contact_interval(summary) else trials
+        # a trial without an interval: its 0 s is no contact, n/a as in the table
+        shown = [t for t in trials if not without_contact(t)] if key == "contact_s" else trials
         values = np.array([t[key] for t in shown if _finite(t.get(key))], dtype=float)
         jitter = rng.uniform(-0.12, 0.12, len(values))
         ax.scatter(OURS + jitter, values, s=18, color="#1f77b4", zorder=3, label="trials")

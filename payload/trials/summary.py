@@ -80,7 +80,10 @@ def _summary_core(rows: list[dict[str, Any]]) -> dict[str, Any]:
         "acquisition_success": sum(1 for r in ok_rows if r.get("acquired")) / len(rows),
     }
     for key in METRIC_KEYS:
-        vals = _finite([r.get(key) for r in ok_rows])
+        # a trial without a contact interval has no interval to time (its 0 s is the
+        # metric's value for none), as it has no RMS: left out of the statistics
+        over = [r for r in ok_rows if not without_contact(r)] if key == "contact_s" else ok_rows
+        vals = _finite([r.get(key) for r in over])
         if vals:
             arr = np.asarray(vals)
             summary[key] = {
@@ -127,7 +130,9 @@ def summarize(results: Sequence[dict[str, Any]]) -> dict[str, Any]:
     raised is a failure); ``acquisition_success`` is the fraction of trials whose pinch
     closed on the handle (a first confirmed-contact interval exists). Each metric's
     ``median``, ``min`` and ``max`` are over the trials that have a finite value
-    (``count`` of them; ``None`` if none has). ``literal`` holds the same fields under the
+    (``count`` of them; ``None`` if none has); the first contact interval's over the trials
+    that have one (each other trial's ``contact_s`` is the metric's 0 for none, not an
+    interval that lasted 0 s: left out, as its RMS is). ``literal`` holds the same fields under the
     paper-literal contact definition (any single opposing-contact sample, no bridging);
     the top level uses the definition the trials were recorded with (``contact_definition``).
     ``ctb`` and ``propulsion`` name the CTB model and the propulsion model of the trials,

@@ -85,6 +85,14 @@ def _stat_text(summary: dict[str, Any], key: str, none: str = CONFIRMED_WORDS.no
     return _fmt(summary.get(key), _DIGITS[key])
 
 
+def count_note(summary: dict[str, Any], key: str) -> str:
+    """`` [2 of 10 trials]`` after a metric's median and range when they are over fewer
+    than all of a summary's trials (those with a value: an RMS, a contact interval)."""
+    n, stat = summary.get("n", 0), summary.get(key)
+    count = stat.get("count", n) if stat else 0
+    return "" if count == n else f" [{count} of {n} trials]"
+
+
 def _trial_cell(row: dict[str, Any], key: str) -> str:
     """A metric of one trial in the per-trial table (its contact interval n/a when it has
     none, as its RMS is)."""
@@ -162,10 +170,7 @@ def summary_markdown(summary: dict[str, Any], title: str | None = None) -> str:
     for key in METRIC_KEYS:
         cells = []
         for s, none in ((summary, words.none), (lit, LITERAL_NONE)):
-            stat = s.get(key)
-            count = stat.get("count", n) if stat else 0
-            note = "" if count == n else f" [{count} of {n} trials]"
-            cells.append(f"{_stat_text(s, key, none)}{note}")
+            cells.append(f"{_stat_text(s, key, none)}{count_note(s, key)}")
         paper_cell = _fmt(paper[key], _DIGITS[key])
         lines.append(f"| {labels[key]} | {cells[0]} | {cells[1]} | {paper_cell} |")
     if summary.get("errors"):

@@ -15,7 +15,7 @@ from typing import Any
 
 from payload.schema import ENDED_BY_CAP
 from payload.trials.summary_fields import CAP_STOPPED, METRIC_KEYS, METRIC_LABELS, PAPER_RESULTS
-from payload.trials.summary_markdown import _DIGITS, _fmt, _run_lines, _stat_text
+from payload.trials.summary_markdown import _DIGITS, _fmt, _run_lines, _stat_text, count_note
 
 _SHORT = {
     "duration_s": ("duration", "s"),
@@ -61,10 +61,10 @@ def summary_terminal(summary: dict[str, Any], title: str | None = None) -> str:
     paper = summary.get("paper", PAPER_RESULTS)
     width = max(len(METRIC_LABELS[k]) for k in METRIC_KEYS)
     lines = [summary_headline(summary), title or "Cargo-transport campaign"]
-    lines.append(f"  {'':{width}}  {'this campaign (confirmed contact)':<36}paper")
+    lines.append(f"  {'':{width}}  {'this campaign (confirmed contact)':<46}paper")
     for key in METRIC_KEYS:
-        ours, theirs = _stat_text(summary, key), _fmt(paper[key], _DIGITS[key])
-        lines.append(f"  {METRIC_LABELS[key]:{width}}  {ours:<36}{theirs}")
+        ours = _stat_text(summary, key) + count_note(summary, key)
+        lines.append(f"  {METRIC_LABELS[key]:{width}}  {ours:<46}{_fmt(paper[key], _DIGITS[key])}")
     lines += [ln for ln in _run_lines(summary.get("run")) if ln]
     return "\n".join(lines)
 
