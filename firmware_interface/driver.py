@@ -341,7 +341,7 @@ class DynamixelDriver(FaultHandling):
         Raises:
             MissingServoError: Servos that did not answer, named by ID and joint.
             WrongModelError: A servo that is not the map's model (named).
-            HardwareFault: A servo reports a hardware error at bring-up (``others``: the
+            HardwareFault: A servo reports a hardware error at bring-up (``also``: the
                 other servos that do).
             CommError: Replies lost, corrupt or late after the retries.
         """

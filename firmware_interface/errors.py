@@ -12,8 +12,8 @@ class DynamixelError(PayloadError):
 
     Attributes:
         also: The other faults found with this one (a bring-up looks at every servo
-            before it refuses them): each its own error, named in this one's message
-            after its own words.
+            before it refuses them; a health read finds every servo at fault at once):
+            each its own error, named in this one's message.
     """
 
     also: tuple[DynamixelError, ...] = ()
@@ -60,29 +60,27 @@ class HardwareFault(DynamixelError):
         joint: Its joint.
         bits: Names of the Hardware Error Status bits set (``["reset"]``: the servo was
             found torque off with no error, restarted by a power loss or a REBOOT).
-        others: Other servos with an error at the same time.
+
+    ``also`` given here (the other servos a health read found at fault at the same
+    time) names them by ID after its own words; :meth:`~DynamixelError.joined` (a
+    bring-up's faults) names them by their own words instead.
     """
 
     def __init__(
-        self, dxl_id: int, joint: str, bits: list[str], others: list[int] | None = None
+        self, dxl_id: int, joint: str, bits: list[str], also: Sequence[HardwareFault] = ()
     ) -> None:
         self.id = dxl_id
         self.joint = joint
         self.bits = list(bits)
-        self.others = list(others or [])
-        more = f" (also IDs {', '.join(map(str, self.others))})" if self.others else ""
+        self.also = tuple(also)
         what = (
             "reset: torque off with no hardware error (power lost, or rebooted)"
             if self.bits == ["reset"]
             else f"hardware error {', '.join(bits) or 'unknown'}"
         )
-        super().__init__(f"servo {dxl_id} ({joint}): {what}{more}")
-
-    def joined(self, also: Sequence[DynamixelError]) -> DynamixelError:
-        """As :meth:`DynamixelError.joined`, the hardware faults among ``also`` being its
-        ``others`` too (named once: by their own words, not as IDs)."""
-        self.others = [f.id for f in also if isinstance(f, HardwareFault)]
-        return super().joined(also)
+        self._alone = f"servo {dxl_id} ({joint}): {what}"
+        more = f" (also IDs {', '.join(str(f.id) for f in self.also)})" if self.also else ""
+        super().__init__(f"{self._alone}{more}")
 
 
 class WrongModelError(DynamixelError):

@@ -119,7 +119,8 @@ class FaultHandling:
 
     def _on_hardware_error(self, faulted: list[ServoHealth]) -> None:
         h = faulted[0]
-        fault = HardwareFault(h.id, h.joint, h.bits, others=[x.id for x in faulted[1:]])
+        also = [HardwareFault(x.id, x.joint, x.bits) for x in faulted[1:]]
+        fault = HardwareFault(h.id, h.joint, h.bits, also=also)
         self.fault = fault
         self.faults.append(fault)
         log.error("servo fault, the payload stopped (%s): %s", self.on_fault, fault)

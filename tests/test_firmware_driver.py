@@ -231,14 +231,15 @@ def test_a_bring_up_names_every_servo_at_fault_not_only_the_first(smap):
 def test_a_bring_up_reads_every_servos_error_bits_before_configuring_any(smap):
     """Two servos with latched errors and no other fault: the bring-up configured servos
     1 and 2 and stopped at 3, naming it alone; it now configures none and names both, the
-    first a HardwareFault with the other in its ``others``."""
+    first a HardwareFault with the other in its ``also``."""
     with EmulatorProcess(faults=["error:7:overload", "error:3:input_voltage"]) as emu:
         with DynamixelDriver(emu.port, smap, latency_timer_ms=LAT) as drv:
             with pytest.raises(HardwareFault) as info:
                 drv.bring_up()
         assert _untouched(emu)
     fault = info.value
-    assert (fault.id, fault.joint, fault.bits, fault.others) == (3, "A_pip", ["input_voltage"], [7])
+    assert (fault.id, fault.joint, fault.bits) == (3, "A_pip", ["input_voltage"])
+    assert [(type(f), f.id, f.bits) for f in fault.also] == [(HardwareFault, 7, ["overload"])]
     assert str(fault) == ("servo 3 (A_pip): hardware error input_voltage; "
                           "servo 7 (B_pip): hardware error overload")  # fmt: skip
 
@@ -738,8 +739,10 @@ def test_close_names_a_servo_it_could_not_confirm_without_raising(smap, caplog):
 
 
 def test_a_fault_of_several_servos_lists_the_others_as_ids():
-    fault = HardwareFault(3, "A_pip", ["overload"], others=[2, 5])
+    also = [HardwareFault(2, "A_mcp_abd", ["overload"]), HardwareFault(5, "B_mcp_flex", [])]
+    fault = HardwareFault(3, "A_pip", ["overload"], also=also)
     assert str(fault) == "servo 3 (A_pip): hardware error overload (also IDs 2, 5)"
+    assert fault.alone == "servo 3 (A_pip): hardware error overload"
 
 
 # -- review of the late-reply protection -----------------------------------------------------

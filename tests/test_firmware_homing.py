@@ -290,7 +290,7 @@ def test_a_power_loss_mid_session_stops_the_payload_and_recover_rehomes(smap):
             drv.send(hold)
             drv.read()
         assert isinstance(drv.fault, HardwareFault), "the reset went unseen"
-        assert {drv.fault.id, *drv.fault.others} == set(smap.ids)
+        assert {drv.fault.id, *(f.id for f in drv.fault.also)} == set(smap.ids)
         assert "reset" in str(drv.fault)
         rec = drv.recover()
         assert set(rec.ids) == set(smap.ids) and 18 in drv.homed and drv.fault is None
