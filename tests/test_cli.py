@@ -7,12 +7,13 @@ import argparse
 import contextlib
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
-from conftest import ROOT
+from conftest import ROOT, replace_once
 
 from payload.cli import COMMAND_MODULES, COMMANDS, GROUPS, build_parser, main, registered_commands
 from payload.cliutil import DeprecatedAlias
@@ -702,3 +703,41 @@ def test_a_commands_log_records_are_the_command_lines_own(monkeypatch, capsys) -
     ]
     assert err[3] == "Traceback (most recent call last):" and err[-1] == "ValueError: inner"
     assert logging.getLogger().handlers == before
+
+
+def test_a_trial_of_a_design_that_does_not_stow_says_so(tmp_path, capsys) -> None:
+    """A new user narrowed the bays to another vehicle's until the stowed payload stood
+    out of them, then ran ``payload trial``: it ran and scored without a word that this
+    payload could not be flown (only ``report envelope`` said so). The trial still runs (a
+    simulation of the design as it is) but warns, naming the parts and millimetres the
+    envelope report names; the design edited back, the warning goes (the cached answer
+    follows the design)."""
+    from payload.design.cli import new_project
+
+    project, _ = new_project(tmp_path / "p")
+    design = project.design_path
+    fitting = design.read_text()
+    design.write_text(replace_once(fitting, "bay_size = [0.20, 0.10,", "bay_size = [0.20, 0.09,"))
+    report = ["report", "envelope", "--project", str(project.root), "--no-search", "--json"]
+    assert main([*report, "--out", str(tmp_path / "env")]) == 1
+    out = json.loads(capsys.readouterr().out)
+    mm = {p["name"]: p["protrusion_mm"] for p in out["parts"] if not p["inside"]}
+    assert mm
+    argv = ["trial", "--project", str(project.root), "--max-time", "0.2"]
+    assert main([*argv, "--out", str(tmp_path / "t1")]) == 0
+    err = [ln for ln in capsys.readouterr().err.splitlines() if "does not fit" in ln]
+    assert len(err) == 1, err
+    assert err[0].startswith(f"payload: warning: {design}: the stowed payload does not fit")
+    named = re.findall(r"(\w+) protrudes ([0-9.]+) mm", err[0])
+    assert len(named) == min(2, len(mm)), (named, mm)
+    assert all(f"{mm[n]:.1f}" == v for n, v in named), (named, mm)
+    assert "the trial ran all the same" in err[0]
+    assert (tmp_path / "t1" / "metrics.json").is_file()
+    # a campaign says it once, before its trials
+    campaign = ["trials", "run", "--n", "1", "--workers", "0", "--max-time", "0.2"]
+    assert main([*campaign, "--project", str(project.root), "--out", str(tmp_path / "c")]) == 0
+    err = [ln for ln in capsys.readouterr().err.splitlines() if "does not fit" in ln]
+    assert len(err) == 1 and err[0].endswith("the campaign runs all the same"), err
+    design.write_text(fitting)
+    assert main([*argv, "--out", str(tmp_path / "t2")]) == 0
+    assert "does not fit" not in capsys.readouterr().err

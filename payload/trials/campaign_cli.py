@@ -47,6 +47,7 @@ from payload.trials.setup_options import (
 
 def _cmd_trials_run(args: argparse.Namespace) -> int:
     from payload.design import models_follow_design
+    from payload.envelope.stowed_fit import stowed_fit_warning
     from payload.project import provenance
     from payload.trials.campaign import (
         default_workers,
@@ -91,6 +92,9 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
                     f"{', ...' if len(taken) > 4 else ''}); pass --force to replace it or "
                     "choose another --out"
                 )
+        # the inputs all checked: said before the trials (minutes), not after them
+        if (unfit := stowed_fit_warning(project.design_path, "the campaign runs")) is not None:
+            warn(unfit)
         workers = default_workers(args.n) if args.workers is None else args.workers
         t0, started = time.perf_counter(), time.time()
         try:

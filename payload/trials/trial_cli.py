@@ -48,6 +48,7 @@ def _parse_operator(args: argparse.Namespace) -> tuple[str, Path | None]:
 
 def _cmd_trial(args: argparse.Namespace) -> int:
     from payload.design import models_follow_design
+    from payload.envelope.stowed_fit import stowed_fit_warning
     from payload.trials.runner import run_trial
 
     if args.seed is not None and (problem := seed_problem(args.seed)) is not None:
@@ -80,6 +81,8 @@ def _cmd_trial(args: argparse.Namespace) -> int:
     out = Path(result.get("out_dir") or out)
     seed = result.get("seed", seed)
     cap_before_teleoperation(args.max_time)  # after the run: no bad input follows it
+    if (unfit := stowed_fit_warning(project.design_path, "the trial ran")) is not None:
+        warn(unfit)
     if campaign:  # a campaign's trial, rerun: its summary describes what was there before
         warn(
             f"{out} is a trial of the campaign in {out.parent} ({', '.join(campaign)}), whose "
