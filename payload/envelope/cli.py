@@ -100,10 +100,9 @@ def _all_verdict(envelope: EnvelopeAnalysis, reach: ReachAnalysis) -> str:
             p.name: min(g.feature.thickness for g in p.grasps if g.closes) for p in reach.pairs
         }
         closes = ", ".join(f"{name} down to {t * 1e3:.1f} mm" for name, t in thinnest.items())
-        tight = f"; {given.tight_phrase()}" if given.tight else ""
         return (
-            f"verdict: passes: the stowed payload fits{', tight' if given.tight else ''} (min "
-            f"clearance {clearance_text(tightest.clearance)}, {tightest.name}{tight}); every "
+            f"verdict: passes: the stowed payload {given.fits_words} (min clearance "
+            f"{clearance_text(tightest.clearance)}, {tightest.name}{given.tight_tail}); every "
             f"pair closes on a CTB feature ({closes})"
         )
     failing = [] if env_ok else [f"stowed: {envelope_verdict(envelope).split(': ', 2)[2]}"]

@@ -200,6 +200,17 @@ class StowedCheck:
         under it apart (a fit that passes all the same, but said)."""
         return bool(self.tight_parts or self.tight_pairs)
 
+    @property
+    def fits_words(self) -> str:
+        """``fits``, or ``fits, tight`` when :attr:`tight`: the one wording of a fit in
+        every verdict."""
+        return "fits, tight" if self.tight else "fits"
+
+    @property
+    def tight_tail(self) -> str:
+        """``; <tight_phrase>`` when :attr:`tight`, else empty: what a verdict adds."""
+        return f"; {self.tight_phrase()}" if self.tight else ""
+
     def tight_phrase(self) -> str:
         """What is tight, for a verdict: ``C_distal 0.06 mm to the +y (left) wall,
         stage / A_distal 0.06 mm apart: under 0.50 mm, about a printed part's tolerance``

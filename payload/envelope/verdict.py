@@ -47,12 +47,11 @@ def envelope_verdict(a: EnvelopeAnalysis) -> str:
     g = a.given
     if a.passed:
         t = g.tightest
-        line = (
-            f"verdict: fits{', tight' if g.tight else ''}: every part inside the bays, min "
-            f"clearance {clearance_text(t.clearance)} ({t.name}, {t.wall} wall); no "
-            "self-collision; deployment path clear"
+        return (
+            f"verdict: {g.fits_words}: every part inside the bays, min clearance "
+            f"{clearance_text(t.clearance)} ({t.name}, {t.wall} wall); no self-collision; "
+            f"deployment path clear{g.tight_tail}"
         )
-        return line + (f"; {g.tight_phrase()}" if g.tight else "")
     return "verdict: FAILS: " + first_of(g.failures(), 3)
 
 
