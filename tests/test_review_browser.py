@@ -8,7 +8,8 @@ and the background must be untouched everywhere else.
 
 The same page, as it opens: every finger, the stage, the carriage and Astrobee's body lie
 inside the viewport, projected through the page's own three.js camera; no two label boxes
-(their screen rectangles) intersect; the legend lists every colour the scene draws.
+(their screen rectangles) intersect; the legend lists every colour the scene draws. On a
+failing design, the title (its verdict wrapped) and the legend cover none of those.
 
 Without Chromium the tests skip, except under CI (``CI`` set), where they fail.
 """
@@ -191,14 +192,15 @@ def _posed(geom, poses: dict, links) -> dict[str, np.ndarray]:
     return {n: geom.mesh_vertices[n] @ poses[n][:3, :3].T + poses[n][:3, 3] for n in links}
 
 
-def test_the_default_view_frames_vehicle_fingers_stage_and_carriage(static_review) -> None:
-    _require_browser()
-    import itertools
-
+def _framed_on_screen(page, design_file: Path) -> dict[str, dict[str, np.ndarray]]:
+    """Pixel coordinates of what the default view frames, stowed (animation time 0) and
+    home (its end): every finger link, the stage, the carriage, and Astrobee's body (its
+    bounding box's corners); posed by the design tree of ``design_file``, projected
+    through the page's own camera (:func:`page_projection`). The page is left at home."""
     from payload.envelope.vehicle import vehicle_from_dict
-    from payload.review.browser import open_page, pose_page
+    from payload.review.browser import pose_page
 
-    design = load_design(project_files().design)
+    design = load_design(design_file)
     tree = build_tree(design)
     geom = PayloadGeometry(tree)
     vehicle = vehicle_from_dict(design.vehicle or {})
@@ -208,24 +210,81 @@ def test_the_default_view_frames_vehicle_fingers_stage_and_carriage(static_revie
     )
     wanted = ["stage", "carriage"] + [n for n in geom.links if n[1:2] == "_"]
     assert {n[0] for n in wanted if n[1:2] == "_"} == set("ABCD")
-    with open_page(static_review) as page:
-        duration = page.evaluate(
-            "() => Math.max(...viewer.animator.actions.map(a => a._clip.duration))"
-        )
-        for state, t in (("stowed", 0.0), ("home", duration)):
-            pose_page(page, t)
-            m, (w, h) = page_projection(page)
-            assert (w, h) == VIEWPORT
-            parts = _posed(geom, tree.link_poses(tree.posture(state)), wanted)
-            parts["Astrobee"] = silhouette
-            for name, pts in parts.items():
-                uv = to_pixels(pts, m, (w, h))
-                assert np.all((uv >= 0) & (uv <= [w, h])), f"{name} ({state}) leaves the view"
-        # the vehicle is the subject, not a speck: its silhouette spans a good part of the view
-        pose_page(page, 0.0)
+    end = page.evaluate("() => Math.max(...viewer.animator.actions.map(a => a._clip.duration))")
+    out = {}
+    for state, t in (("stowed", 0.0), ("home", end)):
+        pose_page(page, t)
         m, size = page_projection(page)
-        uv = to_pixels(silhouette, m, size)
-        assert np.ptp(uv[:, 1]) > 0.3 * size[1]
+        parts = _posed(geom, tree.link_poses(tree.posture(state)), wanted)
+        parts["Astrobee"] = silhouette
+        out[state] = {name: to_pixels(pts, m, size) for name, pts in parts.items()}
+    return out
+
+
+def _screen_box(uv: np.ndarray) -> dict[str, float]:
+    """The screen rectangle (x, y, w, h) [px] bounding pixel coordinates, shape (n, 2)."""
+    (x0, y0), (x1, y1) = uv.min(axis=0), uv.max(axis=0)
+    return {"x": x0, "y": y0, "w": x1 - x0, "h": y1 - y0}
+
+
+def test_the_default_view_frames_vehicle_fingers_stage_and_carriage(static_review) -> None:
+    _require_browser()
+    from payload.review.browser import open_page
+
+    with open_page(static_review) as page:
+        assert page_projection(page)[1] == VIEWPORT
+        seen = _framed_on_screen(page, project_files().design)
+    for state, parts in seen.items():
+        for name, uv in parts.items():
+            assert np.all((uv >= 0) & (uv <= VIEWPORT)), f"{name} ({state}) leaves the view"
+    # the vehicle is the subject, not a speck: its silhouette spans a good part of the view
+    assert np.ptp(seen["stowed"]["Astrobee"][:, 1]) > 0.3 * VIEWPORT[1]
+
+
+def _failing_page(tmp_path: Path, design_dict: dict) -> tuple[Path, Path]:
+    """A project whose bays are too small for the payload (its design file), and its
+    design review's static page (no reach clouds)."""
+    from test_review import _copy_project
+
+    from payload.review.page import static_html
+
+    failing = _copy_project(tmp_path, design_dict, [0.18, 0.10, 0.085])  # bays too small
+    html = tmp_path / "failing.html"
+    html.write_text(static_html(build_design_review(project_files(failing), reach_samples=0).scene))
+    return failing, html
+
+
+_OVERLAY_BOXES = """() => ["payload-title", "payload-legend"].map((id) => {
+    const r = document.getElementById(id).getBoundingClientRect();
+    return {id, x: r.x, y: r.y, w: r.width, h: r.height};
+})"""
+
+
+def test_a_failing_verdict_covers_neither_astrobee_nor_its_payload(tmp_path, design_dict) -> None:
+    """A failing design's verdict (its first failure, and how many more) wraps onto a
+    second line, and the title's box lay over the top of Astrobee's body in the default
+    view. At the tests' size and at 1280 x 800, stowed and deployed, neither the title's
+    box nor the legend's (read from the page) meets the screen box of Astrobee's body,
+    of a finger link, the stage or the carriage (projected through the page's camera),
+    and all of them stay in the viewport."""
+    _require_browser()
+    from payload.review.browser import open_page
+    from payload.review.page import VERDICT_FONT_PX
+
+    failing, html = _failing_page(tmp_path, design_dict)
+    for viewport in (VIEWPORT, (1280, 800)):
+        with open_page(html, viewport) as page:
+            verdict = page.evaluate(
+                "() => document.querySelector('#payload-title .payload-subtitle')"
+                ".getBoundingClientRect().height"
+            )
+            assert verdict >= 2 * VERDICT_FONT_PX, verdict  # two lines (the case at issue)
+            overlay = page.evaluate(_OVERLAY_BOXES)
+            for state, parts in _framed_on_screen(page, failing).items():
+                for name, uv in parts.items():
+                    assert np.all((uv >= 0) & (uv <= viewport)), (viewport, state, name)
+                    for box in overlay:
+                        assert _apart(box, _screen_box(uv)), (viewport, state, name, box)
 
 
 def test_no_two_labels_overlap_and_each_names_what_it_measures(static_review) -> None:
@@ -317,15 +376,10 @@ def test_the_verdict_is_drawn_large_bold_and_in_its_outcomes_colour(
     one's the pass colour, both bold and larger than the title and the body text (the
     overlay's, the legend's and the labels'), and it says pass or FAIL in words too."""
     _require_browser()
-    from test_review import _copy_project
-
     from payload.envelope.drawing import FAIL_COLOUR, PASS_COLOUR
     from payload.review.browser import open_page
-    from payload.review.page import static_html
 
-    failing = _copy_project(tmp_path, design_dict, [0.18, 0.10, 0.085])  # bays too small
-    html = tmp_path / "failing.html"
-    html.write_text(static_html(build_design_review(project_files(failing), reach_samples=0).scene))
+    _, html = _failing_page(tmp_path, design_dict)
     seen = {}
     for outcome, page_file in (("pass", static_review), ("fail", html)):
         with open_page(page_file) as page:

@@ -115,7 +115,8 @@ def pose_page(
     overlay: bool = True,
 ) -> None:
     """Hide and show scene-tree paths (lists of names), hold the animation at ``time_s``;
-    ``overlay`` False hides the title, legend and labels."""
+    ``overlay`` False hides the title, legend and labels (the view then takes the whole
+    page: the review's camera as it is, no room kept for the title)."""
     script = """([hide, show, t, overlay]) => {
         document.getElementById("payload-overlay").style.display = overlay ? "" : "none";
         for (const p of hide) viewer.scene_tree.find(p).set_property("visible", false);

@@ -1,5 +1,6 @@
 // The review's overlay on meshcat's viewer: title, legend, labels placed by a layout pass
-// with leader lines, the trial phase, an error banner, the chase camera, live updates.
+// with leader lines, the trial phase, an error banner, the chase camera, live updates, and
+// the 3-D view fitted below the title.
 // Reads window.viewer (meshcat's Viewer). Data: see payload/review/page.py.
 (function () {
   "use strict";
@@ -17,6 +18,8 @@
   const legend = div("payload-legend", layer);
   const phase = div("payload-phase", layer);
   const error = div("payload-error", head);
+  // the most of the pane's height the top boxes take from the view (a tiny window keeps one)
+  const MAX_TOP_SHARE = 0.5;
   const state = {
     labels: [], phases: [], follow: null, chase: true, views: {}, clear: [], version: -1,
   };
@@ -170,6 +173,43 @@
     return { x: x0, y: y0, w: x1 - x0, h: y1 - y0 };
   }
 
+  // The 3-D view is drawn in the part of the pane the overlay's top boxes (the title with
+  // its verdict and the error banner, the trial phase) leave free: what the camera frames
+  // (the whole pane's view, as the review set it) is scaled into the pane below them and
+  // centred there, by three.js's view offset. A long verdict (a failing design's) wrapped
+  // over the top of Astrobee's body; with the overlay hidden the view is the whole pane's.
+  function fitView() {
+    const cam = viewer.camera;
+    const w = pane.clientWidth;
+    const h = pane.clientHeight;
+    if (!cam || !cam.setViewOffset || !w || !h) return;
+    const paneTop = pane.getBoundingClientRect().top;
+    let top = 0;
+    for (const e of [head, phase]) {
+      if (e.offsetParent !== null) top = Math.max(top, e.getBoundingClientRect().bottom - paneTop);
+    }
+    top = Math.min(Math.max(top, 0), h * MAX_TOP_SHARE);
+    const v = cam.view;
+    if (top === 0) {
+      if (v && v.enabled) {
+        cam.clearViewOffset();
+        viewer.set_dirty();
+      }
+      return;
+    }
+    // the camera's frame (its field of view) made s times the pane, its top row on the free
+    // part's top, centred across; the pane shows that and the margins beside it
+    const s = (h - top) / h;
+    const fw = w * s;
+    const fh = h * s;
+    const x = (fw - w) / 2;
+    const y = -top;
+    if (v && v.enabled && v.fullWidth === fw && v.fullHeight === fh && v.offsetX === x
+      && v.offsetY === y && v.width === w && v.height === h) return;
+    cam.setViewOffset(fw, fh, x, y, w, h);
+    viewer.set_dirty();
+  }
+
   function overlaps(a, b) {
     return a.x < b.x + b.w && b.x < a.x + a.w && a.y < b.y + b.h && b.y < a.y + a.h;
   }
@@ -248,6 +288,7 @@
   function frame() {
     follow();
     showPhase();
+    fitView();
     layout();
     requestAnimationFrame(frame);
   }

@@ -6,7 +6,9 @@ so the file stands alone; :func:`live_html` embeds nothing and fetches ``update`
 the server that sent it (:mod:`payload.review.live`). The overlay (``overlay.js``)
 draws the title, the colour legend, the labels (placed each frame by a layout pass so
 no two overlap, with leader lines to what they name), the trial phase, an error banner
-and, for trial replays, the chase camera.
+and, for trial replays, the chase camera; it draws the 3-D view in the part of the page
+below the title (with its verdict and banner) and the phase, the camera's frame scaled
+into it.
 """
 
 from __future__ import annotations
