@@ -32,6 +32,7 @@ import numpy as np
 from payload.errors import not_text
 from payload.sim.errors import SimError
 from payload.sim.iss import IssLayout
+from payload.sim.zone_form import SAFE, SEQUENCE
 
 Box = tuple[tuple[float, float, float], tuple[float, float, float]]
 """An axis-aligned box: (lo (3,), hi (3,)) [m]."""
@@ -88,9 +89,9 @@ class StationZones:
     # -- JSON -----------------------------------------------------------------------------
     def as_json(self) -> list[dict[str, Any]]:
         """The zones as Astrobee zone objects: the keep-in one, then the keep-out one if any."""
-        out = [{"sequence": [[*lo, *hi] for lo, hi in self.keepin], "safe": True}]
+        out = [{SEQUENCE: [[*lo, *hi] for lo, hi in self.keepin], SAFE: True}]
         if self.keepout:
-            out.append({"sequence": [[*lo, *hi] for lo, hi in self.keepout], "safe": False})
+            out.append({SEQUENCE: [[*lo, *hi] for lo, hi in self.keepout], SAFE: False})
         return out
 
     def write(self, path: str | Path) -> None:
@@ -110,21 +111,22 @@ class StationZones:
         for i, obj in enumerate(objects):
             at = f"{where}[{i}]" if isinstance(data, list) else where
             named = at or "the zone object"
-            if not isinstance(obj, dict) or "sequence" not in obj or "safe" not in obj:
-                form = '{"sequence": [[6 numbers], ...], "safe": bool}'
+            if not isinstance(obj, dict) or SEQUENCE not in obj or SAFE not in obj:
+                form = f'{{"{SEQUENCE}": [[6 numbers], ...], "{SAFE}": bool}}'
                 raise ZoneError(f"{named}: expected {form}")
-            if not isinstance(obj["safe"], bool):
-                raise ZoneError(f"{named}: 'safe' must be true (keep-in) or false (keep-out)")
-            if not isinstance(obj["sequence"], list):
-                raise ZoneError(f"{named}: 'sequence' must be a list of zones")
-            target = keepin if obj["safe"] else keepout
-            for j, values in enumerate(obj["sequence"]):
-                zone = f"{at}.sequence[{j}]" if at else f"sequence[{j}]"
+            if not isinstance(obj[SAFE], bool):
+                raise ZoneError(f"{named}: '{SAFE}' must be true (keep-in) or false (keep-out)")
+            if not isinstance(obj[SEQUENCE], list):
+                raise ZoneError(f"{named}: '{SEQUENCE}' must be a list of zones")
+            target = keepin if obj[SAFE] else keepout
+            for j, values in enumerate(obj[SEQUENCE]):
+                zone = f"{at}.{SEQUENCE}[{j}]" if at else f"{SEQUENCE}[{j}]"
                 if not isinstance(values, list):
                     raise ZoneError(f"{zone}: a zone is a list of 6 numbers")
                 target.append(_box(values, zone))
         if not keepin:
-            raise ZoneError(f'{where or "the file"}: no keep-in zone (an object with "safe": true)')
+            where = where or "the file"
+            raise ZoneError(f'{where}: no keep-in zone (an object with "{SAFE}": true)')
         return cls(tuple(keepin), tuple(keepout))
 
     @classmethod

@@ -15,6 +15,7 @@ from typing import Any
 
 from payload.errors import PayloadError
 from payload.schema import CAP_STOPPED
+from payload.sim.zone_form import box_counts
 from payload.trials.definition import CONFIRMED_WORDS, MIXED_WORDS, ContactWords, contact_words
 
 METRIC_KEYS: tuple[str, ...] = (
@@ -138,11 +139,9 @@ def zones_name(result: Mapping[str, Any]) -> str | None:
     zones = result["zones"]
     if zones is None:
         return STATION_ZONES
-    count = {True: 0, False: 0}
-    for obj in zones:
-        count[bool(obj.get("safe"))] += len(obj.get("sequence") or [])
+    keep_in, keep_out = box_counts(zones)
     named = result.get("zones_file") or "recorded"
-    return f"{named} ({count[True]} keep-in, {count[False]} keep-out boxes)"
+    return f"{named} ({keep_in} keep-in, {keep_out} keep-out boxes)"
 
 
 __all__ = [
