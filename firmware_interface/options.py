@@ -16,7 +16,7 @@ EMULATOR_LATENCY_MS = 50.0
 """The allowance on an emulated bus the command starts itself (``--emulator``) when
 ``--latency-ms`` is not given [ms]: the emulator is a Python process on the same host, not
 an adapter, and on a loaded two-core host it answers later than 16 ms allows (the driver's
-tests use 50 ms for the same reason)."""
+tests take it for the same reason)."""
 
 
 def add_servo_map(p: argparse.ArgumentParser, text: str = "servo map TOML") -> None:

@@ -18,7 +18,7 @@ from firmware_interface.options import EMULATOR_LATENCY_MS, LATENCY_MS
 from firmware_interface.servo_map import load_servo_map
 from payload.cli import main
 
-LAT = "50"
+LAT = f"{EMULATOR_LATENCY_MS:g}"  # --latency-ms: the emulator's reply allowance
 
 
 @pytest.fixture(scope="module")

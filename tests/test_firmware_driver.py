@@ -33,12 +33,11 @@ from firmware_interface.errors import (
     MissingServoError,
     WrongModelError,
 )
+from firmware_interface.options import EMULATOR_LATENCY_MS as LAT  # [ms] reply allowance
 from firmware_interface.port import SdkPort
 from firmware_interface.servo_map import load_servo_map
 from payload.errors import Terminated
 from payload.schema import Health, PayloadCommand
-
-LAT = 50.0  # [ms] reply timeout allowance: CI machines are busy; the emulator is honest
 
 
 @pytest.fixture(scope="module")
@@ -504,8 +503,9 @@ HOST = textwrap.dedent(
     import sys, time
     import numpy as np
     from firmware_interface.driver import DynamixelDriver
+    from firmware_interface.options import EMULATOR_LATENCY_MS
     from payload.schema import PayloadCommand
-    drv = DynamixelDriver(sys.argv[1], latency_timer_ms=50.0)
+    drv = DynamixelDriver(sys.argv[1], latency_timer_ms=EMULATOR_LATENCY_MS)
     drv.bring_up()
     cmd = PayloadCommand(np.zeros(17), 0.075, 0.0)  # deploy the homed stage: a long move
     drv.send(cmd)

@@ -13,12 +13,12 @@ from firmware_interface.control_table import ADDR
 from firmware_interface.driver import DynamixelDriver
 from firmware_interface.emulator import EmulatorProcess
 from firmware_interface.guard import JOINTS, default_guard
+from firmware_interface.options import EMULATOR_LATENCY_MS as LAT  # [ms] reply allowance
 from firmware_interface.servo_map import load_servo_map
 from payload.retarget.features import PairKinematics
 from payload.retarget.meshcheck import PairMeshCheck
 from payload.schema import PayloadCommand
 
-LAT = 50.0  # [ms] reply timeout allowance (busy CI machines)
 DEPLOYED = {"rail": 0.025, "stage": 0.075}
 
 

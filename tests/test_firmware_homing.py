@@ -20,11 +20,10 @@ from firmware_interface.control_table import ADDR, TICKS_PER_REV
 from firmware_interface.driver import DynamixelDriver
 from firmware_interface.emulator import EmulatorProcess
 from firmware_interface.errors import HardwareFault, HomingError, NotHomedError
+from firmware_interface.options import EMULATOR_LATENCY_MS as LAT  # [ms] reply allowance
 from firmware_interface.servo_map import load_servo_map, travel_ticks
 from firmware_interface.servo_model import OVERLOAD_S, ServoModel
 from payload.schema import PayloadCommand
-
-LAT = 50.0  # [ms] reply timeout allowance on a busy machine
 
 
 @pytest.fixture(scope="module")

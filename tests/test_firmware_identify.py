@@ -7,6 +7,7 @@ import json
 import pytest
 
 from firmware_interface.identify import write_servo_values
+from firmware_interface.options import EMULATOR_LATENCY_MS
 from payload.cli import main
 from payload.design import load_design
 
@@ -23,8 +24,8 @@ def test_identify_recovers_hidden_emulator_parameters_within_10_percent(tmp_path
         assert abs(value / getattr(design.servo, key) - 1) > 0.1, key  # really hidden
     params = tmp_path / "hidden.json"
     params.write_text(json.dumps({"*": HIDDEN, "finger": {"inertia": HIDDEN_INERTIA}}))
-    code = main(["hw", "identify", "--emulator", "--servo-params", str(params),
-                 "--joints", "A_mcp_flex", "--json", "--latency-ms", "50"])  # fmt: skip
+    code = main(["hw", "identify", "--emulator", "--servo-params", str(params), "--joints",
+                 "A_mcp_flex", "--json", "--latency-ms", f"{EMULATOR_LATENCY_MS:g}"])  # fmt: skip
     assert code == 0
     said = capsys.readouterr()
     report = json.loads(said.out)
@@ -120,7 +121,7 @@ def test_identify_write_on_a_device_that_is_the_emulator_is_refused(tmp_path, ca
     capsys.readouterr()
     with EmulatorProcess() as emu:
         argv = ["hw", "identify", "--device", emu.port, "--write", "--joints", "A_pip",
-                "--project", str(project), "--latency-ms", "50"]  # fmt: skip
+                "--project", str(project), "--latency-ms", f"{EMULATOR_LATENCY_MS:g}"]  # fmt: skip
         assert main(argv) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err[-1] == (

@@ -12,6 +12,7 @@ import pytest
 from firmware_interface.control_table import BY_NAME, decode
 from firmware_interface.driver import DynamixelDriver
 from firmware_interface.emulator import EmulatorProcess
+from firmware_interface.options import EMULATOR_LATENCY_MS as LAT  # [ms] reply allowance
 from firmware_interface.run import HardwareInTheLoop, move_to_home, replay_session
 from firmware_interface.servo_map import load_servo_map
 from payload.design.params import load_design
@@ -22,7 +23,6 @@ from payload.teleop.loop import ARM_AFTER_STEPS
 from payload.teleop.operator import OperatorPlan, OperatorTraits, SyntheticOperator, WorldView
 from payload.teleop.replay import HandRecordingWriter, read_hand_recording
 
-LAT = 50.0
 EXTRA_S = 1.0  # teleoperation after the calibration prompts [s]
 
 

@@ -20,6 +20,7 @@ import numpy as np
 import pytest
 
 from firmware_interface.control_table import ADDR
+from firmware_interface.options import EMULATOR_LATENCY_MS
 from firmware_interface.servo_dynamics import design_plants, plant_for
 from firmware_interface.servo_model import ServoModel
 from payload.cli import main
@@ -315,7 +316,10 @@ def test_a_gain_changed_in_a_scratch_project_changes_model_emulator_and_bring_up
     theirs = _variant(load_design(path), coulomb=0.0)
     assert ringing_hz(theirs) / ringing_hz(ours) == pytest.approx(1.5, rel=0.05)
     monkeypatch.setenv("PAYLOAD_PROJECT", str(root))
-    with EmulatorProcess() as emu, DynamixelDriver(emu.port, latency_timer_ms=50.0) as drv:
+    with (
+        EmulatorProcess() as emu,
+        DynamixelDriver(emu.port, latency_timer_ms=EMULATOR_LATENCY_MS) as drv,
+    ):
         drv.bring_up()
         table = emu.table(drv.map.servos[0].id)
     p = ADDR["position_p_gain"]

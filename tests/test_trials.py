@@ -2245,12 +2245,13 @@ def test_hw_run_keeps_the_vehicle_in_its_source_trials_zones(tmp_path, capsys):
     """``payload hw run`` of a trial run with ``--zones`` (on the emulated bus): its base
     filter runs the recording's zones, drawn on /safety/keepin as the source's were, and
     records them (data and file name) in its metrics; its setup line names them."""
+    from firmware_interface.options import EMULATOR_LATENCY_MS
     from payload.cli import main
 
     src, keepout, _ = _zones_trial(tmp_path)
     out = tmp_path / "hw"
     argv = ["hw", "run", "--emulator", "--replay", str(src / "log.mcap"), "--out", str(out),
-            "--no-pace", "--latency-ms", "50"]  # fmt: skip
+            "--no-pace", "--latency-ms", f"{EMULATOR_LATENCY_MS:g}"]  # fmt: skip
     assert main(argv) == 0
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["base_filter"] is True  # hw run's default profile, safe
