@@ -19,17 +19,18 @@
     }
     if (name === 'neutral') pose.offset = [0, 0, 0];
   };
-  // [key, its name, what it does, the action, the gesture it makes]
+  // [key, what it does, the action, the gesture it makes]
   const KEYS = [
-    ['w', 'W', 'forward', move(2, -STEP)], ['s', 'S', 'back', move(2, STEP)],
-    ['a', 'A', 'left', move(0, -STEP)], ['d', 'D', 'right', move(0, STEP)],
-    ['r', 'R', 'up', move(1, STEP)], ['f', 'F', 'down', move(1, -STEP)],
-    ['q', 'Q', 'pinch', make('pinch'), 'pinch'], ['e', 'E', 'open', make('open'), 'open'],
-    ['z', 'Z', 'together', make('together'), 'together'],
-    ['x', 'X', 'apart', make('apart'), 'apart'],
-    [' ', 'Space', 'half open and centred', make('neutral'), 'neutral'],
+    ['w', 'forward', move(2, -STEP)], ['s', 'back', move(2, STEP)],
+    ['a', 'left', move(0, -STEP)], ['d', 'right', move(0, STEP)],
+    ['r', 'up', move(1, STEP)], ['f', 'down', move(1, -STEP)],
+    ['q', 'pinch', make('pinch'), 'pinch'], ['e', 'open', make('open'), 'open'],
+    ['z', 'together', make('together'), 'together'],
+    ['x', 'apart', make('apart'), 'apart'],
+    [' ', 'half open and centred', make('neutral'), 'neutral'],
   ];
-  const actions = Object.fromEntries(KEYS.map(([key, , , act]) => [key, act]));
+  const label = (key) => (key === ' ' ? 'Space' : key.toUpperCase());  // as the help names it
+  const actions = Object.fromEntries(KEYS.map(([key, , act]) => [key, act]));
   window.addEventListener('keydown', (ev) => {
     const act = actions[ev.key.toLowerCase()];
     if (act) {
@@ -43,13 +44,13 @@
   const same = (a, b) => JSON.stringify(a) === JSON.stringify(b);
   const stepKeys = {};
   for (const step of Object.keys(G)) {
-    const made = KEYS.find((k) => k[4] && same(G[k[4]], G[step]));
-    if (made) stepKeys[step] = made[1];
+    const made = KEYS.find((k) => k[3] && same(G[k[3]], G[step]));
+    if (made) stepKeys[step] = label(made[0]);
   }
   const at = (s) => quest.wrist(s);
   window.__desktop = { pose, wrist: at, stepKeys };
-  const moves = KEYS.filter((k) => !k[4]).map((k) => k[1]).join('/');
-  const gestures = KEYS.filter((k) => k[4]).map((k) => `${k[1]} ${k[2]}`).join(', ');
+  const moves = KEYS.filter((k) => !k[3]).map((k) => label(k[0])).join('/');
+  const gestures = KEYS.filter((k) => k[3]).map((k) => `${label(k[0])} ${k[1]}`).join(', ');
   window.addEventListener('DOMContentLoaded', () => {
     const help = document.createElement('p');
     help.id = 'desktop-help';
