@@ -125,7 +125,7 @@ def _cmd_scan(args: argparse.Namespace) -> int:
     ]
     missing = [{"id": i, "joint": j} for i, j in known.items() if i not in found]
     # a mapped ID answering as another model: `hw check` refuses it (WrongModelError)
-    other = {s["id"] for s in servos if s["joint"] and s["model_number"] != smap.model_number}
+    other = set(drv.other_model)
     if args.json:
         # "port": the device's field name before --device (kept: JSON fields are never renamed)
         emit_json({"device": device, "port": device, "servos": servos, "missing": missing})

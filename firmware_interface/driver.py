@@ -185,6 +185,10 @@ class DynamixelDriver(FaultHandling):
         self.packet = CheckedPacketHandler()  # the SDK's, every status's length checked
         self.ids = self.map.ids
         self.heard: set[int] = set()  # servos that answered a scan
+        # mapped IDs whose last answer to a scan gave another model number than the map's
+        # (ID -> that number): no shutdown writes to them or reads them (_owed_torque_off)
+        self.other_model: dict[int, int] = {}
+        self._enabled: set[int] = set()  # servos the driver ever sent a torque enable
         self.retry_count = 0
         self.fallbacks = 0
         self.reads = 0
@@ -274,6 +278,8 @@ class DynamixelDriver(FaultHandling):
     def _write(self, dxl_id: int, name: str, value: int) -> None:
         """Write one register and check the status (retried on a timeout or CRC error)."""
         addr, size = ADDR[name], BY_NAME[name].size
+        if name == "torque_enable" and value:  # sent: it may be on even if no reply came
+            self._enabled.add(dxl_id)
         fn = {1: self.packet.write1ByteTxRx, 2: self.packet.write2ByteTxRx,
               4: self.packet.write4ByteTxRx}[size]  # fmt: skip
         for attempt in range(self.retries + 1):
@@ -307,6 +313,9 @@ class DynamixelDriver(FaultHandling):
     def scan(self) -> dict[int, tuple[int, int]]:
         """Ping every mapped ID: ID -> (model number, firmware version) of those answering.
 
+        Those answering as another model than the map's are kept in ``other_model`` (a
+        servo not answering keeps what an earlier scan found of it).
+
         Raises:
             CommError: A servo whose replies come, but after the reply timeout (not a
                 missing servo: the bus's latency is above the driver's allowance).
@@ -320,6 +329,11 @@ class DynamixelDriver(FaultHandling):
                     found[i] = (int(model), fw)
                     break
         self.heard.update(found)
+        for i, (model, _) in found.items():
+            if model != self.map.model_number:
+                self.other_model[i] = model
+            else:
+                self.other_model.pop(i, None)
         late = [i for i in self.ids if i not in found and self._late(i)]
         if late:  # the count is the first servo's, named before it (the others after it)
             raise CommError(f"{self._name(late[0])}{_also(late)}: no reply to a ping, but "
@@ -353,7 +367,7 @@ class DynamixelDriver(FaultHandling):
             joints = [self.map.joint_of(i) for i in missing]
             everyone = len(missing) == len(self.ids)
             faults.append(MissingServoError(missing, joints, everyone=everyone))
-        wrong = {i for i, (model, _) in found.items() if model != self.map.model_number}
+        wrong = {i for i in found if i in self.other_model}
         faults += [WrongModelError(i, self.map.joint_of(i), found[i][0], self.map.model_number)
                    for i in self.ids if i in wrong]  # fmt: skip
         came = [i for i in self.ids if self._late(i) > late.get(i, 0)]
@@ -515,11 +529,22 @@ class DynamixelDriver(FaultHandling):
         clear.txPacket()
         self._arm_watchdog(tripped)
 
-    def _sync_write_goals(self, ticks: list[int]) -> None:
+    def _sync_write_goals(self, ticks: list[int], ids: list[int] | None = None) -> None:
+        """One sync write of the goal positions ``ticks`` (one per mapped servo, in the
+        map's order) to the servos ``ids`` (default: every mapped servo; none: no write)."""
         raw = np.asarray(ticks, dtype="<i4").view(np.uint8).reshape(-1, 4).tolist()
-        for i, b in zip(self.ids, raw):
-            self._writer.changeParam(i, b)
-        result = self._writer.txPacket()
+        writer = self._writer
+        if ids is None or ids == self.ids:
+            for i, b in zip(self.ids, raw):
+                writer.changeParam(i, b)
+        elif not ids:
+            return
+        else:  # some of them: a group of their own
+            writer = GroupSyncWrite(self.port, self.packet, ADDR["goal_position"], 4)
+            for i, b in zip(self.ids, raw):
+                if i in ids:
+                    writer.addParam(i, b)
+        result = writer.txPacket()
         if result != COMM_SUCCESS:
             raise CommError(f"sync write of the goal positions: {self._why(result)}")
 
@@ -610,24 +635,27 @@ class DynamixelDriver(FaultHandling):
             raise DynamixelError("the driver is closed")
 
     def close(self) -> None:
-        """Leave the servos safe and close the port: torque off on every servo (one sync
-        write), confirmed by reading Torque Enable back from each servo that answered a
-        scan (see :meth:`_confirm_torque_off`); the servos left unconfirmed are named in a
-        warning and kept in ``torque_unconfirmed`` (every servo heard when the sync write
-        itself failed). A driver no servo ever answered only sends the sync write.
+        """Leave the servos safe and close the port: torque off on every servo owed it
+        (one sync write; every mapped servo but one of another model the driver never
+        enabled, see :meth:`_owed_torque_off`), confirmed by reading Torque Enable back
+        from each of them that answered a scan (see :meth:`_confirm_torque_off`); the
+        servos left unconfirmed are named in a warning and kept in ``torque_unconfirmed``
+        (every one of them heard when the sync write itself failed). A driver no servo
+        ever answered only sends the sync write.
 
         Idempotent; never raises for a bus that stopped answering.
         """
         if self._closed:
             return
+        owed = self._owed_torque_off()
         try:
             g = GroupSyncWrite(self.port, self.packet, ADDR["torque_enable"], 1)
-            for i in self.ids:
+            for i in owed:
                 g.addParam(i, [0])
-            result = g.txPacket()
+            result = g.txPacket() if owed else COMM_SUCCESS
             if result != COMM_SUCCESS:
                 raise CommError(self._why(result))
-            unconfirmed = self._confirm_torque_off() if self.heard else {}
+            unconfirmed = self._confirm_torque_off(owed) if self.heard else {}
             self.torque_unconfirmed = sorted(unconfirmed)
             if unconfirmed:
                 by_why: dict[str, list[int]] = {}
@@ -637,7 +665,7 @@ class DynamixelDriver(FaultHandling):
                             "; ".join(f"{', '.join(map(self._name, ids))} ({why})"
                                       for why, ids in by_why.items()))  # fmt: skip
         except Exception as exc:  # the port may be gone: closing must still succeed
-            self.torque_unconfirmed = sorted(self.heard)
+            self.torque_unconfirmed = sorted(self.heard.intersection(owed))
             log.warning("close: could not turn the torque off: %s", exc)
         finally:
             self._closed = True
@@ -646,14 +674,30 @@ class DynamixelDriver(FaultHandling):
             except Exception:
                 pass
 
-    def _confirm_torque_off(self) -> dict[int, str]:
-        """Read Torque Enable of each servo heard, up to :data:`TORQUE_OFF_TRIES` passes
-        within :data:`TORQUE_OFF_CONFIRM_S`; returns the servos not confirmed off, with
-        why. After a pass the torque-off goes again to the servos not confirmed, as one
-        sync write (no reply awaited: a servo whose reply was lost costs no timeout).
-        When no servo answered the first pass (a bus gone silent) the passes stop there."""
+    def _owed_torque_off(self) -> list[int]:
+        """The mapped servos a shutdown (:meth:`close`, :meth:`safe_stop`) writes to and
+        reads back: all but those whose last answer to a scan gave another model number
+        than the map's and that the driver never sent a torque enable.
+
+        Leaving such a servo alone is the safe choice: the driver never turned its torque
+        on (the bring-up refuses it before configuring any servo), so no torque of ours is
+        left to turn off, while another family's control table may keep another register
+        at the X series' Torque Enable address (64), where a 0 could change a setting or
+        move it; a servo whose model is not known (it never answered) still gets the
+        torque-off, the safe default for one that may be the map's model with its torque
+        on, and so does one of another model that the driver did enable (whatever answers
+        on its ID now, the servo it enabled may still be there)."""
+        return [i for i in self.ids if i not in self.other_model or i in self._enabled]
+
+    def _confirm_torque_off(self, ids: list[int]) -> dict[int, str]:
+        """Read Torque Enable of each servo of ``ids`` heard, up to
+        :data:`TORQUE_OFF_TRIES` passes within :data:`TORQUE_OFF_CONFIRM_S`; returns the
+        servos not confirmed off, with why. After a pass the torque-off goes again to the
+        servos not confirmed, as one sync write (no reply awaited: a servo whose reply was
+        lost costs no timeout). When no servo answered the first pass (a bus gone silent)
+        the passes stop there."""
         addr = ADDR["torque_enable"]
-        pending = {i: "" for i in self.ids if i in self.heard}
+        pending = {i: "" for i in ids if i in self.heard}
         deadline = time.monotonic() + TORQUE_OFF_CONFIRM_S
         for attempt in range(TORQUE_OFF_TRIES):
             answered = False

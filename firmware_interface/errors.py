@@ -112,4 +112,4 @@ class BringUpFailed(RunAborted):
     """The payload could not be brought up or driven home (a servo missing or faulted,
     homing or the home posture failed): a failed start of the hardware (exit 1, ``payload:
     aborted: ...``), not bad input. The servos are left as the driver's close leaves them
-    (torque off)."""
+    (torque off; one of another model than the map's untouched)."""

@@ -127,16 +127,21 @@ class FaultHandling:
         self.safe_stop()
 
     def safe_stop(self) -> None:
-        """Stop the payload: hold every servo where it is, or turn the torque off."""
+        """Stop the payload: hold every servo where it is, or turn the torque off. A servo
+        of another model than the map's that the driver never enabled is left alone, as
+        :meth:`~firmware_interface.driver.DynamixelDriver.close` leaves it (its
+        ``_owed_torque_off`` says why)."""
         self._stopped = True
+        owed = self._owed_torque_off()
         if self.on_fault == "torque_off":
             self._torque_on = False
             g = GroupSyncWrite(self.port, self.packet, ADDR["torque_enable"], 1)
-            for i in self.ids:
+            for i in owed:
                 g.addParam(i, [0])
-            g.txPacket()
+            if owed:
+                g.txPacket()
             return
-        self._sync_write_goals([int(p) for p in self._present])
+        self._sync_write_goals([int(p) for p in self._present], owed)
 
     def recover(self, timeout: float = 5.0) -> Recovery:
         """Reboot the faulted servo(s), restore their settings, return them to service.

@@ -237,3 +237,51 @@ def reg(table: bytes, name: str) -> int:
 
     r = BY_NAME[name]
     return decode(r, table[r.address : r.address + r.size])
+
+
+def spy_on_the_wire(monkeypatch: pytest.MonkeyPatch) -> dict[int, set[tuple[int, int | None]]]:
+    """Every packet the host sends on a Dynamixel bus from now on (``SdkPort.writePort``
+    spied), by the servo ID it reaches: a set of (instruction, register address), one
+    pair per address it reads or writes (a sync or bulk packet counted under each servo it
+    names; a PING, a REBOOT or any other packet without a register under its ID, address
+    None; a READ or WRITE to the broadcast ID under ``BROADCAST_ID``)."""
+    from firmware_interface import protocol as P
+    from firmware_interface.port import SdkPort
+
+    seen: dict[int, set[tuple[int, int | None]]] = {}
+    write = SdkPort.writePort
+
+    def note(dxl_id: int, inst: int, addr: int | None, n: int = 1) -> None:
+        spots = [None] if addr is None else range(addr, addr + n)
+        seen.setdefault(dxl_id, set()).update((inst, a) for a in spots)
+
+    def spy(port: Any, packet: list[int]) -> int:
+        pkt = P.parse(bytes(packet))
+        inst, par = pkt.instruction, pkt.params
+
+        def word(k: int) -> int:
+            return int.from_bytes(par[k : k + 2], "little")
+
+        if inst in (P.READ, P.SYNC_READ, P.FAST_SYNC_READ):
+            ids = [pkt.id] if inst == P.READ else list(par[4:])
+            for i in ids:
+                note(i, inst, word(0), word(2))
+        elif inst in (P.WRITE, P.REG_WRITE):
+            note(pkt.id, inst, word(0), len(par) - 2)
+        elif inst == P.SYNC_WRITE:
+            for k in range(4, len(par), 1 + word(2)):
+                note(par[k], inst, word(0), word(2))
+        elif inst == P.BULK_READ:
+            for k in range(0, len(par), 5):
+                note(par[k], inst, word(k + 1), word(k + 3))
+        elif inst == P.BULK_WRITE:
+            k = 0
+            while k < len(par):
+                note(par[k], inst, word(k + 1), word(k + 3))
+                k += 5 + word(k + 3)
+        else:
+            note(pkt.id, inst, None)
+        return write(port, packet)
+
+    monkeypatch.setattr(SdkPort, "writePort", spy)
+    return seen

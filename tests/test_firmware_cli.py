@@ -11,7 +11,7 @@ from collections.abc import Iterator
 from typing import Any
 
 import pytest
-from conftest import reg, replace_once
+from conftest import reg, replace_once, spy_on_the_wire
 
 from firmware_interface.control_table import BY_NAME
 from firmware_interface.options import EMULATOR_LATENCY_MS, LATENCY_MS
@@ -213,35 +213,26 @@ def test_check_reads_no_health_register_of_a_servo_of_another_model(monkeypatch,
     """Servo 5 answers as model 1060 with its overload bit set where an X-series servo
     keeps Hardware Error Status: `hw check` read its health registers anyway (another
     family's control table may hold anything there) and reported that bit as a hardware
-    error. Now no read of a health register goes to it (the host's packets on the wire
-    say so), its row says in words why it has no values, the other servos' rows are read
-    and the check still fails naming the model, exit 1."""
+    error; and the driver's close wrote Torque Enable = 0 (X-series address 64) to it
+    and read it back. Now nothing but the scan (its ping, then Firmware Version) goes to
+    it (the host's packets on the wire say so), its row says in words why it has no
+    values, the other servos' rows are read, they get the torque-off, and the check still
+    fails naming the model, exit 1."""
     from firmware_interface import protocol as P
-    from firmware_interface.port import SdkPort
 
-    # what the driver itself reads of every servo that answered: Firmware Version after
-    # the scan's ping, Torque Enable as its close confirms the torque off
-    driver_reads = {BY_NAME["firmware_version"].address, BY_NAME["torque_enable"].address}
-    asked: dict[int, set[int]] = {}  # servo ID -> every address the host read of it
-    write = SdkPort.writePort
-
-    def seen(port: Any, packet: list[int]) -> int:
-        pkt = P.parse(bytes(packet))
-        if pkt.instruction in (P.READ, P.SYNC_READ, P.FAST_SYNC_READ):
-            addr, n = (int.from_bytes(pkt.params[k : k + 2], "little") for k in (0, 2))
-            for i in [pkt.id] if pkt.instruction == P.READ else list(pkt.params[4:]):
-                asked.setdefault(i, set()).update(range(addr, addr + n))
-        return write(port, packet)
-
-    monkeypatch.setattr(SdkPort, "writePort", seen)
+    seen = spy_on_the_wire(monkeypatch)
     with _emulating("model:5:1060", "error:5:overload") as port:
         assert main(["hw", "check", "--device", port, "--json", "--latency-ms", LAT]) == 1
         report = json.loads(capsys.readouterr().out)
         assert main(["hw", "check", "--device", port, "--latency-ms", LAT]) == 1
         rows = [x for x in capsys.readouterr().out.splitlines() if x.startswith("ID ")]
-    assert asked[5] <= driver_reads, sorted(asked[5])  # no other register of servo 5 read
-    # the spy sees the health reads of a servo of the map's model
-    assert BY_NAME["present_temperature"].address in asked[4], sorted(asked[4])
+    scan = {(P.PING, None), (P.READ, BY_NAME["firmware_version"].address)}
+    assert seen[5] == scan, sorted(seen[5], key=str)  # nothing else reached servo 5
+    assert P.BROADCAST_ID not in seen, sorted(seen[P.BROADCAST_ID], key=str)
+    # the spy sees the health reads and the close's torque-off of a servo of the map's model
+    torque = BY_NAME["torque_enable"].address
+    assert {(P.READ, BY_NAME["present_temperature"].address), (P.SYNC_WRITE, torque),
+            (P.READ, torque)} <= seen[4], sorted(seen[4], key=str)  # fmt: skip
     why = "health registers not read: it is model 1060, not the map's 1240"
     assert report["errors"] == [
         "servo 5 (B_mcp_flex): model number 1060, not the servo map's 1240: another servo "

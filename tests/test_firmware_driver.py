@@ -18,7 +18,7 @@ from collections.abc import Iterator
 
 import numpy as np
 import pytest
-from conftest import reg
+from conftest import reg, spy_on_the_wire
 from dynamixel_sdk import COMM_RX_TIMEOUT, PacketHandler
 
 from firmware_interface import protocol as P
@@ -736,6 +736,55 @@ def test_close_names_a_servo_it_could_not_confirm_without_raising(smap, caplog):
     assert len(warned) == 1 and "servo 7 (B_pip)" in warned[0], warned
     others = [f"servo {s.id} ({s.joint})" for s in smap.servos if s.id != 7]
     assert not [o for o in others if o in warned[0]], warned
+
+
+def test_no_shutdown_writes_to_or_reads_a_servo_of_another_model(smap, monkeypatch, caplog):
+    """Servo 5 answers as model 1060 (its byte at the X series' Torque Enable address set
+    first) and servo 7 not at all: the bring-up refuses them before configuring any servo,
+    but close sync-wrote Torque Enable = 0 (address 64) to servo 5 too and read it back,
+    and a safe stop wrote to it as well. Now the host sends servo 5 nothing but the scan's
+    ping and Firmware Version read (the packets on the wire), its byte 64 is still set
+    (the emulator's own table), while servo 7 (model unknown) still gets the torque-off
+    and servo 4 (the map's model) gets it and is read back; close warns of nothing."""
+    torque, goal = ADDR["torque_enable"], ADDR["goal_position"]
+    with EmulatorProcess(faults=["model:5:1060", "missing:7"]) as emu:
+        drv = DynamixelDriver(emu.port, smap, latency_timer_ms=LAT, guard=False)
+        drv.packet.write1ByteTxRx(drv.port, 5, torque, 1)  # not the driver's doing
+        seen = spy_on_the_wire(monkeypatch)
+        with pytest.raises(MissingServoError) as info:
+            drv.bring_up()
+        assert [type(f) for f in info.value.also] == [WrongModelError]
+        for on_fault in ("hold", "torque_off"):  # the safe stop's two ways
+            drv.on_fault = on_fault
+            drv.safe_stop()
+        with caplog.at_level(logging.WARNING, logger="firmware_interface.driver"):
+            drv.close()
+        assert emu.table(5)[torque] == 1 and emu.servos()[5]["torque"]
+    scan = {(P.PING, None), (P.READ, ADDR["firmware_version"])}
+    assert seen[5] == scan, sorted(seen[5], key=str)
+    assert P.BROADCAST_ID not in seen, sorted(seen[P.BROADCAST_ID], key=str)
+    stops = {(P.SYNC_WRITE, a) for a in range(goal, goal + 4)} | {(P.SYNC_WRITE, torque)}
+    assert seen[7] == {(P.PING, None)} | stops, sorted(seen[7], key=str)  # never read
+    assert scan | stops | {(P.READ, torque)} <= seen[4], sorted(seen[4], key=str)
+    assert drv.other_model == {5: 1060} and drv.torque_unconfirmed == []
+    assert [r.getMessage() for r in caplog.records] == []
+
+
+def test_close_turns_off_a_servo_it_enabled_whatever_model_answers_on_its_id(smap, monkeypatch):
+    """The driver enabled servo 5 at bring-up; a later scan finds model 1060 on its ID:
+    close still sends it the torque-off and reads it back (the servo it enabled may
+    still be there), and the emulator's servo ends torque off."""
+    with EmulatorProcess() as emu:
+        drv = DynamixelDriver(emu.port, smap, latency_timer_ms=LAT, guard=False)
+        drv.bring_up()
+        emu.fault("model:5:1060")
+        assert drv.scan()[5][0] == 1060 and drv.other_model == {5: 1060}
+        seen = spy_on_the_wire(monkeypatch)
+        drv.close()
+        assert not emu.servos()[5]["torque"]
+    torque = ADDR["torque_enable"]
+    assert {(P.SYNC_WRITE, torque), (P.READ, torque)} <= seen[5], sorted(seen[5], key=str)
+    assert drv.torque_unconfirmed == []
 
 
 def test_a_fault_of_several_servos_lists_the_others_as_ids():
