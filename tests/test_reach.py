@@ -915,3 +915,24 @@ def test_the_pairs_span_ranges_are_told_apart(reach_png, small) -> None:
         x = np.asarray(spans[p.name][0].get_xdata(), dtype=float)
         assert x.min() == pytest.approx(p.span_min * 1e3)
         assert x.max() == pytest.approx(p.span.maximum * 1e3)
+
+
+def test_a_sparse_reach_verdict_says_a_grasp_can_be_missed(geom, small) -> None:
+    """A new user's ``report reach --samples 2000`` said "pair L closes down to 20.0 mm
+    ..., pair R closes down to 3.0 mm": the pairs are mirror images, and at the default
+    sampling both close down to the same thinnest feature, so the difference was the
+    sparse sampling, which nothing said. A verdict sampled under the default says so; at
+    the default it does not, and the two mirrored pairs agree."""
+    from payload.envelope import REACH_SAMPLES
+    from payload.envelope.verdict import reach_verdict
+
+    assert small.samples < REACH_SAMPLES
+    line = reach_verdict(small)
+    assert line.endswith(
+        f"; sampled {small.samples:,} times (default {REACH_SAMPLES:,}): a grasp can be missed"
+    ), line
+    full = analyse_reach(geom, VEHICLE, seed=0)
+    assert full.samples == REACH_SAMPLES
+    thinnest = {p.name: min(g.feature.thickness for g in p.grasps if g.closes) for p in full.pairs}
+    assert len(set(thinnest.values())) == 1, thinnest  # mirror images: the same grasp
+    assert "sampled" not in reach_verdict(full) and "can be missed" not in reach_verdict(full)

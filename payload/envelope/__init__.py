@@ -16,6 +16,10 @@ from __future__ import annotations
 
 from payload.lazy import lazy_exports
 
+REACH_SAMPLES = 100_000
+"""The reach report's sampled configurations by default (what the committed report uses):
+with fewer, a pair's thinnest grasp can be missed, and its verdict says so."""
+
 _LAZY: dict[str, str] = {
     "EnvelopeAnalysis": "payload.envelope.fit",
     "PairContact": "payload.envelope.fit",
@@ -48,7 +52,7 @@ _LAZY: dict[str, str] = {
 }
 """Each public name and the module defining it."""
 
-__all__ = sorted(_LAZY)
+__all__ = sorted([*_LAZY, "REACH_SAMPLES"])
 
 
 __getattr__, __dir__ = lazy_exports(__name__, _LAZY)

@@ -12,6 +12,7 @@ import statistics
 from typing import TYPE_CHECKING, Any
 
 from payload.cliutil import CheckFailed, emit_json, load_average
+from payload.envelope import REACH_SAMPLES
 from payload.envelope.cli_runs import (
     _check_reach_args,
     _design_path,
@@ -32,7 +33,6 @@ if TYPE_CHECKING:
     from payload.envelope.fit import EnvelopeAnalysis
     from payload.envelope.reach import ReachAnalysis
 
-DEFAULT_SAMPLES = 100_000
 BENCH_CHECK_SAMPLES = 10_000
 """``payload bench reach``: the samples both checks run on, by default."""
 BENCH_RUNS = 3
@@ -90,7 +90,12 @@ def _reach_verdict_fields(reach: ReachAnalysis) -> dict[str, Any]:
 def _all_verdict(envelope: EnvelopeAnalysis, reach: ReachAnalysis) -> str:
     """The one verdict line: ``verdict: passes: ...`` or ``verdict: FAILS: ...``."""
     from payload.envelope.fit_results import clearance_text
-    from payload.envelope.verdict import envelope_verdict, reach_passed, reach_verdict
+    from payload.envelope.verdict import (
+        envelope_verdict,
+        reach_passed,
+        reach_verdict,
+        sampling_caveat,
+    )
 
     env_ok, reach_ok = envelope.passed, reach_passed(reach)
     if env_ok and reach_ok:
@@ -103,7 +108,7 @@ def _all_verdict(envelope: EnvelopeAnalysis, reach: ReachAnalysis) -> str:
         return (
             f"verdict: passes: the stowed payload {given.fits_words} (min clearance "
             f"{clearance_text(tightest.clearance)}, {tightest.name}{given.tight_tail}); every "
-            f"pair closes on a CTB feature ({closes})"
+            f"pair closes on a CTB feature ({closes}){sampling_caveat(reach)}"
         )
     failing = [] if env_ok else [f"stowed: {envelope_verdict(envelope).split(': ', 2)[2]}"]
     if not reach_ok:
@@ -190,7 +195,7 @@ def _cmd_bench_reach(args: argparse.Namespace) -> int:
     r = run_reach_bench(
         geom, vehicle, project.root, project.analyses_dir, samples=args.samples,
         check_samples=args.check_samples, runs=args.runs, seed=args.seed,
-        aim_samples=DEFAULT_SAMPLES,
+        aim_samples=REACH_SAMPLES,
     )  # fmt: skip
     if args.json:
         emit_json({**r, "load_average": load_average()})
@@ -283,8 +288,8 @@ def register(
     sampling.add_argument(
         "--samples",
         type=_integer,
-        default=DEFAULT_SAMPLES,
-        help=f"sampled configurations (default {DEFAULT_SAMPLES:,})",
+        default=REACH_SAMPLES,
+        help=f"sampled configurations (default {REACH_SAMPLES:,})",
     )
     sampling.add_argument("--seed", type=_integer, default=0, help="random seed (default 0)")
     sampling.add_argument(
@@ -320,8 +325,8 @@ def register(
     p.add_argument(
         "--samples",
         type=_integer,
-        default=DEFAULT_SAMPLES,
-        help=f"samples of the timed report (default {DEFAULT_SAMPLES:,})",
+        default=REACH_SAMPLES,
+        help=f"samples of the timed report (default {REACH_SAMPLES:,})",
     )
     p.add_argument(
         "--check-samples",

@@ -24,6 +24,7 @@ import numpy as np
 
 from payload.design.params import FINGER_JOINTS, FINGERS
 from payload.design.tree import ALL_JOINTS, KinematicTree
+from payload.envelope import REACH_SAMPLES
 from payload.envelope.batch_fk import fingertips_batch
 from payload.envelope.collisions import CollisionModel, Contacts
 from payload.envelope.geometry import PayloadGeometry
@@ -155,7 +156,7 @@ class ReachAnalysis:
 def analyse_reach(
     geom: PayloadGeometry,
     vehicle: Vehicle,
-    samples: int = 100_000,
+    samples: int = REACH_SAMPLES,
     seed: int = 0,
     features: Sequence[GraspFeature] = CTB_FEATURES,
     workers: int | None = None,

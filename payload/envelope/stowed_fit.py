@@ -2,10 +2,11 @@
 
 A trial or a campaign runs whatever design the project holds; one whose stowed payload
 does not fit the two lower bays (a part beyond a wall, links that collide, a deployment
-path that hits the vehicle) still simulates, but it could not fly. Those commands warn with :func:`stowed_fit_failures`: the design's own stowed posture checked
-as ``payload report envelope`` checks it (no posture search: that is the report's), about
-0.3 s, kept in the cache (:func:`payload.cache.cache_dir`) under a hash of the design file
-and the code, so that an unchanged design costs a file read.
+path that hits the vehicle) still simulates, but it could not fly. Those commands warn
+with :func:`stowed_fit_failures`: the design's own stowed posture checked as ``payload
+report envelope`` checks it (no posture search: that is the report's), about 0.3 s, kept
+in the cache (:func:`payload.cache.cache_dir`) under a hash of the design file and the
+code, so that an unchanged design costs a file read.
 """
 
 from __future__ import annotations

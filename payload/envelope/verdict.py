@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from typing import Any
 
+from payload.envelope import REACH_SAMPLES
 from payload.envelope.fit_results import EnvelopeAnalysis, clearance_text
 from payload.envelope.reach import ReachAnalysis
 from payload.envelope.workspace import MIN_HULL_POINTS
@@ -84,8 +85,23 @@ def _closes_on(pair: Any) -> list[str]:
     return [g.feature.name for g in pair.grasps if g.closes]
 
 
+def sampling_caveat(a: ReachAnalysis) -> str:
+    """What a reach verdict adds when it was sampled more sparsely than the default
+    (:data:`~payload.envelope.REACH_SAMPLES`): ``; sampled 2,000 times (default 100,000): a
+    grasp can be missed`` (the two pairs, mirror images, then close down to
+    different thicknesses); empty at the default or more."""
+    if a.samples >= REACH_SAMPLES:
+        return ""
+    return f"; sampled {a.samples:,} times (default {REACH_SAMPLES:,}): a grasp can be missed"
+
+
 def reach_verdict(a: ReachAnalysis) -> str:
-    """``verdict: grasps ...`` or ``verdict: FAILS ...`` for the reach report."""
+    """``verdict: grasps ...`` or ``verdict: FAILS ...`` for the reach report, with the
+    :func:`sampling_caveat` of a sparse sampling."""
+    return _reach_verdict(a) + sampling_caveat(a)
+
+
+def _reach_verdict(a: ReachAnalysis) -> str:
     if reach_passed(a):
         thinnest = {
             p.name: min((g for g in p.grasps if g.closes), key=lambda g: g.feature.thickness)
@@ -169,5 +185,6 @@ __all__ = [
     "headline_changes",
     "reach_passed",
     "reach_verdict",
+    "sampling_caveat",
     "too_few_reachable",
 ]
