@@ -6,7 +6,8 @@ servos and the measured payload state comes from them; Astrobee and the cargo ba
 are not on the bench, stay simulated, and the simulated payload follows the servos'
 measured positions so the contacts are those of the real finger postures.
 :func:`run_hardware_trial` runs a recorded hand session through it and records the
-trial exactly as ``payload trial`` does (``log.mcap``, ``hands.jsonl``, ``metrics.json``).
+trial as ``payload trial`` does (``log.mcap``, ``metrics.json``), with the raw hand
+frames as they came beside it (``hands.jsonl``, as a live session's).
 """
 
 from __future__ import annotations
