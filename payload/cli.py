@@ -273,8 +273,35 @@ def _strict(parser: argparse.ArgumentParser) -> None:
                 _strict(child)
 
 
+TOP_LEVEL_OPTIONS = ("-h", "--help", "--version", "--project")
+"""The options ``payload`` itself takes before a command (every other goes after it)."""
+
+
+def _option_before_command(argv: Sequence[str]) -> str | None:
+    """What is wrong when a command's option comes before the command (``payload --samples
+    2000 report reach``: argparse took ``2000`` for the command, or said the option was
+    unknown and suggested itself), with the command line put in order; ``None`` when no
+    option but ``payload``'s own precedes the command."""
+    first_words = {cmd.path.split()[0] for cmd in COMMANDS}
+    start = next((i for i, token in enumerate(argv) if token in first_words), None)
+    if start is None:
+        return None
+    lead, skip = list(argv[:start]), False
+    for token in lead:
+        if skip:
+            skip = False
+        elif token == "--project":
+            skip = True
+        elif token.startswith("-") and token.split("=", 1)[0] not in TOP_LEVEL_OPTIONS:
+            ordered = " ".join([*argv[start:], *lead])
+            return f"{token.split('=', 1)[0]} goes after the command: payload {ordered}"
+    return None
+
+
 def _parse(argv: Sequence[str] | None) -> argparse.Namespace:
     argv = list(sys.argv[1:] if argv is None else argv)
+    if (misplaced := _option_before_command(argv)) is not None:
+        OneLineParser(prog="payload").exit(2, f"payload: error: {misplaced}\n")
     modules = _modules_for(argv)
     parser = build_parser(modules)
     args, unknown = parser.parse_known_args(argv)

@@ -741,3 +741,29 @@ def test_a_trial_of_a_design_that_does_not_stow_says_so(tmp_path, capsys) -> Non
     design.write_text(fitting)
     assert main([*argv, "--out", str(tmp_path / "t2")]) == 0
     assert "does not fit" not in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("argv", "dest", "value"),
+    [
+        (["--samples", "2000", "report", "reach"], "samples", 2000),
+        (["--force", "trial", "--seed", "2"], "force", True),
+        (["--project", "p", "--seed=3", "trial"], "seed", 3),
+    ],
+)
+def test_a_commands_option_before_the_command_says_where_it_goes(argv, dest, value, capsys):
+    """A new user's ``payload --samples 2000 report reach`` was refused as "argument
+    COMMAND: invalid choice: '2000'" (argparse took the option's value for the command),
+    and ``payload --force trial`` as "unrecognized arguments: --force (did you mean
+    --force?)". Both say which option goes after the command and give the command line in
+    order, one line, exit 2; that line parses, with the option's value."""
+    from payload.cli import _parse
+
+    with pytest.raises(SystemExit) as info:
+        main(argv)
+    assert info.value.code == 2
+    (err,) = capsys.readouterr().err.splitlines()
+    head = f"payload: error: {argv[2] if argv[0] == '--project' else argv[0]}"
+    assert err.startswith(head.split("=")[0] + " goes after the command: payload "), err
+    ordered = err.split(": payload ", 1)[1].split()
+    assert getattr(_parse(ordered), dest) == value
