@@ -9,11 +9,14 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import errno
+import os
 import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from firmware_interface.errors import cannot_open
 from firmware_interface.options import (
     LATENCY_MS,
     add_latency,
@@ -109,6 +112,7 @@ def _cmd_scan(args: argparse.Namespace) -> int:
 
     command_project(args)  # the servo map's joints are this project's
     device = need_device(args)
+    _device_there(args)
     smap = _map(args)
     _models_follow(args)
     from firmware_interface.errors import DynamixelError
@@ -262,6 +266,7 @@ def _cmd_check(args: argparse.Namespace) -> int:
     _check_numbers(args)
     command_project(args)  # the servo map is validated against this project's design
     device, smap = need_device(args), _map(args)
+    _device_there(args)
     _models_follow(args)
     from firmware_interface.errors import CommError
 
@@ -297,11 +302,11 @@ def _cmd_check(args: argparse.Namespace) -> int:
 def _cmd_run(args: argparse.Namespace) -> int:
     _check_numbers(args)
     project = command_project(args)
-    _models_follow(args)
     replay = _replay_of(args)
     # a run never writes among other results, nor into a file
     out_folder(args.out, holding=other_results())
     _emulated_or_device(args)
+    _models_follow(args)  # the input checked first: a refusal rebuilds nothing
     with results_folder(args.out, project, "hw") as out:
         result = _run_hardware(args, out, replay)  # a bus that did not answer: no folder left
     result["out"] = str(out)
@@ -376,14 +381,30 @@ def _run_hardware(args: argparse.Namespace, out: Path, replay: Path) -> dict[str
     return result
 
 
-def _emulated_or_device(args: argparse.Namespace) -> None:
-    """One bus: ``--device DEV`` or ``--emulator`` (started by the command).
+def _device_there(args: argparse.Namespace) -> None:
+    """A ``--device`` path that is not there is refused in the driver's words before any
+    work, the models' rebuild included (it was said only after the project's models had
+    been regenerated). A path that is there but cannot be opened is the driver's to say.
 
     Raises:
-        HwUsageError: Both or neither; ``--servo-params`` without ``--emulator``.
+        HwUsageError: The path does not exist.
+    """
+    device = getattr(args, "device", None)
+    if device and "/" in device and not os.path.lexists(device):
+        raise HwUsageError(cannot_open(device, os.strerror(errno.ENOENT)))
+
+
+def _emulated_or_device(args: argparse.Namespace) -> None:
+    """One bus: ``--device DEV`` (a path that is there) or ``--emulator`` (started by the
+    command).
+
+    Raises:
+        HwUsageError: Both or neither; ``--servo-params`` without ``--emulator``; a
+            device that is not there.
     """
     if (getattr(args, "device", None) is None) == (not args.emulator):
         raise HwUsageError("give either --device DEV or --emulator")
+    _device_there(args)
     if getattr(args, "servo_params", None) is not None and not args.emulator:
         raise HwUsageError(
             "--servo-params sets an emulated bus's servos: give it with --emulator (or to "
@@ -423,6 +444,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     if args.cycles < 1:
         raise HwUsageError(f"--cycles must be >= 1, got {args.cycles}")
     command_project(args)  # the servo map is checked against this project's design
+    _device_there(args)
     _models_follow(args)
     result = bench_hw(args.device, args.cycles, args.servos, args.latency_ms, say_stage)
     if args.json:

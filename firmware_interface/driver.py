@@ -54,6 +54,7 @@ from firmware_interface.errors import (
     MissingServoError,
     NotHomedError,
     WrongModelError,
+    cannot_open,
 )
 from firmware_interface.fault_handling import FaultHandling
 from firmware_interface.guard import CommandGuard, default_guard
@@ -229,7 +230,7 @@ class DynamixelDriver(FaultHandling):
         self._ratio = np.array([sp.units_per_tick / RAD_PER_TICK for sp in self.map.servos])
         try:
             if not self.port.openPort():
-                raise DynamixelError(f"{port}: cannot open the serial port")
+                raise DynamixelError(cannot_open(port))
             if not self.port.setBaudRate(self.map.baud):
                 raise DynamixelError(f"{port}: cannot set {self.map.baud} baud")
         except OSError as exc:
@@ -239,7 +240,7 @@ class DynamixelDriver(FaultHandling):
             reason = cause.strerror or str(cause)
             if "Inappropriate ioctl" in str(exc):  # ENOTTY from the port's configuration
                 reason = "not a serial device: give the USB adapter's, e.g. /dev/ttyUSB0"
-            raise DynamixelError(f"{port}: cannot open the serial port ({reason})") from exc
+            raise DynamixelError(cannot_open(port, reason)) from exc
         self._closed = False
         if poll_timeout > 0 and getattr(self.port, "ser", None) is not None:
             self.port.ser.timeout = poll_timeout

@@ -7,6 +7,12 @@ from collections.abc import Sequence
 from payload.errors import PayloadError, RunAborted
 
 
+def cannot_open(port: str, reason: str | None = None) -> str:
+    """The one wording of a serial device that cannot be opened: ``/dev/ttyUSB9: cannot
+    open the serial port (No such file or directory)`` (the system's reason, once)."""
+    return f"{port}: cannot open the serial port" + (f" ({reason})" if reason else "")
+
+
 class DynamixelError(PayloadError):
     """Root of the hardware interface's errors.
 

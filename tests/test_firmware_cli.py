@@ -630,3 +630,44 @@ def test_scan_ends_with_what_it_found_and_what_check_would_refuse(capsys):
         "17 of the map's 18 servos answering; 1 not answering, 1 of another model: "
         "`payload hw check` refuses this bus"
     ), lines
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["hw", "check"],
+        ["hw", "scan"],
+        ["bench", "hw", "--cycles", "1"],
+        ["hw", "run", "--replay", "REPLAY"],
+        ["hw", "identify"],
+    ],
+)
+def test_a_device_that_is_not_there_rebuilds_no_model_first(argv, tmp_path, capsys) -> None:
+    """A new user's ``payload hw check --device /dev/ttyUSB0`` with no adapter plugged in,
+    in a project whose design had changed, printed "models: rebuilt ..." and rewrote the
+    project's models before "cannot open the serial port". The missing device is refused
+    first, in the driver's words and the system's reason, and no model file changes."""
+    import hashlib
+
+    from payload.design.cli import new_project
+
+    project, _ = new_project(tmp_path / "p")
+    design = project.design_path
+    design.write_text(replace_once(design.read_text(), "distal = 0.045 ", "distal = 0.047 "))
+    models = sorted(p for p in project.root.rglob("*") if p.suffix in (".urdf", ".xml", ".stl"))
+    before = {p: hashlib.sha256(p.read_bytes()).hexdigest() for p in models}
+    missing = tmp_path / "ttyUSB9"
+    with pytest.raises(OSError) as opened:
+        open(missing, "rb")  # the system's own answer for this path
+    replay = tmp_path / "hands.jsonl"
+    replay.write_text("")
+    argv = [str(replay) if a == "REPLAY" else a for a in argv]
+    code = main([*argv, "--device", str(missing), "--project", str(project.root)])
+    out, err = capsys.readouterr()
+    assert code == 2, err
+    reason = os.strerror(opened.value.errno)
+    assert err.strip().splitlines() == [
+        f"payload: error: {missing}: cannot open the serial port ({reason})"
+    ], err
+    assert "models: rebuilt" not in out
+    assert {p: hashlib.sha256(p.read_bytes()).hexdigest() for p in models} == before
