@@ -622,6 +622,9 @@ def test_a_trial_cut_off_by_its_cap_says_so(tmp_path, capsys) -> None:
     assert "  stopped by the --max-time cap after 1.0 s, before the operator finished" in lines
     metrics = json.loads((out / "metrics.json").read_text())
     assert (metrics["ended_by"], metrics["steps"]) == ("max_time", round(1.0 / CONTROL_DT) + 1)
+    # the last line names what the folder holds (a new user saw only "-> runs/trial-0001")
+    head, folder = lines[-1].removeprefix("wrote ").rsplit(" in ", 1)
+    assert folder == str(out) and sorted(head.split(", ")) == sorted(os.listdir(out))
 
 
 @pytest.mark.parametrize(
@@ -767,3 +770,17 @@ def test_a_commands_option_before_the_command_says_where_it_goes(argv, dest, val
     assert err.startswith(head.split("=")[0] + " goes after the command: payload "), err
     ordered = err.split(": payload ", 1)[1].split()
     assert getattr(_parse(ordered), dest) == value
+
+
+def test_a_new_project_says_what_to_do_next(tmp_path, capsys) -> None:
+    """``payload new`` said what it made and stopped; a new user did not know the next
+    step. Its last line names the design file to edit and the command that checks it, in
+    the project's folder, both of which are there."""
+    root = tmp_path / "p"
+    assert main(["new", str(root)]) == 0
+    last = capsys.readouterr().out.splitlines()[-1]
+    match = re.fullmatch(r"next: edit (\S+), then `cd (\S+) && payload report all`", last)
+    assert match, last
+    assert Path(match.group(1)).is_file() and Path(match.group(1)).name == "design.toml"
+    assert Path(match.group(2)).resolve() == root.resolve()
+    assert Path(match.group(1)).resolve().is_relative_to(root.resolve())

@@ -539,6 +539,8 @@ def test_the_report_follows_the_design_through_two_edits(tmp_path, capsys):
     stamp = {n: (out / n).stat().st_mtime_ns for n in names}
     code, lines, _ = _report(project.root, capsys)
     assert code == 0 and lines[1].startswith("verdict: fits") and "report unchanged" in lines[-1]
+    # the files kept are named (a new user's `make demo` named only the timings')
+    assert all(str(out / n) in lines[-1] for n in names), lines[-1]
     assert {n: (out / n).stat().st_mtime_ns for n in names} == stamp
     # a comment only: the figures stand, but the report names the design it follows
     design.write_text(design.read_text() + "# a note\n")

@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING, Any
 
 from payload.cliutil import command_project, out_folder
 from payload.design.slip import SLIP_FACTOR
+from payload.envelope.report_files import REPORT_FILES
 from payload.folders import other_results
 from payload.safeio import cannot_write_in
 
@@ -299,8 +300,13 @@ def written_lines(paths: dict[str, Path], stem: str) -> list[str]:
     """What a report wrote: the change of its headline figures, then the files."""
     from payload.envelope.verdict import headline_changes
 
-    if set(paths) == {"timing"}:
-        return [f"report unchanged (figures as before); timings in {paths['timing']}"]
+    if set(paths) == {"timing"}:  # the report's files are there as they were: named
+        there = (paths["timing"].parent / f"{stem}{s}" for s in REPORT_FILES)
+        kept = [k for k in there if k != paths["timing"] and k.exists()]
+        return [
+            f"report unchanged (figures as before): {', '.join(str(k) for k in kept)}; "
+            f"timings in {paths['timing']}"
+        ]
     lines = []
     if "prev" in paths:
         before = json.loads(paths["prev"].read_text())
