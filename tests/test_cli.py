@@ -779,7 +779,7 @@ def test_a_new_project_says_what_to_do_next(tmp_path, capsys) -> None:
     root = tmp_path / "p"
     assert main(["new", str(root)]) == 0
     last = capsys.readouterr().out.splitlines()[-1]
-    match = re.fullmatch(r"next: edit (\S+), then `cd (\S+) && payload report all`", last)
+    match = re.fullmatch(r"next: edit (\S+), then run `payload report all` in (\S+)", last)
     assert match, last
     assert Path(match.group(1)).is_file() and Path(match.group(1)).name == "design.toml"
     assert Path(match.group(2)).resolve() == root.resolve()

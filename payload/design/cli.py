@@ -215,7 +215,7 @@ def _cmd_new(args: argparse.Namespace) -> int:
         f"{project.relative(project.design_path)} and {n} generated files in "
         f"{time.perf_counter() - t0:.2f} s"
     )
-    print(f"next: edit {project.design_path}, then `cd {project.root} && payload report all`")
+    print(f"next: edit {project.design_path}, then run `payload report all` in {project.root}")
     return 0
 
 
