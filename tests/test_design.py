@@ -622,10 +622,24 @@ def test_a_posture_in_degrees_is_refused_with_the_radians_meant(design_dict, pos
     with pytest.raises(DesignError) as info:
         design_from_dict(_edit(design_dict, posture, typed))
     assert info.value.parameter == posture
-    assert "(degrees given)" in str(info.value) and "outside its limits" in str(info.value)
+    assert "(degrees given)" in str(info.value) and "is outside finger.limits." in str(info.value)
     meant = _meant(str(info.value))
     assert meant == pytest.approx([math.radians(v) for v in typed], abs=5e-4)
     design_from_dict(_edit(design_dict, posture, meant))
+
+
+def test_a_posture_joint_outside_its_limits_names_them(design_dict) -> None:
+    """A new user's ``stowed.finger`` with a DIP of 3.0 rad was refused as "dip = 3.0 rad
+    is outside its limits", with no word of what they are: the refusal names the design's
+    own limits and where they are set."""
+    lower, upper = design_dict["finger"]["limits"]["dip"]
+    posture = [*_packaged("stowed.finger")[:3], upper + 0.5]
+    with pytest.raises(DesignError) as info:
+        design_from_dict(_edit(design_dict, "stowed.finger", posture))
+    assert info.value.parameter == "stowed.finger"
+    assert f"dip = {upper + 0.5} rad is outside finger.limits.dip [{lower}, {upper}]" in str(
+        info.value
+    ), info.value
 
 
 @pytest.mark.parametrize("position", ["home.rail", "home.stage"])

@@ -362,7 +362,8 @@ def _check_finger_posture(name: str, angles: tuple[float, ...], f: Finger) -> No
     for j, v in zip(FINGER_JOINTS, angles):
         if f.limit(j).contains(v):
             continue
-        outside = f"{j} = {v} rad is outside its limits"
+        lim = f.limit(j)
+        outside = f"{j} = {v} rad is outside finger.limits.{j} [{lim.lower}, {lim.upper}]"
         if in_degrees(angles):
             raise DesignError(
                 f"{name}.finger",
