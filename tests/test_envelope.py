@@ -1011,3 +1011,100 @@ def test_the_design_review_words_a_tight_clearance_as_the_report_does(narrow_fit
     assert verdict == "stowed fit: pass; tightest stage 0.30 mm"
     said = [text for _, text in legend({}, reach=False) if text.startswith("tight:")]
     assert said == ["tight: under 0.50 mm to a bay wall (none here)"]
+
+
+def _drawn_envelope_figure(geom, analysis, monkeypatch, tmp_path):
+    """envelope.png of ``analysis`` as :func:`envelope_figure` lays it out and saves it."""
+    from matplotlib.figure import Figure
+
+    from payload.envelope.envelope_figure import envelope_figure
+
+    saved = []
+    monkeypatch.setattr(Figure, "savefig", lambda fig, *args, **kw: saved.append(fig))
+    envelope_figure(geom, analysis, tmp_path / "envelope.png")
+    (fig,) = saved
+    return fig
+
+
+def _section_patches(fig) -> list[tuple[str, list[tuple[float, ...]], list[tuple[float, ...]]]]:
+    """Per section panel: its title, the extents [mm] of its patches filled amber, and of
+    its other patches."""
+    from matplotlib.colors import to_rgb
+
+    from payload.envelope.drawing import TIGHT_COLOUR
+
+    def extents(patch) -> tuple[float, ...]:
+        b = patch.get_path().get_extents(patch.get_patch_transform())
+        return tuple(round(float(x), 2) for x in (b.x0, b.y0, b.x1, b.y1))
+
+    out = []
+    for ax in fig.axes:
+        if "section" in ax.get_title():
+            amber = [np.allclose(p.get_facecolor()[:3], to_rgb(TIGHT_COLOUR)) for p in ax.patches]
+            drawn = [extents(p) for p in ax.patches]
+            out.append((
+                ax.get_title(),
+                [e for e, is_amber in zip(drawn, amber) if is_amber],
+                [e for e, is_amber in zip(drawn, amber) if not is_amber],
+            ))  # fmt: skip
+    return out
+
+
+@pytest.mark.parametrize("case", ["walls", "links", "neither"])
+def test_envelope_png_draws_the_tight_parts_amber_and_says_so(
+    case, narrow_fit, geom, design_dict, monkeypatch, tmp_path
+):
+    """envelope.png said "fits, tight" in its title but drew nothing tight: the tight
+    parts (0.30 mm from a narrowed bay's walls) and the tight pair's links (a 46 mm distal
+    0.28 mm under the stage) are now filled amber, the review's colour, in every section
+    panel, silhouette and section, and the legend says what amber means; the committed
+    design, with room to spare, has no amber and no such entry. Each silhouette is matched
+    to its link by the extents of the posed solid (its bounding box seen along the panel's
+    axis): every tight link's is amber, every other link's is not, and the amber patches
+    left over are at most one section per tight link."""
+    from collections import Counter
+
+    from payload.envelope.drawing import AXES
+    from payload.envelope.report_json import envelope_json
+
+    if case == "walls":
+        g, a = geom, narrow_fit
+    elif case == "links":
+        data = copy.deepcopy(design_dict)
+        data["finger"]["lengths"]["distal"] = 0.046
+        g = geometry_of(data)
+        a = analyse_envelope(g, VEHICLE, search=False)
+    else:
+        g, a = geom, analyse_envelope(geom, VEHICLE, search=False)
+    assert a.passed
+    # what is tight, read from the JSON the report writes
+    listed = envelope_json(a)["tight"]
+    tight = {t["part"] for t in listed if "part" in t}
+    tight |= {n for t in listed if "links" in t for n in t["links"]}
+    assert bool(tight) == (case != "neither")
+    fig = _drawn_envelope_figure(g, a, monkeypatch, tmp_path)
+    poses = g.poses(a.given.q)
+    panels = _section_patches(fig)
+    assert len(panels) == 3
+    sections = 0
+    for (title, amber, other), axis in zip(panels, (0, 1, 2)):
+        h, v = AXES[axis]
+        seen = {True: Counter(), False: Counter()}
+        for name in g.links:
+            box = np.array(g.posed_solid(name, poses[name]).bounding_box()) * 1e3
+            along = (box[h], box[v], box[3 + h], box[3 + v])
+            seen[name in tight][tuple(round(float(x), 2) for x in along)] += 1
+        for drawn, silhouettes in ((amber, seen[True]), (other, seen[False])):
+            rest = Counter(drawn)
+            rest.subtract(silhouettes)
+            assert min(rest.values(), default=0) >= 0, (title, rest)  # every one drawn
+        sections += len(amber) - len(tight)
+        assert len(amber) - len(tight) <= len(tight), title
+    assert (sections > 0) == (case != "neither")  # tight sections are cut somewhere
+    said = [t.get_text() for t in fig.legends[0].get_texts() if t.get_text().startswith("tight")]
+    expected = {
+        "walls": ["tight: under 0.50 mm to a bay wall"],
+        "links": ["tight: under 0.50 mm to another link"],
+        "neither": [],
+    }
+    assert said == expected[case]

@@ -917,6 +917,56 @@ def test_the_pairs_span_ranges_are_told_apart(reach_png, small) -> None:
         assert x.max() == pytest.approx(p.span.maximum * 1e3)
 
 
+def test_the_span_panel_names_each_ctb_feature_beside_its_markers(reach_png, small) -> None:
+    """reach.png's span panel: the CTB features' markers said nothing of which feature
+    each was (reach.md had to be read). A legend beside the panel names them, one entry
+    per feature, left to right as the marker columns stand, each at the separation its
+    markers are drawn at and with a marker per pair as its row draws it (a triangle where
+    the pair closes on it, a cross where not); it covers no data and not the panel's
+    other legend."""
+    from matplotlib.legend import Legend
+    from matplotlib.lines import Line2D
+    from matplotlib.offsetbox import DrawingArea, HPacker, TextArea
+
+    fig, ax = reach_png
+    renderer = fig.canvas.get_renderer()
+    # the markers drawn in the rows: separation [mm] -> markers, pair by pair (L first)
+    drawn: dict[float, list[str]] = {}
+    for line in ax.get_lines():
+        if line.get_marker() in ("^", "x") and len(line.get_xdata()) == 1:
+            drawn.setdefault(round(float(line.get_xdata()[0]), 6), []).append(line.get_marker())
+    features = [g.feature for g in small.pairs[0].grasps]
+    assert len(drawn) == len(features) >= 6  # CTB_FEATURES
+    # each legend entry: its text and the markers of its handle
+    legends = [c for c in ax.get_children() if isinstance(c, Legend)]
+    entries = []
+    for legend in legends:
+        for row in legend.findobj(HPacker):
+            kids = row.get_children()
+            if (
+                len(kids) == 2
+                and isinstance(kids[0], DrawingArea)
+                and isinstance(kids[1], TextArea)
+            ):
+                marks = [m.get_marker() for m in kids[0].findobj(Line2D)]
+                entries.append((kids[1].get_text(), [m for m in marks if m in ("^", "x")]))
+    named = [(text, marks) for text, marks in entries if any(f.name in text for f in features)]
+    assert [next(f.name for f in features if f.name in text) for text, _ in named] == [
+        f.name for f in sorted(features, key=lambda f: f.thickness)
+    ]  # each once, in the markers' order
+    for (text, marks), x in zip(named, sorted(drawn)):
+        assert text.startswith(f"{x:.1f} mm: "), (text, x)
+        assert marks == drawn[x], (text, marks, drawn[x])
+        want = ["^" if g.closes else "x" for p in small.pairs for g in p.grasps
+                if g.feature.name in text]  # fmt: skip
+        assert marks == want, text
+    # beside the panel: over no bar, line or marker, and apart from the other legend
+    boxes = [legend.get_window_extent(renderer) for legend in legends]
+    assert len(boxes) == 2 and not boxes[0].overlaps(boxes[1])
+    panel = ax.get_window_extent(renderer)
+    assert all(box.x0 > panel.x1 for box in boxes)
+
+
 def test_a_sparse_reach_verdict_says_a_grasp_can_be_missed(geom, small) -> None:
     """A new user's ``report reach --samples 2000`` said "pair L closes down to 20.0 mm
     ..., pair R closes down to 3.0 mm": the pairs are mirror images, and at the default

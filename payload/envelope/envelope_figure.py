@@ -17,6 +17,7 @@ from payload.envelope.drawing import (
     FINGER_COLOURS,
     PASS_COLOUR,
     STRUCTURE_COLOUR,
+    TIGHT_COLOUR,
     draw_vehicle,
     legend_box,
     part_colour,
@@ -31,6 +32,7 @@ from payload.envelope.fit_results import (
     EnvelopeAnalysis,
     StowedCheck,
     clearance_text,
+    tight_meaning,
 )
 from payload.envelope.geometry import PayloadGeometry
 from payload.envelope.vehicle import Vehicle
@@ -45,15 +47,20 @@ def _section_panel(
     parts_by_name: Mapping[str, Any],
     title: str,
     colliding: frozenset[str] = frozenset(),
+    tight: frozenset[str] = frozenset(),
 ) -> None:
+    """One section of the stowed parts, their silhouettes shaded; a part outside the bays
+    edged red and hatched, a colliding one edged magenta, a tight one (``tight``, names
+    of links) filled amber, section and silhouette, as the design review draws it."""
     h, v = AXES[axis]
     draw_vehicle(ax, vehicle, axis)
     for name, solid in solids.items():
         view = to_view(solid, axis)
+        colour = TIGHT_COLOUR if name in tight else part_colour(name)
         sil = polygon_patch(
             polygons(view.project(), axis),
-            facecolor=part_colour(name),
-            alpha=0.12,
+            facecolor=colour,
+            alpha=0.25 if name in tight else 0.12,  # a faint amber reads as the body's beige
             edgecolor="none",
             zorder=1,
         )
@@ -65,7 +72,7 @@ def _section_panel(
         edge = "red" if outside else ("magenta" if name in colliding else "black")
         patch = polygon_patch(
             sec,
-            facecolor=part_colour(name),
+            facecolor=colour,
             alpha=0.85,
             edgecolor=edge,
             lw=0.4 if edge == "black" else 1.6,
@@ -149,13 +156,14 @@ def envelope_figure(geom: PayloadGeometry, a: EnvelopeAnalysis, path: Path, dpi:
     FigureCanvasAgg(fig)
     axes = fig.subplots(2, 2)
     hit = frozenset(n for c in check.collisions for n in (c.a, c.b))
+    tight = frozenset(check.tight_links)
     panels = (
         (axes[0, 0], 0, xa, "front view (y-z), through finger A"),
         (axes[0, 1], 1, ya, "side view (x-z), through fingers A, B"),
         (axes[1, 0], 2, z_mcp, "top view (x-y), through the MCP axes"),
     )
     for ax, axis, value, title in panels:
-        _section_panel(ax, solids, a.vehicle, axis, value, fits, title, hit)
+        _section_panel(ax, solids, a.vehicle, axis, value, fits, title, hit, tight)
         _annotate_clearances(ax, check, a.vehicle, axis)
     _deployment_panel(axes[1, 1], geom, a.vehicle, check)
     handles = [
@@ -165,7 +173,11 @@ def envelope_figure(geom: PayloadGeometry, a: EnvelopeAnalysis, path: Path, dpi:
         legend_box("outside the envelope", facecolor="white", edgecolor="red", hatch="///"),
         legend_box("self-collision", facecolor="white", edgecolor="magenta", lw=1.6),
     ]
-    fig.legend(handles=handles, loc="outside lower center", ncol=9, fontsize=8, frameon=False)
+    if tight:  # said only when something is: a fit with room to spare keeps its legend
+        said = tight_meaning(walls=bool(check.tight_parts), links=bool(check.tight_pairs))
+        handles.append(legend_box(said, facecolor=TIGHT_COLOUR))
+    ncol = 9 if len(handles) <= 9 else (len(handles) + 1) // 2
+    fig.legend(handles=handles, loc="outside lower center", ncol=ncol, fontsize=8, frameon=False)
     # the verdict in its colour, as the review's and the reach figure's
     fig.suptitle(
         figure_title(check), fontsize=11, color=PASS_COLOUR if check.passed else FAIL_COLOUR

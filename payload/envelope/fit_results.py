@@ -15,7 +15,7 @@ TIGHT_CLEARANCE = 0.5e-3
 """Clearance below which a stowed fit that passes is tight [m]: a part this close to a bay
 wall, or two links this close to each other (ASSUMPTION: about the dimensional tolerance
 of a printed part, so a tighter fit is worth a second look). The verdicts say it; the
-design review draws such parts amber."""
+design review and the envelope figure draw such parts amber."""
 
 
 def clearance_text(metres: float) -> str:
@@ -28,6 +28,14 @@ def clearance_text(metres: float) -> str:
     if abs(float(text)) >= 1.0:  # 0.996 mm reads 1.0 mm, not 1.00 mm
         text = f"{mm:.1f}"
     return f"{text} mm"
+
+
+def tight_meaning(walls: bool = True, links: bool = False) -> str:
+    """What a drawing's amber means, for its legend: ``tight: under 0.50 mm to a bay wall``
+    (``walls``), ``... to another link`` (``links``) or ``... to a bay wall or another
+    link`` (both); the one wording in the envelope figure and the design review."""
+    near = [what for what, said in (("a bay wall", walls), ("another link", links)) if said]
+    return f"tight: under {clearance_text(TIGHT_CLEARANCE)} to {' or '.join(near)}"
 
 
 class PartFit(NamedTuple):
@@ -195,6 +203,14 @@ class StowedCheck:
         return [c for c in self.self_contacts if not c.colliding and c.distance < TIGHT_CLEARANCE]
 
     @property
+    def tight_links(self) -> list[str]:
+        """Every link that is tight: the :attr:`tight_parts` and both links of each of the
+        :attr:`tight_pairs`, each once, in that order."""
+        names = [p.name for p in self.tight_parts]
+        names += [n for c in self.tight_pairs for n in (c.a, c.b)]
+        return list(dict.fromkeys(names))
+
+    @property
     def tight(self) -> bool:
         """Whether a part is under :data:`TIGHT_CLEARANCE` from a wall or two links are
         under it apart (a fit that passes all the same, but said)."""
@@ -308,4 +324,5 @@ __all__ = [
     "StowedCheck",
     "SweepResult",
     "clearance_text",
+    "tight_meaning",
 ]

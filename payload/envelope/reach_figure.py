@@ -10,6 +10,9 @@ import manifold3d as m3d
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
+from matplotlib.legend import Legend
+from matplotlib.legend_handler import HandlerTuple
+from matplotlib.lines import Line2D
 
 from payload.design.params import FINGERS
 from payload.envelope.drawing import (
@@ -29,6 +32,7 @@ from payload.envelope.drawing import (
     vehicle_legend,
 )
 from payload.envelope.geometry import PayloadGeometry
+from payload.envelope.grasp import GraspFeature, GraspResult
 from payload.envelope.reach import ReachAnalysis
 from payload.envelope.vehicle import Vehicle
 from payload.envelope.verdict import reach_passed
@@ -83,6 +87,12 @@ ROWS_BAND = 0.12
 """Fraction of the span panel's height under the histograms' zero: the pairs' rows."""
 PAIR_COLOURS = {"L": "#1f77b4", "R": "#ff7f0e"}
 """One colour per pair in the span panel."""
+GRASP_MARKERS: dict[bool, dict[str, str]] = {
+    True: {"marker": "^", "color": "green"},
+    False: {"marker": "x", "color": "red"},
+}
+"""A CTB feature's marker in the span panel, by whether the pair closes on it (a green
+triangle) or not (no witness: a red cross)."""
 
 
 def _depth(x: float) -> str:
@@ -185,12 +195,10 @@ def _span_panel(ax: Any, a: ReachAnalysis, pad_radius: float) -> None:
             label=f"pair {p.name}: span range {lo:.1f} .. {hi:.1f} mm",
         )
         for g in p.grasps:
-            x = (g.feature.thickness + 2 * r) * 1e3
             ax.plot(
-                [x],
+                [_separation_mm(g.feature, r)],
                 [row],
-                marker="^" if g.closes else "x",
-                color="green" if g.closes else "red",
+                **GRASP_MARKERS[g.closes],
                 ms=7,
                 clip_on=False,
                 zorder=4,
@@ -207,8 +215,8 @@ def _span_panel(ax: Any, a: ReachAnalysis, pad_radius: float) -> None:
             fontsize=8,
             color=colour,
         )
-    ax.plot([], [], ls="none", marker="^", color="green", label="CTB feature: pair closes on it")
-    ax.plot([], [], ls="none", marker="x", color="red", label="CTB feature: no witness")
+    ax.plot([], [], ls="none", **GRASP_MARKERS[True], label="CTB feature: pair closes on it")
+    ax.plot([], [], ls="none", **GRASP_MARKERS[False], label="CTB feature: no witness")
     ax.set_xlabel("fingertip separation l [mm]")
     ax.set_ylabel("samples")
     ax.set_title(
@@ -216,8 +224,47 @@ def _span_panel(ax: Any, a: ReachAnalysis, pad_radius: float) -> None:
         "CTB thicknesses + pad diameter (green: the pair closes on it, red: no witness)",
         fontsize=9,
     )
-    # beside the panel, where it covers no bin, line or marker
+    # beside the panel, where it covers no bin, line or marker; the features' under it (not
+    # clipped to the panel, as an added artist is by default, so the layout makes room)
+    ax.add_artist(_feature_legend(ax, a, r)).set_clip_on(False)
     ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0)
+
+
+def _separation_mm(feature: GraspFeature, pad_radius: float) -> float:
+    """Where a feature's marker stands: the fingertip separation that closes the pads on
+    it, its thickness plus the pad diameter [mm]."""
+    return (feature.thickness + 2 * pad_radius) * 1e3
+
+
+def _feature_legend(ax: Any, a: ReachAnalysis, pad_radius: float) -> Legend:
+    """Beside the span panel, under its legend: which CTB feature each marker column is,
+    one entry per feature in the markers' order (left to right), its markers (one per
+    pair, as the rows draw them) and its separation; the markers stand too close
+    together (a few mm apart) for a name beside each."""
+    by_feature: dict[str, list[GraspResult]] = {}
+    for p in a.pairs:
+        for g in p.grasps:
+            by_feature.setdefault(g.feature.name, []).append(g)
+    handles, labels = [], []
+    for name, grasps in sorted(by_feature.items(), key=lambda kv: kv[1][0].feature.thickness):
+        handles.append(
+            tuple(Line2D([], [], ls="none", ms=6, **GRASP_MARKERS[g.closes]) for g in grasps)
+        )
+        labels.append(f"{_separation_mm(grasps[0].feature, pad_radius):.1f} mm: {name}")
+    pairs = ", ".join(p.name for p in a.pairs)
+    return Legend(
+        ax,
+        handles,
+        labels,
+        handler_map={tuple: HandlerTuple(ndivide=None, pad=0.6)},
+        title=f"CTB features, left to right\n(markers: pair {pairs}; l = thickness + pad diameter)",
+        title_fontsize=8,
+        fontsize=8,
+        loc="lower left",
+        bbox_to_anchor=(1.01, 0.0),
+        borderaxespad=0,
+        alignment="left",
+    )
 
 
 __all__ = [

@@ -33,7 +33,7 @@ from payload.envelope.drawing import (
     TIGHT_COLOUR,
 )
 from payload.envelope.fit import StowedCheck, check_stowed, wall_gaps
-from payload.envelope.fit_results import TIGHT_CLEARANCE, clearance_text
+from payload.envelope.fit_results import clearance_text, tight_meaning
 from payload.envelope.geometry import PayloadGeometry
 from payload.envelope.vehicle import Vehicle, vehicle_from_dict
 from payload.errors import first_of
@@ -290,7 +290,7 @@ def legend(colours: Mapping[str, int], reach: bool) -> list[tuple[str, str]]:
     out += [
         (STRUCTURE_COLOUR, "structure: base, stage, carriage"),
         verdict(OFFENDING_COLOUR, "fails: outside the bays or colliding"),
-        verdict(TIGHT, f"tight: under {clearance_text(TIGHT_CLEARANCE)} to a bay wall"),
+        verdict(TIGHT, tight_meaning()),
         (colour_text(BODY_COLOUR), "Astrobee's body"),
         (colour_text(BAY_COLOUR), "payload bays (the stowed envelope)"),
         (colour_text(SEGMENT_COLOUR), "clearance measured (stowed)"),
