@@ -1010,7 +1010,7 @@ def test_the_design_review_words_a_tight_clearance_as_the_report_does(narrow_fit
     _, verdict = title(files, narrow_fit.given)
     assert verdict == "stowed fit: pass; tightest stage 0.30 mm"
     said = [text for _, text in legend({}, reach=False) if text.startswith("tight:")]
-    assert said == ["tight: under 0.50 mm to a bay wall (none here)"]
+    assert said == ["tight: under 0.50 mm to a bay wall or another link (none here)"]
 
 
 def _drawn_envelope_figure(geom, analysis, monkeypatch, tmp_path):
@@ -1108,3 +1108,30 @@ def test_envelope_png_draws_the_tight_parts_amber_and_says_so(
         "neither": [],
     }
     assert said == expected[case]
+
+
+def test_the_review_draws_a_tight_pairs_links_amber_as_envelope_png_does(design_dict) -> None:
+    """envelope.png draws both links of a tight pair amber (a 46 mm distal 0.28 mm under
+    the stage), but the design review coloured only the parts tight to a bay wall and
+    named only those in its legend: a pair-only tight design looked roomy there. The review
+    now colours every link the report's JSON lists as tight, and its legend's amber means
+    a bay wall or another link."""
+    from payload.envelope.drawing import TIGHT_COLOUR
+    from payload.envelope.report_json import envelope_json
+    from payload.review.design_view import legend, part_colours
+    from payload.review.model import PayloadModel
+    from payload.review.scene import hex_colour
+
+    data = copy.deepcopy(design_dict)
+    data["finger"]["lengths"]["distal"] = 0.046
+    g = geometry_of(data)
+    a = analyse_envelope(g, VEHICLE, search=False)
+    listed = envelope_json(a)["tight"]
+    pairs = {n for t in listed if "links" in t for n in t["links"]}
+    walls = {t["part"] for t in listed if "part" in t}
+    assert a.passed and pairs - walls, listed  # a pair is tight beyond any wall
+    colours = part_colours(PayloadModel(ROOT / "urdf" / "payload.urdf"), a.given, frozenset())
+    amber = {n for n, c in colours.items() if c == hex_colour(TIGHT_COLOUR)}
+    assert amber == pairs | walls
+    said = [text for _, text in legend(colours, reach=False) if text.startswith("tight:")]
+    assert said == ["tight: under 0.50 mm to a bay wall or another link"]

@@ -268,7 +268,7 @@ def deployment_configurations(
 
 def part_colours(model: PayloadModel, check: StowedCheck, bad: frozenset[str]) -> dict[str, int]:
     """Each link's colour: red failing, amber tight, else its finger's colour or grey."""
-    tight = {p.name for p in check.tight_parts}
+    tight = set(check.tight_links)  # a tight pair's links too, as envelope.png draws them
     return {
         n: OFFENDING_COLOUR if n in bad else TIGHT if n in tight else link_colour(n)
         for n in model.links
@@ -290,7 +290,7 @@ def legend(colours: Mapping[str, int], reach: bool) -> list[tuple[str, str]]:
     out += [
         (STRUCTURE_COLOUR, "structure: base, stage, carriage"),
         verdict(OFFENDING_COLOUR, "fails: outside the bays or colliding"),
-        verdict(TIGHT, tight_meaning()),
+        verdict(TIGHT, tight_meaning(walls=True, links=True)),
         (colour_text(BODY_COLOUR), "Astrobee's body"),
         (colour_text(BAY_COLOUR), "payload bays (the stowed envelope)"),
         (colour_text(SEGMENT_COLOUR), "clearance measured (stowed)"),
