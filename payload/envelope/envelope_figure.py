@@ -69,7 +69,7 @@ def _section_panel(
         sec = polygons(view.slice(value), axis)
         fit = parts_by_name.get(name)
         outside = fit is not None and not fit.inside
-        edge = "red" if outside else ("magenta" if name in colliding else "black")
+        edge = FAIL_COLOUR if outside else ("magenta" if name in colliding else "black")
         patch = polygon_patch(
             sec,
             facecolor=colour,
@@ -105,7 +105,7 @@ def _annotate_clearances(ax: Any, check: StowedCheck, vehicle: Vehicle, axis: in
             continue
         out, near = check.protruding_beyond(wall), check.nearest_to_wall(w)
         if out is not None:
-            text, colour = f"{out.name}: {out.protrusion * 1e3:.1f} mm out", "red"
+            text, colour = f"{out.name}: {out.protrusion * 1e3:.1f} mm out", FAIL_COLOUR
         elif near is not None:
             text, colour = f"{clearance_text(near.wall_clearance[w])} ({near.name})", "black"
         else:
@@ -170,7 +170,7 @@ def envelope_figure(geom: PayloadGeometry, a: EnvelopeAnalysis, path: Path, dpi:
         *vehicle_legend(),
         legend_box("structure", facecolor=STRUCTURE_COLOUR),
         *[legend_box(f"finger {f}", facecolor=c) for f, c in FINGER_COLOURS.items()],
-        legend_box("outside the envelope", facecolor="white", edgecolor="red", hatch="///"),
+        legend_box("outside the envelope", facecolor="white", edgecolor=FAIL_COLOUR, hatch="///"),
         legend_box("self-collision", facecolor="white", edgecolor="magenta", lw=1.6),
     ]
     if tight:  # said only when something is: a fit with room to spare keeps its legend

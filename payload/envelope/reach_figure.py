@@ -88,8 +88,8 @@ ROWS_BAND = 0.12
 PAIR_COLOURS = {"L": "#1f77b4", "R": "#ff7f0e"}
 """One colour per pair in the span panel."""
 GRASP_MARKERS: dict[bool, dict[str, str]] = {
-    True: {"marker": "^", "color": "green"},
-    False: {"marker": "x", "color": "red"},
+    True: {"marker": "^", "color": PASS_COLOUR},
+    False: {"marker": "x", "color": FAIL_COLOUR},
 }
 """A CTB feature's marker in the span panel, by whether the pair closes on it (a green
 triangle) or not (no witness: a red cross)."""
