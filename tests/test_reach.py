@@ -986,3 +986,25 @@ def test_a_sparse_reach_verdict_says_a_grasp_can_be_missed(geom, small) -> None:
     thinnest = {p.name: min(g.feature.thickness for g in p.grasps if g.closes) for p in full.pairs}
     assert len(set(thinnest.values())) == 1, thinnest  # mirror images: the same grasp
     assert "sampled" not in reach_verdict(full) and "can be missed" not in reach_verdict(full)
+
+
+def test_no_axis_label_of_reach_png_touches_the_figures_edge(reach_png) -> None:
+    """reach.png's side view had its "z [mm]" label at the figure's very left edge (its
+    first pixel column dark): every axis label and tick label now lies inside the figure
+    with a margin."""
+    fig, _ = reach_png
+    renderer = fig.canvas.get_renderer()
+    box = fig.bbox
+    margin = 3.0  # [px] at the figure's dpi
+    for ax in fig.axes:
+        for text in (ax.xaxis.label, ax.yaxis.label, *ax.get_yticklabels()):
+            if not text.get_text() or not text.get_visible():
+                continue
+            ext = text.get_window_extent(renderer)
+            inside = (
+                ext.x0 >= box.x0 + margin
+                and ext.y0 >= box.y0 + margin
+                and ext.x1 <= box.x1 - margin
+                and ext.y1 <= box.y1 - margin
+            )
+            assert inside, (ax.get_title(), text.get_text(), ext, box)

@@ -38,13 +38,18 @@ from payload.envelope.vehicle import Vehicle
 from payload.envelope.verdict import reach_passed
 from payload.envelope.workspace import Workspace
 
+PAD_IN = 0.1
+"""The figure's margin around its panels [in] (matplotlib's 3/72 left the side view's
+axis label touching the left edge)."""
+
 
 def reach_figure(
     geom: PayloadGeometry, a: ReachAnalysis, path: Path, dpi: int = 100, points: int = 2500
 ) -> Path:
     """Fingertip clouds with the vehicle outline in three views, and the span histograms."""
     rng = np.random.default_rng(0)
-    fig = Figure(figsize=(13, 10), layout="constrained")
+    fig = Figure(figsize=(13, 10))
+    fig.set_layout_engine("constrained", w_pad=PAD_IN, h_pad=PAD_IN)  # labels off the edge
     FigureCanvasAgg(fig)
     axes = fig.subplots(2, 2)
     home = posed_solids(geom, geom.tree.posture("home"))
