@@ -183,29 +183,37 @@ def _copy_project(tmp_path: Path, design_dict: dict, bay_size: list[float]) -> P
     return root / "cad" / "design.toml"
 
 
-def test_a_design_that_does_not_fit_shows_the_offending_parts_red(tmp_path, design_dict) -> None:
-    path = _copy_project(tmp_path, design_dict, [0.18, 0.10, 0.085])
-    rv = build_design_review(project_files(path), reach_samples=0)
-    # independent: the stowed meshes, posed by the design tree, against the bay box
-    design = load_design(path)
+def _beyond_the_bays(design_file: Path) -> dict[str, np.ndarray]:
+    """How far each part's stowed mesh (posed by the design tree) reaches beyond each of the
+    bay box's six walls, -x .. +z, shape (6,) [m] (negative: short of it): independent of
+    the envelope checks."""
+    design = load_design(design_file)
     tree = build_tree(design)
     geom = PayloadGeometry(tree)
     poses = tree.link_poses(tree.posture("stowed"))
     sx, sy, sz = design.vehicle["bay_size"]
     lo, hi = np.array([-sx / 2, -sy / 2, -sz]), np.array([sx / 2, sy / 2, 0.0])
-    out = set()
+    out = {}
     for n in geom.links:
         v = geom.mesh_vertices[n] @ poses[n][:3, :3].T + poses[n][:3, 3]
-        if np.any(v < lo - 1e-6) or np.any(v > hi + 1e-6):
-            out.add(n)
+        out[n] = np.concatenate([(lo - v).max(axis=0), (v - hi).max(axis=0)])[[0, 3, 1, 4, 2, 5]]
+    return out
+
+
+def test_a_design_that_does_not_fit_shows_the_offending_parts_red(tmp_path, design_dict) -> None:
+    path = _copy_project(tmp_path, design_dict, [0.18, 0.10, 0.085])
+    rv = build_design_review(project_files(path), reach_samples=0)
+    # independent: the stowed meshes, posed by the design tree, against the bay box
+    beyond = _beyond_the_bays(path)
+    out = {n for n, past in beyond.items() if past.max() > 1e-6}
     assert out and "base" in out and any(n[1:2] == "_" for n in out)
     assert set(rv.offending) == out
     objects = rv.scene.objects()
-    for n in geom.links:
+    for n in beyond:
         colour = objects[f"{REVIEW}/payload/{n}/visual0"].material.color
         assert (colour == OFFENDING_COLOUR) == (n in out), n
     labels = [p for p, _ in rv.scene.overlay.labels if "/findings/protrusion/" in p]
-    assert sorted(p.rsplit("/", 1)[1] for p in labels) == sorted(out)
+    assert labels and {p.rsplit("/", 1)[1] for p in labels} <= out  # (one per wall: below)
     # the verdict says what failed, not only the tightest part: a protruding link named
     verdict = rv.scene.overlay.subtitle
     assert verdict.startswith("stowed fit: FAIL: ") and " protrudes " in verdict
@@ -857,6 +865,96 @@ def _cie76(a: str, b: str) -> float:
         return np.array([116 * f[1] - 16, 500 * (f[0] - f[1]), 200 * (f[1] - f[2])])
 
     return float(np.linalg.norm(lab(a) - lab(b)))
+
+
+def test_links_that_collide_are_drawn_in_the_collision_colour(
+    tmp_path, design_dict, capsys
+) -> None:
+    """With 60 mm distal links the curled distal links run into the stage and the carriage:
+    every failing part was the same red, so a reviewer could not tell a collision from a
+    protrusion. The links that collide, as the envelope report's JSON lists them
+    (``self_collisions``), are drawn in the collision colour (the envelope figure's
+    magenta edge); none is outside the bays, so no part is red; every other link keeps its
+    finger's colour or grey; the legend explains the colour and marks the red unused."""
+    from payload.design.build import write
+
+    root = _copy_project(tmp_path, design_dict, design_dict["vehicle"]["bay_size"]).parents[1]
+    lengths = {**design_dict["finger"]["lengths"], "distal": 0.060}
+    data = {**design_dict, "finger": {**design_dict["finger"], "lengths": lengths}}
+    (root / "cad" / "design.toml").write_bytes(tomli_w.dumps(data).encode())
+    write(load_design(root / "cad" / "design.toml"), root)
+    capsys.readouterr()
+    assert main(["--project", str(root), "report", "envelope", "--no-search", "--json"]) == 1
+    report = json.loads(capsys.readouterr().out)
+    colliding = {n for c in report["self_collisions"] for n in c["links"]}
+    assert all(p["inside"] for p in report["parts"]) and report["deploy_path"]["vehicle_clear"]
+    assert "stage" in colliding and any(n.endswith("_distal") for n in colliding)
+    rv = build_design_review(project_files(root / "cad" / "design.toml"), reach_samples=0)
+    objects = rv.scene.objects()
+    links = [n for n, meshes in _urdf_links(root / "urdf" / "payload.urdf").items() if meshes]
+    drawn = {n: objects[f"{REVIEW}/payload/{n}/visual0"].material.color for n in links}
+    red = {n for n, c in drawn.items() if c == OFFENDING_COLOUR}
+    assert not red, f"drawn red, as if outside the bays: {sorted(red)}"
+    from payload.envelope.drawing import COLLISION_COLOUR
+
+    collision = int(COLLISION_COLOUR[1:], 16)
+    assert {n for n, c in drawn.items() if c == collision} == colliding
+    for n, c in drawn.items():
+        if n not in colliding:
+            assert c == link_colour(n), n
+    rows = {text: colour for colour, text in rv.scene.overlay.legend}
+    meaning = next(t for t, c in rows.items() if c.lower() == COLLISION_COLOUR.lower())
+    assert "collides with another link" in meaning and "(none here)" not in meaning
+    unused = next(t for t, c in rows.items() if int(c[1:], 16) == OFFENDING_COLOUR)
+    assert unused.endswith("(none here)") and "outside the bays" in unused
+
+
+def test_the_collision_colour_stands_apart_from_every_other_colour_drawn(review) -> None:
+    """Magenta sits between finger B's purple and finger D's pink in hue, but far from
+    both in colour (CIE76, as the replay's contact indicator): every other colour of the
+    design review's legend is at least 40 away (finger D's pink, the nearest, about 62)."""
+    from payload.envelope.drawing import COLLISION_COLOUR
+
+    others = [c for c, _ in review.scene.overlay.legend if c.lower() != COLLISION_COLOUR]
+    assert len(others) == len(review.scene.overlay.legend) - 1
+    apart = min(_cie76(COLLISION_COLOUR, c) for c in others)
+    assert apart >= 40.0, apart
+
+
+def test_a_failing_design_has_one_label_per_wall_naming_the_farthest_part(
+    tmp_path, design_dict
+) -> None:
+    """With the bays 180 x 100 x 85 mm, 13 parts stick out of the bottom face: a label per
+    part crowded over Astrobee's body. Each wall now has one label: a crossed wall's names
+    the part sticking out farthest beyond it and how many more cross it, as found here from
+    the stowed meshes (posed by the design tree) against the bay box; the other walls keep
+    their clearance."""
+    path = _copy_project(tmp_path, design_dict, [0.18, 0.10, 0.085])
+    rv = build_design_review(project_files(path), reach_samples=0)
+    beyond = {  # part -> (wall crossed most, how far beyond it [m])
+        n: (int(np.argmax(past)), float(past.max()))
+        for n, past in _beyond_the_bays(path).items()
+        if past.max() > 1e-6
+    }
+    crossing = {w: [n for n, (x, _) in beyond.items() if x == w] for w in range(6)}
+    assert max(len(c) for c in crossing.values()) > 6  # the crowd at issue
+    labels = rv.scene.overlay.labels
+    assert len(labels) == 6  # one per wall
+    said = {}
+    for path_, text in labels:
+        if "/findings/protrusion/" not in path_:
+            continue
+        m = re.fullmatch(r"(\w+) - ([\d.]+) mm beyond (.+?)(?: \(and (\d+) more\))?", text)
+        assert m, text
+        part, mm, wall, more = m[1], float(m[2]), _WALL_NAMES.index(m[3]), int(m[4] or 0)
+        assert path_.rsplit("/", 1)[1] == part
+        assert wall not in said, f"two labels on {m[3]}"
+        said[wall] = part
+        farthest = max(beyond[n][1] for n in crossing[wall])
+        assert beyond[part] == (wall, pytest.approx(farthest, abs=1e-6)), (text, beyond[part])
+        assert mm == pytest.approx(farthest * 1e3, abs=0.051), text
+        assert more == len(crossing[wall]) - 1, text
+    assert set(said) == {w for w, c in crossing.items() if c}
 
 
 def test_a_session_the_cap_stopped_is_said_to_have_stopped_early(tmp_path) -> None:

@@ -289,17 +289,38 @@ def test_a_failing_verdict_covers_neither_astrobee_nor_its_payload(tmp_path, des
 
 def test_no_two_labels_overlap_and_each_names_what_it_measures(static_review) -> None:
     _require_browser()
+    _labels_shown_apart(static_review, project_files().design)
+
+
+def test_a_failing_designs_labels_are_one_per_wall_and_all_shown(tmp_path, design_dict) -> None:
+    """With the bays too small, 14 parts stick out: a label each (and one per clear wall)
+    crowded 20 labels over Astrobee's body. At most one label per bay wall, every one shown
+    beside the payload, no two overlapping."""
+    _require_browser()
+    from payload.envelope.vehicle import vehicle_from_dict
+
+    failing, html = _failing_page(tmp_path, design_dict)
+    boxes = _labels_shown_apart(html, failing)
+    walls = vehicle_from_dict(load_design(failing).vehicle or {}).walls
+    assert len(boxes) <= len(walls), [b["text"] for b in boxes]
+    assert any("(and " in b["text"] for b in boxes)  # the rest of a wall's crowd, counted
+
+
+def _labels_shown_apart(html: Path, design_file: Path) -> list[dict]:
+    """The label boxes of the review page ``html`` of ``design_file`` (read from the page),
+    checked: every stowed label shown, in the viewport, none over the stowed payload's
+    screen box, no two overlapping."""
     from payload.review.browser import open_page
 
-    review = build_design_review(project_files(), reach_samples=0)
+    review = build_design_review(project_files(design_file), reach_samples=0)
     texts = sorted(t for _, t in review.scene.overlay.labels)
-    with open_page(static_review) as page:
+    with open_page(html) as page:
         boxes = page.evaluate("() => payloadReview.labelBoxes()")
         m, size = page_projection(page)
     assert sorted(b["text"] for b in boxes) == texts  # every stowed label shown
     # beside the stowed payload, not over its parts (a failing design's red ones were hidden
     # under its labels): the payload's screen box, its meshes projected here
-    tree = build_tree(load_design(project_files().design))
+    tree = build_tree(load_design(design_file))
     geom = PayloadGeometry(tree)
     posed = _posed(geom, tree.link_poses(review.check.q), geom.links)
     uv = to_pixels(np.vstack(list(posed.values())), m, size)
@@ -308,16 +329,11 @@ def test_no_two_labels_overlap_and_each_names_what_it_measures(static_review) ->
     for b in boxes:
         assert _apart(b, payload), (b, payload)
     for a, b in itertools.combinations(boxes, 2):
-        apart = (
-            a["x"] + a["w"] <= b["x"]
-            or b["x"] + b["w"] <= a["x"]
-            or a["y"] + a["h"] <= b["y"]
-            or b["y"] + b["h"] <= a["y"]
-        )
-        assert apart, f"labels overlap: {a} {b}"
+        assert _apart(a, b), f"labels overlap: {a} {b}"
     for b in boxes:
         assert 0 <= b["x"] and b["x"] + b["w"] <= VIEWPORT[0]
         assert 0 <= b["y"] and b["y"] + b["h"] <= VIEWPORT[1]
+    return boxes
 
 
 _COLOURS = """() => {

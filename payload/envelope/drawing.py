@@ -18,9 +18,15 @@ FINGER_COLOURS = {"A": "#1f77b4", "B": "#9467bd", "C": "#2ca02c", "D": "#e377c2"
 """One colour per finger, none of them the pass/fail colours below."""
 STRUCTURE_COLOUR = "#8c8c8c"
 FAIL_COLOUR = "#e00000"
-"""A part that protrudes from the bays or collides: red, and nothing else is (but the
-review's verdict on a design that fails, and the trial replay's keep-out boxes, where the
-vehicle must not be)."""
+"""A part that protrudes from the bays (in the design review, or hits the vehicle as the
+stage deploys): red, and nothing else is (but the review's verdict on a design that fails,
+and the trial replay's keep-out boxes, where the vehicle must not be)."""
+COLLISION_COLOUR = "#ff00ff"
+"""A part that collides with another link (and is not outside the bays): magenta, and
+nothing else is; the envelope figure edges it in it, the design review fills it. Apart from
+the fingers' colours (CIE76 difference over 60 from finger D's pink, the nearest) and
+from the red, so the links that collide show among the parts that stick out; on white
+about 3:1, as a line or a fill."""
 PASS_COLOUR = "#1a7f37"
 """The review's verdict on a design that passes: dark green, on white as legible as the
 red (contrast about 5:1); no part is drawn in it."""
@@ -117,6 +123,7 @@ __all__ = [
     "AXES",
     "AXIS_LABEL",
     "BAY_STYLE",
+    "COLLISION_COLOUR",
     "FAIL_COLOUR",
     "FINGER_COLOURS",
     "PASS_COLOUR",

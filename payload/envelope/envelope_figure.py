@@ -13,6 +13,7 @@ from matplotlib.figure import Figure
 from payload.envelope.drawing import (
     AXES,
     AXIS_LABEL,
+    COLLISION_COLOUR,
     FAIL_COLOUR,
     FINGER_COLOURS,
     PASS_COLOUR,
@@ -50,8 +51,9 @@ def _section_panel(
     tight: frozenset[str] = frozenset(),
 ) -> None:
     """One section of the stowed parts, their silhouettes shaded; a part outside the bays
-    edged red and hatched, a colliding one edged magenta, a tight one (``tight``, names
-    of links) filled amber, section and silhouette, as the design review draws it."""
+    edged red and hatched, a colliding one (``colliding``) edged magenta
+    (``COLLISION_COLOUR``), a tight one (``tight``, names of links) filled amber, section
+    and silhouette, in the colours the design review fills such parts with."""
     h, v = AXES[axis]
     draw_vehicle(ax, vehicle, axis)
     for name, solid in solids.items():
@@ -69,7 +71,7 @@ def _section_panel(
         sec = polygons(view.slice(value), axis)
         fit = parts_by_name.get(name)
         outside = fit is not None and not fit.inside
-        edge = FAIL_COLOUR if outside else ("magenta" if name in colliding else "black")
+        edge = FAIL_COLOUR if outside else (COLLISION_COLOUR if name in colliding else "black")
         patch = polygon_patch(
             sec,
             facecolor=colour,
@@ -171,7 +173,7 @@ def envelope_figure(geom: PayloadGeometry, a: EnvelopeAnalysis, path: Path, dpi:
         legend_box("structure", facecolor=STRUCTURE_COLOUR),
         *[legend_box(f"finger {f}", facecolor=c) for f, c in FINGER_COLOURS.items()],
         legend_box("outside the envelope", facecolor="white", edgecolor=FAIL_COLOUR, hatch="///"),
-        legend_box("self-collision", facecolor="white", edgecolor="magenta", lw=1.6),
+        legend_box("self-collision", facecolor="white", edgecolor=COLLISION_COLOUR, lw=1.6),
     ]
     if tight:  # said only when something is: a fit with room to spare keeps its legend
         said = tight_meaning(walls=bool(check.tight_parts), links=bool(check.tight_pairs))

@@ -27,6 +27,7 @@ from meshcat.animation import Animation, AnimationClip, AnimationTrack
 
 from payload.design import FINGERS, build_tree, load_design
 from payload.envelope.drawing import (
+    COLLISION_COLOUR,
     FAIL_COLOUR,
     FINGER_COLOURS,
     STRUCTURE_COLOUR,
@@ -59,7 +60,11 @@ REVIEW = f"{ROOT}/review"
 """Root node of the design review."""
 
 OFFENDING_COLOUR = hex_colour(FAIL_COLOUR)
-"""Colour of a part that protrudes from the bays or collides."""
+"""Colour of a part that protrudes from the bays or hits the vehicle as the stage deploys."""
+COLLIDING = hex_colour(COLLISION_COLOUR)
+"""Colour of a part that collides with another link and is not outside the bays (nor hit
+by the vehicle as the stage deploys: those are :data:`OFFENDING_COLOUR`); the envelope
+figure edges such a part in it."""
 TIGHT = hex_colour(TIGHT_COLOUR)
 """Colour of a part inside the bays with less than
 :data:`~payload.envelope.fit_results.TIGHT_CLEARANCE` to a wall (the envelope verdict's
@@ -94,7 +99,8 @@ class DesignReview:
     Attributes:
         scene: The meshcat scene.
         check: The envelope checks of the stowed configuration.
-        offending: Links drawn red (protruding, colliding, or hit in the deployment).
+        offending: Links that fail (protruding, colliding, or hit in the deployment):
+            drawn red, or magenta when they only collide with another link.
         centre: Payload-frame point placed at the world origin (the camera target) [m].
         stowed: Link placements in the stowed configuration (payload frame).
         deployed: Link placements in the home (deployed) configuration.
@@ -108,14 +114,22 @@ class DesignReview:
     deployed: dict[str, np.ndarray]
 
 
-def offending_parts(check: StowedCheck) -> frozenset[str]:
-    """Links that protrude from the bays, collide with another link, or hit the vehicle."""
+def outside_parts(check: StowedCheck) -> frozenset[str]:
+    """Links that protrude from the bays or hit the vehicle as the stage deploys."""
     out = {p.name for p in check.parts if not p.inside}
-    for c in check.collisions:
-        out |= {c.a, c.b}
     if not check.sweep.vehicle_clear:
         out |= {n for n in check.sweep.between if n in {p.name for p in check.parts}}
     return frozenset(out)
+
+
+def colliding_parts(check: StowedCheck) -> frozenset[str]:
+    """Links that collide with another link and are not among the :func:`outside_parts`."""
+    return frozenset(n for c in check.collisions for n in (c.a, c.b)) - outside_parts(check)
+
+
+def offending_parts(check: StowedCheck) -> frozenset[str]:
+    """Links that protrude from the bays, collide with another link, or hit the vehicle."""
+    return outside_parts(check) | colliding_parts(check)
 
 
 def draw_vehicle(scene: Scene, vehicle: Vehicle, root: str) -> None:
@@ -166,11 +180,14 @@ def wall_name(wall: str) -> str:
 def draw_findings(
     scene: Scene, geom: PayloadGeometry, check: StowedCheck, vehicle: Vehicle, root: str
 ) -> list[tuple[str, float, np.ndarray, np.ndarray]]:
-    """The tightest clearance to each bay wall as a labelled segment (over every part,
-    inside the bays or not, as the envelope report's per-part clearances), and each
-    protrusion (a wall a part crosses gets that label instead of a clearance).
+    """One label per bay wall, as envelope.png marks each wall: the tightest clearance to
+    it as a labelled segment (over every part, inside the bays or not, as the envelope
+    report's per-part clearances), or, on a wall parts cross, the part sticking out
+    farthest beyond it and how many more cross it (every one of them is drawn red; a
+    label per part crowded a failing design's view).
 
-    Labels name the part, the wall and the distance (``stage - bay bottom face 6.0 mm``).
+    Labels name the part, the wall and the distance (``stage - bay bottom face 6.0 mm``,
+    ``A_knuckle - 9.9 mm beyond bay bottom face (and 12 more)``).
 
     Returns:
         ``(wall, clearance [m], part point, wall point)`` per drawn clearance segment.
@@ -193,13 +210,17 @@ def draw_findings(
         text = f"{name} - {wall_name(wall)} {clearance_text(d)}"
         _label(scene, f"{root}/clearance/{key}/label", text, (a + b) / 2)
         drawn.append((wall, float(d), a, b))
-    for p in check.parts:
-        if p.inside:
+    for w, wall in enumerate(vehicle.walls):
+        out = check.protruding_beyond(wall)
+        if out is None:
             continue
-        pts = geom.hull_vertices(p.name, poses[p.name])
-        far = pts[int(np.argmax(np.linalg.norm(pts - np.clip(pts, lo, hi), axis=1)))]
-        text = f"{p.name} - outside the bays by {p.protrusion * 1e3:.1f} mm"
-        _label(scene, f"{root}/protrusion/{p.name}", text, far)
+        pts = geom.hull_vertices(out.name, poses[out.name])
+        far = pts[int(np.argmin(wall_gaps(pts, lo, hi)[:, w]))]  # farthest beyond the wall
+        more = sum(1 for p in check.parts if not p.inside and p.wall == wall) - 1
+        text = f"{out.name} - {out.protrusion * 1e3:.1f} mm beyond {wall_name(wall)}"
+        if more:
+            text += f" (and {more} more)"
+        _label(scene, f"{root}/protrusion/{out.name}", text, far)
     return drawn
 
 
@@ -267,12 +288,18 @@ def deployment_configurations(
 
 
 def part_colours(model: PayloadModel, check: StowedCheck, bad: frozenset[str]) -> dict[str, int]:
-    """Each link's colour: red failing, amber tight, else its finger's colour or grey."""
+    """Each link's colour: of the failing ones (``bad``, :func:`offending_parts`) magenta
+    when it only collides with another link (:func:`colliding_parts`), else red; amber
+    tight; else its finger's colour or grey."""
     tight = set(check.tight_links)  # a tight pair's links too, as envelope.png draws them
-    return {
-        n: OFFENDING_COLOUR if n in bad else TIGHT if n in tight else link_colour(n)
-        for n in model.links
-    }
+    colliding = colliding_parts(check)
+
+    def colour(n: str) -> int:
+        if n in bad:
+            return COLLIDING if n in colliding else OFFENDING_COLOUR
+        return TIGHT if n in tight else link_colour(n)
+
+    return {n: colour(n) for n in model.links}
 
 
 def legend(colours: Mapping[str, int], reach: bool) -> list[tuple[str, str]]:
@@ -289,7 +316,8 @@ def legend(colours: Mapping[str, int], reach: bool) -> list[tuple[str, str]]:
     ]
     out += [
         (STRUCTURE_COLOUR, "structure: base, stage, carriage"),
-        verdict(OFFENDING_COLOUR, "fails: outside the bays or colliding"),
+        verdict(OFFENDING_COLOUR, "fails: outside the bays or hits the vehicle"),
+        verdict(COLLIDING, "fails: collides with another link"),
         verdict(TIGHT, tight_meaning(walls=True, links=True)),
         (colour_text(BODY_COLOUR), "Astrobee's body"),
         (colour_text(BAY_COLOUR), "payload bays (the stowed envelope)"),
@@ -425,16 +453,19 @@ def set_visibility(animation: Animation, path: str, frames: list[float], on: lis
 
 
 __all__ = [
+    "COLLIDING",
     "OFFENDING_COLOUR",
     "REVIEW",
     "DesignReview",
     "build_design_review",
+    "colliding_parts",
     "deployment_configurations",
     "draw_findings",
     "draw_links",
     "draw_vehicle",
     "link_colour",
     "offending_parts",
+    "outside_parts",
     "reach_clouds",
     "set_track",
     "set_visibility",
