@@ -214,6 +214,10 @@ def check(
                 # once; a reset (torque off with no error bit) is not in the health read
                 elif not isinstance(fault, HardwareFault) or fault.bits == ["reset"]:
                     errors.append(fault.alone)
+        for i, model in drv.other_model.items():  # its scan saw them, though the bring-up
+            if i not in other:  # stopped before saying so (replies lost or late)
+                other[i] = WrongModelError(i, smap.joint_of(i), model, smap.model_number)
+                errors.append(other[i].alone)
         run = 0  # health reads lost in a row
         for k, i in enumerate(present):
             if i in other:  # another family may keep other registers at these addresses

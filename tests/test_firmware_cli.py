@@ -671,3 +671,31 @@ def test_a_device_that_is_not_there_rebuilds_no_model_first(argv, tmp_path, caps
     ], err
     assert "models: rebuilt" not in out
     assert {p: hashlib.sha256(p.read_bytes()).hexdigest() for p in models} == before
+
+
+def test_check_reads_no_health_register_of_another_model_after_a_bring_up_that_lost_replies(
+    monkeypatch, capsys
+) -> None:
+    """A bring-up that stops on lost or late replies after its scan (a CommError) named no
+    servo of another model, so `hw check` read servo 5's health registers anyway (model
+    1060, another family's table) and could report a made-up hardware error. The scan's
+    finding is used: servo 5 gets nothing but the scan and its row says why."""
+    from firmware_interface import protocol as P
+    from firmware_interface.driver import DynamixelDriver
+    from firmware_interface.errors import CommError
+
+    def scan_then_lose(drv) -> None:
+        drv.scan()
+        raise CommError("servo 9 (C_mcp_flex): no reply (lost after the scan)")
+
+    monkeypatch.setattr(DynamixelDriver, "bring_up", scan_then_lose)
+    seen = spy_on_the_wire(monkeypatch)
+    with _emulating("model:5:1060", "error:5:overload") as port:
+        assert main(["hw", "check", "--device", port, "--json", "--latency-ms", LAT]) == 1
+        report = json.loads(capsys.readouterr().out)
+    scan = {(P.PING, None), (P.READ, BY_NAME["firmware_version"].address)}
+    assert seen[5] == scan, sorted(seen[5], key=str)
+    (row,) = [s for s in report["servos"] if s["id"] == 5]
+    assert row["not_read"] == "health registers not read: it is model 1060, not the map's 1240"
+    assert not any("hardware error" in e for e in report["errors"]), report["errors"]
+    assert any("model number 1060" in e for e in report["errors"]), report["errors"]
