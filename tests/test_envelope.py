@@ -802,8 +802,11 @@ def test_wall_labels_name_the_least_clearance_over_every_part(design_dict):
             wall = VEHICLE.walls[w]
             out = [p for p in parts if not p["inside"] and p["wall"] == wall]
             if out:
-                far = max(out, key=lambda p: p["protrusion_mm"])
-                assert text == f"{far['name']}: {far['protrusion_mm']:.1f} mm out"
+                # (which part and how far, wall by wall: the test below)
+                name, mm = text.removesuffix(" mm out").split(": ")
+                far = max(p["protrusion_mm"] for p in out)
+                assert float(mm) == pytest.approx(far, abs=0.051), (wall, text)
+                assert name in {p["name"] for p in parts if not p["inside"]}, (wall, text)
                 continue
             values = {p["name"]: p["wall_clearance_mm"][w] for p in parts}
             least = min(v for v in values.values() if v is not None)
@@ -813,6 +816,46 @@ def test_wall_labels_name_the_least_clearance_over_every_part(design_dict):
             seen.add((wall, text))
     assert ("+z (mount)", "6.0 mm (stage)") in seen
     assert any(w.startswith("-z") and t.startswith("5.1 mm (") for w, t in seen), seen
+
+
+def test_wall_labels_say_no_clearance_on_a_wall_a_part_crosses(geom):
+    """In bays 180 x 100 x 85 mm the base and the stage cross the forward wall, but the
+    bottom face more: envelope.png labelled the forward wall "0.00 mm (base)" in black,
+    which reads as safe. Each wall a part crosses, found here from the posed meshes against
+    the bay box wall by wall, is now labelled in red with the part reaching farthest
+    beyond it; no other wall is."""
+    from matplotlib.colors import same_color
+    from matplotlib.figure import Figure
+
+    from payload.envelope.drawing import AXES, FAIL_COLOUR
+    from payload.envelope.envelope_figure import _annotate_clearances
+
+    bays = with_bay_size(VEHICLE, [0.18, 0.10, 0.085])
+    analysis = analyse_envelope(geom, bays, search=False)
+    poses = geom.poses(analysis.given.q)
+    lo, hi = bays.bay_lower, bays.bay_upper
+    beyond = {}  # part -> how far beyond each wall, -x .. +z [m]
+    for n in geom.links:
+        v = geom.mesh_vertices[n] @ poses[n][:3, :3].T + poses[n][:3, 3]
+        beyond[n] = np.concatenate([(lo - v).max(axis=0), (v - hi).max(axis=0)])[[0, 3, 1, 4, 2, 5]]
+    crossing = {w: [n for n in beyond if beyond[n][w] > 1e-6] for w in range(6)}
+    assert {"base", "stage"} <= set(crossing[1])  # the forward wall
+    assert all(int(np.argmax(beyond[n])) != 1 for n in ("base", "stage"))  # crossed less
+    fig = Figure()
+    for axis, ax in enumerate(fig.subplots(1, 3)):
+        _annotate_clearances(ax, analysis.given, bays, axis)
+        walls = [w for w in range(6) if w // 2 in AXES[axis]]
+        assert len(ax.texts) == len(walls)
+        for w, t in zip(walls, ax.texts):
+            text = t.get_text()
+            if not crossing[w]:
+                assert not same_color(t.get_color(), FAIL_COLOUR) and "out" not in text, text
+                continue
+            far = max(crossing[w], key=lambda n: beyond[n][w])
+            assert same_color(t.get_color(), FAIL_COLOUR), text
+            name, mm = text.removesuffix(" mm out").split(": ")
+            assert name == far, (bays.walls[w], text)
+            assert float(mm) == pytest.approx(beyond[far][w] * 1e3, abs=0.051), text
 
 
 def test_the_search_line_prints_no_negative_zero() -> None:
@@ -1110,6 +1153,53 @@ def test_envelope_png_draws_the_tight_parts_amber_and_says_so(
     assert said == expected[case]
 
 
+@pytest.mark.parametrize(
+    ("distal", "bays"), [(0.050, [0.2, 0.0986, 0.1]), (0.046, [0.18, 0.10, 0.085])]
+)
+def test_a_failing_link_is_never_drawn_amber(
+    distal, bays, design_dict, monkeypatch, tmp_path
+) -> None:
+    """envelope.png filled every tight link amber, failing or not, while the review drew a
+    failing link red or magenta: a 50 mm distal in bays 98.6 mm across collides with the
+    stage and the carriage, which are tight to the walls; a 46 mm distal in bays
+    180 x 100 x 85 mm is tight under the stage, which is outside. A failing link (outside
+    the bays, colliding, as the report's JSON lists them, or hit deploying) is now never
+    amber in the figure or the review; the other tight links still are, and the legend
+    says amber only for them."""
+    from payload.envelope.drawing import AXES, TIGHT_COLOUR
+    from payload.envelope.report_json import envelope_json
+    from payload.review.design_view import part_colours
+    from payload.review.model import PayloadModel
+    from payload.review.scene import hex_colour
+
+    data = copy.deepcopy(design_dict)
+    data["finger"]["lengths"]["distal"] = distal
+    g = geometry_of(data)
+    a = analyse_envelope(g, with_bay_size(VEHICLE, bays), search=False)
+    j = envelope_json(a)
+    failing = {p["name"] for p in j["parts"] if not p["inside"]}
+    failing |= {n for c in j["self_collisions"] for n in c["links"]}
+    if not a.given.sweep.vehicle_clear:
+        failing |= set(a.given.sweep.between) & set(g.links)
+    tight = {t["part"] for t in j["tight"] if "part" in t}
+    tight |= {n for t in j["tight"] if "links" in t for n in t["links"]}
+    assert tight & failing and tight - failing  # failing and tight, and tight only
+    fig = _drawn_envelope_figure(g, a, monkeypatch, tmp_path)
+    poses = g.poses(a.given.q)
+    for (title, amber, _), axis in zip(_section_patches(fig), (0, 1, 2)):
+        h, v = AXES[axis]
+        for name in g.links:
+            box = np.array(g.posed_solid(name, poses[name]).bounding_box()) * 1e3
+            along = tuple(round(float(x), 2) for x in (box[h], box[v], box[3 + h], box[3 + v]))
+            assert (along in amber) == (name in tight - failing), (title, name)
+    said = [t.get_text() for t in fig.legends[0].get_texts() if t.get_text().startswith("tight")]
+    assert len(said) == 1
+    model = PayloadModel(ROOT / "urdf" / "payload.urdf")  # the same links as the design's
+    colours = part_colours(model, a.given)
+    amber = {n for n, c in colours.items() if c == hex_colour(TIGHT_COLOUR)}
+    assert amber == tight - failing
+
+
 def test_the_review_draws_a_tight_pairs_links_amber_as_envelope_png_does(design_dict) -> None:
     """envelope.png draws both links of a tight pair amber (a 46 mm distal 0.28 mm under
     the stage), but the design review coloured only the parts tight to a bay wall and
@@ -1130,7 +1220,7 @@ def test_the_review_draws_a_tight_pairs_links_amber_as_envelope_png_does(design_
     pairs = {n for t in listed if "links" in t for n in t["links"]}
     walls = {t["part"] for t in listed if "part" in t}
     assert a.passed and pairs - walls, listed  # a pair is tight beyond any wall
-    colours = part_colours(PayloadModel(ROOT / "urdf" / "payload.urdf"), a.given, frozenset())
+    colours = part_colours(PayloadModel(ROOT / "urdf" / "payload.urdf"), a.given)
     amber = {n for n, c in colours.items() if c == hex_colour(TIGHT_COLOUR)}
     assert amber == pairs | walls
     said = [text for _, text in legend(colours, reach=False) if text.startswith("tight:")]

@@ -156,6 +156,8 @@ def fit_solid(
         d = float(fcl.distance(mesh, slab, request, fcl.DistanceResult()))
         walls.append(max(d, 0.0))
     inside = bool(prot <= INSIDE_TOL and outside <= VOLUME_TOL)
+    beyond = np.maximum(-wall_gaps(hull_points, lo, hi).min(axis=0), 0.0)
+    beyond[beyond <= INSIDE_TOL] = 0.0  # as a part inside: within the tolerance
     if inside:
         w = int(np.nanargmin(walls))
         clearance, wall = walls[w], vehicle.walls[w]
@@ -170,6 +172,7 @@ def fit_solid(
         outside,
         bool(mounted),
         tuple(walls),
+        tuple(float(b) for b in beyond),
     )
 
 

@@ -97,17 +97,21 @@ def _section_panel(
 
 
 def _annotate_clearances(ax: Any, check: StowedCheck, vehicle: Vehicle, axis: int) -> None:
-    """Mark, for each wall seen in this view, the part sticking out farthest beyond it, else
-    the smallest clearance to it over every part (inside the bays or not) and its part."""
+    """Mark, for each wall seen in this view, the part sticking out farthest beyond it (of
+    every part crossing it, :meth:`StowedCheck.beyond_wall`), else the smallest clearance to
+    it over every part (inside the bays or not) and its part."""
     h, v = AXES[axis]
     lo, hi = vehicle.bay_lower * 1e3, vehicle.bay_upper * 1e3
-    for w, wall in enumerate(vehicle.walls):
+    for w in range(len(vehicle.walls)):
         ax_i = w // 2
         if ax_i not in (h, v):
             continue
-        out, near = check.protruding_beyond(wall), check.nearest_to_wall(w)
-        if out is not None:
-            text, colour = f"{out.name}: {out.protrusion * 1e3:.1f} mm out", FAIL_COLOUR
+        out, near = check.beyond_wall(w), check.nearest_to_wall(w)
+        if out:  # a wall a part crosses: no clearance (0 there) said of it
+            text, colour = (
+                f"{out[0].name}: {out[0].wall_protrusion[w] * 1e3:.1f} mm out",
+                FAIL_COLOUR,
+            )
         elif near is not None:
             text, colour = f"{clearance_text(near.wall_clearance[w])} ({near.name})", "black"
         else:
@@ -158,7 +162,8 @@ def envelope_figure(geom: PayloadGeometry, a: EnvelopeAnalysis, path: Path, dpi:
     FigureCanvasAgg(fig)
     axes = fig.subplots(2, 2)
     hit = frozenset(n for c in check.collisions for n in (c.a, c.b))
-    tight = frozenset(check.tight_links)
+    # amber for the tight links that do not fail (a failing one is drawn failing)
+    tight = frozenset(n for n in solids if check.link_role(n) == "tight")
     panels = (
         (axes[0, 0], 0, xa, "front view (y-z), through finger A"),
         (axes[0, 1], 1, ya, "side view (x-z), through fingers A, B"),
@@ -176,7 +181,9 @@ def envelope_figure(geom: PayloadGeometry, a: EnvelopeAnalysis, path: Path, dpi:
         legend_box("self-collision", facecolor="white", edgecolor=COLLISION_COLOUR, lw=1.6),
     ]
     if tight:  # said only when something is: a fit with room to spare keeps its legend
-        said = tight_meaning(walls=bool(check.tight_parts), links=bool(check.tight_pairs))
+        walls = any(p.name in tight for p in check.tight_parts)
+        links = any(c.a in tight or c.b in tight for c in check.tight_pairs)
+        said = tight_meaning(walls=walls, links=links)
         handles.append(legend_box(said, facecolor=TIGHT_COLOUR))
     ncol = 9 if len(handles) <= 9 else (len(handles) + 1) // 2
     fig.legend(handles=handles, loc="outside lower center", ncol=ncol, fontsize=8, frameon=False)

@@ -52,6 +52,9 @@ class PartFit(NamedTuple):
             with that face is its mounting and not a clearance.
         wall_clearance: python-fcl distance to each of the six walls, -x .. +z [m]
             (NaN for a mounted part's mount face; 0 when touching or crossing).
+        wall_protrusion: How far the part reaches beyond each of the six walls, -x .. +z
+            [m] (0 when it does not cross it): what tells a wall it crosses from one it
+            touches, both 0 in ``wall_clearance``.
     """
 
     name: str
@@ -62,6 +65,7 @@ class PartFit(NamedTuple):
     outside_volume: float
     mounted: bool
     wall_clearance: tuple[float, ...]
+    wall_protrusion: tuple[float, ...] = (0.0,) * 6
 
 
 class PairContact(NamedTuple):
@@ -166,12 +170,13 @@ class StowedCheck:
         has = [p for p in self.parts if np.isfinite(p.wall_clearance[w])]
         return min(has, key=lambda p: p.wall_clearance[w], default=None)
 
-    def protruding_beyond(self, wall: str) -> PartFit | None:
-        """The part sticking out farthest beyond ``wall`` (a name of
-        :attr:`Vehicle.walls <payload.envelope.vehicle.Vehicle.walls>`, the wall each
-        outside part crosses most), or None."""
-        out = [p for p in self.parts if not p.inside and p.wall == wall]
-        return max(out, key=lambda p: p.protrusion, default=None)
+    def beyond_wall(self, w: int) -> list[PartFit]:
+        """The parts reaching beyond wall ``w`` (0..5, -x .. +z), farthest beyond it first
+        (:attr:`PartFit.wall_protrusion`): every part crossing it, not only those crossing
+        it most (:attr:`PartFit.wall`); empty when none does (its wall clearances, then,
+        are clearances: :meth:`nearest_to_wall`)."""
+        out = [p for p in self.parts if p.wall_protrusion[w] > 0.0]
+        return sorted(out, key=lambda p: -p.wall_protrusion[w])
 
     @property
     def collisions(self) -> list[PairContact]:
@@ -209,6 +214,21 @@ class StowedCheck:
         names = [p.name for p in self.tight_parts]
         names += [n for c in self.tight_pairs for n in (c.a, c.b)]
         return list(dict.fromkeys(names))
+
+    def link_role(self, name: str) -> str | None:
+        """What a link's colour says, failing first: ``"outside"`` (outside the bays),
+        ``"hit"`` (hits the vehicle or the base as the stage deploys), ``"colliding"``
+        (collides with another link), ``"tight"`` (one of the :attr:`tight_links`), else
+        None; the one order of the envelope figure and the design review (a failing link
+        that is also tight is drawn failing, never amber)."""
+        if any(p.name == name and not p.inside for p in self.parts):
+            return "outside"
+        if not self.sweep.vehicle_clear and name in self.sweep.between:
+            if any(p.name == name for p in self.parts):
+                return "hit"
+        if any(name in (c.a, c.b) for c in self.collisions):
+            return "colliding"
+        return "tight" if name in self.tight_links else None
 
     @property
     def tight(self) -> bool:

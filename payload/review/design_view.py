@@ -8,10 +8,11 @@ sampling and collision model.
 
 Scene tree (under :data:`REVIEW`):
 ``vehicle/body/<i>``, ``vehicle/bays``, ``payload/<link>`` (every URDF link; meshes at
-``payload/<link>/visual<k>``), ``findings/clearance/<wall>`` and ``findings/protrusion/<part>``
-(segments and label anchors; shown with the stowed payload only), ``reach/<finger>`` (point
-clouds, hidden until ticked). The page's overlay (:class:`~payload.review.scene.Overlay`)
-carries the title, the legend of every colour and the labels.
+``payload/<link>/visual<k>``), ``findings/clearance/<wall>`` and
+``findings/protrusion/<wall>/<part>`` (segments and label anchors; shown with the stowed
+payload only), ``reach/<finger>`` (point clouds, hidden until ticked). The page's overlay
+(:class:`~payload.review.scene.Overlay`) carries the title, the legend of every colour and
+the labels.
 """
 
 from __future__ import annotations
@@ -116,15 +117,13 @@ class DesignReview:
 
 def outside_parts(check: StowedCheck) -> frozenset[str]:
     """Links that protrude from the bays or hit the vehicle as the stage deploys."""
-    out = {p.name for p in check.parts if not p.inside}
-    if not check.sweep.vehicle_clear:
-        out |= {n for n in check.sweep.between if n in {p.name for p in check.parts}}
-    return frozenset(out)
+    roles = ("outside", "hit")
+    return frozenset(p.name for p in check.parts if check.link_role(p.name) in roles)
 
 
 def colliding_parts(check: StowedCheck) -> frozenset[str]:
     """Links that collide with another link and are not among the :func:`outside_parts`."""
-    return frozenset(n for c in check.collisions for n in (c.a, c.b)) - outside_parts(check)
+    return frozenset(p.name for p in check.parts if check.link_role(p.name) == "colliding")
 
 
 def offending_parts(check: StowedCheck) -> frozenset[str]:
@@ -177,6 +176,11 @@ def wall_name(wall: str) -> str:
     return "bay " + wall.partition("(")[2].rstrip(")") if "(" in wall else f"bay {wall}"
 
 
+def wall_key(wall: str) -> str:
+    """A bay wall as a scene path names it: ``'-z (bottom face)'`` -> ``'minus_z'``."""
+    return wall.split()[0].replace("+", "plus_").replace("-", "minus_")
+
+
 def draw_findings(
     scene: Scene, geom: PayloadGeometry, check: StowedCheck, vehicle: Vehicle, root: str
 ) -> list[tuple[str, float, np.ndarray, np.ndarray]]:
@@ -197,30 +201,30 @@ def draw_findings(
     drawn = []
     for w, wall in enumerate(vehicle.walls):
         near = check.nearest_to_wall(w)  # over every part, inside or not
-        if near is None or check.protruding_beyond(wall) is not None:
-            continue  # a wall a part crosses: its protrusion is labelled below
+        if near is None or check.beyond_wall(w):
+            continue  # a wall a part crosses (0 to it): its protrusion is labelled below
         d, name = near.wall_clearance[w], near.name
         pts = geom.hull_vertices(name, poses[name])
         k = int(np.argmin(wall_gaps(pts, lo, hi)[:, w]))
         a = pts[k]
         b = a.copy()
         b[w // 2] = lo[w // 2] if w % 2 == 0 else hi[w // 2]
-        key = wall.split()[0].replace("+", "plus_").replace("-", "minus_")
+        key = wall_key(wall)
         scene.object(f"{root}/clearance/{key}/segment", segment(a, b))
         text = f"{name} - {wall_name(wall)} {clearance_text(d)}"
         _label(scene, f"{root}/clearance/{key}/label", text, (a + b) / 2)
         drawn.append((wall, float(d), a, b))
     for w, wall in enumerate(vehicle.walls):
-        out = check.protruding_beyond(wall)
-        if out is None:
+        crossing = check.beyond_wall(w)  # every part crossing it, not only most
+        if not crossing:
             continue
+        out, more = crossing[0], len(crossing) - 1
         pts = geom.hull_vertices(out.name, poses[out.name])
         far = pts[int(np.argmin(wall_gaps(pts, lo, hi)[:, w]))]  # farthest beyond the wall
-        more = sum(1 for p in check.parts if not p.inside and p.wall == wall) - 1
-        text = f"{out.name} - {out.protrusion * 1e3:.1f} mm beyond {wall_name(wall)}"
+        text = f"{out.name} - {out.wall_protrusion[w] * 1e3:.1f} mm beyond {wall_name(wall)}"
         if more:
             text += f" (and {more} more)"
-        _label(scene, f"{root}/protrusion/{out.name}", text, far)
+        _label(scene, f"{root}/protrusion/{wall_key(wall)}/{out.name}", text, far)
     return drawn
 
 
@@ -287,19 +291,21 @@ def deployment_configurations(
     return out
 
 
-def part_colours(model: PayloadModel, check: StowedCheck, bad: frozenset[str]) -> dict[str, int]:
-    """Each link's colour: of the failing ones (``bad``, :func:`offending_parts`) magenta
-    when it only collides with another link (:func:`colliding_parts`), else red; amber
-    tight; else its finger's colour or grey."""
-    tight = set(check.tight_links)  # a tight pair's links too, as envelope.png draws them
-    colliding = colliding_parts(check)
+ROLE_COLOURS = {
+    "outside": OFFENDING_COLOUR,
+    "hit": OFFENDING_COLOUR,
+    "colliding": COLLIDING,
+    "tight": TIGHT,
+}
+"""A link's colour by its :meth:`~payload.envelope.fit_results.StowedCheck.link_role`."""
 
-    def colour(n: str) -> int:
-        if n in bad:
-            return COLLIDING if n in colliding else OFFENDING_COLOUR
-        return TIGHT if n in tight else link_colour(n)
 
-    return {n: colour(n) for n in model.links}
+def part_colours(model: PayloadModel, check: StowedCheck) -> dict[str, int]:
+    """Each link's colour by its role (:meth:`StowedCheck.link_role`, failing first, as
+    envelope.png): red outside the bays or hit deploying, magenta colliding with another
+    link, amber tight; else its finger's colour or grey."""
+    roles = {n: check.link_role(n) for n in model.links}
+    return {n: ROLE_COLOURS.get(roles[n] or "", link_colour(n)) for n in model.links}
 
 
 def legend(colours: Mapping[str, int], reach: bool) -> list[tuple[str, str]]:
@@ -413,7 +419,7 @@ def build_design_review(
     scene = Scene(autoplay=False)
     scene.transform(root, translation(-centre))
     draw_vehicle(scene, vehicle, f"{root}/vehicle")
-    colours = part_colours(model, check, bad)
+    colours = part_colours(model, check)
     draw_links(scene, model, f"{root}/payload", stowed, colours)
     draw_findings(scene, geom, check, vehicle, f"{root}/findings")
     if clouds:
