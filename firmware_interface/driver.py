@@ -218,6 +218,7 @@ class DynamixelDriver(FaultHandling):
         self._last_io = time.monotonic()
         self._longest_gap = 0.0  # the host's longest bus silence since a check or an arming
         self._present = np.zeros(len(self.ids), dtype=np.int64)
+        self._known: set[int] = set()  # servos whose present position has been read
         s = self.design.servo
         self._kt = s.kt  # [N m / A], output-side
         specs = self.map.servos
@@ -454,6 +455,7 @@ class DynamixelDriver(FaultHandling):
         self._write(i, "bus_watchdog", 0)
         present = to_signed(self._read_reg(i, ADDR["present_position"], 4), 4)
         self._present[self.ids.index(i)] = present
+        self._known.add(i)
         self._write(i, "goal_position", present)
         self._write(i, "torque_enable", 1)
 
@@ -603,6 +605,7 @@ class DynamixelDriver(FaultHandling):
         vel = raw["velocity"].astype(float)
         pos = raw["position"].astype(np.int64)
         self._present = pos
+        self._known.update(self.ids)
         alerted = [i for i in self.ids if self._reader.errors.get(i, 0) & P.ALERT]
         if alerted:
             self.alerts += 1

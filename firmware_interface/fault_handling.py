@@ -44,6 +44,7 @@ class FaultHandling:
     _reset: set[int]  # servos found restarted (torque off, no error): recover() reboots them
     homed: set[int]
     _present: Any
+    _known: set[int]  # servos whose present position has been read (_present holds it)
     _longest_gap: float
 
     def _check_alerted(self, ids: list[int]) -> None:
@@ -133,15 +134,20 @@ class FaultHandling:
         ``_owed_torque_off`` says why)."""
         self._stopped = True
         owed = self._owed_torque_off()
+        # hold only a servo whose position has been read: a goal of the zeros the driver
+        # starts with would move one left holding by another program; such a servo, and
+        # every one when the fault's answer is torque off, gets the torque-off
+        hold = [i for i in owed if i in self._known] if self.on_fault == "hold" else []
+        off = [i for i in owed if i not in hold]
+        if off:
+            g = GroupSyncWrite(self.port, self.packet, ADDR["torque_enable"], 1)
+            for i in off:
+                g.addParam(i, [0])
+            g.txPacket()
         if self.on_fault == "torque_off":
             self._torque_on = False
-            g = GroupSyncWrite(self.port, self.packet, ADDR["torque_enable"], 1)
-            for i in owed:
-                g.addParam(i, [0])
-            if owed:
-                g.txPacket()
             return
-        self._sync_write_goals([int(p) for p in self._present], owed)
+        self._sync_write_goals([int(p) for p in self._present], hold)
 
     def recover(self, timeout: float = 5.0) -> Recovery:
         """Reboot the faulted servo(s), restore their settings, return them to service.

@@ -763,11 +763,30 @@ def test_no_shutdown_writes_to_or_reads_a_servo_of_another_model(smap, monkeypat
     scan = {(P.PING, None), (P.READ, ADDR["firmware_version"])}
     assert seen[5] == scan, sorted(seen[5], key=str)
     assert P.BROADCAST_ID not in seen, sorted(seen[P.BROADCAST_ID], key=str)
-    stops = {(P.SYNC_WRITE, a) for a in range(goal, goal + 4)} | {(P.SYNC_WRITE, torque)}
+    # no position was read: the hold is a torque-off too (a goal of zeros would move one)
+    stops = {(P.SYNC_WRITE, torque)}
     assert seen[7] == {(P.PING, None)} | stops, sorted(seen[7], key=str)  # never read
     assert scan | stops | {(P.READ, torque)} <= seen[4], sorted(seen[4], key=str)
+    assert not any((P.SYNC_WRITE, goal) in s for s in seen.values())
     assert drv.other_model == {5: 1060} and drv.torque_unconfirmed == []
     assert [r.getMessage() for r in caplog.records] == []
+
+
+def test_a_hold_before_any_position_is_read_moves_no_servo(smap) -> None:
+    """A safe stop in "hold" before the driver had read a position sent every servo the
+    goal it starts with, tick 0: a servo another program had left holding (torque on, at
+    its own position) would have swung to 0. A servo whose position is unknown gets the
+    torque-off instead; it stays where it was (the emulator's own goal and position)."""
+    torque, goal = ADDR["torque_enable"], ADDR["goal_position"]
+    with EmulatorProcess() as emu:
+        drv = DynamixelDriver(emu.port, smap, latency_timer_ms=LAT, guard=False)
+        drv.packet.write1ByteTxRx(drv.port, 4, torque, 1)  # left holding by another program
+        before = int.from_bytes(bytes(emu.table(4)[goal : goal + 4]), "little", signed=True)
+        drv.on_fault = "hold"
+        drv.safe_stop()
+        after = int.from_bytes(bytes(emu.table(4)[goal : goal + 4]), "little", signed=True)
+        assert after == before != 0 and not emu.servos()[4]["torque"]
+        drv.close()
 
 
 def test_close_turns_off_a_servo_it_enabled_whatever_model_answers_on_its_id(smap, monkeypatch):
