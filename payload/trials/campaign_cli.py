@@ -92,9 +92,6 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
                     f"{', ...' if len(taken) > 4 else ''}); pass --force to replace it or "
                     "choose another --out"
                 )
-        # the inputs all checked: said before the trials (minutes), not after them
-        if (unfit := stowed_fit_warning(project.design_path, "the campaign runs")) is not None:
-            warn(unfit)
         workers = default_workers(args.n) if args.workers is None else args.workers
         t0, started = time.perf_counter(), time.time()
         try:
@@ -117,6 +114,9 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
                 else trial_line_printer(len(seeds)),
             )
             cap_before_teleoperation(args.max_time)  # after the trials: no bad input follows
+            # after them too: a scheduler not reached is an error, which no warning precedes
+            if (unfit := stowed_fit_warning(project.design_path, "the campaign ran")) is not None:
+                warn(unfit)
             run = {
                 "workers": None if args.scheduler else workers,
                 "scheduler": args.scheduler,

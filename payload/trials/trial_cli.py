@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from payload.cliutil import check_seconds, command_project, emit_json, out_folder, replay_file, warn
-from payload.folders import CAMPAIGN_FILES, RECORDING, SCORED, held, other_results
+from payload.folders import CAMPAIGN_FILES, TRIAL_FILES, held, other_results
 from payload.profiles import PROFILE_SETTINGS
 from payload.trials.setup_options import (
     _SETUP,
@@ -113,6 +113,6 @@ def _cmd_trial(args: argparse.Namespace) -> int:
     from payload.trials.summary import print_trial_summary
 
     print_trial_summary(result, given)
-    wrote = [name for name in (RECORDING, *SCORED) if (out / name).is_file()]
+    wrote = [name for name in TRIAL_FILES if (out / name).is_file()]
     print(f"wrote {', '.join(wrote)} in {out}")
     return 0
