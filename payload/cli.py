@@ -34,6 +34,10 @@ from payload.cliutil import (
 from payload.errors import STOP_SIGNALS, PayloadError, RunAborted, Terminated
 from payload.project import ENV_VAR
 
+PROJECT_OPTION = "--project"
+"""The one option every level takes (``payload --project DIR build``, ``payload build
+--project DIR``), with its value."""
+
 
 class Command(NamedTuple):
     """One command of the table: its words, the module registering it, its help line."""
@@ -179,7 +183,7 @@ def build_parser(modules: Iterable[str] | None = None) -> argparse.ArgumentParse
     parser = OneLineParser(prog="payload", description="Four-finger Astrobee payload workbench")
     parser.add_argument("--version", action="version", version=f"payload {__version__}")
     parser.add_argument(
-        "--project",
+        PROJECT_OPTION,
         metavar="DIR",
         help="design project to work on (default: $PAYLOAD_PROJECT, else the current "
         "directory or the nearest parent holding cad/design.toml)",
@@ -222,7 +226,7 @@ def _modules_for(argv: Sequence[str]) -> set[str]:
     for token in argv:
         if skip:
             skip = False
-        elif token == "--project":
+        elif token == PROJECT_OPTION:
             skip = True
         elif not token.startswith("-"):
             words.append(token)
@@ -241,9 +245,9 @@ def _add_project_option(parser: argparse.ArgumentParser) -> None:
         if not isinstance(action, argparse._SubParsersAction):
             continue
         for child in action.choices.values():
-            if not any("--project" in a.option_strings for a in child._actions):
+            if not any(PROJECT_OPTION in a.option_strings for a in child._actions):
                 child.add_argument(
-                    "--project",
+                    PROJECT_OPTION,
                     metavar="DIR",
                     default=argparse.SUPPRESS,
                     help="design project to work on (see `payload --help`)",
@@ -273,29 +277,56 @@ def _strict(parser: argparse.ArgumentParser) -> None:
                 _strict(child)
 
 
-TOP_LEVEL_OPTIONS = ("-h", "--help", "--version", "--project")
-"""The options ``payload`` itself takes before a command (every other goes after it)."""
+ANYWHERE = ("-h", "--help", PROJECT_OPTION)
+"""Options every level of the command tree takes."""
+
+
+def _parses(argv: Sequence[str]) -> bool:
+    """Whether ``argv`` parses whole (no error, nothing left over), saying nothing."""
+    import contextlib
+    import io
+
+    try:
+        with contextlib.redirect_stderr(io.StringIO()), contextlib.redirect_stdout(io.StringIO()):
+            _, unknown = build_parser(_modules_for(argv)).parse_known_args(list(argv))
+    except SystemExit:
+        return False
+    return not unknown
 
 
 def _option_before_command(argv: Sequence[str]) -> str | None:
-    """What is wrong when a command's option comes before the command (``payload --samples
-    2000 report reach``: argparse took ``2000`` for the command, or said the option was
-    unknown and suggested itself), with the command line put in order; ``None`` when no
-    option but ``payload``'s own precedes the command."""
-    first_words = {cmd.path.split()[0] for cmd in COMMANDS}
-    start = next((i for i, token in enumerate(argv) if token in first_words), None)
-    if start is None:
-        return None
-    lead, skip = list(argv[:start]), False
-    for token in lead:
+    """What is wrong when a command's option comes before the command's name, at the top
+    (``payload --samples 2000 report reach``: argparse took ``2000`` for the command) or
+    in a group (``payload report --samples 2000 reach``), with the command line put in
+    order when one parses; ``None`` when every option before the command is one its level
+    takes (a misspelt command is argparse's to say)."""
+    paths = [cmd.path.split() for cmd in COMMANDS]
+    words: list[str] = []  # the command's words so far: a group's, until the command's
+    at, skip = None, False
+    for k, token in enumerate(argv):
         if skip:
             skip = False
-        elif token == "--project":
+        elif token == PROJECT_OPTION:
             skip = True
-        elif token.startswith("-") and token.split("=", 1)[0] not in TOP_LEVEL_OPTIONS:
-            ordered = " ".join([*argv[start:], *lead])
-            return f"{token.split('=', 1)[0]} goes after the command: payload {ordered}"
-    return None
+        elif token.startswith("-"):
+            name = token.split("=", 1)[0]
+            if name not in ANYWHERE and not (name == "--version" and not words):
+                at = k  # an option before the command's last word
+                break
+        else:
+            words.append(token)
+            if words in paths or not any(p[: len(words)] == words for p in paths):
+                return None  # the whole command (its options follow), or not one
+    if at is None:
+        return None
+    name, group, rest = argv[at].split("=", 1)[0], argv[:at], argv[at:]
+    for j, token in enumerate(rest):  # the command line with the command's name first
+        ordered = [*group, *rest[j:], *rest[:j]]
+        named = any(p[: len(words) + 1] == [*words, token] for p in paths)
+        if named and _parses(ordered):
+            return f"{name} goes after the command: payload {' '.join(ordered)}"
+    where = " ".join(["payload", *words, "COMMAND"])
+    return f"{name} goes after the command's name ({where} {name} ...)"
 
 
 def _parse(argv: Sequence[str] | None) -> argparse.Namespace:

@@ -752,6 +752,9 @@ def test_a_trial_of_a_design_that_does_not_stow_says_so(tmp_path, capsys) -> Non
         (["--samples", "2000", "report", "reach"], "samples", 2000),
         (["--force", "trial", "--seed", "2"], "force", True),
         (["--project", "p", "--seed=3", "trial"], "seed", 3),
+        (["--project", "trial", "--json", "trial"], "json", True),  # a folder named trial
+        (["--out", "trial", "trial"], "out", "trial"),  # its value a command's name
+        (["report", "--samples", "2000", "reach"], "samples", 2000),  # inside a group
     ],
 )
 def test_a_commands_option_before_the_command_says_where_it_goes(argv, dest, value, capsys):
@@ -766,10 +769,34 @@ def test_a_commands_option_before_the_command_says_where_it_goes(argv, dest, val
         main(argv)
     assert info.value.code == 2
     (err,) = capsys.readouterr().err.splitlines()
-    head = f"payload: error: {argv[2] if argv[0] == '--project' else argv[0]}"
-    assert err.startswith(head.split("=")[0] + " goes after the command: payload "), err
+    option = next(a for a in argv if a.startswith("-") and a != "--project")
+    head = f"payload: error: {option.split('=')[0]} goes after the command: payload "
+    assert err.startswith(head), err
     ordered = err.split(": payload ", 1)[1].split()
-    assert getattr(_parse(ordered), dest) == value
+    assert str(getattr(_parse(ordered), dest)) == str(value)
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["--project", "trial", "trial", "--help"],  # a project folder named like a command
+        ["--version"],
+        ["-h"],
+        ["report", "-h"],
+    ],
+)
+def test_a_command_line_in_order_is_not_said_to_be_out_of_order(argv, capsys) -> None:
+    """The check for a command's option before its name leaves alone what each level
+    takes (``--project DIR`` anywhere, ``-h``, ``--version`` at the top); a misspelt
+    command is argparse's to say ("invalid choice ... did you mean")."""
+    from payload.cli import _option_before_command
+
+    assert _option_before_command(argv) is None
+    with pytest.raises(SystemExit) as info:
+        main(argv)
+    assert info.value.code == 0
+    assert "goes after the command" not in capsys.readouterr().err
+    assert _option_before_command(["trail", "--out", "trial"]) is None
 
 
 def test_a_new_project_says_what_to_do_next(tmp_path, capsys) -> None:
