@@ -1054,6 +1054,11 @@ def test_a_campaign_some_of_whose_trials_held_no_contact_times_only_those_that_d
     row = next(ln for ln in md.splitlines() if ln.startswith("| First confirmed-contact interval"))
     cell = f"{statistics.median(held):.1f} ({min(held):.1f} to {max(held):.1f}) [2 of 3 trials]"
     assert row.split(" | ")[1] == cell, row
+    from payload.trials.terminal import summary_terminal
+
+    terminal = summary_terminal(summary).splitlines()  # what `trials run` prints: the count
+    line = next(ln for ln in terminal if ln.strip().startswith("First confirmed-contact"))
+    assert cell in line, line
     (fig,) = drawn
     ax = fig.axes[[a.get_title() for a in fig.axes].index("First confirmed-contact interval [s]")]
     dots = next(c for c in ax.collections if isinstance(c, PathCollection))
