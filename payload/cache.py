@@ -27,10 +27,13 @@ def cache_dir() -> Path:
 
 @functools.cache
 def sources_digest(package: Path = _PACKAGE) -> str:
-    """SHA-256 (hex) of the workbench's Python sources: every module's path in the package
-    and its bytes. What names a cached answer that the workbench's own code shapes."""
+    """SHA-256 (hex) of the workbench's Python sources and packaged data: every module's
+    path in the package and its bytes, and every file under ``data/`` (the packaged
+    default design fills what a project's design leaves out, so it shapes answers too).
+    What names a cached answer that the workbench's own code shapes."""
     h = hashlib.sha256()
-    for path in sorted(package.rglob("*.py")):
+    data = sorted(p for p in (package / "data").rglob("*") if p.is_file())
+    for path in [*sorted(package.rglob("*.py")), *data]:
         h.update(str(path.relative_to(package)).encode() + b"\0" + path.read_bytes())
     return h.hexdigest()
 

@@ -88,8 +88,16 @@ def test_the_stamp_follows_the_workbenchs_code(tmp_path):
     (package / "extra.py").write_text("")
     sources_digest.cache_clear()
     digests.append(sources_digest(package))
+    # the packaged default design fills what a project's design leaves out: it counts too
+    (package / "data").mkdir()
+    (package / "data" / "design.toml").write_text("[servo]\nlength = 0.034\n")
     sources_digest.cache_clear()
-    assert len(set(digests)) == 3
+    digests.append(sources_digest(package))
+    (package / "data" / "design.toml").write_text("[servo]\nlength = 0.035\n")
+    sources_digest.cache_clear()
+    digests.append(sources_digest(package))
+    sources_digest.cache_clear()
+    assert len(set(digests)) == 5
 
 
 def test_a_stamp_passed_under_other_sources_asks_for_a_full_check(library, monkeypatch):
