@@ -967,6 +967,45 @@ def test_the_span_panel_names_each_ctb_feature_beside_its_markers(reach_png, sma
     assert all(box.x0 > panel.x1 for box in boxes)
 
 
+def test_the_span_panels_legends_stay_apart_with_given_thicknesses(
+    geom, monkeypatch, tmp_path
+) -> None:
+    """With the 6 CTB features and 8 ``--thickness`` values the span legend (anchored at
+    the panel's top, growing down) and the features' (anchored at its bottom, growing up)
+    overlapped; the features' now stands under the other's measured box, titled "grasp
+    features", and both lie inside the figure."""
+    from matplotlib.figure import Figure
+    from matplotlib.legend import Legend
+
+    from payload.envelope.grasp import CTB_FEATURES, GraspFeature
+    from payload.envelope.reach_figure import reach_figure
+
+    given = [GraspFeature(f"given thickness {t:.1f} mm", t * 1e-3, "command line")
+             for t in (2, 4, 6, 8, 12, 16, 24, 32)]  # fmt: skip
+    features = [*CTB_FEATURES, *given]
+    assert len(features) == 14
+    a = analyse_reach(geom, VEHICLE, samples=2000, seed=7, workers=1, features=features)
+    saved = []
+    monkeypatch.setattr(Figure, "savefig", lambda fig, *args, **kw: saved.append(fig))
+    reach_figure(geom, a, tmp_path / "reach.png", points=200)
+    (fig,) = saved
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    (ax,) = [ax for ax in fig.axes if ax.get_title().startswith("pair spans")]
+    legends = [c for c in ax.get_children() if isinstance(c, Legend)]
+    assert len(legends) == 2
+    titles = [legend.get_title().get_text() for legend in legends]
+    assert sum(t.startswith("grasp features") for t in titles) == 1, titles
+    boxes = [legend.get_window_extent(renderer) for legend in legends]
+    assert not boxes[0].overlaps(boxes[1]), boxes
+    page = fig.bbox
+    for box in boxes:
+        assert page.x0 <= box.x0 and box.x1 <= page.x1, (box, page)
+        assert page.y0 <= box.y0 and box.y1 <= page.y1, (box, page)
+    panel = ax.get_window_extent(renderer)
+    assert all(box.x0 > panel.x1 for box in boxes)
+
+
 def test_a_sparse_reach_verdict_says_a_grasp_can_be_missed(geom, small) -> None:
     """A new user's ``report reach --samples 2000`` said "pair L closes down to 20.0 mm
     ..., pair R closes down to 3.0 mm": the pairs are mirror images, and at the default

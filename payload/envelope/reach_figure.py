@@ -13,6 +13,7 @@ from matplotlib.figure import Figure
 from matplotlib.legend import Legend
 from matplotlib.legend_handler import HandlerTuple
 from matplotlib.lines import Line2D
+from matplotlib.transforms import ScaledTranslation, Transform
 
 from payload.design.params import FINGERS
 from payload.envelope.drawing import (
@@ -32,7 +33,7 @@ from payload.envelope.drawing import (
     vehicle_legend,
 )
 from payload.envelope.geometry import PayloadGeometry
-from payload.envelope.grasp import GraspFeature, GraspResult
+from payload.envelope.grasp import CTB_FEATURES, GraspFeature, GraspResult
 from payload.envelope.reach import ReachAnalysis
 from payload.envelope.vehicle import Vehicle
 from payload.envelope.verdict import reach_passed
@@ -41,6 +42,9 @@ from payload.envelope.workspace import Workspace
 PAD_IN = 0.1
 """The figure's margin around its panels [in] (matplotlib's 3/72 left the side view's
 axis label touching the left edge)."""
+
+LEGEND_GAP_IN = 0.15
+"""Between the span panel's two side legends [in]."""
 
 
 def reach_figure(
@@ -229,10 +233,14 @@ def _span_panel(ax: Any, a: ReachAnalysis, pad_radius: float) -> None:
         "CTB thicknesses + pad diameter (green: the pair closes on it, red: no witness)",
         fontsize=9,
     )
-    # beside the panel, where it covers no bin, line or marker; the features' under it (not
-    # clipped to the panel, as an added artist is by default, so the layout makes room)
-    ax.add_artist(_feature_legend(ax, a, r)).set_clip_on(False)
-    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0)
+    # beside the panel, where it covers no bin, line or marker; the features' under it, its
+    # top its measured height below the panel's top, whatever the layout makes of the panel
+    # (not clipped to the panel, as an added artist is by default, so the layout makes room)
+    spans = ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0)
+    fig = ax.get_figure()
+    drop = spans.get_window_extent().height / fig.dpi + LEGEND_GAP_IN
+    under = ax.transAxes + ScaledTranslation(0, -drop, fig.dpi_scale_trans)
+    ax.add_artist(_feature_legend(ax, a, r, under)).set_clip_on(False)
 
 
 def _separation_mm(feature: GraspFeature, pad_radius: float) -> float:
@@ -241,11 +249,13 @@ def _separation_mm(feature: GraspFeature, pad_radius: float) -> float:
     return (feature.thickness + 2 * pad_radius) * 1e3
 
 
-def _feature_legend(ax: Any, a: ReachAnalysis, pad_radius: float) -> Legend:
-    """Beside the span panel, under its legend: which CTB feature each marker column is,
-    one entry per feature in the markers' order (left to right), its markers (one per
-    pair, as the rows draw them) and its separation; the markers stand too close
-    together (a few mm apart) for a name beside each."""
+def _feature_legend(ax: Any, a: ReachAnalysis, pad_radius: float, under: Transform) -> Legend:
+    """Beside the span panel, under its legend (its top left at axes (1.01, 1) in
+    ``under``, a transform that drops it below that legend): which grasp feature each
+    marker column is, one entry per feature in the markers' order (left to right), its
+    markers (one per pair, as the rows draw them) and its separation; the markers stand
+    too close together (a few mm apart) for a name beside each. Titled "CTB features",
+    or "grasp features" when ``--thickness`` values are among them."""
     by_feature: dict[str, list[GraspResult]] = {}
     for p in a.pairs:
         for g in p.grasps:
@@ -257,16 +267,19 @@ def _feature_legend(ax: Any, a: ReachAnalysis, pad_radius: float) -> Legend:
         )
         labels.append(f"{_separation_mm(grasps[0].feature, pad_radius):.1f} mm: {name}")
     pairs = ", ".join(p.name for p in a.pairs)
+    given = any(g.feature not in CTB_FEATURES for p in a.pairs for g in p.grasps)
+    what = "grasp features" if given else "CTB features"
     return Legend(
         ax,
         handles,
         labels,
         handler_map={tuple: HandlerTuple(ndivide=None, pad=0.6)},
-        title=f"CTB features, left to right\n(markers: pair {pairs}; l = thickness + pad diameter)",
+        title=f"{what}, left to right\n(markers: pair {pairs}; l = thickness + pad diameter)",
         title_fontsize=8,
         fontsize=8,
-        loc="lower left",
-        bbox_to_anchor=(1.01, 0.0),
+        loc="upper left",
+        bbox_to_anchor=(1.01, 1.0),
+        bbox_transform=under,
         borderaxespad=0,
         alignment="left",
     )
