@@ -9,14 +9,12 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import errno
-import os
 import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from firmware_interface.errors import cannot_open
+from firmware_interface.errors import missing_device
 from firmware_interface.options import (
     LATENCY_MS,
     add_latency,
@@ -393,9 +391,8 @@ def _device_there(args: argparse.Namespace) -> None:
     Raises:
         HwUsageError: The path does not exist.
     """
-    device = getattr(args, "device", None)
-    if device and "/" in device and not os.path.lexists(device):
-        raise HwUsageError(cannot_open(device, os.strerror(errno.ENOENT)))
+    if (missing := missing_device(getattr(args, "device", None))) is not None:
+        raise HwUsageError(missing)
 
 
 def _emulated_or_device(args: argparse.Namespace) -> None:

@@ -13,6 +13,18 @@ def cannot_open(port: str, reason: str | None = None) -> str:
     return f"{port}: cannot open the serial port" + (f" ({reason})" if reason else "")
 
 
+def missing_device(device: str | None) -> str | None:
+    """:func:`cannot_open`'s words for a device path that is not there (the system's
+    reason), for a command to refuse before any work; ``None`` for one that is there, no
+    path (a name without a ``/`` is the driver's to try) or none given."""
+    import errno
+    import os
+
+    if not device or "/" not in device or os.path.lexists(device):
+        return None
+    return cannot_open(device, os.strerror(errno.ENOENT))
+
+
 class DynamixelError(PayloadError):
     """Root of the hardware interface's errors.
 

@@ -640,6 +640,7 @@ def test_scan_ends_with_what_it_found_and_what_check_would_refuse(capsys):
         ["bench", "hw", "--cycles", "1"],
         ["hw", "run", "--replay", "REPLAY"],
         ["hw", "identify"],
+        ["teleop", "serve", "--driver", "hardware"],
     ],
 )
 def test_a_device_that_is_not_there_rebuilds_no_model_first(argv, tmp_path, capsys) -> None:

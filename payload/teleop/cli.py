@@ -177,6 +177,7 @@ def _check_record(record: Path | None) -> None:
 def _check_bus_options(args: argparse.Namespace) -> None:
     """``--device``, ``--emulator``, ``--servos`` and ``--latency-ms`` go with ``--driver
     hardware`` (one bus: a device or the emulator); one line, exit 2, before anything."""
+    from firmware_interface.errors import missing_device
     from firmware_interface.options import latency_problem
 
     if args.driver != "hardware":
@@ -196,6 +197,8 @@ def _check_bus_options(args: argparse.Namespace) -> None:
     problem = latency_problem(args.latency_ms)
     if problem is not None:
         raise TeleopCliError(problem)
+    if (missing := missing_device(args.device)) is not None:  # before the models' rebuild
+        raise TeleopCliError(missing)
 
 
 def _hardware_driver(args: argparse.Namespace, smap: Any, stack: contextlib.ExitStack) -> Any:
