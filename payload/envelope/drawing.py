@@ -20,7 +20,8 @@ STRUCTURE_COLOUR = "#8c8c8c"
 FAIL_COLOUR = "#e00000"
 """A part that protrudes from the bays (in the design review, or hits the vehicle as the
 stage deploys): red, and nothing else is (but the review's verdict on a design that fails,
-and the trial replay's keep-out boxes, where the vehicle must not be)."""
+the trial replay's keep-out boxes, where the vehicle must not be, and reach.png's crosses,
+a grasp feature a finger pair does not close on)."""
 COLLISION_COLOUR = "#ff00ff"
 """A part that collides with another link (and is not outside the bays): magenta, and
 nothing else is; the envelope figure edges it in it, the design review fills it. Apart from
@@ -31,7 +32,8 @@ PASS_COLOUR = "#1a7f37"
 """The review's verdict on a design that passes: dark green, on white as legible as the
 red (contrast about 5:1); no part is drawn in it."""
 TIGHT_COLOUR = "#ffb000"
-"""A part inside the bays with little clearance: amber, and nothing else is."""
+"""A link that does not fail but is under ``fit_results.TIGHT_CLEARANCE`` to a bay wall or to
+another link: amber, and nothing else is."""
 
 # a view: (name, section axis, (horizontal axis, vertical axis))
 AXES = {0: (1, 2), 1: (0, 2), 2: (0, 1)}

@@ -67,9 +67,9 @@ COLLIDING = hex_colour(COLLISION_COLOUR)
 by the vehicle as the stage deploys: those are :data:`OFFENDING_COLOUR`); the envelope
 figure edges such a part in it."""
 TIGHT = hex_colour(TIGHT_COLOUR)
-"""Colour of a part inside the bays with less than
-:data:`~payload.envelope.fit_results.TIGHT_CLEARANCE` to a wall (the envelope verdict's
-"tight")."""
+"""Colour of a link that does not fail but is under
+:data:`~payload.envelope.fit_results.TIGHT_CLEARANCE` to a bay wall or to another link (the
+envelope verdict's "tight")."""
 
 BODY_COLOUR, BAY_COLOUR, SEGMENT_COLOUR = 0xB8BCC8, 0x17BECF, 0x000000
 DEPLOY_FPS = 30
