@@ -1225,3 +1225,24 @@ def test_the_review_draws_a_tight_pairs_links_amber_as_envelope_png_does(design_
     assert amber == pairs | walls
     said = [text for _, text in legend(colours, reach=False) if text.startswith("tight:")]
     assert said == ["tight: under 0.50 mm to a bay wall or another link"]
+
+
+def test_envelope_png_and_the_review_say_the_same_of_red_and_magenta(geom, monkeypatch, tmp_path):
+    """envelope.png's legend said "outside the envelope" and "self-collision" where the
+    design review's said "fails: outside the bays or hits the vehicle" and "fails: collides
+    with another link": the same colours in other words. Each colour envelope.png's legend
+    shows in red or magenta now reads as the review's row of that colour does."""
+    from matplotlib.colors import to_hex
+
+    from payload.envelope.drawing import COLLISION_COLOUR, FAIL_COLOUR
+    from payload.review.design_view import legend
+
+    fig = _drawn_envelope_figure(geom, analyse_envelope(geom, VEHICLE, search=False),
+                                 monkeypatch, tmp_path)  # fmt: skip
+    handles = fig.legends[0].legend_handles
+    texts = [t.get_text() for t in fig.legends[0].get_texts()]
+    by_edge = {to_hex(h.get_edgecolor()): t for h, t in zip(handles, texts)}
+    review = {colour.lower(): text for colour, text in legend({}, reach=False)}
+    for colour in (FAIL_COLOUR, COLLISION_COLOUR):
+        ours, theirs = by_edge[to_hex(colour)], review[to_hex(colour)]
+        assert theirs.removeprefix("fails: ").startswith(ours), (ours, theirs)

@@ -29,6 +29,8 @@ from payload.envelope.drawing import (
     vehicle_legend,
 )
 from payload.envelope.fit_results import (
+    COLLIDES_MEANING,
+    OUTSIDE_MEANING,
     TIGHT_CLEARANCE,
     EnvelopeAnalysis,
     StowedCheck,
@@ -177,8 +179,8 @@ def envelope_figure(geom: PayloadGeometry, a: EnvelopeAnalysis, path: Path, dpi:
         *vehicle_legend(),
         legend_box("structure", facecolor=STRUCTURE_COLOUR),
         *[legend_box(f"finger {f}", facecolor=c) for f, c in FINGER_COLOURS.items()],
-        legend_box("outside the envelope", facecolor="white", edgecolor=FAIL_COLOUR, hatch="///"),
-        legend_box("self-collision", facecolor="white", edgecolor=COLLISION_COLOUR, lw=1.6),
+        legend_box(OUTSIDE_MEANING, facecolor="white", edgecolor=FAIL_COLOUR, hatch="///"),
+        legend_box(COLLIDES_MEANING, facecolor="white", edgecolor=COLLISION_COLOUR, lw=1.6),
     ]
     if tight:  # said only when something is: a fit with room to spare keeps its legend
         walls = any(p.name in tight for p in check.tight_parts)

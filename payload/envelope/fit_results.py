@@ -30,6 +30,12 @@ def clearance_text(metres: float) -> str:
     return f"{text} mm"
 
 
+OUTSIDE_MEANING = "outside the bays"
+"""What a drawing's red (hatched in envelope.png) means: a part beyond a bay wall."""
+COLLIDES_MEANING = "collides with another link"
+"""What a drawing's magenta means: a part in contact with another, not outside the bays."""
+
+
 def tight_meaning(walls: bool = True, links: bool = False) -> str:
     """What a drawing's amber means, for its legend: ``tight: under 0.50 mm to a bay wall``
     (``walls``), ``... to another link`` (``links``) or ``... to a bay wall or another

@@ -35,7 +35,12 @@ from payload.envelope.drawing import (
     TIGHT_COLOUR,
 )
 from payload.envelope.fit import StowedCheck, check_stowed, wall_gaps
-from payload.envelope.fit_results import clearance_text, tight_meaning
+from payload.envelope.fit_results import (
+    COLLIDES_MEANING,
+    OUTSIDE_MEANING,
+    clearance_text,
+    tight_meaning,
+)
 from payload.envelope.geometry import PayloadGeometry
 from payload.envelope.vehicle import Vehicle, vehicle_from_dict
 from payload.errors import first_of
@@ -322,8 +327,8 @@ def legend(colours: Mapping[str, int], reach: bool) -> list[tuple[str, str]]:
     ]
     out += [
         (STRUCTURE_COLOUR, "structure: base, stage, carriage"),
-        verdict(OFFENDING_COLOUR, "fails: outside the bays or hits the vehicle"),
-        verdict(COLLIDING, "fails: collides with another link"),
+        verdict(OFFENDING_COLOUR, f"fails: {OUTSIDE_MEANING} or hits the vehicle"),
+        verdict(COLLIDING, f"fails: {COLLIDES_MEANING}"),
         verdict(TIGHT, tight_meaning(walls=True, links=True)),
         (colour_text(BODY_COLOUR), "Astrobee's body"),
         (colour_text(BAY_COLOUR), "payload bays (the stowed envelope)"),
