@@ -10,7 +10,7 @@ import logging
 import time
 from typing import TYPE_CHECKING, Any
 
-from dynamixel_sdk import COMM_SUCCESS, GroupSyncRead, GroupSyncWrite
+from dynamixel_sdk import COMM_SUCCESS, GroupSyncRead
 
 from firmware_interface.control_table import (
     ADDR,
@@ -139,11 +139,7 @@ class FaultHandling:
         # every one when the fault's answer is torque off, gets the torque-off
         hold = [i for i in owed if i in self._known] if self.on_fault == "hold" else []
         off = [i for i in owed if i not in hold]
-        if off:
-            g = GroupSyncWrite(self.port, self.packet, ADDR["torque_enable"], 1)
-            for i in off:
-                g.addParam(i, [0])
-            g.txPacket()
+        self._torque_off(off)
         if self.on_fault == "torque_off":
             self._torque_on = False
             return

@@ -23,7 +23,7 @@ from dynamixel_sdk import COMM_RX_TIMEOUT, PacketHandler
 
 from firmware_interface import protocol as P
 from firmware_interface.control_table import ADDR, BY_NAME
-from firmware_interface.driver import TORQUE_OFF_CONFIRM_S, DynamixelDriver, failed_start
+from firmware_interface.driver import DynamixelDriver, failed_start
 from firmware_interface.emulator import EmulatorProcess
 from firmware_interface.errors import (
     BringUpFailed,
@@ -36,6 +36,7 @@ from firmware_interface.errors import (
 from firmware_interface.options import EMULATOR_LATENCY_MS as LAT  # [ms] reply allowance
 from firmware_interface.port import SdkPort
 from firmware_interface.servo_map import load_servo_map
+from firmware_interface.shutdown import TORQUE_OFF_CONFIRM_S
 from payload.errors import Terminated
 from payload.schema import Health, PayloadCommand
 
