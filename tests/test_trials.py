@@ -1147,6 +1147,11 @@ def test_a_rescored_summary_names_its_own_contact_everywhere(tmp_path, monkeypat
     assert "\n| First confirmed-contact interval [s] | " in recorded
     assert "the first continuous confirmed-contact interval carries it there" in recorded
     assert "Per trial, confirmed contact, then the paper-literal success" in recorded
+    from payload.trials.terminal import summary_terminal  # the terminal's words, the same
+
+    rescored = json.loads((camp / "summary.contact-min0s-gap0s.json").read_text())
+    terminal = summary_terminal(rescored)
+    assert "confirmed" not in terminal.lower() and f"First contact interval {numbers}" in terminal
     ours, rescored = drawn
     said = " ".join(rescored.get_suptitle().split())
     assert f"2/2 succeeded, scored with contact {numbers} (paper 10/10)" in said, said

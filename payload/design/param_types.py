@@ -360,9 +360,9 @@ def _check_finger_posture(name: str, angles: tuple[float, ...], f: Finger) -> No
     was meant (``[95, 0, 80.1, 103.4] rad: did you mean [1.658, 0, 1.398, 1.805] (degrees
     given)?``)."""
     for j, v in zip(FINGER_JOINTS, angles):
-        if f.limit(j).contains(v):
-            continue
         lim = f.limit(j)
+        if lim.contains(v):
+            continue
         outside = f"{j} = {v} rad is outside finger.limits.{j} [{lim.lower}, {lim.upper}]"
         if in_degrees(angles):
             raise DesignError(

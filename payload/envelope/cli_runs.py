@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING, Any
 
 from payload.cliutil import command_project, out_folder
 from payload.design.slip import SLIP_FACTOR
-from payload.envelope.report_files import REPORT_FILES
+from payload.envelope.report_files import report_paths
 from payload.folders import other_results
 from payload.safeio import cannot_write_in
 
@@ -301,8 +301,7 @@ def written_lines(paths: dict[str, Path], stem: str) -> list[str]:
     from payload.envelope.verdict import headline_changes
 
     if set(paths) == {"timing"}:  # the report's files are there as they were: named
-        there = (paths["timing"].parent / f"{stem}{s}" for s in REPORT_FILES)
-        kept = [k for k in there if k != paths["timing"] and k.exists()]
+        kept = [k for k in report_paths(paths["timing"].parent, stem) if k != paths["timing"]]
         return [
             f"report unchanged (figures as before): {', '.join(str(k) for k in kept)}; "
             f"timings in {paths['timing']}"

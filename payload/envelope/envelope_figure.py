@@ -203,7 +203,7 @@ def figure_title(check: StowedCheck) -> str:
     not clear, is said to fail, as its verdict says."""
     status = "fits" if check.fits else "DOES NOT FIT"
     if check.passed and check.tight:
-        status = f"fits, tight: under {clearance_text(TIGHT_CLEARANCE)}"
+        status = f"{check.fits_words}: under {clearance_text(TIGHT_CLEARANCE)}"
     if check.fits and not check.passed:
         why = ["collide"] if check.self_collision else []
         if not check.sweep.clear:

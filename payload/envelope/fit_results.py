@@ -36,7 +36,7 @@ COLLIDES_MEANING = "collides with another link"
 """What a drawing's magenta means: a part in contact with another, not outside the bays."""
 
 
-def tight_meaning(walls: bool = True, links: bool = False) -> str:
+def tight_meaning(*, walls: bool, links: bool) -> str:
     """What a drawing's amber means, for its legend: ``tight: under 0.50 mm to a bay wall``
     (``walls``), ``... to another link`` (``links``) or ``... to a bay wall or another
     link`` (both); the one wording in the envelope figure and the design review."""

@@ -34,11 +34,16 @@ def report_design(path: Path) -> Path | None:
     return (Path(root) / design if isinstance(root, str) else Path(design)).resolve()
 
 
+def report_paths(out_dir: Path, stem: str) -> list[Path]:
+    """The files of report ``stem`` that ``out_dir`` holds (:data:`REPORT_FILES`' order)."""
+    return [out_dir / f"{stem}{s}" for s in REPORT_FILES if (out_dir / f"{stem}{s}").exists()]
+
+
 def foreign_report(out_dir: Path, stem: str, design: Path) -> str | None:
     """Why writing report ``stem`` of ``design`` into ``out_dir`` would replace files that
     are not that report (another design's report, or files that are no report at all), or
     None when it replaces nothing else (none of them there, or ``design``'s own)."""
-    there = [out_dir / f"{stem}{s}" for s in REPORT_FILES if (out_dir / f"{stem}{s}").exists()]
+    there = report_paths(out_dir, stem)
     if not there:
         return None
     design = design.resolve()
@@ -53,4 +58,4 @@ def foreign_report(out_dir: Path, stem: str, design: Path) -> str | None:
     return None
 
 
-__all__ = ["PROVENANCE_KEY", "REPORT_FILES", "foreign_report", "report_design"]
+__all__ = ["PROVENANCE_KEY", "REPORT_FILES", "foreign_report", "report_design", "report_paths"]

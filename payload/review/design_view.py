@@ -120,20 +120,10 @@ class DesignReview:
     deployed: dict[str, np.ndarray]
 
 
-def outside_parts(check: StowedCheck) -> frozenset[str]:
-    """Links that protrude from the bays or hit the vehicle as the stage deploys."""
-    roles = ("outside", "hit")
-    return frozenset(p.name for p in check.parts if check.link_role(p.name) in roles)
-
-
-def colliding_parts(check: StowedCheck) -> frozenset[str]:
-    """Links that collide with another link and are not among the :func:`outside_parts`."""
-    return frozenset(p.name for p in check.parts if check.link_role(p.name) == "colliding")
-
-
 def offending_parts(check: StowedCheck) -> frozenset[str]:
-    """Links that protrude from the bays, collide with another link, or hit the vehicle."""
-    return outside_parts(check) | colliding_parts(check)
+    """Links that fail: protrude from the bays, hit the vehicle as the stage deploys, or
+    collide with another link (:meth:`StowedCheck.link_role` other than tight or none)."""
+    return frozenset(p.name for p in check.parts if check.link_role(p.name) not in (None, "tight"))
 
 
 def draw_vehicle(scene: Scene, vehicle: Vehicle, root: str) -> None:
@@ -469,14 +459,12 @@ __all__ = [
     "REVIEW",
     "DesignReview",
     "build_design_review",
-    "colliding_parts",
     "deployment_configurations",
     "draw_findings",
     "draw_links",
     "draw_vehicle",
     "link_colour",
     "offending_parts",
-    "outside_parts",
     "reach_clouds",
     "set_track",
     "set_visibility",

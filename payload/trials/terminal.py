@@ -14,7 +14,13 @@ from collections.abc import Callable
 from typing import Any
 
 from payload.schema import ENDED_BY_CAP
-from payload.trials.summary_fields import CAP_STOPPED, METRIC_KEYS, METRIC_LABELS, PAPER_RESULTS
+from payload.trials.summary_fields import (
+    CAP_STOPPED,
+    METRIC_KEYS,
+    PAPER_RESULTS,
+    definition_words,
+    metric_labels,
+)
 from payload.trials.summary_markdown import _DIGITS, _fmt, _run_lines, _stat_text, count_note
 
 _SHORT = {
@@ -35,7 +41,8 @@ def summary_headline(summary: dict[str, Any]) -> str:
     """
     paper = summary.get("paper", PAPER_RESULTS)
     n = summary["n"]
-    parts = [f"{summary['success']}/{n} succeeded (confirmed contact)"]
+    words = definition_words(summary.get("contact_definition"))
+    parts = [f"{summary['success']}/{n} succeeded ({words.contact})"]
     lit = summary.get("literal") or {}
     if lit.get("success") is not None:
         parts[0] = parts[0][:-1] + f"; paper-literal {lit['success']}/{n})"
@@ -59,12 +66,15 @@ def summary_terminal(summary: dict[str, Any], title: str | None = None) -> str:
     median and range beside the paper's (the definitions and the per-trial table are left
     to ``summary.md``, :func:`summary_markdown`)."""
     paper = summary.get("paper", PAPER_RESULTS)
-    width = max(len(METRIC_LABELS[k]) for k in METRIC_KEYS)
+    words = definition_words(summary.get("contact_definition"))  # the trials' own contact
+    labels = metric_labels(summary.get("contact_definition"))
+    width, column = max(len(labels[k]) for k in METRIC_KEYS), 46
     lines = [summary_headline(summary), title or "Cargo-transport campaign"]
-    lines.append(f"  {'':{width}}  {'this campaign (confirmed contact)':<46}paper")
+    lines.append(f"  {'':{width}}  {f'this campaign ({words.contact})':<{column}}paper")
     for key in METRIC_KEYS:
-        ours = _stat_text(summary, key) + count_note(summary, key)
-        lines.append(f"  {METRIC_LABELS[key]:{width}}  {ours:<46}{_fmt(paper[key], _DIGITS[key])}")
+        ours = _stat_text(summary, key, words.none) + count_note(summary, key)
+        theirs = _fmt(paper[key], _DIGITS[key])
+        lines.append(f"  {labels[key]:{width}}  {ours:<{column}}{theirs}")
     lines += [ln for ln in _run_lines(summary.get("run")) if ln]
     return "\n".join(lines)
 

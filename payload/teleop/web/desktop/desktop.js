@@ -19,16 +19,15 @@
     }
     if (name === 'neutral') pose.offset = [0, 0, 0];
   };
-  // [key, what it does, the action, the gesture it makes]
+  // [key, what it does, the move it makes, or the gesture it makes]
   const KEYS = [
     ['w', 'forward', move(2, -STEP)], ['s', 'back', move(2, STEP)],
     ['a', 'left', move(0, -STEP)], ['d', 'right', move(0, STEP)],
     ['r', 'up', move(1, STEP)], ['f', 'down', move(1, -STEP)],
-    ['q', 'pinch', make('pinch'), 'pinch'], ['e', 'open', make('open'), 'open'],
-    ['z', 'together', make('together'), 'together'],
-    ['x', 'apart', make('apart'), 'apart'],
-    [' ', 'half open and centred', make('neutral'), 'neutral'],
-  ];
+    ['q', 'pinch', 'pinch'], ['e', 'open', 'open'], ['z', 'together', 'together'],
+    ['x', 'apart', 'apart'], [' ', 'half open and centred', 'neutral'],
+  ].map(([key, what, does]) => (typeof does === 'string'
+    ? [key, what, make(does), does] : [key, what, does]));
   const label = (key) => (key === ' ' ? 'Space' : key.toUpperCase());  // as the help names it
   const actions = Object.fromEntries(KEYS.map(([key, , act]) => [key, act]));
   window.addEventListener('keydown', (ev) => {
