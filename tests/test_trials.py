@@ -1977,6 +1977,7 @@ def test_campaign_prints_a_line_per_trial_then_a_headline_off_a_terminal(
     and the per-trial table to summary.md. Without --out it makes runs/campaign-0001,
     then campaign-0002. --json prints only the JSON object."""
     from payload.cli import main
+    from payload.trials.definition import contact_words
     from payload.trials.summary import PAPER_RESULTS
 
     _fake_runner(monkeypatch)
@@ -1999,7 +2000,10 @@ def test_campaign_prints_a_line_per_trial_then_a_headline_off_a_terminal(
     ok = sum(bool(m["success"]) for m in metrics)
     rms = float(np.median([m["rms_mm"] for m in metrics]))
     head = lines[4]
-    assert head.startswith(f"{ok}/3 succeeded (confirmed contact")
+    # the contact the trials were scored with, from their metrics.json (the fake runner's
+    # trials: the paper's definition, so not "confirmed")
+    (definition,) = {(m["min_interval_s"], m["max_gap_s"]) for m in metrics}
+    assert head.startswith(f"{ok}/3 succeeded ({contact_words(*definition).contact}"), head
     assert f"paper {PAPER_RESULTS['success']}/{PAPER_RESULTS['n']}" in head
     assert f"RMS median {rms:.1f} mm (paper {PAPER_RESULTS['rms_mm']['median']:.1f})" in head
     text = "\n".join(lines)

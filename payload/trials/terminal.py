@@ -34,8 +34,9 @@ _SHORT = {
 
 
 def summary_headline(summary: dict[str, Any]) -> str:
-    """The campaign in one line, the paper beside it: successes under the recorded
-    (confirmed) contact definition, then each metric's median.
+    """The campaign in one line, the paper beside it: successes under the contact
+    definition the trials were scored with (the workbench's confirmed contact, unless
+    rescored), then each metric's median.
 
     ``10/10 succeeded (confirmed contact); paper 10/10; RMS median 33.2 mm (paper 35.6); ...``
     """
