@@ -294,6 +294,20 @@ def _parses(argv: Sequence[str]) -> bool:
     return not unknown
 
 
+def _subcommands(words: list[str]) -> list[str]:
+    """The subcommands the command ``words`` (a whole path of :data:`COMMANDS`) registers
+    itself (``hw``'s ``check``, ``scan``...), from its module's parser; none for most."""
+    parser: argparse.ArgumentParser = build_parser(_modules_for(words))
+    for word in [*words, None]:
+        found = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+        if not found:
+            return []
+        if word is None:
+            return list(found[0].choices)
+        parser = found[0].choices[word]
+    return []
+
+
 def _option_before_command(argv: Sequence[str]) -> str | None:
     """What is wrong when a command's option comes before the command's name, at the top
     (``payload --samples 2000 report reach``: argparse took ``2000`` for the command) or
@@ -311,11 +325,16 @@ def _option_before_command(argv: Sequence[str]) -> str | None:
         elif token.startswith("-"):
             name = token.split("=", 1)[0]
             if name not in ANYWHERE and not (name == "--version" and not words):
+                if words in paths:  # a whole command: its options, unless it has
+                    subs = _subcommands(words)  # subcommands of its own (``hw check``)
+                    if not subs:
+                        return None
+                    paths += [[*words, sub] for sub in subs]
                 at = k  # an option before the command's last word
                 break
         else:
             words.append(token)
-            if words in paths or not any(p[: len(words)] == words for p in paths):
+            if not any(p[: len(words)] == words for p in paths):
                 return None  # the whole command (its options follow), or not one
     if at is None:
         return None

@@ -165,9 +165,11 @@ class OneLineParser(argparse.ArgumentParser):
             return f" (did you mean {close!r}?)" if close else ""
         if not message.startswith("unrecognized arguments: "):
             return ""
-        known = [o for o in self._option_string_actions if o.startswith("--")]
+        known = {o[2:]: o for o in self._option_string_actions if o.startswith("--")}
         names = [w.split("=", 1)[0] for w in message.split(": ", 1)[1].split()]
-        near = {n: m for n in names if n.startswith("--") and (m := closest(n, known))}
+        near = {  # the names without their dashes: "--" alone made --bogus near --out
+            n: known[m] for n in names if n.startswith("--") and (m := closest(n[2:], known))
+        }
         if len(near) == 1:
             return f" (did you mean {next(iter(near.values()))}?)"
         said = ", ".join(f"{m} for {n}" for n, m in near.items())

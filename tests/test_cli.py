@@ -96,6 +96,10 @@ def test_the_module_entry_points_accept_no_abbreviations(tmp_path, monkeypatch, 
             ["build", "--xyzzy"],
             "payload build: error: unrecognized arguments: --xyzzy; see payload build --help",
         ),
+        (  # near --out only by the two dashes they share
+            ["trial", "--bogus"],
+            "payload trial: error: unrecognized arguments: --bogus; see payload trial --help",
+        ),
         (
             ["trail", "--seed", "3"],
             "payload: error: argument COMMAND: invalid choice: 'trail' (choose from 'new', "
@@ -755,6 +759,8 @@ def test_a_trial_of_a_design_that_does_not_stow_says_so(tmp_path, capsys) -> Non
         (["--project", "trial", "--json", "trial"], "json", True),  # a folder named trial
         (["--out", "trial", "trial"], "out", "trial"),  # its value a command's name
         (["report", "--samples", "2000", "reach"], "samples", 2000),  # inside a group
+        (["hw", "--device", "/dev/ttyUSB9", "check"], "device", "/dev/ttyUSB9"),  # hw's own
+        (["trials", "--n", "3", "run"], "n", 3),  # a subcommand the command registers itself
     ],
 )
 def test_a_commands_option_before_the_command_says_where_it_goes(argv, dest, value, capsys):
