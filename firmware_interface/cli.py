@@ -134,7 +134,8 @@ def _cmd_scan(args: argparse.Namespace) -> int:
     else:
         for s in servos:
             note = f"  (not the map's {smap.model_number})" if s["id"] in other else ""
-            print(f"ID {s['id']:3d}  model {s['model_number']}  firmware {s['firmware']}  "
+            fw = "-" if s["firmware"] is None else s["firmware"]  # another model's: unread
+            print(f"ID {s['id']:3d}  model {s['model_number']}  firmware {fw}  "
                   f"{s['joint'] or '-'}{note}")  # fmt: skip
         for s in missing:
             print(f"ID {s['id']:3d}  not answering ({s['joint']})")

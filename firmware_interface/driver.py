@@ -305,11 +305,12 @@ class DynamixelDriver(FaultHandling, Shutdown):
                         f"attempt(s): {self._why(result, dxl_id)}")  # fmt: skip
 
     # -- bring-up ----------------------------------------------------------------------------
-    def scan(self) -> dict[int, tuple[int, int]]:
+    def scan(self) -> dict[int, tuple[int, int | None]]:
         """Ping every mapped ID: ID -> (model number, firmware version) of those answering.
 
         Those answering as another model than the map's are kept in ``other_model`` (a
-        servo not answering keeps what an earlier scan found of it).
+        servo not answering keeps what an earlier scan found of it); their firmware
+        version is None: no register of another model's control table is read.
 
         Raises:
             CommError: A servo whose replies come, but after the reply timeout (not a
@@ -320,7 +321,8 @@ class DynamixelDriver(FaultHandling, Shutdown):
             for _ in range(self.retries + 1):
                 model, result, _ = self.packet.ping(self.port, i)
                 if result == COMM_SUCCESS:
-                    fw = self._read_reg(i, ADDR["firmware_version"], 1)
+                    ours = int(model) == self.map.model_number
+                    fw = self._read_reg(i, ADDR["firmware_version"], 1) if ours else None
                     found[i] = (int(model), fw)
                     break
         self.heard.update(found)

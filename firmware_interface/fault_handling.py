@@ -19,7 +19,7 @@ from firmware_interface.control_table import (
     hw_error_names,
     to_signed,
 )
-from firmware_interface.errors import CommError, HardwareFault
+from firmware_interface.errors import CommError, HardwareFault, WrongModelError
 from firmware_interface.health import Recovery, ServoHealth
 
 if TYPE_CHECKING:
@@ -45,6 +45,7 @@ class FaultHandling:
     homed: set[int]
     _present: Any
     _known: set[int]  # servos whose present position has been read (_present holds it)
+    other_model: dict[int, int]  # servos answering as another model (ID -> its number)
     _longest_gap: float
 
     def _check_alerted(self, ids: list[int]) -> None:
@@ -153,6 +154,9 @@ class FaultHandling:
 
         Raises:
             HardwareFault: The error is still there after the reboot (the cause persists).
+            WrongModelError: Another model than the map's answers on a rebooted servo's ID
+                (nothing of its table is read or written: not the registers the driver
+                knows).
             CommError: A servo did not come back within ``timeout``.
         """
         self._check_open()
@@ -163,11 +167,14 @@ class FaultHandling:
             self.packet.reboot(self.port, i)
         for i in ids:
             while True:
-                _, result, _ = self.packet.ping(self.port, i)
+                model, result, _ = self.packet.ping(self.port, i)
                 if result == COMM_SUCCESS:
                     break
                 if time.monotonic() - t0 > timeout:
                     raise CommError(f"{self._name(i)}: did not answer within {timeout} s of REBOOT")
+            if model != self.map.model_number:  # swapped while it was down: not ours to set up
+                self.other_model[i] = model
+                raise WrongModelError(i, self.map.joint_of(i), model, self.map.model_number)
             err = self._read_reg(i, ADDR["hardware_error_status"], 1)
             if err:
                 raise HardwareFault(i, self.map.joint_of(i), hw_error_names(err))

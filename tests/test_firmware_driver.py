@@ -662,6 +662,27 @@ def test_a_servo_of_another_model_is_refused_at_bring_up_by_name(smap):
         assert not any(s["torque"] for s in emu.servos().values())
 
 
+def test_recover_refuses_another_model_on_a_rebooted_servos_id(smap, monkeypatch):
+    """A servo swapped for another model while it was down (model 1060 answers after the
+    REBOOT) is refused by name before its settings are restored: nothing is written to it
+    (the driver's registers are the map's model's), and it stays faulted, torque off."""
+    with EmulatorProcess() as emu:
+        with DynamixelDriver(emu.port, smap, latency_timer_ms=LAT, on_fault="hold") as drv:
+            drv.bring_up()
+            cmd = PayloadCommand(np.zeros(17), 0.075, 0.0)
+            emu.fault("error:12:overload")
+            assert isinstance(_until_fault(drv, cmd), HardwareFault)
+            emu.fault("model:12:1060")
+            seen = spy_on_the_wire(monkeypatch)
+            with pytest.raises(WrongModelError, match=r"servo 12 \(C_dip\): model number 1060"):
+                drv.recover()
+            monkeypatch.undo()
+            assert drv.fault is not None and drv.other_model == {12: 1060}
+        assert not emu.servos()[12]["torque"]
+    written = [(inst, a) for inst, a in seen[12] if inst in (P.WRITE, P.SYNC_WRITE)]
+    assert (P.REBOOT, None) in seen[12] and written == [], sorted(seen[12], key=str)
+
+
 def test_a_failed_read_names_the_servo_and_the_register_in_the_drivers_words(rig):
     emu, drv = rig
     emu.fault("drop:1.0")
@@ -744,7 +765,7 @@ def test_no_shutdown_writes_to_or_reads_a_servo_of_another_model(smap, monkeypat
     first) and servo 7 not at all: the bring-up refuses them before configuring any servo,
     but close sync-wrote Torque Enable = 0 (address 64) to servo 5 too and read it back,
     and a safe stop wrote to it as well. Now the host sends servo 5 nothing but the scan's
-    ping and Firmware Version read (the packets on the wire), its byte 64 is still set
+    ping (not even Firmware Version: the packets on the wire), its byte 64 is still set
     (the emulator's own table), while servo 7 (model unknown) still gets the torque-off
     and servo 4 (the map's model) gets it and is read back; close warns of nothing."""
     torque, goal = ADDR["torque_enable"], ADDR["goal_position"]
@@ -761,8 +782,8 @@ def test_no_shutdown_writes_to_or_reads_a_servo_of_another_model(smap, monkeypat
         with caplog.at_level(logging.WARNING, logger="firmware_interface.driver"):
             drv.close()
         assert emu.table(5)[torque] == 1 and emu.servos()[5]["torque"]
-    scan = {(P.PING, None), (P.READ, ADDR["firmware_version"])}
-    assert seen[5] == scan, sorted(seen[5], key=str)
+    scan = {(P.PING, None), (P.READ, ADDR["firmware_version"])}  # a servo of the map's model
+    assert seen[5] == {(P.PING, None)}, sorted(seen[5], key=str)  # the scan's ping alone
     assert P.BROADCAST_ID not in seen, sorted(seen[P.BROADCAST_ID], key=str)
     # no position was read: the hold is a torque-off too (a goal of zeros would move one)
     stops = {(P.SYNC_WRITE, torque)}
@@ -798,7 +819,7 @@ def test_close_turns_off_a_servo_it_enabled_whatever_model_answers_on_its_id(sma
         drv = DynamixelDriver(emu.port, smap, latency_timer_ms=LAT, guard=False)
         drv.bring_up()
         emu.fault("model:5:1060")
-        assert drv.scan()[5][0] == 1060 and drv.other_model == {5: 1060}
+        assert drv.scan()[5] == (1060, None) and drv.other_model == {5: 1060}  # fw unread
         seen = spy_on_the_wire(monkeypatch)
         drv.close()
         assert not emu.servos()[5]["torque"]
