@@ -254,7 +254,7 @@ class Bus:
         Each servo's CRC is the running CRC of the packet so far, so the last one is the
         packet's CRC. A missing servo breaks the chain: the packet stops before it.
         """
-        length = (n + 4) * len(ids) + 1
+        length = (n + P.FAST_RECORD_OVERHEAD) * len(ids) + 1  # 1: the instruction
         pkt = bytearray(P.HEADER + bytes([P.BROADCAST_ID, length & 0xFF, length >> 8, P.STATUS]))
         first: ServoModel | None = None
         c = P.crc16(pkt)

@@ -196,7 +196,7 @@ def _params(rx: list[int]) -> int:
     """A status packet's parameter count after its error byte, from its LEN field
     (instruction, error, parameters, CRC 2): the SDK's ``removeStuffing`` sets LEN to
     the unstuffed length but leaves the list as long as the stuffed packet."""
-    return DXL_MAKEWORD(rx[5], rx[6]) - 4
+    return DXL_MAKEWORD(rx[5], rx[6]) - 1 - P.STATUS_TAIL  # 1: the instruction
 
 
 class CheckedPacketHandler(Protocol2PacketHandler):
@@ -206,9 +206,10 @@ class CheckedPacketHandler(Protocol2PacketHandler):
     to an earlier request (a ping's three bytes as a one-byte read, a two-byte Model Number
     as a four-byte position) was read as the answer to this one. Here a status whose
     parameter count differs from what the request asks for (PING 3, READ its length,
-    WRITE and REBOOT none; a fast sync read (n + 4) per servo) is a corrupt reply
-    (``COMM_RX_CORRUPT``): the driver retries it, the port drains the line first. The
-    count is the one the LEN field gives (see :func:`_params`), a byte-stuffed reply's too.
+    WRITE and REBOOT none; a fast sync read its data and ``FAST_RECORD_OVERHEAD`` per
+    servo) is a corrupt reply (``COMM_RX_CORRUPT``): the driver retries it, the port
+    drains the line first. The count is the one the LEN field gives (see
+    :func:`_params`), a byte-stuffed reply's too.
 
     A status from a servo not asked is counted late, but not one from a servo of the plain
     sync read under way (``group``, the IDs its packet names): it answers that read,
@@ -282,7 +283,7 @@ class CheckedPacketHandler(Protocol2PacketHandler):
         # the records of ``length`` bytes in all (AlertSyncRead parses them by their
         # lengths): the first servo's error byte and the last one's CRC stand where a
         # servo's own status has its error and CRC, the rest are the parameters
-        if result == COMM_SUCCESS and _params(self._last) != length - 3:
+        if result == COMM_SUCCESS and _params(self._last) != length - P.STATUS_TAIL:
             return [], self._refuse(port), 0
         return data, result, error
 
@@ -319,14 +320,15 @@ class AlertSyncRead(GroupSyncRead):
         """Fast sync read: per servo ``ERR, ID, data, CRC`` in one packet; errors kept."""
         self.last_result = False
         n = self.data_length
+        record = n + P.FAST_RECORD_OVERHEAD
         raw, result, _ = self.ph.fastSyncReadRx(
-            self.port, BROADCAST_ID, (n + 4) * len(self.data_dict)
+            self.port, BROADCAST_ID, record * len(self.data_dict)
         )
         if result != COMM_SUCCESS:
             return result
         raw = bytes(raw)
         for k in range(len(self.data_dict)):
-            part = raw[k * (n + 4) : (k + 1) * (n + 4)]
+            part = raw[k * record : (k + 1) * record]
             if len(part) < n + 2 or part[1] not in self.data_dict:
                 return COMM_RX_CORRUPT
             self.data_dict[part[1]] = bytearray(part[2 : 2 + n])

@@ -48,6 +48,13 @@ ERR_DATA_LIMIT = 6
 ERR_ACCESS = 7
 ALERT = 0x80
 
+STATUS_TAIL = 3
+"""A status packet's bytes besides its instruction and parameters that ``LEN`` counts:
+its error byte and CRC (a fast sync read's reply: the first record's error byte and the
+last record's CRC stand there)."""
+FAST_RECORD_OVERHEAD = 4
+"""A fast sync read reply's bytes per servo besides its data: error byte, ID and CRC."""
+
 
 class ProtocolError(PayloadError):
     """Bytes that are not a valid Protocol 2.0 packet."""
@@ -228,11 +235,13 @@ def wire_time(n_bytes: int, baud: int) -> float:
 
 __all__ = [
     "BROADCAST_ID",
+    "FAST_RECORD_OVERHEAD",
     "FAST_SYNC_READ",
     "PING",
     "READ",
     "REBOOT",
     "STATUS",
+    "STATUS_TAIL",
     "SYNC_READ",
     "SYNC_WRITE",
     "WRITE",

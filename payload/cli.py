@@ -20,7 +20,7 @@ import importlib
 import os
 import signal
 import sys
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from typing import Any, NamedTuple, NoReturn
 
 from payload.cliutil import (
@@ -37,6 +37,9 @@ from payload.project import ENV_VAR
 PROJECT_OPTION = "--project"
 """The one option every level takes (``payload --project DIR build``, ``payload build
 --project DIR``), with its value."""
+
+VERSION_OPTION = "--version"
+"""The top level's own option (``payload --version``)."""
 
 
 class Command(NamedTuple):
@@ -181,7 +184,7 @@ def build_parser(modules: Iterable[str] | None = None) -> argparse.ArgumentParse
     from payload import __version__
 
     parser = OneLineParser(prog="payload", description="Four-finger Astrobee payload workbench")
-    parser.add_argument("--version", action="version", version=f"payload {__version__}")
+    parser.add_argument(VERSION_OPTION, action="version", version=f"payload {__version__}")
     parser.add_argument(
         PROJECT_OPTION,
         metavar="DIR",
@@ -218,17 +221,25 @@ def registered_commands(module: str) -> dict[str, str]:
     return found
 
 
-def _modules_for(argv: Sequence[str]) -> set[str]:
-    """The command module ``argv`` selects (none for ``--help``, ``--version`` or a group's
-    own help): the first words that are not options, matched against :data:`COMMANDS`."""
-    words: list[str] = []
+def _tokens(argv: Sequence[str]) -> Iterator[tuple[int, str]]:
+    """``argv``'s tokens with their places, but ``--project`` and its value (taken at
+    every level, so never a command's word nor an option out of place)."""
     skip = False
-    for token in argv:
+    for k, token in enumerate(argv):
         if skip:
             skip = False
         elif token == PROJECT_OPTION:
             skip = True
-        elif not token.startswith("-"):
+        else:
+            yield k, token
+
+
+def _modules_for(argv: Sequence[str]) -> set[str]:
+    """The command module ``argv`` selects (none for ``--help``, ``--version`` or a group's
+    own help): the first words that are not options, matched against :data:`COMMANDS`."""
+    words: list[str] = []
+    for _, token in _tokens(argv):
+        if not token.startswith("-"):
             words.append(token)
             if len(words) == 2:
                 break
@@ -316,15 +327,11 @@ def _option_before_command(argv: Sequence[str]) -> str | None:
     takes (a misspelt command is argparse's to say)."""
     paths = [cmd.path.split() for cmd in COMMANDS]
     words: list[str] = []  # the command's words so far: a group's, until the command's
-    at, skip = None, False
-    for k, token in enumerate(argv):
-        if skip:
-            skip = False
-        elif token == PROJECT_OPTION:
-            skip = True
-        elif token.startswith("-"):
+    at = None
+    for k, token in _tokens(argv):
+        if token.startswith("-"):
             name = token.split("=", 1)[0]
-            if name not in ANYWHERE and not (name == "--version" and not words):
+            if name not in ANYWHERE and not (name == VERSION_OPTION and not words):
                 if words in paths:  # a whole command: its options, unless it has
                     subs = _subcommands(words)  # subcommands of its own (``hw check``)
                     if not subs:
