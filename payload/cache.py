@@ -11,6 +11,7 @@ from __future__ import annotations
 import functools
 import hashlib
 import os
+from collections.abc import Iterable
 from pathlib import Path
 
 _PACKAGE = Path(__file__).resolve().parent
@@ -53,4 +54,17 @@ def dist_version(name: str) -> str:
         return "?"
 
 
-__all__ = ["cache_dir", "dist_version", "sources_digest"]
+def code_key(tag: str, libraries: Iterable[str], *parts: bytes) -> str:
+    """A cache entry's name (32 hex digits): a hash of ``tag`` (the entry's kind and
+    format), ``parts`` (what it is derived from: a design file's path and bytes, say), the
+    workbench's sources (:func:`sources_digest`) and the versions of ``libraries``."""
+    h = hashlib.sha256(tag.encode())
+    for part in parts:
+        h.update(b"\0" + part)
+    h.update(b"\0" + sources_digest().encode())
+    for lib in libraries:
+        h.update(f"\0{lib}={dist_version(lib)}".encode())
+    return h.hexdigest()[:32]
+
+
+__all__ = ["cache_dir", "code_key", "dist_version", "sources_digest"]

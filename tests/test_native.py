@@ -100,6 +100,26 @@ def test_the_stamp_follows_the_workbenchs_code(tmp_path):
     assert len(set(digests)) == 5
 
 
+def test_a_cache_key_follows_each_of_its_inputs(monkeypatch):
+    """``code_key`` (the stowed-fit answers' and the models' fingerprints' names) moves
+    with its kind, with each part and where one part ends, with the sources and with a
+    library's version; the same inputs give the same name."""
+    from payload import cache
+
+    base = ("fit-1", ("numpy",), b"cad/design.toml", b"[finger]")
+    keys = [cache.code_key(*base[:2], *base[2:]), cache.code_key(*base[:2], *base[2:])]
+    assert keys[0] == keys[1] and len(keys[0]) == 32
+    keys = [keys[0], cache.code_key("fit-2", ("numpy",), *base[2:])]
+    keys.append(cache.code_key("fit-1", ("numpy",), b"cad/design.tom", b"l[finger]"))
+    keys.append(cache.code_key("fit-1", ("numpy",), b"cad/design.toml", b"[finger] "))
+    keys.append(cache.code_key("fit-1", ("numpy", "trimesh"), *base[2:]))
+    monkeypatch.setattr(cache, "dist_version", lambda name: "0.0-other")
+    keys.append(cache.code_key(*base[:2], *base[2:]))
+    monkeypatch.setattr(cache, "sources_digest", lambda: "another tree")
+    keys.append(cache.code_key(*base[:2], *base[2:]))
+    assert len(set(keys)) == len(keys), keys
+
+
 def test_a_stamp_passed_under_other_sources_asks_for_a_full_check(library, monkeypatch):
     """The stamp is named by the sources' digest taken at import: a full check passed
     under other sources (the workbench edited since) is not this process's stamp, and

@@ -11,11 +11,10 @@ code, so that an unchanged design costs a file read.
 
 from __future__ import annotations
 
-import hashlib
 import json
 from pathlib import Path
 
-from payload.cache import cache_dir, dist_version, sources_digest
+from payload.cache import cache_dir, code_key
 from payload.errors import first_of
 
 _VERSION = "stowed-fit-1"
@@ -24,11 +23,7 @@ _LIBRARIES = ("numpy", "trimesh", "manifold3d", "python-fcl")
 
 
 def _key(design_path: Path, text: bytes) -> str:
-    h = hashlib.sha256(f"{_VERSION}\0{design_path}\0".encode() + text)
-    h.update(sources_digest().encode())
-    for lib in _LIBRARIES:
-        h.update(f"\0{lib}={dist_version(lib)}".encode())
-    return h.hexdigest()[:32]
+    return code_key(_VERSION, _LIBRARIES, str(design_path).encode(), text)
 
 
 def _check(design_path: Path) -> list[str]:
