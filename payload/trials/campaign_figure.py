@@ -23,7 +23,7 @@ from payload.trials.summary_fields import (
     CAP_STOPPED,
     CONFIRMED_WORDS,
     definition_words,
-    without_contact,
+    statistic_rows,
 )
 
 OURS, PAPER = 0.0, 1.0
@@ -68,13 +68,12 @@ def campaign_figure(
     )
     rng = np.random.default_rng(0)  # a fixed jitter: the same summary draws the same figure
     for ax, (key, label) in zip(np.atleast_1d(axes), labels.items()):
-        # a trial without an interval: its 0 s is no contact, n/a as in the table
-        shown = [t for t in trials if not without_contact(t)] if key == "contact_s" else trials
+        # the trials the median is over: one without an interval is n/a, as in the table
+        shown = statistic_rows(trials, key)
         values = np.array([t[key] for t in shown if _finite(t.get(key))], dtype=float)
         jitter = rng.uniform(-0.12, 0.12, len(values))
         ax.scatter(OURS + jitter, values, s=18, color="#1f77b4", zorder=3, label="trials")
-        if shown:
-            _median_range(ax, OURS, summary.get(key), "#1f77b4")
+        _median_range(ax, OURS, summary.get(key), "#1f77b4")
         _median_range(ax, PAPER, summary["paper"].get(key), "#d62728")
         ax.set_xticks([OURS, PAPER], [f"this run\n(n = {len(values)})", "paper\n(n = 10)"])
         ax.set_xlim(-0.6, 1.6)

@@ -29,6 +29,7 @@ from payload.trials.summary_fields import (
     CampaignError,
     least_clearance_text,
     metric_labels,
+    statistic_rows,
     without_contact,
     zones_name,
 )
@@ -80,10 +81,7 @@ def _summary_core(rows: list[dict[str, Any]]) -> dict[str, Any]:
         "acquisition_success": sum(1 for r in ok_rows if r.get("acquired")) / len(rows),
     }
     for key in METRIC_KEYS:
-        # a trial without a contact interval has no interval to time (its 0 s is the
-        # metric's value for none), as it has no RMS: left out of the statistics
-        over = [r for r in ok_rows if not without_contact(r)] if key == "contact_s" else ok_rows
-        vals = _finite([r.get(key) for r in over])
+        vals = _finite([r.get(key) for r in statistic_rows(ok_rows, key)])
         if vals:
             arr = np.asarray(vals)
             summary[key] = {

@@ -10,7 +10,7 @@ The summary itself: :mod:`payload.trials.summary`; its Markdown:
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 from payload.errors import PayloadError
@@ -103,6 +103,14 @@ def without_contact(row: Mapping[str, Any]) -> bool:
     return row.get("acquired") is False and (rms is None or not math.isfinite(rms))
 
 
+def statistic_rows(rows: Sequence[Mapping[str, Any]], key: str) -> list[Mapping[str, Any]]:
+    """The trials a metric's median and range are taken over: those scored, and for the
+    first contact interval (``contact_s``) those that have one (another's 0 s is the
+    metric's value for none; it has no interval to time, as it has no RMS)."""
+    scored = [r for r in rows if not r.get("error")]
+    return [r for r in scored if not without_contact(r)] if key == "contact_s" else scored
+
+
 class CampaignError(PayloadError):
     """A campaign cannot run or be summarised (bad arguments, no trials, no scheduler)."""
 
@@ -160,6 +168,7 @@ __all__ = [
     "least_clearance_text",
     "metric_labels",
     "no_contact_interval",
+    "statistic_rows",
     "without_contact",
     "zones_name",
 ]
