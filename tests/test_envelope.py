@@ -39,7 +39,7 @@ from payload.envelope.fit import (
     self_contacts,
     with_finger_posture,
 )
-from payload.envelope.vehicle import BAY_ASSUMPTION, VEHICLE_TOML
+from payload.envelope.vehicle import BAY_ASSUMPTION
 from payload.project import SOURCES
 
 VEHICLE = Vehicle()
@@ -122,12 +122,16 @@ def test_vehicle_table_in_the_design_file_replaces_the_assumption(tmp_path, desi
     assert vehicle.bay_size == (0.21, 0.11, 0.12)
     assert vehicle.bottom_z == pytest.approx(-0.12)
     assert "210.0 x 110.0 x 120.0 mm" in vehicle.assumption
-    # the proposed table parses and gives the defaults
+    # the packaged design's table (what a project's design without one gets) has the
+    # class's defaults, its own words for the assumption aside
+    import dataclasses
     import tomllib
 
-    table = tomllib.loads(VEHICLE_TOML)["vehicle"]
-    assert vehicle_from_dict(table) == Vehicle(source="<memory>")
-    assert vehicle_from_dict(table).assumption == BAY_ASSUMPTION
+    from payload.project import default_design_text
+
+    packaged = vehicle_from_dict(tomllib.loads(default_design_text())["vehicle"])
+    assert dataclasses.replace(packaged, assumption=BAY_ASSUMPTION) == Vehicle(source="<memory>")
+    assert vehicle_from_dict({}).assumption == BAY_ASSUMPTION
 
 
 @pytest.mark.parametrize(

@@ -7,8 +7,9 @@ default is the assumption stated in ``docs/sources.md`` (one 1-U bay = 100 x 100
 100 mm, the two lower bays side by side fore-aft = 200 x 100 x 100 mm), and every
 report names it. Astrobee's flight modes (:data:`FLIGHT_MODES`, its motion and
 propulsion limits) live here too: the simulator's controller and the teleoperation
-base channel read them. A design file may replace it with a ``[vehicle]`` table (see
-:data:`VEHICLE_TOML`); :class:`~payload.design.params.Design` keeps the table as plain
+base channel read them. A design file may replace it with a ``[vehicle]`` table (the
+packaged default design's is the one to start from);
+:class:`~payload.design.params.Design` keeps the table as plain
 data (``design.vehicle``) and validates it with :func:`vehicle_from_dict`.
 """
 
@@ -31,21 +32,6 @@ BAY_ASSUMPTION = (
     f"200 x 100 x 100 mm envelope ({SOURCES}#vehicle). Replace it with a [vehicle] "
     "table in the design file."
 )
-
-VEHICLE_TOML = (
-    "# --------------------------------------------------------------------------\n"
-    "# Vehicle: Astrobee's body and the combined envelope of its two lower 1-U bays,\n"
-    "# in the payload frame (origin at the top centre of the bays; the bays reach\n"
-    "# down to the vehicle's bottom face, where they are open).\n"
-    "[vehicle]\n"
-    f"body_size = [0.32, 0.32, 0.32]   # [m] x, y, z ({SOURCES}: about a 0.32 m cube)\n"
-    "body_offset = [0.0, 0.0]         # [m] x, y of the body centre from the bays' centre\n"
-    "bay_size = [0.20, 0.10, 0.10]    # [m] two lower bays combined (ASSUMPTION, not public)\n"
-    f"mass = 9.5838                    # [kg] no payloads, four batteries ({SOURCES})\n"
-    "inertia = [0.15343, 0.14271, 0.16230]  # [kg m^2] principal, about the centre of mass\n"
-    f'assumption = "{BAY_ASSUMPTION}"\n'
-)
-"""The ``[vehicle]`` table proposed for ``cad/design.toml`` (all keys optional)."""
 
 
 @dataclass(frozen=True)
@@ -390,7 +376,6 @@ __all__ = [
     "BAY_ASSUMPTION",
     "DEFAULT_FLIGHT_MODE",
     "FLIGHT_MODES",
-    "VEHICLE_TOML",
     "FlightMode",
     "Vehicle",
     "VehicleError",

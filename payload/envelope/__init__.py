@@ -43,7 +43,6 @@ _LAZY: dict[str, str] = {
     "design_kinematics": "payload.envelope.reach",
     "span_range": "payload.envelope.reach",
     "BAY_ASSUMPTION": "payload.envelope.vehicle",
-    "VEHICLE_TOML": "payload.envelope.vehicle",
     "Vehicle": "payload.envelope.vehicle",
     "VehicleError": "payload.envelope.vehicle",
     "load_design_and_vehicle": "payload.envelope.vehicle",

@@ -9,7 +9,6 @@ from pathlib import Path
 from payload.design.params import Design, load_design
 from payload.design.vehicle import (
     BAY_ASSUMPTION,
-    VEHICLE_TOML,
     Vehicle,
     VehicleError,
     vehicle_from_dict,
@@ -48,7 +47,6 @@ def load_design_and_vehicle(path: str | Path | None = None) -> tuple[Design, Veh
 
 __all__ = [
     "BAY_ASSUMPTION",
-    "VEHICLE_TOML",
     "Vehicle",
     "VehicleError",
     "display_path",
