@@ -125,6 +125,7 @@ def test_vehicle_table_in_the_design_file_replaces_the_assumption(tmp_path, desi
     # the packaged design's table (what a project's design without one gets) has the
     # class's defaults, its own words for the assumption aside
     import dataclasses
+
     import tomllib
 
     from payload.project import default_design_text
