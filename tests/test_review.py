@@ -909,6 +909,67 @@ def test_links_that_collide_are_drawn_in_the_collision_colour(
     assert unused.endswith("(none here)") and "outside the bays" in unused
 
 
+def _deployment_rows(tree, per_second: int) -> np.ndarray:
+    """The deployment the review plays, sampled ``per_second`` times a second: the stage
+    down in 2 s with the fingers stowed, then the fingers and the rail straight from stowed
+    to home in 1.5 s; shape (n, 18), ``ALL_JOINTS`` order."""
+    from payload.design.tree import ALL_JOINTS
+
+    stowed, home = tree.posture("stowed"), tree.posture("home")
+    rows = []
+    for s in np.linspace(0.0, 1.0, 2 * per_second + 1):
+        rows.append({**stowed, "stage": (1 - s) * stowed["stage"] + s * home["stage"]})
+    for s in np.linspace(0.0, 1.0, round(1.5 * per_second) + 1):
+        rows.append(
+            {j: (1 - s) * stowed[j] + s * home[j] for j in ALL_JOINTS} | {"stage": home["stage"]}
+        )
+    return np.array([[q[j] for j in ALL_JOINTS] for q in rows])
+
+
+def test_links_that_collide_while_deploying_are_drawn_in_the_collision_colour(
+    tmp_path, design_dict
+) -> None:
+    """With the home posture's fingers abducted -0.3 rad, B_distal and C_distal pass through
+    each other as the fingers and the rail go from stowed to home: the envelope check
+    passes (its sweep lowers the stage with the fingers held stowed), and the review drew
+    them in their fingers' colours under a green verdict. The links that collide with
+    another link in the deployment the page plays, as MuJoCo's model of the convex pieces
+    finds them here (four times the page's frame rate), are drawn in the collision colour;
+    every other link keeps its colour; the verdict says it, in the fail colour, and the
+    legend's magenta says deploying."""
+    from payload.design.build import write
+    from payload.envelope.collisions import CollisionModel
+    from payload.envelope.drawing import COLLISION_COLOUR
+    from payload.envelope.vehicle import vehicle_from_dict
+
+    path = _copy_project(tmp_path, design_dict, design_dict["vehicle"]["bay_size"])
+    data = {**design_dict, "home": {**design_dict["home"], "finger": [0.0, -0.3, 0.0, 0.0]}}
+    path.write_bytes(tomli_w.dumps(data).encode())
+    write(load_design(path), path.parents[1])  # the MJCF keeps the home posture
+    rv = build_design_review(project_files(path), reach_samples=0)
+    assert rv.check.passed  # the stowed fit and the stage's sweep
+    design = load_design(path)
+    tree = build_tree(design)
+    model = CollisionModel(PayloadGeometry(tree), vehicle_from_dict(design.vehicle))
+    pairs = model.check(_deployment_rows(tree, 120)).pair_counts()
+    colliding = {n for pair in pairs if "vehicle" not in pair for n in pair}
+    assert colliding == {"B_distal", "C_distal"}, pairs
+    objects = rv.scene.objects()
+    links = [n for n, meshes in _urdf_links(URDF).items() if meshes]
+    drawn = {n: objects[f"{REVIEW}/payload/{n}/visual0"].material.color for n in links}
+    assert {n for n, c in drawn.items() if c == int(COLLISION_COLOUR[1:], 16)} == colliding
+    for n, c in drawn.items():
+        if n not in colliding:
+            assert c == link_colour(n), n
+    verdict = rv.scene.overlay.subtitle
+    assert verdict.startswith("stowed fit: pass") and rv.scene.overlay.outcome == FAIL
+    said = verdict.partition("; deploying: FAIL: ")[2]
+    assert said.startswith(("B_distal and C_distal collide", "C_distal and B_distal collide"))
+    rows = {colour.lower(): text for colour, text in rv.scene.overlay.legend}
+    assert "deploying" in rows[COLLISION_COLOUR.lower()]
+    assert not rows[COLLISION_COLOUR.lower()].endswith("(none here)")
+
+
 def test_the_collision_colour_stands_apart_from_every_other_colour_drawn(review) -> None:
     """Magenta sits between finger B's purple and finger D's pink in hue, but far from
     both in colour (CIE76, as the replay's contact indicator): every other colour of the

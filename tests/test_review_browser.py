@@ -192,33 +192,29 @@ def _posed(geom, poses: dict, links) -> dict[str, np.ndarray]:
     return {n: geom.mesh_vertices[n] @ poses[n][:3, :3].T + poses[n][:3, 3] for n in links}
 
 
-def _framed_on_screen(page, design_file: Path) -> dict[str, dict[str, np.ndarray]]:
-    """Pixel coordinates of what the default view frames, stowed (animation time 0) and
-    home (its end): every finger link, the stage, the carriage, and Astrobee's body (its
-    bounding box's corners); posed by the design tree of ``design_file``, projected
-    through the page's own camera (:func:`page_projection`). The page is left at home."""
+def _framed_on_screen(page, design_file: Path) -> dict[str, np.ndarray]:
+    """Pixel coordinates of what the default view frames, as the page opens (the payload
+    stowed): the corners of the bays' box (from the design's ``[vehicle]`` table), every
+    finger link, the stage and the carriage (posed by the design tree of ``design_file``),
+    and the corners of Astrobee's body; projected through the page's own camera
+    (:func:`page_projection`)."""
     from payload.envelope.vehicle import vehicle_from_dict
-    from payload.review.browser import pose_page
 
     design = load_design(design_file)
     tree = build_tree(design)
     geom = PayloadGeometry(tree)
+    sx, sy, sz = design.vehicle["bay_size"]
+    bays = np.array([-sx / 2, -sy / 2, -sz]), np.array([sx / 2, sy / 2, 0.0])
     vehicle = vehicle_from_dict(design.vehicle or {})
     body = vehicle.body_lower, vehicle.body_upper
-    silhouette = np.array(
-        [np.where(c, body[1], body[0]) for c in itertools.product((0, 1), repeat=3)]
-    )
     wanted = ["stage", "carriage"] + [n for n in geom.links if n[1:2] == "_"]
     assert {n[0] for n in wanted if n[1:2] == "_"} == set("ABCD")
-    end = page.evaluate("() => Math.max(...viewer.animator.actions.map(a => a._clip.duration))")
-    out = {}
-    for state, t in (("stowed", 0.0), ("home", end)):
-        pose_page(page, t)
-        m, size = page_projection(page)
-        parts = _posed(geom, tree.link_poses(tree.posture(state)), wanted)
-        parts["Astrobee"] = silhouette
-        out[state] = {name: to_pixels(pts, m, size) for name, pts in parts.items()}
-    return out
+    m, size = page_projection(page)
+    parts = _posed(geom, tree.link_poses(tree.posture("stowed")), wanted)
+    corners = list(itertools.product((0, 1), repeat=3))
+    parts["bays"] = np.array([np.where(c, bays[1], bays[0]) for c in corners])
+    parts["Astrobee"] = np.array([np.where(c, body[1], body[0]) for c in corners])
+    return {name: to_pixels(pts, m, size) for name, pts in parts.items()}
 
 
 def _screen_box(uv: np.ndarray) -> dict[str, float]:
@@ -227,18 +223,44 @@ def _screen_box(uv: np.ndarray) -> dict[str, float]:
     return {"x": x0, "y": y0, "w": x1 - x0, "h": y1 - y0}
 
 
-def test_the_default_view_frames_vehicle_fingers_stage_and_carriage(static_review) -> None:
+_OVERLAY_BOXES = """() => ["payload-title", "payload-legend"].map((id) => {
+    const r = document.getElementById(id).getBoundingClientRect();
+    return {id, x: r.x, y: r.y, w: r.width, h: r.height};
+})"""
+
+
+def _payload_framed(page, design_file: Path, viewport: tuple[int, int]) -> None:
+    """The default view as the page opens frames the payload: the bays' box and every
+    stowed finger link, the stage and the carriage lie in the viewport, none under the
+    title's box or the legend's (read from the page); the bays fill a good part of the
+    view (their screen box at least 30 % of its width) and Astrobee's body shows around
+    them (at least 5 % of the width beyond them on each side), so the reviewer sees where
+    they are."""
+    overlay = page.evaluate(_OVERLAY_BOXES)
+    seen = _framed_on_screen(page, design_file)
+    body = seen.pop("Astrobee")
+    for name, uv in seen.items():
+        assert np.all((uv >= 0) & (uv <= viewport)), (viewport, name)
+        for box in overlay:
+            assert _apart(box, _screen_box(uv)), (viewport, name, box)
+    bays = _screen_box(seen["bays"])
+    w = viewport[0]
+    assert bays["w"] >= 0.3 * w, (viewport, bays)
+    left, right = max(body[:, 0].min(), 0.0), min(body[:, 0].max(), w)
+    assert bays["x"] - left >= 0.05 * w and right - (bays["x"] + bays["w"]) >= 0.05 * w
+
+
+def test_the_default_view_frames_the_bays_and_the_stowed_payload(static_review) -> None:
+    """The default view framed the whole vehicle with the payload deployed and the reach
+    clouds: the stowed payload, the thing under review, was a small cluster (its bays
+    about 14 % of the view's width) under labels that crowded it. It now frames the two
+    lower bays and the stowed payload in them (:func:`_payload_framed`)."""
     _require_browser()
     from payload.review.browser import open_page
 
     with open_page(static_review) as page:
         assert page_projection(page)[1] == VIEWPORT
-        seen = _framed_on_screen(page, project_files().design)
-    for state, parts in seen.items():
-        for name, uv in parts.items():
-            assert np.all((uv >= 0) & (uv <= VIEWPORT)), f"{name} ({state}) leaves the view"
-    # the vehicle is the subject, not a speck: its silhouette spans a good part of the view
-    assert np.ptp(seen["stowed"]["Astrobee"][:, 1]) > 0.3 * VIEWPORT[1]
+        _payload_framed(page, project_files().design, VIEWPORT)
 
 
 def _failing_page(tmp_path: Path, design_dict: dict) -> tuple[Path, Path]:
@@ -254,19 +276,11 @@ def _failing_page(tmp_path: Path, design_dict: dict) -> tuple[Path, Path]:
     return failing, html
 
 
-_OVERLAY_BOXES = """() => ["payload-title", "payload-legend"].map((id) => {
-    const r = document.getElementById(id).getBoundingClientRect();
-    return {id, x: r.x, y: r.y, w: r.width, h: r.height};
-})"""
-
-
-def test_a_failing_verdict_covers_neither_astrobee_nor_its_payload(tmp_path, design_dict) -> None:
+def test_a_failing_verdict_covers_neither_the_bays_nor_the_payload(tmp_path, design_dict) -> None:
     """A failing design's verdict (its first failure, and how many more) wraps onto a
     second line, and the title's box lay over the top of Astrobee's body in the default
-    view. At the tests' size and at 1280 x 800, stowed and deployed, neither the title's
-    box nor the legend's (read from the page) meets the screen box of Astrobee's body,
-    of a finger link, the stage or the carriage (projected through the page's camera),
-    and all of them stay in the viewport."""
+    view. At the tests' size and at 1280 x 800 the view still frames the bays and the
+    stowed payload clear of the title and the legend (:func:`_payload_framed`)."""
     _require_browser()
     from payload.review.browser import open_page
     from payload.review.page import VERDICT_FONT_PX
@@ -279,12 +293,7 @@ def test_a_failing_verdict_covers_neither_astrobee_nor_its_payload(tmp_path, des
                 ".getBoundingClientRect().height"
             )
             assert verdict >= 2 * VERDICT_FONT_PX, verdict  # two lines (the case at issue)
-            overlay = page.evaluate(_OVERLAY_BOXES)
-            for state, parts in _framed_on_screen(page, failing).items():
-                for name, uv in parts.items():
-                    assert np.all((uv >= 0) & (uv <= viewport)), (viewport, state, name)
-                    for box in overlay:
-                        assert _apart(box, _screen_box(uv)), (viewport, state, name, box)
+            _payload_framed(page, failing, viewport)
 
 
 def test_no_two_labels_overlap_and_each_names_what_it_measures(static_review) -> None:

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Collection, Iterable, Mapping
 
 import numpy as np
 
@@ -36,6 +36,31 @@ def self_contacts(
     return [out[i] for i in order]
 
 
+def path_collisions(
+    geom: PayloadGeometry,
+    postures: Iterable[Mapping[str, float]],
+    skip: Collection[frozenset[str]] = (),
+) -> list[PairContact]:
+    """The link pairs that collide (:attr:`PairContact.colliding`) in any of ``postures``
+    (the samples of a motion), each once at its deepest, deepest first; the pairs in
+    ``skip`` (``frozenset((a, b))``) left out.
+
+    Args:
+        geom: Collision geometry of the payload.
+        postures: Joint values of each sample [rad, m].
+        skip: Pairs already known to collide (a stowed check's).
+    """
+    deepest: dict[frozenset[str], PairContact] = {}
+    for q in postures:
+        for c in self_contacts(geom, geom.poses(q)):
+            key = frozenset((c.a, c.b))
+            if c.colliding and key not in skip:
+                if key not in deepest or c.distance < deepest[key].distance:
+                    deepest[key] = c
+    return sorted(deepest.values(), key=lambda c: c.distance)
+
+
 __all__ = [
+    "path_collisions",
     "self_contacts",
 ]

@@ -11,15 +11,15 @@ Scene tree (under :data:`REVIEW`):
 ``payload/<link>/visual<k>``), ``findings/clearance/<wall>`` and
 ``findings/protrusion/<wall>/<part>`` (segments and label anchors; shown with the stowed
 payload only), ``reach/<finger>`` (point clouds, hidden until ticked). The page's overlay
-(:class:`~payload.review.scene.Overlay`) carries the title, the legend of every colour and
-the labels.
+(:class:`~payload.review.scene.Overlay`) carries the title, the legend of every colour, the
+labels and the box the default view frames (the bays and the stowed payload).
 """
 
 from __future__ import annotations
 
 import itertools
-from collections.abc import Mapping
-from dataclasses import dataclass
+from collections.abc import Collection, Mapping, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import meshcat.geometry as mg
@@ -38,10 +38,12 @@ from payload.envelope.fit import StowedCheck, check_stowed, wall_gaps
 from payload.envelope.fit_results import (
     COLLIDES_MEANING,
     OUTSIDE_MEANING,
+    PairContact,
     clearance_text,
     tight_meaning,
 )
 from payload.envelope.geometry import PayloadGeometry
+from payload.envelope.self_collision import path_collisions
 from payload.envelope.vehicle import Vehicle, vehicle_from_dict
 from payload.errors import first_of
 from payload.review.model import PayloadModel
@@ -68,9 +70,10 @@ REVIEW = f"{ROOT}/review"
 OFFENDING_COLOUR = hex_colour(FAIL_COLOUR)
 """Colour of a part that protrudes from the bays or hits the vehicle as the stage deploys."""
 COLLIDING = hex_colour(COLLISION_COLOUR)
-"""Colour of a part that collides with another link and is not outside the bays (nor hit
-by the vehicle as the stage deploys: those are :data:`OFFENDING_COLOUR`); the envelope
-figure edges such a part in it."""
+"""Colour of a part that collides with another link, stowed or while the payload deploys
+(:func:`unfolding_collisions`), and is not outside the bays (nor hit by the vehicle as the
+stage deploys: those are :data:`OFFENDING_COLOUR`); the envelope figure edges a stowed
+one in it."""
 TIGHT = hex_colour(TIGHT_COLOUR)
 """Colour of a link that does not fail but is under
 :data:`~payload.envelope.fit_results.TIGHT_CLEARANCE` to a bay wall or to another link (the
@@ -81,9 +84,10 @@ DEPLOY_FPS = 30
 STAGE_SECONDS, FINGER_SECONDS = 2.0, 1.5
 VIEW_DIRECTION = (1.0, -1.25, -0.45)
 """The camera looks at the payload from forward, right and a little below the vehicle."""
-FRAME_MARGIN = 1.1
-"""Margin of the default view around the vehicle, the payload (stowed and deployed) and
-the reach clouds (see :func:`payload.review.scene.framing`)."""
+FRAME_MARGIN = 1.3
+"""Margin of the default view around the bays and the stowed payload (:func:`subject_box`;
+see :func:`payload.review.scene.framing`): Astrobee's body shows around them, and the
+deployed payload reaches below the view (zoom out to follow it)."""
 
 
 def colour_text(colour: int) -> str:
@@ -105,11 +109,13 @@ class DesignReview:
     Attributes:
         scene: The meshcat scene.
         check: The envelope checks of the stowed configuration.
-        offending: Links that fail (protruding, colliding, or hit in the deployment):
-            drawn red, or magenta when they only collide with another link.
+        offending: Links that fail (protruding, colliding stowed or deploying, or hit in
+            the deployment): drawn red, or magenta when they only collide with another link.
         centre: Payload-frame point placed at the world origin (the camera target) [m].
         stowed: Link placements in the stowed configuration (payload frame).
         deployed: Link placements in the home (deployed) configuration.
+        deploying: Link pairs that collide while the fingers and the rail move from the
+            stowed posture to home, and not stowed (:func:`unfolding_collisions`).
     """
 
     scene: Scene
@@ -118,6 +124,7 @@ class DesignReview:
     centre: np.ndarray
     stowed: dict[str, np.ndarray]
     deployed: dict[str, np.ndarray]
+    deploying: list[PairContact] = field(default_factory=list)
 
 
 def offending_parts(check: StowedCheck) -> frozenset[str]:
@@ -269,21 +276,56 @@ def set_track(
     clip.tracks["quaternion"] = AnimationTrack("quaternion", "quaternion", list(frames), quat)
 
 
+def deployment_postures(
+    stowed: Mapping[str, float], home: Mapping[str, float]
+) -> tuple[list[dict[str, float]], list[dict[str, float]]]:
+    """The deployment's frames (:data:`DEPLOY_FPS`) as joint values, in two phases: the stage
+    down with the fingers stowed, then the fingers and the rail from stowed to home."""
+    n_stage, n_finger = round(STAGE_SECONDS * DEPLOY_FPS), round(FINGER_SECONDS * DEPLOY_FPS)
+    stage = []
+    for s in np.linspace(0.0, 1.0, n_stage + 1):
+        values = dict(stowed)
+        values["stage"] = (1 - s) * stowed["stage"] + s * home["stage"]
+        stage.append(values)
+    unfold = []
+    for s in np.linspace(0.0, 1.0, n_finger + 1)[1:]:
+        values = {j: (1 - s) * stowed[j] + s * home[j] for j in home}
+        values["stage"] = home["stage"]
+        unfold.append(values)
+    return stage, unfold
+
+
 def deployment_configurations(
     model: PayloadModel, stowed: Mapping[str, float], home: Mapping[str, float]
 ) -> list[np.ndarray]:
     """Stage down with the fingers stowed, then fingers and rail from stowed to home."""
-    out = []
-    n_stage, n_finger = round(STAGE_SECONDS * DEPLOY_FPS), round(FINGER_SECONDS * DEPLOY_FPS)
-    for s in np.linspace(0.0, 1.0, n_stage + 1):
-        values = dict(stowed)
-        values["stage"] = (1 - s) * stowed["stage"] + s * home["stage"]
-        out.append(model.configuration(values))
-    for s in np.linspace(0.0, 1.0, n_finger + 1)[1:]:
-        values = {j: (1 - s) * stowed[j] + s * home[j] for j in home}
-        values["stage"] = home["stage"]
-        out.append(model.configuration(values))
-    return out
+    stage, unfold = deployment_postures(stowed, home)
+    return [model.configuration(values) for values in stage + unfold]
+
+
+def unfolding_collisions(
+    geom: PayloadGeometry, check: StowedCheck, home: Mapping[str, float]
+) -> list[PairContact]:
+    """Link pairs that collide in the deployment the review plays, and not stowed: at
+    every frame where the fingers and the rail move from the stowed posture to home
+    (:func:`deployment_postures`), each pair at its deepest, deepest first.
+
+    While the stage goes down it carries every link but the base as one body, so no two
+    of those meet that did not stowed; the base and the vehicle are the deployment
+    sweep's (:attr:`StowedCheck.sweep`, ``"hit"``). The envelope report checks neither
+    the fingers' nor the rail's motion.
+    """
+    stowed = {frozenset((c.a, c.b)) for c in check.collisions}
+    return path_collisions(geom, deployment_postures(check.q, home)[1], skip=stowed)
+
+
+def unfolding_failures(contacts: list[PairContact]) -> list[str]:
+    """One phrase per pair colliding as the fingers unfold: ``B_distal and C_distal collide
+    as the fingers unfold (2.1 mm deep)``."""
+    return [
+        f"{c.a} and {c.b} collide as the fingers unfold ({-c.distance * 1e3:.1f} mm deep)"
+        for c in contacts
+    ]
 
 
 ROLE_COLOURS = {
@@ -295,11 +337,17 @@ ROLE_COLOURS = {
 """A link's colour by its :meth:`~payload.envelope.fit_results.StowedCheck.link_role`."""
 
 
-def part_colours(model: PayloadModel, check: StowedCheck) -> dict[str, int]:
+def part_colours(
+    model: PayloadModel, check: StowedCheck, deploying: Collection[str] = ()
+) -> dict[str, int]:
     """Each link's colour by its role (:meth:`StowedCheck.link_role`, failing first, as
     envelope.png): red outside the bays or hit deploying, magenta colliding with another
-    link, amber tight; else its finger's colour or grey."""
+    link (stowed, or while deploying: the links ``deploying``), amber tight; else its
+    finger's colour or grey."""
     roles = {n: check.link_role(n) for n in model.links}
+    for n in deploying:  # fails deploying: drawn failing, never amber
+        if roles.get(n, "outside") in (None, "tight"):
+            roles[n] = "colliding"
     return {n: ROLE_COLOURS.get(roles[n] or "", link_colour(n)) for n in model.links}
 
 
@@ -318,7 +366,7 @@ def legend(colours: Mapping[str, int], reach: bool) -> list[tuple[str, str]]:
     out += [
         (STRUCTURE_COLOUR, "structure: base, stage, carriage"),
         verdict(OFFENDING_COLOUR, f"fails: {OUTSIDE_MEANING} or hits the vehicle"),
-        verdict(COLLIDING, f"fails: {COLLIDES_MEANING}"),
+        verdict(COLLIDING, f"fails: {COLLIDES_MEANING}, stowed or deploying"),
         verdict(TIGHT, tight_meaning(walls=True, links=True)),
         (colour_text(BODY_COLOUR), "Astrobee's body"),
         (colour_text(BAY_COLOUR), "payload bays (the stowed envelope)"),
@@ -331,22 +379,26 @@ def legend(colours: Mapping[str, int], reach: bool) -> list[tuple[str, str]]:
     return out
 
 
-def frame_points(
-    vehicle: Vehicle, placed: list[np.ndarray], clouds: Mapping[str, np.ndarray]
-) -> np.ndarray:
-    """What the default view frames: the vehicle's body and bays, the payload's meshes in
-    every placement given, the reach clouds; payload frame, shape (n, 3) [m]."""
+def box_corners(lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
+    """The 8 corners of the axis-aligned box ``lower``..``upper``, shape (8, 3) [m]."""
     pick = np.array(list(itertools.product((0, 1), repeat=3)))
-    corners = [
-        np.where(pick, hi, lo)
-        for lo, hi in [(vehicle.bay_lower, vehicle.bay_upper), *vehicle.body_boxes()]
-    ]
-    return np.vstack([*corners, *placed, *clouds.values()])
+    return np.where(pick, upper, lower)
 
 
-def title(files: ProjectFiles, check: StowedCheck) -> tuple[str, str]:
+def subject_box(vehicle: Vehicle, stowed: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """What the default view frames: the two lower bays and the stowed payload's meshes in
+    them (a part sticking out of the bays included), as one axis-aligned box, payload frame
+    (lower, upper corners) [m]."""
+    pts = np.vstack([vehicle.bay_lower, vehicle.bay_upper, *stowed])
+    return pts.min(axis=0), pts.max(axis=0)
+
+
+def title(
+    files: ProjectFiles, check: StowedCheck, deploying: Sequence[str] = ()
+) -> tuple[str, str]:
     """The title (:func:`~payload.review.project.page_title`: the project, design file and
-    hash) and the verdict line (``stowed fit: pass; ...``)."""
+    hash) and the verdict line (``stowed fit: pass; ...``), with ``; deploying: FAIL: ...``
+    when links collide as the fingers unfold (``deploying``: those failures' phrases)."""
     design = Path(files.design)
     name = f"{design.resolve().parents[1].name}/{design.parent.name}/{design.name}"
     verdict = "stowed fit: pass" if check.passed else "stowed fit: FAIL"
@@ -356,6 +408,8 @@ def title(files: ProjectFiles, check: StowedCheck) -> tuple[str, str]:
     if check.parts and check.tightest.clearance >= 0:  # (one sticking out leads the reasons)
         t = check.tightest
         verdict += f"; tightest {t.name} {clearance_text(t.clearance)}"
+    if deploying:
+        verdict += f"; deploying: FAIL: {first_of(deploying, 1)}"
     return page_title("design review", name, design), verdict
 
 
@@ -397,39 +451,43 @@ def build_design_review(
     model = PayloadModel(files.urdf)
     stowed_q, home_q = tree.posture("stowed"), tree.posture("home")
     check = check_stowed(geom, vehicle, stowed_q)
-    bad = offending_parts(check)
+    unfolding = unfolding_collisions(geom, check, home_q)
+    unfolded = {n for c in unfolding for n in (c.a, c.b)}
+    bad = offending_parts(check) | unfolded
     stowed = model.placements(model.configuration(check.q))
     deployed = model.placements(model.configuration(home_q))
     clouds = reach_clouds(geom, vehicle, reach_samples, seed) if reach_samples else {}
 
-    verts = []
-    for poses in (stowed, deployed):
-        for link in model.links:
-            if link in geom.solids:
-                v = geom.mesh_vertices[link]
-                verts.append(v @ poses[link][:3, :3].T + poses[link][:3, 3])
-    allv = frame_points(vehicle, verts, clouds)
-    centre = (allv.min(axis=0) + allv.max(axis=0)) / 2
+    placed = [
+        geom.mesh_vertices[n] @ stowed[n][:3, :3].T + stowed[n][:3, 3]
+        for n in model.links
+        if n in geom.solids
+    ]
+    lo, hi = subject_box(vehicle, placed)
+    centre = (lo + hi) / 2  # the camera's target: the view turns about the payload
+    subject = box_corners(lo, hi) - centre
 
     scene = Scene(autoplay=False)
     scene.transform(root, translation(-centre))
     draw_vehicle(scene, vehicle, f"{root}/vehicle")
-    colours = part_colours(model, check)
+    colours = part_colours(model, check, unfolded)
     draw_links(scene, model, f"{root}/payload", stowed, colours)
     draw_findings(scene, geom, check, vehicle, f"{root}/findings")
     if clouds:
         draw_reach(scene, clouds, f"{root}/reach")
-    scene.camera = (framing(allv - centre, VIEW_DIRECTION, FRAME_MARGIN), np.zeros(3))
-    head, verdict = title(files, check)
+    scene.camera = (framing(subject, VIEW_DIRECTION, FRAME_MARGIN), np.zeros(3))
+    deploying = unfolding_failures(unfolding)
+    head, verdict = title(files, check, deploying)
     scene.overlay = Overlay(
         title=head,
         subtitle=verdict,
-        outcome=PASS if check.passed else FAIL,
+        outcome=PASS if check.passed and not unfolding else FAIL,
         legend=legend(colours, bool(clouds)),
         labels=scene.overlay.labels,
         views={"default": [float(v) for v in scene.camera[0]]},
         # the labels go beside the payload, not over its parts (a failing one's red parts)
         clear=[f"{root}/payload"],
+        subject=subject.tolist(),
     )
 
     anim = Animation(default_framerate=DEPLOY_FPS)
@@ -441,8 +499,8 @@ def build_design_review(
     set_visibility(anim, f"{root}/findings", frames, [i == 0 for i in frames])
     scene.animation = anim
     scene.notes += [f"design: {Path(files.design)}", verdict]
-    scene.notes += [f"  {line}" for line in check.failures()]
-    return DesignReview(scene, check, bad, centre, stowed, deployed)
+    scene.notes += [f"  {line}" for line in check.failures() + deploying]
+    return DesignReview(scene, check, bad, centre, stowed, deployed, unfolding)
 
 
 def set_visibility(animation: Animation, path: str, frames: list[float], on: list[bool]) -> None:
@@ -460,6 +518,7 @@ __all__ = [
     "DesignReview",
     "build_design_review",
     "deployment_configurations",
+    "deployment_postures",
     "draw_findings",
     "draw_links",
     "draw_vehicle",
@@ -468,4 +527,5 @@ __all__ = [
     "reach_clouds",
     "set_track",
     "set_visibility",
+    "unfolding_collisions",
 ]

@@ -1,6 +1,6 @@
 // The review's overlay on meshcat's viewer: title, legend, labels placed by a layout pass
 // with leader lines, the trial phase, an error banner, the chase camera, live updates, and
-// the 3-D view fitted below the title.
+// the 3-D view fitted below the title (a design review's bays and payload beside the legend).
 // Reads window.viewer (meshcat's Viewer). Data: see payload/review/page.py.
 (function () {
   "use strict";
@@ -20,8 +20,11 @@
   const error = div("payload-error", head);
   // the most of the pane's height the top boxes take from the view (a tiny window keeps one)
   const MAX_TOP_SHARE = 0.5;
+  // the free margin the subject keeps to the title, the legend and the pane's edges [px]
+  const SUBJECT_PAD = 12;
   const state = {
-    labels: [], phases: [], follow: null, chase: true, views: {}, clear: [], version: -1,
+    labels: [], phases: [], follow: null, chase: true, views: {}, clear: [], subject: [],
+    version: -1,
   };
 
   function div(id, parent) {
@@ -94,6 +97,7 @@
     state.follow = o.follow || null;
     state.views = o.views || {};
     state.clear = o.clear || [];
+    state.subject = o.subject || [];
     if (state.follow && !state.controlAdded) {
       viewer.set_control("whole station view", "() => payloadReview.toggleView()");
       state.controlAdded = true;
@@ -173,11 +177,71 @@
     return { x: x0, y: y0, w: x1 - x0, h: y1 - y0 };
   }
 
-  // The 3-D view is drawn in the part of the pane the overlay's top boxes (the title with
-  // its verdict and the error banner, the trial phase) leave free: what the camera frames
-  // (the whole pane's view, as the review set it) is scaled into the pane below them and
-  // centred there, by three.js's view offset. A long verdict (a failing design's) wrapped
-  // over the top of Astrobee's body; with the overlay hidden the view is the whole pane's.
+  // The subject's box (the design review's bays and stowed payload: world points about the
+  // camera's target) as the default view frames it, in the camera's frame: [0, 1] across
+  // (u) and down (v). The default view's camera, not the user's: an orbit or a zoom moves
+  // the subject on screen, and the fit below follows the overlay, not the user.
+  function subjectBox(w, h) {
+    const pts = state.subject;
+    const p = state.views.default;
+    if (!pts.length || !p) return null;
+    const key = JSON.stringify([w, h, viewer.camera.fov, p, pts]);
+    if (state.subjectBox && state.subjectBox.key === key) return state.subjectBox.box;
+    const T = MeshCat.THREE;
+    const cam = new T.PerspectiveCamera(viewer.camera.fov, w / h, 0.001, 1000);
+    cam.up.set(0, 0, 1);
+    cam.position.set(p[0], p[1], p[2]);
+    cam.lookAt(0, 0, 0);
+    cam.updateMatrixWorld();
+    const b = { u0: Infinity, v0: Infinity, u1: -Infinity, v1: -Infinity };
+    for (const q of pts) {
+      const n = new T.Vector3(q[0], q[1], q[2]).project(cam);
+      const u = (n.x + 1) / 2;
+      const v = (1 - n.y) / 2;
+      b.u0 = Math.min(b.u0, u); b.v0 = Math.min(b.v0, v);
+      b.u1 = Math.max(b.u1, u); b.v1 = Math.max(b.v1, v);
+    }
+    state.subjectBox = { key, box: b };  // the same every frame until the page or scene changes
+    return b;
+  }
+
+  // Where the camera's frame goes (setViewOffset's full size and offset) so that the subject
+  // lies in the larger free part of the pane: below the top boxes and above the legend, or
+  // right of the legend; centred there, made smaller only when it does not fit (never
+  // larger). null: no subject (a trial replay).
+  function subjectFit(w, h, top) {
+    const b = subjectBox(w, h);
+    if (!b) return null;
+    const pane0 = pane.getBoundingClientRect();
+    const rooms = [{ x0: 0, y0: top, x1: w, y1: h }];
+    if (legend.offsetParent !== null && legend.childElementCount) {
+      const r = legend.getBoundingClientRect();
+      rooms[0].y1 = r.top - pane0.top;
+      rooms.push({ x0: r.right - pane0.left, y0: top, x1: w, y1: h });
+    }
+    let best = null;
+    for (const r of rooms) {
+      const rw = r.x1 - r.x0 - 2 * SUBJECT_PAD;
+      const rh = r.y1 - r.y0 - 2 * SUBJECT_PAD;
+      if (rw <= 0 || rh <= 0) continue;
+      const s = Math.min(1, rw / ((b.u1 - b.u0) * w), rh / ((b.v1 - b.v0) * h));
+      if (best === null || s > best.s + 1e-9) best = { s, r };
+    }
+    if (best === null) return null;
+    const { s, r } = best;
+    const fw = w * s;
+    const fh = h * s;
+    return { fw, fh, x: ((b.u0 + b.u1) / 2) * fw - (r.x0 + r.x1) / 2,
+      y: ((b.v0 + b.v1) / 2) * fh - (r.y0 + r.y1) / 2 };
+  }
+
+  // The 3-D view is drawn in the part of the pane the overlay's boxes leave free: what the
+  // camera frames (the whole pane's view, as the review set it) is scaled by three.js's view
+  // offset into the pane below the top boxes (the title with its verdict and the error
+  // banner, the trial phase) and centred there; a design review's subject (the bays and the
+  // stowed payload) is fitted beside the legend too (subjectFit). A long verdict (a failing
+  // design's) wrapped over the top of Astrobee's body; with the overlay hidden the view is
+  // the whole pane's.
   function fitView() {
     const cam = viewer.camera;
     const w = pane.clientWidth;
@@ -197,13 +261,11 @@
       }
       return;
     }
-    // the camera's frame (its field of view) made s times the pane, its top row on the free
-    // part's top, centred across; the pane shows that and the margins beside it
+    // else the camera's frame (its field of view) made s times the pane, its top row on the
+    // free part's top, centred across; the pane shows that and the margins beside it
     const s = (h - top) / h;
-    const fw = w * s;
-    const fh = h * s;
-    const x = (fw - w) / 2;
-    const y = -top;
+    const fit = subjectFit(w, h, top) || { fw: w * s, fh: h * s, x: (w * s - w) / 2, y: -top };
+    const { fw, fh, x, y } = fit;
     if (v && v.enabled && v.fullWidth === fw && v.fullHeight === fh && v.offsetX === x
       && v.offsetY === y && v.width === w && v.height === h) return;
     cam.setViewOffset(fw, fh, x, y, w, h);

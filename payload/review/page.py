@@ -8,7 +8,8 @@ draws the title, the colour legend, the labels (placed each frame by a layout pa
 no two overlap, with leader lines to what they name), the trial phase, an error banner
 and, for trial replays, the chase camera; it draws the 3-D view in the part of the page
 below the title (with its verdict and banner) and the phase, the camera's frame scaled
-into it.
+into it, and a design review's bays and stowed payload (the overlay's ``subject``) clear
+of the legend too.
 """
 
 from __future__ import annotations

@@ -88,6 +88,10 @@ class Overlay:
             vehicle node at the origin by moving the root; ``None``: no chase camera.
         clear: Nodes the labels keep off: each frame, the screen box of each shown node
             (its meshes' bounds, projected) is a box no label may cover, as the title is.
+        subject: World points [m] (the corners of the design review's bays and stowed
+            payload) the page keeps clear of the title and the legend, as the ``default``
+            view frames them: it draws the view where they fit beside those boxes; empty:
+            the view only keeps below the title.
     """
 
     title: str = ""
@@ -99,6 +103,7 @@ class Overlay:
     views: dict[str, list[float]] = field(default_factory=dict)
     follow: tuple[str, str, list[float]] | None = None
     clear: list[str] = field(default_factory=list)
+    subject: list[list[float]] = field(default_factory=list)
 
     def as_json(self) -> dict[str, Any]:
         """The overlay as the page's script reads it."""
@@ -112,6 +117,7 @@ class Overlay:
             "views": self.views,
             "follow": None if self.follow is None else list(self.follow),
             "clear": list(self.clear),
+            "subject": [list(map(float, p)) for p in self.subject],
             "tab": tab_title(self.title),
         }
 
