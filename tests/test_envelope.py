@@ -962,12 +962,14 @@ def test_a_pass_with_room_to_spare_is_not_tight(stowed, geom):
 
 def test_links_closer_than_the_tight_clearance_make_a_tight_fit_too(design_dict):
     """A distal link of 46 mm stows in the packaged posture 1.0 mm from every wall, but
-    its pad passes 0.28 mm under the stage: tight, said, and still a pass."""
+    its pad passes 0.28 mm under the stage: tight, said, and still a pass (a home posture
+    with the fingers curled: straightening, this distal would brush the carriage)."""
     from payload.envelope.report_json import envelope_json
     from payload.envelope.verdict import envelope_verdict
 
     data = copy.deepcopy(design_dict)
     data["finger"]["lengths"]["distal"] = 0.046
+    data["home"]["finger"] = data["stowed"]["finger"]
     g = geometry_of(data)
     a = analyse_envelope(g, VEHICLE, search=False)
     assert a.passed and a.given.min_clearance == pytest.approx(0.001, abs=1e-6)
@@ -1003,9 +1005,11 @@ def test_the_search_line_is_a_proposal_that_names_write_stowed() -> None:
     assert "tight (under 0.50 mm)" in line and "; passes" not in line
     written = _search_line(passing, writing=True)  # --write-stowed's own line follows
     assert "not applied" not in written and written.endswith("; it passes, tight (under 0.50 mm)")
-    failing = SimpleNamespace(search=search, suggested=SimpleNamespace(passed=False, tight=False))
+    why = "stage and C_distal collide (0.1 mm deep, 2 mm^3)"
+    suggested = SimpleNamespace(passed=False, tight=False, failures=lambda: [why, "another"])
+    failing = SimpleNamespace(search=search, suggested=suggested)
     assert "--write-stowed" not in _search_line(failing)
-    assert "fails too" in _search_line(failing)
+    assert _search_line(failing).endswith(f"; it fails too: {why}")  # its first failure
 
 
 def test_the_reports_search_section_calls_a_passing_posture_a_proposal(geom):
@@ -1044,9 +1048,58 @@ def test_the_design_files_distal_comment_states_the_bound_that_holds(design_dict
         data["finger"]["lengths"]["distal"] = mm / 1e3
         g = geometry_of(data)
         check = check_stowed(g, VEHICLE, g.tree.posture("stowed"))
-        assert check.passed is passes, (mm, check.failures())
+        assert check.stows is passes, (mm, check.failures())  # (unfolding: the home's too)
         if not passes:
             assert check.self_collision and any("_distal" in f for f in check.failures())
+
+
+def _unfolding_contacts(geom, check, per_posture: int) -> dict[tuple[str, str], int]:
+    """MuJoCo's contacts (the collision model of the convex pieces and the vehicle body)
+    along the fingers and the rail going straight from ``check``'s stowed posture to home
+    with the stage down, sampled ``per_posture`` times as finely as the check was."""
+    from payload.design.tree import ALL_JOINTS
+    from payload.envelope.collisions import CollisionModel
+
+    stowed, home = check.q, geom.tree.posture("home")
+    n = per_posture * check.unfolding.samples
+    rows = [
+        [home[j] if j == "stage" else (1 - s) * stowed[j] + s * home[j] for j in ALL_JOINTS]
+        for s in np.linspace(0.0, 1.0, n + 1)
+    ]
+    return CollisionModel(geom, VEHICLE).check(np.array(rows)).pair_counts()
+
+
+@pytest.mark.parametrize(
+    ("home_finger", "distal"),
+    [((0.0, -0.3, 0.0, 0.0), 0.045), ((0.0, 0.0, 0.0, 0.0), 0.060), ((0.0, 0.0, 0.0, 0.0), 0.045)],
+)
+def test_the_fingers_unfolding_is_checked_as_mujocos_collision_model_finds_it(
+    design_dict, home_finger, distal
+):
+    """The envelope check lowered the stage with the fingers stowed and stopped there: a
+    design whose fingers pass through each other (a home posture abducted -0.3 rad) or
+    into the vehicle body (60 mm distal links) on their way from stowed to home passed
+    it. The deployment's second half is checked: the link pairs and the vehicle hits it
+    names are those MuJoCo's collision model finds along the same motion sampled four
+    times as finely, less the pairs already colliding stowed (the stowed check's); the
+    packaged design's unfolding is clear."""
+    data = copy.deepcopy(design_dict)
+    data["home"]["finger"] = list(home_finger)
+    data["finger"]["lengths"]["distal"] = distal
+    g = geometry_of(data)
+    check = check_stowed(g, VEHICLE, g.tree.posture("stowed"))
+    contacts = _unfolding_contacts(g, check, 4)
+    stowed_pairs = {frozenset((c.a, c.b)) for c in check.collisions}
+    pairs = {frozenset(p) for p in contacts if "vehicle" not in p} - stowed_pairs
+    hits = {n for p in contacts if "vehicle" in p for n in p if n != "vehicle"}
+    assert {frozenset((c.a, c.b)) for c in check.unfolding.collisions} == pairs
+    assert {h.link for h in check.unfolding.hits} == hits
+    said = [f for f in check.failures() if "as the fingers unfold" in f]
+    assert len(said) == len(pairs) + len(hits)
+    if home_finger == (0.0, 0.0, 0.0, 0.0) and distal == 0.045:
+        assert not pairs and not hits and check.passed and check.deploy_clear
+    else:
+        assert (pairs or hits) and not check.passed and not check.deploy_clear
 
 
 def test_the_design_review_words_a_tight_clearance_as_the_report_does(narrow_fit):
@@ -1120,6 +1173,8 @@ def test_envelope_png_draws_the_tight_parts_amber_and_says_so(
     elif case == "links":
         data = copy.deepcopy(design_dict)
         data["finger"]["lengths"]["distal"] = 0.046
+        # straightening, this distal would brush the carriage: the fingers stay curled
+        data["home"]["finger"] = data["stowed"]["finger"]
         g = geometry_of(data)
         a = analyse_envelope(g, VEHICLE, search=False)
     else:
@@ -1179,6 +1234,10 @@ def test_a_failing_link_is_never_drawn_amber(
 
     data = copy.deepcopy(design_dict)
     data["finger"]["lengths"]["distal"] = distal
+    # the fingers stay curled at home: the stowed roles alone (straightening, B's and D's
+    # distal would brush the carriage, and in the front view a link of finger B has the
+    # box of its finger A twin)
+    data["home"]["finger"] = data["stowed"]["finger"]
     g = geometry_of(data)
     a = analyse_envelope(g, with_bay_size(VEHICLE, bays), search=False)
     j = envelope_json(a)
@@ -1186,6 +1245,9 @@ def test_a_failing_link_is_never_drawn_amber(
     failing |= {n for c in j["self_collisions"] for n in c["links"]}
     if not a.given.sweep.vehicle_clear:
         failing |= set(a.given.sweep.between) & set(g.links)
+    unfolding = j["deploy_path"]["unfolding"]  # as the fingers unfold to home
+    failing |= {n for c in unfolding["collisions"] for n in c["links"]}
+    failing |= {h["link"] for h in unfolding["vehicle_hits"]}
     tight = {t["part"] for t in j["tight"] if "part" in t}
     tight |= {n for t in j["tight"] if "links" in t for n in t["links"]}
     assert tight & failing and tight - failing  # failing and tight, and tight only
@@ -1219,6 +1281,7 @@ def test_the_review_draws_a_tight_pairs_links_amber_as_envelope_png_does(design_
 
     data = copy.deepcopy(design_dict)
     data["finger"]["lengths"]["distal"] = 0.046
+    data["home"]["finger"] = data["stowed"]["finger"]  # no straightening past the carriage
     g = geometry_of(data)
     a = analyse_envelope(g, VEHICLE, search=False)
     listed = envelope_json(a)["tight"]

@@ -873,9 +873,11 @@ def test_links_that_collide_are_drawn_in_the_collision_colour(
     """With 60 mm distal links the curled distal links run into the stage and the carriage:
     every failing part was the same red, so a reviewer could not tell a collision from a
     protrusion. The links that collide, as the envelope report's JSON lists them
-    (``self_collisions``), are drawn in the collision colour (the envelope figure's
-    magenta edge); none is outside the bays, so no part is red; every other link keeps its
-    finger's colour or grey; the legend explains the colour and marks the red unused."""
+    (``self_collisions``, and those colliding as the fingers unfold), are drawn in the
+    collision colour (the envelope figure's magenta edge); none is outside the bays, so the
+    only red ones are those the report finds reaching into the vehicle body as the fingers
+    unfold; every other link keeps its finger's colour or grey; the legend explains the
+    colour."""
     from payload.design.build import write
 
     root = _copy_project(tmp_path, design_dict, design_dict["vehicle"]["bay_size"]).parents[1]
@@ -893,20 +895,23 @@ def test_links_that_collide_are_drawn_in_the_collision_colour(
     objects = rv.scene.objects()
     links = [n for n, meshes in _urdf_links(root / "urdf" / "payload.urdf").items() if meshes]
     drawn = {n: objects[f"{REVIEW}/payload/{n}/visual0"].material.color for n in links}
+    # red: only the links that reach into the vehicle body as the fingers unfold (the
+    # report's deploy_path.unfolding.vehicle_hits), never one only colliding
+    unfolding = report["deploy_path"]["unfolding"]
+    hit = {h["link"] for h in unfolding["vehicle_hits"]}
+    colliding |= {n for c in unfolding["collisions"] for n in c["links"]}
     red = {n for n, c in drawn.items() if c == OFFENDING_COLOUR}
-    assert not red, f"drawn red, as if outside the bays: {sorted(red)}"
+    assert red == hit, f"drawn red: {sorted(red)}"
     from payload.envelope.drawing import COLLISION_COLOUR
 
     collision = int(COLLISION_COLOUR[1:], 16)
-    assert {n for n, c in drawn.items() if c == collision} == colliding
+    assert {n for n, c in drawn.items() if c == collision} == colliding - hit
     for n, c in drawn.items():
-        if n not in colliding:
+        if n not in colliding | hit:
             assert c == link_colour(n), n
     rows = {text: colour for colour, text in rv.scene.overlay.legend}
     meaning = next(t for t, c in rows.items() if c.lower() == COLLISION_COLOUR.lower())
     assert "collides with another link" in meaning and "(none here)" not in meaning
-    unused = next(t for t, c in rows.items() if int(c[1:], 16) == OFFENDING_COLOUR)
-    assert unused.endswith("(none here)") and "outside the bays" in unused
 
 
 def _deployment_rows(tree, per_second: int) -> np.ndarray:
@@ -947,7 +952,7 @@ def test_links_that_collide_while_deploying_are_drawn_in_the_collision_colour(
     path.write_bytes(tomli_w.dumps(data).encode())
     write(load_design(path), path.parents[1])  # the MJCF keeps the home posture
     rv = build_design_review(project_files(path), reach_samples=0)
-    assert rv.check.passed  # the stowed fit and the stage's sweep
+    assert rv.check.sweep.clear and not rv.check.self_collision  # stowed, the stage down
     design = load_design(path)
     tree = build_tree(design)
     model = CollisionModel(PayloadGeometry(tree), vehicle_from_dict(design.vehicle))
@@ -961,10 +966,12 @@ def test_links_that_collide_while_deploying_are_drawn_in_the_collision_colour(
     for n, c in drawn.items():
         if n not in colliding:
             assert c == link_colour(n), n
-    verdict = rv.scene.overlay.subtitle
-    assert verdict.startswith("stowed fit: pass") and rv.scene.overlay.outcome == FAIL
-    said = verdict.partition("; deploying: FAIL: ")[2]
+    verdict = rv.scene.overlay.subtitle  # the envelope report's
+    assert verdict.startswith("stowed fit: FAIL: deployment: ")
+    assert rv.scene.overlay.outcome == FAIL
+    said = verdict.partition("stowed fit: FAIL: deployment: ")[2]
     assert said.startswith(("B_distal and C_distal collide", "C_distal and B_distal collide"))
+    assert "as the fingers unfold" in said
     rows = {colour.lower(): text for colour, text in rv.scene.overlay.legend}
     assert "deploying" in rows[COLLISION_COLOUR.lower()]
     assert not rows[COLLISION_COLOUR.lower()].endswith("(none here)")

@@ -261,7 +261,7 @@ def _search_line(analysis: EnvelopeAnalysis, writing: bool = False) -> str:
         f"{clearance_text(s.clearance)} ({s.limited_by})"
     )
     if not c.passed:
-        return f"{head}; it fails too: the search found no posture that stows this design"
+        return f"{head}; it fails too: {c.failures()[0]}"
     tight = f", tight (under {clearance_text(TIGHT_CLEARANCE)})" if c.tight else ""
     if writing:
         return f"{head}; it passes{tight}"

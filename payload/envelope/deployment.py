@@ -3,18 +3,26 @@
 from __future__ import annotations
 
 import itertools
+import math
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
 
 from payload.envelope.fit_results import (
+    BodyHit,
     PairContact,
     SweepResult,
+    UnfoldResult,
 )
-from payload.envelope.geometry import PayloadGeometry, box_geometry
-from payload.envelope.self_collision import self_contacts
+from payload.envelope.geometry import PayloadGeometry, aabb, aabb_gap, box_geometry
+from payload.envelope.self_collision import path_collisions, self_contacts
 from payload.envelope.vehicle import Vehicle
+
+UNFOLD_STEP_RAD = math.radians(1.0)
+"""The most a revolute joint moves between two checked postures of the unfolding [rad]."""
+UNFOLD_STEP_M = 0.5e-3
+"""The most the rail moves between two checked postures of the unfolding [m]."""
 
 
 def _obstacles(geom: PayloadGeometry, vehicle: Vehicle) -> list[tuple[str, Any, tuple]]:
@@ -95,6 +103,61 @@ def deployment_sweep(
     )
 
 
+def unfolding_postures(
+    geom: PayloadGeometry, stowed: Mapping[str, float], home: Mapping[str, float]
+) -> list[dict[str, float]]:
+    """The fingers and the rail from ``stowed`` to ``home`` in a straight line in joint
+    space, the stage at ``home``'s: evenly spaced so that no revolute joint moves more
+    than :data:`UNFOLD_STEP_RAD` and no prismatic one more than :data:`UNFOLD_STEP_M`
+    between two, the stowed end left out (the sweep's last posture) and home in."""
+    joints = geom.tree.joint_map
+    steps = [
+        abs(home[j] - stowed[j])
+        / (UNFOLD_STEP_M if joints[j].kind == "prismatic" else UNFOLD_STEP_RAD)
+        for j in home
+        if j != "stage"
+    ]
+    n = max(1, math.ceil(max(steps, default=0.0)))
+    out = []
+    for s in np.linspace(0.0, 1.0, n + 1)[1:]:
+        values = {j: (1 - s) * stowed[j] + s * home[j] for j in home}
+        values["stage"] = home["stage"]
+        out.append(values)
+    return out
+
+
+def unfolding_check(
+    geom: PayloadGeometry,
+    vehicle: Vehicle,
+    stowed: Mapping[str, float],
+    home: Mapping[str, float],
+    contacts: Sequence[PairContact],
+) -> UnfoldResult:
+    """The deployment's second half: with the stage down, the fingers and the rail from
+    ``stowed`` to ``home`` (:func:`unfolding_postures`), each posture's links against each
+    other and the base (the pairs colliding stowed, in ``contacts``, left out: they are
+    the stowed check's) and against the vehicle body. Sampled, not certified as the
+    stage's sweep is: a contact thinner than a step's motion can go unseen."""
+    postures = unfolding_postures(geom, stowed, home)
+    stowed_pairs = {frozenset((c.a, c.b)) for c in contacts if c.colliding}
+    collisions = path_collisions(geom, postures, skip=stowed_pairs)
+    body = _obstacles(geom, vehicle)
+    moving = [n for n in geom.links if n != geom.root]
+    deepest: dict[str, BodyHit] = {}
+    for q in postures:
+        poses = geom.poses(q)
+        for link in moving:  # each link: two reaching into the body at once are both said
+            box = aabb(geom.hull_vertices(link, poses[link]))
+            near = [o for o in body if aabb_gap(box, o[2]) <= 0.0]
+            if not near:
+                continue
+            d, (_, thing) = geom.min_distance(poses, pairs=(), others=near, moving=[link])
+            if d <= 0 and (link not in deepest or d < deepest[link].distance):
+                deepest[link] = BodyHit(link, thing, float(d))
+    hits = sorted(deepest.values(), key=lambda h: h.distance)
+    return UnfoldResult(collisions, hits, len(postures))
+
+
 Distance = Callable[[float], tuple[float, tuple[str, str]]]
 """Stage travel [m] -> (smallest distance to the fixed things [m], the two closest)."""
 
@@ -150,5 +213,9 @@ def _first_contact(
 
 
 __all__ = [
+    "UNFOLD_STEP_M",
+    "UNFOLD_STEP_RAD",
     "deployment_sweep",
+    "unfolding_check",
+    "unfolding_postures",
 ]

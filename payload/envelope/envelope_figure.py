@@ -206,7 +206,7 @@ def figure_title(check: StowedCheck) -> str:
         status = f"{check.fits_words}: under {clearance_text(TIGHT_CLEARANCE)}"
     if check.fits and not check.passed:
         why = ["collide"] if check.self_collision else []
-        if not check.sweep.clear:
+        if not check.deploy_clear:
             why.append("the deployment path is not clear")
         status = "FAILS: the parts fit the bays but " + " and ".join(why)
     # a tight pair is named by its distance (the min clearance above is the walls')
@@ -253,6 +253,10 @@ def _deployment_panel(ax: Any, geom: PayloadGeometry, vehicle: Vehicle, check: S
         if sweep.clear
         else ("carried parts collide" if sweep.vehicle_clear else "BLOCKED by the vehicle")
     )
+    if not check.unfolding.clear:
+        verdict += "; the fingers unfolding: " + (
+            "hit the vehicle" if check.unfolding.hits else "links collide"
+        )
     ax.set_title(
         f"deployment sweep, stage 0 -> {stage.upper * 1e3:.0f} mm (dashed: stowed): {verdict}\n"
         f"closest {clearance_text(sweep.min_distance)}, {sweep.between[0]} / {sweep.between[1]}",

@@ -26,7 +26,7 @@ from payload.envelope.containment import (
     wall_gaps,
     wall_slabs,
 )
-from payload.envelope.deployment import deployment_sweep
+from payload.envelope.deployment import deployment_sweep, unfolding_check
 from payload.envelope.fit_results import (
     VOLUME_TOL,
     EnvelopeAnalysis,
@@ -49,13 +49,19 @@ from payload.envelope.vehicle import Vehicle
 
 
 def check_stowed(geom: PayloadGeometry, vehicle: Vehicle, q: Mapping[str, float]) -> StowedCheck:
-    """Containment, self-collision and the deployment sweep of one stowed configuration."""
+    """Containment, self-collision and the deployment of one stowed configuration: the
+    stage's sweep down, then the fingers and the rail to the design's home posture."""
     q = dict(q)
     q["stage"] = geom.tree.joint_map["stage"].lower
     poses = geom.poses(q)
     contacts = self_contacts(geom, poses)
+    home = geom.tree.posture("home")
     return StowedCheck(
-        q, fit_parts(geom, poses, vehicle), contacts, deployment_sweep(geom, vehicle, q, contacts)
+        q,
+        fit_parts(geom, poses, vehicle),
+        contacts,
+        deployment_sweep(geom, vehicle, q, contacts),
+        unfolding_check(geom, vehicle, q, home, contacts),
     )
 
 
@@ -71,7 +77,8 @@ def analyse_envelope(
         geom: Collision geometry of the design.
         vehicle: The vehicle.
         search: Run the stowed-posture search: ``None`` (default) when the given
-            posture fails, ``True`` always, ``False`` never.
+            posture does not stow (outside the bays, colliding, or blocked as the stage
+            goes down), ``True`` always, ``False`` never.
         progress: Progress callback.
 
     Returns:
@@ -82,7 +89,9 @@ def analyse_envelope(
     given = check_stowed(geom, vehicle, geom.tree.posture("stowed"))
     progress("stowed fit", 1.0)
     found = suggested = None
-    if search or (search is None and not given.passed):
+    # the search maximises the stowed clearances: a design failing only as its fingers
+    # unfold (its home posture's doing as much as the stowed one's) is not searched for
+    if search or (search is None and not given.stows):
         found = search_stowed_posture(geom, vehicle, given.q, progress=progress)
         suggested = check_stowed(geom, vehicle, with_finger_posture(given.q, found.finger))
     approx = [(f"{p.link}/{p.name}", p.excess) for p in geom.approximate_pieces()]

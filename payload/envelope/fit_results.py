@@ -121,6 +121,43 @@ class SweepResult(NamedTuple):
     first_contact: float = float("nan")
 
 
+class BodyHit(NamedTuple):
+    """A link reaching into the vehicle body.
+
+    Attributes:
+        link: The link.
+        body: The vehicle body's box it reaches into (``vehicle body (left of the bays)``).
+        distance: Signed distance between them [m] (zero or negative: in contact).
+    """
+
+    link: str
+    body: str
+    distance: float
+
+
+class UnfoldResult(NamedTuple):
+    """The second half of a deployment: the fingers and the rail from the stowed posture to
+    home, straight in joint space, with the stage deployed.
+
+    Attributes:
+        collisions: Link pairs that collide on the way and not stowed (those are the stowed
+            check's), each at its deepest, deepest first.
+        hits: Links that reach into the vehicle body on the way, each at its deepest,
+            deepest first.
+        samples: Postures checked (no joint moves more than
+            :data:`~payload.envelope.deployment.UNFOLD_STEP_RAD` or
+            :data:`~payload.envelope.deployment.UNFOLD_STEP_M` between two).
+    """
+
+    collisions: list[PairContact]
+    hits: list[BodyHit]
+    samples: int
+
+    @property
+    def clear(self) -> bool:
+        return not self.collisions and not self.hits
+
+
 class PostureSearch(NamedTuple):
     """The finger posture (shared by the four fingers) that maximises the minimum clearance.
 
@@ -147,13 +184,16 @@ class StowedCheck:
         q: Joint values (every joint of the tree) [rad, m].
         parts: Per-part fit.
         self_contacts: Every checked (non-adjacent) pair, closest first.
-        sweep: The deployment sweep from this configuration.
+        sweep: The deployment sweep from this configuration (the stage down).
+        unfolding: The fingers and the rail from this configuration to home, the stage
+            down (the deployment's second half).
     """
 
     q: dict[str, float]
     parts: list[PartFit]
     self_contacts: list[PairContact]
     sweep: SweepResult
+    unfolding: UnfoldResult
 
     @property
     def fits(self) -> bool:
@@ -198,7 +238,20 @@ class StowedCheck:
 
     @property
     def passed(self) -> bool:
+        return self.fits and not self.self_collision and self.deploy_clear
+
+    @property
+    def stows(self) -> bool:
+        """The payload stows: inside the bays, no two links colliding, and the stage's way
+        down clear (what a stowed posture decides; the fingers' unfolding is the home
+        posture's as much)."""
         return self.fits and not self.self_collision and self.sweep.clear
+
+    @property
+    def deploy_clear(self) -> bool:
+        """The whole deployment is clear: the stage down (:attr:`sweep`), then the fingers
+        and the rail to home (:attr:`unfolding`)."""
+        return self.sweep.clear and self.unfolding.clear
 
     @property
     def tight_parts(self) -> list[PartFit]:
@@ -232,7 +285,9 @@ class StowedCheck:
         if not self.sweep.vehicle_clear and name in self.sweep.between:
             if any(p.name == name for p in self.parts):
                 return "hit"
-        if any(name in (c.a, c.b) for c in self.collisions):
+        if any(h.link == name for h in self.unfolding.hits):
+            return "hit"
+        if any(name in (c.a, c.b) for c in [*self.collisions, *self.unfolding.collisions]):
             return "colliding"
         return "tight" if name in self.tight_links else None
 
@@ -293,6 +348,16 @@ class StowedCheck:
                 )
             else:
                 out.append("deployment: the sweep could not prove the path contact-free")
+        for c in self.unfolding.collisions:
+            out.append(
+                f"deployment: {c.a} and {c.b} collide as the fingers unfold "
+                f"({-c.distance * 1e3:.1f} mm deep)"
+            )
+        for h in self.unfolding.hits:
+            out.append(
+                f"deployment: {h.link} hits the {h.body} as the fingers unfold "
+                f"({-h.distance * 1e3:.1f} mm deep)"
+            )
         return out
 
 
@@ -304,7 +369,7 @@ class EnvelopeAnalysis:
         vehicle: The vehicle and bay envelope used.
         design_source: The design file.
         given: Checks of the design's stowed configuration.
-        search: The stowed-posture search (run when the given posture fails, or on request).
+        search: The stowed-posture search (run when the given posture does not stow, or on request).
         suggested: Checks of the searched posture (when a search ran).
         excluded_pairs: Adjacent link pairs left out of self-collision.
         approximate: Parts whose convex hull is larger than the part (name, excess).
@@ -343,12 +408,14 @@ class EnvelopeAnalysis:
 __all__ = [
     "TIGHT_CLEARANCE",
     "VOLUME_TOL",
+    "BodyHit",
     "EnvelopeAnalysis",
     "PairContact",
     "PartFit",
     "PostureSearch",
     "StowedCheck",
     "SweepResult",
+    "UnfoldResult",
     "clearance_text",
     "tight_meaning",
 ]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 import re
 from collections.abc import Iterable, Sequence
@@ -10,6 +11,7 @@ from typing import Any
 
 import numpy as np
 
+from payload.envelope.deployment import UNFOLD_STEP_M, UNFOLD_STEP_RAD
 from payload.envelope.fit_results import EnvelopeAnalysis, StowedCheck, clearance_text
 from payload.envelope.grasp import GraspResult
 from payload.envelope.pairs import OPPOSITION_CONE
@@ -214,15 +216,30 @@ def _sweep_section(a: EnvelopeAnalysis) -> list[str]:
             if not any(c.colliding and "base" not in (c.a, c.b) for c in g.self_contacts)
             else "**collide** (see self-collision)"
         ),
-        f"- deployment path clear: **{'yes' if s.clear else 'no'}**",
+        unfolding_line(g),
+        f"- deployment path clear: **{'yes' if g.deploy_clear else 'no'}**",
         "",
     ]
+
+
+def unfolding_line(check: StowedCheck) -> str:
+    """The deployment's second half, a bullet: the fingers and the rail straight from the
+    stowed posture to home with the stage down, sampled."""
+    u = check.unfolding
+    said = [f"{c.a} and {c.b} collide" for c in u.collisions]
+    said += [f"{h.link} hits the {h.body}" for h in u.hits]
+    return (
+        "- then the fingers and the rail, straight from stowed to home with the stage down "
+        f"({u.samples} postures, at most {math.degrees(UNFOLD_STEP_RAD):g} deg and "
+        f"{UNFOLD_STEP_M * 1e3:g} mm apart): "
+        + ("clear" if u.clear else "**" + "; ".join(said) + "**")
+    )
 
 
 def _search_section(a: EnvelopeAnalysis) -> list[str]:
     out = ["## Stowed-posture search", ""]
     if a.search is None:
-        out.append("Not run (it runs when the given posture fails, or with `--search`).")
+        out.append("Not run (it runs when the given posture does not stow, or with `--search`).")
     else:
         sr, sc = a.search, a.suggested
         assert sc is not None
@@ -238,7 +255,7 @@ def _search_section(a: EnvelopeAnalysis) -> list[str]:
             f"- checked like the given posture: fits {'yes' if sc.fits else 'no'}, min clearance "
             f"{clearance_text(sc.min_clearance)}, self-collision "
             f"{'yes' if sc.self_collision else 'no'}, deployment path "
-            f"{'clear' if sc.sweep.clear else 'blocked'}: "
+            f"{'clear' if sc.deploy_clear else 'blocked'}: "
             f"**{'passes' if sc.passed else 'fails'}**"
             + (f", tight: {sc.tight_phrase()}" if sc.passed and sc.tight else ""),
         ]

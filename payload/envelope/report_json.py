@@ -112,7 +112,7 @@ def _check_json(check: StowedCheck) -> dict[str, Any]:
         ],
         "min_self_clearance_mm": _mm(closest.distance),
         "min_self_clearance_links": [closest.a, closest.b],
-        "deploy_path_clear": sweep.clear,
+        "deploy_path_clear": check.deploy_clear,
         "deploy_path": {
             "vehicle_clear": sweep.vehicle_clear,
             "carried_parts_clear": not any(
@@ -124,6 +124,18 @@ def _check_json(check: StowedCheck) -> dict[str, Any]:
             "samples": sweep.samples,
             "certified": sweep.certified,
             "first_contact_mm": _mm(sweep.first_contact),
+            "unfolding": {  # the fingers and the rail to home, the stage down
+                "clear": check.unfolding.clear,
+                "samples": check.unfolding.samples,
+                "collisions": [
+                    {"links": [c.a, c.b], "depth_mm": _mm(-c.distance)}
+                    for c in check.unfolding.collisions
+                ],
+                "vehicle_hits": [
+                    {"link": h.link, "body": h.body, "depth_mm": _mm(-h.distance)}
+                    for h in check.unfolding.hits
+                ],
+            },
         },
         "passed": check.passed,
         "failures": check.failures(),

@@ -18,8 +18,8 @@ labels and the box the default view frames (the bays and the stowed payload).
 from __future__ import annotations
 
 import itertools
-from collections.abc import Collection, Mapping, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
 
 import meshcat.geometry as mg
@@ -38,12 +38,10 @@ from payload.envelope.fit import StowedCheck, check_stowed, wall_gaps
 from payload.envelope.fit_results import (
     COLLIDES_MEANING,
     OUTSIDE_MEANING,
-    PairContact,
     clearance_text,
     tight_meaning,
 )
 from payload.envelope.geometry import PayloadGeometry
-from payload.envelope.self_collision import path_collisions
 from payload.envelope.vehicle import Vehicle, vehicle_from_dict
 from payload.errors import first_of
 from payload.review.model import PayloadModel
@@ -70,9 +68,9 @@ REVIEW = f"{ROOT}/review"
 OFFENDING_COLOUR = hex_colour(FAIL_COLOUR)
 """Colour of a part that protrudes from the bays or hits the vehicle as the stage deploys."""
 COLLIDING = hex_colour(COLLISION_COLOUR)
-"""Colour of a part that collides with another link, stowed or while the payload deploys
-(:func:`unfolding_collisions`), and is not outside the bays (nor hit by the vehicle as the
-stage deploys: those are :data:`OFFENDING_COLOUR`); the envelope figure edges a stowed
+"""Colour of a part that collides with another link, stowed or as the fingers unfold
+(:attr:`StowedCheck.unfolding`), and is not outside the bays (nor hit by the vehicle as the
+payload deploys: those are :data:`OFFENDING_COLOUR`); the envelope figure edges a stowed
 one in it."""
 TIGHT = hex_colour(TIGHT_COLOUR)
 """Colour of a link that does not fail but is under
@@ -114,8 +112,6 @@ class DesignReview:
         centre: Payload-frame point placed at the world origin (the camera target) [m].
         stowed: Link placements in the stowed configuration (payload frame).
         deployed: Link placements in the home (deployed) configuration.
-        deploying: Link pairs that collide while the fingers and the rail move from the
-            stowed posture to home, and not stowed (:func:`unfolding_collisions`).
     """
 
     scene: Scene
@@ -124,7 +120,6 @@ class DesignReview:
     centre: np.ndarray
     stowed: dict[str, np.ndarray]
     deployed: dict[str, np.ndarray]
-    deploying: list[PairContact] = field(default_factory=list)
 
 
 def offending_parts(check: StowedCheck) -> frozenset[str]:
@@ -303,31 +298,6 @@ def deployment_configurations(
     return [model.configuration(values) for values in stage + unfold]
 
 
-def unfolding_collisions(
-    geom: PayloadGeometry, check: StowedCheck, home: Mapping[str, float]
-) -> list[PairContact]:
-    """Link pairs that collide in the deployment the review plays, and not stowed: at
-    every frame where the fingers and the rail move from the stowed posture to home
-    (:func:`deployment_postures`), each pair at its deepest, deepest first.
-
-    While the stage goes down it carries every link but the base as one body, so no two
-    of those meet that did not stowed; the base and the vehicle are the deployment
-    sweep's (:attr:`StowedCheck.sweep`, ``"hit"``). The envelope report checks neither
-    the fingers' nor the rail's motion.
-    """
-    stowed = {frozenset((c.a, c.b)) for c in check.collisions}
-    return path_collisions(geom, deployment_postures(check.q, home)[1], skip=stowed)
-
-
-def unfolding_failures(contacts: list[PairContact]) -> list[str]:
-    """One phrase per pair colliding as the fingers unfold: ``B_distal and C_distal collide
-    as the fingers unfold (2.1 mm deep)``."""
-    return [
-        f"{c.a} and {c.b} collide as the fingers unfold ({-c.distance * 1e3:.1f} mm deep)"
-        for c in contacts
-    ]
-
-
 ROLE_COLOURS = {
     "outside": OFFENDING_COLOUR,
     "hit": OFFENDING_COLOUR,
@@ -337,17 +307,12 @@ ROLE_COLOURS = {
 """A link's colour by its :meth:`~payload.envelope.fit_results.StowedCheck.link_role`."""
 
 
-def part_colours(
-    model: PayloadModel, check: StowedCheck, deploying: Collection[str] = ()
-) -> dict[str, int]:
+def part_colours(model: PayloadModel, check: StowedCheck) -> dict[str, int]:
     """Each link's colour by its role (:meth:`StowedCheck.link_role`, failing first, as
     envelope.png): red outside the bays or hit deploying, magenta colliding with another
-    link (stowed, or while deploying: the links ``deploying``), amber tight; else its
-    finger's colour or grey."""
+    link (stowed, or as the fingers unfold), amber tight; else its finger's colour or
+    grey."""
     roles = {n: check.link_role(n) for n in model.links}
-    for n in deploying:  # fails deploying: drawn failing, never amber
-        if roles.get(n, "outside") in (None, "tight"):
-            roles[n] = "colliding"
     return {n: ROLE_COLOURS.get(roles[n] or "", link_colour(n)) for n in model.links}
 
 
@@ -393,12 +358,10 @@ def subject_box(vehicle: Vehicle, stowed: list[np.ndarray]) -> tuple[np.ndarray,
     return pts.min(axis=0), pts.max(axis=0)
 
 
-def title(
-    files: ProjectFiles, check: StowedCheck, deploying: Sequence[str] = ()
-) -> tuple[str, str]:
+def title(files: ProjectFiles, check: StowedCheck) -> tuple[str, str]:
     """The title (:func:`~payload.review.project.page_title`: the project, design file and
-    hash) and the verdict line (``stowed fit: pass; ...``), with ``; deploying: FAIL: ...``
-    when links collide as the fingers unfold (``deploying``: those failures' phrases)."""
+    hash) and the verdict line (``stowed fit: pass; ...``, the envelope report's verdict:
+    the deployment's failures among its reasons)."""
     design = Path(files.design)
     name = f"{design.resolve().parents[1].name}/{design.parent.name}/{design.name}"
     verdict = "stowed fit: pass" if check.passed else "stowed fit: FAIL"
@@ -408,8 +371,6 @@ def title(
     if check.parts and check.tightest.clearance >= 0:  # (one sticking out leads the reasons)
         t = check.tightest
         verdict += f"; tightest {t.name} {clearance_text(t.clearance)}"
-    if deploying:
-        verdict += f"; deploying: FAIL: {first_of(deploying, 1)}"
     return page_title("design review", name, design), verdict
 
 
@@ -451,9 +412,7 @@ def build_design_review(
     model = PayloadModel(files.urdf)
     stowed_q, home_q = tree.posture("stowed"), tree.posture("home")
     check = check_stowed(geom, vehicle, stowed_q)
-    unfolding = unfolding_collisions(geom, check, home_q)
-    unfolded = {n for c in unfolding for n in (c.a, c.b)}
-    bad = offending_parts(check) | unfolded
+    bad = offending_parts(check)
     stowed = model.placements(model.configuration(check.q))
     deployed = model.placements(model.configuration(home_q))
     clouds = reach_clouds(geom, vehicle, reach_samples, seed) if reach_samples else {}
@@ -470,18 +429,17 @@ def build_design_review(
     scene = Scene(autoplay=False)
     scene.transform(root, translation(-centre))
     draw_vehicle(scene, vehicle, f"{root}/vehicle")
-    colours = part_colours(model, check, unfolded)
+    colours = part_colours(model, check)
     draw_links(scene, model, f"{root}/payload", stowed, colours)
     draw_findings(scene, geom, check, vehicle, f"{root}/findings")
     if clouds:
         draw_reach(scene, clouds, f"{root}/reach")
     scene.camera = (framing(subject, VIEW_DIRECTION, FRAME_MARGIN), np.zeros(3))
-    deploying = unfolding_failures(unfolding)
-    head, verdict = title(files, check, deploying)
+    head, verdict = title(files, check)
     scene.overlay = Overlay(
         title=head,
         subtitle=verdict,
-        outcome=PASS if check.passed and not unfolding else FAIL,
+        outcome=PASS if check.passed else FAIL,
         legend=legend(colours, bool(clouds)),
         labels=scene.overlay.labels,
         views={"default": [float(v) for v in scene.camera[0]]},
@@ -499,8 +457,8 @@ def build_design_review(
     set_visibility(anim, f"{root}/findings", frames, [i == 0 for i in frames])
     scene.animation = anim
     scene.notes += [f"design: {Path(files.design)}", verdict]
-    scene.notes += [f"  {line}" for line in check.failures() + deploying]
-    return DesignReview(scene, check, bad, centre, stowed, deployed, unfolding)
+    scene.notes += [f"  {line}" for line in check.failures()]
+    return DesignReview(scene, check, bad, centre, stowed, deployed)
 
 
 def set_visibility(animation: Animation, path: str, frames: list[float], on: list[bool]) -> None:
@@ -527,5 +485,4 @@ __all__ = [
     "reach_clouds",
     "set_track",
     "set_visibility",
-    "unfolding_collisions",
 ]
