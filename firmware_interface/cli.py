@@ -292,10 +292,15 @@ def _cmd_check(args: argparse.Namespace) -> int:
             print(f"{head}{s['temperature_c']:3.0f} C  {s['voltage_v']:.1f} V  "
                   f"hardware error: {bits}")  # fmt: skip
     if not report["ok"]:
+        from firmware_interface.driver import LATCHED_REMEDY
+
+        said = "; ".join(report["errors"])
+        if any(s.get("hardware_error") for s in report["servos"]):
+            said += f" ({LATCHED_REMEDY})"
         if args.json:
-            print(f"payload: check failed: {'; '.join(report['errors'])}", file=sys.stderr)
+            print(f"payload: check failed: {said}", file=sys.stderr)
             return 1
-        raise CheckFailed("; ".join(report["errors"]))
+        raise CheckFailed(said)
     if not args.json:  # a passing check says so, as a failing one does
         print(f"check passed: {len(report['servos'])} servos answering, the rail and the "
               "stage homed (each moved off its stop and back), no hardware error")  # fmt: skip

@@ -108,13 +108,15 @@ def nobody_answered(device: str) -> str:
     return f"no servo answered on {device} (power, wiring, baud rate, IDs?)"
 
 
-LATCHED_HINT = (
+LATCHED_REMEDY = (
     "a hardware error stays latched until the servo restarts: remove its cause (a blocked "
     "joint for overload, the supply for input_voltage, time to cool for overheating), then "
-    "power-cycle the servos; `payload hw check` shows every servo's state"
+    "power-cycle the servos"
 )
-"""What to do about a hardware error the bring-up found (the e-Manual's Hardware Error
-Status: cleared by a reboot only)."""
+"""What to do about a latched hardware error (the e-Manual's Hardware Error Status:
+cleared by a reboot only); ``hw check`` says it after the errors it read."""
+LATCHED_HINT = f"{LATCHED_REMEDY}; `payload hw check` shows every servo's state"
+"""What to do about a hardware error the bring-up found."""
 
 
 @contextlib.contextmanager

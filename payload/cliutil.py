@@ -151,7 +151,23 @@ class OneLineParser(argparse.ArgumentParser):
     --seed?); see payload trial --help``): argparse printed the command's whole usage
     above it. A misspelt option or choice is matched against the parser's own."""
 
+    _given: list[str] | None = None  # the arguments this parser was asked to parse
+
+    def parse_known_args(self, args: Any = None, namespace: Any = None) -> Any:
+        self._given = None if args is None else list(args)
+        return super().parse_known_args(args, namespace)
+
     def error(self, message: str) -> NoReturn:
+        if message.startswith("the following arguments are required: "):
+            # a misspelt option (--sett for --set) is the cause: argparse names only the
+            # missing one, before the unrecognised it would have said after
+            unknown = [
+                a
+                for a in self._given or []
+                if a.startswith("--") and a.split("=", 1)[0] not in self._option_string_actions
+            ]
+            if unknown:
+                message = f"unrecognized arguments: {' '.join(unknown)}"
         hint = self._did_you_mean(message)
         self.exit(2, f"{self.prog}: error: {message}{hint}; see {self.prog} --help\n")
 

@@ -96,6 +96,11 @@ def test_the_module_entry_points_accept_no_abbreviations(tmp_path, monkeypatch, 
             ["build", "--xyzzy"],
             "payload build: error: unrecognized arguments: --xyzzy; see payload build --help",
         ),
+        (  # --set is required, and missing: the misspelling is what to say
+            ["sweep", "--sett", "rail.travel=0.04"],
+            "payload sweep: error: unrecognized arguments: --sett (did you mean --set?); see "
+            "payload sweep --help",
+        ),
         (  # near --out only by the two dashes they share
             ["trial", "--bogus"],
             "payload trial: error: unrecognized arguments: --bogus; see payload trial --help",

@@ -171,7 +171,8 @@ def test_a_passing_check_says_so(capsys):
 
 def test_check_says_a_servos_hardware_error_once(capsys):
     """A servo in overload from the start: the bring-up refuses it and its health read
-    shows it; the report lists the fault once (it listed it twice) and exits 1."""
+    shows it; the report lists the fault once (it listed it twice) and exits 1, saying
+    how to clear it as the other commands' refusals do (it did not)."""
     with _emulating("error:12:overload") as port:
         assert main(["hw", "check", "--device", port, "--json", "--latency-ms", LAT]) == 1
         said = capsys.readouterr()
@@ -180,6 +181,8 @@ def test_check_says_a_servos_hardware_error_once(capsys):
         assert said.err.splitlines()[0] == (
             f"bringing up the servos on {port} and homing the rail and the stage ..."
         ), said.err
+        # and, last, what to do about it: the error stays latched until a power cycle
+        assert said.err.splitlines()[-1].endswith("then power-cycle the servos)"), said.err
         # the table names the bit (it printed "error  32"), and every other servo's none
         assert main(["hw", "check", "--device", port, "--latency-ms", LAT]) == 1
         rows = [x for x in capsys.readouterr().out.splitlines() if x.startswith("ID ")]

@@ -165,9 +165,10 @@ def test_trials_compare_force_replaces_only_an_earlier_comparison(tmp_path, caps
     recording = tmp_path / "a" / "trial-0000" / "log.mcap"
     recording.write_bytes(b"\x89MCAP0\r\nrecorded")
     before = _snapshot(tmp_path)
-    for out, words in ((recording, ("not a comparison",)), (tmp_path / "a", ("is a folder",))):
-        assert main(["trials", "compare", *runs, "--out", str(out), "--force"]) == 2
-        _one_line(capsys, str(out), *words)
+    folders = [(str(tmp_path / "a"), ("is a folder",)), (f"{tmp_path}/new/", ("is a folder",))]
+    for out, words in [(str(recording), ("not a comparison",)), *folders]:
+        assert main(["trials", "compare", *runs, "--out", out, "--force"]) == 2  # new/: made
+        _one_line(capsys, out, *words)  # by nothing, not a file named new either
     assert _snapshot(tmp_path) == before
 
 

@@ -564,6 +564,8 @@ def test_a_replay_of_a_run_that_did_not_finish_says_so(tmp_path, caplog):
     where it stops, with a warning naming why and how far, and the replay's recording
     names it as its source's state; so does a replay of a run the --max-time cap stopped (a
     finished run's replay does neither: the hands.jsonl replay above)."""
+    from payload.trials.sources import TrialError
+
     first = tmp_path / "first"
     run_trial(2, out_dir=first, max_time=2.0)
     data = (first / "log.mcap").read_bytes()
@@ -587,6 +589,13 @@ def test_a_replay_of_a_run_that_did_not_finish_says_so(tmp_path, caplog):
     assert len(warned) == 1 and "stopped by the --max-time cap" in warned[0], warned
     again = read_recording(tmp_path / "of-capped" / "log.mcap")
     assert again.meta["replay"]["source_unfinished"].startswith("stopped by the --max-time cap")
+    # into the folder it reads from: refused before the recording is read, so no warning
+    # of a run that did not finish comes before the refusal (one did)
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="payload.trials.sources"):
+        with pytest.raises(TrialError, match="a replay never writes into the folder it reads"):
+            run_trial(operator="replay", replay=first / "log.mcap", out_dir=first, force=True)
+    assert not [r.getMessage() for r in caplog.records], caplog.text
 
 
 def test_a_live_sessions_webxr_hands_replay_as_their_workbench_frames(tmp_path):

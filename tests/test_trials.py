@@ -1472,7 +1472,7 @@ def test_cli_trial_and_campaign(tmp_path: Path, monkeypatch, capsys) -> None:
         (["trial", "--seed", str(2**63)], f"--seed must be at most {2**63 - 1} (2^63"),
         (
             ["trials", "run", "--n", "2", "--seed", str(2**63 - 1), "--out", "x"],
-            f"(its 2 trials' seeds run to {2**63})",
+            f"--seed must be at most {2**63 - 2} for 2 trials (their seeds run to {2**63}",
         ),
         (["bench", "trial", "--seed", str(2**64)], f"--seed must be at most {2**63 - 1}"),
         (["trial", "--ctb", "soft"], "--ctb: expected one of single, rigid"),

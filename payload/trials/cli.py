@@ -79,13 +79,15 @@ def _cmd_trials_convert(args: argparse.Namespace) -> int:
     return 0
 
 
-def _check_comparison_out(out: Path, *, force: bool) -> None:
+def _check_comparison_out(given: str, *, force: bool) -> None:
     """``trials compare --out``: a new file, or with ``--force`` an earlier comparison
-    (its first line is a comparison's); never a folder, nor any other file."""
+    (its first line is a comparison's); never a folder (``given`` ending in a separator
+    names one, made or not), nor any other file."""
     from payload.trials.compare import COMPARISON_OPENING
 
-    if out.is_dir():
-        raise TrialsCliError(f"--out {out}: is a folder; give the comparison's file name")
+    out = Path(given)
+    if out.is_dir() or given.endswith("/"):
+        raise TrialsCliError(f"--out {given}: is a folder; give the comparison's file name")
     problem = cannot_write_in(out.parent) if out.parent.is_dir() else None
     if problem is not None:
         raise TrialsCliError(f"--out {out}: cannot write in {out.parent} ({problem})")
@@ -111,7 +113,7 @@ def _cmd_trials_compare(args: argparse.Namespace) -> int:
 
     steps = args.steps or args.require_identical
     if args.out:  # before the comparison (--steps reads every recording)
-        _check_comparison_out(Path(args.out), force=args.force)
+        _check_comparison_out(args.out, force=args.force)
     result = compare_runs(Path(args.run_a), Path(args.run_b), steps=steps)
     text = compare_markdown(result)
     for row in result["trials"]:  # said on stderr too: a --json reader sees no table

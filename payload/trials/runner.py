@@ -159,6 +159,10 @@ def run_trial(
     if operator == "replay":
         if replay is None:
             raise TrialError("operator 'replay' needs a hand recording file")
+        if out_dir is not None and Path(out_dir).resolve() == Path(replay).resolve().parent:
+            # before the recording is read: its warnings (a run that did not finish) would
+            # come before this refusal
+            raise TrialError(f"{out_dir}: a replay never writes into the folder it reads from")
         header, frames = load_replay(replay)
         recorded = header.get("meta") or {}
         # the settings the replayed recording names (a bare hands.jsonl: none)
@@ -226,8 +230,6 @@ def run_trial(
         )
     stem = trial_dir("", seed).name if operator == "synthetic" else f"replay-{seed:04d}"
     out = Path(out_dir) if out_dir is not None else new_folder(project.runs_dir, stem)
-    if replay is not None and out.resolve() == Path(replay).resolve().parent:
-        raise TrialError(f"{out}: a replay never writes into the folder it reads from")
     campaign = held(out, CAMPAIGN_FILES)
     if campaign:  # --force replaces a trial, never a campaign
         raise TrialError(

@@ -27,8 +27,12 @@ def seed_problem(seed: int, count: int = 1) -> str | None:
     if seed < 0:
         return f"must be >= 0, got {seed}"
     if seed + count - 1 > MAX_SEED:
-        which = "" if count == 1 else f" (its {count} trials' seeds run to {seed + count - 1})"
-        return f"must be at most {MAX_SEED} (2^63 - 1), got {seed}{which}"
+        if count == 1:
+            return f"must be at most {MAX_SEED} (2^63 - 1), got {seed}"
+        return (
+            f"must be at most {MAX_SEED - count + 1} for {count} trials (their seeds run to "
+            f"{seed + count - 1}, past 2^63 - 1), got {seed}"
+        )
     return None
 
 
