@@ -24,7 +24,7 @@ def test_parse_set_lists_and_ranges():
     np.testing.assert_allclose(a.values, np.linspace(0.040, 0.050, 3), rtol=0, atol=1e-15)
     assert a.values[1] == 0.045  # no last-bit noise in the folder's design files
     assert parse_set("rail.travel=0.04, 0.05").values == (0.04, 0.05)
-    assert parse_set("rail.travel=0.04:0.05:1").values == (0.04,)
+    assert parse_set("rail.travel=0.04:0.04:1").values == (0.04,)
     for bad, why in [
         ("rail.travel", "KEY=V1"),
         ("rail.travel=", "KEY=V1"),
@@ -32,6 +32,8 @@ def test_parse_set_lists_and_ranges():
         ("rail.travel=0.1:0.2", "A:B:N"),
         ("rail.travel=0.1:0.2:x", "integer"),
         ("rail.travel=0.1:0.2:0", "N must be >= 1, got 0"),
+        # one value of two: 0.2 was dropped without a word
+        ("rail.travel=0.1:0.2:1", r"0.1 alone \(N = 1\): give N >= 2 to reach 0.2"),
         ("rail.travel=0.1,0.1", "twice"),
         ("rail.travel=nan", "finite"),
     ]:

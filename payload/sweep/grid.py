@@ -82,6 +82,11 @@ def parse_set(text: str) -> Axis:
             raise SweepError(f"--set {key}: N must be an integer, got {parts[2]!r}") from None
         if n < 1:
             raise SweepError(f"--set {key}: N must be >= 1, got {n}")
+        if n == 1 and a != b:  # B would be dropped without a word
+            raise SweepError(
+                f"--set {key}: {spec} is {parts[0]} alone (N = 1): give N >= 2 to reach "
+                f"{parts[1]}, or {key}={parts[0]}"
+            )
         values = [a] if n == 1 else [_tidy(v) for v in np.linspace(a, b, n)]
     else:
         values = [_number(key, v.strip()) for v in spec.split(",")]
