@@ -631,9 +631,17 @@ def test_a_trial_cut_off_by_its_cap_says_so(tmp_path, capsys) -> None:
     assert "  stopped by the --max-time cap after 1.0 s, before the operator finished" in lines
     metrics = json.loads((out / "metrics.json").read_text())
     assert (metrics["ended_by"], metrics["steps"]) == ("max_time", round(1.0 / CONTROL_DT) + 1)
-    # the last line names what the folder holds (a new user saw only "-> runs/trial-0001")
-    head, folder = lines[-1].removeprefix("wrote ").rsplit(" in ", 1)
+    # a line names what the folder holds (a new user saw only "-> runs/trial-0001"), the
+    # last what to do with it: commands that parse, on this folder
+    head, folder = lines[-2].removeprefix("wrote ").rsplit(" in ", 1)
     assert folder == str(out) and sorted(head.split(", ")) == sorted(os.listdir(out))
+    said = re.findall(r"`payload ([^`]+)`", lines[-1])
+    assert lines[-1].startswith("next: ") and len(said) == 2, lines[-1]
+    for command in said:
+        from payload.cli import _parse
+
+        args = _parse(command.split())
+        assert str(out) in command and args.command in ("review", "export"), command
 
 
 @pytest.mark.parametrize(
@@ -748,8 +756,14 @@ def test_a_trial_of_a_design_that_does_not_stow_says_so(tmp_path, capsys) -> Non
     # a campaign says it once, after its trials (a scheduler not reached is an error first)
     campaign = ["trials", "run", "--n", "1", "--workers", "0", "--max-time", "0.2"]
     assert main([*campaign, "--project", str(project.root), "--out", str(tmp_path / "c")]) == 0
-    err = [ln for ln in capsys.readouterr().err.splitlines() if "does not fit" in ln]
+    said = capsys.readouterr()
+    err = [ln for ln in said.err.splitlines() if "does not fit" in ln]
     assert len(err) == 1 and err[0].endswith("the campaign ran all the same"), err
+    # the last line says what to do next, on folders that are there
+    last = said.out.splitlines()[-1]
+    folders = re.findall(r"`payload (?:review|export lerobot) (\S+)`", last)
+    assert last.startswith("next: ") and len(folders) == 2, last
+    assert all(Path(f).is_dir() for f in folders), folders
     design.write_text(fitting)
     assert main([*argv, "--out", str(tmp_path / "t2")]) == 0
     assert "does not fit" not in capsys.readouterr().err

@@ -224,6 +224,8 @@ def test_cli_export(runs, tmp_path: Path, capsys) -> None:
     assert main(["export", "lerobot", str(runs[0]), str(runs[2]), "--out", str(out), "--json"]) == 0
     info = json.loads(capsys.readouterr().out)
     assert info["episodes"] == 2 and info["frames"] == 170 and info["fps"] == 50
+    # the folder under the trials' and campaigns' name, and the one it had
+    assert Path(info["out_dir"]) == Path(info["path"]) == out
     assert main(["export", "lerobot", str(runs[0]), "--out", str(out)]) == 2
     assert "not empty" in capsys.readouterr().err
 

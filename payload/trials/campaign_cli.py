@@ -166,6 +166,9 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
         also = f", {figure}" if figure.is_file() else ""
         print(f"wrote {out / SUMMARY_TEXT} (definitions, the paper-literal column, every "
               f"trial){also} and {out / SUMMARY}")  # fmt: skip
+        print(f"next: `payload review {trial_dir(out, seeds[0])}` replays a trial in the "
+              f"browser; `payload trials compare {out} OTHER` compares it with another run; "
+              f"`payload export lerobot {out}` makes it a LeRobot dataset")  # fmt: skip
     errors = [r for r in results if r.get("error")]
     if errors:
         first = errors[0]

@@ -47,8 +47,8 @@ def _cmd_export_lerobot(args: argparse.Namespace) -> int:
             progress=not args.json and sys.stderr.isatty(),
             unfinished=args.include_unfinished,
         )  # fmt: skip
-    if args.json:
-        emit_json(info)
+    if args.json:  # "out_dir": the trials' and campaigns' name for it ("path" kept)
+        emit_json({**info, "out_dir": info["path"]})
     else:
         print(
             f"wrote LeRobot v3 dataset {info['path']}: {info['episodes']} episode(s), "

@@ -115,4 +115,6 @@ def _cmd_trial(args: argparse.Namespace) -> int:
     print_trial_summary(result, given)
     wrote = [name for name in TRIAL_FILES if (out / name).is_file()]
     print(f"wrote {', '.join(wrote)} in {out}")
+    print(f"next: `payload review {out}` replays it in the browser; `payload export lerobot "
+          f"{out}` makes it a LeRobot dataset")  # fmt: skip
     return 0
