@@ -283,7 +283,13 @@ def _cmd_check(args: argparse.Namespace) -> int:
     else:
         from firmware_interface.control_table import hw_error_names
 
-        for s in report["servos"]:  # the error bits by name (the e-Manual's), not a number
+        rows = {s["id"]: s for s in report["servos"]}
+        for i, joint in ((sp.id, sp.joint) for sp in smap.servos):  # the map's order
+            if i not in rows:  # a row for a missing servo too, as `hw scan` has
+                if f"servo {i} ({joint}): not answering" in report["errors"]:
+                    print(f"ID {i:3d} {joint:<11s} not answering")
+                continue
+            s = rows[i]  # the error bits by name (the e-Manual's), not a number
             head = f"ID {s['id']:3d} {s['joint']:<11s} model {s['model_number']}  "
             if "not_read" in s:  # a servo of another model: why its values are not shown
                 print(head + s["not_read"])

@@ -198,11 +198,17 @@ def test_check_says_a_servos_hardware_error_once(capsys):
 def test_check_names_every_fault_the_bring_up_found_once(capsys):
     """A missing servo, one of another model and two with latched errors: the check named
     the missing one and the two errors (their health rows) but not the other model (the
-    bring-up stopped at the missing one); it now names each once."""
+    bring-up stopped at the missing one); it now names each once, and its table has the
+    missing servo's row (it had none)."""
     faults = ("error:3:overheating", "error:7:overload", "missing:9", "model:5:1060")
     with _emulating(*faults) as port:
         assert main(["hw", "check", "--device", port, "--json", "--latency-ms", LAT]) == 1
-    report = json.loads(capsys.readouterr().out)
+        report = json.loads(capsys.readouterr().out)
+        assert main(["hw", "check", "--device", port, "--latency-ms", LAT]) == 1
+        rows = [x for x in capsys.readouterr().out.splitlines() if x.startswith("ID ")]
+    # a row per mapped servo, in the map's order, the missing one's too (as `hw scan`)
+    assert [int(r.split()[1]) for r in rows] == list(range(1, 19)), rows
+    assert rows[8] == "ID   9 C_mcp_flex  not answering", rows[8]
     assert report["errors"] == [
         "servo 9 (C_mcp_flex): not answering",
         "servo 5 (B_mcp_flex): model number 1060, not the servo map's 1240: another servo "
