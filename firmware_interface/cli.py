@@ -188,6 +188,7 @@ def check(
 
     errors: list[str] = []
     servos = []
+    missing: list[dict[str, Any]] = []  # mapped servos that did not answer (as `hw scan`'s)
     other: dict[int, WrongModelError] = {}  # servos of another model: no register read
     lost = False  # the bring-up lost replies: the health reads' losses are said in one line
     silent: list[str] = []  # servos whose health read was lost after that
@@ -207,8 +208,9 @@ def check(
                     if not present:  # the bus, not the servos: as `hw scan` says it
                         errors.append(nobody_answered(port))
                     else:
-                        errors += [f"servo {i} ({j}): not answering"
-                                   for i, j in zip(fault.ids, fault.joints)]  # fmt: skip
+                        missing = [{"id": i, "joint": j} for i, j in zip(fault.ids, fault.joints)]
+                        errors += [f"servo {m['id']} ({m['joint']}): not answering"
+                                   for m in missing]  # fmt: skip
                 # a latched error bit is each faulted servo's health read's to say (below),
                 # once; a reset (torque off with no error bit) is not in the health read
                 elif not isinstance(fault, HardwareFault) or fault.bits == ["reset"]:
@@ -251,7 +253,7 @@ def check(
         errors.append(late_words(late, allowance, "no value read on this bus is shown "
                                  "(--latency-ms?)"))  # fmt: skip
         servos = []
-    return {"ok": not errors, "servos": servos, "errors": errors}
+    return {"ok": not errors, "servos": servos, "errors": errors, "missing": missing}
 
 
 def _unread_row(fault: WrongModelError) -> dict[str, Any]:
@@ -277,16 +279,17 @@ def _cmd_check(args: argparse.Namespace) -> int:
         report = {"device": device, **check(device, smap, args.latency_ms, say_stage)}
     except CommError as exc:  # the open device failed (gone): its state, exit 1; one that
         # cannot be opened (a typo, not a serial device) stays bad input, exit 2
-        report = {"device": device, "ok": False, "servos": [], "errors": [str(exc)]}
+        report = {"device": device, "ok": False, "servos": [], "errors": [str(exc)], "missing": []}
     if args.json:
         emit_json(report)
     else:
         from firmware_interface.control_table import hw_error_names
 
         rows = {s["id"]: s for s in report["servos"]}
+        silent = {m["id"] for m in report["missing"]}
         for i, joint in ((sp.id, sp.joint) for sp in smap.servos):  # the map's order
             if i not in rows:  # a row for a missing servo too, as `hw scan` has
-                if f"servo {i} ({joint}): not answering" in report["errors"]:
+                if i in silent:
                     print(f"ID {i:3d} {joint:<11s} not answering")
                 continue
             s = rows[i]  # the error bits by name (the e-Manual's), not a number

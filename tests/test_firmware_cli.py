@@ -206,7 +206,9 @@ def test_check_names_every_fault_the_bring_up_found_once(capsys):
         report = json.loads(capsys.readouterr().out)
         assert main(["hw", "check", "--device", port, "--latency-ms", LAT]) == 1
         rows = [x for x in capsys.readouterr().out.splitlines() if x.startswith("ID ")]
-    # a row per mapped servo, in the map's order, the missing one's too (as `hw scan`)
+    # a row per mapped servo, in the map's order, the missing one's too (as `hw scan`), and
+    # the JSON's list of them (as `hw scan --json`'s)
+    assert report["missing"] == [{"id": 9, "joint": "C_mcp_flex"}]
     assert [int(r.split()[1]) for r in rows] == list(range(1, 19)), rows
     assert rows[8] == "ID   9 C_mcp_flex  not answering", rows[8]
     assert report["errors"] == [

@@ -268,7 +268,7 @@ def register(
         "--search",
         action="store_true",
         default=None,
-        help="run the stowed-posture search even when the given posture passes",
+        help="run the stowed-posture search even when the given posture stows",
     )
     search.add_argument(
         "--no-search",

@@ -16,7 +16,7 @@ from payload.envelope.fit_results import (
     UnfoldResult,
 )
 from payload.envelope.geometry import PayloadGeometry, aabb, aabb_gap, box_geometry
-from payload.envelope.self_collision import path_collisions, self_contacts
+from payload.envelope.self_collision import colliding_pairs, self_contacts
 from payload.envelope.vehicle import Vehicle
 
 UNFOLD_STEP_RAD = math.radians(1.0)
@@ -140,20 +140,26 @@ def unfolding_check(
     stage's sweep is: a contact thinner than a step's motion can go unseen."""
     postures = unfolding_postures(geom, stowed, home)
     stowed_pairs = {frozenset((c.a, c.b)) for c in contacts if c.colliding}
-    collisions = path_collisions(geom, postures, skip=stowed_pairs)
+    pairs = [(a, b) for a, b in geom.pairs if frozenset((a, b)) not in stowed_pairs]
     body = _obstacles(geom, vehicle)
     moving = [n for n in geom.links if n != geom.root]
+    collided: dict[frozenset[str], PairContact] = {}  # each at its deepest
     deepest: dict[str, BodyHit] = {}
     for q in postures:
         poses = geom.poses(q)
+        boxes = {n: aabb(geom.hull_vertices(n, poses[n])) for n in geom.links}
+        for c in colliding_pairs(geom, poses, boxes, pairs):
+            key = frozenset((c.a, c.b))
+            if key not in collided or c.distance < collided[key].distance:
+                collided[key] = c
         for link in moving:  # each link: two reaching into the body at once are both said
-            box = aabb(geom.hull_vertices(link, poses[link]))
-            near = [o for o in body if aabb_gap(box, o[2]) <= 0.0]
+            near = [o for o in body if aabb_gap(boxes[link], o[2]) <= 0.0]
             if not near:
                 continue
             d, (_, thing) = geom.min_distance(poses, pairs=(), others=near, moving=[link])
             if d <= 0 and (link not in deepest or d < deepest[link].distance):
                 deepest[link] = BodyHit(link, thing, float(d))
+    collisions = sorted(collided.values(), key=lambda c: c.distance)
     hits = sorted(deepest.values(), key=lambda h: h.distance)
     return UnfoldResult(collisions, hits, len(postures))
 

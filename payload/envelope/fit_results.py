@@ -276,8 +276,9 @@ class StowedCheck:
 
     def link_role(self, name: str) -> str | None:
         """What a link's colour says, failing first: ``"outside"`` (outside the bays),
-        ``"hit"`` (hits the vehicle or the base as the stage deploys), ``"colliding"``
-        (collides with another link), ``"tight"`` (one of the :attr:`tight_links`), else
+        ``"hit"`` (hits the vehicle or the base as the stage deploys, or reaches into the
+        vehicle as the fingers unfold), ``"colliding"`` (collides with another link,
+        stowed or as the fingers unfold), ``"tight"`` (one of the :attr:`tight_links`), else
         None; the one order of the envelope figure and the design review (a failing link
         that is also tight is drawn failing, never amber)."""
         if any(p.name == name and not p.inside for p in self.parts):

@@ -2,18 +2,30 @@
 
 from __future__ import annotations
 
-from collections.abc import Collection, Iterable, Mapping
+from collections.abc import Iterable, Mapping
 
 import numpy as np
 
 from payload.envelope.fit_results import (
     PairContact,
 )
-from payload.envelope.geometry import PayloadGeometry
+from payload.envelope.geometry import PayloadGeometry, aabb_gap
+
+NEAR = 1e-4
+"""Pairs closer than this (convex pieces) get a manifold3d intersection volume; farther
+pairs share no volume [m]."""
+
+
+def _contact(
+    geom: PayloadGeometry, a: str, b: str, poses: Mapping[str, np.ndarray], near: float = NEAR
+) -> PairContact:
+    """Two links' signed distance, with their shared volume when closer than ``near``."""
+    d = geom.link_distance(a, b, poses)
+    return PairContact(a, b, d, geom.overlap_volume(a, b, poses) if d < near else 0.0)
 
 
 def self_contacts(
-    geom: PayloadGeometry, poses: Mapping[str, np.ndarray], near: float = 1e-4
+    geom: PayloadGeometry, poses: Mapping[str, np.ndarray], near: float = NEAR
 ) -> list[PairContact]:
     """Signed distance of every non-adjacent link pair, with the exact overlap volume.
 
@@ -26,41 +38,32 @@ def self_contacts(
     Returns:
         Every pair, closest first.
     """
-    out = []
-    for a, b in geom.pairs:
-        d = geom.link_distance(a, b, poses)
-        vol = geom.overlap_volume(a, b, poses) if d < near else 0.0
-        out.append(PairContact(a, b, d, vol))
+    out = [_contact(geom, a, b, poses, near) for a, b in geom.pairs]
     # closest first; equal distances (to 10 nm) keep the tree's pair order
     order = sorted(range(len(out)), key=lambda i: (round(out[i].distance, 8), i))
     return [out[i] for i in order]
 
 
-def path_collisions(
+def colliding_pairs(
     geom: PayloadGeometry,
-    postures: Iterable[Mapping[str, float]],
-    skip: Collection[frozenset[str]] = (),
+    poses: Mapping[str, np.ndarray],
+    boxes: Mapping[str, tuple[np.ndarray, np.ndarray]],
+    pairs: Iterable[tuple[str, str]],
 ) -> list[PairContact]:
-    """The link pairs that collide (:attr:`PairContact.colliding`) in any of ``postures``
-    (the samples of a motion), each once at its deepest, deepest first; the pairs in
-    ``skip`` (``frozenset((a, b))``) left out.
-
-    Args:
-        geom: Collision geometry of the payload.
-        postures: Joint values of each sample [rad, m].
-        skip: Pairs already known to collide (a stowed check's).
-    """
-    deepest: dict[frozenset[str], PairContact] = {}
-    for q in postures:
-        for c in self_contacts(geom, geom.poses(q)):
-            key = frozenset((c.a, c.b))
-            if c.colliding and key not in skip:
-                if key not in deepest or c.distance < deepest[key].distance:
-                    deepest[key] = c
-    return sorted(deepest.values(), key=lambda c: c.distance)
+    """The pairs of ``pairs`` that collide (:attr:`PairContact.colliding`) posed at
+    ``poses``; ``boxes``: each link's bounding box there (:func:`aabb` of its pieces'
+    vertices), so apart boxes are apart links, sharing no volume, and are not measured."""
+    out = []
+    for a, b in pairs:
+        if aabb_gap(boxes[a], boxes[b]) > 0.0:
+            continue
+        c = _contact(geom, a, b, poses)
+        if c.colliding:
+            out.append(c)
+    return out
 
 
 __all__ = [
-    "path_collisions",
+    "colliding_pairs",
     "self_contacts",
 ]

@@ -73,12 +73,15 @@ def stowed_fit_failures(design_path: str | Path) -> list[str]:
 
 def stowed_fit_warning(design_path: str | Path, ran: str) -> str | None:
     """The warning for a command that ``ran`` (``"the trial ran"``) a design whose stowed
-    payload does not fit the bays, naming what fails; ``None`` when it fits."""
+    payload does not fit the bays or cannot deploy, naming what fails; ``None`` when it
+    passes the envelope check."""
     failures = stowed_fit_failures(design_path)
     if not failures:
         return None
+    deploying = all(f.startswith("deployment: ") for f in failures)
+    what = "cannot deploy from the bays" if deploying else "does not fit the bays"
     return (
-        f"{design_path}: the stowed payload does not fit the bays, so it could not be flown "
+        f"{design_path}: the stowed payload {what}, so it could not be flown "
         f"({first_of(failures, 2, 'payload report envelope')}); {ran} all the same"
     )
 

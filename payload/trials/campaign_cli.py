@@ -166,9 +166,17 @@ def _cmd_trials_run(args: argparse.Namespace) -> int:
         also = f", {figure}" if figure.is_file() else ""
         print(f"wrote {out / SUMMARY_TEXT} (definitions, the paper-literal column, every "
               f"trial){also} and {out / SUMMARY}")  # fmt: skip
-        print(f"next: `payload review {trial_dir(out, seeds[0])}` replays a trial in the "
-              f"browser; `payload trials compare {out} OTHER` compares it with another run; "
-              f"`payload export lerobot {out}` makes it a LeRobot dataset")  # fmt: skip
+        import shlex
+
+        ran = [r for r in results if not r.get("error")]
+        folder = shlex.quote(str(out))
+        said = [f"`payload trials compare {folder} OTHER` compares it with another run"]
+        if ran:
+            trial = shlex.quote(str(trial_dir(out, ran[0]["seed"])))
+            said.insert(0, f"`payload review {trial}` replays a trial in the browser")
+        if any(not r.get("ended_by") for r in ran):  # export leaves capped runs out
+            said.append(f"`payload export lerobot {folder}` makes it a LeRobot dataset")
+        print(f"next: {'; '.join(said)}")
     errors = [r for r in results if r.get("error")]
     if errors:
         first = errors[0]

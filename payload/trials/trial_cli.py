@@ -115,6 +115,13 @@ def _cmd_trial(args: argparse.Namespace) -> int:
     print_trial_summary(result, given)
     wrote = [name for name in TRIAL_FILES if (out / name).is_file()]
     print(f"wrote {', '.join(wrote)} in {out}")
-    print(f"next: `payload review {out}` replays it in the browser; `payload export lerobot "
-          f"{out}` makes it a LeRobot dataset")  # fmt: skip
+    import shlex
+
+    folder = shlex.quote(str(out))
+    export = (  # a run the cap stopped is no episode unless asked for (export's rule)
+        f"; `payload export lerobot {folder}` makes it a LeRobot dataset"
+        if not result.get("ended_by")
+        else ""
+    )
+    print(f"next: `payload review {folder}` replays it in the browser{export}")
     return 0
