@@ -62,20 +62,10 @@ def ready_at_home(hardware: Any, say: Callable[[str], None] | None = None) -> No
     hardware.set_watchdog(False)
 
 
-DEPLOY_SPEED = 0.5
-"""The share of each servo's no-load speed (:func:`payload.sim.world.servo_limits`) at
-which :func:`move_to_home` unfolds the fingers and the rail: the joint with the farthest
-to go sets the unfolding's time."""
-
-
 def move_to_home(hardware: Any, timeout: float = 6.0) -> PayloadState:
-    """Deploy the brought-up (homed) payload to the design's home posture, where every
-    simulated trial starts, as the envelope check's deployment goes: the stage down with
-    the fingers and the rail held where they are (homing leaves the rail and the stage
-    stowed; the fingers are curled in the bays), then the fingers and the rail straight in
-    joint space to home, goals stepped at 50 Hz at :data:`DEPLOY_SPEED` of the servos'
-    speed, not a jump each servo takes at its own pace through the others. Each phase
-    waits until every servo has stopped.
+    """Drive the brought-up (homed) payload to the design's home posture, where every
+    simulated trial starts (homing leaves the rail and the stage stowed), and wait until
+    every servo has stopped there.
 
     A servo with no I gain stops anywhere inside its friction dead band around the goal
     (:func:`payload.design.servo.dead_band_ticks`, 8.5 ticks at P 600): "there" is
@@ -83,39 +73,18 @@ def move_to_home(hardware: Any, timeout: float = 6.0) -> PayloadState:
     half of Present Position's).
 
     Returns:
-        The measured state at home, every joint at rest.
+        The measured state there, every joint at rest.
 
     Raises:
-        DynamixelError: A phase's posture was not reached within ``timeout`` [s].
+        DynamixelError: The posture was not reached within ``timeout`` [s].
     """
     import time
 
-    from firmware_interface.servo_map import home_command
-    from payload.sim.world import servo_limits
-
-    home = home_command(hardware.design)
-    start = hardware.read()
-    down = _settle(hardware, PayloadCommand(start.q, home.deploy, 0.0), timeout, "stage down")
-    speed = servo_limits(hardware.design)[1][:-1] * DEPLOY_SPEED  # the 17, the stage's aside
-    seconds = float(np.max(np.abs(home.q - down.q) / speed))  # the farthest joint's
-    steps = max(1, math.ceil(seconds / CONTROL_DT))
-    t0 = time.monotonic()
-    for k in range(1, steps + 1):
-        s = k / steps
-        hardware.send(PayloadCommand((1 - s) * down.q + s * home.q, home.deploy, 0.0))
-        hardware.read()
-        time.sleep(max(0.0, t0 + k * CONTROL_DT - time.monotonic()))
-    return _settle(hardware, home, timeout, "home posture")
-
-
-def _settle(hardware: Any, cmd: PayloadCommand, timeout: float, what: str) -> PayloadState:
-    """Send ``cmd`` until every servo has stopped within its dead band of it (see
-    :func:`move_to_home`); the measured state there."""
-    import time
-
     from firmware_interface.errors import DynamixelError
+    from firmware_interface.servo_map import home_command
     from payload.design.servo import dead_band_ticks, kind_of
 
+    cmd = home_command(hardware.design)
     target = np.append(cmd.q, cmd.deploy)
     band = [dead_band_ticks(hardware.design, kind_of(s.joint)) + 1.0 for s in hardware.map.servos]
     tol = np.array([s.units_per_tick for s in hardware.map.servos]) * band
@@ -131,7 +100,7 @@ def _settle(hardware: Any, cmd: PayloadCommand, timeout: float, what: str) -> Pa
             return state
         last = now
         time.sleep(0.01)
-    raise DynamixelError(f"the payload did not reach its {what} within {timeout} s")
+    raise DynamixelError(f"the payload did not reach its home posture within {timeout} s")
 
 
 def _finger_dofs(sim: SimDriver) -> np.ndarray:

@@ -56,46 +56,6 @@ def session(tmp_path_factory):
     return path
 
 
-def test_the_payload_deploys_as_the_envelope_check_does(monkeypatch):
-    """``move_to_home`` sent the home posture at once: every servo at its own pace, the
-    fingers unfolding while the stage went down, a motion the envelope check never looked
-    at. It lowers the stage with the fingers and the rail held (their goals and, within
-    their dead bands, their measured positions unchanged), then steps their goals at 50 Hz
-    along the straight line in joint space to home (the check's unfolding), no joint's step
-    faster than half its no-load speed, and rests at home."""
-    from payload.design.servo import no_load_speed
-
-    design, smap = load_design(), load_servo_map()
-    sent, seen = [], []
-    with EmulatorProcess() as emu:
-        with DynamixelDriver(emu.port, smap, latency_timer_ms=LAT) as drv:
-            drv.bring_up()
-            start = drv.read()
-            send, read = drv.send, drv.read
-            monkeypatch.setattr(drv, "send", lambda c: (sent.append(c), send(c))[1])
-            monkeypatch.setattr(drv, "read", lambda: seen.append(read()) or seen[-1])
-            end = move_to_home(drv)
-    home = np.append(end.q, end.deploy)
-    held = [k for k, c in enumerate(sent) if np.array_equal(c.q, start.q)]
-    assert held and held == list(range(len(held))) and len(held) < len(sent)  # 1, then 2
-    tol = np.array([s.units_per_tick * _band_ticks(s.joint) for s in smap.servos])
-    for state in seen[: len(held)]:  # the stage goes down, the fingers and rail stay
-        assert np.all(np.abs(state.q - start.q) <= tol[:-1]), np.abs(state.q - start.q)
-    assert abs(seen[len(held) - 1].deploy - design.home.stage) <= tol[-1]
-    down = seen[len(held) - 1].q
-    ramp = np.array([c.q for c in sent[len(held) :]])
-    goal = ramp[-1]
-    s = (ramp - down) @ (goal - down) / ((goal - down) @ (goal - down))
-    assert np.allclose(ramp, down + np.outer(s, goal - down), atol=1e-12)  # on the line
-    assert np.all(np.diff(s) >= 0) and s[-1] == 1.0
-    omega = no_load_speed(design)
-    speed = np.full(17, omega)
-    speed[16] = omega * design.rail.drive_radius  # the rail, through its pinion
-    steps = np.abs(np.diff(np.vstack([down, ramp]), axis=0))
-    assert np.all(steps <= 0.5 * speed * CONTROL_DT + 1e-12), (steps / speed).max()
-    assert np.all(np.abs(home[:-1] - goal) <= tol[:-1])
-
-
 def test_sim_and_hardware_get_the_same_commands_from_the_same_session(session):
     _, frames = read_hand_recording(session)
     with SimDriver() as sim:
