@@ -103,13 +103,12 @@ def deployment_sweep(
     )
 
 
-def unfolding_postures(
+def unfolding_samples(
     geom: PayloadGeometry, stowed: Mapping[str, float], home: Mapping[str, float]
-) -> list[dict[str, float]]:
-    """The fingers and the rail from ``stowed`` to ``home`` in a straight line in joint
-    space, the stage at ``home``'s: evenly spaced so that no revolute joint moves more
-    than :data:`UNFOLD_STEP_RAD` and no prismatic one more than :data:`UNFOLD_STEP_M`
-    between two, the stowed end left out (the sweep's last posture) and home in."""
+) -> int:
+    """How many postures :func:`unfolding_check` takes from ``stowed`` to ``home``: no
+    revolute joint moves more than :data:`UNFOLD_STEP_RAD` and no prismatic one more than
+    :data:`UNFOLD_STEP_M` between two."""
     joints = geom.tree.joint_map
     steps = [
         abs(home[j] - stowed[j])
@@ -117,7 +116,16 @@ def unfolding_postures(
         for j in home
         if j != "stage"
     ]
-    n = max(1, math.ceil(max(steps, default=0.0)))
+    return max(1, math.ceil(max(steps, default=0.0)))
+
+
+def unfolding_postures(
+    stowed: Mapping[str, float], home: Mapping[str, float], n: int
+) -> list[dict[str, float]]:
+    """The fingers and the rail from ``stowed`` to ``home`` in a straight line in joint
+    space, the stage at ``home``'s (down): ``n`` evenly spaced postures, the stowed end
+    left out (the stage's sweep ends there) and home in. The deployment's second half, as
+    the envelope check takes it and the design review plays it."""
     out = []
     for s in np.linspace(0.0, 1.0, n + 1)[1:]:
         values = {j: (1 - s) * stowed[j] + s * home[j] for j in home}
@@ -138,7 +146,7 @@ def unfolding_check(
     other and the base (the pairs colliding stowed, in ``contacts``, left out: they are
     the stowed check's) and against the vehicle body. Sampled, not certified as the
     stage's sweep is: a contact thinner than a step's motion can go unseen."""
-    postures = unfolding_postures(geom, stowed, home)
+    postures = unfolding_postures(stowed, home, unfolding_samples(geom, stowed, home))
     stowed_pairs = {frozenset((c.a, c.b)) for c in contacts if c.colliding}
     pairs = [(a, b) for a, b in geom.pairs if frozenset((a, b)) not in stowed_pairs]
     body = _obstacles(geom, vehicle)
@@ -224,4 +232,5 @@ __all__ = [
     "deployment_sweep",
     "unfolding_check",
     "unfolding_postures",
+    "unfolding_samples",
 ]

@@ -27,6 +27,7 @@ import numpy as np
 from meshcat.animation import Animation, AnimationClip, AnimationTrack
 
 from payload.design import FINGERS, build_tree, load_design
+from payload.envelope.deployment import unfolding_postures
 from payload.envelope.drawing import (
     COLLISION_COLOUR,
     FAIL_COLOUR,
@@ -282,12 +283,7 @@ def deployment_postures(
         values = dict(stowed)
         values["stage"] = (1 - s) * stowed["stage"] + s * home["stage"]
         stage.append(values)
-    unfold = []
-    for s in np.linspace(0.0, 1.0, n_finger + 1)[1:]:
-        values = {j: (1 - s) * stowed[j] + s * home[j] for j in home}
-        values["stage"] = home["stage"]
-        unfold.append(values)
-    return stage, unfold
+    return stage, unfolding_postures(stowed, home, n_finger)
 
 
 def deployment_configurations(
