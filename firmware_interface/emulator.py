@@ -169,7 +169,7 @@ def bus_spec(servos: str | None, servo_params: str | None = None) -> dict[str, A
         design_plants,
         load_plant_overrides,
     )
-    from firmware_interface.servo_map import home_ticks, load_servo_map, travel_ticks
+    from firmware_interface.servo_map import load_servo_map, posture_ticks, travel_ticks
     from payload.design.params import load_design
     from payload.design.servo import kind_of
 
@@ -179,7 +179,7 @@ def bus_spec(servos: str | None, servo_params: str | None = None) -> dict[str, A
     kinds = {s.id: kind_of(s.joint) for s in smap.servos}
     plants = apply_overrides(design_plants(design, kinds), kinds, overrides, str(servo_params))
     return {
-        "positions": home_ticks(smap, design),
+        "positions": posture_ticks(smap, design, "stowed"),  # as the payload powers up
         "baud": smap.baud,
         "stops": travel_ticks(smap, design),
         "plants": {str(i): p.to_dict() for i, p in plants.items()},
@@ -261,7 +261,8 @@ class EmulatorProcess:
         servos: Servo map file (default map).
         faults: Fault specs applied from the start.
         seed: Seed of the fault dice.
-        positions: Servo ID -> physical position at power-up [ticks] (default: home).
+        positions: Servo ID -> physical position at power-up [ticks] (default: the
+            design's stowed posture, curled in the bays, as the payload powers up).
         servo_params: Servo-parameters file the servos' plants take (hidden parameters).
     """
 

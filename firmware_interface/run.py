@@ -52,6 +52,7 @@ def ready_at_home(hardware: Any, say: Callable[[str], None] | None = None) -> No
     from firmware_interface.driver import bring_up_notice, failed_start
 
     with failed_start(hardware.device):
+        _deployment_cleared(hardware.design)  # before anything moves (the homing too)
         if not getattr(hardware, "homed", None):
             if say is not None:
                 say(bring_up_notice(hardware.device))
@@ -62,10 +63,28 @@ def ready_at_home(hardware: Any, say: Callable[[str], None] | None = None) -> No
     hardware.set_watchdog(False)
 
 
+DEPLOY_SPEED = 0.5
+"""The share of each servo's no-load speed at which :func:`move_to_home` unfolds the
+fingers and the rail: the joint with the farthest to go sets the unfolding's time."""
+DEPLOY_LAG_RAD = 0.3
+"""The most a servo may trail its goal while :func:`move_to_home` unfolds the payload
+[rad of the servo's shaft]: more, and it is held back (a finger against the bay's wall, a
+blocked rail), so the unfolding stops there, naming it."""
+
+
 def move_to_home(hardware: Any, timeout: float = 6.0) -> PayloadState:
     """Drive the brought-up (homed) payload to the design's home posture, where every
-    simulated trial starts (homing leaves the rail and the stage stowed), and wait until
-    every servo has stopped there.
+    simulated trial starts, and wait until every servo has stopped there.
+
+    From the stowed posture (how the payload powers up in its bays; homing leaves the rail
+    and the stage there) it deploys as ``payload report envelope`` checked the deployment:
+    the stage down with the fingers and the rail held, then the fingers and the rail
+    straight in joint space to home, goals stepped at 50 Hz at :data:`DEPLOY_SPEED` of the
+    servos' speed (a servo trailing its goal by more than :data:`DEPLOY_LAG_RAD` stops it
+    there). Those goals bypass the command guard, whose capsule margins flag the stowed
+    posture itself: the envelope check has cleared the path with the exact meshes, and a
+    design whose check fails is refused before anything moves. From any other posture (a
+    payload out of its bays) the goal is home at once, guarded, with a warning.
 
     A servo with no I gain stops anywhere inside its friction dead band around the goal
     (:func:`payload.design.servo.dead_band_ticks`, 8.5 ticks at P 600): "there" is
@@ -73,21 +92,104 @@ def move_to_home(hardware: Any, timeout: float = 6.0) -> PayloadState:
     half of Present Position's).
 
     Returns:
-        The measured state there, every joint at rest.
+        The measured state at home, every joint at rest.
 
     Raises:
-        DynamixelError: The posture was not reached within ``timeout`` [s].
+        DynamixelError: A posture was not reached within ``timeout`` [s], a servo fell
+            behind its goal as the payload unfolded, or the design's deployment is not
+            clear.
     """
+    from firmware_interface.servo_map import posture_command
+
+    home = posture_command(hardware.design, "home")
+    stowed = posture_command(hardware.design, "stowed")
+    start = hardware.read()
+    tol = _tolerance(hardware)
+    off = np.abs(np.append(start.q, start.deploy) - np.append(stowed.q, stowed.deploy)) > tol
+    if np.any(off):
+        joint = hardware.map.servos[int(np.argmax(off))].joint
+        log.warning(
+            "not in the stowed posture at the start (%s off it, and %d more): moving straight "
+            "to home, each servo at its own pace (the deployment `payload report envelope` "
+            "checks starts stowed)",
+            joint,
+            int(off.sum()) - 1,
+        )
+        return _settle(hardware, home, tol, timeout, "home posture")
+    _deployment_cleared(hardware.design)
+    guard, hardware.guard = getattr(hardware, "guard", None), None
+    try:
+        down = _settle(hardware, PayloadCommand(start.q, home.deploy, 0.0), tol, timeout, "stage")
+        _unfold(hardware, down.q, home)
+        state = _settle(hardware, home, tol, timeout, "home posture")
+    finally:
+        hardware.guard = guard
+        if guard is not None:  # where the servos are: its last safe command
+            now = hardware.read()
+            guard.reset(np.append(now.q, now.deploy))
+    return state
+
+
+def _deployment_cleared(design: Any) -> None:
+    """Refuse a design whose deployment ``payload report envelope`` does not clear."""
+    from firmware_interface.errors import DynamixelError
+    from payload.envelope.stowed_fit import stowed_fit_failures
+    from payload.errors import first_of
+
+    failures = stowed_fit_failures(design.source)
+    if failures:
+        raise DynamixelError(
+            f"the design's deployment is not clear ({first_of(failures, 1)}; `payload report "
+            "envelope`): the payload stays stowed"
+        )
+
+
+def _unfold(hardware: Any, start: np.ndarray, home: PayloadCommand) -> None:
+    """The fingers and the rail from ``start`` to ``home`` on a straight line, goals
+    stepped at 50 Hz (:data:`DEPLOY_SPEED`, :data:`DEPLOY_LAG_RAD`)."""
+    import time
+
+    from firmware_interface.control_table import RAD_PER_TICK
+    from firmware_interface.errors import DynamixelError
+
+    specs = hardware.map.servos[:-1]  # the 17: the stage is down
+    per_rad = np.array([sp.units_per_tick / RAD_PER_TICK for sp in specs])  # a shaft radian
+    speed = hardware.design.servo.no_load_speed * per_rad * DEPLOY_SPEED
+    seconds = float(np.max(np.abs(home.q - start) / speed))  # the farthest joint's
+    steps = max(1, math.ceil(seconds / CONTROL_DT))
+    t0 = time.monotonic()
+    for k in range(1, steps + 1):
+        s = k / steps
+        goal = (1 - s) * start + s * home.q
+        hardware.send(PayloadCommand(goal, home.deploy, 0.0))
+        lag = np.abs(hardware.read().q - goal) / per_rad
+        if np.any(lag > DEPLOY_LAG_RAD):  # held back: hold where it is, say which
+            hardware.send(PayloadCommand(hardware.read().q, home.deploy, 0.0))
+            i = int(np.argmax(lag))
+            raise DynamixelError(
+                f"{specs[i].joint} trails its goal by {lag[i]:.2f} rad (over {DEPLOY_LAG_RAD}) "
+                "as the payload unfolds: held back? the payload holds where it is"
+            )
+        time.sleep(max(0.0, t0 + k * CONTROL_DT - time.monotonic()))
+
+
+def _tolerance(hardware: Any) -> np.ndarray:
+    """Each servo's "there" (see :func:`move_to_home`), in joint units, map order."""
+    from payload.design.servo import dead_band_ticks, kind_of
+
+    band = [dead_band_ticks(hardware.design, kind_of(s.joint)) + 1.0 for s in hardware.map.servos]
+    return np.array([s.units_per_tick for s in hardware.map.servos]) * band
+
+
+def _settle(
+    hardware: Any, cmd: PayloadCommand, tol: np.ndarray, timeout: float, what: str
+) -> PayloadState:
+    """Send ``cmd`` until every servo has stopped within ``tol`` of it; the state there."""
     import time
 
     from firmware_interface.errors import DynamixelError
-    from firmware_interface.servo_map import home_command
-    from payload.design.servo import dead_band_ticks, kind_of
 
-    cmd = home_command(hardware.design)
     target = np.append(cmd.q, cmd.deploy)
-    band = [dead_band_ticks(hardware.design, kind_of(s.joint)) + 1.0 for s in hardware.map.servos]
-    tol = np.array([s.units_per_tick for s in hardware.map.servos]) * band
     t0 = time.monotonic()
     last = None
     while time.monotonic() - t0 < timeout:
@@ -100,7 +202,7 @@ def move_to_home(hardware: Any, timeout: float = 6.0) -> PayloadState:
             return state
         last = now
         time.sleep(0.01)
-    raise DynamixelError(f"the payload did not reach its home posture within {timeout} s")
+    raise DynamixelError(f"the payload did not reach its {what} within {timeout} s")
 
 
 def _finger_dofs(sim: SimDriver) -> np.ndarray:

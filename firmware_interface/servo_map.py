@@ -266,23 +266,42 @@ def travel_ticks(smap: ServoMap, design: Design | None = None) -> dict[int, tupl
     return out
 
 
-def home_values(design: Design | None = None) -> dict[str, float]:
-    """The design's ``home`` posture (where every trial starts), joint -> value."""
+def posture_values(design: Design | None = None, name: str = "home") -> dict[str, float]:
+    """A design posture's joint values, joint -> value: ``home`` (where every trial
+    starts) or ``stowed`` (curled in the bays, the stage up: how the payload powers up)."""
     design = design if design is not None else load_design()
-    home = design.home
-    values = {f"{f}_{j}": v for f in "ABCD" for j, v in zip(FINGER_JOINTS, home.finger)}
-    values["rail"], values["stage"] = home.rail, home.stage
+    posture = getattr(design, name)
+    values = {f"{f}_{j}": v for f in "ABCD" for j, v in zip(FINGER_JOINTS, posture.finger)}
+    values["rail"], values["stage"] = posture.rail, posture.stage
     return values
 
 
-def home_command(design: Design | None = None) -> PayloadCommand:
-    """The command of the design's ``home`` posture (joints in ``ALL_JOINTS`` order)."""
-    values = home_values(design)
+def home_values(design: Design | None = None) -> dict[str, float]:
+    """The design's ``home`` posture (where every trial starts), joint -> value."""
+    return posture_values(design, "home")
+
+
+def posture_command(design: Design | None = None, name: str = "home") -> PayloadCommand:
+    """The command of a design posture (:func:`posture_values`; joints in ``ALL_JOINTS``
+    order)."""
+    values = posture_values(design, name)
     v = np.array([values[j] for j in ALL_JOINTS])
     return PayloadCommand(v[:-1], float(v[-1]), 0.0)
 
 
+def home_command(design: Design | None = None) -> PayloadCommand:
+    """The command of the design's ``home`` posture (joints in ``ALL_JOINTS`` order)."""
+    return posture_command(design, "home")
+
+
+def posture_ticks(
+    smap: ServoMap, design: Design | None = None, name: str = "home"
+) -> dict[int, int]:
+    """Present positions of a design posture (:func:`posture_values`), ID -> ticks."""
+    values = posture_values(design, name)
+    return {s.id: s.to_ticks(values[s.joint]) for s in smap.servos}
+
+
 def home_ticks(smap: ServoMap, design: Design | None = None) -> dict[int, int]:
     """Present positions of the design's ``home`` posture, ID -> ticks."""
-    values = home_values(design)
-    return {s.id: s.to_ticks(values[s.joint]) for s in smap.servos}
+    return posture_ticks(smap, design, "home")

@@ -388,11 +388,14 @@ def test_hardware_error_stops_safely_and_recover_returns_the_servo(smap, mode, c
         for i, s in servos.items():
             if i != 12:
                 assert s["torque"] == (mode == "hold")
-        # stopped: a new command does not reach the servos
+        # stopped: a new command does not reach the servos (the goal stays where the stop
+        # left it: the last command's, or where the servo rested, held)
+        before = reg(emu.table(1), "goal_position")
+        assert abs(before - smap.servos[0].to_ticks(0.0)) <= _band_ticks(drv.design, "A_mcp_flex")
         moved = cmd.q.copy()
         moved[0] = 0.8
         drv.send(PayloadCommand(moved, 0.075, 0.0))
-        assert reg(emu.table(1), "goal_position") == smap.servos[0].to_ticks(0.0)
+        assert reg(emu.table(1), "goal_position") == before
         rec = drv.recover()
         assert rec.ids == (12,) and rec.seconds > 0
         servos = emu.servos()

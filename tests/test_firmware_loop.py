@@ -56,6 +56,94 @@ def session(tmp_path_factory):
     return path
 
 
+def test_the_payload_deploys_as_the_envelope_check_does(monkeypatch, caplog):
+    """``move_to_home`` sent the home posture at once: every servo at its own pace, the
+    fingers unfolding while the stage went down through the bays, a motion the envelope
+    check never looked at. From the stowed posture the payload powers up in (the
+    emulator's too: it powered up at home) it lowers the stage with the fingers and the
+    rail held (their goals, and within their dead bands their measured positions), then
+    steps their goals at 50 Hz along the straight line in joint space to home (the
+    check's unfolding), no joint's step faster than half its no-load speed (the packaged
+    map's rail pinion sits on the horn), paced, and rests at home; the command guard,
+    whose capsule margins flag the stowed posture, refuses none of it."""
+    import logging
+    import time
+
+    from payload.envelope.stowed_fit import stowed_fit_failures
+
+    design, smap = load_design(), load_servo_map()
+    # what `hw run` asks first: the design's deployment clear (kept: move_to_home asks again)
+    assert stowed_fit_failures(design.source) == []
+    sent, seen = [], []
+    with EmulatorProcess() as emu:
+        with DynamixelDriver(emu.port, smap, latency_timer_ms=LAT) as drv:
+            drv.bring_up()
+            start = drv.read()
+            send, read = drv.send, drv.read
+            monkeypatch.setattr(
+                drv, "send", lambda c: (sent.append((time.monotonic(), c)), send(c))[1]
+            )
+            monkeypatch.setattr(drv, "read", lambda: seen.append(read()) or seen[-1])
+            with caplog.at_level(logging.WARNING):
+                end = move_to_home(drv)
+            refused = drv.guard.refusals
+    assert refused == 0 and not caplog.records, caplog.text
+    tol = np.array([s.units_per_tick * _band_ticks(s.joint) for s in smap.servos])
+    stowed = [*design.stowed.finger] * 4 + [design.stowed.rail]
+    assert np.all(np.abs(start.q - stowed) <= tol[:-1])  # powered up stowed, curled
+    home = np.append(end.q, end.deploy)
+    held = [k for k, (_, c) in enumerate(sent) if np.array_equal(c.q, start.q)]
+    assert held and held == list(range(len(held))) and len(held) < len(sent)  # 1, then 2
+    for state in seen[1 : len(held) + 1]:  # (seen[0]: its first look) the stage goes down
+        assert np.all(np.abs(state.q - start.q) <= tol[:-1]), np.abs(state.q - start.q)
+    assert abs(seen[len(held)].deploy - design.home.stage) <= tol[-1]
+    down = seen[len(held)].q
+    ramp = np.array([c.q for _, c in sent[len(held) :]])
+    goal = ramp[-1]
+    assert np.abs(goal - down)[:16].max() > 1.0  # the fingers unfold
+    s = (ramp - down) @ (goal - down) / ((goal - down) @ (goal - down))
+    assert np.allclose(ramp, down + np.outer(s, goal - down), atol=1e-12)  # on the line
+    assert np.all(np.diff(s) >= 0) and s[-1] == 1.0
+    omega = design.servo.no_load_speed  # [rad/s] the [servo] table's
+    speed = np.full(17, omega)
+    speed[16] = omega * design.rail.drive_radius  # the rail, through its pinion
+    steps = np.abs(np.diff(np.vstack([down, ramp]), axis=0))
+    assert np.all(steps <= 0.5 * speed * CONTROL_DT + 1e-12), (steps / speed).max()
+    assert np.all(np.abs(home[:-1] - goal) <= tol[:-1])
+    stamps = [t for t, c in sent[len(held) :] if not np.array_equal(c.q, goal)]
+    n = int(np.count_nonzero(s < 1.0))  # the ramp's goals before the last: paced at 50 Hz
+    assert stamps[-1] - stamps[0] >= 0.9 * (n - 1) * CONTROL_DT, (stamps[-1] - stamps[0], n)
+
+
+def test_a_design_whose_deployment_is_not_clear_stays_stowed(tmp_path):
+    """A home posture whose straight unfolding puts two fingers through each other (the
+    envelope check fails it) is refused before any servo moves: the stage stays up."""
+    import tomli_w
+    import tomllib
+
+    from firmware_interface.errors import DynamixelError
+    from payload.design.params import load_design as load
+    from payload.project import default_design_text
+
+    data = tomllib.loads(default_design_text())
+    data["home"]["finger"] = [0.0, -0.3, 0.0, 0.0]
+    path = tmp_path / "design.toml"
+    path.write_text(tomli_w.dumps(data))
+    smap = load_servo_map()
+    with EmulatorProcess() as emu:
+        with DynamixelDriver(emu.port, smap, latency_timer_ms=LAT, design=load(path)) as drv:
+            drv.bring_up()
+            before = drv.read()
+            with pytest.raises(
+                DynamixelError, match=r"deployment is not clear .*as the fingers unfold"
+            ):
+                move_to_home(drv)
+            after = drv.read()
+    tol = np.array([s.units_per_tick * _band_ticks(s.joint) for s in smap.servos])
+    moved = np.abs(np.append(after.q, after.deploy) - np.append(before.q, before.deploy))
+    assert np.all(moved <= tol), moved
+
+
 def test_sim_and_hardware_get_the_same_commands_from_the_same_session(session):
     _, frames = read_hand_recording(session)
     with SimDriver() as sim:
