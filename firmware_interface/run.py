@@ -133,10 +133,11 @@ def move_to_home(hardware: Any, timeout: float = 6.0) -> PayloadState:
 def _deployment_cleared(design: Any) -> None:
     """Refuse a design whose deployment ``payload report envelope`` does not clear."""
     from firmware_interface.errors import DynamixelError
-    from payload.envelope.stowed_fit import stowed_fit_failures
+    from payload.envelope.stowed_fit import design_failures, stowed_fit_failures
     from payload.errors import first_of
 
-    failures = stowed_fit_failures(design.source)
+    on_file = Path(design.source).is_file()  # a design file's answer is kept
+    failures = stowed_fit_failures(design.source) if on_file else design_failures(design)
     if failures:
         raise DynamixelError(
             f"the design's deployment is not clear ({first_of(failures, 1)}; `payload report "

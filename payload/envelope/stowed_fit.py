@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 from payload.cache import cache_dir, code_key
 from payload.errors import first_of
@@ -26,15 +27,25 @@ def _key(design_path: Path, text: bytes) -> str:
     return code_key(_VERSION, _LIBRARIES, str(design_path).encode(), text)
 
 
-def _check(design_path: Path) -> list[str]:
+def design_failures(design: Any, vehicle: Any = None) -> list[str]:
+    """What the envelope check fails of ``design`` (a :class:`~payload.design.params.Design`)
+    in ``vehicle``'s bays (default: its ``[vehicle]`` table's), computed (no cache:
+    :func:`stowed_fit_failures` keeps a design file's)."""
     from payload.design import build_tree
     from payload.envelope.fit import check_stowed
     from payload.envelope.geometry import PayloadGeometry
-    from payload.envelope.vehicle import load_design_and_vehicle
+    from payload.envelope.vehicle import vehicle_from_dict
 
-    design, vehicle = load_design_and_vehicle(design_path)
+    if vehicle is None:
+        vehicle = vehicle_from_dict(design.vehicle or {}, source=str(design.source))
     geom = PayloadGeometry(build_tree(design))
     return check_stowed(geom, vehicle, geom.tree.posture("stowed")).failures()
+
+
+def _check(design_path: Path) -> list[str]:
+    from payload.envelope.vehicle import load_design_and_vehicle
+
+    return design_failures(*load_design_and_vehicle(design_path))
 
 
 def stowed_fit_failures(design_path: str | Path) -> list[str]:
@@ -86,4 +97,4 @@ def stowed_fit_warning(design_path: str | Path, ran: str) -> str | None:
     )
 
 
-__all__ = ["stowed_fit_failures", "stowed_fit_warning"]
+__all__ = ["design_failures", "stowed_fit_failures", "stowed_fit_warning"]
