@@ -1476,6 +1476,7 @@ def test_cli_trial_and_campaign(tmp_path: Path, monkeypatch, capsys) -> None:
         ),
         (["bench", "trial", "--seed", str(2**64)], f"--seed must be at most {2**63 - 1}"),
         (["trial", "--ctb", "soft"], "--ctb: expected one of single, rigid"),
+        (["trial", "--ctb", "singel"], "got 'singel' (did you mean 'single'?)"),
         (["trials", "run", "--n", "2", "--ctb", "double", "--out", "x"], "--ctb: expected"),
         (["trials", "run", "--n", "0", "--out", "x"], "--n must be >= 1"),
         (["trials", "summarize", "/nonexistent/campaign"], "no such campaign folder"),

@@ -255,7 +255,10 @@ def _setup_defaults(args: argparse.Namespace) -> None:
 
 
 def _check_ctb(ctb: str) -> None:
+    from payload.errors import closest
     from payload.sim.world import CTB_MODELS
 
     if ctb not in CTB_MODELS:
-        raise TrialsCliError(f"--ctb: expected one of {', '.join(CTB_MODELS)}, got {ctb!r}")
+        near = closest(ctb, CTB_MODELS)  # as argparse's choices get it
+        hint = f" (did you mean {near!r}?)" if near else ""
+        raise TrialsCliError(f"--ctb: expected one of {', '.join(CTB_MODELS)}, got {ctb!r}{hint}")
