@@ -1086,7 +1086,7 @@ def test_a_campaign_without_contact_draws_no_contact_interval(tmp_path, monkeypa
     said "First confirmed-contact interval n/a (no confirmed contact)" but its figure drew
     that panel as "this run (n = 2)", both dots and the median bar at 0 s (each trial's
     metric is 0 without an interval). The panel is now empty, n = 0, as the RMS panel
-    beside it is; and the paper-literal column, where no trial has a contact either, says
+    beside it is, each saying why; and the paper-literal column, where no trial has a contact either, says
     so of the paper-literal contact, not of the confirmed one."""
     from matplotlib.collections import LineCollection, PathCollection
 
@@ -1115,6 +1115,8 @@ def test_a_campaign_without_contact_draws_no_contact_interval(tmp_path, monkeypa
         bars = [c for c in ax.collections if isinstance(c, LineCollection)]
         assert len(bars) == 1, panel  # the paper's alone
         assert ax.get_xticklabels()[0].get_text() == "this run\n(n = 0)", panel
+        said = [t.get_text() for t in ax.texts]  # and says why, as Fig. 3 does (it did not)
+        assert said == ["no confirmed contact"], (panel, said)
     # the duration is known for both trials: drawn
     ax = fig.axes[titles.index("Teleoperation duration after calibration [s]")]
     assert ax.get_xticklabels()[0].get_text() == "this run\n(n = 2)"

@@ -48,7 +48,8 @@ def campaign_figure(
         The figure: one axis per metric; in each, the trials' values are the first
         scatter collection (x = :data:`OURS`), the paper's median and range the error bar
         at x = :data:`PAPER`. The first contact interval of a summary none of whose
-        trials has one is not drawn (n = 0), as its table says n/a; the title names a
+        trials has one is not drawn (n = 0), as its table says n/a, and its column says why
+        (``no confirmed contact``, as Fig. 3 says it); the title names a
         contact definition other than the confirmed one (a rescoring's).
     """
     trials = [t for t in summary.get("trials", []) if not t.get("error")]
@@ -74,6 +75,10 @@ def campaign_figure(
         jitter = rng.uniform(-0.12, 0.12, len(values))
         ax.scatter(OURS + jitter, values, s=18, color="#1f77b4", zorder=3, label="trials")
         _median_range(ax, OURS, summary.get(key), "#1f77b4")
+        if not len(values):  # an empty column says why, as Fig. 3 does
+            why = words.none if trials else "no scored trial"
+            ax.text(OURS, 0.5, why.replace(" (", "\n(", 1), transform=ax.get_xaxis_transform(),
+                    ha="center", va="center", fontsize=8, color="#1f77b4")  # fmt: skip
         _median_range(ax, PAPER, summary["paper"].get(key), "#d62728")
         ax.set_xticks([OURS, PAPER], [f"this run\n(n = {len(values)})", "paper\n(n = 10)"])
         ax.set_xlim(-0.6, 1.6)
