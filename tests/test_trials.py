@@ -1086,8 +1086,8 @@ def test_a_campaign_without_contact_draws_no_contact_interval(tmp_path, monkeypa
     said "First confirmed-contact interval n/a (no confirmed contact)" but its figure drew
     that panel as "this run (n = 2)", both dots and the median bar at 0 s (each trial's
     metric is 0 without an interval). The panel is now empty, n = 0, as the RMS panel
-    beside it is, each saying why; and the paper-literal column, where no trial has a contact either, says
-    so of the paper-literal contact, not of the confirmed one."""
+    beside it is, each saying why; and the paper-literal column, where no trial has a
+    contact either, says so of the paper-literal contact, not of the confirmed one."""
     from matplotlib.collections import LineCollection, PathCollection
 
     from payload.cli import main
