@@ -59,7 +59,7 @@ def ready_at_home(hardware: Any, say: Callable[[str], None] | None = None) -> No
             hardware.bring_up()
         if say is not None:
             say("moving to the design's home posture")
-        move_to_home(hardware)
+        move_to_home(hardware, cleared=True)
     hardware.set_watchdog(False)
 
 
@@ -67,12 +67,18 @@ DEPLOY_SPEED = 0.5
 """The share of each servo's no-load speed at which :func:`move_to_home` unfolds the
 fingers and the rail: the joint with the farthest to go sets the unfolding's time."""
 DEPLOY_LAG_RAD = 0.3
-"""The most a servo may trail its goal while :func:`move_to_home` unfolds the payload
-[rad of the servo's shaft]: more, and it is held back (a finger against the bay's wall, a
-blocked rail), so the unfolding stops there, naming it."""
+"""The most a servo may trail the goal it was sent a control period before while
+:func:`move_to_home` unfolds the payload [rad of the servo's shaft]: more, and it is held
+back (a finger against the bay's wall, a blocked rail), so the unfolding stops there,
+naming it."""
+STOWED_TOL_RAD = 0.1
+"""How far a finger joint may be from the design's stowed posture, the stage up in the
+bays, for :func:`move_to_home` to deploy from there as checked [rad; the rail: the same at
+its pinion's shaft]: farther, and it goes home at once, as it always did, with a
+warning."""
 
 
-def move_to_home(hardware: Any, timeout: float = 6.0) -> PayloadState:
+def move_to_home(hardware: Any, timeout: float = 6.0, cleared: bool = False) -> PayloadState:
     """Drive the brought-up (homed) payload to the design's home posture, where every
     simulated trial starts, and wait until every servo has stopped there.
 
@@ -83,8 +89,11 @@ def move_to_home(hardware: Any, timeout: float = 6.0) -> PayloadState:
     servos' speed (a servo trailing its goal by more than :data:`DEPLOY_LAG_RAD` stops it
     there). Those goals bypass the command guard, whose capsule margins flag the stowed
     posture itself: the envelope check has cleared the path with the exact meshes, and a
-    design whose check fails is refused before anything moves. From any other posture (a
-    payload out of its bays) the goal is home at once, guarded, with a warning.
+    design whose check fails is refused before anything moves (``cleared``: the caller
+    has asked, before the bring-up, as :func:`ready_at_home` does). With the stage up and
+    a finger or the rail more than :data:`STOWED_TOL_RAD` from stowed (a payload run
+    before, homed again), or the stage already down, the goal is home at once, guarded,
+    as it always was (the first with a warning).
 
     A servo with no I gain stops anywhere inside its friction dead band around the goal
     (:func:`payload.design.servo.dead_band_ticks`, 8.5 ticks at P 600): "there" is
@@ -99,45 +108,55 @@ def move_to_home(hardware: Any, timeout: float = 6.0) -> PayloadState:
             behind its goal as the payload unfolded, or the design's deployment is not
             clear.
     """
+    from firmware_interface.control_table import RAD_PER_TICK
     from firmware_interface.servo_map import posture_command
 
     home = posture_command(hardware.design, "home")
     stowed = posture_command(hardware.design, "stowed")
+    if not cleared:
+        _deployment_cleared(hardware.design)
     start = hardware.read()
     tol = _tolerance(hardware)
-    off = np.abs(np.append(start.q, start.deploy) - np.append(stowed.q, stowed.deploy)) > tol
-    if np.any(off):
-        joint = hardware.map.servos[int(np.argmax(off))].joint
+    if abs(start.deploy - home.deploy) <= tol[-1]:  # the stage down already: out of the bays
+        return _settle(hardware, home, tol, timeout, "home posture")
+    per_rad = np.array([sp.units_per_tick / RAD_PER_TICK for sp in hardware.map.servos[:-1]])
+    off = np.abs(start.q - stowed.q) / per_rad  # [rad of each servo's shaft]
+    if np.any(off > STOWED_TOL_RAD):  # not how the checked deployment starts: as before
+        i = int(np.argmax(off))
         log.warning(
-            "not in the stowed posture at the start (%s off it, and %d more): moving straight "
-            "to home, each servo at its own pace (the deployment `payload report envelope` "
-            "checks starts stowed)",
-            joint,
-            int(off.sum()) - 1,
+            "%s is %.2f rad from the stowed posture with the stage up (over %s): not the "
+            "deployment `payload report envelope` checks, so home at once, guarded, each servo "
+            "at its own pace (a payload run before and homed again comes up so)",
+            hardware.map.servos[i].joint,
+            off[i],
+            STOWED_TOL_RAD,
         )
         return _settle(hardware, home, tol, timeout, "home posture")
-    _deployment_cleared(hardware.design)
-    guard, hardware.guard = getattr(hardware, "guard", None), None
+    guard = getattr(hardware, "guard", None)
     try:
+        hardware.guard = None
         down = _settle(hardware, PayloadCommand(start.q, home.deploy, 0.0), tol, timeout, "stage")
         _unfold(hardware, down.q, home)
         state = _settle(hardware, home, tol, timeout, "home posture")
     finally:
         hardware.guard = guard
-        if guard is not None:  # where the servos are: its last safe command
-            now = hardware.read()
-            guard.reset(np.append(now.q, now.deploy))
+        if guard is not None:  # its last safe command: where the servos are, else none
+            guard.reset(None)
+            try:
+                now = hardware.read()
+                guard.reset(np.append(now.q, now.deploy))
+            except Exception as exc:  # the deployment's own error is the one to say
+                log.warning("could not read the posture to reset the command guard: %s", exc)
     return state
 
 
 def _deployment_cleared(design: Any) -> None:
     """Refuse a design whose deployment ``payload report envelope`` does not clear."""
     from firmware_interface.errors import DynamixelError
-    from payload.envelope.stowed_fit import design_failures, stowed_fit_failures
+    from payload.envelope.stowed_fit import design_failures
     from payload.errors import first_of
 
-    on_file = Path(design.source).is_file()  # a design file's answer is kept
-    failures = stowed_fit_failures(design.source) if on_file else design_failures(design)
+    failures = design_failures(design)  # the design the driver holds, not its file now
     if failures:
         raise DynamixelError(
             f"the design's deployment is not clear ({first_of(failures, 1)}; `payload report "
@@ -158,12 +177,15 @@ def _unfold(hardware: Any, start: np.ndarray, home: PayloadCommand) -> None:
     speed = hardware.design.servo.no_load_speed * per_rad * DEPLOY_SPEED
     seconds = float(np.max(np.abs(home.q - start) / speed))  # the farthest joint's
     steps = max(1, math.ceil(seconds / CONTROL_DT))
-    t0 = time.monotonic()
+    due = time.monotonic()
     for k in range(1, steps + 1):
         s = k / steps
         goal = (1 - s) * start + s * home.q
         hardware.send(PayloadCommand(goal, home.deploy, 0.0))
-        lag = np.abs(hardware.read().q - goal) / per_rad
+        now = time.monotonic()  # a late period is not caught up (goals in a burst: off the line)
+        due = max(due + CONTROL_DT, now)
+        time.sleep(due - now)
+        lag = np.abs(hardware.read().q - goal) / per_rad  # a period after the goal went out
         if np.any(lag > DEPLOY_LAG_RAD):  # held back: hold where it is, say which
             hardware.send(PayloadCommand(hardware.read().q, home.deploy, 0.0))
             i = int(np.argmax(lag))
@@ -171,7 +193,6 @@ def _unfold(hardware: Any, start: np.ndarray, home: PayloadCommand) -> None:
                 f"{specs[i].joint} trails its goal by {lag[i]:.2f} rad (over {DEPLOY_LAG_RAD}) "
                 "as the payload unfolds: held back? the payload holds where it is"
             )
-        time.sleep(max(0.0, t0 + k * CONTROL_DT - time.monotonic()))
 
 
 def _tolerance(hardware: Any) -> np.ndarray:
