@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from firmware_interface.control_table import MODEL_NUMBER, RAD_PER_TICK
-from payload.design.params import FINGER_JOINTS, Design, load_design
+from payload.design.params import Design, load_design, posture_values
 from payload.design.tree import ALL_JOINTS
 from payload.errors import PayloadError, closest, not_text
 from payload.schema import PayloadCommand
@@ -266,25 +266,15 @@ def travel_ticks(smap: ServoMap, design: Design | None = None) -> dict[int, tupl
     return out
 
 
-def posture_values(design: Design | None = None, name: str = "home") -> dict[str, float]:
-    """A design posture's joint values, joint -> value: ``home`` (where every trial
-    starts) or ``stowed`` (curled in the bays, the stage up: how the payload powers up)."""
-    design = design if design is not None else load_design()
-    posture = getattr(design, name)
-    values = {f"{f}_{j}": v for f in "ABCD" for j, v in zip(FINGER_JOINTS, posture.finger)}
-    values["rail"], values["stage"] = posture.rail, posture.stage
-    return values
-
-
 def home_values(design: Design | None = None) -> dict[str, float]:
     """The design's ``home`` posture (where every trial starts), joint -> value."""
-    return posture_values(design, "home")
+    return posture_values(design if design is not None else load_design(), "home")
 
 
 def posture_command(design: Design | None = None, name: str = "home") -> PayloadCommand:
     """The command of a design posture (:func:`posture_values`; joints in ``ALL_JOINTS``
     order)."""
-    values = posture_values(design, name)
+    values = posture_values(design if design is not None else load_design(), name)
     v = np.array([values[j] for j in ALL_JOINTS])
     return PayloadCommand(v[:-1], float(v[-1]), 0.0)
 
@@ -298,7 +288,7 @@ def posture_ticks(
     smap: ServoMap, design: Design | None = None, name: str = "home"
 ) -> dict[int, int]:
     """Present positions of a design posture (:func:`posture_values`), ID -> ticks."""
-    values = posture_values(design, name)
+    values = posture_values(design if design is not None else load_design(), name)
     return {s.id: s.to_ticks(values[s.joint]) for s in smap.servos}
 
 

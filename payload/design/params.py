@@ -212,6 +212,15 @@ def load_design(path: str | Path | None = None) -> Design:
     return design_from_dict(data, source=str(p))
 
 
+def posture_values(design: Design, name: str) -> dict[str, float]:
+    """Joint values of a named design posture (``stowed`` or ``home``), joint -> value."""
+    p = getattr(design, name)
+    q = {f"{f}_{j}": v for f in FINGERS for j, v in zip(FINGER_JOINTS, p.finger)}
+    q["rail"] = p.rail
+    q["stage"] = p.stage
+    return q
+
+
 __all__ = [
     "FINGERS",
     "FINGER_JOINTS",
@@ -223,4 +232,5 @@ __all__ = [
     "design_from_dict",
     "design_to_dict",
     "load_design",
+    "posture_values",
 ]

@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from payload.design.params import FINGER_JOINTS, FINGERS, SIDE_OF, Design
+from payload.design.params import FINGER_JOINTS, FINGERS, SIDE_OF, Design, posture_values
 from payload.design.servo import joint_servo, kind_of
 from payload.design.solids import LinkBody, MassProps, all_bodies, carriage_origin_x, finger_mount
 
@@ -187,11 +187,7 @@ class KinematicTree:
 
     def posture(self, name: str) -> dict[str, float]:
         """Joint values of a named design posture (``stowed`` or ``home``)."""
-        p = getattr(self.design, name)
-        q = {f"{f}_{j}": v for f in FINGERS for j, v in zip(FINGER_JOINTS, p.finger)}
-        q["rail"] = p.rail
-        q["stage"] = p.stage
-        return q
+        return posture_values(self.design, name)
 
 
 def _servo_fields(design: Design, kind: str) -> dict[str, Any]:
