@@ -672,7 +672,7 @@ def test_recover_refuses_another_model_on_a_rebooted_servos_id(smap, monkeypatch
     with EmulatorProcess() as emu:
         with DynamixelDriver(emu.port, smap, latency_timer_ms=LAT, on_fault="hold") as drv:
             drv.bring_up()
-            cmd = PayloadCommand(np.zeros(17), 0.075, 0.0)
+            cmd = PayloadCommand(np.zeros(17), drv.design.home.stage, 0.0)
             emu.fault("error:12:overload")
             assert isinstance(_until_fault(drv, cmd), HardwareFault)
             emu.fault("model:12:1060")
