@@ -342,6 +342,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
               "check them before handling the hand")  # fmt: skip
     else:
         print(f"  ended: {_ended(result)}; every servo's torque turned off")
+    stowed = {True: "stowed", None: "left deployed (--stay-deployed)"}
+    print(f"  payload: {stowed.get(result.get('stowed'), 'not stowed (see the warning above)')}")
     if result.get("loop_overruns"):  # the servos ran behind the recording's control rate
         from payload.rates import CONTROL_DT
 
@@ -389,7 +391,8 @@ def _run_hardware(args: argparse.Namespace, out: Path, replay: Path) -> dict[str
                                     budget=prof.retarget_budget,
                                     collisions=prof.retarget_collisions,
                                     progress=not args.json and sys.stderr.isatty(),
-                                    say=say_stage)  # fmt: skip
+                                    say=say_stage,
+                                    stow_after=not args.stay_deployed)  # fmt: skip
     # the driver is closed: the servos whose torque off it could not read back, recorded
     from payload.trials.scoring import write_metrics
 
@@ -626,6 +629,12 @@ def register(
         help="send each step as soon as the last exchange ends instead of at the replay's "
         "50 Hz (for the emulator and tests; a host stall over 100 ms trips the servos' "
         "watchdog, docs/hardware.md)",
+    )
+    p.add_argument(
+        "--stay-deployed",
+        action="store_true",
+        help="leave the payload deployed when the session ends (default: stowed, the "
+        "deployment's reverse)",
     )
     from payload.profiles import PROFILES, SAFE
 

@@ -22,7 +22,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from types import TracebackType
 
 import numpy as np
@@ -46,6 +46,7 @@ from firmware_interface.control_table import (
     hw_error_names,
     to_signed,
 )
+from firmware_interface.deployment import fold_before_homing
 from firmware_interface.errors import (
     BringUpFailed,
     CommError,
@@ -391,7 +392,9 @@ class DynamixelDriver(FaultHandling, Shutdown):
         self.emulated = info == EMULATOR_MODEL_INFORMATION
         for spec in self.map.servos:
             self._configure(spec)
-        self.home()
+        fold_before_homing(self)  # fingers out of the bays: folded first (or refused)
+        for spec in self._linear:  # the rail to its stowed end, then the stage up
+            self.home([spec])
         self._arm_watchdog(self.ids)
         self._torque_on = True
         self._last_io = time.monotonic()
@@ -422,6 +425,25 @@ class DynamixelDriver(FaultHandling, Shutdown):
         self.homed.update(sp.id for sp in specs)
         log.info("homed %s", ", ".join(f"{self._name(i)} (offset {h})" for i, h in offsets.items()))
         return offsets
+
+    def present_ticks(self) -> np.ndarray:
+        """One feedback read's Present Positions, raw [ticks], map order: homed or not
+        (the fingers' are absolute within their one turn, the rail's and the stage's
+        known only once homed)."""
+        self._check_open()
+        pos = self._feedback_raw()["position"].astype(np.int64)
+        self._present = pos
+        self._known.update(self.ids)
+        return pos.copy()
+
+    def goal_ticks(self, ticks: Mapping[int, int]) -> None:
+        """One sync write of raw goal positions to some servos (ID -> ticks), homed or
+        not, neither clipped to the joints' limits nor guarded: for motions checked
+        elsewhere (:func:`firmware_interface.deployment.fold_before_homing`)."""
+        self._check_open()
+        goals = np.array([ticks.get(i, 0) for i in self.ids], dtype=np.int64)
+        self._sync_write_goals(goals, [i for i in self.ids if i in ticks])
+        self._last_io = time.monotonic()
 
     def set_watchdog(self, armed: bool) -> None:
         """Arm (the map's period) or disarm the Bus Watchdog of every servo: a session

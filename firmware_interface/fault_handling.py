@@ -19,11 +19,12 @@ from firmware_interface.control_table import (
     hw_error_names,
     to_signed,
 )
-from firmware_interface.errors import CommError, HardwareFault, WrongModelError
+from firmware_interface.deployment import STOWED_TOL_RAD, unstowed
+from firmware_interface.errors import CommError, HardwareFault, HomingError, WrongModelError
 from firmware_interface.health import Recovery, ServoHealth
 
 if TYPE_CHECKING:
-    from firmware_interface.servo_map import ServoMap
+    from firmware_interface.servo_map import ServoMap, ServoSpec
 
 log = logging.getLogger("firmware_interface.driver")
 
@@ -32,6 +33,7 @@ class FaultHandling:
     """Health reads, the safe stop and recovery (mixed into :class:`DynamixelDriver`)."""
 
     map: ServoMap
+    design: Any
     ids: list[int]
     port: Any
     packet: Any
@@ -146,6 +148,26 @@ class FaultHandling:
             return
         self._sync_write_goals([int(p) for p in self._present], hold)
 
+    def _homing_refused(self, relost: list[ServoSpec]) -> None:
+        """Refuse to home ``relost`` (the rail, the stage) mid-session with the fingers out
+        of their stowed posture: homing drives them to their stowed stops, the stage up
+        into the bays, whatever the fingers do. A new bring-up folds the fingers first
+        (:func:`~firmware_interface.deployment.fold_before_homing`).
+
+        Raises:
+            HomingError: A finger more than ``STOWED_TOL_RAD`` from stowed.
+        """
+        ticks = self.present_ticks()
+        joint, off = unstowed(self.design, self.map.servos[:16], ticks[:16])
+        if off > STOWED_TOL_RAD:
+            names = " and ".join(sp.joint for sp in relost)
+            raise HomingError(
+                f"{names} lost {'their' if len(relost) > 1 else 'its'} count with {joint} "
+                f"{off:.2f} rad from stowed: homing would drive the stage into the bays with "
+                "the fingers out, so the payload stays stopped; bring it up again (the "
+                "fingers are folded before homing)"
+            )
+
     def recover(self, timeout: float = 5.0) -> Recovery:
         """Reboot the faulted servo(s), restore their settings, return them to service.
 
@@ -180,8 +202,10 @@ class FaultHandling:
                 raise HardwareFault(i, self.map.joint_of(i), hw_error_names(err))
             self._configure(self.map.by_id(i))
         relost = [sp for sp in self._linear if sp.id in ids]
-        if relost:  # a reboot lost the multi-turn count: home again
-            self.home(relost)
+        if relost:  # a reboot lost the multi-turn count: home again, the fingers stowed
+            self._homing_refused(relost)
+            for spec in relost:  # the rail before the stage
+                self.home([spec])
         self._arm_watchdog(self.ids)
         if self.on_fault == "torque_off":
             for spec in self.map.servos:

@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from firmware_interface.deployment import deployment_cleared, move_to_home, stow
 from payload.design.params import load_design
 from payload.errors import RunAborted
 from payload.folders import HANDS, RECORDING
@@ -52,7 +53,7 @@ def ready_at_home(hardware: Any, say: Callable[[str], None] | None = None) -> No
     from firmware_interface.driver import bring_up_notice, failed_start
 
     with failed_start(hardware.device):
-        _deployment_cleared(hardware.design)  # before anything moves (the homing too)
+        deployment_cleared(hardware.design)  # before anything moves (the homing too)
         if not getattr(hardware, "homed", None):
             if say is not None:
                 say(bring_up_notice(hardware.device))
@@ -61,170 +62,6 @@ def ready_at_home(hardware: Any, say: Callable[[str], None] | None = None) -> No
             say("moving to the design's home posture")
         move_to_home(hardware, cleared=True)
     hardware.set_watchdog(False)
-
-
-DEPLOY_SPEED = 0.5
-"""The share of each servo's no-load speed at which :func:`move_to_home` unfolds the
-fingers and the rail: the joint with the farthest to go sets the unfolding's time."""
-DEPLOY_LAG_RAD = 0.3
-"""The most a servo may trail the goal it was sent a control period before while
-:func:`move_to_home` unfolds the payload [rad of the servo's shaft]: more, and it is held
-back (a finger against the bay's wall, a blocked rail), so the unfolding stops there,
-naming it."""
-STOWED_TOL_RAD = 0.1
-"""How far a finger joint may be from the design's stowed posture, the stage up in the
-bays, for :func:`move_to_home` to deploy from there as checked [rad; the rail: the same at
-its pinion's shaft]: farther, and it goes home at once, as it always did, with a
-warning."""
-
-
-def move_to_home(hardware: Any, timeout: float = 6.0, cleared: bool = False) -> PayloadState:
-    """Drive the brought-up (homed) payload to the design's home posture, where every
-    simulated trial starts, and wait until every servo has stopped there.
-
-    From the stowed posture (how the payload powers up in its bays; homing leaves the rail
-    and the stage there) it deploys as ``payload report envelope`` checked the deployment:
-    the stage down with the fingers and the rail held, then the fingers and the rail
-    straight in joint space to home, goals stepped at 50 Hz at :data:`DEPLOY_SPEED` of the
-    servos' speed (a servo trailing its goal by more than :data:`DEPLOY_LAG_RAD` stops it
-    there). Those goals bypass the command guard, whose capsule margins flag the stowed
-    posture itself: the envelope check has cleared the path with the exact meshes, and a
-    design whose check fails is refused before anything moves (``cleared``: the caller
-    has asked, before the bring-up, as :func:`ready_at_home` does). With the stage up and
-    a finger or the rail more than :data:`STOWED_TOL_RAD` from stowed (a payload run
-    before, homed again), or the stage already down, the goal is home at once, guarded,
-    as it always was (the first with a warning).
-
-    A servo with no I gain stops anywhere inside its friction dead band around the goal
-    (:func:`payload.design.servo.dead_band_ticks`, 8.5 ticks at P 600): "there" is
-    within that band plus one tick (half a tick of the goal's rounding to a whole tick,
-    half of Present Position's).
-
-    Returns:
-        The measured state at home, every joint at rest.
-
-    Raises:
-        DynamixelError: A posture was not reached within ``timeout`` [s], a servo fell
-            behind its goal as the payload unfolded, or the design's deployment is not
-            clear.
-    """
-    from firmware_interface.control_table import RAD_PER_TICK
-    from firmware_interface.servo_map import posture_command
-
-    home = posture_command(hardware.design, "home")
-    stowed = posture_command(hardware.design, "stowed")
-    if not cleared:
-        _deployment_cleared(hardware.design)
-    start = hardware.read()
-    tol = _tolerance(hardware)
-    if abs(start.deploy - home.deploy) <= tol[-1]:  # the stage down already: out of the bays
-        return _settle(hardware, home, tol, timeout, "home posture")
-    per_rad = np.array([sp.units_per_tick / RAD_PER_TICK for sp in hardware.map.servos[:-1]])
-    off = np.abs(start.q - stowed.q) / per_rad  # [rad of each servo's shaft]
-    if np.any(off > STOWED_TOL_RAD):  # not how the checked deployment starts: as before
-        i = int(np.argmax(off))
-        log.warning(
-            "%s is %.2f rad from the stowed posture with the stage up (over %s): not the "
-            "deployment `payload report envelope` checks, so home at once, guarded, each servo "
-            "at its own pace (a payload run before and homed again comes up so)",
-            hardware.map.servos[i].joint,
-            off[i],
-            STOWED_TOL_RAD,
-        )
-        return _settle(hardware, home, tol, timeout, "home posture")
-    guard = getattr(hardware, "guard", None)
-    try:
-        hardware.guard = None
-        down = _settle(hardware, PayloadCommand(start.q, home.deploy, 0.0), tol, timeout, "stage")
-        _unfold(hardware, down.q, home)
-        state = _settle(hardware, home, tol, timeout, "home posture")
-    finally:
-        hardware.guard = guard
-        if guard is not None:  # its last safe command: where the servos are, else none
-            guard.reset(None)
-            try:
-                now = hardware.read()
-                guard.reset(np.append(now.q, now.deploy))
-            except Exception as exc:  # the deployment's own error is the one to say
-                log.warning("could not read the posture to reset the command guard: %s", exc)
-    return state
-
-
-def _deployment_cleared(design: Any) -> None:
-    """Refuse a design whose deployment ``payload report envelope`` does not clear."""
-    from firmware_interface.errors import DynamixelError
-    from payload.envelope.stowed_fit import design_failures
-    from payload.errors import first_of
-
-    failures = design_failures(design)  # the design the driver holds, not its file now
-    if failures:
-        raise DynamixelError(
-            f"the design's deployment is not clear ({first_of(failures, 1)}; `payload report "
-            "envelope`): the payload stays stowed"
-        )
-
-
-def _unfold(hardware: Any, start: np.ndarray, home: PayloadCommand) -> None:
-    """The fingers and the rail from ``start`` to ``home`` on a straight line, goals
-    stepped at 50 Hz (:data:`DEPLOY_SPEED`, :data:`DEPLOY_LAG_RAD`)."""
-    import time
-
-    from firmware_interface.control_table import RAD_PER_TICK
-    from firmware_interface.errors import DynamixelError
-
-    specs = hardware.map.servos[:-1]  # the 17: the stage is down
-    per_rad = np.array([sp.units_per_tick / RAD_PER_TICK for sp in specs])  # a shaft radian
-    speed = hardware.design.servo.no_load_speed * per_rad * DEPLOY_SPEED
-    seconds = float(np.max(np.abs(home.q - start) / speed))  # the farthest joint's
-    steps = max(1, math.ceil(seconds / CONTROL_DT))
-    due = time.monotonic()
-    for k in range(1, steps + 1):
-        s = k / steps
-        goal = (1 - s) * start + s * home.q
-        hardware.send(PayloadCommand(goal, home.deploy, 0.0))
-        now = time.monotonic()  # a late period is not caught up (goals in a burst: off the line)
-        due = max(due + CONTROL_DT, now)
-        time.sleep(due - now)
-        lag = np.abs(hardware.read().q - goal) / per_rad  # a period after the goal went out
-        if np.any(lag > DEPLOY_LAG_RAD):  # held back: hold where it is, say which
-            hardware.send(PayloadCommand(hardware.read().q, home.deploy, 0.0))
-            i = int(np.argmax(lag))
-            raise DynamixelError(
-                f"{specs[i].joint} trails its goal by {lag[i]:.2f} rad (over {DEPLOY_LAG_RAD}) "
-                "as the payload unfolds: held back? the payload holds where it is"
-            )
-
-
-def _tolerance(hardware: Any) -> np.ndarray:
-    """Each servo's "there" (see :func:`move_to_home`), in joint units, map order."""
-    from payload.design.servo import dead_band_ticks, kind_of
-
-    band = [dead_band_ticks(hardware.design, kind_of(s.joint)) + 1.0 for s in hardware.map.servos]
-    return np.array([s.units_per_tick for s in hardware.map.servos]) * band
-
-
-def _settle(
-    hardware: Any, cmd: PayloadCommand, tol: np.ndarray, timeout: float, what: str
-) -> PayloadState:
-    """Send ``cmd`` until every servo has stopped within ``tol`` of it; the state there."""
-    import time
-
-    from firmware_interface.errors import DynamixelError
-
-    target = np.append(cmd.q, cmd.deploy)
-    t0 = time.monotonic()
-    last = None
-    while time.monotonic() - t0 < timeout:
-        hardware.send(cmd)
-        state = hardware.read()
-        now = np.append(state.q, state.deploy)
-        # at rest: Present Velocity zero, and the stage (no velocity in the state) unmoved
-        still = np.all(state.dq == 0.0) and last is not None and now[-1] == last[-1]
-        if still and np.all(np.abs(now - target) <= tol):
-            return state
-        last = now
-        time.sleep(0.01)
-    raise DynamixelError(f"the payload did not reach its {what} within {timeout} s")
 
 
 def _finger_dofs(sim: SimDriver) -> np.ndarray:
@@ -428,6 +265,7 @@ def run_hardware_trial(
     collisions: bool = True,
     progress: bool = False,
     say: Callable[[str], None] | None = None,
+    stow_after: bool = True,
 ) -> dict[str, Any]:
     """Replay a hand recording on the hardware and record the trial like ``payload trial``.
 
@@ -453,11 +291,16 @@ def run_hardware_trial(
         progress: Show a progress bar over the session's recorded time (a paced session
             runs in real time, minutes for a whole trial's replay).
         say: Called with a line before each set-up stage that takes seconds (the
-            bring-up and homing, the move to the home posture), or None.
+            bring-up and homing, the move to the home posture, the stowing), or None.
+        stow_after: Stow the payload when the session has run to its end
+            (:func:`~firmware_interface.deployment.stow`: the deployment's reverse); a
+            session that stops on a fault leaves it where the fault stopped it.
 
     Returns:
         The metrics (as written to ``metrics.json``) with ``steps``, ``driver``,
-        ``device``, ``emulator``, ``provenance``, the set-up and ``watchdog``.
+        ``device``, ``emulator``, ``provenance``, the set-up, ``watchdog`` and
+        ``stowed`` (None with ``stow_after`` off; False: stowing stopped, the warning
+        says why).
     """
     from payload.native import environment
     from payload.project import current_project, provenance
@@ -569,6 +412,8 @@ def run_hardware_trial(
             for trip in hardware.watchdog_trips[trips0:]:  # re-armed by the last command,
                 trip.setdefault("session_t", round(arming.steps * CONTROL_DT, 3))  # at the end
             watchdog = watchdog_report(hardware.watchdog_trips[trips0:])
+            if stow_after:  # the 50 Hz traffic has ended: the stowing follows at its pace
+                hardware.set_watchdog(False)
             recorder.flush()  # every step written: the scene's figures count them all
             # "max_time": the session-length cap ended it, as a trial's closing metadata says
             recorder.write_meta({"steps": len(commands), "warnings": driver.warnings(),
@@ -578,6 +423,7 @@ def run_hardware_trial(
         if bar is not None:
             bar.stop()
         sim.close()
+    stowed = _stow_after_session(hardware, say) if stow_after else None
     try:
         result = finish_trial(out, rec_path)
     except KeyboardInterrupt as exc:  # while scoring: the session itself was whole
@@ -587,9 +433,25 @@ def run_hardware_trial(
     overruns = ended[0].overruns if pace and ended else None
     result.update(steps=len(commands), driver="hardware", **far_end, provenance=prov,
                   watchdog=watchdog, replay=str(Path(replay).resolve()),
-                  loop_overruns=overruns)  # fmt: skip
+                  loop_overruns=overruns, stowed=stowed)  # fmt: skip
     write_metrics(out, result)
     return result
+
+
+def _stow_after_session(hardware: Any, say: Callable[[str], None] | None) -> bool:
+    """Stow the payload after a session that ran to its end; a stow that stops (a servo
+    held back, a design whose deployment is no longer clear) is a warning, not a failed
+    run: the session is recorded whole. Whether it is stowed."""
+    from firmware_interface.errors import DynamixelError
+
+    if say is not None:
+        say("stowing the payload (the deployment's reverse)")
+    try:
+        stow(hardware)
+    except DynamixelError as exc:
+        log.warning("the payload is not stowed: %s", exc)
+        return False
+    return True
 
 
 class HardwareRunAborted(RunAborted):

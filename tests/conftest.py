@@ -285,3 +285,14 @@ def spy_on_the_wire(monkeypatch: pytest.MonkeyPatch) -> dict[int, set[tuple[int,
 
     monkeypatch.setattr(SdkPort, "writePort", spy)
     return seen
+
+
+def band_ticks(joint: str) -> float:
+    """A servo's static friction dead band plus one tick of rounding [ticks], from the
+    design's constants by hand: at rest, friction holds the shaft while the proportional
+    current's torque kt (P / 128) e mA is below the Coulomb friction (no I gain)."""
+    from payload.design.params import load_design
+
+    s = load_design().servo
+    kind = joint if joint in ("rail", "stage") else "abduction" if "abd" in joint else "finger"
+    return s.coulomb / (s.kt * getattr(s.gains, kind)[0] / 128 * 1e-3) + 1.0

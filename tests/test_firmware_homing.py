@@ -208,13 +208,17 @@ def test_homing_drives_each_linear_servo_off_its_stop_and_back(smap):
 
 
 def test_recover_of_the_stage_rehomes_it(smap):
+    """The stage rebooted mid-travel, the fingers stowed (with them out, ``recover()``
+    refuses: tests/test_firmware_stowing.py): homed again at its stop."""
+    from firmware_interface.servo_map import posture_command
+
     stage = smap.servos[17]
     with (
         EmulatorProcess() as emu,
         DynamixelDriver(emu.port, smap, latency_timer_ms=LAT) as drv,
     ):
         drv.bring_up()
-        cmd = PayloadCommand(np.zeros(17), 0.05, 0.0)
+        cmd = PayloadCommand(posture_command(drv.design, "stowed").q, 0.05, 0.0)
         _go(drv, cmd)
         emu.fault("error:18:overload")
         drv.read()

@@ -8,12 +8,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import band_ticks
 
 from firmware_interface.control_table import BY_NAME, decode
+from firmware_interface.deployment import move_to_home
 from firmware_interface.driver import DynamixelDriver
 from firmware_interface.emulator import EmulatorProcess
 from firmware_interface.options import EMULATOR_LATENCY_MS as LAT  # [ms] reply allowance
-from firmware_interface.run import HardwareInTheLoop, move_to_home, replay_session
+from firmware_interface.run import HardwareInTheLoop, replay_session
 from firmware_interface.servo_map import load_servo_map
 from payload.design.params import load_design
 from payload.schema import CONTROL_DT
@@ -24,15 +26,6 @@ from payload.teleop.operator import OperatorPlan, OperatorTraits, SyntheticOpera
 from payload.teleop.replay import HandRecordingWriter, read_hand_recording
 
 EXTRA_S = 1.0  # teleoperation after the calibration prompts [s]
-
-
-def _band_ticks(joint: str) -> float:
-    """A servo's static friction dead band plus one tick of rounding [ticks], from the
-    design's constants by hand: at rest, friction holds the shaft while the proportional
-    current's torque kt (P / 128) e mA is below the Coulomb friction (no I gain)."""
-    s = load_design().servo
-    kind = joint if joint in ("rail", "stage") else "abduction" if "abd" in joint else "finger"
-    return s.coulomb / (s.kt * getattr(s.gains, kind)[0] / 128 * 1e-3) + 1.0
 
 
 @pytest.fixture(scope="module")
@@ -89,7 +82,7 @@ def test_the_payload_deploys_as_the_envelope_check_does(monkeypatch, caplog):
                 end = move_to_home(drv, cleared=True)  # asked above, before the bring-up
             restored, last_safe = drv.guard, guard._safe
     assert not caplog.records, caplog.text
-    tol = np.array([s.units_per_tick * _band_ticks(s.joint) for s in smap.servos])
+    tol = np.array([s.units_per_tick * band_ticks(s.joint) for s in smap.servos])
     # the guard, bypassed on the checked path, is back, its last safe command home
     assert restored is guard and np.all(np.abs(last_safe - np.append(end.q, end.deploy)) <= 1e-9)
     stowed = [*design.stowed.finger] * 4 + [design.stowed.rail]
@@ -119,11 +112,12 @@ def test_the_payload_deploys_as_the_envelope_check_does(monkeypatch, caplog):
     assert stamps[-1] - stamps[0] >= 0.9 * (n - 1) * CONTROL_DT, (stamps[-1] - stamps[0], n)
 
 
-def test_fingers_out_of_the_stowed_posture_go_home_at_once_with_a_warning(caplog):
-    """A finger 0.3 rad off its stowed angle with the stage up (not where the envelope
-    check's deployment starts: a payload run before and homed again comes up so): the
-    warning names the joint and the payload goes home at once, guarded, as it always
-    did, and rests there."""
+def test_a_finger_off_its_stowed_angle_at_power_up_is_folded_then_deployed_as_checked(caplog):
+    """A finger 0.3 rad off its stowed angle at power-up (a payload run before, homed
+    again, came up so: its stage had been driven up with the fingers out) used to be sent
+    home at once, every servo at its own pace. The bring-up folds it first (a warning
+    names the joint), so the deployment that follows starts stowed and is the checked one,
+    with no warning, and rests at home."""
     import logging
 
     from firmware_interface.servo_map import posture_ticks
@@ -134,12 +128,18 @@ def test_fingers_out_of_the_stowed_posture_go_home_at_once_with_a_warning(caplog
     ticks[a_pip.id] += round(0.3 / a_pip.units_per_tick)
     with EmulatorProcess(positions=ticks) as emu:
         with DynamixelDriver(emu.port, smap, latency_timer_ms=LAT) as drv:
-            drv.bring_up()
-            with caplog.at_level(logging.WARNING, logger="firmware_interface.run"):
+            with caplog.at_level(logging.WARNING, logger="firmware_interface"):
+                drv.bring_up()
+                folded = emu.servos()[a_pip.id]["pos"]
+                said = [r.getMessage() for r in caplog.records]
+                caplog.clear()
                 end = move_to_home(drv, cleared=True)
-    said = [r.getMessage() for r in caplog.records]
+            after = [r.getMessage() for r in caplog.records]
     assert len(said) == 1 and said[0].startswith("A_pip is 0.30 rad from the stowed"), said
-    tol = np.array([s.units_per_tick * _band_ticks(s.joint) for s in smap.servos])
+    stowed_tick = posture_ticks(smap, design, "stowed")[a_pip.id]
+    assert abs(folded - stowed_tick) <= 0.1 / a_pip.units_per_tick  # within a tenth of a rad
+    assert after == []  # the checked deployment: from stowed
+    tol = np.array([s.units_per_tick * band_ticks(s.joint) for s in smap.servos])
     home = [*design.home.finger] * 4 + [design.home.rail, design.home.stage]
     assert np.all(np.abs(np.append(end.q, end.deploy) - home) <= tol)
 
@@ -168,7 +168,7 @@ def test_a_design_whose_deployment_is_not_clear_stays_stowed(tmp_path):
             ):
                 move_to_home(drv)
             after = drv.read()
-    tol = np.array([s.units_per_tick * _band_ticks(s.joint) for s in smap.servos])
+    tol = np.array([s.units_per_tick * band_ticks(s.joint) for s in smap.servos])
     moved = np.abs(np.append(after.q, after.deploy) - np.append(before.q, before.deploy))
     assert np.all(moved <= tol), moved
 
@@ -186,7 +186,7 @@ def test_sim_and_hardware_get_the_same_commands_from_the_same_session(session):
                 on_hw = replay_session(HardwareInTheLoop(drv, world), frames)
             tables = emu.tables()
     assert len(on_sim) == len(on_hw) == len(frames)
-    tol = np.array([s.units_per_tick * _band_ticks(s.joint) for s in smap.servos])
+    tol = np.array([s.units_per_tick * band_ticks(s.joint) for s in smap.servos])
     sim_v = np.array([np.append(c.q, c.deploy) for c in on_sim])
     hw_v = np.array([np.append(c.q, c.deploy) for c in on_hw])
     # the hardware starts from its measured posture, where its servos came to rest: inside
@@ -555,16 +555,45 @@ def test_the_grasps_load_on_a_servo_uses_the_designs_torque_constant():
             assert all((abs(ma) < cap_ma) == held for ma in loads.values()), (scale, loads)
 
 
-def _hw_run_of(session: Path, out: Path) -> Path:
+def _hw_run_of(session: Path, out: Path, *extra: str, where: dict | None = None) -> Path:
     """``payload hw run`` of a recorded hand session on a fresh emulator, unpaced, into
-    ``out`` (its exit checked); returns ``out``."""
+    ``out`` (its exit checked), with ``extra`` options; returns ``out``. ``where``: filled
+    with the servos' physical positions at the end (ID -> ticks)."""
     from payload.cli import main
 
     with EmulatorProcess() as emu:
-        argv = ["hw", "run", "--device", emu.port, "--replay", str(session),
-                "--out", str(out), "--no-pace", "--latency-ms", str(LAT), "--json"]  # fmt: skip
+        argv = ["hw", "run", "--device", emu.port, "--replay", str(session), "--out", str(out),
+                "--no-pace", "--latency-ms", str(LAT), "--json", *extra]  # fmt: skip
         assert main(argv) == 0
+        if where is not None:
+            where.update({i: s["pos"] for i, s in emu.servos().items()})
     return out
+
+
+@pytest.mark.parametrize("stay", [False, True])
+def test_hw_run_ends_with_the_payload_stowed_unless_told_to_stay_deployed(session, tmp_path, stay):
+    """``hw run`` left the payload deployed (the stage down, the fingers where the
+    session left them) with its torque off; the next bring-up then drove the stage up
+    into the bays with the fingers out. It now stows it (``"stowed": true``): the servos
+    rest at the stowed posture, the stage and the rail at their stowed stops. With
+    ``--stay-deployed`` the payload stays out (``"stowed": null``), the stage down."""
+    from firmware_interface.servo_map import posture_ticks
+
+    where: dict[int, float] = {}
+    out = _hw_run_of(session, tmp_path / "trial", *(["--stay-deployed"] if stay else []),
+                     where=where)  # fmt: skip
+    metrics = json.loads((out / "metrics.json").read_text())
+    smap, design = load_servo_map(), load_design()
+    target = posture_ticks(smap, design, "home" if stay else "stowed")
+    stage = smap.servos[17]
+    if stay:
+        assert metrics["stowed"] is None
+        assert abs(where[stage.id] - target[stage.id]) <= band_ticks("stage")  # still down
+    else:
+        assert metrics["stowed"] is True
+        off = {s.joint: abs(where[s.id] - target[s.id]) for s in smap.servos}
+        assert all(off[j] <= band_ticks(j) for j in off), off
+        assert where[stage.id] == stage.zero  # at the stop
 
 
 def test_a_bus_watchdog_trip_is_recorded_at_its_session_time(session, tmp_path, monkeypatch):
@@ -637,7 +666,9 @@ def test_the_first_teleoperation_step_does_not_trip_the_bus_watchdog(
     monkeypatch.setattr(DynamixelDriver, "set_watchdog", set_watchdog)
     out = _hw_run_of(session, tmp_path / "trial")
     assert not first[0]  # the session reached teleoperation
-    assert armed[-1] is True  # and the watchdog guarded it
+    # the watchdog guarded it to its end, and was disarmed once the 50 Hz traffic ended
+    # (by the run, then by the stowing itself)
+    assert armed[-3:] == [True, False, False], armed
     watchdog = json.loads((out / "metrics.json").read_text())["watchdog"]
     # no trip from the slow first step (a loaded machine may add short ones of its own)
     assert [e for e in watchdog.get("events", []) if e["silence_s"] >= 0.2] == [], watchdog

@@ -1,0 +1,395 @@
+"""The payload out of its bays and back: the deployment ``payload report envelope``
+checks, its reverse, and a payload that powers up out of its bays.
+
+The deployment (:func:`move_to_home`): from the stowed posture the stage goes down with
+the fingers and the rail held, then the fingers and the rail go straight in joint space
+to home. Stowing (:func:`stow`) is its reverse: the fingers and the rail to home (guarded),
+straight to the stowed posture, then the stage up. Homing drives the rail and the stage
+to their stowed stops whatever the fingers do, so a payload that powers up with its
+fingers out (a session ended by a fault or a power loss, stowing skipped) has them
+folded first (:func:`fold_before_homing`), along a straight line checked as the
+envelope check checks the deployment, the rail at each position its one-turn reading
+allows; then the rail is homed, then the stage.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+from firmware_interface.control_table import RAD_PER_TICK, TICKS_PER_REV
+from firmware_interface.errors import DynamixelError, HomingError
+from firmware_interface.servo_map import ServoSpec, posture_command
+from payload.design.params import posture_values
+from payload.schema import CONTROL_DT, PayloadCommand, PayloadState
+
+log = logging.getLogger(__name__)
+
+DEPLOY_SPEED = 0.5
+"""The share of each servo's no-load speed at which the payload's goals are stepped
+while it unfolds, stows or folds before homing: the joint with the farthest to go sets
+the motion's time."""
+DEPLOY_LAG_RAD = 0.3
+"""The most a servo may trail the goal it was sent a control period before while the
+payload unfolds, stows or folds [rad of the servo's shaft]: more, and it is held back (a
+finger against the bay's wall, a blocked rail), so the motion stops there, naming it."""
+STOWED_TOL_RAD = 0.1
+"""How far a finger joint may be from the design's stowed posture and still count as
+stowed [rad; the rail: the same at its pinion's shaft]: :func:`move_to_home` deploys as
+checked from there, and :func:`fold_before_homing` leaves it be."""
+
+
+def shaft_per_rad(specs: Sequence[ServoSpec]) -> np.ndarray:
+    """Joint units per radian of each servo's shaft (the rail: its pinion's gear in)."""
+    return np.array([sp.units_per_tick / RAD_PER_TICK for sp in specs])
+
+
+def farthest_from(
+    specs: Sequence[ServoSpec], q: np.ndarray, target: np.ndarray
+) -> tuple[str, float]:
+    """The joint of ``specs`` farthest from ``target`` at ``q``, and how far [rad of the
+    servo's shaft]."""
+    off = np.abs(np.asarray(q) - np.asarray(target)) / shaft_per_rad(specs)
+    i = int(np.argmax(off))
+    return specs[i].joint, float(off[i])
+
+
+# -- the deployment ---------------------------------------------------------------------------
+def move_to_home(hardware: Any, timeout: float = 6.0, cleared: bool = False) -> PayloadState:
+    """Drive the brought-up (homed) payload to the design's home posture, where every
+    simulated trial starts, and wait until every servo has stopped there.
+
+    From the stowed posture (how the payload powers up in its bays; homing leaves the rail
+    and the stage there) it deploys as ``payload report envelope`` checked the deployment:
+    the stage down with the fingers and the rail held, then the fingers and the rail
+    straight in joint space to home, goals stepped at 50 Hz at :data:`DEPLOY_SPEED` of the
+    servos' speed (a servo trailing its goal by more than :data:`DEPLOY_LAG_RAD` stops it
+    there). Those goals bypass the command guard, whose capsule margins flag the stowed
+    posture itself: the envelope check has cleared the path with the exact meshes, and a
+    design whose check fails is refused before anything moves (``cleared``: the caller
+    has asked, before the bring-up, as ``ready_at_home`` does). With the stage up and
+    a finger or the rail more than :data:`STOWED_TOL_RAD` from stowed, or the stage
+    already down, the goal is home at once, guarded, as it always was (the first with a
+    warning).
+
+    A servo with no I gain stops anywhere inside its friction dead band around the goal
+    (:func:`payload.design.servo.dead_band_ticks`, 8.5 ticks at P 600): "there" is
+    within that band plus one tick (half a tick of the goal's rounding to a whole tick,
+    half of Present Position's).
+
+    Returns:
+        The measured state at home, every joint at rest.
+
+    Raises:
+        DynamixelError: A posture was not reached within ``timeout`` [s], a servo fell
+            behind its goal as the payload unfolded, or the design's deployment is not
+            clear.
+    """
+    home = posture_command(hardware.design, "home")
+    stowed = posture_command(hardware.design, "stowed")
+    if not cleared:
+        deployment_cleared(hardware.design)
+    start = hardware.read()
+    tol = tolerance(hardware)
+    if abs(start.deploy - home.deploy) <= tol[-1]:  # the stage down already: out of the bays
+        return settle(hardware, home, tol, timeout, "home posture")
+    joint, off = farthest_from(hardware.map.servos[:-1], start.q, stowed.q)
+    if off > STOWED_TOL_RAD:  # not how the checked deployment starts: as before
+        log.warning(
+            "%s is %.2f rad from the stowed posture with the stage up (over %s): not the "
+            "deployment `payload report envelope` checks, so home at once, guarded, each servo "
+            "at its own pace",
+            joint,
+            off,
+            STOWED_TOL_RAD,
+        )
+        return settle(hardware, home, tol, timeout, "home posture")
+    with _unguarded(hardware):
+        down = settle(hardware, PayloadCommand(start.q, home.deploy, 0.0), tol, timeout, "stage")
+        _ramp_payload(hardware, down.q, home.q, home.deploy, "as the payload unfolds")
+        return settle(hardware, home, tol, timeout, "home posture")
+
+
+def stow(hardware: Any, timeout: float = 6.0) -> PayloadState:
+    """The deployment's reverse, from wherever a session left the payload (the stage down):
+    the fingers and the rail straight to home under the command guard (as a session's
+    goals are checked), then straight in joint space to the stowed posture and the stage
+    up with the fingers and the rail held, the path ``payload report envelope`` checked
+    (the guard set aside: its capsule margins flag the stowed posture), goals stepped at
+    50 Hz at :data:`DEPLOY_SPEED` (:data:`DEPLOY_LAG_RAD` stops it). With the stage not
+    down, it is lowered first, the fingers held. The Bus Watchdog is disarmed: the motion
+    is paced by the host, not a session's 50 Hz.
+
+    Returns:
+        The measured state stowed, every joint at rest.
+
+    Raises:
+        DynamixelError: The design's deployment is not clear (the payload stays where it
+            is), a servo fell behind its goal, or a posture was not reached in ``timeout``.
+    """
+    home = posture_command(hardware.design, "home")
+    stowed = posture_command(hardware.design, "stowed")
+    hardware.set_watchdog(False)  # the check takes longer than the Bus Watchdog's time
+    deployment_cleared(hardware.design)
+    tol = tolerance(hardware)
+    start = hardware.read()
+    if abs(start.deploy - home.deploy) > tol[-1]:  # partway: down first, the fingers held
+        start = settle(hardware, PayloadCommand(start.q, home.deploy, 0.0), tol, timeout, "stage")
+    _ramp_payload(hardware, start.q, home.q, home.deploy, "on its way home to stow")
+    settle(hardware, home, tol, timeout, "home posture")
+    with _unguarded(hardware):
+        now = hardware.read()
+        _ramp_payload(hardware, now.q, stowed.q, home.deploy, "as the payload folds")
+        folded = settle(hardware, PayloadCommand(stowed.q, home.deploy, 0.0), tol, timeout,
+                        "stowed posture")  # fmt: skip
+        return settle(hardware, PayloadCommand(folded.q, stowed.deploy, 0.0), tol, timeout,
+                      "stowed stage")  # fmt: skip
+
+
+def deployment_cleared(design: Any) -> None:
+    """Refuse a design whose deployment ``payload report envelope`` does not clear."""
+    from payload.envelope.stowed_fit import design_failures
+    from payload.errors import first_of
+
+    failures = design_failures(design)  # the design the driver holds, not its file now
+    if failures:
+        raise DynamixelError(
+            f"the design's deployment is not clear ({first_of(failures, 1)}; `payload report "
+            "envelope`): the payload stays where it is"
+        )
+
+
+class _unguarded:
+    """The command guard set aside (the envelope check has cleared the path), back after
+    with its last safe command where the servos are (none if they cannot be read)."""
+
+    def __init__(self, hardware: Any) -> None:
+        self.hardware = hardware
+        self.guard = getattr(hardware, "guard", None)
+
+    def __enter__(self) -> None:
+        self.hardware.guard = None
+
+    def __exit__(self, *exc: object) -> None:
+        self.hardware.guard = self.guard
+        if self.guard is None:
+            return
+        self.guard.reset(None)
+        try:
+            now = self.hardware.read()
+            self.guard.reset(np.append(now.q, now.deploy))
+        except Exception as err:  # the motion's own error is the one to say
+            log.warning("could not read the posture to reset the command guard: %s", err)
+
+
+def _ramp_payload(
+    hardware: Any, start: np.ndarray, goal: np.ndarray, deploy: float, during: str
+) -> None:
+    """The fingers and the rail from ``start`` to ``goal`` on a straight line, the stage
+    held at ``deploy``, through the driver's ``send`` (guarded if its guard is on)."""
+    specs = hardware.map.servos[:-1]  # the 17
+
+    def send(q: np.ndarray) -> None:
+        hardware.send(PayloadCommand(q, deploy, 0.0))
+
+    ramp(send, lambda: hardware.read().q, start, goal, specs, hardware.design, during)
+
+
+def ramp(
+    send: Callable[[np.ndarray], None],
+    read: Callable[[], np.ndarray],
+    start: np.ndarray,
+    goal: np.ndarray,
+    specs: Sequence[ServoSpec],
+    design: Any,
+    during: str,
+) -> None:
+    """Goals from ``start`` to ``goal`` (the joints of ``specs``) on a straight line in
+    joint space, stepped at 50 Hz, no servo faster than :data:`DEPLOY_SPEED` of its
+    no-load speed; a servo trailing its goal by more than :data:`DEPLOY_LAG_RAD` a period
+    after it went out stops the motion where the servos are (``during`` says when)."""
+    per_rad = shaft_per_rad(specs)
+    speed = design.servo.no_load_speed * per_rad * DEPLOY_SPEED
+    start, goal = np.asarray(start, dtype=float), np.asarray(goal, dtype=float)
+    seconds = float(np.max(np.abs(goal - start) / speed))  # the farthest joint's
+    steps = max(1, math.ceil(seconds / CONTROL_DT))
+    due = time.monotonic()
+    for k in range(1, steps + 1):
+        s = k / steps
+        target = (1 - s) * start + s * goal
+        send(target)
+        now = time.monotonic()  # a late period is not caught up (goals in a burst: off the line)
+        due = max(due + CONTROL_DT, now)
+        time.sleep(due - now)
+        lag = np.abs(read() - target) / per_rad  # a period after the goal went out
+        if np.any(lag > DEPLOY_LAG_RAD):  # held back: hold where it is, say which
+            send(read())
+            i = int(np.argmax(lag))
+            raise DynamixelError(
+                f"{specs[i].joint} trails its goal by {lag[i]:.2f} rad (over {DEPLOY_LAG_RAD}) "
+                f"{during}: held back? the payload holds where it is"
+            )
+
+
+def tolerance(hardware: Any) -> np.ndarray:
+    """Each servo's "there" (see :func:`move_to_home`), in joint units, map order."""
+    from payload.design.servo import dead_band_ticks, kind_of
+
+    band = [dead_band_ticks(hardware.design, kind_of(s.joint)) + 1.0 for s in hardware.map.servos]
+    return np.array([s.units_per_tick for s in hardware.map.servos]) * band
+
+
+def settle(
+    hardware: Any, cmd: PayloadCommand, tol: np.ndarray, timeout: float, what: str
+) -> PayloadState:
+    """Send ``cmd`` until every servo has stopped within ``tol`` of it; the state there."""
+    target = np.append(cmd.q, cmd.deploy)
+    t0 = time.monotonic()
+    last = None
+    while time.monotonic() - t0 < timeout:
+        hardware.send(cmd)
+        state = hardware.read()
+        now = np.append(state.q, state.deploy)
+        # at rest: Present Velocity zero, and the stage (no velocity in the state) unmoved
+        still = np.all(state.dq == 0.0) and last is not None and now[-1] == last[-1]
+        if still and np.all(np.abs(now - target) <= tol):
+            return state
+        last = now
+        time.sleep(0.01)
+    raise DynamixelError(f"the payload did not reach its {what} within {timeout} s")
+
+
+# -- a payload that powers up out of its bays ---------------------------------------------
+def unstowed(design: Any, specs: Sequence[ServoSpec], ticks: np.ndarray) -> tuple[str, float]:
+    """The finger joint farthest from the design's stowed posture at the present positions
+    ``ticks`` of the 16 finger servos ``specs`` (absolute within their one turn: known
+    before homing), and how far [rad of the servo's shaft]."""
+    stowed = posture_values(design, "stowed")
+    q = np.array([sp.from_ticks(t) for sp, t in zip(specs, ticks)])
+    return farthest_from(specs, q, np.array([stowed[sp.joint] for sp in specs]))
+
+
+def rail_positions(spec: ServoSpec, ticks: int) -> list[float]:
+    """Where an unhomed rail may be [m]: its reading ``ticks`` plus any whole number of
+    turns (a power-up loses the count, the Homing Offset of the last homing is kept),
+    within its travel; with none there (a Homing Offset not the last homing's), its whole
+    travel at the envelope check's 0.5 mm."""
+    from payload.envelope.deployment import UNFOLD_STEP_M
+
+    pad = 2 * spec.units_per_tick  # a reading a tick or two past a stop
+    out = []
+    for k in range(-4, 5):
+        v = spec.from_ticks(ticks + k * TICKS_PER_REV)
+        if spec.lower - pad <= v <= spec.upper + pad:
+            out.append(min(max(v, spec.lower), spec.upper))
+    if out:
+        return out
+    n = max(1, math.ceil((spec.upper - spec.lower) / UNFOLD_STEP_M))
+    return list(np.linspace(spec.lower, spec.upper, n + 1))
+
+
+def fold_failures(design: Any, fingers: Mapping[str, float], rails: Sequence[float]) -> list[str]:
+    """What folding the fingers from ``fingers`` (joint -> value) to the stowed posture,
+    straight in joint space with the stage down and the rail at each of ``rails`` [m], then
+    the rail to its stowed end, would hit, as ``payload report envelope`` checks the
+    deployment (:func:`payload.envelope.deployment.unfolding_check`): links through each
+    other (pairs already colliding where the fingers are, or stowed, only if they go
+    deeper) and links into the vehicle body. Empty when clear."""
+    from payload.design import build_tree
+    from payload.envelope.deployment import unfolding_check
+    from payload.envelope.geometry import PayloadGeometry
+    from payload.envelope.self_collision import self_contacts
+    from payload.envelope.vehicle import vehicle_from_dict
+
+    vehicle = vehicle_from_dict(design.vehicle or {}, source=str(design.source))
+    geom = PayloadGeometry(build_tree(design))
+    stowed = posture_values(design, "stowed")
+    down = posture_values(design, "home")["stage"]
+    out: list[str] = []
+    for rail in rails:
+        start = {**stowed, **fingers, "rail": rail, "stage": down}
+        folded = {**stowed, "rail": rail, "stage": down}
+        end = {**stowed, "stage": down}
+        touching = {
+            frozenset((c.a, c.b)): c.distance
+            for q in (start, end)
+            for c in self_contacts(geom, geom.poses(q))
+            if c.colliding
+        }
+        legs = [unfolding_check(geom, vehicle, start, folded, [])]
+        if abs(rail - stowed["rail"]) > 0.0:
+            legs.append(unfolding_check(geom, vehicle, folded, end, []))
+        where = f"with the rail at {rail * 1e3:.1f} mm"
+        for leg in legs:
+            for c in leg.collisions:
+                before = touching.get(frozenset((c.a, c.b)))
+                if before is None or c.distance < before - 1e-4:  # new, or deeper
+                    out.append(f"{c.a} and {c.b} collide ({-c.distance * 1e3:.1f} mm deep) {where}")
+            out += [f"{h.link} hits the {h.body} ({-h.distance * 1e3:.1f} mm deep) {where}"
+                    for h in leg.hits]  # fmt: skip
+    return out
+
+
+def fold_before_homing(hardware: Any, timeout: float = 6.0) -> bool:
+    """Before the rail and the stage are homed (driven to their stowed stops, the stage up
+    into the bays): fingers more than :data:`STOWED_TOL_RAD` from stowed are folded to the
+    stowed posture first, straight in joint space, goals stepped as :func:`ramp` steps
+    them, the rail and the stage held where they are. The fingers' positions are known
+    (absolute within their one turn), the stage's and the rail's are not: the stage is
+    taken as down (the payload's own motions unfold the fingers only with the stage down
+    and fold them before raising it) and the fold is checked (:func:`fold_failures`) with
+    the rail at each position its reading allows.
+
+    Returns:
+        Whether the fingers were folded (the rail is then to be homed before the stage).
+
+    Raises:
+        HomingError: The fold would collide: nothing has moved.
+        DynamixelError: A finger fell behind its goal (the fingers hold where they are),
+            or the fingers were not within their dead bands of stowed in ``timeout`` [s].
+    """
+    specs = hardware.map.servos
+    fingers, rail = specs[:16], specs[16]
+    ticks = hardware.present_ticks()
+    joint, off = unstowed(hardware.design, fingers, ticks[:16])
+    if off <= STOWED_TOL_RAD:
+        return False
+    q = np.array([sp.from_ticks(t) for sp, t in zip(fingers, ticks[:16])])
+    rails = rail_positions(rail, int(ticks[16]))
+    failures = fold_failures(hardware.design, {sp.joint: v for sp, v in zip(fingers, q)}, rails)
+    if failures:
+        raise HomingError(
+            f"the payload powered up out of its bays ({joint} {off:.2f} rad from stowed) and "
+            f"folding it from there would collide: {failures[0]}; nothing moved: fold the "
+            "fingers by hand with the servos unpowered, then bring it up again"
+        )
+    log.warning(
+        "%s is %.2f rad from the stowed posture (over %s): the payload is out of its bays; "
+        "folding the fingers to the stowed posture before the rail and the stage are homed",
+        joint,
+        off,
+        STOWED_TOL_RAD,
+    )
+    stowed = posture_values(hardware.design, "stowed")
+
+    def send(v: np.ndarray) -> None:
+        hardware.goal_ticks({sp.id: sp.to_ticks(x) for sp, x in zip(fingers, v)})
+
+    def read() -> np.ndarray:
+        return np.array([sp.from_ticks(t) for sp, t in zip(fingers, hardware.present_ticks())])
+
+    goal = np.array([stowed[sp.joint] for sp in fingers])
+    ramp(send, read, q, goal, fingers, hardware.design, "as the fingers fold before homing")
+    there = tolerance(hardware)[:16]
+    t0 = time.monotonic()
+    while np.any(np.abs(read() - goal) > there):  # at the stowed posture before homing
+        if time.monotonic() - t0 > timeout:
+            raise DynamixelError(f"the fingers did not reach the stowed posture within {timeout} s")
+        send(goal)
+        time.sleep(0.01)
+    return True

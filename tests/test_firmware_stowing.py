@@ -1,0 +1,215 @@
+"""The payload back into its bays: a bring-up that finds the fingers out folds them before
+the stage goes up (or refuses a fold that would collide), ``recover()`` does not home the
+stage with the fingers out, and ``stow`` reverses the deployment; on the emulated bus,
+watched from the emulator's side (the physical positions, not the driver's reading)."""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+
+import numpy as np
+import pytest
+from conftest import band_ticks
+
+from firmware_interface.control_table import TICKS_PER_REV
+from firmware_interface.deployment import move_to_home, stow
+from firmware_interface.driver import DynamixelDriver
+from firmware_interface.emulator import EmulatorProcess
+from firmware_interface.errors import HardwareFault, HomingError
+from firmware_interface.options import EMULATOR_LATENCY_MS as LAT  # [ms] reply allowance
+from firmware_interface.servo_map import load_servo_map, posture_command, posture_ticks
+from payload.design.params import load_design
+from payload.schema import CONTROL_DT, PayloadCommand
+
+TENTH_RAD_TICKS = 0.1 * TICKS_PER_REV / (2 * np.pi)  # a tenth of a radian of a shaft [ticks]
+
+
+class Watch:
+    """The emulator's physical positions, sampled on a thread every few ms while the
+    driver works (the emulator answers its control channel beside the bus)."""
+
+    def __init__(self, emu: EmulatorProcess) -> None:
+        self.emu, self.rows, self._stop = emu, [], threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            self.rows.append({i: s["pos"] for i, s in self.emu.servos().items()})
+            time.sleep(0.003)
+
+    def __enter__(self) -> Watch:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join()
+
+    def of(self, dxl_id: int) -> np.ndarray:
+        return np.array([r[dxl_id] for r in self.rows], dtype=float)
+
+
+def stamps_span(sent: list) -> float:
+    return sent[-1][0] - sent[0][0]
+
+
+def test_a_payload_powered_up_deployed_folds_its_fingers_before_the_stage_goes_up(caplog):
+    """A session ended with the payload deployed (a fault, the power lost, ``--stay-
+    deployed``): at the next bring-up homing drove the rail and the stage to their
+    stowed stops at once, the stage up into the bays with the fingers unfolded at home.
+    Now the fingers fold first, their goals on the straight line to the stowed posture,
+    paced at 50 Hz no faster than half the servos' no-load speed, while the stage and the
+    rail hold; then the rail goes to its stop, and only then the stage goes up."""
+    design, smap = load_design(), load_servo_map()
+    stowed, home = posture_ticks(smap, design, "stowed"), posture_ticks(smap, design, "home")
+    fingers, rail, stage = smap.servos[:16], smap.servos[16], smap.servos[17]
+    sent = []
+    with EmulatorProcess(positions=home) as emu:
+        with DynamixelDriver(emu.port, smap, latency_timer_ms=LAT) as drv:
+            goal_ticks = drv.goal_ticks
+            drv.goal_ticks = lambda t: (sent.append((time.monotonic(), dict(t))), goal_ticks(t))
+            with caplog.at_level(logging.WARNING, logger="firmware_interface"), Watch(emu) as w:
+                drv.bring_up()
+    said = [r.getMessage() for r in caplog.records]
+    assert len(said) == 1 and "out of its bays" in said[0], said
+    st, ra = w.of(stage.id), w.of(rail.id)
+    assert st[0] == home[stage.id] and ra[0] == home[rail.id]  # powered up deployed
+    up = int(np.argmax(np.abs(st - st[0]) > band_ticks("stage")))  # the stage starts up
+    retract = int(np.argmax(np.abs(ra - ra[0]) > band_ticks("rail")))  # the rail starts in
+    assert 0 < retract < up, (retract, up)
+    for s in fingers:  # folded before the rail moved, and held stowed from then on
+        off = np.abs(w.of(s.id)[retract:] - stowed[s.id])
+        assert off.max() <= TENTH_RAD_TICKS, (s.joint, off.max())
+    assert np.all(np.abs(ra[up:] - rail.zero) <= band_ticks("rail") + 1)  # the rail stowed
+    assert st[-1] == stage.zero and ra[-1] == rail.zero  # both at their stops, homed
+    # the fold's goals: the 16 fingers only, on the line from where they were to stowed
+    assert all(set(t) == {s.id for s in fingers} for _, t in sent)
+    g = np.array([[t[s.id] for s in fingers] for _, t in sent], dtype=float)
+    a = np.array([home[s.id] for s in fingers], dtype=float)
+    b = np.array([stowed[s.id] for s in fingers], dtype=float)
+    along = (g - a) @ (b - a) / ((b - a) @ (b - a))
+    assert np.all(np.abs(g - (a + np.outer(along, b - a))) <= 1.0)  # (each goal rounded to a tick)
+    assert np.all(np.diff(along) >= 0) and np.array_equal(g[-1], b)
+    omega = design.servo.no_load_speed * TICKS_PER_REV / (2 * np.pi)  # [ticks/s of a shaft]
+    steps = np.abs(np.diff(np.vstack([a, g]), axis=0))
+    assert steps.max() <= 0.5 * omega * CONTROL_DT + 1.0, steps.max()  # (+ a tick's rounding)
+    n = int(np.count_nonzero(along < 1.0))  # the ramp's goals before the last: at 50 Hz
+    assert stamps_span(sent[:n]) >= 0.9 * (n - 1) * CONTROL_DT, n
+
+
+def _fold_contacts(design_dict, fingers: dict[str, float], rail: float, upto: float) -> set:
+    """MuJoCo's link pairs in contact (its collision model of the convex pieces) along the
+    fingers' straight fold from ``fingers`` toward stowed, stage down, the rail at
+    ``rail``, sampled every 0.25 degree up to the share ``upto`` of the way (0: the start
+    only)."""
+    from test_envelope import VEHICLE, geometry_of
+
+    from payload.design.tree import ALL_JOINTS
+    from payload.envelope.collisions import CollisionModel
+
+    geom = geometry_of(design_dict)
+    stowed, down = geom.tree.posture("stowed"), geom.tree.posture("home")["stage"]
+    start = {**stowed, **fingers, "rail": rail}
+    n = int(np.ceil(max(abs(start[j] - stowed[j]) for j in fingers) / np.radians(0.25)))
+    rows = [
+        [down if j == "stage" else rail if j == "rail" else (1 - s) * start[j] + s * stowed[j]
+         for j in ALL_JOINTS]
+        for s in np.linspace(0.0, upto, max(1, round(n * upto)) + 1)
+    ]  # fmt: skip
+    counts = CollisionModel(geom, VEHICLE).check(np.array(rows)).pair_counts()
+    return {frozenset(p) for p in counts}
+
+
+def test_a_fold_that_would_collide_is_refused_and_nothing_moves(design_dict):
+    """Fingers found at power-up abducted -0.3 rad and straight, the stage down: their
+    straight fold to the stowed posture puts B's and C's distal links through each other
+    (MuJoCo's collision model finds the pair on the way, not at the start). The
+    bring-up refuses, naming the pair and the rail's position, before anything moves:
+    the stage stays down, the fingers where they were."""
+    from payload.design.params import FINGER_JOINTS, FINGERS
+
+    design, smap = load_design(), load_servo_map()
+    splayed = dict(zip(FINGER_JOINTS, (0.0, -0.3, 0.0, 0.0)))
+    q = {f"{f}_{j}": v for f in FINGERS for j, v in splayed.items()}
+    ticks = posture_ticks(smap, design, "home")
+    ticks.update({s.id: s.to_ticks(q[s.joint]) for s in smap.servos[:16]})
+    pair = frozenset(("B_distal", "C_distal"))
+    assert pair not in _fold_contacts(design_dict, q, design.home.rail, 0.0)
+    assert pair in _fold_contacts(design_dict, q, design.home.rail, 1.0)
+    with EmulatorProcess(positions=ticks) as emu:
+        with DynamixelDriver(emu.port, smap, latency_timer_ms=LAT) as drv:
+            with pytest.raises(HomingError, match=r"B_distal and C_distal collide .*rail at 25\.0"):
+                drv.bring_up()
+            after = {i: s["pos"] for i, s in emu.servos().items()}
+    moved = {smap.joint_of(i): after[i] - ticks[i] for i in ticks if abs(after[i] - ticks[i]) > 1}
+    assert moved == {}, moved
+
+
+def test_recover_does_not_home_the_stage_with_the_fingers_out():
+    """The bus's power lost and back mid-session, the payload deployed: ``recover()``
+    homed the rail and the stage again at once, the stage driven up into the bays with
+    the fingers out. It refuses, naming the stage and the finger farthest out, and the
+    payload stays stopped, the stage where it was."""
+    design, smap = load_design(), load_servo_map()
+    stage = smap.servos[17]
+    with (
+        EmulatorProcess() as emu,
+        DynamixelDriver(emu.port, smap, latency_timer_ms=LAT, health_every=5) as drv,
+    ):
+        drv.bring_up()
+        at_home = move_to_home(drv, cleared=True)
+        down = emu.servos()[stage.id]["pos"]
+        emu.power_cycle()
+        hold = PayloadCommand(at_home.q, at_home.deploy, 0.0)
+        for _ in range(drv.health_every):
+            drv.send(hold)
+            drv.read()
+        assert isinstance(drv.fault, HardwareFault)
+        with pytest.raises(HomingError, match=r"rail and stage lost their count with \w+ "):
+            drv.recover()
+        time.sleep(0.2)
+        assert abs(emu.servos()[stage.id]["pos"] - down) <= 1
+        assert drv.fault is not None  # still stopped
+    assert abs(down - stage.to_ticks(design.home.stage)) <= band_ticks("stage")
+
+
+def test_stow_reverses_the_deployment(caplog):
+    """From home (a session's end, the fingers out), ``stow`` brings the payload back as
+    it deployed, backwards: the fingers and the rail on the straight line from home to
+    the stowed posture with the stage held down, and only then the stage up; it rests
+    stowed, the rail and the stage at their stops, and the guard is back."""
+    design, smap = load_design(), load_servo_map()
+    stowed = posture_ticks(smap, design, "stowed")
+    rail, stage = smap.servos[16], smap.servos[17]
+    sent = []
+    with EmulatorProcess() as emu:
+        with DynamixelDriver(emu.port, smap, latency_timer_ms=LAT) as drv:
+            drv.bring_up()
+            home = move_to_home(drv, cleared=True)
+            guard, send = drv.guard, drv.send
+            drv.send = lambda c: (sent.append(c), send(c))[1]
+            with caplog.at_level(logging.WARNING), Watch(emu) as w:
+                end = stow(drv)
+            restored = drv.guard
+    assert not caplog.records, caplog.text
+    assert restored is guard
+    st = w.of(stage.id)
+    up = int(np.argmax(np.abs(st - st[0]) > band_ticks("stage")))
+    assert up > 0
+    for s in smap.servos[:17]:  # the fingers and the rail stowed before the stage moved
+        off = np.abs(w.of(s.id)[up:] - stowed[s.id])
+        assert off.max() <= band_ticks(s.joint) + 2, (s.joint, off.max())
+    assert st[-1] == stage.zero and w.of(rail.id)[-1] <= rail.zero + band_ticks("rail")
+    at_home = posture_command(design, "home").q
+    last = max(k for k, c in enumerate(sent) if np.array_equal(c.q, at_home))
+    fold = np.array([c.q for c in sent[last + 1 :] if c.deploy == design.home.stage])
+    b = np.array([*design.stowed.finger] * 4 + [design.stowed.rail])
+    d = fold[0] - b  # the fold's goals: one straight line, walked once, ending stowed
+    along = (fold - b) @ d / (d @ d)
+    assert np.linalg.norm(d) > 1.0 and np.allclose(fold, b + np.outer(along, d), atol=1e-9)
+    assert np.all(np.diff(along) <= 0) and along[-1] == 0.0
+    assert np.all(np.abs(fold[0] - home.q) <= np.abs(b - home.q) / 20)  # it starts at home
+    tol = np.array([s.units_per_tick * band_ticks(s.joint) for s in smap.servos])
+    assert np.all(np.abs(np.append(end.q, end.deploy) - np.append(b, 0.0)) <= tol)
