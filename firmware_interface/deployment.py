@@ -151,6 +151,25 @@ def stow(hardware: Any, timeout: float = 6.0) -> PayloadState:
                       "stowed stage")  # fmt: skip
 
 
+def stow_after_session(hardware: Any, say: Callable[[str], None] | None = None) -> bool:
+    """Stow the payload after a session that ran to its end (``hw run``, ``teleop serve
+    --driver hardware``): :func:`stow`, ``say`` told first. A payload stopped by a hardware
+    fault stays where it stopped, and a stow that stops (a servo held back, a design whose
+    deployment is no longer clear, the bus lost) is a warning, not a failed run: the
+    session is recorded whole. Whether it is stowed."""
+    if getattr(hardware, "fault", None) is not None:
+        log.warning("the payload is not stowed: stopped by %s", hardware.fault)
+        return False
+    if say is not None:
+        say("stowing the payload (the deployment's reverse)")
+    try:
+        stow(hardware)
+    except DynamixelError as exc:
+        log.warning("the payload is not stowed: %s", exc)
+        return False
+    return True
+
+
 def deployment_cleared(design: Any) -> None:
     """Refuse a design whose deployment ``payload report envelope`` does not clear."""
     from payload.envelope.stowed_fit import design_failures

@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from firmware_interface.deployment import deployment_cleared, move_to_home, stow
+from firmware_interface.deployment import deployment_cleared, move_to_home, stow_after_session
 from payload.design.params import load_design
 from payload.errors import RunAborted
 from payload.folders import HANDS, RECORDING
@@ -423,7 +423,7 @@ def run_hardware_trial(
         if bar is not None:
             bar.stop()
         sim.close()
-    stowed = _stow_after_session(hardware, say) if stow_after else None
+    stowed = stow_after_session(hardware, say) if stow_after else None
     try:
         result = finish_trial(out, rec_path)
     except KeyboardInterrupt as exc:  # while scoring: the session itself was whole
@@ -436,22 +436,6 @@ def run_hardware_trial(
                   loop_overruns=overruns, stowed=stowed)  # fmt: skip
     write_metrics(out, result)
     return result
-
-
-def _stow_after_session(hardware: Any, say: Callable[[str], None] | None) -> bool:
-    """Stow the payload after a session that ran to its end; a stow that stops (a servo
-    held back, a design whose deployment is no longer clear) is a warning, not a failed
-    run: the session is recorded whole. Whether it is stowed."""
-    from firmware_interface.errors import DynamixelError
-
-    if say is not None:
-        say("stowing the payload (the deployment's reverse)")
-    try:
-        stow(hardware)
-    except DynamixelError as exc:
-        log.warning("the payload is not stowed: %s", exc)
-        return False
-    return True
 
 
 class HardwareRunAborted(RunAborted):

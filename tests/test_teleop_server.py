@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import replace_once
+from conftest import band_ticks, replace_once
 from websockets.exceptions import InvalidStatus
 from websockets.sync.client import connect
 
@@ -1005,6 +1005,7 @@ def test_serve_says_install_the_ca_again_only_when_one_was_there_before(
         (["--servos", "mine.toml"], "--servos mine.toml: only with --driver hardware"),
         (["--latency-ms", "1"], "--latency-ms 1.0: only with --driver hardware"),
         (["--emulator"], "--emulator: only with --driver hardware"),
+        (["--stay-deployed"], "--stay-deployed: only with --driver hardware"),
         (["--driver", "hardware", "--emulator", "--device", "/dev/x"], "give one bus"),
         (["--driver", "hardware", "--emulator", "--latency-ms", "nan"], "got nan"),
         (["--cert", "c.pem"], "--cert and --key go together"),
@@ -1305,6 +1306,45 @@ def test_serve_stopped_while_loading_leaves_the_servos_torque_off(tmp_path, monk
         f"bringing up the servos on {emu.port} and homing the rail and the stage ...",
         "moving to the design's home posture ...",
     ], said
+
+
+@pytest.mark.parametrize("stay", [False, True])
+def test_serve_stows_the_payload_when_it_stops_unless_told_to_stay(
+    tmp_path, monkeypatch, capsys, stay
+):
+    """`teleop serve --driver hardware` closed the payload deployed, its torque off, and the
+    next bring-up drove the stage up into the bays with the fingers out. A server that
+    stops (here: its session ends at once, as when ``--seconds`` elapse) stows it first,
+    saying so: the servos rest stowed, the stage at its stop. ``--stay-deployed`` leaves
+    it out, the stage down."""
+    from firmware_interface.emulator import EmulatorProcess
+    from firmware_interface.servo_map import load_servo_map, posture_ticks
+    from payload.cli import _parse
+    from payload.design.params import load_design
+    from payload.teleop.cli import serve
+
+    monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path))
+
+    class Ended:  # the session the server runs (the simulator's, here ending at once)
+        scene = None
+
+        def run(self) -> None:
+            return None
+
+        def close(self) -> None:
+            return None
+
+    argv = ["teleop", "serve", "--driver", "hardware", "--port", "0"]
+    with EmulatorProcess() as emu:
+        extra = ["--stay-deployed"] if stay else []
+        assert serve(_parse([*argv, "--device", emu.port, *extra]), lambda *a, **k: Ended()) == 0
+        where = {i: s["pos"] for i, s in emu.servos().items()}
+    smap = load_servo_map()
+    target = posture_ticks(smap, load_design(), "home" if stay else "stowed")
+    off = {s.joint: abs(where[s.id] - target[s.id]) for s in smap.servos}
+    assert all(off[j] <= band_ticks(j) for j in off), off
+    said = capsys.readouterr().err
+    assert ("stowing the payload (the deployment's reverse) ..." in said) is not stay, said
 
 
 def test_serve_drives_the_hardware_with_its_servo_map_and_latency(tmp_path, monkeypatch, capsys):

@@ -182,7 +182,8 @@ def _check_bus_options(args: argparse.Namespace) -> None:
 
     if args.driver != "hardware":
         given = {"--device": args.device, "--emulator": args.emulator or None,
-                 "--servos": args.servos, "--latency-ms": args.latency_ms}  # fmt: skip
+                 "--servos": args.servos, "--latency-ms": args.latency_ms,
+                 "--stay-deployed": args.stay_deployed or None}  # fmt: skip
         for option, value in given.items():
             if value is not None:
                 shown = option if value is True else f"{option} {value}"
@@ -355,17 +356,22 @@ def serve(
             timer = threading.Timer(args.seconds, hub.stop.set)
             timer.daemon = True
             timer.start()
-        interrupted = False
+        interrupted, ended = False, False
         try:
             session.run()
+            ended = True
         except KeyboardInterrupt:
-            interrupted = True
+            interrupted = ended = True
             hub.stop.set()
             print("\nstopping", file=sys.stderr)
         finally:
             with _press_twice_to_abandon(record):
                 stop_status.set()
                 server.stop()
+                if ended and payload is not None and not args.stay_deployed:
+                    from firmware_interface.deployment import stow_after_session
+
+                    stow_after_session(payload, say_stage)  # before the session closes it
                 result = session.close()
         if interrupted:  # the session closed (and scored): the command's normal end
             print("stopped", file=sys.stderr)
@@ -450,6 +456,12 @@ def serve_arguments(p: argparse.ArgumentParser) -> None:
     )
     add_servo_map(p, "servo map TOML (--driver hardware; default: the packaged map)")
     add_latency(p, "; --driver hardware", emulator="with --emulator")
+    p.add_argument(
+        "--stay-deployed",
+        action="store_true",
+        help="with --driver hardware: leave the payload deployed when the server stops "
+        "(default: stowed, the deployment's reverse)",
+    )
     p.add_argument(
         "--host",
         default="127.0.0.1",
