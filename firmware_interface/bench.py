@@ -21,8 +21,7 @@ def cycle_wire_time(n_servos: int, baud: int, return_delay_s: float = 0.0) -> fl
     """Wire time of one cycle [s]: the goal sync write, the fast sync read and its reply."""
     write = len(P.build(P.BROADCAST_ID, P.SYNC_WRITE, bytes(4 + 5 * n_servos), stuffing=False))
     read = len(P.build(P.BROADCAST_ID, P.FAST_SYNC_READ, bytes(4 + n_servos), stuffing=False))
-    head = len(P.HEADER) + 4  # then the ID, LEN (2) and the instruction
-    reply = head + (FEEDBACK_LEN + P.FAST_RECORD_OVERHEAD) * n_servos
+    reply = P.PACKET_HEAD + (FEEDBACK_LEN + P.FAST_RECORD_OVERHEAD) * n_servos
     return P.wire_time(write + read + reply, baud) + return_delay_s
 
 

@@ -48,6 +48,9 @@ ERR_DATA_LIMIT = 6
 ERR_ACCESS = 7
 ALERT = 0x80
 
+PACKET_HEAD = len(HEADER) + 4
+"""A packet's bytes before its parameters (a status packet's: before its error byte): the
+header, the ID, ``LEN`` (2) and the instruction."""
 STATUS_TAIL = 3
 """A status packet's bytes besides its instruction and parameters that ``LEN`` counts:
 its error byte and CRC (a fast sync read's reply: the first record's error byte and the
@@ -237,6 +240,7 @@ __all__ = [
     "BROADCAST_ID",
     "FAST_RECORD_OVERHEAD",
     "FAST_SYNC_READ",
+    "PACKET_HEAD",
     "PING",
     "READ",
     "REBOOT",

@@ -122,6 +122,12 @@ def _search_up(start: Path) -> Project | None:
     return None
 
 
+def enclosing_project(folder: str | Path) -> Project | None:
+    """The project ``folder`` lies in (``folder`` itself or its nearest parent holding
+    ``cad/design.toml``), or None."""
+    return _search_up(Path(folder).resolve())
+
+
 def find_project(explicit: str | Path | None = None, *, cwd: str | Path | None = None) -> Project:
     """The project a command works on.
 

@@ -837,3 +837,19 @@ def test_a_new_project_says_what_to_do_next(tmp_path, capsys) -> None:
     assert Path(match.group(1)).is_file() and Path(match.group(1)).name == "design.toml"
     assert Path(match.group(2)).resolve() == root.resolve()
     assert Path(match.group(1)).resolve().is_relative_to(root.resolve())
+
+
+def test_a_project_made_inside_another_says_so(tmp_path, capsys) -> None:
+    """``payload new`` inside a project made a nested project without a word: commands
+    run in it then worked on the new one, those run beside it on the outer one. It says
+    so, naming the outer project; made outside any project, it says nothing of it."""
+    outer = tmp_path / "outer"
+    assert main(["new", str(outer)]) == 0
+    assert "note:" not in capsys.readouterr().out
+    inner = outer / "analyses" / "variant"
+    assert main(["new", str(inner)]) == 0
+    notes = [line for line in capsys.readouterr().out.splitlines() if line.startswith("note:")]
+    assert notes == [
+        f"note: inside the project at {outer.resolve()}: commands run in {inner.resolve()} "
+        f"work on the new project, those run outside it on {outer.resolve()}"
+    ]

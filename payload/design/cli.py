@@ -207,9 +207,17 @@ def _cmd_new(args: argparse.Namespace) -> int:
             f"--project {args.project}: `payload new` makes the project at DIR "
             f"({args.dir}); to start from another project's design use --from PROJECT"
         )
+    from payload.project import enclosing_project
+
     t0 = time.perf_counter()
+    outer = enclosing_project(Path(args.dir).resolve().parent)
     project, n = new_project(args.dir, args.source)
     print(f"project: {project.root}")
+    if outer is not None:  # made on purpose or not, the nesting decides what commands see
+        print(
+            f"note: inside the project at {outer.root}: commands run in {project.root} work "
+            f"on the new project, those run outside it on {outer.root}"
+        )
     print(
         f"new design project from {args.source or 'the packaged default design'}: "
         f"{project.relative(project.design_path)} and {n} generated files in "
