@@ -155,8 +155,8 @@ def stow_after_session(hardware: Any, say: Callable[[str], None] | None = None) 
     """Stow the payload after a session that ran to its end (``hw run``, ``teleop serve
     --driver hardware``): :func:`stow`, ``say`` told first. A payload stopped by a hardware
     fault stays where it stopped, and a stow that stops (a servo held back, a design whose
-    deployment is no longer clear, the bus lost) is a warning, not a failed run: the
-    session is recorded whole. Whether it is stowed."""
+    deployment is no longer clear, the bus lost, a Ctrl-C: the payload holds where it is)
+    is a warning, not a failed run: the session is recorded whole. Whether it is stowed."""
     if getattr(hardware, "fault", None) is not None:
         log.warning("the payload is not stowed: stopped by %s", hardware.fault)
         return False
@@ -166,6 +166,17 @@ def stow_after_session(hardware: Any, say: Callable[[str], None] | None = None) 
         stow(hardware)
     except DynamixelError as exc:
         log.warning("the payload is not stowed: %s", exc)
+        return False
+    except KeyboardInterrupt:  # the motion stops; the session is still scored
+        try:
+            now = hardware.read()
+            hardware.send(PayloadCommand(now.q, now.deploy, 0.0))
+        except DynamixelError:
+            pass
+        log.warning(
+            "stowing interrupted (Ctrl-C): the payload holds where it is (the next bring-up "
+            "folds the fingers before homing)"
+        )
         return False
     return True
 
@@ -293,16 +304,18 @@ def unstowed(design: Any, specs: Sequence[ServoSpec], ticks: np.ndarray) -> tupl
     return farthest_from(specs, q, np.array([stowed[sp.joint] for sp in specs]))
 
 
-def rail_positions(spec: ServoSpec, ticks: int) -> list[float]:
-    """Where an unhomed rail may be [m]: its reading ``ticks`` plus any whole number of
-    turns (a power-up loses the count, the Homing Offset of the last homing is kept),
-    within its travel; with none there (a Homing Offset not the last homing's), its whole
-    travel at the envelope check's 0.5 mm."""
+def linear_positions(spec: ServoSpec, ticks: int) -> list[float]:
+    """Where an unhomed rail or stage may be [m]: its reading ``ticks`` plus any whole
+    number of turns (a power-up loses the count and keeps the Homing Offset, the last
+    completed homing's), within its travel. A travel over a turn (the packaged rail's and
+    stage's) always holds one; a shorter one may hold none, and then the whole travel is
+    taken, at the envelope check's 0.5 mm. A servo whose Homing Offset is not from a
+    homing (a new one) reads off by part of a turn: no reading can tell."""
     from payload.envelope.deployment import UNFOLD_STEP_M
 
     pad = 2 * spec.units_per_tick  # a reading a tick or two past a stop
     out = []
-    for k in range(-4, 5):
+    for k in range(-8, 9):
         v = spec.from_ticks(ticks + k * TICKS_PER_REV)
         if spec.lower - pad <= v <= spec.upper + pad:
             out.append(min(max(v, spec.lower), spec.upper))
@@ -359,27 +372,40 @@ def fold_before_homing(hardware: Any, timeout: float = 6.0) -> bool:
     into the bays): fingers more than :data:`STOWED_TOL_RAD` from stowed are folded to the
     stowed posture first, straight in joint space, goals stepped as :func:`ramp` steps
     them, the rail and the stage held where they are. The fingers' positions are known
-    (absolute within their one turn), the stage's and the rail's are not: the stage is
-    taken as down (the payload's own motions unfold the fingers only with the stage down
-    and fold them before raising it) and the fold is checked (:func:`fold_failures`) with
-    the rail at each position its reading allows.
+    (absolute within their one turn), the stage's and the rail's only up to whole turns
+    (:func:`linear_positions`): the stage must read as down at one of its positions (the
+    payload's own motions unfold the fingers only with the stage down and fold them
+    before raising it), and the fold is checked (:func:`fold_failures`) with the rail at
+    each of its positions.
 
     Returns:
         Whether the fingers were folded (the rail is then to be homed before the stage).
 
     Raises:
-        HomingError: The fold would collide: nothing has moved.
+        HomingError: The stage does not read as down, or the fold would collide:
+            nothing has moved.
         DynamixelError: A finger fell behind its goal (the fingers hold where they are),
             or the fingers were not within their dead bands of stowed in ``timeout`` [s].
     """
     specs = hardware.map.servos
-    fingers, rail = specs[:16], specs[16]
+    fingers, rail, stage = specs[:16], specs[16], specs[17]
     ticks = hardware.present_ticks()
     joint, off = unstowed(hardware.design, fingers, ticks[:16])
     if off <= STOWED_TOL_RAD:
         return False
+    down = posture_values(hardware.design, "home")["stage"]
+    stages = linear_positions(stage, int(ticks[17]))
+    near = STOWED_TOL_RAD * float(shaft_per_rad([stage])[0])  # [m]
+    if not any(abs(v - down) <= near for v in stages):
+        where = " or ".join(f"{v * 1e3 + 0.0:.1f}" for v in sorted(stages))  # (no -0.0)
+        raise HomingError(
+            f"the payload powered up with {joint} {off:.2f} rad from stowed and the stage not "
+            f"down (at {where} mm, not {down * 1e3:.1f}): the fingers may be in the bays; "
+            "nothing moved: fold the fingers and lower the stage by hand with the servos "
+            "unpowered, then bring it up again"
+        )
     q = np.array([sp.from_ticks(t) for sp, t in zip(fingers, ticks[:16])])
-    rails = rail_positions(rail, int(ticks[16]))
+    rails = linear_positions(rail, int(ticks[16]))
     failures = fold_failures(hardware.design, {sp.joint: v for sp, v in zip(fingers, q)}, rails)
     if failures:
         raise HomingError(

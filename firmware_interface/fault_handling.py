@@ -203,6 +203,7 @@ class FaultHandling:
             self._configure(self.map.by_id(i))
         relost = [sp for sp in self._linear if sp.id in ids]
         if relost:  # a reboot lost the multi-turn count: home again, the fingers stowed
+            self.homed.difference_update(sp.id for sp in relost)  # unknown until then
             self._homing_refused(relost)
             for spec in relost:  # the rail before the stage
                 self.home([spec])

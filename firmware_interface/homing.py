@@ -5,12 +5,12 @@ Position reads the shaft angle within one turn plus the Homing Offset, the multi
 count is lost (ROBOTIS e-Manual, XC330: Homing Offset (20), Present Position (132),
 Extended Position Control Mode). The rail and the stage span several turns (the rail
 ticks 1024 to 6456, the stage 1024 to -7125), so their absolute position is unknown
-until homed. The method the e-Manual supports: with the torque off, Homing Offset is
-cleared; the servo is driven under a low current cap (Goal Current, current-based
-position mode) toward the stowed end (joint value 0) by more than the whole travel plus
-a turn; when it stalls against the hard stop its torque goes off, Homing Offset is set
-so that Present Position reads the stop's tick (the map's ``zero``) and the full current
-cap restored.
+until homed. The method the e-Manual supports: the servo is driven under a low current
+cap (Goal Current, current-based position mode) toward the stowed end (joint value 0) by
+more than the whole travel plus a turn; when it stalls against the hard stop its torque
+goes off, Homing Offset is set so that Present Position reads the stop's tick (the map's
+``zero``) and the full current cap restored. The offset is written only then: a homing
+cut short leaves the last one, which a power-up's reading needs.
 """
 
 from __future__ import annotations
@@ -56,11 +56,13 @@ def home_linear(
     cap_ma: int,
     timeout: float = 6.0,
 ) -> dict[int, int]:
-    """Home the rail and/or the stage together; returns ID -> Homing Offset written.
+    """Home the rail and/or the stage (the driver homes them one at a time, the rail
+    first); returns ID -> Homing Offset written.
 
     Each servo is driven to its stowed stop until it stalls, driven off the stall by
     :data:`FREE_CHECK_FRACTION` of its travel (the free-travel check) and back to the
-    stop; Homing Offset is then set from where it stalls.
+    stop; Homing Offset is then set from where it stalls (until then it keeps the last
+    homing's).
 
     Args:
         write: Writes one register (``write(id, name, value)``), status checked.
@@ -79,10 +81,13 @@ def home_linear(
     """
     i_home = max(1, round(HOMING_CURRENT_FRACTION * cap_ma))
     index = {spec.id: ids.index(spec.id) for spec in specs}
+    # the Homing Offset stays the last homing's until this one has found the stop: one cut
+    # short (a blocked drive, a timeout, the power lost) leaves the offset a power-up's
+    # one-turn reading is read with (firmware_interface.deployment.rail_positions)
+    kept = {s.id: to_signed(read_reg(s.id, ADDR["homing_offset"], 4), 4) for s in specs}
     for spec in specs:
         i = spec.id
         write(i, "torque_enable", 0)
-        write(i, "homing_offset", 0)
         write(i, "goal_current", i_home)
     stalled = _to_the_stops(write, read_reg, feedback, index, specs, span_ticks, i_home,
                             timeout)  # fmt: skip
@@ -91,8 +96,8 @@ def home_linear(
     offsets = {}
     for spec in specs:
         i = spec.id
-        raw = to_signed(read_reg(i, ADDR["present_position"], 4), 4)
-        offsets[i] = spec.zero - raw
+        raw = to_signed(read_reg(i, ADDR["present_position"], 4), 4)  # the count + kept
+        offsets[i] = kept[i] + spec.zero - raw
         write(i, "torque_enable", 0)
         write(i, "homing_offset", offsets[i])
         write(i, "goal_current", cap_ma)

@@ -12,6 +12,7 @@ frames as they came beside it (``hands.jsonl``, as a live session's).
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 from collections.abc import Callable
@@ -22,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from firmware_interface.deployment import deployment_cleared, move_to_home, stow_after_session
+from firmware_interface.errors import DynamixelError
 from payload.design.params import load_design
 from payload.errors import RunAborted
 from payload.folders import HANDS, RECORDING
@@ -413,7 +415,8 @@ def run_hardware_trial(
                 trip.setdefault("session_t", round(arming.steps * CONTROL_DT, 3))  # at the end
             watchdog = watchdog_report(hardware.watchdog_trips[trips0:])
             if stow_after:  # the 50 Hz traffic has ended: the stowing follows at its pace
-                hardware.set_watchdog(False)
+                with contextlib.suppress(DynamixelError):  # a bus lost: the stow says so
+                    hardware.set_watchdog(False)
             recorder.flush()  # every step written: the scene's figures count them all
             # "max_time": the session-length cap ended it, as a trial's closing metadata says
             recorder.write_meta({"steps": len(commands), "warnings": driver.warnings(),
@@ -423,6 +426,8 @@ def run_hardware_trial(
         if bar is not None:
             bar.stop()
         sim.close()
+    if emulator is not None:  # the simulated cargo's grasp ended with the session
+        emulator.load({sp.id: 0.0 for sp in hardware.map.servos[:16]})
     stowed = stow_after_session(hardware, say) if stow_after else None
     try:
         result = finish_trial(out, rec_path)

@@ -109,7 +109,12 @@ def test_a_load_the_current_cap_cannot_hold_stalls_the_finger():
 
 # -- the driver against the emulator ----------------------------------------------------------
 def test_power_cycle_mid_travel_homes_within_one_tick_before_any_deploy(smap):
+    """The stage powered up mid-travel, the fingers stowed (with them out and the stage
+    not down the bring-up refuses: tests/test_firmware_stowing.py)."""
+    from firmware_interface.servo_map import posture_command
+
     stage, rail = smap.servos[17], smap.servos[16]
+    curled = posture_command(None, "stowed").q
     mid = stage.to_ticks(0.04)  # -3322: not within one turn of the map's zero
     with EmulatorProcess(positions={18: mid, 17: rail.to_ticks(0.03)}) as emu:
         assert reg(emu.table(18), "present_position") == mid % TICKS_PER_REV
@@ -121,7 +126,7 @@ def test_power_cycle_mid_travel_homes_within_one_tick_before_any_deploy(smap):
             true = emu.servos()[18]["pos"]
             assert true == stage.zero  # homed at the stowed stop
             assert abs(_stage_reading(drv, smap) - true) <= 1.0
-            _go(drv, PayloadCommand(np.zeros(17), 0.04, 0.0))
+            _go(drv, PayloadCommand(curled, 0.04, 0.0))
             before = emu.servos()[18]["pos"]
             assert abs(before - mid) <= _band_ticks(drv.design)  # at rest in its dead band
             assert abs(_stage_reading(drv, smap) - before) <= 1.0
@@ -136,7 +141,7 @@ def test_power_cycle_mid_travel_homes_within_one_tick_before_any_deploy(smap):
                 drv.send(PayloadCommand(np.zeros(17), 0.075, 0.0))
             drv.bring_up()
             assert abs(_stage_reading(drv, smap) - emu.servos()[18]["pos"]) <= 1.0
-            _go(drv, PayloadCommand(np.zeros(17), 0.06, 0.0))
+            _go(drv, PayloadCommand(curled, 0.06, 0.0))
             true = emu.servos()[18]["pos"]
             assert abs(true - stage.to_ticks(0.06)) <= _band_ticks(drv.design)
             assert abs(_stage_reading(drv, smap) - true) <= 1.0

@@ -112,38 +112,6 @@ def test_the_payload_deploys_as_the_envelope_check_does(monkeypatch, caplog):
     assert stamps[-1] - stamps[0] >= 0.9 * (n - 1) * CONTROL_DT, (stamps[-1] - stamps[0], n)
 
 
-def test_a_finger_off_its_stowed_angle_at_power_up_is_folded_then_deployed_as_checked(caplog):
-    """A finger 0.3 rad off its stowed angle at power-up (a payload run before, homed
-    again, came up so: its stage had been driven up with the fingers out) used to be sent
-    home at once, every servo at its own pace. The bring-up folds it first (a warning
-    names the joint), so the deployment that follows starts stowed and is the checked one,
-    with no warning, and rests at home."""
-    import logging
-
-    from firmware_interface.servo_map import posture_ticks
-
-    design, smap = load_design(), load_servo_map()
-    ticks = posture_ticks(smap, design, "stowed")
-    a_pip = next(s for s in smap.servos if s.joint == "A_pip")
-    ticks[a_pip.id] += round(0.3 / a_pip.units_per_tick)
-    with EmulatorProcess(positions=ticks) as emu:
-        with DynamixelDriver(emu.port, smap, latency_timer_ms=LAT) as drv:
-            with caplog.at_level(logging.WARNING, logger="firmware_interface"):
-                drv.bring_up()
-                folded = emu.servos()[a_pip.id]["pos"]
-                said = [r.getMessage() for r in caplog.records]
-                caplog.clear()
-                end = move_to_home(drv, cleared=True)
-            after = [r.getMessage() for r in caplog.records]
-    assert len(said) == 1 and said[0].startswith("A_pip is 0.30 rad from the stowed"), said
-    stowed_tick = posture_ticks(smap, design, "stowed")[a_pip.id]
-    assert abs(folded - stowed_tick) <= 0.1 / a_pip.units_per_tick  # within a tenth of a rad
-    assert after == []  # the checked deployment: from stowed
-    tol = np.array([s.units_per_tick * band_ticks(s.joint) for s in smap.servos])
-    home = [*design.home.finger] * 4 + [design.home.rail, design.home.stage]
-    assert np.all(np.abs(np.append(end.q, end.deploy) - home) <= tol)
-
-
 def test_a_design_whose_deployment_is_not_clear_stays_stowed(tmp_path):
     """A home posture whose straight unfolding puts two fingers through each other (the
     envelope check fails it) is refused before any servo moves: the stage stays up."""

@@ -122,25 +122,38 @@ def _fold_contacts(design_dict, fingers: dict[str, float], rail: float, upto: fl
     return {frozenset(p) for p in counts}
 
 
-def test_a_fold_that_would_collide_is_refused_and_nothing_moves(design_dict):
-    """Fingers found at power-up abducted -0.3 rad and straight, the stage down: their
-    straight fold to the stowed posture puts B's and C's distal links through each other
-    (MuJoCo's collision model finds the pair on the way, not at the start). The
-    bring-up refuses, naming the pair and the rail's position, before anything moves:
-    the stage stays down, the fingers where they were."""
+@pytest.mark.parametrize("case", ["fold collides", "stage partway", "in the bays"])
+def test_a_fold_that_is_not_checked_clear_is_refused_and_nothing_moves(design_dict, case):
+    """Refused at power-up before anything moves, the fingers where they were and the
+    stage where it was: fingers abducted -0.3 rad and straight with the stage down, whose
+    straight fold puts B's and C's distal links through each other (MuJoCo's collision
+    model finds the pair on the way, not at the start); fingers out with the stage partway
+    (30 mm of 75: a reading that puts it at 30.0 or 67.7 mm, neither down); a finger 0.3
+    rad off stowed with the stage up (0.0 or 37.7 mm: in the bays, where the fold is not
+    checked; it was folded, or sent home at once, before)."""
     from payload.design.params import FINGER_JOINTS, FINGERS
 
     design, smap = load_design(), load_servo_map()
-    splayed = dict(zip(FINGER_JOINTS, (0.0, -0.3, 0.0, 0.0)))
-    q = {f"{f}_{j}": v for f in FINGERS for j, v in splayed.items()}
-    ticks = posture_ticks(smap, design, "home")
-    ticks.update({s.id: s.to_ticks(q[s.joint]) for s in smap.servos[:16]})
-    pair = frozenset(("B_distal", "C_distal"))
-    assert pair not in _fold_contacts(design_dict, q, design.home.rail, 0.0)
-    assert pair in _fold_contacts(design_dict, q, design.home.rail, 1.0)
+    stage = smap.servos[17]
+    ticks = posture_ticks(smap, design, "stowed" if case == "in the bays" else "home")
+    if case == "fold collides":
+        splayed = dict(zip(FINGER_JOINTS, (0.0, -0.3, 0.0, 0.0)))
+        q = {f"{f}_{j}": v for f in FINGERS for j, v in splayed.items()}
+        ticks.update({s.id: s.to_ticks(q[s.joint]) for s in smap.servos[:16]})
+        pair = frozenset(("B_distal", "C_distal"))
+        assert pair not in _fold_contacts(design_dict, q, design.home.rail, 0.0)
+        assert pair in _fold_contacts(design_dict, q, design.home.rail, 1.0)
+        says = r"B_distal and C_distal collide .*rail at 25\.0"
+    elif case == "stage partway":
+        ticks[stage.id] = stage.to_ticks(0.03)
+        says = r"and the stage not down \(at 30\.0 or 67\.7 mm, not 75\.0\)"
+    else:
+        a_pip = next(s for s in smap.servos if s.joint == "A_pip")
+        ticks[a_pip.id] += round(0.3 / a_pip.units_per_tick)
+        says = r"with A_pip 0\.30 rad from stowed and the stage not down \(at 0\.0 or 37\.7 mm"
     with EmulatorProcess(positions=ticks) as emu:
         with DynamixelDriver(emu.port, smap, latency_timer_ms=LAT) as drv:
-            with pytest.raises(HomingError, match=r"B_distal and C_distal collide .*rail at 25\.0"):
+            with pytest.raises(HomingError, match=says):
                 drv.bring_up()
             after = {i: s["pos"] for i, s in emu.servos().items()}
     moved = {smap.joint_of(i): after[i] - ticks[i] for i in ticks if abs(after[i] - ticks[i]) > 1}
@@ -188,6 +201,7 @@ def test_stow_reverses_the_deployment(caplog):
         with DynamixelDriver(emu.port, smap, latency_timer_ms=LAT) as drv:
             drv.bring_up()
             home = move_to_home(drv, cleared=True)
+            drv.set_watchdog(False)  # as a session's end disarms it (`hw run`)
             guard, send = drv.guard, drv.send
             drv.send = lambda c: (sent.append(c), send(c))[1]
             with caplog.at_level(logging.WARNING), Watch(emu) as w:
@@ -213,3 +227,92 @@ def test_stow_reverses_the_deployment(caplog):
     assert np.all(np.abs(fold[0] - home.q) <= np.abs(b - home.q) / 20)  # it starts at home
     tol = np.array([s.units_per_tick * band_ticks(s.joint) for s in smap.servos])
     assert np.all(np.abs(np.append(end.q, end.deploy) - np.append(b, 0.0)) <= tol)
+
+
+def test_an_unhomed_rail_or_stage_is_placed_at_its_reading_plus_whole_turns():
+    """A power-up keeps the last homing's Homing Offset and loses the turn count: the
+    reading is the true position's tick plus or minus whole turns. Over the packaged rail's
+    and stage's travels (each over a turn) and any turn count, the true position is among
+    the positions the reading names, each a whole number of turns from the reading and
+    inside the travel."""
+    from firmware_interface.deployment import linear_positions
+
+    smap = load_servo_map()
+    for spec in smap.servos[16:]:
+        for v in np.linspace(spec.lower, spec.upper, 41):
+            true = spec.to_ticks(v)
+            for k in range(-3, 4):
+                places = linear_positions(spec, true + k * TICKS_PER_REV)
+                assert 1 <= len(places) <= 3, (spec.joint, v, k, places)
+                assert min(abs(p - v) for p in places) <= spec.units_per_tick, (spec.joint, v)
+                for p in places:
+                    turns = (spec.to_ticks(p) - true) / TICKS_PER_REV
+                    assert abs(turns - round(turns)) * TICKS_PER_REV <= 2.0  # (a stop's clamp)
+                    assert spec.lower <= p <= spec.upper
+
+
+def test_a_homing_cut_short_keeps_the_last_homings_offset():
+    """Homing cleared the Homing Offset (EEPROM, kept over a power cycle) before it drove
+    to the stop: one cut short (here a blocked rail, refused by the free-travel check)
+    left 0, and the next power-up's reading, which places the rail before it is homed
+    (the fold's check), was off by the last offset. It is written only once the stop is
+    found, so the last homing's stays."""
+    from conftest import reg
+
+    smap = load_servo_map()
+    rail = smap.servos[16]
+    out = rail.to_ticks(0.03)  # past a turn from its stop: the homing's offset is a turn
+    with EmulatorProcess(positions={rail.id: out}) as emu:
+        with DynamixelDriver(emu.port, smap, latency_timer_ms=LAT) as drv:
+            drv.bring_up()
+            kept = reg(emu.table(rail.id), "homing_offset")
+            assert kept == TICKS_PER_REV  # the count started a turn below the stop
+            emu.fault(f"block:{rail.id}")
+            with pytest.raises(HomingError, match="did not move off where it stalled"):
+                drv.home([rail])
+            assert reg(emu.table(rail.id), "homing_offset") == kept
+
+
+@pytest.mark.parametrize("how", ["fault", "ctrl-c"])
+def test_a_stow_after_a_fault_or_a_ctrl_c_leaves_the_payload_where_it_is(caplog, how):
+    """A payload stopped by a hardware fault is not stowed (it stays where the fault left
+    it); a Ctrl-C mid-stow stops the motion, the payload holding where it is, and is a
+    warning, not an exception (the session is still scored)."""
+    from firmware_interface.deployment import stow_after_session
+
+    smap = load_servo_map()
+    stage = smap.servos[17]
+    with EmulatorProcess() as emu:
+        with DynamixelDriver(emu.port, smap, latency_timer_ms=LAT) as drv:
+            drv.bring_up()
+            move_to_home(drv, cleared=True)
+            if how == "fault":
+                emu.fault("error:3:overload")
+                drv.read()
+                assert drv.fault is not None
+            else:
+                sends, send = [0], drv.send
+
+                def interrupted(c):
+                    sends[0] += 1
+                    if sends[0] == 30:  # the fingers on their way
+                        raise KeyboardInterrupt
+                    send(c)
+
+                drv.send = interrupted
+            before = {i: s["pos"] for i, s in emu.servos().items()}
+            with caplog.at_level(logging.WARNING, logger="firmware_interface"):
+                assert stow_after_session(drv) is False
+            time.sleep(0.3)
+            held = {i: s["pos"] for i, s in emu.servos().items()}
+            time.sleep(0.3)
+            after = {i: s["pos"] for i, s in emu.servos().items()}
+    said = [r.getMessage() for r in caplog.records if r.name == "firmware_interface.deployment"]
+    assert len(said) == 1
+    if how == "fault":
+        assert said[0].startswith("the payload is not stowed: stopped by")
+        assert all(abs(after[i] - before[i]) <= 1.0 for i in after)  # nothing moved
+    else:
+        assert said[0].startswith("stowing interrupted (Ctrl-C)")
+        assert all(abs(after[i] - held[i]) <= band_ticks(smap.joint_of(i)) for i in after)
+        assert abs(after[stage.id] - before[stage.id]) <= band_ticks("stage")  # still down

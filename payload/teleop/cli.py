@@ -365,13 +365,14 @@ def serve(
             hub.stop.set()
             print("\nstopping", file=sys.stderr)
         finally:
-            with _press_twice_to_abandon(record):
-                stop_status.set()
-                server.stop()
-                if ended and payload is not None and not args.stay_deployed:
-                    from firmware_interface.deployment import stow_after_session
+            stop_status.set()
+            if ended and payload is not None and not args.stay_deployed:
+                from firmware_interface.deployment import stow_after_session
 
-                    stow_after_session(payload, say_stage)  # before the session closes it
+                # before the session closes the driver; a Ctrl-C stops the motion only
+                stow_after_session(payload, say_stage)
+            with _press_twice_to_abandon(record):
+                server.stop()
                 result = session.close()
         if interrupted:  # the session closed (and scored): the command's normal end
             print("stopped", file=sys.stderr)
