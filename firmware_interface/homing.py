@@ -83,7 +83,7 @@ def home_linear(
     index = {spec.id: ids.index(spec.id) for spec in specs}
     # the Homing Offset stays the last homing's until this one has found the stop: one cut
     # short (a blocked drive, a timeout, the power lost) leaves the offset a power-up's
-    # one-turn reading is read with (firmware_interface.deployment.rail_positions)
+    # one-turn reading is read with (firmware_interface.deployment.linear_positions)
     kept = {s.id: to_signed(read_reg(s.id, ADDR["homing_offset"], 4), 4) for s in specs}
     for spec in specs:
         i = spec.id
