@@ -26,6 +26,7 @@ from firmware_interface.control_table import RAD_PER_TICK, TICKS_PER_REV
 from firmware_interface.errors import DynamixelError, HomingError
 from firmware_interface.servo_map import ServoSpec, posture_command
 from payload.design.params import posture_values
+from payload.errors import Terminated
 from payload.schema import CONTROL_DT, PayloadCommand, PayloadState
 
 log = logging.getLogger(__name__)
@@ -121,9 +122,9 @@ def stow(hardware: Any, timeout: float = 6.0) -> PayloadState:
     goals are checked), then straight in joint space to the stowed posture and the stage
     up with the fingers and the rail held, the path ``payload report envelope`` checked
     (the guard set aside: its capsule margins flag the stowed posture), goals stepped at
-    50 Hz at :data:`DEPLOY_SPEED` (:data:`DEPLOY_LAG_RAD` stops it). With the stage not
-    down, it is lowered first, the fingers held. The Bus Watchdog is disarmed: the motion
-    is paced by the host, not a session's 50 Hz.
+    50 Hz at :data:`DEPLOY_SPEED` (:data:`DEPLOY_LAG_RAD` stops it). First every servo
+    comes to rest where it is (the stage down, lowered if it is not, the fingers held).
+    The Bus Watchdog is disarmed: the motion is paced by the host, not a session's 50 Hz.
 
     Returns:
         The measured state stowed, every joint at rest.
@@ -137,9 +138,8 @@ def stow(hardware: Any, timeout: float = 6.0) -> PayloadState:
     hardware.set_watchdog(False)  # the check takes longer than the Bus Watchdog's time
     deployment_cleared(hardware.design)
     tol = tolerance(hardware)
-    start = hardware.read()
-    if abs(start.deploy - home.deploy) > tol[-1]:  # partway: down first, the fingers held
-        start = settle(hardware, PayloadCommand(start.q, home.deploy, 0.0), tol, timeout, "stage")
+    start = hardware.read()  # at rest where it is first (the stage down, if partway)
+    start = settle(hardware, PayloadCommand(start.q, home.deploy, 0.0), tol, timeout, "posture")
     _ramp_payload(hardware, start.q, home.q, home.deploy, "on its way home to stow")
     settle(hardware, home, tol, timeout, "home posture")
     with _unguarded(hardware):
@@ -167,12 +167,14 @@ def stow_after_session(hardware: Any, say: Callable[[str], None] | None = None) 
     except DynamixelError as exc:
         log.warning("the payload is not stowed: %s", exc)
         return False
-    except KeyboardInterrupt:  # the motion stops; the session is still scored
+    except KeyboardInterrupt as exc:  # the motion stops; after a Ctrl-C, scored still
         try:
             now = hardware.read()
             hardware.send(PayloadCommand(now.q, now.deploy, 0.0))
         except DynamixelError:
             pass
+        if isinstance(exc, Terminated):  # a SIGTERM or SIGHUP: the command stops
+            raise
         log.warning(
             "stowing interrupted (Ctrl-C): the payload holds where it is (the next bring-up "
             "folds the fingers before homing)"
@@ -277,8 +279,13 @@ def tolerance(hardware: Any) -> np.ndarray:
 def settle(
     hardware: Any, cmd: PayloadCommand, tol: np.ndarray, timeout: float, what: str
 ) -> PayloadState:
-    """Send ``cmd`` until every servo has stopped within ``tol`` of it; the state there."""
-    target = np.append(cmd.q, cmd.deploy)
+    """Send ``cmd`` until every servo has stopped within ``tol`` of it (of its joint's
+    limit, for a value past one); the state there."""
+    specs = hardware.map.servos
+    lower, upper = np.array([s.lower for s in specs]), np.array([s.upper for s in specs])
+    # where the servos are sent: inside the joints' limits, as the driver's send clips a
+    # command (a posture read past a limit, a servo overshooting it, is sent to the limit)
+    target = np.clip(np.append(cmd.q, cmd.deploy), lower, upper)
     t0 = time.monotonic()
     last = None
     while time.monotonic() - t0 < timeout:
@@ -291,7 +298,11 @@ def settle(
             return state
         last = now
         time.sleep(0.01)
-    raise DynamixelError(f"the payload did not reach its {what} within {timeout} s")
+    off = np.abs(now - target) / tol  # [its tolerance]
+    i = int(np.argmax(off))
+    why = (f"{specs[i].joint} {off[i]:.1f} times its tolerance away" if off[i] > 1.0 else
+           f"{specs[int(np.argmax(np.abs(state.dq)))].joint} still moving")  # fmt: skip
+    raise DynamixelError(f"the payload did not reach its {what} within {timeout} s ({why})")
 
 
 # -- a payload that powers up out of its bays ---------------------------------------------
@@ -304,16 +315,17 @@ def unstowed(design: Any, specs: Sequence[ServoSpec], ticks: np.ndarray) -> tupl
     return farthest_from(specs, q, np.array([stowed[sp.joint] for sp in specs]))
 
 
-def linear_positions(spec: ServoSpec, ticks: int) -> list[float]:
+def linear_positions(spec: ServoSpec, ticks: int, pad: float) -> list[float]:
     """Where an unhomed rail or stage may be [m]: its reading ``ticks`` plus any whole
     number of turns (a power-up loses the count and keeps the Homing Offset, the last
-    completed homing's), within its travel. A travel over a turn (the packaged rail's and
-    stage's) always holds one; a shorter one may hold none, and then the whole travel is
-    taken, at the envelope check's 0.5 mm. A servo whose Homing Offset is not from a
-    homing (a new one) reads off by part of a turn: no reading can tell."""
+    completed homing's), within its travel or up to ``pad`` [m] past an end (a servo at
+    rest within its dead band of a goal at the end: taken as at the end). A travel over a
+    turn (the packaged rail's and stage's) always holds one; a shorter one may hold none,
+    and then the whole travel is taken, at the envelope check's 0.5 mm. A servo whose
+    Homing Offset is not from a homing (a new one) reads off by part of a turn: no
+    reading can tell."""
     from payload.envelope.deployment import UNFOLD_STEP_M
 
-    pad = 2 * spec.units_per_tick  # a reading a tick or two past a stop
     out = []
     for k in range(-8, 9):
         v = spec.from_ticks(ticks + k * TICKS_PER_REV)
@@ -394,7 +406,8 @@ def fold_before_homing(hardware: Any, timeout: float = 6.0) -> bool:
     if off <= STOWED_TOL_RAD:
         return False
     down = posture_values(hardware.design, "home")["stage"]
-    stages = linear_positions(stage, int(ticks[17]))
+    there = tolerance(hardware)  # each servo's dead band and a tick
+    stages = linear_positions(stage, int(ticks[17]), float(there[17]))
     near = STOWED_TOL_RAD * float(shaft_per_rad([stage])[0])  # [m]
     if not any(abs(v - down) <= near for v in stages):
         where = " or ".join(f"{v * 1e3 + 0.0:.1f}" for v in sorted(stages))  # (no -0.0)
@@ -405,7 +418,7 @@ def fold_before_homing(hardware: Any, timeout: float = 6.0) -> bool:
             "unpowered, then bring it up again"
         )
     q = np.array([sp.from_ticks(t) for sp, t in zip(fingers, ticks[:16])])
-    rails = linear_positions(rail, int(ticks[16]))
+    rails = linear_positions(rail, int(ticks[16]), float(there[16]))
     failures = fold_failures(hardware.design, {sp.joint: v for sp, v in zip(fingers, q)}, rails)
     if failures:
         raise HomingError(
@@ -430,9 +443,8 @@ def fold_before_homing(hardware: Any, timeout: float = 6.0) -> bool:
 
     goal = np.array([stowed[sp.joint] for sp in fingers])
     ramp(send, read, q, goal, fingers, hardware.design, "as the fingers fold before homing")
-    there = tolerance(hardware)[:16]
     t0 = time.monotonic()
-    while np.any(np.abs(read() - goal) > there):  # at the stowed posture before homing
+    while np.any(np.abs(read() - goal) > there[:16]):  # at the stowed posture before homing
         if time.monotonic() - t0 > timeout:
             raise DynamixelError(f"the fingers did not reach the stowed posture within {timeout} s")
         send(goal)

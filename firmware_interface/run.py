@@ -427,7 +427,10 @@ def run_hardware_trial(
             bar.stop()
         sim.close()
     if emulator is not None:  # the simulated cargo's grasp ended with the session
-        emulator.load({sp.id: 0.0 for sp in hardware.map.servos[:16]})
+        try:
+            emulator.load({sp.id: 0.0 for sp in hardware.map.servos[:16]})
+        except Exception as exc:  # the emulator gone: the stow says what follows
+            log.warning("could not release the emulated grasp's load: %s", exc)
     stowed = stow_after_session(hardware, say) if stow_after else None
     try:
         result = finish_trial(out, rec_path)

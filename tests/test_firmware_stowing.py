@@ -182,6 +182,7 @@ def test_recover_does_not_home_the_stage_with_the_fingers_out():
         assert isinstance(drv.fault, HardwareFault)
         with pytest.raises(HomingError, match=r"rail and stage lost their count with \w+ "):
             drv.recover()
+        assert not drv.homed & {smap.servos[16].id, stage.id}  # unknown until homed again
         time.sleep(0.2)
         assert abs(emu.servos()[stage.id]["pos"] - down) <= 1
         assert drv.fault is not None  # still stopped
@@ -232,23 +233,33 @@ def test_stow_reverses_the_deployment(caplog):
 def test_an_unhomed_rail_or_stage_is_placed_at_its_reading_plus_whole_turns():
     """A power-up keeps the last homing's Homing Offset and loses the turn count: the
     reading is the true position's tick plus or minus whole turns. Over the packaged rail's
-    and stage's travels (each over a turn) and any turn count, the true position is among
-    the positions the reading names, each a whole number of turns from the reading and
-    inside the travel."""
+    and stage's travels (each over a turn, under two) and any turn count, the true position
+    is among the one or two positions the reading names, each a whole number of turns from
+    the reading and inside the travel; a servo resting inside its dead band past an end
+    (the stage a few ticks past deployed) is placed at that end, and the stage up does not
+    read as down (two turns are 43 ticks more than its travel)."""
     from firmware_interface.deployment import linear_positions
 
     smap = load_servo_map()
     for spec in smap.servos[16:]:
+        band = band_ticks(spec.joint)
+        pad = band * spec.units_per_tick
         for v in np.linspace(spec.lower, spec.upper, 41):
             true = spec.to_ticks(v)
             for k in range(-3, 4):
-                places = linear_positions(spec, true + k * TICKS_PER_REV)
-                assert 1 <= len(places) <= 3, (spec.joint, v, k, places)
+                places = linear_positions(spec, true + k * TICKS_PER_REV, pad)
+                assert 1 <= len(places) <= 2, (spec.joint, v, k, places)
                 assert min(abs(p - v) for p in places) <= spec.units_per_tick, (spec.joint, v)
                 for p in places:
                     turns = (spec.to_ticks(p) - true) / TICKS_PER_REV
-                    assert abs(turns - round(turns)) * TICKS_PER_REV <= 2.0  # (a stop's clamp)
+                    assert abs(turns - round(turns)) * TICKS_PER_REV <= band  # (an end's clamp)
                     assert spec.lower <= p <= spec.upper
+        for end in (spec.lower, spec.upper):  # a few ticks past an end: at the end
+            past = spec.to_ticks(end) + spec.direction * (1 if end else -1) * int(band - 1)
+            assert end in linear_positions(spec, past, pad), (spec.joint, end)
+    stage = smap.servos[17]
+    up = linear_positions(stage, stage.to_ticks(0.0), band_ticks("stage") * stage.units_per_tick)
+    assert stage.upper not in up and 0.0 in up
 
 
 def test_a_homing_cut_short_keeps_the_last_homings_offset():
@@ -316,3 +327,25 @@ def test_a_stow_after_a_fault_or_a_ctrl_c_leaves_the_payload_where_it_is(caplog,
         assert said[0].startswith("stowing interrupted (Ctrl-C)")
         assert all(abs(after[i] - held[i]) <= band_ticks(smap.joint_of(i)) for i in after)
         assert abs(after[stage.id] - before[stage.id]) <= band_ticks("stage")  # still down
+
+
+def test_a_posture_read_past_a_joints_limit_is_settled_at_the_limit():
+    """A session can end with a servo past its joint's limit (overshooting a goal at the
+    limit: C_mcp_flex read 0.045 rad past it under load); the stow held the posture it
+    read, which the driver's send clips to the limit, and waited 6 s for the servo to
+    reach the unclipped value ("did not reach its posture"). Settling waits for the limit."""
+    from firmware_interface.deployment import settle, tolerance
+
+    smap = load_servo_map()
+    k = next(i for i, s in enumerate(smap.servos) if s.joint == "C_mcp_flex")
+    lower = smap.servos[k].lower
+    with EmulatorProcess() as emu:
+        with DynamixelDriver(emu.port, smap, latency_timer_ms=LAT) as drv:
+            drv.bring_up()
+            home = move_to_home(drv, cleared=True)
+            q = home.q.copy()
+            q[k] = lower - 0.045
+            state = settle(drv, PayloadCommand(q, home.deploy, 0.0), tolerance(drv), 6.0, "x")
+            true = emu.servos()[smap.servos[k].id]["pos"]
+    assert abs(state.q[k] - lower) <= band_ticks("C_mcp_flex") * smap.servos[k].units_per_tick
+    assert abs(true - smap.servos[k].to_ticks(lower)) <= band_ticks("C_mcp_flex")

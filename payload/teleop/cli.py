@@ -366,14 +366,16 @@ def serve(
             print("\nstopping", file=sys.stderr)
         finally:
             stop_status.set()
-            if ended and payload is not None and not args.stay_deployed:
-                from firmware_interface.deployment import stow_after_session
+            try:
+                if ended and payload is not None and not args.stay_deployed:
+                    from firmware_interface.deployment import stow_after_session
 
-                # before the session closes the driver; a Ctrl-C stops the motion only
-                stow_after_session(payload, say_stage)
-            with _press_twice_to_abandon(record):
-                server.stop()
-                result = session.close()
+                    # before the session closes the driver; a Ctrl-C stops the motion only
+                    stow_after_session(payload, say_stage)
+            finally:
+                with _press_twice_to_abandon(record):
+                    server.stop()
+                    result = session.close()
         if interrupted:  # the session closed (and scored): the command's normal end
             print("stopped", file=sys.stderr)
         print("\n" + status_line(hub.status(), hub.latency()))
