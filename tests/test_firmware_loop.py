@@ -538,18 +538,15 @@ def _hw_run_of(session: Path, out: Path, *extra: str, where: dict | None = None)
     return out
 
 
-@pytest.mark.parametrize("stay", [False, True])
-def test_hw_run_ends_with_the_payload_stowed_unless_told_to_stay_deployed(session, tmp_path, stay):
-    """``hw run`` left the payload deployed (the stage down, the fingers where the
-    session left them) with its torque off; the next bring-up then drove the stage up
-    into the bays with the fingers out. It now stows it (``"stowed": true``): the servos
-    rest at the stowed posture, the stage and the rail at their stowed stops. With
-    ``--stay-deployed`` the payload stays out (``"stowed": null``), the stage down."""
+def _stowed_at_the_end(out: Path, where: dict, stay: bool = False) -> None:
+    """``hw run`` left the payload deployed (the stage down, the fingers where the session
+    left them) with its torque off; the next bring-up then drove the stage up into the
+    bays with the fingers out. It now stows it (``"stowed": true``): the servos rest at the
+    stowed posture, the stage and the rail at their stowed stops (``where``: the emulator's
+    physical positions after the run). With ``--stay-deployed`` (``stay``) the payload
+    stays out (``"stowed": null``), the stage down."""
     from firmware_interface.servo_map import posture_ticks
 
-    where: dict[int, float] = {}
-    out = _hw_run_of(session, tmp_path / "trial", *(["--stay-deployed"] if stay else []),
-                     where=where)  # fmt: skip
     metrics = json.loads((out / "metrics.json").read_text())
     smap, design = load_servo_map(), load_design()
     target = posture_ticks(smap, design, "home" if stay else "stowed")
@@ -562,6 +559,14 @@ def test_hw_run_ends_with_the_payload_stowed_unless_told_to_stay_deployed(sessio
         off = {s.joint: abs(where[s.id] - target[s.id]) for s in smap.servos}
         assert all(off[j] <= band_ticks(j) for j in off), off
         assert where[stage.id] == stage.zero  # at the stop
+
+
+def test_hw_run_told_to_stay_deployed_leaves_the_payload_out(session, tmp_path):
+    """``--stay-deployed``: the payload is not stowed (the stowing itself: the watchdog
+    test below, whose run ends stowed)."""
+    where: dict[int, float] = {}
+    out = _hw_run_of(session, tmp_path / "trial", "--stay-deployed", where=where)
+    _stowed_at_the_end(out, where, stay=True)
 
 
 def test_a_bus_watchdog_trip_is_recorded_at_its_session_time(session, tmp_path, monkeypatch):
@@ -632,7 +637,9 @@ def test_the_first_teleoperation_step_does_not_trip_the_bus_watchdog(
         return arm(self, on)
 
     monkeypatch.setattr(DynamixelDriver, "set_watchdog", set_watchdog)
-    out = _hw_run_of(session, tmp_path / "trial")
+    where: dict[int, float] = {}
+    out = _hw_run_of(session, tmp_path / "trial", where=where)
+    _stowed_at_the_end(out, where)  # and the payload stowed after it
     assert not first[0]  # the session reached teleoperation
     # the watchdog guarded it to its end, and was disarmed once the 50 Hz traffic ended
     # (by the run, then by the stowing itself)
