@@ -570,10 +570,11 @@ def test_hw_run_told_to_stay_deployed_leaves_the_payload_out(session, tmp_path):
 
 
 def test_a_bus_watchdog_trip_is_recorded_at_its_session_time(session, tmp_path, monkeypatch):
-    """A host stall of 0.25 s mid-session (a pipeline step, well after the watchdog was
+    """A host stall of 0.6 s mid-session (a pipeline step, well after the watchdog was
     armed) trips the servos' 100 ms Bus Watchdog once; ``metrics.json`` says when, in the
     session's time (the stalled step, whose command re-armed them) and on the wall clock
-    (inside the stall), not only on the host's monotonic clock."""
+    (inside the stall), not only on the host's monotonic clock. (0.6 s: a loaded 2-core
+    machine stalls a session by over 0.25 s of its own now and then.)"""
     import time
 
     from payload.teleop.pipeline import TeleopPipeline
@@ -581,12 +582,13 @@ def test_a_bus_watchdog_trip_is_recorded_at_its_session_time(session, tmp_path, 
 
     calls, step = [0], TeleopPipeline.step
     stalled = ARM_AFTER_STEPS + 15  # the pipeline's step 15 steps after the watchdog is armed
-    assert 0.25 > load_servo_map().watchdog_ms / 1e3  # a stall that trips it
+    stall = 0.6  # [s]
+    assert stall > load_servo_map().watchdog_ms / 1e3  # a stall that trips it
 
     def stall_once(self, *args, **kwargs):
         calls[0] += 1
         if calls[0] == stalled:
-            time.sleep(0.25)
+            time.sleep(stall)
         return step(self, *args, **kwargs)
 
     monkeypatch.setattr(TeleopPipeline, "step", stall_once)
@@ -594,14 +596,14 @@ def test_a_bus_watchdog_trip_is_recorded_at_its_session_time(session, tmp_path, 
     assert calls[0] > stalled
     trips = json.loads((out / "metrics.json").read_text())["watchdog"]
     # the stall's trip (a loaded machine may add short ones of its own: not this test's)
-    stalls = [e for e in trips.get("events", []) if e["silence_s"] >= 0.25]
+    stalls = [e for e in trips.get("events", []) if e["silence_s"] >= stall]
     assert len(stalls) == 1, trips
     trip = stalls[0]
     rec = read_recording(out / "log.mcap")
     wall = np.asarray(rec.wall_time)
     first = next(i for i, p in enumerate(rec.phase) if str(p) != "calibration")
-    k = first + stalled - 1  # the stalled step: its record came 0.25 s late
-    assert wall[k] - wall[k - 1] >= 0.25
+    k = first + stalled - 1  # the stalled step: its record came the stall late
+    assert wall[k] - wall[k - 1] >= stall
     assert trip["session_t"] == round(float(rec.t[k]), 3)
     assert wall[k - 1] <= trip["unix_s"] <= wall[k] + 1e-3
 
