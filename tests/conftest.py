@@ -98,6 +98,7 @@ SERIAL_STREAMS: dict[str, str] = {
     "test_firmware_homing.py": "bus",
     "test_firmware_identify.py": "bus",
     "test_firmware_loop.py": "bus",
+    "test_firmware_stowing.py": "web",  # an emulator's tests, with the shorter stream
     "test_review.py": "web",
     "test_review_browser.py": "web",
     "test_teleop_browser.py": "web",
@@ -105,7 +106,9 @@ SERIAL_STREAMS: dict[str, str] = {
 }
 """Tests that run against the wall clock, by stream: ``bus``, the servo-bus emulator
 integrating in real time on a pty; ``web``, headless Chromium and the live servers with
-latency and watch deadlines (some of them with an emulator behind the server). ``make
+latency and watch deadlines (some of them with an emulator behind the server; the
+stowing's emulator tests run in it too, to keep the two streams' times near each other:
+about 6 and 5 minutes on the 2-core machine). ``make
 test`` runs them after the parallel part, in two streams side by side (``-n 2 --dist
 loadgroup``, scheduled by :func:`pytest_xdist_make_scheduler`: one worker a stream, each
 running its tests one at a time), so no CPU-heavy test of the first part takes their
