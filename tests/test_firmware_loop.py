@@ -175,7 +175,7 @@ def test_hw_run_records_the_trial_like_the_simulator(session, tmp_path, capsys):
 
     out = tmp_path / "trial"
     with EmulatorProcess() as emu:
-        argv = ["hw", "run", "--device", emu.port, "--replay", str(session),
+        argv = ["hw", "run", "--stay-deployed", "--device", emu.port, "--replay", str(session),
                 "--out", str(out), "--no-pace", "--latency-ms", str(LAT), "--json"]  # fmt: skip
         assert main(argv) == 0
         assert not any(s["torque"] for s in emu.servos().values())  # left safe
@@ -256,7 +256,7 @@ def test_hw_run_shows_its_progress_on_a_terminal(session, tmp_path, monkeypatch)
     monkeypatch.setattr(sys.stderr, "isatty", lambda: True, raising=False)
     out = tmp_path / "trial"
     with EmulatorProcess() as emu:
-        argv = ["hw", "run", "--device", emu.port, "--replay", str(session),
+        argv = ["hw", "run", "--stay-deployed", "--device", emu.port, "--replay", str(session),
                 "--out", str(out), "--no-pace", "--latency-ms", str(LAT)]  # fmt: skip
         assert main(argv) == 0
     _, frames = read_hand_recording(session)
@@ -322,7 +322,7 @@ def test_hw_run_of_a_synthetic_trial_says_what_it_ran_on_and_places_the_ctb_as_i
     run_trial(3, "synthetic", out_dir=src, max_time=2.0)  # a short synthetic trial
     source = json.loads((src / "metrics.json").read_text())
     out = tmp_path / "hw"
-    argv = ["hw", "run", "--emulator", "--replay", str(src / "log.mcap"),
+    argv = ["hw", "run", "--stay-deployed", "--emulator", "--replay", str(src / "log.mcap"),
             "--out", str(out), "--no-pace", "--latency-ms", str(LAT)]  # fmt: skip
     assert main(argv) == 0
     printed = capsys.readouterr().out
@@ -375,8 +375,8 @@ def test_hw_run_says_when_its_paced_loop_fell_behind_50_hz(tmp_path, capsys):
     src = tmp_path / "src"
     run_trial(3, "synthetic", out_dir=src, max_time=1.0)
     with EmulatorProcess(faults=["latency:25ms"]) as emu:
-        argv = ["hw", "run", "--device", emu.port, "--replay", str(src / "log.mcap"),
-                "--max-time", "0.5", "--latency-ms", "30"]  # fmt: skip
+        argv = ["hw", "run", "--stay-deployed", "--device", emu.port, "--replay",
+                str(src / "log.mcap"), "--max-time", "0.5", "--latency-ms", "30"]  # fmt: skip
         assert main([*argv, "--out", str(tmp_path / "paced")]) == 0
         printed = capsys.readouterr().out
         assert main([*argv, "--no-pace", "--out", str(tmp_path / "unpaced")]) == 0
@@ -404,7 +404,7 @@ def test_a_ctrl_c_while_hw_run_scores_names_the_recording_kept(
     monkeypatch.setattr(payload.trials.scoring, "finish_trial", scoring)
     out = tmp_path / "run"
     with EmulatorProcess() as emu:
-        argv = ["hw", "run", "--device", emu.port, "--replay", str(session),
+        argv = ["hw", "run", "--stay-deployed", "--device", emu.port, "--replay", str(session),
                 "--out", str(out), "--no-pace", "--latency-ms", str(LAT)]  # fmt: skip
         assert main(argv) == 130
     last = capsys.readouterr().err.strip().splitlines()[-1]
@@ -430,7 +430,7 @@ def test_hw_run_without_a_terminal_says_how_far_the_session_is(
     _, frames = read_hand_recording(session)
     length = float(frames[-1].stamp) - float(frames[0].stamp)
     with EmulatorProcess() as emu:
-        argv = ["hw", "run", "--device", emu.port, "--replay", str(session),
+        argv = ["hw", "run", "--stay-deployed", "--device", emu.port, "--replay", str(session),
                 "--out", str(tmp_path / "run"), "--no-pace", "--latency-ms", str(LAT)]  # fmt: skip
         assert main(argv) == 0
     said = [x for x in capsys.readouterr().err.splitlines() if x.startswith("hw run: ")]
@@ -473,7 +473,7 @@ def test_a_hardware_fault_mid_run_aborts_it_exit_1_naming_the_recording_kept(
 
         fault = threading.Thread(target=inject, daemon=True)
         fault.start()
-        argv = ["hw", "run", "--device", emu.port, "--replay", str(session),
+        argv = ["hw", "run", "--stay-deployed", "--device", emu.port, "--replay", str(session),
                 "--out", str(out), "--latency-ms", str(LAT)]  # fmt: skip
         code = main(argv)
         fault.join()
@@ -697,7 +697,7 @@ def test_hw_run_says_the_torque_off_is_unconfirmed_when_close_could_not_read_it_
 
         monkeypatch.setattr(firmware_interface.run, "run_hardware_trial", then_silent)
         out = tmp_path / "run"
-        argv = ["hw", "run", "--device", emu.port, "--replay", str(session),
+        argv = ["hw", "run", "--stay-deployed", "--device", emu.port, "--replay", str(session),
                 "--out", str(out), "--no-pace", "--max-time", "0.5",
                 "--latency-ms", str(LAT)]  # fmt: skip
         assert main(argv) == 0
@@ -730,7 +730,7 @@ def test_ctrl_c_at_a_terminal_stops_hw_run_emulator_with_the_torque_turned_off(t
     run_trial(3, "synthetic", out_dir=src, max_time=4.0)
     out = tmp_path / "hw"
     code = "import sys; from payload.cli import main; sys.exit(main(sys.argv[1:]))"
-    argv = [sys.executable, "-c", code, "hw", "run", "--emulator", "--replay",
+    argv = [sys.executable, "-c", code, "hw", "run", "--stay-deployed", "--emulator", "--replay",
             str(src / "log.mcap"), "--out", str(out), "--latency-ms", str(LAT)]  # fmt: skip
     proc = subprocess.Popen(
         argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True
