@@ -26,11 +26,15 @@ from firmware_interface.control_table import RAD_PER_TICK, TICKS_PER_REV
 from firmware_interface.errors import DynamixelError, HomingError
 from firmware_interface.servo_map import ServoSpec, posture_command
 from payload.design.params import posture_values
+from payload.design.tree import ALL_JOINTS
 from payload.errors import Terminated
 from payload.schema import CONTROL_DT, PayloadCommand, PayloadState
 
 log = logging.getLogger(__name__)
 
+RAIL, STAGE = ALL_JOINTS.index("rail"), ALL_JOINTS.index("stage")
+"""The rail's and the stage's places in a servo map (``ALL_JOINTS`` order): the finger
+servos are the ones before the rail."""
 DEPLOY_SPEED = 0.5
 """The share of each servo's no-load speed at which the payload's goals are stepped
 while it unfolds, stows or folds before homing: the joint with the farthest to go sets
@@ -366,7 +370,7 @@ def fold_failures(design: Any, fingers: Mapping[str, float], rails: Sequence[flo
             if c.colliding
         }
         legs = [unfolding_check(geom, vehicle, start, folded, [])]
-        if abs(rail - stowed["rail"]) > 0.0:
+        if rail != stowed["rail"]:  # then home: the rail in
             legs.append(unfolding_check(geom, vehicle, folded, end, []))
         where = f"with the rail at {rail * 1e3:.1f} mm"
         for leg in legs:
@@ -400,14 +404,14 @@ def fold_before_homing(hardware: Any, timeout: float = 6.0) -> bool:
             or the fingers were not within their dead bands of stowed in ``timeout`` [s].
     """
     specs = hardware.map.servos
-    fingers, rail, stage = specs[:16], specs[16], specs[17]
+    fingers, rail, stage = specs[:RAIL], specs[RAIL], specs[STAGE]
     ticks = hardware.present_ticks()
-    joint, off = unstowed(hardware.design, fingers, ticks[:16])
+    joint, off = unstowed(hardware.design, fingers, ticks[:RAIL])
     if off <= STOWED_TOL_RAD:
         return False
     down = posture_values(hardware.design, "home")["stage"]
     there = tolerance(hardware)  # each servo's dead band and a tick
-    stages = linear_positions(stage, int(ticks[17]), float(there[17]))
+    stages = linear_positions(stage, int(ticks[STAGE]), float(there[STAGE]))
     near = STOWED_TOL_RAD * float(shaft_per_rad([stage])[0])  # [m]
     if not any(abs(v - down) <= near for v in stages):
         where = " or ".join(f"{v * 1e3 + 0.0:.1f}" for v in sorted(stages))  # (no -0.0)
@@ -417,8 +421,8 @@ def fold_before_homing(hardware: Any, timeout: float = 6.0) -> bool:
             "nothing moved: fold the fingers and lower the stage by hand with the servos "
             "unpowered, then bring it up again"
         )
-    q = np.array([sp.from_ticks(t) for sp, t in zip(fingers, ticks[:16])])
-    rails = linear_positions(rail, int(ticks[16]), float(there[16]))
+    q = np.array([sp.from_ticks(t) for sp, t in zip(fingers, ticks[:RAIL])])
+    rails = linear_positions(rail, int(ticks[RAIL]), float(there[RAIL]))
     failures = fold_failures(hardware.design, {sp.joint: v for sp, v in zip(fingers, q)}, rails)
     if failures:
         raise HomingError(
@@ -444,7 +448,7 @@ def fold_before_homing(hardware: Any, timeout: float = 6.0) -> bool:
     goal = np.array([stowed[sp.joint] for sp in fingers])
     ramp(send, read, q, goal, fingers, hardware.design, "as the fingers fold before homing")
     t0 = time.monotonic()
-    while np.any(np.abs(read() - goal) > there[:16]):  # at the stowed posture before homing
+    while np.any(np.abs(read() - goal) > there[:RAIL]):  # at the stowed posture before homing
         if time.monotonic() - t0 > timeout:
             raise DynamixelError(f"the fingers did not reach the stowed posture within {timeout} s")
         send(goal)

@@ -19,7 +19,7 @@ from firmware_interface.control_table import (
     hw_error_names,
     to_signed,
 )
-from firmware_interface.deployment import STOWED_TOL_RAD, unstowed
+from firmware_interface.deployment import RAIL, STOWED_TOL_RAD, unstowed
 from firmware_interface.errors import CommError, HardwareFault, HomingError, WrongModelError
 from firmware_interface.health import Recovery, ServoHealth
 
@@ -158,7 +158,7 @@ class FaultHandling:
             HomingError: A finger more than ``STOWED_TOL_RAD`` from stowed.
         """
         ticks = self.present_ticks()
-        joint, off = unstowed(self.design, self.map.servos[:16], ticks[:16])
+        joint, off = unstowed(self.design, self.map.servos[:RAIL], ticks[:RAIL])
         if off > STOWED_TOL_RAD:
             names = " and ".join(sp.joint for sp in relost)
             raise HomingError(

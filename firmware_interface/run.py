@@ -22,7 +22,12 @@ from typing import Any
 
 import numpy as np
 
-from firmware_interface.deployment import deployment_cleared, move_to_home, stow_after_session
+from firmware_interface.deployment import (
+    RAIL,
+    deployment_cleared,
+    move_to_home,
+    stow_after_session,
+)
 from firmware_interface.errors import DynamixelError
 from payload.design.params import load_design
 from payload.errors import RunAborted
@@ -428,7 +433,7 @@ def run_hardware_trial(
         sim.close()
     if emulator is not None:  # the simulated cargo's grasp ended with the session
         try:
-            emulator.load({sp.id: 0.0 for sp in hardware.map.servos[:16]})
+            emulator.load({sp.id: 0.0 for sp in hardware.map.servos[:RAIL]})
         except Exception as exc:  # the emulator gone: the stow says what follows
             log.warning("could not release the emulated grasp's load: %s", exc)
     stowed = stow_after_session(hardware, say) if stow_after else None

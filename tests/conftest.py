@@ -290,12 +290,13 @@ def spy_on_the_wire(monkeypatch: pytest.MonkeyPatch) -> dict[int, set[tuple[int,
     return seen
 
 
-def band_ticks(joint: str) -> float:
+def band_ticks(joint: str, design: Any = None) -> float:
     """A servo's static friction dead band plus one tick of rounding [ticks], from the
-    design's constants by hand: at rest, friction holds the shaft while the proportional
-    current's torque kt (P / 128) e mA is below the Coulomb friction (no I gain)."""
+    design's constants by hand (default: the packaged design's): at rest, friction holds
+    the shaft while the proportional current's torque kt (P / 128) e mA is below the
+    Coulomb friction (no I gain)."""
     from payload.design.params import load_design
 
-    s = load_design().servo
+    s = (design if design is not None else load_design()).servo
     kind = joint if joint in ("rail", "stage") else "abduction" if "abd" in joint else "finger"
     return s.coulomb / (s.kt * getattr(s.gains, kind)[0] / 128 * 1e-3) + 1.0

@@ -18,7 +18,7 @@ from collections.abc import Iterator
 
 import numpy as np
 import pytest
-from conftest import reg, spy_on_the_wire
+from conftest import band_ticks, reg, spy_on_the_wire
 from dynamixel_sdk import COMM_RX_TIMEOUT, PacketHandler
 
 from firmware_interface import protocol as P
@@ -59,17 +59,8 @@ def rig(smap):
         yield emu, drv
 
 
-def _band_ticks(design, joint):
-    """Static dead band of a servo [ticks]: Coulomb friction holds the shaft while the
-    proportional current's torque kt (P / 128) e mA is below it; plus one tick of rounding."""
-    s = design.servo
-    kind = joint if joint in ("rail", "stage") else "abduction" if "abd" in joint else "finger"
-    p = getattr(s.gains, kind)[0]
-    return s.coulomb / (s.kt * p / 128 * 1e-3) + 1.0
-
-
 def _tolerance(drv):
-    return np.array([s.units_per_tick * _band_ticks(drv.design, s.joint) for s in drv.map.servos])
+    return np.array([s.units_per_tick * band_ticks(s.joint, drv.design) for s in drv.map.servos])
 
 
 def _settle(drv, cmd, timeout=6.0):
@@ -391,7 +382,7 @@ def test_hardware_error_stops_safely_and_recover_returns_the_servo(smap, mode, c
         # stopped: a new command does not reach the servos (the goal stays where the stop
         # left it: the last command's, or where the servo rested, held)
         before = reg(emu.table(1), "goal_position")
-        assert abs(before - smap.servos[0].to_ticks(0.0)) <= _band_ticks(drv.design, "A_mcp_flex")
+        assert abs(before - smap.servos[0].to_ticks(0.0)) <= band_ticks("A_mcp_flex", drv.design)
         moved = cmd.q.copy()
         moved[0] = 0.8
         drv.send(PayloadCommand(moved, 0.075, 0.0))

@@ -6,6 +6,7 @@ watched from the emulator's side (the physical positions, not the driver's readi
 from __future__ import annotations
 
 import logging
+import re
 import threading
 import time
 
@@ -51,10 +52,6 @@ class Watch:
         return np.array([r[dxl_id] for r in self.rows], dtype=float)
 
 
-def stamps_span(sent: list) -> float:
-    return sent[-1][0] - sent[0][0]
-
-
 def test_a_payload_powered_up_deployed_folds_its_fingers_before_the_stage_goes_up(caplog):
     """A session ended with the payload deployed (a fault, the power lost, ``--stay-
     deployed``): at the next bring-up homing drove the rail and the stage to their
@@ -96,7 +93,7 @@ def test_a_payload_powered_up_deployed_folds_its_fingers_before_the_stage_goes_u
     steps = np.abs(np.diff(np.vstack([a, g]), axis=0))
     assert steps.max() <= 0.5 * omega * CONTROL_DT + 1.0, steps.max()  # (+ a tick's rounding)
     n = int(np.count_nonzero(along < 1.0))  # the ramp's goals before the last: at 50 Hz
-    assert stamps_span(sent[:n]) >= 0.9 * (n - 1) * CONTROL_DT, n
+    assert sent[n - 1][0] - sent[0][0] >= 0.9 * (n - 1) * CONTROL_DT, n
 
 
 def _fold_contacts(design_dict, fingers: dict[str, float], rail: float, upto: float) -> set:
@@ -135,22 +132,28 @@ def test_a_fold_that_is_not_checked_clear_is_refused_and_nothing_moves(design_di
 
     design, smap = load_design(), load_servo_map()
     stage = smap.servos[17]
+    turn = TICKS_PER_REV * stage.units_per_tick  # [m] of the stage a turn of its servo
+
+    def mm(*values: float) -> str:  # the positions as the refusal says them
+        return " or ".join(re.escape(f"{v * 1e3:.1f}") for v in values)
+
     ticks = posture_ticks(smap, design, "stowed" if case == "in the bays" else "home")
     if case == "fold collides":
         splayed = dict(zip(FINGER_JOINTS, (0.0, -0.3, 0.0, 0.0)))
         q = {f"{f}_{j}": v for f in FINGERS for j, v in splayed.items()}
-        ticks.update({s.id: s.to_ticks(q[s.joint]) for s in smap.servos[:16]})
+        ticks.update({s.id: s.to_ticks(q[s.joint]) for s in smap.servos if s.joint in q})
         pair = frozenset(("B_distal", "C_distal"))
         assert pair not in _fold_contacts(design_dict, q, design.home.rail, 0.0)
         assert pair in _fold_contacts(design_dict, q, design.home.rail, 1.0)
-        says = r"B_distal and C_distal collide .*rail at 25\.0"
+        says = f"B_distal and C_distal collide .*rail at {mm(design.home.rail)} mm"
     elif case == "stage partway":
         ticks[stage.id] = stage.to_ticks(0.03)
-        says = r"and the stage not down \(at 30\.0 or 67\.7 mm, not 75\.0\)"
+        down = mm(design.home.stage)
+        says = rf"and the stage not down \(at {mm(0.03, 0.03 + turn)} mm, not {down}\)"
     else:
         a_pip = next(s for s in smap.servos if s.joint == "A_pip")
         ticks[a_pip.id] += round(0.3 / a_pip.units_per_tick)
-        says = r"with A_pip 0\.30 rad from stowed and the stage not down \(at 0\.0 or 37\.7 mm"
+        says = rf"with A_pip 0\.30 rad from stowed and the stage not down \(at {mm(0.0, turn)} mm"
     with EmulatorProcess(positions=ticks) as emu:
         with DynamixelDriver(emu.port, smap, latency_timer_ms=LAT) as drv:
             with pytest.raises(HomingError, match=says):
