@@ -311,9 +311,9 @@ def settle(
 
 # -- a payload that powers up out of its bays ---------------------------------------------
 def unstowed(design: Any, specs: Sequence[ServoSpec], ticks: np.ndarray) -> tuple[str, float]:
-    """The finger joint farthest from the design's stowed posture at the present positions
-    ``ticks`` of the 16 finger servos ``specs`` (absolute within their one turn: known
-    before homing), and how far [rad of the servo's shaft]."""
+    """The joint of ``specs`` farthest from the design's stowed posture at their present
+    positions ``ticks`` (the 16 finger servos: absolute within their one turn, known
+    before homing; the rail: once homed), and how far [rad of the servo's shaft]."""
     stowed = posture_values(design, "stowed")
     q = np.array([sp.from_ticks(t) for sp, t in zip(specs, ticks)])
     return farthest_from(specs, q, np.array([stowed[sp.joint] for sp in specs]))

@@ -19,7 +19,13 @@ from firmware_interface.control_table import (
     hw_error_names,
     to_signed,
 )
-from firmware_interface.deployment import RAIL, STOWED_TOL_RAD, unstowed
+from firmware_interface.deployment import (
+    RAIL,
+    STAGE,
+    STOWED_TOL_RAD,
+    shaft_per_rad,
+    unstowed,
+)
 from firmware_interface.errors import CommError, HardwareFault, HomingError, WrongModelError
 from firmware_interface.health import Recovery, ServoHealth
 
@@ -149,22 +155,33 @@ class FaultHandling:
         self._sync_write_goals([int(p) for p in self._present], hold)
 
     def _homing_refused(self, relost: list[ServoSpec]) -> None:
-        """Refuse to home ``relost`` (the rail, the stage) mid-session with the fingers out
-        of their stowed posture: homing drives them to their stowed stops, the stage up
-        into the bays, whatever the fingers do. A new bring-up folds the fingers first
+        """Refuse to home ``relost`` (the rail, the stage) mid-session with the payload out
+        of its stowed posture: homing drives them to their stowed stops, the stage up into
+        the bays, whatever the fingers and the rail do. The stage goes up only as the
+        deployment comes down, the fingers and the rail stowed (a rail whose count was
+        kept is checked too; one that lost it is homed first, to its stowed stop). A new
+        bring-up folds the fingers first
         (:func:`~firmware_interface.deployment.fold_before_homing`).
 
         Raises:
-            HomingError: A finger more than ``STOWED_TOL_RAD`` from stowed.
+            HomingError: A finger, or the rail, more than ``STOWED_TOL_RAD`` (at its
+                shaft) from stowed.
         """
         ticks = self.present_ticks()
-        joint, off = unstowed(self.design, self.map.servos[:RAIL], ticks[:RAIL])
+        rail = self.map.servos[RAIL]
+        kept_rail = all(sp.id != rail.id for sp in relost)
+        specs = self.map.servos[: STAGE if kept_rail else RAIL]
+        joint, off = unstowed(self.design, specs, ticks[: len(specs)])
         if off > STOWED_TOL_RAD:
             names = " and ".join(sp.joint for sp in relost)
+            where = f"{off:.2f} rad"
+            if joint == rail.joint:  # its shaft's radians as the rail's millimetres
+                where = f"{off * shaft_per_rad([rail])[0] * 1e3:.1f} mm"
+            out = "the rail" if joint == rail.joint else "the fingers"
             raise HomingError(
                 f"{names} lost {'their' if len(relost) > 1 else 'its'} count with {joint} "
-                f"{off:.2f} rad from stowed: homing would drive the stage into the bays with "
-                "the fingers out, so the payload stays stopped; bring it up again (the "
+                f"{where} from stowed: homing would drive the stage into the bays with "
+                f"{out} out, so the payload stays stopped; bring it up again (the "
                 "fingers are folded before homing)"
             )
 

@@ -192,6 +192,43 @@ def test_recover_does_not_home_the_stage_with_the_fingers_out():
     assert abs(down - stage.to_ticks(design.home.stage)) <= band_ticks("stage")
 
 
+def test_recover_does_not_home_the_stage_with_the_rail_out():
+    """The stage alone rebooted with the fingers stowed and the rail out (the deployment
+    half done): ``recover()`` checked only the fingers, and homing drove the stage up
+    into the bays with the rail out, a path the envelope check never cleared (the stage
+    moves only with the fingers and the rail stowed). It refuses, naming the rail and how
+    far out it is, and the stage stays where it was."""
+    from firmware_interface.deployment import RAIL, STAGE, settle, tolerance
+
+    design, smap = load_design(), load_servo_map()
+    rail, stage = smap.servos[RAIL], smap.servos[STAGE]
+    fingers = posture_command(design, "stowed").q[:RAIL]
+    with (
+        EmulatorProcess() as emu,
+        DynamixelDriver(emu.port, smap, latency_timer_ms=LAT) as drv,
+    ):
+        drv.bring_up()
+        tol = tolerance(drv)
+        down = PayloadCommand(np.append(fingers, design.stowed.rail), design.home.stage, 0.0)
+        settle(drv, down, tol, 6.0, "stage down")
+        out = PayloadCommand(np.append(fingers, design.home.rail), design.home.stage, 0.0)
+        settle(drv, out, tol, 6.0, "rail out")
+        before = {i: s["pos"] for i, s in emu.servos().items()}
+        emu.fault(f"error:{stage.id}:overload")
+        drv.read()
+        assert isinstance(drv.fault, HardwareFault) and drv.fault.id == stage.id
+        with pytest.raises(HomingError, match=r"stage lost its count with rail ") as err:
+            drv.recover()
+        time.sleep(0.2)
+        after = {i: s["pos"] for i, s in emu.servos().items()}
+        assert drv.fault is not None and stage.id not in drv.homed
+    assert all(abs(after[sp.id] - before[sp.id]) <= 1 for sp in (rail, stage))
+    # how far out, from the emulator's physical rail and the design's stowed rail by hand
+    mm = abs(before[rail.id] - rail.to_ticks(design.stowed.rail)) * rail.units_per_tick * 1e3
+    said = float(re.search(r"rail ([\d.]+) mm from stowed", str(err.value)).group(1))
+    assert mm > 10.0 and abs(said - mm) <= 0.1 + 1.5 * rail.units_per_tick * 1e3
+
+
 def test_stow_reverses_the_deployment(caplog):
     """From home (a session's end, the fingers out), ``stow`` brings the payload back as
     it deployed, backwards: the fingers and the rail on the straight line from home to
