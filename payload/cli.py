@@ -122,7 +122,7 @@ COMMANDS: tuple[Command, ...] = (
 """Every command: one line each (see docs/cli.md, "Adding a command")."""
 
 GROUPS: dict[str, str] = {
-    "bench": "benchmarks: production against reference, same run",
+    "bench": "benchmarks: speed, cost and latency (trial, sim, retarget, reach, hw, ...)",
     "report": "reports written into analyses/",
     "export": "export recordings",
 }

@@ -745,24 +745,24 @@ def test_an_out_holding_another_designs_report_or_other_files_is_refused(tmp_pat
     code, _, err = _report(a.root, capsys, "--out", str(b.analyses_dir))
     assert code == 2 and len(err) == 1
     assert err[0] == (
-        f"payload: error: --out {b.analyses_dir}: envelope.json there is the report of "
-        f"{b.design_path}, not of {a.design_path}; give another --out, or --force to "
-        "replace it"
+        f"payload: error: --out {b.analyses_dir}: already holds envelope.json, the report of "
+        f"{b.design_path}, not of {a.design_path}; pass --force to replace it or choose "
+        "another --out"
     )
     assert {p.name: p.read_bytes() for p in b.analyses_dir.iterdir()} == theirs
     other = tmp_path / "otherres"
     other.mkdir()
     (other / "envelope.md").write_text("my notes\n")
     code, _, err = _report(a.root, capsys, "--out", str(other))
-    assert code == 2 and len(err) == 1 and "envelope.md there is no report of " in err[0]
+    assert code == 2 and len(err) == 1 and "holds envelope.md, not a report of " in err[0]
     # nor the reach report, refused before it samples anything
     (other / "reach.md").write_text("my notes\n")
     argv = ["--project", str(a.root), "report", "reach", "--samples", "1000", "--out", str(other)]
     assert main(argv) == 2
-    assert "reach.md there is no report of " in capsys.readouterr().err
+    assert "holds reach.md, not a report of " in capsys.readouterr().err
     (other / "envelope.json").write_text('{"mine": 1}\n')
     code, _, err = _report(a.root, capsys, "--out", str(other))
-    assert code == 2 and "envelope.json there is no report (no provenance" in err[0]
+    assert code == 2 and "holds envelope.json, not a report (no provenance" in err[0]
     assert (other / "envelope.md").read_text() == "my notes\n"
     assert (other / "envelope.json").read_text() == '{"mine": 1}\n'
     assert sorted(p.name for p in other.iterdir()) == ["envelope.json", "envelope.md", "reach.md"]

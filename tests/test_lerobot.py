@@ -188,7 +188,7 @@ def test_tasks_parquet_reads_as_lerobot_expects(dataset) -> None:
 def test_export_errors(runs, tmp_path: Path) -> None:
     out = tmp_path / "ds"
     export_lerobot([runs[1]], out)
-    with pytest.raises(LeRobotExportError, match="not empty"):
+    with pytest.raises(LeRobotExportError, match="already holds files; pass --force"):
         export_lerobot([runs[1]], out)
     info = export_lerobot([runs[1], runs[2]], out, overwrite=True, task="Task X")
     assert info["episodes"] == 2 and info["tasks"] == ["Task X"]
@@ -227,7 +227,7 @@ def test_cli_export(runs, tmp_path: Path, capsys) -> None:
     # the folder under the trials' and campaigns' name, and the one it had
     assert Path(info["out_dir"]) == Path(info["path"]) == out
     assert main(["export", "lerobot", str(runs[0]), "--out", str(out)]) == 2
-    assert "not empty" in capsys.readouterr().err
+    assert "already holds files; pass --force" in capsys.readouterr().err
 
 
 def test_lerobot_loader_reads_the_export(dataset, runs) -> None:

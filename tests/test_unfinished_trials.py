@@ -405,6 +405,9 @@ def test_compare_takes_a_campaign_kept_as_its_summary_and_a_trial_by_its_seed(
     kept = tmp_path / "kept"
     write_summary(load_trial_results(camp), kept)
     assert sorted(p.name for p in kept.iterdir() if p.is_dir()) == []  # the summary alone
+    assert main(["trials", "summarize", str(kept)]) == 2  # nothing to summarize: one line
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "a campaign's summary without its trial-* folders" in err[0], err
     assert main(["trials", "compare", str(camp), str(kept), "--json"]) == 0
     result = json.loads(capsys.readouterr().out)
     assert [r["trial"] for r in result["trials"]] == ["trial-0001", "trial-0002"]
@@ -440,9 +443,11 @@ def test_compare_takes_a_campaign_kept_as_its_summary_and_a_trial_by_its_seed(
     )
     assert main(["trials", "compare", str(kept), str(camp), "--json"]) == 0
     assert all(r["setup_differs"] == {} for r in json.loads(capsys.readouterr().out)["trials"])
-    assert main(["trials", "compare", str(kept), str(camp), "--steps"]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "its steps cannot be compared" in err[0], err
+    for option in ("--steps", "--require-identical"):  # the refusal names the option given
+        assert main(["trials", "compare", str(kept), str(camp), option]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "its steps cannot be compared" in err[0], err
+        assert option in err[0].split("cannot be compared")[1], err
 
 
 def test_compare_steps_of_a_cut_trial_says_over_which_steps(tmp_path: Path, capsys) -> None:

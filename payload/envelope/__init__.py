@@ -19,6 +19,8 @@ from payload.lazy import lazy_exports
 REACH_SAMPLES = 100_000
 """The reach report's sampled configurations by default (what the committed report uses):
 with fewer, a pair's thinnest grasp can be missed, and its verdict says so."""
+MIN_SAMPLES = 1000
+"""The fewest sampled configurations a reach analysis takes."""
 
 _LAZY: dict[str, str] = {
     "EnvelopeAnalysis": "payload.envelope.fit",
@@ -51,7 +53,7 @@ _LAZY: dict[str, str] = {
 }
 """Each public name and the module defining it."""
 
-__all__ = sorted([*_LAZY, "REACH_SAMPLES"])
+__all__ = sorted([*_LAZY, "MIN_SAMPLES", "REACH_SAMPLES"])
 
 
 __getattr__, __dir__ = lazy_exports(__name__, _LAZY)

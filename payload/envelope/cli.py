@@ -12,7 +12,7 @@ import statistics
 from typing import TYPE_CHECKING, Any
 
 from payload.cliutil import CheckFailed, emit_json, load_average
-from payload.envelope import REACH_SAMPLES
+from payload.envelope import MIN_SAMPLES, REACH_SAMPLES
 from payload.envelope.cli_runs import (
     _check_reach_args,
     _design_path,
@@ -289,7 +289,7 @@ def register(
         "--samples",
         type=_integer,
         default=REACH_SAMPLES,
-        help=f"sampled configurations (default {REACH_SAMPLES:,})",
+        help=f"sampled configurations, at least {MIN_SAMPLES:,} (default {REACH_SAMPLES:,})",
     )
     sampling.add_argument("--seed", type=_integer, default=0, help="random seed (default 0)")
     sampling.add_argument(
@@ -326,7 +326,7 @@ def register(
         "--samples",
         type=_integer,
         default=REACH_SAMPLES,
-        help=f"samples of the timed report (default {REACH_SAMPLES:,})",
+        help=f"samples of the timed report, at least {MIN_SAMPLES:,} (default {REACH_SAMPLES:,})",
     )
     p.add_argument(
         "--check-samples",

@@ -135,7 +135,9 @@ def _refuse_foreign_reports(args: argparse.Namespace, *stems: str) -> None:
         why = foreign_report(out, stem, _design_path(args))
         if why is not None:
             where = f"--out {args.out}" if args.out else str(out)
-            raise PayloadError(f"{where}: {why}; give another --out, or --force to replace it")
+            raise PayloadError(
+                f"{where}: already {why}; pass --force to replace it or choose another --out"
+            )
 
 
 def _stdout_json(args: argparse.Namespace, data: dict[str, Any]) -> dict[str, Any]:

@@ -6,6 +6,7 @@ import numpy as np
 
 from payload.design.params import FINGER_JOINTS
 from payload.design.tree import KinematicTree
+from payload.envelope import MIN_SAMPLES
 from payload.errors import PayloadError
 
 PAIRS: dict[str, tuple[str, str]] = {"L": ("A", "C"), "R": ("B", "D")}
@@ -13,10 +14,6 @@ PAIRS: dict[str, tuple[str, str]] = {"L": ("A", "C"), "R": ("B", "D")}
 
 OPPOSITION_CONE = np.radians(30.0)
 """Largest angle between a pinch axis and the across-array (y) axis for opposing pads [rad]."""
-
-
-MIN_SAMPLES = 1000
-"""The fewest sampled configurations a reach analysis takes."""
 
 
 class ReachError(PayloadError):
@@ -69,7 +66,6 @@ def pair_side(tree: KinematicTree, pair: str) -> float:
 
 
 __all__ = [
-    "MIN_SAMPLES",
     "OPPOSITION_CONE",
     "PAIRS",
     "ReachError",

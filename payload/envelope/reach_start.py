@@ -17,9 +17,10 @@ from typing import NamedTuple
 
 import numpy as np
 
+from payload.envelope import MIN_SAMPLES
 from payload.envelope.collisions import CollisionModel, Contacts
 from payload.envelope.geometry import PayloadGeometry
-from payload.envelope.pairs import MIN_SAMPLES, ReachError
+from payload.envelope.pairs import ReachError
 from payload.envelope.progress import Progress, quiet
 from payload.envelope.sampling import sample_configurations
 from payload.envelope.vehicle import Vehicle
@@ -47,7 +48,7 @@ class StartedCheck(NamedTuple):
 
 def check_samples(samples: object) -> None:
     """Raise :class:`ReachError` unless ``samples`` is an integer of at least
-    :data:`~payload.envelope.pairs.MIN_SAMPLES`."""
+    :data:`~payload.envelope.MIN_SAMPLES`."""
     if (
         isinstance(samples, bool)
         or not isinstance(samples, (int, np.integer))
@@ -69,7 +70,7 @@ def start_check(
     Args:
         geom: Collision geometry of the design.
         vehicle: The vehicle.
-        samples: Number of configurations (at least :data:`~payload.envelope.pairs.MIN_SAMPLES`).
+        samples: Number of configurations (at least :data:`~payload.envelope.MIN_SAMPLES`).
         seed: Random seed.
         workers: Processes for the check (default: up to 2, the CPUs there are).
         progress: Progress callback.

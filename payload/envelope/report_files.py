@@ -49,12 +49,12 @@ def foreign_report(out_dir: Path, stem: str, design: Path) -> str | None:
     design = design.resolve()
     data = out_dir / f"{stem}.json"
     if not data.exists():
-        return f"{there[0].name} there is no report of {design} (no {stem}.json saying so)"
+        return f"holds {there[0].name}, not a report of {design} (no {stem}.json saying so)"
     owner = report_design(data)
     if owner is None:
-        return f"{stem}.json there is no report (no provenance naming its design file)"
+        return f"holds {stem}.json, not a report (no provenance naming its design file)"
     if owner != design:
-        return f"{stem}.json there is the report of {owner}, not of {design}"
+        return f"holds {stem}.json, the report of {owner}, not of {design}"
     return None
 
 

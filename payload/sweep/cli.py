@@ -66,8 +66,8 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
     earlier = held(Path(args.out), SWEEP_FILES) if args.out else []
     if earlier:  # an earlier sweep's (or a report of the same name)
         raise SweepError(
-            f"{Path(args.out).resolve() / earlier[0]} exists; choose a new --out (nothing "
-            "overwritten)"
+            f"--out {args.out}: already holds {', '.join(earlier)}; choose another folder "
+            "(results are never overwritten)"
         )
     project = command_project(args)
     from payload.design import models_follow_design

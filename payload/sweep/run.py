@@ -38,7 +38,10 @@ def plan(base: Project, axes: list[Axis], out: Path) -> list[tuple[Path, dict[st
     for i, params in enumerate(grid(axes)):
         folder = point_dir(out, i)
         if folder.exists() and any(folder.iterdir()):
-            raise SweepError(f"{folder}: exists and is not empty; choose a new --out")
+            raise SweepError(
+                f"{folder}: already holds files; choose another --out (results are never "
+                "overwritten)"
+            )
         points.append((folder, params, edit_design(text, params)))
         try:
             validate_point(points[-1][2])

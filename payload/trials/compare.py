@@ -301,7 +301,8 @@ def compare_runs(run_a: str | Path, run_b: str | Path, *, steps: bool = False) -
         if steps and any(isinstance(t, dict) for t in trials.values()):
             raise CompareError(
                 f"{run}: a campaign's summary without its trials' recordings: its steps "
-                "cannot be compared (compare its metrics: leave out --steps)"
+                "cannot be compared (--steps and --require-identical need the recordings; "
+                "without either its metrics are compared)"
             )
     if len(ta) == 1 and len(tb) == 1:  # two single trials: compare them whatever their names
         common = [(next(iter(ta)), next(iter(tb)))]

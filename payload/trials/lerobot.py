@@ -240,7 +240,10 @@ def _prepare_out(out: Path, overwrite: bool) -> Path:
     if out.exists() and not out.is_dir():
         raise LeRobotExportError(f"{out}: exists and is not a folder")
     if out.exists() and any(out.iterdir()) and not overwrite:
-        raise LeRobotExportError(f"{out}: not empty (--force replaces the dataset in it)")
+        raise LeRobotExportError(
+            f"{out}: already holds files; pass --force to replace the dataset in it or choose "
+            "another --out"
+        )
     out.parent.mkdir(parents=True, exist_ok=True)
     return Path(tempfile.mkdtemp(prefix=f".{out.name}.new-", dir=out.parent))
 

@@ -354,10 +354,18 @@ def _record_session(
     layout = driver.world.layout
     bar = None
     if progress:
-        from rich.progress import Progress
+        from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-        bar = Progress(transient=True)
-        task = bar.add_task(f"trial {seed}", total=max_time)
+        # simulated time against the --max-time cap: a trial ends when its task is done,
+        # most of them well before the cap, so the bar's end is the cap's, not the trial's
+        bar = Progress(
+            TextColumn("{task.description}"),
+            BarColumn(),
+            TextColumn("{task.completed:.0f} s simulated, the cap {task.total:.0f} s"),
+            TimeElapsedColumn(),
+            transient=True,
+        )
+        task = bar.add_task(f"seed {seed}", total=max_time)
         bar.start()
     try:
         scene = recording_scene(driver, module_rects(layout))

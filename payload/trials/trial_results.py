@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from payload.errors import PayloadError
-from payload.folders import METRICS, RECORDING, held
+from payload.folders import METRICS, RECORDING, SUMMARY, held
 from payload.safeio import OverwriteError
 from payload.trials.scoring import finish_trial
 from payload.trials.summary_fields import METRIC_KEYS, CampaignError
@@ -153,6 +153,11 @@ def load_trial_results(
             raise CampaignError(
                 f"{root}: a trial's folder, not a campaign's (no trial-* folders); give the "
                 "campaign folder that holds it"
+            )
+        if held(root, (SUMMARY,)):  # a kept summary (analyses/campaign/*): no trials
+            raise CampaignError(
+                f"{root}: a campaign's summary without its trial-* folders: nothing to "
+                "summarize again (`payload trials run` makes a campaign with its trials)"
             )
         raise CampaignError(f"{root}: no trial-* folders")
     from payload.trials.reading import read_recording, recording_meta
