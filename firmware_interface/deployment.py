@@ -345,9 +345,10 @@ def fold_failures(design: Any, fingers: Mapping[str, float], rails: Sequence[flo
     """What folding the fingers from ``fingers`` (joint -> value) to the stowed posture,
     straight in joint space with the stage down and the rail at each of ``rails`` [m], then
     the rail to its stowed end, would hit, as ``payload report envelope`` checks the
-    deployment (:func:`payload.envelope.deployment.unfolding_check`): links through each
-    other (pairs already colliding where the fingers are, or stowed, only if they go
-    deeper) and links into the vehicle body. Empty when clear."""
+    deployment (:func:`payload.envelope.deployment.unfolding_check`, the line between its
+    postures proved contact-free): links through each other (pairs already colliding
+    where the fingers are, or stowed, only if they go deeper), links into the vehicle
+    body, a stretch not proved clear. Empty when clear."""
     from payload.design import build_tree
     from payload.envelope.deployment import unfolding_check
     from payload.envelope.geometry import PayloadGeometry
@@ -380,6 +381,8 @@ def fold_failures(design: Any, fingers: Mapping[str, float], rails: Sequence[flo
                     out.append(f"{c.a} and {c.b} collide ({-c.distance * 1e3:.1f} mm deep) {where}")
             out += [f"{h.link} hits the {h.body} ({-h.distance * 1e3:.1f} mm deep) {where}"
                     for h in leg.hits]  # fmt: skip
+            if not leg.certified:  # convex pieces touching where the solids do not
+                out.append(f"the fold is not proved clear between its checked postures {where}")
     return out
 
 

@@ -1069,6 +1069,88 @@ def _unfolding_contacts(geom, check, per_posture: int) -> dict[tuple[str, str], 
     return CollisionModel(geom, VEHICLE).check(np.array(rows)).pair_counts()
 
 
+def _unfolding_case(design_dict, home_finger, distal, postures: int):
+    """The design with ``home_finger`` and ``distal`` (None: the packaged), its stowed
+    check, and the pairs and the vehicle hits MuJoCo's collision model finds along its
+    unfolding sampled at about ``postures`` postures, less the pairs colliding stowed."""
+    data = copy.deepcopy(design_dict)
+    if home_finger is not None:
+        data["home"]["finger"] = list(home_finger)
+    if distal is not None:
+        data["finger"]["lengths"]["distal"] = distal
+    g = geometry_of(data)
+    check = check_stowed(g, VEHICLE, g.tree.posture("stowed"))
+    contacts = _unfolding_contacts(g, check, -(-postures // check.unfolding.samples))
+    stowed_pairs = {frozenset((c.a, c.b)) for c in check.collisions}
+    pairs = {frozenset(p) for p in contacts if "vehicle" not in p} - stowed_pairs
+    hits = {n for p in contacts if "vehicle" in p for n in p if n != "vehicle"}
+    return g, check, pairs, hits
+
+
+def test_the_unfolding_rates_bound_every_links_point_speed(geom):
+    """:func:`unfolding_rates` bounds how fast each link's points move along a straight
+    joint-space line (the proof of the unfolding rests on it): on random lines between
+    postures within the joints' limits, no convex piece's vertex moves faster, by finite
+    differences of the posed vertices, than its link's bound; the carriage, carried by
+    the rail alone, moves exactly at its bound (the rail's change)."""
+    from payload.envelope.deployment import unfolding_rates
+
+    rng = np.random.default_rng(3)
+    joints = [j for j in geom.tree.joints if j.kind != "fixed" and j.name != "stage"]
+    down = geom.tree.posture("home")["stage"]
+    worst = 0.0
+    for _ in range(6):
+        a = {j.name: rng.uniform(j.lower, j.upper) for j in joints} | {"stage": down}
+        b = {j.name: rng.uniform(j.lower, j.upper) for j in joints} | {"stage": down}
+        rate = unfolding_rates(geom, a, b)
+        n = 400
+        line = [{k: (1 - s) * a[k] + s * b[k] for k in a} for s in np.linspace(0, 1, n + 1)]
+        poses = [geom.poses(q) for q in line]
+        for link in geom.links:
+            pts = np.array([geom.hull_vertices(link, p[link]) for p in poses])
+            speed = np.linalg.norm(np.diff(pts, axis=0), axis=2).max() * n
+            assert speed <= rate[link] * (1 + 1e-9) + 1e-12, (link, speed, rate[link])
+            worst = max(worst, speed / rate[link] if rate[link] > 0 else 0.0)
+        assert rate["carriage"] == pytest.approx(abs(b["rail"] - a["rail"]), rel=1e-12)
+        assert rate[geom.root] == 0.0
+    assert worst == pytest.approx(1.0, rel=1e-9)  # the carriage's: a bound, and a tight one
+
+
+@pytest.mark.parametrize(
+    ("home_finger", "distal"),
+    [((0.0, -0.3, 0.0, 0.0), None), (None, 0.060), (None, None)],  # None: the packaged
+)
+def test_the_unfolding_proof_finds_between_coarse_postures_what_mujoco_finds_densely(
+    design_dict, home_finger, distal, monkeypatch
+):
+    """The unfolding's postures are 1 degree apart, and a contact between two of them was
+    not looked for. With the postures 30 degrees and 20 mm apart (four postures on these
+    lines, between which every contact is missed: checked here), the proof of the line
+    between them still finds the pairs and the vehicle hits MuJoCo's collision model finds
+    along the same line sampled at 416 postures, less the pairs colliding stowed; the
+    packaged design's line is proved clear."""
+    import payload.envelope.deployment as deployment
+
+    monkeypatch.setattr(deployment, "UNFOLD_STEP_RAD", math.radians(30.0))
+    monkeypatch.setattr(deployment, "UNFOLD_STEP_M", 0.02)
+    g, check, pairs, hits = _unfolding_case(design_dict, home_finger, distal, 416)
+    u = check.unfolding
+    assert u.samples <= 4 and u.certified
+    stowed_pairs = {frozenset((c.a, c.b)) for c in check.collisions}
+    assert {frozenset((c.a, c.b)) for c in u.collisions} == pairs
+    assert {h.link for h in u.hits} == hits
+    collided, deepest = {}, {}  # the four postures alone
+    kept = [p for p in g.pairs if frozenset(p) not in stowed_pairs]
+    body, moving = deployment._obstacles(g, VEHICLE), [n for n in g.links if n != g.root]
+    for q in deployment.unfolding_postures(check.q, g.tree.posture("home"), u.samples):
+        deployment._examine(g, q, kept, body, moving, collided, deepest)
+    assert not collided and not deepest
+    if home_finger is None and distal is None:
+        assert not pairs and not hits and u.clear and u.min_distance > 0
+    else:
+        assert (pairs or hits) and not u.clear
+
+
 @pytest.mark.parametrize(
     ("home_finger", "distal"),
     [((0.0, -0.3, 0.0, 0.0), None), (None, 0.060), (None, None)],  # None: the packaged
@@ -1083,17 +1165,7 @@ def test_the_fingers_unfolding_is_checked_as_mujocos_collision_model_finds_it(
     names are those MuJoCo's collision model finds along the same motion sampled four
     times as finely, less the pairs already colliding stowed (the stowed check's); the
     packaged design's unfolding is clear."""
-    data = copy.deepcopy(design_dict)
-    if home_finger is not None:
-        data["home"]["finger"] = list(home_finger)
-    if distal is not None:
-        data["finger"]["lengths"]["distal"] = distal
-    g = geometry_of(data)
-    check = check_stowed(g, VEHICLE, g.tree.posture("stowed"))
-    contacts = _unfolding_contacts(g, check, 4)
-    stowed_pairs = {frozenset((c.a, c.b)) for c in check.collisions}
-    pairs = {frozenset(p) for p in contacts if "vehicle" not in p} - stowed_pairs
-    hits = {n for p in contacts if "vehicle" in p for n in p if n != "vehicle"}
+    _, check, pairs, hits = _unfolding_case(design_dict, home_finger, distal, 416)
     assert {frozenset((c.a, c.b)) for c in check.unfolding.collisions} == pairs
     assert {h.link for h in check.unfolding.hits} == hits
     said = [f for f in check.failures() if "as the fingers unfold" in f]

@@ -15,7 +15,13 @@ from payload.envelope.fit_results import (
     SweepResult,
     UnfoldResult,
 )
-from payload.envelope.geometry import PayloadGeometry, aabb, aabb_gap, box_geometry
+from payload.envelope.geometry import (
+    PayloadGeometry,
+    aabb,
+    aabb_gap,
+    box_geometry,
+    signed_distance,
+)
 from payload.envelope.self_collision import colliding_pairs, self_contacts
 from payload.envelope.vehicle import Vehicle
 
@@ -23,6 +29,9 @@ UNFOLD_STEP_RAD = math.radians(1.0)
 """The most a revolute joint moves between two checked postures of the unfolding [rad]."""
 UNFOLD_STEP_M = 0.5e-3
 """The most the rail moves between two checked postures of the unfolding [m]."""
+UNFOLD_MIN_MOTION_M = 1e-5
+"""The halving of the unfolding's unproved stretches stops where no link's point moves
+more than this between their ends [m] (the stage sweep's ``min_step``)."""
 
 
 def _obstacles(geom: PayloadGeometry, vehicle: Vehicle) -> list[tuple[str, Any, tuple]]:
@@ -126,12 +135,46 @@ def unfolding_postures(
     space, the stage at ``home``'s (down): ``n`` evenly spaced postures, the stowed end
     left out (the stage's sweep ends there) and home in. The deployment's second half, as
     the envelope check takes it and the design review plays it."""
-    out = []
-    for s in np.linspace(0.0, 1.0, n + 1)[1:]:
-        values = {j: (1 - s) * stowed[j] + s * home[j] for j in home}
-        values["stage"] = home["stage"]
-        out.append(values)
-    return out
+    return [_posture_at(stowed, home, s) for s in np.linspace(0.0, 1.0, n + 1)[1:]]
+
+
+def _posture_at(stowed: Mapping[str, float], home: Mapping[str, float], s: float) -> dict:
+    """The posture a share ``s`` of the way along the unfolding's line, the stage down."""
+    values = {j: (1 - s) * stowed[j] + s * home[j] for j in home}
+    values["stage"] = home["stage"]
+    return values
+
+
+def unfolding_rates(
+    geom: PayloadGeometry, start: Mapping[str, float], end: Mapping[str, float]
+) -> dict[str, float]:
+    """How fast each link's points move, at most, along the straight joint-space line from
+    ``start`` to ``end`` (the stage at ``end``'s), per unit of the line's parameter [m]:
+    for every revolute joint above the link, its change times the farthest the link's
+    convex pieces reach from the joint's axis (the chain's offsets below it, any
+    prismatic travel on the way, then the link's own pieces from its origin); for every
+    prismatic one, its change. A bound for every posture on the line, so a distance
+    between two links changes no faster than the sum of their rates, and one to a thing
+    fixed to the vehicle no faster than the link's."""
+    above = {j.child: j for j in geom.tree.joints}
+    start = {**start, "stage": end.get("stage", 0.0)}
+    rates = {}
+    for link in geom.links:
+        reach = float(np.max(np.linalg.norm(geom.hull_vertices(link, np.eye(4)), axis=1)))
+        rate, name = 0.0, link
+        while name in above:
+            j = above[name]
+            a, b = float(start.get(j.name, 0.0)), float(end.get(j.name, 0.0))
+            axis = float(np.linalg.norm(j.axis))
+            if j.kind == "revolute":
+                rate += abs(b - a) * axis * reach  # the axis passes through the origin
+            elif j.kind == "prismatic":
+                rate += abs(b - a) * axis
+                reach += max(abs(a), abs(b)) * axis
+            reach += float(np.linalg.norm(j.xyz))
+            name = j.parent
+        rates[link] = rate
+    return rates
 
 
 def unfolding_check(
@@ -144,9 +187,14 @@ def unfolding_check(
     """The deployment's second half: with the stage down, the fingers and the rail from
     ``stowed`` to ``home`` (:func:`unfolding_postures`), each posture's links against each
     other and the base (the pairs colliding stowed, in ``contacts``, left out: they are
-    the stowed check's) and against the vehicle body. Sampled, not certified as the
-    stage's sweep is: a contact thinner than a step's motion can go unseen."""
-    postures = unfolding_postures(stowed, home, unfolding_samples(geom, stowed, home))
+    the stowed check's) and against the vehicle body. Then the line between the postures
+    is proved contact-free as the stage's sweep is: a stretch whose end distances, each
+    over the two things' bound of :func:`unfolding_rates`, add up to more than its length
+    cannot hold a contact; other stretches are halved (down to
+    :data:`UNFOLD_MIN_MOTION_M` of motion), and a contact a halving finds is reported as
+    the postures' are."""
+    n = unfolding_samples(geom, stowed, home)
+    postures = unfolding_postures(stowed, home, n)
     stowed_pairs = {frozenset((c.a, c.b)) for c in contacts if c.colliding}
     pairs = [(a, b) for a, b in geom.pairs if frozenset((a, b)) not in stowed_pairs]
     body = _obstacles(geom, vehicle)
@@ -154,22 +202,126 @@ def unfolding_check(
     collided: dict[frozenset[str], PairContact] = {}  # each at its deepest
     deepest: dict[str, BodyHit] = {}
     for q in postures:
-        poses = geom.poses(q)
-        boxes = {n: aabb(geom.hull_vertices(n, poses[n])) for n in geom.links}
-        for c in colliding_pairs(geom, poses, boxes, pairs):
-            key = frozenset((c.a, c.b))
-            if key not in collided or c.distance < collided[key].distance:
-                collided[key] = c
-        for link in moving:  # each link: two reaching into the body at once are both said
-            near = [o for o in body if aabb_gap(boxes[link], o[2]) <= 0.0]
-            if not near:
-                continue
-            d, (_, thing) = geom.min_distance(poses, pairs=(), others=near, moving=[link])
-            if d <= 0 and (link not in deepest or d < deepest[link].distance):
-                deepest[link] = BodyHit(link, thing, float(d))
+        _examine(geom, q, pairs, body, moving, collided, deepest)
+    proof = _UnfoldProof(geom, body, stowed, home, pairs, moving, collided, deepest)
+    certified = proof.run(np.linspace(0.0, 1.0, n + 1))
+    for s in sorted(proof.touching):  # contacts between the postures: said as theirs are
+        _examine(geom, _posture_at(stowed, home, s), pairs, body, moving, collided, deepest)
+    if proof.touching:  # each explained by a contact now reported, or not proved clear:
+        again = _UnfoldProof(geom, body, stowed, home, pairs, moving, collided, deepest)
+        if again.tasks and any(again.distance(s)[0] <= 0 for s in proof.touching):
+            certified = False  # convex pieces that touch, solids that share no volume
+    s_min = min(proof.values, key=lambda s: proof.values[s][1], default=None)
+    d_min, between = (np.inf, ("", "")) if s_min is None else proof.values[s_min][1:]
     collisions = sorted(collided.values(), key=lambda c: c.distance)
     hits = sorted(deepest.values(), key=lambda h: h.distance)
-    return UnfoldResult(collisions, hits, len(postures))
+    return UnfoldResult(
+        collisions, hits, len(postures), certified, float(d_min), between, len(proof.values)
+    )
+
+
+def _examine(
+    geom: PayloadGeometry,
+    q: Mapping[str, float],
+    pairs: Sequence[tuple[str, str]],
+    body: list[tuple[str, Any, tuple]],
+    moving: Sequence[str],
+    collided: dict[frozenset[str], PairContact],
+    deepest: dict[str, BodyHit],
+) -> None:
+    """Add posture ``q``'s colliding pairs and links in the vehicle body, each kept at its
+    deepest, to ``collided`` and ``deepest``."""
+    poses = geom.poses(q)
+    boxes = {n: aabb(geom.hull_vertices(n, poses[n])) for n in geom.links}
+    for c in colliding_pairs(geom, poses, boxes, pairs):
+        key = frozenset((c.a, c.b))
+        if key not in collided or c.distance < collided[key].distance:
+            collided[key] = c
+    for link in moving:  # each link: two reaching into the body at once are both said
+        near = [o for o in body if aabb_gap(boxes[link], o[2]) <= 0.0]
+        if not near:
+            continue
+        d, (_, thing) = geom.min_distance(poses, pairs=(), others=near, moving=[link])
+        if d <= 0 and (link not in deepest or d < deepest[link].distance):
+            deepest[link] = BodyHit(link, thing, float(d))
+
+
+class _UnfoldProof:
+    """The proof that the unfolding's line holds no contact between its postures (see
+    :func:`unfolding_check`), over the pairs and links not already reported."""
+
+    def __init__(
+        self,
+        geom: PayloadGeometry,
+        body: list[tuple[str, Any, tuple]],
+        stowed: Mapping[str, float],
+        home: Mapping[str, float],
+        pairs: Sequence[tuple[str, str]],
+        moving: Sequence[str],
+        collided: Mapping[frozenset[str], PairContact],
+        deepest: Mapping[str, BodyHit],
+    ) -> None:
+        self.geom, self.stowed, self.home = geom, stowed, home
+        rate = unfolding_rates(geom, stowed, home)
+        tasks = [(a, b, None, rate[a] + rate[b]) for a, b in pairs
+                 if frozenset((a, b)) not in collided]  # fmt: skip
+        tasks += [(link, name, (obj, bounds), rate[link]) for link in moving
+                  if link not in deepest for name, obj, bounds in body]  # fmt: skip
+        self.tasks = [t for t in tasks if t[3] > 0.0]  # what does not move was checked
+        fastest = max(rate.values(), default=0.0)
+        self.min_step = UNFOLD_MIN_MOTION_M / fastest if fastest > 0 else 1.0
+        self.values: dict[float, tuple[float, float, tuple[str, str]]] = {}
+        self.touching: set[float] = set()
+
+    def distance(self, s: float) -> tuple[float, float, tuple[str, str]]:
+        """(The smallest distance over its rate [1: the line's parameter], the smallest
+        distance [m], the two things closest) at ``s``; both exact: the things are visited
+        by their bounding boxes' gap and left once neither can be smaller."""
+        geom = self.geom
+        poses = geom.poses(_posture_at(self.stowed, self.home, s))
+        boxes = {n: aabb(geom.hull_vertices(n, poses[n])) for n in geom.links}
+        order = []
+        for a, b, obj, r in self.tasks:
+            gap = aabb_gap(boxes[a], boxes[b] if obj is None else obj[1])
+            order.append((gap / r, gap, a, b, obj, r))
+        order.sort(key=lambda t: t[0])
+        scaled, least, where = np.inf, np.inf, ("", "")
+        for gap_r, gap, a, b, obj, r in order:
+            if gap > 0.0 and gap_r > scaled and gap > least:
+                continue
+            if obj is None:
+                d = geom.link_distance(a, b, poses)
+            else:
+                d = min(signed_distance(o, obj[0]) for o in geom.piece_objects(a, poses[a]))
+            scaled = min(scaled, d / r)
+            if d < least:
+                least, where = d, (a, b)
+        return float(scaled), float(least), where
+
+    def run(self, grid: np.ndarray) -> bool:
+        """Evaluate ``grid`` and halve every stretch not proved; whether all were (a
+        stretch with an end in contact needs no proof: the end is in ``touching``)."""
+        if not self.tasks:
+            return True
+        for s in grid:
+            self.values[float(s)] = self.distance(float(s))
+        stack = [(float(a), float(b)) for a, b in itertools.pairwise(grid)]
+        certified = True
+        while stack:
+            a, b = stack.pop()
+            da, db = self.values[a][0], self.values[b][0]
+            if da <= 0 or db <= 0:
+                self.touching.update(s for s, d in ((a, da), (b, db)) if d <= 0)
+                continue
+            if da + db > b - a:
+                continue
+            if b - a < self.min_step:
+                certified = False
+                continue
+            m = 0.5 * (a + b)
+            self.values[m] = self.distance(m)
+            stack += [(a, m), (m, b)]
+        return certified
 
 
 Distance = Callable[[float], tuple[float, tuple[str, str]]]
@@ -227,10 +379,12 @@ def _first_contact(
 
 
 __all__ = [
+    "UNFOLD_MIN_MOTION_M",
     "UNFOLD_STEP_M",
     "UNFOLD_STEP_RAD",
     "deployment_sweep",
     "unfolding_check",
     "unfolding_postures",
+    "unfolding_rates",
     "unfolding_samples",
 ]

@@ -147,15 +147,28 @@ class UnfoldResult(NamedTuple):
         samples: Postures checked (no joint moves more than
             :data:`~payload.envelope.deployment.UNFOLD_STEP_RAD` or
             :data:`~payload.envelope.deployment.UNFOLD_STEP_M` between two).
+        certified: Every stretch of the line between the postures evaluated was proved
+            contact-free (each distance changes no faster than the links' points move:
+            ``d0 / r + d1 / r > step``, ``r`` the two things' bound of
+            :func:`~payload.envelope.deployment.unfolding_rates`), or ends at a posture
+            whose contact is reported.
+        min_distance: Smallest signed distance among the pairs and links not reported,
+            over every posture evaluated [m] (inf when nothing moves).
+        between: The two things closest there.
+        evaluated: Postures evaluated: the samples, the stowed end and the halving's.
     """
 
     collisions: list[PairContact]
     hits: list[BodyHit]
     samples: int
+    certified: bool = True
+    min_distance: float = float("inf")
+    between: tuple[str, str] = ("", "")
+    evaluated: int = 0
 
     @property
     def clear(self) -> bool:
-        return not self.collisions and not self.hits
+        return not self.collisions and not self.hits and self.certified
 
 
 class PostureSearch(NamedTuple):

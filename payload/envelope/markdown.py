@@ -12,7 +12,12 @@ from typing import Any
 import numpy as np
 
 from payload.envelope.deployment import UNFOLD_STEP_M, UNFOLD_STEP_RAD
-from payload.envelope.fit_results import EnvelopeAnalysis, StowedCheck, clearance_text
+from payload.envelope.fit_results import (
+    TIGHT_CLEARANCE,
+    EnvelopeAnalysis,
+    StowedCheck,
+    clearance_text,
+)
 from payload.envelope.grasp import GraspResult
 from payload.envelope.pairs import OPPOSITION_CONE
 from payload.envelope.reach import ReachAnalysis
@@ -224,15 +229,27 @@ def _sweep_section(a: EnvelopeAnalysis) -> list[str]:
 
 def unfolding_line(check: StowedCheck) -> str:
     """The deployment's second half, a bullet: the fingers and the rail straight from the
-    stowed posture to home with the stage down, sampled."""
+    stowed posture to home with the stage down, sampled, and the line between the samples
+    proved contact-free."""
     u = check.unfolding
     said = [f"{c.a} and {c.b} collide" for c in u.collisions]
     said += [f"{h.link} hits the {h.body}" for h in u.hits]
+    if not u.certified:
+        said.append("not proved clear between its postures (the halving stopped)")
+    closest = ""
+    if math.isfinite(u.min_distance):
+        tight = " (tight)" if 0.0 < u.min_distance < TIGHT_CLEARANCE else ""
+        closest = (
+            f"; closest {u.min_distance * 1e3:.2f} mm{tight} ({u.between[0]} / "
+            f"{u.between[1]}) over the {u.evaluated} postures the proof evaluated"
+        )
     return (
         "- then the fingers and the rail, straight from stowed to home with the stage down "
         f"({u.samples} postures, at most {math.degrees(UNFOLD_STEP_RAD):g} deg and "
-        f"{UNFOLD_STEP_M * 1e3:g} mm apart): "
+        f"{UNFOLD_STEP_M * 1e3:g} mm apart; every stretch between them proved contact-free, "
+        "each distance changing no faster than the links' points move): "
         + ("clear" if u.clear else "**" + "; ".join(said) + "**")
+        + closest
     )
 
 

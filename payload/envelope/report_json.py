@@ -127,6 +127,10 @@ def _check_json(check: StowedCheck) -> dict[str, Any]:
             "unfolding": {  # the fingers and the rail to home, the stage down
                 "clear": check.unfolding.clear,
                 "samples": check.unfolding.samples,
+                "certified": check.unfolding.certified,
+                "evaluated": check.unfolding.evaluated,
+                "min_distance_mm": _mm(check.unfolding.min_distance),
+                "between": list(check.unfolding.between),
                 "collisions": [
                     {"links": [c.a, c.b], "depth_mm": _mm(-c.distance)}
                     for c in check.unfolding.collisions
