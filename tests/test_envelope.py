@@ -945,9 +945,15 @@ def test_a_pass_under_the_tight_clearance_is_said_tight_in_every_verdict(narrow_
     assert tight["stage"] == tight["carriage"] == pytest.approx(0.3, abs=0.01)
 
 
-def test_a_pass_with_room_to_spare_is_not_tight(stowed, geom):
-    """The committed design: 1.0 mm at its tightest, links 1.06 mm apart: no "tight"
-    anywhere (its committed reports keep their words)."""
+def test_a_stowed_fit_with_room_to_spare_is_not_tight_and_a_close_unfolding_is_said(
+    stowed, geom
+):
+    """The committed design: 1.0 mm at its tightest, links 1.06 mm apart stowed: its stowed
+    fit is not tight (the figure's title and the JSON's tight parts keep their words). On
+    the way to home, though, B_distal passes 0.22 mm from the carriage (the unfolding's
+    proof finds it; a dense sweep of that pair's distance along the line, 4,000
+    postures, agrees to 0.005 mm): the verdict says so after "deployment path clear"."""
+    from payload.envelope.deployment import unfolding_postures
     from payload.envelope.envelope_figure import figure_title
     from payload.envelope.report_json import envelope_json
     from payload.envelope.verdict import envelope_verdict
@@ -956,8 +962,16 @@ def test_a_pass_with_room_to_spare_is_not_tight(stowed, geom):
     assert a.passed and stowed.min_clearance >= 0.5e-3
     said = envelope_verdict(a)
     assert said.startswith("verdict: fits: every part inside the bays, min clearance 1.0 mm ")
-    assert "tight" not in envelope_verdict(a) and "tight" not in figure_title(a.given)
-    assert envelope_json(a)["tight"] == []
+    assert "tight" not in figure_title(a.given) and envelope_json(a)["tight"] == []
+    u = a.given.unfolding
+    dense = unfolding_postures(a.given.q, geom.tree.posture("home"), 4000)
+    least = min(geom.link_distance(*u.between, geom.poses(q)) for q in dense)
+    assert set(u.between) == {"carriage", "B_distal"}
+    assert least - 1e-9 <= u.min_distance <= least + 5e-6 and u.min_distance < 0.5e-3
+    assert said.endswith(
+        f"deployment path clear (tight: {u.between[0]} / {u.between[1]} "
+        f"{u.min_distance * 1e3:.2f} mm apart as the fingers unfold)"
+    )
 
 
 def test_links_closer_than_the_tight_clearance_make_a_tight_fit_too(design_dict):

@@ -11,7 +11,12 @@ from __future__ import annotations
 from typing import Any
 
 from payload.envelope import REACH_SAMPLES
-from payload.envelope.fit_results import EnvelopeAnalysis, clearance_text
+from payload.envelope.fit_results import (
+    TIGHT_CLEARANCE,
+    EnvelopeAnalysis,
+    StowedCheck,
+    clearance_text,
+)
 from payload.envelope.reach import ReachAnalysis
 from payload.envelope.workspace import MIN_HULL_POINTS
 from payload.errors import first_of
@@ -51,9 +56,23 @@ def envelope_verdict(a: EnvelopeAnalysis) -> str:
         return (
             f"verdict: {g.fits_words}: every part inside the bays, min clearance "
             f"{clearance_text(t.clearance)} ({t.name}, {t.wall} wall); no self-collision; "
-            f"deployment path clear{g.tight_tail}"
+            f"deployment path clear{_unfolding_tight(g)}{g.tight_tail}"
         )
     return "verdict: FAILS: " + first_of(g.failures(), 3)
+
+
+def _unfolding_tight(g: StowedCheck) -> str:
+    """`` (tight: a / b 0.22 mm apart as the fingers unfold)`` when the unfolding's closest
+    approach is under :data:`~payload.envelope.fit_results.TIGHT_CLEARANCE`, else empty: a
+    motion that passes this close is worth a second look, as a stowed fit is (the servos
+    trail their goals on the way)."""
+    u = g.unfolding
+    if not (u.clear and u.min_distance < TIGHT_CLEARANCE):
+        return ""
+    return (
+        f" (tight: {u.between[0]} / {u.between[1]} {clearance_text(u.min_distance)} apart as "
+        "the fingers unfold)"
+    )
 
 
 def reach_passed(a: ReachAnalysis) -> bool:
