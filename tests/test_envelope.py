@@ -945,9 +945,7 @@ def test_a_pass_under_the_tight_clearance_is_said_tight_in_every_verdict(narrow_
     assert tight["stage"] == tight["carriage"] == pytest.approx(0.3, abs=0.01)
 
 
-def test_a_stowed_fit_with_room_to_spare_is_not_tight_and_a_close_unfolding_is_said(
-    stowed, geom
-):
+def test_a_stowed_fit_with_room_to_spare_is_not_tight_and_a_close_unfolding_is_said(stowed, geom):
     """The committed design: 1.0 mm at its tightest, links 1.06 mm apart stowed: its stowed
     fit is not tight (the figure's title and the JSON's tight parts keep their words). On
     the way to home, though, B_distal passes 0.22 mm from the carriage (the unfolding's

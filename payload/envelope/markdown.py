@@ -23,7 +23,7 @@ from payload.envelope.pairs import OPPOSITION_CONE
 from payload.envelope.reach import ReachAnalysis
 from payload.envelope.report_json import reach_json
 from payload.envelope.vehicle import display_path
-from payload.envelope.verdict import too_few_reachable
+from payload.envelope.verdict import too_few_reachable, unfolding_tight
 from payload.project import DISTRIBUTION, SOURCES, project_of, workbench_root
 
 _CITED = re.compile(re.escape(SOURCES) + r"(#[\w-]+)?")
@@ -102,6 +102,13 @@ def envelope_markdown(a: EnvelopeAnalysis, command: str, figure: str) -> str:
                 "",
                 f"**A tight fit:** {g.tight_phrase()} (ASSUMPTION). It passes, but a printed "
                 "part may not stow this close: worth a second look.",
+            ]
+        if unfolding_tight(g):
+            out += [
+                "",
+                f"**A close deployment:** {unfolding_tight(g)}, under "
+                f"{clearance_text(TIGHT_CLEARANCE)} (ASSUMPTION, as for a stowed fit). It "
+                "passes, but the servos trail their goals on the way: worth a second look.",
             ]
     else:
         status = "fits inside" if g.fits else "does **not** fit inside"

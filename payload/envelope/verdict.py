@@ -61,18 +61,22 @@ def envelope_verdict(a: EnvelopeAnalysis) -> str:
     return "verdict: FAILS: " + first_of(g.failures(), 3)
 
 
-def _unfolding_tight(g: StowedCheck) -> str:
-    """`` (tight: a / b 0.22 mm apart as the fingers unfold)`` when the unfolding's closest
-    approach is under :data:`~payload.envelope.fit_results.TIGHT_CLEARANCE`, else empty: a
-    motion that passes this close is worth a second look, as a stowed fit is (the servos
-    trail their goals on the way)."""
+def unfolding_tight(g: StowedCheck) -> str:
+    """``a / b 0.22 mm apart as the fingers unfold`` when the unfolding's closest approach
+    is under :data:`~payload.envelope.fit_results.TIGHT_CLEARANCE`, else empty: a motion
+    that passes this close is worth a second look, as a stowed fit is (the servos trail
+    their goals on the way)."""
     u = g.unfolding
     if not (u.clear and u.min_distance < TIGHT_CLEARANCE):
         return ""
-    return (
-        f" (tight: {u.between[0]} / {u.between[1]} {clearance_text(u.min_distance)} apart as "
-        "the fingers unfold)"
-    )
+    d = clearance_text(u.min_distance)
+    return f"{u.between[0]} / {u.between[1]} {d} apart as the fingers unfold"
+
+
+def _unfolding_tight(g: StowedCheck) -> str:
+    """`` (tight: ...)`` of :func:`unfolding_tight`, or empty: the verdict's words."""
+    said = unfolding_tight(g)
+    return f" (tight: {said})" if said else ""
 
 
 def reach_passed(a: ReachAnalysis) -> bool:
@@ -206,4 +210,5 @@ __all__ = [
     "reach_verdict",
     "sampling_caveat",
     "too_few_reachable",
+    "unfolding_tight",
 ]
