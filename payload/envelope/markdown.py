@@ -244,7 +244,7 @@ def unfolding_line(check: StowedCheck) -> str:
     if not u.certified:
         said.append("not proved clear between its postures (the halving stopped)")
     closest = ""
-    if math.isfinite(u.min_distance):
+    if u.clear and math.isfinite(u.min_distance):  # a failing line: its contacts, above
         tight = " (tight)" if 0.0 < u.min_distance < TIGHT_CLEARANCE else ""
         closest = (
             f"; closest {u.min_distance * 1e3:.2f} mm{tight} ({u.between[0]} / "
