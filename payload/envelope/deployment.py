@@ -272,22 +272,37 @@ class _UnfoldProof:
         self.min_step = UNFOLD_MIN_MOTION_M / fastest if fastest > 0 else 1.0
         self.values: dict[float, tuple[float, float, tuple[str, str]]] = {}
         self.touching: set[float] = set()
+        # the tasks' bounding boxes as arrays: the first's link, the second's link or the
+        # obstacle's fixed bounds (NaN rows where a link's are taken)
+        index = {n: i for i, n in enumerate(geom.links)}
+        self._a = np.array([index[t[0]] for t in self.tasks], dtype=np.intp)
+        self._b = np.array([index.get(t[1], 0) for t in self.tasks], dtype=np.intp)
+        self._fixed = np.array([t[2] is not None for t in self.tasks], dtype=bool)
+        bounds = [t[2][1] if t[2] is not None else (np.zeros(3), np.zeros(3)) for t in self.tasks]
+        self._fixed_lo = np.array([b[0] for b in bounds], dtype=float).reshape(-1, 3)
+        self._fixed_hi = np.array([b[1] for b in bounds], dtype=float).reshape(-1, 3)
+        self._rates = np.array([t[3] for t in self.tasks], dtype=float)
 
     def distance(self, s: float) -> tuple[float, float, tuple[str, str]]:
         """(The smallest distance over its rate [1: the line's parameter], the smallest
         distance [m], the two things closest) at ``s``; both exact: the things are visited
-        by their bounding boxes' gap and left once neither can be smaller."""
+        by their bounding boxes' gap (:func:`~payload.envelope.geometry.aabb_gap`'s, for
+        all at once) and left once neither can be smaller."""
         geom = self.geom
         poses = geom.poses(_posture_at(self.stowed, self.home, s))
-        boxes = {n: aabb(geom.hull_vertices(n, poses[n])) for n in geom.links}
-        order = []
-        for a, b, obj, r in self.tasks:
-            gap = aabb_gap(boxes[a], boxes[b] if obj is None else obj[1])
-            order.append((gap / r, gap, a, b, obj, r))
-        order.sort(key=lambda t: t[0])
+        boxes = [aabb(geom.hull_vertices(n, poses[n])) for n in geom.links]
+        lo = np.array([b[0] for b in boxes])
+        hi = np.array([b[1] for b in boxes])
+        fixed = self._fixed[:, None]
+        lo_b = np.where(fixed, self._fixed_lo, lo[self._b])
+        hi_b = np.where(fixed, self._fixed_hi, hi[self._b])
+        apart = np.maximum(np.maximum(lo[self._a] - hi_b, lo_b - hi[self._a]), 0.0)
+        gaps = np.sqrt(np.einsum("ij,ij->i", apart, apart))
+        scaled_gaps = gaps / self._rates
         scaled, least, where = np.inf, np.inf, ("", "")
-        for gap_r, gap, a, b, obj, r in order:
-            if gap > 0.0 and gap_r > scaled and gap > least:
+        for k in np.argsort(scaled_gaps, kind="stable").tolist():
+            gap, a, b, obj, r = gaps[k], *self.tasks[k]
+            if gap > 0.0 and scaled_gaps[k] > scaled and gap > least:
                 continue
             if obj is None:
                 d = geom.link_distance(a, b, poses)
