@@ -246,17 +246,19 @@ def ramp(
     during: str,
 ) -> None:
     """Goals from ``start`` to ``goal`` (the joints of ``specs``) on a straight line in
-    joint space, stepped at 50 Hz, no servo faster than :data:`DEPLOY_SPEED` of its
-    no-load speed; a servo trailing its goal by more than :data:`DEPLOY_LAG_RAD` a period
-    after it went out stops the motion where the servos are (``during`` says when)."""
+    joint space, stepped at 50 Hz along it as :func:`smooth_share` times them (at rest at
+    both ends: a goal stopped at once from speed left the servos to overshoot it), no
+    servo faster than :data:`DEPLOY_SPEED` of its no-load speed; a servo trailing its
+    goal by more than :data:`DEPLOY_LAG_RAD` a period after it went out stops the motion
+    where the servos are (``during`` says when)."""
     per_rad = shaft_per_rad(specs)
     speed = design.servo.no_load_speed * per_rad * DEPLOY_SPEED
     start, goal = np.asarray(start, dtype=float), np.asarray(goal, dtype=float)
-    seconds = float(np.max(np.abs(goal - start) / speed))  # the farthest joint's
-    steps = max(1, math.ceil(seconds / CONTROL_DT))
+    seconds = float(np.max(np.abs(goal - start) / speed))  # the farthest joint's, at speed
+    steps = max(1, math.ceil(SMOOTH_PEAK * seconds / CONTROL_DT))
     due = time.monotonic()
     for k in range(1, steps + 1):
-        s = k / steps
+        s = smooth_share(k / steps)
         target = (1 - s) * start + s * goal
         send(target)
         now = time.monotonic()  # a late period is not caught up (goals in a burst: off the line)
@@ -270,6 +272,18 @@ def ramp(
                 f"{specs[i].joint} trails its goal by {lag[i]:.2f} rad (over {DEPLOY_LAG_RAD}) "
                 f"{during}: held back? the payload holds where it is"
             )
+
+
+SMOOTH_PEAK = 1.875
+"""The largest rate of :func:`smooth_share` (at the middle), over its mean: a motion timed
+by it takes this much longer than one at its peak speed throughout."""
+
+
+def smooth_share(tau: float) -> float:
+    """The share of the way along a motion at ``tau`` of its time: ``10 tau^3 - 15 tau^4
+    + 6 tau^5``, the minimum-jerk profile (at rest, unaccelerated, at both ends; its rate
+    at most :data:`SMOOTH_PEAK`)."""
+    return tau**3 * (10.0 - 15.0 * tau + 6.0 * tau * tau)
 
 
 def tolerance(hardware: Any) -> np.ndarray:

@@ -268,6 +268,25 @@ def test_stow_reverses_the_deployment(caplog):
     assert np.all(np.abs(fold[0] - home.q) <= np.abs(b - home.q) / 20)  # it starts at home
     tol = np.array([s.units_per_tick * band_ticks(s.joint) for s in smap.servos])
     assert np.all(np.abs(np.append(end.q, end.deploy) - np.append(b, 0.0)) <= tol)
+    # where the servos physically were, posed in the design's collision model: no pair
+    # through each other and nothing in the vehicle (the goals stopped at the stowed
+    # posture from speed: the fingers overshot it, B_distal 2 mm into the carriage)
+    from payload.design import build_tree
+    from payload.design.tree import ALL_JOINTS
+    from payload.envelope.deployment import _obstacles
+    from payload.envelope.geometry import PayloadGeometry
+    from payload.envelope.vehicle import vehicle_from_dict
+
+    geom = PayloadGeometry(build_tree(design))
+    body = _obstacles(geom, vehicle_from_dict(design.vehicle or {}, source="test"))
+    moving = [n for n in geom.links if n != geom.root]
+    values = np.array([[sp.from_ticks(w.of(sp.id)[k]) for sp in smap.servos]
+                       for k in range(0, up, 2)])  # fmt: skip
+    least = min(
+        geom.min_distance(geom.poses(dict(zip(ALL_JOINTS, q))), others=body, moving=moving)[0]
+        for q in values
+    )
+    assert least > 0.0, least
 
 
 def test_an_unhomed_rail_or_stage_is_placed_at_its_reading_plus_whole_turns():
