@@ -36,9 +36,9 @@ RAIL, STAGE = ALL_JOINTS.index("rail"), ALL_JOINTS.index("stage")
 """The rail's and the stage's places in a servo map (``ALL_JOINTS`` order): the finger
 servos are the ones before the rail."""
 DEPLOY_SPEED = 0.5
-"""The share of each servo's no-load speed at which the payload's goals are stepped
-while it unfolds, stows or folds before homing: the joint with the farthest to go sets
-the motion's time."""
+"""The share of each servo's no-load speed at which the payload's goals are stepped at
+their fastest (mid-way on :func:`smooth_share`'s profile) while it unfolds, stows or
+folds before homing: the joint with the farthest to go sets the motion's time."""
 DEPLOY_LAG_RAD = 0.3
 """The most a servo may trail the goal it was sent a control period before while the
 payload unfolds, stows or folds [rad of the servo's shaft]: more, and it is held back (a
@@ -72,15 +72,15 @@ def move_to_home(hardware: Any, timeout: float = 6.0, cleared: bool = False) -> 
     From the stowed posture (how the payload powers up in its bays; homing leaves the rail
     and the stage there) it deploys as ``payload report envelope`` checked the deployment:
     the stage down with the fingers and the rail held, then the fingers and the rail
-    straight in joint space to home, goals stepped at 50 Hz at :data:`DEPLOY_SPEED` of the
-    servos' speed (a servo trailing its goal by more than :data:`DEPLOY_LAG_RAD` stops it
-    there). Those goals bypass the command guard, whose capsule margins flag the stowed
-    posture itself: the envelope check has cleared the path with the exact meshes, and a
-    design whose check fails is refused before anything moves (``cleared``: the caller
-    has asked, before the bring-up, as ``ready_at_home`` does). With the stage up and
-    a finger or the rail more than :data:`STOWED_TOL_RAD` from stowed, or the stage
-    already down, the goal is home at once, guarded, as it always was (the first with a
-    warning).
+    straight in joint space to home, goals stepped at 50 Hz on :func:`smooth_share`'s
+    profile, at most :data:`DEPLOY_SPEED` of the servos' speed (a servo trailing its goal by
+    more than :data:`DEPLOY_LAG_RAD` stops it there). Those goals bypass the command guard,
+    whose capsule margins flag the stowed posture itself: the envelope check has cleared the
+    path with the exact meshes, and a design whose check fails is refused before anything
+    moves (``cleared``: the caller has asked, before the bring-up, as ``ready_at_home``
+    does). With the stage up and a finger or the rail more than :data:`STOWED_TOL_RAD` from
+    stowed, or the stage already down, the goal is home at once, guarded, as it always was
+    (the first with a warning).
 
     A servo with no I gain stops anywhere inside its friction dead band around the goal
     (:func:`payload.design.servo.dead_band_ticks`, 8.5 ticks at P 600): "there" is
@@ -126,7 +126,7 @@ def stow(hardware: Any, timeout: float = 6.0) -> PayloadState:
     goals are checked), then straight in joint space to the stowed posture and the stage
     up with the fingers and the rail held, the path ``payload report envelope`` checked
     (the guard set aside: its capsule margins flag the stowed posture), goals stepped at
-    50 Hz at :data:`DEPLOY_SPEED` (:data:`DEPLOY_LAG_RAD` stops it). First every servo
+    50 Hz as :func:`ramp` steps them (:data:`DEPLOY_LAG_RAD` stops it). First every servo
     comes to rest where it is (the stage down, lowered if it is not, the fingers held).
     The Bus Watchdog is disarmed: the motion is paced by the host, not a session's 50 Hz.
 
@@ -395,7 +395,7 @@ def fold_failures(design: Any, fingers: Mapping[str, float], rails: Sequence[flo
                     out.append(f"{c.a} and {c.b} collide ({-c.distance * 1e3:.1f} mm deep) {where}")
             out += [f"{h.link} hits the {h.body} ({-h.distance * 1e3:.1f} mm deep) {where}"
                     for h in leg.hits]  # fmt: skip
-            if not leg.certified:  # convex pieces touching where the solids do not
+            if not leg.certified:  # a stretch the proof could not settle either way
                 out.append(f"the fold is not proved clear between its checked postures {where}")
     return out
 

@@ -1102,9 +1102,10 @@ def _unfolding_case(design_dict, home_finger, distal, postures: int):
 def test_the_unfolding_rates_bound_every_links_point_speed(geom):
     """:func:`unfolding_rates` bounds how fast each link's points move along a straight
     joint-space line (the proof of the unfolding rests on it): on random lines between
-    postures within the joints' limits, no convex piece's vertex moves faster, by finite
-    differences of the posed vertices, than its link's bound; the carriage, carried by
-    the rail alone, moves exactly at its bound (the rail's change)."""
+    postures within the joints' limits, no convex piece's vertex, nor a point on a pad's
+    true sphere, moves faster, by finite differences of the posed points, than its link's
+    bound; the carriage, carried by the rail alone, moves exactly at its bound (the
+    rail's change)."""
     from payload.envelope.deployment import unfolding_rates
 
     rng = np.random.default_rng(3)
@@ -1119,13 +1120,46 @@ def test_the_unfolding_rates_bound_every_links_point_speed(geom):
         line = [{k: (1 - s) * a[k] + s * b[k] for k in a} for s in np.linspace(0, 1, n + 1)]
         poses = [geom.poses(q) for q in line]
         for link in geom.links:
-            pts = np.array([geom.hull_vertices(link, p[link]) for p in poses])
+            local = [geom.hull_vertices(link, np.eye(4))]  # and points of the true spheres
+            for piece in geom.pieces[link]:  # (a pad's mesh vertices lie inside its sphere)
+                if piece.sphere is not None:
+                    u = rng.normal(size=(64, 3))
+                    u /= np.linalg.norm(u, axis=1, keepdims=True)
+                    local.append(piece.sphere[0] + piece.sphere[1] * u)
+            local = np.vstack(local)
+            pts = np.array([p[link][:3, :3] @ local.T + p[link][:3, 3:4] for p in poses])
+            pts = pts.transpose(0, 2, 1)
             speed = np.linalg.norm(np.diff(pts, axis=0), axis=2).max() * n
             assert speed <= rate[link] * (1 + 1e-9) + 1e-12, (link, speed, rate[link])
             worst = max(worst, speed / rate[link] if rate[link] > 0 else 0.0)
         assert rate["carriage"] == pytest.approx(abs(b["rail"] - a["rail"]), rel=1e-12)
         assert rate[geom.root] == 0.0
     assert worst == pytest.approx(1.0, rel=1e-9)  # the carriage's: a bound, and a tight one
+
+
+def test_an_unfolding_not_proved_clear_fails_and_says_why(geom, monkeypatch):
+    """A line the proof cannot settle (here: its halving stopped at once, the stretches
+    too long to prove) is not clear: the verdict fails naming it, the figure's title says
+    the path is not clear, and the hardware's deployment gate refuses the design (it read
+    the failures, which had no phrase for it: the gate let it through, the verdict read
+    "FAILS: ")."""
+    import payload.envelope.deployment as deployment
+    from payload.envelope.envelope_figure import figure_title
+    from payload.envelope.verdict import envelope_verdict
+
+    monkeypatch.setattr(deployment, "PROOF_MIN_MOTION_M", 1.0)
+    a = analyse_envelope(geom, VEHICLE, search=False)
+    u = a.given.unfolding
+    assert not u.certified and not u.collisions and not u.hits and not u.clear
+    said = "deployment: the fingers' unfolding could not be proved contact-free"
+    assert a.given.failures() == [said] and not a.passed
+    assert envelope_verdict(a) == f"verdict: FAILS: {said}"
+    assert "the deployment path is not clear" in figure_title(a.given)
+    from firmware_interface.deployment import deployment_cleared
+    from firmware_interface.errors import DynamixelError
+
+    with pytest.raises(DynamixelError, match="could not be proved contact-free"):
+        deployment_cleared(geom.tree.design)
 
 
 @pytest.mark.parametrize(

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
-from functools import cached_property
+from functools import cached_property, lru_cache
 from typing import Any
 
 import numpy as np
@@ -86,8 +86,9 @@ class Joint:
     group: str = ""
 
     def origin(self) -> np.ndarray:
-        """Homogeneous transform parent -> joint frame at q = 0, shape (4, 4)."""
-        return homogeneous(rpy_matrix(self.rpy), np.asarray(self.xyz))
+        """Homogeneous transform parent -> joint frame at q = 0, shape (4, 4) (made once a
+        joint: read-only)."""
+        return _origin(tuple(self.xyz), tuple(self.rpy))
 
     def motion(self, q: float) -> np.ndarray:
         """Homogeneous transform of the joint motion by ``q``, shape (4, 4)."""
@@ -127,6 +128,13 @@ def axis_angle(axis: np.ndarray, angle: float) -> np.ndarray:
     k = np.asarray(axis, dtype=float)
     kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
     return np.eye(3) + np.sin(angle) * kx + (1 - np.cos(angle)) * kx @ kx
+
+
+@lru_cache(maxsize=256)
+def _origin(xyz: tuple[float, ...], rpy: tuple[float, ...]) -> np.ndarray:
+    out = homogeneous(rpy_matrix(rpy), np.asarray(xyz))
+    out.setflags(write=False)
+    return out
 
 
 def homogeneous(rot: np.ndarray, pos: np.ndarray) -> np.ndarray:

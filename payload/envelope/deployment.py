@@ -29,9 +29,10 @@ UNFOLD_STEP_RAD = math.radians(1.0)
 """The most a revolute joint moves between two checked postures of the unfolding [rad]."""
 UNFOLD_STEP_M = 0.5e-3
 """The most the rail moves between two checked postures of the unfolding [m]."""
-UNFOLD_MIN_MOTION_M = 1e-5
-"""The halving of the unfolding's unproved stretches stops where no link's point moves
-more than this between their ends [m] (the stage sweep's ``min_step``)."""
+PROOF_MIN_MOTION_M = 1e-5
+"""The halving of a deployment proof's unproved stretches stops where nothing moves more
+than this between their ends [m]: the stage's sweep (its ``min_step``) and the
+unfolding's."""
 
 
 def _obstacles(geom: PayloadGeometry, vehicle: Vehicle) -> list[tuple[str, Any, tuple]]:
@@ -53,7 +54,7 @@ def deployment_sweep(
     vehicle: Vehicle,
     q: Mapping[str, float],
     contacts: Sequence[PairContact] | None = None,
-    min_step: float = 1e-5,
+    min_step: float = PROOF_MIN_MOTION_M,
     extra: Sequence[tuple[str, np.ndarray, np.ndarray]] = (),
 ) -> SweepResult:
     """Lower the stage from 0 to its full travel with the fingers held in ``q``.
@@ -160,7 +161,7 @@ def unfolding_rates(
     start = {**start, "stage": end.get("stage", 0.0)}
     rates = {}
     for link in geom.links:
-        reach = float(np.max(np.linalg.norm(geom.hull_vertices(link, np.eye(4)), axis=1)))
+        reach = geom.reach(link)
         rate, name = 0.0, link
         while name in above:
             j = above[name]
@@ -191,7 +192,7 @@ def unfolding_check(
     is proved contact-free as the stage's sweep is: a stretch whose end distances, each
     over the two things' bound of :func:`unfolding_rates`, add up to more than its length
     cannot hold a contact; other stretches are halved (down to
-    :data:`UNFOLD_MIN_MOTION_M` of motion), and a contact a halving finds is reported as
+    :data:`PROOF_MIN_MOTION_M` of motion), and a contact a halving finds is reported as
     the postures' are."""
     n = unfolding_samples(geom, stowed, home)
     postures = unfolding_postures(stowed, home, n)
@@ -203,16 +204,22 @@ def unfolding_check(
     deepest: dict[str, BodyHit] = {}
     for q in postures:
         _examine(geom, q, pairs, body, moving, collided, deepest)
-    proof = _UnfoldProof(geom, body, stowed, home, pairs, moving, collided, deepest)
-    certified = proof.run(np.linspace(0.0, 1.0, n + 1))
-    for s in sorted(proof.touching):  # contacts between the postures: said as theirs are
-        _examine(geom, _posture_at(stowed, home, s), pairs, body, moving, collided, deepest)
-    if proof.touching:  # each explained by a contact now reported, or not proved clear:
-        again = _UnfoldProof(geom, body, stowed, home, pairs, moving, collided, deepest)
-        if again.tasks and any(again.distance(s)[0] <= 0 for s in proof.touching):
-            certified = False  # convex pieces that touch, solids that share no volume
-    s_min = min(proof.values, key=lambda s: proof.values[s][1], default=None)
-    d_min, between = (np.inf, ("", "")) if s_min is None else proof.values[s_min][1:]
+    grid = np.linspace(0.0, 1.0, n + 1)
+    while True:  # a stretch with an end in contact is proved for no pair: again without it
+        proof = _UnfoldProof(geom, body, stowed, home, pairs, moving, collided, deepest)
+        certified = proof.run(grid)
+        if not proof.touching:
+            break
+        known = len(collided) + len(deepest)
+        for s in sorted(proof.touching):  # contacts between the postures: said as theirs are
+            q = _posture_at(stowed, home, s)
+            _examine(geom, q, pairs, body, moving, collided, deepest)
+        if len(collided) + len(deepest) == known:  # pieces that touch, solids that do not
+            certified = False
+            break
+    on_the_way = {s: v for s, v in proof.values.items() if s > 0.0}  # s = 0: the stowed
+    s_min = min(on_the_way, key=lambda s: on_the_way[s][1], default=None)  # fit's figures
+    d_min, between = (np.inf, ("", "")) if s_min is None else on_the_way[s_min][1:]
     collisions = sorted(collided.values(), key=lambda c: c.distance)
     hits = sorted(deepest.values(), key=lambda h: h.distance)
     return UnfoldResult(
@@ -269,7 +276,7 @@ class _UnfoldProof:
                   if link not in deepest for name, obj, bounds in body]  # fmt: skip
         self.tasks = [t for t in tasks if t[3] > 0.0]  # what does not move was checked
         fastest = max(rate.values(), default=0.0)
-        self.min_step = UNFOLD_MIN_MOTION_M / fastest if fastest > 0 else 1.0
+        self.min_step = PROOF_MIN_MOTION_M / fastest if fastest > 0 else 1.0
         self.values: dict[float, tuple[float, float, tuple[str, str]]] = {}
         self.touching: set[float] = set()
         # the tasks' bounding boxes as arrays: the first's link, the second's link or the
@@ -290,7 +297,7 @@ class _UnfoldProof:
         all at once) and left once neither can be smaller."""
         geom = self.geom
         poses = geom.poses(_posture_at(self.stowed, self.home, s))
-        boxes = [aabb(geom.hull_vertices(n, poses[n])) for n in geom.links]
+        boxes = [geom.piece_bounds(n, poses[n]) for n in geom.links]
         lo = np.array([b[0] for b in boxes])
         hi = np.array([b[1] for b in boxes])
         fixed = self._fixed[:, None]
@@ -300,14 +307,21 @@ class _UnfoldProof:
         gaps = np.sqrt(np.einsum("ij,ij->i", apart, apart))
         scaled_gaps = gaps / self._rates
         scaled, least, where = np.inf, np.inf, ("", "")
+        posed: dict[str, list] = {}  # each link's posed pieces, made once (link_distance's)
+
+        def pieces(link: str) -> list:
+            if link not in posed:
+                posed[link] = geom.piece_objects(link, poses[link])
+            return posed[link]
+
         for k in np.argsort(scaled_gaps, kind="stable").tolist():
             gap, a, b, obj, r = gaps[k], *self.tasks[k]
             if gap > 0.0 and scaled_gaps[k] > scaled and gap > least:
                 continue
             if obj is None:
-                d = geom.link_distance(a, b, poses)
+                d = min(signed_distance(x, y) for x in pieces(a) for y in pieces(b))
             else:
-                d = min(signed_distance(o, obj[0]) for o in geom.piece_objects(a, poses[a]))
+                d = min(signed_distance(o, obj[0]) for o in pieces(a))
             scaled = min(scaled, d / r)
             if d < least:
                 least, where = d, (a, b)
@@ -394,7 +408,7 @@ def _first_contact(
 
 
 __all__ = [
-    "UNFOLD_MIN_MOTION_M",
+    "PROOF_MIN_MOTION_M",
     "UNFOLD_STEP_M",
     "UNFOLD_STEP_RAD",
     "deployment_sweep",

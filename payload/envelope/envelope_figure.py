@@ -254,8 +254,9 @@ def _deployment_panel(ax: Any, geom: PayloadGeometry, vehicle: Vehicle, check: S
         else ("carried parts collide" if sweep.vehicle_clear else "BLOCKED by the vehicle")
     )
     if not check.unfolding.clear:
+        u = check.unfolding
         verdict += "; the fingers unfolding: " + (
-            "hit the vehicle" if check.unfolding.hits else "links collide"
+            "hit the vehicle" if u.hits else "links collide" if u.collisions else "not proved clear"
         )
     ax.set_title(
         f"deployment sweep, stage 0 -> {stage.upper * 1e3:.0f} mm (dashed: stowed): {verdict}\n"

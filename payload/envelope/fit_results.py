@@ -372,6 +372,8 @@ class StowedCheck:
                 f"deployment: {h.link} hits the {h.body} as the fingers unfold "
                 f"({-h.distance * 1e3:.1f} mm deep)"
             )
+        if not self.unfolding.certified:
+            out.append("deployment: the fingers' unfolding could not be proved contact-free")
         return out
 
 

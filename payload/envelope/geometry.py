@@ -225,6 +225,27 @@ class PayloadGeometry:
         """
         return apply(pose, self._hull_vertices[link])
 
+    def piece_bounds(self, link: str, pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Axis-aligned bounds of the link's convex pieces in the payload frame [m]: the
+        hull vertices', and a sphere piece's whole sphere (its mesh's vertices lie inside
+        the sphere the collision checks use)."""
+        lo, hi = aabb(self.hull_vertices(link, pose))
+        for p in self.pieces[link]:
+            if p.sphere is not None:
+                centre = pose[:3, :3] @ p.sphere[0] + pose[:3, 3]
+                lo = np.minimum(lo, centre - p.sphere[1])
+                hi = np.maximum(hi, centre + p.sphere[1])
+        return lo, hi
+
+    def reach(self, link: str) -> float:
+        """The farthest any point of the link's convex pieces lies from its frame's origin
+        [m] (a sphere piece's: its centre's distance plus its radius)."""
+        far = float(np.max(np.linalg.norm(self._hull_vertices[link], axis=1)))
+        for p in self.pieces[link]:
+            if p.sphere is not None:
+                far = max(far, float(np.linalg.norm(p.sphere[0])) + float(p.sphere[1]))
+        return far
+
     def posed_solid(self, link: str, pose: np.ndarray) -> m3d.Manifold:
         """The link solid in the payload frame."""
         return self.solids[link].transform(np.asarray(pose[:3, :]).tolist())

@@ -242,7 +242,7 @@ def unfolding_line(check: StowedCheck) -> str:
     said = [f"{c.a} and {c.b} collide" for c in u.collisions]
     said += [f"{h.link} hits the {h.body}" for h in u.hits]
     if not u.certified:
-        said.append("not proved clear between its postures (the halving stopped)")
+        said.append("not proved clear between its postures")
     closest = ""
     if u.clear and math.isfinite(u.min_distance):  # a failing line: its contacts, above
         tight = " (tight)" if 0.0 < u.min_distance < TIGHT_CLEARANCE else ""
