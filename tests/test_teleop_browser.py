@@ -215,8 +215,9 @@ def test_page_with_the_hardware_driver_over_the_emulator_says_hardware_and_fits(
         # the emulator shares the host's two cores with the test's workers: a reply
         # allowance of 50 ms, as the other emulated-bus tests give it
         argv = [sys.executable, "-c", code, "teleop", "serve", "--driver", "hardware",
-                "--device", emu.port, "--port", "0", "--seconds", "120",
+                "--device", emu.port, "--port", "0", "--seconds", "120", "--stay-deployed",
                 "--status-interval", "0.5", "--latency-ms", f"{EMULATOR_LATENCY_MS:g}"]  # fmt: skip
+        # (--stay-deployed: the stow at the server's end is test_teleop_server's)
         # Ctrl-C reaches it even when this process ignores SIGINT (a background job)
         proc = subprocess.Popen(
             argv,
