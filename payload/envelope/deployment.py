@@ -280,7 +280,7 @@ class _UnfoldProof:
         self.values: dict[float, tuple[float, float, tuple[str, str]]] = {}
         self.touching: set[float] = set()
         # the tasks' bounding boxes as arrays: the first's link, the second's link or the
-        # obstacle's fixed bounds (NaN rows where a link's are taken)
+        # obstacle's fixed bounds (zero rows where a link's are taken instead)
         index = {n: i for i, n in enumerate(geom.links)}
         self._a = np.array([index[t[0]] for t in self.tasks], dtype=np.intp)
         self._b = np.array([index.get(t[1], 0) for t in self.tasks], dtype=np.intp)
