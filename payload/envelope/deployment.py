@@ -17,7 +17,6 @@ from payload.envelope.fit_results import (
 )
 from payload.envelope.geometry import (
     PayloadGeometry,
-    aabb,
     aabb_gap,
     box_geometry,
     signed_distance,
@@ -239,7 +238,7 @@ def _examine(
     """Add posture ``q``'s colliding pairs and links in the vehicle body, each kept at its
     deepest, to ``collided`` and ``deepest``."""
     poses = geom.poses(q)
-    boxes = {n: aabb(geom.hull_vertices(n, poses[n])) for n in geom.links}
+    boxes = {n: geom.piece_bounds(n, poses[n]) for n in geom.links}
     for c in colliding_pairs(geom, poses, boxes, pairs):
         key = frozenset((c.a, c.b))
         if key not in collided or c.distance < collided[key].distance:

@@ -297,7 +297,7 @@ class PayloadGeometry:
             (distance [m], names of the closest pair).
         """
         pairs = self.pairs if pairs is None else tuple(pairs)
-        boxes = {n: aabb(self.hull_vertices(n, poses[n])) for n in self.links}
+        boxes = {n: self.piece_bounds(n, poses[n]) for n in self.links}
         tasks: list[tuple[float, str, str, fcl.CollisionObject | None]] = []
         for a, b in pairs:
             tasks.append((aabb_gap(boxes[a], boxes[b]), a, b, None))
