@@ -274,7 +274,7 @@ def ramp(
             )
 
 
-SMOOTH_PEAK = 1.875
+SMOOTH_PEAK = 30.0 * 0.5**2 * (1.0 - 0.5) ** 2  # the profile's rate 30 tau^2 (1 - tau)^2 at 1/2
 """The largest rate of :func:`smooth_share` (at the middle), over its mean: a motion timed
 by it takes this much longer than one at its peak speed throughout."""
 

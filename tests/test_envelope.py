@@ -39,6 +39,7 @@ from payload.envelope.fit import (
     self_contacts,
     with_finger_posture,
 )
+from payload.envelope.fit_results import TIGHT_CLEARANCE
 from payload.envelope.vehicle import BAY_ASSUMPTION
 from payload.project import SOURCES
 
@@ -965,7 +966,7 @@ def test_a_stowed_fit_with_room_to_spare_is_not_tight_and_a_close_unfolding_is_s
     dense = unfolding_postures(a.given.q, geom.tree.posture("home"), 4000)
     least = min(geom.link_distance(*u.between, geom.poses(q)) for q in dense)
     assert set(u.between) == {"carriage", "B_distal"}
-    assert least - 1e-9 <= u.min_distance <= least + 5e-6 and u.min_distance < 0.5e-3
+    assert least - 1e-9 <= u.min_distance <= least + 5e-6 and u.min_distance < TIGHT_CLEARANCE
     assert said.endswith(
         f"deployment path clear (tight: {u.between[0]} / {u.between[1]} "
         f"{u.min_distance * 1e3:.2f} mm apart as the fingers unfold)"
@@ -1133,7 +1134,6 @@ def test_the_unfolding_rates_bound_every_links_point_speed(geom):
             assert speed <= rate[link] * (1 + 1e-9) + 1e-12, (link, speed, rate[link])
             worst = max(worst, speed / rate[link] if rate[link] > 0 else 0.0)
         assert rate["carriage"] == pytest.approx(abs(b["rail"] - a["rail"]), rel=1e-12)
-        assert rate[geom.root] == 0.0
     assert worst == pytest.approx(1.0, rel=1e-9)  # the carriage's: a bound, and a tight one
 
 

@@ -103,10 +103,10 @@ def envelope_markdown(a: EnvelopeAnalysis, command: str, figure: str) -> str:
                 f"**A tight fit:** {g.tight_phrase()} (ASSUMPTION). It passes, but a printed "
                 "part may not stow this close: worth a second look.",
             ]
-        if unfolding_tight(g):
+        if close := unfolding_tight(g):
             out += [
                 "",
-                f"**A close deployment:** {unfolding_tight(g)}, under "
+                f"**A close deployment:** {close}, under "
                 f"{clearance_text(TIGHT_CLEARANCE)} (ASSUMPTION, as for a stowed fit). It "
                 "passes, but the servos trail their goals on the way: worth a second look.",
             ]
@@ -245,7 +245,7 @@ def unfolding_line(check: StowedCheck) -> str:
         said.append("not proved clear between its postures")
     closest = ""
     if u.clear and math.isfinite(u.min_distance):  # a failing line: its contacts, above
-        tight = " (tight)" if 0.0 < u.min_distance < TIGHT_CLEARANCE else ""
+        tight = " (tight)" if unfolding_tight(check) else ""
         closest = (
             f"; closest {u.min_distance * 1e3:.2f} mm{tight} ({u.between[0]} / "
             f"{u.between[1]}) over the {u.evaluated} postures the proof evaluated"
